@@ -26,8 +26,13 @@
                         it serves: _HealOnceServed) the cut heals and rule 22 decides
                         (the one served first is kept, the second yields); that
                         supervisor runs to the end of the run (`close`)
+   deaf_manager ──────► its process cannot hear its router (SimulatedNetwork.deafen: it
+                        serves no name, its calls and the calls to it fail, it hears
+                        every other name lost, rule 19); `for` s later it hears again
+                        (`hear`: a heal for it, rule 20)
  stop ─► hung managers continued; armed faults that never fired, triggers that never
-         came and faults due after the end recorded as skipped (FaultLog)
+         came and faults due after the end recorded as skipped (FaultLog); deaf
+         managers hear again
  close (after the tree's stop) ─► the supervisors of second servers stop
 ```
 
@@ -108,6 +113,7 @@ class SimulatedFaults:
         self._wake = runtime.Condition()
         self._stopped = False
         self._hung: dict[int, str] = {}  # pid -> manager
+        self._deaf: set[int] = set()  # pids that do not hear their router now
         self._armed: dict[tuple[int, int], tuple[ScheduledFault, float]] = {}  # not fired yet
         self._due: dict[int, tuple[ScheduledFault, float]] = {}  # on the agenda, by number
         self._open: dict[tuple[int, int], Callable[[], None]] = {}  # recorded once they end
@@ -156,6 +162,9 @@ class SimulatedFaults:
         for key in list(self._open):
             self._close(key)
         self.network.heal()  # (a partition_serving still on)
+        for pid in sorted(self._deaf):
+            self.network.hear(pid)
+        self._deaf.clear()
         for fault, _ in self._armed.values():
             SETUP_FAULTS.pop(fault.target or "", None)
         for fault in self._triggered.take():
@@ -253,6 +262,8 @@ class SimulatedFaults:
             self.log.record(fault, at, self._now(), f"SIGSTOP pid {pid}")
             for_s = self.plan.faults[fault.fault].for_s or 0.0
             self._at(runtime.monotonic() + for_s, functools.partial(self._resume, pid), None)
+        elif kind == "deaf_manager":
+            self._deafen(fault, at, pid)
         elif kind == "cut_connections":
             self.network.cut_connections(pid)
             self.log.record(fault, at, self._now(), f"cut pid {pid}'s connections")
@@ -294,6 +305,21 @@ class SimulatedFaults:
     def _resume(self, pid: int) -> None:
         if self._hung.pop(pid, None) is not None:
             simulation.kill(pid, signal.SIGCONT)  # (a process killed meanwhile: left alone)
+
+    def _deafen(self, fault: ScheduledFault, at: float, pid: int) -> None:
+        """Its process cannot hear its router; `for` s later it hears again."""
+        for_s = self.plan.faults[fault.fault].for_s or 0.0
+        self.network.deafen(pid)
+        self._deaf.add(pid)
+        self.log.record(
+            fault, at, self._now(), f"pid {pid} cannot hear its router, for {for_s:g} s"
+        )
+        self._at(runtime.monotonic() + for_s, functools.partial(self._hear, pid), None)
+
+    def _hear(self, pid: int) -> None:
+        if pid in self._deaf:
+            self._deaf.discard(pid)
+            self.network.hear(pid)
 
     def _aim(self, fault: ScheduledFault) -> str:
         return {

@@ -115,6 +115,7 @@ def status_reached(
     facts: Facts,
     spans: dict[tuple[str, str], list[Span]],
     lives: dict[tuple[str, int], Life],
+    history: Sequence[Line],
 ) -> list[Finding]:
     """`status-reached`: every holder that held its id throughout a status got it.
 
@@ -126,8 +127,12 @@ def status_reached(
     before it may come first). The one that sends it on must have gone on after it did
     (an event of the same life later: a kill right after the send, before the notice
     left, reaches nobody). A consumer that tells itself `FATAL` (`REPORTED`) delivers it
-    before it forgets the id.
+    before it forgets the id. Nor does a status reach a holder cut off its sender (a process
+    that cannot hear its router, rule 19 both ways): the sender heard the holder lost
+    and let its id go (`death watch`), and the holder forgot it as one it could not
+    reach (its reconcile found it gone, `FATAL`; or its unload went unanswered).
     """
+    cut_off = _cut_off(history)
     findings: list[Finding] = []
     for line, holder, qid in facts.told_self:
         if facts.fatal.get(qid, line) >= line:
@@ -143,6 +148,8 @@ def status_reached(
             )
     for want in expected:
         if (want.status_id, want.query_id) in facts.delivered:
+            continue
+        if (want.sender, want.holder, want.query_id) in cut_off:
             continue
         sender = lives.get((want.sender, want.life))
         if sender is None or sender.last_line <= want.line:
@@ -173,3 +180,24 @@ def status_reached(
             )
             break
     return findings
+
+
+_UNREACHED = ("unknown at reconcile", "unload unanswered")
+"""How a consumer forgets an id at a provider it could not hear (`_cut_off`)."""
+
+
+def _cut_off(history: Sequence[Line]) -> set[tuple[str, str, str]]:
+    """(provider, consumer, query id) of each id the provider let go because it heard
+    the consumer lost (`death watch`) while the consumer lived on and then forgot it as
+    one whose provider it could not reach (`_UNREACHED`: its reconcile found it gone, or
+    its unload went unanswered): the two could not hear each other (a cut)."""
+    released: set[tuple[str, str, str]] = set()
+    cut: set[tuple[str, str, str]] = set()
+    for _, event in history:
+        if isinstance(event, events.ConsumerReleased) and event.reason == "death watch":
+            released.add((event.registrar, event.consumer, event.query_id))
+        elif isinstance(event, events.QueryForgotten) and event.reason in _UNREACHED:
+            key = (event.serving_rr, event.registrar, event.query_id)
+            if key in released:
+                cut.add(key)
+    return cut

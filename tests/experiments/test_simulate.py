@@ -550,6 +550,34 @@ def test_a_run_whose_fault_fails_to_close_still_cleans_up_for_the_next_seed(
 
 
 @SWEEP
+def test_a_deaf_manager_fails_calls_both_ways_until_it_hears_its_router_again() -> None:
+    """`deaf_manager` (`SimulatedNetwork.deafen`): api's process hears nothing of the
+    system for 0.6 s: the calls to it and its own fail as unavailable at once, it hears
+    db lost (rule 19: FATAL, forgotten) and the others do not hear it lost (its
+    supervisor lives: not restarted either, its heartbeat is not the network's); once it
+    hears again, calls to it are answered, and the history holds (the checker sees the
+    cut in what each side let go)."""
+    plan = with_faults('kind = "deaf_manager"\ntarget = "api"\nat = 0.5\nfor = 0.6')
+
+    runs = simulate.simulate(plan, range(1, 21))
+
+    held(runs)
+    for run in runs:
+        [deaf] = fired(run)
+        assert deaf["detail"].endswith("cannot hear its router, for 0.6 s")
+        t0 = run_t0(run)
+        failed = [e for e in lines(run, "CallFailed") if "cannot hear its router" in e["message"]]
+        assert failed
+        assert all(0.5 <= e["at"] - t0 <= 1.1 for e in failed)
+        answered = [e for e in lines(run, "CallAnswered") if e["serving_rr"] == "api"]
+        assert any(e["at"] - t0 > 1.1 for e in answered)
+        assert [] == [e for e in lines(run, "ChildExited") if e["reason"] != "shutdown"]
+    lost = [e for r in runs for e in lines(r, "QueryForgotten") if e["reason"] == "provider lost"]
+    assert lost
+    assert {"api"} == {e["registrar"] for e in lost}
+
+
+@SWEEP
 def test_without_the_yield_two_servers_of_one_name_are_a_one_name_violation(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

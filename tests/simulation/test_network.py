@@ -15,9 +15,11 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import simulation
+from rr_actors._core import runtime
 from rr_actors.simulation import _run
 from rr_actors.simulation._network import DELAY, _SimulatedHub, _Wire
 from rr_actors.simulation._run import running_scheduler
+from tests.support import simulated
 
 pytest.importorskip("greenlet")  # (the simulation extra)
 
@@ -315,3 +317,266 @@ def test_the_files_of_the_processes_a_run_killed_are_closed_when_it_ends(
         gc.enable()
 
     assert ((), before) == (tuple(run.errors), after)
+
+
+# -- lost for good (rule 19) and a process that cannot hear its router --------------------
+
+
+def serve_alone(
+    network: simulation.SimulatedNetwork, name: str, setup: Callable[[Any], None] = leaf_setup
+) -> Callable[[], None]:
+    """The main thread of a process that serves registrar `name` on `network` and that
+    nobody supervises (its membership names no speaker: rule 19)."""
+
+    def main() -> None:
+        registrar = rr.ResourceRegistrar.start(
+            rr.RegistrarConfig(name=name), network=network.address.attach()
+        )
+        setup(registrar)
+
+    return main
+
+
+def until_served(network: simulation.SimulatedNetwork, *names: str) -> None:
+    while not set(names) <= set(network.names()):
+        simulation.sleep(0.05)
+
+
+def lost_provider(how: str) -> Callable[[], Any]:
+    """A consumer `app` holds an id at `provider`, served by a process nobody restarts;
+    that process is killed (`kill`) or stopped past its lease (`stop`): the carrier says
+    it is lost (rule 19): `app` hears FATAL for the id once and forgets it."""
+
+    def scenario() -> Any:
+        network = simulation.SimulatedNetwork(lease=1.0)
+        app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=network)
+        try:
+            pid = simulation.start_process(serve_alone(network, "provider"), name="provider")
+            until_served(network, "provider")
+            heard: list[tuple[str, Any]] = []
+            held = app.call(
+                "provider",
+                "leaf",
+                "x",
+                on_status=lambda query, update: heard.append((query.id, update.status)),
+            )
+            simulation.kill(pid, signal.SIGKILL if how == "kill" else signal.SIGSTOP)
+            simulation.sleep(2.0)  # (past its lease)
+            try:
+                app.unload(held.id)
+            except rr.UnknownQueryError:
+                unload = "unknown"
+            else:
+                unload = "unloaded"
+            outcome = (heard == [(held.id, rr.Status.FATAL)], unload, app.client_queries())
+            if how == "stop":
+                simulation.kill(pid, signal.SIGCONT)
+            return outcome
+        finally:
+            try:
+                app.stop()
+            finally:
+                network.close()
+
+    return scenario
+
+
+@pytest.mark.parametrize("how", ["kill", "stop"])
+def test_a_provider_nobody_restarts_is_lost_and_its_consumer_hears_fatal_and_forgets(
+    how: str,
+) -> None:
+    """The carrier's rule 19 on the simulation: a process nobody supervises is killed, or
+    stopped past its lease (its tokens go, as Zenoh's): every process that hears the
+    network hears the name lost (`Messenger.lost`), so its consumers hear `FATAL` and
+    forget their ids (the same messenger and registrar code as on the real carriers)."""
+    for seed in range(10):
+        run = simulation.run(lost_provider(how), seed=seed, preempt=0.1)
+        assert ((True, "unknown", []), ()) == (run.value, tuple(run.errors)), f"seed {seed}"
+
+
+def test_a_provider_whose_supervisor_lives_is_awaited_not_lost_and_lost_once_that_one_goes() -> (
+    None
+):
+    """Rule 19: a killed manager whose supervisor's process is alive is not lost (it may
+    be restarted: its consumers keep their ids); once its supervisor's process is gone
+    too, it is lost (the real carriers' "awaited" names)."""
+
+    def scenario() -> Any:
+        folder = tempfile.mkdtemp(prefix="rr-sim-awaited-")
+        network = simulation.SimulatedNetwork()
+        app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=network)
+        children: list[int] = []
+
+        def tree() -> None:
+            spec = rr.ManagerSpec(
+                "provider", setup=leaf_setup, isolation="process", restart="temporary"
+            )
+            sup = rr.Supervisor(spec, state_dir=folder, network=network, name="tree")
+            sup.start()
+            pid = sup.child("provider").pid
+            assert pid is not None
+            children.append(pid)
+
+        try:
+            tree_pid = simulation.start_process(tree, name="tree")
+            until_served(network, "provider")
+            held = app.call("provider", "leaf", "x")
+            simulation.kill(children[0])  # (temporary: its supervisor does not restart it)
+            simulation.sleep(2.0)
+            awaited = [q.id for q in app.client_queries()]
+            simulation.kill(tree_pid)  # (its speaker goes too: nobody will say more)
+            simulation.sleep(2.0)
+            return held.id in awaited, [q.id for q in app.client_queries()]
+        finally:
+            try:
+                app.stop()
+            finally:
+                network.close()
+            shutil.rmtree(folder, ignore_errors=True)
+
+    for seed in range(5):
+        run = simulation.run(scenario, seed=seed, preempt=0.1)
+        assert ((True, []), ()) == (run.value, tuple(run.errors)), f"seed {seed}"
+
+
+def test_a_process_that_cannot_hear_its_router_serves_no_name_and_its_calls_fail() -> None:
+    """A process whose router went (`deafen`): it refuses to serve a name it cannot tell
+    is free (as Zenoh's `Presence.wait_turn`, with its words), its calls and the calls
+    to what it serves fail as unavailable at once, it hears every name served elsewhere
+    lost, and the others hear what it served, nobody's to restart, lost (rule 19). Once
+    it hears its router again (`hear`), calls both ways work again."""
+
+    def scenario() -> Any:
+        folder = tempfile.mkdtemp(prefix="rr-sim-deaf-")
+        network = simulation.SimulatedNetwork()
+        manager = rr.ManagerSpec("provider", setup=leaf_setup, isolation="process")
+        sup = rr.Supervisor(manager, state_dir=folder, network=network, name="root")
+        out: dict[str, Any] = {}
+        deaf = runtime.Event()
+        heard = runtime.Event()
+        done = runtime.Event()
+
+        def member() -> None:
+            me = rr.ResourceRegistrar.start(
+                rr.RegistrarConfig(name="member"), network=network.address.attach()
+            )
+            leaf_setup(me)
+            held = me.call("provider", "leaf", "m")
+            deaf.wait()
+            try:
+                rr.ResourceRegistrar.start(
+                    rr.RegistrarConfig(name="other"), network=network.address.attach()
+                )
+            except rr.RegistrarUnavailableError as exc:
+                out["serve"] = str(exc)
+            began = simulation.now()
+            try:
+                me.call("provider", "leaf", "n", timeout=5.0)
+            except rr.RegistrarUnavailableError:
+                out["call"] = ("unavailable", simulation.now() - began < 0.1)
+            simulation.sleep(0.5)
+            out["member holds"] = held.id in [q.id for q in me.client_queries()]
+            heard.wait()
+            simulation.sleep(1.0)  # (reachable again: the reconcile)
+            out["member after"] = me.call("provider", "leaf", "n").response
+            done.set()
+
+        try:
+            sup.start()
+            app = sup.registrar("app")
+            pid = simulation.start_process(member, name="member")
+            until_served(network, "member")
+            mine = app.call("member", "leaf", "a")
+            simulation.sleep(0.5)
+            network.deafen(pid)
+            deaf.set()
+            simulation.sleep(0.5)
+            began = simulation.now()
+            try:
+                app.call("member", "leaf", "b", timeout=5.0)
+            except rr.RegistrarUnavailableError:
+                out["app call"] = ("unavailable", simulation.now() - began < 0.1)
+            out["app holds"] = mine.id in [q.id for q in app.client_queries()]
+            network.hear(pid)
+            heard.set()
+            done.wait()
+            out["app after"] = app.call("member", "leaf", "c").response
+            app.stop()
+            return out
+        finally:
+            try:
+                sup.stop()
+            finally:
+                network.close()
+                shutil.rmtree(folder, ignore_errors=True)
+
+    for seed in range(10):
+        run = simulation.run(scenario, seed=seed, preempt=0.1)
+        assert () == tuple(run.errors), f"seed {seed}"
+        out = run.value
+        assert out.pop("serve").startswith(
+            "cannot tell whether another process of system 'simulated' serves a registrar "
+            "named 'other', so this process does not serve it: this process's router "
+        ), f"seed {seed}"
+        assert {
+            "call": ("unavailable", True),
+            "member holds": False,  # (its provider is lost for it: FATAL, forgotten)
+            "app call": ("unavailable", True),
+            "app holds": False,  # (what it served is lost: nobody restarts it)
+            "member after": "leaf n",
+            "app after": "leaf c",
+        } == out, f"seed {seed}"
+
+
+def lost_under_a_composite() -> dict[str, Any]:
+    """Rule 19 up a dependency path: `app` holds a composite of `agent` (both in the
+    network's process), built on a leaf of `provider`, served by a process nobody
+    restarts; that process is killed: the carrier says `provider` is lost."""
+    network = simulation.SimulatedNetwork()
+    heard: list[tuple[str, str, Any]] = []
+
+    def hear(who: str) -> Callable[[rr.Query, rr.StatusUpdate], None]:
+        return lambda query, update: heard.append((who, query.id, update.status))
+
+    agent, app = (
+        rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name), network=network)
+        for name in ("agent", "app")
+    )
+    try:
+        agent.register_server(
+            "composite",
+            load=lambda r: agent.call("provider", "leaf", r).response,
+            unload=lambda *_: None,
+            on_status=hear("composite"),
+        )
+        pid = simulation.start_process(serve_alone(network, "provider"), name="provider")
+        until_served(network, "provider")
+        held = app.call("agent", "composite", "x", on_status=hear("app"))
+        (leaf,) = agent.client_queries()
+        simulation.kill(pid)
+        simulation.sleep(1.0)
+        return {
+            "heard": sorted(heard),
+            "ids": (leaf.id, held.id),
+            "agent holds": [q.id for q in agent.client_queries()],
+            "app holds": [q.id for q in app.client_queries()],
+        }
+    finally:
+        try:
+            app.stop()
+            agent.stop()
+        finally:
+            network.close()
+
+
+def test_rule_19_a_lost_provider_is_fatal_up_every_path_once_and_forgotten() -> None:
+    def broken(seen: dict[str, Any]) -> bool:
+        _leaf, held = seen["ids"]
+        return (
+            [("app", held, rr.Status.FATAL), ("composite", held, rr.Status.FATAL)]
+            != seen["heard"]  # (the composite's server hears it about what app holds)
+            or [] != seen["agent holds"]  # (forgotten: rule 19)
+            or [held] != seen["app holds"]  # (its composite got FATAL; the id is app's)
+        )
+
+    assert [] == simulated.seeds_where(lost_under_a_composite, broken, simulated.SEEDS)
