@@ -308,22 +308,42 @@ class _SimulatedHub(_Hub):
         return _Server(self, endpoint, self._sender())
 
     def listen(self, endpoint: Endpoint) -> _Served:
-        """Serve `endpoint` in its process. One served under its name before on this
-        side of a partition is cut off (a registrar restarted elsewhere); one beyond it
-        serves on, for the processes of its side (rule 22 decides at the heal)."""
+        """Serve `endpoint` in its process: refused while a process on its side of a
+        partition serves the name (as the real carriers refuse it: AF_UNIX's lock, Zenoh's
+        `wait_turn`); one beyond the cut serves on, for the processes of its side (rule 22
+        decides at the heal). One its own process served is let go first (a registrar
+        restarted there: `Messenger.serve` does so for a process's own names).
+
+        Raises:
+            DuplicateNameError: another process on its side serves that name.
+            RegistrarUnavailableError: the one that serves it is silent past its lease
+                (not lost: it may run again; Zenoh refuses such a name, rule 22).
+            RegistrarStoppedError: the network was closed.
+        """
         server = self.served(endpoint)
-        name = endpoint.name
+        name, process = endpoint.name, server.process
         with self._lock:
+            before = self._servers.get(name, [])
+            near = [other for other in before if not self._across(other, process)]
+            rival = next((other for other in near if other.process is not process), None)
+            if not self.closed and rival is None:
+                self._servers[name] = [*(o for o in before if o not in near), server]
+                self._served[name] = server
+                self._gone.pop(name, None)
+        if self.closed or rival is not None:
+            server.inbox.close(timeout=0)
             if self.closed:
                 raise RegistrarStoppedError("the in-memory network was closed")
-            before = self._servers.get(name, [])
-            beyond = [other for other in before if self._across(other, server.process)]
-            self._servers[name] = [*beyond, server]
-            self._served[name] = server
-            self._gone.pop(name, None)
-        for old in before:
-            if old not in beyond:
-                self.end(old, "unavailable")
+            assert rival is not None
+            if name in self._silent:
+                raise RegistrarUnavailableError(
+                    f"registrar {name!r} is served by process {rival.process.pid}, silent "
+                    f"past its lease: not lost (it may run again), so process "
+                    f"{process.pid} does not serve that name"
+                )
+            raise self.duplicate_error(name, f"process {rival.process.pid}")
+        for old in near:
+            self.end(old, "unavailable")
         fire = self.serving.pop(name, None)
         if fire is not None:
             fire(server.process.pid)
