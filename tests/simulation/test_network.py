@@ -372,6 +372,45 @@ def test_a_second_server_of_a_name_served_on_its_side_is_refused_and_the_first_s
         assert (duplicate, True, "leaf y", ["x", "y"], True) == run.value, f"seed {seed}"
 
 
+def test_a_kill_beyond_a_cut_ends_what_the_killed_process_served_not_the_other_server() -> None:
+    """A name served on both sides of a cut, and the process of the one cut off is
+    killed: what it served ends, as the kernel closes a dead process's sockets; the
+    server on the other side serves on, and after the heal every process reaches it
+    (the process's end cut the name's newest server, the one beyond: the consumer's
+    next call failed, and the dead one stayed the name's server)."""
+
+    def body(supervisor: rr.Supervisor, app: rr.ResourceRegistrar, network: Any) -> Any:
+        first = supervisor.child("provider").pid
+        network.partition([first])
+        folder = tempfile.mkdtemp(prefix="rr-sim-beyond-")
+        spec = rr.ManagerSpec(
+            "provider", setup=leaf_setup, isolation="process", restart="temporary"
+        )
+        beyond = rr.Supervisor(spec, state_dir=folder, network=network, name="beyond")
+        try:
+            beyond.start()
+            second = beyond.child("provider").pid
+            simulation.kill(first, signal.SIGKILL)
+            during = app.call("provider", "leaf", "y", timeout=5.0).response
+            network.heal()
+            simulation.sleep(1.0)
+            after = app.call("provider", "leaf", "z", timeout=5.0).response
+            served = beyond.run_in(
+                "provider",
+                lambda r: sorted(q.request for q in r.server_queries("leaf")),
+                timeout=5.0,
+            )
+            return during, after, served, beyond.child("provider").pid == second
+        finally:
+            beyond.stop()
+            shutil.rmtree(folder, ignore_errors=True)
+
+    for seed in range(5):
+        scenario = with_provider(body, heartbeat=None, restart="temporary")
+        run = simulation.run(scenario, seed=seed, preempt=0.1)
+        assert ("leaf y", "leaf z", ["y", "z"], True) == run.value, f"seed {seed}"
+
+
 def test_a_name_whose_server_is_silent_past_its_lease_is_refused_as_unavailable() -> None:
     """A process stopped past its lease cannot be reached, but it is not lost: it may
     run again. Another process that serves its name meanwhile is refused with
