@@ -10,8 +10,11 @@ order per link, cuts and heals.
    thread of A's ─► link.pending.answered
  partition(pids) ─► links across fail what waits on them; sends across raise "cannot be
    reached"; what is on the wire across is dropped when it arrives
- a name served on both sides of a partition (`listen` behind a cut: its server beyond
-   is not ended, as a restart's predecessor is): each sender routes to the one on its
+ listen(endpoint) ─► refused while another live process on its side of a partition
+   serves the name (`DuplicateNameError`, as AF_UNIX's lock and Zenoh's `wait_turn`;
+   one silent past its lease: `RegistrarUnavailableError`, not lost); one its own
+   process served is let go (a restart there); one beyond a cut serves on
+ a name served on both sides of a partition: each sender routes to the one on its
    side; each server carries its serve stamp (the HLC of its process as it listens)
  heal() ─► links work again; a name served on both sides: each of its processes hears
    of the others (`Messenger.served_elsewhere`, the decision Zenoh's presence runs:
@@ -21,7 +24,8 @@ order per link, cuts and heals.
  a lease (`lease=`): a process stopped (SIGSTOP) past it is silent: the links to what it
    serves fail what waits, as at a cut; once it runs again, reachable again (a presence
    thread of the network's process looks every quarter lease)
- a process ends ─► what it served ends (`_Hub.end`): every link to it fails what waits
+ a process ends ─► what it served ends (`_Hub.end`, its own servers: not another's of the
+   name beyond a cut): every link to it fails what waits
 
  the faults a plan aims (rr_actors.experiments, on the simulation):
  cut_connections(pid) ─► every link from or to the process is shut down (`_Link.sever`):

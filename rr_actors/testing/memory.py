@@ -338,6 +338,8 @@ class MemoryNetwork(Messenger):
         it stops being served when it ends.
 
         Raises:
+            DuplicateNameError: another registrar served on it has that name (one name,
+                one registrar, as on every carrier).
             RegistrarStoppedError: the network was closed.
         """
         process = Messenger(self.system, resolver=False)
