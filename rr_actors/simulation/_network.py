@@ -10,8 +10,11 @@ order per link, cuts and heals.
    thread of A's ─► link.pending.answered
  partition(pids) ─► links across fail what waits on them; sends across raise "cannot be
    reached"; what is on the wire across is dropped when it arrives
- a name served on both sides of a partition (`listen` behind a cut: its server beyond
-   is not ended, as a restart's predecessor is): each sender routes to the one on its
+ listen(endpoint) ─► refused while another live process on its side of a partition
+   serves the name (`DuplicateNameError`, as AF_UNIX's lock and Zenoh's `wait_turn`;
+   one silent past its lease: `RegistrarUnavailableError`, not lost); one its own
+   process served is let go (a restart there); one beyond a cut serves on
+ a name served on both sides of a partition: each sender routes to the one on its
    side; each server carries its serve stamp (the HLC of its process as it listens)
  heal() ─► links work again; a name served on both sides: each of its processes hears
    of the others (`Messenger.served_elsewhere`, the decision Zenoh's presence runs:
@@ -21,7 +24,8 @@ order per link, cuts and heals.
  a lease (`lease=`): a process stopped (SIGSTOP) past it is silent: the links to what it
    serves fail what waits, as at a cut; once it runs again, reachable again (a presence
    thread of the network's process looks every quarter lease)
- a process ends ─► what it served ends (`_Hub.end`): every link to it fails what waits
+ a process ends ─► what it served ends (`_Hub.end`, its own servers: not another's of the
+   name beyond a cut): every link to it fails what waits
  rule 19, as the real carriers judge it: each server carries its speaker (who restarts
    it: its membership's `supervised_by`, or its own process while
    `DIRECTORY.restart_expected`); a name gone unclean (its process ended, or silent past
@@ -354,9 +358,20 @@ class _SimulatedHub(_Hub):
         return process.pid if DIRECTORY.restart_expected(name) else None
 
     def listen(self, endpoint: Endpoint) -> _Served:
-        """Serve `endpoint` in its process. One served under its name before on this
-        side of a partition is cut off (a registrar restarted elsewhere); one beyond it
-        serves on, for the processes of its side (rule 22 decides at the heal)."""
+        """Serve `endpoint` in its process: refused while a process on its side of a
+        partition serves the name (as the real carriers refuse it: AF_UNIX's lock, Zenoh's
+        `wait_turn`), or while its own process cannot hear its router (`deafen`); one
+        beyond the cut serves on, for the processes of its side (rule 22 decides at the
+        heal). One its own process served is let go first (a registrar restarted there:
+        `Messenger.serve` does so for a process's own names).
+
+        Raises:
+            DuplicateNameError: another process on its side serves that name.
+            RegistrarUnavailableError: the one that serves it is silent past its lease
+                (not lost: it may run again; Zenoh refuses such a name, rule 22), or this
+                process is deaf (Zenoh's `wait_turn` cannot tell the name is free).
+            RegistrarStoppedError: the network was closed.
+        """
         name = endpoint.name
         if self._sender().pid in self._deaf:  # (`Presence.wait_turn` of a process whose
             # router went: no full answer of who serves it, so it does not serve it)
@@ -367,19 +382,30 @@ class _SimulatedHub(_Hub):
                 f"of the system and hears nothing of it"
             )
         server = self.served(endpoint)
+        process = server.process
         with self._lock:
+            before = self._servers.get(name, [])
+            near = [other for other in before if not self._across(other, process)]
+            rival = next((other for other in near if other.process is not process), None)
+            if not self.closed and rival is None:
+                self._servers[name] = [*(o for o in before if o not in near), server]
+                self._served[name] = server
+                self._gone.pop(name, None)
+                self._awaiting.pop(name, None)
+        if self.closed or rival is not None:
+            server.inbox.close(timeout=0)
             if self.closed:
                 raise RegistrarStoppedError("the in-memory network was closed")
-            before = self._servers.get(name, [])
-            beyond = [other for other in before if self._across(other, server.process)]
-            self._servers[name] = [*beyond, server]
-            self._served[name] = server
-            self._gone.pop(name, None)
-            self._awaiting.pop(name, None)
-        for old in before:
-            if old not in beyond:
-                self.end(old, "unavailable")
-        process = server.process
+            assert rival is not None
+            if name in self._silent:
+                raise RegistrarUnavailableError(
+                    f"registrar {name!r} is served by process {rival.process.pid}, silent "
+                    f"past its lease: not lost (it may run again), so process "
+                    f"{process.pid} does not serve that name"
+                )
+            raise self.duplicate_error(name, f"process {rival.process.pid}")
+        for old in near:
+            self.end(old, "unavailable")
         if process.pid not in self._ending:  # (the kernel's part: its end ends them)
             self._ending.add(process.pid)
             process.at_end.append(functools.partial(self._ended, process))

@@ -9,7 +9,7 @@ import shutil
 import signal
 import tempfile
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Literal
 
 import pytest
 
@@ -56,6 +56,7 @@ def with_provider(
     body: Callable[[rr.Supervisor, rr.ResourceRegistrar, Any], Any],
     lease: float | None = None,
     heartbeat: float | None = 0.25,
+    restart: Literal["permanent", "transient", "temporary"] = "permanent",
 ) -> Any:
     """A scenario: a process manager `provider` (backed up) under a supervisor on a
     simulated network, a consumer `app` in the supervisor's process."""
@@ -65,7 +66,11 @@ def with_provider(
         network = simulation.SimulatedNetwork(lease=lease)
         try:
             manager = rr.ManagerSpec(
-                "provider", setup=leaf_setup, isolation="process", heartbeat=heartbeat
+                "provider",
+                setup=leaf_setup,
+                isolation="process",
+                heartbeat=heartbeat,
+                restart=restart,
             )
             supervisor = rr.Supervisor(manager, state_dir=folder, network=network, name="root")
             supervisor.start()
@@ -580,3 +585,130 @@ def test_rule_19_a_lost_provider_is_fatal_up_every_path_once_and_forgotten() -> 
         )
 
     assert [] == simulated.seeds_where(lost_under_a_composite, broken, simulated.SEEDS)
+
+
+def test_a_second_server_of_a_name_served_on_its_side_is_refused_and_the_first_serves_on() -> None:
+    """One name, one registrar (rule 22; architecture.md): with no cut between them, a
+    process that serves a name another live process serves is refused with
+    `DuplicateNameError`, as on the real carriers (AF_UNIX: the name's `flock`; Zenoh:
+    `Presence.wait_turn` sees its token), and the first serves on; the reference is
+    `tests/transport/test_base.py::TestAtTheCarrier::test_a_name_another_process_serves_is_refused_and_the_first_serves_on`.
+    The simulated carrier ended the first on the network instead (its registrar ran on,
+    reached by nobody) and let the second serve."""
+
+    def body(supervisor: rr.Supervisor, app: rr.ResourceRegistrar, network: Any) -> Any:
+        held = app.call("provider", "leaf", "x")
+        first = supervisor.child("provider").pid
+        folder = tempfile.mkdtemp(prefix="rr-sim-second-")
+        spec = rr.ManagerSpec(
+            "provider", setup=leaf_setup, isolation="process", restart="temporary"
+        )
+        second = rr.Supervisor(spec, state_dir=folder, network=network, name="second")
+        try:
+            try:
+                second.start()
+            except rr.SupervisorGaveUpError as exc:
+                refused = str(exc.__cause__).strip().splitlines()[-1]  # (the child's)
+            else:
+                refused = f"served by pid {second.child('provider').pid}"
+            after = app.call("provider", "leaf", "y", timeout=5.0).response
+            served = supervisor.run_in(
+                "provider",
+                lambda r: sorted(q.request for q in r.server_queries("leaf")),
+                timeout=5.0,
+            )
+            return (
+                refused,
+                supervisor.child("provider").pid == first,
+                after,
+                served,
+                held.id in [q.id for q in app.client_queries()],
+            )
+        finally:
+            second.stop()
+            shutil.rmtree(folder, ignore_errors=True)
+
+    for seed in range(5):
+        run = simulation.run(with_provider(body), seed=seed, preempt=0.1)
+        duplicate = (
+            "rr_actors.errors.DuplicateNameError: a registrar named 'provider' is already "
+            "served on system 'simulated' (by process 2)"
+        )
+        assert (duplicate, True, "leaf y", ["x", "y"], True) == run.value, f"seed {seed}"
+
+
+def test_a_kill_beyond_a_cut_ends_what_the_killed_process_served_not_the_other_server() -> None:
+    """A name served on both sides of a cut, and the process of the one cut off is
+    killed: what it served ends, as the kernel closes a dead process's sockets; the
+    server on the other side serves on, and after the heal every process reaches it
+    (the process's end cut the name's newest server, the one beyond: the consumer's
+    next call failed, and the dead one stayed the name's server)."""
+
+    def body(supervisor: rr.Supervisor, app: rr.ResourceRegistrar, network: Any) -> Any:
+        first = supervisor.child("provider").pid
+        network.partition([first])
+        folder = tempfile.mkdtemp(prefix="rr-sim-beyond-")
+        spec = rr.ManagerSpec(
+            "provider", setup=leaf_setup, isolation="process", restart="temporary"
+        )
+        beyond = rr.Supervisor(spec, state_dir=folder, network=network, name="beyond")
+        try:
+            beyond.start()
+            second = beyond.child("provider").pid
+            simulation.kill(first, signal.SIGKILL)
+            during = app.call("provider", "leaf", "y", timeout=5.0).response
+            network.heal()
+            simulation.sleep(1.0)
+            after = app.call("provider", "leaf", "z", timeout=5.0).response
+            served = beyond.run_in(
+                "provider",
+                lambda r: sorted(q.request for q in r.server_queries("leaf")),
+                timeout=5.0,
+            )
+            return during, after, served, beyond.child("provider").pid == second
+        finally:
+            beyond.stop()
+            shutil.rmtree(folder, ignore_errors=True)
+
+    for seed in range(5):
+        scenario = with_provider(body, heartbeat=None, restart="temporary")
+        run = simulation.run(scenario, seed=seed, preempt=0.1)
+        assert ("leaf y", "leaf z", ["y", "z"], True) == run.value, f"seed {seed}"
+
+
+def test_a_name_whose_server_is_silent_past_its_lease_is_refused_as_unavailable() -> None:
+    """A process stopped past its lease cannot be reached, but it is not lost: it may
+    run again. Another process that serves its name meanwhile is refused with
+    `RegistrarUnavailableError`, as Zenoh's `wait_turn` refuses a name whose server went
+    without a clean stop while its supervisor may restart it (AF_UNIX, with no lease,
+    refuses it as served: the stopped process holds the name's lock); once the first
+    runs again it is the name's one server."""
+
+    def body(supervisor: rr.Supervisor, app: rr.ResourceRegistrar, network: Any) -> Any:
+        first = supervisor.child("provider").pid
+        simulation.kill(first, signal.SIGSTOP)
+        simulation.sleep(1.5)  # (past its lease)
+        folder = tempfile.mkdtemp(prefix="rr-sim-silent-")
+        spec = rr.ManagerSpec(
+            "provider", setup=leaf_setup, isolation="process", restart="temporary"
+        )
+        second = rr.Supervisor(spec, state_dir=folder, network=network, name="second")
+        try:
+            try:
+                second.start()
+            except rr.SupervisorGaveUpError as exc:
+                refused = str(exc.__cause__).strip().splitlines()[-1].split(":")[0]
+            else:
+                refused = f"served by pid {second.child('provider').pid}"
+            simulation.kill(first, signal.SIGCONT)
+            simulation.sleep(1.0)
+            after = app.call("provider", "leaf", "y", timeout=5.0).response
+            return refused, after, supervisor.child("provider").pid == first
+        finally:
+            second.stop()
+            shutil.rmtree(folder, ignore_errors=True)
+
+    for seed in range(5):
+        run = simulation.run(with_provider(body, lease=1.0, heartbeat=None), seed=seed)
+        refused = "rr_actors.errors.RegistrarUnavailableError"
+        assert (refused, "leaf y", True) == run.value, f"seed {seed}"
