@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import rr_actors as rr
+from rr_actors._supervision.retry import restart_after_failure
 from rr_actors.mission import managers, programs
 from rr_actors.mission.config import (
     FAULT_WHAT,
@@ -45,7 +46,7 @@ from rr_actors.mission.config import (
     MissionConfig,
     MissionError,
 )
-from rr_actors.mission.hosts import Trees, restart_after_failure
+from rr_actors.mission.hosts import Trees
 from rr_actors.mission.netns import TwoHosts
 from rr_actors.mission.report import FaultRecord, UnplannedExit
 
@@ -148,7 +149,7 @@ def retry_through_restarts(
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 raise
-            target = restart_after_failure(sup, name, before, tried_again_at)
+            target = restart_after_failure(before, sup.child(name), tried_again_at)
             if target == before.restarts:
                 tried_again_at = target
             sup.wait_restarted(name, timeout=remaining, restarts=target)
@@ -408,7 +409,7 @@ class Faults:
                     note = self._restored(name)
                     break
                 except rr.RegistrarUnavailableError:
-                    target = restart_after_failure(self.sup, name, info, tried_again_at)
+                    target = restart_after_failure(info, self.sup.child(name), tried_again_at)
                     if target == info.restarts:
                         tried_again_at = target
             with self.lock:
