@@ -175,11 +175,15 @@ def status_reached(
             record = lives[want.holder, life]
             let_go = until if until is not None else record.last
             release = released.get((want.sender, want.query_id))
-            carried = reasons.get(forgot_at) in ANSWERED and _released_after(want, release, sender)
+            carried = (
+                until is not None
+                and reasons.get(forgot_at) in ANSWERED
+                and _released_after(want, release, sender, until)
+            )
             if not carried and (let_go <= end or (until is None and record.ended_before(end))):
                 continue
             how = "held it throughout"
-            lines = (want.line, forgot_at) if forgot_at else (want.line,)
+            lines: tuple[int, ...] = (want.line, forgot_at) if forgot_at else (want.line,)
             if let_go <= end and release is not None:
                 how = "the answer to its Unload carried it (its release crossed the status)"
                 lines = (want.line, release[1], forgot_at)
@@ -202,22 +206,26 @@ ANSWERED = ("unload", "dependency", "stop")
 on their way to it, `consumer.py`'s `Releases`)."""
 
 
-def _released_on_unload(steps: Sequence[Step]) -> dict[tuple[str, str], tuple[int, int]]:
-    """(provider, query id) -> (its life, line) of each release on an `Unload`."""
+def _released_on_unload(steps: Sequence[Step]) -> dict[tuple[str, str], tuple[int, int, int]]:
+    """(provider, query id) -> (its life, line, stamp) of each release on an `Unload`."""
     return {
-        (name, event.query_id): (life, line)
+        (name, event.query_id): (life, line, event.hlc)
         for name, line, event, _, life in steps
         if isinstance(event, events.ConsumerReleased) and event.reason == "unload"
     }
 
 
-def _released_after(want: Expected, release: tuple[int, int] | None, sender: Life) -> bool:
-    """Whether `want`'s sender released its id on an `Unload` (`release`: life, line)
-    after it sent the status on to it, in that life, and went on after (its answer left)."""
+def _released_after(
+    want: Expected, release: tuple[int, int, int] | None, sender: Life, forgot: int
+) -> bool:
+    """Whether `want`'s sender released its id on an `Unload` (`release`: life, line,
+    stamp) after it sent the status on to it, in that life, and went on after (its answer
+    left), before its holder forgot it (stamp `forgot`: on that answer)."""
     return (
         release is not None
         and release[0] == want.life
         and want.line < release[1] < sender.last_line
+        and release[2] < forgot
     )
 
 
