@@ -900,12 +900,14 @@ def drop_delivery(h: History) -> History | None:
     """The last hop of a status a provider sent (or a consumer told itself) is lost.
 
     Not a delivery to a consumer whose id was already released at its provider or
-    forgotten when it came (its release crossed the status: the `Unload`'s answer carried
-    it, or the notice came between the two; semantics, rule 9): without that delivery the
-    history reads as a consumer that let its id go before the status's last delivery,
-    which `status-reached` excuses (it cannot tell a lost one from a release that crossed
-    the status). A real run under load delivers such a status now and then (the CI of
-    2026-11-24 saw one in the `resource` plan).
+    forgotten, by the lines, when it came (its release crossed the status, or it forgot
+    the id some other way: unanswered, told lost): `status-reached` excuses some of
+    those (a holder that let its id go before the status's last delivery, but on no
+    answer that carried it). The lines of two processes are no causal order, so this may
+    take a delivery whose provider released its id first by the stamps: in run 2 of
+    `resource` (CI, 2026-11-24) cm released client-3's id after it sent the status on,
+    and the answer to client-3's `Unload` carried it (rule 9); `status-reached` now
+    expects that one (`crossed()` is that history).
     """
     left: set[str] = set()  # ids released at their provider or forgotten so far
     found = []
