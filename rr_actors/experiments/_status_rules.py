@@ -7,7 +7,8 @@
                      one of whose dependencies got it at hop n-1)
  Expected (the provider pass: the holders at the send, and up each dependency that got
  it) ──► status_reached: each got it, unless it let its id go before the status's last
-         delivery, or the one to send it on died first
+         delivery (not on the answer to an Unload its sender released it on after the
+         send: that answer carried it), or the one to send it on died first
 ```
 """
 
@@ -17,10 +18,10 @@ from collections import defaultdict
 from collections.abc import Sequence
 
 from rr_actors import events
-from rr_actors.experiments._history import Facts, Finding, Life, Line
+from rr_actors.experiments._history import Facts, Finding, Life, Line, Step
 from rr_actors.experiments._provider_rules import Expected
 
-__all__ = ["Span", "status_once", "status_path", "status_reached"]
+__all__ = ["ANSWERED", "Span", "status_once", "status_path", "status_reached"]
 
 Span = tuple[int, int, int | None, int]
 """A consumer holding a query id in one of its lives: `(life, stamp it began holding it,
@@ -116,6 +117,7 @@ def status_reached(
     spans: dict[tuple[str, str], list[Span]],
     lives: dict[tuple[str, int], Life],
     history: Sequence[Line],
+    steps: Sequence[Step],
 ) -> list[Finding]:
     """`status-reached`: every holder that held its id throughout a status got it.
 
@@ -131,8 +133,16 @@ def status_reached(
     that cannot hear its router, rule 19 both ways): the sender heard the holder lost
     and let its id go (`death watch`), and the holder forgot it as one it could not
     reach (its reconcile found it gone, `FATAL`; or its unload went unanswered).
+
+    Letting the id go early excuses no holder whose release crossed the status (rule 9):
+    its sender released the id on its `Unload` after it sent the status on to it, in the
+    same life, and went on after (the answer left), and the holder forgot it on that
+    answer (`ANSWERED`). The answer carried every status sent to that id and not yet
+    acknowledged, and the holder delivers those before it forgets the id.
     """
     cut_off = _cut_off(history)
+    released = _released_on_unload(steps)
+    reasons = {line: e.reason for line, e in history if isinstance(e, events.QueryForgotten)}
     findings: list[Finding] = []
     for line, holder, qid in facts.told_self:
         if facts.fatal.get(qid, line) >= line:
@@ -164,22 +174,59 @@ def status_reached(
                 continue  # (held from before the send only)
             record = lives[want.holder, life]
             let_go = until if until is not None else record.last
-            if let_go <= end or (until is None and record.ended_before(end)):
+            release = released.get((want.sender, want.query_id))
+            carried = (
+                until is not None
+                and reasons.get(forgot_at) in ANSWERED
+                and _released_after(want, release, sender, until)
+            )
+            if not carried and (let_go <= end or (until is None and record.ended_before(end))):
                 continue
-            lines = (want.line, forgot_at) if forgot_at else (want.line,)
+            how = "held it throughout"
+            lines: tuple[int, ...] = (want.line, forgot_at) if forgot_at else (want.line,)
+            if let_go <= end and release is not None:
+                how = "the answer to its Unload carried it (its release crossed the status)"
+                lines = (want.line, release[1], forgot_at)
             findings.append(
                 Finding(
                     "status-reached",
                     "violation",
                     f"{want.holder}: status {want.status_id[:8]} never reached query "
-                    f"{want.query_id[:8]} (hop {want.hop}, from {want.sender}), though it "
-                    f"held it throughout",
+                    f"{want.query_id[:8]} (hop {want.hop}, from {want.sender}), though {how}",
                     lines,
                     (want.holder, want.sender),
                 )
             )
             break
     return findings
+
+
+ANSWERED = ("unload", "dependency", "stop")
+"""How a consumer forgets an id on the answer to its `Unload` (which carries the statuses
+on their way to it, `consumer.py`'s `Releases`)."""
+
+
+def _released_on_unload(steps: Sequence[Step]) -> dict[tuple[str, str], tuple[int, int, int]]:
+    """(provider, query id) -> (its life, line, stamp) of each release on an `Unload`."""
+    return {
+        (name, event.query_id): (life, line, event.hlc)
+        for name, line, event, _, life in steps
+        if isinstance(event, events.ConsumerReleased) and event.reason == "unload"
+    }
+
+
+def _released_after(
+    want: Expected, release: tuple[int, int, int] | None, sender: Life, forgot: int
+) -> bool:
+    """Whether `want`'s sender released its id on an `Unload` (`release`: life, line,
+    stamp) after it sent the status on to it, in that life, and went on after (its answer
+    left), before its holder forgot it (stamp `forgot`: on that answer)."""
+    return (
+        release is not None
+        and release[0] == want.life
+        and want.line < release[1] < sender.last_line
+        and release[2] < forgot
+    )
 
 
 _UNREACHED = ("unknown at reconcile", "unload unanswered")

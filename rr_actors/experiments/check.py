@@ -245,7 +245,7 @@ def check(history: Sequence[Line]) -> Verdict:
     found = [
         *providers.findings,
         *_status_rules.status_once(history),
-        *_status_rules.status_reached(providers.expected, facts, spans, lives, history),
+        *_status_rules.status_reached(providers.expected, facts, spans, lives, history, steps),
         *_status_rules.status_path(history, facts),
         *answered,
         *_consumer_rules.reported_lost(history, providers.holdings, lives),
