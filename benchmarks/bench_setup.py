@@ -10,7 +10,7 @@ environment made for the purpose, and prints what `docs/index.md` needs, ready t
 1. `pip install -e ".[dev,bench]"` into a fresh venv, pip's cache warm (the same install
    is done once, untimed, into another fresh venv first; `--no-warm-up` leaves that out
    and times whatever the cache holds);
-2. `python -m pytest -q -n 3 --dist loadfile` with that venv's interpreter: its wall time,
+2. `python -m pytest -q -n 5 --dist loadfile` with that venv's interpreter: its wall time,
    and how many tests passed and failed (the summary line).
 
 With `--busy N`, N processes that only spin (`while True: pass`) run beside it all (the
@@ -41,7 +41,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 INSTALL = ["-m", "pip", "install", "--quiet", "-e", ".[dev,bench]"]
-TESTS = ["-m", "pytest", "-q", "-n", "3", "--dist", "loadfile"]
+TESTS = ["-m", "pytest", "-q", "-n", "5", "--dist", "loadfile"]
 """The README's second command's steps (`.ci/run` runs the same)."""
 
 

@@ -36,7 +36,9 @@ verdict), one sample a tick of the process's CPU time (`SIGPROF`; 1-4 ms), so th
 of a loaded machine count for nothing, unlike a sampler of wall time (py-spy, whose
 shares they blur). Its file has one folded stack a line with its count (`a;b;c 12`, as
 `py-spy record -f raw`: flamegraph.pl reads it); the script prints the functions with
-the most samples, and the files.
+the most samples, the files, and the parts of a seed (`part`): the simulation's own
+machinery, and the rest, the protocol's floor (what a seed would cost if the machinery
+cost nothing).
 """
 
 from __future__ import annotations
@@ -220,8 +222,54 @@ def _folded(frame: FrameType | None) -> str:
     return ";".join(reversed(names))
 
 
+MACHINERY = {
+    "simulation/_network.py": "the simulated carrier and manager processes",
+    "simulation/_manager.py": "the simulated carrier and manager processes",
+    "testing/": "the simulated carrier and manager processes",  # (the hub under it)
+    "experiments/_simulated_faults.py": "the simulated carrier and manager processes",
+    "simulation/_processes.py": "switching a simulated process's singletons",
+    "simulation/": "the scheduler, the simulated primitives and the seams",
+}
+"""The simulation's own machinery, by where its code is (the first prefix that fits)."""
+
+FLOOR = {
+    "cloudpickle/": "pickling across simulated processes",
+    "_transport/codec.py": "pickling across simulated processes",
+    "_store/": "the SQLite backups",
+    "experiments/simulate.py": "the history's JSON and its verdict",
+    "experiments/_history.py": "the history's JSON and its verdict",
+    "experiments/check.py": "the history's JSON and its verdict",
+    "experiments/_consumer_rules.py": "the history's JSON and its verdict",
+    "experiments/_provider_rules.py": "the history's JSON and its verdict",
+    "experiments/_status_rules.py": "the history's JSON and its verdict",
+    "events/lines.py": "the history's JSON and its verdict",
+}
+"""The protocol's own work, where it is not the protocol's logic (every other file of
+rr_actors, the workload's included, and pykka)."""
+
+
+ELSEWHERE = "elsewhere (the benchmark, the sampler)"
+
+
+def part(stack: str) -> str:
+    """Which part of a seed a sample is in: its innermost frame of rr_actors, pykka or
+    cloudpickle (one of the standard library, or a dataclass's generated `__init__`,
+    counted for its caller), by `MACHINERY`, then `FLOOR`; else the protocol."""
+    for frame in reversed(stack.split(";")):
+        where = frame.rpartition(" (")[2].rpartition(":")[0]
+        if where.startswith(("/", "<")) or "/" not in where:
+            continue  # (the standard library, generated code, rr_actors' top modules)
+        for table in (MACHINERY, FLOOR):
+            for prefix, name in table.items():
+                if where.startswith(prefix):
+                    return name
+        return "the protocol: registrars, messenger, supervisor, catalog, events, workload"
+    return ELSEWHERE
+
+
 def print_samples(stacks: Counter[str], path: str) -> None:
-    """Write `stacks` to `path` (folded); print the top functions and files by samples."""
+    """Write `stacks` to `path` (folded); print the top functions and files by samples,
+    and the parts of a seed (`part`)."""
     with open(path, "w", encoding="utf-8") as file:
         file.writelines(f"{stack} {count}\n" for stack, count in stacks.items())
     total = sum(stacks.values()) or 1
@@ -238,6 +286,15 @@ def print_samples(stacks: Counter[str], path: str) -> None:
         print(f"| {title} (the innermost frame) | share |\n|---|---:|")
         for key, count in counter.most_common(25):
             print(f"| {key} | {100 * count / total:.1f}% |")
+    parts: Counter[str] = Counter()
+    for stack, count in stacks.items():
+        parts[part(stack)] += count
+    machinery = set(MACHINERY.values())
+    print("| parts of a seed (`part`) | share |\n|---|---:|")
+    for key, count in parts.most_common():
+        print(f"| {key}{' (machinery)' if key in machinery else ''} | {100 * count / total:.1f}% |")
+    floor = sum(count for key, count in parts.items() if key not in machinery | {ELSEWHERE})
+    print(f"| **the protocol's floor (all but the machinery)** | **{100 * floor / total:.1f}%** |")
 
 
 def simulated(

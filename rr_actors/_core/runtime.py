@@ -49,6 +49,7 @@ __all__ = [
     "current_thread",
     "get_ident",
     "getpid",
+    "guards_files",
     "handles_signals",
     "local",
     "manager_process",
@@ -96,6 +97,17 @@ current_thread = threading.current_thread
 getpid = os.getpid
 """The pid of the calling thread's process (in a simulation, its simulated process's)."""
 
+
+def guards_files() -> bool:
+    """Whether the files the protocol keeps (its catalog backups) need guarding against
+    what happens to them outside it: another program deleting or replacing one, a log
+    cut short by an OS crash. Always in a real run; a simulation's backups are its own
+    (a private folder that none of its faults touches: it deletes, replaces and cuts
+    short nothing), so there the store skips the checks that only that needs (a `stat`
+    of the file and its `-wal` before each commit, the commit count beside the log)."""
+    return True
+
+
 manager_process: Any = None
 """`None` in a real run (`rr_actors._process` forks manager processes); in a simulation,
 what starts a simulated one instead (`ManagerProcess.start` hands over to it, with its
@@ -126,6 +138,7 @@ SEAMS = (
     "get_ident",
     "current_thread",
     "getpid",
+    "guards_files",
     "queue_class",
     "manager_process",
 )

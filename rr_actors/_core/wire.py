@@ -22,7 +22,7 @@ from rr_actors.errors import RrError, TransferError
 
 __all__ = ["WIRE_TYPES", "WIRE_VERSION", "WireMessage"]
 
-WIRE_VERSION = 5
+WIRE_VERSION = 6
 """The version of what crosses between processes (these messages, pickled): a carrier
 that can meet a process of another version (the Zenoh one, across hosts) refuses its
 messages unread. Raise it when a `WireMessage` changes incompatibly. (2: the Zenoh
@@ -30,7 +30,9 @@ carrier's messages carry a clock stamp after the frame's token. 3: a status reac
 the registrars of a process as one `StatusBatch`. 4: a Zenoh registrar's liveliness
 token carries the clock stamp of when it began to serve, which decides which of two
 servers of one name is kept: rule 22. 5: an `Unload`'s answer carries the statuses
-still on their way to its id, `StatusOnItsWay`s: rule 9.)"""
+still on their way to its id, `StatusOnItsWay`s: rule 9. 6: code pickled by value
+crosses with its file's name, put back by `_transport.codec._named`, which a process of
+version 5 lacks.)"""
 
 WIRE_TYPES: set[type] = set()
 """Every `WireMessage` subclass (filled in as they are defined)."""

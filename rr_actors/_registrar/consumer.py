@@ -95,6 +95,7 @@ from rr_actors._registrar.messages import (
     SetStatusCallback,
     StatusNotice,
     Unload,
+    UnloadOverran,
     check_picklable,
     give_back,
 )
@@ -858,10 +859,7 @@ class Releases:
             self.holdings.forget(query.id, reason="stop" if record.parent is None else "dependency")
             join.seal()
 
-        self.releasing.add(query.id)
-        self.registrar.send(
-            query.serving_rr, lambda reply: Unload(query.id, self.registrar.name, reply), answered
-        )
+        self.send_unload(query, answered)
 
     def on_release(self, message: Release, reply: Reply) -> None:
         query_id = message.query_id
@@ -877,7 +875,8 @@ class Releases:
                 return
             # The provider released the id unless it failed otherwise: it was unknown
             # there, or its unload callback overran `unload_timeout` (a CallTimeoutError
-            # only the provider's answer carries here; the caller's own is its handle's).
+            # only the provider's `UnloadOverran` carries here; the caller's own is its
+            # handle's).
             released = error is None or isinstance(error, UnknownQueryError | CallTimeoutError)
             if not released:
                 reply.set_error(error)  # type: ignore[arg-type]  # e.g. its backup is full
@@ -896,9 +895,24 @@ class Releases:
             self.holdings.forget(query_id)
             join.seal()
 
-        self.releasing.add(query_id)
+        self.send_unload(query, answered)
+
+    def send_unload(
+        self, query: Query, answered: Callable[[Any, BaseException | None], None]
+    ) -> None:
+        """Ask `query`'s provider to release its id; `answered(on_its_way, error)` runs on
+        the answer. An `UnloadOverran` (released, its `unload` overran) comes to it as its
+        statuses on their way and its `CallTimeoutError`."""
+
+        def opened(value: Any, error: BaseException | None) -> None:
+            if isinstance(value, UnloadOverran):
+                answered(value.on_its_way, value.error)
+            else:
+                answered(value, error)
+
+        self.releasing.add(query.id)
         self.registrar.send(
-            query.serving_rr, lambda r: Unload(query_id, self.registrar.name, r), answered
+            query.serving_rr, lambda reply: Unload(query.id, self.registrar.name, reply), opened
         )
 
     def deliver_on_its_way(self, query_id: str, on_its_way: Any, join: Join) -> None:

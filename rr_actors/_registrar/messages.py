@@ -46,6 +46,7 @@ from rr_actors._core.replies import FutureReply
 from rr_actors._core.wire import WireMessage
 from rr_actors._types import LoadCallback, Status, StatusCallback, UnloadCallback
 from rr_actors.errors import (
+    CallTimeoutError,
     ConfigError,
     DependencyCycleError,
     ErrorFrame,
@@ -95,6 +96,7 @@ __all__ = [
     "Stop",
     "TextFields",
     "Unload",
+    "UnloadOverran",
     "UnregisterServer",
     "UpdateResponse",
     "YieldName",
@@ -161,7 +163,9 @@ class Unload(WireMessage):
     """Consumer -> provider: release consumer id `query_id`.
 
     Answer: the statuses about it still on their way to the consumer (`StatusOnItsWay`s,
-    a tuple, mostly empty: rule 9, a release crossing a status), or an error.
+    a tuple, mostly empty: rule 9, a release crossing a status); an `UnloadOverran` when
+    the release unloaded the resource and its `unload` overran `unload_timeout` (released
+    all the same, so it carries them too); or an error (nothing released).
     """
 
     query_id: str
@@ -275,6 +279,16 @@ class StatusOnItsWay:
             self.hop,
             self.sent_at,
         )
+
+
+@dataclasses.dataclass(frozen=True)
+class UnloadOverran:
+    """The answer to an `Unload` that released its id, whose resource's `unload` then
+    overran `unload_timeout` (`error`, for the consumer's caller): the id is released all
+    the same, so the answer carries the statuses still on their way to it (rule 9)."""
+
+    on_its_way: tuple[StatusOnItsWay, ...]
+    error: CallTimeoutError
 
 
 @dataclasses.dataclass(frozen=True)

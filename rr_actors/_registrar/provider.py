@@ -101,6 +101,7 @@ from rr_actors._registrar.messages import (
     RunLoad,
     RunUnload,
     Unload,
+    UnloadOverran,
     UnregisterServer,
     UpdateResponse,
     check_picklable,
@@ -933,14 +934,17 @@ class Unloading:
         connection than the answer and may come after it: the consumer would have
         forgotten the id. So the answer carries each status sent to that id whose
         acknowledgement has not come (`Unacknowledged`), and the consumer delivers those
-        that did not reach it first before it forgets the id (rule 9). An error answer
-        carries none: refused, the consumer keeps the id and they still come their way;
-        an `unload` that overran `unload_timeout` gave them that long to come.
+        that did not reach it first before it forgets the id (rule 9). An `unload` that
+        overran `unload_timeout` released the id all the same: its answer carries them
+        with its error (`UnloadOverran`; the time it ran is no bound on theirs). An error
+        answer carries none: refused, the consumer keeps the id and they still come.
         """
         query_id, unacked = message.query_id, self.unacked
 
         def answered(_value: Any, error: BaseException | None) -> None:
-            if error is not None:
+            if isinstance(error, CallTimeoutError):
+                reply.set_result(UnloadOverran(unacked.take(query_id), error))
+            elif error is not None:
                 reply.set_error(error)
             else:
                 reply.set_result(unacked.take(query_id))

@@ -50,10 +50,12 @@ class CommitCount:
     """Counts the commits of the current WAL generation of backup `file`.
 
     Used by the thread that writes the backup (the registrar's). Never raises: a count
-    that cannot be kept only costs the check at the next restore.
+    that cannot be kept only costs the check at the next restore. Not `kept`, it counts
+    nothing and writes no file (a simulation's backups: nothing cuts their logs short).
     """
 
-    def __init__(self, file: Path) -> None:
+    def __init__(self, file: Path, *, kept: bool = True) -> None:
+        self.kept = kept
         self.path = f"{file}{SUFFIX}"
         self._wal = f"{file}-wal"
         self._salts = b""
@@ -65,6 +67,8 @@ class CommitCount:
 
     def committed(self) -> None:
         """A write transaction was committed (call it after each one)."""
+        if not self.kept:
+            return
         try:
             wal = self._fds.get("wal")
             if wal is None:

@@ -37,6 +37,7 @@ from rr_actors._catalog import (
     ClientRecord,
     Resource,
 )
+from rr_actors._core import runtime
 from rr_actors._store import checkpoints, codec, outbox
 from rr_actors._store.checkpoints import Checkpointer
 from rr_actors._store.codec import STATES_BY_CODE, as_corrupt, check_keys, check_row
@@ -96,7 +97,9 @@ class SqliteStore:
         self._name = str(self._file)  # (what `_keep_in_place` stats before each commit)
         self._db = db
         self._synchronous = synchronous
-        self._ids = file_ids(self._name)  # the files the connection opened (`_keep_in_place`)
+        self._guarded = runtime.guards_files()  # (not in a simulation: its files are its own)
+        # the files the connection opened (`_keep_in_place`)
+        self._ids = file_ids(self._name) if self._guarded else (None, None)
         self._aside: Path | None = None  # a whole copy not moved into place yet
         self._checkpointer: Checkpointer | None = None
         if background_checkpoints:
@@ -111,7 +114,8 @@ class SqliteStore:
         self._seq = 0
         self.closed = False
         self._decode = functools.partial(codec.decode, self.path)  # decodes a stored value lazily
-        self._commits = CommitCount(self._file)  # beside the WAL: a log cut short is seen
+        # beside the WAL: a log cut short is seen
+        self._commits = CommitCount(self._file, kept=self._guarded)
         self.lost_commits = 0
         """Commits of the last run that its WAL no longer held when this store opened."""
 
@@ -409,10 +413,15 @@ class SqliteStore:
         it into place, then writes there. Nothing committed is lost; a crash between
         the deletion and this commit loses the whole file (see failure-semantics.md).
 
+        Only where the files need guarding (`runtime.guards_files`: not in a simulation,
+        whose backups nothing else touches).
+
         Raises:
             CatalogWriteError: the copy could not be written or moved into place (the
                 store keeps writing to the file it has, and tries again next time).
         """
+        if not self._guarded:
+            return
         if self._aside is None:
             if self._ids[1] is None:  # the -wal appears with the first transaction
                 self._ids = (self._ids[0], file_ids(self._name)[1])

@@ -5,6 +5,8 @@
         │ RegistrarUnavailableError (it died), or stopped for a restart
         ▼
    the restart wait (a future the tree settles) ── back ──► the same call again, same id
+     for the next restart; for the one that ran (at once) if the tree says it was not
+     killed since the try began, once per restart count (restart_after_failure)
         │ timed out, or interrupted (a cancelled task)
         ▼
    abandon_after_restart ── running? ── Abandon(id) to the provider now
@@ -40,7 +42,14 @@ from rr_actors.errors import (
     UnknownServerError,
 )
 
-__all__ = ["MISSING", "Restarts", "abandon_after_restart", "call_with_retry", "give_back_abandoned"]
+__all__ = [
+    "MISSING",
+    "Restarts",
+    "abandon_after_restart",
+    "call_with_retry",
+    "give_back_abandoned",
+    "restart_after_failure",
+]
 
 _WAITING_STATES = ("stopping", "restarting", "starting")
 """States of a provider that its supervisor stopped to restart it."""
@@ -94,6 +103,7 @@ def call_with_retry(
     limit = timeout if timeout is not None else consumer.config.call_timeout
     qid = query_id or new_id()
     deadline = runtime.monotonic() + limit
+    tried_again_at = -1  # the restart count at which it last tried again at once
     while True:
         found = _lookup(tree, target_rr)
         before = found.restarts if found is not None else 0
@@ -116,13 +126,17 @@ def call_with_retry(
         except RegistrarUnavailableError:
             if found is None or found.restart == "temporary":
                 raise
+            target = restart_after_failure(found, _lookup(tree, target_rr), tried_again_at)
         except RegistrarStoppedError:
             now = _lookup(tree, target_rr)  # stopped by its supervisor for a restart?
             if now is None or now.state not in _WAITING_STATES:
                 raise
+            target = before + 1
+        if target == before:
+            tried_again_at = before
         wait = max(deadline - runtime.monotonic(), 1e-3)
         try:
-            yield from tree._restart_wait(target_rr, wait, before + 1)
+            yield from tree._restart_wait(target_rr, wait, target)
         except CallTimeoutError:
             abandon(target_rr, qid, consumer.name)
             raise CallTimeoutError(
@@ -133,6 +147,30 @@ def call_with_retry(
             if not isinstance(exc, Exception):  # interrupted (a cancelled task, Ctrl-C):
                 abandon(target_rr, qid, consumer.name)  # withdrawn as a timeout withdraws it
             raise
+
+
+def restart_after_failure(before: ChildInfo, now: ChildInfo | None, tried_again_at: int) -> int:
+    """The restart to wait for after a call failed as unavailable, made when the tree said
+    `before` (and says `now`): the next one (`before.restarts + 1`) if the provider was
+    killed since (down now, gone, or restarted since), or if the call was tried again at
+    once at this count already (`tried_again_at`); else `before`'s own (at once).
+
+    A call may fail as unavailable with no restart to come: the provider was restarted
+    before `before` was read and this process does not see it served yet (across hosts
+    its token is on its way). Waiting for "the count + 1" then waits for a restart that
+    never comes, until the timeout (the mission's F5, `mission/hosts.py`). Trying again
+    at once only once per count bounds the other case by the tree's own event: killed,
+    and not seen by the tree yet, the provider fails every call at once; after one, the
+    wait is for the restart the tree will make once it sees the kill, not a spin.
+    """
+    if (
+        now is None
+        or now.state != "running"
+        or now.restarts > before.restarts
+        or tried_again_at == before.restarts
+    ):
+        return before.restarts + 1
+    return before.restarts
 
 
 def _check(

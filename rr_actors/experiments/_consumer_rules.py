@@ -116,8 +116,15 @@ def reported_lost(
     `unknown at reconcile` (rule 20): the provider's life that answered had not added
     it, or had released it. `provider lost` (rule 19): the provider's life that held it
     died; one that was seen alive after, on the same host, was not lost (across hosts a
-    cut link counts as lost: the provider may run on over there).
+    cut link counts as lost: the provider may run on over there), unless that life let
+    the id go at its reconcile with the consumer (the consumer heard it reachable again:
+    it could not hear it before, as a process that cannot hear its router, rule 19).
     """
+    reconciled: set[tuple[str, str, str, int]] = {
+        (e.registrar, e.consumer, e.query_id, e.hlc)
+        for _, e in history
+        if isinstance(e, events.ConsumerReleased) and e.reason == "reconcile"
+    }
     findings: list[Finding] = []
     seconds: dict[str, list[Life]] = defaultdict(list)  # name -> lives of second servers
     for life in lives.values():
@@ -139,6 +146,10 @@ def reported_lost(
                 life.last > stamp and life.host and life.host == event.host
             ):
                 continue
+            if event.reason == "provider lost" and (
+                (provider, event.registrar, qid, holding.until) in reconciled
+            ):
+                continue  # (behind a cut: reconciled once heard again)
             findings.append(
                 Finding(
                     "reported-lost",

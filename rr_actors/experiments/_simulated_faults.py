@@ -22,11 +22,17 @@
    split_brain ───────► its process cut off every other one; beyond the cut a second
                         server of its name starts (a supervisor of its own, "beyond-<n>",
                         its backup its own, the child temporary: a host that saw the name
-                        lost, rule 19), on a thread of its own; `for` s later the cut heals
-                        and rule 22 decides (the one served first is kept, the second
-                        yields); that supervisor runs to the end of the run (`close`)
+                        lost, rule 19), on a thread of its own; `for` s later (not before
+                        it serves: _HealOnceServed) the cut heals and rule 22 decides
+                        (the one served first is kept, the second yields); that
+                        supervisor runs to the end of the run (`close`)
+   deaf_manager ──────► its process cannot hear its router (SimulatedNetwork.deafen: it
+                        serves no name, its calls and the calls to it fail, it hears
+                        every other name lost, rule 19); `for` s later it hears again
+                        (`hear`: a heal for it, rule 20)
  stop ─► hung managers continued; armed faults that never fired, triggers that never
-         came and faults due after the end recorded as skipped (FaultLog)
+         came and faults due after the end recorded as skipped (FaultLog); deaf
+         managers hear again
  close (after the tree's stop) ─► the supervisors of second servers stop
 ```
 
@@ -37,6 +43,7 @@ recorded when it fires there.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import heapq
 import itertools
@@ -106,6 +113,7 @@ class SimulatedFaults:
         self._wake = runtime.Condition()
         self._stopped = False
         self._hung: dict[int, str] = {}  # pid -> manager
+        self._deaf: set[int] = set()  # pids that do not hear their router now
         self._armed: dict[tuple[int, int], tuple[ScheduledFault, float]] = {}  # not fired yet
         self._due: dict[int, tuple[ScheduledFault, float]] = {}  # on the agenda, by number
         self._open: dict[tuple[int, int], Callable[[], None]] = {}  # recorded once they end
@@ -154,6 +162,9 @@ class SimulatedFaults:
         for key in list(self._open):
             self._close(key)
         self.network.heal()  # (a partition_serving still on)
+        for pid in sorted(self._deaf):
+            self.network.hear(pid)
+        self._deaf.clear()
         for fault, _ in self._armed.values():
             SETUP_FAULTS.pop(fault.target or "", None)
         for fault in self._triggered.take():
@@ -169,13 +180,15 @@ class SimulatedFaults:
 
     def close(self) -> None:
         """Stop the supervisors of second servers (after the tree's stop: the end of the
-        run), once their events are delivered."""
-        for sup, subscription in self._beyond:
-            sup.stop()
-            if subscription is not None:
-                subscription.wait_delivered()
-                subscription.close()
-        self._beyond.clear()
+        run), once their events are delivered; each, though one before it raised (the
+        first error is raised)."""
+        beyond, self._beyond = self._beyond, []
+        with contextlib.ExitStack() as cleanup:
+            for sup, subscription in reversed(beyond):  # (the stack: last in, first out)
+                if subscription is not None:
+                    cleanup.callback(subscription.close)
+                    cleanup.callback(subscription.wait_delivered)
+                cleanup.callback(sup.stop)
 
     # -- the agenda ----------------------------------------------------------------------
 
@@ -249,6 +262,8 @@ class SimulatedFaults:
             self.log.record(fault, at, self._now(), f"SIGSTOP pid {pid}")
             for_s = self.plan.faults[fault.fault].for_s or 0.0
             self._at(runtime.monotonic() + for_s, functools.partial(self._resume, pid), None)
+        elif kind == "deaf_manager":
+            self._deafen(fault, at, pid)
         elif kind == "cut_connections":
             self.network.cut_connections(pid)
             self.log.record(fault, at, self._now(), f"cut pid {pid}'s connections")
@@ -290,6 +305,21 @@ class SimulatedFaults:
     def _resume(self, pid: int) -> None:
         if self._hung.pop(pid, None) is not None:
             simulation.kill(pid, signal.SIGCONT)  # (a process killed meanwhile: left alone)
+
+    def _deafen(self, fault: ScheduledFault, at: float, pid: int) -> None:
+        """Its process cannot hear its router; `for` s later it hears again."""
+        for_s = self.plan.faults[fault.fault].for_s or 0.0
+        self.network.deafen(pid)
+        self._deaf.add(pid)
+        self.log.record(
+            fault, at, self._now(), f"pid {pid} cannot hear its router, for {for_s:g} s"
+        )
+        self._at(runtime.monotonic() + for_s, functools.partial(self._hear, pid), None)
+
+    def _hear(self, pid: int) -> None:
+        if pid in self._deaf:
+            self._deaf.discard(pid)
+            self.network.hear(pid)
 
     def _aim(self, fault: ScheduledFault) -> str:
         return {
@@ -336,7 +366,8 @@ class SimulatedFaults:
         pid, for_s = info.pid, self.plan.faults[fault.fault].for_s or 0.0
         self.network.partition([pid])
         injected = self._now()
-        self._at(runtime.monotonic() + for_s, self.network.heal, None)
+        heal = _HealOnceServed(self.network.heal)
+        self._at(runtime.monotonic() + for_s, heal.due, None)
         [manager] = [m for m in self.plan.managers() if m.name == fault.target]
         name = f"beyond-{len(self._beyond) + 1}"
         state = None if self._state_dir is None else self._state_dir / name
@@ -354,13 +385,20 @@ class SimulatedFaults:
         except rr.RrError as exc:
             detail = f"cut pid {pid} off; a second {fault.target} did not start: {exc}"
             self.log.record(fault, at, injected, detail)
+            heal.served()
             return
         second = beyond.child(fault.target).pid
         detail = (
             f"cut pid {pid} off, for {for_s:g} s; a second {fault.target} serves beyond "
             f"the cut (pid {second}, supervisor {name})"
         )
+        if heal.overdue:
+            detail += (
+                f"; healed as it served, {self._now() - injected:g} s after the cut (its "
+                f"start outlasted the {for_s:g} s)"
+            )
         self.log.record(fault, at, injected, detail)
+        heal.served()
 
     def _load_error(self, fault: ScheduledFault, at: float) -> None:
         assert fault.target is not None
@@ -376,3 +414,32 @@ class SimulatedFaults:
         what = f"for {plan.for_s:g} s" if plan.for_s is not None else f"{plan.loads} load(s)"
         server = f"/{plan.server}" if plan.server else ""
         self.log.record(fault, at, self._now(), f"loads of {fault.target}{server} raise, {what}")
+
+
+class _HealOnceServed:
+    """A `split_brain`'s heal: due `for` s after the cut, and not before the second
+    server serves (or failed to start): a heal before that would let it start beside the
+    first with no cut between them, and the fault would not be the one it names.
+
+    Both sides run on simulated threads of one OS thread, switched only where one blocks
+    or takes a lock: the flags need no lock (taking one would be a choice point of the
+    scheduler, and the runs whose start is quick would change).
+    """
+
+    def __init__(self, heal: Callable[[], None]) -> None:
+        self.heal = heal
+        self.started = False
+        self.overdue = False  # its time came before the second server served
+
+    def due(self) -> None:
+        """Its time came (the agenda's thread)."""
+        if self.started:
+            self.heal()
+        else:
+            self.overdue = True
+
+    def served(self) -> None:
+        """The second server serves, or did not start (the fault's own thread)."""
+        self.started = True
+        if self.overdue:
+            self.heal()

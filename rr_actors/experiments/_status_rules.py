@@ -7,7 +7,8 @@
                      one of whose dependencies got it at hop n-1)
  Expected (the provider pass: the holders at the send, and up each dependency that got
  it) ──► status_reached: each got it, unless it let its id go before the status's last
-         delivery, or the one to send it on died first
+         delivery (not on the answer to an Unload its sender released it on after the
+         send: that answer carried it), or the one to send it on died first
 ```
 """
 
@@ -17,10 +18,10 @@ from collections import defaultdict
 from collections.abc import Sequence
 
 from rr_actors import events
-from rr_actors.experiments._history import Facts, Finding, Life, Line
+from rr_actors.experiments._history import Facts, Finding, Life, Line, Step
 from rr_actors.experiments._provider_rules import Expected
 
-__all__ = ["Span", "status_once", "status_path", "status_reached"]
+__all__ = ["ANSWERED", "Span", "status_once", "status_path", "status_reached"]
 
 Span = tuple[int, int, int | None, int]
 """A consumer holding a query id in one of its lives: `(life, stamp it began holding it,
@@ -115,6 +116,8 @@ def status_reached(
     facts: Facts,
     spans: dict[tuple[str, str], list[Span]],
     lives: dict[tuple[str, int], Life],
+    history: Sequence[Line],
+    steps: Sequence[Step],
 ) -> list[Finding]:
     """`status-reached`: every holder that held its id throughout a status got it.
 
@@ -126,8 +129,20 @@ def status_reached(
     before it may come first). The one that sends it on must have gone on after it did
     (an event of the same life later: a kill right after the send, before the notice
     left, reaches nobody). A consumer that tells itself `FATAL` (`REPORTED`) delivers it
-    before it forgets the id.
+    before it forgets the id. Nor does a status reach a holder cut off its sender (a process
+    that cannot hear its router, rule 19 both ways): the sender heard the holder lost
+    and let its id go (`death watch`), and the holder forgot it as one it could not
+    reach (its reconcile found it gone, `FATAL`; or its unload went unanswered).
+
+    Letting the id go early excuses no holder whose release crossed the status (rule 9):
+    its sender released the id on its `Unload` after it sent the status on to it, in the
+    same life, and went on after (the answer left), and the holder forgot it on that
+    answer (`ANSWERED`). The answer carried every status sent to that id and not yet
+    acknowledged, and the holder delivers those before it forgets the id.
     """
+    cut_off = _cut_off(history)
+    released = _released_on_unload(steps)
+    reasons = {line: e.reason for line, e in history if isinstance(e, events.QueryForgotten)}
     findings: list[Finding] = []
     for line, holder, qid in facts.told_self:
         if facts.fatal.get(qid, line) >= line:
@@ -144,6 +159,8 @@ def status_reached(
     for want in expected:
         if (want.status_id, want.query_id) in facts.delivered:
             continue
+        if (want.sender, want.holder, want.query_id) in cut_off:
+            continue
         sender = lives.get((want.sender, want.life))
         if sender is None or sender.last_line <= want.line:
             continue  # it may have died before it sent it on
@@ -157,19 +174,77 @@ def status_reached(
                 continue  # (held from before the send only)
             record = lives[want.holder, life]
             let_go = until if until is not None else record.last
-            if let_go <= end or (until is None and record.ended_before(end)):
+            release = released.get((want.sender, want.query_id))
+            carried = (
+                until is not None
+                and reasons.get(forgot_at) in ANSWERED
+                and _released_after(want, release, sender, until)
+            )
+            if not carried and (let_go <= end or (until is None and record.ended_before(end))):
                 continue
-            lines = (want.line, forgot_at) if forgot_at else (want.line,)
+            how = "held it throughout"
+            lines: tuple[int, ...] = (want.line, forgot_at) if forgot_at else (want.line,)
+            if let_go <= end and release is not None:
+                how = "the answer to its Unload carried it (its release crossed the status)"
+                lines = (want.line, release[1], forgot_at)
             findings.append(
                 Finding(
                     "status-reached",
                     "violation",
                     f"{want.holder}: status {want.status_id[:8]} never reached query "
-                    f"{want.query_id[:8]} (hop {want.hop}, from {want.sender}), though it "
-                    f"held it throughout",
+                    f"{want.query_id[:8]} (hop {want.hop}, from {want.sender}), though {how}",
                     lines,
                     (want.holder, want.sender),
                 )
             )
             break
     return findings
+
+
+ANSWERED = ("unload", "dependency", "stop")
+"""How a consumer forgets an id on the answer to its `Unload` (which carries the statuses
+on their way to it, `consumer.py`'s `Releases`)."""
+
+
+def _released_on_unload(steps: Sequence[Step]) -> dict[tuple[str, str], tuple[int, int, int]]:
+    """(provider, query id) -> (its life, line, stamp) of each release on an `Unload`."""
+    return {
+        (name, event.query_id): (life, line, event.hlc)
+        for name, line, event, _, life in steps
+        if isinstance(event, events.ConsumerReleased) and event.reason == "unload"
+    }
+
+
+def _released_after(
+    want: Expected, release: tuple[int, int, int] | None, sender: Life, forgot: int
+) -> bool:
+    """Whether `want`'s sender released its id on an `Unload` (`release`: life, line,
+    stamp) after it sent the status on to it, in that life, and went on after (its answer
+    left), before its holder forgot it (stamp `forgot`: on that answer)."""
+    return (
+        release is not None
+        and release[0] == want.life
+        and want.line < release[1] < sender.last_line
+        and release[2] < forgot
+    )
+
+
+_UNREACHED = ("unknown at reconcile", "unload unanswered")
+"""How a consumer forgets an id at a provider it could not hear (`_cut_off`)."""
+
+
+def _cut_off(history: Sequence[Line]) -> set[tuple[str, str, str]]:
+    """(provider, consumer, query id) of each id the provider let go because it heard
+    the consumer lost (`death watch`) while the consumer lived on and then forgot it as
+    one whose provider it could not reach (`_UNREACHED`: its reconcile found it gone, or
+    its unload went unanswered): the two could not hear each other (a cut)."""
+    released: set[tuple[str, str, str]] = set()
+    cut: set[tuple[str, str, str]] = set()
+    for _, event in history:
+        if isinstance(event, events.ConsumerReleased) and event.reason == "death watch":
+            released.add((event.registrar, event.consumer, event.query_id))
+        elif isinstance(event, events.QueryForgotten) and event.reason in _UNREACHED:
+            key = (event.serving_rr, event.registrar, event.query_id)
+            if key in released:
+                cut.add(key)
+    return cut

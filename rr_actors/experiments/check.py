@@ -36,7 +36,9 @@ what cannot be checked):
 - `restore-first`: a registrar with a backup publishes `CatalogRestored` before any
   other event of each of its lives.
 - `status-once`: a status send (its `status_id`) reaches each holder once per path.
-- `status-reached`: it reaches every holder that held its id throughout it, at least once.
+- `status-reached`: it reaches every holder that held its id throughout it, at least once
+  (not one cut off its sender: the sender let its id go as lost, `death watch`, and the
+  holder lived on and forgot it as unreachable, at its reconcile or its unload).
 - `status-path`: each delivery of a status is on a dependency path from its send: a
   direct consumer of the resource it was sent about (hop 1), or a consumer of a resource
   one of whose dependencies got it one hop before (the dependency's `CallAnswered.parent`).
@@ -46,7 +48,8 @@ what cannot be checked):
   retry; its provider added it (`ConsumerAdded`); nothing is forgotten that was not held.
 - `reported-lost`: a consumer tells itself `FATAL` (`provider lost`, `unknown at
   reconcile`) only for an id its provider lost: not one the provider's life that
-  answered (or ran on, on the same host) had added and not released.
+  answered (or ran on, on the same host) had added and not released (or released only
+  at its reconcile with that consumer: they could not hear each other, a cut).
 - `end`: nothing is held at the end by a consumer that stopped (`RegistrarStopped`): a
   provider's life holds what its `CatalogRestored` listed (nothing without a backup) and
   what it added since.
@@ -242,7 +245,7 @@ def check(history: Sequence[Line]) -> Verdict:
     found = [
         *providers.findings,
         *_status_rules.status_once(history),
-        *_status_rules.status_reached(providers.expected, facts, spans, lives),
+        *_status_rules.status_reached(providers.expected, facts, spans, lives, history, steps),
         *_status_rules.status_path(history, facts),
         *answered,
         *_consumer_rules.reported_lost(history, providers.holdings, lives),

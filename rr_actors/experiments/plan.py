@@ -52,6 +52,7 @@ FaultKind = Literal[
     "kill_in_setup",
     "partition_serving",
     "split_brain",
+    "deaf_manager",
 ]
 
 FAULT_KINDS: tuple[FaultKind, ...] = typing.get_args(FaultKind)  # every kind a plan may name
@@ -63,6 +64,7 @@ SIMULATION_KINDS = frozenset(  # aimed where only a simulation can stop or reach
         "kill_in_setup",
         "partition_serving",
         "split_brain",
+        "deaf_manager",
     }
 )
 NEEDS_PROCESS = frozenset({"kill_resource", "hang_manager", "cut_connections"} | SIMULATION_KINDS)
@@ -225,7 +227,8 @@ class FaultPlan(_Table, frozen=True):
     count: Annotated[int, Meta(ge=1, le=MAX_INJECTIONS)] | None = None  # with `every`
     after: Trigger | None = None  # inject when an event happens, `delay` later
     delay: SecondsOrZero = 0.0
-    # a hang's, load error's, partition_serving's, split_brain's, duplicate_delivery's (default 1 s)
+    # a hang's, load error's, partition_serving's, split_brain's, deaf_manager's,
+    # duplicate_delivery's (default 1 s)
     for_s: Seconds | None = msgspec.field(default=None, name="for")
     loads: Count = 1  # load_error: how many loads raise (without `for_s`)
     server: str | None = None  # load_error: only loads of this server (default: any)

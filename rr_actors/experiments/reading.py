@@ -72,7 +72,7 @@ NEEDS_KEY = {"start": "every", "stop": "every", "count": "every", "delay": "afte
 NEEDS_KIND: dict[str, tuple[str, ...]] = {
     "for": ("hang_manager", "load_error", "cut", "partition", "freeze", "partition_serving")
 }
-NEEDS_KIND["for"] += ("duplicate_delivery", "split_brain")
+NEEDS_KIND["for"] += ("duplicate_delivery", "split_brain", "deaf_manager")
 NEEDS_KIND |= {"loads": ("load_error",), "link": ("cut",), "hosts": ("partition",)}
 NEEDS_KIND |= {"server": ("load_error",), "message": ("load_error",)}
 
@@ -393,7 +393,7 @@ class _Reader:
         # -- when: within the run, not too often
         hang = kind == "hang_manager" and fault.for_s is None
         refuse(hang, path, f"'for' is missing{PURPOSE['for']}")
-        cut = kind in ("partition_serving", "split_brain") and fault.for_s is None
+        cut = kind in ("partition_serving", "split_brain", "deaf_manager") and fault.for_s is None
         refuse(cut, path, f"'for' is missing{PURPOSE['for_hosts']}")
         lasting = kind in ("cut", "partition", "freeze") and fault.for_s is None
         refuse(lasting, path, f"'for' is missing{PURPOSE['for_hosts']}")

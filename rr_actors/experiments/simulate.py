@@ -33,6 +33,7 @@ threads, on this host; a `[compare]` plan with its first value. `kill_resource`,
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -305,12 +306,15 @@ def _world(
         left, _ = count_entries(sup, managers, clients)  # (the runner's settling, too)
         sup.flush_events()
     finally:
-        sup.stop()
-        for opened in injector:  # (second servers' supervisors: to the end of the run)
-            opened.close()
-        subscription.wait_delivered()
-        subscription.close()
-        network.close()
+        # Each step of the cleanup runs though one before it raised (the first error is
+        # raised, the others chained): a network left open would refuse the next seed's.
+        with contextlib.ExitStack() as cleanup:
+            cleanup.callback(network.close)
+            cleanup.callback(subscription.close)
+            cleanup.callback(subscription.wait_delivered)
+            for opened in injector:  # (second servers' supervisors: to the end of the run)
+                cleanup.callback(opened.close)
+            cleanup.callback(sup.stop)
     calls = [c for client in clients for c in client.calls]
     ok = sum(1 for c in calls if c.ok)
     return list(log.seen), records, wall_t0, (ok, len(calls) - ok, left)

@@ -8,7 +8,8 @@
    simulate.run_seed per seed ─► a progress bar (a terminal with rich) or a line per
                                  violating seed; DIR/seeds.jsonl: a line per seed (its
                                  hash, verdict, counts); DIR/events-seed-S.jsonl: the
-                                 history of each seed that did not hold
+                                 history of each seed that did not hold; DIR/log.txt:
+                                 the simulated system's error lines, by seed
    ◄── a summary table, the violating seeds; exit 0 (1: a run failed; 2: bad input)
 
  replay DIR --seed S
@@ -43,6 +44,7 @@ if TYPE_CHECKING:
     from rich.table import Table as RichTable
 
 __all__ = [
+    "LOG_FILE",
     "OUTPUT_FILES",
     "SEEDS_FILE",
     "hash_fixed",
@@ -66,7 +68,10 @@ SEEDS_FILE = "seeds.jsonl"
 
 OUTPUT_FILES = ("plan.toml", SEEDS_FILE)
 """What a simulated experiment writes into `--out` (and `events-seed-S.jsonl` per seed
-whose verdict was not "held")."""
+whose verdict was not "held", and `LOG_FILE` if the simulated system logged errors)."""
+
+LOG_FILE = "log.txt"
+"""The simulated system's log lines of ERROR and up, each with its seed (`_SystemLog`)."""
 
 MAX_SEEDS = 10_000_000
 """The most seeds of one sweep."""
@@ -192,7 +197,8 @@ def _table(runs: list[simulate.SimulatedRun]) -> RichTable:
 
 def run_seeds(plan: Plan, seeds: range, out: Path, display: Any) -> list[simulate.SimulatedRun]:
     """Run each seed, a line of `out/seeds.jsonl` and a step of `display` (`cli.Display`)
-    each, the history of each that did not hold in `out/events-seed-S.jsonl`.
+    each, the history of each that did not hold in `out/events-seed-S.jsonl`, the
+    simulated system's error lines in `out/log.txt` (`_SystemLog`).
 
     Raises:
         RrError: what `simulate.simulate` raises (with the seed in a note).
@@ -200,9 +206,11 @@ def run_seeds(plan: Plan, seeds: range, out: Path, display: Any) -> list[simulat
     runs: list[simulate.SimulatedRun] = []
     bar = display.bar
     task = None if bar is None else bar.add_task("seeds", total=len(seeds))
+    log = _SystemLog(out / LOG_FILE, seeds)
     with (out / SEEDS_FILE).open("w", encoding="utf-8") as lines:
 
         def finished(run: simulate.SimulatedRun) -> None:
+            log.next_seed()
             runs.append(run)
             lines.write(json.dumps(seed_line(run, plan)) + "\n")
             lines.flush()
@@ -214,15 +222,15 @@ def run_seeds(plan: Plan, seeds: range, out: Path, display: Any) -> list[simulat
             if bar is not None and task is not None:
                 bar.update(task, completed=len(runs), description=f"seed {run.seed}")
 
-        with _warnings_off():
+        with log:
             simulate.simulate(plan, seeds, on_run=finished)
     return runs
 
 
 @contextlib.contextmanager
 def _warnings_off() -> Iterator[None]:
-    """rr_actors' warnings off while seeds run: each kill of a sweep is one ("child exited:
-    killed by SIGKILL"), thousands a sweep; errors still show."""
+    """rr_actors' warnings off while a seed runs (a replay, a shrink): each kill is one
+    ("child exited: killed by SIGKILL"); errors still show."""
     logger = logging.getLogger("rr_actors")
     level = logger.level
     logger.setLevel(logging.ERROR)
@@ -230,6 +238,55 @@ def _warnings_off() -> Iterator[None]:
         yield
     finally:
         logger.setLevel(level)
+
+
+class _SystemLog(logging.Handler):
+    """While seeds run, rr_actors' log lines go to `path`, each with its seed, not to the
+    terminal: they are the simulated system's, as a real run's go to its `stderr.txt`
+    (`experiment.py`), and a fault's expected outcome can be one (rule 22: a second
+    server yields at a heal with an ERROR, on Zenoh as on the simulation). Warnings off:
+    each kill of a sweep is one ("child exited: killed by SIGKILL"), thousands a sweep.
+    The file is made at the first line."""
+
+    def __init__(self, path: Path, seeds: range) -> None:
+        super().__init__(logging.ERROR)
+        self.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+        self.path = path
+        self.lines = 0
+        self._seeds = iter(seeds)
+        self._seed = next(self._seeds, None)
+        self._file: TextIO | None = None
+        self._logger = logging.getLogger("rr_actors")
+        self._saved = (self._logger.level, self._logger.propagate)
+
+    def __enter__(self) -> _SystemLog:
+        self._logger.setLevel(logging.ERROR)
+        self._logger.propagate = False
+        self._logger.addHandler(self)
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self._logger.removeHandler(self)
+        self._logger.setLevel(self._saved[0])
+        self._logger.propagate = self._saved[1]
+        self.close()
+
+    def next_seed(self) -> None:
+        """The seed that ran finished: what follows is the next one's."""
+        self._seed = next(self._seeds, None)
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if self._file is None:
+            self._file = self.path.open("a", encoding="utf-8")
+        self._file.write(f"seed {self._seed}: {self.format(record)}\n")
+        self._file.flush()
+        self.lines += 1
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+        super().close()
 
 
 def summary(display: Any, runs: list[simulate.SimulatedRun], out: Path) -> None:
@@ -251,7 +308,11 @@ def summary(display: Any, runs: list[simulate.SimulatedRun], out: Path) -> None:
         display.say(f"replay one: rr-actors replay {out} --seed {seed}")
     kept = len(violated) + len(unverifiable)
     histories = [f"{kept} histories (events-seed-S.jsonl)"] if kept else []
-    display.say(f"written to {out}/: {', '.join([*OUTPUT_FILES, *histories])}")
+    logged = []
+    if (out / LOG_FILE).exists():
+        count = len((out / LOG_FILE).read_text(encoding="utf-8").splitlines())
+        logged = [f"{LOG_FILE} (the simulated system's {count} log lines of ERROR, by seed)"]
+    display.say(f"written to {out}/: {', '.join([*OUTPUT_FILES, *histories, *logged])}")
 
 
 def replay_arguments(parser: argparse.ArgumentParser) -> None:

@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import rr_actors as rr
+from rr_actors._supervision.retry import restart_after_failure
 from rr_actors.mission import managers, programs
 from rr_actors.mission.config import (
     FAULT_WHAT,
@@ -45,7 +46,7 @@ from rr_actors.mission.config import (
     MissionConfig,
     MissionError,
 )
-from rr_actors.mission.hosts import Trees, restart_after_failure
+from rr_actors.mission.hosts import Trees
 from rr_actors.mission.netns import TwoHosts
 from rr_actors.mission.report import FaultRecord, UnplannedExit
 
@@ -120,7 +121,8 @@ def retry_through_restarts(
 
     After an unavailable error it waits for the next restart only if the tree says
     `name` was killed since it was asked (`restart_after_failure`); else for the one
-    that ran then (at once, or once the station sees it served), and tries again.
+    that ran then (at once, or once the station sees it served), and tries again (once
+    per restart count: then the next restart).
 
     Args:
         sup: the supervisor of `name` (or the mission's `Trees`).
@@ -138,6 +140,7 @@ def retry_through_restarts(
         SupervisorGaveUpError: the supervisor gave up on `name`.
     """
     deadline = time.monotonic() + timeout
+    tried_again_at = -1
     while True:
         before = sup.child(name)  # the restart to wait for is the one after this snapshot
         try:
@@ -146,9 +149,10 @@ def retry_through_restarts(
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 raise
-            sup.wait_restarted(
-                name, timeout=remaining, restarts=restart_after_failure(sup, name, before)
-            )
+            target = restart_after_failure(before, sup.child(name), tried_again_at)
+            if target == before.restarts:
+                tried_again_at = target
+            sup.wait_restarted(name, timeout=remaining, restarts=target)
 
 
 def _served_names(registrar: rr.ResourceRegistrar) -> list[str]:
@@ -396,6 +400,7 @@ class Faults:
             with self.lock:
                 record.detected_at = seen
             target = restarts_before + 1  # the restart that follows our kill, not an earlier one
+            tried_again_at = -1
             while True:
                 info = self.sup.wait_restarted(
                     name, timeout=max(0.0, deadline - time.monotonic()), restarts=target
@@ -404,7 +409,9 @@ class Faults:
                     note = self._restored(name)
                     break
                 except rr.RegistrarUnavailableError:
-                    target = restart_after_failure(self.sup, name, info)
+                    target = restart_after_failure(info, self.sup.child(name), tried_again_at)
+                    if target == info.restarts:
+                        tried_again_at = target
             with self.lock:
                 record.note = note
                 record.recovered_at = time.monotonic()

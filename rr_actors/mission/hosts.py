@@ -50,6 +50,7 @@ from typing import Any, Literal, Protocol
 
 import rr_actors as rr
 from rr_actors import _log
+from rr_actors._supervision.retry import restart_after_failure
 from rr_actors.mission import managers, programs
 from rr_actors.mission.config import MissionConfig, MissionError
 from rr_actors.mission.netns import TwoHosts
@@ -73,7 +74,6 @@ __all__ = [
     "main",
     "managers_tree",
     "open_two_hosts",
-    "restart_after_failure",
 ]
 
 ROBOT_MANAGERS = ("erm", "rm")
@@ -131,24 +131,6 @@ class Tree(Protocol):
     def flush_events(self, *, timeout: float = 5.0) -> bool:
         """See `Supervisor.flush_events`."""
         ...
-
-
-def restart_after_failure(tree: Tree | Trees, name: str, before: rr.ChildInfo) -> int:
-    """The restart of manager `name` to wait for after a call to it, made when `tree`
-    said `before`, failed as unavailable: the next one (`before.restarts + 1`) if it was
-    killed since (down now, or restarted since), else `before`'s own.
-
-    A call may fail as unavailable with no restart to come: the manager was restarted
-    before `before` was read, and this process does not see it served yet (across hosts
-    its token is on the way: `RobotHost`). Waiting for "the count + 1" then waits for a
-    restart that never comes, until the timeout (the two-host demo's F5: "rm did not
-    come back"); the wait for `before`'s own returns at once, or once the station sees
-    it served, and the call is tried again.
-    """
-    now = tree.child(name)
-    if now.state != "running" or now.restarts > before.restarts:
-        return before.restarts + 1  # killed since: the next restart
-    return before.restarts
 
 
 class Trees:
@@ -211,7 +193,8 @@ class Trees:
         Every attempt uses one query id, so a provider that answered before it died
         recognises the retry from its restored catalog. After an unavailable error it
         waits for the next restart only if `provider` was killed since the attempt
-        began (`restart_after_failure`), else for the one that ran then.
+        began (`retry.restart_after_failure`), else for the one that ran then (once per
+        restart count).
 
         Raises:
             RegistrarUnavailableError, CallTimeoutError: as `Supervisor.call_with_retry`.
@@ -223,6 +206,7 @@ class Trees:
             )
         qid = str(uuid.uuid4())
         deadline = time.monotonic() + timeout
+        tried_again_at = -1
         while True:
             before = tree.child(provider)
             try:
@@ -237,10 +221,11 @@ class Trees:
             except rr.RegistrarUnavailableError:
                 if time.monotonic() >= deadline:
                     raise
+            target = restart_after_failure(before, tree.child(provider), tried_again_at)
+            if target == before.restarts:
+                tried_again_at = target
             tree.wait_restarted(
-                provider,
-                timeout=max(deadline - time.monotonic(), 1e-3),
-                restarts=restart_after_failure(tree, provider, before),
+                provider, timeout=max(deadline - time.monotonic(), 1e-3), restarts=target
             )
 
 

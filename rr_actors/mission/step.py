@@ -19,8 +19,11 @@ from rr_actors.mission.robot import TICK, Robot
 
 __all__ = ["PAUSE_SETTLE", "Step"]
 
-PAUSE_SETTLE = 2.0
-"""Seconds a `--step` pause waits at most for the robot to stand, and to drive again."""
+PAUSE_SETTLE = 5.0
+"""Seconds a `--step` pause waits at most for the robot to stand, and to drive again (it
+returns as soon as the odometry says so: a fraction of a second on a quiet machine; a
+drive program starved of CPU took over 2 s, and its start then fell in the next fault's
+time as the robot standing still)."""
 
 
 class Step:

@@ -287,13 +287,16 @@ class _Pong:
 
 
 def _links_closed(attached: Transport) -> None:
-    """The process ended: what it served is cut off the network (the kernel's part)."""
+    """The process ended: what it served is cut off the network (the kernel's part):
+    its own servers, not another process's of the same name (beyond a cut)."""
     messenger = cast(Any, attached)
     if messenger.closed:  # (it left first: an exit)
         return
     hub = messenger.link()
     for name in messenger.served():
-        hub.cut(name)
+        served = messenger.serving(name)
+        if served is not None:
+            hub.end(served, "unavailable")
 
 
 def _child(

@@ -10,8 +10,11 @@ order per link, cuts and heals.
    thread of A's ─► link.pending.answered
  partition(pids) ─► links across fail what waits on them; sends across raise "cannot be
    reached"; what is on the wire across is dropped when it arrives
- a name served on both sides of a partition (`listen` behind a cut: its server beyond
-   is not ended, as a restart's predecessor is): each sender routes to the one on its
+ listen(endpoint) ─► refused while another live process on its side of a partition
+   serves the name (`DuplicateNameError`, as AF_UNIX's lock and Zenoh's `wait_turn`;
+   one silent past its lease: `RegistrarUnavailableError`, not lost); one its own
+   process served is let go (a restart there); one beyond a cut serves on
+ a name served on both sides of a partition: each sender routes to the one on its
    side; each server carries its serve stamp (the HLC of its process as it listens)
  heal() ─► links work again; a name served on both sides: each of its processes hears
    of the others (`Messenger.served_elsewhere`, the decision Zenoh's presence runs:
@@ -21,7 +24,18 @@ order per link, cuts and heals.
  a lease (`lease=`): a process stopped (SIGSTOP) past it is silent: the links to what it
    serves fail what waits, as at a cut; once it runs again, reachable again (a presence
    thread of the network's process looks every quarter lease)
- a process ends ─► what it served ends (`_Hub.end`): every link to it fails what waits
+ a process ends ─► what it served ends (`_Hub.end`, its own servers: not another's of the
+   name beyond a cut): every link to it fails what waits
+ rule 19, as the real carriers judge it: each server carries its speaker (who restarts
+   it: its membership's `supervised_by`, or its own process while
+   `DIRECTORY.restart_expected`); a name gone unclean (its process ended, or silent past
+   the lease) that nobody else serves ─► no speaker, or one not heard: every process
+   that hears the network hears `Messenger.lost` (on a thread of its own); else awaited
+   (`_awaiting`), lost once its speaker's process ends
+ deafen(pid) ─► the process cannot hear its router (Zenoh's member whose router went):
+   divided from every other, its `listen` refused (`wait_turn`'s words), every name
+   served elsewhere lost for it, its own judged by the others as above; hear(pid) ─►
+   rejoined as at a heal (rule 22 decides, each side hears the other reachable)
 
  the faults a plan aims (rr_actors.experiments, on the simulation):
  cut_connections(pid) ─► every link from or to the process is shut down (`_Link.sever`):
@@ -43,10 +57,12 @@ before it died still arrives, as a socket's buffered bytes do.
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Callable, Iterable
 from typing import Any
 
+from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.hlc import CLOCK, from_seconds
 from rr_actors._transport.base import Endpoint
 from rr_actors._transport.codec import split_frame
@@ -117,6 +133,21 @@ class SimulatedNetwork(MemoryNetwork):
     def on_serve(self, name: str, fire: Callable[[int], object]) -> None:
         """When a process next serves `name`, run `fire(its pid)` on its thread."""
         self._simulated().serving[name] = fire
+
+    def deafen(self, pid: int) -> None:
+        """Process `pid` cannot hear its router (its router went, or the link is one way),
+        until `hear(pid)`: it hears nothing of the system and the system nothing of it.
+        What waits on its links fails and its sends raise `RegistrarUnavailableError`;
+        it serves no name (`listen` refuses one it cannot tell is free, as Zenoh's
+        `Presence.wait_turn` does); every name served elsewhere is lost for it, and what
+        it serves is gone for the others (lost for good unless its speaker is heard:
+        rule 19)."""
+        self._simulated().deafen(pid)
+
+    def hear(self, pid: int) -> None:
+        """Process `pid` hears its router again: as a heal for it (rule 22 decides a name
+        served on both sides; each side hears the names across as reachable, rule 20)."""
+        self._simulated().hear(pid)
 
     def _simulated(self) -> _SimulatedHub:
         hub = self._hub
@@ -254,11 +285,14 @@ def served_by(served: _Served) -> Process:
 
 
 class _Server(_Served):
-    """A registrar served on the simulated network: its process, the stamp of when it
-    began to serve (`Ranked`, rule 22)."""
+    """A registrar served on the simulated network: its process, who speaks for it when
+    its process dies (rule 19), the stamp of when it began to serve (`Ranked`, rule 22)."""
 
-    def __init__(self, hub: _SimulatedHub, endpoint: Endpoint, process: Process) -> None:
+    def __init__(
+        self, hub: _SimulatedHub, endpoint: Endpoint, process: Process, speaker: int | None
+    ) -> None:
         self.process = process  # (before the delivery thread: it is the process's)
+        self.speaker = speaker  # the pid that restarts it or says it is lost (rule 19)
         super().__init__(hub, endpoint, hub.messenger)
         # its process's clock read (on its thread), not ticked: a reading is no event, and
         # the histories of runs without a second server stay as they were
@@ -289,6 +323,10 @@ class _SimulatedHub(_Hub):
         self._servers: dict[str, list[_Server]] = {}  # name -> its servers: one a side
         self._side: frozenset[int] | None = None  # the pids cut off the others
         self._silent: set[str] = set()  # names served by a process silent past its lease
+        self._deaf: set[int] = set()  # pids that cannot hear their router (`deafen`)
+        self._awaiting: dict[str, int] = {}  # name gone unclean -> its speaker's pid (rule 19)
+        self._watched: set[int] = set()  # speakers whose end is watched (`at_end`)
+        self._ending: set[int] = set()  # servers' processes whose end is watched
         # the faults armed (`SimulatedNetwork`'s methods of the same names)
         self.duplicate: dict[str, tuple[float, list[int]]] = {}  # name -> (until, count)
         self.kill_answer: dict[int, Callable[[], object]] = {}  # pid -> what to run first
@@ -305,34 +343,97 @@ class _SimulatedHub(_Hub):
     def served(self, endpoint: Endpoint) -> _Server:
         # its process set before `listen` publishes it: a thread that runs while it
         # starts (a seam may switch) and routes to the name finds it whole
-        return _Server(self, endpoint, self._sender())
+        process = self._sender()
+        return _Server(self, endpoint, process, self._speaker(endpoint.name, process))
+
+    def _speaker(self, name: str, process: Process) -> int | None:
+        """Who speaks for registrar `name` served in `process` if that process dies, as
+        the real carriers publish it (rule 19): the process its membership is
+        `supervised_by`, else its own while `DIRECTORY.restart_expected(name)`, else
+        nobody (read on its thread: its membership and directory are in)."""
+        member = self.network.address.attach()
+        supervisor: int | None = getattr(member, "supervisor", None)
+        if supervisor is not None:
+            return supervisor
+        return process.pid if DIRECTORY.restart_expected(name) else None
 
     def listen(self, endpoint: Endpoint) -> _Served:
-        """Serve `endpoint` in its process. One served under its name before on this
-        side of a partition is cut off (a registrar restarted elsewhere); one beyond it
-        serves on, for the processes of its side (rule 22 decides at the heal)."""
-        server = self.served(endpoint)
+        """Serve `endpoint` in its process: refused while a process on its side of a
+        partition serves the name (as the real carriers refuse it: AF_UNIX's lock, Zenoh's
+        `wait_turn`), or while its own process cannot hear its router (`deafen`); one
+        beyond the cut serves on, for the processes of its side (rule 22 decides at the
+        heal). One its own process served is let go first (a registrar restarted there:
+        `Messenger.serve` does so for a process's own names).
+
+        Raises:
+            DuplicateNameError: another process on its side serves that name.
+            RegistrarUnavailableError: the one that serves it is silent past its lease
+                (not lost: it may run again; Zenoh refuses such a name, rule 22), or this
+                process is deaf (Zenoh's `wait_turn` cannot tell the name is free).
+            RegistrarStoppedError: the network was closed.
+        """
         name = endpoint.name
+        if self._sender().pid in self._deaf:  # (`Presence.wait_turn` of a process whose
+            # router went: no full answer of who serves it, so it does not serve it)
+            raise RegistrarUnavailableError(
+                f"cannot tell whether another process of system {self.system!r} serves a "
+                f"registrar named {name!r}, so this process does not serve it: this "
+                f"process's router does not answer: this process has no link to the rest "
+                f"of the system and hears nothing of it"
+            )
+        server = self.served(endpoint)
+        process = server.process
         with self._lock:
+            before = self._servers.get(name, [])
+            near = [other for other in before if not self._across(other, process)]
+            rival = next((other for other in near if other.process is not process), None)
+            if not self.closed and rival is None:
+                self._servers[name] = [*(o for o in before if o not in near), server]
+                self._served[name] = server
+                self._gone.pop(name, None)
+                self._awaiting.pop(name, None)
+        if self.closed or rival is not None:
+            server.inbox.close(timeout=0)
             if self.closed:
                 raise RegistrarStoppedError("the in-memory network was closed")
-            before = self._servers.get(name, [])
-            beyond = [other for other in before if self._across(other, server.process)]
-            self._servers[name] = [*beyond, server]
-            self._served[name] = server
-            self._gone.pop(name, None)
-        for old in before:
-            if old not in beyond:
-                self.end(old, "unavailable")
+            assert rival is not None
+            if name in self._silent:
+                raise RegistrarUnavailableError(
+                    f"registrar {name!r} is served by process {rival.process.pid}, silent "
+                    f"past its lease: not lost (it may run again), so process "
+                    f"{process.pid} does not serve that name"
+                )
+            raise self.duplicate_error(name, f"process {rival.process.pid}")
+        for old in near:
+            self.end(old, "unavailable")
+        if process.pid not in self._ending:  # (the kernel's part: its end ends them)
+            self._ending.add(process.pid)
+            process.at_end.append(functools.partial(self._ended, process))
         fire = self.serving.pop(name, None)
         if fire is not None:
             fire(server.process.pid)
         return server
 
+    def _ended(self, process: Process) -> None:
+        """`process` ended: what it still served ends (a manager's carrier cut it first)."""
+        for servers in list(self._servers.values()):
+            for server in servers:
+                if server.process is process:
+                    self.end(server, "unavailable")
+
     def _across(self, server: _Server, process: Process) -> bool:
-        """Whether the partition divides `process` from `server`'s process."""
+        """Whether the partition, or a deaf process, divides `process` from `server`'s."""
+        return self._divided(server.process.pid, process.pid)
+
+    def _divided(self, one: int, other: int) -> bool:
+        """Whether processes `one` and `other` cannot hear each other: the partition
+        divides them, or one of them cannot hear its router (`deafen`)."""
+        if one == other:
+            return False
+        if one in self._deaf or other in self._deaf:
+            return True
         side = self._side
-        return side is not None and (server.process.pid in side) != (process.pid in side)
+        return side is not None and (one in side) != (other in side)
 
     def route(self, name: str) -> _Link:  # type: ignore[override]
         """The link from this process to the server of `name` it reaches: the one on its
@@ -355,6 +456,15 @@ class _SimulatedHub(_Hub):
             raise RegistrarUnavailableError(
                 f"registrar {name!r} cannot be reached (its process is silent past its lease)"
             )
+        if sender.pid in self._deaf:
+            raise RegistrarUnavailableError(
+                f"registrar {name!r} cannot be reached (this process cannot hear its router: "
+                f"it hears nothing of the rest of the system)"
+            )
+        if served.process.pid in self._deaf:
+            raise RegistrarUnavailableError(
+                f"registrar {name!r} cannot be reached (its process cannot hear its router)"
+            )
         if self.apart(link):
             raise RegistrarUnavailableError(
                 f"registrar {name!r} cannot be reached (the network between processes "
@@ -363,14 +473,11 @@ class _SimulatedHub(_Hub):
         return link
 
     def apart(self, link: _Link) -> bool:
-        """Whether `link` crosses the partition, or leads to a process silent past its
-        lease."""
+        """Whether `link` crosses the partition, leads to a process silent past its
+        lease, or from or to a process that cannot hear its router."""
         if link.served.endpoint.name in self._silent:
             return True
-        side = self._side
-        if side is None:
-            return False
-        return (link.sender.pid in side) != (served_by(link.served).pid in side)
+        return self._divided(link.sender.pid, served_by(link.served).pid)
 
     def answer_to(self, process: Any, data: bytes, on_lost: Lost | None) -> bool:
         if self.closed:
@@ -379,6 +486,8 @@ class _SimulatedHub(_Hub):
         return link.answer(data, on_lost)
 
     def end(self, served: _Served, how: str, error: RrError | None = None) -> None:
+        if served.gone:
+            return
         name = served.name
         # (first, and without a lock: no choice point lets a `listen` see it served)
         rest = [one for one in self._servers.pop(name, []) if one is not served]
@@ -394,6 +503,8 @@ class _SimulatedHub(_Hub):
             if link.served is served and not link.closed:
                 link.close(failed)
         self._aside = [link for link in self._aside if not link.closed]
+        if how == "unavailable" and not rest and not self.closed and isinstance(served, _Server):
+            self._judge(name, served)  # (its process died, or it crashed: not stopped)
 
     def leave(self) -> None:
         """The network closes: every server of a name ends, the one beyond a cut too
@@ -432,21 +543,129 @@ class _SimulatedHub(_Hub):
 
     def heal(self) -> None:
         side, self._side = self._side, None
-        if side is None:
+        if side is not None:
+            self._rejoin(side)
+
+    def deafen(self, pid: int) -> None:
+        """Process `pid` no longer hears its router (see `SimulatedNetwork.deafen`)."""
+        if pid in self._deaf:
             return
+        self._deaf.add(pid)
+        logger.warning(
+            "system %s: process %s lost its link to its router: it hears nothing of the "
+            "rest of the system, and serves no registrar from now on (rule 22)",
+            self.system,
+            pid,
+        )
+        error = RegistrarUnavailableError(
+            f"process {pid} cannot hear its router: the registrar cannot be reached"
+        )
+        for link in self._every_link():
+            if not link.closed and pid in (link.sender.pid, served_by(link.served).pid):
+                link.close(error)
+        mine: list[tuple[str, _Server]] = []  # what it serves, gone for the others
+        theirs: list[str] = []  # what the others serve, gone for it (every token went)
+        for name, servers in self._servers.items():
+            one = kept(servers)
+            if one is not None and one.process.pid == pid:
+                mine.append((name, one))
+            elif one is not None and name not in self._silent:
+                theirs.append(name)
+        for name, server in mine:
+            self._judge(name, server)
+        self._speakers_gone()
+        process = self._process(pid)
+        if theirs and process is not None and process.alive:
+            self._tell("lost", theirs, [process])
+
+    def hear(self, pid: int) -> None:
+        """Process `pid` hears its router again: a healed link for it."""
+        if pid in self._deaf:
+            self._deaf.discard(pid)
+            self._rejoin(frozenset({pid}))
+
+    def _rejoin(self, side: frozenset[int]) -> None:
+        """The processes of `side` and the others hear each other again: a name served
+        on both is decided (rule 22), and each process hears every name across that it
+        hears now as reachable again (rule 20)."""
         pids: dict[str, int] = {}  # name -> the pid of its server kept
         for name, servers in list(self._servers.items()):
             one = kept(servers)
             if one is None:
                 continue
             pids[name] = one.process.pid
-            if len(servers) > 1:
+            if len(servers) > 1 and not self._apart_servers(servers):
                 self._two_servers(name, servers)
 
         def across(process: Process, name: str) -> bool:
-            return (pids[name] in side) != (process.pid in side)
+            there = pids[name]
+            return (there in side) != (process.pid in side) and not self._divided(
+                there, process.pid
+            )
 
         self._tell_reachable(list(pids), across)
+
+    def _apart_servers(self, servers: list[_Server]) -> bool:
+        """Whether two of `servers` still cannot hear each other."""
+        return any(
+            self._divided(one.process.pid, other.process.pid)
+            for one in servers
+            for other in servers
+        )
+
+    # -- lost for good (rule 19) ------------------------------------------------------
+
+    def _judge(self, name: str, server: _Server) -> None:
+        """`name`'s server went without a clean stop, or is heard no more (a lease, a
+        deaf process), and nobody serves it on: lost for good if nobody speaks for it or
+        its speaker is gone too (every process that hears the network hears `lost`);
+        else awaited, lost if its speaker goes later (the real carriers' rule 19)."""
+        speaker = server.speaker
+        if speaker is not None and speaker != server.process.pid and self._heard(speaker):
+            self._awaiting[name] = speaker
+            self._watch(speaker)
+            return
+        self._awaiting.pop(name, None)
+        self._lost(name, server.process.pid)
+
+    def _process(self, pid: int) -> Process | None:
+        return next((one for one in self.sched.processes if one.pid == pid), None)
+
+    def _heard(self, pid: int) -> bool:
+        """Whether process `pid` is heard on the network: alive, not silent past a lease,
+        hearing its router."""
+        process = self._process(pid)
+        if process is None or not process.alive or pid in self._deaf:
+            return False
+        lease = self.network.lease
+        return not (
+            lease is not None and process.stopped and self.sched.now - process.stopped_at > lease
+        )
+
+    def _watch(self, pid: int) -> None:
+        """Judge the names `pid` speaks for again when its process ends."""
+        process = self._process(pid)
+        if process is not None and pid not in self._watched:
+            self._watched.add(pid)
+            process.at_end.append(self._speakers_gone)
+
+    def _speakers_gone(self) -> None:
+        """The names awaited on a speaker no longer heard are lost."""
+        for name, speaker in list(self._awaiting.items()):
+            if not self._heard(speaker):
+                del self._awaiting[name]
+                self._lost(name, None)
+
+    def _lost(self, name: str, pid: int | None) -> None:
+        """Every process that hears the network, but `pid`, hears `name` is lost."""
+        if self.closed:
+            return
+        hearers = [
+            process
+            for process in self.sched.processes
+            if process.alive and process.pid != pid and process.pid not in self._deaf
+        ]
+        self._tell("lost", [name], hearers)
 
     def _two_servers(self, name: str, servers: list[_Server]) -> None:
         """A name served on both sides of the healed cut: each of its processes hears of
@@ -491,10 +710,13 @@ class _SimulatedHub(_Hub):
                     for link in self._every_link():
                         if link.served is served and not link.closed:
                             link.close(error)
+                    if isinstance(served, _Server) and process.pid not in self._deaf:
+                        self._judge(name, served)  # (its tokens went, as for real)
                 elif not silent and name in self._silent:
                     self._silent.discard(name)
                     back.append(name)
             self._silent &= set(self._served)
+            self._speakers_gone()  # (a speaker silent past its lease: its token went)
             if back:
                 self._tell_reachable(back, lambda process, name: True)
 
@@ -506,21 +728,30 @@ class _SimulatedHub(_Hub):
                 continue
             heard = [name for name in names if across(process, name)]
             if heard:
-                sim.Thread(
-                    self.sched,
-                    target=self._reachable,
-                    args=(heard,),
-                    name=f"rr-reachable-{process.pid}",
-                    daemon=True,
-                    process=process,
-                ).start()
+                self._tell("reachable", heard, [process])
 
-    def _reachable(self, names: list[str]) -> None:
-        """In a process: the names across the healed cut are reachable again (rule 20)."""
+    def _tell(self, what: str, names: list[str], processes: list[Process]) -> None:
+        """Each of `processes` hears `names` are `what` ("lost" for good, rule 19;
+        "reachable" again, rule 20), as its carrier tells its messenger: on a thread of
+        its own."""
+        for process in processes:
+            sim.Thread(
+                self.sched,
+                target=self._heard_of,
+                args=(what, names),
+                name=f"rr-{what}-{process.pid}",
+                daemon=True,
+                process=process,
+            ).start()
+
+    def _heard_of(self, what: str, names: list[str]) -> None:
+        """In a process: its messenger hears `names` are `what` (`Messenger.lost`,
+        `Messenger.reachable`)."""
         member = self.network.address.attach()
         assert isinstance(member, Messenger)
+        hear = member.lost if what == "lost" else member.reachable
         for name in names:
-            member.reachable(name)
+            hear(name)
 
 
 SimulatedNetwork._hub_class = _SimulatedHub

@@ -259,6 +259,7 @@ def _seams(sched: Scheduler) -> dict[str, Any]:
         "get_ident": functools.partial(sim.get_ident, sched),
         "current_thread": functools.partial(sim.current_thread, sched),
         "getpid": lambda: sched.current().process.pid,
+        "guards_files": lambda: False,  # (its backups are its own: `runtime.guards_files`)
         "queue_class": functools.partial(sim.queue_class, sched, {}),
         "manager_process": functools.partial(_manager.start, sched),
     }

@@ -56,6 +56,7 @@ from rr_actors._transport.messenger import (
 from rr_actors.config import check_seconds
 from rr_actors.errors import (
     ConfigError,
+    DuplicateNameError,
     RegistrarStoppedError,
     RegistrarUnavailableError,
     RrError,
@@ -207,18 +208,39 @@ class _Hub:
         return _MemoryPeer(self, name)
 
     def listen(self, endpoint: Endpoint) -> _Served:
-        """Serve `endpoint` in a "process" of its own; one served under its name before
-        is cut off (a registrar restarted elsewhere)."""
-        served = self.served(endpoint)
+        """Serve `endpoint` in a "process" of its own: refused while another serves its
+        name, as the real carriers refuse it (one name, one registrar); one whose
+        registrar ended, or that was cut or stopped, serves no more (a restart serves).
+
+        Raises:
+            DuplicateNameError: another "process" serves that name.
+            RegistrarStoppedError: the network was closed.
+        """
+        served, name = self.served(endpoint), endpoint.name
         with self._lock:
+            old = self._served.get(name)
+            if old is not None and old.endpoint.wait_ended(0):
+                del self._served[name]  # (its registrar ended: it went, as after a kill)
+            else:
+                old = None
+            refused = self.closed or name in self._served
+            if not refused:
+                self._served[name] = served
+                self._gone.pop(name, None)
+        if refused:
+            served.inbox.close(timeout=0)
             if self.closed:
                 raise RegistrarStoppedError("the in-memory network was closed")
-            old = self._served.pop(endpoint.name, None)
-            self._served[endpoint.name] = served
-            self._gone.pop(endpoint.name, None)
+            raise self.duplicate_error(name, "another process")
         if old is not None:
             self.end(old, "unavailable")
         return served
+
+    def duplicate_error(self, name: str, by: str) -> DuplicateNameError:
+        """What `listen` raises for a name `by` serves (one name, one registrar)."""
+        return DuplicateNameError(
+            f"a registrar named {name!r} is already served on system {self.system!r} (by {by})"
+        )
 
     def served(self, endpoint: Endpoint) -> _Served:
         """A new `_Served` for `endpoint`, complete before anyone can route to it."""
@@ -316,6 +338,8 @@ class MemoryNetwork(Messenger):
         it stops being served when it ends.
 
         Raises:
+            DuplicateNameError: another registrar served on it has that name (one name,
+                one registrar, as on every carrier).
             RegistrarStoppedError: the network was closed.
         """
         process = Messenger(self.system, resolver=False)

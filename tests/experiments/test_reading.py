@@ -569,8 +569,8 @@ class TestRules:
 
         assert (18, "faults[0].for") == (error.line, error.key)
         only = "'hang_manager' or 'load_error' or 'cut' or 'partition' or 'freeze'"
-        only += (
-            " or 'partition_serving' or 'duplicate_delivery' or 'split_brain'"  # (the simulation's)
+        only += (  # (the simulation's)
+            " or 'partition_serving' or 'duplicate_delivery' or 'split_brain' or 'deaf_manager'"
         )
         assert f"does not go with kind 'kill_manager' (only {only})" == error.problem
 

@@ -17,7 +17,8 @@ from typing import Any
 
 import pytest
 
-from rr_actors.experiments import PlanError, parse_plan, simulate
+from rr_actors._core import runtime
+from rr_actors.experiments import PlanError, parse_plan, services, simulate
 from rr_actors.experiments.plan import Plan
 
 pytest.importorskip("greenlet")  # (the simulation extra)
@@ -499,6 +500,81 @@ def test_a_split_brain_serves_a_name_on_both_sides_and_the_heal_keeps_the_first(
         e for r in runs for e in lines(r, "ConsumerReleased") if e["reason"] == "name yielded"
     ]
     assert yielded  # (what the clients got from the second db during the cut)
+
+
+def slow_service(registrar: Any, **options: Any) -> None:
+    """A service whose setup takes 0.3 s (virtual) before it registers its server."""
+    runtime.sleep(0.3)
+    services.service(registrar, **options)
+
+
+@SWEEP
+def test_a_split_brain_shorter_than_the_second_servers_start_heals_once_it_serves() -> None:
+    slow = BASE.replace(
+        f'name = "db"\nsetup = "{SERVICE}"', f'name = "db"\nsetup = "{__name__}:slow_service"'
+    )
+    plan = with_faults('kind = "split_brain"\ntarget = "db"\nat = 0.5\nfor = 0.1', base=slow)
+
+    runs = simulate.simulate(plan, range(1, 3))
+
+    held(runs)  # (it was "violated": the second started after the heal, beside the first)
+    for run in runs:
+        [split] = fired(run)
+        assert "healed as it served, 0.3 s after the cut" in split["detail"]
+        served_at = {
+            e["supervisor"]: e["at"] for e in lines(run, "ChildStarted") if e["child"] == "db"
+        }
+        [yielded] = [e for e in lines(run, "ChildExited") if e["supervisor"] == "beyond-1"]
+        assert "normal" == yielded["reason"]  # (it yielded at the heal, as it served)
+        assert yielded["at"] - served_at["beyond-1"] < 0.1
+
+
+@SWEEP
+def test_a_run_whose_fault_fails_to_close_still_cleans_up_for_the_next_seed(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from rr_actors.experiments._simulated_faults import SimulatedFaults  # noqa: PLC0415
+
+    plan = with_faults('kind = "split_brain"\ntarget = "db"\nat = 0.5\nfor = 0.6')
+    clean = simulate.run_seed(plan, 1)
+
+    def close_raises(faults: SimulatedFaults) -> None:
+        raise RuntimeError("the fault's close failed")
+
+    with monkeypatch.context() as patched:
+        patched.setattr(SimulatedFaults, "close", close_raises)
+        with pytest.raises(RuntimeError, match="the fault's close failed"):
+            simulate.run_seed(plan, 1)
+
+    assert clean.hash == simulate.run_seed(plan, 1).hash  # (its network was closed, ...)
+
+
+@SWEEP
+def test_a_deaf_manager_fails_calls_both_ways_until_it_hears_its_router_again() -> None:
+    """`deaf_manager` (`SimulatedNetwork.deafen`): api's process hears nothing of the
+    system for 0.6 s: the calls to it and its own fail as unavailable at once, it hears
+    db lost (rule 19: FATAL, forgotten) and the others do not hear it lost (its
+    supervisor lives: not restarted either, its heartbeat is not the network's); once it
+    hears again, calls to it are answered, and the history holds (the checker sees the
+    cut in what each side let go)."""
+    plan = with_faults('kind = "deaf_manager"\ntarget = "api"\nat = 0.5\nfor = 0.6')
+
+    runs = simulate.simulate(plan, range(1, 21))
+
+    held(runs)
+    for run in runs:
+        [deaf] = fired(run)
+        assert deaf["detail"].endswith("cannot hear its router, for 0.6 s")
+        t0 = run_t0(run)
+        failed = [e for e in lines(run, "CallFailed") if "cannot hear its router" in e["message"]]
+        assert failed
+        assert all(0.5 <= e["at"] - t0 <= 1.1 for e in failed)
+        answered = [e for e in lines(run, "CallAnswered") if e["serving_rr"] == "api"]
+        assert any(e["at"] - t0 > 1.1 for e in answered)
+        assert [] == [e for e in lines(run, "ChildExited") if e["reason"] != "shutdown"]
+    lost = [e for r in runs for e in lines(r, "QueryForgotten") if e["reason"] == "provider lost"]
+    assert lost
+    assert {"api"} == {e["registrar"] for e in lost}
 
 
 @SWEEP

@@ -13,7 +13,7 @@ import pytest
 from rr_actors.__main__ import main
 from rr_actors.errors import ConfigError
 from rr_actors.experiments import sweep
-from tests.experiments.test_simulate import PLAN
+from tests.experiments.test_simulate import BASE, PLAN
 
 pytest.importorskip("greenlet")  # (the simulation extra)
 
@@ -53,6 +53,30 @@ def command(*argv: str) -> tuple[int, str]:
 def recorded(out: Path) -> dict[int, dict[str, object]]:
     lines = (out / sweep.SEEDS_FILE).read_text().splitlines()
     return {line["seed"]: line for line in map(json.loads, lines)}
+
+
+@SWEEP
+def test_a_sweep_writes_the_simulated_systems_error_lines_by_seed_to_its_log_not_stderr(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """A second server yields at each heal with an ERROR (rule 22, as on Zenoh): the
+    simulated system's line, kept as a real run keeps its processes' (`stderr.txt`)."""
+    plan, out = tmp_path / "plan.toml", tmp_path / "out"
+    plan.write_text(BASE + '[[faults]]\nkind = "split_brain"\ntarget = "db"\nat = 0.5\nfor = 0.6\n')
+
+    code, printed = command(
+        "experiment", str(plan), "--simulate", "--seeds", "1-2", "--out", str(out)
+    )
+
+    assert 0 == code, printed
+    assert "one name is one registrar" not in capfd.readouterr().err
+    said = " ".join(printed.split())  # (the display wraps its lines)
+    assert "log.txt (the simulated system's 2 log lines of ERROR, by seed)" in said
+    logged = (out / sweep.LOG_FILE).read_text().splitlines()
+    assert ["seed 1: ERROR rr_actors", "seed 2: ERROR rr_actors"] == [
+        line.split(": registrar")[0] for line in logged
+    ]
+    assert all("one name is one registrar (rule 22)" in line for line in logged)
 
 
 @SWEEP

@@ -602,3 +602,38 @@ def test_a_call_to_a_restarted_manager_of_the_robot_that_does_not_reach_it_yet_i
     assert "answered" == answer
     assert 2 == len(app.query_ids)
     assert 1 == len(set(app.query_ids))
+
+
+class _NeverReached(_LateCall):
+    """The station's registrar when rm was killed and its tree has not seen it yet: every
+    call fails as unavailable at once."""
+
+    def call(self, target_rr: str, _server: str, _request: Any, **kwargs: Any) -> str:
+        self.query_ids.append(kwargs["query_id"])
+        raise rr.RegistrarUnavailableError(f"registrar {target_rr!r} cannot be reached")
+
+
+@pytest.mark.timeout(120)
+def test_a_call_that_fails_at_once_again_waits_for_the_next_restart_instead_of_spinning(
+    tmp_path: Path,
+) -> None:
+    """rm runs as far as its tree knows, and every call to it fails as unavailable at once
+    (killed, not seen yet). `Trees.call_with_retry` tries again at once only once at that
+    restart count, then waits for the restart the tree makes once it sees the kill (here
+    none comes: its timeout); it used to call again and again until the timeout."""
+    sup = managers_tree(("rm",), isolation="thread", state_dir=tmp_path, network=None, name=None)
+    app = _NeverReached()
+    with sup:
+        robot = cast(Tree, _SeenFromTheStation(sup))
+
+        with pytest.raises(rr.CallTimeoutError):
+            Trees({"rm": robot}).call_with_retry(
+                cast(rr.ResourceRegistrar, app),
+                "rm",
+                "robot",
+                {"goal": 1},
+                on_status=lambda *_: None,
+                timeout=1.0,
+            )
+
+    assert 2 == len(app.query_ids)

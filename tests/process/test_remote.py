@@ -71,3 +71,19 @@ def test_a_plain_handles_kill_makes_the_process_kill_itself_and_its_owner_sees_i
     assert not plain.is_alive()
     with pytest.raises(rr.RegistrarUnavailableError):
         plain.call(owner.name, "leaf", "r", timeout=5.0)
+
+
+def _no_camera(_registrar: rr.ResourceRegistrar) -> None:
+    raise RuntimeError("no camera on this bench")  # the line a failed start must show
+
+
+def test_a_setup_that_raises_is_reported_with_its_own_file_and_line() -> None:
+    system = System.create()
+    try:
+        with pytest.raises(rr.RegistrarUnavailableError) as info:
+            RemoteRegistrar.start(f"remote-{uuid.uuid4().hex[:8]}", system, setup=_no_camera)
+    finally:
+        system.close()
+
+    assert f'File "{__file__}", line ' in str(info.value)
+    assert "the line a failed start must show" in str(info.value)

@@ -187,6 +187,10 @@ def _no_unload(_request: object, _response: object) -> None:
     return None
 
 
+def _hang(_request: object, _response: object) -> None:  # (past the provider's unload_timeout)
+    threading.Event().wait(5)
+
+
 class Crossing:
     """A provider in a manager process; here, a consumer and a relay registrar.
 
@@ -199,7 +203,7 @@ class Crossing:
     def __init__(self, placement: str) -> None:
         self.network = placement_network(placement)
         uid = uuid.uuid4().hex[:8]
-        config = rr.RegistrarConfig(name=f"prov-{uid}", call_timeout=20.0)
+        config = rr.RegistrarConfig(name=f"prov-{uid}", call_timeout=20.0, unload_timeout=1.0)
         self.provider = RemoteRegistrar.start(config, self.network)
         self.provider.register_server("leaf", load=_echo, unload=_no_unload)
         self.relay = rr.ResourceRegistrar.start(f"relay-{uid}", network=self.network)
@@ -781,6 +785,50 @@ class TestReleaseCrossing:
         assert ["hold"] == notices  # the answer carried it; it had come its own way first
         assert ["warm-up", "hold"] == crossing.heard
         assert [] == crossing.consumer.client_queries()
+
+    def test_a_status_crossing_a_release_whose_unload_overran_reaches_the_consumer_before_it(
+        self, crossing: Crossing
+    ) -> None:
+        provider = crossing.provider.name
+        other = rr.ResourceRegistrar.start(
+            f"other-{uuid.uuid4().hex[:8]}", network=crossing.network
+        )
+        crossing.provider.register_server("hangs", load=_echo, unload=_hang)
+        heard: list[str] = []
+        mine = crossing.consumer.call(
+            provider, "hangs", "h", on_status=lambda _q, u: heard.append(u.message), timeout=20
+        )
+        theirs = other.call(provider, "hangs", "h", timeout=20)
+        crossing.send("relay chosen")  # (this process's statuses go to the relay from now on)
+        crossing.provider.send_status(mine.id, rr.Status.UPDATE, "warm-up", timeout=20)
+        held = threading.Event()
+
+        def hold(batch: Any) -> None:  # (the relay's actor, until the release returned)
+            if batch.message == "unplugged":
+                held.set()
+                assert crossing.go.wait(20)
+
+        try:
+            with (
+                intercept(crossing.relay, "status_batch", before=hold),
+                ThreadPoolExecutor(1) as pool,
+            ):
+                sent = pool.submit(
+                    crossing.provider.send_status, mine.id, rr.Status.FATAL, "unplugged", timeout=20
+                )
+                assert held.wait(10)  # on its way to the consumer, held back at the relay
+                other.unload(theirs.id, timeout=20)
+                with pytest.raises(rr.CallTimeoutError, match="unload callback"):
+                    crossing.consumer.unload(mine.id, timeout=20)  # (the last: it unloads)
+                heard_when_released = list(heard)
+                crossing.go.set()
+                sent.result(20)
+        finally:
+            other.stop()
+
+        assert ["warm-up", "unplugged"] == heard_when_released
+        assert ["warm-up", "unplugged"] == heard
+        assert [crossing.query.id] == [q.id for q in crossing.consumer.client_queries()]
 
 
 class TestTooLarge:

@@ -8,12 +8,16 @@ import shutil
 import signal
 import tempfile
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import pytest
 
 import rr_actors as rr
 from rr_actors import simulation
+from rr_actors._catalog import Catalog
+from rr_actors._store.files import read_backup
+from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import MemoryNetwork
 
 pytest.importorskip("greenlet")  # (the simulation extra)
@@ -171,3 +175,35 @@ def test_a_manager_s_events_reach_the_supervisor_s_subscribers_while_they_listen
     kinds = simulation.run(with_tree(body), seed=1).value
 
     assert ["ConsumerAdded", "ConsumerReleased", "ResourceLoaded", "ResourceUnloaded"] == kinds
+
+
+def commit_one(path: Path) -> list[str]:
+    """Commit a resource with a consumer to a new backup at `path`; the files beside it
+    just after the commit (the store is closed then)."""
+    store = SqliteStore.open(path)
+    store.load()
+    catalog = Catalog()
+    catalog.begin_load("r1", "leaf", {"rid": "r1"})
+    catalog.finish_load("r1", {"pid": 1})
+    catalog.add_consumer("r1", "q1", "C")
+    store.write(catalog.drain_changes())
+    files = sorted(p.name for p in path.parent.iterdir())
+    store.close(erase=False)
+    return files
+
+
+def test_a_simulated_backup_keeps_no_commit_count_beside_its_log_and_its_commits_all_the_same(
+    tmp_path: Path,
+) -> None:
+    """`runtime.guards_files`: nothing but the simulation touches its backups, so their
+    logs are never cut short and no count is kept to tell (a real store keeps one)."""
+    (tmp_path / "real").mkdir()
+    (tmp_path / "sim").mkdir()
+
+    real = commit_one(tmp_path / "real" / "b.db")
+    simulated = simulation.run(lambda: commit_one(tmp_path / "sim" / "b.db"), seed=1).value
+
+    assert "b.db-commits" in real
+    assert ["b.db", "b.db-shm", "b.db-wal"] == simulated
+    restored = read_backup(tmp_path / "sim" / "b.db").resources
+    assert [("r1", ["q1"])] == [(r.id, list(r.consumers)) for r in restored]

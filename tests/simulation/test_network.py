@@ -9,15 +9,17 @@ import shutil
 import signal
 import tempfile
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Literal
 
 import pytest
 
 import rr_actors as rr
 from rr_actors import simulation
+from rr_actors._core import runtime
 from rr_actors.simulation import _run
 from rr_actors.simulation._network import DELAY, _SimulatedHub, _Wire
 from rr_actors.simulation._run import running_scheduler
+from tests.support import simulated
 
 pytest.importorskip("greenlet")  # (the simulation extra)
 
@@ -54,6 +56,7 @@ def with_provider(
     body: Callable[[rr.Supervisor, rr.ResourceRegistrar, Any], Any],
     lease: float | None = None,
     heartbeat: float | None = 0.25,
+    restart: Literal["permanent", "transient", "temporary"] = "permanent",
 ) -> Any:
     """A scenario: a process manager `provider` (backed up) under a supervisor on a
     simulated network, a consumer `app` in the supervisor's process."""
@@ -63,7 +66,11 @@ def with_provider(
         network = simulation.SimulatedNetwork(lease=lease)
         try:
             manager = rr.ManagerSpec(
-                "provider", setup=leaf_setup, isolation="process", heartbeat=heartbeat
+                "provider",
+                setup=leaf_setup,
+                isolation="process",
+                heartbeat=heartbeat,
+                restart=restart,
             )
             supervisor = rr.Supervisor(manager, state_dir=folder, network=network, name="root")
             supervisor.start()
@@ -315,3 +322,393 @@ def test_the_files_of_the_processes_a_run_killed_are_closed_when_it_ends(
         gc.enable()
 
     assert ((), before) == (tuple(run.errors), after)
+
+
+# -- lost for good (rule 19) and a process that cannot hear its router --------------------
+
+
+def serve_alone(
+    network: simulation.SimulatedNetwork, name: str, setup: Callable[[Any], None] = leaf_setup
+) -> Callable[[], None]:
+    """The main thread of a process that serves registrar `name` on `network` and that
+    nobody supervises (its membership names no speaker: rule 19)."""
+
+    def main() -> None:
+        registrar = rr.ResourceRegistrar.start(
+            rr.RegistrarConfig(name=name), network=network.address.attach()
+        )
+        setup(registrar)
+
+    return main
+
+
+def until_served(network: simulation.SimulatedNetwork, *names: str) -> None:
+    while not set(names) <= set(network.names()):
+        simulation.sleep(0.05)
+
+
+def lost_provider(how: str) -> Callable[[], Any]:
+    """A consumer `app` holds an id at `provider`, served by a process nobody restarts;
+    that process is killed (`kill`) or stopped past its lease (`stop`): the carrier says
+    it is lost (rule 19): `app` hears FATAL for the id once and forgets it."""
+
+    def scenario() -> Any:
+        network = simulation.SimulatedNetwork(lease=1.0)
+        app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=network)
+        try:
+            pid = simulation.start_process(serve_alone(network, "provider"), name="provider")
+            until_served(network, "provider")
+            heard: list[tuple[str, Any]] = []
+            held = app.call(
+                "provider",
+                "leaf",
+                "x",
+                on_status=lambda query, update: heard.append((query.id, update.status)),
+            )
+            simulation.kill(pid, signal.SIGKILL if how == "kill" else signal.SIGSTOP)
+            simulation.sleep(2.0)  # (past its lease)
+            try:
+                app.unload(held.id)
+            except rr.UnknownQueryError:
+                unload = "unknown"
+            else:
+                unload = "unloaded"
+            outcome = (heard == [(held.id, rr.Status.FATAL)], unload, app.client_queries())
+            if how == "stop":
+                simulation.kill(pid, signal.SIGCONT)
+            return outcome
+        finally:
+            try:
+                app.stop()
+            finally:
+                network.close()
+
+    return scenario
+
+
+@pytest.mark.parametrize("how", ["kill", "stop"])
+def test_a_provider_nobody_restarts_is_lost_and_its_consumer_hears_fatal_and_forgets(
+    how: str,
+) -> None:
+    """The carrier's rule 19 on the simulation: a process nobody supervises is killed, or
+    stopped past its lease (its tokens go, as Zenoh's): every process that hears the
+    network hears the name lost (`Messenger.lost`), so its consumers hear `FATAL` and
+    forget their ids (the same messenger and registrar code as on the real carriers)."""
+    for seed in range(10):
+        run = simulation.run(lost_provider(how), seed=seed, preempt=0.1)
+        assert ((True, "unknown", []), ()) == (run.value, tuple(run.errors)), f"seed {seed}"
+
+
+def test_a_provider_whose_supervisor_lives_is_awaited_not_lost_and_lost_once_that_one_goes() -> (
+    None
+):
+    """Rule 19: a killed manager whose supervisor's process is alive is not lost (it may
+    be restarted: its consumers keep their ids); once its supervisor's process is gone
+    too, it is lost (the real carriers' "awaited" names)."""
+
+    def scenario() -> Any:
+        folder = tempfile.mkdtemp(prefix="rr-sim-awaited-")
+        network = simulation.SimulatedNetwork()
+        app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=network)
+        children: list[int] = []
+
+        def tree() -> None:
+            spec = rr.ManagerSpec(
+                "provider", setup=leaf_setup, isolation="process", restart="temporary"
+            )
+            sup = rr.Supervisor(spec, state_dir=folder, network=network, name="tree")
+            sup.start()
+            pid = sup.child("provider").pid
+            assert pid is not None
+            children.append(pid)
+
+        try:
+            tree_pid = simulation.start_process(tree, name="tree")
+            until_served(network, "provider")
+            held = app.call("provider", "leaf", "x")
+            simulation.kill(children[0])  # (temporary: its supervisor does not restart it)
+            simulation.sleep(2.0)
+            awaited = [q.id for q in app.client_queries()]
+            simulation.kill(tree_pid)  # (its speaker goes too: nobody will say more)
+            simulation.sleep(2.0)
+            return held.id in awaited, [q.id for q in app.client_queries()]
+        finally:
+            try:
+                app.stop()
+            finally:
+                network.close()
+            shutil.rmtree(folder, ignore_errors=True)
+
+    for seed in range(5):
+        run = simulation.run(scenario, seed=seed, preempt=0.1)
+        assert ((True, []), ()) == (run.value, tuple(run.errors)), f"seed {seed}"
+
+
+def test_a_process_that_cannot_hear_its_router_serves_no_name_and_its_calls_fail() -> None:
+    """A process whose router went (`deafen`): it refuses to serve a name it cannot tell
+    is free (as Zenoh's `Presence.wait_turn`, with its words), its calls and the calls
+    to what it serves fail as unavailable at once, it hears every name served elsewhere
+    lost, and the others hear what it served, nobody's to restart, lost (rule 19). Once
+    it hears its router again (`hear`), calls both ways work again."""
+
+    def scenario() -> Any:
+        folder = tempfile.mkdtemp(prefix="rr-sim-deaf-")
+        network = simulation.SimulatedNetwork()
+        manager = rr.ManagerSpec("provider", setup=leaf_setup, isolation="process")
+        sup = rr.Supervisor(manager, state_dir=folder, network=network, name="root")
+        out: dict[str, Any] = {}
+        deaf = runtime.Event()
+        heard = runtime.Event()
+        done = runtime.Event()
+
+        def member() -> None:
+            me = rr.ResourceRegistrar.start(
+                rr.RegistrarConfig(name="member"), network=network.address.attach()
+            )
+            leaf_setup(me)
+            held = me.call("provider", "leaf", "m")
+            deaf.wait()
+            try:
+                rr.ResourceRegistrar.start(
+                    rr.RegistrarConfig(name="other"), network=network.address.attach()
+                )
+            except rr.RegistrarUnavailableError as exc:
+                out["serve"] = str(exc)
+            began = simulation.now()
+            try:
+                me.call("provider", "leaf", "n", timeout=5.0)
+            except rr.RegistrarUnavailableError:
+                out["call"] = ("unavailable", simulation.now() - began < 0.1)
+            simulation.sleep(0.5)
+            out["member holds"] = held.id in [q.id for q in me.client_queries()]
+            heard.wait()
+            simulation.sleep(1.0)  # (reachable again: the reconcile)
+            out["member after"] = me.call("provider", "leaf", "n").response
+            done.set()
+
+        try:
+            sup.start()
+            app = sup.registrar("app")
+            pid = simulation.start_process(member, name="member")
+            until_served(network, "member")
+            mine = app.call("member", "leaf", "a")
+            simulation.sleep(0.5)
+            network.deafen(pid)
+            deaf.set()
+            simulation.sleep(0.5)
+            began = simulation.now()
+            try:
+                app.call("member", "leaf", "b", timeout=5.0)
+            except rr.RegistrarUnavailableError:
+                out["app call"] = ("unavailable", simulation.now() - began < 0.1)
+            out["app holds"] = mine.id in [q.id for q in app.client_queries()]
+            network.hear(pid)
+            heard.set()
+            done.wait()
+            out["app after"] = app.call("member", "leaf", "c").response
+            app.stop()
+            return out
+        finally:
+            try:
+                sup.stop()
+            finally:
+                network.close()
+                shutil.rmtree(folder, ignore_errors=True)
+
+    for seed in range(10):
+        run = simulation.run(scenario, seed=seed, preempt=0.1)
+        assert () == tuple(run.errors), f"seed {seed}"
+        out = run.value
+        assert out.pop("serve").startswith(
+            "cannot tell whether another process of system 'simulated' serves a registrar "
+            "named 'other', so this process does not serve it: this process's router "
+        ), f"seed {seed}"
+        assert {
+            "call": ("unavailable", True),
+            "member holds": False,  # (its provider is lost for it: FATAL, forgotten)
+            "app call": ("unavailable", True),
+            "app holds": False,  # (what it served is lost: nobody restarts it)
+            "member after": "leaf n",
+            "app after": "leaf c",
+        } == out, f"seed {seed}"
+
+
+def lost_under_a_composite() -> dict[str, Any]:
+    """Rule 19 up a dependency path: `app` holds a composite of `agent` (both in the
+    network's process), built on a leaf of `provider`, served by a process nobody
+    restarts; that process is killed: the carrier says `provider` is lost."""
+    network = simulation.SimulatedNetwork()
+    heard: list[tuple[str, str, Any]] = []
+
+    def hear(who: str) -> Callable[[rr.Query, rr.StatusUpdate], None]:
+        return lambda query, update: heard.append((who, query.id, update.status))
+
+    agent, app = (
+        rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name), network=network)
+        for name in ("agent", "app")
+    )
+    try:
+        agent.register_server(
+            "composite",
+            load=lambda r: agent.call("provider", "leaf", r).response,
+            unload=lambda *_: None,
+            on_status=hear("composite"),
+        )
+        pid = simulation.start_process(serve_alone(network, "provider"), name="provider")
+        until_served(network, "provider")
+        held = app.call("agent", "composite", "x", on_status=hear("app"))
+        (leaf,) = agent.client_queries()
+        simulation.kill(pid)
+        simulation.sleep(1.0)
+        return {
+            "heard": sorted(heard),
+            "ids": (leaf.id, held.id),
+            "agent holds": [q.id for q in agent.client_queries()],
+            "app holds": [q.id for q in app.client_queries()],
+        }
+    finally:
+        try:
+            app.stop()
+            agent.stop()
+        finally:
+            network.close()
+
+
+def test_rule_19_a_lost_provider_is_fatal_up_every_path_once_and_forgotten() -> None:
+    def broken(seen: dict[str, Any]) -> bool:
+        _leaf, held = seen["ids"]
+        return (
+            [("app", held, rr.Status.FATAL), ("composite", held, rr.Status.FATAL)]
+            != seen["heard"]  # (the composite's server hears it about what app holds)
+            or [] != seen["agent holds"]  # (forgotten: rule 19)
+            or [held] != seen["app holds"]  # (its composite got FATAL; the id is app's)
+        )
+
+    assert [] == simulated.seeds_where(lost_under_a_composite, broken, simulated.SEEDS)
+
+
+def test_a_second_server_of_a_name_served_on_its_side_is_refused_and_the_first_serves_on() -> None:
+    """One name, one registrar (rule 22; architecture.md): with no cut between them, a
+    process that serves a name another live process serves is refused with
+    `DuplicateNameError`, as on the real carriers (AF_UNIX: the name's `flock`; Zenoh:
+    `Presence.wait_turn` sees its token), and the first serves on; the reference is
+    `tests/transport/test_base.py::TestAtTheCarrier::test_a_name_another_process_serves_is_refused_and_the_first_serves_on`.
+    The simulated carrier ended the first on the network instead (its registrar ran on,
+    reached by nobody) and let the second serve."""
+
+    def body(supervisor: rr.Supervisor, app: rr.ResourceRegistrar, network: Any) -> Any:
+        held = app.call("provider", "leaf", "x")
+        first = supervisor.child("provider").pid
+        folder = tempfile.mkdtemp(prefix="rr-sim-second-")
+        spec = rr.ManagerSpec(
+            "provider", setup=leaf_setup, isolation="process", restart="temporary"
+        )
+        second = rr.Supervisor(spec, state_dir=folder, network=network, name="second")
+        try:
+            try:
+                second.start()
+            except rr.SupervisorGaveUpError as exc:
+                refused = str(exc.__cause__).strip().splitlines()[-1]  # (the child's)
+            else:
+                refused = f"served by pid {second.child('provider').pid}"
+            after = app.call("provider", "leaf", "y", timeout=5.0).response
+            served = supervisor.run_in(
+                "provider",
+                lambda r: sorted(q.request for q in r.server_queries("leaf")),
+                timeout=5.0,
+            )
+            return (
+                refused,
+                supervisor.child("provider").pid == first,
+                after,
+                served,
+                held.id in [q.id for q in app.client_queries()],
+            )
+        finally:
+            second.stop()
+            shutil.rmtree(folder, ignore_errors=True)
+
+    for seed in range(5):
+        run = simulation.run(with_provider(body), seed=seed, preempt=0.1)
+        duplicate = (
+            "rr_actors.errors.DuplicateNameError: a registrar named 'provider' is already "
+            "served on system 'simulated' (by process 2)"
+        )
+        assert (duplicate, True, "leaf y", ["x", "y"], True) == run.value, f"seed {seed}"
+
+
+def test_a_kill_beyond_a_cut_ends_what_the_killed_process_served_not_the_other_server() -> None:
+    """A name served on both sides of a cut, and the process of the one cut off is
+    killed: what it served ends, as the kernel closes a dead process's sockets; the
+    server on the other side serves on, and after the heal every process reaches it
+    (the process's end cut the name's newest server, the one beyond: the consumer's
+    next call failed, and the dead one stayed the name's server)."""
+
+    def body(supervisor: rr.Supervisor, app: rr.ResourceRegistrar, network: Any) -> Any:
+        first = supervisor.child("provider").pid
+        network.partition([first])
+        folder = tempfile.mkdtemp(prefix="rr-sim-beyond-")
+        spec = rr.ManagerSpec(
+            "provider", setup=leaf_setup, isolation="process", restart="temporary"
+        )
+        beyond = rr.Supervisor(spec, state_dir=folder, network=network, name="beyond")
+        try:
+            beyond.start()
+            second = beyond.child("provider").pid
+            simulation.kill(first, signal.SIGKILL)
+            during = app.call("provider", "leaf", "y", timeout=5.0).response
+            network.heal()
+            simulation.sleep(1.0)
+            after = app.call("provider", "leaf", "z", timeout=5.0).response
+            served = beyond.run_in(
+                "provider",
+                lambda r: sorted(q.request for q in r.server_queries("leaf")),
+                timeout=5.0,
+            )
+            return during, after, served, beyond.child("provider").pid == second
+        finally:
+            beyond.stop()
+            shutil.rmtree(folder, ignore_errors=True)
+
+    for seed in range(5):
+        scenario = with_provider(body, heartbeat=None, restart="temporary")
+        run = simulation.run(scenario, seed=seed, preempt=0.1)
+        assert ("leaf y", "leaf z", ["y", "z"], True) == run.value, f"seed {seed}"
+
+
+def test_a_name_whose_server_is_silent_past_its_lease_is_refused_as_unavailable() -> None:
+    """A process stopped past its lease cannot be reached, but it is not lost: it may
+    run again. Another process that serves its name meanwhile is refused with
+    `RegistrarUnavailableError`, as Zenoh's `wait_turn` refuses a name whose server went
+    without a clean stop while its supervisor may restart it (AF_UNIX, with no lease,
+    refuses it as served: the stopped process holds the name's lock); once the first
+    runs again it is the name's one server."""
+
+    def body(supervisor: rr.Supervisor, app: rr.ResourceRegistrar, network: Any) -> Any:
+        first = supervisor.child("provider").pid
+        simulation.kill(first, signal.SIGSTOP)
+        simulation.sleep(1.5)  # (past its lease)
+        folder = tempfile.mkdtemp(prefix="rr-sim-silent-")
+        spec = rr.ManagerSpec(
+            "provider", setup=leaf_setup, isolation="process", restart="temporary"
+        )
+        second = rr.Supervisor(spec, state_dir=folder, network=network, name="second")
+        try:
+            try:
+                second.start()
+            except rr.SupervisorGaveUpError as exc:
+                refused = str(exc.__cause__).strip().splitlines()[-1].split(":")[0]
+            else:
+                refused = f"served by pid {second.child('provider').pid}"
+            simulation.kill(first, signal.SIGCONT)
+            simulation.sleep(1.0)
+            after = app.call("provider", "leaf", "y", timeout=5.0).response
+            return refused, after, supervisor.child("provider").pid == first
+        finally:
+            second.stop()
+            shutil.rmtree(folder, ignore_errors=True)
+
+    for seed in range(5):
+        run = simulation.run(with_provider(body, lease=1.0, heartbeat=None), seed=seed)
+        refused = "rr_actors.errors.RegistrarUnavailableError"
+        assert (refused, "leaf y", True) == run.value, f"seed {seed}"

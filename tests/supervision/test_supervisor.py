@@ -525,6 +525,49 @@ def test_call_with_retry_waits_for_the_restart_and_loads_once(
     assert ["q-1"] == [q.id for q in handle(sup, name).server_queries("res")]
 
 
+def unavailable_at_send(app: rr.ResourceRegistrar, name: str, times: int) -> list[Any]:
+    """Fail `app`'s next `times` loads as unavailable as they leave (the loads, listed):
+    this process does not see `name` served yet (across hosts: its token is on its way),
+    or it was killed and its tree has not seen it yet."""
+    refused: list[Any] = []
+
+    def refuse(load: Any) -> None:
+        if len(refused) < times:
+            refused.append(load)
+            raise rr.RegistrarUnavailableError(f"{name!r} cannot be reached (forced)")
+
+    testing.intercept(app, "send_load", before=refuse)
+    return refused
+
+
+def test_call_with_retry_after_a_restart_before_it_began_tries_again_at_once(
+    supervisors: Callable[..., Supervisor], uid: str, call_with_retry: CallWithRetry
+) -> None:
+    name = f"p-{uid}"
+    sup = supervisors([ManagerSpec(name, echo_setup)], backoff=Backoff(initial=0.0)).start()
+    app = sup.registrar(f"app-{uid}")
+    crash(sup, name)
+    sup.wait_restarted(name, timeout=10.0)  # (restarted before the call reads the count)
+    refused = unavailable_at_send(app, name, 1)
+
+    query = call_with_retry(sup, app, name, "echo", "camera", timeout=10.0)
+
+    assert ("camera", 1) == (query.response, len(refused))  # no second restart waited for
+
+
+def test_call_with_retry_tries_at_once_once_then_waits_for_the_next_restart(
+    supervisors: Callable[..., Supervisor], uid: str, call_with_retry: CallWithRetry
+) -> None:
+    name = f"p-{uid}"
+    sup = supervisors([ManagerSpec(name, echo_setup)]).start()
+    app = sup.registrar(f"app-{uid}")
+    refused = unavailable_at_send(app, name, 1000)  # (its tree never sees it gone)
+
+    with pytest.raises(rr.CallTimeoutError, match="restarting"):
+        call_with_retry(sup, app, name, "echo", "camera", timeout=1.0)
+    assert 2 == len(refused)  # not a spin until the timeout: the tree's restart is awaited
+
+
 def test_call_with_retry_gives_up_at_once_when_the_provider_will_not_come_back(
     supervisors: Callable[..., Supervisor],
     uid: str,

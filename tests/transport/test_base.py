@@ -266,6 +266,19 @@ class Provided:
     name: str
     kill: Callable[[], None]
     stop: Callable[[], None]
+    serve_again: Callable[[], None]
+    """Serve a registrar of its name from another process (the test's; on the in-memory
+    double, whose every `serve` is a process of its own, the same registrar again)."""
+
+
+def _serve_as(system: Transport, name: str) -> None:
+    """Start a registrar named `name` in this process and serve it on `system` (stopped
+    after, served or not)."""
+    registrar = rr.ResourceRegistrar.start(name)
+    try:
+        system.serve(Served(registrar))
+    finally:
+        registrar.stop()
 
 
 def _load(server: str, request: Any) -> tuple[Load, FutureReply]:
@@ -864,7 +877,9 @@ class TestAtTheCarrier:
         if not isinstance(system, MemoryNetwork):
             start: ProviderFactory = request.getfixturevalue("start_provider")
             child = start()
-            yield Provided(child.name, child.kill, child.stop)
+            yield Provided(
+                child.name, child.kill, child.stop, functools.partial(_serve_as, system, child.name)
+            )
             return
         carriers.CHILD.__init__()  # type: ignore[misc]  # (fresh records, this process's)
         assert isinstance(carriers.CHILD, ChildState)
@@ -876,7 +891,8 @@ class TestAtTheCarrier:
         )
         setup_servers(registrar)
         system.serve(Served(registrar))
-        yield Provided(name, lambda: system.cut(name), registrar.stop)
+        again = functools.partial(system.serve, Served(registrar))
+        yield Provided(name, lambda: system.cut(name), registrar.stop, again)
         carriers.CHILD.release.set()
         registrar.stop()
 
@@ -959,6 +975,18 @@ class TestAtTheCarrier:
             )
         )
         assert isinstance(_outcome(system, provider.name, load, reply), rr.RegistrarStoppedError)
+
+    def test_a_name_another_process_serves_is_refused_and_the_first_serves_on(
+        self, system: Transport, provider: Provided
+    ) -> None:
+        """One name, one registrar (rule 22): the simulated carrier's twin is
+        `tests/simulation/test_network.py::test_a_second_server_of_a_name_served_on_its_side_is_refused_and_the_first_serves_on`."""
+        with pytest.raises(rr.DuplicateNameError, match=provider.name):
+            provider.serve_again()
+
+        load, reply = _load("echo", "r")
+        assert {"resource": "r"} == _outcome(system, provider.name, load, reply)
+        assert 1 == system.run(provider.name, load_count, timeout=10)
 
     def test_run_on_a_name_nobody_serves_is_an_unknown_server(self, system: Transport) -> None:
         with pytest.raises(rr.UnknownServerError):

@@ -14,6 +14,7 @@ import pickle
 import socket
 import struct
 import threading
+import traceback
 import uuid
 from typing import Any
 
@@ -21,7 +22,7 @@ import cloudpickle
 import pytest
 
 import rr_actors as rr
-from rr_actors._transport.codec import frame, frames, plain, unframe
+from rr_actors._transport.codec import dumps, frame, frames, plain, unframe
 from rr_actors.testing.carrier import Fetch, Load, Revoke
 
 # -- encoding: the C pickler's fast path ----------------------------------------------------
@@ -96,6 +97,34 @@ def test_anything_else_goes_through_cloudpickle(value: Any) -> None:
     decoded = cloudpickle.loads(payload)
     if not isinstance(value, dict):
         assert decoded == value
+
+
+def _divider() -> Any:
+    """A function of this file pickled by value (a closure), with a nested one of its own."""
+
+    def divide(request: int) -> float:
+        def inverse() -> float:
+            return 1 / request  # the line a traceback must show
+
+        return inverse()
+
+    return divide
+
+
+@pytest.mark.parametrize(
+    "encode", [lambda fn: unframe(frame(1, fn)[4:])[1], dumps], ids=["frame", "dumps"]
+)
+def test_code_pickled_by_value_keeps_its_file_so_a_traceback_shows_file_and_line(
+    encode: Any,
+) -> None:
+    divide = pickle.loads(encode(_divider()))
+
+    with pytest.raises(ZeroDivisionError) as info:
+        divide(0)
+
+    called = traceback.extract_tb(info.value.__traceback__)[1:]  # (the first is this test's)
+    assert [(__file__, "divide"), (__file__, "inverse")] == [(f.filename, f.name) for f in called]
+    assert "return 1 / request  # the line a traceback must show" == called[-1].line
 
 
 def test_a_load_crosses_without_its_reply_and_otherwise_unchanged() -> None:

@@ -333,7 +333,7 @@ class ZenohCarrier:
             if on_actor_thread():
                 known = True  # (asked by its messages, off this thread)
             else:
-                why = presence.question(name)
+                why = presence.question_until_seen(name)  # (an empty answer, asked again)
                 known = presence.serves(name)
                 if not known and why is not None:
                     raise self._untold(name, why)
@@ -487,7 +487,7 @@ class ZenohCarrier:
         """
         server = self.presence.server(name)
         if server is None and not self.closed and not on_actor_thread():
-            self.presence.ask(name)  # maybe served again, not yet heard here
+            self.presence.question_until_seen(name)  # maybe served again, not heard yet
             server = self.presence.server(name)
         if server is None:
             raise self.gone_error(name)

@@ -186,6 +186,7 @@ class Outboxes:
         self._lock = threading.Lock()
         self._outboxes: dict[str, Outbox] = {}
         self._closed = False
+        self._pings_end = False  # `until_answered` gives up (`close`)
 
     def get(self, key: str, first_to: str | None = None, *, declared: bool = True) -> Outbox:
         """The outbox of `key`; the first put of a new one to process `first_to` waits
@@ -225,13 +226,22 @@ class Outboxes:
 
     def close(self, drain: float = 0.0) -> None:
         """Close every outbox: what is queued gets `drain` seconds, all outboxes together,
-        to be put (their writers put in parallel); what is still queued then is lost."""
+        to be put (their writers put in parallel); what is still queued then is lost.
+
+        A first put waiting for its ping (`until_answered`) stops waiting at once when
+        there is a drain (what is queued behind it gets that time), and only once every
+        queue was dropped when there is none: what was queued behind it is lost, never
+        put in the moment between the two.
+        """
         with self._lock:
             self._closed = True
             outboxes = list(self._outboxes.values())
+        if drain > 0:
+            self._pings_end = True
         deadline = time.monotonic() + drain
         for outbox in outboxes:
             outbox.close(max(0.0, deadline - time.monotonic()))
+        self._pings_end = True
 
     def until_answered(self, zid: str) -> None:
         """Ping process `zid` until it answers (at most `HEAL_TIMEOUT` s; writer thread).
@@ -245,7 +255,7 @@ class Outboxes:
         """
         deadline = time.monotonic() + HEAL_TIMEOUT
         pause = threading.Event()
-        while not self._closed and time.monotonic() < deadline:
+        while not self._pings_end and time.monotonic() < deadline:
             try:
                 replies = self._session.get(self._keys.ping(zid), timeout=0.25)
                 if any(reply.ok is not None for reply in replies):

@@ -2,7 +2,7 @@
 
 ```
  liveliness rr/<s>/live/**  ─► Presence._on_live (Zenoh's thread: queues, never blocks)
- Presence.ask(name) ─ liveliness get ─┘      │
+ Presence.question(name) ─ liveliness get ─┘  │
                                              ▼
                         presence thread (SerialExecutor): _apply, in order
                           tables: process tokens, servers, claims, "stopped" marks,
@@ -99,11 +99,12 @@ CLAIM_TIMEOUT = 5.0
 """Seconds `serve` waits for a rival claim of the same name to serve or withdraw, and for
 the network to answer in full who serves the name (`Presence.wait_turn`)."""
 EMPTY_BELIEVED = 0.25
-"""Seconds an empty answer about a name is asked again (every `EMPTY_PAUSE`) before "send
-when served" believes that nobody serves it (`Presence.question_until_seen`): a client's
-liveliness query can come back empty at once, with no error, while its router holds a
-matching token (Zenoh 1.x; measured around a `serve` of the asking process: 24 to 33 of
-150 questions, each seen on a later question within 12 asks and 12 ms)."""
+"""Seconds an empty answer about a name never heard to go is asked again (every
+`EMPTY_PAUSE`) before this process believes that nobody serves it
+(`Presence.question_until_seen`: "send when served", `knows`, `route`; not `wait_turn`): a
+client's liveliness query can come back empty at once, with no error, while its router
+holds a matching token (Zenoh 1.x; measured around a `serve` of the asking process: 24 to
+33 of 150 questions, each seen on a later question within 12 asks and 12 ms)."""
 EMPTY_PAUSE = 0.005
 """Seconds between two questions of `Presence.question_until_seen`."""
 ASK_PAUSE = 0.1
@@ -274,7 +275,10 @@ class Presence:
         once the router's token went: then it refuses at once); an empty answer that is
         not known to be whole would let two processes that claim the name at once each
         see no rival, and both serve it, or a process that hears nothing of the system
-        serve a name served there.
+        serve a name served there. A full answer that names no server is believed at
+        once, unlike `question_until_seen`'s: asking again would add `EMPTY_BELIEVED`
+        to every serve of a new name, and a second server let in by Zenoh's mistake is
+        seen within milliseconds and yields (rule 22: the one served first is kept).
 
         Raises:
             DuplicateNameError: another process serves it, or claims it and wins.
@@ -368,19 +372,23 @@ class Presence:
     def question_until_seen(self, name: str) -> str | None:
         """`question`, asked again while its answer is full but names no server of `name`,
         for `EMPTY_BELIEVED` seconds at most: an empty answer may be Zenoh's mistake (see
-        `EMPTY_BELIEVED`). What the last question returned."""
+        `EMPTY_BELIEVED`). Every question whose empty answer fails a caller asks this way
+        (the carrier's `knows`, `route` and `found`; `wait_turn` says why not). Believed at
+        once about a name whose last server this process heard go: the answer agrees with
+        what it heard, and what it decides is the error of a name heard to go (a restart
+        comes with its own token). What the last question returned."""
         deadline = time.monotonic() + EMPTY_BELIEVED
         pause = threading.Event()
         why = self.question(name)
-        while why is None and not self.serves(name) and time.monotonic() < deadline:
+        while (
+            why is None
+            and not self.serves(name)
+            and self.gone(name) is None
+            and time.monotonic() < deadline
+        ):
             pause.wait(EMPTY_PAUSE)
             why = self.question(name)
         return why
-
-    def ask(self, name: str) -> bool:
-        """Ask the network for the tokens of `name` (bounded) and apply what it answers;
-        whether it answered in full (see `question`)."""
-        return self.question(name) is None
 
     def question(self, name: str) -> str | None:
         """Ask the network for the tokens of `name` (bounded) and apply what it answers.

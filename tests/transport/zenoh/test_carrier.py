@@ -1119,6 +1119,86 @@ class TestNeverWaitingOnAnActor:
 
         assert [(1, []), (2, [])] == answers, answers
 
+    def _first_answer_empty(self, monkeypatch: pytest.MonkeyPatch) -> threading.Event:
+        """The network's first answer about `SERVED` is empty, though full (Zenoh's, at
+        once, with no error: `presence.EMPTY_BELIEVED`), and its token is heard here only
+        when asked. Returns the event set once it was asked."""
+        asking, release = self._held_ask(monkeypatch, SERVED, asks=False)
+        release.set()
+        on_live = presence.Presence._on_live
+
+        def late(self: presence.Presence, sample: Any) -> None:  # heard only when asked
+            if SERVED not in str(sample.key_expr):
+                on_live(self, sample)
+
+        monkeypatch.setattr(presence.Presence, "_on_live", late)
+        return asking
+
+    def test_a_users_thread_finds_a_served_name_whose_first_answer_is_empty(
+        self, frozen_router: tuple[Any, int], monkeypatch: pytest.MonkeyPatch
+    ) -> None:
+        """`knows` asks again, as "send when served" does (it used to believe the one
+        empty answer: "no registrar named there-...")."""
+        address, _router_pid = frozen_router
+        asking = self._first_answer_empty(monkeypatch)
+        member = address.attach()
+        try:
+            DIRECTORY.lookup(SERVED)
+
+            assert asking.is_set()
+            assert SERVED in member.names()
+        finally:
+            member.close()
+
+    def test_a_message_to_a_registrar_heard_to_die_fails_on_the_networks_first_answer(
+        self,
+        frozen_router: tuple[Any, int],
+        context: multiprocessing.context.ForkServerContext,
+        monkeypatch: pytest.MonkeyPatch,
+        eventually: Callable[..., bool],
+    ) -> None:
+        """Nobody restarts it: the network's empty answer agrees with what this process
+        heard, and the message fails as unavailable on it (its outbox was held, asking
+        again, for `presence.EMPTY_BELIEVED`)."""
+        address, _router_pid = frozen_router
+        name = f"dead-{uuid.uuid4().hex[:6]}"
+        asked: list[str] = []
+        question = presence.Presence.question
+
+        def counted(self: presence.Presence, about: str) -> str | None:
+            if about == name:
+                asked.append(about)
+            return question(self, about)
+
+        member = address.attach()
+        registrar = rr.ResourceRegistrar.start(f"here-{uuid.uuid4().hex[:6]}")
+        parent_end, child_end = context.Pipe()
+        process = context.Process(target=_nowait_manager_main, args=(address, name, child_end))
+        fetched = FutureReply()
+        try:
+            member.serve(Served(registrar))
+            process.start()
+            child_end.close()
+            assert parent_end.poll(30), "the manager did not get ready"
+            assert "ready" == parent_end.recv()
+            assert eventually(lambda: name in member.names(), timeout=10)
+            os.kill(process.pid or 0, signal.SIGKILL)
+            assert eventually(lambda: name not in member.names(), timeout=10)  # heard to die
+            monkeypatch.setattr(presence.Presence, "question", counted)
+
+            run_on_actor(
+                registrar, lambda: DIRECTORY.lookup(name).tell(Fetch("s", registrar.name, fetched))
+            ).get(timeout=10)
+
+            with pytest.raises(rr.RegistrarUnavailableError):
+                fetched.future.get(timeout=20)
+            assert [name] == asked
+        finally:
+            registrar.stop()
+            member.close()
+            process.join(10)
+            parent_end.close()
+
     def test_an_actor_answers_while_its_message_to_a_registrar_heard_to_die_waits_for_the_network(
         self,
         frozen_router: tuple[Any, int],

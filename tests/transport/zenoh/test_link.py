@@ -247,6 +247,66 @@ def test_a_close_without_a_drain_drops_what_is_queued_and_runs_each_on_lost(
     assert not outbox.send(b"late")
 
 
+def test_a_close_without_a_drain_drops_the_queue_before_the_ping_under_way_ends(
+    session: zenoh.Session, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The forced interleaving of a flake under load (CI-like run with 4 workers): the
+    # close ended the first put's ping before it dropped the queue, so a writer that ran
+    # in between put all three. Here each outbox's close waits until either the writer
+    # put the last message (the ping ended first: the flaw) or the ping asked twice more
+    # since the close began (it goes on until the queue is dropped): each outcome is an
+    # event, not a time.
+    keys = Keys(f"test-{uuid.uuid4().hex[:8]}")
+    key = keys.registrar("provider")
+    outcomes: queue.Queue[tuple[str, bytes]] = queue.Queue()
+    last_put = threading.Event()
+
+    def heard(sample: zenoh.Sample) -> None:
+        outcomes.put(("put", sample.payload.to_bytes()))
+        if sample.payload.to_bytes() == b"2":
+            last_put.set()
+
+    session.declare_subscriber(key, heard)
+    pings = threading.Semaphore(0)
+
+    class Counted:  # the session, its gets (the pings) counted
+        def __getattr__(self, name: str) -> Any:
+            return getattr(session, name)
+
+        def get(self, *args: Any, **kwargs: Any) -> Any:
+            pings.release()
+            return session.get(*args, **kwargs)
+
+    from rr_actors._transport.zenoh import link  # noqa: PLC0415
+
+    close = link.Outbox.close
+
+    def close_when_forced(outbox: link.Outbox, timeout: float = 0.0) -> None:
+        while pings.acquire(blocking=False):
+            pass  # (the pings before the close)
+        deadline = BOUND
+        asked = 0
+        while not last_put.is_set() and asked < 2 and deadline > 0:
+            if pings.acquire(timeout=0.01):
+                asked += 1
+            deadline -= 0.01
+        close(outbox, timeout)
+
+    monkeypatch.setattr(link.Outbox, "close", close_when_forced)
+    outboxes = Outboxes(Counted(), keys)  # type: ignore[arg-type]
+    outbox = outboxes.get(key, first_to="nobody")
+    sent = [b"0", b"1", b"2"]
+    for data in sent:
+        assert outbox.send(data, on_lost=lambda data=data: outcomes.put(("lost", data)))
+    assert pings.acquire(timeout=BOUND)  # (the writer pings)
+
+    outboxes.close()
+
+    seen = sorted((data, how) for how, data in (outcomes.get(timeout=BOUND) for _ in sent))
+    assert [data for data, _ in seen] == sent
+    assert [how for _, how in seen][1:] == ["lost", "lost"]
+
+
 class TestABuggyMember:
     """A buggy member of a Zenoh system: what it sends costs bounded threads and log lines,
     and nothing it sends runs on Zenoh's threads or breaks `serve` (issue 29, items 5-7).
