@@ -673,14 +673,7 @@ class _SimulatedHub(_Hub):
         messenger there decides whether its own gives way (rule 22)."""
         for server in servers:
             rivals = [other for other in servers if other is not server]
-            sim.Thread(
-                self.sched,
-                target=self._served_elsewhere,
-                args=(name, rivals),
-                name=f"rr-rival-{server.process.pid}",
-                daemon=True,
-                process=server.process,
-            ).start()
+            self._on_thread(server.process, "rival", self._served_elsewhere, name, rivals)
 
     def _served_elsewhere(self, name: str, rivals: list[_Server]) -> None:
         """In a process serving `name`: the others serve it too (rule 22)."""
@@ -735,14 +728,19 @@ class _SimulatedHub(_Hub):
         "reachable" again, rule 20), as its carrier tells its messenger: on a thread of
         its own."""
         for process in processes:
-            sim.Thread(
-                self.sched,
-                target=self._heard_of,
-                args=(what, names),
-                name=f"rr-{what}-{process.pid}",
-                daemon=True,
-                process=process,
-            ).start()
+            self._on_thread(process, what, self._heard_of, what, names)
+
+    def _on_thread(self, process: Process, kind: str, target: Any, *args: Any) -> None:
+        """Run `target(*args)` in `process` on a daemon thread of its own, named
+        `rr-<kind>-<pid>`: what a carrier's thread tells its messenger."""
+        sim.Thread(
+            self.sched,
+            target=target,
+            args=args,
+            name=f"rr-{kind}-{process.pid}",
+            daemon=True,
+            process=process,
+        ).start()
 
     def _heard_of(self, what: str, names: list[str]) -> None:
         """In a process: its messenger hears `names` are `what` (`Messenger.lost`,
