@@ -21,7 +21,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import events
-from rr_actors._registrar import start_registrar
+from rr_actors._registrar import life, start_registrar
 from rr_actors.testing import (
     RemoteRegistrar,
     SharedObjects,
@@ -257,8 +257,7 @@ class TestEvents:
         assert all(e.latency_s >= 0.0 for e in heard.of(events.StatusDelivered))
 
     def test_the_loads_a_crash_cut_short_are_published_as_in_doubt_at_restore(
-        self,
-        tmp_path: Path,
+        self, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     ) -> None:
         config = rr.RegistrarConfig(
             name=f"erm-{uuid.uuid4().hex[:8]}", backup_path=tmp_path / "erm.db", save_on_modify=True
@@ -292,8 +291,22 @@ class TestEvents:
         upstream = events.publisher()
         heard = Heard()
         subscription = upstream.subscribe(heard)
+        # the restore's events are published on the actor's thread as it starts, which may
+        # come after `start` returned (a `wait_delivered` at once returned before they were
+        # published: CI, 2026-11-24): held here until `start` returned, every time
+        started = threading.Event()
+        real_publish = life.publish_restored
+
+        def publish_late(shared: Any) -> None:
+            started.wait(10)
+            real_publish(shared)
+
+        monkeypatch.setattr(life, "publish_restored", publish_late)
         restarted = start_registrar(config, upstream=upstream)
+        assert restarted.in_doubt and not heard.of(events.InDoubt)  # known, not yet published
+        started.set()
         try:
+            assert wait_for(lambda: heard.of(events.InDoubt), 10)
             assert subscription.wait_delivered(timeout=5)
             assert [q.id for q in restarted.in_doubt] == [
                 e.query_id for e in heard.of(events.InDoubt)
