@@ -12,7 +12,8 @@ order per link, cuts and heals.
    reached"; what is on the wire across is dropped when it arrives; a process made
    during the cut is on its parent's side (a restart beyond the cut stays there); with a
    lease, a cut past it makes each side hear the other's tokens go: every name served
-   only across it whose speaker it does not hear is lost for it (rule 19)
+   only across it whose speaker it does not hear is lost for it (rule 19); one whose
+   speaker is on its side is awaited (`_awaited_across`), lost if that speaker goes
  listen(endpoint) ─► refused while another live process on its side of a partition
    serves the name (`DuplicateNameError`, as AF_UNIX's lock and Zenoh's `wait_turn`;
    one silent past its lease: `RegistrarUnavailableError`, not lost); one its own
@@ -332,6 +333,9 @@ class _SimulatedHub(_Hub):
         self._silent: set[str] = set()  # names served by a process silent past its lease
         self._deaf: set[int] = set()  # pids that cannot hear their router (`deafen`)
         self._awaiting: dict[str, int] = {}  # name gone unclean -> its speaker's pid (rule 19)
+        # a name served across a cut past the lease -> its speaker's pid and the pids on
+        # the speaker's side that await it (lost for them if the speaker goes)
+        self._awaited_across: dict[str, tuple[int, list[int]]] = {}
         self._watched: set[int] = set()  # speakers whose end is watched (`at_end`)
         self._ending: set[int] = set()  # servers' processes whose end is watched
         # the faults armed (`SimulatedNetwork`'s methods of the same names)
@@ -561,6 +565,7 @@ class _SimulatedHub(_Hub):
         self._cut_last = max(process.pid for process in self.sched.processes)
         self._beyond_of = {}
         self._cut_judged = False
+        self._awaited_across = {}
         for link in self._every_link():
             if not link.closed and self.apart(link):
                 name = link.served.endpoint.name
@@ -571,6 +576,7 @@ class _SimulatedHub(_Hub):
             return
         side = frozenset(one.pid for one in self.sched.processes if self._beyond(one.pid))
         self._side = None
+        self._awaited_across = {}
         self._rejoin(side)
 
     def deafen(self, pid: int) -> None:
@@ -664,25 +670,24 @@ class _SimulatedHub(_Hub):
         for process in self.sched.processes:
             if not process.alive or process.pid in self._deaf:
                 continue
-            lost = [
-                name
-                for name, servers in self._servers.items()
-                if name not in self._silent and self._lost_across(name, servers, process.pid)
-            ]
+            lost = []
+            for name, servers in self._servers.items():
+                if name in self._silent or any(
+                    not self._divided(one.process.pid, process.pid) for one in servers
+                ):
+                    continue  # (judged at its silence, or served on its side)
+                one = kept(servers)
+                speaker = None if one is None else one.speaker
+                if one is None or speaker is None or speaker == one.process.pid:
+                    lost.append(name)  # (nobody speaks for it)
+                elif self._heard(speaker) and not self._divided(speaker, process.pid):
+                    awaiting = self._awaited_across.setdefault(name, (speaker, []))[1]
+                    awaiting.append(process.pid)  # (its supervisor, on its side, may
+                    self._watch(speaker)  # restart it: lost if that one goes)
+                else:
+                    lost.append(name)
             if lost:
                 self._tell("lost", lost, [process])
-
-    def _lost_across(self, name: str, servers: list[_Server], pid: int) -> bool:
-        """Whether process `pid` judges `name` lost at a cut: served only across it, by
-        a server whose speaker it does not hear."""
-        if any(not self._divided(one.process.pid, pid) for one in servers):
-            return False  # (served on its side)
-        one = kept(servers)
-        if one is None:
-            return False
-        speaker = one.speaker
-        heard = speaker is not None and speaker != one.process.pid and self._heard(speaker)
-        return not (heard and speaker is not None and not self._divided(speaker, pid))
 
     def _process(self, pid: int) -> Process | None:
         return next((one for one in self.sched.processes if one.pid == pid), None)
@@ -711,6 +716,11 @@ class _SimulatedHub(_Hub):
             if not self._heard(speaker):
                 del self._awaiting[name]
                 self._lost(name, None)
+        for name, (speaker, pids) in list(self._awaited_across.items()):
+            if not self._heard(speaker):  # (awaited beside it, across a cut)
+                del self._awaited_across[name]
+                hearers = [one for one in self.sched.processes if one.pid in pids and one.alive]
+                self._tell("lost", [name], hearers)
 
     def _lost(self, name: str, pid: int | None) -> None:
         """Every process that hears the network, but `pid`, hears `name` is lost."""

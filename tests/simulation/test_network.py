@@ -832,3 +832,46 @@ def test_a_process_restarted_beyond_a_cut_stays_beyond_it() -> None:
     for seed in range(5):
         run = simulation.run(scenario, seed=seed, preempt=0.1)
         assert (("unavailable", "leaf z"), ()) == (run.value, tuple(run.errors)), f"seed {seed}"
+
+
+def test_a_name_awaited_across_a_cut_is_lost_once_its_supervisor_goes() -> None:
+    """Rule 19 at a cut past the lease: the consumer awaits a provider cut off from it
+    while the provider's supervisor, on the consumer's side, lives; once that
+    supervisor's process ends, nobody will restart the provider: lost for the consumer
+    (FATAL, forgotten), before the heal."""
+
+    def scenario() -> Any:
+        folder = tempfile.mkdtemp(prefix="rr-sim-across-")
+        network = simulation.SimulatedNetwork(lease=1.0)
+        app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=network)
+        children: list[int] = []
+
+        def tree() -> None:
+            spec = rr.ManagerSpec("provider", setup=leaf_setup, isolation="process")
+            sup = rr.Supervisor(spec, state_dir=folder, network=network, name="tree")
+            sup.start()
+            pid = sup.child("provider").pid
+            assert pid is not None
+            children.append(pid)
+
+        try:
+            tree_pid = simulation.start_process(tree, name="tree")
+            until_served(network, "provider")
+            held = app.call("provider", "leaf", "x")
+            network.partition([children[0]])
+            simulation.sleep(2.0)  # (past the lease: awaited)
+            awaited = [q.id for q in app.client_queries()]
+            simulation.kill(tree_pid)
+            simulation.sleep(1.0)
+            return awaited == [held.id], [q.id for q in app.client_queries()]
+        finally:
+            try:
+                network.heal()
+                app.stop()
+            finally:
+                network.close()
+            shutil.rmtree(folder, ignore_errors=True)
+
+    for seed in range(5):
+        run = simulation.run(scenario, seed=seed, preempt=0.1)
+        assert ((True, []), ()) == (run.value, tuple(run.errors)), f"seed {seed}"
