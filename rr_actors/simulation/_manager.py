@@ -102,7 +102,7 @@ def start(
     returns once it serves (see `ManagerProcess.start` for the arguments and errors)."""
     parent = sched.current().process
     received = Received(on_events, None)
-    process = sched.new_process(name)
+    process = sched.new_process(name, parent)
     to_child: Any = runtime.SimpleQueue()
     from_child: Any = runtime.SimpleQueue()
     process.at_end.append(lambda: from_child.put(_Ended(process.exitcode)))

@@ -9,7 +9,11 @@ order per link, cuts and heals.
  B's answer ─► answer_to(link) ─► the link's wire back: after a delay, in order, on a
    thread of A's ─► link.pending.answered
  partition(pids) ─► links across fail what waits on them; sends across raise "cannot be
-   reached"; what is on the wire across is dropped when it arrives
+   reached"; what is on the wire across is dropped when it arrives; a process made
+   during the cut is on its parent's side (a restart beyond the cut stays there); with a
+   lease, a cut past it makes each side hear the other's tokens go: every name served
+   only across it whose speaker it does not hear is lost for it (rule 19); one whose
+   speaker is on its side is awaited (`_awaited_across`), lost if that speaker goes
  listen(endpoint) ─► refused while another live process on its side of a partition
    serves the name (`DuplicateNameError`, as AF_UNIX's lock and Zenoh's `wait_turn`;
    one silent past its lease: `RegistrarUnavailableError`, not lost); one its own
@@ -322,9 +326,16 @@ class _SimulatedHub(_Hub):
         self._aside: list[_Link] = []  # links left for another server of their name, open
         self._servers: dict[str, list[_Server]] = {}  # name -> its servers: one a side
         self._side: frozenset[int] | None = None  # the pids cut off the others
+        self._cut_at = 0.0  # (virtual seconds) when the partition began
+        self._cut_last = 0  # the last pid made before it (later ones: their parent's side)
+        self._beyond_of: dict[int, bool] = {}  # pid -> on the cut-off side (found once)
+        self._cut_judged = False  # the names across were judged once the lease passed
         self._silent: set[str] = set()  # names served by a process silent past its lease
         self._deaf: set[int] = set()  # pids that cannot hear their router (`deafen`)
         self._awaiting: dict[str, int] = {}  # name gone unclean -> its speaker's pid (rule 19)
+        # a name served across a cut past the lease -> its speaker's pid and the pids on
+        # the speaker's side that await it (lost for them if the speaker goes)
+        self._awaited_across: dict[str, tuple[int, list[int]]] = {}
         self._watched: set[int] = set()  # speakers whose end is watched (`at_end`)
         self._ending: set[int] = set()  # servers' processes whose end is watched
         # the faults armed (`SimulatedNetwork`'s methods of the same names)
@@ -432,8 +443,22 @@ class _SimulatedHub(_Hub):
             return False
         if one in self._deaf or other in self._deaf:
             return True
+        return self._side is not None and self._beyond(one) != self._beyond(other)
+
+    def _beyond(self, pid: int) -> bool:
+        """Whether process `pid` is on the cut-off side of the partition: one of its
+        pids, or made after the cut by a process there (a restart by a supervisor
+        beyond the cut stays beyond it, as a host's processes do)."""
         side = self._side
-        return side is not None and (one in side) != (other in side)
+        assert side is not None
+        if pid in side or pid <= self._cut_last:
+            return pid in side
+        found = self._beyond_of.get(pid)
+        if found is None:
+            process = self._process(pid)
+            parent = None if process is None else process.parent
+            found = self._beyond_of[pid] = parent is not None and self._beyond(parent)
+        return found
 
     def route(self, name: str) -> _Link:  # type: ignore[override]
         """The link from this process to the server of `name` it reaches: the one on its
@@ -536,15 +561,23 @@ class _SimulatedHub(_Hub):
 
     def partition(self, side: frozenset[int]) -> None:
         self._side = side
+        self._cut_at = self.sched.now
+        self._cut_last = max(process.pid for process in self.sched.processes)
+        self._beyond_of = {}
+        self._cut_judged = False
+        self._awaited_across = {}
         for link in self._every_link():
             if not link.closed and self.apart(link):
                 name = link.served.endpoint.name
                 link.close(RegistrarUnavailableError(f"registrar {name!r} cannot be reached (cut)"))
 
     def heal(self) -> None:
-        side, self._side = self._side, None
-        if side is not None:
-            self._rejoin(side)
+        if self._side is None:
+            return
+        side = frozenset(one.pid for one in self.sched.processes if self._beyond(one.pid))
+        self._side = None
+        self._awaited_across = {}
+        self._rejoin(side)
 
     def deafen(self, pid: int) -> None:
         """Process `pid` no longer hears its router (see `SimulatedNetwork.deafen`)."""
@@ -628,6 +661,34 @@ class _SimulatedHub(_Hub):
         self._awaiting.pop(name, None)
         self._lost(name, server.process.pid)
 
+    def _judge_across(self) -> None:
+        """A partition outlasted the lease: each side hears the tokens of the other go,
+        as Zenoh's do. Each live process hears lost every name served only across it
+        whose speaker it does not hear (none, the server's own process, or across too);
+        one whose speaker is on its side is awaited (rule 19). At the heal each hears
+        them reachable again (rule 20: its consumers reconcile)."""
+        for process in self.sched.processes:
+            if not process.alive or process.pid in self._deaf:
+                continue
+            lost = []
+            for name, servers in self._servers.items():
+                if name in self._silent or any(
+                    not self._divided(one.process.pid, process.pid) for one in servers
+                ):
+                    continue  # (judged at its silence, or served on its side)
+                one = kept(servers)
+                speaker = None if one is None else one.speaker
+                if one is None or speaker is None or speaker == one.process.pid:
+                    lost.append(name)  # (nobody speaks for it)
+                elif self._heard(speaker) and not self._divided(speaker, process.pid):
+                    awaiting = self._awaited_across.setdefault(name, (speaker, []))[1]
+                    awaiting.append(process.pid)  # (its supervisor, on its side, may
+                    self._watch(speaker)  # restart it: lost if that one goes)
+                else:
+                    lost.append(name)
+            if lost:
+                self._tell("lost", lost, [process])
+
     def _process(self, pid: int) -> Process | None:
         return next((one for one in self.sched.processes if one.pid == pid), None)
 
@@ -655,6 +716,11 @@ class _SimulatedHub(_Hub):
             if not self._heard(speaker):
                 del self._awaiting[name]
                 self._lost(name, None)
+        for name, (speaker, pids) in list(self._awaited_across.items()):
+            if not self._heard(speaker):  # (awaited beside it, across a cut)
+                del self._awaited_across[name]
+                hearers = [one for one in self.sched.processes if one.pid in pids and one.alive]
+                self._tell("lost", [name], hearers)
 
     def _lost(self, name: str, pid: int | None) -> None:
         """Every process that hears the network, but `pid`, hears `name` is lost."""
@@ -710,6 +776,10 @@ class _SimulatedHub(_Hub):
                     back.append(name)
             self._silent &= set(self._served)
             self._speakers_gone()  # (a speaker silent past its lease: its token went)
+            cut = self._side is not None and not self._cut_judged
+            if cut and sched.now - self._cut_at > lease:  # (its tokens went)
+                self._cut_judged = True
+                self._judge_across()
             if back:
                 self._tell_reachable(back, lambda process, name: True)
 

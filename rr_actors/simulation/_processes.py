@@ -34,6 +34,7 @@ class Process:
         "at_end",
         "exitcode",
         "name",
+        "parent",
         "parked",
         "pid",
         "state",
@@ -42,9 +43,10 @@ class Process:
         "tasks",
     )
 
-    def __init__(self, pid: int, name: str, state: list[Any]) -> None:
+    def __init__(self, pid: int, name: str, state: list[Any], parent: int | None = None) -> None:
         self.pid = pid
         self.name = name
+        self.parent = parent  # the pid of the process that started it (`None`: the first)
         self.state = state  # its singletons' fields while another process's are in
         self.tasks: list[Any] = []  # its tasks (`Task`), ended or not
         self.exitcode: int | None = None  # set when it ended

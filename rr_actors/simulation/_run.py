@@ -341,7 +341,8 @@ def start_process(target: Callable[[], object], *, name: str) -> int:
         RuntimeError: no simulation runs on the calling thread.
     """
     sched = running_scheduler()
-    process = sched.new_process(name)
+    task = sched.current_or_none()
+    process = sched.new_process(name, sched.root if task is None else task.process)
     sim.Thread(sched, target=target, name=f"{name}-main", daemon=True, process=process).start()
     return process.pid
 

@@ -463,10 +463,11 @@ class Scheduler:
         fresh state is made of simulated locks)."""
         return self.processes[0]
 
-    def new_process(self, name: str) -> Process:
+    def new_process(self, name: str, parent: Process | None = None) -> Process:
         """A new simulated process, with a pid of its own and fresh per-process state
-        (no task yet: `spawn` its first)."""
-        process = Process(next(self._pids), name, self.states.fresh())
+        (no task yet: `spawn` its first), started by `parent` (`None`: the run's first)."""
+        pid = None if parent is None else parent.pid
+        process = Process(next(self._pids), name, self.states.fresh(), pid)
         self.processes.append(process)
         return process
 

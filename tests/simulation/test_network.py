@@ -712,3 +712,166 @@ def test_a_name_whose_server_is_silent_past_its_lease_is_refused_as_unavailable(
         run = simulation.run(with_provider(body, lease=1.0, heartbeat=None), seed=seed)
         refused = "rr_actors.errors.RegistrarUnavailableError"
         assert (refused, "leaf y", True) == run.value, f"seed {seed}"
+
+
+def cut_past_the_lease(cut_for: float) -> Callable[[], Any]:
+    """A consumer `app` holds an id at `provider`, served by a process nobody restarts;
+    that process is cut off the others for `cut_for` s on a network whose lease is 1 s,
+    then healed; then `app` calls it again."""
+
+    def scenario() -> Any:
+        network = simulation.SimulatedNetwork(lease=1.0)
+        app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=network)
+        try:
+            pid = simulation.start_process(serve_alone(network, "provider"), name="provider")
+            until_served(network, "provider")
+            heard: list[tuple[str, Any]] = []
+            held = app.call(
+                "provider",
+                "leaf",
+                "x",
+                on_status=lambda query, update: heard.append((query.id, update.status)),
+            )
+            network.partition([pid])
+            simulation.sleep(cut_for)
+            during = ([s for i, s in heard if i == held.id], [q.id for q in app.client_queries()])
+            network.heal()
+            simulation.sleep(1.0)  # (the heal's reconciliation)
+            after = app.call("provider", "leaf", "y", timeout=5.0).response
+            return during == ([], [held.id]), during == ([rr.Status.FATAL], []), after
+        finally:
+            try:
+                app.stop()
+            finally:
+                network.close()
+
+    return scenario
+
+
+@pytest.mark.parametrize(("cut_for", "outcome"), [(0.5, "kept"), (2.0, "lost")])
+def test_a_cut_past_the_lease_makes_each_side_hear_the_names_across_lost(
+    cut_for: float, outcome: str
+) -> None:
+    """Rule 19 at a cut, as Zenoh's tokens say it: a cut shorter than the lease loses
+    nothing; one past it makes each side hear the other's names go, so a name served
+    across by a process nobody restarts is lost (its consumer hears `FATAL` and forgets
+    its id), and after the heal it is reachable and answers again (rule 20)."""
+    for seed in range(5):
+        run = simulation.run(cut_past_the_lease(cut_for), seed=seed, preempt=0.1)
+        kept, lost, after = run.value
+        assert (outcome == "kept", outcome == "lost", "leaf y", ()) == (
+            kept,
+            lost,
+            after,
+            tuple(run.errors),
+        ), f"seed {seed}"
+
+
+def test_a_cut_past_the_lease_awaits_a_name_whose_supervisor_is_on_its_side() -> None:
+    """Rule 19 at a cut: the provider is cut off, its supervisor (and its consumer `app`)
+    are on the other side and hear its tokens go: awaited, not lost (its supervisor may
+    restart it), so `app` keeps its id through the cut and the heal."""
+
+    def body(supervisor: rr.Supervisor, app: rr.ResourceRegistrar, network: Any) -> Any:
+        held = app.call("provider", "leaf", "x")
+        network.partition([supervisor.child("provider").pid])
+        simulation.sleep(2.0)  # (past the lease)
+        during = [q.id for q in app.client_queries()]
+        network.heal()
+        simulation.sleep(1.0)
+        return during == [held.id], app.call("provider", "leaf", "y", timeout=5.0).response
+
+    for seed in range(5):
+        run = simulation.run(with_provider(body, lease=1.0, heartbeat=None), seed=seed)
+        assert ((True, "leaf y"), ()) == (run.value, tuple(run.errors)), f"seed {seed}"
+
+
+def test_a_process_restarted_beyond_a_cut_stays_beyond_it() -> None:
+    """A supervisor and its manager are cut off a consumer; the manager is killed and
+    restarted by that supervisor: the new process is on its supervisor's side of the cut
+    (a host's processes are), so the consumer cannot reach it until the heal."""
+
+    def scenario() -> Any:
+        folder = tempfile.mkdtemp(prefix="rr-sim-beyond-")
+        network = simulation.SimulatedNetwork()
+        app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=network)
+        children: list[int] = []
+
+        def tree() -> None:
+            spec = rr.ManagerSpec("provider", setup=leaf_setup, isolation="process")
+            sup = rr.Supervisor(spec, state_dir=folder, network=network, name="tree")
+            sup.start()
+            pid = sup.child("provider").pid
+            assert pid is not None
+            children.append(pid)
+
+        try:
+            tree_pid = simulation.start_process(tree, name="tree")
+            until_served(network, "provider")
+            app.call("provider", "leaf", "x")
+            network.partition([tree_pid, children[0]])
+            simulation.kill(children[0])
+            simulation.sleep(0.5)
+            until_served(network, "provider")  # (restarted beyond the cut)
+            try:
+                app.call("provider", "leaf", "y", timeout=2.0)
+            except rr.RegistrarUnavailableError:
+                during = "unavailable"
+            else:
+                during = "answered"
+            network.heal()
+            simulation.sleep(1.0)
+            return during, app.call("provider", "leaf", "z", timeout=5.0).response
+        finally:
+            try:
+                app.stop()
+            finally:
+                network.close()
+            shutil.rmtree(folder, ignore_errors=True)
+
+    for seed in range(5):
+        run = simulation.run(scenario, seed=seed, preempt=0.1)
+        assert (("unavailable", "leaf z"), ()) == (run.value, tuple(run.errors)), f"seed {seed}"
+
+
+def test_a_name_awaited_across_a_cut_is_lost_once_its_supervisor_goes() -> None:
+    """Rule 19 at a cut past the lease: the consumer awaits a provider cut off from it
+    while the provider's supervisor, on the consumer's side, lives; once that
+    supervisor's process ends, nobody will restart the provider: lost for the consumer
+    (FATAL, forgotten), before the heal."""
+
+    def scenario() -> Any:
+        folder = tempfile.mkdtemp(prefix="rr-sim-across-")
+        network = simulation.SimulatedNetwork(lease=1.0)
+        app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=network)
+        children: list[int] = []
+
+        def tree() -> None:
+            spec = rr.ManagerSpec("provider", setup=leaf_setup, isolation="process")
+            sup = rr.Supervisor(spec, state_dir=folder, network=network, name="tree")
+            sup.start()
+            pid = sup.child("provider").pid
+            assert pid is not None
+            children.append(pid)
+
+        try:
+            tree_pid = simulation.start_process(tree, name="tree")
+            until_served(network, "provider")
+            held = app.call("provider", "leaf", "x")
+            network.partition([children[0]])
+            simulation.sleep(2.0)  # (past the lease: awaited)
+            awaited = [q.id for q in app.client_queries()]
+            simulation.kill(tree_pid)
+            simulation.sleep(1.0)
+            return awaited == [held.id], [q.id for q in app.client_queries()]
+        finally:
+            try:
+                network.heal()
+                app.stop()
+            finally:
+                network.close()
+            shutil.rmtree(folder, ignore_errors=True)
+
+    for seed in range(5):
+        run = simulation.run(scenario, seed=seed, preempt=0.1)
+        assert ((True, []), ()) == (run.value, tuple(run.errors)), f"seed {seed}"
