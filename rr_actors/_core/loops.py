@@ -146,7 +146,7 @@ class _ProcessLoop:
         with self._lock:
             if self._loop is None:
                 started = runtime.Event()
-                loop = asyncio.new_event_loop()
+                loop = runtime.new_event_loop()
                 thread = runtime.Thread(
                     target=self._run, args=(loop, started), name="rr-loop", daemon=True
                 )

@@ -26,6 +26,7 @@ thread is made with `local()`: a simulation gives each simulated thread its own 
 
 from __future__ import annotations
 
+import asyncio
 import os
 import queue
 import random as _random
@@ -54,6 +55,7 @@ __all__ = [
     "local",
     "manager_process",
     "monotonic",
+    "new_event_loop",
     "process_state",
     "process_states",
     "queue_class",
@@ -96,6 +98,9 @@ get_ident = threading.get_ident
 current_thread = threading.current_thread
 getpid = os.getpid
 """The pid of the calling thread's process (in a simulation, its simulated process's)."""
+new_event_loop = asyncio.new_event_loop
+"""A new asyncio event loop (in a simulation, one on the virtual clock whose wait is a
+simulated thread's: `rr_actors.simulation._loop`)."""
 
 
 def guards_files() -> bool:
@@ -138,6 +143,7 @@ SEAMS = (
     "get_ident",
     "current_thread",
     "getpid",
+    "new_event_loop",
     "guards_files",
     "queue_class",
     "manager_process",

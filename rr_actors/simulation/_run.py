@@ -33,7 +33,7 @@ from collections.abc import Callable
 from typing import Any, Generic, TypeVar
 
 from rr_actors._core import runtime
-from rr_actors.simulation import _manager
+from rr_actors.simulation import _loop, _manager
 from rr_actors.simulation import _primitives as sim
 from rr_actors.simulation._processes import States
 from rr_actors.simulation._scheduler import Scheduler, SimulationError
@@ -209,6 +209,7 @@ def _simulate(make: Callable[[], Scheduler], fn: Callable[[], Any], outcome: lis
     finally:
         _scheduler = None
         sched.drop()
+        _loop.close_all(sched)
         sched.states.close()
         runtime.use(None)
 
@@ -259,6 +260,7 @@ def _seams(sched: Scheduler) -> dict[str, Any]:
         "get_ident": functools.partial(sim.get_ident, sched),
         "current_thread": functools.partial(sim.current_thread, sched),
         "getpid": lambda: sched.current().process.pid,
+        "new_event_loop": functools.partial(_loop.new_event_loop, sched),
         "guards_files": lambda: False,  # (its backups are its own: `runtime.guards_files`)
         "queue_class": functools.partial(sim.queue_class, sched, {}),
         "manager_process": functools.partial(_manager.start, sched),

@@ -33,6 +33,7 @@ choice point.)
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import gc
 import hashlib
@@ -135,6 +136,7 @@ class Task:
         "held",
         "killed",
         "locals",
+        "loop",
         "name",
         "number",
         "process",
@@ -160,6 +162,7 @@ class Task:
         self.woken = False  # ... by a wake (not its deadline)
         self.token = 0  # the wait it is in (a timer of an earlier wait is stale)
         self.locals: list[dict[str, Any]] = []  # its contents of `runtime.local()`s
+        self.loop: Any = None  # the asyncio loop it runs, if any (`_loop.py`)
 
     def __repr__(self) -> str:
         return f"{self.name!r} (#{self.number})"
@@ -213,6 +216,7 @@ class Scheduler:
         self.states = states
         self._pids = itertools.count(1)
         self.processes: list[Process] = []  # the first: the run's main process (`root`)
+        self.loops: list[Any] = []  # asyncio loops made (`_loop.py`): each task has its own
 
     # -- tasks -----------------------------------------------------------------------
 
@@ -396,7 +400,13 @@ class Scheduler:
                 contents.clear()
                 contents.update(state)
         assert task.glet is not None
-        task.glet.switch()
+        if self.loops:  # (asyncio's running loop is per OS thread: each task has its own)
+            asyncio._set_running_loop(task.loop)
+            task.glet.switch()
+            task.loop = asyncio._get_running_loop()
+            asyncio._set_running_loop(None)
+        else:
+            task.glet.switch()
         if not task.ended:
             task.locals = [
                 dict(contents) if (contents := namespace.__dict__) else _NOTHING

@@ -1,0 +1,133 @@
+"""An asyncio event loop on the simulation: coroutine callbacks in virtual time.
+
+```
+ runtime.new_event_loop() ─► SimulatedEventLoop (a process's own loop: `_core.loops`)
+ its thread (a simulated one): run_forever ─► _run_once, asyncio's own:
+   the ready callbacks, the timers due by loop.time() (the virtual clock)
+   _selector.select(timeout) ─► no file to watch: wait on a simulated Event for at most
+                                 `timeout` virtual seconds (None: until woken)
+ any simulated thread: call_soon_threadsafe ─► _write_to_self ─► that Event is set
+ the scheduler, at each switch: asyncio's running loop is the task's own
+   (`asyncio._get_running_loop`/`_set_running_loop`: per OS thread, and every simulated
+   thread runs on the run's one OS thread)
+ the run's end (`close_all`): its tasks dropped, every loop it made is closed
+```
+
+asyncio's `BaseEventLoop` runs everything but the wait: its `_run_once` asks
+`self._selector.select(timeout)` for the files that are ready, hands them to
+`_process_events`, and `call_soon_threadsafe` wakes the wait with `_write_to_self`.
+Those three hooks are asyncio's own, not public API (`selector_events.py` fills them for
+the real loops); this file is the one place that uses them, for CPython 3.11 to 3.14
+(`tests/simulation/test_loop.py` runs it on the interpreter CI has). Where they are not
+there, `new_event_loop` raises `SimulationError` naming the Python: coroutine callbacks
+are then not simulated, as before this file.
+
+What a simulated loop cannot do: watch a file or a socket (`add_reader`, `sock_*`,
+`create_connection`: `NotImplementedError`, as a loop without a selector), run a
+subprocess, or run a callback on a real thread (`run_in_executor`, `asyncio.to_thread`:
+a real thread would not be simulated). A coroutine callback that awaits a sleep, a
+future, a lock or an `rr_actors` call does all it does in virtual time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import sys
+from typing import Any
+
+from rr_actors.simulation import _primitives as sim
+from rr_actors.simulation._scheduler import Scheduler, SimulationError
+
+__all__ = ["SimulatedEventLoop", "close_all", "new_event_loop"]
+
+_HOOKS = ("_run_once", "_process_events", "_write_to_self")
+"""What `BaseEventLoop` must have for a simulated loop (see the module docstring)."""
+
+
+class _Selector:
+    """No file to watch: `select` waits on a simulated event, woken from any simulated
+    thread (`SimulatedEventLoop._write_to_self`), for at most `timeout` virtual seconds."""
+
+    __slots__ = ("_woken",)
+
+    def __init__(self, sched: Scheduler) -> None:
+        self._woken = sim.Event(sched)
+
+    def select(self, timeout: float | None) -> list[Any]:
+        if timeout is None or timeout > 0:
+            self._woken.wait(timeout)
+        self._woken.clear()
+        return []
+
+    def wake(self) -> None:
+        self._woken.set()
+
+    def close(self) -> None:
+        """(Nothing to close: no file is watched.)"""
+
+
+class SimulatedEventLoop(asyncio.BaseEventLoop):
+    """An asyncio event loop whose clock is the simulation's and whose wait is a
+    simulated thread's (see the module docstring). Made by `runtime.new_event_loop()`
+    in a simulated run."""
+
+    def __init__(self, sched: Scheduler) -> None:
+        super().__init__()
+        self._sched = sched
+        self._selector = _Selector(sched)
+
+    def time(self) -> float:
+        """The loop's clock: the simulation's virtual seconds."""
+        return self._sched.now
+
+    def _process_events(self, event_list: list[Any]) -> None:
+        """(No file is watched: nothing to process.)"""
+
+    def _write_to_self(self) -> None:
+        self._selector.wake()
+
+    def run_in_executor(  # type: ignore[override]  # (typeshed's generic signature)
+        self, executor: Any, func: Any, *args: Any
+    ) -> Any:
+        """Refused: a real thread would leave the simulation (`asyncio.to_thread` too).
+
+        Raises:
+            NotImplementedError: always.
+        """
+        raise NotImplementedError(
+            "a simulated event loop runs no callback on a real thread (run_in_executor, "
+            "asyncio.to_thread): it would not be simulated"
+        )
+
+    def close(self) -> None:
+        super().close()
+        self._selector.close()
+
+
+def new_event_loop(sched: Scheduler) -> SimulatedEventLoop:
+    """A new simulated event loop (the `runtime.new_event_loop` seam in a simulation).
+
+    Raises:
+        SimulationError: this Python's asyncio lacks a hook the loop needs (a CPython
+            outside 3.11-3.14): coroutine callbacks cannot be simulated here.
+    """
+    missing = [hook for hook in _HOOKS if not hasattr(asyncio.BaseEventLoop, hook)]
+    if missing:
+        raise SimulationError(
+            f"coroutine callbacks cannot be simulated on Python "
+            f"{sys.version.split()[0]}: its asyncio.BaseEventLoop has no "
+            f"{', '.join(missing)} (rr_actors.simulation._loop)"
+        )
+    loop = SimulatedEventLoop(sched)
+    sched.loops.append(loop)
+    return loop
+
+
+def close_all(sched: Scheduler) -> None:
+    """Close the loops of a run that is over (its tasks dropped: none runs its loop).
+    A process's own loop runs until its process ends, as for real, and is closed here,
+    not left to the garbage collector's "unclosed event loop" warning."""
+    for loop in sched.loops:
+        if not loop.is_closed() and not loop.is_running():
+            loop.close()
+    sched.loops.clear()
