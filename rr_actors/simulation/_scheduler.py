@@ -396,6 +396,7 @@ class Scheduler:
             assert task.glet is not None
             task.glet.switch()
             if not self.steps % GC_STEPS:
+                self._hashed()  # (the steps' buffer kept small)
                 _collect(self.steps)
 
     def _install_locals(self, task: Task) -> None:
@@ -446,7 +447,6 @@ class Scheduler:
 
     def _advance(self) -> bool:
         """Move the clock to the next deadline and ready its tasks; whether there was one."""
-        self._hashed()  # (the steps' buffer kept small: hashed at each jump of the clock)
         timers = self._timers
         while timers:
             deadline, _, task, token = heapq.heappop(timers)
