@@ -2,9 +2,9 @@
 
 ```
  Scheduler.spawn(body, process=P) ─► a task of P (a thread started by a task of P is P's)
- Scheduler._switch(task of Q) ─► States.install(Q): what P's singletons hold now is put
-   away as P's, Q's is put in (DIRECTORY, MEMBERSHIP, CLOCK, pykka's registry, ...: every
-   object registered with `runtime.process_state`)
+ a step to a task of Q ─► States.install(Q): what P's singletons hold now is kept as
+   P's, Q's is put in (DIRECTORY, MEMBERSHIP, CLOCK, pykka's registry, ...: every
+   object registered with `runtime.process_state`; the run's end puts the real ones back)
  Scheduler.end(P, exitcode) (SIGKILL: -9; an exit: its code)
    ├─ its tasks are never switched to again: no `finally` block runs, as after a SIGKILL
    │  (dropped with the run's other tasks when the run is over)
