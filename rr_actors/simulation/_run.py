@@ -242,7 +242,7 @@ def _seams(sched: Scheduler) -> dict[str, Any]:
     def wall_ns() -> int:
         return wall_ns_start + round(sched.now * 1e9)
 
-    makers: dict[str, Any] = {
+    simulated: dict[str, Any] = {
         "Lock": functools.partial(sim.Lock, sched),
         "RLock": functools.partial(sim.RLock, sched),
         "Event": functools.partial(sim.Event, sched),
@@ -250,9 +250,6 @@ def _seams(sched: Scheduler) -> dict[str, Any]:
         "SimpleQueue": functools.partial(sim.SimpleQueue, sched),
         "Thread": functools.partial(sim.Thread, sched),
         "Timer": functools.partial(sim.Timer, sched),
-        "manager_process": functools.partial(_manager.start, sched),
-    }
-    functions: dict[str, Any] = {  # (as their real ones: no keyword arguments)
         "monotonic": lambda: MONOTONIC_START + sched.now,
         "wall": lambda: wall_ns() / 1e9,  # (as time.time() is time.time_ns(): one clock)
         "wall_ns": wall_ns,
@@ -264,22 +261,16 @@ def _seams(sched: Scheduler) -> dict[str, Any]:
         "getpid": lambda: sched.current().process.pid,
         "guards_files": lambda: False,  # (its backups are its own: `runtime.guards_files`)
         "queue_class": functools.partial(sim.queue_class, sched, {}),
+        "manager_process": functools.partial(_manager.start, sched),
     }
     here = threading.get_ident()
-    seams = {name: _only_here(here, made, runtime.REAL[name]) for name, made in makers.items()}
-    for name, function in functions.items():
-        seams[name] = _only_here(here, function, runtime.REAL[name], keywords=False)
-    return seams
+    return {name: _only_here(here, seam, runtime.REAL[name]) for name, seam in simulated.items()}
 
 
-def _only_here(
-    here: int, simulated: Callable[..., Any], real: Callable[..., Any], keywords: bool = True
-) -> Any:
+def _only_here(here: int, simulated: Callable[..., Any], real: Callable[..., Any]) -> Any:
     """`simulated` when called on the OS thread `here` (the run's: its greenlets and its
     scheduler), `real` on any other: the seams are the module's globals, seen by every
-    thread of the process, and a real thread must keep real clocks, sleeps and locks.
-    (`keywords=False`: a seam called with positional arguments only, which makes no dict
-    of keywords at each call: the clocks, read some 45,000 times a seed.)"""
+    thread of the process, and a real thread must keep real clocks, sleeps and locks."""
 
     ident = threading.get_ident
 
@@ -288,12 +279,7 @@ def _only_here(
             return simulated(*args, **kwargs)
         return real(*args, **kwargs)
 
-    def positional(*args: Any) -> Any:
-        if ident() == here:
-            return simulated(*args)
-        return real(*args)
-
-    return seam if keywords else positional
+    return seam
 
 
 def running_scheduler() -> Scheduler:
