@@ -7,9 +7,9 @@
    _selector.select(timeout) ─► no file to watch: wait on a simulated Event for at most
                                  `timeout` virtual seconds (None: until woken)
  any simulated thread: call_soon_threadsafe ─► _write_to_self ─► that Event is set
- the scheduler, at each switch: asyncio's running loop is the task's own
-   (`asyncio._get_running_loop`/`_set_running_loop`: per OS thread, and every simulated
-   thread runs on the run's one OS thread)
+ the scheduler, when another task runs: asyncio's running loop is the task's own, as
+   its thread-local contents are (`asyncio._get_running_loop`/`_set_running_loop`: per
+   OS thread, and every simulated thread runs on the run's one OS thread)
  the run's end (`close_all`): its tasks dropped, every loop it made is closed
 ```
 
