@@ -2,6 +2,7 @@
 
 ```
  events.jsonl ──► read_runs ──► {run: [(line, event), ...]}
+ a run's events, as published ──► numbered ──► the same, without the JSON (a simulated run)
                                       │
  check(history) ──────────────────────┴─► _history: each registrar's lives, the run's facts
      ├─► _provider_rules: one pass over each provider's catalog
@@ -92,6 +93,7 @@ __all__ = [
     "check",
     "check_file",
     "format_verdict",
+    "numbered",
     "read_runs",
 ]
 
@@ -285,6 +287,27 @@ def read_runs(lines: Iterable[str]) -> dict[int, list[Line]]:
             message names the line.
     """
     return _runs(_parsed(lines), "line")
+
+
+def numbered(seen: Iterable[events.Event]) -> list[Line]:
+    """One run's events as published, numbered as the lines of its `events.jsonl` (1 for
+    the first): what `read_runs` gives for that file, without writing and reading it.
+
+    A simulated run's verdict comes from it (`simulate.run_seed`): its events are the
+    ones its file's lines would be read back as, and their catalog rows are checked as
+    `read_runs` checks them, so that both give the same verdict.
+
+    Raises:
+        ConfigError: a catalog event's row too short, or a digest that is not a number;
+            the message names the line.
+    """
+    history = list(enumerate(seen, start=1))
+    for number, event in history:
+        try:
+            _check_rows(event)
+        except ConfigError as exc:
+            raise ConfigError(f"line {number}: {exc}") from None
+    return history
 
 
 def _parsed(lines: Iterable[str]) -> Iterator[tuple[int, Any]]:
