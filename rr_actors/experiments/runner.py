@@ -37,6 +37,7 @@ import rr_actors as rr
 from rr_actors import events
 from rr_actors._core import runtime
 from rr_actors._process import context as process_context
+from rr_actors.events.lines import to_line
 from rr_actors.experiments import _hosts, _procs, check, metrics
 from rr_actors.experiments._instrument import instrumented_setup
 from rr_actors.experiments._netns import PORT, HostNetwork
@@ -261,7 +262,7 @@ class _EventLog:
         extra = {"run": run, "seed": seed}
         with path.open("w", encoding="utf-8") as out:
             for event in self.seen:
-                out.write(json.dumps({**events.to_dict(event), **extra}) + "\n")
+                out.write(to_line(event, extra) + "\n")
 
 
 def _catalog_size(registrar: rr.ResourceRegistrar) -> int:

@@ -20,6 +20,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import events
+from rr_actors.events.lines import to_line
 
 WAIT = 5.0
 
@@ -167,6 +168,23 @@ def test_to_dict_names_the_type_and_writes_the_status_by_name() -> None:
         "schema": 3,
     }
     assert expected == events.to_dict(event)
+
+
+@pytest.mark.parametrize("event", EXAMPLES, ids=kind)
+def test_to_line_is_the_json_of_to_dict_byte_for_byte(event: events.Event) -> None:
+    extra = {"run": 3, "seed": 12}
+    odd = dataclasses.replace(event, host='h\u00e9\n"', at=float("nan"))  # (escapes, NaN)
+    for each in (event, odd):
+        assert json.dumps(events.to_dict(each)) == to_line(each)
+        assert json.dumps({**events.to_dict(each), **extra}) == to_line(each, extra)
+
+
+def test_to_line_refuses_what_json_refuses_as_to_dict_does() -> None:
+    event = events.LoadFailed("erm", "cam", RID, QID, "E", object())  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="not JSON serializable"):
+        json.dumps(events.to_dict(event))
+    with pytest.raises(TypeError, match="not JSON serializable"):
+        to_line(event)
 
 
 def test_from_dict_reads_a_schema_1_line_without_the_fields_added_since() -> None:
