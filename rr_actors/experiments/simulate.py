@@ -47,7 +47,7 @@ from pathlib import Path
 
 from rr_actors import events
 from rr_actors._core import runtime
-from rr_actors.events.lines import to_line
+from rr_actors.events.lines import to_lines
 from rr_actors.experiments import check
 from rr_actors.experiments.plan import SIMULATION_KINDS, Plan, PlanError
 from rr_actors.experiments.results import FaultRecord
@@ -233,10 +233,9 @@ def run_seed(plan: Plan, seed: int) -> SimulatedRun:
     finally:
         shutil.rmtree(folder, ignore_errors=True)
     seen, records, wall_t0, calls = ran.value
-    extra = {"run": RUN, "seed": seed}
-    lines = [to_line(e, extra) for e in seen]
-    lines += [json.dumps(fault_line(r, run=RUN, seed=seed, wall_t0=wall_t0)) for r in records]
-    history = "".join(line + "\n" for line in lines)
+    history = to_lines(seen, {"run": RUN, "seed": seed}) + "".join(
+        json.dumps(fault_line(r, run=RUN, seed=seed, wall_t0=wall_t0)) + "\n" for r in records
+    )
     verdict = check.check(check.numbered(seen))
     return SimulatedRun(
         seed=seed,
