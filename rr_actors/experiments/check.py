@@ -303,10 +303,11 @@ def numbered(seen: Iterable[events.Event]) -> list[Line]:
     """
     history = list(enumerate(seen, start=1))
     for number, event in history:
-        try:
-            _check_rows(event)
-        except ConfigError as exc:
-            raise ConfigError(f"line {number}: {exc}") from None
+        if isinstance(event, _CATALOG):  # (the others have no rows: no call for them)
+            try:
+                _check_rows(event)
+            except ConfigError as exc:
+                raise ConfigError(f"line {number}: {exc}") from None
     return history
 
 
@@ -336,6 +337,9 @@ def _runs(numbered: Iterable[tuple[int, Any]], where: str) -> dict[int, list[Lin
     return dict(runs)
 
 
+_CATALOG = (events.CatalogRestored, events.RegistrarStopped)
+"""The kinds with rows (`_check_rows`)."""
+
 _ROW_FIELDS = {"resources": 3, "consumers": 3, "clients": 4}
 """The fields a row of a catalog event has at least (its kind's docstring names them)."""
 
@@ -347,7 +351,7 @@ def _check_rows(event: events.Event) -> None:
         ConfigError: a row with fewer fields, or a digest that is not a whole number of
             at most 40 digits; the message names the field and shows the row.
     """
-    if not isinstance(event, events.CatalogRestored | events.RegistrarStopped):
+    if not isinstance(event, _CATALOG):
         return
     kind = type(event).__name__
     for field, least in _ROW_FIELDS.items():
