@@ -2,11 +2,8 @@
 
 ```
  event ──► to_dict ──► {"type", its fields, "schema"} ──► json.dumps: a line
- event ──► to_line ──► the same line, without the dict of lists
- events ──► to_lines ──► the same lines: every value of a kind without rows encoded in
-                         one call, each line its kind's template filled in (an
-                         experiment's and a simulated run's `events.jsonl`: thousands
-                         of lines a run)
+ event ──► to_line ──► the same line, without the dict of lists (its fields read in
+                        one call): `to_lines` writes a run's `events.jsonl` with it
  a line ──► parse_json ──► from_dict (every field checked) ──► the event
 ```
 """
@@ -101,44 +98,13 @@ def to_line(event: Event, extra: dict[str, Any] | None = None) -> str:
 
 
 def to_lines(seen: Iterable[Event], extra: dict[str, Any] | None = None) -> str:
-    """`"".join(to_line(e, extra) + "\\n" for e in seen)`: the same text, at less than half
-    its cost (`benchmarks/bench_simulation.py`: a seed's 7,000 events).
-
-    The values of every event of a kind without rows go to the encoder in one list,
-    whose items it separates by a newline instead of `", "`. No value's text holds a
-    newline (a string's is escaped) unless it is a list or a dict of several items,
-    whose text that separator changes: then there are more newlines than values, and
-    every line is `to_line`'s. Each line is its kind's template (its keys, `"schema"`,
-    the keys of `extra`) filled with its values' texts; a kind with rows (a catalog
-    event), or whose field `extra` would replace, is `to_line`'s.
+    """Each event of `seen` as `to_line` writes it, a line each: an experiment's and a
+    simulated run's `events.jsonl`.
 
     Raises:
-        TypeError: a value JSON cannot hold (as `to_line`).
+        TypeError: a value JSON cannot hold (as `to_line`), before any line is made.
     """
-    seen = list(seen)
-    extra = extra or {}
-    tail = f", {_encode({'schema': SCHEMA, **extra})[1:]}\n".replace("%", "%%")
-    kinds = {
-        kind: (head + tail, values)
-        for kind, (head, values, names) in _FLAT.items()
-        if names.isdisjoint(extra)
-    }
-    pieces: list[str] = []  # (a template, or a finished line with its "%" doubled)
-    values: list[Any] = []
-    for event in seen:
-        flat = kinds.get(type(event))
-        if flat is None:
-            pieces.append(to_line(event, extra).replace("%", "%%") + "\n")
-        else:
-            pieces.append(flat[0])
-            values += flat[1](event)
-    try:
-        texts = _one_list(values)[1:-1].split("\n") if values else []
-    except (TypeError, ValueError, RecursionError):  # (to_line raises it, for its event)
-        texts = []
-    if len(texts) != len(values):
-        return "".join(to_line(event, extra) + "\n" for event in seen)
-    return "".join(pieces) % tuple(texts)
+    return "".join([f"{to_line(event, extra)}\n" for event in seen])
 
 
 def _status_name(value: object) -> str:
@@ -159,28 +125,6 @@ _LAYOUTS: dict[type[Event], tuple[tuple[str, ...], Callable[[Event], tuple[Any, 
 }
 """Each kind's keys (`to_dict`'s), and the getter of its fields' values (one C call: every
 kind has more than one field, so it gives a tuple)."""
-
-_one_list = json.JSONEncoder(default=_status_name, separators=("\n", ": ")).encode
-"""`_encode` with a newline between the items of a list (`to_lines`)."""
-
-
-def _template(cls: type[Event]) -> str:
-    """A kind's line up to its values, each a `%s` (`to_lines`; names hold no `%`)."""
-    keys = "".join(f", {_encode(f.name)}: %s" for f in dataclasses.fields(cls))
-    return f'{{"type": {_encode(cls.__name__)}{keys}'
-
-
-_FLAT: dict[type[Event], tuple[str, Callable[[Event], tuple[Any, ...]], frozenset[str]]] = {
-    cls: (
-        _template(cls),
-        _LAYOUTS[cls][1],
-        frozenset(("type", *(f.name for f in dataclasses.fields(cls)))),
-    )
-    for cls in _TYPES.values()
-    if not any(typing.get_origin(kind) is tuple for kind in typing.get_type_hints(cls).values())
-}
-"""The kinds without rows (`to_lines`): each one's template, its values' getter, and the
-keys that `extra` may not name."""
 
 
 def from_dict(data: dict[str, Any]) -> Event:

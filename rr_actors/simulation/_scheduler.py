@@ -101,6 +101,7 @@ _NOTHING: dict[
     str, Any
 ] = {}  # a task's contents of a namespace it keeps nothing in (never changed)
 _GRAVEYARD: list[greenlet.greenlet] = []  # tasks that would not end when dropped
+_NO_HOOKS = (None, None)  # the async generators' hooks of a thread that ran no loop
 
 
 @contextlib.contextmanager
@@ -135,6 +136,7 @@ class Task:
         "ended",
         "glet",
         "held",
+        "hooks",
         "killed",
         "locals",
         "loop",
@@ -163,7 +165,10 @@ class Task:
         self.woken = False  # ... by a wake (not its deadline)
         self.token = 0  # the wait it is in (a timer of an earlier wait is stale)
         self.locals: list[dict[str, Any]] = []  # its contents of `runtime.local()`s
-        self.loop: Any = None  # the asyncio loop it runs, if any (`_loop.py`)
+        # asyncio's per-thread state while it runs a loop (`_loop.py`): its running loop
+        # and its async generators' hooks (each loop's `run_forever` sets its own)
+        self.loop: Any = None
+        self.hooks: Any = _NO_HOOKS
 
     def __repr__(self) -> str:
         return f"{self.name!r} (#{self.number})"
@@ -407,7 +412,7 @@ class Scheduler:
         """Put `task`'s contents of the `runtime.local()` namespaces in; those in now are
         kept as their task's (unless it ended). Only when another task runs than the one
         whose they are: its own stay in between. asyncio's running loop, once a run made
-        a loop (`_loop.py`), is swapped the same way."""
+        a loop (`_loop.py`), and its async generators' hooks are swapped the same way."""
         was, self._in_locals = self._in_locals, task
         for i, namespace in enumerate(self._locals):
             contents = namespace.__dict__
@@ -417,10 +422,11 @@ class Scheduler:
             if contents or state:  # (most tasks keep nothing in most namespaces)
                 contents.clear()
                 contents.update(state)
-        if self.loops:  # (asyncio's running loop is per OS thread: each task has its own)
+        if self.loops:  # (asyncio's per-thread state is per OS thread: each task its own)
             if was is not None:
-                was.loop = asyncio._get_running_loop()
+                was.loop, was.hooks = asyncio._get_running_loop(), sys.get_asyncgen_hooks()
             asyncio._set_running_loop(task.loop)
+            sys.set_asyncgen_hooks(*task.hooks)
 
     def drop(self) -> int:
         """End every task left (the run is over: its trace and hash are final); how many
