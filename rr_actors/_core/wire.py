@@ -12,15 +12,22 @@ message:
 
 Every subclass is listed in `WIRE_TYPES`, which the codec pickles by reference on its
 fast path.
+
+`plain(value)`: small builtin data and such records, which the C pickler alone encodes
+byte for byte as cloudpickle would, without building a cloudpickle `Pickler` (a Python
+object, and a Python call per object pickled). The codec frames such a message with it,
+and the catalog's backup stores such a request or response with it (nor is one checked
+for being picklable: it is).
 """
 
 from __future__ import annotations
 
 from typing import Any
 
+from rr_actors._types import Query, Status, StatusUpdate
 from rr_actors.errors import RrError, TransferError
 
-__all__ = ["WIRE_TYPES", "WIRE_VERSION", "WireMessage"]
+__all__ = ["WIRE_TYPES", "WIRE_VERSION", "WireMessage", "plain"]
 
 WIRE_VERSION = 6
 """The version of what crosses between processes (these messages, pickled): a carrier
@@ -84,3 +91,42 @@ class WireMessage:
             f"the answer of registrar {target!r} to a {type(self).__name__} message "
             f"is not picklable: {exc}"
         )
+
+
+# Small builtin data (exact types: no subclass, nothing defined in `__main__`), the wire
+# protocol's records holding only such data, and status codes. `plain` looks at no more
+# than `_PLAIN_BUDGET` containers of at most `_PLAIN_WIDTH` items each; anything larger
+# or else is not plain (cloudpickle's).
+_PLAIN_ATOMS: frozenset[type] = frozenset({str, int, float, bool, type(None), bytes, Status})
+_PLAIN_SEQUENCES: frozenset[type] = frozenset({tuple, list, set, frozenset})
+_PLAIN_VALUE_RECORDS: frozenset[type] = frozenset({Query, StatusUpdate})  # (+ WIRE_TYPES)
+_PLAIN_BUDGET = 64
+_PLAIN_WIDTH = 256
+
+
+def plain(obj: Any) -> bool:
+    """Whether `obj` is small builtin data that plain `pickle` encodes as cloudpickle would."""
+    return type(obj) in _PLAIN_ATOMS or _plain_walk(obj, _PLAIN_BUDGET) >= 0
+
+
+def _plain_walk(item: Any, budget: int) -> int:
+    """The budget left after walking the container `item`, or -1 if it is not plain."""
+    kind = type(item)
+    budget -= 1
+    if budget < 0:
+        return -1
+    items: Any
+    if kind in _PLAIN_SEQUENCES or kind is dict:
+        if len(item) > _PLAIN_WIDTH:
+            return -1
+        items = item if kind is not dict else (*item.keys(), *item.values())
+    elif kind in WIRE_TYPES or kind in _PLAIN_VALUE_RECORDS:  # a few fields each
+        items = item.__dict__.values()
+    else:
+        return -1
+    for value in items:
+        if type(value) not in _PLAIN_ATOMS:
+            budget = _plain_walk(value, budget)
+            if budget < 0:
+                return -1
+    return budget

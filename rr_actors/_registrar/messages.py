@@ -43,7 +43,7 @@ import cloudpickle
 from rr_actors._catalog import describe
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.replies import FutureReply
-from rr_actors._core.wire import WireMessage
+from rr_actors._core.wire import WireMessage, plain
 from rr_actors._types import LoadCallback, Status, StatusCallback, UnloadCallback
 from rr_actors.errors import (
     CallTimeoutError,
@@ -676,7 +676,10 @@ def check_picklable(value: Any, what: str) -> None:
     """Raise `ConfigError` if `value` cannot be stored in a catalog backup.
 
     Whatever pickling it raises (a user `__reduce__` raising `SystemExit` too) is that.
+    Small builtin data (`wire.plain`: most requests and responses) is not pickled here.
     """
+    if plain(value):  # (it pickles; the backup pickles it again anyway when it stores it)
+        return
     try:
         cloudpickle.dumps(value)
     except BaseException as exc:  # (user code: a SystemExit from __reduce__ is contained too)

@@ -43,7 +43,7 @@ import cloudpickle
 
 from rr_actors._core import runtime
 from rr_actors._core.directory import Reply
-from rr_actors._core.wire import WIRE_TYPES, WireMessage
+from rr_actors._core.wire import WIRE_TYPES, WireMessage, plain
 from rr_actors._types import Query, Status, StatusUpdate
 from rr_actors.errors import (
     CallTimeoutError,
@@ -177,51 +177,11 @@ class _Pickler(cloudpickle.Pickler):  # type: ignore[misc]
         return super().reducer_override(obj)
 
 
-# Small builtin data (exact types: no subclass, nothing defined in `__main__`), the wire
-# protocol's records holding only such data, and status codes: the C pickler alone encodes
-# them as cloudpickle would, without building a cloudpickle `Pickler` (a third of a dedup
-# hit's encoding time). `_plain` looks at no more than `_PLAIN_BUDGET` containers of at
-# most `_PLAIN_WIDTH` items each; anything larger or else goes through cloudpickle.
-_PLAIN_ATOMS: frozenset[type] = frozenset({str, int, float, bool, type(None), bytes, Status})
-_PLAIN_SEQUENCES: frozenset[type] = frozenset({tuple, list, set, frozenset})
-_PLAIN_VALUE_RECORDS: frozenset[type] = frozenset({Query, StatusUpdate})  # (+ WIRE_TYPES)
-_PLAIN_BUDGET = 64
-_PLAIN_WIDTH = 256
-
-
-def plain(obj: Any) -> bool:
-    """Whether `obj` is small builtin data that plain `pickle` encodes as cloudpickle would."""
-    return type(obj) in _PLAIN_ATOMS or _plain_walk(obj, _PLAIN_BUDGET) >= 0
-
-
-def _plain_walk(item: Any, budget: int) -> int:
-    """The budget left after walking the container `item`, or -1 if it is not plain."""
-    kind = type(item)
-    budget -= 1
-    if budget < 0:
-        return -1
-    items: Any
-    if kind in _PLAIN_SEQUENCES or kind is dict:
-        if len(item) > _PLAIN_WIDTH:
-            return -1
-        items = item if kind is not dict else (*item.keys(), *item.values())
-    elif kind in WIRE_TYPES or kind in _PLAIN_VALUE_RECORDS:  # a few fields each
-        items = item.__dict__.values()
-    else:
-        return -1
-    for value in items:
-        if type(value) not in _PLAIN_ATOMS:
-            budget = _plain_walk(value, budget)
-            if budget < 0:
-                return -1
-    return budget
-
-
 def frame(token: int, obj: Any) -> bytes:
     """The bytes on the wire for `obj`: header, `token`, pickle; pickling errors propagate.
 
     The header is `multiprocessing.connection`'s, so the receiver reads frames with
-    `Connection.recv_bytes`. Small builtin data (`_plain`) is pickled by the C pickler
+    `Connection.recv_bytes`. Small builtin data (`plain`) is pickled by the C pickler
     alone; everything else by cloudpickle.
     """
     if plain(obj):

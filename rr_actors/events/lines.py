@@ -1,15 +1,24 @@
-"""Events as JSON-able dicts and back: one JSON line per event (`events.jsonl`)."""
+"""Events as JSON-able dicts and back: one JSON line per event (`events.jsonl`).
+
+```
+ event ──► to_dict ──► {"type", its fields, "schema"} ──► json.dumps: a line
+ event ──► to_line ──► the same line, without the dict of lists (its fields read in
+                        one call): `to_lines` writes a run's `events.jsonl` with it
+ a line ──► parse_json ──► from_dict (every field checked) ──► the event
+```
+"""
 
 from __future__ import annotations
 
 import dataclasses
 import json
 import math
+import operator
 import os
 import reprlib
 import sys
 import typing
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 from rr_actors._core import hlc
@@ -17,7 +26,16 @@ from rr_actors._types import Status
 from rr_actors.errors import ConfigError
 from rr_actors.events.kinds import Event
 
-__all__ = ["MAX_LINE_BYTES", "SCHEMA", "from_dict", "json_lines", "parse_json", "to_dict"]
+__all__ = [
+    "MAX_LINE_BYTES",
+    "SCHEMA",
+    "from_dict",
+    "json_lines",
+    "parse_json",
+    "to_dict",
+    "to_line",
+    "to_lines",
+]
 
 SCHEMA = 3
 """Version of the dicts `to_dict` writes (the `"schema"` key); `from_dict` reads it, 2 and 1.
@@ -57,6 +75,56 @@ def to_dict(event: Event) -> dict[str, Any]:
         data[field.name] = value
     data["schema"] = SCHEMA
     return data
+
+
+def to_line(event: Event, extra: dict[str, Any] | None = None) -> str:
+    """`json.dumps({**to_dict(event), **extra})`: the same text, without its dict of lists.
+
+    Its fields' values go to the encoder as they are (a tuple is written as a list is,
+    a `Status` by its name), in the order `to_dict` gives them, read in one call.
+
+    Args:
+        event: any event of this module.
+        extra: keys written after `"schema"` (an experiment's `run` and `seed`).
+    """
+    layout = _LAYOUTS.get(type(event))
+    if layout is None:  # (not one of the kinds: whatever to_dict makes of it)
+        return json.dumps({**to_dict(event), **(extra or {})})
+    keys, values = layout
+    data = dict(zip(keys, (type(event).__name__, *values(event), SCHEMA), strict=True))
+    if extra:
+        data.update(extra)
+    return _encode(data)
+
+
+def to_lines(seen: Iterable[Event], extra: dict[str, Any] | None = None) -> str:
+    """Each event of `seen` as `to_line` writes it, a line each: an experiment's and a
+    simulated run's `events.jsonl`.
+
+    Raises:
+        TypeError: a value JSON cannot hold (as `to_line`), before any line is made.
+    """
+    return "".join([f"{to_line(event, extra)}\n" for event in seen])
+
+
+def _status_name(value: object) -> str:
+    if isinstance(value, Status):
+        return value.name
+    raise TypeError(f"Object of type {type(value).__name__} is not JSON serializable")
+
+
+_encode = json.JSONEncoder(default=_status_name).encode
+"""`json.dumps`'s own settings, and a `Status` by its name (as `to_dict` writes it)."""
+
+_LAYOUTS: dict[type[Event], tuple[tuple[str, ...], Callable[[Event], tuple[Any, ...]]]] = {
+    cls: (
+        ("type", *(f.name for f in dataclasses.fields(cls)), "schema"),
+        operator.attrgetter(*(f.name for f in dataclasses.fields(cls))),
+    )
+    for cls in _TYPES.values()
+}
+"""Each kind's keys (`to_dict`'s), and the getter of its fields' values (one C call: every
+kind has more than one field, so it gives a tuple)."""
 
 
 def from_dict(data: dict[str, Any]) -> Event:

@@ -131,11 +131,12 @@ def walk(history: Sequence[Line]) -> tuple[list[Step], dict[tuple[str, int], Lif
     events of a second server of a name are those of the registrar `<name>@<pid>`.
     """
     walker = _Walk(history)
+    exited, step = walker.exited, walker.step
     for line, event in history:
         if isinstance(event, events.ChildExited):
-            walker.exited(event)
+            exited(event)
         elif getattr(event, "registrar", None) is not None:
-            walker.step(line, event)
+            step(line, event)
     return walker.steps, walker.lives
 
 
@@ -143,12 +144,8 @@ class _Walk:
     """`walk`'s state: each registrar's pid and life now, and the second servers."""
 
     def __init__(self, history: Sequence[Line]) -> None:
-        self.last: dict[tuple[str, int], tuple[int, int]] = {}  # (name, pid) -> line, stamp
-        for line, event in history:
-            name = getattr(event, "registrar", None)
-            if name is not None and not isinstance(event, events.StatusDelivered):
-                seen = self.last.get((name, event.pid), (0, 0))
-                self.last[name, event.pid] = (line, max(seen[1], event.hlc))
+        self.history = history
+        self._last: dict[tuple[str, int], tuple[int, int]] | None = None  # (see `last`)
         self.pids: dict[str, int] = {}
         self.current: dict[str, int] = {}  # registrar -> its life now
         self.now: dict[str, Life] = {}  # registrar -> that life's record
@@ -163,10 +160,35 @@ class _Walk:
             self.now[child].end = event.hlc
             self.over.add(child)
 
+    @property
+    def last(self) -> dict[tuple[str, int], tuple[int, int]]:
+        """`(name, pid)` -> the line and the greatest stamp of its last event (all but
+        `StatusDelivered`), in the whole history: read once, where a registrar's events
+        first come from another process while the one before has not ended."""
+        if self._last is None:
+            self._last = {}
+            for line, event in self.history:
+                name = getattr(event, "registrar", None)
+                if name is not None and not isinstance(event, events.StatusDelivered):
+                    seen = self._last.get((name, event.pid), (0, 0))
+                    self._last[name, event.pid] = (line, max(seen[1], event.hlc))
+        return self._last
+
     def step(self, line: int, event: events.Event) -> None:
         name: str = getattr(event, "registrar")  # noqa: B009 - `walk` checked it
-        if isinstance(event, events.StatusDelivered | events.RegistrarStopped):
+        if isinstance(event, _ENDING):
             self.ending(line, event, self.second.get((name, event.pid), name))
+            return
+        if (
+            self.pids.get(name) == event.pid
+            and name not in self.over
+            and not (self.second and (name, event.pid) in self.second)
+            and not isinstance(event, events.CatalogRestored)
+        ):  # (the life it is in goes on: most events; `server` would keep its name)
+            going = self.now[name]
+            going.last = max(going.last, event.hlc)
+            going.last_line = line
+            self.steps.append((name, line, event, False, self.current[name]))
             return
         name, beside = self.server(line, event, name)
         stamp, pid = event.hlc, self.pids.get(name)
@@ -239,6 +261,10 @@ class _Walk:
             return name, None  # (the one before serves no more: a restart)
         self.second[name, event.pid] = f"{name}@{event.pid}"
         return self.second[name, event.pid], (name, self.current[name])
+
+
+_ENDING = (events.StatusDelivered, events.RegistrarStopped)
+"""The events `_Walk.ending` takes: one that is in a life, and one that ends it."""
 
 
 @dataclasses.dataclass

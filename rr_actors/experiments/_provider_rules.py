@@ -138,26 +138,13 @@ class Providers:
         self.findings: list[Finding] = []
         self.holdings: dict[tuple[str, str], list[Holding]] = defaultdict(list)
         self.expected: list[Expected] = []
-        self.handlers: dict[type, Callable[[str, _Catalog, int, Any], None]] = {
-            events.CatalogRestored: self.restored,
-            events.ResourceLoaded: self.loaded,
-            events.LoadFailed: self.load_failed,
-            events.StatusSent: self.status_sent,
-            events.StatusDelivered: self.status_delivered,
-            events.InDoubt: self.in_doubt,
-            events.UnloadCutShort: self.cut_short,
-            events.ConsumerAdded: self.added,
-            events.ConsumerReleased: self.released,
-            events.ResourceUnloaded: self.unloaded,
-            events.RegistrarStopped: self.stopped,
-        }
 
     def found(self, rule: str, message: str, lines: tuple[int, ...], *names: str) -> None:
         self.findings.append(Finding(rule, "violation", message, lines, names))
 
     def run(self, steps: list[Step]) -> None:
         """Replay every step on its registrar's catalog."""
-        handlers = self.handlers
+        handlers = _HANDLERS
         catalogs = self.catalogs
         for name, line, event, new, life in steps:
             catalog = catalogs[name]
@@ -165,7 +152,7 @@ class Providers:
                 self.begin(name, catalog, line, event, life)
             handler = handlers.get(type(event))
             if handler is not None:
-                handler(name, catalog, line, event)
+                handler(self, name, catalog, line, event)
 
     # -- lives -------------------------------------------------------------------------------
 
@@ -470,3 +457,20 @@ class Providers:
                 name,
             )
         catalog.pending.clear()
+
+
+_HANDLERS: dict[type, Callable[[Providers, str, _Catalog, int, Any], None]] = {
+    events.CatalogRestored: Providers.restored,
+    events.ResourceLoaded: Providers.loaded,
+    events.LoadFailed: Providers.load_failed,
+    events.StatusSent: Providers.status_sent,
+    events.StatusDelivered: Providers.status_delivered,
+    events.InDoubt: Providers.in_doubt,
+    events.UnloadCutShort: Providers.cut_short,
+    events.ConsumerAdded: Providers.added,
+    events.ConsumerReleased: Providers.released,
+    events.ResourceUnloaded: Providers.unloaded,
+    events.RegistrarStopped: Providers.stopped,
+}
+"""`Providers.run`'s handler of each event kind (the class's functions: bound methods in
+its instance would be a cycle, which only the garbage collector frees)."""

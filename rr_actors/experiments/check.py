@@ -2,6 +2,7 @@
 
 ```
  events.jsonl ──► read_runs ──► {run: [(line, event), ...]}
+ a run's events, as published ──► numbered ──► the same, without the JSON (a simulated run)
                                       │
  check(history) ──────────────────────┴─► _history: each registrar's lives, the run's facts
      ├─► _provider_rules: one pass over each provider's catalog
@@ -92,6 +93,7 @@ __all__ = [
     "check",
     "check_file",
     "format_verdict",
+    "numbered",
     "read_runs",
 ]
 
@@ -287,6 +289,28 @@ def read_runs(lines: Iterable[str]) -> dict[int, list[Line]]:
     return _runs(_parsed(lines), "line")
 
 
+def numbered(seen: Iterable[events.Event]) -> list[Line]:
+    """One run's events as published, numbered as the lines of its `events.jsonl` (1 for
+    the first): what `read_runs` gives for that file, without writing and reading it.
+
+    A simulated run's verdict comes from it (`simulate.run_seed`): its events are the
+    ones its file's lines would be read back as, and their catalog rows are checked as
+    `read_runs` checks them, so that both give the same verdict.
+
+    Raises:
+        ConfigError: a catalog event's row too short, or a digest that is not a number;
+            the message names the line.
+    """
+    history = list(enumerate(seen, start=1))
+    for number, event in history:
+        if isinstance(event, _CATALOG):  # (the others have no rows: no call for them)
+            try:
+                _check_rows(event)
+            except ConfigError as exc:
+                raise ConfigError(f"line {number}: {exc}") from None
+    return history
+
+
 def _parsed(lines: Iterable[str]) -> Iterator[tuple[int, Any]]:
     for number, text in enumerate(lines, start=1):
         if text.strip():
@@ -313,6 +337,9 @@ def _runs(numbered: Iterable[tuple[int, Any]], where: str) -> dict[int, list[Lin
     return dict(runs)
 
 
+_CATALOG = (events.CatalogRestored, events.RegistrarStopped)
+"""The kinds with rows (`_check_rows`)."""
+
 _ROW_FIELDS = {"resources": 3, "consumers": 3, "clients": 4}
 """The fields a row of a catalog event has at least (its kind's docstring names them)."""
 
@@ -324,7 +351,7 @@ def _check_rows(event: events.Event) -> None:
         ConfigError: a row with fewer fields, or a digest that is not a whole number of
             at most 40 digits; the message names the field and shows the row.
     """
-    if not isinstance(event, events.CatalogRestored | events.RegistrarStopped):
+    if not isinstance(event, _CATALOG):
         return
     kind = type(event).__name__
     for field, least in _ROW_FIELDS.items():

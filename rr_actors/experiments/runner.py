@@ -37,6 +37,7 @@ import rr_actors as rr
 from rr_actors import events
 from rr_actors._core import runtime
 from rr_actors._process import context as process_context
+from rr_actors.events.lines import to_lines
 from rr_actors.experiments import _hosts, _procs, check, metrics
 from rr_actors.experiments._instrument import instrumented_setup
 from rr_actors.experiments._netns import PORT, HostNetwork
@@ -258,10 +259,7 @@ class _EventLog:
 
     def write(self, path: Path, run: int, seed: int) -> None:
         """Write every event as a JSON line with `run` and `seed` (`events.jsonl`)."""
-        extra = {"run": run, "seed": seed}
-        with path.open("w", encoding="utf-8") as out:
-            for event in self.seen:
-                out.write(json.dumps({**events.to_dict(event), **extra}) + "\n")
+        path.write_text(to_lines(self.seen, {"run": run, "seed": seed}), encoding="utf-8")
 
 
 def _catalog_size(registrar: rr.ResourceRegistrar) -> int:

@@ -15,7 +15,8 @@
    ◄── the events, the fault records, t0 ◄──────────────────────────────────────────────┘
    history = events.jsonl's text (the runner's lines: `at` in virtual seconds, pids the
              simulated ones, `run` = 1, `seed` = S) + the fault lines
-   hash    = sha256 of the history; verdict = check.check of its events
+   hash    = sha256 of the history; verdict = check.check(check.numbered(events)): the
+             events as published, not the history's JSON read back (the same verdict)
  ◄── SimulatedRun(seed, hash, verdict, findings, history, ...)
 ```
 
@@ -46,6 +47,7 @@ from pathlib import Path
 
 from rr_actors import events
 from rr_actors._core import runtime
+from rr_actors.events.lines import to_lines
 from rr_actors.experiments import check
 from rr_actors.experiments.plan import SIMULATION_KINDS, Plan, PlanError
 from rr_actors.experiments.results import FaultRecord
@@ -231,10 +233,10 @@ def run_seed(plan: Plan, seed: int) -> SimulatedRun:
     finally:
         shutil.rmtree(folder, ignore_errors=True)
     seen, records, wall_t0, calls = ran.value
-    lines = [json.dumps({**events.to_dict(e), "run": RUN, "seed": seed}) for e in seen]
-    lines += [json.dumps(fault_line(r, run=RUN, seed=seed, wall_t0=wall_t0)) for r in records]
-    history = "".join(line + "\n" for line in lines)
-    verdict = check.check(check.read_runs(lines).get(RUN, []))
+    history = to_lines(seen, {"run": RUN, "seed": seed}) + "".join(
+        json.dumps(fault_line(r, run=RUN, seed=seed, wall_t0=wall_t0)) + "\n" for r in records
+    )
+    verdict = check.check(check.numbered(seen))
     return SimulatedRun(
         seed=seed,
         hash=history_hash(history),

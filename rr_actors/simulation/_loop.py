@@ -7,9 +7,9 @@
    _selector.select(timeout) ─► no file to watch: wait on a simulated Event for at most
                                  `timeout` virtual seconds (None: until woken)
  any simulated thread: call_soon_threadsafe ─► _write_to_self ─► that Event is set
- the scheduler, at each switch: asyncio's running loop is the task's own
-   (`asyncio._get_running_loop`/`_set_running_loop`: per OS thread, and every simulated
-   thread runs on the run's one OS thread)
+ the scheduler, when another task runs: asyncio's running loop is the task's own, as
+   its thread-local contents are (`asyncio._get_running_loop`/`_set_running_loop`: per
+   OS thread, and every simulated thread runs on the run's one OS thread)
  the run's end (`close_all`): its tasks dropped, every loop it made is closed
 ```
 
@@ -26,17 +26,21 @@ What a simulated loop cannot do: watch a file or a socket (`add_reader`, `sock_*
 `create_connection`: `NotImplementedError`, as a loop without a selector), run a
 subprocess, or run a callback on a real thread (`run_in_executor`, `asyncio.to_thread`:
 a real thread would not be simulated). A coroutine callback that awaits a sleep, a
-future, a lock or an `rr_actors` call does all it does in virtual time.
+future, a lock or an `rr_actors` call does all it does in virtual time. asyncio's
+per-thread state (the running loop, the async generators' hooks) is each simulated
+thread's own; the policy's "current" loop (`asyncio.get_event_loop()` where none runs)
+is not: it is the OS thread's, the last one set.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import sys
 from typing import Any
 
 from rr_actors.simulation import _primitives as sim
-from rr_actors.simulation._scheduler import Scheduler, SimulationError
+from rr_actors.simulation._scheduler import Scheduler, SimulationError, _quiet
 
 __all__ = ["SimulatedEventLoop", "close_all", "new_event_loop"]
 
@@ -126,8 +130,17 @@ def new_event_loop(sched: Scheduler) -> SimulatedEventLoop:
 def close_all(sched: Scheduler) -> None:
     """Close the loops of a run that is over (its tasks dropped: none runs its loop).
     A process's own loop runs until its process ends, as for real, and is closed here,
-    not left to the garbage collector's "unclosed event loop" warning."""
+    not left to the garbage collector's "unclosed event loop" warning. A coroutine still
+    pending on one (its task waited when the run ended) is closed first: its `finally`
+    blocks run now, with nothing of them logged, as `Scheduler.drop` does for the
+    run's threads, not in whatever thread the collector later runs in."""
     for loop in sched.loops:
-        if not loop.is_closed() and not loop.is_running():
-            loop.close()
+        if loop.is_closed() or loop.is_running():
+            continue
+        with _quiet():
+            for task in asyncio.all_tasks(loop):
+                task._log_destroy_pending = False  # type: ignore[attr-defined]  # (closed here)
+                with contextlib.suppress(BaseException):  # (a finally that waits again)
+                    task.get_coro().close()
+        loop.close()
     sched.loops.clear()

@@ -403,6 +403,7 @@ class _SimulatedHub(_Hub):
                 self._served[name] = server
                 self._gone.pop(name, None)
                 self._awaiting.pop(name, None)
+                self._awaited_across.pop(name, None)  # (served again: no longer awaited)
         if self.closed or rival is not None:
             server.inbox.close(timeout=0)
             if self.closed:

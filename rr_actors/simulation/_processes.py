@@ -2,9 +2,9 @@
 
 ```
  Scheduler.spawn(body, process=P) ─► a task of P (a thread started by a task of P is P's)
- Scheduler._switch(task of Q) ─► States.install(Q): what P's singletons hold now is put
-   away as P's, Q's is put in (DIRECTORY, MEMBERSHIP, CLOCK, pykka's registry, ...: every
-   object registered with `runtime.process_state`)
+ a step to a task of Q ─► States.install(Q): what P's singletons hold now is kept as
+   P's, Q's is put in (DIRECTORY, MEMBERSHIP, CLOCK, pykka's registry, ...: every
+   object registered with `runtime.process_state`; the run's end puts the real ones back)
  Scheduler.end(P, exitcode) (SIGKILL: -9; an exit: its code)
    ├─ its tasks are never switched to again: no `finally` block runs, as after a SIGKILL
    │  (dropped with the run's other tasks when the run is over)
@@ -88,18 +88,28 @@ class States:
     """
 
     def __init__(self, registered: tuple[tuple[object, Callable[[], object]], ...]) -> None:
-        self._objects = [obj for obj, _ in registered]
+        objects = [obj for obj, _ in registered]
         self._fresh = [fresh for _, fresh in registered]
         self._fields = [_fields(fresh()) for fresh in self._fresh]
         self._whole = [
             _swappable(obj, fresh(), names)
-            for obj, fresh, names in zip(self._objects, self._fresh, self._fields, strict=True)
+            for obj, fresh, names in zip(objects, self._fresh, self._fields, strict=True)
         ]
         self._getters = [operator.attrgetter(*names) for names in self._fields]
-        self._swapped = [(i, obj) for i, obj in enumerate(self._objects) if self._whole[i]]
-        self._copied = [i for i, whole in enumerate(self._whole) if not whole]
-        self._real = self._read()  # the real process's, put back by `close`
-        self._installed: Process | None = None
+        self._swapped = [(i, obj) for i, obj in enumerate(objects) if self._whole[i]]
+        self._copied = [
+            (i, obj, self._fields[i], self._getters[i])
+            for i, obj in enumerate(objects)
+            if not self._whole[i]
+        ]
+        real = [
+            obj.__dict__ if whole else _values(getter, names, obj)
+            for obj, names, whole, getter in zip(
+                objects, self._fields, self._whole, self._getters, strict=True
+            )
+        ]
+        self._real = Process(0, "the real process", real)  # (put back by `close`)
+        self._installed = self._real
 
     def fresh(self) -> list[Any]:
         """The state of a process that starts: each object's fields as a new one has them
@@ -112,51 +122,28 @@ class States:
             state.append(made.__dict__ if whole else _values(getter, names, made))
         return state
 
-    def _read(self) -> list[Any]:
-        return [
-            obj.__dict__ if whole else _values(getter, names, obj)
-            for obj, names, whole, getter in zip(
-                self._objects, self._fields, self._whole, self._getters, strict=True
-            )
-        ]
-
-    def _write(self, state: list[Any], now: list[Any] | None = None) -> None:
-        """Put `state` in (`now`: what the copied objects hold now: only the fields that
-        differ are set, so a class's attribute cache is not reset for nothing)."""
-        for i, obj in self._swapped:
-            obj.__dict__ = state[i]  # (the process's own dict: no copy either way)
-        for i in self._copied:
-            obj, names, values = self._objects[i], self._fields[i], state[i]
-            was = now[i] if now is not None else (_UNKNOWN,) * len(names)
-            for name, value, old in zip(names, values, was, strict=True):
-                if value is old:
-                    continue
-                if value is _MISSING:
-                    if hasattr(obj, name):
-                        delattr(obj, name)
-                else:
-                    setattr(obj, name, value)
-
     def install(self, process: Process) -> None:
         """Make the singletons `process`'s (those of the process in before kept as its)."""
         installed = self._installed
         if process is installed:
             return
-        if installed is None:
-            self._write(process.state)
-        else:  # (a whole `__dict__` in its state is the one in use: only the others read)
-            state = installed.state
-            for i in self._copied:
-                state[i] = _values(self._getters[i], self._fields[i], self._objects[i])
-            self._write(process.state, state)
         self._installed = process
+        state = process.state
+        for i, obj in self._swapped:
+            obj.__dict__ = state[i]  # (the process's own dict: no copy either way)
+        for i, obj, names, getter in self._copied:
+            now = installed.state[i] = _values(getter, names, obj)
+            for name, value, old in zip(names, state[i], now):  # noqa: B905 - (same lengths)
+                if value is old:  # (only those that differ: a class's attribute cache
+                    continue  # is not reset for nothing)
+                if value is _MISSING:
+                    delattr(obj, name)
+                else:
+                    setattr(obj, name, value)
 
     def close(self) -> None:
         """Put back the real process's state (the run is over)."""
-        if self._installed is not None:
-            self._installed.state = self._read()
-        self._write(self._real)
-        self._installed = None
+        self.install(self._real)
 
 
 def _values(getter: Callable[[object], Any], names: list[str], obj: object) -> tuple[Any, ...]:
@@ -178,4 +165,3 @@ def _swappable(obj: object, made: object, names: list[str]) -> bool:
 
 
 _MISSING: Any = object()
-_UNKNOWN: Any = object()  # (what a field held before, not read: set it whatever it is)

@@ -65,6 +65,7 @@ _HERE = str(Path(__file__).parent)
 _ROOT = str(Path(__file__).parent.parent.parent)
 _STEP = struct.Struct("<Id")
 _number = operator.attrgetter("number")
+_getcurrent = greenlet.getcurrent
 
 
 class SimulationError(RrError):
@@ -100,6 +101,7 @@ _NOTHING: dict[
     str, Any
 ] = {}  # a task's contents of a namespace it keeps nothing in (never changed)
 _GRAVEYARD: list[greenlet.greenlet] = []  # tasks that would not end when dropped
+_NO_HOOKS = (None, None)  # the async generators' hooks of a thread that ran no loop
 
 
 @contextlib.contextmanager
@@ -134,6 +136,7 @@ class Task:
         "ended",
         "glet",
         "held",
+        "hooks",
         "killed",
         "locals",
         "loop",
@@ -162,7 +165,10 @@ class Task:
         self.woken = False  # ... by a wake (not its deadline)
         self.token = 0  # the wait it is in (a timer of an earlier wait is stale)
         self.locals: list[dict[str, Any]] = []  # its contents of `runtime.local()`s
-        self.loop: Any = None  # the asyncio loop it runs, if any (`_loop.py`)
+        # asyncio's per-thread state while it runs a loop (`_loop.py`): its running loop
+        # and its async generators' hooks (each loop's `run_forever` sets its own)
+        self.loop: Any = None
+        self.hooks: Any = _NO_HOOKS
 
     def __repr__(self) -> str:
         return f"{self.name!r} (#{self.number})"
@@ -217,6 +223,7 @@ class Scheduler:
         self._pids = itertools.count(1)
         self.processes: list[Process] = []  # the first: the run's main process (`root`)
         self.loops: list[Any] = []  # asyncio loops made (`_loop.py`): each task has its own
+        self._in_locals: Task | None = None  # whose contents the `runtime.local()`s hold
 
     # -- tasks -----------------------------------------------------------------------
 
@@ -269,7 +276,7 @@ class Scheduler:
             RuntimeError: the caller is no simulated thread (the scheduler itself, or a
                 real thread that used an object of the simulation).
         """
-        task: Task | None = getattr(greenlet.getcurrent(), "task", None)
+        task: Task | None = getattr(_getcurrent(), "task", None)
         if task is None:
             raise RuntimeError(
                 "a simulated object was used outside the simulation's threads (a real "
@@ -279,7 +286,7 @@ class Scheduler:
 
     def current_or_none(self) -> Task | None:
         """The task that runs now, if the caller is one."""
-        task: Task | None = getattr(greenlet.getcurrent(), "task", None)
+        task: Task | None = getattr(_getcurrent(), "task", None)
         return task
 
     # -- waiting and waking ------------------------------------------------------------
@@ -365,53 +372,61 @@ class Scheduler:
 
     def _loop(self) -> None:
         ready = self._ready
+        choose = self._choices.randrange
+        install = self.states.install
+        unhashed = self._unhashed  # (a bytearray: `+=` adds to it in place)
+        max_steps, until = self._max_steps, self._until
         while self._running:
             if not ready and not self._advance():
                 raise DeadlockError(self.report("deadlock: nothing can run and nothing is due"))
-            if self.steps >= self._max_steps or self.now > self._until:
+            if self.steps >= max_steps or self.now > until:
                 raise LimitError(
                     self.report(
-                        f"the run went past its limit ({self._max_steps} steps, "
-                        f"{self._until:g} virtual seconds)"
+                        f"the run went past its limit ({max_steps} steps, "
+                        f"{until:g} virtual seconds)"
                     )
                 )
             if len(ready) > 1:
                 ready.sort(key=_number)  # (the order they were woken in must not count)
-                task = ready.pop(self._choices.randrange(len(ready)))
+                task = ready.pop(choose(len(ready)))
             else:
                 task = ready.pop()
-            if task.process.stopped:  # (SIGSTOP: ready again at its `cont`)
-                task.process.parked.append(task)
+            process = task.process
+            if process.stopped:  # (SIGSTOP: ready again at its `cont`)
+                process.parked.append(task)
                 continue
             self.steps += 1
-            self._unhashed += _STEP.pack(task.number, self.now)
+            unhashed += _STEP.pack(task.number, self.now)
             if self.trace is not None:
                 self.trace.append((self.now, task.number, task.name))
-            self._switch(task)
+            install(process)
+            if task is not self._in_locals:
+                self._install_locals(task)
+            assert task.glet is not None
+            task.glet.switch()
             if not self.steps % GC_STEPS:
+                self._hashed()  # (the steps' buffer kept small)
                 _collect(self.steps)
 
-    def _switch(self, task: Task) -> None:
-        self.states.install(task.process)
-        namespaces = self._locals
-        for namespace, state in zip(namespaces, task.locals, strict=True):
+    def _install_locals(self, task: Task) -> None:
+        """Put `task`'s contents of the `runtime.local()` namespaces in; those in now are
+        kept as their task's (unless it ended). Only when another task runs than the one
+        whose they are: its own stay in between. asyncio's running loop, once a run made
+        a loop (`_loop.py`), and its async generators' hooks are swapped the same way."""
+        was, self._in_locals = self._in_locals, task
+        for i, namespace in enumerate(self._locals):
             contents = namespace.__dict__
+            if was is not None and not was.ended:
+                was.locals[i] = dict(contents) if contents else _NOTHING
+            state = task.locals[i]
             if contents or state:  # (most tasks keep nothing in most namespaces)
                 contents.clear()
                 contents.update(state)
-        assert task.glet is not None
-        if self.loops:  # (asyncio's running loop is per OS thread: each task has its own)
+        if self.loops:  # (asyncio's per-thread state is per OS thread: each task its own)
+            if was is not None:
+                was.loop, was.hooks = asyncio._get_running_loop(), sys.get_asyncgen_hooks()
             asyncio._set_running_loop(task.loop)
-            task.glet.switch()
-            task.loop = asyncio._get_running_loop()
-            asyncio._set_running_loop(None)
-        else:
-            task.glet.switch()
-        if not task.ended:
-            task.locals = [
-                dict(contents) if (contents := namespace.__dict__) else _NOTHING
-                for namespace in namespaces
-            ]
+            sys.set_asyncgen_hooks(*task.hooks)
 
     def drop(self) -> int:
         """End every task left (the run is over: its trace and hash are final); how many
@@ -447,7 +462,6 @@ class Scheduler:
 
     def _advance(self) -> bool:
         """Move the clock to the next deadline and ready its tasks; whether there was one."""
-        self._hashed()  # (the steps' buffer kept small: hashed at each jump of the clock)
         timers = self._timers
         while timers:
             deadline, _, task, token = heapq.heappop(timers)

@@ -20,6 +20,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import events
+from rr_actors.events.lines import to_line, to_lines
 
 WAIT = 5.0
 
@@ -167,6 +168,44 @@ def test_to_dict_names_the_type_and_writes_the_status_by_name() -> None:
         "schema": 3,
     }
     assert expected == events.to_dict(event)
+
+
+@pytest.mark.parametrize("event", EXAMPLES, ids=kind)
+def test_to_line_is_the_json_of_to_dict_byte_for_byte(event: events.Event) -> None:
+    extra = {"run": 3, "seed": 12}
+    odd = dataclasses.replace(event, host='h\u00e9\n"', at=float("nan"))  # (escapes, NaN)
+    for each in (event, odd):
+        assert json.dumps(events.to_dict(each)) == to_line(each)
+        assert json.dumps({**events.to_dict(each), **extra}) == to_line(each, extra)
+
+
+def test_to_line_refuses_what_json_refuses_as_to_dict_does() -> None:
+    event = events.LoadFailed("erm", "cam", RID, QID, "E", object())  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="not JSON serializable"):
+        json.dumps(events.to_dict(event))
+    with pytest.raises(TypeError, match="not JSON serializable"):
+        to_line(event)
+
+
+def _odd(event: events.Event) -> events.Event:
+    """`event` with values whose text is escaped or unusual: a newline, `%`, NaN."""
+    return dataclasses.replace(event, host='h\u00e9\n%s"', at=float("nan"), pid=-1)
+
+
+@pytest.mark.parametrize("extra", [None, {}, {"run": 3, "seed": 12}, {"pid": "%d", "x": [1, 2]}])
+def test_to_lines_writes_each_event_as_json_dumps_of_to_dict_does(
+    extra: dict[str, Any] | None,
+) -> None:
+    seen = [*EXAMPLES, *map(_odd, EXAMPLES), *EXAMPLES]
+    expected = "".join(f"{json.dumps({**events.to_dict(e), **(extra or {})})}\n" for e in seen)
+    assert expected == to_lines(seen, extra)
+    assert "" == to_lines([], extra)
+
+
+def test_to_lines_refuses_what_json_refuses_as_to_line_does() -> None:
+    event = events.LoadFailed("erm", "cam", RID, QID, "E", object())  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="Object of type object is not JSON serializable"):
+        to_lines([EXAMPLES[0], event])
 
 
 def test_from_dict_reads_a_schema_1_line_without_the_fields_added_since() -> None:

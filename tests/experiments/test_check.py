@@ -106,6 +106,38 @@ def test_one_seeded_violation_of_each_rule_is_found_with_its_window(rule: str) -
     assert window == set(found[0].lines)
 
 
+def _as_file(history: list[events.Event], path: Path) -> Path:
+    """`history` as a simulated run writes it: one JSON line per event, run 1, seed 7."""
+    lines = [json.dumps({**events.to_dict(e), "run": 1, "seed": 7}) for e in history]
+    path.write_text("".join(f"{line}\n" for line in lines), encoding="utf-8")
+    return path
+
+
+@pytest.mark.parametrize(  # (names, not `_seeded()`: a manager process imports this module,
+    # and events built there at import would take numbers of its own events: a gap)
+    "rule",
+    ["held", "kept", "unload-once", "dedup", "restore-first", "status-once", "status-path", "end"],
+)
+def test_a_history_checked_as_published_and_as_its_file_gives_the_same_verdict(
+    rule: str, tmp_path: Path
+) -> None:
+    history = clean() if rule == "held" else _seeded()[rule][0]
+    in_memory = check.check(check.numbered(history))
+    from_file = check.check_file(_as_file(history, tmp_path / "events.jsonl"))
+    assert {1: in_memory} == from_file
+    assert ("held" if rule == "held" else "violated") == in_memory.verdict
+
+
+def test_a_row_too_short_as_published_is_refused_as_in_its_file(tmp_path: Path) -> None:
+    short = events.CatalogRestored("erm", (), (("q1",),), (), pid=P, seq=1)
+    history = [*clean()[1:3], short]
+    with pytest.raises(rr.ConfigError, match=r"line 3: CatalogRestored\.consumers: a row") as seen:
+        check.numbered(history)
+    with pytest.raises(rr.ConfigError) as read:
+        check.check_file(_as_file(history, tmp_path / "events.jsonl"))
+    assert str(read.value).endswith(str(seen.value))
+
+
 def test_an_equal_load_beside_a_resource_reported_fatal_is_no_dedup_violation() -> None:
     h = clean()
     fatal = events.StatusSent("erm", Q1, rr.Status.FATAL, "died", "s2", pid=P, seq=4)

@@ -18,7 +18,7 @@ from typing import Any
 import pytest
 
 from rr_actors._core import runtime
-from rr_actors.experiments import PlanError, parse_plan, services, simulate
+from rr_actors.experiments import PlanError, check, parse_plan, services, simulate
 from rr_actors.experiments.plan import Plan
 
 pytest.importorskip("greenlet")  # (the simulation extra)
@@ -254,6 +254,27 @@ def test_a_planted_second_load_is_violated_and_its_seed_replays_it(
     again = simulate.run_seed(plan, violated[0].seed)
     assert again.hash == violated[0].hash
     assert "violated" == again.verdict
+
+
+@SWEEP
+def test_a_seeds_verdict_is_that_of_rr_actors_check_reading_its_history_file(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    held = simulate.run_seed(simkill(), 1)  # (checked as published, not read back)
+    plant_second_load(monkeypatch)
+    violated = next(r for r in simulate.simulate(simkill(), range(1, 3)) if r.verdict != "held")
+
+    assert ("held", "violated") == (held.verdict, violated.verdict)
+    for run in (held, violated):
+        path = tmp_path / f"events-seed-{run.seed}-{run.verdict}.jsonl"
+        path.write_text(run.history, encoding="utf-8")
+        (verdict,) = check.check_file(path).values()
+        shown = tuple(check.format_verdict(simulate.RUN, verdict)[1:])
+        assert (run.verdict, run.violations, run.findings) == (
+            verdict.verdict,
+            verdict.violations,
+            shown,
+        )
 
 
 # -- each fault kind on the simulation: its effect in the history, the verdict held ----------

@@ -12,8 +12,10 @@ import pytest
 
 from rr_actors.__main__ import main
 from rr_actors.errors import ConfigError
-from rr_actors.experiments import sweep
-from tests.experiments.test_simulate import BASE, PLAN
+from rr_actors.experiments import simulate, sweep
+from rr_actors.experiments.cli import Display
+from rr_actors.experiments.plan import Plan
+from tests.experiments.test_simulate import BASE, PLAN, plant_second_load, simkill
 
 pytest.importorskip("greenlet")  # (the simulation extra)
 
@@ -150,6 +152,32 @@ def test_a_planted_bug_names_the_violating_seeds_keeps_their_histories_and_repla
     assert f"seed {violated[0]}: violated" in printed
     assert "the same history" in printed
     assert "[dedup]" in printed
+
+
+@SWEEP
+def test_a_sweep_keeps_the_history_of_each_seed_that_did_not_hold_only(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    run_seed = simulate.run_seed
+
+    def buggy_if_odd(plan: Plan, seed: int) -> simulate.SimulatedRun:
+        with monkeypatch.context() as patched:
+            if seed % 2:
+                plant_second_load(patched)
+            return run_seed(plan, seed)
+
+    monkeypatch.setattr(simulate, "run_seed", buggy_if_odd)
+    with Display(io.StringIO(), quiet=True) as display:  # (a history is megabytes: 10,000
+        runs = sweep.run_seeds(simkill(), range(1, 3), tmp_path, display)  # would not fit)
+
+    assert {"held", "violated"} <= {run.verdict for run in runs}
+    for run, line in zip(runs, recorded(tmp_path).values(), strict=True):
+        written = tmp_path / f"events-seed-{run.seed}.jsonl"
+        if run.verdict == "held":
+            assert ("", False) == (run.history, written.exists())
+        else:
+            assert run.history == written.read_text(encoding="utf-8")
+            assert line["hash"] == simulate.history_hash(run.history)
 
 
 @pytest.mark.parametrize(

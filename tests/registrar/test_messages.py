@@ -12,6 +12,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._core.replies import FutureReply, wait
+from rr_actors._registrar import messages
 from rr_actors.testing import MemoryNetwork, catalog_snapshot
 from rr_actors.testing.carrier import Load
 
@@ -148,3 +149,18 @@ class TestBadNames:
             assert [] == registrar.client_queries(timeout=10)
         finally:
             registrar.stop()
+
+
+# -- check_picklable -------------------------------------------------------------------------
+
+
+def test_small_builtin_data_is_known_picklable_without_pickling_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    def refuse(value: Any) -> bytes:
+        raise TypeError("pickled")
+
+    monkeypatch.setattr(messages.cloudpickle, "dumps", refuse)
+    messages.check_picklable({"server": "edge/resource", "request": ("shared-2", 1)}, "it")
+    with pytest.raises(rr.ConfigError, match="it cannot be pickled, so the catalog"):
+        messages.check_picklable({"at": uuid.UUID(int=1)}, "it")  # (not builtin data)

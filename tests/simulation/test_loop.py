@@ -4,7 +4,10 @@
 from __future__ import annotations
 
 import asyncio
+import gc
+import logging
 import shutil
+import sys
 import tempfile
 from typing import Any
 
@@ -140,3 +143,73 @@ def test_a_simulated_loop_refuses_what_needs_a_real_thread_or_file(
     told = simulation.run(without_hooks, seed=1, timeout=30.0).value
     assert "coroutine callbacks cannot be simulated" in told
     assert "_write_to_self" in told
+
+
+def on_a_loop_of_its_own() -> Any:
+    """A simulated loop run by a simulated thread (as `_core.loops` runs a process's)."""
+    loop = runtime.new_event_loop()
+    started = runtime.Event()
+
+    def body() -> None:
+        asyncio.set_event_loop(loop)
+        loop.call_soon(started.set)
+        loop.run_forever()
+
+    runtime.Thread(target=body, daemon=True).start()
+    started.wait()
+    return loop
+
+
+def test_a_coroutine_still_waiting_when_the_run_ends_is_closed_with_the_run() -> None:
+    """A coroutine callback that waits when the run ends is closed at the run's end: its
+    `finally` runs then, not later in whatever thread the garbage collector runs in, and
+    no "Task was destroyed but it is pending" is logged (second review of session 6)."""
+    ran: list[str] = []
+
+    def scenario() -> None:
+        loop = on_a_loop_of_its_own()
+
+        async def waits() -> None:
+            try:
+                await asyncio.sleep(100.0)
+            finally:
+                ran.append("finally")
+
+        loop.call_soon_threadsafe(loop.create_task, waits())
+        runtime.sleep(1.0)
+
+    logged: list[logging.LogRecord] = []
+    handler = logging.Handler()
+    handler.emit = logged.append  # type: ignore[method-assign]
+    logging.getLogger("asyncio").addHandler(handler)
+    try:
+        run = simulation.run(scenario, seed=1, timeout=30.0)
+        assert ["finally"] == ran
+        gc.collect()
+    finally:
+        logging.getLogger("asyncio").removeHandler(handler)
+    assert ((), []) == (tuple(run.errors), [r.getMessage() for r in logged])
+
+
+def test_each_loop_s_coroutines_see_their_own_async_generator_hooks() -> None:
+    """asyncio's async generator hooks are per OS thread, as its running loop is: each
+    simulated thread keeps its own, so a coroutine on the first of two loops registers
+    its async generators with its own loop, not with the loop started last."""
+
+    def scenario() -> Any:
+        loops = [on_a_loop_of_its_own(), on_a_loop_of_its_own()]
+        seen: list[bool] = []
+        done = runtime.Event()
+
+        async def probe() -> None:
+            firstiter = sys.get_asyncgen_hooks().firstiter
+            seen.append(getattr(firstiter, "__self__", None) is asyncio.get_running_loop())
+            seen.append(asyncio.get_running_loop() is loops[0])
+            done.set()
+
+        loops[0].call_soon_threadsafe(loops[0].create_task, probe())
+        done.wait()
+        return seen
+
+    for seed in range(3):
+        assert [True, True] == simulation.run(scenario, seed=seed, timeout=30.0).value

@@ -875,3 +875,52 @@ def test_a_name_awaited_across_a_cut_is_lost_once_its_supervisor_goes() -> None:
     for seed in range(5):
         run = simulation.run(scenario, seed=seed, preempt=0.1)
         assert ((True, []), ()) == (run.value, tuple(run.errors)), f"seed {seed}"
+
+
+def test_a_name_served_again_on_its_side_during_a_cut_is_no_longer_awaited_across() -> None:
+    """A provider cut off past the lease is awaited by its consumer (its supervisor is
+    on the consumer's side); killed beyond the cut, it is restarted by that supervisor on
+    the consumer's side and serves the consumer again. Its supervisor then stopped past
+    the lease does not make the live provider lost: it was no longer awaited
+    (second review of session 6: the stale entry made `app` forget `y`)."""
+
+    def scenario() -> Any:
+        folder = tempfile.mkdtemp(prefix="rr-sim-again-")
+        network = simulation.SimulatedNetwork(lease=1.0)
+        app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=network)
+        children: list[int] = []
+
+        def tree() -> None:
+            spec = rr.ManagerSpec("provider", setup=leaf_setup, isolation="process")
+            sup = rr.Supervisor(spec, state_dir=folder, network=network, name="tree")
+            sup.start()
+            pid = sup.child("provider").pid
+            assert pid is not None
+            children.append(pid)
+
+        try:
+            tree_pid = simulation.start_process(tree, name="tree")
+            until_served(network, "provider")
+            app.call("provider", "leaf", "x")
+            network.partition([children[0]])
+            simulation.sleep(2.0)  # (past the lease: awaited across)
+            simulation.kill(children[0])  # (restarted by `tree`, on `app`'s side)
+            simulation.sleep(1.0)
+            until_served(network, "provider")
+            held = app.call("provider", "leaf", "y", timeout=5.0)
+            simulation.kill(tree_pid, signal.SIGSTOP)
+            simulation.sleep(2.0)  # (the speaker silent past the lease)
+            kept = [q.id for q in app.client_queries()]
+            simulation.kill(tree_pid, signal.SIGCONT)
+            return held.id in kept
+        finally:
+            try:
+                network.heal()
+                app.stop()
+            finally:
+                network.close()
+            shutil.rmtree(folder, ignore_errors=True)
+
+    for seed in range(3):
+        run = simulation.run(scenario, seed=seed, preempt=0.1)
+        assert (True, ()) == (run.value, tuple(run.errors)), f"seed {seed}"

@@ -507,6 +507,31 @@ def test_each_simulated_thread_has_its_own_thread_local_contents() -> None:
     assert not hasattr(_MINE, "name")  # (this real thread's: untouched)
 
 
+@pytest.mark.parametrize("preempt", [0.0, 1.0])
+def test_a_thread_that_ended_leaves_its_thread_local_contents_to_nobody(preempt: float) -> None:
+    # (the contents are swapped only when another thread runs than the one whose they are)
+    def main() -> list[object]:
+        seen: list[object] = []
+
+        def first() -> None:
+            _MINE.name = "first"  # (and ends with it)
+
+        def second() -> None:
+            seen.append(getattr(_MINE, "name", None))
+            _MINE.name = "second"
+            runtime.sleep(0.0)  # (a step of its own again: its contents kept)
+            seen.append(_MINE.name)
+
+        for target in (first, second):
+            thread = runtime.Thread(target=target)
+            thread.start()
+            thread.join()
+        seen.append(getattr(_MINE, "name", None))  # (the main thread's: none)
+        return seen
+
+    assert [None, "second", None] == simulation.run(main, seed=1, preempt=preempt).value
+
+
 class _Doubler(Actor):
     def on_receive(self, message: int) -> int:
         return 2 * message

@@ -4,10 +4,15 @@ with cloudpickle comes back, and one without a digest is found again (issue 3's 
 from __future__ import annotations
 
 import collections
+import pickle
 from pathlib import Path
 from typing import Any
 
+import cloudpickle
+import pytest
+
 import rr_actors as rr
+from rr_actors._store import codec
 from rr_actors._store.files import read_backup
 from rr_actors.testing import crash
 from tests.support.durable_pair import noop_unload, start
@@ -32,6 +37,18 @@ def test_a_request_holding_a_function_defined_here_is_stored_and_restored(
 
     [resource] = read_backup(path).resources
     assert (42, 42, {query.id}) == (query.response, resource.request["f"](2), consumer_ids(path))
+
+
+@pytest.mark.parametrize(
+    "value",
+    ["shared-2", {"server": "edge/resource", "request": "unique-0-7"}, ("a", 1, None, b"x")],
+)
+def test_small_builtin_data_is_stored_as_cloudpickle_would_store_it_without_cloudpickle(
+    value: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    expected = cloudpickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)
+    monkeypatch.setattr(codec.cloudpickle, "dumps", None)  # (a pickler built: a TypeError)
+    assert codec.dumps(value) == expected
 
 
 def test_an_unhashable_request_without_a_digest_is_found_again_after_a_restart(
