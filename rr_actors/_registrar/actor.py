@@ -11,6 +11,7 @@
               │                          YieldName; death (on_failure)                    │
               │               Restoring  SettleInDoubt; the sweep of a restored catalog    │
               │               Presence   PeerLost ConsumerDown PeerReachable ReconcileRetry│
+              │                          ReconcileAsk                                      │
               │  provider.py  Provider   Load            Unloading  Unload Abandon Reconcile│
               │               Servers    Fetch RegisterServer UnregisterServer             │
               │                          UpdateResponse ListServerQueries                  │
@@ -19,8 +20,7 @@
               │  consumer.py  Answers    Pending ClientLoaded CallFailed                   │
               │               Holdings   Revoke ResponseUpdated SetStatusCallback          │
               │                          ListClientQueries OpenClient                      │
-              │               Releases   Release         Reconciling  ReconcileAsk         │
-              │                                                       LostEverything       │
+              │               Releases   Release         Reconciling  LostEverything       │
               │               Flights    (the calls in flight, for the parts above)        │
               │  state.py     Shared: config, catalog, saver, servers, phase, workers      │
               └────────────────────────────────────────────────────────────────────────────┘
@@ -183,7 +183,7 @@ DISPATCH: dict[type, tuple[str, Binder]] = {
     Fetch: ("fetch", lambda a: a.servers.on_fetch),  # at the provider
     ConsumerDown: ("consumer_down", lambda a: a.presence.on_consumer_down),  # death watch
     Reconcile: ("reconcile", lambda a: a.unloading.on_reconcile),  # a consumer lists its ids
-    ReconcileAsk: ("reconcile_ask", lambda a: a.reconciling.on_reconcile_ask),  # provider restarted
+    ReconcileAsk: ("reconcile_ask", lambda a: a.presence.on_reconcile_ask),  # provider restarted
     LostEverything: ("lost_everything", lambda a: a.reconciling.on_lost_everything),  # no backup
     # -- from a carrier's presence callbacks (`Served`) --
     PeerLost: ("peer_lost", lambda a: a.presence.on_peer_lost),  # gone, nobody restarts it

@@ -35,7 +35,8 @@
    │       calls withdrawn, the ids of failed calls and releases given back (Abandon):
    │       the stop goes on once each provider answered (or could not be reached)
    ▼
- Reconciling  it serves (again), or a provider asks (ReconcileAsk) ─► Reconcile(the
+ Reconciling  it serves (again), or a provider asks (ReconcileAsk, `asked`; sent and
+          retried by `life.py`'s presence until answered) ─► Reconcile(the
           ids held there: a Listing, its epoch); restored from a backup, or restarted
           without one (LostEverything, from its supervisor): with every registrar of
           the system, not only those its rows name ─► the provider releases the others,
@@ -1135,13 +1136,16 @@ class Reconciling:
         self.flights.settle_listed(serving_rr, listing, unknown)
         self.releases.settle_listed(serving_rr, listing)
 
-    def on_reconcile_ask(self, message: ReconcileAsk, _reply: Reply) -> None:
+    def asked(self, message: ReconcileAsk) -> bool:
+        """A provider asks for a `Reconcile` (`ReconcileAsk`): whether to send it now
+        (`life.py`'s presence sends it, retried until answered). Not if nothing is held
+        there and the ask went to every registrar; while setup runs, once it is done."""
         if not message.holds_yours and not self.holds_at(message.serving_rr):
-            return  # (told as every registrar of the system is: nothing to reconcile)
+            return False  # (told as every registrar of the system is: nothing to reconcile)
         if self.registrar.phase is Phase.SETTING_UP:  # its status callbacks are not attached yet
             self.asked_to_reconcile.add(message.serving_rr)
-            return
-        self.reconcile(message.serving_rr)
+            return False
+        return True
 
     def on_lost_everything(self, _message: LostEverything, _reply: Reply) -> None:
         """Its supervisor restarted it without a backup (`life.py`'s `lost_everything`):

@@ -19,7 +19,8 @@ its peers (lost for good, reachable again), stop or die, and say so.
    PeerLost(X, stopped): only the release (rule 12); ConsumerDown (another process's
    mark) ─► into this process's membership; PeerReachable(X) ─► Reconcile with X,
    retried (ReconcileRetry: a bounded backoff, or `call_timeout` unanswered) until it
-   is answered (rule 20), and ReconcileAsk to X if X holds ids here
+   is answered (rule 20), and ReconcileAsk to X if X holds ids here; ReconcileAsk from
+   X (it restarted) ─► the same retried Reconcile with X
  stop (Stop; YieldName, rule 22: what it serves released and unloaded first):
    its durable calls withdrawn, failed calls and releases given back, what it holds
    released, newest first (rule 12) ─► the unloads under way, until `unloads_until`
@@ -712,6 +713,17 @@ class Presence:
                 logger.debug(
                     "registrar %s: %s not reachable yet: %s", self.registrar.name, name, exc
                 )
+
+    def on_reconcile_ask(self, message: ReconcileAsk, _reply: Reply) -> None:
+        """Provider `serving_rr` (re)started, or was told this one may hold ids there, and
+        asks for a `Reconcile` (rule 20): sent, and retried as after a healed link until
+        it is answered. One sent once could be lost: a restarted provider asks as it
+        starts and again once its carrier serves it, and a connection that failed while
+        it came back fails every frame queued on it (both answers, under load); the ids
+        it lost would then stay held here, never reported `FATAL`."""
+        if self.reconciling.asked(message):
+            self.round_count += 1
+            self.attempt(message.serving_rr, self.round_count, 0)
 
     def on_reconcile_retry(self, message: ReconcileRetry, _reply: Reply) -> None:
         if self.rounds.get(message.name) != (message.round, message.attempt - 1):

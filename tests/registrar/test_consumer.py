@@ -1001,6 +1001,76 @@ class TestReconcile:
         subscription.close()
 
 
+def _answers_lost_at_the_ask() -> Any:
+    """On the simulation: a consumer `app` holds an id at `provider`, a manager process
+    whose backup is saved only every 1,000 s, so its SIGKILL loses the id; each time the
+    restarted provider asks `app` to reconcile (`ReconcileAsk`: as it starts, and once
+    its carrier serves it), `app`'s connections shut down right after it sent its
+    `Reconcile` (`cut_connections`): what was sent arrives, the answer never comes back,
+    as when a connection fails while the provider comes back. Returns what `app` heard."""
+    import shutil  # noqa: PLC0415 - (the simulation's scenario only)
+    import tempfile  # noqa: PLC0415
+
+    from rr_actors import simulation  # noqa: PLC0415 - the simulation extra (greenlet)
+    from rr_actors._core import runtime  # noqa: PLC0415
+
+    folder = Path(tempfile.mkdtemp(prefix="rr-sim-ask-"))
+    network = simulation.SimulatedNetwork()
+    config = rr.RegistrarConfig(
+        name="provider",
+        backup_path=folder / "provider.db",
+        save_on_modify=False,
+        save_interval=1000.0,
+    )
+    spec = rr.ManagerSpec(
+        "provider",
+        setup=lambda r: r.register_server("leaf", load=lambda q: q, unload=lambda *_: None),
+        isolation="process",
+        config=config,
+    )
+    sup = rr.Supervisor(spec, state_dir=folder, network=network, name="root")
+    heard: list[tuple[str, rr.Status]] = []
+    try:
+        sup.start()
+        app = sup.registrar("app")
+        held = app.call(
+            "provider", "leaf", "x", on_status=lambda q, u: heard.append((q.id, u.status))
+        )
+        asks: list[object] = []
+
+        def cut(message: object) -> None:
+            asks.append(message)
+            network.cut_connections(runtime.getpid())
+
+        with intercept(app, "reconcile_ask", after=cut):
+            simulation.kill(sup.child("provider").pid)
+            sup.wait_restarted("provider", timeout=10.0)
+            simulation.sleep(5.0)  # (the asks, and retries)
+        kept = [q.id for q in app.client_queries()]
+        app.stop()
+        return len(asks) > 0, heard == [(held.id, rr.Status.FATAL)], held.id in kept
+    finally:
+        sup.stop()
+        network.close()
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+class TestReconcileAsked:
+    """Rule 20: a consumer asked to reconcile by a restarted provider (`ReconcileAsk`)
+    sends its `Reconcile` retried until it is answered, as after a healed link."""
+
+    def test_a_reconcile_whose_answer_is_lost_is_sent_again_until_answered(self) -> None:
+        """A `Reconcile` sent once on an ask could be lost with its connection (seen
+        beside two busy loops: a restarted provider's lost id never reported `FATAL`);
+        retried, the consumer hears `FATAL` for it and forgets it, on every seed."""
+        pytest.importorskip("greenlet")  # (the simulation extra)
+        from rr_actors import simulation  # noqa: PLC0415
+
+        for seed in range(5):
+            run = simulation.run(_answers_lost_at_the_ask, seed=seed, preempt=0.1)
+            assert ((True, True, False), ()) == (run.value, tuple(run.errors)), f"seed {seed}"
+
+
 class TestReconcileDueCall:
     """Rule 20: what a consumer's `Reconcile` lists, and what it makes of the answer.
 
