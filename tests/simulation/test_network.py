@@ -347,6 +347,27 @@ def until_served(network: simulation.SimulatedNetwork, *names: str) -> None:
         simulation.sleep(0.05)
 
 
+def start_tree(
+    network: simulation.SimulatedNetwork,
+    folder: str,
+    restart: Literal["permanent", "transient", "temporary"] = "permanent",
+) -> tuple[int, list[int]]:
+    """Start a process `tree` whose supervisor runs manager `provider` in a process of
+    its own (a consumer in another process sees both). Returns the tree's pid and a list
+    that holds the provider's first pid once it serves."""
+    children: list[int] = []
+
+    def tree() -> None:
+        spec = rr.ManagerSpec("provider", setup=leaf_setup, isolation="process", restart=restart)
+        sup = rr.Supervisor(spec, state_dir=folder, network=network, name="tree")
+        sup.start()
+        pid = sup.child("provider").pid
+        assert pid is not None
+        children.append(pid)
+
+    return simulation.start_process(tree, name="tree"), children
+
+
 def lost_provider(how: str) -> Callable[[], Any]:
     """A consumer `app` holds an id at `provider`, served by a process nobody restarts;
     that process is killed (`kill`) or stopped past its lease (`stop`): the carrier says
@@ -410,20 +431,8 @@ def test_a_provider_whose_supervisor_lives_is_awaited_not_lost_and_lost_once_tha
         folder = tempfile.mkdtemp(prefix="rr-sim-awaited-")
         network = simulation.SimulatedNetwork()
         app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=network)
-        children: list[int] = []
-
-        def tree() -> None:
-            spec = rr.ManagerSpec(
-                "provider", setup=leaf_setup, isolation="process", restart="temporary"
-            )
-            sup = rr.Supervisor(spec, state_dir=folder, network=network, name="tree")
-            sup.start()
-            pid = sup.child("provider").pid
-            assert pid is not None
-            children.append(pid)
-
         try:
-            tree_pid = simulation.start_process(tree, name="tree")
+            tree_pid, children = start_tree(network, folder, restart="temporary")
             until_served(network, "provider")
             held = app.call("provider", "leaf", "x")
             simulation.kill(children[0])  # (temporary: its supervisor does not restart it)
@@ -795,18 +804,8 @@ def test_a_process_restarted_beyond_a_cut_stays_beyond_it() -> None:
         folder = tempfile.mkdtemp(prefix="rr-sim-beyond-")
         network = simulation.SimulatedNetwork()
         app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=network)
-        children: list[int] = []
-
-        def tree() -> None:
-            spec = rr.ManagerSpec("provider", setup=leaf_setup, isolation="process")
-            sup = rr.Supervisor(spec, state_dir=folder, network=network, name="tree")
-            sup.start()
-            pid = sup.child("provider").pid
-            assert pid is not None
-            children.append(pid)
-
         try:
-            tree_pid = simulation.start_process(tree, name="tree")
+            tree_pid, children = start_tree(network, folder)
             until_served(network, "provider")
             app.call("provider", "leaf", "x")
             network.partition([tree_pid, children[0]])
@@ -844,18 +843,8 @@ def test_a_name_awaited_across_a_cut_is_lost_once_its_supervisor_goes() -> None:
         folder = tempfile.mkdtemp(prefix="rr-sim-across-")
         network = simulation.SimulatedNetwork(lease=1.0)
         app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=network)
-        children: list[int] = []
-
-        def tree() -> None:
-            spec = rr.ManagerSpec("provider", setup=leaf_setup, isolation="process")
-            sup = rr.Supervisor(spec, state_dir=folder, network=network, name="tree")
-            sup.start()
-            pid = sup.child("provider").pid
-            assert pid is not None
-            children.append(pid)
-
         try:
-            tree_pid = simulation.start_process(tree, name="tree")
+            tree_pid, children = start_tree(network, folder)
             until_served(network, "provider")
             held = app.call("provider", "leaf", "x")
             network.partition([children[0]])
@@ -888,18 +877,8 @@ def test_a_name_served_again_on_its_side_during_a_cut_is_no_longer_awaited_acros
         folder = tempfile.mkdtemp(prefix="rr-sim-again-")
         network = simulation.SimulatedNetwork(lease=1.0)
         app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=network)
-        children: list[int] = []
-
-        def tree() -> None:
-            spec = rr.ManagerSpec("provider", setup=leaf_setup, isolation="process")
-            sup = rr.Supervisor(spec, state_dir=folder, network=network, name="tree")
-            sup.start()
-            pid = sup.child("provider").pid
-            assert pid is not None
-            children.append(pid)
-
         try:
-            tree_pid = simulation.start_process(tree, name="tree")
+            tree_pid, children = start_tree(network, folder)
             until_served(network, "provider")
             app.call("provider", "leaf", "x")
             network.partition([children[0]])
