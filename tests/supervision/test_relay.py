@@ -243,7 +243,10 @@ def test_events_a_killed_manager_published_but_could_not_keep_are_counted(
 
         [line] = [o for o in gc.get_objects() if type(o).__name__ == "_EventLine"]
         line.journal._write = lambda _fd, data: len(data)  # as if cut: counted, not kept
-        for i in range(5):  # (the forwarder's thread gets no GIL meanwhile)
+        # the forwarder's thread may take the GIL between two publishes: with the control
+        # pipe's lock held it cannot send any of the five before the kill
+        line.control.lock.acquire()
+        for i in range(5):
             line.hub.publish(events.LoadFailed(erm, "cam", f"r{i}", f"q{i}", "E", "-"))
         os.kill(os.getpid(), signal.SIGKILL)
 
@@ -275,7 +278,7 @@ def test_the_events_a_killed_manager_published_but_never_sent_arrive_after_its_e
         import signal  # noqa: PLC0415
 
         [line] = [o for o in gc.get_objects() if type(o).__name__ == "_EventLine"]
-        for i in range(20):  # (the forwarder's thread gets no GIL meanwhile)
+        for i in range(20):  # (those the forwarder sends before the kill arrive too)
             line.hub.publish(events.LoadFailed(erm, "cam", f"r{i}", f"q{i}", "E", "-"))
         os.kill(os.getpid(), signal.SIGKILL)
 
