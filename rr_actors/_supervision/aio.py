@@ -50,18 +50,34 @@ class AsyncSupervision:
     """The awaitable twins of `Supervisor`'s start, stop, waits, `registrar` and
     `call_with_retry`."""
 
-    @property
-    def name(self) -> str:
-        raise NotImplementedError
+    if TYPE_CHECKING:  # what `Supervisor` (the one subclass) provides, for the checker only
 
-    def start(self) -> Any:
-        raise NotImplementedError
+        @property
+        def name(self) -> str: ...
 
-    def stop(self, *, timeout: float | None = None) -> None:
-        raise NotImplementedError
+        @property
+        def gave_up(self) -> Any: ...
 
-    def registrar(self, config: RegistrarConfig | str) -> ResourceRegistrar:
-        raise NotImplementedError
+        def start(self) -> Any: ...
+
+        def stop(self, *, timeout: float | None = None) -> None: ...
+
+        def registrar(self, config: RegistrarConfig | str) -> ResourceRegistrar: ...
+
+        def _restart_wait(
+            self, name: str, timeout: float, restarts: int | None
+        ) -> Steps[ChildInfo]: ...
+
+        def _retry(
+            self,
+            consumer: Registrar,
+            target_rr: str,
+            server: str,
+            request: Any,
+            on_status: StatusCallback | None,
+            timeout: float | None,
+            query_id: str | None,
+        ) -> Steps[Query]: ...
 
     async def astart(self) -> Any:
         """`start`, awaited: every child started in order; the loop runs meanwhile.
@@ -173,21 +189,6 @@ class AsyncSupervision:
         query: Query = await run_steps_async(steps)
         return query
 
-    def _restart_wait(self, name: str, timeout: float, restarts: int | None) -> Steps[ChildInfo]:
-        raise NotImplementedError
-
-    def _retry(
-        self,
-        consumer: Registrar,
-        target_rr: str,
-        server: str,
-        request: Any,
-        on_status: StatusCallback | None,
-        timeout: float | None,
-        query_id: str | None,
-    ) -> Steps[Query]:
-        raise NotImplementedError
-
     async def __aenter__(self) -> Any:
         return await self.astart()
 
@@ -196,7 +197,3 @@ class AsyncSupervision:
         gave_up = self.gave_up
         if exc_type is None and gave_up is not None:
             raise gave_up
-
-    @property
-    def gave_up(self) -> Any:
-        raise NotImplementedError
