@@ -176,7 +176,7 @@ def test_a_coroutine_still_waiting_when_the_run_ends_is_closed_with_the_run() ->
                 ran.append("finally")
 
         loop.call_soon_threadsafe(loop.create_task, waits())
-        runtime.sleep(1.0)
+        runtime.sleep(1.0)  # allowed: virtual time
 
     logged: list[logging.LogRecord] = []
     handler = logging.Handler()

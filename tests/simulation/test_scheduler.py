@@ -33,7 +33,7 @@ def workers(count: int, rounds: int) -> Callable[[], list[tuple[int, int, float]
             for step in range(rounds):
                 with lock:
                     seen.append((number, step, runtime.monotonic()))
-                runtime.sleep(0.25 * (number + 1))
+                runtime.sleep(0.25 * (number + 1))  # allowed: virtual time, the work
 
         threads = [runtime.Thread(target=work, args=(n,), name=f"w{n}") for n in range(count)]
         for thread in threads:
@@ -79,7 +79,7 @@ def woken_in(order: Callable[[list[int]], list[int]]) -> Callable[[], list[int]]
         threads = [runtime.Thread(target=wait, args=(n,), name=f"w{n}") for n in range(5)]
         for thread in threads:
             thread.start()
-        runtime.sleep(1)  # (every thread waits now)
+        runtime.sleep(1)  # allowed: virtual time; every simulated thread waits by then
         for number in order(list(range(5))):
             events[number].set()  # (no choice point: preempt is 0)
         for thread in threads:
@@ -121,14 +121,14 @@ def letters() -> list[int]:
             _Letter(box, number)
             with lock:
                 _ = [[n] for n in range(number % 7)]  # (more to collect, or less)
-            runtime.sleep(0)  # (a step each: the run collects every `GC_STEPS` steps)
+            runtime.sleep(0)  # allowed: a scheduler step (the run collects every `GC_STEPS`)
 
     threads = [runtime.Thread(target=write, args=(n,), name=f"w{n}") for n in (0, 1000)]
     for thread in threads:
         thread.start()
     for thread in threads:
         thread.join()
-    runtime.sleep(1)
+    runtime.sleep(1)  # allowed: virtual time, for the last collection's letters
     read = []
     while not box.empty():
         read.append(box.get())
@@ -155,7 +155,7 @@ def test_when_the_garbage_collector_runs_does_not_change_the_run() -> None:
 def test_a_trace_lists_each_step_and_each_note() -> None:
     def main() -> None:
         simulation.note("begins")
-        runtime.sleep(2)
+        runtime.sleep(2)  # allowed: virtual time
         simulation.note("ends")
 
     run = simulation.run(main, seed=1, trace=True)
@@ -183,7 +183,7 @@ def test_ids_and_random_values_come_from_the_seed() -> None:
 def test_time_is_virtual_an_hour_of_sleep_takes_no_real_time() -> None:
     def main() -> float:
         before = runtime.monotonic()
-        runtime.sleep(3600.0)
+        runtime.sleep(3600.0)  # allowed: virtual time
         return runtime.monotonic() - before
 
     began = time.monotonic()
@@ -204,7 +204,7 @@ def test_the_clock_jumps_to_each_deadline_in_turn() -> None:
         cancelled = runtime.Timer(1.5, done.set)
         cancelled.start()
         cancelled.cancel()
-        runtime.sleep(5.0)
+        runtime.sleep(5.0)  # allowed: virtual time
         return fired
 
     start = 1000.0  # (the runtime's monotonic clock when a run begins)
@@ -249,7 +249,7 @@ def test_the_wall_clock_is_the_one_events_read_so_an_event_made_now_is_not_older
         seen = []
         start = runtime.monotonic()
         for instant in (0.155676965, 0.610792999, 1.0, 2.5):
-            runtime.sleep(instant - (runtime.monotonic() - start))
+            runtime.sleep(instant - (runtime.monotonic() - start))  # allowed: virtual time
             made = events.ChildStarted("root", "erm", 1)
             seen.append((runtime.wall(), runtime.wall_ns() / 1e9, made.at))
         return seen
@@ -309,7 +309,7 @@ def test_a_real_thread_keeps_the_real_seams_while_a_simulation_runs() -> None:
     def real() -> None:
         assert inside.wait(10)
         try:
-            runtime.sleep(0.001)
+            runtime.sleep(0.001)  # allowed: what is tested (a real sleep, not the run's)
             seen.append(abs(runtime.monotonic() - time.monotonic()) < 1.0)
             seen.append(type(runtime.Lock()) is type(threading.Lock()))
             seen.append(runtime.get_ident() == threading.get_ident())
@@ -448,7 +448,7 @@ def test_threads_left_waiting_when_a_run_ends_are_ended_after_it_outside_its_tra
                 simulation.note("too late")  # (the run is over: not in its trace)
 
         runtime.Thread(target=wait_for_ever, name="forever", daemon=True).start()
-        runtime.sleep(1.0)
+        runtime.sleep(1.0)  # allowed: virtual time
 
     run = simulation.run(main, seed=1, trace=True)
 
@@ -474,7 +474,7 @@ def test_what_a_thread_left_waiting_held_is_freed_after_the_run() -> None:
             runtime.Event().wait()
 
         runtime.Thread(target=wait_for_ever, name="forever", daemon=True).start()
-        runtime.sleep(1.0)
+        runtime.sleep(1.0)  # allowed: virtual time
 
     simulation.run(main, seed=1)
     gc.collect()
@@ -493,7 +493,7 @@ def test_each_simulated_thread_has_its_own_thread_local_contents() -> None:
 
         def mark(name: str) -> None:
             _MINE.name = name
-            runtime.sleep(1.0)  # (the others run and mark meanwhile)
+            runtime.sleep(1.0)  # allowed: virtual time (the others run and mark meanwhile)
             seen.append((name, _MINE.name))
 
         threads = [runtime.Thread(target=mark, args=(n,), name=n) for n in "abc"]
@@ -519,7 +519,7 @@ def test_a_thread_that_ended_leaves_its_thread_local_contents_to_nobody(preempt:
         def second() -> None:
             seen.append(getattr(_MINE, "name", None))
             _MINE.name = "second"
-            runtime.sleep(0.0)  # (a step of its own again: its contents kept)
+            runtime.sleep(0.0)  # allowed: virtual time (a step of its own again: its contents kept)
             seen.append(_MINE.name)
 
         for target in (first, second):
@@ -546,11 +546,11 @@ def test_each_simulated_thread_starts_with_context_variables_of_its_own() -> Non
 
         def first() -> None:
             _VARIABLE.set("first")
-            runtime.sleep(1.0)
+            runtime.sleep(1.0)  # allowed: virtual time
             seen.append(("first", _VARIABLE.get()))
 
         def second() -> None:
-            runtime.sleep(0.5)  # (after `first` set its own)
+            runtime.sleep(0.5)  # allowed: virtual time (after `first` set its own)
             seen.append(("second", _VARIABLE.get()))
 
         _VARIABLE.set("main")
