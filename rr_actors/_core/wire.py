@@ -1,4 +1,5 @@
-"""What a message must offer to cross between processes: the contract carriers rely on.
+"""What crosses between processes: the contract a message offers carriers, and how a value
+is pickled to leave this process.
 
 A carrier (`rr_actors._transport`) moves messages between the processes of a system
 without knowing what they mean. Where it must act on a message's behalf, it asks the
@@ -18,18 +19,59 @@ byte for byte as cloudpickle would, without building a cloudpickle `Pickler` (a 
 object, and a Python call per object pickled). The codec frames such a message with it,
 and the catalog's backup stores such a request or response with it (nor is one checked
 for being picklable: it is).
+
+`dumps(value)` / `Pickler`: everything else, the user's requests and responses included,
+is pickled by cloudpickle (so it may hold closures), with the wire's own types by
+reference, and code that keeps the file it was written in:
+
+```
+ dumps: code object ──► (_named, (code as cloudpickle pickles it, code.co_filename))
+ loads: _named(code named "<dynamic-code>", filename) ──► code.replace(co_filename=...)
+```
+
+cloudpickle 3.1.3 names every code object it pickles by value `"<dynamic-code>"` (so a
+payload does not depend on where its function was defined: cloudpipe/cloudpickle#560,
+for notebooks) and has no option to keep the name. A callback run in another process
+(a `load`, a manager's `setup`: both are pickled by value when their module cannot be
+imported there), or a function inside a request restored from a backup, would then show
+no file in a traceback, and no source line: a failed load's cause (rule 4) or a
+manager's start error would not say where it failed. The pickling side still knows the
+name, so it is pickled beside the code and unpickling puts it back. Nested code (a
+closure's, a lambda's) is a code object of its own and is pickled the same way. With
+cloudpickle before 3.1.3 the name was already there; nothing else about the code
+changes. The frames of `rr_actors._transport.codec`, a manager's `setup` and the
+catalog's stored values (`rr_actors._store.codec`) are all pickled here.
 """
 
 from __future__ import annotations
 
+import io
+import pickle
+import types
+from collections.abc import Callable
 from typing import Any
 
+import cloudpickle
+
 from rr_actors._types import Query, Status, StatusUpdate
-from rr_actors.errors import RrError, TransferError
+from rr_actors.errors import (
+    CallTimeoutError,
+    ConfigError,
+    DependencyCycleError,
+    ErrorFrame,
+    MessageTooLargeError,
+    RegistrarStoppedError,
+    RegistrarUnavailableError,
+    ResourceLoadError,
+    RrError,
+    TransferError,
+    UnknownQueryError,
+    UnknownServerError,
+)
 
-__all__ = ["WIRE_TYPES", "WIRE_VERSION", "WireMessage", "plain"]
+__all__ = ["WIRE_TYPES", "WIRE_VERSION", "Pickler", "WireMessage", "dumps", "plain"]
 
-WIRE_VERSION = 6
+WIRE_VERSION = 7
 """The version of what crosses between processes (these messages, pickled): a carrier
 that can meet a process of another version (the Zenoh one, across hosts) refuses its
 messages unread. Raise it when a `WireMessage` changes incompatibly. (2: the Zenoh
@@ -39,7 +81,8 @@ token carries the clock stamp of when it began to serve, which decides which of 
 servers of one name is kept: rule 22. 5: an `Unload`'s answer carries the statuses
 still on their way to its id, `StatusOnItsWay`s: rule 9. 6: code pickled by value
 crosses with its file's name, put back by `_transport.codec._named`, which a process of
-version 5 lacks.)"""
+version 5 lacks. 7: that function is `_core.wire._named`, which a process of version 6
+lacks.)"""
 
 WIRE_TYPES: set[type] = set()
 """Every `WireMessage` subclass (filled in as they are defined)."""
@@ -130,3 +173,87 @@ def _plain_walk(item: Any, budget: int) -> int:
             if budget < 0:
                 return -1
     return budget
+
+
+# Types pickled by reference with the C pickler's own machinery: cloudpickle's
+# `reducer_override` (a Python call per object) is skipped for them, as for every wire
+# message (`WIRE_TYPES`). Everything else goes through cloudpickle.
+_VALUES_BY_REFERENCE: frozenset[type] = frozenset(
+    {
+        Query,
+        Status,
+        StatusUpdate,
+        ErrorFrame,
+        MessageTooLargeError,
+        ResourceLoadError,
+        DependencyCycleError,
+        UnknownServerError,
+        UnknownQueryError,
+        RegistrarUnavailableError,
+        RegistrarStoppedError,
+        CallTimeoutError,
+        ConfigError,
+        RrError,
+    }
+)
+
+
+def _by_reference(kind: type) -> bool:
+    return kind in _VALUES_BY_REFERENCE or kind in WIRE_TYPES
+
+
+# cloudpickle's own reducer of code objects, read once from its `Pickler.dispatch_table`
+# (pickle's documented hook; which types cloudpickle puts there is its own business, so
+# this is the one place rr_actors relies on it: tests/core/test_wire.py checks it).
+# A cloudpickle without it pickles code its own way, as it did before 3.1.3: file names
+# may then be lost again, nothing else.
+_CLOUDPICKLE_CODE: Callable[[types.CodeType], Any] | None = cloudpickle.Pickler.dispatch_table.get(
+    types.CodeType
+)
+
+
+class _AsCloudpickleDoes:
+    """A code object to pickle as cloudpickle does (the first half of `_reduce_code`)."""
+
+    __slots__ = ("code",)
+
+    def __init__(self, code: types.CodeType) -> None:
+        self.code = code
+
+    def __reduce__(self) -> Any:
+        assert _CLOUDPICKLE_CODE is not None  # (only made when it is there)
+        return _CLOUDPICKLE_CODE(self.code)
+
+
+def _reduce_code(code: types.CodeType) -> tuple[Any, ...]:
+    """A code object crosses with the name of its file (see the module docstring)."""
+    return _named, (_AsCloudpickleDoes(code), code.co_filename)
+
+
+def _named(code: types.CodeType, filename: str) -> types.CodeType:
+    """`code` with its file's name put back, where cloudpickle changed it."""
+    return code if code.co_filename == filename else code.replace(co_filename=filename)
+
+
+class Pickler(cloudpickle.Pickler):  # type: ignore[misc]
+    """cloudpickle, with a fast path for the wire protocol's own types, and code that
+    keeps its file's name."""
+
+    def reducer_override(self, obj: Any) -> Any:
+        kind = type(obj)
+        if _by_reference(kind) or (kind is type and _by_reference(obj)):
+            return NotImplemented
+        if kind is types.CodeType and _CLOUDPICKLE_CODE is not None:  # (before its table)
+            return _reduce_code(obj)
+        return super().reducer_override(obj)
+
+
+def dumps(value: Any) -> bytes:
+    """`value` pickled as it leaves this process: `plain` data by the C pickler, the rest
+    by cloudpickle, code keeping its file's name (a frame's payload, a manager's `setup`,
+    a stored request or response). Pickling errors propagate."""
+    if plain(value):
+        return pickle.dumps(value, pickle.HIGHEST_PROTOCOL)
+    buffer = io.BytesIO()
+    Pickler(buffer, protocol=pickle.HIGHEST_PROTOCOL).dump(value)
+    return buffer.getvalue()

@@ -5,8 +5,9 @@
  row --check_row / check_keys (no unpickling)--> Resource.encoded --decode, on first use--> value
 ```
 
-Requests and responses are stored with cloudpickle (`NULL` for `None`; small builtin
-data by the C pickler alone, which encodes it byte for byte as cloudpickle does). A
+Requests and responses are stored as they cross between processes (`wire.dumps`:
+cloudpickle, code keeping its file's name; small builtin data by the C pickler alone,
+which encodes it byte for byte as cloudpickle does; `NULL` for `None`). A
 resource's state is stored as a small integer (`STATE_CODES`).
 
 Reading validates cheaply what it does not decode: every stored value must look like a
@@ -26,10 +27,8 @@ import sqlite3
 from collections.abc import Iterator
 from typing import Any
 
-import cloudpickle
-
 from rr_actors._catalog import ResourceState
-from rr_actors._core.wire import plain
+from rr_actors._core import wire
 from rr_actors.errors import CatalogCorruptError
 
 __all__ = [
@@ -57,13 +56,10 @@ STATES_BY_CODE = tuple(STATE_CODES)
 
 
 def dumps(value: Any) -> bytes | None:
-    """Encode a request or response for a row (`None` is stored as `NULL`): small builtin
-    data by the C pickler alone (the same bytes: `wire.plain`), the rest by cloudpickle."""
-    if value is None:
-        return None
-    if plain(value):
-        return pickle.dumps(value, pickle.HIGHEST_PROTOCOL)
-    return cloudpickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)  # type: ignore[no-any-return]
+    """Encode a request or response for a row (`None` is stored as `NULL`), as it is
+    pickled to leave the process (`wire.dumps`: small builtin data by the C pickler, the
+    rest by cloudpickle, code keeping its file's name for a traceback after a restore)."""
+    return None if value is None else wire.dumps(value)
 
 
 def loads(blob: bytes | None) -> Any:

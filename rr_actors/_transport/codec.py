@@ -8,23 +8,9 @@ crosses: the sender keeps it under the token (0: no answer wanted). A receiver r
 frame's header before its body: a frame whose payload is over its limit is skipped
 without being kept (`Oversized`).
 
-Code that crosses by value keeps the file it was written in:
-
-```
- sender: code object ──► (_named, (code as cloudpickle pickles it, code.co_filename))
- receiver: _named(code named "<dynamic-code>", filename) ──► code.replace(co_filename=...)
-```
-
-cloudpickle 3.1.3 names every code object it pickles by value `"<dynamic-code>"` (so a
-payload does not depend on where its function was defined: cloudpipe/cloudpickle#560,
-for notebooks) and has no option to keep the name. A callback run in another process
-(a `load`, a manager's `setup`: both are pickled by value when their module cannot be
-imported there) would then show no file in a traceback, and no source line: a failed
-load's cause (rule 4) or a manager's start error would not say where it failed. The
-sender still knows the name, so it crosses beside the code and the receiver puts it back
-(`dumps` pickles a setup the same way). Nested code (a closure's, a lambda's) is a code
-object of its own and crosses the same way. With cloudpickle before 3.1.3 the name was
-already there; nothing else about the code changes.
+How a value is pickled (`plain` data by the C pickler, the rest by cloudpickle, code
+keeping the name of its file) is `rr_actors._core.wire`'s, shared with the catalog's
+backup; this module frames the bytes and reads frames back.
 """
 
 from __future__ import annotations
@@ -34,30 +20,13 @@ import io
 import os
 import pickle
 import struct
-import types
 from collections.abc import Callable, Iterator
 from multiprocessing.connection import Connection
 from typing import Any
 
-import cloudpickle
-
 from rr_actors._core import runtime
 from rr_actors._core.directory import Reply
-from rr_actors._core.wire import WIRE_TYPES, WireMessage, plain
-from rr_actors._types import Query, Status, StatusUpdate
-from rr_actors.errors import (
-    CallTimeoutError,
-    ConfigError,
-    DependencyCycleError,
-    ErrorFrame,
-    MessageTooLargeError,
-    RegistrarStoppedError,
-    RegistrarUnavailableError,
-    ResourceLoadError,
-    RrError,
-    UnknownQueryError,
-    UnknownServerError,
-)
+from rr_actors._core.wire import Pickler, WireMessage, dumps, plain
 
 __all__ = [
     "NO_REPLY",
@@ -104,79 +73,6 @@ class Run(WireMessage):
         runtime.Thread(target=task, name=thread_name, daemon=True).start()
 
 
-# Types pickled by reference with the C pickler's own machinery: cloudpickle's
-# `reducer_override` (a Python call per object) is skipped for them, as for every wire
-# message (`WIRE_TYPES`). Everything else goes through cloudpickle.
-_VALUES_BY_REFERENCE: frozenset[type] = frozenset(
-    {
-        Query,
-        Status,
-        StatusUpdate,
-        ErrorFrame,
-        MessageTooLargeError,
-        ResourceLoadError,
-        DependencyCycleError,
-        UnknownServerError,
-        UnknownQueryError,
-        RegistrarUnavailableError,
-        RegistrarStoppedError,
-        CallTimeoutError,
-        ConfigError,
-        RrError,
-    }
-)
-
-
-def _by_reference(kind: type) -> bool:
-    return kind in _VALUES_BY_REFERENCE or kind in WIRE_TYPES
-
-
-# cloudpickle's own reducer of code objects, read once from its `Pickler.dispatch_table`
-# (pickle's documented hook; which types cloudpickle puts there is its own business, so
-# this is the one place rr_actors relies on it: tests/transport/test_codec.py checks it).
-# A cloudpickle without it pickles code its own way, as it did before 3.1.3: file names
-# may then be lost again, nothing else.
-_CLOUDPICKLE_CODE: Callable[[types.CodeType], Any] | None = cloudpickle.Pickler.dispatch_table.get(
-    types.CodeType
-)
-
-
-class _AsCloudpickleDoes:
-    """A code object to pickle as cloudpickle does (the first half of `_reduce_code`)."""
-
-    __slots__ = ("code",)
-
-    def __init__(self, code: types.CodeType) -> None:
-        self.code = code
-
-    def __reduce__(self) -> Any:
-        assert _CLOUDPICKLE_CODE is not None  # (only made when it is there)
-        return _CLOUDPICKLE_CODE(self.code)
-
-
-def _reduce_code(code: types.CodeType) -> tuple[Any, ...]:
-    """A code object crosses with the name of its file (see the module docstring)."""
-    return _named, (_AsCloudpickleDoes(code), code.co_filename)
-
-
-def _named(code: types.CodeType, filename: str) -> types.CodeType:
-    """`code` with its file's name put back, where cloudpickle changed it."""
-    return code if code.co_filename == filename else code.replace(co_filename=filename)
-
-
-class _Pickler(cloudpickle.Pickler):  # type: ignore[misc]
-    """cloudpickle, with a fast path for the wire protocol's own types, and code that
-    keeps its file's name."""
-
-    def reducer_override(self, obj: Any) -> Any:
-        kind = type(obj)
-        if _by_reference(kind) or (kind is type and _by_reference(obj)):
-            return NotImplemented
-        if kind is types.CodeType and _CLOUDPICKLE_CODE is not None:  # (before its table)
-            return _reduce_code(obj)
-        return super().reducer_override(obj)
-
-
 def frame(token: int, obj: Any) -> bytes:
     """The bytes on the wire for `obj`: header, `token`, pickle; pickling errors propagate.
 
@@ -193,21 +89,12 @@ def frame(token: int, obj: Any) -> bytes:
     buffer = io.BytesIO()
     buffer.write(_LENGTH.pack(0))
     buffer.write(_TOKEN.pack(token))
-    _Pickler(buffer, protocol=pickle.HIGHEST_PROTOCOL).dump(obj)
+    Pickler(buffer, protocol=pickle.HIGHEST_PROTOCOL).dump(obj)
     size = buffer.tell() - _LENGTH.size
     if size > 0x7FFFFFFF:
         return _LONG_LENGTH.pack(-1, size) + buffer.getbuffer()[_LENGTH.size :]
     buffer.seek(0)
     buffer.write(_LENGTH.pack(size))
-    return buffer.getvalue()
-
-
-def dumps(obj: Any) -> bytes:
-    """`obj` pickled as a frame's payload is (by cloudpickle, code keeping its file's name),
-    for what reaches another process by another way (a manager's `setup`); pickling
-    errors propagate."""
-    buffer = io.BytesIO()
-    _Pickler(buffer, protocol=pickle.HIGHEST_PROTOCOL).dump(obj)
     return buffer.getvalue()
 
 

@@ -1,10 +1,12 @@
 """How stored values are encoded and decoded (`rr_actors._store.codec`): a request stored
-with cloudpickle comes back, and one without a digest is found again (issue 3's contract)."""
+with cloudpickle comes back (its code with its file's name), and one without a digest is
+found again (issue 3's contract)."""
 
 from __future__ import annotations
 
 import collections
 import pickle
+import traceback
 from pathlib import Path
 from typing import Any
 
@@ -12,6 +14,7 @@ import cloudpickle
 import pytest
 
 import rr_actors as rr
+from rr_actors._core import wire
 from rr_actors._store import codec
 from rr_actors._store.files import read_backup
 from rr_actors.testing import crash
@@ -39,6 +42,30 @@ def test_a_request_holding_a_function_defined_here_is_stored_and_restored(
     assert (42, 42, {query.id}) == (query.response, resource.request["f"](2), consumer_ids(path))
 
 
+def test_a_function_in_a_restored_request_keeps_its_file_so_a_traceback_shows_file_and_line(
+    tmp_path: Path, started: list[rr.ResourceRegistrar]
+) -> None:
+    # cloudpickle 3.1.3 names code it pickles by value "<dynamic-code>": stored as it,
+    # a restored request's function raised with no file and no source line
+    path = tmp_path / "p.db"
+    name = unique("P")
+
+    def local_divide(value: int) -> float:  # pickled by value: a closure
+        return 1 / value  # the line a traceback must show
+
+    provider = start(started, name, path, save_on_modify=True)
+    provider.register_server("leaf", load=lambda r: r["f"](2), unload=noop_unload)
+    provider.call(name, "leaf", {"f": local_divide})
+
+    [resource] = read_backup(path).resources
+    with pytest.raises(ZeroDivisionError) as info:
+        resource.request["f"](0)
+
+    [*_, raised] = traceback.extract_tb(info.value.__traceback__)
+    assert (__file__, "local_divide") == (raised.filename, raised.name)
+    assert "return 1 / value  # the line a traceback must show" == raised.line
+
+
 @pytest.mark.parametrize(
     "value",
     ["shared-2", {"server": "edge/resource", "request": "unique-0-7"}, ("a", 1, None, b"x")],
@@ -47,7 +74,7 @@ def test_small_builtin_data_is_stored_as_cloudpickle_would_store_it_without_clou
     value: Any, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     expected = cloudpickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)
-    monkeypatch.setattr(codec.cloudpickle, "dumps", None)  # (a pickler built: a TypeError)
+    monkeypatch.setattr(wire, "Pickler", None)  # (a pickler built: a TypeError)
     assert codec.dumps(value) == expected
 
 
