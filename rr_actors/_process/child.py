@@ -202,7 +202,7 @@ def main(
     Runs as the target of a manager process (never in the supervisor's process).
 
     Args:
-        setup: `codec.dumps(setup_function_or_None)` (cloudpickle).
+        setup: `wire.dumps(setup_function_or_None)` (cloudpickle).
         config: the registrar's configuration (its backup is restored before `setup`).
         address: the system's `SystemAddress`, or `None` to run unattached.
         conn: the child's end of the control pipe.

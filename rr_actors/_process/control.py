@@ -55,7 +55,7 @@ class Start:
     """Run this manager (to a spare idling in `standby`): `child.main`'s arguments.
 
     Attributes:
-        setup: `codec.dumps(setup_function_or_None)` (cloudpickle).
+        setup: `wire.dumps(setup_function_or_None)` (cloudpickle).
         config: the registrar's configuration.
         address: the system to attach to, or `None` to run unattached.
         forward: forward the registrar's events from the start.

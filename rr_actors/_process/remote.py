@@ -36,13 +36,13 @@ import time
 from collections.abc import Callable
 from typing import Any, Concatenate, ParamSpec, TypeVar, cast
 
+from rr_actors._core import wire
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.replies import Steps, on_own_thread, run_steps
 from rr_actors._process.manager import ManagerExit, ManagerProcess
 from rr_actors._registrar.handle import Here, Registrar, RegistrarFacts, ResourceRegistrar
 from rr_actors._registrar.life import gone_for_good
 from rr_actors._registrar.messages import LOADING, LoadContext
-from rr_actors._transport import codec
 from rr_actors._transport.base import Address, Transport
 from rr_actors._transport.messenger import Remote
 from rr_actors._types import Query
@@ -304,7 +304,7 @@ class RemoteRegistrar(Registrar):
         # a Transport has its `address`; an Address has none (both are protocols)
         address = cast("Address", getattr(system, "address", system))
         try:
-            payload = codec.dumps(setup)  # (its code keeps its file: a traceback shows it)
+            payload = wire.dumps(setup)  # (its code keeps its file: a traceback shows it)
         except Exception as exc:
             raise ConfigError(
                 f"setup of registrar {config.name!r} is not picklable: {exc}"

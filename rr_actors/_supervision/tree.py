@@ -24,7 +24,7 @@ import logging
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from rr_actors._core import runtime
+from rr_actors._core import runtime, wire
 from rr_actors._core.replies import FutureReply, Steps
 from rr_actors._core.timers import Timer, thread_timer
 from rr_actors._process.spare import SparePool
@@ -40,7 +40,6 @@ from rr_actors._supervision.children import (
 )
 from rr_actors._supervision.policy import Clock, restarts_after
 from rr_actors._supervision.relay import EventRelay
-from rr_actors._transport import codec
 from rr_actors.config import SupervisorSpec, managers, walk
 from rr_actors.errors import (
     CallTimeoutError,
@@ -102,7 +101,7 @@ class Processes:
         for manager in managers(self.spec):
             if manager.isolation == "process":
                 try:
-                    self.setups[manager.name] = codec.dumps(manager.setup)
+                    self.setups[manager.name] = wire.dumps(manager.setup)
                 except Exception as exc:
                     raise ConfigError(
                         f"setup of manager {manager.name!r} is not picklable: {exc}"

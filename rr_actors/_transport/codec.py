@@ -26,17 +26,15 @@ from typing import Any
 
 from rr_actors._core import runtime
 from rr_actors._core.directory import Reply
-from rr_actors._core.wire import Pickler, WireMessage, dumps, plain
+from rr_actors._core.wire import Pickler, WireMessage, plain
 
 __all__ = [
     "NO_REPLY",
     "Oversized",
     "Run",
-    "dumps",
     "frame",
     "frames",
     "payload_size",
-    "plain",
     "unframe",
     "what",
 ]

@@ -22,7 +22,8 @@ import cloudpickle
 import pytest
 
 import rr_actors as rr
-from rr_actors._transport.codec import frame, frames, plain, unframe
+from rr_actors._core.wire import plain
+from rr_actors._transport.codec import frame, frames, unframe
 from rr_actors.testing.carrier import Fetch, Load, Revoke
 
 # -- encoding: the C pickler's fast path ----------------------------------------------------
