@@ -776,6 +776,8 @@ class Holdings:
     def on_response_updated(self, message: ResponseUpdated, reply: Reply) -> None:
         if self.flights.parked(message):
             return
+        if self.registrar.saver.store is not None:  # refused, as an answer it cannot store is
+            check_picklable(message.response, "the new response")  # (a ConfigError answer)
         for query_id in message.query_ids:
             self.registrar.catalog.client_loaded(query_id, message.response)
             if query_id in self.targets:  # (its query says the new response)

@@ -646,6 +646,9 @@ class Registrar:
 
         Raises:
             UnknownQueryError: `query_id` is not a consumer id of a resource served here.
+            ConfigError: the response cannot be pickled and this registrar keeps a backup
+                (nothing changes), or a consumer registrar of this process that keeps one
+                refused it (its client record keeps the old response, as below).
             MessageTooLargeError: the response is over the `max_message_bytes` of a
                 consumer registrar in another process (named): its client record keeps
                 the old response; this registrar's catalog and the others have the new.
@@ -662,6 +665,7 @@ class Registrar:
 
         Raises:
             UnknownQueryError: `query_id` is not a consumer id of a resource served here.
+            ConfigError: the response cannot be stored (see `update_response`).
             MessageTooLargeError: over a consumer's `max_message_bytes`.
             CallTimeoutError: not delivered within `timeout` seconds.
             RegistrarStoppedError: this registrar was stopped.
@@ -960,6 +964,8 @@ class Here:
         )
 
     def update_response(self, timeout: float | None, query_id: str, response: Any) -> Steps[None]:
+        if self.config.backup_path is not None:  # the catalog stores it
+            check_picklable(response, f"the new response of {query_id!r}")
         return self.asking(
             UpdateResponse(query_id, response, FutureReply()),
             timeout,

@@ -102,6 +102,7 @@ __all__ = [
     "YieldName",
     "check_picklable",
     "error_frame",
+    "exception_text",
     "give_back",
     "load_error",
     "misfit",
@@ -688,6 +689,15 @@ def check_picklable(value: Any, what: str) -> None:
         ) from exc
 
 
+def exception_text(exc: BaseException) -> str:
+    """`str(exc)`, or a placeholder if even that raises (it is user code too: a
+    `SystemExit` from `__str__` is contained as well)."""
+    try:
+        return str(exc)
+    except BaseException:  # noqa: BLE001 - the error message must not fail
+        return "<str() of the exception raised>"
+
+
 def error_frame(
     registrar: str,
     server: str,
@@ -703,7 +713,7 @@ def error_frame(
         registrar=registrar,
         server=server,
         exc_type=type(exc).__qualname__,
-        message=str(exc) if message is None else message,
+        message=exception_text(exc) if message is None else message,
         traceback="".join(traceback.format_exception(exc)) if with_traceback else "",
     )
 

@@ -105,6 +105,7 @@ from rr_actors._registrar.messages import (
     UnregisterServer,
     UpdateResponse,
     check_picklable,
+    exception_text,
     load_error,
 )
 from rr_actors._registrar.state import Phase, Server, Shared, Waiter, consumers_by_origin
@@ -672,7 +673,7 @@ class Matching:
                 done.set_error(
                     ConfigError(
                         f"{what} for a call to {where} raised {type(exc).__qualname__}: "
-                        f"{_text(exc)}; the call fails, the registrar goes on"
+                        f"{exception_text(exc)}; the call fails, the registrar goes on"
                     )
                 )
             else:
@@ -738,14 +739,6 @@ class Matching:
         self.in_flight.clear()
         self.queued.clear()
         self.given_up.clear()
-
-
-def _text(exc: BaseException) -> str:
-    """`str(exc)`, or a placeholder if even that raises (it is user code too)."""
-    try:
-        return str(exc)
-    except Exception:  # noqa: BLE001 - the error message must not fail
-        return "<str() of the exception raised>"
 
 
 # -- server actors ---------------------------------------------------------------------

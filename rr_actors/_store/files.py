@@ -86,8 +86,8 @@ def check_location(path: Path) -> None:
     Raises:
         ConfigError: naming `path`: its directory is missing, is a file or cannot be
             written; its name (with SQLite's `-journal` suffix) is longer than the file
-            system allows, or the whole path longer than SQLite opens; it is a directory;
-            the file exists and cannot be read and written.
+            system allows, or the whole path longer than SQLite opens; it is a directory,
+            or a symbolic link to nothing; the file exists and cannot be read and written.
     """
     name = str(path)
     parent = path.parent
@@ -107,6 +107,8 @@ def check_location(path: Path) -> None:
         raise ConfigError(f"backup_path {name!r}: {exc.strerror}") from exc
     if is_dir:
         raise ConfigError(f"backup_path {name!r} is a directory, not a file")
+    if not exists and path.is_symlink():  # (nothing could be created at it, nor read)
+        raise ConfigError(f"backup_path {name!r} is a symbolic link to nothing")
     if exists and not os.access(path, os.R_OK | os.W_OK):
         raise ConfigError(f"backup_path {name!r} is not readable and writable")
     if not os.access(parent, os.W_OK | os.X_OK):

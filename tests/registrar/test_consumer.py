@@ -1499,3 +1499,26 @@ class TestReconcileInFlight:
             assert query.id not in [q.id for q in app.client_queries()]
             with pytest.raises(rr.UnknownQueryError):
                 app.unload(query.id, timeout=10)
+
+
+class TestResponseUpdated:
+    """A provider's new response (`update_response`) at a consumer that keeps a backup."""
+
+    def test_an_unpicklable_new_response_is_refused_by_a_consumer_with_a_backup_that_serves_on(
+        self, tmp_path: Path
+    ) -> None:
+        provider = rr.ResourceRegistrar.start(f"provider-{uuid.uuid4().hex[:8]}")  # any value
+        consumer = rr.ResourceRegistrar.start(named("consumer", tmp_path, save_on_modify=True))
+        try:
+            serve_leaf(provider)
+            held = consumer.call(provider.name, "leaf", "x", timeout=10)
+
+            with pytest.raises(rr.ConfigError, match="response"):
+                provider.update_response(held.id, threading.Lock(), timeout=10)
+
+            assert consumer.is_alive()  # it refused what its backup cannot hold
+            assert [{"for": "x"}] == [q.response for q in consumer.client_queries(timeout=10)]
+            assert [held.id] == [q.id for q in provider.server_queries("leaf", timeout=10)]
+        finally:
+            consumer.stop()
+            provider.stop()

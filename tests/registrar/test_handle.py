@@ -671,6 +671,26 @@ class TestBadInput:
         assert [] == consumer.client_queries()
         consumer.save_catalog()
 
+    @pytest.mark.thread_only("an unpicklable response cannot even reach a manager process")
+    @pytest.mark.parametrize("policy", ["save_on_modify", "save_interval"])
+    def test_an_unpicklable_update_response_at_a_provider_with_a_backup_is_a_config_error(
+        self, make_registrar, serve, tmp_path, policy
+    ):
+        provider = make_registrar(
+            "provider", backup_path=tmp_path / "p.db", save_on_modify=policy == "save_on_modify"
+        )
+        consumer = make_registrar("consumer")
+        serve(provider, "leaf")
+        held = consumer.call(provider.name, "leaf", "x", timeout=5)
+
+        with pytest.raises(rr.ConfigError, match="response"):
+            provider.update_response(held.id, threading.Lock(), timeout=5)
+
+        provider.save_catalog(timeout=5)  # (a save_interval flush writes what it serves)
+        assert provider.is_alive()
+        assert [{"resource": "x"}] == [q.response for q in provider.server_queries("leaf")]
+        assert [held.id] == [q.id for q in consumer.client_queries(timeout=5)]  # no FATAL
+
     @pytest.mark.parametrize("value", [0, -1, True, 1.5, "1024", None])
     def test_an_invalid_max_message_bytes_is_a_config_error_naming_it(self, value):
         with pytest.raises(rr.ConfigError, match="max_message_bytes"):

@@ -151,6 +151,42 @@ class TestBadNames:
             registrar.stop()
 
 
+# -- load_error -------------------------------------------------------------------------------
+
+
+class UnprintableError(Exception):
+    """An exception whose `str()` raises (a careless `__str__`, user code like any other)."""
+
+    def __str__(self) -> str:
+        raise ValueError("no text for this error")
+
+
+class TestLoadError:
+    """Whatever `load` raises fails the call with `ResourceLoadError` (rule 4), even an
+    exception whose `str()` raises."""
+
+    def test_a_load_that_raises_an_exception_whose_str_raises_fails_the_call_and_loads_again(
+        self, make_registrar, shared
+    ):
+        provider, consumer = make_registrar("provider"), make_registrar("consumer")
+        loads = shared.list()
+
+        def load(request: Any) -> Any:
+            loads.append(request)
+            if len(loads) == 1:
+                raise UnprintableError()
+            return "loaded"
+
+        provider.register_server("flaky", load=load, unload=lambda _r, _s: None, timeout=10)
+
+        with pytest.raises(rr.ResourceLoadError) as failed:
+            consumer.call(provider.name, "flaky", "x", timeout=5)
+
+        assert "UnprintableError" == failed.value.stack[-1].exc_type
+        assert "loaded" == consumer.call(provider.name, "flaky", "x", timeout=5).response
+        assert ["x", "x"] == loads  # the failed load left nothing loading
+
+
 # -- check_picklable -------------------------------------------------------------------------
 
 

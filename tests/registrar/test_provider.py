@@ -390,6 +390,24 @@ class TestLoad:
         assert ([first], []) == (leaf.loads, other.loads)
         assert held == consumer.call(provider.name, "leaf", first, query_id=chosen)  # a retry
 
+    def test_a_query_id_another_consumer_holds_is_refused_and_cannot_release_its_resource(
+        self, make_registrar, serve
+    ):
+        provider = make_registrar("provider")
+        first, second = make_registrar("first"), make_registrar("second")
+        leaf = serve(provider, "leaf")
+        chosen = "job-1"  # (an id of the caller's choosing, as `query_id=` allows)
+        held = first.call(provider.name, "leaf", "camera", query_id=chosen, timeout=10)
+
+        with pytest.raises(rr.DuplicateQueryIdError, match=chosen):
+            second.call(provider.name, "leaf", "camera", query_id=chosen, timeout=10)
+        with pytest.raises(rr.UnknownQueryError):
+            second.unload(chosen, timeout=10)
+
+        assert [held] == provider.server_queries("leaf", timeout=10)
+        assert [] == leaf.unloads  # `first` still holds it
+        assert [held] == first.client_queries(timeout=10)
+
     def test_concurrent_equal_requests_run_load_exactly_once(
         self, make_registrar, serve, gated_load, arrived
     ):

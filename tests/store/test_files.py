@@ -154,6 +154,18 @@ def test_an_unusable_backup_path_raises_config_error_naming_it(
     assert (True, True) == (str(path) in str(raised.value), cause in str(raised.value))
 
 
+def test_a_backup_path_that_is_a_dangling_symlink_raises_config_error_naming_it(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "p.db"
+    path.symlink_to(tmp_path / "missing" / "p.db")  # (a state directory moved away)
+
+    with pytest.raises(rr.ConfigError) as raised:
+        rr.ResourceRegistrar.start(rr.RegistrarConfig(name=unique("P"), backup_path=path))
+
+    assert str(path) in str(raised.value)
+
+
 def test_a_read_only_backup_raises_config_error(tmp_path: Path) -> None:
     if os.geteuid() == 0:
         where = tmp_path / "ro"

@@ -203,6 +203,35 @@ def test_a_registrar_restarted_writes_update_response_to_none_on_a_restored_quer
     assert [None] == [r.response for r in read_backup(path).resources]
 
 
+def test_a_second_registrar_on_a_backup_in_use_is_refused_and_the_first_keeps_its_catalog(
+    tmp_path: Path,
+) -> None:
+    """Two registrars on one `backup_path` (a copied config, a manager started twice) would
+    each restore the other's rows and release what its consumers do not hold *there*:
+    the first one's resources vanish from the file, their `unload` never runs."""
+    path = tmp_path / "p.db"
+    name = unique("P")
+    provider = start_provider(name, path)
+    consumer = rr.ResourceRegistrar.start(unique("C"))
+    second: rr.ResourceRegistrar | None = None
+    try:
+        held = consumer.call(name, "leaf", {"cmd": "x"}, timeout=5)
+
+        with pytest.raises(rr.ConfigError, match="backup_path"):
+            second = rr.ResourceRegistrar.start(
+                rr.RegistrarConfig(name=unique("Q"), backup_path=path, save_on_modify=True)
+            )
+
+        provider.stop()
+        provider = start_provider(name, path)
+        assert [held.id] == [q.id for q in provider.server_queries("leaf", timeout=5)]
+    finally:
+        if second is not None:
+            second.stop()
+        consumer.stop()
+        provider.stop()
+
+
 def test_a_failed_commit_raises_its_own_error_not_one_from_the_rollback(tmp_path: Path) -> None:
     store = SqliteStore.open(tmp_path / "p.db")
     store.load()
