@@ -241,10 +241,13 @@ class Provider:
         """
         catalog = self.registrar.catalog
         known: Resource | None = None
+        holder: str | None = None
         if catalog.has_consumer(message.query_id):  # a retry of an answered call?
             known = catalog.resource_of(message.query_id)
+            holder = known.consumers[message.query_id]
         elif message.query_id in self.loading_ids:  # a retry while its load runs?
             known = catalog.resources[self.loading_ids[message.query_id]]
+            holder = self.origin_under_way(message.query_id)
         else:
             other = self.matching.named(message.query_id)  # (of another server)
             if other is not None and other is not message:
@@ -252,7 +255,8 @@ class Provider:
                 return
         if known is None:
             self.look_up(message, key, digest)
-        elif known.server != message.server:
+        elif known.server != message.server or holder != message.origin_rr:
+            # a retry repeats the call: another server, or another caller, is another call
             message.reply.set_error(self.reused(message, known.server))
         elif key is None and known.digest not in (None, NO_DIGEST):  # both plain
             self.retried(message, known, key, same=requests_equal(known.request, message.request))
@@ -515,6 +519,18 @@ class Provider:
             self.abandoned.add(query_id)
             return True
         return False
+
+    def origin_under_way(self, query_id: str) -> str | None:
+        """The registrar whose load of `query_id` is under way here, if one is."""
+        rid = self.loading_ids.get(query_id)
+        waiters = self.loads.get(rid, []) if rid is not None else []
+        loads: list[Waiter | Load] = [
+            *waiters,
+            *self.matching.waiting(),
+            *self.held_loads,
+            *(load for parked in self.after_unload.values() for load in parked),
+        ]
+        return next((load.origin_rr for load in loads if load.query_id == query_id), None)
 
     def under_way_of(self, origin_rr: str) -> list[str]:
         """The query ids of registrar `origin_rr` whose loads are under way here."""
@@ -942,11 +958,29 @@ class Unloading:
             else:
                 reply.set_result(unacked.take(query_id))
 
+        if self.held_by_another(query_id, message.origin_rr):
+            reply.set_error(
+                UnknownQueryError(
+                    f"query id {query_id!r} is not held by {message.origin_rr!r} at "
+                    f"{self.registrar.name!r}: another registrar's call used it"
+                )
+            )
+            return
         self.release(query_id, CallbackReply(answered), "unload")
 
     def on_abandon(self, message: Abandon, reply: Reply) -> None:
-        self.release(message.query_id, None, "abandoned")
+        if not self.held_by_another(message.query_id, message.origin_rr):
+            self.release(message.query_id, None, "abandoned")
         reply.set_result(None)  # (a consumer's stop waits for it; a tell's goes nowhere)
+
+    def held_by_another(self, query_id: str, origin_rr: str) -> bool:
+        """Whether `query_id` is held (or loading) here for a registrar other than
+        `origin_rr`: an id is one caller's (rule 2), only it gives the id back."""
+        holder = self.provider.origin_under_way(query_id)
+        catalog = self.registrar.catalog
+        if holder is None and catalog.has_consumer(query_id):
+            holder = catalog.resource_of(query_id).consumers[query_id]
+        return holder is not None and holder != origin_rr
 
     def release_all_of(self, origin_rr: str) -> None:
         """Consumer `origin_rr` is gone for good (`life.py`'s presence: the death watch, or a
