@@ -1,16 +1,31 @@
-"""The injector's thread: actions kept in a heap by their monotonic time, run when due.
+"""The injector's timetable: when each fault fires (at a time, or after the n-th matching
+event of the run), and what each did.
 
 ```
- push(at, action, fires) ──► heap of _Due(at, seq, action, fires) ──► the "rr-injector"
-   (any thread; refused once stopped)                                  thread: timed wait
- wait_until(due): a timed wait, then a short spin (the last SPIN s)     to the earliest,
- stop() ──► the thread ends; the faults still in the heap are returned  then runs it
- the loop fails (a bug, an OverflowError) ──► on_failure(exc, faults still in the heap)
+ timed faults (the Injector, at its start) ───────────────┐
+ on_event (the run's subscriber thread) ──► Triggered:    │
+   each waiting fault whose event and fields match        ├──► Agenda.push(at, action, fires)
+   counts it; at its n-th ──► (fault, event time + delay) ┘    (any thread; refused once
+                                                                stopped): a heap of _Due
+   the "rr-injector" thread: a timed wait to the earliest, then runs it ◄────────────┘
+     (a fault's preparation: ManagerFaults or HostFaults fire it; or an undo)
+ ManagerFaults, HostFaults, Injector (skips) ── FaultLog.record(fault, scheduled, injected,
+   detail) ──► records (FaultRecord, in order)
+ stop ──► Agenda.stop: the firings still due; Triggered.take: the faults whose trigger
+          never came ──► the Injector records both as skipped
+ the loop fails (a bug, an OverflowError) ──► on_failure(exc, the firings still due)
 ```
 
 An action is a fault's preparation (`fires`: the fault and its due time from the run's
 t0, so that what never ran can be recorded) or an undo (a hung manager resumed, a cut
-healed). Its own state: the heap, the stopped flag and the thread.
+healed); `wait_until(due)` is a timed wait, then a short spin (the last `SPIN` s). A
+simulated run (`_simulated_faults.py`) keeps its own agenda in virtual time and uses
+`Triggered` and `FaultLog` as they are.
+
+Each keeps its own state under its own lock: `Agenda` the heap, the stopped flag and the
+thread; `Triggered` the waiting faults with the matches seen so far; `FaultLog` the
+records, written from several threads (the injector's, the trigger process's reader, a
+load error's).
 """
 
 from __future__ import annotations
@@ -21,11 +36,14 @@ import itertools
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
+from typing import Any
 
+from rr_actors import events
+from rr_actors.experiments.results import FaultRecord
 from rr_actors.experiments.schedule import ScheduledFault
 
-__all__ = ["SPIN", "Agenda", "Fires"]
+__all__ = ["SPIN", "Agenda", "FaultLog", "Fires", "Triggered"]
 
 logger = logging.getLogger("rr_actors.experiments")
 
@@ -128,3 +146,91 @@ class Agenda:
                 due.action()
             except Exception:
                 logger.exception("the injector failed to fire a fault")
+
+
+class Triggered:
+    """Counts the run's events for the faults that wait for one.
+
+    Args:
+        faults: the faults that wait for an event (their `at` is `None`).
+        wall_t0: the wall-clock time (`time.time()`) of the run's t0.
+    """
+
+    def __init__(self, faults: Iterable[ScheduledFault], wall_t0: float) -> None:
+        self._lock = threading.Lock()
+        self._wall_t0 = wall_t0
+        self._waiting: list[list[Any]] = [[fault, 0] for fault in faults]  # [fault, seen]
+
+    def matched(self, event: events.Event) -> list[tuple[ScheduledFault, float]]:
+        """The faults `event` triggers, each with its due time in seconds from t0; they
+        wait no more (any thread)."""
+        if not self._waiting:  # no trigger left: the common case, without the lock
+            return []
+        name = type(event).__name__
+        due: list[tuple[ScheduledFault, float]] = []
+        with self._lock:
+            for entry in self._waiting:
+                fault, seen = entry
+                trigger = fault.trigger
+                if trigger.event != name or any(
+                    getattr(event, key, None) != value for key, value in trigger.match.items()
+                ):
+                    continue
+                entry[1] = seen + 1
+                if entry[1] == trigger.nth:
+                    # The event's own time, not its arrival: events of manager processes
+                    # arrive in batches, a little after they happened.
+                    due.append((fault, event.at - self._wall_t0 + fault.delay))
+            fired = {id(f) for f, _ in due}
+            self._waiting = [e for e in self._waiting if id(e[0]) not in fired]
+        return due
+
+    def take(self) -> list[ScheduledFault]:
+        """The faults still waiting, which wait no more."""
+        with self._lock:
+            waiting, self._waiting = self._waiting, []
+        return [fault for fault, _ in waiting]
+
+
+class FaultLog:
+    """Every fault fired or skipped so far, in the order they were recorded."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.records: list[FaultRecord] = []
+        """Every fault fired or skipped so far (appended by several threads)."""
+
+    def record(
+        self,
+        fault: ScheduledFault,
+        scheduled: float | None,
+        injected: float | None,
+        detail: str,
+        *,
+        target: str | None = None,
+        skipped: bool = False,
+    ) -> None:
+        """Record `fault` (any thread).
+
+        Args:
+            fault: the scheduled fault.
+            scheduled: when it was due, seconds from the run's t0 (`None`: its trigger
+                never came).
+            injected: when it was fired, seconds from t0 (`None`: it was not).
+            detail: what was done, or why not.
+            target: what it struck, when not the fault's own target.
+            skipped: it was not fired.
+        """
+        record = FaultRecord(
+            fault=fault.fault,
+            n=fault.n,
+            kind=fault.kind,
+            target=target if target is not None else fault.target,
+            scheduled_s=scheduled,
+            injected_s=injected,
+            detail=detail,
+            skipped=skipped,
+        )
+        with self._lock:
+            self.records.append(record)
+        logger.info("fault %s: %s", fault.kind, detail)

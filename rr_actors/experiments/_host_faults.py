@@ -27,8 +27,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from rr_actors.experiments._agenda import Agenda
-    from rr_actors.experiments._fault_log import FaultLog
+    from rr_actors.experiments._agenda import Agenda, FaultLog
     from rr_actors.experiments._hosts import HostProcess
     from rr_actors.experiments._netns import HostNetwork
     from rr_actors.experiments.plan import Plan

@@ -34,8 +34,7 @@ from rr_actors.experiments._instrument import CUT_SIGNAL, arm_load_error, catche
 from rr_actors.experiments._procs import resource_processes, start_time
 
 if TYPE_CHECKING:
-    from rr_actors.experiments._agenda import Agenda
-    from rr_actors.experiments._fault_log import FaultLog
+    from rr_actors.experiments._agenda import Agenda, FaultLog
     from rr_actors.experiments._sender import Trigger
     from rr_actors.experiments.plan import Plan
     from rr_actors.experiments.schedule import ScheduledFault

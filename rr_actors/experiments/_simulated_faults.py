@@ -2,7 +2,7 @@
 
 ```
  fault_schedule(plan, S): timed ─► the agenda (a heap of (virtual time, n, action)) ◄─┐
-                          `after` ─► Triggered (_triggered.py) ◄─ on_event (the run's  │
+                          `after` ─► Triggered (_agenda.py) ◄─ on_event (the run's    │
                                      subscriber): the n-th match ─► at its due time ───┘
  the thread "rr-simulated-faults": each action at its time, in order
    kill_manager ──────► simulation.kill(pid, SIGKILL) (a thread manager: its registrar
@@ -57,9 +57,8 @@ import msgspec
 import rr_actors as rr
 from rr_actors import events, simulation
 from rr_actors._core import runtime
-from rr_actors.experiments._fault_log import FaultLog
+from rr_actors.experiments._agenda import FaultLog, Triggered
 from rr_actors.experiments._instrument import SETUP_FAULTS, arm_load_error
-from rr_actors.experiments._triggered import Triggered
 from rr_actors.experiments.plan import Plan
 from rr_actors.experiments.results import FaultRecord
 from rr_actors.experiments.runner import EVENT_QUEUE, _child_spec

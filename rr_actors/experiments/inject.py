@@ -2,20 +2,23 @@
 
 ```
  schedule (timed) ──────────────► Agenda: a heap of (monotonic time, action) ◄── on_event:
-   (PREPARE_AHEAD before each       (_agenda.py, the "rr-injector" thread)      Triggered
-    fault is due)                                  │                           (_triggered.py):
-                                                   ▼                           the n-th
-                             _fire: look up its target, by kind                matching event
+   (PREPARE_AHEAD before each       (the "rr-injector" thread)                  Triggered:
+    fault is due)                                  │                           the n-th
+                                                   ▼                           matching event
+                             _fire: look up its target, by kind
        ┌───────────────────────────────────────────┴──────────────────────┐
  ManagerFaults (_manager_faults.py)                       HostFaults (_host_faults.py)
    kill_manager, hang_manager, cut_connections,             cut, partition, freeze,
    kill_resource: a pidfd ─► the trigger process            kill_router: at the due time,
    (_sender.py, _trigger.py) signals at the due time;       from here; undone `for` later
    a thread manager's crash; load_error (Supervisor.run_in)
-       └──────────────── FaultLog (_fault_log.py): every fault fired or skipped ──────────┘
+       └──────────────────── FaultLog: every fault fired or skipped ──────────────────┘
  stop ──► the agenda stops; hung managers resumed, faults between hosts undone; what never
           fired (a trigger that did not come, a fault due after the end) recorded as skipped
 ```
+
+`Agenda`, `Triggered` and `FaultLog` are the timetable the roles share (`_agenda.py`):
+when each fault fires, and what each did.
 
 Signals go through pidfds, which always mean the process that was looked up, never a
 later one that reused its pid. They leave from a separate single-threaded process so that
@@ -31,14 +34,12 @@ import logging
 
 import rr_actors as rr
 from rr_actors import events
-from rr_actors.experiments._agenda import Agenda, Fires
-from rr_actors.experiments._fault_log import FaultLog
+from rr_actors.experiments._agenda import Agenda, FaultLog, Fires, Triggered
 from rr_actors.experiments._host_faults import HostFaults
 from rr_actors.experiments._hosts import HostProcess
 from rr_actors.experiments._manager_faults import ManagerFaults
 from rr_actors.experiments._netns import HostNetwork
 from rr_actors.experiments._sender import Trigger
-from rr_actors.experiments._triggered import Triggered
 from rr_actors.experiments.plan import HOST_KINDS, Plan
 from rr_actors.experiments.results import FaultRecord
 from rr_actors.experiments.schedule import ScheduledFault

@@ -3,9 +3,15 @@
     PLAN.toml ─tomllib─► data ─_Reader.shape: what TOML spells its own way (`at = 1`,
     `rate = "max"`, `heartbeat = false`, `every`, `after`, `backoff`)─► data in the shapes of
     `plan`'s types ─msgspec.convert: every key, type and limit─► Plan ─► the rules between values
+    any step refuses a key path ─► _Reader.error: the part of it the plan wrote (`held`),
+    its line (`line_of`) ─► PlanError(source, line, key, problem)
 
-`_Reader.check` words msgspec's errors from the type that refused the value, `_lines.line_of`
-finds their line. The format is documented in `docs/reference/plan.md`.
+`_Reader.check` words msgspec's errors from the type that refused the value. `tomllib`
+gives no positions, so a key's line is the first line at which the text up to there
+(closed by a bracket or quotes if it stops inside an array or a string) holds it, found
+by bisection (a 20,000-line plan takes a few parses): `[[tree.children]]` on line 3 is
+`("tree", "children", 0)` -> 3, and its `name = "erm"` on line 4
+`("tree", "children", 0, "name")` -> 4. The format is documented in `docs/reference/plan.md`.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ import os
 import re
 import string
 import tomllib
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -29,10 +36,11 @@ from msgspec import UNSET
 from rr_actors.errors import ConfigError
 from rr_actors.experiments import plan as schema
 from rr_actors.experiments._imports import import_object
-from rr_actors.experiments._lines import KeyPath, held, line_of
 from rr_actors.experiments.plan import Plan, PlanError
 
 __all__ = ["load_plan", "parse_plan"]
+
+KeyPath = tuple[str | int, ...]  # a path into the data: table keys and array indices
 
 WHAT = {  # what a key must be, where its type alone words it badly (the last key of the path)
     "target": "a manager's name",
@@ -509,3 +517,53 @@ def _tables(data: dict[str, Any], key: str) -> list[tuple[int, dict[str, Any]]]:
     return (
         [(i, x) for i, x in enumerate(items) if isinstance(x, dict)] if type(items) is list else []
     )
+
+
+# -- the line of a key in the TOML text (tomllib gives no positions) ---------------------------
+
+
+def line_of(text: str, paths: list[KeyPath]) -> int:
+    """The 1-based line of the first of `paths` (most specific first) in `text`; 0 if none."""
+    rows = text.splitlines(keepends=True)
+    for path in paths:
+        low, high = 1, len(rows) + 1  # the line is in [low, high]; high: not in the text
+        while low < high:
+            middle = (low + high) // 2
+            low, high = (low, middle) if _holds(rows[:middle], path) else (middle + 1, high)
+        if low <= len(rows):
+            return low
+    return 0
+
+
+def key_lines(text: str) -> dict[KeyPath, int]:
+    """Every key, table and array element of `text` (valid TOML), with its line."""
+
+    def paths(node: Any, path: KeyPath) -> Iterator[KeyPath]:
+        if isinstance(node, dict | list):
+            for key, child in node.items() if isinstance(node, dict) else enumerate(node):
+                yield (*path, key)
+                yield from paths(child, (*path, key))
+
+    return {path: line_of(text, [path]) for path in paths(tomllib.loads(text), ())}
+
+
+def held(data: Any, path: KeyPath) -> KeyPath:
+    """The longest start of `path` that `data` has."""
+    for n, key in enumerate(path):
+        keys = (
+            data if isinstance(data, dict) else range(len(data)) if isinstance(data, list) else ()
+        )
+        if key not in keys:
+            return path[:n]
+        data = data[key]
+    return path
+
+
+def _holds(rows: list[str], path: KeyPath) -> bool:
+    """Whether the data of `rows`, closed if cut inside a value, has a value at `path`."""
+    for closer in ("", "]", "]]", "]]]", '"""', "'''", '"""]', "''']"):
+        try:
+            return held(tomllib.loads(f"{''.join(rows)}\n{closer}"), path) == path
+        except tomllib.TOMLDecodeError:
+            continue
+    return False

@@ -1,5 +1,5 @@
-"""Reading a plan (`rr_actors.experiments.reading`): what a valid plan becomes, and every bad
-input as a PlanError with its line."""
+"""Reading a plan (`rr_actors.experiments.reading`): what a valid plan becomes, every bad
+input as a PlanError with its line, and the line of a key in a TOML text."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import pytest
 
 import rr_actors as rr
 from rr_actors.__main__ import main
-from rr_actors.experiments import PlanError, _lines, load_plan, parse_plan
-from rr_actors.experiments._lines import key_lines
+from rr_actors.experiments import PlanError, load_plan, parse_plan, reading
+from rr_actors.experiments.reading import key_lines
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "rr_actors" / "experiments" / "plans"
 
@@ -610,13 +610,13 @@ class TestRules:
         )
         expected_line = text.splitlines().index('at = "soon"') + 1
         tries: list[int] = []  # the number of lines of each text the reader parses to find the line
-        holds = _lines._holds
+        holds = reading._holds
 
-        def counted(rows: list[str], path: _lines.KeyPath) -> bool:
+        def counted(rows: list[str], path: reading.KeyPath) -> bool:
             tries.append(len(rows))
             return holds(rows, path)
 
-        monkeypatch.setattr(_lines, "_holds", counted)
+        monkeypatch.setattr(reading, "_holds", counted)
 
         with pytest.raises(PlanError) as info:
             parse_plan(text)
@@ -625,3 +625,71 @@ class TestRules:
         # bisection: at most log2(20,030) < 15 tries for each of the 3 key paths
         # ("faults", 0, "at") and its starts, not one try per line
         assert 0 < len(tries) <= 3 * 15, len(tries)
+
+
+# -- the line of a key in a TOML text (`line_of`, `key_lines`): tables, arrays of tables and
+# inline keys, and a long multi-line string inside an array
+
+PLAN = """\
+name = "t"
+duration = -2.0
+
+[tree]
+
+[[tree.children]]
+name = "db"
+setup = "rr_actors.experiments.services:service"
+
+[workload]
+clients = 1
+
+[[workload.calls]]
+manager = "db"
+server = "resource"
+request = [\"\"\"
+{lines}\"\"\", "{{key}}"]
+"""
+
+
+@pytest.mark.parametrize("count", [3, 500])
+def test_an_error_before_a_long_string_in_an_array_names_its_own_line(count: int) -> None:
+    text = PLAN.format(lines="".join(f"line {n}\n" for n in range(count)))
+
+    with pytest.raises(PlanError) as caught:
+        parse_plan(text, source="plan.toml")
+
+    assert (2, "duration") == (caught.value.line, caught.value.key)
+    assert 16 == key_lines(PLAN.format(lines="a\nb\n"))[("workload", "calls", 0, "request", 0)]
+
+
+def test_the_key_scanner_finds_tables_arrays_of_tables_and_inline_keys() -> None:
+    text = textwrap.dedent(
+        """\
+        name = "x"  # a comment
+        description = \"\"\"
+        [not a table]
+        \"\"\"
+        [tree]
+        backoff = { initial = 0.1, max = 1.0 }
+        [[tree.children]]
+        name = "a"
+        [[tree.children]]
+        name = "b"
+        [[tree.children.children]]
+        name = "c"
+        [[faults]]
+        at = [
+          1.0,
+          2.0,
+        ]
+        """
+    )
+
+    lines = key_lines(text)
+
+    assert 1 == lines[("name",)]
+    assert 6 == lines[("tree", "backoff", "max")]
+    assert 10 == lines[("tree", "children", 1, "name")]
+    assert 12 == lines[("tree", "children", 1, "children", 0, "name")]
+    assert 16 == lines[("faults", 0, "at", 1)]
+    assert ("not a table",) not in lines
