@@ -1,14 +1,16 @@
 """Where a backup lives: the path's checks, creating, validating and opening the file.
 
 ```
- backup_path --check_location--> (no file) --create: temporary name, linked into place-->
+ backup_path --check_location--> --claim: <backup_path>.lock, one registrar a file-->
+   (no file) --create: temporary name, linked into place-->
    --validate: header, read-only connection, schema--> --prepare: WAL, durability, migrate-->
    a writable connection (`SqliteStore`)
  file deleted or replaced under the store (`moved`) --copy_aside, then put_in_place-->
    a new file at the path, the whole catalog in it
  read_backup: validate, then read every row through a read-only connection (inspection):
    read_rows, one snapshot (also `SqliteStore.load`), with the collector paused (gc_paused)
- quarantine_backup: rename the file and its companions aside (the one way to give one up)
+ quarantine_backup: claim, then rename the file and its companions aside (the one way
+   to give one up; refused while a registrar has it open)
 ```
 
 A new file is built under a temporary name and linked into place complete, so the backup
@@ -34,6 +36,7 @@ from typing import Any
 
 from rr_actors._catalog import NO_DIGEST, ClientRecord, Resource
 from rr_actors._core import runtime
+from rr_actors._platform import lockfile
 from rr_actors._store import schema
 from rr_actors._store.codec import (
     STATES_BY_CODE,
@@ -68,6 +71,9 @@ _HEADER = b"SQLite format 3\x00"
 
 SIDE_FILES = ("-wal", "-shm", "-journal")
 """The suffixes of the files SQLite keeps next to a database."""
+
+LOCK_SUFFIX = ".lock"
+"""The suffix of a backup's lock file (`claim`): `<backup_path>.lock`."""
 
 SYNCHRONOUS = {"process": "NORMAL", "power": "FULL"}
 """SQLite's `synchronous` level for each `RegistrarConfig.durability`."""
@@ -210,6 +216,35 @@ def _private_file(path: Path) -> None:
         os.fchmod(fd, FILE_MODE)
     finally:
         os.close(fd)
+
+
+def claim(path: Path) -> int | None:
+    """Make the caller the one registrar of the backup at `path`, until `lockfile.release`.
+
+    Two registrars on one file would each restore the other's rows as its own, and
+    release there what its consumers do not hold at it: the other's catalog would go.
+    So the store holds an exclusive lock on `<path>.lock` (`_platform.lockfile`: the
+    kernel drops it when the process ends, however it ends) while it is open. Returns
+    its descriptor; `None` in a simulation, whose files are its own.
+
+    Raises:
+        ConfigError: naming `path`: another registrar (of this process or another, the
+            message names its pid) has it open, or the lock file cannot be made.
+    """
+    if not runtime.guards_files():
+        return None
+    try:
+        return lockfile.claim(f"{path}{LOCK_SUFFIX}")
+    except lockfile.HeldError as held:
+        raise ConfigError(
+            f"backup_path {str(path)!r} is in use by another registrar (pid "
+            f"{held.holder}); give each registrar its own backup_path"
+        ) from None
+    except OSError as exc:
+        raise ConfigError(
+            f"backup_path {str(path)!r}: its lock file {path}{LOCK_SUFFIX} cannot be "
+            f"created: {exc.strerror}"
+        ) from exc
 
 
 def remove_files(path: Path, suffixes: tuple[str, ...] = ("", *SIDE_FILES)) -> None:
@@ -557,7 +592,7 @@ def quarantine_backup(path: str | os.PathLike[str]) -> Path:
     The file (and its `-wal`/`-shm` companions) is renamed to
     `<path>.corrupt-<UTC timestamp>`; a registrar started on `path` afterwards starts with
     an empty catalog. This is the one explicit way to give up a backup: rr_actors never
-    does it on its own. Only call it while no registrar uses the file.
+    does it on its own. A registrar that has the file open keeps it (`ConfigError`).
 
     Args:
         path: the backup file, as in `RegistrarConfig.backup_path`.
@@ -566,7 +601,8 @@ def quarantine_backup(path: str | os.PathLike[str]) -> Path:
         The new path of the quarantined file.
 
     Raises:
-        ConfigError: there is no file at `path`.
+        ConfigError: there is no file at `path`, or a registrar has it open (naming its
+            pid).
     """
     file = Path(os.fspath(path))
     if not _is_file(file):
@@ -575,11 +611,16 @@ def quarantine_backup(path: str | os.PathLike[str]) -> Path:
         "%Y%m%dT%H%M%S.%fZ"
     )
     target = file.with_name(f"{file.name}.corrupt-{stamp}")
-    for suffix in SIDE_FILES:  # companions first: the main file's name is the anchor
-        side = Path(f"{file}{suffix}")
-        if side.exists():
-            side.rename(f"{target}{suffix}")
-    file.rename(target)
+    lock = claim(file)  # (a registrar that has it open keeps it)
+    try:
+        for suffix in SIDE_FILES:  # companions first: the main file's name is the anchor
+            side = Path(f"{file}{suffix}")
+            if side.exists():
+                side.rename(f"{target}{suffix}")
+        file.rename(target)
+    finally:
+        if lock is not None:
+            lockfile.release(lock)
     return target
 
 

@@ -38,6 +38,7 @@ from rr_actors._catalog import (
     Resource,
 )
 from rr_actors._core import runtime
+from rr_actors._platform import lockfile
 from rr_actors._store import checkpoints, codec, outbox
 from rr_actors._store.checkpoints import Checkpointer
 from rr_actors._store.codec import STATES_BY_CODE, as_corrupt, check_keys, check_row
@@ -45,6 +46,7 @@ from rr_actors._store.commits import CommitCount, lost_commits
 from rr_actors._store.files import (
     SYNCHRONOUS,
     check_location,
+    claim,
     connect,
     copy_aside,
     create,
@@ -89,6 +91,7 @@ class SqliteStore:
         db: sqlite3.Connection,
         *,
         created: bool,
+        lock: int | None = None,
         synchronous: str = "NORMAL",
         background_checkpoints: bool = False,
     ) -> None:
@@ -96,6 +99,7 @@ class SqliteStore:
         self._file = path.absolute()  # the same file after a chdir
         self._name = str(self._file)  # (what `_keep_in_place` stats before each commit)
         self._db = db
+        self._lock = lock  # (`files.claim`: this store is the file's one registrar)
         self._synchronous = synchronous
         self._guarded = runtime.guards_files()  # (not in a simulation: its files are its own)
         # the files the connection opened (`_keep_in_place`)
@@ -144,13 +148,31 @@ class SqliteStore:
 
         Raises:
             ConfigError: the path cannot hold a backup (missing directory, a directory,
-                read-only file or location), or the file (or its `-wal`) belongs to another
-                user (restoring it would unpickle, so run, what that user wrote).
+                read-only file or location), the file (or its `-wal`) belongs to another
+                user (restoring it would unpickle, so run, what that user wrote), or
+                another registrar has it open (`files.claim`, naming its pid).
             CatalogCorruptError: the file exists but is not a usable rr_actors catalog
                 (garbage, truncated, another program's database, a newer schema, ...).
         """
         file = Path(os.fspath(path))
         check_location(file)
+        lock = claim(file)  # before anything reads it: one registrar a file
+        try:
+            return cls._open(file, lock, durability, background_checkpoints)
+        except BaseException:
+            if lock is not None:
+                lockfile.release(lock)
+            raise
+
+    @classmethod
+    def _open(
+        cls,
+        file: Path,
+        lock: int | None,
+        durability: Literal["process", "power"],
+        background_checkpoints: bool,
+    ) -> SqliteStore:
+        """`open`'s work once the file is claimed (`lock`, released by `close`)."""
         created = False
         lost = None
         if not file.exists():
@@ -180,6 +202,7 @@ class SqliteStore:
             file,
             db,
             created=created,
+            lock=lock,
             synchronous=SYNCHRONOUS[durability],
             background_checkpoints=background_checkpoints,
         )
@@ -480,3 +503,6 @@ class SqliteStore:
             remove_files(self._file)
         if self._aside is not None and erase:
             remove_files(self._aside)
+        lock, self._lock = self._lock, None
+        if lock is not None:
+            lockfile.release(lock)

@@ -489,6 +489,7 @@ def test_a_new_backup_and_its_wal_and_shm_are_readable_by_their_owner_only(
     store.write(loaded(Catalog(), "r1", "q1"))
 
     files = {"p.db": 0o600, "p.db-commits": 0o600, "p.db-shm": 0o600, "p.db-wal": 0o600}
+    files["p.db.lock"] = 0o600  # (held while it is open: `files.claim`)
     assert ([0o600], files) == (
         linked,
         modes(tmp_path),

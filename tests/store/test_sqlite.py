@@ -86,7 +86,8 @@ def test_a_write_that_fails_leaves_the_file_and_the_next_write_intact(tmp_path: 
     catalog.add_consumer("r1", "q1", "C")
     with pytest.raises(TypeError):
         store.write(catalog.drain_changes())
-    before = rows_of(reopen(tmp_path / "p.db"))
+    on_disk = read_backup(tmp_path / "p.db")  # (read-only: the store still has it open)
+    before = rows_of(Catalog.restore(on_disk.resources, on_disk.clients))
     catalog.set_response("r1", "fine")
     store.write(catalog.drain_changes())
     store.close(erase=False)

@@ -170,10 +170,10 @@ def reopen(path: Path) -> Catalog:
         assert rows is not None
         catalog = Catalog.restore(*rows)
         catalog.check_invariants()
-        lazily = reopen_lazily(path)
-        assert shape_of(catalog) == shape_of(lazily)
     finally:
-        store.close(erase=False)
+        store.close(erase=False)  # (one store a file at a time: `files.claim`)
+    lazily = reopen_lazily(path)
+    assert shape_of(catalog) == shape_of(lazily)
     return catalog
 
 
