@@ -25,9 +25,9 @@ gives up.
 ```
 
 An incarnation stopped on purpose was bumped by `Stopping.stop_child` first, so its
-watcher's report is stale here. The decisions are pure (`RestartIntensity` on the tree's
-injectable clock, `affected`; a child's restart type, `restarts_after` and
-`restarts_with_group`, is read in `children.py`, where the tree's lookups read it too).
+watcher's report is stale here. The decisions are pure: `RestartIntensity` (on the tree's
+injectable clock) and `affected` here; a child's restart type read by `restarts_after` and
+`restarts_with_group`, in `children.py`, below the roles, as the tree's lookups read it too.
 `Exits` holds no state of its own: what it changes is the crashed child's record.
 `Restarts` holds the intensity window, the generation and timers of pending restarts, and
 whether (and why) this supervisor gave up.
