@@ -1,4 +1,5 @@
-"""A supervisor's children: the per-child record, its snapshots, and the running adapters.
+"""A supervisor's children: the per-child record, its snapshots, its restart type's
+meaning, and the running adapters.
 
 Every running child, whatever it is, offers `pid` and `stop(timeout) -> ManagerExit`:
 
@@ -11,6 +12,10 @@ Every running child, whatever it is, offers `pid` and `stop(timeout) -> ManagerE
 
 Each tells its end to the supervisor through an `on_exit(ManagerExit)` callback (run on
 the watcher thread), which posts it to the supervisor's mailbox.
+
+A child's restart type says whether it comes back (OTP's): after an exit of its own
+(`restarts_after`: read by `Restarts`, and by the tree's lookups for a nested supervisor
+that gave up) and when a sibling's crash restarts its group (`restarts_with_group`).
 """
 
 from __future__ import annotations
@@ -49,6 +54,8 @@ __all__ = [
     "ProcessManager",
     "Running",
     "ThreadManager",
+    "restarts_after",
+    "restarts_with_group",
 ]
 
 logger = logging.getLogger("rr_actors")
@@ -122,6 +129,30 @@ def snapshot(
         restarts=restarts,
         last_exit=last_exit,
     )
+
+
+# -- restart types: whether a child comes back (OTP) -------------------------------------
+
+
+def restarts_after(restart: RestartType, *, normal: bool) -> bool:
+    """Whether a child that exited on its own is restarted (OTP's restart types).
+
+    Args:
+        restart: `"permanent"` (always), `"transient"` (only after an abnormal exit: not
+            after `normal` or `shutdown`) or `"temporary"` (never).
+        normal: whether the exit was normal (`ManagerExit.normal`).
+    """
+    return restart == "permanent" or (restart == "transient" and not normal)
+
+
+def restarts_with_group(restart: RestartType) -> bool:
+    """Whether a sibling comes back when a crash restarts its group (one_for_all, rest_for_one).
+
+    As in OTP, every child but a `temporary` one: a `transient` child that had exited
+    normally is restarted with the group too (OTP keeps it in the child list; only
+    temporary children are removed when they end).
+    """
+    return restart != "temporary"
 
 
 # -- running children --------------------------------------------------------------------

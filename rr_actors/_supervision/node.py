@@ -8,7 +8,7 @@ time, and every step ends by publishing the children's snapshots to the tree's w
               ┌────────────── Node (one mailbox, one thread; node.py) ─────────────────┐
  start ─────► │ Starting    start_all, start_child, nested Nodes      (starting.py)    │
  stop ──────► │ Restarts.cancel, then Stopping.stop_all                                │
- watcher ───► │ Exited ──► Exits.on_exited: stale? note the exit      (exits.py)       │
+ watcher ───► │ Exited ──► Exits.on_exited: stale? note the exit                       │
    threads    │              └─► Restarts.after_exit: restart type, intensity,         │
               │                  strategy, backoff, give up            (restarting.py) │
  timer ─────► │ Restart ─► Restarts.on_restart ─► Starting.start_child                 │
@@ -17,7 +17,7 @@ time, and every step ends by publishing the children's snapshots to the tree's w
               └────────────────────────────────────────────────────────────────────────┘
 ```
 
-The roles call only the roles below them (exits ─► restarting ─► starting ─► stopping).
+The roles call only the roles below them (restarting ─► starting ─► stopping).
 A nested supervisor is a `Node` too; when it gives up it tells its parent, which sees an
 exited child (OTP: a supervisor that gives up exits with `shutdown`).
 """
@@ -33,9 +33,8 @@ from typing import TypeVar
 from rr_actors._core import runtime
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._supervision.children import Child
-from rr_actors._supervision.exits import Exits
 from rr_actors._supervision.record import Exited, Restart
-from rr_actors._supervision.restarting import Restarts
+from rr_actors._supervision.restarting import Exits, Restarts
 from rr_actors._supervision.starting import Starting
 from rr_actors._supervision.stopping import Stopping
 from rr_actors._supervision.tree import Tree

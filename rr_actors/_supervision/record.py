@@ -6,8 +6,8 @@
                        cast(fn), publish()     (every step ends with a publish)
 ```
 
-The roles (`starting.py`, `stopping.py`, `restarting.py`, `exits.py`) hold the record,
-never each other's fields; what one role needs of another it asks by a method.
+The roles (`starting.py`, `stopping.py`, `restarting.py`) hold the record, never each
+other's fields; what one role needs of another it asks by a method.
 """
 
 from __future__ import annotations

@@ -1,41 +1,54 @@
-"""Restart decisions: the restart type, the intensity window, the strategy, the backoff.
+"""Restarting: a child's reported end, and what a supervisor does about it.
 
-After OTP's `supervisor.erl` (`restart/3`, one clause per strategy): decided with the pure
-policy of `rr_actors._supervision.policy`, carried out on the supervisor's thread.
+After OTP's `supervisor.erl` (`restart/3`, one clause per strategy): a child's end is
+taken on the supervisor's thread; its restart type, the restart intensity and the
+strategy decide whether it comes back, with which siblings, or whether the supervisor
+gives up.
 
 ```
- Exits ─► after_exit(child, exit)
-            ├─ not restarted (its restart type): exited ─► Stopping.forget
-            ├─ intensity exceeded ─► give_up: every child stopped (reverse order),
-            │                        SupervisorGaveUp; on_gave_up (the parent: Exited)
-            └─ take_down_with: the strategy's group stopped (reverse order), marked
-               ─► schedule: backoff ─► timer ── Restart(names, generation) ──► mailbox
- mailbox ─► on_restart: Starting.start_child each (a failure posts Exited: a crash)
- Node.stop / give_up ─► cancel: a new generation, every pending Restart stale
+ ThreadManager watcher: its registrar actor stopped ──────────────────────────┐
+ ManagerProcess watcher (_process/manager.py): the process ended; or no       │
+   heartbeat answer within `hang_after` (hung) / unhealthy ─► killed ─────────┼─► Exited(name,
+ a nested Node gave up (Starting: escalate) ──────────────────────────────────┤   incarnation,
+ a restart failed to start (Restarts.on_restart) ─────────────────────────────┘   exit)
+   ──► mailbox ──► Exits.on_exited: stale (an older incarnation, or this one gave up)? dropped
+                   else: the exit noted (Stopping.note_exit: ChildExited)
+ Restarts.after_exit(child, exit)
+   ├─ its restart type (restarts_after): not restarted ─► exited ─► Stopping.forget
+   ├─ RestartIntensity.add: more than max_restarts within period ─► give_up: every
+   │    child stopped (reverse order), SupervisorGaveUp; on_gave_up (the parent: Exited)
+   └─ take_down_with: the strategy's group (affected) stopped (reverse order); a
+      sibling comes back unless temporary (restarts_with_group); marked
+        ─► schedule: backoff ─► timer ── Restart(names, generation) ──► mailbox
+ mailbox ─► Restarts.on_restart: Starting.start_child each (a failure posts Exited: a crash)
+ Node.stop / give_up ─► Restarts.cancel: a new generation, every pending Restart stale
 ```
 
-Its own state: the intensity window, the generation and timers of pending restarts,
-and whether (and why) this supervisor gave up.
+An incarnation stopped on purpose was bumped by `Stopping.stop_child` first, so its
+watcher's report is stale here. The decisions are pure: `RestartIntensity` (on the tree's
+injectable clock) and `affected` here; a child's restart type read by `restarts_after` and
+`restarts_with_group`, in `children.py`, below the roles, as the tree's lookups read it too.
+`Exits` holds no state of its own: what it changes is the crashed child's record.
+`Restarts` holds the intensity window, the generation and timers of pending restarts, and
+whether (and why) this supervisor gave up.
 """
 
 from __future__ import annotations
 
+import collections
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
 from rr_actors import events
 from rr_actors._core import runtime
 from rr_actors._core.timers import Cancellable
 from rr_actors._process.manager import ManagerExit
-from rr_actors._supervision.policy import (
-    RestartIntensity,
-    affected,
-    restarts_after,
-    restarts_with_group,
-)
-from rr_actors._supervision.record import Exited, Restart
+from rr_actors._supervision.children import NestedSupervisor, restarts_after, restarts_with_group
+from rr_actors._supervision.record import Exited, Restart, pid_of
 from rr_actors._supervision.stopping import mark, registrar_names
+from rr_actors._supervision.tree import Clock
+from rr_actors.config import Strategy
 from rr_actors.errors import SupervisorGaveUpError
 
 if TYPE_CHECKING:
@@ -44,9 +57,43 @@ if TYPE_CHECKING:
     from rr_actors._supervision.starting import Starting
     from rr_actors._supervision.stopping import Stopping
 
-__all__ = ["Restarts"]
+__all__ = ["Exits", "RestartIntensity", "Restarts", "affected"]
 
 logger = logging.getLogger("rr_actors")
+
+
+class Exits:
+    """Takes a child's reported end: drops a stale one, notes it, hands it to `Restarts`.
+
+    Args:
+        record: the supervisor whose children it watches.
+        restarts: decides what comes next (and knows whether this supervisor gave up).
+        stopping: notes the exit (`ChildExited`).
+    """
+
+    def __init__(self, record: Record, restarts: Restarts, stopping: Stopping) -> None:
+        self.record = record
+        self.restarts = restarts
+        self.stopping = stopping
+
+    def on_exited(self, event: Exited) -> None:
+        """Child `event.name`'s incarnation `event.incarnation` ended with `event.exit`."""
+        record = self.record
+        child = next((c for c in record.children if c.name == event.name), None)
+        if child is None or child.incarnation != event.incarnation or self.restarts.gave_up:
+            return  # a stale event: that incarnation was stopped on purpose
+        if isinstance(child.running, NestedSupervisor):
+            nested = child.running.node
+            child.gave_up = nested.gave_up
+            nested.stop()  # it gave up: end its mailbox thread
+        pid = pid_of(child)
+        child.running = None
+        child.last_exit = event.exit.reason
+        self.stopping.note_exit(child, pid, event.exit.reason)
+        logger.warning(
+            "supervisor %s: child %s exited: %s", record.name, child.name, event.exit.reason
+        )
+        self.restarts.after_exit(child, event.exit)
 
 
 class Restarts:
@@ -190,3 +237,48 @@ class Restarts:
             )
         if self.on_gave_up is not None:
             self.on_gave_up(error)
+
+
+# -- the pure decisions: no threads, no processes ----------------------------------------
+
+
+class RestartIntensity:
+    """OTP's restart intensity: at most `max_restarts` restarts within `period` seconds.
+
+    Pure logic over an injectable clock (no threads).
+    """
+
+    def __init__(self, max_restarts: int, period: float, clock: Clock | None = None) -> None:
+        self.max_restarts = max_restarts
+        self.period = period
+        self.clock = runtime.monotonic if clock is None else clock
+        self._times: collections.deque[float] = collections.deque()
+
+    def add(self) -> bool:
+        """Count one restart now; return `False` if that exceeds the intensity (give up)."""
+        now = self.clock()
+        self._times.append(now)
+        while self._times and now - self._times[0] >= self.period:
+            self._times.popleft()
+        return len(self._times) <= self.max_restarts
+
+    @property
+    def recent(self) -> int:
+        """Restarts counted within the current window (this one included, after `add`)."""
+        return len(self._times)
+
+
+def affected(strategy: Strategy, names: Sequence[str], crashed: str) -> tuple[str, ...]:
+    """The children a crash of `crashed` takes down with it, in start order, itself included.
+
+    Args:
+        strategy: `"one_for_one"` (itself), `"one_for_all"` (every child) or
+            `"rest_for_one"` (itself and the children started after it).
+        names: every child's name, in start order.
+        crashed: the child that crashed.
+    """
+    if strategy == "one_for_one":
+        return (crashed,)
+    if strategy == "one_for_all":
+        return tuple(names)
+    return tuple(names[names.index(crashed) :])

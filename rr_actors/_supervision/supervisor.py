@@ -20,9 +20,10 @@ Who does what (each in its own module of `rr_actors._supervision`):
    ├─ TreeWatch (watching.py: subscribe, flush_events, observe, graph)
    └─ Node (node.py: one supervisor's record + mailbox, on its own thread; its roles:)
         ├─ starting.py: children in start order; stopping.py: reverse order, death watch
-        ├─ exits.py: a watcher's Exited; restarting.py: restart or not, group, give up
-        ├─ policy.py: restart or not, which siblings, intensity (pure)
-        ├─ children.py: Child records; ThreadManager / ProcessManager / NestedSupervisor
+        ├─ restarting.py: a watcher's Exited; restart or not (restart type), which
+        │    siblings (strategy), intensity, backoff, give up
+        ├─ children.py: Child records, restart types; ThreadManager / ProcessManager /
+        │    NestedSupervisor
         └─ tree.py: what the tree shares; lookups and the restart wait; death watch
    retry.py: call_with_retry's steps (run here, awaited by aio.py) and abandoned ids
    aio.py: the awaitable twins (AsyncSupervision, this class's base)
@@ -61,10 +62,10 @@ from rr_actors._supervision.children import (
     ThreadManager,
 )
 from rr_actors._supervision.node import Node
-from rr_actors._supervision.policy import Clock, RestartIntensity
+from rr_actors._supervision.restarting import RestartIntensity
 from rr_actors._supervision.statedir import StateDirLock
 from rr_actors._supervision.stopping import left
-from rr_actors._supervision.tree import RestartWait, Tree, find_child, locate
+from rr_actors._supervision.tree import Clock, RestartWait, Tree, find_child, locate
 from rr_actors._supervision.watching import TreeWatch
 from rr_actors._types import Query, StatusCallback
 from rr_actors.config import (

@@ -36,9 +36,9 @@ from rr_actors._supervision.children import (
     Level,
     NestedSupervisor,
     ProcessManager,
+    restarts_after,
     snapshot,
 )
-from rr_actors._supervision.policy import Clock, restarts_after
 from rr_actors._supervision.relay import EventRelay
 from rr_actors.config import SupervisorSpec, managers, walk
 from rr_actors.errors import (
@@ -55,6 +55,7 @@ if TYPE_CHECKING:
     from rr_actors._transport.base import Transport
 
 __all__ = [
+    "Clock",
     "Found",
     "Level",
     "RestartWait",
@@ -68,6 +69,9 @@ __all__ = [
 ]
 
 logger = logging.getLogger("rr_actors")
+
+Clock = Callable[[], float]
+"""A monotonic clock in seconds (a tree's, injectable: `Supervisor(clock=)`)."""
 
 
 class Processes:

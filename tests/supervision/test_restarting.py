@@ -1,6 +1,6 @@
 """Restart decisions (`rr_actors._supervision.restarting`): which siblings go down and come
-back and in which order, the intensity window and the give-up, the backoff; and what a
-restart must give back.
+back and in which order, the intensity window (its pure `RestartIntensity` too) and the
+give-up, the backoff; and what a restart must give back.
 
 Where rr_actors' supervisor used to depart from Erlang/OTP's (issue 16), case by case:
 ported from the ideas of OTP's `supervisor_SUITE`: a SIGTERM to a manager process is
@@ -33,6 +33,7 @@ from rr_actors import testing
 from rr_actors._catalog import Changes, ClientRecord
 from rr_actors._store.files import read_backup
 from rr_actors._store.sqlite import SqliteStore
+from rr_actors._supervision.restarting import RestartIntensity
 from rr_actors.testing import (
     SharedObjects,
     catalog_snapshot,
@@ -304,6 +305,35 @@ def test_a_permanent_manager_process_that_exits_normally_is_restarted(
 def stop_own_registrar(registrar: rr.ResourceRegistrar) -> str:
     registrar.stop()
     return "stopped"
+
+
+# -- RestartIntensity: the intensity window on an injected clock (pure) ---------------------------
+
+
+@pytest.fixture
+def clock() -> FakeClock:
+    return FakeClock()
+
+
+def test_intensity_allows_max_restarts_within_the_period_and_not_one_more(
+    clock: FakeClock,
+) -> None:
+    intensity = RestartIntensity(max_restarts=3, period=5.0, clock=clock)
+
+    assert [True, True, True, False] == [intensity.add() for _ in range(4)]
+
+
+def test_restarts_older_than_the_period_no_longer_count(clock: FakeClock) -> None:
+    intensity = RestartIntensity(max_restarts=2, period=5.0, clock=clock)
+    intensity.add()
+    intensity.add()
+    clock.now += 5.0
+
+    assert (True, 1) == (intensity.add(), intensity.recent)
+
+
+def test_zero_max_restarts_gives_up_at_the_first_crash(clock: FakeClock) -> None:
+    assert not RestartIntensity(max_restarts=0, period=5.0, clock=clock).add()
 
 
 # -- intensity ------------------------------------------------------------------------------------
