@@ -15,7 +15,8 @@ layers below it, so the lowest layer resets first.
 ```
  os.fork() (or multiprocessing's "fork" start method)
    └─ in the child: _after_in_child ─► each reset, lowest layer first:
-        _platform  the forkserver this process started is not the child's
+        _platform  the forkserver this process started is not the child's; nor are
+                   the lock files it holds (`lockfile`: their copies closed)
         _core      the parent's actors are dead here; the directory forgets them; the
                    exit hook's list is emptied
         _transport the AF_UNIX systems stay joined (same runtime directory, same
