@@ -488,21 +488,23 @@ class SqliteStore:
         again first (as `write` does); if that fails, the failure is logged (ERROR) and
         the store closed all the same: closing never raises.
         """
-        if not self.closed:
-            if not erase:
-                try:
-                    self._keep_in_place()
-                except CatalogWriteError as exc:  # logged: a stop or a crash goes on
-                    kept = f"a whole copy is at {self._aside}" if self._aside else "it is lost"
-                    logger.error("%s; %s", exc, kept)  # noqa: TRY400 - the cause says it all
-            self.closed = True
-            self._commits.close()  # (first: SQLite removes the log as the connection closes)
-            if self._aside is None:
-                self._close_connections()
-        if erase:
-            remove_files(self._file)
-        if self._aside is not None and erase:
-            remove_files(self._aside)
-        lock, self._lock = self._lock, None
-        if lock is not None:
-            lockfile.release(lock)
+        try:
+            if not self.closed:
+                if not erase:
+                    try:
+                        self._keep_in_place()
+                    except CatalogWriteError as exc:  # logged: a stop or a crash goes on
+                        kept = f"a whole copy is at {self._aside}" if self._aside else "it is lost"
+                        logger.error("%s; %s", exc, kept)  # noqa: TRY400 - the cause says it all
+                self.closed = True
+                self._commits.close()  # (first: SQLite removes the log as it closes)
+                if self._aside is None:
+                    self._close_connections()
+            if erase:
+                remove_files(self._file)
+            if self._aside is not None and erase:
+                remove_files(self._aside)
+        finally:  # (whatever happened: the file is no longer this store's)
+            lock, self._lock = self._lock, None
+            if lock is not None:
+                lockfile.release(lock)
