@@ -42,6 +42,7 @@ import rr_actors as rr
 from rr_actors import events
 from rr_actors._catalog import Catalog
 from rr_actors._store import SqliteStore, gc_paused
+from rr_actors._store.files import read_backup
 
 Sample = Callable[[], None]
 BATCHED = 100  # changes per sample in the batched (save_interval) rows
@@ -79,6 +80,12 @@ def opened(path: Path, durability: Any, *, background: bool) -> tuple[SqliteStor
     return store, Catalog.restore(*rows)
 
 
+def read_whole(path: Path) -> Catalog:
+    """The catalog in the backup at `path`, read without opening a store on it."""
+    on_disk = read_backup(path)
+    return Catalog.restore(on_disk.resources, on_disk.clients)
+
+
 def raw_rows(path: Path, durability: Any) -> tuple[sqlite3.Connection, Sample]:
     """The floor: a bare SQLite commit to a one-row table (same pragmas), and its connection."""
     raw = sqlite3.connect(path, isolation_level=None)
@@ -107,7 +114,7 @@ def store_rows(path: Path, durability: Any) -> tuple[dict[str, Sample], Sample, 
     store, catalog = opened(path, durability, background=False)  # as with save_on_modify
     # changes go to resources spread over the whole catalog (rows all over the file)
     rids = list(catalog.resources)
-    plain = opened(path, durability, background=False)[1]
+    plain = read_whole(path)  # (the same catalog: no second store, one store a file)
     # the batched rows write a copy, opened as with a save_interval (background checkpoints)
     copy = path.with_name(f"{path.stem}-batched.db")
     copy.write_bytes(path.read_bytes())

@@ -1028,8 +1028,17 @@ class Here:
         return future.get()
 
     def wait_stopped(self, timeout: float | None = None) -> bool:
-        """Block until the actor's thread ended (stopped or died); whether it did."""
-        return self.ref.actor_stopped.wait(timeout)
+        """Block until the actor's thread ended (stopped, or died and its death handled:
+        its backup closed, its callers answered); whether it did within `timeout` s.
+
+        pykka marks an actor stopped before its `on_failure` runs: a supervisor that
+        restarted a crashed registrar at that mark had the old one's backup still open.
+        """
+        deadline = None if timeout is None else runtime.monotonic() + timeout
+        if not self.ref.actor_stopped.wait(timeout):
+            return False
+        left = None if deadline is None else max(0.0, deadline - runtime.monotonic())
+        return self.ended.wait(left)
 
     def crash(self) -> None:
         """Make the actor die as if a bug hit it (`testing.crash`, a forced stop)."""

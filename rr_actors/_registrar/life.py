@@ -848,7 +848,8 @@ class ActorHere(Protocol):
         ...
 
     def wait_stopped(self, timeout: float | None = None) -> bool:
-        """Block until the actor's thread ended (stopped or died); whether it did."""
+        """Block until the actor's thread ended (stopped, or died and its death handled);
+        whether it did."""
         ...
 
 
