@@ -409,6 +409,56 @@ class TestInAClass:
         assert 1 == late.locator("#timeline li[data-kind=status]").count()  # one row, not three
         assert live.locator("#timeline").inner_text() == late.locator("#timeline").inner_text()
 
+    def test_a_send_that_reaches_the_page_after_its_deliveries_were_shown_alone_takes_them_in(
+        self, supervisors: Any, tabs: Any
+    ) -> None:
+        """Under load a send can come more than the page's wait (`ORPHAN_S`, 2 s) after its
+        deliveries (CI saw it): they were drawn alone ("its send was not seen"), then the
+        send drew a third row. Forced here: the send goes into the hub once the page shows
+        the deliveries alone."""
+        sup = figure_27(supervisors, isolation="thread").start()
+        observer = sup.observe()
+        live = tabs()
+        live.goto(observer.url)
+        live.wait_for_selector('.node[data-child="cm"][data-state="running"]')
+        at = time.time()
+        query = {"erm": "q-erm-0000", "cm": "q-cm-00000", "action": "q-act-0000"}
+        for hop, registrar, latency in ((1, "cm", 0.007), (2, "action", 0.009)):
+            observer._hub.add_event(
+                {
+                    "type": "StatusDelivered",
+                    "registrar": registrar,
+                    "query_id": query[registrar],
+                    "status": "FATAL",
+                    "hop": hop,
+                    "latency_s": latency,
+                    "at": at + latency,
+                    "text": f"{registrar} received FATAL",
+                }
+            )
+        alone = live.locator('#timeline li[data-kind=status]:has-text("its send was not seen")')
+        alone.nth(1).wait_for(timeout=10_000)  # (both, each a row of its own)
+        observer._hub.add_event(
+            {
+                "type": "StatusSent",
+                "registrar": "erm",
+                "query_id": query["erm"],
+                "status": "FATAL",
+                "message": "camera unplugged",
+                "at": at,
+                "text": "erm sent FATAL",
+            }
+        )
+        live.locator('#timeline li[data-status="FATAL"]:has-text("camera unplugged")').wait_for(
+            timeout=5000
+        )
+
+        rows = live.locator("#timeline li[data-kind=status]")
+        assert 1 == rows.count()  # one row, not three
+        assert ["1", "2"] == sorted(
+            rows.locator("[data-hop]").evaluate_all("items => items.map(i => i.dataset.hop)")
+        )
+
     def test_demo_allow_faults_shows_the_buttons_and_the_mission_time_and_lingers_after_the_end(
         self, tabs: Any, process_helpers: Any, tmp_path: Path
     ) -> None:

@@ -814,6 +814,8 @@
       case "StatusSent": {
         const row = { kind: "status", event, hops: [] };
         state.orphans = state.orphans.filter((o) => !(matches(event, o.event) && row.hops.push(o.event)));
+        // deliveries drawn alone because this send came later than ORPHAN_S: its hops too
+        state.rows = state.rows.filter((r) => !(r.kind === "status" && !r.event && matches(event, r.hops[0]) && row.hops.push(...r.hops)));
         pushRow(row);
         if (event.status === "FATAL" || event.status === "ERROR") flashResourceOf(event.registrar, event.query_id, event.member);
         break;
