@@ -663,6 +663,51 @@ def test_stop_with_a_timeout_bounds_a_shutdown_that_would_take_longer(
     )
 
 
+# -- stop() asked for by code the supervisor itself runs (a thread manager's setup) --------------
+
+
+def stop_from_setup_on_restart(
+    box: dict[str, Any], answered: threading.Event
+) -> Callable[[rr.ResourceRegistrar], None]:
+    """A thread manager's setup that, at its second run (a restart), calls `box["sup"].stop()`
+    and sets `answered` once that call returned or raised."""
+    runs: list[int] = []
+
+    def setup(_: rr.ResourceRegistrar) -> None:
+        runs.append(1)
+        if len(runs) == 2:
+            try:
+                box["sup"].stop()
+            finally:
+                answered.set()
+
+    return setup
+
+
+@pytest.mark.parametrize("nested", [False, True], ids=["its-own", "a-nested-supervisors"])
+def test_stop_called_from_a_setup_the_tree_runs_never_keeps_a_later_stop_from_stopping_it(
+    supervisors: Callable[..., Supervisor], uid: str, nested: bool
+) -> None:
+    """A careless `setup` that stops the whole tree (a manager that finds its device gone
+    and shuts everything down) runs on a supervisor's own thread. Its `stop()` may do the
+    stop or refuse it, but it must answer, and the owner's own `stop()` afterwards must
+    still stop every manager: none may be left serving with nobody supervising it."""
+    a, b = f"a-{uid}", f"b-{uid}"
+    box: dict[str, Any] = {}
+    answered = threading.Event()
+    b_spec = ManagerSpec(b, stop_from_setup_on_restart(box, answered))
+    children: list[Any] = [ManagerSpec(a, echo_setup)]
+    children.append(SupervisorSpec(f"inner-{uid}", (b_spec,)) if nested else b_spec)
+    sup = box["sup"] = supervisors(children, clock=None).start()
+    first_a = handle(sup, a)
+    crash(sup, b)  # its restart runs the setup that calls stop()
+
+    stop_answered = answered.wait(10.0)
+    sup.stop()
+
+    assert (True, False) == (stop_answered, first_a.is_alive())
+
+
 # -- nested supervisors: escalation seen from a child below -----------------------------------
 
 
