@@ -307,6 +307,47 @@ def stop_own_registrar(registrar: rr.ResourceRegistrar) -> str:
     return "stopped"
 
 
+# -- a restart that fails while the supervisor stops --------------------------------------------
+
+
+def test_a_restart_that_fails_while_the_supervisor_stops_does_not_start_the_child_after_the_stop(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    """A restart whose `setup` raises reports the failure as the child's exit. When
+    `stop()` was queued meanwhile, that report is about a child the stop already put down
+    for good: the child must stay stopped (OTP: a terminating supervisor restarts nothing),
+    not be started once more after `stop()` returned, unsupervised."""
+    name = f"a-{uid}"
+    runs: list[int] = []
+    restarting, stop_queued = threading.Event(), threading.Event()
+
+    def setup(_: rr.ResourceRegistrar) -> None:
+        runs.append(1)
+        if len(runs) == 2:  # the restart: fails once the owner's stop() is queued
+            restarting.set()
+            assert stop_queued.wait(10.0)
+            raise RuntimeError("device gone")
+
+    sup = supervisors([rr.ManagerSpec(name, setup)]).start()
+    mailbox = sup._node._mailbox  # (the supervisor's thread: its stop is queued there)
+    submit = mailbox.submit
+
+    def submit_and_tell(task: Any, **kwargs: Any) -> bool:
+        queued = submit(task, **kwargs)
+        if threading.current_thread().name == "stopper":
+            stop_queued.set()
+        return queued
+
+    mailbox.submit = submit_and_tell  # type: ignore[method-assign]
+    crash(sup, name)
+    assert restarting.wait(10.0)
+    stopper = threading.Thread(target=sup.stop, name="stopper")
+    stopper.start()
+    stopper.join(30.0)
+
+    assert (False, 2, "stopped") == (stopper.is_alive(), len(runs), sup.child(name).state)
+
+
 # -- RestartIntensity: the intensity window on an injected clock (pure) ---------------------------
 
 
