@@ -292,10 +292,18 @@ class Supervisor(AsyncSupervision):
                 stop (it first finishes a child start that is under way).
 
         Raises:
-            ConfigError: `timeout` is not a positive number of seconds.
+            ConfigError: `timeout` is not a positive number of seconds, or it was called
+                on one of the tree's supervisors' threads (from a thread manager's
+                `setup`), where it would wait for itself: nothing was stopped.
         """
         if timeout is not None:
             check_seconds("timeout", timeout)
+        if self._started and not self._stopped and self._tree.on_a_supervisors_thread():
+            raise ConfigError(
+                f"supervisor {self.name!r}: stop() was called on one of its own threads (a "
+                "thread manager's setup runs there), where it would wait for itself; nothing "
+                "was stopped: call stop() from another thread"
+            )
         deadline = None if timeout is None else runtime.monotonic() + timeout
         if not self._started:
             self._watch.close_observers()  # opened on a supervisor that never started
