@@ -486,6 +486,26 @@ def test_a_transient_manager_whose_registrar_its_own_code_stops_exits_normally(
     )
 
 
+def exit_zero_without_a_stop(_: rr.ResourceRegistrar) -> None:
+    os._exit(0)  # a library's exit(0), say: the registrar is never stopped
+
+
+def test_a_transient_manager_process_that_exits_0_without_stopping_its_registrar_is_restarted(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    """Exit code 0 is the clean stop's only when code in the manager stopped its registrar
+    (docs: "What counts as a hang": a manager is judged by what happened, not by where it
+    runs; a registrar that ends without a clean stop is a crash in both placements). A
+    process that just exits 0 let go of nothing: a `transient` one is restarted."""
+    name = f"t-{uid}"
+    sup = supervisors([process(name, restart="transient")]).start()
+    with contextlib.suppress(rr.RegistrarUnavailableError):  # it dies before it answers
+        sup.run_in(name, exit_zero_without_a_stop, timeout=10.0)
+
+    info = sup.wait_restarted(name, timeout=15.0)
+    assert ("running", 1) == (info.state, info.restarts)
+
+
 # -- stopping ---------------------------------------------------------------------------------
 
 
