@@ -933,6 +933,8 @@ class TestBadArguments:
             (lambda sup, erm: sup.child([erm]), "name"),
             (lambda sup, erm: sup.wait_restarted([erm], timeout=1), "name"),
             (lambda sup, erm: sup.wait_restarted(erm, timeout=-1), "timeout"),
+            (lambda sup, erm: sup.wait_restarted(erm, timeout=1, restarts="1"), "restarts"),
+            (lambda sup, erm: sup.wait_restarted(erm, timeout=1, restarts=[1]), "restarts"),
         ],
         ids=[
             "run_in-timeout",
@@ -941,6 +943,8 @@ class TestBadArguments:
             "child",
             "wait_restarted",
             "wait-timeout",
+            "wait-restarts-str",
+            "wait-restarts-list",
         ],
     )
     def test_run_in_child_and_wait_restarted_refuse_what_they_cannot_use_naming_it(
