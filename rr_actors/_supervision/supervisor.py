@@ -421,7 +421,8 @@ class Supervisor(AsyncSupervision):
                 a transient child waits for a group restart) or its supervisor was
                 stopped.
             UnknownServerError: no child of that name.
-            ConfigError: `name` is not a str, or `timeout` not a positive number of seconds.
+            ConfigError: `name` is not a str, `timeout` not a positive number of seconds,
+                or `restarts` neither an int nor `None`.
         """
         return run_steps(self._restart_wait(name, timeout, restarts))
 
@@ -431,6 +432,10 @@ class Supervisor(AsyncSupervision):
         steps (`retry.py`) await them."""
         _check_child_name(name)
         check_seconds("timeout", timeout)
+        if restarts is not None and (isinstance(restarts, bool) or not isinstance(restarts, int)):
+            raise ConfigError(
+                f"restarts must be an int (a restart count) or None, got {restarts!r}"
+            )
         return RestartWait(self._tree, self._node, self.name, name, restarts).steps(timeout)
 
     # -- registrars, calls, manager access ----------------------------------------------
