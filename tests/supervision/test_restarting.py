@@ -272,6 +272,40 @@ def test_siblings_stop_in_reverse_start_order_and_restart_in_start_order(
     assert [f"unload {c}", f"unload {b}", f"start {a}", f"start {b}", f"start {c}"] == events
 
 
+def test_rest_for_one_starts_a_child_whose_backoff_ran_out_only_after_the_earlier_siblings(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    """rest_for_one: the children after a crashed one depend on it, so they come back only
+    after it. `c` crashed and waits out its backoff; then `a` crashes, which takes `b` and
+    `c` down with it. When `c`'s own backoff runs out first, `c` must not be started while
+    `a` and `b` are still down (nor be left out of the group's restart after them)."""
+    a, b, c = f"a-{uid}", f"b-{uid}", f"c-{uid}"
+    starts: list[str] = []
+
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        starts.append(registrar.name)
+
+    timer = ManualTimer()
+    sup = supervisors(
+        [rr.ManagerSpec(n, setup) for n in (a, b, c)],
+        strategy="rest_for_one",
+        backoff=rr.Backoff(initial=1.0),
+        clock=FakeClock(),
+        timer=timer,
+    ).start()
+    del starts[:]
+    crash(sup, c)
+    assert timer.wait_scheduled(1)  # c's restart, after its backoff
+    crash(sup, a)
+    assert timer.wait_scheduled(2)  # a, b, c's, after a longer one
+    timer.fire()  # both ran out, c's first
+    for name in (a, b):
+        sup.wait_restarted(name, timeout=5.0)
+    sup.wait_restarted(c, timeout=5.0)
+
+    assert (c, True) == (starts[-1], {a, b} <= set(starts[:-1])), starts
+
+
 def test_a_permanent_child_that_exits_normally_is_restarted(
     supervisors: Callable[..., rr.Supervisor], uid: str
 ) -> None:
