@@ -20,7 +20,8 @@ gives up.
    └─ take_down_with: the strategy's group (affected) stopped (reverse order); a
       sibling comes back unless temporary (restarts_with_group); marked
         ─► schedule: backoff ─► timer ── Restart(names, generation) ──► mailbox
- mailbox ─► Restarts.on_restart: Starting.start_child each (a failure posts Exited: a crash)
+ mailbox ─► Restarts.on_restart: Starting.start_child each whose latest Restart it is
+            (a failure posts Exited: a crash)
  Node.stop / give_up ─► Restarts.cancel: a new generation, every pending Restart stale
 ```
 
@@ -125,6 +126,7 @@ class Restarts:
         self.giving_up = False
         self._generation = 0
         self._timers: list[Cancellable] = []
+        self._due: dict[str, Restart] = {}  # each child's latest scheduled Restart
 
     def after_exit(self, child: Child, exit: ManagerExit) -> None:
         """`child` ended on its own (`exit`): leave it down, restart it, or give up."""
@@ -146,8 +148,8 @@ class Restarts:
         if event.generation != self._generation or self.gave_up is not None:
             return
         for child in record.children:
-            if child.name not in event.names or child.state != "restarting":
-                continue
+            if child.state != "restarting" or self._due.get(child.name) is not event:
+                continue  # not in it, or a later Restart (its group's) brings it back
             try:
                 self.starting.start_child(child)
             except Exception as exc:
@@ -164,6 +166,7 @@ class Restarts:
         for timer in self._timers:
             timer.cancel()
         self._timers.clear()
+        self._due.clear()
 
     def _take_down_with(self, crashed: Child) -> tuple[str, ...]:
         """Stop the siblings the strategy restarts with `crashed`; the names to restart.
@@ -192,6 +195,7 @@ class Restarts:
         tree = record.tree
         delay = record.spec.backoff.delay(self.intensity.recent, tree.random)
         event = Restart(names, self._generation)
+        self._due.update(dict.fromkeys(names, event))  # an earlier one of theirs is stale
         if delay <= 0:
             record.post(event)
             return
