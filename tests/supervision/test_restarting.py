@@ -496,6 +496,30 @@ def test_a_nested_supervisors_backoff_goes_through_the_injected_timer(
     assert 1 == sup.wait_restarted(x, timeout=5.0).restarts
 
 
+def test_the_timers_of_backoff_restarts_that_ran_are_not_kept(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    """A flaky manager restarted after a backoff, within the intensity, for months: each
+    restart's timer (a `threading.Timer` by default: a thread object, its locks, the
+    restart it posts) must be let go once it ran, not kept until the supervisor stops."""
+    name = f"a-{uid}"
+    clock, timer = FakeClock(), ManualTimer()
+    sup = supervisors(
+        [rr.ManagerSpec(name, echo_setup)],
+        backoff=rr.Backoff(initial=1.0),
+        clock=clock,
+        timer=timer,
+    ).start()
+    for crashes in range(1, 6):
+        crash(sup, name)
+        assert timer.wait_scheduled(crashes)
+        timer.fire()
+        sup.wait_restarted(name, timeout=5.0)
+        clock.now += 10.0  # out of the intensity window: it never gives up
+
+    assert len(sup._node.restarts._timers) <= 1
+
+
 # -- backoff: the injected jitter -----------------------------------------------------------------
 
 
