@@ -125,7 +125,7 @@ class Restarts:
         self.gave_up: SupervisorGaveUpError | None = None
         self.giving_up = False
         self._generation = 0
-        self._timers: list[Cancellable] = []
+        self._timers: dict[int, Cancellable] = {}  # id(Restart) -> its pending backoff timer
         self._due: dict[str, Restart] = {}  # each child's latest scheduled Restart
 
     def after_exit(self, child: Child, exit: ManagerExit) -> None:
@@ -145,6 +145,7 @@ class Restarts:
     def on_restart(self, event: Restart) -> None:
         """Start the children `event` names again (unless it is stale)."""
         record = self.record
+        self._timers.pop(id(event), None)  # (it ran: nothing to cancel any more)
         if event.generation != self._generation or self.gave_up is not None:
             return
         for child in record.children:
@@ -163,7 +164,7 @@ class Restarts:
     def cancel(self) -> None:
         """Make every scheduled restart stale (new generation) and cancel its timer."""
         self._generation += 1
-        for timer in self._timers:
+        for timer in self._timers.values():
             timer.cancel()
         self._timers.clear()
         self._due.clear()
@@ -202,7 +203,7 @@ class Restarts:
         logger.info("supervisor %s: restarting %s in %.3f s", record.name, ", ".join(names), delay)
         tree.restart_due.update(dict.fromkeys(names, runtime.wall() + delay))  # (the observer's)
         record.publish()
-        self._timers.append(tree.timer(delay, lambda: record.post(event)))
+        self._timers[id(event)] = tree.timer(delay, lambda: record.post(event))
 
     def give_up(self, crashed: Child) -> None:
         """Stop every child in reverse start order, then report the give-up (OTP: shutdown).
