@@ -506,6 +506,42 @@ def test_a_transient_manager_process_that_exits_0_without_stopping_its_registrar
     assert ("running", 1) == (info.state, info.restarts)
 
 
+def test_a_hung_forkserver_holds_a_restart_no_longer_than_its_start_timeout(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    """The forkserver that forks every manager process is stopped (SIGSTOP: a debugger,
+    a hang). A manager killed then must be started again, or fail to start, within its
+    `start_timeout` (the spec's bound on "restore, set up and serve"), and the supervisor
+    must still stop within a bound: never a supervisor thread blocked for ever reading
+    the pid of a fork that never comes."""
+    name = f"a-{uid}"
+    sup = supervisors([process(name, start_timeout=2.0)]).start()
+    forker = forker_pid(mp_context())
+    assert forker
+    stopper = threading.Thread(target=sup.stop, kwargs={"timeout": 5.0}, name="stopper")
+    os.kill(forker, signal.SIGSTOP)
+    try:
+        state = "running"
+        for _ in range(3):  # (past the idle spares, which need no fork)
+            pid = sup.child(name).pid
+            if pid:
+                os.kill(pid, signal.SIGKILL)
+            with contextlib.suppress(rr.RrError):
+                sup.wait_restarted(name, timeout=10.0)
+            state = sup.child(name).state
+            if state == "starting":  # still, 10 s on: held past its start_timeout
+                break
+        stopper.start()
+        stopper.join(20.0)
+        stopped = not stopper.is_alive()
+    finally:
+        os.kill(forker, signal.SIGCONT)
+        if stopper.ident is not None:
+            stopper.join(60.0)
+
+    assert (True, True) == (state != "starting", stopped), state
+
+
 # -- stopping ---------------------------------------------------------------------------------
 
 
