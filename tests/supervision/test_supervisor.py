@@ -9,6 +9,7 @@ backoff are tested without waiting for real time.
 from __future__ import annotations
 
 import dataclasses
+import sys
 import threading
 import time
 import uuid
@@ -425,6 +426,28 @@ def test_a_restart_whose_setup_fails_counts_as_another_crash(
     with pytest.raises(rr.SupervisorGaveUpError, match="failed to start"):
         sup.wait_restarted(name, timeout=5.0)
     assert 3 == len(runs)
+
+
+def test_a_restart_whose_setup_calls_sys_exit_counts_as_another_crash(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    """A careless thread manager's `setup` that calls `sys.exit()` (a `BaseException`)
+    fails its start as one that raises does: at the first start that is the start's
+    error; at a restart it must count as another crash and be restarted, not leave the
+    child "starting" for ever with nobody told."""
+    name = f"a-{uid}"
+    runs: list[int] = []
+
+    def setup(_: rr.ResourceRegistrar) -> None:
+        runs.append(1)
+        if len(runs) == 2:
+            sys.exit(3)
+
+    sup = supervisors([ManagerSpec(name, setup)], max_restarts=3).start()
+    crash(sup, name)
+    info = sup.wait_restarted(name, timeout=5.0)
+
+    assert ("running", 3) == (info.state, len(runs))
 
 
 # -- death watch and retries ----------------------------------------------------------------
