@@ -153,7 +153,7 @@ class Restarts:
                 continue  # not in it, or a later Restart (its group's) brings it back
             try:
                 self.starting.start_child(child)
-            except Exception as exc:
+            except BaseException as exc:  # (a setup's sys.exit() too, as at the first start)
                 logger.exception("supervisor %s: restart of %s failed", record.name, child.name)
                 child.running = None
                 failed = ManagerExit(f"failed to start: {exc}", normal=False)
