@@ -490,6 +490,10 @@ def exit_zero_without_a_stop(_: rr.ResourceRegistrar) -> None:
     os._exit(0)  # a library's exit(0), say: the registrar is never stopped
 
 
+@pytest.mark.xfail(
+    strict=True,
+    reason="review8: any exit code 0 is taken for a clean stop (_process/manager.py describe)",
+)
 def test_a_transient_manager_process_that_exits_0_without_stopping_its_registrar_is_restarted(
     supervisors: Callable[..., rr.Supervisor], uid: str
 ) -> None:
@@ -506,6 +510,10 @@ def test_a_transient_manager_process_that_exits_0_without_stopping_its_registrar
     assert ("running", 1) == (info.state, info.restarts)
 
 
+@pytest.mark.xfail(
+    strict=True,
+    reason="review8: the fork's pid is read with no bound (_platform/forkserver.py _launch)",
+)
 def test_a_hung_forkserver_holds_a_restart_no_longer_than_its_start_timeout(
     supervisors: Callable[..., rr.Supervisor], uid: str
 ) -> None:
