@@ -147,7 +147,8 @@ class AsyncSupervision:
             SupervisorGaveUpError: the tree gave up on it (see `wait_restarted`).
             RegistrarUnavailableError: it exited for good, or its supervisor was stopped.
             UnknownServerError: no child of that name.
-            ConfigError: `name` is not a str, or `timeout` not a positive number of seconds.
+            ConfigError: `name` is not a str, `timeout` not a positive number of seconds,
+                or `restarts` neither an int nor `None`.
         """
         info: ChildInfo = await run_steps_async(self._restart_wait(name, timeout, restarts))
         return info

@@ -78,6 +78,7 @@ class Node:
             child.last_exit = last.last_exit if last is not None else None
             child.published = child.info(tree.restarts.get(child.name, 0))
         self._mailbox = SerialExecutor(f"rr-supervisor-{spec.name}")
+        tree.add_mailbox(self._mailbox)
         self._running = False
         own = spec.state_dir if spec.state_dir is not None else state_dir
         self.stopping = Stopping(self)

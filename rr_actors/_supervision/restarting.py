@@ -20,7 +20,8 @@ gives up.
    └─ take_down_with: the strategy's group (affected) stopped (reverse order); a
       sibling comes back unless temporary (restarts_with_group); marked
         ─► schedule: backoff ─► timer ── Restart(names, generation) ──► mailbox
- mailbox ─► Restarts.on_restart: Starting.start_child each (a failure posts Exited: a crash)
+ mailbox ─► Restarts.on_restart: Starting.start_child each whose latest Restart it is
+            (a failure posts Exited: a crash)
  Node.stop / give_up ─► Restarts.cancel: a new generation, every pending Restart stale
 ```
 
@@ -124,7 +125,8 @@ class Restarts:
         self.gave_up: SupervisorGaveUpError | None = None
         self.giving_up = False
         self._generation = 0
-        self._timers: list[Cancellable] = []
+        self._timers: dict[int, Cancellable] = {}  # id(Restart) -> its pending backoff timer
+        self._due: dict[str, Restart] = {}  # each child's latest scheduled Restart
 
     def after_exit(self, child: Child, exit: ManagerExit) -> None:
         """`child` ended on its own (`exit`): leave it down, restart it, or give up."""
@@ -143,14 +145,15 @@ class Restarts:
     def on_restart(self, event: Restart) -> None:
         """Start the children `event` names again (unless it is stale)."""
         record = self.record
+        self._timers.pop(id(event), None)  # (it ran: nothing to cancel any more)
         if event.generation != self._generation or self.gave_up is not None:
             return
         for child in record.children:
-            if child.name not in event.names or child.state != "restarting":
-                continue
+            if child.state != "restarting" or self._due.get(child.name) is not event:
+                continue  # not in it, or a later Restart (its group's) brings it back
             try:
                 self.starting.start_child(child)
-            except Exception as exc:
+            except BaseException as exc:  # (a setup's sys.exit() too, as at the first start)
                 logger.exception("supervisor %s: restart of %s failed", record.name, child.name)
                 child.running = None
                 failed = ManagerExit(f"failed to start: {exc}", normal=False)
@@ -161,9 +164,10 @@ class Restarts:
     def cancel(self) -> None:
         """Make every scheduled restart stale (new generation) and cancel its timer."""
         self._generation += 1
-        for timer in self._timers:
+        for timer in self._timers.values():
             timer.cancel()
         self._timers.clear()
+        self._due.clear()
 
     def _take_down_with(self, crashed: Child) -> tuple[str, ...]:
         """Stop the siblings the strategy restarts with `crashed`; the names to restart.
@@ -192,13 +196,14 @@ class Restarts:
         tree = record.tree
         delay = record.spec.backoff.delay(self.intensity.recent, tree.random)
         event = Restart(names, self._generation)
+        self._due.update(dict.fromkeys(names, event))  # an earlier one of theirs is stale
         if delay <= 0:
             record.post(event)
             return
         logger.info("supervisor %s: restarting %s in %.3f s", record.name, ", ".join(names), delay)
         tree.restart_due.update(dict.fromkeys(names, runtime.wall() + delay))  # (the observer's)
         record.publish()
-        self._timers.append(tree.timer(delay, lambda: record.post(event)))
+        self._timers[id(event)] = tree.timer(delay, lambda: record.post(event))
 
     def give_up(self, crashed: Child) -> None:
         """Stop every child in reverse start order, then report the give-up (OTP: shutdown).

@@ -94,6 +94,7 @@ class Stopping:
         running = child.running
         if running is None:
             if final:
+                child.incarnation += 1  # an exit still queued for it (a failed start) is stale
                 dead = child.state == "restarting"  # it crashed and will not come back now
                 if child.state != "exited":
                     child.state = "stopped"

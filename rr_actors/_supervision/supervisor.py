@@ -292,10 +292,18 @@ class Supervisor(AsyncSupervision):
                 stop (it first finishes a child start that is under way).
 
         Raises:
-            ConfigError: `timeout` is not a positive number of seconds.
+            ConfigError: `timeout` is not a positive number of seconds, or it was called
+                on one of the tree's supervisors' threads (from a thread manager's
+                `setup`), where it would wait for itself: nothing was stopped.
         """
         if timeout is not None:
             check_seconds("timeout", timeout)
+        if self._started and not self._stopped and self._tree.on_a_supervisors_thread():
+            raise ConfigError(
+                f"supervisor {self.name!r}: stop() was called on one of its own threads (a "
+                "thread manager's setup runs there), where it would wait for itself; nothing "
+                "was stopped: call stop() from another thread"
+            )
         deadline = None if timeout is None else runtime.monotonic() + timeout
         if not self._started:
             self._watch.close_observers()  # opened on a supervisor that never started
@@ -413,7 +421,8 @@ class Supervisor(AsyncSupervision):
                 a transient child waits for a group restart) or its supervisor was
                 stopped.
             UnknownServerError: no child of that name.
-            ConfigError: `name` is not a str, or `timeout` not a positive number of seconds.
+            ConfigError: `name` is not a str, `timeout` not a positive number of seconds,
+                or `restarts` neither an int nor `None`.
         """
         return run_steps(self._restart_wait(name, timeout, restarts))
 
@@ -423,6 +432,10 @@ class Supervisor(AsyncSupervision):
         steps (`retry.py`) await them."""
         _check_child_name(name)
         check_seconds("timeout", timeout)
+        if restarts is not None and (isinstance(restarts, bool) or not isinstance(restarts, int)):
+            raise ConfigError(
+                f"restarts must be an int (a restart count) or None, got {restarts!r}"
+            )
         return RestartWait(self._tree, self._node, self.name, name, restarts).steps(timeout)
 
     # -- registrars, calls, manager access ----------------------------------------------

@@ -21,11 +21,13 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
+import weakref
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from rr_actors._core import runtime, wire
 from rr_actors._core.replies import FutureReply, Steps
+from rr_actors._core.serial import SerialExecutor
 from rr_actors._core.timers import Timer, thread_timer
 from rr_actors._process.spare import SparePool
 from rr_actors._registrar import life
@@ -186,6 +188,16 @@ class Tree:
         self.events = EventRelay()  # the tree's events (`Supervisor.subscribe`)
         self.down_since: dict[str, float] = {}  # name -> when its last incarnation ended
         self.restart_due: dict[str, float] = {}  # name -> when its backoff ends (runtime.wall())
+        self._mailboxes: weakref.WeakSet[SerialExecutor] = weakref.WeakSet()  # every Node's
+
+    def add_mailbox(self, mailbox: SerialExecutor) -> None:
+        """A supervisor of this tree runs its events on `mailbox` (`on_a_supervisors_thread`)."""
+        self._mailboxes.add(mailbox)
+
+    def on_a_supervisors_thread(self) -> bool:
+        """Whether the calling thread is one of the tree's supervisors' (a thread manager's
+        `setup` runs there): a wait for one of them there could wait for itself."""
+        return any(mailbox.on_own_thread() for mailbox in list(self._mailboxes))
 
     # -- changes: what waiters (wait_restarted, the observer) wait for ----------------------
 

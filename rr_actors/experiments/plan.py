@@ -22,6 +22,7 @@ __all__ = [
     "HOST_KINDS",
     "MAX_INJECTIONS",
     "MAX_SECONDS",
+    "MAX_SEED",
     "MIN_EVERY",
     "PLACEHOLDERS",
     "SIMULATION_KINDS",
@@ -91,7 +92,8 @@ Interval = Annotated[float, Meta(ge=MIN_EVERY, le=MAX_SECONDS)]
 Name = Annotated[str, Meta(pattern=r"\A[\w.-]+\Z")]
 Text = Annotated[str, Meta(max_length=10_000)]
 Count = Annotated[int, Meta(ge=1, le=MAX_COUNT)]
-Seed = Annotated[int, Meta(ge=-(2**63), le=2**63 - 1)]
+MAX_SEED = 2**63 - 1  # the largest seed (`--seed`); a run's is `seed + repeat - 1`
+Seed = Annotated[int, Meta(ge=-(2**63), le=MAX_SEED)]
 Repeat = Annotated[int, Meta(ge=1, le=MAX_REPEAT)]
 Restart = Literal["permanent", "transient", "temporary"]
 Names = Annotated[tuple[str, ...], Meta(min_length=1)]
@@ -331,9 +333,10 @@ class Plan:
         (a shorter `duration` drops the faults after the new end).
 
         Raises:
-            ConfigError: `repeat` is not from 1 to `MAX_REPEAT`, `seed` not 64 bits,
-                `duration` not in (0, `MAX_SECONDS`], or so long that an `every` fault
-                would inject more than `MAX_INJECTIONS` times.
+            ConfigError: `repeat` is not from 1 to `MAX_REPEAT`, `seed` not 64 bits (nor
+                the last repeat's, `seed + repeat - 1`), `duration` not in (0,
+                `MAX_SECONDS`], or so long that an `every` fault would inject more than
+                `MAX_INJECTIONS` times.
         """
         changes: dict[str, Any] = {}
         for key, value, hint, what in (
@@ -349,5 +352,8 @@ class Plan:
             if duration is not None and fault.most_injections(duration) > MAX_INJECTIONS:
                 problem = f"would inject more than {MAX_INJECTIONS} times in a run"
                 raise ConfigError(f"duration {duration:g} s: faults[{index}] {problem}")
+        last = changes.get("seed", self.seed) + changes.get("repeat", self.repeat) - 1
+        if last > MAX_SEED:
+            raise ConfigError(f"seed: the last run's seed {last} would be past 64 bits")
         variants = tuple((v, dataclasses.replace(p, **changes)) for v, p in self.variants)
         return dataclasses.replace(self, **changes, variants=variants)

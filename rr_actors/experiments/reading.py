@@ -292,6 +292,9 @@ class _Reader:
             for index, host in enumerate(plan.hosts.names):
                 twice = f"the host {host!r} is named twice"
                 self.refuse(host in plan.hosts.names[:index], ("hosts", "names", index), twice)
+        last = plan.seed + plan.repeat - 1  # the seed of the last repeat (`runs.csv`, `--seed`)
+        problem = f"with repeat = {plan.repeat}, the last run's seed {last} is past 64 bits"
+        self.refuse(last > schema.MAX_SEED, ("seed",), problem)
         self.tree(plan.tree, ("tree",), set())
         self.calls(plan.workload)
         names = {  # what the fields of an `after` trigger may name

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import signal
 import sys
@@ -155,7 +156,11 @@ class MissionConfig:
     def __post_init__(self) -> None:
         for field in ("distance_m", "speed", "lidar_rate", "driver_rate", "nav_rate"):
             value = getattr(self, field)
-            if isinstance(value, bool) or not isinstance(value, int | float) or value <= 0:
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, int | float)
+                or not (0 < value < math.inf)  # (nan too: it never drives to the goal)
+            ):
                 raise rr.ConfigError(f"{field} must be a positive number, got {value!r}")
         if self.hosts not in (1, 2) or isinstance(self.hosts, bool):
             raise rr.ConfigError(f"hosts must be 1 or 2, got {self.hosts!r}")

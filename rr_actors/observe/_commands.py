@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import threading
 from typing import TYPE_CHECKING, TextIO
 
@@ -83,11 +84,22 @@ def observe_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--for",
         dest="duration",
-        type=float,
+        type=_seconds,
         default=None,
         metavar="SECONDS",
         help="serve this long, then exit (default: until Ctrl-C)",
     )
+
+
+def _seconds(text: str) -> float:
+    """`--for`'s type: a positive number of seconds a wait can take (argparse names the flag)."""
+    try:
+        seconds = float(text)
+    except ValueError:
+        seconds = math.nan
+    if not 0 < seconds <= threading.TIMEOUT_MAX:  # (nan too; inf, 1e400: past any wait)
+        raise argparse.ArgumentTypeError(f"a positive number of seconds, not {text!r}")
+    return seconds
 
 
 def run_observe(

@@ -693,3 +693,13 @@ def test_the_key_scanner_finds_tables_arrays_of_tables_and_inline_keys() -> None
     assert 12 == lines[("tree", "children", 1, "children", 0, "name")]
     assert 16 == lines[("faults", 0, "at", 1)]
     assert ("not a table",) not in lines
+
+
+def test_a_seed_whose_later_repeats_would_run_past_64_bits_is_refused() -> None:
+    """Repeat `r` runs with `seed + r - 1`, which `runs.csv` records so that a run can be
+    made again with `--seed`; `--seed` takes 64-bit integers only. A plan whose last repeat
+    would run with a seed past them is refused when read, naming `seed`, rather than
+    recording a seed nobody can give back."""
+    error = plan_error(f"seed = {2**63 - 1}\nrepeat = 2\n" + BASE)
+
+    assert "seed" in str(error)

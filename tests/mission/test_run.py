@@ -21,6 +21,7 @@ from typing import Any
 
 import pytest
 
+import rr_actors as rr
 from rr_actors.mission import FAULTS, MissionError, MissionReport
 from rr_actors.mission.action import Mission
 from rr_actors.mission.config import MissionConfig
@@ -305,6 +306,16 @@ def demo(*argv: str) -> subprocess.CompletedProcess[str]:
         timeout=60,
         check=False,
     )
+
+
+@pytest.mark.parametrize(
+    ("field", "value"), [("speed", float("nan")), ("distance_m", float("inf"))]
+)
+def test_a_speed_or_distance_that_is_no_finite_number_is_refused(field: str, value: float) -> None:
+    """`rr-actors demo --speed nan` (or `--distance inf`) drove for ever: the mission never
+    reaches its goal and the demo never ends. Refused as `-1` is, naming the field."""
+    with pytest.raises(rr.ConfigError, match=f"{field} must be a positive number"):
+        MissionConfig(**{field: value})
 
 
 def test_out_pointing_at_a_file_is_a_clear_error_with_exit_code_2(tmp_path: Path) -> None:

@@ -158,6 +158,20 @@ def test_observe_serves_until_its_time_is_up(state: Path) -> None:
     assert text.startswith("observer: http://127.0.0.1:")
 
 
+@pytest.mark.parametrize("seconds", ["-1", "nan", "inf", "1e400"])
+def test_observe_for_what_is_not_a_positive_number_of_seconds_is_a_clear_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], seconds: str
+) -> None:
+    """`--for -1` (or `nan`) used to serve nothing and exit 0 as if it had served; `inf`
+    ended in an OverflowError's traceback. Each is an error that names `--for`."""
+    try:
+        code, _ = run("observe", "--state", str(tmp_path), "--for", seconds)
+    except SystemExit as exc:  # (argparse's refusal)
+        code = exc.code  # type: ignore[assignment]
+
+    assert (True, True) == (code not in (0, None), "--for" in capsys.readouterr().err)
+
+
 def test_observe_of_a_missing_directory_is_a_clear_error(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -272,6 +272,40 @@ def test_siblings_stop_in_reverse_start_order_and_restart_in_start_order(
     assert [f"unload {c}", f"unload {b}", f"start {a}", f"start {b}", f"start {c}"] == events
 
 
+def test_rest_for_one_starts_a_child_whose_backoff_ran_out_only_after_the_earlier_siblings(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    """rest_for_one: the children after a crashed one depend on it, so they come back only
+    after it. `c` crashed and waits out its backoff; then `a` crashes, which takes `b` and
+    `c` down with it. When `c`'s own backoff runs out first, `c` must not be started while
+    `a` and `b` are still down (nor be left out of the group's restart after them)."""
+    a, b, c = f"a-{uid}", f"b-{uid}", f"c-{uid}"
+    starts: list[str] = []
+
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        starts.append(registrar.name)
+
+    timer = ManualTimer()
+    sup = supervisors(
+        [rr.ManagerSpec(n, setup) for n in (a, b, c)],
+        strategy="rest_for_one",
+        backoff=rr.Backoff(initial=1.0),
+        clock=FakeClock(),
+        timer=timer,
+    ).start()
+    del starts[:]
+    crash(sup, c)
+    assert timer.wait_scheduled(1)  # c's restart, after its backoff
+    crash(sup, a)
+    assert timer.wait_scheduled(2)  # a, b, c's, after a longer one
+    timer.fire()  # both ran out, c's first
+    for name in (a, b):
+        sup.wait_restarted(name, timeout=5.0)
+    sup.wait_restarted(c, timeout=5.0)
+
+    assert (c, True) == (starts[-1], {a, b} <= set(starts[:-1])), starts
+
+
 def test_a_permanent_child_that_exits_normally_is_restarted(
     supervisors: Callable[..., rr.Supervisor], uid: str
 ) -> None:
@@ -305,6 +339,47 @@ def test_a_permanent_manager_process_that_exits_normally_is_restarted(
 def stop_own_registrar(registrar: rr.ResourceRegistrar) -> str:
     registrar.stop()
     return "stopped"
+
+
+# -- a restart that fails while the supervisor stops --------------------------------------------
+
+
+def test_a_restart_that_fails_while_the_supervisor_stops_does_not_start_the_child_after_the_stop(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    """A restart whose `setup` raises reports the failure as the child's exit. When
+    `stop()` was queued meanwhile, that report is about a child the stop already put down
+    for good: the child must stay stopped (OTP: a terminating supervisor restarts nothing),
+    not be started once more after `stop()` returned, unsupervised."""
+    name = f"a-{uid}"
+    runs: list[int] = []
+    restarting, stop_queued = threading.Event(), threading.Event()
+
+    def setup(_: rr.ResourceRegistrar) -> None:
+        runs.append(1)
+        if len(runs) == 2:  # the restart: fails once the owner's stop() is queued
+            restarting.set()
+            assert stop_queued.wait(10.0)
+            raise RuntimeError("device gone")
+
+    sup = supervisors([rr.ManagerSpec(name, setup)]).start()
+    mailbox = sup._node._mailbox  # (the supervisor's thread: its stop is queued there)
+    submit = mailbox.submit
+
+    def submit_and_tell(task: Any, **kwargs: Any) -> bool:
+        queued = submit(task, **kwargs)
+        if threading.current_thread().name == "stopper":
+            stop_queued.set()
+        return queued
+
+    mailbox.submit = submit_and_tell  # type: ignore[method-assign]
+    crash(sup, name)
+    assert restarting.wait(10.0)
+    stopper = threading.Thread(target=sup.stop, name="stopper")
+    stopper.start()
+    stopper.join(30.0)
+
+    assert (False, 2, "stopped") == (stopper.is_alive(), len(runs), sup.child(name).state)
 
 
 # -- RestartIntensity: the intensity window on an injected clock (pure) ---------------------------
@@ -419,6 +494,30 @@ def test_a_nested_supervisors_backoff_goes_through_the_injected_timer(
     assert ([0.5], "restarting") == (timer.delays, sup.child(x).state)
     timer.fire()
     assert 1 == sup.wait_restarted(x, timeout=5.0).restarts
+
+
+def test_the_timers_of_backoff_restarts_that_ran_are_not_kept(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    """A flaky manager restarted after a backoff, within the intensity, for months: each
+    restart's timer (a `threading.Timer` by default: a thread object, its locks, the
+    restart it posts) must be let go once it ran, not kept until the supervisor stops."""
+    name = f"a-{uid}"
+    clock, timer = FakeClock(), ManualTimer()
+    sup = supervisors(
+        [rr.ManagerSpec(name, echo_setup)],
+        backoff=rr.Backoff(initial=1.0),
+        clock=clock,
+        timer=timer,
+    ).start()
+    for crashes in range(1, 6):
+        crash(sup, name)
+        assert timer.wait_scheduled(crashes)
+        timer.fire()
+        sup.wait_restarted(name, timeout=5.0)
+        clock.now += 10.0  # out of the intensity window: it never gives up
+
+    assert len(sup._node.restarts._timers) <= 1
 
 
 # -- backoff: the injected jitter -----------------------------------------------------------------

@@ -9,6 +9,7 @@ backoff are tested without waiting for real time.
 from __future__ import annotations
 
 import dataclasses
+import sys
 import threading
 import time
 import uuid
@@ -427,6 +428,28 @@ def test_a_restart_whose_setup_fails_counts_as_another_crash(
     assert 3 == len(runs)
 
 
+def test_a_restart_whose_setup_calls_sys_exit_counts_as_another_crash(
+    supervisors: Callable[..., Supervisor], uid: str
+) -> None:
+    """A careless thread manager's `setup` that calls `sys.exit()` (a `BaseException`)
+    fails its start as one that raises does: at the first start that is the start's
+    error; at a restart it must count as another crash and be restarted, not leave the
+    child "starting" for ever with nobody told."""
+    name = f"a-{uid}"
+    runs: list[int] = []
+
+    def setup(_: rr.ResourceRegistrar) -> None:
+        runs.append(1)
+        if len(runs) == 2:
+            sys.exit(3)
+
+    sup = supervisors([ManagerSpec(name, setup)], max_restarts=3).start()
+    crash(sup, name)
+    info = sup.wait_restarted(name, timeout=5.0)
+
+    assert ("running", 3) == (info.state, len(runs))
+
+
 # -- death watch and retries ----------------------------------------------------------------
 
 
@@ -663,6 +686,51 @@ def test_stop_with_a_timeout_bounds_a_shutdown_that_would_take_longer(
     )
 
 
+# -- stop() asked for by code the supervisor itself runs (a thread manager's setup) --------------
+
+
+def stop_from_setup_on_restart(
+    box: dict[str, Any], answered: threading.Event
+) -> Callable[[rr.ResourceRegistrar], None]:
+    """A thread manager's setup that, at its second run (a restart), calls `box["sup"].stop()`
+    and sets `answered` once that call returned or raised."""
+    runs: list[int] = []
+
+    def setup(_: rr.ResourceRegistrar) -> None:
+        runs.append(1)
+        if len(runs) == 2:
+            try:
+                box["sup"].stop()
+            finally:
+                answered.set()
+
+    return setup
+
+
+@pytest.mark.parametrize("nested", [False, True], ids=["its-own", "a-nested-supervisors"])
+def test_stop_called_from_a_setup_the_tree_runs_never_keeps_a_later_stop_from_stopping_it(
+    supervisors: Callable[..., Supervisor], uid: str, nested: bool
+) -> None:
+    """A careless `setup` that stops the whole tree (a manager that finds its device gone
+    and shuts everything down) runs on a supervisor's own thread. Its `stop()` may do the
+    stop or refuse it, but it must answer, and the owner's own `stop()` afterwards must
+    still stop every manager: none may be left serving with nobody supervising it."""
+    a, b = f"a-{uid}", f"b-{uid}"
+    box: dict[str, Any] = {}
+    answered = threading.Event()
+    b_spec = ManagerSpec(b, stop_from_setup_on_restart(box, answered))
+    children: list[Any] = [ManagerSpec(a, echo_setup)]
+    children.append(SupervisorSpec(f"inner-{uid}", (b_spec,)) if nested else b_spec)
+    sup = box["sup"] = supervisors(children, clock=None).start()
+    first_a = handle(sup, a)
+    crash(sup, b)  # its restart runs the setup that calls stop()
+
+    stop_answered = answered.wait(10.0)
+    sup.stop()
+
+    assert (True, False) == (stop_answered, first_a.is_alive())
+
+
 # -- nested supervisors: escalation seen from a child below -----------------------------------
 
 
@@ -888,6 +956,8 @@ class TestBadArguments:
             (lambda sup, erm: sup.child([erm]), "name"),
             (lambda sup, erm: sup.wait_restarted([erm], timeout=1), "name"),
             (lambda sup, erm: sup.wait_restarted(erm, timeout=-1), "timeout"),
+            (lambda sup, erm: sup.wait_restarted(erm, timeout=1, restarts="1"), "restarts"),
+            (lambda sup, erm: sup.wait_restarted(erm, timeout=1, restarts=[1]), "restarts"),
         ],
         ids=[
             "run_in-timeout",
@@ -896,6 +966,8 @@ class TestBadArguments:
             "child",
             "wait_restarted",
             "wait-timeout",
+            "wait-restarts-str",
+            "wait-restarts-list",
         ],
     )
     def test_run_in_child_and_wait_restarted_refuse_what_they_cannot_use_naming_it(
