@@ -71,6 +71,7 @@ from rr_actors._platform import PLATFORM
 from rr_actors._process.context import (
     ACTOR_DIED_EXIT,
     PARENT_GONE_EXIT,
+    STOPPED_EXIT,
     TITLE_PREFIX,
     stopped_cleanly,
 )
@@ -382,7 +383,7 @@ def _run_manager(
         if stopping.is_set():
             return  # the supervisor's `stop`: the control loop exits
         if stopped_cleanly(registrar.name):  # code in the manager called registrar.stop()
-            _exit(0, attached)
+            _exit(STOPPED_EXIT, attached)
         _exit(ACTOR_DIED_EXIT, attached)
 
     control.send(Ready(os.getpid()))
@@ -455,7 +456,7 @@ class _ControlLoop:
         self.stopping.set()
         if message.restarting:  # stopped to be restarted with its group:
             DIRECTORY.mark_restarting([registrar.name])  # no tombstone: "unavailable"
-        code = 0
+        code = STOPPED_EXIT
         try:
             registrar.stop(timeout=message.timeout)
         except RrError:

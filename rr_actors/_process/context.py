@@ -20,6 +20,7 @@ __all__ = [
     "ACTOR_DIED_EXIT",
     "PARENT_GONE_EXIT",
     "PROCESS_PREFIX",
+    "STOPPED_EXIT",
     "TITLE_PREFIX",
     "forker_pid",
     "mp_context",
@@ -30,6 +31,12 @@ __all__ = [
 
 ACTOR_DIED_EXIT = 71
 """The exit code of a manager process whose registrar actor died (a crash)."""
+
+STOPPED_EXIT = 72
+"""The exit code of a manager process whose registrar stopped cleanly (code in the manager
+stopped it, or the supervisor's `Stop`): its one normal exit. A process that exits 0 (a
+library's `exit(0)`, an `os._exit(0)` in a callback) ended without stopping its
+registrar: nothing it held was let go, so it is judged a crash (`manager.describe`)."""
 
 PROCESS_PREFIX = "rr-manager-"
 """The `multiprocessing` name of every manager process starts with it."""

@@ -46,6 +46,7 @@ from rr_actors._process.child import main
 from rr_actors._process.context import (
     ACTOR_DIED_EXIT,
     PROCESS_PREFIX,
+    STOPPED_EXIT,
     forker_pid,
     mp_context,
     start_forkserver,
@@ -121,12 +122,22 @@ class ManagerExit:
         return f"ManagerExit({self.reason!r}, normal={self.normal}, clean={self.clean})"
 
 
+_EXITS: dict[int, tuple[str, bool]] = {
+    STOPPED_EXIT: ("normal", True),  # its registrar stopped cleanly: the one normal exit
+    0: ("exited with code 0 without stopping its registrar", False),  # nothing let go
+    ACTOR_DIED_EXIT: ("registrar actor died", False),
+}
+"""The reason and whether it is normal, of each exit code a manager process's end has."""
+
+
 def describe(exitcode: int | None) -> ManagerExit:
     """How a manager process ended, from its exit code (`Process.exitcode`)."""
-    if exitcode == 0:
-        return ManagerExit("normal", normal=True)
     if exitcode is None:
         return ManagerExit("unknown exit", normal=False)
+    known = _EXITS.get(exitcode)
+    if known is not None:
+        reason, normal = known
+        return ManagerExit(reason, normal=normal)
     if exitcode < 0:
         try:
             name = signal.Signals(-exitcode).name
@@ -135,8 +146,6 @@ def describe(exitcode: int | None) -> ManagerExit:
         if -exitcode in _SHUTDOWN_SIGNALS:  # asked to stop: OTP's `shutdown`
             return ManagerExit(f"shutdown ({name})", normal=True, clean=False)
         return ManagerExit(f"killed by {name}", normal=False)
-    if exitcode == ACTOR_DIED_EXIT:
-        return ManagerExit("registrar actor died", normal=False)
     return ManagerExit(f"exit code {exitcode}", normal=False)
 
 

@@ -12,7 +12,7 @@
    watcher task (`_watch`)                              control loop (`_child`)
         ── Ping(n) every `heartbeat` s ────────────────► registrar mailbox ─► Pong(n)
         a silence past the bound: Hang ─► kill
-        ── Stop(timeout, restarting) ──────────────────► registrar.stop(); exit 0 (1)
+        ── Stop(timeout, restarting) ────────► registrar.stop(); exit STOPPED_EXIT (1)
         ◄── Events([event]) while Forward(on) ────────── its registrar's events
         the end (`Scheduler.end`: a kill, an exit) ◄──── at_end: what it served is cut off
         ──► on_exit(ManagerExit) ─► the supervisor's mailbox (the real `_supervision`)
@@ -43,7 +43,7 @@ from rr_actors import events
 from rr_actors._core import runtime
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY
-from rr_actors._process.context import ACTOR_DIED_EXIT, stopped_cleanly
+from rr_actors._process.context import ACTOR_DIED_EXIT, STOPPED_EXIT, stopped_cleanly
 from rr_actors._process.control import (
     Events,
     EventsSynced,
@@ -371,11 +371,11 @@ class _Child:
         self.forwarding = on
 
     def watch_actor(self) -> None:
-        """Exit when the registrar actor ends: 0 if code in the manager stopped it."""
+        """Exit when the registrar actor ends: `STOPPED_EXIT` if code in the manager stopped it."""
         registrar = self.registrar
         registrar._actor.wait_stopped()
         if not self.stopping.is_set():
-            self.exit(0 if stopped_cleanly(registrar.name) else ACTOR_DIED_EXIT)
+            self.exit(STOPPED_EXIT if stopped_cleanly(registrar.name) else ACTOR_DIED_EXIT)
 
     def ping(self, message: Ping) -> None:
         """Answer through the registrar actor's mailbox: a hung actor sends no pong."""
@@ -388,12 +388,12 @@ class _Child:
         self.switch(on=message.on)
 
     def stop(self, message: Stop) -> None:
-        """Stop the registrar, exit (0, or 1 if it did not stop)."""
+        """Stop the registrar, exit (`STOPPED_EXIT`, or 1 if it did not stop)."""
         registrar = self.registrar
         self.stopping.set()
         if message.restarting:  # stopped to be restarted with its group: no tombstone
             DIRECTORY.mark_restarting([registrar.name])
-        code = 0
+        code = STOPPED_EXIT
         try:
             registrar.stop(timeout=message.timeout)
         except RrError:

@@ -490,10 +490,6 @@ def exit_zero_without_a_stop(_: rr.ResourceRegistrar) -> None:
     os._exit(0)  # a library's exit(0), say: the registrar is never stopped
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="review8: any exit code 0 is taken for a clean stop (_process/manager.py describe)",
-)
 def test_a_transient_manager_process_that_exits_0_without_stopping_its_registrar_is_restarted(
     supervisors: Callable[..., rr.Supervisor], uid: str
 ) -> None:
