@@ -549,8 +549,10 @@ def _check_observe_args(args: argparse.Namespace) -> None:
     """`--observe` has its extra; `--allow-faults`, `--linger` and `--port` go with
     `--observe`; `--linger` is not negative, `--port` a port (checked before anything
     starts)."""
-    if not args.observe and (args.allow_faults or args.linger is not None):
-        raise rr.ConfigError("--allow-faults and --linger need --observe")
+    if not args.observe and args.allow_faults:
+        raise rr.ConfigError("--allow-faults needs --observe (its buttons are on the page)")
+    if not args.observe and args.linger is not None:
+        raise rr.ConfigError("--linger needs --observe (it keeps the page served)")
     if args.observe:
         from rr_actors.observe import require_extra  # noqa: PLC0415 - only --observe needs it
 
