@@ -288,7 +288,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     faults.add_argument(
         "--faults", default=None, help="comma-separated faults to inject (default F1,F2,F3,F4,F5)"
     )
-    p.add_argument("--fault-at", default=None, metavar="F1=0.2,...", help="where (path fraction)")
+    p.add_argument(
+        "--fault-at",
+        default=None,
+        metavar="F1=0.2,...",
+        help="where each fault strikes, as a fraction of the path (between 0 and 1)",
+    )
     p.add_argument("--speed", type=float, default=None, help="m/s (default 0.5, fast 2.0)")
     p.add_argument("--distance", type=float, default=None, help="m (default 16, fast 6)")
     p.add_argument("--seed", type=int, default=0, help="seed of the LiDAR noise and jitter")
