@@ -868,6 +868,14 @@ class Releases:
         query_id = message.query_id
         record = self.registrar.catalog.clients.get(query_id)
         if record is None or not record.loaded:
+            catalog = self.registrar.catalog
+            if record is None and catalog.has_consumer(query_id):  # (a provider's own id)
+                resource = catalog.resource_of(query_id)
+                raise UnknownQueryError(
+                    f"query id {query_id!r} is a consumer id of "
+                    f"{self.registrar.name}/{resource.server}, held by "
+                    f"{resource.consumers[query_id]!r}: only that registrar unloads it"
+                )
             raise UnknownQueryError(f"unknown or released query id {query_id!r}")
         query = record.query
 

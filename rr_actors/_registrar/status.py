@@ -70,7 +70,7 @@ from rr_actors._registrar.consumer import Flights, Holdings
 from rr_actors._registrar.messages import SendStatus, StatusBatch, StatusNotice, StatusOnItsWay
 from rr_actors._registrar.state import NO_REPLY, Shared, consumers_by_origin
 from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
-from rr_actors.errors import ConfigError, RrError
+from rr_actors.errors import ConfigError, RrError, UnknownQueryError
 
 __all__ = [
     "DESK",
@@ -107,7 +107,17 @@ class StatusRelay:
     def on_send_status(self, asked: SendStatus, reply: Reply) -> None:
         query_id, status, message = asked.query_id, asked.status, asked.message
         shared = self.registrar
-        resource = shared.catalog.resource_of(query_id)
+        try:
+            resource = shared.catalog.resource_of(query_id)
+        except UnknownQueryError:
+            held = shared.catalog.clients.get(query_id)
+            if held is None:
+                raise
+            raise UnknownQueryError(  # (a consumer's own id: only its provider sends)
+                f"query id {query_id!r} is one {shared.name!r} holds at "
+                f"{held.query.serving_rr}/{held.query.server}, not one it serves: only the "
+                f"provider, {held.query.serving_rr!r}, sends statuses about it"
+            ) from None
         update = StatusUpdate(query_id, status, message, f"{shared.name}/{resource.server}")
         event = new_id()
         told = (

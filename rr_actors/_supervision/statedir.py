@@ -58,9 +58,11 @@ def _lock(directory: str) -> int:
         os.makedirs(directory, exist_ok=True)
         return lockfile.claim(os.path.join(directory, LOCK_NAME))
     except lockfile.HeldError as held:
+        ours = held.holder == str(os.getpid())  # (a tree this program did not stop)
+        then = ", one of this process that is still running: stop it first, or" if ours else ";"
         raise ConfigError(
-            f"state_dir {directory!r} is in use by another supervisor (pid {held.holder}); "
-            "give each supervisor tree its own state_dir"
+            f"state_dir {directory!r} is in use by another supervisor (pid {held.holder})"
+            f"{then} give each supervisor tree its own state_dir"
         ) from None
     except OSError as exc:
         raise ConfigError(f"state_dir {directory!r} cannot be used: {exc}") from exc

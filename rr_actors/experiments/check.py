@@ -390,7 +390,8 @@ def format_verdict(
     Args:
         run: the run's number.
         verdict: its verdict.
-        show: `show(line_number)` gives the text of a line (`None`: numbers only).
+        show: `show(line_number)` gives the text of a line (`None`: numbers only, each
+            `line N` with nothing after it).
     """
     out = [
         f"run {run}: {verdict.verdict} ({verdict.events} events, {verdict.violations} "
@@ -400,5 +401,5 @@ def format_verdict(
         out.append(f"  {finding.kind} [{finding.rule}] {finding.message}")
         for number in finding.lines:
             text = show(number) if show is not None else ""
-            out.append(f"    line {number}: {text}".rstrip())
+            out.append(f"    line {number}: {text}".rstrip() if text else f"    line {number}")
     return out

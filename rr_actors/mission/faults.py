@@ -427,4 +427,5 @@ class Faults:
             return "re-adopted " + ", ".join(served)
         held = {q.id for q in self.app.client_queries()}
         restored = sorted({q.id[:8] for q in mine if q.id in held})
-        return f"restored the mission's queries {', '.join(restored)}"
+        queries = "query" if len(restored) == 1 else "queries"
+        return f"restored the mission's {queries} {', '.join(restored)}"

@@ -288,7 +288,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     faults.add_argument(
         "--faults", default=None, help="comma-separated faults to inject (default F1,F2,F3,F4,F5)"
     )
-    p.add_argument("--fault-at", default=None, metavar="F1=0.2,...", help="where (path fraction)")
+    p.add_argument(
+        "--fault-at",
+        default=None,
+        metavar="F1=0.2,...",
+        help="where each fault strikes, as a fraction of the path (between 0 and 1)",
+    )
     p.add_argument("--speed", type=float, default=None, help="m/s (default 0.5, fast 2.0)")
     p.add_argument("--distance", type=float, default=None, help="m (default 16, fast 6)")
     p.add_argument("--seed", type=int, default=0, help="seed of the LiDAR noise and jitter")
@@ -549,8 +554,10 @@ def _check_observe_args(args: argparse.Namespace) -> None:
     """`--observe` has its extra; `--allow-faults`, `--linger` and `--port` go with
     `--observe`; `--linger` is not negative, `--port` a port (checked before anything
     starts)."""
-    if not args.observe and (args.allow_faults or args.linger is not None):
-        raise rr.ConfigError("--allow-faults and --linger need --observe")
+    if not args.observe and args.allow_faults:
+        raise rr.ConfigError("--allow-faults needs --observe (its buttons are on the page)")
+    if not args.observe and args.linger is not None:
+        raise rr.ConfigError("--linger needs --observe (it keeps the page served)")
     if args.observe:
         from rr_actors.observe import require_extra  # noqa: PLC0415 - only --observe needs it
 

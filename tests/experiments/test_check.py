@@ -355,6 +355,16 @@ def test_rr_actors_check_prints_the_verdict_and_the_window(
     assert "run 0: held" in capsys.readouterr().out
 
 
+def test_a_verdict_without_the_lines_texts_lists_their_numbers_alone(real: list[str]) -> None:
+    at = _kinds(real).index("ResourceUnloaded")
+    verdict = check.check(check.read_runs([*real, real[at]])[0])
+
+    lines = check.format_verdict(0, verdict)
+
+    assert f"    line {at + 1}" in lines
+    assert [] == [line for line in lines if line.endswith(":")]
+
+
 def test_rr_actors_check_reads_a_schema_2_file_as_a_schema_3_one(
     real: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

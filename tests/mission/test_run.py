@@ -486,6 +486,28 @@ class TestOutAndPort:
         )
         assert not out.exists()  # nothing started, nothing written
 
+    @pytest.mark.parametrize(
+        ("argv", "says"),
+        [
+            (["--linger", "5"], "--linger needs --observe (it keeps the page served)"),
+            (["--allow-faults"], "--allow-faults needs --observe (its buttons are on the page)"),
+        ],
+        ids=["linger", "allow-faults"],
+    )
+    def test_an_observer_option_without_observe_names_itself_before_anything_starts(
+        self, tmp_path: Path, argv: list[str], says: str
+    ) -> None:
+        out = tmp_path / "out"
+
+        result = demo("--fast", "--out", str(out), *argv)
+
+        assert (2, "", f"rr-actors demo: {says}\n") == (
+            result.returncode,
+            result.stdout,
+            result.stderr,
+        )
+        assert not out.exists()  # nothing started, nothing written
+
     @pytest.mark.parametrize("sub", ["state", "bus", "certs"])
     def test_a_folder_whose_state_bus_or_certs_no_demo_wrote_is_refused_and_kept(
         self, tmp_path: Path, sub: str

@@ -1522,3 +1522,33 @@ class TestResponseUpdated:
         finally:
             consumer.stop()
             provider.stop()
+
+
+class TestReleaseRefused:
+    """`unload` of an id this registrar does not hold says what the id is."""
+
+    def test_unloading_a_consumer_id_at_its_provider_names_the_consumer_that_holds_it(
+        self, make_registrar, serve
+    ) -> None:
+        provider, consumer = make_registrar("provider"), make_registrar("consumer")
+        serve(provider, "leaf")
+        query = consumer.call(provider.name, "leaf", "x")
+
+        with pytest.raises(rr.UnknownQueryError) as raised:
+            provider.unload(query.id)
+
+        assert (
+            f"query id {query.id!r} is a consumer id of {provider.name}/leaf, held by "
+            f"{consumer.name!r}: only that registrar unloads it"
+        ) == str(raised.value)
+        assert [query.id] == [q.id for q in provider.server_queries("leaf")]  # nothing changed
+        consumer.unload(query.id)
+
+    def test_unloading_an_id_nobody_holds_says_unknown_or_released(self, make_registrar) -> None:
+        provider = make_registrar("provider")
+        unknown = str(uuid.uuid4())
+
+        with pytest.raises(rr.UnknownQueryError) as raised:
+            provider.unload(unknown)
+
+        assert f"unknown or released query id {unknown!r}" == str(raised.value)

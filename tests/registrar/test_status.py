@@ -501,6 +501,21 @@ class TestStatus:
         with pytest.raises(rr.UnknownQueryError):
             consumer.send_status(query.id, rr.Status.OK, "")
 
+    def test_a_consumer_sending_status_with_its_own_id_is_told_who_sends_it(
+        self, make_registrar, serve
+    ):
+        provider, consumer = make_registrar("provider"), make_registrar("consumer")
+        serve(provider, "leaf")
+        query = consumer.call(provider.name, "leaf", "x")
+
+        with pytest.raises(rr.UnknownQueryError) as raised:
+            consumer.send_status(query.id, rr.Status.WARNING, "low")
+
+        assert (
+            f"query id {query.id!r} is one {consumer.name!r} holds at {provider.name}/leaf, "
+            f"not one it serves: only the provider, {provider.name!r}, sends statuses about it"
+        ) == str(raised.value)
+
     def test_send_status_s_timeout_bounds_the_wait(self, make_registrar, serve, gates):
         """Rule 9: "`send_status` returns when the notification has been delivered ... (a
         `timeout` bounds it)".

@@ -69,6 +69,21 @@ def test_a_second_supervisor_on_the_same_state_dir_is_refused_naming_the_holders
         supervisors([rr.ManagerSpec(f"b-{uid}")], state_dir=tmp_path).start()
 
 
+def test_a_state_dir_held_by_a_supervisor_of_this_process_says_to_stop_that_one_first(
+    supervisors: Callable[..., rr.Supervisor], uid: str, tmp_path: Path
+) -> None:
+    supervisors([rr.ManagerSpec(f"a-{uid}")], state_dir=tmp_path).start()
+
+    with pytest.raises(rr.ConfigError) as raised:
+        supervisors([rr.ManagerSpec(f"b-{uid}")], state_dir=tmp_path).start()
+
+    assert (
+        f"state_dir {str(tmp_path)!r} is in use by another supervisor (pid {os.getpid()}), one "
+        "of this process that is still running: stop it first, or give each supervisor tree "
+        "its own state_dir"
+    ) == str(raised.value)
+
+
 def test_a_state_dir_is_free_again_once_its_supervisor_stopped(
     supervisors: Callable[..., rr.Supervisor], uid: str, tmp_path: Path
 ) -> None:
