@@ -148,10 +148,16 @@ def _command_line(pid: int) -> str:
     return raw.replace(b"\0", b" ").decode(errors="replace").strip()[:200]
 
 
-def _is_forkserver(pid: int) -> bool:
-    """Whether `pid` is `multiprocessing`'s forkserver: the first test that starts a process
-    manager starts it, and it serves every later test (a session-long helper, not a leak)."""
-    return "from multiprocessing.forkserver import main" in _command_line(pid)
+def _is_session_helper(pid: int) -> bool:
+    """Whether `pid` is `multiprocessing`'s forkserver or its resource tracker: the first
+    test that starts a process manager (or a forkserver of its own) starts them, and they
+    serve every later test (session-long helpers, not leaks; which test comes first
+    depends on the order a worker runs them)."""
+    command = _command_line(pid)
+    return (
+        "from multiprocessing.forkserver import main" in command
+        or "from multiprocessing.resource_tracker import main" in command
+    )
 
 
 def _test_children() -> list[multiprocessing.process.BaseProcess]:
@@ -173,7 +179,7 @@ def no_leftovers() -> Iterator[None]:
             child.join(max(0.0, deadline - time.monotonic()))
     processes = _test_children()
     strays = set(_os_children()) - children_before - {p.pid for p in processes} - _HELPER_PIDS
-    strays = {pid for pid in strays if not _is_forkserver(pid)}  # started once, session-long
+    strays = {pid for pid in strays if not _is_session_helper(pid)}  # once, session-long
     if actors:
         pykka.ActorRegistry.stop_all(block=True, timeout=LEAK_GRACE)
     for child in processes:
