@@ -255,7 +255,7 @@ class Provider:
                 return
         if known is None:
             self.look_up(message, key, digest)
-        elif known.server != message.server or holder != message.origin_rr:
+        elif known.server != message.server or holder not in (None, message.origin_rr):
             # a retry repeats the call: another server, or another caller, is another call
             message.reply.set_error(self.reused(message, known.server))
         elif key is None and known.digest not in (None, NO_DIGEST):  # both plain
