@@ -82,7 +82,7 @@ def release(fd: int) -> None:
     """Release the lock `claim` returned: the lock file is removed while still held (the
     next owner makes a new one), then closed, which releases the lock."""
     name = _held.pop(fd, None)
-    if name is not None:
+    if name is not None and _names(fd, name):  # (not another owner's, were ours deleted)
         with contextlib.suppress(OSError):
             os.unlink(name)
     with contextlib.suppress(OSError):
@@ -93,7 +93,7 @@ def _names(fd: int, name: str) -> bool:
     """Whether `name` still names the file open at `fd`."""
     try:
         return os.path.samestat(os.fstat(fd), os.stat(name))
-    except FileNotFoundError:
+    except OSError:
         return False
 
 

@@ -37,6 +37,20 @@ def test_a_released_lock_leaves_no_file_and_can_be_claimed_again(tmp_path: Path)
     lockfile.release(lockfile.claim(path))
 
 
+def test_a_release_never_removes_another_owners_lock_file(tmp_path: Path) -> None:
+    path = tmp_path / "x.lock"
+    first = lockfile.claim(path)
+    path.unlink()  # (someone deleted it: a second owner may make its own now)
+    second = lockfile.claim(path)
+    try:
+        lockfile.release(first)
+
+        with pytest.raises(lockfile.HeldError):  # the second's file and lock are still there
+            lockfile.claim(path)
+    finally:
+        lockfile.release(second)
+
+
 def test_the_lock_file_is_the_owners_alone_whatever_the_umask(tmp_path: Path) -> None:
     path = tmp_path / "x.lock"
     before = os.umask(0o077 ^ 0o777)  # (a umask that would leave 0o077)
