@@ -269,6 +269,42 @@ class _Lines(io.StringIO):
         return line.split()[1]
 
 
+_FORCED = {"erm": "q-erm-0000", "cm": "q-cm-00000", "action": "q-act-0000"}
+"""The query ids of the forced status below: erm's, and its two hops' (cm, action)."""
+
+
+def _deliveries(observer: Any, at: float) -> None:
+    """Put the two hops' deliveries of a FATAL that erm sent at `at` into the hub."""
+    for hop, registrar, latency in ((1, "cm", 0.007), (2, "action", 0.009)):
+        observer._hub.add_event(
+            {
+                "type": "StatusDelivered",
+                "registrar": registrar,
+                "query_id": _FORCED[registrar],
+                "status": "FATAL",
+                "hop": hop,
+                "latency_s": latency,
+                "at": at + latency,
+                "text": f"{registrar} received FATAL",
+            }
+        )
+
+
+def _send(observer: Any, at: float) -> None:
+    """Put erm's send of that FATAL (at `at`) into the hub."""
+    observer._hub.add_event(
+        {
+            "type": "StatusSent",
+            "registrar": "erm",
+            "query_id": _FORCED["erm"],
+            "status": "FATAL",
+            "message": "camera unplugged",
+            "at": at,
+            "text": "erm sent FATAL",
+        }
+    )
+
+
 class TestInAClass:
     """The observer in a class: the history a late page draws, the teacher's demo flags, the clock,
     the one badge, the offline page's first paint. A real chromium (Playwright), real processes.
@@ -373,31 +409,8 @@ class TestInAClass:
         live.goto(observer.url)
         live.wait_for_selector('.node[data-child="cm"][data-state="running"]')
         at = time.time()
-        query = {"erm": "q-erm-0000", "cm": "q-cm-00000", "action": "q-act-0000"}
-        for hop, registrar, latency in ((1, "cm", 0.007), (2, "action", 0.009)):
-            observer._hub.add_event(
-                {
-                    "type": "StatusDelivered",
-                    "registrar": registrar,
-                    "query_id": query[registrar],
-                    "status": "FATAL",
-                    "hop": hop,
-                    "latency_s": latency,
-                    "at": at + latency,
-                    "text": f"{registrar} received FATAL",
-                }
-            )
-        observer._hub.add_event(
-            {
-                "type": "StatusSent",
-                "registrar": "erm",
-                "query_id": query["erm"],
-                "status": "FATAL",
-                "message": "camera unplugged",
-                "at": at,
-                "text": "erm sent FATAL",
-            }
-        )
+        _deliveries(observer, at)
+        _send(observer, at)
         live.locator('#timeline li[data-status="FATAL"] [data-hop="2"]').wait_for(timeout=5000)
         live.wait_for_function(f"() => Date.now() / 1000 > {at + 2.5}")  # late: 2.5 s after
         late = tabs()
@@ -422,33 +435,10 @@ class TestInAClass:
         live.goto(observer.url)
         live.wait_for_selector('.node[data-child="cm"][data-state="running"]')
         at = time.time()
-        query = {"erm": "q-erm-0000", "cm": "q-cm-00000", "action": "q-act-0000"}
-        for hop, registrar, latency in ((1, "cm", 0.007), (2, "action", 0.009)):
-            observer._hub.add_event(
-                {
-                    "type": "StatusDelivered",
-                    "registrar": registrar,
-                    "query_id": query[registrar],
-                    "status": "FATAL",
-                    "hop": hop,
-                    "latency_s": latency,
-                    "at": at + latency,
-                    "text": f"{registrar} received FATAL",
-                }
-            )
+        _deliveries(observer, at)
         alone = live.locator('#timeline li[data-kind=status]:has-text("its send was not seen")')
         alone.nth(1).wait_for(timeout=10_000)  # (both, each a row of its own)
-        observer._hub.add_event(
-            {
-                "type": "StatusSent",
-                "registrar": "erm",
-                "query_id": query["erm"],
-                "status": "FATAL",
-                "message": "camera unplugged",
-                "at": at,
-                "text": "erm sent FATAL",
-            }
-        )
+        _send(observer, at)
         live.locator('#timeline li[data-status="FATAL"]:has-text("camera unplugged")').wait_for(
             timeout=5000
         )
