@@ -155,7 +155,7 @@ def _wait(fd: int, event: int, deadline: float) -> None:
     poller = select.poll()
     poller.register(fd, event)
     if not poller.poll(max(0, round((deadline - time.monotonic()) * 1000))):
-        raise TimeoutError("rr_actors' forkserver did not fork the process in time")
+        raise TimeoutError("a fork through rr_actors' forkserver did not finish in time")
 
 
 def _write(fd: int, data: memoryview, deadline: float) -> None:

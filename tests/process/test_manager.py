@@ -506,6 +506,7 @@ def test_a_transient_manager_process_that_exits_0_without_stopping_its_registrar
     assert ("running", 1) == (info.state, info.restarts)
 
 
+@linux_trick  # (the bound is rr_actors' own forkserver's; CPython's, portable, has none)
 def test_a_hung_forkserver_holds_a_restart_no_longer_than_its_start_timeout(
     supervisors: Callable[..., rr.Supervisor], uid: str
 ) -> None:
