@@ -41,7 +41,7 @@ from multiprocessing.process import BaseProcess
 from typing import TYPE_CHECKING, Any
 
 from rr_actors._core import runtime
-from rr_actors._platform import PLATFORM
+from rr_actors._platform import PLATFORM, forkserver
 from rr_actors._process.child import main
 from rr_actors._process.context import (
     ACTOR_DIED_EXIT,
@@ -251,16 +251,21 @@ class ManagerProcess:
         tally = Tally.create() if on_events is not None else None
         backup = config.backup_path  # (its outbox: what a kill kept from the journal)
         received = Received(on_events, tally, None if backup is None else os.path.abspath(backup))
+        deadline = runtime.monotonic() + start_timeout
         try:
             process, parent_conn = _launch(
-                name, setup, config, address, spare, forward_events, tally
+                name, setup, config, address, spare, forward_events, tally, start_timeout
             )
-        except BaseException:
+        except BaseException as e:
             if tally is not None:
                 tally.close()  # (its file and map; nothing was forked to use it)
+            if isinstance(e, TimeoutError):  # the fork itself (a stopped forkserver)
+                raise CallTimeoutError(
+                    f"manager {name!r} was not ready within {start_timeout:g} s"
+                ) from e
             raise
         try:
-            _await_ready(name, process, parent_conn, start_timeout, received)
+            _await_ready(name, process, parent_conn, start_timeout, received, deadline=deadline)
         except BaseException:
             received.close()  # (a Ctrl-C while waiting; after a failure it is closed)
             raise
@@ -502,8 +507,13 @@ def _launch(
     spare: Spare | None,
     forward: bool,
     tally: Tally | None,
+    start_timeout: float,
 ) -> tuple[Any, Connection]:
-    """Hand the manager to `spare`, or start a new process for it; the process and pipe."""
+    """Hand the manager to `spare`, or start a new process for it; the process and pipe.
+
+    A fork that takes longer than `start_timeout` (a stopped forkserver) raises
+    `TimeoutError` (`forkserver.start_within`), its pipe closed.
+    """
     path = None if tally is None else tally.path
     if spare is not None and spare.take(name, setup, config, address, forward=forward, tally=path):
         return spare.process, spare.conn
@@ -515,21 +525,34 @@ def _launch(
         name=f"{PROCESS_PREFIX}{name}",
         daemon=True,
     )
-    process.start()
-    child_conn.close()
+    try:
+        forkserver.start_within(process, start_timeout)
+    except BaseException:
+        parent_conn.close()
+        raise
+    finally:
+        child_conn.close()
     return process, parent_conn
 
 
 def _await_ready(
-    name: str, process: BaseProcess, conn: Connection, start_timeout: float, received: Received
+    name: str,
+    process: BaseProcess,
+    conn: Connection,
+    start_timeout: float,
+    received: Received,
+    *,
+    deadline: float | None = None,
 ) -> None:
     """Wait for the manager's `ready` (skipping a spare's `warm`); raise if it never comes.
 
     The events it forwards before it is ready (its restore's, its setup's) go to
     `received` as they come, and so do those of a start that fails (with the count of
-    those it built and never sent).
+    those it built and never sent). `deadline` (`runtime.monotonic`) ends the
+    `start_timeout` that began before the process was forked (default: from now).
     """
-    deadline = runtime.monotonic() + start_timeout
+    if deadline is None:
+        deadline = runtime.monotonic() + start_timeout
     pid = process.pid
     assert pid is not None  # (started)
     ready: Ready | Failed | None = None

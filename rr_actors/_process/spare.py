@@ -18,11 +18,15 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import multiprocessing.connection
 import threading
 import time
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
+from typing import Any
 
+from rr_actors._platform import PLATFORM, forkserver
+from rr_actors._platform.base import ExitWatch
 from rr_actors._process.child import standby
 from rr_actors._process.context import PROCESS_PREFIX, forker_pid, mp_context
 from rr_actors._process.control import Start, Warm, WarmUp
@@ -32,6 +36,13 @@ from rr_actors.config import RegistrarConfig
 __all__ = ["Spare", "SparePool"]
 
 logger = logging.getLogger("rr_actors")
+
+FORK_TIMEOUT = 5.0
+"""Seconds a spare's fork may take (a stopped forkserver): the filler thread gives up
+then, so that `SparePool.close` does not wait for it longer."""
+
+REAP_GRACE = 0.5
+"""Seconds `Spare.close` waits for the forkserver to reap a spare that has exited."""
 
 
 class Spare:
@@ -53,6 +64,9 @@ class Spare:
 
         Args:
             lean: it warms up only when told (`warm_up`), not at once.
+
+        Raises:
+            TimeoutError: it was not forked within `FORK_TIMEOUT` seconds.
         """
         ctx = mp_context()
         parent_conn, child_conn = ctx.Pipe(duplex=True)
@@ -62,8 +76,13 @@ class Spare:
             name=f"{PROCESS_PREFIX}spare",
             daemon=True,
         )
-        process.start()
-        child_conn.close()
+        try:
+            forkserver.start_within(process, FORK_TIMEOUT)
+        except BaseException:
+            parent_conn.close()
+            raise
+        finally:
+            child_conn.close()
         return cls(process, parent_conn, lean=lean)
 
     def warm_up(self) -> None:
@@ -104,16 +123,37 @@ class Spare:
         return True
 
     def close(self, timeout: float = 5.0) -> None:
-        """Release an unused spare: it sees EOF and exits; killed after `timeout` seconds."""
+        """Release an unused spare: it sees EOF and exits; killed after `timeout` seconds.
+
+        Its exit is seen by the platform's exit watch where there is one (a pidfd), not
+        only by the process sentinel, which waits for the forkserver to reap it: a
+        stopped forkserver (a hang) then holds each spare's close `REAP_GRACE` seconds,
+        not twice `timeout`.
+        """
         with contextlib.suppress(OSError):
             self.conn.close()
-        self.process.join(timeout)
-        if self.process.exitcode is None:
-            with contextlib.suppress(OSError, ValueError):
-                self.process.kill()
-            self.process.join(timeout)
-        with contextlib.suppress(OSError, ValueError):  # its sentinel pipe, now
+        pid = self.process.pid
+        watch = None if pid is None else PLATFORM.watch_exit(pid)
+        try:
+            if not _exited(self.process, watch, timeout):
+                with contextlib.suppress(OSError, ValueError):
+                    self.process.kill()
+                _exited(self.process, watch, timeout)
+        finally:
+            if watch is not None:
+                watch.close()
+        with contextlib.suppress(OSError, ValueError):  # its sentinel pipe, once reaped
             self.process.close()
+
+
+def _exited(process: BaseProcess, watch: ExitWatch | None, timeout: float) -> bool:
+    """Wait up to `timeout` seconds for `process` to exit, then up to `REAP_GRACE` more
+    for the forkserver to reap it; whether it exited."""
+    waitables: list[Any] = [process.sentinel] if watch is None else [process.sentinel, watch]
+    if not multiprocessing.connection.wait(waitables, timeout):
+        return False
+    process.join(REAP_GRACE)
+    return True
 
 
 class SparePool:

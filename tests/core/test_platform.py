@@ -10,9 +10,14 @@ trick does are marked `linux_trick` (see `supervising.py`) and skipped there.
 from __future__ import annotations
 
 import os
+import signal
 import sys
+import time
+from pathlib import Path
 
-from rr_actors._platform import PLATFORM
+import pytest
+
+from rr_actors._platform import PLATFORM, forkserver
 
 _FORCED = os.environ.get("RR_ACTORS_PLATFORM") == "portable"
 
@@ -21,3 +26,33 @@ def test_the_platform_is_the_one_the_environment_asks_for() -> None:
     expected = "portable" if _FORCED or not sys.platform.startswith("linux") else "linux"
 
     assert expected == PLATFORM.name
+
+
+@pytest.mark.skipif(not forkserver.SUPPORTED, reason="rr_actors' forkserver: CPython 3.11-3.13")
+def test_a_start_through_a_stopped_forkserver_gives_up_within_its_bound(tmp_path: Path) -> None:
+    """`forkserver.start_within`: with rr_actors' forkserver stopped (SIGSTOP: a debugger,
+    a hang), a start raises `TimeoutError` once its bound ran out, not waiting for ever
+    for the fork; once the server runs again it forks the next process, and the process
+    that timed out never runs (its late fork is given nothing to run)."""
+    ctx = forkserver.context(())
+    server = forkserver.server_pid(ctx)
+    assert server
+    late = ctx.Process(target=(tmp_path / "late").touch, daemon=True)
+    os.kill(server, signal.SIGSTOP)
+    try:
+        started = time.monotonic()
+        with pytest.raises(TimeoutError):
+            forkserver.start_within(late, 0.5)
+        took = time.monotonic() - started
+    finally:
+        os.kill(server, signal.SIGCONT)
+    then = ctx.Process(target=(tmp_path / "then").touch, daemon=True)
+    forkserver.start_within(then, 30.0)
+    then.join(30.0)
+
+    assert (True, None, 0, False) == (
+        0.4 <= took < 3.0,
+        late.pid,
+        then.exitcode,
+        (tmp_path / "late").exists(),
+    ), took
