@@ -14,8 +14,9 @@ import pytest
 from rr_actors._core import wire
 
 
-def _divider() -> Any:
-    """A function of this file pickled by value (a closure), with a nested one of its own."""
+def divider() -> Any:
+    """A function of this file pickled by value (a closure), with a nested one of its own
+    (tests/transport/test_codec.py frames it too)."""
 
     def divide(request: int) -> float:
         def inverse() -> float:
@@ -27,7 +28,7 @@ def _divider() -> Any:
 
 
 def test_code_pickled_by_value_keeps_its_file_so_a_traceback_shows_file_and_line() -> None:
-    divide = pickle.loads(wire.dumps(_divider()))
+    divide = pickle.loads(wire.dumps(divider()))
 
     with pytest.raises(ZeroDivisionError) as info:
         divide(0)

@@ -469,32 +469,12 @@ class TestOutAndPort:
             (["--port", "8080"], "--port needs --observe (it is the observer's port)"),
             (["--observe", "--port", "-5"], "--port must be from 0 to 65535, got -5"),
             (["--observe", "--port", "70000"], "--port must be from 0 to 65535, got 70000"),
-        ],
-        ids=["without-observe", "negative", "too-big"],
-    )
-    def test_a_port_the_demo_cannot_use_is_a_usage_error_before_anything_starts(
-        self, tmp_path: Path, argv: list[str], says: str
-    ) -> None:
-        out = tmp_path / "out"
-
-        result = demo("--fast", "--out", str(out), *argv)
-
-        assert (2, "", f"rr-actors demo: {says}\n") == (
-            result.returncode,
-            result.stdout,
-            result.stderr,
-        )
-        assert not out.exists()  # nothing started, nothing written
-
-    @pytest.mark.parametrize(
-        ("argv", "says"),
-        [
             (["--linger", "5"], "--linger needs --observe (it keeps the page served)"),
             (["--allow-faults"], "--allow-faults needs --observe (its buttons are on the page)"),
         ],
-        ids=["linger", "allow-faults"],
+        ids=["without-observe", "negative", "too-big", "linger", "allow-faults"],
     )
-    def test_an_observer_option_without_observe_names_itself_before_anything_starts(
+    def test_a_port_or_an_observer_option_the_demo_cannot_use_is_a_usage_error_at_once(
         self, tmp_path: Path, argv: list[str], says: str
     ) -> None:
         out = tmp_path / "out"

@@ -273,6 +273,15 @@ _FORCED = {"erm": "q-erm-0000", "cm": "q-cm-00000", "action": "q-act-0000"}
 """The query ids of the forced status below: erm's, and its two hops' (cm, action)."""
 
 
+def _forced_page(supervisors: Any, tabs: Any) -> tuple[Any, Any]:
+    """Figure 27's tree (thread managers) and a live page on its observer, cm running."""
+    observer = figure_27(supervisors, isolation="thread").start().observe()
+    live = tabs()
+    live.goto(observer.url)
+    live.wait_for_selector('.node[data-child="cm"][data-state="running"]')
+    return observer, live
+
+
 def _deliveries(observer: Any, at: float) -> None:
     """Put the two hops' deliveries of a FATAL that erm sent at `at` into the hub."""
     for hop, registrar, latency in ((1, "cm", 0.007), (2, "action", 0.009)):
@@ -403,11 +412,7 @@ class TestInAClass:
     ) -> None:
         """The order above depends on which process's events come first; here it is forced:
         the events go into the observer's hub (what its subscription does) deliveries first."""
-        sup = figure_27(supervisors, isolation="thread").start()
-        observer = sup.observe()
-        live = tabs()
-        live.goto(observer.url)
-        live.wait_for_selector('.node[data-child="cm"][data-state="running"]')
+        observer, live = _forced_page(supervisors, tabs)
         at = time.time()
         _deliveries(observer, at)
         _send(observer, at)
@@ -429,11 +434,7 @@ class TestInAClass:
         deliveries (CI saw it): they were drawn alone ("its send was not seen"), then the
         send drew a third row. Forced here: the send goes into the hub once the page shows
         the deliveries alone."""
-        sup = figure_27(supervisors, isolation="thread").start()
-        observer = sup.observe()
-        live = tabs()
-        live.goto(observer.url)
-        live.wait_for_selector('.node[data-child="cm"][data-state="running"]')
+        observer, live = _forced_page(supervisors, tabs)
         at = time.time()
         _deliveries(observer, at)
         alone = live.locator('#timeline li[data-kind=status]:has-text("its send was not seen")')

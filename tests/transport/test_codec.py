@@ -25,6 +25,7 @@ import rr_actors as rr
 from rr_actors._core.wire import plain
 from rr_actors._transport.codec import frame, frames, unframe
 from rr_actors.testing.carrier import Fetch, Load, Revoke
+from tests.core import test_wire as wire_tests
 
 # -- encoding: the C pickler's fast path ----------------------------------------------------
 
@@ -100,27 +101,16 @@ def test_anything_else_goes_through_cloudpickle(value: Any) -> None:
         assert decoded == value
 
 
-def _divider() -> Any:
-    """A function of this file pickled by value (a closure), with a nested one of its own."""
-
-    def divide(request: int) -> float:
-        def inverse() -> float:
-            return 1 / request  # the line a traceback must show
-
-        return inverse()
-
-    return divide
-
-
 def test_code_pickled_by_value_keeps_its_file_so_a_traceback_shows_file_and_line() -> None:
     # (how: `rr_actors._core.wire`, tests/core/test_wire.py; here: a frame gets it)
-    divide = pickle.loads(unframe(frame(1, _divider())[4:])[1])
+    divide = pickle.loads(unframe(frame(1, wire_tests.divider())[4:])[1])
 
     with pytest.raises(ZeroDivisionError) as info:
         divide(0)
 
     called = traceback.extract_tb(info.value.__traceback__)[1:]  # (the first is this test's)
-    assert [(__file__, "divide"), (__file__, "inverse")] == [(f.filename, f.name) for f in called]
+    written = wire_tests.__file__  # (where the function was written)
+    assert [(written, "divide"), (written, "inverse")] == [(f.filename, f.name) for f in called]
     assert "return 1 / request  # the line a traceback must show" == called[-1].line
 
 
