@@ -1,14 +1,16 @@
 """One supervisor tree per state directory (`rr_actors._supervision.statedir`, issue 16): a
-lock on `<state_dir>/.lock`.
+lock on `<state_dir>/.lock`; and the consumer registrars it remembers (issue 51).
 
 Two trees given the same `state_dir` would share their managers' backups. The second one
 gets `ConfigError` naming the holder's pid; the lock goes with the holder's stop or death
-(a real SIGKILL of a real process).
+(a real SIGKILL of a real process). A program killed and started again on its
+`state_dir` gets its consumer's last ids released (a real program, SIGKILLed).
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import select
 import signal
@@ -56,6 +58,103 @@ def holder(state_dir: Path, uid: str) -> Iterator[subprocess.Popen[str]]:
         proc.wait(10.0)
         if proc.stdout is not None:
             proc.stdout.close()
+
+
+PROGRAM = textwrap.dedent(
+    """
+    import json, sys, threading
+    import rr_actors as rr
+
+    state_dir, uid, run = sys.argv[1:]
+    erm = f"erm-{uid}"
+
+    def setup(registrar):
+        registrar.register_server("s", load=lambda request: request, unload=lambda *_: None)
+
+    unloaded, unloads = threading.Event(), []
+
+    def count(event):
+        if isinstance(event, rr.events.ResourceUnloaded) and event.registrar == erm:
+            unloads.append(event.resource_id)
+            if len(unloads) == 5:
+                unloaded.set()
+
+    sup = rr.Supervisor([rr.ManagerSpec(erm, setup, isolation="process")], state_dir=state_dir)
+    with sup.subscribe(count):
+        sup.start()
+        app = sup.registrar(f"action-{uid}")
+        if run == "first":
+            for i in range(5):
+                app.call(erm, "s", i)
+            print(json.dumps(sup.child(erm).pid), flush=True)
+            threading.Event().wait()  # until SIGKILLed
+        unloaded.wait(15.0)
+        held = sup.run_in(erm, lambda registrar: registrar.server_queries("s"))
+        sup.stop()
+    print(json.dumps({"unloads": len(unloads), "held": len(held)}), flush=True)
+    """
+)
+"""A program: a process manager `erm-<uid>` serving "s" on the given state_dir, and a
+consumer registrar `action-<uid>` taken with `registrar()`. Its first run loads 5
+resources, prints the manager's pid and waits to be killed; a later run waits (15 s at
+most) for the 5 `unload`s, then prints how many ran and how many ids "s" still holds."""
+
+
+def run_program(state_dir: Path, uid: str, run: str) -> subprocess.Popen[str]:
+    """Start `PROGRAM`'s run `run` on `state_dir`."""
+    return subprocess.Popen(
+        [sys.executable, "-c", PROGRAM, str(state_dir), uid, run],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+
+
+def read_line(proc: subprocess.Popen[str], timeout: float) -> str:
+    """The next line `proc` prints, waited for `timeout` seconds at most."""
+    assert proc.stdout is not None
+    readable, _, _ = select.select([proc.stdout], [], [], timeout)
+    assert [proc.stdout] == readable, f"no line within {timeout} s"
+    return proc.stdout.readline().strip()
+
+
+def wait_gone(pid: int, timeout: float) -> None:
+    """Wait until process `pid` (not a child of this one) has exited."""
+    try:
+        fd = os.pidfd_open(pid)
+    except ProcessLookupError:
+        return  # gone already
+    try:
+        readable, _, _ = select.select([fd], [], [], timeout)
+        assert [fd] == readable, f"process {pid} still runs after {timeout} s"
+    finally:
+        os.close(fd)
+
+
+@pytest.mark.skipif(not hasattr(os, "pidfd_open"), reason="waits on a pidfd (Linux)")
+def test_a_program_killed_and_started_again_has_its_consumers_last_ids_released(
+    uid: str, tmp_path: Path
+) -> None:
+    first = run_program(tmp_path, uid, "first")
+    try:
+        manager = json.loads(read_line(first, 20.0))
+        os.kill(first.pid, signal.SIGKILL)
+    finally:
+        first.kill()
+        first.wait(10.0)
+        assert first.stdout is not None
+        first.stdout.close()
+    wait_gone(manager, 10.0)  # (its forkserver exits, and the kernel kills it: PDEATHSIG)
+
+    again = run_program(tmp_path, uid, "again")
+    try:
+        outcome = json.loads(read_line(again, 30.0))
+    finally:
+        again.kill()
+        again.wait(10.0)
+        assert again.stdout is not None
+        again.stdout.close()
+
+    assert {"unloads": 5, "held": 0} == outcome
 
 
 def test_a_second_supervisor_on_the_same_state_dir_is_refused_naming_the_holders_pid(
