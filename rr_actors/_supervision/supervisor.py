@@ -246,7 +246,9 @@ class Supervisor(AsyncSupervision):
         Raises:
             SupervisorGaveUpError: a child failed to start (its setup raised, its backup
                 could not be read, ...); the children already started were stopped again,
-                in reverse order. The cause is chained.
+                in reverse order. The cause is chained: a backup that cannot be read is
+                a `CatalogCorruptError` with its `path` there, in either placement (see
+                `quarantine_backup`).
             ConfigError: a process manager's `setup` cannot be pickled, the supervisor is
                 running, or it was stopped (a supervisor starts once: make a new one with
                 the same specs; its managers' catalogs are restored), or a `state_dir` of
