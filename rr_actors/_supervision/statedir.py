@@ -8,13 +8,14 @@ goes at the tree's stop (the file removed), or when its process dies, however it
 stale `.lock` file left by a dead process is not a lock). Each manager's backup is
 claimed the same way on its own (`<backup_path>.lock`), whoever starts it.
 
-The directory also remembers the consumer registrars a tree's `registrar()` started
-without a backup (`<state_dir>/.consumers/<name>`, an empty file each). Their ids are in
-the managers' backups, and such a registrar's next start (in a program started again
-after a SIGKILL, say) holds none of them: the supervisor tells it that it lost everything
-(`tree.lost_everything`), and reconciling releases them (rule 20). The marks stay: a
-name started once is reconciled at each later start, as a registrar with a backup
-reconciles at each of its starts.
+The directory also remembers the registrars of the tree that keep no backup and may hold
+ids at those that do: the consumers `registrar()` starts without one, and the managers
+whose own config has none (`<state_dir>/.consumers/<name>`, an empty file each). Their
+ids are in the other managers' backups, and such a registrar's next start (in a program
+started again after a SIGKILL, say) holds none of them: the supervisor tells it that it
+lost everything (`tree.lost_everything`), and reconciling releases them (rule 20). The
+marks stay: a name started once is reconciled at each later start, as a registrar with
+a backup reconciles at each of its starts.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ LOCK_NAME = ".lock"
 """The lock file's name in a state directory."""
 
 CONSUMERS = ".consumers"
-"""The folder of a state directory that marks the consumer registrars started on it."""
+"""The folder of a state directory that marks the registrars without a backup started on it."""
 
 
 class StateDirLock:
@@ -80,9 +81,9 @@ def _lock(directory: str) -> int:
 
 
 def ran_before(directory: str | os.PathLike[str], name: str) -> bool:
-    """Mark that consumer registrar `name` runs on state directory `directory`; return
-    whether it was marked already (a registrar of that name ran there before: its ids
-    may still be held in the managers' backups).
+    """Mark that registrar `name`, which keeps no backup, runs on state directory
+    `directory`; return whether it was marked already (a registrar of that name ran
+    there before: its ids may still be held in the managers' backups).
 
     Raises:
         ConfigError: the mark cannot be written (the message names the file).

@@ -65,11 +65,16 @@ PROGRAM = textwrap.dedent(
     import json, sys, threading
     import rr_actors as rr
 
-    state_dir, uid, run = sys.argv[1:]
-    erm = f"erm-{uid}"
+    state_dir, uid, consumer, run = sys.argv[1:]
+    erm, action = f"erm-{uid}", f"action-{uid}"
 
     def setup(registrar):
         registrar.register_server("s", load=lambda request: request, unload=lambda *_: None)
+
+    def load_five(registrar):
+        if run == "first":
+            for i in range(5):
+                registrar.call(erm, "s", i)
 
     unloaded, unloads = threading.Event(), []
 
@@ -79,13 +84,15 @@ PROGRAM = textwrap.dedent(
             if len(unloads) == 5:
                 unloaded.set()
 
-    sup = rr.Supervisor([rr.ManagerSpec(erm, setup, isolation="process")], state_dir=state_dir)
+    specs = [rr.ManagerSpec(erm, setup, isolation="process")]
+    if consumer == "manager":  # a manager whose own config keeps no backup
+        specs.append(rr.ManagerSpec(action, load_five, config=rr.RegistrarConfig(name=action)))
+    sup = rr.Supervisor(specs, state_dir=state_dir)
     with sup.subscribe(count):
         sup.start()
-        app = sup.registrar(f"action-{uid}")
+        if consumer == "registrar":
+            load_five(sup.registrar(action))
         if run == "first":
-            for i in range(5):
-                app.call(erm, "s", i)
             print(json.dumps(sup.child(erm).pid), flush=True)
             threading.Event().wait()  # until SIGKILLed
         unloaded.wait(15.0)
@@ -95,15 +102,16 @@ PROGRAM = textwrap.dedent(
     """
 )
 """A program: a process manager `erm-<uid>` serving "s" on the given state_dir, and a
-consumer registrar `action-<uid>` taken with `registrar()`. Its first run loads 5
-resources, prints the manager's pid and waits to be killed; a later run waits (15 s at
-most) for the 5 `unload`s, then prints how many ran and how many ids "s" still holds."""
+consumer `action-<uid>` that keeps no backup: a registrar taken with `registrar()`, or
+a thread manager whose own config has no backup. Its first run loads 5 resources, prints
+the manager's pid and waits to be killed; a later run waits (15 s at most) for the 5
+`unload`s, then prints how many ran and how many ids "s" still holds."""
 
 
-def run_program(state_dir: Path, uid: str, run: str) -> subprocess.Popen[str]:
-    """Start `PROGRAM`'s run `run` on `state_dir`."""
+def run_program(state_dir: Path, uid: str, consumer: str, run: str) -> subprocess.Popen[str]:
+    """Start `PROGRAM`'s run `run` on `state_dir`, with a `consumer` of that kind."""
     return subprocess.Popen(
-        [sys.executable, "-c", PROGRAM, str(state_dir), uid, run],
+        [sys.executable, "-c", PROGRAM, str(state_dir), uid, consumer, run],
         stdout=subprocess.PIPE,
         text=True,
     )
@@ -131,10 +139,11 @@ def wait_gone(pid: int, timeout: float) -> None:
 
 
 @pytest.mark.skipif(not hasattr(os, "pidfd_open"), reason="waits on a pidfd (Linux)")
+@pytest.mark.parametrize("consumer", ["registrar", "manager"])
 def test_a_program_killed_and_started_again_has_its_consumers_last_ids_released(
-    uid: str, tmp_path: Path
+    uid: str, tmp_path: Path, consumer: str
 ) -> None:
-    first = run_program(tmp_path, uid, "first")
+    first = run_program(tmp_path, uid, consumer, "first")
     try:
         manager = json.loads(read_line(first, 20.0))
         os.kill(first.pid, signal.SIGKILL)
@@ -145,7 +154,7 @@ def test_a_program_killed_and_started_again_has_its_consumers_last_ids_released(
         first.stdout.close()
     wait_gone(manager, 10.0)  # (its forkserver exits, and the kernel kills it: PDEATHSIG)
 
-    again = run_program(tmp_path, uid, "again")
+    again = run_program(tmp_path, uid, consumer, "again")
     try:
         outcome = json.loads(read_line(again, 30.0))
     finally:
