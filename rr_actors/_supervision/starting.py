@@ -163,9 +163,9 @@ class Starting:
             return
         if restarted:
             death_watch_missed(child.name)
+        # (one with a backup reconciles with everyone itself when it is restored)
         if self.config(spec).backup_path is None and (restarted or self.ran_before(spec.name)):
             lost_everything(record.root(), child.name, tree.processes.system)
-            # (one with a backup asks itself)
 
     def ran_before(self, name: str) -> bool:
         """Whether manager `name`, which keeps no backup, ran on this supervisor's state

@@ -152,8 +152,9 @@ class Supervisor(AsyncSupervision):
             `save_on_modify=True`) unless a spec gives its own `config`. One supervisor
             tree at a time uses it: `start` locks it (`<state_dir>/.lock`, holding the
             holder's pid) until `stop` or the process's death. It also remembers the
-            consumers `registrar()` starts without a backup (`<state_dir>/.consumers/`),
-            whose next start releases what their last run held.
+            registrars started without a backup (`registrar()`'s, and managers whose own
+            config has none: `<state_dir>/.consumers/`), whose next start releases what
+            their last run held.
         name: this supervisor's name (for logs and thread names).
         clock: monotonic clock in seconds for the intensity window (injectable for tests;
             `None`: the process's, `time.monotonic`).

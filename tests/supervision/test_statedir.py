@@ -23,6 +23,7 @@ from pathlib import Path
 import pytest
 
 import rr_actors as rr
+from tests.support.supervising import wait_gone
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX flock")
 
@@ -125,20 +126,6 @@ def read_line(proc: subprocess.Popen[str], timeout: float) -> str:
     return proc.stdout.readline().strip()
 
 
-def wait_gone(pid: int, timeout: float) -> None:
-    """Wait until process `pid` (not a child of this one) has exited."""
-    try:
-        fd = os.pidfd_open(pid)
-    except ProcessLookupError:
-        return  # gone already
-    try:
-        readable, _, _ = select.select([fd], [], [], timeout)
-        assert [fd] == readable, f"process {pid} still runs after {timeout} s"
-    finally:
-        os.close(fd)
-
-
-@pytest.mark.skipif(not hasattr(os, "pidfd_open"), reason="waits on a pidfd (Linux)")
 @pytest.mark.parametrize("consumer", ["registrar", "manager"])
 def test_a_program_killed_and_started_again_has_its_consumers_last_ids_released(
     uid: str, tmp_path: Path, consumer: str
@@ -152,7 +139,7 @@ def test_a_program_killed_and_started_again_has_its_consumers_last_ids_released(
         first.wait(10.0)
         assert first.stdout is not None
         first.stdout.close()
-    wait_gone(manager, 10.0)  # (its forkserver exits, and the kernel kills it: PDEATHSIG)
+    assert [] == wait_gone([manager], 10.0)  # it ends with its program (no orphans)
 
     again = run_program(tmp_path, uid, consumer, "again")
     try:
