@@ -28,7 +28,7 @@ Runs only in manager processes (never in the supervisor's process). In the child
  parent (ManagerProcess)            control pipe                child (this module)
    start ─────────── Start(setup, config, address, forward) ──►  standby (a spare only)
          ◄──────────────── Warm()  (a spare, once warmed up)
-         ◄──────────────── Ready(pid) | Failed(traceback)
+         ◄──────────────── Ready(pid) | Failed(traceback, corrupt)
    ping  ─────────────────── Ping(n) ──────────────────────────►  registrar mailbox
          ◄──────────────── Pong(n, trouble)  (None, or (seconds, why) it cannot accept)
    events ───────────────── Forward(on) ───────────────────────►  forward events or not
@@ -94,7 +94,7 @@ from rr_actors._process.tally import Journal
 from rr_actors._store.schema import expected_objects
 from rr_actors._transport.base import Address, Transport
 from rr_actors.config import RegistrarConfig
-from rr_actors.errors import RrError
+from rr_actors.errors import CatalogCorruptError, RrError
 from rr_actors.events.kinds import number_events
 
 if TYPE_CHECKING:
@@ -374,7 +374,8 @@ def _run_manager(
         if attached is not None:
             attached.serve(Served(registrar))
     except BaseException as exc:  # noqa: BLE001 - reported to the supervisor, then exit
-        control.send(Failed("".join(traceback.format_exception(exc))))
+        corrupt = exc if isinstance(exc, CatalogCorruptError) else None  # (its path matters)
+        control.send(Failed("".join(traceback.format_exception(exc)), corrupt))
         os._exit(1)
     stopping = threading.Event()
 

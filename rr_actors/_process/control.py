@@ -6,7 +6,7 @@
                                                                      started unwarmed)
    Start(setup, config, address, forward) ──────────────────────►  standby (a spare only)
                                           ◄──────── Warm()           (a spare, once warm)
-                                          ◄──────── Ready(pid) | Failed(traceback)
+                                          ◄──────── Ready(pid) | Failed(traceback, corrupt)
    Ping(number) ────────────────────────────────────────────────►  registrar mailbox
                                           ◄──────── Pong(number, trouble)
    Forward(on) ─────────────────────────────────────────────────►  forward events or not
@@ -28,6 +28,7 @@ from typing import Any
 
 from rr_actors._transport.base import Address
 from rr_actors.config import RegistrarConfig
+from rr_actors.errors import CatalogCorruptError
 
 __all__ = [
     "Events",
@@ -128,9 +129,17 @@ class Ready:
 
 @dataclasses.dataclass(frozen=True, slots=True)
 class Failed:
-    """The manager could not start (its setup raised, say); the traceback, as text."""
+    """The manager could not start (its setup raised, say).
+
+    Attributes:
+        traceback: what it raised, with its traceback, as text.
+        corrupt: what it raised if that was a `CatalogCorruptError` (its backup cannot
+            be read), which the parent raises as it is: the recovery needs its `path`
+            (`quarantine_backup`). Pickled by its `__reduce__` (two strings).
+    """
 
     traceback: str
+    corrupt: CatalogCorruptError | None = None
 
 
 @dataclasses.dataclass(frozen=True, slots=True)

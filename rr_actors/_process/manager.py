@@ -69,7 +69,7 @@ from rr_actors._process.received import Received
 from rr_actors._process.tally import Tally
 from rr_actors._transport.base import Address
 from rr_actors.config import RegistrarConfig
-from rr_actors.errors import CallTimeoutError, RegistrarUnavailableError
+from rr_actors.errors import CallTimeoutError, RegistrarUnavailableError, RrError
 
 if TYPE_CHECKING:
     from rr_actors._process.spare import Spare
@@ -229,8 +229,10 @@ class ManagerProcess:
                 manager forwards (`rr_actors.events` values, in the order they happened).
 
         Raises:
-            RegistrarUnavailableError: it failed (setup raised, its backup could not be
-                read, ...) or died before it was ready; the message holds its traceback.
+            CatalogCorruptError: its backup cannot be read: the error raised in the
+                manager, with its `path` (a note holds the manager's traceback).
+            RegistrarUnavailableError: it failed otherwise (setup raised, ...) or died
+                before it was ready; the message holds its traceback.
             CallTimeoutError: it was not ready within `start_timeout` seconds (it is killed).
         """
         simulated = runtime.manager_process
@@ -593,7 +595,17 @@ def _await_ready(
         received.count_lost(name, pid)
         conn.close()
         release(process)
-        raise RegistrarUnavailableError(f"manager {name!r} failed to start:\n{ready.traceback}")
+        raise _start_failed(name, pid, ready)
+
+
+def _start_failed(name: str, pid: int, failed: Failed) -> RrError:
+    """What a manager's start that sent `failed` raises: the `CatalogCorruptError` it
+    raised, as a registrar's start raises it in-process (its `path` is the recovery's:
+    `quarantine_backup`), else `RegistrarUnavailableError` with its traceback."""
+    if failed.corrupt is not None:
+        failed.corrupt.add_note(f"raised in manager {name!r} (pid {pid}):\n{failed.traceback}")
+        return failed.corrupt
+    return RegistrarUnavailableError(f"manager {name!r} failed to start:\n{failed.traceback}")
 
 
 def _readable(conn: Connection) -> bool:

@@ -293,8 +293,10 @@ class RemoteRegistrar(Registrar):
 
         Raises:
             ConfigError: `config` is invalid or `setup` does not pickle.
-            RegistrarUnavailableError: the manager failed to start (its traceback, say a
-                `DuplicateNameError` or `CatalogCorruptError`, is in the message).
+            CatalogCorruptError: its backup cannot be read (raised as in the manager,
+                with its `path`).
+            RegistrarUnavailableError: the manager failed to start otherwise (its
+                traceback, say a `DuplicateNameError`, is in the message).
             CallTimeoutError: it was not ready within `start_timeout` seconds.
         """
         if isinstance(config, str):

@@ -258,6 +258,7 @@ class ProcessManager:
         Its registrar's events are forwarded to `relay` while the tree has listeners.
 
         Raises:
+            CatalogCorruptError: its backup cannot be read (with its `path`).
             RegistrarUnavailableError: it failed to start or died while starting.
             CallTimeoutError: it was not ready within its `start_timeout`.
         """

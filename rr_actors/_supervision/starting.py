@@ -9,7 +9,8 @@
               └ a supervisor: a nested Node (`nest`), which gives up by posting Exited
             ─► running; ChildStarted / ChildRestarted; abandoned ids given back;
                after a restart, the death watch it missed (and, with no backup, FATAL
-               for what was held at it, and what it held released: lost_everything)
+               for what was held at it, and what it held released: lost_everything;
+               also at the first start of one that ran on the state_dir before)
 ```
 
 Each child is handed a watcher callback (run on its watcher thread) that posts its end
@@ -19,6 +20,7 @@ supervisor's thread. Its own state: the state directory its managers' catalogs g
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Callable
 from typing import TYPE_CHECKING
@@ -36,16 +38,19 @@ from rr_actors._supervision.children import (
 )
 from rr_actors._supervision.record import Exited, pid_of
 from rr_actors._supervision.retry import give_back_abandoned
+from rr_actors._supervision.statedir import ran_before
 from rr_actors._supervision.stopping import unmark
 from rr_actors._supervision.tree import comes_back, death_watch_missed, lost_everything
 from rr_actors.config import ManagerSpec, RegistrarConfig, SupervisorSpec
-from rr_actors.errors import SupervisorGaveUpError
+from rr_actors.errors import ConfigError, SupervisorGaveUpError
 
 if TYPE_CHECKING:
     from rr_actors._supervision.record import Record
     from rr_actors._supervision.stopping import Stopping
 
 __all__ = ["Nest", "Starting"]
+
+logger = logging.getLogger("rr_actors")
 
 Nest = Callable[[SupervisorSpec, Callable[[SupervisorGaveUpError], None]], Level]
 """`nest(spec, on_gave_up)`: start a supervisor below this one (a `node.Node`), which
@@ -154,10 +159,26 @@ class Starting:
         tree.count_start(child.name)
         self._published_start(child, restarted=restarted)
         give_back_abandoned(tree, child.name)
-        if restarted and isinstance(spec, ManagerSpec):
+        if not isinstance(spec, ManagerSpec):
+            return
+        if restarted:
             death_watch_missed(child.name)
-            if self.config(spec).backup_path is None:  # (one with a backup asks itself)
-                lost_everything(record.root(), child.name, tree.processes.system)
+        # (one with a backup reconciles with everyone itself when it is restored)
+        if self.config(spec).backup_path is None and (restarted or self.ran_before(spec.name)):
+            lost_everything(record.root(), child.name, tree.processes.system)
+
+    def ran_before(self, name: str) -> bool:
+        """Whether manager `name`, which keeps no backup, ran on this supervisor's state
+        directory before (in a program killed since, say: the backups of the others may
+        hold its last run's ids); marks it there (`statedir.ran_before`). A mark that
+        cannot be written is a WARNING: the manager runs all the same."""
+        if self.state_dir is None:
+            return False
+        try:
+            return ran_before(self.state_dir, name)
+        except ConfigError as exc:
+            logger.warning("supervisor %s: %s", self.record.name, exc)
+            return False
 
     def _watch(self, child: Child) -> Callable[[ManagerExit], None]:
         """What `child`'s watcher calls when this incarnation ends: post `Exited`."""

@@ -7,6 +7,15 @@ a second one (in this process or another) gets `ConfigError` naming that pid. Th
 goes at the tree's stop (the file removed), or when its process dies, however it dies (a
 stale `.lock` file left by a dead process is not a lock). Each manager's backup is
 claimed the same way on its own (`<backup_path>.lock`), whoever starts it.
+
+The directory also remembers the registrars of the tree that keep no backup and may hold
+ids at those that do: the consumers `registrar()` starts without one, and the managers
+whose own config has none (`<state_dir>/.consumers/<name>`, an empty file each). Their
+ids are in the other managers' backups, and such a registrar's next start (in a program
+started again after a SIGKILL, say) holds none of them: the supervisor tells it that it
+lost everything (`tree.lost_everything`), and reconciling releases them (rule 20). The
+marks stay: a name started once is reconciled at each later start, as a registrar with
+a backup reconciles at each of its starts.
 """
 
 from __future__ import annotations
@@ -17,10 +26,13 @@ from collections.abc import Iterable
 from rr_actors._platform import lockfile
 from rr_actors.errors import ConfigError
 
-__all__ = ["LOCK_NAME", "StateDirLock"]
+__all__ = ["CONSUMERS", "LOCK_NAME", "StateDirLock", "ran_before"]
 
 LOCK_NAME = ".lock"
 """The lock file's name in a state directory."""
+
+CONSUMERS = ".consumers"
+"""The folder of a state directory that marks the registrars without a backup started on it."""
 
 
 class StateDirLock:
@@ -66,3 +78,26 @@ def _lock(directory: str) -> int:
         ) from None
     except OSError as exc:
         raise ConfigError(f"state_dir {directory!r} cannot be used: {exc}") from exc
+
+
+def ran_before(directory: str | os.PathLike[str], name: str) -> bool:
+    """Mark that registrar `name`, which keeps no backup, runs on state directory
+    `directory`; return whether it was marked already (a registrar of that name ran
+    there before: its ids may still be held in the managers' backups).
+
+    Raises:
+        ConfigError: the mark cannot be written (the message names the file).
+    """
+    folder = os.path.join(os.fspath(directory), CONSUMERS)
+    mark = os.path.join(folder, name)
+    try:
+        os.makedirs(folder, exist_ok=True)
+        with open(mark, "x"):
+            pass
+    except FileExistsError:
+        return True
+    except OSError as exc:
+        raise ConfigError(
+            f"state_dir {os.fspath(directory)!r}: cannot mark {mark!r}: {exc}"
+        ) from exc
+    return False

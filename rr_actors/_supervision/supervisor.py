@@ -63,9 +63,16 @@ from rr_actors._supervision.children import (
 )
 from rr_actors._supervision.node import Node
 from rr_actors._supervision.restarting import RestartIntensity
-from rr_actors._supervision.statedir import StateDirLock
+from rr_actors._supervision.statedir import StateDirLock, ran_before
 from rr_actors._supervision.stopping import left
-from rr_actors._supervision.tree import Clock, RestartWait, Tree, find_child, locate
+from rr_actors._supervision.tree import (
+    Clock,
+    RestartWait,
+    Tree,
+    find_child,
+    locate,
+    lost_everything,
+)
 from rr_actors._supervision.watching import TreeWatch
 from rr_actors._types import Query, StatusCallback
 from rr_actors.config import (
@@ -144,7 +151,10 @@ class Supervisor(AsyncSupervision):
         state_dir: directory for the managers' catalogs (`<state_dir>/<name>.db`,
             `save_on_modify=True`) unless a spec gives its own `config`. One supervisor
             tree at a time uses it: `start` locks it (`<state_dir>/.lock`, holding the
-            holder's pid) until `stop` or the process's death.
+            holder's pid) until `stop` or the process's death. It also remembers the
+            registrars started without a backup (`registrar()`'s, and managers whose own
+            config has none: `<state_dir>/.consumers/`), whose next start releases what
+            their last run held.
         name: this supervisor's name (for logs and thread names).
         clock: monotonic clock in seconds for the intensity window (injectable for tests;
             `None`: the process's, `time.monotonic`).
@@ -239,7 +249,9 @@ class Supervisor(AsyncSupervision):
         Raises:
             SupervisorGaveUpError: a child failed to start (its setup raised, its backup
                 could not be read, ...); the children already started were stopped again,
-                in reverse order. The cause is chained.
+                in reverse order. The cause is chained: a backup that cannot be read is
+                a `CatalogCorruptError` with its `path` there, in either placement (see
+                `quarantine_backup`).
             ConfigError: a process manager's `setup` cannot be pickled, the supervisor is
                 running, or it was stopped (a supervisor starts once: make a new one with
                 the same specs; its managers' catalogs are restored), or a `state_dir` of
@@ -448,12 +460,21 @@ class Supervisor(AsyncSupervision):
         supervised; the supervisor stops it first when it stops. Its events go to the
         supervisor's subscribers too (`subscribe`).
 
+        With a `state_dir` and no backup of its own, the name is remembered there
+        (`<state_dir>/.consumers/<name>`): started again on the same `state_dir` (the
+        program killed, then run again), it is told as it starts that it lost
+        everything: it reconciles with every registrar of the system, which releases
+        the ids its last run held in the managers' restored catalogs (each `unload`
+        once; rule 20). Its own calls may start at once: the list leaves before them.
+
         Args:
             config: a `RegistrarConfig` or a name.
 
         Raises:
             DuplicateNameError: a registrar of that name runs in this process.
-            ConfigError: the configuration is invalid or the supervisor is not running.
+            ConfigError: the configuration is invalid, the supervisor is not running, or
+                the name cannot be remembered in the `state_dir` (the message names the
+                file).
         """
         if not self._started:
             raise ConfigError(
@@ -467,14 +488,28 @@ class Supervisor(AsyncSupervision):
             )
         registrar = start_registrar(config, upstream=self._tree.events.publisher)
         system = self._tree.processes.system
-        if system is not None:
-            try:
+        try:
+            if system is not None:
                 system.serve(Served(registrar))
-            except BaseException:
-                registrar.stop()
-                raise
+            self._reconcile_last_run(registrar)
+        except BaseException:
+            registrar.stop()
+            raise
         self._registrars.append(registrar)
         return registrar
+
+    def _reconcile_last_run(self, registrar: ResourceRegistrar) -> None:
+        """A consumer registrar without a backup on a `state_dir` tree: if one of its name
+        ran there before (its program killed, then started again), the managers' backups
+        may hold its last run's ids, for nobody now. It is told it lost everything, as a
+        manager restarted without a backup is: it reconciles with every registrar of the
+        system, which releases those ids (rule 20), and those that hold ids at it hear
+        `FATAL` for each (`statedir.ran_before`)."""
+        state_dir = self._spec.state_dir
+        if state_dir is None or registrar.config.backup_path is not None:
+            return  # (one with a backup reconciles with everyone itself when restored)
+        if ran_before(state_dir, registrar.name):
+            lost_everything(self._node, registrar.name, self._tree.processes.system)
 
     def run_in(
         self, name: str, fn: Callable[[ResourceRegistrar], Any], *, timeout: float = 10.0

@@ -8,7 +8,7 @@
                                                         start_registrar: restore the backup
                                                         setup(registrar); settle in doubt
                                                         serve it on the network
-        ◄── Ready(pid) | Failed(traceback) | its end ── from_child (a simulated queue)
+        ◄── Ready(pid) | Failed(traceback, corrupt) | its end ── from_child (a simulated queue)
    watcher task (`_watch`)                              control loop (`_child`)
         ── Ping(n) every `heartbeat` s ────────────────► registrar mailbox ─► Pong(n)
         a silence past the bound: Hang ─► kill
@@ -62,7 +62,12 @@ from rr_actors._process.received import Received
 from rr_actors._registrar import Served, start_registrar
 from rr_actors._transport.base import Address, Transport
 from rr_actors.config import RegistrarConfig
-from rr_actors.errors import CallTimeoutError, RegistrarUnavailableError, RrError
+from rr_actors.errors import (
+    CallTimeoutError,
+    CatalogCorruptError,
+    RegistrarUnavailableError,
+    RrError,
+)
 from rr_actors.simulation import _primitives as sim
 from rr_actors.simulation._processes import Process
 from rr_actors.simulation._scheduler import Scheduler
@@ -138,6 +143,8 @@ def start(
         elif isinstance(message, Ready):
             break
         if isinstance(message, Failed):
+            if message.corrupt is not None:  # (as `_process/manager.py` raises it)
+                raise message.corrupt
             raise RegistrarUnavailableError(
                 f"manager {name!r} failed to start:\n{message.traceback}"
             )
@@ -315,7 +322,8 @@ def _child(
     try:
         registrar = child.start(setup, config, address, parent)
     except BaseException as exc:  # noqa: BLE001 - reported to the parent, then exit 1
-        from_child.put(Failed("".join(traceback.format_exception(exc))))
+        corrupt = exc if isinstance(exc, CatalogCorruptError) else None
+        from_child.put(Failed("".join(traceback.format_exception(exc)), corrupt))
         sched.end(process, 1)
     from_child.put(Ready(process.pid))
     runtime.Thread(target=child.watch_actor, name="rr-manager-actor-watch", daemon=True).start()

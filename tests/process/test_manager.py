@@ -334,6 +334,26 @@ def test_a_setup_that_raises_in_the_manager_process_fails_start_with_its_traceba
         sup.start()
 
 
+@pytest.mark.parametrize("isolation", ["process", "thread"])
+def test_a_manager_whose_backup_is_corrupt_fails_start_with_a_catalog_corrupt_error_naming_it(
+    supervisors: Callable[..., rr.Supervisor], uid: str, tmp_path: Path, isolation: str
+) -> None:
+    name = f"erm-{uid}"
+    backup = tmp_path / f"{name}.db"
+    backup.write_bytes(b"not an SQLite database" * 100)
+    spec = rr.ManagerSpec(name, echo_setup, isolation=isolation)  # type: ignore[arg-type]
+
+    with pytest.raises(rr.SupervisorGaveUpError) as raised:
+        supervisors([spec], state_dir=tmp_path).start()
+    corrupt = raised.value.__cause__
+    assert isinstance(corrupt, rr.CatalogCorruptError)
+    assert str(backup) == corrupt.path
+
+    rr.quarantine_backup(corrupt.path)  # the documented recovery: then the tree starts
+    sup = supervisors([spec], state_dir=tmp_path).start()
+    assert "after" == sup.registrar(f"app-{uid}").call(name, "echo", "after").response
+
+
 def test_an_unpicklable_setup_is_a_config_error_at_start(
     supervisors: Callable[..., rr.Supervisor], uid: str
 ) -> None:

@@ -1,14 +1,16 @@
 """One supervisor tree per state directory (`rr_actors._supervision.statedir`, issue 16): a
-lock on `<state_dir>/.lock`.
+lock on `<state_dir>/.lock`; and the consumer registrars it remembers (issue 51).
 
 Two trees given the same `state_dir` would share their managers' backups. The second one
 gets `ConfigError` naming the holder's pid; the lock goes with the holder's stop or death
-(a real SIGKILL of a real process).
+(a real SIGKILL of a real process). A program killed and started again on its
+`state_dir` gets its consumer's last ids released (a real program, SIGKILLed).
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import select
 import signal
@@ -21,6 +23,7 @@ from pathlib import Path
 import pytest
 
 import rr_actors as rr
+from tests.support.supervising import wait_gone
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX flock")
 
@@ -56,6 +59,98 @@ def holder(state_dir: Path, uid: str) -> Iterator[subprocess.Popen[str]]:
         proc.wait(10.0)
         if proc.stdout is not None:
             proc.stdout.close()
+
+
+PROGRAM = textwrap.dedent(
+    """
+    import json, sys, threading
+    import rr_actors as rr
+
+    state_dir, uid, consumer, run = sys.argv[1:]
+    erm, action = f"erm-{uid}", f"action-{uid}"
+
+    def setup(registrar):
+        registrar.register_server("s", load=lambda request: request, unload=lambda *_: None)
+
+    def load_five(registrar):
+        if run == "first":
+            for i in range(5):
+                registrar.call(erm, "s", i)
+
+    unloaded, unloads = threading.Event(), []
+
+    def count(event):
+        if isinstance(event, rr.events.ResourceUnloaded) and event.registrar == erm:
+            unloads.append(event.resource_id)
+            if len(unloads) == 5:
+                unloaded.set()
+
+    specs = [rr.ManagerSpec(erm, setup, isolation="process")]
+    if consumer == "manager":  # a manager whose own config keeps no backup
+        specs.append(rr.ManagerSpec(action, load_five, config=rr.RegistrarConfig(name=action)))
+    sup = rr.Supervisor(specs, state_dir=state_dir)
+    with sup.subscribe(count):
+        sup.start()
+        if consumer == "registrar":
+            load_five(sup.registrar(action))
+        if run == "first":
+            print(json.dumps(sup.child(erm).pid), flush=True)
+            threading.Event().wait()  # until SIGKILLed
+        unloaded.wait(15.0)
+        held = sup.run_in(erm, lambda registrar: registrar.server_queries("s"))
+        sup.stop()
+    print(json.dumps({"unloads": len(unloads), "held": len(held)}), flush=True)
+    """
+)
+"""A program: a process manager `erm-<uid>` serving "s" on the given state_dir, and a
+consumer `action-<uid>` that keeps no backup: a registrar taken with `registrar()`, or
+a thread manager whose own config has no backup. Its first run loads 5 resources, prints
+the manager's pid and waits to be killed; a later run waits (15 s at most) for the 5
+`unload`s, then prints how many ran and how many ids "s" still holds."""
+
+
+def run_program(state_dir: Path, uid: str, consumer: str, run: str) -> subprocess.Popen[str]:
+    """Start `PROGRAM`'s run `run` on `state_dir`, with a `consumer` of that kind."""
+    return subprocess.Popen(
+        [sys.executable, "-c", PROGRAM, str(state_dir), uid, consumer, run],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+
+
+def read_line(proc: subprocess.Popen[str], timeout: float) -> str:
+    """The next line `proc` prints, waited for `timeout` seconds at most."""
+    assert proc.stdout is not None
+    readable, _, _ = select.select([proc.stdout], [], [], timeout)
+    assert [proc.stdout] == readable, f"no line within {timeout} s"
+    return proc.stdout.readline().strip()
+
+
+@pytest.mark.parametrize("consumer", ["registrar", "manager"])
+def test_a_program_killed_and_started_again_has_its_consumers_last_ids_released(
+    uid: str, tmp_path: Path, consumer: str
+) -> None:
+    first = run_program(tmp_path, uid, consumer, "first")
+    try:
+        manager = json.loads(read_line(first, 20.0))
+        os.kill(first.pid, signal.SIGKILL)
+    finally:
+        first.kill()
+        first.wait(10.0)
+        assert first.stdout is not None
+        first.stdout.close()
+    assert [] == wait_gone([manager], 10.0)  # it ends with its program (no orphans)
+
+    again = run_program(tmp_path, uid, consumer, "again")
+    try:
+        outcome = json.loads(read_line(again, 30.0))
+    finally:
+        again.kill()
+        again.wait(10.0)
+        assert again.stdout is not None
+        again.stdout.close()
+
+    assert {"unloads": 5, "held": 0} == outcome
 
 
 def test_a_second_supervisor_on_the_same_state_dir_is_refused_naming_the_holders_pid(
