@@ -12,7 +12,8 @@
    ▼
  Flights   in_flight: query id ─► InFlight, while a call is not settled:
    │         attempt       a durable call's, committed pending: this actor answers it
-   │         unsettled_at  the provider of a call that failed as it died or stopped:
+   │         unsettled_at  the provider of a call that failed as it died or stopped
+   │                       (not one its caller withdrew first: `retry_held_at`):
    │                       it may hold the id (a retry may come) ─► listed in the next
    │                       Reconcile; still held there ─► kept_for_retry (released by
    │                       its next Reconcile, or given back when this one stops or

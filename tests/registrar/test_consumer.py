@@ -1517,7 +1517,6 @@ class TestReconcileInFlight:
             with pytest.raises(rr.UnknownQueryError):
                 app.unload(query.id, timeout=10)
 
-
     def test_a_call_cancelled_before_its_provider_died_is_released_by_the_reconcile(
         self, tmp_path: Path, process_helpers: SharedObjects
     ) -> None:
