@@ -313,14 +313,21 @@ class DueAnswers:
             return frozenset(self._attempts)
 
     @contextlib.contextmanager
-    def frozen(self) -> Iterator[frozenset[str]]:
-        """The ids due, with no call starting until the block ends.
+    def frozen(self) -> Iterator[tuple[frozenset[str], frozenset[str]]]:
+        """The ids due, and those of them whose caller withdrew the call, with no call
+        starting until the block ends.
 
         A caller's `expect` waits for the block, so whatever it sends follows what the
         block sent on the same channel (a `Reconcile` lists every call sent before it).
+        A withdrawn call is due until the actor handled its `CallFailed`; its id was
+        given back already (its `Abandon` may have died with the provider), so a
+        `Reconcile` must not list it (issue 51).
         """
         with self._lock:
-            yield frozenset(self._attempts)
+            withdrawn = frozenset(
+                q for q, a in self._attempts.items() if a.state is AttemptState.WITHDRAWN
+            )
+            yield frozenset(self._attempts) - withdrawn, withdrawn
 
     def expect(self, query_id: str, attempt: CallAttempt) -> None:
         """A call `attempt` with `query_id` is about to be sent (any thread)."""

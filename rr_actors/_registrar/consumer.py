@@ -12,7 +12,8 @@
    ▼
  Flights   in_flight: query id ─► InFlight, while a call is not settled:
    │         attempt       a durable call's, committed pending: this actor answers it
-   │         unsettled_at  the provider of a call that failed as it died or stopped:
+   │         unsettled_at  the provider of a call that failed as it died or stopped
+   │                       (not one its caller withdrew first: `retry_held_at`):
    │                       it may hold the id (a retry may come) ─► listed in the next
    │                       Reconcile; still held there ─► kept_for_retry (released by
    │                       its next Reconcile, or given back when this one stops or
@@ -130,6 +131,7 @@ __all__ = [
     "publish_failed",
     "publish_forgotten",
     "publish_refused",
+    "retry_held_at",
 ]
 
 logger = logging.getLogger("rr_actors")
@@ -670,7 +672,7 @@ class Answers:
         self.flights.take_attempt(message.query_id, message.attempt)
         if current is None or current is message.attempt:
             # (set if it may hold the id: a retry may follow; settled, or unsettled again)
-            self.flights.reset(message.query_id, message.serving_rr, message.parent)
+            self.flights.reset(message.query_id, retry_held_at(message), message.parent)
         record = self.registrar.catalog.clients.get(message.query_id)
         try:
             if current is not None and current is not message.attempt:
@@ -681,6 +683,20 @@ class Answers:
                 self.holdings.forget(message.query_id, reason="withdrawn")
         finally:
             self.flights.answered(message.query_id, message.attempt)
+
+
+def retry_held_at(failed: CallFailed) -> str | None:
+    """The provider that may hold the id of `failed`'s call for a retry, if any.
+
+    One that died or stopped with the call on its way (`CallFailed.serving_rr`), unless
+    the call's caller withdrew it first (its death then failed the `Load` of an attempt
+    already given up, issue 51): that id was given back, no retry of it comes, and its
+    `Abandon` may have died with the provider. It is not held for a retry, so the next
+    `Reconcile` leaves it out and the restarted provider releases it (rules 17, 20).
+    """
+    if failed.withdrawn or failed.attempt.state is AttemptState.WITHDRAWN:
+        return None
+    return failed.serving_rr
 
 
 # -- holdings --------------------------------------------------------------------------
@@ -1122,10 +1138,15 @@ class Reconciling:
             )
         )
 
-    def listing(self, serving_rr: str, due: frozenset[str]) -> Listing:
+    def listing(
+        self, serving_rr: str, due: frozenset[str], withdrawn: frozenset[str] = frozenset()
+    ) -> Listing:
         """The list of a `Reconcile` to `serving_rr` that leaves now, a new epoch (`due`:
         the ids whose answer is due now, at any provider: listed too, harmless, reported
-        unknown)."""
+        unknown). `withdrawn`: the ids of calls whose callers withdrew them and whose
+        `CallFailed` this actor has not handled yet (a durable one's pending record is
+        still here): given back, never listed, so the provider releases them if their
+        `Abandon` died with its last run (rule 17)."""
         held = {
             query_id
             for query_id, record in self.registrar.catalog.clients.items()
@@ -1133,6 +1154,7 @@ class Reconciling:
         }
         held |= {q for q, provider in self.flights.unsettled().items() if provider == serving_rr}
         held |= due
+        held -= withdrawn
         left_out = self.releases.unreleased_at(serving_rr)
         epoch = self.holdings.new_epoch()
         return Listing(tuple(sorted(held - left_out)), due, left_out, epoch)
@@ -1185,8 +1207,8 @@ class Reconciling:
         `then(error)` runs (on this actor) once the answer was handled: `None`, or why it
         failed (`life.py`'s presence retries).
         """
-        with self.due.frozen() as due:
-            listing = self.listing(serving_rr, due)
+        with self.due.frozen() as (due, withdrawn):
+            listing = self.listing(serving_rr, due, withdrawn)
             self.registrar.send(
                 serving_rr,
                 lambda reply: Reconcile(self.registrar.name, listing.held, reply),

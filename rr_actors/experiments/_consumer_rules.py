@@ -7,6 +7,8 @@
        ──► reported_lost: its provider's life that held the id had not lost it
  steps (+ the history's exits) ──► end: what providers still hold, life by life,
        for consumers that stopped
+ steps ──► withdrawn: what providers still hold at the end, of calls their consumers
+       withdrew (and did not have answered again)
 ```
 """
 
@@ -20,7 +22,7 @@ from rr_actors.experiments._history import REPORTED, Facts, Finding, Life, Line,
 from rr_actors.experiments._provider_rules import Holding
 from rr_actors.experiments._status_rules import Span
 
-__all__ = ["answered", "end", "reported_lost"]
+__all__ = ["WITHDRAWN_BOUND_S", "answered", "end", "reported_lost", "withdrawn"]
 
 
 def answered(  # noqa: PLR0912 - one branch per event kind
@@ -212,4 +214,79 @@ def end(steps: Sequence[Step], history: Sequence[Line]) -> list[Finding]:
                         (provider, consumer),
                     )
                 )
+    return findings
+
+
+WITHDRAWN_BOUND_S = 1.0
+"""Seconds by which a provider has released a withdrawn id it holds, counted from the
+withdrawal or from when that life of the provider began to hold it, whichever is later
+(its `Abandon`, or the reconcile after its restart, takes milliseconds)."""
+
+
+def withdrawn(steps: Sequence[Step]) -> list[Finding]:
+    """`withdrawn` (rules 17, 20): a call its consumer withdrew leaves nothing held.
+
+    A `CallWithdrawn` (its caller timed out or was cancelled) whose id the consumer did
+    not have answered later (a retry with the same id) is released at its provider: by
+    its `Abandon`, or, if that died with the provider, when the restarted provider
+    reconciles with the consumer. A life of the provider that held it (added, or
+    restored from its backup) for `WITHDRAWN_BOUND_S` after the withdrawal (wall clock
+    `at`) is a violation: issue 51, where the consumer listed such an id as a failed
+    call to retry, and the restarted provider kept it until the consumer stopped.
+    """
+    called: dict[tuple[str, str], tuple[int, float, str]] = {}  # (consumer, id) -> ...
+    # provider -> id -> (consumer, line, since): held in its current life
+    holding: dict[str, dict[str, tuple[str, int, float]]] = defaultdict(dict)
+    # (provider, id) -> [(consumer, line, since, until)]: each span a life held it
+    spans: dict[tuple[str, str], list[tuple[str, int, float, float]]] = defaultdict(list)
+    last: dict[str, float] = {}  # provider -> `at` of its last event
+
+    def close(name: str, qid: str, until: float) -> None:
+        consumer, line, since = holding[name].pop(qid)
+        spans[name, qid].append((consumer, line, since, until))
+
+    for name, line, event, new, _life in steps:
+        if new:
+            for qid in list(holding[name]):  # (the life before ended with its last event)
+                close(name, qid, last.get(name, event.at))
+        last[name] = event.at
+        if isinstance(event, events.CallWithdrawn):
+            called[name, event.query_id] = (line, event.at, event.serving_rr)
+        elif isinstance(event, events.CallAnswered):
+            called.pop((name, event.query_id), None)  # (answered again: held, a retry)
+        elif isinstance(event, events.CatalogRestored):
+            holding[name] = {qid: (c, line, event.at) for qid, _rid, c, *_ in event.consumers}
+        elif isinstance(event, events.ConsumerAdded):
+            holding[name][event.query_id] = (event.consumer, line, event.at)
+        elif isinstance(event, events.ConsumerReleased) and event.query_id in holding[name]:
+            close(name, event.query_id, event.at)
+    for name, held in holding.items():  # (held to the end of the run)
+        for qid in list(held):
+            close(name, qid, last[name])
+    return _held_on(called, spans)
+
+
+def _held_on(
+    called: dict[tuple[str, str], tuple[int, float, str]],
+    spans: dict[tuple[str, str], list[tuple[str, int, float, float]]],
+) -> list[Finding]:
+    """`withdrawn`'s findings: each withdrawal (`called`) whose provider held the id for
+    `WITHDRAWN_BOUND_S` after it, in one of the `spans` that life held it."""
+    findings = []
+    for (consumer, qid), (line, at, provider) in called.items():
+        for holder, added, since, until in spans.get((provider, qid), ()):
+            kept = until - max(since, at)
+            if holder == consumer and kept >= WITHDRAWN_BOUND_S:
+                findings.append(
+                    Finding(
+                        "withdrawn",
+                        "violation",
+                        f"{provider} held query {qid[:8]} of {consumer} for {kept:.1f} s "
+                        f"after {consumer} withdrew that call, and after that life of "
+                        f"{provider} began to hold it",
+                        (line, added),
+                        (provider, consumer),
+                    )
+                )
+                break
     return findings

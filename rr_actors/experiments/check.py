@@ -54,6 +54,9 @@ what cannot be checked):
 - `end`: nothing is held at the end by a consumer that stopped (`RegistrarStopped`): a
   provider's life holds what its `CatalogRestored` listed (nothing without a backup) and
   what it added since.
+- `withdrawn` (rules 17, 20): an id whose call its consumer withdrew (`CallWithdrawn`,
+  not answered again after) is not held at the end by its provider's last life, once
+  that life served `WITHDRAWN_BOUND_S` after the withdrawal and its own start.
 - `one-name` (rule 22): a second server of a name (a process whose events of a registrar
   begin while another one's life of it goes on: only a cut lets each side serve a name)
   yields once the cut heals; two that both serve to the end of the run (neither process
@@ -112,6 +115,7 @@ RULES = (
     "answered",
     "reported-lost",
     "end",
+    "withdrawn",
     "one-name",
     "events",
 )
@@ -252,6 +256,7 @@ def check(history: Sequence[Line]) -> Verdict:
         *answered,
         *_consumer_rules.reported_lost(history, providers.holdings, lives),
         *_consumer_rules.end(steps, history),
+        *_consumer_rules.withdrawn(steps),
         *_one_name_rule(history, lives),
     ]
     findings = [

@@ -76,6 +76,7 @@ MAX_SECONDS = 1e6  # the longest duration, time or wait, in seconds
 MIN_EVERY = 1e-3  # the shortest interval of an `every` fault, in seconds
 MAX_INJECTIONS = 100_000  # the most injections of one fault in one run
 MAX_CLIENTS = 1_000  # the most client threads of a workload (each has a registrar)
+MAX_AWAITED = 10_000  # the most calls a client awaits at once (`awaited`)
 MAX_REPEAT = 10_000  # the most runs per compared value
 MAX_COUNT = 1_000_000  # the most of any other count: `keys`, `max_restarts`, `loads`, `nth`
 MAX_RATE = 1e6  # the most calls per second per client (and the largest `weight`)
@@ -189,6 +190,9 @@ class Workload(_Table, frozen=True):
     arrivals: Literal["poisson", "fixed"] = "poisson"  # seeded gaps of mean 1/rate, or fixed
     hold: SecondsOrZero = 0.5  # a client keeps each resource this long, then unloads it
     timeout: Seconds = 5.0  # a call may take this long, retries through restarts included
+    awaited: Annotated[int, Meta(ge=0, le=MAX_AWAITED)] = 0  # >0: calls awaited at once, each slot
+    cancel: Annotated[float, Meta(ge=0, le=1)] = 0.0  # of the awaited calls, the share cancelled
+    cancel_within: SecondsOrZero = 0.05  # each cancelled 0 to this many seconds after it starts
     calls: tuple[CallMix, ...] = ()
 
 

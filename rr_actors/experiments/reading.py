@@ -345,6 +345,8 @@ class _Reader:
             self.template(call.request, (*path, "request"))
         problem = "'calls' is missing: what do the clients call?"
         self.refuse(workload.clients and not workload.calls, ("workload",), problem)
+        idle = "cancels only awaited calls: give 'awaited' (how many a client awaits at once)"
+        self.refuse(workload.cancel > 0 and not workload.awaited, ("workload", "cancel"), idle)
 
     def host(self, name: str, path: KeyPath) -> None:
         """`name` must be a host of `[hosts]`."""

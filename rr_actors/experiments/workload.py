@@ -8,6 +8,12 @@ Each client has a consumer registrar of its own (`Supervisor.registrar`) and one
     a status came (its callback queues it) ──► FATAL: unload, load again (a recovery)
                                                UPDATE: the manager replaced it (a recovery)
 
+With `awaited = N`, each call that comes due is N calls at once instead, each awaited
+(`Supervisor.acall_with_retry`) on the client's own event loop, and a seeded share
+`cancel` of them is cancelled 0 to `cancel_within` seconds after it started (the awaiting
+task cancelled: the call is withdrawn, as a timed-out one is). A cancelled call is not
+recorded; one answered before its cancel is held and unloaded like any other.
+
 What came due while a call blocked (statuses heard, holds run out) is handled before the
 next call, the statuses first: a `FATAL` about a resource the client still held (not yet
 released, though its hold may have run out while the call blocked) is acted on, as the
@@ -27,6 +33,7 @@ the run fails with it (`runner` raises it once the clients have stopped).
 
 from __future__ import annotations
 
+import asyncio
 import collections
 import contextlib
 import dataclasses
@@ -243,6 +250,7 @@ class Client:
         self._seq = itertools.count()
         self._unique = itertools.count()
         self._stopping = runtime.Event()
+        self._loop: asyncio.AbstractEventLoop | None = None  # (made at the first awaited calls)
         self._factories: dict[str, Callable[..., Any]] = {}
         self._thread = runtime.Thread(target=self._run, name=f"rr-client-{index}", daemon=True)
 
@@ -319,6 +327,9 @@ class Client:
         except Exception as exc:  # noqa: BLE001 - kept in `failure`: the run fails with it
             self.failure = exc
             self._on_failure()
+        finally:
+            if self._loop is not None:
+                self._loop.close()
 
     def _calls(self) -> None:
         next_call = self.t0 + self._gap()
@@ -415,15 +426,80 @@ class Client:
             ) from exc
 
     def _call_one(self) -> None:
+        if self.workload.awaited:
+            self._await_calls()
+            return
         mix = self._choose()
         request = self._request(mix)
-        query = self._call(mix, request)
+        self._hold(mix, request, self._call(mix, request))
+
+    def _hold(self, mix: CallMix, request: Any, query: rr.Query | None) -> None:
+        """Keep `query` (an answered call) for the workload's `hold`, then unload it."""
         if query is not None:
             held = _Held(
                 runtime.monotonic() + self.workload.hold, next(self._seq), query, mix, request
             )
             heapq.heappush(self._held, held)
             self._by_id[query.id] = held
+
+    def _await_calls(self) -> None:
+        """`awaited` calls at once, awaited on this client's loop; cancel a share of them.
+
+        Each call's kind, request, whether it is cancelled and when are drawn from the
+        client's generator before any is sent (the same seed, the same calls). A call
+        cancelled before its answer is withdrawn (its id given back: rule 17) and not
+        recorded; the others are recorded and held as a blocking call's are.
+        """
+        work = self.workload
+        batch = []
+        for _ in range(work.awaited):
+            mix = self._choose()
+            request = self._request(mix)
+            cancel = self.rng.random() < work.cancel
+            batch.append(
+                (mix, request, self.rng.uniform(0.0, work.cancel_within) if cancel else None)
+            )
+        if self._loop is None:
+            self._loop = runtime.new_event_loop()
+        outcomes = self._loop.run_until_complete(self._gathered(batch))
+        for (mix, request, _), query in zip(batch, outcomes, strict=True):
+            self._hold(mix, request, query)
+
+    async def _gathered(self, batch: list[tuple[CallMix, Any, float | None]]) -> list[Any]:
+        return await asyncio.gather(*(self._awaited(*call) for call in batch))
+
+    async def _awaited(self, mix: CallMix, request: Any, cancel_after: float | None) -> Any:
+        """One awaited call (retried through restarts), cancelled after `cancel_after` s
+        if given; its query, or `None` if it failed or was cancelled."""
+        start = self._now()
+        task = asyncio.ensure_future(
+            self.sup.acall_with_retry(
+                self.registrar,
+                mix.manager,
+                mix.server,
+                request,
+                on_status=self._on_status,
+                timeout=self.workload.timeout,
+                query_id=new_id(),
+            )
+        )
+        if cancel_after is not None:
+            asyncio.get_running_loop().call_later(cancel_after, task.cancel)
+        try:
+            query = await task
+        except asyncio.CancelledError:
+            return None  # (withdrawn by its caller: not a failure of the tree)
+        except rr.RrError as exc:
+            error: str | None = type(exc).__name__
+            query = None
+        else:
+            error = None
+        # (`retried` is not known: `acall_with_retry` retries inside)
+        record = CallRecord(
+            self.index, mix.manager, mix.server, start, self._now(), error is None, False, error
+        )
+        self.calls.append(record)
+        return query
 
     def _call(self, mix: CallMix, request: Any) -> rr.Query | None:
         """One call with retries; recorded; returns the query, or `None` if it failed."""

@@ -642,6 +642,57 @@ def test_an_answered_id_a_restart_without_a_backup_lost_is_owed_a_fatal() -> Non
     assert {2, 6} == _found(_stamped(again), "kept")
 
 
+def withdrawn_then_restored(released_after: float) -> list[events.Event]:
+    """Issue 51: cm withdraws Q1 after erm committed it; erm is killed before its
+    `Abandon`, restored holding Q1, and releases it `released_after` s after the restore."""
+    restored = 20.0
+    return [
+        events.CatalogRestored("erm", (), (), (), pid=P, seq=1, at=10.0),
+        events.ResourceLoaded("erm", "cam", RID, Q1, 0.01, 42, "cam 0", pid=P, seq=2, at=10.0),
+        events.ConsumerAdded("erm", RID, Q1, "cm", pid=P, seq=3, at=10.0),
+        events.CallWithdrawn("cm", Q1, "erm", "cam", "interrupted", pid=C, at=10.001),
+        events.CatalogRestored(
+            "erm",
+            ((RID, "cam", "loaded", "42"),),
+            ((Q1, RID, "cm"),),
+            (),
+            (1, 1, 0),
+            pid=P + 1,
+            seq=1,
+            at=restored,
+        ),
+        events.ConsumerReleased(
+            "erm", RID, Q1, "cm", "reconcile", pid=P + 1, seq=2, at=restored + released_after
+        ),
+        events.ResourceUnloaded("erm", "cam", RID, pid=P + 1, seq=3, at=restored + released_after),
+        events.RegistrarStopped("cm", (), (), (), pid=C, at=restored + 3.0),
+        events.RegistrarStopped("erm", (), (), (), pid=P + 1, seq=4, at=restored + 3.0),
+    ]
+
+
+def test_a_withdrawn_id_its_restarted_provider_holds_on_is_a_withdrawn_violation() -> None:
+    verdict = check.check(numbered(withdrawn_then_restored(released_after=2.0)))
+
+    found = [f for f in verdict.findings if f.rule == "withdrawn"]
+    assert ("violated", [(4, 5)]) == (verdict.verdict, [f.lines for f in found])
+    assert "erm held query q1111111 of cm for 2.0 s after cm withdrew that call" in found[0].message
+
+
+def test_a_withdrawn_id_its_restarted_provider_releases_at_the_reconcile_holds() -> None:
+    verdict = check.check(numbered(withdrawn_then_restored(released_after=0.01)))
+
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+
+
+def test_a_withdrawn_id_answered_again_by_a_retry_is_no_withdrawn_violation() -> None:
+    history = withdrawn_then_restored(released_after=2.0)
+    retry = events.CallAnswered("cm", Q1, "erm", "cam", None, True, pid=C, at=20.001)
+
+    verdict = check.check(numbered([*history[:5], retry, *history[5:]]))
+
+    assert [] == [f for f in verdict.findings if f.rule == "withdrawn"]
+
+
 def test_a_restart_with_a_restore_holds_what_the_restore_lists() -> None:
     h = without_backup()
     # erm has a backup: its restart lists Q1 again, and nobody releases it
@@ -1076,6 +1127,17 @@ def second_server_to_the_end(h: History) -> History | None:
     return None
 
 
+def release_withdrawn_late(h: History) -> History | None:
+    """A provider that releases an id its consumer withdrew (`CallWithdrawn`) only long
+    after (its `at` moved 5 s on): what issue 51's lost `Abandon` looked like."""
+    withdrawn = {(e.registrar, e.query_id): e.at for e in h if type(e) is events.CallWithdrawn}
+    for i, e in enumerate(h):
+        if type(e) is events.ConsumerReleased and (e.consumer, e.query_id) in withdrawn:
+            late = dataclasses.replace(e, at=withdrawn[e.consumer, e.query_id] + 5.0)
+            return [*h[:i], late, *h[i + 1 :]]
+    return None
+
+
 MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     # name: (the mutation, the rule that must catch it)
     "duplicate-unload": (duplicate(events.ResourceUnloaded), "unload-once"),
@@ -1105,6 +1167,7 @@ MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     "release-unpublished": (release_unpublished, "kept"),
     "provider-keeps-id": (provider_keeps_id, "end"),
     "second-server-to-the-end": (second_server_to_the_end, "one-name"),
+    "release-withdrawn-late": (release_withdrawn_late, "withdrawn"),
 }
 
 

@@ -185,6 +185,23 @@ def test_a_workload_call_to_an_unknown_manager_is_refused() -> None:
     assert (20, "workload.calls[0].manager") == (error.line, error.key)
 
 
+def test_a_cancel_without_awaited_calls_is_refused_as_doing_nothing() -> None:
+    error = plan_error(BASE.replace("clients = 1", "clients = 1\ncancel = 0.5"))
+
+    assert (18, "workload.cancel") == (error.line, error.key)
+    assert "cancels only awaited calls" in error.problem
+
+
+def test_awaited_calls_cancelled_within_a_delay_become_the_workloads_values() -> None:
+    workload = parse_plan(
+        BASE.replace(
+            "clients = 1", "clients = 1\nawaited = 100\ncancel = 0.7\ncancel_within = 0.008"
+        )
+    ).workload
+
+    assert (100, 0.7, 0.008) == (workload.awaited, workload.cancel, workload.cancel_within)
+
+
 def test_a_request_template_with_an_unknown_placeholder_is_refused() -> None:
     error = plan_error(BASE + 'request = { name = "x-{keys}" }\n')
 

@@ -50,3 +50,43 @@ def test_a_factory_that_raises_fails_the_run_at_once_with_its_error(tmp_path: Pa
         "ConfigError: workload.calls[0]: factory 'bad_factory:request' raised "
         "ValueError('boom') for key "
     ) in str(caught.value)
+
+
+AWAITED = """\
+name = "awaited"
+duration = 1.0
+
+[tree]
+[[tree.children]]
+name = "api"
+setup = "rr_actors.experiments.services:service"
+options = { load_s = 0.002 }
+
+[workload]
+clients = 1
+rate = 5.0
+hold = 0.05
+awaited = 40
+cancel = 0.5
+cancel_within = 0.004
+
+[[workload.calls]]
+manager = "api"
+server = "resource"
+shared = 1.0
+keys = 4
+"""
+
+
+def test_awaited_calls_a_share_of_which_are_cancelled_leave_nothing_held(tmp_path: Path) -> None:
+    (tmp_path / "plan.toml").write_text(AWAITED)
+
+    results = run(load_plan(tmp_path / "plan.toml"), out=tmp_path / "out")
+
+    [row] = results.rows()
+    lines = (tmp_path / "out" / "events.jsonl").read_text().splitlines()
+    withdrawn = [line for line in lines if '"type": "CallWithdrawn"' in line]
+    assert withdrawn  # (cancelled before their answers: the awaiting tasks were cancelled)
+    assert all('"reason": "interrupted"' in line for line in withdrawn)
+    assert (0, 0, "held") == (row["calls_failed"], row["catalog_entries_left"], row["verdict"])
+    assert row["calls_ok"] > 0

@@ -10,6 +10,7 @@ the point.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import itertools
 import os
@@ -267,6 +268,22 @@ def consumer_of(provider: str) -> Callable[[rr.ResourceRegistrar], None]:
             registrar.call(provider, "leaf", f"device-{n}", timeout=10)
 
     return setup
+
+
+def held_after_committing(query_id: str, reached: Any) -> Callable[[rr.ResourceRegistrar], None]:
+    """Run in a provider's process: hold its actor once it committed `query_id` as a
+    consumer, before its answer leaves and before it handles anything else (an `Abandon`
+    of that id waits in its mailbox until the process is killed); `reached` is set then."""
+
+    def arm(registrar: rr.ResourceRegistrar) -> None:
+        def hold(told: Any) -> None:
+            if any(getattr(event, "query_id", None) == query_id for event in told):
+                reached.set()
+                threading.Event().wait()  # held until the process is SIGKILLed
+
+        intercept(registrar, "events_written", before=hold)
+
+    return arm
 
 
 # -- for TestReconcileInFlight -------------------------------------------------------------
@@ -1499,6 +1516,52 @@ class TestReconcileInFlight:
             assert query.id not in [q.id for q in app.client_queries()]
             with pytest.raises(rr.UnknownQueryError):
                 app.unload(query.id, timeout=10)
+
+    def test_a_call_cancelled_before_its_provider_died_is_released_by_the_reconcile(
+        self, tmp_path: Path, process_helpers: SharedObjects
+    ) -> None:
+        # Issue 51, finding 1: an awaited call is cancelled after its provider committed
+        # its id and before the answer left; its Abandon dies with the provider (SIGKILL),
+        # whose death then fails the withdrawn call's Load. The restarted provider holds
+        # the id from its backup: the consumer's Reconcile must leave it out (withdrawn,
+        # to release), never list it as a failed call kept for a retry (rule 17, rule 20).
+        unloads, unloaded, reached = (
+            process_helpers.list(),
+            process_helpers.event(),
+            process_helpers.event(),
+        )
+        name = f"provider-{uuid.uuid4().hex[:8]}"
+        spec = rr.ManagerSpec(
+            name, provider_setup(unloads, unloaded), isolation="process", heartbeat=None
+        )
+        qid = str(uuid.uuid4())
+
+        async def cancelled_once_committed(app: rr.ResourceRegistrar) -> None:
+            task = asyncio.ensure_future(
+                app.acall(name, "leaf", "camera", query_id=qid, timeout=30)
+            )
+            assert await asyncio.to_thread(reached.wait, 10)  # committed; no answer left
+            task.cancel()
+            with pytest.raises(asyncio.CancelledError):
+                await task
+
+        with (
+            rr.Supervisor([spec], state_dir=tmp_path, max_restarts=5, period=10.0) as sup,
+            sup.subscribe(lambda _event: None),  # (its provider's events: "events_written")
+        ):
+            app = sup.registrar(f"app-{uuid.uuid4().hex[:8]}")
+            sup.run_in(name, held_after_committing(qid, reached))
+            heard = Heard()
+            with intercept(app, "answer", after=heard.answer):
+                asyncio.run(cancelled_once_committed(app))  # its Abandon waits there
+                sigkill(sup, name)
+                sup.wait_restarted(name, timeout=20)
+                assert heard.reconciled.wait(20)  # the app reconciled with the restarted one
+
+            assert unloaded.wait(10)  # released at the restarted provider: unloaded
+            assert [] == sup.run_in(name, lambda r: [q.id for q in r.server_queries("leaf")])
+            assert ["camera"] == list(unloads)  # once
+            assert [] == app.client_queries()
 
 
 class TestResponseUpdated:
