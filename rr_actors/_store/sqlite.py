@@ -448,7 +448,7 @@ class SqliteStore:
     def _refuse_if_damaged(self) -> None:
         """Raise if the file is damaged; check its pages first if no write did yet.
 
-        The check (`PRAGMA quick_check`: every page, about 35 ms for 100k entries) runs
+        The check (`PRAGMA quick_check`: every page, see failure-semantics.md) runs
         once, before the first write of a store that opened an existing file: the lazy
         restore (`restore.py`) reads only what it needs, and a page it did not read may
         be damaged. A write would change the damaged file (and SQLite may spread the

@@ -38,6 +38,8 @@ from rr_actors._store.files import read_backup, read_only
 from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import catalog_snapshot
 from tests.support.durable_pair import (
+    leaf_load,
+    noop_unload,
     pair_backups,
     start_pair,
     start_provider,
@@ -653,3 +655,40 @@ def test_a_store_that_found_its_file_damaged_refuses_every_write_and_closes_quie
         refused.value.path,
         sha256(path),
     )
+
+
+def leaf_setup(registrar: rr.ResourceRegistrar) -> None:
+    registrar.register_server("leaf", load=leaf_load, unload=noop_unload)
+
+
+@pytest.mark.usefixtures("process_helpers")  # the forkserver, before the leak check
+@pytest.mark.timeout(240)
+def test_a_supervised_manager_process_never_writes_to_its_backup_with_a_damaged_page(
+    supervisors: Any, uid: str, tmp_path: Path
+) -> None:
+    """The finding as it was seen: a tree starts on the damaged backup (its manager in its
+    own process), the errors reach the caller in another process, the manager keeps
+    running (no restart) and the tree's stop raises nothing; the file is as it was."""
+    name = f"p-{uid}"
+    path = tmp_path / f"{name}.db"
+    write_entries(path, 300)
+    damage_a_page_of_resources(path)
+    before = sha256(path)
+    spec = rr.ManagerSpec(name, leaf_setup, isolation="process", start_timeout=120.0)
+    sup = supervisors([spec], state_dir=tmp_path).start()
+    app = sup.registrar("app")
+
+    calls = {
+        outcome(lambda i=i: app.call(name, "leaf", {"n": i}, timeout=60.0)) for i in range(300)
+    }
+    fetched = outcome(lambda: app.fetch_queries(name, "leaf", timeout=60.0))
+    child = sup.child(name)
+    stopped = outcome(sup.stop)
+
+    assert (
+        {"CatalogCorruptError", "CatalogWriteError: damaged"},
+        "CatalogCorruptError",
+        ("running", 0),
+        "ok",
+        before,
+    ) == (calls, fetched, (child.state, child.restarts), stopped, sha256(path))
