@@ -1,4 +1,5 @@
-"""One owner of a path at a time: an exclusive advisory lock on a lock file, naming its pid.
+"""One owner of a path at a time: an exclusive advisory lock on a lock file, naming its pid;
+and one owner of a file whatever its name (`claim_file`: a lock on the file itself).
 
 ```
  owner A: claim(lock file) ──► open (0600, close-on-exec), flock(EX, NB), write A's pid
@@ -18,12 +19,30 @@ forked from the owner would share the lock (the same open file): it closes its c
 of the held descriptors at once (`fork.after_fork_in_child`), so the lock stays the
 owner's alone and goes when the owner lets go, whatever the child does. Without `fcntl`
 (not POSIX) nothing is locked: the claim always succeeds (documented).
+
+```
+ owner A: claim_file(db) ──► (dev, inode) not held here ──► open it read-only, flock(EX, NB)
+ owner B: claim_file(a hard link to db) ──► the same inode: flock fails ──► HeldError(the
+          pid /proc/locks names, or this pid if it is one of this process's own claims)
+```
+
+A lock file is found by its name; two names of one file (a hard link) would each have
+their own. `claim_file` locks the file itself, so every name of it shares the lock. It
+writes nothing and removes nothing. It is taken only where `flock` and POSIX (`fcntl`)
+locks are apart (Linux): SQLite locks the same file with POSIX locks, which a `flock`
+must not block (on BSD kernels the two kinds conflict). Closing a descriptor drops every
+POSIX lock this process holds on that file, SQLite's included; so the descriptor is
+opened only when this process holds no claim of that file (a second claim here is refused
+by the table of held files, without opening it), and closed only by `release_file` (once
+its owner closed its connections) or after a claim another process refused (this process
+writes nothing there).
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import sys
 
 from rr_actors._platform import fork
 
@@ -32,9 +51,13 @@ try:
 except ImportError:  # pragma: no cover - not POSIX: no lock (documented)
     fcntl = None  # type: ignore[assignment]
 
-__all__ = ["HeldError", "claim", "release"]
+__all__ = ["HeldError", "claim", "claim_file", "release", "release_file"]
 
 _held: dict[int, str] = {}  # the descriptors of the locks this process holds: their files
+_held_files: dict[tuple[int, int], int] = {}  # claim_file's: (st_dev, st_ino) -> descriptor
+
+FILE_LOCKS = fcntl is not None and sys.platform.startswith("linux")
+"""Whether `claim_file` locks anything: `flock` and POSIX locks are apart (Linux)."""
 
 
 class HeldError(Exception):
@@ -89,6 +112,62 @@ def release(fd: int) -> None:
         os.close(fd)
 
 
+def claim_file(path: str | os.PathLike[str]) -> int | None:
+    """Lock the existing file at `path` itself (whichever of its names), writing nothing.
+
+    Returns:
+        The open (read-only) descriptor, held until `release_file(fd)` or the process's
+        end; `None` where such locks are not taken (`FILE_LOCKS`).
+
+    Raises:
+        HeldError: another owner (in this process or another) holds the file, by this
+            name or another.
+        OSError: the file cannot be opened.
+    """
+    if not FILE_LOCKS:
+        return None
+    st = os.stat(path)
+    key = (st.st_dev, st.st_ino)
+    if key in _held_files:  # (never opened here: closing it would drop SQLite's locks)
+        raise HeldError(str(os.getpid()))
+    fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+    try:
+        st = os.fstat(fd)
+        key = (st.st_dev, st.st_ino)
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)  # (another process holds it: this one has no connection writing it)
+        raise HeldError(_flock_holder(key)) from None
+    _held_files[key] = fd
+    return fd
+
+
+def release_file(fd: int) -> None:
+    """Release a lock `claim_file` returned (close its descriptor; the file stays).
+
+    Only once this process's connections to the file are closed: closing the descriptor
+    drops this process's POSIX locks on it.
+    """
+    for key, held in list(_held_files.items()):
+        if held == fd:
+            del _held_files[key]
+    with contextlib.suppress(OSError):
+        os.close(fd)
+
+
+def _flock_holder(key: tuple[int, int]) -> str:
+    """The pid holding a `flock` on the file `key` (`(st_dev, st_ino)`), from the
+    kernel's table of locks (`/proc/locks`); `"unknown"` if it does not say."""
+    dev, ino = key
+    where = f"{os.major(dev):02x}:{os.minor(dev):02x}:{ino}"
+    with contextlib.suppress(OSError), open("/proc/locks", encoding="ascii") as table:
+        for line in table:
+            fields = line.split()  # "1: FLOCK ADVISORY WRITE <pid> <maj>:<min>:<ino> 0 EOF"
+            if len(fields) >= 6 and fields[1] == "FLOCK" and fields[5] == where:
+                return fields[4]
+    return "unknown"
+
+
 def _names(fd: int, name: str) -> bool:
     """Whether `name` still names the file open at `fd`."""
     try:
@@ -100,10 +179,12 @@ def _names(fd: int, name: str) -> bool:
 def _let_go_in_child() -> None:
     """In a forked child: close the copies of the owner's lock descriptors (the lock
     stays the owner's)."""
-    for fd in _held:
+    for fd in [*_held, *_held_files.values()]:
         with contextlib.suppress(OSError):
-            os.close(fd)  # (never removed: the file is the owner's)
+            os.close(fd)  # (never removed: the file is the owner's; a child holds no
+            # POSIX lock of the parent's, so closing drops none)
     _held.clear()
+    _held_files.clear()
 
 
 fork.after_fork_in_child("the lock files this process holds", _let_go_in_child)

@@ -24,7 +24,7 @@ import contextlib
 import dataclasses
 import pickle
 import sqlite3
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 from rr_actors._catalog import ResourceState
@@ -40,6 +40,7 @@ __all__ = [
     "check_keys",
     "check_row",
     "check_values",
+    "damaged_file",
     "decode",
     "dumps",
     "first_duplicate",
@@ -182,9 +183,28 @@ def lenient_decode(_rid: str, _field: str, blob: bytes | None) -> Any:
         return Unreadable(f"{type(exc).__name__}: {exc}", len(blob or b""))
 
 
+_DAMAGE_CODES = frozenset({"SQLITE_CORRUPT", "SQLITE_NOTADB"})
+"""SQLite's (primary) result codes for a file whose pages are not what it wrote."""
+
+
+def damaged_file(exc: BaseException) -> bool:
+    """Whether SQLite raised `exc` because the file's pages are damaged (not a row)."""
+    if not isinstance(exc, sqlite3.DatabaseError):
+        return False
+    code = getattr(exc, "sqlite_errorname", None)
+    if code is not None:
+        return any(code == c or code.startswith(f"{c}_") for c in _DAMAGE_CODES)
+    return "malformed" in str(exc) or "not a database" in str(exc)
+
+
 @contextlib.contextmanager
-def as_corrupt(path: str) -> Iterator[None]:
+def as_corrupt(path: str, on_damage: Callable[[str], None] | None = None) -> Iterator[None]:
     """Translate what SQLite or unpickling raises about a bad file.
+
+    Args:
+        path: the file, named in the error.
+        on_damage: told why, when SQLite says the file's pages are damaged
+            (`damaged_file`), before the error is raised.
 
     Raises:
         CatalogCorruptError: in place of an `sqlite3.DatabaseError` or of an error that
@@ -193,7 +213,10 @@ def as_corrupt(path: str) -> Iterator[None]:
     try:
         yield
     except sqlite3.DatabaseError as exc:
-        raise CatalogCorruptError(path, f"{type(exc).__name__}: {exc}") from exc
+        why = f"{type(exc).__name__}: {exc}"
+        if on_damage is not None and damaged_file(exc):
+            on_damage(why)
+        raise CatalogCorruptError(path, why) from exc
     except (
         pickle.UnpicklingError,
         EOFError,

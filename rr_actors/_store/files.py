@@ -1,7 +1,7 @@
 """Where a backup lives: the path's checks, creating, validating and opening the file.
 
 ```
- backup_path --check_location--> --claim: <backup_path>.lock, one registrar a file-->
+ backup_path --check_location--> --claim: <real path>.lock and the file, one registrar a file-->
    (no file) --create: temporary name, linked into place-->
    --validate: header, read-only connection, schema--> --prepare: WAL, durability, migrate-->
    a writable connection (`SqliteStore`)
@@ -53,6 +53,7 @@ __all__ = [
     "SIDE_FILES",
     "SYNCHRONOUS",
     "Backup",
+    "BackupLock",
     "Rows",
     "check_location",
     "connect",
@@ -73,7 +74,8 @@ SIDE_FILES = ("-wal", "-shm", "-journal")
 """The suffixes of the files SQLite keeps next to a database."""
 
 LOCK_SUFFIX = ".lock"
-"""The suffix of a backup's lock file (`claim`): `<backup_path>.lock`."""
+"""The suffix of a backup's lock file (`claim`): `<backup_path>.lock`, symbolic links
+resolved."""
 
 SYNCHRONOUS = {"process": "NORMAL", "power": "FULL"}
 """SQLite's `synchronous` level for each `RegistrarConfig.durability`."""
@@ -218,33 +220,101 @@ def _private_file(path: Path) -> None:
         os.close(fd)
 
 
-def claim(path: Path) -> int | None:
-    """Make the caller the one registrar of the backup at `path`, until `lockfile.release`.
+class BackupLock:
+    """The locks that make one store the one registrar of a backup (`claim`).
+
+    `<file>.lock` (the file's real path: every symbolic link to it finds the same lock
+    file, which names the holder's pid) and the file itself (`lockfile.claim_file`: every
+    hard link to it shares that lock), taken once the file exists (`hold_file`).
+    """
+
+    def __init__(self, path: Path, real: Path, name_fd: int) -> None:
+        self._path = path
+        self._real = real
+        self._name_fd: int | None = name_fd
+        self._file_fd: int | None = None
+
+    def hold_file(self) -> None:
+        """Lock the file itself (it exists now), unless this lock already does.
+
+        Raises:
+            ConfigError: another registrar has the file open under another name (a hard
+                link), naming both and its pid.
+        """
+        if self._file_fd is not None:
+            return
+        try:
+            self._file_fd = lockfile.claim_file(self._real)
+        except lockfile.HeldError as held:
+            raise _in_use(self._path, self._real, held.holder, " (under another name)") from None
+        except OSError as exc:
+            raise ConfigError(f"backup_path {str(self._path)!r} cannot be locked: {exc}") from exc
+
+    def file_replaced(self) -> None:
+        """Lock the new file at the path instead (`SqliteStore._keep_in_place` wrote it
+        there once every connection to the old one was closed)."""
+        file_fd, self._file_fd = self._file_fd, None
+        if file_fd is not None:
+            lockfile.release_file(file_fd)
+        with contextlib.suppress(ConfigError):  # (a file just made: nobody else has it)
+            self.hold_file()
+
+    def release(self) -> None:
+        """Release both locks (idempotent)."""
+        file_fd, self._file_fd = self._file_fd, None
+        name_fd, self._name_fd = self._name_fd, None
+        if file_fd is not None:
+            lockfile.release_file(file_fd)
+        if name_fd is not None:
+            lockfile.release(name_fd)
+
+
+def _in_use(path: Path, real: Path, holder: str, how: str = "") -> ConfigError:
+    resolved = "" if str(real) == str(path) else f" (the file {str(real)!r})"
+    return ConfigError(
+        f"backup_path {str(path)!r}{resolved} is in use by another registrar{how} (pid "
+        f"{holder}); give each registrar its own backup file"
+    )
+
+
+def claim(path: Path) -> BackupLock | None:
+    """Make the caller the one registrar of the backup at `path`, until `release()`.
 
     Two registrars on one file would each restore the other's rows as its own, and
     release there what its consumers do not hold at it: the other's catalog would go.
-    So the store holds an exclusive lock on `<path>.lock` (`_platform.lockfile`: the
-    kernel drops it when the process ends, however it ends) while it is open. Returns
-    its descriptor; `None` in a simulation, whose files are its own.
+    So the store holds an exclusive lock (`_platform.lockfile`: the kernel drops it when
+    the process ends, however it ends) on `<file>.lock` while it is open, `<file>` being
+    the path with every symbolic link resolved, and on the file itself if it exists
+    (else `hold_file()` once it was created): two names of one file, a symbolic link or
+    a hard link, are one backup. Returns the locks; `None` in a simulation, whose files
+    are its own.
 
     Raises:
-        ConfigError: naming `path`: another registrar (of this process or another, the
-            message names its pid) has it open, or the lock file cannot be made.
+        ConfigError: naming `path` (and the file it resolves to): another registrar (of
+            this process or another, the message names its pid) has it open, under this
+            name or another, or the lock file cannot be made.
     """
     if not runtime.guards_files():
         return None
+    real = Path(os.path.realpath(path))
+    lock_name = f"{real}{LOCK_SUFFIX}"
     try:
-        return lockfile.claim(f"{path}{LOCK_SUFFIX}")
+        fd = lockfile.claim(lock_name)
     except lockfile.HeldError as held:
-        raise ConfigError(
-            f"backup_path {str(path)!r} is in use by another registrar (pid "
-            f"{held.holder}); give each registrar its own backup_path"
-        ) from None
+        raise _in_use(path, real, held.holder) from None
     except OSError as exc:
         raise ConfigError(
-            f"backup_path {str(path)!r}: its lock file {path}{LOCK_SUFFIX} cannot be "
-            f"created: {exc.strerror}"
+            f"backup_path {str(path)!r}: its lock file {lock_name} cannot be created: "
+            f"{exc.strerror}"
         ) from exc
+    lock = BackupLock(path, real, fd)
+    try:
+        if real.exists():
+            lock.hold_file()
+    except BaseException:
+        lock.release()
+        raise
+    return lock
 
 
 def remove_files(path: Path, suffixes: tuple[str, ...] = ("", *SIDE_FILES)) -> None:
@@ -620,7 +690,7 @@ def quarantine_backup(path: str | os.PathLike[str]) -> Path:
         file.rename(target)
     finally:
         if lock is not None:
-            lockfile.release(lock)
+            lock.release()
     return target
 
 

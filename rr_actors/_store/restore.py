@@ -24,6 +24,7 @@ Either way a restored resource keeps its request and response encoded until firs
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import sqlite3
 from collections.abc import Callable
@@ -148,6 +149,10 @@ class RowStore(Protocol):
         memory that are still in the file."""
         ...
 
+    def found_damaged(self, why: str) -> None:
+        """SQLite said the file's pages are damaged: write nothing more to it."""
+        ...
+
 
 SWEEP_ROWS = 2_000
 """Restored resources one slice of `Unread.sweep` looks at (a few ms of SQLite)."""
@@ -181,7 +186,7 @@ class Unread:
         if not self.remaining:
             return None
         self._check_open()
-        with as_corrupt(self._store.path):
+        with self._reading():
             row = self._store.connection.execute(_RESOURCE_OF, (query_id,)).fetchone()
             seq = None if row is None else int(row[0])
         if seq is None or seq > self._last or seq in self._read:
@@ -213,7 +218,7 @@ class Unread:
         if not self.remaining:
             return []
         self._check_open()
-        with as_corrupt(self._store.path):
+        with self._reading():
             rows = self._store.connection.execute(
                 "SELECT query_id, resource FROM consumers WHERE origin_rr = ? AND resource <= ?",
                 (origin_rr, self._last),
@@ -232,7 +237,7 @@ class Unread:
         if not self.remaining:
             return [], set(), None
         self._check_open()
-        with as_corrupt(self._store.path):
+        with self._reading():
             db = self._store.connection
             looked_at, upto = db.execute(
                 "SELECT count(*), max(seq) FROM (SELECT seq FROM resources "
@@ -276,7 +281,7 @@ class Unread:
             return [], []
         self._check_open()
         mirrored = self._store.mirrored(self._last)
-        with as_corrupt(self._store.path):
+        with self._reading():
             db = self._store.connection
             rows = db.execute(
                 "SELECT seq, id, server, state, digest, failed FROM resources WHERE seq <= ? "
@@ -318,7 +323,7 @@ class Unread:
             return 0, 0
         self._check_open()
         mirrored = self._store.mirrored(self._last)
-        with as_corrupt(self._store.path):
+        with self._reading():
             db = self._store.connection
             (resources,) = db.execute(
                 "SELECT count(*) FROM resources WHERE seq <= ?", (self._last,)
@@ -332,7 +337,7 @@ class Unread:
         if not self.remaining:
             return []
         self._check_open()
-        with as_corrupt(self._store.path):
+        with self._reading():
             seqs = [
                 seq for (seq,) in self._store.connection.execute(sql, args) if seq not in self._read
             ]
@@ -347,7 +352,7 @@ class Unread:
         store = self._store
         db = store.connection
         read = []
-        with as_corrupt(store.path):
+        with self._reading():
             for seq in seqs:
                 row = db.execute(_RESOURCE_BY_SEQ, (seq,)).fetchone()
                 if row is None:
@@ -357,6 +362,11 @@ class Unread:
         resources = [store.adopt(row, consumers) for row, consumers in read]
         self._read.update(row[0] for row, _ in read)
         return resources
+
+    def _reading(self) -> contextlib.AbstractContextManager[None]:
+        """`as_corrupt` for a read of the store's file: damage SQLite reports there
+        turns the store read-only (`found_damaged`)."""
+        return as_corrupt(self._store.path, self._store.found_damaged)
 
     def _check_open(self) -> None:
         if self._store.closed:

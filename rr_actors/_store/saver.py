@@ -26,6 +26,7 @@ and are written, merged with what changed since, by the next write that succeeds
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Protocol
 
@@ -39,6 +40,8 @@ if TYPE_CHECKING:
     from rr_actors._store.restore import Restored
 
 __all__ = ["CatalogStore", "Saver", "open_catalog", "open_store", "timer_factory"]
+
+logger = logging.getLogger("rr_actors")
 
 
 timer_factory: Timer = thread_timer
@@ -65,6 +68,10 @@ class CatalogStore(Protocol):
 
     def close(self, *, erase: bool) -> None:
         """Close the store; with `erase`, remove its files."""
+
+    @property
+    def damaged(self) -> str | None:
+        """Why the file is damaged (nothing more is written to it), or `None`."""
 
 
 def open_store(config: RegistrarConfig) -> CatalogStore | None:
@@ -210,15 +217,26 @@ class Saver:
         """Close the store: flush first (unless erasing, or `flush=False` after a crash).
 
         The store is closed even if the flush raises (the error is then re-raised, and
-        what was pending is lost with the process's memory).
+        what was pending is lost with the process's memory). A damaged file (`damaged`)
+        is not flushed to: it stays as it was found, what was pending is lost (logged,
+        ERROR), and nothing is raised (the calls that made those changes were refused
+        already, or were acknowledged without durability).
 
         Raises:
             CatalogWriteError: the last flush failed.
         """
         if self.store is None:
             return
+        damaged = self.store.damaged
+        if damaged is not None and self._pending and flush and not erase:
+            logger.error(
+                "catalog backup %s is damaged (%s): the changes made since were not "
+                "written to it, and are lost with this stop",
+                self.store.path,
+                damaged,
+            )
         try:
-            if flush and not erase:
+            if flush and not erase and damaged is None:
                 self.flush()
         finally:
             self.store.close(erase=erase)

@@ -38,13 +38,19 @@ from rr_actors._catalog import (
     Resource,
 )
 from rr_actors._core import runtime
-from rr_actors._platform import lockfile
-from rr_actors._store import checkpoints, codec, outbox
+from rr_actors._store import checkpoints, codec, outbox, schema
 from rr_actors._store.checkpoints import Checkpointer
-from rr_actors._store.codec import STATES_BY_CODE, as_corrupt, check_keys, check_row
+from rr_actors._store.codec import (
+    STATES_BY_CODE,
+    as_corrupt,
+    check_keys,
+    check_row,
+    damaged_file,
+)
 from rr_actors._store.commits import CommitCount, lost_commits
 from rr_actors._store.files import (
     SYNCHRONOUS,
+    BackupLock,
     check_location,
     claim,
     connect,
@@ -91,7 +97,7 @@ class SqliteStore:
         db: sqlite3.Connection,
         *,
         created: bool,
-        lock: int | None = None,
+        lock: BackupLock | None = None,
         synchronous: str = "NORMAL",
         background_checkpoints: bool = False,
     ) -> None:
@@ -111,6 +117,10 @@ class SqliteStore:
         self._unchecked = 0  # pages (about) written since the checkpointer was last woken
         self.checkpoint_every = checkpoints.CHECKPOINT_EVERY
         self._created = created
+        # Whether the file's pages were checked (`_check_pages`) before this store first
+        # writes; why they are damaged, once found (nothing more is written then).
+        self._checked = created or not self._guarded
+        self._damaged: str | None = None
         self._loaded = False
         self._resources: dict[str, Mirror] = {}
         # query id -> (row key, response_version, request_text)
@@ -161,14 +171,14 @@ class SqliteStore:
             return cls._open(file, lock, durability, background_checkpoints)
         except BaseException:
             if lock is not None:
-                lockfile.release(lock)
+                lock.release()
             raise
 
     @classmethod
     def _open(
         cls,
         file: Path,
-        lock: int | None,
+        lock: BackupLock | None,
         durability: Literal["process", "power"],
         background_checkpoints: bool,
     ) -> SqliteStore:
@@ -178,6 +188,8 @@ class SqliteStore:
         if not file.exists():
             create(file)
             created = True
+        if lock is not None:
+            lock.hold_file()  # (the file itself, now that it exists: every name of it)
         foreign = foreign_owner(file)
         if foreign is not None:
             raise ConfigError(
@@ -191,7 +203,11 @@ class SqliteStore:
             db = connect(file, read_only=False)
         except sqlite3.Error as exc:
             raise ConfigError(f"backup_path {name!r} cannot be opened: {exc}") from exc
+        checked = created or not runtime.guards_files()
         try:
+            if not checked and _open_writes(db, name, version):
+                _check_pages(db, name)  # (before anything is written to it: rule 15)
+                checked = True
             prepare(db, name, durability, version)
             with as_corrupt(name):  # (read at the last run's exit, if anyone listened)
                 outbox.clear(db)
@@ -206,6 +222,7 @@ class SqliteStore:
             synchronous=SYNCHRONOUS[durability],
             background_checkpoints=background_checkpoints,
         )
+        store._checked = checked
         if lost is not None:
             store.lost_commits, why = lost
             logger.warning(
@@ -370,6 +387,11 @@ class SqliteStore:
                 disk (`errno` `ENOSPC`), an I/O error, ... Nothing of `changes` was
                 written, and the store is as before: write them again later (with what
                 changed since) and they are written.
+            CatalogWriteError: the file is damaged (`damaged`: SQLite reports its
+                pages malformed, now or earlier, or the check of its pages before the
+                first write failed); its cause says so, chained from the
+                `CatalogCorruptError`. Nothing is written to that file any more, so it
+                stays as it was (rule 15).
             CatalogCorruptError: rows that the first write had to read first (`load`)
                 cannot be read.
         """
@@ -385,10 +407,14 @@ class SqliteStore:
         if told:
             outbox.plan_told(told, ops)
         if ops:
+            self._refuse_if_damaged()
             self._keep_in_place()
             try:
                 self._run(ops)
             except sqlite3.Error as exc:
+                if damaged_file(exc):
+                    self.found_damaged(f"{type(exc).__name__}: {exc}")
+                    self._refuse_if_damaged()
                 raise write_error(self.path, exc) from exc
         self._seq = seq
         for table, key, value in mirrors:
@@ -396,6 +422,56 @@ class SqliteStore:
                 table.pop(key, None)
             else:
                 table[key] = value
+
+    @property
+    def damaged(self) -> str | None:
+        """Why the file is damaged (SQLite reports its pages malformed), or `None`.
+
+        Once set, the store writes nothing more to the file, so it stays as it was
+        found: every `write` raises `CatalogWriteError` saying so, and `close` writes
+        nothing either.
+        """
+        return self._damaged
+
+    def found_damaged(self, why: str) -> None:
+        """SQLite reported the file's pages damaged (`why`): write nothing more to it."""
+        if self._damaged is None:
+            self._damaged = why
+            logger.error(
+                "catalog backup %s is damaged (%s): its registrar writes nothing more to "
+                "it, so it stays as it was; changes are refused from now on. Keep it for "
+                "analysis (quarantine_backup) and restart",
+                self.path,
+                why,
+            )
+
+    def _refuse_if_damaged(self) -> None:
+        """Raise if the file is damaged; check its pages first if no write did yet.
+
+        The check (`PRAGMA quick_check`: every page, see failure-semantics.md) runs
+        once, before the first write of a store that opened an existing file: the lazy
+        restore (`restore.py`) reads only what it needs, and a page it did not read may
+        be damaged. A write would change the damaged file (and SQLite may spread the
+        damage); refusing leaves it as it was.
+
+        Raises:
+            CatalogWriteError: the file is damaged (chained from the
+                `CatalogCorruptError` that says how).
+        """
+        if not self._checked and self._damaged is None:
+            self._checked = True
+            try:
+                _check_pages(self._db, self.path)
+            except CatalogCorruptError as exc:
+                self.found_damaged(exc.cause)
+        if self._damaged is None:
+            return
+        corrupt = CatalogCorruptError(self.path, self._damaged)
+        raise CatalogWriteError(
+            self.path,
+            f"the file is damaged ({self._damaged}); nothing more is written to it, so it "
+            "stays as it was: keep it for analysis (quarantine_backup) and restart",
+        ) from corrupt
 
     def _run(self, ops: list[Op]) -> None:
         db = self._db
@@ -465,6 +541,8 @@ class SqliteStore:
         try:  # no connection is open on the old file now: SQLite would remove the new -wal
             put_in_place(self._aside, self._file)
             self._aside = None
+            if self._lock is not None:  # (before SQLite locks the new file: see `lockfile`)
+                self._lock.file_replaced()
             db = connect(self._file, read_only=False)
             db.execute(f"PRAGMA synchronous = {self._synchronous}")
         except (sqlite3.Error, OSError) as exc:
@@ -490,7 +568,7 @@ class SqliteStore:
         """
         try:
             if not self.closed:
-                if not erase:
+                if not erase and self._damaged is None:
                     try:
                         self._keep_in_place()
                     except CatalogWriteError as exc:  # logged: a stop or a crash goes on
@@ -507,4 +585,30 @@ class SqliteStore:
         finally:  # (whatever happened: the file is no longer this store's)
             lock, self._lock = self._lock, None
             if lock is not None:
-                lockfile.release(lock)
+                lock.release()
+
+
+def _open_writes(db: sqlite3.Connection, name: str, version: int) -> bool:
+    """Whether opening the file writes to it (a migration, or last run's outbox to clear).
+
+    Raises:
+        CatalogCorruptError: SQLite reports the file damaged.
+    """
+    if version != schema.SCHEMA_VERSION:
+        return True
+    with as_corrupt(name):
+        return bool(db.execute("SELECT EXISTS (SELECT 1 FROM outbox)").fetchone()[0])
+
+
+def _check_pages(db: sqlite3.Connection, name: str) -> None:
+    """Check every page of the file (`PRAGMA quick_check`), writing nothing.
+
+    Raises:
+        CatalogCorruptError: a page is damaged (naming `name` and what SQLite found).
+    """
+    with as_corrupt(name):
+        found = db.execute("PRAGMA quick_check").fetchall()
+    if found != [("ok",)]:
+        lines = [line for (row,) in found for line in str(row).splitlines()]
+        listed = "; ".join([line for line in lines if not line.startswith("***")][:3])
+        raise CatalogCorruptError(name, f"damaged pages: {listed}")

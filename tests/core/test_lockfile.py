@@ -64,14 +64,15 @@ def test_the_lock_file_is_the_owners_alone_whatever_the_umask(tmp_path: Path) ->
         lockfile.release(fd)
 
 
-def _holder(path: Path, *, fork: bool = False) -> subprocess.Popen[str]:
-    """Another process that claims `path` and says so, then waits to be killed; with
-    `fork`, it forks a child first, which lives until the test's stdin closes."""
+def _holder(path: Path, *, fork: bool = False, claim: str = "claim") -> subprocess.Popen[str]:
+    """Another process that claims `path` (`lockfile.<claim>`) and says so, then waits to
+    be killed; with `fork`, it forks a child first, which lives until the test's stdin
+    closes."""
     program = textwrap.dedent(
         f"""
         import os, sys
         from rr_actors._platform import lockfile
-        lockfile.claim({str(path)!r})
+        lockfile.{claim}({str(path)!r})
         if {fork!r}:
             started, running = os.pipe()
             if os.fork() == 0:  # (the child: past its fork hooks, until stdin closes)
@@ -123,3 +124,47 @@ def test_a_child_forked_from_the_owner_does_not_keep_the_lock_after_the_owner_di
     finally:
         owner.kill()
         owner.communicate(timeout=10)  # (stdin closed: the child exits)
+
+
+# -- claim_file: one owner of a file, whatever its name (issue 51, finding 3) ---------------------
+
+file_locks = pytest.mark.skipif(not lockfile.FILE_LOCKS, reason="flock apart from POSIX locks")
+
+
+@file_locks
+def test_a_file_claimed_by_one_name_is_refused_by_a_hard_link_naming_this_pid(
+    tmp_path: Path,
+) -> None:
+    path, link = tmp_path / "x.db", tmp_path / "y.db"
+    path.write_bytes(b"")
+    os.link(path, link)
+    fd = lockfile.claim_file(path)
+    try:
+        with pytest.raises(lockfile.HeldError) as held:
+            lockfile.claim_file(link)
+    finally:
+        assert fd is not None
+        lockfile.release_file(fd)
+
+    assert (str(os.getpid()), True) == (held.value.holder, path.exists())
+
+
+@file_locks
+def test_a_file_claimed_by_another_process_is_refused_naming_it_and_free_once_it_was_killed(
+    tmp_path: Path,
+) -> None:
+    path, link = tmp_path / "x.db", tmp_path / "y.db"
+    path.write_bytes(b"")
+    os.link(path, link)
+    child = _holder(path, claim="claim_file")
+    try:
+        with pytest.raises(lockfile.HeldError) as held:
+            lockfile.claim_file(link)
+        assert str(child.pid) == held.value.holder
+    finally:
+        child.send_signal(signal.SIGKILL)
+        child.communicate(timeout=10)
+
+    fd = lockfile.claim_file(link)
+    assert fd is not None
+    lockfile.release_file(fd)

@@ -11,13 +11,17 @@
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import logging
 import os
 import pickle
+import select
 import sqlite3
 import stat
+import subprocess
 import sys
+import textwrap
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -767,3 +771,123 @@ def test_catalog_write_error_pickles_with_its_attributes() -> None:
         copy.cause,
         copy.errno,
     )
+
+
+# -- one registrar a backup, whatever name it is given (issue 51, finding 3) ---------------------
+
+
+def symlink(target: Path, name: Path) -> str:
+    """Make `name` a symbolic link to `target`; the refusal names the file it resolves to."""
+    name.symlink_to(target)
+    return f"(the file {str(target)!r})"
+
+
+def hard_link(target: Path, name: Path) -> str:
+    """Make `name` a hard link to `target`; the refusal says the file is open by another
+    name (which name, the kernel does not say)."""
+    os.link(target, name)
+    return "under another name"
+
+
+other_names = pytest.mark.parametrize("make_name", [symlink, hard_link], ids=lambda f: f.__name__)
+"""Another name of a running registrar's backup: a symbolic link, or a hard link."""
+
+HOLDER = textwrap.dedent(
+    """
+    import sys
+    import rr_actors as rr
+
+    config = rr.RegistrarConfig(name=sys.argv[2], backup_path=sys.argv[1])
+    registrar = rr.ResourceRegistrar.start(config)
+    print("ready", flush=True)
+    sys.stdin.read()  # (until the test closes it)
+    registrar.stop()
+    """
+)
+"""Another program: a registrar on the given backup, until its stdin closes."""
+
+
+@contextlib.contextmanager
+def holder(path: Path) -> Iterator[subprocess.Popen[str]]:
+    """Run `HOLDER` on `path` in its own process until its registrar serves; end it after."""
+    proc = subprocess.Popen(
+        [sys.executable, "-c", HOLDER, str(path), unique("holder")],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout is not None
+        readable, _, _ = select.select([proc.stdout], [], [], 60.0)
+        assert [proc.stdout] == readable
+        assert "ready" == proc.stdout.readline().strip()
+        yield proc
+    finally:
+        proc.kill()
+        proc.communicate(timeout=10.0)
+
+
+def refusal(path: Path) -> str:
+    """The `ConfigError` a registrar started on `path` gets (the test fails without one)."""
+    config = rr.RegistrarConfig(name=unique("second"), backup_path=path)
+    with pytest.raises(rr.ConfigError) as refused:
+        rr.ResourceRegistrar.start(config).stop()
+    return str(refused.value)
+
+
+@other_names
+def test_a_registrar_on_another_name_of_a_running_registrars_backup_is_refused(
+    tmp_path: Path, make_name: Callable[[Path, Path], str]
+) -> None:
+    """In one process: the second registrar is refused (`ConfigError` naming the name it was
+    given, the file that is, and this pid) and the first goes on writing its own rows."""
+    path, other = tmp_path / "p.db", tmp_path / "other.db"
+    first = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=unique("first"), backup_path=path))
+    try:
+        first.register_server("leaf", load=lambda r: r, unload=noop_unload)
+        held = first.call(first.name, "leaf", "before")
+        names_it = make_name(path, other)
+
+        message = refusal(other)
+
+        first.unload(held.id)
+        first.call(first.name, "leaf", "after")  # (its file is still its alone)
+    finally:
+        first.stop()
+
+    assert (True, True, True) == (
+        repr(str(other)) in message,
+        names_it in message,
+        f"(pid {os.getpid()})" in message,
+    )
+
+
+@other_names
+def test_a_registrar_on_another_name_of_a_backup_another_process_runs_is_refused(
+    tmp_path: Path, make_name: Callable[[Path, Path], str]
+) -> None:
+    """Across processes: the refusal names the process that has the backup open."""
+    path, other = tmp_path / "p.db", tmp_path / "other.db"
+    with holder(path) as running:
+        names_it = make_name(path, other)
+
+        message = refusal(other)
+
+    assert (True, True, True) == (
+        repr(str(other)) in message,
+        names_it in message,
+        f"(pid {running.pid})" in message,
+    )
+
+
+@other_names
+def test_another_name_of_a_backup_is_free_once_its_registrar_stopped(
+    tmp_path: Path, make_name: Callable[[Path, Path], str]
+) -> None:
+    path, other = tmp_path / "p.db", tmp_path / "other.db"
+    first = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=unique("first"), backup_path=path))
+    first.stop()
+    make_name(path, other)
+
+    second = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=unique("b"), backup_path=other))
+    second.stop()

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hashlib
 import multiprocessing
 import multiprocessing.context
 import multiprocessing.forkserver
@@ -33,10 +34,12 @@ from rr_actors._catalog import (
 from rr_actors._store import checkpoints as checkpoint_module
 from rr_actors._store import codec, schema
 from rr_actors._store import saver as _persistence
-from rr_actors._store.files import read_backup
+from rr_actors._store.files import read_backup, read_only
 from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import catalog_snapshot
 from tests.support.durable_pair import (
+    leaf_load,
+    noop_unload,
     pair_backups,
     start_pair,
     start_provider,
@@ -539,3 +542,153 @@ def test_a_write_that_fails_half_way_leaves_none_of_its_statements_in_the_file(
         store.close(erase=False)
 
     assert ([], []) == (read_backup(path).resources, read_backup(path).clients)
+
+
+# -- a backup with a damaged page is never written to (issue 51, finding 4) ----------------------
+
+
+def write_entries(path: Path, count: int) -> None:
+    """A closed backup of `count` loaded resources of server `leaf`, each held by one id of
+    registrar `C` (`{"n": i}`, about 300 bytes a row: a page holds about a dozen)."""
+    store = SqliteStore.open(path)
+    store.load()
+    catalog = Catalog()
+    for i in range(count):
+        catalog.begin_load(f"r{i}", "leaf", {"n": i})
+        catalog.finish_load(f"r{i}", {"of": i, "pad": "x" * 200})
+        catalog.add_consumer(f"r{i}", f"q{i}", "C")
+    store.write(catalog.drain_changes())
+    store.close(erase=False)
+
+
+def damage_a_page_of_resources(path: Path) -> None:
+    """Overwrite (with zeros) the middle one of the pages that hold resource rows."""
+    with read_only(path, tidy=True) as db:
+        size = db.execute("PRAGMA page_size").fetchone()[0]
+        try:
+            pages = db.execute(
+                "SELECT pageno FROM dbstat WHERE name = 'resources' AND pagetype = 'leaf' "
+                "ORDER BY pageno"
+            ).fetchall()
+        except sqlite3.OperationalError:
+            pytest.skip("this SQLite has no dbstat table")
+    (page,) = pages[len(pages) // 2]
+    with path.open("r+b") as file:
+        file.seek((page - 1) * size)
+        file.write(bytes(size))
+
+
+def sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def outcome(call: Any) -> str:
+    """What `call()` did: `ok`, or the error, with whether a write error says why."""
+    try:
+        call()
+    except rr.CatalogWriteError as exc:
+        return "CatalogWriteError: damaged" if "damaged" in exc.cause else "CatalogWriteError"
+    except rr.RrError as exc:
+        return type(exc).__name__
+    return "ok"
+
+
+def run_on(path: Path, count: int) -> tuple[set[str], str, str, str]:
+    """Start a provider on `path` (`save_on_modify`), call each of its `count` requests again
+    from a consumer, list them both ways, stop it: what each did."""
+    name = unique("P")
+    provider = start_provider(name, path)
+    consumer = rr.ResourceRegistrar.start(unique("C"))
+    try:
+        calls = {outcome(lambda i=i: consumer.call(name, "leaf", {"n": i})) for i in range(count)}
+        listed = outcome(lambda: provider.server_queries("leaf"))
+        fetched = outcome(lambda: consumer.fetch_queries(name, "leaf"))
+    finally:
+        consumer.stop()
+        stopped = outcome(provider.stop)
+    return calls, listed, fetched, stopped
+
+
+def test_a_registrar_never_writes_to_a_backup_found_with_a_damaged_page(tmp_path: Path) -> None:
+    """The lazy restore starts on it (the damaged page is not read before it serves); the
+    first write checks every page first, finds the damage and writes nothing: every change
+    is refused (`CatalogWriteError` saying the file is damaged; `CatalogCorruptError` for
+    the ids on the damaged page), a listing that needs the damaged rows raises
+    `CatalogCorruptError` (exact or not at all, rule 10), `stop()` does not raise, and the
+    file is byte for byte what it was, at the next start too."""
+    path = tmp_path / "p.db"
+    write_entries(path, 300)
+    damage_a_page_of_resources(path)
+    before = sha256(path)
+
+    first = run_on(path, 300)
+    second = run_on(path, 300)
+
+    expected = (
+        {"CatalogCorruptError", "CatalogWriteError: damaged"},
+        "CatalogCorruptError",
+        "CatalogCorruptError",
+        "ok",
+    )
+    assert (expected, expected, before) == (first, second, sha256(path))
+
+
+def test_a_store_that_found_its_file_damaged_refuses_every_write_and_closes_quietly(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "p.db"
+    write_entries(path, 300)
+    damage_a_page_of_resources(path)
+    before = sha256(path)
+    store = SqliteStore.open(path)
+    restored = store.restore()
+    assert restored is not None
+    catalog = Catalog.restore(restored.resources, restored.clients, restored.unread)
+    catalog.begin_load("new", "leaf", "new")
+
+    with pytest.raises(rr.CatalogWriteError, match="damaged") as refused:
+        store.write(catalog.drain_changes())
+    store.close(erase=False)
+
+    assert (rr.CatalogCorruptError, str(path), before) == (
+        type(refused.value.__cause__),
+        refused.value.path,
+        sha256(path),
+    )
+
+
+def leaf_setup(registrar: rr.ResourceRegistrar) -> None:
+    registrar.register_server("leaf", load=leaf_load, unload=noop_unload)
+
+
+@pytest.mark.usefixtures("process_helpers")  # the forkserver, before the leak check
+@pytest.mark.timeout(240)
+def test_a_supervised_manager_process_never_writes_to_its_backup_with_a_damaged_page(
+    supervisors: Any, uid: str, tmp_path: Path
+) -> None:
+    """The finding as it was seen: a tree starts on the damaged backup (its manager in its
+    own process), the errors reach the caller in another process, the manager keeps
+    running (no restart) and the tree's stop raises nothing; the file is as it was."""
+    name = f"p-{uid}"
+    path = tmp_path / f"{name}.db"
+    write_entries(path, 300)
+    damage_a_page_of_resources(path)
+    before = sha256(path)
+    spec = rr.ManagerSpec(name, leaf_setup, isolation="process", start_timeout=120.0)
+    sup = supervisors([spec], state_dir=tmp_path).start()
+    app = sup.registrar("app")
+
+    calls = {
+        outcome(lambda i=i: app.call(name, "leaf", {"n": i}, timeout=60.0)) for i in range(300)
+    }
+    fetched = outcome(lambda: app.fetch_queries(name, "leaf", timeout=60.0))
+    child = sup.child(name)
+    stopped = outcome(sup.stop)
+
+    assert (
+        {"CatalogCorruptError", "CatalogWriteError: damaged"},
+        "CatalogCorruptError",
+        ("running", 0),
+        "ok",
+        before,
+    ) == (calls, fetched, (child.state, child.restarts), stopped, sha256(path))

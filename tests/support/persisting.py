@@ -455,6 +455,7 @@ class FlakyStore:
     """A `CatalogStore` whose first `fail` writes raise; it records what it was given."""
 
     path = "flaky"
+    damaged = None  # (its file is never damaged)
 
     def __init__(self, fail: int) -> None:
         self.fail = fail
