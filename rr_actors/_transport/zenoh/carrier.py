@@ -205,6 +205,8 @@ class Local(Listening):
         self.token: Any = None
         self.token_key = ""
         self.stamp = 0
+        self.side = 0  # (`Ranked`: its side is not published over Zenoh: unknown)
+        self.members = 0
 
     @property
     def who(self) -> str:
@@ -294,6 +296,7 @@ class ZenohCarrier:
             on_token=self._inbox.process_token,
             router=router,
             hearer=messenger,
+            resolution=messenger.resolution,
         )
         self._answers = session.declare_subscriber(
             self.keys.answers(self.zid), self._inbox.on_answer

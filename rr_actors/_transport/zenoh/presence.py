@@ -72,6 +72,7 @@ from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._core.throttle import LogThrottle, short
 from rr_actors._transport.messenger import kept, rank, when
+from rr_actors._transport.resolve import FIRST_SERVED, Resolution
 from rr_actors._transport.zenoh.wire import Keys, NameAt
 from rr_actors.errors import DuplicateNameError, RegistrarStoppedError, RegistrarUnavailableError
 
@@ -119,13 +120,17 @@ reports to the carrier and messenger run, `PresenceEvents`)."""
 class Server:
     """A registrar of another process as its liveliness token says (`Ranked`)."""
 
-    __slots__ = ("limit", "stamp", "supervisor", "zid")
+    __slots__ = ("limit", "members", "side", "stamp", "supervisor", "zid")
 
-    def __init__(self, zid: str, supervisor: str, limit: int, stamp: int = 0) -> None:
+    def __init__(
+        self, zid: str, supervisor: str, limit: int, stamp: int = 0, side: int = 0, members: int = 0
+    ) -> None:
         self.zid = zid
         self.supervisor = supervisor
         self.limit = limit
         self.stamp = stamp  # when it began to serve (`_core.hlc`)
+        self.side = side  # the members its process heard then (0: unknown)
+        self.members = members  # the system's members then, as it counted them (0: unknown)
 
     @property
     def who(self) -> str:
@@ -179,6 +184,8 @@ class Presence:
         router: the Zenoh id of the router this process attached through (`None`: it
             is a router): an answer counts as full only if that router answers a ping
             after it (`question`).
+        resolution: which of two servers of one name is kept (rule 22: the system's
+            `resolve=`; by default the one served first).
     """
 
     def __init__(
@@ -191,8 +198,10 @@ class Presence:
         hearer: Hearer,
         on_token: Callable[[str, bool], None] | None = None,
         router: str | None = None,
+        resolution: Resolution = FIRST_SERVED,
     ) -> None:
         self._system = system
+        self._resolution = resolution
         self._router = router
         self._session = session
         self._zid = zid
@@ -239,7 +248,7 @@ class Presence:
         servers = self._servers.get(name)
         if not servers:
             return None
-        return kept(list(servers.values()))
+        return kept(list(servers.values()), self._resolution, name)
 
     def names(self) -> list[str]:
         """The registrars of other processes that serve now."""
@@ -618,7 +627,7 @@ class Presence:
     def _two_servers(self, name: str, servers: list[Server]) -> None:
         """Two processes serve `name` (rule 22): a WARNING once per pair, naming the one
         kept (the one that yields says so at ERROR, `carrier`)."""
-        winner = kept(servers)
+        winner = kept(servers, self._resolution, name)
         assert winner is not None
         for other in servers:
             mark = (name, other.zid, other.stamp)
