@@ -94,6 +94,12 @@ def _seal(tls: ZenohTLS | None, system: str) -> Seal | None:
     return Seal(tls, system)
 
 
+def _member_count(tls: ZenohTLS | None) -> int:
+    """How many members a system has, as this host's `tls` names them (itself included);
+    0 without TLS (rule 22's `majority` then counts the most hosts heard at once)."""
+    return 0 if tls is None else len({*tls.members, tls.name})
+
+
 def _is_tls(tls: object) -> bool:
     try:
         from rr_actors._transport.zenoh.ops.tls import ZenohTLS  # noqa: PLC0415 - cryptography
@@ -254,6 +260,7 @@ class ZenohMember(Messenger):
                 on_close=lambda: _left(self),
                 router=address.router,
                 seal=_seal(address.tls, address.system),
+                members=_member_count(address.tls),
             )
         )
         _close_at_exit(f"the membership of system {address.system!r}", self, self.close)
@@ -453,6 +460,7 @@ class ZenohNetwork(Messenger):
                 on_close=closed,
                 link_trouble=lambda: _no_link(self._unlinked(session)),
                 seal=_seal(self.tls, self.system),
+                members=_member_count(self.tls),
             )
             self.joined(self._opened)
             _close_at_exit(f"ZenohNetwork {self.system!r}", self, self.close)
