@@ -31,12 +31,14 @@ from rr_actors._core.throttle import LogThrottle
 from rr_actors.errors import ConfigError
 
 __all__ = [
+    "FIRST_SERVED",
     "RESOLVE_STRATEGIES",
     "Claimant",
     "Resolution",
     "Resolve",
     "Sided",
     "check_resolve",
+    "claimant",
 ]
 
 logger = logging.getLogger("rr_actors")

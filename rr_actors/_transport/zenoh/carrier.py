@@ -408,8 +408,9 @@ class ZenohCarrier:
         return self._system_members or self.presence.most(self._router)
 
     def _hosts_heard(self, count: int) -> None:
-        """This router hears `count` hosts: its host token says so if that is the most yet
-        (declared anew, then the old one goes: a process that hears it never misses it)."""
+        """`count` hosts were heard at once, by this router or by one it hears: its host
+        token says so if that is the most yet (declared anew, then the old one goes: a
+        process that hears it never misses it)."""
         with self._host_lock:
             if count <= self._host_most or self.closed:
                 return

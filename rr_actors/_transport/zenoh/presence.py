@@ -193,8 +193,9 @@ class Presence:
             after it (`question`).
         resolution: which of two servers of one name is kept (rule 22: the system's
             `resolve=`; by default the one served first).
-        on_hosts: called with how many hosts this process hears, when that grows (on
-            the presence thread: the router re-declares its host token, `most`).
+        on_hosts: called with the most hosts heard at once, here or by a router heard,
+            when that grows (on the presence thread: the router re-declares its host
+            token with it, so every router's converges on the system's, `most`).
     """
 
     def __init__(
@@ -569,12 +570,11 @@ class Presence:
         if not put:
             self._host_keys.discard(host)
             return []
-        before = self.hosts()
+        before = self._most
         self._host_keys.add(host)
-        now = self.hosts()
-        self._most = max(self._most, host.most, now)
-        if now > before and self._on_hosts is not None:
-            return [functools.partial(self._on_hosts, now)]
+        self._most = max(self._most, host.most, self.hosts())
+        if self._most > before and self._on_hosts is not None:
+            return [functools.partial(self._on_hosts, self._most)]
         return []
 
     def _claim_token(self, put: bool, key: str) -> list[Callable[[], None]] | None:

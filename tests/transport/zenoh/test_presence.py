@@ -184,7 +184,8 @@ def test_with_resolve_majority_the_server_begun_on_a_majority_side_is_kept(
 def test_hosts_are_counted_from_their_routers_host_tokens(session: zenoh.Session) -> None:
     """A side is the hosts heard (one token per host's router); the system's size without
     TLS the most any router heard at once, unknown (0) in a process that has not heard
-    its own router's token yet. A router hears when the count grows (`on_hosts`)."""
+    its own router's token yet. A router hears when that most grows (`on_hosts`), and
+    says it in its own token, so every router's converges on the system's."""
     heard, grown = Heard(), []
     presence = Presence(
         "t", session, str(session.zid()), heard, hearer=heard, on_hosts=grown.append
@@ -199,6 +200,6 @@ def test_hosts_are_counted_from_their_routers_host_tokens(session: zenoh.Session
         assert (2, 3) == (presence.hosts(), presence.most(SUPERVISOR))
         apply(presence, False, keys.host(HostKey(OTHER, 3)))  # (a cut)
         assert (1, 3) == (presence.hosts(), presence.most(SUPERVISOR))
-        assert [1, 2] == grown
+        assert [3] == grown  # (the router's own token then says 3: `_hosts_heard`)
     finally:
         presence.close()
