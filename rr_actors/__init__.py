@@ -12,6 +12,7 @@ from rr_actors._core.bus import Subscription
 from rr_actors._registrar import MAX_DEPENDENCY_DEPTH, Registrar, ResourceRegistrar, StatusWatch
 from rr_actors._store import quarantine_backup
 from rr_actors._supervision import ChildCounts, ChildInfo, Supervisor
+from rr_actors._transport.resolve import Claimant
 from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
 from rr_actors.config import Backoff, ManagerSpec, RegistrarConfig, SupervisorSpec
 from rr_actors.errors import (
@@ -49,6 +50,7 @@ __all__ = [
     "CatalogWriteError",
     "ChildCounts",
     "ChildInfo",
+    "Claimant",
     "ConfigError",
     "DependencyCycleError",
     "DuplicateNameError",

@@ -43,8 +43,9 @@ served here, and a link back to the process a message came from (`Carrier`):
    process's membership (`_core/membership.py`) records it and every registrar served
    here hears it (rule 19, rule 20)
  another process serves a name served here too (rule 22) ─► served_elsewhere(name,
-   rival): the decision, once for every carrier (the one served first is kept:
-   `rank`, `kept`); this one not kept ─► give_way: stop serving it, the registrar
+   rival): the decision, once for every carrier (the system's `resolve=` policy,
+   `resolution`, by default the one served first: `rank`, `kept`, `resolve.py`); this
+   one not kept ─► give_way: stop serving it, the registrar
    yields its name; at its end, its consumers here reconcile with the one kept
    (`reachable`)
 ```
@@ -75,6 +76,7 @@ from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.replies import FutureReply, wait
 from rr_actors._transport.base import Endpoint
 from rr_actors._transport.codec import NO_REPLY, Run, frame, payload_size, what
+from rr_actors._transport.resolve import FIRST_SERVED, Resolution
 from rr_actors.errors import (
     ConfigError,
     InternalError,
@@ -301,7 +303,18 @@ class Ranked(Protocol):
 
     @property
     def rank(self) -> tuple[int, int]:
-        """Its place in rule 22's order (`rank`)."""
+        """Its place in rule 22's first-served order (`rank`)."""
+        ...
+
+    @property
+    def side(self) -> int:
+        """How many members its process heard when it began to serve (0: unknown)."""
+        ...
+
+    @property
+    def members(self) -> int:
+        """How many members the system had then, as its process counted them (0:
+        unknown)."""
         ...
 
 
@@ -315,9 +328,10 @@ def rank(stamp: int, process: int) -> tuple[int, int]:
     return (stamp, process)
 
 
-def kept(servers: Iterable[R]) -> R | None:
-    """Which of the servers of one name is kept (rule 22: the lowest `rank`)."""
-    return min(servers, key=lambda server: server.rank, default=None)
+def kept(servers: Iterable[R], resolution: Resolution = FIRST_SERVED, name: str = "") -> R | None:
+    """Which of the servers of registrar `name` is kept (rule 22: by the system's
+    `resolve=` policy, `resolution`; by default the lowest `rank`, served first)."""
+    return resolution.kept(name, servers)
 
 
 def when(stamp: int) -> str:
@@ -668,10 +682,19 @@ class Messenger:
         system: the system's name (in messages; the AF_UNIX carrier's runtime directory).
         resolver: whether the directory asks it for names not registered here (the
             in-memory double's "processes" are all this one: it is not asked).
+        resolve: which of two servers of one name is kept after a heal (rule 22:
+            `rr_actors._transport.resolve.Resolution`); every process of a system must
+            use the same.
+
+    Raises:
+        ConfigError: `resolve` is not a strategy (`Resolution`).
     """
 
-    def __init__(self, system: str, *, resolver: bool = True) -> None:
+    def __init__(
+        self, system: str, *, resolver: bool = True, resolve: object = "first_served"
+    ) -> None:
         self.system = system
+        self.resolution = FIRST_SERVED if resolve == "first_served" else Resolution(resolve)
         self.closed = False
         self.supervisor: int | None = None  # `supervised_by`'s pid
         self._resolver = resolver
@@ -854,18 +877,19 @@ class Messenger:
 
     def served_elsewhere(self, name: str, rival: Ranked) -> None:
         """Another process serves registrar `name` too (its carrier sees both, rule 22):
-        if this process serves it and rule 22 keeps `rival` (served first, by its clock
-        stamp; of equal stamps, the lower process id), this one gives way (`give_way`).
-        The process of the one kept does nothing: this one sees it too, and yields."""
+        if this process serves it and rule 22 keeps `rival` (by the system's `resolve=`
+        policy, `resolution`; by default the one served first, by its clock stamp; of
+        equal stamps, the lower process id), this one gives way (`give_way`). The process
+        of the one kept does nothing: this one sees it too, and yields."""
         local = self.serving(name)
-        if not isinstance(local, Ranked) or rival.rank > local.rank:
+        if not isinstance(local, Ranked) or self.resolution.kept(name, [local, rival]) is local:
             return
         self.give_way(
             local,
             f"registrar {name!r} of system {self.system!r} is served by process "
-            f"{rival.who} too, since {when(rival.stamp)}, before this one "
-            f"(process {local.who}, since {when(local.stamp)}): one name is one "
-            f"registrar (rule 22), and the one served first is kept",
+            f"{rival.who} too, since {when(rival.stamp)}, and by this one (process "
+            f"{local.who}, since {when(local.stamp)}): one name is one registrar (rule "
+            f"22), and resolve={self.resolution.resolve!r} keeps the other one",
         )
 
     def lost(self, name: str) -> None:

@@ -22,8 +22,10 @@ order per link, cuts and heals.
    side; each server carries its serve stamp (the HLC of its process as it listens)
  heal() ─► links work again; a name served on both sides: each of its processes hears
    of the others (`Messenger.served_elsewhere`, the decision Zenoh's presence runs:
-   the one served first is kept, the other gives way and yields, rule 22), and from
-   now on every sender routes to the one kept (`kept`); every process hears each name
+   by the network's `resolve=`, by default the one served first is kept, the other
+   gives way and yields, rule 22; a server's side for `"majority"`: the live processes
+   its process heard as it began to serve), and from now on every sender routes to
+   the one kept (`kept`); every process hears each name
    across as reachable again (rule 20: its consumers reconcile), on a thread of its own
  a lease (`lease=`): a process stopped (SIGSTOP) past it is silent: the links to what it
    serves fail what waits, as at a cut; once it runs again, reachable again (a presence
@@ -71,6 +73,7 @@ from rr_actors._core.hlc import CLOCK, from_seconds
 from rr_actors._transport.base import Endpoint
 from rr_actors._transport.codec import split_frame
 from rr_actors._transport.messenger import Lost, Messenger, Replies, kept, rank, run_lost
+from rr_actors._transport.resolve import Resolution, Resolve
 from rr_actors.errors import RegistrarStoppedError, RegistrarUnavailableError, RrError
 from rr_actors.simulation import _primitives as sim
 from rr_actors.simulation._processes import Process
@@ -95,6 +98,14 @@ class SimulatedNetwork(MemoryNetwork):
         delay: `(least, most)` seconds a frame takes on a link.
         lease: seconds a stopped process is heard (a liveliness lease) before what it
             serves cannot be reached; `None`: for ever (its heartbeat judges it).
+        resolve: which of two servers of one name is kept after a heal (rule 22), as
+            `rr.ZenohNetwork`'s `resolve`: `"first_served"` (default), `"majority"` or
+            a function of two `rr.Claimant`s. Here every live process is a member: a
+            server's `side` is the live processes its process heard when it began to
+            serve (itself included), `members` all live processes then.
+
+    Raises:
+        ConfigError: `resolve` is none of those.
     """
 
     def __init__(
@@ -103,10 +114,13 @@ class SimulatedNetwork(MemoryNetwork):
         *,
         delay: tuple[float, float] = DELAY,
         lease: float | None = None,
+        resolve: Resolve = "first_served",
     ) -> None:
         self.delay = delay
         self.lease = lease
+        resolution = Resolution(resolve)  # (checked before the network is made)
         super().__init__(system)
+        self.resolution = resolution
 
     def partition(self, side: Iterable[int]) -> None:
         """Cut the processes of pids `side` off the others (both ways) until `heal`."""
@@ -301,6 +315,11 @@ class _Server(_Served):
         # its process's clock read (on its thread), not ticked: a reading is no event, and
         # the histories of runs without a second server stay as they were
         self.stamp = max(CLOCK.last, from_seconds(CLOCK.wall()))
+        # its side as it began to serve (`Ranked`, the `majority` strategy): every live
+        # process is a member here; those its process hears are on its side
+        live = [one.pid for one in hub.sched.processes if one.alive]
+        self.members = len(live)
+        self.side = sum(not hub._divided(pid, process.pid) for pid in live)
 
     @property
     def who(self) -> str:
@@ -469,7 +488,7 @@ class _SimulatedHub(_Hub):
             raise self.gone_error(name)
         sender = self._sender()
         near = [one for one in servers if not self._across(one, sender)]
-        served = kept(near or servers)
+        served = self._kept(name, near or servers)
         assert served is not None
         link = self._links.get((sender.pid, name))
         if link is None or link.served is not served or link.closed:
@@ -497,6 +516,10 @@ class _SimulatedHub(_Hub):
                 f"{sender.pid} and {served.process.pid} is cut)"
             )
         return link
+
+    def _kept(self, name: str, servers: list[_Server]) -> _Server | None:
+        """The server of `name` kept of `servers` (rule 22, by the network's `resolve`)."""
+        return kept(servers, self.network.resolution, name)
 
     def apart(self, link: _Link) -> bool:
         """Whether `link` crosses the partition, leads to a process silent past its
@@ -600,7 +623,7 @@ class _SimulatedHub(_Hub):
         mine: list[tuple[str, _Server]] = []  # what it serves, gone for the others
         theirs: list[str] = []  # what the others serve, gone for it (every token went)
         for name, servers in self._servers.items():
-            one = kept(servers)
+            one = self._kept(name, servers)
             if one is not None and one.process.pid == pid:
                 mine.append((name, one))
             elif one is not None and name not in self._silent:
@@ -624,7 +647,7 @@ class _SimulatedHub(_Hub):
         hears now as reachable again (rule 20)."""
         pids: dict[str, int] = {}  # name -> the pid of its server kept
         for name, servers in list(self._servers.items()):
-            one = kept(servers)
+            one = self._kept(name, servers)
             if one is None:
                 continue
             pids[name] = one.process.pid
@@ -677,7 +700,7 @@ class _SimulatedHub(_Hub):
                     not self._divided(one.process.pid, process.pid) for one in servers
                 ):
                     continue  # (judged at its silence, or served on its side)
-                one = kept(servers)
+                one = self._kept(name, servers)
                 speaker = None if one is None else one.speaker
                 if one is None or speaker is None or speaker == one.process.pid:
                     lost.append(name)  # (nobody speaks for it)

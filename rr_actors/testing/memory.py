@@ -108,7 +108,7 @@ class MemoryAddress:
         member = _MEMBERS.by_system.get(self.system)
         left = member is not None and member._carrier is None  # (`_Member.close`)
         if member is None or left or member.link() is not network.link():
-            member = _Member(self.system)
+            member = _Member(self.system, resolve=network.resolution.resolve)
             member.joined(network.link())
             _MEMBERS.by_system[self.system] = member
         return member

@@ -241,8 +241,9 @@ def tls_of(
 
 
 @contextlib.contextmanager
-def made_lab(ends_admit: list[str] = MEMBERS) -> Iterator[Lab]:
-    """The lab; `a` and `c` admit `ends_admit` (`b` admits all three)."""
+def made_lab(ends_admit: list[str] = MEMBERS, resolve: str = "first_served") -> Iterator[Lab]:
+    """The lab; `a` and `c` admit `ends_admit` (`b` admits all three); every host's
+    network resolves two servers of one name by `resolve` (rule 22)."""
     reason = hosts.require_root()
     if reason is not None:
         pytest.skip(reason)
@@ -256,6 +257,7 @@ def made_lab(ends_admit: list[str] = MEMBERS) -> Iterator[Lab]:
             listen=[b_for_a, b_for_c],
             connect=[],
             tls=tls_of(net, ca, "bravo", net.b.address, net.b_toward_c),
+            resolve=resolve,
             timeout=30,
         )
         b.call(hosts.rr_start, "hub", hub_setup, timeout=30)
@@ -265,6 +267,7 @@ def made_lab(ends_admit: list[str] = MEMBERS) -> Iterator[Lab]:
             listen=[],
             connect=[b_for_c],
             tls=tls_of(net, ca, "charlie", net.c.address, members=["charlie", *ends_admit]),
+            resolve=resolve,
             timeout=30,
         )
         c.call(hosts.rr_start, "erm", provider_setup, timeout=30)
@@ -274,6 +277,7 @@ def made_lab(ends_admit: list[str] = MEMBERS) -> Iterator[Lab]:
             listen=[],
             connect=[b_for_a],
             tls=tls_of(net, ca, "alpha", net.a.address, members=["alpha", *ends_admit]),
+            resolve=resolve,
             timeout=30,
         )
         a.call(hosts.rr_start, "app", timeout=30)
@@ -503,3 +507,55 @@ def test_a_supervised_manager_killed_on_c_comes_back_without_fatal_for_a(lab: La
         a.call(hosts.rr_run, "app", unload, after, timeout=30)
     finally:
         c.call(stop_tree, timeout=60)
+
+
+# -- rule 22's resolve strategy: a lone host against the majority (issue 51, finding 9) --------
+
+
+def stopped_within(name: str, timeout: float) -> bool:
+    """Whether this worker's registrar `name` stops within `timeout` seconds."""
+    from tests.support.waiting import wait_for  # noqa: PLC0415
+
+    registrar = hosts.KEPT["registrars"][name]
+    return bool(wait_for(lambda: not registrar.is_alive(), timeout))
+
+
+def alive(name: str) -> bool:
+    return bool(hosts.KEPT["registrars"][name].is_alive())
+
+
+@pytest.mark.timeout(240)
+def test_with_resolve_majority_the_lone_hosts_registrar_yields_to_the_majoritys() -> None:
+    """`c` (serving `erm`) is cut from `a` and `b`; `erm` is lost on their side, and `b`
+    serves a newcomer of it, which `a`'s `app` loads from. At the heal, with every host's
+    `resolve="majority"`, the newcomer is kept (it began with two of the three members
+    heard; `c`'s registrar yields: one ERROR, it unloads what it served), and what `a`
+    loaded during the cut stays loaded. (First served, the old and default rule, keeps
+    `c`'s and undoes `a`'s load: `test_registrars_on_two_hosts`.)"""
+    with made_lab(resolve="majority") as lab:
+        a, b, c = lab.a, lab.b, lab.c
+        before = a.call(hosts.rr_run, "app", call_camera, 5, timeout=30)  # at c's erm
+        lab.net.link_down("b", "c")
+        assert b.call(hosts.rr_unlinked_within, "erm", BOUND, timeout=30)
+        assert a.call(hosts.rr_unlinked_within, "erm", BOUND, timeout=30)
+        assert (before, "FATAL") == a.call(next_status, BOUND, timeout=30)[:2]  # (lost)
+        b.call(hosts.rr_start, "erm", provider_setup, timeout=30)  # (the newcomer)
+        a.call(hosts.rr_until_answered, "app", "erm", "probe", BOUND, timeout=30)
+        during = a.call(hosts.rr_run, "app", call_camera, 7, timeout=30)
+        assert (1, 0) == b.call(counts, 7, timeout=10)
+
+        lab.net.link_up("b", "c")
+
+        assert c.call(stopped_within, "erm", 30.0, timeout=35)
+        c.call(unloaded, {"device": 5}, BOUND, timeout=30)  # (what it served)
+        errors = c.call(hosts.rr_logs, "ERROR", timeout=5)
+        assert 1 == len(errors), errors
+        assert "resolve='majority' keeps the other one" in errors[0]
+        assert b.call(alive, "erm", timeout=5)
+        assert during in a.call(hosts.rr_run, "app", held, timeout=10)
+        again = a.call(hosts.rr_run, "app", call_camera, 7, timeout=30)  # (b's, loaded)
+        assert (1, 0) == b.call(counts, 7, timeout=10)
+        for query_id in (again, during):
+            a.call(hosts.rr_run, "app", unload, query_id, timeout=30)
+        b.call(unloaded, {"device": 7}, BOUND, timeout=30)
+        assert [] == b.call(hosts.rr_logs, "ERROR", timeout=5)

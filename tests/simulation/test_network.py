@@ -57,13 +57,14 @@ def with_provider(
     lease: float | None = None,
     heartbeat: float | None = 0.25,
     restart: Literal["permanent", "transient", "temporary"] = "permanent",
+    resolve: Any = "first_served",
 ) -> Any:
     """A scenario: a process manager `provider` (backed up) under a supervisor on a
     simulated network, a consumer `app` in the supervisor's process."""
 
     def scenario() -> Any:
         folder = tempfile.mkdtemp(prefix="rr-sim-network-")
-        network = simulation.SimulatedNetwork(lease=lease)
+        network = simulation.SimulatedNetwork(lease=lease, resolve=resolve)
         try:
             manager = rr.ManagerSpec(
                 "provider",
@@ -258,6 +259,102 @@ def test_a_name_served_on_both_sides_of_a_cut_is_kept_on_one_after_the_heal() ->
             (False, False),
         ) == run.value, f"seed {seed}"
         assert () == run.errors
+
+
+def lone_host_cut(
+    supervisor: rr.Supervisor, app: rr.ResourceRegistrar, network: Any
+) -> tuple[str, str, list[str], tuple[bool, bool]]:
+    """Finding 9 of issue 51 on three simulated hosts: `provider`'s process is cut off
+    the other two (the consumer's and a newcomer's); the newcomer serves the majority
+    side during the cut, the heal shows both. What is left: the original's and the
+    newcomer's state, what the one kept serves, whether the consumer still holds its
+    id from before the cut and its id from during it."""
+    held = app.call("provider", "leaf", "x")
+    network.partition([supervisor.child("provider").pid])
+    folder = tempfile.mkdtemp(prefix="rr-sim-beyond-")
+    spec = rr.ManagerSpec("provider", setup=leaf_setup, isolation="process", restart="temporary")
+    beyond = rr.Supervisor(spec, state_dir=folder, network=network, name="beyond")
+    try:
+        beyond.start()
+        during = app.call("provider", "leaf", "y", timeout=5.0)  # (the newcomer's)
+        simulation.sleep(1.0)
+        network.heal()
+        simulation.sleep(2.0)  # (the yield, the reconcile)
+        app.call("provider", "leaf", "z")
+        states = (supervisor.child("provider").state, beyond.child("provider").state)
+        kept = beyond if states[1] == "running" else supervisor
+        served = kept.run_in(
+            "provider", lambda r: sorted(q.request for q in r.server_queries("leaf")), timeout=5.0
+        )
+        ids = [q.id for q in app.client_queries()]
+        return (*states, served, (held.id in ids, during.id in ids))
+    finally:
+        beyond.stop()
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+FIRST_KEPT = ("running", "exited", ["z"], (False, False))
+"""The lone host's registrar kept: what the majority side loaded during the cut is
+undone (its consumer's id there FATAL and forgotten)."""
+NEWCOMER_KEPT = ("exited", "running", ["y", "z"], (False, True))
+"""The majority side's newcomer kept: what the lone host held is undone (the consumer
+forgot its id there when it met the newcomer); what was loaded during the cut stays."""
+
+
+def keep_the_second(first: rr.Claimant, second: rr.Claimant) -> rr.Claimant:
+    return second
+
+
+def raise_instead(first: rr.Claimant, second: rr.Claimant) -> rr.Claimant:
+    raise RuntimeError("a bug in the user's function")
+
+
+@pytest.mark.parametrize(
+    ("resolve", "expected"),
+    [
+        ("first_served", FIRST_KEPT),
+        ("majority", NEWCOMER_KEPT),
+        (keep_the_second, NEWCOMER_KEPT),
+        (raise_instead, FIRST_KEPT),  # (a WARNING; user code does not break rule 22)
+    ],
+    ids=["first_served", "majority", "function", "function-raises"],
+)
+def test_a_lone_host_cut_keeps_the_registrar_its_resolve_strategy_chooses(
+    resolve: Any, expected: tuple[Any, ...]
+) -> None:
+    """Issue 51, finding 9: `resolve=` decides which of two servers of one name a heal
+    keeps. "majority" keeps the newcomer that began to serve on the side with two of
+    the three hosts (with the old rule, first served, the lone host's was kept)."""
+    for seed in range(4):
+        run = simulation.run(
+            with_provider(lone_host_cut, restart="temporary", resolve=resolve), seed=seed
+        )
+        assert expected == run.value, f"seed {seed}"
+        assert () == run.errors
+
+
+def test_a_resolve_function_gets_both_claimants_with_their_sides() -> None:
+    """The function is given plain data, first served first: the lone host's registrar
+    began with every member heard, the newcomer with two of the three (a majority)."""
+    seen: list[rr.Claimant] = []
+
+    def record(first: rr.Claimant, second: rr.Claimant) -> rr.Claimant:
+        seen.extend((first, second))
+        return first
+
+    run = simulation.run(with_provider(lone_host_cut, restart="temporary", resolve=record), seed=1)
+
+    assert FIRST_KEPT == run.value
+    first, second = seen[:2]
+    assert ("provider", 2, 2, True) == (first.name, first.side, first.members, first.majority)
+    assert ("provider", 2, 3, True) == (second.name, second.side, second.members, second.majority)
+    assert first.stamp < second.stamp
+    assert first.served_since <= second.served_since
+
+
+def test_a_simulated_network_refuses_a_resolve_that_is_no_strategy() -> None:
+    with pytest.raises(rr.ConfigError, match="resolve must be"):
+        simulation.SimulatedNetwork(resolve="largest")
 
 
 def test_a_network_closed_during_a_cut_ends_the_server_beyond_it_too() -> None:

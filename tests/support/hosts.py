@@ -905,10 +905,12 @@ def rr_join(
     connect: list[str],
     lease: float = 1.0,
     tls: dict[str, Any] | None = None,
+    resolve: str = "first_served",
 ) -> None:
     """Make this worker's `ZenohNetwork`: plain TCP (issue 22's step 1) or, with `tls` (the
-    keyword arguments of `rr.ZenohTLS`), mutual TLS (step 2). Records from then on of the
-    `rr_actors` logger, INFO and up, are kept in `KEPT["logs"]` (`rr_logs` reads them)."""
+    keyword arguments of `rr.ZenohTLS`), mutual TLS (step 2); `resolve` its rule 22
+    strategy. Records from then on of the `rr_actors` logger, INFO and up, are kept in
+    `KEPT["logs"]` (`rr_logs` reads them)."""
     import logging  # noqa: PLC0415
 
     import rr_actors as rr  # noqa: PLC0415
@@ -925,7 +927,9 @@ def rr_join(
     log.setLevel(min(log.getEffectiveLevel(), logging.INFO))
     made = None if tls is None else rr.ZenohTLS(**tls)
     make = rr.ZenohNetwork
-    KEPT["network"] = make(system=system, listen=listen, connect=connect, tls=made, lease=lease)
+    KEPT["network"] = make(
+        system=system, listen=listen, connect=connect, tls=made, lease=lease, resolve=resolve
+    )
     KEPT["registrars"] = {}
 
 

@@ -71,8 +71,10 @@ cannot hear the rest of the system (`Presence.question`).
 
 Through cuts and heals (rule 22): a name whose server went beyond a cut is lost there
 (rule 19), and may be served on this side; once the link heals, both registrars' tokens
-are seen everywhere. Each carries the clock stamp of when it began to serve: the one
-served first is kept, and the process that serves the other makes it yield
+are seen everywhere. Each carries the clock stamp of when it began to serve and its
+side (the hosts heard then, out of the system's members): the one the system's
+`resolve=` keeps (by default the one served first) is kept, and the process that serves
+the other makes it yield
 (`served_elsewhere` ─► `Messenger.served_elsewhere`, the decision every carrier
 runs, ─► `Messenger.give_way`): ERROR, its subscriber and token go, it
 unloads what it serves and stops; its consumers, wherever they are, reconcile with the
@@ -84,6 +86,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import struct
+import threading
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -112,6 +115,7 @@ from rr_actors._transport.zenoh.wire import (
     ANSWER,
     MESSAGE,
     VERSION,
+    HostKey,
     Keys,
     NameAt,
     ServerKey,
@@ -205,6 +209,8 @@ class Local(Listening):
         self.token: Any = None
         self.token_key = ""
         self.stamp = 0
+        self.side = 0  # the hosts this process heard as it began to serve (`Ranked`)
+        self.members = 0  # the system's members then, as it counted them (0: unknown)
 
     @property
     def who(self) -> str:
@@ -260,6 +266,9 @@ class ZenohCarrier:
             process is a router); what it hears counts only while that one answers.
         seal: seals the event batches this process sends and opens those it gets
             (`ops.events`); `None` without TLS.
+        members: how many members the system has (its `ZenohTLS`'s); 0 without TLS:
+            then the most hosts heard at once (`Presence.most`). A registrar served
+            here publishes it with its side (rule 22's `majority`).
     """
 
     def __init__(
@@ -272,8 +281,14 @@ class ZenohCarrier:
         link_trouble: Callable[[], str] | None = None,
         router: str | None = None,
         seal: Seal | None = None,
+        members: int = 0,
     ) -> None:
         self.messenger = messenger
+        self._router = router
+        self._system_members = members
+        self._host_lock = threading.Lock()
+        self._host_token: Any = None
+        self._host_most = 0
         self.system = messenger.system
         self.session = session
         self.zid = str(session.zid())
@@ -294,6 +309,8 @@ class ZenohCarrier:
             on_token=self._inbox.process_token,
             router=router,
             hearer=messenger,
+            resolution=messenger.resolution,
+            on_hosts=self._hosts_heard if router is None else None,
         )
         self._answers = session.declare_subscriber(
             self.keys.answers(self.zid), self._inbox.on_answer
@@ -302,6 +319,8 @@ class ZenohCarrier:
             self.keys.ping(self.zid), lambda query: query.reply(query.key_expr, b"")
         )
         self._proc_token = session.liveliness().declare_token(self.keys.proc(self.zid))
+        if router is None:  # (a host's router: its host token, rule 22's sides)
+            self._hosts_heard(1)
         self.events = EventExport(session, self.keys, self.zid, seal)  # (the system's stream)
 
     @property
@@ -363,16 +382,45 @@ class ZenohCarrier:
             self.presence.wait_turn(name)
             local = Local(self, endpoint)
             local.stamp = CLOCK.now()  # (after every registration heard of: rule 22)
+            local.side, local.members = self.presence.hosts(), self._members()
             local.subscriber = session.declare_subscriber(
                 keys.registrar(name), lambda sample: self._inbox.on_message(local, sample)
             )
             local.token_key = keys.server(
-                ServerKey(name, self.zid, self._speaker(name), local.max_message_bytes, local.stamp)
+                ServerKey(
+                    name,
+                    self.zid,
+                    self._speaker(name),
+                    local.max_message_bytes,
+                    local.stamp,
+                    local.side,
+                    local.members,
+                )
             )
             local.token = session.liveliness().declare_token(local.token_key)
         finally:  # after the token: a rival sees this one serve before the claim goes
             claim.undeclare()  # type: ignore[no-untyped-call]
         return local
+
+    def _members(self) -> int:
+        """How many members the system has, as this process counts them (rule 22's
+        `majority`): its TLS members, else the most hosts heard at once (0: unknown)."""
+        return self._system_members or self.presence.most(self._router)
+
+    def _hosts_heard(self, count: int) -> None:
+        """`count` hosts were heard at once, by this router or by one it hears: its host
+        token says so if that is the most yet (declared anew, then the old one goes: a
+        process that hears it never misses it)."""
+        with self._host_lock:
+            if count <= self._host_most or self.closed:
+                return
+            old, self._host_most = self._host_token, count
+            self._host_token = self.session.liveliness().declare_token(
+                self.keys.host(HostKey(self.zid, count))
+            )
+        if old is not None:
+            with contextlib.suppress(Exception):
+                old.undeclare()
 
     def answer_to(self, process: str, data: bytes, on_lost: Lost | None) -> bool:
         """Send an answer frame to process `process` (a Zenoh id); False if it is gone.

@@ -51,6 +51,7 @@ from rr_actors._core.hlc import CLOCK, MAX_OFFSET, check_max_offset
 from rr_actors._platform import fork
 from rr_actors._transport.base import Address, Transport
 from rr_actors._transport.messenger import Messenger
+from rr_actors._transport.resolve import Resolve
 from rr_actors._transport.zenoh.carrier import ZenohCarrier
 from rr_actors._transport.zenoh.ops.config import (
     PROBE_TIMEOUT,
@@ -91,6 +92,12 @@ def _seal(tls: ZenohTLS | None, system: str) -> Seal | None:
     from rr_actors._transport.zenoh.ops.tls import Seal  # noqa: PLC0415 - cryptography
 
     return Seal(tls, system)
+
+
+def _member_count(tls: ZenohTLS | None) -> int:
+    """How many members a system has, as this host's `tls` names them (itself included);
+    0 without TLS (rule 22's `majority` then counts the most hosts heard at once)."""
+    return 0 if tls is None else len({*tls.members, tls.name})
 
 
 def _is_tls(tls: object) -> bool:
@@ -199,6 +206,8 @@ class ZenohAddress:
         tls: the network's `ZenohTLS` (`None`: plain TCP): a process that attaches seals
             the event batches it sends with this host's certificate, and opens those it
             gets (`seal`).
+        resolve: the network's `resolve` (rule 22), which a process that attaches uses
+            too (every process of a system decides alike).
     """
 
     system: str
@@ -209,6 +218,7 @@ class ZenohAddress:
     member: str = ""
     max_offset: float = MAX_OFFSET
     tls: ZenohTLS | None = None
+    resolve: Resolve = "first_served"
 
     def attach(self) -> ZenohMember | ZenohNetwork:
         """Join the system from this process (idempotent): a CLIENT-mode session.
@@ -229,7 +239,7 @@ class ZenohMember(Messenger):
     """
 
     def __init__(self, address: ZenohAddress) -> None:
-        super().__init__(address.system)
+        super().__init__(address.system, resolve=address.resolve)
         self.address = address
         set_host(address.member or socket.gethostname())
         CLOCK.max_offset = address.max_offset
@@ -250,6 +260,7 @@ class ZenohMember(Messenger):
                 on_close=lambda: _left(self),
                 router=address.router,
                 seal=_seal(address.tls, address.system),
+                members=_member_count(address.tls),
             )
         )
         _close_at_exit(f"the membership of system {address.system!r}", self, self.close)
@@ -314,12 +325,24 @@ class ZenohNetwork(Messenger):
             2014) and CockroachDB's `max-offset` bound it. Set it above the most the
             hosts' clocks may differ by: their events are merged in cause-before-effect
             order only within it (`docs/explanation/failure-semantics.md`).
+        resolve: which of two registrars serving one name is kept when a healed cut
+            shows both (rule 22; the other yields: it unloads what it served and stops,
+            and its consumers reconcile with the one kept): `"first_served"` (default:
+            the one that began to serve first), `"majority"` (the one whose side held a
+            majority of the system's members when it began to serve; ties: first
+            served), or a function `(first, second) -> the one kept` given two
+            `rr.Claimant`s, first served first. Every host of the system must pass the
+            same, and a function must be deterministic: each process decides alone
+            from the same data. One that raises, or answers neither, falls back to
+            first served with a WARNING. What each loses:
+            `docs/explanation/failure-semantics.md`.
 
     Raises:
         ConfigError: a bad `system` (or one longer than 64 characters), a malformed
             endpoint, a `tcp/` endpoint with `tls` or a `tls/` one without, a `tls` that
             is neither `None` nor a `ZenohTLS`, a `lease` that is not a positive number
-            of seconds, a `max_offset` that is not seconds above 0 and at most a year.
+            of seconds, a `max_offset` that is not seconds above 0 and at most a year,
+            a `resolve` that is neither a strategy's name nor a function.
     """
 
     def __init__(
@@ -331,8 +354,9 @@ class ZenohNetwork(Messenger):
         tls: ZenohTLS | None,
         lease: float = 1.0,
         max_offset: float = MAX_OFFSET,
+        resolve: Resolve = "first_served",
     ) -> None:
-        super().__init__(check_name("system", system, "a system name"))
+        super().__init__(check_name("system", system, "a system name"), resolve=resolve)
         if tls is not None and not _is_tls(tls):
             raise ConfigError(
                 f"tls must be rr.ZenohTLS(ca=..., cert=..., key=..., members=[...]) or None "
@@ -364,7 +388,7 @@ class ZenohNetwork(Messenger):
         return (
             f"ZenohNetwork(system={self.system!r}, listen={list(self.listen)!r}, "
             f"connect={list(self.connect)!r}, tls={self.tls!r}, lease={self.lease!r}, "
-            f"max_offset={self.max_offset!r})"
+            f"max_offset={self.max_offset!r}, resolve={self.resolution.resolve!r})"
         )
 
     # -- opening ---------------------------------------------------------------------------
@@ -420,6 +444,7 @@ class ZenohNetwork(Messenger):
                 "" if self.tls is None else self.tls.name,
                 self.max_offset,
                 self.tls,
+                self.resolution.resolve,
             )
 
             def closed() -> None:
@@ -435,6 +460,7 @@ class ZenohNetwork(Messenger):
                 on_close=closed,
                 link_trouble=lambda: _no_link(self._unlinked(session)),
                 seal=_seal(self.tls, self.system),
+                members=_member_count(self.tls),
             )
             self.joined(self._opened)
             _close_at_exit(f"ZenohNetwork {self.system!r}", self, self.close)

@@ -46,11 +46,13 @@ Two servers of one name (rule 22): a cut lets each side serve a name the other s
 (lost there, rule 19); after the heal both tokens are seen. Each token carries the clock
 stamp of when its registrar began to serve (`wire`), and each stamp heard is taken into
 this process's clock (`_core.hlc`), so a registrar served after this process saw another
-one serve has the later stamp. The server with the earlier (stamp, Zenoh id) is kept, as
-every process decides alike (`messenger.kept`, the order every carrier uses): `server()`
-is that one; the process that serves the other hears `served_elsewhere` and makes it
-yield (`Messenger.served_elsewhere`). When the one that yields goes,
-the one kept still serves: its consumers are told `reachable`, and reconcile with it.
+one serve has the later stamp, and its side (the hosts its process heard then: one
+`live/host` token per host's router, `hosts`; and the system's members). The one the
+system's `resolve=` keeps (by default the earlier (stamp, Zenoh id)) is kept, as every
+process decides alike from the same tokens (`messenger.kept`, the policy every carrier
+uses): `server()` is that one; the process that serves the other hears
+`served_elsewhere` and makes it yield (`Messenger.served_elsewhere`). When the one that
+yields goes, the one kept still serves: its consumers are told `reachable`, and reconcile with it.
 A restart seen before its predecessor's token went (the same process, or the same
 supervisor, with a later stamp) is no second server: the predecessor died.
 """
@@ -72,7 +74,8 @@ from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._core.throttle import LogThrottle, short
 from rr_actors._transport.messenger import kept, rank, when
-from rr_actors._transport.zenoh.wire import Keys, NameAt
+from rr_actors._transport.resolve import FIRST_SERVED, Resolution
+from rr_actors._transport.zenoh.wire import HostKey, Keys, NameAt, ServerKey
 from rr_actors.errors import DuplicateNameError, RegistrarStoppedError, RegistrarUnavailableError
 
 logger = logging.getLogger("rr_actors")
@@ -119,13 +122,17 @@ reports to the carrier and messenger run, `PresenceEvents`)."""
 class Server:
     """A registrar of another process as its liveliness token says (`Ranked`)."""
 
-    __slots__ = ("limit", "stamp", "supervisor", "zid")
+    __slots__ = ("limit", "members", "side", "stamp", "supervisor", "zid")
 
-    def __init__(self, zid: str, supervisor: str, limit: int, stamp: int = 0) -> None:
+    def __init__(
+        self, zid: str, supervisor: str, limit: int, stamp: int = 0, side: int = 0, members: int = 0
+    ) -> None:
         self.zid = zid
         self.supervisor = supervisor
         self.limit = limit
         self.stamp = stamp  # when it began to serve (`_core.hlc`)
+        self.side = side  # the members its process heard then (0: unknown)
+        self.members = members  # the system's members then, as it counted them (0: unknown)
 
     @property
     def who(self) -> str:
@@ -136,6 +143,11 @@ class Server:
     def rank(self) -> tuple[int, int]:
         """Its place in rule 22's order (`messenger.rank`; the Zenoh id as a number)."""
         return rank(self.stamp, int(self.zid, 16))
+
+
+def _server(token: ServerKey) -> Server:
+    """A registrar's token as presence keeps it."""
+    return Server(token.zid, token.supervisor, token.limit, token.stamp, token.side, token.members)
 
 
 class PresenceEvents(Protocol):
@@ -179,6 +191,11 @@ class Presence:
         router: the Zenoh id of the router this process attached through (`None`: it
             is a router): an answer counts as full only if that router answers a ping
             after it (`question`).
+        resolution: which of two servers of one name is kept (rule 22: the system's
+            `resolve=`; by default the one served first).
+        on_hosts: called with the most hosts heard at once, here or by a router heard,
+            when that grows (on the presence thread: the router re-declares its host
+            token with it, so every router's converges on the system's, `most`).
     """
 
     def __init__(
@@ -191,8 +208,14 @@ class Presence:
         hearer: Hearer,
         on_token: Callable[[str, bool], None] | None = None,
         router: str | None = None,
+        resolution: Resolution = FIRST_SERVED,
+        on_hosts: Callable[[int], None] | None = None,
     ) -> None:
         self._system = system
+        self._resolution = resolution
+        self._on_hosts = on_hosts
+        self._host_keys: set[HostKey] = set()  # the host tokens here (one per host's router)
+        self._most = 0  # the most hosts heard at once, here or by a router heard
         self._router = router
         self._session = session
         self._zid = zid
@@ -212,7 +235,7 @@ class Presence:
         self._last: dict[str, str] = {}  # name -> the Zenoh id of its last server
         self._awaiting: dict[str, str] = {}  # name -> its supervisor: lost if that one goes
         self._conflicts: set[tuple[str, str, int]] = set()  # (name, zid, stamp) warned of
-        self._mine: dict[str, int] = {}  # name -> stamp: served by this process (its tokens)
+        self._mine: dict[str, ServerKey] = {}  # name -> its token: served by this process
         self._members: set[str] = set()  # processes whose token is here (Zenoh's threads)
         self._on_token = on_token
         self._malformed = LogThrottle(logger)
@@ -220,6 +243,7 @@ class Presence:
             "proc": self._proc_token,  # each: the actions, or None for a malformed key
             "reg": self._reg_token,
             "claim": self._claim_token,
+            "host": self._host_token,
             "stopped": self._stopped_token,
         }
         self._queue = SerialExecutor("rr-zpresence")
@@ -239,7 +263,19 @@ class Presence:
         servers = self._servers.get(name)
         if not servers:
             return None
-        return kept(list(servers.values()))
+        return kept(list(servers.values()), self._resolution, name)
+
+    def hosts(self) -> int:
+        """How many hosts this process hears now (their routers' host tokens), its own
+        included once its router's token is here."""
+        return len({host.zid for host in list(self._host_keys)})
+
+    def most(self, router: str | None) -> int:
+        """The most hosts heard at once, by this process or by a router it hears; 0
+        (unknown) in a process whose router's (`router`) host token is not here yet."""
+        if router is not None and all(host.zid != router for host in list(self._host_keys)):
+            return 0
+        return self._most
 
     def names(self) -> list[str]:
         """The registrars of other processes that serve now."""
@@ -521,13 +557,25 @@ class Presence:
             CLOCK.receive(server.stamp)
         if server.zid == self._zid:  # (this process's own: not a server "elsewhere")
             if put:
-                self._mine[server.name] = server.stamp
-            elif self._mine.get(server.name) == server.stamp:
+                self._mine[server.name] = server
+            elif self._mine.get(server.name) == server:
                 del self._mine[server.name]
             return []
-        return self._server_event(
-            put, server.name, Server(server.zid, server.supervisor, server.limit, server.stamp)
-        )
+        return self._server_event(put, server.name, _server(server))
+
+    def _host_token(self, put: bool, key: str) -> list[Callable[[], None]] | None:
+        host = self._keys.parse_host(key)
+        if host is None:
+            return None
+        if not put:
+            self._host_keys.discard(host)
+            return []
+        before = self._most
+        self._host_keys.add(host)
+        self._most = max(self._most, host.most, self.hosts())
+        if self._most > before and self._on_hosts is not None:
+            return [functools.partial(self._on_hosts, self._most)]
+        return []
 
     def _claim_token(self, put: bool, key: str) -> list[Callable[[], None]] | None:
         claim = self._keys.parse_claim(key)
@@ -594,7 +642,7 @@ class Presence:
             actions.append(functools.partial(self._events.server_gone, name))
         mine = self._mine.get(name)
         if servers or mine is not None:
-            here = [] if mine is None else [Server(self._zid, "none", 0, mine)]
+            here = [] if mine is None else [_server(mine)]
             self._two_servers(name, [*here, *servers.values(), server])
         servers[zid] = server
         self._gone.pop(name, None)
@@ -618,7 +666,7 @@ class Presence:
     def _two_servers(self, name: str, servers: list[Server]) -> None:
         """Two processes serve `name` (rule 22): a WARNING once per pair, naming the one
         kept (the one that yields says so at ERROR, `carrier`)."""
-        winner = kept(servers)
+        winner = kept(servers, self._resolution, name)
         assert winner is not None
         for other in servers:
             mark = (name, other.zid, other.stamp)

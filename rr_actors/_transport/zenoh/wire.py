@@ -10,13 +10,18 @@ see each other:
  rr/<system>/ev/<zid>                         the events of process <zid>: JSON lines, never
                                               a pickle (`events`)
  rr/<system>/live/proc/<zid>                  liveliness: process <zid> is a member
- rr/<system>/live/reg/<name>/<zid>/<sup>/<limit>/<stamp>
+ rr/<system>/live/host/<zid>/<most>          liveliness: <zid> is a host's router; <most>
+                                              the most hosts it heard at once (a side's
+                                              size for rule 22's `majority`)
+ rr/<system>/live/reg/<name>/<zid>/<sup>/<limit>/<stamp>/<side>/<members>
                                               liveliness: <zid> serves <name>; <sup> is the
                                               process that restarts it ("none": nobody),
                                               <limit> its max_message_bytes, <stamp> the
                                               hybrid logical clock stamp of when it began
-                                              to serve (which of two servers of one name
-                                              is kept: `presence`, rule 22)
+                                              to serve, <side> the hosts its process heard
+                                              then and <members> the system's (0:
+                                              unknown; which of two servers of one name is
+                                              kept: `presence`, rule 22)
  rr/<system>/live/claim/<name>/<zid>          liveliness: <zid> is about to serve <name>
  rr/<system>/live/stopped/<name>/<zid>        liveliness: <name> at <zid> was stopped cleanly
  rr/<system>/obs/<member>/state               the observer of host <member>: its whole
@@ -74,6 +79,7 @@ __all__ = [
     "STAMPED",
     "VERSION",
     "Header",
+    "HostKey",
     "Keys",
     "NameAt",
     "ObserverKey",
@@ -81,6 +87,7 @@ __all__ = [
     "claim_key",
     "envelope",
     "header",
+    "host_key",
     "parse",
     "payload_of",
     "proc_key",
@@ -219,16 +226,27 @@ def versions_text(theirs: Header) -> str:
 _ZID = re.compile(r"[0-9a-f]{1,32}")  # a Zenoh id as `str(session.zid())` writes it
 _LIMIT_DIGITS = 19  # max_message_bytes: an int64 at most (and int() stays cheap)
 _STAMP_DIGITS = 20  # a clock stamp: 64 bits at most (`_core.hlc`)
+_COUNT_DIGITS = 6  # a count of hosts or members
 
 
 class ServerKey(NamedTuple):
-    """What a registrar's token says: `live/reg/<name>/<zid>/<sup>/<limit>/<stamp>`."""
+    """What a registrar's token says:
+    `live/reg/<name>/<zid>/<sup>/<limit>/<stamp>/<side>/<members>`."""
 
     name: str
     zid: str
     supervisor: str  # a Zenoh id, or "none"
     limit: int
     stamp: int  # the clock stamp of when it began to serve (`_core.hlc`)
+    side: int = 0  # the hosts its process heard then, its own included (0: unknown)
+    members: int = 0  # the system's members then, as its process counted them (0: unknown)
+
+
+class HostKey(NamedTuple):
+    """What a host's token says: `live/host/<zid>/<most>` (its router's)."""
+
+    zid: str
+    most: int  # the most hosts the router heard at once, itself included
 
 
 class NameAt(NamedTuple):
@@ -305,8 +323,12 @@ class Keys:
 
     def server(self, server: ServerKey) -> str:
         """A registrar's token: `server.zid` serves `server.name`."""
-        name, zid, supervisor, limit, stamp = server
-        return f"{self.prefix}/live/reg/{name}/{zid}/{supervisor}/{limit}/{stamp}"
+        name, zid, supervisor, limit, stamp, side, members = server
+        return f"{self.prefix}/live/reg/{name}/{zid}/{supervisor}/{limit}/{stamp}/{side}/{members}"
+
+    def host(self, host: HostKey) -> str:
+        """A host's token: `host.zid` is its router."""
+        return f"{self.prefix}/live/host/{host.zid}/{host.most}"
 
     def claim(self, at: NameAt) -> str:
         """A claim: `at.zid` is about to serve `at.name`."""
@@ -355,6 +377,10 @@ class Keys:
         """What a registrar's token says, or `None` (see `server_key`)."""
         return server_key(key, self.prefix)
 
+    def parse_host(self, key: str) -> HostKey | None:
+        """What a host's token says, or `None` (see `host_key`)."""
+        return host_key(key, self.prefix)
+
     def parse_claim(self, key: str) -> NameAt | None:
         """What a claim says, or `None` (see `claim_key`)."""
         return claim_key(key, self.prefix)
@@ -364,13 +390,14 @@ class Keys:
         return stopped_key(key, self.prefix)
 
 
-def _live_parts(key: str, prefix: str, kind: str, count: int) -> list[str] | None:
-    """The `count` segments after `<prefix>/live/<kind>/` of `key`, or `None`."""
+def _live_parts(key: str, prefix: str, kind: str, *counts: int) -> list[str] | None:
+    """The segments after `<prefix>/live/<kind>/` of `key` if there are as many as one
+    of `counts`, or `None`."""
     head = f"{prefix}/live/{kind}/"
     if not key.startswith(head):
         return None
     parts = key[len(head) :].split("/")
-    return parts if len(parts) == count else None
+    return parts if len(parts) in counts else None
 
 
 def _zid(text: str) -> bool:
@@ -395,13 +422,15 @@ def _number(text: str, digits: int) -> bool:
 
 
 def server_key(key: str, prefix: str) -> ServerKey | None:
-    """What a registrar's token `<prefix>/live/reg/<name>/<zid>/<sup>/<limit>/<stamp>`
-    says, or `None` if it is malformed (a name that is not one, an id that is not hex, a
-    limit that is not a positive integer, a stamp that is not one of 64 bits)."""
-    parts = _live_parts(key, prefix, "reg", 5)
+    """What a registrar's token
+    `<prefix>/live/reg/<name>/<zid>/<sup>/<limit>/<stamp>[/<side>/<members>]` says (one
+    without its side: 0, unknown), or `None` if it is malformed (a name that is not one,
+    an id that is not hex, a limit that is not a positive integer, a stamp that is not
+    one of 64 bits, a side or a count of members that is not a small number)."""
+    parts = _live_parts(key, prefix, "reg", 5, 7)
     if parts is None:
         return None
-    name, zid, supervisor, limit, stamp = parts
+    name, zid, supervisor, limit, stamp, *sides = parts
     if not (
         NAME.fullmatch(name)
         and _zid(zid)
@@ -410,9 +439,20 @@ def server_key(key: str, prefix: str) -> ServerKey | None:
         and int(limit) > 0
         and _number(stamp, _STAMP_DIGITS)
         and int(stamp) < 1 << 64
+        and all(_number(count, _COUNT_DIGITS) for count in sides)
     ):
         return None
-    return ServerKey(name, zid, supervisor, int(limit), int(stamp))
+    side, members = (int(count) for count in sides) if sides else (0, 0)
+    return ServerKey(name, zid, supervisor, int(limit), int(stamp), side, members)
+
+
+def host_key(key: str, prefix: str) -> HostKey | None:
+    """What a host's token `<prefix>/live/host/<zid>/<most>` says, or `None` if it is
+    malformed."""
+    parts = _live_parts(key, prefix, "host", 2)
+    if parts is None or not _zid(parts[0]) or not _number(parts[1], _COUNT_DIGITS):
+        return None
+    return HostKey(parts[0], int(parts[1]))
 
 
 def _name_at(key: str, prefix: str, kind: str) -> NameAt | None:

@@ -237,6 +237,23 @@ def test_a_bad_lease_is_a_config_error_naming_lease(lease: Any) -> None:
         rr.ZenohNetwork(system="lab", tls=None, lease=lease)
 
 
+@pytest.mark.parametrize("resolve", ["largest", "", None, 3, rr.Claimant])
+def test_a_bad_resolve_is_a_config_error_naming_resolve(resolve: Any) -> None:
+    with pytest.raises(rr.ConfigError, match="resolve must be"):
+        rr.ZenohNetwork(system="lab", tls=None, resolve=resolve)
+
+
+def test_the_resolve_strategy_reaches_the_processes_that_attach() -> None:
+    """Every process of a host decides alike (rule 22): the manager processes that join
+    through the router take its `resolve` from its address."""
+    net = rr.ZenohNetwork(system=f"resolve-{uuid.uuid4().hex[:8]}", tls=None, resolve="majority")
+    try:
+        assert ("majority", "majority") == (net.resolution.resolve, net.address.resolve)
+        assert "resolve='majority'" in repr(net)
+    finally:
+        net.close()
+
+
 @pytest.mark.parametrize("max_offset", [0, -1.0, float("nan"), float("inf"), True, "60", 1e9])
 def test_a_bad_max_offset_is_a_config_error_naming_max_offset(max_offset: Any) -> None:
     with pytest.raises(rr.ConfigError, match="max_offset"):

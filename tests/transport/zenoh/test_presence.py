@@ -23,8 +23,9 @@ from collections.abc import Iterator
 import pytest
 import zenoh
 
+from rr_actors._transport.resolve import Resolution
 from rr_actors._transport.zenoh.presence import NO_WAITING, Presence, Server
-from rr_actors._transport.zenoh.wire import Keys, ServerKey
+from rr_actors._transport.zenoh.wire import HostKey, Keys, ServerKey
 
 OLD, NEW, SUPERVISOR, OTHER = "a" * 32, "b" * 32, "c" * 32, "d" * 32
 
@@ -72,11 +73,21 @@ def presence(session: zenoh.Session) -> Iterator[Presence]:
 
 
 def token(
-    presence: Presence, put: bool, zid: str, stamp: int, supervisor: str = SUPERVISOR
+    presence: Presence,
+    put: bool,
+    zid: str,
+    stamp: int,
+    supervisor: str = SUPERVISOR,
+    side: tuple[int, int] = (0, 0),
 ) -> None:
-    """A registrar token of cm, applied as the presence thread applies one (on this
-    thread, which must not stay marked as the presence thread: later tests here ask)."""
-    key = Keys("t").server(ServerKey("cm", zid, supervisor, 1 << 20, stamp))
+    """A registrar token of cm (`side`: its side and the system's members), applied as
+    the presence thread applies one (on this thread, which must not stay marked as the
+    presence thread: later tests here ask)."""
+    key = Keys("t").server(ServerKey("cm", zid, supervisor, 1 << 20, stamp, *side))
+    apply(presence, put, key)
+
+
+def apply(presence: Presence, put: bool, key: str) -> None:
     try:
         presence._apply((put, key, None))
     finally:
@@ -144,3 +155,51 @@ def test_of_two_servers_with_one_stamp_the_lower_zenoh_id_is_kept(presence: Pres
     token(presence, True, OLD, 100, SUPERVISOR)
 
     assert OLD == presence.server("cm").zid  # type: ignore[union-attr]
+
+
+@pytest.mark.parametrize("order", ["lone first", "newcomer first"])
+def test_with_resolve_majority_the_server_begun_on_a_majority_side_is_kept(
+    session: zenoh.Session, order: str
+) -> None:
+    """Issue 51, finding 9, as the tokens say it: the lone host's erm began with every
+    member heard (3 of 3); the newcomer began beyond the cut with 2 of 3, later. Either
+    order of hearing them, "majority" keeps the newcomer, "first_served" the lone one."""
+    kept = {}
+    for resolve in ("first_served", "majority"):
+        heard = Heard()
+        presence = Presence(
+            "t", session, str(session.zid()), heard, hearer=heard, resolution=Resolution(resolve)
+        )
+        try:
+            tokens = [(OLD, 100, SUPERVISOR, (3, 3)), (NEW, 200, OTHER, (2, 3))]
+            for zid, stamp, supervisor, side in tokens[:: 1 if order == "lone first" else -1]:
+                token(presence, True, zid, stamp, supervisor, side)
+            kept[resolve] = presence.server("cm").zid  # type: ignore[union-attr]
+        finally:
+            presence.close()
+
+    assert {"first_served": OLD, "majority": NEW} == kept
+
+
+def test_hosts_are_counted_from_their_routers_host_tokens(session: zenoh.Session) -> None:
+    """A side is the hosts heard (one token per host's router); the system's size without
+    TLS the most any router heard at once, unknown (0) in a process that has not heard
+    its own router's token yet. A router hears when that most grows (`on_hosts`), and
+    says it in its own token, so every router's converges on the system's."""
+    heard, grown = Heard(), []
+    presence = Presence(
+        "t", session, str(session.zid()), heard, hearer=heard, on_hosts=grown.append
+    )
+    keys = Keys("t")
+    try:
+        apply(presence, True, keys.host(HostKey(OTHER, 3)))  # (a router that heard 3 once)
+        assert (1, 0, 3) == (presence.hosts(), presence.most(SUPERVISOR), presence.most(None))
+        apply(presence, True, keys.host(HostKey(SUPERVISOR, 1)))
+        apply(presence, True, keys.host(HostKey(SUPERVISOR, 2)))  # (declared anew, then the
+        apply(presence, False, keys.host(HostKey(SUPERVISOR, 1)))  # old one goes)
+        assert (2, 3) == (presence.hosts(), presence.most(SUPERVISOR))
+        apply(presence, False, keys.host(HostKey(OTHER, 3)))  # (a cut)
+        assert (1, 3) == (presence.hosts(), presence.most(SUPERVISOR))
+        assert [3] == grown  # (the router's own token then says 3: `_hosts_heard`)
+    finally:
+        presence.close()

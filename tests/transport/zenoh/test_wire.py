@@ -9,10 +9,12 @@ import zenoh
 from hypothesis import given
 
 from rr_actors._transport.zenoh.wire import (
+    HostKey,
     Keys,
     NameAt,
     ServerKey,
     claim_key,
+    host_key,
     proc_key,
     server_key,
     stopped_key,
@@ -31,8 +33,12 @@ def test_well_formed_keys_say_what_their_tokens_mean() -> None:
     assert ServerKey("erm", ZID, "ab12", 1, 2**64 - 1) == server_key(
         f"{P}/live/reg/erm/{ZID}/ab12/1/{2**64 - 1}", P
     )
+    assert ServerKey("erm", ZID, "none", 1024, 7, side=2, members=3) == server_key(
+        f"{P}/live/reg/erm/{ZID}/none/1024/7/2/3", P
+    )
     assert NameAt("erm", ZID) == claim_key(f"{P}/live/claim/erm/{ZID}", P)
     assert NameAt("erm", ZID) == stopped_key(f"{P}/live/stopped/erm/{ZID}", P)
+    assert HostKey(ZID, 3) == host_key(f"{P}/live/host/{ZID}/3", P)
 
 
 @pytest.mark.parametrize(
@@ -69,10 +75,19 @@ def test_a_malformed_process_token_is_none(rest: str) -> None:
         f"erm/{ZID}/none/1024/{2**64}",  # past a clock stamp's 64 bits
         f"erm/{ZID}/none/1024/{'9' * 5000}",
         f"erm/{ZID}/none/1024/1/more",
+        f"erm/{ZID}/none/1024/1/2/-3",  # (a side and a count of members: small numbers)
+        f"erm/{ZID}/none/1024/1/02/3",
+        f"erm/{ZID}/none/1024/1/2/{'9' * 50}",
+        f"erm/{ZID}/none/1024/1/2/3/4",
     ],
 )
 def test_a_malformed_registrar_token_is_none(rest: str) -> None:
     assert server_key(f"{P}/live/reg/{rest}", P) is None
+
+
+@pytest.mark.parametrize("rest", [ZID, f"{ZID}/-1", f"{ZID}/x", "not-hex/1", f"{ZID}/1/2"])
+def test_a_malformed_host_token_is_none(rest: str) -> None:
+    assert host_key(f"{P}/live/host/{rest}", P) is None
 
 
 @pytest.mark.parametrize("parse", [claim_key, stopped_key])
@@ -97,6 +112,8 @@ servers = st.builds(
     st.one_of(st.just("none"), zids),
     st.integers(1, 2**63 - 1),
     st.integers(0, 2**64 - 1),
+    st.integers(0, 999_999),
+    st.integers(0, 999_999),
 )
 
 
@@ -113,6 +130,13 @@ def test_a_registrar_token_built_parses_back(system: str, server: ServerKey) -> 
     assert "reg" == keys.kind(keys.server(server))
     assert server == keys.parse_server(keys.server(server))
     assert keys.parse_proc(keys.server(server)) is None  # (each parser takes its kind only)
+
+
+@given(system=names, host=st.builds(HostKey, zids, st.integers(0, 999_999)))
+def test_a_host_token_built_parses_back(system: str, host: HostKey) -> None:
+    keys = Keys(system)
+    assert ("host", host) == (keys.kind(keys.host(host)), keys.parse_host(keys.host(host)))
+    assert keys.parse_server(keys.host(host)) is None
 
 
 @given(system=names, at=st.builds(NameAt, names, zids))

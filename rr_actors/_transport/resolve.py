@@ -1,0 +1,207 @@
+"""Which of two servers of one name is kept after a heal (rule 22): the system's policy.
+
+```
+ a carrier sees two servers of one name (after a healed cut)
+   ─► each as a `Claimant` (plain data: name, process, served-since stamp, its side)
+   ─► `Resolution.keep(first, second)`: "first_served" | "majority" | the user's function
+        (an error or an answer that is neither claimant: WARNING, first served)
+   ─► the one kept serves on; the other yields (`Messenger.served_elsewhere`)
+```
+
+Every process of a system decides alone, from the same data (the servers' tokens), so
+every process must use the same policy and reach the same answer: a user's function
+must be deterministic (no clock, no randomness, no state of its own process).
+
+What each strategy loses (docs/explanation/failure-semantics.md): "first_served" keeps
+the registrar that served first, so what the other side loaded during the cut is undone
+(the lone host beats the majority); "majority" keeps the one whose side held a majority
+of the system's members when it began to serve, so what the minority side loaded is
+undone, as Akka's split-brain resolver (`keep-majority`) downs the minority.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Callable, Iterable
+from typing import Protocol, TypeVar
+
+from rr_actors._core.hlc import seconds
+from rr_actors._core.throttle import LogThrottle
+from rr_actors.errors import ConfigError
+
+__all__ = [
+    "FIRST_SERVED",
+    "RESOLVE_STRATEGIES",
+    "Claimant",
+    "Resolution",
+    "Resolve",
+    "Sided",
+    "check_resolve",
+    "claimant",
+]
+
+logger = logging.getLogger("rr_actors")
+
+RESOLVE_STRATEGIES = ("first_served", "majority")
+"""The named strategies of `resolve=` (or a function of two `Claimant`s)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Claimant:
+    """One of two registrars that serve one name after a healed cut (rule 22), as every
+    process of the system sees it: what a `resolve=` function is given.
+
+    Attributes:
+        name: the registrar's name.
+        process: its process as the carrier names it (a Zenoh id, a simulated pid).
+        stamp: when it began to serve: a hybrid logical clock stamp (`rr_actors` takes
+            every stamp it hears into its clock, so one served after its process heard
+            of the other has the later stamp); the lower served first.
+        served_since: `stamp` as wall-clock seconds since the epoch (`time.time()`).
+        side: how many members of the system its process heard when it began to serve,
+            its own host included (`0`: unknown).
+        members: how many members the system had then, as its process counted them
+            (`0`: unknown).
+    """
+
+    name: str
+    process: str
+    stamp: int
+    served_since: float
+    side: int = 0
+    members: int = 0
+
+    @property
+    def majority(self) -> bool:
+        """Whether it began to serve on a side that held more than half the members."""
+        return self.members > 0 and 2 * self.side > self.members
+
+
+Resolve = str | Callable[[Claimant, Claimant], Claimant]
+"""`resolve=`: `"first_served"`, `"majority"`, or `fn(first, second) -> the one kept`."""
+
+
+class Sided(Protocol):
+    """A server of a name as a carrier sees it (its `Ranked` with its side)."""
+
+    @property
+    def stamp(self) -> int: ...
+    @property
+    def who(self) -> str: ...
+    @property
+    def rank(self) -> tuple[int, int]: ...
+    @property
+    def side(self) -> int: ...
+    @property
+    def members(self) -> int: ...
+
+
+S = TypeVar("S", bound=Sided)
+
+
+def check_resolve(value: object) -> Resolve:
+    """`value` if it is a strategy `resolve=` takes.
+
+    Raises:
+        ConfigError: it is neither one of `RESOLVE_STRATEGIES` nor a callable.
+    """
+    if isinstance(value, str) and value in RESOLVE_STRATEGIES:
+        return value
+    if callable(value) and not isinstance(value, str | type):
+        return value  # (its signature is not checked: a wrong answer falls back)
+    raise ConfigError(
+        f"resolve must be 'first_served', 'majority' or a function (first, second) -> the "
+        f"one kept, not {value!r}"
+    )
+
+
+class Resolution:
+    """A system's rule 22 policy: which of two servers of one name is kept.
+
+    Args:
+        resolve: `"first_served"` (the lower stamp; of equal stamps, the lower process
+            id), `"majority"` (the one that began to serve on a side with a majority of
+            the members; if both did, the later, whose side could not hear the earlier;
+            if neither did, first served), or a function given the two `Claimant`s
+            (first served first) that returns the one kept. It runs on a carrier's
+            thread, in every process that sees both servers, possibly often: it must be
+            fast and deterministic. An exception, or an answer that is neither, falls
+            back to first served with a WARNING.
+
+    Raises:
+        ConfigError: `resolve` is none of those.
+    """
+
+    def __init__(self, resolve: object = "first_served") -> None:
+        self.resolve = check_resolve(resolve)
+        self._warn = LogThrottle(logger)
+
+    def __repr__(self) -> str:
+        return f"Resolution({self.resolve!r})"
+
+    def kept(self, name: str, servers: Iterable[S]) -> S | None:
+        """Which of `servers` (of registrar `name`) is kept: each against the one kept of
+        those before it, in first-served order (so every process folds them alike)."""
+        ordered = sorted(servers, key=lambda server: server.rank)
+        if not ordered:
+            return None
+        winner = ordered[0]
+        for other in ordered[1:]:
+            winner = self.keep(name, winner, other)
+        return winner
+
+    def keep(self, name: str, first: S, second: S) -> S:
+        """Which of `first` and `second` (first served first: the lower `rank`) is kept."""
+        if self.resolve == "first_served":
+            return first
+        one, two = claimant(name, first), claimant(name, second)
+        if self.resolve == "majority":
+            if one.majority != two.majority:
+                return first if one.majority else second
+            return second if one.majority else first  # (both: the later; neither: the first)
+        return second if self._ask(one, two) is two else first
+
+    def _ask(self, one: Claimant, two: Claimant) -> Claimant:
+        """The user's function's answer, or `one` (first served) with a WARNING if it
+        raised or answered neither."""
+        resolve = self.resolve
+        assert callable(resolve)
+        try:
+            answer = resolve(one, two)
+        except Exception as exc:  # noqa: BLE001 - user code must not break rule 22
+            self._warn.warning(
+                "resolve=%r raised %s: %s for registrar %s; the one served first is kept",
+                resolve,
+                type(exc).__name__,
+                exc,
+                one.name,
+            )
+            return one
+        if answer is two or (answer is not one and answer == two):
+            return two
+        if answer is not one and answer != one:
+            self._warn.warning(
+                "resolve=%r answered %r for registrar %s, which is neither claimant; the "
+                "one served first is kept",
+                resolve,
+                answer,
+                one.name,
+            )
+        return one
+
+
+def claimant(name: str, server: Sided) -> Claimant:
+    """`server` of registrar `name` as plain data."""
+    return Claimant(
+        name=name,
+        process=server.who,
+        stamp=server.stamp,
+        served_since=seconds(server.stamp),
+        side=server.side,
+        members=server.members,
+    )
+
+
+FIRST_SERVED = Resolution()
+"""The default policy (what every carrier did before `resolve=`)."""
