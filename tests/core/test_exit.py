@@ -50,7 +50,9 @@ THREADS = textwrap.dedent(
 
 # The manager (a process, or a thread) is the provider; the consumer in the program's own
 # process is not the supervisor's, and the supervisor is stopped first in the exit's
-# order, but the consumer holds an id at its manager: it is stopped before the tree.
+# order, but the consumer holds an id at its manager: it is stopped before the tree. The
+# other manager (a thread manager is a registrar of the program too, newer than the
+# consumer) is stopped by its tree, never on its own (its tree would restart it).
 SUPERVISED = textwrap.dedent(
     """
     import functools
@@ -68,13 +70,17 @@ SUPERVISED = textwrap.dedent(
             "res", load=lambda r: {"r": r}, unload=functools.partial(unload, marker)
         )
 
+    def serve_nothing(registrar):
+        pass
+
     config = rr.RegistrarConfig(f"provider-{uid}", backup_path=backup, save_interval=3600.0)
     consumer = rr.ResourceRegistrar.start(f"consumer-{uid}")
     sup = rr.Supervisor(
         [
             rr.ManagerSpec(
                 config.name, functools.partial(setup, marker), isolation=isolation, config=config
-            )
+            ),
+            rr.ManagerSpec(f"other-{uid}", serve_nothing, isolation=isolation),
         ]
     ).start()
     query = consumer.call(config.name, "res", "camera")
