@@ -12,7 +12,8 @@ supervisor, registrar and network is listed here and stopped when the main threa
    └─ threading._shutdown ─► stop_everything(): supervisors, newest first (each stops its
                               managers and the registrars it made), then the registrars
                               still running, newest first, then the networks still open;
-                              all within EXIT_TIMEOUT s
+                              all within EXIT_TIMEOUT s. A registrar holding ids at a
+                              registrar or tree still to stop goes before it (`_in_order`)
       ─► the interpreter then joins non-daemon threads (Zenoh's end with their session)
          and runs atexit
 ```
@@ -33,7 +34,7 @@ from __future__ import annotations
 import itertools
 import logging
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from types import TracebackType
 
 from rr_actors._core import runtime
@@ -62,7 +63,10 @@ networks they used."""
 
 _MIN_STOP = 0.1  # seconds each stop still gets once EXIT_TIMEOUT ran out
 
-_Entry = tuple[int, str, Callable[[], bool], Callable[[float], None]]
+_Names = Callable[[float], Collection[str]]
+_Entry = tuple[int, str, Callable[[], bool], Callable[[float], None], Collection[str], _Names]
+
+_HOLDS_TIMEOUT = 1.0  # seconds each registrar may take to say where it holds ids, at exit
 
 
 class _Listed:
@@ -79,8 +83,18 @@ _LISTED = runtime.process_state(_Listed(), _Listed)
 _hooked = False
 
 
+def _nowhere(_timeout: float) -> Collection[str]:
+    return ()
+
+
 def stop_at_exit(
-    tier: int, what: str, alive: Callable[[], bool], stop: Callable[[float], None]
+    tier: int,
+    what: str,
+    alive: Callable[[], bool],
+    stop: Callable[[float], None],
+    *,
+    provides: Collection[str] = (),
+    holds: _Names = _nowhere,
 ) -> None:
     """Have `stop(timeout)` called when the main thread ends, if `alive()` then.
 
@@ -93,6 +107,10 @@ def stop_at_exit(
         what: what it is, for people (`"registrar 'erm'"`).
         alive: whether it still needs stopping (called on any thread, must be cheap).
         stop: stops it within `timeout` seconds; what it raises is logged.
+        provides: the registrar names it serves (a registrar's own; a tree's managers').
+        holds: `holds(timeout)`: the registrar names it holds ids at now (a consumer's
+            providers), asked once as the main thread ends, within `timeout` seconds;
+            what it raises counts as none.
     """
     global _hooked  # (the hook: once per process)
     listed = _LISTED
@@ -102,7 +120,7 @@ def stop_at_exit(
             for number in [n for n, entry in entries.items() if not entry[2]()]:
                 del entries[number]
             listed.prune_at = max(64, 2 * len(entries))
-        entries[next(listed.numbers)] = (tier, what, alive, stop)
+        entries[next(listed.numbers)] = (tier, what, alive, stop, provides, holds)
         if not _hooked:
             try:
                 PLATFORM.at_main_thread_end(stop_everything)
@@ -115,16 +133,26 @@ def stop_at_exit(
 def stop_everything(timeout: float = EXIT_TIMEOUT) -> None:
     """Stop every listed supervisor and registrar that still runs; newest first per tier.
 
-    Runs on the main thread when it ends. A Ctrl-C while it runs skips the supervisors and
+    Runs on the main thread when it ends. One that holds ids at another still to stop
+    (a consumer registrar at a manager of a tree, or at a registrar of its own process)
+    stops first, so it releases them as its own `stop()` would, where the provider runs
+    its `unload` (not a release at a provider this exit already stopped: a WARNING, and
+    the id left in the provider's backup). A Ctrl-C while it runs skips the supervisors and
     registrars left (their threads are daemon threads: the program still ends), not the
     networks (the interpreter would wait for their sessions' threads).
     """
     deadline = runtime.monotonic() + timeout
     with _LISTED.lock:
-        entries = sorted(_LISTED.entries.items(), key=lambda item: (item[1][0], -item[0]))
+        entries = [
+            entry for _, entry in sorted(_LISTED.entries.items(), key=lambda i: (i[1][0], -i[0]))
+        ]
         _LISTED.entries.clear()
     interrupted = False
-    for _number, (tier, what, alive, stop) in entries:
+    try:
+        entries = _in_order(entries, deadline)
+    except KeyboardInterrupt:  # (asking where registrars hold ids): in tier order, then
+        interrupted = True
+    for tier, what, alive, stop, _provides, _holds in entries:
         if interrupted and tier < NETWORKS:
             continue
         try:
@@ -137,6 +165,42 @@ def stop_everything(timeout: float = EXIT_TIMEOUT) -> None:
             interrupted = True
         except Exception:
             logger.exception("stopping what was left running at exit failed")
+
+
+def _in_order(entries: list[_Entry], deadline: float) -> list[_Entry]:
+    """`entries` (in tier order, newest first), each that holds ids at another before it.
+
+    A manager of a listed tree goes after the rest (its tree stops it first, in the
+    tree's own order: never on its own while the tree runs, which would restart it), and
+    the networks last. Where holdings make a cycle, the first in tier order goes first.
+    """
+    running = [entry for entry in entries if entry[0] < NETWORKS and entry[2]()]
+    managed = {name for entry in running if entry[0] == SUPERVISORS for name in entry[4]}
+    left = [e for e in running if e[0] == SUPERVISORS or not managed.intersection(e[4])]
+    holds: list[set[str]] = []
+    for tier, _what, _alive, _stop, provides, ask in left:
+        names: set[str] = set()
+        if tier != SUPERVISORS:
+            timeout = min(_HOLDS_TIMEOUT, max(_MIN_STOP, deadline - runtime.monotonic()))
+            try:
+                names = set(ask(timeout)).difference(provides)
+            except Exception:  # (stopped meanwhile, or stuck: it holds none)
+                logger.debug("asking where a registrar holds ids at exit failed", exc_info=True)
+        holds.append(names)
+    ordered: list[_Entry] = []
+    while left:
+        at = next(
+            (
+                i
+                for i, entry in enumerate(left)
+                if not any(j != i and held.intersection(entry[4]) for j, held in enumerate(holds))
+            ),
+            0,
+        )
+        ordered.append(left.pop(at))
+        holds.pop(at)
+    rest = [entry for entry in entries if entry not in ordered]  # managers, networks
+    return ordered + sorted(rest, key=lambda entry: entry[0] >= NETWORKS)
 
 
 def _one_line_interrupts() -> None:

@@ -1271,6 +1271,8 @@ def start_registrar(
         f"registrar {handle.name!r}",
         handle.is_alive,
         lambda timeout: handle.stop(timeout=timeout),
+        provides=(handle.name,),
+        holds=lambda timeout: {q.serving_rr for q in handle.client_queries(timeout=timeout)},
     )
     if setup is not None:
         try:

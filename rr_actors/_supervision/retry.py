@@ -151,9 +151,19 @@ def call_with_retry(
 
 def restart_after_failure(before: ChildInfo, now: ChildInfo | None, tried_again_at: int) -> int:
     """The restart to wait for after a call failed as unavailable, made when the tree said
-    `before` (and says `now`): the next one (`before.restarts + 1`) if the provider was
-    killed since (down now, gone, or restarted since), or if the call was tried again at
-    once at this count already (`tried_again_at`); else `before`'s own (at once).
+    `before` (and says `now`): the one that brings it back, with the restarts it had
+    counted (`before.restarts`), if it was down then; else the next one
+    (`before.restarts + 1`) if the provider was killed since (down now, gone, or
+    restarted since), or if the call was tried again at once at this count already
+    (`tried_again_at`); else `before`'s own (at once).
+
+    Down when asked (restarting, starting, stopping for a restart) it runs again only
+    by a start, so "running, with at least `before.restarts`" is that start; "+ 1" would
+    be one more than it needs where the count went up before the tree showed it
+    running: a manager whose nested supervisor its parent restarts has started again,
+    and counted it, while that supervisor still starts its other children (the tree
+    shows it `starting` until then). A child that exited or was stopped for good is
+    still asked "+ 1", which the tree answers at once with `RegistrarUnavailableError`.
 
     A call may fail as unavailable with no restart to come: the provider was restarted
     before `before` was read and this process does not see it served yet (across hosts
@@ -163,6 +173,8 @@ def restart_after_failure(before: ChildInfo, now: ChildInfo | None, tried_again_
     and not seen by the tree yet, the provider fails every call at once; after one, the
     wait is for the restart the tree will make once it sees the kill, not a spin.
     """
+    if before.state not in ("running", "exited", "stopped"):
+        return before.restarts
     if (
         now is None
         or now.state != "running"

@@ -64,7 +64,7 @@ from rr_actors._supervision.children import (
 from rr_actors._supervision.node import Node
 from rr_actors._supervision.restarting import RestartIntensity
 from rr_actors._supervision.statedir import StateDirLock, ran_before
-from rr_actors._supervision.stopping import left
+from rr_actors._supervision.stopping import left, registrar_names
 from rr_actors._supervision.tree import (
     Clock,
     RestartWait,
@@ -286,6 +286,7 @@ class Supervisor(AsyncSupervision):
             f"supervisor {self.name!r}",
             lambda: not self._stopped,
             lambda timeout: self.stop(timeout=timeout),
+            provides=registrar_names(self._spec),
         )
         return self
 

@@ -122,7 +122,9 @@ def retry_through_restarts(
     After an unavailable error it waits for the next restart only if the tree says
     `name` was killed since it was asked (`restart_after_failure`); else for the one
     that ran then (at once, or once the station sees it served), and tries again (once
-    per restart count: then the next restart).
+    per restart count: then the next restart). `name` down when asked is waited for
+    until it runs with the restarts it had counted, not one more (its nested
+    supervisor's restart counts it before the tree shows it running).
 
     Args:
         sup: the supervisor of `name` (or the mission's `Trees`).

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import queue
+import threading
 from pathlib import Path
 from typing import Any, cast
 
@@ -114,3 +115,77 @@ def test_an_action_on_a_restarted_manager_that_does_not_reach_it_yet_is_tried_ag
         assert 1 == sup.child("rm").restarts
     assert [] == found
     assert 1 == station.failed
+
+
+_SLOW_STARTS: list[int] = []
+_SLOW_RESTARTING = threading.Event()
+_SLOW_MAY_GO_ON = threading.Event()
+
+
+def _slow_on_restart(registrar: rr.ResourceRegistrar) -> None:
+    """`slow`'s setup: its second start (its nested supervisor's restart) waits until told."""
+    _SLOW_STARTS.append(1)
+    if len(_SLOW_STARTS) > 1:
+        _SLOW_RESTARTING.set()
+        assert _SLOW_MAY_GO_ON.wait(60), "the test never let slow start"
+
+
+class _LetGoAfterTheSecondLook:
+    """The tree, as `retry_through_restarts` reads it: once it looked at rm after the
+    failure (the look that decides which restart to wait for), `slow` may start, and
+    rm's nested supervisor runs again."""
+
+    def __init__(self, sup: rr.Supervisor) -> None:
+        self._sup = sup
+        self.looks: list[rr.ChildInfo] = []
+
+    def child(self, name: str) -> rr.ChildInfo:
+        info = self._sup.child(name)
+        self.looks.append(info)
+        if len(self.looks) == 2:
+            _SLOW_MAY_GO_ON.set()
+        return info
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._sup, name)
+
+
+@pytest.mark.timeout(120)
+def test_a_manager_restarted_with_its_nested_supervisor_is_waited_for_until_it_runs() -> None:
+    """rm's nested supervisor gave up and its parent restarts it: rm has started again
+    (its restart counted: 1) while its supervisor still starts `slow`, so the tree shows
+    rm `starting` with 1 restart, and `run_in` finds it unavailable. The retry waits
+    until rm runs with the restart it has counted; it used to wait for one more (2), a
+    restart that never came, until its timeout (`CallTimeoutError`)."""
+    inner = rr.SupervisorSpec(
+        "inner",
+        (
+            rr.ManagerSpec("rm", lambda r: None, isolation="thread"),
+            rr.ManagerSpec("slow", _slow_on_restart, isolation="thread"),
+        ),
+        max_restarts=0,
+    )
+    for flag in (_SLOW_RESTARTING, _SLOW_MAY_GO_ON):
+        flag.clear()
+    _SLOW_STARTS.clear()
+    sup = rr.Supervisor([inner], max_restarts=3, period=60.0)
+    tries: list[str] = []
+
+    def name_of_rm() -> str:
+        tries.append("try")
+        return str(sup.run_in("rm", _registrar).name)
+
+    with sup:
+        crash(sup.run_in("rm", _registrar))  # inner gives up at once: its parent restarts it
+        assert _SLOW_RESTARTING.wait(60)
+        tree = _LetGoAfterTheSecondLook(sup)
+        try:
+            found = retry_through_restarts(
+                cast(rr.Supervisor, tree), "rm", name_of_rm, timeout=10.0
+            )
+        finally:
+            _SLOW_MAY_GO_ON.set()  # (whatever happened: the tree can stop)
+
+        assert ("starting", 1) == (tree.looks[0].state, tree.looks[0].restarts)
+        assert ("running", 1) == (sup.child("rm").state, sup.child("rm").restarts)
+    assert ("rm", 2) == (found, len(tries))
