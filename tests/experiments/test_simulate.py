@@ -6,6 +6,7 @@ aim); the shipped plans on it; what is not simulated is a `PlanError` naming it.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import os
@@ -366,6 +367,44 @@ def test_a_load_error_fails_the_loads_for_its_time_then_they_load_again() -> Non
         t0 = run_t0(run)
         late = [e for e in lines(run, "ResourceLoaded") if e["registrar"] == "db"]
         assert any(e["at"] - t0 > 1.5 for e in late)  # (loads again after it)
+
+
+def async_service(registrar: Any, *, load_s: float = 0.0) -> None:
+    """A service whose `load` and `unload` are coroutine functions (`async def`)."""
+
+    async def load(request: Any) -> dict[str, Any]:
+        await asyncio.sleep(load_s)  # (virtual time on the simulation's loop)
+        return {"server": f"{registrar.name}/resource", "request": request}
+
+    async def unload(_request: Any, _response: Any) -> None:
+        await asyncio.sleep(0)
+
+    registrar.register_server("resource", load=load, unload=unload)
+
+
+ASYNC_DB = BASE.replace(
+    f'name = "db"\nsetup = "{SERVICE}"', f'name = "db"\nsetup = "{__name__}:async_service"'
+)
+"""db's load and unload are coroutines; api loads from it."""
+
+
+@SWEEP
+def test_a_setup_whose_load_is_a_coroutine_loads_and_its_load_error_fault_fails_it() -> None:
+    plan = with_faults('kind = "load_error"\ntarget = "db"\nat = 1.0\nfor = 0.5', base=ASYNC_DB)
+
+    runs = simulate.simulate(plan, range(1, 3))
+
+    held(runs)
+    for run in runs:
+        t0 = run_t0(run)
+        failed = [e for e in lines(run, "LoadFailed") if e["registrar"] == "db"]
+        assert failed  # (the fault's: the switch still guards a coroutine load)
+        assert {"InjectedLoadError"} == {e["error_type"] for e in failed}, failed
+        assert all(1.0 <= e["at"] - t0 <= 1.5 for e in failed)
+        loaded = [e["at"] - t0 for e in lines(run, "ResourceLoaded") if e["registrar"] == "db"]
+        assert any(at < 1.0 for at in loaded)
+        assert any(at > 1.5 for at in loaded)
+        assert run.calls_ok > 0
 
 
 @SWEEP
