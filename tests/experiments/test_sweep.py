@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import io
 import json
+import os
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -223,6 +225,137 @@ def test_a_replay_of_a_seed_not_run_exits_2(
 
     assert 2 == main(["replay", str(tmp_path), "--seed", "9"], io.StringIO())
     assert "seed 9 was not run" in capsys.readouterr().err
+
+
+LINE = {"seed": 1, "hash": "0" * 64, "duration": 3.0, "plan": None}
+"""A seed's line of `seeds.jsonl`, as far as a replay reads it."""
+
+HOSTILE_SEEDS = {
+    "cut short": (b'{"seed": 1, "hash": "ab', ":1: not a JSON line (Unterminated string"),
+    "not UTF-8": (b"\xff\xfe\n", ":1: not UTF-8 text (invalid start byte)"),
+    "nested too deeply": (
+        b"[" * 100_000 + b"]" * 100_000 + b"\n",
+        ":1: not a seed's line: nested too deeply to read",
+    ),
+    "a huge integer": (
+        b'{"seed": ' + b"9" * 5000 + b"}\n",
+        ":1: not a seed's line: a number of over 4300 digits",
+    ),
+    "not an object": (b"\n[1]\n", ":2: not a seed's line: a JSON array"),
+    "no hash": (b'{"seed": 1}\n', ":1: not a seed's line: no hash"),
+    "a seed not a number": (
+        json.dumps({**LINE, "seed": "1"}).encode(),
+        ":1: seed must be a whole number, got '1'",
+    ),
+    "a duration not a number": (
+        json.dumps({**LINE, "duration": [3]}).encode(),
+        ":1: duration must be a number of seconds, got a JSON array",
+    ),
+}
+TOO_LONG = b" " * 200 + b"\n"
+"""A line longer than the test's `LINE_LIMIT` of 100 bytes."""
+HOSTILE_SEEDS["a line too long"] = (TOO_LONG, ":1: longer than 100 bytes")
+
+
+@pytest.mark.timeout(60)  # (before: each a traceback; the too long line was read whole)
+@pytest.mark.parametrize(("data", "message"), HOSTILE_SEEDS.values(), ids=HOSTILE_SEEDS.keys())
+def test_a_hostile_seeds_file_is_one_error_line_naming_it_and_its_line_and_exit_2(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    data: bytes,
+    message: str,
+) -> None:
+    if data == TOO_LONG:
+        monkeypatch.setattr(sweep, "LINE_LIMIT", 100)
+    (tmp_path / "plan.toml").write_text(PLAN)
+    (tmp_path / sweep.SEEDS_FILE).write_bytes(data)
+
+    for argv in (["--seed", "1"], []):  # (a given seed, and the only one)
+        assert 2 == main(["replay", str(tmp_path), *argv], io.StringIO())
+
+        err = capsys.readouterr().err
+        assert err.startswith(f"rr-actors replay: {tmp_path / sweep.SEEDS_FILE}{message}"), err
+        assert 1 == err.count("\n")  # (one line: no traceback)
+
+
+def fifo(path: Path) -> None:
+    os.mkfifo(path)  # (opening it for reading would wait for a writer)
+
+
+def dev_zero(path: Path) -> None:
+    path.symlink_to("/dev/zero")  # (endless: read whole, gigabytes)
+
+
+NOT_REGULAR = {
+    "a link to /dev/zero": (dev_zero, "a character device"),
+    "a pipe": (fifo, "a pipe"),
+    "a directory": (Path.mkdir, "a directory"),
+}
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("name", ["plan.toml", sweep.SEEDS_FILE])
+@pytest.mark.parametrize(("make", "kind"), NOT_REGULAR.values(), ids=NOT_REGULAR.keys())
+def test_a_run_file_that_is_not_a_regular_file_is_refused_unread_naming_it(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    name: str,
+    make: Callable[[Path], None],
+    kind: str,
+) -> None:
+    (tmp_path / "plan.toml").write_text(PLAN)
+    (tmp_path / sweep.SEEDS_FILE).write_text(json.dumps(LINE) + "\n")
+    (tmp_path / name).unlink()
+    make(tmp_path / name)
+
+    for command in ("replay", "shrink"):
+        assert 2 == main([command, str(tmp_path), "--seed", "1"], io.StringIO())
+
+        err = capsys.readouterr().err
+        assert (
+            f"rr-actors {command}: {tmp_path / name}: not a regular file ({kind}): refused\n" == err
+        )
+
+
+@pytest.mark.timeout(60)
+def test_a_plan_file_bigger_than_its_limit_is_refused_naming_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "plan.toml").write_text("#" * sweep.PLAN_LIMIT + "\n" + PLAN)
+    (tmp_path / sweep.SEEDS_FILE).write_text(json.dumps(LINE) + "\n")
+
+    assert 2 == main(["replay", str(tmp_path), "--seed", "1"], io.StringIO())
+
+    plan = tmp_path / "plan.toml"
+    assert f"rr-actors replay: {plan}: bigger than {sweep.PLAN_LIMIT} bytes: not a plan\n" == (
+        capsys.readouterr().err
+    )
+
+
+@pytest.mark.parametrize(
+    ("text", "problem"),
+    [
+        ("duration = [[[\n", "is not valid TOML"),
+        ("\xff", "is not UTF-8 text"),
+        ("duration = " + "9" * 5000 + "\n", "is not a plan: a number of over 4300 digits"),
+    ],
+    ids=["not TOML", "not UTF-8", "a huge integer"],
+)
+def test_a_bad_plan_copy_is_reported_under_its_own_path_not_the_original_plans(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], text: str, problem: str
+) -> None:
+    original = "/somewhere/else/simkill.toml"
+    plan = tmp_path / "plan.toml"
+    plan.write_bytes(text.encode("utf-8", "surrogateescape") if text != "\xff" else b"\xff")
+    (tmp_path / sweep.SEEDS_FILE).write_text(json.dumps({**LINE, "plan": original}) + "\n")
+
+    assert 2 == main(["replay", str(tmp_path), "--seed", "1"], io.StringIO())
+
+    err = capsys.readouterr().err
+    assert err.startswith(f"rr-actors replay: {plan}: {problem}"), err
+    assert original not in err
+    assert 1 == err.count("\n")
 
 
 @pytest.mark.parametrize(
