@@ -102,6 +102,12 @@ folder (Linux's tmpfs): a simulated kill keeps the files anyway, so a disk adds 
 but its system calls' cost (the OS's temporary folder otherwise)."""
 
 
+SCRATCH = "<run>"
+"""What a history says for its run's folder (the managers' backups, the clients'
+`{run_dir}`): a random temporary folder, whose name would make each replay's history
+another."""
+
+
 @dataclasses.dataclass(frozen=True)
 class SimulatedRun:
     """One seed of a plan on the simulation: its history, hash and verdict.
@@ -233,8 +239,12 @@ def run_seed(plan: Plan, seed: int) -> SimulatedRun:
     finally:
         shutil.rmtree(folder, ignore_errors=True)
     seen, records, wall_t0, calls = ran.value
-    history = to_lines(seen, {"run": RUN, "seed": seed}) + "".join(
-        json.dumps(fault_line(r, run=RUN, seed=seed, wall_t0=wall_t0)) + "\n" for r in records
+    unplaced = _unplaced(folder)
+    history = unplaced(
+        to_lines(seen, {"run": RUN, "seed": seed})
+        + "".join(
+            json.dumps(fault_line(r, run=RUN, seed=seed, wall_t0=wall_t0)) + "\n" for r in records
+        )
     )
     verdict = check.check(check.numbered(seen))
     return SimulatedRun(
@@ -243,7 +253,7 @@ def run_seed(plan: Plan, seed: int) -> SimulatedRun:
         verdict=verdict.verdict,
         violations=verdict.violations,
         unverifiable=verdict.unverifiable,
-        findings=tuple(check.format_verdict(RUN, verdict)[1:]),
+        findings=tuple(map(unplaced, check.format_verdict(RUN, verdict)[1:])),
         history=history,
         events=len(seen),
         faults=sum(1 for r in records if not r.skipped),
@@ -252,8 +262,24 @@ def run_seed(plan: Plan, seed: int) -> SimulatedRun:
         entries_left=calls[2],
         virtual_s=ran.elapsed,
         cpu_s=time.process_time() - started,
-        errors=ran.errors,
+        errors=tuple(map(unplaced, ran.errors)),
     )
+
+
+def _unplaced(folder: Path) -> Callable[[str], str]:
+    """What turns a text of the run made in `folder` into one that names `SCRATCH`
+    instead (`folder` is random: a history naming it would not replay). Its path as
+    given and resolved, each as written and as escaped in a JSON string."""
+    forms = {str(folder), os.path.realpath(folder)}
+    forms |= {json.dumps(form)[1:-1] for form in forms}
+    ordered = sorted(forms, key=len, reverse=True)  # (a longer form holds a shorter)
+
+    def unplaced(text: str) -> str:
+        for form in ordered:
+            text = text.replace(form, SCRATCH)
+        return text
+
+    return unplaced
 
 
 def _world(

@@ -7,12 +7,13 @@ aim); the shipped plans on it; what is not simulated is a `PlanError` naming it.
 from __future__ import annotations
 
 import asyncio
+import errno
 import json
 import logging
 import os
 import subprocess
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -228,6 +229,43 @@ def test_the_same_seed_gives_the_same_history_whatever_order_a_set_of_callbacks_
 
 
 @SWEEP
+def fail_a_write(monkeypatch: pytest.MonkeyPatch, number: int) -> Callable[[], None]:
+    """Make the `number`th catalog write of each run fail (EIO): a `CatalogWriteError`,
+    whose message names the backup's path. Returns what starts a run's count again."""
+    from rr_actors._store import files  # noqa: PLC0415
+    from rr_actors._store.sqlite import SqliteStore  # noqa: PLC0415
+
+    write = SqliteStore.write
+    count = [0]
+
+    def failing(self: SqliteStore, changes: Any, told: Any = ()) -> None:
+        count[0] += 1
+        if count[0] == number:
+            raise files.write_error(self.path, OSError(errno.EIO, "Input/output error"))
+        write(self, changes, told)
+
+    monkeypatch.setattr(SqliteStore, "write", failing)
+    return lambda: count.__setitem__(0, 0)
+
+
+@SWEEP
+def test_a_seed_that_meets_a_failed_write_gives_one_history_whatever_its_run_folder(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    again = fail_a_write(monkeypatch, 20)
+    plan = parse_plan(BASE)
+    runs = []
+    for folder in ("a", "a-longer-name"):  # (each run's random folder made in another)
+        (tmp_path / folder).mkdir()
+        monkeypatch.setattr(simulate, "RAM_DIR", str(tmp_path / folder))
+        again()
+        runs.append(simulate.run_seed(plan, 1))
+
+    assert runs[0].hash == runs[1].hash
+    assert "catalog backup '<run>/state/" in runs[0].history  # (a .db of the run's)
+    assert str(tmp_path) not in runs[0].history + "".join(runs[0].findings + runs[0].errors)
+
+
 def test_a_seed_gives_the_same_history_alone_and_after_other_seeds_in_the_process() -> None:
     from rr_actors.experiments import load_plan  # noqa: PLC0415
 
