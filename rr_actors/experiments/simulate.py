@@ -98,8 +98,9 @@ PREEMPT = 0.05
 
 RAM_DIR = "/dev/shm"  # noqa: S108 - a private folder is made in it (mkdtemp)
 """Where a run's folder (its managers' SQLite backups) is made, if there is such a
-folder (Linux's tmpfs): a simulated kill keeps the files anyway, so a disk adds nothing
-but its system calls' cost (the OS's temporary folder otherwise)."""
+folder (Linux's tmpfs) and `TMPDIR` does not choose another: a simulated kill keeps the
+files anyway, so a disk adds nothing but its system calls' cost (the OS's temporary
+folder otherwise)."""
 
 
 SCRATCH = "<run>"
@@ -228,10 +229,9 @@ def run_seed(plan: Plan, seed: int) -> SimulatedRun:
     from rr_actors import simulation  # noqa: PLC0415 - the simulation extra (greenlet)
 
     check_simulable(plan)
-    ram = RAM_DIR if os.path.isdir(RAM_DIR) and os.access(RAM_DIR, os.W_OK) else None
-    folder = Path(tempfile.mkdtemp(prefix="rr-sim-run-", dir=ram))
     started = time.process_time()
-    try:
+    folder = Path(tempfile.mkdtemp(prefix="rr-sim-run-", dir=_scratch_parent()))
+    try:  # (a Ctrl-C or a SIGTERM made one: the run is cancelled, then its folder goes)
         until = plan.duration + plan.recovery_timeout + 600.0
         ran = simulation.run(
             lambda: _world(plan, seed, folder), seed=seed, preempt=PREEMPT, until=until
@@ -264,6 +264,14 @@ def run_seed(plan: Plan, seed: int) -> SimulatedRun:
         cpu_s=time.process_time() - started,
         errors=tuple(map(unplaced, ran.errors)),
     )
+
+
+def _scratch_parent() -> str | None:
+    """Where a run's folder is made: `RAM_DIR` unless `TMPDIR` chooses (or it is not a
+    writable folder): then the OS's temporary folder (`None`)."""
+    if os.environ.get("TMPDIR"):
+        return None
+    return RAM_DIR if os.path.isdir(RAM_DIR) and os.access(RAM_DIR, os.W_OK) else None
 
 
 def _unplaced(folder: Path) -> Callable[[str], str]:

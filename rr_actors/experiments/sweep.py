@@ -3,14 +3,16 @@
 ```
  experiment PLAN --simulate --seeds 1-500 --out DIR
    PYTHONHASHSEED is not 0? ─► the same command again in a child process with it
-                               (a hash then replays in any process), its output passed on
+                               (a hash then replays in any process), its output passed on,
+                               a Ctrl-C, SIGTERM or SIGHUP passed on to it (`hash_fixed`)
    DIR/plan.toml (the plan's copy)
    simulate.run_seed per seed ─► a progress bar (a terminal with rich) or a line per
                                  violating seed; DIR/seeds.jsonl: a line per seed (its
                                  hash, verdict, counts); DIR/events-seed-S.jsonl: the
                                  history of each seed that did not hold; DIR/log.txt:
                                  the simulated system's error lines, by seed
-   ◄── a summary table, the violating seeds; exit 0 (1: a run failed; 2: bad input)
+   ◄── a summary table, the violating seeds; exit 0 (1: a run failed; 2: bad input;
+       128 + the signal that stopped it: the seed running cancelled, its folder removed)
 
  replay DIR --seed S
    DIR/plan.toml, DIR/seeds.jsonl's line of S ─► simulate.run_seed ─► its hash printed
@@ -29,10 +31,12 @@ import logging
 import os
 import re
 import shutil
+import signal
 import stat
 import statistics
 import subprocess
 import sys
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, BinaryIO, TextIO
@@ -49,6 +53,7 @@ __all__ = [
     "LOG_FILE",
     "OUTPUT_FILES",
     "SEEDS_FILE",
+    "STOP_SIGNALS",
     "hash_fixed",
     "parse_seeds",
     "prepare",
@@ -62,6 +67,9 @@ __all__ = [
     "shrink_arguments",
     "shrink_seed",
     "shrink_violations",
+    "stopped_code",
+    "stopped_line",
+    "stopping_on_signals",
     "summary",
     "summary_rows",
 ]
@@ -139,18 +147,90 @@ def prepare(plan: Plan, out: Path, *, force: bool) -> None:
 
 def hash_fixed(argv: list[str], stream: TextIO) -> int | None:
     """Run `rr-actors ARGV` in a child with `PYTHONHASHSEED=0` unless this process has it;
-    its exit code (`None`: this process has it, go on here)."""
+    its exit code (`None`: this process has it, go on here).
+
+    A Ctrl-C, SIGTERM or SIGHUP this process gets meanwhile is passed on to the child,
+    which stops as it would alone (its run ends, its folder goes: `stopping_on_signals`);
+    this process waits for it (never kills it: a killed child would leave its folder).
+    """
     if os.environ.get("PYTHONHASHSEED") == HASH_SEED:
         return None
     env = {**os.environ, "PYTHONHASHSEED": HASH_SEED}
     command = [sys.executable, "-m", "rr_actors", *argv]
-    if stream is sys.stdout:
-        return subprocess.run(command, env=env, check=False).returncode  # noqa: S603
-    done = subprocess.run(  # noqa: S603 - this program, its own arguments
-        command, env=env, check=False, stdout=subprocess.PIPE, text=True
-    )
-    stream.write(done.stdout)
-    return done.returncode
+    pipe = None if stream is sys.stdout else subprocess.PIPE
+    child = subprocess.Popen(command, env=env, stdout=pipe, text=True)  # noqa: S603 - ours
+    with _passed_on(child):
+        out, _ = child.communicate()
+    if out is not None:
+        stream.write(out)
+    return child.returncode
+
+
+@contextlib.contextmanager
+def _passed_on(child: subprocess.Popen[str]) -> Iterator[None]:
+    """Each of `STOP_SIGNALS` this process gets passed on to `child` (main thread only)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def pass_on(signum: int, _frame: object) -> None:
+        with contextlib.suppress(ProcessLookupError):  # (it ended meanwhile)
+            child.send_signal(signum)
+
+    previous = {number: signal.signal(number, pass_on) for number in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+
+
+STOP_SIGNALS = tuple(
+    getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name)
+)
+"""The signals that stop a sweep, a replay or a shrink (as a Ctrl-C stops an experiment)."""
+
+
+class _Stopped(KeyboardInterrupt):
+    """One of `STOP_SIGNALS`, raised in the main thread (`stopping_on_signals`)."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+@contextlib.contextmanager
+def stopping_on_signals() -> Iterator[None]:
+    """The first of `STOP_SIGNALS` raises a `KeyboardInterrupt` in the main thread; the
+    ones after it are ignored until the block ends (the seed running is cancelled and
+    its folder removed meanwhile: `simulate.run_seed`). `stopped_code` gives the exit
+    code. Elsewhere than on the main thread: nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def first(signum: int, _frame: object) -> None:
+        for number in STOP_SIGNALS:
+            signal.signal(number, signal.SIG_IGN)
+        raise _Stopped(signum)
+
+    previous = {number: signal.signal(number, first) for number in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+
+
+def stopped_code(exc: KeyboardInterrupt) -> int:
+    """The exit code of a command stopped by `exc`: 128 + its signal (130 after a
+    Ctrl-C, 143 after a SIGTERM, 129 after a SIGHUP)."""
+    return 128 + int(getattr(exc, "signum", signal.SIGINT))
+
+
+def stopped_line(exc: KeyboardInterrupt) -> str:
+    """What a stopped command says: by which signal."""
+    return f"stopped by {signal.Signals(stopped_code(exc) - 128).name}"
 
 
 def seed_line(run: simulate.SimulatedRun, plan: Plan) -> dict[str, Any]:
@@ -370,11 +450,14 @@ def run_replay(args: argparse.Namespace, stream: TextIO) -> int:
     if code is not None:
         return code
     try:
-        with _warnings_off():
+        with stopping_on_signals(), _warnings_off():
             run = simulate.run_seed(plan, args.seed)
     except RrError as exc:
         _error("replay", str(exc))
         return 1
+    except KeyboardInterrupt as exc:
+        _error("replay", stopped_line(exc))
+        return stopped_code(exc)
     if args.events:
         Path(args.events).write_text(run.history, encoding="utf-8")
     if args.story:
@@ -533,16 +616,23 @@ def run_shrink(args: argparse.Namespace, stream: TextIO) -> int:
     if code is not None:
         return code
     try:
-        shrink_seed(
-            plan, args.seed, out, _Say(stream), budget=args.budget, tries=args.tries, text=text
-        )
-    except ConfigError as exc:
-        _error("shrink", str(exc))
-        return 2
-    except RrError as exc:
-        _error("shrink", str(exc))
-        return 1
+        with stopping_on_signals():
+            shrink_seed(
+                plan, args.seed, out, _Say(stream), budget=args.budget, tries=args.tries, text=text
+            )
+    except (RrError, KeyboardInterrupt) as exc:
+        return _failed("shrink", exc)
     return 0
+
+
+def _failed(command: str, exc: RrError | KeyboardInterrupt) -> int:
+    """Say why `command` ended early; its exit code: 2 bad input (`ConfigError`), 1 a
+    run failed, 128 + the signal that stopped it (`stopped_code`)."""
+    if isinstance(exc, KeyboardInterrupt):
+        _error(command, stopped_line(exc))
+        return stopped_code(exc)
+    _error(command, str(exc))
+    return 2 if isinstance(exc, ConfigError) else 1
 
 
 class _Say(contextlib.nullcontext["_Say"]):

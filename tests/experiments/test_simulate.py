@@ -252,6 +252,7 @@ def fail_a_write(monkeypatch: pytest.MonkeyPatch, number: int) -> Callable[[], N
 def test_a_seed_that_meets_a_failed_write_gives_one_history_whatever_its_run_folder(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    monkeypatch.delenv("TMPDIR", raising=False)  # (it would choose the folder's parent)
     again = fail_a_write(monkeypatch, 20)
     plan = parse_plan(BASE)
     runs = []

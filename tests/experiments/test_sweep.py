@@ -4,9 +4,14 @@ and their histories kept, a replay that gives the same hash (exit 1 if not)."""
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import os
+import select
+import signal
+import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -225,6 +230,84 @@ def test_a_replay_of_a_seed_not_run_exits_2(
 
     assert 2 == main(["replay", str(tmp_path), "--seed", "9"], io.StringIO())
     assert "seed 9 was not run" in capsys.readouterr().err
+
+
+MARKER = """\
+\"\"\"db's setup, which tells the test through a FIFO that a seed's run began (its
+folder exists), then serves as usual.\"\"\"
+
+import contextlib
+import os
+
+from rr_actors.experiments.services import service
+
+
+def setup(registrar, *, fifo):
+    with contextlib.suppress(OSError):  # (the pipe full, or the test gone: serve anyway)
+        fd = os.open(fifo, os.O_WRONLY | os.O_NONBLOCK)
+        try:
+            os.write(fd, b"running\\n")
+        finally:
+            os.close(fd)
+    service(registrar)
+"""
+
+
+def marked_plan(folder: Path, fifo: Path) -> Path:
+    """`PLAN` whose db's setup writes a line into `fifo` at each of its starts."""
+    (folder / "sweep_marker.py").write_text(MARKER)
+    plan = folder / "plan.toml"
+    plan.write_text(
+        PLAN.replace(
+            'name = "db"\nsetup = "rr_actors.experiments.services:service"',
+            f'name = "db"\nsetup = "sweep_marker:setup"\noptions = {{ fifo = "{fifo}" }}',
+        )
+    )
+    return plan
+
+
+@pytest.mark.timeout(240)
+@pytest.mark.parametrize(
+    ("signum", "hash_seed"),
+    [(signal.SIGTERM, "0"), (signal.SIGTERM, None), (signal.SIGINT, "0")],
+    ids=["SIGTERM", "SIGTERM to the parent of PYTHONHASHSEED's child", "SIGINT"],
+)
+def test_a_sweep_stopped_by_a_signal_removes_its_run_folder_and_exits_128_plus_it(
+    tmp_path: Path, signum: int, hash_seed: str | None
+) -> None:
+    scratch, fifo = tmp_path / "tmp", tmp_path / "started"
+    scratch.mkdir()
+    os.mkfifo(fifo)
+    reader = os.open(fifo, os.O_RDONLY | os.O_NONBLOCK)  # (before the setup's open)
+    plan = marked_plan(tmp_path, fifo)
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONHASHSEED"}
+    env |= {"TMPDIR": str(scratch)} | ({"PYTHONHASHSEED": hash_seed} if hash_seed else {})
+    command = ["experiment", str(plan), "--simulate", "--seeds", "1-100000"]
+    sweep_process = subprocess.Popen(
+        [sys.executable, "-m", "rr_actors", *command, "--out", str(tmp_path / "out")],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # (its group: killed whole if the test fails)
+    )
+    try:
+        ready, _, _ = select.select([reader], [], [], 120)  # (a seed's run began)
+        assert ready, "no seed began within 120 s"
+        assert [p.name for p in scratch.iterdir() if p.name.startswith("rr-sim-run-")]
+
+        sweep_process.send_signal(signum)
+        _, err = sweep_process.communicate(timeout=120)
+    finally:
+        os.close(reader)
+        with contextlib.suppress(ProcessLookupError):  # (a child left: the test failed)
+            os.killpg(sweep_process.pid, signal.SIGKILL)
+        sweep_process.wait()
+
+    assert 128 + signum == sweep_process.returncode, err
+    assert [] == [p.name for p in scratch.iterdir() if p.name.startswith("rr-sim-run-")]
+    assert f"stopped by {signal.Signals(signum).name}" in err
+    assert "Traceback" not in err
 
 
 LINE = {"seed": 1, "hash": "0" * 64, "duration": 3.0, "plan": None}
