@@ -23,8 +23,8 @@ import inspect
 import operator
 import os
 import re
-import sys
 import string
+import sys
 import tomllib
 from collections.abc import Iterator
 from pathlib import Path
