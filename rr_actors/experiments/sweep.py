@@ -103,6 +103,7 @@ SUMMARY_HEADERS = (
     "held",
     "violated",
     "unverifiable",
+    "crashed",
     "events",
     "faults",
     "calls ok",
@@ -259,6 +260,7 @@ def summary_rows(runs: list[simulate.SimulatedRun]) -> list[str]:
         str(verdicts.count("held")),
         str(verdicts.count("violated")),
         str(verdicts.count("unverifiable")),
+        str(verdicts.count("crashed")),
         median([r.events for r in runs]),
         median([r.faults for r in runs]),
         median([r.calls_ok for r in runs]),
@@ -395,15 +397,18 @@ def summary(display: Any, runs: list[simulate.SimulatedRun], out: Path) -> None:
             display.say(f"{header:>14}  {cell}")
     violated = [r.seed for r in runs if r.verdict == "violated"]
     unverifiable = [r.seed for r in runs if r.verdict == "unverifiable"]
+    crashed = [r.seed for r in runs if r.verdict == "crashed"]
     display.say(
         f"violated: seeds {', '.join(map(str, violated))}" if violated else "violated: none"
     )
+    if crashed:
+        display.say(f"crashed: seeds {', '.join(map(str, crashed))}")
     if unverifiable:
         display.say(f"unverifiable: seeds {', '.join(map(str, unverifiable))}")
-    if violated or unverifiable:
-        seed = (violated or unverifiable)[0]
+    if violated or crashed or unverifiable:
+        seed = (violated or crashed or unverifiable)[0]
         display.say(f"replay one: rr-actors replay {out} --seed {seed}")
-    kept = len(violated) + len(unverifiable)
+    kept = len(violated) + len(crashed) + len(unverifiable)
     histories = [f"{kept} histories (events-seed-S.jsonl)"] if kept else []
     logged = []
     if (out / LOG_FILE).exists():

@@ -247,6 +247,7 @@ def _simulate_in(make: Callable[[], Scheduler], fn: Callable[[], Any], outcome: 
         try:
             value = fn()
         except BaseException as exc:  # noqa: BLE001 - raised in the caller's thread
+            _mark(exc, sched)
             result.append((False, exc))
         else:
             result.append((True, value))
@@ -268,9 +269,19 @@ def _simulate_in(make: Callable[[], Scheduler], fn: Callable[[], Any], outcome: 
         runtime.use(None)
 
 
+def _mark(exc: BaseException, sched: Scheduler) -> None:
+    """Give `exc` the point of the run it was raised at, `(virtual seconds, steps)`, as
+    `exc.simulated_at` (unless it has one, or takes no attributes)."""
+    if not hasattr(exc, "simulated_at"):
+        with contextlib.suppress(AttributeError, TypeError):
+            exc.simulated_at = (sched.now, sched.steps)  # type: ignore[attr-defined]
+
+
 def _finished(sched: Scheduler, ok: bool, value: Any) -> tuple[bool, Any]:
-    """`(True, the Run)`, or `(False, what to raise)` with the seed in a note."""
+    """`(True, the Run)`, or `(False, what to raise)` with the seed in a note (and the
+    point it was raised at: `_mark`)."""
     if not ok:
+        _mark(value, sched)
         if not isinstance(value, SimulationError):
             value.add_note(
                 f"in the simulation of seed {sched.seed}, at virtual time {sched.now:g} s "

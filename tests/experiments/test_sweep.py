@@ -8,6 +8,7 @@ import contextlib
 import io
 import json
 import os
+import re
 import select
 import signal
 import subprocess
@@ -308,6 +309,60 @@ def test_a_sweep_stopped_by_a_signal_removes_its_run_folder_and_exits_128_plus_i
     assert [] == [p.name for p in scratch.iterdir() if p.name.startswith("rr-sim-run-")]
     assert f"stopped by {signal.Signals(signum).name}" in err
     assert "Traceback" not in err
+
+
+def plant_a_crash(monkeypatch: pytest.MonkeyPatch) -> None:
+    """An exception inside every seed's run, once its workload ended: where the runner
+    counts what the catalogs still hold (the system's code, in the run)."""
+
+    def crashing(*_args: object) -> None:
+        raise AssertionError("catalog: a consumer id held twice")
+
+    monkeypatch.setattr(simulate, "count_entries", crashing)
+    monkeypatch.setenv("PYTHONHASHSEED", sweep.HASH_SEED)  # (no child: the plant is here)
+
+
+@SWEEP
+def test_a_seed_whose_system_raises_is_crashed_the_sweep_goes_on_and_replay_and_shrink_take_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    plant_a_crash(monkeypatch)
+    plan, out = tmp_path / "plan.toml", tmp_path / "out"
+    plan.write_text(PLAN)
+
+    code, printed = command(
+        "experiment", str(plan), "--simulate", "--seeds", "1-2", "--out", str(out)
+    )
+
+    assert 0 == code, printed  # (a result, not a failure of the tool)
+    seeds = recorded(out)
+    assert ["crashed", "crashed"] == [seeds[s]["verdict"] for s in (1, 2)]
+    [finding] = seeds[2]["findings"]
+    assert re.fullmatch(
+        r"  crashed: AssertionError: catalog: a consumer id held twice "
+        r"\(at [0-9.]+ virtual s, step [0-9]+\)",
+        str(finding),
+    )
+    assert "crashed: seeds 1, 2" in printed
+    crash = json.loads((out / "events-seed-2.jsonl").read_text().splitlines()[-1])
+    assert ("Crashed", "AssertionError", 2) == (crash["type"], crash["error_type"], crash["seed"])
+    assert crash["virtual_s"] > 3.0  # (after the run's 3 s: the count comes at the end)
+
+    code, printed = command("replay", str(out), "--seed", "2", "--story")
+    assert 0 == code, printed
+    assert f"seed 2: crashed, hash {seeds[2]['hash']}" in printed
+    assert re.search(r"crashed +AssertionError: catalog: a consumer id held twice \(step ", printed)
+    assert "the same history" in printed
+
+    shrunk = tmp_path / "shrunk"
+    code, printed = command(
+        "shrink", str(out), "--seed", "2", "--out", str(shrunk), "--budget", "20"
+    )
+    assert 0 == code, printed
+    assert "[crashed] AssertionError: catalog: a consumer id held twice" in printed
+    code, printed = command("replay", str(shrunk))
+    assert 0 == code, printed
+    assert ": crashed, hash" in printed
 
 
 LINE = {"seed": 1, "hash": "0" * 64, "duration": 3.0, "plan": None}
