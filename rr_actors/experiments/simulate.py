@@ -207,6 +207,10 @@ def simulate(
 ) -> list[SimulatedRun]:
     """Run `plan` on the simulation once per seed; each run's history, hash and verdict.
 
+    An exception the system raises once its tree served (in a seed's run: an assertion
+    of the catalog, a deadlock, a run past its limits) is that seed's result, verdict
+    `"crashed"`, not an error: the next seed runs.
+
     Args:
         plan: the plan (`check_simulable` must accept it).
         seeds: the seeds, in the order to run them.
@@ -214,10 +218,6 @@ def simulate(
 
     Returns:
         The runs, in the order of `seeds`.
-
-    An exception the system raises once its tree served (in a seed's run: an assertion
-    of the catalog, a deadlock, a run past its limits) is that seed's result, verdict
-    `"crashed"`, not an error: the next seed runs.
 
     Raises:
         PlanError: what `check_simulable` refuses.
@@ -373,6 +373,16 @@ class _Progress:
     clients: list[Client] = dataclasses.field(default_factory=list)
 
 
+def _close_injector(injector: SimulatedFaults, progress: _Progress) -> None:
+    """Close the run's injector; if that fails, the run failed (the tool's error, not
+    a crash of the system: `_crashed`)."""
+    try:
+        injector.close()
+    except BaseException:
+        progress.serving = False
+        raise
+
+
 def _world(
     plan: Plan, seed: int, folder: Path, progress: _Progress
 ) -> tuple[list[events.Event], list[FaultRecord], float, tuple[int, int, int]]:
@@ -436,7 +446,7 @@ def _world(
             cleanup.callback(subscription.close)
             cleanup.callback(subscription.wait_delivered)
             for opened in injector:  # (second servers' supervisors: to the end of the run)
-                cleanup.callback(opened.close)
+                cleanup.callback(_close_injector, opened, progress)
             cleanup.callback(sup.stop)
     calls = [c for client in clients for c in client.calls]
     ok = sum(1 for c in calls if c.ok)

@@ -121,7 +121,8 @@ def run(
         LimitError: past `until` or `max_steps`.
         SimulationError: the run did not end within `timeout` real seconds (the process
             should end: its runtime stays simulated), or a simulation already runs.
-        BaseException: what `fn` raised (with the seed in a note); or what interrupted
+        BaseException: what `fn` raised (with the seed in a note, and the virtual
+            seconds and the step it was raised at as `simulated_at`); or what interrupted
             the caller's wait (a `KeyboardInterrupt`), once the run, cancelled, ended
             (within `CANCEL_TIMEOUT` seconds): the caller may then remove what it made.
     """
