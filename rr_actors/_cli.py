@@ -447,7 +447,7 @@ RUN_KEYS = ("run", "seed")
 """What an experiment adds to each event's line of its `events.jsonl`: the run's number
 and seed (`rr_actors.experiments.runner`)."""
 
-FAULT_LINES = ("FaultInjected", "FaultSkipped")
+FAULT_LINES = ("FaultInjected", "FaultSkipped", "Crashed")  # (a crashed seed's last line)
 """The `type` of an experiment's lines for its faults (`experiments.runner.fault_line`):
 not events (no `schema`, no `hlc`); merged at their `at`, the wall clock."""
 

@@ -9,6 +9,9 @@ whose `register_server` wraps each `load`:
     client ──call──► registrar ──load(request)──► _guarded: armed to raise? ──► InjectedLoadError
                                                               else ──► the setup's own load
 
+A coroutine `load` (`async def`) is wrapped by a coroutine function (`_aguarded`), so the
+registrar still awaits it on its loop.
+
 On the simulation (`simulate.py`) the same switch is armed the same way: its state is
 per simulated process (`runtime.process_state`), its clock the virtual one; and a
 `kill_in_setup` fault arms `SETUP_FAULTS[name]`, which the next setup of that manager
@@ -35,6 +38,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from rr_actors._core import runtime
+from rr_actors._core.loops import is_coroutine_function
 
 __all__ = [
     "CUT_SIGNAL",
@@ -130,6 +134,15 @@ def _guarded(manager: str, server: str, load: Callable[[Any], Any], request: Any
     return load(request)
 
 
+async def _aguarded(manager: str, server: str, load: Callable[[Any], Any], request: Any) -> Any:
+    """`_guarded` for a coroutine `load`: a coroutine function too, so that the registrar
+    awaits it on its loop as it would the setup's own."""
+    message = _should_fail(manager, server)
+    if message is not None:
+        raise InjectedLoadError(message)
+    return await load(request)
+
+
 class _FaultableRegistrar:
     """The registrar as a manager's setup sees it: the same, but loads can be made to fail."""
 
@@ -138,8 +151,18 @@ class _FaultableRegistrar:
         self._manager = manager
 
     def register_server(self, name: str, *, load: Callable[[Any], Any], **kwargs: Any) -> None:
-        guarded = functools.partial(_guarded, self._manager, name, load)
-        self._registrar.register_server(name, load=guarded, **kwargs)
+        self._registrar.register_server(name, load=self._guarded(name, load), **kwargs)
+
+    async def aregister_server(
+        self, name: str, *, load: Callable[[Any], Any], **kwargs: Any
+    ) -> None:
+        await self._registrar.aregister_server(name, load=self._guarded(name, load), **kwargs)
+
+    def _guarded(self, server: str, load: Callable[[Any], Any]) -> Callable[[Any], Any]:
+        """`load` behind the switch; a coroutine function exactly when `load` is one (the
+        registrar tells them apart by that, and awaits a coroutine `load` on its loop)."""
+        wrap = _aguarded if is_coroutine_function(load) else _guarded
+        return functools.partial(wrap, self._manager, server, load)
 
     def __getattr__(self, attribute: str) -> Any:
         return getattr(self._registrar, attribute)

@@ -48,6 +48,8 @@ if TYPE_CHECKING:
     from rich.progress import TaskID
     from rich.table import Table as RichTable
 
+    from rr_actors.experiments.plan import Plan
+
 __all__ = [
     "INTERRUPTED_EXIT",
     "Display",
@@ -496,21 +498,31 @@ def _simulated(args: argparse.Namespace, stream: TextIO) -> int:
     argv += ["--quiet"] if args.quiet else []
     argv += ["--shrink", str(args.shrink)] if args.shrink is not None else []
     code = sweep.hash_fixed(argv, stream)
-    if code is not None:
-        return code
+    return code if code is not None else _sweep(plan, seeds, out, args, stream)
+
+
+def _sweep(plan: Plan, seeds: range, out: Path, args: argparse.Namespace, stream: TextIO) -> int:
+    """The seeds run (here: `PYTHONHASHSEED=0`), then the summary, then `--shrink`."""
     try:
-        with Display(stream, quiet=args.quiet) as display:
+        with sweep.stopping_on_signals(), Display(stream, quiet=args.quiet) as display:
             runs = sweep.run_seeds(plan, seeds, out, display)
     except RrError as exc:
         error(str(exc))
         return 1
+    except KeyboardInterrupt as exc:  # (the seed running removed its folder)
+        error(f"{sweep.stopped_line(exc)}: the seeds that ran are in {out / sweep.SEEDS_FILE}")
+        return sweep.stopped_code(exc)
     sweep.summary(display, runs, _shown(out))
     if args.shrink is not None:
         try:
-            sweep.shrink_violations(plan, runs, _shown(out), display, budget=args.shrink)
+            with sweep.stopping_on_signals():
+                sweep.shrink_violations(plan, runs, _shown(out), display, budget=args.shrink)
         except RrError as exc:
             error(str(exc))
             return 1
+        except KeyboardInterrupt as exc:
+            error(sweep.stopped_line(exc))
+            return sweep.stopped_code(exc)
     return 0
 
 

@@ -24,6 +24,7 @@ import operator
 import os
 import re
 import string
+import sys
 import tomllib
 from collections.abc import Iterator
 from pathlib import Path
@@ -102,8 +103,17 @@ def load_plan(path: str | os.PathLike[str]) -> Plan:
     return parse_plan(text, source=source, name=Path(source).stem)
 
 
-def parse_plan(text: str, *, source: str = "<plan>", name: str = "plan") -> Plan:
+def parse_plan(
+    text: str, *, source: str = "<plan>", name: str = "plan", base_dir: str | None = None
+) -> Plan:
     """Validate the plan in the TOML `text` (`source` names it in errors): a variant per value.
+
+    Args:
+        text: the plan's TOML.
+        source: its file's name (errors name it).
+        name: the plan's name unless it gives one.
+        base_dir: the folder searched first for its import paths (default: `source`'s;
+            a run directory's copy gives the original file's).
 
     Raises:
         PlanError: the text is not TOML or not a valid plan.
@@ -116,7 +126,12 @@ def parse_plan(text: str, *, source: str = "<plan>", name: str = "plan") -> Plan
         raise PlanError(source, int(line[1]) if line else 0, "", problem) from exc
     except RecursionError:  # (tomllib recurses per nested array or table)
         raise PlanError(source, 0, "", "is not a plan: nested too deeply to read") from None
-    base_dir = None if source == "<plan>" else os.path.dirname(os.path.abspath(source))
+    except ValueError:  # (an integer past Python's limit of digits)
+        digits = sys.get_int_max_str_digits()
+        problem = f"is not a plan: a number of over {digits} digits"
+        raise PlanError(source, 0, "", problem) from None
+    if base_dir is None and source != "<plan>":
+        base_dir = os.path.dirname(os.path.abspath(source))
     reader = _Reader(source, text, base_dir)
     base = reader.plan(data, name=name)
     if (compare := base.compare) is None:

@@ -135,7 +135,11 @@ def violation_kind(rule: str, message: str) -> str:
 
 
 def violation_kinds(run: simulate.SimulatedRun) -> list[str]:
-    """The kinds of a run's violations, in the order of their first lines (none if held)."""
+    """The kinds of a run's violations, in the order of their first lines (none if held);
+    a crashed run's one: `[crashed] Type: message` (ids and numbers blotted out)."""
+    if run.verdict == "crashed":
+        crash = json.loads(run.history.splitlines()[-1])
+        return [violation_kind("crashed", f"{crash['error_type']}: {crash['message']}")]
     if run.verdict != "violated":
         return []
     verdict = check.check(check.read_runs(run.history.splitlines()).get(simulate.RUN, []))
@@ -752,7 +756,7 @@ def write(shrunk: Shrunk, out: Path, line: dict[str, Any]) -> None:
         f"# Shrunk from {shrunk.plan.source}, seed {shrunk.original_seed} "
         f"({shrunk.original_events} events), in {shrunk.runs} simulated runs.",
         f"# Seed {shrunk.seed} of this plan violates with {run.events} events:",
-        *(f"# {finding.strip()}" for finding in run.findings if "violation" in finding),
+        *(f"# {f.strip()}" for f in run.findings if "violation" in f or "crashed:" in f),
         f"#   rr-actors replay {out} --story",
         f"#   rr-actors experiment plan.toml --simulate --seeds {shrunk.seed} --out DIR",
     ]

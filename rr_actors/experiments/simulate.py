@@ -44,6 +44,7 @@ import tempfile
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from rr_actors import events
 from rr_actors._core import runtime
@@ -61,6 +62,9 @@ from rr_actors.experiments.runner import (
 )
 from rr_actors.experiments.schedule import fault_schedule
 from rr_actors.experiments.workload import Client
+
+if TYPE_CHECKING:
+    from rr_actors.experiments._simulated_faults import SimulatedFaults
 
 __all__ = [
     "SIMULATED_KINDS",
@@ -93,13 +97,24 @@ ones known to start real processes or threads)."""
 RUN = 1
 """The `run` of every line of a simulated run's history (one run a seed)."""
 
+CRASH_LINE = "Crashed"
+"""The `type` of a crashed run's last history line: the exception its system raised
+(`error_type`, `message`), when (`virtual_s`) and at which step of the scheduler."""
+
 PREEMPT = 0.05
 """The probability that a simulated thread yields at a choice point (`simulation.run`)."""
 
 RAM_DIR = "/dev/shm"  # noqa: S108 - a private folder is made in it (mkdtemp)
 """Where a run's folder (its managers' SQLite backups) is made, if there is such a
-folder (Linux's tmpfs): a simulated kill keeps the files anyway, so a disk adds nothing
-but its system calls' cost (the OS's temporary folder otherwise)."""
+folder (Linux's tmpfs) and `TMPDIR` does not choose another: a simulated kill keeps the
+files anyway, so a disk adds nothing but its system calls' cost (the OS's temporary
+folder otherwise)."""
+
+
+SCRATCH = "<run>"
+"""What a history says for its run's folder (the managers' backups, the clients'
+`{run_dir}`): a random temporary folder, whose name would make each replay's history
+another."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -109,7 +124,10 @@ class SimulatedRun:
     Attributes:
         seed: the seed.
         hash: the SHA-256 of `history` (hex): the same for the same plan and seed.
-        verdict: `check`'s verdict of its events: `"held"`, `"violated"`, `"unverifiable"`.
+        verdict: `check`'s verdict of its events: `"held"`, `"violated"`, `"unverifiable"`;
+            or `"crashed"`: the system raised once it served (an assertion of the
+            catalog, a deadlock: its `findings` line names the exception, its virtual
+            time and step; its history ends with a `CRASH_LINE` line).
         violations: how many findings are violations.
         unverifiable: how many findings are unverifiable.
         findings: the verdict's lines (`check.format_verdict`, without its first).
@@ -189,6 +207,10 @@ def simulate(
 ) -> list[SimulatedRun]:
     """Run `plan` on the simulation once per seed; each run's history, hash and verdict.
 
+    An exception the system raises once its tree served (in a seed's run: an assertion
+    of the catalog, a deadlock, a run past its limits) is that seed's result, verdict
+    `"crashed"`, not an error: the next seed runs.
+
     Args:
         plan: the plan (`check_simulable` must accept it).
         seeds: the seeds, in the order to run them.
@@ -201,7 +223,7 @@ def simulate(
         PlanError: what `check_simulable` refuses.
         RrError: the tree did not start (a setup raised), or a client could not build
             a request; with the seed in a note.
-        SimulationError: a run deadlocked, went past its limits, or blocked for real.
+        SimulationError: a run blocked for real.
     """
     check_simulable(plan)
     runs = []
@@ -222,20 +244,23 @@ def run_seed(plan: Plan, seed: int) -> SimulatedRun:
     from rr_actors import simulation  # noqa: PLC0415 - the simulation extra (greenlet)
 
     check_simulable(plan)
-    ram = RAM_DIR if os.path.isdir(RAM_DIR) and os.access(RAM_DIR, os.W_OK) else None
-    folder = Path(tempfile.mkdtemp(prefix="rr-sim-run-", dir=ram))
     started = time.process_time()
-    try:
+    progress = _Progress()
+    folder = Path(tempfile.mkdtemp(prefix="rr-sim-run-", dir=_scratch_parent()))
+    try:  # (a Ctrl-C or a SIGTERM made one: the run is cancelled, then its folder goes)
         until = plan.duration + plan.recovery_timeout + 600.0
         ran = simulation.run(
-            lambda: _world(plan, seed, folder), seed=seed, preempt=PREEMPT, until=until
+            lambda: _world(plan, seed, folder, progress), seed=seed, preempt=PREEMPT, until=until
         )
+    except Exception as exc:
+        if not progress.serving or type(exc) is simulation.SimulationError:
+            raise  # (the tree did not start, a client's request, the simulation itself)
+        return _crashed(seed, exc, progress, _unplaced(folder), started)
     finally:
         shutil.rmtree(folder, ignore_errors=True)
     seen, records, wall_t0, calls = ran.value
-    history = to_lines(seen, {"run": RUN, "seed": seed}) + "".join(
-        json.dumps(fault_line(r, run=RUN, seed=seed, wall_t0=wall_t0)) + "\n" for r in records
-    )
+    unplaced = _unplaced(folder)
+    history = unplaced(_history(seen, records, seed, wall_t0))
     verdict = check.check(check.numbered(seen))
     return SimulatedRun(
         seed=seed,
@@ -243,7 +268,7 @@ def run_seed(plan: Plan, seed: int) -> SimulatedRun:
         verdict=verdict.verdict,
         violations=verdict.violations,
         unverifiable=verdict.unverifiable,
-        findings=tuple(check.format_verdict(RUN, verdict)[1:]),
+        findings=tuple(map(unplaced, check.format_verdict(RUN, verdict)[1:])),
         history=history,
         events=len(seen),
         faults=sum(1 for r in records if not r.skipped),
@@ -252,12 +277,114 @@ def run_seed(plan: Plan, seed: int) -> SimulatedRun:
         entries_left=calls[2],
         virtual_s=ran.elapsed,
         cpu_s=time.process_time() - started,
-        errors=ran.errors,
+        errors=tuple(map(unplaced, ran.errors)),
     )
 
 
+def _history(
+    seen: list[events.Event], records: list[FaultRecord], seed: int, wall_t0: float
+) -> str:
+    """A run's history: its events' lines, then its faults'."""
+    return to_lines(seen, {"run": RUN, "seed": seed}) + "".join(
+        json.dumps(fault_line(r, run=RUN, seed=seed, wall_t0=wall_t0)) + "\n" for r in records
+    )
+
+
+def _crashed(
+    seed: int,
+    exc: Exception,
+    progress: _Progress,
+    unplaced: Callable[[str], str],
+    started: float,
+) -> SimulatedRun:
+    """The run of a seed whose system raised `exc` once it served: verdict `"crashed"`,
+    its history what it recorded until then (the tree stopped after it included), then
+    a `CRASH_LINE` line with the exception, its virtual time and step."""
+    at_s, step = getattr(exc, "simulated_at", (0.0, 0))
+    seen = list(progress.log.seen) if progress.log is not None else []
+    records = list(progress.faults.records) if progress.faults is not None else []
+    crash = {
+        "type": CRASH_LINE,
+        "error_type": type(exc).__name__,
+        "message": unplaced(str(exc)),
+        "virtual_s": at_s,
+        "step": step,
+        "run": RUN,
+        "seed": seed,
+    }
+    history = unplaced(_history(seen, records, seed, progress.wall_t0)) + json.dumps(crash) + "\n"
+    calls = [c for client in progress.clients for c in client.calls]
+    ok = sum(1 for c in calls if c.ok)
+    finding = (
+        f"  crashed: {crash['error_type']}: {crash['message']} (at {at_s:.6f} virtual s, "
+        f"step {step})"
+    )
+    return SimulatedRun(
+        seed=seed,
+        hash=history_hash(history),
+        verdict="crashed",
+        violations=0,
+        unverifiable=0,
+        findings=(finding,),
+        history=history,
+        events=len(seen),
+        faults=sum(1 for r in records if not r.skipped),
+        calls_ok=ok,
+        calls_failed=len(calls) - ok,
+        entries_left=0,
+        virtual_s=at_s,
+        cpu_s=time.process_time() - started,
+        errors=(),
+    )
+
+
+def _scratch_parent() -> str | None:
+    """Where a run's folder is made: `RAM_DIR` unless `TMPDIR` chooses (or it is not a
+    writable folder): then the OS's temporary folder (`None`)."""
+    if os.environ.get("TMPDIR"):
+        return None
+    return RAM_DIR if os.path.isdir(RAM_DIR) and os.access(RAM_DIR, os.W_OK) else None
+
+
+def _unplaced(folder: Path) -> Callable[[str], str]:
+    """What turns a text of the run made in `folder` into one that names `SCRATCH`
+    instead (`folder` is random: a history naming it would not replay). Its path as
+    given and resolved, each as written and as escaped in a JSON string."""
+    forms = {str(folder), os.path.realpath(folder)}
+    forms |= {json.dumps(form)[1:-1] for form in forms}
+    ordered = sorted(forms, key=len, reverse=True)  # (a longer form holds a shorter)
+
+    def unplaced(text: str) -> str:
+        for form in ordered:
+            text = text.replace(form, SCRATCH)
+        return text
+
+    return unplaced
+
+
+@dataclasses.dataclass
+class _Progress:
+    """How far a run got, for a crash's result (`_crashed`): set by `_world` as it goes."""
+
+    serving: bool = False  # the tree started: an exception from here on is the system's
+    log: _EventLog | None = None
+    faults: SimulatedFaults | None = None
+    wall_t0: float = 0.0
+    clients: list[Client] = dataclasses.field(default_factory=list)
+
+
+def _close_injector(injector: SimulatedFaults, progress: _Progress) -> None:
+    """Close the run's injector; if that fails, the run failed (the tool's error, not
+    a crash of the system: `_crashed`)."""
+    try:
+        injector.close()
+    except BaseException:
+        progress.serving = False
+        raise
+
+
 def _world(
-    plan: Plan, seed: int, folder: Path
+    plan: Plan, seed: int, folder: Path, progress: _Progress
 ) -> tuple[list[events.Event], list[FaultRecord], float, tuple[int, int, int]]:
     """The run, in the simulation's main thread: the runner's steps on simulated seams."""
     from rr_actors import simulation  # noqa: PLC0415 - the simulation extra (greenlet)
@@ -267,7 +394,7 @@ def _world(
     work = folder / "work"
     work.mkdir()
     sup = build_tree(plan, folder / "state" if plan.state else None, seed=seed, network=network)
-    log = _EventLog()
+    log = progress.log = _EventLog()
     injector: list[SimulatedFaults] = []  # (set once the workload starts)
 
     def seen(event: events.Event) -> None:
@@ -280,7 +407,9 @@ def _world(
     try:
         sup.start()
         clients = [Client(i, sup, plan, seed, run_dir=work) for i in range(plan.workload.clients)]
+        progress.serving, progress.clients = True, clients
         t0, wall_t0 = runtime.monotonic(), runtime.wall()
+        progress.wall_t0 = wall_t0
         faults = SimulatedFaults(
             sup,
             plan,
@@ -292,6 +421,7 @@ def _world(
             state_dir=folder / "beyond" if plan.state else None,
         )
         injector.append(faults)
+        progress.faults = faults
         faults.start()
         for client in clients:
             client.start(t0=t0, deadline=t0 + plan.duration)
@@ -304,6 +434,7 @@ def _world(
             client.stop(timeout=plan.workload.timeout)
         failed = next((c.failure for c in clients if c.failure is not None), None)
         if failed is not None:
+            progress.serving = False  # (a client's request could not be made: no result)
             raise failed
         left, _ = count_entries(sup, managers, clients)  # (the runner's settling, too)
         sup.flush_events()
@@ -315,7 +446,7 @@ def _world(
             cleanup.callback(subscription.close)
             cleanup.callback(subscription.wait_delivered)
             for opened in injector:  # (second servers' supervisors: to the end of the run)
-                cleanup.callback(opened.close)
+                cleanup.callback(_close_injector, opened, progress)
             cleanup.callback(sup.stop)
     calls = [c for client in clients for c in client.calls]
     ok = sum(1 for c in calls if c.ok)

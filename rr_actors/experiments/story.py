@@ -8,6 +8,8 @@
    their order: a kill's exit comes after the kill)
    check.check ─► the findings: their lines marked `>>`, each violation told under the
                   last line it points at
+   a crashed run's last line (`Crashed`) ─► "crashed  AssertionError: ... (step N)", at
+                  its virtual time
  ─► lines: `[  0.300 s] #12  api      pid 3   api exited: killed by SIGKILL (pid 3)`
     (virtual seconds from the run's first event, the history's line number, who: the
     registrar, the manager or "fault"; the simulated pid); on a terminal with rich,
@@ -91,6 +93,14 @@ def story(history: str) -> list[StoryLine]:
         text = f"{finding.kind} [{finding.rule}] {finding.message} (lines {lines})"
         told = StoryLine(0, steps[where].at_s if steps else 0.0, "violation", None, text)
         steps.insert(where + 1, told)
+    for number, text in enumerate(texts, 1):
+        if '"type": "Crashed"' in text and '"schema"' not in text:
+            crash = json.loads(text)
+            at = float(crash.get("virtual_s", 0.0))  # (the run's first event: at about 0)
+            said = f"{crash.get('error_type')}: {crash.get('message')} (step {crash.get('step')})"
+            where = next((i for i, s in enumerate(steps) if s.line > 0 and s.at_s > at), None)
+            told = StoryLine(number, at, "crashed", None, said)
+            steps.insert(len(steps) if where is None else where, told)
     return steps
 
 
@@ -126,7 +136,7 @@ def tell(history: str, stream: TextIO) -> None:
     for step in steps:  # (a long text wraps under itself, not under its stamp, as the demo's)
         style = (
             "bold red"
-            if step.who == "violation" or step.marked
+            if step.who in ("violation", "crashed") or step.marked
             else "yellow"
             if step.who == "fault"
             else ""

@@ -3,18 +3,21 @@
 ```
  experiment PLAN --simulate --seeds 1-500 --out DIR
    PYTHONHASHSEED is not 0? ─► the same command again in a child process with it
-                               (a hash then replays in any process), its output passed on
+                               (a hash then replays in any process), its output passed on,
+                               a Ctrl-C, SIGTERM or SIGHUP passed on to it (`hash_fixed`)
    DIR/plan.toml (the plan's copy)
    simulate.run_seed per seed ─► a progress bar (a terminal with rich) or a line per
                                  violating seed; DIR/seeds.jsonl: a line per seed (its
                                  hash, verdict, counts); DIR/events-seed-S.jsonl: the
                                  history of each seed that did not hold; DIR/log.txt:
                                  the simulated system's error lines, by seed
-   ◄── a summary table, the violating seeds; exit 0 (1: a run failed; 2: bad input)
+   ◄── a summary table, the violating seeds; exit 0 (1: a run failed; 2: bad input;
+       128 + the signal that stopped it: the seed running cancelled, its folder removed)
 
  replay DIR --seed S
    DIR/plan.toml, DIR/seeds.jsonl's line of S ─► simulate.run_seed ─► its hash printed
-   and compared with the recorded one; exit 0 same, 1 not (or no such seed recorded)
+   and compared with the recorded one; exit 0 same, 1 not; 2 bad input (no such seed,
+   a file not regular or too big, a line not a seed's: `_open_regular`, `_seed_lines`)
 ```
 """
 
@@ -28,12 +31,15 @@ import logging
 import os
 import re
 import shutil
+import signal
+import stat
 import statistics
 import subprocess
 import sys
+import threading
 from collections.abc import Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TextIO
+from typing import TYPE_CHECKING, Any, BinaryIO, TextIO
 
 from rr_actors.errors import ConfigError, RrError
 from rr_actors.experiments import experiment, shrink, simulate, story
@@ -47,9 +53,11 @@ __all__ = [
     "LOG_FILE",
     "OUTPUT_FILES",
     "SEEDS_FILE",
+    "STOP_SIGNALS",
     "hash_fixed",
     "parse_seeds",
     "prepare",
+    "read_plan_text",
     "recorded_plan",
     "replay_arguments",
     "run_replay",
@@ -59,6 +67,9 @@ __all__ = [
     "shrink_arguments",
     "shrink_seed",
     "shrink_violations",
+    "stopped_code",
+    "stopped_line",
+    "stopping_on_signals",
     "summary",
     "summary_rows",
 ]
@@ -79,11 +90,20 @@ MAX_SEEDS = 10_000_000
 HASH_SEED = "0"
 """The `PYTHONHASHSEED` a sweep and a replay run with."""
 
+PLAN_LIMIT = 4 * 1024 * 1024
+"""The most bytes of a run directory's `plan.toml` that `replay` and `shrink` read (a
+plan is a page of TOML: a bigger file is not one)."""
+
+LINE_LIMIT = 64 * 1024 * 1024
+"""The most bytes of one line of a run directory's `seeds.jsonl` (a seed's line is its
+counts and findings: a few kilobytes, a megabyte for thousands of findings)."""
+
 SUMMARY_HEADERS = (
     "seeds",
     "held",
     "violated",
     "unverifiable",
+    "crashed",
     "events",
     "faults",
     "calls ok",
@@ -128,18 +148,90 @@ def prepare(plan: Plan, out: Path, *, force: bool) -> None:
 
 def hash_fixed(argv: list[str], stream: TextIO) -> int | None:
     """Run `rr-actors ARGV` in a child with `PYTHONHASHSEED=0` unless this process has it;
-    its exit code (`None`: this process has it, go on here)."""
+    its exit code (`None`: this process has it, go on here).
+
+    A Ctrl-C, SIGTERM or SIGHUP this process gets meanwhile is passed on to the child,
+    which stops as it would alone (its run ends, its folder goes: `stopping_on_signals`);
+    this process waits for it (never kills it: a killed child would leave its folder).
+    """
     if os.environ.get("PYTHONHASHSEED") == HASH_SEED:
         return None
     env = {**os.environ, "PYTHONHASHSEED": HASH_SEED}
     command = [sys.executable, "-m", "rr_actors", *argv]
-    if stream is sys.stdout:
-        return subprocess.run(command, env=env, check=False).returncode  # noqa: S603
-    done = subprocess.run(  # noqa: S603 - this program, its own arguments
-        command, env=env, check=False, stdout=subprocess.PIPE, text=True
-    )
-    stream.write(done.stdout)
-    return done.returncode
+    pipe = None if stream is sys.stdout else subprocess.PIPE
+    child = subprocess.Popen(command, env=env, stdout=pipe, text=True)  # noqa: S603 - ours
+    with _passed_on(child):
+        out, _ = child.communicate()
+    if out is not None:
+        stream.write(out)
+    return child.returncode
+
+
+@contextlib.contextmanager
+def _passed_on(child: subprocess.Popen[str]) -> Iterator[None]:
+    """Each of `STOP_SIGNALS` this process gets passed on to `child` (main thread only)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def pass_on(signum: int, _frame: object) -> None:
+        with contextlib.suppress(ProcessLookupError):  # (it ended meanwhile)
+            child.send_signal(signum)
+
+    previous = {number: signal.signal(number, pass_on) for number in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+
+
+STOP_SIGNALS = tuple(
+    getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name)
+)
+"""The signals that stop a sweep, a replay or a shrink (as a Ctrl-C stops an experiment)."""
+
+
+class _Stopped(KeyboardInterrupt):
+    """One of `STOP_SIGNALS`, raised in the main thread (`stopping_on_signals`)."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+@contextlib.contextmanager
+def stopping_on_signals() -> Iterator[None]:
+    """The first of `STOP_SIGNALS` raises a `KeyboardInterrupt` in the main thread; the
+    ones after it are ignored until the block ends (the seed running is cancelled and
+    its folder removed meanwhile: `simulate.run_seed`). `stopped_code` gives the exit
+    code. Elsewhere than on the main thread: nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def first(signum: int, _frame: object) -> None:
+        for number in STOP_SIGNALS:
+            signal.signal(number, signal.SIG_IGN)
+        raise _Stopped(signum)
+
+    previous = {number: signal.signal(number, first) for number in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+
+
+def stopped_code(exc: KeyboardInterrupt) -> int:
+    """The exit code of a command stopped by `exc`: 128 + its signal (130 after a
+    Ctrl-C, 143 after a SIGTERM, 129 after a SIGHUP)."""
+    return 128 + int(getattr(exc, "signum", signal.SIGINT))
+
+
+def stopped_line(exc: KeyboardInterrupt) -> str:
+    """What a stopped command says: by which signal."""
+    return f"stopped by {signal.Signals(stopped_code(exc) - 128).name}"
 
 
 def seed_line(run: simulate.SimulatedRun, plan: Plan) -> dict[str, Any]:
@@ -168,6 +260,7 @@ def summary_rows(runs: list[simulate.SimulatedRun]) -> list[str]:
         str(verdicts.count("held")),
         str(verdicts.count("violated")),
         str(verdicts.count("unverifiable")),
+        str(verdicts.count("crashed")),
         median([r.events for r in runs]),
         median([r.faults for r in runs]),
         median([r.calls_ok for r in runs]),
@@ -304,15 +397,18 @@ def summary(display: Any, runs: list[simulate.SimulatedRun], out: Path) -> None:
             display.say(f"{header:>14}  {cell}")
     violated = [r.seed for r in runs if r.verdict == "violated"]
     unverifiable = [r.seed for r in runs if r.verdict == "unverifiable"]
+    crashed = [r.seed for r in runs if r.verdict == "crashed"]
     display.say(
         f"violated: seeds {', '.join(map(str, violated))}" if violated else "violated: none"
     )
+    if crashed:
+        display.say(f"crashed: seeds {', '.join(map(str, crashed))}")
     if unverifiable:
         display.say(f"unverifiable: seeds {', '.join(map(str, unverifiable))}")
-    if violated or unverifiable:
-        seed = (violated or unverifiable)[0]
+    if violated or crashed or unverifiable:
+        seed = (violated or crashed or unverifiable)[0]
         display.say(f"replay one: rr-actors replay {out} --seed {seed}")
-    kept = len(violated) + len(unverifiable)
+    kept = len(violated) + len(crashed) + len(unverifiable)
     histories = [f"{kept} histories (events-seed-S.jsonl)"] if kept else []
     logged = []
     if (out / LOG_FILE).exists():
@@ -359,11 +455,14 @@ def run_replay(args: argparse.Namespace, stream: TextIO) -> int:
     if code is not None:
         return code
     try:
-        with _warnings_off():
+        with stopping_on_signals(), _warnings_off():
             run = simulate.run_seed(plan, args.seed)
     except RrError as exc:
         _error("replay", str(exc))
         return 1
+    except KeyboardInterrupt as exc:
+        _error("replay", stopped_line(exc))
+        return stopped_code(exc)
     if args.events:
         Path(args.events).write_text(run.history, encoding="utf-8")
     if args.story:
@@ -388,18 +487,94 @@ def recorded_plan(run_dir: Path, seed: int) -> tuple[Plan, dict[str, Any]]:
     file's folder, the duration it ran) and the line of `seed` in its `seeds.jsonl`.
 
     Raises:
-        ConfigError: no such file or line, the plan invalid or not simulable.
+        ConfigError: no such file or line; a file that is not a regular file, is bigger
+            than its limit (`PLAN_LIMIT`, `LINE_LIMIT` a line) or not UTF-8; a line that
+            is not a seed's (each message names the file, and the line); the plan
+            invalid or not simulable (`PlanError` naming `RUN/plan.toml`).
     """
     recorded = _recorded(run_dir, seed)
+    path = run_dir / "plan.toml"
+    text = read_plan_text(path)
+    original = recorded["plan"] or None  # (its setups' folder: the sweep's imports')
+    base_dir = None if original is None else os.path.dirname(os.path.abspath(original))
+    plan = parse_plan(text, source=str(path), name=Path(original or path).stem, base_dir=base_dir)
     try:
-        text = (run_dir / "plan.toml").read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"{run_dir}: cannot read plan.toml ({exc.strerror or exc})") from exc
-    source = recorded.get("plan") or str(run_dir / "plan.toml")  # (its setups' folder)
-    plan = parse_plan(text, source=source, name=Path(source).stem)
-    plan = plan.with_changes(duration=recorded["duration"])
+        plan = plan.with_changes(duration=recorded["duration"])
+    except ConfigError as exc:
+        raise ConfigError(f"{run_dir / SEEDS_FILE}: seed {seed}: {exc}") from None
     simulate.check_simulable(plan)
-    return plan, recorded
+    if original is None:
+        return plan, recorded
+    # (from here on the plan is the original file's, as in the sweep: a shrink reads its
+    # candidates with its folder, and names it in the shrunk run's seeds.jsonl)
+    return _read_from(plan, original), recorded
+
+
+def read_plan_text(path: Path) -> str:
+    """The text of a run directory's `plan.toml`, read within `PLAN_LIMIT` bytes.
+
+    Raises:
+        ConfigError: it cannot be opened, is not a regular file (a device, a pipe: a
+            link to `/dev/zero` is refused, not read), is bigger than `PLAN_LIMIT`
+            bytes, or is not UTF-8.
+    """
+    with _open_regular(path) as file:
+        data = file.read(PLAN_LIMIT + 1)
+    if len(data) > PLAN_LIMIT:
+        raise ConfigError(f"{path}: bigger than {PLAN_LIMIT} bytes: not a plan")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: is not UTF-8 text ({exc.reason})") from None
+
+
+def _read_from(plan: Plan, source: str) -> Plan:
+    """`plan` (and each of its variants) as read from `source`."""
+    variants = tuple((v, dataclasses.replace(p, source=source)) for v, p in plan.variants)
+    return dataclasses.replace(plan, source=source, variants=variants)
+
+
+@contextlib.contextmanager
+def _open_regular(path: Path) -> Iterator[BinaryIO]:
+    """`path` opened for reading in binary, if it is a regular file (a link is followed).
+
+    It is opened without blocking (a FIFO would block the open) and checked on the open
+    descriptor (not a name that could change between a check and the open).
+
+    Raises:
+        ConfigError: it cannot be opened or is not a regular file.
+    """
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOCTTY | os.O_CLOEXEC)
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    try:
+        mode = os.fstat(fd).st_mode
+    except OSError as exc:
+        os.close(fd)
+        raise ConfigError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    if not stat.S_ISREG(mode):
+        os.close(fd)
+        raise ConfigError(f"{path}: not a regular file ({_file_kind(mode)}): refused")
+    with os.fdopen(fd, "rb") as file:
+        try:
+            yield file
+        except OSError as exc:
+            raise ConfigError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+
+
+def _file_kind(mode: int) -> str:
+    """What a file that is not a regular one is, in words."""
+    for test, kind in (
+        (stat.S_ISDIR, "a directory"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+        (stat.S_ISFIFO, "a pipe"),
+        (stat.S_ISSOCK, "a socket"),
+    ):
+        if test(mode):
+            return kind
+    return "not a file"
 
 
 def shrink_arguments(parser: argparse.ArgumentParser) -> None:
@@ -436,7 +611,7 @@ def run_shrink(args: argparse.Namespace, stream: TextIO) -> int:
         return 2
     try:
         plan, _ = recorded_plan(run_dir, args.seed)
-        text = (run_dir / "plan.toml").read_text(encoding="utf-8")  # (read: recorded_plan)
+        text = read_plan_text(run_dir / "plan.toml")  # (read and checked: recorded_plan)
     except ConfigError as exc:
         _error("shrink", str(exc))
         return 2
@@ -446,16 +621,23 @@ def run_shrink(args: argparse.Namespace, stream: TextIO) -> int:
     if code is not None:
         return code
     try:
-        shrink_seed(
-            plan, args.seed, out, _Say(stream), budget=args.budget, tries=args.tries, text=text
-        )
-    except ConfigError as exc:
-        _error("shrink", str(exc))
-        return 2
-    except RrError as exc:
-        _error("shrink", str(exc))
-        return 1
+        with stopping_on_signals():
+            shrink_seed(
+                plan, args.seed, out, _Say(stream), budget=args.budget, tries=args.tries, text=text
+            )
+    except (RrError, KeyboardInterrupt) as exc:
+        return _failed("shrink", exc)
     return 0
+
+
+def _failed(command: str, exc: RrError | KeyboardInterrupt) -> int:
+    """Say why `command` ended early; its exit code: 2 bad input (`ConfigError`), 1 a
+    run failed, 128 + the signal that stopped it (`stopped_code`)."""
+    if isinstance(exc, KeyboardInterrupt):
+        _error(command, stopped_line(exc))
+        return stopped_code(exc)
+    _error(command, str(exc))
+    return 2 if isinstance(exc, ConfigError) else 1
 
 
 class _Say(contextlib.nullcontext["_Say"]):
@@ -545,31 +727,100 @@ def shrink_violations(
 def _only_seed(run_dir: Path) -> int:
     """The seed of a run directory that recorded one (`ConfigError` if it has more)."""
     path = run_dir / SEEDS_FILE
-    try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except OSError as exc:
-        raise ConfigError(
-            f"{run_dir}: no {SEEDS_FILE} (not an `experiment --simulate` output)"
-        ) from exc
-    seeds = [json.loads(line).get("seed") for line in lines if line.strip()]
-    if len(seeds) != 1 or not isinstance(seeds[0], int):
+    seeds = [line["seed"] for _, line in _seed_lines(run_dir)]
+    if len(seeds) != 1:
         raise ConfigError(f"{path}: {len(seeds)} seeds recorded: give --seed S")
-    return seeds[0]
+    return int(seeds[0])
 
 
 def _recorded(run_dir: Path, seed: int) -> dict[str, Any]:
     """The line of `seed` in `RUN/seeds.jsonl`.
 
     Raises:
-        ConfigError: no such file, or no line of that seed.
+        ConfigError: no such file, a line that is not a seed's (`_seed_lines`), or no
+            line of that seed.
+    """
+    for number, line in _seed_lines(run_dir):
+        if line["seed"] == seed:
+            _check_fields(line, f"{run_dir / SEEDS_FILE}:{number}")
+            return line
+    raise ConfigError(f"{run_dir / SEEDS_FILE}: seed {seed} was not run")
+
+
+_FIELDS: tuple[tuple[str, tuple[type, ...], str], ...] = (
+    ("seed", (int,), "a whole number"),
+    ("hash", (str,), "a string"),
+    ("duration", (int, float), "a number of seconds"),
+    ("plan", (str, type(None)), "a file name or null"),
+)
+"""What `replay` reads of a line of `seeds.jsonl`: each field, its types, in words."""
+
+
+def _seed_lines(run_dir: Path) -> Iterator[tuple[int, dict[str, Any]]]:
+    """Each line of `RUN/seeds.jsonl` with its number (1-based), read one at a time,
+    each within `LINE_LIMIT` bytes; blank lines skipped.
+
+    Raises:
+        ConfigError: no such file, or it is not a regular file; a line too long, not
+            UTF-8, not JSON (cut short, nested too deeply, a number too long to read),
+            not an object, or without a whole-number `seed`; the message names the
+            file and the line.
     """
     path = run_dir / SEEDS_FILE
-    if not path.is_file():
+    if not path.exists():
         raise ConfigError(f"{run_dir}: no {SEEDS_FILE} (not an `experiment --simulate` output)")
-    with path.open(encoding="utf-8") as lines:
-        for text in lines:
-            line = json.loads(text)
-            if line.get("seed") == seed:
-                found: dict[str, Any] = line
-                return found
-    raise ConfigError(f"{path}: seed {seed} was not run")
+    with _open_regular(path) as lines:
+        number = 0
+        while raw := lines.readline(LINE_LIMIT + 1):
+            number += 1
+            if len(raw) > LINE_LIMIT and not raw.endswith(b"\n"):
+                raise ConfigError(f"{path}:{number}: longer than {LINE_LIMIT} bytes")
+            if raw.strip():
+                yield number, _seed_line(raw, f"{path}:{number}")
+
+
+def _seed_line(raw: bytes, where: str) -> dict[str, Any]:
+    """One line of `seeds.jsonl`, read and checked (`_seed_lines`)."""
+    try:
+        line = json.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{where}: not UTF-8 text ({exc.reason})") from None
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"{where}: not a JSON line ({exc.msg}, column {exc.colno})") from None
+    except RecursionError:
+        raise ConfigError(f"{where}: not a seed's line: nested too deeply to read") from None
+    except ValueError:  # (an integer past Python's limit of digits)
+        digits = sys.get_int_max_str_digits()
+        raise ConfigError(f"{where}: not a seed's line: a number of over {digits} digits") from None
+    if not isinstance(line, dict):
+        raise ConfigError(f"{where}: not a seed's line: {_short(line)}")
+    _check_fields(line, where, _FIELDS[:1])
+    return line
+
+
+def _check_fields(
+    line: dict[str, Any],
+    where: str,
+    fields: tuple[tuple[str, tuple[type, ...], str], ...] = _FIELDS,
+) -> None:
+    """Refuse a line without one of `fields` of its type; a line without `plan` gets
+    `None` (the run directory's copy is the plan).
+
+    Raises:
+        ConfigError: the message names the line (`where`) and the field.
+    """
+    for key, types, what in fields:
+        if key not in line and key != "plan":  # (no plan: the run directory's copy's)
+            raise ConfigError(f"{where}: not a seed's line: no {key}")
+        line.setdefault(key, None)
+        value = line[key]
+        if not isinstance(value, types) or isinstance(value, bool):
+            raise ConfigError(f"{where}: {key} must be {what}, got {_short(value)}")
+
+
+def _short(value: object) -> str:
+    """A JSON value in words: a scalar's `repr` (cut to 60 characters), or its type."""
+    if isinstance(value, list | dict):
+        return f"a JSON {'array' if isinstance(value, list) else 'object'}"
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."

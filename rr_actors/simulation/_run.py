@@ -22,12 +22,14 @@ run is left in the process but what it returned.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import gc
 import signal
 import sys
 import threading
+import time
 import traceback
 from collections.abc import Callable
 from typing import Any, Generic, TypeVar
@@ -119,12 +121,16 @@ def run(
         LimitError: past `until` or `max_steps`.
         SimulationError: the run did not end within `timeout` real seconds (the process
             should end: its runtime stays simulated), or a simulation already runs.
-        BaseException: what `fn` raised (with the seed in a note).
+        BaseException: what `fn` raised (with the seed in a note, and the virtual
+            seconds and the step it was raised at as `simulated_at`); or what interrupted
+            the caller's wait (a `KeyboardInterrupt`), once the run, cancelled, ended
+            (within `CANCEL_TIMEOUT` seconds): the caller may then remove what it made.
     """
     if runtime.simulated():
         raise SimulationError("a simulation already runs in this process (one at a time)")
 
     made: list[Scheduler] = []
+    interrupted: list[bool] = []
 
     def make() -> Scheduler:
         made.append(
@@ -138,29 +144,64 @@ def run(
                 trace=trace,
             )
         )
+        if interrupted:  # (the caller was interrupted before it was made)
+            made[0].cancel()
         return made[0]
 
     outcome: list[Any] = []
+    ended = threading.Event()  # (not `join`: an interrupted join marks a running thread ended)
     thread = threading.Thread(
-        target=_simulate, args=(make, fn, outcome), name=f"rr-simulation-{seed}", daemon=True
+        target=_simulate,
+        args=(make, fn, outcome, ended),
+        name=f"rr-simulation-{seed}",
+        daemon=True,
     )
-    thread.start()
-    thread.join(timeout)
-    if thread.is_alive():
+    try:
+        thread.start()  # (its run may be interrupted before `start` returns)
+        ended.wait(timeout)
+    except BaseException:  # a Ctrl-C (or a SIGTERM raised as one): the run ends first
+        interrupted.append(True)
+        if made:
+            made[0].cancel()
+        _wait_ended(thread, ended, CANCEL_TIMEOUT)
+        raise
+    if ended.is_set():
+        thread.join()  # (it only returns now)
+    else:
         frame = sys._current_frames().get(thread.ident or 0)
         stack = "".join(traceback.format_stack(frame)) if frame is not None else ""
         raise SimulationError(
             f"the simulation (seed {seed}) did not end within {timeout:g} real seconds: its "
             f"thread blocks for real (its runtime stays simulated; end the process):\n{stack}"
         )
-    ended = sum(not p.alive for p in made[0].processes) if made else 0
+    gone = sum(not p.alive for p in made[0].processes) if made else 0
     made.clear()  # (the run's last reference: its garbage can go)
-    _collect_the_ended(ended)
+    _collect_the_ended(gone)
     ok, done = outcome
     if not ok:
         raise done
     finished: Run[T] = done
     return finished
+
+
+CANCEL_TIMEOUT = 30.0
+"""Real seconds an interrupted caller of `run` waits for the run to end (it is cancelled:
+`Scheduler.cancel`), its greenlets' `finally` blocks and the runtime's seams put back."""
+
+
+def _wait_ended(thread: threading.Thread, ended: threading.Event, timeout: float) -> None:
+    """Wait up to `timeout` seconds for the run's `thread` to end (`ended`, then its
+    return), through further interrupts (a second Ctrl-C must not leave the run going
+    while its caller removes its folder)."""
+    deadline = time.monotonic() + timeout
+    while not ended.is_set() and (left := deadline - time.monotonic()) > 0:
+        try:
+            ended.wait(left)
+        except BaseException:  # noqa: BLE001, S112 - the first interrupt is raised after
+            continue
+    if ended.is_set():
+        with contextlib.suppress(BaseException):  # (it returns at once: `ended`)
+            thread.join(max(0.0, deadline - time.monotonic()))
 
 
 COLLECT_AFTER = 64
@@ -181,10 +222,24 @@ def _collect_the_ended(ended: int) -> None:
         gc.collect()
 
 
-def _simulate(make: Callable[[], Scheduler], fn: Callable[[], Any], outcome: list[Any]) -> None:
+def _simulate(
+    make: Callable[[], Scheduler],
+    fn: Callable[[], Any],
+    outcome: list[Any],
+    ended: threading.Event,
+) -> None:
     """The run's OS thread: the seams and states in, the scheduler, then back out.
     `outcome` gets `(True, the Run)` or `(False, what to raise)`, made before the tasks
-    left are dropped (`Scheduler.drop`: nothing they do then is part of the run)."""
+    left are dropped (`Scheduler.drop`: nothing they do then is part of the run); `ended`
+    is set once all of that is done."""
+    try:
+        _simulate_in(make, fn, outcome)
+    finally:
+        ended.set()
+
+
+def _simulate_in(make: Callable[[], Scheduler], fn: Callable[[], Any], outcome: list[Any]) -> None:
+    """`_simulate`'s work."""
     global _scheduler  # (the run in progress: `note`, `now`, `sleep`)
     result: list[Any] = []
     sched = make()
@@ -193,6 +248,7 @@ def _simulate(make: Callable[[], Scheduler], fn: Callable[[], Any], outcome: lis
         try:
             value = fn()
         except BaseException as exc:  # noqa: BLE001 - raised in the caller's thread
+            _mark(exc, sched)
             result.append((False, exc))
         else:
             result.append((True, value))
@@ -214,9 +270,19 @@ def _simulate(make: Callable[[], Scheduler], fn: Callable[[], Any], outcome: lis
         runtime.use(None)
 
 
+def _mark(exc: BaseException, sched: Scheduler) -> None:
+    """Give `exc` the point of the run it was raised at, `(virtual seconds, steps)`, as
+    `exc.simulated_at` (unless it has one, or takes no attributes)."""
+    if not hasattr(exc, "simulated_at"):
+        with contextlib.suppress(AttributeError, TypeError):
+            exc.simulated_at = (sched.now, sched.steps)  # type: ignore[attr-defined]
+
+
 def _finished(sched: Scheduler, ok: bool, value: Any) -> tuple[bool, Any]:
-    """`(True, the Run)`, or `(False, what to raise)` with the seed in a note."""
+    """`(True, the Run)`, or `(False, what to raise)` with the seed in a note (and the
+    point it was raised at: `_mark`)."""
     if not ok:
+        _mark(value, sched)
         if not isinstance(value, SimulationError):
             value.add_note(
                 f"in the simulation of seed {sched.seed}, at virtual time {sched.now:g} s "

@@ -224,6 +224,7 @@ class Scheduler:
         self.processes: list[Process] = []  # the first: the run's main process (`root`)
         self.loops: list[Any] = []  # asyncio loops made (`_loop.py`): each task has its own
         self._in_locals: Task | None = None  # whose contents the `runtime.local()`s hold
+        self._cancelled = False  # (set from another OS thread: `cancel`)
 
     # -- tasks -----------------------------------------------------------------------
 
@@ -407,6 +408,14 @@ class Scheduler:
             if not self.steps % GC_STEPS:
                 self._hashed()  # (the steps' buffer kept small)
                 _collect(self.steps)
+                if self._cancelled:  # (here: a step's check would cost every step)
+                    raise SimulationError(self.report("the run was cancelled"))
+
+    def cancel(self) -> None:
+        """End the run within `GC_STEPS` steps with `SimulationError`, from any thread
+        (its caller was interrupted: a Ctrl-C, a SIGTERM; its folders can go once it
+        ended)."""
+        self._cancelled = True
 
     def _install_locals(self, task: Task) -> None:
         """Put `task`'s contents of the `runtime.local()` namespaces in; those in now are

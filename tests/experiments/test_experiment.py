@@ -617,6 +617,39 @@ def test_a_plan_names_managers_and_factories_in_a_module_next_to_it(tmp_path: Pa
     assert 0 == result.calls_failed
 
 
+ASYNC_MANAGERS = """\
+import asyncio
+
+
+def async_setup(registrar):
+    async def load(request):
+        await asyncio.sleep(0.001)
+        return f"hello {request}"
+
+    async def unload(request, response):
+        await asyncio.sleep(0)
+
+    registrar.register_server("hello", load=load, unload=unload)
+"""
+
+
+def test_a_setup_whose_load_is_a_coroutine_serves_every_call_of_a_real_run(
+    tmp_path: Path,
+) -> None:
+    (tmp_path / "async_managers.py").write_text(ASYNC_MANAGERS)  # (a module of its own)
+    plan = tmp_path / "plan.toml"
+    plan.write_text(
+        OWN_PLAN.replace("bench_managers:SETUP", "async_managers:async_setup")
+        .replace("OPTIONS", "")
+        .replace('factory = "bench_managers:request"\n', "")
+    )
+
+    (result,) = run(plan).runs
+
+    assert result.calls_ok > 0
+    assert 0 == result.calls_failed  # (each was "load returned an awaitable")
+
+
 def test_a_manager_that_cannot_start_fails_the_experiment_with_its_error(
     tmp_path: Path,
 ) -> None:

@@ -551,6 +551,13 @@ class TestNestedTooDeep:
         assert not (tmp_path / "out").exists()
 
 
+def test_an_integer_too_long_to_read_is_a_plan_error_naming_the_file() -> None:
+    with pytest.raises(
+        PlanError, match=r"^long\.toml: is not a plan: a number of over 4300 digits$"
+    ):
+        parse_plan("duration = " + "9" * 5000 + "\n", source="long.toml")
+
+
 RULES_BASE = """\
 name = "t"
 description = '''

@@ -6,12 +6,14 @@ aim); the shipped plans on it; what is not simulated is a `PlanError` naming it.
 
 from __future__ import annotations
 
+import asyncio
+import errno
 import json
 import logging
 import os
 import subprocess
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -227,6 +229,44 @@ def test_the_same_seed_gives_the_same_history_whatever_order_a_set_of_callbacks_
 
 
 @SWEEP
+def fail_a_write(monkeypatch: pytest.MonkeyPatch, number: int) -> Callable[[], None]:
+    """Make the `number`th catalog write of each run fail (EIO): a `CatalogWriteError`,
+    whose message names the backup's path. Returns what starts a run's count again."""
+    from rr_actors._store import files  # noqa: PLC0415
+    from rr_actors._store.sqlite import SqliteStore  # noqa: PLC0415
+
+    write = SqliteStore.write
+    count = [0]
+
+    def failing(self: SqliteStore, changes: Any, told: Any = ()) -> None:
+        count[0] += 1
+        if count[0] == number:
+            raise files.write_error(self.path, OSError(errno.EIO, "Input/output error"))
+        write(self, changes, told)
+
+    monkeypatch.setattr(SqliteStore, "write", failing)
+    return lambda: count.__setitem__(0, 0)
+
+
+@SWEEP
+def test_a_seed_that_meets_a_failed_write_gives_one_history_whatever_its_run_folder(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.delenv("TMPDIR", raising=False)  # (it would choose the folder's parent)
+    again = fail_a_write(monkeypatch, 20)
+    plan = parse_plan(BASE)
+    runs = []
+    for folder in ("a", "a-longer-name"):  # (each run's random folder made in another)
+        (tmp_path / folder).mkdir()
+        monkeypatch.setattr(simulate, "RAM_DIR", str(tmp_path / folder))
+        again()
+        runs.append(simulate.run_seed(plan, 1))
+
+    assert runs[0].hash == runs[1].hash
+    assert "catalog backup '<run>/state/" in runs[0].history  # (a .db of the run's)
+    assert str(tmp_path) not in runs[0].history + "".join(runs[0].findings + runs[0].errors)
+
+
 def test_a_seed_gives_the_same_history_alone_and_after_other_seeds_in_the_process() -> None:
     from rr_actors.experiments import load_plan  # noqa: PLC0415
 
@@ -366,6 +406,44 @@ def test_a_load_error_fails_the_loads_for_its_time_then_they_load_again() -> Non
         t0 = run_t0(run)
         late = [e for e in lines(run, "ResourceLoaded") if e["registrar"] == "db"]
         assert any(e["at"] - t0 > 1.5 for e in late)  # (loads again after it)
+
+
+def async_service(registrar: Any, *, load_s: float = 0.0) -> None:
+    """A service whose `load` and `unload` are coroutine functions (`async def`)."""
+
+    async def load(request: Any) -> dict[str, Any]:
+        await asyncio.sleep(load_s)  # (virtual time on the simulation's loop)
+        return {"server": f"{registrar.name}/resource", "request": request}
+
+    async def unload(_request: Any, _response: Any) -> None:
+        await asyncio.sleep(0)
+
+    registrar.register_server("resource", load=load, unload=unload)
+
+
+ASYNC_DB = BASE.replace(
+    f'name = "db"\nsetup = "{SERVICE}"', f'name = "db"\nsetup = "{__name__}:async_service"'
+)
+"""db's load and unload are coroutines; api loads from it."""
+
+
+@SWEEP
+def test_a_setup_whose_load_is_a_coroutine_loads_and_its_load_error_fault_fails_it() -> None:
+    plan = with_faults('kind = "load_error"\ntarget = "db"\nat = 1.0\nfor = 0.5', base=ASYNC_DB)
+
+    runs = simulate.simulate(plan, range(1, 3))
+
+    held(runs)
+    for run in runs:
+        t0 = run_t0(run)
+        failed = [e for e in lines(run, "LoadFailed") if e["registrar"] == "db"]
+        assert failed  # (the fault's: the switch still guards a coroutine load)
+        assert {"InjectedLoadError"} == {e["error_type"] for e in failed}, failed
+        assert all(1.0 <= e["at"] - t0 <= 1.5 for e in failed)
+        loaded = [e["at"] - t0 for e in lines(run, "ResourceLoaded") if e["registrar"] == "db"]
+        assert any(at < 1.0 for at in loaded)
+        assert any(at > 1.5 for at in loaded)
+        assert run.calls_ok > 0
 
 
 @SWEEP

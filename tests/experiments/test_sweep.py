@@ -4,8 +4,16 @@ and their histories kept, a replay that gives the same hash (exit 1 if not)."""
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
+import os
+import re
+import select
+import signal
+import subprocess
+import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -223,6 +231,269 @@ def test_a_replay_of_a_seed_not_run_exits_2(
 
     assert 2 == main(["replay", str(tmp_path), "--seed", "9"], io.StringIO())
     assert "seed 9 was not run" in capsys.readouterr().err
+
+
+MARKER = """\
+\"\"\"db's setup, which tells the test through a FIFO that a seed's run began (its
+folder exists), then serves as usual.\"\"\"
+
+import contextlib
+import os
+
+from rr_actors.experiments.services import service
+
+
+def setup(registrar, *, fifo):
+    with contextlib.suppress(OSError):  # (the pipe full, or the test gone: serve anyway)
+        fd = os.open(fifo, os.O_WRONLY | os.O_NONBLOCK)
+        try:
+            os.write(fd, b"running\\n")
+        finally:
+            os.close(fd)
+    service(registrar)
+"""
+
+
+def marked_plan(folder: Path, fifo: Path) -> Path:
+    """`PLAN` whose db's setup writes a line into `fifo` at each of its starts."""
+    (folder / "sweep_marker.py").write_text(MARKER)
+    plan = folder / "plan.toml"
+    plan.write_text(
+        PLAN.replace(
+            'name = "db"\nsetup = "rr_actors.experiments.services:service"',
+            f'name = "db"\nsetup = "sweep_marker:setup"\noptions = {{ fifo = "{fifo}" }}',
+        )
+    )
+    return plan
+
+
+@pytest.mark.timeout(240)
+@pytest.mark.parametrize(
+    ("signum", "hash_seed"),
+    [(signal.SIGTERM, "0"), (signal.SIGTERM, None), (signal.SIGINT, "0")],
+    ids=["SIGTERM", "SIGTERM to the parent of PYTHONHASHSEED's child", "SIGINT"],
+)
+def test_a_sweep_stopped_by_a_signal_removes_its_run_folder_and_exits_128_plus_it(
+    tmp_path: Path, signum: int, hash_seed: str | None
+) -> None:
+    scratch, fifo = tmp_path / "tmp", tmp_path / "started"
+    scratch.mkdir()
+    os.mkfifo(fifo)
+    reader = os.open(fifo, os.O_RDONLY | os.O_NONBLOCK)  # (before the setup's open)
+    plan = marked_plan(tmp_path, fifo)
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONHASHSEED"}
+    env |= {"TMPDIR": str(scratch)} | ({"PYTHONHASHSEED": hash_seed} if hash_seed else {})
+    command = ["experiment", str(plan), "--simulate", "--seeds", "1-100000"]
+    sweep_process = subprocess.Popen(
+        [sys.executable, "-m", "rr_actors", *command, "--out", str(tmp_path / "out")],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # (its group: killed whole if the test fails)
+    )
+    try:
+        ready, _, _ = select.select([reader], [], [], 120)  # (a seed's run began)
+        assert ready, "no seed began within 120 s"
+        assert [p.name for p in scratch.iterdir() if p.name.startswith("rr-sim-run-")]
+
+        sweep_process.send_signal(signum)
+        _, err = sweep_process.communicate(timeout=120)
+    finally:
+        os.close(reader)
+        with contextlib.suppress(ProcessLookupError):  # (a child left: the test failed)
+            os.killpg(sweep_process.pid, signal.SIGKILL)
+        sweep_process.wait()
+
+    assert 128 + signum == sweep_process.returncode, err
+    assert [] == [p.name for p in scratch.iterdir() if p.name.startswith("rr-sim-run-")]
+    assert f"stopped by {signal.Signals(signum).name}" in err
+    assert "Traceback" not in err
+
+
+def plant_a_crash(monkeypatch: pytest.MonkeyPatch) -> None:
+    """An exception inside every seed's run, once its workload ended: where the runner
+    counts what the catalogs still hold (the system's code, in the run)."""
+
+    def crashing(*_args: object) -> None:
+        raise AssertionError("catalog: a consumer id held twice")
+
+    monkeypatch.setattr(simulate, "count_entries", crashing)
+    monkeypatch.setenv("PYTHONHASHSEED", sweep.HASH_SEED)  # (no child: the plant is here)
+
+
+@SWEEP
+def test_a_seed_whose_system_raises_is_crashed_the_sweep_goes_on_and_replay_and_shrink_take_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    plant_a_crash(monkeypatch)
+    plan, out = tmp_path / "plan.toml", tmp_path / "out"
+    plan.write_text(PLAN)
+
+    code, printed = command(
+        "experiment", str(plan), "--simulate", "--seeds", "1-2", "--out", str(out)
+    )
+
+    assert 0 == code, printed  # (a result, not a failure of the tool)
+    seeds = recorded(out)
+    assert ["crashed", "crashed"] == [seeds[s]["verdict"] for s in (1, 2)]
+    [finding] = seeds[2]["findings"]
+    assert re.fullmatch(
+        r"  crashed: AssertionError: catalog: a consumer id held twice "
+        r"\(at [0-9.]+ virtual s, step [0-9]+\)",
+        str(finding),
+    )
+    assert "crashed: seeds 1, 2" in printed
+    crash = json.loads((out / "events-seed-2.jsonl").read_text().splitlines()[-1])
+    assert ("Crashed", "AssertionError", 2) == (crash["type"], crash["error_type"], crash["seed"])
+    assert crash["virtual_s"] > 3.0  # (after the run's 3 s: the count comes at the end)
+
+    code, printed = command("replay", str(out), "--seed", "2", "--story")
+    assert 0 == code, printed
+    assert f"seed 2: crashed, hash {seeds[2]['hash']}" in printed
+    assert re.search(r"crashed +AssertionError: catalog: a consumer id held twice \(step ", printed)
+    assert "the same history" in printed
+
+    shrunk = tmp_path / "shrunk"
+    code, printed = command(
+        "shrink", str(out), "--seed", "2", "--out", str(shrunk), "--budget", "20"
+    )
+    assert 0 == code, printed
+    assert "[crashed] AssertionError: catalog: a consumer id held twice" in printed
+    code, printed = command("replay", str(shrunk))
+    assert 0 == code, printed
+    assert ": crashed, hash" in printed
+
+
+LINE = {"seed": 1, "hash": "0" * 64, "duration": 3.0, "plan": None}
+"""A seed's line of `seeds.jsonl`, as far as a replay reads it."""
+
+HOSTILE_SEEDS = {
+    "cut short": (b'{"seed": 1, "hash": "ab', ":1: not a JSON line (Unterminated string"),
+    "not UTF-8": (b"\xff\xfe\n", ":1: not UTF-8 text (invalid start byte)"),
+    "nested too deeply": (
+        b"[" * 100_000 + b"]" * 100_000 + b"\n",
+        ":1: not a seed's line: nested too deeply to read",
+    ),
+    "a huge integer": (
+        b'{"seed": ' + b"9" * 5000 + b"}\n",
+        ":1: not a seed's line: a number of over 4300 digits",
+    ),
+    "not an object": (b"\n[1]\n", ":2: not a seed's line: a JSON array"),
+    "no hash": (b'{"seed": 1}\n', ":1: not a seed's line: no hash"),
+    "a seed not a number": (
+        json.dumps({**LINE, "seed": "1"}).encode(),
+        ":1: seed must be a whole number, got '1'",
+    ),
+    "a duration not a number": (
+        json.dumps({**LINE, "duration": [3]}).encode(),
+        ":1: duration must be a number of seconds, got a JSON array",
+    ),
+}
+TOO_LONG = b" " * 200 + b"\n"
+"""A line longer than the test's `LINE_LIMIT` of 100 bytes."""
+HOSTILE_SEEDS["a line too long"] = (TOO_LONG, ":1: longer than 100 bytes")
+
+
+@pytest.mark.timeout(60)  # (before: each a traceback; the too long line was read whole)
+@pytest.mark.parametrize(("data", "message"), HOSTILE_SEEDS.values(), ids=HOSTILE_SEEDS.keys())
+def test_a_hostile_seeds_file_is_one_error_line_naming_it_and_its_line_and_exit_2(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    data: bytes,
+    message: str,
+) -> None:
+    if data == TOO_LONG:
+        monkeypatch.setattr(sweep, "LINE_LIMIT", 100)
+    (tmp_path / "plan.toml").write_text(PLAN)
+    (tmp_path / sweep.SEEDS_FILE).write_bytes(data)
+
+    for argv in (["--seed", "1"], []):  # (a given seed, and the only one)
+        assert 2 == main(["replay", str(tmp_path), *argv], io.StringIO())
+
+        err = capsys.readouterr().err
+        assert err.startswith(f"rr-actors replay: {tmp_path / sweep.SEEDS_FILE}{message}"), err
+        assert 1 == err.count("\n")  # (one line: no traceback)
+
+
+def fifo(path: Path) -> None:
+    os.mkfifo(path)  # (opening it for reading would wait for a writer)
+
+
+def dev_zero(path: Path) -> None:
+    path.symlink_to("/dev/zero")  # (endless: read whole, gigabytes)
+
+
+NOT_REGULAR = {
+    "a link to /dev/zero": (dev_zero, "a character device"),
+    "a pipe": (fifo, "a pipe"),
+    "a directory": (Path.mkdir, "a directory"),
+}
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("name", ["plan.toml", sweep.SEEDS_FILE])
+@pytest.mark.parametrize(("make", "kind"), NOT_REGULAR.values(), ids=NOT_REGULAR.keys())
+def test_a_run_file_that_is_not_a_regular_file_is_refused_unread_naming_it(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    name: str,
+    make: Callable[[Path], None],
+    kind: str,
+) -> None:
+    (tmp_path / "plan.toml").write_text(PLAN)
+    (tmp_path / sweep.SEEDS_FILE).write_text(json.dumps(LINE) + "\n")
+    (tmp_path / name).unlink()
+    make(tmp_path / name)
+
+    for command in ("replay", "shrink"):
+        assert 2 == main([command, str(tmp_path), "--seed", "1"], io.StringIO())
+
+        err = capsys.readouterr().err
+        assert (
+            f"rr-actors {command}: {tmp_path / name}: not a regular file ({kind}): refused\n" == err
+        )
+
+
+@pytest.mark.timeout(60)
+def test_a_plan_file_bigger_than_its_limit_is_refused_naming_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "plan.toml").write_text("#" * sweep.PLAN_LIMIT + "\n" + PLAN)
+    (tmp_path / sweep.SEEDS_FILE).write_text(json.dumps(LINE) + "\n")
+
+    assert 2 == main(["replay", str(tmp_path), "--seed", "1"], io.StringIO())
+
+    plan = tmp_path / "plan.toml"
+    assert f"rr-actors replay: {plan}: bigger than {sweep.PLAN_LIMIT} bytes: not a plan\n" == (
+        capsys.readouterr().err
+    )
+
+
+@pytest.mark.parametrize(
+    ("text", "problem"),
+    [
+        ("duration = [[[\n", "is not valid TOML"),
+        ("\xff", "is not UTF-8 text"),
+        ("duration = " + "9" * 5000 + "\n", "is not a plan: a number of over 4300 digits"),
+    ],
+    ids=["not TOML", "not UTF-8", "a huge integer"],
+)
+def test_a_bad_plan_copy_is_reported_under_its_own_path_not_the_original_plans(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], text: str, problem: str
+) -> None:
+    original = "/somewhere/else/simkill.toml"
+    plan = tmp_path / "plan.toml"
+    plan.write_bytes(text.encode("utf-8", "surrogateescape") if text != "\xff" else b"\xff")
+    (tmp_path / sweep.SEEDS_FILE).write_text(json.dumps({**LINE, "plan": original}) + "\n")
+
+    assert 2 == main(["replay", str(tmp_path), "--seed", "1"], io.StringIO())
+
+    err = capsys.readouterr().err
+    assert err.startswith(f"rr-actors replay: {plan}: {problem}"), err
+    assert original not in err
+    assert 1 == err.count("\n")
 
 
 @pytest.mark.parametrize(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextvars
 import gc
+import signal
 import threading
 import time
 import weakref
@@ -410,6 +411,43 @@ def test_a_run_that_timers_keep_alive_past_its_limit_raises_a_limit_error() -> N
 
     with pytest.raises(simulation.LimitError, match="past its limit"):
         simulation.run(main, seed=1, until=60.0)
+
+
+class _Interrupted(KeyboardInterrupt):
+    """What the test's SIGINT handler raises (pytest's own Ctrl-C left alone)."""
+
+
+def test_an_interrupted_caller_gets_its_interrupt_once_the_run_was_cancelled_and_ended() -> None:
+    began, cleaned = threading.Event(), []
+
+    def main() -> None:
+        began.set()  # (a real event: the test's thread waits on it)
+        try:
+            while True:  # (for ever, in virtual time)
+                runtime.sleep(0.001)  # allowed: virtual time
+        finally:
+            cleaned.append(runtime.simulated())  # (as the run is dropped: still simulated)
+
+    def interrupt() -> None:
+        assert began.wait(60)
+        signal.pthread_kill(threading.main_thread().ident or 0, signal.SIGINT)
+
+    def raise_interrupted(_signum: int, _frame: object) -> None:
+        raise _Interrupted
+
+    previous = signal.signal(signal.SIGINT, raise_interrupted)
+    sender = threading.Thread(target=interrupt)
+    try:
+        sender.start()
+        with pytest.raises(_Interrupted):
+            simulation.run(main, seed=1, until=1e9, max_steps=10**12)
+    finally:
+        sender.join(60)
+        signal.signal(signal.SIGINT, previous)
+
+    assert [True] == cleaned  # (its finally ran before the interrupt reached the caller)
+    assert not runtime.simulated()  # (the real seams back)
+    assert not [t for t in threading.enumerate() if t.name.startswith("rr-simulation-")]
 
 
 def test_what_the_main_task_raises_is_raised_with_the_seed() -> None:
