@@ -32,6 +32,7 @@ SHIPPED = {
     "simchain",
     "simretry",
     "simheal",
+    "simdoubt",
 }
 """Every plan shipped in the package; the tutorial's `first` runs in the docs test."""
 

@@ -703,7 +703,7 @@ def test_a_kind_only_a_simulation_aims_is_validated_as_the_others(
 PLANS = ROOT / "rr_actors" / "experiments" / "plans"
 
 
-SIMULATED = ["first", "crashloop", "hang", "simchain", "simretry", "simheal"]
+SIMULATED = ["first", "crashloop", "hang", "simchain", "simretry", "simheal", "simdoubt"]
 """The shipped plans run over two seeds here (killheavy below, for 2 s)."""
 
 REFUSED = ["resource", "strategies", "leases"]
