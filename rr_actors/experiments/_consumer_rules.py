@@ -230,10 +230,10 @@ def left(
     event a later stop, or no stop: killed, or still running) holds it; a client row is
     left unless it is a dependency of a resource that is not. A resource kept as
     `unloading` is not left (the stop cut its unload short: the next start finishes it,
-    in doubt). Not judged: a stop that is
-    not its registrar's last event, one that lists no rows (`complete` false), a second
-    server's, and a stop after a supervisor gave up in that registrar's last life (a
-    give-up stops its children with their consumers' rows, which nobody can release).
+    in doubt). Not judged: a stop that is not its registrar's last event, one that lists
+    no rows (`complete` false), a second server's, and a stop after a supervisor gave up
+    in that registrar's last life (a give-up stops its children with their consumers'
+    rows, which nobody can release).
     """
     gave_up = [line for line, e in history if isinstance(e, events.SupervisorGaveUp)]
     last_line: dict[str, int] = {}
