@@ -154,6 +154,28 @@ PLANTS = (
         "simheal",
         "one-name",
     ),
+    Plant(
+        "rows-left",
+        "rows left after every manager reconciled: a Reconcile finds the ids its consumer "
+        "gave back while this registrar was down but releases none of them, so their "
+        "resources stay (issue 51, `catalog_entries_left`; `end` sees the ids too)",
+        "_registrar/provider.py",
+        "            if catalog.has_consumer(query_id):  # (still: a release above may have "
+        "cascaded)\n",
+        "            if False:  # PLANTED: catalog.has_consumer(query_id)\n",
+        "simchain",
+        "left",
+    ),
+    Plant(
+        "intensity",
+        "a supervisor that gives up one restart early: at `max_restarts` restarts within "
+        "`period`, not past them (OTP's intensity, issue 51)",
+        "_supervision/restarting.py",
+        "        return len(self._times) <= self.max_restarts\n",
+        "        return len(self._times) < self.max_restarts  # PLANTED: one restart early\n",
+        "crashloop",
+        "intensity",
+    ),
 )
 """The planted bugs, one at a time (docs/performance.md lists them)."""
 

@@ -88,7 +88,7 @@ def _row(event: events.Event) -> str:
 def _event(row: Any) -> events.Event:
     """The event of a row `_row` wrote; `ConfigError` (through `from_dict`) or
     `ValueError` if it is not one of this version."""
-    if not isinstance(row, list) or len(row) < 2 or row[0] != SCHEMA:
+    if not isinstance(row, list) or len(row) < 2 or row[0] not in _ROWS_READ:
         raise ValueError("not a row of this version")
     kind = _KINDS.get(row[1]) if isinstance(row[1], str) else None
     if kind is None:
@@ -99,6 +99,10 @@ def _event(row: Any) -> events.Event:
     return events.from_dict(
         {"type": row[1], "schema": SCHEMA, **dict(zip(names, row[2:], strict=True))}
     )
+
+
+_ROWS_READ = (3, SCHEMA)
+"""The event schemas of the rows read back (4 changed no event a registrar writes here)."""
 
 
 _VERSION = 7

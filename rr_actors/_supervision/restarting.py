@@ -90,7 +90,7 @@ class Exits:
         pid = pid_of(child)
         child.running = None
         child.last_exit = event.exit.reason
-        self.stopping.note_exit(child, pid, event.exit.reason)
+        self.stopping.note_exit(child, pid, event.exit.reason, normal=event.exit.normal)
         logger.warning(
             "supervisor %s: child %s exited: %s", record.name, child.name, event.exit.reason
         )

@@ -111,17 +111,36 @@ class Stopping:
         child.running = None
         child.state = "stopped"
         child.last_exit = result.reason
-        self.note_exit(child, pid, result.reason)
+        self.note_exit(child, pid, result.reason, stopped=True)
         if final:
             self.forget(child, dead=not result.clean)
 
-    def note_exit(self, child: Child, pid: int, reason: str) -> None:
-        """Note when `child` went down, and publish `ChildExited`."""
+    def note_exit(
+        self, child: Child, pid: int, reason: str, *, normal: bool = False, stopped: bool = False
+    ) -> None:
+        """Note when `child` went down, and publish `ChildExited`.
+
+        `normal`: it ended normally; `stopped`: this supervisor stopped it (a shutdown,
+        a sibling taken down): no exit the restart intensity counts.
+        """
         tree = self.record.tree
         tree.down_since[child.name] = runtime.monotonic()
         publisher = tree.events.publisher
         if publisher.active:
-            publisher.publish(events.ChildExited(self.record.name, child.name, pid, reason))
+            spec = self.record.spec
+            publisher.publish(
+                events.ChildExited(
+                    self.record.name,
+                    child.name,
+                    pid,
+                    reason,
+                    child.spec.restart,
+                    normal,
+                    stopped,
+                    spec.max_restarts,
+                    spec.period,
+                )
+            )
 
     def forget(self, child: Child, *, dead: bool) -> None:
         """The child will not come back: release what it held (death watch) if it died.

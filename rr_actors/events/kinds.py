@@ -183,6 +183,16 @@ class ChildExited:
         pid: the process of the incarnation that ended (the supervisor's own process for
             a thread manager or a nested supervisor).
         reason: why it ended, for people (the same text as `ChildInfo.last_exit`).
+        restart: the child's restart type (`"permanent"`, `"transient"`, `"temporary"`);
+            `""` in a line of schema 3 or older (not known).
+        normal: whether it ended normally (OTP's `normal`/`shutdown`: a `transient`
+            child that ends so is not restarted).
+        stopped: whether the supervisor stopped it itself (a sibling taken down with a
+            crashed one, a give-up, a shutdown): not an exit its intensity counts.
+        max_restarts: the supervisor's restart intensity: more than this many restarts
+            ...
+        period: ... within this many seconds and it gives up (OTP); with `restart` and
+            `normal`, what a checker needs to judge the supervisor's decision.
         at: when the supervisor saw it, wall clock (`time.time()` seconds).
         host: the member name of the host it happened on (see `set_host`).
         hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
@@ -193,6 +203,11 @@ class ChildExited:
     child: str
     pid: int
     reason: str
+    restart: str = ""
+    normal: bool = False
+    stopped: bool = False
+    max_restarts: int = 0
+    period: float = 0.0
     _: dataclasses.KW_ONLY
     at: float = _now()
     host: str = _this_host()

@@ -37,17 +37,19 @@ __all__ = [
     "to_lines",
 ]
 
-SCHEMA = 3
-"""Version of the dicts `to_dict` writes (the `"schema"` key); `from_dict` reads it, 2 and 1.
+SCHEMA = 4
+"""Version of the dicts `to_dict` writes (the `"schema"` key); `from_dict` reads it, 3, 2 and 1.
 
 Schema 2 added `seq`, request digests and labels, release reasons, in-doubt details and
 the catalog events; a schema 1 line may lack the fields that have defaults (`seq`: 0).
 Schema 3 added `host` (the member name of the host) and `hlc` (the hybrid logical clock
 stamp) to every event; a line of an older schema gets `host` `""` (not known) and the
 stamp of its `at` (`hlc.from_seconds`), so that old lines still sort by wall time.
+Schema 4 added `ChildExited`'s `restart`, `normal`, `max_restarts` and `period` (what a
+supervisor decided from); a line of an older schema gets `restart` `""` (not known).
 """
 
-_READS = (1, 2, SCHEMA)
+_READS = (1, 2, 3, SCHEMA)
 
 
 _TYPES: dict[str, type[Event]] = {cls.__name__: cls for cls in typing.get_args(Event)}

@@ -1,4 +1,4 @@
-"""The consumer's side of a run (rules `answered`, `reported-lost`, `end`).
+"""The consumer's side of a run (rules `answered`, `reported-lost`, `end`, `withdrawn`, `left`).
 
 ```
  steps ──► answered: each consumer's answered calls, life by life, against what its
@@ -9,6 +9,8 @@
        for consumers that stopped
  steps ──► withdrawn: what providers still hold at the end, of calls their consumers
        withdrew (and did not have answered again)
+ steps (+ the give-ups) ──► left: the rows each registrar's last stop lists that no
+       consumer still running holds
 ```
 """
 
@@ -22,7 +24,10 @@ from rr_actors.experiments._history import REPORTED, Facts, Finding, Life, Line,
 from rr_actors.experiments._provider_rules import Holding
 from rr_actors.experiments._status_rules import Span
 
-__all__ = ["WITHDRAWN_BOUND_S", "answered", "end", "reported_lost", "withdrawn"]
+__all__ = ["WITHDRAWN_BOUND_S", "answered", "end", "left", "reported_lost", "withdrawn"]
+
+_SHOWN = 3
+"""Rows of a `left` finding whose first line its window shows (besides the stop's)."""
 
 
 def answered(  # noqa: PLR0912 - one branch per event kind
@@ -289,4 +294,67 @@ def _held_on(
                     )
                 )
                 break
+    return findings
+
+
+def left(
+    steps: Sequence[Step], history: Sequence[Line], lives: dict[tuple[str, int], Life]
+) -> list[Finding]:
+    """`left`: a registrar's last stop (the run's end: every client unloaded, every
+    manager reconciled) lists no row that a consumer still running does not hold.
+
+    A resource row is left unless a consumer that had not stopped before (its last
+    event a later stop, or no stop: killed, or still running) holds it; a client row is
+    left unless it is a dependency of a resource that is not. A resource kept as
+    `unloading` is not left (the stop cut its unload short: the next start finishes it,
+    in doubt). Not judged: a stop that is not its registrar's last event, one that lists
+    no rows (`complete` false), a second server's, and a stop after a supervisor gave up
+    in that registrar's last life (a give-up stops its children with their consumers'
+    rows, which nobody can release).
+    """
+    gave_up = [line for line, e in history if isinstance(e, events.SupervisorGaveUp)]
+    last_line: dict[str, int] = {}
+    stops: dict[str, tuple[int, events.RegistrarStopped, int]] = {}
+    came: dict[tuple[str, str], int] = {}  # (registrar, resource or query id) -> last line
+    for name, line, event, _new, life in steps:
+        last_line[name] = line
+        if isinstance(event, events.RegistrarStopped):
+            stops[name] = (line, event, life)
+        elif isinstance(event, events.ResourceLoaded):
+            came[name, event.resource_id] = line
+        elif isinstance(event, events.CallAnswered):
+            came[name, event.query_id] = line
+        elif isinstance(event, events.CatalogRestored):  # (listed again: the latest shows it)
+            for row in (*event.resources, *event.clients):
+                came[name, row[0]] = line
+    final = {name: line for name, (line, _, _) in stops.items() if last_line[name] == line}
+    findings = []
+    for name, (line, stop, life) in stops.items():
+        begun = lives[name, life].first_line
+        if final.get(name) != line or not stop.complete or "@" in name:
+            continue
+        if any(begun <= at <= line for at in gave_up):
+            continue
+
+        def running(consumer: str, stopped_at: int = line) -> bool:
+            return not final.get(consumer, stopped_at) < stopped_at
+
+        kept = {rid for _qid, rid, consumer, *_ in stop.consumers if running(consumer)}
+        resources = [
+            row[0] for row in stop.resources if row[0] not in kept and row[2] != "unloading"
+        ]
+        clients = [row[0] for row in stop.clients if row[3] not in kept]
+        if not resources and not clients:
+            continue
+        shown = sorted({came[name, i] for i in (*resources, *clients) if (name, i) in came})
+        findings.append(
+            Finding(
+                "left",
+                "violation",
+                f"{name} stopped at the end of the run with {len(resources)} resources and "
+                f"{len(clients)} client records left that no running consumer holds",
+                (*shown[:_SHOWN], line),
+                (name,),
+            )
+        )
     return findings

@@ -1,6 +1,7 @@
 """The provider's side of a run: one pass over each provider registrar's catalog, as its
 events tell it (rules `kept`, `unload-once`, `no-leak`, `one-resource`, `release-match`,
-`in-doubt`, `dedup`, `restore-first`).
+`in-doubt`, `dedup`, `restore-first`); and the order of an unload against its resource's
+dependencies (`unload-order`).
 
 ```
  steps (_history.walk) ──► Providers.run: per registrar a Catalog (held ids, holders per
@@ -11,6 +12,8 @@ events tell it (rules `kept`, `unload-once`, `no-leak`, `one-resource`, `release
                               │   (for `reported-lost`, only the ids it asks about)
                               └─► expected: who a status should reach, where it was sent
                                   or climbed from (for `status-reached`)
+ steps ──► unload_order: each resource's dependencies (CallAnswered.parent, a restore's
+           client rows), forgotten by their registrar before its ResourceUnloaded
 ```
 
 Every lookup is a dict's: a run of a million events is checked in one linear pass.
@@ -27,7 +30,7 @@ from rr_actors import events
 from rr_actors._types import Status
 from rr_actors.experiments._history import Facts, Finding, Step
 
-__all__ = ["Expected", "Holding", "Providers"]
+__all__ = ["Expected", "Holding", "Providers", "unload_order"]
 
 
 @dataclasses.dataclass(slots=True)
@@ -474,3 +477,48 @@ _HANDLERS: dict[type, Callable[[Providers, str, _Catalog, int, Any], None]] = {
 }
 """`Providers.run`'s handler of each event kind (the class's functions: bound methods in
 its instance would be a cycle, which only the garbage collector frees)."""
+
+
+def unload_order(steps: list[Step]) -> list[Finding]:
+    """`unload-order` (rule 7): a resource's `unload` runs after its own dependencies were
+    released: each query its registrar holds for it (a `CallAnswered` with it as
+    `parent`, or a restored client row) is forgotten (`QueryForgotten`) before its
+    `ResourceUnloaded`.
+
+    Lines of one registrar are in the order it published them. A new life holds the
+    dependencies its `CatalogRestored` lists (none without a backup).
+    """
+    findings: list[Finding] = []
+    deps: dict[str, dict[str, dict[str, int]]] = defaultdict(dict)  # name -> rid -> qid -> line
+    parent_of: dict[str, dict[str, str]] = defaultdict(dict)  # name -> qid -> rid
+    for name, line, event, new, _life in steps:
+        if new:
+            deps[name].clear()
+            parent_of[name].clear()
+        if isinstance(event, events.CatalogRestored):
+            for qid, _serving, _server, parent, *_ in event.clients:
+                if parent:
+                    deps[name].setdefault(parent, {})[qid] = line
+                    parent_of[name][qid] = parent
+        elif isinstance(event, events.CallAnswered) and event.parent is not None:
+            deps[name].setdefault(event.parent, {}).setdefault(event.query_id, line)
+            parent_of[name][event.query_id] = event.parent
+        elif isinstance(event, events.QueryForgotten):
+            rid = parent_of[name].pop(event.query_id, None)
+            if rid is not None:
+                deps[name].get(rid, {}).pop(event.query_id, None)
+        elif isinstance(event, events.ResourceUnloaded):
+            held = deps[name].pop(event.resource_id, {})
+            for qid, at in held.items():
+                parent_of[name].pop(qid, None)
+                findings.append(
+                    Finding(
+                        "unload-order",
+                        "violation",
+                        f"{name}: resource {event.resource_id[:8]} unloaded while it still "
+                        f"held its dependency {qid[:8]} (rule 7: its dependencies first)",
+                        (at, line),
+                        (name,),
+                    )
+                )
+    return findings

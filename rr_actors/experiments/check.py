@@ -7,7 +7,9 @@
  check(history) ──────────────────────┴─► _history: each registrar's lives, the run's facts
      ├─► _provider_rules: one pass over each provider's catalog
      ├─► _status_rules: each status's deliveries, against who should have got it
-     ├─► _consumer_rules: each consumer's calls; the ids it told itself were lost
+     ├─► _consumer_rules: each consumer's calls; the ids it told itself were lost;
+     │   the rows left at each registrar's last stop
+     ├─► _supervision_rules: each supervisor's give-ups, against its intensity
      └─► events lost ──► findings (violation / unverifiable, each with the line
                          numbers of the events that show it) ──► Verdict
 ```
@@ -57,6 +59,15 @@ what cannot be checked):
 - `withdrawn` (rules 17, 20): an id whose call its consumer withdrew (`CallWithdrawn`,
   not answered again after) is not held at the end by its provider's last life, once
   that life served `WITHDRAWN_BOUND_S` after the withdrawal and its own start.
+- `left`: a registrar's last stop, at the end of the run (every client unloaded, every
+  manager reconciled), lists no resource that no running consumer holds, and no client
+  record but a dependency of one that is held (the rows `entries_left` counts); not
+  judged after a supervisor gave up in that registrar's last life.
+- `unload-order` (rule 7): a resource's `ResourceUnloaded` comes after its registrar
+  forgot every dependency of it (`QueryForgotten` of each query it answered for it).
+- `intensity`: a supervisor gives up exactly when more than `max_restarts` of the exits
+  it counts (`ChildExited` not stopped by it, of a child its restart type restarts: OTP)
+  fall within `period` seconds, at the exit that makes them so.
 - `one-name` (rule 22): a second server of a name (a process whose events of a registrar
   begin while another one's life of it goes on: only a cut lets each side serve a name)
   yields once the cut heals; two that both serve to the end of the run (neither process
@@ -84,9 +95,9 @@ from typing import Any
 from rr_actors import events
 from rr_actors.errors import ConfigError
 from rr_actors.events.lines import json_lines, parse_json
-from rr_actors.experiments import _consumer_rules, _status_rules
+from rr_actors.experiments import _consumer_rules, _status_rules, _supervision_rules
 from rr_actors.experiments._history import Finding, Life, Line, gather, registrar_of, walk
-from rr_actors.experiments._provider_rules import Providers
+from rr_actors.experiments._provider_rules import Providers, unload_order
 
 __all__ = [
     "RULES",
@@ -116,6 +127,9 @@ RULES = (
     "reported-lost",
     "end",
     "withdrawn",
+    "left",
+    "unload-order",
+    "intensity",
     "one-name",
     "events",
 )
@@ -257,6 +271,9 @@ def check(history: Sequence[Line]) -> Verdict:
         *_consumer_rules.reported_lost(history, providers.holdings, lives),
         *_consumer_rules.end(steps, history),
         *_consumer_rules.withdrawn(steps),
+        *_consumer_rules.left(steps, history, lives),
+        *unload_order(steps),
+        *_supervision_rules.intensity(history),
         *_one_name_rule(history, lives),
     ]
     findings = [

@@ -35,11 +35,16 @@ def service(
     load_s: float = 0.0,
     unload_s: float = 0.0,
     uses: Sequence[str] = (),
+    status_every: float = 0.0,
 ) -> None:
     """Register one resource server whose loads take `load_s` and load what it `uses`.
 
     Runs in the manager (its process or thread), as every `setup` does. The response to a
-    request is `{"server": "<registrar>/<server>", "request": request}`.
+    request is `{"server": "<registrar>/<server>", "request": request}`. With
+    `status_every`, a thread of the manager sends a `WARNING` status (`"scheduled"`)
+    every `status_every` seconds about the first query the server holds (none when it
+    holds none), as a provider that reports on its resources does; it ends when the
+    registrar stops (or with the manager's process).
 
     Args:
         registrar: the manager's registrar.
@@ -49,6 +54,7 @@ def service(
         uses: `"manager/server"` of other managers: each load calls every one of them
             with the same request (nested loads: dependencies of the resource, released
             with it). A bare `"manager"` means its server `resource`.
+        status_every: seconds between two statuses the server sends (0: none).
     """
 
     def load(request: Any) -> dict[str, Any]:
@@ -64,3 +70,27 @@ def service(
             runtime.sleep(unload_s)
 
     registrar.register_server(server, load=load, unload=unload)
+    if status_every > 0:
+        runtime.Thread(
+            target=_send_statuses,
+            args=(registrar, server, status_every),
+            name=f"rr-scheduled-status-{registrar.name}",
+            daemon=True,
+        ).start()
+
+
+def _send_statuses(registrar: rr.ResourceRegistrar, server: str, every: float) -> None:
+    """Every `every` s, a `WARNING` about the first query `server` holds; until the
+    registrar stops."""
+    while True:
+        runtime.sleep(every)
+        if not registrar.is_alive():
+            return
+        try:
+            held = registrar.server_queries(server)
+            if held:
+                registrar.send_status(held[0].id, rr.Status.WARNING, "scheduled", timeout=every)
+        except rr.RegistrarStoppedError:
+            return
+        except rr.RrError:
+            continue  # (released meanwhile, a consumer unreachable: the next one)

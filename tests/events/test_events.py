@@ -165,7 +165,7 @@ def test_to_dict_names_the_type_and_writes_the_status_by_name() -> None:
         "seq": 0,
         "host": "robot",
         "hlc": 7 << 12,
-        "schema": 3,
+        "schema": events.lines.SCHEMA,
     }
     assert expected == events.to_dict(event)
 
@@ -250,7 +250,7 @@ def _with(**changes: Any) -> dict[str, Any]:
     ("data", "named"),
     [
         ([1, 2], "list"),
-        (_with(schema=4), "schema 4"),
+        (_with(schema=5), "schema 5"),
         (_with(schema=_DROP), "schema None"),
         (_with(type="Exploded"), "'Exploded'"),
         (_with(type=_DROP), "None"),

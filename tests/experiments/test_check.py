@@ -13,7 +13,7 @@ import pytest
 import rr_actors as rr
 from rr_actors import events
 from rr_actors.__main__ import main
-from rr_actors.experiments import check, load_plan, plans, run
+from rr_actors.experiments import _supervision_rules, check, load_plan, plans, run
 
 P = 100  # the provider's process
 C = 200  # the consumer's process
@@ -268,7 +268,8 @@ def test_an_answered_call_neither_forgotten_nor_listed_at_its_stop_is_found() ->
     h = with_paths()
     assert {4, 11} == _found(_without(h, 7), "answered")
     listed = events.RegistrarStopped("app", (), (), ((Q2, "cm", "comp", ""),), pid=A)
-    assert "held" == check.check(numbered([*_without(h, 7, 11), listed])).verdict
+    verdict = check.check(numbered([*_without(h, 7, 11), listed]))
+    assert ["left"] == [f.rule for f in verdict.findings]  # (listed: a row left, not lost)
 
 
 def test_an_id_forgotten_that_was_not_held_is_found() -> None:
@@ -372,7 +373,7 @@ def test_rr_actors_check_reads_a_schema_2_file_as_a_schema_3_one(
     old = []
     for text in real:
         line = json.loads(text)
-        assert 3 == line.pop("schema")
+        assert events.lines.SCHEMA == line.pop("schema")
         del line["host"], line["hlc"]
         old.append(json.dumps({**line, "schema": 2}))
     for name, lines in (("new", real), ("old", old)):
@@ -452,7 +453,8 @@ def test_an_unload_committed_just_before_a_kill_is_no_leak_and_the_restore_decid
     swept = events.ResourceUnloaded("erm", "cam", RID, pid=P + 1)
     assert "held" == check.check(numbered([*h[:9], unheld, swept, stop])).verdict
     listed = dataclasses.replace(stop, resources=unheld.resources)  # kept for the next start
-    assert "held" == check.check(numbered([*h[:9], unheld, listed])).verdict
+    verdict = check.check(numbered([*h[:9], unheld, listed]))
+    assert ["left"] == [f.rule for f in verdict.findings]  # (no leak: a row left at the end)
 
 
 def _reported(reason: str, host: str = "h") -> list[events.Event]:
@@ -1017,6 +1019,90 @@ def test_two_servers_of_a_name_to_the_end_of_the_run_are_a_one_name_violation() 
     assert "two registrars erm served to the end of the run" in found.message
 
 
+# -- rows left at the end, rule 7's order, the supervisor's intensity (issue 51) --------------
+
+
+def test_a_row_no_running_consumer_holds_at_the_last_stop_is_left() -> None:
+    h = clean()
+    unheld = events.CatalogRestored("erm", ((RID, "cam", "loaded", "42", ""),), (), (), pid=P + 1)
+    stop = events.RegistrarStopped("erm", unheld.resources, (), (), pid=P + 1)
+    assert {10, 11} == _found([*h[:9], unheld, stop], "left")  # (listed at the restore)
+    app = events.RegistrarStopped("app", (), (), ((Q2, "cm", "comp", ""),), pid=A)
+    assert {4, 11} == _found([*with_paths()[:7], *with_paths()[8:11], app], "left")
+
+
+def test_rows_a_running_consumer_holds_at_a_providers_last_stop_are_not_left() -> None:
+    h = clean()
+    held = events.RegistrarStopped(  # erm stops first: cm still runs and holds both ids
+        "erm", ((RID, "cam", "loaded", "42", ""),), ((Q1, RID, "cm"), (Q2, RID, "cm")), (), pid=P
+    )
+    verdict = check.check(numbered([*h[:4], held, h[14]]))
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+
+
+def test_rows_at_a_stop_after_a_give_up_are_not_judged_as_left() -> None:
+    h = clean()
+    gave_up = events.SupervisorGaveUp("root", "more than 0 restarts", 0, 1.0, pid=1)
+    stop = events.RegistrarStopped(
+        "erm", ((RID, "cam", "loaded", "42", ""),), ((Q1, RID, "cm"),), (), pid=P, seq=5
+    )
+    verdict = check.check(numbered([*h[:4], gave_up, stop]))
+    assert [] == [f for f in verdict.findings if f.rule == "left"]
+
+
+def test_a_resource_unloaded_before_its_dependency_was_released_is_found() -> None:
+    h = with_paths()
+    unloaded = events.ResourceUnloaded("cm", "comp", RID2, pid=C)
+    assert {2, 10} == _found([*h[:9], unloaded, *h[9:]], "unload-order")
+    verdict = check.check(numbered([*h[:10], unloaded, *h[10:]]))  # its dependency first
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+
+
+def _exits(*times: float, restart: str = "permanent", stopped: bool = False) -> list[events.Event]:
+    """db exits at each of `times` (s) under root (at most 2 restarts within 5 s), each
+    exit followed by its restart."""
+    out: list[events.Event] = []
+    for i, at in enumerate(times):
+        exit_ = events.ChildExited(
+            "root", "db", 10 + i, "killed", restart, False, stopped, 2, 5.0, at=at
+        )
+        out += [exit_, events.ChildRestarted("root", "db", 11 + i, 0.01, at=at + 0.01)]
+    return out
+
+
+def _gives_up(history: list[events.Event]) -> list[events.Event]:
+    """`history`'s last restart replaced by the supervisor's give-up."""
+    return [*history[:-1], events.SupervisorGaveUp("root", "more than 2", 2, 5.0, pid=1)]
+
+
+def test_a_supervisor_that_does_not_give_up_past_its_intensity_is_found() -> None:
+    assert {1, 3, 5} == _found(_exits(0.0, 1.0, 2.0), "intensity")  # 3 within 5 s
+
+
+def test_a_supervisor_that_gives_up_within_its_intensity_is_found() -> None:
+    assert {1, 3, 4} == _found(_gives_up(_exits(0.0, 1.0)), "intensity")  # only 2
+    assert {3, 5, 6} == _found(_gives_up(_exits(0.0, 1.0, 5.5)), "intensity")  # 0.0 is out
+
+
+def test_a_supervisor_that_gives_up_exactly_past_its_intensity_holds() -> None:
+    for history in (
+        _gives_up(_exits(0.0, 1.0, 2.0)),  # the third within 5 s: it gives up there
+        _exits(0.0, 1.0, 6.0),  # 0.0 and 1.0 left the window: 1 restart
+        _exits(0.0, 1.0, 2.0, restart="temporary"),  # never counted (OTP)
+        _exits(0.0, 1.0, 2.0, stopped=True),  # its supervisor stopped it: not counted
+        [*_exits(0.0, 1.0)[:2], *_gives_up(_exits(1.0, 2.0))],  # (an exit's restart failed)
+    ):
+        verdict = check.check(numbered(history))
+        assert ("held", ()) == (verdict.verdict, verdict.findings)
+
+
+def test_an_exit_at_the_edge_of_the_intensity_window_is_not_judged() -> None:
+    slack = _supervision_rules.SLACK_S / 2
+    for history in (_exits(0.0, 1.0, 5.0 - slack), _gives_up(_exits(0.0, 1.0, 5.0 + slack))):
+        verdict = check.check(numbered(history))
+        assert ("held", ()) == (verdict.verdict, verdict.findings)
+
+
 def in_doubt_while_held(h: History) -> History | None:
     i = _index(h, events.ConsumerAdded)
     if i is None:
@@ -1138,6 +1224,53 @@ def release_withdrawn_late(h: History) -> History | None:
     return None
 
 
+def stop_keeps_resource(h: History) -> History | None:
+    """A registrar's last stop (the end of the run) lists a resource it loaded, as if its
+    unload had left its row. Not after a give-up (its stops keep their rows)."""
+    if any(type(e) is events.SupervisorGaveUp for e in h):
+        return None
+    last = {getattr(e, "registrar", None): i for i, e in enumerate(h)}
+    for e in h:
+        if (
+            type(e) is events.ResourceLoaded
+            and type(h[last[e.registrar]]) is events.RegistrarStopped
+        ):
+            at = last[e.registrar]
+            stop = h[at]
+            row = (e.resource_id, e.server, "loaded", "", "")
+            kept = dataclasses.replace(stop, resources=(*stop.resources, row))  # type: ignore[union-attr]
+            return [*h[:at], kept, *h[at + 1 :]]
+    return None
+
+
+def unload_before_dependency(h: History) -> History | None:
+    """A resource's unload published before its registrar released one of its
+    dependencies (rule 7 the other way round)."""
+    parents = {
+        (e.registrar, e.query_id): e.parent
+        for e in h
+        if type(e) is events.CallAnswered and e.parent is not None
+    }
+    for i, e in enumerate(h):
+        if type(e) is not events.QueryForgotten or e.reason != "dependency":
+            continue
+        rid = parents.get((e.registrar, e.query_id))
+        for j in range(i + 1, len(h)):
+            later = h[j]
+            if type(later) is events.ResourceUnloaded and (later.registrar, later.resource_id) == (
+                e.registrar,
+                rid,
+            ):
+                return _moved(h, j, i)
+    return None
+
+
+def drop_give_up(h: History) -> History | None:
+    """A supervisor's give-up at an exit past its intensity is not published."""
+    i = _index(h, events.SupervisorGaveUp)
+    return None if i is None else _without(h, i)
+
+
 MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     # name: (the mutation, the rule that must catch it)
     "duplicate-unload": (duplicate(events.ResourceUnloaded), "unload-once"),
@@ -1168,6 +1301,9 @@ MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     "provider-keeps-id": (provider_keeps_id, "end"),
     "second-server-to-the-end": (second_server_to_the_end, "one-name"),
     "release-withdrawn-late": (release_withdrawn_late, "withdrawn"),
+    "stop-keeps-resource": (stop_keeps_resource, "left"),
+    "unload-before-dependency": (unload_before_dependency, "unload-order"),
+    "drop-give-up": (drop_give_up, "intensity"),
 }
 
 

@@ -781,7 +781,16 @@ def test_a_kind_only_a_simulation_aims_is_validated_as_the_others(
 PLANS = ROOT / "rr_actors" / "experiments" / "plans"
 
 
-SIMULATED = ["first", "crashloop", "hang", "simchain", "simretry", "simheal", "simcancel"]
+SIMULATED = [
+    "first",
+    "crashloop",
+    "hang",
+    "simchain",
+    "simretry",
+    "simheal",
+    "simcancel",
+    "simdoubt",
+]
 """The shipped plans run over two seeds here (killheavy below, for 2 s)."""
 
 REFUSED = ["resource", "strategies", "leases"]

@@ -130,7 +130,7 @@ def test_the_next_open_of_the_backup_empties_its_outbox(tmp_path: Path) -> None:
         json.dumps([1, 2, 3]),
         json.dumps(events.to_dict(added(8))),  # an events.jsonl line, not a row
         outbox._row(added(8)),  # an event, in the row of another number
-        outbox._row(added(5)).replace("[3,", "[2,", 1),  # another version's row
+        outbox._row(added(5)).replace(f"[{events.lines.SCHEMA},", "[2,", 1),  # another version
         outbox._row(added(5)).replace('"robot"', "7"),  # a field of the wrong type
         outbox._row(added(5))[:-1] + ',"extra"]',  # one value too many
     ],

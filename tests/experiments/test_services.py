@@ -1,0 +1,28 @@
+"""rr_actors.experiments.services: the generic manager's statuses on a schedule."""
+
+from __future__ import annotations
+
+import queue
+import uuid
+
+import rr_actors as rr
+from rr_actors.experiments.services import service
+
+
+def test_a_service_with_status_every_sends_a_warning_to_its_consumer_until_it_stops() -> None:
+    name = f"svc-{uuid.uuid4().hex[:8]}"
+    provider = rr.ResourceRegistrar.start(name)
+    consumer = rr.ResourceRegistrar.start(f"app-{uuid.uuid4().hex[:8]}")
+    heard: queue.Queue[rr.StatusUpdate] = queue.Queue()
+    try:
+        service(provider, status_every=0.05)
+        query = consumer.call(name, "resource", "cam", on_status=lambda _q, u: heard.put(u))
+
+        update = heard.get(timeout=5.0)
+
+        expected = (query.id, rr.Status.WARNING, "scheduled", f"{name}/resource")
+        assert expected == (update.query_id, update.status, update.message, update.source)
+        consumer.unload(query.id)
+    finally:
+        consumer.stop()
+        provider.stop()
