@@ -46,6 +46,7 @@ __all__ = [
     "on_own_thread",
     "run_steps",
     "wait",
+    "when_waiting",
 ]
 
 T = TypeVar("T")
@@ -99,8 +100,20 @@ Steps: TypeAlias = Generator[Wait, bool, T]
 returns the result (module docstring)."""
 
 
+_WAITER = runtime.local()  # .hook: what `when_waiting` set on this thread
+
+
+def when_waiting(hook: Callable[[], None] | None) -> None:
+    """Run `hook()` (once, on this thread) before this thread next blocks in `run_steps`;
+    `None` takes it back. The status runner sets it while a callback runs: a callback that
+    waits for a registrar (a `send_status`, an `unload`) may wait for its own next status."""
+    _WAITER.hook = hook
+
+
 def run_steps(steps: Steps[T]) -> T:
     """Run `steps` on the calling thread, blocking on each future it waits for.
+
+    Before the first wait, the hook `when_waiting` set on this thread runs (once).
 
     An exception the driver gets while the steps wait at a `yield` (a `KeyboardInterrupt`
     in the wait, or as the driver goes to it) is thrown into them there: the steps
@@ -114,6 +127,10 @@ def run_steps(steps: Steps[T]) -> T:
     while True:
         try:
             future, deadline = resume(given)
+            hook = getattr(_WAITER, "hook", None)
+            if hook is not None:
+                _WAITER.hook = None
+                hook()
             resume, given = steps.send, future.wait(left(deadline))
         except StopIteration as done:
             result: T = done.value
