@@ -37,11 +37,15 @@ dependencies runs once, and each (event, id) pair is delivered once in its proce
 twice, nor does a status an `Unload`'s answer carried that had come its own way first.
 Callbacks run on worker threads, so a callback may call `call`, `unload` or `send_status`
 on any registrar without deadlock. The runner runs the callbacks of the whole process in
-the order they arrived, each consumer id's one at a time, on as few worker threads as
-keeps them going: one while each callback returns at once; another as soon as every one
-of them is inside a callback when more arrive (a callback that calls `send_status`), or
-once one has run a callback for `SLICE` seconds (a slow or hung callback holds its own
-thread, never the other consumers' callbacks, nor, after `SLICE`, its own next one). Each consumer
+the order they arrived, each consumer id's one at a time (a lane per id), on as few
+worker threads as keeps them going: one while each callback returns at once; another as
+soon as every one of them is inside a callback when more arrive (a callback that calls
+`send_status`), or once one has run a callback for `SLICE` seconds. A slow or hung
+callback holds its own thread and its own id's next statuses, never the other consumers'
+callbacks; the watchdog's judgement only decides when the others get another thread, so
+a callback that merely waited for the CPU costs no order either. Only a callback that
+waits for a registrar itself (`replies.when_waiting`) lets its id's next status start
+beside it: that status may be what it waits for (rule 9: no deadlock). Each consumer
 registrar's actor is the only writer of what the desk reads of it (one dict assignment
 each, `consumer.py`'s `Holdings`); the desk reads single entries.
 """
@@ -397,8 +401,9 @@ class StatusRelay:
 
 
 SLICE = 0.05
-"""Seconds a status callback may run before the callbacks queued behind it go on
-without it, on another worker thread."""
+"""Seconds a status callback may run before the other ids' callbacks queued behind it go
+on without it, on another worker thread (wall clock: what they wait, whatever the
+cause; its own id's wait for it)."""
 
 _LINGER = 1.0
 """Seconds the runner's watchdog stays after the last callback ended."""
