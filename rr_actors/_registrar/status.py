@@ -44,7 +44,7 @@ soon as every one of them is inside a callback when more arrive (a callback that
 callback holds its own thread and its own id's next statuses, never the other consumers'
 callbacks; the watchdog's judgement only decides when the others get another thread, so
 a callback that merely waited for the CPU costs no order either. Only a callback that
-waits for a registrar itself (`replies.when_waiting`) lets its id's next status start
+waits for a registrar itself (`replies.let_go`) lets its id's next status start
 beside it: that status may be what it waits for (rule 9: no deadlock). Each consumer
 registrar's actor is the only writer of what the desk reads of it (one dict assignment
 each, `consumer.py`'s `Holdings`); the desk reads single entries.
@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import functools
 import heapq
 import logging
 import weakref
@@ -67,7 +68,7 @@ from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.ids import new_id
 from rr_actors._core.loops import OnLoop
-from rr_actors._core.replies import CallbackReply, SharedJoin, when_waiting
+from rr_actors._core.replies import CallbackReply, SharedJoin, waited, when_waiting
 from rr_actors._core.workers import Job, Workers
 from rr_actors._platform import fork
 from rr_actors._registrar.calls import DueAnswers
@@ -473,12 +474,12 @@ def _done_by(done: Callable[..., None]) -> Callable[[BaseException | None], None
 class _Drainer:
     """One worker's turn at the runner's queue."""
 
-    __slots__ = ("abandoned", "job", "query_id", "started")
+    __slots__ = ("abandoned", "call", "job", "started")
 
     def __init__(self) -> None:
         self.abandoned = False  # done, or it overran `SLICE`: it takes no more calls
         self.job: Job | None = None
-        self.query_id = ""  # the id whose callback it runs now
+        self.call: _Call | None = None  # the call it runs now (its lane held for it)
         self.started = 0.0  # when that callback began (monotonic)
 
 
@@ -492,8 +493,9 @@ class Runner:
     that callback and ends) and starts another for the other lanes; the given-up one
     keeps its lane closed until its callback returns: being slow, hung or starved of the
     CPU costs an id its own wait, never its order. A lane opens early only when its
-    callback waits for a registrar (`replies.when_waiting`: a `send_status`, `call` or
-    `unload` from inside it): its next status may be what it waits for.
+    callback waits for a registrar (`replies.let_go`: a `send_status`, `call` or `unload`
+    from inside it, or from a thread or task it started): its next status may be what it
+    waits for.
     """
 
     def __init__(self) -> None:
@@ -572,20 +574,21 @@ class Runner:
             del self._lanes[query_id]
         return call
 
-    def _let_go(self, drainer: _Drainer) -> None:
-        """(Holding the lock.) Open the lane `drainer` holds (if it still does)."""
-        query_id = drainer.query_id
-        if self._holders.get(query_id) is not drainer:
+    def _let_go(self, drainer: _Drainer, call: _Call) -> None:
+        """(Holding the lock.) Open the lane `drainer` holds for `call` (if it still does)."""
+        query_id = call.query.id
+        if self._holders.get(query_id) is not drainer or drainer.call is not call:
             return
         del self._holders[query_id]
         lane = self._lanes.get(query_id)
         if lane:
             heapq.heappush(self._open, (lane[0].seq, query_id))
 
-    def _waits(self, drainer: _Drainer) -> None:
-        """`drainer`'s callback waits for a registrar (on its thread): its lane opens."""
+    def _waits(self, drainer: _Drainer, call: _Call) -> None:
+        """`call`'s callback waits for a registrar (`replies.let_go`, any thread, any time,
+        more than once): its lane opens, if its drainer still holds it for it."""
         with self._lock:
-            self._let_go(drainer)
+            self._let_go(drainer, call)
             start, watch = self._wanted()
         self._kick(start, watch)
 
@@ -600,18 +603,18 @@ class Runner:
                     drainer.abandoned = True
                     self._drainers -= 1
                     return
-                drainer.query_id = call.query.id
+                drainer.call = call
                 drainer.started = runtime.monotonic()
-                self._holders[drainer.query_id] = drainer
+                self._holders[call.query.id] = drainer
                 self._inside.add(drainer)
-            when_waiting(lambda: self._waits(drainer))
+            token = when_waiting(functools.partial(self._waits, drainer, call))
             try:
                 call()
             finally:
-                when_waiting(None)
+                waited(token)
                 with self._lock:
                     self._inside.discard(drainer)
-                    self._let_go(drainer)
+                    self._let_go(drainer, call)
                     if not self._inside:
                         self._quiet_since = runtime.monotonic()
                     # (given up: its thread ends; another takes the lane it opened)
