@@ -16,7 +16,8 @@ path to the top (rule 9, thesis 4.2.4).
      queued on the process's Runner (no trip through that registrar's mailbox)
    any other id (a dependency to climb, an answer on its way) ─► a StatusNotice
    a registrar that moved elsewhere ─► its part, forwarded to it
- StatusNotice at a consumer ─► on_status_notice: each client's callback; a dependency ─►
+ StatusNotice at a consumer ─► on_status_notice: each client's callback, queued on the
+   same Runner (each id's statuses in order, whichever way each came); a dependency ─►
    notify(its parent resource) ─► ... to the top
  acknowledgements: one SharedJoin per status, counted where they arrive; the last one
    answers the sender; until its own comes, a status sent to another process waits in
@@ -382,8 +383,10 @@ class StatusRelay:
                     )
                 )
             callback = self.holdings.callback_of(query_id)
-            if callback is not None:
-                self.run_callback(callback, record.query, update, join)
+            if isinstance(callback, OnLoop):  # (each id's in order, on its loop)
+                callback.submit(record.query, update, then=_done_by(join.add()), key=query_id)
+            elif callback is not None:  # (each id's in order with the desk's own)
+                DESK.runner.run((_Call(callback, record.query, update, join.add()),))
             if record.parent is not None and record.parent in catalog.resources:
                 parent = catalog.resources[record.parent]
                 self.notify(

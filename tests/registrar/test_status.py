@@ -649,7 +649,7 @@ class TestStatus:
                 provider.name, "leaf", "a", on_status=lambda _q, u: heard.append(u)
             )
 
-            def no_thread(_self: Workers, _task: Any) -> None:
+            def no_thread(_self: Workers, _task: Any, **_options: Any) -> None:
                 raise RuntimeError("can't start new thread")
 
             monkeypatch.setattr(Workers, "submit", no_thread)  # say, too many hung callbacks
