@@ -462,7 +462,7 @@ class _Call:
     def __call__(self) -> None:
         try:
             self.callback(self.query, self.update)
-        except Exception:
+        except BaseException:  # (a SystemExit too: logged, and its drainer goes on)
             logger.exception("status callback for %s raised", self.query.id)
         finally:
             self.done()

@@ -815,6 +815,28 @@ class TestRunner:
             ("x", "two ends"),
         ] == [entry for entry in heard if entry[0] == "x"]
 
+    def test_a_callback_that_raises_system_exit_leaves_the_runner_running_the_next(self) -> None:
+        runner = Runner()
+        heard: list[str] = []
+        ended = threading.Semaphore(0)
+
+        def hear(query: rr.Query, update: rr.StatusUpdate) -> None:
+            heard.append(f"{query.id} {update.message}")
+            if query.id == "x":
+                raise SystemExit(3)
+
+        def status(query_id: str, message: str) -> _Call:
+            query = rr.Query(query_id, "leaf", "prov", "cons", "r", "r")
+            update = rr.StatusUpdate(query_id, rr.Status.UPDATE, message, "prov/leaf")
+            return _Call(hear, query, update, ended.release)
+
+        runner.run([status("x", "one")])
+        assert ended.acquire(timeout=10)
+        runner.run([status("y", "one")])  # (its drainer counted no thread that had ended)
+
+        assert ended.acquire(timeout=10)
+        assert ["x one", "y one"] == heard
+
 
 class TestReleaseCrossing:
     """A status on its way to a consumer as the consumer releases its id (rule 9).
