@@ -26,6 +26,7 @@ as it would on any asyncio loop.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import contextvars
 import functools
 import logging
@@ -34,7 +35,7 @@ from typing import Any, TypeVar
 
 from rr_actors._core import runtime
 from rr_actors._core.actor import OneShotFuture, mark_awaiting
-from rr_actors._core.replies import Steps, left
+from rr_actors._core.replies import Steps, left, let_go, when_waiting
 from rr_actors._platform import fork
 
 __all__ = [
@@ -113,6 +114,7 @@ async def run_steps_async(steps: Steps[T]) -> T:
                 future, deadline = steps.send(True)
                 continue
             mark_awaiting(False)  # (the loop runs other tasks while this one waits)
+            let_go()
             try:
                 done = await settled(future, left(deadline))
             except BaseException as exc:  # noqa: BLE001 - (the task cancelled: the steps decide)
@@ -183,21 +185,17 @@ def process_loop() -> asyncio.AbstractEventLoop:
     return _PROCESS_LOOP.get()
 
 
-OVERTAKE_AFTER = 0.05
-"""Seconds a call of an `OnLoop` waits for the one before it of the same key; past them
-it runs beside it (as the status runner gives a callback `SLICE` seconds): a callback
-that waits for its own next call (a `send_status` to the same id) does not deadlock."""
-
-
 class OnLoop:
     """A coroutine function and the event loop it runs on; submitted from any thread.
 
     Each `submit` runs one call as a task of that loop, after the task of the submission
-    before it of the same key (a status callback's: the query id) has ended, or has run
-    for `OVERTAKE_AFTER` seconds: the calls of one key run in the order they were
-    submitted, one at a time while each is quick, as a status callback's calls do on
-    worker threads. Each runs in the context it was bound in (as asyncio runs a callback
-    in its registrant's context).
+    before it of the same key (a status callback's: the query id) has ended: the calls of
+    one key run in the order they were submitted, one at a time, however long each takes,
+    as a status callback's calls do on worker threads. A call that waits for a registrar
+    (`replies.let_go`: it awaits an `asend_status` about the resource it hears of, or a
+    thread it started blocks in a `send_status`) lets the next one of its key start
+    beside it, since that one may be what it waits for. Each runs in a copy of the
+    context it was bound in (as asyncio runs a callback in its registrant's context).
 
     Args:
         fn: the coroutine function.
@@ -206,11 +204,13 @@ class OnLoop:
 
     __slots__ = ("_context", "_tails", "fn", "loop")
 
+    _tails: dict[Any, tuple[asyncio.Task[None], asyncio.Event]]
+
     def __init__(self, fn: Callable[..., Any], loop: asyncio.AbstractEventLoop) -> None:
         self.fn = fn
         self.loop = loop
         self._context = contextvars.copy_context()
-        self._tails: dict[Any, asyncio.Task[None]] = {}  # key -> its last call (loop thread)
+        self._tails = {}  # key -> its last call, and whether it let go (loop thread)
 
     @classmethod
     def bind(cls, fn: Callable[..., Any]) -> OnLoop:
@@ -248,19 +248,24 @@ class OnLoop:
 
     def _start(self, args: tuple[Any, ...], then: Then | None, key: Any) -> None:
         before = self._tails.get(key)
-        task = self.loop.create_task(self._run(before, args, then, key), context=self._context)
-        self._tails[key] = task
+        going = asyncio.Event()
+        task = self.loop.create_task(
+            self._run(before, going, args, then, key), context=self._context.copy()
+        )  # (a copy each: what one call sets in its context is its own)
+        self._tails[key] = (task, going)
 
     async def _run(
         self,
-        before: asyncio.Task[None] | None,
+        before: tuple[asyncio.Task[None], asyncio.Event] | None,
+        going: asyncio.Event,
         args: tuple[Any, ...],
         then: Then | None,
         key: Any,
     ) -> None:
-        if before is not None and not before.done():
-            await asyncio.wait((before,), timeout=OVERTAKE_AFTER)
+        if before is not None:
+            await _behind(*before)
         error: BaseException | None = None
+        when_waiting(functools.partial(_set_soon, self.loop, going))  # (this task's context)
         try:
             await self.fn(*args)
         except Exception as exc:  # logged, as a callback run on a worker thread is
@@ -270,8 +275,27 @@ class OnLoop:
             error = exc
         if then is not None:
             then(error)
-        if self._tails.get(key) is asyncio.current_task():
+        tail = self._tails.get(key)
+        if tail is not None and tail[0] is asyncio.current_task():
             del self._tails[key]
+
+
+def _set_soon(loop: asyncio.AbstractEventLoop, event: asyncio.Event) -> None:
+    """Set `event` on `loop` (from any thread); a closed loop has nobody waiting."""
+    with contextlib.suppress(RuntimeError):
+        loop.call_soon_threadsafe(event.set)
+
+
+async def _behind(before: asyncio.Task[None], going: asyncio.Event) -> None:
+    """Until the call `before` ended, or let the next of its key go (`going`: it waits
+    for a registrar, `replies.let_go`)."""
+    if before.done() or going.is_set():
+        return
+    waiter = asyncio.ensure_future(going.wait())
+    try:
+        await asyncio.wait((before, waiter), return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        waiter.cancel()
 
 
 def _unbound(fn: Callable[..., Any]) -> Callable[..., Any]:

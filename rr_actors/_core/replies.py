@@ -18,6 +18,7 @@ at the `yield`, so both drivers take the same way out:
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import dataclasses
 import inspect
 import itertools
@@ -43,9 +44,12 @@ __all__ = [
     "Wait",
     "asked",
     "left",
+    "let_go",
     "on_own_thread",
     "run_steps",
     "wait",
+    "waited",
+    "when_waiting",
 ]
 
 T = TypeVar("T")
@@ -71,12 +75,13 @@ class FutureReply:
 
 
 def wait(future: pykka.Future[Any], timeout: float, what: str) -> Any:
-    """Wait for `future` at most `timeout` seconds.
+    """Wait for `future` at most `timeout` seconds (after `let_go`, as `run_steps`).
 
     Raises:
         CallTimeoutError: nothing arrived in time.
         Exception: whatever error the future holds.
     """
+    let_go()
     try:
         return future.get(timeout=timeout)
     except pykka.Timeout:
@@ -99,8 +104,39 @@ Steps: TypeAlias = Generator[Wait, bool, T]
 returns the result (module docstring)."""
 
 
+_LET_GO: contextvars.ContextVar[Callable[[], None] | None] = contextvars.ContextVar(
+    "rr_actors_let_go", default=None
+)
+
+
+def when_waiting(hook: Callable[[], None] | None) -> contextvars.Token[Callable[[], None] | None]:
+    """In the current context, `let_go` runs `hook()` (`None`: nothing); the token
+    returned, given to `waited`, takes it back.
+
+    A status callback runs with one (the status runner's, `OnLoop`'s): a callback that
+    waits for a registrar (a `send_status`, an `unload`, on its thread, or on a task or
+    thread it started, which inherit its context) may wait for its own id's next status,
+    so that one may start beside it. `hook` may run more than once, on any thread.
+    """
+    return _LET_GO.set(hook)
+
+
+def waited(token: contextvars.Token[Callable[[], None] | None]) -> None:
+    """Take back what `when_waiting` set (on the thread, in the context, that set it)."""
+    _LET_GO.reset(token)
+
+
+def let_go() -> None:
+    """The current context is about to wait for a registrar: run its `when_waiting` hook."""
+    hook = _LET_GO.get()
+    if hook is not None:
+        hook()
+
+
 def run_steps(steps: Steps[T]) -> T:
     """Run `steps` on the calling thread, blocking on each future it waits for.
+
+    Before each wait, the hook `when_waiting` set in this context runs (`let_go`).
 
     An exception the driver gets while the steps wait at a `yield` (a `KeyboardInterrupt`
     in the wait, or as the driver goes to it) is thrown into them there: the steps
@@ -114,6 +150,7 @@ def run_steps(steps: Steps[T]) -> T:
     while True:
         try:
             future, deadline = resume(given)
+            let_go()
             resume, given = steps.send, future.wait(left(deadline))
         except StopIteration as done:
             result: T = done.value

@@ -16,7 +16,8 @@ path to the top (rule 9, thesis 4.2.4).
      queued on the process's Runner (no trip through that registrar's mailbox)
    any other id (a dependency to climb, an answer on its way) ─► a StatusNotice
    a registrar that moved elsewhere ─► its part, forwarded to it
- StatusNotice at a consumer ─► on_status_notice: each client's callback; a dependency ─►
+ StatusNotice at a consumer ─► on_status_notice: each client's callback, queued on the
+   same Runner (each id's statuses in order, whichever way each came); a dependency ─►
    notify(its parent resource) ─► ... to the top
  acknowledgements: one SharedJoin per status, counted where they arrive; the last one
    answers the sender; until its own comes, a status sent to another process waits in
@@ -37,11 +38,15 @@ dependencies runs once, and each (event, id) pair is delivered once in its proce
 twice, nor does a status an `Unload`'s answer carried that had come its own way first.
 Callbacks run on worker threads, so a callback may call `call`, `unload` or `send_status`
 on any registrar without deadlock. The runner runs the callbacks of the whole process in
-the order they arrived, each consumer id's one at a time, on as few worker threads as
-keeps them going: one while each callback returns at once; another as soon as every one
-of them is inside a callback when more arrive (a callback that calls `send_status`), or
-once one has run a callback for `SLICE` seconds (a slow or hung callback holds its own
-thread, never the other consumers' callbacks, nor, after `SLICE`, its own next one). Each consumer
+the order they arrived, each consumer id's one at a time (a lane per id), on as few
+worker threads as keeps them going: one while each callback returns at once; another as
+soon as every one of them is inside a callback when more arrive (a callback that calls
+`send_status`), or once one has run a callback for `SLICE` seconds. A slow or hung
+callback holds its own thread and its own id's next statuses, never the other consumers'
+callbacks; the watchdog's judgement only decides when the others get another thread, so
+a callback that merely waited for the CPU costs no order either. Only a callback that
+waits for a registrar itself (`replies.let_go`) lets its id's next status start
+beside it: that status may be what it waits for (rule 9: no deadlock). Each consumer
 registrar's actor is the only writer of what the desk reads of it (one dict assignment
 each, `consumer.py`'s `Holdings`); the desk reads single entries.
 """
@@ -50,6 +55,8 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import functools
+import heapq
 import logging
 import weakref
 from collections.abc import Callable, Iterable
@@ -62,7 +69,7 @@ from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.ids import new_id
 from rr_actors._core.loops import OnLoop
-from rr_actors._core.replies import CallbackReply, SharedJoin
+from rr_actors._core.replies import CallbackReply, SharedJoin, waited, when_waiting
 from rr_actors._core.workers import Job, Workers
 from rr_actors._platform import fork
 from rr_actors._registrar.calls import DueAnswers
@@ -376,8 +383,10 @@ class StatusRelay:
                     )
                 )
             callback = self.holdings.callback_of(query_id)
-            if callback is not None:
-                self.run_callback(callback, record.query, update, join)
+            if isinstance(callback, OnLoop):  # (each id's in order, on its loop)
+                callback.submit(record.query, update, then=_done_by(join.add()), key=query_id)
+            elif callback is not None:  # (each id's in order with the desk's own)
+                DESK.runner.run((_Call(callback, record.query, update, join.add()),))
             if record.parent is not None and record.parent in catalog.resources:
                 parent = catalog.resources[record.parent]
                 self.notify(
@@ -396,8 +405,9 @@ class StatusRelay:
 
 
 SLICE = 0.05
-"""Seconds a status callback may run before the callbacks queued behind it go on
-without it, on another worker thread."""
+"""Seconds a status callback may run before the other ids' callbacks queued behind it go
+on without it, on another worker thread (wall clock: what they wait, whatever the
+cause; its own id's wait for it)."""
 
 _LINGER = 1.0
 """Seconds the runner's watchdog stays after the last callback ended."""
@@ -434,7 +444,7 @@ class StatusTargets:
 class _Call:
     """One status callback to run, and the part of its batch's join it completes."""
 
-    __slots__ = ("callback", "done", "query", "update")
+    __slots__ = ("callback", "done", "query", "seq", "update")
 
     def __init__(
         self,
@@ -447,11 +457,12 @@ class _Call:
         self.query = query
         self.update = update
         self.done = done
+        self.seq = 0  # its place in the runner's arrival order
 
     def __call__(self) -> None:
         try:
             self.callback(self.query, self.update)
-        except Exception:
+        except BaseException:  # (a SystemExit too: logged, and its drainer goes on)
             logger.exception("status callback for %s raised", self.query.id)
         finally:
             self.done()
@@ -466,29 +477,38 @@ def _done_by(done: Callable[..., None]) -> Callable[[BaseException | None], None
 class _Drainer:
     """One worker's turn at the runner's queue."""
 
-    __slots__ = ("abandoned", "job", "query_id", "started")
+    __slots__ = ("abandoned", "call", "job", "started")
 
     def __init__(self) -> None:
         self.abandoned = False  # done, or it overran `SLICE`: it takes no more calls
         self.job: Job | None = None
-        self.query_id = ""  # the id whose callback it runs now
+        self.call: _Call | None = None  # the call it runs now (its lane held for it)
         self.started = 0.0  # when that callback began (monotonic)
 
 
 class Runner:
     """Runs the status callbacks of this process (the module's last paragraph).
 
-    Calls are taken in arrival order; a call waits while an earlier callback of the same
-    query id runs (so each consumer hears its statuses in order, one at a time), unless
-    that one has run for `SLICE` seconds: the watchdog then gives its drainer up (it
-    finishes that callback and ends), and another drainer takes the queue.
+    Each query id has a *lane*: its queued calls, in arrival order. A drainer takes the
+    earliest-arrived call of a lane that is open, and holds that lane closed while the
+    callback runs, so each consumer hears its statuses in order, one at a time. The
+    watchdog gives up a drainer whose callback has run for `SLICE` seconds (it finishes
+    that callback and ends) and starts another for the other lanes; the given-up one
+    keeps its lane closed until its callback returns: being slow, hung or starved of the
+    CPU costs an id its own wait, never its order. A lane opens early only when its
+    callback waits for a registrar (`replies.let_go`: a `send_status`, `call` or `unload`
+    from inside it, or from a thread or task it started): its next status may be what it
+    waits for.
     """
 
     def __init__(self) -> None:
         self._lock = runtime.Lock()
-        self._calls: collections.deque[_Call] = collections.deque()
+        self._lanes: dict[str, collections.deque[_Call]] = {}  # id -> its queued calls
+        self._open: list[tuple[int, str]] = []  # heap: (its first call's seq, id) of open lanes
+        self._holders: dict[str, _Drainer] = {}  # id -> the drainer that holds its lane
+        self._inside: set[_Drainer] = set()  # drainers in a callback, not given up
         self._drainers = 0  # drainers that take calls (not given up)
-        self._running: dict[str, _Drainer] = {}  # query id -> the drainer in its callback
+        self._arrived = 0  # calls queued so far (their `seq`)
         self._watching = False
         self._quiet_since = 0.0  # when the last callback ended with none running
         self._workers = Workers("status")
@@ -496,12 +516,33 @@ class Runner:
     def run(self, calls: Iterable[_Call]) -> None:
         """Queue `calls`; start a drainer if none is free to take them."""
         with self._lock:
-            self._calls.extend(calls)
-            start = self._drainers == len(self._running) and bool(self._calls)
-            if start:
-                self._drainers += 1
-            watch = not self._watching
+            for call in calls:
+                self._arrived += 1
+                call.seq = self._arrived
+                query_id = call.query.id
+                lane = self._lanes.get(query_id)
+                if lane is not None:
+                    lane.append(call)
+                    continue
+                self._lanes[query_id] = collections.deque((call,))
+                if query_id not in self._holders:
+                    heapq.heappush(self._open, (call.seq, query_id))
+            start, watch = self._wanted()
+        self._kick(start, watch)
+
+    def _wanted(self) -> tuple[bool, bool]:
+        """(Holding the lock.) Whether to start a drainer (counted now: an open lane and
+        every drainer inside a callback), and the watchdog (marked now: not running while
+        a lane is open or a callback runs)."""
+        start = bool(self._open) and self._drainers == len(self._inside)
+        if start:
+            self._drainers += 1
+        watch = not self._watching and (bool(self._open) or bool(self._inside))
+        if watch:
             self._watching = True
+        return start, watch
+
+    def _kick(self, start: bool, watch: bool) -> None:
         if watch:
             self._watch_start()
         if start:
@@ -518,17 +559,41 @@ class Runner:
                 self._drainers -= 1
                 skipped: list[_Call] = []
                 if self._drainers == 0:  # nobody else will take them
-                    skipped, self._calls = list(self._calls), collections.deque()
+                    for lane in self._lanes.values():
+                        skipped.extend(lane)
+                    self._lanes.clear()
+                    self._open.clear()
             for call in skipped:
                 call.done()
 
     def _take(self) -> _Call | None:
-        """(Holding the lock.) The first queued call whose id has no callback running."""
-        for index, call in enumerate(self._calls):
-            if call.query.id not in self._running:
-                del self._calls[index]
-                return call
-        return None
+        """(Holding the lock.) The earliest-arrived call of an open lane (its lane closed)."""
+        if not self._open:
+            return None
+        _seq, query_id = heapq.heappop(self._open)
+        lane = self._lanes[query_id]
+        call = lane.popleft()
+        if not lane:
+            del self._lanes[query_id]
+        return call
+
+    def _let_go(self, drainer: _Drainer, call: _Call) -> None:
+        """(Holding the lock.) Open the lane `drainer` holds for `call` (if it still does)."""
+        query_id = call.query.id
+        if self._holders.get(query_id) is not drainer or drainer.call is not call:
+            return
+        del self._holders[query_id]
+        lane = self._lanes.get(query_id)
+        if lane:
+            heapq.heappush(self._open, (lane[0].seq, query_id))
+
+    def _waits(self, drainer: _Drainer, call: _Call) -> None:
+        """`call`'s callback waits for a registrar (`replies.let_go`, any thread, any time,
+        more than once): its lane opens, if its drainer still holds it for it."""
+        with self._lock:
+            self._let_go(drainer, call)
+            start, watch = self._wanted()
+        self._kick(start, watch)
 
     def _drain(self, drainer: _Drainer) -> None:
         """A worker's turn: run queued calls until none it may take is left."""
@@ -541,17 +606,23 @@ class Runner:
                     drainer.abandoned = True
                     self._drainers -= 1
                     return
-                drainer.query_id = call.query.id
+                drainer.call = call
                 drainer.started = runtime.monotonic()
-                self._running[drainer.query_id] = drainer
+                self._holders[call.query.id] = drainer
+                self._inside.add(drainer)
+            token = when_waiting(functools.partial(self._waits, drainer, call))
             try:
                 call()
             finally:
+                waited(token)
                 with self._lock:
-                    if self._running.get(drainer.query_id) is drainer:
-                        del self._running[drainer.query_id]
-                    if not self._running:
+                    self._inside.discard(drainer)
+                    self._let_go(drainer, call)
+                    if not self._inside:
                         self._quiet_since = runtime.monotonic()
+                    # (given up: its thread ends; another takes the lane it opened)
+                    start, watch = self._wanted() if drainer.abandoned else (False, False)
+                self._kick(start, watch)
 
     def _watch_start(self) -> None:
         try:
@@ -562,23 +633,23 @@ class Runner:
                 self._watching = False
 
     def _watch(self) -> None:
-        """The watchdog: every `SLICE`, give up drainers whose callback overran it; end
-        after a second with no callback running."""
+        """The watchdog: every `SLICE`, give up drainers whose callback overran it (their
+        lanes stay closed); end after a second with no callback running."""
         while True:
             runtime.sleep(SLICE)
             now = runtime.monotonic()
             overdue: list[_Drainer] = []
             with self._lock:
-                for drainer in list(self._running.values()):
+                for drainer in list(self._inside):
                     if now - drainer.started >= SLICE:
                         overdue.append(drainer)
                         drainer.abandoned = True
                         self._drainers -= 1
-                        del self._running[drainer.query_id]
-                start = bool(self._calls) and self._drainers == len(self._running)
+                        self._inside.discard(drainer)
+                start = bool(self._open) and self._drainers == len(self._inside)
                 if start:
                     self._drainers += 1
-                idle = not overdue and not self._running and not self._calls
+                idle = not overdue and not self._inside and not self._open
                 if idle and now - self._quiet_since > _LINGER:
                     self._watching = False
                     return

@@ -19,6 +19,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._core.workers import Workers
+from rr_actors._registrar.status import Runner, _Call
 from rr_actors.testing import STEPS, RemoteRegistrar, catalog_snapshot, intercept
 from tests.registrar.conftest import placement_network
 from tests.support.waiting import wait_for
@@ -570,6 +571,34 @@ class TestStatus:
         assert ["delivered"] == outcome
         assert [(other.id, "nested")] == [(u.query_id, u.message) for _, u in box.updates]
 
+    def test_a_status_callback_may_send_a_status_that_reaches_its_own_id(
+        self, make_registrar, serve, shared
+    ):
+        """Rule 9: a callback that sends a status about the resource it hears of waits for
+        its own id's next callback. Each id hears its statuses one at a time, but a
+        callback that waits for a registrar lets its id's next status start: that one
+        runs beside it (issue 51 finding 6), not after the nested send timed out."""
+        provider, consumer = make_registrar("provider"), make_registrar("consumer")
+        serve(provider, "leaf")
+        heard, outcome = shared.list(), shared.list()
+
+        def reentrant(query, update):
+            heard.append(update.message)
+            if update.message != "outer":
+                return
+            try:
+                provider.send_status(query.id, rr.Status.OK, "inner", timeout=5)
+            except rr.CallTimeoutError:
+                outcome.append("deadlocked")
+            else:
+                outcome.append("delivered")
+
+        query = consumer.call(provider.name, "leaf", "a", on_status=reentrant)
+
+        provider.send_status(query.id, rr.Status.WARNING, "outer", timeout=15)
+
+        assert (["delivered"], ["outer", "inner"]) == (list(outcome), list(heard))
+
     def test_a_server_on_status_may_call_and_send_status_on_its_own_server(
         self, make_registrar, shared
     ):
@@ -620,7 +649,7 @@ class TestStatus:
                 provider.name, "leaf", "a", on_status=lambda _q, u: heard.append(u)
             )
 
-            def no_thread(_self: Workers, _task: Any) -> None:
+            def no_thread(_self: Workers, _task: Any, **_options: Any) -> None:
                 raise RuntimeError("can't start new thread")
 
             monkeypatch.setattr(Workers, "submit", no_thread)  # say, too many hung callbacks
@@ -714,13 +743,18 @@ class TestFanout:
         heard = wait_heard(tree, lambda h: all(len(p) == REGISTRARS * IDS for p in h))
 
         assert [[["first"]] * REGISTRARS * IDS] * PROCESSES == [list(p.values()) for p in heard]
-        tree.send("second")  # (a hung callback holds its own id's next one back a moment only)
-        assert [[["first", "second"]] * REGISTRARS * IDS] * PROCESSES == [
-            list(p.values()) for p in tree.heard()
+        with pytest.raises(rr.CallTimeoutError):  # (a hung callback holds its own id's next)
+            tree.send("second", timeout=1.0)
+        healthy = REGISTRARS * IDS - IDS
+        heard = wait_heard(
+            tree, lambda h: all(sum(len(s) == 2 for s in p.values()) == healthy for p in h)
+        )
+        assert [sorted([["first"]] * IDS + [["first", "second"]] * healthy)] * PROCESSES == [
+            sorted(p.values()) for p in heard
         ]
         for host in tree.hosts:
             tree.ask(host, "release")
-        tree.send("third")  # (every callback returns now: delivered everywhere)
+        tree.send("third")  # (every callback returns now: delivered everywhere, in order)
         assert [[["first", "second", "third"]] * REGISTRARS * IDS] * PROCESSES == [
             list(p.values()) for p in tree.heard()
         ]
@@ -739,6 +773,69 @@ class TestFanout:
         assert [[["warm-up", "again"]] * REGISTRARS * IDS] * PROCESSES == [
             list(process.values()) for process in tree.heard()
         ]
+
+
+class TestRunner:
+    """The runner of a process's status callbacks: each id's in arrival order."""
+
+    def test_a_callback_given_up_as_slow_keeps_its_id_s_next_status_behind_it(self) -> None:
+        """Issue 51 finding 6: the watchdog gave up every callback that ran `SLICE` of
+        wall-clock (one that only waited for the CPU too), and that id's next status ran
+        beside it. Forced: x's and y's first callbacks wait until z's ran. z's arrived
+        last, so it runs only on a drainer the watchdog started once x's was given up,
+        and that drainer took x's second first if x's lane was open."""
+        runner = Runner()
+        heard: list[tuple[str, str]] = []
+        lock = threading.Lock()
+        z_ran = threading.Event()
+        ended = threading.Semaphore(0)
+
+        def hear(query: rr.Query, update: rr.StatusUpdate) -> None:
+            with lock:
+                heard.append((query.id, f"{update.message} starts"))
+            if query.id == "z":
+                z_ran.set()
+            elif update.message == "one":
+                assert z_ran.wait(10)  # (past the watchdog's slice: given up)
+            with lock:
+                heard.append((query.id, f"{update.message} ends"))
+
+        def status(query_id: str, message: str) -> _Call:
+            query = rr.Query(query_id, "leaf", "prov", "cons", "r", "r")
+            update = rr.StatusUpdate(query_id, rr.Status.UPDATE, message, "prov/leaf")
+            return _Call(hear, query, update, ended.release)
+
+        runner.run([status("x", "one"), status("x", "two"), status("y", "one"), status("z", "one")])
+
+        assert all(ended.acquire(timeout=10) for _ in range(4))
+        assert [
+            ("x", "one starts"),
+            ("x", "one ends"),
+            ("x", "two starts"),
+            ("x", "two ends"),
+        ] == [entry for entry in heard if entry[0] == "x"]
+
+    def test_a_callback_that_raises_system_exit_leaves_the_runner_running_the_next(self) -> None:
+        runner = Runner()
+        heard: list[str] = []
+        ended = threading.Semaphore(0)
+
+        def hear(query: rr.Query, update: rr.StatusUpdate) -> None:
+            heard.append(f"{query.id} {update.message}")
+            if query.id == "x":
+                raise SystemExit(3)
+
+        def status(query_id: str, message: str) -> _Call:
+            query = rr.Query(query_id, "leaf", "prov", "cons", "r", "r")
+            update = rr.StatusUpdate(query_id, rr.Status.UPDATE, message, "prov/leaf")
+            return _Call(hear, query, update, ended.release)
+
+        runner.run([status("x", "one")])
+        assert ended.acquire(timeout=10)
+        runner.run([status("y", "one")])  # (its drainer counted no thread that had ended)
+
+        assert ended.acquire(timeout=10)
+        assert ["x one", "y one"] == heard
 
 
 class TestReleaseCrossing:
