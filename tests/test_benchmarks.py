@@ -86,6 +86,7 @@ SMALLEST = {
     "count_dedup.py": ["--calls", "5", "--profile"],
     "minimal_hit.py": ["--rounds", "1"],
     "planted_bugs.py": ["--only", "dedup", "--seeds", "3"],
+    "stress_cancel.py": ["--runs", "1", "--calls", "200"],
     "stress_crash.py": ["--kills", "4", "--round", "2"],
 }
 """The quickest arguments of each benchmark script (every script must be listed here)."""
