@@ -319,8 +319,7 @@ class SimulatedFaults:
             side = set(names) - side
         if self._cut is not None:
             detail = (
-                f"{self._cut} was still cut (the simulated network holds one partition at "
-                "a time)"
+                f"{self._cut} was still cut (the simulated network holds one partition at a time)"
             )
             self.log.record(fault, at, None, detail, target=target, skipped=True)
             return

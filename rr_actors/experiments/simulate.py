@@ -50,7 +50,7 @@ from rr_actors import events
 from rr_actors._core import runtime
 from rr_actors.events.lines import to_lines
 from rr_actors.experiments import check
-from rr_actors.experiments.plan import HOST_KINDS, SIMULATION_KINDS, Plan, PlanError
+from rr_actors.experiments.plan import SIMULATION_KINDS, Plan, PlanError
 from rr_actors.experiments.results import FaultRecord
 from rr_actors.experiments.runner import (
     EVENT_QUEUE,
@@ -185,8 +185,8 @@ def check_simulable(plan: Plan) -> None:
         PlanError: a fault kind other than those of `SIMULATED_KINDS` (`kill_resource`,
             `freeze`, `kill_router`), or a setup of `NOT_SIMULATED_SETUPS`; with
             `[hosts]`: a kind of `NOT_WITH_HOSTS`, a `cut` between more than two hosts
-            (the link's two ends would still reach each other through a third), or a
-            manager's fault aimed at a manager of another host than the run's own.
+            (the link's two ends would still reach each other through a third). (A
+            manager's fault aimed at another host's manager: `parse_plan` refuses it.)
     """
     source = plan.source or "<plan>"
     hosts = plan.hosts
@@ -211,16 +211,6 @@ def check_simulable(plan: Plan) -> None:
                 "ends still reach each other through another host, and the simulated "
                 "network cuts one side off the rest (use 'partition')",
             )
-        for target in fault.targets if fault.kind not in HOST_KINDS else ():
-            if plan.host_of(target) != hosts.home:
-                raise PlanError(
-                    source,
-                    0,
-                    f"faults[{index}].target",
-                    f"{fault.kind!r} aimed at {target!r} (on host {plan.host_of(target)!r}) "
-                    f"is not simulated: the injector drives the run's own host's tree "
-                    f"({hosts.home!r}) only",
-                )
     for manager in plan.managers():
         refused = NOT_SIMULATED_SETUPS.get(manager.setup)
         if refused is not None:
@@ -575,7 +565,9 @@ class _SimulatedHost:
 
         plan, name = self.plan, self.name
         try:
-            sup = build_tree(plan, self._state_dir, seed=self._seed, host=name, network=self._network)
+            sup = build_tree(
+                plan, self._state_dir, seed=self._seed, host=name, network=self._network
+            )
             subscription = sup.subscribe(self._on_event, maxsize=EVENT_QUEUE)
             sup.start()
         except BaseException as exc:
