@@ -235,6 +235,12 @@ class SimulatedFaults:
         return runtime.monotonic() - self.t0
 
     def _fire(self, fault: ScheduledFault, at: float) -> None:
+        if fault.kind in ("cut", "partition"):
+            self._cut_hosts(fault, at)
+        else:
+            self._fire_at_manager(fault, at)
+
+    def _fire_at_manager(self, fault: ScheduledFault, at: float) -> None:
         helper = {
             "load_error": (self._load_error, "rr-simulated-load"),
             "split_brain": (self._split_brain, "rr-simulated-split"),
@@ -244,9 +250,6 @@ class SimulatedFaults:
             thread = runtime.Thread(target=target, args=(fault, at), name=name, daemon=True)
             self._helpers.append(thread)
             thread.start()
-            return
-        if fault.kind in ("cut", "partition"):
-            self._cut_hosts(fault, at)
             return
         assert fault.target is not None
         info = self.sup.child(fault.target)

@@ -46,6 +46,7 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import rr_actors as rr
 from rr_actors import events
 from rr_actors._core import runtime
 from rr_actors.events.lines import to_lines
@@ -435,10 +436,7 @@ def _world(
     records: list[FaultRecord] = []
     try:
         sup.start()
-        for name in plan.hosts.names[1:] if plan.hosts is not None else ():
-            state = folder / f"state-{name}" if plan.state else None
-            hosts.append(_SimulatedHost(plan, name, state, seed, network, seen))
-            hosts[-1].ask("start")
+        _start_hosts(plan, folder, seed, network, seen, hosts)
         clients = [Client(i, sup, plan, seed, run_dir=work) for i in range(plan.workload.clients)]
         progress.serving, progress.clients = True, clients
         t0, wall_t0 = runtime.monotonic(), runtime.wall()
@@ -462,23 +460,17 @@ def _world(
         runtime.sleep(plan.duration)
         faults.stop()
         records = faults.records
-        home = plan.hosts.home if plan.hosts is not None else None
-        managers = [m.name for m in plan.managers() if plan.host_of(m.name) == home]
-        wait_all_serving(sup, managers, plan.recovery_timeout)
-        for host in hosts:
-            host.ask("wait_serving", plan.recovery_timeout)
+        managers = _wait_serving(sup, plan, hosts)
         for client in clients:
             client.stop(timeout=plan.workload.timeout)
         failed = next((c.failure for c in clients if c.failure is not None), None)
         if failed is not None:
             progress.serving = False  # (a client's request could not be made: no result)
             raise failed
-        left, _ = count_entries(sup, managers, clients)  # (the runner's settling, too)
-        for host in hosts:
-            left += host.ask("count")
+        # (the runner's settling, too; then each other host's)
+        left = count_entries(sup, managers, clients)[0] + _ask_each(hosts, "count")
         sup.flush_events()
-        for host in hosts:
-            host.ask("flush")
+        _ask_each(hosts, "flush")
     finally:
         # Each step of the cleanup runs though one before it raised (the first error is
         # raised, the others chained): a network left open would refuse the next seed's.
@@ -489,11 +481,55 @@ def _world(
             for opened in injector:  # (second servers' supervisors: to the end of the run)
                 cleanup.callback(_close_injector, opened, progress)
             cleanup.callback(sup.stop)
-            for host in reversed(hosts):  # (before the run's own host's tree, as for real)
-                cleanup.callback(host.stop)
+            cleanup.callback(_stop_each, hosts)  # (before the run's own host's tree, as for real)
     calls = [c for client in clients for c in client.calls]
     ok = sum(1 for c in calls if c.ok)
     return list(log.seen), records, wall_t0, (ok, len(calls) - ok, left)
+
+
+def _wait_serving(sup: rr.Supervisor, plan: Plan, hosts: list[_SimulatedHost]) -> list[str]:
+    """Wait (`recovery_timeout`) until every manager of the run's own host serves, then
+    each other host's (a host's that does not: not an error, as for real); the names of
+    the run's own host's managers.
+
+    Raises:
+        RrError: a manager of the run's own host did not serve in time.
+    """
+    home = plan.hosts.home if plan.hosts is not None else None
+    managers = [m.name for m in plan.managers() if plan.host_of(m.name) == home]
+    wait_all_serving(sup, managers, plan.recovery_timeout)
+    _ask_each(hosts, "wait_serving", plan.recovery_timeout)
+    return managers
+
+
+def _stop_each(hosts: list[_SimulatedHost]) -> None:
+    """Stop the other hosts' trees, the last started first; each, though one before it
+    raised (the first error is raised)."""
+    with contextlib.ExitStack() as cleanup:
+        for host in hosts:
+            cleanup.callback(host.stop)
+
+
+def _ask_each(hosts: list[_SimulatedHost], op: str, timeout: float = 0.0) -> int:
+    """`op` on each other host, one after another (`_SimulatedHost.ask`): the sum of
+    their counts."""
+    return sum(host.ask(op, timeout) for host in hosts)
+
+
+def _start_hosts(
+    plan: Plan,
+    folder: Path,
+    seed: int,
+    network: object,
+    on_event: Callable[[events.Event], None],
+    hosts: list[_SimulatedHost],
+) -> None:
+    """With `[hosts]`: start each other host (in `hosts` as it starts, so that the run's
+    cleanup stops it) and wait until its tree serves, one after another."""
+    for name in plan.hosts.names[1:] if plan.hosts is not None else ():
+        state = folder / f"state-{name}" if plan.state else None
+        hosts.append(_SimulatedHost(plan, name, state, seed, network, on_event))
+        hosts[-1].ask("start")
 
 
 class _SimulatedHost:
@@ -561,8 +597,6 @@ class _SimulatedHost:
                 raise reply
 
     def _main(self) -> None:
-        import rr_actors as rr  # noqa: PLC0415 - (the package, in the host's process)
-
         plan, name = self.plan, self.name
         try:
             sup = build_tree(
@@ -570,7 +604,7 @@ class _SimulatedHost:
             )
             subscription = sup.subscribe(self._on_event, maxsize=EVENT_QUEUE)
             sup.start()
-        except BaseException as exc:
+        except Exception as exc:  # noqa: BLE001 - the run's thread raises it
             self._replies.put(exc)
             return
         managers = [m.name for m in plan.managers() if plan.host_of(m.name) == name]
@@ -591,7 +625,7 @@ class _SimulatedHost:
                         cleanup.callback(subscription.close)
                         cleanup.callback(subscription.wait_delivered)
                         cleanup.callback(sup.stop)
-            except BaseException as exc:  # (the run's thread raises it)
+            except Exception as exc:  # noqa: BLE001 - the run's thread raises it
                 reply = exc
             self._replies.put(reply)
             if op == "stop":
