@@ -49,6 +49,7 @@ from typing import TYPE_CHECKING
 import rr_actors as rr
 from rr_actors import events
 from rr_actors._core import runtime
+from rr_actors.events.kinds import set_host
 from rr_actors.events.lines import to_lines
 from rr_actors.experiments import check
 from rr_actors.experiments.plan import SIMULATION_KINDS, Plan, PlanError
@@ -65,6 +66,7 @@ from rr_actors.experiments.schedule import fault_schedule
 from rr_actors.experiments.workload import Client
 
 if TYPE_CHECKING:
+    from rr_actors import simulation
     from rr_actors.experiments._simulated_faults import SimulatedFaults
 
 __all__ = [
@@ -416,10 +418,9 @@ def _world(
     plan: Plan, seed: int, folder: Path, progress: _Progress
 ) -> tuple[list[events.Event], list[FaultRecord], float, tuple[int, int, int]]:
     """The run, in the simulation's main thread: the runner's steps on simulated seams."""
-    from rr_actors import simulation  # noqa: PLC0415 - the simulation extra (greenlet)
-    from rr_actors.experiments._simulated_faults import SimulatedFaults  # noqa: PLC0415 - ditto
+    from rr_actors.experiments._simulated_faults import SimulatedFaults  # noqa: PLC0415 - greenlet
 
-    network = simulation.SimulatedNetwork(lease=plan.hosts.lease if plan.hosts else None)
+    network = _network_of(plan)
     work = folder / "work"
     work.mkdir()
     sup = build_tree(plan, folder / "state" if plan.state else None, seed=seed, network=network)
@@ -485,6 +486,19 @@ def _world(
     calls = [c for client in clients for c in client.calls]
     ok = sum(1 for c in calls if c.ok)
     return list(log.seen), records, wall_t0, (ok, len(calls) - ok, left)
+
+
+def _network_of(plan: Plan) -> simulation.SimulatedNetwork:
+    """The run's simulated network (in the simulation's main process): with `[hosts]`,
+    the plan's lease, and this process named the run's own host in its events (as a
+    real run's member names: the checker judges a registrar lost across hosts by them;
+    the real process's name is kept)."""
+    from rr_actors import simulation  # noqa: PLC0415 - the simulation extra (greenlet)
+
+    if plan.hosts is None:
+        return simulation.SimulatedNetwork()
+    set_host(plan.hosts.home)
+    return simulation.SimulatedNetwork(lease=plan.hosts.lease)
 
 
 def _wait_serving(sup: rr.Supervisor, plan: Plan, hosts: list[_SimulatedHost]) -> list[str]:
@@ -598,6 +612,7 @@ class _SimulatedHost:
 
     def _main(self) -> None:
         plan, name = self.plan, self.name
+        set_host(name)  # (its events', and its managers' processes' as they start)
         try:
             sup = build_tree(
                 plan, self._state_dir, seed=self._seed, host=name, network=self._network

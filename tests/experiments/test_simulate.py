@@ -1001,3 +1001,19 @@ def test_a_cut_between_two_of_three_hosts_is_refused_naming_partition() -> None:
         simulate.simulate(plan, range(1))
 
     assert "faults[0].kind" == raised.value.key
+
+
+@SWEEP
+def test_each_simulated_host_names_its_events_so_a_loss_across_hosts_is_judged_so() -> None:
+    from rr_actors.experiments import load_plan  # noqa: PLC0415
+
+    plan = load_plan(PLANS / "simhosts.toml")  # (cuts past its lease: db lost across)
+
+    run = simulate.run_seed(plan, 5)  # (a client tells itself FATAL while db runs on)
+
+    lines = [json.loads(line) for line in run.history.splitlines()]
+    started = {x["child"]: x["host"] for x in lines if x["type"] == "ChildStarted"}
+    assert {"db": "b", "api": "a"} == started
+    assert {"a"} == {x["host"] for x in lines if x.get("registrar", "").startswith("client-")}
+    assert any("provider lost" in x.get("reason", "") for x in lines)
+    held([run])
