@@ -10,6 +10,9 @@
    hang_manager ──────► SIGSTOP; `for` later SIGCONT (unless it was killed meanwhile)
    cut_connections ───► SimulatedNetwork.cut_connections(pid): its links close
    load_error ────────► Supervisor.run_in(manager, arm_load_error) on a thread of its own
+   cut, partition ────► one side's hosts' processes (each host's and every one it started)
+                        cut off the others' (SimulatedNetwork.partition); `for` s later
+                        healed; one at a time (one due meanwhile: skipped)
    only here (plan.SIMULATION_KINDS):
    duplicate_delivery ► its links close, and each made to it within `for` s delivers its
                         first frame twice (SimulatedNetwork.duplicate_first)

@@ -6,7 +6,9 @@
      world():  SimulatedNetwork; build_tree (the runner's: every setup instrumented,    │
                manager processes simulated, their backups real SQLite files)            │
                subscribe ─► _EventLog (the runner's)                                    │
-               sup.start(); the workload's Clients (workload.py, simulated threads)     │
+               sup.start(); with [hosts] each other host's process (its own tree,       │
+                 its events to the same log, driven by commands: _SimulatedHost)        │
+               the workload's Clients (workload.py, simulated threads)                  │
                the injector: fault_schedule(plan, S) on simulated processes and links   │
                  (SimulatedFaults, _simulated_faults.py), `after` ones from the events  │
                sleep(duration); faults stop; wait_all_serving; clients stop;            │
@@ -27,9 +29,12 @@ on it: `rr-actors experiment --simulate` runs under `PYTHONHASHSEED=0`).
 Simulated: the manager faults `kill_manager`, `hang_manager`, `cut_connections`,
 `load_error` and the kinds only a simulation can aim (`plan.SIMULATION_KINDS`), at fixed
 or random times or `after` an event (`_simulated_faults.py`); managers in processes or
-threads, on this host; a `[compare]` plan with its first value. `kill_resource`,
-`[hosts]` and the mission's ERM setup are refused with a `PlanError` naming them and why
-(`check_simulable`), never skipped silently.
+threads; a `[compare]` plan with its first value; `[hosts]`: each other host a
+simulated process of its own (`_SimulatedHost`: its part of the tree, as a real run's
+host process; its events named by it, `set_host`), and the faults between hosts `cut`
+(two hosts) and `partition` on the simulated network. `kill_resource`, `freeze`,
+`kill_router` and the mission's ERM setup are refused with a `PlanError` naming them
+and why (`check_simulable`), never skipped silently.
 """
 
 from __future__ import annotations
