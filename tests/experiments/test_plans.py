@@ -33,6 +33,7 @@ SHIPPED = {
     "simretry",
     "simheal",
     "simcancel",
+    "simhosts",
 }
 """Every plan shipped in the package; the tutorial's `first` runs in the docs test."""
 
