@@ -1017,3 +1017,38 @@ def test_each_simulated_host_names_its_events_so_a_loss_across_hosts_is_judged_s
     assert {"a"} == {x["host"] for x in lines if x.get("registrar", "").startswith("client-")}
     assert any("provider lost" in x.get("reason", "") for x in lines)
     held([run])
+
+
+@SWEEP
+def test_a_partition_of_the_runs_own_host_and_another_cuts_them_off_the_third() -> None:
+    three = (
+        HOSTS.replace('names = ["a", "b"]', 'names = ["a", "b", "c"]')
+        .replace(
+            '[[tree.children]]\nname = "api"',
+            f'[[tree.children]]\nname = "cache"\nsetup = "{SERVICE}"\nhost = "c"\n'
+            'options = { uses = ["db"] }\n\n[[tree.children]]\nname = "api"',
+        )
+        .replace('manager = "db"', 'manager = "cache"')  # (the clients call api and cache)
+    )
+    plan = parse_plan(
+        three
+        + """
+[[faults]]
+kind = "partition"
+hosts = ["a", "c"]
+at = [1.0]
+for = 1.0
+"""
+    )
+
+    run = simulate.run_seed(plan, 1)
+
+    assert [("partition", "a+c", "a+c cut from the other hosts for 1 s")] == [
+        (f["kind"], f["target"], f["detail"]) for f in fired(run)
+    ]
+    lines = lines_of(run)
+    failed = [x for x in lines if x["type"] == "CallFailed"]
+    assert all(1.0 <= x["t"] < 2.1 for x in failed)
+    # a's api and c's cache cannot reach db on b; a's clients still reach cache on c
+    assert {("api", "a"), ("cache", "c")} <= {(x["registrar"], x["host"]) for x in failed}
+    held([run])
