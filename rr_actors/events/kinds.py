@@ -58,16 +58,29 @@ def _this_host() -> Any:
     return dataclasses.field(default_factory=_current_host)
 
 
-_host = socket.gethostname()
+class _Host:
+    """The member name events of this process carry: per process (a simulated process
+    starts with its creator's, as a process forked on a host is on that host)."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+
+def _inherited() -> _Host:
+    """A simulated process's, as it starts: its creator's (installed while it creates)."""
+    return _Host(_HOST.name)
+
+
+_HOST: _Host = runtime.process_state(_Host(socket.gethostname()), _inherited)
 
 
 def _current_host() -> str:
-    return _host
+    return _HOST.name
 
 
 def this_host() -> str:
     """The member name events of this process carry (`host`): see `set_host`."""
-    return _host
+    return _HOST.name
 
 
 def set_host(name: str) -> None:
@@ -78,8 +91,7 @@ def set_host(name: str) -> None:
     name: the member name. Until then, and on a system without TLS, it is the
     machine's host name (`socket.gethostname()`).
     """
-    global _host
-    _host = name
+    _HOST.name = name
 
 
 def _this_process() -> Any:

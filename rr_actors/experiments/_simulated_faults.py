@@ -10,6 +10,9 @@
    hang_manager ──────► SIGSTOP; `for` later SIGCONT (unless it was killed meanwhile)
    cut_connections ───► SimulatedNetwork.cut_connections(pid): its links close
    load_error ────────► Supervisor.run_in(manager, arm_load_error) on a thread of its own
+   cut, partition ────► one side's hosts' processes (each host's and every one it started)
+                        cut off the others' (SimulatedNetwork.partition); `for` s later
+                        healed; one at a time (one due meanwhile: skipped)
    only here (plan.SIMULATION_KINDS):
    duplicate_delivery ► its links close, and each made to it within `for` s delivers its
                         first frame twice (SimulatedNetwork.duplicate_first)
@@ -85,6 +88,8 @@ class SimulatedFaults:
         wall_t0: `runtime.wall()` then (events' times are on it).
         on_event: what the run's events go to (a second server's supervisor's too).
         state_dir: where second servers keep their backups (`None`: in memory).
+        hosts: with `[hosts]`, the pid of each other host's process (its tree's and its
+            managers' processes are the ones it started).
     """
 
     def __init__(
@@ -98,8 +103,11 @@ class SimulatedFaults:
         *,
         on_event: Callable[[events.Event], None] | None = None,
         state_dir: Path | None = None,
+        hosts: dict[str, int] | None = None,
     ) -> None:
         self.sup = sup
+        self._hosts = dict(hosts or {})  # another host's name -> the pid of its process
+        self._cut: str | None = None  # the fault between hosts in force (its target)
         self._on_event = on_event
         self._state_dir = state_dir
         self._beyond: list[tuple[rr.Supervisor, Any]] = []  # second servers' (sup, events)
@@ -160,7 +168,8 @@ class SimulatedFaults:
         self._hung.clear()
         for key in list(self._open):
             self._close(key)
-        self.network.heal()  # (a partition_serving still on)
+        self.network.heal()  # (a partition_serving, or a cut between hosts, still on)
+        self._cut = None
         for pid in sorted(self._deaf):
             self.network.hear(pid)
         self._deaf.clear()
@@ -229,6 +238,12 @@ class SimulatedFaults:
         return runtime.monotonic() - self.t0
 
     def _fire(self, fault: ScheduledFault, at: float) -> None:
+        if fault.kind in ("cut", "partition"):
+            self._cut_hosts(fault, at)
+        else:
+            self._fire_at_manager(fault, at)
+
+    def _fire_at_manager(self, fault: ScheduledFault, at: float) -> None:
         helper = {
             "load_error": (self._load_error, "rr-simulated-load"),
             "split_brain": (self._split_brain, "rr-simulated-split"),
@@ -288,6 +303,42 @@ class SimulatedFaults:
             simulation.kill(pid, signal.SIGKILL)
         else:  # (check_simulable refuses the others)
             raise AssertionError(f"fault kind {kind!r} is not simulated")
+
+    def _cut_hosts(self, fault: ScheduledFault, at: float) -> None:
+        """`cut` (of two hosts' link) or `partition`: the processes of one side's hosts
+        cut off the others' (`SimulatedNetwork.partition`), healed `for` s later; recorded
+        as a real run records it. One at a time: the simulated network holds one
+        partition, so one due while another is in force is skipped, saying so."""
+        plan = self.plan.faults[fault.fault]
+        assert self.plan.hosts is not None
+        names, home = self.plan.hosts.names, self.plan.hosts.home
+        for_s = plan.for_s or 0.0
+        if fault.kind == "cut":
+            assert plan.link is not None
+            one, other = plan.link
+            side, target = {one, other} - {home}, f"{one}-{other}"  # (two hosts only)
+            what = f"link {one}-{other} down for {for_s:g} s"
+        else:
+            side, target = set(plan.hosts), "+".join(plan.hosts)
+            what = f"{target} cut from the other hosts for {for_s:g} s"
+        if home in side:  # (the other side: the run's own process is the simulation's root)
+            side = set(names) - side
+        if self._cut is not None:
+            detail = (
+                f"{self._cut} was still cut (the simulated network holds one partition at a time)"
+            )
+            self.log.record(fault, at, None, detail, target=target, skipped=True)
+            return
+        self._cut = target
+        self.network.partition(sorted(self._hosts[name] for name in side), started_by=True)
+        self.log.record(fault, at, self._now(), what, target=target)
+        self._at(runtime.monotonic() + for_s, self._heal_hosts, None)
+
+    def _heal_hosts(self) -> None:
+        """The fault between hosts in force is over: every host hears the others again."""
+        if self._cut is not None:
+            self._cut = None
+            self.network.heal()
 
     def _duplicated(
         self, fault: ScheduledFault, at: float, injected: float, pid: int, count: list[int]

@@ -6,7 +6,9 @@
      world():  SimulatedNetwork; build_tree (the runner's: every setup instrumented,    │
                manager processes simulated, their backups real SQLite files)            │
                subscribe ─► _EventLog (the runner's)                                    │
-               sup.start(); the workload's Clients (workload.py, simulated threads)     │
+               sup.start(); with [hosts] each other host's process (its own tree,       │
+                 its events to the same log, driven by commands: _SimulatedHost)        │
+               the workload's Clients (workload.py, simulated threads)                  │
                the injector: fault_schedule(plan, S) on simulated processes and links   │
                  (SimulatedFaults, _simulated_faults.py), `after` ones from the events  │
                sleep(duration); faults stop; wait_all_serving; clients stop;            │
@@ -27,9 +29,12 @@ on it: `rr-actors experiment --simulate` runs under `PYTHONHASHSEED=0`).
 Simulated: the manager faults `kill_manager`, `hang_manager`, `cut_connections`,
 `load_error` and the kinds only a simulation can aim (`plan.SIMULATION_KINDS`), at fixed
 or random times or `after` an event (`_simulated_faults.py`); managers in processes or
-threads, on this host; a `[compare]` plan with its first value. `kill_resource`,
-`[hosts]` and the mission's ERM setup are refused with a `PlanError` naming them and why
-(`check_simulable`), never skipped silently.
+threads; a `[compare]` plan with its first value; `[hosts]`: each other host a
+simulated process of its own (`_SimulatedHost`: its part of the tree, as a real run's
+host process; its events named by it, `set_host`), and the faults between hosts `cut`
+(two hosts) and `partition` on the simulated network. `kill_resource`, `freeze`,
+`kill_router` and the mission's ERM setup are refused with a `PlanError` naming them
+and why (`check_simulable`), never skipped silently.
 """
 
 from __future__ import annotations
@@ -46,8 +51,10 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import rr_actors as rr
 from rr_actors import events
 from rr_actors._core import runtime
+from rr_actors.events.kinds import set_host
 from rr_actors.events.lines import to_lines
 from rr_actors.experiments import check
 from rr_actors.experiments.plan import SIMULATION_KINDS, Plan, PlanError
@@ -64,6 +71,7 @@ from rr_actors.experiments.schedule import fault_schedule
 from rr_actors.experiments.workload import Client
 
 if TYPE_CHECKING:
+    from rr_actors import simulation
     from rr_actors.experiments._simulated_faults import SimulatedFaults
 
 __all__ = [
@@ -76,16 +84,28 @@ __all__ = [
 ]
 
 SIMULATED_KINDS = frozenset(
-    {"kill_manager", "hang_manager", "cut_connections", "load_error"} | SIMULATION_KINDS
+    {"kill_manager", "hang_manager", "cut_connections", "load_error", "cut", "partition"}
+    | SIMULATION_KINDS
 )
 """The fault kinds a simulated run injects (`_simulated_faults.py`; the others: `PlanError`)."""
 
 NOT_SIMULATED = {
     "kill_resource": "a resource's own OS process (a program the mission's ERM starts) is "
     "not a simulated process",
+    "freeze": "it stops a host's Zenoh router process, and the simulated hosts have no "
+    "router (their processes reach each other on the simulated network)",
+    "kill_router": "it kills a host's Zenoh router process, and the simulated hosts have no "
+    "router (their processes reach each other on the simulated network)",
 }
-"""Why a manager's fault kind outside `SIMULATED_KINDS` is not simulated (the kinds
-between hosts: `[hosts]` is not)."""
+"""Why a fault kind outside `SIMULATED_KINDS` is not simulated."""
+
+NOT_WITH_HOSTS = {
+    "partition_serving": "it cuts its manager off with the simulated network's one "
+    "partition, which the plan's cuts between hosts use",
+    "split_brain": "it cuts its manager off with the simulated network's one partition, "
+    "which the plan's cuts between hosts use",
+}
+"""Why a fault kind is not simulated in a plan with `[hosts]`."""
 
 NOT_SIMULATED_SETUPS = {
     "rr_actors.mission.managers:erm_setup": "the mission's ERM starts real OS programs and "
@@ -163,26 +183,42 @@ def check_simulable(plan: Plan) -> None:
     """Refuse what the simulation does not model, naming it and why.
 
     A plan with `[compare]` runs as read: with its first compared value (as its first
-    runs do for real); simulate another value's plan with `plan.variants[i][1]`.
+    runs do for real); simulate another value's plan with `plan.variants[i][1]`. A plan
+    with `[hosts]` runs each host as a simulated process of its own (its part of the
+    tree, its managers' processes started by it), the hosts joined by one simulated
+    network with the plan's `lease`; `cut` and `partition` cut some hosts' processes
+    off the others' (`SimulatedNetwork.partition`).
 
     Raises:
         PlanError: a fault kind other than those of `SIMULATED_KINDS` (`kill_resource`,
-            the faults between hosts), `[hosts]`, or a setup of `NOT_SIMULATED_SETUPS`.
+            `freeze`, `kill_router`), or a setup of `NOT_SIMULATED_SETUPS`; with
+            `[hosts]`: a kind of `NOT_WITH_HOSTS`, a `cut` between more than two hosts
+            (the link's two ends would still reach each other through a third). (A
+            manager's fault aimed at another host's manager: `parse_plan` refuses it.)
     """
     source = plan.source or "<plan>"
+    hosts = plan.hosts
     for index, fault in enumerate(plan.faults):
+        where = f"faults[{index}].kind"
         if fault.kind not in SIMULATED_KINDS:
-            why = NOT_SIMULATED.get(fault.kind, "the simulation runs one host ([hosts] is not)")
+            why = NOT_SIMULATED.get(fault.kind, "the simulation does not model it")
+            raise PlanError(source, 0, where, f"{fault.kind!r} is not simulated: {why}")
+        if hosts is None:
+            continue
+        if fault.kind in NOT_WITH_HOSTS:
+            why = NOT_WITH_HOSTS[fault.kind]
             raise PlanError(
-                source, 0, f"faults[{index}].kind", f"{fault.kind!r} is not simulated: {why}"
+                source, 0, where, f"{fault.kind!r} is not simulated with [hosts]: {why}"
             )
-    if plan.hosts is not None:
-        raise PlanError(
-            source,
-            0,
-            "hosts",
-            "a plan of several hosts is not simulated (network namespaces, real Zenoh)",
-        )
+        if fault.kind == "cut" and len(hosts.names) > 2:
+            raise PlanError(
+                source,
+                0,
+                where,
+                "'cut' is simulated between two hosts only: with more, the link's two "
+                "ends still reach each other through another host, and the simulated "
+                "network cuts one side off the rest (use 'partition')",
+            )
     for manager in plan.managers():
         refused = NOT_SIMULATED_SETUPS.get(manager.setup)
         if refused is not None:
@@ -387,13 +423,13 @@ def _world(
     plan: Plan, seed: int, folder: Path, progress: _Progress
 ) -> tuple[list[events.Event], list[FaultRecord], float, tuple[int, int, int]]:
     """The run, in the simulation's main thread: the runner's steps on simulated seams."""
-    from rr_actors import simulation  # noqa: PLC0415 - the simulation extra (greenlet)
-    from rr_actors.experiments._simulated_faults import SimulatedFaults  # noqa: PLC0415 - ditto
+    from rr_actors.experiments._simulated_faults import SimulatedFaults  # noqa: PLC0415 - greenlet
 
-    network = simulation.SimulatedNetwork()
+    network = _network_of(plan)
     work = folder / "work"
     work.mkdir()
     sup = build_tree(plan, folder / "state" if plan.state else None, seed=seed, network=network)
+    hosts: list[_SimulatedHost] = []  # the other hosts (with `[hosts]`), once started
     log = progress.log = _EventLog()
     injector: list[SimulatedFaults] = []  # (set once the workload starts)
 
@@ -406,6 +442,7 @@ def _world(
     records: list[FaultRecord] = []
     try:
         sup.start()
+        _start_hosts(plan, folder, seed, network, seen, hosts)
         clients = [Client(i, sup, plan, seed, run_dir=work) for i in range(plan.workload.clients)]
         progress.serving, progress.clients = True, clients
         t0, wall_t0 = runtime.monotonic(), runtime.wall()
@@ -419,6 +456,7 @@ def _world(
             wall_t0,
             on_event=seen,
             state_dir=folder / "beyond" if plan.state else None,
+            hosts={host.name: host.pid for host in hosts},
         )
         injector.append(faults)
         progress.faults = faults
@@ -428,16 +466,17 @@ def _world(
         runtime.sleep(plan.duration)
         faults.stop()
         records = faults.records
-        managers = [m.name for m in plan.managers()]
-        wait_all_serving(sup, managers, plan.recovery_timeout)
+        managers = _wait_serving(sup, plan, hosts)
         for client in clients:
             client.stop(timeout=plan.workload.timeout)
         failed = next((c.failure for c in clients if c.failure is not None), None)
         if failed is not None:
             progress.serving = False  # (a client's request could not be made: no result)
             raise failed
-        left, _ = count_entries(sup, managers, clients)  # (the runner's settling, too)
+        # (the runner's settling, too; then each other host's)
+        left = count_entries(sup, managers, clients)[0] + _ask_each(hosts, "count")
         sup.flush_events()
+        _ask_each(hosts, "flush")
     finally:
         # Each step of the cleanup runs though one before it raised (the first error is
         # raised, the others chained): a network left open would refuse the next seed's.
@@ -448,6 +487,166 @@ def _world(
             for opened in injector:  # (second servers' supervisors: to the end of the run)
                 cleanup.callback(_close_injector, opened, progress)
             cleanup.callback(sup.stop)
+            cleanup.callback(_stop_each, hosts)  # (before the run's own host's tree, as for real)
     calls = [c for client in clients for c in client.calls]
     ok = sum(1 for c in calls if c.ok)
     return list(log.seen), records, wall_t0, (ok, len(calls) - ok, left)
+
+
+def _network_of(plan: Plan) -> simulation.SimulatedNetwork:
+    """The run's simulated network (in the simulation's main process): with `[hosts]`,
+    the plan's lease, and this process named the run's own host in its events (as a
+    real run's member names: the checker judges a registrar lost across hosts by them;
+    the real process's name is kept)."""
+    from rr_actors import simulation  # noqa: PLC0415 - the simulation extra (greenlet)
+
+    if plan.hosts is None:
+        return simulation.SimulatedNetwork()
+    set_host(plan.hosts.home)
+    return simulation.SimulatedNetwork(lease=plan.hosts.lease)
+
+
+def _wait_serving(sup: rr.Supervisor, plan: Plan, hosts: list[_SimulatedHost]) -> list[str]:
+    """Wait (`recovery_timeout`) until every manager of the run's own host serves, then
+    each other host's (a host's that does not: not an error, as for real); the names of
+    the run's own host's managers.
+
+    Raises:
+        RrError: a manager of the run's own host did not serve in time.
+    """
+    home = plan.hosts.home if plan.hosts is not None else None
+    managers = [m.name for m in plan.managers() if plan.host_of(m.name) == home]
+    wait_all_serving(sup, managers, plan.recovery_timeout)
+    _ask_each(hosts, "wait_serving", plan.recovery_timeout)
+    return managers
+
+
+def _stop_each(hosts: list[_SimulatedHost]) -> None:
+    """Stop the other hosts' trees, the last started first; each, though one before it
+    raised (the first error is raised)."""
+    with contextlib.ExitStack() as cleanup:
+        for host in hosts:
+            cleanup.callback(host.stop)
+
+
+def _ask_each(hosts: list[_SimulatedHost], op: str, timeout: float = 0.0) -> int:
+    """`op` on each other host, one after another (`_SimulatedHost.ask`): the sum of
+    their counts."""
+    return sum(host.ask(op, timeout) for host in hosts)
+
+
+def _start_hosts(
+    plan: Plan,
+    folder: Path,
+    seed: int,
+    network: object,
+    on_event: Callable[[events.Event], None],
+    hosts: list[_SimulatedHost],
+) -> None:
+    """With `[hosts]`: start each other host (in `hosts` as it starts, so that the run's
+    cleanup stops it) and wait until its tree serves, one after another."""
+    for name in plan.hosts.names[1:] if plan.hosts is not None else ():
+        state = folder / f"state-{name}" if plan.state else None
+        hosts.append(_SimulatedHost(plan, name, state, seed, network, on_event))
+        hosts[-1].ask("start")
+
+
+class _SimulatedHost:
+    """Another host of a plan with `[hosts]`, on the simulation: a simulated process of
+    its own (as a real run's host process), whose main thread builds and starts its
+    part of the tree (`build_tree(host=)`: its managers' processes are started by it,
+    so a cut of the host cuts them, restarts included), then runs the commands `ask`
+    sends, one at a time, as `_host_child` does for real.
+
+    Args:
+        plan: the plan.
+        name: the host's name.
+        state_dir: its managers' backups (`None`: in memory).
+        seed: the run's seed.
+        network: the run's simulated network.
+        on_event: what its tree's events go to (the run's subscriber).
+    """
+
+    def __init__(
+        self,
+        plan: Plan,
+        name: str,
+        state_dir: Path | None,
+        seed: int,
+        network: object,
+        on_event: Callable[[events.Event], None],
+    ) -> None:
+        from rr_actors import simulation  # noqa: PLC0415 - the simulation extra (greenlet)
+
+        self.plan = plan
+        self.name = name
+        self._state_dir = state_dir
+        self._seed = seed
+        self._network = network
+        self._on_event = on_event
+        self._commands: runtime.SimpleQueue[tuple[str, float]] = runtime.SimpleQueue()
+        self._replies: runtime.SimpleQueue[object] = runtime.SimpleQueue()
+        self._serving = False  # its main thread takes commands
+        self.pid = simulation.start_process(self._main, name=f"host-{name}")
+
+    def ask(self, op: str, timeout: float = 0.0) -> int:
+        """Run `op` on the host (`"start"`: wait until its tree serves, `"wait_serving"`
+        for `timeout` virtual seconds, `"count"`: its catalogs' entries, `"flush"`);
+        the count, or 0.
+
+        Raises:
+            Exception: what its tree raised as it started (a setup's error), or as it
+                counted (`wait_serving`'s `RrError` is not raised: as for real).
+        """
+        if op != "start":
+            self._commands.put((op, timeout))
+        reply = self._replies.get()
+        if isinstance(reply, BaseException):
+            raise reply
+        self._serving = True
+        return reply if isinstance(reply, int) else 0
+
+    def stop(self) -> None:
+        """Stop its tree once its events are delivered (nothing if it never served)."""
+        if self._serving:
+            self._serving = False
+            self._commands.put(("stop", 0.0))
+            reply = self._replies.get()
+            if isinstance(reply, BaseException):
+                raise reply
+
+    def _main(self) -> None:
+        plan, name = self.plan, self.name
+        set_host(name)  # (its events', and its managers' processes' as they start)
+        try:
+            sup = build_tree(
+                plan, self._state_dir, seed=self._seed, host=name, network=self._network
+            )
+            subscription = sup.subscribe(self._on_event, maxsize=EVENT_QUEUE)
+            sup.start()
+        except Exception as exc:  # noqa: BLE001 - the run's thread raises it
+            self._replies.put(exc)
+            return
+        managers = [m.name for m in plan.managers() if plan.host_of(m.name) == name]
+        self._replies.put("ready")
+        while True:
+            op, timeout = self._commands.get()
+            reply: object = None
+            try:
+                if op == "wait_serving":
+                    with contextlib.suppress(rr.RrError):
+                        wait_all_serving(sup, managers, timeout)
+                elif op == "count":
+                    reply = count_entries(sup, managers, [])[0]
+                elif op == "flush":
+                    sup.flush_events()
+                else:  # "stop"
+                    with contextlib.ExitStack() as cleanup:
+                        cleanup.callback(subscription.close)
+                        cleanup.callback(subscription.wait_delivered)
+                        cleanup.callback(sup.stop)
+            except Exception as exc:  # noqa: BLE001 - the run's thread raises it
+                reply = exc
+            self._replies.put(reply)
+            if op == "stop":
+                return

@@ -122,9 +122,23 @@ class SimulatedNetwork(MemoryNetwork):
         super().__init__(system)
         self.resolution = resolution
 
-    def partition(self, side: Iterable[int]) -> None:
-        """Cut the processes of pids `side` off the others (both ways) until `heal`."""
-        self._simulated().partition(frozenset(side))
+    def partition(self, side: Iterable[int], *, started_by: bool = False) -> None:
+        """Cut the processes of pids `side` off the others (both ways) until `heal`.
+
+        Args:
+            side: the pids of the processes cut off.
+            started_by: with each process of `side`, every live one it started, and those
+                they started (a host's processes: its supervisor's and its managers').
+                Without, only the pids given (a process made during the cut is on its
+                parent's side either way).
+        """
+        hub = self._simulated()
+        pids = set(side)
+        if started_by:
+            for process in hub.sched.processes:  # (in pid order: a parent before its child)
+                if process.parent in pids and process.alive:
+                    pids.add(process.pid)
+        hub.partition(frozenset(pids))
 
     def heal(self) -> None:
         """Join every process again; each hears the names across as reachable again."""

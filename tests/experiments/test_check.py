@@ -1310,9 +1310,10 @@ MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
 SHORT = {"killheavy": 3.0}
 """Seconds per run of each shipped plan here (2 s for the others): a few kills each."""
 
-ROOT_ONLY = {"leases"}
-"""Shipped plans these tests cannot run: `leases` needs root, network namespaces and
-minutes (tests/experiments/test_hosts.py runs a small plan of its shape)."""
+ROOT_ONLY = {"leases", "simhosts"}
+"""Shipped plans these tests do not run: `leases` and `simhosts` (`[hosts]`) need root,
+network namespaces and minutes (tests/experiments/test_hosts.py runs a small plan of
+their shape; test_simulate.py runs `simhosts` on the simulation)."""
 
 SIMULATION_ONLY = {"simheal"}
 """Shipped plans of a fault kind only the simulation injects (`split_brain`): their

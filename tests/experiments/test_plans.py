@@ -34,6 +34,7 @@ SHIPPED = {
     "simheal",
     "simcancel",
     "simdoubt",
+    "simhosts",
 }
 """Every plan shipped in the package; the tutorial's `first` runs in the docs test."""
 

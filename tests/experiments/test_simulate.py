@@ -790,6 +790,7 @@ SIMULATED = [
     "simheal",
     "simcancel",
     "simdoubt",
+    "simhosts",
 ]
 """The shipped plans run over two seeds here (killheavy below, for 2 s)."""
 
@@ -846,7 +847,7 @@ def test_a_compared_plan_runs_its_first_value_and_each_value_as_its_own_plan() -
     [
         ("resource", "faults[0].kind", "'kill_resource' is not simulated"),
         ("strategies", "tree.children.erm.setup", "erm_setup is not simulated"),
-        ("leases", "faults[0].kind", "'cut' is not simulated"),
+        ("leases", "faults[1].kind", "'freeze' is not simulated"),
     ],
 )
 def test_a_shipped_plan_the_simulation_does_not_model_is_a_plan_error_naming_it(
@@ -859,3 +860,196 @@ def test_a_shipped_plan_the_simulation_does_not_model_is_a_plan_error_naming_it(
 
     assert key == raised.value.key
     assert named in str(raised.value)
+
+
+HOSTS = f"""\
+name = "twohosts"
+duration = 3.0
+
+[hosts]
+names = ["a", "b"]
+lease = 2.0
+
+[tree]
+max_restarts = 1000
+period = 1.0
+
+[[tree.children]]
+name = "db"
+setup = "{SERVICE}"
+host = "b"
+
+[[tree.children]]
+name = "api"
+setup = "{SERVICE}"
+options = {{ uses = ["db"], load_s = 0.002 }}
+
+[workload]
+clients = 2
+rate = 10.0
+hold = 0.2
+timeout = 3.0
+
+[[workload.calls]]
+manager = "api"
+server = "resource"
+keys = 3
+
+[[workload.calls]]
+manager = "db"
+server = "resource"
+keys = 3
+"""
+"""Two hosts: api (and the clients) on "a", db on "b"; each test adds its faults."""
+
+CUT = """
+[[faults]]
+kind = "cut"
+link = ["a", "b"]
+at = [1.0]
+for = 1.0
+"""
+
+
+def lines_of(run: simulate.SimulatedRun) -> list[dict[str, Any]]:
+    """The history's lines, each with `t`: its virtual seconds from the workload's start."""
+    lines = [json.loads(line) for line in run.history.splitlines()]
+    t0 = next(x["at"] - x["injected_s"] for x in lines if x["type"] == "FaultInjected")
+    return [{**x, "t": x["at"] - t0} for x in lines if x.get("at") is not None]
+
+
+@SWEEP
+def test_two_hosts_with_a_cut_fail_calls_across_until_the_heal_and_replay() -> None:
+    plan = parse_plan(HOSTS + CUT)
+
+    run = simulate.run_seed(plan, 1)
+    again = simulate.run_seed(plan, 1)
+
+    assert run.hash == again.hash
+    assert [("cut", "a-b", 1.0, "link a-b down for 1 s")] == [
+        (f["kind"], f["target"], f["injected_s"], f["detail"]) for f in fired(run)
+    ]
+    lines = lines_of(run)
+    db_pid = next(x["pid"] for x in lines if x["type"] == "ChildStarted" and x["child"] == "db")
+    api_pid = next(x["pid"] for x in lines if x["type"] == "ChildStarted" and x["child"] == "api")
+    assert db_pid != api_pid
+    failed = [x["t"] for x in lines if x["type"] == "CallFailed"]
+    assert failed
+    assert all(1.0 <= t < 2.1 for t in failed)  # across the cut, until its heal
+    served_again = [
+        x["t"] for x in lines if x["type"] == "ConsumerAdded" and x["registrar"] == "db"
+    ]
+    assert any(t < 1.0 for t in served_again)
+    assert any(t > 2.0 for t in served_again)
+    assert not any(1.0 < t < 2.0 for t in served_again)  # db serves no one across the cut
+    assert run.errors == ()
+    held([run])
+
+
+@SWEEP
+def test_a_partition_of_a_host_while_another_cut_holds_is_skipped_saying_so() -> None:
+    plan = parse_plan(
+        HOSTS
+        + CUT
+        + """
+[[faults]]
+kind = "partition"
+hosts = ["a"]
+at = [1.5]
+for = 0.5
+"""
+    )
+
+    run = simulate.run_seed(plan, 2)
+
+    lines = [json.loads(line) for line in run.history.splitlines()]
+    skipped = [x for x in lines if x["type"] == "FaultSkipped"]
+    assert [("partition", "a", True)] == [
+        (x["kind"], x["target"], "a-b was still cut" in x["detail"]) for x in skipped
+    ]
+    held([run])
+
+
+@pytest.mark.parametrize(
+    ("fault", "key", "named"),
+    [
+        ('kind = "freeze"\ntarget = "b"\nfor = 0.5', "faults[0].kind", "'freeze' is not simulated"),
+        ('kind = "kill_router"\ntarget = "b"', "faults[0].kind", "'kill_router' is not simulated"),
+        (
+            'kind = "split_brain"\ntarget = "api"\nfor = 0.5',
+            "faults[0].kind",
+            "not simulated with [hosts]",
+        ),
+    ],
+)
+def test_a_fault_between_hosts_the_simulation_does_not_model_is_refused_naming_it(
+    fault: str, key: str, named: str
+) -> None:
+    plan = parse_plan(HOSTS + f"\n[[faults]]\n{fault}\nat = [1.0]\n")
+
+    with pytest.raises(PlanError) as raised:
+        simulate.simulate(plan, range(1))
+
+    assert key == raised.value.key
+    assert named in str(raised.value)
+
+
+def test_a_cut_between_two_of_three_hosts_is_refused_naming_partition() -> None:
+    three = HOSTS.replace('names = ["a", "b"]', 'names = ["a", "b", "c"]')
+    plan = parse_plan(three + CUT.replace('["a", "b"]', '["b", "c"]'))
+
+    with pytest.raises(PlanError, match="two hosts only") as raised:
+        simulate.simulate(plan, range(1))
+
+    assert "faults[0].kind" == raised.value.key
+
+
+@SWEEP
+def test_each_simulated_host_names_its_events_so_a_loss_across_hosts_is_judged_so() -> None:
+    from rr_actors.experiments import load_plan  # noqa: PLC0415
+
+    plan = load_plan(PLANS / "simhosts.toml")  # (cuts past its lease: db lost across)
+
+    run = simulate.run_seed(plan, 5)  # (a client tells itself FATAL while db runs on)
+
+    lines = [json.loads(line) for line in run.history.splitlines()]
+    started = {x["child"]: x["host"] for x in lines if x["type"] == "ChildStarted"}
+    assert {"db": "b", "api": "a"} == started
+    assert {"a"} == {x["host"] for x in lines if x.get("registrar", "").startswith("client-")}
+    assert any("provider lost" in x.get("reason", "") for x in lines)
+    held([run])
+
+
+@SWEEP
+def test_a_partition_of_the_runs_own_host_and_another_cuts_them_off_the_third() -> None:
+    three = (
+        HOSTS.replace('names = ["a", "b"]', 'names = ["a", "b", "c"]')
+        .replace(
+            '[[tree.children]]\nname = "api"',
+            f'[[tree.children]]\nname = "cache"\nsetup = "{SERVICE}"\nhost = "c"\n'
+            'options = { uses = ["db"] }\n\n[[tree.children]]\nname = "api"',
+        )
+        .replace('manager = "db"', 'manager = "cache"')  # (the clients call api and cache)
+    )
+    plan = parse_plan(
+        three
+        + """
+[[faults]]
+kind = "partition"
+hosts = ["a", "c"]
+at = [1.0]
+for = 1.0
+"""
+    )
+
+    run = simulate.run_seed(plan, 1)
+
+    assert [("partition", "a+c", "a+c cut from the other hosts for 1 s")] == [
+        (f["kind"], f["target"], f["detail"]) for f in fired(run)
+    ]
+    lines = lines_of(run)
+    failed = [x for x in lines if x["type"] == "CallFailed"]
+    assert all(1.0 <= x["t"] < 2.1 for x in failed)
+    # a's api and c's cache cannot reach db on b; a's clients still reach cache on c
+    assert {("api", "a"), ("cache", "c")} <= {(x["registrar"], x["host"]) for x in failed}
+    held([run])
