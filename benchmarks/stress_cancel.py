@@ -23,6 +23,7 @@ import sys
 import tempfile
 import time
 import uuid
+from collections import Counter
 
 import rr_actors as rr
 
@@ -35,28 +36,35 @@ def _setup(erm: rr.ResourceRegistrar) -> None:
     erm.register_server("res", load=lambda request: {"n": request["n"]}, unload=lambda q, r: None)
 
 
-async def _storm(app: rr.ResourceRegistrar, pid: int, calls: int, rng: random.Random) -> list[str]:
-    """Start `calls` awaited calls, cancel most, kill the provider; the ids answered."""
+async def _storm(
+    app: rr.ResourceRegistrar, pid: int, calls: int, rng: random.Random
+) -> dict[str, str]:
+    """Start `calls` awaited calls, cancel most, kill the provider: each id's outcome
+    (`answered`, `cancelled`, or the name of the error it failed with)."""
 
-    async def one(query_id: str, n: int) -> str | None:
+    async def one(query_id: str, n: int) -> str:
         try:
             await app.acall("erm", "res", {"n": n}, query_id=query_id, timeout=10.0)
-        except (asyncio.CancelledError, rr.RrError):
-            return None
-        return query_id
+        except asyncio.CancelledError:
+            return "cancelled"
+        except rr.RrError as exc:
+            return type(exc).__name__
+        return "answered"
 
     loop = asyncio.get_running_loop()
-    tasks = [loop.create_task(one(str(uuid.uuid4()), i % 20)) for i in range(calls)]
+    ids = [str(uuid.uuid4()) for _ in range(calls)]
+    tasks = [loop.create_task(one(query_id, i % 20)) for i, query_id in enumerate(ids)]
     for task in tasks:
         if rng.random() < 0.7:
             loop.call_later(rng.uniform(0.0, 0.05), task.cancel)
     loop.call_later(rng.uniform(0.055, 0.07), os.kill, pid, signal.SIGKILL)
-    answered = await asyncio.gather(*tasks, return_exceptions=True)
-    return [q for q in answered if isinstance(q, str)]
+    outcomes = await asyncio.gather(*tasks, return_exceptions=True)
+    return {q: o if isinstance(o, str) else "cancelled" for q, o in zip(ids, outcomes, strict=True)}
 
 
-def run(calls: int, seed: int) -> tuple[int, int]:
-    """One run: (ids answered, ids the provider still holds for the consumer at the end)."""
+def run(calls: int, seed: int) -> Counter[str]:
+    """One run: how many calls ended each way (`answered`, `cancelled`, an error's name),
+    and, as `kept <outcome>`, how many ids of each the provider still holds at the end."""
     rng = random.Random(seed)  # noqa: S311 - a reproducible schedule, not a secret
     with tempfile.TemporaryDirectory() as state:
         sup = rr.Supervisor(
@@ -68,17 +76,20 @@ def run(calls: int, seed: int) -> tuple[int, int]:
         with sup:
             app = sup.registrar("app")
             restarts = sup.child("erm").restarts
-            answered = asyncio.run(_storm(app, sup.child("erm").pid, calls, rng))
+            outcomes = asyncio.run(_storm(app, sup.child("erm").pid, calls, rng))
             sup.wait_restarted("erm", restarts=restarts + 1, timeout=30.0)
-            for query_id in answered:
-                with contextlib.suppress(rr.UnknownQueryError):  # forgotten (told FATAL)
-                    app.unload(query_id)
+            for query_id, outcome in outcomes.items():
+                if outcome == "answered":
+                    with contextlib.suppress(rr.UnknownQueryError):  # forgotten (told FATAL)
+                        app.unload(query_id)
             deadline = time.monotonic() + SETTLE_S
             kept = app.fetch_queries("erm", "res")
             while kept and time.monotonic() < deadline:
                 time.sleep(0.1)  # the provider's reconcile is asynchronous: poll, bounded
                 kept = app.fetch_queries("erm", "res")
-            return len(answered), len(kept)
+            counts = Counter(outcomes.values())
+            counts.update(f"kept {outcomes.get(q.id, 'unknown')}" for q in kept)
+            return counts
 
 
 def main() -> None:
@@ -87,14 +98,23 @@ def main() -> None:
     parser.add_argument("--calls", type=int, default=2000)
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args()
-    total = 0
-    print(f"{'run':>4} {'answered':>9} {'kept':>5}")
+    total: Counter[str] = Counter()
+    print(f"{'run':>4} {'answered':>9} {'cancelled':>9} {'failed':>7}  kept at the provider")
     for i in range(args.runs):
-        answered, kept = run(args.calls, args.seed + i)
-        total += kept
-        print(f"{i + 1:>4} {answered:>9} {kept:>5}")
-    print(f"ids kept after the storm in {args.runs} runs: {total}")
-    sys.exit(1 if total else 0)
+        counts = run(args.calls, args.seed + i)
+        total.update(counts)
+        kept = {k[5:]: n for k, n in counts.items() if k.startswith("kept ")}
+        failed = sum(
+            n for k, n in counts.items() if k not in ("answered", "cancelled") and k[:5] != "kept "
+        )
+        print(
+            f"{i + 1:>4} {counts['answered']:>9} {counts['cancelled']:>9} {failed:>7}  "
+            f"{', '.join(f'{n} {k}' for k, n in sorted(kept.items())) or '0'}"
+        )
+    cancelled = total["kept cancelled"]
+    print(f"ids of cancelled calls kept after the storm in {args.runs} runs: {cancelled}")
+    print(f"ids kept in all: {sum(n for k, n in total.items() if k.startswith('kept '))}")
+    sys.exit(1 if cancelled else 0)
 
 
 if __name__ == "__main__":
