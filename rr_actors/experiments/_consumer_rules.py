@@ -11,6 +11,8 @@
        withdrew (and did not have answered again)
  steps (+ the give-ups) ──► left: the rows each registrar's last stop lists that no
        consumer still running holds
+ steps + the provider pass's holdings ──► fetch: each QueriesFetched against what its
+       provider held for that consumer while it was asked
 ```
 """
 
@@ -24,7 +26,15 @@ from rr_actors.experiments._history import REPORTED, Facts, Finding, Life, Line,
 from rr_actors.experiments._provider_rules import Holding
 from rr_actors.experiments._status_rules import Span
 
-__all__ = ["WITHDRAWN_BOUND_S", "answered", "end", "left", "reported_lost", "withdrawn"]
+__all__ = [
+    "WITHDRAWN_BOUND_S",
+    "answered",
+    "end",
+    "fetch",
+    "left",
+    "reported_lost",
+    "withdrawn",
+]
 
 _SHOWN = 3
 """Rows of a `left` finding whose first line its window shows (besides the stop's)."""
@@ -357,4 +367,80 @@ def left(
                 (name,),
             )
         )
+    return findings
+
+
+def fetch(
+    steps: Sequence[Step],
+    holdings: dict[tuple[str, str], list[Holding]],
+    lives: dict[tuple[str, int], Life],
+) -> list[Finding]:
+    """`fetch` (rule 10): a fetch lists what its provider held for its consumer.
+
+    A fetch's provider read its catalog between the fetch's `started` and its `hlc`
+    stamps. Each id it listed was held by that provider at some instant of that window
+    (a holding that began before its end and ended after its start); and each id its
+    consumer had answered (`CallAnswered`, in this life of the consumer, at that server)
+    before the window, not withdrawn nor forgotten by it since, that the provider held
+    throughout the window, is listed. Not judged: a fetch whose window a life of its
+    provider began or ended in (a restart, a second server of its name), or that no
+    life of its provider spans.
+    """
+    answers: dict[str, dict[str, tuple[str, str, int]]] = defaultdict(dict)
+    provider_lives: dict[str, list[tuple[int, Life]]] = defaultdict(list)
+    for (name, number), life in lives.items():
+        provider_lives[name.partition("@")[0]].append((number, life))
+    findings: list[Finding] = []
+
+    def found(message: str, lines: tuple[int, ...], *registrars: str) -> None:
+        findings.append(Finding("fetch", "violation", message, lines, registrars))
+
+    for name, line, event, new, _life in steps:
+        if new:
+            answers[name].clear()
+        if isinstance(event, events.CallAnswered):
+            answers[name][event.query_id] = (event.serving_rr, event.server, event.hlc)
+        elif isinstance(event, events.QueryForgotten | events.CallWithdrawn | events.CallFailed):
+            answers[name].pop(event.query_id, None)
+        elif isinstance(event, events.QueriesFetched):
+            provider, start, stop = event.serving_rr, event.started, event.hlc
+            spanning = [
+                number
+                for number, life in provider_lives[provider]
+                if life.start <= stop and (life.end is None or life.end >= start)
+            ]
+            if len(spanning) != 1 or lives[provider, spanning[0]].start > start:
+                continue  # (a restart, or a second server, in the window)
+            if (end := lives[provider, spanning[0]].end) is not None and end <= stop:
+                continue
+            life = spanning[0]
+            for qid in event.query_ids:
+                if not any(
+                    h.since < stop and (h.until is None or h.until > start)
+                    for h in holdings.get((provider, qid), ())
+                ):
+                    found(
+                        f"{name}: a fetch from {provider}/{event.server} listed query "
+                        f"{qid[:8]}, which {provider} did not hold while asked",
+                        (line,),
+                        name,
+                        provider,
+                    )
+            listed = set(event.query_ids)
+            for qid, (serving, server, stamp) in answers[name].items():
+                if serving != provider or server != event.server or stamp >= start:
+                    continue
+                held = [
+                    h
+                    for h in holdings.get((provider, qid), ())
+                    if h.life == life and h.since < start and (h.until is None or h.until > stop)
+                ]
+                if held and qid not in listed:
+                    found(
+                        f"{name}: a fetch from {provider}/{event.server} did not list query "
+                        f"{qid[:8]}, which {provider} held for it throughout the fetch",
+                        (held[0].line, line),
+                        name,
+                        provider,
+                    )
     return findings
