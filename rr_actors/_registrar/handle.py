@@ -48,7 +48,7 @@ from typing import Any, Concatenate, ParamSpec, Protocol, Self, TypeVar
 import pykka
 
 from rr_actors import events
-from rr_actors._core import runtime
+from rr_actors._core import hlc, runtime
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Publisher, Subscription
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.exit import REGISTRARS, stop_at_exit
@@ -939,12 +939,18 @@ class Here:
         _check_names(target_rr=target_rr, server=server)
         limit = self.limit(timeout)
         deadline = runtime.monotonic() + limit
+        started = hlc.CLOCK.now()  # (the provider reads its catalog after this stamp)
         reply = FutureReply()
         client = yield from self.client(target_rr, server, limit)
         client.tell(FetchVia(server, reply))
         result: list[Query] = yield from asked(
             reply.future, deadline, limit, f"fetch_queries({target_rr!r})"
         )
+        if self.published.active:
+            ids = tuple(query.id for query in result)
+            self.published.publish(
+                events.QueriesFetched(self.config.name, target_rr, server, ids, started)
+            )
         return result
 
     def client_queries(self, timeout: float | None) -> Steps[list[Query]]:

@@ -34,6 +34,7 @@ __all__ = [
     "EventsDropped",
     "InDoubt",
     "LoadFailed",
+    "QueriesFetched",
     "QueryForgotten",
     "RegistrarStopped",
     "ResourceLoaded",
@@ -605,6 +606,40 @@ class CallWithdrawn:
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
+class QueriesFetched:
+    """A consumer fetched the ids it holds at a provider's server (`fetch_queries`, rule 10).
+
+    Published by the consumer registrar when the provider's answer came.
+
+    Attributes:
+        registrar: name of the consumer registrar.
+        serving_rr: name of the provider registrar.
+        server: name of the resource server there.
+        query_ids: the ids the answer listed, in its order.
+        started: the stamp (`hlc`) taken when the fetch began: the provider read its
+            catalog between `started` and `hlc`.
+        at: when the answer came, wall clock (`time.time()` seconds).
+        pid: the consumer registrar's process.
+        seq: its number among its process's events (see `number_events`; 0: not numbered).
+        host: the member name of the host it happened on (see `set_host`).
+        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
+            several hosts by it to put every cause before its effects.
+    """
+
+    registrar: str
+    serving_rr: str
+    server: str
+    query_ids: tuple[str, ...] = ()
+    started: int = 0
+    _: dataclasses.KW_ONLY
+    at: float = _now()
+    pid: int = _this_process()
+    seq: int = _numbered()
+    host: str = _this_host()
+    hlc: int = _stamped()
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
 class QueryForgotten:
     """A consumer forgot a query id it held (one a `CallAnswered` or a restore gave it).
 
@@ -950,6 +985,7 @@ Event: TypeAlias = (
     | CallAnswered
     | CallFailed
     | CallWithdrawn
+    | QueriesFetched
     | QueryForgotten
     | StatusSent
     | StatusDelivered

@@ -18,6 +18,7 @@ from rr_actors.events.kinds import (
     EventsDropped,
     InDoubt,
     LoadFailed,
+    QueriesFetched,
     QueryForgotten,
     RegistrarStopped,
     ResourceLoaded,
@@ -97,6 +98,11 @@ def describe(event: Event) -> str:  # noqa: PLR0911, PLR0912 - one case per even
             return (
                 f"{event.registrar}: call {_id(event.query_id)} to "
                 f"{event.serving_rr}/{event.server} withdrawn ({event.reason})"
+            )
+        case QueriesFetched():
+            return (
+                f"{event.registrar} fetched {len(event.query_ids)} queries it holds at "
+                f"{event.serving_rr}/{event.server}"
             )
         case QueryForgotten():
             return (

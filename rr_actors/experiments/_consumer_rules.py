@@ -1,4 +1,5 @@
-"""The consumer's side of a run (rules `answered`, `reported-lost`, `end`, `withdrawn`, `left`).
+"""The consumer's side of a run (rules `answered`, `reported-lost`, `end`, `withdrawn`, `left`,
+`fetch`).
 
 ```
  steps ──► answered: each consumer's answered calls, life by life, against what its
@@ -11,6 +12,8 @@
        withdrew (and did not have answered again)
  steps (+ the give-ups) ──► left: the rows each registrar's last stop lists that no
        consumer still running holds
+ steps + the provider pass's holdings ──► fetch: each QueriesFetched against what its
+       provider held for that consumer while it was asked
 ```
 """
 
@@ -24,7 +27,15 @@ from rr_actors.experiments._history import REPORTED, Facts, Finding, Life, Line,
 from rr_actors.experiments._provider_rules import Holding
 from rr_actors.experiments._status_rules import Span
 
-__all__ = ["WITHDRAWN_BOUND_S", "answered", "end", "left", "reported_lost", "withdrawn"]
+__all__ = [
+    "WITHDRAWN_BOUND_S",
+    "answered",
+    "end",
+    "fetch",
+    "left",
+    "reported_lost",
+    "withdrawn",
+]
 
 _SHOWN = 3
 """Rows of a `left` finding whose first line its window shows (besides the stop's)."""
@@ -357,4 +368,103 @@ def left(
                 (name,),
             )
         )
+    return findings
+
+
+def fetch(
+    steps: Sequence[Step],
+    holdings: dict[tuple[str, str], list[Holding]],
+    lives: dict[tuple[str, int], Life],
+) -> list[Finding]:
+    """`fetch` (rule 10): a fetch lists what its provider held for its consumer.
+
+    A fetch's provider read its catalog between the fetch's `started` and its `hlc`
+    stamps. Each id it listed was held by that provider at some instant of that window
+    (a holding that began before its end and ended after its start); and each id its
+    consumer had answered (`CallAnswered`, in this life of the consumer, at that server)
+    before the window, not withdrawn nor forgotten by it since, that the provider held
+    throughout the window, is listed. Not judged: a fetch whose window a life of its
+    provider began or ended in (a restart, a stop, a second server of its name).
+    """
+    answers: dict[str, dict[str, tuple[str, str, int]]] = defaultdict(dict)
+    by_name: dict[str, list[tuple[int, Life]]] = defaultdict(list)
+    for (name, number), record in lives.items():
+        by_name[name.partition("@")[0]].append((number, record))
+    findings: list[Finding] = []
+    for name, line, event, new, _life in steps:
+        if new:
+            answers[name].clear()
+        if isinstance(event, events.CallAnswered):
+            answers[name][event.query_id] = (event.serving_rr, event.server, event.hlc)
+        elif isinstance(event, events.QueryForgotten | events.CallWithdrawn | events.CallFailed):
+            answers[name].pop(event.query_id, None)
+        elif isinstance(event, events.QueriesFetched):
+            life = _spanning(by_name[event.serving_rr], event.started, event.hlc)
+            if life is not None:
+                findings += _fetched(line, event, life, answers[name], holdings)
+    return findings
+
+
+def _spanning(lives: list[tuple[int, Life]], start: int, stop: int) -> int | None:
+    """The one life of these (a provider's, its second servers' too) that spans the
+    window from `start` to `stop` (stamps), or `None`: none does, or one began or ended
+    in it."""
+    overlapping = [
+        (number, life)
+        for number, life in lives
+        if life.start <= stop and (life.end is None or life.end >= start)
+    ]
+    if len(overlapping) != 1:
+        return None
+    number, life = overlapping[0]
+    if life.start > start or (life.end is not None and life.end <= stop):
+        return None
+    return number
+
+
+def _fetched(
+    line: int,
+    event: events.QueriesFetched,
+    life: int,
+    answers: dict[str, tuple[str, str, int]],
+    holdings: dict[tuple[str, str], list[Holding]],
+) -> list[Finding]:
+    """`fetch`'s findings about one fetch (at `line`), whose provider's `life` spans it;
+    `answers`: its consumer's answered ids (id -> provider, server, stamp)."""
+    name, provider, start, stop = event.registrar, event.serving_rr, event.started, event.hlc
+    findings = [
+        Finding(
+            "fetch",
+            "violation",
+            f"{name}: a fetch from {provider}/{event.server} listed query "
+            f"{qid[:8]}, which {provider} did not hold while asked",
+            (line,),
+            (name, provider),
+        )
+        for qid in event.query_ids
+        if not any(
+            h.since < stop and (h.until is None or h.until > start)
+            for h in holdings.get((provider, qid), ())
+        )
+    ]
+    listed = set(event.query_ids)
+    for qid, (serving, server, stamp) in answers.items():
+        if serving != provider or server != event.server or stamp >= start or qid in listed:
+            continue
+        held = [
+            h
+            for h in holdings.get((provider, qid), ())
+            if h.life == life and h.since < start and (h.until is None or h.until > stop)
+        ]
+        if held:
+            findings.append(
+                Finding(
+                    "fetch",
+                    "violation",
+                    f"{name}: a fetch from {provider}/{event.server} did not list query "
+                    f"{qid[:8]}, which {provider} held for it throughout the fetch",
+                    (held[0].line, line),
+                    (name, provider),
+                )
+            )
     return findings

@@ -291,6 +291,8 @@ class Facts:
         told_self: (line, consumer, query id) of each `QueryForgotten` of `REPORTED`.
         outcomes: query id -> `(stamp, answered)` of each of its consumer's
             `CallAnswered` (`True`) and `CallFailed` (`False`), in order.
+        fetched: (provider, query id) a fetch listed, or its consumer had answered at a
+            provider it fetched from (`QueriesFetched`: their holdings are kept for `fetch`).
     """
 
     with_backup: set[str] = dataclasses.field(default_factory=set)
@@ -308,11 +310,14 @@ class Facts:
     lost: set[tuple[str, str]] = dataclasses.field(default_factory=set)
     told_self: list[tuple[int, str, str]] = dataclasses.field(default_factory=list)
     outcomes: dict[str, list[tuple[int, bool]]] = dataclasses.field(default_factory=dict)
+    fetched: set[tuple[str, str]] = dataclasses.field(default_factory=set)
 
 
 def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912 - one branch per event kind
     """The `Facts` of a run, in one pass."""
     facts = Facts()
+    answers: dict[tuple[str, str], list[str]] = {}  # (consumer, provider) -> ids answered
+    fetchers: set[tuple[str, str]] = set()  # (consumer, provider) of each fetch
     for line, event in history:
         if isinstance(event, events.ConsumerAdded):
             facts.added.add(event.query_id)
@@ -331,6 +336,10 @@ def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912 - one branch per 
             if event.parent is not None:
                 facts.parent[event.registrar, event.query_id] = event.parent
             facts.outcomes.setdefault(event.query_id, []).append((event.hlc, True))
+            answers.setdefault((event.registrar, event.serving_rr), []).append(event.query_id)
+        elif isinstance(event, events.QueriesFetched):
+            fetchers.add((event.registrar, event.serving_rr))
+            facts.fetched.update((event.serving_rr, qid) for qid in event.query_ids)
         elif isinstance(event, events.CallFailed):
             facts.outcomes.setdefault(event.query_id, []).append((event.hlc, False))
         elif isinstance(event, events.QueryForgotten):
@@ -351,4 +360,6 @@ def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912 - one branch per 
             for qid, _serving, _server, parent, *_ in event.clients:
                 if parent:
                     facts.parent[event.registrar, qid] = parent
+    for consumer, provider in fetchers:
+        facts.fetched.update((provider, qid) for qid in answers.get((consumer, provider), ()))
     return facts

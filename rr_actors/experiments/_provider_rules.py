@@ -43,7 +43,7 @@ class _Held:
 
 @dataclasses.dataclass(slots=True)
 class Holding:
-    """One life of a provider holding a query id (for `reported-lost`).
+    """One life of a provider holding a query id (for `reported-lost` and `fetch`).
 
     Attributes:
         life: the provider's life.
@@ -127,7 +127,7 @@ class Providers:
     Args:
         facts: what the whole run says (who restores a catalog, who forgot or was told
             `FATAL` what and when, dependency paths, which ids were reported lost:
-            their holdings are kept for `reported-lost`).
+            their holdings are kept for `reported-lost`; the ids of fetches, for `fetch`).
     """
 
     def __init__(self, facts: Facts) -> None:
@@ -135,7 +135,7 @@ class Providers:
         self.forgot = facts.forgot
         self.fatal_at = facts.fatal_at
         self.parent = facts.parent
-        self.watch = facts.lost
+        self.watch = facts.lost | facts.fetched
         self.outcomes = facts.outcomes
         self.catalogs: dict[str, _Catalog] = defaultdict(_Catalog)
         self.findings: list[Finding] = []

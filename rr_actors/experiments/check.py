@@ -8,7 +8,7 @@
      ├─► _provider_rules: one pass over each provider's catalog
      ├─► _status_rules: each status's deliveries, against who should have got it
      ├─► _consumer_rules: each consumer's calls; the ids it told itself were lost;
-     │   the rows left at each registrar's last stop
+     │   the rows left at each registrar's last stop; what each fetch listed
      ├─► _supervision_rules: each supervisor's give-ups, against its intensity
      └─► events lost ──► findings (violation / unverifiable, each with the line
                          numbers of the events that show it) ──► Verdict
@@ -73,6 +73,10 @@ what cannot be checked):
   yields once the cut heals; two that both serve to the end of the run (neither process
   exited but at the tree's shutdown) are a violation. The checker sees no cut: a run
   ends healed, so serving to its end is serving after the heal.
+- `fetch` (rule 10): a fetch (`QueriesFetched`) lists only ids its provider held for
+  its consumer at some instant while it was asked (between its `started` and `hlc`
+  stamps), and every id that consumer had answered before and its provider held
+  throughout; not judged across a restart of the provider.
 - `events`: no event was lost (an `EventsDropped`, a gap in a process's `seq`); a loss
   makes the findings about the registrars of that process unverifiable.
 
@@ -131,6 +135,7 @@ RULES = (
     "unload-order",
     "intensity",
     "one-name",
+    "fetch",
     "events",
 )
 """The rules `check` checks, by name (see the module docstring)."""
@@ -272,6 +277,7 @@ def check(history: Sequence[Line]) -> Verdict:
         *_consumer_rules.end(steps, history),
         *_consumer_rules.withdrawn(steps),
         *_consumer_rules.left(steps, history, lives),
+        *_consumer_rules.fetch(steps, providers.holdings, lives),
         *unload_order(steps),
         *_supervision_rules.intensity(history),
         *_one_name_rule(history, lives),

@@ -77,6 +77,7 @@ MIN_EVERY = 1e-3  # the shortest interval of an `every` fault, in seconds
 MAX_INJECTIONS = 100_000  # the most injections of one fault in one run
 MAX_CLIENTS = 1_000  # the most client threads of a workload (each has a registrar)
 MAX_AWAITED = 10_000  # the most calls a client awaits at once (`awaited`)
+MAX_FETCH_EVERY = 1_000_000  # the most calls between two fetches (`fetch_every`)
 MAX_REPEAT = 10_000  # the most runs per compared value
 MAX_COUNT = 1_000_000  # the most of any other count: `keys`, `max_restarts`, `loads`, `nth`
 MAX_RATE = 1e6  # the most calls per second per client (and the largest `weight`)
@@ -193,6 +194,7 @@ class Workload(_Table, frozen=True):
     awaited: Annotated[int, Meta(ge=0, le=MAX_AWAITED)] = 0  # >0: calls awaited at once, each slot
     cancel: Annotated[float, Meta(ge=0, le=1)] = 0.0  # of the awaited calls, the share cancelled
     cancel_within: SecondsOrZero = 0.05  # each cancelled 0 to this many seconds after it starts
+    fetch_every: Annotated[int, Meta(ge=0, le=MAX_FETCH_EVERY)] = 0  # >0: fetch after N calls
     calls: tuple[CallMix, ...] = ()
 
 

@@ -14,6 +14,12 @@ With `awaited = N`, each call that comes due is N calls at once instead, each aw
 task cancelled: the call is withdrawn, as a timed-out one is). A cancelled call is not
 recorded; one answered before its cancel is held and unloaded like any other.
 
+With `fetch_every = N`, after every N calls (each awaited call counted) the client asks
+the provider of the last one for the ids it holds at that server
+(`ResourceRegistrar.fetch_queries`); its registrar publishes `QueriesFetched`, which the
+check's `fetch` rule compares with the provider's catalog. A fetch that fails (its
+provider down) is not retried nor recorded as a call.
+
 What came due while a call blocked (statuses heard, holds run out) is handled before the
 next call, the statuses first: a `FATAL` about a resource the client still held (not yet
 released, though its hold may have run out while the call blocked) is acted on, as the
@@ -249,6 +255,7 @@ class Client:
         self._by_id: dict[str, _Held] = {}
         self._seq = itertools.count()
         self._unique = itertools.count()
+        self._since_fetch = 0  # calls since the last fetch (`fetch_every`)
         self._stopping = runtime.Event()
         self._loop: asyncio.AbstractEventLoop | None = None  # (made at the first awaited calls)
         self._factories: dict[str, Callable[..., Any]] = {}
@@ -427,11 +434,25 @@ class Client:
 
     def _call_one(self) -> None:
         if self.workload.awaited:
-            self._await_calls()
-            return
-        mix = self._choose()
-        request = self._request(mix)
-        self._hold(mix, request, self._call(mix, request))
+            mix = self._await_calls()
+        else:
+            mix = self._choose()
+            request = self._request(mix)
+            self._hold(mix, request, self._call(mix, request))
+        self._since_fetch += self.workload.awaited or 1
+        every = self.workload.fetch_every
+        if every and self._since_fetch >= every:
+            self._since_fetch = 0
+            self._fetch(mix)
+
+    def _fetch(self, mix: CallMix) -> None:
+        """Ask `mix`'s provider for the ids this client holds at its server (`fetch_every`).
+
+        The answer is not used: its registrar's `QueriesFetched` is what the check reads.
+        A failure (the provider down, a cut connection) is left: the next fetch comes.
+        """
+        with contextlib.suppress(rr.RrError):
+            self.registrar.fetch_queries(mix.manager, mix.server, timeout=self.workload.timeout)
 
     def _hold(self, mix: CallMix, request: Any, query: rr.Query | None) -> None:
         """Keep `query` (an answered call) for the workload's `hold`, then unload it."""
@@ -442,13 +463,16 @@ class Client:
             heapq.heappush(self._held, held)
             self._by_id[query.id] = held
 
-    def _await_calls(self) -> None:
+    def _await_calls(self) -> CallMix:
         """`awaited` calls at once, awaited on this client's loop; cancel a share of them.
 
         Each call's kind, request, whether it is cancelled and when are drawn from the
         client's generator before any is sent (the same seed, the same calls). A call
         cancelled before its answer is withdrawn (its id given back: rule 17) and not
         recorded; the others are recorded and held as a blocking call's are.
+
+        Returns:
+            The kind of the last call of the batch.
         """
         work = self.workload
         batch = []
@@ -464,6 +488,7 @@ class Client:
         outcomes = self._loop.run_until_complete(self._gathered(batch))
         for (mix, request, _), query in zip(batch, outcomes, strict=True):
             self._hold(mix, request, query)
+        return batch[-1][0]
 
     async def _gathered(self, batch: list[tuple[CallMix, Any, float | None]]) -> list[Any]:
         return await asyncio.gather(*(self._awaited(*call) for call in batch))

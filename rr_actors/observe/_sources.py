@@ -187,7 +187,12 @@ def _touched(event: events.Event) -> tuple[str, ...] | None:
             return (event.registrar,)
         case events.ChildStarted() | events.ChildRestarted() | events.ChildExited():
             return (event.child,)
-        case events.StatusSent() | events.StatusDelivered() | events.UnloadCutShort():
+        case (
+            events.StatusSent()
+            | events.StatusDelivered()
+            | events.UnloadCutShort()
+            | events.QueriesFetched()
+        ):
             return ()
         case events.SupervisorGaveUp() | events.EventsDropped():
             return None

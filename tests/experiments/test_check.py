@@ -383,6 +383,86 @@ def test_rr_actors_check_reads_a_schema_2_file_as_a_schema_3_one(
         assert "run 0: held" in capsys.readouterr().out
 
 
+# -- fetch (rule 10): what a consumer's fetch listed, against its provider's catalog ------------
+
+
+def fetched(*listed: str, at: int = 5) -> list[events.Event]:
+    """erm holds Q1 for cm (answered), adds Q2, then cm fetches what it holds at erm/cam
+    (the fetch began just before event `at` (between it and the one before) and its answer
+    came after; it listed `listed`), then both are released and cm forgets them."""
+    h = [
+        events.CatalogRestored("erm", (), (), (), pid=P, seq=1),
+        events.ResourceLoaded("erm", "cam", RID, Q1, 0.01, 42, "cam 0", pid=P, seq=2),
+        events.ConsumerAdded("erm", RID, Q1, "cm", pid=P, seq=3),
+        events.CallAnswered("cm", Q1, "erm", "cam", None, False, pid=C),
+        events.ConsumerAdded("erm", RID, Q2, "cm", pid=P, seq=4),
+        events.CallAnswered("cm", Q2, "erm", "cam", None, False, pid=C),
+        events.ConsumerReleased("erm", RID, Q1, "cm", pid=P, seq=5),
+        events.ConsumerReleased("erm", RID, Q2, "cm", pid=P, seq=6),
+        events.ResourceUnloaded("erm", "cam", RID, pid=P, seq=7),
+        events.QueryForgotten("cm", Q1, "erm", "released", pid=C),
+        events.QueryForgotten("cm", Q2, "erm", "released", pid=C),
+        events.RegistrarStopped("cm", (), (), (), pid=C),
+        events.RegistrarStopped("erm", (), (), (), pid=P, seq=8),
+    ]
+    h = [dataclasses.replace(e, hlc=1_000 + 10 * i, host="h") for i, e in enumerate(h)]
+    fetch = events.QueriesFetched(
+        "cm", "erm", "cam", listed, 1_000 + 10 * at - 5, pid=C, hlc=1_000 + 10 * at + 1, host="h"
+    )
+    return [*h[: at + 1], fetch, *h[at + 1 :]]
+
+
+@pytest.mark.parametrize(
+    ("listed", "at"),
+    [
+        ((Q1,), 4),  # Q2 added while it was asked: listed or not
+        ((Q1, Q2), 4),
+        ((Q1, Q2), 5),
+        ((Q2,), 6),  # Q1 released while it was asked: listed or not
+        ((Q1, Q2), 6),
+        ((), 8),  # both released before
+    ],
+)
+def test_a_fetch_that_lists_what_its_provider_held_holds(listed: tuple[str, ...], at: int) -> None:
+    verdict = check.check(numbered(fetched(*listed, at=at)))
+
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+
+
+def test_a_fetch_that_leaves_out_an_id_held_throughout_is_a_fetch_violation() -> None:
+    # Q1 answered before the fetch began and held by erm until after it: not listed
+    verdict = check.check(numbered(fetched(Q2, at=5)))
+
+    found = [f for f in verdict.findings if f.rule == "fetch"]
+    assert ("violated", [(3, 7)]) == (verdict.verdict, [f.lines for f in found])
+    assert "did not list query q1111111" in found[0].message
+
+
+def test_a_fetch_that_lists_an_id_its_provider_did_not_hold_is_a_fetch_violation() -> None:
+    never = "q3333333-0000"
+    # Q1 released before the fetch began; a third id never held at all
+    verdict = check.check(numbered(fetched(Q1, Q2, never, at=7)))
+
+    found = sorted(f.message for f in verdict.findings if f.rule == "fetch")
+    assert "violated" == verdict.verdict
+    assert 2 == len(found), found
+    assert "listed query q1111111, which erm did not hold while asked" in found[0]
+    assert "listed query q3333333" in found[1]
+
+
+def test_a_fetch_whose_window_a_restart_of_its_provider_falls_in_is_not_judged() -> None:
+    h = fetched(at=5)  # (it lists nothing: Q1 is left out)
+    restart = events.CatalogRestored(
+        "erm", ((RID, "cam", "loaded", "42"),), ((Q1, RID, "cm"), (Q2, RID, "cm")), (), (1, 2, 0),
+        pid=P + 1, seq=1, hlc=h[6].started + 1, host="h",
+    )  # fmt: skip
+    later = [dataclasses.replace(e, pid=P + 1) if e.pid == P else e for e in h[7:]]
+
+    verdict = check.check(numbered(renumbered([*h[:6], restart, h[6], *later])))
+
+    assert [] == [f for f in verdict.findings if f.rule == "fetch"]
+
+
 # -- the rules of issue 40: seeded violations, and the windows the docs admit --------------
 
 
@@ -1271,6 +1351,45 @@ def drop_give_up(h: History) -> History | None:
     return None if i is None else _without(h, i)
 
 
+def fetch_leaves_out_a_held_id(h: History) -> History | None:
+    """A fetch's answer without an id its consumer had answered before the fetch began
+    and its provider held (no release, no restart of the provider) until after it."""
+    answered = {(e.registrar, e.query_id): e.hlc for e in h if type(e) is events.CallAnswered}
+    for i, e in enumerate(h):
+        if type(e) is not events.QueriesFetched:
+            continue
+        for qid in e.query_ids:
+            stamp = answered.get((e.registrar, qid))
+            if stamp is None or stamp >= e.started:
+                continue
+            if any(_touches(e.serving_rr, qid, other, stamp, e.hlc) for other in h):
+                continue
+            kept = tuple(q for q in e.query_ids if q != qid)
+            return [*h[:i], dataclasses.replace(e, query_ids=kept), *h[i + 1 :]]
+    return None
+
+
+def _touches(provider: str, qid: str, event: events.Event, after: int, before: int) -> bool:
+    """Whether `event` (stamped between `after` and `before`) let `qid` go at `provider`,
+    or began or ended a life there (a restart, a stop, an exit)."""
+    if not after < event.hlc < before:
+        return False
+    if type(event) is events.ConsumerReleased:
+        return event.registrar == provider and event.query_id == qid
+    if type(event) in (events.CatalogRestored, events.RegistrarStopped, events.InDoubt):
+        return event.registrar.partition("@")[0] == provider  # type: ignore[union-attr]
+    return type(event) is events.ChildExited and event.child == provider
+
+
+def fetch_lists_an_unknown_id(h: History) -> History | None:
+    """A fetch's answer listing an id nobody ever called."""
+    for i, e in enumerate(h):
+        if type(e) is events.QueriesFetched:
+            listed = (*e.query_ids, "f0000000-0000-4000-8000-000000000000")
+            return [*h[:i], dataclasses.replace(e, query_ids=listed), *h[i + 1 :]]
+    return None
+
+
 MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     # name: (the mutation, the rule that must catch it)
     "duplicate-unload": (duplicate(events.ResourceUnloaded), "unload-once"),
@@ -1304,6 +1423,8 @@ MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     "stop-keeps-resource": (stop_keeps_resource, "left"),
     "unload-before-dependency": (unload_before_dependency, "unload-order"),
     "drop-give-up": (drop_give_up, "intensity"),
+    "fetch-leaves-out-a-held-id": (fetch_leaves_out_a_held_id, "fetch"),
+    "fetch-lists-an-unknown-id": (fetch_lists_an_unknown_id, "fetch"),
 }
 
 

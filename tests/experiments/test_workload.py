@@ -1,8 +1,9 @@
 """The workload (`rr_actors.experiments.workload`) when a client cannot build a request: the
-run fails, naming the cause."""
+run fails, naming the cause; awaited and cancelled calls; fetches."""
 
 from __future__ import annotations
 
+import json
 import textwrap
 from pathlib import Path
 
@@ -90,3 +91,32 @@ def test_awaited_calls_a_share_of_which_are_cancelled_leave_nothing_held(tmp_pat
     assert all('"reason": "interrupted"' in line for line in withdrawn)
     assert (0, 0, "held") == (row["calls_failed"], row["catalog_entries_left"], row["verdict"])
     assert row["calls_ok"] > 0
+
+
+FETCHING = AWAITED.replace(
+    "rate = 5.0\nhold = 0.05\nawaited = 40\ncancel = 0.5\ncancel_within = 0.004\n",
+    "rate = 20.0\nhold = 0.05\nfetch_every = 2\n",
+)
+
+
+def test_a_workload_that_fetches_publishes_what_each_fetch_listed_and_holds(
+    tmp_path: Path,
+) -> None:
+    (tmp_path / "plan.toml").write_text(FETCHING)
+
+    results = run(load_plan(tmp_path / "plan.toml"), out=tmp_path / "out")
+
+    [row] = results.rows()
+    lines = (tmp_path / "out" / "events.jsonl").read_text().splitlines()
+    fetched = [json.loads(line) for line in lines if '"type": "QueriesFetched"' in line]
+    answered = {json.loads(line)["query_id"] for line in lines if '"type": "CallAnswered"' in line}
+    # one fetch after every 2 calls, each of client-0 at api/resource, listing its own ids
+    assert "fetch_every = 2" in FETCHING
+    assert (row["calls_ok"] + row["calls_failed"]) // 2 == len(fetched) > 0
+    assert {("client-0", "api", "resource")} == {
+        (f["registrar"], f["serving_rr"], f["server"]) for f in fetched
+    }
+    assert all(f["started"] < f["hlc"] for f in fetched)
+    assert {q for f in fetched for q in f["query_ids"]} <= answered
+    assert any(f["query_ids"] for f in fetched)
+    assert (0, "held") == (row["calls_failed"], row["verdict"])

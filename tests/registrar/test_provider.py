@@ -2216,3 +2216,31 @@ def test_a_stop_cancels_the_coroutine_loads_in_flight_in_the_order_they_started(
     assert load.count == len(outcomes)
     assert wait_for(lambda: len(load.cancelled) == load.count, timeout=10)
     assert load.started == load.cancelled
+
+
+def test_fetch_queries_publishes_the_ids_it_listed_with_the_stamp_it_began_at() -> None:
+    suffix = uuid.uuid4().hex[:8]
+    provider = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"provider-{suffix}"))
+    consumer = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"consumer-{suffix}"))
+    heard: runtime.SimpleQueue[rr.events.QueriesFetched] = runtime.SimpleQueue()
+    try:
+        provider.register_server("leaf", load=lambda r: r, unload=lambda _r, _s: None)
+        held = [consumer.call(provider.name, "leaf", r).id for r in ("a", "b")]
+        subscription = consumer.subscribe(
+            lambda e: heard.put(e) if isinstance(e, rr.events.QueriesFetched) else None
+        )
+
+        fetched = consumer.fetch_queries(provider.name, "leaf")
+
+        event = heard.get(timeout=10.0)
+        subscription.close()
+        assert sorted(held) == sorted(q.id for q in fetched) == sorted(event.query_ids)
+        assert (consumer.name, provider.name, "leaf") == (
+            event.registrar,
+            event.serving_rr,
+            event.server,
+        )
+        assert 0 < event.started < event.hlc
+    finally:
+        consumer.stop()
+        provider.stop()
