@@ -41,6 +41,15 @@ seeds of `simchain`: its window needs a `Load` on its way when the provider dies
 its retry answered before the client's actor handles the reconcile's answer. A third,
 `simheal`, serves `db` on both sides of a cut (the sim-only fault `split_brain`) for
 the plant `heal-no-yield` (rule 22: the one served later never gives way).
+
+Issue 51's "program restarted" (a registrar without a backup, started again on a
+`state_dir`, is told it lost everything: `statedir.ran_before`) has no plant: no
+simulated run reaches it. A seed is one program on a fresh folder (one `Supervisor`,
+started once); its clients' registrars (`Supervisor.registrar`, no backup) start once;
+its managers keep a backup whenever there is a `state_dir` (a plan gives a manager no
+config of its own), and with `state = false` there is none to remember them in; a
+`split_brain`'s second supervisor has a fresh `state_dir` of its own. Reaching it needs
+a fault that kills the whole program and starts it again on the same `state_dir`.
 """
 
 from __future__ import annotations
@@ -165,6 +174,29 @@ PLANTS = (
         "            if False:  # PLANTED: catalog.has_consumer(query_id)\n",
         "simchain",
         "left",
+    ),
+    Plant(
+        "withdrawn",
+        "a withdrawn call's id kept after its provider's restart: the failure of a call its "
+        "caller withdrew is held for a retry, so the next Reconcile lists it and the "
+        "restarted provider keeps it (the reverse of 01defa0, issue 51 finding 1)",
+        "_registrar/consumer.py",
+        "    if failed.withdrawn or failed.attempt.state is AttemptState.WITHDRAWN:\n"
+        "        return None\n",
+        "    # PLANTED: a withdrawn call's failure held for a retry too\n",
+        "simcancel",
+        "withdrawn",
+    ),
+    Plant(
+        "withdrawn-listed",
+        "a withdrawn call listed in a Reconcile: the ids due include those whose caller "
+        "withdrew the call (its CallFailed not handled yet), so the restarted provider "
+        "keeps them (the other half of 01defa0, issue 51 finding 1)",
+        "_registrar/calls.py",
+        "            yield frozenset(self._attempts) - withdrawn, withdrawn\n",
+        "            yield frozenset(self._attempts), frozenset()  # PLANTED: withdrawn listed\n",
+        "simcancel",
+        "withdrawn",
     ),
     Plant(
         "intensity",
