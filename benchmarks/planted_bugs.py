@@ -42,6 +42,11 @@ its retry answered before the client's actor handles the reconcile's answer. A t
 `simheal`, serves `db` on both sides of a cut (the sim-only fault `split_brain`) for
 the plant `heal-no-yield` (rule 22: the one served later never gives way).
 
+Issue 51's withdrawn ids are the plant `withdrawn` (`retry_held_at` undone). The other
+half of that fix, `DueAnswers.frozen` handing a `Reconcile` the withdrawn calls whose
+`CallFailed` the actor has not handled yet, is not a plant: undone alone, 300 seeds
+of `simcancel` held (164 CPU s), so a full run would spend its 10,000 seeds on it.
+
 Issue 51's "program restarted" (a registrar without a backup, started again on a
 `state_dir`, is told it lost everything: `statedir.ran_before`) has no plant: no
 simulated run reaches it. A seed is one program on a fresh folder (one `Supervisor`,
@@ -158,8 +163,9 @@ PLANTS = (
         "two servers of one name after a healed cut: the one served later never gives way "
         "(rule 22; the reverse of the merge fa1549b, in the decision every carrier runs)",
         "_transport/messenger.py",
-        "        if not isinstance(local, Ranked) or rival.rank > local.rank:\n",
-        "        if True:  # PLANTED: not isinstance(local, Ranked) or rival.rank > local.rank\n",
+        "        if not isinstance(local, Ranked) or self.resolution.kept(name, [local, rival]) "
+        "is local:\n",
+        "        if True:  # PLANTED: ... or self.resolution.kept(name, [local, rival]) is local\n",
         "simheal",
         "one-name",
     ),
@@ -184,17 +190,6 @@ PLANTS = (
         "    if failed.withdrawn or failed.attempt.state is AttemptState.WITHDRAWN:\n"
         "        return None\n",
         "    # PLANTED: a withdrawn call's failure held for a retry too\n",
-        "simcancel",
-        "withdrawn",
-    ),
-    Plant(
-        "withdrawn-listed",
-        "a withdrawn call listed in a Reconcile: the ids due include those whose caller "
-        "withdrew the call (its CallFailed not handled yet), so the restarted provider "
-        "keeps them (the other half of 01defa0, issue 51 finding 1)",
-        "_registrar/calls.py",
-        "            yield frozenset(self._attempts) - withdrawn, withdrawn\n",
-        "            yield frozenset(self._attempts), frozenset()  # PLANTED: withdrawn listed\n",
         "simcancel",
         "withdrawn",
     ),
