@@ -41,6 +41,20 @@ seeds of `simchain`: its window needs a `Load` on its way when the provider dies
 its retry answered before the client's actor handles the reconcile's answer. A third,
 `simheal`, serves `db` on both sides of a cut (the sim-only fault `split_brain`) for
 the plant `heal-no-yield` (rule 22: the one served later never gives way).
+
+Issue 51's withdrawn ids are the plant `withdrawn` (`retry_held_at` undone). The other
+half of that fix, `DueAnswers.frozen` handing a `Reconcile` the withdrawn calls whose
+`CallFailed` the actor has not handled yet, is not a plant: undone alone, 300 seeds
+of `simcancel` held (164 CPU s), so a full run would spend its 10,000 seeds on it.
+
+Issue 51's "program restarted" (a registrar without a backup, started again on a
+`state_dir`, is told it lost everything: `statedir.ran_before`) has no plant: no
+simulated run reaches it. A seed is one program on a fresh folder (one `Supervisor`,
+started once); its clients' registrars (`Supervisor.registrar`, no backup) start once;
+its managers keep a backup whenever there is a `state_dir` (a plan gives a manager no
+config of its own), and with `state = false` there is none to remember them in; a
+`split_brain`'s second supervisor has a fresh `state_dir` of its own. Reaching it needs
+a fault that kills the whole program and starts it again on the same `state_dir`.
 """
 
 from __future__ import annotations
@@ -149,8 +163,9 @@ PLANTS = (
         "two servers of one name after a healed cut: the one served later never gives way "
         "(rule 22; the reverse of the merge fa1549b, in the decision every carrier runs)",
         "_transport/messenger.py",
-        "        if not isinstance(local, Ranked) or rival.rank > local.rank:\n",
-        "        if True:  # PLANTED: not isinstance(local, Ranked) or rival.rank > local.rank\n",
+        "        if not isinstance(local, Ranked) or self.resolution.kept(name, [local, rival]) "
+        "is local:\n",
+        "        if True:  # PLANTED: ... or self.resolution.kept(name, [local, rival]) is local\n",
         "simheal",
         "one-name",
     ),
@@ -165,6 +180,18 @@ PLANTS = (
         "            if False:  # PLANTED: catalog.has_consumer(query_id)\n",
         "simchain",
         "left",
+    ),
+    Plant(
+        "withdrawn",
+        "a withdrawn call's id kept after its provider's restart: the failure of a call its "
+        "caller withdrew is held for a retry, so the next Reconcile lists it and the "
+        "restarted provider keeps it (the reverse of 01defa0, issue 51 finding 1)",
+        "_registrar/consumer.py",
+        "    if failed.withdrawn or failed.attempt.state is AttemptState.WITHDRAWN:\n"
+        "        return None\n",
+        "    # PLANTED: a withdrawn call's failure held for a retry too\n",
+        "simcancel",
+        "withdrawn",
     ),
     Plant(
         "intensity",
