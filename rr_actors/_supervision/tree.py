@@ -419,11 +419,9 @@ class RestartWait:
             return False  # a supervisor on its path is giving up: wait until it settled
         elif error is not None:
             self.outcome.append(error)
-        elif (
-            info.state in ("exited", "stopped")
-            and info.restarts < self.target
-            and not found.revivable
-        ):
+        elif info.state in ("exited", "stopped") and not found.revivable:
+            # (down for good, whatever its count: one down when the wait's target was
+            # taken waits for the count it had, `retry.restart_after_failure`)
             self.outcome.append(
                 RegistrarUnavailableError(
                     f"child {name!r} is {info.state} ({info.last_exit}) and will not be restarted"

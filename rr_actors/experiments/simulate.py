@@ -618,6 +618,7 @@ class _SimulatedHost:
     def _main(self) -> None:
         plan, name = self.plan, self.name
         set_host(name)  # (its events', and its managers' processes' as they start)
+        subscription: rr.Subscription[events.Event] | None = None
         try:
             sup = build_tree(
                 plan, self._state_dir, seed=self._seed, host=name, network=self._network
@@ -625,6 +626,8 @@ class _SimulatedHost:
             subscription = sup.subscribe(self._on_event, maxsize=EVENT_QUEUE)
             sup.start()
         except Exception as exc:  # noqa: BLE001 - the run's thread raises it
+            if subscription is not None:  # (a start that failed leaves no subscriber)
+                subscription.close()
             self._replies.put(exc)
             return
         managers = [m.name for m in plan.managers() if plan.host_of(m.name) == name]

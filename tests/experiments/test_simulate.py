@@ -20,6 +20,7 @@ from typing import Any
 import pytest
 
 from rr_actors._core import runtime
+from rr_actors.events.kinds import set_host, this_host
 from rr_actors.experiments import PlanError, check, parse_plan, services, simulate
 from rr_actors.experiments.plan import Plan
 
@@ -1053,3 +1054,39 @@ for = 1.0
     # a's api and c's cache cannot reach db on b; a's clients still reach cache on c
     assert {("api", "a"), ("cache", "c")} <= {(x["registrar"], x["host"]) for x in failed}
     held([run])
+
+
+def test_a_simulated_host_whose_tree_fails_to_start_closes_its_subscription(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The host's main thread subscribes to its tree before starting it: a start that
+    fails closes that subscription (its thread would outlive the run), and the error
+    reaches `ask`."""
+    closed: list[str] = []
+
+    class _Subscription:
+        def close(self) -> None:
+            closed.append("closed")
+
+    class _Tree:
+        def subscribe(self, callback: Any, *, maxsize: int) -> _Subscription:
+            return _Subscription()
+
+        def start(self) -> None:
+            raise RuntimeError("the tree did not start")
+
+    monkeypatch.setattr(simulate, "build_tree", lambda *args, **kwargs: _Tree())
+    made = object.__new__(simulate._SimulatedHost)
+    made.plan, made.name = parse_plan(PLAN), "h1"
+    made._state_dir, made._seed, made._network, made._on_event = None, 1, None, print
+    made._commands, made._replies = runtime.SimpleQueue(), runtime.SimpleQueue()
+    made._serving = False
+    before = this_host()
+    try:
+        made._main()
+    finally:
+        set_host(before)
+
+    with pytest.raises(RuntimeError, match="did not start"):
+        made.ask("start")
+    assert ["closed"] == closed

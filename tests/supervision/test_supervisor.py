@@ -29,6 +29,7 @@ from tests.support.supervising import (
     crash,
     echo_setup,
 )
+from tests.support.waiting import wait_for
 
 
 @pytest.fixture
@@ -603,6 +604,37 @@ def test_call_with_retry_gives_up_at_once_when_the_provider_will_not_come_back(
 
     with pytest.raises(rr.RegistrarUnavailableError):
         call_with_retry(sup, app, name, "res", "camera", timeout=5.0)
+
+
+def test_call_with_retry_gives_up_at_once_when_a_restarting_provider_is_stopped_for_good(
+    supervisors: Callable[..., Supervisor],
+    uid: str,
+    call_with_retry: CallWithRetry,
+) -> None:
+    """Restarting when the call failed, the provider is waited for until it runs with the
+    restarts it counted (0); stopped for good instead, with that count unchanged, the
+    wait ends at once as unavailable. It used to wait its whole timeout."""
+    name = f"p-{uid}"
+    timer = ManualTimer()
+    sup = supervisors([ManagerSpec(name)], backoff=Backoff(initial=1.0), timer=timer).start()
+    app = sup.registrar(f"app-{uid}")
+    crash(sup, name)
+    assert timer.wait_scheduled(1)  # (the restart is held: the provider stays restarting)
+    outcome: list[BaseException] = []
+
+    def call() -> None:
+        try:
+            call_with_retry(sup, app, name, "res", "camera", timeout=30.0)
+        except BaseException as exc:
+            outcome.append(exc)
+
+    thread = threading.Thread(target=call)
+    thread.start()
+    assert wait_for(lambda: bool(sup._tree.watchers), timeout=30.0)  # the retry waits
+    sup.stop()
+    thread.join(60.0)
+
+    assert [rr.RegistrarUnavailableError] == [type(exc) for exc in outcome], outcome
 
 
 def test_call_with_retry_that_times_out_while_restarting_raises_call_timeout(

@@ -35,16 +35,18 @@ import dataclasses
 import logging
 import math
 import os
+import pickle
 import shutil
 import socket
 import tempfile
 import threading
 from collections.abc import Callable, Iterable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import zenoh
 
 from rr_actors import events
+from rr_actors._core import wire
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Subscription
 from rr_actors._core.exit import NETWORKS, stop_at_exit
 from rr_actors._core.hlc import CLOCK, MAX_OFFSET, check_max_offset
@@ -207,7 +209,9 @@ class ZenohAddress:
             the event batches it sends with this host's certificate, and opens those it
             gets (`seal`).
         resolve: the network's `resolve` (rule 22), which a process that attaches uses
-            too (every process of a system decides alike).
+            too (every process of a system decides alike). A function crosses by value
+            (cloudpickled, as a manager's `setup`): the address pickles with plain
+            pickle even when it is a lambda or a nested function.
     """
 
     system: str
@@ -220,6 +224,15 @@ class ZenohAddress:
     tls: ZenohTLS | None = None
     resolve: Resolve = "first_served"
 
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickle a function `resolve` by value (cloudpickle), the rest as it is: a
+        process manager's start arguments are pickled with plain pickle."""
+        fields = {field.name: getattr(self, field.name) for field in dataclasses.fields(self)}
+        if callable(self.resolve):
+            del fields["resolve"]
+            return (_address_by_value, (fields, wire.dumps(self.resolve)))
+        return (ZenohAddress, tuple(fields.values()))
+
     def attach(self) -> ZenohMember | ZenohNetwork:
         """Join the system from this process (idempotent): a CLIENT-mode session.
 
@@ -228,6 +241,11 @@ class ZenohAddress:
             RegistrarUnavailableError: the router cannot be reached.
         """
         return _join(self.system, None, lambda: ZenohMember(self))
+
+
+def _address_by_value(fields: dict[str, Any], resolve: bytes) -> ZenohAddress:
+    """A `ZenohAddress` of `fields` whose `resolve` function was cloudpickled."""
+    return ZenohAddress(**fields, resolve=pickle.loads(resolve))
 
 
 class ZenohMember(Messenger):
@@ -342,7 +360,9 @@ class ZenohNetwork(Messenger):
             endpoint, a `tcp/` endpoint with `tls` or a `tls/` one without, a `tls` that
             is neither `None` nor a `ZenohTLS`, a `lease` that is not a positive number
             of seconds, a `max_offset` that is not seconds above 0 and at most a year,
-            a `resolve` that is neither a strategy's name nor a function.
+            a `resolve` that is neither a strategy's name nor a function, or a
+            function that cannot be pickled (even by cloudpickle: the processes that
+            join through this host's router take it).
     """
 
     def __init__(
@@ -357,6 +377,14 @@ class ZenohNetwork(Messenger):
         resolve: Resolve = "first_served",
     ) -> None:
         super().__init__(check_name("system", system, "a system name"), resolve=resolve)
+        if callable(resolve):
+            try:  # (as it crosses to the manager processes, in `ZenohAddress`)
+                wire.dumps(resolve)
+            except Exception as exc:
+                raise ConfigError(
+                    f"resolve must be a function that can be pickled (by cloudpickle: the "
+                    f"processes that join through this host take it), not {resolve!r}: {exc}"
+                ) from exc
         if tls is not None and not _is_tls(tls):
             raise ConfigError(
                 f"tls must be rr.ZenohTLS(ca=..., cert=..., key=..., members=[...]) or None "

@@ -9,6 +9,7 @@ import multiprocessing
 import multiprocessing.connection
 import multiprocessing.context
 import os
+import pickle
 import pwd
 import re
 import select
@@ -249,6 +250,61 @@ def test_the_resolve_strategy_reaches_the_processes_that_attach() -> None:
         assert "resolve='majority'" in repr(net)
     finally:
         net.close()
+
+
+def _nested_resolve() -> Any:
+    keep = "second"
+
+    def resolve(first: Any, second: Any) -> Any:
+        return second if keep == "second" else first
+
+    return resolve
+
+
+def _attached_resolve(address: Any) -> Any:
+    member = address.attach()
+    try:
+        return member.resolution.resolve("first", "second")
+    finally:
+        member.close()
+
+
+@pytest.mark.parametrize("kind", ["lambda", "nested"])
+def test_a_resolve_function_crosses_in_the_address_by_value(
+    kind: str, context: multiprocessing.context.ForkServerContext
+) -> None:
+    """A process manager's start arguments, the address among them, are pickled with
+    plain pickle: a lambda or a nested `resolve` crosses cloudpickled, and the process
+    that attaches through the address decides with it."""
+    keep = "second"
+    resolve = (
+        (lambda first, second: second if keep == "second" else first)
+        if kind == "lambda"
+        else _nested_resolve()
+    )
+    network = rr.ZenohNetwork(system=_system(), tls=None, resolve=resolve)
+    try:
+        address = network.address  # (opens the router)
+        copy = pickle.loads(pickle.dumps(address))
+        with context.Pool(1) as pool:
+            there = pool.apply(_attached_resolve, (address,))
+    finally:
+        network.close()
+
+    assert ("second", "second") == (copy.resolve("first", "second"), there)
+    assert (copy.system, copy.socket_path, copy.router) == (
+        address.system,
+        address.socket_path,
+        address.router,
+    )
+
+
+def test_a_resolve_function_that_cannot_be_pickled_is_a_config_error_naming_resolve() -> None:
+    numbers = (n for n in range(3))  # (a generator: not even cloudpickle pickles it)
+    with pytest.raises(rr.ConfigError, match="resolve must be a function that can be pickled"):
+        rr.ZenohNetwork(
+            system="lab", tls=None, resolve=lambda first, second: next(numbers) and first
+        )
 
 
 @pytest.mark.parametrize("max_offset", [0, -1.0, float("nan"), float("inf"), True, "60", 1e9])
