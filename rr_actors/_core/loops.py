@@ -193,9 +193,10 @@ class OnLoop:
     one key run in the order they were submitted, one at a time, however long each takes,
     as a status callback's calls do on worker threads. A call that waits for a registrar
     (`replies.let_go`: it awaits an `asend_status` about the resource it hears of, or a
-    thread it started blocks in a `send_status`) lets the next one of its key start
-    beside it, since that one may be what it waits for. Each runs in a copy of the
-    context it was bound in (as asyncio runs a callback in its registrant's context).
+    thread it started in its context, `asyncio.to_thread`, blocks in a `send_status`)
+    lets the next one of its key start beside it, since that one may be what it waits
+    for. Each runs in a copy of the context it was bound in (as asyncio runs a callback
+    in its registrant's context).
 
     Args:
         fn: the coroutine function.

@@ -114,9 +114,10 @@ def when_waiting(hook: Callable[[], None] | None) -> contextvars.Token[Callable[
     returned, given to `waited`, takes it back.
 
     A status callback runs with one (the status runner's, `OnLoop`'s): a callback that
-    waits for a registrar (a `send_status`, an `unload`, on its thread, or on a task or
-    thread it started, which inherit its context) may wait for its own id's next status,
-    so that one may start beside it. `hook` may run more than once, on any thread.
+    waits for a registrar (a `send_status`, an `unload`, on its thread, or in its context:
+    a task it started, `asyncio.to_thread`, `contextvars.copy_context().run`; a plain
+    `threading.Thread` does not inherit it) may wait for its own id's next status, so
+    that one may start beside it. `hook` may run more than once, on any thread.
     """
     return _LET_GO.set(hook)
 

@@ -939,14 +939,16 @@ class Here:
         _check_names(target_rr=target_rr, server=server)
         limit = self.limit(timeout)
         deadline = runtime.monotonic() + limit
-        started = hlc.CLOCK.now()  # (the provider reads its catalog after this stamp)
+        # The provider reads its catalog after this stamp; taken only for a subscriber (it
+        # ticks the clock, which a simulated history must not see without one).
+        started = hlc.CLOCK.now() if self.published.active else None
         reply = FutureReply()
         client = yield from self.client(target_rr, server, limit)
         client.tell(FetchVia(server, reply))
         result: list[Query] = yield from asked(
             reply.future, deadline, limit, f"fetch_queries({target_rr!r})"
         )
-        if self.published.active:
+        if started is not None and self.published.active:
             ids = tuple(query.id for query in result)
             self.published.publish(
                 events.QueriesFetched(self.config.name, target_rr, server, ids, started)

@@ -497,7 +497,8 @@ class Runner:
     keeps its lane closed until its callback returns: being slow, hung or starved of the
     CPU costs an id its own wait, never its order. A lane opens early only when its
     callback waits for a registrar (`replies.let_go`: a `send_status`, `call` or `unload`
-    from inside it, or from a thread or task it started): its next status may be what it
+    from inside it, or in its context: a task it started, `asyncio.to_thread`; not a
+    plain thread, which does not inherit the context): its next status may be what it
     waits for.
     """
 

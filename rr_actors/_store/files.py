@@ -485,6 +485,20 @@ def foreign_owner(path: Path) -> str | None:
     return None
 
 
+def check_pages(db: sqlite3.Connection, name: str) -> None:
+    """Check every page of the file (`PRAGMA quick_check`), writing nothing.
+
+    Raises:
+        CatalogCorruptError: a page is damaged (naming `name` and what SQLite found).
+    """
+    with as_corrupt(name):
+        found = db.execute("PRAGMA quick_check").fetchall()
+    if found != [("ok",)]:
+        lines = [line for (row,) in found for line in str(row).splitlines()]
+        listed = "; ".join([line for line in lines if not line.startswith("***")][:3])
+        raise CatalogCorruptError(name, f"damaged pages: {listed}")
+
+
 def read_backup(path: str | os.PathLike[str], *, unpickle: bool = True) -> Backup:
     """Read a catalog backup without changing it (it may belong to a running registrar).
 
@@ -523,9 +537,7 @@ def read_backup(path: str | os.PathLike[str], *, unpickle: bool = True) -> Backu
     version = validate(file, tidy=True)
     name = str(file)
     with as_corrupt(name), read_only(file, tidy=True) as db:
-        check = db.execute("PRAGMA quick_check").fetchall()
-        if check != [("ok",)]:
-            raise CatalogCorruptError(name, f"integrity check failed: {check[:5]!r}")
+        check_pages(db, name)
         with _migrated_copy(db, version) as current, gc_paused():
             rows = read_rows(current, lenient_decode if unpickle else not_unpickled, lenient=True)
     return Backup(name, version, rows.resources, rows.clients)

@@ -220,7 +220,8 @@ class Saver:
         what was pending is lost with the process's memory). A damaged file (`damaged`)
         is not flushed to: it stays as it was found, what was pending is lost (logged,
         ERROR), and nothing is raised (the calls that made those changes were refused
-        already, or were acknowledged without durability).
+        already, or were acknowledged without durability); it is not erased either, even
+        with `erase` (kept for analysis, logged, ERROR).
 
         Raises:
             CatalogWriteError: the last flush failed.
@@ -235,6 +236,14 @@ class Saver:
                 self.store.path,
                 damaged,
             )
+        if damaged is not None and erase:
+            logger.error(
+                "catalog backup %s is damaged (%s): it was kept, not erased "
+                "(erase_on_destruct), so it can be analysed (quarantine_backup)",
+                self.store.path,
+                damaged,
+            )
+            erase = False
         try:
             if flush and not erase and damaged is None:
                 self.flush()

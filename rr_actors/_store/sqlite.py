@@ -52,6 +52,7 @@ from rr_actors._store.files import (
     SYNCHRONOUS,
     BackupLock,
     check_location,
+    check_pages,
     claim,
     connect,
     copy_aside,
@@ -117,7 +118,7 @@ class SqliteStore:
         self._unchecked = 0  # pages (about) written since the checkpointer was last woken
         self.checkpoint_every = checkpoints.CHECKPOINT_EVERY
         self._created = created
-        # Whether the file's pages were checked (`_check_pages`) before this store first
+        # Whether the file's pages were checked (`check_pages`) before this store first
         # writes; why they are damaged, once found (nothing more is written then).
         self._checked = created or not self._guarded
         self._damaged: str | None = None
@@ -206,7 +207,7 @@ class SqliteStore:
         checked = created or not runtime.guards_files()
         try:
             if not checked and _open_writes(db, name, version):
-                _check_pages(db, name)  # (before anything is written to it: rule 15)
+                check_pages(db, name)  # (before anything is written to it: rule 15)
                 checked = True
             prepare(db, name, durability, version)
             with as_corrupt(name):  # (read at the last run's exit, if anyone listened)
@@ -461,7 +462,7 @@ class SqliteStore:
         if not self._checked and self._damaged is None:
             self._checked = True
             try:
-                _check_pages(self._db, self.path)
+                check_pages(self._db, self.path)
             except CatalogCorruptError as exc:
                 self.found_damaged(exc.cause)
         if self._damaged is None:
@@ -598,17 +599,3 @@ def _open_writes(db: sqlite3.Connection, name: str, version: int) -> bool:
         return True
     with as_corrupt(name):
         return bool(db.execute("SELECT EXISTS (SELECT 1 FROM outbox)").fetchone()[0])
-
-
-def _check_pages(db: sqlite3.Connection, name: str) -> None:
-    """Check every page of the file (`PRAGMA quick_check`), writing nothing.
-
-    Raises:
-        CatalogCorruptError: a page is damaged (naming `name` and what SQLite found).
-    """
-    with as_corrupt(name):
-        found = db.execute("PRAGMA quick_check").fetchall()
-    if found != [("ok",)]:
-        lines = [line for (row,) in found for line in str(row).splitlines()]
-        listed = "; ".join([line for line in lines if not line.startswith("***")][:3])
-        raise CatalogCorruptError(name, f"damaged pages: {listed}")

@@ -45,8 +45,8 @@ the catalog events; a schema 1 line may lack the fields that have defaults (`seq
 Schema 3 added `host` (the member name of the host) and `hlc` (the hybrid logical clock
 stamp) to every event; a line of an older schema gets `host` `""` (not known) and the
 stamp of its `at` (`hlc.from_seconds`), so that old lines still sort by wall time.
-Schema 4 added `ChildExited`'s `restart`, `normal`, `max_restarts` and `period` (what a
-supervisor decided from); a line of an older schema gets `restart` `""` (not known).
+Schema 4 added `ChildExited`'s `restart`, `normal`, `stopped`, `max_restarts` and `period`
+(what a supervisor decided from); a line of an older schema gets `restart` `""` (not known).
 """
 
 _READS = (1, 2, 3, SCHEMA)

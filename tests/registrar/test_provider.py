@@ -2244,3 +2244,37 @@ def test_fetch_queries_publishes_the_ids_it_listed_with_the_stamp_it_began_at() 
     finally:
         consumer.stop()
         provider.stop()
+
+
+def test_fetch_queries_takes_no_clock_stamp_without_a_subscriber(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The stamp ticks the hybrid logical clock: without a subscriber to hear
+    `QueriesFetched` it is not taken (a simulated history would see the tick)."""
+    from rr_actors._registrar import handle  # noqa: PLC0415 - the clock it reads
+
+    stamps: list[int] = []
+
+    class Clock:
+        @staticmethod
+        def now() -> int:
+            stamps.append(1)
+            return 1
+
+    class Hlc:
+        CLOCK = Clock
+
+    monkeypatch.setattr(handle, "hlc", Hlc)
+    suffix = uuid.uuid4().hex[:8]
+    provider = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"provider-{suffix}"))
+    consumer = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"consumer-{suffix}"))
+    try:
+        provider.register_server("leaf", load=lambda r: r, unload=lambda _r, _s: None)
+        held = consumer.call(provider.name, "leaf", "a").id
+
+        fetched = consumer.fetch_queries(provider.name, "leaf")
+
+        assert ([held], []) == ([q.id for q in fetched], stamps)
+    finally:
+        consumer.stop()
+        provider.stop()

@@ -633,6 +633,38 @@ def test_a_registrar_never_writes_to_a_backup_found_with_a_damaged_page(tmp_path
     assert (expected, expected, before) == (first, second, sha256(path))
 
 
+def test_a_registrar_that_erases_on_destruct_keeps_a_backup_found_damaged(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """`erase_on_destruct` does not delete a backup found damaged: it is kept for analysis
+    (errors.md), byte for byte, and the stop says so (ERROR) rather than raising."""
+    path = tmp_path / "p.db"
+    write_entries(path, 300)
+    damage_a_page_of_resources(path)
+    before = sha256(path)
+    name = unique("P")
+    provider = rr.ResourceRegistrar.start(
+        rr.RegistrarConfig(name=name, backup_path=path, save_on_modify=True, erase_on_destruct=True)
+    )
+    provider.register_server("leaf", load=leaf_load, unload=noop_unload)
+    consumer = rr.ResourceRegistrar.start(unique("C"))
+    try:
+        called = outcome(lambda: consumer.call(name, "leaf", {"fresh": 1}))
+    finally:
+        consumer.stop()
+        with caplog.at_level("ERROR", logger="rr_actors"):
+            stopped = outcome(provider.stop)
+
+    kept = [r for r in caplog.records if "kept" in r.getMessage()]
+    assert ("CatalogWriteError: damaged", "ok", True, before, 1) == (
+        called,
+        stopped,
+        path.exists(),
+        sha256(path) if path.exists() else None,
+        len(kept),
+    )
+
+
 def test_a_store_that_found_its_file_damaged_refuses_every_write_and_closes_quietly(
     tmp_path: Path,
 ) -> None:

@@ -347,11 +347,12 @@ class ZenohNetwork(Messenger):
             shows both (rule 22; the other yields: it unloads what it served and stops,
             and its consumers reconcile with the one kept): `"first_served"` (default:
             the one that began to serve first), `"majority"` (the one whose side held a
-            majority of the system's members when it began to serve; ties: first
-            served), or a function `(first, second) -> the one kept` given two
-            `rr.Claimant`s, first served first. Every host of the system must pass the
-            same, and a function must be deterministic: each process decides alone
-            from the same data. One that raises, or answers neither, falls back to
+            strict majority of the system's members, more than half, when it began to
+            serve; if neither side had one, first served; if both did, the later), or a
+            function `(first, second) -> the one kept` given two `rr.Claimant`s, first
+            served first. Every host of the system must pass the same, and a function
+            must be deterministic: each process decides alone from the same data. One
+            that raises, or answers neither, falls back to
             first served with a WARNING. What each loses:
             `docs/explanation/failure-semantics.md`.
 
