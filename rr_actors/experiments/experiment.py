@@ -50,6 +50,7 @@ __all__ = [
     "ExperimentError",
     "ExperimentInterruptedError",
     "Progress",
+    "handling_signals",
     "prepare_out",
     "run",
     "unsupported_platform",
@@ -606,38 +607,38 @@ def _stop(process: subprocess.Popen[bytes]) -> None:
 
 
 @contextlib.contextmanager
-def _ignoring_signals() -> Iterator[None]:
-    """A second Ctrl-C (or a SIGTERM, a SIGHUP) must not cut the cleanup short (main
-    thread only)."""
+def handling_signals(
+    numbers: tuple[int, ...], handler: Callable[[int, Any], Any] | int
+) -> Iterator[None]:
+    """`handler` (a function of the signal's number and frame, or `signal.SIG_IGN`) for
+    each of `numbers` while the block runs, the handlers before it put back at its end.
+    Python runs signal handlers on the main thread only: elsewhere nothing changes."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = {n: signal.signal(n, signal.SIG_IGN) for n in (signal.SIGINT, *_STOPPING)}
+    previous = {number: signal.signal(number, handler) for number in numbers}
     try:
         yield
     finally:
-        for number, handler in previous.items():
-            signal.signal(number, handler)
+        for number, before in previous.items():
+            signal.signal(number, before)
 
 
-@contextlib.contextmanager
-def _terminating_as_interrupt() -> Iterator[None]:
+def _ignoring_signals() -> contextlib.AbstractContextManager[None]:
+    """A second Ctrl-C (or a SIGTERM, a SIGHUP) must not cut the cleanup short (main
+    thread only)."""
+    return handling_signals((signal.SIGINT, *_STOPPING), signal.SIG_IGN)
+
+
+def _terminating_as_interrupt() -> contextlib.AbstractContextManager[None]:
     """SIGTERM or SIGHUP raises `_Terminated` (a `KeyboardInterrupt`) while the runs go on.
 
     Without it either ends the process at once (a SIGHUP: the terminal it ran in was
     closed): the run's processes and the work directory in the temporary directory would
     be left behind (main thread only).
     """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
 
     def terminated(signum: int, _frame: object) -> None:
         raise _Terminated(signum)
 
-    previous = {number: signal.signal(number, terminated) for number in _STOPPING}
-    try:
-        yield
-    finally:
-        for number, handler in previous.items():
-            signal.signal(number, handler)
+    return handling_signals(_STOPPING, terminated)

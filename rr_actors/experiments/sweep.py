@@ -36,7 +36,6 @@ import stat
 import statistics
 import subprocess
 import sys
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, BinaryIO, TextIO
@@ -167,23 +166,14 @@ def hash_fixed(argv: list[str], stream: TextIO) -> int | None:
     return child.returncode
 
 
-@contextlib.contextmanager
-def _passed_on(child: subprocess.Popen[str]) -> Iterator[None]:
+def _passed_on(child: subprocess.Popen[str]) -> contextlib.AbstractContextManager[None]:
     """Each of `STOP_SIGNALS` this process gets passed on to `child` (main thread only)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
 
     def pass_on(signum: int, _frame: object) -> None:
         with contextlib.suppress(ProcessLookupError):  # (it ended meanwhile)
             child.send_signal(signum)
 
-    previous = {number: signal.signal(number, pass_on) for number in STOP_SIGNALS}
-    try:
-        yield
-    finally:
-        for number, handler in previous.items():
-            signal.signal(number, handler)
+    return experiment.handling_signals(STOP_SIGNALS, pass_on)
 
 
 STOP_SIGNALS = tuple(
@@ -200,27 +190,18 @@ class _Stopped(KeyboardInterrupt):
         self.signum = signum
 
 
-@contextlib.contextmanager
-def stopping_on_signals() -> Iterator[None]:
+def stopping_on_signals() -> contextlib.AbstractContextManager[None]:
     """The first of `STOP_SIGNALS` raises a `KeyboardInterrupt` in the main thread; the
     ones after it are ignored until the block ends (the seed running is cancelled and
     its folder removed meanwhile: `simulate.run_seed`). `stopped_code` gives the exit
     code. Elsewhere than on the main thread: nothing changes."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
 
     def first(signum: int, _frame: object) -> None:
         for number in STOP_SIGNALS:
             signal.signal(number, signal.SIG_IGN)
         raise _Stopped(signum)
 
-    previous = {number: signal.signal(number, first) for number in STOP_SIGNALS}
-    try:
-        yield
-    finally:
-        for number, handler in previous.items():
-            signal.signal(number, handler)
+    return experiment.handling_signals(STOP_SIGNALS, first)
 
 
 def stopped_code(exc: KeyboardInterrupt) -> int:
