@@ -57,8 +57,15 @@ async def _storm(
     for task in tasks:
         if rng.random() < 0.7:
             loop.call_later(rng.uniform(0.0, 0.05), task.cancel)
-    loop.call_later(rng.uniform(0.055, 0.07), os.kill, pid, signal.SIGKILL)
+    killed = asyncio.Event()
+
+    def kill() -> None:
+        os.kill(pid, signal.SIGKILL)
+        killed.set()
+
+    loop.call_later(rng.uniform(0.055, 0.07), kill)
     outcomes = await asyncio.gather(*tasks, return_exceptions=True)
+    await killed.wait()  # (a small storm may be over before the kill: it still comes)
     return {q: o if isinstance(o, str) else "cancelled" for q, o in zip(ids, outcomes, strict=True)}
 
 
