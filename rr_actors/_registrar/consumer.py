@@ -15,9 +15,10 @@
    │         unsettled_at  the provider of a call that failed as it died or stopped
    │                       (not one its caller withdrew first: `retry_held_at`):
    │                       it may hold the id (a retry may come) ─► listed in the next
-   │                       Reconcile; still held there ─► kept_for_retry (released by
-   │                       its next Reconcile, or given back when this one stops or
-   │                       the load that made it ends: take_dependencies)
+   │                       Reconcile; still held there ─► kept_for_retry (listed in
+   │                       each Reconcile its life asks for, released by the first to
+   │                       its next life, or given back when this one stops or the
+   │                       load that made it ends: take_dependencies)
    │         parked        notices (StatusNotice, Revoke, ResponseUpdated) that
    │                       overtook their answer ─► handled again once it came
    │       take_outcomes: the outcomes callers handed over, before each message
@@ -219,6 +220,9 @@ class Flights:
         self.redeliver = redeliver  # handles a message as the actor does (its dispatch)
         self.in_flight: dict[str, InFlight] = {}
         self.kept_for_retry: dict[str, str] = {}  # query id -> the provider that kept it
+        # query id -> the life of that provider that kept it (its `ReconcileAsk.life`;
+        # "": not known), of the ids in `kept_for_retry`
+        self.kept_in: dict[str, str] = {}
         # query id -> the resource whose load made it, of the unsettled or kept ids above
         # that a load made (a dependency): its retry can only come from that load
         self.dependency_of: dict[str, str] = {}
@@ -280,9 +284,28 @@ class Flights:
         it is no longer one its provider kept for a retry; `parent`: the resource whose
         load made the call (`take_dependencies` gives the id back when that load ends)."""
         self.settle(query_id, provider)
-        self.kept_for_retry.pop(query_id, None)
+        self.unkeep(query_id)
         if provider is not None and parent is not None:
             self.dependency_of[query_id] = parent
+
+    def unkeep(self, query_id: str) -> str | None:
+        """`query_id` is no longer kept for a retry: the provider that kept it, if any."""
+        self.kept_in.pop(query_id, None)
+        return self.kept_for_retry.pop(query_id, None)
+
+    def kept_at(self, serving_rr: str, life: str) -> set[str]:
+        """The ids `serving_rr` kept for a retry in its life `life` ("": not known), to
+        list in a `Reconcile` to that life: it keeps them for a retry still. Those a
+        known earlier life kept are left out: its restart since (a new life) releases
+        them, as no retry came while it lived (rule 17). A provider asks more than once
+        in one life (as it starts, and once its carrier serves it: rule 20), so "the
+        next `Reconcile`" would release them too early, before the retry they are kept
+        for (issue 51)."""
+        return {
+            query_id
+            for query_id, provider in self.kept_for_retry.items()
+            if provider == serving_rr and (not life or self.kept_in[query_id] in ("", life))
+        }
 
     def was_unsettled(self, query_id: str) -> bool:
         """Whether a call with `query_id` failed as its provider died (a retry follows)."""
@@ -301,10 +324,14 @@ class Flights:
         those it kept before that the list left out (it released them). Without a
         listing (`serving_rr` is gone for good): all of them. `unknown`: the listed ids
         it answered it does not know."""
-        for query_id, provider in list(self.kept_for_retry.items()):
-            if provider == serving_rr and (listing is None or query_id not in listing.held):
-                del self.kept_for_retry[query_id]
         lost = set(unknown)
+        for query_id, provider in list(self.kept_for_retry.items()):
+            if provider != serving_rr:
+                continue
+            if listing is None or query_id not in listing.held or query_id in lost:
+                self.unkeep(query_id)
+            elif listing.life and not self.kept_in.get(query_id):
+                self.kept_in[query_id] = listing.life  # (the life that keeps it, now known)
         for query_id, provider in self.unsettled().items():
             if provider == serving_rr and (
                 listing is None or query_id in listing.held or query_id in listing.left_out
@@ -312,6 +339,7 @@ class Flights:
                 self.settle(query_id, None)
                 if listing is not None and query_id in listing.held and query_id not in lost:
                     self.kept_for_retry[query_id] = serving_rr
+                    self.kept_in[query_id] = listing.life
 
     def take_dependencies(self, rid: str) -> list[tuple[str, str]]:
         """Resource `rid`'s load ended (it failed, or the resource is unloading): the ids
@@ -329,7 +357,9 @@ class Flights:
                 taken.append((query_id, flight.unsettled_at))
                 self.settle(query_id, None)
             elif query_id in self.kept_for_retry:
-                taken.append((query_id, self.kept_for_retry.pop(query_id)))
+                provider = self.unkeep(query_id)
+                assert provider is not None
+                taken.append((query_id, provider))
         return taken
 
     def take_unsettled(self) -> list[tuple[str, str]]:
@@ -341,6 +371,7 @@ class Flights:
             self.settle(query_id, None)
         taken += self.kept_for_retry.items()
         self.kept_for_retry.clear()
+        self.kept_in.clear()
         return taken
 
     # -- notices that overtake the answer they are about --------------------------------
@@ -1071,6 +1102,7 @@ class Listing:
     due: frozenset[str]
     left_out: frozenset[str]
     epoch: int
+    life: str = ""  # the provider's life it was sent to (its `ReconcileAsk.life`; "": not known)
 
 
 class Reconciling:
@@ -1139,25 +1171,32 @@ class Reconciling:
         )
 
     def listing(
-        self, serving_rr: str, due: frozenset[str], withdrawn: frozenset[str] = frozenset()
+        self,
+        serving_rr: str,
+        due: frozenset[str],
+        withdrawn: frozenset[str] = frozenset(),
+        life: str = "",
     ) -> Listing:
         """The list of a `Reconcile` to `serving_rr` that leaves now, a new epoch (`due`:
         the ids whose answer is due now, at any provider: listed too, harmless, reported
         unknown). `withdrawn`: the ids of calls whose callers withdrew them and whose
         `CallFailed` this actor has not handled yet (a durable one's pending record is
         still here): given back, never listed, so the provider releases them if their
-        `Abandon` died with its last run (rule 17)."""
+        `Abandon` died with its last run (rule 17). `life`: the provider's life that
+        asked for it ("": not known); the ids it kept for a retry in that life are
+        listed again (`Flights.kept_at`)."""
         held = {
             query_id
             for query_id, record in self.registrar.catalog.clients.items()
             if record.query.serving_rr == serving_rr
         }
         held |= {q for q, provider in self.flights.unsettled().items() if provider == serving_rr}
+        held |= self.flights.kept_at(serving_rr, life)
         held |= due
         held -= withdrawn
         left_out = self.releases.unreleased_at(serving_rr)
         epoch = self.holdings.new_epoch()
-        return Listing(tuple(sorted(held - left_out)), due, left_out, epoch)
+        return Listing(tuple(sorted(held - left_out)), due, left_out, epoch, life)
 
     def settle_listed(
         self, serving_rr: str, listing: Listing | None = None, unknown: Iterable[str] = ()
@@ -1190,7 +1229,10 @@ class Reconciling:
             self.reconcile_all()
 
     def reconcile(
-        self, serving_rr: str, then: Callable[[BaseException | None], None] | None = None
+        self,
+        serving_rr: str,
+        then: Callable[[BaseException | None], None] | None = None,
+        life: str = "",
     ) -> None:
         """Tell `serving_rr` which ids this registrar holds there (`Reconcile`).
 
@@ -1205,10 +1247,11 @@ class Reconciling:
         after it; their own answers decide. Releases that failed as the provider died
         are left out of the list, so the provider releases them (`Releases.unreleased`).
         `then(error)` runs (on this actor) once the answer was handled: `None`, or why it
-        failed (`life.py`'s presence retries).
+        failed (`life.py`'s presence retries). `life`: the provider's life that asked
+        (its `ReconcileAsk.life`; "": not known).
         """
         with self.due.frozen() as (due, withdrawn):
-            listing = self.listing(serving_rr, due, withdrawn)
+            listing = self.listing(serving_rr, due, withdrawn, life)
             self.registrar.send(
                 serving_rr,
                 lambda reply: Reconcile(self.registrar.name, listing.held, reply),

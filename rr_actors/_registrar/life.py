@@ -659,6 +659,7 @@ class Presence:
         self.timer = timer  # `timer(delay, fn)` for the retries (injectable for tests)
         # provider -> (its reconcile round, the attempt waited for), until answered
         self.rounds: dict[str, tuple[int, int]] = {}
+        self.lives: dict[str, str] = {}  # provider -> the life that asked for its round
         self.timers: dict[str, Cancellable] = {}
         self.round_count = 0
 
@@ -708,7 +709,9 @@ class Presence:
             self.attempt(name, self.round_count, 0)
         if self.registrar.catalog.consumers_from(name):
             try:
-                DIRECTORY.lookup(name).tell(ReconcileAsk(self.registrar.name))
+                DIRECTORY.lookup(name).tell(
+                    ReconcileAsk(self.registrar.name, life=self.registrar.life)
+                )
             except RrError as exc:
                 logger.debug(
                     "registrar %s: %s not reachable yet: %s", self.registrar.name, name, exc
@@ -723,7 +726,7 @@ class Presence:
         it lost would then stay held here, never reported `FATAL`."""
         if self.reconciling.asked(message):
             self.round_count += 1
-            self.attempt(message.serving_rr, self.round_count, 0)
+            self.attempt(message.serving_rr, self.round_count, 0, message.life)
 
     def on_reconcile_retry(self, message: ReconcileRetry, _reply: Reply) -> None:
         if self.rounds.get(message.name) != (message.round, message.attempt - 1):
@@ -731,19 +734,21 @@ class Presence:
         if self.registrar.phase is not Phase.SERVING:
             self.stop_retrying(message.name)
             return
-        self.attempt(message.name, message.round, message.attempt)
+        self.attempt(message.name, message.round, message.attempt, self.lives.get(message.name, ""))
 
-    def attempt(self, name: str, round_: int, attempt: int) -> None:
-        """Send `Reconcile` attempt `attempt` of round `round_` to provider `name`.
+    def attempt(self, name: str, round_: int, attempt: int, life: str = "") -> None:
+        """Send `Reconcile` attempt `attempt` of round `round_` to provider `name`, whose
+        life `life` asked for it ("": not known: a link healed, `PeerReachable`).
 
         An attempt not answered within `call_timeout` is retried (a token that is back
         is not yet a peer that answers: a carrier may lose what it is sent meanwhile).
         """
         self.stop_retrying(name)
         self.rounds[name] = (round_, attempt)
+        self.lives[name] = life
         self.arm(name, round_, attempt + 1, self.registrar.config.call_timeout)
         self.reconciling.reconcile(
-            name, then=lambda error: self.answered(name, round_, attempt, error)
+            name, then=lambda error: self.answered(name, round_, attempt, error), life=life
         )
 
     def answered(self, name: str, round_: int, attempt: int, error: BaseException | None) -> None:
@@ -777,6 +782,7 @@ class Presence:
 
     def stop_retrying(self, name: str) -> None:
         self.rounds.pop(name, None)
+        self.lives.pop(name, None)
         timer = self.timers.pop(name, None)
         if timer is not None:
             timer.cancel()

@@ -334,10 +334,14 @@ class ReconcileAsk(WireMessage):
 
     With `holds_yours=False` it names none of yours (it tells every registrar of the
     system: its restart may have lost ids you hold): send one only if you hold ids there.
+    `life`: a token drawn at each start of `serving_rr` (`Shared.life`), the same in
+    every ask of that run ("": not known); the ids it kept for a retry in that life are
+    listed again, those an earlier life kept are not (released: rule 17).
     """
 
     serving_rr: str
     holds_yours: bool = True
+    life: str = ""
 
 
 @dataclasses.dataclass(frozen=True)

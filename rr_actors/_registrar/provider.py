@@ -1050,7 +1050,9 @@ class Unloading:
         origins = self.registrar.catalog.consumer_origins() | swept
         for origin in sorted(origins):
             try:
-                DIRECTORY.lookup(origin).tell(ReconcileAsk(self.registrar.name))
+                DIRECTORY.lookup(origin).tell(
+                    ReconcileAsk(self.registrar.name, life=self.registrar.life)
+                )
             except RegistrarStoppedError:
                 self.release_stopped(origin)
             except RrError:
@@ -1063,7 +1065,9 @@ class Unloading:
         those that hold ids here reconcile (the ids this one lost are reported `FATAL`)."""
         for name in sorted(DIRECTORY.names() - asked - {self.registrar.name}):
             with contextlib.suppress(RrError):
-                DIRECTORY.lookup(name).tell(ReconcileAsk(self.registrar.name, holds_yours=False))
+                DIRECTORY.lookup(name).tell(
+                    ReconcileAsk(self.registrar.name, holds_yours=False, life=self.registrar.life)
+                )
 
     def release_stopped(self, origin: str) -> None:
         """Consumer `origin` was stopped for good while this registrar was down: it holds

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import itertools
 import logging
 from collections.abc import Callable
 from typing import Any
@@ -147,6 +148,9 @@ NO_REPLY: Reply = _NoReply()
 """What a role's handler gets as `reply` for a message without one (`actor.DISPATCH`)."""
 
 
+_STARTS = itertools.count()  # registrars started in this process (`Shared.life`)
+
+
 class Shared:
     """The registrar's record: what every part of its actor reads and writes."""
 
@@ -174,6 +178,10 @@ class Shared:
         self.ref: pykka.ActorRef[Any] | None = None
         self.events = published
         self.held_in_doubt: set[str] = set()
+        # this run of the registrar, the same in every `ReconcileAsk` it sends
+        # (`consumer.py`'s `Flights.kept_at`): its process, the clock and a count, so
+        # no two starts share it (and a simulation draws nothing from its seed for it)
+        self.life = f"{runtime.getpid()}.{runtime.wall_ns()}.{next(_STARTS)}"
 
     @property
     def stopping(self) -> bool:

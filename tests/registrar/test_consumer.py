@@ -28,6 +28,7 @@ import cloudpickle
 import pytest
 
 import rr_actors as rr
+from rr_actors._core.directory import DIRECTORY
 from rr_actors._registrar import Served
 from rr_actors._registrar.consumer import Action, InFlight, decide
 from rr_actors.testing import (
@@ -827,6 +828,67 @@ class TestReconcile:
 
         assert ({"for": "camera"}, ["camera"]) == (retry.response, loads)
         assert [qid] == [q.id for q in restarted.server_queries("leaf")]
+
+    def test_a_failed_call_kept_at_reconciling_stays_kept_when_the_same_provider_asks_again(
+        self, tmp_path: Path, started: list[rr.ResourceRegistrar]
+    ) -> None:
+        # Rule 17 case 3 with rule 20's two asks: a restarted provider asks its consumers to
+        # reconcile as it starts and again once its carrier serves it. The consumer lists
+        # the failed call in the first Reconcile (the provider keeps the id for a retry);
+        # the second ask, from the same life, must list it again. It used to be left out
+        # of every Reconcile after the first, so the provider released the id and a retry
+        # loaded it twice (a full CI run: `..._released_the_failed_call_it_kept`, [] held).
+        # The forced interleaving: the first ask delivered again, as the second one is.
+        load = GatedLoad(threading.Event(), threading.Event(), lambda request: {"for": request})
+        loads, gate, entered = load.requests, load.gate, load.started
+
+        def serve(registrar: rr.ResourceRegistrar) -> None:
+            registrar.register_server("leaf", load=load, unload=lambda _r, _s: None)
+
+        config = durable_config("provider", tmp_path)
+        provider = rr.ResourceRegistrar.start(config, setup=serve)
+        consumer = rr.ResourceRegistrar.start(f"consumer-{uuid.uuid4().hex[:8]}")
+        started.append(consumer)
+        qid = str(uuid.uuid4())
+        with ThreadPoolExecutor(1) as pool:
+            call = pool.submit(
+                consumer.call, config.name, "leaf", "camera", query_id=qid, timeout=10
+            )
+            assert entered.wait(10)
+            with expect_restart(config.name):  # as its supervisor would: no death watch
+                crash(provider)
+            with pytest.raises(rr.RegistrarUnavailableError):
+                call.result(timeout=10)
+        gate.set()
+        commit_as_answered(Path(config.backup_path), qid, consumer.name)  # type: ignore[arg-type]
+        reconciles: list[Any] = []
+        reconciled = threading.Event()
+        asks: list[Any] = []
+
+        def setup(registrar: rr.ResourceRegistrar) -> None:
+            serve(registrar)
+
+            def heard(message: Any) -> None:
+                reconciles.append(message.held)
+                reconciled.set()
+
+            intercept(registrar, "reconcile", after=heard)
+
+        with intercept(consumer, "reconcile_ask", after=asks.append):
+            restarted = rr.ResourceRegistrar.start(config, setup=setup)
+            started.append(restarted)
+            assert reconciled.wait(10)
+            run_on_actor(consumer, lambda: None).get(timeout=10)  # it handled the answer
+            assert asks  # (the ask that made the first Reconcile)
+            reconciled.clear()
+            DIRECTORY.lookup(consumer.name).tell(asks[0])  # the same life asks again
+            assert reconciled.wait(10)
+            run_on_actor(consumer, lambda: None).get(timeout=10)
+
+        assert all(qid in held for held in reconciles), reconciles
+        assert [qid] == [q.id for q in restarted.server_queries("leaf")]  # still kept
+        retry = consumer.call(config.name, "leaf", "camera", query_id=qid, timeout=10)
+        assert ({"for": "camera"}, ["camera"]) == (retry.response, loads)
 
     def test_a_failed_call_the_provider_kept_at_reconciling_is_given_back_when_its_consumer_stops(
         self, tmp_path: Path, started: list[rr.ResourceRegistrar]
