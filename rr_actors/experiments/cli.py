@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 from rr_actors._extras import install_command, needs
 from rr_actors.errors import ConfigError, RrError
-from rr_actors.experiments import experiment, plans, shrink, sweep
+from rr_actors.experiments import experiment, plans, shrink, simulate, sweep
 from rr_actors.experiments.experiment import (
     ExperimentError,
     ExperimentInterruptedError,
@@ -131,6 +131,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--seeds",
         metavar="A-B",
         help="with --simulate: the seeds to run, A to B included, or one seed (default: 1)",
+    )
+    parser.add_argument(
+        "--jobs",
+        type=_positive_int,
+        default=None,
+        metavar="N",
+        help="with --simulate: run the seeds in N processes (default: the cores available, "
+        "at most one per seed); the same hashes, verdicts and seeds.jsonl as one process",
     )
     parser.add_argument(
         "--shrink",
@@ -416,8 +424,9 @@ def main(args: argparse.Namespace, stream: TextIO) -> int:
     if args.simulate:
         with _one_ctrl_c():
             return _simulated(args, stream)
-    if args.seeds is not None or args.shrink is not None:
-        error(f"{'--seeds' if args.seeds is not None else '--shrink'} needs --simulate")
+    needs = [name for name in ("seeds", "jobs", "shrink") if getattr(args, name) is not None]
+    if needs:
+        error(f"--{needs[0]} needs --simulate")
         return 2
     with _one_ctrl_c():
         return _run(args, stream)
@@ -496,6 +505,7 @@ def _simulated(args: argparse.Namespace, stream: TextIO) -> int:
     argv += ["--out", args.out, "--force"]  # (the directory is prepared)
     argv += [*(["--duration", str(args.duration)] if args.duration is not None else [])]
     argv += ["--quiet"] if args.quiet else []
+    argv += ["--jobs", str(args.jobs)] if args.jobs is not None else []
     argv += ["--shrink", str(args.shrink)] if args.shrink is not None else []
     code = sweep.hash_fixed(argv, stream)
     return code if code is not None else _sweep(plan, seeds, out, args, stream)
@@ -503,14 +513,18 @@ def _simulated(args: argparse.Namespace, stream: TextIO) -> int:
 
 def _sweep(plan: Plan, seeds: range, out: Path, args: argparse.Namespace, stream: TextIO) -> int:
     """The seeds run (here: `PYTHONHASHSEED=0`), then the summary, then `--shrink`."""
+    jobs = args.jobs if args.jobs is not None else sweep.default_jobs(seeds)
+    runs: list[simulate.SimulatedRun] = []
     try:
         with sweep.stopping_on_signals(), Display(stream, quiet=args.quiet) as display:
-            runs = sweep.run_seeds(plan, seeds, out, display)
+            sweep.run_seeds(plan, seeds, out, display, jobs=jobs, runs=runs)
     except RrError as exc:
         error(str(exc))
         return 1
-    except KeyboardInterrupt as exc:  # (the seed running removed its folder)
+    except KeyboardInterrupt as exc:  # (the seeds running removed their folders)
         error(f"{sweep.stopped_line(exc)}: the seeds that ran are in {out / sweep.SEEDS_FILE}")
+        if runs:
+            sweep.summary(display, runs, _shown(out))
         return sweep.stopped_code(exc)
     sweep.summary(display, runs, _shown(out))
     if args.shrink is not None:

@@ -26,8 +26,10 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import functools
 import json
 import logging
+import multiprocessing
 import os
 import re
 import shutil
@@ -269,27 +271,52 @@ def _table(runs: list[simulate.SimulatedRun]) -> RichTable:
     return table
 
 
-def run_seeds(plan: Plan, seeds: range, out: Path, display: Any) -> list[simulate.SimulatedRun]:
+def run_seeds(
+    plan: Plan,
+    seeds: range,
+    out: Path,
+    display: Any,
+    *,
+    jobs: int = 1,
+    runs: list[simulate.SimulatedRun] | None = None,
+) -> list[simulate.SimulatedRun]:
     """Run each seed, a line of `out/seeds.jsonl` and a step of `display` (`cli.Display`)
     each, the history of each that did not hold in `out/events-seed-S.jsonl`, the
     simulated system's error lines in `out/log.txt` (`_SystemLog`).
 
+    With `jobs` above 1 the seeds run in that many worker processes (`_Workers`), each
+    seed alone in its process as `replay` runs it; what is written is the same, in seed
+    order: a seed's hash does not depend on where it ran.
+
+    Args:
+        plan: the plan (`simulate.check_simulable` must accept it).
+        seeds: the seeds, in order.
+        out: the run directory (`prepare`d).
+        display: the progress (`cli.Display`).
+        jobs: processes to run seeds in (1: this one).
+        runs: the list to append each finished run to (the caller's: a stop leaves it
+            with the seeds that ran, for the summary); a new one if `None`.
+
     Returns:
-        The runs; those that held without their history (`""`: a seed's is megabytes,
+        `runs`; those that held without their history (`""`: a seed's is megabytes,
         and only the others' are read again, by `--shrink`).
 
     Raises:
         RrError: what `simulate.simulate` raises (with the seed in a note).
+        KeyboardInterrupt: one of `STOP_SIGNALS` (`stopping_on_signals`): the seeds
+            running are cancelled and their folders removed, in every worker too.
     """
-    runs: list[simulate.SimulatedRun] = []
+    runs = [] if runs is None else runs
     bar = display.bar
     task = None if bar is None else bar.add_task("seeds", total=len(seeds))
-    log = _SystemLog(out / LOG_FILE, seeds)
-    with (out / SEEDS_FILE).open("w", encoding="utf-8") as lines:
-
-        def finished(run: simulate.SimulatedRun) -> None:
-            log.next_seed()
-            runs.append(run if run.verdict != "held" else dataclasses.replace(run, history=""))
+    simulate.check_simulable(plan)
+    with (
+        (out / SEEDS_FILE).open("w", encoding="utf-8") as lines,
+        _SystemLog(out / LOG_FILE) as log,
+    ):
+        for run, errors in _seed_runs(plan, seeds, jobs):
+            log.write(run.seed, errors)
+            runs.append(run)
             lines.write(json.dumps(seed_line(run, plan)) + "\n")
             lines.flush()
             if run.verdict != "held":
@@ -299,12 +326,130 @@ def run_seeds(plan: Plan, seeds: range, out: Path, display: Any) -> list[simulat
                     display.say(f"seed {run.seed}: {run.verdict} ({name})")
             if bar is not None and task is not None:
                 bar.update(task, completed=len(runs), description=f"seed {run.seed}")
-
-        with log:
-            simulate.check_simulable(plan)
-            for seed in seeds:  # (not `simulate.simulate`: it keeps every history)
-                finished(simulate.run_seed(plan, seed))
     return runs
+
+
+def default_jobs(seeds: range) -> int:
+    """`--jobs`' default: the cores this process may run on, at most one per seed."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # (not Linux)
+        cores = os.cpu_count() or 1
+    return max(1, min(cores, len(seeds)))
+
+
+def _seed_runs(
+    plan: Plan, seeds: range, jobs: int
+) -> Iterator[tuple[simulate.SimulatedRun, list[str]]]:
+    """Each seed's run and the error lines its system logged, in seed order."""
+    if jobs <= 1 or len(seeds) <= 1:
+        for seed in seeds:
+            yield _run_one(plan, seed)
+        return
+    with _Workers(min(jobs, len(seeds))) as workers:
+        yield from workers.run(plan, seeds)
+
+
+def _run_one(plan: Plan, seed: int) -> tuple[simulate.SimulatedRun, list[str]]:
+    """Run one seed (in this process, or a worker's): its run (without its history if it
+    held) and the lines of ERROR and up that rr_actors logged meanwhile (warnings off:
+    each kill is one, thousands a sweep)."""
+    global _SEED_RUNNING  # (a worker's one flag: `_worker_stop`)
+    caught = _Caught()
+    logger = logging.getLogger("rr_actors")
+    saved = (logger.level, logger.propagate)
+    logger.setLevel(logging.ERROR)
+    logger.propagate = False
+    logger.addHandler(caught)
+    _SEED_RUNNING = True
+    try:
+        run = simulate.run_seed(plan, seed)
+    finally:
+        _SEED_RUNNING = False
+        logger.removeHandler(caught)
+        logger.setLevel(saved[0])
+        logger.propagate = saved[1]
+    return (run if run.verdict != "held" else dataclasses.replace(run, history="")), caught.lines
+
+
+class _Caught(logging.Handler):
+    """The lines of ERROR and up of one seed's run (`_run_one`)."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.ERROR)
+        self.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+        self.lines: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.lines.append(self.format(record))
+
+
+class _Workers:
+    """`jobs` worker processes running seeds (`--jobs`): a `multiprocessing` pool.
+
+    ```
+     this process                                  each worker (spawned: a clean
+       pool.imap(_run_one, seeds) ── a seed ────►   interpreter, PYTHONHASHSEED as here)
+       ◄── (its run, its error lines), in seed order  simulate.run_seed, alone
+       a stop or a failed seed: terminate ─SIGTERM─► the seed running cancelled (its
+                                                      folder removed), then it exits
+    ```
+
+    Spawned, not forked: a fork would copy this process's threads' locks (the progress
+    bar's) and what the simulation patched, and a seed must start as `replay`'s does. A
+    worker ignores SIGINT (a Ctrl-C reaches the whole process group: this process
+    decides) and takes SIGTERM as a stop (`_worker_started`).
+    """
+
+    def __init__(self, jobs: int) -> None:
+        context = multiprocessing.get_context("spawn")
+        self.pool = context.Pool(jobs, initializer=_worker_started)
+
+    def __enter__(self) -> _Workers:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if exc[0] is None:
+            self.pool.close()
+        else:  # (stopped, or a seed failed: the seeds running are cancelled)
+            self.pool.terminate()
+        self.pool.join()
+
+    def run(self, plan: Plan, seeds: range) -> Iterator[tuple[simulate.SimulatedRun, list[str]]]:
+        """The seeds' runs, in seed order, as the workers finish them."""
+        yield from self.pool.imap(functools.partial(_run_in_worker, plan), seeds, chunksize=1)
+
+
+def _run_in_worker(plan: Plan, seed: int) -> tuple[simulate.SimulatedRun, list[str]]:
+    """`_run_one` in a worker: a stop cancels the seed (its folder removed), then the
+    worker exits quietly (a traceback of each worker would bury the summary)."""
+    try:
+        return _run_one(plan, seed)
+    except KeyboardInterrupt as exc:
+        os._exit(stopped_code(exc))
+
+
+_SEED_RUNNING = False
+"""Whether a seed runs in this process now (a worker's stop cancels it; an idle worker
+just exits)."""
+
+
+def _worker_started() -> None:
+    """A worker's start: SIGINT ignored, the other `STOP_SIGNALS` stop it."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for number in STOP_SIGNALS:
+        if number != signal.SIGINT:
+            signal.signal(number, _worker_stop)
+
+
+def _worker_stop(signum: int, _frame: object) -> None:
+    """A worker told to stop: the seed running is cancelled (`simulate.run_seed` removes
+    its folder), then the worker exits; an idle one exits at once."""
+    for number in STOP_SIGNALS:
+        signal.signal(number, signal.SIG_IGN)
+    if _SEED_RUNNING:
+        raise _Stopped(signum)
+    os._exit(128 + signum)
 
 
 @contextlib.contextmanager
@@ -320,53 +465,35 @@ def _warnings_off() -> Iterator[None]:
         logger.setLevel(level)
 
 
-class _SystemLog(logging.Handler):
-    """While seeds run, rr_actors' log lines go to `path`, each with its seed, not to the
-    terminal: they are the simulated system's, as a real run's go to its `stderr.txt`
-    (`experiment.py`), and a fault's expected outcome can be one (rule 22: a second
-    server yields at a heal with an ERROR, on Zenoh as on the simulation). Warnings off:
-    each kill of a sweep is one ("child exited: killed by SIGKILL"), thousands a sweep.
-    The file is made at the first line."""
+class _SystemLog:
+    """The simulated system's lines of ERROR and up, each with its seed, in `path`: they
+    are the simulated system's, as a real run's go to its `stderr.txt` (`experiment.py`),
+    and a fault's expected outcome can be one (rule 22: a second server yields at a heal
+    with an ERROR, on Zenoh as on the simulation). Each seed's are caught where it ran
+    (`_run_one`); the file is made at the first line."""
 
-    def __init__(self, path: Path, seeds: range) -> None:
-        super().__init__(logging.ERROR)
-        self.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    def __init__(self, path: Path) -> None:
         self.path = path
         self.lines = 0
-        self._seeds = iter(seeds)
-        self._seed = next(self._seeds, None)
         self._file: TextIO | None = None
-        self._logger = logging.getLogger("rr_actors")
-        self._saved = (self._logger.level, self._logger.propagate)
 
     def __enter__(self) -> _SystemLog:
-        self._logger.setLevel(logging.ERROR)
-        self._logger.propagate = False
-        self._logger.addHandler(self)
         return self
 
     def __exit__(self, *_: object) -> None:
-        self._logger.removeHandler(self)
-        self._logger.setLevel(self._saved[0])
-        self._logger.propagate = self._saved[1]
-        self.close()
-
-    def next_seed(self) -> None:
-        """The seed that ran finished: what follows is the next one's."""
-        self._seed = next(self._seeds, None)
-
-    def emit(self, record: logging.LogRecord) -> None:
-        if self._file is None:
-            self._file = self.path.open("a", encoding="utf-8")
-        self._file.write(f"seed {self._seed}: {self.format(record)}\n")
-        self._file.flush()
-        self.lines += 1
-
-    def close(self) -> None:
         if self._file is not None:
             self._file.close()
             self._file = None
-        super().close()
+
+    def write(self, seed: int, lines: list[str]) -> None:
+        """Seed `seed`'s lines."""
+        if not lines:
+            return
+        if self._file is None:
+            self._file = self.path.open("a", encoding="utf-8")
+        self._file.write("".join(f"seed {seed}: {line}\n" for line in lines))
+        self._file.flush()
+        self.lines += len(lines)
 
 
 def summary(display: Any, runs: list[simulate.SimulatedRun], out: Path) -> None:

@@ -269,13 +269,30 @@ def marked_plan(folder: Path, fifo: Path) -> Path:
 
 @pytest.mark.timeout(240)
 @pytest.mark.parametrize(
-    ("signum", "hash_seed"),
-    [(signal.SIGTERM, "0"), (signal.SIGTERM, None), (signal.SIGINT, "0")],
-    ids=["SIGTERM", "SIGTERM to the parent of PYTHONHASHSEED's child", "SIGINT"],
+    ("signum", "hash_seed", "jobs"),
+    [
+        (signal.SIGTERM, "0", "1"),
+        (signal.SIGTERM, None, "1"),
+        (signal.SIGINT, "0", "1"),
+        (signal.SIGTERM, "0", "2"),
+        (signal.SIGTERM, None, "2"),
+        (signal.SIGINT, None, "2"),
+    ],
+    ids=[
+        "SIGTERM",
+        "SIGTERM to the parent of PYTHONHASHSEED's child",
+        "SIGINT",
+        "SIGTERM, two workers",
+        "SIGTERM to the parent of PYTHONHASHSEED's child, two workers",
+        "a Ctrl-C to the whole group, two workers",
+    ],
 )
 def test_a_sweep_stopped_by_a_signal_removes_its_run_folder_and_exits_128_plus_it(
-    tmp_path: Path, signum: int, hash_seed: str | None
+    tmp_path: Path, signum: int, hash_seed: str | None, jobs: str, eventually: Callable[..., bool]
 ) -> None:
+    # With workers (`--jobs 2`) every worker's seed is cancelled and its folder removed,
+    # no worker is left, and the seeds that ran are summed up. A Ctrl-C at a terminal
+    # reaches the whole process group (each worker, and the parent of a hash's child).
     scratch, fifo = tmp_path / "tmp", tmp_path / "started"
     scratch.mkdir()
     os.mkfifo(fifo)
@@ -283,7 +300,7 @@ def test_a_sweep_stopped_by_a_signal_removes_its_run_folder_and_exits_128_plus_i
     plan = marked_plan(tmp_path, fifo)
     env = {k: v for k, v in os.environ.items() if k != "PYTHONHASHSEED"}
     env |= {"TMPDIR": str(scratch)} | ({"PYTHONHASHSEED": hash_seed} if hash_seed else {})
-    command = ["experiment", str(plan), "--simulate", "--seeds", "1-100000"]
+    command = ["experiment", str(plan), "--simulate", "--seeds", "1-100000", "--jobs", jobs]
     sweep_process = subprocess.Popen(
         [sys.executable, "-m", "rr_actors", *command, "--out", str(tmp_path / "out")],
         env=env,
@@ -297,8 +314,14 @@ def test_a_sweep_stopped_by_a_signal_removes_its_run_folder_and_exits_128_plus_i
         assert ready, "no seed began within 120 s"
         assert [p.name for p in scratch.iterdir() if p.name.startswith("rr-sim-run-")]
 
-        sweep_process.send_signal(signum)
+        if "group" in os.environ.get("PYTEST_CURRENT_TEST", ""):
+            os.killpg(sweep_process.pid, signum)  # (as a terminal's Ctrl-C)
+        else:
+            sweep_process.send_signal(signum)
         _, err = sweep_process.communicate(timeout=120)
+        # (the pool's resource tracker ends once it reads the end of its pipe)
+        eventually(lambda: not _group(sweep_process.pid), timeout=30)
+        left = [_cmdline(pid) for pid in _group(sweep_process.pid)]
     finally:
         os.close(reader)
         with contextlib.suppress(ProcessLookupError):  # (a child left: the test failed)
@@ -309,6 +332,62 @@ def test_a_sweep_stopped_by_a_signal_removes_its_run_folder_and_exits_128_plus_i
     assert [] == [p.name for p in scratch.iterdir() if p.name.startswith("rr-sim-run-")]
     assert f"stopped by {signal.Signals(signum).name}" in err
     assert "Traceback" not in err
+    assert [] == left, "a process of the sweep was left"
+
+
+def _group(group: int) -> list[int]:
+    """The processes of process group `group`."""
+    pids = [int(name) for name in os.listdir("/proc") if name.isdigit()]
+    return [pid for pid in pids if _in_group(pid, group)]
+
+
+def _in_group(pid: int, group: int) -> bool:
+    with contextlib.suppress(OSError):
+        return os.getpgid(pid) == group
+    return False
+
+
+def _cmdline(pid: int) -> str:
+    with contextlib.suppress(OSError):
+        return Path(f"/proc/{pid}/cmdline").read_text().replace("\0", " ")
+    return str(pid)
+
+
+@SWEEP
+def test_seeds_run_in_two_workers_give_what_one_process_gives_in_seed_order(
+    tmp_path: Path,
+) -> None:
+    # `--jobs 2`: each seed runs alone in a worker process; its hash, verdict, counts
+    # and error lines are what the serial sweep gives, written in seed order.
+    plan = tmp_path / "plan.toml"
+    plan.write_text(BASE + '[[faults]]\nkind = "split_brain"\ntarget = "db"\nat = 0.5\nfor = 0.6\n')
+    outs = {jobs: tmp_path / f"out-{jobs}" for jobs in ("1", "2")}
+    for jobs, out in outs.items():
+        code, printed = command(
+            "experiment", str(plan), "--simulate", "--seeds", "1-4", "--out", str(out),
+            "--jobs", jobs,
+        )  # fmt: skip
+        assert 0 == code, printed
+
+    def lines(out: Path) -> list[dict[str, object]]:
+        seeds = (out / sweep.SEEDS_FILE).read_text().splitlines()
+        return [{k: v for k, v in json.loads(line).items() if k != "cpu_s"} for line in seeds]
+
+    assert [1, 2, 3, 4] == [line["seed"] for line in lines(outs["2"])]
+    assert lines(outs["1"]) == lines(outs["2"])
+    log = (outs["2"] / sweep.LOG_FILE).read_text()
+    assert (outs["1"] / sweep.LOG_FILE).read_text() == log
+    assert [f"seed {s}" for s in (1, 2, 3, 4)] == [line.split(":")[0] for line in log.splitlines()]
+
+
+def test_jobs_without_simulate_exit_2(tmp_path: Path) -> None:
+    code, _ = command("experiment", "simchain", "--out", str(tmp_path), "--jobs", "2")
+    assert 2 == code
+
+
+def test_the_default_jobs_are_the_cores_available_at_most_one_per_seed() -> None:
+    cores = len(os.sched_getaffinity(0))
+    assert (1, min(cores, 3)) == (sweep.default_jobs(range(1, 2)), sweep.default_jobs(range(3)))
 
 
 def plant_a_crash(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -330,8 +409,8 @@ def test_a_seed_whose_system_raises_is_crashed_the_sweep_goes_on_and_replay_and_
     plan, out = tmp_path / "plan.toml", tmp_path / "out"
     plan.write_text(PLAN)
 
-    code, printed = command(
-        "experiment", str(plan), "--simulate", "--seeds", "1-2", "--out", str(out)
+    code, printed = command(  # (one process: the plant is in this one)
+        "experiment", str(plan), "--simulate", "--seeds", "1-2", "--out", str(out), "--jobs", "1"
     )
 
     assert 0 == code, printed  # (a result, not a failure of the tool)
