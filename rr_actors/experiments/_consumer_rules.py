@@ -1,5 +1,5 @@
-"""The consumer's side of a run (rules `answered`, `reported-lost`, `end`, `withdrawn`, `left`,
-`fetch`).
+"""The consumer's side of a run (rules `answered`, `reported-lost`, `end`, `withdrawn`,
+`retry-kept`, `left`, `fetch`).
 
 ```
  steps ──► answered: each consumer's answered calls, life by life, against what its
@@ -10,6 +10,8 @@
        for consumers that stopped
  steps ──► withdrawn: what providers still hold at the end, of calls their consumers
        withdrew (and did not have answered again)
+ steps ──► retry-kept: a failed call's id that the provider's next life restored, released
+       by a reconcile of that life while its consumer could still retry it
  steps (+ the give-ups) ──► left: the rows each registrar's last stop lists that no
        consumer still running holds
  steps + the provider pass's holdings ──► fetch: each QueriesFetched against what its
@@ -34,6 +36,7 @@ __all__ = [
     "fetch",
     "left",
     "reported_lost",
+    "retry_kept",
     "withdrawn",
 ]
 
@@ -280,6 +283,75 @@ def withdrawn(steps: Sequence[Step]) -> list[Finding]:
         for qid in list(held):
             close(name, qid, last[name])
     return _held_on(called, spans)
+
+
+def retry_kept(steps: Sequence[Step]) -> list[Finding]:
+    """`retry-kept` (rule 17 case 3, rule 20): a failed call's id waits for its retry.
+
+    A call that failed as its provider died or stopped (`CallFailed.may_have_executed`)
+    may have run; the provider's next life that restores the id keeps it for a retry
+    with the same id: its consumer lists it in every `Reconcile` that life asks for (a
+    life asks more than once: as it starts, and once it is served). That life releasing
+    it by a reconcile (`ConsumerReleased` "reconcile") while the consumer could still
+    retry it is a violation: the retry would load afresh. The consumer could retry it
+    while nothing of it ended the wait since the failure: no new life or stop of it, no
+    answer, withdrawal or forgetting of that id, and no load or unload of its own ended
+    (a dependency's load that ended gives its failed calls back: `LoadFailed`,
+    `ResourceUnloaded`, which this rule does not tell apart). A later life may release
+    it (no retry came while the first one lived). Issue 51: a second ask of one life
+    released it (a full CI run; `killheavy` seed 9).
+    """
+    findings: list[Finding] = []
+    # (consumer, id) -> (line of its failure, provider, the provider's life that restored
+    # it since: None until one did)
+    waiting: dict[tuple[str, str], tuple[int, str, int | None]] = {}
+    lives: dict[str, int] = {}  # registrar -> its current life
+
+    def forget_all(consumer: str) -> None:
+        for key in [k for k in waiting if k[0] == consumer]:
+            del waiting[key]
+
+    for name, line, event, new, life in steps:
+        lives[name] = life
+        if new:
+            forget_all(name)
+        if isinstance(event, events.CallFailed):
+            waiting.pop((name, event.query_id), None)
+            if event.may_have_executed:
+                waiting[name, event.query_id] = (line, event.serving_rr, None)
+        elif isinstance(event, events.CallAnswered | events.CallWithdrawn | events.QueryForgotten):
+            waiting.pop((name, event.query_id), None)
+        elif isinstance(
+            event, events.RegistrarStopped | events.LoadFailed | events.ResourceUnloaded
+        ):
+            forget_all(name)
+        if isinstance(event, events.CatalogRestored):
+            for qid, _rid, consumer, *_ in event.consumers:
+                key = (consumer, qid)
+                if key in waiting and waiting[key][1] == name:
+                    failed, provider, restored = waiting[key]
+                    if restored is None:
+                        waiting[key] = (failed, provider, life)
+                    elif restored != life:
+                        del waiting[key]  # (a later life: it may release it)
+        elif (
+            isinstance(event, events.ConsumerReleased)
+            and event.reason == "reconcile"
+            and waiting.get((event.consumer, event.query_id), (0, "", None))[1:] == (name, life)
+        ):
+            failed = waiting.pop((event.consumer, event.query_id))[0]
+            findings.append(
+                Finding(
+                    "retry-kept",
+                    "violation",
+                    f"{name} released query {event.query_id[:8]} of {event.consumer} at a "
+                    f"reconcile of the life that restored it, while {event.consumer} could "
+                    f"still retry that call, which failed as {name} died (rule 17)",
+                    (failed, line),
+                    (name, event.consumer),
+                )
+            )
+    return findings
 
 
 def _held_on(

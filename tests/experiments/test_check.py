@@ -775,6 +775,73 @@ def test_a_withdrawn_id_answered_again_by_a_retry_is_no_withdrawn_violation() ->
     assert [] == [f for f in verdict.findings if f.rule == "withdrawn"]
 
 
+def failed_then_released(lives: int, *, then: events.Event | None = None) -> list[events.Event]:
+    """Rule 17 case 3: erm committed cm's Q1 and died before its answer left (cm's call
+    failed, `may_have_executed`); its next life restores Q1 and a reconcile releases it,
+    in that life (`lives=1`) or in the one after (`lives=2`). `then`: an event of cm's
+    between its failure and the release."""
+    restore = events.CatalogRestored(
+        "erm", ((RID, "cam", "loaded", "42"),), ((Q1, RID, "cm"),), (), (1, 1, 0), seq=1
+    )
+    history: list[events.Event] = [
+        events.CatalogRestored("erm", (), (), (), pid=P, seq=1),
+        events.ResourceLoaded("erm", "cam", RID, Q1, 0.01, 42, "cam 0", pid=P, seq=2),
+        events.ConsumerAdded("erm", RID, Q1, "cm", pid=P, seq=3),
+        events.ChildExited("sup", "erm", P, "killed by SIGKILL"),
+        _failed(),
+        *([then] if then is not None else []),
+    ]
+    for life in range(1, lives + 1):
+        history.append(dataclasses.replace(restore, pid=P + life))
+        if life < lives:
+            history.append(events.ChildExited("sup", "erm", P + life, "killed by SIGKILL"))
+    last = P + lives
+    history += [
+        events.ConsumerReleased("erm", RID, Q1, "cm", "reconcile", pid=last, seq=2),
+        events.ResourceUnloaded("erm", "cam", RID, pid=last, seq=3),
+        events.RegistrarStopped("cm", (), (), (), pid=C),
+        events.RegistrarStopped("erm", (), (), (), pid=last, seq=4),
+    ]
+    return _stamped(history)
+
+
+def test_a_failed_calls_id_released_by_a_reconcile_of_the_life_that_restored_it_is_retry_kept() -> (
+    None
+):
+    verdict = check.check(numbered(failed_then_released(lives=1)))
+
+    found = [f for f in verdict.findings if f.rule == "retry-kept"]
+    assert ("violated", [(5, 7)]) == (verdict.verdict, [f.lines for f in found])
+    assert "erm released query q1111111 of cm at a reconcile of the life that restored it" in (
+        found[0].message
+    )
+
+
+@pytest.mark.parametrize(
+    "then",
+    [
+        None,
+        lambda: events.CallWithdrawn("cm", Q1, "erm", "cam", "timeout", pid=C),
+        lambda: events.QueryForgotten("cm", Q1, "erm", "unload", pid=C),
+        lambda: events.LoadFailed("cm", "composite", "r3", "q3", "ValueError", "x", pid=C),
+        lambda: events.RegistrarStopped("cm", (), (), (), pid=C),
+    ],
+    ids=["a later life", "withdrawn", "forgotten", "its load failed", "stopped"],
+)
+def test_a_failed_calls_id_released_when_no_retry_can_come_is_no_retry_kept_violation(
+    then: Callable[[], events.Event] | None,
+) -> None:
+    # released by a later life (no retry came while the first lived), or after cm gave
+    # the call up: it withdrew or forgot it, the load that made it ended, it stopped.
+    # (Made in the test: an event made at import takes a number of this process's.)
+    event = None if then is None else then()
+    history = failed_then_released(lives=2 if event is None else 1, then=event)
+
+    verdict = check.check(numbered(history))
+
+    assert [] == [f for f in verdict.findings if f.rule == "retry-kept"]
+
+
 def test_a_restart_with_a_restore_holds_what_the_restore_lists() -> None:
     h = without_backup()
     # erm has a backup: its restart lists Q1 again, and nobody releases it
@@ -1304,6 +1371,28 @@ def release_withdrawn_late(h: History) -> History | None:
     return None
 
 
+def release_failed_call_at_restore(h: History) -> History | None:
+    """A restarted provider that releases, at its first reconcile, an id its consumer's
+    call failed on as it died (a `CallFailed` that may have executed, put before its
+    restore): the retry that may follow would load afresh (rule 17 case 3)."""
+    for i, e in enumerate(h):
+        if type(e) is not events.CatalogRestored or not e.consumers:
+            continue
+        qid, rid, consumer = e.consumers[0][:3]
+        pids = [x.pid for x in h[:i] if getattr(x, "registrar", None) == consumer]
+        if not pids:
+            continue
+        failed = events.CallFailed(
+            consumer, qid, e.registrar, "cam", "RegistrarUnavailableError", "gone", True,
+            pid=pids[-1], seq=1, at=e.at, hlc=e.hlc,
+        )  # fmt: skip
+        released = events.ConsumerReleased(
+            e.registrar, rid, qid, consumer, "reconcile", pid=e.pid, seq=1, at=e.at, hlc=e.hlc
+        )
+        return [*h[:i], failed, e, released, *h[i + 1 :]]
+    return None
+
+
 def stop_keeps_resource(h: History) -> History | None:
     """A registrar's last stop (the end of the run) lists a resource it loaded, as if its
     unload had left its row. Not after a give-up (its stops keep their rows)."""
@@ -1420,6 +1509,7 @@ MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     "provider-keeps-id": (provider_keeps_id, "end"),
     "second-server-to-the-end": (second_server_to_the_end, "one-name"),
     "release-withdrawn-late": (release_withdrawn_late, "withdrawn"),
+    "release-failed-call-at-restore": (release_failed_call_at_restore, "retry-kept"),
     "stop-keeps-resource": (stop_keeps_resource, "left"),
     "unload-before-dependency": (unload_before_dependency, "unload-order"),
     "drop-give-up": (drop_give_up, "intensity"),

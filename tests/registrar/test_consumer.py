@@ -890,6 +890,22 @@ class TestReconcile:
         retry = consumer.call(config.name, "leaf", "camera", query_id=qid, timeout=10)
         assert ({"for": "camera"}, ["camera"]) == (retry.response, loads)
 
+    @pytest.mark.timeout(300)
+    @pytest.mark.parametrize("seed", [36, 40])
+    def test_simulated_seeds_where_a_second_ask_released_a_kept_id_now_hold(
+        self, seed: int
+    ) -> None:
+        # The simulation reaches the case above: `simretry` seeds 36 and 40 (of 60) were
+        # `retry-kept` violations before the fix (a restarted `api` released at its
+        # second reconcile the id of a client's call that failed as it died); so was
+        # `killheavy` seed 9.
+        pytest.importorskip("greenlet")  # (the simulation extra)
+        from rr_actors.experiments import load_plan, plans, simulate  # noqa: PLC0415
+
+        run = simulate.run_seed(load_plan(plans.find("simretry")), seed)
+
+        assert ("held", ()) == (run.verdict, run.findings)
+
     def test_a_failed_call_the_provider_kept_at_reconciling_is_given_back_when_its_consumer_stops(
         self, tmp_path: Path, started: list[rr.ResourceRegistrar]
     ) -> None:
