@@ -42,6 +42,13 @@ its retry answered before the client's actor handles the reconcile's answer. A t
 `simheal`, serves `db` on both sides of a cut (the sim-only fault `split_brain`) for
 the plant `heal-no-yield` (rule 22: the one served later never gives way).
 
+Issue 51 section 2 (a reviewer's hidden plants, in eight areas) added the plants from
+`status-seen-server` on, written as that reviewer would (benchmarks/NOTES.md has their
+table and those tried and dropped). Two needed more than the shipped plans and rules:
+`restore-no-parents` broke no rule until the checker gained `dependency-held`, and
+`status-seen-server` and `forget-before-carried` need `simshare` (one dependency shared
+by many resources of one server, a status about it climbing to all of them).
+
 Issue 51's withdrawn ids are the plant `withdrawn` (`retry_held_at` undone). The other
 half of that fix, `DueAnswers.frozen` handing a `Reconcile` the withdrawn calls whose
 `CallFailed` the actor has not handled yet, is not a plant: undone alone, 300 seeds
@@ -281,14 +288,15 @@ PLANTS = (
         "intensity",
     ),
     Plant(
-        "parked-taken",
-        "a notice about a call whose answer is due goes on once the outcomes handed over "
-        "were taken, as if its answer were among them: one that overtook its answer "
-        "finds no record (consumer.py's `parked`)",
+        "forget-before-carried",
+        "an unload's answer handled before the statuses it carried: the id is forgotten "
+        "first, so a status its provider sent on to it just before the release, which "
+        "the answer carried, finds no record (rule 9 across a release)",
         "_registrar/consumer.py",
-        "                self.take_outcomes()  # (handed over before the mark was read?)\n",
-        "                self.take_outcomes()  # PLANTED: then taken as answered\n"
-        "                continue\n",
+        "            self.deliver_on_its_way(query_id, on_its_way, join)\n"
+        "            self.holdings.forget(query_id)\n",
+        "            self.holdings.forget(query_id)  # PLANTED: before the statuses it carried\n"
+        "            self.deliver_on_its_way(query_id, on_its_way, join)\n",
         "simshare",
         "status-reached",
     ),
