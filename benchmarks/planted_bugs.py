@@ -42,6 +42,13 @@ its retry answered before the client's actor handles the reconcile's answer. A t
 `simheal`, serves `db` on both sides of a cut (the sim-only fault `split_brain`) for
 the plant `heal-no-yield` (rule 22: the one served later never gives way).
 
+Issue 51 section 2 (a reviewer's hidden plants, in eight areas) added the plants from
+`status-seen-server` on, written as that reviewer would (benchmarks/NOTES.md has their
+table and those tried and dropped). Two needed more than the shipped plans and rules:
+`restore-no-parents` broke no rule until the checker gained `dependency-held`, and
+`status-seen-server` and `forget-before-carried` need `simshare` (one dependency shared
+by many resources of one server, a status about it climbing to all of them).
+
 Issue 51's withdrawn ids are the plant `withdrawn` (`retry_held_at` undone). The other
 half of that fix, `DueAnswers.frozen` handing a `Reconcile` the withdrawn calls whose
 `CallFailed` the actor has not handled yet, is not a plant: undone alone, 300 seeds
@@ -202,6 +209,131 @@ PLANTS = (
         "        return len(self._times) < self.max_restarts  # PLANTED: one restart early\n",
         "crashloop",
         "intensity",
+    ),
+    # -- issue 51 section 2: a reviewer's plants, one or more per area ---------------
+    Plant(
+        "status-seen-server",
+        "a status climbing two resources of one server reaches one: the relay's "
+        "already-seen key is the status and the server, not the resource (rule 9)",
+        "_registrar/status.py",
+        "        key = (event, resource.id)\n",
+        "        key = (event, resource.server)  # PLANTED: resource.id\n",
+        "simshare",
+        "status-reached",
+    ),
+    Plant(
+        "status-hop",
+        "a status climbing to a dependent resource keeps its hop count: its consumers are "
+        "told it at the hop of the dependency (rule 9's path)",
+        "_registrar/status.py",
+        "                    hop=message.hop + 1,\n",
+        "                    hop=message.hop,  # PLANTED: message.hop + 1\n",
+        "simdoubt",
+        "status-path",
+    ),
+    Plant(
+        "reconcile-unread-ids",
+        "a Reconcile after a restore sees only the consumer ids already read from the "
+        "backup: it names the others unknown and never releases the stale ones among them",
+        "_catalog/catalog.py",
+        "            ids.update(self._unread.consumer_ids_from(origin_rr))\n",
+        "            pass  # PLANTED: ids.update(self._unread.consumer_ids_from(origin_rr))\n",
+        "simchain",
+        "reported-lost",
+    ),
+    Plant(
+        "restore-no-parents",
+        "a restore reads no resource that owns a dependency at once: its dependencies' "
+        "records look orphaned and are given back while it still holds them",
+        "_store/restore.py",
+        '    "WHERE state != 1 OR digest IS NULL "  # == _UNSETTLED: the partial index serves it\n'
+        '    f"UNION SELECT {RESOURCE_COLUMNS} FROM resources "\n'
+        '    "WHERE id IN (SELECT parent FROM clients WHERE parent IS NOT NULL) ORDER BY seq"\n',
+        '    "WHERE state != 1 OR digest IS NULL ORDER BY seq"  # PLANTED: no UNION of parents\n',
+        "simchain",
+        "dependency-held",
+    ),
+    Plant(
+        "doubt-loads-only",
+        "an unload a kill cut short is not in doubt at the restart: only loads are "
+        "(rule 16), so the resource stays as unloading, never unloaded",
+        "_registrar/life.py",
+        "    return [r for r in catalog.resources.values() if r.state is not "
+        "ResourceState.LOADED]\n",
+        "    return [r for r in catalog.resources.values() if r.state is ResourceState.LOADING]"
+        "  # PLANTED\n",
+        "simdoubt",
+        "left",
+    ),
+    Plant(
+        "doubt-unread-unloading",
+        "a restore reads only the loads cut short at once, not the unloads: an unload a "
+        "kill cut short is never reported in doubt (rule 16) nor finished",
+        "_store/restore.py",
+        '    "WHERE state != 1 OR digest IS NULL "  # == _UNSETTLED',
+        '    "WHERE state = 0 OR digest IS NULL "  # PLANTED: state != 1 (== _UNSETTLED)',
+        "simdoubt",
+        "left",
+    ),
+    Plant(
+        "intensity-swapped",
+        "a supervisor's intensity built with its two numbers swapped: `period` restarts "
+        "within `max_restarts` seconds (a positional mix-up)",
+        "_supervision/restarting.py",
+        "        self.intensity = RestartIntensity(spec.max_restarts, spec.period, "
+        "record.tree.clock)\n",
+        "        self.intensity = RestartIntensity(spec.period, spec.max_restarts, "
+        "record.tree.clock)  # PLANTED\n",
+        "crashloop",
+        "intensity",
+    ),
+    Plant(
+        "forget-before-carried",
+        "an unload's answer handled before the statuses it carried: the id is forgotten "
+        "first, so a status its provider sent on to it just before the release, which "
+        "the answer carried, finds no record (rule 9 across a release)",
+        "_registrar/consumer.py",
+        "            self.deliver_on_its_way(query_id, on_its_way, join)\n"
+        "            self.holdings.forget(query_id)\n",
+        "            self.holdings.forget(query_id)  # PLANTED: before the statuses it carried\n"
+        "            self.deliver_on_its_way(query_id, on_its_way, join)\n",
+        "simshare",
+        "status-reached",
+    ),
+    Plant(
+        "fetch-unread",
+        "after a restore, a fetch lists only the resources already read from the backup "
+        "(rule 10: exact)",
+        "_catalog/catalog.py",
+        '        """Every consumer query of every loaded resource of `server`."""\n'
+        "        if self._unread is not None:\n"
+        "            self._read_in(self._unread.of_server(server))\n",
+        '        """Every consumer query of every loaded resource of `server`."""\n'
+        "        # PLANTED: the unread rows of `server` are not read in\n",
+        "simdoubt",
+        "fetch",
+    ),
+    Plant(
+        "unload-before-deps",
+        "a resource unloaded before its dependencies are released: its unload runs at "
+        "once, its dependencies released beside it (rule 7's order)",
+        "_registrar/provider.py",
+        "        self.releases.release_dependencies(resource.id, run_unload)\n",
+        "        run_unload()  # PLANTED: release_dependencies(resource.id, run_unload)\n"
+        "        self.releases.release_dependencies(resource.id, lambda: None)\n",
+        "simdoubt",
+        "unload-order",
+    ),
+    Plant(
+        "intensity-stale-exit",
+        "a sibling stopped for a group restart counted as a crash: the exit of an "
+        "incarnation stopped on purpose is not recognised as stale (OTP's intensity)",
+        "_supervision/restarting.py",
+        "        if child is None or child.incarnation != event.incarnation or "
+        "self.restarts.gave_up:\n",
+        "        if child is None or self.restarts.gave_up:  # PLANTED: incarnation\n",
+        "crashloop",
+        "restore-first",
     ),
 )
 """The planted bugs, one at a time (docs/performance.md lists them)."""

@@ -1,7 +1,8 @@
 """The provider's side of a run: one pass over each provider registrar's catalog, as its
 events tell it (rules `kept`, `unload-once`, `no-leak`, `one-resource`, `release-match`,
-`in-doubt`, `dedup`, `restore-first`); and the order of an unload against its resource's
-dependencies (`unload-order`).
+`in-doubt`, `dedup`, `restore-first`); the order of an unload against its resource's
+dependencies (`unload-order`); and those dependencies kept while it is held
+(`dependency-held`).
 
 ```
  steps (_history.walk) ──► Providers.run: per registrar a Catalog (held ids, holders per
@@ -14,6 +15,8 @@ dependencies (`unload-order`).
                                   or climbed from (for `status-reached`)
  steps ──► unload_order: each resource's dependencies (CallAnswered.parent, a restore's
            client rows), forgotten by their registrar before its ResourceUnloaded
+ steps ──► dependency_held: the same dependencies, not forgotten while their resource
+           has a consumer id (ConsumerAdded, a restore's consumer rows)
 ```
 
 Every lookup is a dict's: a run of a million events is checked in one linear pass.
@@ -30,7 +33,7 @@ from rr_actors import events
 from rr_actors._types import Status
 from rr_actors.experiments._history import Facts, Finding, Step
 
-__all__ = ["Expected", "Holding", "Providers", "unload_order"]
+__all__ = ["PROVIDER_ENDED", "Expected", "Holding", "Providers", "dependency_held", "unload_order"]
 
 
 @dataclasses.dataclass(slots=True)
@@ -521,4 +524,64 @@ def unload_order(steps: list[Step]) -> list[Finding]:
                         (name,),
                     )
                 )
+    return findings
+
+
+PROVIDER_ENDED = ("revoked", "provider lost", "unknown at reconcile")
+"""`QueryForgotten` reasons of a query its provider ended (unregistered its server, or
+lost it: `FATAL`), which its consumer forgets whatever holds it."""
+
+
+def dependency_held(steps: list[Step]) -> list[Finding]:
+    """`dependency-held` (rule 7: dependencies belong to the resource): a registrar does
+    not forget a dependency of one of its resources (a query it answered with that
+    resource as `parent`, or a restored client row with one) while that resource still
+    has a consumer id, unless its provider ended it (`PROVIDER_ENDED`).
+
+    A resource's consumer ids are its registrar's own lines: a restore's rows, then its
+    `ConsumerAdded` and `ConsumerReleased`. Not judged in a life whose `CatalogRestored`
+    did not list its rows (`complete` false).
+    """
+    findings: list[Finding] = []
+    holders: dict[str, dict[str, dict[str, int]]] = defaultdict(dict)  # name -> rid -> qid -> line
+    parent_of: dict[str, dict[str, tuple[str, int]]] = defaultdict(
+        dict
+    )  # name -> qid -> (rid, line)
+    unjudged: set[str] = set()
+    for name, line, event, new, _life in steps:
+        if new:
+            holders[name].clear()
+            parent_of[name].clear()
+            unjudged.discard(name)
+        if isinstance(event, events.CatalogRestored):
+            if not event.complete:
+                unjudged.add(name)
+            for qid, rid, _origin in event.consumers:
+                holders[name].setdefault(rid, {})[qid] = line
+            for qid, _serving, _server, parent, *_ in event.clients:
+                if parent:
+                    parent_of[name][qid] = (parent, line)
+        elif isinstance(event, events.ConsumerAdded):
+            holders[name].setdefault(event.resource_id, {})[event.query_id] = line
+        elif isinstance(event, events.ConsumerReleased):
+            holders[name].get(event.resource_id, {}).pop(event.query_id, None)
+        elif isinstance(event, events.CallAnswered) and event.parent is not None:
+            parent_of[name].setdefault(event.query_id, (event.parent, line))
+        elif isinstance(event, events.QueryForgotten):
+            rid, since = parent_of[name].pop(event.query_id, ("", 0))
+            held = holders[name].get(rid)
+            if not held or name in unjudged or event.reason in PROVIDER_ENDED:
+                continue
+            holder, at = next(iter(held.items()))
+            findings.append(
+                Finding(
+                    "dependency-held",
+                    "violation",
+                    f"{name}: dependency {event.query_id[:8]} of resource {rid[:8]} "
+                    f"forgotten ({event.reason}) while {holder[:8]} still held that resource "
+                    "(rule 7: dependencies belong to the resource)",
+                    (since, at, line),
+                    (name,),
+                )
+            )
     return findings

@@ -65,6 +65,9 @@ what cannot be checked):
   judged after a supervisor gave up in that registrar's last life.
 - `unload-order` (rule 7): a resource's `ResourceUnloaded` comes after its registrar
   forgot every dependency of it (`QueryForgotten` of each query it answered for it).
+- `dependency-held` (rule 7): a registrar does not forget a dependency of its resource
+  (a query it answered with it as `parent`) while that resource has a consumer id,
+  unless its provider ended it (`revoked`, `provider lost`, `unknown at reconcile`).
 - `intensity`: a supervisor gives up exactly when more than `max_restarts` of the exits
   it counts (`ChildExited` not stopped by it, of a child its restart type restarts: OTP)
   fall within `period` seconds, at the exit that makes them so.
@@ -101,7 +104,7 @@ from rr_actors.errors import ConfigError
 from rr_actors.events.lines import json_lines, parse_json
 from rr_actors.experiments import _consumer_rules, _status_rules, _supervision_rules
 from rr_actors.experiments._history import Finding, Life, Line, gather, registrar_of, walk
-from rr_actors.experiments._provider_rules import Providers, unload_order
+from rr_actors.experiments._provider_rules import Providers, dependency_held, unload_order
 
 __all__ = [
     "RULES",
@@ -134,6 +137,7 @@ RULES = (
     "retry-kept",
     "left",
     "unload-order",
+    "dependency-held",
     "intensity",
     "one-name",
     "fetch",
@@ -281,6 +285,7 @@ def check(history: Sequence[Line]) -> Verdict:
         *_consumer_rules.left(steps, history, lives),
         *_consumer_rules.fetch(steps, providers.holdings, lives),
         *unload_order(steps),
+        *dependency_held(steps),
         *_supervision_rules.intensity(history),
         *_one_name_rule(history, lives),
     ]

@@ -35,6 +35,7 @@ def service(
     load_s: float = 0.0,
     unload_s: float = 0.0,
     uses: Sequence[str] = (),
+    uses_request: Any = None,
     status_every: float = 0.0,
 ) -> None:
     """Register one resource server whose loads take `load_s` and load what it `uses`.
@@ -54,13 +55,17 @@ def service(
         uses: `"manager/server"` of other managers: each load calls every one of them
             with the same request (nested loads: dependencies of the resource, released
             with it). A bare `"manager"` means its server `resource`.
+        uses_request: the request each load sends to `uses` instead of its own (`None`:
+            its own): every resource of this server then depends on one resource
+            there, shared, and a status about it climbs to all of them.
         status_every: seconds between two statuses the server sends (0: none).
     """
 
     def load(request: Any) -> dict[str, Any]:
         for target in uses:
             manager, _, name = target.partition("/")
-            registrar.call(manager, name or "resource", request)
+            sent = request if uses_request is None else uses_request
+            registrar.call(manager, name or "resource", sent)
         if load_s > 0:
             runtime.sleep(load_s)
         return {"server": f"{registrar.name}/{server}", "request": request}

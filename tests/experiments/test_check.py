@@ -1197,6 +1197,42 @@ def test_rows_at_a_stop_after_a_give_up_are_not_judged_as_left() -> None:
     assert [] == [f for f in verdict.findings if f.rule == "left"]
 
 
+def test_a_dependency_forgotten_while_its_resource_is_held_is_found() -> None:
+    h = with_paths()
+    early = events.QueryForgotten("cm", Q1, "erm", "in doubt", pid=C)  # Q2 still holds RID2
+    assert {2, 3, 8} == _found([*h[:7], early, *h[7:9], *h[10:]], "dependency-held")
+
+
+def test_a_dependency_forgotten_once_its_resource_has_no_consumer_holds() -> None:
+    verdict = check.check(numbered(with_paths()))  # (forgotten after RID2's last release)
+    assert [] == [f for f in verdict.findings if f.rule == "dependency-held"]
+
+
+def test_a_dependency_its_provider_ended_may_be_forgotten_while_its_resource_is_held() -> None:
+    h = with_paths()
+    for reason in ("unknown at reconcile", "provider lost", "revoked"):
+        lost = events.QueryForgotten("cm", Q1, "erm", reason, pid=C)
+        verdict = check.check(numbered([*h[:7], lost, *h[7:9], *h[10:]]))
+        assert [] == [f for f in verdict.findings if f.rule == "dependency-held"]
+
+
+def test_a_restore_that_gives_back_a_held_resources_dependency_is_found() -> None:
+    # (the restart finds cm's RID2 held by app's Q2, and its dependency Q1's record)
+    restored = events.CatalogRestored(
+        "cm",
+        ((RID2, "comp", "loaded", "7", ""),),
+        ((Q2, RID2, "app"),),
+        ((Q1, "erm", "leaf", RID2),),
+        (1, 1, 1),
+        pid=C + 1,
+    )
+    doubt = events.QueryForgotten("cm", Q1, "erm", "in doubt", pid=C + 1)
+    assert {1, 2} == _found([restored, doubt], "dependency-held")
+    unlisted = dataclasses.replace(restored, resources=(), consumers=(), clients=(), complete=False)
+    verdict = check.check(numbered([unlisted, doubt]))  # (rows not listed: not judged)
+    assert [] == [f for f in verdict.findings if f.rule == "dependency-held"]
+
+
 def test_a_resource_unloaded_before_its_dependency_was_released_is_found() -> None:
     h = with_paths()
     unloaded = events.ResourceUnloaded("cm", "comp", RID2, pid=C)
@@ -1434,6 +1470,26 @@ def unload_before_dependency(h: History) -> History | None:
     return None
 
 
+def forget_dependency_while_held(h: History) -> History | None:
+    """A dependency forgotten (its `QueryForgotten`) right after its resource got a
+    consumer id, not after the last one was released (rule 7 broken the other way)."""
+    parents = {}
+    for i, e in enumerate(h):
+        if type(e) is events.CallAnswered and e.parent is not None:
+            parents[(e.registrar, e.query_id)] = (e.parent, i)
+        if type(e) is not events.QueryForgotten or e.reason != "dependency":
+            continue
+        rid, answered = parents.get((e.registrar, e.query_id), ("", len(h)))
+        for j in range(answered + 1, i):
+            added = h[j]
+            if type(added) is events.ConsumerAdded and (added.registrar, added.resource_id) == (
+                e.registrar,
+                rid,
+            ):
+                return _moved(h, i, j + 1)
+    return None
+
+
 def drop_give_up(h: History) -> History | None:
     """A supervisor's give-up at an exit past its intensity is not published."""
     i = _index(h, events.SupervisorGaveUp)
@@ -1512,6 +1568,7 @@ MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     "release-failed-call-at-restore": (release_failed_call_at_restore, "retry-kept"),
     "stop-keeps-resource": (stop_keeps_resource, "left"),
     "unload-before-dependency": (unload_before_dependency, "unload-order"),
+    "forget-dependency-while-held": (forget_dependency_while_held, "dependency-held"),
     "drop-give-up": (drop_give_up, "intensity"),
     "fetch-leaves-out-a-held-id": (fetch_leaves_out_a_held_id, "fetch"),
     "fetch-lists-an-unknown-id": (fetch_lists_an_unknown_id, "fetch"),

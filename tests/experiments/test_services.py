@@ -26,3 +26,27 @@ def test_a_service_with_status_every_sends_a_warning_to_its_consumer_until_it_st
     finally:
         consumer.stop()
         provider.stop()
+
+
+def test_a_service_with_uses_request_makes_its_resources_share_one_dependency() -> None:
+    db_name, api_name = f"db-{uuid.uuid4().hex[:8]}", f"api-{uuid.uuid4().hex[:8]}"
+    db = rr.ResourceRegistrar.start(db_name)
+    api = rr.ResourceRegistrar.start(api_name)
+    app = rr.ResourceRegistrar.start(f"app-{uuid.uuid4().hex[:8]}")
+    try:
+        service(db)
+        service(api, uses=[db_name], uses_request="shared")
+        first = app.call(api_name, "resource", "a")
+        second = app.call(api_name, "resource", "b")
+
+        held = db.server_queries("resource")
+
+        assert [("shared", api_name)] * 2 == [(q.request, q.origin_rr) for q in held]
+        assert 1 == len({q.response["request"] for q in held})
+        app.unload(first.id)
+        app.unload(second.id)
+        assert [] == db.server_queries("resource")
+    finally:
+        app.stop()
+        api.stop()
+        db.stop()

@@ -792,6 +792,7 @@ SIMULATED = [
     "simcancel",
     "simdoubt",
     "simhosts",
+    "simshare",
 ]
 """The shipped plans run over two seeds here (killheavy below, for 2 s)."""
 
