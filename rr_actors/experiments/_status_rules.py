@@ -18,6 +18,7 @@ from collections import defaultdict
 from collections.abc import Sequence
 
 from rr_actors import events
+from rr_actors._core import hlc
 from rr_actors.experiments._history import Facts, Finding, Life, Line, Step
 from rr_actors.experiments._provider_rules import Expected
 
@@ -132,7 +133,11 @@ def status_reached(
     before it forgets the id. Nor does a status reach a holder cut off its sender (a process
     that cannot hear its router, rule 19 both ways): the sender heard the holder lost
     and let its id go (`death watch`), and the holder forgot it as one it could not
-    reach (its reconcile found it gone, `FATAL`; or its unload went unanswered).
+    reach (its reconcile found it gone, `FATAL`; or its unload went unanswered). Nor
+    does a status that reached nobody reach a holder whose life ended (its process
+    killed) within `LOST_WITH_HOLDER_S` of the send: it was on its way to a process that
+    died, which no restart redelivers (`simshare` seed 70: the only holder killed three
+    of its events after the send); a holder that lived longer was owed it.
 
     Letting the id go early excuses no holder whose release crossed the status (rule 9):
     its sender released the id on its `Unload` after it sent the status on to it, in the
@@ -180,7 +185,11 @@ def status_reached(
                 and reasons.get(forgot_at) in ANSWERED
                 and _released_after(want, release, sender, until)
             )
-            if not carried and (let_go <= end or (until is None and record.ended_before(end))):
+            if not carried and (
+                let_go <= end
+                or (until is None and record.ended_before(end))
+                or (until is None and _died_with_it(want, record, facts))
+            ):
                 continue
             how = "held it throughout"
             lines: tuple[int, ...] = (want.line, forgot_at) if forgot_at else (want.line,)
@@ -199,6 +208,20 @@ def status_reached(
             )
             break
     return findings
+
+
+LOST_WITH_HOLDER_S = 1.0
+"""Seconds after a status's send within which its holder's death loses it (`status-reached`,
+for a status that reached nobody): it was on its way to the process that died."""
+
+
+def _died_with_it(want: Expected, record: Life, facts: Facts) -> bool:
+    """Whether `want`'s status reached nobody and its holder's life `record` ended within
+    `LOST_WITH_HOLDER_S` of the send (it died with the status on its way to it)."""
+    if record.end is None or want.status_id in facts.last_delivery:
+        return False
+    since = hlc.unpack(want.since)[0]
+    return hlc.unpack(record.end)[0] - since <= LOST_WITH_HOLDER_S * 1_000_000
 
 
 ANSWERED = ("unload", "dependency", "stop")
