@@ -930,8 +930,18 @@ class Here:
         )
 
     def server_queries(self, timeout: float | None, server: str) -> Steps[list[Query]]:
+        # The catalog is read after this stamp (as fetch_queries's, only for a subscriber).
+        started = hlc.CLOCK.now() if self.published.active else None
         what = f"server_queries({server!r})"
-        return self.asking(ListServerQueries(server, FutureReply()), timeout, what)
+        result: list[Query] = yield from self.asking(
+            ListServerQueries(server, FutureReply()), timeout, what
+        )
+        if started is not None and self.published.active:
+            ids = tuple(query.id for query in result)
+            self.published.publish(
+                events.ServerQueriesListed(self.config.name, server, ids, started)
+            )
+        return result
 
     def fetch_queries(
         self, timeout: float | None, target_rr: str, server: str
