@@ -506,6 +506,25 @@ def test_a_listing_of_another_server_need_not_list_the_ids_of_this_one() -> None
     assert ("held", ()) == (verdict.verdict, verdict.findings)
 
 
+def test_a_listing_that_leaves_out_an_id_its_restore_listed_is_a_fetch_violation() -> None:
+    # erm's restart restores Q1 on cam (a row of its backup), then lists cam: empty
+    h = [
+        events.CatalogRestored(
+            "erm", ((RID, "cam", "loaded", "42"),), ((Q1, RID, "cm"),), (), (1, 1, 0), pid=P, seq=1
+        ),
+        events.ServerQueriesListed("erm", "cam", (), 1_005, pid=P),
+        events.ConsumerReleased("erm", RID, Q1, "cm", pid=P, seq=2),
+        events.ResourceUnloaded("erm", "cam", RID, pid=P, seq=3),
+        events.RegistrarStopped("erm", (), (), (), pid=P, seq=4),
+    ]
+    h = [dataclasses.replace(e, hlc=1_000 + 10 * i, host="h") for i, e in enumerate(h)]
+
+    found = [f for f in check.check(numbered(h)).findings if f.rule == "fetch"]
+
+    assert [(1, 2)] == [f.lines for f in found]
+    assert "did not list query q1111111" in found[0].message
+
+
 def test_a_listing_of_an_id_its_provider_did_not_hold_is_a_fetch_violation() -> None:
     never = "q3333333-0000"
     # Q1 released before the listing began; a third id never held at all
