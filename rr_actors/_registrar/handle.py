@@ -528,6 +528,8 @@ class Registrar:
     def server_queries(self, server: str, *, timeout: float | None = None) -> list[Query]:
         """Every consumer query of this registrar's `server`, each id once (rule 10).
 
+        Its subscribers hear the answer's ids (`events.ServerQueriesListed`).
+
         Raises:
             UnknownServerError: no such server here.
             CallTimeoutError: no answer within `timeout` seconds.

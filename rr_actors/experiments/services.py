@@ -67,7 +67,8 @@ def service(
         ConfigError: `status_every` or `list_every` is negative or not finite.
     """
     for field, value in (("status_every", status_every), ("list_every", list_every)):
-        if not math.isfinite(value) or value < 0:
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        if not number or not math.isfinite(value) or value < 0:
             raise rr.ConfigError(f"{field} must be a finite number >= 0, got {value!r}")
 
     def load(request: Any) -> dict[str, Any]:

@@ -63,5 +63,7 @@ def test_a_service_refuses_a_negative_list_every() -> None:
     try:
         with pytest.raises(rr.ConfigError, match="list_every"):
             service(provider, list_every=-1.0)
+        with pytest.raises(rr.ConfigError, match="status_every"):
+            service(provider, status_every="0.2")  # type: ignore[arg-type]
     finally:
         provider.stop()
