@@ -528,6 +528,8 @@ class Registrar:
     def server_queries(self, server: str, *, timeout: float | None = None) -> list[Query]:
         """Every consumer query of this registrar's `server`, each id once (rule 10).
 
+        Its subscribers hear the answer's ids (`events.ServerQueriesListed`).
+
         Raises:
             UnknownServerError: no such server here.
             CallTimeoutError: no answer within `timeout` seconds.
@@ -930,8 +932,18 @@ class Here:
         )
 
     def server_queries(self, timeout: float | None, server: str) -> Steps[list[Query]]:
+        # The catalog is read after this stamp (as fetch_queries's, only for a subscriber).
+        started = hlc.CLOCK.now() if self.published.active else None
         what = f"server_queries({server!r})"
-        return self.asking(ListServerQueries(server, FutureReply()), timeout, what)
+        result: list[Query] = yield from self.asking(
+            ListServerQueries(server, FutureReply()), timeout, what
+        )
+        if started is not None and self.published.active:
+            ids = tuple(query.id for query in result)
+            self.published.publish(
+                events.ServerQueriesListed(self.config.name, server, ids, started)
+            )
+        return result
 
     def fetch_queries(
         self, timeout: float | None, target_rr: str, server: str

@@ -40,6 +40,7 @@ __all__ = [
     "ResourceLoaded",
     "ResourceUnloaded",
     "Rows",
+    "ServerQueriesListed",
     "StatusDelivered",
     "StatusSent",
     "SupervisorGaveUp",
@@ -640,6 +641,38 @@ class QueriesFetched:
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
+class ServerQueriesListed:
+    """A provider listed the queries its own server holds (`server_queries`, rule 10).
+
+    Published by the provider registrar when its answer came back to the caller.
+
+    Attributes:
+        registrar: name of the provider registrar.
+        server: name of its resource server.
+        query_ids: the ids the answer listed, in its order.
+        started: the stamp (`hlc`) taken when the listing began: the registrar read its
+            catalog between `started` and `hlc`.
+        at: when the answer came, wall clock (`time.time()` seconds).
+        pid: the registrar's process.
+        seq: its number among its process's events (see `number_events`; 0: not numbered).
+        host: the member name of the host it happened on (see `set_host`).
+        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
+            several hosts by it to put every cause before its effects.
+    """
+
+    registrar: str
+    server: str
+    query_ids: tuple[str, ...] = ()
+    started: int = 0
+    _: dataclasses.KW_ONLY
+    at: float = _now()
+    pid: int = _this_process()
+    seq: int = _numbered()
+    host: str = _this_host()
+    hlc: int = _stamped()
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
 class QueryForgotten:
     """A consumer forgot a query id it held (one a `CallAnswered` or a restore gave it).
 
@@ -986,6 +1019,7 @@ Event: TypeAlias = (
     | CallFailed
     | CallWithdrawn
     | QueriesFetched
+    | ServerQueriesListed
     | QueryForgotten
     | StatusSent
     | StatusDelivered

@@ -23,6 +23,7 @@ from rr_actors.events.kinds import (
     RegistrarStopped,
     ResourceLoaded,
     ResourceUnloaded,
+    ServerQueriesListed,
     StatusDelivered,
     StatusSent,
     SupervisorGaveUp,
@@ -103,6 +104,11 @@ def describe(event: Event) -> str:  # noqa: PLR0911, PLR0912 - one case per even
             return (
                 f"{event.registrar} fetched {len(event.query_ids)} queries it holds at "
                 f"{event.serving_rr}/{event.server}"
+            )
+        case ServerQueriesListed():
+            return (
+                f"{event.registrar} listed {len(event.query_ids)} queries of its server "
+                f"{event.server}"
             )
         case QueryForgotten():
             return (

@@ -15,7 +15,8 @@
  steps (+ the give-ups) ──► left: the rows each registrar's last stop lists that no
        consumer still running holds
  steps + the provider pass's holdings ──► fetch: each QueriesFetched against what its
-       provider held for that consumer while it was asked
+       provider held for that consumer while it was asked; each ServerQueriesListed
+       against what that server held while it was asked
 ```
 """
 
@@ -457,13 +458,19 @@ def fetch(
     before the window, not withdrawn nor forgotten by it since, that the provider held
     throughout the window, is listed. Not judged: a fetch whose window a life of its
     provider began or ended in (a restart, a stop, a second server of its name).
+
+    A provider's listing of its own server's queries (`ServerQueriesListed`) is judged
+    the same way, in the life it was made in: each id it listed was held by it at some
+    instant of its window, and each id that server held throughout the window, for any
+    consumer, is listed. Not judged: a second server's listing.
     """
     answers: dict[str, dict[str, tuple[str, str, int]]] = defaultdict(dict)
     by_name: dict[str, list[tuple[int, Life]]] = defaultdict(list)
     for (name, number), record in lives.items():
         by_name[name.partition("@")[0]].append((number, record))
     findings: list[Finding] = []
-    for name, line, event, new, _life in steps:
+    throughout: dict[str, list[tuple[str, Holding]]] | None = None  # provider -> its ids
+    for name, line, event, new, life in steps:
         if new:
             answers[name].clear()
         if isinstance(event, events.CallAnswered):
@@ -471,9 +478,63 @@ def fetch(
         elif isinstance(event, events.QueryForgotten | events.CallWithdrawn | events.CallFailed):
             answers[name].pop(event.query_id, None)
         elif isinstance(event, events.QueriesFetched):
-            life = _spanning(by_name[event.serving_rr], event.started, event.hlc)
-            if life is not None:
-                findings += _fetched(line, event, life, answers[name], holdings)
+            spanning = _spanning(by_name[event.serving_rr], event.started, event.hlc)
+            if spanning is not None:
+                findings += _fetched(line, event, spanning, answers[name], holdings)
+        elif isinstance(event, events.ServerQueriesListed) and name == event.registrar:
+            if throughout is None:
+                throughout = defaultdict(list)
+                for (provider, qid), held in holdings.items():
+                    throughout[provider] += [(qid, h) for h in held]
+            findings += _listed(line, event, life, throughout[name], holdings)
+    return findings
+
+
+def _listed(
+    line: int,
+    event: events.ServerQueriesListed,
+    life: int,
+    held: list[tuple[str, Holding]],
+    holdings: dict[tuple[str, str], list[Holding]],
+) -> list[Finding]:
+    """`fetch`'s findings about one listing of a provider's own server (at `line`, in
+    its `life`); `held`: every holding of that provider the pass kept."""
+    name, server, start, stop = event.registrar, event.server, event.started, event.hlc
+    findings = [
+        Finding(
+            "fetch",
+            "violation",
+            f"{name}: a listing of its server {server} listed query {qid[:8]}, which "
+            f"{name} did not hold while asked",
+            (line,),
+            (name,),
+        )
+        for qid in event.query_ids
+        if not any(
+            h.life == life and h.since < stop and (h.until is None or h.until > start)
+            for h in holdings.get((name, qid), ())
+        )
+    ]
+    listed = set(event.query_ids)
+    for qid, h in held:
+        if (
+            qid not in listed
+            and h.life == life
+            and h.server == server
+            and h.since < start
+            and (h.until is None or h.until > stop)
+        ):
+            listed.add(qid)  # (one finding an id)
+            findings.append(
+                Finding(
+                    "fetch",
+                    "violation",
+                    f"{name}: a listing of its server {server} did not list query "
+                    f"{qid[:8]}, which it held throughout the listing",
+                    (h.line, line),
+                    (name,),
+                )
+            )
     return findings
 
 

@@ -292,7 +292,9 @@ class Facts:
         outcomes: query id -> `(stamp, answered)` of each of its consumer's
             `CallAnswered` (`True`) and `CallFailed` (`False`), in order.
         fetched: (provider, query id) a fetch listed, or its consumer had answered at a
-            provider it fetched from (`QueriesFetched`: their holdings are kept for `fetch`).
+            provider it fetched from (`QueriesFetched`), or a provider that listed its own
+            server's queries (`ServerQueriesListed`) held: their holdings are kept for
+            `fetch`.
     """
 
     with_backup: set[str] = dataclasses.field(default_factory=set)
@@ -318,6 +320,7 @@ def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912 - one branch per 
     facts = Facts()
     answers: dict[tuple[str, str], list[str]] = {}  # (consumer, provider) -> ids answered
     fetchers: set[tuple[str, str]] = set()  # (consumer, provider) of each fetch
+    listers: set[str] = set()  # providers that listed their own server's queries
     for line, event in history:
         if isinstance(event, events.ConsumerAdded):
             facts.added.add(event.query_id)
@@ -340,6 +343,9 @@ def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912 - one branch per 
         elif isinstance(event, events.QueriesFetched):
             fetchers.add((event.registrar, event.serving_rr))
             facts.fetched.update((event.serving_rr, qid) for qid in event.query_ids)
+        elif isinstance(event, events.ServerQueriesListed):
+            listers.add(event.registrar)
+            facts.fetched.update((event.registrar, qid) for qid in event.query_ids)
         elif isinstance(event, events.CallFailed):
             facts.outcomes.setdefault(event.query_id, []).append((event.hlc, False))
         elif isinstance(event, events.QueryForgotten):
@@ -362,4 +368,8 @@ def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912 - one branch per 
                     facts.parent[event.registrar, qid] = parent
     for consumer, provider in fetchers:
         facts.fetched.update((provider, qid) for qid in answers.get((consumer, provider), ()))
+    if listers:
+        facts.fetched.update(
+            (provider, qid) for qid, (provider, *_) in facts.held_at.items() if provider in listers
+        )
     return facts

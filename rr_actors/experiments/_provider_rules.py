@@ -54,12 +54,14 @@ class Holding:
         line: that event's line.
         until: the stamp it let it go (released, in doubt, or its catalog taken again
             at the next life), `None` if it held it to the end of the run.
+        server: the provider's server that held it (`""`: not known).
     """
 
     life: int
     since: int
     line: int
     until: int | None = None
+    server: str = ""
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -143,6 +145,7 @@ class Providers:
         self.catalogs: dict[str, _Catalog] = defaultdict(_Catalog)
         self.findings: list[Finding] = []
         self.holdings: dict[tuple[str, str], list[Holding]] = defaultdict(list)
+        self.server_of: dict[tuple[str, str], str] = {}  # (provider, resource id) -> server
         self.expected: list[Expected] = []
 
     def found(self, rule: str, message: str, lines: tuple[int, ...], *names: str) -> None:
@@ -232,7 +235,10 @@ class Providers:
         catalog.holders.setdefault(held.resource_id, {})[qid] = None
         catalog.pending.pop(held.resource_id, None)
         if not again and (name, qid) in self.watch:
-            self.holdings[name, qid].append(Holding(catalog.life, held.stamp, held.line))
+            server = self.server_of.get((name, held.resource_id), "")
+            self.holdings[name, qid].append(
+                Holding(catalog.life, held.stamp, held.line, server=server)
+            )
 
     def let_go(self, name: str, catalog: _Catalog, qid: str, stamp: int) -> _Held | None:
         held = catalog.held.pop(qid, None)
@@ -277,6 +283,8 @@ class Providers:
         self.let_go_all(name, catalog, event.hlc)
         catalog.forget_all()
         catalog.blind = False
+        for row in event.resources:
+            self.server_of[name, row[0]] = row[1]
         for qid, rid, consumer, *_ in event.consumers:
             was, at = before.get(qid, (line, event.hlc))
             self.hold(name, catalog, _Held(rid, consumer, was, at), qid)
@@ -306,6 +314,7 @@ class Providers:
                     name,
                 )
         catalog.make_live(event.resource_id, event.server, event.digest, line)
+        self.server_of[name, event.resource_id] = event.server
 
     def load_failed(self, name: str, catalog: _Catalog, line: int, event: Any) -> None:
         catalog.not_live(event.resource_id)

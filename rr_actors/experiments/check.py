@@ -79,7 +79,9 @@ what cannot be checked):
 - `fetch` (rule 10): a fetch (`QueriesFetched`) lists only ids its provider held for
   its consumer at some instant while it was asked (between its `started` and `hlc`
   stamps), and every id that consumer had answered before and its provider held
-  throughout; not judged across a restart of the provider.
+  throughout; not judged across a restart of the provider. A provider's listing of its
+  own server (`ServerQueriesListed`, `server_queries`) likewise lists only ids it held
+  while asked, and every id that server held throughout, whoever its consumer.
 - `events`: no event was lost (an `EventsDropped`, a gap in a process's `seq`); a loss
   makes the findings about the registrars of that process unverifiable.
 

@@ -19,6 +19,7 @@ The thesis mission's managers (`rr_actors.mission.managers:erm_setup`, `cm_setup
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -37,6 +38,7 @@ def service(
     uses: Sequence[str] = (),
     uses_request: Any = None,
     status_every: float = 0.0,
+    list_every: float = 0.0,
 ) -> None:
     """Register one resource server whose loads take `load_s` and load what it `uses`.
 
@@ -45,7 +47,11 @@ def service(
     `status_every`, a thread of the manager sends a `WARNING` status (`"scheduled"`)
     every `status_every` seconds about the first query the server holds (none when it
     holds none), as a provider that reports on its resources does; it ends when the
-    registrar stops (or with the manager's process).
+    registrar stops (or with the manager's process). With `list_every`, a thread of the
+    manager lists the queries the server holds (`server_queries`) every `list_every`
+    seconds, as a provider that looks over its resources does: its registrar publishes
+    each answer (`ServerQueriesListed`), which the check's `fetch` rule compares with its
+    catalog (the status thread's listings are published too).
 
     Args:
         registrar: the manager's registrar.
@@ -59,7 +65,15 @@ def service(
             its own): every resource of this server then depends on one resource
             there, shared, and a status about it climbs to all of them.
         status_every: seconds between two statuses the server sends (0: none).
+        list_every: seconds between two listings of the server's queries (0: none).
+
+    Raises:
+        ConfigError: `status_every` or `list_every` is negative or not finite.
     """
+    for field, value in (("status_every", status_every), ("list_every", list_every)):
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        if not number or not math.isfinite(value) or value < 0:
+            raise rr.ConfigError(f"{field} must be a finite number >= 0, got {value!r}")
 
     def load(request: Any) -> dict[str, Any]:
         for target in uses:
@@ -82,6 +96,13 @@ def service(
             name=f"rr-scheduled-status-{registrar.name}",
             daemon=True,
         ).start()
+    if list_every > 0:
+        runtime.Thread(
+            target=_list_queries,
+            args=(registrar, server, list_every),
+            name=f"rr-scheduled-list-{registrar.name}",
+            daemon=True,
+        ).start()
 
 
 def _send_statuses(registrar: rr.ResourceRegistrar, server: str, every: float) -> None:
@@ -99,3 +120,18 @@ def _send_statuses(registrar: rr.ResourceRegistrar, server: str, every: float) -
             return
         except rr.RrError:
             continue  # (released meanwhile, a consumer unreachable: the next one)
+
+
+def _list_queries(registrar: rr.ResourceRegistrar, server: str, every: float) -> None:
+    """Every `every` s, `server_queries(server)` (its registrar publishes the answer);
+    until the registrar stops."""
+    while True:
+        runtime.sleep(every)
+        if not registrar.is_alive():
+            return
+        try:
+            registrar.server_queries(server, timeout=every)
+        except rr.RegistrarStoppedError:
+            return
+        except rr.RrError:
+            continue  # (timed out: the next one)

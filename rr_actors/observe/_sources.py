@@ -192,6 +192,7 @@ def _touched(event: events.Event) -> tuple[str, ...] | None:
             | events.StatusDelivered()
             | events.UnloadCutShort()
             | events.QueriesFetched()
+            | events.ServerQueriesListed()
         ):
             return ()
         case events.SupervisorGaveUp() | events.EventsDropped():

@@ -43,6 +43,7 @@ EXAMPLES: list[events.Event] = [
     ),
     events.CallWithdrawn("cm", QID, "erm", "start_process", "timeout"),
     events.QueriesFetched("cm", "erm", "start_process", (QID,), 7354725256007057408),
+    events.ServerQueriesListed("erm", "start_process", (QID,), 7354725256007057408),
     events.QueryForgotten("cm", QID, "erm", "provider lost"),
     events.StatusSent("erm", QID, rr.Status.FATAL, "process died"),
     events.StatusDelivered("cm", QID, rr.Status.FATAL, 2, 0.0012),

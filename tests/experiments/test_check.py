@@ -463,6 +463,80 @@ def test_a_fetch_whose_window_a_restart_of_its_provider_falls_in_is_not_judged()
     assert [] == [f for f in verdict.findings if f.rule == "fetch"]
 
 
+def listed(*ids: str, at: int = 5, server: str = "cam") -> list[events.Event]:
+    """`fetched`'s history, with erm listing its own server `server` (`server_queries`)
+    instead of cm's fetch: begun just before event `at`, answered after it."""
+    h = fetched(at=at)
+    fetch = h[at + 1]
+    listing = events.ServerQueriesListed(
+        "erm", server, ids, fetch.started, pid=P, hlc=fetch.hlc, host="h"
+    )
+    return [*h[: at + 1], listing, *h[at + 2 :]]
+
+
+@pytest.mark.parametrize(
+    ("ids", "at"),
+    [
+        ((Q1,), 4),  # Q2 added while it was asked: listed or not
+        ((Q1, Q2), 4),
+        ((Q1, Q2), 5),
+        ((Q2,), 6),  # Q1 released while it was asked: listed or not
+        ((Q1, Q2), 6),
+        ((), 8),  # both released before
+    ],
+)
+def test_a_listing_of_what_a_providers_server_held_holds(ids: tuple[str, ...], at: int) -> None:
+    verdict = check.check(numbered(renumbered(listed(*ids, at=at))))
+
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+
+
+def test_a_listing_that_leaves_out_an_id_its_server_held_throughout_is_a_fetch_violation() -> None:
+    # Q1 held by erm/cam from before the listing until after it: not listed
+    verdict = check.check(numbered(renumbered(listed(Q2, at=5))))
+
+    found = [f for f in verdict.findings if f.rule == "fetch"]
+    assert ("violated", [(3, 7)]) == (verdict.verdict, [f.lines for f in found])
+    assert "did not list query q1111111" in found[0].message
+
+
+def test_a_listing_of_another_server_need_not_list_the_ids_of_this_one() -> None:
+    verdict = check.check(numbered(renumbered(listed(at=5, server="other"))))
+
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+
+
+def test_a_listing_that_leaves_out_an_id_its_restore_listed_is_a_fetch_violation() -> None:
+    # erm's restart restores Q1 on cam (a row of its backup), then lists cam: empty
+    h = [
+        events.CatalogRestored(
+            "erm", ((RID, "cam", "loaded", "42"),), ((Q1, RID, "cm"),), (), (1, 1, 0), pid=P, seq=1
+        ),
+        events.ServerQueriesListed("erm", "cam", (), 1_005, pid=P),
+        events.ConsumerReleased("erm", RID, Q1, "cm", pid=P, seq=2),
+        events.ResourceUnloaded("erm", "cam", RID, pid=P, seq=3),
+        events.RegistrarStopped("erm", (), (), (), pid=P, seq=4),
+    ]
+    h = [dataclasses.replace(e, hlc=1_000 + 10 * i, host="h") for i, e in enumerate(h)]
+
+    found = [f for f in check.check(numbered(h)).findings if f.rule == "fetch"]
+
+    assert [(1, 2)] == [f.lines for f in found]
+    assert "did not list query q1111111" in found[0].message
+
+
+def test_a_listing_of_an_id_its_provider_did_not_hold_is_a_fetch_violation() -> None:
+    never = "q3333333-0000"
+    # Q1 released before the listing began; a third id never held at all
+    verdict = check.check(numbered(renumbered(listed(Q1, Q2, never, at=7))))
+
+    found = sorted(f.message for f in verdict.findings if f.rule == "fetch")
+    assert "violated" == verdict.verdict
+    assert 2 == len(found), found
+    assert "listed query q1111111, which erm did not hold while asked" in found[0]
+    assert "listed query q3333333" in found[1]
+
+
 # -- the rules of issue 40: seeded violations, and the windows the docs admit --------------
 
 
@@ -1571,6 +1645,33 @@ def fetch_lists_an_unknown_id(h: History) -> History | None:
     return None
 
 
+def listing_leaves_out_a_held_id(h: History) -> History | None:
+    """A provider's listing of its server without an id that server held from before the
+    listing began until after it (no release, no restart of the provider)."""
+    added = {(e.registrar, e.query_id): e.hlc for e in h if type(e) is events.ConsumerAdded}
+    for i, e in enumerate(h):
+        if type(e) is not events.ServerQueriesListed:
+            continue
+        for qid in e.query_ids:
+            stamp = added.get((e.registrar, qid))
+            if stamp is None or stamp >= e.started:
+                continue
+            if any(_touches(e.registrar, qid, other, stamp, e.hlc) for other in h):
+                continue
+            kept = tuple(q for q in e.query_ids if q != qid)
+            return [*h[:i], dataclasses.replace(e, query_ids=kept), *h[i + 1 :]]
+    return None
+
+
+def listing_lists_an_unknown_id(h: History) -> History | None:
+    """A provider's listing of its server with an id nobody ever called."""
+    for i, e in enumerate(h):
+        if type(e) is events.ServerQueriesListed:
+            ids = (*e.query_ids, "f0000000-0000-4000-8000-000000000000")
+            return [*h[:i], dataclasses.replace(e, query_ids=ids), *h[i + 1 :]]
+    return None
+
+
 MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     # name: (the mutation, the rule that must catch it)
     "duplicate-unload": (duplicate(events.ResourceUnloaded), "unload-once"),
@@ -1608,6 +1709,8 @@ MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     "drop-give-up": (drop_give_up, "intensity"),
     "fetch-leaves-out-a-held-id": (fetch_leaves_out_a_held_id, "fetch"),
     "fetch-lists-an-unknown-id": (fetch_lists_an_unknown_id, "fetch"),
+    "listing-leaves-out-a-held-id": (listing_leaves_out_a_held_id, "fetch"),
+    "listing-lists-an-unknown-id": (listing_lists_an_unknown_id, "fetch"),
 }
 
 

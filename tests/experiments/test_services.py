@@ -5,6 +5,8 @@ from __future__ import annotations
 import queue
 import uuid
 
+import pytest
+
 import rr_actors as rr
 from rr_actors.experiments.services import service
 
@@ -50,3 +52,42 @@ def test_a_service_with_uses_request_makes_its_resources_share_one_dependency() 
         app.stop()
         api.stop()
         db.stop()
+
+
+def test_a_service_with_list_every_lists_its_server_and_its_registrar_publishes_it() -> None:
+    name = f"svc-{uuid.uuid4().hex[:8]}"
+    provider = rr.ResourceRegistrar.start(name)
+    consumer = rr.ResourceRegistrar.start(f"app-{uuid.uuid4().hex[:8]}")
+    heard: queue.Queue[rr.events.ServerQueriesListed] = queue.Queue()
+    subscription = provider.subscribe(
+        lambda e: heard.put(e) if isinstance(e, rr.events.ServerQueriesListed) else None
+    )
+    try:
+        service(provider, list_every=0.05)
+        query = consumer.call(name, "resource", "cam")
+
+        listing = heard.get(timeout=5.0)
+        while query.id not in listing.query_ids:
+            listing = heard.get(timeout=5.0)
+
+        assert (name, "resource", (query.id,)) == (
+            listing.registrar,
+            listing.server,
+            listing.query_ids,
+        )
+        consumer.unload(query.id)
+    finally:
+        subscription.close()
+        consumer.stop()
+        provider.stop()
+
+
+def test_a_service_refuses_a_negative_list_every() -> None:
+    provider = rr.ResourceRegistrar.start(f"svc-{uuid.uuid4().hex[:8]}")
+    try:
+        with pytest.raises(rr.ConfigError, match="list_every"):
+            service(provider, list_every=-1.0)
+        with pytest.raises(rr.ConfigError, match="status_every"):
+            service(provider, status_every="0.2")  # type: ignore[arg-type]
+    finally:
+        provider.stop()

@@ -2246,6 +2246,30 @@ def test_fetch_queries_publishes_the_ids_it_listed_with_the_stamp_it_began_at() 
         provider.stop()
 
 
+def test_server_queries_publishes_the_ids_it_listed_with_the_stamp_it_began_at() -> None:
+    suffix = uuid.uuid4().hex[:8]
+    provider = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"provider-{suffix}"))
+    consumer = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"consumer-{suffix}"))
+    heard: runtime.SimpleQueue[rr.events.ServerQueriesListed] = runtime.SimpleQueue()
+    try:
+        provider.register_server("leaf", load=lambda r: r, unload=lambda _r, _s: None)
+        held = [consumer.call(provider.name, "leaf", r).id for r in ("a", "b")]
+        subscription = provider.subscribe(
+            lambda e: heard.put(e) if isinstance(e, rr.events.ServerQueriesListed) else None
+        )
+
+        listed = provider.server_queries("leaf")
+
+        event = heard.get(timeout=10.0)
+        subscription.close()
+        assert sorted(held) == sorted(q.id for q in listed) == sorted(event.query_ids)
+        assert (provider.name, "leaf") == (event.registrar, event.server)
+        assert 0 < event.started < event.hlc
+    finally:
+        consumer.stop()
+        provider.stop()
+
+
 def test_fetch_queries_takes_no_clock_stamp_without_a_subscriber(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
