@@ -201,6 +201,17 @@ PLANTS = (
         "withdrawn",
     ),
     Plant(
+        "retry-released",
+        "an id kept for a retry released by the second reconcile of the provider's life "
+        "that kept it (a life asks as it starts and once served): the retry loads afresh "
+        "(the reverse of bf53b40, issue 51: a full CI run's failure)",
+        "_registrar/consumer.py",
+        "        held |= self.flights.kept_at(serving_rr, life)\n",
+        "        # PLANTED: kept for a retry, listed in its first Reconcile only\n",
+        "simretry",
+        "retry-kept",
+    ),
+    Plant(
         "intensity",
         "a supervisor that gives up one restart early: at `max_restarts` restarts within "
         "`period`, not past them (OTP's intensity, issue 51)",
