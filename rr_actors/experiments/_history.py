@@ -276,6 +276,8 @@ class Facts:
         with_backup: registrars that published a `CatalogRestored`.
         forgot: (provider, query id) -> the stamp of the first `QueryForgotten` of it by
             its consumer.
+        released: (provider, query id) -> `(unload_sent, reconciled)` of that `QueryForgotten`,
+            if its consumer forgot it on the answer to its release (`unload_sent` > 0).
         fatal: query id -> the line of the first `FATAL` its holder was told.
         fatal_at: query id -> the stamp of that `FATAL`.
         added: query ids some provider added (`ConsumerAdded`, or a catalog's rows).
@@ -297,6 +299,7 @@ class Facts:
 
     with_backup: set[str] = dataclasses.field(default_factory=set)
     forgot: dict[tuple[str, str], int] = dataclasses.field(default_factory=dict)
+    released: dict[tuple[str, str], tuple[int, int]] = dataclasses.field(default_factory=dict)
     fatal: dict[str, int] = dataclasses.field(default_factory=dict)
     fatal_at: dict[str, int] = dataclasses.field(default_factory=dict)
     added: set[str] = dataclasses.field(default_factory=set)
@@ -343,7 +346,11 @@ def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912 - one branch per 
         elif isinstance(event, events.CallFailed):
             facts.outcomes.setdefault(event.query_id, []).append((event.hlc, False))
         elif isinstance(event, events.QueryForgotten):
-            facts.forgot.setdefault((event.serving_rr, event.query_id), event.hlc)
+            key = (event.serving_rr, event.query_id)
+            if key not in facts.forgot:
+                facts.forgot[key] = event.hlc
+                if event.unload_sent:
+                    facts.released[key] = (event.unload_sent, event.reconciled)
             if event.reason in REPORTED:
                 facts.reported.add((event.registrar, event.query_id))
                 facts.lost.add((event.serving_rr, event.query_id))

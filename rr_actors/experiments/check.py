@@ -263,7 +263,7 @@ def check(history: Sequence[Line]) -> Verdict:
     }
     steps, lives = walk(history)
     facts = gather(history)
-    providers = Providers(facts)
+    providers = Providers(facts, lives)
     providers.run(steps)
     wanted = {(want.holder, want.query_id) for want in providers.expected}
     answered, spans = _consumer_rules.answered(steps, facts, wanted)
