@@ -203,6 +203,18 @@ PLANTS = (
         "crashloop",
         "intensity",
     ),
+    Plant(
+        "lost-unreported",
+        "an id a restart without a backup lost, never reported FATAL: a Reconcile's "
+        "'unknown' is taken for a release on its way, for every id (rule 20); its consumer "
+        "forgets it later, on its release, which left after that reconcile (issue 51's "
+        "state = false: a release that crossed the restart is no such loss)",
+        "_registrar/consumer.py",
+        "                or self.releases.is_releasing(query_id)\n",
+        "                or True  # PLANTED: self.releases.is_releasing(query_id)\n",
+        "simnostate",
+        "kept",
+    ),
 )
 """The planted bugs, one at a time (docs/performance.md lists them)."""
 
