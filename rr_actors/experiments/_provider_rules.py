@@ -181,7 +181,11 @@ class Providers:
                 for q, held in catalog.held.items()
                 if self.failed(q, held.stamp, event.hlc) or self.crossed(name, q, ended)
             }
-            self.lose(name, catalog, unheld, line, event.hlc, "in a restart without a backup")
+            # (forgotten since the end of the life before, by no release that crossed the
+            # restart: owed a FATAL; the restart's first event may come much later)
+            self.lose(
+                name, catalog, unheld, line, event.hlc, "in a restart without a backup", ended
+            )
             self.let_go_all(name, catalog, event.hlc)
             catalog.forget_all()
             catalog.blind = False
@@ -224,18 +228,26 @@ class Providers:
         return released is not None and released[1] < ended
 
     def lose(
-        self, name: str, catalog: _Catalog, spared: set[str], line: int, stamp: int, why: str
+        self,
+        name: str,
+        catalog: _Catalog,
+        spared: set[str],
+        line: int,
+        stamp: int,
+        why: str,
+        let_go_by: int | None = None,
     ) -> None:
         """`kept`: the ids held before a restart (at `line`, `stamp`) that it lost (all
         but `spared`: those its restore kept, or whose call had failed for its caller) are
         violations, unless their consumer was told `FATAL` since it was added, or had
-        forgotten them before."""
+        forgotten them before `let_go_by` (the restart, if not given)."""
+        let_go_by = stamp if let_go_by is None else let_go_by
         for qid, held in catalog.held.items():
             if qid in spared:
                 continue
             # its consumer had let it go: the release was committed, and the kill came
             # before its `ConsumerReleased` was published (the restore shows the commit)
-            if self.forgot.get((name, qid), stamp) < stamp:
+            if self.forgot.get((name, qid), let_go_by) < let_go_by:
                 continue
             told = self.fatal_at.get(qid)
             if told is None or told < held.stamp:

@@ -35,6 +35,7 @@ SHIPPED = {
     "simcancel",
     "simdoubt",
     "simhosts",
+    "simnostate",
 }
 """Every plan shipped in the package; the tutorial's `first` runs in the docs test."""
 
