@@ -32,8 +32,10 @@
    │       StatusNotices ─► forget ─► answered once their callbacks ran; a resource's
    │       dependencies (`provider.py`'s teardown) the same way; the provider died or
    │       stopped meanwhile ─► unreleased: left out of its next Reconcile, so it
-   │       releases them (its unload runs once); this registrar stops ─► its durable
-   │       calls withdrawn, the ids of failed calls and releases given back (Abandon):
+   │       releases them (its unload runs once); each QueryForgotten of a release says
+   │       when its Unload left and the last Reconcile answered before (one that
+   │       crossed a restart without a backup: no FATAL); this registrar stops ─► its
+   │       durable calls withdrawn, the ids of failed calls and releases given back (Abandon):
    │       the stop goes on once each provider answered (or could not be reached)
    ▼
  Reconciling  it serves (again), or a provider asks (ReconcileAsk, `asked`; sent and
