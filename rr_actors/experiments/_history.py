@@ -366,11 +366,11 @@ def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912 - one branch per 
         elif isinstance(event, events.CallFailed):
             facts.outcomes.setdefault(event.query_id, []).append((event.hlc, False))
         elif isinstance(event, events.QueryForgotten):
-            key = (event.serving_rr, event.query_id)
-            if key not in facts.forgot:
-                facts.forgot[key] = event.hlc
+            held = (event.serving_rr, event.query_id)
+            if held not in facts.forgot:
+                facts.forgot[held] = event.hlc
                 if event.unload_sent:
-                    facts.released[key] = (event.unload_sent, event.reconciled)
+                    facts.released[held] = (event.unload_sent, event.reconciled)
             if event.reason in REPORTED:
                 facts.reported.add((event.registrar, event.query_id))
                 facts.lost.add((event.serving_rr, event.query_id))

@@ -135,7 +135,7 @@ class Providers:
     def __init__(self, facts: Facts, lives: dict[tuple[str, int], Life] | None = None) -> None:
         self.with_backup = facts.with_backup
         self.forgot = facts.forgot
-        self.released = facts.released
+        self.release_stamps = facts.released
         self.lives = lives or {}
         self.fatal_at = facts.fatal_at
         self.parent = facts.parent
@@ -224,7 +224,7 @@ class Providers:
         when `name` was killed, or sent before its consumer reconciled with the restart
         (without a backup), which no longer knew the id. The consumer let it go (its
         reconcile skips an id being released): no `FATAL` is owed (rule 20)."""
-        released = self.released.get((name, qid))
+        released = self.release_stamps.get((name, qid))
         return released is not None and released[1] < ended
 
     def lose(
