@@ -305,8 +305,8 @@ PLANTS = (
         "the answer carried, finds no record (rule 9 across a release)",
         "_registrar/consumer.py",
         "            self.deliver_on_its_way(query_id, on_its_way, join)\n"
-        "            self.holdings.forget(query_id)\n",
-        "            self.holdings.forget(query_id)  # PLANTED: before the statuses it carried\n"
+        "            self.holdings.forget(query_id, began=began)\n",
+        "            self.holdings.forget(query_id, began=began)  # PLANTED: before the statuses\n"
         "            self.deliver_on_its_way(query_id, on_its_way, join)\n",
         "simshare",
         "status-reached",
@@ -345,6 +345,18 @@ PLANTS = (
         "        if child is None or self.restarts.gave_up:  # PLANTED: incarnation\n",
         "crashloop",
         "restore-first",
+    ),
+    Plant(
+        "lost-unreported",
+        "an id a restart without a backup lost, never reported FATAL: a Reconcile's "
+        "'unknown' is taken for a release on its way, for every id (rule 20); its consumer "
+        "forgets it later, on its release, which left after that reconcile (issue 51's "
+        "state = false: a release that crossed the restart is no such loss)",
+        "_registrar/consumer.py",
+        "                or self.releases.is_releasing(query_id)\n",
+        "                or True  # PLANTED: self.releases.is_releasing(query_id)\n",
+        "simnostate",
+        "kept",
     ),
 )
 """The planted bugs, one at a time (docs/performance.md lists them)."""

@@ -551,7 +551,14 @@ REFUSED = {
         "out/events.jsonl line 1: ResourceLoaded: unknown fields ['x']",
     ),
     "an event without some of its fields": (
-        json.dumps({"type": "ResourceLoaded", "query_id": "q1", "load_s": 0.1, "schema": 4}),
+        json.dumps(
+            {
+                "type": "ResourceLoaded",
+                "query_id": "q1",
+                "load_s": 0.1,
+                "schema": events.lines.SCHEMA,
+            }
+        ),
         "out/events.jsonl line 1: ResourceLoaded: missing fields ['registrar', 'server', "
         "'resource_id', 'digest', 'label', 'at', 'pid', 'seq', 'host', 'hlc']",
     ),

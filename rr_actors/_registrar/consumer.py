@@ -33,8 +33,10 @@
    │       StatusNotices ─► forget ─► answered once their callbacks ran; a resource's
    │       dependencies (`provider.py`'s teardown) the same way; the provider died or
    │       stopped meanwhile ─► unreleased: left out of its next Reconcile, so it
-   │       releases them (its unload runs once); this registrar stops ─► its durable
-   │       calls withdrawn, the ids of failed calls and releases given back (Abandon):
+   │       releases them (its unload runs once); each QueryForgotten of a release says
+   │       when its Unload left and the last Reconcile answered before (one that
+   │       crossed a restart without a backup: no FATAL); this registrar stops ─► its
+   │       durable calls withdrawn, the ids of failed calls and releases given back (Abandon):
    │       the stop goes on once each provider answered (or could not be reached)
    ▼
  Reconciling  it serves (again), or a provider asks (ReconcileAsk, `asked`; sent and
@@ -68,6 +70,7 @@ import pykka
 
 from rr_actors import events
 from rr_actors._catalog import ClientRecord, ResourceState
+from rr_actors._core import hlc as _hlc
 from rr_actors._core import runtime
 from rr_actors._core.actor import Actor, refuse
 from rr_actors._core.directory import DIRECTORY, Reply
@@ -499,11 +502,14 @@ def publish_refused(shared: Shared, query: Query, error: BaseException) -> None:
         )
 
 
-def publish_forgotten(shared: Shared, query: Query, reason: str) -> None:
-    """Publish `QueryForgotten`: the consumer no longer holds `query` (`reason`)."""
+def publish_forgotten(
+    shared: Shared, query: Query, reason: str, began: tuple[int, int] = (0, 0)
+) -> None:
+    """Publish `QueryForgotten`: the consumer no longer holds `query` (`reason`; `began`:
+    its release's stamps, `Holdings.forget`)."""
     if shared.events.active:
         shared.events.publish(
-            events.QueryForgotten(shared.name, query.id, query.serving_rr, reason)
+            events.QueryForgotten(shared.name, query.id, query.serving_rr, reason, *began)
         )
 
 
@@ -762,7 +768,14 @@ class Holdings:
             self.status_callbacks[query_id] = on_status
             self.publish_target(query_id)
 
-    def forget(self, query_id: str, *, commit: bool = True, reason: str | None = "unload") -> None:
+    def forget(
+        self,
+        query_id: str,
+        *,
+        commit: bool = True,
+        reason: str | None = "unload",
+        began: tuple[int, int] = (0, 0),
+    ) -> None:
         """Forget a query this registrar held: its record and its status callback.
 
         With `commit=False` the caller commits (once, after forgetting several).
@@ -770,13 +783,16 @@ class Holdings:
         record whose holding was told: one answered here (`held`: its `CallAnswered`),
         or one a restore listed (`CatalogRestored`), answered or not (issue 40: a
         restored call in flight was dropped unannounced). `None`: the caller published it.
+        `began`: for one forgotten on the answer to its release, the stamp its `Unload`
+        left at and the stamp of the last `Reconcile` with its provider answered then
+        (`Releases.reconciled`).
         """
         record = self.registrar.catalog.clients.get(query_id)
         if record is not None:
             told = query_id in self.answered_in or query_id in self.restored
             self.restored.discard(query_id)
             if told and reason is not None:
-                publish_forgotten(self.registrar, record.query, reason)
+                publish_forgotten(self.registrar, record.query, reason, began)
             self.registrar.catalog.remove_client(query_id)
             self.status_callbacks.pop(query_id, None)
             self.targets.pop(query_id, None)
@@ -875,7 +891,10 @@ class Releases:
         self.holdings = holdings
         self.answers = answers
         self.redeliver = redeliver  # handles a message as the actor does (its dispatch)
-        self.releasing: set[str] = set()  # ids whose `Unload` is on its way
+        # ids whose `Unload` is on its way -> (the stamp it left at, `reconciled` then)
+        self.releasing: dict[str, tuple[int, int]] = {}
+        # provider -> the stamp of the last `Reconcile` with it answered (its list left)
+        self.last_reconciled: dict[str, int] = {}
         # id -> provider, of releases that failed as it died or stopped (`release_later`)
         self.unreleased: dict[str, str] = {}
 
@@ -899,14 +918,16 @@ class Releases:
         query = record.query
 
         def answered(on_its_way: Any, error: BaseException | None) -> None:
-            self.releasing.discard(query.id)
+            began = self.releasing.pop(query.id, (0, 0))
             if error is not None and not isinstance(error, UnknownQueryError):
                 logger.warning("releasing %s at %s failed: %s", query.id, query.serving_rr, error)
             if isinstance(error, GONE):
                 self.unreleased[query.id] = query.serving_rr
             join = Join(then)
             self.deliver_on_its_way(query.id, on_its_way, join)
-            self.holdings.forget(query.id, reason="stop" if record.parent is None else "dependency")
+            self.holdings.forget(
+                query.id, reason="stop" if record.parent is None else "dependency", began=began
+            )
             join.seal()
 
         self.send_unload(query, answered)
@@ -927,9 +948,9 @@ class Releases:
         query = record.query
 
         def answered(on_its_way: Any, error: BaseException | None) -> None:
-            self.releasing.discard(query_id)
+            began = self.releasing.pop(query_id, (0, 0))
             if isinstance(error, GONE):  # it may or may not have run it: reconciling
-                reply.set_error(self.release_later(query, error))  # completes it
+                reply.set_error(self.release_later(query, error, began))  # completes it
                 return
             # The provider released the id unless it failed otherwise: it was unknown
             # there, or its unload callback overran `unload_timeout` (a CallTimeoutError
@@ -950,7 +971,7 @@ class Releases:
 
             join = Join(answer)
             self.deliver_on_its_way(query_id, on_its_way, join)
-            self.holdings.forget(query_id)
+            self.holdings.forget(query_id, began=began)
             join.seal()
 
         self.send_unload(query, answered)
@@ -960,7 +981,10 @@ class Releases:
     ) -> None:
         """Ask `query`'s provider to release its id; `answered(on_its_way, error)` runs on
         the answer. An `UnloadOverran` (released, its `unload` overran) comes to it as its
-        statuses on their way and its `CallTimeoutError`."""
+        statuses on their way and its `CallTimeoutError`. The release begins now: its
+        `QueryForgotten` gives this stamp and that of the last `Reconcile` with its
+        provider answered before (`reconciled`): a release that left before the
+        reconcile with the provider's restart was answered crossed the restart."""
 
         def opened(value: Any, error: BaseException | None) -> None:
             if isinstance(value, UnloadOverran):
@@ -968,7 +992,9 @@ class Releases:
             else:
                 answered(value, error)
 
-        self.releasing.add(query.id)
+        self.releasing.setdefault(
+            query.id, (_hlc.CLOCK.now(), self.last_reconciled.get(query.serving_rr, 0))
+        )
         self.registrar.send(
             query.serving_rr, lambda reply: Unload(query.id, self.registrar.name, reply), opened
         )
@@ -988,7 +1014,9 @@ class Releases:
         for status in on_its_way or ():
             self.redeliver(status.notice((query_id,), self.registrar.come_back(join.add())))
 
-    def release_later(self, query: Query, error: BaseException) -> RrError:
+    def release_later(
+        self, query: Query, error: BaseException, began: tuple[int, int] = (0, 0)
+    ) -> RrError:
         """The `Unload` of `query` failed as its provider died or stopped (`error`).
 
         This registrar gave the id up: it forgets it now (a second `unload` raises
@@ -998,7 +1026,7 @@ class Releases:
         consumer asked to release it). Returns the error for the caller, which says so.
         """
         self.unreleased[query.id] = query.serving_rr
-        self.holdings.forget(query.id, reason="unload unanswered")
+        self.holdings.forget(query.id, reason="unload unanswered", began=began)
         kind = (
             RegistrarStoppedError
             if isinstance(error, RegistrarStoppedError)
@@ -1012,6 +1040,13 @@ class Releases:
         return told
 
     # -- what `Reconciling` asks of it --------------------------------------------------
+
+    def reconciled(self, serving_rr: str, listing: Listing) -> None:
+        """`serving_rr` answered the `Reconcile` of `listing`: the releases that leave from
+        now on began after it (their `QueryForgotten.reconciled`); an id it no longer
+        knew was reported `FATAL` then, unless its release was on its way."""
+        last = self.last_reconciled.get(serving_rr, 0)
+        self.last_reconciled[serving_rr] = max(last, listing.at)
 
     def is_releasing(self, query_id: str) -> bool:
         """Whether the `Unload` of `query_id` is on its way."""
@@ -1095,7 +1130,8 @@ class Listing:
 
     Its answer ("the ids of the list I do not know") is about the catalog as it was
     then: only records answered before it left (`epoch`) are settled by it. `left_out`:
-    the ids whose release failed as the provider died (it releases them).
+    the ids whose release failed as the provider died (it releases them). `at`: the
+    stamp (`hlc`) it left at.
     """
 
     held: tuple[str, ...]
@@ -1103,6 +1139,7 @@ class Listing:
     left_out: frozenset[str]
     epoch: int
     life: str = ""  # the provider's life it was sent to (its `ReconcileAsk.life`; "": not known)
+    at: int = 0
 
 
 class Reconciling:
@@ -1196,7 +1233,7 @@ class Reconciling:
         held -= withdrawn
         left_out = self.releases.unreleased_at(serving_rr)
         epoch = self.holdings.new_epoch()
-        return Listing(tuple(sorted(held - left_out)), due, left_out, epoch, life)
+        return Listing(tuple(sorted(held - left_out)), due, left_out, epoch, life, _hlc.CLOCK.now())
 
     def settle_listed(
         self, serving_rr: str, listing: Listing | None = None, unknown: Iterable[str] = ()
@@ -1305,6 +1342,7 @@ class Reconciling:
         # given back when this registrar stops (`Flights.kept_for_retry`).
         # What was left out of the list, it released.
         self.settle_listed(serving_rr, listing, unknown)
+        self.releases.reconciled(serving_rr, listing)
         for server, ids in lost.items():
             logger.warning(
                 "registrar %s: %s/%s no longer knows %d of the queries held there "

@@ -697,6 +697,17 @@ class QueryForgotten:
             retry of it was given up by its caller) or `"in doubt"` (restored, its call
             in flight when the last run died, or a sub-call of a resource gone: given
             back at the restart).
+        unload_sent: for an id forgotten on the answer to its release (`"unload"`,
+            `"unload unanswered"`, `"dependency"`, `"stop"`), the stamp (`hlc`) its
+            `Unload` left at: the release began; 0 for the other reasons.
+        reconciled: with `unload_sent`, the stamp at which the list of the last
+            reconcile with its provider that was answered before that `Unload` left had
+            left (rule 20: after the provider's restart, a healed link, or this
+            registrar's start); 0 if none was. A release on its way when its provider
+            was killed may reach the provider restarted without a backup, which no
+            longer knows the id: if it left before the reconcile with that restart was
+            answered (`reconciled` earlier than the restart), no `FATAL` is owed for
+            the id (its consumer let it go: its reconcile skips an id being released).
         at: when it was forgotten, wall clock (`time.time()` seconds).
         pid: the consumer registrar's process.
         seq: its number among its process's events (see `number_events`; 0: not numbered).
@@ -709,6 +720,8 @@ class QueryForgotten:
     query_id: str
     serving_rr: str
     reason: str
+    unload_sent: int = 0
+    reconciled: int = 0
     _: dataclasses.KW_ONLY
     at: float = _now()
     pid: int = _this_process()

@@ -47,6 +47,7 @@ __all__ = [
     "Line",
     "Step",
     "gather",
+    "holder_at",
     "registrar_of",
     "walk",
 ]
@@ -276,10 +277,15 @@ class Facts:
         with_backup: registrars that published a `CatalogRestored`.
         forgot: (provider, query id) -> the stamp of the first `QueryForgotten` of it by
             its consumer.
+        released: (provider, query id) -> `(unload_sent, reconciled)` of that `QueryForgotten`,
+            if its consumer forgot it on the answer to its release (`unload_sent` > 0).
         fatal: query id -> the line of the first `FATAL` its holder was told.
         fatal_at: query id -> the stamp of that `FATAL`.
         added: query ids some provider added (`ConsumerAdded`, or a catalog's rows).
         held_at: query id -> (provider, resource id, line of its `ConsumerAdded` or row).
+        held_on: query id -> `(stamp, provider, resource id, line)` of each of those, in
+            order: a retry of a call with the same id, after a restart without a backup,
+            adds it to a new resource (`holder_at`).
         parent: (consumer, query id) -> the consumer's resource it is a dependency of.
         sent: status id -> the query id it was sent about (its `StatusSent`).
         reported: (consumer, query id) told `FATAL` by its consumer itself (`REPORTED`).
@@ -299,10 +305,12 @@ class Facts:
 
     with_backup: set[str] = dataclasses.field(default_factory=set)
     forgot: dict[tuple[str, str], int] = dataclasses.field(default_factory=dict)
+    released: dict[tuple[str, str], tuple[int, int]] = dataclasses.field(default_factory=dict)
     fatal: dict[str, int] = dataclasses.field(default_factory=dict)
     fatal_at: dict[str, int] = dataclasses.field(default_factory=dict)
     added: set[str] = dataclasses.field(default_factory=set)
     held_at: dict[str, tuple[str, str, int]] = dataclasses.field(default_factory=dict)
+    held_on: dict[str, list[tuple[int, str, str, int]]] = dataclasses.field(default_factory=dict)
     parent: dict[tuple[str, str], str] = dataclasses.field(default_factory=dict)
     sent: dict[str, str] = dataclasses.field(default_factory=dict)
     reported: set[tuple[str, str]] = dataclasses.field(default_factory=set)
@@ -315,7 +323,19 @@ class Facts:
     fetched: set[tuple[str, str]] = dataclasses.field(default_factory=set)
 
 
-def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912 - one branch per event kind
+def holder_at(facts: Facts, qid: str, stamp: int) -> tuple[str, str, int] | None:
+    """Where `qid` was held at `stamp`: `(provider, resource id, line)` of its last
+    `ConsumerAdded` (or row) before it, or of its first if none is before; `None` if no
+    provider shows it."""
+    held = facts.held_on.get(qid)
+    if not held:
+        return None
+    before = [h for h in held if h[0] < stamp]
+    _, provider, rid, line = before[-1] if before else held[0]
+    return provider, rid, line
+
+
+def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912, PLR0915 - a branch per event kind
     """The `Facts` of a run, in one pass."""
     facts = Facts()
     answers: dict[tuple[str, str], list[str]] = {}  # (consumer, provider) -> ids answered
@@ -325,6 +345,9 @@ def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912 - one branch per 
         if isinstance(event, events.ConsumerAdded):
             facts.added.add(event.query_id)
             facts.held_at.setdefault(event.query_id, (event.registrar, event.resource_id, line))
+            facts.held_on.setdefault(event.query_id, []).append(
+                (event.hlc, event.registrar, event.resource_id, line)
+            )
         elif isinstance(event, events.StatusDelivered):
             if event.status is Status.FATAL:
                 facts.fatal.setdefault(event.query_id, line)
@@ -349,7 +372,11 @@ def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912 - one branch per 
         elif isinstance(event, events.CallFailed):
             facts.outcomes.setdefault(event.query_id, []).append((event.hlc, False))
         elif isinstance(event, events.QueryForgotten):
-            facts.forgot.setdefault((event.serving_rr, event.query_id), event.hlc)
+            held = (event.serving_rr, event.query_id)
+            if held not in facts.forgot:
+                facts.forgot[held] = event.hlc
+                if event.unload_sent:
+                    facts.released[held] = (event.unload_sent, event.reconciled)
             if event.reason in REPORTED:
                 facts.reported.add((event.registrar, event.query_id))
                 facts.lost.add((event.serving_rr, event.query_id))
@@ -363,6 +390,7 @@ def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912 - one branch per 
             for qid, rid, *_ in event.consumers:
                 facts.added.add(qid)
                 facts.held_at.setdefault(qid, (event.registrar, rid, line))
+                facts.held_on.setdefault(qid, []).append((event.hlc, event.registrar, rid, line))
             for qid, _serving, _server, parent, *_ in event.clients:
                 if parent:
                     facts.parent[event.registrar, qid] = parent

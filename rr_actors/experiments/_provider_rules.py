@@ -31,7 +31,7 @@ from typing import Any
 
 from rr_actors import events
 from rr_actors._types import Status
-from rr_actors.experiments._history import Facts, Finding, Step
+from rr_actors.experiments._history import Facts, Finding, Life, Step
 
 __all__ = ["PROVIDER_ENDED", "Expected", "Holding", "Providers", "dependency_held", "unload_order"]
 
@@ -133,11 +133,15 @@ class Providers:
         facts: what the whole run says (who restores a catalog, who forgot or was told
             `FATAL` what and when, dependency paths, which ids were reported lost:
             their holdings are kept for `reported-lost`; the ids of fetches, for `fetch`).
+        lives: each registrar's lives (`_history.walk`): when the one a restart without
+            a backup follows ended, for the releases that crossed it.
     """
 
-    def __init__(self, facts: Facts) -> None:
+    def __init__(self, facts: Facts, lives: dict[tuple[str, int], Life] | None = None) -> None:
         self.with_backup = facts.with_backup
         self.forgot = facts.forgot
+        self.release_stamps = facts.released
+        self.lives = lives or {}
         self.fatal_at = facts.fatal_at
         self.parent = facts.parent
         self.watch = facts.lost | facts.fetched
@@ -177,10 +181,17 @@ class Providers:
                 name,
             )
         if not restoring and catalog.pid is not None:
+            ended = self.ended(name, catalog.life, event.hlc)
             unheld = {
-                q for q, held in catalog.held.items() if self.failed(q, held.stamp, event.hlc)
+                q
+                for q, held in catalog.held.items()
+                if self.failed(q, held.stamp, event.hlc) or self.crossed(name, q, ended)
             }
-            self.lose(name, catalog, unheld, line, event.hlc, "in a restart without a backup")
+            # (forgotten since the end of the life before, by no release that crossed the
+            # restart: owed a FATAL; the restart's first event may come much later)
+            self.lose(
+                name, catalog, unheld, line, event.hlc, "in a restart without a backup", ended
+            )
             self.let_go_all(name, catalog, event.hlc)
             catalog.forget_all()
             catalog.blind = False
@@ -199,19 +210,50 @@ class Providers:
             return not before[-1]
         return bool(outcomes) and not outcomes[0][1]
 
+    def ended(self, name: str, life: int, restart: int) -> int:
+        """The stamp before which no consumer can have reconciled with the restart (at
+        `restart`, the first event of the next life) that follows life `life` of `name`:
+        its end, if its `ChildExited` or `RegistrarStopped` shows it; else its last event
+        (the restart's first event may come well after it reconciled with its
+        consumers)."""
+        record = self.lives.get((name, life))
+        if record is None:
+            return 0
+        if record.end is not None and record.end < restart:
+            return record.end
+        return record.last
+
+    def crossed(self, name: str, qid: str, ended: int) -> bool:
+        """Whether the consumer of `qid` forgot it on the answer to a release whose
+        `Unload` left before any reconcile of it with `name` begun after the life that
+        ended at `ended` was answered (`QueryForgotten.reconciled`): a release on its way
+        when `name` was killed, or sent before its consumer reconciled with the restart
+        (without a backup), which no longer knew the id. The consumer let it go (its
+        reconcile skips an id being released): no `FATAL` is owed (rule 20)."""
+        released = self.release_stamps.get((name, qid))
+        return released is not None and released[1] < ended
+
     def lose(
-        self, name: str, catalog: _Catalog, spared: set[str], line: int, stamp: int, why: str
+        self,
+        name: str,
+        catalog: _Catalog,
+        spared: set[str],
+        line: int,
+        stamp: int,
+        why: str,
+        let_go_by: int | None = None,
     ) -> None:
         """`kept`: the ids held before a restart (at `line`, `stamp`) that it lost (all
         but `spared`: those its restore kept, or whose call had failed for its caller) are
         violations, unless their consumer was told `FATAL` since it was added, or had
-        forgotten them before."""
+        forgotten them before `let_go_by` (the restart, if not given)."""
+        let_go_by = stamp if let_go_by is None else let_go_by
         for qid, held in catalog.held.items():
             if qid in spared:
                 continue
             # its consumer had let it go: the release was committed, and the kill came
             # before its `ConsumerReleased` was published (the restore shows the commit)
-            if self.forgot.get((name, qid), stamp) < stamp:
+            if self.forgot.get((name, qid), let_go_by) < let_go_by:
                 continue
             told = self.fatal_at.get(qid)
             if told is None or told < held.stamp:

@@ -19,7 +19,7 @@ from collections.abc import Sequence
 
 from rr_actors import events
 from rr_actors._core import hlc
-from rr_actors.experiments._history import Facts, Finding, Life, Line, Step
+from rr_actors.experiments._history import Facts, Finding, Life, Line, Step, holder_at
 from rr_actors.experiments._provider_rules import Expected
 
 __all__ = ["ANSWERED", "Span", "status_once", "status_path", "status_reached"]
@@ -69,7 +69,7 @@ def status_path(history: Sequence[Line], facts: Facts) -> list[Finding]:
             climbed[event.status_id, event.registrar, event.hop].add(parent)
     findings: list[Finding] = []
     for line, event in deliveries:
-        holder = facts.held_at.get(event.query_id)
+        holder = holder_at(facts, event.query_id, event.hlc)
         if holder is None:
             continue  # (whose it is, the run does not say)
         provider, rid, added = holder
@@ -107,8 +107,9 @@ def _off_path(
     about = facts.sent.get(event.status_id)
     if about is None:
         return f"no StatusSent at {provider}"
-    if about in facts.held_at and facts.held_at[about][:2] != (provider, rid):
-        return f"it was sent about {facts.held_at[about][1][:8]}, not {rid[:8]}"
+    sent_on = holder_at(facts, about, event.hlc)
+    if sent_on is not None and sent_on[:2] != (provider, rid):
+        return f"it was sent about {sent_on[1][:8]}, not {rid[:8]}"
     return None
 
 

@@ -23,7 +23,10 @@ what cannot be checked):
   does not list it, is a violation, unless, for a restart, its consumer had forgotten
   it before (`QueryForgotten`): a release committed just before a kill has no
   `ConsumerReleased`, and the restore shows it; or, for a restart without a backup, its
-  call had failed for its caller (`CallFailed`: it holds no id).
+  call had failed for its caller (`CallFailed`: it holds no id), its consumer forgot it
+  before the life before ended, or forgot it on a release that crossed the restart (its
+  `QueryForgotten.reconciled`: its last reconcile with the provider before the `Unload`
+  left began before that life ended).
 - `unload-once`: a resource is unloaded at most once, and only once its last consumer
   id was released; no consumer is added to a resource after its unload; no id is
   released that was not held.
@@ -270,7 +273,7 @@ def check(history: Sequence[Line]) -> Verdict:
     }
     steps, lives = walk(history)
     facts = gather(history)
-    providers = Providers(facts)
+    providers = Providers(facts, lives)
     providers.run(steps)
     wanted = {(want.holder, want.query_id) for want in providers.expected}
     answered, spans = _consumer_rules.answered(steps, facts, wanted)

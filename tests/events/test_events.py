@@ -224,6 +224,17 @@ def test_from_dict_reads_a_schema_1_line_without_the_fields_added_since() -> Non
         events.from_dict(data)
 
 
+def test_from_dict_reads_a_schema_4_query_forgotten_without_its_release_stamps() -> None:
+    data = line(events.QueryForgotten("cm", QID, "erm", "unload", 5, 3, at=2.0, pid=9))
+    del data["unload_sent"], data["reconciled"]
+    data["schema"] = 4
+
+    read = events.from_dict(data)
+
+    assert isinstance(read, events.QueryForgotten)
+    assert (0, 0) == (read.unload_sent, read.reconciled)  # (not known)
+
+
 def test_from_dict_accepts_an_int_for_a_float() -> None:
     data = line(events.ChildRestarted("root", "erm", 1, 0.5, at=10.0))
     data["restart_s"] = 2
@@ -252,7 +263,7 @@ def _with(**changes: Any) -> dict[str, Any]:
     ("data", "named"),
     [
         ([1, 2], "list"),
-        (_with(schema=5), "schema 5"),
+        (_with(schema=6), "schema 6"),
         (_with(schema=_DROP), "schema None"),
         (_with(type="Exploded"), "'Exploded'"),
         (_with(type=_DROP), "None"),

@@ -830,6 +830,112 @@ def test_an_answered_id_a_restart_without_a_backup_lost_is_owed_a_fatal() -> Non
     assert {2, 6} == _found(_stamped(again), "kept")
 
 
+# -- issue 51: a release that crossed a restart without a backup ----------------------------
+
+
+def crossing(reconciled: int, reason: str = "unload", *, exited: bool = True) -> list[events.Event]:
+    """cm releases Q1 after erm (no backup) was killed (its `ChildExited` at stamp 1003)
+    and before cm reconciled with the restart (which begins at 1004): the restarted erm no
+    longer knows Q1, and cm forgets it on that answer, told no `FATAL` (its reconcile skips
+    an id being released). `reconciled`: the stamp at which the list of cm's last
+    reconcile with erm answered before its `Unload` left (at 1004) had left."""
+    h = without_backup()
+    released = events.QueryForgotten("cm", Q1, "erm", reason, 1004, reconciled, pid=C)
+    crossed = [*h[:7], released, *h[9:]]  # (no FATAL, no "unknown at reconcile")
+    return _stamped(crossed if exited else _without(crossed, 3))
+
+
+@pytest.mark.parametrize("reason", ["unload", "unload unanswered"])
+@pytest.mark.parametrize("reconciled", [0, 1000], ids=["never", "before the kill"])
+def test_a_release_that_crossed_a_restart_without_a_backup_holds(
+    reconciled: int, reason: str
+) -> None:
+    verdict = check.check(numbered(crossing(reconciled, reason)))
+
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+
+
+def test_a_release_sent_after_its_consumer_reconciled_with_the_restart_is_a_lost_id() -> None:
+    # cm's reconcile with the restarted erm (its list left at 1005, after the kill) was
+    # answered before the Unload left: it was told Q1 was unknown, and owed a FATAL
+    assert {2, 5} == _found(crossing(1005), "kept")
+    assert ["kept"] == [f.rule for f in check.check(numbered(crossing(1005))).findings]
+
+
+def test_a_release_after_reconciling_answered_before_the_restart_published_is_a_lost_id() -> None:
+    # the restart (no backup) publishes its first event late (at 1050): cm reconciled
+    # with it (its list left at 1032, after the kill at 1030), then released Q1 (1035)
+    # and forgot it (1040), before that first event; it was owed a FATAL all the same
+    h = without_backup()
+    released = events.QueryForgotten("cm", Q1, "erm", "unload", 1035, 1032, pid=C)
+    early = [*h[:4], released, *h[4:7], *h[9:]]
+    spaced = [dataclasses.replace(e, hlc=1000 + 10 * i, host="h") for i, e in enumerate(early)]
+
+    assert {2, 6} == _found(spaced, "kept")
+
+
+def test_a_restart_whose_exit_is_not_shown_is_reconciled_after_the_life_befores_last_event() -> (
+    None
+):
+    # without erm's ChildExited, cm may have reconciled with the restart any time after
+    # the last event of erm's life before (its ConsumerAdded of Q1, at 1001)
+    assert "held" == check.check(numbered(crossing(1000, exited=False))).verdict
+    assert {2, 4} == _found(crossing(1002, exited=False), "kept")
+
+
+def retried_on_a_new_resource() -> list[events.Event]:
+    """api (no backup) loads RID for cm's Q1, depending on db's D1; it is killed before
+    its answer, and cm's retry of Q1 loads RID2 in api's restart (depending on D2); db
+    sends FATAL about D2: it reaches D2 at api (hop 1), then Q1, held on RID2 (hop 2)."""
+    d1, d2, db = "d1111111-0000", "d2222222-0000", 300
+    return _stamped(
+        [
+            events.ResourceLoaded("db", "cam", "rd1", d1, 0.01, 1, "d 1", pid=db, seq=1),
+            events.ConsumerAdded("db", "rd1", d1, "api", pid=db, seq=2),
+            events.CallAnswered("api", d1, "db", "cam", RID, pid=P),
+            events.ResourceLoaded("api", "cam", RID, Q1, 0.01, 42, "cam 0", pid=P),
+            events.ConsumerAdded("api", RID, Q1, "cm", pid=P),
+            events.ChildExited("sup", "api", P, "killed by SIGKILL"),
+            _failed_at("api"),
+            events.ResourceLoaded("db", "cam", "rd2", d2, 0.01, 2, "d 2", pid=db, seq=3),
+            events.ConsumerAdded("db", "rd2", d2, "api", pid=db, seq=4),
+            events.CallAnswered("api", d2, "db", "cam", RID2, pid=P + 1),
+            events.ResourceLoaded("api", "cam", RID2, Q1, 0.01, 42, "cam 0", pid=P + 1),
+            events.ConsumerAdded("api", RID2, Q1, "cm", pid=P + 1),
+            events.CallAnswered("cm", Q1, "api", "cam", retry=True, pid=C),
+            events.StatusSent("db", d2, rr.Status.FATAL, "broken", "s9", pid=db, seq=5),
+            events.StatusDelivered("api", d2, rr.Status.FATAL, 1, 0.0, "s9", pid=P + 1),
+            events.StatusDelivered("cm", Q1, rr.Status.FATAL, 2, 0.0, "s9", pid=C),
+        ]
+    )
+
+
+def _failed_at(provider: str) -> events.CallFailed:
+    return events.CallFailed(
+        "cm", Q1, provider, "cam", "RegistrarUnavailableError", "gone", True, pid=C
+    )
+
+
+def test_a_status_climbing_to_an_id_retried_on_a_new_resource_is_on_its_path() -> None:
+    verdict = check.check(numbered(retried_on_a_new_resource()))
+
+    assert [] == [f for f in verdict.findings if f.rule == "status-path"]
+
+
+def test_a_status_climbing_to_an_id_from_the_resource_it_left_is_off_its_path() -> None:
+    # the same, but the FATAL climbs from D1, a dependency of RID (Q1's first resource):
+    # by then Q1 is held on RID2
+    h = retried_on_a_new_resource()
+    d1 = "d1111111-0000"
+    from_d1 = [
+        *h[:13],
+        dataclasses.replace(h[13], query_id=d1),
+        dataclasses.replace(h[14], query_id=d1),
+        h[15],
+    ]
+    assert {12, 16} == _found(_stamped(from_d1), "status-path")
+
+
 def withdrawn_then_restored(released_after: float) -> list[events.Event]:
     """Issue 51: cm withdraws Q1 after erm committed it; erm is killed before its
     `Abandon`, restored holding Q1, and releases it `released_after` s after the restore."""
@@ -1489,6 +1595,31 @@ def told_lost_while_held(reason: str) -> Callable[[History], History | None]:
     return mutate
 
 
+def release_after_reconcile(h: History) -> History | None:
+    """An id a restart without a backup lost, never reported `FATAL`: its consumer forgets
+    it on its release instead, which left after its reconcile with the restart was
+    answered (issue 51: not a release that crossed the restart)."""
+    restoring = {e.registrar for e in h if type(e) is events.CatalogRestored}
+    for i, e in enumerate(h):
+        if (
+            type(e) is events.QueryForgotten
+            and e.reason == "unknown at reconcile"
+            and e.serving_rr not in restoring
+        ):
+            released = dataclasses.replace(
+                e, reason="unload", unload_sent=e.hlc - 1, reconciled=e.hlc - 2
+            )
+            fatal = {
+                j
+                for j, d in enumerate(h)
+                if type(d) is events.StatusDelivered
+                and d.query_id == e.query_id
+                and d.status is rr.Status.FATAL
+            }
+            return [released if j == i else d for j, d in enumerate(h) if j not in fatal]
+    return None
+
+
 def second_server_to_the_end(h: History) -> History | None:
     """Another process serves a provider's name beside its last process, from that
     process's first event to the end of the run, and never yields (rule 22)."""
@@ -1699,6 +1830,7 @@ MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     ),
     "provider-lost-while-alive": (told_lost_while_held("provider lost"), "reported-lost"),
     "release-unpublished": (release_unpublished, "kept"),
+    "release-after-reconcile": (release_after_reconcile, "kept"),
     "provider-keeps-id": (provider_keeps_id, "end"),
     "second-server-to-the-end": (second_server_to_the_end, "one-name"),
     "release-withdrawn-late": (release_withdrawn_late, "withdrawn"),

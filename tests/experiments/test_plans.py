@@ -36,6 +36,7 @@ SHIPPED = {
     "simdoubt",
     "simhosts",
     "simshare",
+    "simnostate",
 }
 """Every plan shipped in the package; the tutorial's `first` runs in the docs test."""
 

@@ -412,6 +412,22 @@ class TestEvents:
         [forgotten] = heard.of(events.QueryForgotten)
         assert (provider.name, "unload") == (forgotten.serving_rr, forgotten.reason)
 
+    def test_a_release_says_when_its_unload_left_and_when_it_last_reconciled_before(
+        self, started: Any
+    ) -> None:
+        provider, consumer = started("erm"), started("app")
+        provider.register_server("cam", load=lambda r: r, unload=lambda _q, _r: None)
+        heard = Heard()
+        with consumer.subscribe(heard) as subscription:
+            released = consumer.call(provider.name, "cam", 1)
+            consumer.unload(released.id)
+            assert subscription.wait_delivered(timeout=5)
+
+        [answered] = heard.of(events.CallAnswered)
+        [forgotten] = heard.of(events.QueryForgotten)
+        assert answered.hlc < forgotten.unload_sent < forgotten.hlc  # (its Unload left)
+        assert 0 == forgotten.reconciled  # (it never reconciled with erm)
+
     def test_a_dependency_answered_names_the_resource_it_belongs_to(self, started: Any) -> None:
         erm, cm, app = started("erm"), started("cm"), started("app")
         erm.register_server("leaf", load=lambda r: r, unload=lambda _q, _r: None)

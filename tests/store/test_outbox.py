@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sqlite3
 from pathlib import Path
@@ -119,6 +120,24 @@ def test_the_next_open_of_the_backup_empties_its_outbox(tmp_path: Path) -> None:
     SqliteStore.open(path).close(erase=False)  # (the registrar's restart)
 
     assert ([], []) == (outbox_rows(path), read_told(path, 4242))
+
+
+def test_a_query_forgotten_row_of_schema_4_is_read_without_its_release_stamps(
+    tmp_path: Path,
+) -> None:
+    # a registrar of the version before wrote it (killed), this one reads it at its start
+    path = tmp_path / "p.db"
+    store, _ = opened(path)
+    store.close(erase=False)
+    forgot = events.QueryForgotten("cm", "q1", "erm", "unload", 7, 3, pid=4242, seq=5)
+    row = json.loads(outbox._row(forgot))
+    assert [7, 3] == row[6:8]  # (after its type and 4 fields: the two schema 5 added)
+    old = [4, *row[1:6], *row[8:]]
+    db = sqlite3.connect(path, isolation_level=None)
+    db.execute("INSERT INTO outbox VALUES (5, 4242, 5, ?)", (json.dumps(old),))
+    db.close()
+
+    assert [dataclasses.replace(forgot, unload_sent=0, reconciled=0)] == read_told(path, 4242)
 
 
 @pytest.mark.parametrize(
