@@ -78,6 +78,7 @@ from rr_actors._transport.base import Endpoint
 from rr_actors._transport.codec import NO_REPLY, Run, frame, payload_size, what
 from rr_actors._transport.resolve import FIRST_SERVED, Resolution
 from rr_actors.errors import (
+    CallTimeoutError,
     ConfigError,
     InternalError,
     MessageTooLargeError,
@@ -700,6 +701,7 @@ class Messenger:
         self._resolver = resolver
         self._lock = runtime.Lock()
         self._served: dict[str, Listening] = {}
+        self._yielding: dict[str, Listening] = {}  # rule 22: given way, not ended yet
         self._peers: dict[str, Remote] = {}
         self._carrier: Carrier | None = None
         self._lookup: Callable[[str], Peer] = DIRECTORY.lookup
@@ -867,6 +869,8 @@ class Messenger:
                 return
             listening.ended = listening.yielded = True
             listening.stop(stopped=False)
+        with self._lock:
+            self._yielding[listening.name] = listening
         self._forget(listening)
         logger.error(
             "%s; this one stops serving: it unloads what it serves and stops, and its "
@@ -897,6 +901,53 @@ class Messenger:
         and every endpoint served here but `name` hears it (`rr_actors._core.membership`)."""
         logger.info("registrar %s of system %s is lost (nobody restarts it)", name, self.system)
         MEMBERSHIP.lost(name, by=f"the carrier of {self.system}", hearers=self._hearers())
+        yielding = self._yielding.get(name)
+        if yielding is not None:  # the one kept went while the one here yields (rule 22)
+            runtime.Thread(
+                target=self._keep, args=(yielding,), name=f"rr-keep-{name}", daemon=True
+            ).start()
+
+    def _keep(self, listening: Listening) -> None:
+        """The registrar kept in `listening`'s place went for good before `listening`'s
+        yield ended (rule 22): the name would be served by nobody. The registrar serves on
+        if it has not begun to stop (`Endpoint.keep_name`: once what it unloads is gone),
+        and the carrier serves it again; this process's consumers of it reconcile with it
+        (rule 20), as the others do once they see it served. If the carrier cannot serve it
+        (another process serves the name by now), it yields again."""
+        name, endpoint = listening.name, listening.endpoint
+        reply = FutureReply()
+        endpoint.keep_name(reply)
+        while True:  # (it answers within its `call_timeout`, the yield's bound, or ends)
+            try:
+                kept = wait(reply.future, 1.0, "keep_name")
+                break
+            except CallTimeoutError:
+                if endpoint.wait_ended(0):
+                    return
+        if not kept:
+            return  # it stops: its end tells this process's consumers (`_watch_end`)
+        with self._lock:
+            if self._yielding.get(name) is listening:
+                del self._yielding[name]
+        listening.yielded = False  # (its old watch says nothing at its end now)
+        try:
+            self.serve(endpoint)
+        except RrError as exc:
+            listening.yielded = True
+            with self._lock:
+                self._yielding[name] = listening
+            endpoint.yield_name(
+                f"registrar {name!r} of system {self.system!r} cannot be served again after "
+                f"the one kept in its place went: {exc}"
+            )
+            return
+        logger.warning(
+            "registrar %s of system %s serves again: the one kept in its place went for good "
+            "before its yield ended (rule 22)",
+            name,
+            self.system,
+        )
+        self.reachable(name)
 
     def reachable(self, name: str) -> None:
         """Registrar `name` is back from the same process (a healed link, rule 20), or the
@@ -925,6 +976,9 @@ class Messenger:
         endpoint = listening.endpoint
         endpoint.wait_ended()
         self._unserve(listening, stopped=endpoint.stopped_cleanly())
+        with self._lock:
+            if self._yielding.get(listening.name) is listening:
+                del self._yielding[listening.name]
         if listening.yielded:  # its name is the kept one's now: this process's consumers of
             # it reconcile with that one (rule 20), as other processes' do
             self.reachable(listening.name)

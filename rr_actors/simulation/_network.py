@@ -784,7 +784,8 @@ class _SimulatedHub(_Hub):
         member = self.network.address.attach()
         assert isinstance(member, Messenger)
         for rival in rivals:
-            member.served_elsewhere(name, rival)
+            if rival in self._servers.get(name, ()):  # (one that went meanwhile is no
+                member.served_elsewhere(name, rival)  # rival: Zenoh's token went too)
 
     def _presence(self) -> None:
         """Every quarter lease: a stopped process silent past its lease is gone for the

@@ -1000,3 +1000,57 @@ def test_a_name_served_again_on_its_side_during_a_cut_is_no_longer_awaited_acros
     for seed in range(3):
         run = simulation.run(scenario, seed=seed, preempt=0.1)
         assert (True, ()) == (run.value, tuple(run.errors)), f"seed {seed}"
+
+
+def kept_one_dies_during_the_yield() -> Any:
+    """Rule 22's yield step, with its forced interleaving: `provider` served first by a
+    process nobody supervises (kept at the heal); a second one served beyond a cut, on
+    the consumer `app`'s side, holds `app`'s id; at the heal the second yields, and while
+    it unloads (its `unload` waits on a gate) the kept one's process is SIGKILLed (lost
+    for good, rule 19). What is left: the yielder's process alive, what a new call
+    answers, whether `app` still holds its old id."""
+    network = simulation.SimulatedNetwork()
+    app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=network)
+    began, gate = runtime.Event(), runtime.Event()
+
+    def gated_unload(*_: Any) -> None:
+        began.set()
+        assert gate.wait(5.0)
+
+    def gated_setup(registrar: rr.ResourceRegistrar) -> None:
+        registrar.register_server("leaf", load=lambda r: f"leaf {r}", unload=gated_unload)
+
+    try:
+        first = simulation.start_process(serve_alone(network, "provider"), name="kept")
+        until_served(network, "provider")
+        network.partition([first])
+        second = simulation.start_process(
+            serve_alone(network, "provider", gated_setup), name="yielder"
+        )
+        simulation.sleep(0.5)  # (it serves the consumer's side)
+        held = app.call("provider", "leaf", "y", timeout=5.0)  # (the second one's)
+        network.heal()
+        assert began.wait(5.0)  # (the second one yields: it unloads what it served)
+        simulation.kill(first, signal.SIGKILL)
+        simulation.sleep(0.5)  # (the carrier says it is lost)
+        gate.set()
+        simulation.sleep(1.0)  # (the yield ends)
+        alive = any(p.pid == second and p.alive for p in running_scheduler().processes)
+        answer = app.call("provider", "leaf", "z", timeout=5.0).response
+        return alive, answer, held.id in [q.id for q in app.client_queries()]
+    finally:
+        gate.set()
+        try:
+            app.stop()
+        finally:
+            network.close()
+
+
+def test_a_yield_whose_kept_server_dies_before_it_ends_serves_the_name_on() -> None:
+    """Rule 22, the kept one lost during the yield: the one that yields serves its name
+    again once what it unloads is gone (`Messenger.lost` ─► `Endpoint.keep_name`), so
+    the name is not left unserved; the consumer's id it released is FATAL and forgotten
+    (rule 19 for the one lost, rule 20 with the one serving)."""
+    for seed in range(10):
+        run = simulation.run(kept_one_dies_during_the_yield, seed=seed, preempt=0.1)
+        assert ((True, "leaf z", False), ()) == (run.value, tuple(run.errors)), f"seed {seed}"
