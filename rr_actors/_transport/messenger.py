@@ -75,7 +75,7 @@ from rr_actors._core.hlc import seconds
 from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.replies import FutureReply, wait
 from rr_actors._transport.base import Endpoint
-from rr_actors._transport.codec import NO_REPLY, Run, frame, payload_size, what
+from rr_actors._transport.codec import NO_REPLY, Claim, Run, frame, payload_size, what
 from rr_actors._transport.resolve import FIRST_SERVED, Resolution
 from rr_actors.errors import (
     CallTimeoutError,
@@ -886,7 +886,10 @@ class Messenger:
         equal stamps, the lower process id), this one gives way (`give_way`). The process
         of the one kept does nothing: this one sees it too, and yields."""
         local = self.serving(name)
-        if not isinstance(local, Ranked) or self.resolution.kept(name, [local, rival]) is local:
+        if not isinstance(local, Ranked) or rival.who == local.who:
+            return
+        if self.resolution.kept(name, [local, rival]) is local:
+            self._claim(name, local, rival)
             return
         self.give_way(
             local,
@@ -895,6 +898,21 @@ class Messenger:
             f"{local.who}, since {when(local.stamp)}): one name is one registrar (rule "
             f"22), and resolve={self.resolution.resolve!r} keeps the other one",
         )
+
+    def _claim(self, name: str, local: Ranked, rival: Ranked) -> None:
+        """`local` (served here) is kept over `rival`: tell `rival`'s process, which may not
+        hear `local`'s token (a link that healed one way), so it yields all the same
+        (its carrier's `tell_server(name, rival, claim)`: Zenoh's and the simulated one;
+        a `Claim` heard here goes to `served_elsewhere`)."""
+        process = local.rank[1]
+        claim = Claim(name, local.who, local.stamp, process, local.side, local.members)
+        tell = getattr(self.link(), "tell_server", None)  # (carriers that see two servers)
+        if tell is None:
+            return
+        try:
+            tell(name, rival, claim)
+        except Exception as exc:  # noqa: BLE001 - its own presence may tell it still
+            logger.debug("could not tell process %s of %s's claim: %s", rival.who, name, exc)
 
     def lost(self, name: str) -> None:
         """Registrar `name` is gone for good (rule 19): this process's membership records it
@@ -1053,6 +1071,14 @@ class Messenger:
             object.__setattr__(message, "reply", reply)  # a fresh copy, ours to fill in
         if type(message) is Run:
             message.start(endpoint.run, f"rr-run-{name}")
+            return
+        if type(message) is Claim:  # rule 22: the kept one's process says so (`_claim`)
+            runtime.Thread(
+                target=self.served_elsewhere,
+                args=(name, message),
+                name=f"rr-claim-{name}",
+                daemon=True,
+            ).start()
             return
         try:
             self._lookup(name).deliver(message)  # (this thread may handle it: `Peer.deliver`)

@@ -1054,3 +1054,46 @@ def test_a_yield_whose_kept_server_dies_before_it_ends_serves_the_name_on() -> N
     for seed in range(10):
         run = simulation.run(kept_one_dies_during_the_yield, seed=seed, preempt=0.1)
         assert ((True, "leaf z", False), ()) == (run.value, tuple(run.errors)), f"seed {seed}"
+
+
+def one_way_heal() -> Any:
+    """Rule 22 after a link that heals one way: `provider` served first by `kept`, and by
+    a second process beyond a cut, on the consumer `app`'s side, where `app` holds an id;
+    at the heal the second one's process does not hear the first's server (`unheard`),
+    the first's does. What is left: whether the second registrar still runs, what a new
+    call answers, whether `app` still holds its id from the second."""
+    network = simulation.SimulatedNetwork()
+    app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=network)
+    second: list[rr.ResourceRegistrar] = []
+
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        leaf_setup(registrar)
+        second.append(registrar)
+
+    try:
+        first = simulation.start_process(serve_alone(network, "provider"), name="kept")
+        until_served(network, "provider")
+        network.partition([first])
+        newcomer = simulation.start_process(serve_alone(network, "provider", setup), name="new")
+        simulation.sleep(0.5)  # (it serves the consumer's side)
+        held = app.call("provider", "leaf", "y", timeout=5.0)  # (the second one's)
+        network.heal(unheard=[newcomer])
+        simulation.sleep(2.0)  # (the claim, the yield, the reconcile)
+        answer = app.call("provider", "leaf", "z", timeout=5.0).response
+        ids = [q.id for q in app.client_queries()]
+        return second[0].is_alive(), answer, held.id in ids
+    finally:
+        try:
+            app.stop()
+        finally:
+            network.close()
+
+
+def test_a_newcomer_that_does_not_hear_the_kept_server_after_a_heal_is_told_and_yields() -> None:
+    """Rule 22 through a link that healed one way: the process of the one kept hears the
+    newcomer and tells it (a `Claim` on the name, as Zenoh's carrier puts it on the
+    name's key), so the newcomer yields though it never heard the kept one's token; the
+    consumer's id there is FATAL and forgotten (rule 20)."""
+    for seed in range(10):
+        run = simulation.run(one_way_heal, seed=seed, preempt=0.1)
+        assert ((False, "leaf z", False), ()) == (run.value, tuple(run.errors)), f"seed {seed}"
