@@ -47,7 +47,11 @@ served here, and a link back to the process a message came from (`Carrier`):
    `resolution`, by default the one served first: `rank`, `kept`, `resolve.py`); this
    one not kept ─► give_way: stop serving it, the registrar
    yields its name; at its end, its consumers here reconcile with the one kept
-   (`reachable`)
+   (`reachable`); the one here kept ─► _claim: the carrier's `tell_server` puts a
+   `Claim` for the other's process (it may not hear this one: a heal heard one way),
+   whose messenger decides from it as from a token (`served_elsewhere`)
+ the one kept lost for good while the one here yields ─► lost(name) ─► _keep: the
+   registrar serves on once its unloads are done (`Endpoint.keep_name`), served again
 ```
 
 Carriers: `unix/` (a route is one connection; answers go back on the connection a

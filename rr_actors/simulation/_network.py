@@ -26,7 +26,10 @@ order per link, cuts and heals.
    gives way and yields, rule 22; a server's side for `"majority"`: the live processes
    its process heard as it began to serve), and from now on every sender routes to
    the one kept (`kept`); every process hears each name
-   across as reachable again (rule 20: its consumers reconcile), on a thread of its own
+   across as reachable again (rule 20: its consumers reconcile), on a thread of its own;
+   heal(unheard=pids): those processes do not hear the others' servers (a link that heals
+   one way): the kept one's process tells them (`tell_server`, a `Claim`, as Zenoh's
+   carrier puts it on the name's key)
  a lease (`lease=`): a process stopped (SIGSTOP) past it is silent: the links to what it
    serves fail what waits, as at a cut; once it runs again, reachable again (a presence
    thread of the network's process looks every quarter lease)
