@@ -270,6 +270,7 @@ class Listening(abc.ABC):
         self.lock = runtime.Lock()
         self.ended = False
         self.yielded = False
+        self.yield_told = runtime.Event()  # its registrar was told to yield (`give_way`)
 
     @abc.abstractmethod
     def stop(self, *, stopped: bool) -> None:
@@ -872,9 +873,9 @@ class Messenger:
             if listening.ended:
                 return
             listening.ended = listening.yielded = True
+            with self._lock:  # (before it stops: the one kept may be lost as it does)
+                self._yielding[listening.name] = listening
             listening.stop(stopped=False)
-        with self._lock:
-            self._yielding[listening.name] = listening
         self._forget(listening)
         logger.error(
             "%s; this one stops serving: it unloads what it serves and stops, and its "
@@ -882,6 +883,7 @@ class Messenger:
             reason,
         )
         listening.endpoint.yield_name(reason)
+        listening.yield_told.set()  # (a `keep_name` is told after it: `_keep`)
 
     def served_elsewhere(self, name: str, rival: Ranked) -> None:
         """Another process serves registrar `name` too (its carrier sees both, rule 22):
@@ -937,6 +939,8 @@ class Messenger:
         (rule 20), as the others do once they see it served. If the carrier cannot serve it
         (another process serves the name by now), it yields again."""
         name, endpoint = listening.name, listening.endpoint
+        if not listening.yield_told.wait(5.0):  # (the give-way thread tells it next)
+            return
         reply = FutureReply()
         endpoint.keep_name(reply)
         while True:  # (it answers within its `call_timeout`, the yield's bound, or ends)

@@ -343,6 +343,7 @@ class _Server(_Served):
     ) -> None:
         self.process = process  # (before the delivery thread: it is the process's)
         self.speaker = speaker  # the pid that restarts it or says it is lost (rule 19)
+        self.how = ""  # how it ended ("unavailable": not cleanly), once it did (`end`)
         super().__init__(hub, endpoint, hub.messenger)
         # its process's clock read (on its thread), not ticked: a reading is no event, and
         # the histories of runs without a second server stay as they were
@@ -570,6 +571,8 @@ class _SimulatedHub(_Hub):
         if served.gone:
             return
         name = served.name
+        if isinstance(served, _Server):
+            served.how = how  # (`_served_elsewhere` reads it)
         # (first, and without a lock: no choice point lets a `listen` see it served)
         rest = [one for one in self._servers.pop(name, []) if one is not served]
         if rest:
@@ -823,8 +826,12 @@ class _SimulatedHub(_Hub):
         member = self.network.address.attach()
         assert isinstance(member, Messenger)
         for rival in rivals:
-            if rival in self._servers.get(name, ()):  # (one that went meanwhile is no
-                member.served_elsewhere(name, rival)  # rival: Zenoh's token went too)
+            member.served_elsewhere(name, rival)
+            if rival.how == "unavailable" and not self._servers.get(name) and not self.closed:
+                # it died before this process gave way to it, or as it did, when this one
+                # still served the name (so its end judged nothing): Zenoh's presence
+                # applies its token's end after the yield, and judges it then (rule 19)
+                self._judge(name, rival)
 
     def _presence(self) -> None:
         """Every quarter lease: a stopped process silent past its lease is gone for the

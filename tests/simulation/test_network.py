@@ -1097,3 +1097,47 @@ def test_a_newcomer_that_does_not_hear_the_kept_server_after_a_heal_is_told_and_
     for seed in range(10):
         run = simulation.run(one_way_heal, seed=seed, preempt=0.1)
         assert ((False, "leaf z", False), ()) == (run.value, tuple(run.errors)), f"seed {seed}"
+
+
+def kept_one_dies_at_the_heal() -> Any:
+    """`provider` served first by a process nobody supervises, and beyond a cut by a
+    second, on the consumer `app`'s side, where `app` holds an id whose unload waits on a
+    gate; the first's process is SIGKILLed in the step of the heal, before the second's
+    process hears of the first (no choice point between). What a call answers then."""
+    network = simulation.SimulatedNetwork()
+    app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=network)
+    gate = runtime.Event()
+
+    def gated_setup(registrar: rr.ResourceRegistrar) -> None:
+        registrar.register_server(
+            "leaf", load=lambda r: f"leaf {r}", unload=lambda *_: gate.wait(5.0)
+        )
+
+    try:
+        first = simulation.start_process(serve_alone(network, "provider"), name="kept")
+        until_served(network, "provider")
+        network.partition([first])
+        simulation.start_process(serve_alone(network, "provider", gated_setup), name="second")
+        simulation.sleep(0.5)  # (it serves the consumer's side)
+        app.call("provider", "leaf", "y", timeout=5.0)  # (the second one's)
+        network.heal()
+        simulation.kill(first, signal.SIGKILL)
+        simulation.sleep(0.5)  # (the second yields to it, and hears it lost)
+        gate.set()
+        simulation.sleep(1.0)
+        return app.call("provider", "leaf", "z", timeout=5.0).response
+    finally:
+        gate.set()
+        try:
+            app.stop()
+        finally:
+            network.close()
+
+
+def test_a_kept_server_that_dies_before_the_other_hears_of_it_leaves_the_name_served() -> None:
+    """Rule 22: the one kept at a heal dies before the other's process hears of it. As
+    Zenoh's presence does (it applies the kept one's token, then its end), the other
+    yields to it, then hears it lost during its yield, and serves on."""
+    for seed in range(10):
+        run = simulation.run(kept_one_dies_at_the_heal, seed=seed, preempt=0.1)
+        assert ("leaf z", ()) == (run.value, tuple(run.errors)), f"seed {seed}"
