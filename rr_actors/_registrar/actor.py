@@ -65,6 +65,7 @@ from rr_actors._registrar.messages import (
     Crash,
     Fetch,
     Flush,
+    KeepName,
     ListClientQueries,
     ListServerQueries,
     Load,
@@ -190,6 +191,7 @@ DISPATCH: dict[type, tuple[str, Binder]] = {
     PeerReachable: ("peer_reachable", lambda a: a.presence.on_peer_reachable),  # link healed
     ReconcileRetry: ("reconcile_retry", lambda a: a.presence.on_reconcile_retry),  # its timer
     YieldName: ("yield_name", lambda a: a.lifecycle.on_yield_name),  # rule 22: another kept
+    KeepName: ("keep_name", lambda a: a.lifecycle.on_keep_name),  # the kept one went meanwhile
     StatusBatch: ("status_batch", lambda a: a.status.on_status_batch),  # at a relay
     StatusNotice: ("status_notice", lambda a: a.status.on_status_notice),  # at a consumer
     Revoke: ("revoke", lambda a: a.holdings.on_revoke),  # at a consumer

@@ -78,6 +78,7 @@ from rr_actors._registrar.messages import (
     ConsumerDown,
     Crash,
     Flush,
+    KeepName,
     LostEverything,
     PeerLost,
     PeerReachable,
@@ -93,7 +94,7 @@ from rr_actors._registrar.messages import (
     give_back,
 )
 from rr_actors._registrar.provider import Provider, Servers, Teardown, Unloading
-from rr_actors._registrar.state import NO_REPLY, OpenReply, Phase, Shared
+from rr_actors._registrar.state import NO_REPLY, OpenReply, Phase, Server, Shared
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import (
     CatalogWriteError,
@@ -190,6 +191,9 @@ class Lifecycle:
         self.open_requests: dict[OpenReply, None] = {}
         self.stop_waiters: list[Reply] | None = None  # while a stop is under way
         self.flush_timer: Cancellable | None = None
+        # while it yields its name (rule 22): `None`, or where `KeepName`'s answer goes
+        # once its unloads are done (the one kept went meanwhile: it serves on)
+        self.keepers: list[Reply] | None = None
         self.hearer = Hearing(shared.peer)  # what this process's membership tells it
 
     # -- start ------------------------------------------------------------------------
@@ -303,24 +307,62 @@ class Lifecycle:
 
         It waits `call_timeout` seconds at most for what it serves to be gone (a load
         under way finishes, then is unloaded; an `unload` runs): then it stops anyway,
-        and what is still under way is in doubt at its next start (rule 16)."""
-        if self.registrar.phase not in (Phase.SETTING_UP, Phase.SERVING):
+        and what is still under way is in doubt at its next start (rule 16). If the one
+        kept goes for good meanwhile (`on_keep_name`), it serves again instead."""
+        phase = self.registrar.phase
+        if phase not in (Phase.SETTING_UP, Phase.SERVING):
             return  # stopping or ended already
         logger.info("registrar %s yields its name: %s", self.registrar.name, message.reason)
         self.registrar.phase = Phase.STOPPING  # (new loads are refused from now on)
         until = runtime.monotonic() + self.registrar.config.call_timeout
         stopped = False
+        self.keepers = []
+        self.registrar.yielding = True
+        reopen = [server for server in self.registrar.servers.values() if not server.closing]
 
         def stop(*_: object) -> None:
             nonlocal stopped
             if not stopped:
                 stopped = True
                 timer.cancel()
+                keep, self.keepers = self.keepers, None
+                self.registrar.yielding = False
+                if keep and self.stop_waiters is None:  # (no stop() came meanwhile)
+                    self.serve_again(phase, reopen, keep)
+                    return
+                for one in keep or ():
+                    one.set_result(False)
                 self.on_stop(Stop(FutureReply(), until), NO_REPLY)
 
         late = self.registrar.come_back(stop)
         timer = thread_timer(max(0.0, until - runtime.monotonic()), lambda: late.set_result(None))
         self.servers.give_up_all(stop)
+
+    def on_keep_name(self, message: KeepName, _reply: Reply) -> None:
+        """The registrar kept in this one's place went for good while this one yields
+        (rule 22, the carrier's news): once what it unloads is gone, it serves again
+        (`serve_again`) instead of stopping, and `message.reply` gets `True`; `False` if
+        it is not yielding, or began to stop already."""
+        if self.keepers is None or self.stop_waiters is not None:
+            message.reply.set_result(False)
+            return
+        logger.warning(
+            "registrar %s: the registrar kept in its place went for good while it yielded "
+            "its name: it serves it again once what it unloads is gone (rule 22)",
+            self.registrar.name,
+        )
+        self.keepers.append(message.reply)
+
+    def serve_again(self, phase: Phase, reopen: list[Server], keep: list[Reply]) -> None:
+        """A yield given up (`on_keep_name`): what it served is unloaded and its consumers'
+        ids released; the servers open before the yield take loads again, the registrar
+        is back in `phase` (the carrier serves it again once `keep` is answered; its consumers
+        reconcile with it, rule 20: an id it no longer holds is `FATAL`)."""
+        for server in reopen:
+            server.closing = False
+        self.registrar.phase = phase
+        for one in keep:
+            one.set_result(True)
 
     def on_stop(self, message: Stop, reply: Reply) -> None:
         """Unload what this registrar holds as a consumer (newest first), wait for the
@@ -954,6 +996,11 @@ class Served:
         """Another process's registrar of this name is kept (rule 22): this one unloads
         what it serves and stops (`Lifecycle`)."""
         self.registrar._actor.tell(YieldName(reason))
+
+    def keep_name(self, reply: Reply) -> None:
+        """The one kept went for good while this one yields (rule 22): it serves again if
+        it has not begun to stop (`reply`: `True`), else `False` (`Lifecycle`)."""
+        self.registrar._actor.tell(KeepName(reply))
 
 
 # -- the death watch -------------------------------------------------------------------

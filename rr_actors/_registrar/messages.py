@@ -64,6 +64,7 @@ __all__ = [
     "Fetch",
     "FetchVia",
     "Flush",
+    "KeepName",
     "ListClientQueries",
     "ListServerQueries",
     "Load",
@@ -574,6 +575,16 @@ class YieldName:
     says why). Handled by `life.py`'s `Lifecycle`."""
 
     reason: str
+
+
+@dataclasses.dataclass(frozen=True)
+class KeepName:
+    """A carrier: the registrar kept in this one's place went for good while this one
+    yields (rule 22): if it has not begun to stop, it serves its name again once what it
+    unloads is gone, and `reply` gets `True`; else `False`. Handled by `life.py`'s
+    `Lifecycle`."""
+
+    reply: Reply
 
 
 @dataclasses.dataclass(frozen=True)

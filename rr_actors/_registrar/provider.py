@@ -1213,6 +1213,7 @@ class Teardown:
         if (
             server is not None
             and server.closing
+            and not self.registrar.yielding  # (a yield may be given up: it serves on)
             and not self.registrar.catalog.resources_of(server.name)
         ):
             del self.registrar.servers[server.name]

@@ -172,6 +172,7 @@ class Shared:
         self.phase = Phase.SETTING_UP if setting_up else Phase.SERVING
         self.servers_settled = False
         self.servers: dict[str, Server] = {}
+        self.yielding = False  # rule 22: closing servers are kept until the yield ends
         self.workers = Workers(config.name, max_workers=config.max_workers)
         self.tokens = Tokens()
         self.probes: Probes | None = None

@@ -83,7 +83,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any, Protocol
 
-from rr_actors._core.directory import Peer
+from rr_actors._core.directory import Peer, Reply
 
 __all__ = ["Address", "Endpoint", "Peer", "Transport"]
 
@@ -151,6 +151,16 @@ class Endpoint(Protocol):
         kept, which reports `FATAL` the ids it does not hold) and then stops.
 
         Called on a carrier thread; returns at once. `reason` says why (for its log).
+        """
+        ...
+
+    def keep_name(self, reply: Reply) -> None:
+        """The one kept in its place went for good while this one yields (rule 22): if it
+        has not begun to stop, it serves its name again once what it unloads is gone, and
+        `reply` gets `True` (the carrier then serves it again); `False` if it is not
+        yielding or began to stop.
+
+        Called on a carrier thread; returns at once.
         """
         ...
 

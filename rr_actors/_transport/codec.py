@@ -30,6 +30,7 @@ from rr_actors._core.wire import Pickler, WireMessage, plain
 
 __all__ = [
     "NO_REPLY",
+    "Claim",
     "Oversized",
     "Run",
     "frame",
@@ -45,6 +46,27 @@ NO_REPLY = 0
 _TOKEN = struct.Struct("<Q")
 _LENGTH = struct.Struct("!i")  # multiprocessing.connection's frame header
 _LONG_LENGTH = struct.Struct("!iQ")  # ... for frames over 2 GiB: -1, then the length
+
+
+@dataclasses.dataclass(frozen=True)
+class Claim(WireMessage):
+    """Rule 22, carrier to carrier: the process that serves the kept one of two servers of
+    registrar `name` tells the other's process so, on the name's key (it may not hear the
+    kept one's token: a link that healed one way). Its fields are those a token carries
+    (the messenger's `Ranked`): who serves it (`who`, `process` as a number), since when
+    (`stamp`, `_core.hlc`), its side and the members then."""
+
+    name: str
+    who: str
+    stamp: int
+    process: int
+    side: int = 0
+    members: int = 0
+
+    @property
+    def rank(self) -> tuple[int, int]:
+        """Its place in rule 22's first-served order (`messenger.rank`)."""
+        return (self.stamp, self.process)
 
 
 @dataclasses.dataclass(frozen=True)

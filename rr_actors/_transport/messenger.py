@@ -47,7 +47,11 @@ served here, and a link back to the process a message came from (`Carrier`):
    `resolution`, by default the one served first: `rank`, `kept`, `resolve.py`); this
    one not kept ─► give_way: stop serving it, the registrar
    yields its name; at its end, its consumers here reconcile with the one kept
-   (`reachable`)
+   (`reachable`); the one here kept ─► _claim: the carrier's `tell_server` puts a
+   `Claim` for the other's process (it may not hear this one: a heal heard one way),
+   whose messenger decides from it as from a token (`served_elsewhere`)
+ the one kept lost for good while the one here yields ─► lost(name) ─► _keep: the
+   registrar serves on once its unloads are done (`Endpoint.keep_name`), served again
 ```
 
 Carriers: `unix/` (a route is one connection; answers go back on the connection a
@@ -75,9 +79,10 @@ from rr_actors._core.hlc import seconds
 from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.replies import FutureReply, wait
 from rr_actors._transport.base import Endpoint
-from rr_actors._transport.codec import NO_REPLY, Run, frame, payload_size, what
+from rr_actors._transport.codec import NO_REPLY, Claim, Run, frame, payload_size, what
 from rr_actors._transport.resolve import FIRST_SERVED, Resolution
 from rr_actors.errors import (
+    CallTimeoutError,
     ConfigError,
     InternalError,
     MessageTooLargeError,
@@ -265,6 +270,7 @@ class Listening(abc.ABC):
         self.lock = runtime.Lock()
         self.ended = False
         self.yielded = False
+        self.yield_told = runtime.Event()  # its registrar was told to yield (`give_way`)
 
     @abc.abstractmethod
     def stop(self, *, stopped: bool) -> None:
@@ -700,6 +706,7 @@ class Messenger:
         self._resolver = resolver
         self._lock = runtime.Lock()
         self._served: dict[str, Listening] = {}
+        self._yielding: dict[str, Listening] = {}  # rule 22: given way, not ended yet
         self._peers: dict[str, Remote] = {}
         self._carrier: Carrier | None = None
         self._lookup: Callable[[str], Peer] = DIRECTORY.lookup
@@ -866,6 +873,8 @@ class Messenger:
             if listening.ended:
                 return
             listening.ended = listening.yielded = True
+            with self._lock:  # (before it stops: the one kept may be lost as it does)
+                self._yielding[listening.name] = listening
             listening.stop(stopped=False)
         self._forget(listening)
         logger.error(
@@ -874,6 +883,7 @@ class Messenger:
             reason,
         )
         listening.endpoint.yield_name(reason)
+        listening.yield_told.set()  # (a `keep_name` is told after it: `_keep`)
 
     def served_elsewhere(self, name: str, rival: Ranked) -> None:
         """Another process serves registrar `name` too (its carrier sees both, rule 22):
@@ -882,7 +892,10 @@ class Messenger:
         equal stamps, the lower process id), this one gives way (`give_way`). The process
         of the one kept does nothing: this one sees it too, and yields."""
         local = self.serving(name)
-        if not isinstance(local, Ranked) or self.resolution.kept(name, [local, rival]) is local:
+        if not isinstance(local, Ranked) or rival.who == local.who:
+            return
+        if self.resolution.kept(name, [local, rival]) is local:
+            self._claim(name, local, rival)
             return
         self.give_way(
             local,
@@ -892,11 +905,75 @@ class Messenger:
             f"22), and resolve={self.resolution.resolve!r} keeps the other one",
         )
 
+    def _claim(self, name: str, local: Ranked, rival: Ranked) -> None:
+        """`local` (served here) is kept over `rival`: tell `rival`'s process, which may not
+        hear `local`'s token (a link that healed one way), so it yields all the same
+        (its carrier's `tell_server(name, rival, claim)`: Zenoh's and the simulated one;
+        a `Claim` heard here goes to `served_elsewhere`)."""
+        process = local.rank[1]
+        claim = Claim(name, local.who, local.stamp, process, local.side, local.members)
+        tell = getattr(self.link(), "tell_server", None)  # (carriers that see two servers)
+        if tell is None:
+            return
+        try:
+            tell(name, rival, claim)
+        except Exception as exc:  # noqa: BLE001 - its own presence may tell it still
+            logger.debug("could not tell process %s of %s's claim: %s", rival.who, name, exc)
+
     def lost(self, name: str) -> None:
         """Registrar `name` is gone for good (rule 19): this process's membership records it
         and every endpoint served here but `name` hears it (`rr_actors._core.membership`)."""
         logger.info("registrar %s of system %s is lost (nobody restarts it)", name, self.system)
         MEMBERSHIP.lost(name, by=f"the carrier of {self.system}", hearers=self._hearers())
+        yielding = self._yielding.get(name)
+        if yielding is not None:  # the one kept went while the one here yields (rule 22)
+            runtime.Thread(
+                target=self._keep, args=(yielding,), name=f"rr-keep-{name}", daemon=True
+            ).start()
+
+    def _keep(self, listening: Listening) -> None:
+        """The registrar kept in `listening`'s place went for good before `listening`'s
+        yield ended (rule 22): the name would be served by nobody. The registrar serves on
+        if it has not begun to stop (`Endpoint.keep_name`: once what it unloads is gone),
+        and the carrier serves it again; this process's consumers of it reconcile with it
+        (rule 20), as the others do once they see it served. If the carrier cannot serve it
+        (another process serves the name by now), it yields again."""
+        name, endpoint = listening.name, listening.endpoint
+        if not listening.yield_told.wait(5.0):  # (the give-way thread tells it next)
+            return
+        reply = FutureReply()
+        endpoint.keep_name(reply)
+        while True:  # (it answers within its `call_timeout`, the yield's bound, or ends)
+            try:
+                kept = wait(reply.future, 1.0, "keep_name")
+                break
+            except CallTimeoutError:
+                if endpoint.wait_ended(0):
+                    return
+        if not kept:
+            return  # it stops: its end tells this process's consumers (`_watch_end`)
+        with self._lock:
+            if self._yielding.get(name) is listening:
+                del self._yielding[name]
+        listening.yielded = False  # (its old watch says nothing at its end now)
+        try:
+            self.serve(endpoint)
+        except RrError as exc:
+            listening.yielded = True
+            with self._lock:
+                self._yielding[name] = listening
+            endpoint.yield_name(
+                f"registrar {name!r} of system {self.system!r} cannot be served again after "
+                f"the one kept in its place went: {exc}"
+            )
+            return
+        logger.warning(
+            "registrar %s of system %s serves again: the one kept in its place went for good "
+            "before its yield ended (rule 22)",
+            name,
+            self.system,
+        )
+        self.reachable(name)
 
     def reachable(self, name: str) -> None:
         """Registrar `name` is back from the same process (a healed link, rule 20), or the
@@ -925,6 +1002,9 @@ class Messenger:
         endpoint = listening.endpoint
         endpoint.wait_ended()
         self._unserve(listening, stopped=endpoint.stopped_cleanly())
+        with self._lock:
+            if self._yielding.get(listening.name) is listening:
+                del self._yielding[listening.name]
         if listening.yielded:  # its name is the kept one's now: this process's consumers of
             # it reconcile with that one (rule 20), as other processes' do
             self.reachable(listening.name)
@@ -999,6 +1079,14 @@ class Messenger:
             object.__setattr__(message, "reply", reply)  # a fresh copy, ours to fill in
         if type(message) is Run:
             message.start(endpoint.run, f"rr-run-{name}")
+            return
+        if type(message) is Claim:  # rule 22: the kept one's process says so (`_claim`)
+            runtime.Thread(
+                target=self.served_elsewhere,
+                args=(name, message),
+                name=f"rr-claim-{name}",
+                daemon=True,
+            ).start()
             return
         try:
             self._lookup(name).deliver(message)  # (this thread may handle it: `Peer.deliver`)

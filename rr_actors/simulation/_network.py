@@ -26,7 +26,10 @@ order per link, cuts and heals.
    gives way and yields, rule 22; a server's side for `"majority"`: the live processes
    its process heard as it began to serve), and from now on every sender routes to
    the one kept (`kept`); every process hears each name
-   across as reachable again (rule 20: its consumers reconcile), on a thread of its own
+   across as reachable again (rule 20: its consumers reconcile), on a thread of its own;
+   heal(unheard=pids): those processes do not hear the others' servers (a link that heals
+   one way): the kept one's process tells them (`tell_server`, a `Claim`, as Zenoh's
+   carrier puts it on the name's key)
  a lease (`lease=`): a process stopped (SIGSTOP) past it is silent: the links to what it
    serves fail what waits, as at a cut; once it runs again, reachable again (a presence
    thread of the network's process looks every quarter lease)
@@ -71,8 +74,16 @@ from typing import Any
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.hlc import CLOCK, from_seconds
 from rr_actors._transport.base import Endpoint
-from rr_actors._transport.codec import split_frame
-from rr_actors._transport.messenger import Lost, Messenger, Replies, kept, rank, run_lost
+from rr_actors._transport.codec import Claim, split_frame
+from rr_actors._transport.messenger import (
+    Lost,
+    Messenger,
+    Ranked,
+    Replies,
+    kept,
+    rank,
+    run_lost,
+)
 from rr_actors._transport.resolve import Resolution, Resolve
 from rr_actors.errors import RegistrarStoppedError, RegistrarUnavailableError, RrError
 from rr_actors.simulation import _primitives as sim
@@ -140,9 +151,16 @@ class SimulatedNetwork(MemoryNetwork):
                     pids.add(process.pid)
         hub.partition(frozenset(pids))
 
-    def heal(self) -> None:
-        """Join every process again; each hears the names across as reachable again."""
-        self._simulated().heal()
+    def heal(self, *, unheard: Iterable[int] = ()) -> None:
+        """Join every process again; each hears the names across as reachable again.
+
+        Args:
+            unheard: pids of processes that do not hear the servers of the others after
+                the heal (a link that heals one way: their own tokens are heard, messages
+                cross both ways, but no other process's server of a name they serve
+                reaches them; Zenoh's presence would not tell them of it).
+        """
+        self._simulated().heal(frozenset(unheard))
 
     def cut_connections(self, pid: int) -> int:
         """Close every link from or to process `pid` (what waits on them fails; the next
@@ -325,6 +343,7 @@ class _Server(_Served):
     ) -> None:
         self.process = process  # (before the delivery thread: it is the process's)
         self.speaker = speaker  # the pid that restarts it or says it is lost (rule 19)
+        self.how = ""  # how it ended ("unavailable": not cleanly), once it did (`end`)
         super().__init__(hub, endpoint, hub.messenger)
         # its process's clock read (on its thread), not ticked: a reading is no event, and
         # the histories of runs without a second server stay as they were
@@ -552,6 +571,8 @@ class _SimulatedHub(_Hub):
         if served.gone:
             return
         name = served.name
+        if isinstance(served, _Server):
+            served.how = how  # (`_served_elsewhere` reads it)
         # (first, and without a lock: no choice point lets a `listen` see it served)
         rest = [one for one in self._servers.pop(name, []) if one is not served]
         if rest:
@@ -609,13 +630,13 @@ class _SimulatedHub(_Hub):
                 name = link.served.endpoint.name
                 link.close(RegistrarUnavailableError(f"registrar {name!r} cannot be reached (cut)"))
 
-    def heal(self) -> None:
+    def heal(self, unheard: frozenset[int] = frozenset()) -> None:
         if self._side is None:
             return
         side = frozenset(one.pid for one in self.sched.processes if self._beyond(one.pid))
         self._side = None
         self._awaited_across = {}
-        self._rejoin(side)
+        self._rejoin(side, unheard)
 
     def deafen(self, pid: int) -> None:
         """Process `pid` no longer hears its router (see `SimulatedNetwork.deafen`)."""
@@ -655,7 +676,7 @@ class _SimulatedHub(_Hub):
             self._deaf.discard(pid)
             self._rejoin(frozenset({pid}))
 
-    def _rejoin(self, side: frozenset[int]) -> None:
+    def _rejoin(self, side: frozenset[int], unheard: frozenset[int] = frozenset()) -> None:
         """The processes of `side` and the others hear each other again: a name served
         on both is decided (rule 22), and each process hears every name across that it
         hears now as reachable again (rule 20)."""
@@ -666,7 +687,7 @@ class _SimulatedHub(_Hub):
                 continue
             pids[name] = one.process.pid
             if len(servers) > 1 and not self._apart_servers(servers):
-                self._two_servers(name, servers)
+                self._two_servers(name, servers, unheard)
 
         def across(process: Process, name: str) -> bool:
             there = pids[name]
@@ -771,13 +792,34 @@ class _SimulatedHub(_Hub):
         ]
         self._tell("lost", [name], hearers)
 
-    def _two_servers(self, name: str, servers: list[_Server]) -> None:
-        """A name served on both sides of the healed cut: each of its processes hears of
-        the others, on a thread of its own, as Zenoh's presence tells its carrier; the
-        messenger there decides whether its own gives way (rule 22)."""
+    def _two_servers(
+        self, name: str, servers: list[_Server], unheard: frozenset[int] = frozenset()
+    ) -> None:
+        """A name served on both sides of the healed cut: each of its processes (but those
+        of `unheard`) hears of the others, on a thread of its own, as Zenoh's presence
+        tells its carrier; the messenger there decides whether its own gives way (rule 22)."""
         for server in servers:
+            if server.process.pid in unheard:
+                continue
             rivals = [other for other in servers if other is not server]
             self._on_thread(server.process, "rival", self._served_elsewhere, name, rivals)
+
+    def tell_server(self, name: str, server: Ranked, claim: Claim) -> None:
+        """Rule 22: the kept server's process tells the other server of `name`'s process
+        (`server.who`, which may not hear it) with `claim`, as Zenoh's carrier puts it on
+        the name's key: on a thread of that process, unless the network between is cut."""
+        sender = self._sender()
+        for one in self._servers.get(name, []):
+            there = one.process
+            if one.who == server.who and there.alive and not self._divided(sender.pid, there.pid):
+                self._on_thread(there, "claim", self._claimed, name, claim)
+                return
+
+    def _claimed(self, name: str, claim: Claim) -> None:
+        """In a process serving `name`: another process's server of it is kept (`Claim`)."""
+        member = self.network.address.attach()
+        assert isinstance(member, Messenger)
+        member.served_elsewhere(name, claim)
 
     def _served_elsewhere(self, name: str, rivals: list[_Server]) -> None:
         """In a process serving `name`: the others serve it too (rule 22)."""
@@ -785,6 +827,11 @@ class _SimulatedHub(_Hub):
         assert isinstance(member, Messenger)
         for rival in rivals:
             member.served_elsewhere(name, rival)
+            if rival.how == "unavailable" and not self._servers.get(name) and not self.closed:
+                # it died before this process gave way to it, or as it did, when this one
+                # still served the name (so its end judged nothing): Zenoh's presence
+                # applies its token's end after the yield, and judges it then (rule 19)
+                self._judge(name, rival)
 
     def _presence(self) -> None:
         """Every quarter lease: a stopped process silent past its lease is gone for the

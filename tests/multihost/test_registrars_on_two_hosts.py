@@ -683,3 +683,72 @@ def test_a_consumer_on_host_b_that_dies_for_good_has_its_ids_released_on_host_a(
             tree.call(hosts.rr_stop, timeout=30)
         tree.stop()
     assert 1 == shared.a.call(unloads_of, 20, timeout=5)
+
+
+# -- rule 22: the one kept dies while the other yields -----------------------------------------
+
+
+def gated_setup(registrar: rr.ResourceRegistrar) -> None:
+    """`provider_setup`, and `slow`, whose unload says it began and waits for its gate."""
+    provider_setup(registrar)
+    kept = hosts.KEPT
+    kept.update(slow_began=threading.Event(), slow_gate=threading.Event())
+
+    def unload(_request: Any, _response: Any) -> None:
+        kept["slow_began"].set()
+        kept["slow_gate"].wait(30)
+
+    registrar.register_server("slow", load=lambda request: request, unload=unload)
+
+
+def call_slow(registrar: rr.ResourceRegistrar) -> str:
+    return registrar.call("erm", "slow", "s", timeout=10).id
+
+
+def wait_kept(key: str, timeout: float) -> bool:
+    return bool(hosts.KEPT[key].wait(timeout))
+
+
+def set_kept(key: str) -> None:
+    hosts.KEPT[key].set()
+
+
+def serves_here(name: str) -> bool:
+    """Whether this worker's network serves registrar `name` (from this process)."""
+    return hosts.KEPT["network"].serving(name) is not None
+
+
+@pytest.mark.timeout(120)
+def test_a_yield_whose_kept_server_dies_before_it_ends_serves_the_name_on(lab: Lab) -> None:
+    """Rule 22's yield, the one kept lost meanwhile (forced: the yielder's unload waits on a
+    gate until the kept one's process is SIGKILLed): the one that yields serves its name
+    again once its unload is done, so a process that joins later finds it served."""
+    lab.net.link_down()
+    assert lab.b.call(hosts.rr_unlinked_within, "erm", 10.0, timeout=15)
+    lab.b.call(hosts.rr_start, "erm", gated_setup, timeout=30)  # (erm is lost on b's side)
+    lab.b.call(hosts.rr_run, "app-b", call_slow, timeout=15)
+    lab.net.link_up()
+    assert lab.b.call(wait_kept, "slow_began", 30.0, timeout=35)  # b's erm yields
+    assert not lab.b.call(serves_here, "erm", timeout=5)
+    lab.a.kill()  # the kept erm's process (and a's router): nobody restarts it
+    assert lab.b.call(hosts.rr_unlinked_within, "erm", 10.0, timeout=15)
+    lab.b.call(set_kept, "slow_gate", timeout=5)  # (the yield's unload ends)
+
+    fresh = lab.net.a.spawn()  # a process that joins after all this
+    try:
+        fresh.call(
+            hosts.rr_join,
+            system=SYSTEM,
+            listen=[lab.net.a.endpoint(PORT + 1)],
+            connect=[lab.net.b.endpoint(PORT)],
+            timeout=30,
+        )
+        fresh.call(hosts.rr_start, "app-c", timeout=30)
+        fresh.call(hosts.rr_until_answered, "app-c", "erm", "probe", 15.0, timeout=30)
+    finally:
+        with contextlib.suppress(Exception):
+            fresh.call(hosts.rr_stop, timeout=30)
+        fresh.stop()
+    assert lab.b.call(serves_here, "erm", timeout=5)
+    warned = lab.b.call(hosts.rr_logs, "WARNING", timeout=5)
+    assert any("serves again" in line for line in warned), warned

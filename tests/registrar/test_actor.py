@@ -285,6 +285,11 @@ def _yield_name(p: Pair, hook: Hook) -> None:
     Served(p.provider).yield_name("another registrar of its name is kept (a test)")
 
 
+def _keep_name(p: Pair, hook: Hook) -> None:
+    intercept(p.provider, "keep_name", before=hook)
+    Served(p.provider).keep_name(FutureReply())  # (not yielding: it answers False)
+
+
 def _snapshot(p: Pair, hook: Hook) -> None:
     intercept(p.provider, "snapshot", before=hook)
     catalog_snapshot(p.provider)
@@ -344,6 +349,7 @@ DRIVERS: dict[str, Callable[[Pair, Hook], None]] = {
     "peer_reachable": _peer_reachable,
     "reconcile_retry": _reconcile_retry,
     "yield_name": _yield_name,
+    "keep_name": _keep_name,
     "snapshot": _snapshot,
     "ping": _ping,
     "open_client": _open_client,

@@ -27,12 +27,14 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+import pykka
 import pytest
 
 import rr_actors as rr
 from rr_actors import events
 from rr_actors._catalog import Catalog
 from rr_actors._core.directory import Reply
+from rr_actors._core.replies import FutureReply
 from rr_actors._registrar import Served, life, start_registrar
 from rr_actors._registrar.actor import RegistrarActor
 from rr_actors._registrar.handle import STOP_WAITS_FOR_UNLOADS
@@ -915,6 +917,44 @@ class TestCleanup:
             assert wait_for(lambda: not provider.is_alive(), 10.0)
             assert [rr.UnknownServerError] == [type(exc) for exc in outcome]
             assert [] == consumer.client_queries()
+        finally:
+            gate.set()
+            consumer.stop()
+            provider.stop()
+
+    def test_a_yield_kept_before_it_ends_unloads_what_it_served_and_serves_again(self):
+        """`keep_name` during a yield (the one kept went for good, rule 22): the answer
+        waits until the unload is done, is True, and the registrar serves its servers
+        again; one not yielding, or after, answers False."""
+        provider, consumer = _started("P"), _started("C")
+        gate, began = threading.Event(), threading.Event()
+
+        def unload(_request: str, _response: str) -> None:
+            began.set()
+            gate.wait(10)
+
+        try:
+            provider.register_server("cam", load=lambda r: r, unload=unload)
+            consumer.call(provider.name, "cam", "a")
+            before = FutureReply()
+            Served(provider).keep_name(before)
+            assert before.future.get(timeout=5) is False  # (not yielding)
+
+            Served(provider).yield_name("another registrar of its name is kept")
+            assert began.wait(5)
+            kept = FutureReply()
+            Served(provider).keep_name(kept)
+            with pytest.raises(pykka.Timeout):  # (it waits for the unload)
+                kept.future.get(timeout=0.2)
+            gate.set()
+
+            assert kept.future.get(timeout=5) is True
+            assert provider.is_alive()
+            assert "b" == consumer.call(provider.name, "cam", "b").response
+            assert ["b"] == [q.request for q in provider.server_queries("cam")]  # ("a": gone)
+            after = FutureReply()
+            Served(provider).keep_name(after)
+            assert after.future.get(timeout=5) is False
         finally:
             gate.set()
             consumer.stop()

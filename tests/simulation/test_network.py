@@ -1000,3 +1000,144 @@ def test_a_name_served_again_on_its_side_during_a_cut_is_no_longer_awaited_acros
     for seed in range(3):
         run = simulation.run(scenario, seed=seed, preempt=0.1)
         assert (True, ()) == (run.value, tuple(run.errors)), f"seed {seed}"
+
+
+def kept_one_dies_during_the_yield() -> Any:
+    """Rule 22's yield step, with its forced interleaving: `provider` served first by a
+    process nobody supervises (kept at the heal); a second one served beyond a cut, on
+    the consumer `app`'s side, holds `app`'s id; at the heal the second yields, and while
+    it unloads (its `unload` waits on a gate) the kept one's process is SIGKILLed (lost
+    for good, rule 19). What is left: the yielder's process alive, what a new call
+    answers, whether `app` still holds its old id."""
+    network = simulation.SimulatedNetwork()
+    app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=network)
+    began, gate = runtime.Event(), runtime.Event()
+
+    def gated_unload(*_: Any) -> None:
+        began.set()
+        assert gate.wait(5.0)
+
+    def gated_setup(registrar: rr.ResourceRegistrar) -> None:
+        registrar.register_server("leaf", load=lambda r: f"leaf {r}", unload=gated_unload)
+
+    try:
+        first = simulation.start_process(serve_alone(network, "provider"), name="kept")
+        until_served(network, "provider")
+        network.partition([first])
+        second = simulation.start_process(
+            serve_alone(network, "provider", gated_setup), name="yielder"
+        )
+        simulation.sleep(0.5)  # (it serves the consumer's side)
+        held = app.call("provider", "leaf", "y", timeout=5.0)  # (the second one's)
+        network.heal()
+        assert began.wait(5.0)  # (the second one yields: it unloads what it served)
+        simulation.kill(first, signal.SIGKILL)
+        simulation.sleep(0.5)  # (the carrier says it is lost)
+        gate.set()
+        simulation.sleep(1.0)  # (the yield ends)
+        alive = any(p.pid == second and p.alive for p in running_scheduler().processes)
+        answer = app.call("provider", "leaf", "z", timeout=5.0).response
+        return alive, answer, held.id in [q.id for q in app.client_queries()]
+    finally:
+        gate.set()
+        try:
+            app.stop()
+        finally:
+            network.close()
+
+
+def test_a_yield_whose_kept_server_dies_before_it_ends_serves_the_name_on() -> None:
+    """Rule 22, the kept one lost during the yield: the one that yields serves its name
+    again once what it unloads is gone (`Messenger.lost` ─► `Endpoint.keep_name`), so
+    the name is not left unserved; the consumer's id it released is FATAL and forgotten
+    (rule 19 for the one lost, rule 20 with the one serving)."""
+    for seed in range(10):
+        run = simulation.run(kept_one_dies_during_the_yield, seed=seed, preempt=0.1)
+        assert ((True, "leaf z", False), ()) == (run.value, tuple(run.errors)), f"seed {seed}"
+
+
+def one_way_heal() -> Any:
+    """Rule 22 after a link that heals one way: `provider` served first by `kept`, and by
+    a second process beyond a cut, on the consumer `app`'s side, where `app` holds an id;
+    at the heal the second one's process does not hear the first's server (`unheard`),
+    the first's does. What is left: whether the second registrar still runs, what a new
+    call answers, whether `app` still holds its id from the second."""
+    network = simulation.SimulatedNetwork()
+    app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=network)
+    second: list[rr.ResourceRegistrar] = []
+
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        leaf_setup(registrar)
+        second.append(registrar)
+
+    try:
+        first = simulation.start_process(serve_alone(network, "provider"), name="kept")
+        until_served(network, "provider")
+        network.partition([first])
+        newcomer = simulation.start_process(serve_alone(network, "provider", setup), name="new")
+        simulation.sleep(0.5)  # (it serves the consumer's side)
+        held = app.call("provider", "leaf", "y", timeout=5.0)  # (the second one's)
+        network.heal(unheard=[newcomer])
+        simulation.sleep(2.0)  # (the claim, the yield, the reconcile)
+        answer = app.call("provider", "leaf", "z", timeout=5.0).response
+        ids = [q.id for q in app.client_queries()]
+        return second[0].is_alive(), answer, held.id in ids
+    finally:
+        try:
+            app.stop()
+        finally:
+            network.close()
+
+
+def test_a_newcomer_that_does_not_hear_the_kept_server_after_a_heal_is_told_and_yields() -> None:
+    """Rule 22 through a link that healed one way: the process of the one kept hears the
+    newcomer and tells it (a `Claim` on the name, as Zenoh's carrier puts it on the
+    name's key), so the newcomer yields though it never heard the kept one's token; the
+    consumer's id there is FATAL and forgotten (rule 20)."""
+    for seed in range(10):
+        run = simulation.run(one_way_heal, seed=seed, preempt=0.1)
+        assert ((False, "leaf z", False), ()) == (run.value, tuple(run.errors)), f"seed {seed}"
+
+
+def kept_one_dies_at_the_heal() -> Any:
+    """`provider` served first by a process nobody supervises, and beyond a cut by a
+    second, on the consumer `app`'s side, where `app` holds an id whose unload waits on a
+    gate; the first's process is SIGKILLed in the step of the heal, before the second's
+    process hears of the first (no choice point between). What a call answers then."""
+    network = simulation.SimulatedNetwork()
+    app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=network)
+    gate = runtime.Event()
+
+    def gated_setup(registrar: rr.ResourceRegistrar) -> None:
+        registrar.register_server(
+            "leaf", load=lambda r: f"leaf {r}", unload=lambda *_: gate.wait(5.0)
+        )
+
+    try:
+        first = simulation.start_process(serve_alone(network, "provider"), name="kept")
+        until_served(network, "provider")
+        network.partition([first])
+        simulation.start_process(serve_alone(network, "provider", gated_setup), name="second")
+        simulation.sleep(0.5)  # (it serves the consumer's side)
+        app.call("provider", "leaf", "y", timeout=5.0)  # (the second one's)
+        network.heal()
+        simulation.kill(first, signal.SIGKILL)
+        simulation.sleep(0.5)  # (the second yields to it, and hears it lost)
+        gate.set()
+        simulation.sleep(1.0)
+        return app.call("provider", "leaf", "z", timeout=5.0).response
+    finally:
+        gate.set()
+        try:
+            app.stop()
+        finally:
+            network.close()
+
+
+def test_a_kept_server_that_dies_before_the_other_hears_of_it_leaves_the_name_served() -> None:
+    """Rule 22: the one kept at a heal dies before the other's process hears of it. As
+    Zenoh's presence does (it applies the kept one's token, then its end), the other
+    yields to it, then hears it lost during its yield, and serves on."""
+    for seed in range(10):
+        run = simulation.run(kept_one_dies_at_the_heal, seed=seed, preempt=0.1)
+        assert ("leaf z", ()) == (run.value, tuple(run.errors)), f"seed {seed}"

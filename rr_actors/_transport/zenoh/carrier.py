@@ -96,6 +96,7 @@ from rr_actors._core.actor import on_actor_thread
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.hlc import CLOCK
 from rr_actors._transport.base import Endpoint
+from rr_actors._transport.codec import NO_REPLY, Claim, frame
 from rr_actors._transport.messenger import (
     Carrier,
     Lane,
@@ -103,6 +104,7 @@ from rr_actors._transport.messenger import (
     Listening,
     Lost,
     Messenger,
+    Ranked,
     Remote,
     rank,
     send,
@@ -487,6 +489,15 @@ class ZenohCarrier:
             self._stop_marks[name] = self.session.liveliness().declare_token(
                 self.keys.stopped(NameAt(name, self.zid))
             )
+
+    def tell_server(self, name: str, server: Ranked, claim: Claim) -> None:
+        """Rule 22: put `claim` (the kept server's, served here) on registrar `name`'s key,
+        for its other server, in process `server.who` (which may not hear this one's
+        token: a link that healed one way); that process's messenger decides as its own
+        presence would have (`Messenger.served_elsewhere`). Never blocks (an outbox)."""
+        outbox = self.outbox(self.keys.registrar(name), server.who)
+        if outbox is not None:
+            outbox.send(envelope(MESSAGE, self.zid, frame(NO_REPLY, claim), CLOCK.send()))
 
     def served_elsewhere(self, name: str, server: Server) -> None:
         """Another process serves registrar `name` (the presence thread): the messenger

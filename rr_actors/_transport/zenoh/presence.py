@@ -692,8 +692,11 @@ class Presence:
         if known is None or known.stamp != server.stamp:
             return []  # unknown, or a predecessor already counted dead
         del servers[zid]
-        if name in self._mine:  # one that yielded to this process's own (rule 22): it
-            return []  # held nothing here (this process's consumers call its own)
+        mine = self._mine.get(name)
+        if mine is not None and kept([_server(mine), server], self._resolution, name) is not server:
+            return []  # one that yielded to this process's own (rule 22): it held nothing
+            # here (this process's consumers call its own). The one kept in place of this
+            # process's own goes on as below: lost, it serves again (`Messenger.lost`)
         if servers:  # one of two that yielded (rule 22): the one kept serves on, and
             # the consumers of the one that went reconcile with it (rule 20)
             return [functools.partial(self._hearer.reachable, name)]

@@ -642,6 +642,61 @@ def test_a_name_of_another_system_is_unknown_at_once_naming_this_system(
 # -- presence --------------------------------------------------------------------------------------
 
 
+def _deaf_main(
+    system: str,
+    connect: str,
+    name: str,
+    deaf_to: str,
+    control: multiprocessing.connection.Connection,
+) -> None:
+    """A router process whose presence never hears process `deaf_to`'s token of registrar
+    `name` (as after a link that healed one way; every other token and every message
+    crosses): it serves `name` too, says "ready", then "yielded" once its registrar ended
+    (within 10 s) or "serving", then waits to be told to stop."""
+    from tests.support.waiting import wait_for  # noqa: PLC0415
+
+    apply = presence.Presence._apply
+    unheard = f"/reg/{name}/{deaf_to}/"
+
+    def deaf(self: presence.Presence, item: tuple[bool, str, Any]) -> None:
+        if unheard not in item[1]:
+            apply(self, item)
+
+    presence.Presence._apply = deaf  # type: ignore[method-assign]
+    network = rr.ZenohNetwork(system=system, connect=[connect], tls=None)
+    registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
+    try:
+        network.serve(Served(registrar))
+        control.send("ready")
+        ended = wait_for(lambda: not registrar.is_alive(), 10.0)
+        control.send("yielded" if ended else "serving")
+        with contextlib.suppress(EOFError, OSError):
+            control.recv()
+    finally:
+        registrar.stop()
+        network.close()
+
+
+def test_a_process_that_does_not_hear_the_kept_server_is_told_by_its_process_and_yields(
+    net: ZenohNetwork, children: Started
+) -> None:
+    """Rule 22 through a link that healed one way: the second server of a name does not
+    hear the first's token (forced: its presence drops it), the first's process hears
+    the second's, keeps its own (served first) and puts a claim on the name's key for
+    the other's process, which yields though it never heard the kept one."""
+    name = f"cm-{uuid.uuid4().hex[:6]}"
+    kept = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
+    try:
+        net.serve(Served(kept))
+        zid = net.link().zid  # type: ignore[attr-defined]
+        _, control = children.start(_deaf_main, net.system, _tcp(net), name, zid)
+        assert control.poll(20)
+        assert "yielded" == control.recv()
+        assert kept.is_alive()
+    finally:
+        kept.stop()
+
+
 def test_a_killed_unsupervised_provider_is_lost_on_every_endpoint_within_a_second(
     net: ZenohNetwork, children: Started, eventually: Callable[..., bool]
 ) -> None:

@@ -203,3 +203,20 @@ def test_hosts_are_counted_from_their_routers_host_tokens(session: zenoh.Session
         assert [3] == grown  # (the router's own token then says 3: `_hosts_heard`)
     finally:
         presence.close()
+
+
+@pytest.mark.parametrize("mine_first", [True, False])
+def test_a_server_gone_while_this_process_serves_the_name_is_lost_only_if_it_was_kept(
+    presence: Presence, mine_first: bool
+) -> None:
+    """Rule 22's yield: this process serves cm, and so does another (none supervises it);
+    the other's token goes before this process's own is seen to go. If the other was
+    kept (served first), this one is yielding: the other is lost (`Messenger.lost`, and
+    the one here serves on); if this one was kept, the other yielded: nothing."""
+    mine, theirs = (100, 200) if mine_first else (200, 100)
+    token(presence, True, presence._zid, mine, "none")
+    token(presence, True, OLD, theirs, "none")
+    token(presence, False, OLD, theirs, "none")
+
+    expected = [] if mine_first else [("server_gone", "cm"), ("lost", "cm")]
+    assert expected == said(presence)
