@@ -385,9 +385,9 @@ def test_a_fault_after_an_event_is_shrunk_to_fire_at_its_first_one(
     shrunk = shrink.shrink(parse_plan(text), 1, budget=BUDGET, text=text)
 
     assert shrunk.original_events > 100
+    assert shrunk.run.events <= 20
     assert "faults.0.after.nth = 1" in shrunk.steps
     assert "nth = 1 }" in shrunk.text
-    assert shrunk.run.events <= 20
 
 
 @SHRINK
@@ -402,8 +402,8 @@ def test_a_client_awaiting_many_calls_at_once_is_shrunk_to_await_one(
     shrunk = shrink.shrink(parse_plan(text), 1, budget=BUDGET, text=text)
 
     assert shrunk.original_events > 100
-    assert "workload.awaited = 1" in shrunk.steps
     assert shrunk.run.events <= 12
+    assert "workload.awaited = 1" in shrunk.steps
 
 
 @SHRINK
@@ -423,8 +423,8 @@ def test_calls_cancelled_late_are_shrunk_to_calls_cancelled_at_once(
     shrunk = shrink.shrink(plan, seed, budget=BUDGET, text=text)
 
     assert shrunk.original_events > 30
-    assert "workload.cancel_within = 0" in shrunk.steps
     assert shrunk.run.events <= 10
+    assert "workload.cancel_within = 0" in shrunk.steps
 
 
 @SHRINK
@@ -439,5 +439,5 @@ def test_a_client_fetching_after_many_calls_is_shrunk_to_fetch_after_one(
     shrunk = shrink.shrink(parse_plan(text), 1, budget=BUDGET, text=text)
 
     assert shrunk.original_events > 100
-    assert "workload.fetch_every = 1" in shrunk.steps
     assert shrunk.run.events <= 12
+    assert "workload.fetch_every = 1" in shrunk.steps
