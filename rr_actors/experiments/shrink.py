@@ -616,11 +616,13 @@ class _Shrinker:
         for what, data in self.numbers(("workload",), "awaited", [1, 0.25, 0.5], whole=True):
             fraction = data["workload"]["awaited"] / self.data["workload"]["awaited"]
             scaled = copy.deepcopy(data)
-            triggers = [a["after"] for a in scaled.get("faults", []) if "after" in a]
+            triggers = [
+                a["after"] for a in scaled.get("faults", []) if a.get("after", {}).get("nth")
+            ]
             for trigger in triggers:
-                trigger["nth"] = max(1, round(trigger.get("nth", 1) * fraction))
+                trigger["nth"] = max(1, round(trigger["nth"] * fraction))
             if scaled != data:
-                nths = ", ".join(str(t.get("nth", 1)) for t in triggers)
+                nths = ", ".join(str(t["nth"]) for t in triggers)
                 yield f"{what} (and the triggers' nth: {nths})", scaled
             yield what, data
 
