@@ -441,3 +441,34 @@ def test_a_client_fetching_after_many_calls_is_shrunk_to_fetch_after_one(
     assert shrunk.original_events > 100
     assert shrunk.run.events <= 12
     assert "workload.fetch_every = 1" in shrunk.steps
+
+
+def test_fewer_awaited_calls_are_tried_first_with_the_triggers_nth_scaled_alike(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # simcancel's kill after the 32nd of 100 withdrawn calls: with 25 awaited it never
+    # comes in the first batch, and with its nth lowered alone it lands elsewhere in the
+    # batch; the kill after the 8th of 25 is at the same point of it (issue 51's plant
+    # went from 40 events to 13 with this).
+    probe(monkeypatch, "FaultInjected")
+    text = ONE.replace("hold = 0\n", "hold = 0\nawaited = 40\n") + (
+        '\n[[faults]]\nkind = "kill_manager"\ntarget = "api"\n'
+        'after = { event = "CallAnswered", registrar = "client-0", nth = 32 }\n'
+    )
+    shrinker = shrink._Shrinker(
+        parse_plan(text), 1, text, 1, 1, lambda _line: None, lambda _runs: None
+    )
+
+    candidates = [
+        (what, data["workload"]["awaited"], data["faults"][0]["after"]["nth"])
+        for what, data in shrinker.fewer_awaited()
+    ]
+
+    assert [
+        ("workload.awaited = 1 (and the triggers' nth: 1)", 1, 1),
+        ("workload.awaited = 1", 1, 32),
+        ("workload.awaited = 10 (and the triggers' nth: 8)", 10, 8),
+        ("workload.awaited = 10", 10, 32),
+        ("workload.awaited = 20 (and the triggers' nth: 16)", 20, 16),
+        ("workload.awaited = 20", 20, 32),
+    ] == candidates
