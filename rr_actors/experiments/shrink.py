@@ -18,9 +18,12 @@
  │               it dropped, the rest earlier)
  │     shift     every injection (and the end) earlier, as far as the first one
  │     faults    delete chunks of injections (delta debugging: halves, quarters, ... ones)
+ │     triggers  an `after` fault at the 1st, 2nd, 4th, ... matching event (a lower `nth`)
  │     tree      call a manager's dependency directly, cut a `uses`, drop an unused manager
- │     workload  fewer clients, fewer call kinds, a lower rate, fewer keys, all or no
- │               calls shared, a shorter hold
+ │     workload  fewer calls awaited at once (the triggers' `nth` scaled alike, then not),
+ │               fewer clients, fewer call kinds, a lower rate, cancels sooner after a
+ │               call starts (`cancel_within`), a fetch after fewer calls or none
+ │               (`fetch_every`), fewer keys, all or no calls shared, a shorter hold
  │     options   no (or half the) load and unload time of each manager
  │     seeds     the same plan under seeds 1..20 (or the width): the fewest events (the
  │               scheduler's choices made simpler: no pass edits them)
@@ -325,6 +328,7 @@ class _Shrinker:
             self.durations,
             self.shift,
             self.faults,
+            self.triggers,
             self.tree,
             self.workload,
             self.options,
@@ -512,14 +516,16 @@ class _Shrinker:
             where = ("*supervisors", index)
             self.repeat(functools.partial(self.counts, where, "max_restarts"))
 
-    def counts(self, where: tuple[Any, ...], key: str) -> Iterator[tuple[str, dict[str, Any]]]:
-        """Smaller values of a count that may be 0, smallest first: 0, 1, 2, 4, 8, ...
-        (the first kept is about the smallest that still violates)."""
+    def counts(
+        self, where: tuple[Any, ...], key: str, least: int = 0
+    ) -> Iterator[tuple[str, dict[str, Any]]]:
+        """Smaller values of a count of at least `least` (0 or 1), smallest first: 0, 1, 2,
+        4, 8, ... (the first kept is about the smallest that still violates)."""
         current = _at(self.data, where).get(key, _DEFAULTS.get(key))
         if isinstance(current, bool) or not isinstance(current, int):
             return
         wanted = [0, *itertools.takewhile(lambda v: v < current, (2**i for i in itertools.count()))]
-        yield from self.values(where, key, [v for v in wanted if v < current])
+        yield from self.values(where, key, [v for v in wanted if least <= v < current])
 
     def shift(self) -> None:
         def candidates() -> Iterator[tuple[str, dict[str, Any]]]:
@@ -531,6 +537,15 @@ class _Shrinker:
                     yield f"every injection {by:g} s earlier", data
 
         self.repeat(candidates)
+
+    def triggers(self) -> None:
+        """An `after` fault fired sooner: at the 1st, 2nd, 4th, ... matching event, not its
+        `nth` (a kill after a client's 20th withdrawn call: the 19 before it go)."""
+        for index, atom in enumerate(self.data.get("faults", [])):
+            if not isinstance(atom.get("after"), dict):
+                continue
+            trigger = ("faults", index, "after")
+            self.repeat(functools.partial(self.counts, trigger, "nth", least=1))
 
     def tree(self) -> None:
         self.repeat(self.direct_calls)
@@ -579,14 +594,37 @@ class _Shrinker:
             yield f"manager {name} dropped", data
 
     def workload(self) -> None:
+        self.repeat(self.fewer_awaited)
         self.repeat(lambda: self.numbers(("workload",), "clients", [1, 0.5, -1], whole=True))
         self.repeat(self.fewer_calls)
         self.repeat(lambda: self.numbers(("workload",), "rate", [0.125, 0.25, 0.5]))
+        if self.data.get("workload", {}).get("cancel"):
+            self.repeat(lambda: self.numbers(("workload",), "cancel_within", [0, 0.5]))
+        if self.data.get("workload", {}).get("fetch_every"):
+            self.repeat(lambda: self.values(("workload",), "fetch_every", [0]))
+            self.repeat(lambda: self.numbers(("workload",), "fetch_every", [1, 0.5], whole=True))
         for index in range(len(self.data.get("workload", {}).get("calls", []))):
             call = ("workload", "calls", index)
             self.repeat(functools.partial(self.numbers, call, "keys", [1, 0.5, -1], whole=True))
             self.repeat(functools.partial(self.values, call, "shared", [1.0, 0.0]))
         self.repeat(lambda: self.numbers(("workload",), "hold", [0, 0.5]))
+
+    def fewer_awaited(self) -> Iterator[tuple[str, dict[str, Any]]]:
+        """Fewer calls awaited at once (1, a quarter, a half); each first with the `nth` of
+        every `after` fault scaled alike (a kill after the 32nd of 100 calls withdrawn comes
+        after the 8th of 25: at the same point of the first batch), then without."""
+        for what, data in self.numbers(("workload",), "awaited", [1, 0.25, 0.5], whole=True):
+            fraction = data["workload"]["awaited"] / self.data["workload"]["awaited"]
+            scaled = copy.deepcopy(data)
+            triggers = [
+                a["after"] for a in scaled.get("faults", []) if a.get("after", {}).get("nth")
+            ]
+            for trigger in triggers:
+                trigger["nth"] = max(1, round(trigger["nth"] * fraction))
+            if scaled != data:
+                nths = ", ".join(str(t["nth"]) for t in triggers)
+                yield f"{what} (and the triggers' nth: {nths})", scaled
+            yield what, data
 
     def fewer_calls(self) -> Iterator[tuple[str, dict[str, Any]]]:
         calls = self.data.get("workload", {}).get("calls", [])
@@ -655,6 +693,10 @@ class _Shrinker:
 
 
 _DEFAULTS = {
+    "nth": 1,
+    "awaited": 0,
+    "cancel_within": 0.05,
+    "fetch_every": 0,
     "shared": 0.5,
     "hold": 0.5,
     "clients": 1,

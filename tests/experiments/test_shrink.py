@@ -16,7 +16,7 @@ from rr_actors.__main__ import main
 from rr_actors.experiments import load_plan, plans, shrink, simulate, story, sweep
 from rr_actors.experiments.plan import Plan
 from rr_actors.experiments.reading import parse_plan
-from tests.experiments.test_simulate import PLAN
+from tests.experiments.test_simulate import PLAN, SERVICE
 from tests.experiments.test_sweep import BUGGY
 
 pytest.importorskip("greenlet")  # (the simulation extra)
@@ -326,3 +326,149 @@ def test_a_story_places_each_fault_before_the_first_event_at_or_after_its_time()
     ]
     assert "kill_manager db: SIGKILL pid 2" == told[1].text
     assert "db exited: killed by SIGKILL (pid 2)" == told[2].text
+
+
+# -- the passes of an event trigger's `nth` and of the workload's awaited calls ----------------
+
+ONE = f"""\
+name = "one"
+duration = 3.0
+
+[tree]
+max_restarts = 1000
+period = 1.0
+
+[[tree.children]]
+name = "api"
+setup = "{SERVICE}"
+options = {{ load_s = 0.002 }}
+
+[workload]
+clients = 1
+rate = 20.0
+hold = 0
+timeout = 3.0
+
+[[workload.calls]]
+manager = "api"
+server = "resource"
+shared = 1.0
+keys = 1
+"""
+"""One manager, one client calling it 20 times a second: each step's test adds to it."""
+
+
+def probe(monkeypatch: pytest.MonkeyPatch, event: str) -> None:
+    """Make "the violation" of every run an event of type `event` in its history (the
+    kind `[probe] <event>`): a bug whose run is known, for a pass to shrink."""
+
+    def kinds(run: simulate.SimulatedRun) -> list[str]:
+        types = {json.loads(line).get("type") for line in run.history.splitlines()}
+        return [f"[probe] {event}"] if event in types else []
+
+    monkeypatch.setattr(shrink, "violation_kinds", kinds)
+
+
+@SHRINK
+def test_a_fault_after_an_event_is_shrunk_to_fire_at_its_first_one(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # The kill comes after the client's 30th answered call: every other pass keeps the
+    # 30 calls before it (the run cut before the kill loses it); only a lower `nth` ends
+    # the run sooner (before the pass, 60 runs ended at 130-odd events).
+    probe(monkeypatch, "FaultInjected")
+    text = (
+        f'{ONE}\n[[faults]]\nkind = "kill_manager"\ntarget = "api"\n'
+        'after = { event = "CallAnswered", registrar = "client-0", nth = 30 }\n'
+    )
+
+    shrunk = shrink.shrink(parse_plan(text), 1, budget=BUDGET, text=text)
+
+    assert shrunk.original_events > 100
+    assert shrunk.run.events <= 20
+    assert "faults.0.after.nth = 1" in shrunk.steps
+    assert "nth = 1 }" in shrunk.text
+
+
+@SHRINK
+def test_a_client_awaiting_many_calls_at_once_is_shrunk_to_await_one(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # 40 calls awaited at once, all answered within a millisecond: the run cut just after
+    # the first answer still holds the others; only fewer awaited calls drop them.
+    probe(monkeypatch, "CallAnswered")
+    text = ONE.replace("hold = 0\n", "hold = 0\nawaited = 40\n")
+
+    shrunk = shrink.shrink(parse_plan(text), 1, budget=BUDGET, text=text)
+
+    assert shrunk.original_events > 100
+    assert shrunk.run.events <= 12
+    assert "workload.awaited = 1" in shrunk.steps
+
+
+@SHRINK
+def test_calls_cancelled_late_are_shrunk_to_calls_cancelled_at_once(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # Each call is cancelled 0 to 1 s after it starts and answered after 20 ms: about one
+    # in 50 is withdrawn first, after some 50 calls answered. Cancelled at once, the
+    # first call is.
+    probe(monkeypatch, "CallWithdrawn")
+    text = ONE.replace("load_s = 0.002", "load_s = 0.02").replace(
+        "hold = 0\n", "hold = 0\nawaited = 1\ncancel = 1.0\ncancel_within = 1.0\n"
+    )
+    plan = parse_plan(text)
+    seed = next(s for s in range(1, 20) if shrink.violation_kinds(simulate.run_seed(plan, s)))
+
+    shrunk = shrink.shrink(plan, seed, budget=BUDGET, text=text)
+
+    assert shrunk.original_events > 30
+    assert shrunk.run.events <= 10
+    assert "workload.cancel_within = 0" in shrunk.steps
+
+
+@SHRINK
+def test_a_client_fetching_after_many_calls_is_shrunk_to_fetch_after_one(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # The client asks api for the ids it holds after every 40 calls: the first fetch comes
+    # after 40 answered calls, unless it comes after each.
+    probe(monkeypatch, "QueriesFetched")
+    text = ONE.replace("hold = 0\n", "hold = 0\nfetch_every = 40\n")
+
+    shrunk = shrink.shrink(parse_plan(text), 1, budget=BUDGET, text=text)
+
+    assert shrunk.original_events > 100
+    assert shrunk.run.events <= 12
+    assert "workload.fetch_every = 1" in shrunk.steps
+
+
+def test_fewer_awaited_calls_are_tried_first_with_the_triggers_nth_scaled_alike(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # simcancel's kill after the 32nd of 100 withdrawn calls: with 25 awaited it never
+    # comes in the first batch, and with its nth lowered alone it lands elsewhere in the
+    # batch; the kill after the 8th of 25 is at the same point of it (issue 51's plant
+    # went from 40 events to 13 with this).
+    probe(monkeypatch, "FaultInjected")
+    text = ONE.replace("hold = 0\n", "hold = 0\nawaited = 40\n") + (
+        '\n[[faults]]\nkind = "kill_manager"\ntarget = "api"\n'
+        'after = { event = "CallAnswered", registrar = "client-0", nth = 32 }\n'
+    )
+    shrinker = shrink._Shrinker(
+        parse_plan(text), 1, text, 1, 1, lambda _line: None, lambda _runs: None
+    )
+
+    candidates = [
+        (what, data["workload"]["awaited"], data["faults"][0]["after"]["nth"])
+        for what, data in shrinker.fewer_awaited()
+    ]
+
+    assert [
+        ("workload.awaited = 1 (and the triggers' nth: 1)", 1, 1),
+        ("workload.awaited = 1", 1, 32),
+        ("workload.awaited = 10 (and the triggers' nth: 8)", 10, 8),
+        ("workload.awaited = 10", 10, 32),
+        ("workload.awaited = 20 (and the triggers' nth: 16)", 20, 16),
+        ("workload.awaited = 20", 20, 32),
+    ] == candidates
