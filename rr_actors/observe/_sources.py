@@ -4,8 +4,8 @@
  LiveSource (a running Supervisor)
    tree watcher thread ── waits on the tree's condition (each publish) ──► "tree"
    event subscription ─── every event (to_dict + describe) ──────────────► events
-        ├─ a StatusSent: named here, once (the catalog last read, the
-        │  ConsumerAdded and ResourceLoaded seen before it)
+        ├─ a StatusSent: named here, once (StatusNames: the catalog last read,
+        │  the ConsumerAdded and ResourceLoaded seen before it)
         └─ marks registrars dirty ──► catalog refresher thread ──────────► "catalog/<name>",
                                       (Supervisor.run_in(name, catalog_of))  "graph"
  BackupSource (a state directory)
@@ -54,6 +54,7 @@ __all__ = [
     "BackupSource",
     "LiveSource",
     "Observable",
+    "StatusNames",
     "TreeAccess",
     "backup_files",
 ]
@@ -76,7 +77,7 @@ POLL_INTERVAL = 1.0
 """Seconds between two looks at a state directory's backup files."""
 
 NAMES_KEPT = 10_000
-"""Consumers (and resources) whose provider's events the live source keeps to name a status
+"""Consumers (and resources) whose provider's events a `StatusNames` keeps to name a status
 by (the oldest are forgotten first: a release missed in an `EventsDropped` is not kept)."""
 
 
@@ -200,11 +201,69 @@ def _touched(event: events.Event) -> tuple[str, ...] | None:
     return None
 
 
-def _keep(names: dict[tuple[str, str], str], key: tuple[str, str], value: str) -> None:
+def _keep(names: dict[tuple[str, str, str], str], key: tuple[str, str, str], value: str) -> None:
     """`names[key] = value`, forgetting the oldest beyond `NAMES_KEPT`."""
     names[key] = value
     while len(names) > NAMES_KEPT:
         del names[next(iter(names))]
+
+
+class StatusNames:
+    """Names each status sent by the resource it is about, once, as it enters a history.
+
+    Every page draws the name the event carries: a page open during the send and one
+    opened later draw the same row. Were it left to each page's own catalog at its render,
+    the first would draw it from a catalog older than the second's (the observer read that
+    catalog during the load, or a read under load failed and kept it, or, across hosts, the
+    provider's host shared its catalog after the event stream brought the send; the next
+    catalog came after the live page drew the row). Named then, not later: the provider may
+    unload the resource right after (a FATAL), before a page shows it.
+
+    The catalog last known may lag the send; the provider's own `ConsumerAdded` and
+    `ResourceLoaded` do not: it publishes them before it answers the consumer, so before
+    any status to it, and its events reach a history in the order it published them (one
+    tree's subscription; across hosts, one process's events on the system's event stream).
+    So `name`: the graph's label of the resource the consumer holds (by the catalog, else by
+    its `ConsumerAdded`), else the `ResourceLoaded`'s label, else (neither was seen: the
+    observer began later and has no catalog listing it yet) the query id, fixed too.
+
+    Fed events on one thread (not locked), each host's in their order; a registrar is
+    known by its host and its name (two of one name, each on its side of a cut, are two).
+    Keeps at most `NAMES_KEPT` consumers and as many resources.
+    """
+
+    def __init__(self) -> None:
+        self._held: dict[tuple[str, str, str], str] = {}  # (host, registrar, query id): resource
+        self._loaded: dict[tuple[str, str, str], str] = {}  # (host, registrar, resource): name
+
+    def note(self, event: events.Event) -> None:
+        """Keep which resource each consumer holds, and each resource's name, from `event`
+        (any event: only loads, unloads, consumers added and released are kept)."""
+        match event:
+            case events.ResourceLoaded() if event.label is not None:
+                name = f"{event.registrar}/{event.server} {shown(event.label)}"
+                _keep(self._loaded, (event.host, event.registrar, event.resource_id), name)
+            case events.ResourceUnloaded():
+                self._loaded.pop((event.host, event.registrar, event.resource_id), None)
+            case events.ConsumerAdded():
+                _keep(self._held, (event.host, event.registrar, event.query_id), event.resource_id)
+            case events.ConsumerReleased():
+                self._held.pop((event.host, event.registrar, event.query_id), None)
+
+    def name(self, sent: events.StatusSent, catalog: Mapping[str, Any] | None) -> str:
+        """`"<registrar>/<server> <label>"` of the resource `sent` is about, else
+        `"<registrar> (query <first 8 of its id>)"`.
+
+        Args:
+            sent: the status sent.
+            catalog: the provider's catalog summary last known (`summarise_catalog`), or
+                `None`.
+        """
+        held = self._held.get((sent.host, sent.registrar, sent.query_id))
+        name = resource_name(catalog, sent.query_id, held)
+        if name is None and held is not None:
+            name = self._loaded.get((sent.host, sent.registrar, held))
+        return name or f"{sent.registrar} (query {sent.query_id[:8]})"
 
 
 class LiveSource:
@@ -226,8 +285,7 @@ class LiveSource:
         self._dirty: set[str] | None = None  # None: every registrar
         self._states: dict[str, str] = {}
         self._catalogs: dict[str, dict[str, Any]] = {}
-        self._held: dict[tuple[str, str], str] = {}  # (registrar, query id): resource id
-        self._loaded: dict[tuple[str, str], str] = {}  # (registrar, resource id): its name
+        self._names = StatusNames()  # (the subscription's thread only)
         self._subscription: Subscription[events.Event] | None = None
         self._threads: list[threading.Thread] = []
 
@@ -345,52 +403,21 @@ class LiveSource:
     # -- events ---------------------------------------------------------------------------
 
     def _on_event(self, event: events.Event) -> None:
-        """Runs on the subscription's thread, one event at a time (kept as it is: cheap)."""
+        """Runs on the subscription's thread, one event at a time (kept as it is: cheap).
+
+        A status sent is named here, once (`StatusNames`), from the catalog last read
+        (`_catalogs`, replaced whole) and the provider's events before it.
+        """
         if isinstance(event, events.StatusSent):
-            self.hub.add_event({**event_dict(event), "resource": self._name(event)})
+            section = self._catalogs.get(event.registrar)
+            name = self._names.name(event, section and section["catalog"])
+            self.hub.add_event({**event_dict(event), "resource": name})
         else:
-            self._note_holders(event)
+            self._names.note(event)
             self.hub.add_event(event)
         touched = _touched(event)
         if touched != ():
             self._mark(touched)
-
-    def _name(self, sent: events.StatusSent) -> str:
-        """The resource a status is about, named once, here, as it goes into the history.
-
-        Every page draws the name the event carries: a page open during the send and one
-        opened later draw the same row. Were it left to each page's own catalog at its
-        render, the first would draw it from a catalog older than the second's (the
-        observer read that catalog during the load, or a read under load failed and kept
-        it, and the next read came after the live page drew the row). Named now, not
-        later: the provider may unload the resource right after (a FATAL), before a page
-        shows it. The catalog last read (`_catalogs`, replaced whole) may lag the send;
-        the provider's own `ConsumerAdded` and `ResourceLoaded` do not: it publishes them
-        before it answers the consumer, so before any status to it. So: the graph's label
-        of the resource the consumer holds (by the catalog, else by its `ConsumerAdded`),
-        else the `ResourceLoaded`'s label, else (the observer saw neither: it began later
-        and has not read that catalog yet) the query id, fixed too.
-        """
-        key = (sent.registrar, sent.query_id)
-        held = self._held.get(key)
-        section = self._catalogs.get(sent.registrar)
-        name = resource_name(section and section["catalog"], sent.query_id, held)
-        if name is None and held is not None:
-            name = self._loaded.get((sent.registrar, held))
-        return name or f"{sent.registrar} (query {sent.query_id[:8]})"
-
-    def _note_holders(self, event: events.Event) -> None:
-        """Keep which resource each consumer holds, and each resource's name (`_name`)."""
-        match event:
-            case events.ResourceLoaded() if event.label is not None:
-                name = f"{event.registrar}/{event.server} {shown(event.label)}"
-                _keep(self._loaded, (event.registrar, event.resource_id), name)
-            case events.ResourceUnloaded():
-                self._loaded.pop((event.registrar, event.resource_id), None)
-            case events.ConsumerAdded():
-                _keep(self._held, (event.registrar, event.query_id), event.resource_id)
-            case events.ConsumerReleased():
-                self._held.pop((event.registrar, event.query_id), None)
 
     def _mark(self, names: tuple[str, ...] | None) -> None:
         with self._dirty_cond:

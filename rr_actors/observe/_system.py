@@ -9,6 +9,10 @@
                   LinkWatch ─► "links" (each member's link: up, or cut since when, why)
 ```
 
+The system's event stream (`subscribe`: its own thread) ─► `_on_event`: each event with
+its `member`; a `StatusSent` named then, once (`StatusNames`: its host's events before it,
+its host's catalog in the page's hub), as a live source names its own tree's.
+
 In the view (one executor thread, `rr-observe-system`; Zenoh's callbacks only queue):
 
 ```
@@ -34,6 +38,7 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+from rr_actors import events as events_module
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._transport.zenoh.wire import ObserverKey
 from rr_actors.observe._crossing import decode, shared, valid_event, valid_section
@@ -43,13 +48,12 @@ from rr_actors.observe._faults_across import send_fault
 from rr_actors.observe._hub import BATCH, Hub
 from rr_actors.observe._liveness import Liveness, Mirror
 from rr_actors.observe._share import LINKS_EVERY, Share
-from rr_actors.observe._sources import event_dict
+from rr_actors.observe._sources import StatusNames, event_dict
 from rr_actors.observe._view import dependency_graph
 
 if TYPE_CHECKING:
     import zenoh
 
-    from rr_actors import events as events_module
     from rr_actors._core.bus import Subscription
     from rr_actors._transport.zenoh.net import Services
 
@@ -100,6 +104,7 @@ class SystemView:
         self._keys = services.keys
         self._share = share
         self._mirrors: dict[str, Mirror] = {}
+        self._names = StatusNames()  # (the event stream's thread only)
         self._liveness = Liveness(member, services, self._mirrors)
         self._executor = SerialExecutor("rr-observe-system", every=(LINKS_EVERY, self._tick))
         session = services.session
@@ -123,8 +128,22 @@ class SystemView:
         self._executor.submit(functools.partial(self._refresh, graph=False))
 
     def _on_event(self, event: events_module.Event) -> None:  # (its subscriber thread)
+        """An event of the system's stream into the page's history, with its `member`.
+
+        A status sent is named now, once, as a live source names its own tree's
+        (`StatusNames`): a page open during it and one opened later draw the same row. From
+        its host's events before it (its provider's `ConsumerAdded` and `ResourceLoaded`
+        come first on the stream: one process's events keep their order), else from that
+        host's catalog in the page's hub (its last value, replaced whole: read here, on the
+        stream's thread, as the view's thread may replace it meanwhile).
+        """
         data = event_dict(event)
-        data["member"] = data.get("host") or "?"
+        member = data["member"] = data.get("host") or "?"
+        if isinstance(event, events_module.StatusSent):
+            section = self.hub.get(f"host/{member}/catalog/{event.registrar}")
+            data["resource"] = self._names.name(event, section and section["catalog"])
+        else:
+            self._names.note(event)
         self.hub.add_event(data)
 
     def close(self, timeout: float = 5.0) -> None:

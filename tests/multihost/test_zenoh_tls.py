@@ -91,6 +91,15 @@ MEMBERS = ["robot", "operator"]
 BOUND = 10.0  # seconds any one thing awaited may take (a loaded machine)
 QUIET = 3.0  # seconds something that must not happen is given to happen anyway
 
+# Each test's bound, its lab's setup and teardown included (pytest-timeout's covers all
+# three): the `lab` fixture makes two namespaces, a TLS router and a worker process in each,
+# a manager process, and a first call; its teardown stops them. Unloaded that is 5 s; beside
+# two busy loops (load 10 to 15 on 2 cores) the setup alone took 21 to 42 s, and the default
+# 60 s stopped 3 of 10 runs of `test_plain_tcp_to_the_tls_port_is_closed_unread`, each step
+# within its own bound (BOUND, a worker's 30 s): twice in the teardown, once in the first
+# plain attempt. Heavier tests say more below.
+pytestmark = pytest.mark.timeout(150)
+
 
 # -- what runs in the workers (sent by value with the functions that use them) -----------------
 

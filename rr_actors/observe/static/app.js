@@ -880,9 +880,10 @@
 
   // A status row names its resource as the graph does (its label, not its request): as the
   // server named it when it was sent (it may be unloaded since: LiDAR 1 after F1), else now.
-  // A live tree's observer names every one (LiveSource._name): a page open during the send
-  // and one opened later draw the same row. "Now" is for the events no server named
-  // (another host's, on a page of the whole system).
+  // The observer names every one as it enters its history (StatusNames: LiveSource for its
+  // own tree, SystemView for the system's event stream): a page open during the send and one
+  // opened later draw the same row. "Now" is for an event no server named (a host's older
+  // observer).
   function resourceName(sent) {
     if (sent.resource) return sent.resource;
     const section = catalogSection(sent.registrar, sent.member);

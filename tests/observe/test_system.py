@@ -1,0 +1,256 @@
+"""A page's view of every host (`rr_actors.observe._system`): a status sent on another host
+is named once, as it enters the page's history, from what that host's provider published
+before it, not at each render from the page's copy of its catalog (issue 51).
+
+- `test_a_status_on_the_systems_stream_is_named_once_from_its_hosts_events_before_it`:
+  a `SystemView` on a plain Zenoh session (another session's `Share` stands for host
+  `bravo`); the system's event stream's callback is called as the stream calls it.
+  `bravo`'s catalog of `erm` lags the send, forced: it lists the camera (loading), not yet
+  its consumer, when the provider's events and its `StatusSent` arrive.
+- `test_a_page_opened_after_a_status_draws_it_as_a_page_open_during_it_did`: the same in a
+  real browser (chromium, Playwright), a real tree on a `ZenohNetwork` (its page is the
+  system's); the observer's catalog of `erm` lags the send, forced as on one host
+  (`test_page.py`): it was read while the camera loaded, and the next read waits until the
+  live page drew the status. The late page opens on a fresher catalog.
+"""
+
+from __future__ import annotations
+
+import threading
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import zenoh
+
+import rr_actors as rr
+from rr_actors import events
+from rr_actors._transport.zenoh.net import Services
+from rr_actors._transport.zenoh.wire import Keys
+from rr_actors.events import kinds
+from rr_actors.observe._hub import Hub
+from rr_actors.observe._share import Share
+from rr_actors.observe._system import SystemView
+from tests.support import hosts, pki
+from tests.support.gating import GatedLoad
+from tests.support.observed_tree import REQUEST, device, figure_27
+from tests.support.observing import get_json
+from tests.support.tls_lab import member_tls
+
+BOUND = 10.0
+KEYS = Keys("lab")
+
+pytestmark = pytest.mark.timeout(180)
+
+
+def erm_catalog(consumers: list[str]) -> dict[str, Any]:
+    """`erm`'s catalog section (as a `LiveSource` makes it): the camera, with `consumers`."""
+    return {
+        "registrar": "erm",
+        "kind": "process manager",
+        "state": "running",
+        "available": True,
+        "error": None,
+        "catalog": {
+            "registrar": "erm",
+            "servers": ["camera"],
+            "resources": [
+                {
+                    "id": "r1",
+                    "server": "camera",
+                    "state": "loaded" if consumers else "loading",
+                    "in_doubt": False,
+                    "request": "{'device': '/dev/video0'}",
+                    "response": "",
+                    "label": "'/dev/video0'",
+                    "consumers": [{"query_id": q, "origin": "cm"} for q in consumers],
+                }
+            ],
+            "clients": [],
+            "in_doubt": [],
+        },
+    }
+
+
+@pytest.fixture
+def sessions() -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
+    port = hosts.free_port()
+    one = zenoh.open(hosts.zenoh_config(listen=[f"tcp/127.0.0.1:{port}"]))
+    other = zenoh.open(hosts.zenoh_config(connect=[f"tcp/127.0.0.1:{port}"]))
+    yield one, other
+    other.close()  # type: ignore[no-untyped-call]
+    one.close()  # type: ignore[no-untyped-call]
+
+
+def services(session: zenoh.Session, member: str) -> Services:
+    return Services(session=session, keys=KEYS, member=member, lease=1.0, links=list)
+
+
+def wait_section(hub: Hub, key: str, predicate: Any = lambda v: v is not None) -> Any:
+    """The page hub's section `key` once `predicate(value)` holds (bounded)."""
+    changed = threading.Event()
+    unlisten = hub.listen(changed.set)
+    try:
+        while not predicate(hub.get(key)):
+            assert changed.wait(BOUND), f"{key}: {hub.get(key)!r}"
+            changed.clear()
+        return hub.get(key)
+    finally:
+        unlisten()
+
+
+def test_a_status_on_the_systems_stream_is_named_once_from_its_hosts_events_before_it(
+    sessions: tuple[zenoh.Session, zenoh.Session],
+) -> None:
+    mine, theirs = sessions
+    local, page = Hub(), Hub()
+    local.put("catalog/erm", erm_catalog([]))  # read while the camera loaded
+    share = Share(
+        local,
+        services(theirs, "bravo"),
+        "bravo",
+        host={"title": "t", "pid": 1},
+        faults=None,
+        all_events=False,  # (the events come on the system's stream)
+    )
+    view = SystemView(page, services(mine, "alpha"), "alpha", None)
+    stream = view._on_event  # (what the system's event stream calls, in its order)
+    try:
+        wait_section(page, "host/bravo/catalog/erm")
+        stream(
+            events.ResourceLoaded("erm", "camera", "r1", "q1", 0.01, None, "'cam'", host="bravo")
+        )
+        stream(events.ConsumerAdded("erm", "r1", "q1", "cm", host="bravo"))
+        stream(events.StatusSent("erm", "q1", rr.Status.FATAL, "unplugged", host="bravo"))
+        # The catalog that lists the consumers comes after: q2's ConsumerAdded was before
+        # this page's host followed the stream; charlie's erm is another registrar.
+        local.put("catalog/erm", erm_catalog(["q1", "q2"]))
+        wait_section(
+            page, "host/bravo/catalog/erm", lambda v: v["catalog"]["resources"][0]["consumers"]
+        )
+        stream(events.StatusSent("erm", "q2", rr.Status.FATAL, "unplugged", host="bravo"))
+        stream(events.StatusSent("erm", "q1", rr.Status.FATAL, "unplugged", host="charlie"))
+        # The FATAL unloads the camera: a page opened now has no row to name it by.
+        stream(events.ConsumerReleased("erm", "r1", "q1", "cm", "unload", host="bravo"))
+        stream(events.ResourceUnloaded("erm", "camera", "r1", host="bravo"))
+        local.put("catalog/erm", {**erm_catalog([]), "catalog": None})
+        wait_section(page, "host/bravo/catalog/erm", lambda v: v["catalog"] is None)
+        late = page.changes({}, 0).events  # what a page opened now gets
+    finally:
+        view.close()
+        share.close()
+
+    sent = [(e["member"], e.get("resource")) for e in late if e["type"] == "StatusSent"]
+    assert [
+        ("bravo", "erm/camera '/dev/video0'"),  # (the catalog's label: what the graph draws)
+        ("bravo", "erm/camera '/dev/video0'"),
+        ("charlie", "erm (query q1)"),
+    ] == sent
+
+
+# -- in a real browser ------------------------------------------------------------------------
+
+
+@pytest.fixture
+def tabs(browser: Any) -> Iterator[Any]:
+    """`tabs()` opens a new tab; every tab is closed at the end, and none may log an error."""
+    opened: list[Any] = []
+    errors: list[str] = []
+
+    def new() -> Any:
+        tab = browser.new_page()
+        tab.on("pageerror", lambda exc: errors.append(str(exc)))
+        tab.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+        opened.append(tab)
+        return tab
+
+    yield new
+    for tab in opened:
+        tab.close()
+    assert [] == errors
+
+
+@pytest.fixture
+def robot(
+    process_helpers: Any, monkeypatch: Any, tmp_path: Path
+) -> Iterator[tuple[rr.Supervisor, GatedLoad]]:
+    """Figure 2.7's tree on a `ZenohNetwork` with TLS, as across machines (the events' host
+    is the member name, `robot`, its page's catalogs are shared under: without TLS the
+    host name and the member name differ), the camera's load held at a gate; stopped
+    before its network closes."""
+    monkeypatch.setattr(kinds._HOST, "name", kinds._HOST.name)  # (the network sets it)
+    tls = member_tls(tmp_path, pki.make_ca(tmp_path / "ca", "lab"), "robot")
+    loading = GatedLoad(process_helpers.event(), process_helpers.event(), device, wait=60)
+    with rr.ZenohNetwork(system=f"named-{uuid.uuid4().hex[:8]}", tls=tls) as net:
+        sup = figure_27(rr.Supervisor, camera=loading, network=net).start()
+        try:
+            yield sup, loading
+        finally:
+            loading.gate.set()
+            sup.stop()
+
+
+def test_a_page_opened_after_a_status_draws_it_as_a_page_open_during_it_did(
+    robot: tuple[rr.Supervisor, GatedLoad], tabs: Any, monkeypatch: Any
+) -> None:
+    sup, loading = robot
+    observer = sup.observe()
+    assert "robot" == get_json(observer.url, "/api/state")["hello"]["member"]  # (every host's)
+    source = observer._source
+    read_catalogs = source._refresh  # (the test reads them with it itself)
+    parked, reads = threading.Event(), threading.Event()
+
+    def held(dirty: set[str] | None) -> None:  # the refresher's next round waits here
+        parked.set()
+        assert reads.wait(60)
+        read_catalogs(dirty)
+
+    monkeypatch.setattr(source, "_refresh", held)
+    app = sup.registrar("action")
+    camera = '#catalogs [data-registrar="erm"] [data-server="camera"] .resource'
+    fatal = '#timeline li[data-status="FATAL"] [data-hop="2"]'
+    answers: list[rr.Query] = []
+    calling = threading.Thread(
+        target=lambda: answers.append(
+            app.call("cm", "filtered_camera", REQUEST, on_status=lambda q, u: None)
+        )
+    )
+    try:
+        assert parked.wait(30)  # (no round under way: the catalogs are read where told)
+        live = tabs()
+        live.goto(observer.url)
+        calling.start()
+        assert loading.started.wait(30)
+        for _ in range(5):  # erm's camera is loading: its row has no consumer yet
+            read_catalogs(None)
+            if source.hub.get("catalog/erm")["available"]:
+                break  # (else the read timed out under load: read again)
+        live.wait_for_selector(camera)  # (shared by this host, back to its own page)
+        loading.gate.set()
+        calling.join(30)
+        (query,) = answers
+
+        sup.run_in(
+            "erm",
+            lambda reg: reg.send_status(
+                reg.server_queries("camera")[0].id, rr.Status.FATAL, "camera unplugged"
+            ),
+        )
+        live.locator(fatal).wait_for(timeout=10_000)  # (the system's stream holds it 0.5 s)
+    finally:
+        loading.gate.set()
+        reads.set()  # the refresher reads the catalogs again: the consumer is in erm's now
+    live.wait_for_selector(f"{camera} li:has-text('consumer')")
+    events_now = get_json(observer.url, "/api/state")["events"]
+    sent = next(e for e in events_now if e["type"] == "StatusSent")
+    live.wait_for_function(f"() => Date.now() / 1000 > {sent['at'] + 2.5}")  # late: 2.5 s after
+    late = tabs()
+    late.goto(observer.url)  # gets the whole history at once
+    late.locator(fatal).wait_for(timeout=10_000)
+
+    assert 1 == late.locator("#timeline li[data-kind=status]").count()  # one row, not three
+    assert live.locator("#timeline").inner_text() == late.locator("#timeline").inner_text()
+    assert "erm/camera '/dev/video0'" == sent["resource"]  # (the graph's label)
+    app.unload(query.id)
