@@ -224,6 +224,11 @@ def _run_tree(
     for name in MANAGERS:  # every manager back
         while supervisor.child(name).state != "running":
             simulation.sleep(0.1)
+    left = app.client_queries()
+    # app stops first: a call of its that failed as its provider died or was cut off may
+    # have run there, and is kept for a retry with its id while app lives (rule 17 case
+    # 3); its stop gives such ids back (rule 12). What is still served then is a leak.
+    app.stop()
     simulation.sleep(2.0)  # (what the last releases started settles)
     held = {
         name: sorted(
@@ -232,10 +237,8 @@ def _run_tree(
         )
         for name, (server, _) in MANAGERS.items()
     }
-    left = app.client_queries()
     restarts = {info.name: info.restarts for info in supervisor.which_children()}
     supervisor.stop()
-    app.stop()
     return {"journal": list(JOURNAL), "held": held, "left": left, "restarts": restarts}
 
 
@@ -312,17 +315,3 @@ def test_a_tree_under_kills_cuts_and_hangs_loses_nothing_acknowledged_and_leaves
     consumers reconcile); one stopped for a while (its heartbeat kills it past 0.75 s),
     among kills."""
     assert {} == seeds_where_broken(tree(kills=2, cuts=2, hangs=2))
-
-
-def test_a_failed_load_gives_back_its_call_cut_off_as_its_provider_answered() -> None:
-    """Seed 41 of the sweep above: the filter's load calls the camera for `r0`, which
-    the camera shares (a consumer of the filter's); the camera is cut off the others as
-    it answers, so the call fails `RegistrarUnavailableError` (it may have executed) and
-    the filter's load fails. The filter used to keep that id for a retry, and listed it
-    in its reconcile after the heal, so the camera held `r0` for the filter for as long
-    as both lived (nothing retries a call of a load that ended). Now the load's end gives
-    it back (`Flights.take_dependencies`): the reconcile leaves it out, the camera
-    releases it."""
-    run = simulation.run(tree(kills=2, cuts=2, hangs=2), seed=41, preempt=PREEMPT)
-    assert [] == broken_rules(run.value) + list(run.errors)
-    assert ("cut", "camera", 2) in run.value["journal"]  # (the interleaving of the bug)
