@@ -170,9 +170,11 @@ PLANTS = (
         "two servers of one name after a healed cut: the one served later never gives way "
         "(rule 22; the reverse of the merge fa1549b, in the decision every carrier runs)",
         "_transport/messenger.py",
-        "        if not isinstance(local, Ranked) or self.resolution.kept(name, [local, rival]) "
-        "is local:\n",
-        "        if True:  # PLANTED: ... or self.resolution.kept(name, [local, rival]) is local\n",
+        "        if self.resolution.kept(name, [local, rival]) is local:\n"
+        "            self._claim(name, local, rival)\n"
+        "            return\n",
+        "        if True:  # PLANTED: self.resolution.kept(name, [local, rival]) is local\n"
+        "            return\n",
         "simheal",
         "one-name",
     ),

@@ -191,15 +191,19 @@ def test_a_crash_loop_is_shrunk_by_fewer_restarts_and_a_cut_after_its_violation(
     # where the violation shows; the run is then cut just after the violation.
     # (What the original run was is read from the shrink's own first run of it: a crash
     # loop costs seconds of CPU, the test ran it once more to see the same.)
-    shrunk = shrink.shrink(load_plan(crash_loop), 1, budget=60)
+    # (150 runs: the first finding is now `dependency-held`, which 60 took to 61 events)
+    shrunk = shrink.shrink(load_plan(crash_loop), 1, budget=150)
 
     assert shrunk.original_events > 3000
-    assert shrunk.kind.startswith("[in-doubt] api: ")
+    # (an unload run while held breaks `in-doubt` and, since it releases the resource's
+    # dependencies while it is held, `dependency-held`: the run's first finding names it)
+    assert shrunk.kind.startswith(("[in-doubt] api: ", "[dependency-held] api: "))
     assert shrunk.kind in shrink.violation_kinds(shrunk.run)
-    assert "tree.max_restarts = 1" in shrunk.steps
+    # (1 restart, or none when the first finding comes before any: `dependency-held`)
+    assert {"tree.max_restarts = 0", "tree.max_restarts = 1"} & set(shrunk.steps)
     assert any("(the violation at " in step for step in shrunk.steps)
     assert shrunk.run.events <= 40
-    assert "max_restarts = 1\n" in shrunk.text
+    assert "max_restarts = 1\n" in shrunk.text or "max_restarts = 0\n" in shrunk.text
     assert shrunk.run.hash == simulate.run_seed(shrunk.plan, shrunk.seed).hash
 
 
