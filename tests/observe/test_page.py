@@ -28,7 +28,7 @@ import pytest
 import rr_actors as rr
 from tests.support.gating import GatedLoad
 from tests.support.observed_tree import REQUEST, device, figure_27
-from tests.support.observing import get_json, mission_held_before, request
+from tests.support.observing import mission_held_before, open_a_page_late, request
 
 DOCS_IMG = Path(__file__).resolve().parents[2] / "docs" / "img"
 
@@ -349,63 +349,13 @@ class TestInAClass:
         until the live page drew the status. The late page opens on a fresher catalog."""
         loading = GatedLoad(process_helpers.event(), process_helpers.event(), device, wait=60)
         sup = figure_27(supervisors, camera=loading).start()
-        observer = sup.observe()
-        source = observer._source
-        read_catalogs = source._refresh  # (the test reads them with it itself)
-        parked, reads = threading.Event(), threading.Event()
+        page = open_a_page_late(sup, loading, tabs, monkeypatch, within_ms=5000)
 
-        def held(dirty: set[str] | None) -> None:  # the refresher's next round waits here
-            parked.set()
-            assert reads.wait(60)
-            read_catalogs(dirty)
-
-        monkeypatch.setattr(source, "_refresh", held)
-        app = sup.registrar("action")
-        camera = '#catalogs [data-registrar="erm"] [data-server="camera"] .resource'
-        answers: list[rr.Query] = []
-        calling = threading.Thread(
-            target=lambda: answers.append(
-                app.call("cm", "filtered_camera", REQUEST, on_status=lambda q, u: None)
-            )
+        assert 1 == page.late.locator("#timeline li[data-kind=status]").count()  # one row
+        assert (
+            page.live.locator("#timeline").inner_text()
+            == page.late.locator("#timeline").inner_text()
         )
-        try:
-            assert parked.wait(30)  # (no round under way: the catalogs are read where told)
-            live = tabs()
-            live.goto(observer.url)
-            calling.start()
-            assert loading.started.wait(30)
-            for _ in range(5):  # erm's camera is loading: its row has no consumer yet
-                read_catalogs(None)
-                if source.hub.get("catalog/erm")["available"]:
-                    break  # (else the read timed out under load: read again)
-            live.wait_for_selector(camera)
-            loading.gate.set()
-            calling.join(30)
-            (query,) = answers
-
-            sup.run_in(
-                "erm",
-                lambda reg: reg.send_status(
-                    reg.server_queries("camera")[0].id, rr.Status.FATAL, "camera unplugged"
-                ),
-            )
-            sup.flush_events()
-            live.locator('#timeline li[data-status="FATAL"] [data-hop="2"]').wait_for(timeout=5000)
-        finally:
-            loading.gate.set()
-            reads.set()  # the refresher reads the catalogs again: the consumer is in erm's now
-        live.wait_for_selector(f"{camera} li:has-text('consumer')")
-        sent = next(
-            e for e in get_json(observer.url, "/api/state")["events"] if e["type"] == "StatusSent"
-        )
-        live.wait_for_function(f"() => Date.now() / 1000 > {sent['at'] + 2.5}")  # late: 2.5 s after
-        late = tabs()
-        late.goto(observer.url)  # gets the whole history at once
-        late.locator('#timeline li[data-status="FATAL"] [data-hop="2"]').wait_for(timeout=5000)
-
-        assert 1 == late.locator("#timeline li[data-kind=status]").count()  # one row, not three
-        assert live.locator("#timeline").inner_text() == late.locator("#timeline").inner_text()
-        app.unload(query.id)
 
     def test_deliveries_that_reached_the_page_before_their_send_merge_live_and_replayed(
         self, supervisors: Any, tabs: Any

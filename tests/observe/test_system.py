@@ -35,8 +35,8 @@ from rr_actors.observe._share import Share
 from rr_actors.observe._system import SystemView
 from tests.support import hosts, pki
 from tests.support.gating import GatedLoad
-from tests.support.observed_tree import REQUEST, device, figure_27
-from tests.support.observing import get_json
+from tests.support.observed_tree import device, figure_27
+from tests.support.observing import get_json, open_a_page_late
 from tests.support.tls_lab import member_tls
 
 BOUND = 10.0
@@ -196,61 +196,11 @@ def test_a_page_opened_after_a_status_draws_it_as_a_page_open_during_it_did(
     robot: tuple[rr.Supervisor, GatedLoad], tabs: Any, monkeypatch: Any
 ) -> None:
     sup, loading = robot
-    observer = sup.observe()
-    assert "robot" == get_json(observer.url, "/api/state")["hello"]["member"]  # (every host's)
-    source = observer._source
-    read_catalogs = source._refresh  # (the test reads them with it itself)
-    parked, reads = threading.Event(), threading.Event()
+    assert "robot" == get_json(sup.observe().url, "/api/state")["hello"]["member"]  # (every host's)
+    page = open_a_page_late(sup, loading, tabs, monkeypatch, within_ms=10_000)  # (held 0.5 s)
 
-    def held(dirty: set[str] | None) -> None:  # the refresher's next round waits here
-        parked.set()
-        assert reads.wait(60)
-        read_catalogs(dirty)
-
-    monkeypatch.setattr(source, "_refresh", held)
-    app = sup.registrar("action")
-    camera = '#catalogs [data-registrar="erm"] [data-server="camera"] .resource'
-    fatal = '#timeline li[data-status="FATAL"] [data-hop="2"]'
-    answers: list[rr.Query] = []
-    calling = threading.Thread(
-        target=lambda: answers.append(
-            app.call("cm", "filtered_camera", REQUEST, on_status=lambda q, u: None)
-        )
+    assert 1 == page.late.locator("#timeline li[data-kind=status]").count()  # one row, not three
+    assert (
+        page.live.locator("#timeline").inner_text() == page.late.locator("#timeline").inner_text()
     )
-    try:
-        assert parked.wait(30)  # (no round under way: the catalogs are read where told)
-        live = tabs()
-        live.goto(observer.url)
-        calling.start()
-        assert loading.started.wait(30)
-        for _ in range(5):  # erm's camera is loading: its row has no consumer yet
-            read_catalogs(None)
-            if source.hub.get("catalog/erm")["available"]:
-                break  # (else the read timed out under load: read again)
-        live.wait_for_selector(camera)  # (shared by this host, back to its own page)
-        loading.gate.set()
-        calling.join(30)
-        (query,) = answers
-
-        sup.run_in(
-            "erm",
-            lambda reg: reg.send_status(
-                reg.server_queries("camera")[0].id, rr.Status.FATAL, "camera unplugged"
-            ),
-        )
-        live.locator(fatal).wait_for(timeout=10_000)  # (the system's stream holds it 0.5 s)
-    finally:
-        loading.gate.set()
-        reads.set()  # the refresher reads the catalogs again: the consumer is in erm's now
-    live.wait_for_selector(f"{camera} li:has-text('consumer')")
-    events_now = get_json(observer.url, "/api/state")["events"]
-    sent = next(e for e in events_now if e["type"] == "StatusSent")
-    live.wait_for_function(f"() => Date.now() / 1000 > {sent['at'] + 2.5}")  # late: 2.5 s after
-    late = tabs()
-    late.goto(observer.url)  # gets the whole history at once
-    late.locator(fatal).wait_for(timeout=10_000)
-
-    assert 1 == late.locator("#timeline li[data-kind=status]").count()  # one row, not three
-    assert live.locator("#timeline").inner_text() == late.locator("#timeline").inner_text()
-    assert "erm/camera '/dev/video0'" == sent["resource"]  # (the graph's label)
-    app.unload(query.id)
+    assert "erm/camera '/dev/video0'" == page.sent["resource"]  # (the graph's label)

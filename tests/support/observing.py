@@ -23,7 +23,9 @@ from typing import Any
 
 import pytest
 
+import rr_actors as rr
 from rr_actors.observe._delta import apply
+from tests.support.observed_tree import REQUEST
 
 CHROMIUM = os.environ.get("RR_CHROMIUM", "/usr/bin/chromium")
 """The browser the browser tests drive (Debian's chromium; `.ci/run` installs it)."""
@@ -290,3 +292,85 @@ def loaded(state: dict[str, Any]) -> bool:
         1,
         1,
     ) and len(graph["edges"]) == 3
+
+
+# -- a page opened after a status -----------------------------------------------------------------
+
+FATAL_AT_HOP_2 = '#timeline li[data-status="FATAL"] [data-hop="2"]'
+"""The timeline's row of figure 2.7's FATAL status, as it reached its second hop."""
+
+
+@dataclasses.dataclass
+class LatePage:
+    """What `open_a_page_late` left: the tab open all along (`live`), the one opened 2.5 s
+    after the status (`late`), the status's `StatusSent` event (as `/api/state` gives it)."""
+
+    live: Any
+    late: Any
+    sent: dict[str, Any]
+
+
+def open_a_page_late(
+    sup: Any, loading: Any, tabs: Callable[[], Any], monkeypatch: Any, *, within_ms: int
+) -> LatePage:
+    """Send figure 2.7's camera a FATAL status while a page is open, then open a second page
+    2.5 s later; the observer's catalog of erm lags the send, forced (as under load): it is
+    read while the camera loads (its row, not yet its consumer), and the next read waits
+    until the live page drew the status. `loading`: the camera's `GatedLoad`; `within_ms`:
+    how long each page may take to draw the status. The call is unloaded before it returns.
+    """
+    observer = sup.observe()
+    source = observer._source
+    read_catalogs = source._refresh  # (the test reads them with it itself)
+    parked, reads = threading.Event(), threading.Event()
+
+    def held(dirty: set[str] | None) -> None:  # the refresher's next round waits here
+        parked.set()
+        assert reads.wait(60)
+        read_catalogs(dirty)
+
+    monkeypatch.setattr(source, "_refresh", held)
+    app = sup.registrar("action")
+    camera = '#catalogs [data-registrar="erm"] [data-server="camera"] .resource'
+    answers: list[Any] = []
+    calling = threading.Thread(
+        target=lambda: answers.append(
+            app.call("cm", "filtered_camera", REQUEST, on_status=lambda q, u: None)
+        )
+    )
+    try:
+        assert parked.wait(30)  # (no round under way: the catalogs are read where told)
+        live = tabs()
+        live.goto(observer.url)
+        calling.start()
+        assert loading.started.wait(30)
+        for _ in range(5):  # erm's camera is loading: its row has no consumer yet
+            read_catalogs(None)
+            if source.hub.get("catalog/erm")["available"]:
+                break  # (else the read timed out under load: read again)
+        live.wait_for_selector(camera)
+        loading.gate.set()
+        calling.join(30)
+        (query,) = answers
+
+        sup.run_in(
+            "erm",
+            lambda reg: reg.send_status(
+                reg.server_queries("camera")[0].id, rr.Status.FATAL, "camera unplugged"
+            ),
+        )
+        sup.flush_events()
+        live.locator(FATAL_AT_HOP_2).wait_for(timeout=within_ms)
+    finally:
+        loading.gate.set()
+        reads.set()  # the refresher reads the catalogs again: the consumer is in erm's now
+    live.wait_for_selector(f"{camera} li:has-text('consumer')")
+    sent = next(
+        e for e in get_json(observer.url, "/api/state")["events"] if e["type"] == "StatusSent"
+    )
+    live.wait_for_function(f"() => Date.now() / 1000 > {sent['at'] + 2.5}")  # late: 2.5 s after
+    late = tabs()
+    late.goto(observer.url)  # gets the whole history at once
+    late.locator(FATAL_AT_HOP_2).wait_for(timeout=within_ms)
+    app.unload(query.id)
+    return LatePage(live, late, sent)
