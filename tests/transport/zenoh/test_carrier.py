@@ -1031,6 +1031,36 @@ class TestNeverWaitingOnAnActor:
         # did not answer; CI's one failure showed only its first item)
         assert [(1, []), (2, []), (3, [])] == answers, answers
 
+    def _two_fetches(
+        self, address: Any, name: str, asking: threading.Event, release: threading.Event
+    ) -> list[tuple[int, Any]]:
+        """Fetch 1 from `name` through a member of the network at `address`; once the
+        network is `asking` about the name (1 is on its lane), fetch 2 (it waits behind 1),
+        then `release` the network's answer. The answers, `(number, result or error)`, in
+        the order they came."""
+        member = address.attach()
+        registrar = rr.ResourceRegistrar.start(f"here-{uuid.uuid4().hex[:6]}")
+        answers: list[tuple[int, Any]] = []
+        all_answered = threading.Event()
+
+        def fetch(number: int) -> None:
+            reply = Ordered(number, answers, all_answered, expected=2)
+            DIRECTORY.lookup(name).tell(Fetch("s", registrar.name, reply))
+
+        try:
+            member.serve(Served(registrar))
+            run_on_actor(registrar, lambda: fetch(1)).get(timeout=10)
+            assert asking.wait(10)  # 1 is on the name's lane, asked for
+            run_on_actor(registrar, lambda: fetch(2)).get(timeout=10)  # 2 waits behind it
+            release.set()
+
+            assert all_answered.wait(20)
+        finally:
+            release.set()
+            registrar.stop()
+            member.close()
+        return answers
+
     @staticmethod
     def _held_ask(
         monkeypatch: pytest.MonkeyPatch, name: str, *, asks: bool, why: str | None = None
@@ -1063,27 +1093,7 @@ class TestNeverWaitingOnAnActor:
         address, _router_pid = frozen_router
         unheard = f"nobody-{uuid.uuid4().hex[:6]}"
         asking, release = self._held_ask(monkeypatch, unheard, asks=True)
-        member = address.attach()
-        registrar = rr.ResourceRegistrar.start(f"here-{uuid.uuid4().hex[:6]}")
-        answers: list[tuple[int, Any]] = []
-        all_answered = threading.Event()
-
-        def fetch(number: int) -> None:
-            reply = Ordered(number, answers, all_answered, expected=2)
-            DIRECTORY.lookup(unheard).tell(Fetch("s", registrar.name, reply))
-
-        try:
-            member.serve(Served(registrar))
-            run_on_actor(registrar, lambda: fetch(1)).get(timeout=10)
-            assert asking.wait(10)  # 1 is on the name's lane, asked for
-            run_on_actor(registrar, lambda: fetch(2)).get(timeout=10)  # 2 waits behind it
-            release.set()
-
-            assert all_answered.wait(20)
-        finally:
-            release.set()
-            registrar.stop()
-            member.close()
+        answers = self._two_fetches(address, unheard, asking, release)
 
         assert [1, 2] == [number for number, _ in answers]
         assert all(isinstance(error, rr.UnknownRegistrarError) for _, error in answers)
@@ -1106,27 +1116,7 @@ class TestNeverWaitingOnAnActor:
                 on_live(self, sample)
 
         monkeypatch.setattr(presence.Presence, "_on_live", late)
-        member = address.attach()
-        registrar = rr.ResourceRegistrar.start(f"here-{uuid.uuid4().hex[:6]}")
-        answers: list[tuple[int, Any]] = []
-        all_answered = threading.Event()
-
-        def fetch(number: int) -> None:
-            reply = Ordered(number, answers, all_answered, expected=2)
-            DIRECTORY.lookup(SERVED).tell(Fetch("s", registrar.name, reply))
-
-        try:
-            member.serve(Served(registrar))
-            run_on_actor(registrar, lambda: fetch(1)).get(timeout=10)
-            assert asking.wait(10)
-            run_on_actor(registrar, lambda: fetch(2)).get(timeout=10)
-            release.set()
-
-            assert all_answered.wait(20)
-        finally:
-            release.set()
-            registrar.stop()
-            member.close()
+        answers = self._two_fetches(address, SERVED, asking, release)
 
         assert [1, 2] == [number for number, _ in answers]
         for _number, error in answers:
@@ -1150,27 +1140,7 @@ class TestNeverWaitingOnAnActor:
                 on_live(self, sample)
 
         monkeypatch.setattr(presence.Presence, "_on_live", late)
-        member = address.attach()
-        registrar = rr.ResourceRegistrar.start(f"here-{uuid.uuid4().hex[:6]}")
-        answers: list[tuple[int, Any]] = []
-        all_answered = threading.Event()
-
-        def fetch(number: int) -> None:
-            reply = Ordered(number, answers, all_answered, expected=2)
-            DIRECTORY.lookup(SERVED).tell(Fetch("s", registrar.name, reply))
-
-        try:
-            member.serve(Served(registrar))
-            run_on_actor(registrar, lambda: fetch(1)).get(timeout=10)
-            assert asking.wait(10)
-            run_on_actor(registrar, lambda: fetch(2)).get(timeout=10)
-            release.set()
-
-            assert all_answered.wait(20)
-        finally:
-            release.set()
-            registrar.stop()
-            member.close()
+        answers = self._two_fetches(address, SERVED, asking, release)
 
         assert [(1, []), (2, [])] == answers, answers
 
