@@ -32,25 +32,8 @@ from rr_actors._transport.zenoh.ops.watch import LinkWatch, handshake_trouble
 from rr_actors.testing import start_forkserver
 from tests.support import pki
 from tests.support.supervising import process
-from tests.support.tls_lab import free_port
+from tests.support.tls_lab import MEMBERS, Lab, Logged, caught_log, free_port, listener, open_router
 from tests.support.waiting import wait_for
-
-MEMBERS = ["robot", "operator"]
-
-
-class Lab:
-    """A CA "lab" in a temporary directory, and `ZenohTLS`es of its members on loopback."""
-
-    def __init__(self, directory: Path) -> None:
-        self.directory = directory
-        self.ca = pki.make_ca(directory / "lab", "lab")
-
-    def tls(self, name: str, addresses: tuple[str, ...] = ("127.0.0.1",), **issue: Any) -> Any:
-        ca = issue.pop("ca", self.ca)
-        where = self.directory / uuid.uuid4().hex[:8]
-        cert, key = pki.issue(where, name, addresses, ca=ca, **issue)
-        members = [*MEMBERS, name] if name not in MEMBERS else MEMBERS
-        return rr.ZenohTLS(ca=ca[0], cert=cert, key=key, members=members)
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -65,59 +48,13 @@ def lab(tmp_path: Path) -> Lab:
     return Lab(tmp_path)
 
 
-@contextlib.contextmanager
-def listener(tls: Any, port: int, system: str = "lab") -> Iterator[zenoh.Session]:
-    """A Zenoh router listening on `tls/127.0.0.1:<port>` with rr_actors's config."""
-    session = zenoh.open(
-        session_config("router", [f"tls/127.0.0.1:{port}"], [], 1.0, system=system, tls=tls)
-    )
-    try:
-        yield session
-    finally:
-        session.close()  # type: ignore[no-untyped-call]
-
-
 # -- the watch ---------------------------------------------------------------------------------
-
-
-class Logged(logging.Handler):
-    """The `rr_actors` log lines, and an event when one containing `text` comes."""
-
-    def __init__(self) -> None:
-        super().__init__(logging.INFO)
-        self.lines: list[tuple[str, str]] = []
-        self.changed = threading.Condition()
-
-    def emit(self, record: logging.LogRecord) -> None:
-        with self.changed:
-            self.lines.append((record.levelname, record.getMessage()))
-            self.changed.notify_all()
-
-    def wait(self, level: str, text: str, timeout: float) -> str:
-        def found() -> str | None:
-            return next((m for lv, m in self.lines if lv == level and text in m), None)
-
-        with self.changed:
-            self.changed.wait_for(found, timeout=timeout)
-            line = found()
-        assert line is not None, f"no {level} with {text!r} within {timeout} s: {self.lines}"
-        return line
 
 
 @pytest.fixture
 def logged() -> Iterator[Logged]:
-    handler = Logged()
-    log = logging.getLogger("rr_actors")
-    level = log.level
-    log.addHandler(handler)
-    log.setLevel(logging.INFO)
-    yield handler
-    log.removeHandler(handler)
-    log.setLevel(level)
-
-
-def _router(tls: Any, connect: list[str], system: str = "lab") -> zenoh.Session:
-    return zenoh.open(session_config("router", [], connect, 1.0, system=system, tls=tls))
+    with caught_log() as handler:
+        yield handler
 
 
 # -- Zenoh's own log of refused handshakes -----------------------------------------------------
@@ -323,7 +260,7 @@ def test_the_config_is_mutual_tls_on_tls_and_unix_links_with_default_deny(lab: L
     assert subjects["local"]["link_protocols"] == ["unixsock-stream"]
 
 
-def test_a_plain_tcp_peer_cannot_even_open_a_link_to_a_tls_router(lab: Lab) -> None:
+def test_a_plain_tcp_peer_cannot_even_open_a_link_to_a_tlsopen_router(lab: Lab) -> None:
     """Protocols are limited to tls and unixsock-stream: a tcp/ connect gets nothing."""
     port = free_port()
     with listener(lab.tls("robot"), port) as router:
@@ -415,7 +352,7 @@ def test_a_member_restarted_with_a_new_certificate_of_the_same_ca_rejoins(
         try:
             for round_ in ("old", "new"):
                 operator = lab.tls("operator")  # a fresh key and certificate each time
-                member = _router(operator, [f"tls/127.0.0.1:{port}"])
+                member = open_router(operator, [f"tls/127.0.0.1:{port}"])
                 try:
                     wait_for(lambda: len(session.info.links()) == 1, timeout=10)
                     assert _put_until_heard(member, heard, round_.encode()), round_

@@ -5,7 +5,6 @@ watch against real Zenoh listeners on loopback.
 
 from __future__ import annotations
 
-import contextlib
 import datetime
 import logging
 import socket
@@ -18,15 +17,22 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-import zenoh
 
 import rr_actors as rr
 from rr_actors._transport.zenoh.ops import watch as zenoh_watch
-from rr_actors._transport.zenoh.ops.config import session_config
 from rr_actors._transport.zenoh.ops.watch import GRACE, TICK, LinkWatch, handshake_trouble
 from rr_actors.testing import start_forkserver
 from tests.support import pki
-from tests.support.tls_lab import free_port, member_tls, router
+from tests.support.tls_lab import (
+    Lab,
+    Logged,
+    caught_log,
+    free_port,
+    listener,
+    member_tls,
+    open_router,
+    router,
+)
 from tests.support.waiting import wait_for
 
 # -- once a minute ---------------------------------------------------------------------------------
@@ -112,25 +118,7 @@ def silent_listener(tmp_path: Path) -> Iterator[tuple[Any, str]]:
             conn.close()
 
 
-MEMBERS = ["robot", "operator"]
-
-
 DAY = datetime.timedelta(days=1)
-
-
-class Lab:
-    """A CA "lab" in a temporary directory, and `ZenohTLS`es of its members on loopback."""
-
-    def __init__(self, directory: Path) -> None:
-        self.directory = directory
-        self.ca = pki.make_ca(directory / "lab", "lab")
-
-    def tls(self, name: str, addresses: tuple[str, ...] = ("127.0.0.1",), **issue: Any) -> Any:
-        ca = issue.pop("ca", self.ca)
-        where = self.directory / uuid.uuid4().hex[:8]
-        cert, key = pki.issue(where, name, addresses, ca=ca, **issue)
-        members = [*MEMBERS, name] if name not in MEMBERS else MEMBERS
-        return rr.ZenohTLS(ca=ca[0], cert=cert, key=key, members=members)
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -140,47 +128,7 @@ def forkserver() -> None:
     start_forkserver()
 
 
-@contextlib.contextmanager
-def listener(tls: Any, port: int, system: str = "lab") -> Iterator[zenoh.Session]:
-    """A Zenoh router listening on `tls/127.0.0.1:<port>` with rr_actors's config."""
-    session = zenoh.open(
-        session_config("router", [f"tls/127.0.0.1:{port}"], [], 1.0, system=system, tls=tls)
-    )
-    try:
-        yield session
-    finally:
-        session.close()  # type: ignore[no-untyped-call]
-
-
 # -- the watch ---------------------------------------------------------------------------------
-
-
-class Logged(logging.Handler):
-    """The `rr_actors` log lines, and an event when one containing `text` comes."""
-
-    def __init__(self) -> None:
-        super().__init__(logging.INFO)
-        self.lines: list[tuple[str, str]] = []
-        self.changed = threading.Condition()
-
-    def emit(self, record: logging.LogRecord) -> None:
-        with self.changed:
-            self.lines.append((record.levelname, record.getMessage()))
-            self.changed.notify_all()
-
-    def wait(self, level: str, text: str, timeout: float) -> str:
-        def found() -> str | None:
-            return next((m for lv, m in self.lines if lv == level and text in m), None)
-
-        with self.changed:
-            self.changed.wait_for(found, timeout=timeout)
-            line = found()
-        assert line is not None, f"no {level} with {text!r} within {timeout} s: {self.lines}"
-        return line
-
-
-def _router(tls: Any, connect: list[str], system: str = "lab") -> zenoh.Session:
-    return zenoh.open(session_config("router", [], connect, 1.0, system=system, tls=tls))
 
 
 def test_a_linked_endpoint_named_by_a_host_name_is_not_looked_up_at_every_tick(
@@ -357,14 +305,8 @@ class TestWithTLS:
 
     @pytest.fixture
     def logged(self) -> Iterator[Logged]:
-        handler = Logged()
-        log = logging.getLogger("rr_actors")
-        level = log.level
-        log.addHandler(handler)
-        log.setLevel(logging.INFO)
-        yield handler
-        log.removeHandler(handler)
-        log.setLevel(level)
+        with caught_log() as handler:
+            yield handler
 
     def test_the_watch_names_a_member_that_links_on_both_sides(
         self, lab: Lab, logged: Logged
@@ -373,7 +315,7 @@ class TestWithTLS:
         robot, operator = lab.tls("robot"), lab.tls("operator")
         with listener(robot, port) as session:
             listening = LinkWatch("lab", session, robot, ())
-            connecting_session = _router(operator, [f"tls/127.0.0.1:{port}"])
+            connecting_session = open_router(operator, [f"tls/127.0.0.1:{port}"])
             connecting = LinkWatch("lab", connecting_session, operator, (f"tls/127.0.0.1:{port}",))
             try:
                 logged.wait("INFO", "member 'operator' linked at 127.0.0.1", timeout=10)
@@ -393,7 +335,9 @@ class TestWithTLS:
             watch = LinkWatch("lab", session, robot, ())
             heard = threading.Event()
             subscriber = session.declare_subscriber("rr/lab/**", lambda _sample: heard.set())
-            strangers = [_router(lab.tls("stranger"), [f"tls/127.0.0.1:{port}"]) for _ in range(2)]
+            strangers = [
+                open_router(lab.tls("stranger"), [f"tls/127.0.0.1:{port}"]) for _ in range(2)
+            ]
             try:
                 line = logged.wait("WARNING", "'stranger' at 127.0.0.1", timeout=10)
                 assert "not in members ['robot', 'operator']" in line
@@ -402,7 +346,7 @@ class TestWithTLS:
                 for stranger in strangers:
                     stranger.put("rr/lab/reg/erm", b"dropped")
                 # a member's put after the strangers' goes through: theirs were dropped, not late
-                member = _router(lab.tls("operator"), [f"tls/127.0.0.1:{port}"])
+                member = open_router(lab.tls("operator"), [f"tls/127.0.0.1:{port}"])
                 try:
                     wait_for(lambda: len(session.info.links()) == 3, timeout=10)
                     assert not heard.is_set()
@@ -428,7 +372,7 @@ class TestWithTLS:
         endpoint = f"tls/127.0.0.1:{port}"
         refused = lab.tls("operator", ca=other)
         with listener(lab.tls("robot"), port):
-            session = _router(refused, [endpoint])
+            session = open_router(refused, [endpoint])
             watch = LinkWatch("lab", session, refused, (endpoint,))
             try:
                 line = logged.wait("WARNING", f"no link to connect endpoint {endpoint}", timeout=10)
