@@ -111,28 +111,6 @@ def unloads_of(device: int) -> int:
     return hosts.KEPT["unloaded_all"].count({"device": device})
 
 
-def wait_set(name: str, timeout: float) -> bool:
-    return bool(hosts.KEPT[name].wait(timeout))
-
-
-def open_gate() -> None:
-    hosts.KEPT["gate"].set()
-
-
-def next_status(timeout: float) -> tuple[str, str, str, float]:
-    """The next status a consumer's callback recorded (`TimeoutError` if none came)."""
-    heard: queue.Queue[tuple[str, str, str, float]] = hosts.KEPT.setdefault("heard", queue.Queue())
-    try:
-        return heard.get(timeout=timeout)
-    except queue.Empty:
-        raise TimeoutError(f"no status within {timeout:g} s") from None
-
-
-def more_statuses() -> int:
-    heard: queue.Queue[Any] = hosts.KEPT.setdefault("heard", queue.Queue())
-    return heard.qsize()
-
-
 def unloaded(request: Any, timeout: float) -> float:
     """When `request` was unloaded (`TimeoutError` if it is not within `timeout`)."""
     deadline = time.monotonic() + timeout
@@ -229,7 +207,7 @@ def made_lab(two_hosts: hosts.TwoHosts) -> Iterator[Lab]:
     finally:
         if a.alive:
             with contextlib.suppress(Exception):
-                a.call(open_gate, timeout=5)  # (a load still held at the gate ends)
+                a.call(hosts.open_gate, timeout=5)  # (a load still held at the gate ends)
         for worker in (b, a):
             if worker.alive:
                 with contextlib.suppress(Exception):
@@ -294,16 +272,16 @@ def test_a_status_sent_on_host_a_reaches_every_callback_on_both_hosts_once(share
 
     sent = shared.a.call(hosts.rr_run, "erm", send_warning, 2, timeout=10)
 
-    query_b, status_b, source_b, at_b = shared.b.call(next_status, 5.0, timeout=10)
+    query_b, status_b, source_b, at_b = shared.b.call(hosts.next_status, 5.0, timeout=10)
     status_cm, source_cm, at_cm = shared.b.call(server_heard, 5.0, timeout=10)
-    query_a, status_a, source_a, at_a = shared.a.call(next_status, 5.0, timeout=10)
+    query_a, status_a, source_a, at_a = shared.a.call(hosts.next_status, 5.0, timeout=10)
     assert (direct, "WARNING", "erm/camera") == (query_b, status_b, source_b)
     assert ("WARNING", "erm/camera") == (status_cm, source_cm)
     assert (via_cm, "WARNING", "erm/camera") == (query_a, status_a, source_a)
     assert max(at_a, at_b, at_cm) - sent < 5.0
     assert [0, 0, 0] == [
-        shared.a.call(more_statuses, timeout=5),
-        shared.b.call(more_statuses, timeout=5),
+        shared.a.call(hosts.more_statuses, timeout=5),
+        shared.b.call(hosts.more_statuses, timeout=5),
         shared.b.call(more_server_heard, timeout=5),
     ]
     shared.a.call(hosts.rr_run, "app-a", unload, via_cm, timeout=10)
@@ -360,7 +338,7 @@ def test_a_sigkill_of_the_providers_process_fails_calls_at_once_and_its_ids_are_
 ) -> None:
     held_id = lab.b.call(hosts.rr_run, "app-b", call_camera, 3, timeout=15)
     in_flight = lab.b.submit(hosts.rr_run, "app-b", call_hang)
-    assert lab.a.call(wait_set, "hang_started", 10.0, timeout=15)
+    assert lab.a.call(hosts.wait_set, "hang_started", 10.0, timeout=15)
 
     killed = time.monotonic()
     os.kill(lab.a.pid, signal.SIGKILL)
@@ -368,7 +346,7 @@ def test_a_sigkill_of_the_providers_process_fails_calls_at_once_and_its_ids_are_
     with pytest.raises(rr.RegistrarUnavailableError):
         in_flight.result(5)
     assert time.monotonic() - killed < 1.0
-    query_id, status, source, fatal_at = lab.b.call(next_status, 5.0, timeout=10)
+    query_id, status, source, fatal_at = lab.b.call(hosts.next_status, 5.0, timeout=10)
     assert (held_id, "FATAL", "erm/camera") == (query_id, status, source)
     assert fatal_at - killed < 1.0
     assert held_id not in lab.b.call(hosts.rr_run, "app-b", held, timeout=5)
@@ -383,14 +361,14 @@ def test_a_cut_link_fails_calls_and_a_healed_one_releases_what_the_consumer_forg
 ) -> None:
     held_id = lab.b.call(hosts.rr_run, "app-b", call_camera, 5, timeout=15)
     in_flight = lab.b.submit(hosts.rr_run, "app-b", call_hang)
-    assert lab.a.call(wait_set, "hang_started", 10.0, timeout=15)
+    assert lab.a.call(hosts.wait_set, "hang_started", 10.0, timeout=15)
 
     cut = time.monotonic()
     lab.net.link_down()
     with pytest.raises(rr.RegistrarUnavailableError):
         in_flight.result(5)
     assert time.monotonic() - cut < 2.0
-    query_id, status, source, fatal_at = lab.b.call(next_status, 5.0, timeout=10)
+    query_id, status, source, fatal_at = lab.b.call(hosts.next_status, 5.0, timeout=10)
     assert (held_id, "FATAL", "erm/camera") == (query_id, status, source)
     assert fatal_at - cut < 2.0  # erm is not supervised: lost (rule 4)
     assert held_id not in lab.b.call(hosts.rr_run, "app-b", held, timeout=5)
@@ -402,7 +380,7 @@ def test_a_cut_link_fails_calls_and_a_healed_one_releases_what_the_consumer_forg
 
     healed = time.monotonic()
     lab.net.link_up()
-    lab.a.call(open_gate, timeout=5)
+    lab.a.call(hosts.open_gate, timeout=5)
     lab.b.call(hosts.rr_until_answered, "app-b", "erm", "probe", 10.0, timeout=15)
     assert time.monotonic() - healed < 10.0
     lab.a.call(unloaded, {"device": 5}, 10.0, timeout=15)  # (at the cut or once healed)
@@ -410,7 +388,7 @@ def test_a_cut_link_fails_calls_and_a_healed_one_releases_what_the_consumer_forg
     lab.b.call(hosts.rr_run, "app-b", unload, again, timeout=10)
     lab.a.call(unloaded, {"device": 5}, 10.0, timeout=15)
     assert [2, 2] == [lab.a.call(loads_of, 5, timeout=5), lab.a.call(unloads_of, 5, timeout=5)]
-    assert 0 == lab.b.call(more_statuses, timeout=5)  # nothing FATAL after the heal
+    assert 0 == lab.b.call(hosts.more_statuses, timeout=5)  # nothing FATAL after the heal
 
 
 # -- one name, one registrar, through cuts and heals (rule 22) ---------------------------------
@@ -498,7 +476,7 @@ def test_a_name_served_on_both_sides_of_a_cut_is_kept_on_one_after_the_heal(lab:
     assert errors[0].startswith("registrar 'erm' of system 'lab' is served by process ")
     assert "this one stops serving" in errors[0]
     # app-b's ids were held at the erm that yielded: the one kept does not hold them
-    fatal = [lab.b.call(next_status, 15.0, timeout=20) for _ in during]
+    fatal = [lab.b.call(hosts.next_status, 15.0, timeout=20) for _ in during]
     assert sorted((query_id, "FATAL") for query_id in during) == sorted(
         (query_id, status) for query_id, status, _source, _at in fatal
     )
@@ -516,7 +494,7 @@ def test_a_name_served_on_both_sides_of_a_cut_is_kept_on_one_after_the_heal(lab:
     lab.b.call(hosts.rr_run, "app-b", unload, again, timeout=10)
     lab.a.call(hosts.rr_run, "app-a", unload, kept, timeout=10)
     lab.a.call(unloaded, {"device": 100}, 10.0, timeout=15)
-    assert 0 == lab.b.call(more_statuses, timeout=5)
+    assert 0 == lab.b.call(hosts.more_statuses, timeout=5)
 
 
 @pytest.mark.timeout(120)
@@ -641,7 +619,7 @@ def test_a_supervised_manager_killed_on_one_host_comes_back_without_fatal_for_th
         _, answered = b.call(hosts.rr_run, "app-b", until_filtered, 10, 10.0, timeout=15)
 
         assert answered - restarted < 10.0
-        assert 0 == b.call(more_statuses, timeout=5)  # no FATAL: erm was not lost
+        assert 0 == b.call(hosts.more_statuses, timeout=5)  # no FATAL: erm was not lost
         # its restored catalog kept cm's id (rule 15): released there when app-b lets go
         b.call(hosts.rr_run, "app-b", unload, before, timeout=10)
         a.call(run_in, "erm", in_manager, unloaded, {"device": 9}, 10.0, timeout=20)

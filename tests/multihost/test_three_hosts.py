@@ -150,27 +150,6 @@ def send_warning(registrar: rr.ResourceRegistrar, device: int) -> None:
     registrar.send_status(query_id, rr.Status.WARNING, "hot", timeout=5)
 
 
-def wait_set(name: str, timeout: float) -> bool:
-    return bool(hosts.KEPT[name].wait(timeout))
-
-
-def open_gate() -> None:
-    hosts.KEPT["gate"].set()
-
-
-def next_status(timeout: float) -> tuple[str, str, str, float]:
-    """The next status a consumer's callback recorded (`TimeoutError` if none came)."""
-    heard: queue.Queue[tuple[str, str, str, float]] = hosts.KEPT.setdefault("heard", queue.Queue())
-    try:
-        return heard.get(timeout=timeout)
-    except queue.Empty:
-        raise TimeoutError(f"no status within {timeout:g} s") from None
-
-
-def more_statuses() -> int:
-    return int(hosts.KEPT.setdefault("heard", queue.Queue()).qsize())
-
-
 def unloaded(request: Any, timeout: float) -> float:
     """When `request` was unloaded (`TimeoutError` if it is not within `timeout`)."""
     deadline = time.monotonic() + timeout
@@ -286,7 +265,7 @@ def made_lab(ends_admit: list[str] = MEMBERS, resolve: str = "first_served") -> 
             yield Lab(net, ca, a, b, c)
         finally:
             with contextlib.suppress(Exception):
-                c.call(open_gate, timeout=5)  # (a load still held at the gate ends)
+                c.call(hosts.open_gate, timeout=5)  # (a load still held at the gate ends)
             for worker in (a, c, b):
                 if worker.alive:
                     with contextlib.suppress(Exception):
@@ -317,7 +296,7 @@ def test_a_calls_a_registrar_on_c_through_b_with_mutual_tls(lab: Lab) -> None:
     a.call(wait_for_name, "erm", BOUND, timeout=30)
     query_id = a.call(hosts.rr_run, "app", call_camera, 1, timeout=30)
     c.call(hosts.rr_run, "erm", send_warning, 1, timeout=30)
-    heard_id, status, source, _ = a.call(next_status, BOUND, timeout=30)
+    heard_id, status, source, _ = a.call(hosts.next_status, BOUND, timeout=30)
     a.call(hosts.rr_run, "app", unload, query_id, timeout=30)
     c.call(unloaded, {"device": 1}, BOUND, timeout=30)
 
@@ -387,7 +366,7 @@ def _cut_and_heal(lab: Lab, cut: list[tuple[str, str]]) -> None:
     a, c = lab.a, lab.c
     held_id = a.call(hosts.rr_run, "app", call_camera, 5, timeout=30)
     in_flight = a.submit(hosts.rr_run, "app", call_hang)
-    assert c.call(wait_set, "hang_started", BOUND, timeout=30)
+    assert c.call(hosts.wait_set, "hang_started", BOUND, timeout=30)
 
     started = time.monotonic()
     for pair in cut:
@@ -395,7 +374,7 @@ def _cut_and_heal(lab: Lab, cut: list[tuple[str, str]]) -> None:
     with pytest.raises(rr.RegistrarUnavailableError, match=r"'erm'.*a link on the way"):
         in_flight.result(BOUND)
     failed = time.monotonic() - started
-    query_id, status, source, fatal_at = a.call(next_status, BOUND, timeout=30)
+    query_id, status, source, fatal_at = a.call(hosts.next_status, BOUND, timeout=30)
     kind, message, took = a.call(hosts.rr_run, "app", failing_call, "erm", 6, timeout=30)
     hub_seen = a.call(hosts.rr_run, "app", failing_call, "hub", 7, timeout=30)[0]
 
@@ -411,7 +390,7 @@ def _cut_and_heal(lab: Lab, cut: list[tuple[str, str]]) -> None:
     healing = time.monotonic()
     for pair in cut:
         lab.net.link_up(*pair)
-    c.call(open_gate, timeout=5)
+    c.call(hosts.open_gate, timeout=5)
     a.call(hosts.rr_until_answered, "app", "erm", "probe", BOUND, timeout=30)
     healed = time.monotonic() - healing
     c.call(unloaded, {"device": 5}, BOUND, timeout=30)  # the id a forgot, released at c
@@ -422,7 +401,7 @@ def _cut_and_heal(lab: Lab, cut: list[tuple[str, str]]) -> None:
 
     assert healed < BOUND
     assert (2, 2) == c.call(counts, 5, timeout=10)
-    assert 0 == a.call(more_statuses, timeout=10)  # nothing FATAL after the heal
+    assert 0 == a.call(hosts.more_statuses, timeout=10)  # nothing FATAL after the heal
 
 
 @pytest.mark.timeout(180)
@@ -499,7 +478,7 @@ def test_a_supervised_manager_killed_on_c_comes_back_without_fatal_for_a(lab: La
         c.call(wait_restarted, "cam", BOUND, timeout=30)
         after = a.call(hosts.rr_run, "app", until_cam, 10, BOUND, timeout=30)
 
-        assert 0 == a.call(more_statuses, timeout=10)  # no FATAL: cam was not lost
+        assert 0 == a.call(hosts.more_statuses, timeout=10)  # no FATAL: cam was not lost
         assert {before, after} <= set(a.call(hosts.rr_run, "app", held, timeout=10))
         # its restored catalog kept a's id (rule 15): released there when app lets go
         a.call(hosts.rr_run, "app", unload, before, timeout=30)
@@ -538,7 +517,7 @@ def test_with_resolve_majority_the_lone_hosts_registrar_yields_to_the_majoritys(
         lab.net.link_down("b", "c")
         assert b.call(hosts.rr_unlinked_within, "erm", BOUND, timeout=30)
         assert a.call(hosts.rr_unlinked_within, "erm", BOUND, timeout=30)
-        assert (before, "FATAL") == a.call(next_status, BOUND, timeout=30)[:2]  # (lost)
+        assert (before, "FATAL") == a.call(hosts.next_status, BOUND, timeout=30)[:2]  # (lost)
         b.call(hosts.rr_start, "erm", provider_setup, timeout=30)  # (the newcomer)
         a.call(hosts.rr_until_answered, "app", "erm", "probe", BOUND, timeout=30)
         during = a.call(hosts.rr_run, "app", call_camera, 7, timeout=30)

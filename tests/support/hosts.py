@@ -48,6 +48,7 @@ import ctypes
 import itertools
 import json
 import os
+import queue
 import select
 import shutil
 import signal
@@ -896,6 +897,34 @@ def has_carrier() -> bool:
 
     start = inspect.signature(rr.ResourceRegistrar.start)
     return hasattr(rr, "ZenohNetwork") and "network" in start.parameters
+
+
+# -- what a host's tests keep in `KEPT`: gates, flags and the statuses heard -----------------------
+
+
+def wait_set(name: str, timeout: float) -> bool:
+    """Whether the event `KEPT[name]` was set within `timeout` s (on the host it runs on)."""
+    return bool(KEPT[name].wait(timeout))
+
+
+def open_gate() -> None:
+    """Set `KEPT["gate"]`: a load held at the gate ends."""
+    KEPT["gate"].set()
+
+
+def next_status(timeout: float) -> tuple[str, str, str, float]:
+    """The next status a consumer's callback recorded in `KEPT["heard"]` (`TimeoutError`
+    if none came within `timeout` s)."""
+    heard: queue.Queue[tuple[str, str, str, float]] = KEPT.setdefault("heard", queue.Queue())
+    try:
+        return heard.get(timeout=timeout)
+    except queue.Empty:
+        raise TimeoutError(f"no status within {timeout:g} s") from None
+
+
+def more_statuses() -> int:
+    """How many recorded statuses wait in `KEPT["heard"]`."""
+    return int(KEPT.setdefault("heard", queue.Queue()).qsize())
 
 
 def rr_join(
