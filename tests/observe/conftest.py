@@ -9,8 +9,10 @@ from typing import Any
 
 import playwright.sync_api as playwright_api  # (the dev extra; a missing one fails, never skips)
 import pytest
+import zenoh
 
 import rr_actors as rr
+from tests.support import hosts
 from tests.support.observed_tree import figure_27
 from tests.support.observing import CHROMIUM_ARGS, chromium
 
@@ -50,3 +52,14 @@ def page(browser: Any) -> Iterator[Any]:
 def tree(supervisors: Any, process_helpers: Any) -> rr.Supervisor:
     """Figure 2.7's managers in processes, started; stopped at teardown."""
     return figure_27(supervisors).start()
+
+
+@pytest.fixture
+def sessions() -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
+    """Two plain Zenoh sessions on loopback, the second connected to the first."""
+    port = hosts.free_port()
+    one = zenoh.open(hosts.zenoh_config(listen=[f"tcp/127.0.0.1:{port}"]))
+    other = zenoh.open(hosts.zenoh_config(connect=[f"tcp/127.0.0.1:{port}"]))
+    yield one, other
+    other.close()  # type: ignore[no-untyped-call]
+    one.close()  # type: ignore[no-untyped-call]

@@ -19,10 +19,8 @@ from __future__ import annotations
 
 import json
 import logging
-import threading
 import time
 import uuid
-from collections.abc import Iterator
 from typing import Any
 
 import pytest
@@ -30,8 +28,7 @@ import zenoh
 
 import rr_actors as rr
 from rr_actors import events
-from rr_actors._transport.zenoh.net import Services
-from rr_actors._transport.zenoh.wire import Keys, ObserverKey
+from rr_actors._transport.zenoh.wire import ObserverKey
 from rr_actors.observe._crossing import (
     decode,
     valid_catalog,
@@ -43,8 +40,7 @@ from rr_actors.observe._faults import FaultRefused
 from rr_actors.observe._hub import Hub
 from rr_actors.observe._share import Share
 from rr_actors.observe._system import SystemView
-from tests.support import hosts
-from tests.support.observing import request
+from tests.support.observing import KEYS, request, services, wait_section
 from tests.support.supervising import echo_setup
 from tests.support.waiting import wait_for
 
@@ -53,7 +49,6 @@ BLOCK = zenoh.CongestionControl.BLOCK
 """The test's puts wait for room instead of being dropped: with Zenoh's default (`DROP`),
 the 110-byte put right after the 100 kB garbage never reached a subscriber 1 run in 7 (a
 raw subscriber saw the 100 kB put and not it), and the test waited for its effect."""
-KEYS = Keys("lab")
 
 
 def catalog(registrar: str, requests: list[str]) -> dict[str, Any]:
@@ -92,33 +87,6 @@ TREE = {
     "state": "running",
     "children": [{"name": "cam", "kind": "manager", "state": "running", "pid": 7, "children": []}],
 }
-
-
-@pytest.fixture
-def sessions() -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
-    port = hosts.free_port()
-    one = zenoh.open(hosts.zenoh_config(listen=[f"tcp/127.0.0.1:{port}"]))
-    other = zenoh.open(hosts.zenoh_config(connect=[f"tcp/127.0.0.1:{port}"]))
-    yield one, other
-    other.close()  # type: ignore[no-untyped-call]
-    one.close()  # type: ignore[no-untyped-call]
-
-
-def services(session: zenoh.Session, member: str) -> Services:
-    return Services(session=session, keys=KEYS, member=member, lease=1.0, links=list)
-
-
-def wait_section(hub: Hub, key: str, predicate: Any = lambda v: v is not None) -> Any:
-    """The page hub's section `key` once `predicate(value)` holds (bounded)."""
-    changed = threading.Event()
-    unlisten = hub.listen(changed.set)
-    try:
-        while not predicate(hub.get(key)):
-            assert changed.wait(BOUND), f"{key}: {hub.get(key)!r}"
-            changed.clear()
-        return hub.get(key)
-    finally:
-        unlisten()
 
 
 def test_observer_keys_are_built_and_parsed_in_one_place() -> None:

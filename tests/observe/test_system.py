@@ -16,7 +16,6 @@ before it, not at each render from the page's copy of its catalog (issue 51).
 
 from __future__ import annotations
 
-import threading
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
@@ -27,20 +26,17 @@ import zenoh
 
 import rr_actors as rr
 from rr_actors import events
-from rr_actors._transport.zenoh.net import Services
-from rr_actors._transport.zenoh.wire import Keys
 from rr_actors.events import kinds
 from rr_actors.observe._hub import Hub
 from rr_actors.observe._share import Share
 from rr_actors.observe._system import SystemView
-from tests.support import hosts, pki
+from tests.support import pki
 from tests.support.gating import GatedLoad
 from tests.support.observed_tree import device, figure_27
-from tests.support.observing import get_json, open_a_page_late
+from tests.support.observing import get_json, open_a_page_late, services, wait_section
 from tests.support.tls_lab import member_tls
 
 BOUND = 10.0
-KEYS = Keys("lab")
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -72,33 +68,6 @@ def erm_catalog(consumers: list[str]) -> dict[str, Any]:
             "in_doubt": [],
         },
     }
-
-
-@pytest.fixture
-def sessions() -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
-    port = hosts.free_port()
-    one = zenoh.open(hosts.zenoh_config(listen=[f"tcp/127.0.0.1:{port}"]))
-    other = zenoh.open(hosts.zenoh_config(connect=[f"tcp/127.0.0.1:{port}"]))
-    yield one, other
-    other.close()  # type: ignore[no-untyped-call]
-    one.close()  # type: ignore[no-untyped-call]
-
-
-def services(session: zenoh.Session, member: str) -> Services:
-    return Services(session=session, keys=KEYS, member=member, lease=1.0, links=list)
-
-
-def wait_section(hub: Hub, key: str, predicate: Any = lambda v: v is not None) -> Any:
-    """The page hub's section `key` once `predicate(value)` holds (bounded)."""
-    changed = threading.Event()
-    unlisten = hub.listen(changed.set)
-    try:
-        while not predicate(hub.get(key)):
-            assert changed.wait(BOUND), f"{key}: {hub.get(key)!r}"
-            changed.clear()
-        return hub.get(key)
-    finally:
-        unlisten()
 
 
 def test_a_status_on_the_systems_stream_is_named_once_from_its_hosts_events_before_it(

@@ -24,6 +24,8 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
+from rr_actors._transport.zenoh.net import Services
+from rr_actors._transport.zenoh.wire import Keys
 from rr_actors.observe._delta import apply
 from tests.support.observed_tree import REQUEST
 
@@ -374,3 +376,27 @@ def open_a_page_late(
     late.locator(FATAL_AT_HOP_2).wait_for(timeout=within_ms)
     app.unload(query.id)
     return LatePage(live, late, sent)
+
+
+# -- the page's view of every host, on plain Zenoh sessions --------------------------------------
+
+KEYS = Keys("lab")
+"""The key space of the cross-host observer tests' system, "lab"."""
+
+
+def services(session: Any, member: str) -> Services:
+    """What a member `member` of "lab" gives the observer's cross-host parts, on `session`."""
+    return Services(session=session, keys=KEYS, member=member, lease=1.0, links=list)
+
+
+def wait_section(hub: Any, key: str, predicate: Any = lambda v: v is not None) -> Any:
+    """The page hub's section `key` once `predicate(value)` holds (within 10 s)."""
+    changed = threading.Event()
+    unlisten = hub.listen(changed.set)
+    try:
+        while not predicate(hub.get(key)):
+            assert changed.wait(10.0), f"{key}: {hub.get(key)!r}"
+            changed.clear()
+        return hub.get(key)
+    finally:
+        unlisten()
