@@ -3,15 +3,13 @@ Graphviz DOT, escaped, the same for the same catalogs."""
 
 from __future__ import annotations
 
-from typing import Any
-
 import pytest
 
 import rr_actors as rr
-from rr_actors._catalog import ClientRecord, Resource, ResourceState
 from rr_actors.observe._text import render
-from rr_actors.observe._view import dependency_graph, short, summarise_catalog
+from rr_actors.observe._view import dependency_graph, summarise_catalog
 from tests.support.observed_tree import REQUEST
+from tests.support.observing import figure_27, resource
 
 
 def test_graph_draws_the_tree_and_figure_27_as_mermaid(tree: rr.Supervisor) -> None:
@@ -41,36 +39,6 @@ def test_graph_draws_dot_with_clusters(tree: rr.Supervisor) -> None:
 def test_graph_refuses_an_unknown_format(tree: rr.Supervisor) -> None:
     with pytest.raises(rr.ConfigError, match="mermaid, dot"):
         tree.graph(format="svg")
-
-
-def resource(rid: str, server: str, request: Any, consumers: dict[str, str]) -> Resource:
-    made = Resource(rid, server, request, {"r": request}, ResourceState.LOADED, consumers)
-    made.request_text = short(request)  # (a registrar makes it when it stores the request)
-    return made
-
-
-def client(qid: str, serving: str, server: str, parent: str | None) -> ClientRecord:
-    return ClientRecord(rr.Query(qid, server, serving, "x", "req", None), parent, loaded=True)
-
-
-def figure_27() -> dict[str, Any]:
-    """Figure 2.7's catalogs: action -> cm's filtered camera -> erm's camera and filter."""
-    return {
-        "erm": summarise_catalog(
-            "erm",
-            [
-                resource("cam", "camera", 0, {"q2": "cm"}),
-                resource("flt", "filter", "blur", {"q3": "cm"}),
-            ],
-            [],
-        ),
-        "cm": summarise_catalog(
-            "cm",
-            [resource("fc", "filtered_camera", {"d": 0}, {"q1": "action"})],
-            [client("q2", "erm", "camera", "fc"), client("q3", "erm", "filter", "fc")],
-        ),
-        "action": summarise_catalog("action", [], [client("q1", "cm", "filtered_camera", None)]),
-    }
 
 
 def test_mermaid_labels_cannot_break_out_of_their_quotes() -> None:

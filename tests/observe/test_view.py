@@ -5,8 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
-import rr_actors as rr
-from rr_actors._catalog import ClientRecord, Resource, ResourceState
+from rr_actors._catalog import Resource, ResourceState
 from rr_actors.observe._text import render
 from rr_actors.observe._view import (
     default_labels,
@@ -17,36 +16,7 @@ from rr_actors.observe._view import (
     summarise_catalog,
 )
 from tests.support.observed_tree import figure_27 as figure_27_tree
-
-
-def resource(rid: str, server: str, request: Any, consumers: dict[str, str]) -> Resource:
-    made = Resource(rid, server, request, {"r": request}, ResourceState.LOADED, consumers)
-    made.request_text = short(request)  # (a registrar makes it when it stores the request)
-    return made
-
-
-def client(qid: str, serving: str, server: str, parent: str | None) -> ClientRecord:
-    return ClientRecord(rr.Query(qid, server, serving, "x", "req", None), parent, loaded=True)
-
-
-def figure_27() -> dict[str, Any]:
-    """Figure 2.7's catalogs: action -> cm's filtered camera -> erm's camera and filter."""
-    return {
-        "erm": summarise_catalog(
-            "erm",
-            [
-                resource("cam", "camera", 0, {"q2": "cm"}),
-                resource("flt", "filter", "blur", {"q3": "cm"}),
-            ],
-            [],
-        ),
-        "cm": summarise_catalog(
-            "cm",
-            [resource("fc", "filtered_camera", {"d": 0}, {"q1": "action"})],
-            [client("q2", "erm", "camera", "fc"), client("q3", "erm", "filter", "fc")],
-        ),
-        "action": summarise_catalog("action", [], [client("q1", "cm", "filtered_camera", None)]),
-    }
+from tests.support.observing import client, figure_27, resource
 
 
 def edges(graph: dict[str, Any]) -> set[tuple[str, str, str, bool]]:

@@ -24,9 +24,11 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
+from rr_actors._catalog import ClientRecord, Resource, ResourceState
 from rr_actors._transport.zenoh.net import Services
 from rr_actors._transport.zenoh.wire import Keys
 from rr_actors.observe._delta import apply
+from rr_actors.observe._view import short, summarise_catalog
 from tests.support.observed_tree import REQUEST
 
 CHROMIUM = os.environ.get("RR_CHROMIUM", "/usr/bin/chromium")
@@ -400,3 +402,38 @@ def wait_section(hub: Any, key: str, predicate: Any = lambda v: v is not None) -
         return hub.get(key)
     finally:
         unlisten()
+
+
+# -- figure 2.7's catalogs, as the observer summarises them --------------------------------------
+
+
+def resource(rid: str, server: str, request: Any, consumers: dict[str, str]) -> Resource:
+    """A loaded resource `rid` of `server` with `consumers` (query id -> registrar)."""
+    made = Resource(rid, server, request, {"r": request}, ResourceState.LOADED, consumers)
+    made.request_text = short(request)  # (a registrar makes it when it stores the request)
+    return made
+
+
+def client(qid: str, serving: str, server: str, parent: str | None) -> ClientRecord:
+    """A loaded client record `qid` of `serving`'s `server`, for resource `parent`."""
+    return ClientRecord(rr.Query(qid, server, serving, "x", "req", None), parent, loaded=True)
+
+
+def figure_27() -> dict[str, Any]:
+    """Figure 2.7's catalogs: action -> cm's filtered camera -> erm's camera and filter."""
+    return {
+        "erm": summarise_catalog(
+            "erm",
+            [
+                resource("cam", "camera", 0, {"q2": "cm"}),
+                resource("flt", "filter", "blur", {"q3": "cm"}),
+            ],
+            [],
+        ),
+        "cm": summarise_catalog(
+            "cm",
+            [resource("fc", "filtered_camera", {"d": 0}, {"q1": "action"})],
+            [client("q2", "erm", "camera", "fc"), client("q3", "erm", "filter", "fc")],
+        ),
+        "action": summarise_catalog("action", [], [client("q1", "cm", "filtered_camera", None)]),
+    }
