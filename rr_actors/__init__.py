@@ -9,17 +9,30 @@ from typing import TYPE_CHECKING
 from rr_actors import _extras, _log
 from rr_actors import events as events  # `rr.events.to_dict(...)`, as `rr.errors` is
 from rr_actors._core.bus import Subscription
-from rr_actors._registrar import MAX_DEPENDENCY_DEPTH, Registrar, ResourceRegistrar, StatusWatch
+from rr_actors._registrar import Registrar, ResourceRegistrar, StatusWatch
 from rr_actors._store import quarantine_backup
-from rr_actors._supervision import ChildCounts, ChildInfo, Supervisor
+from rr_actors._supervision import ChildInfo, Supervisor
 from rr_actors._transport.resolve import Claimant
 from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
 from rr_actors.config import Backoff, ManagerSpec, RegistrarConfig, SupervisorSpec
 from rr_actors.errors import (
     CallTimeoutError,
+    ConfigError,
+    RegistrarStoppedError,
+    RegistrarUnavailableError,
+    ResourceLoadError,
+    RrError,
+    UnknownQueryError,
+)
+
+# isort: split
+# The names `__all__` listed before it was cut to what a program uses (issue 54), still
+# importable from here: a program written against them runs on.
+from rr_actors._supervision import ChildCounts  # noqa: F401
+from rr_actors.config import MAX_DEPENDENCY_DEPTH  # noqa: F401
+from rr_actors.errors import (  # noqa: F401
     CatalogCorruptError,
     CatalogWriteError,
-    ConfigError,
     DependencyCycleError,
     DuplicateNameError,
     DuplicateQueryIdError,
@@ -27,13 +40,8 @@ from rr_actors.errors import (
     InternalError,
     MessageTooLargeError,
     MissingExtraError,
-    RegistrarStoppedError,
-    RegistrarUnavailableError,
-    ResourceLoadError,
-    RrError,
     SupervisorGaveUpError,
     TransferError,
-    UnknownQueryError,
     UnknownRegistrarError,
     UnknownServerError,
 )
@@ -43,23 +51,12 @@ if TYPE_CHECKING:  # at run time, `__getattr__` below imports it (and zenoh) at 
     from rr_actors._transport.zenoh.ops.tls import ZenohTLS
 
 __all__ = [
-    "MAX_DEPENDENCY_DEPTH",
     "Backoff",
     "CallTimeoutError",
-    "CatalogCorruptError",
-    "CatalogWriteError",
-    "ChildCounts",
     "ChildInfo",
     "Claimant",
     "ConfigError",
-    "DependencyCycleError",
-    "DuplicateNameError",
-    "DuplicateQueryIdError",
-    "ErrorFrame",
-    "InternalError",
     "ManagerSpec",
-    "MessageTooLargeError",
-    "MissingExtraError",
     "Query",
     "Registrar",
     "RegistrarConfig",
@@ -74,16 +71,16 @@ __all__ = [
     "StatusWatch",
     "Subscription",
     "Supervisor",
-    "SupervisorGaveUpError",
     "SupervisorSpec",
-    "TransferError",
     "UnknownQueryError",
-    "UnknownRegistrarError",
-    "UnknownServerError",
     "ZenohNetwork",
     "ZenohTLS",
     "quarantine_backup",
 ]
+"""What a program uses (25 names, issue 54). The errors a caller catches most are here; every
+error is in `rr_actors.errors`, `MAX_DEPENDENCY_DEPTH` in `rr_actors.config`,
+`ChildCounts` beside `Supervisor.count_children`. The names this module listed before
+are all still importable from it (`rr.UnknownServerError`, `rr.MAX_DEPENDENCY_DEPTH`)."""
 
 __version__ = "0.1.0"
 

@@ -22,6 +22,7 @@ from rr_actors.errors import ConfigError
 __all__ = [
     "DEFAULT_MAX_MESSAGE_BYTES",
     "DEFAULT_MAX_WORKERS",
+    "MAX_DEPENDENCY_DEPTH",
     "NAME",
     "NAME_MAX",
     "Backoff",
@@ -86,6 +87,12 @@ DEFAULT_MAX_WORKERS = 64
 DEFAULT_MAX_MESSAGE_BYTES = 16 * 1024 * 1024
 """The largest message (pickled) a registrar takes from another process, unless its
 `max_message_bytes` says otherwise: 16 MiB."""
+
+
+MAX_DEPENDENCY_DEPTH = 64
+"""How deep a load chain may grow (a load whose `load` calls another, and so on): a call
+that would make it deeper fails with `DependencyCycleError` (runaway recursion, rule 6),
+rather than deadlock."""
 
 
 def check_seconds(

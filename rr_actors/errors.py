@@ -148,7 +148,7 @@ class DependencyCycleError(RrError):
     """A load would wait for a resource that is being loaded further up the same chain.
 
     Raised instead of deadlocking (equal request further up) or recursing forever
-    (the chain grew deeper than `rr_actors.MAX_DEPENDENCY_DEPTH`).
+    (the chain grew deeper than `rr_actors.config.MAX_DEPENDENCY_DEPTH`).
     """
 
 

@@ -702,10 +702,10 @@ class TestTheErrorsPage:
 
     @pytest.mark.parametrize("name", ERRORS)
     def test_every_error_is_importable_from_rr_actors_as_the_page_says(self, name: str) -> None:
-        """The page: "importable from `rr_actors` and from `rr_actors.errors`". `TransferError` and
-        `InternalError` were not (issue 44 item 8)."""
+        """The page: "importable from `rr_actors.errors`, and also from `rr_actors`".
+        `TransferError` and `InternalError` were not (issue 44 item 8); the top's `__all__`
+        lists only those a caller catches most (issue 54)."""
         assert getattr(errors, name) is getattr(rr_actors, name, None)
-        assert name in rr_actors.__all__
 
     def test_the_page_draws_every_error_in_its_tree(self) -> None:
         tree = re.search(r"```text\n(.*?)```", PAGE.read_text(), re.DOTALL)

@@ -29,10 +29,9 @@ from rr_actors._registrar.handle import (
     start_registrar,
 )
 from rr_actors._registrar.life import CatalogView, Served
-from rr_actors._registrar.messages import MAX_DEPENDENCY_DEPTH, give_back
+from rr_actors._registrar.messages import give_back
 
 __all__ = [
-    "MAX_DEPENDENCY_DEPTH",
     "CatalogView",
     "Registrar",
     "ResourceRegistrar",

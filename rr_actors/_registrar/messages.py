@@ -56,7 +56,6 @@ from rr_actors.errors import (
 
 __all__ = [
     "LOADING",
-    "MAX_DEPENDENCY_DEPTH",
     "Abandon",
     "Asked",
     "ConsumerDown",
@@ -666,10 +665,6 @@ def misfit(message: object, names: TextFields) -> ConfigError | None:
 
 
 # -- what a load callback runs inside --------------------------------------------------
-
-
-MAX_DEPENDENCY_DEPTH = 64
-"""A load chain deeper than this is reported as a `DependencyCycleError` (runaway recursion)."""
 
 
 @dataclasses.dataclass(frozen=True)

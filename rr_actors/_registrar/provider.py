@@ -87,7 +87,6 @@ from rr_actors._registrar.consumer import Releases
 from rr_actors._registrar.display import show_request, show_response
 from rr_actors._registrar.messages import (
     LOADING,
-    MAX_DEPENDENCY_DEPTH,
     Abandon,
     Fetch,
     ListServerQueries,
@@ -111,6 +110,7 @@ from rr_actors._registrar.messages import (
 from rr_actors._registrar.state import Phase, Server, Shared, Waiter, consumers_by_origin
 from rr_actors._registrar.status import StatusRelay, Unacknowledged
 from rr_actors._types import LoadCallback, Status, StatusUpdate, UnloadCallback
+from rr_actors.config import MAX_DEPENDENCY_DEPTH
 from rr_actors.errors import (
     CallTimeoutError,
     ConfigError,

@@ -153,7 +153,11 @@ def retrying(
         before = None if remote else sup.child(provider)
         try:
             return action()
-        except (rr.RegistrarUnavailableError, rr.RegistrarStoppedError, rr.UnknownServerError):
+        except (
+            rr.RegistrarUnavailableError,
+            rr.RegistrarStoppedError,
+            rr.errors.UnknownServerError,
+        ):
             # (a provider on another host: lost while its link was down, so unknown here
             # until it is seen again; its own host's supervisor restarts it, not this one)
             left = deadline - runtime.monotonic()
@@ -176,7 +180,7 @@ def _elsewhere(sup: rr.Supervisor, provider: str) -> bool:
     """Whether `provider` is a manager of another host (not in `sup`'s tree)."""
     try:
         sup.child(provider)
-    except rr.UnknownServerError:
+    except rr.errors.UnknownServerError:
         return True
     return False
 

@@ -134,7 +134,7 @@ class Recovery:
             began = time.monotonic()
             try:
                 robot = self._loads.robot_once(timeout=max(deadline - began, 1e-3))
-            except (rr.RegistrarUnavailableError, rr.UnknownRegistrarError) as exc:
+            except (rr.RegistrarUnavailableError, rr.errors.UnknownRegistrarError) as exc:
                 failed = time.monotonic() - began
                 if record.healed_at is None:
                     record.failed_calls.append(failed)
