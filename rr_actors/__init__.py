@@ -2,17 +2,17 @@
 
 Registrars, resource servers and clients are pykka actors; the docs hold a tutorial,
 the semantics (`docs/explanation/semantics.md`) and the architecture.
+
+`import rr_actors` imports the errors, the configuration and the status types; the
+runtime (registrars, supervisors, the event stream) is imported at the first use of one of
+its names (`rr.ResourceRegistrar`, `from rr_actors import Supervisor`), as PEP 562 allows,
+so a program or command that only configures or reads pays for none of it.
 """
 
+import importlib
 from typing import TYPE_CHECKING
 
 from rr_actors import _extras, _log
-from rr_actors import events as events  # `rr.events.to_dict(...)`, as `rr.errors` is
-from rr_actors._core.bus import Subscription
-from rr_actors._registrar import Registrar, ResourceRegistrar, StatusWatch
-from rr_actors._store import quarantine_backup
-from rr_actors._supervision import ChildInfo, Supervisor
-from rr_actors._transport.resolve import Claimant
 from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
 from rr_actors.config import Backoff, ManagerSpec, RegistrarConfig, SupervisorSpec
 from rr_actors.errors import (
@@ -28,7 +28,6 @@ from rr_actors.errors import (
 # isort: split
 # The names `__all__` listed before it was cut to what a program uses (issue 54), still
 # importable from here: a program written against them runs on.
-from rr_actors._supervision import ChildCounts  # noqa: F401
 from rr_actors.config import MAX_DEPENDENCY_DEPTH  # noqa: F401
 from rr_actors.errors import (  # noqa: F401
     CatalogCorruptError,
@@ -46,7 +45,14 @@ from rr_actors.errors import (  # noqa: F401
     UnknownServerError,
 )
 
-if TYPE_CHECKING:  # at run time, `__getattr__` below imports it (and zenoh) at first use
+if TYPE_CHECKING:  # at run time, `__getattr__` below imports each at its first use
+    from rr_actors import events as events  # `rr.events.to_dict(...)`, as `rr.errors` is
+    from rr_actors._core.bus import Subscription
+    from rr_actors._registrar import Registrar, ResourceRegistrar, StatusWatch
+    from rr_actors._store import quarantine_backup
+    from rr_actors._supervision import ChildCounts as ChildCounts
+    from rr_actors._supervision import ChildInfo, Supervisor
+    from rr_actors._transport.resolve import Claimant
     from rr_actors._transport.zenoh.net import ZenohNetwork
     from rr_actors._transport.zenoh.ops.tls import ZenohTLS
 
@@ -87,18 +93,48 @@ __version__ = "0.1.0"
 _log.install()  # WARNING and ERROR on stderr, level and logger named, until logging is configured
 
 
-def __getattr__(name: str) -> object:
-    """`rr.ZenohNetwork`, `rr.ZenohTLS`, imported at first use.
+_RUNTIME = {
+    "events": "rr_actors.events",
+    "Subscription": "rr_actors._core.bus",
+    "Registrar": "rr_actors._registrar",
+    "ResourceRegistrar": "rr_actors._registrar",
+    "StatusWatch": "rr_actors._registrar",
+    "quarantine_backup": "rr_actors._store",
+    "ChildCounts": "rr_actors._supervision",
+    "ChildInfo": "rr_actors._supervision",
+    "Supervisor": "rr_actors._supervision",
+    "Claimant": "rr_actors._transport.resolve",
+    "ZenohNetwork": "rr_actors._transport.zenoh.net",
+    "ZenohTLS": "rr_actors._transport.zenoh.ops.tls",
+}
+"""Each name of the runtime this module gives, and the module that defines it (imported at
+the name's first use)."""
 
-    So `import rr_actors` never imports zenoh or cryptography. Without the zenoh extra,
-    a `MissingExtraError` (an `ImportError`) names it and the command that installs it.
+_NEEDS_ZENOH = {"ZenohNetwork", "ZenohTLS"}
+
+
+def __getattr__(name: str) -> object:
+    """A name of the runtime (`_RUNTIME`), its module imported at first use (PEP 562).
+
+    `rr.ZenohNetwork` and `rr.ZenohTLS` import zenoh (and cryptography) only then; without
+    the zenoh extra, a `MissingExtraError` (an `ImportError`) names it and the command that
+    installs it.
+
+    Raises:
+        AttributeError: `name` is not one of this module's.
     """
-    if name == "ZenohNetwork":
-        with _extras.needs("zenoh", "rr.ZenohNetwork"):
-            from rr_actors._transport.zenoh.net import ZenohNetwork  # noqa: PLC0415 - lazily
-        return ZenohNetwork
-    if name == "ZenohTLS":
-        with _extras.needs("zenoh", "rr.ZenohTLS"):
-            from rr_actors._transport.zenoh.ops.tls import ZenohTLS  # noqa: PLC0415 - lazily
-        return ZenohTLS
-    raise AttributeError(f"module 'rr_actors' has no attribute {name!r}")
+    where = _RUNTIME.get(name)
+    if where is None:
+        raise AttributeError(f"module 'rr_actors' has no attribute {name!r}")
+    if name in _NEEDS_ZENOH:
+        with _extras.needs("zenoh", f"rr.{name}"):
+            module = importlib.import_module(where)
+    else:
+        module = importlib.import_module(where)
+    value = module if name == "events" else getattr(module, name)
+    globals()[name] = value  # (the next use finds it here, as an eager import would)
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_RUNTIME})
