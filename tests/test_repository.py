@@ -193,6 +193,7 @@ when `<name>` is `P`'s own name without its underscore (the package as a whole: 
 WHOLE_FEATURES = {
     "test_docs.py": "every code block of README.md and docs/ runs; the index and errors page",
     "test_examples.py": "every program of examples/ runs as its own program",
+    "test_init.py": "the package's public names (rr_actors/__init__.py): what imports, lazily",
     "test_benchmarks.py": "every script of benchmarks/ runs at its smallest; their own logic",
     "test_repository.py": "the repository itself: ignored outputs, import circles, this rule",
     "test_conftest_progress.py": "tests/conftest.py: failures named as they come, slow files first",
