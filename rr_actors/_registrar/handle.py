@@ -253,12 +253,7 @@ class Registrar:
         in-doubt loads started with coroutines of its own (`asyncio.run` inside it), and
         settles each entry as its clean-up ends, without holding up the others.
 
-        Raises:
-            UnknownQueryError: `query_id` is not the id of an entry of `in_doubt`.
-            CatalogWriteError: the backup could not be written (see `settle_in_doubt`).
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
+        Raises what `settle_in_doubt` raises.
         """
         await run_steps_async(self._actor.steps(Here.settle_in_doubt, timeout, query_id))
 
@@ -325,13 +320,8 @@ class Registrar:
         them), a slow one awaiting without holding a thread; plain ones run on worker
         threads. Either kind may be registered through either twin.
 
-        Raises:
-            ConfigError: a callback is not callable (or `label` is a coroutine function),
-                or the name is invalid.
-            DuplicateNameError: a server with this name exists on this registrar.
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
+        Raises what `register_server` raises, and `ConfigError` when `label` is a coroutine
+        function.
         """
         steps = self._actor.steps(
             Here.register_server, timeout, name, load, unload, on_status, label
@@ -352,11 +342,7 @@ class Registrar:
     async def aunregister_server(self, name: str, *, timeout: float | None = None) -> None:
         """`unregister_server`, awaited (rule 12).
 
-        Raises:
-            UnknownServerError: no such server here.
-            CallTimeoutError: not finished within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
+        Raises what `unregister_server` raises.
         """
         await run_steps_async(self._actor.steps(Here.unregister_server, timeout, name))
 
@@ -431,17 +417,8 @@ class Registrar:
         `on_status` may be a coroutine function: it then runs on the loop this call was
         awaited from, one update at a time (see `StatusWatch` for an iterator instead).
 
-        Raises:
-            ResourceLoadError: `load` raised there or further down; `stack` says where.
-            DependencyCycleError: the load would wait for itself further up its chain.
-            UnknownServerError: no such registrar or server.
-            CallTimeoutError: no answer in time; the query id is released if it loads
-                later.
-            RegistrarUnavailableError: the provider died (it may have executed the load).
-            RegistrarStoppedError: this registrar or the provider was stopped.
-            ConfigError: as for `call`.
-            asyncio.CancelledError: the awaiting task was cancelled: the call was
-                withdrawn as a timed-out one is (nothing is left held).
+        Raises what `call` raises, and `asyncio.CancelledError` when the awaiting task is
+        cancelled: the call is then withdrawn as a timed-out one is (nothing is left held).
         """
         steps = self._actor.steps(
             Here.call, timeout, target_rr, server, request, on_status, query_id
@@ -472,12 +449,7 @@ class Registrar:
     async def aunload(self, query_id: str, *, timeout: float | None = None) -> None:
         """`unload`, awaited (rules 7-8).
 
-        Raises:
-            UnknownQueryError: the id is unknown here or already released.
-            CallTimeoutError: not finished within `timeout` seconds.
-            RegistrarUnavailableError: the provider died before it answered (see
-                `unload`: the release is done all the same).
-            RegistrarStoppedError: this registrar, or the provider, was stopped.
+        Raises what `unload` raises.
         """
         await run_steps_async(self._actor.steps(Here.unload, timeout, query_id))
 
@@ -514,13 +486,7 @@ class Registrar:
         """`send_status`, awaited (rule 9): done once every callback on the way has run
         (a coroutine one: once it returned).
 
-        Raises:
-            UnknownQueryError: `query_id` is not a consumer id of a resource served here.
-            ConfigError: `status` is not a `Status`.
-            MessageTooLargeError: over a consumer's `max_message_bytes` (see `send_status`).
-            CallTimeoutError: not delivered everywhere within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
+        Raises what `send_status` raises.
         """
         steps = self._actor.steps(Here.send_status, timeout, query_id, status, message)
         await run_steps_async(steps)
@@ -541,11 +507,7 @@ class Registrar:
     async def aserver_queries(self, server: str, *, timeout: float | None = None) -> list[Query]:
         """`server_queries`, awaited (rule 10).
 
-        Raises:
-            UnknownServerError: no such server here.
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
+        Raises what `server_queries` raises.
         """
         return await run_steps_async(self._actor.steps(Here.server_queries, timeout, server))
 
@@ -569,11 +531,7 @@ class Registrar:
     ) -> list[Query]:
         """`fetch_queries`, awaited (rule 10).
 
-        Raises:
-            UnknownServerError: no such registrar or server.
-            ConfigError: `target_rr` or `server` is not a str.
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarUnavailableError: the provider died.
+        Raises what `fetch_queries` raises.
         """
         steps = self._actor.steps(Here.fetch_queries, timeout, target_rr, server)
         return await run_steps_async(steps)
@@ -591,10 +549,7 @@ class Registrar:
     async def aclient_queries(self, *, timeout: float | None = None) -> list[Query]:
         """`client_queries`, awaited.
 
-        Raises:
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
+        Raises what `client_queries` raises.
         """
         return await run_steps_async(self._actor.steps(Here.client_queries, timeout))
 
@@ -622,12 +577,7 @@ class Registrar:
         """`set_status_callback`, awaited (rule 11); a coroutine `callback` runs on the
         loop this was awaited from.
 
-        Raises:
-            UnknownQueryError: this registrar holds no such query.
-            ConfigError: `callback` is not callable.
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
+        Raises what `set_status_callback` raises.
         """
         steps = self._actor.steps(Here.set_status_callback, timeout, query_id, callback)
         await run_steps_async(steps)
@@ -665,13 +615,7 @@ class Registrar:
     ) -> None:
         """`update_response`, awaited (rule 11).
 
-        Raises:
-            UnknownQueryError: `query_id` is not a consumer id of a resource served here.
-            ConfigError: the response cannot be stored (see `update_response`).
-            MessageTooLargeError: over a consumer's `max_message_bytes`.
-            CallTimeoutError: not delivered within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
+        Raises what `update_response` raises.
         """
         steps = self._actor.steps(Here.update_response, timeout, query_id, response)
         await run_steps_async(steps)
@@ -689,10 +633,7 @@ class Registrar:
     async def asave_catalog(self, *, timeout: float | None = None) -> None:
         """`save_catalog`, awaited.
 
-        Raises:
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
+        Raises what `save_catalog` raises.
         """
         await run_steps_async(self._actor.steps(Here.save_catalog, timeout))
 
@@ -723,9 +664,7 @@ class Registrar:
     async def astop(self, *, timeout: float | None = None) -> None:
         """`stop`, awaited (rule 12). Stopping a stopped registrar is a no-op.
 
-        Raises:
-            CallTimeoutError: not finished within `timeout` seconds.
-            RegistrarUnavailableError: the registrar died while it stopped.
+        Raises what `stop` raises.
         """
         await run_steps_async(self._actor.stop(timeout))
 
