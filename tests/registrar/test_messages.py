@@ -13,8 +13,8 @@ import pytest
 import rr_actors as rr
 from rr_actors._core.replies import FutureReply, wait
 from rr_actors._registrar import messages
+from rr_actors._registrar.messages import Load
 from rr_actors.testing import MemoryNetwork, catalog_snapshot
-from rr_actors.testing.carrier import Load
 
 # -- for TestBadNames ----------------------------------------------------------------------
 

@@ -37,8 +37,8 @@ import pytest
 import rr_actors as rr
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.replies import FutureReply, wait
+from rr_actors._registrar.messages import Load
 from rr_actors.testing import SharedObjects, actor_ref, start_forkserver
-from rr_actors.testing.carrier import Load
 from tests.support.carriers import own_provider_main, setup_servers
 from tests.support.supervising import (
     FakeClock,

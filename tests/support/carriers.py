@@ -33,8 +33,8 @@ import cloudpickle
 import pytest
 
 import rr_actors as rr
+from rr_actors._registrar.life import Served
 from rr_actors._transport import System, Transport
-from rr_actors.testing.carrier import Served
 
 Setup = Callable[[rr.ResourceRegistrar], None]
 

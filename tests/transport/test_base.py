@@ -32,9 +32,10 @@ import pytest
 import rr_actors as rr
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.replies import FutureReply, wait
+from rr_actors._registrar.life import Served
+from rr_actors._registrar.messages import Load, Revoke
 from rr_actors._transport import System, Transport
 from rr_actors.testing import MemoryNetwork, intercept
-from rr_actors.testing.carrier import Load, Revoke, Served
 from tests.support import carriers
 from tests.support.carriers import (
     BIG,

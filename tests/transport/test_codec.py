@@ -23,8 +23,8 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._core.wire import plain
+from rr_actors._registrar.messages import Fetch, Load, Revoke
 from rr_actors._transport.codec import frame, frames, unframe
-from rr_actors.testing.carrier import Fetch, Load, Revoke
 from tests.core import test_wire as wire_tests
 
 # -- encoding: the C pickler's fast path ----------------------------------------------------

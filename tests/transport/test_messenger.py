@@ -25,10 +25,11 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
+from rr_actors._registrar.life import Served
+from rr_actors._registrar.messages import Fetch
 from rr_actors._transport import System
 from rr_actors._transport.unix.link import Listener
 from rr_actors.errors import InternalError, TransferError
-from rr_actors.testing.carrier import Fetch, Served
 
 
 @pytest.fixture

@@ -31,6 +31,8 @@ import pytest
 
 import rr_actors as rr
 import rr_actors._transport.unix.link as writer_module
+from rr_actors._registrar.life import Served
+from rr_actors._registrar.messages import Fetch, Load
 from rr_actors._transport import RemotePeer, System
 from rr_actors._transport.unix.link import (
     HANDSHAKE_TIMEOUT,
@@ -39,7 +41,6 @@ from rr_actors._transport.unix.link import (
     connect,
     split,
 )
-from rr_actors.testing.carrier import Fetch, Load, Served
 from tests.support.carriers import (
     ProviderFactory,
     load_count,

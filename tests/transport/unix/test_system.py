@@ -28,9 +28,9 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._core.directory import DIRECTORY
+from rr_actors._registrar.life import Served
 from rr_actors._transport import RemotePeer, System, SystemAddress, attach
 from rr_actors.testing import expect_restart
-from rr_actors.testing.carrier import Served
 from tests.support.carriers import (
     ProviderFactory,
     Recorder,

@@ -29,12 +29,13 @@ import rr_actors as rr
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.replies import FutureReply
 from rr_actors._core.wire import WIRE_VERSION
+from rr_actors._registrar.life import Served
+from rr_actors._registrar.messages import Fetch, Revoke
 from rr_actors._transport.codec import frame
 from rr_actors._transport.zenoh import presence
 from rr_actors._transport.zenoh.net import ZenohNetwork
 from rr_actors._transport.zenoh.wire import MESSAGE, PYTHON, VERSION, parse, payload_of
 from rr_actors.testing import run_on_actor
-from rr_actors.testing.carrier import Fetch, Revoke, Served
 from tests.support.carriers import in_thread, setup_servers, wait_load_started
 from tests.support.waiting import wait_for
 

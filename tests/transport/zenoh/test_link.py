@@ -20,11 +20,11 @@ import zenoh
 import rr_actors as rr
 from rr_actors._core import hlc
 from rr_actors._core.wire import WIRE_VERSION
+from rr_actors._registrar.life import Served
 from rr_actors._transport.codec import NO_REPLY, frame
 from rr_actors._transport.zenoh.link import Outboxes
 from rr_actors._transport.zenoh.net import ZenohNetwork
 from rr_actors._transport.zenoh.wire import MESSAGE, PLAIN, PYTHON, Keys, envelope
-from rr_actors.testing.carrier import Served
 from tests.support.carriers import record_warnings, setup_servers, warnings_logged
 
 BOUND = 10.0
