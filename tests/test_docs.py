@@ -819,3 +819,14 @@ def test_the_modules_page_lists_every_module_with_its_docstrings_first_paragraph
     bus = script.first_paragraph(ROOT / "rr_actors" / "_core" / "bus.py")
     assert f"| `rr_actors._core.bus` | {bus} |" in script.render()
     assert "" not in [script.first_paragraph(p) for p in modules]
+
+
+def test_the_api_page_names_every_top_level_name_in_its_table_in_plain_markdown() -> None:
+    """Where a reader first meets the API, before the generated sections: each name of
+    `rr.__all__` with one line (issue 54)."""
+    page = (ROOT / "docs" / "reference" / "api.md").read_text()
+    glance = page[page.index("## The names at a glance") :]
+    glance = glance[: glance.index("\n\n", glance.index("|---|"))]
+
+    assert sorted(rr_actors.__all__) == sorted(re.findall(r"^\| `(\w+)` \|", glance, re.M))
+    assert page.index("## The names at a glance") < page.index(":::")

@@ -131,7 +131,8 @@ def test_the_heartbeat_finds_a_hang_and_without_it_the_hang_lasts() -> None:
     assert 1 == fast.restarts
     (hang,) = fast.faults
     assert hang.recovery_s is not None  # the heartbeat's restart served again (how soon is
-    # a figure of docs/explanation/experiments/hang.md, measured on a quiet machine, not a test's bound)
+    # a figure of docs/explanation/experiments/hang.md, measured on a quiet machine, not a
+    # test's bound)
 
 
 def test_a_killed_resource_process_is_heard_and_loaded_again() -> None:
