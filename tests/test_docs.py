@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import importlib.util
 import itertools
 import json
 import os
@@ -64,6 +65,7 @@ import subprocess
 import sys
 import sysconfig
 import tomllib
+import types
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -74,7 +76,7 @@ from rr_actors import errors
 from rr_actors.experiments import parse_plan
 
 ROOT = Path(__file__).resolve().parent.parent
-PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+PAGES = [ROOT / "README.md", ROOT / "CONTRIBUTING.md", *sorted((ROOT / "docs").rglob("*.md"))]
 KERNEL = Path(__file__).resolve().parent / "support" / "docs_kernel.py"
 
 BLOCK_TIMEOUT = 60.0
@@ -643,14 +645,13 @@ class TestTheIndex:
         assert ["rr-actors experiment first --out first-results --force"] == readme
         assert set(readme) <= set(tutorial)
 
-    def test_the_plan_for_the_docs_toolchain_is_a_page_of_the_site(self) -> None:
-        """mkdocs-material's end of life (May 2027): the plan, and why, is recorded in
-        `docs/` and listed in the site's navigation (issue 44 item 7)."""
-        page = (ROOT / "docs" / "explanation" / "docs-toolchain.md").read_text()
+    def test_the_plan_for_the_docs_toolchain_is_in_the_contributors_guide(self) -> None:
+        """mkdocs-material's end of life (May 2027): the plan, and why, is recorded where a
+        contributor reads (issue 44 item 7; `CONTRIBUTING.md` since issue 54)."""
+        guide = (ROOT / "CONTRIBUTING.md").read_text()
 
-        assert "explanation/docs-toolchain.md" in (ROOT / "mkdocs.yml").read_text()
-        assert "**The plan:" in page
-        assert "May 2027" in page
+        assert "**The plan:" in guide
+        assert "May 2027" in guide
 
     def test_each_time_of_the_second_command_says_when_and_at_which_commit_it_was_measured(
         self,
@@ -730,7 +731,7 @@ def included_examples(page: Path) -> list[str]:
     ]
 
 
-SHOWING = [page for page in PAGES[1:] if included_examples(page)]  # (docs/ only: no README)
+SHOWING = [page for page in PAGES[2:] if included_examples(page)]  # (docs/ only)
 
 
 def test_every_example_a_page_shows_is_linked_by_its_path_in_the_repository() -> None:
@@ -784,3 +785,48 @@ def test_the_built_site_holds_each_example_a_page_links_and_the_link_resolves(
             assert example in followed[rel(page)], f"{rel(page)}: no link to {example}"
             assert (ROOT / example).read_bytes() == (site / example).read_bytes()
     assert "examples/filtered_camera.py" in followed["docs/tutorial/first-registrars.md"]
+
+
+# -- the module reference, generated from the docstrings ---------------------------------------
+
+
+def modules_script() -> types.ModuleType:
+    """`docs/hooks/modules.py`, which writes `docs/reference/modules.md`."""
+    spec = importlib.util.spec_from_file_location("docs_modules", ROOT / "docs/hooks/modules.py")
+    assert spec is not None
+    assert spec.loader is not None
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    return script
+
+
+def test_the_modules_page_is_what_its_script_writes_from_the_docstrings() -> None:
+    """A docstring changed, or a module added or gone, without `python docs/hooks/modules.py`
+    run again leaves the reference stale (issue 54)."""
+    page = (ROOT / "docs" / "reference" / "modules.md").read_text()
+
+    assert modules_script().render() == page, "run: python docs/hooks/modules.py"
+
+
+def test_the_modules_page_lists_every_module_with_its_docstrings_first_paragraph() -> None:
+    script = modules_script()
+    modules = sorted(p for p in (ROOT / "rr_actors").rglob("*.py") if "__pycache__" not in p.parts)
+    rows = [line for line in script.render().splitlines() if line.startswith("| `rr_actors")]
+    packages = [p for p in modules if p.name == "__init__.py"]
+
+    assert len(modules) - len(packages) == len(rows)
+    assert "modules.md" in (ROOT / "mkdocs.yml").read_text()
+    bus = script.first_paragraph(ROOT / "rr_actors" / "_core" / "bus.py")
+    assert f"| `rr_actors._core.bus` | {bus} |" in script.render()
+    assert "" not in [script.first_paragraph(p) for p in modules]
+
+
+def test_the_api_page_names_every_top_level_name_in_its_table_in_plain_markdown() -> None:
+    """Where a reader first meets the API, before the generated sections: each name of
+    `rr.__all__` with one line (issue 54)."""
+    page = (ROOT / "docs" / "reference" / "api.md").read_text()
+    glance = page[page.index("## The names at a glance") :]
+    glance = glance[: glance.index("\n\n", glance.index("|---|"))]
+
+    assert sorted(rr_actors.__all__) == sorted(re.findall(r"^\| `(\w+)` \|", glance, re.M))
+    assert page.index("## The names at a glance") < page.index(":::")

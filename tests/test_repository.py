@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import re
 import shutil
 import subprocess
 from pathlib import Path
@@ -191,11 +192,14 @@ when `<name>` is `P`'s own name without its underscore (the package as a whole: 
 `"a/b"`."""
 
 WHOLE_FEATURES = {
-    "test_docs.py": "every code block of README.md and docs/ runs; the index and errors page",
+    "test_docs.py": "every code block of README.md and docs/ runs; the index, errors, API and "
+    "modules pages",
     "test_examples.py": "every program of examples/ runs as its own program",
     "test_init.py": "the package's public names (rr_actors/__init__.py): what imports, lazily",
     "test_benchmarks.py": "every script of benchmarks/ runs at its smallest; their own logic",
-    "test_repository.py": "the repository itself: ignored outputs, import circles, this rule",
+    "test_repository.py": "the repository itself: ignored outputs, import circles, this rule, "
+    "the docs' and the changelog's budgets",
+    "test_init.py": "the package's top level, rr_actors/__init__.py: its names and lazy imports",
     "test_conftest_progress.py": "tests/conftest.py: failures named as they come, slow files first",
     "observe/test_page.py": "the observer's page: the HTML and JavaScript of observe/static/",
     "simulation/test_registrar.py": "the registrar's semantic rules on the simulation, many seeds",
@@ -255,3 +259,93 @@ def test_each_test_folder_mirrors_packages_or_says_why_not() -> None:
     assert len(folders) > 10  # the walk found the tree
     assert set() == folders - set(MIRRORED) - set(SCENARIO_FOLDERS)
     assert [] == [name for name in SCENARIO_FOLDERS if name in MIRRORED]
+
+
+# -- what a user reads: the pages' and the changelog's budgets (issue 54) -----------------------
+
+BUDGETS = {
+    "docs/performance.md": 400,  # a results page: targets, how to reproduce, the latest tables
+    "docs/explanation/architecture.md": 600,  # explanation; the module map is generated
+}
+"""Pages a user reads, each with the most lines it may have: what grows past it belongs
+elsewhere (the history of figures in benchmarks/NOTES.md, contributor notes in
+CONTRIBUTING.md, every module on docs/reference/modules.md)."""
+
+UNRELEASED_LINES = 150
+"""The most lines `## [Unreleased]` of CHANGELOG.md may have, its headings included."""
+
+ENTRY_LINES = 3
+"""The most lines one entry of `## [Unreleased]` may have."""
+
+PRIVATE = re.compile(r"(?<![\w])_[a-z][a-z0-9_]*")
+"""A private name (`_core`, `rr_actors._x`, `_platform/linux.py`); a dunder does not count."""
+
+TEST_FILE = re.compile(r"\btests/|\btest_\w+\.py\b|\bconftest\.py\b")
+
+
+def unreleased() -> list[str]:
+    """The lines of CHANGELOG.md's `## [Unreleased]`, up to the next release's heading."""
+    lines = (ROOT / "CHANGELOG.md").read_text(encoding="utf-8").splitlines()
+    start = lines.index("## [Unreleased]")
+    end = next((i for i in range(start + 1, len(lines)) if lines[i].startswith("## [")), len(lines))
+    return lines[start:end]
+
+
+def entries(lines: list[str]) -> list[list[str]]:
+    """Each `- ` entry of `lines` with its continuation lines."""
+    found: list[list[str]] = []
+    for line in lines:
+        if line.startswith("- "):
+            found.append([line])
+        elif line.startswith("  ") and found:
+            found[-1].append(line)
+        elif not line.strip() or line.startswith("#"):
+            continue
+    return found
+
+
+@pytest.mark.parametrize("page", sorted(BUDGETS))
+def test_a_page_a_user_reads_keeps_within_its_budget_of_lines(page: str) -> None:
+    lines = len((ROOT / page).read_text(encoding="utf-8").splitlines())
+
+    assert lines <= BUDGETS[page], f"{page}: {lines} lines, at most {BUDGETS[page]}"
+
+
+def test_the_unreleased_changes_are_what_a_user_sees_in_at_most_150_lines() -> None:
+    section = unreleased()
+    long = [e[0] for e in entries(section) if len(e) > ENTRY_LINES]
+
+    assert len(section) <= UNRELEASED_LINES, f"[Unreleased]: {len(section)} lines"
+    assert len(entries(section)) > 10  # (the parse found the entries)
+    assert [] == long
+
+
+def test_no_changelog_entry_names_a_private_module_or_a_test_file() -> None:
+    """Internals live in the commit messages: a user cannot import `_x`, nor run
+    `tests/...` from a wheel."""
+    lines = (ROOT / "CHANGELOG.md").read_text(encoding="utf-8").splitlines()
+    naming = [
+        " ".join(entry)[:100]
+        for entry in entries(lines)
+        if PRIVATE.search(" ".join(entry)) or TEST_FILE.search(" ".join(entry))
+    ]
+
+    assert len(entries(lines)) > 50  # (the walk found the entries)
+    assert [] == naming
+
+
+@pytest.mark.parametrize(
+    ("entry", "names"),
+    [
+        ("- `rr_actors._core.bus` publishes", True),
+        ("- the fix (`_platform/linux.py`)", True),
+        ("- a case in tests/core/test_bus.py", True),
+        ("- `test_bus.py` holds it", True),
+        ("- `__init__` and `save_on_modify` are public", False),
+        ("- `rr-actors check` has a rule", False),
+    ],
+)
+def test_the_changelog_rule_tells_private_and_test_names_from_public_ones(
+    entry: str, names: bool
+) -> None:
+    assert names == bool(PRIVATE.search(entry) or TEST_FILE.search(entry))

@@ -2,7 +2,7 @@
 examples/experiments/) runs (shortened: one repeat, a shorter duration) and shows what its docs
 page says it shows.
 
-The full runs (`--repeat 3`, under a minute each) made the figures of docs/experiments/.
+The full runs (`--repeat 3`, under a minute each) made the figures of docs/explanation/experiments/.
 """
 
 from __future__ import annotations
@@ -131,7 +131,8 @@ def test_the_heartbeat_finds_a_hang_and_without_it_the_hang_lasts() -> None:
     assert 1 == fast.restarts
     (hang,) = fast.faults
     assert hang.recovery_s is not None  # the heartbeat's restart served again (how soon is
-    # a figure of docs/experiments/hang.md, measured on a quiet machine, not a test's bound)
+    # a figure of docs/explanation/experiments/hang.md, measured on a quiet machine, not a
+    # test's bound)
 
 
 def test_a_killed_resource_process_is_heard_and_loaded_again() -> None:
