@@ -90,7 +90,7 @@ HANDSHAKE_TIMEOUT = 5.0
 
 LOCK_RETRY = 0.2
 """Seconds a listener keeps trying to take a name lock that is held: another process may
-be probing it for a few microseconds (`system._lock_held`, rule 19), which is no owner."""
+be probing it for a few microseconds (`lock_held`, rule 19), which is no owner."""
 
 
 class Paths(Protocol):
@@ -234,31 +234,78 @@ def _send_timeout(sock: socket.socket, seconds: float) -> None:
     )
 
 
-def connect(path: str, authkey: bytes) -> tuple[socket.socket, Connection]:
+def connect(
+    path: str, authkey: bytes, *, coming: Callable[[], bool] | None = None
+) -> tuple[socket.socket, Connection]:
     """Connect to `path` and pass the handshake, both within `HANDSHAKE_TIMEOUT` seconds.
 
     When the listener's accept backlog is full (many peers connecting at once, or a
     listener that is briefly out of file descriptors), the connect waits in the kernel
     for room until the deadline, rather than failing at once: a blocking AF_UNIX
     `connect` sleeps on the listener's queue, bounded by the socket's send timeout.
+    When nothing listens at `path` yet but `coming()` says a listener is on its way (a
+    restarted registrar holds its name's lock before it binds and listens), the connect
+    is tried again, at growing intervals up to `CONNECT_RETRY` seconds, until the
+    deadline: a message sent in that window waits for the listener rather than failing.
 
     Raises:
-        OSError, EOFError: nothing listens there, the backlog stayed full until the
-            deadline (`BlockingIOError`), or the connection broke.
+        OSError, EOFError: nothing listens there (and none is coming, or it did not come
+            by the deadline), the backlog stayed full until the deadline
+            (`BlockingIOError`), or the connection broke.
         TimeoutError: the handshake did not finish by the deadline.
         AuthenticationError: the listener does not know the system's authkey.
     """
     deadline = time.monotonic() + HANDSHAKE_TIMEOUT
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    pause = CONNECT_RETRY / 64
+    while True:
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            _send_timeout(sock, HANDSHAKE_TIMEOUT)
+            sock.connect(path)
+        except (ConnectionRefusedError, FileNotFoundError):
+            sock.close()
+            if coming is None or time.monotonic() + pause > deadline or not coming():
+                raise
+            time.sleep(pause)  # (the listener binds within milliseconds of its lock)
+            pause = min(2 * pause, CONNECT_RETRY)
+            continue
+        except BaseException:
+            sock.close()
+            raise
+        try:
+            _send_timeout(sock, 0)
+            handshake(sock, authkey, deadline, server=False)
+            return split(sock)
+        except BaseException:
+            sock.close()
+            raise
+
+
+CONNECT_RETRY = 0.05
+"""The longest pause, in seconds, between two tries of a connect to a listener that is
+coming (its name's lock held, its socket not listening yet)."""
+
+
+def lock_held(path: str) -> bool:
+    """Whether a process holds the name lock at `path` (a listener serves the name, or is
+    about to: it takes the lock before it binds).
+
+    Probes with a shared `flock` held for microseconds; a listener taking the lock meanwhile
+    retries (`LOCK_RETRY`). When it cannot tell, it says held (never a false loss).
+    """
     try:
-        _send_timeout(sock, HANDSHAKE_TIMEOUT)
-        sock.connect(path)
-        _send_timeout(sock, 0)
-        handshake(sock, authkey, deadline, server=False)
-        return split(sock)
-    except BaseException:
-        sock.close()
-        raise
+        fd = os.open(path, os.O_RDONLY)
+    except FileNotFoundError:
+        return False
+    except OSError:
+        return True
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError:
+        return True
+    finally:
+        os.close(fd)  # (closing releases the probe's lock)
+    return False
 
 
 class Writer:
@@ -568,7 +615,9 @@ class RemotePeer(Remote):
                 return channel
             if self._system.closed:
                 raise RegistrarStoppedError(f"the system of registrar {self.name!r} was closed")
-            if not os.path.exists(self._path):
+            if not os.path.exists(self._path) and not lock_held(
+                self._system.address.lock_path(self.name)
+            ):  # (a listener that holds the lock binds soon: its connect waits for it)
                 self._system.ended(self.name)  # (is it lost? rule 19)
                 raise self._gone("cannot be reached (it does not listen)")
             limit = read_limit(self._system.address.limit_path(self.name))
@@ -581,7 +630,8 @@ class RemotePeer(Remote):
     def _connect(self, channel: _Channel) -> None:
         """The writer thread of `channel`, first: connect, start its reader."""
         try:
-            sock, conn = connect(self._path, self._system.address.authkey)
+            coming = functools.partial(lock_held, self._system.address.lock_path(self.name))
+            sock, conn = connect(self._path, self._system.address.authkey, coming=coming)
         except AuthenticationError as exc:
             error: RrError = RegistrarUnavailableError(
                 f"registrar {self.name!r} refused this process's authkey"

@@ -58,7 +58,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import fcntl
 import logging
 import os
 import tempfile
@@ -70,7 +69,7 @@ from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._platform import PLATFORM, fork
 from rr_actors._transport.base import Endpoint
 from rr_actors._transport.messenger import Lost, Messenger
-from rr_actors._transport.unix.link import Listener, RemotePeer, _Accepted
+from rr_actors._transport.unix.link import Listener, RemotePeer, _Accepted, lock_held
 from rr_actors.errors import ConfigError
 
 __all__ = ["AttachedSystem", "System", "SystemAddress", "UnixCarrier", "attach"]
@@ -275,7 +274,7 @@ class UnixCarrier:
             return "served"
         if os.path.exists(address.tombstone_path(name)):
             return "stopped"
-        if _lock_held(address.lock_path(name)):
+        if lock_held(address.lock_path(name)):
             return "served"
         try:
             with open(address.restart_path(name), encoding="ascii") as published:
@@ -350,27 +349,6 @@ def _verdict_of(speaker: str) -> str:
     if speaker == NOBODY or not _speaks(speaker):
         return "lost"
     return "awaited"
-
-
-def _lock_held(path: str) -> bool:
-    """Whether a process holds the name lock at `path` (a listener serves the name).
-
-    Probes with a shared `flock` held for microseconds; a listener taking the lock meanwhile
-    retries (`link.LOCK_RETRY`). When it cannot tell, it says held (never a false loss).
-    """
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except FileNotFoundError:
-        return False
-    except OSError:
-        return True
-    try:
-        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-    except OSError:
-        return True
-    finally:
-        os.close(fd)  # (closing releases the probe's lock)
-    return False
 
 
 class AttachedSystem(Messenger):

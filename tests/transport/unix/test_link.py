@@ -648,3 +648,50 @@ def test_a_handshake_cut_short_by_the_registrar_stopping_is_no_refusal(
     warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
     assert [] == warnings
     assert any("handshake" in r.getMessage() for r in caplog.records if r.levelno == logging.DEBUG)
+
+
+def test_a_connect_while_a_restarted_registrar_binds_waits_for_its_listener(
+    system: System, eventually: Callable[..., bool]
+) -> None:
+    # A restarted registrar's process takes its name's lock before it binds and listens;
+    # the presence thread (lock held: served) connects at once, and used to meet the dead
+    # process's socket: refused, and every message queued on that connection failed.
+    path = system.address.socket_path(f"coming-{uuid.uuid4().hex[:8]}")
+    left = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    left.bind(path)  # (the dead process's socket, left at the path: it refuses)
+    left.close()
+    probes: list[int] = []
+    outcomes: list[Any] = []
+
+    def connect_early() -> None:
+        try:
+            sock, conn = connect(path, system.address.authkey, coming=lambda: not probes.append(1))
+        except Exception as exc:
+            outcomes.append(exc)
+            return
+        conn.close()
+        sock.close()
+        outcomes.append("connected")
+
+    thread = threading.Thread(target=connect_early)
+    thread.start()
+    assert eventually(lambda: len(probes) >= 2), "the connect was not tried again"
+    os.unlink(path)  # (as the listener does, holding the lock)
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as listening:
+        listening.bind(path)
+        listening.listen(1)
+        listening.settimeout(10)
+        _handshake_as_listener(listening, system.address.authkey, 1)
+        thread.join(10)
+
+    assert ["connected"] == outcomes
+
+
+def test_a_connect_where_nothing_listens_nor_is_coming_fails_at_once(system: System) -> None:
+    path = system.address.socket_path(f"nobody-{uuid.uuid4().hex[:8]}")
+    probes: list[int] = []
+
+    with pytest.raises(FileNotFoundError):
+        connect(path, system.address.authkey, coming=lambda: bool(probes.append(1)))
+
+    assert [1] == probes  # (asked once, then failed: no wait for a listener never coming)
