@@ -127,6 +127,9 @@ class SqliteStore:
         # query id -> (row key, response_version, request_text)
         self._clients: dict[str, tuple[int, int, str | None]] = {}
         self._seq = 0
+        # resources a write that failed had changed: the next write of each compares all
+        # of its consumers (`Changes.consumers` of the failed one may never come again)
+        self._owed: set[str] = set()
         self.closed = False
         self._decode = functools.partial(codec.decode, self.path)  # decodes a stored value lazily
         # beside the WAL: a log cut short is seen
@@ -373,7 +376,12 @@ class SqliteStore:
         them for the supervisor's side to read.
 
         Only what differs from the last write reaches the file; rows are addressed by
-        their key, so the cost of a change does not depend on the catalog's size. The
+        their key, so the cost of a change does not depend on the catalog's size. Of a
+        changed resource's consumers, only the ids `changes.consumers` names (added or
+        released since) are looked at, one statement each, so neither does it depend on
+        how many hold the resource; a resource it does not name has every consumer
+        compared, and so has, at its next write, each resource of a write that raised.
+        The
         statements are planned first (values are pickled then: one that cannot be raises
         before anything is written); a single statement is its own transaction (most
         changes: a consumer id added or released), several run between `BEGIN IMMEDIATE`
@@ -396,13 +404,27 @@ class SqliteStore:
             CatalogCorruptError: rows that the first write had to read first (`load`)
                 cannot be read.
         """
+        try:
+            self._write(changes, told)
+        except BaseException:
+            # the consumers these changes added or released may be told again by nobody
+            # (a caller that drops the changes): the next write of each resource compares
+            # every one of its consumers
+            self._owed.update(changes.resources)
+            raise
+        if self._owed:
+            self._owed.difference_update(changes.resources)
+
+    def _write(self, changes: Changes, told: Sequence[events.Event]) -> None:
         if not self._loaded:
             self.load()
         ops: list[Op] = []
         mirrors: list[tuple[dict[str, Any], str, Any]] = []  # (table, key, new value | GONE)
         seq = self._seq
+        touched, owed = changes.consumers, self._owed
         for rid, resource in changes.resources.items():
-            seq = plan_resource(self._resources, ops, mirrors, rid, resource, seq)
+            ids = None if rid in owed else touched.get(rid)
+            seq = plan_resource(self._resources, ops, mirrors, rid, resource, seq, ids)
         for qid, record in changes.clients.items():
             seq = plan_client(self._clients, ops, mirrors, qid, record, seq)
         if told:
