@@ -94,10 +94,16 @@ def plan_resource(
         keys: dict[str, int] = {}
         row = seq
         touched = None
-        update = None
+        update: Op | None = None
     else:
-        update = _resource_update(old, resource, texts)
-        if update is not None:
+        update = None
+        if (
+            old.response_version != resource.response_version
+            or old.state is not resource.state
+            or old.texts != texts
+            or old.failed != resource.failed
+        ):
+            update = _resource_update(old, resource, texts)
             ops.append(update)
         keys = old.consumers
         row = old.seq
@@ -146,8 +152,9 @@ def _plan_consumers(
     return seq
 
 
-def _resource_update(old: Mirror, resource: Resource, texts: Texts) -> Op | None:
-    """The one `UPDATE` that brings a written resource row up to date (`None`: none needed)."""
+def _resource_update(old: Mirror, resource: Resource, texts: Texts) -> Op:
+    """The one `UPDATE` that brings a written resource row up to date (some column of it
+    differs: `plan_resource` compares them first)."""
     columns: list[str] = []
     values: list[Any] = []
     if old.response_version != resource.response_version:
@@ -162,8 +169,6 @@ def _resource_update(old: Mirror, resource: Resource, texts: Texts) -> Op | None
     if old.failed != resource.failed:
         columns.append("failed")
         values.append(int(resource.failed))
-    if not columns:
-        return None
     assignments = ", ".join(f"{column} = ?" for column in columns)
     sql = f"UPDATE resources SET {assignments} WHERE seq = ?"  # noqa: S608 - our column names
     return (sql, (*values, old.seq))

@@ -3,8 +3,9 @@ docs/explanation/semantics.md).
 
 ```
  registrar --Changes, told events--> Saver --write(changes, told)--> SqliteStore --`plan`:
-   only what differs from its mirror, the told events in the outbox (`outbox`)--> is the
-   path still our file? (else copy it whole into place, `files`)
+   only what differs from its mirror (of consumers, only the ids added or released), the
+   told events in the outbox (`outbox`)--> is the path still our file? (asked only once
+   the kernel told that a name changed; else copy it whole into place, `files`)
    --> one transaction (WAL) --> file          (schema: `schema`, values: `codec`)
  SqliteStore.open: `files` checks, creates, validates and prepares the file
  SqliteStore.restore / load: `restore` reads it back; `checkpoints` copies the WAL off-thread
@@ -38,6 +39,7 @@ from rr_actors._catalog import (
     Resource,
 )
 from rr_actors._core import runtime
+from rr_actors._platform import PLATFORM
 from rr_actors._store import checkpoints, codec, outbox, schema
 from rr_actors._store.checkpoints import Checkpointer
 from rr_actors._store.codec import (
@@ -105,12 +107,15 @@ class SqliteStore:
         self.path = str(path)
         self._file = path.absolute()  # the same file after a chdir
         self._name = str(self._file)  # (what `_keep_in_place` stats before each commit)
+        self._names = (self._name, f"{self._name}-wal")
         self._db = db
         self._lock = lock  # (`files.claim`: this store is the file's one registrar)
         self._synchronous = synchronous
         self._guarded = runtime.guards_files()  # (not in a simulation: its files are its own)
         # the files the connection opened (`_keep_in_place`)
         self._ids = file_ids(self._name) if self._guarded else (None, None)
+        # tells when those names may have changed, so that most commits stat nothing
+        self._watch = PLATFORM.watch_names() if self._guarded else None
         self._aside: Path | None = None  # a whole copy not moved into place yet
         self._checkpointer: Checkpointer | None = None
         if background_checkpoints:
@@ -530,10 +535,17 @@ class SqliteStore:
         A backup deleted while its registrar runs stays usable through the open
         connection, so nothing would fail, and the next crash would take every commit
         with it. So before each commit the store checks that the path and its `-wal`
-        still name the files it opened (two `stat` calls), and if not, copies what it
-        has (every committed page, read through its connection) to a new file and moves
-        it into place, then writes there. Nothing committed is lost; a crash between
-        the deletion and this commit loses the whole file (see failure-semantics.md).
+        still name the files it opened, and if not, copies what it has (every committed
+        page, read through its connection) to a new file and moves it into place, then
+        writes there. Nothing committed is lost; a crash between the deletion and this
+        commit loses the whole file (see failure-semantics.md).
+
+        The check is two `stat` calls, made only when something may have happened to
+        those names: the platform's watch (`Platform.watch_names`: inotify on Linux, one
+        `poll` a commit) is told of a deletion, a replacement, a rename of the file or of
+        a directory on its path, before the system call that made it returns. It is
+        armed again before each check, so a change made during one is told next time.
+        Where there is no watch, every commit `stat`s.
 
         Only where the files need guarding (`runtime.guards_files`: not in a simulation,
         whose backups nothing else touches).
@@ -545,8 +557,13 @@ class SqliteStore:
         if not self._guarded:
             return
         if self._aside is None:
+            watch = self._watch
+            if watch is not None and watch.quiet():  # nothing happened to the names
+                return
             if self._ids[1] is None:  # the -wal appears with the first transaction
                 self._ids = (self._ids[0], file_ids(self._name)[1])
+            if watch is not None and self._ids[1] is not None:
+                watch.arm(self._names)  # (first: a change made during the check is told)
             why = moved(self._name, self._ids)
             if why is None:
                 return
@@ -571,6 +588,8 @@ class SqliteStore:
         except (sqlite3.Error, OSError) as exc:
             raise write_error(self.path, exc) from exc
         self._db = db
+        if self._watch is not None:
+            self._watch.close()  # (armed at the next commit, once the new -wal exists)
         self._ids = file_ids(self._file)
         self._commits.reopen()
         if self._checkpointer is not None:
@@ -599,6 +618,8 @@ class SqliteStore:
                         logger.error("%s; %s", exc, kept)  # noqa: TRY400 - the cause says it all
                 self.closed = True
                 self._commits.close()  # (first: SQLite removes the log as it closes)
+                if self._watch is not None:
+                    self._watch.close()
                 if self._aside is None:
                     self._close_connections()
             if erase:
