@@ -82,8 +82,16 @@ class CommitCount:
         """A write transaction was committed (call it after each one)."""
         if not self.kept:
             return
+        shm, count = self._shm, self._fds.get("count")
+        if shm is not None and count is not None and shm[_SHM_SALTS] == self._salts:
+            self._count += 1  # (most commits: the same generation of the log)
+            try:
+                os.pwrite(count, self._count.to_bytes(8, "big"), 8)
+            except OSError as exc:
+                logger.debug("the commit count %s cannot be kept: %s", self.path, exc)
+            return
         try:
-            shm = self._shm if self._shm_tried else self._map_shm()
+            shm = shm if self._shm_tried else self._map_shm()
             if shm is not None and shm[_SHM_SALTS] == self._salts:
                 self._count += 1
             else:

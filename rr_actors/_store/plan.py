@@ -20,7 +20,6 @@ before anything is written.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
 from typing import Any
 
 from rr_actors._catalog import NO_DIGEST, ClientRecord, Resource, request_digest
@@ -109,46 +108,29 @@ def plan_resource(
         row = old.seq
     now = resource.consumers
     if touched is None:  # every consumer, against the mirror
-        seq = _plan_consumers(ops, mirrors, keys, row, now, list(now), seq)
-        seq = _plan_consumers(ops, mirrors, keys, row, now, [q for q in keys if q not in now], seq)
-    elif touched:
-        seq = _plan_consumers(ops, mirrors, keys, row, now, touched, seq)
+        touched = {**dict.fromkeys(now), **dict.fromkeys(keys)}
+    for query_id in touched:  # one INSERT or DELETE each whose row differs from `now`
+        key = keys.get(query_id)
+        if query_id in now:
+            if key is None:
+                seq += 1
+                ops.append(
+                    (
+                        "INSERT INTO consumers (resource, seq, query_id, origin_rr) "
+                        "VALUES (?, ?, ?, ?)",
+                        (row, seq, query_id, now[query_id]),
+                    )
+                )
+                mirrors.append((keys, query_id, seq))
+        elif key is not None:
+            ops.append(("DELETE FROM consumers WHERE resource = ? AND seq = ?", (row, key)))
+            mirrors.append((keys, query_id, GONE))
     if old is None or update is not None:
         # (the consumer keys stay in `keys`, the one dict: changed in place once committed)
         mirror = Mirror(
             row, resource.state, resource.response_version, keys, texts, resource.failed
         )
         mirrors.append((written, rid, mirror))
-    return seq
-
-
-def _plan_consumers(
-    ops: list[Op],
-    mirrors: list[tuple[dict[str, Any], str, Any]],
-    keys: dict[str, int],
-    row: int,
-    now: dict[str, str],
-    query_ids: Iterable[str],
-    seq: int,
-) -> int:
-    """Plan one `INSERT` or `DELETE` for each of `query_ids` whose row differs from `now`
-    (the resource's consumers); return the last row key."""
-    for query_id in query_ids:
-        key = keys.get(query_id)
-        held = query_id in now
-        if held and key is None:
-            seq += 1
-            ops.append(
-                (
-                    "INSERT INTO consumers (resource, seq, query_id, origin_rr) "
-                    "VALUES (?, ?, ?, ?)",
-                    (row, seq, query_id, now[query_id]),
-                )
-            )
-            mirrors.append((keys, query_id, seq))
-        elif not held and key is not None:
-            ops.append(("DELETE FROM consumers WHERE resource = ? AND seq = ?", (row, key)))
-            mirrors.append((keys, query_id, GONE))
     return seq
 
 

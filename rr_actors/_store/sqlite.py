@@ -409,41 +409,31 @@ class SqliteStore:
             CatalogCorruptError: rows that the first write had to read first (`load`)
                 cannot be read.
         """
+        owed = self._owed
         try:
-            self._write(changes, told)
+            if not self._loaded:
+                self.load()
+            ops: list[Op] = []
+            mirrors: list[tuple[dict[str, Any], str, Any]] = []  # (table, key, value | GONE)
+            seq = self._seq
+            touched, written = changes.consumers, self._resources
+            for rid, resource in changes.resources.items():
+                ids = None if rid in owed else touched.get(rid)
+                seq = plan_resource(written, ops, mirrors, rid, resource, seq, ids)
+            for qid, record in changes.clients.items():
+                seq = plan_client(self._clients, ops, mirrors, qid, record, seq)
+            if told:
+                outbox.plan_told(told, ops)
+            if ops:
+                self._commit(ops)
         except BaseException:
             # the consumers these changes added or released may be told again by nobody
             # (a caller that drops the changes): the next write of each resource compares
             # every one of its consumers
-            self._owed.update(changes.resources)
+            owed.update(changes.resources)
             raise
-        if self._owed:
-            self._owed.difference_update(changes.resources)
-
-    def _write(self, changes: Changes, told: Sequence[events.Event]) -> None:
-        if not self._loaded:
-            self.load()
-        ops: list[Op] = []
-        mirrors: list[tuple[dict[str, Any], str, Any]] = []  # (table, key, new value | GONE)
-        seq = self._seq
-        touched, owed = changes.consumers, self._owed
-        for rid, resource in changes.resources.items():
-            ids = None if rid in owed else touched.get(rid)
-            seq = plan_resource(self._resources, ops, mirrors, rid, resource, seq, ids)
-        for qid, record in changes.clients.items():
-            seq = plan_client(self._clients, ops, mirrors, qid, record, seq)
-        if told:
-            outbox.plan_told(told, ops)
-        if ops:
-            self._refuse_if_damaged()
-            self._keep_in_place()
-            try:
-                self._run(ops)
-            except sqlite3.Error as exc:
-                if damaged_file(exc):
-                    self.found_damaged(f"{type(exc).__name__}: {exc}")
-                    self._refuse_if_damaged()
-                raise write_error(self.path, exc) from exc
+        if owed:
+            owed.difference_update(changes.resources)
         self._seq = seq
         for table, key, value in mirrors:
             if value is GONE:
@@ -500,6 +490,21 @@ class SqliteStore:
             f"the file is damaged ({self._damaged}); nothing more is written to it, so it "
             "stays as it was: keep it for analysis (quarantine_backup) and restart",
         ) from corrupt
+
+    def _commit(self, ops: list[Op]) -> None:
+        """Run `ops` as one transaction, on a file not found damaged, at the path."""
+        if not self._checked or self._damaged is not None:
+            self._refuse_if_damaged()
+        watch = self._watch  # (`_keep_in_place`'s first step, spared a call)
+        if watch is None or self._aside is not None or not watch.quiet():
+            self._keep_in_place()
+        try:
+            self._run(ops)
+        except sqlite3.Error as exc:
+            if damaged_file(exc):
+                self.found_damaged(f"{type(exc).__name__}: {exc}")
+                self._refuse_if_damaged()
+            raise write_error(self.path, exc) from exc
 
     def _run(self, ops: list[Op]) -> None:
         db = self._db
