@@ -81,8 +81,6 @@ class _Instance:
     def __init__(self, libc: Any, fd: int) -> None:
         self.libc = libc
         self.fd = fd
-        self.poll = select.poll()
-        self.poll.register(fd, select.POLLIN)
         self.lock = threading.Lock()
         self.watches: dict[int, set[InotifyNameWatch]] = {}  # wd -> the watches it serves
         self.forked = False  # (set in a forked child: this instance is the parent's)
@@ -188,6 +186,9 @@ class InotifyNameWatch:
 
     def __init__(self, instance: _Instance) -> None:
         self._instance = instance
+        # its own: one poll object polled by two threads at once raises RuntimeError
+        self._poll = select.poll()
+        self._poll.register(instance.fd, select.POLLIN)
         self._wds: list[int] = []
         self.changed = True  # (not armed yet)
 
@@ -217,12 +218,14 @@ class InotifyNameWatch:
     def quiet(self) -> bool:
         """Whether nothing happened to the names armed since `arm` (about 0.3 us)."""
         instance = self._instance
+        if instance.forked:  # (its descriptor is closed here, its number maybe reused)
+            return False
         # Nothing queued and no thread handing events out (it sets `reading` before it
         # reads them, clears it once it marked their watches): no event concerns this one.
-        if instance.poll.poll(0) or instance.reading:
+        if self._poll.poll(0) or instance.reading:
             with instance.lock:
                 instance.drain()
-        return not self.changed and not instance.forked
+        return not self.changed
 
     def close(self) -> None:
         """Stop watching (idempotent)."""

@@ -4,7 +4,8 @@
   checkpoints (else every commit would `stat` again), and is told, before the next call
   returns, of each way a backup's name can lose its file: the file or its `-wal` deleted
   or replaced, its directory renamed, a symbolic link of the path pointed elsewhere.
-- Two watches that share a directory each keep its watch until both let go.
+- Two watches that share a directory each keep its watch until both let go; two threads
+  asking theirs at once (two stores' registrars) both get answers.
 - A child forked from the process: a watch of the parent is never quiet there.
 """
 
@@ -15,6 +16,7 @@ import sqlite3
 import subprocess
 import sys
 import textwrap
+import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -123,6 +125,32 @@ def test_two_watches_of_one_directory_each_keep_its_watch_until_both_let_go(
 
     assert (False, False) == (first.quiet(), second.quiet())
     second.close()
+
+
+def test_two_threads_ask_their_watches_at_once(tmp_path: Path) -> None:
+    paths = [tmp_path / "one", tmp_path / "two"]
+    errors: list[BaseException] = []
+    answers: list[bool] = []
+
+    def ask(path: Path) -> None:
+        path.touch()
+        watch = watch_names()
+        assert watch is not None
+        watch.arm([str(path)])
+        try:
+            answers.append(all(watch.quiet() for _ in range(20_000)))
+        except BaseException as exc:  # (a RuntimeError from a poll object asked twice)
+            errors.append(exc)
+        finally:
+            watch.close()
+
+    threads = [threading.Thread(target=ask, args=(path,)) for path in paths]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=60)
+
+    assert ([], [True, True]) == (errors, answers)
 
 
 def test_a_watch_armed_again_is_quiet_until_the_next_change(tmp_path: Path) -> None:
