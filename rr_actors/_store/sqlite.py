@@ -106,7 +106,7 @@ class SqliteStore:
     ) -> None:
         self.path = str(path)
         self._file = path.absolute()  # the same file after a chdir
-        self._name = str(self._file)  # (what `_keep_in_place` stats before each commit)
+        self._name = str(self._file)  # (what `_keep_in_place` stats once told of a change)
         self._names = (self._name, f"{self._name}-wal")
         self._db = db
         self._lock = lock  # (`files.claim`: this store is the file's one registrar)

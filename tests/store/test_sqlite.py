@@ -124,6 +124,32 @@ def test_a_write_that_adds_or_releases_one_consumer_is_one_statement_whatever_th
     )
 
 
+def test_a_write_after_changes_were_dropped_writes_every_consumer_difference(
+    tmp_path: Path,
+) -> None:
+    """A registrar drops the changes of an in-doubt resource it holds, then marks it
+    changed once settled (`mark_changed`): that write compares every consumer, so those
+    added and released meanwhile reach the file too."""
+    path = tmp_path / "p.db"
+    store = SqliteStore.open(path)
+    store.load()
+    catalog = Catalog()
+    catalog.begin_load("r1", "leaf", 1)
+    catalog.finish_load("r1", "loaded")
+    for query_id in ("a", "b"):
+        catalog.add_consumer("r1", query_id, "C")
+    store.write(catalog.drain_changes())
+    catalog.add_consumer("r1", "c", "C")
+    catalog.release("a")
+    catalog.drain_changes()  # (dropped: held)
+    catalog.mark_changed("r1")
+
+    store.write(catalog.drain_changes())
+    store.close(erase=False)
+
+    assert ["b", "c"] == list(reopen(path).resources["r1"].consumers)
+
+
 def test_a_write_that_fails_leaves_the_file_and_the_next_write_intact(tmp_path: Path) -> None:
     store = SqliteStore.open(tmp_path / "p.db")
     store.load()
