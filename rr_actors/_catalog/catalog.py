@@ -110,6 +110,11 @@ class Catalog:
         # the ids of the rows changed since the last drain, in the order they first changed
         self._dirty_resources = _DirtySet() if track_changes else _NoDirt()
         self._dirty_clients = _DirtySet() if track_changes else _NoDirt()
+        # resource id -> the consumer ids added or released since the last drain, in the
+        # order they last changed (`Changes.consumers`); those whose every consumer the
+        # store compares (`mark_changed`)
+        self._touched: dict[str, dict[str, None]] = {}
+        self._whole: set[str] = set()
 
     # -- matching ---------------------------------------------------------------------
 
@@ -262,6 +267,8 @@ class Catalog:
         self.resources[rid].consumers[query_id] = origin_rr
         self._by_consumer[query_id] = rid
         self._dirty_resources.add(rid)
+        if self.track_changes:
+            self._touch(rid, query_id)
 
     def release(self, query_id: str) -> Resource:
         """Remove one consumer id and return its resource.
@@ -273,7 +280,18 @@ class Catalog:
         del resource.consumers[query_id]
         del self._by_consumer[query_id]
         self._dirty_resources.add(resource.id)
+        if self.track_changes:
+            self._touch(resource.id, query_id)
         return resource
+
+    def _touch(self, rid: str, query_id: str) -> None:
+        """Note that consumer `query_id` of resource `rid` was added or released."""
+        ids = self._touched.get(rid)
+        if ids is None:
+            self._touched[rid] = {query_id: None}
+        else:
+            ids.pop(query_id, None)  # (to the end: the order they last changed)
+            ids[query_id] = None
 
     def resource_of(self, query_id: str) -> Resource:
         """Return the resource a consumer id belongs to.
@@ -528,24 +546,33 @@ class Catalog:
         """Have the next drain report resource `rid` as it is now (its row, or its removal).
 
         For a change whose write was held back (an in-doubt resource settled while its
-        manager's `setup` runs): the write of what it is by then is owed.
+        manager's `setup` runs): the write of what it is by then is owed, every consumer
+        compared (the changes drained meanwhile were not written).
         """
         self._dirty_resources.add(rid)
+        if self.track_changes:
+            self._whole.add(rid)
 
     def drain_changes(self) -> Changes:
         """Return and forget the rows changed since the last drain: each as it is now,
-        or `None` if it was removed; in the order they first changed.
+        or `None` if it was removed; in the order they first changed. With each changed
+        resource, the consumer ids added or released since (`Changes.consumers`; every
+        one compared for a resource `mark_changed` named).
 
         Without `track_changes` (a catalog nobody persists) this is always empty, and
         nothing is kept meanwhile (a registrar without a backup never drains).
         """
         resources, clients = self.resources, self.clients
+        touched, whole = self._touched, self._whole
         changes = Changes(
             {rid: resources.get(rid) for rid in self._dirty_resources},
             {qid: clients.get(qid) for qid in self._dirty_clients},
+            {rid: touched.get(rid) or {} for rid in self._dirty_resources if rid not in whole},
         )
         self._dirty_resources.clear()
         self._dirty_clients.clear()
+        self._touched = {}
+        whole.clear()
         return changes
 
     @classmethod

@@ -162,13 +162,39 @@ class ClientRecord:
 
 @dataclasses.dataclass
 class Changes:
-    """Rows changed since the last drain: id -> new row, or `None` when deleted."""
+    """Rows changed since the last drain: id -> new row, or `None` when deleted.
+
+    `consumers` says which consumer ids of a changed resource may have changed (been
+    added or released since the last drain), so that a write looks at those only, not
+    at every holder of a widely shared resource: resource id -> those query ids, in the
+    order they last changed (an empty dict: none did). A resource of `resources` not
+    listed there has every consumer compared (the safe default of a `Changes` built by
+    hand).
+    """
 
     resources: dict[str, Resource | None]
     clients: dict[str, ClientRecord | None]
+    consumers: dict[str, dict[str, None]] = dataclasses.field(default_factory=dict)
 
     def __bool__(self) -> bool:
         return bool(self.resources or self.clients)
+
+    def update(self, later: Changes) -> None:
+        """Merge `later` (changes made after these) into these, as if drained at once."""
+        mine = self.consumers
+        for rid in later.resources:
+            ids = later.consumers.get(rid)
+            known = mine.get(rid)
+            if ids is None or (known is None and rid in self.resources):
+                mine.pop(rid, None)  # either side compares every consumer
+            elif known is None:
+                mine[rid] = dict(ids)
+            else:
+                for query_id in ids:  # (in the order they last changed)
+                    known.pop(query_id, None)
+                    known[query_id] = None
+        self.resources.update(later.resources)
+        self.clients.update(later.clients)
 
 
 Listing = tuple[list[tuple[float, tuple[str, ...]]], list[tuple[float, tuple[str, ...]]]]

@@ -21,6 +21,7 @@ from rr_actors._platform.base import (
     CpuWatch,
     ExitWatch,
     ListenerGate,
+    NameWatch,
     Platform,
 )
 
@@ -31,6 +32,7 @@ __all__ = [
     "CpuWatch",
     "ExitWatch",
     "ListenerGate",
+    "NameWatch",
     "Platform",
 ]
 

@@ -13,7 +13,15 @@ import multiprocessing.context
 from collections.abc import Callable, Collection, Sequence
 from typing import Protocol
 
-__all__ = ["GATE_SOURCES", "CpuSample", "CpuWatch", "ExitWatch", "ListenerGate", "Platform"]
+__all__ = [
+    "GATE_SOURCES",
+    "CpuSample",
+    "CpuWatch",
+    "ExitWatch",
+    "ListenerGate",
+    "NameWatch",
+    "Platform",
+]
 
 GATE_SOURCES = 256
 """Source addresses a `ListenerGate` drops (or admits) at once at most (more is a
@@ -111,6 +119,25 @@ class ListenerGate(Protocol):
         """Let go of the socket (the library's socket stays open, its filter attached)."""
 
 
+class NameWatch(Protocol):
+    """Tells whether some files' names may have changed: moved, deleted, replaced
+    (`Platform.watch_names`). Used by one thread at a time."""
+
+    def arm(self, paths: Sequence[str]) -> bool:
+        """Watch the absolute paths `paths` (existing files) instead of what was watched
+        before; quiet until one may change. Returns whether every one is watched (if
+        not, it is never quiet until an `arm` that succeeds)."""
+        ...
+
+    def quiet(self) -> bool:
+        """Whether nothing happened to the names armed since `arm` (exact for a change
+        made before the call; `False` also for a harmless change, a `chmod` say)."""
+        ...
+
+    def close(self) -> None:
+        """Stop watching (idempotent)."""
+
+
 class Platform(Protocol):
     """The platform-specific jobs rr_actors has; `portable` does each without tricks."""
 
@@ -190,6 +217,15 @@ class Platform(Protocol):
         exit handler terminates daemonic child processes. Raises `RuntimeError` when the
         interpreter is shutting down already.
         """
+
+    def watch_names(self) -> NameWatch | None:
+        """A watch that tells when some files' names may have changed (not armed yet), or
+        `None` where the platform cannot tell (then the caller `stat`s them each time).
+
+        An optimisation: a catalog backup's store checks before each commit that its
+        path still names its file; the watch spares it the `stat` calls.
+        """
+        ...
 
     def listener_gate(self, host: str, port: int) -> ListenerGate | None:
         """A gate on this process's TCP listening socket bound to `host`:`port` (an IP

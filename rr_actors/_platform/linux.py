@@ -23,7 +23,7 @@ from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
 from rr_actors._platform import forkserver as own_forkserver
-from rr_actors._platform import linux_gate, portable
+from rr_actors._platform import linux_gate, linux_names, portable
 from rr_actors._platform.base import CpuSample
 
 __all__ = ["PARENT_GONE_EXIT", "LinuxPlatform", "PidfdExitWatch", "ProcCpuWatch"]
@@ -462,6 +462,10 @@ class LinuxPlatform:
             portable.PortablePlatform().at_main_thread_end(fn)
         else:
             hook(fn)
+
+    def watch_names(self) -> linux_names.InotifyNameWatch | None:
+        """inotify (`linux_names`): one `poll` a commit instead of two `stat` calls."""
+        return linux_names.watch_names()
 
     def listener_gate(self, host: str, port: int) -> linux_gate.LinuxListenerGate | None:
         """A gate on the listening socket found in `/proc/self/fd` (`linux_gate`)."""

@@ -14,7 +14,7 @@ import multiprocessing.context
 from collections.abc import Callable, Sequence
 
 from rr_actors._platform import fork
-from rr_actors._platform.base import CpuWatch, ExitWatch, ListenerGate
+from rr_actors._platform.base import CpuWatch, ExitWatch, ListenerGate, NameWatch
 
 __all__ = ["PARENT_GONE_EXIT", "PortablePlatform"]
 
@@ -85,6 +85,10 @@ class PortablePlatform:
         """`atexit`: after the interpreter joined its non-daemon threads (ours are daemons,
         so they still run), and before `multiprocessing`'s handler, registered earlier."""
         atexit.register(fn)
+
+    def watch_names(self) -> NameWatch | None:
+        """`None`: a backup's store `stat`s its names before every commit."""
+        return None
 
     def listener_gate(self, host: str, port: int) -> ListenerGate | None:
         """`None`: no gate (a firewall is the defence against a handshake flood)."""

@@ -1,7 +1,8 @@
 """Commits counted outside the WAL, so that a restore can tell when the WAL lost some.
 
 ```
- each commit --> read the -wal's header (its salts: which generation of the log this is)
+ each commit --> the log's salts (which generation of the log this is), as SQLite's
+                 shared memory (`-shm`) holds them, mapped: no system call
              --> `<file>-commits` := (salts, commits of that generation)    (8 + 8 bytes)
  open after a crash --> count the -wal's complete commit frames of those salts: fewer?
              --> WARNING naming the file and how many commits are gone
@@ -18,6 +19,12 @@ generation (or of a store: a restarted registrar appends to the log it replayed)
 the commit frames already in the log, once. A clean close removes the
 count (SQLite then removes the log).
 
+The salts are read from the header SQLite keeps in its `-shm` file (a copy of the log
+header's, which `lost_commits` compares them with), mapped read-only: a memory read
+instead of a `pread` of the log's header (0.5 us of a commit's 6). SQLite maps that file
+itself and never shortens it while a connection (ours) has it open; without it (it
+cannot be mapped), the log's header is read.
+
 The check reads the log's frame headers only (24 bytes a frame), not its pages, and not
 the checksums: a log cut short is what it detects, not one damaged in its middle. A
 database file written after the last count (a checkpoint, by this store or by another
@@ -29,6 +36,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import mmap
 import os
 import struct
 import weakref
@@ -44,6 +52,8 @@ SUFFIX = "-commits"
 _RECORD = struct.Struct(">8sQ")  # the log's salts, the commits of that generation
 _WAL_HEADER = 32
 _FRAME_HEADER = 24
+_SHM_MAPPED = 4096  # (SQLite makes its -shm 32 KiB at least)
+_SHM_SALTS = slice(32, 40)  # the salts in the shared memory's first header (`WalIndexHdr`)
 
 
 class CommitCount:
@@ -58,9 +68,12 @@ class CommitCount:
         self.kept = kept
         self.path = f"{file}{SUFFIX}"
         self._wal = f"{file}-wal"
+        self._shm_name = f"{file}-shm"
         self._salts = b""
         self._count = 0
         self._fds: dict[str, int] = {}  # "count", "wal": the files it keeps open
+        self._shm: mmap.mmap | None = None  # the -shm's first page, read-only
+        self._shm_tried = False
         # (a count dropped without `close`, as a registrar killed in a simulation drops
         # it, closes its files: a killed process's are closed by the kernel)
         weakref.finalize(self, _close_fds, self._fds)
@@ -69,35 +82,70 @@ class CommitCount:
         """A write transaction was committed (call it after each one)."""
         if not self.kept:
             return
+        shm, count = self._shm, self._fds.get("count")
+        if shm is not None and count is not None and shm[_SHM_SALTS] == self._salts:
+            self._count += 1  # (most commits: the same generation of the log)
+            try:
+                os.pwrite(count, self._count.to_bytes(8, "big"), 8)
+            except OSError as exc:
+                logger.debug("the commit count %s cannot be kept: %s", self.path, exc)
+            return
         try:
-            wal = self._fds.get("wal")
-            if wal is None:
-                wal = self._fds["wal"] = os.open(self._wal, os.O_RDONLY | os.O_CLOEXEC)
-            header = os.pread(wal, _WAL_HEADER, 0)
-            if len(header) < _WAL_HEADER:
-                return
-            salts = header[16:24]
-            if salts == self._salts:
+            shm = shm if self._shm_tried else self._map_shm()
+            if shm is not None and shm[_SHM_SALTS] == self._salts:
                 self._count += 1
-            else:  # the first commit of this store, or the log restarted: count them all
-                self._salts, self._count = salts, _commit_frames(wal, header)
+            else:
+                wal = self._fds.get("wal")
+                if wal is None:
+                    wal = self._fds["wal"] = os.open(self._wal, os.O_RDONLY | os.O_CLOEXEC)
+                header = os.pread(wal, _WAL_HEADER, 0)
+                if len(header) < _WAL_HEADER:
+                    return
+                salts = header[16:24]
+                if salts == self._salts:
+                    self._count += 1
+                else:  # the first commit of this store, or the log restarted: count them
+                    self._salts, self._count = salts, _commit_frames(wal, header)
             count = self._fds.get("count")
             if count is None:
                 count = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
                 self._fds["count"] = count
                 os.fchmod(count, 0o600)  # (whatever the umask: like SQLite's side files)
-            os.pwrite(count, _RECORD.pack(salts, self._count), 0)
+            os.pwrite(count, _RECORD.pack(self._salts, self._count), 0)
         except OSError as exc:
             logger.debug("the commit count %s cannot be kept: %s", self.path, exc)
+
+    def _map_shm(self) -> mmap.mmap | None:
+        """Map the -shm's first page (once; `None` if it cannot be: the log is read)."""
+        self._shm_tried = True
+        try:
+            fd = os.open(self._shm_name, os.O_RDONLY | os.O_CLOEXEC)
+        except OSError:
+            return None
+        try:
+            if os.fstat(fd).st_size >= _SHM_MAPPED:  # (a page past its end: SIGBUS)
+                self._shm = mmap.mmap(fd, _SHM_MAPPED, mmap.MAP_SHARED, mmap.PROT_READ)
+        except (OSError, ValueError):
+            self._shm = None
+        finally:
+            os.close(fd)  # (the mapping stays)
+        return self._shm
+
+    def _unmap_shm(self) -> None:
+        shm, self._shm, self._shm_tried = self._shm, None, False
+        if shm is not None:
+            shm.close()
 
     def reopen(self) -> None:
         """The store writes to a new file (it was deleted and written again): a new log."""
         _close_fds(self._fds)
+        self._unmap_shm()
         self._salts, self._count = b"", 0
 
     def close(self) -> None:
         """The backup was closed cleanly (SQLite removed its log): forget the count."""
         _close_fds(self._fds)
+        self._unmap_shm()
         with contextlib.suppress(OSError):
             os.unlink(self.path)
 

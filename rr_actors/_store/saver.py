@@ -168,8 +168,7 @@ class Saver:
         """
         if self.store is None:
             return False
-        self._pending.resources.update(changes.resources)
-        self._pending.clients.update(changes.clients)
+        self._pending.update(changes)
         if not (self.on_modify or now):
             return False
         self._told = told

@@ -3,8 +3,9 @@ docs/explanation/semantics.md).
 
 ```
  registrar --Changes, told events--> Saver --write(changes, told)--> SqliteStore --`plan`:
-   only what differs from its mirror, the told events in the outbox (`outbox`)--> is the
-   path still our file? (else copy it whole into place, `files`)
+   only what differs from its mirror (of consumers, only the ids added or released), the
+   told events in the outbox (`outbox`)--> is the path still our file? (asked only once
+   the kernel told that a name changed; else copy it whole into place, `files`)
    --> one transaction (WAL) --> file          (schema: `schema`, values: `codec`)
  SqliteStore.open: `files` checks, creates, validates and prepares the file
  SqliteStore.restore / load: `restore` reads it back; `checkpoints` copies the WAL off-thread
@@ -38,6 +39,7 @@ from rr_actors._catalog import (
     Resource,
 )
 from rr_actors._core import runtime
+from rr_actors._platform import PLATFORM
 from rr_actors._store import checkpoints, codec, outbox, schema
 from rr_actors._store.checkpoints import Checkpointer
 from rr_actors._store.codec import (
@@ -104,13 +106,16 @@ class SqliteStore:
     ) -> None:
         self.path = str(path)
         self._file = path.absolute()  # the same file after a chdir
-        self._name = str(self._file)  # (what `_keep_in_place` stats before each commit)
+        self._name = str(self._file)  # (what `_keep_in_place` stats once told of a change)
+        self._names = (self._name, f"{self._name}-wal")
         self._db = db
         self._lock = lock  # (`files.claim`: this store is the file's one registrar)
         self._synchronous = synchronous
         self._guarded = runtime.guards_files()  # (not in a simulation: its files are its own)
         # the files the connection opened (`_keep_in_place`)
         self._ids = file_ids(self._name) if self._guarded else (None, None)
+        # tells when those names may have changed, so that most commits stat nothing
+        self._watch = PLATFORM.watch_names() if self._guarded else None
         self._aside: Path | None = None  # a whole copy not moved into place yet
         self._checkpointer: Checkpointer | None = None
         if background_checkpoints:
@@ -127,6 +132,9 @@ class SqliteStore:
         # query id -> (row key, response_version, request_text)
         self._clients: dict[str, tuple[int, int, str | None]] = {}
         self._seq = 0
+        # resources a write that failed had changed: the next write of each compares all
+        # of its consumers (`Changes.consumers` of the failed one may never come again)
+        self._owed: set[str] = set()
         self.closed = False
         self._decode = functools.partial(codec.decode, self.path)  # decodes a stored value lazily
         # beside the WAL: a log cut short is seen
@@ -373,7 +381,12 @@ class SqliteStore:
         them for the supervisor's side to read.
 
         Only what differs from the last write reaches the file; rows are addressed by
-        their key, so the cost of a change does not depend on the catalog's size. The
+        their key, so the cost of a change does not depend on the catalog's size. Of a
+        changed resource's consumers, only the ids `changes.consumers` names (added or
+        released since) are looked at, one statement each, so neither does it depend on
+        how many hold the resource; a resource it does not name has every consumer
+        compared, and so has, at its next write, each resource of a write that raised.
+        The
         statements are planned first (values are pickled then: one that cannot be raises
         before anything is written); a single statement is its own transaction (most
         changes: a consumer id added or released), several run between `BEGIN IMMEDIATE`
@@ -396,27 +409,31 @@ class SqliteStore:
             CatalogCorruptError: rows that the first write had to read first (`load`)
                 cannot be read.
         """
-        if not self._loaded:
-            self.load()
-        ops: list[Op] = []
-        mirrors: list[tuple[dict[str, Any], str, Any]] = []  # (table, key, new value | GONE)
-        seq = self._seq
-        for rid, resource in changes.resources.items():
-            seq = plan_resource(self._resources, ops, mirrors, rid, resource, seq)
-        for qid, record in changes.clients.items():
-            seq = plan_client(self._clients, ops, mirrors, qid, record, seq)
-        if told:
-            outbox.plan_told(told, ops)
-        if ops:
-            self._refuse_if_damaged()
-            self._keep_in_place()
-            try:
-                self._run(ops)
-            except sqlite3.Error as exc:
-                if damaged_file(exc):
-                    self.found_damaged(f"{type(exc).__name__}: {exc}")
-                    self._refuse_if_damaged()
-                raise write_error(self.path, exc) from exc
+        owed = self._owed
+        try:
+            if not self._loaded:
+                self.load()
+            ops: list[Op] = []
+            mirrors: list[tuple[dict[str, Any], str, Any]] = []  # (table, key, value | GONE)
+            seq = self._seq
+            touched, written = changes.consumers, self._resources
+            for rid, resource in changes.resources.items():
+                ids = None if rid in owed else touched.get(rid)
+                seq = plan_resource(written, ops, mirrors, rid, resource, seq, ids)
+            for qid, record in changes.clients.items():
+                seq = plan_client(self._clients, ops, mirrors, qid, record, seq)
+            if told:
+                outbox.plan_told(told, ops)
+            if ops:
+                self._commit(ops)
+        except BaseException:
+            # the consumers these changes added or released may be told again by nobody
+            # (a caller that drops the changes): the next write of each resource compares
+            # every one of its consumers
+            owed.update(changes.resources)
+            raise
+        if owed:
+            owed.difference_update(changes.resources)
         self._seq = seq
         for table, key, value in mirrors:
             if value is GONE:
@@ -474,6 +491,21 @@ class SqliteStore:
             "stays as it was: keep it for analysis (quarantine_backup) and restart",
         ) from corrupt
 
+    def _commit(self, ops: list[Op]) -> None:
+        """Run `ops` as one transaction, on a file not found damaged, at the path."""
+        if not self._checked or self._damaged is not None:
+            self._refuse_if_damaged()
+        watch = self._watch  # (`_keep_in_place`'s first step, spared a call)
+        if watch is None or self._aside is not None or not watch.quiet():
+            self._keep_in_place()
+        try:
+            self._run(ops)
+        except sqlite3.Error as exc:
+            if damaged_file(exc):
+                self.found_damaged(f"{type(exc).__name__}: {exc}")
+                self._refuse_if_damaged()
+            raise write_error(self.path, exc) from exc
+
     def _run(self, ops: list[Op]) -> None:
         db = self._db
         if len(ops) == 1 and not db.in_transaction:  # one statement: its own transaction
@@ -508,10 +540,17 @@ class SqliteStore:
         A backup deleted while its registrar runs stays usable through the open
         connection, so nothing would fail, and the next crash would take every commit
         with it. So before each commit the store checks that the path and its `-wal`
-        still name the files it opened (two `stat` calls), and if not, copies what it
-        has (every committed page, read through its connection) to a new file and moves
-        it into place, then writes there. Nothing committed is lost; a crash between
-        the deletion and this commit loses the whole file (see failure-semantics.md).
+        still name the files it opened, and if not, copies what it has (every committed
+        page, read through its connection) to a new file and moves it into place, then
+        writes there. Nothing committed is lost; a crash between the deletion and this
+        commit loses the whole file (see failure-semantics.md).
+
+        The check is two `stat` calls, made only when something may have happened to
+        those names: the platform's watch (`Platform.watch_names`: inotify on Linux, one
+        `poll` a commit) is told of a deletion, a replacement, a rename of the file or of
+        a directory on its path, before the system call that made it returns. It is
+        armed again before each check, so a change made during one is told next time.
+        Where there is no watch, every commit `stat`s.
 
         Only where the files need guarding (`runtime.guards_files`: not in a simulation,
         whose backups nothing else touches).
@@ -523,8 +562,13 @@ class SqliteStore:
         if not self._guarded:
             return
         if self._aside is None:
+            watch = self._watch
+            if watch is not None and watch.quiet():  # nothing happened to the names
+                return
             if self._ids[1] is None:  # the -wal appears with the first transaction
                 self._ids = (self._ids[0], file_ids(self._name)[1])
+            if watch is not None and self._ids[1] is not None:
+                watch.arm(self._names)  # (first: a change made during the check is told)
             why = moved(self._name, self._ids)
             if why is None:
                 return
@@ -549,6 +593,8 @@ class SqliteStore:
         except (sqlite3.Error, OSError) as exc:
             raise write_error(self.path, exc) from exc
         self._db = db
+        if self._watch is not None:
+            self._watch.close()  # (armed at the next commit, once the new -wal exists)
         self._ids = file_ids(self._file)
         self._commits.reopen()
         if self._checkpointer is not None:
@@ -577,6 +623,8 @@ class SqliteStore:
                         logger.error("%s; %s", exc, kept)  # noqa: TRY400 - the cause says it all
                 self.closed = True
                 self._commits.close()  # (first: SQLite removes the log as it closes)
+                if self._watch is not None:
+                    self._watch.close()
                 if self._aside is None:
                     self._close_connections()
             if erase:

@@ -28,6 +28,7 @@ import rr_actors as rr
 from rr_actors import Query, UnknownQueryError
 from rr_actors._catalog import (
     Catalog,
+    Changes,
     ClientRecord,
     Resource,
     ResourceState,
@@ -275,6 +276,62 @@ def test_drain_changes_reports_touched_rows_once():
 
     assert [rid] == list(first.resources)
     assert not second
+
+
+def test_drain_changes_names_only_the_consumer_ids_added_or_released_in_their_last_order():
+    catalog = Catalog()
+    rid = loaded(catalog, "s", "x", consumer="held")
+    for n in range(5):
+        catalog.add_consumer(rid, f"h{n}", "origin")
+    other = loaded(catalog, "s", "y")
+    catalog.drain_changes()
+    catalog.add_consumer(rid, "a", "origin")
+    catalog.add_consumer(rid, "b", "origin")
+    catalog.release("h2")
+    catalog.release("a")
+    catalog.add_consumer(rid, "a", "origin")  # (last changed after b)
+    catalog.set_response(other, "new")
+
+    changes = catalog.drain_changes()
+
+    assert {rid: ["b", "h2", "a"], other: []} == {
+        r: list(ids) for r, ids in changes.consumers.items()
+    }
+
+
+def test_a_resource_marked_changed_has_every_consumer_compared_by_the_next_write():
+    catalog = Catalog()
+    rid = loaded(catalog, "s", "x")
+    catalog.drain_changes()
+    catalog.add_consumer(rid, "a", "origin")
+    catalog.drain_changes()  # (dropped: a registrar holds the write of an in-doubt resource)
+    catalog.mark_changed(rid)
+    catalog.add_consumer(rid, "b", "origin")
+
+    changes = catalog.drain_changes()
+
+    assert ([rid], {}) == (list(changes.resources), changes.consumers)
+
+
+def test_changes_merged_keep_each_resources_consumer_ids_or_compare_them_all():
+    catalog = Catalog()
+    one, two, three = (loaded(catalog, "s", n) for n in ("x", "y", "z"))
+    catalog.drain_changes()
+    catalog.add_consumer(one, "a", "origin")
+    catalog.add_consumer(two, "b", "origin")
+    pending = catalog.drain_changes()
+    catalog.release("a")
+    catalog.add_consumer(three, "c", "origin")
+    catalog.mark_changed(two)
+    later = catalog.drain_changes()
+
+    pending.update(later)
+
+    assert ([one, two, three], {one: ["a"], three: ["c"]}) == (
+        list(pending.resources),
+        {r: list(ids) for r, ids in pending.consumers.items()},
+    )
+    assert {} == Changes({two: None}, {}).consumers  # (by hand: every consumer compared)
 
 
 def test_a_catalog_nobody_persists_keeps_no_changed_rows():

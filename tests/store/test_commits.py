@@ -227,3 +227,37 @@ def test_a_commit_count_dropped_without_close_closes_its_files(tmp_path: Path) -
 
     assert (0, 1) == (opened("-commits"), opened("-wal"))
     db.close()
+
+
+def test_the_count_follows_the_log_through_its_restarts_reading_its_salts_from_memory(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The salts come from SQLite's shared memory (`-shm`, mapped): a commit reads nothing
+    from the log but at a new generation, and the count is still each generation's."""
+    file = tmp_path / "b.db"
+    db = sqlite3.connect(file, isolation_level=None)
+    db.execute("PRAGMA journal_mode=WAL")
+    db.execute("CREATE TABLE t (x)")
+    count = CommitCount(file)
+    reads = []
+    real_pread = os.pread
+
+    def pread(fd: int, size: int, offset: int) -> bytes:
+        reads.append(offset)
+        return real_pread(fd, size, offset)
+
+    monkeypatch.setattr(os, "pread", pread)
+    for n in range(300):
+        db.execute("INSERT INTO t VALUES (?)", (b"x" * 2000,))
+        count.committed()
+        if n % 50 == 49:  # (all of it copied into the file: the next commit restarts the log)
+            db.execute("PRAGMA wal_checkpoint(PASSIVE)")
+    monkeypatch.undo()
+    salts, ends = commit_ends(Path(f"{file}-wal"))
+    record = struct.unpack(">8sQ", Path(f"{file}-commits").read_bytes()[:16])
+    count.close()
+    db.close()
+
+    assert 50 == len(ends)  # (the commits since the last restart)
+    assert (salts, 50) == record
+    assert len([offset for offset in reads if offset == 0]) == 6  # one a generation

@@ -31,6 +31,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._catalog import Catalog, Changes
+from rr_actors._platform import PLATFORM
 from rr_actors._store import Saver
 from rr_actors._store.files import quarantine_backup, read_backup
 from rr_actors._store.sqlite import SqliteStore
@@ -654,6 +655,33 @@ def test_a_copy_that_could_not_be_moved_into_place_is_moved_by_the_next_write(
 
     assert (1, {"r1": ["q1", "q2"]}) == (len(copies), consumers_on_disk(path))
     assert [] == [p.name for p in tmp_path.iterdir() if p.name.endswith(".rewriting")]
+
+
+@pytest.mark.skipif(PLATFORM.name != "linux", reason="inotify tells; elsewhere it stats")
+def test_a_store_whose_names_did_not_change_stats_nothing_before_its_commits(
+    tmp_path: Path, store_at: Callable[..., SqliteStore], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The check that the path still names the file costs a `poll` a commit, not two
+    `stat` calls (the kernel tells when a name changes); the tests above show it told."""
+    path = tmp_path / "p.db"
+    store = store_at(path)
+    catalog = Catalog()
+    store.write(loaded(catalog, "r1", "q1"))  # (the first write checks, and arms the watch)
+    stats: list[str] = []
+    real_stat = os.stat
+
+    def counted(name: Any, *args: Any, **options: Any) -> os.stat_result:
+        stats.append(os.fspath(name))
+        return real_stat(name, *args, **options)
+
+    monkeypatch.setattr(os, "stat", counted)
+    for n in range(20):
+        catalog.add_consumer("r1", f"q{n + 2}", "C")
+        store.write(catalog.drain_changes())
+    monkeypatch.undo()
+
+    assert [] == [name for name in stats if name.startswith(str(path))]
+    assert 21 == len(consumers_on_disk(path)["r1"])
 
 
 # -- 8. a full disk: CatalogWriteError, and nothing is lost ------------------------------------

@@ -79,6 +79,77 @@ def test_a_reopened_backup_holds_exactly_the_catalog_written_in_any_batching(
         assert rows_of(catalog) == rows_of(reopen(path))
 
 
+class Unwalked(dict[str, str]):
+    """A resource's consumers that fail a test when something walks all of them."""
+
+    def walked(self, *_: Any) -> Any:
+        raise AssertionError("a write walked every holder of the resource")
+
+    __iter__ = keys = values = items = walked
+
+
+@pytest.mark.parametrize("holders", [1, 1000])
+def test_a_write_that_adds_or_releases_one_consumer_is_one_statement_whatever_the_holders(
+    tmp_path: Path, holders: int
+) -> None:
+    path = tmp_path / "p.db"
+    store = SqliteStore.open(path)
+    store.load()
+    catalog = Catalog()
+    catalog.begin_load("r1", "leaf", 1)
+    catalog.finish_load("r1", "loaded")
+    for n in range(holders):
+        catalog.add_consumer("r1", f"h{n}", "C")
+    store.write(catalog.drain_changes())
+    resource = catalog.resources["r1"]
+    resource.consumers = Unwalked(resource.consumers)
+    statements: list[str] = []
+    store._db.set_trace_callback(statements.append)
+
+    catalog.add_consumer("r1", "new", "C")
+    store.write(catalog.drain_changes())
+    catalog.release("h0")
+    store.write(catalog.drain_changes())
+    store.close(erase=False)
+
+    inserted = f"VALUES (1, {holders + 2}, 'new', 'C')"
+    assert [
+        f"INSERT INTO consumers (resource, seq, query_id, origin_rr) {inserted}",
+        "DELETE FROM consumers WHERE resource = 1 AND seq = 2",
+    ] == statements
+    held = reopen(path).resources["r1"].consumers
+    assert ([f"h{n}" for n in range(1, holders)] + ["new"], {"C"}) == (
+        list(held),
+        set(held.values()),
+    )
+
+
+def test_a_write_after_changes_were_dropped_writes_every_consumer_difference(
+    tmp_path: Path,
+) -> None:
+    """A registrar drops the changes of an in-doubt resource it holds, then marks it
+    changed once settled (`mark_changed`): that write compares every consumer, so those
+    added and released meanwhile reach the file too."""
+    path = tmp_path / "p.db"
+    store = SqliteStore.open(path)
+    store.load()
+    catalog = Catalog()
+    catalog.begin_load("r1", "leaf", 1)
+    catalog.finish_load("r1", "loaded")
+    for query_id in ("a", "b"):
+        catalog.add_consumer("r1", query_id, "C")
+    store.write(catalog.drain_changes())
+    catalog.add_consumer("r1", "c", "C")
+    catalog.release("a")
+    catalog.drain_changes()  # (dropped: held)
+    catalog.mark_changed("r1")
+
+    store.write(catalog.drain_changes())
+    store.close(erase=False)
+
+    assert ["b", "c"] == list(reopen(path).resources["r1"].consumers)
+
+
 def test_a_write_that_fails_leaves_the_file_and_the_next_write_intact(tmp_path: Path) -> None:
     store = SqliteStore.open(tmp_path / "p.db")
     store.load()

@@ -1,0 +1,270 @@
+"""Whether a file's names may have changed, told by the kernel (inotify), not by `stat`.
+
+What it buys: a catalog backup's store checks before each commit that its path and its
+`-wal` still name the files it opened (`SqliteStore._keep_in_place`). Two `stat` calls
+cost about 4 us a commit, most of a one-row commit's own cost (about 6 us); asking the
+kernel whether anything happened to those names costs one `poll` (about 0.3 us), and
+the `stat` calls run only after something did.
+
+```
+ arm(paths) --inotify_add_watch--> each file: its link count, attributes, a move or
+              its deletion (IN_ATTRIB, IN_MOVE_SELF, IN_DELETE_SELF; a rename over it or
+              an unlink drops its link count); each directory and symbolic link on the
+              way to it (followed and not): a move or deletion
+ quiet()   --poll(0) on the process's one inotify descriptor--> events read, each marks
+              the watches of its inode "changed" --> quiet: none marked since `arm`
+```
+
+It tells no more than that something may have changed (a `chmod` of the file marks it
+too): the caller checks with `stat` then and arms again, before it checks, so that a
+change made after the check is told next time. It is exact for what it watches:
+the kernel queues an event before the system call that caused it returns, so a change
+made before `quiet()` is asked is told by it. Not watched: a file system mounted over
+a directory of the path (which `stat` would see).
+
+One inotify instance serves every watch of the process (the kernel allows a user 128
+instances, and a test suite starts hundreds of registrars): a watch is refcounted per
+inode, since two backups in one directory share the directory's watch. A child forked
+from the process makes its own instance; a watch made in the parent is never quiet in
+the child (the caller checks with `stat` every time).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import functools
+import os
+import select
+import stat
+import struct
+import threading
+from collections.abc import Sequence
+from typing import Any
+
+from rr_actors._platform import fork
+
+__all__ = ["InotifyNameWatch", "watch_names"]
+
+_IN_ATTRIB = 0x4
+_IN_MOVE_SELF = 0x800
+_IN_DELETE_SELF = 0x400
+_IN_Q_OVERFLOW = 0x4000
+_IN_IGNORED = 0x8000
+_IN_DONT_FOLLOW = 0x02000000
+_IN_MASK_ADD = 0x20000000
+_IN_NONBLOCK = os.O_NONBLOCK
+_IN_CLOEXEC = os.O_CLOEXEC
+
+_DIRECTORY = _IN_MOVE_SELF | _IN_DELETE_SELF
+_FILE = _DIRECTORY | _IN_ATTRIB  # (a directory's link count changes with its subdirectories)
+_EVENT = struct.Struct("iIII")  # wd, mask, cookie, len (then len bytes of name)
+
+
+@functools.cache
+def _libc() -> Any:
+    """The C library's inotify functions (`None` without them)."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.inotify_init1.argtypes = [ctypes.c_int]
+        libc.inotify_add_watch.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_uint32]
+        libc.inotify_rm_watch.argtypes = [ctypes.c_int, ctypes.c_int]
+    except (OSError, AttributeError):
+        return None
+    return libc
+
+
+class _Instance:
+    """The process's inotify descriptor and which watch each of its watch descriptors
+    serves. Used from any thread (`lock`)."""
+
+    def __init__(self, libc: Any, fd: int) -> None:
+        self.libc = libc
+        self.fd = fd
+        self.lock = threading.Lock()
+        self.watches: dict[int, set[InotifyNameWatch]] = {}  # wd -> the watches it serves
+        self.forked = False  # (set in a forked child: this instance is the parent's)
+        # while a thread reads and hands out events (`quiet` then waits for it)
+        self.reading = False
+
+    def add(self, watch: InotifyNameWatch, path: bytes, mask: int) -> int | None:
+        """Watch `path` for `watch` (under `lock`); `None` if it cannot be watched."""
+        wd = self.libc.inotify_add_watch(self.fd, path, mask | _IN_MASK_ADD)
+        if wd < 0:
+            return None
+        self.watches.setdefault(wd, set()).add(watch)
+        return int(wd)
+
+    def remove(self, watch: InotifyNameWatch, wd: int) -> None:
+        """`watch` no longer needs `wd` (under `lock`); the last one removes it."""
+        served = self.watches.get(wd)
+        if served is None:
+            return
+        served.discard(watch)
+        if not served:
+            del self.watches[wd]
+            self.libc.inotify_rm_watch(self.fd, wd)  # (an error: the kernel removed it)
+
+    def drain(self) -> None:
+        """Read every queued event; mark the watches they concern (under `lock`)."""
+        self.reading = True
+        try:
+            self._drain()
+        finally:
+            self.reading = False
+
+    def _drain(self) -> None:
+        while True:
+            try:
+                data = os.read(self.fd, 65536)
+            except BlockingIOError:
+                return
+            except OSError:  # (cannot tell: every watch checks with stat)
+                data = b""
+            if not data:
+                self._mark_all()
+                return
+            offset = 0
+            while offset + _EVENT.size <= len(data):
+                wd, mask, _, length = _EVENT.unpack_from(data, offset)
+                offset += _EVENT.size + length
+                if mask & _IN_Q_OVERFLOW:  # events were lost: any name may have changed
+                    self._mark_all()
+                    continue
+                served = self.watches.get(wd, ())
+                for watch in served:
+                    watch.changed = True
+                if mask & _IN_IGNORED:  # the kernel removed the watch (its inode is gone)
+                    self.watches.pop(wd, None)
+
+    def _mark_all(self) -> None:
+        for served in self.watches.values():
+            for watch in served:
+                watch.changed = True
+
+
+_instance: _Instance | None = None
+_instance_lock = threading.Lock()
+
+
+def _shared() -> _Instance | None:
+    """The process's inotify instance, made at first use (`None`: inotify is missing or
+    refused, the limit of instances reached say)."""
+    global _instance
+    with _instance_lock:
+        if _instance is None:
+            libc = _libc()
+            if libc is None:
+                return None
+            fd = libc.inotify_init1(_IN_NONBLOCK | _IN_CLOEXEC)
+            if fd < 0:
+                return None
+            _instance = _Instance(libc, fd)
+        return _instance
+
+
+def _forget_in_child() -> None:
+    """In a forked child: the parent's instance is not the child's (its events are the
+    parent's to read); the child makes its own at its first watch."""
+    global _instance, _instance_lock
+    _instance_lock = threading.Lock()  # (a thread of the parent may have held it)
+    if _instance is not None:
+        _instance.forked = True
+        with contextlib.suppress(OSError):
+            os.close(_instance.fd)
+        _instance = None
+
+
+fork.after_fork_in_child("the inotify instance", _forget_in_child)
+
+
+class InotifyNameWatch:
+    """Tells whether the names it was armed with may have changed (see the module).
+
+    Used by one thread at a time (a store's), any number of them in one process.
+    """
+
+    def __init__(self, instance: _Instance) -> None:
+        self._instance = instance
+        # its own: one poll object polled by two threads at once raises RuntimeError
+        self._poll = select.poll()
+        self._poll.register(instance.fd, select.POLLIN)
+        self._wds: list[int] = []
+        self.changed = True  # (not armed yet)
+
+    def arm(self, paths: Sequence[str]) -> bool:
+        """Watch `paths` (each an absolute path of a file that exists) from now on,
+        instead of what was watched before; the watch is quiet until one may change.
+
+        Returns:
+            Whether every one could be watched; if not, the watch is never quiet (the
+            caller checks with `stat` every time) until an `arm` that succeeds.
+        """
+        instance = self._instance
+        with instance.lock:
+            self._forget()
+            if instance.forked:
+                return False
+            targets, watched = _targets(paths)
+            for target, mask in targets:
+                wd = instance.add(self, target, mask)
+                if wd is None:
+                    watched = False
+                else:
+                    self._wds.append(wd)
+            self.changed = not watched
+            return watched
+
+    def quiet(self) -> bool:
+        """Whether nothing happened to the names armed since `arm` (about 0.3 us)."""
+        instance = self._instance
+        if instance.forked:  # (its descriptor is closed here, its number maybe reused)
+            return False
+        # Nothing queued and no thread handing events out (it sets `reading` before it
+        # reads them, clears it once it marked their watches): no event concerns this one.
+        if self._poll.poll(0) or instance.reading:
+            with instance.lock:
+                instance.drain()
+        return not self.changed
+
+    def close(self) -> None:
+        """Stop watching (idempotent)."""
+        instance = self._instance
+        with instance.lock:
+            self._forget()
+            self.changed = True
+
+    def _forget(self) -> None:
+        if not self._instance.forked:
+            for wd in self._wds:
+                self._instance.remove(self, wd)
+        self._wds = []
+
+
+def _targets(paths: Sequence[str]) -> tuple[list[tuple[bytes, int]], bool]:
+    """What to watch for `paths`: each file, and each directory and symbolic link on the
+    way to it, as itself and as what it points to (`IN_DONT_FOLLOW` or not); and whether
+    every one exists (else nothing would tell that it comes back)."""
+    targets: dict[tuple[bytes, int], None] = {}
+    complete = True
+    for path in paths:
+        parts = path.split(os.sep)
+        for end in range(2, len(parts) + 1):  # (not the root: it cannot move)
+            prefix = os.sep.join(parts[:end])
+            name = os.fsencode(prefix)
+            try:
+                own = os.lstat(prefix).st_mode
+                pointed = os.stat(prefix).st_mode
+            except OSError:
+                complete = False
+                continue
+            targets[(name, (_DIRECTORY if stat.S_ISDIR(own) else _FILE) | _IN_DONT_FOLLOW)] = None
+            if stat.S_ISLNK(own):
+                targets[(name, _DIRECTORY if stat.S_ISDIR(pointed) else _FILE)] = None
+    return list(targets), complete
+
+
+def watch_names() -> InotifyNameWatch | None:
+    """A new watch, not armed yet; `None` where inotify cannot be used."""
+    instance = _shared()
+    return None if instance is None else InotifyNameWatch(instance)

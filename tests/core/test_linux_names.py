@@ -1,0 +1,209 @@
+"""Whether a file's names may have changed, told by inotify (`rr_actors._platform.linux_names`).
+
+- A watch armed on a SQLite file and its `-wal` stays quiet through commits and
+  checkpoints (else every commit would `stat` again), and is told, before the next call
+  returns, of each way a backup's name can lose its file: the file or its `-wal` deleted
+  or replaced, its directory renamed, a symbolic link of the path pointed elsewhere.
+- Two watches that share a directory each keep its watch until both let go; two threads
+  asking theirs at once (two stores' registrars) both get answers.
+- A child forked from the process: a watch of the parent is never quiet there.
+"""
+
+from __future__ import annotations
+
+import os
+import sqlite3
+import subprocess
+import sys
+import textwrap
+import threading
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+
+from rr_actors._platform.linux_names import InotifyNameWatch, watch_names
+
+pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="inotify")
+
+
+@pytest.fixture
+def armed(tmp_path: Path) -> Iterator[tuple[Path, sqlite3.Connection, InotifyNameWatch]]:
+    """A WAL-mode SQLite file at `<tmp>/d/p.db` (through a symbolic link `<tmp>/link`), a
+    commit made, and a watch armed on its names."""
+    (tmp_path / "d").mkdir()
+    (tmp_path / "link").symlink_to(tmp_path / "d")
+    path = tmp_path / "link" / "p.db"
+    db = sqlite3.connect(path, isolation_level=None)
+    db.execute("PRAGMA journal_mode=WAL")
+    db.execute("CREATE TABLE t (x)")
+    watch = watch_names()
+    assert watch is not None
+    assert watch.arm([str(path), f"{path}-wal"])
+    try:
+        yield path, db, watch
+    finally:
+        watch.close()
+        db.close()
+
+
+def test_an_armed_watch_stays_quiet_through_commits_and_checkpoints(
+    armed: tuple[Path, sqlite3.Connection, InotifyNameWatch],
+) -> None:
+    _, db, watch = armed
+    for n in range(3000):
+        db.execute("INSERT INTO t VALUES (?)", (b"x" * 1000,))
+        if n % 500 == 0:
+            db.execute("PRAGMA wal_checkpoint(PASSIVE)")
+    db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+    db.execute("INSERT INTO t VALUES (1)")
+
+    assert watch.quiet()
+
+
+def replace(path: Path) -> None:
+    other = path.with_name("other")
+    other.write_bytes(b"another program's file")
+    other.replace(path)
+
+
+def relink(path: Path) -> None:
+    link = path.parent
+    (link.parent / "elsewhere").mkdir()
+    link.unlink()
+    link.symlink_to(link.parent / "elsewhere")
+
+
+def rename_directory(path: Path) -> None:
+    path.resolve().parent.rename(path.parent.parent / "moved")
+
+
+def remove_another_name(path: Path) -> None:
+    os.link(path, f"{path}.2")
+    os.unlink(f"{path}.2")
+
+
+CHANGES: dict[str, Callable[[Path], None]] = {
+    "file deleted": lambda path: path.unlink(),
+    "-wal deleted": lambda path: Path(f"{path}-wal").unlink(),
+    "file replaced": replace,
+    "-wal replaced": lambda path: replace(Path(f"{path}-wal")),
+    "directory renamed": rename_directory,
+    "link pointed elsewhere": relink,
+    "another name removed": remove_another_name,
+}
+
+
+@pytest.mark.parametrize("change", CHANGES.values(), ids=CHANGES.keys())
+def test_a_watch_is_told_of_each_way_a_name_loses_its_file(
+    armed: tuple[Path, sqlite3.Connection, InotifyNameWatch], change: Callable[[Path], None]
+) -> None:
+    path, _, watch = armed
+    assert watch.quiet()
+
+    change(path)
+
+    assert not watch.quiet()
+    assert not watch.quiet()  # (until armed again)
+
+
+def test_two_watches_of_one_directory_each_keep_its_watch_until_both_let_go(
+    tmp_path: Path,
+) -> None:
+    (tmp_path / "d").mkdir()
+    one, two = tmp_path / "d" / "one", tmp_path / "d" / "two"
+    one.touch()
+    two.touch()
+    first, second = watch_names(), watch_names()
+    assert first is not None
+    assert second is not None
+    assert first.arm([str(one)])
+    assert second.arm([str(two)])
+
+    first.close()
+    (tmp_path / "d").rename(tmp_path / "moved")
+
+    assert (False, False) == (first.quiet(), second.quiet())
+    second.close()
+
+
+def test_two_threads_ask_their_watches_at_once(tmp_path: Path) -> None:
+    paths = [tmp_path / "one", tmp_path / "two"]
+    errors: list[BaseException] = []
+    answers: list[bool] = []
+
+    def ask(path: Path) -> None:
+        path.touch()
+        watch = watch_names()
+        assert watch is not None
+        watch.arm([str(path)])
+        try:
+            answers.append(all(watch.quiet() for _ in range(20_000)))
+        except BaseException as exc:  # (a RuntimeError from a poll object asked twice)
+            errors.append(exc)
+        finally:
+            watch.close()
+
+    threads = [threading.Thread(target=ask, args=(path,)) for path in paths]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=60)
+
+    assert ([], [True, True]) == (errors, answers)
+
+
+def test_a_watch_armed_again_is_quiet_until_the_next_change(tmp_path: Path) -> None:
+    path = tmp_path / "p"
+    path.touch()
+    watch = watch_names()
+    assert watch is not None
+    watch.arm([str(path)])
+    replace(path)
+    assert not watch.quiet()
+
+    assert watch.arm([str(path)])
+    quiet_after_arming = watch.quiet()
+    path.unlink()
+
+    assert (True, False) == (quiet_after_arming, watch.quiet())
+    assert not watch.arm([str(path)])  # (a name of no file: never quiet)
+    assert not watch.quiet()
+    watch.close()
+
+
+FORKED = textwrap.dedent(
+    """
+    import os, sys
+    from rr_actors._platform.linux_names import watch_names
+
+    watch = watch_names()
+    watch.arm([sys.argv[1]])
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:
+        child = watch_names()
+        armed = child.arm([sys.argv[1]])
+        os.write(write, f"{watch.quiet()} {armed} {child.quiet()}".encode())
+        os._exit(0)
+    os.waitpid(pid, 0)
+    print(os.read(read, 100).decode(), watch.quiet())
+    """
+)
+
+
+def test_a_watch_of_the_parent_is_never_quiet_in_a_forked_child(tmp_path: Path) -> None:
+    """In the child, the parent's watch says "may have changed" (the caller stats); one
+    the child makes works; the parent's own goes on as before."""
+    path = tmp_path / "p"
+    path.touch()
+
+    done = subprocess.run(
+        [sys.executable, "-c", FORKED, str(path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=True,
+    )
+
+    assert "False True True True" == done.stdout.strip()
