@@ -32,7 +32,7 @@ Runs only in manager processes (never in the supervisor's process). In the child
    ping  ─────────────────── Ping(n) ──────────────────────────►  registrar mailbox
          ◄──────────────── Pong(n, trouble)  (None, or (seconds, why) it cannot accept)
    events ───────────────── Forward(on) ───────────────────────►  forward events or not
-         ◄──────────────── Events([event, ...])  (batches, while on)
+         ◄──────────────── Events([event, ...])  (batches, while on; a start's after Ready)
    sync  ─────────────────── SyncEvents(n, timeout) ───────────►  send what is buffered
          ◄──────────────── EventsSynced(n)  (after those batches)
    stop  ─────────────────── Stop(timeout, restarting) ────────►  registrar.stop(); exit 0
@@ -57,6 +57,7 @@ import socket
 import struct
 import sys
 import threading
+import time
 import traceback
 from collections.abc import Callable
 from multiprocessing.connection import Connection
@@ -103,6 +104,10 @@ if TYPE_CHECKING:
 __all__ = ["main", "set_title", "standby"]
 
 logger = logging.getLogger("rr_actors")
+
+START_HOLD = 1.0
+"""Seconds at most the events of a start are held back from the supervisor's process
+(`_EventLine`): `Ready` goes first; a setup that takes longer forwards from then on."""
 
 
 def set_title(name: str) -> None:
@@ -292,9 +297,25 @@ class _EventLine:
     registrar is `active` (builds events) only then. The forwarder (and its thread) is
     made at the first switch on, not at the start: most managers never forward (their
     tree has no listener), and a thread less is a shorter start.
+
+    The events of the start (its `CatalogRestored`, which lists the restored catalog, up
+    to 10,000 rows of each kind; its setup's) are journaled as they are published but
+    sent only after `Ready` (`started`), or once the start took `START_HOLD` seconds:
+    a restart is not held up by their pickling, their passage through the pipe and their
+    unpickling in the supervisor's process, which reads `Ready` first. Their order is
+    kept: they are sent in the order they were published, before any event published
+    after them.
     """
 
-    def __init__(self, control: _Control, name: str, *, on: bool, tally: str | None) -> None:
+    def __init__(
+        self,
+        control: _Control,
+        name: str,
+        *,
+        on: bool,
+        tally: str | None,
+        hold: float = START_HOLD,
+    ) -> None:
         self.control = control
         self.name = name
         # a SIGKILL loses what is not sent yet: the journal keeps it, the tally counts it
@@ -304,7 +325,13 @@ class _EventLine:
         self.forwarder: Forwarder[events.Event] | None = None
         self.sink: Callable[[events.Event], None] | None = None
         self.on = False
+        self._held = threading.Event()  # set: the start is over, batches go at once
+        self._hold_until = time.monotonic() + hold
         self.switch(on=on)
+
+    def started(self) -> None:
+        """`Ready` (or `Failed`) was sent: send the events held back (any thread)."""
+        self._held.set()
 
     @staticmethod
     def _keep_and_forward(
@@ -314,6 +341,8 @@ class _EventLine:
         forwarder(event)
 
     def _send(self, control: _Control, batch: list[events.Event]) -> None:
+        if not self._held.is_set():  # (the forwarder's thread: held back, in order)
+            self._held.wait(max(0.0, self._hold_until - time.monotonic()))
         control.send(Events(batch))
         if self.journal is not None:
             self.journal.sent()
@@ -375,6 +404,8 @@ def _run_manager(
             attached.serve(Served(registrar))
     except BaseException as exc:  # noqa: BLE001 - reported to the supervisor, then exit
         corrupt = exc if isinstance(exc, CatalogCorruptError) else None  # (its path matters)
+        line.started()  # what it published before it failed goes first (as it can)
+        line.flush(timeout=1.0)
         control.send(Failed("".join(traceback.format_exception(exc)), corrupt))
         os._exit(1)
     stopping = threading.Event()
@@ -388,6 +419,7 @@ def _run_manager(
         _exit(ACTOR_DIED_EXIT, attached)
 
     control.send(Ready(os.getpid()))
+    line.started()  # the events of its start follow `Ready`, in their order
     # after `Ready`: a death before it started is seen at once (`_wait_stopped` returns)
     threading.Thread(target=watch_actor, name="rr-manager-actor-watch", daemon=True).start()
     _ControlLoop(conn, control, registrar, attached, stopping, line).run()
