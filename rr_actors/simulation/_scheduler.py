@@ -202,7 +202,7 @@ class Scheduler:
         self._choices = random.Random(seed)  # noqa: S311 - (a replayable run, not a secret)
         self.data = random.Random(f"rr_actors.simulation data {seed}")  # noqa: S311
         self.preempt = preempt
-        self._gap = self._next_gap()  # choice points left before the next yield
+        self.gap = self._next_gap()  # choice points left before the next yield
         self.now = 0.0  # virtual seconds since the run began
         self.steps = 0
         self._locals = locals
@@ -317,13 +317,21 @@ class Scheduler:
 
     def pause(self) -> None:
         """A choice point: with probability `preempt`, the calling task yields and the
-        scheduler chooses again (it may choose the same task)."""
-        self._gap -= 1
-        if self._gap < 0:
-            self._gap = self._next_gap()
-            task = self.current_or_none()
-            if task is not None:
-                self.block((self, "pause"), self.now)
+        scheduler chooses again (it may choose the same task).
+
+        The primitives inline it (`gap -= 1`, then `yield_now()` if it went below 0): a
+        run has hundreds of thousands of choice points."""
+        self.gap -= 1
+        if self.gap < 0:
+            self.yield_now()
+
+    def yield_now(self) -> None:
+        """The choice point whose turn it is to yield (`gap` below 0): the next gap is
+        drawn, and the calling task (if a task calls) yields."""
+        self.gap = self._next_gap()
+        task = self.current_or_none()
+        if task is not None:
+            self.block((self, "pause"), self.now)
 
     def _next_gap(self) -> int:
         """Choice points that pass before the next yield: `k` with probability
@@ -450,7 +458,7 @@ class Scheduler:
         thrown it again, `DROP_TRIES` times at most.
         """
         self.preempt = 0.0  # (no choice points: a `finally` block runs through)
-        self._gap = self._next_gap()
+        self.gap = self._next_gap()
         stuck = 0
         with _quiet():
             for task in self._tasks:
