@@ -76,7 +76,7 @@ class Lock:
 
     def __init__(self, sched: Scheduler) -> None:
         self._sched = sched
-        maker = sched.current_or_none()
+        maker = sched.running
         self.maker = None if maker is None else maker.process  # (`Scheduler.end`)
         self._locked = False
         self._holder: Task | None = None  # who holds it (for reports; `let_go`)
@@ -98,7 +98,7 @@ class Lock:
             if not self._wait(sched, _deadline(sched, timeout)):
                 return False
         self._locked = True
-        holder = self._holder = sched.current_or_none()
+        holder = self._holder = sched.running
         if holder is not None:
             holder.held.append(self)
         return True
@@ -184,7 +184,7 @@ class RLock(Lock):
 
     def acquire(self, blocking: bool = True, timeout: float = -1) -> bool:
         sched = self._sched
-        me = sched.current_or_none()
+        me = sched.running
         if self._locked and self._holder is me:
             self._count += 1
             return True
@@ -196,7 +196,7 @@ class RLock(Lock):
     __enter__ = acquire
 
     def release(self) -> None:
-        if not self._locked or self._holder is not self._sched.current_or_none():
+        if not self._locked or self._holder is not self._sched.running:
             raise RuntimeError("cannot release un-acquired lock")
         self._count -= 1
         if not self._count:
@@ -221,7 +221,7 @@ class RLock(Lock):
         self._count = count
 
     def _is_owned(self) -> bool:
-        return self._locked and self._holder is self._sched.current_or_none()
+        return self._locked and self._holder is self._sched.running
 
 
 class Condition:
