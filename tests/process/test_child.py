@@ -418,3 +418,33 @@ def test_a_subscriber_blocked_on_catalog_restored_does_not_delay_serving(tmp_pat
     for kinds in by_pid.values():
         assert kinds[0] is rr.events.CatalogRestored
         assert rr.events.CatalogRestored not in kinds[1:]
+
+
+def test_an_event_forwarded_as_its_journal_pickle_arrives_as_the_event(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """The forwarder sends the journal's pickle of an event, not the event pickled again:
+    the supervisor's process unpickles the event itself, in the order published."""
+    import pickle  # noqa: PLC0415
+
+    from rr_actors._process import child  # noqa: PLC0415
+    from rr_actors._process.tally import Tally  # noqa: PLC0415
+
+    monkeypatch.setattr(child, "number_events", lambda: None)
+    tally = Tally.create()
+    assert tally is not None
+    sent = _Sent()
+    line = child._EventLine(sent, "kept", on=True, tally=tally.path, hold=60.0)  # type: ignore[arg-type]
+    try:
+        published = [rr.events.ChildRestarted("sup", f"c{n}", n, 0.0) for n in range(3)]
+        for event in published:
+            line.hub.publish(event)
+        line.started()
+        assert line.forwarder.wait_sent(timeout=10.0)
+
+        batches = [pickle.loads(pickle.dumps(m)) for m in sent.messages]
+        assert published == [e for m in batches for e in m.batch]
+        assert all(isinstance(e, child._Pickled) for m in sent.messages for e in m.batch)
+    finally:
+        line.flush(timeout=5.0)
+        tally.close()
