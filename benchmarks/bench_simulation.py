@@ -200,7 +200,9 @@ def cpu_samples(stacks: Counter[str], every: float = 0.001) -> Iterator[None]:
     if threading.current_thread() is not threading.main_thread():
         raise RuntimeError("CPU samples are taken in the main thread only")
     threads = _run.threading
-    _run.threading = types.SimpleNamespace(Thread=_Inline, get_ident=threading.get_ident)  # type: ignore[assignment]
+    _run.threading = types.SimpleNamespace(  # type: ignore[assignment]
+        Thread=_Inline, Event=threading.Event, get_ident=threading.get_ident
+    )
     previous = signal.signal(signal.SIGPROF, sample)
     signal.setitimer(signal.ITIMER_PROF, every, every)
     try:

@@ -30,8 +30,15 @@ before its `Supervisor` did (CPython's forkserver started without rr_actors' pre
 Target (issue 34 item 6): the same serving times with and without it (the figures of
 either come from separate runs, alternated: which forkserver runs is per program).
 
+`--subscriber` compares kill to serving with and without a subscriber (issue 52 part 5),
+round robin in one run: a fork floor (a bare child of this process SIGKILLed, its exit
+waited on, a new one forked and its first byte read from a pipe), then the manager
+killed with nobody subscribed (its events are not built), then with a subscriber that
+takes every event. Targets: with a subscriber within 1.3x without, and within 2x the
+fork floor (medians).
+
 Run: `python benchmarks/bench_supervisor.py [--sizes 1000 100000] [--crashes 10] [--gap 0.2]
-[--forkserver-first]`
+[--forkserver-first] [--subscriber [--rounds 5]]`
 """
 
 from __future__ import annotations
@@ -128,6 +135,106 @@ def measure(entries: int, crashes: int, gap: float) -> tuple[list[float], ...]:
     return detect, restart, serve
 
 
+def measure_serving(entries: int, crashes: int, gap: float, *, subscribed: bool) -> list[float]:
+    """Milliseconds from each SIGKILL until a call the new incarnation answered returned,
+    with a subscriber that takes every event of the tree, or with nobody subscribed."""
+    tag = uuid.uuid4().hex[:6]
+    name, app_name = f"bench-{tag}", f"app-{tag}"
+    heard: list[rr.events.Event] = []
+    serve: list[float] = []
+    with tempfile.TemporaryDirectory() as state_dir:
+        fill_backup(Path(state_dir) / f"{name}.db", entries)
+        spec = rr.ManagerSpec(name, setup, isolation="process", start_timeout=120.0)
+        sup = rr.Supervisor([spec], max_restarts=crashes + 1, period=3600.0, state_dir=state_dir)
+        subscription = sup.subscribe(heard.append) if subscribed else None
+        try:
+            with sup:
+                app = sup.registrar(app_name)
+                app.call(name, "res", "warm-up", timeout=60.0)
+                for n in range(crashes):
+                    time.sleep(gap)  # let the previous restart settle (spare warmed up)
+                    pid = sup.child(name).pid
+                    assert pid is not None
+                    killed = time.perf_counter()
+                    os.kill(pid, signal.SIGKILL)
+                    sup.wait_restarted(name, timeout=120.0)
+                    app.call(name, "res", f"after-{n}", timeout=60.0)
+                    serve.append((time.perf_counter() - killed) * 1000)
+        finally:
+            if subscription is not None:
+                subscription.close()
+    if subscribed:
+        assert any(isinstance(e, rr.events.CatalogRestored) for e in heard), "no CatalogRestored"
+    return serve
+
+
+def _forked() -> tuple[int, int]:
+    """Fork a bare child that writes one byte to a pipe, then idles until killed; the
+    child's pid and the pipe's read end, once the byte came."""
+    read_end, write_end = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: say so, then wait to be killed
+        try:
+            os.write(write_end, b"r")
+            while True:
+                signal.pause()
+        finally:
+            os._exit(0)
+    os.close(write_end)
+    os.read(read_end, 1)
+    return pid, read_end
+
+
+def fork_floor(kills: int, gap: float) -> list[float]:
+    """Milliseconds from the SIGKILL of a bare forked process to a round trip with a new
+    one: its exit waited on (`waitpid`), a new process forked (`os.fork` of this one) and
+    its first byte read. What a restart costs with nothing to restore, set up or serve."""
+    times: list[float] = []
+    pid, read_end = _forked()
+    for _ in range(kills):
+        time.sleep(gap)
+        killed = time.perf_counter()
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+        os.close(read_end)
+        pid, read_end = _forked()
+        times.append((time.perf_counter() - killed) * 1000)
+    os.kill(pid, signal.SIGKILL)
+    os.waitpid(pid, 0)
+    os.close(read_end)
+    return times
+
+
+def compare_subscriber(entries: int, crashes: int, gap: float, rounds: int) -> None:
+    """Round robin: fork floor, serving without a subscriber, serving with one."""
+    floor: list[float] = []
+    without: list[float] = []
+    with_sub: list[float] = []
+    for n in range(rounds):
+        floor += fork_floor(crashes, gap)
+        without += measure_serving(entries, crashes, gap, subscribed=False)
+        with_sub += measure_serving(entries, crashes, gap, subscribed=True)
+        print(
+            f"round {n + 1}: floor {statistics.median(floor):.1f} ms, without "
+            f"{statistics.median(without):.1f} ms, with {statistics.median(with_sub):.1f} ms"
+            " (medians so far)",
+            flush=True,
+        )
+    f_med, w_med, s_med = (statistics.median(x) for x in (floor, without, with_sub))
+    print(f"kill to serving at {entries} entries, {rounds} rounds of {crashes} kills, ms")
+    print(f"{'':>18} | {'median':>7} | {'p90':>7}")
+    for label, values in (
+        ("fork floor", floor),
+        ("no subscriber", without),
+        ("subscriber", with_sub),
+    ):
+        print(f"{label:>18} | {statistics.median(values):>7.1f} | {p90(values):>7.1f}")
+    print(
+        f"subscriber / none: {s_med / w_med:.2f}x (target <= 1.3x); subscriber / fork floor: "
+        f"{s_med / f_med:.2f}x (target <= 2x); none / fork floor: {w_med / f_med:.2f}x"
+    )
+
+
 def _hold(entries: int, ready: Connection) -> None:
     """A bare child process: hold `entries` dict entries, say so, then idle until killed."""
     held = {f"{n:036d}": str(n) for n in range(entries)}
@@ -182,10 +289,21 @@ def main() -> None:
         action="store_true",
         help="run a multiprocessing forkserver Process before rr_actors starts its own",
     )
+    parser.add_argument(
+        "--subscriber",
+        action="store_true",
+        help="compare kill to serving with and without a subscriber, and a fork floor",
+    )
+    parser.add_argument("--rounds", type=int, default=5, help="round robin rounds (--subscriber)")
     args = parser.parse_args()
     if args.forkserver_first:
         use_forkserver_first()
     start_forkserver()
+    if args.subscriber:
+        for entries in args.sizes:
+            compare_subscriber(entries, args.crashes, args.gap, args.rounds)
+        print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+        return
     rows: list[tuple[Any, ...]] = []
     served: dict[int, list[float]] = {}
     for entries in args.sizes:

@@ -32,7 +32,7 @@ Runs only in manager processes (never in the supervisor's process). In the child
    ping  ─────────────────── Ping(n) ──────────────────────────►  registrar mailbox
          ◄──────────────── Pong(n, trouble)  (None, or (seconds, why) it cannot accept)
    events ───────────────── Forward(on) ───────────────────────►  forward events or not
-         ◄──────────────── Events([event, ...])  (batches, while on)
+         ◄──────────────── Events([event, ...])  (batches, while on; a start's after Ready)
    sync  ─────────────────── SyncEvents(n, timeout) ───────────►  send what is buffered
          ◄──────────────── EventsSynced(n)  (after those batches)
    stop  ─────────────────── Stop(timeout, restarting) ────────►  registrar.stop(); exit 0
@@ -52,11 +52,13 @@ import contextlib
 import functools
 import logging
 import os
+import pickle
 import signal
 import socket
 import struct
 import sys
 import threading
+import time
 import traceback
 from collections.abc import Callable
 from multiprocessing.connection import Connection
@@ -103,6 +105,10 @@ if TYPE_CHECKING:
 __all__ = ["main", "set_title", "standby"]
 
 logger = logging.getLogger("rr_actors")
+
+START_HOLD = 1.0
+"""Seconds at most the events of a start are held back from the supervisor's process
+(`_EventLine`): `Ready` goes first; a setup that takes longer forwards from then on."""
 
 
 def set_title(name: str) -> None:
@@ -284,6 +290,21 @@ def standby(conn: Connection, parent: int | None = None, warm: bool = True) -> N
     _run_manager(start.setup, start.config, start.address, conn, start.forward, start.tally)
 
 
+class _Pickled:
+    """An event as the journal pickled it, forwarded in its place: pickled in a batch, it
+    is those bytes (copied), not the event's fields walked again, and it unpickles as the
+    event in the supervisor's process (`pickle.loads` of them). A restart's
+    `CatalogRestored` (up to 10,000 rows of each kind) is pickled once, not twice."""
+
+    __slots__ = ("data",)
+
+    def __init__(self, data: bytes) -> None:
+        self.data = data
+
+    def __reduce__(self) -> tuple[Callable[[bytes], Any], tuple[bytes]]:
+        return pickle.loads, (self.data,)
+
+
 class _EventLine:
     """Forwards this process's registrar events to the supervisor's process while asked to.
 
@@ -292,9 +313,25 @@ class _EventLine:
     registrar is `active` (builds events) only then. The forwarder (and its thread) is
     made at the first switch on, not at the start: most managers never forward (their
     tree has no listener), and a thread less is a shorter start.
+
+    The events of the start (its `CatalogRestored`, which lists the restored catalog, up
+    to 10,000 rows of each kind; its setup's) are journaled as they are published but
+    sent only after `Ready` (`started`), or once the start took `START_HOLD` seconds:
+    a restart is not held up by their pickling, their passage through the pipe and their
+    unpickling in the supervisor's process, which reads `Ready` first. Their order is
+    kept: they are sent in the order they were published, before any event published
+    after them.
     """
 
-    def __init__(self, control: _Control, name: str, *, on: bool, tally: str | None) -> None:
+    def __init__(
+        self,
+        control: _Control,
+        name: str,
+        *,
+        on: bool,
+        tally: str | None,
+        hold: float = START_HOLD,
+    ) -> None:
         self.control = control
         self.name = name
         # a SIGKILL loses what is not sent yet: the journal keeps it, the tally counts it
@@ -304,16 +341,24 @@ class _EventLine:
         self.forwarder: Forwarder[events.Event] | None = None
         self.sink: Callable[[events.Event], None] | None = None
         self.on = False
+        self._held = threading.Event()  # set: the start is over, batches go at once
+        self._hold_until = time.monotonic() + hold
         self.switch(on=on)
+
+    def started(self) -> None:
+        """`Ready` (or `Failed`) was sent: send the events held back (any thread)."""
+        self._held.set()
 
     @staticmethod
     def _keep_and_forward(
         journal: Journal, forwarder: Forwarder[events.Event], event: events.Event
     ) -> None:
-        journal(event)
-        forwarder(event)
+        data = journal(event)
+        forwarder(event if data is None else _Pickled(data))  # type: ignore[arg-type]
 
     def _send(self, control: _Control, batch: list[events.Event]) -> None:
+        if not self._held.is_set():  # (the forwarder's thread: held back, in order)
+            self._held.wait(max(0.0, self._hold_until - time.monotonic()))
         control.send(Events(batch))
         if self.journal is not None:
             self.journal.sent()
@@ -375,6 +420,8 @@ def _run_manager(
             attached.serve(Served(registrar))
     except BaseException as exc:  # noqa: BLE001 - reported to the supervisor, then exit
         corrupt = exc if isinstance(exc, CatalogCorruptError) else None  # (its path matters)
+        line.started()  # what it published before it failed goes first (as it can)
+        line.flush(timeout=1.0)
         control.send(Failed("".join(traceback.format_exception(exc)), corrupt))
         os._exit(1)
     stopping = threading.Event()
@@ -388,6 +435,7 @@ def _run_manager(
         _exit(ACTOR_DIED_EXIT, attached)
 
     control.send(Ready(os.getpid()))
+    line.started()  # the events of its start follow `Ready`, in their order
     # after `Ready`: a death before it started is seen at once (`_wait_stopped` returns)
     threading.Thread(target=watch_actor, name="rr-manager-actor-watch", daemon=True).start()
     _ControlLoop(conn, control, registrar, attached, stopping, line).run()

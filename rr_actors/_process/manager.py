@@ -548,10 +548,12 @@ def _await_ready(
 ) -> None:
     """Wait for the manager's `ready` (skipping a spare's `warm`); raise if it never comes.
 
-    The events it forwards before it is ready (its restore's, its setup's) go to
-    `received` as they come, and so do those of a start that fails (with the count of
-    those it built and never sent). `deadline` (`runtime.monotonic`) ends the
-    `start_timeout` that began before the process was forked (default: from now).
+    A manager sends the events of its start (its restore's, its setup's) after `Ready`
+    (the watcher thread reads them), unless its start takes longer than the child's
+    `START_HOLD`: those that come before go to `received` as they come, and so do those
+    of a start that fails (with the count of those it built and never sent). `deadline`
+    (`runtime.monotonic`) ends the `start_timeout` that began before the process was
+    forked (default: from now).
     """
     if deadline is None:
         deadline = runtime.monotonic() + start_timeout

@@ -180,17 +180,24 @@ class Journal:
         view = memoryview(mapped).cast("Q")
         return cls(path, functools.partial(view.__setitem__, 0), fd)  # one C call per event
 
-    def __call__(self, event: Any) -> None:
-        """Append `event` (a sink of the manager's event hub: the publishing thread)."""
+    def __call__(self, event: Any) -> bytes | None:
+        """Append `event` (a sink of the manager's event hub: the publishing thread).
+
+        Returns:
+            Its pickle (what the forwarder may send instead of pickling it again), or
+            `None` if it could not be kept.
+        """
         seq = getattr(event, "seq", 0)
+        data: bytes | None = None
         try:  # per event: a try costs nothing, `suppress` a context manager
             data = self._dumps(event)
             self._write(self._fd, _RECORD.pack(seq, len(data)) + data)  # one write: one record
         except (OSError, pickle.PicklingError, TypeError, AttributeError, struct.error):
-            pass  # not kept: if the process dies before it sends it, it is counted lost
+            data = None  # not kept: if the process dies before it sends it, it is counted lost
         if seq > self._last:  # (events built on two threads may come out of order)
             self._last = seq
             self._mark(seq)
+        return data
 
     def sent(self) -> None:
         """A batch was sent (the forwarder's thread): cut the journal back if it is big."""

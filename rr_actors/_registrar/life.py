@@ -1095,12 +1095,14 @@ def _catalog_rows(shared: Shared) -> dict[str, object]:
             "digest": "",
         }
     kinds: tuple[Rows, Rows, Rows] = (tuple(rows[0]), tuple(rows[1]), clients)
-    digest = hashlib.sha256()
-    for listed in kinds:
-        for row in sorted(listed):
-            digest.update("\x1f".join(row).encode())
-            digest.update(b"\x1e")
-        digest.update(b"\x1d")
+    # each row's fields joined by \x1f and ended by \x1e, each kind ended by \x1d: hashed
+    # as one string (one `update`, not two per row)
+    digest = hashlib.sha256(
+        "".join(
+            "".join("\x1f".join(row) + "\x1e" for row in sorted(listed)) + "\x1d"
+            for listed in kinds
+        ).encode()
+    )
     return {
         "resources": kinds[0],
         "consumers": kinds[1],

@@ -24,7 +24,10 @@ kill is `Scheduler.end(process, -SIGKILL)`: its tasks never run again, its backu
 keeps what committed. Its `stop_process`/`continue_process` are SIGSTOP and SIGCONT.
 While the tree has listeners (`Forward(on)`), the registrar's events go to the parent one
 by one on the same queue (`Events`), before the answer to a `SyncEvents`; what a kill
-kept from being sent is not counted (no tally: issue 42, step 3).
+kept from being sent is not counted (no tally: issue 42, step 3). Those of its start go
+as they are published, before `Ready`, where a real manager process holds them until
+after `Ready` (`_process/child.py`): no rule of the checker depends on the order of a
+manager's events and its supervisor's, and each seed keeps the history it had.
 """
 
 from __future__ import annotations

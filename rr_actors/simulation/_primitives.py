@@ -76,7 +76,7 @@ class Lock:
 
     def __init__(self, sched: Scheduler) -> None:
         self._sched = sched
-        maker = sched.current_or_none()
+        maker = sched.running
         self.maker = None if maker is None else maker.process  # (`Scheduler.end`)
         self._locked = False
         self._holder: Task | None = None  # who holds it (for reports; `let_go`)
@@ -89,14 +89,16 @@ class Lock:
 
     def acquire(self, blocking: bool = True, timeout: float = -1) -> bool:
         sched = self._sched
-        sched.pause()
+        sched.gap -= 1  # (`Scheduler.pause`, inline: the commonest operation of a run)
+        if sched.gap < 0:
+            sched.yield_now()
         if self._locked:
             if not blocking:
                 return False
             if not self._wait(sched, _deadline(sched, timeout)):
                 return False
         self._locked = True
-        holder = self._holder = sched.current_or_none()
+        holder = self._holder = sched.running
         if holder is not None:
             holder.held.append(self)
         return True
@@ -117,7 +119,10 @@ class Lock:
         if not self._locked:
             raise RuntimeError("release unlocked lock")
         self._free()
-        self._sched.pause()
+        sched = self._sched
+        sched.gap -= 1  # (`Scheduler.pause`, inline)
+        if sched.gap < 0:
+            sched.yield_now()
 
     def _free(self) -> None:
         self._locked = False
@@ -148,7 +153,13 @@ class Lock:
     def __exit__(
         self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
-        self.release()
+        if not self._locked:  # (`release`, inline: `RLock` has its own `__exit__`)
+            raise RuntimeError("release unlocked lock")
+        self._free()
+        sched = self._sched
+        sched.gap -= 1
+        if sched.gap < 0:
+            sched.yield_now()
 
     # (what `Condition` needs of its lock)
     def _release_save(self) -> int:
@@ -173,7 +184,7 @@ class RLock(Lock):
 
     def acquire(self, blocking: bool = True, timeout: float = -1) -> bool:
         sched = self._sched
-        me = sched.current_or_none()
+        me = sched.running
         if self._locked and self._holder is me:
             self._count += 1
             return True
@@ -185,11 +196,16 @@ class RLock(Lock):
     __enter__ = acquire
 
     def release(self) -> None:
-        if not self._locked or self._holder is not self._sched.current_or_none():
+        if not self._locked or self._holder is not self._sched.running:
             raise RuntimeError("cannot release un-acquired lock")
         self._count -= 1
         if not self._count:
             super().release()
+
+    def __exit__(
+        self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.release()
 
     def let_go(self) -> None:
         self._count = 0
@@ -205,7 +221,7 @@ class RLock(Lock):
         self._count = count
 
     def _is_owned(self) -> bool:
-        return self._locked and self._holder is self._sched.current_or_none()
+        return self._locked and self._holder is self._sched.running
 
 
 class Condition:
@@ -276,7 +292,10 @@ class Condition:
             waiter[1] = True
             self._sched.wake(waiter[0])
             n -= 1
-        self._sched.pause()
+        sched = self._sched
+        sched.gap -= 1  # (`Scheduler.pause`, inline)
+        if sched.gap < 0:
+            sched.yield_now()
 
     def notify_all(self) -> None:
         self.notify(len(self._waiters))
@@ -297,7 +316,10 @@ class Event:
         return f"made at {_where(self._made)}"
 
     def is_set(self) -> bool:
-        self._sched.pause()
+        sched = self._sched
+        sched.gap -= 1  # (`Scheduler.pause`, inline)
+        if sched.gap < 0:
+            sched.yield_now()
         return self._flag
 
     def set(self) -> None:
@@ -305,14 +327,19 @@ class Event:
         waiters, self._waiters = self._waiters, []
         for task in waiters:
             self._sched.wake(task)
-        self._sched.pause()
+        sched = self._sched
+        sched.gap -= 1  # (`Scheduler.pause`, inline)
+        if sched.gap < 0:
+            sched.yield_now()
 
     def clear(self) -> None:
         self._flag = False
 
     def wait(self, timeout: float | None = None) -> bool:
         sched = self._sched
-        sched.pause()
+        sched.gap -= 1  # (`Scheduler.pause`, inline)
+        if sched.gap < 0:
+            sched.yield_now()
         if self._flag:
             return True
         task = sched.current()
@@ -344,14 +371,19 @@ class SimpleQueue:
             if not task.killed:
                 self._sched.wake(task)
                 break
-        self._sched.pause()
+        sched = self._sched
+        sched.gap -= 1  # (`Scheduler.pause`, inline)
+        if sched.gap < 0:
+            sched.yield_now()
 
     def put_nowait(self, item: Any) -> None:
         self.put(item)
 
     def get(self, block: bool = True, timeout: float | None = None) -> Any:
         sched = self._sched
-        sched.pause()
+        sched.gap -= 1  # (`Scheduler.pause`, inline)
+        if sched.gap < 0:
+            sched.yield_now()
         items = self._items
         if not items:
             if not block:
@@ -371,7 +403,10 @@ class SimpleQueue:
         return self.get(False)
 
     def empty(self) -> bool:
-        self._sched.pause()
+        sched = self._sched
+        sched.gap -= 1  # (`Scheduler.pause`, inline)
+        if sched.gap < 0:
+            sched.yield_now()
         return not self._items
 
     def qsize(self) -> int:
@@ -445,7 +480,10 @@ class Thread:
         if self._task is not None:
             raise RuntimeError("threads can only be started once")
         self._task = self._sched.spawn(self._bootstrap, self.name, self.daemon, self, self._process)
-        self._sched.pause()
+        sched = self._sched
+        sched.gap -= 1  # (`Scheduler.pause`, inline)
+        if sched.gap < 0:
+            sched.yield_now()
 
     def _bootstrap(self) -> None:
         try:

@@ -202,7 +202,7 @@ class Scheduler:
         self._choices = random.Random(seed)  # noqa: S311 - (a replayable run, not a secret)
         self.data = random.Random(f"rr_actors.simulation data {seed}")  # noqa: S311
         self.preempt = preempt
-        self._gap = self._next_gap()  # choice points left before the next yield
+        self.gap = self._next_gap()  # choice points left before the next yield
         self.now = 0.0  # virtual seconds since the run began
         self.steps = 0
         self._locals = locals
@@ -224,6 +224,9 @@ class Scheduler:
         self.processes: list[Process] = []  # the first: the run's main process (`root`)
         self.loops: list[Any] = []  # asyncio loops made (`_loop.py`): each task has its own
         self._in_locals: Task | None = None  # whose contents the `runtime.local()`s hold
+        # the task switched to (`None` while the scheduler runs): what `current()` says
+        # without asking greenlet, on the run's OS thread (`current_or_none` asks it)
+        self.running: Task | None = None
         self._cancelled = False  # (set from another OS thread: `cancel`)
 
     # -- tasks -----------------------------------------------------------------------
@@ -271,13 +274,14 @@ class Scheduler:
         return run
 
     def current(self) -> Task:
-        """The task that runs now.
+        """The task that runs now (for the run's own OS thread: the simulated objects'
+        callers; another thread asks `current_or_none`).
 
         Raises:
             RuntimeError: the caller is no simulated thread (the scheduler itself, or a
                 real thread that used an object of the simulation).
         """
-        task: Task | None = getattr(_getcurrent(), "task", None)
+        task = self.running
         if task is None:
             raise RuntimeError(
                 "a simulated object was used outside the simulation's threads (a real "
@@ -286,7 +290,8 @@ class Scheduler:
         return task
 
     def current_or_none(self) -> Task | None:
-        """The task that runs now, if the caller is one."""
+        """The task that runs now, if the caller is one (also right from another OS
+        thread: greenlet's current one is per thread)."""
         task: Task | None = getattr(_getcurrent(), "task", None)
         return task
 
@@ -295,7 +300,9 @@ class Scheduler:
     def block(self, waiting: tuple[object, str], deadline: float | None) -> bool:
         """Suspend the calling task in `waiting` (primitive, operation) until `wake` or
         `deadline` (virtual seconds; `None`: none); whether `wake` ended the wait."""
-        task = self.current()
+        task = self.running
+        if task is None:
+            task = self.current()  # (raises: no task calls)
         task.waiting = waiting
         task.readied = task.woken = False
         if deadline is not None:
@@ -317,13 +324,21 @@ class Scheduler:
 
     def pause(self) -> None:
         """A choice point: with probability `preempt`, the calling task yields and the
-        scheduler chooses again (it may choose the same task)."""
-        self._gap -= 1
-        if self._gap < 0:
-            self._gap = self._next_gap()
-            task = self.current_or_none()
-            if task is not None:
-                self.block((self, "pause"), self.now)
+        scheduler chooses again (it may choose the same task).
+
+        The primitives inline it (`gap -= 1`, then `yield_now()` if it went below 0): a
+        run has hundreds of thousands of choice points."""
+        self.gap -= 1
+        if self.gap < 0:
+            self.yield_now()
+
+    def yield_now(self) -> None:
+        """The choice point whose turn it is to yield (`gap` below 0): the next gap is
+        drawn, and the calling task (if a task calls) yields."""
+        self.gap = self._next_gap()
+        task = self.current_or_none()
+        if task is not None:
+            self.block((self, "pause"), self.now)
 
     def _next_gap(self) -> int:
         """Choice points that pass before the next yield: `k` with probability
@@ -404,7 +419,9 @@ class Scheduler:
             if task is not self._in_locals:
                 self._install_locals(task)
             assert task.glet is not None
+            self.running = task
             task.glet.switch()
+            self.running = None
             if not self.steps % GC_STEPS:
                 self._hashed()  # (the steps' buffer kept small)
                 _collect(self.steps)
@@ -450,7 +467,7 @@ class Scheduler:
         thrown it again, `DROP_TRIES` times at most.
         """
         self.preempt = 0.0  # (no choice points: a `finally` block runs through)
-        self._gap = self._next_gap()
+        self.gap = self._next_gap()
         stuck = 0
         with _quiet():
             for task in self._tasks:
@@ -459,7 +476,11 @@ class Scheduler:
                     continue
                 for _ in range(DROP_TRIES):
                     task.waiting = None
-                    glet.throw(greenlet.GreenletExit)
+                    self.running = task
+                    try:
+                        glet.throw(greenlet.GreenletExit)
+                    finally:
+                        self.running = None
                     if glet.dead:
                         break
                 else:

@@ -294,3 +294,157 @@ class TestInDoubtUntilSetupReturned:
             app.stop()
 
         assert [[DEVICE], [DEVICE], []] == seen
+
+
+class _Sent:
+    """A control pipe's child end that keeps what is sent (`_Control`'s `send`)."""
+
+    def __init__(self) -> None:
+        self.messages: list[Any] = []
+
+    def send(self, message: Any) -> None:
+        self.messages.append(message)
+
+
+def event_line(monkeypatch: pytest.MonkeyPatch, *, hold: float) -> tuple[Any, _Sent]:
+    """A child's event line forwarding to `_Sent` (this process's events stay unnumbered)."""
+    from rr_actors._process import child  # noqa: PLC0415 - the module under test
+
+    monkeypatch.setattr(child, "number_events", lambda: None)
+    sent = _Sent()
+    line = child._EventLine(sent, "held", on=True, tally=None, hold=hold)  # type: ignore[arg-type]
+    return line, sent
+
+
+class TestTheEventsOfAStartFollowReady:
+    """A manager process sends the events of its start (`CatalogRestored`, its setup's)
+    after `Ready`: the supervisor's process reads `Ready` first, and the restart does not
+    wait for their pickling, their passage and their unpickling (issue 52 part 5)."""
+
+    def test_events_published_before_ready_are_held_then_sent_in_order(
+        self, monkeypatch: pytest.MonkeyPatch
+    ) -> None:
+        from rr_actors._process.control import Events, Ready  # noqa: PLC0415
+
+        line, sent = event_line(monkeypatch, hold=60.0)
+        try:
+            first = rr.events.ChildRestarted("sup", "a", 1, 0.0)
+            second = rr.events.ChildRestarted("sup", "b", 2, 0.0)
+            line.hub.publish(first)
+            line.hub.publish(second)
+
+            assert not line.forwarder.wait_sent(timeout=0.2)  # held: not sent before Ready
+            assert sent.messages == []
+            sent.send(Ready(os.getpid()))
+            line.started()
+
+            assert line.forwarder.wait_sent(timeout=10.0)
+            batches = [m.batch for m in sent.messages[1:] if isinstance(m, Events)]
+            assert isinstance(sent.messages[0], Ready)
+            assert [first, second] == [e for batch in batches for e in batch]
+        finally:
+            line.flush(timeout=5.0)
+
+    def test_events_published_after_the_start_are_sent_at_once(
+        self, monkeypatch: pytest.MonkeyPatch
+    ) -> None:
+        line, sent = event_line(monkeypatch, hold=60.0)
+        try:
+            line.started()
+            event = rr.events.ChildRestarted("sup", "a", 1, 0.0)
+            line.hub.publish(event)
+
+            assert line.forwarder.wait_sent(timeout=10.0)
+            assert [event] == [e for m in sent.messages for e in m.batch]
+        finally:
+            line.flush(timeout=5.0)
+
+    def test_a_start_longer_than_the_hold_forwards_its_events_without_ready(
+        self, monkeypatch: pytest.MonkeyPatch
+    ) -> None:
+        line, sent = event_line(monkeypatch, hold=0.05)
+        try:
+            event = rr.events.ChildRestarted("sup", "a", 1, 0.0)
+            line.hub.publish(event)
+
+            assert line.forwarder.wait_sent(timeout=10.0)  # (no `started()`: a long setup)
+            assert [event] == [e for m in sent.messages for e in m.batch]
+        finally:
+            line.flush(timeout=5.0)
+
+
+def _blocks_on_restored(
+    restored: Any, release: Any, name: str, heard: list[Any]
+) -> Callable[[rr.events.Event], None]:
+    """A subscriber that blocks (bounded) on the second `CatalogRestored` of `name`."""
+
+    def callback(event: rr.events.Event) -> None:
+        heard.append(event)
+        mine = [e for e in heard if getattr(e, "registrar", None) == name]
+        restorations = sum(isinstance(e, rr.events.CatalogRestored) for e in mine)
+        if isinstance(event, rr.events.CatalogRestored) and event in mine and restorations == 2:
+            restored.set()
+            assert release.wait(60.0), "the test never released the subscriber"
+
+    return callback
+
+
+def test_a_subscriber_blocked_on_catalog_restored_does_not_delay_serving(tmp_path: Path) -> None:
+    """A restarted manager serves while a subscriber still holds its `CatalogRestored`;
+    each incarnation's `CatalogRestored` comes before its other events (`restore-first`)."""
+    restored, release = threading.Event(), threading.Event()
+    heard: list[rr.events.Event] = []
+    name = f"blocked-{os.getpid()}"
+    sup = rr.Supervisor([process(name)], state_dir=str(tmp_path))
+    subscription = sup.subscribe(_blocks_on_restored(restored, release, name, heard))
+    with subscription, sup:
+        app = sup.registrar(f"app-{os.getpid()}")
+        app.call(name, "echo", "before", timeout=30.0)
+        try:
+            kill_and_wait_restarted(sup, name)
+            assert restored.wait(30.0)  # the subscriber holds the restart's event now
+
+            app.call(name, "echo", "after", timeout=30.0)  # served meanwhile
+            assert not release.is_set()
+        finally:
+            release.set()
+        assert sup.flush_events(timeout=30.0)
+        assert subscription.wait_delivered(timeout=30.0)
+    by_pid: dict[int, list[type]] = {}
+    for event in heard:
+        if getattr(event, "registrar", None) == name:
+            by_pid.setdefault(event.pid, []).append(type(event))
+    assert len(by_pid) == 2
+    for kinds in by_pid.values():
+        assert kinds[0] is rr.events.CatalogRestored
+        assert rr.events.CatalogRestored not in kinds[1:]
+
+
+def test_an_event_forwarded_as_its_journal_pickle_arrives_as_the_event(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """The forwarder sends the journal's pickle of an event, not the event pickled again:
+    the supervisor's process unpickles the event itself, in the order published."""
+    import pickle  # noqa: PLC0415
+
+    from rr_actors._process import child  # noqa: PLC0415
+    from rr_actors._process.tally import Tally  # noqa: PLC0415
+
+    monkeypatch.setattr(child, "number_events", lambda: None)
+    tally = Tally.create()
+    assert tally is not None
+    sent = _Sent()
+    line = child._EventLine(sent, "kept", on=True, tally=tally.path, hold=60.0)  # type: ignore[arg-type]
+    try:
+        published = [rr.events.ChildRestarted("sup", f"c{n}", n, 0.0) for n in range(3)]
+        for event in published:
+            line.hub.publish(event)
+        line.started()
+        assert line.forwarder.wait_sent(timeout=10.0)
+
+        batches = [pickle.loads(pickle.dumps(m)) for m in sent.messages]
+        assert published == [e for m in batches for e in m.batch]
+        assert all(isinstance(e, child._Pickled) for m in sent.messages for e in m.batch)
+    finally:
+        line.flush(timeout=5.0)
+        tally.close()

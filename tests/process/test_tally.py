@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import pickle
 from collections.abc import Iterator
 from typing import Any
 
@@ -52,3 +53,29 @@ def test_a_record_cut_short_by_the_kill_ends_the_reading(tally: Tally) -> None:
     os.truncate(tally.path, os.path.getsize(tally.path) - 5)  # the kill within the third
 
     assert [1, 2] == [e.seq for e in tally.after(0)]
+
+
+def test_the_journal_hands_back_the_pickle_it_kept(tally: Tally) -> None:
+    journal = Journal.open(tally.path)
+    assert journal is not None
+
+    data = journal(Counted(1))
+
+    assert data is not None
+    assert 1 == pickle.loads(data).seq
+    assert [1] == [e.seq for e in tally.after(0)]
+
+
+def test_an_event_that_does_not_pickle_is_handed_back_as_none(tally: Tally) -> None:
+    journal = Journal.open(tally.path)
+    assert journal is not None
+
+    assert journal(Unpicklable()) is None
+    assert 2 == tally.built()  # (counted: lost if it is never sent)
+
+
+class Unpicklable:
+    seq = 2
+
+    def __reduce__(self) -> Any:
+        raise TypeError("not picklable")
