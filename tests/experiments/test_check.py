@@ -2103,9 +2103,9 @@ ROOT_ONLY = {"leases", "simhosts"}
 network namespaces and minutes (tests/experiments/test_hosts.py runs a small plan of
 their shape; test_simulate.py runs `simhosts` on the simulation)."""
 
-SIMULATION_ONLY = {"simheal"}
-"""Shipped plans of a fault kind only the simulation injects (`split_brain`): their
-histories are checked in tests/experiments/test_simulate.py."""
+SIMULATION_ONLY = {"simheal", "simrest"}
+"""Shipped plans of a fault kind only the simulation injects (`split_brain`,
+`kill_in_setup`): their histories are checked in tests/experiments/test_simulate.py."""
 
 
 @pytest.fixture(scope="module")
