@@ -49,6 +49,11 @@ table and those tried and dropped). Two needed more than the shipped plans and r
 `status-seen-server` and `forget-before-carried` need `simshare` (one dependency shared
 by many resources of one server, a status about it climbing to all of them).
 
+Issue 51 section 2's `strategy` and `escalation` rules have four plants: three on
+`crashloop` (its `pool` is one_for_all, a nested supervisor that gives up) and
+`rest-for-one-before` on `simrest`, added for it (no simulated plan had a rest_for_one
+tree: `first` and `strategies` compare one, and the simulation runs a plan's first value).
+
 Issue 51's withdrawn ids are the plant `withdrawn` (`retry_held_at` undone). The other
 half of that fix, `DueAnswers.frozen` handing a `Reconcile` the withdrawn calls whose
 `CallFailed` the actor has not handled yet, is not a plant: undone alone, 300 seeds
@@ -347,6 +352,51 @@ PLANTS = (
         "        if child is None or self.restarts.gave_up:  # PLANTED: incarnation\n",
         "crashloop",
         "restore-first",
+    ),
+    Plant(
+        "restart-reversed",
+        "a group restarted in the order it was stopped in: one_for_all's siblings come "
+        "back in reverse start order (OTP starts them in start order; issue 51)",
+        "_supervision/restarting.py",
+        "        for child in record.children:\n"
+        '            if child.state != "restarting" or self._due.get(child.name) is not event:\n',
+        "        for child in reversed(record.children):  # PLANTED: record.children\n"
+        '            if child.state != "restarting" or self._due.get(child.name) is not event:\n',
+        "crashloop",
+        "strategy",
+    ),
+    Plant(
+        "sibling-left-running",
+        "one_for_all's siblings restarted without being stopped: a crash takes down only "
+        "the crashed child, and its siblings are started again beside themselves",
+        "_supervision/restarting.py",
+        "            if other.running is not None:\n"
+        "                self.stopping.stop_child(other, final=not comes_back, "
+        "restarting=comes_back)\n",
+        "            if other.running is not None:  # PLANTED: not stopped\n"
+        "                other.running = None\n",
+        "crashloop",
+        "strategy",
+    ),
+    Plant(
+        "rest-for-one-before",
+        "rest_for_one takes down the children started before the crashed one (itself "
+        "included), not those after it: the ones that depend on it run on",
+        "_supervision/restarting.py",
+        "    return tuple(names[names.index(crashed) :])\n",
+        "    return tuple(names[: names.index(crashed) + 1])  # PLANTED: names[index:]\n",
+        "simrest",
+        "strategy",
+    ),
+    Plant(
+        "give-up-unescalated",
+        "a nested supervisor that gives up never tells its parent: the parent keeps it as "
+        "running, its managers down for good (OTP escalates: the parent sees it exit)",
+        "_supervision/restarting.py",
+        "        if self.on_gave_up is not None:\n            self.on_gave_up(error)\n",
+        "        # PLANTED: self.on_gave_up(error) not called\n",
+        "crashloop",
+        "escalation",
     ),
     Plant(
         "lost-unreported",

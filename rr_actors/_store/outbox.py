@@ -94,7 +94,7 @@ def _event(row: Any) -> events.Event:
     if kind is None:
         raise ValueError(f"no event type {row[1]!r}")
     names, _ = _fields(kind)
-    if row[0] < SCHEMA:  # (without the fields added since: they take their defaults)
+    if row[0] < 5:  # (without the fields added since: they take their defaults)
         added = _ADDED_IN_5.get(row[1], ())
         names = tuple(name for name in names if name not in added)
     if len(row) != len(names) + 2:
@@ -104,9 +104,9 @@ def _event(row: Any) -> events.Event:
     )
 
 
-_ROWS_READ = (3, 4, SCHEMA)
-"""The event schemas of the rows read back (4 changed no event a registrar writes here;
-5 added two fields to one: `_ADDED_IN_5`)."""
+_ROWS_READ = (3, 4, 5, SCHEMA)
+"""The event schemas of the rows read back (4 and 6 changed no event a registrar writes
+here; 5 added two fields to one: `_ADDED_IN_5`)."""
 
 _ADDED_IN_5 = {"QueryForgotten": ("unload_sent", "reconciled")}
 """The fields schema 5 added to an event a registrar writes here, by its type: a row of

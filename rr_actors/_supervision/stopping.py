@@ -139,6 +139,8 @@ class Stopping:
                     stopped,
                     spec.max_restarts,
                     spec.period,
+                    spec.strategy,
+                    tuple(c.name for c in self.record.children),
                 )
             )
 

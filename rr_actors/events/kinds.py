@@ -207,6 +207,12 @@ class ChildExited:
             ...
         period: ... within this many seconds and it gives up (OTP); with `restart` and
             `normal`, what a checker needs to judge the supervisor's decision.
+        strategy: the supervisor's restart strategy (`"one_for_one"`, `"one_for_all"`,
+            `"rest_for_one"`): which siblings a restart takes down with the child; `""`
+            in a line of schema 5 or older (not known).
+        children: the names of the supervisor's children, in start order (this one
+            among them): the order the strategy stops them in (reverse) and restarts
+            them in; `()` in a line of schema 5 or older.
         at: when the supervisor saw it, wall clock (`time.time()` seconds).
         host: the member name of the host it happened on (see `set_host`).
         hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
@@ -222,6 +228,8 @@ class ChildExited:
     stopped: bool = False
     max_restarts: int = 0
     period: float = 0.0
+    strategy: str = ""
+    children: tuple[str, ...] = ()
     _: dataclasses.KW_ONLY
     at: float = _now()
     host: str = _this_host()

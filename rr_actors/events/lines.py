@@ -37,8 +37,8 @@ __all__ = [
     "to_lines",
 ]
 
-SCHEMA = 5
-"""Version of the dicts `to_dict` writes (the `"schema"` key); `from_dict` reads it, 4, 3, 2 and 1.
+SCHEMA = 6
+"""Version of the dicts `to_dict` writes (the `"schema"` key); `from_dict` reads it and 5 to 1.
 
 Schema 2 added `seq`, request digests and labels, release reasons, in-doubt details and
 the catalog events; a schema 1 line may lack the fields that have defaults (`seq`: 0).
@@ -50,9 +50,11 @@ Schema 4 added `ChildExited`'s `restart`, `normal`, `stopped`, `max_restarts` an
 Schema 5 added `QueryForgotten`'s `unload_sent` and `reconciled` (when its release began,
 and when the list of the last reconcile with its provider answered before had left); a
 line of an older schema gets 0 for both (not known).
+Schema 6 added `ChildExited`'s `strategy` and `children` (which siblings a restart takes
+down, in which order); a line of an older schema gets `strategy` `""` (not known).
 """
 
-_READS = (1, 2, 3, 4, SCHEMA)
+_READS = (1, 2, 3, 4, 5, SCHEMA)
 
 
 _TYPES: dict[str, type[Event]] = {cls.__name__: cls for cls in typing.get_args(Event)}

@@ -9,7 +9,8 @@
      ├─► _status_rules: each status's deliveries, against who should have got it
      ├─► _consumer_rules: each consumer's calls; the ids it told itself were lost;
      │   the rows left at each registrar's last stop; what each fetch listed
-     ├─► _supervision_rules: each supervisor's give-ups, against its intensity
+     ├─► _supervision_rules: each supervisor's give-ups, against its intensity; the
+     │   children each decision stops and restarts; each nested give-up's escalation
      └─► events lost ──► findings (violation / unverifiable, each with the line
                          numbers of the events that show it) ──► Verdict
 ```
@@ -74,6 +75,16 @@ what cannot be checked):
 - `intensity`: a supervisor gives up exactly when more than `max_restarts` of the exits
   it counts (`ChildExited` not stopped by it, of a child its restart type restarts: OTP)
   fall within `period` seconds, at the exit that makes them so.
+- `strategy`: a supervisor's decision at an exit it did not cause follows OTP's strategy
+  and restart types: the running siblings of the child's group (`one_for_one`: none;
+  `one_for_all`: every child; `rest_for_one`: those started after it; at a give-up,
+  every child) are stopped right after the exit, in reverse start order; the group is
+  restarted in start order, every member (but a `temporary` sibling) at once, unless
+  one fails to start; no child is restarted that its restart type leaves down
+  (`temporary`; `transient` after a normal exit) or that no decision restarts.
+- `escalation`: a nested supervisor that gave up exits to its parent, which takes it as
+  its child's exit (not stopped by the parent, unless within `ESCALATED_S` of the
+  give-up: the parent was stopping it then).
 - `one-name` (rule 22): a second server of a name (a process whose events of a registrar
   begin while another one's life of it goes on: only a cut lets each side serve a name)
   yields once the cut heals; two that both serve to the end of the run (neither process
@@ -144,6 +155,8 @@ RULES = (
     "unload-order",
     "dependency-held",
     "intensity",
+    "strategy",
+    "escalation",
     "one-name",
     "fetch",
     "events",
@@ -277,6 +290,7 @@ def check(history: Sequence[Line]) -> Verdict:
     providers.run(steps)
     wanted = {(want.holder, want.query_id) for want in providers.expected}
     answered, spans = _consumer_rules.answered(steps, facts, wanted)
+    strategy, escalation = _supervision_rules.strategy(history)
     found = [
         *providers.findings,
         *_status_rules.status_once(history),
@@ -292,6 +306,8 @@ def check(history: Sequence[Line]) -> Verdict:
         *unload_order(steps),
         *dependency_held(steps),
         *_supervision_rules.intensity(history),
+        *strategy,
+        *escalation,
         *_one_name_rule(history, lives),
     ]
     findings = [

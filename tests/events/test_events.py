@@ -235,6 +235,23 @@ def test_from_dict_reads_a_schema_4_query_forgotten_without_its_release_stamps()
     assert (0, 0) == (read.unload_sent, read.reconciled)  # (not known)
 
 
+def test_from_dict_reads_a_schema_5_child_exited_without_its_strategy() -> None:
+    exited = events.ChildExited(
+        "pool", "worker", 9, "killed", "permanent", False, False, 2, 2.0, "one_for_all",
+        ("worker", "cache"), at=2.0,
+    )  # fmt: skip
+    assert ["worker", "cache"] == line(exited)["children"]  # (a list in JSON)
+    assert exited == events.from_dict(line(exited))
+    data = line(exited)
+    del data["strategy"], data["children"]
+    data["schema"] = 5
+
+    read = events.from_dict(data)
+
+    assert isinstance(read, events.ChildExited)
+    assert ("", ()) == (read.strategy, read.children)  # (not known: not judged)
+
+
 def test_from_dict_accepts_an_int_for_a_float() -> None:
     data = line(events.ChildRestarted("root", "erm", 1, 0.5, at=10.0))
     data["restart_s"] = 2
@@ -263,7 +280,7 @@ def _with(**changes: Any) -> dict[str, Any]:
     ("data", "named"),
     [
         ([1, 2], "list"),
-        (_with(schema=6), "schema 6"),
+        (_with(schema=7), "schema 7"),
         (_with(schema=_DROP), "schema None"),
         (_with(type="Exploded"), "'Exploded'"),
         (_with(type=_DROP), "None"),

@@ -1498,6 +1498,219 @@ def test_an_exit_at_the_edge_of_the_intensity_window_is_not_judged() -> None:
         assert ("held", ()) == (verdict.verdict, verdict.findings)
 
 
+# -- the supervisor's strategy and restart types, escalation (OTP, issue 51) ---------------
+
+
+def _tree(
+    strategy: str,
+    *steps: str,
+    children: tuple[str, ...] = ("db", "api", "web"),
+    types: dict[str, str] | None = None,
+    supervisor: str = "root",
+    at: float = 0.0,
+) -> list[events.Event]:
+    """`supervisor`'s `children` started in order, then each of `steps`: `"api crash"`
+    (an abnormal exit it did not cause), `"api normal"`, `"api stop"` (it stopped api),
+    `"api restart"`, `"give-up"`; events `at` seconds, 0.1 s apart."""
+    kinds = types or {}
+    most = 0 if "give-up" in steps else 2  # (a give-up at the first crash: intensity holds)
+    out: list[events.Event] = [
+        events.ChildStarted(supervisor, c, 10 + i, at=at) for i, c in enumerate(children)
+    ]
+    for i, step in enumerate(steps, start=1):
+        when = at + 0.1 * i
+        if step == "give-up":
+            out.append(events.SupervisorGaveUp(supervisor, "gave up", most, 5.0, pid=1, at=when))
+            continue
+        child, what = step.split()
+        if what == "restart":
+            out.append(events.ChildRestarted(supervisor, child, 50 + i, 0.01, at=when))
+            continue
+        out.append(
+            events.ChildExited(
+                supervisor,
+                child,
+                10,
+                what,
+                kinds.get(child, "permanent"),
+                what == "normal",
+                what == "stop",
+                most,
+                5.0,
+                strategy,
+                children,
+                at=when,
+            )
+        )
+    return out
+
+
+def _holds(history: list[events.Event]) -> None:
+    verdict = check.check(numbered(history))
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+
+
+@pytest.mark.parametrize(
+    ("strategy", "steps", "types"),
+    [
+        ("one_for_one", ["api crash", "api restart"], {}),
+        ("rest_for_one", ["api crash", "web stop", "api restart", "web restart"], {}),
+        ("rest_for_one", ["web crash", "web restart"], {}),  # (nothing started after it)
+        (
+            "one_for_all",
+            ["api crash", "web stop", "db stop", "db restart", "api restart", "web restart"],
+            {},
+        ),
+        (
+            "one_for_all",
+            ["api crash", "web stop", "db stop", "db restart", "api restart"],
+            {"web": "temporary"},
+        ),  # a temporary sibling is stopped for good (OTP)
+        ("one_for_one", ["api normal"], {"api": "transient"}),  # left down
+        ("one_for_one", ["api crash", "api restart"], {"api": "transient"}),
+        ("one_for_one", ["api crash"], {"api": "temporary"}),
+        (  # a transient sibling that had exited normally comes back with a group (OTP)
+            "one_for_all",
+            ["web normal", "api crash", "db stop", "db restart", "api restart", "web restart"],
+            {"web": "transient"},
+        ),
+        (  # api's restart failed to start: its exit decides again, the group with it
+            "one_for_all",
+            [
+                "api crash",
+                "web stop",
+                "db stop",
+                "db restart",
+                "api crash",
+                "db stop",
+                "db restart",
+                "api restart",
+                "web restart",
+            ],
+            {},
+        ),
+        ("one_for_all", ["api crash", "web stop", "db stop", "give-up"], {}),
+        ("rest_for_one", ["api crash", "web stop", "db stop", "give-up"], {}),  # every child
+        ("one_for_all", ["api crash", "web stop", "db stop"], {}),  # a backoff the end cut
+        ("one_for_one", ["api crash", "web stop", "db stop"], {}),  # ... and the shutdown
+    ],
+)
+def test_a_decision_that_follows_its_strategy_and_restart_types_holds(
+    strategy: str, steps: list[str], types: dict[str, str]
+) -> None:
+    _holds(_tree(strategy, *steps, types=types))
+
+
+@pytest.mark.parametrize(
+    ("strategy", "steps", "types", "lines"),
+    [
+        (  # rest_for_one restarting the children started before the failed one
+            "rest_for_one",
+            ["api crash", "db stop", "db restart", "api restart"],
+            {},
+            {4, 5},
+        ),
+        (  # ... the last one: stops that look like a shutdown, but it restarts them
+            "rest_for_one",
+            ["web crash", "api stop", "db stop", "db restart", "api restart", "web restart"],
+            {},
+            {4, 5, 6},
+        ),
+        (  # one_for_all not stopping a sibling
+            "one_for_all",
+            ["api crash", "web stop", "db restart", "api restart", "web restart"],
+            {},
+            {4, 5},
+        ),
+        (  # siblings stopped in start order, not its reverse
+            "one_for_all",
+            ["api crash", "db stop", "web stop", "db restart", "api restart", "web restart"],
+            {},
+            {4, 5, 6},
+        ),
+        (  # the group restarted out of start order
+            "one_for_all",
+            ["api crash", "web stop", "db stop", "web restart", "db restart", "api restart"],
+            {},
+            {4, 7},
+        ),
+        (  # a member of the group never restarted (web: nor did it fail to start)
+            "one_for_all",
+            ["api crash", "web stop", "db stop", "db restart", "api restart"],
+            {},
+            {4, 8},
+        ),
+        ("one_for_one", ["api normal", "api restart"], {"api": "transient"}, {4, 5}),
+        ("one_for_one", ["api crash", "api restart"], {"api": "temporary"}, {4, 5}),
+        (  # a temporary sibling brought back with its group
+            "one_for_all",
+            ["api crash", "web stop", "db stop", "db restart", "api restart", "web restart"],
+            {"web": "temporary"},
+            {5, 9},
+        ),
+        (  # a give-up that leaves a child running
+            "one_for_one",
+            ["api crash", "web stop", "give-up"],
+            {},
+            {4, 5},
+        ),
+    ],
+)
+def test_a_decision_against_its_strategy_or_restart_types_is_found(
+    strategy: str, steps: list[str], types: dict[str, str], lines: set[int]
+) -> None:
+    assert lines == _found(_tree(strategy, *steps, types=types), "strategy")
+
+
+def test_a_decision_written_before_schema_6_is_not_judged() -> None:
+    old = [
+        dataclasses.replace(e, strategy="", children=())
+        if isinstance(e, events.ChildExited) else e
+        for e in _tree("rest_for_one", "api crash", "db stop", "db restart", "api restart")
+    ]  # fmt: skip
+    _holds(old)
+
+
+def _escalated(*then: events.Event) -> list[events.Event]:
+    """root (db, pool) and pool (worker, cache, one_for_all): worker's crash past pool's
+    intensity makes it give up (at 0.2 s); then `then`."""
+    pool = _tree("one_for_all", "worker crash", "cache stop", "give-up",
+                 children=("worker", "cache"), supervisor="pool")  # fmt: skip
+    return [
+        events.ChildStarted("root", "db", 10, at=0.0),
+        *pool[:2],
+        events.ChildStarted("root", "pool", 1, at=0.0),
+        *pool[2:],
+        *then,
+    ]
+
+
+def _pool_exit(at: float, *, stopped: bool) -> events.ChildExited:
+    return events.ChildExited(
+        "root", "pool", 1, "gave up", "permanent", True, stopped, 5, 10.0, "one_for_one",
+        ("db", "pool"), at=at,
+    )  # fmt: skip
+
+
+def test_a_give_up_its_parent_takes_as_its_childs_exit_holds() -> None:
+    _holds(
+        _escalated(
+            _pool_exit(0.3, stopped=False), events.ChildRestarted("root", "pool", 1, 0.1, at=0.4)
+        )
+    )
+    _holds(_escalated(_pool_exit(0.5, stopped=True)))  # the parent was stopping it
+    _holds(_escalated(events.ChildExited("root", "db", 10, "killed", at=0.3)))  # events end
+
+
+def test_a_give_up_its_parent_never_takes_is_an_escalation_violation() -> None:
+    stopped_late = _pool_exit(3.0, stopped=True)  # (at the tree's shutdown)
+    assert {7, 8} == _found(_escalated(stopped_late), "escalation")
+    later = events.ResourceLoaded("db", "cam", RID, Q1, 0.01, 42, pid=10, seq=1, at=3.0)
+    assert {7} == _found(_escalated(later), "escalation")
+    restarted = events.ChildRestarted("root", "pool", 1, 0.1, at=0.3)  # (no exit taken)
+    assert {7, 8} == _found(_escalated(restarted), "escalation")
+
+
 def in_doubt_while_held(h: History) -> History | None:
     i = _index(h, events.ConsumerAdded)
     if i is None:
@@ -1737,6 +1950,40 @@ def drop_give_up(h: History) -> History | None:
     return None if i is None else _without(h, i)
 
 
+def restart_group_out_of_order(h: History) -> History | None:
+    """A group's two restarts swapped: its siblings come back out of start order."""
+    decided: dict[tuple[str, str], tuple[str, ...]] = {}  # the group of its last decision
+    for i, e in enumerate(h):
+        if type(e) is events.ChildExited and not e.stopped:
+            group = _supervision_rules.group(e.strategy, e.children, e.child)
+            decided[e.host, e.supervisor] = group
+        if type(e) is not events.ChildRestarted or len(decided.get((e.host, e.supervisor), ())) < 2:
+            continue
+        for j in range(i + 1, len(h)):
+            later = h[j]
+            if (getattr(later, "host", ""), getattr(later, "supervisor", None)) != (
+                e.host,
+                e.supervisor,
+            ):
+                continue
+            if type(later) is events.ChildRestarted:
+                return [*h[:i], later, *h[i + 1 : j], e, *h[j + 1 :]]
+            break
+    return None
+
+
+def give_up_unescalated(h: History) -> History | None:
+    """A nested supervisor's give-up its parent never takes: its exit there is a stop at
+    the end of the run (a shutdown) instead."""
+    nested = {(e.host, e.supervisor) for e in h if type(e) is events.SupervisorGaveUp}
+    for i, e in enumerate(h):
+        if type(e) is events.ChildExited and (e.host, e.child) in nested and not e.stopped:
+            at = max(x.at for x in h) + 2 * _supervision_rules.ESCALATED_S
+            late = dataclasses.replace(e, stopped=True, reason="shutdown", at=at)
+            return [*h[:i], *h[i + 1 :], late]
+    return None
+
+
 def fetch_leaves_out_a_held_id(h: History) -> History | None:
     """A fetch's answer without an id its consumer had answered before the fetch began
     and its provider held (no release, no restart of the provider) until after it."""
@@ -1839,6 +2086,8 @@ MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     "unload-before-dependency": (unload_before_dependency, "unload-order"),
     "forget-dependency-while-held": (forget_dependency_while_held, "dependency-held"),
     "drop-give-up": (drop_give_up, "intensity"),
+    "restart-group-out-of-order": (restart_group_out_of_order, "strategy"),
+    "give-up-unescalated": (give_up_unescalated, "escalation"),
     "fetch-leaves-out-a-held-id": (fetch_leaves_out_a_held_id, "fetch"),
     "fetch-lists-an-unknown-id": (fetch_lists_an_unknown_id, "fetch"),
     "listing-leaves-out-a-held-id": (listing_leaves_out_a_held_id, "fetch"),
@@ -1854,9 +2103,9 @@ ROOT_ONLY = {"leases", "simhosts"}
 network namespaces and minutes (tests/experiments/test_hosts.py runs a small plan of
 their shape; test_simulate.py runs `simhosts` on the simulation)."""
 
-SIMULATION_ONLY = {"simheal"}
-"""Shipped plans of a fault kind only the simulation injects (`split_brain`): their
-histories are checked in tests/experiments/test_simulate.py."""
+SIMULATION_ONLY = {"simheal", "simrest"}
+"""Shipped plans of a fault kind only the simulation injects (`split_brain`,
+`kill_in_setup`): their histories are checked in tests/experiments/test_simulate.py."""
 
 
 @pytest.fixture(scope="module")

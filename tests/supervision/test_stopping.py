@@ -375,3 +375,29 @@ class TestDeathWatchAtEveryProvider:
 
         assert unloaded.wait(10.0)
         assert [] == sup.run_in(p, lambda r: r.server_queries("res"), timeout=10.0)
+
+
+def test_a_childs_exit_carries_its_supervisors_strategy_and_children_in_start_order(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    # (what the checker's `strategy` rule judges a decision against: one_for_all here)
+    first, second = f"a-{uid}", f"b-{uid}"
+    sup = supervisors(
+        [rr.ManagerSpec(first), rr.ManagerSpec(second, restart="transient")],
+        strategy="one_for_all",
+    )
+    heard: list[rr.events.Event] = []
+    subscription = sup.subscribe(heard.append)
+    sup.start()
+    rr.testing.crash(sup.run_in(first, lambda r: r))
+    sup.wait_restarted(first, timeout=10)
+    sup.stop()
+    assert subscription.wait_delivered(timeout=5)
+    subscription.close()
+
+    exits = [e for e in heard if isinstance(e, rr.events.ChildExited)]
+    assert [(first, False), (second, True), (second, True), (first, True)] == [
+        (e.child, e.stopped) for e in exits
+    ]  # the crash, its sibling taken down, then the shutdown (reverse start order)
+    assert {("one_for_all", (first, second))} == {(e.strategy, e.children) for e in exits}
+    assert ["permanent", "transient"] == [e.restart for e in exits[:2]]
