@@ -813,6 +813,7 @@ SIMULATED = [
     "simhosts",
     "simshare",
     "simnostate",
+    "simprogram",
 ]
 """The shipped plans run over two seeds here (killheavy below, for 2 s)."""
 
