@@ -73,7 +73,8 @@ what cannot be checked):
   unless its provider ended it (`revoked`, `provider lost`, `unknown at reconcile`).
 - `intensity`: a supervisor gives up exactly when more than `max_restarts` of the exits
   it counts (`ChildExited` not stopped by it, of a child its restart type restarts: OTP)
-  fall within `period` seconds, at the exit that makes them so.
+  fall within `period` seconds, at the exit that makes them so; counted afresh after a
+  give-up and at a new run of the supervisor (a second `ChildStarted` of a child).
 - `one-name` (rule 22): a second server of a name (a process whose events of a registrar
   begin while another one's life of it goes on: only a cut lets each side serve a name)
   yields once the cut heals; two that both serve to the end of the run (neither process

@@ -1491,6 +1491,16 @@ def test_a_supervisor_that_gives_up_exactly_past_its_intensity_holds() -> None:
         assert ("held", ()) == (verdict.verdict, verdict.findings)
 
 
+def test_a_supervisor_started_again_counts_its_exits_afresh() -> None:
+    # (its program killed and started again: kill_program) a second ChildStarted of db
+    first = [events.ChildStarted("root", "db", 9, at=0.0)]
+    again = [events.ChildStarted("root", "db", 20, at=2.5)]
+    verdict = check.check(numbered([*first, *_exits(0.5, 1.0), *again, *_exits(3.0)]))
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    # (without the second start, the third exit within 5 s is one past its intensity)
+    assert {2, 4, 6} == _found([*first, *_exits(0.5, 1.0), *_exits(3.0)], "intensity")
+
+
 def test_an_exit_at_the_edge_of_the_intensity_window_is_not_judged() -> None:
     slack = _supervision_rules.SLACK_S / 2
     for history in (_exits(0.0, 1.0, 5.0 - slack), _gives_up(_exits(0.0, 1.0, 5.0 + slack))):
