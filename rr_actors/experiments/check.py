@@ -26,7 +26,8 @@ what cannot be checked):
   call had failed for its caller (`CallFailed`: it holds no id), its consumer forgot it
   before the life before ended, or forgot it on a release that crossed the restart (its
   `QueryForgotten.reconciled`: its last reconcile with the provider before the `Unload`
-  left began before that life ended).
+  left began before that life ended); nor for a consumer without a backup killed
+  before the restart (its program killed with its managers: its events may be lost).
 - `unload-once`: a resource is unloaded at most once, and only once its last consumer
   id was released; no consumer is added to a resource after its unload; no id is
   released that was not held.
