@@ -32,9 +32,11 @@ or random times or `after` an event (`_simulated_faults.py`); managers in proces
 threads; a `[compare]` plan with its first value; `[hosts]`: each other host a
 simulated process of its own (`_SimulatedHost`: its part of the tree, as a real run's
 host process; its events named by it, `set_host`), and the faults between hosts `cut`
-(two hosts) and `partition` on the simulated network. `kill_resource`, `freeze`,
-`kill_router` and the mission's ERM setup are refused with a `PlanError` naming them
-and why (`check_simulable`), never skipped silently.
+(two hosts) and `partition` on the simulated network; `kill_program`: the tree and the
+clients in a simulated process of their own (`_SimulatedProgram`, driven by commands as
+a host is), which the fault kills and starts again on the same state_dir.
+`kill_resource`, `freeze`, `kill_router` and the mission's ERM setup are refused with a
+`PlanError` naming them and why (`check_simulable`), never skipped silently.
 """
 
 from __future__ import annotations
