@@ -60,13 +60,12 @@ half of that fix, `DueAnswers.frozen` handing a `Reconcile` the withdrawn calls 
 of `simcancel` held (164 CPU s), so a full run would spend its 10,000 seeds on it.
 
 Issue 51's "program restarted" (a registrar without a backup, started again on a
-`state_dir`, is told it lost everything: `statedir.ran_before`) has no plant: no
-simulated run reaches it. A seed is one program on a fresh folder (one `Supervisor`,
-started once); its clients' registrars (`Supervisor.registrar`, no backup) start once;
-its managers keep a backup whenever there is a `state_dir` (a plan gives a manager no
-config of its own), and with `state = false` there is none to remember them in; a
-`split_brain`'s second supervisor has a fresh `state_dir` of its own. Reaching it needs
-a fault that kills the whole program and starts it again on the same `state_dir`.
+`state_dir`, is told it lost everything: `statedir.ran_before`) is the plant
+`program-restart`, on `simprogram`: its fault `kill_program` (simulation only) SIGKILLs
+the run's program (its tree and its clients, a simulated process of their own) and
+starts it again on the same `state_dir`. That plan also found the fix racy: told
+through the directory, a consumer just started was "still starting" and the message
+was dropped (55 of seeds 1-60 violated `left`); it is told through its handle now.
 """
 
 from __future__ import annotations
@@ -409,6 +408,18 @@ PLANTS = (
         "                or True  # PLANTED: self.releases.is_releasing(query_id)\n",
         "simnostate",
         "kept",
+    ),
+    Plant(
+        "program-restart",
+        "a program killed and started again on its state_dir: its consumers (registrars of "
+        "Supervisor.registrar, no backup) are not told they lost everything, so the ids "
+        "their last run held stay in the managers' restored catalogs for nobody (the "
+        "reverse of b52ff0e6, issue 51 finding 2)",
+        "_supervision/supervisor.py",
+        "        if ran_before(state_dir, registrar.name):\n",
+        "        if ran_before(state_dir, registrar.name) and False:  # PLANTED: not told\n",
+        "simprogram",
+        "left",
     ),
 )
 """The planted bugs, one at a time (docs/performance.md lists them)."""

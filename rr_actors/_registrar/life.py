@@ -1054,14 +1054,22 @@ def tell_gone(target: str, name: str, *, stopped: bool = False) -> None:
     DIRECTORY.lookup(target).tell(_mark(name, stopped=stopped))
 
 
-def lost_everything(name: str, *, also: Iterable[str] = ()) -> None:
+def lost_everything(name: str, *, also: Iterable[str] = (), handle: Any = None) -> None:
     """Registrar `name` restarted with an empty catalog (its supervisor restarted it
     without a backup): every registrar of this process, and those named in `also`, that
     holds ids there reconciles with it, and `name` itself reconciles with every registrar
     of the system (`LostEverything`): the ids its last run held are held for nobody, and
     each provider releases those its new list does not name (rule 20). One killed again
-    before it heard it is told at its next restart."""
+    before it heard it is told at its next restart.
+
+    `handle`: the `ResourceRegistrar` of `name`, told through it: one just started (a
+    consumer of `Supervisor.registrar`) may not have taken its place in the directory
+    yet (its actor's `on_start` did not run: "still starting"), and the message would
+    be lost; its actor's mailbox takes it at once."""
     DIRECTORY.broadcast(ReconcileAsk(name, holds_yours=False), also=also, skip=name)
+    if handle is not None:
+        handle._actor.tell(LostEverything())  # (the package's own handle)
+        return
     try:
         DIRECTORY.lookup(name).tell(LostEverything())
     except RrError:

@@ -6,7 +6,9 @@ each would hold the other's consumer ids. The first tree to start claims
 a second one (in this process or another) gets `ConfigError` naming that pid. The lock
 goes at the tree's stop (the file removed), or when its process dies, however it dies (a
 stale `.lock` file left by a dead process is not a lock). Each manager's backup is
-claimed the same way on its own (`<backup_path>.lock`), whoever starts it.
+claimed the same way on its own (`<backup_path>.lock`), whoever starts it. A simulation
+takes no lock (`runtime.guards_files`: its files are its own): its processes are one OS
+process, whose lock a killed simulated program would never let go.
 
 The directory also remembers the registrars of the tree that keep no backup and may hold
 ids at those that do: the consumers `registrar()` starts without one, and the managers
@@ -23,6 +25,7 @@ from __future__ import annotations
 import os
 from collections.abc import Iterable
 
+from rr_actors._core import runtime
 from rr_actors._platform import lockfile
 from rr_actors.errors import ConfigError
 
@@ -52,7 +55,7 @@ class StateDirLock:
         fds: list[int] = []
         try:
             unique = sorted({os.path.abspath(os.fspath(d)) for d in directories})
-            fds.extend(_lock(directory) for directory in unique)
+            fds.extend(fd for fd in map(_lock, unique) if fd is not None)
         except BaseException:
             cls(fds).release()
             raise
@@ -65,9 +68,11 @@ class StateDirLock:
             lockfile.release(fd)
 
 
-def _lock(directory: str) -> int:
+def _lock(directory: str) -> int | None:
     try:
         os.makedirs(directory, exist_ok=True)
+        if not runtime.guards_files():  # (a simulation: see the module's docstring)
+            return None
         return lockfile.claim(os.path.join(directory, LOCK_NAME))
     except lockfile.HeldError as held:
         ours = held.holder == str(os.getpid())  # (a tree this program did not stop)

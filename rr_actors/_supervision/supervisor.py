@@ -510,7 +510,8 @@ class Supervisor(AsyncSupervision):
         if state_dir is None or registrar.config.backup_path is not None:
             return  # (one with a backup reconciles with everyone itself when restored)
         if ran_before(state_dir, registrar.name):
-            lost_everything(self._node, registrar.name, self._tree.processes.system)
+            system = self._tree.processes.system
+            lost_everything(self._node, registrar.name, system, handle=registrar)
 
     def run_in(
         self, name: str, fn: Callable[[ResourceRegistrar], Any], *, timeout: float = 10.0

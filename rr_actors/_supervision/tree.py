@@ -23,7 +23,7 @@ import dataclasses
 import logging
 import weakref
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from rr_actors._core import runtime, wire
 from rr_actors._core.replies import FutureReply, Steps
@@ -349,7 +349,9 @@ def comes_back(name: str) -> None:
     life.back(name)
 
 
-def lost_everything(root: Level, name: str, network: Transport | None = None) -> None:
+def lost_everything(
+    root: Level, name: str, network: Transport | None = None, handle: Any = None
+) -> None:
     """Manager `name`, which keeps no backup, restarted with an empty catalog: every
     registrar of the system that holds ids there reconciles with it, and hears `FATAL`
     for each, and `name` reconciles with every registrar of the system, which releases
@@ -357,12 +359,13 @@ def lost_everything(root: Level, name: str, network: Transport | None = None) ->
     when it serves again).
 
     `root`: the tree's root supervisor (its living process managers are told too);
-    `network`: the tree's carrier, whose registrars are told too.
+    `network`: the tree's carrier, whose registrars are told too; `handle`: `name`'s
+    `ResourceRegistrar`, if it was just started here (`life.lost_everything`).
     """
     living = _process_managers(root)
     if network is not None and not network.closed:
         living.extend(network.names())
-    life.lost_everything(name, also=living)
+    life.lost_everything(name, also=living, handle=handle)
 
 
 def death_watch_missed(name: str) -> None:

@@ -147,6 +147,7 @@ class Providers:
         self.watch = facts.lost | facts.fetched
         self.outcomes = facts.outcomes
         self.catalogs: dict[str, _Catalog] = defaultdict(_Catalog)
+        self._by_name: dict[str, list[Life]] | None = None  # each registrar's lives
         self.findings: list[Finding] = []
         self.holdings: dict[tuple[str, str], list[Holding]] = defaultdict(list)
         self.server_of: dict[tuple[str, str], str] = {}  # (provider, resource id) -> server
@@ -233,6 +234,28 @@ class Providers:
         released = self.release_stamps.get((name, qid))
         return released is not None and released[1] < ended
 
+    def died_before(self, consumer: str, stamp: int) -> bool:
+        """Whether `consumer`'s life at `stamp` (the one begun last before it) had
+        published its last event before it and was followed by another life: it was
+        killed before the restart at `stamp`, as a program killed with its managers is
+        (`kill_program`), and it keeps no backup (its next life holds nothing of that
+        one's). What it released just before is committed, and its events
+        (`ConsumerReleased`, `QueryForgotten`) may be lost with the program; nobody
+        holds the id any more, so no `FATAL` is owed. (One with a backup restores its
+        holds: a row lost at its provider is reported to it at its reconcile.)"""
+        if consumer in self.with_backup:
+            return False
+        if self._by_name is None:
+            self._by_name = defaultdict(list)
+            for (name, _number), record in sorted(self.lives.items()):
+                self._by_name[name].append(record)
+        begun = [life for life in self._by_name.get(consumer, ()) if life.start < stamp]
+        if not begun:
+            return False
+        last = max(begun, key=lambda life: life.start)
+        followed = any(life.start > last.start for life in self._by_name[consumer])
+        return followed and last.last < stamp and last.end is not None
+
     def lose(
         self,
         name: str,
@@ -254,6 +277,8 @@ class Providers:
             # its consumer had let it go: the release was committed, and the kill came
             # before its `ConsumerReleased` was published (the restore shows the commit)
             if self.forgot.get((name, qid), let_go_by) < let_go_by:
+                continue
+            if self.died_before(held.consumer, stamp):
                 continue
             told = self.fatal_at.get(qid)
             if told is None or told < held.stamp:

@@ -33,6 +33,11 @@
                         serves no name, its calls and the calls to it fail, it hears
                         every other name lost, rule 19); `for` s later it hears again
                         (`hear`: a heal for it, rule 20)
+   kill_program ──────► the run's program (its own simulated process: `simulate`'s
+                        `_SimulatedProgram`) SIGKILLed, its managers' processes with it;
+                        started again at once on the same state_dir, on a thread of its
+                        own (its managers restore their backups, its clients call again
+                        under the same names); the manager faults due meanwhile skipped
  stop ─► hung managers continued; armed faults that never fired, triggers that never
          came and faults due after the end recorded as skipped (FaultLog); deaf
          managers hear again
@@ -53,7 +58,7 @@ import itertools
 import signal
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import msgspec
 
@@ -67,7 +72,26 @@ from rr_actors.experiments.results import FaultRecord
 from rr_actors.experiments.runner import EVENT_QUEUE, _child_spec
 from rr_actors.experiments.schedule import ScheduledFault
 
-__all__ = ["SimulatedFaults"]
+__all__ = ["Program", "SimulatedFaults"]
+
+
+class Program(Protocol):
+    """The run's program in a simulated process of its own (`simulate._SimulatedProgram`)."""
+
+    pid: int
+
+    def kill(self) -> int:
+        """SIGKILL it (its managers' processes with it); its pid."""
+        ...
+
+    def start(self) -> rr.Supervisor:
+        """Start it again on its `state_dir`; its tree, once it serves.
+
+        Raises:
+            Exception: what its tree raised as it started.
+        """
+        ...
+
 
 RUN_IN_TIMEOUT = 2.0
 """Virtual seconds `load_error` waits for its manager to take the switch (as for real)."""
@@ -90,6 +114,8 @@ class SimulatedFaults:
         state_dir: where second servers keep their backups (`None`: in memory).
         hosts: with `[hosts]`, the pid of each other host's process (its tree's and its
             managers' processes are the ones it started).
+        program: the run's program, when it runs in a process of its own (a plan with
+            `kill_program`); `sup` is its tree, the one it runs now.
     """
 
     def __init__(
@@ -104,8 +130,11 @@ class SimulatedFaults:
         on_event: Callable[[events.Event], None] | None = None,
         state_dir: Path | None = None,
         hosts: dict[str, int] | None = None,
+        program: Program | None = None,
     ) -> None:
         self.sup = sup
+        self._program = program
+        self._restarting = False  # the program was killed and is starting again
         self._hosts = dict(hosts or {})  # another host's name -> the pid of its process
         self._cut: str | None = None  # the fault between hosts in force (its target)
         self._on_event = on_event
@@ -124,7 +153,7 @@ class SimulatedFaults:
         self._armed: dict[tuple[int, int], tuple[ScheduledFault, float]] = {}  # not fired yet
         self._due: dict[int, tuple[ScheduledFault, float]] = {}  # on the agenda, by number
         self._open: dict[tuple[int, int], Callable[[], None]] = {}  # recorded once they end
-        self._helpers: list[Any] = []  # load errors' threads
+        self._helpers: list[Any] = []  # load errors', split brains', program restarts' threads
         self._triggered = Triggered((f for f in schedule if f.at is None), wall_t0)
         # The timed faults put on the agenda without its lock (no thread sees it yet): a
         # lock taken is a choice point of the scheduler, so that taking it once per
@@ -240,6 +269,10 @@ class SimulatedFaults:
     def _fire(self, fault: ScheduledFault, at: float) -> None:
         if fault.kind in ("cut", "partition"):
             self._cut_hosts(fault, at)
+        elif self._restarting:  # (its tree is the one of a killed program)
+            self.log.record(fault, at, None, "the program was starting again", skipped=True)
+        elif fault.kind == "kill_program":
+            self._kill_program(fault, at)
         else:
             self._fire_at_manager(fault, at)
 
@@ -449,6 +482,38 @@ class SimulatedFaults:
             )
         self.log.record(fault, at, injected, detail)
         heal.served()
+
+    def _kill_program(self, fault: ScheduledFault, at: float) -> None:
+        """SIGKILL the run's program (its managers' processes die with it), then start it
+        again on the same `state_dir` on a thread of its own (its start takes virtual
+        time; the manager faults due meanwhile are skipped, saying so)."""
+        assert self._program is not None  # (`simulate` runs such a plan's program so)
+        killed = self._program.kill()
+        self._restarting = True
+        thread = runtime.Thread(
+            target=self._start_program,
+            args=(fault, at, self._now(), killed),
+            name="rr-simulated-program",
+            daemon=True,
+        )
+        self._helpers.append(thread)
+        thread.start()
+
+    def _start_program(
+        self, fault: ScheduledFault, at: float, injected: float, killed: int
+    ) -> None:
+        assert self._program is not None
+        try:
+            self.sup = self._program.start()
+        except Exception as exc:  # noqa: BLE001 - recorded; the run's next ask raises
+            detail = f"SIGKILL pid {killed} (the program); it did not start again: {exc}"
+        else:
+            detail = (
+                f"SIGKILL pid {killed} (the program: its tree, its managers' processes and "
+                f"its clients); started again as pid {self._program.pid} on its state_dir"
+            )
+            self._restarting = False
+        self.log.record(fault, at, injected, detail)
 
     def _load_error(self, fault: ScheduledFault, at: float) -> None:
         assert fault.target is not None

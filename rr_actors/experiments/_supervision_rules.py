@@ -18,7 +18,11 @@ decided at the exit it follows (the stops of its children come between them, eac
 `ChildExited` marked `stopped`); a group's siblings are stopped right after the exit
 that decided it, before anything else of that supervisor; a group is restarted in one
 step (a `ChildRestarted` each, in start order) unless a start fails (the child that
-failed then has an exit of its own, which decides again).
+failed then has an exit of its own, which decides again). A supervisor started again
+counts afresh (OTP): after its give-up, or where it starts a child a second time
+(`ChildStarted` again for a name: a restart is a `ChildRestarted`, so that is a new run
+of that supervisor, a nested one restarted by its parent, or its program killed and
+started again).
 """
 
 from __future__ import annotations
@@ -51,21 +55,30 @@ def intensity(history: Sequence[Line]) -> list[Finding]:
     exits fall within `period` seconds (OTP), at the exit that makes them so.
 
     An exit of a line of schema 3 or older (`restart` not known) is not judged, nor one
-    that a window's edge holds or leaves out depending on `SLACK_S`.
+    that a window's edge holds or leaves out depending on `SLACK_S`. The window starts
+    empty again after a give-up and at a new run of the supervisor (a second
+    `ChildStarted` of one of its children: see the module's docstring).
     """
     decisions: dict[str, list[tuple[int, events.Event]]] = defaultdict(list)
     for line, event in history:
         judged = isinstance(event, events.ChildExited) and event.restart and counted(event)
-        if judged or isinstance(event, events.SupervisorGaveUp):
+        if judged or isinstance(event, (events.SupervisorGaveUp, events.ChildStarted)):
             decisions[event.supervisor].append((line, event))  # type: ignore[union-attr]
     findings: list[Finding] = []
     for supervisor, seen in decisions.items():
         window: list[tuple[float, int]] = []  # (at, line) of the counted exits, in order
+        started: set[str] = set()  # the children this run of it started
         for index, (line, event) in enumerate(seen):
+            if isinstance(event, events.ChildStarted):
+                if event.child in started:  # (a new run of it: it counts afresh)
+                    window.clear()
+                    started.clear()
+                started.add(event.child)
+                continue
             if not isinstance(event, events.ChildExited):
                 window.clear()  # (a supervisor started again counts afresh)
                 continue
-            after = seen[index + 1] if index + 1 < len(seen) else None
+            after = seen[index + 1] if index + 1 < len(seen) else None  # (its decision)
             gave_up = after is not None and isinstance(after[1], events.SupervisorGaveUp)
             period, most = event.period, event.max_restarts
             window = [(at, at_line) for at, at_line in window if event.at - at < period + SLACK_S]

@@ -27,7 +27,8 @@ what cannot be checked):
   call had failed for its caller (`CallFailed`: it holds no id), its consumer forgot it
   before the life before ended, or forgot it on a release that crossed the restart (its
   `QueryForgotten.reconciled`: its last reconcile with the provider before the `Unload`
-  left began before that life ended).
+  left began before that life ended); nor for a consumer without a backup killed
+  before the restart (its program killed with its managers: its events may be lost).
 - `unload-once`: a resource is unloaded at most once, and only once its last consumer
   id was released; no consumer is added to a resource after its unload; no id is
   released that was not held.
@@ -74,7 +75,8 @@ what cannot be checked):
   unless its provider ended it (`revoked`, `provider lost`, `unknown at reconcile`).
 - `intensity`: a supervisor gives up exactly when more than `max_restarts` of the exits
   it counts (`ChildExited` not stopped by it, of a child its restart type restarts: OTP)
-  fall within `period` seconds, at the exit that makes them so.
+  fall within `period` seconds, at the exit that makes them so; counted afresh after a
+  give-up and at a new run of the supervisor (a second `ChildStarted` of a child).
 - `strategy`: a supervisor's decision at an exit it did not cause follows OTP's strategy
   and restart types: the running siblings of the child's group (`one_for_one`: none;
   `one_for_all`: every child; `rest_for_one`: those started after it; at a give-up,

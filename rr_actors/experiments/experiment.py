@@ -68,6 +68,13 @@ OUTPUT_FILES = (
 )
 """The files an experiment writes in its output directory (`--force` replaces these)."""
 
+ONLY_SIMULATED_WHY = {
+    "kill_program": ": a real run's program is the run process itself, which records the "
+    "run (its tree, its clients and its events): killed, the run would end with it",
+}
+"""Why a fault kind only the simulation injects is not run for real, where it is not the
+simulation's reach alone (a `PlanError`'s tail)."""
+
 STOP_TIMEOUT = 20.0
 """Seconds an interrupted run process gets to stop its tree before it is killed."""
 
@@ -243,7 +250,8 @@ def run(
                 plan.source or "<plan>",
                 0,
                 f"faults[{index}].kind",
-                f"{fault.kind!r} is only on the simulation (rr-actors experiment --simulate)",
+                f"{fault.kind!r} is only on the simulation (rr-actors experiment --simulate)"
+                + ONLY_SIMULATED_WHY.get(fault.kind, ""),
             )
     reason = unsupported_platform()
     if reason is None and any(p.hosts is not None for _, p in plan.variants):

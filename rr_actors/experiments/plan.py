@@ -54,6 +54,7 @@ FaultKind = Literal[
     "partition_serving",
     "split_brain",
     "deaf_manager",
+    "kill_program",
 ]
 
 FAULT_KINDS: tuple[FaultKind, ...] = typing.get_args(FaultKind)  # every kind a plan may name
@@ -66,6 +67,7 @@ SIMULATION_KINDS = frozenset(  # aimed where only a simulation can stop or reach
         "partition_serving",
         "split_brain",
         "deaf_manager",
+        "kill_program",
     }
 )
 NEEDS_PROCESS = frozenset({"kill_resource", "hang_manager", "cut_connections"} | SIMULATION_KINDS)

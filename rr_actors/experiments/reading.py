@@ -416,6 +416,9 @@ class _Reader:
             refuse(key in names and item not in names[key], (*path, "after", key), problem)
         if kind in schema.HOST_KINDS:
             self.host_fault(fault, path, table)
+        elif kind == "kill_program":
+            whole = "does not go with kind 'kill_program' (it kills the run's whole program)"
+            refuse("target" in table, (*path, "target"), whole)
         else:
             self.whom(fault, path, table)
         # -- when: within the run, not too often

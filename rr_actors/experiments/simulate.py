@@ -32,19 +32,23 @@ or random times or `after` an event (`_simulated_faults.py`); managers in proces
 threads; a `[compare]` plan with its first value; `[hosts]`: each other host a
 simulated process of its own (`_SimulatedHost`: its part of the tree, as a real run's
 host process; its events named by it, `set_host`), and the faults between hosts `cut`
-(two hosts) and `partition` on the simulated network. `kill_resource`, `freeze`,
-`kill_router` and the mission's ERM setup are refused with a `PlanError` naming them
-and why (`check_simulable`), never skipped silently.
+(two hosts) and `partition` on the simulated network; `kill_program`: the tree and the
+clients in a simulated process of their own (`_SimulatedProgram`, driven by commands as
+a host is), which the fault kills and starts again on the same state_dir.
+`kill_resource`, `freeze`, `kill_router` and the mission's ERM setup are refused with a
+`PlanError` naming them and why (`check_simulable`), never skipped silently.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import hashlib
 import json
 import os
 import shutil
+import signal
 import tempfile
 import time
 from collections.abc import Callable, Iterable
@@ -104,6 +108,8 @@ NOT_WITH_HOSTS = {
     "partition, which the plan's cuts between hosts use",
     "split_brain": "it cuts its manager off with the simulated network's one partition, "
     "which the plan's cuts between hosts use",
+    "kill_program": "the run's own host's part is the simulation's root process there, "
+    "which cannot be killed",
 }
 """Why a fault kind is not simulated in a plan with `[hosts]`."""
 
@@ -425,6 +431,8 @@ def _world(
     """The run, in the simulation's main thread: the runner's steps on simulated seams."""
     from rr_actors.experiments._simulated_faults import SimulatedFaults  # noqa: PLC0415 - greenlet
 
+    if any(fault.kind == "kill_program" for fault in plan.faults):
+        return _program_world(plan, seed, folder, progress)
     network = _network_of(plan)
     work = folder / "work"
     work.mkdir()
@@ -491,6 +499,247 @@ def _world(
     calls = [c for client in clients for c in client.calls]
     ok = sum(1 for c in calls if c.ok)
     return list(log.seen), records, wall_t0, (ok, len(calls) - ok, left)
+
+
+def _program_world(
+    plan: Plan, seed: int, folder: Path, progress: _Progress
+) -> tuple[list[events.Event], list[FaultRecord], float, tuple[int, int, int]]:
+    """`_world` for a plan that kills the program (`kill_program`): the same steps, with
+    the tree and the clients in a simulated process of their own (`_SimulatedProgram`)
+    rather than the simulation's root, which only drives the run."""
+    from rr_actors import simulation  # noqa: PLC0415 - the simulation extra (greenlet)
+    from rr_actors.experiments._simulated_faults import SimulatedFaults  # noqa: PLC0415 - greenlet
+
+    network = simulation.SimulatedNetwork()  # (check_simulable refuses it with [hosts])
+    work = folder / "work"
+    work.mkdir()
+    log = progress.log = _EventLog()
+    injector: list[SimulatedFaults] = []  # (set once the workload starts)
+
+    def seen(event: events.Event) -> None:
+        log(event)
+        for faults in injector:
+            faults.on_event(event)
+
+    program = _SimulatedProgram(
+        plan, folder / "state" if plan.state else None, seed, network, seen, work
+    )
+    records: list[FaultRecord] = []
+    try:
+        sup = program.start()
+        progress.serving, progress.clients = True, program.clients
+        t0, wall_t0 = runtime.monotonic(), runtime.wall()
+        progress.wall_t0 = wall_t0
+        faults = SimulatedFaults(
+            sup,
+            plan,
+            network,
+            fault_schedule(plan, seed),
+            t0,
+            wall_t0,
+            on_event=seen,
+            state_dir=folder / "beyond" if plan.state else None,
+            program=program,
+        )
+        injector.append(faults)
+        progress.faults = faults
+        program.go(t0, t0 + plan.duration)  # (before a fault can kill it: `ask` would wait)
+        faults.start()
+        runtime.sleep(plan.duration)
+        faults.stop()
+        records = faults.records
+        program.ask("wait_serving", plan.recovery_timeout)
+        program.ask("stop_clients")
+        failed = next((c.failure for c in program.clients if c.failure is not None), None)
+        if failed is not None:
+            progress.serving = False  # (a client's request could not be made: no result)
+            raise failed
+        left = program.ask("count")  # (the runner's settling, in the program)
+        program.ask("flush")
+    finally:
+        with contextlib.ExitStack() as cleanup:  # (as `_world`'s)
+            cleanup.callback(network.close)
+            for opened in injector:
+                cleanup.callback(_close_injector, opened, progress)
+            cleanup.callback(program.stop)
+    calls = [c for client in program.clients for c in client.calls]
+    ok = sum(1 for c in calls if c.ok)
+    return list(log.seen), records, wall_t0, (ok, len(calls) - ok, left)
+
+
+class _SimulatedProgram:
+    """The run's program, on the simulation, when its plan kills it (`kill_program`): a
+    simulated process of its own (not the simulation's root, which cannot be killed),
+    whose main thread builds and starts the plan's tree on the run's `state_dir`, makes
+    the workload's clients (each a consumer registrar of `Supervisor.registrar`), then
+    runs the commands `ask` sends, one at a time. `kill` ends it as a SIGKILL does (every
+    thread of it; its managers' processes die with it, as `PR_SET_PDEATHSIG` makes real
+    ones); `start` starts it again on the same `state_dir`: its managers restore their
+    backups, and its clients (the same names) start calling at once, until the run's
+    deadline.
+
+    Args:
+        plan: the plan (no `[hosts]`: `check_simulable`).
+        state_dir: its tree's `state_dir` (`None`: in memory).
+        seed: the run's seed.
+        network: the run's simulated network.
+        on_event: what its tree's events go to (the run's subscriber).
+        work: the run's folder (for `{run_dir}`).
+    """
+
+    def __init__(
+        self,
+        plan: Plan,
+        state_dir: Path | None,
+        seed: int,
+        network: object,
+        on_event: Callable[[events.Event], None],
+        work: Path,
+    ) -> None:
+        self.plan = plan
+        self._state_dir = state_dir
+        self._seed = seed
+        self._network = network
+        self._on_event = on_event
+        self._work = work
+        self.pid = 0  # its process now (0: not started)
+        self.sup: rr.Supervisor | None = None  # its tree now
+        self.clients: list[Client] = []  # every life's clients, in the order made
+        self._workload: tuple[float, float] | None = None  # (t0, deadline), once begun
+        self._commands: runtime.SimpleQueue[tuple[str, float]] = runtime.SimpleQueue()
+        self._replies: runtime.SimpleQueue[object] = runtime.SimpleQueue()
+        self._serving = False  # its main thread takes commands
+
+    def start(self) -> rr.Supervisor:
+        """Start a life of the program; return its tree once it serves and its clients
+        are made (and call, once the workload began: `go`).
+
+        Raises:
+            Exception: what its tree raised as it started (a setup's error).
+        """
+        from rr_actors import simulation  # noqa: PLC0415 - the simulation extra (greenlet)
+
+        self._commands, self._replies = runtime.SimpleQueue(), runtime.SimpleQueue()
+        self.pid = simulation.start_process(
+            functools.partial(self._main, self._commands, self._replies), name="program"
+        )
+        reply = self._replies.get()
+        if isinstance(reply, BaseException):
+            raise reply
+        self._serving = True
+        assert self.sup is not None
+        return self.sup
+
+    def kill(self) -> int:
+        """SIGKILL its process (its managers' with it); its pid."""
+        from rr_actors import simulation  # noqa: PLC0415 - the simulation extra (greenlet)
+
+        self._serving = False
+        simulation.kill(self.pid, signal.SIGKILL)
+        return self.pid
+
+    def go(self, t0: float, deadline: float) -> None:
+        """Its clients start calling, from `t0` until `deadline` (monotonic seconds)."""
+        self._workload = (t0, deadline)
+        self.ask("go")
+
+    def ask(self, op: str, timeout: float = 0.0) -> int:
+        """Run `op` on the program (`"go"`, `"wait_serving"` for `timeout` virtual
+        seconds, `"stop_clients"`, `"count"`: its catalogs' entries, settled, `"flush"`);
+        the count, or 0.
+
+        Raises:
+            RrError: the program is not running (it did not start again), or what `op`
+                raised there (`wait_serving`: a manager did not serve in time).
+        """
+        if not self._serving:
+            raise rr.RrError("the run's program is not running (it did not start again)")
+        self._commands.put((op, timeout))
+        reply = self._replies.get()
+        if isinstance(reply, BaseException):
+            raise reply
+        return reply if isinstance(reply, int) else 0
+
+    def stop(self) -> None:
+        """Stop its tree once its events are delivered (nothing if it is not running)."""
+        if self._serving:
+            self._serving = False
+            self._commands.put(("stop", 0.0))
+            reply = self._replies.get()
+            if isinstance(reply, BaseException):
+                raise reply
+
+    def _main(
+        self,
+        commands: runtime.SimpleQueue[tuple[str, float]],
+        replies: runtime.SimpleQueue[object],
+    ) -> None:
+        plan = self.plan
+        subscription: rr.Subscription[events.Event] | None = None
+        try:
+            sup = build_tree(plan, self._state_dir, seed=self._seed, network=self._network)
+            subscription = sup.subscribe(self._on_event, maxsize=EVENT_QUEUE)
+            sup.start()
+            clients = [
+                Client(i, sup, plan, self._seed, run_dir=self._work)
+                for i in range(plan.workload.clients)
+            ]
+        except Exception as exc:  # noqa: BLE001 - the thread that started it raises it
+            if subscription is not None:
+                subscription.close()
+            replies.put(exc)
+            return
+        self.sup = sup
+        self.clients.extend(clients)
+        if self._workload is not None:  # (started again: its clients call at once)
+            self._go(clients, runtime.monotonic())
+        replies.put("ready")
+        while True:
+            op, timeout = commands.get()
+            try:
+                reply = self._command(op, timeout, sup, clients, subscription)
+            except Exception as exc:  # noqa: BLE001 - the run's thread raises it
+                reply = exc
+            replies.put(reply)
+            if op == "stop":
+                return
+
+    def _command(
+        self,
+        op: str,
+        timeout: float,
+        sup: rr.Supervisor,
+        clients: list[Client],
+        subscription: rr.Subscription[events.Event],
+    ) -> object:
+        """Run one command of `ask` (or `stop`) on this life's tree and clients."""
+        plan = self.plan
+        managers = [m.name for m in plan.managers()]
+        if op == "go":
+            assert self._workload is not None
+            self._go(clients, self._workload[0])
+        elif op == "wait_serving":
+            wait_all_serving(sup, managers, timeout)
+        elif op == "stop_clients":
+            for client in clients:
+                client.stop(timeout=plan.workload.timeout)
+        elif op == "count":
+            return count_entries(sup, managers, clients)[0]
+        elif op == "flush":
+            sup.flush_events()
+        else:  # "stop"
+            with contextlib.ExitStack() as cleanup:
+                cleanup.callback(subscription.close)
+                cleanup.callback(subscription.wait_delivered)
+                cleanup.callback(sup.stop)
+        return None
+
+    def _go(self, clients: list[Client], t0: float) -> None:
+        """Start `clients` calling from `t0` (a life started again: its start, so that its
+        clients' first calls come one gap after it, not all at once to catch up)."""
+        assert self._workload is not None
+        for client in clients:
+            client.start(t0=t0, deadline=self._workload[1])
 
 
 def _network_of(plan: Plan) -> simulation.SimulatedNetwork:

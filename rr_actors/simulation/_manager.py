@@ -111,6 +111,8 @@ def start(
     parent = sched.current().process
     received = Received(on_events, None)
     process = sched.new_process(name, parent)
+    # (dies with its parent, as `PR_SET_PDEATHSIG` makes a real one: a program killed)
+    parent.at_end.append(functools.partial(sched.end, process, KILLED))
     to_child: Any = runtime.SimpleQueue()
     from_child: Any = runtime.SimpleQueue()
     process.at_end.append(lambda: from_child.put(_Ended(process.exitcode)))

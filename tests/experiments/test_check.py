@@ -197,6 +197,21 @@ def test_an_id_its_consumer_forgot_before_a_restore_lost_it_holds() -> None:
     assert ["kept"] == [f.rule for f in check.check(numbered(_stamped(late))).findings]
 
 
+def test_an_id_of_a_consumer_killed_before_a_restore_lost_it_holds() -> None:
+    # (kill_program: the consumer, without a backup, died with its provider; the events
+    # of a release it made just before may be lost with them, and nobody holds the id)
+    history, _ = _seeded()["kept"]
+    answered = events.CallAnswered("cm", Q2, "erm", "cam", pid=C)
+    again = events.RegistrarStopped("cm", (), (), (), pid=C + 2)  # (its next life)
+    killed = [*history[:4], answered, *history[4:], again]
+    assert "held" == check.check(numbered(_stamped(killed))).verdict
+    alive = [*history[:4], answered, *history[4:]]  # (it lived on: owed a FATAL)
+    assert ["kept"] == [f.rule for f in check.check(numbered(_stamped(alive))).findings]
+    kept = events.CatalogRestored("cm", (), (), (), pid=C)  # (a backup keeps its holds)
+    restored = [kept, *history[:4], answered, *history[4:], again]
+    assert "kept" in [f.rule for f in check.check(numbered(_stamped(restored))).findings]
+
+
 # -- the consumer's side and dependency paths ------------------------------------------------
 
 A = 300  # the top consumer's process
@@ -1491,6 +1506,16 @@ def test_a_supervisor_that_gives_up_exactly_past_its_intensity_holds() -> None:
         assert ("held", ()) == (verdict.verdict, verdict.findings)
 
 
+def test_a_supervisor_started_again_counts_its_exits_afresh() -> None:
+    # (its program killed and started again: kill_program) a second ChildStarted of db
+    first = [events.ChildStarted("root", "db", 9, at=0.0)]
+    again = [events.ChildStarted("root", "db", 20, at=2.5)]
+    verdict = check.check(numbered([*first, *_exits(0.5, 1.0), *again, *_exits(3.0)]))
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    # (without the second start, the third exit within 5 s is one past its intensity)
+    assert {2, 4, 6} == _found([*first, *_exits(0.5, 1.0), *_exits(3.0)], "intensity")
+
+
 def test_an_exit_at_the_edge_of_the_intensity_window_is_not_judged() -> None:
     slack = _supervision_rules.SLACK_S / 2
     for history in (_exits(0.0, 1.0, 5.0 - slack), _gives_up(_exits(0.0, 1.0, 5.0 + slack))):
@@ -2103,9 +2128,10 @@ ROOT_ONLY = {"leases", "simhosts"}
 network namespaces and minutes (tests/experiments/test_hosts.py runs a small plan of
 their shape; test_simulate.py runs `simhosts` on the simulation)."""
 
-SIMULATION_ONLY = {"simheal", "simrest"}
+SIMULATION_ONLY = {"simheal", "simrest", "simprogram"}
 """Shipped plans of a fault kind only the simulation injects (`split_brain`,
-`kill_in_setup`): their histories are checked in tests/experiments/test_simulate.py."""
+`kill_in_setup`, `kill_program`): their histories are checked in
+tests/experiments/test_simulate.py."""
 
 
 @pytest.fixture(scope="module")

@@ -38,6 +38,7 @@ SHIPPED = {
     "simshare",
     "simnostate",
     "simrest",
+    "simprogram",
 }
 """Every plan shipped in the package; the tutorial's `first` runs in the docs test."""
 

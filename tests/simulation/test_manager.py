@@ -16,6 +16,7 @@ import pytest
 import rr_actors as rr
 from rr_actors import simulation
 from rr_actors._catalog import Catalog
+from rr_actors._core import runtime
 from rr_actors._store.files import read_backup
 from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import MemoryNetwork
@@ -65,6 +66,57 @@ def with_tree(
             shutil.rmtree(folder, ignore_errors=True)
 
     return scenario
+
+
+TICKS: list[float] = []
+"""When `ticking_setup`'s thread ticked (virtual seconds): while its manager process lives."""
+
+
+def ticking_setup(registrar: rr.ResourceRegistrar) -> None:
+    """A leaf whose process ticks every 0.1 s on a thread of its own."""
+
+    def tick() -> None:
+        while True:
+            simulation.sleep(0.1)
+            TICKS.append(simulation.now())
+
+    leaf_setup(registrar)
+    runtime.Thread(target=tick, name="tick", daemon=True).start()
+
+
+def test_a_manager_process_dies_with_the_process_that_started_it() -> None:
+    # (as PR_SET_PDEATHSIG makes a real one: a program killed takes its managers along)
+    TICKS.clear()
+
+    def program(folder: str, network: MemoryNetwork, started: Any) -> None:
+        manager = rr.ManagerSpec("provider", setup=ticking_setup, isolation="process")
+        supervisor = rr.Supervisor(manager, state_dir=folder, network=network, name="root")
+        supervisor.start()
+        started.put(supervisor.child("provider").pid)
+
+    def scenario() -> Any:
+        folder = tempfile.mkdtemp(prefix="rr-sim-manager-")
+        network = MemoryNetwork("simulated")
+        try:
+            started: Any = runtime.SimpleQueue()
+            pid = simulation.start_process(
+                lambda: program(folder, network, started), name="program"
+            )
+            manager = started.get()
+            simulation.sleep(0.55)
+            simulation.kill(pid)
+            killed_at, ticked = simulation.now(), len(TICKS)
+            simulation.sleep(1.0)
+            return manager, pid, ticked, [t for t in TICKS if t > killed_at]
+        finally:
+            network.close()
+            shutil.rmtree(folder, ignore_errors=True)
+
+    manager, program_pid, ticked, after = simulation.run(scenario, seed=1).value
+
+    assert manager != program_pid
+    assert ticked >= 4  # (it ticked while its program lived)
+    assert [] == after  # (and not once after its program was killed)
 
 
 def test_a_manager_runs_in_a_simulated_process_of_its_own() -> None:

@@ -217,3 +217,22 @@ def test_a_state_dir_is_free_again_once_its_holder_was_killed(
 
     sup = supervisors([rr.ManagerSpec(f"b-{uid}")], state_dir=tmp_path).start()
     assert "running" == sup.child(f"b-{uid}").state
+
+
+def test_a_simulation_takes_no_lock_on_a_state_dir_but_makes_it(tmp_path: Path) -> None:
+    # (its processes are one OS process: a simulated program killed would hold it for
+    # good, and its start again on the same state_dir would be refused)
+    pytest.importorskip("greenlet")
+    from rr_actors import simulation  # noqa: PLC0415 - the simulation extra
+    from rr_actors._supervision.statedir import LOCK_NAME, StateDirLock  # noqa: PLC0415
+
+    state = tmp_path / "state"
+
+    def twice() -> None:
+        StateDirLock.acquire([state])
+        StateDirLock.acquire([state])  # (never released: as by a killed program)
+
+    simulation.run(twice, seed=1)
+
+    assert state.is_dir()
+    assert not (state / LOCK_NAME).exists()
