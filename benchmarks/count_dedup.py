@@ -22,8 +22,9 @@ How (`--count`):
   the same to a tenth of a percent run after run.
 * `protocol`: durable registrars (`save_on_modify`, a backup each, in a temporary
   folder): the SQLite transactions (`SqliteStore.write`) and the messages the
-  registrar actors handle (`RegistrarActor.on_receive`, by type) per `hit`, per
-  `miss` (a request not loaded: a load) and per `unload`, each `--calls` times.
+  registrar actors handle (`RegistrarActor.on_receive`, by type; "inline": run in
+  the actor's turn on the thread that brought it, no hand-off) per `hit`, per `miss`
+  (a request not loaded: a load) and per `unload`, each `--calls` times.
 * `bytecodes`: Python bytecodes executed per operation, every thread: `sys.settrace`
   and `threading.settrace` (installed before any actor starts) with each frame's
   `f_trace_opcodes` set count every `opcode` event; also the Python function calls per
@@ -399,6 +400,17 @@ def callgrind(args: argparse.Namespace) -> None:
         print(f"| {name} | {count / 1e3:.1f}k | {count / per['pykka']:.2f}x |")
 
 
+def protocol_row(
+    name: str, calls: int, writes: collections.Counter[str], handled: collections.Counter[str]
+) -> str:
+    """One operation's row of `protocol`'s table: per operation."""
+    kinds = ", ".join(f"{k} {n / calls:g}" for k, n in sorted(handled.items()))
+    total = sum(handled.values()) / calls
+    queued = sum(n for k, n in handled.items() if not k.endswith("(inline)")) / calls
+    commits = sum(writes.values()) / calls
+    return f"| {name} | {commits:g} | {total:g} | {queued:g} | {kinds} |"
+
+
 def protocol(calls: int) -> None:
     """Commits and registrar actor messages per hit, miss and unload, durable registrars."""
     from rr_actors._registrar.actor import RegistrarActor  # noqa: PLC0415
@@ -413,11 +425,22 @@ def protocol(calls: int) -> None:
         write(store, *args, **kwargs)
 
     def counted_receive(actor: Any, message: Any) -> None:
-        handled[f"{actor.name}: {type(message).__name__}"] += 1
+        # on the actor's own thread: it came through its mailbox (a thread hand-off);
+        # else a carrier's or an actor's thread ran it in the actor's turn (`deliver`)
+        inline = threading.current_thread() is not threads.get(id(actor))
+        handled[f"{actor.name}: {type(message).__name__}{' (inline)' if inline else ''}"] += 1
         receive(actor, message)
+
+    threads: dict[int, threading.Thread] = {}  # each registrar actor's own thread
+    start = RegistrarActor.on_start
+
+    def on_start(actor: Any) -> None:
+        threads[id(actor)] = threading.current_thread()
+        start(actor)
 
     SqliteStore.write = counted_write  # type: ignore[method-assign]
     RegistrarActor.on_receive = counted_receive  # type: ignore[method-assign]
+    RegistrarActor.on_start = on_start  # type: ignore[method-assign]
     with tempfile.TemporaryDirectory() as folder:
         configs = [
             rr.RegistrarConfig(name=name, backup_path=f"{folder}/{name}.db", save_on_modify=True)
@@ -436,8 +459,8 @@ def protocol(calls: int) -> None:
                 "miss": lambda: consumer.call(provider.name, "res", f"new {next(misses)}"),
             }
             print(f"durable registrars, {calls} of each operation: per operation")
-            print("| operation | commits | registrar actor messages (by type) |")
-            print("|---|---:|---|")
+            print("| operation | commits | registrar messages | through a mailbox | by type |")
+            print("|---|---:|---:|---:|---|")
             for name, operation in operations.items():
                 consumer.server_queries("idle")  # (what came before is handled)
                 writes.clear()
@@ -446,15 +469,13 @@ def protocol(calls: int) -> None:
                     operation()
                 consumer.server_queries("idle")
                 handled.pop("count-consumer: ListServerQueries", None)
-                kinds = ", ".join(f"{k} {n / calls:g}" for k, n in sorted(handled.items()))
-                total = sum(handled.values()) / calls
-                commits = sum(writes.values()) / calls
-                print(f"| {name} | {commits:g} | {total:g}: {kinds} |")
+                print(protocol_row(name, calls, writes, handled))
         finally:
             consumer.stop()
             provider.stop()
             SqliteStore.write = write  # type: ignore[method-assign]
             RegistrarActor.on_receive = receive  # type: ignore[method-assign]
+            RegistrarActor.on_start = start  # type: ignore[method-assign]
 
 
 def main() -> int:

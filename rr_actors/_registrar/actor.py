@@ -55,7 +55,13 @@ from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.replies import Answer, Tokens
 from rr_actors._core.throttle import LogThrottle
 from rr_actors._platform import fork
-from rr_actors._registrar.calls import CallFailed, ClientLoaded, DueAnswers, TakeOutcomes
+from rr_actors._registrar.calls import (
+    CallFailed,
+    ClientLoaded,
+    DueAnswers,
+    DurableLoaded,
+    TakeOutcomes,
+)
 from rr_actors._registrar.consumer import Answers, Clients, Flights, Holdings, Reconciling, Releases
 from rr_actors._registrar.display import ClientTexts
 from rr_actors._registrar.life import Lifecycle, Presence, Restoring, cut_short
@@ -237,10 +243,11 @@ STEPS: frozenset[str] = MESSAGE_STEPS | POINTS
 class RegistrarActor(Actor):
     """The registrar actor: dispatches each message to the part that owns it."""
 
-    inline = frozenset({Load, Unload, Abandon})
+    inline = frozenset({Load, Unload, Abandon, DurableLoaded})
     """What a carrier's receiving thread handles in the registrar's turn when it is idle
-    (`rr_actors._core.actor.deliver`): a consumer's load, unload and abandon, whose steps
-    are short and run user code only on worker threads. (A `DurableLoaded` is no `Load`.)"""
+    (`rr_actors._core.actor.deliver`): a consumer's load, unload and abandon, and a
+    durable call's answer (`calls.py`'s `ClientReply`: the thread that brings it), whose
+    steps are short and run user code only on worker threads."""
 
     shared: Shared
     provider: Provider

@@ -62,7 +62,7 @@ import pykka
 
 from rr_actors._catalog import ClientRecord
 from rr_actors._core import runtime
-from rr_actors._core.actor import OneShotFuture, awaiting
+from rr_actors._core.actor import OneShotFuture, awaiting, deliver
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.queues import LateQueue
@@ -445,8 +445,12 @@ class ClientReply:
             return  # the caller records it
         query = self.query(value)
         record = ClientRecord(query, self.parent, loaded=True)
+        loaded = DurableLoaded(record, self.on_status, self.attempt)
         try:
-            self.calls.ref.tell(DurableLoaded(record, self.on_status, self.attempt))
+            if awaiting():  # (a loop's thread: the commit would hold the loop)
+                self.calls.ref.tell(loaded)
+            else:  # an idle consumer commits it on this thread, in its turn: no hand-off
+                deliver(self.calls.ref, loaded)
         except pykka.ActorDeadError:  # the consumer stopped meanwhile: give the id back
             give_back(query.serving_rr, query.id, query.origin_rr)
             self.attempt.fail(
