@@ -39,8 +39,10 @@ woken (`TakeOutcomes`) when something waits for an outcome: a failure (its parke
 notices are answered), a dependency's answer (the load that made it may have failed
 meanwhile: the id is then given back at once), a notice held back for that answer
 (`CallAttempt.awaited`), or `BACKLOG` outcomes waiting. A durable call's outcomes go
-through the mailbox: the actor commits its answer before its caller gets it. What the
-actor does with them is `consumer.py`'s.
+to the actor itself, which commits its answer before its caller gets it: the answer
+(`DurableLoaded`) in the actor's turn on the thread that brings it when the actor is
+idle (`_core/actor.py`'s `deliver`), else through the mailbox. What the actor does with
+them is `consumer.py`'s.
 
 Presumed abort: nothing is written before a durable call's `Load` leaves. A crash of
 this registrar between the `Load` and the commit of its answer leaves an id at the
