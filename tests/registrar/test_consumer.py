@@ -496,6 +496,9 @@ class TestDurableConsumerKilled:
                 ),
                 timeout=10,
             )
+            # the run that reconciled is served (only an earlier run's loads are refused)
+            again = sup.run_in(c, lambda r: r.call(p, "leaf", "x", timeout=10).id)
+            assert ([again], [again]) == _both_ends(sup, p, c)
 
     @pytest.mark.timeout(300)
     def test_a_simulated_seed_where_a_consumer_died_before_recording_an_answer_holds(
