@@ -642,6 +642,7 @@ class TestEvents:
         restarted = start_registrar(config, upstream=upstream)
         try:
             assert wait_for(lambda: [] == provider.server_queries("slow"), 10)
+            assert wait_for(lambda: bool(heard.of(events.CatalogRestored)), 10)
             assert subscription.wait_delivered(timeout=5)
         finally:
             subscription.close()
