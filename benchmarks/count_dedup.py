@@ -20,6 +20,11 @@ How (`--count`):
   `os.getsid`); every operation runs `--calls` times, then three times as many, and
   the difference over the difference of the calls is what one costs, every thread,
   the same to a tenth of a percent run after run.
+* `protocol`: durable registrars (`save_on_modify`, a backup each, in a temporary
+  folder): the SQLite transactions (`SqliteStore.write`) and the messages the
+  registrar actors handle (`RegistrarActor.on_receive`, by type; "inline": run in
+  the actor's turn on the thread that brought it, no hand-off) per `hit`, per `miss`
+  (a request not loaded: a load) and per `unload`, each `--calls` times.
 * `bytecodes`: Python bytecodes executed per operation, every thread: `sys.settrace`
   and `threading.settrace` (installed before any actor starts) with each frame's
   `f_trace_opcodes` set count every `opcode` event; also the Python function calls per
@@ -31,18 +36,21 @@ Both counted modes run each operation `--calls` and three times `--calls` times 
 print the difference over the difference (fixed costs cancel: the marks, the sync). A
 hit's answer is recorded by the consumer's actor before its next message: every phase
 ends with a message to that actor (`server_queries` of an empty server), so the hit's
-record counts in the hit's phase. `--user` makes the request an instance of a user class
-(its `repr`, `==` and `hash` are user code, run off the actor thread).
+record counts in the hit's phase. `--durable` (with `cpu`) gives both registrars a
+backup with `save_on_modify` (a temporary folder). `--user` makes the request an
+instance of a user class (its `repr`, `==` and `hash` are user code, run off the actor
+thread).
 
 Usage:
-    python benchmarks/count_dedup.py [--calls 1000] [--count cpu|callgrind|bytecodes]
-        [--rounds 5] [--user] [--profile]
+    python benchmarks/count_dedup.py [--calls 1000] [--count cpu|callgrind|bytecodes|protocol]
+        [--rounds 5] [--user] [--profile] [--durable]
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
+import itertools
 import os
 import re
 import resource
@@ -249,11 +257,12 @@ def print_profile(title: str, first: Counts, second: Counts, calls: int) -> None
 class Bench:
     """The registrars and actors every operation uses, started once."""
 
-    def __init__(self, user: bool) -> None:
+    def __init__(self, user: bool, *, durable: bool = False) -> None:
         self.echo = Echo.start()
         self.actor_echo = ActorEcho.start()
-        self.provider = rr.ResourceRegistrar.start("count-provider")
-        self.consumer = rr.ResourceRegistrar.start("count-consumer")
+        self.folder = tempfile.TemporaryDirectory() if durable else None
+        self.provider = rr.ResourceRegistrar.start(self.config("count-provider"))
+        self.consumer = rr.ResourceRegistrar.start(self.config("count-consumer"))
         self.provider.register_server("res", load=lambda request: request, unload=_noop)
         self.consumer.register_server("idle", load=lambda request: request, unload=_noop)
         self.request: Any = Camera(1) if user else "shared"
@@ -262,6 +271,13 @@ class Bench:
         self.operations: dict[str, Callable[[], object]] = dict(
             zip(OPERATIONS, (self.hit, self.unload, self.pykka, self.actor), strict=True)
         )
+
+    def config(self, name: str) -> rr.RegistrarConfig:
+        """`name`'s configuration: with `--durable`, a backup with `save_on_modify`."""
+        if self.folder is None:
+            return rr.RegistrarConfig(name=name)
+        backup = f"{self.folder.name}/{name}.db"
+        return rr.RegistrarConfig(name=name, backup_path=backup, save_on_modify=True)
 
     def hit(self) -> None:
         self.ids.append(self.consumer.call(self.provider.name, "res", self.request).id)
@@ -284,6 +300,8 @@ class Bench:
         self.provider.stop()
         self.echo.stop()
         self.actor_echo.stop()
+        if self.folder is not None:
+            self.folder.cleanup()
 
 
 def phases(bench: Bench, calls: int, mark: Callable[[str], None]) -> None:
@@ -382,22 +400,107 @@ def callgrind(args: argparse.Namespace) -> None:
         print(f"| {name} | {count / 1e3:.1f}k | {count / per['pykka']:.2f}x |")
 
 
+def protocol_row(
+    name: str, calls: int, writes: collections.Counter[str], handled: collections.Counter[str]
+) -> str:
+    """One operation's row of `protocol`'s table: per operation."""
+    kinds = ", ".join(f"{k} {n / calls:g}" for k, n in sorted(handled.items()))
+    total = sum(handled.values()) / calls
+    queued = sum(n for k, n in handled.items() if not k.endswith("(inline)")) / calls
+    commits = sum(writes.values()) / calls
+    return f"| {name} | {commits:g} | {total:g} | {queued:g} | {kinds} |"
+
+
+def protocol(calls: int) -> None:
+    """Commits and registrar actor messages per hit, miss and unload, durable registrars."""
+    from rr_actors._registrar.actor import RegistrarActor  # noqa: PLC0415
+    from rr_actors._store.sqlite import SqliteStore  # noqa: PLC0415
+
+    writes: collections.Counter[str] = collections.Counter()
+    handled: collections.Counter[str] = collections.Counter()
+    write, receive = SqliteStore.write, RegistrarActor.on_receive
+
+    def counted_write(store: Any, *args: Any, **kwargs: Any) -> None:
+        writes[str(Path(store.path).stem)] += 1
+        write(store, *args, **kwargs)
+
+    def counted_receive(actor: Any, message: Any) -> None:
+        # on the actor's own thread: it came through its mailbox (a thread hand-off);
+        # else a carrier's or an actor's thread ran it in the actor's turn (`deliver`)
+        inline = threading.current_thread() is not threads.get(id(actor))
+        handled[f"{actor.name}: {type(message).__name__}{' (inline)' if inline else ''}"] += 1
+        receive(actor, message)
+
+    threads: dict[int, threading.Thread] = {}  # each registrar actor's own thread
+    start = RegistrarActor.on_start
+
+    def on_start(actor: Any) -> None:
+        threads[id(actor)] = threading.current_thread()
+        start(actor)
+
+    SqliteStore.write = counted_write  # type: ignore[method-assign]
+    RegistrarActor.on_receive = counted_receive  # type: ignore[method-assign]
+    RegistrarActor.on_start = on_start  # type: ignore[method-assign]
+    with tempfile.TemporaryDirectory() as folder:
+        configs = [
+            rr.RegistrarConfig(name=name, backup_path=f"{folder}/{name}.db", save_on_modify=True)
+            for name in ("count-provider", "count-consumer")
+        ]
+        provider, consumer = (rr.ResourceRegistrar.start(c) for c in configs)
+        try:
+            provider.register_server("res", load=lambda request: request, unload=_noop)
+            consumer.register_server("idle", load=lambda request: request, unload=_noop)
+            consumer.call(provider.name, "res", "shared")
+            ids: list[str] = []
+            misses = itertools.count()
+            operations: dict[str, Callable[[], object]] = {
+                "hit": lambda: ids.append(consumer.call(provider.name, "res", "shared").id),
+                "unload": lambda: consumer.unload(ids.pop()),
+                "miss": lambda: consumer.call(provider.name, "res", f"new {next(misses)}"),
+            }
+            print(f"durable registrars, {calls} of each operation: per operation")
+            print("| operation | commits | registrar messages | through a mailbox | by type |")
+            print("|---|---:|---:|---:|---|")
+            for name, operation in operations.items():
+                consumer.server_queries("idle")  # (what came before is handled)
+                writes.clear()
+                handled.clear()
+                for _ in range(calls):
+                    operation()
+                consumer.server_queries("idle")
+                handled.pop("count-consumer: ListServerQueries", None)
+                print(protocol_row(name, calls, writes, handled))
+        finally:
+            consumer.stop()
+            provider.stop()
+            SqliteStore.write = write  # type: ignore[method-assign]
+            RegistrarActor.on_receive = receive  # type: ignore[method-assign]
+            RegistrarActor.on_start = start  # type: ignore[method-assign]
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--calls", type=int, default=1000, help="operations (default 1000)")
     parser.add_argument(
-        "--count", choices=["cpu", "callgrind", "bytecodes", "inside-callgrind"], default="cpu"
+        "--count",
+        choices=["cpu", "callgrind", "bytecodes", "inside-callgrind", "protocol"],
+        default="cpu",
     )
     parser.add_argument("--rounds", type=int, default=5, help="rounds of --count cpu")
     parser.add_argument("--user", action="store_true", help="a request of a user class")
     parser.add_argument("--profile", action="store_true", help="bytecodes by function")
+    parser.add_argument(
+        "--durable", action="store_true", help="registrars with backups (save_on_modify)"
+    )
     args = parser.parse_args()
     if args.profile:
         args.count = "bytecodes"
     if args.count == "callgrind":
         callgrind(args)
+    elif args.count == "protocol":
+        protocol(args.calls)
     elif args.count == "cpu":
-        bench = Bench(args.user)
+        bench = Bench(args.user, durable=args.durable)
         try:
             warm(bench)
             cpu(bench, args.calls, args.rounds)

@@ -17,7 +17,7 @@
               │                          UpdateResponse ListServerQueries                  │
               │               Teardown   (runs unloads for the parts above)               │
               │  status.py    StatusRelay  SendStatus StatusBatch StatusNotice             │
-              │  consumer.py  Answers    Pending ClientLoaded CallFailed                   │
+              │  consumer.py  Answers    ClientLoaded CallFailed                           │
               │               Holdings   Revoke ResponseUpdated SetStatusCallback          │
               │                          ListClientQueries OpenClient                      │
               │               Releases   Release         Reconciling  LostEverything       │
@@ -55,7 +55,13 @@ from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.replies import Answer, Tokens
 from rr_actors._core.throttle import LogThrottle
 from rr_actors._platform import fork
-from rr_actors._registrar.calls import CallFailed, ClientLoaded, DueAnswers, Pending, TakeOutcomes
+from rr_actors._registrar.calls import (
+    CallFailed,
+    ClientLoaded,
+    DueAnswers,
+    DurableLoaded,
+    TakeOutcomes,
+)
 from rr_actors._registrar.consumer import Answers, Clients, Flights, Holdings, Reconciling, Releases
 from rr_actors._registrar.display import ClientTexts
 from rr_actors._registrar.life import Lifecycle, Presence, Restoring, cut_short
@@ -101,7 +107,7 @@ from rr_actors._registrar.messages import (
     text_fields,
 )
 from rr_actors._registrar.provider import Provider, Servers, Teardown, Unloading
-from rr_actors._registrar.state import NO_REPLY, POINTS, OpenReply, Shared
+from rr_actors._registrar.state import NO_REPLY, POINTS, OpenReply, Shared, new_life
 from rr_actors._registrar.status import DESK, StatusRelay, StatusTargets, Unacknowledged
 from rr_actors._store import Saver, open_catalog
 from rr_actors._types import Query
@@ -197,7 +203,6 @@ DISPATCH: dict[type, tuple[str, Binder]] = {
     Revoke: ("revoke", lambda a: a.holdings.on_revoke),  # at a consumer
     ResponseUpdated: ("response_updated", lambda a: a.holdings.on_response_updated),
     # -- from this registrar's callers' threads and its own helpers --
-    Pending: ("pending", lambda a: a.answers.on_pending),  # a durable call's record to commit
     ClientLoaded: ("client_loaded", lambda a: a.answers.on_client_loaded),  # an answer to record
     CallFailed: ("call_failed", lambda a: a.answers.on_call_failed),  # failed or withdrawn
     TakeOutcomes: ("take_outcomes", lambda _a: _taken),  # (taken before each message)
@@ -238,10 +243,11 @@ STEPS: frozenset[str] = MESSAGE_STEPS | POINTS
 class RegistrarActor(Actor):
     """The registrar actor: dispatches each message to the part that owns it."""
 
-    inline = frozenset({Load, Unload, Abandon})
+    inline = frozenset({Load, Unload, Abandon, DurableLoaded})
     """What a carrier's receiving thread handles in the registrar's turn when it is idle
-    (`rr_actors._core.actor.deliver`): a consumer's load, unload and abandon, whose steps
-    are short and run user code only on worker threads. (A `DurableLoaded` is no `Load`.)"""
+    (`rr_actors._core.actor.deliver`): a consumer's load, unload and abandon, and a
+    durable call's answer (`calls.py`'s `ClientReply`: the thread that brings it), whose
+    steps are short and run user code only on worker threads."""
 
     shared: Shared
     provider: Provider
@@ -272,9 +278,12 @@ class RegistrarActor(Actor):
         *,
         setting_up: bool = False,
         hold_in_doubt: bool = False,
+        life: str = "",
     ) -> None:
         super().__init__()
-        self.shared = Shared(config, catalog, saver, peer, published, setting_up=setting_up)
+        self.shared = Shared(
+            config, catalog, saver, peer, published, setting_up=setting_up, life=life
+        )
         # Each part is built after the parts it calls, and calls only those (one way):
         # life.py -> provider.py -> status.py -> consumer.py, each bottom first.
         self.flights = Flights(self.shared, due, self.dispatch)
@@ -431,6 +440,8 @@ class Launched:
     clients: Clients
     """Its client actors: the actor starts them, the handle looks them up."""
     in_doubt_texts: tuple[tuple[str, str | None], ...] = ()
+    life: str = ""
+    """Its run (`Shared.life`): each `Load` its calls send carries it."""
     """Each in-doubt resource's id and its stored request display text (`display.py`)."""
 
 
@@ -474,6 +485,7 @@ def launch(
         in_doubt_texts = tuple((r.id, r.request_text) for r in doubtful)
         ended: OneShotFuture[None] = OneShotFuture()
         died, due, clients = runtime.Event(), DueAnswers(), Clients()
+        life = new_life()  # this run: the actor's, and its handle's calls carry it
         published = events.publisher(EVENT_LOG)
         published.relay_to(upstream)
         ref = RegistrarActor.start(
@@ -488,6 +500,7 @@ def launch(
             clients,
             setting_up=setting_up,
             hold_in_doubt=hold_in_doubt,
+            life=life,
         )
     except BaseException:
         if saver is not None:
@@ -495,5 +508,5 @@ def launch(
         DIRECTORY.unregister(peer, "stopped")
         raise
     return Launched(
-        config, ref, restored, in_doubt, due, died, ended, published, clients, in_doubt_texts
+        config, ref, restored, in_doubt, due, died, ended, published, clients, in_doubt_texts, life
     )

@@ -4,11 +4,10 @@
  caller thread (Calls.steps)           consumer registrar actor          provider
  ───────────────────────────           ────────────────────────          ────────
  due.expect(id, attempt)
- [durable: Pending ───────────────────► record written as pending ──┐
-  wait for the commit ◄─────────────────────────────────────────────┘]
- attempt.sent(); Load ─────────────────────────────────────────────────► on_load
+ attempt.sent(); Load(its run: life) ──────────────────────────────────► on_load
  attempt.wait(answer | error | timeout) ◄──── ClientReply (the answering thread) ◄─┘
    answered: ClientLoaded ──► due.outcomes ──► recorded before the actor's next message
+   durable:  DurableLoaded ─────────► the record committed, then the caller answered
    timeout:  attempt.withdraw(), Abandon ───────────────────────────────► release the id
              CallFailed ────► due.outcomes + TakeOutcomes ──► forget the attempt's record
 ```
@@ -40,8 +39,17 @@ woken (`TakeOutcomes`) when something waits for an outcome: a failure (its parke
 notices are answered), a dependency's answer (the load that made it may have failed
 meanwhile: the id is then given back at once), a notice held back for that answer
 (`CallAttempt.awaited`), or `BACKLOG` outcomes waiting. A durable call's outcomes go
-through the mailbox: the actor commits its answer before its caller gets it. What the
-actor does with them is `consumer.py`'s.
+to the actor itself, which commits its answer before its caller gets it: the answer
+(`DurableLoaded`) in the actor's turn on the thread that brings it when the actor is
+idle (`_core/actor.py`'s `deliver`), else through the mailbox. What the actor does with
+them is `consumer.py`'s.
+
+Presumed abort: nothing is written before a durable call's `Load` leaves. A crash of
+this registrar between the `Load` and the commit of its answer leaves an id at the
+provider that no row here names; the restarted registrar reconciles with every
+registrar of the system (`consumer.py`'s `Reconciling.everyone`), so the provider
+releases it, and its `Load` carries this run (`Shared.life`), so one still on its way
+then is refused there (`provider.py`'s `Lives`).
 """
 
 from __future__ import annotations
@@ -56,11 +64,11 @@ import pykka
 
 from rr_actors._catalog import ClientRecord
 from rr_actors._core import runtime
-from rr_actors._core.actor import OneShotFuture, awaiting
+from rr_actors._core.actor import OneShotFuture, awaiting, deliver
 from rr_actors._core.bus import Publisher
-from rr_actors._core.directory import DIRECTORY, Reply
+from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.queues import LateQueue
-from rr_actors._core.replies import FutureReply, Steps
+from rr_actors._core.replies import Steps
 from rr_actors._registrar.messages import Load, check_picklable, give_back
 from rr_actors._registrar.state import Probes
 from rr_actors._types import Query, StatusCallback
@@ -82,7 +90,6 @@ __all__ = [
     "DueAnswers",
     "DurableLoaded",
     "Outcome",
-    "Pending",
     "TakeOutcomes",
 ]
 
@@ -94,7 +101,7 @@ class AttemptState(enum.Enum):
     """Where one call attempt is (see `CallAttempt`)."""
 
     SENDING = "sending"
-    """Its `Load` has not left yet (a durable call: its record is written as pending)."""
+    """Its `Load` has not left yet."""
     SENT = "sent"
     """Its `Load` left; its caller waits."""
     RECORDING = "recording"
@@ -131,6 +138,8 @@ class CallAttempt(OneShotFuture[Any]):
      settle(v | e) (the actor)       ANSWERED   nothing more: the caller wakes
                                      or FAILED
      fail(e) (any)                   FAILED     nothing more: the caller wakes
+     fail_open(e) (the actor stops)  True       gives a durable call's id back (Abandon)
+                                     False      nothing: its outcome comes
      withdraw() (the caller)         WITHDRAWN  gives the id back (Abandon), tells its
                                                 registrar (CallFailed): nothing is left
                                      RECORDING  waits for the commit, reads the outcome
@@ -205,6 +214,15 @@ class CallAttempt(OneShotFuture[Any]):
                 self._settle_as(AttemptState.FAILED, None, error)
             return self.state
 
+    def fail_open(self, error: BaseException) -> bool:
+        """The registrar actor, as it stops: fail the call with `error` if it is still
+        open (`SENDING` or `SENT`); whether this did (else its outcome comes anyway)."""
+        with self._state_lock:
+            if self.state not in _OPEN:
+                return False
+            self._settle_as(AttemptState.FAILED, None, error)
+            return True
+
     def withdraw(self) -> AttemptState:
         """The caller: it stops waiting (`WITHDRAWN`), unless the answer won the race."""
         with self._state_lock:
@@ -221,15 +239,6 @@ class CallAttempt(OneShotFuture[Any]):
 
 
 # -- what a caller hands its registrar -------------------------------------------------
-
-
-@dataclasses.dataclass(frozen=True)
-class Pending:
-    """A durable call about to go out: write its record as pending, then answer `reply`."""
-
-    record: ClientRecord
-    attempt: CallAttempt
-    reply: Reply
 
 
 @dataclasses.dataclass(frozen=True, slots=True)  # (one per call: slots build faster)
@@ -297,10 +306,11 @@ class DueAnswers:
     `late` handler at once (a `LateQueue`), which gives the id back.
     """
 
-    __slots__ = ("_attempts", "_lock", "outcomes")
+    __slots__ = ("_attempts", "_durable", "_lock", "outcomes")
 
     def __init__(self) -> None:
         self._attempts: dict[str, CallAttempt] = {}
+        self._durable: dict[str, ClientReply] = {}  # of the durable calls among them
         self._lock = runtime.Lock()
         self.outcomes = LateQueue()
 
@@ -329,10 +339,27 @@ class DueAnswers:
             )
             yield frozenset(self._attempts) - withdrawn, withdrawn
 
-    def expect(self, query_id: str, attempt: CallAttempt) -> None:
-        """A call `attempt` with `query_id` is about to be sent (any thread)."""
+    def expect(
+        self, query_id: str, attempt: CallAttempt, durable: ClientReply | None = None
+    ) -> None:
+        """A call `attempt` with `query_id` is about to be sent (any thread); `durable`:
+        a durable call's reply (its registrar answers it: `durable_calls`)."""
         with self._lock:
             self._attempts[query_id] = attempt
+            if durable is not None:
+                self._durable[query_id] = durable
+            else:
+                self._durable.pop(query_id, None)
+
+    def durable_attempt(self, query_id: str) -> CallAttempt | None:
+        """The attempt of `query_id`'s call due, if it is a durable one."""
+        with self._lock:
+            return self._attempts.get(query_id) if query_id in self._durable else None
+
+    def durable_calls(self) -> list[ClientReply]:
+        """The durable calls due (the actor: its stop withdraws them, its death fails them)."""
+        with self._lock:
+            return list(self._durable.values())
 
     def awaited(self, query_id: str) -> bool:
         """The actor: a notice waits for `query_id`'s answer; whether it is still due.
@@ -352,6 +379,7 @@ class DueAnswers:
         with self._lock:
             if self._attempts.get(query_id) is attempt:
                 del self._attempts[query_id]
+                self._durable.pop(query_id, None)
                 return True
         return False
 
@@ -365,10 +393,10 @@ class ClientReply:
     (`DueAnswers.outcomes`). A notice about the query that reaches the registrar before
     the record waits for it (`DueAnswers`).
 
-    With `commit_first` (a durable consumer) the record was written as pending before
-    the load was sent; the answer goes to the registrar as a `DurableLoaded`: it takes
-    the attempt, commits the answer and then settles it (or, finding it withdrawn, drops
-    the record).
+    With `commit_first` (a durable consumer) the answer goes to the registrar as a
+    `DurableLoaded`: it takes the attempt, commits the record and then settles it (or,
+    finding it withdrawn, gives the id back). Nothing was written before the load was
+    sent (presumed abort, the module docstring).
 
     It also describes the call (its id, provider, server, request and parent), so that
     the caller's thread builds one `Query`, the answered one.
@@ -419,8 +447,12 @@ class ClientReply:
             return  # the caller records it
         query = self.query(value)
         record = ClientRecord(query, self.parent, loaded=True)
+        loaded = DurableLoaded(record, self.on_status, self.attempt)
         try:
-            self.calls.ref.tell(DurableLoaded(record, self.on_status, self.attempt))
+            if awaiting():  # (a loop's thread: the commit would hold the loop)
+                self.calls.ref.tell(loaded)
+            else:  # an idle consumer commits it on this thread, in its turn: no hand-off
+                deliver(self.calls.ref, loaded)
         except pykka.ActorDeadError:  # the consumer stopped meanwhile: give the id back
             give_back(query.serving_rr, query.id, query.origin_rr)
             self.attempt.fail(
@@ -453,9 +485,11 @@ class Calls:
         ref: the consumer registrar actor.
         name: its name.
         due: the answers due, shared with the actor.
-        commit_first: its calls are durable (a backup with `save_on_modify`).
+        commit_first: its calls are durable (a backup with `save_on_modify`): an answer
+            is committed before its caller gets it.
         stored: its client records are stored (a backup), so requests and responses
             must pickle.
+        life: the registrar's run (`Shared.life`), carried by each `Load`.
         probes: the registrar's test probes, read when a call is withdrawn.
         events: the registrar's events: when anyone listens (`active`), a plain call's
             answer wakes the actor, which publishes its `CallAnswered` at once.
@@ -471,6 +505,7 @@ class Calls:
         stored: bool,
         probes: Callable[[], Probes | None],
         events: Publisher[Any],
+        life: str = "",
     ) -> None:
         self.ref = ref
         self.name = name
@@ -479,6 +514,7 @@ class Calls:
         self.stored = stored
         self.probes = probes
         self.events = events
+        self.life = life
         self.attempt_type: type[CallAttempt] = CallAttempt
 
     def steps(
@@ -522,12 +558,10 @@ class Calls:
         answered: Query | None = None
         withdrawn = False
         try:
-            self.due.expect(query_id, attempt)  # a notice that overtakes the answer waits
-            load = Load(query_id, server, request, self.name, chain, reply)
-            sent = (yield from self.commit_pending(reply, deadline)) if self.commit_first else True
-            if sent:
-                self.send(load, reply)
-            if not (sent and (yield attempt, deadline)):  # the time is up: withdraw,
+            # a notice that overtakes the answer waits; a durable call's is the actor's
+            self.due.expect(query_id, attempt, reply if self.commit_first else None)
+            self.send(Load(query_id, server, request, self.name, chain, reply, self.life), reply)
+            if not (yield attempt, deadline):  # the time is up: withdraw,
                 withdrawn = attempt.withdraw() is AttemptState.WITHDRAWN  # unless the
                 if not withdrawn:  # answer won (being recorded: its outcome comes with
                     yield attempt, None  # the commit)
@@ -557,25 +591,9 @@ class Calls:
         assert answered is not None  # (answered, as neither withdrawn nor failed)
         return answered
 
-    def commit_pending(self, reply: ClientReply, deadline: float) -> Steps[bool]:
-        """A durable call's record, committed as pending before its load leaves (rule 16):
-        a crash of this process after the load left still knows the call. Whether it was
-        committed before `deadline`.
-
-        Raises:
-            CatalogWriteError: the record could not be written.
-        """
-        committed = FutureReply()
-        record = ClientRecord(reply.query(), reply.parent)
-        self.ref.tell(Pending(record, reply.attempt, committed))
-        if not (yield committed.future, deadline):
-            return False
-        committed.future.get(timeout=0)  # (raises: the record could not be written)
-        return True
-
     def send(self, load: Load, reply: ClientReply) -> None:
-        """Send a call's `load` from the caller's thread (a durable one's record is
-        committed as pending already, `commit_pending`).
+        """Send a call's `load` from the caller's thread (nothing is written first, also
+        for a durable call: presumed abort, the module docstring).
 
         Along the client's route rather than through the client's mailbox: one thread
         hand-off less; mailbox order still holds, a later withdrawal reaches its actors
@@ -629,7 +647,7 @@ class Calls:
 
         A plain call's waits in `due.outcomes` (module docstring); the actor is woken for
         it with `wake`, when a notice waits for its answer, or when `BACKLOG` wait. A
-        durable registrar's go through its mailbox, in order with its `Pending` records.
+        durable registrar's go through its mailbox, in order with its answers.
 
         Raises:
             pykka.ActorDeadError: the registrar actor is not running.

@@ -1,17 +1,16 @@
 """The consumer side of a registrar actor: a call's life here, from its answer to its release.
 
 ```
- calls.py (the caller's thread) ─► Pending, ClientLoaded | DurableLoaded, CallFailed
- Answers   on_pending: a durable call's record written pending before its Load leaves
-   │       on_client_loaded ─► decide(durable, withdrawn, dependency, stopping,
+ calls.py (the caller's thread) ─► ClientLoaded | DurableLoaded, CallFailed
+ Answers   on_client_loaded ─► decide(durable, withdrawn, dependency, stopping,
    │         owner_gone) ─► Action (pure: tests/registrar/test_consumer.py's table)
-   │           KEEP | COMMIT ─► keep: the record (committed with its CallAnswered)
-   │           LEAVE | GIVE_BACK | REFUSE | FORGET | RELEASE_LATE ─► drop_pending:
+   │           KEEP | COMMIT ─► keep: the record (committed with its CallAnswered;
+   │           nothing was written before the Load left: presumed abort, `calls.py`)
+   │           LEAVE | GIVE_BACK | REFUSE | FORGET | RELEASE_LATE ─► not_kept:
    │           the id given back to its provider (`messages.give_back`)
    │       on_call_failed ─► the record forgotten (kept: a failed retry of a held id)
    ▼
  Flights   in_flight: query id ─► InFlight, while a call is not settled:
-   │         attempt       a durable call's, committed pending: this actor answers it
    │         unsettled_at  the provider of a call that failed as it died or stopped
    │                       (not one its caller withdrew first: `retry_held_at`):
    │                       it may hold the id (a retry may come) ─► listed in the next
@@ -41,10 +40,13 @@
    ▼
  Reconciling  it serves (again), or a provider asks (ReconcileAsk, `asked`; sent and
           retried by `life.py`'s presence until answered) ─► Reconcile(the
-          ids held there: a Listing, its epoch); restored from a backup, or restarted
-          without one (LostEverything, from its supervisor): with every registrar of
-          the system, not only those its rows name ─► the provider releases the others,
-          names those it no longer knows ─► FATAL to each answered before the list
+          ids held there: a Listing, its epoch; and this run, `Shared.life`); restored
+          from a backup, or restarted without one (LostEverything, from its
+          supervisor): with every registrar of the system, not only those its rows
+          name ─► the provider releases the others (an earlier run's calls whose
+          answers it never committed among them: presumed abort), gives up their
+          loads under way, refuses the earlier runs' Loads from then on, names those
+          it no longer knows ─► FATAL to each answered before the list
           left (and up its dependents), then forgotten (rule 20); a provider lost for
           good (`life.py`'s presence) ─► lose_provider: the same, for all (rule 19)
 ```
@@ -83,7 +85,6 @@ from rr_actors._registrar.calls import (
     ClientLoaded,
     DueAnswers,
     DurableLoaded,
-    Pending,
 )
 from rr_actors._registrar.display import ClientTexts
 from rr_actors._registrar.messages import (
@@ -148,13 +149,12 @@ logger = logging.getLogger("rr_actors")
 class InFlight:
     """What a consumer knows of one query id whose call is not settled yet."""
 
-    attempt: CallAttempt | None = None
     unsettled_at: str | None = None
     parked: list[StatusNotice | Revoke | ResponseUpdated] = dataclasses.field(default_factory=list)
 
     def idle(self) -> bool:
         """Whether nothing is left of it (the consumer then forgets the record)."""
-        return self.attempt is None and self.unsettled_at is None and not self.parked
+        return self.unsettled_at is None and not self.parked
 
 
 class Action(enum.Enum):
@@ -166,11 +166,11 @@ class Action(enum.Enum):
     """A durable call's answer: commit its record, then answer its caller (or, if it
     cannot be stored or written, give the id back and fail the call)."""
     LEAVE = "leave"
-    """A durable answer its caller withdrew: nothing here (the caller gave the id back;
-    its `CallFailed` forgets the pending record)."""
+    """A durable answer its caller withdrew: nothing here (the caller gave the id back,
+    and nothing was written before its `Load` left)."""
     GIVE_BACK = "give back"
     """A durable answer withdrawn or failed by a stop, while this registrar stops: give
-    the id back (the stop's `Abandon` may have gone first) and forget the pending record."""
+    the id back (the stop's `Abandon` may have gone first)."""
     REFUSE = "refuse"
     """A durable top-level answer while this registrar stops: give the id back; its
     caller gets `RegistrarStoppedError`."""
@@ -244,28 +244,6 @@ class Flights:
         flight = self.in_flight.get(query_id)
         if flight is not None and flight.idle():
             del self.in_flight[query_id]
-
-    # -- durable attempts ---------------------------------------------------------------
-
-    def hold_attempt(self, query_id: str, attempt: CallAttempt) -> None:
-        """`attempt`'s `Pending` was committed: this actor answers it (a same-id retry's
-        replaces it)."""
-        self.flight(query_id).attempt = attempt
-
-    def attempt_of(self, query_id: str) -> CallAttempt | None:
-        """The durable attempt of `query_id` this actor answers, if any."""
-        flight = self.in_flight.get(query_id)
-        return None if flight is None else flight.attempt
-
-    def take_attempt(self, query_id: str, attempt: CallAttempt) -> bool:
-        """`attempt`'s outcome came: whether it was the durable attempt in flight (its
-        `Pending` wrote the record; not a same-id retry's), which is then taken off."""
-        flight = self.in_flight.get(query_id)
-        if flight is None or flight.attempt is not attempt:
-            return False
-        flight.attempt = None
-        self.landed(query_id)
-        return True
 
     # -- calls that failed as their provider died (unsettled, then kept for a retry) ----
 
@@ -422,9 +400,8 @@ class Flights:
 
     def fail_waiting(self, error: RrError) -> None:
         """Answer the durable callers and the held notices still waiting here."""
-        for flight in self.in_flight.values():
-            if flight.attempt is not None:
-                flight.attempt.fail(error)
+        for call in self.due.durable_calls():
+            call.attempt.fail(error)
         for flight in self.in_flight.values():
             for notice in flight.parked:
                 if not isinstance(notice, Revoke):  # (a revoke wants no answer)
@@ -527,23 +504,6 @@ class Answers:
         self.holdings = holdings
         self.texts = texts
 
-    def on_pending(self, message: Pending, reply: Reply) -> None:
-        query_id = message.record.query.id
-        if query_id not in self.registrar.catalog.clients:  # (else a retry of one held)
-            record = message.record
-            if self.owner_gone(record):  # a late sub-call: kept as a call of its own, so a
-                record = ClientRecord(record.query, None)  # crash meanwhile gives it back
-            self.registrar.catalog.add_client(record)
-            self.texts.added(record)
-            failed = self.registrar.commit()
-            if failed is not None:  # not durable: the Load must not leave (rule 16)
-                self.registrar.catalog.remove_client(query_id)
-                self.registrar.commit()
-                reply.set_error(failed)
-                return
-        self.flights.hold_attempt(query_id, message.attempt)
-        reply.set_result(None)  # durable: the Load may leave now (rule 16)
-
     def on_client_loaded(self, message: ClientLoaded, _reply: Reply) -> None:
         """Record a call's answer (a `DurableLoaded` one too: it is a `ClientLoaded`)."""
         try:
@@ -564,7 +524,6 @@ class Answers:
         retry = self.flights.was_unsettled(query.id) or (held is not None and held.loaded)
         # (a retry of a call that failed as it died, or that its provider kept)
         self.flights.reset(query.id, None)
-        ours = self.flights.take_attempt(query.id, message.attempt)  # (not a same-id retry's)
         durable = isinstance(message, DurableLoaded)
         withdrawn = durable and message.attempt.take() is not AttemptState.RECORDING
         try:
@@ -575,28 +534,27 @@ class Answers:
                 stopping=self.registrar.stopping,
                 owner_gone=self.owner_gone(message.record),
             )
-            self.act(action, message, ours=ours, retry=retry)
+            self.act(action, message, retry=retry)
         except BaseException as exc:  # an attempt taken must be settled on every path
             if durable and not withdrawn:
                 message.attempt.settle(error=exc)  # (no-op if it was)
             raise
 
-    def act(self, action: Action, message: ClientLoaded, *, ours: bool, retry: bool) -> None:
+    def act(self, action: Action, message: ClientLoaded, *, retry: bool) -> None:
         """Run `action` on `message`'s answer (`flight.Action` says what each does).
 
-        `ours`: `message` is the attempt that wrote the pending record (not a same-id
-        retry's). `retry`: the id was held or failed as its provider died before.
+        `retry`: the id was held or failed as its provider died before.
         """
         query = message.record.query
         match action:
             case Action.KEEP | Action.COMMIT:
                 self.keep(message, retry=retry)
             case Action.LEAVE:
-                pass  # its caller gave the id back; its CallFailed removes the record
+                pass  # its caller gave the id back
             case Action.GIVE_BACK:
-                self.drop_pending(query, forget_record=ours)
+                self.not_kept(query)
             case Action.REFUSE:
-                self.drop_pending(query, forget_record=ours, reason="registrar stopped")
+                self.not_kept(query)
                 error = RegistrarStoppedError(
                     f"registrar {self.registrar.name!r} stopped during the call"
                 )
@@ -605,7 +563,7 @@ class Answers:
             case Action.FORGET:  # its caller has the answer, given back here
                 publish_answered(self.registrar, message.record, retry=False)  # (before the
                 publish_forgotten(self.registrar, query, "registrar stopped")  # commit)
-                self.drop_pending(query, forget_record=ours, reason=None)
+                self.not_kept(query)
             case Action.RELEASE_LATE:
                 publish_answered(self.registrar, message.record, retry=retry)
                 publish_forgotten(self.registrar, query, "late dependency")
@@ -619,8 +577,8 @@ class Answers:
         durable = isinstance(message, DurableLoaded)
         if durable and self.unstorable(message):
             return
-        if query.id in catalog.clients:  # written as pending before the load was sent
-            catalog.client_loaded(query.id, query.response)
+        if query.id in catalog.clients:  # a retry of one held (or a record restored
+            catalog.client_loaded(query.id, query.response)  # pending, an older backup)
         else:
             catalog.add_client(message.record)
             self.texts.added(message.record)
@@ -647,25 +605,16 @@ class Answers:
         try:
             check_picklable(query.response, f"the response of '{query.serving_rr}/{query.server}'")
         except ConfigError as exc:
-            self.drop_pending(query)
+            self.not_kept(query)
             publish_refused(self.registrar, query, exc)
             message.attempt.settle(error=exc)
             return True
         return False
 
-    def drop_pending(
-        self, query: Query, *, forget_record: bool = True, reason: str | None = "in doubt"
-    ) -> None:
+    def not_kept(self, query: Query) -> None:
         """An answer this registrar does not keep: give `query`'s id back to its provider
-        and forget its pending record, if it has one (with `forget_record`).
-
-        `reason`: what its `QueryForgotten` says if a restore had listed the record (a
-        call in flight when the last run died); `None`: the caller published it.
-        """
+        (nothing was written for it before its `Load` left: presumed abort)."""
         give_back(query.serving_rr, query.id, self.registrar.name)
-        record = self.registrar.catalog.clients.get(query.id)
-        if forget_record and record is not None and not record.loaded:
-            self.holdings.forget(query.id, reason=reason)
 
     def owner_gone(self, record: ClientRecord) -> bool:
         """Whether `record` is a dependency of a resource that failed or is unloading.
@@ -693,7 +642,7 @@ class Answers:
             query.serving_rr,
             query.server,
         )
-        self.drop_pending(query, reason=None)  # (a durable consumer wrote it as pending)
+        self.not_kept(query)
         if isinstance(message, DurableLoaded):  # (taken by `record_answer`)
             message.attempt.settle(query.response)
 
@@ -705,15 +654,14 @@ class Answers:
             retry=self.flights.was_unsettled(message.query_id)
             or (known is not None and known.loaded),
         )
-        current = self.flights.attempt_of(message.query_id)
-        self.flights.take_attempt(message.query_id, message.attempt)
+        current = self.flights.due.durable_attempt(message.query_id)
         if current is None or current is message.attempt:
             # (set if it may hold the id: a retry may follow; settled, or unsettled again)
             self.flights.reset(message.query_id, retry_held_at(message), message.parent)
         record = self.registrar.catalog.clients.get(message.query_id)
         try:
             if current is not None and current is not message.attempt:
-                pass  # a stale failure of an earlier attempt: the record is a retry's
+                pass  # a stale failure of an earlier attempt: a retry's is due
             elif record is not None and record.loaded and not message.withdrawn:
                 pass  # a failed retry of an id this registrar holds: it still holds it
             elif record is not None:
@@ -1066,29 +1014,27 @@ class Releases:
     # -- this registrar stops -----------------------------------------------------------
 
     def withdraw_pending(self, error: RrError, given_back: Join) -> None:
-        """This registrar stops: give up its durable calls in flight; their callers get `error`.
+        """This registrar stops: give up its durable top-level calls in flight (those not
+        answered yet); their callers get `error`, their ids are given back.
 
-        The `Abandon` first, then the record, so a crash in between leaves nothing at the
-        provider. Each provider's answer is a part of `given_back` (`give_back_before_stop`).
+        Each provider's answer is a part of `given_back` (`give_back_before_stop`). One
+        answered meanwhile finds its attempt failed: its id is given back too (`decide`).
         """
-        for record in list(self.registrar.catalog.clients.values()):
-            attempt = self.flights.attempt_of(record.query.id)
-            if attempt is not None:
-                self.flights.take_attempt(record.query.id, attempt)
-            if record.parent is None and not record.loaded and attempt is not None:
-                self.give_back_before_stop(record.query.serving_rr, record.query.id, given_back)
-                self.answers.on_call_failed(
-                    CallFailed(
-                        record.query.id,
-                        attempt,
-                        withdrawn=True,
-                        provider=record.query.serving_rr,
-                        server=record.query.server,
-                        why="registrar stopped",
-                    ),
-                    NO_REPLY,
-                )
-                attempt.fail(error)
+        for call in self.flights.due.durable_calls():
+            if call.parent is not None or not call.attempt.fail_open(error):
+                continue  # (a dependency: its load's end settles it; or its outcome comes)
+            self.give_back_before_stop(call.serving_rr, call.query_id, given_back)
+            self.answers.on_call_failed(
+                CallFailed(
+                    call.query_id,
+                    call.attempt,
+                    withdrawn=True,
+                    provider=call.serving_rr,
+                    server=call.server,
+                    why="registrar stopped",
+                ),
+                NO_REPLY,
+            )
 
     def give_back_unsettled(self, given_back: Join) -> None:
         """This registrar stops: give back the ids of calls that failed as their provider
@@ -1217,11 +1163,10 @@ class Reconciling:
         """The list of a `Reconcile` to `serving_rr` that leaves now, a new epoch (`due`:
         the ids whose answer is due now, at any provider: listed too, harmless, reported
         unknown). `withdrawn`: the ids of calls whose callers withdrew them and whose
-        `CallFailed` this actor has not handled yet (a durable one's pending record is
-        still here): given back, never listed, so the provider releases them if their
-        `Abandon` died with its last run (rule 17). `life`: the provider's life that
-        asked for it ("": not known); the ids it kept for a retry in that life are
-        listed again (`Flights.kept_at`)."""
+        `CallFailed` this actor has not handled yet: given back, never listed, so the
+        provider releases them if their `Abandon` died with its last run (rule 17).
+        `life`: the provider's life that asked for it ("": not known); the ids it kept
+        for a retry in that life are listed again (`Flights.kept_at`)."""
         held = {
             query_id
             for query_id, record in self.registrar.catalog.clients.items()
@@ -1291,7 +1236,9 @@ class Reconciling:
             listing = self.listing(serving_rr, due, withdrawn, life)
             self.registrar.send(
                 serving_rr,
-                lambda reply: Reconcile(self.registrar.name, listing.held, reply),
+                lambda reply: Reconcile(
+                    self.registrar.name, listing.held, reply, self.registrar.life
+                ),
                 lambda unknown, error: self.reconciled(serving_rr, unknown, error, listing, then),
             )
 

@@ -751,6 +751,7 @@ class Here:
             stored=config.backup_path is not None,
             probes=lambda: self.probes,
             events=launched.published,
+            life=launched.life,
         )
 
     # -- where the actor lives (`Placement`) --------------------------------------------

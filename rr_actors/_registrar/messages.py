@@ -10,7 +10,7 @@
  timers, carriers, the membership ── Flush Crash Reachable PeerLost PeerReachable
                                      YieldName ReconcileRetry Ping ─► the registrar
  the handle ── RegisterServer Release Stop ... (each with its reply) ─► the registrar
- a caller's thread ── Pending ClientLoaded CallFailed TakeOutcomes ─► the registrar
+ a caller's thread ── ClientLoaded CallFailed TakeOutcomes ─► the registrar
                                               (the call protocol's own: `calls.py`)
 
  a load callback's thread: LOADING = LoadContext(registrar, resource, chain)
@@ -115,7 +115,10 @@ class Load(WireMessage):
     """Consumer -> provider: load `request` on `server` for consumer id `query_id`.
 
     `chain` holds the ids of the resources being loaded further up the call chain
-    (for cycle detection). Answer: the response, or an error.
+    (for cycle detection). `life`: the run of `origin_rr` that sent it (`Shared.life`;
+    "": not known); a provider that heard a `Reconcile` of a later run refuses it
+    (presumed abort: that run does not hold the id, `provider.py`'s `Lives`). Answer:
+    the response, or an error.
     """
 
     query_id: str
@@ -124,6 +127,7 @@ class Load(WireMessage):
     origin_rr: str
     chain: tuple[str, ...]
     reply: Reply
+    life: str = ""
 
     def compensation(self) -> Abandon:
         """A lost answer leaves a consumer id nobody holds: release it (rule 17)."""
@@ -319,13 +323,17 @@ class Reconcile(WireMessage):
     `ReconcileAsk`). `held` lists the consumer's client records at this provider, its
     calls whose answer is due, and its calls that failed as this provider died (they may
     be retried with the same id); not the ids whose `Unload` failed so (released). The
-    provider releases every consumer id of `origin_rr` it holds that is not in `held`;
-    it answers with the ids of `held` it neither holds nor has a load under way for.
+    provider releases every consumer id of `origin_rr` it holds that is not in `held`,
+    and gives up its loads under way for `origin_rr` that are not in it (an earlier
+    run's: presumed abort); it answers with the ids of `held` it neither holds nor has
+    a load under way for. `life`: the run of `origin_rr` that sent it (`Shared.life`;
+    "": not known): from then on the provider refuses the `Load`s of earlier runs.
     """
 
     origin_rr: str
     held: tuple[str, ...]
     reply: Reply
+    life: str = ""
 
 
 @dataclasses.dataclass(frozen=True)

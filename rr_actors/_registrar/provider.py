@@ -24,7 +24,9 @@
    unloaded: rule 12), Fetch (rule 10), UpdateResponse (rule 11), give_up_all (the name
    yielded, rule 22: every consumer id released unsaid, every resource unloaded)
  Reconcile (a consumer's list) ─► Unloading.on_reconcile: the ids it no longer holds
-   released, those held here that this one lost named; it serves again ─►
+   released, its loads under way that it does not list given up, those held here
+   that this one lost named; its run noted (`Lives`): a Load of an earlier run is
+   refused from then on (presumed abort, `calls.py`); it serves again ─►
    ask_to_reconcile: ReconcileAsk to every consumer holding ids here (rule 20)
 ```
 
@@ -107,7 +109,14 @@ from rr_actors._registrar.messages import (
     exception_text,
     load_error,
 )
-from rr_actors._registrar.state import Phase, Server, Shared, Waiter, consumers_by_origin
+from rr_actors._registrar.state import (
+    Phase,
+    Server,
+    Shared,
+    Waiter,
+    consumers_by_origin,
+    life_order,
+)
 from rr_actors._registrar.status import StatusRelay, Unacknowledged
 from rr_actors._types import LoadCallback, Status, StatusUpdate, UnloadCallback
 from rr_actors.config import MAX_DEPENDENCY_DEPTH
@@ -118,6 +127,7 @@ from rr_actors.errors import (
     DuplicateNameError,
     DuplicateQueryIdError,
     RegistrarStoppedError,
+    RegistrarUnavailableError,
     ResourceLoadError,
     RrError,
     UnknownQueryError,
@@ -126,6 +136,7 @@ from rr_actors.errors import (
 )
 
 __all__ = [
+    "Lives",
     "Matching",
     "Provider",
     "ServerActor",
@@ -139,6 +150,34 @@ __all__ = [
 ]
 
 logger = logging.getLogger("rr_actors")
+
+
+class Lives:
+    """The run of each consumer registrar that reconciled here last (`Reconcile.life`).
+
+    Presumed abort (`calls.py`): a consumer commits nothing before its `Load` leaves, so
+    a run that died with a call on its way holds nothing of it. Its next run reconciles
+    with every registrar (rule 20): what it does not list is released here, and a
+    `Load` of an earlier run that arrives after that is refused (`fenced`), else it
+    would hold an id for nobody. A `Load` of a later run than the one that reconciled
+    (its `Reconcile` not here yet) is served: that `Reconcile` lists it.
+    """
+
+    __slots__ = ("_reconciled",)
+
+    def __init__(self) -> None:
+        self._reconciled: dict[str, str] = {}  # consumer registrar -> its run
+
+    def reconciled(self, origin_rr: str, life: str) -> None:
+        """Run `life` of `origin_rr` reconciled here ("": not known, nothing noted)."""
+        if life:
+            self._reconciled[origin_rr] = life
+
+    def fenced(self, origin_rr: str, life: str) -> bool:
+        """Whether a `Load` of run `life` of `origin_rr` came from a run earlier than the
+        one that reconciled here last."""
+        known = self._reconciled.get(origin_rr)
+        return bool(life) and known is not None and life_order(life) < life_order(known)
 
 
 class Provider:
@@ -158,6 +197,7 @@ class Provider:
         # load still runs)
         self.labelling: dict[str, Callable[[], None] | None] = {}
         self.matching = Matching(shared, self.serve)
+        self.lives = Lives()  # the consumers' runs that reconciled: earlier ones fenced
 
     # -- load -------------------------------------------------------------------------
 
@@ -173,6 +213,12 @@ class Provider:
             )
         if self.registrar.stopping:
             return RegistrarStoppedError(f"registrar {self.registrar.name!r} is stopping")
+        if self.lives.fenced(message.origin_rr, message.life):
+            return RegistrarUnavailableError(
+                f"registrar {message.origin_rr!r} restarted since it sent the load of "
+                f"{message.query_id!r} to '{self.registrar.name}/{message.server}', and "
+                "reconciled: that run holds nothing here"
+            )
         if len(message.chain) >= MAX_DEPENDENCY_DEPTH:
             return DependencyCycleError(
                 f"load chain deeper than {MAX_DEPENDENCY_DEPTH} at '{self.registrar.name}/"
@@ -1088,10 +1134,17 @@ class Unloading:
     def on_reconcile(self, message: Reconcile, reply: Reply) -> None:
         """Release the ids of `origin_rr` it no longer holds; name those held here unknown.
 
-        An id whose load is still under way here (waiting, parked, matched) is neither.
+        An id whose load is still under way here (waiting, parked, matched) is neither;
+        one `origin_rr` does not list is given up (its caller's run died before the
+        answer: presumed abort, or gave it back). The `Load`s of runs of `origin_rr`
+        earlier than the one that sent it are refused from now on (`Lives`).
         """
         catalog = self.registrar.catalog
         held = set(message.held)
+        self.provider.lives.reconciled(message.origin_rr, message.life)
+        for query_id in self.provider.under_way_of(message.origin_rr):
+            if query_id not in held:
+                self.provider.give_up(query_id)
         mine = catalog.consumer_ids_from(message.origin_rr)
         stale = sorted(mine - held)
         if stale:

@@ -61,6 +61,8 @@ __all__ = [
     "Shared",
     "Waiter",
     "consumers_by_origin",
+    "life_order",
+    "new_life",
 ]
 
 logger = logging.getLogger("rr_actors")
@@ -151,6 +153,30 @@ NO_REPLY: Reply = _NoReply()
 _STARTS = itertools.count()  # registrars started in this process (`Shared.life`)
 
 
+def new_life() -> str:
+    """A token for one run of a registrar (`Shared.life`): its process, the wall clock
+    (`runtime.wall_ns`) and a count of this process's starts, so no two starts share it
+    and a later start orders after an earlier one (`life_order`); a simulation draws
+    nothing from its seed for it."""
+    return f"{runtime.getpid()}.{runtime.wall_ns()}.{next(_STARTS)}"
+
+
+def life_order(life: str) -> tuple[int, int]:
+    """Where `life` (`new_life`'s) comes among the runs of one registrar: its start's
+    wall clock, then its process's count of starts; `(0, 0)` for "" or a token not
+    made by `new_life` (no order known).
+
+    The runs of one name follow each other (a restart comes after its run ended), so
+    the later start orders after, as long as the host's wall clock does not step back
+    across a restart by more than the restart took (`docs/explanation/failure-semantics.md`).
+    """
+    _pid, _, rest = life.partition(".")
+    wall, _, count = rest.partition(".")
+    if not (wall.isdigit() and count.isdigit()):
+        return (0, 0)
+    return (int(wall), int(count))
+
+
 class Shared:
     """The registrar's record: what every part of its actor reads and writes."""
 
@@ -163,6 +189,7 @@ class Shared:
         published: Publisher[events.Event],
         *,
         setting_up: bool,
+        life: str = "",
     ) -> None:
         self.config = config
         self.name = config.name
@@ -179,10 +206,10 @@ class Shared:
         self.ref: pykka.ActorRef[Any] | None = None
         self.events = published
         self.held_in_doubt: set[str] = set()
-        # this run of the registrar, the same in every `ReconcileAsk` it sends
-        # (`consumer.py`'s `Flights.kept_at`): its process, the clock and a count, so
-        # no two starts share it (and a simulation draws nothing from its seed for it)
-        self.life = f"{runtime.getpid()}.{runtime.wall_ns()}.{next(_STARTS)}"
+        # this run of the registrar (`new_life`), the same in every `ReconcileAsk`,
+        # `Reconcile` and `Load` it sends (`consumer.py`'s `Flights.kept_at`; a
+        # provider fences the loads of an earlier run: `provider.py`'s `Lives`)
+        self.life = life or new_life()
 
     @property
     def stopping(self) -> bool:

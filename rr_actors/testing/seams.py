@@ -143,7 +143,7 @@ def intercept(
 ) -> Installed:
     """Run `before(subject)` and `after(subject)` around one of a registrar's named steps.
 
-    A message step (`"load"`, `"abandon"`, `"pending"`, `"client_loaded"`, ...) runs its
+    A message step (`"load"`, `"abandon"`, `"client_loaded"`, ...) runs its
     hooks on the registrar's actor thread around the handling of that message; `subject`
     is the message (its fields, such as `query_id`, are stable). A point
     (`"unload_resource"`, `"close_resource"`, `"stop_drained"`, `"events_written"`: a

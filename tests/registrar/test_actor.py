@@ -141,15 +141,6 @@ def _lost_everything(p: Pair, hook: Hook) -> None:
     life.lost_everything(p.consumer.name)
 
 
-def _pending(p: Pair, hook: Hook) -> None:
-    config = rr.RegistrarConfig(
-        name=f"durable-{uuid.uuid4().hex[:8]}", backup_path=p.tmp_path / "d.db", save_on_modify=True
-    )
-    durable = p.start(config)
-    intercept(durable, "pending", before=hook)
-    durable.call(p.provider.name, "leaf", "x")
-
-
 def _client_loaded(p: Pair, hook: Hook) -> None:
     intercept(p.consumer, "client_loaded", before=hook)
     p.held()
@@ -325,7 +316,6 @@ DRIVERS: dict[str, Callable[[Pair, Hook], None]] = {
     "reconcile": _reconcile,
     "reconcile_ask": _reconcile_ask,
     "lost_everything": _lost_everything,
-    "pending": _pending,
     "client_loaded": _client_loaded,
     "call_failed": _call_failed,
     "take_outcomes": _take_outcomes,

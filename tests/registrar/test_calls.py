@@ -1092,7 +1092,7 @@ class TestRaces:
         assert [query.id] == [q.id for q in consumer.client_queries()]
         assert [query.id] == [q.id for q in provider.server_queries("leaf")]
 
-    def test_a_late_failure_of_a_withdrawn_attempt_keeps_the_retrys_pending_record(
+    def test_a_late_failure_of_a_withdrawn_attempt_leaves_the_retry_due_and_kept(
         self,
         started: Callable[..., rr.ResourceRegistrar],
         tmp_path: Path,
@@ -1113,15 +1113,15 @@ class TestRaces:
         assert unloading.wait(10)  # "x" is unloading: a Load for it is parked until it is gone
 
         qid = str(uuid.uuid4())
-        retry_pending, stale_handled = threading.Event(), threading.Event()
+        retry_sent, stale_handled = threading.Event(), threading.Event()
         failures: list[Any] = []
-        pendings: list[Any] = []
+        sent: list[Any] = []
 
-        def pending(message: Any) -> None:
-            if message.record.query.id == qid:
-                pendings.append(message.attempt)
-                if len(pendings) == 2:
-                    retry_pending.set()  # the retry's record is committed, its Load may leave
+        def send_load(message: Any) -> None:  # (on the caller's thread, as its Load leaves)
+            if message.query_id == qid:
+                sent.append(message.reply.attempt)
+                if len(sent) == 2:
+                    retry_sent.set()  # nothing is written first (presumed abort)
 
         def failed(message: Any) -> None:
             if message.query_id == qid:
@@ -1131,9 +1131,9 @@ class TestRaces:
 
         def abandon(message: Any) -> None:
             if message.query_id == qid:  # the provider is slow to take the withdrawal
-                assert retry_pending.wait(10)
+                assert retry_sent.wait(10)
 
-        intercept(consumer, "pending", after=pending)
+        intercept(consumer, "send_load", after=send_load)
         intercept(consumer, "call_failed", after=failed)
         intercept(provider, "abandon", before=abandon)
 
@@ -1147,11 +1147,12 @@ class TestRaces:
         )
         retry.start()
         assert stale_handled.wait(10)
-        assert failures[1] is pendings[0]  # (a stale failure of the first attempt)
+        assert failures[1] is sent[0]  # (a stale failure of the first attempt)
 
         try:
-            # the retry's Load is out (parked at the provider): its record must be on disk
-            assert qid in [c.query.id for c in catalog_snapshot(consumer).clients]
+            # the retry's Load is out (parked at the provider): it is still due, nothing
+            # of it written (its answer is committed before its caller gets it)
+            assert qid not in [c.query.id for c in catalog_snapshot(consumer).clients]
         finally:
             gate.set()
             retry.join(20)

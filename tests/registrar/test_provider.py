@@ -2,7 +2,8 @@
 
 Loaded once and shared (`TestLoad`, rules 1-3), released and unloaded once (`TestUnload`,
 rules 7-8), its dependencies and cycles (`TestDependencies`, rules 5-7), a load that fails
-(`TestLoadErrors`, rule 4; `TestErrorHints`: the errors say how to fix them), user code
+(`TestLoadErrors`, rule 4; `TestErrorHints`: the errors say how to fix them), the loads
+of a consumer's earlier run (`TestEarlierRuns`: presumed abort, rule 20), user code
 that raises or hangs (`TestUserCode`), what a server answers (`TestServers`: fetch,
 response updates, re-attached status callbacks, rules 10-11), a resource reported
 `FATAL` (`TestFatal`), and TeMoto's own tests and faults (`TestTemoto`,
@@ -31,6 +32,10 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._core import runtime
+from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.replies import FutureReply
+from rr_actors._registrar.messages import Load, Reconcile
+from rr_actors._registrar.state import new_life
 from rr_actors._store import SCHEMA_VERSION
 from rr_actors.testing import (
     RemoteRegistrar,
@@ -38,6 +43,7 @@ from rr_actors.testing import (
     catalog_snapshot,
     crash,
     expect_restart,
+    intercept,
     pending_work,
 )
 from tests.support import simulated
@@ -1333,6 +1339,99 @@ class TestErrorHints:
             "rr_actors.errors.ResourceLoadError: "
             "ZeroDivisionError: division by zero (at erm/broken)"
         )
+
+
+class TestEarlierRuns:
+    """The loads of a consumer's earlier run (presumed abort: a consumer commits nothing
+    before its `Load` leaves, so a run that died holds nothing of its calls on the way)."""
+
+    def test_a_load_of_an_earlier_run_is_refused_once_a_later_run_reconciled(self) -> None:
+        provider = rr.ResourceRegistrar.start(f"prov-{uuid.uuid4().hex[:8]}")
+        try:
+            provider.register_server(
+                "leaf", load=lambda r: f"loaded {r}", unload=lambda _q, _r: None
+            )
+            earlier, later, next_one = new_life(), new_life(), new_life()
+            peer = DIRECTORY.lookup(provider.name)
+            reconciled = FutureReply()
+            peer.tell(Reconcile("ghost", (), reconciled, later))
+            assert () == reconciled.future.get(timeout=10)
+            replies = {life: FutureReply() for life in (earlier, later, next_one)}
+
+            for n, (life, reply) in enumerate(replies.items()):
+                peer.tell(Load(f"q-{n}", "leaf", "x", "ghost", (), reply, life))
+
+            with pytest.raises(rr.RegistrarUnavailableError, match="restarted"):
+                replies[earlier].future.get(timeout=10)
+            assert "loaded x" == replies[later].future.get(timeout=10)  # the run that
+            assert "loaded x" == replies[next_one].future.get(timeout=10)  # reconciled, a later
+            assert ["q-1", "q-2"] == sorted(q.id for q in provider.server_queries("leaf"))
+        finally:
+            provider.stop()
+
+    def test_a_load_under_way_for_a_killed_consumer_is_given_up_when_its_restart_reconciles(
+        self, tmp_path: Path
+    ) -> None:
+        # The consumer's actor dies (as a manager's SIGKILL) while its durable call's load
+        # runs at the provider: nothing of the call is in its backup. Its restart
+        # reconciles with every registrar, not listing the id: the provider gives the
+        # load up, so the id is never added when the load ends, and the resource, held
+        # by nobody, is unloaded once.
+        gate, entered, reconciled = threading.Event(), threading.Event(), threading.Event()
+        unloads: list[Any] = []
+        seen: list[Any] = []
+        provider = rr.ResourceRegistrar.start(f"prov-{uuid.uuid4().hex[:8]}")
+        config = rr.RegistrarConfig(
+            name=f"cons-{uuid.uuid4().hex[:8]}",
+            backup_path=tmp_path / "c.db",
+            save_on_modify=True,
+        )
+        consumer = rr.ResourceRegistrar.start(config)
+        restarted: list[rr.ResourceRegistrar] = []
+        failures: list[BaseException] = []
+
+        def call() -> None:
+            try:
+                consumer.call(provider.name, "leaf", "x", timeout=30)
+            except rr.RrError as exc:
+                failures.append(exc)
+
+        try:
+            provider.register_server(
+                "leaf",
+                load=GatedLoad(gate, entered),
+                unload=lambda request, _r: unloads.append(request),
+            )
+            provider.subscribe(seen.append)  # (on a subscriber thread, in order)
+            intercept(
+                provider,
+                "reconcile",
+                after=lambda m: reconciled.set() if m.origin_rr == config.name else None,
+            )
+            caller = threading.Thread(target=call)
+            caller.start()
+            assert entered.wait(10)
+            with expect_restart(config.name):  # (as a supervisor does)
+                crash(consumer)
+            caller.join(10)
+            assert [rr.RegistrarUnavailableError] == [type(e) for e in failures]
+
+            restarted.append(rr.ResourceRegistrar.start(config))
+            assert reconciled.wait(10)
+            gate.set()
+
+            assert wait_for(lambda: ["x"] == unloads, timeout=10)
+            assert wait_for(
+                lambda: any(isinstance(e, rr.events.ResourceUnloaded) for e in seen), timeout=10
+            )
+            assert [] == [e for e in seen if isinstance(e, rr.events.ConsumerAdded)]
+            assert [] == provider.server_queries("leaf")
+            assert [] == restarted[0].client_queries()
+        finally:
+            gate.set()
+            for registrar in restarted:
+                registrar.stop()
+            provider.stop()
 
 
 class TestUserCode:

@@ -11,6 +11,7 @@ import errno
 import logging
 import os
 import signal
+import sqlite3
 import threading
 import uuid
 from collections.abc import Callable, Iterator
@@ -608,13 +609,14 @@ class TestEvents:
         assert ("camera 1", ["ResourceLoaded", "ConsumerAdded"]) == (loaded.label, heard.kinds())
 
     @pytest.mark.parametrize("dependency", [False, True], ids=["top-level", "dependency"])
-    def test_a_restored_call_in_flight_the_restart_gives_up_is_published_as_forgotten(
+    def test_a_call_in_flight_at_a_crash_is_not_restored_and_is_released_at_its_provider(
         self, started: Any, tmp_path: Path, dependency: bool
     ) -> None:
         # A durable consumer killed while its call was in flight (its own, or a sub-call of
-        # a load of its own): the restart lists the record (CatalogRestored), then gives the
-        # call up. It used to drop the record with no event (issue 40), so a history checker
-        # held the id for good (a false violation once its provider lost the release).
+        # a load of its own): presumed abort, nothing of the call was written, so the
+        # restart lists no record of it (CatalogRestored) and forgets none (no
+        # QueryForgotten); the provider releases the id (the restart reconciles with it;
+        # a thread manager's dead actor also gives back an answer that reaches it).
         provider, entered, gate = _gated_provider(started)
         config = rr.RegistrarConfig(
             name=f"app-{uuid.uuid4().hex[:8]}", backup_path=tmp_path / "app.db", save_on_modify=True
@@ -629,7 +631,7 @@ class TestEvents:
             caller = _on_a_thread(lambda: consumer.call(config.name, "top", 1))
         else:
             caller = _on_a_thread(lambda: consumer.call(provider.name, "slow", 1))
-        assert entered.wait(10)  # (the call's pending record is committed)
+        assert entered.wait(10)  # (the call's Load reached the provider: nothing written)
         with expect_restart(config.name):
             crash(consumer)
         gate.set()
@@ -638,21 +640,52 @@ class TestEvents:
         heard = Heard()
         subscription = upstream.subscribe(heard)
         restarted = start_registrar(config, upstream=upstream)
-        calls = 2 if dependency else 1  # (its own call of "top" is one too)
         try:
-            assert wait_for(lambda: len(heard.of(events.QueryForgotten)) == calls, 10)
+            assert wait_for(lambda: [] == provider.server_queries("slow"), 10)
+            assert wait_for(lambda: bool(heard.of(events.CatalogRestored)), 10)
             assert subscription.wait_delivered(timeout=5)
         finally:
             subscription.close()
             restarted.stop()
 
         [restored] = heard.of(events.CatalogRestored)
-        why = {
-            qid: "dependency" if parent else "in doubt" for qid, _, _, parent in restored.clients
-        }
-        assert why == {e.query_id: e.reason for e in heard.of(events.QueryForgotten)}
-        sub_calls = [(serving, server) for _, serving, server, parent in restored.clients if parent]
-        assert ([(provider.name, "slow")] if dependency else []) == sub_calls
+        assert ((), []) == (tuple(restored.clients), heard.of(events.QueryForgotten))
+
+    def test_a_pending_record_of_an_older_backup_is_given_back_and_published_as_forgotten(
+        self, started: Any, tmp_path: Path
+    ) -> None:
+        # A backup written before presumed abort may hold a call's record written as
+        # pending (not loaded) before its Load left: the restart lists it
+        # (CatalogRestored), gives the id back to its provider and publishes it
+        # forgotten ("in doubt", issue 40), as it did.
+        provider = started("erm")
+        provider.register_server("cam", load=lambda r: r, unload=lambda _q, _r: None)
+        config = rr.RegistrarConfig(
+            name=f"app-{uuid.uuid4().hex[:8]}", backup_path=tmp_path / "app.db", save_on_modify=True
+        )
+        consumer = rr.ResourceRegistrar.start(config)
+        held = consumer.call(provider.name, "cam", 1)
+        with expect_restart(config.name):
+            crash(consumer)
+        with contextlib.closing(sqlite3.connect(config.backup_path)) as db, db:
+            assert 1 == db.execute("UPDATE clients SET loaded = 0").rowcount  # as pending
+        upstream = events.publisher()
+        heard = Heard()
+        subscription = upstream.subscribe(heard)
+        restarted = start_registrar(config, upstream=upstream)
+        try:
+            assert wait_for(lambda: [] == provider.server_queries("cam"), 10)
+            assert wait_for(lambda: bool(heard.of(events.QueryForgotten)), 10)
+            assert subscription.wait_delivered(timeout=5)
+        finally:
+            subscription.close()
+            restarted.stop()
+
+        [restored] = heard.of(events.CatalogRestored)
+        assert [held.id] == [qid for qid, _, _, _ in restored.clients]
+        assert [(held.id, "in doubt")] == [
+            (e.query_id, e.reason) for e in heard.of(events.QueryForgotten)
+        ]
 
 
 class TestFullDisk:
@@ -768,7 +801,7 @@ class TestFullDisk:
         filler.unlink()
         assert [] == provider.registrar.server_queries("slow")
 
-    def test_a_durable_consumer_on_a_full_disk_fails_its_call_before_the_load_leaves(
+    def test_a_durable_consumer_on_a_full_disk_fails_its_call_and_gives_its_id_back(
         self, disk: Path, tmp_path: Path
     ) -> None:
         uid = uuid.uuid4().hex[:8]
@@ -784,8 +817,11 @@ class TestFullDisk:
             with pytest.raises(rr.CatalogWriteError):
                 consumer.call(provider.name, "cam", "a", timeout=5)
 
-            assert [] == loads  # its record could not be written, so the Load never left
-            assert [] == provider.server_queries("cam")
+            # its answer could not be written: the id is given back (presumed abort: the
+            # Load left, nothing was written before it)
+            assert ["a"] == loads
+            assert wait_for(lambda: [] == provider.server_queries("cam"), 10)
+            assert [] == consumer.client_queries()
             filler.unlink()
         finally:
             consumer.stop(timeout=5)
