@@ -111,6 +111,8 @@ from rr_actors.events import Event
 
 __all__ = [
     "DISPATCH",
+    "DRAIN",
+    "DRAIN_SECONDS",
     "EVENT_LOG",
     "MESSAGE_STEPS",
     "STEPS",
@@ -123,6 +125,15 @@ __all__ = [
 ]
 
 logger = logging.getLogger("rr_actors")
+
+
+DRAIN = 64
+"""Messages a durable registrar handles in one turn at most when they wait in its inbox
+(`Actor.drain`): their changes commit in one transaction, then their answers go."""
+
+DRAIN_SECONDS = 0.02
+"""Seconds after a turn's first message past which a durable registrar takes no more
+into that turn (`Actor.drain_seconds`): the first answer of a turn waits no longer."""
 
 
 Handler = Callable[[Any, Reply], None]
@@ -145,9 +156,10 @@ def asked(bind: Binder) -> Binder:
     def bound(actor: RegistrarActor) -> Handler:
         handle = bind(actor)
         open_requests = actor.lifecycle.open_requests
+        shared = actor.shared
 
         def handle_asked(message: Any, reply: Reply) -> None:
-            opened = OpenReply(reply, open_requests)
+            opened = OpenReply(reply, open_requests, shared)
             try:
                 handle(message, opened)
             except RrError as exc:
@@ -320,6 +332,8 @@ class RegistrarActor(Actor):
             died,
             ended,
         )
+        if saver.durable:  # the messages waiting commit together (`Shared.end_turn`)
+            self.drain, self.drain_seconds = DRAIN, DRAIN_SECONDS
         self.unknown = LogThrottle(logger)  # messages of no known type (a buggy peer's)
         self.handlers: dict[type, tuple[str, Handler, TextFields]] = {
             kind: (step, bind(self), text_fields(kind)) for kind, (step, bind) in DISPATCH.items()
@@ -336,6 +350,7 @@ class RegistrarActor(Actor):
         self.lifecycle.on_start()
 
     def on_receive(self, message: Any) -> None:
+        self.shared.in_turn = True  # (its changes are staged: `on_turn_end` commits them)
         if not self.flights.due.outcomes.empty():  # call outcomes handed over before
             self.flights.take_outcomes()  # this message: recorded first (`calls.py`)
         self.dispatch(message)
@@ -391,6 +406,13 @@ class RegistrarActor(Actor):
                 entry = self.handlers[kind] = (step, handle, text_fields(kind))
                 return entry
         return None
+
+    def on_turn_end(self) -> None:
+        """The turn's changes, one transaction; then their answers (`Shared.end_turn`)."""
+        shared = self.shared
+        if shared.dirty or shared.staged:
+            shared.end_turn()
+        shared.in_turn = False
 
     def on_failure(self, *_: object) -> None:
         self.lifecycle.die()

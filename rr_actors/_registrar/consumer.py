@@ -109,6 +109,7 @@ from rr_actors._registrar.state import NO_REPLY, Phase, Shared
 from rr_actors._types import Query, Status, StatusCallback
 from rr_actors.errors import (
     CallTimeoutError,
+    CatalogWriteError,
     ConfigError,
     RegistrarStoppedError,
     RegistrarUnavailableError,
@@ -513,6 +514,14 @@ def publish_forgotten(
         )
 
 
+def _nothing() -> None:
+    """What a forgotten record's commit answers: nothing (`Holdings.forget`)."""
+
+
+def _ignored(_error: BaseException) -> None:
+    """A forgotten record whose write failed stays forgotten: written with the next one."""
+
+
 # -- answers ---------------------------------------------------------------------------
 
 
@@ -529,20 +538,29 @@ class Answers:
 
     def on_pending(self, message: Pending, reply: Reply) -> None:
         query_id = message.record.query.id
-        if query_id not in self.registrar.catalog.clients:  # (else a retry of one held)
-            record = message.record
-            if self.owner_gone(record):  # a late sub-call: kept as a call of its own, so a
-                record = ClientRecord(record.query, None)  # crash meanwhile gives it back
-            self.registrar.catalog.add_client(record)
-            self.texts.added(record)
-            failed = self.registrar.commit()
-            if failed is not None:  # not durable: the Load must not leave (rule 16)
-                self.registrar.catalog.remove_client(query_id)
-                self.registrar.commit()
-                reply.set_error(failed)
-                return
-        self.flights.hold_attempt(query_id, message.attempt)
-        reply.set_result(None)  # durable: the Load may leave now (rule 16)
+        catalog = self.registrar.catalog
+        if query_id in catalog.clients:  # a retry of one held
+            self.flights.hold_attempt(query_id, message.attempt)
+            reply.set_result(None)
+            return
+        record = message.record
+        if self.owner_gone(record):  # a late sub-call: kept as a call of its own, so a
+            record = ClientRecord(record.query, None)  # crash meanwhile gives it back
+        catalog.add_client(record)
+        self.texts.added(record)
+        self.flights.hold_attempt(query_id, message.attempt)  # (its outcome may come next)
+
+        def undo(failed: CatalogWriteError) -> None:  # not durable: the Load must not leave
+            self.flights.take_attempt(query_id, message.attempt)  # (rule 16)
+            held = catalog.clients.get(query_id)
+            if held is not None and not held.loaded:
+                catalog.remove_client(query_id)
+            reply.set_error(failed)
+
+        # durable (committed with the rest of its turn): the Load may leave now (rule 16)
+        self.registrar.commit_then(
+            ok=lambda: reply.set_result(None), undo=undo, refuse=reply.set_error
+        )
 
     def on_client_loaded(self, message: ClientLoaded, _reply: Reply) -> None:
         """Record a call's answer (a `DurableLoaded` one too: it is a `ClientLoaded`)."""
@@ -625,18 +643,33 @@ class Answers:
             catalog.add_client(message.record)
             self.texts.added(message.record)
         told = answer_event(self.registrar, message.record, retry=retry)
-        failed = self.registrar.commit(*told)  # (written with its record)
-        if failed is not None and durable:  # not kept
+        if durable:
+            self.keep_durable(message, told)
+            return
+        if self.registrar.commit(*told) is not None:  # (written with its record)
+            self.registrar.publish(*told)  # kept in memory: written with the next write
+        self.holdings.held(query.id, message.on_status)
+
+    def keep_durable(self, message: ClientLoaded, told: tuple[events.Event, ...]) -> None:
+        """Commit a durable call's answer with its `CallAnswered` (with the rest of the
+        turn), then answer its caller; not written: give the id back, fail the call."""
+        query = message.record.query
+        self.holdings.held(query.id, message.on_status)  # (a notice may come next)
+
+        def undo(failed: CatalogWriteError) -> None:  # not kept
             give_back(query.serving_rr, query.id, self.registrar.name)
-            self.holdings.forget(query.id)
+            self.holdings.forget(query.id, commit=False, reason=None)
             publish_refused(self.registrar, query, failed)
             message.attempt.settle(error=failed)
-            return
-        if failed is not None:  # kept in memory: written with the next write
-            self.registrar.publish(*told)
-        self.holdings.held(query.id, message.on_status)
-        if durable:
+
+        def refuse(error: RrError) -> None:  # died before its commit: not kept either
+            give_back(query.serving_rr, query.id, self.registrar.name)
+            message.attempt.settle(error=error)
+
+        def ok() -> None:
             message.attempt.settle(query.response)
+
+        self.registrar.commit_then(*told, ok=ok, undo=undo, refuse=refuse)
 
     def unstorable(self, message: ClientLoaded) -> bool:
         """A durable call's response this catalog cannot store: give it back, fail the call.
@@ -797,8 +830,8 @@ class Holdings:
             self.status_callbacks.pop(query_id, None)
             self.targets.pop(query_id, None)
             self.answered_in.pop(query_id, None)
-            if commit:
-                self.registrar.commit()
+            if commit:  # (with the rest of the turn: an answer after it waits for it)
+                self.registrar.commit_then(ok=_nothing, undo=_ignored, refuse=_ignored)
 
     def callback_of(self, query_id: str) -> StatusCallback | None:
         """The client status callback of query `query_id`, if it has one."""

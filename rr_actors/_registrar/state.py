@@ -59,6 +59,8 @@ __all__ = [
     "Probes",
     "Server",
     "Shared",
+    "Staged",
+    "TurnEvents",
     "Waiter",
     "consumers_by_origin",
 ]
@@ -116,18 +118,29 @@ class OpenReply:
     one) and read as a copy (`list(...)`), each atomic.
     """
 
-    __slots__ = ("open", "reply")
+    __slots__ = ("open", "reply", "shared")
 
-    def __init__(self, reply: Reply, open_requests: dict[OpenReply, None]) -> None:
+    def __init__(
+        self, reply: Reply, open_requests: dict[OpenReply, None], shared: Shared | None = None
+    ) -> None:
         self.reply = reply
         self.open = open_requests
+        self.shared = shared  # (its answer waits for the commit of its actor's turn)
         open_requests[self] = None
 
     def set_result(self, value: Any) -> None:
+        shared = self.shared
+        if shared is not None and shared.dirty:  # (held: released after the turn's commit)
+            shared.after_commit(lambda: self.set_result(value))
+            return
         self.open.pop(self, None)
         self.reply.set_result(value)
 
     def set_error(self, error: BaseException) -> None:
+        shared = self.shared
+        if shared is not None and shared.dirty:  # (held: released after the turn's commit)
+            shared.after_commit(lambda: self.set_error(error))
+            return
         self.open.pop(self, None)
         self.reply.set_error(error)
 
@@ -146,6 +159,42 @@ class _NoReply:
 
 NO_REPLY: Reply = _NoReply()
 """What a role's handler gets as `reply` for a message without one (`actor.DISPATCH`)."""
+
+
+@dataclasses.dataclass(slots=True)
+class Staged:
+    """A step whose change waits for its turn's commit (`Shared.commit_then`): what it
+    does then. `undo` `None`: `ok` runs after a failed write too; `refuse` `None`: a
+    death leaves its caller to `Lifecycle.fail_waiting`."""
+
+    ok: Callable[[], None]
+    undo: Callable[[CatalogWriteError], None] | None
+    refuse: Callable[[RrError], None] | None
+
+
+class TurnEvents:
+    """A registrar's publisher as its parts see it (`Shared.events`): while its turn has
+    changes staged, an event published is held and published after the turn's commit
+    (`Shared.end_turn`), in order with the events of those changes; else at once."""
+
+    __slots__ = ("_published", "_shared")
+
+    def __init__(self, shared: Shared) -> None:
+        self._shared = shared
+        self._published = shared.published
+
+    @property
+    def active(self) -> bool:
+        """Whether anyone listens (`Publisher.active`)."""
+        return self._published.active
+
+    def publish(self, event: events.Event) -> None:
+        """Publish `event` (actor's thread), after the turn's commit if one is pending."""
+        shared = self._shared
+        if shared.dirty:
+            shared.held.append((event, False))
+        else:
+            self._published.publish(event)
 
 
 _STARTS = itertools.count()  # registrars started in this process (`Shared.life`)
@@ -177,7 +226,14 @@ class Shared:
         self.tokens = Tokens()
         self.probes: Probes | None = None
         self.ref: pykka.ActorRef[Any] | None = None
-        self.events = published
+        self.published = published  # (the publisher itself: `events` holds in a turn)
+        self.events = TurnEvents(self)
+        # the turn (`commit_then`, `end_turn`): whether a message is being handled, the
+        # changes staged since its last write, what waits for that write, its events
+        self.in_turn = False
+        self.dirty = False
+        self.staged: list[Staged] = []
+        self.held: list[tuple[events.Event, bool]] = []  # (event, told by a staged change)
         self.held_in_doubt: set[str] = set()
         # this run of the registrar, the same in every `ReconcileAsk` it sends
         # (`consumer.py`'s `Flights.kept_at`): its process, the clock and a count, so
@@ -188,6 +244,127 @@ class Shared:
     def stopping(self) -> bool:
         """Whether it stops (or ended): it takes no new loads and keeps no new answers."""
         return self.phase is Phase.STOPPING or self.phase is Phase.ENDED
+
+    # -- the turn: one transaction for the messages a turn handled ----------------------
+
+    def commit_then(
+        self,
+        *told: events.Event,
+        ok: Callable[[], None],
+        undo: Callable[[CatalogWriteError], None],
+        refuse: Callable[[RrError], None],
+    ) -> None:
+        """Commit the catalog's changes and the events `told` of them; then run `ok()`
+        (the step's answer), or `undo(error)` if the write failed.
+
+        In a turn of a durable registrar (`in_turn`, `save_on_modify` with a backup) the
+        changes are staged: written with every other change of the turn in one
+        transaction at its end (`end_turn`), and `ok` runs after that commit, so the
+        answer is released only once its change is durable (rules 14-16). Otherwise
+        they are committed now (`commit`), as before.
+
+        Args:
+            told: the events of the changes: in the outbox with them, published after
+                the commit, before `ok`; dropped if the write fails.
+            ok: the change is durable: answer (the actor's thread).
+            undo: the write failed (`CatalogWriteError`: a full disk): undo the change
+                in memory (no commit: the turn commits the undoing once) and fail the
+                caller with the error.
+            refuse: the registrar died before the turn's commit (`abort_turn`): fail
+                the caller with the error (nothing is written any more).
+        """
+        if not (self.in_turn and self.saver.durable):
+            failed = self.commit(*told)
+            if failed is None:
+                ok()
+            else:
+                undo(failed)
+                self.commit()
+            return
+        changes = self.catalog.drain_changes()
+        for rid in self.held_in_doubt.intersection(changes.resources):
+            del changes.resources[rid]  # written once settled (`settle_held`)
+        if changes:
+            self.saver.stage(changes)
+            self.dirty = True
+        if not self.dirty:  # nothing of it, nor of the turn before it, to wait for
+            self.publish(*told)
+            ok()
+            return
+        self.held.extend((event, True) for event in told)
+        self.staged.append(Staged(ok, undo, refuse))
+
+    def after_commit(self, then: Callable[[], None]) -> bool:
+        """Run `then()` after the turn's commit if changes wait for it (`False`: none wait,
+        run it now). For an answer that may tell of a staged change (a handle's request:
+        `OpenReply`); it runs after a failed write too."""
+        if not self.dirty:
+            return False
+        self.staged.append(Staged(then, None, None))
+        return True
+
+    def end_turn(self) -> CatalogWriteError | None:
+        """Commit what the turn staged, one transaction, then release what waits for it.
+
+        Runs at the end of each turn (`RegistrarActor.on_turn_end`), and before any other
+        commit of the turn (`commit`), so changes reach the file in the order they were
+        made. Committed: the held events are published (in order), then each staged
+        step's `ok` runs, in the order they were staged. The write failed: the events
+        published outside a change are published, the staged steps undone (newest
+        first) and that undoing committed (or kept pending), and the error returned.
+        """
+        failed: CatalogWriteError | None = None
+        while self.dirty or self.staged:  # (an answer released may stage more)
+            staged, held = self.staged, self.held
+            self.staged, self.held, self.dirty = [], [], False
+            told = [event for event, _ in held]
+            self.probe("turn_commit", staged)  # (staged, not written: a kill loses it)
+            healthy = self.saver.failure is None
+            try:
+                self.saver.write(told)
+            except CatalogWriteError as exc:
+                if healthy:
+                    self.warn_unwritten(exc)
+                failed = exc
+                for event, of_change in held:
+                    if not of_change:
+                        self.published.publish(event)
+                for step in reversed(staged):
+                    if step.undo is not None:
+                        step.undo(exc)
+                self.commit()  # (the undoing: kept pending if the disk is still full)
+                for step in staged:
+                    if step.undo is None:
+                        step.ok()
+                continue
+            if told:
+                self.probe("events_written", told)  # (committed with them, not yet published)
+            for event, _ in held:
+                self.published.publish(event)
+            for step in staged:
+                step.ok()
+        return failed
+
+    def abort_turn(self, error: RrError) -> None:
+        """The registrar died in a turn: what it staged is never written, nor answered as
+        done; each staged step's caller is failed with `error` (its `refuse`)."""
+        staged, held = self.staged, self.held
+        self.staged, self.held, self.dirty = [], [], False
+        for event, of_change in held:
+            if not of_change:
+                self.published.publish(event)
+        for step in staged:
+            if step.refuse is not None:
+                step.refuse(error)
+
+    def warn_unwritten(self, exc: CatalogWriteError) -> None:
+        """Log the first write of a failing streak (the next success clears it)."""
+        logger.warning(
+            "registrar %s: %s; changes wait in memory, new loads are refused until "
+            "a write succeeds",
+            self.name,
+            exc,
+        )
 
     def commit(self, *told: events.Event, now: bool = False) -> CatalogWriteError | None:
         """Hand the catalog's changes to the save policy (durable now, or at the next flush),
@@ -211,6 +388,8 @@ class Shared:
             and fails the caller with it; one whose change stands publishes them itself
             (`publish`).
         """
+        if self.dirty:  # what the turn staged first, in its own transaction
+            self.end_turn()
         if self.saver.store is None:  # nothing persists this catalog
             self.publish(*told)
             return None
@@ -225,12 +404,7 @@ class Shared:
             written = self.saver.changed(changes, told, now=now)
         except CatalogWriteError as exc:
             if healthy:  # once per failing streak: the next success clears it
-                logger.warning(
-                    "registrar %s: %s; changes wait in memory, new loads are refused until "
-                    "a write succeeds",
-                    self.name,
-                    exc,
-                )
+                self.warn_unwritten(exc)
             return exc
         if written and told:
             self.probe("events_written", told)  # (committed with them, not yet published)
@@ -256,7 +430,11 @@ class Shared:
         `None` once it succeeds (or for a registrar without `save_on_modify`).
         """
         saver = self.saver
-        if not saver.durable or saver.failure is None or saver.retry():
+        if not saver.durable or saver.failure is None:
+            return None
+        if self.dirty:  # (the retry would write what the turn staged, without its events)
+            self.end_turn()
+        if saver.failure is None or saver.retry():
             return None
         return saver.failure
 
@@ -298,6 +476,7 @@ POINTS: frozenset[str] = frozenset(
         "send_load",  # a call's Load is about to leave the caller's thread (durable: committed)
         "withdraw",  # a caller that stopped waiting is about to send its Abandon
         "events_written",  # a change and its events committed together; published next
+        "turn_commit",  # a turn's staged changes are about to be written (the Staged list)
     }
 )
 """Points inside a step (`before` runs there; `after` is the same as `before`)."""
