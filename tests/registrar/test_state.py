@@ -11,6 +11,7 @@ import errno
 import logging
 import os
 import signal
+import sys
 import threading
 import uuid
 from collections.abc import Callable, Iterator
@@ -21,15 +22,19 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import events
+from rr_actors._core.replies import FutureReply
 from rr_actors._registrar import life, start_registrar
+from rr_actors._registrar.messages import RunOnActor
 from rr_actors.testing import (
     RemoteRegistrar,
     SharedObjects,
     System,
+    actor_ref,
     catalog_snapshot,
     crash,
     expect_restart,
     intercept,
+    run_on_actor,
 )
 from tests.support.gating import GatedLoad
 from tests.support.small_disk import fill, mounted
@@ -809,3 +814,112 @@ class TestFullDisk:
         finally:
             filler.unlink()
             consumer.stop()
+
+
+# -- for TestTurn --------------------------------------------------------------------------
+
+
+def _commits(registrar: rr.ResourceRegistrar) -> int:
+    """The transactions the registrar's backup committed since it opened (on its actor)."""
+
+    def read(actor: Any, reply: Any) -> None:
+        reply.set_result(actor.shared.saver.store.commits)
+
+    reply = FutureReply()
+    actor_ref(registrar).tell(RunOnActor(read, reply))
+    count: int = reply.future.get(timeout=5)
+    return count
+
+
+def _leaf_setup(registrar: rr.ResourceRegistrar) -> None:
+    registrar.register_server("leaf", load=lambda r: f"loaded {r}", unload=lambda _q, _r: None)
+
+
+class TestTurn:
+    """A durable registrar's turn: the changes of the messages it handled commit in one
+    transaction at its end, and their answers go only after it (issue 52 parts 2, 4)."""
+
+    def test_the_loads_waiting_in_the_mailbox_commit_once_then_each_is_answered(
+        self, tmp_path: Path
+    ) -> None:
+        uid = uuid.uuid4().hex[:8]
+        config = rr.RegistrarConfig(
+            name=f"erm-{uid}", backup_path=tmp_path / "erm.db", save_on_modify=True
+        )
+        provider = rr.ResourceRegistrar.start(config)
+        consumer = rr.ResourceRegistrar.start(f"app-{uid}")
+        provider.register_server("cam", load=lambda r: f"cam {r}", unload=lambda _q, _r: None)
+        consumer.call(provider.name, "cam", 1, timeout=5)  # loaded: every call after shares it
+        answered: list[str] = []
+        first = threading.Event()  # a caller has its answer
+        at_commit: list[tuple[int, bool]] = []  # (steps staged, whether an answer came)
+
+        def committing(staged: Any) -> None:  # (an answer released early wakes its caller)
+            at_commit.append((len(staged), first.wait(0.5)))
+
+        def call() -> None:
+            answered.append(consumer.call(provider.name, "cam", 1).response)
+            first.set()
+
+        intercept(provider, "turn_commit", before=committing)
+        before = _commits(provider)
+        gate = threading.Event()
+        busy = run_on_actor(provider, lambda: gate.wait(10))  # the provider is busy
+        waiting = 8
+        inbox = actor_ref(provider).actor_inbox
+        callers = [threading.Thread(target=call) for _ in range(waiting)]
+        try:
+            for caller in callers:
+                caller.start()
+            assert wait_for(lambda: inbox.qsize() >= waiting, 10)  # all wait in its mailbox
+            gate.set()
+            busy.get(timeout=5)
+            for caller in callers:
+                caller.join(10)
+            assert ["cam 1"] * waiting == answered
+            assert 1 == _commits(provider) - before  # one transaction for the eight
+            assert [(waiting, False)] == at_commit  # none was answered before it
+        finally:
+            gate.set()
+            consumer.stop()
+            provider.stop()
+
+    @pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+    @pytest.mark.usefixtures("by_value")  # (tests/conftest.py)
+    def test_a_kill_at_the_turns_commit_acknowledged_nothing_staged_and_lost_nothing_acknowledged(
+        self, supervisors: Callable[..., rr.Supervisor], tmp_path: Path
+    ) -> None:
+        # A real SIGKILL of the provider's manager process at the boundary: its turn's
+        # changes are staged (a consumer id added), the transaction not begun. The call
+        # whose id was staged fails; the ids acknowledged before (a miss, then a hit
+        # committed at its turn's end) are in the backup the restarted provider serves.
+        uid = uuid.uuid4().hex[:8]
+        p = f"p-{uid}"
+        sup = supervisors(
+            [rr.ManagerSpec(p, _leaf_setup, isolation="process")], state_dir=tmp_path / "state"
+        )
+        sup.start()
+        app = sup.registrar(f"app-{uid}")
+        acknowledged = [app.call(p, "leaf", "x", timeout=10).id for _ in range(2)]
+
+        def kill_at_commit(registrar: rr.ResourceRegistrar) -> None:
+            import signal  # noqa: PLC0415 - runs in the provider's first process
+
+            from rr_actors.testing import intercept  # noqa: PLC0415
+
+            def kill(staged: Any) -> None:
+                if staged:  # (a turn with a change to write)
+                    os.kill(os.getpid(), signal.SIGKILL)  # staged, not written
+
+            intercept(registrar, "turn_commit", before=kill)
+
+        sup.run_in(p, kill_at_commit)
+        with pytest.raises(rr.RegistrarUnavailableError):
+            app.call(p, "leaf", "x", timeout=10)  # a hit: staged, never acknowledged
+        sup.wait_restarted(p, timeout=15)
+
+        assert sorted(acknowledged) == sup.run_in(
+            p, lambda r: sorted(q.id for q in r.server_queries("leaf"))
+        )
+        assert sorted(acknowledged) == sorted(q.id for q in app.client_queries())
+        app.stop()
