@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import functools
 import logging
 import os
 import signal
@@ -724,6 +725,46 @@ class TestFullDisk:
 
         assert [held.id] == [q.id for q in provider.registrar.server_queries("cam")]
         assert [held.id] == [q.id for q in provider.consumer.client_queries()]
+        assert [] == provider.unloads
+
+    def test_hits_and_unloads_waiting_for_one_commit_on_a_full_disk_are_all_refused_undone(
+        self, provider: Provider, disk: Path
+    ) -> None:
+        # One turn stages the changes of the messages waiting in the mailbox (issue 52);
+        # its one transaction fails: every step of it is undone and its caller fails.
+        held = [provider.call("a") for _ in range(3)]
+        turns: list[int] = []  # the steps each turn's commit wrote
+        intercept(provider.registrar, "turn_commit", before=lambda s: turns.append(len(s)))
+        gate = threading.Event()
+        busy = run_on_actor(provider.registrar, lambda: gate.wait(10))  # busy meanwhile
+        outcomes: list[Any] = []
+
+        def run(op: Callable[[], Any]) -> None:
+            try:
+                outcomes.append(op())
+            except rr.RrError as exc:
+                outcomes.append(exc)
+
+        ops = [lambda: provider.call("a"), lambda: provider.call("a")]
+        ops += [functools.partial(provider.consumer.unload, q.id) for q in held[1:]]
+        threads = [threading.Thread(target=run, args=(op,)) for op in ops]
+        inbox = actor_ref(provider.registrar).actor_inbox
+        try:
+            _full(disk)
+            for thread in threads:
+                thread.start()
+            assert wait_for(lambda: inbox.qsize() >= len(ops), 10)  # all wait in its mailbox
+        finally:
+            gate.set()
+        busy.get(timeout=5)
+        for thread in threads:
+            thread.join(10)
+
+        assert [rr.CatalogWriteError] * len(ops) == [type(o) for o in outcomes]
+        assert [len(ops)] == turns  # one transaction: it failed
+        ids = sorted(q.id for q in held)
+        assert ids == sorted(q.id for q in provider.registrar.server_queries("cam"))
+        assert ids == sorted(q.id for q in provider.consumer.client_queries())
         assert [] == provider.unloads
 
     def test_loads_are_served_again_once_a_write_succeeds(
