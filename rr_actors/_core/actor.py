@@ -417,6 +417,9 @@ class Actor(pykka.ThreadingActor):
     drain_seconds: float = 0.0
     """Seconds after a turn's first message past which it takes no more (`drain`)."""
 
+    ends_turns: bool = False
+    """Whether `on_turn_end` runs at the end of each turn (off: not even called)."""
+
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         # pykka makes these with `threading` and `uuid`: the runtime's instead (a
@@ -469,7 +472,8 @@ class Actor(pykka.ThreadingActor):
                     inbox.handled += 1
                 if self.drain > 1:
                     self._drain_inbox(inbox)
-                self.on_turn_end()
+                if self.ends_turns:
+                    self.on_turn_end()
 
     def _drain_inbox(self, inbox: Inbox) -> None:
         """Handle the envelopes waiting in `inbox` in this turn, up to `drain` in all (the
@@ -496,7 +500,8 @@ class Actor(pykka.ThreadingActor):
         _ACTOR_THREAD.active = True
         try:
             self._handle_envelope(envelope)
-            self.on_turn_end()
+            if self.ends_turns:
+                self.on_turn_end()
         finally:
             _ACTOR_THREAD.active = was
         if self.actor_stopped.is_set():  # it failed or stopped: the actor's thread ends
@@ -539,8 +544,9 @@ class Actor(pykka.ThreadingActor):
         self._stop()
 
     def on_turn_end(self) -> None:
-        """Run at the end of each turn, in it: after the messages it handled (one, or up to
-        `drain` when more waited), before the next turn; on the thread that had the turn.
+        """Run at the end of each turn when `ends_turns`, in it: after the messages it
+        handled (one, or up to `drain` when more waited), before the next turn; on the
+        thread that had the turn.
 
         A registrar commits the changes of its turn's messages here, and releases their
         answers after the commit (`rr_actors._registrar.state.Shared.end_turn`).

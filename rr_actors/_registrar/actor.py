@@ -333,7 +333,7 @@ class RegistrarActor(Actor):
             ended,
         )
         if saver.durable:  # the messages waiting commit together (`Shared.end_turn`)
-            self.drain, self.drain_seconds = DRAIN, DRAIN_SECONDS
+            self.drain, self.drain_seconds, self.ends_turns = DRAIN, DRAIN_SECONDS, True
         self.unknown = LogThrottle(logger)  # messages of no known type (a buggy peer's)
         self.handlers: dict[type, tuple[str, Handler, TextFields]] = {
             kind: (step, bind(self), text_fields(kind)) for kind, (step, bind) in DISPATCH.items()
@@ -348,9 +348,10 @@ class RegistrarActor(Actor):
         self.shared.ref = self.actor_ref
         self.shared.peer.ref = self.actor_ref
         self.lifecycle.on_start()
+        # every step from now on runs in a turn whose end commits it (`on_turn_end`)
+        self.shared.in_turn = self.ends_turns
 
     def on_receive(self, message: Any) -> None:
-        self.shared.in_turn = True  # (its changes are staged: `on_turn_end` commits them)
         if not self.flights.due.outcomes.empty():  # call outcomes handed over before
             self.flights.take_outcomes()  # this message: recorded first (`calls.py`)
         self.dispatch(message)
@@ -412,9 +413,9 @@ class RegistrarActor(Actor):
         shared = self.shared
         if shared.dirty or shared.staged:
             shared.end_turn()
-        shared.in_turn = False
 
     def on_failure(self, *_: object) -> None:
+        self.shared.in_turn = False  # (nothing is staged any more: what is, is refused)
         self.lifecycle.die()
 
     def on_ended(self) -> None:

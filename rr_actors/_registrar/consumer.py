@@ -830,8 +830,10 @@ class Holdings:
             self.status_callbacks.pop(query_id, None)
             self.targets.pop(query_id, None)
             self.answered_in.pop(query_id, None)
-            if commit:  # (with the rest of the turn: an answer after it waits for it)
+            if commit and self.registrar.in_turn:  # (with the rest of the turn: an answer
                 self.registrar.commit_then(ok=_nothing, undo=_ignored, refuse=_ignored)
+            elif commit:  # after it waits for it)
+                self.registrar.commit()
 
     def callback_of(self, query_id: str) -> StatusCallback | None:
         """The client status callback of query `query_id`, if it has one."""

@@ -227,9 +227,13 @@ class Shared:
         self.probes: Probes | None = None
         self.ref: pykka.ActorRef[Any] | None = None
         self.published = published  # (the publisher itself: `events` holds in a turn)
-        self.events = TurnEvents(self)
-        # the turn (`commit_then`, `end_turn`): whether a message is being handled, the
-        # changes staged since its last write, what waits for that write, its events
+        # (a durable registrar's turn holds events: `TurnEvents`; no other ever stages)
+        self.events: Publisher[events.Event] | TurnEvents = (
+            TurnEvents(self) if saver.durable else published
+        )
+        # the turn (`commit_then`, `end_turn`): whether steps run in turns whose end
+        # commits (a durable registrar's actor once started, until it dies), the changes
+        # staged since the last write, what waits for that write, its events
         self.in_turn = False
         self.dirty = False
         self.staged: list[Staged] = []
@@ -257,7 +261,7 @@ class Shared:
         """Commit the catalog's changes and the events `told` of them; then run `ok()`
         (the step's answer), or `undo(error)` if the write failed.
 
-        In a turn of a durable registrar (`in_turn`, `save_on_modify` with a backup) the
+        In a turn of a durable registrar (`in_turn`: `save_on_modify` with a backup) the
         changes are staged: written with every other change of the turn in one
         transaction at its end (`end_turn`), and `ok` runs after that commit, so the
         answer is released only once its change is durable (rules 14-16). Otherwise

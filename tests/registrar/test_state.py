@@ -24,7 +24,7 @@ import pytest
 import rr_actors as rr
 from rr_actors import events
 from rr_actors._core.replies import FutureReply
-from rr_actors._registrar import life, start_registrar
+from rr_actors._registrar import actor, life, start_registrar
 from rr_actors._registrar.messages import RunOnActor
 from rr_actors.testing import (
     RemoteRegistrar,
@@ -872,6 +872,50 @@ def _commits(registrar: rr.ResourceRegistrar) -> int:
     return count
 
 
+def _waiting_loads(tmp_path: Path, waiting: int) -> tuple[list[str], int, list[Any]]:
+    """`waiting` dedup hits wait in a durable provider's mailbox while it is busy, then it
+    handles them: their answers, its commits meanwhile, and for each turn's commit the
+    steps it wrote and whether a caller had its answer by then (`turn_commit`)."""
+    uid = uuid.uuid4().hex[:8]
+    config = rr.RegistrarConfig(
+        name=f"erm-{uid}", backup_path=tmp_path / "erm.db", save_on_modify=True
+    )
+    provider = rr.ResourceRegistrar.start(config)
+    consumer = rr.ResourceRegistrar.start(f"app-{uid}")
+    provider.register_server("cam", load=lambda r: f"cam {r}", unload=lambda _q, _r: None)
+    consumer.call(provider.name, "cam", 1, timeout=5)  # loaded: every call after shares it
+    answered: list[str] = []
+    first = threading.Event()  # a caller has its answer
+    at_commit: list[tuple[int, bool]] = []  # (steps staged, whether an answer came)
+
+    def committing(staged: Any) -> None:  # (an answer released early wakes its caller)
+        at_commit.append((len(staged), first.wait(0.5)))
+
+    def call() -> None:
+        answered.append(consumer.call(provider.name, "cam", 1, timeout=30).response)
+        first.set()
+
+    intercept(provider, "turn_commit", before=committing)
+    before = _commits(provider)
+    gate = threading.Event()
+    busy = run_on_actor(provider, lambda: gate.wait(10))  # the provider is busy
+    inbox = actor_ref(provider).actor_inbox
+    callers = [threading.Thread(target=call) for _ in range(waiting)]
+    try:
+        for caller in callers:
+            caller.start()
+        assert wait_for(lambda: inbox.qsize() >= waiting, 10)  # all wait in its mailbox
+        gate.set()
+        busy.get(timeout=5)
+        for caller in callers:
+            caller.join(30)
+        return answered, _commits(provider) - before, list(at_commit)  # (before the stop's)
+    finally:
+        gate.set()
+        consumer.stop()
+        provider.stop()
+
+
 def _leaf_setup(registrar: rr.ResourceRegistrar) -> None:
     registrar.register_server("leaf", load=lambda r: f"loaded {r}", unload=lambda _q, _r: None)
 
@@ -881,49 +925,27 @@ class TestTurn:
     transaction at its end, and their answers go only after it (issue 52 parts 2, 4)."""
 
     def test_the_loads_waiting_in_the_mailbox_commit_once_then_each_is_answered(
-        self, tmp_path: Path
+        self, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     ) -> None:
-        uid = uuid.uuid4().hex[:8]
-        config = rr.RegistrarConfig(
-            name=f"erm-{uid}", backup_path=tmp_path / "erm.db", save_on_modify=True
-        )
-        provider = rr.ResourceRegistrar.start(config)
-        consumer = rr.ResourceRegistrar.start(f"app-{uid}")
-        provider.register_server("cam", load=lambda r: f"cam {r}", unload=lambda _q, _r: None)
-        consumer.call(provider.name, "cam", 1, timeout=5)  # loaded: every call after shares it
-        answered: list[str] = []
-        first = threading.Event()  # a caller has its answer
-        at_commit: list[tuple[int, bool]] = []  # (steps staged, whether an answer came)
+        monkeypatch.setattr(actor, "DRAIN_SECONDS", 60.0)  # (a loaded machine: no time bound)
 
-        def committing(staged: Any) -> None:  # (an answer released early wakes its caller)
-            at_commit.append((len(staged), first.wait(0.5)))
+        answered, commits, at_commit = _waiting_loads(tmp_path, 8)
 
-        def call() -> None:
-            answered.append(consumer.call(provider.name, "cam", 1).response)
-            first.set()
+        assert ["cam 1"] * 8 == answered
+        assert 1 == commits  # one transaction for the eight
+        assert [(8, False)] == at_commit  # none was answered before it
 
-        intercept(provider, "turn_commit", before=committing)
-        before = _commits(provider)
-        gate = threading.Event()
-        busy = run_on_actor(provider, lambda: gate.wait(10))  # the provider is busy
-        waiting = 8
-        inbox = actor_ref(provider).actor_inbox
-        callers = [threading.Thread(target=call) for _ in range(waiting)]
-        try:
-            for caller in callers:
-                caller.start()
-            assert wait_for(lambda: inbox.qsize() >= waiting, 10)  # all wait in its mailbox
-            gate.set()
-            busy.get(timeout=5)
-            for caller in callers:
-                caller.join(10)
-            assert ["cam 1"] * waiting == answered
-            assert 1 == _commits(provider) - before  # one transaction for the eight
-            assert [(waiting, False)] == at_commit  # none was answered before it
-        finally:
-            gate.set()
-            consumer.stop()
-            provider.stop()
+    def test_a_turn_takes_at_most_drain_messages(
+        self, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    ) -> None:
+        monkeypatch.setattr(actor, "DRAIN_SECONDS", 60.0)
+        monkeypatch.setattr(actor, "DRAIN", 3)
+
+        answered, commits, at_commit = _waiting_loads(tmp_path, 8)
+
+        assert ["cam 1"] * 8 == answered
+        # (the first turn's first message: the one that kept the provider busy)
+        assert (3, [(2, False), (3, True), (3, True)]) == (commits, at_commit)
 
     @pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
     @pytest.mark.usefixtures("by_value")  # (tests/conftest.py)
