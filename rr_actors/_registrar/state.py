@@ -112,10 +112,11 @@ class Waiter:
 class OpenReply:
     """A handle request's reply, known to its actor until answered (a crash fails it).
 
-    Answered on the actor thread, or, for `send_status`, on the thread of the last
-    acknowledgement: so `open_requests` (a dict used as an ordered set: in the order the
-    requests came) is only ever changed by single dict operations (set an item, pop
-    one) and read as a copy (`list(...)`), each atomic.
+    Answered on the actor thread (after the commit of its turn, if the turn staged a
+    change: `Shared.after_commit`), or, for `send_status`, on the thread of the last
+    acknowledgement (at once): so `open_requests` (a dict used as an ordered set: in the
+    order the requests came) is only ever changed by single dict operations (set an
+    item, pop one) and read as a copy (`list(...)`), each atomic.
     """
 
     __slots__ = ("open", "reply", "shared")
@@ -130,16 +131,16 @@ class OpenReply:
 
     def set_result(self, value: Any) -> None:
         shared = self.shared
-        if shared is not None and shared.dirty:  # (held: released after the turn's commit)
-            shared.after_commit(lambda: self.set_result(value))
+        if shared is not None and shared.dirty and shared.holds_here():
+            shared.after_commit(lambda: self.set_result(value))  # (after the turn's commit)
             return
         self.open.pop(self, None)
         self.reply.set_result(value)
 
     def set_error(self, error: BaseException) -> None:
         shared = self.shared
-        if shared is not None and shared.dirty:  # (held: released after the turn's commit)
-            shared.after_commit(lambda: self.set_error(error))
+        if shared is not None and shared.dirty and shared.holds_here():
+            shared.after_commit(lambda: self.set_error(error))  # (after the turn's commit)
             return
         self.open.pop(self, None)
         self.reply.set_error(error)
@@ -236,6 +237,7 @@ class Shared:
         # staged since the last write, what waits for that write, its events
         self.in_turn = False
         self.dirty = False
+        self.turn_thread = 0  # (the thread of the turn that staged them: `holds_here`)
         self.staged: list[Staged] = []
         self.held: list[tuple[events.Event, bool]] = []  # (event, told by a staged change)
         self.held_in_doubt: set[str] = set()
@@ -290,7 +292,8 @@ class Shared:
             del changes.resources[rid]  # written once settled (`settle_held`)
         if changes:
             self.saver.stage(changes)
-            self.dirty = True
+            if not self.dirty:
+                self.dirty, self.turn_thread = True, runtime.get_ident()
         if not self.dirty:  # nothing of it, nor of the turn before it, to wait for
             self.publish(*told)
             ok()
@@ -306,6 +309,12 @@ class Shared:
             return False
         self.staged.append(Staged(then, None, None))
         return True
+
+    def holds_here(self) -> bool:
+        """Whether the calling thread has the turn that staged changes (an answer given
+        there waits for its commit; one from another thread, a status acknowledgement's,
+        tells of no staged change and goes at once)."""
+        return self.turn_thread == runtime.get_ident()
 
     def end_turn(self) -> CatalogWriteError | None:
         """Commit what the turn staged, one transaction, then release what waits for it.
