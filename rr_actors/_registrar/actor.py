@@ -34,6 +34,12 @@ threads, so a slow or hung callback never blocks the mailbox. Every clause of `D
 has one shape, `on_<step>(message, reply)`: `reply` is the message's own (held open for
 a message from the handle, `asked`), or `NO_REPLY`; the step names are what
 `rr_actors.testing.intercept` accepts.
+
+A durable registrar (`save_on_modify` with a backup) commits once per turn: its actor
+takes the messages waiting in its mailbox into the turn (up to `DRAIN`, or
+`DRAIN_SECONDS`), their steps stage their changes (`Shared.commit_then`), and
+`on_turn_end` writes them in one transaction, then releases their answers and events
+(`Shared.end_turn`; docs/explanation/architecture.md, "One turn's transaction").
 """
 
 from __future__ import annotations
