@@ -473,7 +473,7 @@ class Actor(pykka.ThreadingActor):
                 if self.drain > 1:
                     self._drain_inbox(inbox)
                 if self.ends_turns:
-                    self.on_turn_end()
+                    self._end_turn()
 
     def _drain_inbox(self, inbox: Inbox) -> None:
         """Handle the envelopes waiting in `inbox` in this turn, up to `drain` in all (the
@@ -501,12 +501,28 @@ class Actor(pykka.ThreadingActor):
         try:
             self._handle_envelope(envelope)
             if self.ends_turns:
-                self.on_turn_end()
+                self._end_turn()
         finally:
             _ACTOR_THREAD.active = was
         if self.actor_stopped.is_set():  # it failed or stopped: the actor's thread ends
             self.actor_inbox.stopped = True
             self.actor_inbox.put(_WAKE)
+
+    def _end_turn(self) -> None:
+        """`on_turn_end`; what it raises fails the actor as a handler's failure of a tell
+        does (`on_failure` runs, the actor stops; not an `Exception`: as pykka, the process
+        is going down), so the loop always ends through its teardown."""
+        try:
+            self.on_turn_end()
+        except Exception:  # noqa: BLE001 - (as a tell's failure: `on_failure`, the actor stops)
+            self._handle_failure(*sys.exc_info())
+            try:
+                self.on_failure(*sys.exc_info())
+            except Exception:  # noqa: BLE001 - (as pykka: logged, the actor stops)
+                self._handle_failure(*sys.exc_info())
+        except BaseException:  # noqa: BLE001 - (as pykka: the process is going down)
+            self._stop()
+            pykka.ActorRegistry.stop_all()
 
     def _handle_envelope(self, envelope: Any) -> None:
         """pykka's handling of one envelope (`Actor._actor_loop_running`'s body)."""

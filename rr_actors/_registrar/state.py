@@ -331,25 +331,19 @@ class Shared:
             staged, held = self.staged, self.held
             self.staged, self.held, self.dirty = [], [], False
             told = [event for event, _ in held]
-            self.probe("turn_commit", staged)  # (staged, not written: a kill loses it)
             healthy = self.saver.failure is None
             try:
+                self.probe("turn_commit", staged)  # (staged, not written: a kill loses it)
                 self.saver.write(told)
             except CatalogWriteError as exc:
                 if healthy:
                     self.warn_unwritten(exc)
                 failed = exc
-                for event, of_change in held:
-                    if not of_change:
-                        self.published.publish(event)
-                for step in reversed(staged):
-                    if step.undo is not None:
-                        step.undo(exc)
-                self.commit()  # (the undoing: kept pending if the disk is still full)
-                for step in staged:
-                    if step.undo is None:
-                        step.ok()
+                self.unwritten(staged, held, exc)
                 continue
+            except BaseException:  # a bug: the actor dies (`abort_turn` refuses them)
+                self.staged, self.held = staged + self.staged, held + self.held
+                raise
             if told:
                 self.probe("events_written", told)  # (committed with them, not yet published)
             for event, _ in held:
@@ -357,6 +351,23 @@ class Shared:
             for step in staged:
                 step.ok()
         return failed
+
+    def unwritten(
+        self, staged: list[Staged], held: list[tuple[events.Event, bool]], exc: CatalogWriteError
+    ) -> None:
+        """The turn's write failed (`exc`): publish the events told outside a change, undo
+        each staged step (newest first), commit that undoing (or keep it pending), then
+        release the answers that wait for the write whatever its outcome."""
+        for event, of_change in held:
+            if not of_change:
+                self.published.publish(event)
+        for step in reversed(staged):
+            if step.undo is not None:
+                step.undo(exc)
+        self.commit()  # (the undoing: kept pending if the disk is still full)
+        for step in staged:
+            if step.undo is None:
+                step.ok()
 
     def abort_turn(self, error: RrError) -> None:
         """The registrar died in a turn: what it staged is never written, nor answered as

@@ -947,6 +947,40 @@ class TestTurn:
         # (the first turn's first message: the one that kept the provider busy)
         assert (3, [(2, False), (3, True), (3, True)]) == (commits, at_commit)
 
+    def test_a_registrar_that_dies_at_its_turns_commit_fails_the_staged_calls_unwritten(
+        self, tmp_path: Path
+    ) -> None:
+        uid = uuid.uuid4().hex[:8]
+        config = rr.RegistrarConfig(
+            name=f"erm-{uid}", backup_path=tmp_path / "erm.db", save_on_modify=True
+        )
+
+        def setup(registrar: rr.ResourceRegistrar) -> None:
+            registrar.register_server("cam", load=lambda r: f"cam {r}", unload=lambda *_: None)
+
+        provider = rr.ResourceRegistrar.start(config, setup=setup)
+        consumer = rr.ResourceRegistrar.start(f"app-{uid}")
+        try:
+            held = consumer.call(provider.name, "cam", 1, timeout=5)  # committed, answered
+
+            def bug(staged: Any) -> None:
+                if staged:
+                    raise RuntimeError("a bug at the turn's commit")
+
+            intercept(provider, "turn_commit", before=bug)
+            with expect_restart(config.name):  # (not gone for good: its consumer keeps held)
+                with pytest.raises(rr.RegistrarUnavailableError):
+                    consumer.call(provider.name, "cam", 1, timeout=5)  # staged, never written
+                assert provider._actor.died.wait(5)  # (its death handled: backup closed)
+
+            again = rr.ResourceRegistrar.start(config, setup=setup)  # on its backup
+            try:
+                assert [held.id] == [q.id for q in again.server_queries("cam")]
+            finally:
+                again.stop()
+        finally:
+            consumer.stop()
+
     @pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
     @pytest.mark.usefixtures("by_value")  # (tests/conftest.py)
     def test_a_kill_at_the_turns_commit_acknowledged_nothing_staged_and_lost_nothing_acknowledged(
