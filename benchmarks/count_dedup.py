@@ -9,6 +9,9 @@ counted on its own, between two marks:
     pykka    a raw pykka ask to an echoing `ThreadingActor` (the floor)
     actor    the same ask to rr_actors' own actor type (the registrars are built on it)
 
+`--count commits` counts SQLite commits instead, per hit, miss, unload and last unload,
+with a durable consumer and provider (`commits`).
+
 How (`--count`):
 
 * `cpu` (the default): the CPU time of every thread of the process and its context
@@ -42,8 +45,9 @@ instance of a user class (its `repr`, `==` and `hash` are user code, run off the
 thread).
 
 Usage:
-    python benchmarks/count_dedup.py [--calls 1000] [--count cpu|callgrind|bytecodes|protocol]
-        [--rounds 5] [--user] [--profile] [--durable]
+    python benchmarks/count_dedup.py [--calls 1000]
+        [--count cpu|callgrind|bytecodes|protocol|commits] [--rounds 5] [--user] [--profile]
+        [--durable] [--durability process|power]
 """
 
 from __future__ import annotations
@@ -346,6 +350,68 @@ def cpu(bench: Bench, calls: int, rounds: int) -> None:
         print(f"| {name} | {us:.1f} | {switches:.2f} | {us / floor:.2f}x |")
 
 
+def commits(calls: int, durability: str) -> None:
+    """SQLite commits per operation, one caller, a durable provider and a durable consumer.
+
+    Both registrars have a backup with `save_on_modify`; commits are counted by wrapping
+    the store's one write path (`SqliteStore._run`: a call is a transaction), so the count
+    reads the same on any tree. Operations: a dedup hit, a miss (a new request: loaded),
+    the unload of a hit's id (not the last consumer) and the last unload (the resource is
+    unloaded).
+    """
+    from rr_actors._store.sqlite import SqliteStore  # noqa: PLC0415 - a backup's store
+
+    made = [0]
+    run = SqliteStore._run
+
+    def counted_run(store: Any, ops: Any) -> None:
+        run(store, ops)
+        made[0] += 1
+
+    SqliteStore._run = counted_run  # type: ignore[method-assign]
+    with tempfile.TemporaryDirectory() as work:
+
+        def durable(name: str) -> rr.ResourceRegistrar:
+            return rr.ResourceRegistrar.start(
+                rr.RegistrarConfig(
+                    name=name,
+                    backup_path=Path(work, f"{name}.db"),
+                    save_on_modify=True,
+                    durability=durability,  # type: ignore[arg-type]
+                )
+            )
+
+        provider, consumer = durable("commits-provider"), durable("commits-consumer")
+        provider.register_server("res", load=lambda request: request, unload=_noop)
+        consumer.call(provider.name, "res", "shared")  # held: every call of it after, a hit
+        hits: list[str] = []
+        misses: list[str] = []
+        fresh = iter(range(10**9))
+        operations: dict[str, Callable[[], object]] = {
+            "hit": lambda: hits.append(consumer.call(provider.name, "res", "shared").id),
+            "miss": lambda: misses.append(consumer.call(provider.name, "res", next(fresh)).id),
+            "unload": lambda: consumer.unload(hits.pop()),
+            "last unload": lambda: consumer.unload(misses.pop()),
+        }
+        rows = {}
+        for name, operation in operations.items():
+            provider.server_queries("res")  # (a round trip to each: nothing left over)
+            consumer.client_queries()
+            before = made[0]
+            for _ in range(calls):
+                operation()
+            provider.server_queries("res")
+            consumer.client_queries()
+            rows[name] = (made[0] - before) / calls
+        consumer.stop()
+        provider.stop()
+    print(f"SQLite commits per operation, one caller, durability={durability} ({calls} each)")
+    print("| operation | commits |")
+    print("|---|---:|")
+    for name, per in rows.items():
+        print(f"| {name} | {per:.2f} |")
+
+
 def counted(args: argparse.Namespace) -> None:
     """The run under a counter (inside valgrind, or traced): its phases, marked."""
     bytecodes = Bytecodes() if args.count == "bytecodes" else None
@@ -483,9 +549,10 @@ def main() -> int:
     parser.add_argument("--calls", type=int, default=1000, help="operations (default 1000)")
     parser.add_argument(
         "--count",
-        choices=["cpu", "callgrind", "bytecodes", "inside-callgrind", "protocol"],
+        choices=["cpu", "callgrind", "bytecodes", "inside-callgrind", "protocol", "commits"],
         default="cpu",
     )
+    parser.add_argument("--durability", choices=["process", "power"], default="process")
     parser.add_argument("--rounds", type=int, default=5, help="rounds of --count cpu")
     parser.add_argument("--user", action="store_true", help="a request of a user class")
     parser.add_argument("--profile", action="store_true", help="bytecodes by function")
@@ -495,7 +562,9 @@ def main() -> int:
     args = parser.parse_args()
     if args.profile:
         args.count = "bytecodes"
-    if args.count == "callgrind":
+    if args.count == "commits":
+        commits(args.calls, args.durability)
+    elif args.count == "callgrind":
         callgrind(args)
     elif args.count == "protocol":
         protocol(args.calls)

@@ -46,7 +46,8 @@ a loop's thread must not wait for; `directory.LocalPeer`):
    │  before this one handled (`Inbox.handled` == this one's ticket)?
    │     handle it here, in the turn; the actor's thread sleeps on
    └─ otherwise: put it in the inbox (the actor's thread handles it in order)
- the actor's thread: get an envelope ─► take the turn ─► handle it ─► give the turn back
+ the actor's thread: get an envelope ─► take the turn ─► handle it (and, with `drain`,
+   the envelopes waiting after it, a bounded number) ─► on_turn_end ─► give the turn back
 ```
 
 So one thread at a time handles the actor's messages, in the order they were put (a
@@ -408,6 +409,17 @@ class Actor(pykka.ThreadingActor):
     """The message kinds a carrier's receiving thread may handle in this actor's turn
     (`deliver`); none by default."""
 
+    drain: int = 1
+    """Messages the actor's thread handles in one turn at most: after a message, the
+    next ones already waiting in the inbox are handled before `on_turn_end`, until this
+    many were (the first included) or `drain_seconds` passed. 1: a turn a message."""
+
+    drain_seconds: float = 0.0
+    """Seconds after a turn's first message past which it takes no more (`drain`)."""
+
+    ends_turns: bool = False
+    """Whether `on_turn_end` runs at the end of each turn (off: not even called)."""
+
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         # pykka makes these with `threading` and `uuid`: the runtime's instead (a
@@ -458,6 +470,29 @@ class Actor(pykka.ThreadingActor):
                     self._handle_envelope(envelope)
                 finally:
                     inbox.handled += 1
+                if self.drain > 1:
+                    self._drain_inbox(inbox)
+                if self.ends_turns:
+                    self._end_turn()
+
+    def _drain_inbox(self, inbox: Inbox) -> None:
+        """Handle the envelopes waiting in `inbox` in this turn, up to `drain` in all (the
+        first included) or `drain_seconds` (the turn lock held: none is handled inline)."""
+        handled = 1
+        until = runtime.monotonic() + self.drain_seconds
+        while (
+            handled < self.drain
+            and not inbox.empty()
+            and not inbox.stopped
+            and not self.actor_stopped.is_set()
+            and runtime.monotonic() < until
+        ):
+            envelope = inbox.get()  # (this thread is its only reader: it is there)
+            try:
+                self._handle_envelope(envelope)
+            finally:
+                inbox.handled += 1
+            handled += 1
 
     def _run_in_turn(self, envelope: Any) -> None:
         """Handle `envelope` on a carrier's thread that holds the turn (`Inbox.run_or_put`)."""
@@ -465,11 +500,29 @@ class Actor(pykka.ThreadingActor):
         _ACTOR_THREAD.active = True
         try:
             self._handle_envelope(envelope)
+            if self.ends_turns:
+                self._end_turn()
         finally:
             _ACTOR_THREAD.active = was
         if self.actor_stopped.is_set():  # it failed or stopped: the actor's thread ends
             self.actor_inbox.stopped = True
             self.actor_inbox.put(_WAKE)
+
+    def _end_turn(self) -> None:
+        """`on_turn_end`; what it raises fails the actor as a handler's failure of a tell
+        does (`on_failure` runs, the actor stops; not an `Exception`: as pykka, the process
+        is going down), so the loop always ends through its teardown."""
+        try:
+            self.on_turn_end()
+        except Exception:  # noqa: BLE001 - (as a tell's failure: `on_failure`, the actor stops)
+            self._handle_failure(*sys.exc_info())
+            try:
+                self.on_failure(*sys.exc_info())
+            except Exception:  # noqa: BLE001 - (as pykka: logged, the actor stops)
+                self._handle_failure(*sys.exc_info())
+        except BaseException:  # noqa: BLE001 - (as pykka: the process is going down)
+            self._stop()
+            pykka.ActorRegistry.stop_all()
 
     def _handle_envelope(self, envelope: Any) -> None:
         """pykka's handling of one envelope (`Actor._actor_loop_running`'s body)."""
@@ -505,6 +558,15 @@ class Actor(pykka.ThreadingActor):
         own `_stop`, wrapped here so that no other module uses pykka's private names).
         """
         self._stop()
+
+    def on_turn_end(self) -> None:
+        """Run at the end of each turn when `ends_turns`, in it: after the messages it
+        handled (one, or up to `drain` when more waited), before the next turn; on the
+        thread that had the turn.
+
+        A registrar commits the changes of its turn's messages here, and releases their
+        answers after the commit (`rr_actors._registrar.state.Shared.end_turn`).
+        """
 
     def on_ended(self) -> None:
         """Run on the actor's thread once its loop ended and its inbox went to `on_late`."""

@@ -34,6 +34,12 @@ threads, so a slow or hung callback never blocks the mailbox. Every clause of `D
 has one shape, `on_<step>(message, reply)`: `reply` is the message's own (held open for
 a message from the handle, `asked`), or `NO_REPLY`; the step names are what
 `rr_actors.testing.intercept` accepts.
+
+A durable registrar (`save_on_modify` with a backup) commits once per turn: its actor
+takes the messages waiting in its mailbox into the turn (up to `DRAIN`, or
+`DRAIN_SECONDS`), their steps stage their changes (`Shared.commit_then`), and
+`on_turn_end` writes them in one transaction, then releases their answers and events
+(`Shared.end_turn`; docs/explanation/architecture.md, "One turn's transaction").
 """
 
 from __future__ import annotations
@@ -117,6 +123,8 @@ from rr_actors.events import Event
 
 __all__ = [
     "DISPATCH",
+    "DRAIN",
+    "DRAIN_SECONDS",
     "EVENT_LOG",
     "MESSAGE_STEPS",
     "STEPS",
@@ -129,6 +137,15 @@ __all__ = [
 ]
 
 logger = logging.getLogger("rr_actors")
+
+
+DRAIN = 64
+"""Messages a durable registrar handles in one turn at most when they wait in its inbox
+(`Actor.drain`): their changes commit in one transaction, then their answers go."""
+
+DRAIN_SECONDS = 0.02
+"""Seconds after a turn's first message past which a durable registrar takes no more
+into that turn (`Actor.drain_seconds`): the first answer of a turn waits no longer."""
 
 
 Handler = Callable[[Any, Reply], None]
@@ -151,9 +168,10 @@ def asked(bind: Binder) -> Binder:
     def bound(actor: RegistrarActor) -> Handler:
         handle = bind(actor)
         open_requests = actor.lifecycle.open_requests
+        shared = actor.shared
 
         def handle_asked(message: Any, reply: Reply) -> None:
-            opened = OpenReply(reply, open_requests)
+            opened = OpenReply(reply, open_requests, shared)
             try:
                 handle(message, opened)
             except RrError as exc:
@@ -329,6 +347,8 @@ class RegistrarActor(Actor):
             died,
             ended,
         )
+        if saver.durable:  # the messages waiting commit together (`Shared.end_turn`)
+            self.drain, self.drain_seconds, self.ends_turns = DRAIN, DRAIN_SECONDS, True
         self.unknown = LogThrottle(logger)  # messages of no known type (a buggy peer's)
         self.handlers: dict[type, tuple[str, Handler, TextFields]] = {
             kind: (step, bind(self), text_fields(kind)) for kind, (step, bind) in DISPATCH.items()
@@ -343,6 +363,8 @@ class RegistrarActor(Actor):
         self.shared.ref = self.actor_ref
         self.shared.peer.ref = self.actor_ref
         self.lifecycle.on_start()
+        # every step from now on runs in a turn whose end commits it (`on_turn_end`)
+        self.shared.in_turn = self.ends_turns
 
     def on_receive(self, message: Any) -> None:
         if not self.flights.due.outcomes.empty():  # call outcomes handed over before
@@ -401,7 +423,14 @@ class RegistrarActor(Actor):
                 return entry
         return None
 
+    def on_turn_end(self) -> None:
+        """The turn's changes, one transaction; then their answers (`Shared.end_turn`)."""
+        shared = self.shared
+        if shared.dirty or shared.staged:
+            shared.end_turn()
+
     def on_failure(self, *_: object) -> None:
+        self.shared.in_turn = False  # (nothing is staged any more: what is, is refused)
         self.lifecycle.die()
 
     def on_ended(self) -> None:

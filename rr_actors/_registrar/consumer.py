@@ -110,6 +110,7 @@ from rr_actors._registrar.state import NO_REPLY, Phase, Shared
 from rr_actors._types import Query, Status, StatusCallback
 from rr_actors.errors import (
     CallTimeoutError,
+    CatalogWriteError,
     ConfigError,
     RegistrarStoppedError,
     RegistrarUnavailableError,
@@ -490,6 +491,14 @@ def publish_forgotten(
         )
 
 
+def _nothing() -> None:
+    """What a forgotten record's commit answers: nothing (`Holdings.forget`)."""
+
+
+def _ignored(_error: BaseException) -> None:
+    """A forgotten record whose write failed stays forgotten: written with the next one."""
+
+
 # -- answers ---------------------------------------------------------------------------
 
 
@@ -583,18 +592,33 @@ class Answers:
             catalog.add_client(message.record)
             self.texts.added(message.record)
         told = answer_event(self.registrar, message.record, retry=retry)
-        failed = self.registrar.commit(*told)  # (written with its record)
-        if failed is not None and durable:  # not kept
+        if durable:
+            self.keep_durable(message, told)
+            return
+        if self.registrar.commit(*told) is not None:  # (written with its record)
+            self.registrar.publish(*told)  # kept in memory: written with the next write
+        self.holdings.held(query.id, message.on_status)
+
+    def keep_durable(self, message: ClientLoaded, told: tuple[events.Event, ...]) -> None:
+        """Commit a durable call's answer with its `CallAnswered` (with the rest of the
+        turn), then answer its caller; not written: give the id back, fail the call."""
+        query = message.record.query
+        self.holdings.held(query.id, message.on_status)  # (a notice may come next)
+
+        def undo(failed: CatalogWriteError) -> None:  # not kept
             give_back(query.serving_rr, query.id, self.registrar.name)
-            self.holdings.forget(query.id)
+            self.holdings.forget(query.id, commit=False, reason=None)
             publish_refused(self.registrar, query, failed)
             message.attempt.settle(error=failed)
-            return
-        if failed is not None:  # kept in memory: written with the next write
-            self.registrar.publish(*told)
-        self.holdings.held(query.id, message.on_status)
-        if durable:
+
+        def refuse(error: RrError) -> None:  # died before its commit: not kept either
+            give_back(query.serving_rr, query.id, self.registrar.name)
+            message.attempt.settle(error=error)
+
+        def ok() -> None:
             message.attempt.settle(query.response)
+
+        self.registrar.commit_then(*told, ok=ok, undo=undo, refuse=refuse)
 
     def unstorable(self, message: ClientLoaded) -> bool:
         """A durable call's response this catalog cannot store: give it back, fail the call.
@@ -745,7 +769,9 @@ class Holdings:
             self.status_callbacks.pop(query_id, None)
             self.targets.pop(query_id, None)
             self.answered_in.pop(query_id, None)
-            if commit:
+            if commit and self.registrar.in_turn:  # (with the rest of the turn: an answer
+                self.registrar.commit_then(ok=_nothing, undo=_ignored, refuse=_ignored)
+            elif commit:  # after it waits for it)
                 self.registrar.commit()
 
     def callback_of(self, query_id: str) -> StatusCallback | None:

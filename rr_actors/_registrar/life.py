@@ -480,7 +480,9 @@ class Lifecycle:
         self.presence.close()
         MEMBERSHIP.leave(self.hearer)
         DIRECTORY.unregister(self.registrar.peer, "died")
-        self.fail_waiting(RegistrarUnavailableError(f"registrar {self.registrar.name!r} died"))
+        died = RegistrarUnavailableError(f"registrar {self.registrar.name!r} died")
+        self.registrar.abort_turn(died)  # (staged, never written: never answered as done)
+        self.fail_waiting(died)
         self.stop_children()
         if self.flush_timer is not None:
             self.flush_timer.cancel()

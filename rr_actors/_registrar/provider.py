@@ -122,6 +122,7 @@ from rr_actors._types import LoadCallback, Status, StatusUpdate, UnloadCallback
 from rr_actors.config import MAX_DEPENDENCY_DEPTH
 from rr_actors.errors import (
     CallTimeoutError,
+    CatalogWriteError,
     ConfigError,
     DependencyCycleError,
     DuplicateNameError,
@@ -332,7 +333,12 @@ class Provider:
         if not same:
             message.reply.set_error(self.reused(message, known.server))
         elif self.registrar.catalog.has_consumer(message.query_id):  # answered: the stored response
-            message.reply.set_result(known.response)
+            reply = message.reply  # (after the turn's commit: its id may be staged in it)
+            self.registrar.commit_then(
+                ok=lambda: reply.set_result(known.response),
+                undo=reply.set_error,
+                refuse=reply.set_error,
+            )
         elif message.query_id in self.loading_ids:  # it waits for the load again
             waiter = Waiter(message.query_id, message.origin_rr, message.reply)
             self.loads[self.loading_ids[message.query_id]].append(waiter)
@@ -401,13 +407,17 @@ class Provider:
             if shared.events.active
             else ()
         )
-        failed = shared.commit(*told)  # (written with it, published before the answer)
-        if failed is not None:  # not durable: the caller holds nothing
-            shared.catalog.release(message.query_id)
-            shared.commit()
-            message.reply.set_error(failed)
-            return
-        message.reply.set_result(resource.response)
+        reply, query_id, response = message.reply, message.query_id, resource.response
+
+        def undo(failed: CatalogWriteError) -> None:  # not durable: the caller holds nothing
+            if shared.catalog.has_consumer(query_id):
+                shared.catalog.release(query_id)
+            reply.set_error(failed)
+
+        # written with it (and the rest of the turn), published before the answer
+        shared.commit_then(
+            *told, ok=lambda: reply.set_result(response), undo=undo, refuse=reply.set_error
+        )
 
     def start_load(self, server: Server, message: Load, waiter: Waiter, key: Any) -> None:
         """Load a request not loaded here (`key`: its `runtime_key` if it has no digest)."""
@@ -1072,6 +1082,18 @@ class Unloading:
             if shared.events.active
             else ()
         )
+        if reply is not None and resource.consumers and resource.state is ResourceState.LOADED:
+            answer = reply  # (not the last: answered once written, with the rest of the turn)
+
+            def undo(failed: CatalogWriteError) -> None:  # not durable: nothing changes
+                if not catalog.has_consumer(query_id) and resource.id in catalog.resources:
+                    catalog.add_consumer(resource.id, query_id, origin)
+                answer.set_error(failed)
+
+            shared.commit_then(
+                *told, ok=lambda: answer.set_result(None), undo=undo, refuse=answer.set_error
+            )
+            return
         failed = shared.commit(*told)  # (written with it)
         if failed is not None and reply is not None:  # not durable: nothing changes
             catalog.add_consumer(resource.id, query_id, origin)

@@ -59,6 +59,8 @@ __all__ = [
     "Probes",
     "Server",
     "Shared",
+    "Staged",
+    "TurnEvents",
     "Waiter",
     "consumers_by_origin",
     "life_order",
@@ -112,24 +114,36 @@ class Waiter:
 class OpenReply:
     """A handle request's reply, known to its actor until answered (a crash fails it).
 
-    Answered on the actor thread, or, for `send_status`, on the thread of the last
-    acknowledgement: so `open_requests` (a dict used as an ordered set: in the order the
-    requests came) is only ever changed by single dict operations (set an item, pop
-    one) and read as a copy (`list(...)`), each atomic.
+    Answered on the actor thread (after the commit of its turn, if the turn staged a
+    change: `Shared.after_commit`), or, for `send_status`, on the thread of the last
+    acknowledgement (at once): so `open_requests` (a dict used as an ordered set: in the
+    order the requests came) is only ever changed by single dict operations (set an
+    item, pop one) and read as a copy (`list(...)`), each atomic.
     """
 
-    __slots__ = ("open", "reply")
+    __slots__ = ("open", "reply", "shared")
 
-    def __init__(self, reply: Reply, open_requests: dict[OpenReply, None]) -> None:
+    def __init__(
+        self, reply: Reply, open_requests: dict[OpenReply, None], shared: Shared | None = None
+    ) -> None:
         self.reply = reply
         self.open = open_requests
+        self.shared = shared  # (its answer waits for the commit of its actor's turn)
         open_requests[self] = None
 
     def set_result(self, value: Any) -> None:
+        shared = self.shared
+        if shared is not None and shared.dirty and shared.holds_here():
+            shared.after_commit(lambda: self.set_result(value))  # (after the turn's commit)
+            return
         self.open.pop(self, None)
         self.reply.set_result(value)
 
     def set_error(self, error: BaseException) -> None:
+        shared = self.shared
+        if shared is not None and shared.dirty and shared.holds_here():
+            shared.after_commit(lambda: self.set_error(error))  # (after the turn's commit)
+            return
         self.open.pop(self, None)
         self.reply.set_error(error)
 
@@ -148,6 +162,42 @@ class _NoReply:
 
 NO_REPLY: Reply = _NoReply()
 """What a role's handler gets as `reply` for a message without one (`actor.DISPATCH`)."""
+
+
+@dataclasses.dataclass(slots=True)
+class Staged:
+    """A step whose change waits for its turn's commit (`Shared.commit_then`): what it
+    does then. `undo` `None`: `ok` runs after a failed write too; `refuse` `None`: a
+    death leaves its caller to `Lifecycle.fail_waiting`."""
+
+    ok: Callable[[], None]
+    undo: Callable[[CatalogWriteError], None] | None
+    refuse: Callable[[RrError], None] | None
+
+
+class TurnEvents:
+    """A registrar's publisher as its parts see it (`Shared.events`): while its turn has
+    changes staged, an event published is held and published after the turn's commit
+    (`Shared.end_turn`), in order with the events of those changes; else at once."""
+
+    __slots__ = ("_published", "_shared")
+
+    def __init__(self, shared: Shared) -> None:
+        self._shared = shared
+        self._published = shared.published
+
+    @property
+    def active(self) -> bool:
+        """Whether anyone listens (`Publisher.active`)."""
+        return self._published.active
+
+    def publish(self, event: events.Event) -> None:
+        """Publish `event` (actor's thread), after the turn's commit if one is pending."""
+        shared = self._shared
+        if shared.dirty:
+            shared.held.append((event, False))
+        else:
+            self._published.publish(event)
 
 
 _STARTS = itertools.count()  # registrars started in this process (`Shared.life`)
@@ -204,7 +254,19 @@ class Shared:
         self.tokens = Tokens()
         self.probes: Probes | None = None
         self.ref: pykka.ActorRef[Any] | None = None
-        self.events = published
+        self.published = published  # (the publisher itself: `events` holds in a turn)
+        # (a durable registrar's turn holds events: `TurnEvents`; no other ever stages)
+        self.events: Publisher[events.Event] | TurnEvents = (
+            TurnEvents(self) if saver.durable else published
+        )
+        # the turn (`commit_then`, `end_turn`): whether steps run in turns whose end
+        # commits (a durable registrar's actor once started, until it dies), the changes
+        # staged since the last write, what waits for that write, its events
+        self.in_turn = False
+        self.dirty = False
+        self.turn_thread = 0  # (the thread of the turn that staged them: `holds_here`)
+        self.staged: list[Staged] = []
+        self.held: list[tuple[events.Event, bool]] = []  # (event, told by a staged change)
         self.held_in_doubt: set[str] = set()
         # this run of the registrar (`new_life`), the same in every `ReconcileAsk`,
         # `Reconcile` and `Load` it sends (`consumer.py`'s `Flights.kept_at`; a
@@ -215,6 +277,145 @@ class Shared:
     def stopping(self) -> bool:
         """Whether it stops (or ended): it takes no new loads and keeps no new answers."""
         return self.phase is Phase.STOPPING or self.phase is Phase.ENDED
+
+    # -- the turn: one transaction for the messages a turn handled ----------------------
+
+    def commit_then(
+        self,
+        *told: events.Event,
+        ok: Callable[[], None],
+        undo: Callable[[CatalogWriteError], None],
+        refuse: Callable[[RrError], None],
+    ) -> None:
+        """Commit the catalog's changes and the events `told` of them; then run `ok()`
+        (the step's answer), or `undo(error)` if the write failed.
+
+        In a turn of a durable registrar (`in_turn`: `save_on_modify` with a backup) the
+        changes are staged: written with every other change of the turn in one
+        transaction at its end (`end_turn`), and `ok` runs after that commit, so the
+        answer is released only once its change is durable (rules 14-16). Otherwise
+        they are committed now (`commit`), as before.
+
+        Args:
+            told: the events of the changes: in the outbox with them, published after
+                the commit, before `ok`; dropped if the write fails.
+            ok: the change is durable: answer (the actor's thread).
+            undo: the write failed (`CatalogWriteError`: a full disk): undo the change
+                in memory (no commit: the turn commits the undoing once) and fail the
+                caller with the error.
+            refuse: the registrar died before the turn's commit (`abort_turn`): fail
+                the caller with the error (nothing is written any more).
+        """
+        if not (self.in_turn and self.saver.durable):
+            failed = self.commit(*told)
+            if failed is None:
+                ok()
+            else:
+                undo(failed)
+                self.commit()
+            return
+        changes = self.catalog.drain_changes()
+        for rid in self.held_in_doubt.intersection(changes.resources):
+            del changes.resources[rid]  # written once settled (`settle_held`)
+        if changes:
+            self.saver.stage(changes)
+            if not self.dirty:
+                self.dirty, self.turn_thread = True, runtime.get_ident()
+        if not self.dirty:  # nothing of it, nor of the turn before it, to wait for
+            self.publish(*told)
+            ok()
+            return
+        self.held.extend((event, True) for event in told)
+        self.staged.append(Staged(ok, undo, refuse))
+
+    def after_commit(self, then: Callable[[], None]) -> bool:
+        """Run `then()` after the turn's commit if changes wait for it (`False`: none wait,
+        run it now). For an answer that may tell of a staged change (a handle's request:
+        `OpenReply`); it runs after a failed write too."""
+        if not self.dirty:
+            return False
+        self.staged.append(Staged(then, None, None))
+        return True
+
+    def holds_here(self) -> bool:
+        """Whether the calling thread has the turn that staged changes (an answer given
+        there waits for its commit; one from another thread, a status acknowledgement's,
+        tells of no staged change and goes at once)."""
+        return self.turn_thread == runtime.get_ident()
+
+    def end_turn(self) -> CatalogWriteError | None:
+        """Commit what the turn staged, one transaction, then release what waits for it.
+
+        Runs at the end of each turn (`RegistrarActor.on_turn_end`), and before any other
+        commit of the turn (`commit`), so changes reach the file in the order they were
+        made. Committed: the held events are published (in order), then each staged
+        step's `ok` runs, in the order they were staged. The write failed: the events
+        published outside a change are published, the staged steps undone (newest
+        first) and that undoing committed (or kept pending), and the error returned.
+        """
+        failed: CatalogWriteError | None = None
+        while self.dirty or self.staged:  # (an answer released may stage more)
+            staged, held = self.staged, self.held
+            self.staged, self.held, self.dirty = [], [], False
+            told = [event for event, _ in held]
+            healthy = self.saver.failure is None
+            try:
+                self.probe("turn_commit", staged)  # (staged, not written: a kill loses it)
+                self.saver.write(told)
+            except CatalogWriteError as exc:
+                if healthy:
+                    self.warn_unwritten(exc)
+                failed = exc
+                self.unwritten(staged, held, exc)
+                continue
+            except BaseException:  # a bug: the actor dies (`abort_turn` refuses them)
+                self.staged, self.held = staged + self.staged, held + self.held
+                raise
+            if told:
+                self.probe("events_written", told)  # (committed with them, not yet published)
+            for event, _ in held:
+                self.published.publish(event)
+            for step in staged:
+                step.ok()
+        return failed
+
+    def unwritten(
+        self, staged: list[Staged], held: list[tuple[events.Event, bool]], exc: CatalogWriteError
+    ) -> None:
+        """The turn's write failed (`exc`): publish the events told outside a change, undo
+        each staged step (newest first), commit that undoing (or keep it pending), then
+        release the answers that wait for the write whatever its outcome."""
+        for event, of_change in held:
+            if not of_change:
+                self.published.publish(event)
+        for step in reversed(staged):
+            if step.undo is not None:
+                step.undo(exc)
+        self.commit()  # (the undoing: kept pending if the disk is still full)
+        for step in staged:
+            if step.undo is None:
+                step.ok()
+
+    def abort_turn(self, error: RrError) -> None:
+        """The registrar died in a turn: what it staged is never written, nor answered as
+        done; each staged step's caller is failed with `error` (its `refuse`)."""
+        staged, held = self.staged, self.held
+        self.staged, self.held, self.dirty = [], [], False
+        for event, of_change in held:
+            if not of_change:
+                self.published.publish(event)
+        for step in staged:
+            if step.refuse is not None:
+                step.refuse(error)
+
+    def warn_unwritten(self, exc: CatalogWriteError) -> None:
+        """Log the first write of a failing streak (the next success clears it)."""
+        logger.warning(
+            "registrar %s: %s; changes wait in memory, new loads are refused until "
+            "a write succeeds",
+            self.name,
+            exc,
+        )
 
     def commit(self, *told: events.Event, now: bool = False) -> CatalogWriteError | None:
         """Hand the catalog's changes to the save policy (durable now, or at the next flush),
@@ -238,6 +439,8 @@ class Shared:
             and fails the caller with it; one whose change stands publishes them itself
             (`publish`).
         """
+        if self.dirty:  # what the turn staged first, in its own transaction
+            self.end_turn()
         if self.saver.store is None:  # nothing persists this catalog
             self.publish(*told)
             return None
@@ -252,12 +455,7 @@ class Shared:
             written = self.saver.changed(changes, told, now=now)
         except CatalogWriteError as exc:
             if healthy:  # once per failing streak: the next success clears it
-                logger.warning(
-                    "registrar %s: %s; changes wait in memory, new loads are refused until "
-                    "a write succeeds",
-                    self.name,
-                    exc,
-                )
+                self.warn_unwritten(exc)
             return exc
         if written and told:
             self.probe("events_written", told)  # (committed with them, not yet published)
@@ -283,7 +481,11 @@ class Shared:
         `None` once it succeeds (or for a registrar without `save_on_modify`).
         """
         saver = self.saver
-        if not saver.durable or saver.failure is None or saver.retry():
+        if not saver.durable or saver.failure is None:
+            return None
+        if self.dirty:  # (the retry would write what the turn staged, without its events)
+            self.end_turn()
+        if saver.failure is None or saver.retry():
             return None
         return saver.failure
 
@@ -325,6 +527,7 @@ POINTS: frozenset[str] = frozenset(
         "send_load",  # a call's Load is about to leave the caller's thread (durable: committed)
         "withdraw",  # a caller that stopped waiting is about to send its Abandon
         "events_written",  # a change and its events committed together; published next
+        "turn_commit",  # a turn's staged changes are about to be written (the Staged list)
     }
 )
 """Points inside a step (`before` runs there; `after` is the same as `before`)."""

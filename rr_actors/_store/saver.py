@@ -178,6 +178,28 @@ class Saver:
             self._told = ()
         return True
 
+    def stage(self, changes: Changes) -> None:
+        """Take changes to write with the next `write` (a registrar's turn: its changes
+        are one transaction at the turn's end), whatever the policy; none without a store."""
+        if self.store is None:
+            return
+        self._pending.resources.update(changes.resources)
+        self._pending.clients.update(changes.clients)
+
+    def write(self, told: Sequence[events.Event] = ()) -> None:
+        """Write what is pending now, one transaction, with the events `told` that tell of
+        it (the end of a registrar's turn); nothing without a store or pending changes.
+
+        Raises:
+            CatalogWriteError: the write failed: the changes stay pending, `failure` is
+                this error, and `told` is dropped (never kept pending).
+        """
+        self._told = told
+        try:
+            self.flush()
+        finally:
+            self._told = ()
+
     def flush(self) -> None:
         """Write what accumulated since the last write.
 

@@ -141,6 +141,9 @@ class SqliteStore:
         self._commits = CommitCount(self._file, kept=self._guarded)
         self.lost_commits = 0
         """Commits of the last run that its WAL no longer held when this store opened."""
+        self.commits = 0
+        """Write transactions this store committed since it opened (one per `write` that
+        changed the file)."""
 
     @classmethod
     def open(
@@ -520,6 +523,7 @@ class SqliteStore:
             except BaseException:
                 rollback(db)
                 raise
+        self.commits += 1
         self._commits.committed()
         if self._checkpointer is None:
             return

@@ -407,6 +407,63 @@ def test_messages_are_handled_in_the_order_they_were_told() -> None:
         ref.stop()
 
 
+class _Turns(Actor):
+    """Records each turn's messages in `turns`: `on_turn_end` closes the one under way."""
+
+    drain = 3
+    drain_seconds = 60.0
+    ends_turns = True
+
+    def __init__(self, gate: threading.Event, turns: list[list[Any]]) -> None:
+        super().__init__()
+        self.gate = gate
+        self.turns = turns
+        self.current: list[Any] = []
+
+    def on_receive(self, message: Any) -> Any:
+        if message == "wait":
+            assert self.gate.wait(10)
+        self.current.append(message)
+        return None
+
+    def on_turn_end(self) -> None:
+        if self.current:
+            self.turns.append(self.current)
+            self.current = []
+
+
+def test_a_turn_takes_the_messages_waiting_up_to_drain_then_ends_once() -> None:
+    gate, turns = threading.Event(), list[list[Any]]()
+    ref = _Turns.start(gate, turns)
+    busy = ref.ask("wait", block=False)  # the first turn's first message
+    for number in range(4):
+        ref.tell(number)
+    gate.set()
+    busy.get(timeout=10)
+    ref.stop(timeout=10)  # (its loop ended: `turns` is complete)
+
+    assert [["wait", 0, 1], [2, 3]] == turns
+
+
+def test_a_turn_is_one_message_with_no_turn_end_by_default() -> None:
+    class Plain(_Turns):
+        drain = 1
+        ends_turns = False
+
+        def on_receive(self, message: Any) -> Any:
+            self.turns.append([message])  # (each message: no turn end closes anything)
+            return super().on_receive(message)
+
+    gate, turns = threading.Event(), list[list[Any]]()
+    gate.set()
+    ref = Plain.start(gate, turns)
+    for number in range(3):
+        ref.tell(number)
+    ref.stop(timeout=10)
+
+    assert [[0], [1], [2]] == turns
+
+
 def test_asks_still_queued_when_the_actor_stops_fail_with_actor_dead_error() -> None:
     gate = threading.Event()
     ref = _Echo.start(gate)

@@ -8,10 +8,12 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import functools
 import logging
 import os
 import signal
 import sqlite3
+import sys
 import threading
 import uuid
 from collections.abc import Callable, Iterator
@@ -22,15 +24,19 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import events
-from rr_actors._registrar import life, start_registrar
+from rr_actors._core.replies import FutureReply
+from rr_actors._registrar import actor, life, start_registrar
+from rr_actors._registrar.messages import RunOnActor
 from rr_actors.testing import (
     RemoteRegistrar,
     SharedObjects,
     System,
+    actor_ref,
     catalog_snapshot,
     crash,
     expect_restart,
     intercept,
+    run_on_actor,
 )
 from tests.support.gating import GatedLoad
 from tests.support.small_disk import fill, mounted
@@ -754,6 +760,46 @@ class TestFullDisk:
         assert [held.id] == [q.id for q in provider.consumer.client_queries()]
         assert [] == provider.unloads
 
+    def test_hits_and_unloads_waiting_for_one_commit_on_a_full_disk_are_all_refused_undone(
+        self, provider: Provider, disk: Path
+    ) -> None:
+        # One turn stages the changes of the messages waiting in the mailbox (issue 52);
+        # its one transaction fails: every step of it is undone and its caller fails.
+        held = [provider.call("a") for _ in range(3)]
+        turns: list[int] = []  # the steps each turn's commit wrote
+        intercept(provider.registrar, "turn_commit", before=lambda s: turns.append(len(s)))
+        gate = threading.Event()
+        busy = run_on_actor(provider.registrar, lambda: gate.wait(10))  # busy meanwhile
+        outcomes: list[Any] = []
+
+        def run(op: Callable[[], Any]) -> None:
+            try:
+                outcomes.append(op())
+            except rr.RrError as exc:
+                outcomes.append(exc)
+
+        ops = [lambda: provider.call("a"), lambda: provider.call("a")]
+        ops += [functools.partial(provider.consumer.unload, q.id) for q in held[1:]]
+        threads = [threading.Thread(target=run, args=(op,)) for op in ops]
+        inbox = actor_ref(provider.registrar).actor_inbox
+        try:
+            _full(disk)
+            for thread in threads:
+                thread.start()
+            assert wait_for(lambda: inbox.qsize() >= len(ops), 10)  # all wait in its mailbox
+        finally:
+            gate.set()
+        busy.get(timeout=5)
+        for thread in threads:
+            thread.join(10)
+
+        assert [rr.CatalogWriteError] * len(ops) == [type(o) for o in outcomes]
+        assert [len(ops)] == turns  # one transaction: it failed
+        ids = sorted(q.id for q in held)
+        assert ids == sorted(q.id for q in provider.registrar.server_queries("cam"))
+        assert ids == sorted(q.id for q in provider.consumer.client_queries())
+        assert [] == provider.unloads
+
     def test_loads_are_served_again_once_a_write_succeeds(
         self, provider: Provider, disk: Path
     ) -> None:
@@ -845,3 +891,168 @@ class TestFullDisk:
         finally:
             filler.unlink()
             consumer.stop()
+
+
+# -- for TestTurn --------------------------------------------------------------------------
+
+
+def _commits(registrar: rr.ResourceRegistrar) -> int:
+    """The transactions the registrar's backup committed since it opened (on its actor)."""
+
+    def read(actor: Any, reply: Any) -> None:
+        reply.set_result(actor.shared.saver.store.commits)
+
+    reply = FutureReply()
+    actor_ref(registrar).tell(RunOnActor(read, reply))
+    count: int = reply.future.get(timeout=5)
+    return count
+
+
+def _waiting_loads(tmp_path: Path, waiting: int) -> tuple[list[str], int, list[Any]]:
+    """`waiting` dedup hits wait in a durable provider's mailbox while it is busy, then it
+    handles them: their answers, its commits meanwhile, and for each turn's commit the
+    steps it wrote and whether a caller had its answer by then (`turn_commit`)."""
+    uid = uuid.uuid4().hex[:8]
+    config = rr.RegistrarConfig(
+        name=f"erm-{uid}", backup_path=tmp_path / "erm.db", save_on_modify=True
+    )
+    provider = rr.ResourceRegistrar.start(config)
+    consumer = rr.ResourceRegistrar.start(f"app-{uid}")
+    provider.register_server("cam", load=lambda r: f"cam {r}", unload=lambda _q, _r: None)
+    consumer.call(provider.name, "cam", 1, timeout=5)  # loaded: every call after shares it
+    answered: list[str] = []
+    first = threading.Event()  # a caller has its answer
+    at_commit: list[tuple[int, bool]] = []  # (steps staged, whether an answer came)
+
+    def committing(staged: Any) -> None:  # (an answer released early wakes its caller)
+        at_commit.append((len(staged), first.wait(0.5)))
+
+    def call() -> None:
+        answered.append(consumer.call(provider.name, "cam", 1, timeout=30).response)
+        first.set()
+
+    intercept(provider, "turn_commit", before=committing)
+    before = _commits(provider)
+    gate = threading.Event()
+    busy = run_on_actor(provider, lambda: gate.wait(10))  # the provider is busy
+    inbox = actor_ref(provider).actor_inbox
+    callers = [threading.Thread(target=call) for _ in range(waiting)]
+    try:
+        for caller in callers:
+            caller.start()
+        assert wait_for(lambda: inbox.qsize() >= waiting, 10)  # all wait in its mailbox
+        gate.set()
+        busy.get(timeout=5)
+        for caller in callers:
+            caller.join(30)
+        return answered, _commits(provider) - before, list(at_commit)  # (before the stop's)
+    finally:
+        gate.set()
+        consumer.stop()
+        provider.stop()
+
+
+def _leaf_setup(registrar: rr.ResourceRegistrar) -> None:
+    registrar.register_server("leaf", load=lambda r: f"loaded {r}", unload=lambda _q, _r: None)
+
+
+class TestTurn:
+    """A durable registrar's turn: the changes of the messages it handled commit in one
+    transaction at its end, and their answers go only after it (issue 52 parts 2, 4)."""
+
+    def test_the_loads_waiting_in_the_mailbox_commit_once_then_each_is_answered(
+        self, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    ) -> None:
+        monkeypatch.setattr(actor, "DRAIN_SECONDS", 60.0)  # (a loaded machine: no time bound)
+
+        answered, commits, at_commit = _waiting_loads(tmp_path, 8)
+
+        assert ["cam 1"] * 8 == answered
+        assert 1 == commits  # one transaction for the eight
+        assert [(8, False)] == at_commit  # none was answered before it
+
+    def test_a_turn_takes_at_most_drain_messages(
+        self, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    ) -> None:
+        monkeypatch.setattr(actor, "DRAIN_SECONDS", 60.0)
+        monkeypatch.setattr(actor, "DRAIN", 3)
+
+        answered, commits, at_commit = _waiting_loads(tmp_path, 8)
+
+        assert ["cam 1"] * 8 == answered
+        # (the first turn's first message: the one that kept the provider busy)
+        assert (3, [(2, False), (3, True), (3, True)]) == (commits, at_commit)
+
+    def test_a_registrar_that_dies_at_its_turns_commit_fails_the_staged_calls_unwritten(
+        self, tmp_path: Path
+    ) -> None:
+        uid = uuid.uuid4().hex[:8]
+        config = rr.RegistrarConfig(
+            name=f"erm-{uid}", backup_path=tmp_path / "erm.db", save_on_modify=True
+        )
+
+        def setup(registrar: rr.ResourceRegistrar) -> None:
+            registrar.register_server("cam", load=lambda r: f"cam {r}", unload=lambda *_: None)
+
+        provider = rr.ResourceRegistrar.start(config, setup=setup)
+        consumer = rr.ResourceRegistrar.start(f"app-{uid}")
+        try:
+            held = consumer.call(provider.name, "cam", 1, timeout=5)  # committed, answered
+
+            def bug(staged: Any) -> None:
+                if staged:
+                    raise RuntimeError("a bug at the turn's commit")
+
+            intercept(provider, "turn_commit", before=bug)
+            with expect_restart(config.name):  # (not gone for good: its consumer keeps held)
+                with pytest.raises(rr.RegistrarUnavailableError):
+                    consumer.call(provider.name, "cam", 1, timeout=5)  # staged, never written
+                assert provider._actor.died.wait(5)  # (its death handled: backup closed)
+
+            again = rr.ResourceRegistrar.start(config, setup=setup)  # on its backup
+            try:
+                assert [held.id] == [q.id for q in again.server_queries("cam")]
+            finally:
+                again.stop()
+        finally:
+            consumer.stop()
+
+    @pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+    @pytest.mark.usefixtures("by_value")  # (tests/conftest.py)
+    def test_a_kill_at_the_turns_commit_acknowledged_nothing_staged_and_lost_nothing_acknowledged(
+        self, supervisors: Callable[..., rr.Supervisor], tmp_path: Path
+    ) -> None:
+        # A real SIGKILL of the provider's manager process at the boundary: its turn's
+        # changes are staged (a consumer id added), the transaction not begun. The call
+        # whose id was staged fails; the ids acknowledged before (a miss, then a hit
+        # committed at its turn's end) are in the backup the restarted provider serves.
+        uid = uuid.uuid4().hex[:8]
+        p = f"p-{uid}"
+        sup = supervisors(
+            [rr.ManagerSpec(p, _leaf_setup, isolation="process")], state_dir=tmp_path / "state"
+        )
+        sup.start()
+        app = sup.registrar(f"app-{uid}")
+        acknowledged = [app.call(p, "leaf", "x", timeout=10).id for _ in range(2)]
+
+        def kill_at_commit(registrar: rr.ResourceRegistrar) -> None:
+            import signal  # noqa: PLC0415 - runs in the provider's first process
+
+            from rr_actors.testing import intercept  # noqa: PLC0415
+
+            def kill(staged: Any) -> None:
+                if staged:  # (a turn with a change to write)
+                    os.kill(os.getpid(), signal.SIGKILL)  # staged, not written
+
+            intercept(registrar, "turn_commit", before=kill)
+
+        sup.run_in(p, kill_at_commit)
+        with pytest.raises(rr.RegistrarUnavailableError):
+            app.call(p, "leaf", "x", timeout=10)  # a hit: staged, never acknowledged
+        sup.wait_restarted(p, timeout=15)
+
+        assert sorted(acknowledged) == sup.run_in(
+            p, lambda r: sorted(q.id for q in r.server_queries("leaf"))
+        )
+        assert sorted(acknowledged) == sorted(q.id for q in app.client_queries())
+        app.stop()

@@ -370,6 +370,40 @@ def test_a_change_whose_save_on_modify_write_failed_is_written_with_the_next_cha
     assert [(["r1", "r2"], ["d1"])] == store.written
 
 
+def test_changes_staged_for_a_turn_wait_for_its_write_and_go_in_one_transaction() -> None:
+    store = FlakyStore(fail=1)
+    config = rr.RegistrarConfig(name="x", backup_path="flaky", save_on_modify=True)
+    saver = _persistence.Saver(store, config)
+    saver.stage(Changes({"r1": None}, {}))
+    saver.stage(Changes({"r2": None}, {"d1": None}))
+    assert ([], True) == (store.written, saver.pending)  # staged: nothing written yet
+
+    with pytest.raises(rr.CatalogWriteError, match="simulated"):
+        saver.write()  # the turn's write fails: all of it stays pending
+    saver.write()
+
+    assert [(["r1", "r2"], ["d1"])] == store.written
+    assert (False, None) == (saver.pending, saver.failure)
+
+
+def test_a_store_counts_the_transactions_it_committed(tmp_path: Path) -> None:
+    store = SqliteStore.open(tmp_path / "p.db")
+    try:
+        store.load()
+        catalog = Catalog()
+        catalog.begin_load("r1", "cam", 1)
+        catalog.finish_load("r1", "one")
+        catalog.add_consumer("r1", "q1", "C")
+        store.write(catalog.drain_changes())  # a resource and its consumer: one
+        store.write(catalog.drain_changes())  # nothing changed: none
+        catalog.add_consumer("r1", "q2", "C")
+        store.write(catalog.drain_changes())  # one row: one
+
+        assert 2 == store.commits
+    finally:
+        store.close(erase=False)
+
+
 def test_changes_whose_interval_flush_failed_are_written_with_the_next_flush() -> None:
     store = FlakyStore(fail=1)
     saver = _persistence.Saver(store, rr.RegistrarConfig(name="x", backup_path="flaky"))
