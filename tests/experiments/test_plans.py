@@ -37,6 +37,7 @@ SHIPPED = {
     "simhosts",
     "simshare",
     "simnostate",
+    "simslow",
 }
 """Every plan shipped in the package; the tutorial's `first` runs in the docs test."""
 
