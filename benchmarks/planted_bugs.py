@@ -421,6 +421,21 @@ PLANTS = (
         "simprogram",
         "left",
     ),
+    Plant(
+        "status-lanes",
+        "an id's next status run beside its hung callback: the status watchdog that gives "
+        "up a callback opens its id's lane (the reverse of 5884c558, issue 51 finding 6)",
+        "_registrar/status.py",
+        "                        drainer.abandoned = True\n"
+        "                        self._drainers -= 1\n"
+        "                        self._inside.discard(drainer)\n",
+        "                        drainer.abandoned = True\n"
+        "                        self._drainers -= 1\n"
+        "                        self._inside.discard(drainer)\n"
+        "                        self._let_go(drainer, drainer.call)  # PLANTED: lane opened\n",
+        "simslow",
+        "status-order",
+    ),
 )
 """The planted bugs, one at a time (docs/performance.md lists them)."""
 

@@ -64,7 +64,7 @@ from typing import Any
 
 from rr_actors import events
 from rr_actors._catalog import Resource
-from rr_actors._core import runtime
+from rr_actors._core import hlc, runtime
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.ids import new_id
@@ -370,7 +370,8 @@ class StatusRelay:
             if record is None:
                 continue
             update = StatusUpdate(query_id, message.status, message.message, message.source)
-            if self.registrar.events.active:
+            active = self.registrar.events.active
+            if active:
                 latency = max(0.0, runtime.wall() - message.sent_at)
                 self.registrar.events.publish(
                     events.StatusDelivered(
@@ -386,7 +387,10 @@ class StatusRelay:
             if isinstance(callback, OnLoop):  # (each id's in order, on its loop)
                 callback.submit(record.query, update, then=_done_by(join.add()), key=query_id)
             elif callback is not None:  # (each id's in order with the desk's own)
-                DESK.runner.run((_Call(callback, record.query, update, join.add()),))
+                # (published on the callback's thread: the publisher itself, not the turn's)
+                told = self.registrar.published, self.registrar.name, message.event
+                call = _Call(callback, record.query, update, join.add(), told if active else None)
+                DESK.runner.run((call,))
             if record.parent is not None and record.parent in catalog.resources:
                 parent = catalog.resources[record.parent]
                 self.notify(
@@ -442,9 +446,12 @@ class StatusTargets:
 
 
 class _Call:
-    """One status callback to run, and the part of its batch's join it completes."""
+    """One status callback to run, and the part of its batch's join it completes.
 
-    __slots__ = ("callback", "done", "query", "seq", "update")
+    `told`, while events are published: (the registrar's publisher, its name, the status's
+    id), to publish a `StatusHandled` as the callback returns (before `done`)."""
+
+    __slots__ = ("callback", "done", "opened", "query", "seq", "told", "update")
 
     def __init__(
         self,
@@ -452,20 +459,40 @@ class _Call:
         query: Query,
         update: StatusUpdate,
         done: Callable[..., None],
+        told: tuple[Publisher[events.Event], str, str] | None = None,
     ) -> None:
         self.callback = callback
         self.query = query
         self.update = update
         self.done = done
+        self.told = told
         self.seq = 0  # its place in the runner's arrival order
+        self.opened = 0  # the stamp at which it first let its lane go (`Runner._waits`)
 
     def __call__(self) -> None:
+        told = self.told
+        began = hlc.CLOCK.now() if told is not None else 0
         try:
             self.callback(self.query, self.update)
         except BaseException:  # (a SystemExit too: logged, and its drainer goes on)
             logger.exception("status callback for %s raised", self.query.id)
         finally:
-            self.done()
+            try:
+                if told is not None:
+                    publisher, name, status_id = told
+                    publisher.publish(
+                        events.StatusHandled(
+                            name,
+                            self.query.id,
+                            self.update.status,
+                            status_id,
+                            self.seq,
+                            began,
+                            self.opened,
+                        )
+                    )
+            finally:
+                self.done()
 
 
 def _done_by(done: Callable[..., None]) -> Callable[[BaseException | None], None]:
@@ -591,6 +618,8 @@ class Runner:
     def _waits(self, drainer: _Drainer, call: _Call) -> None:
         """`call`'s callback waits for a registrar (`replies.let_go`, any thread, any time,
         more than once): its lane opens, if its drainer still holds it for it."""
+        if not call.opened and call.told is not None:
+            call.opened = hlc.CLOCK.now()
         with self._lock:
             self._let_go(drainer, call)
             start, watch = self._wanted()
@@ -767,7 +796,8 @@ class Desk:
             if isinstance(callback, OnLoop):  # a coroutine: on its loop, no worker
                 callback.submit(query, update, then=_done_by(join.add()), key=query_id)
             else:
-                calls.append(_Call(callback, query, update, join.add()))
+                told = (targets.events, targets.name, batch.event) if publish else None
+                calls.append(_Call(callback, query, update, join.add(), told))
         return tuple(slow)
 
     def forward(

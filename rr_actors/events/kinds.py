@@ -42,6 +42,7 @@ __all__ = [
     "Rows",
     "ServerQueriesListed",
     "StatusDelivered",
+    "StatusHandled",
     "StatusSent",
     "SupervisorGaveUp",
     "UnloadCutShort",
@@ -817,6 +818,51 @@ class StatusDelivered:
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
+class StatusHandled:
+    """A consumer's status callback returned (one run on a worker thread, not a coroutine).
+
+    Published by the process's status runner on the callback's worker thread, as the
+    callback returns (or raises), after its `StatusDelivered`. With `arrived`, `began`
+    and `opened` a checker judges the runner's promise (rule 9; the check's rule
+    `status-order`): each query id's callbacks run one at a time, in the order their
+    statuses arrived; the next may begin before this one returned only once this one
+    waited for a registrar (`opened`).
+
+    Attributes:
+        registrar: name of the consumer registrar whose client's callback it was.
+        query_id: the receiver's own query id (the callback's `query.id`).
+        status: the status code.
+        status_id: the send it belongs to (its `StatusSent.status_id`).
+        arrived: the callback's place in its process's arrival order (1, 2, ...: the
+            runner numbers each callback queued): an id's statuses arrived in this order.
+        began: the stamp (`hlc`) taken as the callback began; it returned at `hlc`.
+        opened: the stamp at which it first waited for a registrar (a `send_status`,
+            `call` or `unload` from inside it: its id's next callback may then begin
+            beside it), 0 if it never did.
+        at: when it returned, wall clock (`time.time()` seconds).
+        pid: the receiving registrar's process.
+        seq: its number among its process's events (see `number_events`; 0: not numbered).
+        host: the member name of the host it happened on (see `set_host`).
+        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
+            several hosts by it to put every cause before its effects.
+    """
+
+    registrar: str
+    query_id: str
+    status: Status
+    status_id: str
+    arrived: int
+    began: int
+    opened: int = 0
+    _: dataclasses.KW_ONLY
+    at: float = _now()
+    pid: int = _this_process()
+    seq: int = _numbered()
+    host: str = _this_host()
+    hlc: int = _stamped()
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
 class UnloadCutShort:
     """A clean `stop()` ended while a resource's unload was still under way.
 
@@ -1044,6 +1090,7 @@ Event: TypeAlias = (
     | QueryForgotten
     | StatusSent
     | StatusDelivered
+    | StatusHandled
     | InDoubt
     | CatalogRestored
     | RegistrarStopped

@@ -25,6 +25,7 @@ from rr_actors.events.kinds import (
     ResourceUnloaded,
     ServerQueriesListed,
     StatusDelivered,
+    StatusHandled,
     StatusSent,
     SupervisorGaveUp,
     UnloadCutShort,
@@ -125,6 +126,12 @@ def describe(event: Event) -> str:  # noqa: PLR0911, PLR0912 - one case per even
                 f"{event.registrar} received {event.status.name} for query "
                 f"{_id(event.query_id)} (hop {event.hop}, {_seconds(event.latency_s)} after "
                 f"it was sent)"
+            )
+        case StatusHandled():
+            waited = " (it waited for a registrar)" if event.opened else ""
+            return (
+                f"{event.registrar}: the callback of {event.status.name} for query "
+                f"{_id(event.query_id)} returned{waited}"
             )
         case InDoubt():
             cut = event.cut or "load"

@@ -125,8 +125,9 @@ def registrar_of(event: events.Event) -> str | None:
 def walk(history: Sequence[Line]) -> tuple[list[Step], dict[tuple[str, int], Life]]:
     """Each registrar event with its life, and the lives (see the module docstring).
 
-    A `StatusDelivered` belongs to the life its registrar is in and begins none (a
-    process's status desk may publish it for a registrar, from another thread); a
+    A `StatusDelivered` or `StatusHandled` belongs to the life its registrar is in and
+    begins none (a process's status desk may publish it for a registrar, from another
+    thread); a
     `RegistrarStopped` ends its life, and begins one first if it comes from another
     process (a restart without a backup that published nothing before its stop). The
     events of a second server of a name are those of the registrar `<name>@<pid>`.
@@ -164,13 +165,14 @@ class _Walk:
     @property
     def last(self) -> dict[tuple[str, int], tuple[int, int]]:
         """`(name, pid)` -> the line and the greatest stamp of its last event (all but
-        `StatusDelivered`), in the whole history: read once, where a registrar's events
-        first come from another process while the one before has not ended."""
+        `StatusDelivered` and `StatusHandled`), in the whole history: read once, where a
+        registrar's events first come from another process while the one before has not
+        ended."""
         if self._last is None:
             self._last = {}
             for line, event in self.history:
                 name = getattr(event, "registrar", None)
-                if name is not None and not isinstance(event, events.StatusDelivered):
+                if name is not None and not isinstance(event, _DESK):
                     seen = self._last.get((name, event.pid), (0, 0))
                     self._last[name, event.pid] = (line, max(seen[1], event.hlc))
         return self._last
@@ -219,9 +221,9 @@ class _Walk:
         self.steps.append((name, line, event, new, life))
 
     def ending(self, line: int, event: events.Event, name: str) -> None:
-        """A `StatusDelivered` (in its life) or a `RegistrarStopped` (its life ends; from
-        another process it begins one first: a restart without a backup that published
-        nothing before its stop)."""
+        """A `StatusDelivered` or `StatusHandled` (in its life) or a `RegistrarStopped`
+        (its life ends; from another process it begins one first: a restart without a
+        backup that published nothing before its stop)."""
         stamp = event.hlc
         stopping = isinstance(event, events.RegistrarStopped)
         pid = self.pids.get(name)
@@ -264,8 +266,11 @@ class _Walk:
         return self.second[name, event.pid], (name, self.current[name])
 
 
-_ENDING = (events.StatusDelivered, events.RegistrarStopped)
-"""The events `_Walk.ending` takes: one that is in a life, and one that ends it."""
+_DESK = (events.StatusDelivered, events.StatusHandled)
+"""Events a process's status desk publishes for a registrar, from any thread."""
+
+_ENDING = (events.StatusDelivered, events.StatusHandled, events.RegistrarStopped)
+"""The events `_Walk.ending` takes: two that are in a life, and one that ends it."""
 
 
 @dataclasses.dataclass

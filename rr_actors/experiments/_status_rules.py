@@ -9,6 +9,7 @@
  it) ──► status_reached: each got it, unless it let its id go before the status's last
          delivery (not on the answer to an Unload its sender released it on after the
          send: that answer carried it), or the one to send it on died first
+ StatusHandled ──► status_order: each id's callbacks one at a time, in arrival order
 ```
 """
 
@@ -22,7 +23,7 @@ from rr_actors._core import hlc
 from rr_actors.experiments._history import Facts, Finding, Life, Line, Step, holder_at
 from rr_actors.experiments._provider_rules import Expected
 
-__all__ = ["ANSWERED", "Span", "status_once", "status_path", "status_reached"]
+__all__ = ["ANSWERED", "Span", "status_once", "status_order", "status_path", "status_reached"]
 
 Span = tuple[int, int, int | None, int]
 """A consumer holding a query id in one of its lives: `(life, stamp it began holding it,
@@ -52,6 +53,52 @@ def status_once(history: Sequence[Line]) -> list[Finding]:
             )
         )
     return findings
+
+
+def status_order(history: Sequence[Line]) -> list[Finding]:
+    """`status-order` (rule 9): each query id's status callbacks run one at a time, in the
+    order their statuses arrived at its process's runner (`StatusHandled.arrived`).
+
+    A callback may begin only once every callback of its id that arrived before it
+    returned (its `StatusHandled` stamp), or waited for a registrar (`opened`: its id's
+    next status may be what it waits for). One finding per callback that began earlier:
+    beside one that arrived before it, or before it. A callback that never returned (the
+    run ended first, its process died) has no `StatusHandled` and is not judged.
+    """
+    by_id: dict[tuple[str, int, str, str], list[tuple[int, events.StatusHandled]]]
+    by_id = defaultdict(list)
+    for line, event in history:
+        if isinstance(event, events.StatusHandled):
+            by_id[event.host, event.pid, event.registrar, event.query_id].append((line, event))
+    findings: list[Finding] = []
+    for handled in by_id.values():
+        handled.sort(key=lambda entry: entry[1].arrived)
+        limit, before = 0, handled[0]  # (the latest a next one may begin, and whose)
+        for line, event in handled:
+            if event.began < limit:
+                findings.append(_out_of_order(before, (line, event)))
+            free = event.opened or event.hlc
+            if free > limit:
+                limit, before = free, (line, event)
+    return findings
+
+
+def _out_of_order(
+    before: tuple[int, events.StatusHandled], late: tuple[int, events.StatusHandled]
+) -> Finding:
+    """`status-order`'s finding: `late` began before `before` (arrived first) let it."""
+    first, event = before[1], late[1]
+    how = "before it began" if event.began < first.began else "while it ran"
+    return Finding(
+        "status-order",
+        "violation",
+        f"{event.registrar}: the callback of status {event.status_id[:8]} "
+        f"({event.status.name}) for query {event.query_id[:8]} began {how}: the callback "
+        f"of status {first.status_id[:8]} ({first.status.name}), which arrived before "
+        f"it, had neither returned nor waited for a registrar",
+        tuple(sorted((before[0], late[0]))),
+        (event.registrar,),
+    )
 
 
 def status_path(history: Sequence[Line], facts: Facts) -> list[Finding]:

@@ -50,6 +50,9 @@ what cannot be checked):
 - `status-path`: each delivery of a status is on a dependency path from its send: a
   direct consumer of the resource it was sent about (hop 1), or a consumer of a resource
   one of whose dependencies got it one hop before (the dependency's `CallAnswered.parent`).
+- `status-order` (rule 9): each query id's status callbacks run one at a time, in the
+  order their statuses arrived (`StatusHandled`): none begins before one that arrived
+  before it returned, unless that one waited for a registrar (`opened`).
 - `answered`: from the consumer's side, an answered call (`CallAnswered`) is held until
   it is forgotten (`QueryForgotten`, with why) or listed when its registrar stops, and
   so is a client record its `CatalogRestored` listed; it is not answered twice but as a
@@ -148,6 +151,7 @@ RULES = (
     "status-once",
     "status-reached",
     "status-path",
+    "status-order",
     "answered",
     "reported-lost",
     "end",
@@ -298,6 +302,7 @@ def check(history: Sequence[Line]) -> Verdict:
         *_status_rules.status_once(history),
         *_status_rules.status_reached(providers.expected, facts, spans, lives, history, steps),
         *_status_rules.status_path(history, facts),
+        *_status_rules.status_order(history),
         *answered,
         *_consumer_rules.reported_lost(history, providers.holdings, lives),
         *_consumer_rules.end(steps, history),

@@ -197,6 +197,8 @@ class Workload(_Table, frozen=True):
     cancel: Annotated[float, Meta(ge=0, le=1)] = 0.0  # of the awaited calls, the share cancelled
     cancel_within: SecondsOrZero = 0.05  # each cancelled 0 to this many seconds after it starts
     fetch_every: Annotated[int, Meta(ge=0, le=MAX_FETCH_EVERY)] = 0  # >0: fetch after N calls
+    status_wait: SecondsOrZero = 0.0  # >0: each status callback of `slow_clients` waits so long
+    slow_clients: Annotated[int, Meta(ge=0, le=MAX_CLIENTS)] = 1  # the first N clients
     calls: tuple[CallMix, ...] = ()
 
 

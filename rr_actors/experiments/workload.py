@@ -20,6 +20,11 @@ the provider of the last one for the ids it holds at that server
 check's `fetch` rule compares with the provider's catalog. A fetch that fails (its
 provider down) is not retried nor recorded as a call.
 
+With `status_wait = S`, each status callback of the first `slow_clients` clients waits
+`S` seconds before it returns (a slow or hung consumer, on the status runner's worker
+thread): the runner's watchdog gives it up after `SLICE` and its id's next statuses wait
+behind it (`_registrar/status.py`), which the check's `status-order` rule judges.
+
 What came due while a call blocked (statuses heard, holds run out) is handled before the
 next call, the statuses first: a `FATAL` about a resource the client still held (not yet
 released, though its hold may have run out while the call blocked) is acted on, as the
@@ -260,6 +265,7 @@ class Client:
         self._seq = itertools.count()
         self._unique = itertools.count()
         self._since_fetch = 0  # calls since the last fetch (`fetch_every`)
+        self._slow = self.workload.status_wait > 0 and index < self.workload.slow_clients
         self._stopping = runtime.Event()
         self._loop: asyncio.AbstractEventLoop | None = None  # (made at the first awaited calls)
         self._factories: dict[str, Callable[..., Any]] = {}
@@ -595,7 +601,10 @@ class Client:
     # -- statuses ---------------------------------------------------------------------------
 
     def _on_status(self, query: rr.Query, update: rr.StatusUpdate) -> None:
-        """Client status callback (a worker thread of this client's registrar): queue it."""
+        """Client status callback (a worker thread of this client's registrar): queue it;
+        a slow client's waits `status_wait` seconds first."""
+        if self._slow:
+            runtime.sleep(self.workload.status_wait)
         if update.status in (rr.Status.FATAL, rr.Status.UPDATE):
             self.heard.append(self._now())
             self._notes.put((query.id, update.status, self._now()))

@@ -191,6 +191,7 @@ def _touched(event: events.Event) -> tuple[str, ...] | None:
         case (
             events.StatusSent()
             | events.StatusDelivered()
+            | events.StatusHandled()
             | events.UnloadCutShort()
             | events.QueriesFetched()
             | events.ServerQueriesListed()

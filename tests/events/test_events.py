@@ -47,6 +47,7 @@ EXAMPLES: list[events.Event] = [
     events.QueryForgotten("cm", QID, "erm", "provider lost"),
     events.StatusSent("erm", QID, rr.Status.FATAL, "process died"),
     events.StatusDelivered("cm", QID, rr.Status.FATAL, 2, 0.0012),
+    events.StatusHandled("cm", QID, rr.Status.FATAL, "s1", 3, 7354725256007057408),
     events.InDoubt("erm", QID, "start_process", "unload"),
     events.CatalogRestored(
         "erm", ((RID, "start_process", "loaded"),), ((QID, RID, "cm"),), (), (1, 1, 0)
@@ -363,6 +364,10 @@ def test_from_dict_names_what_is_wrong(data: Any, named: str) -> None:
         (
             events.StatusDelivered("cm", QID, rr.Status.FATAL, 2, 0.0012),
             "cm received FATAL for query 5e6f7a8b (hop 2, 1.2 ms after it was sent)",
+        ),
+        (
+            events.StatusHandled("cm", QID, rr.Status.FATAL, "s1", 3, 7354725256007057408),
+            "cm: the callback of FATAL for query 5e6f7a8b returned",
         ),
         (events.EventsDropped(17), "17 events dropped (a subscriber or forwarder fell behind)"),
     ],

@@ -267,6 +267,87 @@ def test_a_status_reaching_a_holder_of_another_resource_is_found() -> None:
     assert {13, 14} == _found([*h, other, stray], "status-path")
 
 
+def _with_callbacks(*calls: tuple[str, str, int, int, int, int]) -> list[events.Event]:
+    """`clean()` with a second status (s2) to both ids, then a `StatusHandled` per call:
+    (query id, status id, arrived, began, returned, opened). Every event is stamped 1,000
+    apart in its order; the callbacks' stamps are 10,000 plus their times (0-999)."""
+    h = clean()
+    second = [
+        events.StatusSent("erm", Q1, rr.Status.WARNING, "hotter", "s2", pid=P),
+        events.StatusDelivered("cm", Q1, rr.Status.WARNING, 1, 0.001, "s2", pid=C),
+        events.StatusDelivered("cm", Q2, rr.Status.WARNING, 1, 0.001, "s2", pid=C),
+    ]
+    handled = [
+        events.StatusHandled(
+            "cm",
+            qid,
+            rr.Status.WARNING,
+            sid,
+            arrived,
+            10_000 + began,
+            opened and 10_000 + opened,
+            pid=C,
+            host="h",
+            hlc=10_000 + returned,
+        )
+        for qid, sid, arrived, began, returned, opened in calls
+    ]
+    stamps = iter(range(1_000, 1_000_000, 1_000))
+    return [
+        e
+        if isinstance(e, events.StatusHandled)
+        else dataclasses.replace(e, hlc=next(stamps), host="h")
+        for e in [*h[:7], *second, *handled, *h[7:]]
+    ]
+
+
+def _order_findings(history: list[events.Event]) -> list[check.Finding]:
+    return [f for f in check.check(numbered(history)).findings if f.rule == "status-order"]
+
+
+def test_each_id_s_callbacks_one_at_a_time_in_arrival_order_hold() -> None:
+    one_at_a_time = _with_callbacks(
+        (Q1, "s1", 1, 10, 20, 0),
+        (Q2, "s1", 2, 15, 60, 0),  # (another id's beside them: as it may)
+        (Q1, "s2", 3, 21, 30, 0),
+        (Q2, "s2", 4, 61, 70, 0),
+    )
+    verdict = check.check(numbered(one_at_a_time))
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+
+
+def test_a_callback_that_began_while_an_earlier_one_of_its_id_ran_is_found() -> None:
+    h = _with_callbacks((Q1, "s1", 1, 10, 200, 0), (Q1, "s2", 2, 60, 80, 0))
+    found = _order_findings(h)
+    assert [{11, 12}] == [set(f.lines) for f in found]
+    assert "began while it ran" in found[0].message
+    assert "violated" == check.check(numbered(h)).verdict
+
+
+def test_a_callback_that_began_before_one_of_its_id_that_arrived_first_is_found() -> None:
+    h = _with_callbacks((Q1, "s2", 2, 10, 20, 0), (Q1, "s1", 1, 30, 40, 0))
+    found = _order_findings(h)
+    assert [{11, 12}] == [set(f.lines) for f in found]
+    assert "began before it began" in found[0].message
+
+
+def test_every_callback_that_began_beside_a_hung_one_of_its_id_is_found() -> None:
+    h = _with_callbacks(
+        (Q1, "s1", 1, 10, 900, 0),  # hung: the watchdog gave it up
+        (Q1, "s2", 2, 60, 80, 0),
+        (Q1, "s1", 3, 81, 90, 0),  # (after the one before it, but beside the hung one)
+        (Q1, "s2", 4, 901, 910, 0),
+    )
+    assert [{11, 12}, {11, 13}] == [set(f.lines) for f in _order_findings(h)]
+
+
+def test_a_callback_that_waited_for_a_registrar_lets_its_id_s_next_begin() -> None:
+    h = _with_callbacks((Q1, "s1", 1, 10, 200, 50), (Q1, "s2", 2, 60, 80, 0))
+    assert [] == _order_findings(h)
+    early = _with_callbacks((Q1, "s1", 1, 10, 200, 50), (Q1, "s2", 2, 40, 80, 0))
+    assert [{11, 12}] == [set(f.lines) for f in _order_findings(early)]
+
+
 def test_a_call_answered_twice_is_found_unless_it_was_a_retry() -> None:
     h = with_paths()
     assert {2, 3} == _found([*h[:2], h[1], *h[2:]], "answered")
@@ -1760,14 +1841,24 @@ def drop_delivery(h: History) -> History | None:
     take a delivery whose provider released its id first by the stamps: in run 2 of
     `resource` (CI, 2026-11-24) cm released client-3's id after it sent the status on,
     and the answer to client-3's `Unload` carried it (rule 9); `status-reached` now
-    expects that one (`crossed()` is that history).
+    expects that one (`crossed()` is that history). Nor one to an id answered after the
+    status was sent (by the stamps): `status-reached` owes a status only to a holder that
+    held its id from before it was sent (`simslow` sends one every 20 ms: its first
+    status reaches ids whose calls were being answered).
     """
     left: set[str] = set()  # ids released at their provider or forgotten so far
+    answered = {e.query_id: e.hlc for e in h if type(e) is events.CallAnswered}
+    sent = {e.status_id: e.hlc for e in h if type(e) is events.StatusSent}
     found = []
     for i, e in enumerate(h):
         if type(e) is events.ConsumerReleased or type(e) is events.QueryForgotten:
             left.add(e.query_id)
-        elif type(e) is events.StatusDelivered and e.status_id and e.query_id not in left:
+        elif (
+            type(e) is events.StatusDelivered
+            and e.status_id
+            and e.query_id not in left
+            and answered.get(e.query_id, 0) < sent.get(e.status_id, 0)
+        ):
             found.append(i)
     if not found:
         return None
@@ -1791,6 +1882,19 @@ def drop_status_sent(h: History) -> History | None:
             and any(type(x) is events.StatusDelivered and x.status_id == e.status_id for x in h)
         ):
             return _without(h, i)
+    return None
+
+
+def begin_beside(h: History) -> History | None:
+    """An id's status callback began as the one that arrived before it began."""
+    first: dict[tuple[int, str, str], int] = {}
+    for i, e in enumerate(h):
+        if type(e) is not events.StatusHandled:
+            continue
+        j = first.setdefault((e.pid, e.registrar, e.query_id), i)
+        earlier = h[j]
+        if j != i and earlier.arrived < e.arrived:  # type: ignore[union-attr]
+            return [*h[:i], dataclasses.replace(e, began=earlier.began), *h[i + 1 :]]  # type: ignore[union-attr]
     return None
 
 
@@ -2093,6 +2197,7 @@ MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     "drop-delivery": (drop_delivery, "status-reached"),
     "deliver-at-wrong-hop": (deliver_at_wrong_hop, "status-path"),
     "drop-status-sent": (drop_status_sent, "status-path"),
+    "begin-beside": (begin_beside, "status-order"),
     "answer-twice": (answer_twice, "answered"),
     "drop-add": (drop_add, "answered"),
     "drop-forget": (drop_forget, "answered"),

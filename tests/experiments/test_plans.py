@@ -39,6 +39,7 @@ SHIPPED = {
     "simnostate",
     "simrest",
     "simprogram",
+    "simslow",
 }
 """Every plan shipped in the package; the tutorial's `first` runs in the docs test."""
 

@@ -202,6 +202,22 @@ def test_awaited_calls_cancelled_within_a_delay_become_the_workloads_values() ->
     assert (100, 0.7, 0.008) == (workload.awaited, workload.cancel, workload.cancel_within)
 
 
+def test_a_slow_status_callback_becomes_the_workloads_values_and_a_negative_wait_is_refused() -> (
+    None
+):
+    workload = parse_plan(
+        BASE.replace("clients = 1", "clients = 2\nstatus_wait = 0.2\nslow_clients = 2")
+    ).workload
+    error = plan_error(BASE.replace("clients = 1", "clients = 1\nstatus_wait = -0.1"))
+
+    assert (0.2, 2) == (workload.status_wait, workload.slow_clients)
+    assert (0.0, 1) == (
+        parse_plan(BASE).workload.status_wait,
+        parse_plan(BASE).workload.slow_clients,
+    )
+    assert (18, "workload.status_wait") == (error.line, error.key)
+
+
 def test_a_request_template_with_an_unknown_placeholder_is_refused() -> None:
     error = plan_error(BASE + 'request = { name = "x-{keys}" }\n')
 

@@ -692,6 +692,62 @@ def test_without_the_yield_two_servers_of_one_name_are_a_one_name_violation(
     assert any("[one-name] two registrars db served to the end" in f for f in run.findings)
 
 
+def undo_lanes(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 51 finding 6's bug planted: the status watchdog that gives up a callback opens
+    its id's lane, so that id's next status runs beside it (before 5884c558)."""
+    from rr_actors._registrar.status import Runner  # noqa: PLC0415
+
+    class Leaky(set[Any]):
+        """A runner's drainers inside a callback; one taken out opens its lane."""
+
+        def __init__(self, runner: Runner) -> None:
+            super().__init__()
+            self.runner = runner
+
+        def discard(self, drainer: Any) -> None:  # (by the watchdog too, holding the lock)
+            super().discard(drainer)
+            if drainer.call is not None:
+                self.runner._let_go(drainer, drainer.call)
+
+    made = Runner.__init__
+
+    def leaky(self: Runner) -> None:
+        made(self)
+        self._inside = Leaky(self)
+
+    monkeypatch.setattr(Runner, "__init__", leaky)
+
+
+@SWEEP
+def test_simslow_s_hung_callback_holds_back_its_id_s_next_statuses(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # issue 51 finding 6: without per-id lanes, the watchdog gave up client-0's callback
+    # after 50 ms and that id's next status ran beside it (every seed of 1-60 violated)
+    from rr_actors.experiments import load_plan  # noqa: PLC0415
+
+    plan = load_plan(PLANS / "simslow.toml")
+
+    run = simulate.run_seed(plan, 1)
+
+    held([run])
+    handled = lines(run, "StatusHandled")
+    waits = {e["registrar"]: [] for e in handled}
+    for e in handled:
+        waits[e["registrar"]].append((e["hlc"] >> 12) - (e["began"] >> 12))  # (µs)
+    slow = waits.pop("client-0")
+    assert len(slow) > 10
+    assert all(wait >= 200_000 for wait in slow)  # 0.2 s each
+    assert {"client-1", "client-2", "client-3"} == set(waits)
+    assert all(wait < 200_000 for each in waits.values() for wait in each)  # (one slow client)
+    undo_lanes(monkeypatch)
+    broken = simulate.run_seed(plan, 1)
+    assert "violated" == broken.verdict
+    violations = [f for f in broken.findings if f.lstrip().startswith("violation")]
+    assert violations
+    assert all("[status-order] client-0:" in f for f in violations)
+
+
 @SWEEP
 def test_the_simheal_plan_holds_for_seeds_1_to_20() -> None:
     from rr_actors.experiments import load_plan  # noqa: PLC0415
@@ -858,6 +914,7 @@ SIMULATED = [
     "simnostate",
     "simrest",
     "simprogram",
+    "simslow",
 ]
 """The shipped plans run over two seeds here (killheavy below, for 2 s)."""
 

@@ -989,3 +989,46 @@ class TestTooLarge:
 
         provider.update_response(held.id, "repaired", timeout=10)
         assert ["repaired"] == [q.response for q in consumer.client_queries(timeout=10)]
+
+
+def test_each_callback_s_end_is_published_with_when_it_began_and_let_its_lane_go() -> None:
+    """`StatusHandled` (issue 51 finding 6): as a callback returns, with its arrival place,
+    the stamp it began at and the one it first waited for a registrar at; the check's
+    `status-order` judges an id's callbacks by them. Here the outer callback sends a status
+    about its own resource: the inner one runs beside it once it waits (rule 9)."""
+    from rr_actors import events  # noqa: PLC0415
+    from rr_actors._registrar import start_registrar  # noqa: PLC0415
+    from rr_actors.experiments._status_rules import status_order  # noqa: PLC0415
+
+    upstream = events.publisher()
+    handled: list[events.StatusHandled] = []
+    subscription = upstream.subscribe(
+        lambda e: handled.append(e) if isinstance(e, events.StatusHandled) else None
+    )
+    provider = start_registrar(
+        f"provider-{uuid.uuid4().hex[:8]}",
+        setup=lambda r: r.register_server("leaf", load=lambda q: q, unload=lambda q, s: None),
+        upstream=upstream,
+    )
+    consumer = start_registrar(f"consumer-{uuid.uuid4().hex[:8]}", upstream=upstream)
+    try:
+
+        def reentrant(query: rr.Query, update: rr.StatusUpdate) -> None:
+            if update.message == "outer":
+                provider.send_status(query.id, rr.Status.OK, "inner", timeout=5)
+
+        query = consumer.call(provider.name, "leaf", "a", on_status=reentrant)
+        provider.send_status(query.id, rr.Status.WARNING, "outer", timeout=15)
+        assert wait_for(lambda: len(handled) == 2)
+    finally:
+        consumer.stop()
+        provider.stop()
+        subscription.close()
+
+    outer, inner = sorted(handled, key=lambda e: e.arrived)
+    assert [rr.Status.WARNING, rr.Status.OK] == [outer.status, inner.status]
+    assert {consumer.name} == {e.registrar for e in handled}
+    assert {query.id} == {e.query_id for e in handled}
+    assert outer.began < outer.opened < inner.began < inner.hlc < outer.hlc
+    assert 0 == inner.opened
+    assert [] == status_order([(1, outer), (2, inner)])
