@@ -72,6 +72,7 @@ from rr_actors._core.loops import OnLoop
 from rr_actors._core.replies import CallbackReply, SharedJoin, waited, when_waiting
 from rr_actors._core.workers import Job, Workers
 from rr_actors._platform import fork
+from rr_actors._registrar import steps
 from rr_actors._registrar.calls import DueAnswers
 from rr_actors._registrar.consumer import Flights, Holdings
 from rr_actors._registrar.messages import SendStatus, StatusBatch, StatusNotice, StatusOnItsWay
@@ -387,8 +388,18 @@ class StatusRelay:
                 callback.submit(record.query, update, then=_done_by(join.add()), key=query_id)
             elif callback is not None:  # (each id's in order with the desk's own)
                 DESK.runner.run((_Call(callback, record.query, update, join.add()),))
-            if record.parent is not None and record.parent in catalog.resources:
-                parent = catalog.resources[record.parent]
+            climb = steps.climb  # (a classroom's copy of this step, `rr_actors.teach`)
+            if climb is not None:
+                above = [
+                    catalog.resources[r]
+                    for r in climb(record.parent, catalog.resources, message.status)
+                    if r in catalog.resources
+                ]
+            elif record.parent is not None and record.parent in catalog.resources:
+                above = [catalog.resources[record.parent]]
+            else:
+                above = []
+            for parent in above:
                 self.notify(
                     parent,
                     update,

@@ -1,0 +1,316 @@
+"""Check a student's folder: its plan over the exercise's seeds on the simulation.
+
+```
+ check(folder) ─ the exercise (folder's .teach.json), its plan (folder/plan.toml, its
+ │               setups imported from the folder: the student's modules, fresh)
+ │               a protocol exercise: folder/step.py's function in the registrar's place
+ │               (`replaced_step`)
+ ├─ seeds 1..N (or one: `seed`): simulate.run_seed ─► the checker's verdict + the kit's
+ │  rules (`rules.py`) over the run's events; the first seed that breaks one ends it
+ └─► Report: passed; seeds run; interleavings (distinct histories); CPU seconds; the
+     first failure: the rule in words, the finding, its first violating event, a story
+     of at most `STORY` steps (the steps of the registrars it names and the faults,
+     before it), the command that replays that seed whole
+```
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import importlib.util
+import logging
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+from rr_actors.errors import ConfigError, RrError
+from rr_actors.events.text import describe
+from rr_actors.experiments import check, simulate, story
+from rr_actors.experiments.plan import Plan
+from rr_actors.experiments.reading import load_plan
+from rr_actors.teach import replaced_step
+from rr_actors.teach.kit import Exercise, folder_exercise
+from rr_actors.teach.rules import RULES
+
+__all__ = ["STORY", "Failure", "Report", "check_folder", "replay_story"]
+
+STORY = 20
+"""The most steps of the story a failing check prints."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Failure:
+    """The first seed that broke a rule, told for a student.
+
+    Attributes:
+        seed: the seed.
+        rule: the rule's name (`check.RULES`, `rules.RULES`, or `"crashed"`, `"setup"`).
+        words: the exercise's rule in words.
+        message: what broke it, in this run.
+        first_event: the first violating event: `#LINE: what happened` (`None`: no event
+            shows it, a setup that raised).
+        story: the story's lines (at most `STORY` steps and the violation's line).
+        story_events: how many steps of the run the story kept.
+        run_events: how many events the whole run had.
+        replay: the command that tells the seed's whole story.
+    """
+
+    seed: int
+    rule: str
+    words: str
+    message: str
+    first_event: str | None
+    story: tuple[str, ...]
+    story_events: int
+    run_events: int
+    replay: str
+
+
+@dataclasses.dataclass(frozen=True)
+class Report:
+    """A check's result (what `--json` writes, `dataclasses.asdict`).
+
+    Attributes:
+        exercise: the exercise's name.
+        passed: every seed held every rule.
+        seeds: the seeds asked for (the exercise's, or the one `--seed`).
+        seeds_run: the seeds run (fewer than `seeds` when one failed).
+        interleavings: distinct histories among them (different schedules and faults).
+        events: events recorded over the seeds run.
+        cpu_s: CPU seconds the check took (this process).
+        failure: the first failure (`None`: passed).
+    """
+
+    exercise: str
+    passed: bool
+    seeds: int
+    seeds_run: int
+    interleavings: int
+    events: int
+    cpu_s: float
+    failure: Failure | None
+
+    def as_dict(self) -> dict[str, Any]:
+        """The report as JSON data."""
+        return dataclasses.asdict(self)
+
+
+def check_folder(
+    folder: Path,
+    *,
+    seed: int | None = None,
+    seeds: int | None = None,
+    on_seed: Callable[[int], None] | None = None,
+) -> Report:
+    """Check a student's folder over its exercise's seeds (or `seed` alone, or 1..`seeds`).
+
+    Args:
+        folder: the folder `start` wrote, as the student changed it.
+        seed: one seed to run (a replay).
+        seeds: run seeds 1 to this instead of the exercise's (at least 1).
+        on_seed: called with each seed once it ran (progress).
+
+    Returns:
+        The report.
+
+    Raises:
+        ConfigError: `folder` is not an exercise's folder; its `plan.toml` is missing or
+            wrong (the plan's error: file, line, key); a protocol exercise's `step.py`
+            is missing, does not import or lacks its step's function.
+    """
+    chosen, _state = folder_exercise(folder)
+    count = chosen.seeds if seeds is None else seeds
+    if count < 1:
+        raise ConfigError(f"seeds must be at least 1, got {count}")
+    chosen_seeds = [seed] if seed is not None else list(range(1, count + 1))
+    plan = _plan(folder)
+    managers = {m.name for m in plan.managers()}
+    started = time.process_time()
+    hashes: set[str] = set()
+    recorded = attempted = 0
+    failure = None
+    with _quiet(), _student_step(chosen, folder):
+        for number in chosen_seeds:
+            attempted += 1
+            try:
+                run = simulate.run_seed(plan, number)
+            except RrError as exc:  # (the student's setup raised: the tree did not start)
+                failure = _setup_failure(chosen, folder, number, exc)
+                break
+            hashes.add(run.hash)
+            recorded += run.events
+            failure = _judge(chosen, folder, run, managers)
+            if on_seed is not None:
+                on_seed(number)
+            if failure is not None:
+                break
+    return Report(
+        exercise=chosen.name,
+        passed=failure is None,
+        seeds=len(chosen_seeds),
+        seeds_run=attempted,
+        interleavings=len(hashes),
+        events=recorded,
+        cpu_s=round(time.process_time() - started, 3),
+        failure=failure,
+    )
+
+
+def replay_story(folder: Path, seed: int) -> list[str]:
+    """The whole story of one seed of `folder`'s check (`rr-actors teach check --seed
+    S --story`): every step, the violations under the steps they point at.
+
+    Raises:
+        ConfigError: as `check_folder`; a setup that raised (its message).
+    """
+    chosen, _state = folder_exercise(folder)
+    plan = _plan(folder)
+    with _quiet(), _student_step(chosen, folder):
+        try:
+            run = simulate.run_seed(plan, seed)
+        except RrError as exc:
+            raise ConfigError(f"seed {seed}: the tree did not start: {exc}") from None
+    return [s.plain() for s in story.story(run.history)]
+
+
+def _plan(folder: Path) -> Plan:
+    path = folder / "plan.toml"
+    if not path.is_file():
+        raise ConfigError(f"{folder} has no plan.toml: the exercise's plan (start it again?)")
+    _forget_modules(folder)
+    plan = load_plan(path)
+    simulate.check_simulable(plan)
+    return plan
+
+
+def _forget_modules(folder: Path) -> None:
+    """Forget the modules imported from `folder` before: the student's code as it is now."""
+    where = folder.resolve()
+    for name, module in list(sys.modules.items()):
+        file = getattr(module, "__file__", None)
+        if file is not None and Path(file).resolve().parent == where:
+            del sys.modules[name]
+
+
+@contextlib.contextmanager
+def _student_step(chosen: Exercise, folder: Path) -> Iterator[None]:
+    """A protocol exercise: `folder/step.py`'s function in the registrar's place."""
+    if chosen.step is None:
+        yield
+        return
+    path = folder / "step.py"
+    if not path.is_file():
+        raise ConfigError(f"{folder} has no step.py: the step you fix (start it again?)")
+    spec = importlib.util.spec_from_file_location(f"rr_teach_step_{chosen.name}", path)
+    if spec is None or spec.loader is None:
+        raise ConfigError(f"{path} cannot be imported")
+    module = importlib.util.module_from_spec(spec)
+    try:
+        spec.loader.exec_module(module)
+    except Exception as exc:  # noqa: BLE001 - the student's code: said, not raised
+        raise ConfigError(f"{path} does not import: {type(exc).__name__}: {exc}") from None
+    step = getattr(module, chosen.step, None)
+    if not callable(step):
+        raise ConfigError(f"{path} has no function {chosen.step!r}: the step you fix")
+    with replaced_step(chosen.step, step):
+        yield
+
+
+@contextlib.contextmanager
+def _quiet() -> Iterator[None]:
+    """The framework's warnings (a child killed, restarted) kept out of a student's
+    terminal: the story tells them."""
+    logger = logging.getLogger("rr_actors")
+    level = logger.level
+    logger.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
+def _judge(
+    chosen: Exercise, folder: Path, run: simulate.SimulatedRun, managers: set[str]
+) -> Failure | None:
+    """The first finding of `run` (the checker's, then the kit's), told; `None`: held."""
+    kit_rules = [RULES[name] for name in chosen.rules]
+    if run.verdict == "held" and not kit_rules:
+        return None
+    numbered = check.read_runs(run.history.splitlines()).get(simulate.RUN, [])
+    findings: list[check.Finding] = []
+    if run.verdict == "violated":
+        findings += [f for f in check.check(numbered).findings if f.kind == "violation"]
+    for rule in kit_rules:
+        findings += rule(numbered, managers)
+    findings.sort(key=lambda f: min(f.lines, default=0))
+    if not findings and run.verdict != "crashed":
+        return None
+    steps = story.story(run.history)
+    replay = f"rr-actors teach check {folder} --seed {run.seed} --story"
+    if not findings:  # crashed, and no rule says why before it
+        crash = next(s for s in steps if s.who == "crashed")
+        shown = _cut(steps, steps.index(crash), set())
+        return Failure(
+            run.seed,
+            "crashed",
+            chosen.rule,
+            crash.text,
+            None,
+            tuple(s.plain() for s in shown),
+            len(shown),
+            run.events,
+            replay,
+        )
+    first = findings[0]
+    at = min(first.lines, default=0)
+    event = dict(numbered).get(at)
+    index = next((i for i, s in enumerate(steps) if s.line == at), len(steps) - 1)
+    who = set(first.registrars) | {_who(e) for n, e in numbered if n in first.lines}
+    shown = _cut(steps, index, who)
+    told = [s.plain() for s in shown]
+    told.append(f"{'':>17}^ [{first.rule}] {first.message}")
+    return Failure(
+        run.seed,
+        first.rule,
+        chosen.rule,
+        first.message,
+        f"#{at}: {describe(event)}" if event is not None else None,
+        tuple(told),
+        len(shown),
+        run.events,
+        replay,
+    )
+
+
+def _who(event: Any) -> str:
+    """Who a story names for `event` (its registrar, child or supervisor)."""
+    who = getattr(event, "registrar", None) or getattr(event, "child", None)
+    return str(who or getattr(event, "supervisor", None) or "-")
+
+
+def _cut(steps: list[story.StoryLine], index: int, who: set[str]) -> list[story.StoryLine]:
+    """At most `STORY` steps ending at `steps[index]`: the faults and the steps of `who`
+    (the registrars the finding names) before it, the latest ones; all steps if `who`
+    is empty or names none of them."""
+    before = [s for s in steps[:index] if s.line > 0 and s.who != "violation"]
+    kept = [s for s in before if s.who in who or s.who == "fault"] if who else before
+    kept = kept or before
+    return [*kept[-(STORY - 1) :], dataclasses.replace(steps[index], marked=True)]
+
+
+def _setup_failure(chosen: Exercise, folder: Path, seed: int, exc: RrError) -> Failure:
+    text = " ".join(str(exc).split())
+    return Failure(
+        seed,
+        "setup",
+        chosen.rule,
+        f"the tree did not start: {text[:600]}",
+        None,
+        (),
+        0,
+        0,
+        f"rr-actors teach check {folder} --seed {seed} --story",
+    )
