@@ -268,7 +268,9 @@ def _judge(
     at = min(first.lines, default=0)
     event = dict(numbered).get(at)
     index = next((i for i, s in enumerate(steps) if s.line == at), len(steps) - 1)
-    who = set(first.registrars) | {_who(e) for n, e in numbered if n in first.lines}
+    cited = [e for n, e in numbered if n in first.lines]
+    who = set(first.registrars) | {_who(e) for e in cited}
+    who |= {str(e.serving_rr) for e in cited if getattr(e, "serving_rr", None)}
     shown = _cut(steps, index, who)
     told = [s.plain() for s in shown]
     told.append(f"{'':>17}^ [{first.rule}] {first.message}")

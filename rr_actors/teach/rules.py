@@ -41,14 +41,13 @@ def dependency(history: Sequence[Line], managers: Collection[str]) -> list[Findi
 
 def survives(history: Sequence[Line], managers: Collection[str]) -> list[Finding]:
     """`survives`: no supervisor gave up."""
-    del managers
     return [
         Finding(
             "survives",
             "violation",
             f"supervisor {e.supervisor} gave up: {e.reason}",
             (line,),
-            (e.supervisor,),
+            (e.supervisor, *managers),  # (its children's exits: the story before it)
         )
         for line, e in history
         if isinstance(e, events.SupervisorGaveUp)
