@@ -64,7 +64,7 @@ from typing import Any
 
 from rr_actors import events
 from rr_actors._catalog import Resource
-from rr_actors._core import runtime
+from rr_actors._core import runtime, steps
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.ids import new_id
@@ -72,7 +72,6 @@ from rr_actors._core.loops import OnLoop
 from rr_actors._core.replies import CallbackReply, SharedJoin, waited, when_waiting
 from rr_actors._core.workers import Job, Workers
 from rr_actors._platform import fork
-from rr_actors._registrar import steps
 from rr_actors._registrar.calls import DueAnswers
 from rr_actors._registrar.consumer import Flights, Holdings
 from rr_actors._registrar.messages import SendStatus, StatusBatch, StatusNotice, StatusOnItsWay

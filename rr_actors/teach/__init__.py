@@ -23,6 +23,11 @@ code as a function of the same shape (`shipped_step`):
   own call), `resources` the ids of the resources its registrar serves (a collection:
   `in` is what to ask it), `status` the `rr_actors.Status`; returns the ids of the
   resources to notify in turn (an iterable of `str`; ids not in `resources` are skipped).
+- `shares(stored, request, loading, failed) -> bool`: whether a resource loaded (or
+  loading: `loading`) for request `stored` serves a new call of `request` (rule 1:
+  equal requests share one resource); `failed`: its provider reported it `FATAL`.
+  Asked for plain requests (those the catalog digests: numbers, strings, tuples,
+  dicts of them...), of the same server, on the registrar's actor thread.
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ import contextlib
 from collections.abc import Callable, Collection, Iterable, Iterator
 from typing import Any
 
-from rr_actors._registrar import steps as _steps
+from rr_actors._core import steps as _steps
 from rr_actors._types import Status
 from rr_actors.errors import ConfigError
 
@@ -45,7 +50,15 @@ def _climb(parent: str | None, resources: Collection[str], status: Status) -> It
     return [parent] if parent is not None and parent in resources else []
 
 
-STEPS: dict[str, Callable[..., Any]] = {"climb": _climb}
+def _shares(stored: Any, request: Any, loading: bool, failed: bool) -> bool:
+    """The catalog's own dedup test: an equal request shares the resource, loaded or
+    still loading (the call waits for its load), unless its provider reported it
+    `FATAL` (rule 1: a dead resource is never matched again)."""
+    del loading
+    return not failed and bool(stored == request)
+
+
+STEPS: dict[str, Callable[..., Any]] = {"climb": _climb, "shares": _shares}
 """The steps a classroom's copy may replace, each name with the registrar's own code."""
 
 

@@ -245,7 +245,7 @@ def _judge(
         findings += [f for f in check.check(numbered).findings if f.kind == "violation"]
     for rule in kit_rules:
         findings += rule(numbered, managers)
-    findings.sort(key=lambda f: min(f.lines, default=0))
+    findings.sort(key=lambda f: max(f.lines, default=0))  # (broken at its last event)
     if not findings and run.verdict != "crashed":
         return None
     steps = story.story(run.history)
@@ -265,12 +265,12 @@ def _judge(
             replay,
         )
     first = findings[0]
-    at = min(first.lines, default=0)
+    at = max(first.lines, default=0)
     event = dict(numbered).get(at)
     index = next((i for i, s in enumerate(steps) if s.line == at), len(steps) - 1)
     cited = [e for n, e in numbered if n in first.lines]
     who = set(first.registrars) | {_who(e) for e in cited}
-    who |= {str(e.serving_rr) for e in cited if getattr(e, "serving_rr", None)}
+    who |= {str(getattr(e, "serving_rr", "")) for e in cited} - {""}
     shown = _cut(steps, index, who)
     told = [s.plain() for s in shown]
     told.append(f"{'':>17}^ [{first.rule}] {first.message}")
