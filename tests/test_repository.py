@@ -174,6 +174,7 @@ MIRRORED = {
     "simulation": ("simulation",),
     "store": ("_store",),
     "supervision": ("_supervision",),
+    "teach": ("teach",),
     "testing": ("testing",),
     "tools": ("_tools",),
     "transport": ("_transport",),
@@ -195,7 +196,6 @@ WHOLE_FEATURES = {
     "test_docs.py": "every code block of README.md and docs/ runs; the index, errors, API and "
     "modules pages",
     "test_examples.py": "every program of examples/ runs as its own program",
-    "test_init.py": "the package's public names (rr_actors/__init__.py): what imports, lazily",
     "test_benchmarks.py": "every script of benchmarks/ runs at its smallest; their own logic",
     "test_repository.py": "the repository itself: ignored outputs, import circles, this rule, "
     "the docs' and the changelog's budgets",

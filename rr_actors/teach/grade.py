@@ -193,6 +193,8 @@ def _forget_modules(folder: Path) -> None:
         file = getattr(module, "__file__", None)
         if file is not None and Path(file).resolve().parent == where:
             del sys.modules[name]
+    for path in folder.glob("*.py"):  # (one of that name from another exercise's folder)
+        sys.modules.pop(path.stem, None)
 
 
 @contextlib.contextmanager
@@ -304,12 +306,13 @@ def _cut(steps: list[story.StoryLine], index: int, who: set[str]) -> list[story.
 
 
 def _setup_failure(chosen: Exercise, folder: Path, seed: int, exc: RrError) -> Failure:
-    text = " ".join(str(exc).split())
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    text = lines[0] if len(lines) < 2 else f"{lines[0]} {lines[-1]}"  # (a traceback's end)
     return Failure(
         seed,
         "setup",
         chosen.rule,
-        f"the tree did not start: {text[:600]}",
+        f"the tree did not start: {text}",
         None,
         (),
         0,
