@@ -35,6 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     check.add_argument("--seed", type=int, help="run this seed alone (a failure's replay)")
     check.add_argument("--seeds", type=int, help="run seeds 1 to this (default: the exercise's)")
     check.add_argument("--story", action="store_true", help="with --seed: its whole story")
+    check.add_argument(
+        "--plan", type=Path, help="run this plan instead of FOLDER/plan.toml (a shrunk one)"
+    )
     check.add_argument("--json", type=Path, metavar="FILE", help="write the report as JSON")
     hint = sub.add_parser("hint", help="the next hint (the folder remembers those shown)")
     hint.add_argument("folder", nargs="?", type=Path, default=Path(), help="(default: .)")
@@ -97,7 +100,7 @@ def _check(args: argparse.Namespace, out: TextIO) -> int:
     folder: Path = args.folder
     kit.folder_exercise(folder)  # (said before a child process starts)
     argv = ["teach", "check", str(folder)]
-    for flag in ("seed", "seeds", "json"):
+    for flag in ("seed", "seeds", "json", "plan"):
         if getattr(args, flag) is not None:
             argv += [f"--{flag}", str(getattr(args, flag))]
     argv += ["--story"] if args.story else []
@@ -105,9 +108,9 @@ def _check(args: argparse.Namespace, out: TextIO) -> int:
     if code is not None:
         return code
     if args.story:
-        out.write("".join(f"{line}\n" for line in grade.replay_story(folder, args.seed)))
+        out.write("".join(f"{line}\n" for line in grade.replay_story(folder, args.seed, args.plan)))
         return 0
-    report = grade.check_folder(folder, seed=args.seed, seeds=args.seeds)
+    report = grade.check_folder(folder, seed=args.seed, seeds=args.seeds, plan_file=args.plan)
     if args.json is not None:
         args.json.write_text(json.dumps(report.as_dict(), indent=2) + "\n", encoding="utf-8")
     out.write(_told(report))
@@ -115,6 +118,8 @@ def _check(args: argparse.Namespace, out: TextIO) -> int:
 
 
 def _told(report: grade.Report) -> str:
+    from rr_actors.teach.grade import SHRUNK  # noqa: PLC0415 - imported by the check already
+
     failure = report.failure
     if failure is None:
         return (
@@ -131,9 +136,15 @@ def _told(report: grade.Report) -> str:
     if failure.first_event is not None:
         lines.append(f"first violating event: {failure.first_event}")
     if failure.story:
+        of = f"the run's {failure.run_events} events"
+        if failure.shrunk_events is not None:
+            of = (
+                f"the {failure.shrunk_events} events of the run shrunk from "
+                f"{failure.run_events} (plan {SHRUNK}, seed {failure.shrunk_seed})"
+            )
         lines.append(
-            f"the story ({failure.story_events} of the run's {failure.run_events} events: "
-            "the faults and the registrars concerned, up to the violation):"
+            f"the story ({failure.story_events} steps of {of}: the faults and the "
+            "registrars concerned, up to the violation):"
         )
         lines += [f"  {line}" for line in failure.story]
     lines.append(f"replay it whole: {failure.replay}")

@@ -22,13 +22,13 @@ import importlib.util
 import logging
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Collection, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 from rr_actors.errors import ConfigError, RrError
 from rr_actors.events.text import describe
-from rr_actors.experiments import check, simulate, story
+from rr_actors.experiments import check, shrink, simulate, story
 from rr_actors.experiments.plan import Plan
 from rr_actors.experiments.reading import load_plan
 from rr_actors.teach import replaced_step
@@ -39,6 +39,12 @@ __all__ = ["STORY", "Failure", "Report", "check_folder", "replay_story"]
 
 STORY = 20
 """The most steps of the story a failing check prints."""
+
+SHRINK_BUDGET = 40
+"""The most simulated runs a failing check's shrink makes (about 0.05 CPU s each)."""
+
+SHRUNK = "shrunk.toml"
+"""The shrunk plan a failing check writes into the folder (the replay command runs it)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,7 +61,12 @@ class Failure:
         story: the story's lines (at most `STORY` steps and the violation's line).
         story_events: how many steps of the run the story kept.
         run_events: how many events the whole run had.
-        replay: the command that tells the seed's whole story.
+        replay: the command that tells the seed's whole story (the shrunk plan's, if
+            shrunk).
+        shrunk_seed: the seed of the shrunk plan (`SHRUNK` in the folder) the story
+            tells; `None`: the story is the run's own (a kit's rule, a crash, or a
+            shrink that did not find the violation again).
+        shrunk_events: the shrunk run's events (`None`: not shrunk).
     """
 
     seed: int
@@ -67,6 +78,8 @@ class Failure:
     story_events: int
     run_events: int
     replay: str
+    shrunk_seed: int | None = None
+    shrunk_events: int | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -103,6 +116,8 @@ def check_folder(
     *,
     seed: int | None = None,
     seeds: int | None = None,
+    plan_file: Path | None = None,
+    shrink_budget: int = SHRINK_BUDGET,
     on_seed: Callable[[int], None] | None = None,
 ) -> Report:
     """Check a student's folder over its exercise's seeds (or `seed` alone, or 1..`seeds`).
@@ -111,6 +126,9 @@ def check_folder(
         folder: the folder `start` wrote, as the student changed it.
         seed: one seed to run (a replay).
         seeds: run seeds 1 to this instead of the exercise's (at least 1).
+        plan_file: run this plan instead of `folder/plan.toml` (a shrunk one, `SHRUNK`);
+            its setups are imported from its own folder.
+        shrink_budget: the most runs a failure's shrink makes (0: no shrink).
         on_seed: called with each seed once it ran (progress).
 
     Returns:
@@ -126,8 +144,10 @@ def check_folder(
     if count < 1:
         raise ConfigError(f"seeds must be at least 1, got {count}")
     chosen_seeds = [seed] if seed is not None else list(range(1, count + 1))
-    plan = _plan(folder)
+    path = folder / "plan.toml" if plan_file is None else plan_file
+    plan = _plan(path)
     managers = {m.name for m in plan.managers()}
+    shrink_to = (plan, path, shrink_budget) if shrink_budget > 0 else None
     started = time.process_time()
     hashes: set[str] = set()
     recorded = attempted = 0
@@ -142,7 +162,7 @@ def check_folder(
                 break
             hashes.add(run.hash)
             recorded += run.events
-            failure = _judge(chosen, folder, run, managers)
+            failure = _judge(chosen, folder, run, managers, shrink_to)
             if on_seed is not None:
                 on_seed(number)
             if failure is not None:
@@ -159,7 +179,7 @@ def check_folder(
     )
 
 
-def replay_story(folder: Path, seed: int) -> list[str]:
+def replay_story(folder: Path, seed: int, plan_file: Path | None = None) -> list[str]:
     """The whole story of one seed of `folder`'s check (`rr-actors teach check --seed
     S --story`): every step, the violations under the steps they point at.
 
@@ -167,7 +187,7 @@ def replay_story(folder: Path, seed: int) -> list[str]:
         ConfigError: as `check_folder`; a setup that raised (its message).
     """
     chosen, _state = folder_exercise(folder)
-    plan = _plan(folder)
+    plan = _plan(folder / "plan.toml" if plan_file is None else plan_file)
     with _quiet(), _student_step(chosen, folder):
         try:
             run = simulate.run_seed(plan, seed)
@@ -176,11 +196,10 @@ def replay_story(folder: Path, seed: int) -> list[str]:
     return [s.plain() for s in story.story(run.history)]
 
 
-def _plan(folder: Path) -> Plan:
-    path = folder / "plan.toml"
+def _plan(path: Path) -> Plan:
     if not path.is_file():
-        raise ConfigError(f"{folder} has no plan.toml: the exercise's plan (start it again?)")
-    _forget_modules(folder)
+        raise ConfigError(f"{path} is missing: the exercise's plan (start it again?)")
+    _forget_modules(path.parent)
     plan = load_plan(path)
     simulate.check_simulable(plan)
     return plan
@@ -235,24 +254,26 @@ def _quiet() -> Iterator[None]:
 
 
 def _judge(
-    chosen: Exercise, folder: Path, run: simulate.SimulatedRun, managers: set[str]
+    chosen: Exercise,
+    folder: Path,
+    run: simulate.SimulatedRun,
+    managers: set[str],
+    shrink_to: tuple[Plan, Path, int] | None,
 ) -> Failure | None:
-    """The first finding of `run` (the checker's, then the kit's), told; `None`: held."""
+    """The first finding of `run` (the checker's, then the kit's), told; `None`: held.
+
+    A checker's finding is told on the run shrunk (`shrink_to`: the plan, its file and
+    the budget of runs; `shrink.shrink`), when the shrink finds it again: its plan is
+    written to the folder (`SHRUNK`) and the replay command runs it."""
     kit_rules = [RULES[name] for name in chosen.rules]
     if run.verdict == "held" and not kit_rules:
         return None
-    numbered = check.read_runs(run.history.splitlines()).get(simulate.RUN, [])
-    findings: list[check.Finding] = []
-    if run.verdict == "violated":
-        findings += [f for f in check.check(numbered).findings if f.kind == "violation"]
-    for rule in kit_rules:
-        findings += rule(numbered, managers)
-    findings.sort(key=lambda f: max(f.lines, default=0))  # (broken at its last event)
+    numbered, findings = _findings(run, kit_rules, managers)
     if not findings and run.verdict != "crashed":
         return None
-    steps = story.story(run.history)
     replay = f"rr-actors teach check {folder} --seed {run.seed} --story"
     if not findings:  # crashed, and no rule says why before it
+        steps = story.story(run.history)
         crash = next(s for s in steps if s.who == "crashed")
         shown = _cut(steps, steps.index(crash), set())
         return Failure(
@@ -266,9 +287,18 @@ def _judge(
             run.events,
             replay,
         )
-    first = findings[0]
+    first, told_run, shrunk_seed = findings[0], run, None
+    if shrink_to is not None and first.rule in check.RULES:
+        shrunk = _shrunk(run, first, folder, shrink_to)
+        if shrunk is not None:
+            told_run, numbered, first, shrunk_seed = shrunk
+            replay = (
+                f"rr-actors teach check {folder} --plan {folder / SHRUNK} "
+                f"--seed {shrunk_seed} --story"
+            )
     at = max(first.lines, default=0)
     event = dict(numbered).get(at)
+    steps = story.story(told_run.history)
     index = next((i for i, s in enumerate(steps) if s.line == at), len(steps) - 1)
     cited = [e for n, e in numbered if n in first.lines]
     who = set(first.registrars) | {_who(e) for e in cited}
@@ -286,7 +316,54 @@ def _judge(
         len(shown),
         run.events,
         replay,
+        shrunk_seed,
+        told_run.events if shrunk_seed is not None else None,
     )
+
+
+def _findings(
+    run: simulate.SimulatedRun,
+    kit_rules: list[Callable[[Sequence[check.Line], Collection[str]], list[check.Finding]]],
+    managers: set[str],
+) -> tuple[list[check.Line], list[check.Finding]]:
+    """A run's numbered events and its violations (the checker's and the kit's), the
+    first broken first."""
+    numbered = check.read_runs(run.history.splitlines()).get(simulate.RUN, [])
+    findings: list[check.Finding] = []
+    if run.verdict == "violated":
+        findings += [f for f in check.check(numbered).findings if f.kind == "violation"]
+    for rule in kit_rules:
+        findings += rule(numbered, managers)
+    findings.sort(key=lambda f: max(f.lines, default=0))  # (broken at its last event)
+    return numbered, findings
+
+
+def _shrunk(
+    run: simulate.SimulatedRun,
+    first: check.Finding,
+    folder: Path,
+    shrink_to: tuple[Plan, Path, int],
+) -> tuple[simulate.SimulatedRun, list[check.Line], check.Finding, int] | None:
+    """`run` shrunk to a smaller plan showing `first`'s violation again, its plan written
+    to `folder / SHRUNK`: the shrunk run, its events, its finding and seed (`None`: the
+    shrink did not find it again, or failed: the run is told as it is)."""
+    plan, path, budget = shrink_to
+    try:
+        shrunk = shrink.shrink(plan, run.seed, budget=budget, text=path.read_text(encoding="utf-8"))
+    except (ConfigError, RrError):
+        return None
+    numbered, findings = _findings(shrunk.run, [], set())
+    same = [f for f in findings if shrink.violation_kind(f.rule, f.message) == shrunk.kind]
+    if not same:
+        return None
+    header = (
+        f"# {path.name}'s seed {run.seed} shrunk ({run.events} events to "
+        f"{shrunk.run.events}): it shows {shrunk.kind} at seed {shrunk.seed}.\n"
+        f"# rr-actors teach check {folder} --plan {folder / SHRUNK} --seed {shrunk.seed} "
+        "--story\n\n"
+    )
+    (folder / SHRUNK).write_text(header + shrunk.text, encoding="utf-8")
+    return shrunk.run, numbered, same[0], shrunk.seed
 
 
 def _who(event: Any) -> str:

@@ -62,13 +62,17 @@ def test_the_starter_fails_its_check_and_the_solution_passes(name: str, tmp_path
     assert "FAILED on seed" in failed.stdout
     assert f"the rule: {kit.exercise(name).rule}" in failed.stdout
     assert "first violating event: #" in failed.stdout
-    assert f"replay it whole: rr-actors teach check {starter} --seed" in failed.stdout
+    assert f"replay it whole: rr-actors teach check {starter} " in failed.stdout
     assert failed.stderr == ""  # (no framework warnings: the story tells them)
     report = json.loads((tmp_path / "failed.json").read_text())
     assert report["passed"] is False
     assert report["exercise"] == name
     assert 1 <= report["failure"]["story_events"] <= 20
     assert len(report["failure"]["story"]) <= 21  # the steps and the violation's line
+    if kit.exercise(name).kind == "protocol":  # (the checker's rules: shrunk)
+        assert report["failure"]["shrunk_events"] < report["failure"]["run_events"]
+        assert (starter / "shrunk.toml").is_file()
+        assert f"--plan {starter / 'shrunk.toml'}" in report["failure"]["replay"]
     assert passed.returncode == 0, passed.stdout + passed.stderr
     assert "PASSED: 3 seeds, 3 interleavings" in passed.stdout
     report = json.loads((tmp_path / "passed.json").read_text())
@@ -88,6 +92,7 @@ def test_a_failures_replay_command_tells_that_seeds_whole_story(tmp_path: Path) 
     lines = told.stdout.splitlines()
     assert len(lines) > failure["story_events"]  # the whole run, not the cut
     assert any("[status-reached]" in line for line in lines)
+    assert len(lines) < failure["run_events"]  # (the shrunk plan's story)
 
 
 def test_start_writes_the_readme_and_starter_and_refuses_a_folder_in_use(tmp_path: Path) -> None:

@@ -74,3 +74,25 @@ def test_one_seed_replays_its_whole_story(tmp_path: Path) -> None:
 
     assert any("[survives]" not in line and "gave up" in line for line in lines)
     assert len(lines) > grade.STORY
+
+
+def test_a_checkers_finding_is_told_on_the_run_shrunk_unless_asked_not_to(tmp_path: Path) -> None:
+    _chosen, folder = kit.start("climb", tmp_path / "climb")
+
+    whole = grade.check_folder(folder, seeds=1, shrink_budget=0).failure
+    assert whole is not None
+    assert (whole.shrunk_seed, whole.shrunk_events) == (None, None)
+    assert not (folder / grade.SHRUNK).exists()
+    shrunk = grade.check_folder(folder, seeds=1).failure
+
+    assert shrunk is not None
+    assert shrunk.rule == whole.rule == "status-reached"
+    assert shrunk.shrunk_events is not None
+    assert shrunk.shrunk_events < shrunk.run_events == whole.run_events
+    assert (folder / grade.SHRUNK).read_text().startswith("# plan.toml's seed 1 shrunk")
+    replayed = grade.check_folder(
+        folder, seed=shrunk.shrunk_seed, plan_file=folder / grade.SHRUNK, shrink_budget=0
+    ).failure
+    assert replayed is not None
+    assert replayed.rule == "status-reached"
+    assert replayed.run_events == shrunk.shrunk_events
