@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
 
+from rr_actors._extras import needs
 from rr_actors.errors import ConfigError
 from rr_actors.teach import kit
 
@@ -92,8 +93,10 @@ def _solution(args: argparse.Namespace, out: TextIO) -> int:
 
 
 def _check(args: argparse.Namespace, out: TextIO) -> int:
-    from rr_actors.experiments import sweep  # noqa: PLC0415 - a check's own (hash seed)
-    from rr_actors.teach import grade  # noqa: PLC0415 - the simulation: only a check
+    with needs("teach", "rr-actors teach check"):  # (greenlet, msgspec: one line if missing)
+        from rr_actors import simulation  # noqa: F401, PLC0415 - a check's runs
+        from rr_actors.experiments import sweep  # noqa: PLC0415 - a check's own (hash seed)
+        from rr_actors.teach import grade  # noqa: PLC0415 - the simulation: only a check
 
     if args.story and args.seed is None:
         raise ConfigError("--story tells one seed: add --seed S")
