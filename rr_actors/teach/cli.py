@@ -132,7 +132,9 @@ def _told(report: grade.Report) -> str:
         )
     lines = [
         f"{report.exercise}: FAILED on seed {failure.seed} ({report.seeds_run - 1} seeds "
-        f"held before it)",
+        f"held before it)"
+        if report.seeds_run
+        else f"{report.exercise}: FAILED before any seed ran: its plan breaks the rule",
         f"the rule: {failure.words}",
         f"broken: [{failure.rule}] {failure.message}",
     ]
@@ -150,5 +152,6 @@ def _told(report: grade.Report) -> str:
             "registrars concerned, up to the violation):"
         )
         lines += [f"  {line}" for line in failure.story]
-    lines.append(f"replay it whole: {failure.replay}")
+    if failure.replay:
+        lines.append(f"replay it whole: {failure.replay}")
     return "".join(f"{line}\n" for line in lines)

@@ -62,7 +62,7 @@ class Failure:
         story_events: how many steps of the run the story kept.
         run_events: how many events the whole run had.
         replay: the command that tells the seed's whole story (the shrunk plan's, if
-            shrunk).
+            shrunk; `""`: the plan broke the rule before any run, `intensity-bound`).
         shrunk_seed: the seed of the shrunk plan (`SHRUNK` in the folder) the story
             tells; `None`: the story is the run's own (a kit's rule, a crash, or a
             shrink that did not find the violation again).
@@ -151,9 +151,9 @@ def check_folder(
     started = time.process_time()
     hashes: set[str] = set()
     recorded = attempted = 0
-    failure = None
+    failure = _intensity(chosen, plan, chosen_seeds[0])
     with _quiet(), _student_step(chosen, folder):
-        for number in chosen_seeds:
+        for number in chosen_seeds if failure is None else ():
             attempted += 1
             try:
                 run = simulate.run_seed(plan, number)
@@ -380,6 +380,24 @@ def _cut(steps: list[story.StoryLine], index: int, who: set[str]) -> list[story.
     kept = [s for s in before if s.who in who or s.who == "fault"] if who else before
     kept = kept or before
     return [*kept[-(STORY - 1) :], dataclasses.replace(steps[index], marked=True)]
+
+
+def _intensity(chosen: Exercise, plan: Plan, seed: int) -> Failure | None:
+    """A supervisor of `plan` whose intensity is above the exercise's bound (before any
+    run: no intensity that high stops a crash loop in time), told; `None`: none."""
+    bound = chosen.most_restarts_per_s
+    if bound is None:
+        return None
+    for sup in plan.tree.supervisors():
+        per_s = sup.max_restarts / sup.period if sup.period > 0 else float("inf")
+        if per_s > bound:
+            message = (
+                f"supervisor {sup.name} allows {sup.max_restarts} restarts within "
+                f"{sup.period:g} s ({per_s:g} a second): above {bound:g} a second, a child "
+                "that crashes at every start is restarted on and on instead of stopped"
+            )
+            return Failure(seed, "intensity-bound", chosen.rule, message, None, (), 0, 0, "")
+    return None
 
 
 def _setup_failure(chosen: Exercise, folder: Path, seed: int, exc: RrError) -> Failure:

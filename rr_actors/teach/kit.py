@@ -63,6 +63,9 @@ class Exercise:
             of it being `step.py`'s function of that name; `None` for a use exercise.
         hints: the hints, in the order `hint` gives them.
         folder: the exercise's folder in the package.
+        most_restarts_per_s: the highest restart intensity a supervisor of the plan may
+            have (`max_restarts / period`), above which it would not stop a crash loop
+            soon enough; `None`: any.
     """
 
     name: str
@@ -76,6 +79,7 @@ class Exercise:
     step: str | None
     hints: tuple[str, ...]
     folder: Path
+    most_restarts_per_s: float | None = None
 
     def starter(self) -> dict[str, str]:
         """The starter's files: name to text."""
@@ -115,6 +119,7 @@ def _read(folder: Path) -> Exercise:
         step=data.get("step"),
         hints=tuple(" ".join(h.split()) for h in data["hints"]),
         folder=folder,
+        most_restarts_per_s=data.get("most_restarts_per_s"),
     )
 
 

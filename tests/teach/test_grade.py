@@ -96,3 +96,21 @@ def test_a_checkers_finding_is_told_on_the_run_shrunk_unless_asked_not_to(tmp_pa
     assert replayed is not None
     assert replayed.rule == "status-reached"
     assert replayed.run_events == shrunk.shrunk_events
+
+
+def test_an_intensity_too_high_to_stop_a_crash_loop_fails_before_any_run(
+    tmp_path: Path,
+) -> None:
+    _chosen, folder = kit.start("restarts", tmp_path / "r")
+    solve("restarts", folder)
+    plan = (folder / "plan.toml").read_text()
+    (folder / "plan.toml").write_text(plan.replace("max_restarts = 20 ", "max_restarts = 26 "))
+
+    report = grade.check_folder(folder, seeds=5)
+
+    assert (report.passed, report.seeds_run) == (False, 0)
+    assert report.failure is not None
+    assert report.failure.rule == "intensity-bound"
+    assert "allows 26 restarts within 1 s (26 a second): above 25 a second" in (
+        report.failure.message
+    )
