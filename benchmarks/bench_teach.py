@@ -1,7 +1,8 @@
 """The classroom kit's exercises (`rr-actors teach`): each one's check of its starter and
 of its solution, as a student runs it (`python -m rr_actors teach check DIR --json`, a
 process of its own), CPU seconds of that process and its children (the check's budget:
-60 s over at least 200 seeds), and the length of the story a failing check prints.
+60 s over at least 200 seeds), and the story a failing check prints: its steps, and the
+events of the run it tells (shrunk, for a violation of the checker's rules).
 
     python benchmarks/bench_teach.py                  # every exercise, its own seeds (200)
     python benchmarks/bench_teach.py --seeds 3 --only climb
@@ -83,12 +84,14 @@ def main() -> None:
                 f"{solution['interleavings']}",
                 f"{solution_cpu:.1f}",
                 f"{failure.get('story_events', '-')}",
+                f"{failure.get('shrunk_events') or '-'}",
                 f"{failure.get('run_events', '-')}",
             ]
             rows.append(cells)
     head = [
         "exercise", "kind", "topic", "starter/solution", "seeds (starter)", "CPU s starter",
-        "seeds (solution)", "interleavings", "CPU s solution", "story events", "run events",
+        "seeds (solution)", "interleavings", "CPU s solution", "story steps",
+        "shrunk run events", "run events",
     ]  # fmt: skip
     print(f"floor: `rr-actors teach list`, {floor:.2f} CPU s")
     print("| " + " | ".join(head) + " |")
