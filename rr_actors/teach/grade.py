@@ -22,6 +22,7 @@ import importlib.util
 import logging
 import sys
 import time
+import traceback
 from collections.abc import Callable, Collection, Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -152,7 +153,8 @@ def check_folder(
     hashes: set[str] = set()
     recorded = attempted = 0
     failure = _intensity(chosen, plan, chosen_seeds[0])
-    with _quiet(), _student_step(chosen, folder):
+    raised: list[str] = []  # (what the student's step raised, said as it was)
+    with _quiet(), _student_step(chosen, folder, raised):
         for number in chosen_seeds if failure is None else ():
             attempted += 1
             try:
@@ -163,6 +165,8 @@ def check_folder(
             hashes.add(run.hash)
             recorded += run.events
             failure = _judge(chosen, folder, run, managers, shrink_to)
+            if raised:  # (whatever the verdict: a step that raises is wrong)
+                failure = _raised(chosen, folder, number, raised[0], failure)
             if on_seed is not None:
                 on_seed(number)
             if failure is not None:
@@ -216,9 +220,24 @@ def _forget_modules(folder: Path) -> None:
         sys.modules.pop(path.stem, None)
 
 
+_RETURNS: dict[str, tuple[Callable[[Any], bool], str]] = {
+    "climb": (
+        lambda r: (
+            isinstance(r, list | tuple | set | frozenset) and all(isinstance(i, str) for i in r)
+        ),
+        "a list of resource ids (str)",
+    ),
+    "shares": (lambda r: isinstance(r, bool), "True or False"),
+}
+"""What each step must return, as a test and in words (a student's step is held to it)."""
+
+
 @contextlib.contextmanager
-def _student_step(chosen: Exercise, folder: Path) -> Iterator[None]:
-    """A protocol exercise: `folder/step.py`'s function in the registrar's place."""
+def _student_step(
+    chosen: Exercise, folder: Path, raised: list[str] | None = None
+) -> Iterator[None]:
+    """A protocol exercise: `folder/step.py`'s function in the registrar's place; what
+    it raises is added to `raised` (`Type: message (step.py, line N)`), then raised on."""
     if chosen.step is None:
         yield
         return
@@ -236,7 +255,27 @@ def _student_step(chosen: Exercise, folder: Path) -> Iterator[None]:
     step = getattr(module, chosen.step, None)
     if not callable(step):
         raise ConfigError(f"{path} has no function {chosen.step!r}: the step you fix")
-    with replaced_step(chosen.step, step):
+
+    returns = _RETURNS.get(chosen.step)
+
+    def watched(*args: Any) -> Any:
+        try:
+            result = step(*args)
+            if returns is not None and not returns[0](result):
+                raise TypeError(f"it must return {returns[1]}, not {result!r}")  # noqa: TRY301
+        except Exception as exc:
+            if raised is not None:
+                line = next(
+                    (f.lineno for f in reversed(traceback.extract_tb(exc.__traceback__))
+                     if Path(f.filename) == path),
+                    None,
+                )  # fmt: skip
+                where = f" (step.py, line {line})" if line is not None else ""
+                raised.append(f"{type(exc).__name__}: {exc}{where}")
+            raise
+        return result
+
+    with replaced_step(chosen.step, watched):
         yield
 
 
@@ -398,6 +437,19 @@ def _intensity(chosen: Exercise, plan: Plan, seed: int) -> Failure | None:
             )
             return Failure(seed, "intensity-bound", chosen.rule, message, None, (), 0, 0, "")
     return None
+
+
+def _raised(
+    chosen: Exercise, folder: Path, seed: int, said: str, failure: Failure | None
+) -> Failure:
+    """The failure of a seed in which the student's step raised: said first, with the
+    run's own failure's story if it has one."""
+    message = f"your {chosen.step} raised {said}"
+    if failure is None:
+        replay = f"rr-actors teach check {folder} --seed {seed} --story"
+        return Failure(seed, "step-raised", chosen.rule, message, None, (), 0, 0, replay)
+    also = f"{message}; and then [{failure.rule}] {failure.message}"
+    return dataclasses.replace(failure, rule="step-raised", message=also)
 
 
 def _setup_failure(chosen: Exercise, folder: Path, seed: int, exc: RrError) -> Failure:

@@ -114,3 +114,25 @@ def test_an_intensity_too_high_to_stop_a_crash_loop_fails_before_any_run(
     assert "allows 26 restarts within 1 s (26 a second): above 25 a second" in (
         report.failure.message
     )
+
+
+def test_a_step_that_raises_or_returns_the_wrong_type_is_said_first(tmp_path: Path) -> None:
+    _chosen, folder = kit.start("climb", tmp_path / "c")
+    (folder / "step.py").write_text(
+        "def climb(parent, resources, status):\n"
+        "    if parent is None:\n"
+        "        raise KeyError('no parent')\n"
+        "    return parent\n",
+        encoding="utf-8",
+    )
+
+    report = grade.check_folder(folder, seeds=2, shrink_budget=0)
+
+    assert report.failure is not None
+    assert report.failure.rule == "step-raised"
+    message = report.failure.message
+    assert message.startswith("your climb raised ")
+    assert (
+        "KeyError: 'no parent' (step.py, line 3)" in message
+        or "TypeError: it must return a list of resource ids (str), not '" in message
+    )
