@@ -96,6 +96,9 @@ def test_a_checkers_finding_is_told_on_the_run_shrunk_unless_asked_not_to(tmp_pa
     assert replayed is not None
     assert replayed.rule == "status-reached"
     assert replayed.run_events == shrunk.shrunk_events
+    solve("climb", folder)
+    assert grade.check_folder(folder, seeds=1).passed
+    assert not (folder / grade.SHRUNK).exists()  # (the fixed failure's plan: gone)
 
 
 def test_an_intensity_too_high_to_stop_a_crash_loop_fails_before_any_run(
