@@ -348,6 +348,25 @@ def _check(args: argparse.Namespace, out: TextIO) -> int:
 _EVENTS_HELP = "print every host's events as JSON lines, ordered by their clock stamps (hlc)"
 
 
+_TEACH_HELP = "a classroom kit: exercises checked by the verdict of simulated runs"
+
+
+def _teach_arguments(parser: argparse.ArgumentParser) -> None:
+    try:
+        from rr_actors.teach import cli  # noqa: PLC0415 - only the kit needs it
+    except ImportError:  # the teach extra is missing: say so when it is used
+        parser.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+        parser.set_defaults(any_arguments=True)
+        return
+    cli.add_arguments(parser)
+
+
+def _teach(args: argparse.Namespace, out: TextIO) -> int:
+    with needs("teach", THIS_COMMAND):
+        from rr_actors.teach import cli  # noqa: PLC0415 - only the kit needs it
+    return cli.main(args, out)
+
+
 def _positive_whole(of: str) -> Callable[[str], int]:
     """An argparse `type` for a positive whole number of `of` (the message names it)."""
 
@@ -615,6 +634,7 @@ COMMANDS: list[Command] = [
         functools.partial(_sweep_command, "shrink"),
     ),
     Command("certs", _CERTS_HELP, _certs_arguments, _certs),
+    Command("teach", _TEACH_HELP, _teach_arguments, _teach),
 ]
 """The subcommands, in the order `--help` lists them."""
 

@@ -31,6 +31,7 @@ EXTRAS = {
     "demo": "matplotlib, rich: the mission's plot, its live progress line and tables",
     "experiments": "msgspec, matplotlib, rich: plans checked against their schema, plots",
     "observe": "Starlette, sse-starlette, uvicorn: the observer's web page",
+    "teach": "greenlet, msgspec: the classroom kit's exercises, checked on the simulation",
     "title": "setproctitle: `ps` shows a manager process as `rr-actors: <name>`",
     "zenoh": "eclipse-zenoh, cryptography: registrars across hosts, mutual TLS, certs",
 }

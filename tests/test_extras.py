@@ -172,7 +172,7 @@ def test_every_extra_a_user_installs_is_in_pyproject_and_said_what_it_brings() -
     ]
 
     assert set(EXTRAS) <= set(declared)
-    assert {"demo", "experiments", "observe", "title", "zenoh"} == set(EXTRAS)
+    assert {"demo", "experiments", "observe", "teach", "title", "zenoh"} == set(EXTRAS)
 
 
 def _closure(requirements: list[str]) -> set[str]:

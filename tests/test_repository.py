@@ -174,6 +174,7 @@ MIRRORED = {
     "simulation": ("simulation",),
     "store": ("_store",),
     "supervision": ("_supervision",),
+    "teach": ("teach",),
     "testing": ("testing",),
     "tools": ("_tools",),
     "transport": ("_transport",),

@@ -50,8 +50,8 @@ def render() -> str:
     module, in name order."""
     packages: dict[str, list[Path]] = {}
     for path in sorted(PACKAGE.rglob("*.py")):
-        if "__pycache__" in path.parts:
-            continue
+        if "__pycache__" in path.parts or not (path.parent / "__init__.py").is_file():
+            continue  # (a file outside a package: data, such as an exercise's starter)
         packages.setdefault(module_name(path.parent / "__init__.py"), []).append(path)
     out = [HEADER]
     for package in sorted(packages):

@@ -59,6 +59,7 @@ from rr_actors._catalog.records import (
     ResourceState,
     UnreadRows,
 )
+from rr_actors._core import steps
 from rr_actors._types import Query
 from rr_actors.errors import UnknownQueryError
 
@@ -175,8 +176,14 @@ class Catalog:
         resources = self.resources
         index = self._index
         if digest is not None:
+            shares = steps.shares  # (a classroom's copy of this step, `rr_actors.teach`)
             for rid in index.with_digest(server, digest):
                 resource = resources[rid]
+                if shares is not None:
+                    loading = resource.state is ResourceState.LOADING
+                    if shares(resource.request, request, loading, resource.failed):
+                        return resource, []
+                    continue
                 if resource.failed:  # reported FATAL: never matched again
                     continue
                 if requests_equal(resource.request, request):  # both plain: no user code

@@ -64,7 +64,7 @@ from typing import Any
 
 from rr_actors import events
 from rr_actors._catalog import Resource
-from rr_actors._core import hlc, runtime
+from rr_actors._core import hlc, runtime, steps
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.ids import new_id
@@ -391,8 +391,18 @@ class StatusRelay:
                 told = self.registrar.published, self.registrar.name, message.event
                 call = _Call(callback, record.query, update, join.add(), told if active else None)
                 DESK.runner.run((call,))
-            if record.parent is not None and record.parent in catalog.resources:
-                parent = catalog.resources[record.parent]
+            climb = steps.climb  # (a classroom's copy of this step, `rr_actors.teach`)
+            if climb is not None:
+                above = [
+                    catalog.resources[r]
+                    for r in climb(record.parent, catalog.resources, message.status)
+                    if r in catalog.resources
+                ]
+            elif record.parent is not None and record.parent in catalog.resources:
+                above = [catalog.resources[record.parent]]
+            else:
+                above = []
+            for parent in above:
                 self.notify(
                     parent,
                     update,

@@ -1,0 +1,99 @@
+"""A classroom kit: exercises checked by the verdict of simulated runs (`rr-actors teach`).
+
+```
+ rr-actors teach list                 the exercises: name, kind, level, topic
+ rr-actors teach start NAME [DIR]     its README and starter files into DIR (./NAME)
+ rr-actors teach check [DIR]          its plan over its seeds on the simulation, the verdict
+ rr-actors teach hint [DIR]           the next hint (those shown: DIR/.teach.json)
+ rr-actors teach solution --teacher   the solution's files
+```
+
+Two kinds of exercise: `use` (the student writes a manager's setup or a plan, as a user
+of the framework would) and `protocol` (the student gets one step of the registrar with
+a bug, in `step.py`, and fixes it: the check runs the simulation with their copy in the
+step's place, `replaced_step`). `kit.py` reads the exercises, `grade.py` checks a
+folder, `rules.py` holds the kit's own rules (besides the checker's), `cli.py` the
+command.
+
+The protocol steps a student's copy can replace (`STEPS`), each with the registrar's own
+code as a function of the same shape (`shipped_step`):
+
+- `climb(parent, resources, status) -> ids`: where a status delivered to a consumer id
+  climbs: `parent` the id of the resource that id is a dependency of (`None`: a client's
+  own call), `resources` the ids of the resources its registrar serves (a collection:
+  `in` is what to ask it), `status` the `rr_actors.Status`; returns the ids of the
+  resources to notify in turn (an iterable of `str`; ids not in `resources` are skipped).
+- `shares(stored, request, loading, failed) -> bool`: whether a resource loaded (or
+  loading: `loading`) for request `stored` serves a new call of `request` (rule 1:
+  equal requests share one resource); `failed`: its provider reported it `FATAL`.
+  Asked for plain requests (those the catalog digests: numbers, strings, tuples,
+  dicts of them...), of the same server, on the registrar's actor thread.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Collection, Iterable, Iterator
+from typing import Any
+
+from rr_actors._core import steps as _steps
+from rr_actors._types import Status
+from rr_actors.errors import ConfigError
+
+__all__ = ["STEPS", "replaced_step", "shipped_step"]
+
+
+def _climb(parent: str | None, resources: Collection[str], status: Status) -> Iterable[str]:
+    """The registrar's own climb: to the resource the id is a dependency of, whatever
+    the status (rule 9: a status reaches every resource on its paths)."""
+    del status
+    return [parent] if parent is not None and parent in resources else []
+
+
+def _shares(stored: Any, request: Any, loading: bool, failed: bool) -> bool:
+    """The catalog's own dedup test: an equal request shares the resource, loaded or
+    still loading (the call waits for its load), unless its provider reported it
+    `FATAL` (rule 1: a dead resource is never matched again)."""
+    del loading
+    return not failed and bool(stored == request)
+
+
+STEPS: dict[str, Callable[..., Any]] = {"climb": _climb, "shares": _shares}
+"""The steps a classroom's copy may replace, each name with the registrar's own code."""
+
+
+def shipped_step(name: str) -> Callable[..., Any]:
+    """The registrar's own code of step `name`, as a function of the step's shape.
+
+    Raises:
+        ConfigError: `name` is not one of `STEPS`.
+    """
+    if name not in STEPS:
+        raise ConfigError(f"no protocol step {name!r}: the steps are {', '.join(sorted(STEPS))}")
+    return STEPS[name]
+
+
+@contextlib.contextmanager
+def replaced_step(name: str, step: Callable[..., Any]) -> Iterator[None]:
+    """Inside the block, the registrars of this OS process run `step` as their step `name`.
+
+    Only the registrars of this process see it: those of a simulated run
+    (`rr_actors.simulation`, `rr_actors.experiments.simulate`), never a manager in a real
+    process of its own. The step runs on the registrar's actor thread (a simulated one):
+    it must return at once and must not call a registrar. The registrar's own code is
+    back when the block ends, even on an error.
+
+    Raises:
+        ConfigError: `name` is not one of `STEPS`, `step` is not callable, or another
+            copy of the step is in place (blocks of one step do not nest).
+    """
+    shipped_step(name)
+    if not callable(step):
+        raise ConfigError(f"the step {name!r} must be a function, got {step!r}")
+    if getattr(_steps, name) is not None:
+        raise ConfigError(f"the step {name!r} is replaced already (one copy at a time)")
+    setattr(_steps, name, step)
+    try:
+        yield
+    finally:
+        setattr(_steps, name, None)

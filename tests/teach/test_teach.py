@@ -1,0 +1,51 @@
+"""The kit's public seam (`rr_actors.teach`): a protocol step replaced inside a block,
+the registrar's own code back after it; the shipped steps as functions."""
+
+from __future__ import annotations
+
+import pytest
+
+from rr_actors import ConfigError, Status
+from rr_actors.teach import STEPS, replaced_step, shipped_step
+
+
+def test_the_shipped_climb_goes_to_the_parent_it_serves_whatever_the_status() -> None:
+    climb = shipped_step("climb")
+
+    for status in Status:
+        assert list(climb("r1", {"r1", "r2"}, status)) == ["r1"]
+    assert list(climb("gone", {"r1"}, Status.FATAL)) == []
+    assert list(climb(None, {"r1"}, Status.WARNING)) == []
+
+
+def test_the_shipped_share_test_matches_equal_live_requests_loading_or_not() -> None:
+    shares = shipped_step("shares")
+
+    assert shares({"scan": 1}, {"scan": 1}, True, False)
+    assert shares("front", "front", False, False)
+    assert not shares("front", "front", False, True)  # reported FATAL: never again
+    assert not shares("front", "back", False, False)
+
+
+def test_a_replaced_step_is_in_place_inside_its_block_only() -> None:
+    from rr_actors._core import steps  # noqa: PLC0415 - where the registrar reads it
+
+    def mine(parent: str | None, resources: object, status: Status) -> list[str]:
+        return []
+
+    with replaced_step("climb", mine):
+        assert steps.climb is mine
+        with pytest.raises(ConfigError, match="is replaced already"), replaced_step("climb", mine):
+            pass
+    assert steps.climb is None
+    with pytest.raises(RuntimeError), replaced_step("shares", lambda *a: True):
+        raise RuntimeError
+    assert steps.shares is None
+
+
+def test_bad_steps_are_refused() -> None:
+    with pytest.raises(ConfigError, match=r"no protocol step 'clim': the steps are climb, sh"):
+        shipped_step("clim")
+    with pytest.raises(ConfigError, match=r"must be a function"), replaced_step("climb", 3):  # type: ignore[arg-type]
+        pass
+    assert set(STEPS) == {"climb", "shares"}
