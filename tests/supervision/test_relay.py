@@ -463,9 +463,10 @@ def test_a_restarted_consumer_giving_up_a_sub_call_its_provider_then_loses_check
     # Issue 40's false violation, forced: a consumer is killed while a load of its own
     # waits for a sub-call its provider answered (the answer not recorded yet); its
     # restart reconciles, its provider releases the sub-call's id (the consumer wrote
-    # nothing of it: presumed abort) and is killed right after committing that release. The checker used to see neither the release (lost
-    # with the kill) nor the consumer forgetting the id (a restored record dropped
-    # unannounced): "lost in a restore, neither released nor reported FATAL".
+    # nothing of it: presumed abort) and is killed right after committing that release.
+    # The checker used to see neither the release (lost with the kill) nor the consumer
+    # forgetting the id (a restored record dropped unannounced): "lost in a restore,
+    # neither released nor reported FATAL".
     from rr_actors.experiments.check import check  # noqa: PLC0415
 
     p, c = f"p-{uid}", f"c-{uid}"
