@@ -10,11 +10,16 @@ Every event has its own fields first, then keyword-only ones:
 - `at`: when it happened, wall clock (`time.time()` seconds), so that events of several
   processes can be put on one timeline;
 - `pid`: the process it happened in (for child events, the child's process);
+- `seq`: its number among its process's events (1, 2, 3, ... in a manager process, where a
+  gap shows a lost event; 0 where events are not numbered; child events have none);
 - `host`: the member name of the host it happened on (the certificate's common name on a
   `ZenohNetwork` with TLS; else the machine's host name);
 - `hlc`: a hybrid logical clock stamp (Kulkarni et al., 2014), carried on every message
   between hosts: sorting a stream of several hosts by `hlc` ([`order`][rr_actors.events.order])
   puts every cause before its effects, whatever the machines' clocks say.
+
+A kind's own docstring says when its `at` was taken and whose process `pid` is, where that
+is more precise.
 
 Every event of every host of a system served on a `ZenohNetwork`:
 `net.subscribe_events(callback)` (`rr-actors events --network ...` on the command line).

@@ -1,18 +1,23 @@
 """The event kinds: one frozen dataclass per thing a tree or a registrar does.
 
-Each has its own fields first, then the keyword-only `at` (wall clock, `time.time()`
-seconds), `pid` (the process it happened in), `seq`, `host` (the member name of the host
-it happened on) and `hlc` (its hybrid logical clock stamp: `rr_actors._core.hlc`).
-Adding a kind: its class here, in the `Event` union, and its line in `text.describe`.
+Each has its own fields first, then the keyword-only stamps it inherits, said once in
+`_Stamped` (`at`, `host`, `hlc`: every kind) and `_Numbered` (`pid`, `seq`: every kind but
+the supervisor's child events, whose `pid` is their own, the child's process). `_kind`
+makes a kind's frozen, slotted dataclass with the stamps after its own fields, in the
+order of `_STAMPS`: the order of the fields of its JSON line (`lines.to_line`), of its
+outbox row, of its pickled state and of its `repr` (a dataclass base would put them first).
+Adding a kind: its class here (`@_kind`, from `_Numbered`), in the `Event` union, and its
+line in `text.describe`.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import itertools
 import os
 import socket
-from typing import Any, TypeAlias
+from typing import Any, TypeAlias, TypeVar, cast, dataclass_transform
 
 from rr_actors._core import hlc as _hlc
 from rr_actors._core import runtime
@@ -49,18 +54,6 @@ __all__ = [
 ]
 
 
-def _now() -> Any:
-    return dataclasses.field(default_factory=_hlc.CLOCK.wall)
-
-
-def _stamped() -> Any:
-    return dataclasses.field(default_factory=_hlc.CLOCK.now)
-
-
-def _this_host() -> Any:
-    return dataclasses.field(default_factory=_current_host)
-
-
 class _Host:
     """The member name events of this process carry: per process (a simulated process
     starts with its creator's, as a process forked on a host is on that host)."""
@@ -95,14 +88,6 @@ def set_host(name: str) -> None:
     machine's host name (`socket.gethostname()`).
     """
     _HOST.name = name
-
-
-def _this_process() -> Any:
-    return dataclasses.field(default_factory=_current_pid)
-
-
-def _numbered() -> Any:
-    return dataclasses.field(default_factory=_next_seq)
 
 
 _counter = itertools.count(1)
@@ -155,11 +140,107 @@ def _forked() -> None:
 fork.after_fork_in_child("the events' pid", _forked)
 
 
+# -- the stamps every kind carries ----------------------------------------------------------
+
+_T = TypeVar("_T")
+
+_STAMPS = ("at", "pid", "seq", "host", "hlc")
+"""The stamps' order, after a kind's own fields (each kind has the ones its base gives it)."""
+
+_STAMPED: dict[type, dict[str, tuple[str, Any]]] = {}
+"""Each stamps class's own stamps: name -> (annotation, default factory)."""
+
+
+@dataclass_transform(frozen_default=True, kw_only_default=True)
+def _stamps(cls: type[_T]) -> type[_T]:
+    """Take the fields of `cls` (a class of stamps) for the kinds deriving from it.
+
+    To a type checker, a frozen dataclass of keyword-only fields; at run time a plain class
+    without them, which `_kind` adds to each kind after its own fields.
+    Each field's default is `dataclasses.field(default_factory=...)`.
+
+    Raises:
+        TypeError: a field of `cls` is not named in `_STAMPS` (its place in a line).
+    """
+    annotations = inspect.get_annotations(cls)
+    if unknown := sorted(annotations.keys() - set(_STAMPS)):
+        raise TypeError(f"{cls.__name__}: {unknown} are not stamps (see _STAMPS)")
+    _STAMPED[cls] = {
+        name: (annotation, getattr(cls, name).default_factory)
+        for name, annotation in annotations.items()
+    }
+    for name in annotations:
+        delattr(cls, name)
+    del cls.__annotations__
+    return cls
+
+
+@dataclass_transform(frozen_default=True)
+def _kind(cls: type[_T]) -> type[_T]:
+    """`cls` as a kind of event: a frozen dataclass with slots, its own fields first, then
+    the stamps of its bases (keyword-only, in the order of `_STAMPS`), which it does not
+    derive from at run time (they are declarations: `_stamps`).
+
+    Raises:
+        TypeError: `cls` declares a field named as a stamp it inherits.
+    """
+    stamps: dict[str, tuple[str, Any]] = {}
+    for base in cls.__mro__[1:]:
+        stamps.update(_STAMPED.get(base, {}))
+    own = inspect.get_annotations(cls)
+    if clash := sorted(stamps.keys() & own.keys()):
+        raise TypeError(f"{cls.__name__}: {clash} are stamps it inherits")
+    namespace = {k: v for k, v in vars(cls).items() if k not in ("__dict__", "__weakref__")}
+    namespace["__qualname__"] = cls.__qualname__
+    namespace["__annotations__"] = annotations = {**own, "_": "dataclasses.KW_ONLY"}
+    for name in _STAMPS:
+        if name in stamps:
+            annotation, factory = stamps[name]
+            annotations[name] = annotation
+            namespace[name] = dataclasses.field(default_factory=factory)
+    # Not derived from its stamps classes at run time: `object.__setattr__`, which a frozen
+    # `__init__` calls per field, walks the class's bases of Python classes each time.
+    bases = tuple(base for base in cls.__bases__ if base not in _STAMPED) or (object,)
+    kind = cast("type[_T]", type(cls.__name__, bases, namespace))
+    return dataclasses.dataclass(frozen=True, slots=True)(kind)
+
+
+@_stamps
+class _Stamped:
+    """What every event carries, after its own fields (keyword-only).
+
+    Attributes:
+        at: when it happened, wall clock (`time.time()` seconds).
+        host: the member name of the host it happened on (see `set_host`).
+        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
+            several hosts by it to put every cause before its effects.
+    """
+
+    at: float = dataclasses.field(default_factory=_hlc.CLOCK.wall)
+    host: str = dataclasses.field(default_factory=_current_host)
+    hlc: int = dataclasses.field(default_factory=_hlc.CLOCK.now)
+
+
+@_stamps
+class _Numbered(_Stamped):
+    """What every event but a supervisor's child events carries too (keyword-only).
+
+    Attributes:
+        pid: the process it happened in (the registrar's, for a registrar's event).
+        seq: its number among its process's events: 1, 2, 3, ... in a manager process,
+            where a gap shows a lost event (see `number_events`); 0 where events are not
+            numbered.
+    """
+
+    pid: int = dataclasses.field(default_factory=_current_pid)
+    seq: int = dataclasses.field(default_factory=_next_seq)
+
+
 # -- supervision ----------------------------------------------------------------------------
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class ChildStarted:
+@_kind
+class ChildStarted(_Stamped):
     """A supervisor started a child: on the supervisor's start, in order, or when added.
 
     Published by the supervisor once the child serves (its registrar accepts calls). A
@@ -170,23 +251,15 @@ class ChildStarted:
         child: name of the child (a manager or a nested supervisor).
         pid: the child's process (the supervisor's own process for a thread manager or
             a nested supervisor).
-        at: when it happened, wall clock (`time.time()` seconds).
-        host: the member name of the host it happened on (see `set_host`).
-        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
-            several hosts by it to put every cause before its effects.
     """
 
     supervisor: str
     child: str
     pid: int
-    _: dataclasses.KW_ONLY
-    at: float = _now()
-    host: str = _this_host()
-    hlc: int = _stamped()
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class ChildExited:
+@_kind
+class ChildExited(_Stamped):
     """A child's incarnation ended: it crashed, was killed, exited, or was stopped.
 
     Published by the supervisor when it sees the exit (from the process sentinel for a
@@ -214,10 +287,7 @@ class ChildExited:
         children: the names of the supervisor's children, in start order (this one
             among them): the order the strategy stops them in (reverse) and restarts
             them in; `()` in a line of schema 5 or older.
-        at: when the supervisor saw it, wall clock (`time.time()` seconds).
-        host: the member name of the host it happened on (see `set_host`).
-        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
-            several hosts by it to put every cause before its effects.
+        at: when the supervisor saw it.
     """
 
     supervisor: str
@@ -231,14 +301,10 @@ class ChildExited:
     period: float = 0.0
     strategy: str = ""
     children: tuple[str, ...] = ()
-    _: dataclasses.KW_ONLY
-    at: float = _now()
-    host: str = _this_host()
-    hlc: int = _stamped()
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class ChildRestarted:
+@_kind
+class ChildRestarted(_Stamped):
     """A supervisor restarted a child after an exit, and the new incarnation serves.
 
     Attributes:
@@ -248,24 +314,17 @@ class ChildRestarted:
             manager or a nested supervisor).
         restart_s: seconds from the supervisor seeing the exit to the new incarnation
             serving (its catalog restored), backoff delay included.
-        at: when it serves again, wall clock (`time.time()` seconds).
-        host: the member name of the host it happened on (see `set_host`).
-        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
-            several hosts by it to put every cause before its effects.
+        at: when it serves again.
     """
 
     supervisor: str
     child: str
     pid: int
     restart_s: float
-    _: dataclasses.KW_ONLY
-    at: float = _now()
-    host: str = _this_host()
-    hlc: int = _stamped()
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class SupervisorGaveUp:
+@_kind
+class SupervisorGaveUp(_Numbered):
     """A supervisor exceeded its restart intensity and stopped all its children (OTP).
 
     A nested supervisor's parent then treats it as one crashed child (escalation); the
@@ -276,31 +335,21 @@ class SupervisorGaveUp:
         reason: why, for people (the message of the `SupervisorGaveUpError`).
         max_restarts: its restart intensity: at most this many restarts ...
         period: ... within this many seconds.
-        at: when it gave up, wall clock (`time.time()` seconds).
+        at: when it gave up.
         pid: the supervisor's process.
-        seq: its number among its process's events (see `number_events`; 0: not numbered).
-        host: the member name of the host it happened on (see `set_host`).
-        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
-            several hosts by it to put every cause before its effects.
     """
 
     supervisor: str
     reason: str
     max_restarts: int
     period: float
-    _: dataclasses.KW_ONLY
-    at: float = _now()
-    pid: int = _this_process()
-    seq: int = _numbered()
-    host: str = _this_host()
-    hlc: int = _stamped()
 
 
 # -- provider side --------------------------------------------------------------------------
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class ResourceLoaded:
+@_kind
+class ResourceLoaded(_Numbered):
     """A server's `load` callback returned: a new resource is served.
 
     Published by the registrar when the load finished, before its result is written
@@ -321,13 +370,7 @@ class ResourceLoaded:
             registrar waits for it, made on a worker thread, at most `compare_timeout`;
             `"<label failed: ...>"` if it failed), or without one the catalog's bounded
             `repr`; `None` if it has none.
-        at: when it finished, wall clock (`time.time()` seconds).
-        pid: the registrar's process.
-        seq: the number of this event in its process (1, 2, ... in a manager process,
-            where a gap shows a lost event; 0 where events are not numbered).
-        host: the member name of the host it happened on (see `set_host`).
-        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
-            several hosts by it to put every cause before its effects.
+        at: when it finished.
     """
 
     registrar: str
@@ -337,16 +380,10 @@ class ResourceLoaded:
     load_s: float
     digest: int | None = None
     label: str | None = None
-    _: dataclasses.KW_ONLY
-    at: float = _now()
-    pid: int = _this_process()
-    seq: int = _numbered()
-    host: str = _this_host()
-    hlc: int = _stamped()
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class LoadFailed:
+@_kind
+class LoadFailed(_Numbered):
     """A server's `load` callback raised; the call fails with `ResourceLoadError`.
 
     Published by the registrar whose server's `load` raised (the origin of the error),
@@ -359,12 +396,7 @@ class LoadFailed:
         query_id: the id of the query that caused the load.
         error_type: the exception's type name (`type(exc).__name__`).
         message: the exception's message (`str(exc)`).
-        at: when it failed, wall clock (`time.time()` seconds).
-        pid: the registrar's process.
-        seq: its number among its process's events (see `number_events`; 0: not numbered).
-        host: the member name of the host it happened on (see `set_host`).
-        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
-            several hosts by it to put every cause before its effects.
+        at: when it failed.
     """
 
     registrar: str
@@ -373,16 +405,10 @@ class LoadFailed:
     query_id: str
     error_type: str
     message: str
-    _: dataclasses.KW_ONLY
-    at: float = _now()
-    pid: int = _this_process()
-    seq: int = _numbered()
-    host: str = _this_host()
-    hlc: int = _stamped()
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class ResourceUnloaded:
+@_kind
+class ResourceUnloaded(_Numbered):
     """A server's `unload` callback ran: its last consumer released the resource.
 
     Published by the registrar after the resource's own dependencies were released and
@@ -395,27 +421,16 @@ class ResourceUnloaded:
         registrar: name of the provider registrar.
         server: name of the resource server that served it.
         resource_id: the resource's id.
-        at: when it finished, wall clock (`time.time()` seconds).
-        pid: the registrar's process.
-        seq: its number among its process's events (see `number_events`; 0: not numbered).
-        host: the member name of the host it happened on (see `set_host`).
-        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
-            several hosts by it to put every cause before its effects.
+        at: when it finished.
     """
 
     registrar: str
     server: str
     resource_id: str
-    _: dataclasses.KW_ONLY
-    at: float = _now()
-    pid: int = _this_process()
-    seq: int = _numbered()
-    host: str = _this_host()
-    hlc: int = _stamped()
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class ConsumerAdded:
+@_kind
+class ConsumerAdded(_Numbered):
     """A query became a consumer of a served resource (a new load or a duplicate request).
 
     Published by the provider registrar when the consumer id is recorded in its catalog
@@ -427,28 +442,16 @@ class ConsumerAdded:
         resource_id: the resource's id.
         query_id: the consumer's query id.
         consumer: name of the consumer registrar (the query's `origin_rr`).
-        at: when it happened, wall clock (`time.time()` seconds).
-        pid: the provider registrar's process.
-        seq: its number among its process's events (see `number_events`; 0: not numbered).
-        host: the member name of the host it happened on (see `set_host`).
-        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
-            several hosts by it to put every cause before its effects.
     """
 
     registrar: str
     resource_id: str
     query_id: str
     consumer: str
-    _: dataclasses.KW_ONLY
-    at: float = _now()
-    pid: int = _this_process()
-    seq: int = _numbered()
-    host: str = _this_host()
-    hlc: int = _stamped()
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class ConsumerReleased:
+@_kind
+class ConsumerReleased(_Numbered):
     """A consumer id of a served resource was released (an `unload`, or its consumer died).
 
     Published by the provider registrar when the id is removed from its catalog (with
@@ -469,12 +472,6 @@ class ConsumerReleased:
             link, rule 22: its consumer reconciles with that one) or `"refused"` (the
             load's commit failed or its server closed: the caller was answered with an
             error).
-        at: when it happened, wall clock (`time.time()` seconds).
-        pid: the provider registrar's process.
-        seq: its number among its process's events (see `number_events`; 0: not numbered).
-        host: the member name of the host it happened on (see `set_host`).
-        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
-            several hosts by it to put every cause before its effects.
     """
 
     registrar: str
@@ -482,19 +479,13 @@ class ConsumerReleased:
     query_id: str
     consumer: str
     reason: str = "unload"
-    _: dataclasses.KW_ONLY
-    at: float = _now()
-    pid: int = _this_process()
-    seq: int = _numbered()
-    host: str = _this_host()
-    hlc: int = _stamped()
 
 
 # -- consumer side --------------------------------------------------------------------------
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class CallAnswered:
+@_kind
+class CallAnswered(_Numbered):
     """A consumer's call was answered and the consumer holds its query id now.
 
     Published by the consumer registrar when it recorded the answer (a durable one
@@ -513,12 +504,7 @@ class CallAnswered:
             resource's `load`, rule 5), `None` for a call of its own.
         retry: the consumer already knew this id: it held it, or an earlier call with it
             failed as its provider died (rule 17); the answer adds no second consumer.
-        at: when the answer was recorded, wall clock (`time.time()` seconds).
-        pid: the consumer registrar's process.
-        seq: its number among its process's events (see `number_events`; 0: not numbered).
-        host: the member name of the host it happened on (see `set_host`).
-        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
-            several hosts by it to put every cause before its effects.
+        at: when the answer was recorded.
     """
 
     registrar: str
@@ -527,16 +513,10 @@ class CallAnswered:
     server: str
     parent: str | None = None
     retry: bool = False
-    _: dataclasses.KW_ONLY
-    at: float = _now()
-    pid: int = _this_process()
-    seq: int = _numbered()
-    host: str = _this_host()
-    hlc: int = _stamped()
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class CallFailed:
+@_kind
+class CallFailed(_Numbered):
     """A consumer's call failed: its caller got an error, and holds no query id.
 
     Published by the consumer registrar when it handled the failure (a withdrawn call
@@ -555,12 +535,7 @@ class CallFailed:
             and a retry with the same id finds what it holds. `False`: the provider holds
             nothing for it (an error answer, or an answer given back).
         retry: the consumer already knew this id (see `CallAnswered.retry`).
-        at: when the failure was handled, wall clock (`time.time()` seconds).
-        pid: the consumer registrar's process.
-        seq: its number among its process's events (see `number_events`; 0: not numbered).
-        host: the member name of the host it happened on (see `set_host`).
-        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
-            several hosts by it to put every cause before its effects.
+        at: when the failure was handled.
     """
 
     registrar: str
@@ -571,16 +546,10 @@ class CallFailed:
     message: str
     may_have_executed: bool = False
     retry: bool = False
-    _: dataclasses.KW_ONLY
-    at: float = _now()
-    pid: int = _this_process()
-    seq: int = _numbered()
-    host: str = _this_host()
-    hlc: int = _stamped()
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class CallWithdrawn:
+@_kind
+class CallWithdrawn(_Numbered):
     """A consumer's call was given up before its answer: nothing is left of it (rule 17).
 
     Published by the consumer registrar after the caller told the provider to give the
@@ -594,12 +563,7 @@ class CallWithdrawn:
         reason: `"timeout"` (its `timeout` ran out: `CallTimeoutError`),
             `"interrupted"` (its caller stopped waiting with an exception) or
             `"registrar stopped"` (the consumer was stopped with the call in flight).
-        at: when the withdrawal was handled, wall clock (`time.time()` seconds).
-        pid: the consumer registrar's process.
-        seq: its number among its process's events (see `number_events`; 0: not numbered).
-        host: the member name of the host it happened on (see `set_host`).
-        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
-            several hosts by it to put every cause before its effects.
+        at: when the withdrawal was handled.
     """
 
     registrar: str
@@ -607,16 +571,10 @@ class CallWithdrawn:
     serving_rr: str
     server: str
     reason: str = "timeout"
-    _: dataclasses.KW_ONLY
-    at: float = _now()
-    pid: int = _this_process()
-    seq: int = _numbered()
-    host: str = _this_host()
-    hlc: int = _stamped()
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class QueriesFetched:
+@_kind
+class QueriesFetched(_Numbered):
     """A consumer fetched the ids it holds at a provider's server (`fetch_queries`, rule 10).
 
     Published by the consumer registrar when the provider's answer came.
@@ -628,12 +586,7 @@ class QueriesFetched:
         query_ids: the ids the answer listed, in its order.
         started: the stamp (`hlc`) taken when the fetch began: the provider read its
             catalog between `started` and `hlc`.
-        at: when the answer came, wall clock (`time.time()` seconds).
-        pid: the consumer registrar's process.
-        seq: its number among its process's events (see `number_events`; 0: not numbered).
-        host: the member name of the host it happened on (see `set_host`).
-        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
-            several hosts by it to put every cause before its effects.
+        at: when the answer came.
     """
 
     registrar: str
@@ -641,16 +594,10 @@ class QueriesFetched:
     server: str
     query_ids: tuple[str, ...] = ()
     started: int = 0
-    _: dataclasses.KW_ONLY
-    at: float = _now()
-    pid: int = _this_process()
-    seq: int = _numbered()
-    host: str = _this_host()
-    hlc: int = _stamped()
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class ServerQueriesListed:
+@_kind
+class ServerQueriesListed(_Numbered):
     """A provider listed the queries its own server holds (`server_queries`, rule 10).
 
     Published by the provider registrar when its answer came back to the caller.
@@ -661,28 +608,17 @@ class ServerQueriesListed:
         query_ids: the ids the answer listed, in its order.
         started: the stamp (`hlc`) taken when the listing began: the registrar read its
             catalog between `started` and `hlc`.
-        at: when the answer came, wall clock (`time.time()` seconds).
-        pid: the registrar's process.
-        seq: its number among its process's events (see `number_events`; 0: not numbered).
-        host: the member name of the host it happened on (see `set_host`).
-        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
-            several hosts by it to put every cause before its effects.
+        at: when the answer came.
     """
 
     registrar: str
     server: str
     query_ids: tuple[str, ...] = ()
     started: int = 0
-    _: dataclasses.KW_ONLY
-    at: float = _now()
-    pid: int = _this_process()
-    seq: int = _numbered()
-    host: str = _this_host()
-    hlc: int = _stamped()
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class QueryForgotten:
+@_kind
+class QueryForgotten(_Numbered):
     """A consumer forgot a query id it held (one a `CallAnswered` or a restore gave it).
 
     Published by the consumer registrar when it removed the id's client record, for
@@ -717,12 +653,7 @@ class QueryForgotten:
             longer knows the id: if it left before the reconcile with that restart was
             answered (`reconciled` earlier than the restart), no `FATAL` is owed for
             the id (its consumer let it go: its reconcile skips an id being released).
-        at: when it was forgotten, wall clock (`time.time()` seconds).
-        pid: the consumer registrar's process.
-        seq: its number among its process's events (see `number_events`; 0: not numbered).
-        host: the member name of the host it happened on (see `set_host`).
-        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
-            several hosts by it to put every cause before its effects.
+        at: when it was forgotten.
     """
 
     registrar: str
@@ -731,19 +662,13 @@ class QueryForgotten:
     reason: str
     unload_sent: int = 0
     reconciled: int = 0
-    _: dataclasses.KW_ONLY
-    at: float = _now()
-    pid: int = _this_process()
-    seq: int = _numbered()
-    host: str = _this_host()
-    hlc: int = _stamped()
 
 
 # -- status ---------------------------------------------------------------------------------
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class StatusSent:
+@_kind
+class StatusSent(_Numbered):
     """A provider sent a status notification about a loaded resource (`send_status`).
 
     Published by the registrar when `send_status` is called, before delivery starts;
@@ -757,12 +682,7 @@ class StatusSent:
         message: the provider's free text.
         status_id: this send's id (a UUID4), carried by every hop: each
             `StatusDelivered` of it names it.
-        at: when it was sent, wall clock (`time.time()` seconds).
-        pid: the provider registrar's process.
-        seq: its number among its process's events (see `number_events`; 0: not numbered).
-        host: the member name of the host it happened on (see `set_host`).
-        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
-            several hosts by it to put every cause before its effects.
+        at: when it was sent.
     """
 
     registrar: str
@@ -770,16 +690,10 @@ class StatusSent:
     status: Status
     message: str
     status_id: str = ""
-    _: dataclasses.KW_ONLY
-    at: float = _now()
-    pid: int = _this_process()
-    seq: int = _numbered()
-    host: str = _this_host()
-    hlc: int = _stamped()
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class StatusDelivered:
+@_kind
+class StatusDelivered(_Numbered):
     """A status notification reached one consumer (one hop on its way to the top).
 
     Published by the consumer registrar once its client's status callback for this query
@@ -795,12 +709,8 @@ class StatusDelivered:
             wall clock (the hops may be in different processes).
         status_id: the id of the send it belongs to (its `StatusSent.status_id`); a
             query id gets each send once.
-        at: when it was delivered, wall clock (`time.time()` seconds).
+        at: when it was delivered.
         pid: the receiving registrar's process.
-        seq: its number among its process's events (see `number_events`; 0: not numbered).
-        host: the member name of the host it happened on (see `set_host`).
-        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
-            several hosts by it to put every cause before its effects.
     """
 
     registrar: str
@@ -809,16 +719,10 @@ class StatusDelivered:
     hop: int
     latency_s: float
     status_id: str = ""
-    _: dataclasses.KW_ONLY
-    at: float = _now()
-    pid: int = _this_process()
-    seq: int = _numbered()
-    host: str = _this_host()
-    hlc: int = _stamped()
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class StatusHandled:
+@_kind
+class StatusHandled(_Numbered):
     """A consumer's status callback returned (one run on a worker thread, not a coroutine).
 
     Published by the process's status runner on the callback's worker thread, as the
@@ -839,12 +743,8 @@ class StatusHandled:
         opened: the stamp at which it first waited for a registrar (a `send_status`,
             `call` or `unload` from inside it: its id's next callback may then begin
             beside it), 0 if it never did.
-        at: when it returned, wall clock (`time.time()` seconds).
+        at: when it returned.
         pid: the receiving registrar's process.
-        seq: its number among its process's events (see `number_events`; 0: not numbered).
-        host: the member name of the host it happened on (see `set_host`).
-        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
-            several hosts by it to put every cause before its effects.
     """
 
     registrar: str
@@ -854,16 +754,10 @@ class StatusHandled:
     arrived: int
     began: int
     opened: int = 0
-    _: dataclasses.KW_ONLY
-    at: float = _now()
-    pid: int = _this_process()
-    seq: int = _numbered()
-    host: str = _this_host()
-    hlc: int = _stamped()
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class UnloadCutShort:
+@_kind
+class UnloadCutShort(_Numbered):
     """A clean `stop()` ended while a resource's unload was still under way.
 
     `stop()` waits for the unloads of its registrar's resources that are under way (their
@@ -877,30 +771,19 @@ class UnloadCutShort:
         registrar: name of the provider registrar that stopped.
         server: name of the resource server whose unload was cut short.
         resource_id: the resource's id.
-        at: when the stop gave up waiting, wall clock (`time.time()` seconds).
-        pid: the registrar's process.
-        seq: its number among its process's events (see `number_events`; 0: not numbered).
-        host: the member name of the host it happened on (see `set_host`).
-        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
-            several hosts by it to put every cause before its effects.
+        at: when the stop gave up waiting.
     """
 
     registrar: str
     server: str
     resource_id: str
-    _: dataclasses.KW_ONLY
-    at: float = _now()
-    pid: int = _this_process()
-    seq: int = _numbered()
-    host: str = _this_host()
-    hlc: int = _stamped()
 
 
 # -- recovery and the stream itself ---------------------------------------------------------
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class InDoubt:
+@_kind
+class InDoubt(_Numbered):
     """A restarted registrar found a query whose load started but was never committed.
 
     Published by the registrar while it restores its catalog (semantics rule 16): the
@@ -915,28 +798,18 @@ class InDoubt:
         query_id: the in-doubt resource's id.
         server: the server it belongs to (`""` in events written before it was known).
         cut: what the crash cut short: `"load"` or `"unload"` (`""`: not known).
-        at: when it was found, wall clock (`time.time()` seconds).
+        at: when it was found.
         pid: the restored registrar's process.
-        seq: its number among its process's events (see `number_events`; 0: not numbered).
-        host: the member name of the host it happened on (see `set_host`).
-        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
-            several hosts by it to put every cause before its effects.
     """
 
     registrar: str
     query_id: str
     server: str = ""
     cut: str = ""
-    _: dataclasses.KW_ONLY
-    at: float = _now()
-    pid: int = _this_process()
-    seq: int = _numbered()
-    host: str = _this_host()
-    hlc: int = _stamped()
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class EventsDropped:
+@_kind
+class EventsDropped(_Numbered):
     """Events were lost here: a queue was full, or a manager process was killed.
 
     With `cause="full"`: a subscriber's bounded queue (or a forwarder's buffer) was
@@ -957,22 +830,12 @@ class EventsDropped:
         cause: `"full"` (a queue or buffer, or a subscriber's bound on bytes), `"killed"`
             (the tail of a dead manager process's events) or `"refused"` (a batch no
             member sealed).
-        at: when the gap was closed (the notice made), wall clock (`time.time()` seconds).
+        at: when the gap was closed (the notice made).
         pid: the process that lost them.
-        seq: its number among its process's events (see `number_events`; 0: not numbered).
-        host: the member name of the host it happened on (see `set_host`).
-        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
-            several hosts by it to put every cause before its effects.
     """
 
     count: int
     cause: str = "full"
-    _: dataclasses.KW_ONLY
-    at: float = _now()
-    pid: int = _this_process()
-    seq: int = _numbered()
-    host: str = _this_host()
-    hlc: int = _stamped()
 
 
 # -- what a catalog holds -------------------------------------------------------------------
@@ -984,8 +847,8 @@ LISTED_ROWS = 10_000
 """Rows a catalog event lists per kind; above it lists none (`complete` is `False`)."""
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class CatalogRestored:
+@_kind
+class CatalogRestored(_Numbered):
     """A registrar with a backup started: what its catalog holds, before it serves.
 
     Published once per start of a registrar that has a backup (an empty or a new one
@@ -1009,12 +872,7 @@ class CatalogRestored:
         digest: a SHA-256 (hex, first 16 digits) of the sorted rows of the three kinds;
             `""` when they are not listed (it would cost a read of every row, which a
             restore does not do before it serves).
-        at: when it was published, wall clock (`time.time()` seconds).
-        pid: the registrar's process.
-        seq: its number among its process's events (see `number_events`; 0: not numbered).
-        host: the member name of the host it happened on (see `set_host`).
-        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
-            several hosts by it to put every cause before its effects.
+        at: when it was published.
     """
 
     registrar: str
@@ -1024,16 +882,10 @@ class CatalogRestored:
     counts: tuple[int, ...] = (0, 0, 0)
     complete: bool = True
     digest: str = ""
-    _: dataclasses.KW_ONLY
-    at: float = _now()
-    pid: int = _this_process()
-    seq: int = _numbered()
-    host: str = _this_host()
-    hlc: int = _stamped()
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class RegistrarStopped:
+@_kind
+class RegistrarStopped(_Numbered):
     """A registrar stopped cleanly: what its catalog still holds at the end (rule 12).
 
     Published when `stop()` finished unloading what it held as a consumer, with the
@@ -1049,12 +901,7 @@ class RegistrarStopped:
         counts: `(resources, consumers, clients)`.
         complete: whether the rows are listed (see `CatalogRestored`).
         digest: as in `CatalogRestored`.
-        at: when it was published, wall clock (`time.time()` seconds).
-        pid: the registrar's process.
-        seq: its number among its process's events (see `number_events`; 0: not numbered).
-        host: the member name of the host it happened on (see `set_host`).
-        hlc: its hybrid logical clock stamp (`rr_actors._core.hlc`): sort events of
-            several hosts by it to put every cause before its effects.
+        at: when it was published.
     """
 
     registrar: str
@@ -1064,12 +911,6 @@ class RegistrarStopped:
     counts: tuple[int, ...] = (0, 0, 0)
     complete: bool = True
     digest: str = ""
-    _: dataclasses.KW_ONLY
-    at: float = _now()
-    pid: int = _this_process()
-    seq: int = _numbered()
-    host: str = _this_host()
-    hlc: int = _stamped()
 
 
 Event: TypeAlias = (

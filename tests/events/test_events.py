@@ -20,6 +20,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import events
+from rr_actors.events import kinds
 from rr_actors.events.lines import to_line, to_lines
 
 WAIT = 5.0
@@ -107,6 +108,27 @@ def test_every_event_kind_has_its_own_fields_first_then_keyword_only_at_and_pid(
     else:
         assert ["at", "pid", "seq", "host", "hlc"] == keyword_only
     assert keyword_only == names[-len(keyword_only) :]
+
+
+@pytest.mark.parametrize("event", EXAMPLES, ids=kind)
+def test_every_event_kind_is_slotted_without_a_dict_per_event(event: events.Event) -> None:
+    assert not hasattr(event, "__dict__")
+
+
+def test_a_kind_that_declares_a_stamp_it_inherits_is_refused() -> None:
+    with pytest.raises(TypeError, match=r"Clash: \['seq'\] are stamps it inherits"):
+
+        @kinds._kind
+        class Clash(kinds._Numbered):
+            seq: int
+
+
+def test_a_stamp_without_a_place_in_the_line_is_refused() -> None:
+    with pytest.raises(TypeError, match=r"Stray: \['when'\] are not stamps"):
+
+        @kinds._stamps
+        class Stray(kinds._Stamped):
+            when: float = dataclasses.field(default_factory=time.time)
 
 
 @pytest.mark.parametrize("event", EXAMPLES, ids=kind)
