@@ -221,7 +221,7 @@ PLANTS = (
         "intensity",
         "a supervisor that gives up one restart early: at `max_restarts` restarts within "
         "`period`, not past them (OTP's intensity, issue 51)",
-        "_supervision/restarting.py",
+        "_supervision/policy.py",
         "        return len(self._times) <= self.max_restarts\n",
         "        return len(self._times) < self.max_restarts  # PLANTED: one restart early\n",
         "crashloop",
@@ -296,7 +296,7 @@ PLANTS = (
         "intensity-swapped",
         "a supervisor's intensity built with its two numbers swapped: `period` restarts "
         "within `max_restarts` seconds (a positional mix-up)",
-        "_supervision/restarting.py",
+        "_supervision/policy.py",
         "        self.intensity = RestartIntensity(spec.max_restarts, spec.period, "
         "record.tree.clock)\n",
         "        self.intensity = RestartIntensity(spec.period, spec.max_restarts, "
@@ -345,7 +345,7 @@ PLANTS = (
         "intensity-stale-exit",
         "a sibling stopped for a group restart counted as a crash: the exit of an "
         "incarnation stopped on purpose is not recognised as stale (OTP's intensity)",
-        "_supervision/restarting.py",
+        "_supervision/policy.py",
         "        if child is None or child.incarnation != event.incarnation or "
         "self.restarts.gave_up:\n",
         "        if child is None or self.restarts.gave_up:  # PLANTED: incarnation\n",
@@ -356,7 +356,7 @@ PLANTS = (
         "restart-reversed",
         "a group restarted in the order it was stopped in: one_for_all's siblings come "
         "back in reverse start order (OTP starts them in start order; issue 51)",
-        "_supervision/restarting.py",
+        "_supervision/policy.py",
         "        for child in record.children:\n"
         '            if child.state != "restarting" or self._due.get(child.name) is not event:\n',
         "        for child in reversed(record.children):  # PLANTED: record.children\n"
@@ -368,7 +368,7 @@ PLANTS = (
         "sibling-left-running",
         "one_for_all's siblings restarted without being stopped: a crash takes down only "
         "the crashed child, and its siblings are started again beside themselves",
-        "_supervision/restarting.py",
+        "_supervision/policy.py",
         "            if other.running is not None:\n"
         "                self.stopping.stop_child(other, final=not comes_back, "
         "restarting=comes_back)\n",
@@ -381,7 +381,7 @@ PLANTS = (
         "rest-for-one-before",
         "rest_for_one takes down the children started before the crashed one (itself "
         "included), not those after it: the ones that depend on it run on",
-        "_supervision/restarting.py",
+        "_supervision/policy.py",
         "    return tuple(names[names.index(crashed) :])\n",
         "    return tuple(names[: names.index(crashed) + 1])  # PLANTED: names[index:]\n",
         "simrest",
@@ -391,7 +391,7 @@ PLANTS = (
         "give-up-unescalated",
         "a nested supervisor that gives up never tells its parent: the parent keeps it as "
         "running, its managers down for good (OTP escalates: the parent sees it exit)",
-        "_supervision/restarting.py",
+        "_supervision/policy.py",
         "        if self.on_gave_up is not None:\n            self.on_gave_up(error)\n",
         "        # PLANTED: self.on_gave_up(error) not called\n",
         "crashloop",

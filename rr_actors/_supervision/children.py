@@ -8,7 +8,7 @@ Every running child, whatever it is, offers `pid` and `stop(timeout) -> ManagerE
 * `ProcessManager`: a manager process (`rr_actors._process.manager.ManagerProcess`),
   started in a spare process when the tree has one; its death is seen by the process's
   watcher thread;
-* `NestedSupervisor`: a supervisor below this one (a `Level`: `rr_actors._supervision.node.Node`).
+* `NestedSupervisor`: a supervisor below this one (a `Level`: `rr_actors._supervision.policy.Node`).
 
 Each tells its end to the supervisor through an `on_exit(ManagerExit)` callback (run on
 the watcher thread), which posts it to the supervisor's mailbox.
@@ -287,7 +287,7 @@ class ProcessManager:
 
 
 class Level(Protocol):
-    """One supervisor of the tree, as its parent and lookups see it (a `node.Node`)."""
+    """One supervisor of the tree, as its parent and lookups see it (a `policy.Node`)."""
 
     spec: SupervisorSpec
     children: list[Child]

@@ -18,10 +18,10 @@ Who does what (each in its own module of `rr_actors._supervision`):
 ```
  Supervisor (this module: the public handle; owns the transport, spares, state-dir lock)
    ├─ TreeWatch (watching.py: subscribe, flush_events, observe, graph)
-   └─ Node (node.py: one supervisor's record + mailbox, on its own thread; its roles:)
-        ├─ starting.py: children in start order; stopping.py: reverse order, death watch
-        ├─ restarting.py: a watcher's Exited; restart or not (restart type), which
-        │    siblings (strategy), intensity, backoff, give up
+   └─ Node (policy.py, after OTP's supervisor.erl: one supervisor's record + mailbox, on
+        │    its own thread, and its restart policy: children started in start order,
+        │    stopped in reverse order (the death watch); a watcher's Exited: restart or
+        │    not (restart type), which siblings (strategy), intensity, backoff, give up)
         ├─ children.py: Child records, restart types; ThreadManager / ProcessManager /
         │    NestedSupervisor
         └─ tree.py: what the tree shares; lookups and the restart wait; death watch
@@ -61,10 +61,8 @@ from rr_actors._supervision.children import (
     ProcessManager,
     ThreadManager,
 )
-from rr_actors._supervision.node import Node
-from rr_actors._supervision.restarting import RestartIntensity
+from rr_actors._supervision.policy import Node, RestartIntensity, left, registrar_names
 from rr_actors._supervision.statedir import StateDirLock, ran_before
-from rr_actors._supervision.stopping import left, registrar_names
 from rr_actors._supervision.tree import (
     Clock,
     RestartWait,

@@ -27,10 +27,7 @@ PORTABLE_MODULES = (
     "tests/core/test_platform.py",
     "tests/process/test_child.py",  # (the tests of the kernel's name are Linux tricks only)
     "tests/process/test_manager.py",
-    "tests/supervision/test_restarting.py",
-    "tests/supervision/test_starting.py",
-    "tests/supervision/test_stopping.py::TestShutdownThenKill",
-    "tests/supervision/test_stopping.py::TestDeathWatchAtEveryProvider",
+    "tests/supervision/test_policy.py",  # (but PORTABLE_LEFT_OUT)
     "tests/supervision/test_statedir.py",
     "tests/supervision/test_supervisor.py",
     "tests/registrar/test_consumer.py::TestDurableConsumerKilled",
@@ -44,12 +41,31 @@ PORTABLE_MODULES = (
 )
 """The tests of the places a Linux trick is used, run again on the portable platform."""
 
+POLICY = "tests/supervision/test_policy.py"
+PORTABLE_LEFT_OUT = (
+    f"{POLICY}::test_a_host_that_stops_its_tree_for_good_is_no_loss_at_its_consumer_on_another_host",
+    f"{POLICY}::test_a_host_killed_with_its_supervisor_is_a_loss_fatal_at_its_consumer_on_another_host",
+    f"{POLICY}::TestStoppedForGood",
+    f"{POLICY}::test_a_childs_exit_carries_its_supervisors_strategy_and_children_in_start_order",
+)
+"""Tests of those modules that use no Linux trick of their own (a stopped tree's ends), not
+run twice."""
+
 
 @pytest.mark.skipif(PLATFORM.name != "linux", reason="this run is on the portable platform")
 @pytest.mark.timeout(900)
 def test_the_process_tests_pass_on_the_portable_platform() -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *PORTABLE_MODULES],
+        [
+            sys.executable,
+            "-m",
+            "pytest",
+            "-q",
+            "-p",
+            "no:cacheprovider",
+            *PORTABLE_MODULES,
+            *(f"--deselect={test}" for test in PORTABLE_LEFT_OUT),
+        ],
         cwd=ROOT,
         env={  # (not a pytest-xdist worker's: this run is a session of its own)
             **{k: v for k, v in os.environ.items() if not k.startswith("PYTEST_XDIST")},

@@ -1,0 +1,909 @@
+"""One supervisor and its restart policy: its record, its mailbox, a child's end and what
+comes of it, and starting and stopping its children.
+
+After OTP's `supervisor.erl`, one module over one record (its state record; `restart/3`
+with one clause per strategy; `start_children`, `do_restart`, `terminate_children`): each
+event runs on the node's thread (a `SerialExecutor`), one at a time, and every step ends
+by publishing the children's snapshots to the tree's waiters.
+
+```
+              ┌────────────────── Node (one mailbox, one thread) ──────────────────────┐
+ start ─────► │ Starting    start_all, start_child, nested Nodes     (start_children)  │
+ stop ──────► │ Restarts.cancel, then Stopping.stop_all          (terminate_children)  │
+ watcher ───► │ Exited ──► Exits.on_exited: stale? note the exit                       │
+   threads    │              └─► Restarts.after_exit: restart type, intensity,         │
+              │                  strategy, backoff, give up               (restart/3)  │
+ timer ─────► │ Restart ─► Restarts.on_restart ─► Starting.start_child   (do_restart)  │
+              │ Stopping    stop_child, stop_all, forget (death watch)                 │
+              │ Record: spec, tree, children (Child records), post, cast, publish      │
+              └────────────────────────────────────────────────────────────────────────┘
+```
+
+The module reads top down, each role calling only the roles below it: `Node`; restarting
+(`Exits`, `Restarts`; the pure `RestartIntensity` and `affected`); starting (`Starting`);
+stopping (`Stopping`, `mark`, `unmark`); what they share (the two messages `Exited` and
+`Restart`, `Record`: the node as its roles see it, `pid_of`). Each role owns its own state
+and holds the record, never another role's fields; what one role needs of another it asks
+by a method. A nested supervisor is a `Node` too; when it gives up it tells its parent,
+which sees an exited child (OTP: a supervisor that gives up exits with `shutdown`).
+
+Restarting: a child's end is taken on the supervisor's thread; its restart type, the
+restart intensity and the strategy decide whether it comes back, with which siblings, or
+whether the supervisor gives up.
+
+```
+ ThreadManager watcher: its registrar actor stopped ──────────────────────────┐
+ ManagerProcess watcher (_process/manager.py): the process ended; or no       │
+   heartbeat answer within `hang_after` (hung) / unhealthy ─► killed ─────────┼─► Exited(name,
+ a nested Node gave up (Starting: escalate) ──────────────────────────────────┤   incarnation,
+ a restart failed to start (Restarts.on_restart) ─────────────────────────────┘   exit)
+   ──► mailbox ──► Exits.on_exited: stale (an older incarnation, or this one gave up)? dropped
+                   else: the exit noted (Stopping.note_exit: ChildExited)
+ Restarts.after_exit(child, exit)
+   ├─ its restart type (restarts_after): not restarted ─► exited ─► Stopping.forget
+   ├─ RestartIntensity.add: more than max_restarts within period ─► give_up: every
+   │    child stopped (reverse order), SupervisorGaveUp; on_gave_up (the parent: Exited)
+   └─ take_down_with: the strategy's group (affected) stopped (reverse order); a
+      sibling comes back unless temporary (restarts_with_group); marked
+        ─► schedule: backoff ─► timer ── Restart(names, generation) ──► mailbox
+ mailbox ─► Restarts.on_restart: Starting.start_child each whose latest Restart it is
+            (a failure posts Exited: a crash)
+ Node.stop / give_up ─► Restarts.cancel: a new generation, every pending Restart stale
+```
+
+An incarnation stopped on purpose was bumped by `Stopping.stop_child` first, so its
+watcher's report is stale here. A child's restart type is read by `restarts_after` and
+`restarts_with_group`, in `children.py`, as the tree's lookups read it too. `Exits` holds
+no state of its own: what it changes is the crashed child's record. `Restarts` holds the
+intensity window, the generation and timers of pending restarts, and whether (and why)
+this supervisor gave up.
+
+Starting: all the children in order, or one again after a crash.
+
+```
+ Node.start ─► start_all: each child in start order ─► start_child
+                  └─ one fails: the started ones stop (reverse order) ─► SupervisorGaveUpError
+ Restarts.on_restart ─► start_child
+ start_child ─► a manager: ThreadManager (this process) or ProcessManager (a spare process),
+                           its config (`<state_dir>/<name>.db` with the tree's state_dir)
+              └ a supervisor: a nested Node (`nest`), which gives up by posting Exited
+            ─► running; ChildStarted / ChildRestarted; abandoned ids given back;
+               after a restart, the death watch it missed (and, with no backup, FATAL
+               for what was held at it, and what it held released: lost_everything;
+               also at the first start of one that ran on the state_dir before)
+```
+
+Each child is handed a watcher callback (run on its watcher thread) that posts its end
+to the supervisor's mailbox as `Exited`, with the incarnation it started. `Starting`'s own
+state: the state directory its managers' catalogs go to.
+
+Stopping: the children, and what a child that will not come back leaves behind.
+
+```
+ Node.stop ─► stop_all (reverse start order) ─┐
+ Restarts: a group's siblings, a give-up ─────┼─► stop_child: its spec's shutdown (bounded by
+ Starting: rolling back a failed start ───────┘   the deadline), then a kill ─► note_exit
+                                                    └─ final? ─► forget
+ forget ─► death watch (rule 19): a dead manager is lost (`lose`: its consumers' ids
+           released, the ids held at it FATAL); one stopped for good is stale (rule 12)
+ mark / unmark ─► DIRECTORY.mark_restarting: down for a moment, callers retry
+```
+
+`Stopping`'s own state: whether the parent stops this supervisor to start it again
+(`to_restart`), which keeps its managers marked as restarting while they are down.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import functools
+import logging
+import os
+from collections.abc import Callable, Sequence
+from typing import Protocol, TypeVar
+
+from rr_actors import events
+from rr_actors._core import runtime
+from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.serial import SerialExecutor
+from rr_actors._core.timers import Cancellable
+from rr_actors._process.manager import ManagerExit
+from rr_actors._supervision.children import (
+    Child,
+    Level,
+    NestedSupervisor,
+    ProcessManager,
+    ThreadManager,
+    restarts_after,
+    restarts_with_group,
+)
+from rr_actors._supervision.retry import give_back_abandoned
+from rr_actors._supervision.statedir import ran_before
+from rr_actors._supervision.tree import (
+    Clock,
+    Tree,
+    comes_back,
+    consumer_down,
+    death_watch_missed,
+    lost_everything,
+)
+from rr_actors.config import ManagerSpec, RegistrarConfig, Strategy, SupervisorSpec, managers
+from rr_actors.errors import ConfigError, RrError, SupervisorGaveUpError
+
+__all__ = [
+    "Exited",
+    "Exits",
+    "Nest",
+    "Node",
+    "Record",
+    "Restart",
+    "RestartIntensity",
+    "Restarts",
+    "Starting",
+    "Stopping",
+    "affected",
+    "left",
+    "mark",
+    "pid_of",
+    "registrar_names",
+    "unmark",
+]
+
+logger = logging.getLogger("rr_actors")
+
+T = TypeVar("T")
+
+
+# -- the node: the record, its mailbox, the roles it wires ---------------------------------
+
+
+class Node:
+    """One supervisor of a tree (the root or a nested one): its record, mailbox and roles.
+
+    Args:
+        spec: what it supervises and how.
+        tree: what the whole tree shares.
+        parent: the supervisor above it (`None` for the root).
+        state_dir: the parent's state directory (its managers' default, unless `spec`
+            names one).
+        on_gave_up: called (on this supervisor's thread) when it gives up.
+    """
+
+    def __init__(
+        self,
+        spec: SupervisorSpec,
+        tree: Tree,
+        parent: Node | None = None,
+        *,
+        state_dir: str | os.PathLike[str] | None = None,
+        on_gave_up: Callable[[SupervisorGaveUpError], None] | None = None,
+    ) -> None:
+        self.spec = spec
+        self.tree = tree
+        self._parent = parent
+        self.children = [Child(child) for child in spec.children]
+        for child in self.children:  # a new incarnation: say how the last one ended
+            last = tree.latest.get(child.name)
+            child.last_exit = last.last_exit if last is not None else None
+            child.published = child.info(tree.restarts.get(child.name, 0))
+        self._mailbox = SerialExecutor(f"rr-supervisor-{spec.name}")
+        tree.add_mailbox(self._mailbox)
+        self._running = False
+        own = spec.state_dir if spec.state_dir is not None else state_dir
+        self.stopping = Stopping(self)
+        self.starting = Starting(self, self.stopping, state_dir=own, nest=self._nest)
+        self.restarts = Restarts(self, self.starting, self.stopping, on_gave_up=on_gave_up)
+        self.exits = Exits(self, self.restarts, self.stopping)
+
+    @property
+    def name(self) -> str:
+        """The supervisor's name."""
+        return self.spec.name
+
+    @property
+    def parent(self) -> Node | None:
+        """The supervisor above it (`None` for the root)."""
+        return self._parent
+
+    @property
+    def gave_up(self) -> SupervisorGaveUpError | None:
+        """Why it gave up (`None` while it has not)."""
+        return self.restarts.gave_up
+
+    @property
+    def giving_up(self) -> bool:
+        """Whether it is stopping its children to give up (waiters conclude nothing)."""
+        return self.restarts.giving_up
+
+    def root(self) -> Node:
+        """The tree's root supervisor (this one, or the top of its parents)."""
+        node = self
+        while node.parent is not None:
+            node = node.parent
+        return node
+
+    # -- life cycle (any thread but its own) -------------------------------------------
+
+    def start(self) -> None:
+        """Start the mailbox thread and every child in order.
+
+        Raises:
+            SupervisorGaveUpError: a child failed to start (the others were stopped).
+        """
+        self._running = True
+        try:
+            self._mailbox.call(functools.partial(self._then_publish, self.starting.start_all))
+        except BaseException:
+            self._running = False
+            self._mailbox.finish()
+            self._mailbox.join(30.0)
+            raise
+
+    def stop(
+        self,
+        timeout: float | None = None,
+        *,
+        deadline: float | None = None,
+        restarting: bool = False,
+    ) -> None:
+        """Stop every child in reverse start order, then the mailbox thread (idempotent).
+
+        With `restarting`, the parent stops this supervisor to start it again (a group
+        restart): its managers' callers meanwhile get `RegistrarUnavailableError`.
+        """
+        if deadline is None and timeout is not None:
+            deadline = runtime.monotonic() + timeout
+        if not self._running:
+            return
+        self._running = False
+        if not self._mailbox.closed:
+            stop_all = functools.partial(self._stop_all, deadline, restarting=restarting)
+            try:
+                self._mailbox.call(functools.partial(self._then_publish, stop_all))
+            except RrError:
+                logger.exception("supervisor %s: stopping its children failed", self.name)
+            self._mailbox.finish()
+            self._mailbox.join(60.0)
+
+    def _stop_all(self, deadline: float | None, *, restarting: bool) -> None:
+        self.restarts.cancel()
+        self.stopping.stop_all(deadline, restarting=restarting)
+
+    def _nest(
+        self, spec: SupervisorSpec, on_gave_up: Callable[[SupervisorGaveUpError], None]
+    ) -> Node:
+        """Start a supervisor below this one (this thread waits until it started)."""
+        nested = Node(
+            spec, self.tree, self, state_dir=self.starting.state_dir, on_gave_up=on_gave_up
+        )
+        nested.start()
+        return nested
+
+    # -- the mailbox -------------------------------------------------------------------
+
+    def cast(self, fn: Callable[[], object]) -> None:
+        """Run `fn` on this supervisor's thread after what is queued now."""
+        self._mailbox.submit(functools.partial(self._then_publish, fn))
+
+    def post(self, event: Exited | Restart) -> None:
+        """Queue `event` for this supervisor's thread (any thread; returns at once)."""
+        self._mailbox.submit(functools.partial(self._then_publish, self._handle, event))
+
+    def _then_publish(self, fn: Callable[..., T], *args: object) -> T:
+        """Run `fn(*args)`, then `publish` (this supervisor's thread, one step at a time;
+        what `fn` raises is logged by the thread, or raised to `call`'s caller)."""
+        try:
+            return fn(*args)
+        finally:
+            self.publish()
+
+    def _handle(self, event: Exited | Restart) -> None:
+        if isinstance(event, Exited):
+            self.exits.on_exited(event)
+        else:
+            self.restarts.on_restart(event)
+
+    def publish(self) -> None:
+        """Publish the children's snapshots and wake every waiter of the tree."""
+        tree = self.tree
+        with tree.cond:
+            for child in self.children:
+                child.published = child.info(tree.restarts.get(child.name, 0))
+                tree.latest[child.name] = child.published
+            tree.changed()
+
+
+# -- restarting: a child's end and what comes of it (OTP's restart/3) ----------------------
+
+
+class Exits:
+    """Takes a child's reported end: drops a stale one, notes it, hands it to `Restarts`.
+
+    Args:
+        record: the supervisor whose children it watches.
+        restarts: decides what comes next (and knows whether this supervisor gave up).
+        stopping: notes the exit (`ChildExited`).
+    """
+
+    def __init__(self, record: Record, restarts: Restarts, stopping: Stopping) -> None:
+        self.record = record
+        self.restarts = restarts
+        self.stopping = stopping
+
+    def on_exited(self, event: Exited) -> None:
+        """Child `event.name`'s incarnation `event.incarnation` ended with `event.exit`."""
+        record = self.record
+        child = next((c for c in record.children if c.name == event.name), None)
+        if child is None or child.incarnation != event.incarnation or self.restarts.gave_up:
+            return  # a stale event: that incarnation was stopped on purpose
+        if isinstance(child.running, NestedSupervisor):
+            nested = child.running.node
+            child.gave_up = nested.gave_up
+            nested.stop()  # it gave up: end its mailbox thread
+        pid = pid_of(child)
+        child.running = None
+        child.last_exit = event.exit.reason
+        self.stopping.note_exit(child, pid, event.exit.reason, normal=event.exit.normal)
+        logger.warning(
+            "supervisor %s: child %s exited: %s", record.name, child.name, event.exit.reason
+        )
+        self.restarts.after_exit(child, event.exit)
+
+
+class Restarts:
+    """Decides whether and how a crashed child comes back, and gives up past the intensity.
+
+    Args:
+        record: the supervisor whose children it restarts.
+        starting: starts them again.
+        stopping: stops the siblings that go down with a crashed child.
+        on_gave_up: called (on this supervisor's thread) when it gave up: a nested
+            supervisor's parent posts itself an `Exited`.
+    """
+
+    def __init__(
+        self,
+        record: Record,
+        starting: Starting,
+        stopping: Stopping,
+        *,
+        on_gave_up: Callable[[SupervisorGaveUpError], None] | None = None,
+    ) -> None:
+        self.record = record
+        self.starting = starting
+        self.stopping = stopping
+        self.on_gave_up = on_gave_up
+        spec = record.spec
+        self.intensity = RestartIntensity(spec.max_restarts, spec.period, record.tree.clock)
+        self.gave_up: SupervisorGaveUpError | None = None
+        self.giving_up = False
+        self._generation = 0
+        self._timers: dict[int, Cancellable] = {}  # id(Restart) -> its pending backoff timer
+        self._due: dict[str, Restart] = {}  # each child's latest scheduled Restart
+
+    def after_exit(self, child: Child, exit: ManagerExit) -> None:
+        """`child` ended on its own (`exit`): leave it down, restart it, or give up."""
+        if not restarts_after(child.spec.restart, normal=exit.normal):
+            child.state = "exited"
+            self.stopping.forget(child, dead=not exit.clean)
+            return
+        child.state = "restarting"
+        mark(child)
+        self.record.publish()
+        if not self.intensity.add():
+            self.give_up(child)
+            return
+        self._schedule(self._take_down_with(child))
+
+    def on_restart(self, event: Restart) -> None:
+        """Start the children `event` names again (unless it is stale)."""
+        record = self.record
+        self._timers.pop(id(event), None)  # (it ran: nothing to cancel any more)
+        if event.generation != self._generation or self.gave_up is not None:
+            return
+        for child in record.children:
+            if child.state != "restarting" or self._due.get(child.name) is not event:
+                continue  # not in it, or a later Restart (its group's) brings it back
+            try:
+                self.starting.start_child(child)
+            except BaseException as exc:  # (a setup's sys.exit() too, as at the first start)
+                logger.exception("supervisor %s: restart of %s failed", record.name, child.name)
+                child.running = None
+                failed = ManagerExit(f"failed to start: {exc}", normal=False)
+                record.post(Exited(child.name, child.incarnation, failed))
+                return
+            record.publish()
+
+    def cancel(self) -> None:
+        """Make every scheduled restart stale (new generation) and cancel its timer."""
+        self._generation += 1
+        for timer in self._timers.values():
+            timer.cancel()
+        self._timers.clear()
+        self._due.clear()
+
+    def _take_down_with(self, crashed: Child) -> tuple[str, ...]:
+        """Stop the siblings the strategy restarts with `crashed`; the names to restart.
+
+        Siblings stop in reverse start order. A `temporary` sibling is stopped for good;
+        every other one comes back, a `transient` one that had exited normally too (OTP).
+        """
+        children = self.record.children
+        names = affected(self.record.spec.strategy, [c.name for c in children], crashed.name)
+        group = [c for c in children if c.name in names]
+        for other in reversed(group):
+            if other is crashed:
+                continue
+            comes_back = restarts_with_group(other.spec.restart)
+            if comes_back:  # down for a moment, not stopped: callers may retry
+                mark(other)
+            if other.running is not None:
+                self.stopping.stop_child(other, final=not comes_back, restarting=comes_back)
+                other.state = "restarting" if comes_back else "exited"
+            elif other.state == "exited" and comes_back:
+                other.state = "restarting"
+        return tuple(c.name for c in group if c.state == "restarting")
+
+    def _schedule(self, names: tuple[str, ...]) -> None:
+        record = self.record
+        tree = record.tree
+        delay = record.spec.backoff.delay(self.intensity.recent, tree.random)
+        event = Restart(names, self._generation)
+        self._due.update(dict.fromkeys(names, event))  # an earlier one of theirs is stale
+        if delay <= 0:
+            record.post(event)
+            return
+        logger.info("supervisor %s: restarting %s in %.3f s", record.name, ", ".join(names), delay)
+        tree.restart_due.update(dict.fromkeys(names, runtime.wall() + delay))  # (the observer's)
+        record.publish()
+        self._timers[id(event)] = tree.timer(delay, lambda: record.post(event))
+
+    def give_up(self, crashed: Child) -> None:
+        """Stop every child in reverse start order, then report the give-up (OTP: shutdown).
+
+        Waiters conclude nothing while it runs (`giving_up`); the give-up is published
+        once every child has stopped.
+        """
+        record, stopping = self.record, self.stopping
+        spec = record.spec
+        error = SupervisorGaveUpError(
+            f"supervisor {record.name!r} gave up: more than {spec.max_restarts} restart(s) "
+            f"within {spec.period:g} s (last: {crashed.name!r} {crashed.last_exit})"
+        )
+        logger.error("%s", error)
+        self.giving_up = True
+        self.cancel()
+        for child in reversed(record.children):
+            if child is crashed or child.running is None:
+                # (below the root, the parent decides: it may restart this supervisor)
+                dead = child.state != "exited" and record.parent is None
+                child.state = "stopped"
+                stopping.forget(child, dead=dead)
+            else:
+                stopping.stop_child(child, final=True)
+        if record.parent is None:  # nobody restarts this tree: every manager is lost
+            for name in registrar_names(spec):
+                stopping.lose(name)
+        for child in record.children:
+            child.gave_up = child.gave_up or error
+        self.gave_up = error  # after the children stopped: waiters then see a settled tree
+        record.publish()
+        publisher = record.tree.events.publisher
+        if publisher.active:
+            publisher.publish(
+                events.SupervisorGaveUp(record.name, str(error), spec.max_restarts, spec.period)
+            )
+        if self.on_gave_up is not None:
+            self.on_gave_up(error)
+
+
+# -- the pure decisions: no threads, no processes ----------------------------------------
+
+
+class RestartIntensity:
+    """OTP's restart intensity: at most `max_restarts` restarts within `period` seconds.
+
+    Pure logic over an injectable clock (no threads).
+    """
+
+    def __init__(self, max_restarts: int, period: float, clock: Clock | None = None) -> None:
+        self.max_restarts = max_restarts
+        self.period = period
+        self.clock = runtime.monotonic if clock is None else clock
+        self._times: collections.deque[float] = collections.deque()
+
+    def add(self) -> bool:
+        """Count one restart now; return `False` if that exceeds the intensity (give up)."""
+        now = self.clock()
+        self._times.append(now)
+        while self._times and now - self._times[0] >= self.period:
+            self._times.popleft()
+        return len(self._times) <= self.max_restarts
+
+    @property
+    def recent(self) -> int:
+        """Restarts counted within the current window (this one included, after `add`)."""
+        return len(self._times)
+
+
+def affected(strategy: Strategy, names: Sequence[str], crashed: str) -> tuple[str, ...]:
+    """The children a crash of `crashed` takes down with it, in start order, itself included.
+
+    Args:
+        strategy: `"one_for_one"` (itself), `"one_for_all"` (every child) or
+            `"rest_for_one"` (itself and the children started after it).
+        names: every child's name, in start order.
+        crashed: the child that crashed.
+    """
+    if strategy == "one_for_one":
+        return (crashed,)
+    if strategy == "one_for_all":
+        return tuple(names)
+    return tuple(names[names.index(crashed) :])
+
+
+# -- starting: in start order, or one again (OTP's start_children, do_restart) -------------
+
+Nest = Callable[[SupervisorSpec, Callable[[SupervisorGaveUpError], None]], Level]
+"""`nest(spec, on_gave_up)`: start a supervisor below this one (a `Node`), which
+calls `on_gave_up` (on its own thread) when it gives up."""
+
+
+class Starting:
+    """Starts children, in order at the supervisor's start, or one at a restart.
+
+    Args:
+        record: the supervisor whose children it starts.
+        stopping: stops what started when a later child fails to start.
+        state_dir: where its managers keep their catalogs (`None`: in memory, unless a
+            manager's spec names a config).
+        nest: starts a nested supervisor.
+    """
+
+    def __init__(
+        self,
+        record: Record,
+        stopping: Stopping,
+        *,
+        state_dir: str | os.PathLike[str] | None,
+        nest: Nest,
+    ) -> None:
+        self.record = record
+        self.stopping = stopping
+        self.state_dir = state_dir
+        self.nest = nest
+
+    def start_all(self) -> None:
+        """Start every child in order; if one fails, stop those started (reverse order).
+
+        Raises:
+            SupervisorGaveUpError: a child failed to start.
+        """
+        record = self.record
+        started: list[Child] = []
+        for child in record.children:
+            try:
+                self.start_child(child)
+            except BaseException as exc:
+                child.state = "stopped"
+                child.last_exit = f"failed to start: {exc}"
+                self.stopping.forget(child, dead=False)  # no restart is coming: no death-watch hold
+                for done in reversed(started):
+                    self.stopping.stop_child(done, final=True)
+                raise SupervisorGaveUpError(
+                    f"supervisor {record.name!r}: child {child.name!r} failed to start: {exc}"
+                ) from exc
+            started.append(child)
+            record.publish()
+
+    def config(self, spec: ManagerSpec) -> RegistrarConfig:
+        """The registrar config of manager `spec`: its own, else one from the state dir."""
+        if spec.config is not None:
+            return spec.config
+        if self.state_dir is None:
+            return RegistrarConfig(name=spec.name)
+        return RegistrarConfig(
+            name=spec.name,
+            backup_path=os.path.join(os.fspath(self.state_dir), f"{spec.name}.db"),
+            save_on_modify=True,
+        )
+
+    def start_child(self, child: Child) -> None:
+        """Start one incarnation of `child`; raise what its start raised."""
+        record = self.record
+        child.incarnation += 1
+        child.state = "starting"
+        record.tree.restart_due.pop(child.name, None)
+        if isinstance(child.spec, ManagerSpec):
+            comes_back(child.name)  # no longer gone for good
+        record.publish()
+        spec, tree = child.spec, record.tree
+        post = self._watch(child)
+        if isinstance(spec, SupervisorSpec):
+            child.running = self._start_nested(spec, child.incarnation)
+            child.gave_up = None
+        else:
+            if spec.restart != "temporary":
+                DIRECTORY.expect_restart(spec.name)  # death watch waits for us
+            config = self.config(spec)
+            if spec.isolation == "thread":
+                system = tree.processes.system
+                child.running = ThreadManager(spec, config, system, post, tree.events)
+            else:
+                processes = tree.processes
+                address = processes.system.address if processes.system is not None else None
+                try:
+                    child.running = ProcessManager.start(
+                        spec,
+                        processes.setups[spec.name],
+                        config,
+                        address,
+                        post,
+                        processes.spares,
+                        tree.events,
+                    )
+                finally:
+                    if processes.spares is not None:  # after this start was published
+                        record.cast(processes.spares.refill)
+        child.state = "running"
+        unmark(child)  # it serves again
+        restarted = child.name in tree.started
+        tree.count_start(child.name)
+        self._published_start(child, restarted=restarted)
+        give_back_abandoned(tree, child.name)
+        if not isinstance(spec, ManagerSpec):
+            return
+        if restarted:
+            death_watch_missed(child.name)
+        # (one with a backup reconciles with everyone itself when it is restored)
+        if self.config(spec).backup_path is None and (restarted or self.ran_before(spec.name)):
+            lost_everything(record.root(), child.name, tree.processes.system)
+
+    def ran_before(self, name: str) -> bool:
+        """Whether manager `name`, which keeps no backup, ran on this supervisor's state
+        directory before (in a program killed since, say: the backups of the others may
+        hold its last run's ids); marks it there (`statedir.ran_before`). A mark that
+        cannot be written is a WARNING: the manager runs all the same."""
+        if self.state_dir is None:
+            return False
+        try:
+            return ran_before(self.state_dir, name)
+        except ConfigError as exc:
+            logger.warning("supervisor %s: %s", self.record.name, exc)
+            return False
+
+    def _watch(self, child: Child) -> Callable[[ManagerExit], None]:
+        """What `child`'s watcher calls when this incarnation ends: post `Exited`."""
+        post, name, incarnation = self.record.post, child.name, child.incarnation
+
+        def exited(result: ManagerExit) -> None:
+            post(Exited(name, incarnation, result))
+
+        return exited
+
+    def _published_start(self, child: Child, *, restarted: bool) -> None:
+        """Publish `ChildStarted`, or `ChildRestarted` with the time it was down."""
+        record = self.record
+        down_since = record.tree.down_since.pop(child.name, None)
+        publisher = record.tree.events.publisher
+        if not publisher.active:
+            return
+        pid = pid_of(child)
+        if not restarted:
+            publisher.publish(events.ChildStarted(record.name, child.name, pid))
+            return
+        restart_s = 0.0 if down_since is None else runtime.monotonic() - down_since
+        publisher.publish(events.ChildRestarted(record.name, child.name, pid, restart_s))
+
+    def _start_nested(self, spec: SupervisorSpec, incarnation: int) -> NestedSupervisor:
+        post = self.record.post
+
+        def escalate(error: SupervisorGaveUpError) -> None:
+            # OTP: a supervisor that gives up exits with `shutdown`: normal for `transient`
+            gave_up = ManagerExit(f"gave up: {error}", normal=True)
+            post(Exited(spec.name, incarnation, gave_up))
+
+        return NestedSupervisor(self.nest(spec, escalate))
+
+
+# -- stopping: in reverse order, and the death watch (OTP's terminate_children) ------------
+
+_MIN_STOP = 1e-3  # seconds a child still gets to stop when an overall stop bound ran out
+
+
+def left(deadline: float | None) -> float | None:
+    """Seconds left until `deadline` (at least 1 ms), or `None` without one."""
+    if deadline is None:
+        return None
+    return max(deadline - runtime.monotonic(), _MIN_STOP)
+
+
+def registrar_names(spec: ManagerSpec | SupervisorSpec) -> list[str]:
+    """The registrar names of a child: its own, or those of the managers below it."""
+    if isinstance(spec, ManagerSpec):
+        return [spec.name]
+    return [manager.name for manager in managers(spec)]
+
+
+def mark(child: Child) -> None:
+    """`child` (its managers, for a nested supervisor) is down and will be restarted:
+    its callers get `RegistrarUnavailableError` (retry), not `RegistrarStoppedError`."""
+    DIRECTORY.mark_restarting(registrar_names(child.spec))
+
+
+def unmark(child: Child) -> None:
+    """`child` serves again, or is down for good: the restart mark goes."""
+    DIRECTORY.mark_restarting(registrar_names(child.spec), restarting=False)
+
+
+class Stopping:
+    """Stops children, and releases what those that will not come back held.
+
+    Args:
+        record: the supervisor whose children it stops.
+    """
+
+    def __init__(self, record: Record) -> None:
+        self.record = record
+        self.to_restart = False  # the parent stops this tree to start it again
+
+    def stop_all(self, deadline: float | None = None, *, restarting: bool = False) -> None:
+        """Stop every child in reverse start order, each for good (`restarting`: the
+        parent starts this supervisor again, its managers stay marked meanwhile)."""
+        self.to_restart = restarting
+        for child in reversed(self.record.children):
+            self.stop_child(child, final=True, deadline=deadline, restarting=restarting)
+
+    def stop_child(
+        self,
+        child: Child,
+        *,
+        final: bool,
+        deadline: float | None = None,
+        restarting: bool = False,
+    ) -> None:
+        """Stop a running child (its spec's shutdown, bounded by `deadline`, then a kill).
+
+        `final`: it is not started again by this supervisor (`forget`). `restarting`: it
+        is stopped to be started again (marked `DIRECTORY.mark_restarting`).
+        """
+        running = child.running
+        if running is None:
+            if final:
+                child.incarnation += 1  # an exit still queued for it (a failed start) is stale
+                dead = child.state == "restarting"  # it crashed and will not come back now
+                if child.state != "exited":
+                    child.state = "stopped"
+                self.forget(child, dead=dead)
+            return
+        child.state = "stopping"
+        child.incarnation += 1  # its watcher's exit event is now stale
+        self.record.publish()
+        limit = left(deadline)
+        if isinstance(child.spec, ManagerSpec):
+            limit = child.spec.shutdown if limit is None else min(limit, child.spec.shutdown)
+        pid = pid_of(child)
+        result = running.stop(limit, restarting=restarting)
+        child.running = None
+        child.state = "stopped"
+        child.last_exit = result.reason
+        self.note_exit(child, pid, result.reason, stopped=True)
+        if final:
+            self.forget(child, dead=not result.clean)
+
+    def note_exit(
+        self, child: Child, pid: int, reason: str, *, normal: bool = False, stopped: bool = False
+    ) -> None:
+        """Note when `child` went down, and publish `ChildExited`.
+
+        `normal`: it ended normally; `stopped`: this supervisor stopped it (a shutdown,
+        a sibling taken down): no exit the restart intensity counts.
+        """
+        tree = self.record.tree
+        tree.down_since[child.name] = runtime.monotonic()
+        publisher = tree.events.publisher
+        if publisher.active:
+            spec = self.record.spec
+            publisher.publish(
+                events.ChildExited(
+                    self.record.name,
+                    child.name,
+                    pid,
+                    reason,
+                    child.spec.restart,
+                    normal,
+                    stopped,
+                    spec.max_restarts,
+                    spec.period,
+                    spec.strategy,
+                    tuple(c.name for c in self.record.children),
+                )
+            )
+
+    def forget(self, child: Child, *, dead: bool) -> None:
+        """The child will not come back: release what it held (death watch) if it died.
+
+        Its callers get `RegistrarStoppedError` (or, if it died, `...UnavailableError`)
+        from now on, unless the parent is stopping this whole supervisor to restart it.
+        """
+        if not self.to_restart:
+            unmark(child)
+        if isinstance(child.spec, ManagerSpec):
+            DIRECTORY.expect_restart(child.name, expected=False)
+            if dead:
+                self.lose(child.name)
+            elif not self.to_restart:  # stopped, and nobody starts it again
+                record = self.record
+                consumer_down(record.root(), child.name, record.tree.processes.system, stopped=True)
+        elif child.gave_up is not None:  # a nested supervisor gave up, and stays down:
+            for name in registrar_names(child.spec):  # nobody restarts its managers
+                self.lose(name)
+
+    def lose(self, name: str) -> None:
+        """Manager `name` is gone and nobody will restart it (death watch, rule 19):
+        its consumers' ids are released, and the ids held at it are `FATAL`."""
+        DIRECTORY.expect_restart(name, expected=False)
+        record = self.record
+        consumer_down(record.root(), name, record.tree.processes.system)  # (recorded first:
+        # a manager that starts meanwhile hears it then, `death_watch_missed`)
+
+
+# -- what the roles share: the mailbox's two messages, the record --------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Exited:
+    """Child `name`'s incarnation `incarnation` ended (posted by its watcher)."""
+
+    name: str
+    incarnation: int
+    exit: ManagerExit
+
+
+@dataclasses.dataclass(frozen=True)
+class Restart:
+    """Restart these children (posted at once, or by a backoff timer), unless stale."""
+
+    names: tuple[str, ...]
+    generation: int
+
+
+class Record(Level, Protocol):
+    """One supervisor as its roles see it (a `Node`): what it supervises, the tree it
+    is part of, its children's records, and its mailbox."""
+
+    tree: Tree
+
+    @property
+    def name(self) -> str:
+        """The supervisor's name."""
+        ...
+
+    @property
+    def parent(self) -> Record | None:
+        """The supervisor above it (`None` for the root)."""
+        ...
+
+    def root(self) -> Level:
+        """The tree's root supervisor."""
+        ...
+
+    def post(self, event: Exited | Restart) -> None:
+        """Queue `event` for this supervisor's thread (any thread; returns at once)."""
+        ...
+
+    def cast(self, fn: Callable[[], object]) -> None:
+        """Run `fn` on this supervisor's thread after what is queued now."""
+        ...
+
+    def publish(self) -> None:
+        """Publish the children's snapshots and wake every waiter of the tree."""
+        ...
+
+
+def pid_of(child: Child) -> int:
+    """The process a child runs in: its own (a process manager), else this one."""
+    running = child.running
+    pid = running.pid if running is not None else None
+    return pid if pid is not None else runtime.getpid()
