@@ -110,6 +110,7 @@ class States:
         ]
         self._real = Process(0, "the real process", real)  # (put back by `close`)
         self._installed = self._real
+        self.installed: Process = self._real  # the process whose state is in now
 
     def fresh(self) -> list[Any]:
         """The state of a process that starts: each object's fields as a new one has them
@@ -127,7 +128,7 @@ class States:
         installed = self._installed
         if process is installed:
             return
-        self._installed = process
+        self._installed = self.installed = process
         state = process.state
         for i, obj in self._swapped:
             obj.__dict__ = state[i]  # (the process's own dict: no copy either way)

@@ -317,7 +317,6 @@ def _seams(sched: Scheduler) -> dict[str, Any]:
         "SimpleQueue": functools.partial(sim.SimpleQueue, sched),
         "Thread": functools.partial(sim.Thread, sched),
         "Timer": functools.partial(sim.Timer, sched),
-        "monotonic": lambda: MONOTONIC_START + sched.now,
         "wall": lambda: wall_ns() / 1e9,  # (as time.time() is time.time_ns(): one clock)
         "wall_ns": wall_ns,
         "sleep": functools.partial(sim.sleep, sched),
@@ -332,7 +331,9 @@ def _seams(sched: Scheduler) -> dict[str, Any]:
         "manager_process": functools.partial(_manager.start, sched),
     }
     here = threading.get_ident()
-    return {name: _only_here(here, seam, runtime.REAL[name]) for name, seam in simulated.items()}
+    seams = {name: _only_here(here, seam, runtime.REAL[name]) for name, seam in simulated.items()}
+    seams["monotonic"] = _monotonic_here(here, sched, runtime.REAL["monotonic"])
+    return seams
 
 
 def _only_here(here: int, simulated: Callable[..., Any], real: Callable[..., Any]) -> Any:
@@ -348,6 +349,19 @@ def _only_here(here: int, simulated: Callable[..., Any], real: Callable[..., Any
         return real(*args, **kwargs)
 
     return seam
+
+
+def _monotonic_here(here: int, sched: Scheduler, real: Callable[[], float]) -> Callable[[], float]:
+    """`_only_here` for the clock, the commonest seam (a heartbeat, each timeout): the
+    virtual clock read in the seam itself."""
+    ident = threading.get_ident
+
+    def monotonic() -> float:
+        if ident() == here:
+            return MONOTONIC_START + sched.now
+        return real()
+
+    return monotonic
 
 
 def running_scheduler() -> Scheduler:

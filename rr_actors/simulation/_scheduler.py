@@ -206,6 +206,9 @@ class Scheduler:
         self.now = 0.0  # virtual seconds since the run began
         self.steps = 0
         self._locals = locals
+        # their contents on the run's OS thread (made on it, as `_main`): a
+        # `threading.local`'s `__dict__` is the same dict each time on one thread
+        self._contents: list[dict[str, Any]] = [namespace.__dict__ for namespace in locals]
         self._max_steps = max_steps
         self._until = until
         self._ready: list[Task] = []
@@ -389,7 +392,7 @@ class Scheduler:
     def _loop(self) -> None:
         ready = self._ready
         choose = self._choices.randrange
-        install = self.states.install
+        states = self.states
         unhashed = self._unhashed  # (a bytearray: `+=` adds to it in place)
         max_steps, until = self._max_steps, self._until
         while self._running:
@@ -415,7 +418,8 @@ class Scheduler:
             unhashed += _STEP.pack(task.number, self.now)
             if self.trace is not None:
                 self.trace.append((self.now, task.number, task.name))
-            install(process)
+            if process is not states.installed:  # (`install`'s own first test, inline)
+                states.install(process)
             if task is not self._in_locals:
                 self._install_locals(task)
             assert task.glet is not None
@@ -440,14 +444,20 @@ class Scheduler:
         whose they are: its own stay in between. asyncio's running loop, once a run made
         a loop (`_loop.py`), and its async generators' hooks are swapped the same way."""
         was, self._in_locals = self._in_locals, task
-        for i, namespace in enumerate(self._locals):
-            contents = namespace.__dict__
-            if was is not None and not was.ended:
-                was.locals[i] = dict(contents) if contents else _NOTHING
+        keep = was is not None and not was.ended
+        for i, contents in enumerate(self._contents):
             state = task.locals[i]
-            if contents or state:  # (most tasks keep nothing in most namespaces)
+            if contents:
+                if keep:
+                    was.locals[i] = dict(contents)  # type: ignore[union-attr]
                 contents.clear()
-                contents.update(state)
+                if state:
+                    contents.update(state)
+            else:
+                if keep:
+                    was.locals[i] = _NOTHING  # type: ignore[union-attr]
+                if state:  # (most tasks keep nothing in most namespaces)
+                    contents.update(state)
         if self.loops:  # (asyncio's per-thread state is per OS thread: each task its own)
             if was is not None:
                 was.loop, was.hooks = asyncio._get_running_loop(), sys.get_asyncgen_hooks()

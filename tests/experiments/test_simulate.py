@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import errno
+import gc
 import json
 import logging
 import os
@@ -98,6 +99,30 @@ def plant_second_load(monkeypatch: pytest.MonkeyPatch) -> None:
         matched(self, message, key, resource)
 
     monkeypatch.setattr(Provider, "matched", buggy)
+
+
+def test_a_seeds_world_is_collected_as_it_ends_and_the_heap_before_it_left_alone(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """What a seed made (its killed processes' backups: open files) is garbage collected
+    as `run_seed` returns, whatever the simulation's own count of ended processes, and
+    nothing of the heap stays put aside (frozen) after it."""
+    from rr_actors.simulation import _run  # noqa: PLC0415
+
+    def open_files() -> int:
+        return len(os.listdir("/proc/self/fd"))
+
+    monkeypatch.setattr(_run, "_ended", 0)  # (its own full collection: not in this seed)
+    gc.collect()
+    before = open_files()
+    gc.disable()  # (only the seed's end may collect)
+    try:
+        run = simulate.run_seed(simkill(), 1)
+        after = open_files()
+    finally:
+        gc.enable()
+
+    assert (run.verdict, after, gc.get_freeze_count()) == ("held", before, 0)
 
 
 @SWEEP
