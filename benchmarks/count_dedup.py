@@ -419,7 +419,7 @@ def counted(args: argparse.Namespace) -> None:
         bytecodes.start()  # (before the actors start: their threads inherit it)
     marker: Callgrind | Bytecodes = bytecodes or Callgrind()
     marks: list[Counts] = []
-    bench = Bench(args.user)
+    bench = Bench(args.user, durable=args.durable)
     try:
         warm(bench)
         marker.mark()

@@ -178,7 +178,10 @@ class Lives:
         """Whether a `Load` of run `life` of `origin_rr` came from a run earlier than the
         one that reconciled here last."""
         known = self._reconciled.get(origin_rr)
-        return bool(life) and known is not None and life_order(life) < life_order(known)
+        # (most loads come from the run that reconciled last: no order to work out)
+        if not life or known is None or life == known:
+            return False
+        return life_order(life) < life_order(known)
 
 
 class Provider:

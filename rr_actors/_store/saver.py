@@ -43,6 +43,8 @@ __all__ = ["CatalogStore", "Saver", "open_catalog", "open_store", "timer_factory
 
 logger = logging.getLogger("rr_actors")
 
+_NOTHING = Changes({}, {})  # (what is pending when nothing is: never changed in place)
+
 
 timer_factory: Timer = thread_timer
 """Starts every save-interval timer. Tests replace it (monkeypatch) with a manual clock."""
@@ -114,7 +116,7 @@ class Saver:
         self.flush_interval = (
             config.save_interval if store is not None and not config.save_on_modify else None
         )
-        self._pending = Changes({}, {})
+        self._pending = _NOTHING  # (never changed in place: `_take` replaces it)
         self._told: Sequence[events.Event] = ()  # (only while `changed` writes them)
         self._failure: CatalogWriteError | None = None
 
@@ -168,7 +170,7 @@ class Saver:
         """
         if self.store is None:
             return False
-        self._pending.update(changes)
+        self._take(changes)
         if not (self.on_modify or now):
             return False
         self._told = told
@@ -183,8 +185,17 @@ class Saver:
         are one transaction at the turn's end), whatever the policy; none without a store."""
         if self.store is None:
             return
-        self._pending.resources.update(changes.resources)
-        self._pending.clients.update(changes.clients)
+        self._take(changes)
+
+    def _take(self, changes: Changes) -> None:
+        """Add `changes` to what is pending (taken as they are when nothing is: the
+        caller hands them over), with the consumer ids each changed resource added or
+        released: the write looks at those only, not at every holder."""
+        pending = self._pending
+        if pending:
+            pending.update(changes)
+        else:  # (most writes: nothing else waits)
+            self._pending = changes
 
     def write(self, told: Sequence[events.Event] = ()) -> None:
         """Write what is pending now, one transaction, with the events `told` that tell of
@@ -217,7 +228,7 @@ class Saver:
         except CatalogWriteError as exc:
             self._failure = exc
             raise
-        self._pending = Changes({}, {})
+        self._pending = _NOTHING
         self._failure = None
 
     def retry(self) -> bool:

@@ -14,6 +14,7 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
+from rr_actors._catalog import Catalog
 from rr_actors._store import saver as _persistence
 from rr_actors._store import schema
 from rr_actors._store.files import read_backup
@@ -451,3 +452,40 @@ def test_erase_on_destruct_keeps_the_backup_of_a_registrar_that_crashed(tmp_path
         crash(registrar)
 
     assert (True, {query.id}) == (path.is_file(), consumer_ids(path))
+
+
+def test_a_staged_turn_that_adds_or_releases_one_consumer_writes_one_statement_whatever_the_holders(
+    tmp_path: Path,
+) -> None:
+    # a durable registrar's turn stages its changes (`Saver.stage`) and writes them at
+    # its end: the consumer ids it added or released go with them, so the write looks at
+    # those only, never at every holder of a widely shared resource
+    from tests.store.test_sqlite import Unwalked  # noqa: PLC0415 - the one walker guard
+
+    store = SqliteStore.open(tmp_path / "p.db")
+    saver = _persistence.Saver(store, rr.RegistrarConfig(name=unique("S"), save_on_modify=True))
+    catalog = Catalog()
+    catalog.begin_load("r1", "leaf", 1)
+    catalog.finish_load("r1", "loaded")
+    for n in range(100):
+        catalog.add_consumer("r1", f"h{n}", "C")
+    saver.stage(catalog.drain_changes())
+    saver.write()
+    resource = catalog.resources["r1"]
+    resource.consumers = Unwalked(resource.consumers)
+    statements: list[str] = []
+    store._db.set_trace_callback(statements.append)
+
+    catalog.add_consumer("r1", "new", "C")
+    saver.stage(catalog.drain_changes())
+    catalog.release("h0")
+    saver.stage(catalog.drain_changes())
+    saver.write()
+    saver.close(erase=False)
+
+    assert [
+        "BEGIN IMMEDIATE",
+        "INSERT INTO consumers (resource, seq, query_id, origin_rr) VALUES (1, 102, 'new', 'C')",
+        "DELETE FROM consumers WHERE resource = 1 AND seq = 2",
+        "COMMIT",
+    ] == statements
