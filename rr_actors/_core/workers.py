@@ -136,7 +136,8 @@ class Workers:
 
     @property
     def queued(self) -> int:
-        """Tasks waiting for a worker thread to come free."""
+        """Tasks waiting for a worker thread to come free (a cancelled one counts until
+        the worker that takes it skips it)."""
         return max(0, -self._idle)
 
     @property
