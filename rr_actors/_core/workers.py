@@ -4,8 +4,10 @@
  submit(task) ──► an idle worker? ──yes──────────────► it runs the task
                        │ no
                        ├── fewer than max_workers? ──► a new worker thread runs it
-                       └── otherwise ────────────────► queued (FIFO): the next worker
-                                                       that is free takes it
+                       └── otherwise ────────────────► queued: the next worker that is
+                                                       free takes it (urgent jobs first,
+                                                       then FIFO)
+ job.cancel() ──► a queued job never runs (a running one is left alone)
  a job with a timeout ──► the watchdog (one thread, while jobs are watched): overdue ──►
      abandon it (its thread no longer counts; another may start) ──► on_overdue()
 ```
@@ -22,10 +24,15 @@ its thread finishes it whenever it returns (if ever) and then exits, and whateve
 task answers after that is the owner's to ignore. Each hung callback therefore costs one
 thread for as long as it hangs, and nothing else. Idle workers exit after
 `idle_timeout` seconds.
+
+An `urgent` job (an unload) jumps the queue: it waits for a free worker, never behind
+loads queued before it; a queued job whose owner no longer needs it (a load whose
+callers all gave up) is `cancel`led and skipped by the worker that takes it.
 """
 
 from __future__ import annotations
 
+import collections
 import enum
 import logging
 from collections.abc import Callable
@@ -44,6 +51,10 @@ class _State(enum.Enum):
     DONE = "done"
     CANCELLED = "cancelled"  # abandoned before it ran: it never will
     ABANDONED = "abandoned"  # abandoned while it ran: its thread no longer counts
+
+
+def _nothing() -> None:
+    """The task of a cancelled job (never run)."""
 
 
 class Job:
@@ -80,6 +91,14 @@ class Job:
         """
         return self._pool._abandon(self)
 
+    def cancel(self) -> bool:
+        """Withdraw it if it has not started: it never runs (a running one runs on).
+
+        Returns:
+            Whether it was still queued (it will not run).
+        """
+        return self._pool._cancel(self)
+
 
 class Workers:
     """Run zero-argument callables on at most `max_workers` reused daemon threads.
@@ -97,7 +116,11 @@ class Workers:
         self._max = max_workers
         self._idle_timeout = idle_timeout
         self._lock = runtime.Lock()
-        self._jobs: runtime.SimpleQueue[Job] = runtime.SimpleQueue()
+        # one turn per queued job; a worker that takes a turn runs the first urgent job,
+        # else the first other one
+        self._jobs: runtime.SimpleQueue[None] = runtime.SimpleQueue()
+        self._urgent: collections.deque[Job] = collections.deque()
+        self._queue: collections.deque[Job] = collections.deque()
         self._idle = 0  # workers waiting for a job, minus jobs queued (negative: a backlog)
         self._live = 0  # worker threads that count against max_workers
         self._numbered = 0
@@ -113,7 +136,8 @@ class Workers:
 
     @property
     def queued(self) -> int:
-        """Tasks waiting for a worker thread to come free."""
+        """Tasks waiting for a worker thread to come free (a cancelled one counts until
+        the worker that takes it skips it)."""
         return max(0, -self._idle)
 
     @property
@@ -128,6 +152,7 @@ class Workers:
         timeout: float | None = None,
         on_overdue: Callable[[], None] | None = None,
         quiet: bool = False,
+        urgent: bool = False,
     ) -> Job:
         """Run `task` on a worker thread once one is free; its exceptions are logged.
 
@@ -140,6 +165,8 @@ class Workers:
             on_overdue: see `timeout`.
             quiet: its abandonment is logged at DEBUG, not WARNING (an overrun its
                 owner expects and handles, such as the status runner's slice).
+            urgent: if it must queue, it goes before every job that is not urgent (an
+                unload is not held up by loads queued before it).
 
         Returns:
             The job (`abandon()` it to give up on it).
@@ -152,7 +179,8 @@ class Workers:
         with self._lock:
             if self._idle > 0 or self._live >= self._max:
                 self._idle -= 1  # an idle worker takes it, or the next one that comes free
-                self._jobs.put(job)
+                (self._urgent if urgent else self._queue).append(job)
+                self._jobs.put(None)
                 return job
             self._live += 1
         try:
@@ -191,13 +219,16 @@ class Workers:
         """Wait for a queued job; `None` once idle for `idle_timeout` with nobody counting on it."""
         while True:
             try:
-                return self._jobs.get(timeout=self._idle_timeout)
+                self._jobs.get(timeout=self._idle_timeout)
             except runtime.Empty:
                 with self._lock:
                     if self._idle > 0:  # nobody counts on this worker: leave
                         self._idle -= 1
                         self._live -= 1
                         return None
+                continue
+            with self._lock:  # (each turn's job was queued before its turn)
+                return self._urgent.popleft() if self._urgent else self._queue.popleft()
 
     def _begin(self, job: Job) -> bool:
         """A worker takes `job`: whether to run it (an abandoned queued job is skipped)."""
@@ -224,6 +255,15 @@ class Workers:
                 return False
             if job._state is _State.RUNNING:
                 job._state = _State.DONE
+            return True
+
+    def _cancel(self, job: Job) -> bool:
+        with self._lock:
+            if job._state is not _State.QUEUED:
+                return False
+            job._state = _State.CANCELLED  # the worker that takes it skips it
+            job.task = _nothing  # (what it holds is freed now, not when it is skipped)
+            job._on_overdue = None
             return True
 
     def _abandon(self, job: Job) -> bool:

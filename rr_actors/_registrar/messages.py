@@ -41,9 +41,11 @@ from typing import Any, Protocol, TypeAlias
 import cloudpickle
 
 from rr_actors._catalog import describe
+from rr_actors._core import runtime
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.replies import FutureReply
 from rr_actors._core.wire import WireMessage, plain
+from rr_actors._core.workers import Job
 from rr_actors._types import LoadCallback, Status, StatusCallback, UnloadCallback
 from rr_actors.errors import (
     CallTimeoutError,
@@ -68,6 +70,7 @@ __all__ = [
     "ListServerQueries",
     "Load",
     "LoadContext",
+    "LoadPlace",
     "LostEverything",
     "OpenClient",
     "PeerLost",
@@ -388,14 +391,53 @@ def give_back(serving_rr: str, query_id: str, origin_rr: str) -> None:
 # -- internal messages (never leave the process) ---------------------------------------
 
 
+class LoadPlace:
+    """A load's place in the queue for a worker, shared by the registrar (which may
+    `withdraw` it: its callers all gave up) and its server actor (which `takes` it).
+
+    Thread-safe: the registrar's and the server's threads both use it.
+    """
+
+    __slots__ = ("_job", "_lock", "_state")
+
+    def __init__(self) -> None:
+        self._lock = runtime.Lock()
+        self._state = "sent"  # "sent", "withdrawn", "queued" (`_job`) or "started"
+        self._job: Job | None = None
+
+    def take(self, start: Callable[[], Job | None]) -> None:
+        """On the server's thread: `start()` the load (its worker job, or `None` if it
+        started at once), unless it was withdrawn meanwhile."""
+        with self._lock:
+            if self._state != "sent":
+                return
+            self._job = start()
+            self._state = "started" if self._job is None else "queued"
+
+    def withdraw(self) -> bool:
+        """On the registrar's thread: whether the load was withdrawn before it started
+        (it never runs, and its reply is never answered by the server)."""
+        with self._lock:
+            if self._state == "sent":
+                self._state = "withdrawn"
+                return True
+            if self._state == "queued" and self._job is not None and self._job.cancel():
+                self._state = "withdrawn"
+                self._job = None
+                return True
+            return False
+
+
 @dataclasses.dataclass(frozen=True)
 class RunLoad:
-    """Registrar -> its server actor: run `load(request)` for resource `resource_id`."""
+    """Registrar -> its server actor: run `load(request)` for resource `resource_id`
+    (unless the registrar withdraws it from `place` before a worker takes it)."""
 
     resource_id: str
     request: Any
     chain: tuple[str, ...]
     reply: Reply
+    place: LoadPlace = dataclasses.field(default_factory=LoadPlace)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -11,7 +11,9 @@
    │               LoadContext (its calls are its dependencies, rule 5), or a task of
    │               the process's loop (async def) ─► load_done ─► answer its waiters
    │               (a failure: its dependencies released, then it is forgotten, rule 4)
- Unload / Abandon ─► Unloading.release(id) ── its load under way? ─► give_up
+ Unload / Abandon ─► Unloading.release(id) ── its load under way? ─► give_up (still
+   │                                    waiting for a worker, nobody else waiting for
+   │                                    it: withdrawn, never run, `withdraw`)
    │                                    └── the last consumer id? ─► unload_resource
    │     (an Unload's answer carries the statuses still on their way to that id:
    │      `status.py`'s Unacknowledged, rule 9)
@@ -84,7 +86,7 @@ from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.ids import new_id
 from rr_actors._core.loops import is_coroutine_function, process_loop
 from rr_actors._core.replies import CallbackReply, Join
-from rr_actors._core.workers import Workers
+from rr_actors._core.workers import Job, Workers
 from rr_actors._registrar.consumer import Releases
 from rr_actors._registrar.display import show_request, show_response
 from rr_actors._registrar.messages import (
@@ -94,6 +96,7 @@ from rr_actors._registrar.messages import (
     ListServerQueries,
     Load,
     LoadContext,
+    LoadPlace,
     Reconcile,
     ReconcileAsk,
     RegisterServer,
@@ -197,6 +200,8 @@ class Provider:
         self.held_loads: list[Load] = []  # for servers `setup` has not registered yet
         self.after_unload: dict[str, list[Load]] = {}  # resource id -> loads parked behind
         self.load_started: dict[str, float] = {}  # resource id -> when (`time.monotonic()`)
+        # resource id -> its load's place in the queue for a worker, and its answer's reply
+        self.places: dict[str, tuple[LoadPlace, Reply]] = {}
         # resource id -> its load's end, waiting for the label a worker makes (`None`: the
         # load still runs)
         self.labelling: dict[str, Callable[[], None] | None] = {}
@@ -448,7 +453,9 @@ class Provider:
         self.loading_ids[message.query_id] = rid
         self.load_started[rid] = runtime.monotonic()
         reply = self.registrar.come_back(lambda value, error: self.load_done(rid, value, error))
-        server.ref.tell(RunLoad(rid, message.request, (*message.chain, rid), reply))
+        place = LoadPlace()
+        self.places[rid] = (place, reply)
+        server.ref.tell(RunLoad(rid, message.request, (*message.chain, rid), reply, place))
 
     def load_done(self, rid: str, response: Any, error: BaseException | None) -> None:
         """The load of `rid` returned `response` (or raised `error`): answer its waiters.
@@ -457,6 +464,8 @@ class Provider:
         for it (`labelled`, bounded by `compare_timeout`), so that its `ResourceLoaded`
         names the label, not the request's text.
         """
+        if self.places.pop(rid, None) is None:  # withdrawn before it ran (`withdraw`)
+            return
         load_s = runtime.monotonic() - self.load_started.pop(rid)
         if rid in self.labelling and self.registrar.events.active:
             self.labelling[rid] = functools.partial(self.loaded, rid, response, error, load_s)
@@ -566,7 +575,8 @@ class Provider:
         Whether it was: a load not started yet (held, parked behind an unload, queued for
         a match) never starts and its caller is answered as given up; one whose request
         user code compares is answered when that is done; one that runs is answered,
-        holding nothing, when it finishes.
+        holding nothing, when it finishes; one still waiting for a worker, all of whose
+        callers gave up, is withdrawn and never runs (`withdraw`).
         """
         parked = self.unpark(query_id)
         if parked is not None:
@@ -576,8 +586,47 @@ class Provider:
             return True
         if query_id in self.loading_ids:  # it loads: answered when it finishes
             self.abandoned.add(query_id)
+            self.withdraw(self.loading_ids[query_id])
             return True
         return False
+
+    def withdraw(self, rid: str) -> None:
+        """Shed the load of `rid` if every caller waiting for it gave up and it waits
+        for a worker still: it never runs, and its callers are answered as given up
+        (rule 17: nothing is left behind). One that runs finishes, and is unloaded then.
+        """
+        waiters = self.loads.get(rid, [])
+        if not waiters or any(w.query_id not in self.abandoned for w in waiters):
+            return
+        if rid not in self.places:
+            return
+        place, reply = self.places[rid]
+        if not place.withdraw():
+            return
+        del self.places[rid]
+        reply.set_error(CallTimeoutError("withdrawn"))  # (its token freed: `load_done` skips it)
+        self.load_started.pop(rid, None)
+        self.labelling.pop(rid, None)
+        catalog = self.registrar.catalog
+        resource = catalog.resources[rid]
+        for waiter in self.loads.pop(rid):
+            self.loading_ids.pop(waiter.query_id, None)
+        error = CallTimeoutError(
+            f"the load of {describe(resource.request)} at '{self.registrar.name}/"
+            f"{resource.server}' was withdrawn before it ran: every caller gave up"
+        )
+        if self.registrar.events.active:
+            published_load(self.registrar, resource, waiters[0].query_id, 0.0, error)
+        catalog.begin_unload(rid)
+        self.registrar.commit()
+
+        def gone() -> None:
+            self.teardown.remove_resource(resource)
+            for waiter in waiters:
+                self.abandoned.discard(waiter.query_id)
+                waiter.reply.set_error(CallTimeoutError(f"call {waiter.query_id} was given up"))
+
+        self.releases.release_dependencies(rid, gone)
 
     def origin_under_way(self, query_id: str) -> str | None:
         """The registrar whose load of `query_id` is under way here, if one is."""
@@ -856,15 +905,10 @@ class ServerActor(Actor):
         self.tasks: dict[asyncio.Task[None], None] = {}
 
     def on_receive(self, message: Any) -> None:
-        if isinstance(message, RunLoad) and self.on_loop[0]:
-            self._spawn(self._aload(message))
+        if isinstance(message, RunLoad):
+            message.place.take(functools.partial(self._start_load, message))
         elif isinstance(message, RunUnload) and self.on_loop[1]:
             self._spawn(self._aunload(message))
-        elif isinstance(message, RunLoad):
-            try:
-                self.workers.submit(lambda: self._load(message))
-            except RuntimeError as exc:  # no thread could start: this load fails, no other
-                message.reply.set_error(load_error(self.registrar, self.name, _no_thread(exc)))
         elif isinstance(message, RunUnload):
             timeout = message.timeout
 
@@ -877,13 +921,26 @@ class ServerActor(Actor):
                 )
 
             try:
-                self.workers.submit(
+                self.workers.submit(  # (urgent: never behind loads queued before it)
                     lambda: self._unload(message),
                     timeout=timeout,
                     on_overdue=None if timeout is None else overdue,
+                    urgent=True,
                 )
             except RuntimeError as exc:
                 message.reply.set_error(_no_thread(exc))
+
+    def _start_load(self, message: RunLoad) -> Job | None:
+        """Start a load: its worker job while it waits for a thread (the registrar may
+        withdraw it until one takes it), `None` if it started at once or failed."""
+        if self.on_loop[0]:
+            self._spawn(self._aload(message))
+            return None
+        try:
+            return self.workers.submit(lambda: self._load(message))
+        except RuntimeError as exc:  # no thread could start: this load fails, no other
+            message.reply.set_error(load_error(self.registrar, self.name, _no_thread(exc)))
+            return None
 
     def on_stop(self) -> None:
         """Cancel its coroutines still running (a load fails, an unload is cut short)."""

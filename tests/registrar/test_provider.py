@@ -1666,6 +1666,109 @@ class TestUserCode:
         assert len(leaf.loads) == (registrar_placement == "thread")
 
 
+class TestOverload:
+    """Issue 53: a load nobody waits for any more is shed before it runs (rule 17: its
+    id given back, nothing left behind), and an unload never waits behind queued loads."""
+
+    def test_a_queued_load_whose_caller_timed_out_never_runs_and_its_id_is_released(
+        self, make_registrar, gates, shared, eventually
+    ):
+        provider, consumer = make_registrar("provider", max_workers=1), make_registrar("consumer")
+        gate, started = gates(), shared.list()
+
+        def load(request: Any) -> Any:
+            started.append(request)
+            if request == "held":  # the one worker is held: the next load waits in line
+                assert gate.wait(20)
+            return request
+
+        provider.register_server("leaf", load=load, unload=lambda r, s: None)
+        with ThreadPoolExecutor(1) as pool:
+            held = pool.submit(consumer.call, provider.name, "leaf", "held", timeout=20)
+            assert eventually(lambda: 1 == len(started))
+            with pytest.raises(rr.CallTimeoutError):
+                consumer.call(provider.name, "leaf", "late", timeout=0.5)
+            # withdrawn while the worker is still held: its resource is gone at once
+            assert eventually(
+                lambda: ["held"] == [r.request for r in catalog_snapshot(provider).resources]
+            )
+            gate.set()
+            assert "held" == held.result(timeout=10).response
+        # a load queued after it has run, so it would have run before
+        assert "next" == consumer.call(provider.name, "leaf", "next", timeout=10).response
+        assert ["held", "next"] == list(started)
+        assert 2 == len(provider.server_queries("leaf")) == len(consumer.client_queries())
+
+    @pytest.mark.thread_only("cancels a task that awaits acall in this process")
+    def test_the_queued_load_of_a_cancelled_acall_never_runs(
+        self, make_registrar, gates, shared, eventually
+    ):
+        provider, consumer = make_registrar("provider", max_workers=1), make_registrar("consumer")
+        gate, started = gates(), shared.list()
+
+        def load(request: Any) -> Any:
+            started.append(request)
+            if request == "held":
+                assert gate.wait(20)
+            return request
+
+        provider.register_server("leaf", load=load, unload=lambda r, s: None)
+
+        async def cancelled() -> None:
+            task = asyncio.ensure_future(consumer.acall(provider.name, "leaf", "late", timeout=20))
+            queued = await asyncio.to_thread(
+                eventually, lambda: 1 == pending_work(provider).queued_callbacks
+            )
+            assert queued
+            task.cancel()
+            with pytest.raises(asyncio.CancelledError):
+                await task
+
+        with ThreadPoolExecutor(1) as pool:
+            held = pool.submit(consumer.call, provider.name, "leaf", "held", timeout=20)
+            assert eventually(lambda: 1 == len(started))
+            asyncio.run(cancelled())
+            assert eventually(
+                lambda: ["held"] == [r.request for r in catalog_snapshot(provider).resources]
+            )
+            gate.set()
+            assert "held" == held.result(timeout=10).response
+        assert "next" == consumer.call(provider.name, "leaf", "next", timeout=10).response
+        assert ["held", "next"] == list(started)
+        assert 2 == len(provider.server_queries("leaf")) == len(consumer.client_queries())
+
+    def test_an_unload_is_not_queued_behind_loads(self, make_registrar, gates, shared, eventually):
+        provider, consumer = make_registrar("provider", max_workers=1), make_registrar("consumer")
+        first, rest, started, unloaded = gates(), gates(), shared.list(), shared.list()
+
+        def load(request: Any) -> Any:
+            started.append(request)
+            if request == "held":
+                assert first.wait(30)
+            elif request != "kept":  # the loads queued behind it hold the worker in turn
+                assert rest.wait(30)
+            return request
+
+        provider.register_server("leaf", load=load, unload=lambda r, s: unloaded.append(r))
+        kept = consumer.call(provider.name, "leaf", "kept", timeout=10)
+        with ThreadPoolExecutor(6) as pool:
+            held = pool.submit(consumer.call, provider.name, "leaf", "held", timeout=30)
+            assert eventually(lambda: 2 == len(started))
+            queued = [
+                pool.submit(consumer.call, provider.name, "leaf", n, timeout=30) for n in range(4)
+            ]
+            assert eventually(lambda: 4 == pending_work(provider).queued_callbacks)
+            unloading = pool.submit(consumer.unload, kept.id, timeout=30)
+            assert eventually(lambda: 5 == pending_work(provider).queued_callbacks)
+            first.set()  # the worker comes free: the unload goes first
+
+            assert unloading.result(timeout=10) is None
+            assert ["kept"] == list(unloaded)
+            rest.set()
+            assert "held" == held.result(timeout=10).response
+            assert list(range(4)) == [call.result(timeout=10).response for call in queued]
+
+
 class TestServers:
     """Data fetch, response updates and re-attached status callbacks (DESIGN rules 10-11)."""
 

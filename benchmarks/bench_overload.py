@@ -1,0 +1,260 @@
+"""A provider offered ten times what it can load (issue 53): goodput, wasted loads, RSS.
+
+One server whose `load` takes `--load-s` seconds (0.05), on a registrar with
+`--workers` worker threads (2): its capacity is workers / load-s loads a second (40).
+One consumer (this process, one event loop) offers `--factor` times that (10x: 400
+distinct requests a second) for `--seconds` (30; `--seconds 600` for the 10-minute
+run), each an awaited call with `--timeout` seconds (1.0); each answered call is
+unloaded at once (with the same bound). Printed per `--window` seconds (10):
+
+    acked/s     calls answered a second (goodput), beside the capacity
+    wasted      loads that started after their caller had given up (timed out): work
+                nobody will use (counted from what each load writes down as it starts)
+    unl. t/o    unloads of answered ids that timed out
+    RSS         of this process (the consumer) and of the provider's process
+
+then, `--drain` seconds (10) after the offer ends, the loads still run for nobody.
+
+Placements: `--placement thread` (both registrars in this process) or `process` (the
+provider in a manager process of a `Supervisor`); `--kind threads` (a blocking `load`:
+its calls wait for a worker) or `asyncio` (a coroutine `load`: no worker, but the
+server's own `asyncio.Semaphore(workers)` is its capacity, so calls queue in user code).
+
+Usage:
+    python benchmarks/bench_overload.py [--placement thread|process]
+        [--kind threads|asyncio] [--seconds 30] [--factor 10] [--load-s 0.05]
+        [--workers 2] [--timeout 1.0] [--window 10] [--drain 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import os
+import platform
+import tempfile
+import time
+import uuid
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import rr_actors as rr
+
+
+def rss_mib(pid: int | None = None) -> float:
+    """The resident set of process `pid` (this one if `None`) now, in MiB (Linux)."""
+    try:
+        with open(f"/proc/{pid or 'self'}/status") as status:
+            for line in status:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return float("nan")
+
+
+def server_setup(log: str, load_s: float, workers: int, kind: str) -> Callable[[Any], None]:
+    """A setup registering server "slow": each load writes `<time> <request>` to `log`
+    as it starts, then takes `load_s` seconds."""
+
+    def setup(registrar: Any) -> None:
+        def started(request: Any) -> None:
+            with open(log, "a") as out:
+                out.write(f"{time.time()} {request}\n")
+
+        if kind == "threads":
+
+            def load(request: Any) -> Any:
+                started(request)
+                time.sleep(load_s)
+                return request
+
+            registrar.register_server("slow", load=load, unload=lambda _r, _s: None)
+            return
+        gate: list[asyncio.Semaphore] = []
+
+        async def aload(request: Any) -> Any:
+            if not gate:
+                gate.append(asyncio.Semaphore(workers))
+            async with gate[0]:
+                started(request)
+                await asyncio.sleep(load_s)
+            return request
+
+        async def aunload(_request: Any, _response: Any) -> None:
+            return None
+
+        registrar.register_server("slow", load=aload, unload=aunload)
+
+    return setup
+
+
+async def offer(app: Any, provider: str, args: argparse.Namespace) -> dict[str, Any]:
+    """Offer the load; what came of each call."""
+    capacity = args.workers / args.load_s
+    rate = capacity * args.factor
+    gave_up: dict[int, float] = {}  # request -> when its caller gave up
+    acked: list[float] = []
+    unload_timeouts: list[float] = []
+    errors: dict[str, int] = {}
+
+    async def one(n: int) -> None:
+        try:
+            query = await app.acall(provider, "slow", n, timeout=args.timeout)
+        except rr.CallTimeoutError:
+            gave_up[n] = time.time()
+            return
+        except rr.RrError as exc:
+            errors[type(exc).__name__] = errors.get(type(exc).__name__, 0) + 1
+            return
+        acked.append(time.time())
+        try:
+            await app.aunload(query.id, timeout=args.timeout)
+        except rr.CallTimeoutError:
+            unload_timeouts.append(time.time())
+        except rr.RrError as exc:
+            errors[type(exc).__name__] = errors.get(type(exc).__name__, 0) + 1
+
+    tasks: set[asyncio.Task[None]] = set()
+    start = time.time()
+    offered = 0
+    while (now := time.time()) - start < args.seconds:
+        due = int((now - start) * rate)
+        while offered < due:
+            task = asyncio.ensure_future(one(offered))
+            tasks.add(task)
+            task.add_done_callback(tasks.discard)
+            offered += 1
+        await asyncio.sleep(0.005)
+    while tasks:
+        await asyncio.sleep(0.05)
+    return {
+        "start": start,
+        "offered": offered,
+        "gave_up": gave_up,
+        "acked": acked,
+        "unload_timeouts": unload_timeouts,
+        "errors": errors,
+        "capacity": capacity,
+    }
+
+
+def report(result: dict[str, Any], log: str, args: argparse.Namespace, rss: list[str]) -> None:
+    start, gave_up = result["start"], result["gave_up"]
+    runs = []
+    with contextlib.suppress(FileNotFoundError), open(log) as lines:
+        for line in lines:
+            at, request = line.split()
+            runs.append((float(at), int(request)))
+    wasted = [at for at, n in runs if n in gave_up and at > gave_up[n]]
+    print(
+        f"\n| window (s) | offered/s | acked/s (capacity {result['capacity']:.0f}) "
+        "| loads run | wasted | unl. t/o | RSS consumer / provider (MiB) |"
+    )
+    print("|---|---|---|---|---|---|---|")
+    end = max([start + args.seconds, *(at for at, _ in runs), *result["acked"]])
+    w = args.window
+    for i, lo in enumerate(range(0, int(end - start) + 1, int(w))):
+        a, b = start + lo, start + lo + w
+
+        def count(times: list[float], a: float = a, b: float = b) -> int:
+            return sum(a <= t < b for t in times)
+
+        offered = (
+            result["offered"] * min(w, max(0.0, args.seconds - lo)) / args.seconds
+            if lo < args.seconds
+            else 0
+        )
+        print(
+            f"| {lo}-{lo + w:g} | {offered / w:.0f} | {count(result['acked']) / w:.1f} "
+            f"| {count([t for t, _ in runs])} | {count(wasted)} "
+            f"| {count(result['unload_timeouts'])} | {rss[i] if i < len(rss) else '-'} |"
+        )
+    print(
+        f"\noffered {result['offered']}, acknowledged {len(result['acked'])}, gave up "
+        f"{len(gave_up)}, loads run {len(runs)} ({len(wasted)} after their caller gave up), "
+        f"unloads timed out {len(result['unload_timeouts'])}, other errors {result['errors']}"
+    )
+
+
+async def sample_rss(pid: int | None, window: float, into: list[str], stop: asyncio.Event) -> None:
+    """Every `window` seconds, the RSS of this process and of `pid`."""
+    while True:
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(stop.wait(), window)
+        into.append(f"{rss_mib():.0f} / {rss_mib(pid) if pid else rss_mib():.0f}")
+        if stop.is_set():
+            return
+
+
+def lines_in(path: str) -> int:
+    """The lines of file `path` (0 if there is none)."""
+    if not os.path.exists(path):
+        return 0
+    with open(path) as lines:
+        return sum(1 for _ in lines)
+
+
+async def run(app: Any, provider: str, pid: int | None, args: argparse.Namespace, log: str) -> None:
+    rss: list[str] = []
+    stop = asyncio.Event()
+    sampler = asyncio.ensure_future(sample_rss(pid, args.window, rss, stop))
+    result = await offer(app, provider, args)
+    await asyncio.sleep(args.drain)  # loads queued for nobody would run on now
+    ran_before = lines_in(log)
+    await asyncio.sleep(1.0)
+    ran_after = lines_in(log)
+    stop.set()
+    await sampler
+    report(result, log, args, rss)
+    print(
+        f"{args.drain:g} s after the offer ended: {ran_after - ran_before} loads started in "
+        f"the next second (work still queued for callers gone)"
+    )
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--placement", choices=["thread", "process"], default="thread")
+    parser.add_argument("--kind", choices=["threads", "asyncio"], default="threads")
+    parser.add_argument("--seconds", type=float, default=30.0)
+    parser.add_argument("--factor", type=float, default=10.0)
+    parser.add_argument("--load-s", type=float, default=0.05)
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--timeout", type=float, default=1.0)
+    parser.add_argument("--window", type=float, default=10.0)
+    parser.add_argument("--drain", type=float, default=10.0)
+    args = parser.parse_args(argv)
+    print(
+        f"python {platform.python_version()}, {platform.machine()}, rr_actors from "
+        f"{Path(rr.__file__).parent}; {args.placement} placement, {args.kind} load, "
+        f"{args.workers} workers x {args.load_s:g} s, {args.factor:g}x for {args.seconds:g} s, "
+        f"timeout {args.timeout:g} s; load average {os.getloadavg()[0]:.1f}"
+    )
+    suffix = uuid.uuid4().hex[:6]
+    with tempfile.TemporaryDirectory() as tmp:
+        log = str(Path(tmp) / "loads.log")
+        setup = server_setup(log, args.load_s, args.workers, args.kind)
+        config = rr.RegistrarConfig(name=f"overload-{suffix}", max_workers=args.workers)
+        if args.placement == "thread":
+            provider = rr.ResourceRegistrar.start(config)
+            app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"app-{suffix}"))
+            try:
+                setup(provider)
+                asyncio.run(run(app, provider.name, None, args, log))
+            finally:
+                app.stop()
+                provider.stop()
+            return
+        spec = rr.ManagerSpec(
+            config.name, setup, isolation="process", config=config, heartbeat=None
+        )
+        with rr.Supervisor([spec]) as sup:
+            app = sup.registrar(f"app-{suffix}")
+            asyncio.run(run(app, config.name, sup.child(config.name).pid, args, log))
+
+
+if __name__ == "__main__":
+    main()
