@@ -1,0 +1,246 @@
+"""OpenTelemetry spans from the event stream (`rr_actors.otel`): on real registrars, a real
+manager process and a real SIGKILL, exported by the SDK's `InMemorySpanExporter`."""
+
+from __future__ import annotations
+
+import threading
+import uuid
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+from opentelemetry import trace as api
+from opentelemetry.sdk.trace import ReadableSpan, TracerProvider
+from opentelemetry.sdk.trace.export import SimpleSpanProcessor
+from opentelemetry.sdk.trace.export.in_memory_span_exporter import InMemorySpanExporter
+
+import rr_actors as rr
+from rr_actors import events, otel
+from rr_actors.testing import SharedObjects
+from tests.support.supervising import sigkill
+
+pytestmark = pytest.mark.usefixtures("by_value")
+
+
+@pytest.fixture
+def exported() -> tuple[TracerProvider, InMemorySpanExporter]:
+    """A provider of the test's own (the global one is set once per process) and its spans."""
+    exporter = InMemorySpanExporter()
+    provider = TracerProvider()
+    provider.add_span_processor(SimpleSpanProcessor(exporter))
+    return provider, exporter
+
+
+def _one(spans: tuple[ReadableSpan, ...], name: str, kind: api.SpanKind) -> ReadableSpan:
+    [span] = [s for s in spans if s.name == name and s.kind == kind]
+    return span
+
+
+def _serve(registrar: rr.ResourceRegistrar) -> None:
+    registrar.register_server("cam", load=lambda r: f"cam {r}", unload=lambda _q, _r: None)
+
+
+@pytest.mark.usefixtures("process_helpers")
+def test_a_call_is_a_client_span_over_its_server_span_over_its_load(
+    supervisors: Callable[..., rr.Supervisor],
+    uid: str,
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    provider, exporter = exported
+    erm = f"erm-{uid}"
+    sup = supervisors([rr.ManagerSpec(erm, _serve, isolation="process")]).start()
+    app = sup.registrar(f"app-{uid}")
+    with otel.trace(sup, tracer_provider=provider, pair_within=60) as tracing:
+        first = app.call(erm, "cam", 7, timeout=10)
+        second = app.call(erm, "cam", 7, timeout=10)  # an equal request: a dedup hit
+        app.unload(second.id)
+        assert sup.flush_events(timeout=5)
+        assert tracing._subscription.wait_delivered(timeout=5)
+    spans = exporter.get_finished_spans()
+
+    calls = [s for s in spans if s.name == f"{erm}/cam" and s.attributes["rpc.method"] == "cam"]
+    clients = [s for s in calls if s.attributes["rr_actors.outcome"] == "answered"]
+    servers = [s for s in calls if s.attributes["rr_actors.outcome"] in ("loaded", "dedup")]
+    assert 2 == len(clients) == len(servers)
+    by_query = {s.attributes["rr_actors.query_id"]: s for s in clients}
+    assert {first.id, second.id} == set(by_query)
+    for server in servers:
+        client = by_query[server.attributes["rr_actors.query_id"]]
+        assert server.parent is not None
+        assert client.context.span_id == server.parent.span_id
+        assert client.context.trace_id == server.context.trace_id
+        assert client.start_time <= server.start_time <= server.end_time <= client.end_time
+        for span in (client, server):
+            assert ("rr_actors", erm, "cam") == (
+                span.attributes["rpc.system"],
+                span.attributes["rpc.service"],
+                span.attributes["rpc.method"],
+            )
+        assert "answered" == client.attributes["rr_actors.outcome"]
+    loaded = next(s for s in servers if s.attributes["rr_actors.query_id"] == first.id)
+    hit = next(s for s in servers if s.attributes["rr_actors.query_id"] == second.id)
+    assert (False, True) == (
+        loaded.attributes["rr_actors.dedup"],
+        hit.attributes["rr_actors.dedup"],
+    )
+    assert isinstance(loaded.attributes["rr_actors.digest"], int)
+    load = _one(spans, "cam.load", api.SpanKind.INTERNAL)
+    assert load.parent is not None
+    assert loaded.context.span_id == load.parent.span_id
+    assert loaded.start_time == load.start_time < load.end_time <= loaded.end_time
+    unload_client = [
+        s
+        for s in spans
+        if s.kind == api.SpanKind.CLIENT and s.attributes["rr_actors.outcome"] == "unload"
+    ]
+    [unload_server] = [s for s in spans if s.attributes.get("rr_actors.outcome") == "released"]
+    assert [second.id] == [s.attributes["rr_actors.query_id"] for s in unload_client]
+    assert unload_server.parent is not None
+    assert unload_client[0].context.span_id == unload_server.parent.span_id
+
+
+def test_a_failed_load_is_an_error_span_with_its_exception(
+    started: list[rr.ResourceRegistrar],
+    eventually: Callable[..., bool],
+    uid: str,
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    provider, exporter = exported
+
+    def broken(_request: Any) -> Any:
+        raise ValueError("no camera")
+
+    erm = rr.ResourceRegistrar.start(f"erm-{uid}")
+    started.append(erm)
+    erm.register_server("cam", load=broken, unload=lambda _q, _r: None)
+    app = rr.ResourceRegistrar.start(f"app-{uid}")
+    started.append(app)
+    tracing = otel.Tracing(tracer_provider=provider, pair_within=60)
+    with erm.subscribe(tracing), app.subscribe(tracing):  # one subscriber of both
+        with pytest.raises(rr.ResourceLoadError):
+            app.call(erm.name, "cam", 1, timeout=10)
+        assert eventually(lambda: 3 == len(exporter.get_finished_spans()), timeout=10)
+    spans = exporter.get_finished_spans()
+
+    server = _one(spans, f"{erm.name}/cam", api.SpanKind.SERVER)
+    client = _one(spans, f"{erm.name}/cam", api.SpanKind.CLIENT)
+    load = _one(spans, "cam.load", api.SpanKind.INTERNAL)
+    assert server.parent is not None
+    assert client.context.span_id == server.parent.span_id
+    for span in (server, client, load):
+        assert api.StatusCode.ERROR == span.status.status_code
+    assert "ValueError" == server.attributes["error.type"]
+    assert [("exception", "ValueError", "no camera")] == [
+        (e.name, e.attributes["exception.type"], e.attributes["exception.message"])
+        for e in load.events
+    ]
+    assert load.parent is not None
+    assert server.context.span_id == load.parent.span_id
+
+
+@pytest.mark.usefixtures("process_helpers")
+def test_a_killed_load_is_ended_and_marked_by_the_restart_span(
+    supervisors: Callable[..., rr.Supervisor],
+    uid: str,
+    tmp_path: Any,
+    process_helpers: SharedObjects,
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    provider, exporter = exported
+    erm = f"erm-{uid}"
+    entered = process_helpers.event()
+
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        def hang(_request: Any) -> Any:
+            entered.set()
+            threading.Event().wait(60)  # killed while it loads
+
+        registrar.register_server("slow", load=hang, unload=lambda _q, _r: None)
+
+    sup = supervisors(
+        [rr.ManagerSpec(erm, setup, isolation="process")], state_dir=tmp_path / "state"
+    ).start()
+    app = sup.registrar(f"app-{uid}")
+    failed: list[Any] = []
+
+    def call() -> None:
+        with pytest.raises(rr.RrError):  # its provider is killed under it
+            app.call(erm, "slow", 1, timeout=30)
+        failed.append(True)
+
+    with otel.trace(sup, tracer_provider=provider, pair_within=60) as tracing:
+        caller = threading.Thread(target=call)
+        caller.start()
+        assert entered.wait(10)
+        sigkill(sup, erm)
+        caller.join(10)
+        sup.wait_restarted(erm, timeout=10)
+        assert sup.flush_events(timeout=5)
+        assert tracing._subscription.wait_delivered(timeout=5)
+    assert [True] == failed
+    spans = exporter.get_finished_spans()
+
+    restart = _one(spans, f"restart {erm}", api.SpanKind.INTERNAL)
+    [resource_id] = restart.attributes["rr_actors.in_doubt"]
+    server = _one(spans, f"{erm}/slow", api.SpanKind.SERVER)
+    load = _one(spans, "slow.load", api.SpanKind.INTERNAL)
+    client = _one(spans, f"{erm}/slow", api.SpanKind.CLIENT)
+    assert resource_id == server.attributes["rr_actors.resource_id"]
+    assert client.attributes["rr_actors.query_id"] == server.attributes["rr_actors.query_id"]
+    assert "failed" == client.attributes["rr_actors.outcome"]
+    assert server.parent is not None
+    assert client.context.span_id == server.parent.span_id
+    assert load.parent is not None
+    assert server.context.span_id == load.parent.span_id
+    for span in (server, load):
+        assert span.attributes["rr_actors.end_lost"] is True
+        assert [restart.context.span_id] == [link.context.span_id for link in span.links]
+        assert span.end_time == restart.start_time  # ended at the kill
+    assert restart.start_time <= restart.end_time
+
+
+def test_without_a_provider_no_span_is_made_and_nothing_fails(
+    started: list[rr.ResourceRegistrar], uid: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    made: list[object] = []
+    real = api.NonRecordingSpan.__init__
+
+    def counted(self: api.NonRecordingSpan, *args: Any, **kwargs: Any) -> None:
+        made.append(self)
+        real(self, *args, **kwargs)
+
+    monkeypatch.setattr(api.NonRecordingSpan, "__init__", counted)
+    assert isinstance(api.get_tracer_provider(), api.ProxyTracerProvider)  # none installed
+    erm = rr.ResourceRegistrar.start(f"erm-{uid}")
+    started.append(erm)
+    _serve(erm)
+    with otel.trace(erm) as tracing:
+        query = erm.call(erm.name, "cam", 1, timeout=10)
+        erm.unload(query.id)
+        assert tracing._subscription.wait_delivered(timeout=5)
+    assert [] == made
+    assert ({}, {}) == (tracing._clients, tracing._servers)  # nothing kept either
+
+
+def test_bad_options_are_refused() -> None:
+    with pytest.raises(rr.ConfigError, match="pair_within"):
+        otel.Tracing(pair_within=0)
+    with pytest.raises(rr.ConfigError, match="max_pending"):
+        otel.Tracing(max_pending=0)
+
+
+def test_a_side_alone_is_made_a_span_once_it_waited_pair_within(
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    provider, exporter = exported
+    tracing = otel.Tracing(tracer_provider=provider, pair_within=60)
+    query_id = str(uuid.uuid4())
+    tracing(events.CallAnswered("app", query_id, "erm", "cam", at=100.0))
+    assert () == exporter.get_finished_spans()  # it waits for its server side
+    tracing.flush()
+    [client] = exporter.get_finished_spans()
+    assert (api.SpanKind.CLIENT, 100_000_000_000, 100_000_000_000) == (
+        client.kind,
+        client.start_time,
+        client.end_time,
+    )
