@@ -182,9 +182,15 @@ class Tracing:
         with self._lock:
             self._sweep(tracer, float("inf"))
 
-    def close(self) -> None:
-        """Close the subscription `trace` made (if any), then `flush`."""
+    def close(self, *, timeout: float = 5.0) -> None:
+        """Close the subscription `trace` made (if any), then `flush`.
+
+        Args:
+            timeout: seconds to wait at most for the events already queued for this
+                subscriber to be taken first.
+        """
         if self._subscription is not None:
+            self._subscription.wait_delivered(timeout=timeout)
             self._subscription.close()
             self._subscription = None
         self.flush()
