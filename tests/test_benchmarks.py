@@ -59,6 +59,7 @@ SMALLEST = {
     "bench_persistence.py": ["--sizes", "100", "--rounds", "1", "--batch", "5"],
     "bench_store_write.py": ["--holders", "1,10", "--rounds", "1", "--batch", "5"],
     "bench_outbox.py": ["--rounds", "1", "--loads", "5"],
+    "bench_otel.py": ["--rounds", "1", "--batch", "5"],
     "bench_jobs.py": ["--plan", "simchain", "--seeds", "1-2"],
     "experiment_phases.py": ["first", "--repeat", "1", "--duration", "1.2"],
     "bench_setup.py": [  # (the tests of one file, in this interpreter: no venv, no install)
