@@ -145,6 +145,8 @@ class Tracing:
         self._servers: dict[tuple[str, str], _Half] = {}  # (query id, "call"/"unload")
         self._clients: dict[tuple[str, str], _Half] = {}
         self._released: dict[tuple[str, str], tuple[str, float]] = {}  # resource: query, at
+        self._holders: dict[tuple[str, str], int] = {}  # resource: consumers seen added
+        self._unloading: dict[tuple[str, str], tuple[tuple[str, str], _Half]] = {}  # last release
         self._exits: dict[str, events.ChildExited] = {}  # child: its last exit
         self._restarts: dict[int, _Restart] = {}  # the new pid: its restart
         self._doubts: dict[int, list[events.InDoubt]] = {}  # pid: what it found
@@ -262,7 +264,10 @@ class Tracing:
 
     def _added(self, tracer: Any, event: events.ConsumerAdded) -> None:
         load = self._loads.pop((event.registrar, event.query_id), None)
-        server = self._served.get((event.registrar, event.resource_id), "")
+        resource = (event.registrar, event.resource_id)
+        server = self._served.get(resource, "")
+        if server:
+            self._holders[resource] = self._holders.get(resource, 0) + 1
         attributes = self._rpc(event.registrar, server, event.query_id)
         attributes["rr_actors.resource_id"] = event.resource_id
         attributes["rr_actors.consumer"] = event.consumer
@@ -308,7 +313,11 @@ class Tracing:
         self._client(tracer, (event.query_id, "call"), half)
 
     def _release(self, tracer: Any, event: events.ConsumerReleased) -> None:
-        self._released[event.registrar, event.resource_id] = (event.query_id, event.at)
+        resource = (event.registrar, event.resource_id)
+        self._released[resource] = (event.query_id, event.at)
+        left = self._holders.get(resource)
+        if left is not None:
+            self._holders[resource] = left - 1
         if event.reason != "unload":
             return
         server = self._served.get((event.registrar, event.resource_id), "")
@@ -317,14 +326,26 @@ class Tracing:
         attributes["rr_actors.consumer"] = event.consumer
         attributes["rr_actors.outcome"] = "released"
         half = _Half(event.registrar, server, event.at, event.at, attributes)
-        self._server(tracer, (event.query_id, "unload"), half)
+        if left == 1:  # the last consumer: its ResourceUnloaded follows, to go under it
+            self._unloading[resource] = ((event.query_id, "unload"), half)
+        else:
+            self._server(tracer, (event.query_id, "unload"), half)
 
     def _unloaded(self, tracer: Any, event: events.ResourceUnloaded) -> None:
-        query_id, began = self._released.pop((event.registrar, event.resource_id), ("", event.at))
-        self._served.pop((event.registrar, event.resource_id), None)
+        resource = (event.registrar, event.resource_id)
+        query_id, began = self._released.pop(resource, ("", event.at))
+        self._served.pop(resource, None)
+        self._holders.pop(resource, None)
         child = _Child(
             f"{event.server}.unload", began, event.at, {"rr_actors.resource_id": event.resource_id}
         )
+        parked = self._unloading.pop(resource, None)
+        if parked is not None:
+            key, half = parked
+            half.end = max(half.end, event.at)
+            half.children.append(child)
+            self._server(tracer, key, half)
+            return
         waiting = self._servers.get((query_id, "unload"))
         if waiting is not None:  # its release waits for its client: the callback goes under it
             waiting.method = waiting.attributes["rpc.method"] = event.server
@@ -351,6 +372,8 @@ class Tracing:
 
     def _sweep(self, tracer: Any, before: float) -> None:
         """Make spans alone of the restarts and sides waiting since before `before`."""
+        for resource in [r for r, (_k, h) in self._unloading.items() if h.arrived <= before]:
+            self._server(tracer, *self._unloading.pop(resource))
         for pid in [p for p, r in self._restarts.items() if r.arrived <= before]:
             restart = self._restarts.pop(pid)
             self._restart_span(tracer, restart, restart.restored or restart.restarted.at)
@@ -358,10 +381,10 @@ class Tracing:
             late = [k for k, h in waiting.items() if h.arrived <= before]
             late += list(waiting)[: max(0, len(waiting) - len(late) - self._max_pending)]
             for key in late:
-                half = waiting.pop(key, None)
-                if half is not None:
+                alone = waiting.pop(key, None)
+                if alone is not None:
                     clients = waiting is self._clients
-                    self._emit(tracer, half if clients else None, None if clients else half)
+                    self._emit(tracer, alone if clients else None, None if clients else alone)
         if before == float("inf"):
             self._doubts.clear()
             self._exits.clear()

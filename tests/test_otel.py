@@ -54,6 +54,7 @@ def test_a_call_is_a_client_span_over_its_server_span_over_its_load(
         first = app.call(erm, "cam", 7, timeout=10)
         second = app.call(erm, "cam", 7, timeout=10)  # an equal request: a dedup hit
         app.unload(second.id)
+        app.unload(first.id)  # the last consumer: the server's unload runs
         assert sup.flush_events(timeout=5)
         assert tracing._subscription.wait_delivered(timeout=5)
     spans = exporter.get_finished_spans()
@@ -93,10 +94,17 @@ def test_a_call_is_a_client_span_over_its_server_span_over_its_load(
         for s in spans
         if s.kind == api.SpanKind.CLIENT and s.attributes["rr_actors.outcome"] == "unload"
     ]
-    [unload_server] = [s for s in spans if s.attributes.get("rr_actors.outcome") == "released"]
-    assert [second.id] == [s.attributes["rr_actors.query_id"] for s in unload_client]
-    assert unload_server.parent is not None
-    assert unload_client[0].context.span_id == unload_server.parent.span_id
+    unload_servers = [s for s in spans if s.attributes.get("rr_actors.outcome") == "released"]
+    assert {first.id, second.id} == {s.attributes["rr_actors.query_id"] for s in unload_client}
+    for server in unload_servers:
+        [client] = [c for c in unload_client if c.context.span_id == server.parent.span_id]
+        assert client.attributes["rr_actors.query_id"] == server.attributes["rr_actors.query_id"]
+        assert f"{erm}/cam" == server.name == client.name
+    last = next(s for s in unload_servers if s.attributes["rr_actors.query_id"] == first.id)
+    unload = _one(spans, "cam.unload", api.SpanKind.INTERNAL)
+    assert unload.parent is not None
+    assert last.context.span_id == unload.parent.span_id
+    assert last.start_time <= unload.start_time <= unload.end_time <= last.end_time
 
 
 def test_a_failed_load_is_an_error_span_with_its_exception(
