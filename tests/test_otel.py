@@ -3,6 +3,9 @@ manager process and a real SIGKILL, exported by the SDK's `InMemorySpanExporter`
 
 from __future__ import annotations
 
+import subprocess
+import sys
+import textwrap
 import threading
 import uuid
 from collections.abc import Callable
@@ -253,3 +256,37 @@ def test_a_side_alone_is_made_a_span_once_it_waited_pair_within(
         client.start_time,
         client.end_time,
     )
+
+
+def test_it_traces_through_the_global_provider_the_application_installs_later() -> None:
+    # (in a fresh interpreter: the global provider can be set once per process)
+    script = textwrap.dedent(
+        """
+        from opentelemetry import trace
+        from opentelemetry.sdk.trace import TracerProvider
+        from opentelemetry.sdk.trace.export import SimpleSpanProcessor
+        from opentelemetry.sdk.trace.export.in_memory_span_exporter import (
+            InMemorySpanExporter,
+        )
+        import rr_actors as rr
+        from rr_actors import otel
+
+        erm = rr.ResourceRegistrar.start("erm")
+        erm.register_server("cam", load=lambda r: r, unload=lambda q, r: None)
+        tracing = otel.trace(erm)  # subscribed before the application installs one
+        exporter = InMemorySpanExporter()
+        provider = TracerProvider()
+        provider.add_span_processor(SimpleSpanProcessor(exporter))
+        trace.set_tracer_provider(provider)
+        erm.call("erm", "cam", 1, timeout=10)
+        tracing.close()
+        erm.stop()
+        print(sorted((s.kind.name, s.name) for s in exporter.get_finished_spans()))
+        """
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, check=False
+    )
+    assert 0 == done.returncode, done.stderr[-2000:]
+    expected = [("CLIENT", "erm/cam"), ("INTERNAL", "cam.load"), ("SERVER", "erm/cam")]
+    assert repr(expected) == done.stdout.strip()
