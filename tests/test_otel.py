@@ -279,6 +279,7 @@ def test_it_traces_through_the_global_provider_the_application_installs_later() 
         provider.add_span_processor(SimpleSpanProcessor(exporter))
         trace.set_tracer_provider(provider)
         erm.call("erm", "cam", 1, timeout=10)
+        erm.client_queries(timeout=10)  # a later turn: the call's CallAnswered is published
         tracing.close()
         erm.stop()
         print(sorted((s.kind.name, s.name) for s in exporter.get_finished_spans()))
@@ -290,3 +291,26 @@ def test_it_traces_through_the_global_provider_the_application_installs_later() 
     assert 0 == done.returncode, done.stderr[-2000:]
     expected = [("CLIENT", "erm/cam"), ("INTERNAL", "cam.load"), ("SERVER", "erm/cam")]
     assert repr(expected) == done.stdout.strip()
+
+
+def test_without_the_extra_tracing_takes_events_and_makes_nothing() -> None:
+    script = textwrap.dedent(
+        """
+        import sys
+        sys.modules["opentelemetry"] = None  # as if the otel extra were not installed
+        import rr_actors as rr
+        from rr_actors import otel
+
+        erm = rr.ResourceRegistrar.start("erm")
+        erm.register_server("cam", load=lambda r: r, unload=lambda q, r: None)
+        with otel.trace(erm) as tracing:
+            erm.unload(erm.call("erm", "cam", 1, timeout=10).id)
+        erm.stop()
+        print(otel._api, tracing._clients, tracing._servers)
+        """
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, check=False
+    )
+    assert 0 == done.returncode, done.stderr[-2000:]
+    assert "None {} {}" == done.stdout.strip()
