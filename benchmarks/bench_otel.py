@@ -1,0 +1,134 @@
+"""What tracing with OpenTelemetry (`rr_actors.otel`) costs an in-process dedup-hit call.
+
+One consumer registrar calls a resource another one already serves (a dedup hit), `--batch`
+times per round; the table shows the median time per call over `--rounds` rounds, each row
+measured in every round (interleaved, so that other processes' noise spreads evenly), and its
+ratio to the first row, measured in the same run:
+
+Rows:
+    without                 no subscriber at all
+    no-op subscriber        one subscriber (a no-op callback) of both registrars: what any
+                            subscription costs (the floor of the next rows)
+    tracing off             `otel.Tracing()` subscribed to both, the extra installed but no
+                            `TracerProvider` (the API's no-op one): no span is made
+    tracing on              `otel.Tracing(tracer_provider=...)`: an SDK provider sampling
+                            everything (ALWAYS_ON) into an `InMemorySpanExporter` through a
+                            `SimpleSpanProcessor` (2 spans per call and per unload: client, server)
+
+A round's time runs until the subscriptions delivered every event of the batch
+(`wait_delivered`): the subscriber thread's work competes for the GIL, so it is counted.
+The held query ids are unloaded after each timed batch, untimed.
+
+Pin it to one CPU for stable ratios:
+
+    taskset -c 0 python benchmarks/bench_otel.py [--rounds 15] [--batch 2000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import sys
+import time
+import uuid
+from collections.abc import Callable
+from typing import Any
+
+from opentelemetry.sdk.trace import TracerProvider
+from opentelemetry.sdk.trace.export import SimpleSpanProcessor
+from opentelemetry.sdk.trace.export.in_memory_span_exporter import InMemorySpanExporter
+from opentelemetry.sdk.trace.sampling import ALWAYS_ON
+
+import rr_actors as rr
+from rr_actors import events, otel
+
+
+def noop(_: events.Event) -> None:
+    return None
+
+
+class Bench:
+    def __init__(self) -> None:
+        suffix = uuid.uuid4().hex[:6]
+        self.provider = rr.ResourceRegistrar.start(f"bench-provider-{suffix}")
+        self.consumer = rr.ResourceRegistrar.start(f"bench-consumer-{suffix}")
+        self.provider.register_server("res", load=lambda r: r, unload=lambda _q, _r: None)
+        self.first = self.consumer.call(self.provider.name, "res", "shared")
+        self.exporter = InMemorySpanExporter()
+        tracer_provider = TracerProvider(sampler=ALWAYS_ON)
+        tracer_provider.add_span_processor(SimpleSpanProcessor(self.exporter))
+        self.subscribers: dict[str, Callable[[events.Event], object] | None] = {
+            "without": None,
+            "no-op subscriber": noop,
+            "tracing off": otel.Tracing(),
+            "tracing on": otel.Tracing(tracer_provider=tracer_provider, pair_within=60),
+        }
+        self.spans: dict[str, float] = {}  # spans per operation (a call or an unload)
+
+    def stop(self) -> None:
+        self.consumer.stop()
+        self.provider.stop()
+
+    def round(self, row: str, batch: int) -> float:
+        """Seconds per call of one batch of dedup hits with `row`'s subscriber."""
+        subscriber = self.subscribers[row]
+        subscriptions: list[Any] = []
+        if subscriber is not None:
+            subscriptions = [
+                r.subscribe(subscriber, maxsize=16 * batch) for r in (self.provider, self.consumer)
+            ]
+        call = self.consumer.call
+        name = self.provider.name
+        began = time.perf_counter()
+        held = [call(name, "res", "shared").id for _ in range(batch)]
+        for subscription in subscriptions:
+            assert subscription.wait_delivered(timeout=60)
+        took = time.perf_counter() - began
+        for query_id in held:
+            self.consumer.unload(query_id)
+        for subscription in subscriptions:
+            assert subscription.wait_delivered(timeout=60)
+            assert subscription.dropped == 0
+            subscription.close()
+        if isinstance(subscriber, otel.Tracing):
+            subscriber.flush()
+        self.spans[row] = len(self.exporter.get_finished_spans()) / (2 * batch)
+        self.exporter.clear()
+        return took / batch
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rounds", type=int, default=15)
+    parser.add_argument("--batch", type=int, default=2000)
+    args = parser.parse_args(argv)
+
+    bench = Bench()
+    rows = list(bench.subscribers)
+    times: dict[str, list[float]] = {row: [] for row in rows}
+    try:
+        for row in rows:  # warm-up, untimed
+            bench.round(row, max(1, args.batch // 10))
+        for _ in range(args.rounds):
+            for row in rows:
+                times[row].append(bench.round(row, args.batch))
+    finally:
+        bench.stop()
+
+    cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else "?"
+    print(
+        f"python {platform.python_version()} on {platform.machine()}, CPUs {cpus}, "
+        f"load {os.getloadavg()[0]:.2f}; {args.rounds} rounds x {args.batch} dedup hits"
+    )
+    floor = statistics.median(times["without"])
+    print(f"{'row':<18} {'us/call':>9} {'vs without':>11} {'spans/op':>9}")
+    for row in rows:
+        median = statistics.median(times[row])
+        print(f"{row:<18} {median * 1e6:>9.1f} {median / floor:>10.2f}x {bench.spans[row]:>9.1f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

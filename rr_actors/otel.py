@@ -1,0 +1,524 @@
+"""OpenTelemetry spans from the event stream: one subscriber turns events into spans.
+
+    tracing = rr_actors.otel.trace(sup)      # sup.subscribe(Tracing(...)) ──► spans
+                                             # through the application's TracerProvider
+
+Used as OpenTelemetry's instrumentation libraries are: it traces through the global
+`TracerProvider` the application installs (`opentelemetry.trace.set_tracer_provider`,
+read at every event, so one installed later is used from then on). With none installed
+(the API's no-op one) or without the `otel` extra (`opentelemetry-api`), an event costs
+one look-up and no span object is made. Nothing is traced in a registrar's turn: the
+spans are built afterwards, on the subscription's thread, from the events' `at` stamps
+(seconds, turned into ns).
+
+What becomes a span (`docs/how-to/trace.md`):
+
+- a `call` (and an `unload`): a CLIENT span at the consumer (its `CallAnswered`,
+  `CallFailed`, `CallWithdrawn`; an unload's `QueryForgotten`) and a SERVER span at the
+  provider (`ResourceLoaded` then `ConsumerAdded`, a `ConsumerAdded` alone for a dedup
+  hit, a `LoadFailed`; an unload's `ConsumerReleased`), named `<registrar>/<server>` and
+  attributed by the RPC semantic conventions (`rpc.system` `"rr_actors"`, `rpc.service`
+  the provider registrar, `rpc.method` the server); the server span is the client's
+  child (the two meet by query id);
+- a user callback: an INTERNAL `<server>.load` span (from `load_s`; a failed load's
+  carries its exception as an `exception` event) and `<server>.unload` span;
+- a restart: an INTERNAL `restart <child>` span from `ChildExited` to the restarted
+  process's first `CatalogRestored`, naming the in-doubt queries (`InDoubt`); the spans
+  whose end the kill lost (a load that started and never finished) are ended at the
+  exit, marked `rr_actors.end_lost`, and linked to it.
+
+The events carry no start stamp of a call: a client span starts where its server span
+starts (a load: its `at - load_s`), or at its own end without one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+import time
+from collections.abc import Callable
+from typing import Any, Protocol
+
+from rr_actors import events
+
+try:
+    from opentelemetry import trace as _api
+except ImportError:  # the otel extra is missing: every event is ignored
+    _api = None  # type: ignore[assignment]
+
+__all__ = ["SCOPE", "SYSTEM", "Tracing", "trace"]
+
+SYSTEM = "rr_actors"
+"""The `rpc.system` of every RPC span."""
+
+SCOPE = "rr_actors.otel"
+"""The instrumentation scope (the tracer's name)."""
+
+_CALL_ENDS = (events.CallAnswered, events.CallFailed, events.CallWithdrawn)
+_UNLOADS = frozenset({"unload", "unload unanswered"})
+
+
+class _Subscribable(Protocol):
+    def subscribe(self, callback: Callable[[events.Event], object]) -> Any: ...
+
+
+def _ns(at: float) -> int:
+    return int(at * 1e9)
+
+
+@dataclasses.dataclass
+class _Child:
+    """A user callback's INTERNAL span, under its server span."""
+
+    name: str
+    start: float
+    end: float
+    attributes: dict[str, Any]
+    error: tuple[str, str] | None = None  # (type, message)
+
+
+@dataclasses.dataclass
+class _Half:
+    """One side of an RPC, complete, waiting for its other side to be made a span."""
+
+    service: str  # the provider registrar
+    method: str  # the server
+    start: float
+    end: float
+    attributes: dict[str, Any]
+    error: tuple[str, str] | None = None
+    children: list[_Child] = dataclasses.field(default_factory=list)
+    links: list[Any] = dataclasses.field(default_factory=list)
+    arrived: float = dataclasses.field(default_factory=time.monotonic)
+
+
+@dataclasses.dataclass
+class _Restart:
+    exited: events.ChildExited
+    restarted: events.ChildRestarted
+    restored: float | None = None  # its first CatalogRestored's `at`
+    arrived: float = dataclasses.field(default_factory=time.monotonic)
+
+
+class Tracing:
+    """The subscriber that makes spans of events: `callback(event)` of a subscription.
+
+    Attach it with `Supervisor.subscribe(tracing)` or `ResourceRegistrar.subscribe`
+    (or let [`trace`][rr_actors.otel.trace] do it). Its calls run on the subscription's
+    thread; `flush` and `close` may be called from any thread.
+
+    Args:
+        tracer_provider: the provider to trace through; `None` (the default): the
+            global one, `opentelemetry.trace.get_tracer_provider()`, read at each event.
+        pair_within: seconds a side of a call (or a restart without a
+            `CatalogRestored`) waits for the rest before it is made a span alone.
+        max_pending: sides waiting at most; past it, the oldest is made a span alone.
+
+    Raises:
+        ConfigError: `pair_within` not a positive number or `max_pending` not a
+            positive int.
+    """
+
+    def __init__(
+        self,
+        *,
+        tracer_provider: Any = None,
+        pair_within: float = 5.0,
+        max_pending: int = 10_000,
+    ) -> None:
+        from rr_actors.errors import ConfigError  # noqa: PLC0415
+
+        if isinstance(pair_within, bool) or not isinstance(pair_within, int | float):
+            raise ConfigError(f"pair_within must be seconds > 0, not {pair_within!r}")
+        if not pair_within > 0:
+            raise ConfigError(f"pair_within must be seconds > 0, not {pair_within!r}")
+        if isinstance(max_pending, bool) or not isinstance(max_pending, int) or max_pending < 1:
+            raise ConfigError(f"max_pending must be an int > 0, not {max_pending!r}")
+        self._provider = tracer_provider
+        self._pair_within = float(pair_within)
+        self._max_pending = max_pending
+        self._lock = threading.Lock()
+        self._tracer: Any = None
+        self._tracer_of: Any = None
+        self._subscription: Any = None
+        self._loads: dict[tuple[str, str], events.ResourceLoaded] = {}
+        self._servers: dict[tuple[str, str], _Half] = {}  # (query id, "call"/"unload")
+        self._clients: dict[tuple[str, str], _Half] = {}
+        self._released: dict[tuple[str, str], tuple[str, float]] = {}  # resource: query, at
+        self._holders: dict[tuple[str, str], int] = {}  # resource: consumers seen added
+        self._unloading: dict[tuple[str, str], tuple[tuple[str, str], _Half]] = {}  # last release
+        self._exits: dict[str, events.ChildExited] = {}  # child: its last exit
+        self._restarts: dict[int, _Restart] = {}  # the new pid: its restart
+        self._doubts: dict[int, list[events.InDoubt]] = {}  # pid: what it found
+        self._restored: dict[int, float] = {}  # pid: its first CatalogRestored's `at`
+        self._served: dict[tuple[str, str], str] = {}  # (registrar, resource id): server
+
+    # -- the subscriber -----------------------------------------------------------------
+
+    def _current(self) -> Any:
+        """The tracer to make spans with, or `None`: no provider (or no extra)."""
+        if _api is None:
+            return None
+        provider = self._provider if self._provider is not None else _api.get_tracer_provider()
+        if isinstance(provider, _api.ProxyTracerProvider | _api.NoOpTracerProvider):
+            return None
+        if provider is not self._tracer_of:
+            self._tracer = provider.get_tracer(SCOPE)
+            self._tracer_of = provider
+        return self._tracer
+
+    def __call__(self, event: events.Event) -> None:
+        """Take one event (on the subscription's thread); make the spans it completes."""
+        tracer = self._current()
+        if tracer is None:
+            return
+        with self._lock:
+            self._take(tracer, event)
+            self._sweep(tracer, time.monotonic() - self._pair_within)
+
+    def flush(self) -> None:
+        """Make spans now of every side and restart still waiting for the rest."""
+        tracer = self._current()
+        if tracer is None:
+            return
+        with self._lock:
+            self._sweep(tracer, float("inf"))
+
+    def close(self, *, timeout: float = 5.0) -> None:
+        """Close the subscription `trace` made (if any), then `flush`.
+
+        Args:
+            timeout: seconds to wait at most for the events already queued for this
+                subscriber to be taken first.
+        """
+        if self._subscription is not None:
+            self._subscription.wait_delivered(timeout=timeout)
+            self._subscription.close()
+            self._subscription = None
+        self.flush()
+
+    def __enter__(self) -> Tracing:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    # -- events to sides ----------------------------------------------------------------
+
+    def _take(self, tracer: Any, event: events.Event) -> None:  # noqa: PLR0912
+        if self._restarts:  # its InDoubt come after its CatalogRestored: until its next event
+            restart = self._restarts.get(event.pid)
+            if (
+                restart is not None
+                and restart.restored is not None
+                and not isinstance(event, events.InDoubt | events.CatalogRestored)
+            ):
+                del self._restarts[event.pid]
+                self._restart_span(tracer, restart, restart.restored)
+        if isinstance(event, events.ResourceLoaded):
+            self._loads[event.registrar, event.query_id] = event
+            self._served[event.registrar, event.resource_id] = event.server
+        elif isinstance(event, events.ConsumerAdded):
+            self._added(tracer, event)
+        elif isinstance(event, events.LoadFailed):
+            self._failed(tracer, event)
+        elif isinstance(event, _CALL_ENDS):
+            self._call_ended(tracer, event)
+        elif isinstance(event, events.ConsumerReleased):
+            self._release(tracer, event)
+        elif isinstance(event, events.ResourceUnloaded):
+            self._unloaded(tracer, event)
+        elif isinstance(event, events.QueryForgotten):
+            if event.reason in _UNLOADS:
+                attributes = self._rpc(event.serving_rr, "", event.query_id)
+                attributes["rr_actors.registrar"] = event.registrar
+                attributes["rr_actors.outcome"] = event.reason
+                half = _Half(event.serving_rr, "", event.at, event.at, attributes)
+                self._client(tracer, (event.query_id, "unload"), half)
+        elif isinstance(event, events.ChildExited):
+            self._exits[event.child] = event
+        elif isinstance(event, events.ChildRestarted):
+            exited = self._exits.pop(event.child, None)
+            if exited is None:
+                return
+            # (its process may have restored before the supervisor said so)
+            self._restarts[event.pid] = _Restart(exited, event, self._restored.pop(event.pid, None))
+        elif isinstance(event, events.InDoubt):
+            self._doubts.setdefault(event.pid, []).append(event)
+        elif isinstance(event, events.CatalogRestored):
+            restart = self._restarts.get(event.pid)
+            if restart is not None:
+                if restart.restored is None:
+                    restart.restored = event.at
+            elif len(self._restored) < self._max_pending:
+                self._restored.setdefault(event.pid, event.at)
+
+    @staticmethod
+    def _rpc(service: str, method: str, query_id: str) -> dict[str, Any]:
+        return {
+            "rpc.system": SYSTEM,
+            "rpc.service": service,
+            "rpc.method": method,
+            "rr_actors.query_id": query_id,
+        }
+
+    def _added(self, tracer: Any, event: events.ConsumerAdded) -> None:
+        load = self._loads.pop((event.registrar, event.query_id), None)
+        resource = (event.registrar, event.resource_id)
+        server = self._served.get(resource, "")
+        if server:
+            self._holders[resource] = self._holders.get(resource, 0) + 1
+        attributes = self._rpc(event.registrar, server, event.query_id)
+        attributes["rr_actors.resource_id"] = event.resource_id
+        attributes["rr_actors.consumer"] = event.consumer
+        attributes["rr_actors.dedup"] = load is None
+        attributes["rr_actors.outcome"] = "loaded" if load is not None else "dedup"
+        half = _Half(event.registrar, server, event.at, event.at, attributes)
+        if load is not None:
+            if load.digest is not None:
+                attributes["rr_actors.digest"] = load.digest
+            half.start = load.at - load.load_s
+            callback = {"rr_actors.resource_id": load.resource_id}
+            half.children.append(_Child(f"{load.server}.load", half.start, load.at, callback))
+        self._server(tracer, (event.query_id, "call"), half)
+
+    def _failed(self, tracer: Any, event: events.LoadFailed) -> None:
+        attributes = self._rpc(event.registrar, event.server, event.query_id)
+        attributes["rr_actors.resource_id"] = event.resource_id
+        attributes["rr_actors.dedup"] = False
+        attributes["rr_actors.outcome"] = "load failed"
+        error = (event.error_type, event.message)
+        half = _Half(event.registrar, event.server, event.at, event.at, attributes, error)
+        callback = {"rr_actors.resource_id": event.resource_id}
+        half.children.append(_Child(f"{event.server}.load", event.at, event.at, callback, error))
+        self._server(tracer, (event.query_id, "call"), half)
+
+    def _call_ended(
+        self, tracer: Any, event: events.CallAnswered | events.CallFailed | events.CallWithdrawn
+    ) -> None:
+        attributes = self._rpc(event.serving_rr, event.server, event.query_id)
+        attributes["rr_actors.registrar"] = event.registrar
+        error = None
+        if isinstance(event, events.CallAnswered):
+            attributes["rr_actors.outcome"] = "answered"
+            attributes["rr_actors.retry"] = event.retry
+        elif isinstance(event, events.CallFailed):
+            attributes["rr_actors.outcome"] = "failed"
+            attributes["rr_actors.retry"] = event.retry
+            attributes["rr_actors.may_have_executed"] = event.may_have_executed
+            error = (event.error_type, event.message)
+        else:
+            attributes["rr_actors.outcome"] = f"withdrawn: {event.reason}"
+        half = _Half(event.serving_rr, event.server, event.at, event.at, attributes, error)
+        self._client(tracer, (event.query_id, "call"), half)
+
+    def _release(self, tracer: Any, event: events.ConsumerReleased) -> None:
+        resource = (event.registrar, event.resource_id)
+        self._released[resource] = (event.query_id, event.at)
+        left = self._holders.get(resource)
+        if left is not None:
+            self._holders[resource] = left - 1
+        if event.reason != "unload":
+            return
+        server = self._served.get((event.registrar, event.resource_id), "")
+        attributes = self._rpc(event.registrar, server, event.query_id)
+        attributes["rr_actors.resource_id"] = event.resource_id
+        attributes["rr_actors.consumer"] = event.consumer
+        attributes["rr_actors.outcome"] = "released"
+        half = _Half(event.registrar, server, event.at, event.at, attributes)
+        if left == 1:  # the last consumer: its ResourceUnloaded follows, to go under it
+            self._unloading[resource] = ((event.query_id, "unload"), half)
+        else:
+            self._server(tracer, (event.query_id, "unload"), half)
+
+    def _unloaded(self, tracer: Any, event: events.ResourceUnloaded) -> None:
+        resource = (event.registrar, event.resource_id)
+        query_id, began = self._released.pop(resource, ("", event.at))
+        self._served.pop(resource, None)
+        self._holders.pop(resource, None)
+        child = _Child(
+            f"{event.server}.unload", began, event.at, {"rr_actors.resource_id": event.resource_id}
+        )
+        parked = self._unloading.pop(resource, None)
+        if parked is not None:
+            key, half = parked
+            half.end = max(half.end, event.at)
+            half.children.append(child)
+            self._server(tracer, key, half)
+            return
+        waiting = self._servers.get((query_id, "unload"))
+        if waiting is not None:  # its release waits for its client: the callback goes under it
+            waiting.method = waiting.attributes["rpc.method"] = event.server
+            waiting.end = max(waiting.end, event.at)
+            waiting.children.append(child)
+        else:
+            self._emit_child(tracer, None, child, [])
+
+    # -- sides to spans -----------------------------------------------------------------
+
+    def _server(self, tracer: Any, key: tuple[str, str], half: _Half) -> None:
+        client = self._clients.pop(key, None)
+        if client is None:
+            self._servers[key] = half
+        else:
+            self._emit(tracer, client, half)
+
+    def _client(self, tracer: Any, key: tuple[str, str], half: _Half) -> None:
+        server = self._servers.pop(key, None)
+        if server is None:
+            self._clients[key] = half
+        else:
+            self._emit(tracer, half, server)
+
+    def _sweep(self, tracer: Any, before: float) -> None:
+        """Make spans alone of the restarts and sides waiting since before `before`."""
+        for resource in [r for r, (_k, h) in self._unloading.items() if h.arrived <= before]:
+            self._server(tracer, *self._unloading.pop(resource))
+        for pid in [p for p, r in self._restarts.items() if r.arrived <= before]:
+            restart = self._restarts.pop(pid)
+            self._restart_span(tracer, restart, restart.restored or restart.restarted.at)
+        for waiting in (self._clients, self._servers):
+            late = [k for k, h in waiting.items() if h.arrived <= before]
+            late += list(waiting)[: max(0, len(waiting) - len(late) - self._max_pending)]
+            for key in late:
+                alone = waiting.pop(key, None)
+                if alone is not None:
+                    clients = waiting is self._clients
+                    self._emit(tracer, alone if clients else None, None if clients else alone)
+        if before == float("inf"):
+            self._doubts.clear()
+            self._exits.clear()
+            self._restored.clear()
+
+    def _emit(self, tracer: Any, client: _Half | None, server: _Half | None) -> None:
+        context = None
+        if client is not None and server is not None:  # a side that did not know its server
+            method = client.method or server.method
+            client.method = server.method = method
+            client.attributes["rpc.method"] = server.attributes["rpc.method"] = method
+        if client is not None:
+            start = min(client.start, server.start) if server is not None else client.start
+            name = f"{client.service}/{client.method}"
+            span = tracer.start_span(
+                name,
+                kind=_api.SpanKind.CLIENT,
+                attributes=client.attributes,
+                links=client.links,
+                start_time=_ns(start),
+            )
+            self._end(span, client.error, client.end)
+            context = _api.set_span_in_context(span)
+        if server is not None:
+            name = f"{server.service}/{server.method}"
+            span = tracer.start_span(
+                name,
+                context=context,
+                kind=_api.SpanKind.SERVER,
+                attributes=server.attributes,
+                links=server.links,
+                start_time=_ns(server.start),
+            )
+            inner = _api.set_span_in_context(span)
+            for child in server.children:
+                self._emit_child(tracer, inner, child, server.links)
+            self._end(span, server.error, max(server.end, server.start))
+
+    def _emit_child(self, tracer: Any, context: Any, child: _Child, links: list[Any]) -> None:
+        span = tracer.start_span(
+            child.name,
+            context=context,
+            kind=_api.SpanKind.INTERNAL,
+            attributes=child.attributes,
+            links=links,
+            start_time=_ns(child.start),
+        )
+        if child.error is not None:
+            kind, message = child.error
+            span.add_event(
+                "exception",
+                {"exception.type": kind, "exception.message": message},
+                timestamp=_ns(child.end),
+            )
+        self._end(span, child.error, child.end)
+
+    @staticmethod
+    def _end(span: Any, error: tuple[str, str] | None, end: float) -> None:
+        if error is not None:
+            kind, message = error
+            span.set_attribute("error.type", kind)
+            span.set_status(_api.Status(_api.StatusCode.ERROR, f"{kind}: {message}"))
+        span.end(end_time=_ns(end))
+
+    def _restart_span(self, tracer: Any, restart: _Restart, end: float) -> None:
+        """The restart's span; the spans the kill cut short, ended at the exit and marked."""
+        exited, restarted = restart.exited, restart.restarted
+        doubts = self._doubts.pop(restarted.pid, [])
+        attributes: dict[str, Any] = {
+            "rr_actors.supervisor": exited.supervisor,
+            "rr_actors.child": exited.child,
+            "rr_actors.reason": exited.reason,
+            "rr_actors.old_pid": exited.pid,
+            "rr_actors.new_pid": restarted.pid,
+            "rr_actors.restart_s": restarted.restart_s,
+            "rr_actors.in_doubt": [d.query_id for d in doubts],
+        }
+        span = tracer.start_span(
+            f"restart {exited.child}",
+            kind=_api.SpanKind.INTERNAL,
+            attributes=attributes,
+            start_time=_ns(exited.at),
+        )
+        span.end(end_time=_ns(max([end, exited.at, *(d.at for d in doubts)])))
+        links = [_api.Link(span.get_span_context())]
+        lost = {"rr_actors.end_lost": True, "rr_actors.ended_by": f"restart {exited.child}"}
+        for key in [k for k, load in self._loads.items() if load.pid == exited.pid]:
+            load = self._loads.pop(key)  # loaded, never added: cut between the two
+            attributes = self._rpc(load.registrar, load.server, load.query_id) | lost
+            half = _Half(load.registrar, load.server, load.at - load.load_s, exited.at, attributes)
+            half.links = links
+            load_attributes = {"rr_actors.resource_id": load.resource_id} | lost
+            half.children.append(
+                _Child(f"{load.server}.load", half.start, load.at, load_attributes)
+            )
+            self._server(tracer, (load.query_id, "call"), half)
+        for doubt in doubts:  # started, never committed: cut inside its callback
+            # its query id is the resource's (the call's is not known at the provider):
+            # its call is the one failed call to that server that may have executed
+            calls = [
+                key
+                for key, half in self._clients.items()
+                if (half.service, half.method) == (doubt.registrar, doubt.server)
+                and half.attributes.get("rr_actors.may_have_executed")
+            ]
+            query_id = calls[0][0] if len(calls) == 1 else doubt.query_id
+            attributes = self._rpc(doubt.registrar, doubt.server, query_id) | lost
+            attributes["rr_actors.resource_id"] = doubt.query_id
+            attributes["rr_actors.in_doubt"] = True
+            half = _Half(doubt.registrar, doubt.server, exited.at, exited.at, attributes)
+            half.links = links
+            verb = doubt.cut or "load"
+            callback = {"rr_actors.resource_id": doubt.query_id} | lost
+            half.children.append(_Child(f"{doubt.server}.{verb}", exited.at, exited.at, callback))
+            self._server(tracer, (query_id, "call" if verb == "load" else "unload"), half)
+
+
+def trace(source: _Subscribable, **options: Any) -> Tracing:
+    """Trace what `source` does: subscribe a [`Tracing`][rr_actors.otel.Tracing] to it.
+
+    Args:
+        source: a `Supervisor` (its whole tree, manager processes included) or a
+            `ResourceRegistrar` (its own events): anything with `subscribe(callback)`.
+        options: `Tracing`'s keyword arguments (`tracer_provider`, `pair_within`,
+            `max_pending`).
+
+    Returns:
+        The subscriber, subscribed; `close()` it (or use it in a `with` block) to
+        unsubscribe and make spans of what still waits.
+
+    Raises:
+        ConfigError: a bad option, or `source` cannot be subscribed to (a stopped
+            supervisor).
+    """
+    tracing = Tracing(**options)
+    tracing._subscription = source.subscribe(tracing)
+    return tracing

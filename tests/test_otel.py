@@ -1,0 +1,316 @@
+"""OpenTelemetry spans from the event stream (`rr_actors.otel`): on real registrars, a real
+manager process and a real SIGKILL, exported by the SDK's `InMemorySpanExporter`."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+import threading
+import uuid
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+from opentelemetry import trace as api
+from opentelemetry.sdk.trace import ReadableSpan, TracerProvider
+from opentelemetry.sdk.trace.export import SimpleSpanProcessor
+from opentelemetry.sdk.trace.export.in_memory_span_exporter import InMemorySpanExporter
+
+import rr_actors as rr
+from rr_actors import events, otel
+from rr_actors.testing import SharedObjects
+from tests.support.supervising import sigkill
+
+pytestmark = pytest.mark.usefixtures("by_value")
+
+
+@pytest.fixture
+def exported() -> tuple[TracerProvider, InMemorySpanExporter]:
+    """A provider of the test's own (the global one is set once per process) and its spans."""
+    exporter = InMemorySpanExporter()
+    provider = TracerProvider()
+    provider.add_span_processor(SimpleSpanProcessor(exporter))
+    return provider, exporter
+
+
+def _one(spans: tuple[ReadableSpan, ...], name: str, kind: api.SpanKind) -> ReadableSpan:
+    [span] = [s for s in spans if s.name == name and s.kind == kind]
+    return span
+
+
+def _serve(registrar: rr.ResourceRegistrar) -> None:
+    registrar.register_server("cam", load=lambda r: f"cam {r}", unload=lambda _q, _r: None)
+
+
+@pytest.mark.usefixtures("process_helpers")
+def test_a_call_is_a_client_span_over_its_server_span_over_its_load(
+    supervisors: Callable[..., rr.Supervisor],
+    uid: str,
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    provider, exporter = exported
+    erm = f"erm-{uid}"
+    sup = supervisors([rr.ManagerSpec(erm, _serve, isolation="process")]).start()
+    app = sup.registrar(f"app-{uid}")
+    with otel.trace(sup, tracer_provider=provider, pair_within=60) as tracing:
+        first = app.call(erm, "cam", 7, timeout=10)
+        second = app.call(erm, "cam", 7, timeout=10)  # an equal request: a dedup hit
+        app.unload(second.id)
+        app.unload(first.id)  # the last consumer: the server's unload runs
+        assert sup.flush_events(timeout=5)
+        assert tracing._subscription.wait_delivered(timeout=5)
+    spans = exporter.get_finished_spans()
+
+    calls = [s for s in spans if s.name == f"{erm}/cam" and s.attributes["rpc.method"] == "cam"]
+    clients = [s for s in calls if s.attributes["rr_actors.outcome"] == "answered"]
+    servers = [s for s in calls if s.attributes["rr_actors.outcome"] in ("loaded", "dedup")]
+    assert 2 == len(clients) == len(servers)
+    by_query = {s.attributes["rr_actors.query_id"]: s for s in clients}
+    assert {first.id, second.id} == set(by_query)
+    for server in servers:
+        client = by_query[server.attributes["rr_actors.query_id"]]
+        assert server.parent is not None
+        assert client.context.span_id == server.parent.span_id
+        assert client.context.trace_id == server.context.trace_id
+        assert client.start_time <= server.start_time <= server.end_time <= client.end_time
+        for span in (client, server):
+            assert ("rr_actors", erm, "cam") == (
+                span.attributes["rpc.system"],
+                span.attributes["rpc.service"],
+                span.attributes["rpc.method"],
+            )
+        assert "answered" == client.attributes["rr_actors.outcome"]
+    loaded = next(s for s in servers if s.attributes["rr_actors.query_id"] == first.id)
+    hit = next(s for s in servers if s.attributes["rr_actors.query_id"] == second.id)
+    assert (False, True) == (
+        loaded.attributes["rr_actors.dedup"],
+        hit.attributes["rr_actors.dedup"],
+    )
+    assert isinstance(loaded.attributes["rr_actors.digest"], int)
+    load = _one(spans, "cam.load", api.SpanKind.INTERNAL)
+    assert load.parent is not None
+    assert loaded.context.span_id == load.parent.span_id
+    assert loaded.start_time == load.start_time < load.end_time <= loaded.end_time
+    unload_client = [
+        s
+        for s in spans
+        if s.kind == api.SpanKind.CLIENT and s.attributes["rr_actors.outcome"] == "unload"
+    ]
+    unload_servers = [s for s in spans if s.attributes.get("rr_actors.outcome") == "released"]
+    assert {first.id, second.id} == {s.attributes["rr_actors.query_id"] for s in unload_client}
+    for server in unload_servers:
+        [client] = [c for c in unload_client if c.context.span_id == server.parent.span_id]
+        assert client.attributes["rr_actors.query_id"] == server.attributes["rr_actors.query_id"]
+        assert f"{erm}/cam" == server.name == client.name
+    last = next(s for s in unload_servers if s.attributes["rr_actors.query_id"] == first.id)
+    unload = _one(spans, "cam.unload", api.SpanKind.INTERNAL)
+    assert unload.parent is not None
+    assert last.context.span_id == unload.parent.span_id
+    assert last.start_time <= unload.start_time <= unload.end_time <= last.end_time
+
+
+def test_a_failed_load_is_an_error_span_with_its_exception(
+    started: list[rr.ResourceRegistrar],
+    eventually: Callable[..., bool],
+    uid: str,
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    provider, exporter = exported
+
+    def broken(_request: Any) -> Any:
+        raise ValueError("no camera")
+
+    erm = rr.ResourceRegistrar.start(f"erm-{uid}")
+    started.append(erm)
+    erm.register_server("cam", load=broken, unload=lambda _q, _r: None)
+    app = rr.ResourceRegistrar.start(f"app-{uid}")
+    started.append(app)
+    tracing = otel.Tracing(tracer_provider=provider, pair_within=60)
+    with erm.subscribe(tracing), app.subscribe(tracing):  # one subscriber of both
+        with pytest.raises(rr.ResourceLoadError):
+            app.call(erm.name, "cam", 1, timeout=10)
+        assert eventually(lambda: 3 == len(exporter.get_finished_spans()), timeout=10)
+    spans = exporter.get_finished_spans()
+
+    server = _one(spans, f"{erm.name}/cam", api.SpanKind.SERVER)
+    client = _one(spans, f"{erm.name}/cam", api.SpanKind.CLIENT)
+    load = _one(spans, "cam.load", api.SpanKind.INTERNAL)
+    assert server.parent is not None
+    assert client.context.span_id == server.parent.span_id
+    for span in (server, client, load):
+        assert api.StatusCode.ERROR == span.status.status_code
+    assert "ValueError" == server.attributes["error.type"]
+    assert [("exception", "ValueError", "no camera")] == [
+        (e.name, e.attributes["exception.type"], e.attributes["exception.message"])
+        for e in load.events
+    ]
+    assert load.parent is not None
+    assert server.context.span_id == load.parent.span_id
+
+
+@pytest.mark.usefixtures("process_helpers")
+def test_a_killed_load_is_ended_and_marked_by_the_restart_span(
+    supervisors: Callable[..., rr.Supervisor],
+    uid: str,
+    tmp_path: Any,
+    process_helpers: SharedObjects,
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    provider, exporter = exported
+    erm = f"erm-{uid}"
+    entered = process_helpers.event()
+
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        def hang(_request: Any) -> Any:
+            entered.set()
+            threading.Event().wait(60)  # killed while it loads
+
+        registrar.register_server("slow", load=hang, unload=lambda _q, _r: None)
+
+    sup = supervisors(
+        [rr.ManagerSpec(erm, setup, isolation="process")], state_dir=tmp_path / "state"
+    ).start()
+    app = sup.registrar(f"app-{uid}")
+    failed: list[Any] = []
+
+    def call() -> None:
+        with pytest.raises(rr.RrError):  # its provider is killed under it
+            app.call(erm, "slow", 1, timeout=30)
+        failed.append(True)
+
+    with otel.trace(sup, tracer_provider=provider, pair_within=60) as tracing:
+        caller = threading.Thread(target=call)
+        caller.start()
+        assert entered.wait(10)
+        sigkill(sup, erm)
+        caller.join(10)
+        sup.wait_restarted(erm, timeout=10)
+        assert sup.flush_events(timeout=5)
+        assert tracing._subscription.wait_delivered(timeout=5)
+    assert [True] == failed
+    spans = exporter.get_finished_spans()
+
+    restart = _one(spans, f"restart {erm}", api.SpanKind.INTERNAL)
+    [resource_id] = restart.attributes["rr_actors.in_doubt"]
+    server = _one(spans, f"{erm}/slow", api.SpanKind.SERVER)
+    load = _one(spans, "slow.load", api.SpanKind.INTERNAL)
+    client = _one(spans, f"{erm}/slow", api.SpanKind.CLIENT)
+    assert resource_id == server.attributes["rr_actors.resource_id"]
+    assert client.attributes["rr_actors.query_id"] == server.attributes["rr_actors.query_id"]
+    assert "failed" == client.attributes["rr_actors.outcome"]
+    assert server.parent is not None
+    assert client.context.span_id == server.parent.span_id
+    assert load.parent is not None
+    assert server.context.span_id == load.parent.span_id
+    for span in (server, load):
+        assert span.attributes["rr_actors.end_lost"] is True
+        assert [restart.context.span_id] == [link.context.span_id for link in span.links]
+        assert span.end_time == restart.start_time  # ended at the kill
+    assert restart.start_time <= restart.end_time
+
+
+def test_without_a_provider_no_span_is_made_and_nothing_fails(
+    started: list[rr.ResourceRegistrar], uid: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    made: list[str] = []
+    for tracer in (api.ProxyTracer, api.NoOpTracer):
+        real = tracer.start_span
+
+        def counted(self: Any, name: str, *args: Any, real: Any = real, **kwargs: Any) -> Any:
+            made.append(name)
+            return real(self, name, *args, **kwargs)
+
+        monkeypatch.setattr(tracer, "start_span", counted)
+    assert isinstance(api.get_tracer_provider(), api.ProxyTracerProvider)  # none installed
+    erm = rr.ResourceRegistrar.start(f"erm-{uid}")
+    started.append(erm)
+    _serve(erm)
+    with otel.trace(erm) as tracing:
+        query = erm.call(erm.name, "cam", 1, timeout=10)
+        erm.unload(query.id)
+        assert tracing._subscription.wait_delivered(timeout=5)
+    assert [] == made
+    assert ({}, {}) == (tracing._clients, tracing._servers)  # nothing kept either
+
+
+def test_bad_options_are_refused() -> None:
+    with pytest.raises(rr.ConfigError, match="pair_within"):
+        otel.Tracing(pair_within=0)
+    with pytest.raises(rr.ConfigError, match="max_pending"):
+        otel.Tracing(max_pending=0)
+
+
+def test_a_side_alone_is_made_a_span_once_it_waited_pair_within(
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    provider, exporter = exported
+    tracing = otel.Tracing(tracer_provider=provider, pair_within=60)
+    query_id = str(uuid.uuid4())
+    tracing(events.CallAnswered("app", query_id, "erm", "cam", at=100.0))
+    assert () == exporter.get_finished_spans()  # it waits for its server side
+    tracing.flush()
+    [client] = exporter.get_finished_spans()
+    assert (api.SpanKind.CLIENT, 100_000_000_000, 100_000_000_000) == (
+        client.kind,
+        client.start_time,
+        client.end_time,
+    )
+
+
+def test_it_traces_through_the_global_provider_the_application_installs_later() -> None:
+    # (in a fresh interpreter: the global provider can be set once per process)
+    script = textwrap.dedent(
+        """
+        from opentelemetry import trace
+        from opentelemetry.sdk.trace import TracerProvider
+        from opentelemetry.sdk.trace.export import SimpleSpanProcessor
+        from opentelemetry.sdk.trace.export.in_memory_span_exporter import (
+            InMemorySpanExporter,
+        )
+        import rr_actors as rr
+        from rr_actors import otel
+
+        erm = rr.ResourceRegistrar.start("erm")
+        erm.register_server("cam", load=lambda r: r, unload=lambda q, r: None)
+        tracing = otel.trace(erm)  # subscribed before the application installs one
+        exporter = InMemorySpanExporter()
+        provider = TracerProvider()
+        provider.add_span_processor(SimpleSpanProcessor(exporter))
+        trace.set_tracer_provider(provider)
+        erm.call("erm", "cam", 1, timeout=10)
+        erm.client_queries(timeout=10)  # a later turn: the call's CallAnswered is published
+        tracing.close()
+        erm.stop()
+        print(sorted((s.kind.name, s.name) for s in exporter.get_finished_spans()))
+        """
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, check=False
+    )
+    assert 0 == done.returncode, done.stderr[-2000:]
+    expected = [("CLIENT", "erm/cam"), ("INTERNAL", "cam.load"), ("SERVER", "erm/cam")]
+    assert repr(expected) == done.stdout.strip()
+
+
+def test_without_the_extra_tracing_takes_events_and_makes_nothing() -> None:
+    script = textwrap.dedent(
+        """
+        import sys
+        sys.modules["opentelemetry"] = None  # as if the otel extra were not installed
+        import rr_actors as rr
+        from rr_actors import otel
+
+        erm = rr.ResourceRegistrar.start("erm")
+        erm.register_server("cam", load=lambda r: r, unload=lambda q, r: None)
+        with otel.trace(erm) as tracing:
+            erm.unload(erm.call("erm", "cam", 1, timeout=10).id)
+        erm.stop()
+        print(otel._api, tracing._clients, tracing._servers)
+        """
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, check=False
+    )
+    assert 0 == done.returncode, done.stderr[-2000:]
+    assert "None {} {}" == done.stdout.strip()
