@@ -848,11 +848,32 @@ def _recorded(run_dir: Path, seed: int) -> dict[str, Any]:
         ConfigError: no such file, a line that is not a seed's (`_seed_lines`), or no
             line of that seed.
     """
+    run: list[int] = []
     for number, line in _seed_lines(run_dir):
         if line["seed"] == seed:
             _check_fields(line, f"{run_dir / SEEDS_FILE}:{number}")
             return line
-    raise ConfigError(f"{run_dir / SEEDS_FILE}: seed {seed} was not run")
+        run.append(line["seed"])
+    raise ConfigError(
+        f"{run_dir / SEEDS_FILE}: seed {seed} was not run (seeds run: {_seed_ranges(run)})"
+    )
+
+
+def _seed_ranges(seeds: list[int]) -> str:
+    """`seeds` as ranges, the way `--seeds` takes them: `[1, 2, 3, 7]` -> `"1-3,7"`."""
+    if not seeds:
+        return "none"
+    parts: list[str] = []
+    ordered = sorted(set(seeds))
+    start = previous = ordered[0]
+    for seed in [*ordered[1:], None]:
+        if seed is not None and seed == previous + 1:
+            previous = seed
+            continue
+        parts.append(f"{start}" if start == previous else f"{start}-{previous}")
+        if seed is not None:
+            start = previous = seed
+    return ",".join(parts)
 
 
 _FIELDS: tuple[tuple[str, tuple[type, ...], str], ...] = (
@@ -875,6 +896,10 @@ def _seed_lines(run_dir: Path) -> Iterator[tuple[int, dict[str, Any]]]:
             file and the line.
     """
     path = run_dir / SEEDS_FILE
+    if not run_dir.exists():
+        raise ConfigError(
+            f"{run_dir}: no such folder (give the --out folder of an `experiment --simulate` run)"
+        )
     if not path.exists():
         raise ConfigError(f"{run_dir}: no {SEEDS_FILE} (not an `experiment --simulate` output)")
     with _open_regular(path) as lines:

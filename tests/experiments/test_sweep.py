@@ -227,10 +227,32 @@ def test_a_replay_of_a_seed_not_run_exits_2(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     (tmp_path / "plan.toml").write_text(PLAN)
-    (tmp_path / sweep.SEEDS_FILE).write_text(json.dumps({"seed": 1, "hash": "0" * 64}) + "\n")
+    lines = "".join(json.dumps({"seed": s, "hash": "0" * 64}) + "\n" for s in (1, 2, 3, 7))
+    (tmp_path / sweep.SEEDS_FILE).write_text(lines)
 
     assert 2 == main(["replay", str(tmp_path), "--seed", "9"], io.StringIO())
-    assert "seed 9 was not run" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert (1, True) == (len(err.splitlines()), "seed 9 was not run (seeds run: 1-3,7)" in err)
+
+
+def test_a_replay_of_a_missing_folder_exits_2_saying_the_folder_is_missing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert 2 == main(["replay", str(tmp_path / "nowhere"), "--seed", "1"], io.StringIO())
+    err = capsys.readouterr().err
+    assert (1, True) == (len(err.splitlines()), f"{tmp_path / 'nowhere'}: no such folder" in err)
+
+
+def test_a_check_of_a_simulations_folder_exits_2_pointing_to_seeds_and_replay(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / sweep.SEEDS_FILE).write_text(json.dumps({"seed": 1, "hash": "0" * 64}) + "\n")
+
+    assert 2 == main(["check", str(tmp_path)], io.StringIO())
+    err = capsys.readouterr().err
+    assert 1 == len(err.splitlines()), err
+    assert "seeds.jsonl" in err
+    assert f"rr-actors replay {tmp_path} --seed S" in err
 
 
 MARKER = """\
