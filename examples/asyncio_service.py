@@ -16,7 +16,8 @@ is closed when its client leaves.
 
 Run it as a program and it serves on a free port, then plays a client against itself
 with httpx over a real socket and prints what it saw. Serve it for real with
-`uvicorn asyncio_service:app` (from `examples/`).
+`uvicorn asyncio_service:app` (from `examples/`). It needs Starlette, sse-starlette,
+uvicorn and httpx, the `service` extra: `pip install -e ".[service]"`.
 """
 
 from __future__ import annotations

@@ -27,12 +27,13 @@ import functools
 import importlib.metadata
 import json
 import math
+import re
 import reprlib
 import sys
 import textwrap
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, NoReturn, TextIO
 
 import rr_actors
 from rr_actors import events
@@ -41,7 +42,7 @@ from rr_actors._core import hlc
 from rr_actors._extras import needs
 from rr_actors._log import terminal_width, wrap
 from rr_actors._store import Backup, Unreadable, read_backup
-from rr_actors.errors import CatalogCorruptError, ConfigError, MissingExtraError
+from rr_actors.errors import CatalogCorruptError, ConfigError, MissingExtraError, _known_names
 from rr_actors.observe import _commands as observe_commands
 
 __all__ = ["COMMANDS", "Command", "backup_to_dict", "main", "render_tree", "version"]
@@ -647,11 +648,31 @@ def version() -> str:
         return rr_actors.__version__
 
 
+_INVALID_CHOICE = re.compile(r"invalid choice: '(?P<name>[^']*)' \(choose from (?P<known>.*)\)$")
+"""argparse's error for a value that is not one of an argument's choices."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose "invalid choice" error says which choice was meant.
+
+    `rr-actors experimnt` reads `invalid choice: 'experimnt'; did you mean
+    'experiment'? (known: ...)`; every other error reads as argparse writes it.
+    """
+
+    def error(self, message: str) -> NoReturn:
+        """Print the usage and `message` (with the closest choice) on stderr; exit 2."""
+        wrong = _INVALID_CHOICE.search(message)
+        if wrong is not None:
+            listed = wrong.group("known")  # `'a', 'b'` (or `a, b` on newer Pythons)
+            known = re.findall(r"'([^']*)'", listed) or listed.split(", ")
+            hint = _known_names(wrong.group("name"), known, shown=len(known))
+            message = message[: wrong.start()] + f"invalid choice: {wrong.group('name')!r}{hint}"
+        super().error(message)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The `rr-actors` argument parser, one subparser per entry of `COMMANDS`."""
-    parser = argparse.ArgumentParser(
-        prog="rr-actors", description="Tools for rr_actors resource registrars."
-    )
+    parser = _Parser(prog="rr-actors", description="Tools for rr_actors resource registrars.")
     parser.add_argument(
         "--version", action="version", version=f"%(prog)s {version()}", help="print the version"
     )

@@ -79,6 +79,17 @@ def test_without_a_command_it_prints_the_help_and_exits_2() -> None:
     assert {"demo", "inspect", "observe", "graph", "experiment"} <= listed
 
 
+@pytest.mark.parametrize(
+    ("argv", "meant"),
+    [(["experimnt"], "'experiment'"), (["graph", "--state", ".", "--format", "dt"], "'dot'")],
+)
+def test_a_misspelt_choice_exits_2_saying_which_was_meant(argv: list[str], meant: str) -> None:
+    result = rr_actors_command(*argv)
+
+    assert 2 == result.returncode
+    assert f"invalid choice: {argv[-1]!r}; did you mean {meant}? (known: " in result.stderr
+
+
 # -- 80 columns (issue 44, item 2) ----------------------------------------------------------
 
 TERMINAL_COMMANDS = {

@@ -6,8 +6,9 @@ written):
 
 - `python` blocks run one after the other in one interpreter (`tests/support/docs_kernel.py`), as
   if pasted into one session: a later block sees what earlier ones defined, and
-  `__name__` is `"__main__"`. After the last block nothing may be left running: a page
-  that leaves a registrar or a supervisor running fails, and the interpreter must exit.
+  `__name__` is `"__main__"`; their input is empty (`input()` raises `EOFError`). After
+  the last block nothing may be left running: a page that leaves a registrar or a
+  supervisor running fails, and the interpreter must exit.
   A block that is only a snippet include (`--8<-- "examples/x.py"`) is the example
   itself: the file must exist and a test in `tests/` must run it by name
   (`test_examples.py` runs every example).
@@ -577,6 +578,24 @@ def test_a_page_that_leaves_a_registrar_running_fails(
 
     with pytest.raises(pytest.fail.Exception, match="leave something running"):
         kernel.finish(page)
+
+
+def test_a_python_block_that_reads_input_reads_nothing_and_the_next_block_still_runs(
+    tmp_path: Path,
+) -> None:
+    """A page's `input("press Enter to stop")` (the observer's) ends at once, as with
+    `< /dev/null`, and does not eat the page's next block."""
+    page = tmp_path / "page.md"
+    page.write_text(
+        "```python\ntry:\n    input()\nexcept EOFError:\n    ended = True\n```\n\n"
+        "```python\nassert ended\n```\n"
+    )
+    first, second = blocks(page)
+    kernel = Kernel(tmp_path)
+
+    kernel.run(first, first.code)
+    kernel.run(second, second.code)
+    kernel.finish(page)
 
 
 def test_a_python_block_that_raises_fails_with_the_page_and_line(tmp_path: Path) -> None:

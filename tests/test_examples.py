@@ -2,16 +2,21 @@
 
 from __future__ import annotations
 
+import ast
 import importlib.util
 import re
 import subprocess
 import sys
 import threading
+import tomllib
 from pathlib import Path
 
 import pytest
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+EXTRAS = tomllib.loads((EXAMPLES.parent / "pyproject.toml").read_text())["project"][
+    "optional-dependencies"
+]
 
 
 def run_example(name: str) -> subprocess.CompletedProcess[str]:
@@ -134,3 +139,29 @@ def test_the_asyncio_service_shares_a_camera_streams_its_frames_and_unloads_it()
         "service stopped: the tree and its registrars with it",
     ] == [line for line in result.stdout.splitlines() if not line.startswith("closed ")]
     assert 2 == sum(line.endswith(": 204") for line in result.stdout.splitlines())
+
+
+def _needs(example: Path) -> set[str]:
+    """The distributions an example imports at its top level, beyond the standard library
+    and rr_actors (an import inside a function is optional: the example says so)."""
+    top = ast.parse(example.read_text()).body
+    names = {a.name for n in top if isinstance(n, ast.Import) for a in n.names}
+    names |= {n.module for n in top if isinstance(n, ast.ImportFrom) and n.module and not n.level}
+    roots = {name.split(".")[0] for name in names} - {*sys.stdlib_module_names, "rr_actors"}
+    return {root.replace("_", "-") for root in roots - {"__future__"}}
+
+
+@pytest.mark.parametrize("example", sorted(EXAMPLES.glob("*.py")), ids=lambda p: p.name)
+def test_an_example_that_needs_more_than_rr_actors_names_the_extra_that_installs_it(
+    example: Path,
+) -> None:
+    """A new user reads the example's docstring: `pip install -e ".[X]"` in it, and X
+    installs every package the example imports."""
+    needs = _needs(example)
+    if not needs:
+        return
+    docstring = ast.get_docstring(ast.parse(example.read_text())) or ""
+    named = re.search(r'pip install -e "\.\[(?P<extra>[\w-]+)\]"', docstring)
+    assert named is not None, f"{example.name} imports {sorted(needs)}: name the extra"
+    installed = {re.split(r"[<>=\[ ]", r)[0] for r in EXTRAS.get(named.group("extra"), [])}
+    assert set() == needs - installed, f"{example.name}: {named.group('extra')} misses these"

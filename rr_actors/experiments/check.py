@@ -440,6 +440,11 @@ def check_file(path: Path) -> dict[int, Verdict]:
     """
     file = path / "events.jsonl" if path.is_dir() else path
     if not file.is_file():
+        if (path / "seeds.jsonl").is_file():
+            raise ConfigError(
+                f"no events.jsonl at {path}: it is a simulation's output; its seeds.jsonl "
+                f"says each seed's verdict, and `rr-actors replay {path} --seed S` re-runs one"
+            )
         raise ConfigError(f"no events.jsonl at {path}")
     runs = _runs(json_lines(file), f"{file} line")
     return {run: check(history) for run, history in sorted(runs.items())}

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
 from rr_actors._extras import install_command, needs
-from rr_actors.errors import ConfigError, RrError
+from rr_actors.errors import ConfigError, RrError, _known_names
 from rr_actors.experiments import experiment, plans, shrink, simulate, sweep
 from rr_actors.experiments.experiment import (
     ExperimentError,
@@ -566,9 +566,10 @@ def plan_file(plan: str) -> Path:
     """The file `plan` names (see `plans.find`), or a `ConfigError` naming the shipped ones."""
     path = plans.find(plan)
     if not path.exists() and path.parent == Path():
+        shipped = plans.shipped()
         raise ConfigError(
-            f"{plan}: no such file, and no shipped plan of that name "
-            f"(shipped: {', '.join(plans.shipped())})"
+            f"{plan}: no such file, and no shipped plan of that name"
+            + _known_names(plan, shipped, shown=len(shipped)).replace("(known:", "(shipped:")
         )
     return path
 

@@ -7,7 +7,8 @@
                                a Ctrl-C, SIGTERM or SIGHUP passed on to it (`hash_fixed`)
    DIR/plan.toml (the plan's copy)
    simulate.run_seed per seed ─► a progress bar (a terminal with rich) or a line per
-                                 violating seed; DIR/seeds.jsonl: a line per seed (its
+                                 violating seed and a `seeds: N/M run` line every
+                                 `PROGRESS_SECONDS`; DIR/seeds.jsonl: a line per seed (its
                                  hash, verdict, counts); DIR/events-seed-S.jsonl: the
                                  history of each seed that did not hold; DIR/log.txt:
                                  the simulated system's error lines, by seed
@@ -38,6 +39,7 @@ import stat
 import statistics
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, BinaryIO, TextIO
@@ -74,6 +76,11 @@ __all__ = [
     "summary",
     "summary_rows",
 ]
+
+PROGRESS_SECONDS = 5.0
+"""Without a progress bar (stdout a pipe or a file), a line `seeds: 37/500 run, ...` after
+the first seed, then after the first seed done at least this many seconds after the last
+line: a long sweep through `| cat` or `| tee` shows that it is running."""
 
 SEEDS_FILE = "seeds.jsonl"
 """A simulated experiment's results: a JSON line per seed."""
@@ -310,6 +317,7 @@ def run_seeds(
     bar = display.bar
     task = None if bar is None else bar.add_task("seeds", total=len(seeds))
     simulate.check_simulable(plan)
+    started = said = time.monotonic()
     with (
         (out / SEEDS_FILE).open("w", encoding="utf-8") as lines,
         _SystemLog(out / LOG_FILE) as log,
@@ -326,6 +334,15 @@ def run_seeds(
                     display.say(f"seed {run.seed}: {run.verdict} ({name})")
             if bar is not None and task is not None:
                 bar.update(task, completed=len(runs), description=f"seed {run.seed}")
+            now = time.monotonic()
+            first = len(runs) == 1
+            if bar is None and not display.quiet and (first or now - said >= PROGRESS_SECONDS):
+                said = now
+                failed = sum(r.verdict != "held" for r in runs)
+                display.say(
+                    f"seeds: {len(runs)}/{len(seeds)} run, {failed} did not hold "
+                    f"({now - started:.0f} s)"
+                )
     return runs
 
 
@@ -848,11 +865,32 @@ def _recorded(run_dir: Path, seed: int) -> dict[str, Any]:
         ConfigError: no such file, a line that is not a seed's (`_seed_lines`), or no
             line of that seed.
     """
+    run: list[int] = []
     for number, line in _seed_lines(run_dir):
         if line["seed"] == seed:
             _check_fields(line, f"{run_dir / SEEDS_FILE}:{number}")
             return line
-    raise ConfigError(f"{run_dir / SEEDS_FILE}: seed {seed} was not run")
+        run.append(line["seed"])
+    raise ConfigError(
+        f"{run_dir / SEEDS_FILE}: seed {seed} was not run (seeds run: {_seed_ranges(run)})"
+    )
+
+
+def _seed_ranges(seeds: list[int]) -> str:
+    """`seeds` as ranges, the way `--seeds` takes them: `[1, 2, 3, 7]` -> `"1-3,7"`."""
+    if not seeds:
+        return "none"
+    parts: list[str] = []
+    ordered = sorted(set(seeds))
+    start = previous = ordered[0]
+    for seed in [*ordered[1:], None]:
+        if seed is not None and seed == previous + 1:
+            previous = seed
+            continue
+        parts.append(f"{start}" if start == previous else f"{start}-{previous}")
+        if seed is not None:
+            start = previous = seed
+    return ",".join(parts)
 
 
 _FIELDS: tuple[tuple[str, tuple[type, ...], str], ...] = (
@@ -875,6 +913,10 @@ def _seed_lines(run_dir: Path) -> Iterator[tuple[int, dict[str, Any]]]:
             file and the line.
     """
     path = run_dir / SEEDS_FILE
+    if not run_dir.exists():
+        raise ConfigError(
+            f"{run_dir}: no such folder (give the --out folder of an `experiment --simulate` run)"
+        )
     if not path.exists():
         raise ConfigError(f"{run_dir}: no {SEEDS_FILE} (not an `experiment --simulate` output)")
     with _open_regular(path) as lines:

@@ -120,6 +120,16 @@ def test_a_plan_file_that_does_not_exist_exits_2(
     assert "missing.toml: cannot be read" in err
 
 
+def test_a_misspelt_shipped_plan_exits_2_saying_which_was_meant(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, err = refused(capsys, Path("frist"), tmp_path / "out")
+
+    assert (2, 1) == (code, len(err.splitlines())), err
+    assert "frist: no such file, and no shipped plan of that name; did you mean 'first'?" in err
+    assert "'strategies'" in err  # every shipped plan listed
+
+
 def test_an_output_directory_that_is_not_empty_exits_2_without_force(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -223,14 +223,77 @@ def test_a_fault_kind_not_simulated_exits_2_naming_it(
     assert "faults[1].kind: 'kill_resource' is not simulated" in capsys.readouterr().err
 
 
+@SWEEP
+def test_a_sweep_through_a_pipe_says_how_far_it_is_while_it_runs(tmp_path: Path) -> None:
+    """`experiment PLAN --simulate --seeds 1-500 | cat`: the first seed's line comes
+    through the pipe while the others still run, not with the summary at the end."""
+    plan = tmp_path / "plan.toml"
+    plan.write_text(PLAN)
+    argv = ["experiment", str(plan), "--simulate", "--seeds", "1-12", "--jobs", "1"]
+    with subprocess.Popen(
+        [sys.executable, "-m", "rr_actors", *argv, "--out", str(tmp_path / "out")],
+        stdout=subprocess.PIPE,
+        text=True,
+    ) as sweep_run:
+        assert sweep_run.stdout is not None
+        first = sweep_run.stdout.readline()
+        running = sweep_run.poll() is None  # (11 seeds to go: a few seconds)
+        rest = sweep_run.stdout.read()
+        sweep_run.wait(timeout=240)
+
+    assert "seeds: 1/12 run, 0 did not hold (" in first
+    assert running, "the first line came with the end"
+    assert (0, True) == (sweep_run.returncode, "violated: none" in rest)
+
+
+@SWEEP
+def test_a_sweep_without_a_bar_says_a_progress_line_every_progress_seconds(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("PYTHONHASHSEED", sweep.HASH_SEED)  # (here: the constant is patched)
+    monkeypatch.setattr(sweep, "PROGRESS_SECONDS", 0.0)
+    plan, out = tmp_path / "plan.toml", tmp_path / "out"
+    plan.write_text(PLAN)
+
+    code, printed = command(
+        "experiment", str(plan), "--simulate", "--seeds", "1-3", "--jobs", "1", "--out", str(out)
+    )
+
+    assert 0 == code, printed
+    said = [line.split(" did not")[0] for line in printed.splitlines() if "seeds: " in line]
+    assert ["seeds: 1/3 run, 0", "seeds: 2/3 run, 0", "seeds: 3/3 run, 0"] == said
+
+
 def test_a_replay_of_a_seed_not_run_exits_2(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     (tmp_path / "plan.toml").write_text(PLAN)
-    (tmp_path / sweep.SEEDS_FILE).write_text(json.dumps({"seed": 1, "hash": "0" * 64}) + "\n")
+    lines = "".join(json.dumps({"seed": s, "hash": "0" * 64}) + "\n" for s in (1, 2, 3, 7))
+    (tmp_path / sweep.SEEDS_FILE).write_text(lines)
 
     assert 2 == main(["replay", str(tmp_path), "--seed", "9"], io.StringIO())
-    assert "seed 9 was not run" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert (1, True) == (len(err.splitlines()), "seed 9 was not run (seeds run: 1-3,7)" in err)
+
+
+def test_a_replay_of_a_missing_folder_exits_2_saying_the_folder_is_missing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert 2 == main(["replay", str(tmp_path / "nowhere"), "--seed", "1"], io.StringIO())
+    err = capsys.readouterr().err
+    assert (1, True) == (len(err.splitlines()), f"{tmp_path / 'nowhere'}: no such folder" in err)
+
+
+def test_a_check_of_a_simulations_folder_exits_2_pointing_to_seeds_and_replay(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / sweep.SEEDS_FILE).write_text(json.dumps({"seed": 1, "hash": "0" * 64}) + "\n")
+
+    assert 2 == main(["check", str(tmp_path)], io.StringIO())
+    err = capsys.readouterr().err
+    assert 1 == len(err.splitlines()), err
+    assert "seeds.jsonl" in err
+    assert f"rr-actors replay {tmp_path} --seed S" in err
 
 
 MARKER = """\

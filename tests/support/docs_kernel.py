@@ -6,7 +6,9 @@ the page's Python blocks one by one, in page order, as JSON lines on standard in
 whose `__name__` is `"__main__"`, so later blocks see what earlier blocks defined, and
 `if __name__ == "__main__":` guards run as in a script. After each block one JSON line goes
 to the file descriptor named by `argv[1]`: `{"ok": true}`, or `{"ok": false, "error":
-<traceback>}`. The block's own output goes to this program's standard output and error.
+<traceback>}`. The block's own output goes to this program's standard output and error;
+its input is empty, as a script's run with `< /dev/null` (an `input()` raises `EOFError`:
+a page's "press Enter to stop" ends at once).
 
 At the end of its input it writes one more line, `{"left": [...]}`: the registrars and
 supervisors the page left running (which the interpreter would stop as it exits: see
@@ -16,6 +18,7 @@ leaves anything else that keeps the interpreter from exiting.
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import sys
@@ -27,7 +30,8 @@ def main() -> None:
     """Run every block that arrives on standard input; answer each on `argv[1]`."""
     replies = os.fdopen(int(sys.argv[1]), "w", buffering=1)
     namespace: dict[str, Any] = {"__name__": "__main__", "__builtins__": __builtins__}
-    for line in sys.stdin:
+    source, sys.stdin = sys.stdin, io.StringIO()  # a block reads no input (as `< /dev/null`)
+    for line in source:
         block = json.loads(line)
         try:
             exec(compile(block["code"], block["filename"], "exec"), namespace)  # noqa: S102
