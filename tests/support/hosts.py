@@ -49,7 +49,7 @@ import itertools
 import json
 import os
 import queue
-import select
+import selectors
 import shutil
 import signal
 import socket
@@ -296,7 +296,7 @@ class Worker:
         """The worker's authenticated connection, or `WorkerDiedError` if it ends first."""
         pidfd = os.pidfd_open(self.pid)
         try:
-            ready, _, _ = select.select([listener, pidfd], [], [], START_TIMEOUT)
+            ready = _readable([listener, pidfd], START_TIMEOUT)
         finally:
             os.close(pidfd)
         if listener not in ready:
@@ -435,7 +435,7 @@ def _kill_and_wait(pids: list[int]) -> None:
             os.kill(pid, signal.SIGKILL)
     try:
         for pidfd in pidfds:
-            select.select([pidfd], [], [], STOP_TIMEOUT)
+            _readable([pidfd], STOP_TIMEOUT)
     finally:
         for pidfd in pidfds:
             os.close(pidfd)
@@ -1074,3 +1074,15 @@ def flood_stop() -> dict[str, int]:
     for worker in workers:
         worker.join(5.0)
     return dict(counts)
+
+
+def _readable(files: list[Any], timeout: float) -> list[Any]:
+    """Which of `files` (sockets or descriptors) are readable within `timeout` seconds.
+
+    By `selectors` (epoll here), not `select.select`, which refuses a descriptor numbered
+    1024 or more: a test process that opened many files meanwhile must still start hosts.
+    """
+    with selectors.DefaultSelector() as selector:
+        for file in files:
+            selector.register(file, selectors.EVENT_READ)
+        return [key.fileobj for key, _ in selector.select(timeout)]
