@@ -58,7 +58,6 @@ import itertools
 import json
 import os
 import re
-import select
 import shlex
 import shutil
 import signal
@@ -75,6 +74,7 @@ import pytest
 import rr_actors
 from rr_actors import errors
 from rr_actors.experiments import parse_plan
+from tests.support import selecting
 
 ROOT = Path(__file__).resolve().parent.parent
 PAGES = [ROOT / "README.md", ROOT / "CONTRIBUTING.md", *sorted((ROOT / "docs").rglob("*.md"))]
@@ -217,7 +217,7 @@ class Kernel:
         padded = "\n" * block.line + code
         self.proc.stdin.write(json.dumps({"code": padded, "filename": str(block.page)}) + "\n")
         self.proc.stdin.flush()
-        ready, _, _ = select.select([self.replies], [], [], BLOCK_TIMEOUT)
+        ready, _, _ = selecting.select([self.replies], [], [], BLOCK_TIMEOUT)
         if not ready:
             self.kill()
             pytest.fail(f"{block.where}: no answer within {BLOCK_TIMEOUT:g} s\n{self.output()}")
@@ -234,7 +234,7 @@ class Kernel:
         """End the input; nothing may be left running, and the interpreter must exit."""
         assert self.proc.stdin is not None
         self.proc.stdin.close()
-        ready, _, _ = select.select([self.replies], [], [], EXIT_TIMEOUT)
+        ready, _, _ = selecting.select([self.replies], [], [], EXIT_TIMEOUT)
         left = json.loads(self.replies.readline() or "{}").get("left") if ready else None
         if left:
             self.kill()

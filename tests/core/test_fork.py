@@ -18,7 +18,6 @@ waits and reaps its children.
 from __future__ import annotations
 
 import os
-import select
 import signal
 import subprocess
 import sys
@@ -29,6 +28,7 @@ import cloudpickle
 import pytest
 
 import rr_actors as rr
+from tests.support import selecting
 
 pytestmark = [
     pytest.mark.skipif(not hasattr(os, "fork"), reason="POSIX fork"),
@@ -64,7 +64,7 @@ def forked_calls(provider: str, uid: str, children: int) -> list[object]:
             os._exit(0)
         os.close(write)
         try:
-            ready, _, _ = select.select([read], [], [], CHILD_CALL_TIMEOUT + 5)
+            ready, _, _ = selecting.select([read], [], [], CHILD_CALL_TIMEOUT + 5)
             if ready:
                 with os.fdopen(read, "rb", closefd=False) as pipe:
                     results.append(cloudpickle.loads(pipe.read()))

@@ -12,7 +12,6 @@ import json
 import os
 import pty
 import re
-import select
 import shutil
 import signal
 import subprocess
@@ -32,6 +31,7 @@ from rr_actors.__main__ import main
 from rr_actors.experiments import Progress, RunResult, parse_plan
 from rr_actors.experiments.cli import Display, fault_line, summary_lines
 from rr_actors.experiments.results import FaultRecord, Results
+from tests.support import selecting
 from tests.support.small_disk import fill, mounted
 
 SERVICE = "rr_actors.experiments.services:service"
@@ -722,7 +722,7 @@ def on_a_terminal(argv: list[str], *, columns: int, timeout: float) -> tuple[int
     deadline = time.monotonic() + timeout
     try:
         while time.monotonic() < deadline:
-            ready, _, _ = select.select([parent], [], [], 1.0)
+            ready, _, _ = selecting.select([parent], [], [], 1.0)
             if not ready:
                 continue
             try:

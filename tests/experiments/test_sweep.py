@@ -9,7 +9,6 @@ import io
 import json
 import os
 import re
-import select
 import signal
 import subprocess
 import sys
@@ -24,6 +23,7 @@ from rr_actors.experiments import simulate, sweep
 from rr_actors.experiments.cli import Display
 from rr_actors.experiments.plan import Plan
 from tests.experiments.test_simulate import BASE, PLAN, plant_second_load, simkill
+from tests.support import selecting
 
 pytest.importorskip("greenlet")  # (the simulation extra)
 
@@ -373,7 +373,7 @@ def test_a_sweep_stopped_by_a_signal_removes_its_run_folder_and_exits_128_plus_i
         start_new_session=True,  # (its group: killed whole if the test fails)
     )
     try:
-        ready, _, _ = select.select([reader], [], [], 120)  # (a seed's run began)
+        ready, _, _ = selecting.select([reader], [], [], 120)  # (a seed's run began)
         assert ready, "no seed began within 120 s"
         assert [p.name for p in scratch.iterdir() if p.name.startswith("rr-sim-run-")]
 

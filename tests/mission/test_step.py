@@ -21,6 +21,7 @@ import pytest
 
 from rr_actors.mission.run import parser, run
 from rr_actors.mission.step import PAUSE_SETTLE
+from tests.support import selecting
 
 ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
 PAUSE = 1.5
@@ -108,7 +109,6 @@ def test_step_on_an_80_column_terminal_fits_and_leaves_the_pauses_out_of_every_t
 def test_step_in_a_real_80_column_terminal_waits_for_each_enter(tmp_path: Path) -> None:
     import fcntl  # noqa: PLC0415 - POSIX only, as the demo
     import os  # noqa: PLC0415
-    import select  # noqa: PLC0415
     import struct  # noqa: PLC0415
     import subprocess  # noqa: PLC0415
     import termios  # noqa: PLC0415
@@ -133,7 +133,7 @@ def test_step_in_a_real_80_column_terminal_waits_for_each_enter(tmp_path: Path) 
     try:
         while time.monotonic() < deadline:
             wait = 1.0 if enter_due is None else max(0.0, enter_due - time.monotonic())
-            readable, _, _ = select.select([master], [], [], wait)
+            readable, _, _ = selecting.select([master], [], [], wait)
             if readable:
                 try:
                     chunk = os.read(master, 65536)

@@ -7,7 +7,6 @@ import contextlib
 import gc
 import json
 import os
-import select
 import signal
 import socket
 import threading
@@ -21,6 +20,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors.observe import _hub, _server
+from tests.support import selecting
 from tests.support.observed_tree import REQUEST, figure_27
 from tests.support.observing import (
     base,
@@ -348,7 +348,7 @@ def _closed_by_server(clients: list[socket.socket], timeout: float) -> list[bool
     closed = [False] * len(clients)
     while not all(closed) and time.monotonic() < deadline:
         open_ = [c for c, done in zip(clients, closed, strict=True) if not done]
-        readable, _, _ = select.select(open_, [], [], 0.2)
+        readable, _, _ = selecting.select(open_, [], [], 0.2)
         for sock in readable:
             try:
                 ended = not sock.recv(1 << 16)
@@ -364,7 +364,7 @@ def _all_answered(clients: list[socket.socket], timeout: float) -> bool:
     deadline = time.monotonic() + timeout
     waiting = list(clients)
     while waiting and time.monotonic() < deadline:
-        readable, _, _ = select.select(waiting, [], [], 0.2)
+        readable, _, _ = selecting.select(waiting, [], [], 0.2)
         waiting = [c for c in waiting if c not in readable]
     return not waiting
 

@@ -16,7 +16,6 @@ import errno
 import logging
 import os
 import pickle
-import select
 import sqlite3
 import stat
 import subprocess
@@ -36,6 +35,7 @@ from rr_actors._store import Saver
 from rr_actors._store.files import quarantine_backup, read_backup
 from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import RemoteRegistrar, System
+from tests.support import selecting
 from tests.support.durable_pair import noop_unload, start
 from tests.support.persisting import (
     consumer_ids,
@@ -846,7 +846,7 @@ def holder(path: Path) -> Iterator[subprocess.Popen[str]]:
     )
     try:
         assert proc.stdout is not None
-        readable, _, _ = select.select([proc.stdout], [], [], 60.0)
+        readable, _, _ = selecting.select([proc.stdout], [], [], 60.0)
         assert [proc.stdout] == readable
         assert "ready" == proc.stdout.readline().strip()
         yield proc

@@ -12,7 +12,6 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import select
 import signal
 import subprocess
 import sys
@@ -23,6 +22,7 @@ from pathlib import Path
 import pytest
 
 import rr_actors as rr
+from tests.support import selecting
 from tests.support.supervising import wait_gone
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX flock")
@@ -50,7 +50,7 @@ def holder(state_dir: Path, uid: str) -> Iterator[subprocess.Popen[str]]:
     )
     try:
         assert proc.stdout is not None
-        readable, _, _ = select.select([proc.stdout], [], [], 30.0)
+        readable, _, _ = selecting.select([proc.stdout], [], [], 30.0)
         assert [proc.stdout] == readable
         assert "ready" == proc.stdout.readline().strip()
         yield proc
@@ -121,7 +121,7 @@ def run_program(state_dir: Path, uid: str, consumer: str, run: str) -> subproces
 def read_line(proc: subprocess.Popen[str], timeout: float) -> str:
     """The next line `proc` prints, waited for `timeout` seconds at most."""
     assert proc.stdout is not None
-    readable, _, _ = select.select([proc.stdout], [], [], timeout)
+    readable, _, _ = selecting.select([proc.stdout], [], [], timeout)
     assert [proc.stdout] == readable, f"no line within {timeout} s"
     return proc.stdout.readline().strip()
 

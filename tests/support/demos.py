@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import select
 import signal
 import subprocess
 import sys
@@ -17,6 +16,7 @@ from pathlib import Path
 import psutil
 
 from rr_actors.mission import FAULTS, FaultResult, MissionReport, UnplannedRestart
+from tests.support import selecting
 
 ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
 LINE = re.compile(r"^interrupted at \d+\.\d s: unloading\.\.\. everything unloaded$")
@@ -61,7 +61,7 @@ def interrupt_demo(tmp_path: Path, when: bytes, *options: str) -> tuple[int, str
     deadline = time.monotonic() + 90
     try:
         while time.monotonic() < deadline:
-            readable, _, _ = select.select([master], [], [], 1.0)
+            readable, _, _ = selecting.select([master], [], [], 1.0)
             if readable:
                 try:
                     chunk = os.read(master, 65536)

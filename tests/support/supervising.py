@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import select
 import shutil
 import signal
 import subprocess
@@ -23,6 +22,7 @@ import pytest
 import rr_actors as rr
 from rr_actors import testing
 from rr_actors._platform import PLATFORM
+from tests.support import selecting
 
 linux_trick = pytest.mark.skipif(
     PLATFORM.name != "linux",
@@ -103,7 +103,7 @@ def wait_gone(pids: list[int], timeout: float = 15.0) -> list[int]:
         except (AttributeError, OSError):  # gone already, or no pidfds: polled below
             continue
         try:
-            select.select([fd], [], [], max(0.0, deadline - time.monotonic()))
+            selecting.select([fd], [], [], max(0.0, deadline - time.monotonic()))
         finally:
             os.close(fd)
     pause = threading.Event()
@@ -187,7 +187,7 @@ def killed_owner(uid: str, tmp_path: Path, *, heartbeat: bool = True) -> Iterato
     )
     try:
         assert owner.stdout is not None
-        readable, _, _ = select.select([owner.stdout], [], [], 30.0)
+        readable, _, _ = selecting.select([owner.stdout], [], [], 30.0)
         assert [owner.stdout] == readable  # it prints its managers' pids once they run
         pids = [int(p) for p in owner.stdout.readline().split()]
         assert 2 == len(pids)

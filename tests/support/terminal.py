@@ -12,13 +12,14 @@ import fcntl
 import os
 import pty
 import re
-import select
 import struct
 import subprocess
 import termios
 import time
 from collections.abc import Callable
 from pathlib import Path
+
+from tests.support import selecting
 
 ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]|\x1b\][^\x07]*\x07")
 
@@ -39,7 +40,7 @@ def on_a_terminal(
     deadline = time.monotonic() + timeout
     try:
         while time.monotonic() < deadline:
-            ready, _, _ = select.select([parent], [], [], 1.0)
+            ready, _, _ = selecting.select([parent], [], [], 1.0)
             if not ready:
                 continue
             try:
@@ -93,7 +94,7 @@ class Terminal:
         """Read what the terminal holds, waiting `timeout` s at most for something."""
         if self._ended:
             return
-        ready, _, _ = select.select([self._parent], [], [], timeout)
+        ready, _, _ = selecting.select([self._parent], [], [], timeout)
         if not ready:
             return
         try:

@@ -14,7 +14,6 @@ import multiprocessing.synchronize
 import os
 import pickle
 import resource
-import select
 import signal
 import socket
 import struct
@@ -41,6 +40,7 @@ from rr_actors._transport.unix.link import (
     connect,
     split,
 )
+from tests.support import selecting
 from tests.support.carriers import (
     ProviderFactory,
     load_count,
@@ -385,7 +385,7 @@ def test_a_handshake_trickled_byte_by_byte_is_cut_off_at_its_deadline(
         slow.sendall(struct.pack("!i", 200))  # an answer of 200 bytes is coming ...
         closed = False
         while not closed and time.monotonic() - started < HANDSHAKE_TIMEOUT + 5:
-            readable, _, _ = select.select([slow], [], [], 0.5)  # ... one byte per 0.5 s
+            readable, _, _ = selecting.select([slow], [], [], 0.5)  # ... one byte per 0.5 s
             if readable:
                 closed = slow.recv(4096) == b""
             else:

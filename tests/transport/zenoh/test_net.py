@@ -12,7 +12,6 @@ import os
 import pickle
 import pwd
 import re
-import select
 import shutil
 import signal
 import socket
@@ -33,7 +32,7 @@ import rr_actors as rr
 from rr_actors._core.hlc import CLOCK, MAX_OFFSET
 from rr_actors._transport.zenoh.net import ZenohNetwork
 from rr_actors._transport.zenoh.ops.config import session_config
-from tests.support import pki
+from tests.support import pki, selecting
 from tests.support.supervising import wait_gone
 from tests.support.tls_lab import free_port, member_tls, router
 from tests.support.waiting import wait_for
@@ -158,7 +157,7 @@ def _read_until(master: int, text: bytes, deadline: float) -> bytes:
     deadline."""
     seen = b""
     while text not in seen and time.monotonic() < deadline:
-        readable, _, _ = select.select([master], [], [], max(0.0, deadline - time.monotonic()))
+        readable, _, _ = selecting.select([master], [], [], max(0.0, deadline - time.monotonic()))
         if not readable:
             break
         try:
