@@ -515,14 +515,20 @@ class Actor(pykka.ThreadingActor):
         try:
             self.on_turn_end()
         except Exception:  # noqa: BLE001 - (as a tell's failure: `on_failure`, the actor stops)
-            self._handle_failure(*sys.exc_info())
-            try:
-                self.on_failure(*sys.exc_info())
-            except Exception:  # noqa: BLE001 - (as pykka: logged, the actor stops)
-                self._handle_failure(*sys.exc_info())
+            self._fail()
         except BaseException:  # noqa: BLE001 - (as pykka: the process is going down)
             self._stop()
             pykka.ActorRegistry.stop_all()
+
+    def _fail(self) -> None:
+        """A tell's handler (or the turn's end) raised the exception being handled: as
+        pykka, it is logged, `on_failure` runs (what it raises is logged too), the actor
+        stops."""
+        self._handle_failure(*sys.exc_info())
+        try:
+            self.on_failure(*sys.exc_info())
+        except Exception:  # noqa: BLE001 - (as pykka: logged, the actor stops)
+            self._handle_failure(*sys.exc_info())
 
     def _handle_envelope(self, envelope: Any) -> None:
         """pykka's handling of one envelope (`Actor._actor_loop_running`'s body)."""
@@ -537,11 +543,7 @@ class Actor(pykka.ThreadingActor):
                 )
                 envelope.reply_to.set_exception()
             else:
-                self._handle_failure(*sys.exc_info())
-                try:
-                    self.on_failure(*sys.exc_info())
-                except Exception:  # noqa: BLE001 - (as pykka: logged, the actor stops)
-                    self._handle_failure(*sys.exc_info())
+                self._fail()
         except BaseException:  # noqa: BLE001 - (as pykka: the process is going down)
             self._stop()
             pykka.ActorRegistry.stop_all()
