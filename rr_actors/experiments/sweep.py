@@ -41,6 +41,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from multiprocessing import resource_tracker
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, BinaryIO, TextIO
 
@@ -415,12 +416,21 @@ class _Workers:
     Spawned, not forked: a fork would copy this process's threads' locks (the progress
     bar's) and what the simulation patched, and a seed must start as `replay`'s does. A
     worker ignores SIGINT (a Ctrl-C reaches the whole process group: this process
-    decides) and takes SIGTERM as a stop (`_worker_started`).
+    decides) and takes SIGTERM as a stop (`_worker_started`). Each worker starts with
+    `STOP_SIGNALS` blocked (the mask of the thread that spawns it, kept across `exec`)
+    until its handlers are set: a Ctrl-C while it still imports waits, then is ignored,
+    instead of a `KeyboardInterrupt` traceback from `spawn_main`. The pool's own threads,
+    which spawn replacement workers, are started with that mask too. The resource
+    tracker is started first: its start unblocks SIGINT and SIGTERM in the thread that
+    starts it (CPython 3.11-3.13 `multiprocessing.resource_tracker`), which would undo
+    the mask for the workers spawned after it.
     """
 
     def __init__(self, jobs: int) -> None:
         context = multiprocessing.get_context("spawn")
-        self.pool = context.Pool(jobs, initializer=_worker_started)
+        resource_tracker.ensure_running()
+        with _stop_signals_blocked():
+            self.pool = context.Pool(jobs, initializer=_worker_started)
 
     def __enter__(self) -> _Workers:
         return self
@@ -451,12 +461,30 @@ _SEED_RUNNING = False
 just exits)."""
 
 
+@contextlib.contextmanager
+def _stop_signals_blocked() -> Iterator[None]:
+    """`STOP_SIGNALS` blocked in this thread for the block (held pending, then delivered
+    as it ends); threads and processes started inside it begin with them blocked. Where
+    the OS has no signal masks (Windows): nothing changes."""
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+
 def _worker_started() -> None:
-    """A worker's start: SIGINT ignored, the other `STOP_SIGNALS` stop it."""
+    """A worker's start: SIGINT ignored, the other `STOP_SIGNALS` stop it; then they are
+    unblocked (`_Workers`: one that came while the worker started is taken now)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     for number in STOP_SIGNALS:
         if number != signal.SIGINT:
             signal.signal(number, _worker_stop)
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
 
 
 def _worker_stop(signum: int, _frame: object) -> None:
