@@ -58,7 +58,7 @@ def _echo(conn: multiprocessing.connection.Connection, objects: bool) -> None:
 
 def _registrar_main(
     address: SystemAddress,
-    name: str,
+    name: str | rr.RegistrarConfig,
     setup: bytes,
     control: multiprocessing.connection.Connection,
     answer: Callable[[Any], Any] | None = None,
@@ -95,7 +95,7 @@ def registrar_process(
 def registrar_child(
     ctx: Any,
     address: SystemAddress,
-    name: str,
+    name: str | rr.RegistrarConfig,
     setup: Setup,
     target: Callable[..., None] = _registrar_main,
     started: float = 60,

@@ -32,9 +32,13 @@ every phase ends with a message to that actor (`server_queries` of an empty serv
 so the record counts in the hit's phase; the marks and that message are fixed costs,
 which the difference cancels.
 
+`--durable` gives both registrars a backup with `save_on_modify` (each in a temporary
+folder), as a supervisor's managers have: a hit then also costs the commits of both
+sides (`count_dedup.py --count commits` counts them).
+
 Usage:
     python benchmarks/count_cross.py [--calls 2000] [--count cpu|callgrind|bytecodes]
-        [--profile]
+        [--profile] [--durable]
 """
 
 from __future__ import annotations
@@ -113,8 +117,22 @@ def _provider(
     _registrar_main(address, name, setup, control, lambda _: marker and marker.mark())
 
 
-def run(calls: int, count: str) -> list[Any]:
+def _config(name: str, folder: str | None) -> rr.RegistrarConfig:
+    """`name`'s configuration: with a `folder` (`--durable`), a backup there with
+    `save_on_modify`."""
+    if folder is None:
+        return rr.RegistrarConfig(name=name)
+    backup = Path(folder, f"{name}.db")
+    return rr.RegistrarConfig(name=name, backup_path=backup, save_on_modify=True)
+
+
+def run(calls: int, count: str, durable: bool = False) -> list[Any]:
     """Each operation `calls` times, then `3 * calls` times: the marks of both processes."""
+    with tempfile.TemporaryDirectory() as folder:
+        return _run(calls, count, folder if durable else None)
+
+
+def _run(calls: int, count: str, folder: str | None) -> list[Any]:
     ctx = multiprocessing.get_context("forkserver")
     own: Bytecodes | Callgrind | CPU | None = None
     if count == "bytecodes":
@@ -123,7 +141,7 @@ def run(calls: int, count: str) -> list[Any]:
     system = System.create()
     marks: list[Any] = []
     try:
-        consumer = rr.ResourceRegistrar.start(f"count-{uuid.uuid4().hex[:6]}")
+        consumer = rr.ResourceRegistrar.start(_config(f"count-{uuid.uuid4().hex[:6]}", folder))
         consumer.register_server("idle", load=lambda request: request, unload=lambda *_: None)
         system.serve(Served(consumer))
         provider = f"provider-{uuid.uuid4().hex[:6]}"
@@ -131,7 +149,7 @@ def run(calls: int, count: str) -> list[Any]:
             with registrar_child(
                 ctx,
                 system.address,
-                provider,
+                _config(provider, folder),
                 setup_echo,
                 target=_Target(count),
                 started=900,  # (under valgrind on a loaded machine, minutes)
@@ -180,9 +198,12 @@ class _Target:
         _provider(*args, count=self.count)
 
 
-def cpu(calls: int) -> None:
-    marks = run(calls, "cpu")
-    print(f"CPU per operation, every thread of both processes ({calls} and {3 * calls})")
+def cpu(calls: int, durable: bool) -> None:
+    marks = run(calls, "cpu", durable)
+    print(
+        f"CPU per operation, every thread of both processes ({calls} and {3 * calls})"
+        + (", durable" if durable else "")
+    )
     print("| operation | CPU (us) | wake-ups |")
     print("|---|---:|---:|")
     totals = [(sum(p[0] for p in own), sum(p[1] for p in own)) for own, _ in marks]
@@ -196,8 +217,8 @@ def cpu(calls: int) -> None:
         print(f"| {name} | {us:.1f} | {wakes:.2f} |")
 
 
-def bytecodes(calls: int, profile: bool) -> None:
-    marks = run(calls, "bytecodes")[1:]  # (the first: the warm-up's)
+def bytecodes(calls: int, profile: bool, durable: bool) -> None:
+    marks = run(calls, "bytecodes", durable)[1:]  # (the first: the warm-up's)
     print(f"Python bytecodes per operation, every thread ({calls} and {3 * calls})")
     print("| operation | process | bytecodes | function calls | distinct functions |")
     print("|---|---|---:|---:|---:|")
@@ -215,9 +236,10 @@ def bytecodes(calls: int, profile: bool) -> None:
             print_profile(f"{name}, provider's process", theirs_1, theirs_3, calls)
 
 
-def callgrind(calls: int) -> None:
+def callgrind(calls: int, durable: bool) -> None:
     """Run `run` under callgrind; print the instructions per operation of each process."""
     command = [sys.executable, str(Path(__file__).resolve()), "--calls", str(calls)]
+    command += ["--durable"] if durable else []
     with tempfile.TemporaryDirectory() as work:
         stdout = callgrind_run([*command, "--count", "inside-callgrind"], work)
         found = re.search(r"^PIDS (\d+) (\d+)$", stdout, re.MULTILINE)
@@ -226,7 +248,8 @@ def callgrind(calls: int) -> None:
         phases = [phase_instructions(work, int(pid))[1:] for pid in found.groups()]
     if any(len(each) != 4 for each in phases):  # (after the start, to the warm-up's mark)
         raise RuntimeError(f"phases counted: {[len(each) for each in phases]}, not 4 each")
-    print(f"instructions per operation ({calls} and {3 * calls} operations)")
+    durably = ", durable" if durable else ""
+    print(f"instructions per operation ({calls} and {3 * calls} operations{durably})")
     print("| operation | caller's process | provider's process | both |")
     print("|---|---:|---:|---:|")
     for index, name in enumerate(OPERATIONS):
@@ -241,17 +264,20 @@ def main() -> int:
         "--count", choices=["cpu", "callgrind", "bytecodes", "inside-callgrind"], default="cpu"
     )
     parser.add_argument("--profile", action="store_true", help="bytecodes by function")
+    parser.add_argument(
+        "--durable", action="store_true", help="both registrars with a backup, save_on_modify"
+    )
     args = parser.parse_args()
     if args.profile:
         args.count = "bytecodes"
     if args.count == "callgrind":
-        callgrind(args.calls)
+        callgrind(args.calls, args.durable)
     elif args.count == "cpu":
-        cpu(args.calls)
+        cpu(args.calls, args.durable)
     elif args.count == "bytecodes":
-        bytecodes(args.calls, args.profile)
+        bytecodes(args.calls, args.profile, args.durable)
     else:
-        run(args.calls, args.count)
+        run(args.calls, args.count, args.durable)
     return 0
 
 

@@ -92,7 +92,7 @@ SMALLEST = {
         *("--joins", "1", "--quiet", "1", "--cuts", "1", "--flood", "0.5"),
         *("--sources", "4", "--spoofed", "5"),
     ],
-    "count_cross.py": ["--calls", "5", "--profile"],
+    "count_cross.py": ["--calls", "5", "--profile", "--durable"],
     "count_dedup.py": ["--calls", "5", "--profile"],
     "minimal_hit.py": ["--rounds", "1"],
     "planted_bugs.py": ["--only", "dedup", "--seeds", "3"],
