@@ -46,7 +46,8 @@ what cannot be checked):
 - `status-once`: a status send (its `status_id`) reaches each holder once per path.
 - `status-reached`: it reaches every holder that held its id throughout it, at least once
   (not one cut off its sender: the sender let its id go as lost, `death watch`, and the
-  holder lived on and forgot it as unreachable, at its reconcile or its unload).
+  holder lived on and forgot it as unreachable, at its reconcile or its unload; nor one
+  restarted and not serving again yet when it was sent).
 - `status-path`: each delivery of a status is on a dependency path from its send: a
   direct consumer of the resource it was sent about (hop 1), or a consumer of a resource
   one of whose dependencies got it one hop before (the dependency's `CallAnswered.parent`).

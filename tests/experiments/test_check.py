@@ -842,6 +842,36 @@ def test_a_status_that_reached_nobody_is_lost_with_a_holder_killed_within_a_seco
     assert ([found] if found else []) == reached, verdict.findings
 
 
+def sent_to_a_restarted_holder(served_first: bool) -> list[events.Event]:
+    """cm, killed, is restored (holding Q1 at erm) in a new process; erm sends a status
+    about Q1 before cm's supervisor says it serves again (`served_first`: after), and
+    nothing delivers it; cm then unloads Q1 and stops. (A real run of `simshare` at CI
+    load: db sent its WARNING 5 ms before the restarted api served again.)"""
+    sent = events.StatusSent("erm", Q1, rr.Status.WARNING, "hot", "s1", pid=P)
+    served = events.ChildRestarted("sup", "cm", C + 1, 0.3)
+    return _stamped(
+        [
+            events.CatalogRestored("cm", (), (), (), (0, 0, 0), pid=C),
+            events.ConsumerAdded("erm", RID, Q1, "cm", pid=P),
+            events.CallAnswered("cm", Q1, "erm", "leaf", pid=C),
+            events.ChildExited("sup", "cm", C, "killed by SIGKILL"),
+            events.CatalogRestored("cm", (), (), ((Q1, "erm", "leaf", ""),), (0, 0, 1), pid=C + 1),
+            *((served, sent) if served_first else (sent, served)),
+            events.ConsumerReleased("erm", RID, Q1, "cm", "unload", pid=P),
+            events.QueryForgotten("cm", Q1, "erm", "unload", pid=C + 1),
+            events.RegistrarStopped("cm", (), (), (), pid=C + 1),
+        ]
+    )
+
+
+def test_a_status_sent_before_its_restarted_holder_serves_again_is_not_owed_to_it() -> None:
+    # nobody can reach a restarted consumer before it serves again: the status is lost
+    # to it (failure-semantics.md); one sent once it serves is owed (rule 9)
+    verdict = check.check(numbered(sent_to_a_restarted_holder(served_first=False)))
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    assert {7, 9} == _found(sent_to_a_restarted_holder(served_first=True), "status-reached")
+
+
 # -- `end` across a provider's restart: what its new life holds ------------------------------
 
 
