@@ -107,7 +107,6 @@ from rr_actors import events
 from rr_actors._core import runtime
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.serial import SerialExecutor
-from rr_actors._core.timers import Cancellable
 from rr_actors._process.manager import ManagerExit
 from rr_actors._supervision.children import (
     Child,
@@ -379,7 +378,8 @@ class Restarts:
         self.gave_up: SupervisorGaveUpError | None = None
         self.giving_up = False
         self._generation = 0
-        self._timers: dict[int, Cancellable] = {}  # id(Restart) -> its pending backoff timer
+        # id(Restart) -> its pending backoff timer
+        self._timers: dict[int, runtime.Cancellable] = {}
         self._due: dict[str, Restart] = {}  # each child's latest scheduled Restart
 
     def after_exit(self, child: Child, exit: ManagerExit) -> None:
