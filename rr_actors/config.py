@@ -9,6 +9,7 @@ validated at construction (`ConfigError` names the field) and changed with
 from __future__ import annotations
 
 import dataclasses
+import ipaddress
 import math
 import os
 import random as _random
@@ -36,6 +37,7 @@ __all__ = [
     "check_choice",
     "check_name",
     "check_seconds",
+    "is_loopback",
     "managers",
     "tree_names",
     "walk",
@@ -120,6 +122,20 @@ def check_choice(field: str, value: object, choices: Sequence[str]) -> None:
     """Raise `ConfigError` naming `field` unless `value` is one of `choices`."""
     if value not in choices:
         raise ConfigError(f"{field} must be one of {', '.join(map(repr, choices))}, got {value!r}")
+
+
+def is_loopback(host: str) -> bool:
+    """Whether `host` names this machine only (`localhost`, 127.0.0.0/8, `::1`): where the
+    observer and a carrier may listen without the user's leave to be reached from elsewhere.
+
+    A DNS name other than `localhost` is not (it may resolve anywhere).
+    """
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 @dataclasses.dataclass(frozen=True)

@@ -9,7 +9,15 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
-from rr_actors.config import NAME_MAX, Backoff, ManagerSpec, managers, tree_names, walk
+from rr_actors.config import (
+    NAME_MAX,
+    Backoff,
+    ManagerSpec,
+    is_loopback,
+    managers,
+    tree_names,
+    walk,
+)
 
 # -- the walk over a spec tree ---------------------------------------------------------------
 
@@ -178,3 +186,23 @@ class TestNames:
             assert {"device": 0} == app.call(manager, "camera", {"device": 0}).response
             with pytest.raises(rr.ConfigError, match=r"^name 'n{65}' is 65 characters long"):
                 sup.registrar(TOO_LONG)
+
+
+@pytest.mark.parametrize(
+    ("host", "loopback"),
+    [
+        ("localhost", True),
+        ("127.0.0.1", True),
+        ("127.3.2.1", True),
+        ("::1", True),
+        ("0.0.0.0", False),  # noqa: S104 - every address, so reachable from elsewhere
+        ("10.0.0.1", False),
+        ("::", False),
+        ("localhost.example.com", False),  # a DNS name may resolve anywhere
+        ("", False),
+    ],
+)
+def test_a_host_is_loopback_only_when_it_names_this_machine_alone(
+    host: str, loopback: bool
+) -> None:
+    assert loopback == is_loopback(host)

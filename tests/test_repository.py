@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import ast
+import functools
+import io
 import re
 import shutil
 import subprocess
+import tokenize
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -349,3 +353,203 @@ def test_the_changelog_rule_tells_private_and_test_names_from_public_ones(
     entry: str, names: bool
 ) -> None:
     assert names == bool(PRIVATE.search(entry) or TEST_FILE.search(entry))
+
+
+# -- the runtime reads alone: its budget (issue 54 part 2) --------------------------------------
+
+LAB = {"experiments", "mission", "observe", "teach", "_tools", "_cli.py", "__main__.py", "otel.py"}
+"""The tools above the runtime (issue 54 part 1): experiments, mission, observer, teaching kit,
+certificates tooling, command line, tracing export. They import the runtime, never the reverse."""
+
+RUNTIME_SEAMS = {"testing", "simulation"}
+"""The runtime's seams, beside the code they replace: neither runtime nor lab."""
+
+RUNTIME_LINES = 32_000
+RUNTIME_FILES = 95
+TRANSPORT_LINES = 6_000
+SMALL = 60
+SMALL_MODULES = 13
+DOCSTRING_SHARE = 0.30
+SCREEN = 50
+
+EXERCISES = "teach/exercises/"
+"""A classroom exercise's starter and solution files: copied into a student's folder, never
+imported by the package, so no module of it (they are small by design)."""
+
+
+@dataclass(frozen=True)
+class Lines:
+    """One module's lines: all of them, its code, its docstrings, its module docstring."""
+
+    total: int
+    code: int
+    doc: int
+    module_doc: int
+
+
+def lines_of(text: str) -> Lines:
+    """A line is code when a token other than a comment or a docstring's starts or runs on
+    it; a docstring line is one of a string standing alone as a statement (a module's,
+    a class's, a function's, an attribute's)."""
+    tree = ast.parse(text)
+    doc: set[int] = set()
+    for node in ast.walk(tree):
+        if (
+            isinstance(node, ast.Expr)
+            and isinstance(node.value, ast.Constant)
+            and isinstance(node.value.value, str)
+            and node.end_lineno is not None
+        ):
+            doc.update(range(node.lineno, node.end_lineno + 1))
+    skipped = {tokenize.COMMENT, tokenize.NL, tokenize.NEWLINE, tokenize.INDENT}
+    skipped |= {tokenize.DEDENT, tokenize.ENDMARKER}
+    code = {
+        number
+        for token in tokenize.generate_tokens(io.StringIO(text).readline)
+        if token.type not in skipped
+        for number in range(token.start[0], token.end[0] + 1)
+        if number not in doc
+    }
+    first = tree.body[0] if tree.body else None
+    module_doc = 0
+    if (
+        isinstance(first, ast.Expr)
+        and isinstance(first.value, ast.Constant)
+        and isinstance(first.value.value, str)
+        and first.end_lineno is not None
+    ):
+        module_doc = first.end_lineno - first.lineno + 1
+    return Lines(len(text.splitlines()), len(code), len(doc), module_doc)
+
+
+def modules() -> dict[str, Lines]:
+    """Every module of rr_actors/ (its path under it) with its lines."""
+    package = ROOT / "rr_actors"
+    return {
+        path.relative_to(package).as_posix(): lines_of(path.read_text(encoding="utf-8"))
+        for path in sorted(package.rglob("*.py"))
+    }
+
+
+def part(name: str) -> str:
+    """`lab`, `seam` or `runtime`: where the module `name` (a path under rr_actors/) sits."""
+    top = name.split("/", maxsplit=1)[0]
+    return "lab" if top in LAB else "seam" if top in RUNTIME_SEAMS else "runtime"
+
+
+def by_package(found: dict[str, Lines], figure: str) -> str:
+    """The biggest packages (or top-level modules) of `found` by `figure`, for a message."""
+    sums: dict[str, int] = {}
+    for name, lines in found.items():
+        sums[name.split("/")[0]] = sums.get(name.split("/")[0], 0) + getattr(lines, figure)
+    return ", ".join(f"{k} {v}" for k, v in sorted(sums.items(), key=lambda kv: -kv[1])[:6])
+
+
+def beyond(figure: float, budget: float, what: str) -> str | None:
+    """`what` when `figure` is over `budget`, else `None`."""
+    return what if figure > budget else None
+
+
+@functools.cache
+def over_budgets() -> dict[str, str | None]:
+    """Each budget: what is over it, figure by figure, or `None` when it holds."""
+    found = modules()
+    runtime = {name: lines for name, lines in found.items() if part(name) == "runtime"}
+    assert len(runtime) > 50  # the walk found the runtime
+    assert any(part(name) == "lab" for name in found)  # and the lab
+    lines = sum(each.total for each in runtime.values())
+    transport = sum(each.total for name, each in found.items() if name.startswith("_transport/"))
+    files = {name: Lines(1, 0, 0, 0) for name in runtime}
+    small = [
+        f"{name} {each.code}"
+        for name, each in found.items()
+        if each.code < SMALL and not name.endswith("__init__.py") and not name.startswith(EXERCISES)
+    ]
+    code = sum(each.code for each in found.values())
+    doc = sum(each.doc for each in found.values())
+    long = [f"{name} {each.module_doc}" for name, each in found.items() if each.module_doc > SCREEN]
+    return {
+        "runtime lines": beyond(
+            lines, RUNTIME_LINES, f"{lines} lines > {RUNTIME_LINES}: {by_package(runtime, 'total')}"
+        ),
+        "runtime files": beyond(
+            len(runtime),
+            RUNTIME_FILES,
+            f"{len(runtime)} files > {RUNTIME_FILES}: {by_package(files, 'total')}",
+        ),
+        "transport lines": beyond(
+            transport, TRANSPORT_LINES, f"_transport/: {transport} lines > {TRANSPORT_LINES}"
+        ),
+        "small modules": beyond(
+            len(small),
+            SMALL_MODULES,
+            f"{len(small)} modules under {SMALL} code lines > {SMALL_MODULES}: {small}",
+        ),
+        "docstring share": beyond(
+            doc,
+            DOCSTRING_SHARE * code,
+            f"{doc} docstring lines for {code} code lines ({doc / code:.0%}), "
+            f"> {DOCSTRING_SHARE:.0%}: {by_package(found, 'doc')}",
+        ),
+        "module docstrings": beyond(len(long), 0, f"module docstrings over {SCREEN} lines: {long}"),
+    }
+
+
+STILL_OVER = {
+    "runtime lines",
+    "runtime files",
+    "transport lines",
+    "small modules",
+    "docstring share",
+    "module docstrings",
+}
+"""The budgets main does not meet yet (issue 54, its other parts move the code): each fails
+with what is over it, and passes the build as an expected failure, strictly: once it holds,
+the test says so and its name leaves this set."""
+
+
+@pytest.mark.parametrize(
+    "budget",
+    [
+        pytest.param(
+            name, marks=[pytest.mark.xfail(name in STILL_OVER, strict=True, reason="issue 54")]
+        )
+        for name in (
+            "runtime lines",
+            "runtime files",
+            "transport lines",
+            "small modules",
+            "docstring share",
+            "module docstrings",
+        )
+    ],
+)
+def test_the_runtime_keeps_within_its_budget(budget: str) -> None:
+    """The runtime reads alone (issue 54): rr_actors/ without the lab (`LAB`) and the seams
+    (`RUNTIME_SEAMS`), that is the packages `_core`, `_registrar`, `_catalog`, `_store`,
+    `_transport`, `_process`, `_supervision`, `_platform`, `events` and the top-level
+    modules a program imports (`__init__`, `config`, `errors`, `_types`, `_log`, `_extras`),
+    holds at most `RUNTIME_LINES` lines (all of them: code, docstrings, comments, blank) in
+    at most `RUNTIME_FILES` files (35,729 and 109 at f55ac6b, where the issue was filed),
+    `_transport/` at most `TRANSPORT_LINES`. Across all of rr_actors/: at most
+    `SMALL_MODULES` modules (no `__init__.py`, no exercise file) of fewer than `SMALL`
+    code lines (a small module is a role split whose story its neighbour tells); docstring
+    lines at most `DOCSTRING_SHARE` of code lines (the rest is said once, or in
+    docs/explanation/); no module docstring longer than one screen, `SCREEN` lines."""
+    assert over_budgets()[budget] is None, over_budgets()[budget]
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ('"""A module."""\n\nX = 1  # a comment\n', Lines(3, 1, 1, 1)),
+        (
+            '"""Two\nlines."""\n\n\ndef f():\n    """Its doc."""\n    return (1,\n      2)\n',
+            Lines(8, 3, 3, 2),
+        ),
+        ("# only a comment\nX = 'not a docstring'\n", Lines(2, 1, 0, 0)),
+        ('X = 1\n"""An attribute\'s docstring."""\n', Lines(2, 1, 1, 0)),
+    ],
+)
+def test_a_line_is_code_docstring_or_neither(text: str, expected: Lines) -> None:
+    assert expected == lines_of(text)

@@ -83,7 +83,6 @@ from typing import Any, TypeAlias, TypeVar
 import pykka
 
 from rr_actors._core import runtime
-from rr_actors._core.ids import new_id
 from rr_actors._core.queues import Late, LateQueue
 from rr_actors._platform import fork
 
@@ -426,7 +425,7 @@ class Actor(pykka.ThreadingActor):
         # simulation's event and seeded id, in a simulation)
         stopped = runtime.Event()
         self.actor_stopped = self._actor_ref.actor_stopped = stopped
-        self.actor_urn = self._actor_ref.actor_urn = f"urn:uuid:{new_id()}"
+        self.actor_urn = self._actor_ref.actor_urn = f"urn:uuid:{runtime.new_id()}"
 
     def _handle_receive(self, message: Any) -> Any:
         try:

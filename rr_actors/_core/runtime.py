@@ -18,6 +18,9 @@ real one: `tests/test_repository.py` refuses it). So in a real run `runtime.Lock
 `threading.Lock`: the cost is the attribute read at construction, as `threading.Lock`'s
 own, and nothing per operation.
 
+Made here, the same in both worlds: query ids (`new_id`, from `urandom`) and one-shot
+timers (`thread_timer`, a daemon `Timer`; a test injects its own `StartTimer`).
+
 What is per process (the directory of registrars, the membership, the clock, pykka's
 registry) is registered here with `process_state`, as `_platform.fork` registers what a
 forked child lets go of: a simulation gives each simulated process its own. What is per
@@ -33,11 +36,12 @@ import random as _random
 import threading
 import time
 from collections.abc import Callable, Mapping
-from typing import Any, TypeVar
+from typing import Any, Protocol, TypeVar
 
 __all__ = [
     "SEAMS",
     "TIMEOUT_MAX",
+    "Cancellable",
     "Condition",
     "Empty",
     "Event",
@@ -45,6 +49,7 @@ __all__ = [
     "Lock",
     "RLock",
     "SimpleQueue",
+    "StartTimer",
     "Thread",
     "Timer",
     "current_thread",
@@ -56,6 +61,7 @@ __all__ = [
     "manager_process",
     "monotonic",
     "new_event_loop",
+    "new_id",
     "process_state",
     "process_states",
     "queue_class",
@@ -63,6 +69,7 @@ __all__ = [
     "simulated",
     "sleep",
     "thread_locals",
+    "thread_timer",
     "urandom",
     "use",
     "wall",
@@ -155,6 +162,38 @@ SEAMS = (
 Empty = queue.Empty
 Full = queue.Full
 TIMEOUT_MAX = threading.TIMEOUT_MAX
+
+_VARIANT = {digit: "89ab"[int(digit, 16) & 3] for digit in "0123456789abcdef"}
+"""A random hex digit -> a variant digit (its two low bits kept, the high two set to 10)."""
+
+
+def new_id() -> str:
+    """A random UUID4 as a string (`str(uuid.uuid4())` gives the same form): the hex digits
+    of 16 bytes from `urandom` (a simulation's seeded bytes), the version digit set to 4
+    and the variant digit to one of `89ab` (RFC 4122), without building a `uuid.UUID`."""
+    h = urandom(16).hex()
+    return f"{h[:8]}-{h[8:12]}-4{h[13:16]}-{_VARIANT[h[16]]}{h[17:20]}-{h[20:]}"
+
+
+class Cancellable(Protocol):
+    """A started timer (`threading.Timer` is one)."""
+
+    def cancel(self) -> None:
+        """Stop the timer if it has not fired yet."""
+
+
+StartTimer = Callable[[float, Callable[[], None]], Cancellable]
+"""`start(delay, fn)`: run `fn()` once after `delay` seconds on some thread."""
+
+
+def thread_timer(delay: float, fn: Callable[[], None]) -> Cancellable:
+    """Run `fn()` on a daemon `Timer` thread after `delay` seconds (the default
+    `StartTimer`)."""
+    timer = Timer(delay, fn)
+    timer.daemon = True
+    timer.start()
+    return timer
+
 
 REAL = {name: globals()[name] for name in SEAMS}
 """The real seams (the stdlib's own objects), by name: what `use(None)` puts back."""

@@ -76,7 +76,6 @@ from rr_actors._core import hlc as _hlc
 from rr_actors._core import runtime
 from rr_actors._core.actor import Actor, refuse
 from rr_actors._core.directory import DIRECTORY, Reply
-from rr_actors._core.ids import new_id
 from rr_actors._core.replies import FutureReply, Join
 from rr_actors._registrar.calls import (
     AttemptState,
@@ -1375,7 +1374,7 @@ class Reconciling:
             Status.FATAL,
             why,
             source,
-            new_id(),
+            runtime.new_id(),
             FutureReply(),  # (nobody waits for the acknowledgements)
             sent_at=runtime.wall(),
         )

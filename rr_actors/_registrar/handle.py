@@ -52,7 +52,6 @@ from rr_actors._core import hlc, runtime
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Publisher, Subscription
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.exit import REGISTRARS, stop_at_exit
-from rr_actors._core.ids import new_id
 from rr_actors._core.loops import (
     OnLoop,
     is_coroutine_function,
@@ -842,7 +841,7 @@ class Here:
         if self.config.backup_path is not None:  # its client record is stored
             check_picklable(request, f"the request of a call to '{target_rr}/{server}'")
         steps = self.calls.steps(
-            query_id or new_id(),
+            query_id or runtime.new_id(),
             target_rr,
             server,
             request,

@@ -70,7 +70,6 @@ from rr_actors._core.actor import Actor, OneShotFuture, refuse
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.replies import FutureReply, Join
-from rr_actors._core.timers import Cancellable, Timer, thread_timer
 from rr_actors._registrar.calls import ClientLoaded
 from rr_actors._registrar.consumer import Clients, Flights, Holdings, Reconciling, Releases
 from rr_actors._registrar.display import ClientTexts
@@ -190,7 +189,7 @@ class Lifecycle:
         # came in; a set of objects iterates in address order, which no replay repeats)
         self.open_requests: dict[OpenReply, None] = {}
         self.stop_waiters: list[Reply] | None = None  # while a stop is under way
-        self.flush_timer: Cancellable | None = None
+        self.flush_timer: runtime.Cancellable | None = None
         # while it yields its name (rule 22): `None`, or where `KeepName`'s answer goes
         # once its unloads are done (the one kept went meanwhile: it serves on)
         self.keepers: list[Reply] | None = None
@@ -335,7 +334,9 @@ class Lifecycle:
                 self.on_stop(Stop(FutureReply(), until), NO_REPLY)
 
         late = self.registrar.come_back(stop)
-        timer = thread_timer(max(0.0, until - runtime.monotonic()), lambda: late.set_result(None))
+        timer = runtime.thread_timer(
+            max(0.0, until - runtime.monotonic()), lambda: late.set_result(None)
+        )
         self.servers.give_up_all(stop)
 
     def on_keep_name(self, message: KeepName, _reply: Reply) -> None:
@@ -430,7 +431,7 @@ class Lifecycle:
         (`UnloadCutShort`; the resource stays unloading in the backup, in doubt at the
         next start). Its callback runs on, on its worker thread; its answer goes nowhere."""
         done = False
-        timer: Cancellable | None = None
+        timer: runtime.Cancellable | None = None
 
         def go(*, cut_short: bool) -> None:
             nonlocal done
@@ -455,7 +456,7 @@ class Lifecycle:
 
         if until is not None and self.teardown.under_way:
             late = self.registrar.come_back(lambda _value, _error: go(cut_short=True))
-            timer = thread_timer(
+            timer = runtime.thread_timer(
                 max(0.0, until - runtime.monotonic()), lambda: late.set_result(None)
             )
         self.teardown.when_idle(lambda: go(cut_short=False))
@@ -695,7 +696,7 @@ class Presence:
         registrar: Shared,
         unloading: Unloading,
         reconciling: Reconciling,
-        timer: Timer = thread_timer,
+        timer: runtime.StartTimer = runtime.thread_timer,
     ) -> None:
         self.registrar = registrar
         self.unloading = unloading
@@ -704,7 +705,7 @@ class Presence:
         # provider -> (its reconcile round, the attempt waited for), until answered
         self.rounds: dict[str, tuple[int, int]] = {}
         self.lives: dict[str, str] = {}  # provider -> the life that asked for its round
-        self.timers: dict[str, Cancellable] = {}
+        self.timers: dict[str, runtime.Cancellable] = {}
         self.round_count = 0
 
     # -- lost for good (rule 19) --------------------------------------------------------

@@ -83,7 +83,6 @@ from rr_actors._catalog.digest import requests_equal
 from rr_actors._core import runtime
 from rr_actors._core.actor import Actor
 from rr_actors._core.directory import DIRECTORY, Reply
-from rr_actors._core.ids import new_id
 from rr_actors._core.loops import is_coroutine_function, process_loop
 from rr_actors._core.replies import CallbackReply, Join
 from rr_actors._core.workers import Job, Workers
@@ -437,7 +436,7 @@ class Provider:
             except ConfigError as exc:
                 message.reply.set_error(exc)
                 return
-        rid = new_id()
+        rid = runtime.new_id()
         resource = self.registrar.catalog.begin_load(rid, message.server, message.request, key=key)
         if server.label is not None:  # its ResourceLoaded names the label: made meanwhile
             self.labelling[rid] = None
@@ -1559,7 +1558,7 @@ class Servers:
                     )
             self.teardown.unload_resource(resource, done)
 
-        event = new_id()
+        event = runtime.new_id()
         if self.registrar.events.active:
             self.registrar.events.publish(
                 events.StatusSent(

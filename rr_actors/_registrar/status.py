@@ -67,7 +67,6 @@ from rr_actors._catalog import Resource
 from rr_actors._core import hlc, runtime, steps
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
-from rr_actors._core.ids import new_id
 from rr_actors._core.loops import OnLoop
 from rr_actors._core.replies import CallbackReply, SharedJoin, waited, when_waiting
 from rr_actors._core.workers import Job, Workers
@@ -126,7 +125,7 @@ class StatusRelay:
                 f"provider, {held.query.serving_rr!r}, sends statuses about it"
             ) from None
         update = StatusUpdate(query_id, status, message, f"{shared.name}/{resource.server}")
-        event = new_id()
+        event = runtime.new_id()
         told = (
             (events.StatusSent(shared.name, query_id, status, message, event),)
             if shared.events.active

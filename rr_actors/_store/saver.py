@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Protocol
 
 from rr_actors import events
 from rr_actors._catalog import Catalog, Changes, ClientRecord, Resource
-from rr_actors._core.timers import Cancellable, Timer, thread_timer
+from rr_actors._core import runtime
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import CatalogWriteError
 
@@ -46,7 +46,7 @@ logger = logging.getLogger("rr_actors")
 _NOTHING = Changes({}, {})  # (what is pending when nothing is: never changed in place)
 
 
-timer_factory: Timer = thread_timer
+timer_factory: runtime.StartTimer = runtime.thread_timer
 """Starts every save-interval timer. Tests replace it (monkeypatch) with a manual clock."""
 
 
@@ -139,7 +139,7 @@ class Saver:
         """Whether changes wait to be written (none without a store)."""
         return bool(self._pending)
 
-    def schedule(self, tick: Callable[[], None]) -> Cancellable | None:
+    def schedule(self, tick: Callable[[], None]) -> runtime.Cancellable | None:
         """Start the save-interval timer: `tick()` runs once, `flush_interval` s from now.
 
         Returns `None` (and starts nothing) when this policy has no interval. `tick` runs

@@ -27,70 +27,9 @@ and holds the record, never another role's fields; what one role needs of anothe
 by a method. A nested supervisor is a `Node` too; when it gives up it tells its parent,
 which sees an exited child (OTP: a supervisor that gives up exits with `shutdown`).
 
-Restarting: a child's end is taken on the supervisor's thread; its restart type, the
-restart intensity and the strategy decide whether it comes back, with which siblings, or
-whether the supervisor gives up.
-
-```
- ThreadManager watcher: its registrar actor stopped ──────────────────────────┐
- ManagerProcess watcher (_process/manager.py): the process ended; or no       │
-   heartbeat answer within `hang_after` (hung) / unhealthy ─► killed ─────────┼─► Exited(name,
- a nested Node gave up (Starting: escalate) ──────────────────────────────────┤   incarnation,
- a restart failed to start (Restarts.on_restart) ─────────────────────────────┘   exit)
-   ──► mailbox ──► Exits.on_exited: stale (an older incarnation, or this one gave up)? dropped
-                   else: the exit noted (Stopping.note_exit: ChildExited)
- Restarts.after_exit(child, exit)
-   ├─ its restart type (restarts_after): not restarted ─► exited ─► Stopping.forget
-   ├─ RestartIntensity.add: more than max_restarts within period ─► give_up: every
-   │    child stopped (reverse order), SupervisorGaveUp; on_gave_up (the parent: Exited)
-   └─ take_down_with: the strategy's group (affected) stopped (reverse order); a
-      sibling comes back unless temporary (restarts_with_group); marked
-        ─► schedule: backoff ─► timer ── Restart(names, generation) ──► mailbox
- mailbox ─► Restarts.on_restart: Starting.start_child each whose latest Restart it is
-            (a failure posts Exited: a crash)
- Node.stop / give_up ─► Restarts.cancel: a new generation, every pending Restart stale
-```
-
-An incarnation stopped on purpose was bumped by `Stopping.stop_child` first, so its
-watcher's report is stale here. A child's restart type is read by `restarts_after` and
-`restarts_with_group`, in `children.py`, as the tree's lookups read it too. `Exits` holds
-no state of its own: what it changes is the crashed child's record. `Restarts` holds the
-intensity window, the generation and timers of pending restarts, and whether (and why)
-this supervisor gave up.
-
-Starting: all the children in order, or one again after a crash.
-
-```
- Node.start ─► start_all: each child in start order ─► start_child
-                  └─ one fails: the started ones stop (reverse order) ─► SupervisorGaveUpError
- Restarts.on_restart ─► start_child
- start_child ─► a manager: ThreadManager (this process) or ProcessManager (a spare process),
-                           its config (`<state_dir>/<name>.db` with the tree's state_dir)
-              └ a supervisor: a nested Node (`nest`), which gives up by posting Exited
-            ─► running; ChildStarted / ChildRestarted; abandoned ids given back;
-               after a restart, the death watch it missed (and, with no backup, FATAL
-               for what was held at it, and what it held released: lost_everything;
-               also at the first start of one that ran on the state_dir before)
-```
-
-Each child is handed a watcher callback (run on its watcher thread) that posts its end
-to the supervisor's mailbox as `Exited`, with the incarnation it started. `Starting`'s own
-state: the state directory its managers' catalogs go to.
-
-Stopping: the children, and what a child that will not come back leaves behind.
-
-```
- Node.stop ─► stop_all (reverse start order) ─┐
- Restarts: a group's siblings, a give-up ─────┼─► stop_child: its spec's shutdown (bounded by
- Starting: rolling back a failed start ───────┘   the deadline), then a kill ─► note_exit
-                                                    └─ final? ─► forget
- forget ─► death watch (rule 19): a dead manager is lost (`lose`: its consumers' ids
-           released, the ids held at it FATAL); one stopped for good is stale (rule 12)
- mark / unmark ─► DIRECTORY.mark_restarting: down for a moment, callers retry
-```
-
-`Stopping`'s own state: whether the parent stops this supervisor to start it again
-(`to_restart`), which keeps its managers marked as restarting while they are down.
+Each role's own path, drawn in its class: `Restarts` (a child's end and what comes of it),
+`Starting`, `Stopping`; how a restart runs through the layers: "How a restart flows" in
+docs/explanation/architecture.md.
 """
 
 from __future__ import annotations
@@ -107,7 +46,6 @@ from rr_actors import events
 from rr_actors._core import runtime
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.serial import SerialExecutor
-from rr_actors._core.timers import Cancellable
 from rr_actors._process.manager import ManagerExit
 from rr_actors._supervision.children import (
     Child,
@@ -354,6 +292,37 @@ class Exits:
 class Restarts:
     """Decides whether and how a crashed child comes back, and gives up past the intensity.
 
+    A child's end is taken on the supervisor's thread; its restart type, the restart
+    intensity and the strategy decide whether it comes back, with which siblings, or
+    whether the supervisor gives up.
+
+    ```
+     ThreadManager watcher: its registrar actor stopped ──────────────────────────┐
+     ManagerProcess watcher (_process/manager.py): the process ended; or no       │
+       heartbeat answer within `hang_after` (hung) / unhealthy ─► killed ─────────┼─► Exited(name,
+     a nested Node gave up (Starting: escalate) ──────────────────────────────────┤   incarnation,
+     a restart failed to start (Restarts.on_restart) ─────────────────────────────┘   exit)
+       ──► mailbox ──► Exits.on_exited: stale (an older incarnation, or this one gave up)? dropped
+                       else: the exit noted (Stopping.note_exit: ChildExited)
+     Restarts.after_exit(child, exit)
+       ├─ its restart type (restarts_after): not restarted ─► exited ─► Stopping.forget
+       ├─ RestartIntensity.add: more than max_restarts within period ─► give_up: every
+       │    child stopped (reverse order), SupervisorGaveUp; on_gave_up (the parent: Exited)
+       └─ take_down_with: the strategy's group (affected) stopped (reverse order); a
+          sibling comes back unless temporary (restarts_with_group); marked
+            ─► schedule: backoff ─► timer ── Restart(names, generation) ──► mailbox
+     mailbox ─► Restarts.on_restart: Starting.start_child each whose latest Restart it is
+                (a failure posts Exited: a crash)
+     Node.stop / give_up ─► Restarts.cancel: a new generation, every pending Restart stale
+    ```
+
+    An incarnation stopped on purpose was bumped by `Stopping.stop_child` first, so its
+    watcher's report is stale here. A child's restart type is read by `restarts_after` and
+    `restarts_with_group`, in `children.py`, as the tree's lookups read it too. `Exits` holds
+    no state of its own: what it changes is the crashed child's record. `Restarts` holds the
+    intensity window, the generation and timers of pending restarts, and whether (and why)
+    this supervisor gave up.
+
     Args:
         record: the supervisor whose children it restarts.
         starting: starts them again.
@@ -379,7 +348,8 @@ class Restarts:
         self.gave_up: SupervisorGaveUpError | None = None
         self.giving_up = False
         self._generation = 0
-        self._timers: dict[int, Cancellable] = {}  # id(Restart) -> its pending backoff timer
+        # id(Restart) -> its pending backoff timer
+        self._timers: dict[int, runtime.Cancellable] = {}
         self._due: dict[str, Restart] = {}  # each child's latest scheduled Restart
 
     def after_exit(self, child: Child, exit: ManagerExit) -> None:
@@ -552,6 +522,23 @@ calls `on_gave_up` (on its own thread) when it gives up."""
 
 class Starting:
     """Starts children, in order at the supervisor's start, or one at a restart.
+
+    ```
+     Node.start ─► start_all: each child in start order ─► start_child
+                      └─ one fails: the started ones stop (reverse order) ─► SupervisorGaveUpError
+     Restarts.on_restart ─► start_child
+     start_child ─► a manager: ThreadManager (this process) or ProcessManager (a spare process),
+                               its config (`<state_dir>/<name>.db` with the tree's state_dir)
+                  └ a supervisor: a nested Node (`nest`), which gives up by posting Exited
+                ─► running; ChildStarted / ChildRestarted; abandoned ids given back;
+                   after a restart, the death watch it missed (and, with no backup, FATAL
+                   for what was held at it, and what it held released: lost_everything;
+                   also at the first start of one that ran on the state_dir before)
+    ```
+
+    Each child is handed a watcher callback (run on its watcher thread) that posts its end
+    to the supervisor's mailbox as `Exited`, with the incarnation it started. `Starting`'s own
+    state: the state directory its managers' catalogs go to.
 
     Args:
         record: the supervisor whose children it starts.
@@ -739,6 +726,19 @@ def unmark(child: Child) -> None:
 
 class Stopping:
     """Stops children, and releases what those that will not come back held.
+
+    ```
+     Node.stop ─► stop_all (reverse start order) ─┐
+     Restarts: a group's siblings, a give-up ─────┼─► stop_child: its spec's shutdown (bounded by
+     Starting: rolling back a failed start ───────┘   the deadline), then a kill ─► note_exit
+                                                        └─ final? ─► forget
+     forget ─► death watch (rule 19): a dead manager is lost (`lose`: its consumers' ids
+               released, the ids held at it FATAL); one stopped for good is stale (rule 12)
+     mark / unmark ─► DIRECTORY.mark_restarting: down for a moment, callers retry
+    ```
+
+    `Stopping`'s own state: whether the parent stops this supervisor to start it again
+    (`to_restart`), which keeps its managers marked as restarting while they are down.
 
     Args:
         record: the supervisor whose children it stops.

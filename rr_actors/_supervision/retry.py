@@ -26,7 +26,6 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from rr_actors._core import runtime
-from rr_actors._core.ids import new_id
 from rr_actors._core.replies import Steps
 from rr_actors._registrar import Registrar, give_back
 from rr_actors._registrar.handle import call_steps
@@ -101,7 +100,7 @@ def call_with_retry(
     """
     _check(consumer, target_rr, server, request, timeout, query_id)
     limit = timeout if timeout is not None else consumer.config.call_timeout
-    qid = query_id or new_id()
+    qid = query_id or runtime.new_id()
     deadline = runtime.monotonic() + limit
     tried_again_at = -1  # the restart count at which it last tried again at once
     while True:

@@ -49,7 +49,6 @@ from rr_actors._core import runtime
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Subscription
 from rr_actors._core.exit import SUPERVISORS, stop_at_exit
 from rr_actors._core.replies import Steps, run_steps
-from rr_actors._core.timers import Timer, thread_timer
 from rr_actors._platform import fork
 from rr_actors._registrar import Registrar, ResourceRegistrar, Served, start_registrar
 from rr_actors._registrar.handle import blocking
@@ -181,7 +180,7 @@ class Supervisor(AsyncSupervision):
         state_dir: str | os.PathLike[str] | None = None,
         name: str | None = None,
         clock: Clock | None = None,
-        timer: Timer = thread_timer,
+        timer: runtime.StartTimer = runtime.thread_timer,
         random: Callable[[], float] | None = None,
         network: Transport | None = None,
     ) -> None:

@@ -28,7 +28,6 @@ from typing import TYPE_CHECKING, Any
 from rr_actors._core import runtime, wire
 from rr_actors._core.replies import FutureReply, Steps
 from rr_actors._core.serial import SerialExecutor
-from rr_actors._core.timers import Timer, thread_timer
 from rr_actors._process.spare import SparePool
 from rr_actors._registrar import life
 from rr_actors._supervision.children import (
@@ -163,7 +162,7 @@ class Tree:
         spec: SupervisorSpec,
         *,
         clock: Clock,
-        timer: Timer = thread_timer,
+        timer: runtime.StartTimer = runtime.thread_timer,
         random: Callable[[], float] | None = None,
         network: Transport | None = None,
     ) -> None:

@@ -16,59 +16,8 @@ messages:
     reply.set_result/set_error ◄──── the answer ◄──── the message's stand-in reply
 ```
 
-The contract every carrier keeps (the transport tests check it for each one):
-
-- **open a channel**: `resolve(name)` returns a `Peer` for a registrar served by another
-  process of the system, or `None` if the carrier does not know the name;
-- **send**: `Peer.tell(message)` never blocks on the other process; messages told to one
-  peer from one process arrive in the order they were told; a message that does not
-  pickle raises `ConfigError` at the sender and nothing is sent; nor is one larger than
-  the receiving registrar's `max_message_bytes` (`MessageTooLargeError`, a `ConfigError`);
-- **size**: each connection is bounded by the `max_message_bytes` of the registrar it
-  leads to, both ways: the receiver skips a larger frame unread (answering the error),
-  and a larger answer becomes that error (its `compensation()` runs);
-- **receive**: `serve(endpoint)` makes a registrar of this process reachable; what arrives
-  for it is told to it through the directory, with a stand-in reply that sends the
-  answer back; a stand-in whose answer cannot be pickled sends an error instead, and one
-  whose answer cannot reach the sender hands the message's `compensation()` to the
-  registrar (`rr_actors._core.wire`);
-- **liveness ("peer gone")**: when the other process dies or its registrar stops, every
-  reply still waiting on it fails at once with `RegistrarUnavailableError` (or
-  `RegistrarStoppedError` after a clean stop), never by waiting out a timeout; a later
-  `tell` to a name that is served again (a restarted manager) reaches the new server;
-- **control**: `run(name, fn, timeout=)` runs `fn(registrar)` where that registrar lives;
-- **lost for good (rule 19)**: when a registrar of another process is gone and
-  nobody will restart it, every registrar of the system hears so, at least once: from
-  the death watch (`ConsumerDown`, which whoever started it, a supervisor that gave up
-  or the owner of an unsupervised manager process, tells every name `names()` lists),
-  or from the carrier, which calls `Endpoint.peer_lost` with the name on every registrar it
-  serves when the one who would say so is gone too (a host lost with its supervisor).
-  Its consumers then report `FATAL` for the ids they held there and forget them. A
-  carrier never calls `peer_lost` for a registrar whose supervisor is alive: that one
-  restarts it, and its restored catalog keeps its consumers' ids (rule 15), or it
-  sends the death watch if it gives up. Only a process that `Transport.supervised_by`
-  names (a manager process's supervisor) or, while `DIRECTORY.restart_expected(name)`,
-  its own process speaks for it; a process that merely joined the system has nobody.
-  Each carrier says who that is: Zenoh in the registrar's liveliness token, AF_UNIX in
-  `<runtime_dir>/<name>.restart` (`unix/system.py` says how, and its limits);
-- **presence**: `Endpoint.peer_reachable(name)` when a registrar that could not be
-  reached answers again (a healed link, not a restart); the consumer side retries its
-  `Reconcile` until it is answered; `names()` lists the registrars it can reach;
-- **one name, one registrar (rule 22)**: `serve` refuses a name another process serves
-  (`DuplicateNameError`), and, where the carrier cannot hear the rest of the system, one
-  it cannot tell is free (`RegistrarUnavailableError`). A carrier that can see two
-  servers of one name (Zenoh, after a healed link) keeps one by a rule every process
-  applies alike, calls `Endpoint.yield_name` on the other, and tells `peer_reachable`
-  to the consumers of the one that yielded;
-- **health**: `serving_trouble(name)` says for how long a registrar served here has been
-  unable to take new connections (a listener out of file descriptors keeps trying);
-- **join**: `address` pickles; `address.attach()` in another process joins the system.
-
-Low-level errors (`EOFError`, `BrokenPipeError`, `OSError`, pickling errors) never reach
-a caller: a carrier translates them into rr_actors errors with `raise ... from exc`.
-
-A carrier with a lease (Zenoh) counts a process silent for longer than it (frozen, or
-behind a cut link) as gone: its replies fail with `RegistrarUnavailableError` then.
+The contract every carrier keeps, and how a carrier answers for a process lost for good
+(rule 19): `Transport`'s docstring.
 
 Carriers: `unix/` (AF_UNIX sockets in a private runtime directory, authenticated with a
 per-system key) and `zenoh/` (`zenoh/net.py`'s `ZenohNetwork`, `zenoh/carrier.py`: Eclipse Zenoh
@@ -174,7 +123,62 @@ class Address(Protocol):
 
 
 class Transport(Protocol):
-    """One process's membership of a system of registrars, over one carrier."""
+    """One process's membership of a system of registrars, over one carrier.
+
+    The contract every carrier keeps (the transport tests check it for each one):
+
+    - **open a channel**: `resolve(name)` returns a `Peer` for a registrar served by another
+      process of the system, or `None` if the carrier does not know the name;
+    - **send**: `Peer.tell(message)` never blocks on the other process; messages told to one
+      peer from one process arrive in the order they were told; a message that does not
+      pickle raises `ConfigError` at the sender and nothing is sent; nor is one larger than
+      the receiving registrar's `max_message_bytes` (`MessageTooLargeError`, a `ConfigError`);
+    - **size**: each connection is bounded by the `max_message_bytes` of the registrar it
+      leads to, both ways: the receiver skips a larger frame unread (answering the error),
+      and a larger answer becomes that error (its `compensation()` runs);
+    - **receive**: `serve(endpoint)` makes a registrar of this process reachable; what arrives
+      for it is told to it through the directory, with a stand-in reply that sends the
+      answer back; a stand-in whose answer cannot be pickled sends an error instead, and one
+      whose answer cannot reach the sender hands the message's `compensation()` to the
+      registrar (`rr_actors._core.wire`);
+    - **liveness ("peer gone")**: when the other process dies or its registrar stops, every
+      reply still waiting on it fails at once with `RegistrarUnavailableError` (or
+      `RegistrarStoppedError` after a clean stop), never by waiting out a timeout; a later
+      `tell` to a name that is served again (a restarted manager) reaches the new server;
+    - **control**: `run(name, fn, timeout=)` runs `fn(registrar)` where that registrar lives;
+    - **lost for good (rule 19)**: when a registrar of another process is gone and
+      nobody will restart it, every registrar of the system hears so, at least once: from
+      the death watch (`ConsumerDown`, which whoever started it, a supervisor that gave up
+      or the owner of an unsupervised manager process, tells every name `names()` lists),
+      or from the carrier, which calls `Endpoint.peer_lost` with the name on every registrar it
+      serves when the one who would say so is gone too (a host lost with its supervisor).
+      Its consumers then report `FATAL` for the ids they held there and forget them. A
+      carrier never calls `peer_lost` for a registrar whose supervisor is alive: that one
+      restarts it, and its restored catalog keeps its consumers' ids (rule 15), or it
+      sends the death watch if it gives up. Only a process that `Transport.supervised_by`
+      names (a manager process's supervisor) or, while `DIRECTORY.restart_expected(name)`,
+      its own process speaks for it; a process that merely joined the system has nobody.
+      Each carrier says who that is: Zenoh in the registrar's liveliness token, AF_UNIX in
+      `<runtime_dir>/<name>.restart` (`unix/system.py` says how, and its limits);
+    - **presence**: `Endpoint.peer_reachable(name)` when a registrar that could not be
+      reached answers again (a healed link, not a restart); the consumer side retries its
+      `Reconcile` until it is answered; `names()` lists the registrars it can reach;
+    - **one name, one registrar (rule 22)**: `serve` refuses a name another process serves
+      (`DuplicateNameError`), and, where the carrier cannot hear the rest of the system, one
+      it cannot tell is free (`RegistrarUnavailableError`). A carrier that can see two
+      servers of one name (Zenoh, after a healed link) keeps one by a rule every process
+      applies alike, calls `Endpoint.yield_name` on the other, and tells `peer_reachable`
+      to the consumers of the one that yielded;
+    - **health**: `serving_trouble(name)` says for how long a registrar served here has been
+      unable to take new connections (a listener out of file descriptors keeps trying);
+    - **join**: `address` pickles; `address.attach()` in another process joins the system.
+
+    Low-level errors (`EOFError`, `BrokenPipeError`, `OSError`, pickling errors) never reach
+    a caller: a carrier translates them into rr_actors errors with `raise ... from exc`.
+
+    A carrier with a lease (Zenoh) counts a process silent for longer than it (frozen, or
+    behind a cut link) as gone: its replies fail with `RegistrarUnavailableError` then.
+    """
 
     @property
     def address(self) -> Address:

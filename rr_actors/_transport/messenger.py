@@ -37,22 +37,9 @@ served here, and a link back to the process a message came from (`Carrier`):
  an answer ─► route.pending.answered / too_large / refused (`Replies`; too large or
    unreadable: compensate)
 
- what the carrier reports (its threads)
- a route or a server gone ─► route.pending.fail / Replies.fail(name): at once
- a registrar lost for good / reachable again ─► Messenger.lost / reachable: the
-   process's membership (`_core/membership.py`) records it and every registrar served
-   here hears it (rule 19, rule 20)
- another process serves a name served here too (rule 22) ─► served_elsewhere(name,
-   rival): the decision, once for every carrier (the system's `resolve=` policy,
-   `resolution`, by default the one served first: `rank`, `kept`, `resolve.py`); this
-   one not kept ─► give_way: stop serving it, the registrar
-   yields its name; at its end, its consumers here reconcile with the one kept
-   (`reachable`); the one here kept ─► _claim: the carrier's `tell_server` puts a
-   `Claim` for the other's process (it may not hear this one: a heal heard one way),
-   whose messenger decides from it as from a token (`served_elsewhere`)
- the one kept lost for good while the one here yields ─► lost(name) ─► _keep: the
-   registrar serves on once its unloads are done (`Endpoint.keep_name`), served again
 ```
+
+What it does with what the carrier reports (a loss, a heal): `Messenger`'s docstring.
 
 Carriers: `unix/` (a route is one connection; answers go back on the connection a
 message came on; presence from the runtime directory's files), `zenoh/` (a route is a
@@ -683,6 +670,24 @@ class Messenger:
 
     A carrier's public class (the AF_UNIX `System`, a `ZenohNetwork`, the in-memory
     double) is one, and gives it its `Carrier` (`joined`).
+
+    ```
+     what the carrier reports (its threads)
+     a route or a server gone ─► route.pending.fail / Replies.fail(name): at once
+     a registrar lost for good / reachable again ─► Messenger.lost / reachable: the
+       process's membership (`_core/membership.py`) records it and every registrar served
+       here hears it (rule 19, rule 20)
+     another process serves a name served here too (rule 22) ─► served_elsewhere(name,
+       rival): the decision, once for every carrier (the system's `resolve=` policy,
+       `resolution`, by default the one served first: `rank`, `kept`, `resolve.py`); this
+       one not kept ─► give_way: stop serving it, the registrar
+       yields its name; at its end, its consumers here reconcile with the one kept
+       (`reachable`); the one here kept ─► _claim: the carrier's `tell_server` puts a
+       `Claim` for the other's process (it may not hear this one: a heal heard one way),
+       whose messenger decides from it as from a token (`served_elsewhere`)
+     the one kept lost for good while the one here yields ─► lost(name) ─► _keep: the
+       registrar serves on once its unloads are done (`Endpoint.keep_name`), served again
+    ```
 
     Args:
         system: the system's name (in messages; the AF_UNIX carrier's runtime directory).

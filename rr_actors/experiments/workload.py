@@ -61,7 +61,6 @@ from typing import Any, TypeVar
 
 import rr_actors as rr
 from rr_actors._core import runtime
-from rr_actors._core.ids import new_id
 from rr_actors.errors import ConfigError
 from rr_actors.experiments._imports import import_object
 from rr_actors.experiments.metrics import ClientRecovery
@@ -515,7 +514,7 @@ class Client:
                 request,
                 on_status=self._on_status,
                 timeout=self.workload.timeout,
-                query_id=new_id(),
+                query_id=runtime.new_id(),
             )
         )
         if cancel_after is not None:
@@ -545,7 +544,7 @@ class Client:
             nonlocal retried
             retried = True
 
-        query_id = new_id()
+        query_id = runtime.new_id()
         call = functools.partial(
             self.registrar.call,
             mix.manager,

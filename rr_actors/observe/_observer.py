@@ -25,9 +25,8 @@ import threading
 import time
 from typing import TYPE_CHECKING, Any, Protocol
 
-from rr_actors._core.addresses import is_loopback
 from rr_actors._extras import needs
-from rr_actors.config import NAME
+from rr_actors.config import NAME, is_loopback
 from rr_actors.errors import ConfigError
 from rr_actors.observe._faults import Faults
 from rr_actors.observe._hub import Hub

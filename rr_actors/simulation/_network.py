@@ -30,9 +30,6 @@ order per link, cuts and heals.
    heal(unheard=pids): those processes do not hear the others' servers (a link that heals
    one way): the kept one's process tells them (`tell_server`, a `Claim`, as Zenoh's
    carrier puts it on the name's key)
- a lease (`lease=`): a process stopped (SIGSTOP) past it is silent: the links to what it
-   serves fail what waits, as at a cut; once it runs again, reachable again (a presence
-   thread of the network's process looks every quarter lease)
  a process ends ─► what it served ends (`_Hub.end`, its own servers: not another's of the
    name beyond a cut): every link to it fails what waits
  rule 19, as the real carriers judge it: each server carries its speaker (who restarts
@@ -45,23 +42,11 @@ order per link, cuts and heals.
    divided from every other, its `listen` refused (`wait_turn`'s words), every name
    served elsewhere lost for it, its own judged by the others as above; hear(pid) ─►
    rejoined as at a heal (rule 22 decides, each side hears the other reachable)
-
- the faults a plan aims (rr_actors.experiments, on the simulation):
- cut_connections(pid) ─► every link from or to the process is shut down (`_Link.sever`):
-   what was sent on it still arrives, then what waits on it fails (an EOF); a send or
-   an answer after the cut fails at its writer (an answer is compensated); the next
-   send makes a new link (dialled again), as after a real connection's shutdown
- duplicate_first(name, until) ─► each link made to `name` before `until` puts its first
-   frame on the wire twice (a retry after a reconnect that the peer had received)
- kill_at_answer(pid, fire) ─► the process's next answer that is not an error (what the
-   call changed committed in its backup) never leaves: `fire()`, then it is SIGKILLed
- on_serve(name, fire) ─► when a process next serves `name`: `fire(pid)` (on its thread)
 ```
 
-What is not the carrier's (naming, replies kept under a token, stand-in replies, sizes,
-compensation) is the messenger's, as on every carrier. A kill drops what is on the wire
-to the killed process (its wire threads are its own and end with it); what it sent
-before it died still arrives, as a socket's buffered bytes do.
+The faults a plan aims at it: `SimulatedNetwork`'s docstring. Naming, replies, stand-ins,
+sizes and compensation are the messenger's. A kill drops what is on the wire to the killed
+process; what it sent before it died still arrives, as a socket's buffered bytes do.
 """
 
 from __future__ import annotations
@@ -104,11 +89,27 @@ class SimulatedNetwork(MemoryNetwork):
     """An in-memory network between simulated processes (made inside a simulated run):
     each frame after a seeded delay, in order per link; `partition` and `heal`.
 
+    ```
+     the faults a plan aims (rr_actors.experiments, on the simulation):
+     cut_connections(pid) ─► every link from or to the process is shut down (`_Link.sever`):
+       what was sent on it still arrives, then what waits on it fails (an EOF); a send or
+       an answer after the cut fails at its writer (an answer is compensated); the next
+       send makes a new link (dialled again), as after a real connection's shutdown
+     duplicate_first(name, until) ─► each link made to `name` before `until` puts its first
+       frame on the wire twice (a retry after a reconnect that the peer had received)
+     kill_at_answer(pid, fire) ─► the process's next answer that is not an error (what the
+       call changed committed in its backup) never leaves: `fire()`, then it is SIGKILLed
+     on_serve(name, fire) ─► when a process next serves `name`: `fire(pid)` (on its thread)
+    ```
+
     Args:
         system: its name (`MemoryAddress` finds it by that name).
         delay: `(least, most)` seconds a frame takes on a link.
         lease: seconds a stopped process is heard (a liveliness lease) before what it
-            serves cannot be reached; `None`: for ever (its heartbeat judges it).
+            serves cannot be reached; `None`: for ever (its heartbeat judges it). A
+            process stopped (SIGSTOP) past it is silent: the links to what it serves
+            fail what waits, as at a cut; once it runs again, it is reachable again (a
+            presence thread of the network's process looks every quarter lease).
         resolve: which of two servers of one name is kept after a heal (rule 22), as
             `rr.ZenohNetwork`'s `resolve`: `"first_served"` (default), `"majority"` or
             a function of two `rr.Claimant`s. Here every live process is a member: a

@@ -7,6 +7,7 @@ import queue
 import random
 import threading
 import time
+import uuid
 
 import pytest
 
@@ -74,3 +75,15 @@ def test_only_the_main_thread_of_a_real_run_handles_signals() -> None:
 
     assert threading.current_thread() is threading.main_thread()
     assert (True, [False]) == (runtime.handles_signals(), elsewhere)
+
+
+def test_a_new_id_is_a_random_uuid4_in_its_canonical_form() -> None:
+    ids = [runtime.new_id() for _ in range(2000)]
+
+    for text in ids:
+        parsed = uuid.UUID(text)
+        assert (4, uuid.RFC_4122) == (parsed.version, parsed.variant)
+        assert str(parsed) == text  # lower-case hex, dashes where uuid puts them
+    assert len(set(ids)) == len(ids)
+    assert {text[14] for text in ids} == {"4"}
+    assert {text[19] for text in ids} == set("89ab")

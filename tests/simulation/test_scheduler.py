@@ -17,7 +17,6 @@ from rr_actors import events, simulation
 from rr_actors._core import runtime
 from rr_actors._core.actor import Actor
 from rr_actors._core.directory import DIRECTORY
-from rr_actors._core.ids import new_id
 from rr_actors._core.serial import SerialExecutor
 
 pytest.importorskip("greenlet")  # (the simulation extra)
@@ -168,7 +167,7 @@ def test_a_trace_lists_each_step_and_each_note() -> None:
 
 def test_ids_and_random_values_come_from_the_seed() -> None:
     def main() -> tuple[str, float]:
-        return new_id(), runtime.random()
+        return runtime.new_id(), runtime.random()
 
     first, again, other = (simulation.run(main, seed=s).value for s in (3, 3, 4))
 

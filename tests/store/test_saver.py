@@ -15,6 +15,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._catalog import Catalog
+from rr_actors._core import runtime
 from rr_actors._store import saver as _persistence
 from rr_actors._store import schema
 from rr_actors._store.files import read_backup
@@ -396,9 +397,9 @@ def test_the_default_save_interval_timer_flushes_on_its_own(
     tmp_path: Path, started: list[rr.ResourceRegistrar], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     fired = threading.Event()
-    real_timer = _persistence.thread_timer
+    real_timer = runtime.thread_timer
 
-    def observed(delay: float, tick: Callable[[], None]) -> _persistence.Cancellable:
+    def observed(delay: float, tick: Callable[[], None]) -> runtime.Cancellable:
         def tick_and_tell() -> None:
             tick()  # tells the registrar to flush ...
             fired.set()  # ... before the test hears of it

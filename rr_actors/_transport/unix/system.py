@@ -30,19 +30,7 @@ until the name is served again); with a living speaker, the name is *awaited*: p
 every `AWAIT_POLL` s until it is served again (then this process, if it serves an
 endpoint, connects to it at once, so that its next death is seen too), stopped, or its
 speaker is gone too (then lost). The speaker's own process judges nothing of what it
-speaks for: it decides itself. Limits:
-
-- a process hears it only if it has, or tries, a connection to that registrar: one that
-  holds ids there has one (its calls opened it; it lasts until the peer ends), so the
-  gap is a consumer whose connection ended earlier for another reason and that sends
-  nothing: it hears at its next message (the failed connect is judged);
-- the lock probe is a shared `flock` held for microseconds; a listener taking the name
-  meanwhile retries for `link.LOCK_RETRY` s before it reports `DuplicateNameError`;
-- a pid is trusted with its start time where `/proc` has it; elsewhere a pid reused
-  by an unrelated process keeps a registrar awaited (not lost) until that one ends;
-- what a speaker that lives on does with the name (a restart, or the death watch when
-  it gives up) is its own: the carrier waits only for its death;
-- `DIRECTORY.restart_expected(name)` is read when the registrar starts serving.
+speaks for: it decides itself. The limits of this judgement: `UnixCarrier`'s docstring.
 
 Fork: a child forked from a process that joined a system is a member of it too (same
 runtime directory, same authkey), but none of the parent's listeners, connections or
@@ -134,7 +122,22 @@ class UnixCarrier:
     """The AF_UNIX carrier of one process's membership (the messenger's `Carrier`): names
     found in the runtime directory, a `RemotePeer` per name reached, a `Listener` per
     registrar served, and who is lost (rule 19), judged from the directory's files on
-    the presence thread (`rr-unix-presence`)."""
+    the presence thread (`rr-unix-presence`).
+
+    The limits of judging who is lost (the module docstring):
+
+    - a process hears it only if it has, or tries, a connection to that registrar: one that
+      holds ids there has one (its calls opened it; it lasts until the peer ends), so the
+      gap is a consumer whose connection ended earlier for another reason and that sends
+      nothing: it hears at its next message (the failed connect is judged);
+    - the lock probe is a shared `flock` held for microseconds; a listener taking the name
+      meanwhile retries for `link.LOCK_RETRY` s before it reports `DuplicateNameError`;
+    - a pid is trusted with its start time where `/proc` has it; elsewhere a pid reused
+      by an unrelated process keeps a registrar awaited (not lost) until that one ends;
+    - what a speaker that lives on does with the name (a restart, or the death watch when
+      it gives up) is its own: the carrier waits only for its death;
+    - `DIRECTORY.restart_expected(name)` is read when the registrar starts serving.
+    """
 
     def __init__(self, messenger: Messenger, address: SystemAddress) -> None:
         self.messenger = messenger

@@ -33,52 +33,8 @@ registrar's key and the server seen for it, `_Route`), a `Local` per registrar s
 to the sender's answer key. The link's threads are `link.py`'s (outboxes, inbox), who
 serves what is `presence.py`'s, the key expressions and the header `wire.py`'s.
 
-Never on an actor's thread: a registrar's actor (and any `Actor`: `on_actor_thread`) must
-answer its next message, a supervisor's heartbeat included (`hang` tolerance 0.75 s by
-default), however slow the network is. So there `knows` and `route` never ask the
-network; what this process's presence heard decides:
-
-- a name served now: sent at once, as from any thread;
-- a name heard to stop cleanly: `RegistrarStoppedError` at once (it holds nothing, rule
-  12; a registrar served again under its name is a new one, and reconciles itself);
-- a name never heard of, or heard to die (a restart may be served already, its token
-  still on its way here): its peer comes at once and each message to it is sent when
-  served (`messenger.send_when_served`): framed, and queued on the name's outbox (its
-  lane); the writer thread asks the network (an answer that names no server is asked
-  again for a while: Zenoh's can be empty at once while the router holds the token),
-  then puts it to the server found, or fails its reply (`UnknownRegistrarError`, or
-  `RegistrarUnavailableError` for one that died, or when the network did not answer in
-  full), then what waits behind it with the same error. One queue per name keeps the
-  order of what this process sends to it, before and after it is seen served (a
-  message sent once it is seen goes on that queue too, behind those still held there).
-
-Why not trust the tables alone: they may lag the network (a consumer's first call, or
-a restarted provider's `ReconcileAsk`, can overtake its token here, and the answer, the
-status or the `Reconcile` must still reach it; a process that just joined has not heard
-the history yet). Why not wait on the actor: a router slow under load answers in up to
-`ASK_TIMEOUT` (1 s), and a manager whose actor does not answer its heartbeat in time is
-killed as hung. A user's thread (a call, `run`) still asks the network inline: its
-caller waits anyway, and gets `UnknownRegistrarError` at once.
-
-One name, one server: `listen` first declares a claim token, then asks the network for
-servers and claims of the name. A server of another process is a `DuplicateNameError`;
-of two claims that see each other the lower Zenoh id wins; a claim that sees a higher
-one waits until that one either serves (then it yields) or withdraws. A claim is held
-until the registrar's token is declared, so a rival never sees it go before the token
-comes. (The router orders declarations and queries, so of two claims at least one sees
-the other.) A process attached through a router that does not answer serves nothing: it
-cannot hear the rest of the system (`Presence.question`).
-
-Through cuts and heals (rule 22): a name whose server went beyond a cut is lost there
-(rule 19), and may be served on this side; once the link heals, both registrars' tokens
-are seen everywhere. Each carries the clock stamp of when it began to serve and its
-side (the hosts heard then, out of the system's members): the one the system's
-`resolve=` keeps (by default the one served first) is kept, and the process that serves
-the other makes it yield
-(`served_elsewhere` ─► `Messenger.served_elsewhere`, the decision every carrier
-runs, ─► `Messenger.give_way`): ERROR, its subscriber and token go, it
-unloads what it serves and stops; its consumers, wherever they are, reconcile with the
-one kept (rule 20).
+Which thread may ask the network, one name's one server, and cuts and heals (rule 22):
+`ZenohCarrier`'s docstring.
 """
 
 from __future__ import annotations
@@ -253,7 +209,54 @@ class Local(Listening):
 
 class ZenohCarrier:
     """This process's link to a system over an open Zenoh session (the messenger's
-    `Carrier`; see the module docstring).
+    `Carrier`; how it moves a message: the module docstring).
+
+    Never on an actor's thread: a registrar's actor (and any `Actor`: `on_actor_thread`) must
+    answer its next message, a supervisor's heartbeat included (`hang` tolerance 0.75 s by
+    default), however slow the network is. So there `knows` and `route` never ask the
+    network; what this process's presence heard decides:
+
+    - a name served now: sent at once, as from any thread;
+    - a name heard to stop cleanly: `RegistrarStoppedError` at once (it holds nothing, rule
+      12; a registrar served again under its name is a new one, and reconciles itself);
+    - a name never heard of, or heard to die (a restart may be served already, its token
+      still on its way here): its peer comes at once and each message to it is sent when
+      served (`messenger.send_when_served`): framed, and queued on the name's outbox (its
+      lane); the writer thread asks the network (an answer that names no server is asked
+      again for a while: Zenoh's can be empty at once while the router holds the token),
+      then puts it to the server found, or fails its reply (`UnknownRegistrarError`, or
+      `RegistrarUnavailableError` for one that died, or when the network did not answer in
+      full), then what waits behind it with the same error. One queue per name keeps the
+      order of what this process sends to it, before and after it is seen served (a
+      message sent once it is seen goes on that queue too, behind those still held there).
+
+    Why not trust the tables alone: they may lag the network (a consumer's first call, or
+    a restarted provider's `ReconcileAsk`, can overtake its token here, and the answer, the
+    status or the `Reconcile` must still reach it; a process that just joined has not heard
+    the history yet). Why not wait on the actor: a router slow under load answers in up to
+    `ASK_TIMEOUT` (1 s), and a manager whose actor does not answer its heartbeat in time is
+    killed as hung. A user's thread (a call, `run`) still asks the network inline: its
+    caller waits anyway, and gets `UnknownRegistrarError` at once.
+
+    One name, one server: `listen` first declares a claim token, then asks the network for
+    servers and claims of the name. A server of another process is a `DuplicateNameError`;
+    of two claims that see each other the lower Zenoh id wins; a claim that sees a higher
+    one waits until that one either serves (then it yields) or withdraws. A claim is held
+    until the registrar's token is declared, so a rival never sees it go before the token
+    comes. (The router orders declarations and queries, so of two claims at least one sees
+    the other.) A process attached through a router that does not answer serves nothing: it
+    cannot hear the rest of the system (`Presence.question`).
+
+    Through cuts and heals (rule 22): a name whose server went beyond a cut is lost there
+    (rule 19), and may be served on this side; once the link heals, both registrars' tokens
+    are seen everywhere. Each carries the clock stamp of when it began to serve and its
+    side (the hosts heard then, out of the system's members): the one the system's
+    `resolve=` keeps (by default the one served first) is kept, and the process that serves
+    the other makes it yield
+    (`served_elsewhere` ─► `Messenger.served_elsewhere`, the decision every carrier
+    runs, ─► `Messenger.give_way`): ERROR, its subscriber and token go, it
+    unloads what it serves and stops; its consumers, wherever they are, reconcile with the
+    one kept (rule 20).
 
     Args:
         messenger: this process's membership of the system.

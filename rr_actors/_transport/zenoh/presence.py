@@ -32,15 +32,7 @@
   gets through.
 
 Claims (`live/claim/<name>/<zid>`) and `wait_turn` are `listen`'s half of "one name, one
-server" (see `carrier`). `wait_turn` decides only from a full answer of the network (a
-liveliness query that timed out answers with an error reply: it is asked again, and
-`serve` fails with `RegistrarUnavailableError` if none comes within `CLAIM_TIMEOUT`). A
-process attached through a router counts an answer as full only if that router answers
-a ping after it: Zenoh ends a liveliness query of a session with no route at once, with
-no reply and no error, which is not "nobody serves it" (a process whose router died
-hears nothing of the system). Nor does `wait_turn` let this process serve a name whose
-last server went without a clean stop while its supervisor may restart it (`_awaiting`:
-not lost, rule 19).
+server" (see `carrier`); what counts as the network's full answer: `wait_turn`.
 
 Two servers of one name (rule 22): a cut lets each side serve a name the other served
 (lost there, rule 19); after the heal both tokens are seen. Each token carries the clock
@@ -315,6 +307,10 @@ class Presence:
         once, unlike `question_until_seen`'s: asking again would add `EMPTY_BELIEVED`
         to every serve of a new name, and a second server let in by Zenoh's mistake is
         seen within milliseconds and yields (rule 22: the one served first is kept).
+        A process attached through a router counts an answer as full only if that router
+        answers a ping after it: Zenoh ends a liveliness query of a session with no route
+        at once, with no reply and no error, which is not "nobody serves it" (a process
+        whose router died hears nothing of the system).
 
         Raises:
             DuplicateNameError: another process serves it, or claims it and wins.

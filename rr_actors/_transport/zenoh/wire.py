@@ -34,9 +34,8 @@ see each other:
                                               (a queryable; PEM, public; `members`)
 ```
 
-`Keys` builds each of them and parses each liveliness token and observer key (a malformed
-one is `None`); no other module writes a key. The observer's keys (`rr_actors.observe`,
-across hosts) carry JSON only, outside `live/`, so presence never looks at them.
+`Keys` builds each of them and parses each liveliness token and observer key (`None`:
+malformed); no other module writes a key. Observer keys carry JSON only, outside `live/`.
 
 A payload is `header + frame`, where the frame is the AF_UNIX carrier's
 (`codec.frame`: length, 8-byte token, pickle) and the header says who speaks:
@@ -46,17 +45,8 @@ A payload is `header + frame`, where the frame is the AF_UNIX carrier's
        | length of the sender's Zenoh id (1 byte) | the id (ASCII hex)
 ```
 
-A message or an answer carries the sender's hybrid logical clock stamp (`_core.hlc`):
-its kind has the `STAMPED` flag, and the 8-byte stamp (little endian) follows the
-frame's token, before the pickle (`envelope`). There, a process of another wire version
-still reads the token, to answer `VERSION`; the frame's length field is not the
-frame's then (it is never read: the sample's length is). The receiver's clock takes the
-stamp in before the message is handled (`inbox`).
-
-The header's layout never changes, so a process of another rr_actors wire version or
-Python minor version can always read it: nothing after it is unpickled unless both
-versions match (pickles do not cross those safely); a message of another version is
-answered with a `VERSION` frame that carries no pickle, only the header.
+The clock stamp a message carries, and what a process of another version reads:
+`Header`'s docstring.
 """
 
 from __future__ import annotations
@@ -119,7 +109,20 @@ _FIXED = struct.Struct("!2sBBBBB")  # magic, wire version, Python major, minor, 
 
 class Header:
     """What a payload's header says: who sent it, in which versions, what kind it is, and
-    the sender's clock stamp (`None`: none came)."""
+    the sender's clock stamp (`None`: none came).
+
+    A message or an answer carries the sender's hybrid logical clock stamp (`_core.hlc`):
+    its kind has the `STAMPED` flag, and the 8-byte stamp (little endian) follows the
+    frame's token, before the pickle (`envelope`). There, a process of another wire version
+    still reads the token, to answer `VERSION`; the frame's length field is not the
+    frame's then (it is never read: the sample's length is). The receiver's clock takes the
+    stamp in before the message is handled (`inbox`).
+
+    The header's layout never changes, so a process of another rr_actors wire version or
+    Python minor version can always read it: nothing after it is unpickled unless both
+    versions match (pickles do not cross those safely); a message of another version is
+    answered with a `VERSION` frame that carries no pickle, only the header.
+    """
 
     __slots__ = ("kind", "python", "sender", "size", "stamp", "wire")
 

@@ -33,9 +33,9 @@ from typing import TYPE_CHECKING, Any
 
 import zenoh
 
-from rr_actors._core.addresses import is_loopback
 from rr_actors._transport.zenoh.ops.access import user
 from rr_actors._transport.zenoh.wire import Keys
+from rr_actors.config import is_loopback
 from rr_actors.errors import ConfigError
 
 if TYPE_CHECKING:

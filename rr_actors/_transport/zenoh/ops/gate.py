@@ -29,15 +29,8 @@ platforms, where only a firewall helps):
     linked, and their handshakes, however many, end within a look; a flood's stay.)
 
   A drop ends on time, whatever the source sends meanwhile: one that waited for quiet
-  would last as long as anyone keeps sending with that source address.
-
-Links already up are not touched (each keeps the filter it was accepted with; a few
-instructions per packet). What is left to the firewall
-(`docs/how-to/securing-registrars.md`): a flood from a member's address (members are
-trusted; so are hosts behind a member's NAT), a flood of packets that fills the link, a
-member's first link from an address its certificate does not name while the port takes
-members' addresses only, more than `GATE_SOURCES` members' addresses (no filter holds
-them: the port is then not turned to members only), platforms without a gate.
+  would last as long as anyone keeps sending with that source address. What is left to
+  the firewall: `HandshakeGate`'s docstring.
 
 ```
  thread "rr-zenoh-gate", every TICK s:
@@ -50,32 +43,8 @@ them: the port is then not turned to members only), platforms without a gate.
      └─ gate.admit_only(members) while members only, else gate.drop_from(dropped)
 ```
 
-Which addresses are members' (`MemberAddresses`): those the gate never drops.
-
-A TLS router knows a member by the certificate of its link, and Zenoh tells the
-listener no more of that certificate than its common name. So each router answers a
-`get` on `rr/<system>/cert/<its name>` with its own cert file (public: what it shows in
-every handshake), and fetches the certificate of each member that links to it. A
-member's addresses are then, from the strongest:
-
-- the IP addresses its certificate names (subjectAltName), kept once the certificate
-  checks out as the handshake checks this host's own (`tls.member_addresses`: signed up
-  to the system's CA, in date, its common name the one it linked with): where the CA
-  says the member is, also while it is out of reach, also after it went away;
-- the remote address of its link up now (behind a NAT, say, where no certificate names
-  it);
-- the addresses its links came from since this router started (the last `LEARNED`).
-
-Nothing here trusts what a member says of itself: a certificate anyone relays is the
-CA's word. One that does not check out is said once (WARNING) and not used.
-
-```
- thread "rr-zenoh-gate" (the gate's), at each look: MemberAddresses.now()
-   session.info.links(): member links up ─► learned addresses
-   a member linked, its certificate not known ─► session.get(rr/<system>/cert/<name>)
-   replies in (try_recv, never blocks) ─► tls.member_addresses() ─► named addresses
- Zenoh's thread: a get on rr/<system>/cert/<this host> ─► the cert file's bytes
-```
+Which addresses are members' (those the gate never drops), and how a router learns them:
+`MemberAddresses`'s docstring.
 """
 
 from __future__ import annotations
@@ -163,6 +132,14 @@ class _Port:
 
 class HandshakeGate:
     """Drops the sources that flood a router's `tls/` listeners (see the module docstring).
+
+    Links already up are not touched (each keeps the filter it was accepted with; a few
+    instructions per packet). What is left to the firewall
+    (`docs/how-to/securing-registrars.md`): a flood from a member's address (members are
+    trusted; so are hosts behind a member's NAT), a flood of packets that fills the link, a
+    member's first link from an address its certificate does not name while the port takes
+    members' addresses only, more than `GATE_SOURCES` members' addresses (no filter holds
+    them: the port is then not turned to members only), platforms without a gate.
 
     Args:
         system: the system's name, for the log lines.
@@ -316,7 +293,32 @@ _ASK_TIMEOUT = 2.0  # seconds a get of a certificate waits for its answer
 
 
 class MemberAddresses:
-    """The addresses of the members of one router's system (see the module docstring).
+    """The addresses of the members of one router's system: those the gate never drops.
+
+    A TLS router knows a member by the certificate of its link, and Zenoh tells the
+    listener no more of that certificate than its common name. So each router answers a
+    `get` on `rr/<system>/cert/<its name>` with its own cert file (public: what it shows in
+    every handshake), and fetches the certificate of each member that links to it. A
+    member's addresses are then, from the strongest:
+
+    - the IP addresses its certificate names (subjectAltName), kept once the certificate
+      checks out as the handshake checks this host's own (`tls.member_addresses`: signed up
+      to the system's CA, in date, its common name the one it linked with): where the CA
+      says the member is, also while it is out of reach, also after it went away;
+    - the remote address of its link up now (behind a NAT, say, where no certificate names
+      it);
+    - the addresses its links came from since this router started (the last `LEARNED`).
+
+    Nothing here trusts what a member says of itself: a certificate anyone relays is the
+    CA's word. One that does not check out is said once (WARNING) and not used.
+
+    ```
+     thread "rr-zenoh-gate" (the gate's), at each look: MemberAddresses.now()
+       session.info.links(): member links up ─► learned addresses
+       a member linked, its certificate not known ─► session.get(rr/<system>/cert/<name>)
+       replies in (try_recv, never blocks) ─► tls.member_addresses() ─► named addresses
+     Zenoh's thread: a get on rr/<system>/cert/<this host> ─► the cert file's bytes
+    ```
 
     Args:
         system: the system's name, for the log lines.

@@ -34,23 +34,8 @@ dial each other share one link). So a link to one port of a host does not hide t
 another port there (an impostor, say) refuses us. A host name is resolved again only
 while its endpoint is unlinked, at most every `GRACE` s (a lookup may block for seconds).
 
-Why a `connect` endpoint is not linked: one TLS handshake of our own
-(`handshake_trouble`).
-
-zenoh-python 1.10 does not tell Python that a handshake was refused: a refused
-`zenoh.open` returns normally, retries every 1-4 s and logs the reason at DEBUG on stdout.
-So when a `connect` endpoint stays unlinked, rr_actors dials it once with Python's `ssl`
-and the same files (the watch decides when), and names what went wrong:
-
-- the listener's alert, sent when it refuses this host's certificate (TLS 1.3 sends it
-  after the client's side of the handshake, so the probe reads once to receive it):
-  `unknown ca`, `certificate expired`, `certificate required`, ...;
-- or its own verdict on the listener's certificate, the checks Zenoh makes as a client:
-  not signed by this system's CA, or not naming the address dialled
-  (`verify_name_on_connect`), or out of its validity dates;
-- or that the address cannot be reached at all.
-
-Runs on the watch thread; never on a Zenoh callback (it blocks up to `timeout`).
+Why a `connect` endpoint is not linked: one TLS handshake of our own, and why it is
+needed (`handshake_trouble`).
 """
 
 from __future__ import annotations
@@ -434,6 +419,21 @@ def _verdict(exc: ssl.SSLCertVerificationError, host: str, tls: ZenohTLS) -> str
 
 def handshake_trouble(tls: ZenohTLS, host: str, port: int, *, timeout: float = 2.0) -> str | None:
     """Why a mutual-TLS link with `host:port` fails, in words; `None` if the listener accepts us.
+
+    zenoh-python 1.10 does not tell Python that a handshake was refused: a refused
+    `zenoh.open` returns normally, retries every 1-4 s and logs the reason at DEBUG on stdout.
+    So when a `connect` endpoint stays unlinked, rr_actors dials it once with Python's `ssl`
+    and the same files (the watch decides when), and names what went wrong:
+
+    - the listener's alert, sent when it refuses this host's certificate (TLS 1.3 sends it
+      after the client's side of the handshake, so the probe reads once to receive it):
+      `unknown ca`, `certificate expired`, `certificate required`, ...;
+    - or its own verdict on the listener's certificate, the checks Zenoh makes as a client:
+      not signed by this system's CA, or not naming the address dialled
+      (`verify_name_on_connect`), or out of its validity dates;
+    - or that the address cannot be reached at all.
+
+    Runs on the watch thread; never on a Zenoh callback (it blocks up to `timeout`).
 
     Args:
         tls: this host's files (`ca`, `cert`, `key` are paths).
