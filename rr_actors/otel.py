@@ -40,6 +40,7 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from rr_actors import events
+from rr_actors._core import hlc, traces
 
 try:
     from opentelemetry import trace as _api
@@ -56,6 +57,38 @@ SCOPE = "rr_actors.otel"
 
 _CALL_ENDS = (events.CallAnswered, events.CallFailed, events.CallWithdrawn)
 _UNLOADS = frozenset({"unload", "unload unanswered"})
+
+
+class _Chosen:
+    """An id generator that gives the ids chosen for the next span, else its inner one's.
+
+    A call's CLIENT and SERVER spans have the ids its trace context named when the call
+    was made (`rr_actors._core.traces`), so that both sides, built by subscribers of
+    different processes, and the spans the user made in its `load`, meet. The SDK's
+    tracer draws its ids from its `id_generator`; this one is put there (the ids chosen
+    per thread: the tracer of a scope is shared).
+    """
+
+    def __init__(self, inner: Any) -> None:
+        self.inner = inner
+        self._chosen = threading.local()
+
+    def choose(self, trace_id: int, span_id: int) -> None:
+        self._chosen.ids = (trace_id, span_id)
+
+    def clear(self) -> None:
+        self._chosen.ids = None
+
+    def generate_trace_id(self) -> int:
+        ids = getattr(self._chosen, "ids", None)
+        return ids[0] if ids is not None else int(self.inner.generate_trace_id())
+
+    def generate_span_id(self) -> int:
+        ids = getattr(self._chosen, "ids", None)
+        return ids[1] if ids is not None else int(self.inner.generate_span_id())
+
+    def is_trace_id_random(self) -> bool:
+        return True
 
 
 class _Subscribable(Protocol):
@@ -90,6 +123,9 @@ class _Half:
     children: list[_Child] = dataclasses.field(default_factory=list)
     links: list[Any] = dataclasses.field(default_factory=list)
     arrived: float = dataclasses.field(default_factory=time.monotonic)
+    trace: str = ""  # the traceparent the call carried (its CLIENT span's id)
+    caller_span: str = ""  # (a CLIENT side) the caller's span, its parent
+    started: float = 0.0  # (a CLIENT side) when the call began, 0.0: not known
 
 
 @dataclasses.dataclass
@@ -163,7 +199,11 @@ class Tracing:
         if isinstance(provider, _api.ProxyTracerProvider | _api.NoOpTracerProvider):
             return None
         if provider is not self._tracer_of:
-            self._tracer = provider.get_tracer(SCOPE)
+            tracer: Any = provider.get_tracer(SCOPE)
+            inner = getattr(tracer, "id_generator", None)  # (the SDK's tracer: ids chosen)
+            if inner is not None and not isinstance(inner, _Chosen):
+                tracer.id_generator = _Chosen(inner)
+            self._tracer = tracer
             self._tracer_of = provider
         return self._tracer
 
@@ -234,6 +274,9 @@ class Tracing:
                 attributes["rr_actors.registrar"] = event.registrar
                 attributes["rr_actors.outcome"] = event.reason
                 half = _Half(event.serving_rr, "", event.at, event.at, attributes)
+                half.trace, half.caller_span = event.trace, event.caller_span
+                if event.unload_sent:  # (its stamp: when the release began)
+                    half.started = hlc.seconds(event.unload_sent)
                 self._client(tracer, (event.query_id, "unload"), half)
         elif isinstance(event, events.ChildExited):
             self._exits[event.child] = event
@@ -273,7 +316,7 @@ class Tracing:
         attributes["rr_actors.consumer"] = event.consumer
         attributes["rr_actors.dedup"] = load is None
         attributes["rr_actors.outcome"] = "loaded" if load is not None else "dedup"
-        half = _Half(event.registrar, server, event.at, event.at, attributes)
+        half = _Half(event.registrar, server, event.at, event.at, attributes, trace=event.trace)
         if load is not None:
             if load.digest is not None:
                 attributes["rr_actors.digest"] = load.digest
@@ -289,6 +332,7 @@ class Tracing:
         attributes["rr_actors.outcome"] = "load failed"
         error = (event.error_type, event.message)
         half = _Half(event.registrar, event.server, event.at, event.at, attributes, error)
+        half.trace = event.trace
         callback = {"rr_actors.resource_id": event.resource_id}
         half.children.append(_Child(f"{event.server}.load", event.at, event.at, callback, error))
         self._server(tracer, (event.query_id, "call"), half)
@@ -310,6 +354,7 @@ class Tracing:
         else:
             attributes["rr_actors.outcome"] = f"withdrawn: {event.reason}"
         half = _Half(event.serving_rr, event.server, event.at, event.at, attributes, error)
+        half.trace, half.caller_span, half.started = event.trace, event.caller_span, event.started
         self._client(tracer, (event.query_id, "call"), half)
 
     def _release(self, tracer: Any, event: events.ConsumerReleased) -> None:
@@ -325,7 +370,7 @@ class Tracing:
         attributes["rr_actors.resource_id"] = event.resource_id
         attributes["rr_actors.consumer"] = event.consumer
         attributes["rr_actors.outcome"] = "released"
-        half = _Half(event.registrar, server, event.at, event.at, attributes)
+        half = _Half(event.registrar, server, event.at, event.at, attributes, trace=event.trace)
         if left == 1:  # the last consumer: its ResourceUnloaded follows, to go under it
             self._unloading[resource] = ((event.query_id, "unload"), half)
         else:
@@ -398,19 +443,39 @@ class Tracing:
             client.attributes["rpc.method"] = server.attributes["rpc.method"] = method
         if client is not None:
             start = min(client.start, server.start) if server is not None else client.start
+            if client.started:  # (when the call began: known since event schema 7)
+                start = client.started
             name = f"{client.service}/{client.method}"
-            span = tracer.start_span(
+            parsed = traces.parse(client.trace)
+            parent = traces.caller_parent(client.trace, client.caller_span)
+            span = self._start(
+                tracer,
+                (parsed[0], parsed[1]) if parsed is not None else None,
                 name,
+                context=_api.set_span_in_context(_api.NonRecordingSpan(parent))
+                if parent is not None
+                else None,
                 kind=_api.SpanKind.CLIENT,
                 attributes=client.attributes,
                 links=client.links,
                 start_time=_ns(start),
             )
-            self._end(span, client.error, client.end)
+            self._end(span, client.error, max(client.end, start))
             context = _api.set_span_in_context(span)
         if server is not None:
             name = f"{server.service}/{server.method}"
-            span = tracer.start_span(
+            parsed = traces.parse(server.trace)
+            ids = None
+            if parsed is not None:  # its parent: the CLIENT span the call named
+                trace_id, client_span, flags = parsed
+                ids = (trace_id, traces.server_span(client_span))
+                called = _api.SpanContext(
+                    trace_id, client_span, is_remote=True, trace_flags=_api.TraceFlags(flags)
+                )
+                context = _api.set_span_in_context(_api.NonRecordingSpan(called))
+            span = self._start(
+                tracer,
+                ids,
                 name,
                 context=context,
                 kind=_api.SpanKind.SERVER,
@@ -422,6 +487,19 @@ class Tracing:
             for child in server.children:
                 self._emit_child(tracer, inner, child, server.links)
             self._end(span, server.error, max(server.end, server.start))
+
+    @staticmethod
+    def _start(tracer: Any, ids: tuple[int, int] | None, name: str, **options: Any) -> Any:
+        """`tracer.start_span(name, **options)`, with the (trace, span) ids `ids` if given
+        (with the SDK's tracer; another one draws its own)."""
+        chosen = getattr(tracer, "id_generator", None)
+        if ids is None or not isinstance(chosen, _Chosen):
+            return tracer.start_span(name, **options)
+        chosen.choose(*ids)
+        try:
+            return tracer.start_span(name, **options)
+        finally:
+            chosen.clear()
 
     def _emit_child(self, tracer: Any, context: Any, child: _Child, links: list[Any]) -> None:
         span = tracer.start_span(

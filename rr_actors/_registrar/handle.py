@@ -48,7 +48,7 @@ from typing import Any, Concatenate, ParamSpec, Protocol, Self, TypeVar
 import pykka
 
 from rr_actors import events
-from rr_actors._core import hlc, runtime
+from rr_actors._core import hlc, runtime, traces
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Publisher, Subscription
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.exit import REGISTRARS, stop_at_exit
@@ -851,6 +851,7 @@ class Here:
             on_status,
             limit,
             deadline,
+            traces.begin(),  # (in the caller's thread or task: its OpenTelemetry context)
         )
         client = self.clients.get(target_rr, server)
         if client is None or not client.is_alive():  # (it exists from the first call)
@@ -858,7 +859,8 @@ class Here:
         return steps
 
     def unload(self, timeout: float | None, query_id: str) -> Steps[None]:
-        return self.asking(Release(query_id, FutureReply()), timeout, f"unload({query_id!r})")
+        release = Release(query_id, FutureReply(), traces.begin())
+        return self.asking(release, timeout, f"unload({query_id!r})")
 
     def send_status(
         self, timeout: float | None, query_id: str, status: Status, message: str

@@ -1,0 +1,171 @@
+"""The W3C trace context a call carries: read from its caller's OpenTelemetry context.
+
+```
+ caller (call/acall/unload, its thread or task)      provider (any process, any host)
+ ─────────────────────────────────────────────       ─────────────────────────────────
+ current span: trace T, span P, flags F
+ begin() ──► ("00-T-C-F", "P")   C: the CLIENT span's id, drawn here
+   Load/Release/Unload .trace = "00-T-C-F" ─────────► its events' `trace`; the SERVER
+   its end event: trace "00-T-C-F", caller_span "P"     span's id is server_span(C)
+                                                      a load runs under
+                                                      context_of("00-T-C-F"): span S
+```
+
+A traceparent (`"00-" 32 hex "-" 16 hex "-" 2 hex`, 55 characters) is a plain `str`:
+it pickles as one, a JSON line holds it, and an untraced call carries `""`. The spans
+themselves are made later, from the events, by `rr_actors.otel`: the ids are drawn here
+so that both sides, in whichever process their spans are made, name the same spans.
+
+Without the `otel` extra, or with no span current in the caller (an empty OpenTelemetry
+context), `begin` returns `None` after one context-variable read and nothing is carried.
+"""
+
+from __future__ import annotations
+
+import random
+from typing import Any
+
+try:
+    from opentelemetry import context as _context
+    from opentelemetry import trace as _trace
+except ImportError:  # the otel extra is missing: no call carries a trace context
+    _context = None  # type: ignore[assignment]
+    _trace = None  # type: ignore[assignment]
+
+__all__ = [
+    "adopt",
+    "attach",
+    "begin",
+    "caller_parent",
+    "context_of",
+    "current",
+    "detach",
+    "parse",
+    "server_span",
+    "span_id",
+]
+
+_SERVER = 0x7272_5F61_6374_6F72  # (b"rr_actor"): a SERVER span's id is its CLIENT's xor this
+_MASK = (1 << 64) - 1
+
+
+def _new_span() -> int:
+    """A fresh span id: 64 random bits, neither 0 (invalid) nor one whose SERVER id is 0."""
+    while True:
+        span = random.getrandbits(64)
+        if span not in (0, _SERVER):
+            return span
+
+
+def begin() -> tuple[str, str] | None:
+    """The trace context of a call made now: `(traceparent, caller_span)` or `None`.
+
+    Read in the caller's thread or task (contextvars: an `acall` keeps its caller's
+    context across `await`). `traceparent` names the call's CLIENT span (a fresh id)
+    under the caller's trace id and sampled flag; `caller_span` is the id (16 hex) of the
+    caller's current span, the CLIENT span's parent. `None` without the extra or without
+    a valid span current.
+    """
+    if _context is None:
+        return None
+    current = _context.get_current()
+    if not current:  # (an empty context: nothing traced here)
+        return None
+    caller = _trace.get_current_span(current).get_span_context()
+    if not caller.is_valid:
+        return None
+    traceparent = f"00-{caller.trace_id:032x}-{_new_span():016x}-{caller.trace_flags:02x}"
+    return traceparent, f"{caller.span_id:016x}"
+
+
+def current() -> str:
+    """The W3C traceparent of the span current here (a thread's or task's), `""` if none:
+    what a handle on a registrar of another process carries there (`adopt`)."""
+    if _context is None:
+        return ""
+    current = _context.get_current()
+    if not current:
+        return ""
+    span = _trace.get_current_span(current).get_span_context()
+    if not span.is_valid:
+        return ""
+    return f"00-{span.trace_id:032x}-{span.span_id:016x}-{span.trace_flags:02x}"
+
+
+def adopt(traceparent: str) -> None:
+    """Make the span `traceparent` names current here (a non-recording one: a caller's
+    span in another process), for the rest of this context; nothing for a bad one."""
+    parsed = parse(traceparent)
+    if _trace is None or parsed is None:
+        return
+    trace_id, span, flags = parsed
+    remote = _trace.SpanContext(
+        trace_id, span, is_remote=True, trace_flags=_trace.TraceFlags(flags)
+    )
+    _context.attach(_trace.set_span_in_context(_trace.NonRecordingSpan(remote)))
+
+
+def parse(traceparent: str) -> tuple[int, int, int] | None:
+    """`(trace_id, span_id, flags)` of a traceparent, or `None` for `""` or a bad one."""
+    if len(traceparent) != 55 or traceparent[:3] != "00-":
+        return None
+    try:
+        trace_id = int(traceparent[3:35], 16)
+        span = int(traceparent[36:52], 16)
+        flags = int(traceparent[53:55], 16)
+    except ValueError:
+        return None
+    if not (trace_id and span):
+        return None
+    return trace_id, span, flags
+
+
+def span_id(hexadecimal: str) -> int:
+    """A span id of 16 hex digits (`caller_span`), 0 for `""` or a bad one."""
+    try:
+        return int(hexadecimal, 16) if len(hexadecimal) == 16 else 0
+    except ValueError:
+        return 0
+
+
+def server_span(client_span: int) -> int:
+    """The id of the SERVER span of the call whose CLIENT span is `client_span`."""
+    return (client_span ^ _SERVER) & _MASK
+
+
+def caller_parent(traceparent: str, caller_span: str) -> Any:
+    """The span context of a call's caller (its CLIENT span's parent), or `None`."""
+    parsed = parse(traceparent)
+    parent = span_id(caller_span)
+    if _trace is None or parsed is None or not parent:
+        return None
+    trace_id, _client, flags = parsed
+    return _trace.SpanContext(
+        trace_id, parent, is_remote=True, trace_flags=_trace.TraceFlags(flags)
+    )
+
+
+def context_of(traceparent: str) -> Any:
+    """The OpenTelemetry context whose current span is the SERVER span of the call that
+    carried `traceparent` (a non-recording span: the real one is made from the events),
+    or `None` (nothing carried, or no extra). Spans made under it are its children."""
+    parsed = parse(traceparent)
+    if _trace is None or parsed is None:
+        return None
+    trace_id, client, flags = parsed
+    server = _trace.SpanContext(
+        trace_id, server_span(client), is_remote=False, trace_flags=_trace.TraceFlags(flags)
+    )
+    return _trace.set_span_in_context(_trace.NonRecordingSpan(server))
+
+
+def attach(traceparent: str) -> object | None:
+    """Make `context_of(traceparent)` current in this thread or task: its token, or `None`."""
+    context = context_of(traceparent) if traceparent else None
+    return _context.attach(context) if context is not None else None
+
+
+def detach(token: object | None) -> None:
+    """Undo `attach` (with its token; `None`: nothing was attached)."""
+    if token is not None:
+        _context.detach(token)  # type: ignore[arg-type]
