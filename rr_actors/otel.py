@@ -34,6 +34,7 @@ starts (a load: its `at - load_s`), or at its own end without one.
 from __future__ import annotations
 
 import dataclasses
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -47,7 +48,7 @@ try:
 except ImportError:  # the otel extra is missing: every event is ignored
     _api = None  # type: ignore[assignment]
 
-__all__ = ["SCOPE", "SYSTEM", "Tracing", "trace"]
+__all__ = ["SCOPE", "SYSTEM", "Exporting", "Tracing", "provider_from_environment", "trace"]
 
 SYSTEM = "rr_actors"
 """The `rpc.system` of every RPC span."""
@@ -600,3 +601,100 @@ def trace(source: _Subscribable, **options: Any) -> Tracing:
     tracing = Tracing(**options)
     tracing._subscription = source.subscribe(tracing)
     return tracing
+
+
+EXPORTERS = "opentelemetry_traces_exporter"
+"""The entry-point group of span exporters, by the name `OTEL_TRACES_EXPORTER` gives."""
+
+
+def provider_from_environment() -> Any:
+    """An SDK `TracerProvider` set up by the `OTEL_*` environment variables, as
+    OpenTelemetry's automatic instrumentation (`opentelemetry-instrument`) sets one up.
+
+    `OTEL_TRACES_EXPORTER`: the exporters, comma-separated names of the
+    `opentelemetry_traces_exporter` entry points (`console` comes with the SDK, `otlp`
+    with `opentelemetry-exporter-otlp`; default `otlp`; `none`: no exporter), each
+    behind a `BatchSpanProcessor` (its `OTEL_BSP_*` variables); the resource
+    (`OTEL_SERVICE_NAME`, `OTEL_RESOURCE_ATTRIBUTES`), the sampler
+    (`OTEL_TRACES_SAMPLER`, `OTEL_TRACES_SAMPLER_ARG`) and the limits are the SDK's
+    own reading of them; each exporter reads its own (`OTEL_EXPORTER_OTLP_ENDPOINT`, ...).
+
+    Returns:
+        The provider (not installed as the global one); `shutdown()` it to export what
+        its processors still hold.
+
+    Raises:
+        ConfigError: the SDK (`opentelemetry-sdk`, the `otel` extra) is missing, or an
+            exporter named is not installed.
+    """
+    from importlib.metadata import entry_points  # noqa: PLC0415
+
+    from rr_actors.errors import ConfigError  # noqa: PLC0415
+
+    try:
+        from opentelemetry.sdk.resources import Resource  # noqa: PLC0415
+        from opentelemetry.sdk.trace import TracerProvider  # noqa: PLC0415
+        from opentelemetry.sdk.trace.export import BatchSpanProcessor  # noqa: PLC0415
+    except ImportError as exc:
+        raise ConfigError(
+            f"tracing needs the otel extra (opentelemetry-sdk): pip install 'rr_actors[otel]' "
+            f"({exc})"
+        ) from None
+    named = os.environ.get("OTEL_TRACES_EXPORTER", "otlp")
+    names = [n.strip() for n in named.split(",") if n.strip() and n.strip() != "none"]
+    exporters = []
+    for name in names:
+        found = entry_points(group=EXPORTERS, name=name)
+        if not found:
+            known = sorted(e.name for e in entry_points(group=EXPORTERS))
+            raise ConfigError(
+                f"OTEL_TRACES_EXPORTER names {name!r}, which is not installed "
+                f"(installed: {', '.join(known) or 'none'}; 'otlp' comes with "
+                f"opentelemetry-exporter-otlp)"
+            )
+        exporters.append(next(iter(found)).load()())
+    provider = TracerProvider(resource=Resource.create())
+    for exporter in exporters:
+        provider.add_span_processor(BatchSpanProcessor(exporter))
+    return provider
+
+
+class Exporting:
+    """What `--trace` does (`rr-actors demo`, `rr-actors experiment`): the spans of the
+    trees it is given, exported where the `OTEL_*` environment variables say.
+
+        with otel.Exporting() as exporting:      # provider_from_environment()
+            exporting.trace(sup)                 # otel.trace(sup, tracer_provider=...)
+            ...                                  # on leaving: close each, then export
+
+    The provider becomes the global one unless the application installed one first (so
+    spans the application makes in this process, its loads' included, go there too).
+
+    Raises:
+        ConfigError: as `provider_from_environment`.
+    """
+
+    def __init__(self) -> None:
+        self.provider = provider_from_environment()
+        if _api is not None and isinstance(_api.get_tracer_provider(), _api.ProxyTracerProvider):
+            _api.set_tracer_provider(self.provider)
+        self._tracings: list[Tracing] = []
+
+    def trace(self, source: _Subscribable) -> Tracing:
+        """Trace `source` (a `Supervisor`, a registrar) through this provider; any thread."""
+        tracing = trace(source, tracer_provider=self.provider)
+        self._tracings.append(tracing)
+        return tracing
+
+    def close(self) -> None:
+        """Close every `Tracing` made (their spans made), then export what waits."""
+        for tracing in self._tracings:
+            tracing.close()
+        self._tracings.clear()
+        self.provider.shutdown()
+
+    def __enter__(self) -> Exporting:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
