@@ -189,6 +189,7 @@ class Tracing:
         self._doubts: dict[int, list[events.InDoubt]] = {}  # pid: what it found
         self._restored: dict[int, float] = {}  # pid: its first CatalogRestored's `at`
         self._served: dict[tuple[str, str], str] = {}  # (registrar, resource id): server
+        self._called: dict[str, str] = {}  # query id held: its server (an unload's name)
 
     # -- the subscriber -----------------------------------------------------------------
 
@@ -270,11 +271,12 @@ class Tracing:
         elif isinstance(event, events.ResourceUnloaded):
             self._unloaded(tracer, event)
         elif isinstance(event, events.QueryForgotten):
+            server = self._called.pop(event.query_id, "")
             if event.reason in _UNLOADS:
-                attributes = self._rpc(event.serving_rr, "", event.query_id)
+                attributes = self._rpc(event.serving_rr, server, event.query_id)
                 attributes["rr_actors.registrar"] = event.registrar
                 attributes["rr_actors.outcome"] = event.reason
-                half = _Half(event.serving_rr, "", event.at, event.at, attributes)
+                half = _Half(event.serving_rr, server, event.at, event.at, attributes)
                 half.trace, half.caller_span = event.trace, event.caller_span
                 if event.unload_sent:  # (its stamp: when the release began)
                     half.started = hlc.seconds(event.unload_sent)
@@ -345,6 +347,8 @@ class Tracing:
         attributes["rr_actors.registrar"] = event.registrar
         error = None
         if isinstance(event, events.CallAnswered):
+            if len(self._called) < self._max_pending:  # (its unload's span names it)
+                self._called[event.query_id] = event.server
             attributes["rr_actors.outcome"] = "answered"
             attributes["rr_actors.retry"] = event.retry
         elif isinstance(event, events.CallFailed):
@@ -432,6 +436,7 @@ class Tracing:
                     clients = waiting is self._clients
                     self._emit(tracer, alone if clients else None, None if clients else alone)
         if before == float("inf"):
+            self._called.clear()
             self._doubts.clear()
             self._exits.clear()
             self._restored.clear()
