@@ -57,6 +57,24 @@ def _new_span() -> int:
             return span
 
 
+# The caller's span last seen, and what a traceparent under it is made of: its
+# `"00-<trace id>-"`, its `"-<flags>"` and its own id (`""`s: not a valid span). A caller
+# makes many calls under one span: each pays one identity check, not the formatting.
+# (Swapped whole: a tuple, so a thread reads one span's parts, never a mix.)
+_last: tuple[object, str, str, str] = (None, "", "", "")
+
+
+def _parts(span: Any) -> tuple[object, str, str, str]:
+    global _last
+    caller = span.get_span_context()
+    if caller.is_valid:
+        prefix, suffix = f"00-{caller.trace_id:032x}-", f"-{caller.trace_flags:02x}"
+        _last = (span, prefix, suffix, f"{caller.span_id:016x}")
+    else:
+        _last = (span, "", "", "")
+    return _last
+
+
 def begin() -> tuple[str, str] | None:
     """The trace context of a call made now: `(traceparent, caller_span)` or `None`.
 
@@ -71,11 +89,14 @@ def begin() -> tuple[str, str] | None:
     current = _context.get_current()
     if not current:  # (an empty context: nothing traced here)
         return None
-    caller = _trace.get_current_span(current).get_span_context()
-    if not caller.is_valid:
+    span = _trace.get_current_span(current)
+    parts = _last
+    if parts[0] is not span:
+        parts = _parts(span)
+    _, prefix, suffix, caller_span = parts
+    if not prefix:
         return None
-    traceparent = f"00-{caller.trace_id:032x}-{_new_span():016x}-{caller.trace_flags:02x}"
-    return traceparent, f"{caller.span_id:016x}"
+    return f"{prefix}{_new_span():016x}{suffix}", caller_span
 
 
 def current() -> str:
