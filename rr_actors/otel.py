@@ -27,8 +27,18 @@ What becomes a span (`docs/how-to/trace.md`):
   whose end the kill lost (a load that started and never finished) are ended at the
   exit, marked `rr_actors.end_lost`, and linked to it.
 
-The events carry no start stamp of a call: a client span starts where its server span
-starts (a load: its `at - load_s`), or at its own end without one.
+A caller's trace continues through the call: a `call`, `acall` or `unload` made while an
+OpenTelemetry span is current in the caller carries its W3C trace context to the
+provider (`rr_actors._core.traces`: the CLIENT span's id is drawn then, the SERVER
+span's derived from it), and its events carry it (`trace`, `caller_span`): the CLIENT
+span is made the caller's span's child, the SERVER span the CLIENT span's, with those
+ids (through the SDK's tracer), in whichever process each side is made; a `load` runs
+with that SERVER span current. A CLIENT span starts when its call began (its end
+event's `started`; without it, as events of schema 6 and before: where its server
+span starts, or at its own end).
+
+`provider_from_environment` and `Exporting` are what `rr-actors demo --trace` and
+`rr-actors experiment --trace` use: an SDK provider set up by the `OTEL_*` variables.
 """
 
 from __future__ import annotations
