@@ -22,8 +22,9 @@ context), `begin` returns `None` after one context-variable read and nothing is 
 
 from __future__ import annotations
 
-import random
 from typing import Any
+
+from rr_actors._core import runtime
 
 try:
     from opentelemetry import context as _context
@@ -49,11 +50,15 @@ _SERVER = 0x7272_5F61_6374_6F72  # (b"rr_actor"): a SERVER span's id is its CLIE
 _MASK = (1 << 64) - 1
 
 
-def _new_span() -> int:
-    """A fresh span id: 64 random bits, neither 0 (invalid) nor one whose SERVER id is 0."""
+_NOT_CLIENT = frozenset({"0" * 16, f"{_SERVER:016x}"})  # (0: invalid, and its SERVER's)
+
+
+def _new_span() -> str:
+    """A fresh span id, 16 hex digits of `runtime.urandom` (a simulation's seeded bytes):
+    neither 0 (invalid) nor one whose SERVER span's id would be 0."""
     while True:
-        span = random.getrandbits(64)
-        if span not in (0, _SERVER):
+        span = runtime.urandom(8).hex()
+        if span not in _NOT_CLIENT:
             return span
 
 
@@ -96,7 +101,7 @@ def begin() -> tuple[str, str] | None:
     _, prefix, suffix, caller_span = parts
     if not prefix:
         return None
-    return f"{prefix}{_new_span():016x}{suffix}", caller_span
+    return f"{prefix}{_new_span()}{suffix}", caller_span
 
 
 def current() -> str:
