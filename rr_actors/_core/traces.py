@@ -50,16 +50,13 @@ _SERVER = 0x7272_5F61_6374_6F72  # (b"rr_actor"): a SERVER span's id is its CLIE
 _MASK = (1 << 64) - 1
 
 
-_NOT_CLIENT = frozenset({"0" * 16, f"{_SERVER:016x}"})  # (0: invalid, and its SERVER's)
-
-
 def _new_span() -> str:
-    """A fresh span id, 16 hex digits of `runtime.urandom` (a simulation's seeded bytes):
-    neither 0 (invalid) nor one whose SERVER span's id would be 0."""
+    """A fresh span id, 16 hex digits from `runtime.getrandbits` (a simulation's seeded
+    generator): neither 0 (invalid) nor one whose SERVER span's id would be 0."""
     while True:
-        span = runtime.urandom(8).hex()
-        if span not in _NOT_CLIENT:
-            return span
+        span = runtime.getrandbits(64)
+        if span not in (0, _SERVER):
+            return f"{span:016x}"
 
 
 # The caller's span last seen, and what a traceparent under it is made of: its
