@@ -227,8 +227,9 @@ def test_without_a_provider_no_span_is_made_and_nothing_fails(
     erm = rr.ResourceRegistrar.start(f"erm-{uid}")
     started.append(erm)
     _serve(erm)
-    with otel.trace(erm) as tracing:
-        query = erm.call(erm.name, "cam", 1, timeout=10)
+    caller = TracerProvider().get_tracer("the application")  # (its own: not the global)
+    with otel.trace(erm) as tracing, caller.start_as_current_span("step"):
+        query = erm.call(erm.name, "cam", 1, timeout=10)  # (carries a trace context)
         erm.unload(query.id)
         assert tracing._subscription.wait_delivered(timeout=5)
     assert [] == made
