@@ -365,6 +365,9 @@ class Registrar:
         Made from inside a `load` callback (of any process), the call carries that load's
         context: the query is recorded as a dependency of the resource being loaded when
         that load runs on this registrar, and is part of its chain for cycle detection.
+        Made while an OpenTelemetry span is current (the `otel` extra), the call carries
+        its W3C trace context to the provider: `rr_actors.otel` makes its spans that
+        span's children, and the provider's `load` runs under them.
 
         Args:
             target_rr: name of the provider registrar (this one's own name works too).
