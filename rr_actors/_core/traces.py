@@ -16,22 +16,44 @@ it pickles as one, a JSON line holds it, and an untraced call carries `""`. The 
 themselves are made later, from the events, by `rr_actors.otel`: the ids are drawn here
 so that both sides, in whichever process their spans are made, name the same spans.
 
-Without the `otel` extra, or with no span current in the caller (an empty OpenTelemetry
-context), `begin` returns `None` after one context-variable read and nothing is carried.
+Without the `otel` extra, before the application imported OpenTelemetry (this module does
+not import it: no span can be current until then), or with no span current in the caller
+(an empty context), `begin` returns `None` after a look-up or two and nothing is carried.
 """
 
 from __future__ import annotations
 
+import sys
 from typing import Any
 
 from rr_actors._core import runtime
 
-try:
-    from opentelemetry import context as _context
-    from opentelemetry import trace as _trace
-except ImportError:  # the otel extra is missing: no call carries a trace context
-    _context = None  # type: ignore[assignment]
-    _trace = None  # type: ignore[assignment]
+# OpenTelemetry's API, once bound (`_bind`). Not imported with this module: importing it
+# costs milliseconds (its context finds its runtime through entry points), and until the
+# application imported it no span can be current. A call looks it up in `sys.modules`.
+_context: Any = None
+_trace: Any = None
+
+
+def _bind(*, load: bool = False) -> bool:
+    """Bind OpenTelemetry's API if the application imported it (or, with `load`, import
+    it now); whether it is bound. `False`: the otel extra is missing, or not imported."""
+    global _context, _trace
+    if _context is not None:
+        return True
+    if load:
+        try:
+            import opentelemetry.context  # noqa: PLC0415
+            import opentelemetry.trace  # noqa: F401, PLC0415
+        except ImportError:  # the otel extra is missing: nothing is carried
+            return False
+    context = sys.modules.get("opentelemetry.context")
+    trace = sys.modules.get("opentelemetry.trace")
+    if context is None or trace is None:
+        return False
+    _trace, _context = trace, context  # (`_context` last: it says both are bound)
+    return True
+
 
 __all__ = [
     "adopt",
@@ -86,7 +108,7 @@ def begin() -> tuple[str, str] | None:
     caller's current span, the CLIENT span's parent. `None` without the extra or without
     a valid span current.
     """
-    if _context is None:
+    if _context is None and not _bind():
         return None
     current = _context.get_current()
     if not current:  # (an empty context: nothing traced here)
@@ -104,7 +126,7 @@ def begin() -> tuple[str, str] | None:
 def current() -> str:
     """The W3C traceparent of the span current here (a thread's or task's), `""` if none:
     what a handle on a registrar of another process carries there (`adopt`)."""
-    if _context is None:
+    if _context is None and not _bind():
         return ""
     current = _context.get_current()
     if not current:
@@ -119,7 +141,7 @@ def adopt(traceparent: str) -> None:
     """Make the span `traceparent` names current here (a non-recording one: a caller's
     span in another process), for the rest of this context; nothing for a bad one."""
     parsed = parse(traceparent)
-    if _trace is None or parsed is None:
+    if parsed is None or not _bind(load=True):
         return
     trace_id, span, flags = parsed
     remote = _trace.SpanContext(
@@ -160,7 +182,7 @@ def caller_parent(traceparent: str, caller_span: str) -> Any:
     """The span context of a call's caller (its CLIENT span's parent), or `None`."""
     parsed = parse(traceparent)
     parent = span_id(caller_span)
-    if _trace is None or parsed is None or not parent:
+    if parsed is None or not parent or not _bind(load=True):
         return None
     trace_id, _client, flags = parsed
     return _trace.SpanContext(
@@ -173,7 +195,7 @@ def context_of(traceparent: str) -> Any:
     carried `traceparent` (a non-recording span: the real one is made from the events),
     or `None` (nothing carried, or no extra). Spans made under it are its children."""
     parsed = parse(traceparent)
-    if _trace is None or parsed is None:
+    if parsed is None or not _bind(load=True):
         return None
     trace_id, client, flags = parsed
     server = _trace.SpanContext(
@@ -191,4 +213,4 @@ def attach(traceparent: str) -> object | None:
 def detach(token: object | None) -> None:
     """Undo `attach` (with its token; `None`: nothing was attached)."""
     if token is not None:
-        _context.detach(token)  # type: ignore[arg-type]
+        _context.detach(token)

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import contextvars
+import subprocess
+import sys
 
 import pytest
 from opentelemetry import trace
@@ -65,3 +67,20 @@ def test_a_bad_traceparent_is_none_and_continues_nothing(bad: str) -> None:
     assert traces.parse(bad) is None
     assert traces.context_of(bad) is None
     assert traces.attach(bad) is None
+
+
+def test_an_untraced_program_does_not_import_opentelemetry() -> None:
+    script = (
+        "import sys\n"
+        "import rr_actors as rr\n"
+        "erm = rr.ResourceRegistrar.start('erm')\n"
+        "erm.register_server('cam', load=lambda r: r, unload=lambda q, r: None)\n"
+        "erm.unload(erm.call('erm', 'cam', 1, timeout=10).id)\n"
+        "erm.stop()\n"
+        "print(sorted(m for m in sys.modules if m.startswith('opentelemetry')))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, check=False
+    )
+    assert 0 == done.returncode, done.stderr[-2000:]
+    assert "[]" == done.stdout.strip()  # (its import costs milliseconds; no span can be current)
