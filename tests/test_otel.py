@@ -4,6 +4,7 @@ manager process and a real SIGKILL, exported by the SDK's `InMemorySpanExporter`
 from __future__ import annotations
 
 import asyncio
+import json
 import subprocess
 import sys
 import textwrap
@@ -487,3 +488,72 @@ def test_an_untraced_call_carries_no_trace_context(
     assert {""} == {e.trace for e in traced}  # type: ignore[attr-defined]
     [answered] = [e for e in seen if isinstance(e, events.CallAnswered)]
     assert 0 < answered.started <= answered.at  # (its start stamp, traced or not)
+
+
+@pytest.mark.usefixtures("process_helpers")
+def test_the_providers_side_made_in_its_own_process_meets_the_callers_trace(
+    supervisors: Callable[..., rr.Supervisor],
+    uid: str,
+    tmp_path: Any,
+    eventually: Callable[..., bool],
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    provider, exporter = exported
+    erm = f"erm-{uid}"
+    path = str(tmp_path / "spans.jsonl")
+
+    def setup(registrar: rr.ResourceRegistrar) -> None:  # (in the manager's process)
+        from opentelemetry.sdk.trace import TracerProvider  # noqa: PLC0415
+        from opentelemetry.sdk.trace.export import (  # noqa: PLC0415
+            ConsoleSpanExporter,
+            SimpleSpanProcessor,
+        )
+
+        there = TracerProvider()
+        out = open(path, "a", encoding="utf-8")  # noqa: SIM115 - the exporter's for good
+        there.add_span_processor(
+            SimpleSpanProcessor(
+                ConsoleSpanExporter(out=out, formatter=lambda s: s.to_json(indent=None) + "\n")
+            )
+        )
+        _serve(registrar)
+        # its own events only: a side waits for no other side here (1 ms, then alone)
+        registrar.subscribe(otel.Tracing(tracer_provider=there, pair_within=0.001))
+
+    sup = supervisors([rr.ManagerSpec(erm, setup, isolation="process")]).start()
+    app = sup.registrar(f"app-{uid}")
+    tracing = otel.Tracing(tracer_provider=provider, pair_within=60)
+    with app.subscribe(tracing) as here:  # the caller's side only
+        with _caller(provider).start_as_current_span("step") as step:
+            first = app.call(erm, "cam", 1, timeout=10)
+
+        def made_there() -> bool:  # each later call's event there makes the waiting sides
+            app.unload(app.call(erm, "cam", 1, timeout=10).id, timeout=10)
+            with open(path, encoding="utf-8") as spans:
+                return '"kind": "SpanKind.SERVER"' in spans.read()
+
+        assert eventually(made_there, timeout=20)
+        app.client_queries(timeout=10)
+        assert here.wait_delivered(timeout=5)
+    tracing.flush()  # (its sides waited for the other, made in the other process)
+    with open(path, encoding="utf-8") as lines:
+        there = [json.loads(line) for line in lines]
+    here_spans = exporter.get_finished_spans()
+
+    caller = step.get_span_context()
+    client = next(
+        s
+        for s in here_spans
+        if s.kind == api.SpanKind.CLIENT and s.attributes["rr_actors.query_id"] == first.id
+    )
+    assert client.parent is not None
+    assert caller.span_id == client.parent.span_id
+    [server] = [
+        s
+        for s in there
+        if s["kind"] == "SpanKind.SERVER" and s["attributes"]["rr_actors.query_id"] == first.id
+    ]
+    assert f"0x{caller.trace_id:032x}" == server["context"]["trace_id"]
+    assert f"0x{client.context.span_id:016x}" == server["parent_id"]
+    [load] = [s for s in there if s["name"] == "cam.load"]
+    assert server["context"]["span_id"] == load["parent_id"]
