@@ -557,3 +557,38 @@ def test_the_providers_side_made_in_its_own_process_meets_the_callers_trace(
     assert f"0x{client.context.span_id:016x}" == server["parent_id"]
     [load] = [s for s in there if s["name"] == "cam.load"]
     assert server["context"]["span_id"] == load["parent_id"]
+
+
+def test_a_call_made_inside_a_traced_load_is_a_child_of_that_loads_server_span(
+    started: list[rr.ResourceRegistrar],
+    uid: str,
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    provider, exporter = exported
+    app, mid, leaf = (rr.ResourceRegistrar.start(f"{n}-{uid}") for n in ("app", "mid", "leaf"))
+    started.extend((app, mid, leaf))
+    leaf.register_server("leaf", load=lambda r: r, unload=lambda _q, _r: None)
+
+    def through(request: Any) -> Any:  # (a plain load: on a worker thread)
+        return mid.call(leaf.name, "leaf", request, timeout=10).response
+
+    mid.register_server("mid", load=through, unload=lambda _q, _r: None)
+    tracings = [otel.trace(r, tracer_provider=provider, pair_within=60) for r in (app, mid, leaf)]
+    with _caller(provider).start_as_current_span("step"):
+        app.call(mid.name, "mid", 1, timeout=10)
+    app.client_queries(timeout=10)
+    mid.client_queries(timeout=10)
+    for tracing in tracings:
+        tracing.close()
+    spans = {s.context.span_id: s for s in exporter.get_finished_spans()}
+
+    def parent(span: ReadableSpan) -> ReadableSpan:
+        assert span.parent is not None
+        return spans[span.parent.span_id]
+
+    inner = _one(tuple(spans.values()), f"{leaf.name}/leaf", api.SpanKind.CLIENT)
+    outer = parent(inner)
+    assert (api.SpanKind.SERVER, f"{mid.name}/mid") == (outer.kind, outer.name)
+    assert "step" == parent(parent(outer)).name
+    assert 1 == len({s.context.trace_id for s in spans.values()})  # one trace, 7 spans
+    assert 7 == len(spans)
