@@ -6,7 +6,14 @@ measured in every round (interleaved, so that other processes' noise spreads eve
 ratio to the first row, measured in the same run:
 
 Rows:
-    without                 no subscriber at all
+    no extra                no subscriber, and a call that looks for no trace context at
+                            all (`rr_actors._core.traces.begin` replaced by a function
+                            returning `None`): the floor
+    without                 no subscriber, the extra installed, no span current in the
+                            caller: what an untraced call pays for looking (goal: 1.01x)
+    caller's span           no subscriber, a span current in the caller (an SDK provider
+                            with no processor): each call draws a CLIENT span id and
+                            carries its traceparent (`Load.trace`)
     no-op subscriber        one subscriber (a no-op callback) of both registrars: what any
                             subscription costs (the floor of the next rows)
     tracing off             `otel.Tracing()` subscribed to both, the extra installed but no
@@ -14,6 +21,8 @@ Rows:
     tracing on              `otel.Tracing(tracer_provider=...)`: an SDK provider sampling
                             everything (ALWAYS_ON) into an `InMemorySpanExporter` through a
                             `SimpleSpanProcessor` (2 spans per call and per unload: client, server)
+    tracing on, traced      `tracing on` with a span current in the caller: the spans are
+                            made with the ids the calls carried, under the caller's span
 
 A round's time runs until the subscriptions delivered every event of the batch
 (`wait_delivered`): the subscriber thread's work competes for the GIL, so it is counted.
@@ -22,11 +31,14 @@ The held query ids are unloaded after each timed batch, untimed.
 Pin it to one CPU for stable ratios:
 
     taskset -c 0 python benchmarks/bench_otel.py [--rounds 15] [--batch 2000]
+
+The ratios of the rows to `no extra` are printed beside those to `without`.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import platform
 import statistics
@@ -43,9 +55,14 @@ from opentelemetry.sdk.trace.sampling import ALWAYS_ON
 
 import rr_actors as rr
 from rr_actors import events, otel
+from rr_actors._core import traces
 
 
 def noop(_: events.Event) -> None:
+    return None
+
+
+def nothing() -> None:
     return None
 
 
@@ -59,12 +76,17 @@ class Bench:
         self.exporter = InMemorySpanExporter()
         tracer_provider = TracerProvider(sampler=ALWAYS_ON)
         tracer_provider.add_span_processor(SimpleSpanProcessor(self.exporter))
+        tracing_on = otel.Tracing(tracer_provider=tracer_provider, pair_within=60)
         self.subscribers: dict[str, Callable[[events.Event], object] | None] = {
+            "no extra": None,
             "without": None,
+            "caller's span": None,
             "no-op subscriber": noop,
             "tracing off": otel.Tracing(),
-            "tracing on": otel.Tracing(tracer_provider=tracer_provider, pair_within=60),
+            "tracing on": tracing_on,
+            "tracing on, traced": tracing_on,
         }
+        self.caller = TracerProvider(sampler=ALWAYS_ON).get_tracer("bench")  # (no processor)
         self.spans: dict[str, float] = {}  # spans per operation (a call or an unload)
 
     def stop(self) -> None:
@@ -81,11 +103,23 @@ class Bench:
             ]
         call = self.consumer.call
         name = self.provider.name
-        began = time.perf_counter()
-        held = [call(name, "res", "shared").id for _ in range(batch)]
-        for subscription in subscriptions:
-            assert subscription.wait_delivered(timeout=60)
-        took = time.perf_counter() - began
+        begin = traces.begin
+        if row == "no extra":
+            traces.begin = nothing  # (no look-up at all)
+        span = (
+            self.caller.start_as_current_span("step")
+            if row in ("caller's span", "tracing on, traced")
+            else contextlib.nullcontext()
+        )
+        try:
+            with span:
+                began = time.perf_counter()
+                held = [call(name, "res", "shared").id for _ in range(batch)]
+                for subscription in subscriptions:
+                    assert subscription.wait_delivered(timeout=60)
+                took = time.perf_counter() - began
+        finally:
+            traces.begin = begin
         for query_id in held:
             self.consumer.unload(query_id)
         for subscription in subscriptions:
@@ -123,10 +157,14 @@ def main(argv: list[str] | None = None) -> int:
         f"load {os.getloadavg()[0]:.2f}; {args.rounds} rounds x {args.batch} dedup hits"
     )
     floor = statistics.median(times["without"])
-    print(f"{'row':<18} {'us/call':>9} {'vs without':>11} {'spans/op':>9}")
+    bare = statistics.median(times["no extra"])
+    print(f"{'row':<18} {'us/call':>9} {'vs no extra':>12} {'vs without':>11} {'spans/op':>9}")
     for row in rows:
         median = statistics.median(times[row])
-        print(f"{row:<18} {median * 1e6:>9.1f} {median / floor:>10.2f}x {bench.spans[row]:>9.1f}")
+        print(
+            f"{row:<18} {median * 1e6:>9.1f} {median / bare:>11.3f}x {median / floor:>10.3f}x"
+            f" {bench.spans[row]:>9.1f}"
+        )
     return 0
 
 

@@ -27,26 +27,38 @@ What becomes a span (`docs/how-to/trace.md`):
   whose end the kill lost (a load that started and never finished) are ended at the
   exit, marked `rr_actors.end_lost`, and linked to it.
 
-The events carry no start stamp of a call: a client span starts where its server span
-starts (a load: its `at - load_s`), or at its own end without one.
+A caller's trace continues through the call: a `call`, `acall` or `unload` made while an
+OpenTelemetry span is current in the caller carries its W3C trace context to the
+provider (`rr_actors._core.traces`: the CLIENT span's id is drawn then, the SERVER
+span's derived from it), and its events carry it (`trace`, `caller_span`): the CLIENT
+span is made the caller's span's child, the SERVER span the CLIENT span's, with those
+ids (through the SDK's tracer), in whichever process each side is made; a `load` runs
+with that SERVER span current. A CLIENT span starts when its call began (its end
+event's `started`; without it, as events of schema 6 and before: where its server
+span starts, or at its own end).
+
+`provider_from_environment` and `Exporting` are what `rr-actors demo --trace` and
+`rr-actors experiment --trace` use: an SDK provider set up by the `OTEL_*` variables.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import os
 import threading
 import time
 from collections.abc import Callable
 from typing import Any, Protocol
 
 from rr_actors import events
+from rr_actors._core import hlc, traces
 
 try:
     from opentelemetry import trace as _api
 except ImportError:  # the otel extra is missing: every event is ignored
     _api = None  # type: ignore[assignment]
 
-__all__ = ["SCOPE", "SYSTEM", "Tracing", "trace"]
+__all__ = ["SCOPE", "SYSTEM", "Exporting", "Tracing", "provider_from_environment", "trace"]
 
 SYSTEM = "rr_actors"
 """The `rpc.system` of every RPC span."""
@@ -56,6 +68,38 @@ SCOPE = "rr_actors.otel"
 
 _CALL_ENDS = (events.CallAnswered, events.CallFailed, events.CallWithdrawn)
 _UNLOADS = frozenset({"unload", "unload unanswered"})
+
+
+class _Chosen:
+    """An id generator that gives the ids chosen for the next span, else its inner one's.
+
+    A call's CLIENT and SERVER spans have the ids its trace context named when the call
+    was made (`rr_actors._core.traces`), so that both sides, built by subscribers of
+    different processes, and the spans the user made in its `load`, meet. The SDK's
+    tracer draws its ids from its `id_generator`; this one is put there (the ids chosen
+    per thread: the tracer of a scope is shared).
+    """
+
+    def __init__(self, inner: Any) -> None:
+        self.inner = inner
+        self._chosen = threading.local()
+
+    def choose(self, trace_id: int, span_id: int) -> None:
+        self._chosen.ids = (trace_id, span_id)
+
+    def clear(self) -> None:
+        self._chosen.ids = None
+
+    def generate_trace_id(self) -> int:
+        ids = getattr(self._chosen, "ids", None)
+        return ids[0] if ids is not None else int(self.inner.generate_trace_id())
+
+    def generate_span_id(self) -> int:
+        ids = getattr(self._chosen, "ids", None)
+        return ids[1] if ids is not None else int(self.inner.generate_span_id())
+
+    def is_trace_id_random(self) -> bool:
+        return True
 
 
 class _Subscribable(Protocol):
@@ -90,6 +134,9 @@ class _Half:
     children: list[_Child] = dataclasses.field(default_factory=list)
     links: list[Any] = dataclasses.field(default_factory=list)
     arrived: float = dataclasses.field(default_factory=time.monotonic)
+    trace: str = ""  # the traceparent the call carried (its CLIENT span's id)
+    caller_span: str = ""  # (a CLIENT side) the caller's span, its parent
+    started: float = 0.0  # (a CLIENT side) when the call began, 0.0: not known
 
 
 @dataclasses.dataclass
@@ -152,6 +199,7 @@ class Tracing:
         self._doubts: dict[int, list[events.InDoubt]] = {}  # pid: what it found
         self._restored: dict[int, float] = {}  # pid: its first CatalogRestored's `at`
         self._served: dict[tuple[str, str], str] = {}  # (registrar, resource id): server
+        self._called: dict[str, str] = {}  # query id held: its server (an unload's name)
 
     # -- the subscriber -----------------------------------------------------------------
 
@@ -163,7 +211,11 @@ class Tracing:
         if isinstance(provider, _api.ProxyTracerProvider | _api.NoOpTracerProvider):
             return None
         if provider is not self._tracer_of:
-            self._tracer = provider.get_tracer(SCOPE)
+            tracer: Any = provider.get_tracer(SCOPE)
+            inner = getattr(tracer, "id_generator", None)  # (the SDK's tracer: ids chosen)
+            if inner is not None and not isinstance(inner, _Chosen):
+                tracer.id_generator = _Chosen(inner)
+            self._tracer = tracer
             self._tracer_of = provider
         return self._tracer
 
@@ -229,11 +281,15 @@ class Tracing:
         elif isinstance(event, events.ResourceUnloaded):
             self._unloaded(tracer, event)
         elif isinstance(event, events.QueryForgotten):
+            server = self._called.pop(event.query_id, "")
             if event.reason in _UNLOADS:
-                attributes = self._rpc(event.serving_rr, "", event.query_id)
+                attributes = self._rpc(event.serving_rr, server, event.query_id)
                 attributes["rr_actors.registrar"] = event.registrar
                 attributes["rr_actors.outcome"] = event.reason
-                half = _Half(event.serving_rr, "", event.at, event.at, attributes)
+                half = _Half(event.serving_rr, server, event.at, event.at, attributes)
+                half.trace, half.caller_span = event.trace, event.caller_span
+                if event.unload_sent:  # (its stamp: when the release began)
+                    half.started = hlc.seconds(event.unload_sent)
                 self._client(tracer, (event.query_id, "unload"), half)
         elif isinstance(event, events.ChildExited):
             self._exits[event.child] = event
@@ -273,7 +329,7 @@ class Tracing:
         attributes["rr_actors.consumer"] = event.consumer
         attributes["rr_actors.dedup"] = load is None
         attributes["rr_actors.outcome"] = "loaded" if load is not None else "dedup"
-        half = _Half(event.registrar, server, event.at, event.at, attributes)
+        half = _Half(event.registrar, server, event.at, event.at, attributes, trace=event.trace)
         if load is not None:
             if load.digest is not None:
                 attributes["rr_actors.digest"] = load.digest
@@ -289,6 +345,7 @@ class Tracing:
         attributes["rr_actors.outcome"] = "load failed"
         error = (event.error_type, event.message)
         half = _Half(event.registrar, event.server, event.at, event.at, attributes, error)
+        half.trace = event.trace
         callback = {"rr_actors.resource_id": event.resource_id}
         half.children.append(_Child(f"{event.server}.load", event.at, event.at, callback, error))
         self._server(tracer, (event.query_id, "call"), half)
@@ -300,6 +357,8 @@ class Tracing:
         attributes["rr_actors.registrar"] = event.registrar
         error = None
         if isinstance(event, events.CallAnswered):
+            if len(self._called) < self._max_pending:  # (its unload's span names it)
+                self._called[event.query_id] = event.server
             attributes["rr_actors.outcome"] = "answered"
             attributes["rr_actors.retry"] = event.retry
         elif isinstance(event, events.CallFailed):
@@ -310,6 +369,7 @@ class Tracing:
         else:
             attributes["rr_actors.outcome"] = f"withdrawn: {event.reason}"
         half = _Half(event.serving_rr, event.server, event.at, event.at, attributes, error)
+        half.trace, half.caller_span, half.started = event.trace, event.caller_span, event.started
         self._client(tracer, (event.query_id, "call"), half)
 
     def _release(self, tracer: Any, event: events.ConsumerReleased) -> None:
@@ -325,7 +385,7 @@ class Tracing:
         attributes["rr_actors.resource_id"] = event.resource_id
         attributes["rr_actors.consumer"] = event.consumer
         attributes["rr_actors.outcome"] = "released"
-        half = _Half(event.registrar, server, event.at, event.at, attributes)
+        half = _Half(event.registrar, server, event.at, event.at, attributes, trace=event.trace)
         if left == 1:  # the last consumer: its ResourceUnloaded follows, to go under it
             self._unloading[resource] = ((event.query_id, "unload"), half)
         else:
@@ -386,6 +446,7 @@ class Tracing:
                     clients = waiting is self._clients
                     self._emit(tracer, alone if clients else None, None if clients else alone)
         if before == float("inf"):
+            self._called.clear()
             self._doubts.clear()
             self._exits.clear()
             self._restored.clear()
@@ -398,19 +459,39 @@ class Tracing:
             client.attributes["rpc.method"] = server.attributes["rpc.method"] = method
         if client is not None:
             start = min(client.start, server.start) if server is not None else client.start
+            if client.started:  # (when the call began: known since event schema 7)
+                start = client.started
             name = f"{client.service}/{client.method}"
-            span = tracer.start_span(
+            parsed = traces.parse(client.trace)
+            parent = traces.caller_parent(client.trace, client.caller_span)
+            span = self._start(
+                tracer,
+                (parsed[0], parsed[1]) if parsed is not None else None,
                 name,
+                context=_api.set_span_in_context(_api.NonRecordingSpan(parent))
+                if parent is not None
+                else None,
                 kind=_api.SpanKind.CLIENT,
                 attributes=client.attributes,
                 links=client.links,
                 start_time=_ns(start),
             )
-            self._end(span, client.error, client.end)
+            self._end(span, client.error, max(client.end, start))
             context = _api.set_span_in_context(span)
         if server is not None:
             name = f"{server.service}/{server.method}"
-            span = tracer.start_span(
+            parsed = traces.parse(server.trace)
+            ids = None
+            if parsed is not None:  # its parent: the CLIENT span the call named
+                trace_id, client_span, flags = parsed
+                ids = (trace_id, traces.server_span(client_span))
+                called = _api.SpanContext(
+                    trace_id, client_span, is_remote=True, trace_flags=_api.TraceFlags(flags)
+                )
+                context = _api.set_span_in_context(_api.NonRecordingSpan(called))
+            span = self._start(
+                tracer,
+                ids,
                 name,
                 context=context,
                 kind=_api.SpanKind.SERVER,
@@ -422,6 +503,19 @@ class Tracing:
             for child in server.children:
                 self._emit_child(tracer, inner, child, server.links)
             self._end(span, server.error, max(server.end, server.start))
+
+    @staticmethod
+    def _start(tracer: Any, ids: tuple[int, int] | None, name: str, **options: Any) -> Any:
+        """`tracer.start_span(name, **options)`, with the (trace, span) ids `ids` if given
+        (with the SDK's tracer; another one draws its own)."""
+        chosen = getattr(tracer, "id_generator", None)
+        if ids is None or not isinstance(chosen, _Chosen):
+            return tracer.start_span(name, **options)
+        chosen.choose(*ids)
+        try:
+            return tracer.start_span(name, **options)
+        finally:
+            chosen.clear()
 
     def _emit_child(self, tracer: Any, context: Any, child: _Child, links: list[Any]) -> None:
         span = tracer.start_span(
@@ -522,3 +616,100 @@ def trace(source: _Subscribable, **options: Any) -> Tracing:
     tracing = Tracing(**options)
     tracing._subscription = source.subscribe(tracing)
     return tracing
+
+
+EXPORTERS = "opentelemetry_traces_exporter"
+"""The entry-point group of span exporters, by the name `OTEL_TRACES_EXPORTER` gives."""
+
+
+def provider_from_environment() -> Any:
+    """An SDK `TracerProvider` set up by the `OTEL_*` environment variables, as
+    OpenTelemetry's automatic instrumentation (`opentelemetry-instrument`) sets one up.
+
+    `OTEL_TRACES_EXPORTER`: the exporters, comma-separated names of the
+    `opentelemetry_traces_exporter` entry points (`console` comes with the SDK, `otlp`
+    with `opentelemetry-exporter-otlp`; default `otlp`; `none`: no exporter), each
+    behind a `BatchSpanProcessor` (its `OTEL_BSP_*` variables); the resource
+    (`OTEL_SERVICE_NAME`, `OTEL_RESOURCE_ATTRIBUTES`), the sampler
+    (`OTEL_TRACES_SAMPLER`, `OTEL_TRACES_SAMPLER_ARG`) and the limits are the SDK's
+    own reading of them; each exporter reads its own (`OTEL_EXPORTER_OTLP_ENDPOINT`, ...).
+
+    Returns:
+        The provider (not installed as the global one); `shutdown()` it to export what
+        its processors still hold.
+
+    Raises:
+        ConfigError: the SDK (`opentelemetry-sdk`, the `otel` extra) is missing, or an
+            exporter named is not installed.
+    """
+    from importlib.metadata import entry_points  # noqa: PLC0415
+
+    from rr_actors.errors import ConfigError  # noqa: PLC0415
+
+    try:
+        from opentelemetry.sdk.resources import Resource  # noqa: PLC0415
+        from opentelemetry.sdk.trace import TracerProvider  # noqa: PLC0415
+        from opentelemetry.sdk.trace.export import BatchSpanProcessor  # noqa: PLC0415
+    except ImportError as exc:
+        raise ConfigError(
+            f"tracing needs the otel extra (opentelemetry-sdk): pip install 'rr_actors[otel]' "
+            f"({exc})"
+        ) from None
+    named = os.environ.get("OTEL_TRACES_EXPORTER", "otlp")
+    names = [n.strip() for n in named.split(",") if n.strip() and n.strip() != "none"]
+    exporters = []
+    for name in names:
+        found = entry_points(group=EXPORTERS, name=name)
+        if not found:
+            known = sorted(e.name for e in entry_points(group=EXPORTERS))
+            raise ConfigError(
+                f"OTEL_TRACES_EXPORTER names {name!r}, which is not installed "
+                f"(installed: {', '.join(known) or 'none'}; 'otlp' comes with "
+                f"opentelemetry-exporter-otlp)"
+            )
+        exporters.append(next(iter(found)).load()())
+    provider = TracerProvider(resource=Resource.create())
+    for exporter in exporters:
+        provider.add_span_processor(BatchSpanProcessor(exporter))
+    return provider
+
+
+class Exporting:
+    """What `--trace` does (`rr-actors demo`, `rr-actors experiment`): the spans of the
+    trees it is given, exported where the `OTEL_*` environment variables say.
+
+        with otel.Exporting() as exporting:      # provider_from_environment()
+            exporting.trace(sup)                 # otel.trace(sup, tracer_provider=...)
+            ...                                  # on leaving: close each, then export
+
+    The provider becomes the global one unless the application installed one first (so
+    spans the application makes in this process, its loads' included, go there too).
+
+    Raises:
+        ConfigError: as `provider_from_environment`.
+    """
+
+    def __init__(self) -> None:
+        self.provider = provider_from_environment()
+        if _api is not None and isinstance(_api.get_tracer_provider(), _api.ProxyTracerProvider):
+            _api.set_tracer_provider(self.provider)
+        self._tracings: list[Tracing] = []
+
+    def trace(self, source: _Subscribable) -> Tracing:
+        """Trace `source` (a `Supervisor`, a registrar) through this provider; any thread."""
+        tracing = trace(source, tracer_provider=self.provider)
+        self._tracings.append(tracing)
+        return tracing
+
+    def close(self) -> None:
+        """Close every `Tracing` made (their spans made), then export what waits."""
+        for tracing in self._tracings:
+            tracing.close()
+        self._tracings.clear()
+        self.provider.shutdown()
+
+    def __enter__(self) -> Exporting:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()

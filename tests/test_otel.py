@@ -3,6 +3,8 @@ manager process and a real SIGKILL, exported by the SDK's `InMemorySpanExporter`
 
 from __future__ import annotations
 
+import asyncio
+import json
 import subprocess
 import sys
 import textwrap
@@ -226,8 +228,9 @@ def test_without_a_provider_no_span_is_made_and_nothing_fails(
     erm = rr.ResourceRegistrar.start(f"erm-{uid}")
     started.append(erm)
     _serve(erm)
-    with otel.trace(erm) as tracing:
-        query = erm.call(erm.name, "cam", 1, timeout=10)
+    caller = TracerProvider().get_tracer("the application")  # (its own: not the global)
+    with otel.trace(erm) as tracing, caller.start_as_current_span("step"):
+        query = erm.call(erm.name, "cam", 1, timeout=10)  # (carries a trace context)
         erm.unload(query.id)
         assert tracing._subscription.wait_delivered(timeout=5)
     assert [] == made
@@ -314,3 +317,278 @@ def test_without_the_extra_tracing_takes_events_and_makes_nothing() -> None:
     )
     assert 0 == done.returncode, done.stderr[-2000:]
     assert "None {} {}" == done.stdout.strip()
+
+
+def _caller(provider: TracerProvider) -> api.Tracer:
+    return provider.get_tracer("the application")
+
+
+@pytest.mark.usefixtures("process_helpers")
+@pytest.mark.parametrize("isolation", ["thread", "process"])
+def test_the_callers_trace_continues_through_the_call_and_its_unload(
+    supervisors: Callable[..., rr.Supervisor],
+    uid: str,
+    isolation: str,
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    provider, exporter = exported
+    erm = f"erm-{uid}"
+    sup = supervisors([rr.ManagerSpec(erm, _serve, isolation=isolation)]).start()
+    app = sup.registrar(f"app-{uid}")
+    with otel.trace(sup, tracer_provider=provider, pair_within=60) as tracing:
+        with _caller(provider).start_as_current_span("mission step") as step:
+            query = app.call(erm, "cam", 7, timeout=10)
+            app.unload(query.id, timeout=10)
+        assert sup.flush_events(timeout=5)
+        app.client_queries(timeout=10)  # a later turn: its events are out
+        assert tracing._subscription.wait_delivered(timeout=5)
+    spans = exporter.get_finished_spans()
+
+    root = _one(spans, "mission step", api.SpanKind.INTERNAL)
+    assert step.get_span_context().span_id == root.context.span_id
+    clients = [s for s in spans if s.kind == api.SpanKind.CLIENT]
+    servers = [s for s in spans if s.kind == api.SpanKind.SERVER]
+    assert ["answered", "unload"] == sorted(s.attributes["rr_actors.outcome"] for s in clients)
+    assert ["loaded", "released"] == sorted(s.attributes["rr_actors.outcome"] for s in servers)
+    for client in clients:  # the caller's span is each CLIENT span's parent
+        assert client.parent is not None
+        assert root.context.span_id == client.parent.span_id
+        assert root.context.trace_id == client.context.trace_id
+        assert root.start_time <= client.start_time <= client.end_time <= root.end_time
+    call = next(s for s in clients if s.attributes["rr_actors.outcome"] == "answered")
+    unload = next(s for s in clients if s.attributes["rr_actors.outcome"] == "unload")
+    loaded = next(s for s in servers if s.attributes["rr_actors.outcome"] == "loaded")
+    released = next(s for s in servers if s.attributes["rr_actors.outcome"] == "released")
+    for client, server in ((call, loaded), (unload, released)):
+        assert server.parent is not None
+        assert (client.context.trace_id, client.context.span_id) == (
+            server.context.trace_id,
+            server.parent.span_id,
+        )
+    # the CLIENT span starts when the call began: before its server's load began
+    assert call.start_time <= loaded.start_time <= loaded.end_time <= call.end_time
+    assert call.end_time <= unload.start_time  # (the unload was made after the call)
+    load = _one(spans, "cam.load", api.SpanKind.INTERNAL)
+    assert load.parent is not None
+    assert loaded.context.span_id == load.parent.span_id
+    assert {root.context.trace_id} == {s.context.trace_id for s in spans}
+
+
+def test_each_side_made_by_a_subscriber_of_its_own_still_meets_the_other(
+    started: list[rr.ResourceRegistrar],
+    eventually: Callable[..., bool],
+    uid: str,
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    # as a provider's spans made in its own process: no subscriber hears both sides
+    provider, exporter = exported
+    erm = rr.ResourceRegistrar.start(f"erm-{uid}")
+    started.append(erm)
+    _serve(erm)
+    app = rr.ResourceRegistrar.start(f"app-{uid}")
+    started.append(app)
+    at_provider = otel.Tracing(tracer_provider=provider, pair_within=60)
+    at_consumer = otel.Tracing(tracer_provider=provider, pair_within=60)
+    with erm.subscribe(at_provider) as one, app.subscribe(at_consumer) as other:
+        with _caller(provider).start_as_current_span("step"):
+            app.call(erm.name, "cam", 1, timeout=10)
+        app.client_queries(timeout=10)
+        assert one.wait_delivered(timeout=5)
+        assert other.wait_delivered(timeout=5)
+    at_provider.flush()  # each made alone: neither heard the other side
+    at_consumer.flush()
+    spans = exporter.get_finished_spans()
+
+    step = _one(spans, "step", api.SpanKind.INTERNAL)
+    client = _one(spans, f"{erm.name}/cam", api.SpanKind.CLIENT)
+    server = _one(spans, f"{erm.name}/cam", api.SpanKind.SERVER)
+    load = _one(spans, "cam.load", api.SpanKind.INTERNAL)
+    assert client.parent is not None
+    assert server.parent is not None
+    assert load.parent is not None
+    assert step.context.span_id == client.parent.span_id
+    assert client.context.span_id == server.parent.span_id
+    assert server.context.span_id == load.parent.span_id
+    assert {step.context.trace_id} == {s.context.trace_id for s in spans}
+
+
+def test_a_coroutine_load_runs_under_its_server_span_and_acall_keeps_the_callers(
+    started: list[rr.ResourceRegistrar],
+    uid: str,
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    provider, exporter = exported
+    tracer = _caller(provider)
+
+    async def load(request: Any) -> Any:
+        await asyncio.sleep(0)
+        with tracer.start_as_current_span("inside the load"):
+            await asyncio.sleep(0)
+        return request
+
+    async def unload(_request: Any, _response: Any) -> None:
+        return None
+
+    erm = rr.ResourceRegistrar.start(f"erm-{uid}")
+    started.append(erm)
+    erm.register_server("cam", load=load, unload=unload)
+    app = rr.ResourceRegistrar.start(f"app-{uid}")
+    started.append(app)
+
+    async def step(n: int) -> None:
+        with tracer.start_as_current_span(f"step {n}"):
+            await asyncio.sleep(0)
+            await app.acall(erm.name, "cam", n, timeout=10)  # (awaits: another task runs)
+
+    async def steps() -> None:
+        await asyncio.gather(*(step(n) for n in range(3)))
+
+    with otel.trace(erm, tracer_provider=provider, pair_within=60) as one:
+        with otel.trace(app, tracer_provider=provider, pair_within=60) as other:
+            asyncio.run(steps())
+            app.client_queries(timeout=10)
+            assert other._subscription.wait_delivered(timeout=5)
+        assert one._subscription.wait_delivered(timeout=5)
+    spans = exporter.get_finished_spans()
+
+    by_id = {s.context.span_id: s for s in spans}
+    insides = [s for s in spans if s.name == "inside the load"]
+    assert 3 == len(insides)
+    for inside in insides:  # its parent: the SERVER span, whose is the CLIENT's, the step's
+        assert inside.parent is not None
+        server = by_id[inside.parent.span_id]
+        assert api.SpanKind.SERVER == server.kind
+        assert server.parent is not None
+        client = by_id[server.parent.span_id]
+        assert api.SpanKind.CLIENT == client.kind
+        assert client.parent is not None
+        caller = by_id[client.parent.span_id]
+        request = server.attributes["rr_actors.query_id"]
+        assert request == client.attributes["rr_actors.query_id"]
+        assert caller.name.startswith("step ")
+        assert {caller.context.trace_id} == {s.context.trace_id for s in (inside, server, client)}
+    assert 3 == len({by_id[i.parent.span_id].context.trace_id for i in insides})
+
+
+def test_an_untraced_call_carries_no_trace_context(
+    started: list[rr.ResourceRegistrar], uid: str
+) -> None:
+    erm = rr.ResourceRegistrar.start(f"erm-{uid}")
+    started.append(erm)
+    _serve(erm)
+    seen: list[events.Event] = []
+    with erm.subscribe(seen.append) as subscription:
+        query = erm.call(erm.name, "cam", 1, timeout=10)
+        erm.unload(query.id, timeout=10)
+        assert subscription.wait_delivered(timeout=5)
+    traced = [e for e in seen if hasattr(e, "trace")]
+    assert {"CallAnswered", "ConsumerAdded", "ConsumerReleased", "QueryForgotten"} <= {
+        type(e).__name__ for e in traced
+    }
+    assert {""} == {e.trace for e in traced}  # type: ignore[attr-defined]
+    [answered] = [e for e in seen if isinstance(e, events.CallAnswered)]
+    assert 0 < answered.started <= answered.at  # (its start stamp, traced or not)
+
+
+@pytest.mark.usefixtures("process_helpers")
+def test_the_providers_side_made_in_its_own_process_meets_the_callers_trace(
+    supervisors: Callable[..., rr.Supervisor],
+    uid: str,
+    tmp_path: Any,
+    eventually: Callable[..., bool],
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    provider, exporter = exported
+    erm = f"erm-{uid}"
+    path = str(tmp_path / "spans.jsonl")
+
+    def setup(registrar: rr.ResourceRegistrar) -> None:  # (in the manager's process)
+        from opentelemetry.sdk.trace import TracerProvider  # noqa: PLC0415
+        from opentelemetry.sdk.trace.export import (  # noqa: PLC0415
+            ConsoleSpanExporter,
+            SimpleSpanProcessor,
+        )
+
+        there = TracerProvider()
+        out = open(path, "a", encoding="utf-8")  # noqa: SIM115 - the exporter's for good
+        there.add_span_processor(
+            SimpleSpanProcessor(
+                ConsoleSpanExporter(out=out, formatter=lambda s: s.to_json(indent=None) + "\n")
+            )
+        )
+        _serve(registrar)
+        # its own events only: a side waits for no other side here (1 ms, then alone)
+        registrar.subscribe(otel.Tracing(tracer_provider=there, pair_within=0.001))
+
+    sup = supervisors([rr.ManagerSpec(erm, setup, isolation="process")]).start()
+    app = sup.registrar(f"app-{uid}")
+    tracing = otel.Tracing(tracer_provider=provider, pair_within=60)
+    with app.subscribe(tracing) as here:  # the caller's side only
+        with _caller(provider).start_as_current_span("step") as step:
+            first = app.call(erm, "cam", 1, timeout=10)
+
+        def made_there() -> bool:  # each later call's event there makes the waiting sides
+            app.unload(app.call(erm, "cam", 1, timeout=10).id, timeout=10)
+            with open(path, encoding="utf-8") as spans:
+                return '"kind": "SpanKind.SERVER"' in spans.read()
+
+        assert eventually(made_there, timeout=20)
+        app.client_queries(timeout=10)
+        assert here.wait_delivered(timeout=5)
+    tracing.flush()  # (its sides waited for the other, made in the other process)
+    with open(path, encoding="utf-8") as lines:
+        there = [json.loads(line) for line in lines]
+    here_spans = exporter.get_finished_spans()
+
+    caller = step.get_span_context()
+    client = next(
+        s
+        for s in here_spans
+        if s.kind == api.SpanKind.CLIENT and s.attributes["rr_actors.query_id"] == first.id
+    )
+    assert client.parent is not None
+    assert caller.span_id == client.parent.span_id
+    [server] = [
+        s
+        for s in there
+        if s["kind"] == "SpanKind.SERVER" and s["attributes"]["rr_actors.query_id"] == first.id
+    ]
+    assert f"0x{caller.trace_id:032x}" == server["context"]["trace_id"]
+    assert f"0x{client.context.span_id:016x}" == server["parent_id"]
+    [load] = [s for s in there if s["name"] == "cam.load"]
+    assert server["context"]["span_id"] == load["parent_id"]
+
+
+def test_a_call_made_inside_a_traced_load_is_a_child_of_that_loads_server_span(
+    started: list[rr.ResourceRegistrar],
+    uid: str,
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    provider, exporter = exported
+    app, mid, leaf = (rr.ResourceRegistrar.start(f"{n}-{uid}") for n in ("app", "mid", "leaf"))
+    started.extend((app, mid, leaf))
+    leaf.register_server("leaf", load=lambda r: r, unload=lambda _q, _r: None)
+
+    def through(request: Any) -> Any:  # (a plain load: on a worker thread)
+        return mid.call(leaf.name, "leaf", request, timeout=10).response
+
+    mid.register_server("mid", load=through, unload=lambda _q, _r: None)
+    tracings = [otel.trace(r, tracer_provider=provider, pair_within=60) for r in (app, mid, leaf)]
+    with _caller(provider).start_as_current_span("step"):
+        app.call(mid.name, "mid", 1, timeout=10)
+    app.client_queries(timeout=10)
+    mid.client_queries(timeout=10)
+    for tracing in tracings:
+        tracing.close()
+    spans = {s.context.span_id: s for s in exporter.get_finished_spans()}
+
+    def parent(span: ReadableSpan) -> ReadableSpan:
+        assert span.parent is not None
+        return spans[span.parent.span_id]
+
+    inner = _one(tuple(spans.values()), f"{leaf.name}/leaf", api.SpanKind.CLIENT)
+    outer = parent(inner)
+    assert (api.SpanKind.SERVER, f"{mid.name}/mid") == (outer.kind, outer.name)
+    assert "step" == parent(parent(outer)).name
+    assert 1 == len({s.context.trace_id for s in spans.values()})  # one trace, 7 spans
+    assert 7 == len(spans)

@@ -55,6 +55,7 @@ __all__ = [
     "current_thread",
     "get_ident",
     "getpid",
+    "getrandbits",
     "guards_files",
     "handles_signals",
     "local",
@@ -100,6 +101,8 @@ sleep = time.sleep
 urandom = os.urandom
 """`urandom(n)`: `n` random bytes (query ids, file tokens)."""
 random = _random.random
+getrandbits = _random.getrandbits
+"""`getrandbits(k)`: an int of `k` random bits (a traced call's span id)."""
 """A float in `[0, 1)`: jitter and backoff."""
 get_ident = threading.get_ident
 current_thread = threading.current_thread
@@ -147,6 +150,7 @@ SEAMS = (
     "sleep",
     "urandom",
     "random",
+    "getrandbits",
     "get_ident",
     "current_thread",
     "getpid",

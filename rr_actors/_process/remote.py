@@ -36,7 +36,7 @@ import time
 from collections.abc import Callable
 from typing import Any, Concatenate, ParamSpec, TypeVar, cast
 
-from rr_actors._core import wire
+from rr_actors._core import traces, wire
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.replies import Steps, on_own_thread, run_steps
 from rr_actors._process.manager import ManagerExit, ManagerProcess
@@ -88,7 +88,9 @@ class There:
         if not isinstance(peer, Remote):  # served here (or unknown: `run` says so)
             local: ResourceRegistrar = transport.run(name, _itself, timeout=limit)
             return (yield from op(local._actor, timeout, *args, **kwargs))
-        there = functools.partial(_drive_there, op, timeout, args, kwargs, LOADING.get())
+        there = functools.partial(
+            _drive_there, op, timeout, args, kwargs, LOADING.get(), traces.current()
+        )
         reply = peer.submit(there)
         try:
             settled = yield reply.future, time.monotonic() + limit
@@ -387,15 +389,20 @@ def _drive_there(
     args: tuple[Any, ...],
     kwargs: dict[str, Any],
     context: LoadContext | None,
+    traceparent: str,
     registrar: ResourceRegistrar,
 ) -> T:
     """In the registrar's process, on a thread of its own: run the operation's steps, in
-    the load context of the caller (a call made inside a load elsewhere)."""
+    the load context of the caller (a call made inside a load elsewhere) and under the
+    caller's OpenTelemetry span (`traceparent`, `""`: none), so its trace continues."""
     steps = functools.partial(op, registrar._actor, timeout, *args, **kwargs)
-    if context is None:
+    if context is None and not traceparent:
         return run_steps(steps())
     scope = contextvars.copy_context()
-    scope.run(LOADING.set, context)
+    if context is not None:
+        scope.run(LOADING.set, context)
+    if traceparent:
+        scope.run(traces.adopt, traceparent)
     return scope.run(lambda: run_steps(steps()))
 
 

@@ -63,7 +63,7 @@ from typing import Any
 import pykka
 
 from rr_actors._catalog import ClientRecord
-from rr_actors._core import runtime
+from rr_actors._core import hlc, runtime
 from rr_actors._core.actor import OneShotFuture, awaiting, deliver
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY
@@ -151,6 +151,12 @@ class CallAttempt(OneShotFuture[Any]):
     only the actor that took a `RECORDING` attempt settles it). Entering `ANSWERED` or
     `FAILED` wakes the caller (`get` returns the value or raises the error).
     """
+
+    # What its events tell (set by its caller when known): when the call began (wall
+    # clock seconds, 0.0: not known) and its trace context (`_core/traces.py`).
+    started = 0.0
+    trace = ""
+    caller_span = ""
 
     def __init__(self) -> None:
         super().__init__()
@@ -528,6 +534,7 @@ class Calls:
         on_status: StatusCallback | None,
         limit: float,
         deadline: float,
+        begun: tuple[str, str] | None = None,
     ) -> Steps[Query]:
         """A call's steps: send its load, wait for its answer until `deadline` (rule 17).
 
@@ -545,6 +552,8 @@ class Calls:
             on_status: the client status callback to record with the answer.
             limit: the call's timeout in seconds (for the error message).
             deadline: when to give up (`time.monotonic()` seconds).
+            begun: the caller's trace context (`_core/traces.py`'s `begin`): the
+                `Load` carries its traceparent, the call's events both.
 
         Returns:
             The call's `Query`, with its response.
@@ -554,13 +563,20 @@ class Calls:
             RrError: what the call failed with.
         """
         attempt = self.attempt_type()
+        trace = ""
+        if self.events.active:  # (its events say when it began)
+            attempt.started = hlc.CLOCK.wall()
+        if begun is not None:
+            trace, attempt.caller_span = begun
+            attempt.trace = trace
         reply = ClientReply(self, query_id, serving_rr, server, request, parent, on_status, attempt)
         answered: Query | None = None
         withdrawn = False
         try:
             # a notice that overtakes the answer waits; a durable call's is the actor's
             self.due.expect(query_id, attempt, reply if self.commit_first else None)
-            self.send(Load(query_id, server, request, self.name, chain, reply, self.life), reply)
+            load = Load(query_id, server, request, self.name, chain, reply, self.life, trace)
+            self.send(load, reply)
             if not (yield attempt, deadline):  # the time is up: withdraw,
                 withdrawn = attempt.withdraw() is AttemptState.WITHDRAWN  # unless the
                 if not withdrawn:  # answer won (being recorded: its outcome comes with

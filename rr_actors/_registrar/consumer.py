@@ -414,21 +414,34 @@ class Flights:
 # -- what a call's outcome tells -------------------------------------------------------
 
 
-def answer_event(shared: Shared, record: ClientRecord, *, retry: bool) -> tuple[events.Event, ...]:
-    """`CallAnswered` of `record` (none while nobody listens), to commit with its record."""
+def answer_event(
+    shared: Shared, record: ClientRecord, attempt: CallAttempt, *, retry: bool
+) -> tuple[events.Event, ...]:
+    """`CallAnswered` of `record` (none while nobody listens), to commit with its record;
+    `attempt`: its call's (when it began, its trace context)."""
     if not shared.events.active:
         return ()
     query = record.query
     return (
         events.CallAnswered(
-            shared.name, query.id, query.serving_rr, query.server, record.parent, retry
+            shared.name,
+            query.id,
+            query.serving_rr,
+            query.server,
+            record.parent,
+            retry,
+            attempt.started,
+            attempt.trace,
+            attempt.caller_span,
         ),
     )
 
 
-def publish_answered(shared: Shared, record: ClientRecord, *, retry: bool) -> None:
+def publish_answered(
+    shared: Shared, record: ClientRecord, attempt: CallAttempt, *, retry: bool
+) -> None:
     """Publish `CallAnswered`: `record`'s answer is recorded (`retry`: its id was known)."""
-    shared.publish(*answer_event(shared, record, retry=retry))
+    shared.publish(*answer_event(shared, record, attempt, retry=retry))
 
 
 def publish_failed(shared: Shared, message: CallFailed, *, retry: bool) -> None:
@@ -442,10 +455,18 @@ def publish_failed(shared: Shared, message: CallFailed, *, retry: bool) -> None:
         return
     if not message.withdrawn and message.attempt.state is AttemptState.WITHDRAWN:
         return
+    attempt = message.attempt
     if message.withdrawn:
         shared.events.publish(
             events.CallWithdrawn(
-                shared.name, message.query_id, message.provider, message.server, message.why
+                shared.name,
+                message.query_id,
+                message.provider,
+                message.server,
+                message.why,
+                attempt.started,
+                attempt.trace,
+                attempt.caller_span,
             )
         )
         return
@@ -460,11 +481,16 @@ def publish_failed(shared: Shared, message: CallFailed, *, retry: bool) -> None:
             str(error) if error is not None else "",
             message.serving_rr is not None,
             retry,
+            attempt.started,
+            attempt.trace,
+            attempt.caller_span,
         )
     )
 
 
-def publish_refused(shared: Shared, query: Query, error: BaseException) -> None:
+def publish_refused(
+    shared: Shared, query: Query, error: BaseException, attempt: CallAttempt
+) -> None:
     """Publish `CallFailed`: a durable call's answer was not kept (given back), `error`."""
     if shared.events.active:
         shared.events.publish(
@@ -475,13 +501,21 @@ def publish_refused(shared: Shared, query: Query, error: BaseException) -> None:
                 query.server,
                 type(error).__name__,
                 str(error),
+                started=attempt.started,
+                trace=attempt.trace,
+                caller_span=attempt.caller_span,
             )
         )
 
 
-def publish_forgotten(
-    shared: Shared, query: Query, reason: str, began: tuple[int, int] = (0, 0)
-) -> None:
+Began = tuple[int, int, str, str]
+"""How a release began: its `QueryForgotten`'s `unload_sent`, `reconciled`, `trace` and
+`caller_span` (`Releases.send_unload`)."""
+
+NOT_BEGUN: Began = (0, 0, "", "")
+
+
+def publish_forgotten(shared: Shared, query: Query, reason: str, began: Began = NOT_BEGUN) -> None:
     """Publish `QueryForgotten`: the consumer no longer holds `query` (`reason`; `began`:
     its release's stamps, `Holdings.forget`)."""
     if shared.events.active:
@@ -566,14 +600,15 @@ class Answers:
                 error = RegistrarStoppedError(
                     f"registrar {self.registrar.name!r} stopped during the call"
                 )
-                publish_refused(self.registrar, query, error)
+                publish_refused(self.registrar, query, error, message.attempt)
                 message.attempt.settle(error=error)
             case Action.FORGET:  # its caller has the answer, given back here
-                publish_answered(self.registrar, message.record, retry=False)  # (before the
-                publish_forgotten(self.registrar, query, "registrar stopped")  # commit)
+                attempt = message.attempt  # (both before the commit)
+                publish_answered(self.registrar, message.record, attempt, retry=False)
+                publish_forgotten(self.registrar, query, "registrar stopped")
                 self.not_kept(query)
             case Action.RELEASE_LATE:
-                publish_answered(self.registrar, message.record, retry=retry)
+                publish_answered(self.registrar, message.record, message.attempt, retry=retry)
                 publish_forgotten(self.registrar, query, "late dependency")
                 self.give_back_late_dependency(message)
 
@@ -590,7 +625,7 @@ class Answers:
         else:
             catalog.add_client(message.record)
             self.texts.added(message.record)
-        told = answer_event(self.registrar, message.record, retry=retry)
+        told = answer_event(self.registrar, message.record, message.attempt, retry=retry)
         if durable:
             self.keep_durable(message, told)
             return
@@ -607,7 +642,7 @@ class Answers:
         def undo(failed: CatalogWriteError) -> None:  # not kept
             give_back(query.serving_rr, query.id, self.registrar.name)
             self.holdings.forget(query.id, commit=False, reason=None)
-            publish_refused(self.registrar, query, failed)
+            publish_refused(self.registrar, query, failed, message.attempt)
             message.attempt.settle(error=failed)
 
         def refuse(error: RrError) -> None:  # died before its commit: not kept either
@@ -629,7 +664,7 @@ class Answers:
             check_picklable(query.response, f"the response of '{query.serving_rr}/{query.server}'")
         except ConfigError as exc:
             self.not_kept(query)
-            publish_refused(self.registrar, query, exc)
+            publish_refused(self.registrar, query, exc, message.attempt)
             message.attempt.settle(error=exc)
             return True
         return False
@@ -745,7 +780,7 @@ class Holdings:
         *,
         commit: bool = True,
         reason: str | None = "unload",
-        began: tuple[int, int] = (0, 0),
+        began: Began = NOT_BEGUN,
     ) -> None:
         """Forget a query this registrar held: its record and its status callback.
 
@@ -865,7 +900,7 @@ class Releases:
         self.answers = answers
         self.redeliver = redeliver  # handles a message as the actor does (its dispatch)
         # ids whose `Unload` is on its way -> (the stamp it left at, `reconciled` then)
-        self.releasing: dict[str, tuple[int, int]] = {}
+        self.releasing: dict[str, Began] = {}
         # provider -> the stamp of the last `Reconcile` with it answered (its list left)
         self.last_reconciled: dict[str, int] = {}
         # id -> provider, of releases that failed as it died or stopped (`release_later`)
@@ -891,7 +926,7 @@ class Releases:
         query = record.query
 
         def answered(on_its_way: Any, error: BaseException | None) -> None:
-            began = self.releasing.pop(query.id, (0, 0))
+            began = self.releasing.pop(query.id, NOT_BEGUN)
             if error is not None and not isinstance(error, UnknownQueryError):
                 logger.warning("releasing %s at %s failed: %s", query.id, query.serving_rr, error)
             if isinstance(error, GONE):
@@ -921,7 +956,7 @@ class Releases:
         query = record.query
 
         def answered(on_its_way: Any, error: BaseException | None) -> None:
-            began = self.releasing.pop(query_id, (0, 0))
+            began = self.releasing.pop(query_id, NOT_BEGUN)
             if isinstance(error, GONE):  # it may or may not have run it: reconciling
                 reply.set_error(self.release_later(query, error, began))  # completes it
                 return
@@ -947,17 +982,22 @@ class Releases:
             self.holdings.forget(query_id, began=began)
             join.seal()
 
-        self.send_unload(query, answered)
+        self.send_unload(query, answered, message.begun)
 
     def send_unload(
-        self, query: Query, answered: Callable[[Any, BaseException | None], None]
+        self,
+        query: Query,
+        answered: Callable[[Any, BaseException | None], None],
+        begun: tuple[str, str] | None = None,
     ) -> None:
         """Ask `query`'s provider to release its id; `answered(on_its_way, error)` runs on
         the answer. An `UnloadOverran` (released, its `unload` overran) comes to it as its
         statuses on their way and its `CallTimeoutError`. The release begins now: its
         `QueryForgotten` gives this stamp and that of the last `Reconcile` with its
         provider answered before (`reconciled`): a release that left before the
-        reconcile with the provider's restart was answered crossed the restart."""
+        reconcile with the provider's restart was answered crossed the restart. `begun`:
+        the trace context of the caller of `unload` (`_core/traces.py`), which the
+        `Unload` and the `QueryForgotten` carry."""
 
         def opened(value: Any, error: BaseException | None) -> None:
             if isinstance(value, UnloadOverran):
@@ -965,11 +1005,15 @@ class Releases:
             else:
                 answered(value, error)
 
+        trace, caller_span = begun if begun is not None else ("", "")
         self.releasing.setdefault(
-            query.id, (_hlc.CLOCK.now(), self.last_reconciled.get(query.serving_rr, 0))
+            query.id,
+            (_hlc.CLOCK.now(), self.last_reconciled.get(query.serving_rr, 0), trace, caller_span),
         )
         self.registrar.send(
-            query.serving_rr, lambda reply: Unload(query.id, self.registrar.name, reply), opened
+            query.serving_rr,
+            lambda reply: Unload(query.id, self.registrar.name, reply, trace),
+            opened,
         )
 
     def deliver_on_its_way(self, query_id: str, on_its_way: Any, join: Join) -> None:
@@ -988,7 +1032,7 @@ class Releases:
             self.redeliver(status.notice((query_id,), self.registrar.come_back(join.add())))
 
     def release_later(
-        self, query: Query, error: BaseException, began: tuple[int, int] = (0, 0)
+        self, query: Query, error: BaseException, began: Began = NOT_BEGUN
     ) -> RrError:
         """The `Unload` of `query` failed as its provider died or stopped (`error`).
 

@@ -48,7 +48,7 @@ from typing import Any, Concatenate, ParamSpec, Protocol, Self, TypeVar
 import pykka
 
 from rr_actors import events
-from rr_actors._core import hlc, runtime
+from rr_actors._core import hlc, runtime, traces
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Publisher, Subscription
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.exit import REGISTRARS, stop_at_exit
@@ -364,6 +364,9 @@ class Registrar:
         Made from inside a `load` callback (of any process), the call carries that load's
         context: the query is recorded as a dependency of the resource being loaded when
         that load runs on this registrar, and is part of its chain for cycle detection.
+        Made while an OpenTelemetry span is current (the `otel` extra), the call carries
+        its W3C trace context to the provider: `rr_actors.otel` makes its spans that
+        span's children, and the provider's `load` runs under them.
 
         Args:
             target_rr: name of the provider registrar (this one's own name works too).
@@ -850,6 +853,7 @@ class Here:
             on_status,
             limit,
             deadline,
+            traces.begin(),  # (in the caller's thread or task: its OpenTelemetry context)
         )
         client = self.clients.get(target_rr, server)
         if client is None or not client.is_alive():  # (it exists from the first call)
@@ -857,7 +861,8 @@ class Here:
         return steps
 
     def unload(self, timeout: float | None, query_id: str) -> Steps[None]:
-        return self.asking(Release(query_id, FutureReply()), timeout, f"unload({query_id!r})")
+        release = Release(query_id, FutureReply(), traces.begin())
+        return self.asking(release, timeout, f"unload({query_id!r})")
 
     def send_status(
         self, timeout: float | None, query_id: str, status: Status, message: str

@@ -120,8 +120,9 @@ class Load(WireMessage):
     `chain` holds the ids of the resources being loaded further up the call chain
     (for cycle detection). `life`: the run of `origin_rr` that sent it (`Shared.life`;
     "": not known); a provider that heard a `Reconcile` of a later run refuses it
-    (presumed abort: that run does not hold the id, `provider.py`'s `Lives`). Answer:
-    the response, or an error.
+    (presumed abort: that run does not hold the id, `provider.py`'s `Lives`). `trace`:
+    the W3C traceparent of the call's CLIENT span (`_core/traces.py`), `""` untraced.
+    Answer: the response, or an error.
     """
 
     query_id: str
@@ -131,6 +132,7 @@ class Load(WireMessage):
     chain: tuple[str, ...]
     reply: Reply
     life: str = ""
+    trace: str = ""
 
     def compensation(self) -> Abandon:
         """A lost answer leaves a consumer id nobody holds: release it (rule 17)."""
@@ -173,12 +175,14 @@ class Unload(WireMessage):
     Answer: the statuses about it still on their way to the consumer (`StatusOnItsWay`s,
     a tuple, mostly empty: rule 9, a release crossing a status); an `UnloadOverran` when
     the release unloaded the resource and its `unload` overran `unload_timeout` (released
-    all the same, so it carries them too); or an error (nothing released).
+    all the same, so it carries them too); or an error (nothing released). `trace`: the
+    W3C traceparent of the unload's CLIENT span (`_core/traces.py`), `""` untraced.
     """
 
     query_id: str
     origin_rr: str
     reply: Reply
+    trace: str = ""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -438,6 +442,7 @@ class RunLoad:
     chain: tuple[str, ...]
     reply: Reply
     place: LoadPlace = dataclasses.field(default_factory=LoadPlace)
+    trace: str = ""  # the traceparent its first caller's Load carried: the load runs under it
 
 
 @dataclasses.dataclass(frozen=True)
@@ -507,10 +512,13 @@ class UnregisterServer:
 
 @dataclasses.dataclass(frozen=True)
 class Release:
-    """Release consumer id `query_id` this registrar holds (`unload`). Answer: `None`."""
+    """Release consumer id `query_id` this registrar holds (`unload`). Answer: `None`.
+
+    `begun`: the trace context of the caller of `unload` (`_core/traces.py`'s `begin`)."""
 
     query_id: str
     reply: FutureReply
+    begun: tuple[str, str] | None = None
 
 
 @dataclasses.dataclass(frozen=True)

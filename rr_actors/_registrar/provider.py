@@ -80,7 +80,7 @@ from rr_actors._catalog import (
     runtime_key,
 )
 from rr_actors._catalog.digest import requests_equal
-from rr_actors._core import runtime
+from rr_actors._core import runtime, traces
 from rr_actors._core.actor import Actor
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.loops import is_coroutine_function, process_loop
@@ -347,7 +347,7 @@ class Provider:
                 refuse=reply.set_error,
             )
         elif message.query_id in self.loading_ids:  # it waits for the load again
-            waiter = Waiter(message.query_id, message.origin_rr, message.reply)
+            waiter = Waiter(message.query_id, message.origin_rr, message.reply, message.trace)
             self.loads[self.loading_ids[message.query_id]].append(waiter)
         else:  # (released while its comparison ran: a new call now)
             self.look_up(message, key, request_digest(message.request))
@@ -385,7 +385,7 @@ class Provider:
         if resource is not None and resource.state is ResourceState.LOADED:  # the hot path
             self.share(resource, message)
             return
-        waiter = Waiter(message.query_id, message.origin_rr, message.reply)
+        waiter = Waiter(message.query_id, message.origin_rr, message.reply, message.trace)
         if resource is None:
             self.start_load(self.registrar.servers[message.server], message, waiter, key)
         elif resource.state is ResourceState.UNLOADING:  # load it afresh once it is gone
@@ -410,7 +410,11 @@ class Provider:
         shared = self.registrar
         shared.catalog.add_consumer(resource.id, message.query_id, message.origin_rr)
         told = (
-            (events.ConsumerAdded(shared.name, resource.id, message.query_id, message.origin_rr),)
+            (
+                events.ConsumerAdded(
+                    shared.name, resource.id, message.query_id, message.origin_rr, message.trace
+                ),
+            )
             if shared.events.active
             else ()
         )
@@ -454,7 +458,8 @@ class Provider:
         reply = self.registrar.come_back(lambda value, error: self.load_done(rid, value, error))
         place = LoadPlace()
         self.places[rid] = (place, reply)
-        server.ref.tell(RunLoad(rid, message.request, (*message.chain, rid), reply, place))
+        chain = (*message.chain, rid)
+        server.ref.tell(RunLoad(rid, message.request, chain, reply, place, message.trace))
 
     def load_done(self, rid: str, response: Any, error: BaseException | None) -> None:
         """The load of `rid` returned `response` (or raised `error`): answer its waiters.
@@ -485,7 +490,7 @@ class Provider:
             self.loading_ids.pop(waiter.query_id, None)
         resource = catalog.resources[rid]
         if self.registrar.events.active:
-            published_load(self.registrar, resource, waiters[0].query_id, load_s, error)
+            published_load(self.registrar, resource, waiters[0], load_s, error)
         if error is not None:
             catalog.begin_unload(rid)
             self.registrar.commit()
@@ -504,8 +509,10 @@ class Provider:
         closed = server is None or server.closing
         told = (
             tuple(  # (a retry listed twice is added once)
-                events.ConsumerAdded(self.registrar.name, rid, query_id, origin)
-                for query_id, origin in {w.query_id: w.origin_rr for w in live}.items()
+                events.ConsumerAdded(self.registrar.name, rid, query_id, origin, trace)
+                for query_id, (origin, trace) in {
+                    w.query_id: (w.origin_rr, w.trace) for w in live
+                }.items()
             )
             if self.registrar.events.active and not closed
             else ()
@@ -615,7 +622,7 @@ class Provider:
             f"{resource.server}' was withdrawn before it ran: every caller gave up"
         )
         if self.registrar.events.active:
-            published_load(self.registrar, resource, waiters[0].query_id, 0.0, error)
+            published_load(self.registrar, resource, waiters[0], 0.0, error)
         catalog.begin_unload(rid)
         self.registrar.commit()
 
@@ -672,11 +679,13 @@ class Provider:
 def published_load(
     registrar: Shared,
     resource: Resource,
-    query_id: str,
+    waiter: Waiter,
     load_s: float,
     error: BaseException | None,
 ) -> None:
-    """Publish how a load ended (`ResourceLoaded` or `LoadFailed`)."""
+    """Publish how a load ended (`ResourceLoaded` or `LoadFailed`), for the call of
+    `waiter` (the first: the one that started it)."""
+    query_id = waiter.query_id
     if error is None:
         digest = resource.digest
         registrar.events.publish(
@@ -696,7 +705,13 @@ def published_load(
         error_type, message = error.stack[-1].exc_type, error.stack[-1].message
     registrar.events.publish(
         events.LoadFailed(
-            registrar.name, resource.server, resource.id, query_id, error_type, message
+            registrar.name,
+            resource.server,
+            resource.id,
+            query_id,
+            error_type,
+            message,
+            waiter.trace,
         )
     )
 
@@ -963,8 +978,11 @@ class ServerActor(Actor):
         process_loop().call_soon_threadsafe(start)
 
     async def _aload(self, message: RunLoad) -> None:
-        """A coroutine `load`, on the process's loop (its task's own context)."""
+        """A coroutine `load`, on the process's loop (its task's own context), under its
+        call's SERVER span (`_core/traces.py`: spans made in it are that span's)."""
         LOADING.set(LoadContext(self.registrar, message.resource_id, message.chain))
+        if message.trace:
+            traces.attach(message.trace)  # (the task's own context: nothing to detach)
         try:
             response = await self.load(message.request)
             if self.persisted:
@@ -998,6 +1016,7 @@ class ServerActor(Actor):
 
     def _load(self, message: RunLoad) -> None:
         token = LOADING.set(LoadContext(self.registrar, message.resource_id, message.chain))
+        traced = traces.attach(message.trace) if message.trace else None
         try:
             response = self.load(message.request)
             _refuse_awaitable(response)
@@ -1008,6 +1027,7 @@ class ServerActor(Actor):
         else:
             message.reply.set_result(response)
         finally:
+            traces.detach(traced)
             LOADING.reset(token)
 
     def _unload(self, message: RunUnload) -> None:
@@ -1081,7 +1101,7 @@ class Unloading:
                 )
             )
             return
-        self.release(query_id, CallbackReply(answered), "unload")
+        self.release(query_id, CallbackReply(answered), "unload", message.trace)
 
     def on_abandon(self, message: Abandon, reply: Reply) -> None:
         if not self.held_by_another(message.query_id, message.origin_rr):
@@ -1109,10 +1129,11 @@ class Unloading:
             if self.registrar.catalog.has_consumer(query_id):  # (a release may have cascaded)
                 self.release(query_id, None, "death watch")
 
-    def release(self, query_id: str, reply: Reply | None, reason: str) -> None:
+    def release(self, query_id: str, reply: Reply | None, reason: str, trace: str = "") -> None:
         """Release consumer id `query_id` (rules 7-8); answer `reply` when it is done.
 
-        `reason` is what the `ConsumerReleased` event says (see its `reason`).
+        `reason` is what the `ConsumerReleased` event says (see its `reason`); `trace`:
+        the traceparent its `Unload` carried (`_core/traces.py`).
 
         While a durable registrar's backup cannot be written an `Unload` is refused
         (nothing changes; the consumer keeps the id and may try again); a give-up
@@ -1137,7 +1158,7 @@ class Unloading:
         catalog.release(query_id)
         shared = self.registrar
         told = (
-            (events.ConsumerReleased(shared.name, resource.id, query_id, origin, reason),)
+            (events.ConsumerReleased(shared.name, resource.id, query_id, origin, reason, trace),)
             if shared.events.active
             else ()
         )

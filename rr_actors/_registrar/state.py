@@ -109,6 +109,7 @@ class Waiter:
     query_id: str
     origin_rr: str
     reply: Reply
+    trace: str = ""  # the traceparent its Load carried (`_core/traces.py`)
 
 
 class OpenReply:

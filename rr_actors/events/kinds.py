@@ -396,6 +396,8 @@ class LoadFailed(_Numbered):
         query_id: the id of the query that caused the load.
         error_type: the exception's type name (`type(exc).__name__`).
         message: the exception's message (`str(exc)`).
+        trace: the W3C `traceparent` the call carried (`rr_actors.otel`: its trace id,
+            its CLIENT span's id, the sampled flag), `""` for an untraced call.
         at: when it failed.
     """
 
@@ -405,6 +407,7 @@ class LoadFailed(_Numbered):
     query_id: str
     error_type: str
     message: str
+    trace: str = ""
 
 
 @_kind
@@ -442,12 +445,15 @@ class ConsumerAdded(_Numbered):
         resource_id: the resource's id.
         query_id: the consumer's query id.
         consumer: name of the consumer registrar (the query's `origin_rr`).
+        trace: the W3C `traceparent` the call carried (`rr_actors.otel`: its trace id,
+            its CLIENT span's id, the sampled flag), `""` for an untraced call.
     """
 
     registrar: str
     resource_id: str
     query_id: str
     consumer: str
+    trace: str = ""
 
 
 @_kind
@@ -472,6 +478,8 @@ class ConsumerReleased(_Numbered):
             link, rule 22: its consumer reconciles with that one) or `"refused"` (the
             load's commit failed or its server closed: the caller was answered with an
             error).
+        trace: the W3C `traceparent` the `Unload` carried (`rr_actors.otel`: its trace id,
+            its CLIENT span's id, the sampled flag), `""` for another reason or an untraced one.
     """
 
     registrar: str
@@ -479,6 +487,7 @@ class ConsumerReleased(_Numbered):
     query_id: str
     consumer: str
     reason: str = "unload"
+    trace: str = ""
 
 
 # -- consumer side --------------------------------------------------------------------------
@@ -504,6 +513,13 @@ class CallAnswered(_Numbered):
             resource's `load`, rule 5), `None` for a call of its own.
         retry: the consumer already knew this id: it held it, or an earlier call with it
             failed as its provider died (rule 17); the answer adds no second consumer.
+        started: when the call began (`call`/`acall` was made), wall clock seconds as
+            `at`; 0.0 if not known (made while nobody listened, or an older line).
+        trace: the W3C `traceparent` the call carried to its provider (its trace id,
+            its CLIENT span's id, the sampled flag: `rr_actors.otel`), `""` when no
+            OpenTelemetry span was current in the caller.
+        caller_span: the id (16 hex) of the span current in the caller, the CLIENT
+            span's parent; `""` with `trace`.
         at: when the answer was recorded.
     """
 
@@ -513,6 +529,9 @@ class CallAnswered(_Numbered):
     server: str
     parent: str | None = None
     retry: bool = False
+    started: float = 0.0
+    trace: str = ""
+    caller_span: str = ""
 
 
 @_kind
@@ -535,6 +554,13 @@ class CallFailed(_Numbered):
             and a retry with the same id finds what it holds. `False`: the provider holds
             nothing for it (an error answer, or an answer given back).
         retry: the consumer already knew this id (see `CallAnswered.retry`).
+        started: when the call began (`call`/`acall` was made), wall clock seconds as
+            `at`; 0.0 if not known (made while nobody listened, or an older line).
+        trace: the W3C `traceparent` the call carried to its provider (its trace id,
+            its CLIENT span's id, the sampled flag: `rr_actors.otel`), `""` when no
+            OpenTelemetry span was current in the caller.
+        caller_span: the id (16 hex) of the span current in the caller, the CLIENT
+            span's parent; `""` with `trace`.
         at: when the failure was handled.
     """
 
@@ -546,6 +572,9 @@ class CallFailed(_Numbered):
     message: str
     may_have_executed: bool = False
     retry: bool = False
+    started: float = 0.0
+    trace: str = ""
+    caller_span: str = ""
 
 
 @_kind
@@ -563,6 +592,13 @@ class CallWithdrawn(_Numbered):
         reason: `"timeout"` (its `timeout` ran out: `CallTimeoutError`),
             `"interrupted"` (its caller stopped waiting with an exception) or
             `"registrar stopped"` (the consumer was stopped with the call in flight).
+        started: when the call began (`call`/`acall` was made), wall clock seconds as
+            `at`; 0.0 if not known (made while nobody listened, or an older line).
+        trace: the W3C `traceparent` the call carried to its provider (its trace id,
+            its CLIENT span's id, the sampled flag: `rr_actors.otel`), `""` when no
+            OpenTelemetry span was current in the caller.
+        caller_span: the id (16 hex) of the span current in the caller, the CLIENT
+            span's parent; `""` with `trace`.
         at: when the withdrawal was handled.
     """
 
@@ -571,6 +607,9 @@ class CallWithdrawn(_Numbered):
     serving_rr: str
     server: str
     reason: str = "timeout"
+    started: float = 0.0
+    trace: str = ""
+    caller_span: str = ""
 
 
 @_kind
@@ -653,6 +692,10 @@ class QueryForgotten(_Numbered):
             longer knows the id: if it left before the reconcile with that restart was
             answered (`reconciled` earlier than the restart), no `FATAL` is owed for
             the id (its consumer let it go: its reconcile skips an id being released).
+        trace: for an id forgotten on the answer to its `unload`, the W3C `traceparent`
+            the `Unload` carried (as `CallAnswered.trace`), `""` for an untraced one.
+        caller_span: with `trace`, the id (16 hex) of the span current in the caller of
+            `unload`.
         at: when it was forgotten.
     """
 
@@ -662,6 +705,8 @@ class QueryForgotten(_Numbered):
     reason: str
     unload_sent: int = 0
     reconciled: int = 0
+    trace: str = ""
+    caller_span: str = ""
 
 
 # -- status ---------------------------------------------------------------------------------

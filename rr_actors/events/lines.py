@@ -37,8 +37,8 @@ __all__ = [
     "to_lines",
 ]
 
-SCHEMA = 6
-"""Version of the dicts `to_dict` writes (the `"schema"` key); `from_dict` reads it and 5 to 1.
+SCHEMA = 7
+"""Version of the dicts `to_dict` writes (the `"schema"` key); `from_dict` reads it and 6 to 1.
 
 Schema 2 added `seq`, request digests and labels, release reasons, in-doubt details and
 the catalog events; a schema 1 line may lack the fields that have defaults (`seq`: 0).
@@ -52,9 +52,13 @@ and when the list of the last reconcile with its provider answered before had le
 line of an older schema gets 0 for both (not known).
 Schema 6 added `ChildExited`'s `strategy` and `children` (which siblings a restart takes
 down, in which order); a line of an older schema gets `strategy` `""` (not known).
+Schema 7 added the W3C trace context a call carried (`trace`, and `caller_span` at the
+consumer) to `CallAnswered`, `CallFailed`, `CallWithdrawn`, `QueryForgotten`,
+`ConsumerAdded`, `ConsumerReleased` and `LoadFailed`, and the call's start (`started`)
+to the first three; a line of an older schema gets `""` and 0.0 (not known).
 """
 
-_READS = (1, 2, 3, 4, 5, SCHEMA)
+_READS = (1, 2, 3, 4, 5, 6, SCHEMA)
 
 
 _TYPES: dict[str, type[Event]] = {cls.__name__: cls for cls in typing.get_args(Event)}

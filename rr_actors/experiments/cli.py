@@ -114,6 +114,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="serve each run's live observer page (Supervisor.observe) and print its URL",
     )
     parser.add_argument(
+        "--trace",
+        action="store_true",
+        help="make OpenTelemetry spans of each run's calls, loads and restarts, exported where "
+        "the OTEL_* environment variables say (OTEL_TRACES_EXPORTER: default otlp; console "
+        "prints them); needs the otel extra",
+    )
+    parser.add_argument(
         "--force",
         action="store_true",
         help="replace the experiment files in a non-empty --out",
@@ -470,6 +477,7 @@ def _run(args: argparse.Namespace, stream: TextIO) -> int:
                 duration=args.duration,
                 force=args.force,
                 observe=args.observe,
+                trace=args.trace,
                 progress=display,
                 on_observe=lambda run, url: display.say(f"run {run}: observer at {url}"),
             )
@@ -488,8 +496,8 @@ def _run(args: argparse.Namespace, stream: TextIO) -> int:
 
 def _simulated(args: argparse.Namespace, stream: TextIO) -> int:
     """`--simulate`: the plan's seeds on the simulation (`sweep.py`); the exit code."""
-    if args.observe or args.repeat is not None or args.seed is not None:
-        error("--simulate runs --seeds: not --repeat, --seed or --observe")
+    if args.observe or args.trace or args.repeat is not None or args.seed is not None:
+        error("--simulate runs --seeds: not --repeat, --seed, --observe or --trace")
         return 2
     try:
         seeds = sweep.parse_seeds(args.seeds or "1")

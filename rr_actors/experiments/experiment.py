@@ -203,6 +203,7 @@ def run(
     record_events: bool = True,
     progress: Callable[[Progress], None] | None = None,
     on_observe: Callable[[int, str], None] | None = None,
+    trace: bool = False,
 ) -> Results:
     """Run every run of an experiment, each in a fresh run process; return the results.
 
@@ -226,6 +227,8 @@ def run(
             events: restarts, unavailability, recovery); off only to measure its cost.
         progress: called with a `Progress` about 10 times a second (on this thread).
         on_observe: called with `(run, url)` when a run's observer page is up.
+        trace: make OpenTelemetry spans of each run's tree (`rr_actors.otel.Exporting`,
+            in the run process: the `OTEL_*` environment variables say where they go).
 
     Returns:
         The results of every run.
@@ -236,7 +239,8 @@ def run(
         ConfigError: an override is out of range, `out` is not usable (or not empty
             without `force`), this platform cannot run experiments (or the plan has
             `[hosts]` and this process is not root), or `observe` was asked
-            for and the `observe` extra is not installed.
+            for and the `observe` extra is not installed, or `trace` and the `otel`
+            extra's SDK, or an exporter `OTEL_TRACES_EXPORTER` names, is not.
         ExperimentError: a run process failed; the runs finished before it are kept.
         ExperimentInterruptedError: Ctrl-C (a `KeyboardInterrupt`); every process of the
             experiment was stopped, the runs finished so far are kept (its `results`).
@@ -260,6 +264,10 @@ def run(
         raise ConfigError(reason)
     if observe:
         require_extra()
+    if trace:  # (checked here, before any run: its provider is the run process's)
+        from rr_actors import otel  # noqa: PLC0415 - only tracing needs it
+
+        otel.provider_from_environment().shutdown()
     out_path = prepare_out(Path(out), force=force) if out is not None else None
     if out_path is not None and plan.source is not None:
         try:
@@ -267,7 +275,9 @@ def run(
         except OSError as exc:
             (out_path / "plan.toml").unlink(missing_ok=True)
             raise ExperimentError(f"cannot write to {out_path}/ ({exc.strerror})") from exc
-    return _Experiment(plan, out_path, record_events, observe, progress, on_observe).run()
+    return _Experiment(
+        plan, out_path, record_events, observe, progress, on_observe, trace=trace
+    ).run()
 
 
 class _Experiment:
@@ -281,8 +291,11 @@ class _Experiment:
         observe: bool,
         progress: Callable[[Progress], None] | None,
         on_observe: Callable[[int, str], None] | None,
+        *,
+        trace: bool = False,
     ) -> None:
         self.plan = plan
+        self.trace = trace
         self.out = out
         self.record_events = record_events
         self.observe = observe
@@ -330,6 +343,7 @@ class _Experiment:
                 seed=seed,
                 record_events=self.record_events,
                 observe=self.observe,
+                trace=self.trace,
                 token=f"{os.getpid()}-{uuid.uuid4().hex[:12]}",
             )
             result = self._one(spec, work / f"run-{number}")

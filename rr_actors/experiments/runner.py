@@ -89,6 +89,8 @@ class RunSpec:
         record_events: subscribe to the tree and write `events.jsonl` (without, the
             metrics that come from events stay empty: for measuring what recording costs).
         observe: serve the live observer page (`Supervisor.observe`) during the run.
+        trace: make OpenTelemetry spans of the tree (`rr_actors.otel.Exporting`: the
+            `OTEL_*` environment variables say where they go), exported at its end.
         token: the value of `RR_ACTORS_EXPERIMENT` that marks this run's processes.
     """
 
@@ -101,6 +103,7 @@ class RunSpec:
     record_events: bool = True
     observe: bool = False
     token: str = ""
+    trace: bool = False
 
 
 def build_tree(
@@ -355,6 +358,10 @@ def execute(spec: RunSpec, run_dir: Path, *, stop: threading.Event | None = None
         state_dir = run_dir / "state" if plan.state else None
         sup = build_tree(plan, state_dir, seed=spec.seed, network=network)
         subscription = sup.subscribe(log, maxsize=EVENT_QUEUE) if spec.record_events else None
+        if spec.trace:
+            from rr_actors import otel  # noqa: PLC0415 - only tracing needs it
+
+            stack.enter_context(otel.Exporting()).trace(sup)  # (closed after the stop)
         try:
             sup.start()
             try:

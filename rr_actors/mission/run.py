@@ -64,6 +64,7 @@ from rr_actors.mission.output import MissionOutput, Progress, make_output, shown
 from rr_actors.mission.report import MissionReport
 
 if TYPE_CHECKING:
+    from rr_actors import otel
     from rr_actors.observe import Observer
 
 CLOCK_SLACK = 0.05
@@ -320,6 +321,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--port", type=int, default=0, help="the observer's port (default: a free one)")
     p.add_argument(
+        "--trace",
+        action="store_true",
+        help="make OpenTelemetry spans of the managers' calls, loads and restarts, exported "
+        "where the OTEL_* environment variables say (OTEL_TRACES_EXPORTER: default otlp; "
+        "console prints them); needs the otel extra",
+    )
+    p.add_argument(
         "--allow-faults",
         action="store_true",
         help="teaching mode (with --observe): the page's buttons kill, hang and resume managers "
@@ -429,13 +437,19 @@ def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:  # noqa:
     report: MissionReport | None = None
     output: MissionOutput = make_output(stream, quiet=args.quiet)
     observers: list[Observer] = []
+    try:
+        exporting = _exporting(args)
+    except rr.ConfigError as exc:
+        _error(str(exc))
+        return 2
     with (
         output,
         _logging_to(out / LOG),
         _one_interrupt(output) as on_interrupt,
         _closing(observers),
+        exporting or contextlib.nullcontext(),
     ):
-        hooks = _hooks(args, output, stream, observers)
+        hooks = _hooks(args, output, stream, observers, exporting)
         try:
             report = run_mission(
                 config,
@@ -609,10 +623,28 @@ def _linger(args: argparse.Namespace, observer: Observer, stream: TextIO) -> Non
         threading.Event().wait(args.linger)
 
 
+def _exporting(args: argparse.Namespace) -> otel.Exporting | None:
+    """`--trace`: the spans' provider, set up by the `OTEL_*` variables (`None` without).
+
+    Raises:
+        ConfigError: the otel extra is missing, or an exporter named is not installed.
+    """
+    if not args.trace:
+        return None
+    from rr_actors import otel  # noqa: PLC0415 - only --trace needs it
+
+    return otel.Exporting()
+
+
 def _hooks(
-    args: argparse.Namespace, output: MissionOutput, stream: TextIO, observers: list[Observer]
+    args: argparse.Namespace,
+    output: MissionOutput,
+    stream: TextIO,
+    observers: list[Observer],
+    exporting: otel.Exporting | None = None,
 ) -> tuple[Callable[[rr.Supervisor], object] | None, Callable[[str, list[str]], object] | None]:
-    """`--observe` and `--step` as the mission's `on_supervisor` and `before_fault`."""
+    """`--observe`, `--trace` and `--step` as the mission's `on_supervisor` and
+    `before_fault`."""
 
     def tell(line: str) -> None:  # shown even with --quiet: it is what these options are for
         if args.quiet:
@@ -642,7 +674,14 @@ def _hooks(
             tell("press Enter to inject it (the mission clock stops while it waits)")
             sys.stdin.readline()  # (at the end of the input: go on at once)
 
-    return (observe if args.observe else None), (step if args.step else None)
+    def on_supervisor(sup: rr.Supervisor) -> None:
+        if exporting is not None:
+            exporting.trace(sup)  # (closed, its spans exported, when the run ends)
+        if args.observe:
+            observe(sup)
+
+    traced = args.observe or exporting is not None
+    return (on_supervisor if traced else None), (step if args.step else None)
 
 
 def _files(out: Path) -> list[str]:
@@ -670,7 +709,7 @@ def _station_argv(
     the observer's listening socket it inherits (`page`)."""
     argv = ["--hosts", "2", "--out", str(out.resolve()), "--inside", link.to_arg()]
     argv += ["--seed", str(args.seed), "--isolation", args.isolation]
-    for flag in ("fast", "no_faults", "quiet", "step", "observe", "allow_faults"):
+    for flag in ("fast", "no_faults", "quiet", "step", "observe", "allow_faults", "trace"):
         if getattr(args, flag):
             argv.append("--" + flag.replace("_", "-"))
     if page is not None:

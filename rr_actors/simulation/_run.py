@@ -322,6 +322,7 @@ def _seams(sched: Scheduler) -> dict[str, Any]:
         "sleep": functools.partial(sim.sleep, sched),
         "urandom": sched.data.randbytes,
         "random": sched.data.random,
+        "getrandbits": sched.data.getrandbits,
         "get_ident": functools.partial(sim.get_ident, sched),
         "current_thread": functools.partial(sim.current_thread, sched),
         "getpid": lambda: sched.current().process.pid,

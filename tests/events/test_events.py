@@ -275,6 +275,25 @@ def test_from_dict_reads_a_schema_5_child_exited_without_its_strategy() -> None:
     assert ("", ()) == (read.strategy, read.children)  # (not known: not judged)
 
 
+def test_from_dict_reads_a_schema_6_call_without_its_start_and_trace_context() -> None:
+    traceparent = f"00-{'a' * 32}-{'b' * 16}-01"
+    answered = events.CallAnswered(
+        "app", QID, "erm", "cam", started=1.5, trace=traceparent, caller_span="c" * 16, at=2.0
+    )
+    assert answered == events.from_dict(line(answered))
+    data = line(answered)
+    del data["started"], data["trace"], data["caller_span"]
+    data["schema"] = 6
+
+    read = events.from_dict(data)
+
+    assert isinstance(read, events.CallAnswered)
+    assert (0.0, "", "") == (read.started, read.trace, read.caller_span)  # (not known)
+    data["schema"] = events.lines.SCHEMA
+    with pytest.raises(rr.ConfigError, match="started"):  # (a line of this schema has them)
+        events.from_dict(data)
+
+
 def test_from_dict_accepts_an_int_for_a_float() -> None:
     data = line(events.ChildRestarted("root", "erm", 1, 0.5, at=10.0))
     data["restart_s"] = 2
@@ -303,7 +322,7 @@ def _with(**changes: Any) -> dict[str, Any]:
     ("data", "named"),
     [
         ([1, 2], "list"),
-        (_with(schema=7), "schema 7"),
+        (_with(schema=8), "schema 8"),
         (_with(schema=_DROP), "schema None"),
         (_with(type="Exploded"), "'Exploded'"),
         (_with(type=_DROP), "None"),

@@ -160,6 +160,18 @@ def test_observe_without_the_observe_extra_exits_2(
     assert not (tmp_path / "out").exists()
 
 
+def test_trace_with_an_exporter_not_installed_exits_2_before_any_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("OTEL_TRACES_EXPORTER", "console,nosuch")
+
+    code, err = refused(capsys, write_plan(tmp_path), tmp_path / "out", "--trace")
+
+    assert 2 == code
+    assert "OTEL_TRACES_EXPORTER names 'nosuch', which is not installed" in err
+    assert not (tmp_path / "out" / "events.jsonl").exists()
+
+
 WITHOUT_MSGSPEC = (
     "import sys; sys.modules['msgspec'] = None; "  # as with only the demo extra installed
     "from rr_actors.__main__ import main; sys.exit(main(sys.argv[1:]))"

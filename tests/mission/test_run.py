@@ -198,6 +198,37 @@ def test_without_faults_the_robot_drives_through_and_the_demo_explains_the_missi
     assert not (tmp_path / "mission.png").exists()
 
 
+def test_trace_exports_the_missions_spans_where_the_otel_variables_say(tmp_path: Path) -> None:
+    env = {**os.environ, "OTEL_TRACES_EXPORTER": "console", "OTEL_SERVICE_NAME": "the robot"}
+    argv = ["--fast", "--faults", "F4", "--distance", "2", "--quiet", "--trace"]
+    done = subprocess.run(
+        [sys.executable, "-m", "rr_actors", "demo", *argv, "--out", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+        check=False,
+    )
+
+    assert 0 == done.returncode, done.stderr[-2000:]
+    kinds = [line.split('"')[3] for line in done.stdout.splitlines() if '"kind": ' in line]
+    names = [line.split('"')[3] for line in done.stdout.splitlines() if '"name": ' in line]
+    assert {"SpanKind.CLIENT", "SpanKind.SERVER", "SpanKind.INTERNAL"} <= set(kinds)
+    assert "restart cm" in names  # (F4: the component manager killed)
+    assert '"service.name": "the robot"' in done.stdout
+
+
+def test_trace_with_an_exporter_not_installed_exits_2(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setenv("OTEL_TRACES_EXPORTER", "nosuch")
+
+    code = main(["--fast", "--trace", "--out", str(tmp_path / "out")])
+
+    assert 2 == code
+    assert "OTEL_TRACES_EXPORTER names 'nosuch', which is not installed" in capsys.readouterr().err
+
+
 def test_the_example_script_runs_the_mission(tmp_path: Path) -> None:
     result = subprocess.run(
         [

@@ -30,8 +30,17 @@ def _drop(_request: Any, _response: Any) -> None:
     return None
 
 
+def _span(_request: Any) -> str:
+    """The W3C traceparent of the OpenTelemetry span current in the load ("" if none)."""
+    from opentelemetry import trace  # noqa: PLC0415 - the otel extra, only where used
+
+    span = trace.get_current_span().get_span_context()
+    return f"00-{span.trace_id:032x}-{span.span_id:016x}-01" if span.is_valid else ""
+
+
 def _serve_leaf(registrar: rr.ResourceRegistrar) -> None:
     registrar.register_server("leaf", load=_same, unload=_drop)
+    registrar.register_server("span", load=_span, unload=_drop)
 
 
 @pytest.fixture
@@ -57,6 +66,22 @@ def test_a_pickled_handle_reaches_the_registrar_but_does_not_own_its_process(
     assert f"<RemoteRegistrar {owner.name!r} pid {owner.pid}>" == repr(owner)
     plain.unload(query.id)
     assert [] == owner.server_queries("leaf")
+
+
+def test_a_call_through_the_handle_continues_the_trace_of_the_span_current_here(
+    owner: RemoteRegistrar,
+) -> None:
+    from opentelemetry.sdk.trace import TracerProvider  # noqa: PLC0415 - the otel extra
+
+    untraced = owner.call(owner.name, "span", 1).response  # (made there: no span current)
+    with TracerProvider().get_tracer("test").start_as_current_span("step") as step:
+        traced = owner.call(owner.name, "span", 2).response
+
+    assert "" == untraced
+    here = step.get_span_context()
+    # made in the registrar's process, under this span: its load ran in this trace
+    assert traced.startswith(f"00-{here.trace_id:032x}-")
+    assert f"{here.span_id:016x}" not in traced  # (under its call's SERVER span)
 
 
 def test_a_plain_handles_kill_makes_the_process_kill_itself_and_its_owner_sees_it_dead(

@@ -63,6 +63,16 @@ def _record_load(request: Any) -> Any:
     return {"resource": request}
 
 
+def _span_load(_request: Any) -> str:
+    """The W3C traceparent of the OpenTelemetry span current in the load ("" if none)."""
+    from opentelemetry import trace  # noqa: PLC0415 - the otel extra, only where used
+
+    span = trace.get_current_span().get_span_context()
+    if not span.is_valid:
+        return ""
+    return f"00-{span.trace_id:032x}-{span.span_id:016x}-{span.trace_flags:02x}"
+
+
 def _record_unload(request: Any, _response: Any) -> None:
     with CHILD.lock:
         CHILD.unloads.append(request)
@@ -111,8 +121,10 @@ def _sized_load(size: int) -> bytes:
 
 def setup_servers(registrar: rr.ResourceRegistrar) -> None:
     """The provider's servers: a recording `echo`, a `slow` one, one with a bad response
-    (`lock`) and `sized`, whose response to `n` is `n` bytes."""
+    (`lock`), `sized`, whose response to `n` is `n` bytes, and `span`, whose response is
+    the traceparent of the OpenTelemetry span its load ran under."""
     registrar.register_server("echo", load=_record_load, unload=_record_unload)
+    registrar.register_server("span", load=_span_load, unload=_record_unload)
     registrar.register_server("sized", load=_sized_load, unload=_record_unload)
     registrar.register_server("gated", load=_gated_load, unload=_record_unload)
     registrar.register_server("slow", load=_blocking_load, unload=_record_unload)

@@ -554,6 +554,31 @@ def test_a_name_served_by_another_process_is_a_duplicate_and_leaves_nothing_behi
     assert [name] == [n for n in net.names() if n == name]
 
 
+def test_a_call_carries_its_callers_trace_context_to_a_provider_of_another_process(
+    net: ZenohNetwork, children: Started
+) -> None:
+    from opentelemetry.sdk.trace import TracerProvider  # noqa: PLC0415 - the otel extra
+
+    name = f"traced-{uuid.uuid4().hex[:6]}"
+    children.start(manager_main, net.address, name)
+    consumer = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"c-{uuid.uuid4().hex[:6]}"))
+    tracer = TracerProvider().get_tracer("test")
+    try:
+        net.serve(Served(consumer))
+        untraced = consumer.call(name, "span", 1, timeout=10).response
+        with tracer.start_as_current_span("step") as step:
+            traced = consumer.call(name, "span", 2, timeout=10).response
+    finally:
+        consumer.stop()
+
+    assert "" == untraced  # (no span current: nothing carried)
+    caller = step.get_span_context()
+    # the load ran under its call's SERVER span: in the caller's trace, sampled, its own id
+    assert traced.startswith(f"00-{caller.trace_id:032x}-")
+    assert 1 == int(traced[-2:], 16) & 1  # (sampled)
+    assert f"{caller.span_id:016x}" not in traced
+
+
 def test_of_two_processes_serving_one_name_at_once_exactly_one_does(
     net: ZenohNetwork, children: Started
 ) -> None:
