@@ -58,6 +58,7 @@ __all__ = [
     "getrandbits",
     "guards_files",
     "handles_signals",
+    "hold",
     "local",
     "manager_process",
     "monotonic",
@@ -79,6 +80,7 @@ __all__ = [
 
 T = TypeVar("T")
 Q = TypeVar("Q", bound=queue.SimpleQueue[Any])
+F = TypeVar("F")
 
 # -- the seams: the stdlib's own, until a simulation replaces them ----------------------
 
@@ -123,6 +125,20 @@ def guards_files() -> bool:
     return True
 
 
+def hold(file: F) -> F:
+    """`file` (an open file of the calling process with a `close()` that may be called
+    again: an `sqlite3.Connection`, a socket), registered as the process's: returned.
+
+    In a real run nothing happens: the kernel closes a process's files when it dies. In a
+    simulation, where a process's death is its tasks never running again in a process
+    that lives on, the simulated process that called it closes `file` when it ends (a
+    kill or an exit) or the run does, whichever comes first: not the garbage collector,
+    which may never (a dropped task that would not end keeps its frames, and what else
+    holds a run's objects, a traceback kept by a log handler, keeps them too).
+    """
+    return file
+
+
 manager_process: Any = None
 """`None` in a real run (`rr_actors._process` forks manager processes); in a simulation,
 what starts a simulated one instead (`ManagerProcess.start` hands over to it, with its
@@ -156,6 +172,7 @@ SEAMS = (
     "getpid",
     "new_event_loop",
     "guards_files",
+    "hold",
     "queue_class",
     "manager_process",
 )

@@ -131,11 +131,13 @@ class Checkpointer:
     def _run(self) -> None:
         try:
             # by URI in `rw` mode: it never creates a file where the backup was
-            db = sqlite3.connect(
-                f"{self._path.as_uri()}?mode=rw",
-                uri=True,
-                isolation_level=None,
-                timeout=CHECKPOINT_BUSY_TIMEOUT,
+            db = runtime.hold(
+                sqlite3.connect(
+                    f"{self._path.as_uri()}?mode=rw",
+                    uri=True,
+                    isolation_level=None,
+                    timeout=CHECKPOINT_BUSY_TIMEOUT,
+                )
             )
             db.execute(f"PRAGMA synchronous = {self._synchronous}")
         except sqlite3.Error as exc:

@@ -153,7 +153,7 @@ def connect(path: Path, *, read_only: bool) -> sqlite3.Connection:
         db = sqlite3.connect(uri, uri=True, isolation_level=None, check_same_thread=False)
     else:
         db = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
-    return db
+    return runtime.hold(db)  # (a simulated process's death closes it: `runtime.hold`)
 
 
 def _file_problem(path: Path) -> str | None:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import logging
 import os
 import pickle
-import select
+import selectors
 import signal
 import sys
 import threading
@@ -38,7 +38,9 @@ def _watch_parent(stop: threading.Event, parent: int) -> None:
         os.close(pidfd)
         stop.set()
         return
-    select.select([pidfd], [], [])
+    with selectors.DefaultSelector() as selector:  # (not select(): fds of 1024 and up)
+        selector.register(pidfd, selectors.EVENT_READ)
+        selector.select()
     os.close(pidfd)
     stop.set()
 

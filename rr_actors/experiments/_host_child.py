@@ -9,7 +9,7 @@ import json
 import logging
 import os
 import pickle
-import select
+import selectors
 import sys
 import threading
 from collections.abc import Sequence
@@ -32,7 +32,9 @@ def _watch_parent(parent: int) -> None:
         pidfd = os.pidfd_open(parent)
     except ProcessLookupError:
         os._exit(3)
-    select.select([pidfd], [], [])
+    with selectors.DefaultSelector() as selector:  # (not select(): fds of 1024 and up)
+        selector.register(pidfd, selectors.EVENT_READ)
+        selector.select()
     os._exit(3)
 
 

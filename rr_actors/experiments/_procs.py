@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import os
-import select
+import selectors
 import signal
 import time
 from pathlib import Path
@@ -90,14 +90,17 @@ def wait_gone(pids: list[int], timeout: float) -> list[int]:
             fds[os.pidfd_open(pid)] = pid
     deadline = time.monotonic() + timeout
     try:
-        while fds:
-            left = deadline - time.monotonic()
-            if left <= 0:
-                break
-            ready, _, _ = select.select(list(fds), [], [], left)
-            for fd in ready:
-                os.close(fd)
-                del fds[fd]
+        with selectors.DefaultSelector() as selector:  # (not select(): fds of 1024 and up)
+            for fd in fds:
+                selector.register(fd, selectors.EVENT_READ)
+            while fds:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                for key, _ in selector.select(left):
+                    selector.unregister(key.fd)
+                    os.close(key.fd)
+                    del fds[key.fd]
         return sorted(fds.values())
     finally:
         for fd in fds:

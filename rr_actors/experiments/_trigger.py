@@ -3,7 +3,7 @@
     run process (injector thread)                      trigger process (this file)
       due - PREPARE_AHEAD: look up the target,
       open a pidfd ──── (seq, due, signum) + pidfd ───► heap of due signals
-                                                        wait (select), spin the last 0.2 ms
+                                                        wait (epoll), spin the last 0.2 ms
                                                         pidfd_send_signal ── time.monotonic()
       record the fault ◄──── (seq, sent_at, errno) ─── reply
 
@@ -23,7 +23,7 @@ from __future__ import annotations
 import errno
 import heapq
 import os
-import select
+import selectors
 import signal
 import socket
 import struct
@@ -46,29 +46,30 @@ SPIN = 0.0002
 def serve(sock: socket.socket) -> None:
     """Send each requested signal at its due time and reply; return when `sock` closes."""
     due: list[tuple[float, int, int, int]] = []  # (due, seq, signum, pidfd)
-    while True:
-        timeout = None if not due else max(0.0, due[0][0] - time.monotonic() - SPIN)
-        readable, _, _ = select.select([sock], [], [], timeout)
-        if readable:
-            message, fds, _, _ = socket.recv_fds(sock, REQUEST.size, 1)
-            if not message:
-                return
-            seq, at, signum = REQUEST.unpack(message)
-            heapq.heappush(due, (at, seq, signum, fds[0]))
-            continue
-        if due[0][0] - time.monotonic() > SPIN:
-            continue  # woke early: never spin longer than SPIN (this may run real-time)
-        at, seq, signum, pidfd = heapq.heappop(due)
-        while time.monotonic() < at:
-            pass  # the last fraction of a millisecond
-        try:
-            signal.pidfd_send_signal(pidfd, signum)
-            sent, code = time.monotonic(), 0
-        except OSError as exc:
-            sent, code = 0.0, exc.errno or errno.EIO
-        finally:
-            os.close(pidfd)
-        sock.sendall(REPLY.pack(seq, sent, code))
+    with selectors.DefaultSelector() as selector:  # (not select(): fds of 1024 and up)
+        selector.register(sock, selectors.EVENT_READ)
+        while True:
+            timeout = None if not due else max(0.0, due[0][0] - time.monotonic() - SPIN)
+            if selector.select(timeout):
+                message, fds, _, _ = socket.recv_fds(sock, REQUEST.size, 1)
+                if not message:
+                    return
+                seq, at, signum = REQUEST.unpack(message)
+                heapq.heappush(due, (at, seq, signum, fds[0]))
+                continue
+            if due[0][0] - time.monotonic() > SPIN:
+                continue  # woke early: never spin longer than SPIN (this may run real-time)
+            at, seq, signum, pidfd = heapq.heappop(due)
+            while time.monotonic() < at:
+                pass  # the last fraction of a millisecond
+            try:
+                signal.pidfd_send_signal(pidfd, signum)
+                sent, code = time.monotonic(), 0
+            except OSError as exc:
+                sent, code = 0.0, exc.errno or errno.EIO
+            finally:
+                os.close(pidfd)
+            sock.sendall(REPLY.pack(seq, sent, code))
 
 
 def prioritise() -> bool:

@@ -281,8 +281,9 @@ def simulate(
 def run_seed(plan: Plan, seed: int) -> SimulatedRun:
     """Run `plan` on the simulation with `seed`: one history, its hash and its verdict.
 
-    The seed's garbage (its simulated world: actors, threads, open backups) is collected
-    as it ends, and only its (`_own_garbage`); its CPU time includes that.
+    The seed's garbage (its simulated world: actors, threads) is collected as it ends,
+    and only its (`_own_garbage`); its CPU time includes that. Its backups' files are
+    closed already (as each process died, or as the run ended: `runtime.hold`).
 
     Raises:
         The errors of `simulate`.
@@ -307,7 +308,7 @@ def _own_garbage() -> Iterator[None]:
     (`gc.unfreeze`). What was garbage before it is collected later, as it would have
     been. Only where `gc.freeze` exists and nothing was frozen already (the caller's
     own use of it is left alone); elsewhere it does nothing (the simulation's own
-    collection, `simulation.run`, closes a killed process's files then).
+    collection, `simulation.run`, frees a killed process's memory then).
     """
     freeze = getattr(gc, "freeze", None)
     if freeze is None or gc.get_freeze_count() > 0:

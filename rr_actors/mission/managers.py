@@ -25,7 +25,7 @@ import functools
 import json
 import logging
 import os
-import select
+import selectors
 import signal
 import subprocess
 import sys
@@ -146,7 +146,9 @@ class ProcessTable:
                 )
             os.close(ready_w)
             ready_w = -1
-            readable, _, _ = select.select([ready_r], [], [], READY_TIMEOUT)
+            with selectors.DefaultSelector() as selector:  # (not select(): fds of 1024 and up)
+                selector.register(ready_r, selectors.EVENT_READ)
+                readable = selector.select(READY_TIMEOUT)
             ready = bool(readable) and os.read(ready_r, 1) == b"R"
         finally:
             os.close(ready_r)
@@ -243,7 +245,9 @@ class ProcessTable:
 
     def _watcher(self, key: tuple[int, int], watched: _Watched) -> None:
         assert watched.pidfd is not None
-        select.select([watched.pidfd], [], [])  # readable when the process has exited
+        with selectors.DefaultSelector() as selector:  # (not select(): fds of 1024 and up)
+            selector.register(watched.pidfd, selectors.EVENT_READ)
+            selector.select()  # readable when the process has exited
         code = watched.popen.wait() if watched.popen is not None else None
         with self._lock:
             os.close(watched.pidfd)

@@ -29,7 +29,7 @@ import json
 import math
 import os
 import random
-import select
+import selectors
 import signal
 import sys
 import time
@@ -74,19 +74,22 @@ def start_time(pid: int) -> int | None:
 class Ticker:
     """Waits one period at a time, and ends the program when the watched process dies.
 
-    The wait is a `select` on a pidfd of the watched process (Linux 5.3+), so the death
-    of the mission is noticed at once, without polling.
+    The wait is on a pidfd of the watched process (Linux 5.3+; through `selectors`,
+    epoll, which takes a descriptor of any number), so the death of the mission is
+    noticed at once, without polling.
     """
 
     def __init__(self, rate_hz: float, watch_pid: int | None) -> None:
         self.period = 1.0 / rate_hz
         self.next = time.monotonic()
-        self.pidfd: int | None = None
+        self.watch: selectors.BaseSelector | None = None  # (readable: the watched one died)
         if watch_pid is not None:
             try:
-                self.pidfd = os.pidfd_open(watch_pid)
+                pidfd = os.pidfd_open(watch_pid)
             except ProcessLookupError:
                 sys.exit(0)
+            self.watch = selectors.DefaultSelector()
+            self.watch.register(pidfd, selectors.EVENT_READ)
 
     def wait(self) -> None:
         """Wait until the next period starts; exit the program if the watched one died."""
@@ -95,11 +98,10 @@ class Ticker:
         if delay < -self.period:  # far behind (the machine was busy): do not catch up
             self.next = time.monotonic()
             delay = 0.0
-        if self.pidfd is None:
+        if self.watch is None:
             time.sleep(max(0.0, delay))
             return
-        readable, _, _ = select.select([self.pidfd], [], [], max(0.0, delay))
-        if readable:
+        if self.watch.select(max(0.0, delay)):
             sys.exit(0)
 
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import os
-import select
+import selectors
 import signal
 import threading
 from collections.abc import Callable
@@ -208,7 +208,9 @@ class Faults:
 
 def _exited(pidfd: int) -> bool:
     """Whether the process of `pidfd` has exited (its pidfd polls readable then)."""
-    return bool(select.select([pidfd], [], [], 0)[0])
+    with selectors.DefaultSelector() as selector:  # (not select(): fds of 1024 and up)
+        selector.register(pidfd, selectors.EVENT_READ)
+        return bool(selector.select(0))
 
 
 def _send_fatal(query_id: str, registrar: ResourceRegistrar) -> None:

@@ -10,16 +10,21 @@
    │  (dropped with the run's other tasks when the run is over)
    ├─ the simulated locks they held are let go (only the carrier's objects are shared
    │  between simulated processes: in a real run a dead process holds nothing of theirs)
+   ├─ the files P holds (`runtime.hold`: its backups' SQLite connections) closed, as the
+   │  kernel closes a dead process's: a transaction it had begun is rolled back
    └─ `P.at_end` run (the kernel's part: the carrier closes P's links; its watcher hears)
  Scheduler.stop(P) (SIGSTOP): its tasks stay off the ready list until `cont(P)` (SIGCONT)
 ```
 
 What a process keeps on its disk (SQLite backups: real files) is not its state here: a
 kill drops its memory and keeps its files with exactly the transactions that committed.
+The run's end closes the files of every process still alive (`close_files`): none is
+left open for the garbage collector to find, or not.
 """
 
 from __future__ import annotations
 
+import contextlib
 import operator
 from collections.abc import Callable
 from typing import Any
@@ -33,6 +38,7 @@ class Process:
     __slots__ = (
         "at_end",
         "exitcode",
+        "files",
         "name",
         "parent",
         "parked",
@@ -54,6 +60,15 @@ class Process:
         self.stopped_at = 0.0  # (virtual seconds) when it was stopped last
         self.parked: list[Any] = []  # its tasks made ready while it was stopped
         self.at_end: list[Callable[[], object]] = []  # run once, when it ends
+        self.files: list[Any] = []  # what it holds open (`runtime.hold`), closed or not
+
+    def close_files(self) -> None:
+        """Close the files it holds (`runtime.hold`), as the kernel does at its death;
+        one that fails to close (closed already, in use) is let go all the same."""
+        files, self.files = self.files, []
+        for file in files:
+            with contextlib.suppress(Exception):
+                file.close()
 
     @property
     def alive(self) -> bool:

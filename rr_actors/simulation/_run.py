@@ -16,8 +16,9 @@
 The run's result is made as soon as the main task and the non-daemon threads ended;
 then every greenlet left (an actor still waiting for mail) is ended where it waits
 (`Scheduler.drop`: its `finally` blocks run then, unlogged, and change nothing of the
-run), since a greenlet left suspended when its thread ends is never freed. Nothing of a
-run is left in the process but what it returned.
+run), since a greenlet left suspended when its thread ends is never freed; then the
+files every process still holds are closed (`runtime.hold`: a killed process's were as
+it died). Nothing of a run is left in the process but what it returned.
 """
 
 from __future__ import annotations
@@ -206,10 +207,10 @@ def _wait_ended(thread: threading.Thread, ended: threading.Event, timeout: float
 
 COLLECT_AFTER = 64
 """Simulated processes that ended (in runs of this process) before their garbage is
-collected: a killed process's memory, its backup's open files too, is left to the
-collector, and a crash loop's could hold thousands of descriptors after its run. A full
-collection after every run would cost more than most runs (some 0.1 s in a test
-process's heap), so it comes once this many ended."""
+collected: a killed process's memory is left to the collector (its files are not: it
+closed them as it died, `runtime.hold`), and a crash loop's is much. A full collection
+after every run would cost more than most runs (some 0.1 s in a test process's heap), so
+it comes once this many ended."""
 
 _ended = 0
 
@@ -265,6 +266,8 @@ def _simulate_in(make: Callable[[], Scheduler], fn: Callable[[], Any], outcome: 
     finally:
         _scheduler = None
         sched.drop()
+        for process in sched.processes:  # (a task that would not end keeps its frames)
+            process.close_files()
         _loop.close_all(sched)
         sched.states.close()
         runtime.use(None)
@@ -328,6 +331,7 @@ def _seams(sched: Scheduler) -> dict[str, Any]:
         "getpid": lambda: sched.current().process.pid,
         "new_event_loop": functools.partial(_loop.new_event_loop, sched),
         "guards_files": lambda: False,  # (its backups are its own: `runtime.guards_files`)
+        "hold": functools.partial(_hold, sched),
         "queue_class": functools.partial(sim.queue_class, sched, {}),
         "manager_process": functools.partial(_manager.start, sched),
     }
@@ -335,6 +339,14 @@ def _seams(sched: Scheduler) -> dict[str, Any]:
     seams = {name: _only_here(here, seam, runtime.REAL[name]) for name, seam in simulated.items()}
     seams["monotonic"] = _monotonic_here(here, sched, runtime.REAL["monotonic"])
     return seams
+
+
+def _hold(sched: Scheduler, file: T) -> T:
+    """`runtime.hold` in a simulation: `file` is the calling task's process's (the run's
+    main process's, called from the scheduler itself), closed when that process ends."""
+    task = sched.current_or_none()
+    (sched.root if task is None else task.process).files.append(file)
+    return file
 
 
 def _only_here(here: int, simulated: Callable[..., Any], real: Callable[..., Any]) -> Any:

@@ -540,7 +540,8 @@ class Scheduler:
         again (no `finally` block of theirs runs), the simulated locks they held are let
         go (those another process made: only the carrier's objects are shared; its own
         stay as they were, a future's lock too), then its `at_end` callbacks run. From
-        one of its own tasks, never returns."""
+        one of its own tasks, never returns. The files it held (`runtime.hold`) are
+        closed before its `at_end` callbacks run."""
         if not process.alive:
             return
         process.exitcode = exitcode
@@ -558,6 +559,7 @@ class Scheduler:
                     lock.let_go()
             task.held.clear()
         self._ready[:] = [task for task in self._ready if not task.killed]
+        process.close_files()
         ends, process.at_end = process.at_end, []
         for at_end in ends:
             at_end()

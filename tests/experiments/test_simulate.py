@@ -7,6 +7,7 @@ aim); the shipped plans on it; what is not simulated is a `PlanError` naming it.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import errno
 import gc
 import json
@@ -123,6 +124,42 @@ def test_a_seeds_world_is_collected_as_it_ends_and_the_heap_before_it_left_alone
         gc.enable()
 
     assert (run.verdict, after, gc.get_freeze_count()) == ("held", before, 0)
+
+
+@SWEEP
+def test_seeds_run_in_a_process_leave_no_file_open_without_the_garbage_collector(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A simulated kill closes the backups its process held, and a run's end those of the
+    processes left (`runtime.hold`), the collector never running: before, each killed
+    process's SQLite files stayed open until collected, and a test process that kept a
+    run's objects (a log record's traceback) or a task that would not end (simslow's
+    hung callback) held them for good (CI: one worker past 1024 descriptors)."""
+    from rr_actors.experiments import load_plan  # noqa: PLC0415
+    from rr_actors.simulation import _run  # noqa: PLC0415
+
+    def open_files() -> int:
+        return len(os.listdir("/proc/self/fd"))
+
+    monkeypatch.setattr(simulate, "_own_garbage", contextlib.nullcontext)
+    monkeypatch.setattr(_run, "COLLECT_AFTER", 10**9)
+    monkeypatch.setattr(_run, "_ended", 0)
+    plans = [(simkill(), seed) for seed in range(1, 5)]
+    plans.append((load_plan(PLANS / "simslow.toml"), 1))
+    gc.collect()
+    before = open_files()
+    kept = []  # (everything the runs made stays alive: only closing frees a file)
+    gc.disable()
+    try:
+        for plan, seed in plans:
+            kept.append(simulate.run_seed(plan, seed))
+        after = open_files()
+    finally:
+        gc.enable()
+
+    assert all(run.verdict == "held" for run in kept)
+    assert sum(run.faults for run in kept[:4]) >= 4  # (kills: every 0.3 to 0.8 s)
+    assert after <= before + 2
 
 
 @SWEEP

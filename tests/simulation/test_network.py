@@ -393,10 +393,10 @@ def test_the_files_of_the_processes_a_run_killed_are_closed_when_it_ends(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """A simulated kill keeps the killed process's memory (its threads are dropped at the
-    run's end, not at the kill); what it held open, its backup's files, is closed at
-    the end of a run once `COLLECT_AFTER` processes ended, not whenever the garbage
-    collector next runs (a crash loop's some 6,000 descriptors outlived its run in a
-    test process and a later test's `select()` failed: descriptor out of range)."""
+    run's end, not at the kill); what it held open, its backup's files, is closed as it
+    dies (`runtime.hold`), not whenever the garbage collector next runs (a crash loop's
+    some 6,000 descriptors outlived its run in a test process and a later test's
+    `select()` failed: descriptor out of range)."""
 
     def open_files() -> int:
         return len(os.listdir("/proc/self/fd"))
@@ -408,7 +408,7 @@ def test_the_files_of_the_processes_a_run_killed_are_closed_when_it_ends(
             supervisor.wait_restarted("provider", restarts=n + 1, timeout=10.0)
             simulation.sleep(2.0)  # (virtual: within the tree's restart intensity)
 
-    monkeypatch.setattr(_run, "COLLECT_AFTER", 10)  # (the run ends 11 processes)
+    monkeypatch.setattr(_run, "COLLECT_AFTER", 10**9)  # (no collection: closing alone)
     gc.collect()
     before = open_files()
     gc.disable()  # (only the run's end may collect)

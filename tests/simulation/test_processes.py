@@ -4,6 +4,8 @@ SIGSTOP that runs nothing until SIGCONT."""
 from __future__ import annotations
 
 import signal
+import socket
+import threading
 from typing import Any
 
 import pytest
@@ -67,6 +69,40 @@ def test_a_killed_process_runs_nothing_more_not_even_its_finally_blocks() -> Non
 
     assert ["tick 1", "tick 2"] == run.value
     assert () == run.errors
+
+
+def test_held_files_are_closed_as_their_process_is_killed_and_the_rest_as_the_run_ends() -> None:
+    """`runtime.hold`: a killed process's files are closed at the kill, as the kernel
+    closes a dead process's (not when the collector finds its memory); those of a process
+    alive at the run's end, when it ends. A real thread's `hold` registers nothing."""
+    killed, alive = socket.socketpair(), socket.socketpair()
+    seen: dict[str, int] = {}
+
+    def child(sockets: tuple[socket.socket, socket.socket]) -> None:
+        assert runtime.hold(sockets[0]) is sockets[0]
+        runtime.Event().wait()
+
+    def main() -> None:
+        pid = simulation.start_process(lambda: child(killed), name="killed")
+        simulation.start_process(lambda: child(alive), name="alive")
+        simulation.sleep(1.0)
+        simulation.kill(pid)
+        seen["killed"], seen["alive"] = killed[0].fileno(), alive[0].fileno()
+        outside = threading.Thread(target=runtime.hold, args=(alive[1],))
+        outside.start()
+        outside.join()
+
+    try:
+        run = simulation.run(main, seed=1)
+
+        assert () == run.errors
+        assert seen["killed"] == -1  # (closed as it died, the run going on)
+        assert seen["alive"] >= 0
+        assert (-1, -1) == (killed[0].fileno(), alive[0].fileno())  # (the run ended)
+        assert (killed[1].fileno(), alive[1].fileno()) >= (0, 0)  # (held by nobody)
+    finally:
+        for sock in (*killed, *alive):
+            sock.close()
 
 
 def test_a_kill_lets_go_of_a_lock_of_another_process_its_thread_held() -> None:

@@ -2,8 +2,8 @@
 
 `select.select` refuses a descriptor numbered 1024 or more (`ValueError: filedescriptor
 out of range in select()`); a test process of the suite may hold that many files by the
-time it runs a test (simulated runs keep killed processes' backups open until they are
-collected). Tests wait on pipes, sockets and pidfds through this instead.
+time it runs a test (a test that opens many, one that leaks some). Tests wait on pipes,
+sockets and pidfds through this instead, as the product code waits through `selectors`.
 """
 
 from __future__ import annotations

@@ -204,7 +204,11 @@ def session_config(
             # host, scouting off) there is nothing to wait for
             **({"delay": 0} if mode == "router" and not connect and not remote else {}),
         },
-        "transport": {"link": link},
+        # no shared memory: a session keeps open, for good, a segment file
+        # (/dev/shm/*.zenoh) of each process of the host it shared one with (a
+        # supervisor's restarted managers: one more open file each; rr_actors sends
+        # no buffer of its own through it, so nothing is lost)
+        "transport": {"link": link, "shared_memory": {"enabled": False}},
     }
     if tls is not None:
         settings["access_control"] = _access_control(system, tls.members)

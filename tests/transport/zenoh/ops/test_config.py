@@ -29,7 +29,7 @@ from rr_actors._tools import certs as certs_tool
 from rr_actors._transport.codec import frame
 from rr_actors._transport.zenoh.ops.config import session_config
 from rr_actors._transport.zenoh.ops.watch import LinkWatch, handshake_trouble
-from rr_actors.testing import start_forkserver
+from rr_actors.testing import RemoteRegistrar, start_forkserver
 from tests.support import pki
 from tests.support.supervising import process
 from tests.support.tls_lab import MEMBERS, Lab, Logged, caught_log, free_port, listener, open_router
@@ -205,6 +205,31 @@ def _outcome(attacker: subprocess.Popen[str], *, stop: bool = False) -> dict[str
     assert 0 == attacker.returncode, err
     result: dict[str, Any] = json.loads(out)
     return result
+
+
+def test_networks_and_their_manager_processes_that_came_and_went_leave_no_file_open() -> None:
+    """A session shares no memory: with Zenoh's default, this process kept a segment file
+    (/dev/shm/*.zenoh) of each process it had talked with open for good (one more for
+    each network here; a supervisor's restarted managers, one each)."""
+
+    def open_files() -> int:
+        return len(os.listdir("/proc/self/fd"))
+
+    def network_with_a_manager_process() -> None:
+        network = rr.ZenohNetwork(system=f"test-{uuid.uuid4().hex[:8]}", tls=None)
+        try:
+            name = f"rr-{uuid.uuid4().hex[:8]}"
+            RemoteRegistrar.start(rr.RegistrarConfig(name=name), network).stop()
+        finally:
+            network.close()
+
+    for _ in range(2):  # (Zenoh's runtime, its threads' polls: made once, then kept)
+        network_with_a_manager_process()
+    before = open_files()
+    for _ in range(5):
+        network_with_a_manager_process()
+
+    assert open_files() - before < 3
 
 
 # -- endpoints against tls ---------------------------------------------------------------------
