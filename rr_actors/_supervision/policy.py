@@ -104,7 +104,7 @@ from collections.abc import Callable, Sequence
 from typing import Protocol, TypeVar
 
 from rr_actors import events
-from rr_actors._core import runtime
+from rr_actors._core import runtime, steps
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._core.timers import Cancellable
@@ -430,7 +430,12 @@ class Restarts:
         every other one comes back, a `transient` one that had exited normally too (OTP).
         """
         children = self.record.children
-        names = affected(self.record.spec.strategy, [c.name for c in children], crashed.name)
+        strategy, order = self.record.spec.strategy, [c.name for c in children]
+        step = steps.group  # (a classroom's copy of this step, `rr_actors.teach`)
+        if step is None:
+            names = affected(strategy, order, crashed.name)
+        else:
+            names = tuple(step(strategy, tuple(order), crashed.name))
         group = [c for c in children if c.name in names]
         for other in reversed(group):
             if other is crashed:

@@ -28,12 +28,18 @@ code as a function of the same shape (`shipped_step`):
   equal requests share one resource); `failed`: its provider reported it `FATAL`.
   Asked for plain requests (those the catalog digests: numbers, strings, tuples,
   dicts of them...), of the same server, on the registrar's actor thread.
+- `group(strategy, names, crashed) -> names`: the children a crash of child `crashed`
+  takes down with it, itself included: `strategy` the supervisor's (`"one_for_one"`,
+  `"one_for_all"`, `"rest_for_one"`), `names` every child's name in start order (a
+  tuple of `str`); returns the names to stop and restart (an iterable of `str`; the
+  supervisor stops them in reverse start order, then starts them in start order). Runs
+  on the supervisor's thread.
 """
 
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable, Collection, Iterable, Iterator
+from collections.abc import Callable, Collection, Iterable, Iterator, Sequence
 from typing import Any
 
 from rr_actors._core import steps as _steps
@@ -58,7 +64,17 @@ def _shares(stored: Any, request: Any, loading: bool, failed: bool) -> bool:
     return not failed and bool(stored == request)
 
 
-STEPS: dict[str, Callable[..., Any]] = {"climb": _climb, "shares": _shares}
+def _group(strategy: str, names: Sequence[str], crashed: str) -> Iterable[str]:
+    """The supervisor's own group (OTP): `one_for_one` the crashed child alone,
+    `one_for_all` every child, `rest_for_one` it and the children started after it."""
+    if strategy == "one_for_one":
+        return (crashed,)
+    if strategy == "one_for_all":
+        return tuple(names)
+    return tuple(names[names.index(crashed) :])
+
+
+STEPS: dict[str, Callable[..., Any]] = {"climb": _climb, "group": _group, "shares": _shares}
 """The steps a classroom's copy may replace, each name with the registrar's own code."""
 
 

@@ -230,6 +230,12 @@ _RETURNS: dict[str, tuple[Callable[[Any], bool], str]] = {
         "a list of resource ids (str)",
     ),
     "shares": (lambda r: isinstance(r, bool), "True or False"),
+    "group": (
+        lambda r: (
+            isinstance(r, list | tuple | set | frozenset) and all(isinstance(i, str) for i in r)
+        ),
+        "a list of child names (str)",
+    ),
 }
 """What each step must return, as a test and in words (a student's step is held to it)."""
 

@@ -27,6 +27,19 @@ def test_the_shipped_share_test_matches_equal_live_requests_loading_or_not() -> 
     assert not shares("front", "back", False, False)
 
 
+def test_the_shipped_group_is_the_supervisors_own_for_every_strategy() -> None:
+    from rr_actors._supervision.policy import affected  # noqa: PLC0415 - the supervisor's
+
+    group = shipped_step("group")
+    names = ("a", "b", "c")
+
+    for strategy in ("one_for_one", "one_for_all", "rest_for_one"):
+        for crashed in names:
+            expected = affected(strategy, names, crashed)  # type: ignore[arg-type]
+            assert tuple(group(strategy, names, crashed)) == expected
+    assert tuple(group("rest_for_one", names, "b")) == ("b", "c")
+
+
 def test_a_replaced_step_is_in_place_inside_its_block_only() -> None:
     from rr_actors._core import steps  # noqa: PLC0415 - where the registrar reads it
 
@@ -44,8 +57,8 @@ def test_a_replaced_step_is_in_place_inside_its_block_only() -> None:
 
 
 def test_bad_steps_are_refused() -> None:
-    with pytest.raises(ConfigError, match=r"no protocol step 'clim': the steps are climb, sh"):
+    with pytest.raises(ConfigError, match=r"no protocol step 'clim': the steps are climb, "):
         shipped_step("clim")
     with pytest.raises(ConfigError, match=r"must be a function"), replaced_step("climb", 3):  # type: ignore[arg-type]
         pass
-    assert set(STEPS) == {"climb", "shares"}
+    assert set(STEPS) == {"climb", "group", "shares"}
