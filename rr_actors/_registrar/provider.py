@@ -80,7 +80,7 @@ from rr_actors._catalog import (
     runtime_key,
 )
 from rr_actors._catalog.digest import requests_equal
-from rr_actors._core import runtime
+from rr_actors._core import runtime, steps
 from rr_actors._core.actor import Actor
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.ids import new_id
@@ -1142,7 +1142,9 @@ class Unloading:
             if shared.events.active
             else ()
         )
-        if reply is not None and resource.consumers and resource.state is ResourceState.LOADED:
+        step = steps.unloads  # (a classroom's copy of this step, `rr_actors.teach`)
+        last = not resource.consumers if step is None else step(frozenset(resource.consumers))
+        if reply is not None and not last and resource.state is ResourceState.LOADED:
             answer = reply  # (not the last: answered once written, with the rest of the turn)
 
             def undo(failed: CatalogWriteError) -> None:  # not durable: nothing changes
@@ -1162,7 +1164,7 @@ class Unloading:
             return
         if failed is not None:  # a give-up: carried out, written with the next write
             shared.publish(*told)
-        if resource.consumers or resource.state is not ResourceState.LOADED:
+        if not last or resource.state is not ResourceState.LOADED:
             if reply is not None:
                 reply.set_result(None)
             return
@@ -1334,6 +1336,9 @@ class Teardown:
         `ResourceUnloaded` in the same transaction, published before anyone hears of it.
         """
         shared = self.registrar
+        if resource.consumers and steps.unloads is not None:  # a classroom's copy unloaded
+            for query_id in list(resource.consumers):  # it under them: they lose it
+                shared.catalog.release(query_id)
         shared.catalog.remove_resource(resource.id)
         told = (
             (events.ResourceUnloaded(shared.name, resource.server, resource.id),)

@@ -34,6 +34,9 @@ code as a function of the same shape (`shipped_step`):
   tuple of `str`); returns the names to stop and restart (an iterable of `str`; the
   supervisor stops them in reverse start order, then starts them in start order). Runs
   on the supervisor's thread.
+- `unloads(left) -> bool`: whether the release of one consumer id of a loaded resource
+  unloads it: `left` the consumer ids still on it after that release (a frozenset of
+  query ids, maybe empty). Asked on the registrar's actor thread at each release.
 """
 
 from __future__ import annotations
@@ -74,7 +77,18 @@ def _group(strategy: str, names: Sequence[str], crashed: str) -> Iterable[str]:
     return tuple(names[names.index(crashed) :])
 
 
-STEPS: dict[str, Callable[..., Any]] = {"climb": _climb, "group": _group, "shares": _shares}
+def _unloads(left: Collection[str]) -> bool:
+    """The registrar's own last-release test: the resource is unloaded once no consumer
+    id is left on it (rule 7), and not before."""
+    return not left
+
+
+STEPS: dict[str, Callable[..., Any]] = {
+    "climb": _climb,
+    "group": _group,
+    "shares": _shares,
+    "unloads": _unloads,
+}
 """The steps a classroom's copy may replace, each name with the registrar's own code."""
 
 

@@ -230,6 +230,7 @@ _RETURNS: dict[str, tuple[Callable[[Any], bool], str]] = {
         "a list of resource ids (str)",
     ),
     "shares": (lambda r: isinstance(r, bool), "True or False"),
+    "unloads": (lambda r: isinstance(r, bool), "True or False"),
     "group": (
         lambda r: (
             isinstance(r, list | tuple | set | frozenset) and all(isinstance(i, str) for i in r)

@@ -40,6 +40,14 @@ def test_the_shipped_group_is_the_supervisors_own_for_every_strategy() -> None:
     assert tuple(group("rest_for_one", names, "b")) == ("b", "c")
 
 
+def test_the_shipped_unloads_unloads_when_no_consumer_id_is_left() -> None:
+    unloads = shipped_step("unloads")
+
+    assert unloads(frozenset())
+    assert not unloads(frozenset({"q1"}))
+    assert not unloads(frozenset({"q1", "q2"}))
+
+
 def test_a_replaced_step_is_in_place_inside_its_block_only() -> None:
     from rr_actors._core import steps  # noqa: PLC0415 - where the registrar reads it
 
@@ -61,4 +69,4 @@ def test_bad_steps_are_refused() -> None:
         shipped_step("clim")
     with pytest.raises(ConfigError, match=r"must be a function"), replaced_step("climb", 3):  # type: ignore[arg-type]
         pass
-    assert set(STEPS) == {"climb", "group", "shares"}
+    assert set(STEPS) == {"climb", "group", "shares", "unloads"}
