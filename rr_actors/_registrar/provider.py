@@ -403,7 +403,9 @@ class Provider:
                 )
             )
         else:  # loading: wait for it (one load per resource, rule 3)
-            self.loads[resource.id].append(waiter)
+            # (setdefault: a restored row left loading, not in doubt, by a classroom's
+            # copy of `in_doubt` has no load running: its callers wait until they time out)
+            self.loads.setdefault(resource.id, []).append(waiter)
             self.loading_ids[message.query_id] = resource.id
 
     def share(self, resource: Resource, message: Load) -> None:

@@ -37,6 +37,10 @@ code as a function of the same shape (`shipped_step`):
 - `unloads(left) -> bool`: whether the release of one consumer id of a loaded resource
   unloads it: `left` the consumer ids still on it after that release (a frozenset of
   query ids, maybe empty). Asked on the registrar's actor thread at each release.
+- `in_doubt(state) -> bool`: whether a row restored from a backup was cut short by a
+  crash (rule 16): `state` its state there, `"loading"`, `"loaded"` or `"unloading"`.
+  Asked as the registrar starts, before it serves (its launching thread, then its
+  actor thread).
 """
 
 from __future__ import annotations
@@ -83,8 +87,15 @@ def _unloads(left: Collection[str]) -> bool:
     return not left
 
 
+def _in_doubt(state: str) -> bool:
+    """The registrar's own in-doubt test: a restored row not committed as loaded (its
+    load or its unload cut short by a crash) is in doubt (rule 16)."""
+    return state != "loaded"
+
+
 STEPS: dict[str, Callable[..., Any]] = {
     "climb": _climb,
+    "in_doubt": _in_doubt,
     "group": _group,
     "shares": _shares,
     "unloads": _unloads,

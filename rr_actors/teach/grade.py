@@ -231,6 +231,7 @@ _RETURNS: dict[str, tuple[Callable[[Any], bool], str]] = {
     ),
     "shares": (lambda r: isinstance(r, bool), "True or False"),
     "unloads": (lambda r: isinstance(r, bool), "True or False"),
+    "in_doubt": (lambda r: isinstance(r, bool), "True or False"),
     "group": (
         lambda r: (
             isinstance(r, list | tuple | set | frozenset) and all(isinstance(i, str) for i in r)

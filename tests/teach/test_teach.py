@@ -48,6 +48,12 @@ def test_the_shipped_unloads_unloads_when_no_consumer_id_is_left() -> None:
     assert not unloads(frozenset({"q1", "q2"}))
 
 
+def test_the_shipped_in_doubt_is_every_row_not_committed_loaded() -> None:
+    in_doubt = shipped_step("in_doubt")
+
+    assert [in_doubt(s) for s in ("loading", "loaded", "unloading")] == [True, False, True]
+
+
 def test_a_replaced_step_is_in_place_inside_its_block_only() -> None:
     from rr_actors._core import steps  # noqa: PLC0415 - where the registrar reads it
 
@@ -69,4 +75,4 @@ def test_bad_steps_are_refused() -> None:
         shipped_step("clim")
     with pytest.raises(ConfigError, match=r"must be a function"), replaced_step("climb", 3):  # type: ignore[arg-type]
         pass
-    assert set(STEPS) == {"climb", "group", "shares", "unloads"}
+    assert set(STEPS) == {"climb", "group", "in_doubt", "shares", "unloads"}
