@@ -41,12 +41,19 @@ code as a function of the same shape (`shipped_step`):
   crash (rule 16): `state` its state there, `"loading"`, `"loaded"` or `"unloading"`.
   Asked as the registrar starts, before it serves (its launching thread, then its
   actor thread).
+- `reconcile(mine, held, under_way) -> (release, unknown)`: a provider's side of a
+  reconcile with one consumer: `mine` the query ids it holds for that consumer, `held`
+  those the consumer says it holds there, `under_way` those whose loads are under way
+  here (frozensets of `str`); returns the ids to release here (those not in `mine` are
+  skipped) and the ids to answer as unknown (the consumer reports them `FATAL`), two
+  iterables of `str`. Asked on the provider's actor thread.
 """
 
 from __future__ import annotations
 
 import contextlib
 from collections.abc import Callable, Collection, Iterable, Iterator, Sequence
+from collections.abc import Set as AbstractSet
 from typing import Any
 
 from rr_actors._core import steps as _steps
@@ -93,8 +100,18 @@ def _in_doubt(state: str) -> bool:
     return state != "loaded"
 
 
+def _reconcile(
+    mine: AbstractSet[str], held: AbstractSet[str], under_way: AbstractSet[str]
+) -> tuple[set[str], set[str]]:
+    """The provider's own side of a reconcile: release the ids the consumer no longer
+    holds; name unknown those it holds that this provider lost, but not a load still
+    under way here (rules 12, 20)."""
+    return set(mine - held), set(held - mine - under_way)
+
+
 STEPS: dict[str, Callable[..., Any]] = {
     "climb": _climb,
+    "reconcile": _reconcile,
     "in_doubt": _in_doubt,
     "group": _group,
     "shares": _shares,

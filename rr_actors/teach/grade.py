@@ -232,6 +232,18 @@ _RETURNS: dict[str, tuple[Callable[[Any], bool], str]] = {
     "shares": (lambda r: isinstance(r, bool), "True or False"),
     "unloads": (lambda r: isinstance(r, bool), "True or False"),
     "in_doubt": (lambda r: isinstance(r, bool), "True or False"),
+    "reconcile": (
+        lambda r: (
+            isinstance(r, tuple)
+            and len(r) == 2
+            and all(
+                isinstance(part, list | tuple | set | frozenset)
+                and all(isinstance(i, str) for i in part)
+                for part in r
+            )
+        ),
+        "two sets of query ids (str): (release, unknown)",
+    ),
     "group": (
         lambda r: (
             isinstance(r, list | tuple | set | frozenset) and all(isinstance(i, str) for i in r)

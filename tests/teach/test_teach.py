@@ -54,6 +54,14 @@ def test_the_shipped_in_doubt_is_every_row_not_committed_loaded() -> None:
     assert [in_doubt(s) for s in ("loading", "loaded", "unloading")] == [True, False, True]
 
 
+def test_the_shipped_reconcile_releases_what_the_consumer_dropped_and_names_what_was_lost() -> None:
+    reconcile = shipped_step("reconcile")
+
+    release, unknown = reconcile(frozenset({"a", "b"}), frozenset({"b", "c", "d"}), {"d"})
+
+    assert (release, unknown) == ({"a"}, {"c"})  # d: its load is under way here
+
+
 def test_a_replaced_step_is_in_place_inside_its_block_only() -> None:
     from rr_actors._core import steps  # noqa: PLC0415 - where the registrar reads it
 
@@ -75,4 +83,4 @@ def test_bad_steps_are_refused() -> None:
         shipped_step("clim")
     with pytest.raises(ConfigError, match=r"must be a function"), replaced_step("climb", 3):  # type: ignore[arg-type]
         pass
-    assert set(STEPS) == {"climb", "group", "in_doubt", "shares", "unloads"}
+    assert set(STEPS) == {"climb", "group", "in_doubt", "reconcile", "shares", "unloads"}
