@@ -26,6 +26,10 @@ simulated process is a greenlet of it), never a manager in a real process of its
   holds for it (`mine`), those it says it holds (`held`), those whose load is under way
   here (`under_way`), all sets of query ids: the ids to release and the ids to name
   unknown to it (`provider.py`'s `on_reconcile`).
+- `release_order(dependencies)`: when a resource goes, the query ids of its
+  dependencies (a tuple) and `"unload"` (its own unload), in the order they run: those
+  before `"unload"` are released before it, those after once it is done, those left
+  out never (`provider.py`'s `unload_resource`).
 """
 
 from __future__ import annotations
@@ -35,7 +39,7 @@ from typing import Any
 
 from rr_actors._types import Status
 
-__all__ = ["climb", "group", "in_doubt", "reconcile", "shares", "unloads"]
+__all__ = ["climb", "group", "in_doubt", "reconcile", "release_order", "shares", "unloads"]
 
 climb: Callable[[str | None, Collection[str], Status], Iterable[str]] | None = None
 """The student's status climb, or `None`: the registrar's own."""
@@ -57,3 +61,7 @@ Reconcile = Callable[[Set[str], Set[str], Set[str]], tuple[Iterable[str], Iterab
 
 reconcile: Reconcile | None = None
 """The student's reconcile (ids to release, ids unknown), or `None`: the registrar's own."""
+
+release_order: Callable[[tuple[str, ...]], Iterable[str]] | None = None
+"""The student's teardown order (`"unload"` among the ids), or `None`: the registrar's
+own (every dependency, then the unload)."""

@@ -1260,6 +1260,9 @@ class Unloading:
 
 # -- teardown --------------------------------------------------------------------------
 
+UNLOAD = "unload"
+"""In a classroom's `release_order`: where the resource's own unload runs."""
+
 
 class Teardown:
     """Unloads this registrar's resources and forgets them once they are gone."""
@@ -1317,6 +1320,8 @@ class Teardown:
                     exc_info=error,
                 )
             self.remove_resource(resource, unloaded=True)
+            for ids in later:  # (a classroom's copy of `release_order`: after the unload)
+                self.releases.release_dependencies(resource.id, lambda: None, only=ids)
             for waiting in self.unload_waiters.pop(resource.id):
                 if overdue:
                     waiting.set_error(error)  # type: ignore[arg-type]
@@ -1325,7 +1330,16 @@ class Teardown:
             self.under_way.pop(resource.id, None)
             self.check_idle()
 
-        self.releases.release_dependencies(resource.id, run_unload)
+        later: list[set[str]] = []  # the dependencies to release after the unload
+        step = steps.release_order  # (a classroom's copy of this step, `rr_actors.teach`)
+        if step is None:
+            self.releases.release_dependencies(resource.id, run_unload)
+            return
+        held = [r.query.id for r in self.registrar.catalog.dependencies(resource.id)]
+        order = list(step(tuple(held)))
+        cut = order.index(UNLOAD)
+        later.append(set(order[cut + 1 :]) & set(held))
+        self.releases.release_dependencies(resource.id, run_unload, only=set(order[:cut]))
 
     def when_idle(self, then: Callable[[], None]) -> None:
         """Run `then()` once no unload is under way here (now if none is)."""

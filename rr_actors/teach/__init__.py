@@ -47,6 +47,11 @@ code as a function of the same shape (`shipped_step`):
   here (frozensets of `str`); returns the ids to release here (those not in `mine` are
   skipped) and the ids to answer as unknown (the consumer reports them `FATAL`), two
   iterables of `str`. Asked on the provider's actor thread.
+- `release_order(dependencies) -> order`: when a resource's last consumer left, the
+  query ids of the calls it holds as dependencies (a tuple of `str`, oldest first)
+  and `"unload"` (its provider's unload callback), in the order they run: every id
+  and `"unload"` once (a list). Those before `"unload"` are released before it runs,
+  those after once it is done. Asked on the registrar's actor thread.
 """
 
 from __future__ import annotations
@@ -109,8 +114,15 @@ def _reconcile(
     return set(mine - held), set(held - mine - under_way)
 
 
+def _release_order(dependencies: tuple[str, ...]) -> list[str]:
+    """The registrar's own teardown of a resource: every dependency released, then its
+    own unload (rule 7)."""
+    return [*dependencies, "unload"]
+
+
 STEPS: dict[str, Callable[..., Any]] = {
     "climb": _climb,
+    "release_order": _release_order,
     "reconcile": _reconcile,
     "in_doubt": _in_doubt,
     "group": _group,

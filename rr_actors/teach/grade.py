@@ -222,18 +222,18 @@ def _forget_modules(folder: Path) -> None:
         sys.modules.pop(path.stem, None)
 
 
-_RETURNS: dict[str, tuple[Callable[[Any], bool], str]] = {
+_RETURNS: dict[str, tuple[Callable[[Any, tuple[Any, ...]], bool], str]] = {
     "climb": (
-        lambda r: (
+        lambda r, _args: (
             isinstance(r, list | tuple | set | frozenset) and all(isinstance(i, str) for i in r)
         ),
         "a list of resource ids (str)",
     ),
-    "shares": (lambda r: isinstance(r, bool), "True or False"),
-    "unloads": (lambda r: isinstance(r, bool), "True or False"),
-    "in_doubt": (lambda r: isinstance(r, bool), "True or False"),
+    "shares": (lambda r, _args: isinstance(r, bool), "True or False"),
+    "unloads": (lambda r, _args: isinstance(r, bool), "True or False"),
+    "in_doubt": (lambda r, _args: isinstance(r, bool), "True or False"),
     "reconcile": (
-        lambda r: (
+        lambda r, _args: (
             isinstance(r, tuple)
             and len(r) == 2
             and all(
@@ -244,14 +244,22 @@ _RETURNS: dict[str, tuple[Callable[[Any], bool], str]] = {
         ),
         "two sets of query ids (str): (release, unknown)",
     ),
+    "release_order": (
+        lambda r, args: isinstance(r, list | tuple) and sorted(r) == sorted([*args[0], UNLOAD]),
+        'a list of every dependency id and "unload", each once',
+    ),
     "group": (
-        lambda r: (
+        lambda r, _args: (
             isinstance(r, list | tuple | set | frozenset) and all(isinstance(i, str) for i in r)
         ),
         "a list of child names (str)",
     ),
 }
-"""What each step must return, as a test and in words (a student's step is held to it)."""
+"""What each step must return, as a test (of the result and the step's arguments) and in
+words (a student's step is held to it)."""
+
+UNLOAD = "unload"
+"""In `release_order`'s answer: where the resource's own unload runs."""
 
 
 @contextlib.contextmanager
@@ -283,7 +291,7 @@ def _student_step(
     def watched(*args: Any) -> Any:
         try:
             result = step(*args)
-            if returns is not None and not returns[0](result):
+            if returns is not None and not returns[0](result, args):
                 raise TypeError(f"it must return {returns[1]}, not {result!r}")  # noqa: TRY301
         except Exception as exc:
             if raised is not None:

@@ -145,6 +145,20 @@ def test_a_step_that_raises_or_returns_the_wrong_type_is_said_first(tmp_path: Pa
     )
 
 
+def test_a_release_order_that_leaves_a_dependency_out_is_said_as_such(tmp_path: Path) -> None:
+    # Every dependency and "unload", each once: one left out would be held for ever.
+    _chosen, folder = kit.start("order", tmp_path / "o")
+    (folder / "step.py").write_text(
+        "def release_order(dependencies):\n    return ['unload']\n", encoding="utf-8"
+    )
+
+    report = grade.check_folder(folder, seeds=1, shrink_budget=0)
+
+    assert report.failure is not None
+    assert report.failure.rule == "step-raised"
+    assert 'a list of every dependency id and "unload", each once' in report.failure.message
+
+
 WRONG = [e.name for e in kit.exercises() if e.wrong()]
 
 

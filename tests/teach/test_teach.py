@@ -62,6 +62,10 @@ def test_the_shipped_reconcile_releases_what_the_consumer_dropped_and_names_what
     assert (release, unknown) == ({"a"}, {"c"})  # d: its load is under way here
 
 
+def test_the_shipped_release_order_releases_every_dependency_before_the_unload() -> None:
+    assert shipped_step("release_order")(("q1", "q2")) == ["q1", "q2", "unload"]
+
+
 def test_a_replaced_step_is_in_place_inside_its_block_only() -> None:
     from rr_actors._core import steps  # noqa: PLC0415 - where the registrar reads it
 
@@ -83,4 +87,12 @@ def test_bad_steps_are_refused() -> None:
         shipped_step("clim")
     with pytest.raises(ConfigError, match=r"must be a function"), replaced_step("climb", 3):  # type: ignore[arg-type]
         pass
-    assert set(STEPS) == {"climb", "group", "in_doubt", "reconcile", "shares", "unloads"}
+    assert set(STEPS) == {
+        "climb",
+        "group",
+        "in_doubt",
+        "reconcile",
+        "release_order",
+        "shares",
+        "unloads",
+    }
