@@ -30,6 +30,10 @@ simulated process is a greenlet of it), never a manager in a real process of its
   dependencies (a tuple) and `"unload"` (its own unload), in the order they run: those
   before `"unload"` are released before it, those after once it is done, those left
   out never (`provider.py`'s `unload_resource`).
+- `recent(times, now, period)`: at a child's exit, how many of the restarts counted so
+  far (`times`, monotonic seconds, this one's `now` last) count toward the restart
+  intensity (`_supervision/policy.py`'s `RestartIntensity.add`): above `max_restarts`,
+  the supervisor gives up.
 """
 
 from __future__ import annotations
@@ -39,7 +43,16 @@ from typing import Any
 
 from rr_actors._types import Status
 
-__all__ = ["climb", "group", "in_doubt", "reconcile", "release_order", "shares", "unloads"]
+__all__ = [
+    "climb",
+    "group",
+    "in_doubt",
+    "recent",
+    "reconcile",
+    "release_order",
+    "shares",
+    "unloads",
+]
 
 climb: Callable[[str | None, Collection[str], Status], Iterable[str]] | None = None
 """The student's status climb, or `None`: the registrar's own."""
@@ -65,3 +78,6 @@ reconcile: Reconcile | None = None
 release_order: Callable[[tuple[str, ...]], Iterable[str]] | None = None
 """The student's teardown order (`"unload"` among the ids), or `None`: the registrar's
 own (every dependency, then the unload)."""
+
+recent: Callable[[tuple[float, ...], float, float], int] | None = None
+"""The student's count of the restarts within the period, or `None`: the supervisor's own."""

@@ -522,6 +522,9 @@ class RestartIntensity:
         """Count one restart now; return `False` if that exceeds the intensity (give up)."""
         now = self.clock()
         self._times.append(now)
+        step = steps.recent  # (a classroom's copy of this step, `rr_actors.teach`)
+        if step is not None:  # (it sees every restart: it chooses those that count)
+            return step(tuple(self._times), now, self.period) <= self.max_restarts
         while self._times and now - self._times[0] >= self.period:
             self._times.popleft()
         return len(self._times) <= self.max_restarts

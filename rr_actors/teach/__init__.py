@@ -52,6 +52,11 @@ code as a function of the same shape (`shipped_step`):
   and `"unload"` (its provider's unload callback), in the order they run: every id
   and `"unload"` once (a list). Those before `"unload"` are released before it runs,
   those after once it is done. Asked on the registrar's actor thread.
+- `recent(times, now, period) -> int`: at a child's exit that its supervisor would
+  restart, how many restarts count toward its intensity: `times` every restart counted
+  since the supervisor (re)started, this one last (a tuple of monotonic seconds), `now`
+  this one's time, `period` the supervisor's (seconds). Above `max_restarts`, the
+  supervisor gives up. Asked on the supervisor's thread.
 """
 
 from __future__ import annotations
@@ -120,8 +125,15 @@ def _release_order(dependencies: tuple[str, ...]) -> list[str]:
     return [*dependencies, "unload"]
 
 
+def _recent(times: Sequence[float], now: float, period: float) -> int:
+    """The supervisor's own count (OTP's restart intensity): the restarts less than
+    `period` seconds before `now`, this one included."""
+    return sum(1 for t in times if now - t < period)
+
+
 STEPS: dict[str, Callable[..., Any]] = {
     "climb": _climb,
+    "recent": _recent,
     "release_order": _release_order,
     "reconcile": _reconcile,
     "in_doubt": _in_doubt,

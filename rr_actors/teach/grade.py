@@ -232,6 +232,10 @@ _RETURNS: dict[str, tuple[Callable[[Any, tuple[Any, ...]], bool], str]] = {
     "shares": (lambda r, _args: isinstance(r, bool), "True or False"),
     "unloads": (lambda r, _args: isinstance(r, bool), "True or False"),
     "in_doubt": (lambda r, _args: isinstance(r, bool), "True or False"),
+    "recent": (
+        lambda r, _args: isinstance(r, int) and not isinstance(r, bool) and r >= 0,
+        "a count of restarts (an int >= 0)",
+    ),
     "reconcile": (
         lambda r, _args: (
             isinstance(r, tuple)

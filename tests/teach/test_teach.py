@@ -66,6 +66,20 @@ def test_the_shipped_release_order_releases_every_dependency_before_the_unload()
     assert shipped_step("release_order")(("q1", "q2")) == ["q1", "q2", "unload"]
 
 
+def test_the_shipped_recent_counts_the_restarts_within_the_period_this_one_included() -> None:
+    from rr_actors._supervision.policy import RestartIntensity  # noqa: PLC0415 - its own
+
+    recent = shipped_step("recent")
+    times = (0.0, 0.3, 0.6, 0.7, 1.05)
+    clock = iter(times)
+    intensity = RestartIntensity(2, 0.5, clock=lambda: next(clock))
+
+    for i, now in enumerate(times):
+        assert intensity.add() == (recent(times[: i + 1], now, 0.5) <= 2)
+        assert recent(times[: i + 1], now, 0.5) == intensity.recent
+    assert recent((0.0, 0.5), 0.5, 0.5) == 1  # (0.5 s old: out of a 0.5 s period)
+
+
 def test_a_replaced_step_is_in_place_inside_its_block_only() -> None:
     from rr_actors._core import steps  # noqa: PLC0415 - where the registrar reads it
 
@@ -91,6 +105,7 @@ def test_bad_steps_are_refused() -> None:
         "climb",
         "group",
         "in_doubt",
+        "recent",
         "reconcile",
         "release_order",
         "shares",
