@@ -8,8 +8,9 @@ events of the run it tells (shrunk, for a violation of the checker's rules).
     python benchmarks/bench_teach.py --seeds 3 --only climb
 
 A starter's check ends at its first failing seed (`seeds` run: how many it ran); a
-solution's runs them all. The floor beside them: `rr-actors teach list` (the interpreter
-and the kit's import, no simulation).
+solution's runs them all; an exercise's wrong answer (`wrong/`, if it ships one) is
+checked too: the rule it breaks, at which seed, its CPU seconds. The floor beside
+them: `rr-actors teach list` (the interpreter and the kit's import, no simulation).
 """
 
 from __future__ import annotations
@@ -59,12 +60,13 @@ def main() -> None:
         for exercise in chosen:
             cells = [exercise.name, exercise.kind, exercise.topic]
             reports = []
-            for side in ("starter", "solution"):
+            sides = ["starter", "solution", *(["wrong"] if exercise.wrong() else [])]
+            for side in sides:
                 folder = Path(scratch) / f"{exercise.name}-{side}"
                 kit.start(exercise.name, folder)
-                if side == "solution":
-                    for name, text in kit.solution_files(exercise).items():
-                        (folder / name).write_text(text, encoding="utf-8")
+                changed = {"starter": {}, "solution": kit.solution_files(exercise)}
+                for name, text in changed.get(side, exercise.wrong()).items():
+                    (folder / name).write_text(text, encoding="utf-8")
                 report = folder / "report.json"
                 more = ["--seeds", str(args.seeds)] if args.seeds else []
                 cpu, done = run("teach", "check", str(folder), "--json", str(report), *more)
@@ -72,7 +74,12 @@ def main() -> None:
                     sys.exit(f"{exercise.name} {side}: no report\n{done.stderr[-2000:]}")
                 data = json.loads(report.read_text())
                 reports.append((cpu, data))
-            (starter_cpu, starter), (solution_cpu, solution) = reports
+            (starter_cpu, starter), (solution_cpu, solution) = reports[:2]
+            wrong = "-"
+            if len(reports) == 3:
+                wrong_cpu, data = reports[2]
+                broken = (data["failure"] or {}).get("rule", "PASSES")
+                wrong = f"{broken} (seed {data['seeds_run']}, {wrong_cpu:.1f})"
             failure = starter["failure"] or {}
             verdicts = f"{'fails' if not starter['passed'] else 'PASSES'}/"
             verdicts += "passes" if solution["passed"] else "FAILS"
@@ -86,12 +93,13 @@ def main() -> None:
                 f"{failure.get('story_events', '-')}",
                 f"{failure.get('shrunk_events') or '-'}",
                 f"{failure.get('run_events', '-')}",
+                wrong,
             ]
             rows.append(cells)
     head = [
         "exercise", "kind", "topic", "starter/solution", "seeds (starter)", "CPU s starter",
         "seeds (solution)", "interleavings", "CPU s solution", "story steps",
-        "shrunk run events", "run events",
+        "shrunk run events", "run events", "wrong answer: rule (seed, CPU s)",
     ]  # fmt: skip
     print(f"floor: `rr-actors teach list`, {floor:.2f} CPU s")
     print("| " + " | ".join(head) + " |")

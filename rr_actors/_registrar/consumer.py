@@ -65,7 +65,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import logging
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Collection, Iterable
 from typing import Any
 
 import pykka
@@ -908,11 +908,15 @@ class Releases:
 
     # -- releasing one query ------------------------------------------------------------
 
-    def release_dependencies(self, rid: str, then: Callable[[], None]) -> None:
-        """Release every query resource `rid` holds as a dependency; then `then()`."""
+    def release_dependencies(
+        self, rid: str, then: Callable[[], None], only: Collection[str] | None = None
+    ) -> None:
+        """Release every query resource `rid` holds as a dependency (`only`: those of
+        these query ids, a classroom's copy of `release_order`); then `then()`."""
         join = Join(then)
         for record in self.registrar.catalog.dependencies(rid):
-            self.release_client(record, join.add())
+            if only is None or record.query.id in only:
+                self.release_client(record, join.add())
         for query_id, serving_rr in self.flights.take_dependencies(rid):
             give_back(serving_rr, query_id, self.registrar.name)
         join.seal()

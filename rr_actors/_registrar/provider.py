@@ -80,7 +80,7 @@ from rr_actors._catalog import (
     runtime_key,
 )
 from rr_actors._catalog.digest import requests_equal
-from rr_actors._core import runtime, traces
+from rr_actors._core import runtime, steps, traces
 from rr_actors._core.actor import Actor
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.loops import is_coroutine_function, process_loop
@@ -402,7 +402,9 @@ class Provider:
                 )
             )
         else:  # loading: wait for it (one load per resource, rule 3)
-            self.loads[resource.id].append(waiter)
+            # (setdefault: a restored row left loading, not in doubt, by a classroom's
+            # copy of `in_doubt` has no load running: its callers wait until they time out)
+            self.loads.setdefault(resource.id, []).append(waiter)
             self.loading_ids[message.query_id] = resource.id
 
     def share(self, resource: Resource, message: Load) -> None:
@@ -1162,7 +1164,9 @@ class Unloading:
             if shared.events.active
             else ()
         )
-        if reply is not None and resource.consumers and resource.state is ResourceState.LOADED:
+        step = steps.unloads  # (a classroom's copy of this step, `rr_actors.teach`)
+        last = not resource.consumers if step is None else step(frozenset(resource.consumers))
+        if reply is not None and not last and resource.state is ResourceState.LOADED:
             answer = reply  # (not the last: answered once written, with the rest of the turn)
 
             def undo(failed: CatalogWriteError) -> None:  # not durable: nothing changes
@@ -1182,7 +1186,7 @@ class Unloading:
             return
         if failed is not None:  # a give-up: carried out, written with the next write
             shared.publish(*told)
-        if resource.consumers or resource.state is not ResourceState.LOADED:
+        if not last or resource.state is not ResourceState.LOADED:
             if reply is not None:
                 reply.set_result(None)
             return
@@ -1248,7 +1252,13 @@ class Unloading:
             if query_id not in held:
                 self.provider.give_up(query_id)
         mine = catalog.consumer_ids_from(message.origin_rr)
-        stale = sorted(mine - held)
+        step = steps.reconcile  # (a classroom's copy of this step, `rr_actors.teach`)
+        told: tuple[str, ...] | None = None
+        if step is None:
+            stale = sorted(mine - held)
+        else:
+            gone, unknown_ids = step(frozenset(mine), frozenset(held), self.provider.under_way())
+            stale, told = sorted(set(gone) & mine), tuple(sorted(unknown_ids))
         if stale:
             logger.warning(
                 "registrar %s: %s no longer holds %d of its ids here (released while this "
@@ -1260,12 +1270,18 @@ class Unloading:
         for query_id in stale:
             if catalog.has_consumer(query_id):  # (still: a release above may have cascaded)
                 self.release(query_id, None, "reconcile")
+        if told is not None:  # (a classroom's copy's answer)
+            reply.set_result(told)
+            return
         under_way = self.provider.under_way()
         unknown = tuple(q for q in message.held if q not in mine and q not in under_way)
         reply.set_result(unknown)
 
 
 # -- teardown --------------------------------------------------------------------------
+
+UNLOAD = "unload"
+"""In a classroom's `release_order`: where the resource's own unload runs."""
 
 
 class Teardown:
@@ -1324,6 +1340,8 @@ class Teardown:
                     exc_info=error,
                 )
             self.remove_resource(resource, unloaded=True)
+            for ids in later:  # (a classroom's copy of `release_order`: after the unload)
+                self.releases.release_dependencies(resource.id, lambda: None, only=ids)
             for waiting in self.unload_waiters.pop(resource.id):
                 if overdue:
                     waiting.set_error(error)  # type: ignore[arg-type]
@@ -1332,7 +1350,16 @@ class Teardown:
             self.under_way.pop(resource.id, None)
             self.check_idle()
 
-        self.releases.release_dependencies(resource.id, run_unload)
+        later: list[set[str]] = []  # the dependencies to release after the unload
+        step = steps.release_order  # (a classroom's copy of this step, `rr_actors.teach`)
+        if step is None:
+            self.releases.release_dependencies(resource.id, run_unload)
+            return
+        held = [r.query.id for r in self.registrar.catalog.dependencies(resource.id)]
+        order = list(step(tuple(held)))
+        cut = order.index(UNLOAD)
+        later.append(set(order[cut + 1 :]) & set(held))
+        self.releases.release_dependencies(resource.id, run_unload, only=set(order[:cut]))
 
     def when_idle(self, then: Callable[[], None]) -> None:
         """Run `then()` once no unload is under way here (now if none is)."""
@@ -1354,6 +1381,9 @@ class Teardown:
         `ResourceUnloaded` in the same transaction, published before anyone hears of it.
         """
         shared = self.registrar
+        if resource.consumers and steps.unloads is not None:  # a classroom's copy unloaded
+            for query_id in list(resource.consumers):  # it under them: they lose it
+                shared.catalog.release(query_id)
         shared.catalog.remove_resource(resource.id)
         told = (
             (events.ResourceUnloaded(shared.name, resource.server, resource.id),)

@@ -43,7 +43,7 @@ from collections.abc import Callable, Sequence
 from typing import Protocol, TypeVar
 
 from rr_actors import events
-from rr_actors._core import runtime
+from rr_actors._core import runtime, steps
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._process.manager import ManagerExit
@@ -400,7 +400,12 @@ class Restarts:
         every other one comes back, a `transient` one that had exited normally too (OTP).
         """
         children = self.record.children
-        names = affected(self.record.spec.strategy, [c.name for c in children], crashed.name)
+        strategy, order = self.record.spec.strategy, [c.name for c in children]
+        step = steps.group  # (a classroom's copy of this step, `rr_actors.teach`)
+        if step is None:
+            names = affected(strategy, order, crashed.name)
+        else:
+            names = tuple(step(strategy, tuple(order), crashed.name))
         group = [c for c in children if c.name in names]
         for other in reversed(group):
             if other is crashed:
@@ -487,6 +492,9 @@ class RestartIntensity:
         """Count one restart now; return `False` if that exceeds the intensity (give up)."""
         now = self.clock()
         self._times.append(now)
+        step = steps.recent  # (a classroom's copy of this step, `rr_actors.teach`)
+        if step is not None:  # (it sees every restart: it chooses those that count)
+            return step(tuple(self._times), now, self.period) <= self.max_restarts
         while self._times and now - self._times[0] >= self.period:
             self._times.popleft()
         return len(self._times) <= self.max_restarts

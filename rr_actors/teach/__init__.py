@@ -28,12 +28,42 @@ code as a function of the same shape (`shipped_step`):
   equal requests share one resource); `failed`: its provider reported it `FATAL`.
   Asked for plain requests (those the catalog digests: numbers, strings, tuples,
   dicts of them...), of the same server, on the registrar's actor thread.
+- `group(strategy, names, crashed) -> names`: the children a crash of child `crashed`
+  takes down with it, itself included: `strategy` the supervisor's (`"one_for_one"`,
+  `"one_for_all"`, `"rest_for_one"`), `names` every child's name in start order (a
+  tuple of `str`); returns the names to stop and restart (an iterable of `str`; the
+  supervisor stops them in reverse start order, then starts them in start order). Runs
+  on the supervisor's thread.
+- `unloads(left) -> bool`: whether the release of one consumer id of a loaded resource
+  unloads it: `left` the consumer ids still on it after that release (a frozenset of
+  query ids, maybe empty). Asked on the registrar's actor thread at each release.
+- `in_doubt(state) -> bool`: whether a row restored from a backup was cut short by a
+  crash (rule 16): `state` its state there, `"loading"`, `"loaded"` or `"unloading"`.
+  Asked as the registrar starts, before it serves (its launching thread, then its
+  actor thread).
+- `reconcile(mine, held, under_way) -> (release, unknown)`: a provider's side of a
+  reconcile with one consumer: `mine` the query ids it holds for that consumer, `held`
+  those the consumer says it holds there, `under_way` those whose loads are under way
+  here (frozensets of `str`); returns the ids to release here (those not in `mine` are
+  skipped) and the ids to answer as unknown (the consumer reports them `FATAL`), two
+  iterables of `str`. Asked on the provider's actor thread.
+- `release_order(dependencies) -> order`: when a resource's last consumer left, the
+  query ids of the calls it holds as dependencies (a tuple of `str`, oldest first)
+  and `"unload"` (its provider's unload callback), in the order they run: every id
+  and `"unload"` once (a list). Those before `"unload"` are released before it runs,
+  those after once it is done. Asked on the registrar's actor thread.
+- `recent(times, now, period) -> int`: at a child's exit that its supervisor would
+  restart, how many restarts count toward its intensity: `times` every restart counted
+  since the supervisor (re)started, this one last (a tuple of monotonic seconds), `now`
+  this one's time, `period` the supervisor's (seconds). Above `max_restarts`, the
+  supervisor gives up. Asked on the supervisor's thread.
 """
 
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable, Collection, Iterable, Iterator
+from collections.abc import Callable, Collection, Iterable, Iterator, Sequence
+from collections.abc import Set as AbstractSet
 from typing import Any
 
 from rr_actors._core import steps as _steps
@@ -58,7 +88,59 @@ def _shares(stored: Any, request: Any, loading: bool, failed: bool) -> bool:
     return not failed and bool(stored == request)
 
 
-STEPS: dict[str, Callable[..., Any]] = {"climb": _climb, "shares": _shares}
+def _group(strategy: str, names: Sequence[str], crashed: str) -> Iterable[str]:
+    """The supervisor's own group (OTP): `one_for_one` the crashed child alone,
+    `one_for_all` every child, `rest_for_one` it and the children started after it."""
+    if strategy == "one_for_one":
+        return (crashed,)
+    if strategy == "one_for_all":
+        return tuple(names)
+    return tuple(names[names.index(crashed) :])
+
+
+def _unloads(left: Collection[str]) -> bool:
+    """The registrar's own last-release test: the resource is unloaded once no consumer
+    id is left on it (rule 7), and not before."""
+    return not left
+
+
+def _in_doubt(state: str) -> bool:
+    """The registrar's own in-doubt test: a restored row not committed as loaded (its
+    load or its unload cut short by a crash) is in doubt (rule 16)."""
+    return state != "loaded"
+
+
+def _reconcile(
+    mine: AbstractSet[str], held: AbstractSet[str], under_way: AbstractSet[str]
+) -> tuple[set[str], set[str]]:
+    """The provider's own side of a reconcile: release the ids the consumer no longer
+    holds; name unknown those it holds that this provider lost, but not a load still
+    under way here (rules 12, 20)."""
+    return set(mine - held), set(held - mine - under_way)
+
+
+def _release_order(dependencies: tuple[str, ...]) -> list[str]:
+    """The registrar's own teardown of a resource: every dependency released, then its
+    own unload (rule 7)."""
+    return [*dependencies, "unload"]
+
+
+def _recent(times: Sequence[float], now: float, period: float) -> int:
+    """The supervisor's own count (OTP's restart intensity): the restarts less than
+    `period` seconds before `now`, this one included."""
+    return sum(1 for t in times if now - t < period)
+
+
+STEPS: dict[str, Callable[..., Any]] = {
+    "climb": _climb,
+    "recent": _recent,
+    "release_order": _release_order,
+    "reconcile": _reconcile,
+    "in_doubt": _in_doubt,
+    "group": _group,
+    "shares": _shares,
+    "unloads": _unloads,
+}
 """The steps a classroom's copy may replace, each name with the registrar's own code."""
 
 

@@ -222,16 +222,48 @@ def _forget_modules(folder: Path) -> None:
         sys.modules.pop(path.stem, None)
 
 
-_RETURNS: dict[str, tuple[Callable[[Any], bool], str]] = {
+_RETURNS: dict[str, tuple[Callable[[Any, tuple[Any, ...]], bool], str]] = {
     "climb": (
-        lambda r: (
+        lambda r, _args: (
             isinstance(r, list | tuple | set | frozenset) and all(isinstance(i, str) for i in r)
         ),
         "a list of resource ids (str)",
     ),
-    "shares": (lambda r: isinstance(r, bool), "True or False"),
+    "shares": (lambda r, _args: isinstance(r, bool), "True or False"),
+    "unloads": (lambda r, _args: isinstance(r, bool), "True or False"),
+    "in_doubt": (lambda r, _args: isinstance(r, bool), "True or False"),
+    "recent": (
+        lambda r, _args: isinstance(r, int) and not isinstance(r, bool) and r >= 0,
+        "a count of restarts (an int >= 0)",
+    ),
+    "reconcile": (
+        lambda r, _args: (
+            isinstance(r, tuple)
+            and len(r) == 2
+            and all(
+                isinstance(part, list | tuple | set | frozenset)
+                and all(isinstance(i, str) for i in part)
+                for part in r
+            )
+        ),
+        "two sets of query ids (str): (release, unknown)",
+    ),
+    "release_order": (
+        lambda r, args: isinstance(r, list | tuple) and sorted(r) == sorted([*args[0], UNLOAD]),
+        'a list of every dependency id and "unload", each once',
+    ),
+    "group": (
+        lambda r, _args: (
+            isinstance(r, list | tuple | set | frozenset) and all(isinstance(i, str) for i in r)
+        ),
+        "a list of child names (str)",
+    ),
 }
-"""What each step must return, as a test and in words (a student's step is held to it)."""
+"""What each step must return, as a test (of the result and the step's arguments) and in
+words (a student's step is held to it)."""
+
+UNLOAD = "unload"
+"""In `release_order`'s answer: where the resource's own unload runs."""
 
 
 @contextlib.contextmanager
@@ -263,7 +295,7 @@ def _student_step(
     def watched(*args: Any) -> Any:
         try:
             result = step(*args)
-            if returns is not None and not returns[0](result):
+            if returns is not None and not returns[0](result, args):
                 raise TypeError(f"it must return {returns[1]}, not {result!r}")  # noqa: TRY301
         except Exception as exc:
             if raised is not None:

@@ -7,6 +7,8 @@
  exercises/NAME/README.md       the story, the rule, what to change
  exercises/NAME/starter/        the files a student starts from (plan.toml among them)
  exercises/NAME/solution/       the files the solution changes (the others: the starter's)
+ exercises/NAME/wrong/          a wrong answer a student may write (optional): the files
+                                it changes, for a teacher (the tests check it fails)
  a student's folder             README.md, the starter's files, .teach.json: the
                                 exercise's name and the hints shown
 ```
@@ -88,6 +90,12 @@ class Exercise:
     def solution(self) -> dict[str, str]:
         """The solution's files (the starter's, with those the solution changes)."""
         return {**self.starter(), **_files(self.folder / "solution")}
+
+    def wrong(self) -> dict[str, str]:
+        """A wrong answer's files (the starter's, with those it changes); `{}`: none shipped."""
+        if not (self.folder / "wrong").is_dir():
+            return {}
+        return {**self.starter(), **_files(self.folder / "wrong")}
 
     def readme(self) -> str:
         """The README's text."""

@@ -70,7 +70,9 @@ def test_the_starter_fails_its_check_and_the_solution_passes(name: str, tmp_path
     assert 1 <= report["failure"]["story_events"] <= 20
     assert len(report["failure"]["story"]) <= 21  # the steps and the violation's line
     if kit.exercise(name).kind == "protocol":  # (the checker's rules: shrunk)
-        assert report["failure"]["shrunk_events"] < report["failure"]["run_events"]
+        shrunk, whole = report["failure"]["shrunk_events"], report["failure"]["run_events"]
+        # (intensity's starter gives up at its fourth kill: a run of 17 events, all needed)
+        assert shrunk < whole or (name == "intensity" and shrunk == whole <= 20)
         assert (starter / "shrunk.toml").is_file()
         assert f"--plan {starter / 'shrunk.toml'}" in report["failure"]["replay"]
     assert passed.returncode == 0, passed.stdout + passed.stderr

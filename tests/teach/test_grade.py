@@ -6,7 +6,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
+from rr_actors.experiments import check
 from rr_actors.teach import grade, kit
+from rr_actors.teach.rules import RULES
 
 
 def solve(name: str, folder: Path) -> None:
@@ -139,3 +143,38 @@ def test_a_step_that_raises_or_returns_the_wrong_type_is_said_first(tmp_path: Pa
         "KeyError: 'no parent' (step.py, line 3)" in message
         or "TypeError: it must return a list of resource ids (str), not '" in message
     )
+
+
+def test_a_release_order_that_leaves_a_dependency_out_is_said_as_such(tmp_path: Path) -> None:
+    # Every dependency and "unload", each once: one left out would be held for ever.
+    _chosen, folder = kit.start("order", tmp_path / "o")
+    (folder / "step.py").write_text(
+        "def release_order(dependencies):\n    return ['unload']\n", encoding="utf-8"
+    )
+
+    report = grade.check_folder(folder, seeds=1, shrink_budget=0)
+
+    assert report.failure is not None
+    assert report.failure.rule == "step-raised"
+    assert 'a list of every dependency id and "unload", each once' in report.failure.message
+
+
+WRONG = [e.name for e in kit.exercises() if e.wrong()]
+
+
+@pytest.mark.parametrize("name", WRONG)
+def test_a_wrong_answer_a_student_may_write_fails_naming_the_rule_it_breaks(
+    name: str, tmp_path: Path
+) -> None:
+    # Each exercise's second bug (its `wrong/`), beside the starter's: the check catches
+    # it too, and names a rule (the checker's or the kit's), not a crash.
+    chosen, folder = kit.start(name, tmp_path / name)
+    for file, text in chosen.wrong().items():
+        (folder / file).write_text(text, encoding="utf-8")
+
+    report = grade.check_folder(folder, seeds=5, shrink_budget=0)
+
+    assert not report.passed
+    assert report.failure is not None
+    assert report.failure.rule in (*check.RULES, *RULES), report.failure
+    assert report.failure.first_event is not None

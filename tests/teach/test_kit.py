@@ -32,6 +32,11 @@ def test_each_exercise_is_whole(chosen: kit.Exercise, tmp_path: Path) -> None:
         if name.endswith(".py"):
             ast.parse(text)
     load_plan(tmp_path / "plan.toml")
+    wrong = chosen.wrong()  # (optional) a second bug: neither the starter nor the solution
+    assert not wrong or (wrong != chosen.starter() and wrong != chosen.solution())
+    for name, text in wrong.items():
+        if name.endswith(".py"):
+            ast.parse(text)
 
 
 def test_an_unknown_name_says_the_closest_ones_and_the_list() -> None:
