@@ -20,6 +20,7 @@ __all__ = [
     "CatalogCorruptError",
     "CatalogWriteError",
     "ConfigError",
+    "DeadlineExceededError",
     "DependencyCycleError",
     "DuplicateNameError",
     "DuplicateQueryIdError",
@@ -157,6 +158,17 @@ class CallTimeoutError(RrError, TimeoutError):
 
     A call that timed out leaves nothing behind: if its load completes later, the
     provider releases that query id.
+    """
+
+
+class DeadlineExceededError(CallTimeoutError):
+    """A load was shed before it started: what was left of its caller's `timeout` (carried
+    with the call, seconds) was less than the server's loads take lately.
+
+    Raised instead of running the load at once, not after the timeout: nothing was loaded
+    and the provider holds nothing for the call (its query id is given back). A subclass
+    of `CallTimeoutError`, so code that catches a timeout catches it. *What to do:* retry
+    later, or with a longer timeout; the server is overloaded or its loads slowed down.
     """
 
 

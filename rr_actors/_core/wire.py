@@ -57,6 +57,7 @@ from rr_actors._types import Query, Status, StatusUpdate
 from rr_actors.errors import (
     CallTimeoutError,
     ConfigError,
+    DeadlineExceededError,
     DependencyCycleError,
     ErrorFrame,
     MessageTooLargeError,
@@ -71,7 +72,7 @@ from rr_actors.errors import (
 
 __all__ = ["WIRE_TYPES", "WIRE_VERSION", "Pickler", "WireMessage", "dumps", "plain"]
 
-WIRE_VERSION = 8
+WIRE_VERSION = 9
 """The version of what crosses between processes (these messages, pickled): a carrier
 that can meet a process of another version (the Zenoh one, across hosts) refuses its
 messages unread. Raise it when a `WireMessage` changes incompatibly. (2: the Zenoh
@@ -84,7 +85,9 @@ crosses with its file's name, put back by `_transport.codec._named`, which a pro
 version 5 lacks. 7: that function is `_core.wire._named`, which a process of version 6
 lacks. 8: a `Load` and a `Reconcile` carry their consumer's run, `life`: a provider of
 version 7 would not fence a restarted consumer's earlier loads, and a consumer of version
-7 commits a record before its `Load` leaves, which one of 8 no longer does.)"""
+7 commits a record before its `Load` leaves, which one of 8 no longer does. 9: a `Load`
+carries its caller's deadline, `deadline` (a monotonic time of each process, the seconds
+left on the wire), which a provider of version 8 would not read: it would shed nothing.)"""
 
 WIRE_TYPES: set[type] = set()
 """Every `WireMessage` subclass (filled in as they are defined)."""
@@ -194,6 +197,7 @@ _VALUES_BY_REFERENCE: frozenset[type] = frozenset(
         RegistrarUnavailableError,
         RegistrarStoppedError,
         CallTimeoutError,
+        DeadlineExceededError,
         ConfigError,
         RrError,
     }

@@ -560,7 +560,8 @@ class Calls:
         try:
             # a notice that overtakes the answer waits; a durable call's is the actor's
             self.due.expect(query_id, attempt, reply if self.commit_first else None)
-            self.send(Load(query_id, server, request, self.name, chain, reply, self.life), reply)
+            load = Load(query_id, server, request, self.name, chain, reply, self.life, deadline)
+            self.send(load, reply)
             if not (yield attempt, deadline):  # the time is up: withdraw,
                 withdrawn = attempt.withdraw() is AttemptState.WITHDRAWN  # unless the
                 if not withdrawn:  # answer won (being recorded: its outcome comes with

@@ -127,6 +127,7 @@ from rr_actors.errors import (
     CallTimeoutError,
     CatalogWriteError,
     ConfigError,
+    DeadlineExceededError,
     DependencyCycleError,
     DuplicateNameError,
     DuplicateQueryIdError,
@@ -154,6 +155,10 @@ __all__ = [
 ]
 
 logger = logging.getLogger("rr_actors")
+
+_LOAD_S_WEIGHT = 0.2
+"""How far one load's run time moves its server's average (`ServerActor.ran`): about the
+last ten loads count."""
 
 
 class Lives:
@@ -405,6 +410,8 @@ class Provider:
         else:  # loading: wait for it (one load per resource, rule 3)
             self.loads[resource.id].append(waiter)
             self.loading_ids[message.query_id] = resource.id
+            if resource.id in self.places:  # (it may wait for a worker: not shed before)
+                self.places[resource.id][0].extend(message.deadline)
 
     def share(self, resource: Resource, message: Load) -> None:
         """A dedup hit: one more consumer of a loaded resource (rules 1-2)."""
@@ -453,7 +460,7 @@ class Provider:
         self.loading_ids[message.query_id] = rid
         self.load_started[rid] = runtime.monotonic()
         reply = self.registrar.come_back(lambda value, error: self.load_done(rid, value, error))
-        place = LoadPlace()
+        place = LoadPlace(message.deadline)
         self.places[rid] = (place, reply)
         server.ref.tell(RunLoad(rid, message.request, (*message.chain, rid), reply, place))
 
@@ -903,6 +910,9 @@ class ServerActor(Actor):
         # its coroutines running (loop thread), in the order they started (a dict: a set
         # would cancel them in address order at a stop, which no replay repeats)
         self.tasks: dict[asyncio.Task[None], None] = {}
+        # what its loads take, seconds: an average of the recent ones (`ran`), from 0
+        # (optimistic: nothing is shed before a load has run)
+        self.load_s = 0.0
 
     def on_receive(self, message: Any) -> None:
         if isinstance(message, RunLoad):
@@ -963,11 +973,43 @@ class ServerActor(Actor):
 
         process_loop().call_soon_threadsafe(start)
 
+    def shed(self, message: RunLoad) -> DeadlineExceededError | None:
+        """As its load would start: the error that sheds it, if its callers' deadline
+        (`LoadPlace.deadline`) leaves less time than this server's loads take (`load_s`).
+
+        A load that would finish after its last caller gave up is work for nobody, which
+        under overload holds a worker that a load still in time needs (issue 53).
+        """
+        deadline = message.place.deadline
+        if deadline is None:
+            return None
+        left, expected = deadline - runtime.monotonic(), self.load_s
+        if left > expected:
+            return None
+        return DeadlineExceededError(
+            f"the load of {describe(message.request)} at '{self.registrar}/{self.name}' was "
+            f"shed before it started: {max(left, 0.0):.3f} s were left of its callers' "
+            f"timeout, and its loads take {expected:.3f} s lately"
+        )
+
+    def ran(self, took: float) -> None:
+        """A load ran for `took` seconds: the average of the recent ones moves toward it
+        (an exponentially weighted average; two workers racing lose one update, no more)."""
+        self.load_s += _LOAD_S_WEIGHT * (took - self.load_s)
+
     async def _aload(self, message: RunLoad) -> None:
         """A coroutine `load`, on the process's loop (its task's own context)."""
+        shed = self.shed(message)
+        if shed is not None:
+            message.reply.set_error(shed)
+            return
         LOADING.set(LoadContext(self.registrar, message.resource_id, message.chain))
+        began = runtime.monotonic()
         try:
-            response = await self.load(message.request)
+            try:
+                response = await self.load(message.request)
+            finally:
+                self.ran(runtime.monotonic() - began)
             if self.persisted:
                 check_picklable(response, "the response")
         except BaseException as exc:  # noqa: BLE001 - any exception fails the load (rule 4)
@@ -998,9 +1040,17 @@ class ServerActor(Actor):
             message.reply.set_result(None)
 
     def _load(self, message: RunLoad) -> None:
+        shed = self.shed(message)
+        if shed is not None:  # its `load` never runs; the registrar gives its ids back
+            message.reply.set_error(shed)
+            return
         token = LOADING.set(LoadContext(self.registrar, message.resource_id, message.chain))
+        began = runtime.monotonic()
         try:
-            response = self.load(message.request)
+            try:
+                response = self.load(message.request)
+            finally:
+                self.ran(runtime.monotonic() - began)
             _refuse_awaitable(response)
             if self.persisted:
                 check_picklable(response, "the response")

@@ -1737,6 +1737,51 @@ class TestOverload:
         assert ["held", "next"] == list(started)
         assert 2 == len(provider.server_queries("leaf")) == len(consumer.client_queries())
 
+    def test_a_queued_load_whose_deadline_is_too_near_is_shed_before_its_load_runs(
+        self, make_registrar, gates, shared
+    ):
+        """Each call's deadline travels with its `Load` (as seconds left across
+        processes); a load whose callers' time left is less than the server's loads take
+        lately is answered at once with `DeadlineExceededError` and never runs."""
+        held_s, margin = 5.0, 0.5  # the held load teaches the server that loads take ~1 s
+        provider, consumer = make_registrar("provider", max_workers=1), make_registrar("consumer")
+        never, started = gates(), shared.list()
+
+        def load(request: Any) -> Any:
+            started.append((request, runtime.monotonic()))
+            if request == "held":  # holds the one worker for `held_s`: the rest queue
+                never.wait(held_s)
+            return request
+
+        provider.register_server("leaf", load=load, unload=lambda r, s: None)
+        with ThreadPoolExecutor(9) as pool:
+            held = pool.submit(consumer.call, provider.name, "leaf", "held", timeout=30)
+            assert wait_for(lambda: 1 == len(started), timeout=20)
+            ends = started[0][1] + held_s  # (one clock: CLOCK_MONOTONIC, every process)
+            # when the worker comes free, each has about `margin` s left: less than 1 s
+            queued = [
+                pool.submit(
+                    consumer.call,
+                    provider.name,
+                    "leaf",
+                    n,
+                    timeout=ends + margin - runtime.monotonic(),
+                )
+                for n in range(8)
+            ]
+            assert wait_for(lambda: 8 == pending_work(provider).queued_callbacks, timeout=20)
+            assert "held" == held.result(timeout=30).response
+            for call in queued:
+                with pytest.raises(rr.errors.DeadlineExceededError, match="shed before it"):
+                    call.result(timeout=30)
+        assert ["held"] == [request for request, _ in started]  # none of them ran
+        # the books hold: the provider kept only the held load, and its ids
+        assert ["held"] == [r.request for r in catalog_snapshot(provider).resources]
+        assert [held.result().id] == [q.id for q in provider.server_queries("leaf")]
+        assert [held.result().id] == [q.id for q in consumer.client_queries()]
+        # a load in time still runs (its caller's deadline is far)
+        assert "next" == consumer.call(provider.name, "leaf", "next", timeout=10).response
+
     def test_an_unload_is_not_queued_behind_loads(self, make_registrar, gates, shared, eventually):
         provider, consumer = make_registrar("provider", max_workers=1), make_registrar("consumer")
         first, rest, started, unloaded = gates(), gates(), shared.list(), shared.list()
