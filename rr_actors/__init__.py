@@ -40,6 +40,7 @@ from rr_actors.errors import (  # noqa: F401
     InternalError,
     MessageTooLargeError,
     MissingExtraError,
+    OverloadedError,
     SupervisorGaveUpError,
     TransferError,
     UnknownRegistrarError,

@@ -54,6 +54,24 @@ ones': loads of one server run concurrently, a hung load fails its callers at th
 rather than abandoned on its thread), and the tasks still running when the server stops
 are cancelled.
 
+Overload (issue 53). What slows, what is shed and what is refused is decided here, by the
+provider, for three reasons: it is the one place that knows its servers' work under way
+(a consumer sees only its own calls, and many consumers in many processes call one
+server); its answer is quick and holds nothing (no consumer id, no worker), so a refusal
+costs one round trip and no state on either side; and it needs no new message or credit
+protocol between processes, only an error answer that every carrier already moves.
+
+- Admission (`start_load`): a new load of a server with `RegistrarConfig.max_pending`
+  loads queued or running is refused with `OverloadedError`; its caller waits (a pause
+  that doubles from 5 ms to 100 ms, on its thread or, awaited, with none) and asks again
+  while its timeout lasts (`calls.py`). A dedup hit or a caller joining a load under way
+  adds no work and is never refused.
+- Shedding (`ServerActor.shed`): each `Load` carries its caller's deadline (as seconds
+  left across processes); a load whose deadline leaves less than its server's recent
+  loads take, when a worker comes free for it, fails at once with
+  `DeadlineExceededError` and never runs: its caller would have given up before it ended.
+- Withdrawal (`withdraw`): a queued load whose callers all gave up is never run.
+
 Each part owns its state: the loads and their waiters (`Provider`), the loads whose match
 user code decides (`Matching`), the unloads under way, parked or waited for (`Teardown`);
 `Unloading` has none, it changes the catalog's consumers and asks the others.
@@ -131,6 +149,7 @@ from rr_actors.errors import (
     DependencyCycleError,
     DuplicateNameError,
     DuplicateQueryIdError,
+    OverloadedError,
     RegistrarStoppedError,
     RegistrarUnavailableError,
     ResourceLoadError,
@@ -200,6 +219,7 @@ class Provider:
         self.releases = releases
         self.teardown = teardown
         self.loads: dict[str, list[Waiter]] = {}  # resource id -> the callers waiting for it
+        self.pending: dict[str, int] = {}  # server -> its loads queued or running (admission)
         self.loading_ids: dict[str, str] = {}  # a waiting caller's query id -> its resource
         self.abandoned: set[str] = set()  # query ids whose callers gave up while it loaded
         self.held_loads: list[Load] = []  # for servers `setup` has not registered yet
@@ -435,7 +455,21 @@ class Provider:
         )
 
     def start_load(self, server: Server, message: Load, waiter: Waiter, key: Any) -> None:
-        """Load a request not loaded here (`key`: its `runtime_key` if it has no digest)."""
+        """Load a request not loaded here (`key`: its `runtime_key` if it has no digest),
+        unless its server has `max_pending` loads under way already (`OverloadedError`:
+        its caller waits and asks again, `calls.py`)."""
+        pending, bound = self.pending.get(server.name, 0), self.registrar.config.max_pending
+        if pending >= bound:
+            message.reply.set_error(
+                OverloadedError(
+                    f"'{self.registrar.name}/{server.name}' has {pending} loads queued or "
+                    f"running, its bound (max_pending={bound}): it takes no more for now",
+                    self.registrar.name,
+                    server.name,
+                    bound,
+                )
+            )
+            return
         if self.registrar.saver.store is not None and key is None:  # (else checked with the key)
             try:  # the backup must be able to hold the request (a plain one: no user code)
                 check_picklable(
@@ -457,6 +491,7 @@ class Provider:
             message.reply.set_error(failed)
             return
         self.loads[rid] = [waiter]
+        self.pending[server.name] = pending + 1
         self.loading_ids[message.query_id] = rid
         self.load_started[rid] = runtime.monotonic()
         reply = self.registrar.come_back(lambda value, error: self.load_done(rid, value, error))
@@ -492,6 +527,7 @@ class Provider:
         for waiter in waiters:
             self.loading_ids.pop(waiter.query_id, None)
         resource = catalog.resources[rid]
+        self.done_pending(resource.server)
         if self.registrar.events.active:
             published_load(self.registrar, resource, waiters[0].query_id, load_s, error)
         if error is not None:
@@ -618,6 +654,7 @@ class Provider:
         resource = catalog.resources[rid]
         for waiter in self.loads.pop(rid):
             self.loading_ids.pop(waiter.query_id, None)
+        self.done_pending(resource.server)
         error = CallTimeoutError(
             f"the load of {describe(resource.request)} at '{self.registrar.name}/"
             f"{resource.server}' was withdrawn before it ran: every caller gave up"
@@ -634,6 +671,14 @@ class Provider:
                 waiter.reply.set_error(CallTimeoutError(f"call {waiter.query_id} was given up"))
 
         self.releases.release_dependencies(rid, gone)
+
+    def done_pending(self, server: str) -> None:
+        """A load of `server` ended (or was withdrawn): one less under way."""
+        left = self.pending.get(server, 0) - 1
+        if left > 0:
+            self.pending[server] = left
+        else:
+            self.pending.pop(server, None)
 
     def origin_under_way(self, query_id: str) -> str | None:
         """The registrar whose load of `query_id` is under way here, if one is."""

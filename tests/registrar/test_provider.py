@@ -1782,6 +1782,74 @@ class TestOverload:
         # a load in time still runs (its caller's deadline is far)
         assert "next" == consumer.call(provider.name, "leaf", "next", timeout=10).response
 
+    def test_past_max_pending_a_caller_waits_within_its_timeout_or_is_refused(
+        self, make_registrar, gates, shared
+    ):
+        """`max_pending` bounds a server's loads under way: a call past it asks again
+        while its timeout lasts (then it is served), and gets `OverloadedError` when its
+        time runs out first; nothing is dropped, nothing is held for a refused call."""
+        provider = make_registrar("provider", max_workers=1, max_pending=1)
+        consumer = make_registrar("consumer")
+        gate, started = gates(), shared.list()
+
+        def load(request: Any) -> Any:
+            started.append(request)
+            if request == "held":
+                assert gate.wait(30)
+            return request
+
+        provider.register_server("leaf", load=load, unload=lambda r, s: None)
+        with ThreadPoolExecutor(3) as pool:
+            held = pool.submit(consumer.call, provider.name, "leaf", "held", timeout=30)
+            assert wait_for(lambda: ["held"] == list(started), timeout=20)
+            # a caller joining the load under way adds no work: never refused
+            joins = pool.submit(consumer.call, provider.name, "leaf", "held", timeout=30)
+            with pytest.raises(rr.errors.OverloadedError) as refused:
+                consumer.call(provider.name, "leaf", "refused", timeout=1)
+            assert (provider.name, "leaf", 1) == (
+                refused.value.registrar,
+                refused.value.server,
+                refused.value.bound,
+            )
+            assert "max_pending=1" in str(refused.value)
+            waits = pool.submit(consumer.call, provider.name, "leaf", "waits", timeout=30)
+            assert not waits.done()
+            gate.set()  # room again: the waiting call's next try is served
+            assert "waits" == waits.result(timeout=30).response
+            assert "held" == held.result(timeout=10).response == joins.result(10).response
+        assert ["held", "waits"] == list(started)  # the refused one never ran
+        assert 3 == len(provider.server_queries("leaf")) == len(consumer.client_queries())
+
+    @pytest.mark.thread_only("awaits acall in this process")
+    def test_past_max_pending_an_awaited_call_waits_and_is_served(
+        self, make_registrar, gates, shared
+    ):
+        provider = make_registrar("provider", max_workers=1, max_pending=1)
+        consumer = make_registrar("consumer")
+        gate, started = gates(), shared.list()
+
+        def load(request: Any) -> Any:
+            started.append(request)
+            if request == "held":
+                assert gate.wait(30)
+            return request
+
+        provider.register_server("leaf", load=load, unload=lambda r, s: None)
+
+        async def awaited() -> Any:
+            task = asyncio.ensure_future(consumer.acall(provider.name, "leaf", "waits", timeout=30))
+            refusals = await asyncio.wait({task}, timeout=0.3)  # refused, asking again
+            assert not refusals[0]
+            gate.set()
+            return (await task).response
+
+        with ThreadPoolExecutor(1) as pool:
+            held = pool.submit(consumer.call, provider.name, "leaf", "held", timeout=30)
+            assert wait_for(lambda: ["held"] == list(started), timeout=20)
+            assert "waits" == asyncio.run(awaited())
+            assert "held" == held.result(timeout=10).response
+        assert ["held", "waits"] == list(started)
+
     def test_an_unload_is_not_queued_behind_loads(self, make_registrar, gates, shared, eventually):
         provider, consumer = make_registrar("provider", max_workers=1), make_registrar("consumer")
         first, rest, started, unloaded = gates(), gates(), shared.list(), shared.list()
