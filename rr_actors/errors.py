@@ -164,7 +164,7 @@ class CallTimeoutError(RrError, TimeoutError):
 
 class DeadlineExceededError(CallTimeoutError):
     """A load was shed before it started: what was left of its caller's `timeout` (carried
-    with the call, seconds) was less than the server's loads take lately.
+    with the call, seconds) was less than 1.5 times what the server's loads take lately.
 
     Raised instead of running the load at once, not after the timeout: nothing was loaded
     and the provider holds nothing for the call (its query id is given back). A subclass

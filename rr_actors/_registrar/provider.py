@@ -67,8 +67,8 @@ protocol between processes, only an error answer that every carrier already move
   while its timeout lasts (`calls.py`). A dedup hit or a caller joining a load under way
   adds no work and is never refused.
 - Shedding (`ServerActor.shed`): each `Load` carries its caller's deadline (as seconds
-  left across processes); a load whose deadline leaves less than its server's recent
-  loads take, when a worker comes free for it, fails at once with
+  left across processes); a load whose deadline leaves less than 1.5 times what its
+  server's recent loads take, when a worker comes free for it, fails at once with
   `DeadlineExceededError` and never runs: its caller would have given up before it ended.
 - Withdrawal (`withdraw`): a queued load whose callers all gave up is never run.
 
@@ -174,6 +174,11 @@ __all__ = [
 ]
 
 logger = logging.getLogger("rr_actors")
+
+_SHED_HEADROOM = 1.5
+"""A queued load is shed unless its callers' time left exceeds this many times what its
+server's loads take lately (`ServerActor.shed`): its answer's way back, and a load
+slower than the average, need time too."""
 
 _LOAD_S_WEIGHT = 0.2
 """How far one load's run time moves its server's average (`ServerActor.ran`): about the
@@ -1020,7 +1025,8 @@ class ServerActor(Actor):
 
     def shed(self, message: RunLoad) -> DeadlineExceededError | None:
         """As its load would start: the error that sheds it, if its callers' deadline
-        (`LoadPlace.deadline`) leaves less time than this server's loads take (`load_s`).
+        (`LoadPlace.deadline`) leaves less time than this server's loads take (`load_s`),
+        times `_SHED_HEADROOM`.
 
         A load that would finish after its last caller gave up is work for nobody, which
         under overload holds a worker that a load still in time needs (issue 53).
@@ -1028,13 +1034,14 @@ class ServerActor(Actor):
         deadline = message.place.deadline
         if deadline is None:
             return None
-        left, expected = deadline - runtime.monotonic(), self.load_s
+        left, expected = deadline - runtime.monotonic(), self.load_s * _SHED_HEADROOM
         if left > expected:
             return None
         return DeadlineExceededError(
             f"the load of {describe(message.request)} at '{self.registrar}/{self.name}' was "
             f"shed before it started: {max(left, 0.0):.3f} s were left of its callers' "
-            f"timeout, and its loads take {expected:.3f} s lately"
+            f"timeout, and its loads take {self.load_s:.3f} s lately (it needs "
+            f"{_SHED_HEADROOM:g} times that)"
         )
 
     def ran(self, took: float) -> None:
