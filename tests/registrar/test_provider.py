@@ -1840,6 +1840,8 @@ class TestOverload:
             task = asyncio.ensure_future(consumer.acall(provider.name, "leaf", "waits", timeout=30))
             refusals = await asyncio.wait({task}, timeout=0.3)  # refused, asking again
             assert not refusals[0]
+            snapshot = await asyncio.to_thread(catalog_snapshot, provider)
+            assert ["held"] == [r.request for r in snapshot.resources]  # not queued there
             gate.set()
             return (await task).response
 
