@@ -32,6 +32,7 @@ from rr_actors.config import MAX_DEPENDENCY_DEPTH  # noqa: F401
 from rr_actors.errors import (  # noqa: F401
     CatalogCorruptError,
     CatalogWriteError,
+    DeadlineExceededError,
     DependencyCycleError,
     DuplicateNameError,
     DuplicateQueryIdError,
@@ -39,6 +40,7 @@ from rr_actors.errors import (  # noqa: F401
     InternalError,
     MessageTooLargeError,
     MissingExtraError,
+    OverloadedError,
     SupervisorGaveUpError,
     TransferError,
     UnknownRegistrarError,

@@ -22,6 +22,7 @@ from rr_actors.errors import ConfigError
 
 __all__ = [
     "DEFAULT_MAX_MESSAGE_BYTES",
+    "DEFAULT_MAX_PENDING",
     "DEFAULT_MAX_WORKERS",
     "MAX_DEPENDENCY_DEPTH",
     "NAME",
@@ -85,6 +86,10 @@ Durability = Literal["process", "power"]
 
 DEFAULT_MAX_WORKERS = 64
 """Worker threads a registrar runs callbacks on at once, unless `max_workers` says otherwise."""
+
+DEFAULT_MAX_PENDING = 1000
+"""Loads a server may have queued or running at once, unless `max_pending` says otherwise:
+far more than ordinary use has (issue 53)."""
 
 DEFAULT_MAX_MESSAGE_BYTES = 16 * 1024 * 1024
 """The largest message (pickled) a registrar takes from another process, unless its
@@ -174,6 +179,13 @@ class RegistrarConfig:
             within one process are not copied and not limited. Default: 16 MiB
             (`DEFAULT_MAX_MESSAGE_BYTES`), so that a message of plain bytes costs a
             manager far less than its default heartbeat timeout.
+        max_pending: loads each server of this registrar may have queued or running at
+            once (new loads: a dedup hit, or a caller joining a load under way, adds no
+            work and is never refused). Past it a call waits and asks again within its
+            `timeout` (a blocking one on its thread, an awaited one holding no thread),
+            and gets `OverloadedError` (naming the registrar, the server and the bound)
+            when too little time is left. Default: 1000 (`DEFAULT_MAX_PENDING`), which
+            ordinary loads never reach.
 
     Raises:
         ConfigError: a field is invalid; the message names it.
@@ -190,6 +202,7 @@ class RegistrarConfig:
     compare_timeout: float = 5.0
     unload_timeout: float | None = 60.0
     max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
+    max_pending: int = DEFAULT_MAX_PENDING
 
     def __post_init__(self) -> None:
         check_name("name", self.name, "a registrar name")
@@ -208,6 +221,12 @@ class RegistrarConfig:
             or self.max_workers < 1
         ):
             raise ConfigError(f"max_workers must be an int >= 1, got {self.max_workers!r}")
+        if (
+            isinstance(self.max_pending, bool)
+            or not isinstance(self.max_pending, int)
+            or self.max_pending < 1
+        ):
+            raise ConfigError(f"max_pending must be an int >= 1, got {self.max_pending!r}")
         check_seconds("compare_timeout", self.compare_timeout)
         check_seconds("unload_timeout", self.unload_timeout, allow_none=True)
         if (

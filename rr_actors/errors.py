@@ -20,6 +20,7 @@ __all__ = [
     "CatalogCorruptError",
     "CatalogWriteError",
     "ConfigError",
+    "DeadlineExceededError",
     "DependencyCycleError",
     "DuplicateNameError",
     "DuplicateQueryIdError",
@@ -27,6 +28,7 @@ __all__ = [
     "InternalError",
     "MessageTooLargeError",
     "MissingExtraError",
+    "OverloadedError",
     "RegistrarStoppedError",
     "RegistrarUnavailableError",
     "ResourceLoadError",
@@ -158,6 +160,42 @@ class CallTimeoutError(RrError, TimeoutError):
     A call that timed out leaves nothing behind: if its load completes later, the
     provider releases that query id.
     """
+
+
+class DeadlineExceededError(CallTimeoutError):
+    """A load was shed before it started: what was left of its caller's `timeout` (carried
+    with the call, seconds) was less than 1.5 times what the server's loads take lately.
+
+    Raised instead of running the load at once, not after the timeout: nothing was loaded
+    and the provider holds nothing for the call (its query id is given back). A subclass
+    of `CallTimeoutError`, so code that catches a timeout catches it. *What to do:* retry
+    later, or with a longer timeout; the server is overloaded or its loads slowed down.
+    """
+
+
+class OverloadedError(RrError):
+    """A server had as much work under way as its registrar's `max_pending` allows, for
+    as long as the call could wait.
+
+    A call refused so waits and asks again (a blocking call on its thread, an awaited
+    one with no thread held) while its `timeout` lasts; this is raised when the time
+    left is too short for another try. Nothing was loaded and the provider holds
+    nothing of the call: it is never dropped silently.
+
+    Attributes:
+        registrar: the provider registrar's name.
+        server: the server's name there.
+        bound: its registrar's `max_pending` (loads queued or running, per server).
+    """
+
+    def __init__(self, message: str, registrar: str, server: str, bound: int) -> None:
+        super().__init__(message)
+        self.registrar = registrar
+        self.server = server
+        self.bound = bound
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (type(self), (str(self), self.registrar, self.server, self.bound))
 
 
 class RegistrarUnavailableError(RrError):

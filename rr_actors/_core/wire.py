@@ -57,9 +57,11 @@ from rr_actors._types import Query, Status, StatusUpdate
 from rr_actors.errors import (
     CallTimeoutError,
     ConfigError,
+    DeadlineExceededError,
     DependencyCycleError,
     ErrorFrame,
     MessageTooLargeError,
+    OverloadedError,
     RegistrarStoppedError,
     RegistrarUnavailableError,
     ResourceLoadError,
@@ -85,8 +87,9 @@ version 5 lacks. 7: that function is `_core.wire._named`, which a process of ver
 lacks. 8: a `Load` and a `Reconcile` carry their consumer's run, `life`: a provider of
 version 7 would not fence a restarted consumer's earlier loads, and a consumer of version
 7 commits a record before its `Load` leaves, which one of 8 no longer does. 9: a `Load`
-and an `Unload` carry their caller's W3C trace context, `trace`: a process of version 8
-would neither continue the trace nor know the field.)"""
+and an `Unload` carry their caller's W3C trace context, `trace`, and a `Load` its caller's
+deadline, `deadline` (a monotonic time of each process, the seconds left on the wire): a
+process of version 8 would neither continue the trace nor shed a load too late.)"""
 
 WIRE_TYPES: set[type] = set()
 """Every `WireMessage` subclass (filled in as they are defined)."""
@@ -189,6 +192,7 @@ _VALUES_BY_REFERENCE: frozenset[type] = frozenset(
         StatusUpdate,
         ErrorFrame,
         MessageTooLargeError,
+        OverloadedError,
         ResourceLoadError,
         DependencyCycleError,
         UnknownServerError,
@@ -196,6 +200,7 @@ _VALUES_BY_REFERENCE: frozenset[type] = frozenset(
         RegistrarUnavailableError,
         RegistrarStoppedError,
         CallTimeoutError,
+        DeadlineExceededError,
         ConfigError,
         RrError,
     }

@@ -74,6 +74,7 @@ from rr_actors._registrar.state import Probes
 from rr_actors._types import Query, StatusCallback
 from rr_actors.errors import (
     CallTimeoutError,
+    OverloadedError,
     RegistrarStoppedError,
     RegistrarUnavailableError,
     RrError,
@@ -92,6 +93,12 @@ __all__ = [
     "Outcome",
     "TakeOutcomes",
 ]
+
+
+_FIRST_PAUSE = 0.005
+"""Seconds a call refused for overload (`OverloadedError`) waits before it asks again;
+each further refusal doubles it, up to `_LAST_PAUSE`."""
+_LAST_PAUSE = 0.1
 
 
 # -- one call attempt ------------------------------------------------------------------
@@ -562,50 +569,69 @@ class Calls:
             CallTimeoutError: no answer in time; the call was withdrawn.
             RrError: what the call failed with.
         """
+        pause = _FIRST_PAUSE
+        while True:  # (again only after an `OverloadedError`: the provider holds nothing)
+            attempt = self.new_attempt(begun)
+            trace = attempt.trace
+            reply = ClientReply(
+                self, query_id, serving_rr, server, request, parent, on_status, attempt
+            )
+            answered: Query | None = None
+            withdrawn = False
+            try:
+                # a notice that overtakes the answer waits; a durable call's is the actor's
+                self.due.expect(query_id, attempt, reply if self.commit_first else None)
+                load = Load(
+                    query_id, server, request, self.name, chain, reply, self.life, trace, deadline
+                )
+                self.send(load, reply)
+                if not (yield attempt, deadline):  # the time is up: withdraw,
+                    withdrawn = attempt.withdraw() is AttemptState.WITHDRAWN  # unless the
+                    if not withdrawn:  # answer won (being recorded: its outcome comes
+                        yield attempt, None  # with the commit)
+                if attempt.state is AttemptState.ANSWERED:
+                    answered = reply.query(attempt.get())
+                    if self.stored and not self.commit_first:
+                        check_picklable(  # stored with its record at the next flush
+                            answered.response, f"the response of '{serving_rr}/{server}'"
+                        )
+                    if not self.commit_first:  # a durable one the registrar recorded already
+                        loaded = ClientRecord(answered, parent, loaded=True)
+                        # (a dependency's owner may be gone: it is given back at once)
+                        outcome = ClientLoaded(loaded, on_status, attempt)
+                        self.hand_over(outcome, wake=parent is not None or self.events.active)
+            except pykka.ActorDeadError:  # this registrar stopped meanwhile: give the id back
+                give_back(serving_rr, query_id, self.name)
+                raise DIRECTORY.gone_error(self.name) from None
+            except BaseException:  # the caller stops waiting (KeyboardInterrupt, cancelled)
+                attempt.withdraw()
+                self.withdraw(reply, attempt, "interrupted")
+                raise
+            if withdrawn:
+                self.withdraw(reply, attempt)
+                raise CallTimeoutError(
+                    f"call to '{serving_rr}/{server}' timed out after {limit:g} s"
+                )
+            if answered is not None:
+                return answered
+            assert attempt.state is AttemptState.FAILED  # (neither answered nor withdrawn)
+            try:
+                attempt.get()  # raises what the call failed with
+            except OverloadedError:  # refused, holding nothing: wait, then ask again
+                if deadline - runtime.monotonic() <= 2 * pause:  # no time for a pause and
+                    raise  # the answer after it
+            yield OneShotFuture(), runtime.monotonic() + pause  # (never settled: a pause)
+            pause = min(2 * pause, _LAST_PAUSE)
+
+    def new_attempt(self, begun: tuple[str, str] | None) -> CallAttempt:
+        """A call's attempt, stamped with when it began (while events are made) and with
+        its caller's trace context `begun` (`(traceparent, caller's span)`, or `None`)."""
         attempt = self.attempt_type()
-        trace = ""
         if self.events.active:  # (its events say when it began)
             attempt.started = hlc.CLOCK.wall()
         if begun is not None:
-            trace, attempt.caller_span = begun
-            attempt.trace = trace
-        reply = ClientReply(self, query_id, serving_rr, server, request, parent, on_status, attempt)
-        answered: Query | None = None
-        withdrawn = False
-        try:
-            # a notice that overtakes the answer waits; a durable call's is the actor's
-            self.due.expect(query_id, attempt, reply if self.commit_first else None)
-            load = Load(query_id, server, request, self.name, chain, reply, self.life, trace)
-            self.send(load, reply)
-            if not (yield attempt, deadline):  # the time is up: withdraw,
-                withdrawn = attempt.withdraw() is AttemptState.WITHDRAWN  # unless the
-                if not withdrawn:  # answer won (being recorded: its outcome comes with
-                    yield attempt, None  # the commit)
-            if attempt.state is AttemptState.ANSWERED:
-                answered = reply.query(attempt.get())
-                if self.stored and not self.commit_first:
-                    check_picklable(  # stored with its record at the next flush
-                        answered.response, f"the response of '{serving_rr}/{server}'"
-                    )
-                if not self.commit_first:  # a durable one the registrar recorded already
-                    loaded = ClientRecord(answered, parent, loaded=True)
-                    # (a dependency's owner may be gone: it is given back at once)
-                    outcome = ClientLoaded(loaded, on_status, attempt)
-                    self.hand_over(outcome, wake=parent is not None or self.events.active)
-        except pykka.ActorDeadError:  # this registrar stopped meanwhile: give the id back
-            give_back(serving_rr, query_id, self.name)
-            raise DIRECTORY.gone_error(self.name) from None
-        except BaseException:  # the caller stops waiting (KeyboardInterrupt, cancelled)
-            attempt.withdraw()
-            self.withdraw(reply, attempt, "interrupted")
-            raise
-        if withdrawn:
-            self.withdraw(reply, attempt)
-            raise CallTimeoutError(f"call to '{serving_rr}/{server}' timed out after {limit:g} s")
-        if attempt.state is AttemptState.FAILED:
-            attempt.get()  # raises what the call failed with
-        assert answered is not None  # (answered, as neither withdrawn nor failed)
-        return answered
+            attempt.trace, attempt.caller_span = begun
+        return attempt
 
     def send(self, load: Load, reply: ClientReply) -> None:
         """Send a call's `load` from the caller's thread (nothing is written first, also

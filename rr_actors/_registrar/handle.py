@@ -270,6 +270,12 @@ class Registrar:
     ) -> None:
         """Register a resource server `"<registrar>/<name>"`.
 
+        Under overload, its loads queued or running are bounded by the registrar's
+        `RegistrarConfig.max_pending` (a call past it waits and asks again within its
+        timeout, then gets `OverloadedError`), and a queued load whose caller's timeout
+        would run out before it ends (by what its recent loads took) fails at once with
+        `DeadlineExceededError` without running.
+
         Args:
             name: server name, unique on this registrar.
             load: `load(request) -> response`; runs on a worker thread of the registrar's

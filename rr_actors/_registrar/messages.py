@@ -122,7 +122,13 @@ class Load(WireMessage):
     "": not known); a provider that heard a `Reconcile` of a later run refuses it
     (presumed abort: that run does not hold the id, `provider.py`'s `Lives`). `trace`:
     the W3C traceparent of the call's CLIENT span (`_core/traces.py`), `""` untraced.
-    Answer: the response, or an error.
+    `deadline`: when its caller gives up (`time.monotonic()` seconds of this process;
+    `None`: never), by which a provider sheds a load that cannot finish in time
+    (`DeadlineExceededError`). It crosses as the seconds left, as gRPC's `grpc-timeout`
+    does (`__getstate__`), and becomes a deadline of the receiving process's clock when
+    it is unpickled there (`__setstate__`): the clocks of two processes or hosts are
+    never compared, and the time on the way counts against it. Answer: the response,
+    or an error.
     """
 
     query_id: str
@@ -133,6 +139,21 @@ class Load(WireMessage):
     reply: Reply
     life: str = ""
     trace: str = ""
+    deadline: float | None = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Its fields as it leaves this process: the deadline as the seconds left."""
+        state = dict(self.__dict__)
+        if self.deadline is not None:
+            state["deadline"] = self.deadline - runtime.monotonic()
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        """Its fields as it arrives: the seconds left as a deadline of this process."""
+        left = state.get("deadline")
+        if left is not None:
+            state["deadline"] = runtime.monotonic() + left
+        self.__dict__.update(state)
 
     def compensation(self) -> Abandon:
         """A lost answer leaves a consumer id nobody holds: release it (rule 17)."""
@@ -399,15 +420,26 @@ class LoadPlace:
     """A load's place in the queue for a worker, shared by the registrar (which may
     `withdraw` it: its callers all gave up) and its server actor (which `takes` it).
 
+    `deadline`: when the last of its callers gives up (`time.monotonic()` seconds;
+    `None`: one never does), which the server reads as a worker takes the load, to shed
+    it if it cannot finish in time (`ServerActor.shed`).
+
     Thread-safe: the registrar's and the server's threads both use it.
     """
 
-    __slots__ = ("_job", "_lock", "_state")
+    __slots__ = ("_job", "_lock", "_state", "deadline")
 
-    def __init__(self) -> None:
+    def __init__(self, deadline: float | None = None) -> None:
         self._lock = runtime.Lock()
         self._state = "sent"  # "sent", "withdrawn", "queued" (`_job`) or "started"
         self._job: Job | None = None
+        self.deadline = deadline
+
+    def extend(self, deadline: float | None) -> None:
+        """On the registrar's thread: one more caller waits for it, until `deadline`."""
+        with self._lock:
+            if self.deadline is not None:
+                self.deadline = None if deadline is None else max(self.deadline, deadline)
 
     def take(self, start: Callable[[], Job | None]) -> None:
         """On the server's thread: `start()` the load (its worker job, or `None` if it

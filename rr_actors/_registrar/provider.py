@@ -54,6 +54,24 @@ ones': loads of one server run concurrently, a hung load fails its callers at th
 rather than abandoned on its thread), and the tasks still running when the server stops
 are cancelled.
 
+Overload (issue 53). What slows, what is shed and what is refused is decided here, by the
+provider, for three reasons: it is the one place that knows its servers' work under way
+(a consumer sees only its own calls, and many consumers in many processes call one
+server); its answer is quick and holds nothing (no consumer id, no worker), so a refusal
+costs one round trip and no state on either side; and it needs no new message or credit
+protocol between processes, only an error answer that every carrier already moves.
+
+- Admission (`start_load`): a new load of a server with `RegistrarConfig.max_pending`
+  loads queued or running is refused with `OverloadedError`; its caller waits (a pause
+  that doubles from 5 ms to 100 ms, on its thread or, awaited, with none) and asks again
+  while its timeout lasts (`calls.py`). A dedup hit or a caller joining a load under way
+  adds no work and is never refused.
+- Shedding (`ServerActor.shed`): each `Load` carries its caller's deadline (as seconds
+  left across processes); a load whose deadline leaves less than 1.5 times what its
+  server's recent loads take, when a worker comes free for it, fails at once with
+  `DeadlineExceededError` and never runs: its caller would have given up before it ended.
+- Withdrawal (`withdraw`): a queued load whose callers all gave up is never run.
+
 Each part owns its state: the loads and their waiters (`Provider`), the loads whose match
 user code decides (`Matching`), the unloads under way, parked or waited for (`Teardown`);
 `Unloading` has none, it changes the catalog's consumers and asks the others.
@@ -126,9 +144,11 @@ from rr_actors.errors import (
     CallTimeoutError,
     CatalogWriteError,
     ConfigError,
+    DeadlineExceededError,
     DependencyCycleError,
     DuplicateNameError,
     DuplicateQueryIdError,
+    OverloadedError,
     RegistrarStoppedError,
     RegistrarUnavailableError,
     ResourceLoadError,
@@ -153,6 +173,15 @@ __all__ = [
 ]
 
 logger = logging.getLogger("rr_actors")
+
+_SHED_HEADROOM = 1.5
+"""A queued load is shed unless its callers' time left exceeds this many times what its
+server's loads take lately (`ServerActor.shed`): its answer's way back, and a load
+slower than the average, need time too."""
+
+_LOAD_S_WEIGHT = 0.2
+"""How far one load's run time moves its server's average (`ServerActor.ran`): about the
+last ten loads count."""
 
 
 class Lives:
@@ -194,6 +223,7 @@ class Provider:
         self.releases = releases
         self.teardown = teardown
         self.loads: dict[str, list[Waiter]] = {}  # resource id -> the callers waiting for it
+        self.pending: dict[str, int] = {}  # server -> its loads queued or running (admission)
         self.loading_ids: dict[str, str] = {}  # a waiting caller's query id -> its resource
         self.abandoned: set[str] = set()  # query ids whose callers gave up while it loaded
         self.held_loads: list[Load] = []  # for servers `setup` has not registered yet
@@ -406,6 +436,8 @@ class Provider:
             # copy of `in_doubt` has no load running: its callers wait until they time out)
             self.loads.setdefault(resource.id, []).append(waiter)
             self.loading_ids[message.query_id] = resource.id
+            if resource.id in self.places:  # (it may wait for a worker: not shed before)
+                self.places[resource.id][0].extend(message.deadline)
 
     def share(self, resource: Resource, message: Load) -> None:
         """A dedup hit: one more consumer of a loaded resource (rules 1-2)."""
@@ -433,7 +465,21 @@ class Provider:
         )
 
     def start_load(self, server: Server, message: Load, waiter: Waiter, key: Any) -> None:
-        """Load a request not loaded here (`key`: its `runtime_key` if it has no digest)."""
+        """Load a request not loaded here (`key`: its `runtime_key` if it has no digest),
+        unless its server has `max_pending` loads under way already (`OverloadedError`:
+        its caller waits and asks again, `calls.py`)."""
+        pending, bound = self.pending.get(server.name, 0), self.registrar.config.max_pending
+        if pending >= bound:
+            message.reply.set_error(
+                OverloadedError(
+                    f"'{self.registrar.name}/{server.name}' has {pending} loads queued or "
+                    f"running, its bound (max_pending={bound}): it takes no more for now",
+                    self.registrar.name,
+                    server.name,
+                    bound,
+                )
+            )
+            return
         if self.registrar.saver.store is not None and key is None:  # (else checked with the key)
             try:  # the backup must be able to hold the request (a plain one: no user code)
                 check_picklable(
@@ -455,10 +501,11 @@ class Provider:
             message.reply.set_error(failed)
             return
         self.loads[rid] = [waiter]
+        self.pending[server.name] = pending + 1
         self.loading_ids[message.query_id] = rid
         self.load_started[rid] = runtime.monotonic()
         reply = self.registrar.come_back(lambda value, error: self.load_done(rid, value, error))
-        place = LoadPlace()
+        place = LoadPlace(message.deadline)
         self.places[rid] = (place, reply)
         chain = (*message.chain, rid)
         server.ref.tell(RunLoad(rid, message.request, chain, reply, place, message.trace))
@@ -491,6 +538,7 @@ class Provider:
         for waiter in waiters:
             self.loading_ids.pop(waiter.query_id, None)
         resource = catalog.resources[rid]
+        self.done_pending(resource.server)
         if self.registrar.events.active:
             published_load(self.registrar, resource, waiters[0], load_s, error)
         if error is not None:
@@ -619,6 +667,7 @@ class Provider:
         resource = catalog.resources[rid]
         for waiter in self.loads.pop(rid):
             self.loading_ids.pop(waiter.query_id, None)
+        self.done_pending(resource.server)
         error = CallTimeoutError(
             f"the load of {describe(resource.request)} at '{self.registrar.name}/"
             f"{resource.server}' was withdrawn before it ran: every caller gave up"
@@ -635,6 +684,14 @@ class Provider:
                 waiter.reply.set_error(CallTimeoutError(f"call {waiter.query_id} was given up"))
 
         self.releases.release_dependencies(rid, gone)
+
+    def done_pending(self, server: str) -> None:
+        """A load of `server` ended (or was withdrawn): one less under way."""
+        left = self.pending.get(server, 0) - 1
+        if left > 0:
+            self.pending[server] = left
+        else:
+            self.pending.pop(server, None)
 
     def origin_under_way(self, query_id: str) -> str | None:
         """The registrar whose load of `query_id` is under way here, if one is."""
@@ -919,6 +976,9 @@ class ServerActor(Actor):
         # its coroutines running (loop thread), in the order they started (a dict: a set
         # would cancel them in address order at a stop, which no replay repeats)
         self.tasks: dict[asyncio.Task[None], None] = {}
+        # what its loads take, seconds: an average of the recent ones (`ran`), from 0
+        # (optimistic: nothing is shed before a load has run)
+        self.load_s = 0.0
 
     def on_receive(self, message: Any) -> None:
         if isinstance(message, RunLoad):
@@ -979,14 +1039,48 @@ class ServerActor(Actor):
 
         process_loop().call_soon_threadsafe(start)
 
+    def shed(self, message: RunLoad) -> DeadlineExceededError | None:
+        """As its load would start: the error that sheds it, if its callers' deadline
+        (`LoadPlace.deadline`) leaves less time than this server's loads take (`load_s`),
+        times `_SHED_HEADROOM`.
+
+        A load that would finish after its last caller gave up is work for nobody, which
+        under overload holds a worker that a load still in time needs (issue 53).
+        """
+        deadline = message.place.deadline
+        if deadline is None:
+            return None
+        left, expected = deadline - runtime.monotonic(), self.load_s * _SHED_HEADROOM
+        if left > expected:
+            return None
+        return DeadlineExceededError(
+            f"the load of {describe(message.request)} at '{self.registrar}/{self.name}' was "
+            f"shed before it started: {max(left, 0.0):.3f} s were left of its callers' "
+            f"timeout, and its loads take {self.load_s:.3f} s lately (it needs "
+            f"{_SHED_HEADROOM:g} times that)"
+        )
+
+    def ran(self, took: float) -> None:
+        """A load ran for `took` seconds: the average of the recent ones moves toward it
+        (an exponentially weighted average; two workers racing lose one update, no more)."""
+        self.load_s += _LOAD_S_WEIGHT * (took - self.load_s)
+
     async def _aload(self, message: RunLoad) -> None:
         """A coroutine `load`, on the process's loop (its task's own context), under its
         call's SERVER span (`_core/traces.py`: spans made in it are that span's)."""
+        shed = self.shed(message)
+        if shed is not None:
+            message.reply.set_error(shed)
+            return
         LOADING.set(LoadContext(self.registrar, message.resource_id, message.chain))
         if message.trace:
             traces.attach(message.trace)  # (the task's own context: nothing to detach)
+        began = runtime.monotonic()
         try:
-            response = await self.load(message.request)
+            try:
+                response = await self.load(message.request)
+            finally:
+                self.ran(runtime.monotonic() - began)
             if self.persisted:
                 check_picklable(response, "the response")
         except BaseException as exc:  # noqa: BLE001 - any exception fails the load (rule 4)
@@ -1017,10 +1111,18 @@ class ServerActor(Actor):
             message.reply.set_result(None)
 
     def _load(self, message: RunLoad) -> None:
+        shed = self.shed(message)
+        if shed is not None:  # its `load` never runs; the registrar gives its ids back
+            message.reply.set_error(shed)
+            return
         token = LOADING.set(LoadContext(self.registrar, message.resource_id, message.chain))
         traced = traces.attach(message.trace) if message.trace else None
+        began = runtime.monotonic()
         try:
-            response = self.load(message.request)
+            try:
+                response = self.load(message.request)
+            finally:
+                self.ran(runtime.monotonic() - began)
             _refuse_awaitable(response)
             if self.persisted:
                 check_picklable(response, "the response")

@@ -4,6 +4,7 @@ refused, not fatal (`misfit`).
 
 from __future__ import annotations
 
+import pickle
 import uuid
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -11,6 +12,7 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
+from rr_actors._core import runtime
 from rr_actors._core.replies import FutureReply, wait
 from rr_actors._registrar import messages
 from rr_actors._registrar.messages import Load
@@ -200,3 +202,23 @@ def test_small_builtin_data_is_known_picklable_without_pickling_it(
     messages.check_picklable({"server": "edge/resource", "request": ("shared-2", 1)}, "it")
     with pytest.raises(rr.ConfigError, match="it cannot be pickled, so the catalog"):
         messages.check_picklable({"at": uuid.UUID(int=1)}, "it")  # (not builtin data)
+
+
+class TestLoadDeadline:
+    """A `Load`'s deadline crosses as the seconds left (issue 53): each process reads it
+    on its own monotonic clock, which no other process's clock is compared with."""
+
+    def test_it_crosses_as_the_seconds_left_and_arrives_on_the_receivers_clock(
+        self, monkeypatch: pytest.MonkeyPatch
+    ):
+        monkeypatch.setattr(runtime, "monotonic", lambda: 1000.0)  # the sender's clock
+        load = Load("q", "leaf", "x", "consumer", (), FutureReply(), deadline=1002.5)
+        pickled = pickle.dumps(load.detached())
+        monkeypatch.setattr(runtime, "monotonic", lambda: 7.0)  # the receiver's
+        arrived = pickle.loads(pickled)
+        assert 9.5 == arrived.deadline  # 2.5 s left, as when it left
+        assert ("q", "x", None) == (arrived.query_id, arrived.request, arrived.reply)
+
+    def test_a_load_without_a_deadline_crosses_without_one(self):
+        load = Load("q", "leaf", "x", "consumer", (), FutureReply())
+        assert pickle.loads(pickle.dumps(load.detached())).deadline is None

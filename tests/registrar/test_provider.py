@@ -1737,6 +1737,121 @@ class TestOverload:
         assert ["held", "next"] == list(started)
         assert 2 == len(provider.server_queries("leaf")) == len(consumer.client_queries())
 
+    def test_a_queued_load_whose_deadline_is_too_near_is_shed_before_its_load_runs(
+        self, make_registrar, gates, shared
+    ):
+        """Each call's deadline travels with its `Load` (as seconds left across
+        processes); a load whose callers' time left is less than the server's loads take
+        lately is answered at once with `DeadlineExceededError` and never runs."""
+        held_s, margin = 5.0, 0.5  # the held load teaches the server that loads take ~1 s
+        provider, consumer = make_registrar("provider", max_workers=1), make_registrar("consumer")
+        never, started = gates(), shared.list()
+
+        def load(request: Any) -> Any:
+            started.append((request, runtime.monotonic()))
+            if request == "held":  # holds the one worker for `held_s`: the rest queue
+                never.wait(held_s)
+            return request
+
+        provider.register_server("leaf", load=load, unload=lambda r, s: None)
+        with ThreadPoolExecutor(9) as pool:
+            held = pool.submit(consumer.call, provider.name, "leaf", "held", timeout=30)
+            assert wait_for(lambda: 1 == len(started), timeout=20)
+            ends = started[0][1] + held_s  # (one clock: CLOCK_MONOTONIC, every process)
+            # when the worker comes free, each has about `margin` s left: less than 1 s
+            queued = [
+                pool.submit(
+                    consumer.call,
+                    provider.name,
+                    "leaf",
+                    n,
+                    timeout=ends + margin - runtime.monotonic(),
+                )
+                for n in range(8)
+            ]
+            assert wait_for(lambda: 8 == pending_work(provider).queued_callbacks, timeout=20)
+            assert "held" == held.result(timeout=30).response
+            for call in queued:
+                with pytest.raises(rr.errors.DeadlineExceededError, match="shed before it"):
+                    call.result(timeout=30)
+        assert ["held"] == [request for request, _ in started]  # none of them ran
+        # the books hold: the provider kept only the held load, and its ids
+        assert ["held"] == [r.request for r in catalog_snapshot(provider).resources]
+        assert [held.result().id] == [q.id for q in provider.server_queries("leaf")]
+        assert [held.result().id] == [q.id for q in consumer.client_queries()]
+        # a load in time still runs (its caller's deadline is far)
+        assert "next" == consumer.call(provider.name, "leaf", "next", timeout=10).response
+
+    def test_past_max_pending_a_caller_waits_within_its_timeout_or_is_refused(
+        self, make_registrar, gates, shared
+    ):
+        """`max_pending` bounds a server's loads under way: a call past it asks again
+        while its timeout lasts (then it is served), and gets `OverloadedError` when its
+        time runs out first; nothing is dropped, nothing is held for a refused call."""
+        provider = make_registrar("provider", max_workers=1, max_pending=1)
+        consumer = make_registrar("consumer")
+        gate, started = gates(), shared.list()
+
+        def load(request: Any) -> Any:
+            started.append(request)
+            if request == "held":
+                assert gate.wait(30)
+            return request
+
+        provider.register_server("leaf", load=load, unload=lambda r, s: None)
+        with ThreadPoolExecutor(3) as pool:
+            held = pool.submit(consumer.call, provider.name, "leaf", "held", timeout=30)
+            assert wait_for(lambda: ["held"] == list(started), timeout=20)
+            # a caller joining the load under way adds no work: never refused
+            joins = pool.submit(consumer.call, provider.name, "leaf", "held", timeout=30)
+            with pytest.raises(rr.errors.OverloadedError) as refused:
+                consumer.call(provider.name, "leaf", "refused", timeout=1)
+            assert (provider.name, "leaf", 1) == (
+                refused.value.registrar,
+                refused.value.server,
+                refused.value.bound,
+            )
+            assert "max_pending=1" in str(refused.value)
+            waits = pool.submit(consumer.call, provider.name, "leaf", "waits", timeout=30)
+            assert not waits.done()
+            gate.set()  # room again: the waiting call's next try is served
+            assert "waits" == waits.result(timeout=30).response
+            assert "held" == held.result(timeout=10).response == joins.result(10).response
+        assert ["held", "waits"] == list(started)  # the refused one never ran
+        assert 3 == len(provider.server_queries("leaf")) == len(consumer.client_queries())
+
+    @pytest.mark.thread_only("awaits acall in this process")
+    def test_past_max_pending_an_awaited_call_waits_and_is_served(
+        self, make_registrar, gates, shared
+    ):
+        provider = make_registrar("provider", max_workers=1, max_pending=1)
+        consumer = make_registrar("consumer")
+        gate, started = gates(), shared.list()
+
+        def load(request: Any) -> Any:
+            started.append(request)
+            if request == "held":
+                assert gate.wait(30)
+            return request
+
+        provider.register_server("leaf", load=load, unload=lambda r, s: None)
+
+        async def awaited() -> Any:
+            task = asyncio.ensure_future(consumer.acall(provider.name, "leaf", "waits", timeout=30))
+            refusals = await asyncio.wait({task}, timeout=0.3)  # refused, asking again
+            assert not refusals[0]
+            snapshot = await asyncio.to_thread(catalog_snapshot, provider)
+            assert ["held"] == [r.request for r in snapshot.resources]  # not queued there
+            gate.set()
+            return (await task).response
+
+        with ThreadPoolExecutor(1) as pool:
+            held = pool.submit(consumer.call, provider.name, "leaf", "held", timeout=30)
+            assert wait_for(lambda: ["held"] == list(started), timeout=20)
+            assert "waits" == asyncio.run(awaited())
+            assert "held" == held.result(timeout=10).response
+        assert ["held", "waits"] == list(started)
+
     def test_an_unload_is_not_queued_behind_loads(self, make_registrar, gates, shared, eventually):
         provider, consumer = make_registrar("provider", max_workers=1), make_registrar("consumer")
         first, rest, started, unloaded = gates(), gates(), shared.list(), shared.list()
