@@ -347,38 +347,43 @@ class Shared:
     def end_turn(self) -> CatalogWriteError | None:
         """Commit what the turn staged, one transaction, then release what waits for it.
 
-        Runs at the end of each turn (`RegistrarActor.on_turn_end`), and before any other
-        commit of the turn (`commit`), so changes reach the file in the order they were
-        made. Committed: the held events are published (in order), then each staged
-        step's `ok` runs, in the order they were staged. The write failed: the events
-        published outside a change are published, the staged steps undone (newest
-        first) and that undoing committed (or kept pending), and the error returned.
+        Runs at the end of each turn (`RegistrarActor.on_turn_end`), and at any other
+        commit of the turn (`commit`: that change joins the transaction), so changes
+        reach the file in the order they were made. Committed: the held events are
+        published (in order), then each staged step's `ok` runs, in the order they were
+        staged. The write failed: the events published outside a change are published,
+        the staged steps undone (newest first) and that undoing committed (or kept
+        pending), and the error returned.
         """
         failed: CatalogWriteError | None = None
         while self.dirty or self.staged:  # (an answer released may stage more)
-            staged, held = self.staged, self.held
-            self.staged, self.held, self.dirty = [], [], False
-            told = [event for event, _ in held]
-            healthy = self.saver.failure is None
-            try:
-                self.probe("turn_commit", staged)  # (staged, not written: a kill loses it)
-                self.saver.write(told)
-            except CatalogWriteError as exc:
-                if healthy:
-                    self.warn_unwritten(exc)
-                failed = exc
-                self.unwritten(staged, held, exc)
-                continue
-            except BaseException:  # a bug: the actor dies (`abort_turn` refuses them)
-                self.staged, self.held = staged + self.staged, held + self.held
-                raise
-            if told:
-                self.probe("events_written", told)  # (committed with them, not yet published)
-            for event, _ in held:
-                self.published.publish(event)
-            for step in staged:
-                step.ok()
+            failed = self._write_turn() or failed
         return failed
+
+    def _write_turn(self) -> CatalogWriteError | None:
+        """One transaction of `end_turn`: what is staged and held now; `None` if written."""
+        staged, held = self.staged, self.held
+        self.staged, self.held, self.dirty = [], [], False
+        told = [event for event, _ in held]
+        healthy = self.saver.failure is None
+        try:
+            self.probe("turn_commit", staged)  # (staged, not written: a kill loses it)
+            self.saver.write(told)
+        except CatalogWriteError as exc:
+            if healthy:
+                self.warn_unwritten(exc)
+            self.unwritten(staged, held, exc)
+            return exc
+        except BaseException:  # a bug: the actor dies (`abort_turn` refuses them)
+            self.staged, self.held = staged + self.staged, held + self.held
+            raise
+        if told:
+            self.probe("events_written", told)  # (committed with them, not yet published)
+        for event, _ in held:
+            self.published.publish(event)
+        for step in staged:
+            step.ok()
+        return None
 
     def unwritten(
         self, staged: list[Staged], held: list[tuple[events.Event, bool]], exc: CatalogWriteError
@@ -440,8 +445,8 @@ class Shared:
             and fails the caller with it; one whose change stands publishes them itself
             (`publish`).
         """
-        if self.dirty:  # what the turn staged first, in its own transaction
-            self.end_turn()
+        if self.dirty:  # with what the turn staged, one transaction
+            return self._join_turn(told)
         if self.saver.store is None:  # nothing persists this catalog
             self.publish(*told)
             return None
@@ -462,6 +467,32 @@ class Shared:
             self.probe("events_written", told)  # (committed with them, not yet published)
         self.publish(*told)
         return None
+
+    def _join_turn(self, told: tuple[events.Event, ...]) -> CatalogWriteError | None:
+        """`commit` in a turn that staged changes: this change, and its events `told`,
+        are written in the turn's transaction (then the turn's end releases its steps).
+
+        Not a transaction of their own after the staged one: a staged row is written as
+        the catalog holds it at the write (the live row), so it already carries this
+        change, while the staged events tell only of the staged ones. A hit staged, then
+        its id released by its caller's `Abandon` in the same turn, would commit its
+        `ConsumerAdded` without the id, and a kill before the release's own commit would
+        lose the `ConsumerReleased`: an id acknowledged, then lost (issue 51).
+
+        Returns:
+            The error of the write that carried this change (`CatalogWriteError`: the
+            staged steps were undone, `told` dropped; the caller undoes its change), or
+            `None`.
+        """
+        changes = self.catalog.drain_changes()
+        for rid in self.held_in_doubt.intersection(changes.resources):
+            del changes.resources[rid]  # written once settled (`settle_held`)
+        if changes:
+            self.saver.stage(changes)
+        self.held.extend((event, True) for event in told)
+        failed = self._write_turn()
+        self.end_turn()  # (what its steps' answers staged meanwhile, if any)
+        return failed
 
     def publish(self, *told: events.Event) -> None:
         """Publish events built while `events.active` (this actor's thread)."""

@@ -1056,3 +1056,70 @@ class TestTurn:
         )
         assert sorted(acknowledged) == sorted(q.id for q in app.client_queries())
         app.stop()
+
+    @pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+    @pytest.mark.usefixtures("by_value")  # (tests/conftest.py)
+    def test_a_hit_abandoned_in_its_own_turn_is_committed_with_its_release_or_kept(
+        self,
+        supervisors: Callable[..., rr.Supervisor],
+        tmp_path: Path,
+        process_helpers: SharedObjects,
+    ) -> None:
+        # Issue 51 (the simcancel plan's real runs): a dedup hit is staged, and its
+        # caller's Abandon, handled in the same turn, releases the id and commits at
+        # once. The staged write must not commit the hit's ConsumerAdded with the id
+        # already gone from its row and the release left to a second transaction: a real
+        # SIGKILL of the provider's process right after the first commit that tells of
+        # the add (its events in the backup's outbox, read after the exit). Every id whose
+        # ConsumerAdded came and whose ConsumerReleased did not is held by the restart.
+        uid = uuid.uuid4().hex[:8]
+        p = f"p-{uid}"
+        spec = rr.ManagerSpec(p, _leaf_setup, isolation="process", heartbeat=None)  # (held)
+        sup = supervisors([spec], state_dir=tmp_path / "state")
+        heard = Heard()
+        subscription = sup.subscribe(heard)
+        sup.start()
+        app = sup.registrar(f"app-{uid}")
+        held = app.call(p, "leaf", "x", timeout=10).id  # loaded: the next call is a hit
+        withdrawn, abandoned = process_helpers.event(), process_helpers.event()
+
+        def arm(registrar: rr.ResourceRegistrar) -> None:
+            import signal  # noqa: PLC0415 - runs in the provider's first process
+            import threading  # noqa: PLC0415
+            import time  # noqa: PLC0415
+
+            from rr_actors import events  # noqa: PLC0415
+            from rr_actors.testing import actor_ref, intercept, run_on_actor  # noqa: PLC0415
+
+            inbox = actor_ref(registrar).actor_inbox
+
+            def busy() -> None:  # until the hit's Load and its Abandon wait in the inbox
+                withdrawn.wait(20)
+                deadline, pause = time.monotonic() + 20, threading.Event()
+                while inbox.qsize() < 2 and time.monotonic() < deadline:
+                    pause.wait(0.005)
+
+            def kill(told: Any) -> None:
+                if abandoned.is_set() and any(isinstance(e, events.ConsumerAdded) for e in told):
+                    os.kill(os.getpid(), signal.SIGKILL)  # committed, the next not begun
+
+            intercept(registrar, "abandon", before=lambda _message: abandoned.set())
+            intercept(registrar, "events_written", before=kill)
+            run_on_actor(registrar, busy)  # (the turn that follows handles both)
+
+        sup.run_in(p, arm)
+        intercept(app, "withdraw", after=lambda _query: withdrawn.set())
+        with pytest.raises(rr.CallTimeoutError):  # withdrawn: its Abandon follows its Load
+            app.call(p, "leaf", "x", timeout=1.0)
+        sup.wait_restarted(p, timeout=20)
+        restored = set(sup.run_in(p, lambda r: [q.id for q in r.server_queries("leaf")]))
+        assert sup.flush_events(timeout=10)
+        assert subscription.wait_delivered(timeout=10)
+        subscription.close()
+        app.stop()
+
+        added = {e.query_id for e in heard.of(events.ConsumerAdded) if e.registrar == p}
+        released = {e.query_id for e in heard.of(events.ConsumerReleased) if e.registrar == p}
+        assert len(added) == 2  # (the first call's; the hit's, published from the outbox)
+        assert held in restored
+        assert added - released <= restored
