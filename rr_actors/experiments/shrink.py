@@ -92,6 +92,10 @@ MOST_TRIES = 1000
 SEEDS = 20
 """The seeds the seed pass runs the current plan with: 1 to this (or the width)."""
 
+KNOB_SCALES = (0.25, 0.5, 2, 4)
+"""What the knobs pass multiplies a number by (after trying 0): smaller and larger both (a
+longer interval makes fewer events as a smaller count does)."""
+
 MARGIN = 0.05
 """Seconds of the run kept after the violation, when the duration is cut there."""
 
@@ -100,6 +104,9 @@ _NOT_RUN = ("description", "repeat", "seed")
 
 _TIMED_KEYS = ("at", "every", "start", "stop", "count")
 """A fault's keys of when it fires: an explicit injection keeps only `at`."""
+
+_NOT_KNOBS = frozenset({"at", "max_restarts"})
+"""The numbers the knobs pass leaves alone (the other passes move them)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -332,6 +339,7 @@ class _Shrinker:
             self.tree,
             self.workload,
             self.options,
+            self.knobs,
             self.seeds,
             self.rounded,
         )
@@ -640,6 +648,37 @@ class _Shrinker:
                     where = ("*managers", index, "options")
                     self.repeat(functools.partial(self.numbers, where, key, [0, 0.5]))
 
+    def knobs(self) -> None:
+        """Every other number of the workload, its calls, the managers and their options and
+        the faults (a manager's `status_every`, the workload's `status_wait`, a fault's
+        `for`, ...): 0, a quarter, a half, twice, four times it (an interval longer, a
+        rate higher: fewer events, or the same sooner; the events decide what is kept)."""
+        tables: list[tuple[Any, ...]] = [("workload",)]
+        calls = self.data.get("workload", {}).get("calls", [])
+        tables += [("workload", "calls", index) for index in range(len(calls))]
+        for index, manager in enumerate(_managers(self.data)):
+            tables.append(("*managers", index))
+            if isinstance(manager.get("options"), dict):
+                tables.append(("*managers", index, "options"))
+        tables += [("faults", index) for index in range(len(self.data.get("faults", [])))]
+        for where in tables:
+            if where[0] == "workload" and "workload" not in self.data:
+                continue
+            for key, value in list(_at(self.data, where).items()):
+                if key not in _NOT_KNOBS and _number(value):
+                    self.repeat(functools.partial(self.scaled, where, key))
+
+    def scaled(self, where: tuple[Any, ...], key: str) -> Iterator[tuple[str, dict[str, Any]]]:
+        """`key`'s value 0, then times each of `KNOB_SCALES` (an int's rounded, 1 at least)."""
+        current = _at(self.data, where).get(key)
+        if isinstance(current, bool) or not isinstance(current, int | float):
+            return
+        wanted: list[float] = [0]
+        for scale in KNOB_SCALES:
+            value = current * scale
+            wanted.append(max(1, round(value)) if isinstance(current, int) else round(value, 6))
+        yield from self.values(where, key, [v for v in dict.fromkeys(wanted) if v != current])
+
     def rounded(self) -> None:
         def candidates() -> Iterator[tuple[str, dict[str, Any]]]:
             for digits in (1, 2):
@@ -775,6 +814,10 @@ def _drop(node: dict[str, Any], name: str) -> bool:
             del children[index]
             return True
     return False
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
 def _timed(atom: dict[str, Any]) -> bool:

@@ -482,3 +482,22 @@ def test_fewer_awaited_calls_are_tried_first_with_the_triggers_nth_scaled_alike(
         ("workload.awaited = 20 (and the triggers' nth: 16)", 20, 16),
         ("workload.awaited = 20", 20, 32),
     ] == candidates
+
+
+@SHRINK
+def test_a_number_of_the_workload_or_a_managers_options_is_shrunk_by_the_knobs_pass(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # api lists its queries every 5 ms (its `status_every`: an event each) and the client
+    # calls twice a second: the run cut after the first answer keeps the listings before
+    # it, which no other pass drops (before the pass: 42 events in 120 runs).
+    probe(monkeypatch, "CallAnswered")
+    text = ONE.replace("load_s = 0.002", "status_every = 0.005").replace(
+        "rate = 20.0", "rate = 2.0"
+    )
+
+    shrunk = shrink.shrink(parse_plan(text), 1, budget=BUDGET, text=text)
+
+    assert shrunk.original_events > 300
+    assert shrunk.run.events <= 20
+    assert "api.options.status_every = 0" in shrunk.steps
