@@ -18,6 +18,10 @@
  │               it dropped, the rest earlier)
  │     shift     every injection (and the end) earlier, as far as the first one
  │     faults    delete chunks of injections (delta debugging: halves, quarters, ... ones)
+ │     pinned    an injection at a time fired after an event before it instead (one of
+ │               the nearest, or one about what the injection cut: a call whose release
+ │               a kill lost), `delay` the time between: kept at that moment when later
+ │               passes move the schedule (kept if no more events)
  │     triggers  an `after` fault at the 1st, 2nd, 4th, ... matching event (a lower `nth`)
  │     tree      call a manager's dependency directly, cut a `uses`, drop an unused manager
  │     workload  fewer calls awaited at once (the triggers' `nth` scaled alike, then not),
@@ -25,6 +29,10 @@
  │               call starts (`cancel_within`), a fetch after fewer calls or none
  │               (`fetch_every`), fewer keys, all or no calls shared, a shorter hold
  │     options   no (or half the) load and unload time of each manager
+ │     knobs     any other number of the workload, its calls, the managers, their
+ │               options, the faults: 0, 1/4, 1/2, 2, 4 times it (`status_every`,
+ │               `status_wait`, a trigger's `delay`, ...: a longer interval or a higher
+ │               rate can make fewer events too)
  │     seeds     the same plan under seeds 1..20 (or the width): the fewest events (the
  │               scheduler's choices made simpler: no pass edits them)
  │     round     injection times and the duration to fewer decimals (easier to read)
@@ -62,7 +70,7 @@ from typing import Any
 
 from rr_actors.errors import ConfigError
 from rr_actors.experiments import check, simulate
-from rr_actors.experiments.plan import Plan
+from rr_actors.experiments.plan import EVENT_TYPES, Plan
 from rr_actors.experiments.reading import parse_plan
 from rr_actors.experiments.schedule import fault_schedule
 
@@ -96,6 +104,13 @@ KNOB_SCALES = (0.25, 0.5, 2, 4)
 """What the knobs pass multiplies a number by (after trying 0): smaller and larger both (a
 longer interval makes fewer events as a smaller count does)."""
 
+PINS = 3
+"""How many of the events just before a timed injection the pinned pass tries to fire it
+after (each distinct: its type and the names it carries)."""
+
+CUT_S = 0.01
+"""Seconds after an injection whose events say what it cut (the pinned pass)."""
+
 MARGIN = 0.05
 """Seconds of the run kept after the violation, when the duration is cut there."""
 
@@ -104,6 +119,14 @@ _NOT_RUN = ("description", "repeat", "seed")
 
 _TIMED_KEYS = ("at", "every", "start", "stop", "count")
 """A fault's keys of when it fires: an explicit injection keeps only `at`."""
+
+_PIN_FIELDS = ("registrar", "consumer", "serving_rr", "supervisor", "child")
+"""The fields of an event a pinned injection's trigger matches (names, never ids); without
+the first two too (a client's name is gone once the workload has fewer clients)."""
+
+_ID_FIELDS = ("query_id", "resource_id")
+"""The fields naming what an event is about: an event before an injection about what one
+just after it is about began what the injection cut (a call whose release it lost)."""
 
 _NOT_KNOBS = frozenset({"at", "max_restarts"})
 """The numbers the knobs pass leaves alone (the other passes move them)."""
@@ -335,6 +358,7 @@ class _Shrinker:
             self.durations,
             self.shift,
             self.faults,
+            self.pinned,
             self.triggers,
             self.tree,
             self.workload,
@@ -545,6 +569,83 @@ class _Shrinker:
                     yield f"every injection {by:g} s earlier", data
 
         self.repeat(candidates)
+
+    def pinned(self) -> None:
+        """Each timed injection fired after one of the `PINS` events just before it instead
+        (`after = { event = ..., registrar = ..., nth = ... }`, `delay` the time between):
+        the same run, and a kill at a narrow moment (a release on its way) that stays at
+        that moment when a later pass changes the workload's schedule (fewer clients, call
+        kinds, managers). Kept if the run shows the kind in no more events."""
+        for index in range(len(self.data.get("faults", []))):
+            for what, data in self.pins(index):
+                if self.runs >= self.budget or self.attempt(what, data, same=True):
+                    break
+
+    def pins(self, index: int) -> Iterator[tuple[str, dict[str, Any]]]:
+        """The candidates of `pinned` for the fault atom at `index` (none unless timed and
+        its injection is in the best run's history), the nearest event first."""
+        atom = self.data["faults"][index]
+        if not _timed(atom):
+            return
+        lines = [json.loads(line) for line in self.best.history.splitlines()]
+        fired = next(
+            (
+                line
+                for line in lines
+                if line.get("type") == "FaultInjected"
+                and line.get("kind") == atom.get("kind")
+                and abs(line.get("scheduled_s", -1.0) - atom["at"]) < 1e-6
+                and (line.get("target") is None or {line["target"]} >= _aimed(atom))
+            ),
+            None,
+        )
+        if fired is None:
+            return
+        t0 = fired["at"] - fired["injected_s"]
+        before = [
+            line
+            for line in lines
+            if line.get("type") in EVENT_TYPES
+            and line["type"] != "FaultInjected"
+            and line["at"] - t0 <= fired["injected_s"]
+        ]
+        after = [
+            line
+            for line in lines
+            if line.get("type") in EVENT_TYPES
+            and line["type"] != "FaultInjected"
+            and fired["injected_s"] < line["at"] - t0 <= fired["injected_s"] + CUT_S
+        ]
+        cut = {line[k] for line in after for k in _ID_FIELDS if isinstance(line.get(k), str)}
+        nearest = list(reversed(before))
+        began = [e for e in nearest if {e.get(k) for k in _ID_FIELDS} & cut]
+        seen: set[str] = set()
+        for event, loose in itertools.chain(
+            ((e, False) for e in nearest[:PINS]),
+            ((e, False) for e in began[:PINS]),
+            ((e, True) for e in nearest[:PINS] + began[:PINS]),
+        ):
+            fields = _PIN_FIELDS[2:] if loose else _PIN_FIELDS
+            match = {k: event[k] for k in fields if isinstance(event.get(k), str)}
+            key = json.dumps([event["type"], match], sort_keys=True)
+            if key in seen:
+                continue
+            seen.add(key)
+            nth = sum(
+                line["type"] == event["type"]
+                and line["at"] <= event["at"]
+                and all(line.get(k) == v for k, v in match.items())
+                for line in before
+            )
+            delay = round(max(0.0, atom["at"] - (event["at"] - t0)), 6)
+            pinned = {k: v for k, v in atom.items() if k != "at"}
+            pinned["after"] = {"event": event["type"], **match, "nth": nth}
+            if delay:
+                pinned["delay"] = delay
+            data = copy.deepcopy(self.data)
+            data["faults"][index] = pinned
+            said = ", ".join(f"{k} {v}" for k, v in match.items())
+            yield f"the injection at {atom['at']:g} s after {event['type']} #{nth} ({said})", data
 
     def triggers(self) -> None:
         """An `after` fault fired sooner: at the 1st, 2nd, 4th, ... matching event, not its
