@@ -120,9 +120,9 @@ _NOT_RUN = ("description", "repeat", "seed")
 _TIMED_KEYS = ("at", "every", "start", "stop", "count")
 """A fault's keys of when it fires: an explicit injection keeps only `at`."""
 
-_PIN_FIELDS = ("registrar", "consumer", "serving_rr", "supervisor", "child")
-"""The fields of an event a pinned injection's trigger matches (names, never ids); without
-the first two too (a client's name is gone once the workload has fewer clients)."""
+_PIN_FIELDS = ("registrar", "consumer", "serving_rr", "child")
+"""The fields of an event a pinned injection's trigger matches: the managers it names
+(never ids, nor a client: its name is gone once the workload has fewer clients)."""
 
 _ID_FIELDS = ("query_id", "resource_id")
 """The fields naming what an event is about: an event before an injection about what one
@@ -571,7 +571,7 @@ class _Shrinker:
         self.repeat(candidates)
 
     def pinned(self) -> None:
-        """Each timed injection fired after one of the `PINS` events just before it instead
+        """Each timed injection fired after one of the events before it instead
         (`after = { event = ..., registrar = ..., nth = ... }`, `delay` the time between):
         the same run, and a kill at a narrow moment (a release on its way) that stays at
         that moment when a later pass changes the workload's schedule (fewer clients, call
@@ -583,7 +583,9 @@ class _Shrinker:
 
     def pins(self, index: int) -> Iterator[tuple[str, dict[str, Any]]]:
         """The candidates of `pinned` for the fault atom at `index` (none unless timed and
-        its injection is in the best run's history), the nearest event first."""
+        its injection is in the best run's history): the events before it about what the
+        events just after it are about (the call whose release a kill cut) first, nearest
+        first, then the nearest events."""
         atom = self.data["faults"][index]
         if not _timed(atom):
             return
@@ -607,26 +609,26 @@ class _Shrinker:
             for line in lines
             if line.get("type") in EVENT_TYPES
             and line["type"] != "FaultInjected"
-            and line["at"] - t0 <= fired["injected_s"]
+            and line["at"] < fired["at"] - 1e-6  # (at its time: what it caused)
         ]
         after = [
             line
             for line in lines
             if line.get("type") in EVENT_TYPES
             and line["type"] != "FaultInjected"
-            and fired["injected_s"] < line["at"] - t0 <= fired["injected_s"] + CUT_S
+            and fired["at"] - 1e-6 <= line["at"] <= fired["at"] + CUT_S
         ]
         cut = {line[k] for line in after for k in _ID_FIELDS if isinstance(line.get(k), str)}
         nearest = list(reversed(before))
         began = [e for e in nearest if {e.get(k) for k in _ID_FIELDS} & cut]
+        managers = {m.get("name") for m in _managers(self.data)}
         seen: set[str] = set()
-        for event, loose in itertools.chain(
-            ((e, False) for e in nearest[:PINS]),
-            ((e, False) for e in began[:PINS]),
-            ((e, True) for e in nearest[:PINS] + began[:PINS]),
-        ):
-            fields = _PIN_FIELDS[2:] if loose else _PIN_FIELDS
-            match = {k: event[k] for k in fields if isinstance(event.get(k), str)}
+        for event in began[:PINS] + nearest[:PINS]:
+            match = {
+                k: event[k]
+                for k in _PIN_FIELDS
+                if isinstance(event.get(k), str) and (k == "child" or event[k] in managers)
+            }
             key = json.dumps([event["type"], match], sort_keys=True)
             if key in seen:
                 continue
