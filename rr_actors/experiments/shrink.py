@@ -509,11 +509,16 @@ class _Shrinker:
 
     def from_(self, by: float) -> dict[str, Any] | None:
         """The data from `by` seconds on: the injections before dropped, the rest `by`
-        earlier (`None` if a fault is not at a time)."""
+        earlier; a fault after an event kept as it is (a pinned one: its event comes when
+        it comes). `None` if a fault is at no time and after no event (kept whole)."""
         atoms = self.data.get("faults", [])
-        if not all(_timed(a) for a in atoms):
+        if not all(_timed(a) or "after" in a for a in atoms):
             return None
-        faults = [{**a, "at": round(a["at"] - by, 6)} for a in atoms if a["at"] >= by]
+        faults = [
+            {**a, "at": round(a["at"] - by, 6)} if _timed(a) else a
+            for a in atoms
+            if not _timed(a) or a["at"] >= by
+        ]
         return {**self.data, "duration": round(self.data["duration"] - by, 6), "faults": faults}
 
     def until(self, duration: float) -> dict[str, Any]:
