@@ -574,6 +574,11 @@ def child_main(path: str, command: str, arguments: list[str]) -> None:
     print(json.dumps(answer))
 
 
+def say(line: str) -> None:
+    """A shrink's step on stderr (the answer is on stdout)."""
+    print(f"  shrink: {line}", file=sys.stderr, flush=True)
+
+
 def shrunk(plan: Any, seed: int, rule: str, budget: int) -> dict[str, Any]:
     """`seed`'s run shrunk (`rr_actors.experiments.shrink`) keeping a violation of `rule`:
     the events of the shrunk run, the violation kind it kept, the runs it made and their
@@ -589,9 +594,13 @@ def shrunk(plan: Any, seed: int, rule: str, budget: int) -> dict[str, Any]:
     shrink.violation_kinds = rule_first
     started = time.process_time()
     try:
-        result = shrink.shrink(plan, seed, budget=budget)
+        result = shrink.shrink(plan, seed, budget=budget, on_step=say)
     except ConfigError as exc:  # (its run again did not violate: not replayed)
         return {"events": None, "kind": f"not shrunk: {exc}", "runs": 1, "cpu_s": 0.0}
+    if out := os.environ.get("RR_PLANTED_OUT"):  # (`--out`: the shrunk run to read)
+        from rr_actors.experiments.sweep import seed_line  # noqa: PLC0415
+
+        shrink.write(result, Path(out), seed_line(result.run, result.plan))
     return {
         "events": result.run.events,
         "kind": result.kind,
@@ -651,6 +660,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--shrink", action="store_true", help="shrink each found seed")
     parser.add_argument("--budget", type=int, default=2500, help="most runs of one shrink")
     parser.add_argument("--check", action="store_true", help="only check the edits apply")
+    parser.add_argument(
+        "--out", type=Path, help="write each shrunk run to OUT/PLANT (`rr-actors replay`)"
+    )
     parser.add_argument("--baseline", action="store_true", help="run the unedited code")
     options = parser.parse_args(args)
     chosen = [p for p in PLANTS if options.only is None or p.name in options.only.split(",")]
@@ -673,7 +685,11 @@ def main(argv: list[str] | None = None) -> int:
             )
         return 0
     budget = options.budget if options.shrink else 0
-    rows = [(plant, search(plant, options.seeds, budget)) for plant in chosen]
+    rows = []
+    for plant in chosen:
+        if options.out is not None:
+            os.environ["RR_PLANTED_OUT"] = str((options.out / plant.name).resolve())
+        rows.append((plant, search(plant, options.seeds, budget)))
     table(rows, options.seeds, options.shrink)
     return 0
 

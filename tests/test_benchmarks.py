@@ -203,6 +203,29 @@ def test_verdict_kinds_runs_a_compared_plan_at_its_first_value(tmp_path: Path) -
     assert [whole.variants[0][1].tree] == [p.tree for _, p in cut.variants]
 
 
+@pytest.mark.timeout(CEILING + 10)
+def test_planted_bugs_writes_each_shrunk_run_under_out_with_the_steps_on_stderr(
+    tmp_path: Path,
+) -> None:
+    done = subprocess.run(
+        [
+            sys.executable, str(ROOT / "benchmarks" / "planted_bugs.py"),
+            *("--only", "dedup", "--seeds", "3", "--shrink", "--budget", "3"),
+            *("--out", str(tmp_path)),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=CEILING,
+        check=False,
+    )  # fmt: skip
+
+    assert 0 == done.returncode, done.stderr[-3000:]
+    assert (tmp_path / "dedup" / "plan.toml").read_text().startswith("# Shrunk from")
+    assert list((tmp_path / "dedup").glob("events-seed-*.jsonl"))
+    assert "shrink: done after 3 runs" in done.stderr
+
+
 def test_every_planted_bug_applies_once_to_the_source_and_names_a_shipped_plan_and_rule(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

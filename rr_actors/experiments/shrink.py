@@ -18,6 +18,10 @@
  │               it dropped, the rest earlier)
  │     shift     every injection (and the end) earlier, as far as the first one
  │     faults    delete chunks of injections (delta debugging: halves, quarters, ... ones)
+ │     pinned    an injection at a time fired after an event before it instead (one of
+ │               the nearest, or one about what the injection cut: a call whose release
+ │               a kill lost), `delay` the time between: kept at that moment when later
+ │               passes move the schedule (kept if no more events)
  │     triggers  an `after` fault at the 1st, 2nd, 4th, ... matching event (a lower `nth`)
  │     tree      call a manager's dependency directly, cut a `uses`, drop an unused manager
  │     workload  fewer calls awaited at once (the triggers' `nth` scaled alike, then not),
@@ -25,6 +29,10 @@
  │               call starts (`cancel_within`), a fetch after fewer calls or none
  │               (`fetch_every`), fewer keys, all or no calls shared, a shorter hold
  │     options   no (or half the) load and unload time of each manager
+ │     knobs     any other number of the workload, its calls, the managers, their
+ │               options, the faults: 0, 1/4, 1/2, 2, 4 times it (`status_every`,
+ │               `status_wait`, a trigger's `delay`, ...: a longer interval or a higher
+ │               rate can make fewer events too)
  │     seeds     the same plan under seeds 1..20 (or the width): the fewest events (the
  │               scheduler's choices made simpler: no pass edits them)
  │     round     injection times and the duration to fewer decimals (easier to read)
@@ -62,7 +70,7 @@ from typing import Any
 
 from rr_actors.errors import ConfigError
 from rr_actors.experiments import check, simulate
-from rr_actors.experiments.plan import Plan
+from rr_actors.experiments.plan import EVENT_TYPES, Plan
 from rr_actors.experiments.reading import parse_plan
 from rr_actors.experiments.schedule import fault_schedule
 
@@ -92,6 +100,17 @@ MOST_TRIES = 1000
 SEEDS = 20
 """The seeds the seed pass runs the current plan with: 1 to this (or the width)."""
 
+KNOB_SCALES = (0.25, 0.5, 2, 4)
+"""What the knobs pass multiplies a number by (after trying 0): smaller and larger both (a
+longer interval makes fewer events as a smaller count does)."""
+
+PINS = 3
+"""How many of the events just before a timed injection the pinned pass tries to fire it
+after (each distinct: its type and the names it carries)."""
+
+CUT_S = 0.01
+"""Seconds after an injection whose events say what it cut (the pinned pass)."""
+
 MARGIN = 0.05
 """Seconds of the run kept after the violation, when the duration is cut there."""
 
@@ -100,6 +119,17 @@ _NOT_RUN = ("description", "repeat", "seed")
 
 _TIMED_KEYS = ("at", "every", "start", "stop", "count")
 """A fault's keys of when it fires: an explicit injection keeps only `at`."""
+
+_PIN_FIELDS = ("registrar", "consumer", "serving_rr", "child")
+"""The fields of an event a pinned injection's trigger matches: the managers it names
+(never ids, nor a client: its name is gone once the workload has fewer clients)."""
+
+_ID_FIELDS = ("query_id", "resource_id")
+"""The fields naming what an event is about: an event before an injection about what one
+just after it is about began what the injection cut (a call whose release it lost)."""
+
+_NOT_KNOBS = frozenset({"at", "max_restarts"})
+"""The numbers the knobs pass leaves alone (the other passes move them)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -328,10 +358,12 @@ class _Shrinker:
             self.durations,
             self.shift,
             self.faults,
+            self.pinned,
             self.triggers,
             self.tree,
             self.workload,
             self.options,
+            self.knobs,
             self.seeds,
             self.rounded,
         )
@@ -477,11 +509,16 @@ class _Shrinker:
 
     def from_(self, by: float) -> dict[str, Any] | None:
         """The data from `by` seconds on: the injections before dropped, the rest `by`
-        earlier (`None` if a fault is not at a time)."""
+        earlier; a fault after an event kept as it is (a pinned one: its event comes when
+        it comes). `None` if a fault is at no time and after no event (kept whole)."""
         atoms = self.data.get("faults", [])
-        if not all(_timed(a) for a in atoms):
+        if not all(_timed(a) or "after" in a for a in atoms):
             return None
-        faults = [{**a, "at": round(a["at"] - by, 6)} for a in atoms if a["at"] >= by]
+        faults = [
+            {**a, "at": round(a["at"] - by, 6)} if _timed(a) else a
+            for a in atoms
+            if not _timed(a) or a["at"] >= by
+        ]
         return {**self.data, "duration": round(self.data["duration"] - by, 6), "faults": faults}
 
     def until(self, duration: float) -> dict[str, Any]:
@@ -537,6 +574,85 @@ class _Shrinker:
                     yield f"every injection {by:g} s earlier", data
 
         self.repeat(candidates)
+
+    def pinned(self) -> None:
+        """Each timed injection fired after one of the events before it instead
+        (`after = { event = ..., registrar = ..., nth = ... }`, `delay` the time between):
+        the same run, and a kill at a narrow moment (a release on its way) that stays at
+        that moment when a later pass changes the workload's schedule (fewer clients, call
+        kinds, managers). Kept if the run shows the kind in no more events."""
+        for index in range(len(self.data.get("faults", []))):
+            for what, data in self.pins(index):
+                if self.runs >= self.budget or self.attempt(what, data, same=True):
+                    break
+
+    def pins(self, index: int) -> Iterator[tuple[str, dict[str, Any]]]:
+        """The candidates of `pinned` for the fault atom at `index` (none unless timed and
+        its injection is in the best run's history): the events before it about what the
+        events just after it are about (the call whose release a kill cut) first, nearest
+        first, then the nearest events."""
+        atom = self.data["faults"][index]
+        if not _timed(atom):
+            return
+        lines = [json.loads(line) for line in self.best.history.splitlines()]
+        fired = next(
+            (
+                line
+                for line in lines
+                if line.get("type") == "FaultInjected"
+                and line.get("kind") == atom.get("kind")
+                and abs(line.get("scheduled_s", -1.0) - atom["at"]) < 1e-6
+                and (line.get("target") is None or {line["target"]} >= _aimed(atom))
+            ),
+            None,
+        )
+        if fired is None:
+            return
+        t0 = fired["at"] - fired["injected_s"]
+        before = [
+            line
+            for line in lines
+            if line.get("type") in EVENT_TYPES
+            and line["type"] != "FaultInjected"
+            and line["at"] < fired["at"] - 1e-6  # (at its time: what it caused)
+        ]
+        after = [
+            line
+            for line in lines
+            if line.get("type") in EVENT_TYPES
+            and line["type"] != "FaultInjected"
+            and fired["at"] - 1e-6 <= line["at"] <= fired["at"] + CUT_S
+        ]
+        cut = {line[k] for line in after for k in _ID_FIELDS if isinstance(line.get(k), str)}
+        nearest = list(reversed(before))
+        began = [e for e in nearest if {e.get(k) for k in _ID_FIELDS} & cut]
+        managers = {m.get("name") for m in _managers(self.data)}
+        seen: set[str] = set()
+        for event in began[:PINS] + nearest[:PINS]:
+            match = {
+                k: event[k]
+                for k in _PIN_FIELDS
+                if isinstance(event.get(k), str) and (k == "child" or event[k] in managers)
+            }
+            key = json.dumps([event["type"], match], sort_keys=True)
+            if key in seen:
+                continue
+            seen.add(key)
+            nth = sum(
+                line["type"] == event["type"]
+                and line["at"] <= event["at"]
+                and all(line.get(k) == v for k, v in match.items())
+                for line in before
+            )
+            delay = round(max(0.0, atom["at"] - (event["at"] - t0)), 6)
+            pinned = {k: v for k, v in atom.items() if k != "at"}
+            pinned["after"] = {"event": event["type"], **match, "nth": nth}
+            if delay:
+                pinned["delay"] = delay
+            data = copy.deepcopy(self.data)
+            data["faults"][index] = pinned
+            said = ", ".join(f"{k} {v}" for k, v in match.items())
+            yield f"the injection at {atom['at']:g} s after {event['type']} #{nth} ({said})", data
 
     def triggers(self) -> None:
         """An `after` fault fired sooner: at the 1st, 2nd, 4th, ... matching event, not its
@@ -639,6 +755,37 @@ class _Shrinker:
                 if manager.get("options", {}).get(key):
                     where = ("*managers", index, "options")
                     self.repeat(functools.partial(self.numbers, where, key, [0, 0.5]))
+
+    def knobs(self) -> None:
+        """Every other number of the workload, its calls, the managers and their options and
+        the faults (a manager's `status_every`, the workload's `status_wait`, a fault's
+        `for`, ...): 0, a quarter, a half, twice, four times it (an interval longer, a
+        rate higher: fewer events, or the same sooner; the events decide what is kept)."""
+        tables: list[tuple[Any, ...]] = [("workload",)]
+        calls = self.data.get("workload", {}).get("calls", [])
+        tables += [("workload", "calls", index) for index in range(len(calls))]
+        for index, manager in enumerate(_managers(self.data)):
+            tables.append(("*managers", index))
+            if isinstance(manager.get("options"), dict):
+                tables.append(("*managers", index, "options"))
+        tables += [("faults", index) for index in range(len(self.data.get("faults", [])))]
+        for where in tables:
+            if where[0] == "workload" and "workload" not in self.data:
+                continue
+            for key, value in list(_at(self.data, where).items()):
+                if key not in _NOT_KNOBS and _number(value):
+                    self.repeat(functools.partial(self.scaled, where, key))
+
+    def scaled(self, where: tuple[Any, ...], key: str) -> Iterator[tuple[str, dict[str, Any]]]:
+        """`key`'s value 0, then times each of `KNOB_SCALES` (an int's rounded, 1 at least)."""
+        current = _at(self.data, where).get(key)
+        if isinstance(current, bool) or not isinstance(current, int | float):
+            return
+        wanted: list[float] = [0]
+        for scale in KNOB_SCALES:
+            value = current * scale
+            wanted.append(max(1, round(value)) if isinstance(current, int) else round(value, 6))
+        yield from self.values(where, key, [v for v in dict.fromkeys(wanted) if v != current])
 
     def rounded(self) -> None:
         def candidates() -> Iterator[tuple[str, dict[str, Any]]]:
@@ -775,6 +922,10 @@ def _drop(node: dict[str, Any], name: str) -> bool:
             del children[index]
             return True
     return False
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
 def _timed(atom: dict[str, Any]) -> bool:

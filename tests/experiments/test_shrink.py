@@ -482,3 +482,86 @@ def test_fewer_awaited_calls_are_tried_first_with_the_triggers_nth_scaled_alike(
         ("workload.awaited = 20 (and the triggers' nth: 16)", 20, 16),
         ("workload.awaited = 20", 20, 32),
     ] == candidates
+
+
+@SHRINK
+def test_a_number_of_the_workload_or_a_managers_options_is_shrunk_by_the_knobs_pass(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # api lists its queries every 5 ms (its `status_every`: an event each) and the client
+    # calls twice a second: the run cut after the first answer keeps the listings before
+    # it, which no other pass drops (before the pass: 42 events in 120 runs).
+    probe(monkeypatch, "CallAnswered")
+    text = ONE.replace("load_s = 0.002", "status_every = 0.005").replace(
+        "rate = 20.0", "rate = 2.0"
+    )
+
+    shrunk = shrink.shrink(parse_plan(text), 1, budget=BUDGET, text=text)
+
+    assert shrunk.original_events > 300
+    assert shrunk.run.events <= 20
+    assert "api.options.status_every = 0" in shrunk.steps
+
+
+@SHRINK
+def test_a_kill_timed_to_cut_a_release_is_pinned_to_the_call_it_releases(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # Three clients, each holding an id 0.1 s; api killed at a time that cuts one release
+    # on its way ("unload unanswered"). Fewer clients or calls move every release, and
+    # the kill at its time cuts none: only the kill fired 0.1 s after that call's answer
+    # (an `after` trigger) keeps cutting it (before the pass: 29 events in 120 runs).
+    def cut(run: simulate.SimulatedRun) -> bool:
+        lines = map(json.loads, run.history.splitlines())
+        return any(line.get("reason") == "unload unanswered" for line in lines)
+
+    monkeypatch.setattr(shrink, "violation_kinds", lambda run: ["[probe] cut"] if cut(run) else [])
+    base = (
+        ONE.replace("duration = 3.0", "duration = 2.0")
+        .replace("clients = 1", "clients = 3")
+        .replace("rate = 20.0", "rate = 2.0")
+        .replace("hold = 0\n", "hold = 0.1\n")
+    )
+    lines = [
+        json.loads(line) for line in simulate.run_seed(parse_plan(base), 1).history.splitlines()
+    ]
+    released = [line["at"] - lines[0]["at"] for line in lines if line["type"] == "ConsumerReleased"]
+    kills = (
+        f'{base}\n[[faults]]\nkind = "kill_manager"\ntarget = "api"\nat = [{round(t - d, 4)}]\n'
+        for t in released[3:]
+        for d in (0.0002, 0.0005, 0.001, 0.002, 0.003)
+    )
+    text = next(k for k in kills if cut(simulate.run_seed(parse_plan(k), 1)))
+
+    shrunk = shrink.shrink(parse_plan(text), 1, budget=BUDGET, text=text)
+
+    assert shrunk.original_events > 50
+    assert shrunk.run.events <= 15
+    assert any(step.startswith("the injection at") for step in shrunk.steps)
+    assert 'after = { event = "CallAnswered"' in shrunk.text
+
+
+def test_the_start_of_a_run_is_cut_with_a_fault_after_an_event_kept_as_it_is(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # A fault pinned to an event (the pinned pass) must not stop the start cuts, which
+    # took simprogram's plant from 76 to 20 events: its event comes when it comes.
+    probe(monkeypatch, "FaultInjected")
+    text = ONE + (
+        '\n[[faults]]\nkind = "kill_manager"\ntarget = "api"\nat = [0.5, 1.5]\n'
+        '\n[[faults]]\nkind = "kill_manager"\ntarget = "api"\n'
+        'after = { event = "CallAnswered", registrar = "client-0", nth = 2 }\n'
+    )
+    shrinker = shrink._Shrinker(
+        parse_plan(text), 1, text, 1, 1, lambda _line: None, lambda _runs: None
+    )
+    shrinker.explicit()
+
+    cut = shrinker.from_(1.0)
+
+    assert cut is not None
+    assert 2.0 == cut["duration"]
+    assert [0.5] == [a["at"] for a in cut["faults"] if "at" in a]
+    assert [{"event": "CallAnswered", "registrar": "client-0", "nth": 2}] == [
+        a["after"] for a in cut["faults"] if "after" in a
+    ]
