@@ -121,7 +121,7 @@ PLANTS = (
         "the catalog refuses to remove a resource with consumers (an assertion), so the "
         "actor dies after the unload began: its restart finds it in doubt, still held",
         "_registrar/provider.py",
-        "        if resource.consumers or resource.state is not ResourceState.LOADED:\n",
+        "        if not last or resource.state is not ResourceState.LOADED:\n",
         "        if resource.state is not ResourceState.LOADED:  # PLANTED: consumers left\n",
         "simchain",
         "in-doubt",

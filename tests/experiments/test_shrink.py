@@ -156,11 +156,11 @@ from rr_actors._registrar import provider
 from rr_actors.experiments.services import service
 
 _source = textwrap.dedent(inspect.getsource(provider.Unloading.release))
-_planted = _source.replace("if resource.consumers or resource.state", "if resource.state")
+_planted = _source.replace("if not last or resource.state", "if resource.state")
 # (a release that is not the last is answered after the turn's commit: that early return
 # planted away too, so every release of a loaded resource reaches the unload)
 _planted = _planted.replace(
-    "if reply is not None and resource.consumers and resource.state",
+    "if reply is not None and not last and resource.state",
     "if False and resource.state",
 )
 assert _planted.count("if False and") == 1, "Unloading.release moved: write the plant again"

@@ -194,7 +194,7 @@ def test_a_sweep_keeps_the_history_of_each_seed_that_did_not_hold_only(
         (["--seeds", "1-3"], "--seeds needs --simulate"),
         (["--simulate", "--seeds", "5-2"], "the last seed is below the first"),
         (["--simulate", "--seeds", "x"], "--seeds must be A-B or S"),
-        (["--simulate", "--repeat", "2"], "not --repeat, --seed or --observe"),
+        (["--simulate", "--repeat", "2"], "not --repeat, --seed, --observe or --trace"),
     ],
     ids=["without --simulate", "backwards", "not numbers", "with --repeat"],
 )
