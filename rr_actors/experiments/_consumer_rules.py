@@ -392,9 +392,11 @@ def left(
     left unless it is a dependency of a resource that is not. A resource kept as
     `unloading` is not left (the stop cut its unload short: the next start finishes it,
     in doubt). Not judged: a stop that is not its registrar's last event, one that lists
-    no rows (`complete` false), a second server's, and a stop after a supervisor gave up
-    in that registrar's last life (a give-up stops its children with their consumers'
-    rows, which nobody can release).
+    no rows (`complete` false), a second server's, and a stop in a registrar's last life
+    when a supervisor gave up in it or after it (a give-up stops its children with their
+    consumers' rows, which nobody can release, and a load it cut short; its
+    `SupervisorGaveUp` is published once they stopped: intensity's plan with clients,
+    `--simulate` seed 91, a resource still `loading`).
     """
     gave_up = [line for line, e in history if isinstance(e, events.SupervisorGaveUp)]
     last_line: dict[str, int] = {}
@@ -417,7 +419,7 @@ def left(
         begun = lives[name, life].first_line
         if final.get(name) != line or not stop.complete or "@" in name:
             continue
-        if any(begun <= at <= line for at in gave_up):
+        if any(begun <= at for at in gave_up):  # (published once its children stopped)
             continue
 
         def running(consumer: str, stopped_at: int = line) -> bool:
