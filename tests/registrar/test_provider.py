@@ -1666,6 +1666,20 @@ class TestUserCode:
         assert len(leaf.loads) == (registrar_placement == "thread")
 
 
+def serve_held_leaf(provider: Any, gate: Any, started: Any, wait: float = 30.0) -> None:
+    """Serve `leaf` on `provider`: each load records its request in `started` and
+    answers it; the load of `"held"` waits at `gate` (at most `wait` seconds), holding a
+    worker (with `max_workers=1`, the next loads queue behind it)."""
+
+    def load(request: Any) -> Any:
+        started.append(request)
+        if request == "held":
+            assert gate.wait(wait)
+        return request
+
+    provider.register_server("leaf", load=load, unload=lambda r, s: None)
+
+
 class TestOverload:
     """Issue 53: a load nobody waits for any more is shed before it runs (rule 17: its
     id given back, nothing left behind), and an unload never waits behind queued loads."""
@@ -1676,13 +1690,8 @@ class TestOverload:
         provider, consumer = make_registrar("provider", max_workers=1), make_registrar("consumer")
         gate, started = gates(), shared.list()
 
-        def load(request: Any) -> Any:
-            started.append(request)
-            if request == "held":  # the one worker is held: the next load waits in line
-                assert gate.wait(20)
-            return request
-
-        provider.register_server("leaf", load=load, unload=lambda r, s: None)
+        # the one worker is held: the next load waits in line
+        serve_held_leaf(provider, gate, started, wait=20)
         with ThreadPoolExecutor(1) as pool:
             held = pool.submit(consumer.call, provider.name, "leaf", "held", timeout=20)
             assert eventually(lambda: 1 == len(started))
@@ -1706,13 +1715,7 @@ class TestOverload:
         provider, consumer = make_registrar("provider", max_workers=1), make_registrar("consumer")
         gate, started = gates(), shared.list()
 
-        def load(request: Any) -> Any:
-            started.append(request)
-            if request == "held":
-                assert gate.wait(20)
-            return request
-
-        provider.register_server("leaf", load=load, unload=lambda r, s: None)
+        serve_held_leaf(provider, gate, started, wait=20)
 
         async def cancelled() -> None:
             task = asyncio.ensure_future(consumer.acall(provider.name, "leaf", "late", timeout=20))
@@ -1792,13 +1795,7 @@ class TestOverload:
         consumer = make_registrar("consumer")
         gate, started = gates(), shared.list()
 
-        def load(request: Any) -> Any:
-            started.append(request)
-            if request == "held":
-                assert gate.wait(30)
-            return request
-
-        provider.register_server("leaf", load=load, unload=lambda r, s: None)
+        serve_held_leaf(provider, gate, started)
         with ThreadPoolExecutor(3) as pool:
             held = pool.submit(consumer.call, provider.name, "leaf", "held", timeout=30)
             assert wait_for(lambda: ["held"] == list(started), timeout=20)
@@ -1828,13 +1825,7 @@ class TestOverload:
         consumer = make_registrar("consumer")
         gate, started = gates(), shared.list()
 
-        def load(request: Any) -> Any:
-            started.append(request)
-            if request == "held":
-                assert gate.wait(30)
-            return request
-
-        provider.register_server("leaf", load=load, unload=lambda r, s: None)
+        serve_held_leaf(provider, gate, started)
 
         async def awaited() -> Any:
             task = asyncio.ensure_future(consumer.acall(provider.name, "leaf", "waits", timeout=30))
