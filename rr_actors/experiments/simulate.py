@@ -54,7 +54,7 @@ import tempfile
 import time
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import rr_actors as rr
 from rr_actors import events
@@ -464,11 +464,42 @@ def _close_injector(injector: SimulatedFaults, progress: _Progress) -> None:
         raise
 
 
+def _injector(
+    sup: rr.Supervisor,
+    plan: Plan,
+    network: simulation.SimulatedNetwork,
+    seed: int,
+    seen: Callable[[events.Event], None],
+    folder: Path,
+    progress: _Progress,
+    **where: Any,
+) -> tuple[SimulatedFaults, float]:
+    """The run's fault injector, made as its workload starts (now: `t0`, monotonic
+    seconds), and that `t0`; `where` is what it kills besides managers (`hosts=` or
+    `program=`, `SimulatedFaults`)."""
+    from rr_actors.experiments._simulated_faults import SimulatedFaults  # noqa: PLC0415 - greenlet
+
+    t0, wall_t0 = runtime.monotonic(), runtime.wall()
+    progress.wall_t0 = wall_t0
+    faults = SimulatedFaults(
+        sup,
+        plan,
+        network,
+        fault_schedule(plan, seed),
+        t0,
+        wall_t0,
+        on_event=seen,
+        state_dir=folder / "beyond" if plan.state else None,
+        **where,
+    )
+    progress.faults = faults
+    return faults, t0
+
+
 def _world(
     plan: Plan, seed: int, folder: Path, progress: _Progress
 ) -> tuple[list[events.Event], list[FaultRecord], float, tuple[int, int, int]]:
     """The run, in the simulation's main thread: the runner's steps on simulated seams."""
-    from rr_actors.experiments._simulated_faults import SimulatedFaults  # noqa: PLC0415 - greenlet
 
     if any(fault.kind == "kill_program" for fault in plan.faults):
         return _program_world(plan, seed, folder, progress)
@@ -492,21 +523,10 @@ def _world(
         _start_hosts(plan, folder, seed, network, seen, hosts)
         clients = [Client(i, sup, plan, seed, run_dir=work) for i in range(plan.workload.clients)]
         progress.serving, progress.clients = True, clients
-        t0, wall_t0 = runtime.monotonic(), runtime.wall()
-        progress.wall_t0 = wall_t0
-        faults = SimulatedFaults(
-            sup,
-            plan,
-            network,
-            fault_schedule(plan, seed),
-            t0,
-            wall_t0,
-            on_event=seen,
-            state_dir=folder / "beyond" if plan.state else None,
-            hosts={host.name: host.pid for host in hosts},
+        faults, t0 = _injector(
+            sup, plan, network, seed, seen, folder, progress, hosts={h.name: h.pid for h in hosts}
         )
         injector.append(faults)
-        progress.faults = faults
         faults.start()
         for client in clients:
             client.start(t0=t0, deadline=t0 + plan.duration)
@@ -537,7 +557,7 @@ def _world(
             cleanup.callback(_stop_each, hosts)  # (before the run's own host's tree, as for real)
     calls = [c for client in clients for c in client.calls]
     ok = sum(1 for c in calls if c.ok)
-    return list(log.seen), records, wall_t0, (ok, len(calls) - ok, left)
+    return list(log.seen), records, progress.wall_t0, (ok, len(calls) - ok, left)
 
 
 def _program_world(
@@ -547,7 +567,6 @@ def _program_world(
     the tree and the clients in a simulated process of their own (`_SimulatedProgram`)
     rather than the simulation's root, which only drives the run."""
     from rr_actors import simulation  # noqa: PLC0415 - the simulation extra (greenlet)
-    from rr_actors.experiments._simulated_faults import SimulatedFaults  # noqa: PLC0415 - greenlet
 
     network = simulation.SimulatedNetwork()  # (check_simulable refuses it with [hosts])
     work = folder / "work"
@@ -567,21 +586,8 @@ def _program_world(
     try:
         sup = program.start()
         progress.serving, progress.clients = True, program.clients
-        t0, wall_t0 = runtime.monotonic(), runtime.wall()
-        progress.wall_t0 = wall_t0
-        faults = SimulatedFaults(
-            sup,
-            plan,
-            network,
-            fault_schedule(plan, seed),
-            t0,
-            wall_t0,
-            on_event=seen,
-            state_dir=folder / "beyond" if plan.state else None,
-            program=program,
-        )
+        faults, t0 = _injector(sup, plan, network, seed, seen, folder, progress, program=program)
         injector.append(faults)
-        progress.faults = faults
         program.go(t0, t0 + plan.duration)  # (before a fault can kill it: `ask` would wait)
         faults.start()
         runtime.sleep(plan.duration)
@@ -603,7 +609,7 @@ def _program_world(
             cleanup.callback(program.stop)
     calls = [c for client in program.clients for c in client.calls]
     ok = sum(1 for c in calls if c.ok)
-    return list(log.seen), records, wall_t0, (ok, len(calls) - ok, left)
+    return list(log.seen), records, progress.wall_t0, (ok, len(calls) - ok, left)
 
 
 class _SimulatedProgram:
