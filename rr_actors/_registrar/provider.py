@@ -756,6 +756,7 @@ def published_load(
                 load_s,
                 digest if digest is not None and digest != NO_DIGEST else None,
                 resource.label if resource.label is not None else resource.request_text,
+                waiter.trace,
             )
         )
         return

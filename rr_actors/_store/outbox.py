@@ -94,9 +94,9 @@ def _event(row: Any) -> events.Event:
     if kind is None:
         raise ValueError(f"no event type {row[1]!r}")
     names, _ = _fields(kind)
-    if row[0] < 5:  # (without the fields added since: they take their defaults)
-        added = _ADDED_IN_5.get(row[1], ())
-        names = tuple(name for name in names if name not in added)
+    for schema, kinds in _ADDED.items():  # (without the fields added since: their defaults)
+        if row[0] < schema and row[1] in kinds:
+            names = tuple(name for name in names if name not in kinds[row[1]])
     if len(row) != len(names) + 2:
         raise ValueError(f"{len(row) - 2} values for the {len(names)} fields of {row[1]}")
     return events.from_dict(
@@ -104,13 +104,26 @@ def _event(row: Any) -> events.Event:
     )
 
 
-_ROWS_READ = (3, 4, 5, SCHEMA)
+_ROWS_READ = (3, 4, 5, 6, 7, SCHEMA)
 """The event schemas of the rows read back (4 and 6 changed no event a registrar writes
-here; 5 added two fields to one: `_ADDED_IN_5`)."""
+here; 5, 7 and 8 added fields: `_ADDED`)."""
 
-_ADDED_IN_5 = {"QueryForgotten": ("unload_sent", "reconciled")}
-"""The fields schema 5 added to an event a registrar writes here, by its type: a row of
-an older schema has no value for them."""
+_CALL_ENDS = ("started", "trace", "caller_span")
+_ADDED: dict[int, dict[str, tuple[str, ...]]] = {
+    5: {"QueryForgotten": ("unload_sent", "reconciled")},
+    7: {
+        "QueryForgotten": ("trace", "caller_span"),
+        "ConsumerAdded": ("trace",),
+        "ConsumerReleased": ("trace",),
+        "LoadFailed": ("trace",),
+        "CallAnswered": _CALL_ENDS,
+        "CallFailed": _CALL_ENDS,
+        "CallWithdrawn": _CALL_ENDS,
+    },
+    8: {"ResourceLoaded": ("trace",)},
+}
+"""The fields each schema added to the events a registrar writes here, by their type: a
+row of an older schema has no value for them."""
 
 
 _VERSION = 7

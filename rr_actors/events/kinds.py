@@ -370,6 +370,8 @@ class ResourceLoaded(_Numbered):
             registrar waits for it, made on a worker thread, at most `compare_timeout`;
             `"<label failed: ...>"` if it failed), or without one the catalog's bounded
             `repr`; `None` if it has none.
+        trace: the W3C `traceparent` the call that caused it carried (as
+            `ConsumerAdded.trace`), `""` for an untraced call.
         at: when it finished.
     """
 
@@ -380,6 +382,7 @@ class ResourceLoaded(_Numbered):
     load_s: float
     digest: int | None = None
     label: str | None = None
+    trace: str = ""
 
 
 @_kind

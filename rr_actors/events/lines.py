@@ -37,8 +37,8 @@ __all__ = [
     "to_lines",
 ]
 
-SCHEMA = 7
-"""Version of the dicts `to_dict` writes (the `"schema"` key); `from_dict` reads it and 6 to 1.
+SCHEMA = 8
+"""Version of the dicts `to_dict` writes (the `"schema"` key); `from_dict` reads it and 7 to 1.
 
 Schema 2 added `seq`, request digests and labels, release reasons, in-doubt details and
 the catalog events; a schema 1 line may lack the fields that have defaults (`seq`: 0).
@@ -56,9 +56,10 @@ Schema 7 added the W3C trace context a call carried (`trace`, and `caller_span` 
 consumer) to `CallAnswered`, `CallFailed`, `CallWithdrawn`, `QueryForgotten`,
 `ConsumerAdded`, `ConsumerReleased` and `LoadFailed`, and the call's start (`started`)
 to the first three; a line of an older schema gets `""` and 0.0 (not known).
+Schema 8 added `ResourceLoaded`'s `trace` (the load's call's); an older line gets `""`.
 """
 
-_READS = (1, 2, 3, 4, 5, 6, SCHEMA)
+_READS = (1, 2, 3, 4, 5, 6, 7, SCHEMA)
 
 
 _TYPES: dict[str, type[Event]] = {cls.__name__: cls for cls in typing.get_args(Event)}

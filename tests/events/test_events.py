@@ -294,6 +294,20 @@ def test_from_dict_reads_a_schema_6_call_without_its_start_and_trace_context() -
         events.from_dict(data)
 
 
+def test_from_dict_reads_a_schema_7_resource_loaded_without_its_trace() -> None:
+    traceparent = f"00-{'a' * 32}-{'b' * 16}-01"
+    loaded = events.ResourceLoaded("erm", "cam", "r1", QID, 0.5, trace=traceparent, at=2.0)
+    assert loaded == events.from_dict(line(loaded))
+    data = line(loaded)
+    del data["trace"]
+    data["schema"] = 7
+
+    assert dataclasses.replace(loaded, trace="") == events.from_dict(data)
+    data["schema"] = events.lines.SCHEMA
+    with pytest.raises(rr.ConfigError, match="trace"):  # (a line of this schema has it)
+        events.from_dict(data)
+
+
 def test_from_dict_accepts_an_int_for_a_float() -> None:
     data = line(events.ChildRestarted("root", "erm", 1, 0.5, at=10.0))
     data["restart_s"] = 2
@@ -322,7 +336,7 @@ def _with(**changes: Any) -> dict[str, Any]:
     ("data", "named"),
     [
         ([1, 2], "list"),
-        (_with(schema=8), "schema 8"),
+        (_with(schema=9), "schema 9"),
         (_with(schema=_DROP), "schema None"),
         (_with(type="Exploded"), "'Exploded'"),
         (_with(type=_DROP), "None"),

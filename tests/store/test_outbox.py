@@ -131,13 +131,28 @@ def test_a_query_forgotten_row_of_schema_4_is_read_without_its_release_stamps(
     store.close(erase=False)
     forgot = events.QueryForgotten("cm", "q1", "erm", "unload", 7, 3, pid=4242, seq=5)
     row = json.loads(outbox._row(forgot))
-    assert [7, 3] == row[6:8]  # (after its type and 4 fields: the two schema 5 added)
-    old = [4, *row[1:6], *row[8:]]
+    assert [7, 3, "", ""] == row[6:10]  # (after its type and 4 fields: schema 5's, 7's)
+    old = [4, *row[1:6], *row[10:]]
     db = sqlite3.connect(path, isolation_level=None)
     db.execute("INSERT INTO outbox VALUES (5, 4242, 5, ?)", (json.dumps(old),))
     db.close()
 
     assert [dataclasses.replace(forgot, unload_sent=0, reconciled=0)] == read_told(path, 4242)
+
+
+def test_a_resource_loaded_row_of_schema_7_is_read_without_its_trace(tmp_path: Path) -> None:
+    path = tmp_path / "p.db"
+    store, _ = opened(path)
+    store.close(erase=False)
+    trace = f"00-{'1' * 32}-{'2' * 16}-01"
+    loaded = events.ResourceLoaded("erm", "leaf", "r1", "q1", 0.5, 7, "x", trace, pid=4242, seq=5)
+    row = json.loads(outbox._row(loaded))
+    assert trace == row[9]  # (after its type and 7 fields: the one schema 8 added)
+    db = sqlite3.connect(path, isolation_level=None)
+    db.execute("INSERT INTO outbox VALUES (5, 4242, 5, ?)", (json.dumps([7, *row[1:9], *row[10:]]),))
+    db.close()
+
+    assert [dataclasses.replace(loaded, trace="")] == read_told(path, 4242)
 
 
 @pytest.mark.parametrize(
