@@ -43,7 +43,9 @@ span starts, or at its own end).
 
 from __future__ import annotations
 
+import collections
 import dataclasses
+import hashlib
 import os
 import threading
 import time
@@ -110,6 +112,19 @@ def _ns(at: float) -> int:
     return int(at * 1e9)
 
 
+def _derived(*parts: str, bits: int = 64) -> int:
+    """An id of `bits` bits made from `parts` alone (the same in every process), not 0."""
+    digest = hashlib.blake2b("\0".join(parts).encode(), digest_size=bits // 8).digest()
+    return int.from_bytes(digest, "big") or 1
+
+
+def _untraced(query_id: str, verb: str) -> str:
+    """The traceparent an untraced call (or unload) is given here: its trace and CLIENT
+    span ids derived from its query id, so that its two sides, made by subscribers of
+    different processes, meet, and a status hop names its spans (sampled)."""
+    return f"00-{_derived(query_id, bits=128):032x}-{_derived(query_id, verb):016x}-01"
+
+
 @dataclasses.dataclass
 class _Child:
     """A user callback's INTERNAL span, under its server span."""
@@ -119,6 +134,7 @@ class _Child:
     end: float
     attributes: dict[str, Any]
     error: tuple[str, str] | None = None  # (type, message)
+    lost: str = ""  # its end was lost: what ended it
 
 
 @dataclasses.dataclass
@@ -137,6 +153,9 @@ class _Half:
     trace: str = ""  # the traceparent the call carried (its CLIENT span's id)
     caller_span: str = ""  # (a CLIENT side) the caller's span, its parent
     started: float = 0.0  # (a CLIENT side) when the call began, 0.0: not known
+    pid: int = 0  # (a SERVER side) the provider's process
+    lost: str = ""  # its end was lost: what ended it (a restart span's name)
+    restart: _Opened | None = None  # (lost) the restart span that ended it
 
 
 @dataclasses.dataclass
@@ -144,6 +163,29 @@ class _Restart:
     exited: events.ChildExited
     restarted: events.ChildRestarted
     restored: float | None = None  # its first CatalogRestored's `at`
+    arrived: float = dataclasses.field(default_factory=time.monotonic)
+
+
+@dataclasses.dataclass
+class _Opened:
+    """A restart span started, open until the new incarnation's first span links to it."""
+
+    span: Any
+    end: float  # its end (seconds), given when it is ended
+    arrived: float = dataclasses.field(default_factory=time.monotonic)
+    ended: bool = False
+
+
+@dataclasses.dataclass
+class _Sent:
+    """A status send: its span (once its `StatusSent` is heard) and the hops it made."""
+
+    context: Any = None  # its span's context; None: its StatusSent not heard yet
+    at: float = 0.0
+    reached: dict[str, tuple[Any, float]] = dataclasses.field(default_factory=dict)
+    waiting: list[events.StatusDelivered] = dataclasses.field(default_factory=list)
+    # registrar not reached yet: the hops from it (heard first), waiting for its own hop
+    upstream: dict[str, list[events.StatusDelivered]] = dataclasses.field(default_factory=dict)
     arrived: float = dataclasses.field(default_factory=time.monotonic)
 
 
@@ -200,6 +242,10 @@ class Tracing:
         self._restored: dict[int, float] = {}  # pid: its first CatalogRestored's `at`
         self._served: dict[tuple[str, str], str] = {}  # (registrar, resource id): server
         self._called: dict[str, str] = {}  # query id held: its server (an unload's name)
+        self._traced: dict[str, tuple[str, str]] = {}  # query id: its trace, serving registrar
+        self._statuses: collections.OrderedDict[str, _Sent] = collections.OrderedDict()
+        self._last_of: dict[int, Any] = {}  # pid: the last SERVER span made of its events
+        self._opened: dict[int, _Opened] = {}  # the new pid: its restart span, still open
 
     # -- the subscriber -----------------------------------------------------------------
 
@@ -282,6 +328,7 @@ class Tracing:
             self._unloaded(tracer, event)
         elif isinstance(event, events.QueryForgotten):
             server = self._called.pop(event.query_id, "")
+            self._traced.pop(event.query_id, None)
             if event.reason in _UNLOADS:
                 attributes = self._rpc(event.serving_rr, server, event.query_id)
                 attributes["rr_actors.registrar"] = event.registrar
@@ -291,6 +338,10 @@ class Tracing:
                 if event.unload_sent:  # (its stamp: when the release began)
                     half.started = hlc.seconds(event.unload_sent)
                 self._client(tracer, (event.query_id, "unload"), half)
+        elif isinstance(event, events.StatusSent):
+            self._status_sent(tracer, event)
+        elif isinstance(event, events.StatusDelivered):
+            self._status_delivered(tracer, event)
         elif isinstance(event, events.ChildExited):
             self._exits[event.child] = event
         elif isinstance(event, events.ChildRestarted):
@@ -330,7 +381,11 @@ class Tracing:
         attributes["rr_actors.dedup"] = load is None
         attributes["rr_actors.outcome"] = "loaded" if load is not None else "dedup"
         half = _Half(event.registrar, server, event.at, event.at, attributes, trace=event.trace)
+        half.pid = event.pid
+        if event.query_id not in self._traced and len(self._traced) < self._max_pending:
+            self._traced[event.query_id] = (event.trace, "")
         if load is not None:
+            half.trace = half.trace or load.trace
             if load.digest is not None:
                 attributes["rr_actors.digest"] = load.digest
             half.start = load.at - load.load_s
@@ -345,7 +400,7 @@ class Tracing:
         attributes["rr_actors.outcome"] = "load failed"
         error = (event.error_type, event.message)
         half = _Half(event.registrar, event.server, event.at, event.at, attributes, error)
-        half.trace = event.trace
+        half.trace, half.pid = event.trace, event.pid
         callback = {"rr_actors.resource_id": event.resource_id}
         half.children.append(_Child(f"{event.server}.load", event.at, event.at, callback, error))
         self._server(tracer, (event.query_id, "call"), half)
@@ -359,6 +414,8 @@ class Tracing:
         if isinstance(event, events.CallAnswered):
             if len(self._called) < self._max_pending:  # (its unload's span names it)
                 self._called[event.query_id] = event.server
+            if event.query_id in self._traced or len(self._traced) < self._max_pending:
+                self._traced[event.query_id] = (event.trace, event.serving_rr)
             attributes["rr_actors.outcome"] = "answered"
             attributes["rr_actors.retry"] = event.retry
         elif isinstance(event, events.CallFailed):
@@ -378,6 +435,8 @@ class Tracing:
         left = self._holders.get(resource)
         if left is not None:
             self._holders[resource] = left - 1
+        if self._traced.get(event.query_id, ("", "-"))[1] == "":  # (the consumer's: its own)
+            del self._traced[event.query_id]
         if event.reason != "unload":
             return
         server = self._served.get((event.registrar, event.resource_id), "")
@@ -386,6 +445,7 @@ class Tracing:
         attributes["rr_actors.consumer"] = event.consumer
         attributes["rr_actors.outcome"] = "released"
         half = _Half(event.registrar, server, event.at, event.at, attributes, trace=event.trace)
+        half.pid = event.pid
         if left == 1:  # the last consumer: its ResourceUnloaded follows, to go under it
             self._unloading[resource] = ((event.query_id, "unload"), half)
         else:
@@ -414,6 +474,138 @@ class Tracing:
         else:
             self._emit_child(tracer, None, child, [])
 
+    # -- statuses -----------------------------------------------------------------------
+
+    def _sent(self, tracer: Any, status_id: str) -> _Sent:
+        sent = self._statuses.get(status_id)
+        if sent is None:
+            sent = self._statuses[status_id] = _Sent()
+            if len(self._statuses) > self._max_pending:  # the oldest send is forgotten
+                _id, oldest = self._statuses.popitem(last=False)
+                self._give_up(tracer, _id, oldest)
+        return sent
+
+    def _give_up(self, tracer: Any, status_id: str, sent: _Sent) -> None:
+        """Make spans of the hops of `sent` still waiting: under a stand-in for its send
+        if that was not heard, under the send if the hop before them was not."""
+        if sent.context is None:
+            self._stand_in(tracer, status_id, sent)
+        while sent.upstream:
+            _registrar, hops = sent.upstream.popitem()
+            for hop in hops:
+                self._hop(tracer, sent, hop, wait=False)
+
+    def _call_links(self, query_id: str) -> list[Any]:
+        """Links to the CLIENT and SERVER spans of the call of `query_id`, if it was heard."""
+        known = self._traced.get(query_id)
+        if known is None:
+            return []
+        parsed = traces.parse(known[0] or _untraced(query_id, "call"))
+        if parsed is None:
+            return []
+        trace_id, client, flags = parsed
+        return [
+            _api.Link(
+                _api.SpanContext(
+                    trace_id, span, is_remote=True, trace_flags=_api.TraceFlags(flags)
+                ),
+                {"rr_actors.query_id": query_id, "rr_actors.side": side},
+            )
+            for span, side in ((client, "client"), (traces.server_span(client), "server"))
+        ]
+
+    def _status_sent(self, tracer: Any, event: events.StatusSent) -> None:
+        sent = self._sent(tracer, event.status_id)
+        if sent.context is not None:  # (heard twice, or stood in for)
+            return
+        attributes = {
+            "rr_actors.registrar": event.registrar,
+            "rr_actors.query_id": event.query_id,
+            "rr_actors.status": event.status.name,
+            "rr_actors.status_id": event.status_id,
+            "rr_actors.message": event.message,
+        }
+        span = self._start(
+            tracer,
+            (_derived(event.status_id, bits=128), _derived(event.status_id, "sent")),
+            f"status {event.status.name}",
+            kind=_api.SpanKind.PRODUCER,
+            attributes=attributes,
+            links=self._call_links(event.query_id),
+            start_time=_ns(event.at),
+        )
+        span.end(end_time=_ns(event.at))
+        sent.context, sent.at = span.get_span_context(), event.at
+        for hop in sorted(sent.waiting, key=lambda h: h.hop):
+            self._hop(tracer, sent, hop)
+        sent.waiting.clear()
+
+    def _stand_in(self, tracer: Any, status_id: str, sent: _Sent) -> None:
+        """The span of a send whose `StatusSent` was not heard (dropped, or a subscriber
+        of the consumers only), marked incomplete: its hops' parent."""
+        first = min(sent.waiting, key=lambda h: h.hop)
+        at = min(h.at - h.latency_s for h in sent.waiting)
+        span = self._start(
+            tracer,
+            (_derived(status_id, bits=128), _derived(status_id, "sent")),
+            f"status {first.status.name}",
+            kind=_api.SpanKind.PRODUCER,
+            attributes={
+                "rr_actors.status": first.status.name,
+                "rr_actors.status_id": status_id,
+                "rr_actors.incomplete": True,
+            },
+            start_time=_ns(at),
+        )
+        span.end(end_time=_ns(at))
+        sent.context, sent.at = span.get_span_context(), at
+        for hop in sorted(sent.waiting, key=lambda h: h.hop):
+            self._hop(tracer, sent, hop)
+        sent.waiting.clear()
+
+    def _status_delivered(self, tracer: Any, event: events.StatusDelivered) -> None:
+        sent = self._sent(tracer, event.status_id)
+        if sent.context is None:  # its send's span first: it is the parent
+            sent.waiting.append(event)
+        else:
+            self._hop(tracer, sent, event)
+
+    def _hop(
+        self, tracer: Any, sent: _Sent, event: events.StatusDelivered, *, wait: bool = True
+    ) -> None:
+        """A hop's span: under the hop that brought the status to the registrar it came
+        from (waited for, with `wait`, until `pair_within`), else under its send; linked
+        to its call's spans."""
+        serving = self._traced.get(event.query_id, ("", ""))[1]
+        before = sent.reached.get(serving) if event.hop > 1 and serving else None
+        if before is None and event.hop > 1 and serving and wait:
+            sent.upstream.setdefault(serving, []).append(event)
+            return
+        parent, start = before if before is not None else (sent.context, sent.at)
+        attributes = {
+            "rr_actors.registrar": event.registrar,
+            "rr_actors.query_id": event.query_id,
+            "rr_actors.status": event.status.name,
+            "rr_actors.status_id": event.status_id,
+            "rr_actors.hop": event.hop,
+            "rr_actors.latency_s": event.latency_s,
+        }
+        span = self._start(
+            tracer,
+            (parent.trace_id, _derived(event.status_id, event.registrar, event.query_id)),
+            f"status {event.status.name} hop {event.hop}",
+            context=_api.set_span_in_context(_api.NonRecordingSpan(parent)),
+            kind=_api.SpanKind.CONSUMER,
+            attributes=attributes,
+            links=self._call_links(event.query_id),
+            start_time=_ns(min(start, event.at)),
+        )
+        span.end(end_time=_ns(event.at))
+        if event.registrar not in sent.reached:
+            sent.reached[event.registrar] = (span.get_span_context(), event.at)
+            for hop in sent.upstream.pop(event.registrar, []):
+                self._hop(tracer, sent, hop)
+
     # -- sides to spans -----------------------------------------------------------------
 
     def _server(self, tracer: Any, key: tuple[str, str], half: _Half) -> None:
@@ -421,14 +613,14 @@ class Tracing:
         if client is None:
             self._servers[key] = half
         else:
-            self._emit(tracer, client, half)
+            self._emit(tracer, client, half, key)
 
     def _client(self, tracer: Any, key: tuple[str, str], half: _Half) -> None:
         server = self._servers.pop(key, None)
         if server is None:
             self._clients[key] = half
         else:
-            self._emit(tracer, half, server)
+            self._emit(tracer, half, server, key)
 
     def _sweep(self, tracer: Any, before: float) -> None:
         """Make spans alone of the restarts and sides waiting since before `before`."""
@@ -437,6 +629,9 @@ class Tracing:
         for pid in [p for p, r in self._restarts.items() if r.arrived <= before]:
             restart = self._restarts.pop(pid)
             self._restart_span(tracer, restart, restart.restored or restart.restarted.at)
+        for status_id, sent in list(self._statuses.items()):
+            if (sent.waiting or sent.upstream) and sent.arrived <= before:
+                self._give_up(tracer, status_id, sent)
         for waiting in (self._clients, self._servers):
             late = [k for k, h in waiting.items() if h.arrived <= before]
             late += list(waiting)[: max(0, len(waiting) - len(late) - self._max_pending)]
@@ -444,15 +639,22 @@ class Tracing:
                 alone = waiting.pop(key, None)
                 if alone is not None:
                     clients = waiting is self._clients
-                    self._emit(tracer, alone if clients else None, None if clients else alone)
+                    self._emit(tracer, alone if clients else None, None if clients else alone, key)
+        for pid in [p for p, o in self._opened.items() if o.arrived <= before]:
+            self._close_restart(self._opened.pop(pid))
         if before == float("inf"):
             self._called.clear()
             self._doubts.clear()
             self._exits.clear()
             self._restored.clear()
 
-    def _emit(self, tracer: Any, client: _Half | None, server: _Half | None) -> None:
+    def _emit(
+        self, tracer: Any, client: _Half | None, server: _Half | None, key: tuple[str, str]
+    ) -> None:
         context = None
+        # the ids the call carried; an untraced one's, derived from its query id
+        carried = (client.trace if client else "") or (server.trace if server else "")
+        carried = carried or _untraced(*key)
         if client is not None and server is not None:  # a side that did not know its server
             method = client.method or server.method
             client.method = server.method = method
@@ -462,8 +664,8 @@ class Tracing:
             if client.started:  # (when the call began: known since event schema 7)
                 start = client.started
             name = f"{client.service}/{client.method}"
-            parsed = traces.parse(client.trace)
-            parent = traces.caller_parent(client.trace, client.caller_span)
+            parsed = traces.parse(carried)
+            parent = traces.caller_parent(carried, client.caller_span)
             span = self._start(
                 tracer,
                 (parsed[0], parsed[1]) if parsed is not None else None,
@@ -476,19 +678,20 @@ class Tracing:
                 links=client.links,
                 start_time=_ns(start),
             )
-            self._end(span, client.error, max(client.end, start))
+            self._end(span, client.error, max(client.end, start), client.lost)
             context = _api.set_span_in_context(span)
         if server is not None:
             name = f"{server.service}/{server.method}"
-            parsed = traces.parse(server.trace)
+            parsed = traces.parse(carried)
             ids = None
             if parsed is not None:  # its parent: the CLIENT span the call named
                 trace_id, client_span, flags = parsed
                 ids = (trace_id, traces.server_span(client_span))
-                called = _api.SpanContext(
-                    trace_id, client_span, is_remote=True, trace_flags=_api.TraceFlags(flags)
-                )
-                context = _api.set_span_in_context(_api.NonRecordingSpan(called))
+                if context is None:  # (not made here: the one its ids name)
+                    called = _api.SpanContext(
+                        trace_id, client_span, is_remote=True, trace_flags=_api.TraceFlags(flags)
+                    )
+                    context = _api.set_span_in_context(_api.NonRecordingSpan(called))
             span = self._start(
                 tracer,
                 ids,
@@ -502,7 +705,8 @@ class Tracing:
             inner = _api.set_span_in_context(span)
             for child in server.children:
                 self._emit_child(tracer, inner, child, server.links)
-            self._end(span, server.error, max(server.end, server.start))
+            self._end(span, server.error, max(server.end, server.start), server.lost)
+            self._incarnations(server, span.get_span_context())
 
     @staticmethod
     def _start(tracer: Any, ids: tuple[int, int] | None, name: str, **options: Any) -> Any:
@@ -533,15 +737,41 @@ class Tracing:
                 {"exception.type": kind, "exception.message": message},
                 timestamp=_ns(child.end),
             )
-        self._end(span, child.error, child.end)
+        self._end(span, child.error, child.end, child.lost)
 
     @staticmethod
-    def _end(span: Any, error: tuple[str, str] | None, end: float) -> None:
+    def _end(span: Any, error: tuple[str, str] | None, end: float, lost: str = "") -> None:
         if error is not None:
             kind, message = error
             span.set_attribute("error.type", kind)
             span.set_status(_api.Status(_api.StatusCode.ERROR, f"{kind}: {message}"))
+        elif lost:
+            span.set_status(_api.Status(_api.StatusCode.ERROR, f"its end was lost: {lost}"))
         span.end(end_time=_ns(end))
+
+    def _incarnations(self, server: _Half, made: Any) -> None:
+        """Note a SERVER span made of a process's events: its last (a restart links to
+        it), or its first after a restart (linked, the restart span ended); a span whose
+        end was lost is linked from its restart span while that is open."""
+        if server.restart is not None and not server.restart.ended:
+            server.restart.span.add_link(
+                made, {"rr_actors.incarnation": "old", "rr_actors.end_lost": True}
+            )
+        if not server.pid or server.lost:
+            return
+        self._last_of.pop(server.pid, None)  # (the most recent last: the oldest first out)
+        self._last_of[server.pid] = made
+        if len(self._last_of) > self._max_pending:
+            del self._last_of[next(iter(self._last_of))]
+        opened = self._opened.pop(server.pid, None)
+        if opened is not None:
+            opened.span.add_link(made, {"rr_actors.incarnation": "new"})
+            self._close_restart(opened)
+
+    @staticmethod
+    def _close_restart(opened: _Opened) -> None:
+        opened.ended = True
+        opened.span.end(end_time=_ns(opened.end))
 
     def _restart_span(self, tracer: Any, restart: _Restart, end: float) -> None:
         """The restart's span; the spans the kill cut short, ended at the exit and marked."""
@@ -556,21 +786,29 @@ class Tracing:
             "rr_actors.restart_s": restarted.restart_s,
             "rr_actors.in_doubt": [d.query_id for d in doubts],
         }
+        last = self._last_of.pop(exited.pid, None)  # the old incarnation's last span
         span = tracer.start_span(
             f"restart {exited.child}",
             kind=_api.SpanKind.INTERNAL,
             attributes=attributes,
+            links=[_api.Link(last, {"rr_actors.incarnation": "old"})] if last else [],
             start_time=_ns(exited.at),
         )
-        span.end(end_time=_ns(max([end, exited.at, *(d.at for d in doubts)])))
+        # open until the new incarnation's first span links to it (or `pair_within`)
+        opened = _Opened(span, max([end, exited.at, *(d.at for d in doubts)]))
+        previous = self._opened.pop(restarted.pid, None)
+        if previous is not None:
+            self._close_restart(previous)
+        self._opened[restarted.pid] = opened
         links = [_api.Link(span.get_span_context())]
-        lost = {"rr_actors.end_lost": True, "rr_actors.ended_by": f"restart {exited.child}"}
+        ended_by = f"restart {exited.child}"
+        lost = {"rr_actors.end_lost": True, "rr_actors.ended_by": ended_by}
         for key in [k for k, load in self._loads.items() if load.pid == exited.pid]:
             load = self._loads.pop(key)  # loaded, never added: cut between the two
             attributes = self._rpc(load.registrar, load.server, load.query_id) | lost
             half = _Half(load.registrar, load.server, load.at - load.load_s, exited.at, attributes)
-            half.links = links
-            load_attributes = {"rr_actors.resource_id": load.resource_id} | lost
+            half.links, half.lost, half.restart, half.trace = links, ended_by, opened, load.trace
+            load_attributes = {"rr_actors.resource_id": load.resource_id}  # (it ended)
             half.children.append(
                 _Child(f"{load.server}.load", half.start, load.at, load_attributes)
             )
@@ -589,10 +827,12 @@ class Tracing:
             attributes["rr_actors.resource_id"] = doubt.query_id
             attributes["rr_actors.in_doubt"] = True
             half = _Half(doubt.registrar, doubt.server, exited.at, exited.at, attributes)
-            half.links = links
+            half.links, half.lost, half.restart = links, ended_by, opened
             verb = doubt.cut or "load"
             callback = {"rr_actors.resource_id": doubt.query_id} | lost
-            half.children.append(_Child(f"{doubt.server}.{verb}", exited.at, exited.at, callback))
+            half.children.append(
+                _Child(f"{doubt.server}.{verb}", exited.at, exited.at, callback, lost=ended_by)
+            )
             self._server(tracer, (query_id, "call" if verb == "load" else "unload"), half)
 
 

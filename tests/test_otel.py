@@ -592,3 +592,86 @@ def test_a_call_made_inside_a_traced_load_is_a_child_of_that_loads_server_span(
     assert "step" == parent(parent(outer)).name
     assert 1 == len({s.context.trace_id for s in spans.values()})  # one trace, 7 spans
     assert 7 == len(spans)
+
+
+def test_each_status_hop_is_a_span_linked_to_the_spans_of_the_call_it_reached(
+    started: list[rr.ResourceRegistrar],
+    uid: str,
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    # leaf serves cam; mid's map depends on it (one query, mid's); two apps hold mid's
+    # map (the second a dedup hit): leaf's status reaches mid (hop 1), then both apps (2)
+    provider, exporter = exported
+    leaf, mid, one, two = (
+        rr.ResourceRegistrar.start(f"{n}-{uid}") for n in ("leaf", "mid", "one", "two")
+    )
+    started.extend((leaf, mid, one, two))
+    _serve(leaf)
+
+    def through(request: Any) -> Any:
+        return mid.call(leaf.name, "cam", request, timeout=10).response
+
+    mid.register_server("map", load=through, unload=lambda _q, _r: None)
+    tracing = otel.Tracing(tracer_provider=provider, pair_within=60)
+    subscriptions = [r.subscribe(tracing) for r in (leaf, mid, one, two)]
+    first = one.call(mid.name, "map", 1, timeout=10)
+    second = two.call(mid.name, "map", 1, timeout=10)
+    [held] = mid.client_queries(timeout=10)  # mid's query of leaf's cam
+    [sent_with] = leaf.server_queries("cam", timeout=10)
+    assert held.id == sent_with.id
+    leaf.send_status(held.id, rr.Status.WARNING, "lens dirty", timeout=10)
+    for registrar in (one, two):
+        registrar.client_queries(timeout=10)  # (a later turn: their events are out)
+    for subscription in subscriptions:
+        assert subscription.wait_delivered(timeout=5)
+        subscription.close()
+    tracing.flush()
+    spans = exporter.get_finished_spans()
+
+    def call_spans(query_id: str) -> set[tuple[int, int]]:
+        return {
+            (s.kind, s.context.span_id)
+            for s in spans
+            if s.kind in (api.SpanKind.CLIENT, api.SpanKind.SERVER)
+            and s.attributes["rr_actors.query_id"] == query_id
+            and s.attributes["rr_actors.outcome"] in ("answered", "loaded", "dedup")
+        }
+
+    sent = _one(spans, "status WARNING", api.SpanKind.PRODUCER)
+    assert (leaf.name, held.id, "lens dirty") == (
+        sent.attributes["rr_actors.registrar"],
+        sent.attributes["rr_actors.query_id"],
+        sent.attributes["rr_actors.message"],
+    )
+    hops = [s for s in spans if s.kind == api.SpanKind.CONSUMER]
+    by_query = {s.attributes["rr_actors.query_id"]: s for s in hops}
+    assert 3 == len(hops)  # one per hop: mid's, then each app's
+    assert {held.id, first.id, second.id} == set(by_query)
+    status_id = sent.attributes["rr_actors.status_id"]
+    for query_id, registrar, hop in (
+        (held.id, mid.name, 1),
+        (first.id, one.name, 2),
+        (second.id, two.name, 2),
+    ):
+        span = by_query[query_id]
+        assert (registrar, hop, status_id) == (
+            span.attributes["rr_actors.registrar"],
+            span.attributes["rr_actors.hop"],
+            span.attributes["rr_actors.status_id"],
+        )
+        assert f"status WARNING hop {hop}" == span.name
+        assert sent.context.trace_id == span.context.trace_id  # the status's own trace
+        linked = {(link.attributes["rr_actors.side"], link.context.span_id) for link in span.links}
+        calls = call_spans(query_id)
+        assert 2 == len(calls)  # its CLIENT and its SERVER span
+        assert {(k.name.lower(), i) for k, i in calls} == linked  # linked to its call's
+        assert {query_id} == {link.attributes["rr_actors.query_id"] for link in span.links}
+        assert sent.start_time <= span.start_time <= span.end_time
+    # the hop to an app is under the hop that brought the status to mid, that under the send
+    assert by_query[held.id].parent.span_id == sent.context.span_id
+    for query_id in (first.id, second.id):
+        assert by_query[query_id].parent.span_id == by_query[held.id].context.span_id
+    # the send is linked to the spans of the call whose id it was given (mid's)
+    assert {(k.name.lower(), i) for k, i in call_spans(held.id)} == {
+        (link.attributes["rr_actors.side"], link.context.span_id) for link in sent.links
+    }

@@ -149,7 +149,9 @@ def test_a_resource_loaded_row_of_schema_7_is_read_without_its_trace(tmp_path: P
     row = json.loads(outbox._row(loaded))
     assert trace == row[9]  # (after its type and 7 fields: the one schema 8 added)
     db = sqlite3.connect(path, isolation_level=None)
-    db.execute("INSERT INTO outbox VALUES (5, 4242, 5, ?)", (json.dumps([7, *row[1:9], *row[10:]]),))
+    db.execute(
+        "INSERT INTO outbox VALUES (5, 4242, 5, ?)", (json.dumps([7, *row[1:9], *row[10:]]),)
+    )
     db.close()
 
     assert [dataclasses.replace(loaded, trace="")] == read_told(path, 4242)
