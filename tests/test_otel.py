@@ -169,6 +169,7 @@ def test_a_killed_load_is_ended_and_marked_by_the_restart_span(
             threading.Event().wait(60)  # killed while it loads
 
         registrar.register_server("slow", load=hang, unload=lambda _q, _r: None)
+        _serve(registrar)
 
     sup = supervisors(
         [rr.ManagerSpec(erm, setup, isolation="process")], state_dir=tmp_path / "state"
@@ -182,12 +183,15 @@ def test_a_killed_load_is_ended_and_marked_by_the_restart_span(
         failed.append(True)
 
     with otel.trace(sup, tracer_provider=provider, pair_within=60) as tracing:
+        before = app.call(erm, "cam", 1, timeout=10)  # the old incarnation's last call
         caller = threading.Thread(target=call)
         caller.start()
         assert entered.wait(10)
         sigkill(sup, erm)
         caller.join(10)
         sup.wait_restarted(erm, timeout=10)
+        after = app.call(erm, "cam", 2, timeout=10)  # the new one's first
+        app.client_queries(timeout=10)  # (a later turn: its CallAnswered is out)
         assert sup.flush_events(timeout=5)
         assert tracing._subscription.wait_delivered(timeout=5)
     assert [True] == failed
@@ -196,6 +200,19 @@ def test_a_killed_load_is_ended_and_marked_by_the_restart_span(
     restart = _one(spans, f"restart {erm}", api.SpanKind.INTERNAL)
     [resource_id] = restart.attributes["rr_actors.in_doubt"]
     server = _one(spans, f"{erm}/slow", api.SpanKind.SERVER)
+    served = {
+        s.attributes["rr_actors.query_id"]: s.context.span_id
+        for s in spans
+        if s.kind == api.SpanKind.SERVER and s.name == f"{erm}/cam"
+    }
+    # linked to the old incarnation's last span, the one whose end it lost, the new one's first
+    assert [
+        ("old", served[before.id]),
+        ("old", server.context.span_id),
+        ("new", served[after.id]),
+    ] == [
+        (link.attributes["rr_actors.incarnation"], link.context.span_id) for link in restart.links
+    ]
     load = _one(spans, "slow.load", api.SpanKind.INTERNAL)
     client = _one(spans, f"{erm}/slow", api.SpanKind.CLIENT)
     assert resource_id == server.attributes["rr_actors.resource_id"]
@@ -207,6 +224,8 @@ def test_a_killed_load_is_ended_and_marked_by_the_restart_span(
     assert server.context.span_id == load.parent.span_id
     for span in (server, load):
         assert span.attributes["rr_actors.end_lost"] is True
+        assert api.StatusCode.ERROR == span.status.status_code
+        assert f"its end was lost: restart {erm}" == span.status.description
         assert [restart.context.span_id] == [link.context.span_id for link in span.links]
         assert span.end_time == restart.start_time  # ended at the kill
     assert restart.start_time <= restart.end_time
