@@ -694,3 +694,62 @@ def test_each_status_hop_is_a_span_linked_to_the_spans_of_the_call_it_reached(
     assert {(k.name.lower(), i) for k, i in call_spans(held.id)} == {
         (link.attributes["rr_actors.side"], link.context.span_id) for link in sent.links
     }
+
+
+def test_a_load_is_published_with_its_calls_trace_context(
+    started: list[rr.ResourceRegistrar],
+    uid: str,
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    provider, _exporter = exported
+    erm = rr.ResourceRegistrar.start(f"erm-{uid}")
+    started.append(erm)
+    _serve(erm)
+    seen: list[events.Event] = []
+    with erm.subscribe(seen.append) as subscription:
+        with _caller(provider).start_as_current_span("step"):
+            erm.call(erm.name, "cam", 1, timeout=10)
+        assert subscription.wait_delivered(timeout=5)
+    [loaded] = [e for e in seen if isinstance(e, events.ResourceLoaded)]
+    [added] = [e for e in seen if isinstance(e, events.ConsumerAdded)]
+    assert loaded.trace != ""
+    assert added.trace == loaded.trace
+
+
+def test_a_load_cut_before_its_consumer_was_added_stays_in_its_calls_trace(
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    # the kill came between the load's ResourceLoaded and its ConsumerAdded: the SERVER
+    # span is made of the ResourceLoaded alone, ended by the restart, in the call's trace
+    provider, exporter = exported
+    tracing = otel.Tracing(tracer_provider=provider, pair_within=60)
+    trace_id, client = "a" * 32, "b" * 16
+    query_id, resource_id = str(uuid.uuid4()), str(uuid.uuid4())
+    tracing(
+        events.ResourceLoaded(
+            "erm",
+            "cam",
+            resource_id,
+            query_id,
+            0.5,
+            trace=f"00-{trace_id}-{client}-01",
+            at=100.0,
+            pid=11,
+        )
+    )
+    tracing(events.ChildExited("root", "erm", 11, "killed", at=101.0))
+    tracing(events.ChildRestarted("root", "erm", 12, 0.5, at=102.0))
+    tracing(events.CatalogRestored("erm", (), (), (), at=101.5, pid=12))
+    tracing.flush()
+    spans = exporter.get_finished_spans()
+
+    server = _one(spans, "erm/cam", api.SpanKind.SERVER)
+    load = _one(spans, "cam.load", api.SpanKind.INTERNAL)
+    assert server.parent is not None
+    assert (int(trace_id, 16), int(client, 16)) == (server.context.trace_id, server.parent.span_id)
+    assert server.attributes["rr_actors.end_lost"] is True
+    assert api.StatusCode.ERROR == server.status.status_code
+    assert load.parent is not None
+    assert server.context.span_id == load.parent.span_id
+    assert 101_000_000_000 == server.end_time  # ended at the kill; its load had ended
+    assert 100_000_000_000 == load.end_time
