@@ -246,6 +246,12 @@ class Tracing:
         self._statuses: collections.OrderedDict[str, _Sent] = collections.OrderedDict()
         self._last_of: dict[int, Any] = {}  # pid: the last SERVER span made of its events
         self._opened: dict[int, _Opened] = {}  # the new pid: its restart span, still open
+        self._lost_at: float | None = None  # (monotonic) when the stream last lost events
+        self._lost_of: dict[int, int] = {}  # a process killed: events it built, lost
+        self.dropped = 0
+        """Events the stream said were lost before this subscriber heard them (the
+        counts of the `EventsDropped` it took): the spans they would have made are
+        missing, and the sides made alone near them are marked `rr_actors.incomplete`."""
 
     # -- the subscriber -----------------------------------------------------------------
 
@@ -327,17 +333,9 @@ class Tracing:
         elif isinstance(event, events.ResourceUnloaded):
             self._unloaded(tracer, event)
         elif isinstance(event, events.QueryForgotten):
-            server = self._called.pop(event.query_id, "")
-            self._traced.pop(event.query_id, None)
-            if event.reason in _UNLOADS:
-                attributes = self._rpc(event.serving_rr, server, event.query_id)
-                attributes["rr_actors.registrar"] = event.registrar
-                attributes["rr_actors.outcome"] = event.reason
-                half = _Half(event.serving_rr, server, event.at, event.at, attributes)
-                half.trace, half.caller_span = event.trace, event.caller_span
-                if event.unload_sent:  # (its stamp: when the release began)
-                    half.started = hlc.seconds(event.unload_sent)
-                self._client(tracer, (event.query_id, "unload"), half)
+            self._forgotten(tracer, event)
+        elif isinstance(event, events.EventsDropped):
+            self._dropped(event)
         elif isinstance(event, events.StatusSent):
             self._status_sent(tracer, event)
         elif isinstance(event, events.StatusDelivered):
@@ -359,6 +357,25 @@ class Tracing:
                     restart.restored = event.at
             elif len(self._restored) < self._max_pending:
                 self._restored.setdefault(event.pid, event.at)
+
+    def _forgotten(self, tracer: Any, event: events.QueryForgotten) -> None:
+        server = self._called.pop(event.query_id, "")
+        self._traced.pop(event.query_id, None)
+        if event.reason in _UNLOADS:
+            attributes = self._rpc(event.serving_rr, server, event.query_id)
+            attributes["rr_actors.registrar"] = event.registrar
+            attributes["rr_actors.outcome"] = event.reason
+            half = _Half(event.serving_rr, server, event.at, event.at, attributes)
+            half.trace, half.caller_span = event.trace, event.caller_span
+            if event.unload_sent:  # (its stamp: when the release began)
+                half.started = hlc.seconds(event.unload_sent)
+            self._client(tracer, (event.query_id, "unload"), half)
+
+    def _dropped(self, event: events.EventsDropped) -> None:
+        self.dropped += event.count
+        self._lost_at = time.monotonic()
+        if event.cause == "killed" and len(self._lost_of) < self._max_pending:
+            self._lost_of[event.pid] = self._lost_of.get(event.pid, 0) + event.count
 
     @staticmethod
     def _rpc(service: str, method: str, query_id: str) -> dict[str, Any]:
@@ -632,12 +649,15 @@ class Tracing:
         for status_id, sent in list(self._statuses.items()):
             if (sent.waiting or sent.upstream) and sent.arrived <= before:
                 self._give_up(tracer, status_id, sent)
+        lost = self._lost_at + self._pair_within if self._lost_at is not None else None
         for waiting in (self._clients, self._servers):
             late = [k for k, h in waiting.items() if h.arrived <= before]
             late += list(waiting)[: max(0, len(waiting) - len(late) - self._max_pending)]
             for key in late:
                 alone = waiting.pop(key, None)
                 if alone is not None:
+                    if lost is not None and alone.arrived <= lost:  # its other side: lost?
+                        alone.attributes["rr_actors.incomplete"] = True
                     clients = waiting is self._clients
                     self._emit(tracer, alone if clients else None, None if clients else alone, key)
         for pid in [p for p, o in self._opened.items() if o.arrived <= before]:
@@ -786,6 +806,10 @@ class Tracing:
             "rr_actors.restart_s": restarted.restart_s,
             "rr_actors.in_doubt": [d.query_id for d in doubts],
         }
+        lost_events = self._lost_of.pop(exited.pid, 0)
+        if lost_events:  # the dead process built them, never forwarded: spans missing
+            attributes["rr_actors.events_lost"] = lost_events
+            attributes["rr_actors.incomplete"] = True
         last = self._last_of.pop(exited.pid, None)  # the old incarnation's last span
         span = tracer.start_span(
             f"restart {exited.child}",

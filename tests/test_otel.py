@@ -753,3 +753,33 @@ def test_a_load_cut_before_its_consumer_was_added_stays_in_its_calls_trace(
     assert server.context.span_id == load.parent.span_id
     assert 101_000_000_000 == server.end_time  # ended at the kill; its load had ended
     assert 100_000_000_000 == load.end_time
+
+
+def test_lost_events_are_counted_and_the_spans_they_may_have_cut_marked_incomplete(
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    provider, exporter = exported
+    tracing = otel.Tracing(tracer_provider=provider, pair_within=60)
+    before, near = str(uuid.uuid4()), str(uuid.uuid4())
+    tracing(events.CallAnswered("app", before, "erm", "cam", at=99.0))
+    tracing.flush()  # made alone before any loss: complete as far as anyone knows
+    tracing(events.CallAnswered("app", near, "erm", "cam", at=100.0))
+    tracing(events.EventsDropped(3, pid=7))  # (a full queue: its ConsumerAdded among them?)
+    tracing(events.EventsDropped(2, "killed", pid=11))  # a manager's tail, never forwarded
+    tracing(events.ChildExited("root", "erm", 11, "killed", at=101.0))
+    tracing(events.ChildRestarted("root", "erm", 12, 0.5, at=102.0))
+    tracing(events.CatalogRestored("erm", (), (), (), at=101.5, pid=12))
+    tracing.flush()
+    spans = exporter.get_finished_spans()
+
+    assert 5 == tracing.dropped
+    clients = {
+        s.attributes["rr_actors.query_id"]: s for s in spans if s.kind == api.SpanKind.CLIENT
+    }
+    assert "rr_actors.incomplete" not in clients[before].attributes
+    assert clients[near].attributes["rr_actors.incomplete"] is True
+    restart = _one(spans, "restart erm", api.SpanKind.INTERNAL)
+    assert (2, True) == (
+        restart.attributes["rr_actors.events_lost"],
+        restart.attributes["rr_actors.incomplete"],
+    )
