@@ -22,10 +22,15 @@ What becomes a span (`docs/how-to/trace.md`):
   child (the two meet by query id);
 - a user callback: an INTERNAL `<server>.load` span (from `load_s`; a failed load's
   carries its exception as an `exception` event) and `<server>.unload` span;
+- a status: a PRODUCER `status <STATUS>` span (`StatusSent`, a trace of its own) and a
+  CONSUMER `status <STATUS> hop <n>` span per delivery (`StatusDelivered`), under the hop
+  that brought it to the registrar it came from, each linked to the CLIENT and SERVER
+  spans of the call whose query id it reached;
 - a restart: an INTERNAL `restart <child>` span from `ChildExited` to the restarted
-  process's first `CatalogRestored`, naming the in-doubt queries (`InDoubt`); the spans
-  whose end the kill lost (a load that started and never finished) are ended at the
-  exit, marked `rr_actors.end_lost`, and linked to it.
+  process's first `CatalogRestored`, naming the in-doubt queries (`InDoubt`), linked to
+  the old incarnation's last SERVER span and the new one's first; the spans whose end
+  the kill lost (a load that started and never finished) are ended at the exit, marked
+  `rr_actors.end_lost` (status ERROR), and linked to it (and it to them).
 
 A caller's trace continues through the call: a `call`, `acall` or `unload` made while an
 OpenTelemetry span is current in the caller carries its W3C trace context to the
@@ -33,9 +38,11 @@ provider (`rr_actors._core.traces`: the CLIENT span's id is drawn then, the SERV
 span's derived from it), and its events carry it (`trace`, `caller_span`): the CLIENT
 span is made the caller's span's child, the SERVER span the CLIENT span's, with those
 ids (through the SDK's tracer), in whichever process each side is made; a `load` runs
-with that SERVER span current. A CLIENT span starts when its call began (its end
-event's `started`; without it, as events of schema 6 and before: where its server
-span starts, or at its own end).
+with that SERVER span current. An untraced call's ids are derived from its query id, so
+its sides meet too. A CLIENT span starts when its call began (its end event's `started`;
+without it, as events of schema 6 and before: where its server span starts, or at its
+own end). Lost events (`EventsDropped`) are counted (`Tracing.dropped`), and the spans
+they may have cut are marked `rr_actors.incomplete`.
 
 `provider_from_environment` and `Exporting` are what `rr-actors demo --trace` and
 `rr-actors experiment --trace` use: an SDK provider set up by the `OTEL_*` variables.
@@ -200,8 +207,15 @@ class Tracing:
         tracer_provider: the provider to trace through; `None` (the default): the
             global one, `opentelemetry.trace.get_tracer_provider()`, read at each event.
         pair_within: seconds a side of a call (or a restart without a
-            `CatalogRestored`) waits for the rest before it is made a span alone.
-        max_pending: sides waiting at most; past it, the oldest is made a span alone.
+            `CatalogRestored`, a restart span for the new incarnation's first span, a
+            status hop for its send or the hop before it) waits for the rest before it
+            is made a span alone.
+        max_pending: sides waiting at most; past it, the oldest is made a span alone
+            (also the bound of the query ids, status sends and processes remembered).
+
+    Attributes:
+        dropped: events the stream said were lost before this subscriber took them
+            (the `count`s of the `EventsDropped` it took); read from any thread.
 
     Raises:
         ConfigError: `pair_within` not a positive number or `max_pending` not a
@@ -248,10 +262,7 @@ class Tracing:
         self._opened: dict[int, _Opened] = {}  # the new pid: its restart span, still open
         self._lost_at: float | None = None  # (monotonic) when the stream last lost events
         self._lost_of: dict[int, int] = {}  # a process killed: events it built, lost
-        self.dropped = 0
-        """Events the stream said were lost before this subscriber heard them (the
-        counts of the `EventsDropped` it took): the spans they would have made are
-        missing, and the sides made alone near them are marked `rr_actors.incomplete`."""
+        self.dropped = 0  # (the class docstring's Attributes)
 
     # -- the subscriber -----------------------------------------------------------------
 
