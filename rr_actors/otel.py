@@ -163,6 +163,7 @@ class _Half:
     pid: int = 0  # (a SERVER side) the provider's process
     lost: str = ""  # its end was lost: what ended it (a restart span's name)
     restart: _Opened | None = None  # (lost) the restart span that ended it
+    root: bool = False  # no CLIENT side is known to exist: not given derived ids
 
 
 @dataclasses.dataclass
@@ -685,7 +686,8 @@ class Tracing:
         context = None
         # the ids the call carried; an untraced one's, derived from its query id
         carried = (client.trace if client else "") or (server.trace if server else "")
-        carried = carried or _untraced(*key)
+        if not carried and not (server is not None and client is None and server.root):
+            carried = _untraced(*key)
         if client is not None and server is not None:  # a side that did not know its server
             method = client.method or server.method
             client.method = server.method = method
@@ -863,6 +865,7 @@ class Tracing:
             attributes["rr_actors.in_doubt"] = True
             half = _Half(doubt.registrar, doubt.server, exited.at, exited.at, attributes)
             half.links, half.lost, half.restart = links, ended_by, opened
+            half.root = len(calls) != 1  # (its call not found: a root, not a lost child)
             verb = doubt.cut or "load"
             callback = {"rr_actors.resource_id": doubt.query_id} | lost
             half.children.append(

@@ -783,3 +783,22 @@ def test_lost_events_are_counted_and_the_spans_they_may_have_cut_marked_incomple
         restart.attributes["rr_actors.events_lost"],
         restart.attributes["rr_actors.incomplete"],
     )
+
+
+def test_an_in_doubt_load_whose_call_is_not_known_is_a_root_not_an_orphan(
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    # no failed call to match it with (its consumer not heard): nobody makes a CLIENT span
+    provider, exporter = exported
+    tracing = otel.Tracing(tracer_provider=provider, pair_within=60)
+    resource_id = str(uuid.uuid4())
+    tracing(events.ChildExited("root", "erm", 11, "killed", at=101.0))
+    tracing(events.ChildRestarted("root", "erm", 12, 0.5, at=102.0))
+    tracing(events.CatalogRestored("erm", (), (), (), at=101.5, pid=12))
+    tracing(events.InDoubt("erm", resource_id, "cam", "load", at=101.6, pid=12))
+    tracing.flush()
+    spans = exporter.get_finished_spans()
+
+    server = _one(spans, "erm/cam", api.SpanKind.SERVER)
+    assert server.attributes["rr_actors.end_lost"] is True
+    assert server.parent is None  # (not the child of a span no one makes)
