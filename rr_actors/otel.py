@@ -259,8 +259,10 @@ class Tracing:
         self._called: dict[str, str] = {}  # query id held: its server (an unload's name)
         self._traced: dict[str, tuple[str, str]] = {}  # query id: its trace, serving registrar
         self._statuses: collections.OrderedDict[str, _Sent] = collections.OrderedDict()
-        self._last_of: dict[int, Any] = {}  # pid: the last SERVER span made of its events
-        self._opened: dict[int, _Opened] = {}  # the new pid: its restart span, still open
+        # (pid, registrar): the last SERVER span made of its events (a manager's registrar
+        # is named as the child); (the new pid, child): its restart span, still open
+        self._last_of: dict[tuple[int, str], Any] = {}
+        self._opened: dict[tuple[int, str], _Opened] = {}
         self._lost_at: float | None = None  # (monotonic) when the stream last lost events
         self._lost_of: dict[int, int] = {}  # a process killed: events it built, lost
         self.dropped = 0  # (the class docstring's Attributes)
@@ -672,8 +674,8 @@ class Tracing:
                         alone.attributes["rr_actors.incomplete"] = True
                     clients = waiting is self._clients
                     self._emit(tracer, alone if clients else None, None if clients else alone, key)
-        for pid in [p for p, o in self._opened.items() if o.arrived <= before]:
-            self._close_restart(self._opened.pop(pid))
+        for child in [c for c, o in self._opened.items() if o.arrived <= before]:
+            self._close_restart(self._opened.pop(child))
         if before == float("inf"):
             self._called.clear()
             self._doubts.clear()
@@ -792,11 +794,12 @@ class Tracing:
             )
         if not server.pid or server.lost:
             return
-        self._last_of.pop(server.pid, None)  # (the most recent last: the oldest first out)
-        self._last_of[server.pid] = made
+        incarnation = (server.pid, server.service)
+        self._last_of.pop(incarnation, None)  # (the most recent last: the oldest first out)
+        self._last_of[incarnation] = made
         if len(self._last_of) > self._max_pending:
             del self._last_of[next(iter(self._last_of))]
-        opened = self._opened.pop(server.pid, None)
+        opened = self._opened.pop(incarnation, None)
         if opened is not None:
             opened.span.add_link(made, {"rr_actors.incarnation": "new"})
             self._close_restart(opened)
@@ -823,7 +826,7 @@ class Tracing:
         if lost_events:  # the dead process built them, never forwarded: spans missing
             attributes["rr_actors.events_lost"] = lost_events
             attributes["rr_actors.incomplete"] = True
-        last = self._last_of.pop(exited.pid, None)  # the old incarnation's last span
+        last = self._last_of.pop((exited.pid, exited.child), None)  # the old one's last span
         span = tracer.start_span(
             f"restart {exited.child}",
             kind=_api.SpanKind.INTERNAL,
@@ -833,10 +836,10 @@ class Tracing:
         )
         # open until the new incarnation's first span links to it (or `pair_within`)
         opened = _Opened(span, max([end, exited.at, *(d.at for d in doubts)]))
-        previous = self._opened.pop(restarted.pid, None)
+        previous = self._opened.pop((restarted.pid, exited.child), None)
         if previous is not None:
             self._close_restart(previous)
-        self._opened[restarted.pid] = opened
+        self._opened[restarted.pid, exited.child] = opened
         links = [_api.Link(span.get_span_context())]
         ended_by = f"restart {exited.child}"
         lost = {"rr_actors.end_lost": True, "rr_actors.ended_by": ended_by}

@@ -571,7 +571,7 @@ REFUSED = {
             }
         ),
         "out/events.jsonl line 1: ResourceLoaded: missing fields ['registrar', 'server', "
-        "'resource_id', 'digest', 'label', 'at', 'pid', 'seq', 'host', 'hlc']",
+        "'resource_id', 'digest', 'label', 'trace', 'at', 'pid', 'seq', 'host', 'hlc']",
     ),
     "not JSON": (
         '{"type": ResourceLoaded}',
