@@ -645,7 +645,64 @@ def test_each_status_hop_is_a_span_linked_to_the_spans_of_the_call_it_reached(
         assert subscription.wait_delivered(timeout=5)
         subscription.close()
     tracing.flush()
-    spans = exporter.get_finished_spans()
+    _check_status_spans(
+        exporter.get_finished_spans(),
+        (leaf.name, held.id),
+        (mid.name, one.name, two.name),
+        (first.id, second.id),
+    )
+
+
+@pytest.mark.usefixtures("process_helpers")
+def test_status_hops_made_of_manager_processes_events_are_linked_too(
+    supervisors: Callable[..., rr.Supervisor],
+    uid: str,
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    # leaf and mid in manager processes, the apps in this one: one subscriber of the tree
+    # hears three streams, in any order (a hop may come before the hop below it)
+    provider, exporter = exported
+    leaf, mid = f"leaf-{uid}", f"mid-{uid}"
+
+    def serve_map(registrar: rr.ResourceRegistrar) -> None:
+        def through(request: Any) -> Any:
+            return registrar.call(leaf, "cam", request, timeout=10).response
+
+        registrar.register_server("map", load=through, unload=lambda _q, _r: None)
+
+    sup = supervisors(
+        [
+            rr.ManagerSpec(leaf, _serve, isolation="process"),
+            rr.ManagerSpec(mid, serve_map, isolation="process"),
+        ]
+    ).start()
+    one, two = sup.registrar(f"one-{uid}"), sup.registrar(f"two-{uid}")
+    with otel.trace(sup, tracer_provider=provider, pair_within=60) as tracing:
+        first = one.call(mid, "map", 1, timeout=10)
+        second = two.call(mid, "map", 1, timeout=10)
+        held = sup.run_in(leaf, lambda r: r.server_queries("cam", timeout=10)[0].id)
+        sup.run_in(leaf, lambda r: r.send_status(held, rr.Status.WARNING, "lens dirty", timeout=10))
+        for registrar in (one, two):
+            registrar.client_queries(timeout=10)  # (a later turn: their events are out)
+        assert sup.flush_events(timeout=5)
+        assert tracing._subscription.wait_delivered(timeout=5)
+    _check_status_spans(
+        exporter.get_finished_spans(),
+        (leaf, held),
+        (mid, one.name, two.name),
+        (first.id, second.id),
+    )
+
+
+def _check_status_spans(
+    spans: tuple[ReadableSpan, ...],
+    sender: tuple[str, str],
+    receivers: tuple[str, str, str],
+    apps: tuple[str, str],
+) -> None:
+    """The send's span and one hop span per query id it reached, each under the hop
+    below it, linked to its call's CLIENT and SERVER spans."""
+    (leaf, held), (mid, one, two), (first, second) = sender, receivers, apps
 
     def call_spans(query_id: str) -> set[tuple[int, int]]:
         return {
@@ -657,7 +714,7 @@ def test_each_status_hop_is_a_span_linked_to_the_spans_of_the_call_it_reached(
         }
 
     sent = _one(spans, "status WARNING", api.SpanKind.PRODUCER)
-    assert (leaf.name, held.id, "lens dirty") == (
+    assert (leaf, held, "lens dirty") == (
         sent.attributes["rr_actors.registrar"],
         sent.attributes["rr_actors.query_id"],
         sent.attributes["rr_actors.message"],
@@ -665,13 +722,9 @@ def test_each_status_hop_is_a_span_linked_to_the_spans_of_the_call_it_reached(
     hops = [s for s in spans if s.kind == api.SpanKind.CONSUMER]
     by_query = {s.attributes["rr_actors.query_id"]: s for s in hops}
     assert 3 == len(hops)  # one per hop: mid's, then each app's
-    assert {held.id, first.id, second.id} == set(by_query)
+    assert {held, first, second} == set(by_query)
     status_id = sent.attributes["rr_actors.status_id"]
-    for query_id, registrar, hop in (
-        (held.id, mid.name, 1),
-        (first.id, one.name, 2),
-        (second.id, two.name, 2),
-    ):
+    for query_id, registrar, hop in ((held, mid, 1), (first, one, 2), (second, two, 2)):
         span = by_query[query_id]
         assert (registrar, hop, status_id) == (
             span.attributes["rr_actors.registrar"],
@@ -687,11 +740,11 @@ def test_each_status_hop_is_a_span_linked_to_the_spans_of_the_call_it_reached(
         assert {query_id} == {link.attributes["rr_actors.query_id"] for link in span.links}
         assert sent.start_time <= span.start_time <= span.end_time
     # the hop to an app is under the hop that brought the status to mid, that under the send
-    assert by_query[held.id].parent.span_id == sent.context.span_id
-    for query_id in (first.id, second.id):
-        assert by_query[query_id].parent.span_id == by_query[held.id].context.span_id
+    assert by_query[held].parent.span_id == sent.context.span_id
+    for query_id in (first, second):
+        assert by_query[query_id].parent.span_id == by_query[held].context.span_id
     # the send is linked to the spans of the call whose id it was given (mid's)
-    assert {(k.name.lower(), i) for k, i in call_spans(held.id)} == {
+    assert {(k.name.lower(), i) for k, i in call_spans(held)} == {
         (link.attributes["rr_actors.side"], link.context.span_id) for link in sent.links
     }
 
@@ -802,3 +855,51 @@ def test_an_in_doubt_load_whose_call_is_not_known_is_a_root_not_an_orphan(
     server = _one(spans, "erm/cam", api.SpanKind.SERVER)
     assert server.attributes["rr_actors.end_lost"] is True
     assert server.parent is None  # (not the child of a span no one makes)
+
+
+def test_a_hop_heard_before_the_hop_below_it_and_the_send_waits_for_them(
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    provider, exporter = exported
+    tracing = otel.Tracing(tracer_provider=provider, pair_within=60)
+    below, above, status_id = str(uuid.uuid4()), str(uuid.uuid4()), str(uuid.uuid4())
+    tracing(events.CallAnswered("mid", below, "leaf", "cam", at=1.0))
+    tracing(events.CallAnswered("app", above, "mid", "map", at=2.0))
+    warning = rr.Status.WARNING
+    tracing(events.StatusDelivered("app", above, warning, 2, 0.3, status_id, at=10.3))
+    assert [] == [s.name for s in exporter.get_finished_spans() if s.name.startswith("status")]
+    tracing(events.StatusSent("leaf", below, warning, "lens dirty", status_id, at=10.0))
+    assert ["status WARNING"] == [  # (hop 2 waits for hop 1 still)
+        s.name for s in exporter.get_finished_spans() if s.name.startswith("status")
+    ]
+    tracing(events.StatusDelivered("mid", below, warning, 1, 0.1, status_id, at=10.1))
+    spans = exporter.get_finished_spans()  # (made as hop 1 came: no flush)
+
+    sent = _one(spans, "status WARNING", api.SpanKind.PRODUCER)
+    first = _one(spans, "status WARNING hop 1", api.SpanKind.CONSUMER)
+    second = _one(spans, "status WARNING hop 2", api.SpanKind.CONSUMER)
+    assert first.parent is not None
+    assert second.parent is not None
+    assert sent.context.span_id == first.parent.span_id
+    assert first.context.span_id == second.parent.span_id
+    assert (10_100_000_000, 10_300_000_000) == (second.start_time, second.end_time)
+    assert "rr_actors.incomplete" not in sent.attributes
+
+
+def test_a_hop_whose_send_is_never_heard_goes_under_a_stand_in_marked_incomplete(
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    provider, exporter = exported
+    tracing = otel.Tracing(tracer_provider=provider, pair_within=60)
+    query_id, status_id = str(uuid.uuid4()), str(uuid.uuid4())
+    tracing(events.CallAnswered("mid", query_id, "leaf", "cam", at=1.0))
+    tracing(events.StatusDelivered("mid", query_id, rr.Status.OK, 1, 0.1, status_id, at=10.1))
+    tracing.flush()
+    spans = exporter.get_finished_spans()
+
+    stand_in = _one(spans, "status OK", api.SpanKind.PRODUCER)
+    hop = _one(spans, "status OK hop 1", api.SpanKind.CONSUMER)
+    assert stand_in.attributes["rr_actors.incomplete"] is True
+    assert hop.parent is not None
+    assert stand_in.context.span_id == hop.parent.span_id  # (no orphan)
+    assert 10_000_000_000 == stand_in.start_time  # (its hop's delivery less its latency)
