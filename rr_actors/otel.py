@@ -259,6 +259,7 @@ class Tracing:
         self._called: dict[str, str] = {}  # query id held: its server (an unload's name)
         self._traced: dict[str, tuple[str, str]] = {}  # query id: its trace, serving registrar
         self._statuses: collections.OrderedDict[str, _Sent] = collections.OrderedDict()
+        self._stalled: dict[str, _Sent] = {}  # the sends some of whose hops wait
         # (pid, registrar): the last SERVER span made of its events (a manager's registrar
         # is named as the child); (the new pid, child): its restart span, still open
         self._last_of: dict[tuple[int, str], Any] = {}
@@ -513,6 +514,7 @@ class Tracing:
             sent = self._statuses[status_id] = _Sent()
             if len(self._statuses) > self._max_pending:  # the oldest send is forgotten
                 _id, oldest = self._statuses.popitem(last=False)
+                self._stalled.pop(_id, None)
                 self._give_up(tracer, _id, oldest)
         return sent
 
@@ -598,6 +600,7 @@ class Tracing:
         sent = self._sent(tracer, event.status_id)
         if sent.context is None:  # its send's span first: it is the parent
             sent.waiting.append(event)
+            self._stalled[event.status_id] = sent
         else:
             self._hop(tracer, sent, event)
 
@@ -611,6 +614,7 @@ class Tracing:
         before = sent.reached.get(serving) if event.hop > 1 and serving else None
         if before is None and event.hop > 1 and serving and wait:
             sent.upstream.setdefault(serving, []).append(event)
+            self._stalled[event.status_id] = sent
             return
         parent, start = before if before is not None else (sent.context, sent.at)
         attributes = {
@@ -660,8 +664,11 @@ class Tracing:
         for pid in [p for p, r in self._restarts.items() if r.arrived <= before]:
             restart = self._restarts.pop(pid)
             self._restart_span(tracer, restart, restart.restored or restart.restarted.at)
-        for status_id, sent in list(self._statuses.items()):
-            if (sent.waiting or sent.upstream) and sent.arrived <= before:
+        for status_id, sent in list(self._stalled.items()):
+            if not (sent.waiting or sent.upstream):
+                del self._stalled[status_id]
+            elif sent.arrived <= before:
+                del self._stalled[status_id]
                 self._give_up(tracer, status_id, sent)
         lost = self._lost_at + self._pair_within if self._lost_at is not None else None
         for waiting in (self._clients, self._servers):
