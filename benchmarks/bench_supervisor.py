@@ -35,15 +35,22 @@ round robin in one run: a fork floor (a bare child of this process SIGKILLed, it
 waited on, a new one forked and its first byte read from a pipe), then the manager
 killed with nobody subscribed (its events are not built), then with a subscriber that
 takes every event. Targets: with a subscriber within 1.3x without, and within 2x the
-fork floor (medians).
+fork floor (medians; the 10th percentiles are printed too: under load, the nearer to a
+quiet machine's figures).
+
+`--subscriber --interleaved` runs both trees at once and kills them in turn with the
+floor (a triple per round): a load that comes and goes meets the three alike; it prints
+the median of each triple's ratios. (A shared machine's figures: the two trees' spares
+and restarts take turns on the CPU with each other too.)
 
 Run: `python benchmarks/bench_supervisor.py [--sizes 1000 100000] [--crashes 10] [--gap 0.2]
-[--forkserver-first] [--subscriber [--rounds 5]]`
+[--forkserver-first] [--subscriber [--rounds 5 | --interleaved]]`
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import multiprocessing
 import multiprocessing.connection
 import os
@@ -135,36 +142,63 @@ def measure(entries: int, crashes: int, gap: float) -> tuple[list[float], ...]:
     return detect, restart, serve
 
 
+class Restarting:
+    """One tree whose one manager process (its backup holding `entries` served resources)
+    is killed at will, with a subscriber that takes every event of the tree or with nobody
+    subscribed; a context manager (the tree runs inside it)."""
+
+    def __init__(self, entries: int, crashes: int, *, subscribed: bool) -> None:
+        tag = uuid.uuid4().hex[:6]
+        self.name, self.app_name = f"bench-{tag}", f"app-{tag}"
+        self.entries, self.crashes, self.subscribed = entries, crashes, subscribed
+        self.heard: list[rr.events.Event] = []
+        self.kills = 0
+        self._stack = contextlib.ExitStack()
+
+    def __enter__(self) -> Restarting:
+        stack = self._stack
+        state_dir = stack.enter_context(tempfile.TemporaryDirectory())
+        fill_backup(Path(state_dir) / f"{self.name}.db", self.entries)
+        spec = rr.ManagerSpec(self.name, setup, isolation="process", start_timeout=120.0)
+        sup = rr.Supervisor(
+            [spec], max_restarts=self.crashes + 1, period=3600.0, state_dir=state_dir
+        )
+        self.sup = sup
+        if self.subscribed:  # (closed after the tree stopped: its last events too)
+            stack.enter_context(sup.subscribe(self.heard.append))
+        stack.enter_context(sup)
+        self.app = sup.registrar(self.app_name)
+        self.app.call(self.name, "res", "warm-up", timeout=60.0)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stack.close()
+        if self.subscribed and exc[0] is None:
+            assert any(isinstance(e, rr.events.CatalogRestored) for e in self.heard), (
+                "no CatalogRestored"
+            )
+
+    def kill_to_serving(self) -> float:
+        """SIGKILL the manager; milliseconds until a call its new incarnation answered
+        returned."""
+        pid = self.sup.child(self.name).pid
+        assert pid is not None
+        killed = time.perf_counter()
+        os.kill(pid, signal.SIGKILL)
+        self.sup.wait_restarted(self.name, timeout=120.0)
+        self.app.call(self.name, "res", f"after-{self.kills}", timeout=60.0)
+        self.kills += 1
+        return (time.perf_counter() - killed) * 1000
+
+
 def measure_serving(entries: int, crashes: int, gap: float, *, subscribed: bool) -> list[float]:
     """Milliseconds from each SIGKILL until a call the new incarnation answered returned,
     with a subscriber that takes every event of the tree, or with nobody subscribed."""
-    tag = uuid.uuid4().hex[:6]
-    name, app_name = f"bench-{tag}", f"app-{tag}"
-    heard: list[rr.events.Event] = []
     serve: list[float] = []
-    with tempfile.TemporaryDirectory() as state_dir:
-        fill_backup(Path(state_dir) / f"{name}.db", entries)
-        spec = rr.ManagerSpec(name, setup, isolation="process", start_timeout=120.0)
-        sup = rr.Supervisor([spec], max_restarts=crashes + 1, period=3600.0, state_dir=state_dir)
-        subscription = sup.subscribe(heard.append) if subscribed else None
-        try:
-            with sup:
-                app = sup.registrar(app_name)
-                app.call(name, "res", "warm-up", timeout=60.0)
-                for n in range(crashes):
-                    time.sleep(gap)  # let the previous restart settle (spare warmed up)
-                    pid = sup.child(name).pid
-                    assert pid is not None
-                    killed = time.perf_counter()
-                    os.kill(pid, signal.SIGKILL)
-                    sup.wait_restarted(name, timeout=120.0)
-                    app.call(name, "res", f"after-{n}", timeout=60.0)
-                    serve.append((time.perf_counter() - killed) * 1000)
-        finally:
-            if subscription is not None:
-                subscription.close()
-    if subscribed:
-        assert any(isinstance(e, rr.events.CatalogRestored) for e in heard), "no CatalogRestored"
+    with Restarting(entries, crashes, subscribed=subscribed) as tree:
+        for _ in range(crashes):
+            time.sleep(gap)  # let the previous restart settle (spare warmed up)
+            serve.append(tree.kill_to_serving())
     return serve
 
 
@@ -221,17 +255,72 @@ def compare_subscriber(entries: int, crashes: int, gap: float, rounds: int) -> N
             flush=True,
         )
     f_med, w_med, s_med = (statistics.median(x) for x in (floor, without, with_sub))
+    f_low, w_low, s_low = (p10(x) for x in (floor, without, with_sub))
     print(f"kill to serving at {entries} entries, {rounds} rounds of {crashes} kills, ms")
-    print(f"{'':>18} | {'median':>7} | {'p90':>7}")
+    print(f"{'':>18} | {'median':>7} | {'p10':>7} | {'p90':>7}")
     for label, values in (
         ("fork floor", floor),
         ("no subscriber", without),
         ("subscriber", with_sub),
     ):
-        print(f"{label:>18} | {statistics.median(values):>7.1f} | {p90(values):>7.1f}")
+        print(
+            f"{label:>18} | {statistics.median(values):>7.1f} | {p10(values):>7.1f} | "
+            f"{p90(values):>7.1f}"
+        )
     print(
-        f"subscriber / none: {s_med / w_med:.2f}x (target <= 1.3x); subscriber / fork floor: "
-        f"{s_med / f_med:.2f}x (target <= 2x); none / fork floor: {w_med / f_med:.2f}x"
+        f"medians: subscriber / none: {s_med / w_med:.2f}x (target <= 1.3x); subscriber / fork "
+        f"floor: {s_med / f_med:.2f}x (target <= 2x); none / fork floor: {w_med / f_med:.2f}x"
+    )
+    print(  # (under load the lower tail is the nearer to a quiet machine's figure)
+        f"p10s: subscriber / none: {s_low / w_low:.2f}x; subscriber / fork floor: "
+        f"{s_low / f_low:.2f}x; none / fork floor: {w_low / f_low:.2f}x"
+    )
+
+
+def compare_interleaved(entries: int, crashes: int, gap: float) -> None:
+    """Both trees run at once, killed in turn (fork floor, no subscriber, subscriber), so
+    that a load that comes and goes meets the three alike; the ratios of each triple."""
+    floor: list[float] = []
+    without: list[float] = []
+    with_sub: list[float] = []
+    pid, read_end = _forked()
+    with (
+        Restarting(entries, crashes, subscribed=False) as plain,
+        Restarting(entries, crashes, subscribed=True) as heard,
+    ):
+        for _ in range(crashes):
+            time.sleep(gap)
+            killed = time.perf_counter()
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+            os.close(read_end)
+            pid, read_end = _forked()
+            floor.append((time.perf_counter() - killed) * 1000)
+            time.sleep(gap)
+            without.append(plain.kill_to_serving())
+            time.sleep(gap)
+            with_sub.append(heard.kill_to_serving())
+    os.kill(pid, signal.SIGKILL)
+    os.waitpid(pid, 0)
+    os.close(read_end)
+    by_none = [s / w for s, w in zip(with_sub, without, strict=True)]
+    by_floor = [s / f for s, f in zip(with_sub, floor, strict=True)]
+    none_by_floor = [w / f for w, f in zip(without, floor, strict=True)]
+    print(f"kill to serving at {entries} entries, {crashes} interleaved triples, ms")
+    print(f"{'':>18} | {'median':>7} | {'p10':>7} | {'p90':>7}")
+    for label, values in (
+        ("fork floor", floor),
+        ("no subscriber", without),
+        ("subscriber", with_sub),
+    ):
+        print(
+            f"{label:>18} | {statistics.median(values):>7.1f} | {p10(values):>7.1f} | "
+            f"{p90(values):>7.1f}"
+        )
+    print(
+        f"median of the triples' ratios: subscriber / none {statistics.median(by_none):.2f}x "
+        f"(target <= 1.3x), subscriber / fork floor {statistics.median(by_floor):.2f}x "
+        f"(target <= 2x), none / fork floor {statistics.median(none_by_floor):.2f}x"
     )
 
 
@@ -277,6 +366,11 @@ def p90(values: list[float]) -> float:
     return ordered[min(len(ordered) - 1, int(0.9 * len(ordered)))]
 
 
+def p10(values: list[float]) -> float:
+    ordered = sorted(values)
+    return ordered[int(0.1 * len(ordered))]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[1_000, 100_000])
@@ -295,13 +389,21 @@ def main() -> None:
         help="compare kill to serving with and without a subscriber, and a fork floor",
     )
     parser.add_argument("--rounds", type=int, default=5, help="round robin rounds (--subscriber)")
+    parser.add_argument(
+        "--interleaved",
+        action="store_true",
+        help="with --subscriber: both trees at once, killed in turn with the floor",
+    )
     args = parser.parse_args()
     if args.forkserver_first:
         use_forkserver_first()
     start_forkserver()
     if args.subscriber:
         for entries in args.sizes:
-            compare_subscriber(entries, args.crashes, args.gap, args.rounds)
+            if args.interleaved:
+                compare_interleaved(entries, args.crashes, args.gap)
+            else:
+                compare_subscriber(entries, args.crashes, args.gap, args.rounds)
         print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
         return
     rows: list[tuple[Any, ...]] = []

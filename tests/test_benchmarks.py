@@ -153,6 +153,31 @@ def test_alternate_runs_a_benchmark_against_two_trees_and_sums_up_the_ratios() -
     assert "dedup-hit call: " in done.stdout.split("== last column per run")[-1]
 
 
+@pytest.mark.timeout(CEILING + 10)
+@pytest.mark.parametrize(
+    "mode", [["--rounds", "1"], ["--interleaved"]], ids=["rounds", "interleaved"]
+)
+def test_bench_supervisor_compares_kill_to_serving_with_and_without_a_subscriber(
+    mode: list[str],
+) -> None:
+    done = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "benchmarks" / "bench_supervisor.py"),
+            *("--sizes", "10", "--crashes", "1", "--gap", "0.05", "--subscriber", *mode),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=CEILING,
+        check=False,
+    )
+
+    assert 0 == done.returncode, done.stderr[-3000:]
+    assert "subscriber / none" in done.stdout
+    assert "fork floor" in done.stdout
+
+
 def _script(name: str) -> ModuleType:
     spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
     assert spec is not None

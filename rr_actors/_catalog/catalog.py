@@ -441,8 +441,11 @@ class Catalog:
             unread: Listing | None = self._unread.listing(limit)
             if unread is None:
                 return None
-            resources = sorted([*resources, *unread[0]], key=_first)
-            consumers = sorted([*consumers, *unread[1]], key=_first)
+            if resources:  # (none in memory, a restore's usual: the backup's order as is)
+                resources = sorted([*resources, *unread[0]], key=_first)
+                consumers = sorted([*consumers, *unread[1]], key=_first)
+            else:
+                resources, consumers = unread
             if len(resources) > limit or len(consumers) > limit:
                 return None
         return [row for _, row in resources], [row for _, row in consumers]

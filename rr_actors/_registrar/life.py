@@ -1111,12 +1111,7 @@ def _catalog_rows(shared: Shared) -> dict[str, object]:
     kinds: tuple[Rows, Rows, Rows] = (tuple(rows[0]), tuple(rows[1]), clients)
     # each row's fields joined by \x1f and ended by \x1e, each kind ended by \x1d: hashed
     # as one string (one `update`, not two per row)
-    digest = hashlib.sha256(
-        "".join(
-            "".join("\x1f".join(row) + "\x1e" for row in sorted(listed)) + "\x1d"
-            for listed in kinds
-        ).encode()
-    )
+    digest = hashlib.sha256("".join(map(_digested, kinds)).encode())
     return {
         "resources": kinds[0],
         "consumers": kinds[1],
@@ -1125,6 +1120,14 @@ def _catalog_rows(shared: Shared) -> dict[str, object]:
         "complete": True,
         "digest": digest.hexdigest()[:16],
     }
+
+
+def _digested(listed: Rows) -> str:
+    """One kind's rows as the digest reads them: sorted, each row's fields joined by
+    \x1f and ended by \x1e, the kind ended by \x1d (joined in C: no Python step a row)."""
+    if not listed:
+        return "\x1d"
+    return "\x1e".join(map("\x1f".join, sorted(listed))) + "\x1e\x1d"
 
 
 def publish_restored(shared: Shared) -> None:

@@ -113,6 +113,24 @@ def client_records(
     return clients, seqs
 
 
+_LISTED_RESOURCES = (  # a resource as `Catalog.rows` lists it: (id, server, state, digest, failed)
+    "SELECT seq, id, server, CASE state "  # noqa: S608
+    + " ".join(f"WHEN {code} THEN '{state.value}'" for code, state in enumerate(STATES_BY_CODE))
+    + " ELSE CAST(state AS TEXT) END, coalesce(CAST(digest AS TEXT), ''), "
+    "CASE WHEN failed THEN 'failed' ELSE '' END FROM resources WHERE seq <= ? ORDER BY seq LIMIT ?"
+)
+"""The unread resources as listed rows (`Unread.listing`), with their row keys, oldest
+first. (Unread rows are all loaded, with a digest: a restore reads the others at once,
+`RESOURCES_AT_ONCE`, and refuses an unknown state there; the `ELSE` is never taken.)"""
+
+_LISTED_CONSUMERS = (
+    "SELECT c.resource, c.query_id, r.id, c.origin_rr FROM consumers c "
+    "JOIN resources r ON r.seq = c.resource WHERE c.resource <= ? "
+    "ORDER BY c.resource, c.seq LIMIT ?"
+)
+"""The unread consumer ids as listed rows (query id, resource id, consumer registrar),
+with their resource's row key, by resource, in arrival order."""
+
 # (S608: the SQL is built from this module's constants only)
 RESOURCES = f"SELECT {RESOURCE_COLUMNS} FROM resources ORDER BY seq"  # noqa: S608
 _RESOURCE_BY_SEQ = f"SELECT {RESOURCE_COLUMNS} FROM resources WHERE seq = ?"  # noqa: S608
@@ -281,41 +299,18 @@ class Unread:
             return [], []
         self._check_open()
         mirrored = self._store.mirrored(self._last)
-        with self._reading():
+        with self._reading():  # (the rows come out as strings: no per-field Python work)
             db = self._store.connection
-            rows = db.execute(
-                "SELECT seq, id, server, state, digest, failed FROM resources WHERE seq <= ? "
-                "ORDER BY seq LIMIT ?",
-                (self._last, limit + mirrored[0] + 1),
-            ).fetchall()
-            consumers = db.execute(
-                "SELECT c.resource, c.query_id, r.id, c.origin_rr FROM consumers c "
-                "JOIN resources r ON r.seq = c.resource WHERE c.resource <= ? "
-                "ORDER BY c.resource, c.seq LIMIT ?",
-                (self._last, limit + mirrored[1] + 1),
-            ).fetchall()
-            resources: list[tuple[float, tuple[str, ...]]] = [
-                (
-                    seq,
-                    (
-                        rid,
-                        server,
-                        STATES_BY_CODE[state].value,
-                        "" if digest is None else str(digest),
-                        "failed" if failed else "",
-                    ),
-                )
-                for seq, rid, server, state, digest, failed in rows
-                if seq not in self._read
-            ]
-        held: list[tuple[float, tuple[str, ...]]] = [
-            (seq, (qid, rid, origin))
-            for seq, qid, rid, origin in consumers
-            if seq not in self._read
-        ]
-        if len(resources) > limit or len(held) > limit:
+            last = self._last
+            rows = db.execute(_LISTED_RESOURCES, (last, limit + mirrored[0] + 1)).fetchall()
+            consumers = db.execute(_LISTED_CONSUMERS, (last, limit + mirrored[1] + 1)).fetchall()
+        read = self._read
+        if read:
+            rows = [row for row in rows if row[0] not in read]
+            consumers = [row for row in consumers if row[0] not in read]
+        if len(rows) > limit or len(consumers) > limit:
             return None
-        return resources, held
+        return [(row[0], row[1:]) for row in rows], [(row[0], row[1:]) for row in consumers]
 
     def counts(self) -> tuple[int, int]:
         """How many resources and consumer ids are unread (two counts of the file)."""
