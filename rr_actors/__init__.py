@@ -13,7 +13,7 @@ import importlib
 from typing import TYPE_CHECKING
 
 from rr_actors import _extras, _log
-from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
+from rr_actors._types import Query, Status, StatusCallback, StatusDelivery, StatusUpdate
 from rr_actors.config import Backoff, ManagerSpec, RegistrarConfig, SupervisorSpec
 from rr_actors.errors import (
     CallTimeoutError,
@@ -75,6 +75,7 @@ __all__ = [
     "RrError",
     "Status",
     "StatusCallback",
+    "StatusDelivery",
     "StatusUpdate",
     "StatusWatch",
     "Subscription",
