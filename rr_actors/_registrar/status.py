@@ -568,9 +568,9 @@ class _Call:
 
     def settle(self, giving_up: bool) -> list[Callable[..., None]]:
         """(Holding the runner's lock.) Settle it and those merged into it, once each:
-        the `done`s to call (outside the lock)."""
+        the `done`s to call (outside the lock), in arrival order."""
         dones: list[Callable[..., None]] = []
-        for call in (self, *self.merged):
+        for call in (*sorted(self.merged, key=_arrival), self):  # (in arrival order)
             if call.settled:
                 continue
             call.settled = True
@@ -607,6 +607,10 @@ class _Call:
                         self.opened,
                     )
                 )
+
+
+def _arrival(call: _Call) -> int:
+    return call.seq
 
 
 def _settled(dones: Iterable[Callable[..., None]]) -> None:

@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import functools
 import threading
 import uuid
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
+import psutil
 import pytest
 
 import rr_actors as rr
@@ -676,6 +678,67 @@ class TestStatus:
             provider.stop()
 
 
+class Said:
+    """A status callback that records each update's message (in `said`); with `gate`, it
+    blocks on it at the status `"0"` (a hung callback until the gate is set)."""
+
+    def __init__(self, said: Any, gate: Any = None) -> None:
+        self.said = said
+        self.gate = gate
+
+    def __call__(self, _query: rr.Query, update: rr.StatusUpdate) -> None:
+        self.said.append(update.message)
+        if self.gate is not None and update.message == "0":
+            self.gate.wait(60)
+
+
+def threads_of(registrar: Any, placement: str) -> int:
+    """The threads of `registrar`'s process now."""
+    if placement == "thread":
+        return threading.active_count()
+    return psutil.Process(registrar.pid).num_threads()
+
+
+class TestHungConsumer:
+    """A consumer whose status callback never returns (issue 53): it costs one thread,
+    its statuses coalesce behind it, and `send_status` gives up on it, naming it."""
+
+    STATUSES = 2_000
+
+    def test_a_hung_callback_costs_a_bounded_number_of_threads_and_is_named_as_given_up(
+        self, make_registrar, serve, gates, shared, registrar_placement
+    ):
+        """Mutation caught: `send_status` waits for every callback (it raised
+        `CallTimeoutError` at the first status, and each of the 2,000 waited its timeout);
+        a status queued behind a busy callback starts a thread; coalescing undone (the
+        hung id hears every status once its callback returns)."""
+        provider, consumer = make_registrar("provider"), make_registrar("consumer")
+        serve(provider, "leaf")
+        gate = gates()
+        hung_said, said = shared.list(), shared.list()
+        hung = consumer.call(provider.name, "leaf", "x", on_status=Said(hung_said, gate))
+        others = [consumer.call(provider.name, "leaf", "x") for _ in range(2)]
+        heard = consumer.call(provider.name, "leaf", "x", on_status=Said(said))
+        before = threads_of(consumer, registrar_placement)
+
+        deliveries = []
+        for number in range(self.STATUSES):
+            status = rr.Status.FATAL if number in (700, 1400) else rr.Status.UPDATE
+            deliveries.append(provider.send_status(hung.id, status, str(number), timeout=4.0))
+        after = threads_of(consumer, registrar_placement)
+        gate.set()
+        wait_for(lambda: len(hung_said) == 4, timeout=15.0)
+
+        assert after - before <= 10
+        reached = {heard.id, *(query.id for query in others)}
+        assert all((set(d.reached), d.gave_up) == (reached, (hung.id,)) for d in deliveries), (
+            deliveries[:2]
+        )
+        assert [str(n) for n in range(self.STATUSES)] == list(said)
+        # (the latest status, and every FATAL, in arrival order)
+        assert ["0", "700", "1400", str(self.STATUSES - 1)] == list(hung_said)
+
+
 class TestFanout:
     """A status to many consumer registrars of several processes, in one pass per process
     (rule 9; issue 34 item 2).
@@ -834,6 +897,42 @@ class TestRunner:
             ("x", "two starts"),
             ("x", "two ends"),
         ] == [entry for entry in heard if entry[0] == "x"]
+
+    def test_statuses_queued_behind_a_busy_callback_coalesce_to_the_latest_and_every_fatal(
+        self,
+    ) -> None:
+        """Issue 53: behind a callback that runs, an id's queue keeps its latest status and
+        every `FATAL`, in arrival order; a status replaced is acknowledged with the one that
+        replaced it. Mutation caught: no coalescing (every status runs); a `FATAL`
+        coalesced away; the replaced ones never acknowledged."""
+        runner = Runner()
+        heard: list[str] = []
+        began, go = threading.Event(), threading.Event()
+        acked: list[str] = []
+
+        def hear(_query: rr.Query, update: rr.StatusUpdate) -> None:
+            heard.append(update.message)
+            if update.message == "busy":
+                began.set()
+                assert go.wait(10)
+
+        def status(message: str, code: rr.Status = rr.Status.UPDATE) -> _Call:
+            query = rr.Query("x", "leaf", "prov", "cons", "r", "r")
+            update = rr.StatusUpdate("x", code, message, "prov/leaf")
+            return _Call(hear, query, update, functools.partial(acked.append, message))
+
+        runner.run([status("busy")])
+        assert began.wait(10)
+        fatal = rr.Status.FATAL
+        sent = [status("u1"), status("f1", fatal), status("u2"), status("u3"), status("f2", fatal)]
+        runner.run(sent[:3])
+        runner.run(sent[3:])
+        runner.run([status("u4")])
+        go.set()
+
+        wait_for(lambda: len(acked) == 7, timeout=10.0)
+        assert ["busy", "f1", "f2", "u4"] == heard
+        assert ["busy", "f1", "f2", "u1", "u2", "u3", "u4"] == acked
 
     def test_a_callback_that_raises_system_exit_leaves_the_runner_running_the_next(self) -> None:
         runner = Runner()
