@@ -36,19 +36,12 @@ dependencies runs once, and each (event, id) pair is delivered once in its proce
 (`Desk.first_time`, asked as it is delivered: by the desk's direct path, by
 `on_status_notice`), so a batch sent again after its relay failed does not run a callback
 twice, nor does a status an `Unload`'s answer carried that had come its own way first.
-Callbacks run on worker threads, so a callback may call `call`, `unload` or `send_status`
-on any registrar without deadlock. The runner runs the callbacks of the whole process in
-the order they arrived, each consumer id's one at a time (a lane per id), on as few
-worker threads as keeps them going: one while each callback returns at once; another as
-soon as every one of them is inside a callback when more arrive (a callback that calls
-`send_status`), or once one has run a callback for `SLICE` seconds. A slow or hung
-callback holds its own thread and its own id's next statuses, never the other consumers'
-callbacks; the watchdog's judgement only decides when the others get another thread, so
-a callback that merely waited for the CPU costs no order either. Only a callback that
-waits for a registrar itself (`replies.let_go`) lets its id's next status start
-beside it: that status may be what it waits for (rule 9: no deadlock). Each consumer
-registrar's actor is the only writer of what the desk reads of it (one dict assignment
-each, `consumer.py`'s `Holdings`); the desk reads single entries.
+Callbacks run on worker threads (`Runner`: in arrival order, a lane per consumer id), so
+a callback may call `call`, `unload` or `send_status` on any registrar without deadlock.
+A slow or hung callback holds one thread and its own id's next statuses, coalesced behind
+it (the latest wins, every `FATAL` kept); a `send_status` gives up on it after its
+patience and names its id (`StatusDelivery.gave_up`). Each consumer registrar's actor is
+the only writer of what the desk reads of it (`consumer.py`'s `Holdings`).
 """
 
 from __future__ import annotations
@@ -641,19 +634,30 @@ class _Drainer:
 
 
 class Runner:
-    """Runs the status callbacks of this process (the module's last paragraph).
+    """Runs the status callbacks of this process, in the order they arrived, each consumer
+    id's one at a time, on as few worker threads as keeps them going: one while each
+    callback returns at once; another as soon as every one is inside a callback when more
+    arrive (a callback that calls `send_status`), or once one has run for `SLICE` seconds.
 
     Each query id has a *lane*: its queued calls, in arrival order. A drainer takes the
     earliest-arrived call of a lane that is open, and holds that lane closed while the
-    callback runs, so each consumer hears its statuses in order, one at a time. The
-    watchdog gives up a drainer whose callback has run for `SLICE` seconds (it finishes
-    that callback and ends) and starts another for the other lanes; the given-up one
-    keeps its lane closed until its callback returns: being slow, hung or starved of the
-    CPU costs an id its own wait, never its order. A lane opens early only when its
-    callback waits for a registrar (`replies.let_go`: a `send_status`, `call` or `unload`
-    from inside it, or in its context: a task it started, `asyncio.to_thread`; not a
-    plain thread, which does not inherit the context): its next status may be what it
-    waits for.
+    callback runs. The watchdog gives up a drainer whose callback has run for `SLICE`
+    seconds (it finishes that callback and ends) and starts another for the other lanes;
+    the given-up one keeps its lane closed until its callback returns: being slow, hung or
+    starved of the CPU costs an id its own wait (one thread), never its order, nor the
+    other ids' callbacks. A lane opens early only when its callback waits for a registrar
+    (`replies.let_go`: a `send_status`, `call` or `unload` from inside it, or in its
+    context: a task it started, `asyncio.to_thread`; not a plain thread, which does not
+    inherit the context): its next status may be what it waits for (rule 9: no deadlock).
+
+    Behind a running callback, the lane coalesces (`_coalesce`): a status replaces the
+    queued ones that are not `FATAL`s, which are acknowledged with it; so a hung callback's
+    lane holds its latest status and the `FATAL`s, in arrival order, whatever the number
+    sent. Acknowledgements (`_Call.settle`): a call is acknowledged as its callback returns,
+    or given up on at its `deadline` (the sender's patience) by the watchdog, and at once
+    if its lane's running callback was given up on: the sender waits one patience for a
+    hung consumer, not one per status. A coroutine callback runs on its loop (`on_loop`);
+    its call is given up on the same way.
     """
 
     def __init__(self) -> None:
