@@ -681,6 +681,7 @@ class Runner:
         queued (`_coalesce`); if that running callback was given up on, the call is
         given up on at once (acknowledged so; it stays queued to run after it)."""
         dones: list[Callable[..., None]] = []
+        pending = False  # (a call behind a running callback, to give up on in time)
         with self._lock:
             for call in calls:
                 self._arrived += 1
@@ -697,13 +698,14 @@ class Runner:
                     running = holder.call
                     if running is not None and running.given_up:
                         dones.extend(call.settle(True))
+                    pending = pending or (not call.settled and call.deadline is not None)
                     continue
                 if lane is not None:
                     lane.append(call)
                     continue
                 self._lanes[query_id] = collections.deque((call,))
                 heapq.heappush(self._open, (call.seq, query_id))
-            start, watch = self._wanted()
+            start, watch = self._wanted(pending)
         self._kick(start, watch)
         _settled(dones)
 
@@ -739,14 +741,15 @@ class Runner:
             dones = call.settle(False)
         _settled(dones)
 
-    def _wanted(self) -> tuple[bool, bool]:
+    def _wanted(self, pending: bool = False) -> tuple[bool, bool]:
         """(Holding the lock.) Whether to start a drainer (counted now: an open lane and
         every drainer inside a callback), and the watchdog (marked now: not running while
-        a lane is open or a callback runs)."""
+        a lane is open, a callback runs, or a call queued behind one has a deadline:
+        `pending`)."""
         start = bool(self._open) and self._drainers == len(self._inside)
         if start:
             self._drainers += 1
-        watch = not self._watching and bool(self._open or self._inside or self._holders)
+        watch = not self._watching and bool(self._open or self._inside or pending)
         if watch:
             self._watching = True
         return start, watch
