@@ -14,6 +14,8 @@ sends `--statuses` statuses (2,000), each a `send_status(..., timeout=--timeout)
     gave up     sends whose result named a consumer given up on (when `send_status`
                 returns a `StatusDelivery`; "-" where it returns None)
     last heard  whether every healthy id heard the last status (its callback's record)
+    queued      calls waiting in the hung id's lane after the last send (thread placement:
+                the process's status runner, read directly; "-" in a manager process)
 
 Each placement runs twice: `hung` (the one hung callback) and its floor `none` (the
 same, no callback hangs), in the same run.
@@ -66,10 +68,10 @@ def consumer_setup(
             with lock:
                 last[query.id] = update.message
 
-        for number in range(registrars):
-            registrars_here.append(
-                rr.ResourceRegistrar.start(f"{host.name}-c{number}", network=network)
-            )
+        registrars_here.extend(
+            rr.ResourceRegistrar.start(f"{host.name}-c{number}", network=network)
+            for number in range(registrars)
+        )
         for index in range(consumers):
             consumer = registrars_here[index % registrars]
             query = consumer.call(provider, "leaf", "r", on_status=record, timeout=30)
@@ -96,6 +98,32 @@ def threads_of(pid: int | None) -> int:
     import psutil  # noqa: PLC0415 - a dev dependency
 
     return psutil.Process(pid).num_threads()
+
+
+def queued_here() -> int:
+    """The longest lane of this process's status runner now (its private state: a
+    benchmark's look inside)."""
+    from rr_actors._registrar.status import DESK  # noqa: PLC0415
+
+    lanes = DESK.runner._lanes
+    return max((len(lane) for lane in list(lanes.values())), default=0)
+
+
+def heard_last(
+    provider: Any, host: Any, query_id: str, hang: bool, args: argparse.Namespace
+) -> int:
+    """Send one last status; how many healthy ids heard it (a bounded poll)."""
+    last = str(args.statuses - 1)
+    with contextlib.suppress(rr.CallTimeoutError):  # (all heard it? the hung one not)
+        provider.send_status(query_id, rr.Status.UPDATE, last, timeout=max(args.timeout, 5))
+    healthy_last = 0
+    for _ in range(100):  # (a bounded poll: a benchmark, not a test)
+        heard = host.call(host.name, "probe", ("heard", uuid.uuid4().hex), timeout=30).response
+        healthy_last = sum(1 for message in heard.values() if message == last)
+        if healthy_last >= args.consumers - (1 if hang else 0):
+            break
+        time.sleep(0.1)
+    return healthy_last
 
 
 def run(placement: str, hang: bool, args: argparse.Namespace) -> dict[str, Any]:
@@ -146,16 +174,8 @@ def run(placement: str, hang: bool, args: argparse.Namespace) -> dict[str, Any]:
         list(pool.map(send, range(args.statuses)))
     wall = time.perf_counter() - started
     after = threads_of(pid)
-    last = str(args.statuses - 1)
-    with contextlib.suppress(rr.CallTimeoutError):  # (all heard it? the hung one not)
-        provider.send_status(query_id, rr.Status.UPDATE, last, timeout=max(args.timeout, 5))
-    healthy_last = 0
-    for _ in range(100):  # (a bounded poll: a benchmark, not a test)
-        heard = host.call(host.name, "probe", ("heard", uuid.uuid4().hex), timeout=30).response
-        healthy_last = sum(1 for message in heard.values() if message == last)
-        if healthy_last >= args.consumers - (1 if hang else 0):
-            break
-        time.sleep(0.1)
+    queued = queued_here() if pid is None else None
+    healthy_last = heard_last(provider, host, query_id, hang, args)
     host.call(host.name, "probe", ("stop", uuid.uuid4().hex), timeout=30)
     host.stop()
     provider.stop()
@@ -169,6 +189,7 @@ def run(placement: str, hang: bool, args: argparse.Namespace) -> dict[str, Any]:
         "timed_out": timed_out,
         "gave_up": gave_up if returns_delivery else None,
         "heard": f"{healthy_last}/{args.consumers - (1 if hang else 0)}",
+        "queued": queued,
     }
 
 
@@ -188,9 +209,9 @@ def main() -> None:
     )
     print(
         f"| {'placement':9} | {'hung':4} | {'threads':>15} | {'wall s':>7} "
-        f"| {'timed out':>9} | {'gave up':>7} | {'last heard':>10} |"
+        f"| {'timed out':>9} | {'gave up':>7} | {'last heard':>10} | {'queued':>6} |"
     )
-    print(f"|{'-' * 11}|{'-' * 6}|{'-' * 17}|{'-' * 9}|{'-' * 11}|{'-' * 9}|{'-' * 12}|")
+    print(f"|{'-' * 11}|{'-' * 6}|{'-' * 17}|{'-' * 9}|{'-' * 11}|{'-' * 9}|{'-' * 12}|{'-' * 8}|")
     for placement in args.placement:
         for hang in (True, False):
             row = run(placement, hang, args)
@@ -199,7 +220,7 @@ def main() -> None:
             print(
                 f"| {placement:9} | {'hung' if hang else 'none':4} | {threads:>15} "
                 f"| {row['wall']:7.2f} | {row['timed_out']:9d} | {gave:>7} "
-                f"| {row['heard']:>10} |",
+                f"| {row['heard']:>10} | {'-' if row['queued'] is None else row['queued']:>6} |",
                 flush=True,
             )
     print(f"load after: {os.getloadavg()[0]:.1f}")
