@@ -532,6 +532,25 @@ class TestStatus:
             f"not one it serves: only the provider, {provider.name!r}, sends statuses about it"
         ) == str(raised.value)
 
+    def test_a_hung_callback_up_a_dependency_path_is_named_as_given_up(
+        self, make_registrar, serve, gates
+    ):
+        """Issue 53: a callback given up on at hop 2 is named by the sender at hop 0; the
+        dependency's own consumer id (hop 1) was reached. Mutation caught: the ids given
+        up on beyond a notice are not carried back in its answer."""
+        consumer, agent, producer = (make_registrar(n) for n in ("consumer", "agent", "producer"))
+        serve(producer, "leaf")
+        serve(agent, "composite", lambda r: agent.call(producer.name, "leaf", r).response)
+        gate = gates()
+        top = consumer.call(agent.name, "composite", "x", on_status=lambda q, u: gate.wait(30))
+        (leaf_query,) = producer.server_queries("leaf")
+        try:
+            delivery = producer.send_status(leaf_query.id, rr.Status.WARNING, "", timeout=2.0)
+        finally:
+            gate.set()
+
+        assert rr.StatusDelivery((leaf_query.id,), (top.id,)) == delivery
+
     def test_send_status_s_timeout_bounds_the_wait(self, make_registrar, serve, gates):
         """Rule 9: "`send_status` returns when the notification has been delivered ... (a
         `timeout` bounds it)".
