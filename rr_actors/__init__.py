@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 
 from rr_actors import _extras, _log
 from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
+from rr_actors._types import StatusDelivery as StatusDelivery
 from rr_actors.config import Backoff, ManagerSpec, RegistrarConfig, SupervisorSpec
 from rr_actors.errors import (
     CallTimeoutError,
@@ -87,8 +88,9 @@ __all__ = [
 ]
 """What a program uses (25 names, issue 54). The errors a caller catches most are here; every
 error is in `rr_actors.errors`, `MAX_DEPENDENCY_DEPTH` in `rr_actors.config`,
-`ChildCounts` beside `Supervisor.count_children`. The names this module listed before
-are all still importable from it (`rr.UnknownServerError`, `rr.MAX_DEPENDENCY_DEPTH`)."""
+`ChildCounts` beside `Supervisor.count_children`, `StatusDelivery` beside `send_status`.
+The names this module listed before are all still importable from it
+(`rr.UnknownServerError`, `rr.MAX_DEPENDENCY_DEPTH`)."""
 
 __version__ = "0.1.0"
 

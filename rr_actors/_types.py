@@ -13,6 +13,7 @@ __all__ = [
     "Setup",
     "Status",
     "StatusCallback",
+    "StatusDelivery",
     "StatusUpdate",
     "UnloadCallback",
 ]
@@ -80,6 +81,23 @@ class StatusUpdate:
     status: Status
     message: str
     source: str
+
+
+@dataclasses.dataclass(frozen=True)
+class StatusDelivery:
+    """What `send_status` reached (rule 9).
+
+    Attributes:
+        reached: the resource's consumer ids whose callbacks ran (and on up their
+            dependency paths, unless given up on there), in no particular order.
+        gave_up: consumer ids, at any hop, whose status callback had not returned
+            within the `send_status`'s patience (half its timeout, or all of it but 1 s
+            if that is more): busy or hung. Each still gets its latest status (and every
+            `FATAL`) once its callback returns; `send_status` did not wait for it.
+    """
+
+    reached: tuple[str, ...]
+    gave_up: tuple[str, ...]
 
 
 StatusCallback = Callable[[Query, StatusUpdate], Awaitable[None] | None]

@@ -92,6 +92,7 @@ from rr_actors._types import (
     Query,
     Status,
     StatusCallback,
+    StatusDelivery,
     StatusUpdate,
     UnloadCallback,
 )
@@ -463,12 +464,17 @@ class Registrar:
 
     def send_status(
         self, query_id: str, status: Status, message: str = "", *, timeout: float | None = None
-    ) -> None:
+    ) -> StatusDelivery:
         """Tell every consumer of the resource behind `query_id` about its status (rule 9).
 
         This server's `on_status` runs once; each consumer's status callback runs with its
-        own query id; the status climbs every dependency path to the top consumers.
-        Returns once every callback on the way has run.
+        own query id, on a worker thread of the consumer's process (a coroutine one: on its
+        loop); the status climbs every dependency path to the top consumers. Returns once
+        every callback on the way has run, or was given up on: a callback (on a worker
+        thread) that has not returned within the patience (half of `timeout`, or all of it
+        but 1 s if that is more), and at once while its id's earlier callback is still
+        given up on. A given-up id's statuses queue behind its callback, coalesced (its
+        latest, and every `FATAL`, in arrival order), and run once it returns.
 
         Args:
             query_id: any consumer id of a resource this registrar serves.
@@ -476,28 +482,37 @@ class Registrar:
             message: free text.
             timeout: seconds to wait for delivery along the whole path.
 
+        Returns:
+            `StatusDelivery(reached, gave_up)`: the resource's consumer ids reached, and
+            the ids (at any hop) whose callbacks were given up on.
+
         Raises:
             UnknownQueryError: `query_id` is not a consumer id of a resource served here.
             ConfigError: `status` is not a `Status`, `query_id` or `message` not a str.
             MessageTooLargeError: the status is over the `max_message_bytes` of a
                 consumer registrar in another process (named): that one did not hear it,
                 the others did (a `FATAL` still marks the resource, rule 1).
-            CallTimeoutError: not delivered everywhere within `timeout` seconds.
+            CallTimeoutError: not delivered everywhere within `timeout` seconds (a
+                consumer's process that did not answer; a coroutine callback that did not
+                return: those are not given up on).
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
         """
-        blocking(self._actor.steps(Here.send_status, timeout, query_id, status, message))
+        steps = self._actor.steps(Here.send_status, timeout, query_id, status, message)
+        delivery: StatusDelivery = blocking(steps)
+        return delivery
 
     async def asend_status(
         self, query_id: str, status: Status, message: str = "", *, timeout: float | None = None
-    ) -> None:
+    ) -> StatusDelivery:
         """`send_status`, awaited (rule 9): done once every callback on the way has run
-        (a coroutine one: once it returned).
+        (a coroutine one: once it returned) or was given up on.
 
-        Raises what `send_status` raises.
+        Returns and raises what `send_status` does.
         """
         steps = self._actor.steps(Here.send_status, timeout, query_id, status, message)
-        await run_steps_async(steps)
+        delivery: StatusDelivery = await run_steps_async(steps)
+        return delivery
 
     def server_queries(self, server: str, *, timeout: float | None = None) -> list[Query]:
         """Every consumer query of this registrar's `server`, each id once (rule 10).
@@ -872,11 +887,13 @@ class Here:
 
     def send_status(
         self, timeout: float | None, query_id: str, status: Status, message: str
-    ) -> Steps[None]:
+    ) -> Steps[StatusDelivery]:
         if not isinstance(status, Status):
             raise ConfigError(f"status must be an rr_actors.Status, got {status!r}")
+        limit = self.limit(timeout)
+        patience = max(limit / 2, limit - 1.0)  # (the rest: for the answers to come back)
         return self.asking(
-            SendStatus(query_id, status, message, FutureReply()),
+            SendStatus(query_id, status, message, FutureReply(), patience),
             timeout,
             f"send_status({query_id!r})",
         )

@@ -234,7 +234,9 @@ class StatusNotice(WireMessage):
     `event` identifies one `send_status` so that a callback reached twice (diamond
     dependencies) runs once; `hop` counts the registrars it reached on the way (1: the
     sender's own consumers) and `sent_at` is when it was sent (wall clock, seconds), for
-    the `StatusDelivered` event. Answer: `None` once delivered along the whole path.
+    the `StatusDelivered` event. `patience`: seconds from its arrival after which a
+    callback that has not returned is given up on (`None`: wait for it). Answer: the ids
+    given up on, on the way (a tuple, maybe empty), once delivered along the whole path.
     """
 
     query_ids: tuple[str, ...]
@@ -245,6 +247,7 @@ class StatusNotice(WireMessage):
     reply: Reply
     hop: int = 1
     sent_at: float = 0.0
+    patience: float | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -254,8 +257,8 @@ class StatusBatch(WireMessage):
     `parts` holds (consumer registrar, its query ids) for each registrar of that process
     (as far as the provider knows) that holds the resource; the registrar it is sent to
     delivers them all in one pass (`status.py`). The other fields are a `StatusNotice`'s.
-    Answer: `{registrar: its process's key}` for every registrar reached, once the status
-    was delivered along the whole path.
+    Answer: `({registrar: its process's key} for every registrar reached, the ids given
+    up on)`, once the status was delivered along the whole path.
     """
 
     parts: tuple[tuple[str, tuple[str, ...]], ...]
@@ -266,6 +269,7 @@ class StatusBatch(WireMessage):
     reply: Reply
     hop: int = 1
     sent_at: float = 0.0
+    patience: float | None = None
 
     def part(self, parts: tuple[tuple[str, tuple[str, ...]], ...], reply: Reply) -> StatusBatch:
         """The same status for `parts`, answered to `reply`."""
@@ -278,6 +282,7 @@ class StatusBatch(WireMessage):
             reply,
             self.hop,
             self.sent_at,
+            self.patience,
         )
 
     def on_its_way(self) -> StatusOnItsWay:
@@ -555,12 +560,14 @@ class Release:
 
 @dataclasses.dataclass(frozen=True)
 class SendStatus:
-    """Send a status about the resource behind `query_id`. Answer: `None` once delivered."""
+    """Send a status about the resource behind `query_id`, giving up on callbacks that
+    have not returned within `patience` seconds. Answer: a `StatusDelivery`."""
 
     query_id: str
     status: Status
     message: str
     reply: FutureReply
+    patience: float | None = None
 
 
 @dataclasses.dataclass(frozen=True)

@@ -36,19 +36,12 @@ dependencies runs once, and each (event, id) pair is delivered once in its proce
 (`Desk.first_time`, asked as it is delivered: by the desk's direct path, by
 `on_status_notice`), so a batch sent again after its relay failed does not run a callback
 twice, nor does a status an `Unload`'s answer carried that had come its own way first.
-Callbacks run on worker threads, so a callback may call `call`, `unload` or `send_status`
-on any registrar without deadlock. The runner runs the callbacks of the whole process in
-the order they arrived, each consumer id's one at a time (a lane per id), on as few
-worker threads as keeps them going: one while each callback returns at once; another as
-soon as every one of them is inside a callback when more arrive (a callback that calls
-`send_status`), or once one has run a callback for `SLICE` seconds. A slow or hung
-callback holds its own thread and its own id's next statuses, never the other consumers'
-callbacks; the watchdog's judgement only decides when the others get another thread, so
-a callback that merely waited for the CPU costs no order either. Only a callback that
-waits for a registrar itself (`replies.let_go`) lets its id's next status start
-beside it: that status may be what it waits for (rule 9: no deadlock). Each consumer
-registrar's actor is the only writer of what the desk reads of it (one dict assignment
-each, `consumer.py`'s `Holdings`); the desk reads single entries.
+Callbacks run on worker threads (`Runner`: in arrival order, a lane per consumer id), so
+a callback may call `call`, `unload` or `send_status` on any registrar without deadlock.
+A slow or hung callback holds one thread and its own id's next statuses, coalesced behind
+it (the latest wins, every `FATAL` kept); a `send_status` gives up on it after its
+patience and names its id (`StatusDelivery.gave_up`). Each consumer registrar's actor is
+the only writer of what the desk reads of it (`consumer.py`'s `Holdings`).
 """
 
 from __future__ import annotations
@@ -75,7 +68,7 @@ from rr_actors._registrar.calls import DueAnswers
 from rr_actors._registrar.consumer import Flights, Holdings
 from rr_actors._registrar.messages import SendStatus, StatusBatch, StatusNotice, StatusOnItsWay
 from rr_actors._registrar.state import NO_REPLY, Shared, consumers_by_origin
-from rr_actors._types import Query, Status, StatusCallback, StatusUpdate
+from rr_actors._types import Query, Status, StatusCallback, StatusDelivery, StatusUpdate
 from rr_actors.errors import ConfigError, RrError, UnknownQueryError
 
 __all__ = [
@@ -141,14 +134,29 @@ class StatusRelay:
         else:
             shared.publish(*told)
         refused: list[ConfigError] = []  # (parts that could not be sent: too large)
+        gave_up: list[str] = []  # (consumer ids whose callbacks were given up on)
+        direct = tuple(resource.consumers)
+        patience = asked.patience
+        deadline = None if patience is None else runtime.monotonic() + patience
 
         def then() -> None:  # (the thread of the last acknowledgement)
             if refused:
                 reply.set_error(refused[0])
             else:
-                reply.set_result(None)
+                lost = tuple(dict.fromkeys(gave_up))
+                reached = tuple(q for q in direct if q not in lost)
+                reply.set_result(StatusDelivery(reached, lost))
 
-        self.notify(resource, update, event, query_id, then, refused=refused)
+        self.notify(
+            resource,
+            update,
+            event,
+            query_id,
+            then,
+            refused=refused,
+            gave_up=gave_up,
+            deadline=deadline,
+        )
 
     def notify(
         self,
@@ -161,6 +169,8 @@ class StatusRelay:
         hop: int = 1,
         sent_at: float | None = None,
         refused: list[ConfigError] | None = None,
+        gave_up: list[str] | None = None,
+        deadline: float | None = None,
     ) -> None:
         """Run this server's `on_status` once and pass the status on to every consumer.
 
@@ -169,6 +179,9 @@ class StatusRelay:
         A notice that cannot be sent at all (over its receiver's `max_message_bytes`) is
         logged and added to `refused` (if given): it is not a consumer gone, it is a
         status lost, and its sender must hear of it.
+
+        `deadline` (monotonic seconds, `None`: none): a consumer's callback that has not
+        returned by then is given up on, its id added to `gave_up` (`Runner`).
 
         `then()` runs once every callback and consumer on the way acknowledged, on the
         thread of the last acknowledgement (a reader thread, a worker, another registrar's
@@ -182,7 +195,8 @@ class StatusRelay:
         self.seen_events[key] = None
         if len(self.seen_events) > _SEEN_EVENTS:
             self.seen_events.popitem(last=False)
-        join = SharedJoin(then)  # acknowledgements: no trip back through this mailbox
+        # (acknowledgements: no trip back through this mailbox)
+        join = _Join(then, [] if gave_up is None else gave_up)
         sent = runtime.wall() if sent_at is None else sent_at
         server = self.registrar.servers.get(resource.server)
         query_id = own_query_id or next(iter(resource.consumers), resource.id)
@@ -215,6 +229,7 @@ class StatusRelay:
             NO_REPLY,
             hop,
             sent,
+            None if deadline is None else max(0.0, deadline - runtime.monotonic()),
         )  # (each part sent gets its own reply)
         if in_process:
             DESK.deliver(batch, join, None, (self.registrar.name, self.flights.redeliver))
@@ -231,7 +246,7 @@ class StatusRelay:
         origin: str,
         query_ids: tuple[str, ...],
         batch: StatusBatch,
-        join: SharedJoin,
+        join: _Join,
         refused: list[ConfigError] | None = None,
     ) -> None:
         """Send `batch`'s status to registrar `origin` alone, as a `StatusNotice`."""
@@ -239,9 +254,11 @@ class StatusRelay:
         routes = self.routes
         unacked = self.unacked
 
-        def answered(_value: Any, error: BaseException | None) -> None:
+        def answered(value: Any, error: BaseException | None) -> None:
             unacked.answered(((origin, query_ids),), batch.event)
-            if error is not None:
+            if error is None and isinstance(value, tuple):
+                join.gave_up.extend(value)
+            elif error is not None:
                 routes.forget([origin])  # (ask it where it is again)
                 self.not_sent(origin, batch, error, refused)
             done()
@@ -258,6 +275,7 @@ class StatusRelay:
                     reply,
                     batch.hop,
                     batch.sent_at,
+                    batch.patience,
                 )
             )
         except RrError as exc:
@@ -267,7 +285,7 @@ class StatusRelay:
         self,
         relay: str,
         batch: StatusBatch,
-        join: SharedJoin,
+        join: _Join,
         refused: list[ConfigError] | None = None,
     ) -> None:
         """Send `batch` to registrar `relay` (any thread); its answer completes a part of
@@ -281,8 +299,9 @@ class StatusRelay:
         def answered(value: Any, error: BaseException | None) -> None:
             if error is None:
                 unacked.answered(batch.parts, batch.event)
-                if isinstance(value, dict):
-                    routes.learn(value)
+                if isinstance(value, tuple):  # (homes, the ids given up on)
+                    routes.learn(value[0])
+                    join.gave_up.extend(value[1])
             else:
                 routes.forget([relay, *(origin for origin, _ in batch.parts)])
                 if batch.parts != ((relay, batch.parts[0][1]),):  # (not its own part alone)
@@ -349,7 +368,8 @@ class StatusRelay:
         """A relay: deliver a status to the consumer registrars of this process in one
         pass; answer (once) with the process each one reached is in."""
         homes: dict[str, str] = {self.registrar.name: process()}
-        join = SharedJoin(lambda: reply.set_result(homes))
+        gave_up: list[str] = []
+        join = _Join(lambda: reply.set_result((homes, tuple(gave_up))), gave_up)
         DESK.deliver(batch, join, homes, (self.registrar.name, self.flights.redeliver))
         join.seal()
 
@@ -363,7 +383,10 @@ class StatusRelay:
         if self.flights.parked(message):
             return
         catalog = self.registrar.catalog
-        join = SharedJoin(lambda: reply.set_result(None))
+        gave_up: list[str] = []
+        join = _Join(lambda: reply.set_result(tuple(gave_up)), gave_up)
+        patience = message.patience
+        deadline = None if patience is None else runtime.monotonic() + patience
         for query_id in DESK.first_time(message.event, message.query_ids):
             record = catalog.clients.get(query_id)
             if record is None:
@@ -384,11 +407,21 @@ class StatusRelay:
                 )
             callback = self.holdings.callback_of(query_id)
             if isinstance(callback, OnLoop):  # (each id's in order, on its loop)
-                callback.submit(record.query, update, then=_done_by(join.add()), key=query_id)
+                DESK.runner.on_loop(
+                    _Call(callback, record.query, update, join.add(), None, deadline, gave_up)
+                )
             elif callback is not None:  # (each id's in order with the desk's own)
                 # (published on the callback's thread: the publisher itself, not the turn's)
                 told = self.registrar.published, self.registrar.name, message.event
-                call = _Call(callback, record.query, update, join.add(), told if active else None)
+                call = _Call(
+                    callback,
+                    record.query,
+                    update,
+                    join.add(),
+                    told if active else None,
+                    deadline,
+                    gave_up,
+                )
                 DESK.runner.run((call,))
             climb = steps.climb  # (a classroom's copy of this step, `rr_actors.teach`)
             if climb is not None:
@@ -410,6 +443,8 @@ class StatusRelay:
                     join.add(),
                     hop=message.hop + 1,
                     sent_at=message.sent_at,
+                    gave_up=gave_up,
+                    deadline=deadline,
                 )
         join.seal()
 
@@ -454,13 +489,52 @@ class StatusTargets:
         self.entries: dict[str, tuple[Query, StatusCallback]] = {}
 
 
+class _Join(SharedJoin):
+    """A status's join in this process, and the consumer ids given up on in it (a list
+    that parts on any thread append to, read once the join is complete)."""
+
+    __slots__ = ("gave_up",)
+
+    def __init__(self, then: Callable[[], None], gave_up: list[str]) -> None:
+        super().__init__(then)
+        self.gave_up = gave_up
+
+
+def _counted(join: _Join, done: Callable[..., None]) -> Callable[[Any, Any], None]:
+    """A `StatusNotice`'s answer (the ids given up on beyond it) as a part of `join`."""
+
+    def answered(value: Any, error: BaseException | None) -> None:
+        if error is None and isinstance(value, tuple):
+            join.gave_up.extend(value)
+        done()
+
+    return answered
+
+
 class _Call:
     """One status callback to run, and the part of its batch's join it completes.
 
     `told`, while events are published: (the registrar's publisher, its name, the status's
-    id), to publish a `StatusHandled` as the callback returns (before `done`)."""
+    id), to publish a `StatusHandled` as the callback returns. `done` runs once, by the
+    runner (`settle`): as the callback returns, or once it is given up on at `deadline`
+    (monotonic seconds; `None`: never), its id then added to `gave_up`. `merged`: the
+    calls coalesced into it (`Runner`), settled with it.
+    """
 
-    __slots__ = ("callback", "done", "opened", "query", "seq", "told", "update")
+    __slots__ = (
+        "callback",
+        "deadline",
+        "done",
+        "gave_up",
+        "given_up",
+        "merged",
+        "opened",
+        "query",
+        "seq",
+        "settled",
+        "told",
+        "update",
+    )
 
     def __init__(
         self,
@@ -469,14 +543,41 @@ class _Call:
         update: StatusUpdate,
         done: Callable[..., None],
         told: tuple[Publisher[events.Event], str, str] | None = None,
+        deadline: float | None = None,
+        gave_up: list[str] | None = None,
     ) -> None:
         self.callback = callback
         self.query = query
         self.update = update
         self.done = done
         self.told = told
+        self.deadline = deadline
+        self.gave_up = gave_up
         self.seq = 0  # its place in the runner's arrival order
         self.opened = 0  # the stamp at which it first let its lane go (`Runner._waits`)
+        self.settled = False  # its `done` ran, or is about to
+        self.given_up = False  # settled as given up on
+        self.merged: list[_Call] = []
+
+    def settle(self, giving_up: bool) -> list[Callable[..., None]]:
+        """(Holding the runner's lock.) Settle it and those merged into it, once each:
+        the `done`s to call (outside the lock), in arrival order."""
+        dones: list[Callable[..., None]] = []
+        for call in (*sorted(self.merged, key=_arrival), self):  # (in arrival order)
+            if call.settled:
+                continue
+            call.settled = True
+            if giving_up:
+                call.given_up = True
+                if call.gave_up is not None:
+                    call.gave_up.append(call.query.id)
+            dones.append(call.done)
+        self.merged = []
+        return dones
+
+    def overdue(self, now: float) -> bool:
+        """Not settled, and past its deadline."""
+        return not self.settled and self.deadline is not None and now >= self.deadline
 
     def __call__(self) -> None:
         told = self.told
@@ -486,22 +587,32 @@ class _Call:
         except BaseException:  # (a SystemExit too: logged, and its drainer goes on)
             logger.exception("status callback for %s raised", self.query.id)
         finally:
-            try:
-                if told is not None:
-                    publisher, name, status_id = told
-                    publisher.publish(
-                        events.StatusHandled(
-                            name,
-                            self.query.id,
-                            self.update.status,
-                            status_id,
-                            self.seq,
-                            began,
-                            self.opened,
-                        )
+            if told is not None:
+                publisher, name, status_id = told
+                publisher.publish(
+                    events.StatusHandled(
+                        name,
+                        self.query.id,
+                        self.update.status,
+                        status_id,
+                        self.seq,
+                        began,
+                        self.opened,
                     )
-            finally:
-                self.done()
+                )
+
+
+def _arrival(call: _Call) -> int:
+    return call.seq
+
+
+def _settled(dones: Iterable[Callable[..., None]]) -> None:
+    """Call the `done`s of settled calls (outside the runner's lock)."""
+    for done in dones:
+        try:
+            done()
+        except Exception:  # (a join's part: it does not raise; a bug's trace if it did)
+            logger.exception("a status acknowledgement raised")
 
 
 def _done_by(done: Callable[..., None]) -> Callable[[BaseException | None], None]:
@@ -523,19 +634,30 @@ class _Drainer:
 
 
 class Runner:
-    """Runs the status callbacks of this process (the module's last paragraph).
+    """Runs the status callbacks of this process, in the order they arrived, each consumer
+    id's one at a time, on as few worker threads as keeps them going: one while each
+    callback returns at once; another as soon as every one is inside a callback when more
+    arrive (a callback that calls `send_status`), or once one has run for `SLICE` seconds.
 
     Each query id has a *lane*: its queued calls, in arrival order. A drainer takes the
     earliest-arrived call of a lane that is open, and holds that lane closed while the
-    callback runs, so each consumer hears its statuses in order, one at a time. The
-    watchdog gives up a drainer whose callback has run for `SLICE` seconds (it finishes
-    that callback and ends) and starts another for the other lanes; the given-up one
-    keeps its lane closed until its callback returns: being slow, hung or starved of the
-    CPU costs an id its own wait, never its order. A lane opens early only when its
-    callback waits for a registrar (`replies.let_go`: a `send_status`, `call` or `unload`
-    from inside it, or in its context: a task it started, `asyncio.to_thread`; not a
-    plain thread, which does not inherit the context): its next status may be what it
-    waits for.
+    callback runs. The watchdog gives up a drainer whose callback has run for `SLICE`
+    seconds (it finishes that callback and ends) and starts another for the other lanes;
+    the given-up one keeps its lane closed until its callback returns: being slow, hung or
+    starved of the CPU costs an id its own wait (one thread), never its order, nor the
+    other ids' callbacks. A lane opens early only when its callback waits for a registrar
+    (`replies.let_go`: a `send_status`, `call` or `unload` from inside it, or in its
+    context: a task it started, `asyncio.to_thread`; not a plain thread, which does not
+    inherit the context): its next status may be what it waits for (rule 9: no deadlock).
+
+    Behind a running callback, the lane coalesces (`_coalesce`): a status replaces the
+    queued ones that are not `FATAL`s, which are acknowledged with it; so a hung callback's
+    lane holds its latest status and the `FATAL`s, in arrival order, whatever the number
+    sent. Acknowledgements (`_Call.settle`): a call is acknowledged as its callback returns,
+    or given up on at its `deadline` (the sender's patience) by the watchdog, and at once
+    if its lane's running callback was given up on: the sender waits one patience for a
+    hung consumer, not one per status. A coroutine callback runs on its loop (`on_loop`);
+    its call is given up on the same way.
     """
 
     def __init__(self) -> None:
@@ -548,33 +670,86 @@ class Runner:
         self._arrived = 0  # calls queued so far (their `seq`)
         self._watching = False
         self._quiet_since = 0.0  # when the last callback ended with none running
+        self._awaited: dict[_Call, None] = {}  # coroutine callbacks' calls not settled yet
+        self._stuck: dict[str, _Call] = {}  # id -> its latest coroutine call given up on
         self._workers = Workers("status")
 
     def run(self, calls: Iterable[_Call]) -> None:
-        """Queue `calls`; start a drainer if none is free to take them."""
+        """Queue `calls`; start a drainer if none is free to take them.
+
+        A call for an id whose callback runs (its lane held) coalesces what its lane
+        queued (`_coalesce`); if that running callback was given up on, the call is
+        given up on at once (acknowledged so; it stays queued to run after it)."""
+        dones: list[Callable[..., None]] = []
+        pending = False  # (a call behind a running callback, to give up on in time)
         with self._lock:
             for call in calls:
                 self._arrived += 1
                 call.seq = self._arrived
                 query_id = call.query.id
                 lane = self._lanes.get(query_id)
+                holder = self._holders.get(query_id)
+                if holder is not None:  # (behind its running callback)
+                    if lane is None:
+                        lane = self._lanes[query_id] = collections.deque()
+                    if call.update.status is not Status.FATAL:
+                        _coalesce(lane, call)
+                    lane.append(call)
+                    running = holder.call
+                    if running is not None and running.given_up:
+                        dones.extend(call.settle(True))
+                    pending = pending or (not call.settled and call.deadline is not None)
+                    continue
                 if lane is not None:
                     lane.append(call)
                     continue
                 self._lanes[query_id] = collections.deque((call,))
-                if query_id not in self._holders:
-                    heapq.heappush(self._open, (call.seq, query_id))
-            start, watch = self._wanted()
+                heapq.heappush(self._open, (call.seq, query_id))
+            start, watch = self._wanted(pending)
         self._kick(start, watch)
+        _settled(dones)
 
-    def _wanted(self) -> tuple[bool, bool]:
+    def on_loop(self, call: _Call) -> None:
+        """Run a coroutine callback's `call` on its loop (`OnLoop.submit`, each id's in
+        order there), settled as it returns or at its deadline as given up on (at once
+        while a call of its id given up on has not returned)."""
+        callback = call.callback
+        assert isinstance(callback, OnLoop)
+        if call.deadline is None:
+            callback.submit(call.query, call.update, then=_done_by(call.done), key=call.query.id)
+            return
+        dones: list[Callable[..., None]] = []
+        with self._lock:
+            if call.query.id in self._stuck:
+                dones = call.settle(True)
+                self._stuck[call.query.id] = call
+            else:
+                self._awaited[call] = None
+            watch = not self._watching
+            self._watching = True
+        self._kick(False, watch)
+        _settled(dones)
+        then = functools.partial(self._returned, call)
+        callback.submit(call.query, call.update, then=then, key=call.query.id)
+
+    def _returned(self, call: _Call, _error: BaseException | None) -> None:
+        """A coroutine callback's `call` returned (on its loop; what it raised was logged)."""
+        with self._lock:
+            self._awaited.pop(call, None)
+            if self._stuck.get(call.query.id) is call:
+                del self._stuck[call.query.id]
+            dones = call.settle(False)
+        _settled(dones)
+
+    def _wanted(self, pending: bool = False) -> tuple[bool, bool]:
         """(Holding the lock.) Whether to start a drainer (counted now: an open lane and
         every drainer inside a callback), and the watchdog (marked now: not running while
-        a lane is open or a callback runs)."""
+        a lane is open, a callback runs, or a call queued behind one has a deadline:
+        `pending`)."""
         start = bool(self._open) and self._drainers == len(self._inside)
         if start:
             self._drainers += 1
-        watch = not self._watching and (bool(self._open) or bool(self._inside))
+        watch = not self._watching and bool(self._open or self._inside or pending)
         if watch:
             self._watching = True
         return start, watch
@@ -592,16 +767,16 @@ class Runner:
             drainer.job = self._workers.submit(lambda: self._drain(drainer), quiet=True)
         except RuntimeError:
             logger.exception("no worker thread for status callbacks: they are skipped")
+            skipped: list[Callable[..., None]] = []
             with self._lock:
                 self._drainers -= 1
-                skipped: list[_Call] = []
                 if self._drainers == 0:  # nobody else will take them
                     for lane in self._lanes.values():
-                        skipped.extend(lane)
+                        for call in lane:
+                            skipped.extend(call.settle(False))
                     self._lanes.clear()
                     self._open.clear()
-            for call in skipped:
-                call.done()
+            _settled(skipped)
 
     def _take(self) -> _Call | None:
         """(Holding the lock.) The earliest-arrived call of an open lane (its lane closed)."""
@@ -655,13 +830,45 @@ class Runner:
             finally:
                 waited(token)
                 with self._lock:
+                    dones = call.settle(False)
                     self._inside.discard(drainer)
                     self._let_go(drainer, call)
                     if not self._inside:
                         self._quiet_since = runtime.monotonic()
                     # (given up: its thread ends; another takes the lane it opened)
                     start, watch = self._wanted() if drainer.abandoned else (False, False)
+                _settled(dones)
                 self._kick(start, watch)
+
+    def _give_up(self, now: float) -> tuple[list[Callable[..., None]], bool]:
+        """(Holding the lock.) Give up on the running and queued calls of held lanes past
+        their deadlines: their `done`s, and whether any call there still has a deadline to
+        come (the watchdog stays for it)."""
+        dones: list[Callable[..., None]] = []
+        waiting = False
+        for query_id, drainer in self._holders.items():
+            running = drainer.call
+            if running is None:
+                continue
+            if running.overdue(now):
+                dones.extend(running.settle(True))
+            stuck = running.given_up  # (what queued behind it waits no more)
+            waiting = waiting or (not running.settled and running.deadline is not None)
+            for call in self._lanes.get(query_id, ()):
+                if call.settled:
+                    continue
+                if stuck or call.overdue(now):
+                    dones.extend(call.settle(True))
+                elif call.deadline is not None:
+                    waiting = True
+        for call in list(self._awaited):  # (coroutine callbacks)
+            if call.overdue(now):
+                del self._awaited[call]
+                dones.extend(call.settle(True))
+                self._stuck[call.query.id] = call
+            else:
+                waiting = True
+        return dones, waiting
 
     def _watch_start(self) -> None:
         try:
@@ -673,12 +880,14 @@ class Runner:
 
     def _watch(self) -> None:
         """The watchdog: every `SLICE`, give up drainers whose callback overran it (their
-        lanes stay closed); end after a second with no callback running."""
+        lanes stay closed), and the calls past their deadline (`_give_up`); end after a
+        second with no callback running and none to give up on."""
         while True:
             runtime.sleep(SLICE)
             now = runtime.monotonic()
             overdue: list[_Drainer] = []
             with self._lock:
+                dones, waiting = self._give_up(now)
                 for drainer in list(self._inside):
                     if now - drainer.started >= SLICE:
                         overdue.append(drainer)
@@ -688,15 +897,34 @@ class Runner:
                 start = bool(self._open) and self._drainers == len(self._inside)
                 if start:
                     self._drainers += 1
-                idle = not overdue and not self._inside and not self._open
-                if idle and now - self._quiet_since > _LINGER:
+                idle = not overdue and not self._inside and not self._open and not waiting
+                ending = idle and now - self._quiet_since > _LINGER
+                if ending:
                     self._watching = False
-                    return
+            _settled(dones)
+            if ending:
+                return
             for drainer in overdue:  # (its thread no longer counts in the pool)
                 if drainer.job is not None:
                     drainer.job.abandon()
             if start:
                 self._start()
+
+
+def _coalesce(lane: collections.deque[_Call], call: _Call) -> None:
+    """(Holding the runner's lock.) `call`, not a `FATAL`, replaces the calls `lane`
+    queued that are not `FATAL`s (the latest status wins): they are merged into it (their
+    senders hear of it as it is settled); the `FATAL`s stay, in their order."""
+    kept = [queued for queued in lane if queued.update.status is Status.FATAL]
+    if len(kept) == len(lane):
+        return
+    for queued in lane:
+        if queued.update.status is not Status.FATAL and not queued.settled:
+            call.merged.append(queued)
+            call.merged.extend(queued.merged)
+            queued.merged = []
+    lane.clear()
+    lane.extend(kept)
 
 
 class Desk:
@@ -719,11 +947,12 @@ class Desk:
     def deliver(
         self,
         batch: StatusBatch,
-        join: SharedJoin,
+        join: _Join,
         homes: dict[str, str] | None,
         here: tuple[str, Callable[[Any], None]],
     ) -> None:
-        """Deliver `batch`'s parts (on an actor thread); each adds its parts to `join`.
+        """Deliver `batch`'s parts (on an actor thread); each adds its parts to `join`,
+        and the ids given up on to `join.gave_up` (`batch.patience` from now).
 
         `homes`, if given, gets the process of each registrar reached (the answer).
         `here` is the registrar whose actor runs this, and how it handles a message at
@@ -731,6 +960,8 @@ class Desk:
         mailbox.
         """
         calls: list[_Call] = []
+        patience = batch.patience
+        deadline = None if patience is None else runtime.monotonic() + patience
         for origin, ids in batch.parts:
             try:
                 peer = DIRECTORY.lookup(origin)
@@ -742,9 +973,9 @@ class Desk:
             if homes is not None:
                 homes[origin] = self.key
             targets = self.targets.get(peer)
-            slow = self.direct(targets, batch, ids, join, calls) if targets else ids
+            slow = self.direct(targets, batch, ids, join, calls, deadline) if targets else ids
             if slow:
-                reply = CallbackReply(join.add())
+                reply = CallbackReply(_counted(join, join.add()))
                 notice = StatusNotice(
                     slow,
                     batch.status,
@@ -754,6 +985,7 @@ class Desk:
                     reply,
                     batch.hop,
                     batch.sent_at,
+                    patience,
                 )
                 try:
                     if origin == here[0]:
@@ -770,8 +1002,9 @@ class Desk:
         targets: StatusTargets,
         batch: StatusBatch,
         ids: tuple[str, ...],
-        join: SharedJoin,
+        join: _Join,
         calls: list[_Call],
+        deadline: float | None = None,
     ) -> tuple[str, ...]:
         """Queue the callbacks of the ids `targets` has (those the status has not reached
         yet); the others, to go through its registrar's mailbox (`on_status_notice`
@@ -803,10 +1036,14 @@ class Desk:
                 )
             update = StatusUpdate(query_id, batch.status, batch.message, batch.source)
             if isinstance(callback, OnLoop):  # a coroutine: on its loop, no worker
-                callback.submit(query, update, then=_done_by(join.add()), key=query_id)
+                self.runner.on_loop(
+                    _Call(callback, query, update, join.add(), None, deadline, join.gave_up)
+                )
             else:
                 told = (targets.events, targets.name, batch.event) if publish else None
-                calls.append(_Call(callback, query, update, join.add(), told))
+                calls.append(
+                    _Call(callback, query, update, join.add(), told, deadline, join.gave_up)
+                )
         return tuple(slow)
 
     def forward(
@@ -814,15 +1051,17 @@ class Desk:
         peer: Any,
         batch: StatusBatch,
         part: tuple[str, tuple[str, ...]],
-        join: SharedJoin,
+        join: _Join,
         homes: dict[str, str] | None,
     ) -> None:
         """Send `part` on to its registrar in another process; its answer joins ours."""
         done = join.add()
 
         def answered(value: Any, error: BaseException | None) -> None:
-            if error is None and homes is not None and isinstance(value, dict):
-                homes.update(value)
+            if error is None and isinstance(value, tuple):  # (homes, the ids given up on)
+                if homes is not None:
+                    homes.update(value[0])
+                join.gave_up.extend(value[1])
             done()
 
         reply = CallbackReply(answered)

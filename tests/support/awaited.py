@@ -110,8 +110,9 @@ class _Awaited:
     def unload(self, *args: Any, **kw: Any) -> None:
         self._await("aunload", *args, **kw)
 
-    def send_status(self, *args: Any, **kw: Any) -> None:
-        self._await("asend_status", *args, **kw)
+    def send_status(self, *args: Any, **kw: Any) -> rr.StatusDelivery:
+        delivery: rr.StatusDelivery = self._await("asend_status", *args, **kw)
+        return delivery
 
     def server_queries(self, *args: Any, **kw: Any) -> list[rr.Query]:
         result: list[rr.Query] = self._await("aserver_queries", *args, **kw)

@@ -1,0 +1,230 @@
+"""Status fan-out to a hung consumer (issue 53): threads held, and what `send_status` does.
+
+A provider serves one resource to `--consumers` consumer ids (200), spread over
+`--registrars` consumer registrars (4); the callback of one id (the first) never returns
+(it blocks on an event set at teardown), the others record and return. The provider
+sends `--statuses` statuses (2,000), each a `send_status(..., timeout=--timeout)`, from
+`--senders` threads (4). Printed per run:
+
+    threads     of the consumers' process before the first status and after the last
+                (`threading.active_count()` here; the manager's threads by psutil in the
+                process placement), and the difference
+    wall        seconds the 2,000 sends took
+    timed out   sends that raised `CallTimeoutError`
+    gave up     sends whose result named a consumer given up on (when `send_status`
+                returns a `StatusDelivery`; "-" where it returns None)
+    last heard  whether every healthy id heard the last status (its callback's record)
+    queued      calls waiting in the hung id's lane after the last send (thread placement:
+                the process's status runner, read directly; "-" in a manager process)
+
+Each placement runs twice: `hung` (the one hung callback) and its floor `none` (the
+same, no callback hangs), in the same run.
+
+Placements: `thread` (provider and consumers in this process) and `process` (the
+consumers in a manager process of a `System`, the provider here; the threads counted
+are the manager's, read with psutil).
+
+Usage:
+    python benchmarks/bench_status_hang.py [--placement thread process]
+        [--consumers 200] [--registrars 4] [--statuses 2000] [--senders 4]
+        [--timeout 0.5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+import rr_actors as rr
+from rr_actors.testing import RemoteRegistrar, System
+
+
+def consumer_setup(
+    address: Any, provider: str, registrars: int, consumers: int, hang: bool
+) -> Callable[[rr.ResourceRegistrar], None]:
+    """Consumer registrars (in the process of `host`), `consumers` ids of `provider`'s
+    resource, the first id's callback hung if `hang`; server "probe" answers what the ids
+    heard last ("heard"), releases the hung callback and stops them ("stop")."""
+
+    def setup(host: rr.ResourceRegistrar) -> None:
+        network = address.attach() if address is not None else None
+        release = threading.Event()
+        lock = threading.Lock()
+        last: dict[str, str] = {}
+        registrars_here: list[rr.ResourceRegistrar] = []
+        hung: list[str] = []
+
+        def record(query: rr.Query, update: rr.StatusUpdate) -> None:
+            if hung and query.id == hung[0] and update.message != "warm-up":
+                release.wait()
+                return
+            with lock:
+                last[query.id] = update.message
+
+        registrars_here.extend(
+            rr.ResourceRegistrar.start(f"{host.name}-c{number}", network=network)
+            for number in range(registrars)
+        )
+        for index in range(consumers):
+            consumer = registrars_here[index % registrars]
+            query = consumer.call(provider, "leaf", "r", on_status=record, timeout=30)
+            if hang and index == 0:
+                hung.append(query.id)
+
+        def probe(request: tuple[str, str]) -> Any:
+            if request[0] == "heard":
+                with lock:
+                    return dict(last)
+            release.set()
+            for registrar in reversed(registrars_here):
+                registrar.stop()
+            return None
+
+        host.register_server("probe", load=probe, unload=lambda _r, _s: None)
+
+    return setup
+
+
+def threads_of(pid: int | None) -> int:
+    if pid is None:
+        return threading.active_count()
+    import psutil  # noqa: PLC0415 - a dev dependency
+
+    return psutil.Process(pid).num_threads()
+
+
+def queued_here() -> int:
+    """The longest lane of this process's status runner now (its private state: a
+    benchmark's look inside)."""
+    from rr_actors._registrar.status import DESK  # noqa: PLC0415
+
+    lanes = DESK.runner._lanes
+    return max((len(lane) for lane in list(lanes.values())), default=0)
+
+
+def heard_last(
+    provider: Any, host: Any, query_id: str, hang: bool, args: argparse.Namespace
+) -> int:
+    """Send one last status; how many healthy ids heard it (a bounded poll)."""
+    last = str(args.statuses - 1)
+    with contextlib.suppress(rr.CallTimeoutError):  # (all heard it? the hung one not)
+        provider.send_status(query_id, rr.Status.UPDATE, last, timeout=max(args.timeout, 5))
+    healthy_last = 0
+    for _ in range(100):  # (a bounded poll: a benchmark, not a test)
+        heard = host.call(host.name, "probe", ("heard", uuid.uuid4().hex), timeout=30).response
+        healthy_last = sum(1 for message in heard.values() if message == last)
+        if healthy_last >= args.consumers - (1 if hang else 0):
+            break
+        time.sleep(0.1)
+    return healthy_last
+
+
+def run(placement: str, hang: bool, args: argparse.Namespace) -> dict[str, Any]:
+    uid = uuid.uuid4().hex[:6]
+    system = System.create() if placement == "process" else None
+    network = system if system is not None else None
+    provider = rr.ResourceRegistrar.start(f"prov-{uid}", network=network)
+    provider.register_server("leaf", load=lambda r: r, unload=lambda _r, _s: None)
+    setup = consumer_setup(
+        system.address if system is not None else None,
+        provider.name,
+        args.registrars,
+        args.consumers,
+        hang,
+    )
+    if system is None:
+        host = rr.ResourceRegistrar.start(f"host-{uid}")
+        setup(host)
+        pid = None
+    else:
+        config = rr.RegistrarConfig(name=f"host-{uid}", call_timeout=30.0)
+        host = RemoteRegistrar.start(config, system, setup=setup)
+        pid = host.pid
+    query_id = provider.server_queries("leaf")[0].id
+    provider.send_status(query_id, rr.Status.UPDATE, "warm-up", timeout=30)  # (routes)
+    before = threads_of(pid)
+    timed_out = gave_up = 0
+    results: list[Any] = []
+    lock = threading.Lock()
+
+    def send(number: int) -> None:
+        nonlocal timed_out, gave_up
+        try:
+            result = provider.send_status(
+                query_id, rr.Status.UPDATE, str(number), timeout=args.timeout
+            )
+        except rr.CallTimeoutError:
+            with lock:
+                timed_out += 1
+            return
+        with lock:
+            results.append(result)
+            if result is not None and getattr(result, "gave_up", ()):
+                gave_up += 1
+
+    started = time.perf_counter()
+    with ThreadPoolExecutor(args.senders) as pool:
+        list(pool.map(send, range(args.statuses)))
+    wall = time.perf_counter() - started
+    after = threads_of(pid)
+    queued = queued_here() if pid is None else None
+    healthy_last = heard_last(provider, host, query_id, hang, args)
+    host.call(host.name, "probe", ("stop", uuid.uuid4().hex), timeout=30)
+    host.stop()
+    provider.stop()
+    if system is not None:
+        system.close()
+    returns_delivery = any(result is not None for result in results)
+    return {
+        "before": before,
+        "after": after,
+        "wall": wall,
+        "timed_out": timed_out,
+        "gave_up": gave_up if returns_delivery else None,
+        "heard": f"{healthy_last}/{args.consumers - (1 if hang else 0)}",
+        "queued": queued,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--placement", nargs="+", default=["thread", "process"])
+    parser.add_argument("--consumers", type=int, default=200)
+    parser.add_argument("--registrars", type=int, default=4)
+    parser.add_argument("--statuses", type=int, default=2000)
+    parser.add_argument("--senders", type=int, default=4)
+    parser.add_argument("--timeout", type=float, default=0.5)
+    args = parser.parse_args()
+    print(
+        f"{args.consumers} consumer ids on {args.registrars} registrars, {args.statuses} "
+        f"statuses from {args.senders} threads, timeout {args.timeout} s; "
+        f"load {os.getloadavg()[0]:.1f}"
+    )
+    print(
+        f"| {'placement':9} | {'hung':4} | {'threads':>15} | {'wall s':>7} "
+        f"| {'timed out':>9} | {'gave up':>7} | {'last heard':>10} | {'queued':>6} |"
+    )
+    print(f"|{'-' * 11}|{'-' * 6}|{'-' * 17}|{'-' * 9}|{'-' * 11}|{'-' * 9}|{'-' * 12}|{'-' * 8}|")
+    for placement in args.placement:
+        for hang in (True, False):
+            row = run(placement, hang, args)
+            threads = f"{row['before']} -> {row['after']} ({row['after'] - row['before']:+d})"
+            gave = "-" if row["gave_up"] is None else str(row["gave_up"])
+            print(
+                f"| {placement:9} | {'hung' if hang else 'none':4} | {threads:>15} "
+                f"| {row['wall']:7.2f} | {row['timed_out']:9d} | {gave:>7} "
+                f"| {row['heard']:>10} | {'-' if row['queued'] is None else row['queued']:>6} |",
+                flush=True,
+            )
+    print(f"load after: {os.getloadavg()[0]:.1f}")
+
+
+if __name__ == "__main__":
+    main()
