@@ -10,16 +10,39 @@ message, the lines that show it), in the order of their lines.
   resource, never left held by a manager for nothing.
 - `survives`: no supervisor gives up (`SupervisorGaveUp`): the tree's restart intensity
   holds out under the exercise's faults.
+- `once` (rules 2, 16): a retry of a call loads nothing while the call's first load
+  holds its id: no second `ResourceLoaded` for a query id at a registrar, unless the
+  first's id was released before it (`ConsumerReleased`: at a reconcile, the consumer
+  had not heard the answer) or a restart reported the first's resource in doubt
+  (`InDoubt`: its load was cut short before it was committed).
+- `warned` (rule 9): a provider's round of statuses (its `StatusSent`s less than
+  `ROUND_S` apart) is sent about every resource of the servers it names that had a
+  consumer throughout it (from `MARGIN_S` before its first send to `ROUND_S` after its
+  last: one released meanwhile may be released before its turn came): one
+  status per resource, since a status reaches every consumer of the resource behind
+  the id it names, and no other. A round its provider's exit cut short is not judged.
+- `loaded`: every load the run started succeeded (no `LoadFailed`): a manager's
+  resources are asked for as its providers can serve them.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
+from collections import defaultdict
 from collections.abc import Callable, Collection, Sequence
 
 from rr_actors import events
 from rr_actors.experiments.check import Finding, Line
 
-__all__ = ["RULES"]
+__all__ = ["MARGIN_S", "ROUND_S", "RULES"]
+
+ROUND_S = 0.05
+"""`warned`: statuses of one provider less than this many seconds apart are one round."""
+
+MARGIN_S = 0.02
+"""`warned`: a resource is owed a round's status if it had a consumer this many seconds
+before the round began (one loaded meanwhile may come after the provider's listing)."""
 
 
 def dependency(history: Sequence[Line], managers: Collection[str]) -> list[Finding]:
@@ -54,8 +77,171 @@ def survives(history: Sequence[Line], managers: Collection[str]) -> list[Finding
     ]
 
 
+def once(history: Sequence[Line], managers: Collection[str]) -> list[Finding]:
+    """`once`: no call loaded twice while its first load holds it (not released, not in
+    doubt)."""
+    del managers
+    first: dict[tuple[str, str], tuple[int, str]] = {}  # (registrar, query): line, resource
+    doubted: set[tuple[str, str]] = set()  # (registrar, resource id)
+    found = []
+    for line, e in history:
+        if isinstance(e, events.InDoubt):
+            doubted.add((e.registrar, e.query_id))
+        elif isinstance(e, events.ConsumerReleased):
+            first.pop((e.registrar, e.query_id), None)
+        elif isinstance(e, events.ResourceLoaded):
+            key = (e.registrar, e.query_id)
+            if key in first and (e.registrar, first[key][1]) not in doubted:
+                found.append(
+                    Finding(
+                        "once",
+                        "violation",
+                        f"{e.registrar}/{e.server} loaded query {e.query_id[:8]} a second "
+                        f"time (resource {e.resource_id[:8]}): its first load (resource "
+                        f"{first[key][1][:8]}) was committed and still held it (not released, "
+                        "not in doubt), yet the retry of the same call ran the load again",
+                        (first[key][0], line),
+                        (e.registrar,),
+                    )
+                )
+            first[key] = (line, e.resource_id)
+    return found
+
+
+Span = tuple[float, float]
+"""When a resource had a consumer: from, until (seconds; `math.inf`: to the end)."""
+
+
+@dataclasses.dataclass
+class _Uses:
+    """What `warned` reads of a run: each resource's spans in use, its server, each
+    provider's rounds of statuses (line, time, resource) and its process's exits."""
+
+    spans: dict[tuple[str, str], list[Span]] = dataclasses.field(
+        default_factory=lambda: defaultdict(list)
+    )
+    server: dict[tuple[str, str], str] = dataclasses.field(default_factory=dict)
+    rounds: dict[str, list[list[tuple[int, float, str]]]] = dataclasses.field(
+        default_factory=lambda: defaultdict(list)
+    )
+    exits: dict[str, list[float]] = dataclasses.field(default_factory=lambda: defaultdict(list))
+    users: dict[tuple[str, str], set[str]] = dataclasses.field(
+        default_factory=lambda: defaultdict(set)
+    )
+    since: dict[tuple[str, str], float] = dataclasses.field(default_factory=dict)
+    resource: dict[tuple[str, str], str] = dataclasses.field(default_factory=dict)
+
+    def close(self, key: tuple[str, str], at: float) -> None:
+        self.users.pop(key, None)
+        if key in self.since:
+            self.spans[key].append((self.since.pop(key), at))
+
+    def use(self, key: tuple[str, str], query: str, at: float) -> None:
+        self.resource[(key[0], query)] = key[1]
+        self.since.setdefault(key, at)
+        self.users[key].add(query)
+
+    def restored(self, e: events.CatalogRestored) -> None:
+        kept = {(e.registrar, str(held)) for _query, held, _consumer in e.consumers}
+        for key in [k for k in self.since if k[0] == e.registrar and k not in kept]:
+            self.close(key, e.at)
+        for key in kept:
+            self.users.pop(key, None)
+        for query, held, _consumer in e.consumers:
+            self.use((e.registrar, str(held)), str(query), e.at)
+
+    def sent(self, line: int, e: events.StatusSent) -> None:
+        mine = self.rounds[e.registrar]
+        if not mine or e.at - mine[-1][-1][1] >= ROUND_S:
+            mine.append([])
+        mine[-1].append((line, e.at, self.resource.get((e.registrar, e.query_id), "")))
+
+    def read(self, history: Sequence[Line]) -> _Uses:
+        for line, e in history:
+            if isinstance(e, events.ResourceLoaded):
+                self.server[(e.registrar, e.resource_id)] = e.server
+            elif isinstance(e, events.ConsumerAdded):
+                self.use((e.registrar, e.resource_id), e.query_id, e.at)
+            elif isinstance(e, events.ConsumerReleased):
+                key = (e.registrar, e.resource_id)
+                self.users[key].discard(e.query_id)
+                if not self.users[key]:
+                    self.close(key, e.at)
+            elif isinstance(e, events.ResourceUnloaded):
+                self.close((e.registrar, e.resource_id), e.at)
+            elif isinstance(e, events.InDoubt):
+                self.close((e.registrar, e.query_id), e.at)
+            elif isinstance(e, events.CatalogRestored) and e.complete:  # (what it kept)
+                self.restored(e)
+            elif isinstance(e, events.ChildExited):
+                self.exits[e.child].append(e.at)
+            elif isinstance(e, events.StatusSent):
+                self.sent(line, e)
+        for key in list(self.since):
+            self.close(key, math.inf)
+        return self
+
+
+def warned(history: Sequence[Line], managers: Collection[str]) -> list[Finding]:
+    """`warned`: each round of a provider's statuses names every resource in use."""
+    del managers
+    uses = _Uses().read(history)
+    found = []
+    for registrar, mine in uses.rounds.items():
+        for sends in mine:
+            begun, ended = sends[0][1], sends[-1][1]
+            if any(begun <= at <= ended + ROUND_S for at in uses.exits[registrar]):
+                continue  # (a kill cut the round short: its provider sends no more)
+            named = {r for _, _, r in sends}
+            servers = {uses.server.get((registrar, r)) for r in named}
+            owed = sorted(
+                r
+                for (who, r), spans in uses.spans.items()
+                if who == registrar
+                and r not in named
+                and uses.server.get((who, r)) in servers
+                and any(a <= begun - MARGIN_S and b > ended + ROUND_S for a, b in spans)
+            )
+            if owed:
+                found.append(
+                    Finding(
+                        "warned",
+                        "violation",
+                        f"{registrar} sent {len(sends)} status(es) in a round, about "
+                        f"{len(named)} resource(s) of {len(named) + len(owed)} in use: "
+                        f"the consumers of {', '.join(r[:8] for r in owed)} never heard "
+                        "of it (a status reaches the consumers of the resource behind "
+                        "the id it names, no other)",
+                        (sends[-1][0],),
+                        (registrar,),
+                    )
+                )
+    found.sort(key=lambda f: f.lines)
+    return found
+
+
+def loaded(history: Sequence[Line], managers: Collection[str]) -> list[Finding]:
+    """`loaded`: no load failed."""
+    del managers
+    return [
+        Finding(
+            "loaded",
+            "violation",
+            f"{e.registrar}/{e.server}'s load for query {e.query_id[:8]} raised "
+            f"{e.error_type}: {e.message}",
+            (line,),
+            (e.registrar,),
+        )
+        for line, e in history
+        if isinstance(e, events.LoadFailed)
+    ]
+
+
 RULES: dict[str, Callable[[Sequence[Line], Collection[str]], list[Finding]]] = {
     "dependency": dependency,
     "survives": survives,
+    "once": once,
+    "warned": warned,
+    "loaded": loaded,
 }
 """The kit's rules by name (what an exercise's `rules` lists)."""

@@ -1,10 +1,19 @@
-"""The kit's own rules (`rr_actors.teach.rules`): `dependency` and `survives`, each on
-events built here, the line numbers as a history's."""
+"""The kit's own rules (`rr_actors.teach.rules`): `dependency`, `survives`, `once`,
+`warned` and `loaded`, each on events built here, the line numbers as a history's."""
 
 from __future__ import annotations
 
-from rr_actors import events
-from rr_actors.teach.rules import RULES, dependency, survives
+from rr_actors import Status, events
+from rr_actors.teach.rules import (
+    MARGIN_S,
+    ROUND_S,
+    RULES,
+    dependency,
+    loaded,
+    once,
+    survives,
+    warned,
+)
 
 
 def test_a_managers_call_without_a_parent_breaks_dependency_at_its_line() -> None:
@@ -38,5 +47,88 @@ def test_a_give_up_breaks_survives_and_names_the_managers_for_the_story() -> Non
     assert survives(history[:1], ["lidar"]) == []
 
 
+def test_a_call_loaded_again_while_its_first_load_holds_it_breaks_once() -> None:
+    history = [
+        (1, events.ResourceLoaded("dispenser", "resource", "r1", "q1", 0.05)),
+        (2, events.ResourceLoaded("dispenser", "resource", "r2", "q2", 0.05)),
+        (3, events.ResourceLoaded("dispenser", "resource", "r3", "q1", 0.05)),  # a retry
+        (4, events.ResourceLoaded("other", "resource", "r4", "q2", 0.05)),  # another's
+    ]
+
+    found = once(history, ["dispenser"])
+
+    assert [(f.rule, f.lines, f.registrars) for f in found] == [("once", (1, 3), ("dispenser",))]
+    assert "loaded query q1 a second time (resource r3)" in found[0].message
+
+
+def test_a_second_load_after_a_release_or_in_doubt_holds_once() -> None:
+    released = [
+        (1, events.ResourceLoaded("dispenser", "resource", "r1", "q1", 0.05)),
+        (2, events.ConsumerReleased("dispenser", "r1", "q1", "client-0", reason="reconcile")),
+        (3, events.ResourceLoaded("dispenser", "resource", "r2", "q1", 0.05)),
+    ]
+    doubted = [
+        (1, events.ResourceLoaded("dispenser", "resource", "r1", "q1", 0.05)),
+        (2, events.InDoubt("dispenser", "r1", "resource", "load")),
+        (3, events.ResourceLoaded("dispenser", "resource", "r2", "q1", 0.05)),
+    ]
+
+    assert once(released, ["dispenser"]) == []
+    assert once(doubted, ["dispenser"]) == []
+
+
+def _served(resource: str, query: str, at: float) -> list[events.Event]:
+    return [
+        events.ResourceLoaded("camera", "stream", resource, query, 0.0, at=at),
+        events.ConsumerAdded("camera", resource, query, "client-0", at=at),
+    ]
+
+
+def _sent(query: str, at: float) -> events.StatusSent:
+    return events.StatusSent("camera", query, Status.WARNING, "recalibrating", at=at)
+
+
+def test_a_round_of_statuses_that_leaves_a_resource_in_use_out_breaks_warned() -> None:
+    opened = [*_served("r1", "q1", 1.0), *_served("r2", "q2", 1.0)]
+    round_ = [_sent("q1", 2.0), _sent("q2", 2.0 + ROUND_S / 2)]  # both: held
+    late = [*_served("r3", "q3", 3.0 - MARGIN_S / 2), _sent("q1", 3.0), _sent("q2", 3.01)]
+    alone = [_sent("q1", 4.0)]  # r2 and r3 left out (r3 was too new for the round before)
+    history = list(enumerate([*opened, *round_, *late, *alone], start=1))
+
+    found = warned(history, ["camera"])
+
+    assert [(f.rule, f.lines, f.registrars) for f in found] == [("warned", (11,), ("camera",))]
+    assert "about 1 resource(s) of 3 in use: the consumers of r2, r3 never heard" in (
+        found[0].message
+    )
+
+
+def test_a_round_cut_by_its_providers_exit_or_a_release_is_not_owed_warned() -> None:
+    opened = [*_served("r1", "q1", 1.0), *_served("r2", "q2", 1.0)]
+    exited = events.ChildExited("root", "camera", 7, "killed by SIGKILL", at=2.01)
+    cut = [_sent("q1", 2.0), exited]
+    gone = events.ConsumerReleased("camera", "r2", "q2", "client-0", at=3.0 + ROUND_S / 2)
+    released = [_sent("q1", 3.0), gone]  # r2 let go before its turn could come
+    history = list(enumerate([*opened, *cut, *released], start=1))
+
+    assert warned(history, ["camera"]) == []
+
+
+def test_a_load_that_raised_breaks_loaded() -> None:
+    failed = events.LoadFailed("camera", "stream", "r2", "q2", "RuntimeError", "camera busy")
+    history = [(1, events.ResourceLoaded("camera", "stream", "r1", "q1", 0.0)), (2, failed)]
+
+    found = loaded(history, ["camera"])
+
+    assert [(f.rule, f.lines) for f in found] == [("loaded", (2,))]
+    assert found[0].message == "camera/stream's load for query q2 raised RuntimeError: camera busy"
+
+
 def test_the_rules_are_listed_by_name() -> None:
-    assert RULES == {"dependency": dependency, "survives": survives}
+    assert RULES == {
+        "dependency": dependency,
+        "survives": survives,
+        "once": once,
+        "warned": warned,
+        "loaded": loaded,
+    }
