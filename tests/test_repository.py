@@ -499,7 +499,6 @@ STILL_OVER = {
     "runtime lines",
     "runtime files",
     "transport lines",
-    "small modules",
     "docstring share",
     "module docstrings",
 }

@@ -45,9 +45,8 @@ the kinds an actor lists run so (the registrar's `Load`, `Unload` and `Abandon`:
 steps that hand user code to worker threads), and only from `deliver`, never from a
 `tell` (a user's thread, or another actor's, might hold a lock the handler takes).
 
-An actor's thread says so (`on_actor_thread`): a carrier never waits on the network
-there. A child forked from this process forgets its parent's actors (`_forget_actors`).
-Why the hand-offs are built so: docs/explanation/inside.md, "One wake-up per hand-off".
+A child forked from this process forgets its parent's actors (`_forget_actors`). Why the
+hand-offs are built so: docs/explanation/inside.md, "One wake-up per hand-off".
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ Two kinds of exercise: `use` (the student writes a manager's setup or a plan, as
 of the framework would) and `protocol` (the student gets one step of the registrar with
 a bug, in `step.py`, and fixes it: the check runs the simulation with their copy in the
 step's place, `replaced_step`). `kit.py` reads the exercises, `grade.py` checks a
-folder, `rules.py` holds the kit's own rules (besides the checker's), `cli.py` the
+folder (with the kit's own rules besides the checker's, `grade.RULES`), `cli.py` the
 command; `STEPS` lists the protocol steps a student's copy can replace, with their shapes.
 """
 

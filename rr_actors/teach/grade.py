@@ -6,7 +6,7 @@
  │               a protocol exercise: folder/step.py's function in the registrar's place
  │               (`replaced_step`)
  ├─ seeds 1..N (or one: `seed`): simulate.run_seed ─► the checker's verdict + the kit's
- │  rules (`rules.py`) over the run's events; the first seed that breaks one ends it
+ │  rules (`RULES`) over the run's events; the first seed that breaks one ends it
  └─► Report: passed; seeds run; interleavings (distinct histories); CPU seconds; the
      first failure: the rule in words, the finding, its first violating event, a story
      of at most `STORY` steps (the steps of the registrars it names and the faults,
@@ -27,6 +27,7 @@ from collections.abc import Callable, Collection, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
+from rr_actors import events
 from rr_actors.errors import ConfigError, RrError
 from rr_actors.events.text import describe
 from rr_actors.experiments import check, shrink, simulate, story
@@ -34,9 +35,8 @@ from rr_actors.experiments.plan import Plan
 from rr_actors.experiments.reading import load_plan
 from rr_actors.teach import replaced_step
 from rr_actors.teach.kit import Exercise, folder_exercise
-from rr_actors.teach.rules import RULES
 
-__all__ = ["STORY", "Failure", "Report", "check_folder", "replay_story"]
+__all__ = ["RULES", "STORY", "Failure", "Report", "check_folder", "replay_story"]
 
 STORY = 20
 """The most steps of the story a failing check prints."""
@@ -48,13 +48,64 @@ SHRUNK = "shrunk.toml"
 """The shrunk plan a failing check writes into the folder (the replay command runs it)."""
 
 
+# -- the kit's own rules ----------------------------------------------------------------------
+
+
+def dependency(history: Sequence[check.Line], managers: Collection[str]) -> list[check.Finding]:
+    """`dependency` (rule 7): every call a manager made was made while it loaded a
+    resource, so is a dependency of it (`CallAnswered.parent` set): released with the
+    resource, never left held by a manager for nothing."""
+    return [
+        check.Finding(
+            "dependency",
+            "violation",
+            f"{e.registrar} holds {e.serving_rr}/{e.server} query {e.query_id[:8]} as a call of "
+            "its own, not as a dependency of a resource it loads (no parent): nothing "
+            "releases it with a resource",
+            (line,),
+            (e.registrar,),
+        )
+        for line, e in history
+        if isinstance(e, events.CallAnswered) and e.registrar in managers and e.parent is None
+    ]
+
+
+def survives(history: Sequence[check.Line], managers: Collection[str]) -> list[check.Finding]:
+    """`survives`: no supervisor gave up (`SupervisorGaveUp`): the tree's restart
+    intensity held out under the exercise's faults."""
+    return [
+        check.Finding(
+            "survives",
+            "violation",
+            f"supervisor {e.supervisor} gave up: {e.reason}",
+            (line,),
+            (e.supervisor, *managers),  # (its children's exits: the story before it)
+        )
+        for line, e in history
+        if isinstance(e, events.SupervisorGaveUp)
+    ]
+
+
+RULES: dict[str, Callable[[Sequence[check.Line], Collection[str]], list[check.Finding]]] = {
+    "dependency": dependency,
+    "survives": survives,
+}
+"""The kit's own rules by name (what an exercise's `rules` lists): what an exercise asks
+of a student's code that the checker's rules (`check.RULES`) do not judge, over the same
+numbered events. Each takes a run's events (`(line, event)`) and the names of the plan's
+managers, and gives findings in the order of their lines."""
+
+
+# -- checking a folder ------------------------------------------------------------------------
+
+
 @dataclasses.dataclass(frozen=True)
 class Failure:
     """The first seed that broke a rule, told for a student.
 
     Attributes:
         seed: the seed.
-        rule: the rule's name (`check.RULES`, `rules.RULES`, or `"crashed"`, `"setup"`).
+        rule: the rule's name (`check.RULES`, `RULES`, or `"crashed"`, `"setup"`).
         words: the exercise's rule in words.
         message: what broke it, in this run.
         first_event: the first violating event: `#LINE: what happened` (`None`: no event

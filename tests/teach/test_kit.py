@@ -11,7 +11,7 @@ import pytest
 from rr_actors import ConfigError
 from rr_actors.experiments.reading import load_plan
 from rr_actors.teach import STEPS, kit
-from rr_actors.teach.rules import RULES
+from rr_actors.teach.grade import RULES
 
 
 @pytest.mark.parametrize("chosen", kit.exercises(), ids=lambda e: e.name)
