@@ -59,7 +59,7 @@ def pytest_configure(config: pytest.Config) -> None:
     if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
     # pytest-xdist hands files out in the order `pytest_collection_modifyitems` gives them
-    # (`FIRST`), not re-sorted by their count of tests: that put `test_portable.py`, one test
+    # (`FIRST`), not re-sorted by their count of tests: that put `core/test_base.py`, one test
     # that takes minutes, at the very end of the suite.
     if hasattr(config.option, "loadscopereorder"):  # (pytest-xdist is installed)
         config.option.loadscopereorder = False
@@ -86,7 +86,7 @@ def pytest_configure(config: pytest.Config) -> None:
 
 
 FIRST = (
-    "core/test_portable.py",  # 504 s: the process tests again, on the portable platform
+    "core/test_base.py",  # 504 s: the process tests again, on the portable platform
     "test_benchmarks.py",  # 393 s
     "test_docs.py",  # 193 s
     "simulation/test_supervision.py",  # 281 s of CPU: four sweeps of simulated trees

@@ -73,7 +73,7 @@ def test_with_q_and_workers_a_failure_is_named_while_other_tests_still_run(
 
 def test_the_slowest_files_go_out_first_in_conftests_order_not_re_sorted_by_xdist() -> None:
     # pytest-xdist re-sorts files by their count of tests unless told not to: the one test
-    # of `test_portable.py` (minutes) then ran last, and the suite waited for it alone.
+    # of `core/test_base.py` (minutes) then ran last, and the suite waited for it alone.
     options = types.SimpleNamespace(loadscopereorder=True)
     conftest.pytest_configure(
         types.SimpleNamespace(option=options, addinivalue_line=lambda *_: None)

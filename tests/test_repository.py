@@ -499,9 +499,7 @@ STILL_OVER = {
     "runtime lines",
     "runtime files",
     "transport lines",
-    "small modules",
     "docstring share",
-    "module docstrings",
 }
 """The budgets main does not meet yet (issue 54, its other parts move the code): each fails
 with what is over it, and passes the build as an expected failure, strictly: once it holds,

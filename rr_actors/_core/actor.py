@@ -2,16 +2,8 @@
 
 Every use of pykka's extension points for actor implementations, and of its private
 names (`_handle_receive`, `_actor_loop_running`, `_handle_failure`, `Envelope`; see
-`ContainedError` and "The turn" below), is in this file (pykka is
-pinned below its next major version in pyproject.toml).
-
-`pykka.ThreadingActor` keeps its mailbox in a `queue.Queue` and answers asks through a
-`pykka.ThreadingFuture`; both are built on `threading.Condition`. A condition hands over
-in two steps: `notify()` wakes the waiter, which then blocks again on the condition's
-lock until the notifier leaves its `with` block. On the project's 2-core VM, where waking
-a thread on the other core is the dominant cost, that made a raw pykka `ask` take 37-49 us
-against 16-18 us for a `threading.Lock` ping-pong between the same two threads
-(`benchmarks/bench_core.py` has the ask; docs/performance.md has the figures).
+`ContainedError` and "The turn" below), is in this file (pykka is pinned below its next
+major version in pyproject.toml).
 
 `Actor` plugs two cheaper parts into pykka through its documented extension points for
 actor implementations (`_create_actor_inbox`, `_create_future`, `_start_actor_loop`;
@@ -32,13 +24,9 @@ consumer ids) can honour them.
 
 **The turn.** An actor handles one message at a time: its loop takes the inbox's `turn`
 (a lock) around each one. A carrier's receiving thread that has a message for an idle
-actor may take the turn itself and handle the message there (`deliver`), instead of
-putting it in the inbox and waking the actor's thread, which is the costly step of a
-hand-off on a loaded CPU (Erlang's schedulers run a process that receives a message
-without a thread hand-off either). So may an event loop's thread that sends an awaited
-call's load: it holds no lock across an await, and a dedup hit then costs the loop no
-wake-up from another thread (not a durable registrar's: its step commits to disk, which
-a loop's thread must not wait for; `directory.LocalPeer`):
+actor may take the turn itself and handle the message there (`deliver`) instead of
+waking the actor's thread; so may an event loop's thread that sends an awaited call's
+load (not to a durable registrar, whose step commits to disk: `directory.LocalPeer`):
 
 ```
  deliver(ref, message) (a carrier's receiving thread: it holds no lock)
@@ -57,16 +45,8 @@ the kinds an actor lists run so (the registrar's `Load`, `Unload` and `Abandon`:
 steps that hand user code to worker threads), and only from `deliver`, never from a
 `tell` (a user's thread, or another actor's, might hold a lock the handler takes).
 
-An actor's thread says so (`on_actor_thread`, set as pykka's `_actor_loop_setup`
-begins): a carrier never waits on the network there (a registrar's actor that looks up
-a registrar its process has not heard of yet goes on with its mailbox; the Zenoh
-carrier asks the network on the name's writer thread), so an actor answers its next
-message, a heartbeat's included, as soon as it is done with the one before.
-
-In a child forked from this process the actors' threads are gone: `_forget_actors` (run
-at the fork, `rr_actors._platform.fork`) makes each inherited ref say it is dead and
-takes it out of pykka's registry, so a message to one fails at once (`ActorDeadError`)
-instead of waiting in an inbox nobody reads.
+A child forked from this process forgets its parent's actors (`_forget_actors`). Why the
+hand-offs are built so: docs/explanation/inside.md, "One wake-up per hand-off".
 """
 
 from __future__ import annotations

@@ -1,9 +1,9 @@
 """OS- and CPython-specific tricks, chosen once, each with a plain fallback.
 
 Everything rr_actors does that only works on Linux, with glibc, or by reaching into
-CPython's private machinery lives in `linux`; `portable` does the same jobs plainly (or
-not at all, where the job is only an optimisation). `PLATFORM` is chosen once, at import:
-`linux` on Linux, `portable` elsewhere or when the environment variable
+CPython's private machinery lives in `linux`; `base.PortablePlatform` does the same jobs
+plainly (or not at all, where the job is only an optimisation). `PLATFORM` is chosen once,
+at import: `linux` on Linux, the portable one elsewhere or when the environment variable
 `RR_ACTORS_PLATFORM=portable` is set (the test suite runs under both).
 
 `fork` is where every layer says what a child forked from this process must let go of.
@@ -14,7 +14,7 @@ from __future__ import annotations
 import os
 import sys
 
-from rr_actors._platform import fork, linux, portable
+from rr_actors._platform import fork, linux
 from rr_actors._platform.base import (
     GATE_SOURCES,
     CpuSample,
@@ -23,6 +23,7 @@ from rr_actors._platform.base import (
     ListenerGate,
     NameWatch,
     Platform,
+    PortablePlatform,
 )
 
 __all__ = [
@@ -40,7 +41,7 @@ __all__ = [
 def _choose() -> Platform:
     forced = os.environ.get("RR_ACTORS_PLATFORM", "")
     if forced == "portable" or not sys.platform.startswith("linux"):
-        return portable.PortablePlatform()
+        return PortablePlatform()
     return linux.LinuxPlatform()
 
 

@@ -1,4 +1,4 @@
-"""Linux (and glibc, and CPython-internal) tricks; `portable` is the plain fallback.
+"""Linux (and glibc, and CPython-internal) tricks; `base.PortablePlatform` is the plain fallback.
 
 Each trick says what it buys. The CPython-private names used here (the forkserver's
 `_forkserver_pid`, `_forkserver_alive_fd`, `_forkserver_address`, `_inherited_fds` and
@@ -23,14 +23,13 @@ from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
 from rr_actors._platform import forkserver as own_forkserver
-from rr_actors._platform import linux_gate, linux_names, portable
-from rr_actors._platform.base import CpuSample
+from rr_actors._platform import linux_gate, linux_names
+from rr_actors._platform.base import PARENT_GONE_EXIT, CpuSample, PortablePlatform
 
 __all__ = ["PARENT_GONE_EXIT", "LinuxPlatform", "PidfdExitWatch", "ProcCpuWatch"]
 
 logger = logging.getLogger("rr_actors")
 
-PARENT_GONE_EXIT = portable.PARENT_GONE_EXIT
 _PR_SET_PDEATHSIG = 1
 _PR_SET_NAME = 15
 _LEAN_LOCK = threading.Lock()
@@ -459,7 +458,7 @@ class LinuxPlatform:
         """
         hook = getattr(threading, "_register_atexit", None)
         if hook is None:
-            portable.PortablePlatform().at_main_thread_end(fn)
+            PortablePlatform().at_main_thread_end(fn)
         else:
             hook(fn)
 

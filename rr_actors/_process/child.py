@@ -70,14 +70,11 @@ from rr_actors import events
 from rr_actors._core.bus import Forwarder, Publisher
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._platform import PLATFORM
-from rr_actors._process.context import (
+from rr_actors._process.control import (
     ACTOR_DIED_EXIT,
     PARENT_GONE_EXIT,
     STOPPED_EXIT,
     TITLE_PREFIX,
-    stopped_cleanly,
-)
-from rr_actors._process.control import (
     Events,
     EventsSynced,
     Failed,
@@ -91,6 +88,7 @@ from rr_actors._process.control import (
     SyncEvents,
     Warm,
     WarmUp,
+    stopped_cleanly,
 )
 from rr_actors._process.tally import Journal
 from rr_actors._store.schema import expected_objects

@@ -43,16 +43,10 @@ from typing import TYPE_CHECKING, Any
 from rr_actors._core import runtime
 from rr_actors._platform import PLATFORM, forkserver
 from rr_actors._process.child import main
-from rr_actors._process.context import (
+from rr_actors._process.control import (
     ACTOR_DIED_EXIT,
     PROCESS_PREFIX,
     STOPPED_EXIT,
-    forker_pid,
-    mp_context,
-    start_forkserver,
-    stopped_cleanly,
-)
-from rr_actors._process.control import (
     Events,
     EventsSynced,
     Failed,
@@ -63,6 +57,10 @@ from rr_actors._process.control import (
     Ready,
     Stop,
     SyncEvents,
+    forker_pid,
+    mp_context,
+    start_forkserver,
+    stopped_cleanly,
 )
 from rr_actors._process.heartbeat import Hang, Heartbeat
 from rr_actors._process.received import Received

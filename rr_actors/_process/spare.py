@@ -28,8 +28,7 @@ from typing import Any
 from rr_actors._platform import PLATFORM, forkserver
 from rr_actors._platform.base import ExitWatch
 from rr_actors._process.child import standby
-from rr_actors._process.context import PROCESS_PREFIX, forker_pid, mp_context
-from rr_actors._process.control import Start, Warm, WarmUp
+from rr_actors._process.control import PROCESS_PREFIX, Start, Warm, WarmUp, forker_pid, mp_context
 from rr_actors._transport.base import Address
 from rr_actors.config import RegistrarConfig
 

@@ -30,26 +30,9 @@ it leaves, and the party that took it acts on that state:
     └──────────────┴─ was interrupted ──────────────────────────► WITHDRAWN
 ```
 
-A plain call's outcome (its answer to record, or its failure) does not wake the
-registrar actor by itself: it waits in `DueAnswers.outcomes`, which the actor takes, in
-order, before it handles any message. So everything sent after a call returned (an
-`unload` of its id, a status notice, a stop, a snapshot) finds its record, and a dedup
-hit costs two thread hand-offs (the `Load` and its answer), not three. The actor is
-woken (`TakeOutcomes`) when something waits for an outcome: a failure (its parked
-notices are answered), a dependency's answer (the load that made it may have failed
-meanwhile: the id is then given back at once), a notice held back for that answer
-(`CallAttempt.awaited`), or `BACKLOG` outcomes waiting. A durable call's outcomes go
-to the actor itself, which commits its answer before its caller gets it: the answer
-(`DurableLoaded`) in the actor's turn on the thread that brings it when the actor is
-idle (`_core/actor.py`'s `deliver`), else through the mailbox. What the actor does with
-them is `consumer.py`'s.
-
-Presumed abort: nothing is written before a durable call's `Load` leaves. A crash of
-this registrar between the `Load` and the commit of its answer leaves an id at the
-provider that no row here names; the restarted registrar reconciles with every
-registrar of the system (`consumer.py`'s `Reconciling.everyone`), so the provider
-releases it, and its `Load` carries this run (`Shared.life`), so one still on its way
-then is refused there (`provider.py`'s `Lives`).
+A plain call's outcome waits for the actor (`DueAnswers.outcomes`); a durable one is
+committed by the actor before its caller gets it (`consumer.py`). Why, and presumed
+abort: docs/explanation/inside.md, "A call's outcome".
 """
 
 from __future__ import annotations

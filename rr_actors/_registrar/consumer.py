@@ -11,13 +11,12 @@
    │       on_call_failed ─► the record forgotten (kept: a failed retry of a held id)
    ▼
  Flights   in_flight: query id ─► InFlight, while a call is not settled:
-   │         unsettled_at  the provider of a call that failed as it died or stopped
-   │                       (not one its caller withdrew first: `retry_held_at`):
-   │                       it may hold the id (a retry may come) ─► listed in the next
-   │                       Reconcile; still held there ─► kept_for_retry (listed in
-   │                       each Reconcile its life asks for, released by the first to
-   │                       its next life, or given back when this one stops or the
-   │                       load that made it ends: take_dependencies)
+   │         unsettled_at  the provider of a call that failed as it died or stopped (not
+   │                       one its caller withdrew first: `retry_held_at`): it may hold
+   │                       the id (a retry may come) ─► listed in the next Reconcile;
+   │                       still held there ─► kept_for_retry (listed in each Reconcile
+   │                       its life asks for, released by the first to its next life, or
+   │                       given back when this one stops or the load that made it ends)
    │         parked        notices (StatusNotice, Revoke, ResponseUpdated) that
    │                       overtook their answer ─► handled again once it came
    │       take_outcomes: the outcomes callers handed over, before each message
@@ -32,32 +31,22 @@
    │       StatusNotices ─► forget ─► answered once their callbacks ran; a resource's
    │       dependencies (`provider.py`'s teardown) the same way; the provider died or
    │       stopped meanwhile ─► unreleased: left out of its next Reconcile, so it
-   │       releases them (its unload runs once); each QueryForgotten of a release says
-   │       when its Unload left and the last Reconcile answered before (one that
-   │       crossed a restart without a backup: no FATAL); this registrar stops ─► its
-   │       durable calls withdrawn, the ids of failed calls and releases given back (Abandon):
+   │       releases them (its unload runs once); this registrar stops ─► its durable
+   │       calls withdrawn, the ids of failed calls and releases given back (Abandon):
    │       the stop goes on once each provider answered (or could not be reached)
    ▼
- Reconciling  it serves (again), or a provider asks (ReconcileAsk, `asked`; sent and
-          retried by `life.py`'s presence until answered) ─► Reconcile(the
-          ids held there: a Listing, its epoch; and this run, `Shared.life`); restored
-          from a backup, or restarted without one (LostEverything, from its
-          supervisor): with every registrar of the system, not only those its rows
-          name ─► the provider releases the others (an earlier run's calls whose
-          answers it never committed among them: presumed abort), gives up their
-          loads under way, refuses the earlier runs' Loads from then on, names those
-          it no longer knows ─► FATAL to each answered before the list
-          left (and up its dependents), then forgotten (rule 20); a provider lost for
-          good (`life.py`'s presence) ─► lose_provider: the same, for all (rule 19)
+ Reconciling  it serves (again), or a provider asks (ReconcileAsk, `asked`; retried by
+          `life.py`'s presence until answered) ─► Reconcile(the ids held there: a
+          Listing, its epoch; and this run, `Shared.life`); restored, or restarted
+          without a backup (LostEverything): with every registrar of the system ─► the
+          provider releases the others (presumed abort), gives up their loads under way,
+          refuses the earlier runs' Loads, names those it no longer knows ─► FATAL to
+          each answered before the list left (and up its dependents), then forgotten
+          (rule 20); a provider lost for good ─► lose_provider: the same (rule 19)
 ```
 
-Each part owns its state and changes another's only through its methods; all of them
-run on the registrar actor's thread, and each builds an event only when someone listens
-(`Shared.events.active`), so a consumer's events are in the order it recorded them.
-`redeliver` is the actor's dispatch (a callable it is given), not a part: a notice held
-back, or an outcome taken, is handled as if it had just arrived. The client actors
-(`ClientActor`, cached in `Clients`) relay a handle's fetch to a provider (thesis
-4.3.3); a call's `Load` goes from its caller's thread (`calls.py`).
+Each part owns its state and changes another's through its methods only, all on the
+actor's thread: docs/explanation/inside.md, "The consumer's parts".
 """
 
 from __future__ import annotations

@@ -346,10 +346,7 @@ class Registrar:
         blocking(self._actor.steps(Here.unregister_server, timeout, name))
 
     async def aunregister_server(self, name: str, *, timeout: float | None = None) -> None:
-        """`unregister_server`, awaited (rule 12).
-
-        Raises what `unregister_server` raises.
-        """
+        """`unregister_server`, awaited (rule 12): the same errors."""
         await run_steps_async(self._actor.steps(Here.unregister_server, timeout, name))
 
     # -- consumer API -----------------------------------------------------------------
@@ -456,10 +453,7 @@ class Registrar:
         blocking(self._actor.steps(Here.unload, timeout, query_id))
 
     async def aunload(self, query_id: str, *, timeout: float | None = None) -> None:
-        """`unload`, awaited (rules 7-8).
-
-        Raises what `unload` raises.
-        """
+        """`unload`, awaited (rules 7-8): the same errors."""
         await run_steps_async(self._actor.steps(Here.unload, timeout, query_id))
 
     def send_status(
@@ -528,10 +522,7 @@ class Registrar:
         return blocking(self._actor.steps(Here.server_queries, timeout, server))
 
     async def aserver_queries(self, server: str, *, timeout: float | None = None) -> list[Query]:
-        """`server_queries`, awaited (rule 10).
-
-        Raises what `server_queries` raises.
-        """
+        """`server_queries`, awaited (rule 10): the same errors."""
         return await run_steps_async(self._actor.steps(Here.server_queries, timeout, server))
 
     def fetch_queries(
@@ -552,10 +543,7 @@ class Registrar:
     async def afetch_queries(
         self, target_rr: str, server: str, *, timeout: float | None = None
     ) -> list[Query]:
-        """`fetch_queries`, awaited (rule 10).
-
-        Raises what `fetch_queries` raises.
-        """
+        """`fetch_queries`, awaited (rule 10): the same errors."""
         steps = self._actor.steps(Here.fetch_queries, timeout, target_rr, server)
         return await run_steps_async(steps)
 
@@ -570,10 +558,7 @@ class Registrar:
         return blocking(self._actor.steps(Here.client_queries, timeout))
 
     async def aclient_queries(self, *, timeout: float | None = None) -> list[Query]:
-        """`client_queries`, awaited.
-
-        Raises what `client_queries` raises.
-        """
+        """`client_queries`, awaited: the same errors."""
         return await run_steps_async(self._actor.steps(Here.client_queries, timeout))
 
     def set_status_callback(
@@ -636,10 +621,7 @@ class Registrar:
     async def aupdate_response(
         self, query_id: str, response: Any, *, timeout: float | None = None
     ) -> None:
-        """`update_response`, awaited (rule 11).
-
-        Raises what `update_response` raises.
-        """
+        """`update_response`, awaited (rule 11): the same errors."""
         steps = self._actor.steps(Here.update_response, timeout, query_id, response)
         await run_steps_async(steps)
 
@@ -654,10 +636,7 @@ class Registrar:
         blocking(self._actor.steps(Here.save_catalog, timeout))
 
     async def asave_catalog(self, *, timeout: float | None = None) -> None:
-        """`save_catalog`, awaited.
-
-        Raises what `save_catalog` raises.
-        """
+        """`save_catalog`, awaited: the same errors."""
         await run_steps_async(self._actor.steps(Here.save_catalog, timeout))
 
     def stop(self, *, timeout: float | None = None) -> None:
@@ -685,10 +664,7 @@ class Registrar:
         blocking(self._actor.stop(timeout))
 
     async def astop(self, *, timeout: float | None = None) -> None:
-        """`stop`, awaited (rule 12). Stopping a stopped registrar is a no-op.
-
-        Raises what `stop` raises.
-        """
+        """`stop`, awaited (rule 12): the same errors."""
         await run_steps_async(self._actor.stop(timeout))
 
     def watch(self, query_id: str, *, maxsize: int = 256) -> StatusWatch:

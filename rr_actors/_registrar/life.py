@@ -36,19 +36,11 @@ its peers (lost for good, reachable again), stop or die, and say so.
    peer_reachable), each a message to its mailbox
 ```
 
-A clean stop keeps what its servers serve (a restart needs it). A provider that its
-supervisor restarts is not lost (rule 15): nobody sends a `ConsumerDown` for it, its
-restored catalog keeps its consumers' ids, and it reconciles by itself when it serves
-again. Who is gone for good is known per process, by its membership
-(`rr_actors._core.membership`), fed by the carriers' liveness
-(`_transport/messenger.py`), by the death watch here, and by another process's
-`ConsumerDown`; it tells every registrar of the process `PeerLost`, and one that starts
-later the names gone then. The layers above (`_process`, `_supervision`) call the death
-watch and never build a registrar message themselves.
-
-Each part owns its state: the open requests, the stop under way and the flush timer
-(`Lifecycle`), the in-doubt ids and the sweep's progress (`Restoring`), the reconcile
-rounds being retried (`Presence`); the phase is the record's (`state.py`).
+Why a restarted provider is not lost, and who knows who is gone: docs/explanation/inside.md,
+"A registrar's peers". Each part owns its state: the open requests, the stop under way
+and the flush timer (`Lifecycle`), the in-doubt ids and the sweep's progress
+(`Restoring`), the reconcile rounds being retried (`Presence`); the phase is the
+record's (`state.py`).
 """
 
 from __future__ import annotations

@@ -37,40 +37,9 @@ resource its provider reported `FATAL` (`Resource.failed`) is no equal request's
 also one reported so while user code compared: the request is loaded afresh beside it
 (rule 1; `status.py` marks it).
 
-The registrar's actor never waits for user code: an `__eq__` that hangs would stall every
-server, status and unload of the registrar, and one that raises `SystemExit` would end
-pykka's actor loop. Plain values (with a digest: built-in strings, numbers, containers of
-them, `rr_actors._catalog.digest`) are compared on the actor; whatever else must be judged
-by user code runs on a worker (`Matching.run`), bounded by `compare_timeout`: an
-`Exception` from `__eq__` means "different", anything else fails that call with
-`ConfigError`, and one past the bound with `CallTimeoutError` (the worker is abandoned).
-Loads of one server are matched one at a time while user code decides, so two equal
-requests without a digest cannot both miss each other and load twice (rule 3).
-
-A server's callbacks that are coroutine functions run as tasks of the process's own event
-loop (`_core/loops.py`): a load that awaits holds no thread. The rules are the blocking
-ones': loads of one server run concurrently, a hung load fails its callers at their
-`timeout` (rule 17), an unload is bounded by `unload_timeout` (past it, it is cancelled
-rather than abandoned on its thread), and the tasks still running when the server stops
-are cancelled.
-
-Overload (issue 53). What slows, what is shed and what is refused is decided here, by the
-provider, for three reasons: it is the one place that knows its servers' work under way
-(a consumer sees only its own calls, and many consumers in many processes call one
-server); its answer is quick and holds nothing (no consumer id, no worker), so a refusal
-costs one round trip and no state on either side; and it needs no new message or credit
-protocol between processes, only an error answer that every carrier already moves.
-
-- Admission (`start_load`): a new load of a server with `RegistrarConfig.max_pending`
-  loads queued or running is refused with `OverloadedError`; its caller waits (a pause
-  that doubles from 5 ms to 100 ms, on its thread or, awaited, with none) and asks again
-  while its timeout lasts (`calls.py`). A dedup hit or a caller joining a load under way
-  adds no work and is never refused.
-- Shedding (`ServerActor.shed`): each `Load` carries its caller's deadline (as seconds
-  left across processes); a load whose deadline leaves less than 1.5 times what its
-  server's recent loads take, when a worker comes free for it, fails at once with
-  `DeadlineExceededError` and never runs: its caller would have given up before it ended.
-- Withdrawal (`withdraw`): a queued load whose callers all gave up is never run.
+Why the actor never waits for user code, how coroutine callbacks run, and who decides
+under overload (admission, shedding, withdrawal): docs/explanation/inside.md, "The
+provider".
 
 Each part owns its state: the loads and their waiters (`Provider`), the loads whose match
 user code decides (`Matching`), the unloads under way, parked or waited for (`Teardown`);

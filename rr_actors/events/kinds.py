@@ -399,8 +399,7 @@ class LoadFailed(_Numbered):
         query_id: the id of the query that caused the load.
         error_type: the exception's type name (`type(exc).__name__`).
         message: the exception's message (`str(exc)`).
-        trace: the W3C `traceparent` the call carried (`rr_actors.otel`: its trace id,
-            its CLIENT span's id, the sampled flag), `""` for an untraced call.
+        trace: the W3C `traceparent` the call carried, as `CallAnswered.trace`.
         at: when it failed.
     """
 
@@ -448,8 +447,7 @@ class ConsumerAdded(_Numbered):
         resource_id: the resource's id.
         query_id: the consumer's query id.
         consumer: name of the consumer registrar (the query's `origin_rr`).
-        trace: the W3C `traceparent` the call carried (`rr_actors.otel`: its trace id,
-            its CLIENT span's id, the sampled flag), `""` for an untraced call.
+        trace: the W3C `traceparent` the call carried, as `CallAnswered.trace`.
     """
 
     registrar: str
@@ -557,13 +555,9 @@ class CallFailed(_Numbered):
             and a retry with the same id finds what it holds. `False`: the provider holds
             nothing for it (an error answer, or an answer given back).
         retry: the consumer already knew this id (see `CallAnswered.retry`).
-        started: when the call began (`call`/`acall` was made), wall clock seconds as
-            `at`; 0.0 if not known (made while nobody listened, or an older line).
-        trace: the W3C `traceparent` the call carried to its provider (its trace id,
-            its CLIENT span's id, the sampled flag: `rr_actors.otel`), `""` when no
-            OpenTelemetry span was current in the caller.
-        caller_span: the id (16 hex) of the span current in the caller, the CLIENT
-            span's parent; `""` with `trace`.
+        started: as `CallAnswered.started`.
+        trace: as `CallAnswered.trace`.
+        caller_span: as `CallAnswered.caller_span`.
         at: when the failure was handled.
     """
 
@@ -595,13 +589,9 @@ class CallWithdrawn(_Numbered):
         reason: `"timeout"` (its `timeout` ran out: `CallTimeoutError`),
             `"interrupted"` (its caller stopped waiting with an exception) or
             `"registrar stopped"` (the consumer was stopped with the call in flight).
-        started: when the call began (`call`/`acall` was made), wall clock seconds as
-            `at`; 0.0 if not known (made while nobody listened, or an older line).
-        trace: the W3C `traceparent` the call carried to its provider (its trace id,
-            its CLIENT span's id, the sampled flag: `rr_actors.otel`), `""` when no
-            OpenTelemetry span was current in the caller.
-        caller_span: the id (16 hex) of the span current in the caller, the CLIENT
-            span's parent; `""` with `trace`.
+        started: as `CallAnswered.started`.
+        trace: as `CallAnswered.trace`.
+        caller_span: as `CallAnswered.caller_span`.
         at: when the withdrawal was handled.
     """
 

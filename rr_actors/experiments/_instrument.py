@@ -181,7 +181,7 @@ def instrumented_setup(
         base_dir: a directory searched first for `path` (the plan's), or `None`.
         registrar: the manager's registrar (given by the supervisor).
     """
-    from rr_actors.experiments._imports import import_object  # noqa: PLC0415 - runs in managers
+    from rr_actors.experiments.reading import import_object  # noqa: PLC0415 - runs in managers
 
     if runtime.handles_signals():
         signal.signal(CUT_SIGNAL, _on_cut_signal)

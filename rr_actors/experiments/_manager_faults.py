@@ -4,7 +4,7 @@ their resource processes killed, their loads made to fail.
 ```
  fire(fault, due) (the injector's thread, PREPARE_AHEAD before it is due): look up its target
    kill_manager ──► SIGKILL ─┐
-   hang_manager ──► SIGSTOP ─┼─ a pidfd and the due time ──► trigger process (_sender.py)
+   hang_manager ──► SIGSTOP ─┼─ a pidfd and the due time ──► trigger process (_trigger.py)
    kill_resource ─► SIGKILL ─┤                               sends it at the due time;
    cut_connections ► SIGUSR2 ┘  (the manager's handler       _sent: the reply recorded
                                  shuts its connections)
@@ -35,7 +35,7 @@ from rr_actors.experiments._procs import resource_processes, start_time
 
 if TYPE_CHECKING:
     from rr_actors.experiments._agenda import Agenda, FaultLog
-    from rr_actors.experiments._sender import Trigger
+    from rr_actors.experiments._trigger import Trigger
     from rr_actors.experiments.plan import Plan
     from rr_actors.experiments.schedule import ScheduledFault
 

@@ -15,95 +15,8 @@
                          numbers of the events that show it) ──► Verdict
 ```
 
-The rules checked (`docs/how-to/check-a-run.md` says what each means, its windows, and
-what cannot be checked):
-
-- `kept`: an acknowledged load (a `ConsumerAdded`) is held until it is released (a
-  `ConsumerReleased`) or its consumer is told `FATAL`; a restart that loses it otherwise
-  (a `CatalogRestored` without it, or a restart without a backup), or a clean stop that
-  does not list it, is a violation, unless, for a restart, its consumer had forgotten
-  it before (`QueryForgotten`): a release committed just before a kill has no
-  `ConsumerReleased`, and the restore shows it; or, for a restart without a backup, its
-  call had failed for its caller (`CallFailed`: it holds no id), its consumer forgot it
-  before the life before ended, or forgot it on a release that crossed the restart (its
-  `QueryForgotten.reconciled`: its last reconcile with the provider before the `Unload`
-  left began before that life ended); nor for a consumer without a backup killed
-  before the restart (its program killed with its managers: its events may be lost).
-- `unload-once`: a resource is unloaded at most once, and only once its last consumer
-  id was released; no consumer is added to a resource after its unload; no id is
-  released that was not held.
-- `no-leak`: a resource whose last consumer id was released is unloaded (or cut short,
-  or kept as unloading: in doubt at the next start) before its registrar stops.
-- `one-resource`: an id held on a resource is not added to another one (a retry with
-  the same id loads nothing, rule 2).
-- `release-match`: a release names the resource its id was held on.
-- `in-doubt`: a resource reported `InDoubt` has no committed consumer id.
-- `dedup`: no two resources of equal requests (the same request digest) are live at once
-  at a provider's server (requests of plain values only: others carry no digest); one
-  its provider reported `FATAL` is not live for this (a new equal one loads beside it).
-- `restore-first`: a registrar with a backup publishes `CatalogRestored` before any
-  other event of each of its lives.
-- `status-once`: a status send (its `status_id`) reaches each holder once per path.
-- `status-reached`: it reaches every holder that held its id throughout it, at least once
-  (not one cut off its sender: the sender let its id go as lost, `death watch`, and the
-  holder lived on and forgot it as unreachable, at its reconcile or its unload; nor one
-  restarted and not serving again yet when it was sent).
-- `status-path`: each delivery of a status is on a dependency path from its send: a
-  direct consumer of the resource it was sent about (hop 1), or a consumer of a resource
-  one of whose dependencies got it one hop before (the dependency's `CallAnswered.parent`).
-- `status-order` (rule 9): each query id's status callbacks run one at a time, in the
-  order their statuses arrived (`StatusHandled`): none begins before one that arrived
-  before it returned, unless that one waited for a registrar (`opened`).
-- `answered`: from the consumer's side, an answered call (`CallAnswered`) is held until
-  it is forgotten (`QueryForgotten`, with why) or listed when its registrar stops, and
-  so is a client record its `CatalogRestored` listed; it is not answered twice but as a
-  retry; its provider added it (`ConsumerAdded`); nothing is forgotten that was not held.
-- `reported-lost`: a consumer tells itself `FATAL` (`provider lost`, `unknown at
-  reconcile`) only for an id its provider lost: not one the provider's life that
-  answered (or ran on, on the same host) had added and not released (or released only
-  at its reconcile with that consumer: they could not hear each other, a cut).
-- `end`: nothing is held at the end by a consumer that stopped (`RegistrarStopped`): a
-  provider's life holds what its `CatalogRestored` listed (nothing without a backup) and
-  what it added since.
-- `withdrawn` (rules 17, 20): an id whose call its consumer withdrew (`CallWithdrawn`,
-  not answered again after) is not held at the end by its provider's last life, once
-  that life served `WITHDRAWN_BOUND_S` after the withdrawal and its own start.
-- `left`: a registrar's last stop, at the end of the run (every client unloaded, every
-  manager reconciled), lists no resource that no running consumer holds, and no client
-  record but a dependency of one that is held (the rows `entries_left` counts); not
-  judged after a supervisor gave up in that registrar's last life.
-- `unload-order` (rule 7): a resource's `ResourceUnloaded` comes after its registrar
-  forgot every dependency of it (`QueryForgotten` of each query it answered for it).
-- `dependency-held` (rule 7): a registrar does not forget a dependency of its resource
-  (a query it answered with it as `parent`) while that resource has a consumer id,
-  unless its provider ended it (`revoked`, `provider lost`, `unknown at reconcile`).
-- `intensity`: a supervisor gives up exactly when more than `max_restarts` of the exits
-  it counts (`ChildExited` not stopped by it, of a child its restart type restarts: OTP)
-  fall within `period` seconds, at the exit that makes them so; counted afresh after a
-  give-up and at a new run of the supervisor (a second `ChildStarted` of a child).
-- `strategy`: a supervisor's decision at an exit it did not cause follows OTP's strategy
-  and restart types: the running siblings of the child's group (`one_for_one`: none;
-  `one_for_all`: every child; `rest_for_one`: those started after it; at a give-up,
-  every child) are stopped right after the exit, in reverse start order; the group is
-  restarted in start order, every member (but a `temporary` sibling) at once, unless
-  one fails to start; no child is restarted that its restart type leaves down
-  (`temporary`; `transient` after a normal exit) or that no decision restarts.
-- `escalation`: a nested supervisor that gave up exits to its parent, which takes it as
-  its child's exit (not stopped by the parent, unless within `ESCALATED_S` of the
-  give-up: the parent was stopping it then).
-- `one-name` (rule 22): a second server of a name (a process whose events of a registrar
-  begin while another one's life of it goes on: only a cut lets each side serve a name)
-  yields once the cut heals; two that both serve to the end of the run (neither process
-  exited but at the tree's shutdown) are a violation. The checker sees no cut: a run
-  ends healed, so serving to its end is serving after the heal.
-- `fetch` (rule 10): a fetch (`QueriesFetched`) lists only ids its provider held for
-  its consumer at some instant while it was asked (between its `started` and `hlc`
-  stamps), and every id that consumer had answered before and its provider held
-  throughout; not judged across a restart of the provider. A provider's listing of its
-  own server (`ServerQueriesListed`, `server_queries`) likewise lists only ids it held
-  while asked, and every id that server held throughout, whoever its consumer.
-- `events`: no event was lost (an `EventsDropped`, a gap in a process's `seq`); a loss
-  makes the findings about the registrars of that process unverifiable.
+The rules checked (`RULES`), each with what it means, its windows and what cannot be
+checked, are the table of `docs/how-to/check-a-run.md`.
 
 `held` is a verdict (no finding), not a rule. The checker re-synchronises a registrar's
 state at each `CatalogRestored`; it compares lines within one registrar, and clock stamps
@@ -168,7 +81,7 @@ RULES = (
     "fetch",
     "events",
 )
-"""The rules `check` checks, by name (see the module docstring)."""
+"""The rules `check` checks, by name (`docs/how-to/check-a-run.md` says what each means)."""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -10,7 +10,7 @@
  ManagerFaults (_manager_faults.py)                       HostFaults (_host_faults.py)
    kill_manager, hang_manager, cut_connections,             cut, partition, freeze,
    kill_resource: a pidfd ─► the trigger process            kill_router: at the due time,
-   (_sender.py, _trigger.py) signals at the due time;       from here; undone `for` later
+   (_trigger.py) signals at the due time;          from here; undone `for` later
    a thread manager's crash; load_error (Supervisor.run_in)
        └──────────────────── FaultLog: every fault fired or skipped ──────────────────┘
  stop ──► the agenda stops; hung managers resumed, faults between hosts undone; what never
@@ -39,7 +39,7 @@ from rr_actors.experiments._host_faults import HostFaults
 from rr_actors.experiments._hosts import HostProcess
 from rr_actors.experiments._manager_faults import ManagerFaults
 from rr_actors.experiments._netns import HostNetwork
-from rr_actors.experiments._sender import Trigger
+from rr_actors.experiments._trigger import Trigger
 from rr_actors.experiments.plan import HOST_KINDS, Plan
 from rr_actors.experiments.results import FaultRecord
 from rr_actors.experiments.schedule import ScheduledFault

@@ -19,6 +19,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import functools
+import importlib
 import inspect
 import operator
 import os
@@ -36,10 +37,9 @@ from msgspec import UNSET
 
 from rr_actors.errors import ConfigError
 from rr_actors.experiments import plan as schema
-from rr_actors.experiments._imports import import_object
 from rr_actors.experiments.plan import Plan, PlanError
 
-__all__ = ["load_plan", "parse_plan"]
+__all__ = ["import_object", "load_plan", "parse_plan"]
 
 KeyPath = tuple[str | int, ...]  # a path into the data: table keys and array indices
 
@@ -84,6 +84,35 @@ NEEDS_KIND: dict[str, tuple[str, ...]] = {
 NEEDS_KIND["for"] += ("duplicate_delivery", "split_brain", "deaf_manager")
 NEEDS_KIND |= {"loads": ("load_error",), "link": ("cut",), "hosts": ("partition",)}
 NEEDS_KIND |= {"server": ("load_error",), "message": ("load_error",)}
+
+
+def import_object(path: str, *, base_dir: str | None = None) -> Any:
+    """Import `"package.module:attribute"` (the attribute may be dotted), `base_dir` first:
+    a plan's import paths, while it is read and again in the run and manager processes.
+
+    Raises:
+        ConfigError: the path is malformed, the module does not import (it raised, or
+            exited; a `KeyboardInterrupt` goes through), or it has no such attribute.
+    """
+    module_name, colon, attribute = path.partition(":")
+    if not colon or not module_name or not attribute:
+        raise ConfigError(f"{path!r} is not an import path of the form 'package.module:name'")
+    added = base_dir if base_dir is not None and base_dir not in sys.path else None
+    if added is not None:  # first on `sys.path` while it imports
+        sys.path.insert(0, added)
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise ConfigError(f"{path!r} does not import: {exc}") from exc
+    except (Exception, SystemExit) as exc:  # a module that calls sys.exit() on import, too
+        raise ConfigError(f"{path!r}: importing {module_name} raised {exc!r}") from exc
+    finally:
+        if added is not None and added in sys.path:
+            sys.path.remove(added)
+    try:
+        return functools.reduce(getattr, attribute.split("."), module)
+    except AttributeError:
+        raise ConfigError(f"{path!r}: {module_name} has no attribute {attribute!r}") from None
 
 
 def load_plan(path: str | os.PathLike[str]) -> Plan:

@@ -36,7 +36,7 @@ import msgspec
 import rr_actors as rr
 from rr_actors import events
 from rr_actors._core import runtime
-from rr_actors._process import context as process_context
+from rr_actors._process import control as process_control
 from rr_actors.events.lines import to_lines
 from rr_actors.experiments import _hosts, _procs, check, metrics
 from rr_actors.experiments._instrument import instrumented_setup
@@ -168,8 +168,8 @@ def preload_setups(plan: Plan) -> None:
     named = {"base_dir": plan.base_dir, "modules": modules}
     os.environ[_procs.PRELOAD_VARIABLE] = json.dumps(named)
     try:
-        process_context.preload([PRELOAD_MODULE])
-        process_context.start_forkserver()
+        process_control.preload([PRELOAD_MODULE])
+        process_control.start_forkserver()
     finally:
         del os.environ[_procs.PRELOAD_VARIABLE]
 

@@ -46,12 +46,6 @@
  write(shrunk, out): out/plan.toml (a header says what it shows), out/seeds.jsonl,
                      out/events-seed-S.jsonl: a run directory `rr-actors replay` reads
 ```
-
-Why other seeds: the seed drives the scheduler and the clients' arrival times, so any
-change of the plan (but a cut of its end) gives another interleaving; a violation that
-needs a rare one is lost by most candidates under the seed alone, and found again under
-one of a few seeds, or, for a race one seed in a hundred shows, of a few hundred: the
-widening spends those runs only once the cheap cuts are done and the runs are small.
 """
 
 from __future__ import annotations
@@ -95,7 +89,14 @@ WIDEN = 4
 """At a fixpoint, a candidate runs with this many times as many seeds from then on."""
 
 MOST_TRIES = 1000
-"""The most seeds a candidate runs with (the widest search: its fixpoint ends a shrink)."""
+"""The most seeds a candidate runs with (the widest search: its fixpoint ends a shrink).
+
+Why other seeds than the run's: the seed drives the scheduler and the clients' arrival
+times, so any change of the plan (but a cut of its end) gives another interleaving; a violation that
+needs a rare one is lost by most candidates under the seed alone, and found again under
+one of a few seeds, or, for a race one seed in a hundred shows, of a few hundred: the
+widening spends those runs only once the cheap cuts are done and the runs are small.
+"""
 
 SEEDS = 20
 """The seeds the seed pass runs the current plan with: 1 to this (or the width)."""

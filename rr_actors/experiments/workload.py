@@ -62,9 +62,9 @@ from typing import Any, TypeVar
 import rr_actors as rr
 from rr_actors._core import runtime
 from rr_actors.errors import ConfigError
-from rr_actors.experiments._imports import import_object
 from rr_actors.experiments.metrics import ClientRecovery
 from rr_actors.experiments.plan import CallMix, Plan, Workload
+from rr_actors.experiments.reading import import_object
 from rr_actors.experiments.results import CallRecord
 
 __all__ = ["Client", "RequestContext", "render_request", "retrying"]

@@ -7,7 +7,7 @@
                      Loads (loads.py)        what the mission holds; the statuses it hears
                      Robot (robot.py)        the goal topic and the odometry
                      Recovery (recovery.py)  F1: LiDAR 2; F2: wait for UPDATE; F6: ride out the cut
-                     Step (step.py)          --step: stop before each fault, off the clock
+                     Step (robot.py)         --step: stop before each fault, off the clock
                    ─► _mission: Loads.robot(), Loads.lidar("lidar1"), Robot.go()
                                 ─► Drive.run (drive.py): the loop, to the goal
                    ─► _unload_all: Robot.stop(), Loads.unload_all(), Loads.catalogs()
@@ -55,8 +55,7 @@ from rr_actors.mission.netns import TwoHosts
 from rr_actors.mission.output import Progress
 from rr_actors.mission.recovery import Recovery
 from rr_actors.mission.report import MissionClock, MissionReport, build_report
-from rr_actors.mission.robot import Robot
-from rr_actors.mission.step import Step
+from rr_actors.mission.robot import Robot, Step
 
 __all__ = ["Mission"]
 

@@ -24,8 +24,7 @@ from rr_actors.mission.loads import Loads
 from rr_actors.mission.output import Progress
 from rr_actors.mission.recovery import Recovery
 from rr_actors.mission.report import SHORT_WHAT, FaultRecord, MissionClock
-from rr_actors.mission.robot import TICK, Robot
-from rr_actors.mission.step import Step
+from rr_actors.mission.robot import TICK, Robot, Step
 
 __all__ = ["Drive"]
 

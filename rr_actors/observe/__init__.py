@@ -17,9 +17,9 @@ JSON and `_system` keeps a page of every host (`observe_system`: a page from a m
 without a tree); `_crossing` (what crosses, and its checks), `_liveness` (the hosts'
 and links' sections), `_faults_across` (fault commands to another host).
 
-Modules: `_view` (what is shown, as data), `_probe` (a registrar's catalog, read in its
-own process), `_hub` (the sections and recent events, for every page), `_sources` (live
-tree, backups), `_faults` (teaching mode), `_server` (Starlette app, uvicorn thread),
+Modules: `_view` (what is shown, as data), `_hub` (the sections and recent events, for
+every page), `_sources` (live tree, backups; a registrar's catalog, read in its own
+process), `_faults` (teaching mode), `_server` (Starlette app, uvicorn thread),
 `_observer` (the `Observer` handle), `_text` (Mermaid and DOT), `_commands` (the
 command line). The web server's dependencies are the `observe` extra and are imported
 only when an observer opens; the drawings need nothing more than rr_actors.

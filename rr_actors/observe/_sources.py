@@ -13,7 +13,7 @@
 ```
 
 Both only read: the live source asks each registrar for a copy of its rows (in its own
-process, see `_probe.py`), the backup source reads the files read-only
+process, `catalog_of`), the backup source reads the files read-only
 (`rr_actors._store.read_backup`) and unpickles nothing: it shows the display texts each
 registrar stored with its values (unpickling would run code from a file that may be
 another user's). Every wait is bounded; `close()` ends the threads.
@@ -32,11 +32,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 from rr_actors import events
+from rr_actors._registrar import snapshot
 from rr_actors._store import read_backup
 from rr_actors.config import SupervisorSpec, managers
 from rr_actors.errors import ConfigError
 from rr_actors.observe._hub import Hub
-from rr_actors.observe._probe import catalog_of
 from rr_actors.observe._view import (
     dependency_graph,
     resource_name,
@@ -265,6 +265,38 @@ class StatusNames:
         if name is None and held is not None:
             name = self._loaded.get((sent.host, sent.registrar, held))
         return name or f"{sent.registrar} (query {sent.query_id[:8]})"
+
+
+def catalog_of(registrar: ResourceRegistrar, *, timeout: float) -> Any:
+    """The registrar's catalog summary (see `rr_actors.observe._view`).
+
+    Runs in the registrar's process (through `Supervisor.run_in` for a manager), on the
+    caller's thread. The registrar copies its rows and its servers' names on its own
+    actor thread (`rr_actors._registrar.snapshot`, as `rr_actors.testing.catalog_snapshot`
+    does), so the copy is consistent and the registrar is held for a copy only. No `repr`
+    runs here: the summary shows the display texts the registrar made once, when it
+    stored each value (plain dicts and strings: nothing of the user's to unpickle).
+
+    Args:
+        registrar: a registrar of this process.
+        timeout: seconds to wait for the registrar.
+
+    Returns:
+        The catalog summary: plain dicts, lists and strings.
+
+    Raises:
+        CallTimeoutError: the registrar did not answer within `timeout`.
+        RegistrarStoppedError: it was stopped.
+        RegistrarUnavailableError: it died.
+    """
+    view = snapshot(registrar, timeout=timeout, check=False)
+    return summarise_catalog(
+        registrar.name,
+        view.resources,
+        view.clients,
+        servers=view.servers,
+        in_doubt=view.in_doubt,
+    )
 
 
 class LiveSource:

@@ -46,8 +46,9 @@ from rr_actors import events
 from rr_actors._core import runtime
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY
-from rr_actors._process.context import ACTOR_DIED_EXIT, STOPPED_EXIT, stopped_cleanly
 from rr_actors._process.control import (
+    ACTOR_DIED_EXIT,
+    STOPPED_EXIT,
     Events,
     EventsSynced,
     Failed,
@@ -58,6 +59,7 @@ from rr_actors._process.control import (
     Ready,
     Stop,
     SyncEvents,
+    stopped_cleanly,
 )
 from rr_actors._process.heartbeat import Hang, Heartbeat
 from rr_actors._process.manager import ManagerExit, ManagerProcess, describe

@@ -12,51 +12,8 @@ Two kinds of exercise: `use` (the student writes a manager's setup or a plan, as
 of the framework would) and `protocol` (the student gets one step of the registrar with
 a bug, in `step.py`, and fixes it: the check runs the simulation with their copy in the
 step's place, `replaced_step`). `kit.py` reads the exercises, `grade.py` checks a
-folder, `rules.py` holds the kit's own rules (besides the checker's), `cli.py` the
-command.
-
-The protocol steps a student's copy can replace (`STEPS`), each with the registrar's own
-code as a function of the same shape (`shipped_step`):
-
-- `climb(parent, resources, status) -> ids`: where a status delivered to a consumer id
-  climbs: `parent` the id of the resource that id is a dependency of (`None`: a client's
-  own call), `resources` the ids of the resources its registrar serves (a collection:
-  `in` is what to ask it), `status` the `rr_actors.Status`; returns the ids of the
-  resources to notify in turn (an iterable of `str`; ids not in `resources` are skipped).
-- `shares(stored, request, loading, failed) -> bool`: whether a resource loaded (or
-  loading: `loading`) for request `stored` serves a new call of `request` (rule 1:
-  equal requests share one resource); `failed`: its provider reported it `FATAL`.
-  Asked for plain requests (those the catalog digests: numbers, strings, tuples,
-  dicts of them...), of the same server, on the registrar's actor thread.
-- `group(strategy, names, crashed) -> names`: the children a crash of child `crashed`
-  takes down with it, itself included: `strategy` the supervisor's (`"one_for_one"`,
-  `"one_for_all"`, `"rest_for_one"`), `names` every child's name in start order (a
-  tuple of `str`); returns the names to stop and restart (an iterable of `str`; the
-  supervisor stops them in reverse start order, then starts them in start order). Runs
-  on the supervisor's thread.
-- `unloads(left) -> bool`: whether the release of one consumer id of a loaded resource
-  unloads it: `left` the consumer ids still on it after that release (a frozenset of
-  query ids, maybe empty). Asked on the registrar's actor thread at each release.
-- `in_doubt(state) -> bool`: whether a row restored from a backup was cut short by a
-  crash (rule 16): `state` its state there, `"loading"`, `"loaded"` or `"unloading"`.
-  Asked as the registrar starts, before it serves (its launching thread, then its
-  actor thread).
-- `reconcile(mine, held, under_way) -> (release, unknown)`: a provider's side of a
-  reconcile with one consumer: `mine` the query ids it holds for that consumer, `held`
-  those the consumer says it holds there, `under_way` those whose loads are under way
-  here (frozensets of `str`); returns the ids to release here (those not in `mine` are
-  skipped) and the ids to answer as unknown (the consumer reports them `FATAL`), two
-  iterables of `str`. Asked on the provider's actor thread.
-- `release_order(dependencies) -> order`: when a resource's last consumer left, the
-  query ids of the calls it holds as dependencies (a tuple of `str`, oldest first)
-  and `"unload"` (its provider's unload callback), in the order they run: every id
-  and `"unload"` once (a list). Those before `"unload"` are released before it runs,
-  those after once it is done. Asked on the registrar's actor thread.
-- `recent(times, now, period) -> int`: at a child's exit that its supervisor would
-  restart, how many restarts count toward its intensity: `times` every restart counted
-  since the supervisor (re)started, this one last (a tuple of monotonic seconds), `now`
-  this one's time, `period` the supervisor's (seconds). Above `max_restarts`, the
-  supervisor gives up. Asked on the supervisor's thread.
+folder (with the kit's own rules besides the checker's, `rules.py`), `cli.py` the
+command; `STEPS` lists the protocol steps a student's copy can replace, with their shapes.
 """
 
 from __future__ import annotations
@@ -141,7 +98,50 @@ STEPS: dict[str, Callable[..., Any]] = {
     "shares": _shares,
     "unloads": _unloads,
 }
-"""The steps a classroom's copy may replace, each name with the registrar's own code."""
+"""The steps a classroom's copy may replace, each name with the registrar's own code.
+
+Each step's shape (`shipped_step` gives the registrar's own code as a function of it):
+
+- `climb(parent, resources, status) -> ids`: where a status delivered to a consumer id
+  climbs: `parent` the id of the resource that id is a dependency of (`None`: a client's
+  own call), `resources` the ids of the resources its registrar serves (a collection:
+  `in` is what to ask it), `status` the `rr_actors.Status`; returns the ids of the
+  resources to notify in turn (an iterable of `str`; ids not in `resources` are skipped).
+- `shares(stored, request, loading, failed) -> bool`: whether a resource loaded (or
+  loading: `loading`) for request `stored` serves a new call of `request` (rule 1:
+  equal requests share one resource); `failed`: its provider reported it `FATAL`.
+  Asked for plain requests (those the catalog digests: numbers, strings, tuples,
+  dicts of them...), of the same server, on the registrar's actor thread.
+- `group(strategy, names, crashed) -> names`: the children a crash of child `crashed`
+  takes down with it, itself included: `strategy` the supervisor's (`"one_for_one"`,
+  `"one_for_all"`, `"rest_for_one"`), `names` every child's name in start order (a
+  tuple of `str`); returns the names to stop and restart (an iterable of `str`; the
+  supervisor stops them in reverse start order, then starts them in start order). Runs
+  on the supervisor's thread.
+- `unloads(left) -> bool`: whether the release of one consumer id of a loaded resource
+  unloads it: `left` the consumer ids still on it after that release (a frozenset of
+  query ids, maybe empty). Asked on the registrar's actor thread at each release.
+- `in_doubt(state) -> bool`: whether a row restored from a backup was cut short by a
+  crash (rule 16): `state` its state there, `"loading"`, `"loaded"` or `"unloading"`.
+  Asked as the registrar starts, before it serves (its launching thread, then its
+  actor thread).
+- `reconcile(mine, held, under_way) -> (release, unknown)`: a provider's side of a
+  reconcile with one consumer: `mine` the query ids it holds for that consumer, `held`
+  those the consumer says it holds there, `under_way` those whose loads are under way
+  here (frozensets of `str`); returns the ids to release here (those not in `mine` are
+  skipped) and the ids to answer as unknown (the consumer reports them `FATAL`), two
+  iterables of `str`. Asked on the provider's actor thread.
+- `release_order(dependencies) -> order`: when a resource's last consumer left, the
+  query ids of the calls it holds as dependencies (a tuple of `str`, oldest first)
+  and `"unload"` (its provider's unload callback), in the order they run: every id
+  and `"unload"` once (a list). Those before `"unload"` are released before it runs,
+  those after once it is done. Asked on the registrar's actor thread.
+- `recent(times, now, period) -> int`: at a child's exit that its supervisor would
+  restart, how many restarts count toward its intensity: `times` every restart counted
+  since the supervisor (re)started, this one last (a tuple of monotonic seconds), `now`
+  this one's time, `period` the supervisor's (seconds). Above `max_restarts`, the
+  supervisor gives up. Asked on the supervisor's thread.
+"""
 
 
 def shipped_step(name: str) -> Callable[..., Any]:

@@ -43,28 +43,30 @@ A carrier to test against without processes:
   crosses it as frames, as on the AF_UNIX and Zenoh carriers; `cut(name)` is a
   `SIGKILL` of the process serving `name`.
 
-Where they live: `helpers.py`, `seams.py`, `shared.py`, `memory.py` (re-exported here).
+Where they live: `seams.py`, `shared.py`, `memory.py` (re-exported here).
 """
 
 from __future__ import annotations
 
-from rr_actors._process.context import start_forkserver
+from rr_actors._process.control import start_forkserver
 from rr_actors._process.remote import RemoteRegistrar
 from rr_actors._registrar.actor import STEPS
 from rr_actors._registrar.calls import AttemptState, CallAttempt
 from rr_actors._registrar.life import CatalogView
 from rr_actors._transport.unix.system import System
-from rr_actors.testing.helpers import catalog_snapshot, crash, running_actors
 from rr_actors.testing.memory import MemoryAddress, MemoryNetwork
 from rr_actors.testing.seams import (
     Installed,
     PendingWork,
     actor_ref,
     call_futures,
+    catalog_snapshot,
+    crash,
     expect_restart,
     intercept,
     pending_work,
     run_on_actor,
+    running_actors,
 )
 from rr_actors.testing.shared import Records, SharedObjects
 

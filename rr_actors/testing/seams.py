@@ -1,4 +1,5 @@
-"""Seams for making races happen on purpose, and for looking at what a registrar waits for.
+"""Seams for making races happen on purpose, and for looking at what a registrar waits for;
+placement-independent helpers: kill a registrar, look at its catalog, list actors.
 
 Each names a registrar's steps or holdings in words that are part of the contract of
 `rr_actors.testing`, never its private handler tables.
@@ -18,9 +19,10 @@ import pykka
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.replies import FutureReply, wait
 from rr_actors._process.remote import FORWARD_MARGIN, RemoteRegistrar
-from rr_actors._registrar import ResourceRegistrar
+from rr_actors._registrar import ResourceRegistrar, snapshot
 from rr_actors._registrar.actor import STEPS, RegistrarActor
 from rr_actors._registrar.calls import CallAttempt
+from rr_actors._registrar.life import CatalogView
 from rr_actors._registrar.messages import RunOnActor
 from rr_actors._registrar.state import Hook, Probes
 from rr_actors.errors import ConfigError, RegistrarUnavailableError
@@ -30,10 +32,13 @@ __all__ = [
     "PendingWork",
     "actor_ref",
     "call_futures",
+    "catalog_snapshot",
+    "crash",
     "expect_restart",
     "intercept",
     "pending_work",
     "run_on_actor",
+    "running_actors",
 ]
 
 T = TypeVar("T")
@@ -301,3 +306,53 @@ def pending_work(
         ref = registrar._actor.ref
     work: PendingWork = wait(_ask_actor(ref, _pending_work).future, timeout, "pending_work()")
     return work
+
+
+# -- placement-independent helpers -------------------------------------------------------------
+
+
+def crash(registrar: ResourceRegistrar | RemoteRegistrar, *, timeout: float = 5.0) -> None:
+    """Make a registrar die as if it hit a bug: no cleanup the way `stop()` would do it.
+
+    For a `ResourceRegistrar` its actor dies (the in-process analogue of SIGKILL); for a
+    `RemoteRegistrar` its manager process gets SIGKILL. Either way its callers get
+    `RegistrarUnavailableError`, its backup keeps what was written, and unless a supervisor
+    will restart it, the providers release its consumer ids (death watch). Returns once it
+    is dead and the providers were told.
+
+    Args:
+        registrar: the registrar to kill.
+        timeout: seconds to wait for its death.
+    """
+    if isinstance(registrar, RemoteRegistrar):
+        registrar.kill(timeout=timeout)
+        return
+    registrar._actor.crash()
+    registrar._actor.died.wait(timeout)  # the actor's death handling ran, death watch included
+
+
+def catalog_snapshot(
+    registrar: ResourceRegistrar | RemoteRegistrar, *, timeout: float = 5.0
+) -> CatalogView:
+    """A copy of the registrar's catalog rows, after checking the catalog's invariants.
+
+    Args:
+        registrar: a registrar of this process, or a `RemoteRegistrar` (the snapshot is
+            taken in its process and sent back).
+        timeout: seconds to wait for the registrar.
+
+    Raises:
+        AssertionError: an index of the catalog disagrees with its rows.
+        CallTimeoutError: no answer within `timeout` seconds.
+        RegistrarUnavailableError: the registrar died.
+    """
+    if isinstance(registrar, RemoteRegistrar):
+        there = functools.partial(catalog_snapshot, timeout=timeout)
+        remote: CatalogView = registrar.run(there, timeout=timeout + FORWARD_MARGIN)
+        return remote
+    return snapshot(registrar, timeout=timeout, check=True)
+
+
+def running_actors() -> list[Any]:
+    """The pykka actors still running in this process."""
+    return list(pykka.ActorRegistry.get_all())

@@ -2,7 +2,7 @@
 
 `PLATFORM` is `linux` on Linux and `portable` elsewhere or with
 `RR_ACTORS_PLATFORM=portable`. Every test that uses manager processes must pass on both:
-`tests/core/test_portable.py` runs those modules (this one too) again, in a
+`tests/core/test_base.py` runs those modules (this one too) again, in a
 subprocess on the portable platform, as part of the normal run. Tests of what only a
 trick does are marked `linux_trick` (see `supervising.py`) and skipped there.
 """

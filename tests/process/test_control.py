@@ -1,14 +1,20 @@
-"""The control pipe's vocabulary: every message pickles, and each end handles what it gets."""
+"""The control pipe's vocabulary: every message pickles, and each end handles what it gets;
+how manager processes start (rr_actors chooses; `set_start_method` does not change it)."""
 
 from __future__ import annotations
 
+import multiprocessing
 import pickle
+import subprocess
+import sys
+import textwrap
 import typing
 
 import pytest
 
 from rr_actors._process import child, control, manager
 from rr_actors.config import RegistrarConfig
+from tests.support.supervising import linux_trick
 
 EXAMPLES = [
     control.WarmUp(),
@@ -42,3 +48,101 @@ def test_the_parent_handles_every_message_a_running_manager_sends() -> None:
     before_it_runs = {control.Warm, control.Ready, control.Failed}  # (_await_ready's)
 
     assert sent_by_child - before_it_runs == set(manager._HANDLERS)
+
+
+# -- how manager processes start: rr_actors chooses; `set_start_method` does not change it ------
+
+SCRIPT = textwrap.dedent(
+    """
+    import multiprocessing, os
+    import rr_actors as rr
+
+    def main():
+        multiprocessing.set_start_method({method!r})
+        sup = rr.Supervisor([rr.ManagerSpec("m", lambda r: None, isolation="process")])
+        with sup:
+            parent = sup.run_in("m", lambda registrar: os.getppid())
+        print("forked by this process" if parent == os.getpid() else "forked elsewhere")
+
+    if __name__ == "__main__":
+        main()
+    """
+)
+
+
+@pytest.mark.skipif(
+    "forkserver" not in multiprocessing.get_all_start_methods(), reason="needs a forkserver"
+)
+@pytest.mark.parametrize("method", ["spawn", "fork"])
+def test_a_start_method_set_by_the_program_does_not_change_how_managers_start(
+    method: str,
+) -> None:
+    result = subprocess.run(
+        [sys.executable, "-c", SCRIPT.format(method=method)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+
+    assert (0, "forked elsewhere\n") == (result.returncode, result.stdout), result.stderr
+
+
+FORKSERVER_FIRST = textwrap.dedent(
+    """
+    import multiprocessing, os, signal
+    import rr_actors as rr
+
+    def forker_preload(registrar):
+        # in the manager process: what the process that forked it imported beforehand
+        with open(f"/proc/{os.getppid()}/cmdline", "rb") as f:
+            command = f.read().decode(errors="replace")
+        with open(f"/proc/{os.getppid()}/maps") as f:
+            maps = f.read()
+        return ("rr_actors._process.child" in command, "_sqlite3" in maps)
+
+    def main():
+        program = multiprocessing.get_context("forkserver")  # the program's, first
+        first = program.Process(target=os.getpid)
+        first.start()
+        first.join(30)
+        sup = rr.Supervisor([rr.ManagerSpec("m", lambda r: None, isolation="process")])
+        with sup:
+            print("started", sup.run_in("m", forker_preload))
+            os.kill(sup.child("m").pid, signal.SIGKILL)
+            sup.wait_restarted("m", timeout=30)
+            print("restarted", sup.run_in("m", forker_preload))
+        again = program.Process(target=os.getpid)
+        again.start()
+        again.join(30)
+        print("the program's forkserver still forks:", again.exitcode == 0)
+
+    if __name__ == "__main__":
+        main()
+    """
+)
+
+
+@linux_trick
+@pytest.mark.skipif(
+    "forkserver" not in multiprocessing.get_all_start_methods(), reason="needs a forkserver"
+)
+def test_managers_are_forked_preloaded_when_the_program_started_its_forkserver_first() -> None:
+    """Issue 34 item 6: the program's forkserver, started first, never got rr_actors'
+    preload, and managers were forked from it: each (re)start imported rr_actors."""
+    result = subprocess.run(
+        [sys.executable, "-c", FORKSERVER_FIRST],
+        capture_output=True,
+        text=True,
+        timeout=90,
+        check=False,
+    )
+
+    assert (0, result.stdout.splitlines()) == (
+        result.returncode,
+        [
+            "started (True, True)",
+            "restarted (True, True)",
+            "the program's forkserver still forks: True",
+        ],
+    ), result.stderr

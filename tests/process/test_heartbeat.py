@@ -25,8 +25,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._platform.base import CpuSample
-from rr_actors._process.context import mp_context, start_forkserver
-from rr_actors._process.control import Events, Ping, Pong, Ready, Stop
+from rr_actors._process.control import Events, Ping, Pong, Ready, Stop, mp_context, start_forkserver
 from rr_actors._process.heartbeat import STARVED_LIMIT, Hang, Heartbeat
 from rr_actors._process.manager import ManagerExit, ManagerProcess
 from rr_actors.testing import SharedObjects, run_on_actor

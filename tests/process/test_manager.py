@@ -33,8 +33,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import testing
-from rr_actors._process.context import forker_pid, mp_context, start_forkserver
-from rr_actors._process.control import Events, Failed
+from rr_actors._process.control import Events, Failed, forker_pid, mp_context, start_forkserver
 from rr_actors._process.manager import ManagerExit, ManagerProcess, _await_ready
 from rr_actors._process.received import Received
 from rr_actors._process.spare import Spare

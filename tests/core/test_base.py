@@ -1,4 +1,5 @@
-"""The process tests again, on the portable platform (`rr_actors._platform.portable`).
+"""The process tests again, on the portable platform (`rr_actors._platform.base`'s
+`PortablePlatform`).
 
 The tests of each place a Linux trick is used (`rr_actors._platform`'s `PLATFORM`: the
 manager's context and forkserver, its exit and CPU watches, a child's death with its

@@ -1,5 +1,5 @@
-"""Stepping (`rr_actors.mission.step`): `rr-actors demo --step` on an 80-column terminal: rich
-output, and pauses left out of time.
+"""Stepping (`rr_actors.mission.robot`'s `Step`): `rr-actors demo --step` on an 80-column
+terminal: rich output, and pauses left out of time.
 
 A class takes its time before pressing Enter: here each Enter comes `PAUSE` seconds
 after the prompt. None of that may count as mission time (the story's stamps, the
@@ -19,8 +19,8 @@ from typing import Any
 
 import pytest
 
+from rr_actors.mission.robot import PAUSE_SETTLE
 from rr_actors.mission.run import parser, run
-from rr_actors.mission.step import PAUSE_SETTLE
 from tests.support import selecting
 
 ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
