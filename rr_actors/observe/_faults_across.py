@@ -107,7 +107,9 @@ class FaultDesk:
         self._faults = faults
         self._running = threading.BoundedSemaphore(MAX_FAULTS)
         key = services.keys.observer(ObserverKey(member, "fault"))
-        self._queryable = services.session.declare_queryable(key, tracked(self._on_query))
+        self._queryable = services.session.declare_queryable(
+            key, tracked(services.session, self._on_query)
+        )
 
     def close(self) -> None:
         """Take no more commands (one running goes on to its end)."""

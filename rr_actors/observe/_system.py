@@ -115,13 +115,13 @@ class SystemView:
             share.listen(self._on_own)
             self._executor.submit(functools.partial(self._own_state, share.state()))
         self._deltas = session.declare_subscriber(
-            self._keys.observers("delta"), tracked(self._on_delta)
+            self._keys.observers("delta"), tracked(session, self._on_delta)
         )
         self._tokens = session.liveliness().declare_subscriber(
-            self._keys.observers("here"), tracked(self._on_token), history=True
+            self._keys.observers("here"), tracked(session, self._on_token), history=True
         )
         self._links_listener = session.info.declare_link_events_listener(
-            tracked(self._on_link), history=False
+            tracked(session, self._on_link), history=False
         )
         self._events_of_system = (
             None if subscribe is None else subscribe(self._on_event, window=EVENTS_WINDOW)

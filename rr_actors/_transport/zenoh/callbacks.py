@@ -11,18 +11,18 @@ rethrown", SIGABRT; cpython#87135, pyo3#4874): a callback running as the program
 or a callback thread woken by its session's close a moment too late.
 
 ```
- declare_*(key, tracked(fn))   one per callback: its thread is counted while it lives
+ declare_*(key, tracked(session, fn))   its thread is counted (per session) while it lives
    zenoh's thread per callback ─► fn(sample) ... until the declaration goes
- ZenohCarrier.leave: session.close() ─► wait_ended(): every counted thread ended (joined)
+ ZenohCarrier.leave: session.close() ─► wait_ended(session): each such thread ended, joined
    (the exit hook closes a network left open as the main thread ends: `_core.exit`,
     before the interpreter finalizes)
 ```
 
-How a thread is seen to end without a hook in zenoh-python: the function given to Zenoh
-is held by its thread's closure until the thread's end, where it is dropped (a weak
-reference says so) right after Zenoh calls the callback's `drop` (which names the thread,
-to join it). A declaration that failed before Zenoh made its thread drops the function at
-once: nothing is left to wait for.
+How a thread is seen to end without a hook in zenoh-python: Zenoh calls the callback's
+`drop` on its thread as the thread ends (which names the thread, to join it). A
+declaration that failed before Zenoh made its thread never calls it, but drops the
+function at once (a weak reference says so): nothing is left to wait for. (The function
+of a thread that ended is dropped later, when pyo3 next runs: not the end's signal.)
 """
 
 from __future__ import annotations
@@ -44,57 +44,64 @@ END_TIMEOUT = 2.0
 """Seconds a session's close waits for its callback threads to end (they end at once: a
 callback of the carrier queues what it gets, never blocks)."""
 
+_Ref = weakref.ref[Any]
+
 _cond = threading.Condition()
-_live: set[weakref.ref[Callable[[Any], None]]] = set()  # one per callback thread not ended
-_ending: list[threading.Thread] = []  # threads whose callback was dropped: joined next
+_live: dict[str, set[_Ref]] = {}  # session's Zenoh id -> one per callback thread not ended
+_ending: dict[str, list[threading.Thread]] = {}  # threads whose callback was dropped
 _local = threading.local()  # `.callback`: this thread runs a tracked callback
 
 
-def tracked(callback: Callable[[T], object]) -> zenoh.handlers.Callback[T]:
-    """`callback`, to declare on a Zenoh session (any `declare_*` that takes a handler):
-    called on Zenoh's callback thread for it, one sample at a time, as `callback` is."""
+def tracked(session: zenoh.Session, callback: Callable[[T], object]) -> zenoh.handlers.Callback[T]:
+    """`callback`, to declare on `session` (any `declare_*` that takes a handler): called
+    on Zenoh's callback thread for it, one sample at a time, as `callback` is."""
     import zenoh  # noqa: PLC0415 - (the observer's modules import this one without Zenoh)
+
+    zid = str(session.zid())
 
     def run(sample: T) -> None:
         _local.callback = True
         callback(sample)
 
+    def gone(ref: _Ref) -> None:  # (its thread ended, or never began: a failed declare)
+        with _cond:
+            refs = _live.get(zid, set())
+            refs.discard(ref)
+            if not refs:
+                _live.pop(zid, None)
+            _cond.notify_all()
+
+    def dropped() -> None:  # (Zenoh's `drop`, on the callback's thread as it ends)
+        with _cond:
+            threads = [thread for thread in _ending.get(zid, ()) if thread.is_alive()]
+            _ending[zid] = [*threads, threading.current_thread()]
+        gone(ref)
+
+    ref = weakref.ref(run, gone)
     with _cond:
-        _live.add(weakref.ref(run, _gone))
-    return zenoh.handlers.Callback(run, _dropped)
+        _live.setdefault(zid, set()).add(ref)
+    return zenoh.handlers.Callback(run, dropped)
 
 
-def _dropped() -> None:
-    """Zenoh's `drop`: the callback's thread ends (it runs there)."""
+def live(session: zenoh.Session) -> int:
+    """How many callback threads of `session` have not ended."""
     with _cond:
-        _ending[:] = [thread for thread in _ending if thread.is_alive()]
-        _ending.append(threading.current_thread())
+        return len(_live.get(str(session.zid()), ()))
 
 
-def _gone(ref: weakref.ref[Callable[[Any], None]]) -> None:
-    with _cond:
-        _live.discard(ref)
-        _cond.notify_all()
+def wait_ended(session: zenoh.Session, timeout: float = END_TIMEOUT) -> bool:
+    """Wait until every callback thread of `session` ended (the session closed, or their
+    declarations went), and join each: none then runs Python again.
 
-
-def live() -> int:
-    """How many callback threads of this process have not ended."""
-    with _cond:
-        return len(_live)
-
-
-def wait_ended(timeout: float = END_TIMEOUT) -> bool:
-    """Wait until every callback thread of this process ended (its session closed, or its
-    declaration went), and join each: none then runs Python again.
-
-    Called after a session closed (the caller's thread; on a callback's own thread, that
+    Called after the session closed (the caller's thread; on a callback's own thread, that
     one is not waited for). Returns whether all ended within `timeout` seconds.
     """
     deadline = time.monotonic() + timeout
+    zid = str(session.zid())
     own = 1 if getattr(_local, "callback", False) else 0  # (closed from a callback)
     with _cond:
-        ended = _cond.wait_for(lambda: len(_live) <= own, timeout)
-        ending, _ending[:] = list(_ending), []
+        ended = _cond.wait_for(lambda: len(_live.get(zid, ())) <= own, timeout)
+        ending = _ending.pop(zid, [])
     me = threading.current_thread()
     for thread in ending:
         if thread is not me:

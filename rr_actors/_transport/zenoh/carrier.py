@@ -326,9 +326,9 @@ class ZenohCarrier:
             on_hosts=self._hosts_heard if router is None else None,
         )
         self._answers = session.declare_subscriber(
-            self.keys.answers(self.zid), tracked(self._inbox.on_answer)
+            self.keys.answers(self.zid), tracked(session, self._inbox.on_answer)
         )
-        self._pings = session.declare_queryable(self.keys.ping(self.zid), tracked(_pong))
+        self._pings = session.declare_queryable(self.keys.ping(self.zid), tracked(session, _pong))
         self._proc_token = session.liveliness().declare_token(self.keys.proc(self.zid))
         if router is None:  # (a host's router: its host token, rule 22's sides)
             self._hosts_heard(1)
@@ -395,7 +395,8 @@ class ZenohCarrier:
             local.stamp = CLOCK.now()  # (after every registration heard of: rule 22)
             local.side, local.members = self.presence.hosts(), self._members()
             local.subscriber = session.declare_subscriber(
-                keys.registrar(name), tracked(functools.partial(self._inbox.on_message, local))
+                keys.registrar(name),
+                tracked(session, functools.partial(self._inbox.on_message, local)),
             )
             local.token_key = keys.server(
                 ServerKey(
@@ -463,11 +464,11 @@ class ZenohCarrier:
             self.session.close()  # type: ignore[no-untyped-call]
         if self._on_close is not None:
             self._on_close()
-        if not callbacks.wait_ended():
+        if not callbacks.wait_ended(self.session):
             logger.warning(
                 "system %s: %d Zenoh callback threads had not ended %g s after the session closed",
                 self.system,
-                callbacks.live(),
+                callbacks.live(self.session),
                 callbacks.END_TIMEOUT,
             )
 

@@ -241,7 +241,7 @@ class Presence:
         }
         self._queue = SerialExecutor("rr-zpresence")
         self._live = session.liveliness().declare_subscriber(
-            self._keys.live(), tracked(self._on_live), history=True
+            self._keys.live(), tracked(session, self._on_live), history=True
         )
 
     # -- what the tables say -------------------------------------------------------------

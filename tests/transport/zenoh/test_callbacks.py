@@ -21,10 +21,10 @@ import pytest
 
 pytest.importorskip("zenoh")
 
-import zenoh  # noqa: E402 - after the skip
+import zenoh
 
-from rr_actors._transport.zenoh import callbacks  # noqa: E402
-from rr_actors._transport.zenoh.ops.config import session_config  # noqa: E402
+from rr_actors._transport.zenoh import callbacks
+from rr_actors._transport.zenoh.ops.config import session_config
 
 RUNS = 3
 """Programs run per ending (each aborted before the fix, not by chance: the callback is
@@ -51,7 +51,7 @@ PROGRAM = textwrap.dedent(
 
     declared = []  # on a daemon thread, as an actor's: the callback's thread is a daemon
     thread = threading.Thread(
-        target=lambda: declared.append(session.declare_subscriber(key, tracked(held))),
+        target=lambda: declared.append(session.declare_subscriber(key, tracked(session, held))),
         daemon=True,
     )
     thread.start()
@@ -92,43 +92,45 @@ def session() -> Iterator[zenoh.Session]:
 def test_a_callback_thread_is_counted_until_its_subscriber_is_undeclared(
     session: zenoh.Session,
 ) -> None:
-    before = callbacks.live()
+    before = callbacks.live(session)
     got = threading.Event()
-    subscriber = session.declare_subscriber("test/counted", callbacks.tracked(lambda _: got.set()))
+    subscriber = session.declare_subscriber(
+        "test/counted", callbacks.tracked(session, lambda _: got.set())
+    )
     session.put("test/counted", b"x")
     assert got.wait(5)
 
-    assert before + 1 == callbacks.live()
+    assert before + 1 == callbacks.live(session)
     subscriber.undeclare()  # type: ignore[no-untyped-call]
-    assert callbacks.wait_ended(5)
-    assert before == callbacks.live()
+    assert callbacks.wait_ended(session, 5)
+    assert before == callbacks.live(session)
 
 
 def test_every_callback_thread_of_a_closed_session_is_ended_and_joined() -> None:
     opened = zenoh.open(session_config("peer", [], [], 1.0))
-    before = {thread for thread in threading.enumerate()}
+    before = set(threading.enumerate())
     for n in range(3):  # (declared from a daemon thread: their threads are daemons)
         declaring = threading.Thread(
             target=opened.declare_subscriber,
-            args=(f"test/closed/{n}", callbacks.tracked(lambda _: None)),
+            args=(f"test/closed/{n}", callbacks.tracked(opened, lambda _: None)),
             daemon=True,
         )
         declaring.start()
         declaring.join(5)
-    made = {thread for thread in threading.enumerate()} - before
+    made = set(threading.enumerate()) - before
     assert 3 == len(made)
     assert all(thread.daemon for thread in made)
 
     opened.close()  # type: ignore[no-untyped-call]
 
-    assert callbacks.wait_ended(5)
+    assert callbacks.wait_ended(opened, 5)
+    assert 0 == callbacks.live(opened)
     assert [] == [thread for thread in made if thread.is_alive()]
 
 
 def test_a_declaration_that_fails_leaves_nothing_to_wait_for(session: zenoh.Session) -> None:
-    before = callbacks.live()
     with pytest.raises(zenoh.ZError):
-        session.declare_subscriber("test//bad", callbacks.tracked(lambda _: None))
+        session.declare_subscriber("test//bad", callbacks.tracked(session, lambda _: None))
 
-    assert callbacks.wait_ended(5)
-    assert before == callbacks.live()
+    assert callbacks.wait_ended(session, 5)
+    assert 0 == callbacks.live(session)

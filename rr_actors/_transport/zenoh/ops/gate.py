@@ -358,7 +358,7 @@ class MemberAddresses:
         pem = Path(tls.cert).read_bytes()  # (read once: what Zenoh read when it opened)
         self._queryable = session.declare_queryable(
             self._keys.certificate(tls.name),
-            tracked(functools.partial(_reply_with, pem)),
+            tracked(session, functools.partial(_reply_with, pem)),
         )
 
     def close(self) -> None:

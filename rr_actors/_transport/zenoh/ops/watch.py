@@ -204,7 +204,7 @@ class LinkWatch:
         self._started = clock()
         self._thread = SerialExecutor("rr-zenoh-watch", every=(TICK, self._guarded))
         self._listener = session.info.declare_link_events_listener(
-            tracked(self._on_event), history=True
+            tracked(session, self._on_event), history=True
         )
 
     def close(self) -> None:
