@@ -26,6 +26,7 @@ import threading
 import time
 from typing import TYPE_CHECKING, Any
 
+from rr_actors._transport.zenoh.callbacks import tracked
 from rr_actors._transport.zenoh.wire import ObserverKey
 from rr_actors.config import NAME
 from rr_actors.observe._crossing import dumps, text
@@ -106,7 +107,9 @@ class FaultDesk:
         self._faults = faults
         self._running = threading.BoundedSemaphore(MAX_FAULTS)
         key = services.keys.observer(ObserverKey(member, "fault"))
-        self._queryable = services.session.declare_queryable(key, self._on_query)
+        self._queryable = services.session.declare_queryable(
+            key, tracked(services.session, self._on_query)
+        )
 
     def close(self) -> None:
         """Take no more commands (one running goes on to its end)."""

@@ -29,6 +29,7 @@ import uuid
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+from rr_actors._transport.zenoh.callbacks import tracked
 from rr_actors._transport.zenoh.wire import ObserverKey
 from rr_actors.observe._crossing import VERSION, dumps, link_row, shared
 from rr_actors.observe._delta import diff
@@ -101,7 +102,9 @@ class Share:
         self._unlisten = hub.listen(self._wake.set)
         session = services.session
         self._publisher = session.declare_publisher(self._key("delta"))
-        self._state = session.declare_queryable(self._key("state"), self._on_state)
+        self._state = session.declare_queryable(
+            self._key("state"), tracked(session, self._on_state)
+        )
         self._desk = FaultDesk(hub, services, member, faults)
         self._thread = threading.Thread(
             target=self._run, name=f"rr-observe-share-{member}", daemon=True

@@ -40,6 +40,7 @@ from typing import TYPE_CHECKING, Any
 
 from rr_actors import events as events_module
 from rr_actors._core.serial import SerialExecutor
+from rr_actors._transport.zenoh.callbacks import tracked
 from rr_actors._transport.zenoh.wire import ObserverKey
 from rr_actors.observe._crossing import decode, shared, valid_event, valid_section
 from rr_actors.observe._delta import apply
@@ -113,12 +114,14 @@ class SystemView:
             own.here = True
             share.listen(self._on_own)
             self._executor.submit(functools.partial(self._own_state, share.state()))
-        self._deltas = session.declare_subscriber(self._keys.observers("delta"), self._on_delta)
+        self._deltas = session.declare_subscriber(
+            self._keys.observers("delta"), tracked(session, self._on_delta)
+        )
         self._tokens = session.liveliness().declare_subscriber(
-            self._keys.observers("here"), self._on_token, history=True
+            self._keys.observers("here"), tracked(session, self._on_token), history=True
         )
         self._links_listener = session.info.declare_link_events_listener(
-            self._on_link, history=False
+            tracked(session, self._on_link), history=False
         )
         self._events_of_system = (
             None if subscribe is None else subscribe(self._on_event, window=EVENTS_WINDOW)

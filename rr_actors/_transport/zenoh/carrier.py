@@ -40,6 +40,7 @@ Which thread may ask the network, one name's one server, and cuts and heals (rul
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import struct
 import threading
@@ -66,6 +67,8 @@ from rr_actors._transport.messenger import (
     send,
     send_when_served,
 )
+from rr_actors._transport.zenoh import callbacks
+from rr_actors._transport.zenoh.callbacks import tracked
 from rr_actors._transport.zenoh.link import DRAIN_TIMEOUT, Inbox, Outbox, Outboxes
 from rr_actors._transport.zenoh.ops.events import EventExport
 from rr_actors._transport.zenoh.presence import ASK_TIMEOUT, Presence, Server
@@ -207,6 +210,11 @@ class Local(Listening):
             self.subscriber.undeclare()
 
 
+def _pong(query: zenoh.Query) -> None:
+    """Answer a ping (Zenoh's callback thread)."""
+    query.reply(query.key_expr, b"")
+
+
 class ZenohCarrier:
     """This process's link to a system over an open Zenoh session (the messenger's
     `Carrier`; how it moves a message: the module docstring).
@@ -318,11 +326,9 @@ class ZenohCarrier:
             on_hosts=self._hosts_heard if router is None else None,
         )
         self._answers = session.declare_subscriber(
-            self.keys.answers(self.zid), self._inbox.on_answer
+            self.keys.answers(self.zid), tracked(session, self._inbox.on_answer)
         )
-        self._pings = session.declare_queryable(
-            self.keys.ping(self.zid), lambda query: query.reply(query.key_expr, b"")
-        )
+        self._pings = session.declare_queryable(self.keys.ping(self.zid), tracked(session, _pong))
         self._proc_token = session.liveliness().declare_token(self.keys.proc(self.zid))
         if router is None:  # (a host's router: its host token, rule 22's sides)
             self._hosts_heard(1)
@@ -389,7 +395,8 @@ class ZenohCarrier:
             local.stamp = CLOCK.now()  # (after every registration heard of: rule 22)
             local.side, local.members = self.presence.hosts(), self._members()
             local.subscriber = session.declare_subscriber(
-                keys.registrar(name), lambda sample: self._inbox.on_message(local, sample)
+                keys.registrar(name),
+                tracked(session, functools.partial(self._inbox.on_message, local)),
             )
             local.token_key = keys.server(
                 ServerKey(
@@ -446,7 +453,8 @@ class ZenohCarrier:
 
     def leave(self) -> None:
         """Fail what waits, put what was sent (for `DRAIN_TIMEOUT` seconds at most),
-        close the session."""
+        close the session, then wait until Zenoh's callback threads ended (`callbacks`:
+        one that ran on into the interpreter's end would abort the process)."""
         self.replies.fail(None, RegistrarStoppedError("this process left the system"))
         self.events.close()
         self._outboxes.close(drain=DRAIN_TIMEOUT)  # (what was sent before goes out first)
@@ -456,6 +464,13 @@ class ZenohCarrier:
             self.session.close()  # type: ignore[no-untyped-call]
         if self._on_close is not None:
             self._on_close()
+        if not callbacks.wait_ended(self.session):
+            logger.warning(
+                "system %s: %d Zenoh callback threads had not ended %g s after the session closed",
+                self.system,
+                callbacks.live(self.session),
+                callbacks.END_TIMEOUT,
+            )
 
     def wait_served(self, name: str, *, timeout: float) -> bool:
         """Whether registrar `name` is served (here or by another process) within `timeout`

@@ -56,6 +56,7 @@ import zenoh
 from rr_actors import events
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Forwarder, Publisher, Subscription
 from rr_actors._core.throttle import LogThrottle, short
+from rr_actors._transport.zenoh.callbacks import tracked
 from rr_actors._transport.zenoh.wire import Keys
 from rr_actors.errors import ConfigError
 
@@ -220,7 +221,7 @@ class EventExport:
             reliability=zenoh.Reliability.RELIABLE,
             priority=zenoh.Priority.DATA_LOW,  # (registrars' messages go first)
         )
-        self._listener = self._publisher.declare_matching_listener(self._matched)
+        self._listener = self._publisher.declare_matching_listener(tracked(session, self._matched))
         self._matched(self._publisher.matching_status)
 
     def _matched(self, status: Any) -> None:
@@ -333,7 +334,7 @@ class EventFeed:
             self._thread = threading.Thread(target=self._merge, name="rr-events-merge", daemon=True)
             self._thread.start()
             self._subscriber = self._session.declare_subscriber(
-                self._keys.all_events(), self._on_sample
+                self._keys.all_events(), tracked(self._session, self._on_sample)
             )
         elif not listened and self._subscriber is not None:
             with contextlib.suppress(Exception):

@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import functools
 import ipaddress
 import logging
 import socket
@@ -63,6 +64,7 @@ from typing import TYPE_CHECKING, Any
 import zenoh
 
 from rr_actors._platform import GATE_SOURCES, PLATFORM, ListenerGate
+from rr_actors._transport.zenoh.callbacks import tracked
 from rr_actors._transport.zenoh.ops.config import parse_endpoint
 from rr_actors._transport.zenoh.ops.watch import remote
 from rr_actors._transport.zenoh.wire import Keys
@@ -292,6 +294,11 @@ ASK_AGAIN = 5.0  # seconds before a certificate asked for and not had is asked f
 _ASK_TIMEOUT = 2.0  # seconds a get of a certificate waits for its answer
 
 
+def _reply_with(pem: bytes, query: zenoh.Query) -> None:
+    """Answer a question for this host's certificate (Zenoh's callback thread)."""
+    query.reply(query.key_expr, pem)
+
+
 class MemberAddresses:
     """The addresses of the members of one router's system: those the gate never drops.
 
@@ -350,7 +357,8 @@ class MemberAddresses:
         self._up: set[str] = set()  # members linked at the last call
         pem = Path(tls.cert).read_bytes()  # (read once: what Zenoh read when it opened)
         self._queryable = session.declare_queryable(
-            self._keys.certificate(tls.name), lambda query: query.reply(query.key_expr, pem)
+            self._keys.certificate(tls.name),
+            tracked(session, functools.partial(_reply_with, pem)),
         )
 
     def close(self) -> None:

@@ -52,6 +52,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import zenoh
 
 from rr_actors._core.serial import SerialExecutor
+from rr_actors._transport.zenoh.callbacks import tracked
 from rr_actors._transport.zenoh.ops.config import parse_endpoint
 
 if TYPE_CHECKING:
@@ -202,7 +203,9 @@ class LinkWatch:
         self._members: dict[str, MemberLink] = {}  # (written by the watch thread only)
         self._started = clock()
         self._thread = SerialExecutor("rr-zenoh-watch", every=(TICK, self._guarded))
-        self._listener = session.info.declare_link_events_listener(self._on_event, history=True)
+        self._listener = session.info.declare_link_events_listener(
+            tracked(session, self._on_event), history=True
+        )
 
     def close(self) -> None:
         """Stop watching (idempotent); call before the session closes."""

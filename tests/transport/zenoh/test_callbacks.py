@@ -1,0 +1,136 @@
+"""Zenoh's callback threads (`rr_actors._transport.zenoh.callbacks`): counted while they
+live, and ended before the interpreter finalizes, so that none takes the GIL then (on
+CPython < 3.14 glibc aborts the process: "FATAL: exception not rethrown").
+
+The exit tests run a program in its own interpreter: a callback declared from a daemon
+thread (as an actor's: its thread is a daemon too) runs as the program ends, held until
+the interpreter's `atexit` (at most `HOLD` s). Before the fix, every such program was
+killed by SIGABRT.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+import threading
+import uuid
+from collections.abc import Iterator
+
+import pytest
+
+pytest.importorskip("zenoh")
+
+import zenoh
+
+from rr_actors._transport.zenoh import callbacks
+from rr_actors._transport.zenoh.ops.config import session_config
+
+RUNS = 3
+"""Programs run per ending (each aborted before the fix, not by chance: the callback is
+held across the session's close)."""
+
+HOLD = 1.0
+"""Seconds the program's callback is held at most (less than `callbacks.END_TIMEOUT`)."""
+
+PROGRAM = textwrap.dedent(
+    """
+    import atexit, sys, threading
+    import rr_actors as rr
+    from rr_actors._transport.zenoh.callbacks import tracked
+
+    system, ending, hold = sys.argv[1], sys.argv[2], float(sys.argv[3])
+    net = rr.ZenohNetwork(system=system, tls=None)
+    session, key = net.services().session, f"rr/{system}/obs/test/delta"
+    inside, finalizing = threading.Event(), threading.Event()
+    atexit.register(finalizing.set)  # (the last Python before the interpreter finalizes)
+
+    def held(sample):
+        inside.set()
+        finalizing.wait(hold)
+
+    declared = []  # on a daemon thread, as an actor's: the callback's thread is a daemon
+    thread = threading.Thread(
+        target=lambda: declared.append(session.declare_subscriber(key, tracked(session, held))),
+        daemon=True,
+    )
+    thread.start()
+    thread.join(10)
+    session.put(key, b"x")
+    assert inside.wait(10), "the callback was not called"
+    if ending == "close":
+        net.close()
+    print("ending", flush=True)  # "open": the exit hook closes the network
+    """
+)
+
+
+@pytest.mark.parametrize("ending", ["close", "open"])
+def test_a_program_whose_zenoh_callback_runs_as_it_ends_exits_without_an_abort(
+    ending: str,
+) -> None:
+    results = []
+    for _ in range(RUNS):
+        done = subprocess.run(  # noqa: PLW1510 - the exit code is what is checked
+            [sys.executable, "-c", PROGRAM, f"cb-{uuid.uuid4().hex[:8]}", ending, str(HOLD)],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        results.append((done.returncode, "not rethrown" in done.stderr, done.stdout))
+
+    assert [(0, False, "ending\n")] * RUNS == results, done.stderr
+
+
+@pytest.fixture
+def session() -> Iterator[zenoh.Session]:
+    opened = zenoh.open(session_config("peer", [], [], 1.0))
+    yield opened
+    opened.close()  # type: ignore[no-untyped-call]
+
+
+def test_a_callback_thread_is_counted_until_its_subscriber_is_undeclared(
+    session: zenoh.Session,
+) -> None:
+    before = callbacks.live(session)
+    got = threading.Event()
+    subscriber = session.declare_subscriber(
+        "test/counted", callbacks.tracked(session, lambda _: got.set())
+    )
+    session.put("test/counted", b"x")
+    assert got.wait(5)
+
+    assert before + 1 == callbacks.live(session)
+    subscriber.undeclare()  # type: ignore[no-untyped-call]
+    assert callbacks.wait_ended(session, 5)
+    assert before == callbacks.live(session)
+
+
+def test_every_callback_thread_of_a_closed_session_is_ended_and_joined() -> None:
+    opened = zenoh.open(session_config("peer", [], [], 1.0))
+    before = set(threading.enumerate())
+    for n in range(3):  # (declared from a daemon thread: their threads are daemons)
+        declaring = threading.Thread(
+            target=opened.declare_subscriber,
+            args=(f"test/closed/{n}", callbacks.tracked(opened, lambda _: None)),
+            daemon=True,
+        )
+        declaring.start()
+        declaring.join(5)
+    made = {t for t in set(threading.enumerate()) - before if "pyo3-closure" in t.name}  # (Zenoh's)
+    assert 3 == len(made)
+    assert all(thread.daemon for thread in made)
+
+    opened.close()  # type: ignore[no-untyped-call]
+
+    assert callbacks.wait_ended(opened, 5)
+    assert 0 == callbacks.live(opened)
+    assert [] == [thread for thread in made if thread.is_alive()]
+
+
+def test_a_declaration_that_fails_leaves_nothing_to_wait_for(session: zenoh.Session) -> None:
+    with pytest.raises(zenoh.ZError):
+        session.declare_subscriber("test//bad", callbacks.tracked(session, lambda _: None))
+
+    assert callbacks.wait_ended(session, 5)
+    assert 0 == callbacks.live(session)
