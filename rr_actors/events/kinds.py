@@ -39,6 +39,7 @@ __all__ = [
     "EventsDropped",
     "InDoubt",
     "LoadFailed",
+    "ManagerOverloaded",
     "QueriesFetched",
     "QueryForgotten",
     "RegistrarStopped",
@@ -343,6 +344,41 @@ class SupervisorGaveUp(_Numbered):
     reason: str
     max_restarts: int
     period: float
+
+
+@_kind
+class ManagerOverloaded(_Stamped):
+    """A manager process answered its heartbeat late, overloaded: not hung, not killed.
+
+    Published by its supervisor when the answer to a ping came after more than the
+    manager's `heartbeat_timeout`, and the silence was excused: its registrar was busy
+    with other messages (a flood of calls, loads on all its workers), or its threads
+    waited for a CPU. At most one per ping, so at most one a `heartbeat_timeout`; the
+    heartbeat's WARNING says it too (at most one a minute). A silence that is not
+    excused ends in a kill instead (`ChildExited`, `"hung: ..."`).
+
+    Attributes:
+        supervisor: name of its supervisor.
+        manager: name of the manager.
+        pid: its process.
+        silent_s: seconds from the ping to its answer.
+        bound_s: its `heartbeat_timeout` (seconds).
+        excused_s: seconds of the silence that did not count against it.
+        busy_s: seconds of it its registrar was seen handling other messages (the rest
+            of `excused_s`, if more, it waited for a CPU).
+        queued: messages waiting in its registrar's mailbox when last asked (-1: not
+            asked).
+        at: when the answer was read.
+    """
+
+    supervisor: str
+    manager: str
+    pid: int
+    silent_s: float
+    bound_s: float
+    excused_s: float
+    busy_s: float
+    queued: int
 
 
 # -- provider side --------------------------------------------------------------------------
@@ -963,6 +999,7 @@ Event: TypeAlias = (
     | ChildExited
     | ChildRestarted
     | SupervisorGaveUp
+    | ManagerOverloaded
     | ResourceLoaded
     | LoadFailed
     | ResourceUnloaded

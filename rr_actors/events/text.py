@@ -18,6 +18,7 @@ from rr_actors.events.kinds import (
     EventsDropped,
     InDoubt,
     LoadFailed,
+    ManagerOverloaded,
     QueriesFetched,
     QueryForgotten,
     RegistrarStopped,
@@ -58,6 +59,13 @@ def describe(event: Event) -> str:  # noqa: PLR0911, PLR0912 - one case per even
             return (
                 f"supervisor {event.supervisor} gave up (more than {event.max_restarts} "
                 f"restarts within {event.period:g} s): {_text(event.reason)}"
+            )
+        case ManagerOverloaded():
+            return (
+                f"{event.manager} is overloaded, not hung: it answered its heartbeat after "
+                f"{_seconds(event.silent_s)} (bound {_seconds(event.bound_s)}), "
+                f"{_seconds(event.excused_s)} of it excused (its registrar busy for "
+                f"{_seconds(event.busy_s)}, {event.queued} messages queued) (pid {event.pid})"
             )
         case ResourceLoaded():
             return (

@@ -193,6 +193,7 @@ def _touched(event: events.Event) -> tuple[str, ...] | None:
             | events.StatusDelivered()
             | events.StatusHandled()
             | events.UnloadCutShort()
+            | events.ManagerOverloaded()
             | events.QueriesFetched()
             | events.ServerQueriesListed()
         ):

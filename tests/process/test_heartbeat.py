@@ -10,12 +10,15 @@ judgement waits on the heartbeat's own log lines (a handler that sets an event),
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
+import itertools
 import logging
 import os
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterator
 from multiprocessing.connection import Connection
 from typing import Any
@@ -24,10 +27,11 @@ import cloudpickle
 import pytest
 
 import rr_actors as rr
+from rr_actors import events
 from rr_actors._platform.base import CpuSample
 from rr_actors._process.context import mp_context, start_forkserver
 from rr_actors._process.control import Events, Ping, Pong, Ready, Stop
-from rr_actors._process.heartbeat import STARVED_LIMIT, Hang, Heartbeat
+from rr_actors._process.heartbeat import STARVED_LIMIT, Hang, Heartbeat, Late, Look
 from rr_actors._process.manager import ManagerExit, ManagerProcess
 from rr_actors.testing import SharedObjects, run_on_actor
 from tests.support.starving import busy_cpu, pinned, starved
@@ -335,6 +339,34 @@ def test_without_a_cpu_watch_the_whole_silence_counts() -> None:
     assert (None, Hang(silent=0.875)) == (beat.tick(0.75), beat.tick(1.125))
 
 
+def test_the_time_its_registrar_was_seen_working_does_not_count_against_it() -> None:
+    cpu = _Samples()  # (no time waiting for a CPU: only the probes' answers excuse)
+    lates: list[Late] = []
+    beat = Heartbeat("m", period=0.25, bound=0.75, cpu=cpu, now=0.0, probes=True)
+    beat.on_late = lates.append
+    assert 1 == beat.tick(0.25)
+    beat.sent(0.25)
+    assert Look(1) == beat.tick(0.5)  # late: a probe
+    beat.progress(1, pinged=10, handled=14, queued=300, now=0.5)  # busy since the ping
+    assert beat.tick(0.625) is None  # (woken by the pipe: not due)
+    assert Look(1) == beat.tick(0.75)  # 0.0 s counted
+    beat.progress(1, pinged=10, handled=20, queued=200, now=0.75)  # busy: 0.5 s in all
+    assert Look(1) == beat.tick(1.0)  # 0.25 s counted
+    beat.progress(1, pinged=10, handled=20, queued=200, now=1.0)  # stuck from here on
+
+    assert beat.answered(1, 1.125)  # (it answered after all: excused, reported)
+    assert [Late(silent=0.875, bound=0.75, excused=0.5, waited=0.0, busy=0.5, queued=200)] == lates
+    assert 2 == beat.tick(1.25)
+    beat.sent(1.25)  # (the previous answer was late: watched from its ping)
+    assert Look(2) == beat.tick(1.5)
+    beat.progress(2, pinged=21, handled=21, queued=250, now=1.5)  # stuck: counts
+    assert Look(2) == beat.tick(1.75)
+    beat.progress(2, pinged=21, handled=21, queued=250, now=1.75)
+    assert Look(2) == beat.tick(2.0)  # 0.75 s counted: not over the bound yet
+    assert Hang(silent=1.0, waited=0.0) == beat.tick(2.25)
+    assert 1 == len(lates)
+
+
 def test_a_silence_starts_when_its_ping_was_written_and_ends_with_its_answer() -> None:
     beat = Heartbeat("m", period=0.25, bound=0.75, cpu=None, now=0.0)
     assert 1 == beat.tick(0.25)
@@ -394,3 +426,146 @@ def test_a_manager_slower_than_the_heartbeat_period_but_within_its_timeout_is_no
 
     assert survived.wait(10.0), "killed as hung before its heartbeat_timeout ran out"
     assert (old, 0) == (sup.child(name).pid, sup.child(name).restarts)
+
+
+# -- busy: not hung (issue 53) --------------------------------------------------------------------
+
+
+class _Overloads:
+    """The tree's `ManagerOverloaded` events (`seen`); `first` is set at the first."""
+
+    def __init__(self) -> None:
+        self.seen: list[events.ManagerOverloaded] = []
+        self.first = threading.Event()
+
+    def __call__(self, event: events.Event) -> None:  # (the subscriber's thread)
+        if isinstance(event, events.ManagerOverloaded):
+            self.seen.append(event)
+            self.first.set()
+
+
+@contextlib.contextmanager
+def overloads(sup: rr.Supervisor) -> Iterator[_Overloads]:
+    """The tree's `ManagerOverloaded` events, from now on."""
+    heard = _Overloads()
+    subscription = sup.subscribe(heard)
+    try:
+        yield heard
+    finally:
+        subscription.close()
+
+
+def queue_slow_messages(count: int, seconds: float, done: Any) -> Callable[[Any], None]:
+    """Run in a manager: put `count` messages in its registrar's mailbox, each of which
+    holds the actor `seconds` (a handler waiting on I/O); the last one sets `done`."""
+
+    def fn(registrar: rr.ResourceRegistrar) -> None:
+        import threading  # noqa: PLC0415 - runs in the manager
+
+        from rr_actors.testing import run_on_actor  # noqa: PLC0415 - runs in the manager
+
+        for _ in range(count - 1):
+            run_on_actor(registrar, lambda: threading.Event().wait(seconds))
+        run_on_actor(registrar, done.set)
+
+    return fn
+
+
+def worked_through(done: Any, hangs: _Heard, timeout: float) -> None:
+    """Wait (at most `timeout` seconds) until `done` is set; fail at once if the manager
+    was judged hung meanwhile."""
+    deadline = time.monotonic() + timeout
+    while not done.wait(0.1):
+        assert not hangs.event.is_set(), hangs.records[0].getMessage()
+        assert time.monotonic() < deadline, f"not done within {timeout:g} s"
+
+
+def test_a_manager_whose_registrar_works_through_a_long_mailbox_is_overloaded_not_hung(
+    supervisors: Callable[..., rr.Supervisor], uid: str, process_helpers: SharedObjects
+) -> None:
+    # 150 messages of 20 ms ahead of its pings: each answer comes ~3 s late (6 bounds),
+    # the actor blocked (not waiting for a CPU: nothing excused that before) but handling
+    # a message every 20 ms
+    name = f"erm-{uid}"
+    sup = supervisors([process(name, heartbeat=0.1, heartbeat_timeout=0.5)]).start()
+    pid = pid_of(sup, name)
+    done = process_helpers.event()
+
+    with (
+        overloads(sup) as overloaded,
+        heard("hangs") as hangs,
+        heard("registrar was busy") as warned,
+    ):
+        sup.run_in(name, queue_slow_messages(150, 0.02, done), timeout=10.0)
+        worked_through(done, hangs, 30.0)
+        answered = sup.registrar(f"app-{uid}").call(name, "echo", "after", timeout=15.0)
+        assert overloaded.first.wait(10.0), "no ManagerOverloaded for its late answers"
+
+    info = sup.child(name)
+    assert (pid, 0, "after") == (info.pid, info.restarts, answered.response)
+    assert ["WARNING"] == [r.levelname for r in warned.records], warned.records
+    late = overloaded.seen
+    assert all(e.manager == name and e.pid == pid for e in late), late
+    assert all(e.silent_s > e.bound_s == 0.5 and e.busy_s > 0.0 for e in late), late
+
+
+def burning_setup(seconds: float) -> Callable[[rr.ResourceRegistrar], None]:
+    """A manager's setup: server `burn`, whose `load` keeps its worker's CPU (and the GIL,
+    in turns) busy for `seconds` of that thread's CPU time."""
+
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        import time  # noqa: PLC0415 - runs in the manager
+
+        def load(request: Any) -> Any:
+            until = time.thread_time() + seconds
+            while time.thread_time() < until:
+                pass
+            return request
+
+        registrar.register_server("burn", load=load, unload=lambda r, s: None)
+
+    return setup
+
+
+async def flood(app: rr.ResourceRegistrar, name: str, callers: int, seconds: float) -> int:
+    """`callers` awaited callers, each calling `name/burn` with new requests, one after
+    another, for `seconds`; how many calls were answered."""
+    numbers = itertools.count()
+    until = time.monotonic() + seconds
+    answered = 0
+
+    async def caller() -> None:
+        nonlocal answered
+        while time.monotonic() < until:
+            with contextlib.suppress(rr.CallTimeoutError, rr.OverloadedError):
+                await app.acall(name, "burn", next(numbers), timeout=1.0)
+                answered += 1
+
+    await asyncio.gather(*(caller() for _ in range(callers)))
+    return answered
+
+
+def test_a_manager_saturated_with_loads_and_calls_is_overloaded_not_hung(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    # CPU-bound loads on all 16 of its workers and 300 callers in a flood, for 4 s (8
+    # bounds): its pings wait behind the calls in its mailbox, its registrar waits for the
+    # GIL behind its workers (a wait the kernel counts as sleep, which excused nothing)
+    name = f"erm-{uid}"
+    config = rr.RegistrarConfig(name, max_workers=16)
+    spec = process(name, burning_setup(0.1), config=config, heartbeat=0.1, heartbeat_timeout=0.5)
+    sup = supervisors([spec]).start()
+    pid = pid_of(sup, name)
+    app = sup.registrar(f"app-{uid}")
+
+    with overloads(sup) as overloaded, heard("hangs") as hangs:
+        asyncio.run(flood(app, name, 300, 4.0))
+        answered = app.call(name, "burn", "after", timeout=15.0)
+        assert overloaded.first.wait(10.0), "no ManagerOverloaded for its late answers"
+
+    info = sup.child(name)
+    assert not hangs.records, hangs.records[0].getMessage()
+    assert (pid, 0, "after") == (info.pid, info.restarts, answered.response)
+    late = overloaded.seen
+    assert all(e.manager == name and e.silent_s > e.bound_s for e in late), late
+    assert any(e.busy_s > 0.0 for e in late), late

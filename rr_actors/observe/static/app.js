@@ -829,6 +829,7 @@
       case "ChildExited":
       case "ChildRestarted":
       case "SupervisorGaveUp":
+      case "ManagerOverloaded":
       case "LoadFailed":
       case "InDoubt":
         pushRow({ kind: "child", event });
