@@ -355,8 +355,10 @@ class ManagerSpec:
             manager counts as hung: it is killed and handled like a crash. Default:
             three heartbeat periods (0.75 s with the default `heartbeat`). On Linux only
             the time it could have run counts: time its threads waited for a CPU (an
-            overloaded machine) does not, up to ten times this bound; a stopped or
-            blocked manager is hung at the bound (docs: "What counts as a hang"). A
+            overloaded machine) does not, up to ten times this bound; on any platform,
+            time its registrar was seen working through its mailbox (a busy manager: a
+            `ManagerOverloaded` event) does not either; a stopped or blocked manager is
+            hung at the bound (docs: "What counts as a hang"). A
             manager whose answers say that it has been unable to accept connections for
             that long (out of file descriptors, say) is killed the same way, as unhealthy.
         start_timeout: seconds a manager may take to restore, set up and serve.

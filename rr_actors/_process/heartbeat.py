@@ -23,8 +23,8 @@ delays do not count either: a silence starts when its ping was written, and what
 pipe holds is read before a silence is judged (`ManagerProcess._watch`). Two bounds
 keep the excuse honest:
 
-- the first `step` seconds of a silence count whole, unless the previous answer was
-  late too (the watch is read only once an answer is late, or from the ping on after a
+- the first `step` seconds of a silence count whole (unless a probe shows its registrar
+  worked since the ping), unless the previous answer was late too (the watch is read only once an answer is late, or from the ping on after a
   late one: reading it at every ping would cost two files per thread, four times a
   second, per manager, on a quiet machine too);
 - a manager silent for `STARVED_LIMIT` times its bound is hung however long it waited:
