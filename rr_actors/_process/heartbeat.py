@@ -24,9 +24,10 @@ pipe holds is read before a silence is judged (`ManagerProcess._watch`). Two bou
 keep the excuse honest:
 
 - the first `step` seconds of a silence count whole (unless a probe shows its registrar
-  worked since the ping), unless the previous answer was late too (the watch is read only once an answer is late, or from the ping on after a
-  late one: reading it at every ping would cost two files per thread, four times a
-  second, per manager, on a quiet machine too);
+  worked since the ping), unless the previous answer was late too (the watch is read
+  only once an answer is late, or from the ping on after a late one: reading it at
+  every ping would cost two files per thread, four times a second, per manager, on a
+  quiet machine too);
 - a manager silent for `STARVED_LIMIT` times its bound is hung however long it waited:
   one whose registrar is stuck while other threads of it (busy callbacks) keep waiting
   for a CPU would otherwise never be judged, and one that could not answer for that long

@@ -88,6 +88,7 @@ from rr_actors._registrar.messages import (
 )
 from rr_actors._registrar.state import Probes
 from rr_actors._types import (
+    IfOverloaded,
     LoadCallback,
     Query,
     Status,
@@ -362,6 +363,7 @@ class Registrar:
         on_status: StatusCallback | None = None,
         timeout: float | None = None,
         query_id: str | None = None,
+        if_overloaded: IfOverloaded = "wait",
     ) -> Query:
         """Ask `target_rr/server` for the resource `request` describes (rules 1-6, 17).
 
@@ -386,6 +388,10 @@ class Registrar:
             timeout: seconds to wait for the answer.
             query_id: the id to use (default: a fresh UUID4). Retrying with the same id is
                 idempotent: it never loads twice nor adds a second consumer.
+            if_overloaded: what a call refused because the server has its
+                `max_pending` loads does: `"wait"` (pause, 5 ms doubling to 100 ms, and
+                ask again while `timeout` lasts) or `"raise"` (`OverloadedError` at once,
+                for a caller that cannot wait; nothing is held at the provider).
 
         Returns:
             The `Query`, with the provider's `response` (in one process, the very object
@@ -396,15 +402,19 @@ class Registrar:
             DependencyCycleError: the load would wait for itself further up its chain.
             UnknownServerError: no such registrar or server.
             CallTimeoutError: no answer in time; the query id is released if it loads later.
+            OverloadedError: the server has its `max_pending` loads, and this caller does
+                not wait (`if_overloaded="raise"`) or its time left is too short for
+                another try; nothing is held.
             RegistrarUnavailableError: the provider died (it may have executed the load).
             RegistrarStoppedError: this registrar or the provider was stopped.
             ConfigError: `target_rr` or `server` is not a str, `query_id` not a
-                non-empty str, `on_status` not callable; or the request, or the response,
+                non-empty str, `on_status` not callable, `if_overloaded` neither `"wait"`
+                nor `"raise"`; or the request, or the response,
                 cannot be pickled where it must be: across processes, or into this
                 registrar's backup (its client record); the provider then holds nothing.
         """
         steps = self._actor.steps(
-            Here.call, timeout, target_rr, server, request, on_status, query_id
+            Here.call, timeout, target_rr, server, request, on_status, query_id, if_overloaded
         )
         return blocking(steps)
 
@@ -417,6 +427,7 @@ class Registrar:
         on_status: StatusCallback | None = None,
         timeout: float | None = None,
         query_id: str | None = None,
+        if_overloaded: IfOverloaded = "wait",
     ) -> Query:
         """`call`, awaited (rules 1-6, 17): the provider's answer wakes the loop.
 
@@ -429,7 +440,7 @@ class Registrar:
         cancelled: the call is then withdrawn as a timed-out one is (nothing is left held).
         """
         steps = self._actor.steps(
-            Here.call, timeout, target_rr, server, request, on_status, query_id
+            Here.call, timeout, target_rr, server, request, on_status, query_id, if_overloaded
         )
         return await run_steps_async(steps)
 
@@ -827,9 +838,12 @@ class Here:
         request: Any,
         on_status: StatusCallback | None,
         query_id: str | None,
+        if_overloaded: IfOverloaded = "wait",
     ) -> Steps[Query]:
         if on_status is not None and not callable(on_status):
             raise ConfigError(f"on_status must be callable, got {on_status!r}")
+        if if_overloaded not in ("wait", "raise"):
+            raise ConfigError(f"if_overloaded must be 'wait' or 'raise', got {if_overloaded!r}")
         if not (isinstance(target_rr, str) and isinstance(server, str)):
             _check_names(target_rr=target_rr, server=server)
         if query_id is not None and not (isinstance(query_id, str) and query_id):
@@ -860,6 +874,7 @@ class Here:
             limit,
             deadline,
             traces.begin(),  # (in the caller's thread or task: its OpenTelemetry context)
+            wait_overloaded=if_overloaded == "wait",
         )
         client = self.clients.get(target_rr, server)
         if client is None or not client.is_alive():  # (it exists from the first call)

@@ -1817,6 +1817,43 @@ class TestOverload:
         assert ["held", "waits"] == list(started)  # the refused one never ran
         assert 3 == len(provider.server_queries("leaf")) == len(consumer.client_queries())
 
+    def test_past_max_pending_a_caller_that_cannot_wait_is_refused_at_once(
+        self, make_registrar, gates, shared
+    ):
+        """`if_overloaded="raise"`: a call past `max_pending` gets `OverloadedError` at
+        once, however long its timeout, blocking or awaited; nothing is held for it."""
+        provider = make_registrar("provider", max_workers=1, max_pending=1)
+        consumer = make_registrar("consumer")
+        gate, started = gates(), shared.list()
+
+        serve_held_leaf(provider, gate, started)
+        with ThreadPoolExecutor(2) as pool:
+            held = pool.submit(consumer.call, provider.name, "leaf", "held", timeout=30)
+            assert wait_for(lambda: ["held"] == list(started), timeout=20)
+            refused = pool.submit(
+                consumer.call, provider.name, "leaf", "now", timeout=30, if_overloaded="raise"
+            )
+            with pytest.raises(rr.errors.OverloadedError) as error:
+                refused.result(timeout=10)  # (the load it waited for holds the worker 30 s)
+
+            async def awaited() -> Any:
+                return await consumer.acall(
+                    provider.name, "leaf", "later", timeout=30, if_overloaded="raise"
+                )
+
+            with pytest.raises(rr.errors.OverloadedError):
+                pool.submit(asyncio.run, awaited()).result(timeout=10)
+            assert (provider.name, "leaf", 1) == (error.value.registrar, error.value.server, 1)
+            gate.set()
+            assert "held" == held.result(timeout=10).response
+        assert ["held"] == list(started)  # the refused ones never ran
+        assert 1 == len(provider.server_queries("leaf")) == len(consumer.client_queries())
+
+    def test_if_overloaded_is_wait_or_raise(self, make_registrar):
+        consumer = make_registrar("consumer")
+        with pytest.raises(rr.ConfigError, match="if_overloaded must be 'wait' or 'raise'"):
+            consumer.call("elsewhere", "leaf", "x", timeout=1, if_overloaded="drop")
+
     @pytest.mark.thread_only("awaits acall in this process")
     def test_past_max_pending_an_awaited_call_waits_and_is_served(
         self, make_registrar, gates, shared
