@@ -185,7 +185,8 @@ class RegistrarConfig:
             `timeout` (a blocking one on its thread, an awaited one holding no thread),
             and gets `OverloadedError` (naming the registrar, the server and the bound)
             when too little time is left. Default: 1000 (`DEFAULT_MAX_PENDING`), which
-            ordinary loads never reach.
+            ordinary loads never reach; a server registered with its own
+            (`register_server(..., max_pending=)`) has that one instead.
 
     Raises:
         ConfigError: a field is invalid; the message names it.

@@ -268,12 +268,13 @@ class Registrar:
         on_status: StatusCallback | None = None,
         timeout: float | None = None,
         label: Callable[[Any], str] | None = None,
+        max_pending: int | None = None,
     ) -> None:
         """Register a resource server `"<registrar>/<name>"`.
 
-        Under overload, its loads queued or running are bounded by the registrar's
-        `RegistrarConfig.max_pending` (a call past it waits and asks again within its
-        timeout, then gets `OverloadedError`), and a queued load whose caller's timeout
+        Under overload, its loads queued or running are bounded by `max_pending` (a call
+        past it waits and asks again within its timeout, then gets `OverloadedError`),
+        and a queued load whose caller's timeout
         would run out before it ends (by what its recent loads took) fails at once with
         `DeadlineExceededError` without running.
 
@@ -297,17 +298,24 @@ class Registrar:
                 bound) while someone listens to events, so that its
                 `ResourceLoaded.label` is this one. Without it, the observer shows what
                 tells the server's requests apart.
+            max_pending: new loads this server may have queued or running at once
+                (an int >= 1); `None`: the registrar's `RegistrarConfig.max_pending`
+                (default 1000). A server whose loads are heavy (memory, a device) takes
+                a small one; a dedup hit, or a call joining a load under way, is never
+                refused.
 
         Raises:
             ConfigError: a callback is not callable (or, to a registrar in another
-                process, does not pickle), or the name is invalid.
+                process, does not pickle), the name is invalid, or `max_pending` is not
+                an int >= 1 (nor `None`).
             DuplicateNameError: a server with this name exists on this registrar.
             CallTimeoutError: no answer within `timeout` seconds.
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
         """
         op = Here.register_server
-        blocking(self._actor.steps(op, timeout, name, load, unload, on_status, label))
+        steps = self._actor.steps(op, timeout, name, load, unload, on_status, label, max_pending)
+        blocking(steps)
 
     async def aregister_server(
         self,
@@ -318,6 +326,7 @@ class Registrar:
         on_status: StatusCallback | None = None,
         timeout: float | None = None,
         label: Callable[[Any], str] | None = None,
+        max_pending: int | None = None,
     ) -> None:
         """`register_server`, awaited.
 
@@ -330,7 +339,7 @@ class Registrar:
         function.
         """
         steps = self._actor.steps(
-            Here.register_server, timeout, name, load, unload, on_status, label
+            Here.register_server, timeout, name, load, unload, on_status, label, max_pending
         )
         await run_steps_async(steps)
 
@@ -807,9 +816,17 @@ class Here:
         unload: UnloadCallback,
         on_status: StatusCallback | None,
         label: Callable[[Any], str] | None,
+        max_pending: int | None = None,
     ) -> Steps[None]:
         if not isinstance(name, str) or not name or "/" in name:
             raise ConfigError(f"server name must be a non-empty string without '/', got {name!r}")
+        if max_pending is not None and (
+            isinstance(max_pending, bool) or not isinstance(max_pending, int) or max_pending < 1
+        ):
+            raise ConfigError(
+                f"max_pending of server {name!r} must be an int >= 1 (or None: the "
+                f"registrar's), got {max_pending!r}"
+            )
         callbacks = (("load", load), ("unload", unload), ("on_status", on_status), ("label", label))
         for arg, fn in callbacks:
             if fn is not None and not callable(fn):
@@ -821,7 +838,7 @@ class Here:
         if on_status is not None and is_coroutine_function(on_status):
             on_status = OnLoop(on_status, process_loop())  # a server's: the process's loop
         return self.asking(
-            RegisterServer(name, load, unload, on_status, label, FutureReply()),
+            RegisterServer(name, load, unload, on_status, label, FutureReply(), max_pending),
             timeout,
             f"register_server({name!r})",
         )

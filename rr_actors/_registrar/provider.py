@@ -61,8 +61,9 @@ server); its answer is quick and holds nothing (no consumer id, no worker), so a
 costs one round trip and no state on either side; and it needs no new message or credit
 protocol between processes, only an error answer that every carrier already moves.
 
-- Admission (`start_load`): a new load of a server with `RegistrarConfig.max_pending`
-  loads queued or running is refused with `OverloadedError`; its caller waits (a pause
+- Admission (`start_load`): a new load of a server with its `max_pending` (the one
+  `register_server` gave it, else `RegistrarConfig.max_pending`) loads queued or
+  running is refused with `OverloadedError`; its caller waits (a pause
   that doubles from 5 ms to 100 ms, on its thread or, awaited, with none) and asks again
   while its timeout lasts (`calls.py`). A dedup hit or a caller joining a load under way
   adds no work and is never refused.
@@ -466,9 +467,10 @@ class Provider:
 
     def start_load(self, server: Server, message: Load, waiter: Waiter, key: Any) -> None:
         """Load a request not loaded here (`key`: its `runtime_key` if it has no digest),
-        unless its server has `max_pending` loads under way already (`OverloadedError`:
-        its caller waits and asks again, `calls.py`)."""
-        pending, bound = self.pending.get(server.name, 0), self.registrar.config.max_pending
+        unless its server has `max_pending` loads under way already (its own, or the
+        registrar's: `OverloadedError`, its caller waits and asks again, `calls.py`)."""
+        bound = server.max_pending or self.registrar.config.max_pending
+        pending = self.pending.get(server.name, 0)
         if pending >= bound:
             message.reply.set_error(
                 OverloadedError(
@@ -1623,7 +1625,9 @@ class Servers:
             self.registrar.workers,
             persisted=self.registrar.saver.store is not None,
         )
-        self.registrar.servers[name] = Server(name, ref, message.on_status, label=message.label)
+        self.registrar.servers[name] = Server(
+            name, ref, message.on_status, label=message.label, max_pending=message.max_pending
+        )
         self.teardown.run_parked(name)
         reply.set_result(None)
 

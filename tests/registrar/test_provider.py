@@ -1849,6 +1849,52 @@ class TestOverload:
         assert ["held"] == list(started)  # the refused ones never ran
         assert 1 == len(provider.server_queries("leaf")) == len(consumer.client_queries())
 
+    def test_a_servers_own_max_pending_overrides_the_registrars(
+        self, make_registrar, gates, shared
+    ):
+        """`register_server(max_pending=1)` on a registrar whose default is 1000: its
+        second new load is refused; another server of the registrar keeps the default."""
+        provider = make_registrar("provider", max_workers=1)
+        consumer = make_registrar("consumer")
+        gate, started = gates(), shared.list()
+
+        def load(request: Any) -> Any:
+            started.append(request)
+            if request == "held":
+                assert gate.wait(30)
+            return request
+
+        provider.register_server("leaf", load=load, unload=lambda r, s: None, max_pending=1)
+        provider.register_server("wide", load=lambda r: r, unload=lambda r, s: None)
+        with ThreadPoolExecutor(4) as pool:
+            held = pool.submit(consumer.call, provider.name, "leaf", "held", timeout=30)
+            assert wait_for(lambda: ["held"] == list(started), timeout=20)
+            with pytest.raises(rr.errors.OverloadedError) as refused:
+                consumer.call(provider.name, "leaf", "now", timeout=5, if_overloaded="raise")
+            assert (provider.name, "leaf", 1) == (
+                refused.value.registrar,
+                refused.value.server,
+                refused.value.bound,
+            )
+            # another server of the registrar queues behind the held worker: default bound
+            queued = [
+                pool.submit(consumer.call, provider.name, "wide", n, timeout=30) for n in range(3)
+            ]
+            gate.set()
+            assert [0, 1, 2] == [q.result(timeout=10).response for q in queued]
+            assert "held" == held.result(timeout=10).response
+        assert ["held"] == list(started)
+
+    @pytest.mark.parametrize("bad", [0, -1, 1.5, True, "10"])
+    def test_a_servers_max_pending_must_be_an_int_of_one_or_more(self, make_registrar, bad):
+        provider = make_registrar("provider")
+        with pytest.raises(rr.ConfigError, match="max_pending of server 'leaf' must be an int"):
+            provider.register_server(
+                "leaf", load=lambda r: r, unload=lambda r, s: None, max_pending=bad
+            )
+        with pytest.raises(rr.UnknownServerError):  # nothing was registered
+            provider.server_queries("leaf")
+
     def test_if_overloaded_is_wait_or_raise(self, make_registrar):
         consumer = make_registrar("consumer")
         with pytest.raises(rr.ConfigError, match="if_overloaded must be 'wait' or 'raise'"):
