@@ -46,6 +46,7 @@ __all__ = [
     "ResourceLoaded",
     "ResourceUnloaded",
     "Rows",
+    "ServerOverloaded",
     "ServerQueriesListed",
     "StatusDelivered",
     "StatusHandled",
@@ -860,6 +861,32 @@ class UnloadCutShort(_Numbered):
     resource_id: str
 
 
+@_kind
+class ServerOverloaded(_Numbered):
+    """A server refused new loads: it had its `max_pending` loads queued or running.
+
+    Published by the provider registrar at a server's first refusal, then at most once a
+    second while refusals go on (each call refused waits and asks again, or raises
+    `OverloadedError`: its `CallFailed` says which). Shed loads are `LoadFailed` events
+    (`error_type` `DeadlineExceededError`).
+
+    Attributes:
+        registrar: name of the provider registrar.
+        server: name of the server.
+        pending: its new loads queued or running at this refusal (its queue's depth).
+        bound: its `max_pending` (its own, or its registrar's).
+        refused: calls it refused since the previous `ServerOverloaded` of it (this
+            one's included).
+        at: when it refused.
+    """
+
+    registrar: str
+    server: str
+    pending: int
+    bound: int
+    refused: int
+
+
 # -- recovery and the stream itself ---------------------------------------------------------
 
 
@@ -1018,6 +1045,7 @@ Event: TypeAlias = (
     | CatalogRestored
     | RegistrarStopped
     | UnloadCutShort
+    | ServerOverloaded
     | EventsDropped
 )
 """Any event of this module (a subscriber's callback receives these)."""

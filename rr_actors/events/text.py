@@ -24,6 +24,7 @@ from rr_actors.events.kinds import (
     RegistrarStopped,
     ResourceLoaded,
     ResourceUnloaded,
+    ServerOverloaded,
     ServerQueriesListed,
     StatusDelivered,
     StatusHandled,
@@ -152,6 +153,11 @@ def describe(event: Event) -> str:  # noqa: PLR0911, PLR0912 - one case per even
             return f"{event.registrar} restored its catalog: {_counts(event.counts)}"
         case RegistrarStopped():
             return f"{event.registrar} stopped, its catalog holding {_counts(event.counts)}"
+        case ServerOverloaded():
+            return (
+                f"{event.registrar}/{event.server} is overloaded: {event.pending} loads queued "
+                f"or running (max_pending={event.bound}), {event.refused} calls refused"
+            )
         case UnloadCutShort():
             return (
                 f"{event.registrar}/{event.server}: the unload of {_id(event.resource_id)} was "

@@ -194,6 +194,7 @@ def _touched(event: events.Event) -> tuple[str, ...] | None:
             | events.StatusHandled()
             | events.UnloadCutShort()
             | events.ManagerOverloaded()
+            | events.ServerOverloaded()
             | events.QueriesFetched()
             | events.ServerQueriesListed()
         ):

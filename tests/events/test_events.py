@@ -56,6 +56,7 @@ EXAMPLES: list[events.Event] = [
     ),
     events.RegistrarStopped("cm", (), (), ((QID, "erm", "start_process", ""),), (0, 0, 1)),
     events.UnloadCutShort("erm", "start_process", RID),
+    events.ServerOverloaded("erm", "start_process", 1000, 1000, 17),
     events.EventsDropped(17),
 ]
 
@@ -397,6 +398,10 @@ def test_from_dict_names_what_is_wrong(data: Any, named: str) -> None:
             "erm/cam failed to load 1a2b3c4d (query 5e6f7a8b): SensorError: no\\ncamera",
         ),
         (events.ResourceUnloaded("erm", "cam", RID), "erm/cam unloaded 1a2b3c4d"),
+        (
+            events.ServerOverloaded("erm", "cam", 4, 4, 17),
+            "erm/cam is overloaded: 4 loads queued or running (max_pending=4), 17 calls refused",
+        ),
         (
             events.UnloadCutShort("erm", "cam", RID),
             "erm/cam: the unload of 1a2b3c4d was cut short by a stop (in doubt at the next start)",

@@ -21,6 +21,7 @@ import subprocess
 import sys
 import textwrap
 import threading
+import time
 import traceback
 import uuid
 from collections.abc import Callable
@@ -1894,6 +1895,45 @@ class TestOverload:
             )
         with pytest.raises(rr.UnknownServerError):  # nothing was registered
             provider.server_queries("leaf")
+
+    @pytest.mark.thread_only("subscribes to the provider's events in this process")
+    def test_a_server_that_refuses_loads_publishes_its_queue_depth_throttled(
+        self, make_registrar, gates, shared
+    ):
+        """`ServerOverloaded`: its first refusal at once (its loads queued or running,
+        its bound), then at most one a second, counting the refusals in between."""
+        provider = make_registrar("provider", max_workers=1, max_pending=1)
+        consumer = make_registrar("consumer")
+        gate, started = gates(), shared.list()
+        seen: list[rr.events.ServerOverloaded] = []
+        subscription = provider.subscribe(
+            lambda e: seen.append(e) if isinstance(e, rr.events.ServerOverloaded) else None
+        )
+
+        serve_held_leaf(provider, gate, started)
+        with ThreadPoolExecutor(1) as pool:
+            held = pool.submit(consumer.call, provider.name, "leaf", "held", timeout=30)
+            assert wait_for(lambda: ["held"] == list(started), timeout=20)
+            began = time.monotonic()
+            for n in range(3):
+                with pytest.raises(rr.errors.OverloadedError):
+                    consumer.call(provider.name, "leaf", n, timeout=30, if_overloaded="raise")
+            took = time.monotonic() - began
+            assert subscription.wait_delivered(timeout=10)
+            gate.set()
+            assert "held" == held.result(timeout=10).response
+        subscription.close()
+
+        first = seen[0]
+        assert (provider.name, "leaf", 1, 1, 1) == (
+            first.registrar,
+            first.server,
+            first.pending,
+            first.bound,
+            first.refused,
+        )
+        if took < 1.0:  # (the three refusals within the throttle's second: one event)
+            assert 1 == len(seen), seen
 
     def test_if_overloaded_is_wait_or_raise(self, make_registrar):
         consumer = make_registrar("consumer")

@@ -830,6 +830,7 @@
       case "ChildRestarted":
       case "SupervisorGaveUp":
       case "ManagerOverloaded":
+      case "ServerOverloaded":
       case "LoadFailed":
       case "InDoubt":
         pushRow({ kind: "child", event });
