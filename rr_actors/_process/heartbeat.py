@@ -35,21 +35,8 @@ keep the excuse honest:
 
 Where the platform has no watch (`portable`), the silence counts whole: a fixed bound.
 
-*Busy is not hung* (issue 53). A manager saturated with work (loads running on all its
-workers, a flood of calls in its registrar's mailbox) answers late because its ping
-waits behind the messages before it, and its threads wait for the GIL, which the kernel
-counts as sleeping, not as waiting for a CPU. So a late silence is also looked into from
-inside: at each look the watcher sends a `Probe`, which the manager's control loop (not
-its registrar) answers at once with how many messages its registrar actor has handled
-(`Inbox.handled`) and how many wait in its mailbox (`progress`). Time between two
-answers in which that count grew was spent working: it does not count either (the
-excuse of an interval is the larger of the two, never their sum). A registrar stuck in
-a handler handles nothing: its silence counts, as before; one stuck right after it
-handled a message gets at most one more `step` (the last answer's progress covers the
-time up to it). A process that cannot answer a probe at all (stopped, or one thread
-holding the GIL throughout) gains nothing. A late answer that was excused past the bound
-is reported (`Late`, to `on_late`: the supervisor publishes `ManagerOverloaded`); the
-`STARVED_LIMIT` holds for a busy manager too.
+*Busy is not hung* (issue 53): time in which its registrar was seen handling messages
+does not count either (`Heartbeat.progress`; an excused late answer: `on_late`).
 
 Alternatives weighed: a phi accrual failure detector (Hayashibara et al. 2004; Akka,
 Cassandra) learns the distribution of past answer times and suspects a peer when the
@@ -294,8 +281,19 @@ class Heartbeat:
     def progress(self, number: int, pinged: int, handled: int, queued: int, now: float) -> None:
         """A probe of ping `number` was answered (read at `now`): its registrar had handled
         `pinged` messages when the ping reached its process, `handled` now, and `queued`
-        wait in its mailbox. The time since the last such answer (or since the first look)
-        in which the count grew does not count against it."""
+        wait in its mailbox.
+
+        A saturated manager answers late: its ping waits behind the calls in its mailbox,
+        and its registrar waits for the GIL behind busy workers, which the kernel counts
+        as sleep, not as waiting for a CPU. The manager's control loop answers a probe at
+        once (`Inbox.handled`, its mailbox's size): the time since the previous answer (or
+        since the ping) in which the count grew was spent working and does not count (a
+        silence's excuse is the larger of this and its run-queue delay, never their sum).
+        A registrar stuck in a handler handles nothing, so its silence counts; one stuck
+        right after a message gains at most one `step`. A process that cannot answer
+        (stopped, or one thread holding the GIL throughout) gains nothing; the
+        `STARVED_LIMIT` holds for a busy one too.
+        """
         silence = self._silence
         if silence is None or silence.number != number:
             return  # (a probe of an earlier silence)

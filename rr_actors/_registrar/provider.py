@@ -61,12 +61,11 @@ server); its answer is quick and holds nothing (no consumer id, no worker), so a
 costs one round trip and no state on either side; and it needs no new message or credit
 protocol between processes, only an error answer that every carrier already moves.
 
-- Admission (`start_load`): a new load of a server with its `max_pending` (the one
-  `register_server` gave it, else `RegistrarConfig.max_pending`) loads queued or
-  running is refused with `OverloadedError`; its caller waits (a pause
-  that doubles from 5 ms to 100 ms, on its thread or, awaited, with none) and asks again
-  while its timeout lasts (`calls.py`). A dedup hit or a caller joining a load under way
-  adds no work and is never refused.
+- Admission (`start_load`): a new load of a server with its `max_pending` (its own, else
+  `RegistrarConfig.max_pending`) loads queued or running is refused with `OverloadedError`
+  (`ServerOverloaded` says so); its caller waits (a pause that doubles from 5 ms to 100 ms,
+  on its thread or, awaited, with none) and asks again while its timeout lasts
+  (`calls.py`). A dedup hit or a caller joining a load under way adds no work.
 - Shedding (`ServerActor.shed`): each `Load` carries its caller's deadline (as seconds
   left across processes); a load whose deadline leaves less than 1.5 times what its
   server's recent loads take, when a worker comes free for it, fails at once with
