@@ -120,7 +120,8 @@ class Late:
     Attributes:
         silent: seconds from the ping to its answer.
         bound: the bound it passed (`Heartbeat.bound`, seconds).
-        excused: seconds of that which did not count (the larger of `waited` and `busy`).
+        excused: seconds of that which did not count (`busy`, and the share of `waited`
+            outside it).
         waited: seconds of it its threads waited for a CPU (0.0: not known here).
         busy: seconds of it its registrar was handling other messages.
         queued: messages waiting in its registrar's mailbox at the last probe answered
@@ -167,6 +168,16 @@ class _Silence:
         self.queued = -1  # its mailbox's depth last heard
         self.probed = False  # a probe is unanswered
         self.warned = False
+
+
+def _excused(waited: float, busy: float, silent: float) -> float:
+    """Seconds of a `silent`-second silence that do not count: the `busy` ones (its
+    registrar was seen working), and of the `waited` ones (waiting for a CPU, spread over
+    the silence as far as anyone knows) the share that fell outside them. Never more
+    than `silent`; the larger of the two when one is 0."""
+    if silent <= 0.0:
+        return 0.0
+    return busy + waited * max(0.0, 1.0 - busy / silent)
 
 
 class Heartbeat:
@@ -264,7 +275,7 @@ class Heartbeat:
         silent = now - silence.sent
         self._late = silence.base_at is not None and silent > self.step
         self.wake_at = max(now, self._next_ping)
-        excused = max(silence.waited, silence.busy)
+        excused = _excused(silence.waited, silence.busy, silent)
         if silent > self.bound and excused > 0.0 and self.on_late is not None:
             self.on_late(
                 Late(
@@ -288,7 +299,8 @@ class Heartbeat:
         as sleep, not as waiting for a CPU. The manager's control loop answers a probe at
         once (`Inbox.handled`, its mailbox's size): the time since the previous answer (or
         since the ping) in which the count grew was spent working and does not count (a
-        silence's excuse is the larger of this and its run-queue delay, never their sum).
+        silence's run-queue delay counts only in the share of it not seen working:
+        `_excused`).
         A registrar stuck in a handler handles nothing, so its silence counts; one stuck
         right after a message gains at most one `step`. A process that cannot answer
         (stopped, or one thread holding the GIL throughout) gains nothing; the
@@ -324,7 +336,7 @@ class Heartbeat:
         if sample is not None and silence.base is not None:
             silence.waited = min(since, max(0.0, sample.waited - silence.base.waited))
         before = silence.base_at - silence.sent - silence.counted  # (the watcher's delay)
-        counted = silent - max(before + silence.waited, silence.busy)
+        counted = silent - _excused(before + silence.waited, silence.busy, silent)
         waited = silence.waited if silence.base is not None else None
         if sample is not None and sample.stopped and silent > self.bound:
             return Hang(silent, waited, stopped=True)

@@ -366,7 +366,7 @@ class ManagerOverloaded(_Stamped):
         bound_s: its `heartbeat_timeout` (seconds).
         excused_s: seconds of the silence that did not count against it.
         busy_s: seconds of it its registrar was seen handling other messages (the rest
-            of `excused_s`, if more, it waited for a CPU).
+            of `excused_s` it waited for a CPU).
         queued: messages waiting in its registrar's mailbox when last asked (-1: not
             asked).
         at: when the answer was read.
