@@ -367,6 +367,24 @@ def test_the_time_its_registrar_was_seen_working_does_not_count_against_it() -> 
     assert 1 == len(lates)
 
 
+def test_a_manager_that_works_and_waits_for_a_cpu_in_turns_is_excused_for_both() -> None:
+    # every other probe shows work (1.0 s of the 2.0 s silence at the end), and it waited
+    # for a CPU 1.0 s in all, spread over it: 1.0 + 1.0 x (1 - 1.0 / 2.0) excused, 0.5 s
+    # counted (the larger of the two alone would count 1.0 s: hung at 0.75)
+    cpu = _Samples()
+    beat = Heartbeat("m", period=0.25, bound=0.75, cpu=cpu, now=0.0, probes=True)
+    assert 1 == beat.tick(0.25)
+    beat.sent(0.25)
+    handled, verdicts = 0, []
+    for look, now in enumerate([0.5, 0.75, 1.0, 1.25, 1.5, 1.75, 2.0, 2.25]):
+        cpu.next = CpuSample(stopped=False, waited=0.5 * (now - 0.25))
+        verdicts.append(beat.tick(now))
+        handled += 3 if look % 2 == 0 else 0
+        beat.progress(1, pinged=0, handled=handled, queued=9, now=now)
+
+    assert [Look(1)] * 8 == verdicts
+
+
 def test_a_silence_starts_when_its_ping_was_written_and_ends_with_its_answer() -> None:
     beat = Heartbeat("m", period=0.25, bound=0.75, cpu=None, now=0.0)
     assert 1 == beat.tick(0.25)
