@@ -5,9 +5,10 @@ from __future__ import annotations
 import dataclasses
 import enum
 from collections.abc import Awaitable, Callable
-from typing import Any, Protocol
+from typing import Any, Literal, Protocol
 
 __all__ = [
+    "IfOverloaded",
     "LoadCallback",
     "Query",
     "Setup",
@@ -103,6 +104,11 @@ class StatusDelivery:
 StatusCallback = Callable[[Query, StatusUpdate], Awaitable[None] | None]
 """`on_status(query, update)`: a server's or a client's status callback (a plain function,
 or a coroutine function: `async def on_status(query, update)`)."""
+
+
+IfOverloaded = Literal["wait", "raise"]
+"""What a call refused for overload does (`Registrar.call`'s `if_overloaded`): `"wait"`
+and ask again within its timeout, or `"raise"` `OverloadedError` at once."""
 
 
 LoadCallback = Callable[[Any], Any]

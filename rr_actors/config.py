@@ -185,7 +185,8 @@ class RegistrarConfig:
             `timeout` (a blocking one on its thread, an awaited one holding no thread),
             and gets `OverloadedError` (naming the registrar, the server and the bound)
             when too little time is left. Default: 1000 (`DEFAULT_MAX_PENDING`), which
-            ordinary loads never reach.
+            ordinary loads never reach; a server registered with its own
+            (`register_server(..., max_pending=)`) has that one instead.
 
     Raises:
         ConfigError: a field is invalid; the message names it.
@@ -355,8 +356,10 @@ class ManagerSpec:
             manager counts as hung: it is killed and handled like a crash. Default:
             three heartbeat periods (0.75 s with the default `heartbeat`). On Linux only
             the time it could have run counts: time its threads waited for a CPU (an
-            overloaded machine) does not, up to ten times this bound; a stopped or
-            blocked manager is hung at the bound (docs: "What counts as a hang"). A
+            overloaded machine) does not, up to ten times this bound; on any platform,
+            time its registrar was seen working through its mailbox (a busy manager: a
+            `ManagerOverloaded` event) does not either; a stopped or blocked manager is
+            hung at the bound (docs: "What counts as a hang"). A
             manager whose answers say that it has been unable to accept connections for
             that long (out of file descriptors, say) is killed the same way, as unhealthy.
         start_timeout: seconds a manager may take to restore, set up and serve.

@@ -179,7 +179,8 @@ class OverloadedError(RrError):
 
     A call refused so waits and asks again (a blocking call on its thread, an awaited
     one with no thread held) while its `timeout` lasts; this is raised when the time
-    left is too short for another try. Nothing was loaded and the provider holds
+    left is too short for another try, or at once for a caller that cannot wait
+    (`call(..., if_overloaded="raise")`). Nothing was loaded and the provider holds
     nothing of the call: it is never dropped silently.
 
     Attributes:

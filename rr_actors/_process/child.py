@@ -17,7 +17,8 @@ Runs only in manager processes (never in the supervisor's process). In the child
    then serves the registrar on the system,
 4. reports `ready` over its control pipe and answers control requests: `stop`, `ping`
    (the heartbeat, answered through the registrar actor's mailbox, with how long its
-   listener has been unable to accept connections, if it has) and `events` (whether to
+   listener has been unable to accept connections, if it has), `probe` (a late ping's:
+   answered at once, with how far its registrar got through its mailbox) and `events` (whether to
    forward the registrar's events: only while the supervisor's process has listeners),
 5. exits at once when the control pipe reaches EOF: the supervisor's process is gone,
 6. exits with code 0 when its registrar was stopped cleanly by code in the manager (a
@@ -31,6 +32,8 @@ Runs only in manager processes (never in the supervisor's process). In the child
          ◄──────────────── Ready(pid) | Failed(traceback, corrupt)
    ping  ─────────────────── Ping(n) ──────────────────────────►  registrar mailbox
          ◄──────────────── Pong(n, trouble)  (None, or (seconds, why) it cannot accept)
+   probe ─────────────────── Probe(n)  (ping n is late) ───────►  the control loop
+         ◄──────────────── Progress(n, pinged, handled, queued)  (its registrar's mailbox)
    events ───────────────── Forward(on) ───────────────────────►  forward events or not
          ◄──────────────── Events([event, ...])  (batches, while on; a start's after Ready)
    sync  ─────────────────── SyncEvents(n, timeout) ───────────►  send what is buffered
@@ -67,6 +70,7 @@ from typing import TYPE_CHECKING, Any
 import cloudpickle
 
 from rr_actors import events
+from rr_actors._core.actor import Inbox
 from rr_actors._core.bus import Forwarder, Publisher
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._platform import PLATFORM
@@ -82,6 +86,8 @@ from rr_actors._process.control import (
     FromChild,
     Ping,
     Pong,
+    Probe,
+    Progress,
     Ready,
     Start,
     Stop,
@@ -461,6 +467,10 @@ class _ControlLoop:
         self.attached = attached
         self.stopping = stopping
         self.line = line
+        inbox = registrar._actor.ref.actor_inbox
+        assert isinstance(inbox, Inbox)  # (a registrar actor's)
+        self.inbox = inbox
+        self.pinged = (0, 0)  # the last ping's number, and the handled count when it came
 
     def run(self) -> None:
         """Handle the parent's messages in order until `Stop`, or EOF (the parent is gone)."""
@@ -483,7 +493,23 @@ class _ControlLoop:
 
     def ping(self, message: Ping) -> None:
         """Answer through the registrar actor's mailbox: a hung actor sends no pong."""
+        self.pinged = (message.number, self.inbox.handled)
         self.registrar._actor.ping(_Pong(self.control, message.number, self.trouble))
+
+    def probe(self, message: Probe) -> None:
+        """Answer at once: how far the registrar actor got through its mailbox (a busy
+        one is not hung: `rr_actors._process.heartbeat`)."""
+        inbox = self.inbox
+        number, pinged = self.pinged
+        handled = inbox.handled
+        self.control.send(
+            Progress(
+                message.number,
+                pinged if number == message.number else handled,
+                handled,
+                inbox.qsize(),
+            )
+        )
 
     def forward(self, message: Forward) -> None:
         self.line.switch(on=message.on)
@@ -515,6 +541,7 @@ class _ControlLoop:
 
 _HANDLERS: dict[type[Any], Callable[[_ControlLoop, Any], None]] = {
     Ping: _ControlLoop.ping,
+    Probe: _ControlLoop.probe,
     Forward: _ControlLoop.forward,
     SyncEvents: _ControlLoop.sync_events,
     Stop: _ControlLoop.stop,

@@ -9,6 +9,8 @@
                                           ◄──────── Ready(pid) | Failed(traceback, corrupt)
    Ping(number) ────────────────────────────────────────────────►  registrar mailbox
                                           ◄──────── Pong(number, trouble)
+   Probe(number)  (a late ping) ────────────────────────────────►  the control loop
+                                          ◄──────── Progress(number, pinged, handled, queued)
    Forward(on) ─────────────────────────────────────────────────►  forward events or not
                                           ◄──────── Events(batch)   (while on)
    SyncEvents(token, timeout) ──────────────────────────────────►  send what is buffered
@@ -55,6 +57,8 @@ __all__ = [
     "FromParent",
     "Ping",
     "Pong",
+    "Probe",
+    "Progress",
     "Ready",
     "Start",
     "Stop",
@@ -100,6 +104,14 @@ class WarmUp:
 @dataclasses.dataclass(frozen=True, slots=True)
 class Ping:
     """The heartbeat: answer `Pong(number, ...)` once the registrar actor got to it."""
+
+    number: int
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class Probe:
+    """Ping `number` is late: answer `Progress` at once, from the control loop (not
+    through the registrar's mailbox, where the ping waits)."""
 
     number: int
 
@@ -178,6 +190,23 @@ class Pong:
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
+class Progress:
+    """The answer to `Probe(number)`: whether the registrar works through its mailbox.
+
+    Attributes:
+        number: the ping's number.
+        pinged: messages its registrar actor had handled when ping `number` arrived.
+        handled: messages it has handled now.
+        queued: messages waiting in its mailbox now.
+    """
+
+    number: int
+    pinged: int
+    handled: int
+    queued: int
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
 class Events:
     """A batch of the registrar's events (`rr_actors.events` values), in order."""
 
@@ -191,10 +220,10 @@ class EventsSynced:
     token: int
 
 
-FromParent = WarmUp | Start | Ping | Forward | SyncEvents | Stop
+FromParent = WarmUp | Start | Ping | Probe | Forward | SyncEvents | Stop
 """What the parent sends down a control pipe."""
 
-FromChild = Warm | Ready | Failed | Pong | Events | EventsSynced
+FromChild = Warm | Ready | Failed | Pong | Progress | Events | EventsSynced
 """What a manager process sends up its control pipe."""
 
 

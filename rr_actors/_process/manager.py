@@ -9,7 +9,10 @@
                                ── Ping(n) every `heartbeat` s ─────────►  registrar mailbox
                                ◄── Pong(n, trouble) ────────────────────
                                a late answer: Heartbeat judges the silence
+                               ── Probe(n) at each look ───────────────►  control loop
+                               ◄── Progress(n, ...) (its mailbox's) ────
                                (hung: SIGKILL ─────────────────────────►)
+                               (late, excused: on_overloaded(pid, Late))
                                exit seen ──► on_exit(ManagerExit) ──► the supervisor's mailbox
 ```
 
@@ -54,6 +57,8 @@ from rr_actors._process.control import (
     FromParent,
     Ping,
     Pong,
+    Probe,
+    Progress,
     Ready,
     Stop,
     SyncEvents,
@@ -62,7 +67,7 @@ from rr_actors._process.control import (
     start_forkserver,
     stopped_cleanly,
 )
-from rr_actors._process.heartbeat import Hang, Heartbeat
+from rr_actors._process.heartbeat import Hang, Heartbeat, Late, Look
 from rr_actors._process.received import Received
 from rr_actors._process.tally import Tally
 from rr_actors._transport.base import Address
@@ -165,6 +170,7 @@ class ManagerProcess:
         on_exit: Callable[[ManagerExit], None],
         on_events: Callable[[list[Any]], None] | None = None,
         received: Received | None = None,
+        on_overloaded: Callable[[int, Late], None] | None = None,
     ) -> None:
         self.name = name
         self.process = process
@@ -182,8 +188,11 @@ class ManagerProcess:
                 heartbeat_timeout or 3.0 * heartbeat,
                 PLATFORM.watch_cpu(self.pid),
                 runtime.monotonic(),
+                probes=True,
+                on_late=self._late,
             )
         )
+        self._on_overloaded = on_overloaded
         self._on_exit = on_exit
         self._on_events = on_events
         self._syncs: dict[int, runtime.Event] = {}  # events-sync tokens waiting for answers
@@ -210,6 +219,7 @@ class ManagerProcess:
         spare: Spare | None = None,
         forward_events: bool = False,
         on_events: Callable[[list[Any]], None] | None = None,
+        on_overloaded: Callable[[int, Late], None] | None = None,
     ) -> ManagerProcess:
         """Start a manager process and wait until it serves (its catalog restored).
 
@@ -225,6 +235,10 @@ class ManagerProcess:
                 start (`forward_events` switches it later).
             on_events: called on the watcher thread with each batch of events the
                 manager forwards (`rr_actors.events` values, in the order they happened).
+            on_overloaded: called on the watcher thread with its pid and a `Late` when the
+                manager answered a ping after more than its bound, the silence excused (it
+                was busy, or waited for a CPU: `rr_actors._process.heartbeat`; that was
+                logged, a WARNING).
 
         Raises:
             CatalogCorruptError: its backup cannot be read: the error raised in the
@@ -278,6 +292,7 @@ class ManagerProcess:
             on_exit=on_exit,
             on_events=on_events,
             received=received,
+            on_overloaded=on_overloaded,
         )
         runtime.Thread(target=handle._watch, name=f"rr-watch-{name}", daemon=True).start()
         return handle
@@ -370,6 +385,8 @@ class ManagerProcess:
             if isinstance(verdict, Hang):
                 self._hang(verdict)
                 beat = None
+            elif isinstance(verdict, Look):
+                self._send(Probe(verdict.number))
             elif verdict is not None:
                 self._send(Ping(verdict))
                 beat.sent(runtime.monotonic())
@@ -435,6 +452,22 @@ class ManagerProcess:
         trouble = message.trouble
         return (0.0, "") if trouble is None else (float(trouble[0]), str(trouble[1]))
 
+    def _progress(self, message: Progress, now: float) -> None:
+        """A probe's answer: how far the registrar got through its mailbox."""
+        if self._beat is not None:
+            self._beat.progress(
+                message.number, message.pinged, message.handled, message.queued, now
+            )
+
+    def _late(self, late: Late) -> None:
+        """A late answer was excused (the heartbeat logged it): to `on_overloaded`."""
+        if self._on_overloaded is None:
+            return
+        try:
+            self._on_overloaded(self.pid, late)
+        except Exception:
+            logger.exception("overload handler of manager %s raised", self.name)
+
     def _hang(self, hang: Hang) -> None:
         self._hung = hang
         logger.error("manager %s hangs (%s): killing it", self.name, hang.reason())
@@ -483,6 +516,7 @@ _HANDLERS: dict[type[Any], Callable[[ManagerProcess, Any, float], tuple[float, s
     Events: ManagerProcess._events,
     EventsSynced: ManagerProcess._synced,
     Pong: ManagerProcess._pong,
+    Progress: ManagerProcess._progress,
 }
 """What the watcher thread does with each message of a running manager's (`Ready`,
 `Failed` and `Warm` come before it runs: `_await_ready`)."""

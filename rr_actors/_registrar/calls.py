@@ -525,6 +525,7 @@ class Calls:
         limit: float,
         deadline: float,
         begun: tuple[str, str] | None = None,
+        wait_overloaded: bool = True,
     ) -> Steps[Query]:
         """A call's steps: send its load, wait for its answer until `deadline` (rule 17).
 
@@ -544,6 +545,8 @@ class Calls:
             deadline: when to give up (`time.monotonic()` seconds).
             begun: the caller's trace context (`_core/traces.py`'s `begin`): the
                 `Load` carries its traceparent, the call's events both.
+            wait_overloaded: whether a refusal for overload is asked again after a pause
+                (while the time lasts), or raised at once (`if_overloaded="raise"`).
 
         Returns:
             The call's `Query`, with its response.
@@ -601,8 +604,9 @@ class Calls:
             try:
                 attempt.get()  # raises what the call failed with
             except OverloadedError:  # refused, holding nothing: wait, then ask again
-                if deadline - runtime.monotonic() <= 2 * pause:  # no time for a pause and
-                    raise  # the answer after it
+                # a caller that cannot wait, or no time for a pause and the answer after it
+                if not wait_overloaded or deadline - runtime.monotonic() <= 2 * pause:
+                    raise
             yield OneShotFuture(), runtime.monotonic() + pause  # (never settled: a pause)
             pause = min(2 * pause, _LAST_PAUSE)
 

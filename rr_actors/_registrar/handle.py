@@ -88,6 +88,7 @@ from rr_actors._registrar.messages import (
 )
 from rr_actors._registrar.state import Probes
 from rr_actors._types import (
+    IfOverloaded,
     LoadCallback,
     Query,
     Status,
@@ -268,12 +269,13 @@ class Registrar:
         on_status: StatusCallback | None = None,
         timeout: float | None = None,
         label: Callable[[Any], str] | None = None,
+        max_pending: int | None = None,
     ) -> None:
         """Register a resource server `"<registrar>/<name>"`.
 
-        Under overload, its loads queued or running are bounded by the registrar's
-        `RegistrarConfig.max_pending` (a call past it waits and asks again within its
-        timeout, then gets `OverloadedError`), and a queued load whose caller's timeout
+        Under overload, its loads queued or running are bounded by `max_pending` (a call
+        past it waits and asks again within its timeout, then gets `OverloadedError`),
+        and a queued load whose caller's timeout
         would run out before it ends (by what its recent loads took) fails at once with
         `DeadlineExceededError` without running.
 
@@ -297,17 +299,24 @@ class Registrar:
                 bound) while someone listens to events, so that its
                 `ResourceLoaded.label` is this one. Without it, the observer shows what
                 tells the server's requests apart.
+            max_pending: new loads this server may have queued or running at once
+                (an int >= 1); `None`: the registrar's `RegistrarConfig.max_pending`
+                (default 1000). A server whose loads are heavy (memory, a device) takes
+                a small one; a dedup hit, or a call joining a load under way, is never
+                refused.
 
         Raises:
             ConfigError: a callback is not callable (or, to a registrar in another
-                process, does not pickle), or the name is invalid.
+                process, does not pickle), the name is invalid, or `max_pending` is not
+                an int >= 1 (nor `None`).
             DuplicateNameError: a server with this name exists on this registrar.
             CallTimeoutError: no answer within `timeout` seconds.
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
         """
         op = Here.register_server
-        blocking(self._actor.steps(op, timeout, name, load, unload, on_status, label))
+        steps = self._actor.steps(op, timeout, name, load, unload, on_status, label, max_pending)
+        blocking(steps)
 
     async def aregister_server(
         self,
@@ -318,6 +327,7 @@ class Registrar:
         on_status: StatusCallback | None = None,
         timeout: float | None = None,
         label: Callable[[Any], str] | None = None,
+        max_pending: int | None = None,
     ) -> None:
         """`register_server`, awaited.
 
@@ -330,7 +340,7 @@ class Registrar:
         function.
         """
         steps = self._actor.steps(
-            Here.register_server, timeout, name, load, unload, on_status, label
+            Here.register_server, timeout, name, load, unload, on_status, label, max_pending
         )
         await run_steps_async(steps)
 
@@ -360,6 +370,7 @@ class Registrar:
         on_status: StatusCallback | None = None,
         timeout: float | None = None,
         query_id: str | None = None,
+        if_overloaded: IfOverloaded = "wait",
     ) -> Query:
         """Ask `target_rr/server` for the resource `request` describes (rules 1-6, 17).
 
@@ -384,6 +395,10 @@ class Registrar:
             timeout: seconds to wait for the answer.
             query_id: the id to use (default: a fresh UUID4). Retrying with the same id is
                 idempotent: it never loads twice nor adds a second consumer.
+            if_overloaded: what a call refused because the server has its
+                `max_pending` loads does: `"wait"` (pause, 5 ms doubling to 100 ms, and
+                ask again while `timeout` lasts) or `"raise"` (`OverloadedError` at once,
+                for a caller that cannot wait; nothing is held at the provider).
 
         Returns:
             The `Query`, with the provider's `response` (in one process, the very object
@@ -394,15 +409,19 @@ class Registrar:
             DependencyCycleError: the load would wait for itself further up its chain.
             UnknownServerError: no such registrar or server.
             CallTimeoutError: no answer in time; the query id is released if it loads later.
+            OverloadedError: the server has its `max_pending` loads, and this caller does
+                not wait (`if_overloaded="raise"`) or its time left is too short for
+                another try; nothing is held.
             RegistrarUnavailableError: the provider died (it may have executed the load).
             RegistrarStoppedError: this registrar or the provider was stopped.
             ConfigError: `target_rr` or `server` is not a str, `query_id` not a
-                non-empty str, `on_status` not callable; or the request, or the response,
+                non-empty str, `on_status` not callable, `if_overloaded` neither `"wait"`
+                nor `"raise"`; or the request, or the response,
                 cannot be pickled where it must be: across processes, or into this
                 registrar's backup (its client record); the provider then holds nothing.
         """
         steps = self._actor.steps(
-            Here.call, timeout, target_rr, server, request, on_status, query_id
+            Here.call, timeout, target_rr, server, request, on_status, query_id, if_overloaded
         )
         return blocking(steps)
 
@@ -415,6 +434,7 @@ class Registrar:
         on_status: StatusCallback | None = None,
         timeout: float | None = None,
         query_id: str | None = None,
+        if_overloaded: IfOverloaded = "wait",
     ) -> Query:
         """`call`, awaited (rules 1-6, 17): the provider's answer wakes the loop.
 
@@ -427,7 +447,7 @@ class Registrar:
         cancelled: the call is then withdrawn as a timed-out one is (nothing is left held).
         """
         steps = self._actor.steps(
-            Here.call, timeout, target_rr, server, request, on_status, query_id
+            Here.call, timeout, target_rr, server, request, on_status, query_id, if_overloaded
         )
         return await run_steps_async(steps)
 
@@ -787,9 +807,17 @@ class Here:
         unload: UnloadCallback,
         on_status: StatusCallback | None,
         label: Callable[[Any], str] | None,
+        max_pending: int | None = None,
     ) -> Steps[None]:
         if not isinstance(name, str) or not name or "/" in name:
             raise ConfigError(f"server name must be a non-empty string without '/', got {name!r}")
+        if max_pending is not None and (
+            isinstance(max_pending, bool) or not isinstance(max_pending, int) or max_pending < 1
+        ):
+            raise ConfigError(
+                f"max_pending of server {name!r} must be an int >= 1 (or None: the "
+                f"registrar's), got {max_pending!r}"
+            )
         callbacks = (("load", load), ("unload", unload), ("on_status", on_status), ("label", label))
         for arg, fn in callbacks:
             if fn is not None and not callable(fn):
@@ -801,7 +829,7 @@ class Here:
         if on_status is not None and is_coroutine_function(on_status):
             on_status = OnLoop(on_status, process_loop())  # a server's: the process's loop
         return self.asking(
-            RegisterServer(name, load, unload, on_status, label, FutureReply()),
+            RegisterServer(name, load, unload, on_status, label, FutureReply(), max_pending),
             timeout,
             f"register_server({name!r})",
         )
@@ -818,9 +846,12 @@ class Here:
         request: Any,
         on_status: StatusCallback | None,
         query_id: str | None,
+        if_overloaded: IfOverloaded = "wait",
     ) -> Steps[Query]:
         if on_status is not None and not callable(on_status):
             raise ConfigError(f"on_status must be callable, got {on_status!r}")
+        if if_overloaded not in ("wait", "raise"):
+            raise ConfigError(f"if_overloaded must be 'wait' or 'raise', got {if_overloaded!r}")
         if not (isinstance(target_rr, str) and isinstance(server, str)):
             _check_names(target_rr=target_rr, server=server)
         if query_id is not None and not (isinstance(query_id, str) and query_id):
@@ -851,6 +882,7 @@ class Here:
             limit,
             deadline,
             traces.begin(),  # (in the caller's thread or task: its OpenTelemetry context)
+            wait_overloaded=if_overloaded == "wait",
         )
         client = self.clients.get(target_rr, server)
         if client is None or not client.is_alive():  # (it exists from the first call)

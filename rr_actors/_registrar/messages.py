@@ -529,7 +529,8 @@ class Asked(Protocol):
 
 @dataclasses.dataclass(frozen=True)
 class RegisterServer:
-    """Register resource server `name` with its callbacks. Answer: `None`."""
+    """Register resource server `name` with its callbacks and its bound of new loads
+    under way (`None`: the registrar's `max_pending`). Answer: `None`."""
 
     name: str
     load: LoadCallback
@@ -537,6 +538,7 @@ class RegisterServer:
     on_status: StatusCallback | None
     label: Callable[[Any], Any] | None
     reply: FutureReply
+    max_pending: int | None = None
 
 
 @dataclasses.dataclass(frozen=True)

@@ -148,6 +148,10 @@ _SHED_HEADROOM = 1.5
 server's loads take lately (`ServerActor.shed`): its answer's way back, and a load
 slower than the average, need time too."""
 
+_REFUSALS_EVERY = 1.0
+"""Seconds between two `ServerOverloaded` events of one server (its first refusal is
+published at once, the refusals in between are counted in the next)."""
+
 _LOAD_S_WEIGHT = 0.2
 """How far one load's run time moves its server's average (`ServerActor.ran`): about the
 last ten loads count."""
@@ -193,6 +197,7 @@ class Provider:
         self.teardown = teardown
         self.loads: dict[str, list[Waiter]] = {}  # resource id -> the callers waiting for it
         self.pending: dict[str, int] = {}  # server -> its loads queued or running (admission)
+        self.refusals: dict[str, tuple[int, float]] = {}  # server -> (unpublished, last)
         self.loading_ids: dict[str, str] = {}  # a waiting caller's query id -> its resource
         self.abandoned: set[str] = set()  # query ids whose callers gave up while it loaded
         self.held_loads: list[Load] = []  # for servers `setup` has not registered yet
@@ -433,12 +438,29 @@ class Provider:
             *told, ok=lambda: reply.set_result(response), undo=undo, refuse=reply.set_error
         )
 
+    def refused(self, server: str, pending: int, bound: int) -> None:
+        """A new load of `server` was refused: a `ServerOverloaded`, at most one a
+        `_REFUSALS_EVERY` seconds per server (the refusals between counted in the next)."""
+        publisher = self.registrar.events
+        if not publisher.active:
+            return
+        now = runtime.monotonic()
+        count, last = self.refusals.get(server, (0, now - _REFUSALS_EVERY))
+        if now - last < _REFUSALS_EVERY:
+            self.refusals[server] = (count + 1, last)
+            return
+        self.refusals[server] = (0, now)
+        name = self.registrar.name
+        publisher.publish(events.ServerOverloaded(name, server, pending, bound, count + 1))
+
     def start_load(self, server: Server, message: Load, waiter: Waiter, key: Any) -> None:
         """Load a request not loaded here (`key`: its `runtime_key` if it has no digest),
-        unless its server has `max_pending` loads under way already (`OverloadedError`:
-        its caller waits and asks again, `calls.py`)."""
-        pending, bound = self.pending.get(server.name, 0), self.registrar.config.max_pending
+        unless its server has `max_pending` loads under way already (its own, or the
+        registrar's: `OverloadedError`, its caller waits and asks again, `calls.py`)."""
+        bound = server.max_pending or self.registrar.config.max_pending
+        pending = self.pending.get(server.name, 0)
         if pending >= bound:
+            self.refused(server.name, pending, bound)
             message.reply.set_error(
                 OverloadedError(
                     f"'{self.registrar.name}/{server.name}' has {pending} loads queued or "
@@ -1593,7 +1615,9 @@ class Servers:
             self.registrar.workers,
             persisted=self.registrar.saver.store is not None,
         )
-        self.registrar.servers[name] = Server(name, ref, message.on_status, label=message.label)
+        self.registrar.servers[name] = Server(
+            name, ref, message.on_status, label=message.label, max_pending=message.max_pending
+        )
         self.teardown.run_parked(name)
         reply.set_result(None)
 

@@ -93,13 +93,15 @@ class Phase(enum.Enum):
 
 @dataclasses.dataclass
 class Server:
-    """A registered resource server (its `label(request)`: `display.py`)."""
+    """A registered resource server (its `label(request)`: `display.py`; its own bound of
+    new loads under way, `max_pending`, or `None`: the registrar's)."""
 
     name: str
     ref: pykka.ActorRef[Any]  # (a `provider.ServerActor`)
     on_status: StatusCallback | None
     closing: bool = False
     label: Callable[[Any], Any] | None = None
+    max_pending: int | None = None
 
 
 @dataclasses.dataclass

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import logging
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Literal, Protocol
@@ -252,10 +253,12 @@ class ProcessManager:
         on_exit: Callable[[ManagerExit], None],
         spares: SparePool | None,
         relay: EventRelay | None = None,
+        supervisor: str = "",
     ) -> ProcessManager:
         """Start the manager (in a spare if there is one) and wait until it serves.
 
-        Its registrar's events are forwarded to `relay` while the tree has listeners.
+        Its registrar's events are forwarded to `relay` while the tree has listeners; so
+        is a `ManagerOverloaded` of `supervisor`'s when it answers its heartbeat late.
 
         Raises:
             CatalogCorruptError: its backup cannot be read (with its `path`).
@@ -275,6 +278,9 @@ class ProcessManager:
             spare=spares.take() if spares is not None else None,
             forward_events=forwarding,
             on_events=relay.deliver if relay is not None else None,
+            on_overloaded=None
+            if relay is None
+            else functools.partial(relay.overloaded, supervisor, spec.name),
         )
         if relay is not None:
             relay.attach(handle, forwarding=forwarding)

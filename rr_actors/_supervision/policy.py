@@ -637,6 +637,7 @@ class Starting:
                         post,
                         processes.spares,
                         tree.events,
+                        supervisor=record.name,
                     )
                 finally:
                     if processes.spares is not None:  # after this start was published

@@ -2,6 +2,7 @@
 
 ```
  supervisors (Node) ── ChildStarted/Exited/Restarted, SupervisorGaveUp ──► publish ──┐
+ a process manager's heartbeat ── ManagerOverloaded ────────────────────► publish ──┤
  thread manager's registrar ── relay_to ─────────────────────────────────► deliver ──┤
  process manager's registrar ─► its process's hub ─► Forwarder ─► control pipe       ├─► tree
       ─► ManagerProcess watcher thread ─► EventRelay.deliver ────────────► deliver ──┘  publisher
@@ -26,6 +27,7 @@ from typing import Any
 from rr_actors import events
 from rr_actors._core import hlc, runtime
 from rr_actors._core.bus import Publisher
+from rr_actors._process.heartbeat import Late
 from rr_actors._process.manager import ManagerProcess
 from rr_actors._registrar.actor import EVENT_LOG
 
@@ -88,6 +90,24 @@ class EventRelay:
         for event in batch:
             if getattr(event, "at", since) >= since:
                 self.publisher.deliver(event)
+
+    def overloaded(self, supervisor: str, manager: str, pid: int, late: Late) -> None:
+        """Manager process `manager` of `supervisor` answered its heartbeat late, excused
+        (its watcher thread): a `ManagerOverloaded`, published here, where it was seen
+        (logged at INFO too; the heartbeat's WARNING said it first)."""
+        if self.publisher.active:
+            self.publisher.publish(
+                events.ManagerOverloaded(
+                    supervisor,
+                    manager,
+                    pid,
+                    late.silent,
+                    late.bound,
+                    late.excused,
+                    late.busy,
+                    late.queued,
+                )
+            )
 
     def _switch(self, listened: bool) -> None:
         with self._lock:

@@ -39,12 +39,14 @@ __all__ = [
     "EventsDropped",
     "InDoubt",
     "LoadFailed",
+    "ManagerOverloaded",
     "QueriesFetched",
     "QueryForgotten",
     "RegistrarStopped",
     "ResourceLoaded",
     "ResourceUnloaded",
     "Rows",
+    "ServerOverloaded",
     "ServerQueriesListed",
     "StatusDelivered",
     "StatusHandled",
@@ -343,6 +345,41 @@ class SupervisorGaveUp(_Numbered):
     reason: str
     max_restarts: int
     period: float
+
+
+@_kind
+class ManagerOverloaded(_Stamped):
+    """A manager process answered its heartbeat late, overloaded: not hung, not killed.
+
+    Published by its supervisor when the answer to a ping came after more than the
+    manager's `heartbeat_timeout`, and the silence was excused: its registrar was busy
+    with other messages (a flood of calls, loads on all its workers), or its threads
+    waited for a CPU. At most one per ping, so at most one a `heartbeat_timeout`; the
+    heartbeat's WARNING says it too (at most one a minute). A silence that is not
+    excused ends in a kill instead (`ChildExited`, `"hung: ..."`).
+
+    Attributes:
+        supervisor: name of its supervisor.
+        manager: name of the manager.
+        pid: its process.
+        silent_s: seconds from the ping to its answer.
+        bound_s: its `heartbeat_timeout` (seconds).
+        excused_s: seconds of the silence that did not count against it.
+        busy_s: seconds of it its registrar was seen handling other messages (the rest
+            of `excused_s` it waited for a CPU).
+        queued: messages waiting in its registrar's mailbox when last asked (-1: not
+            asked).
+        at: when the answer was read.
+    """
+
+    supervisor: str
+    manager: str
+    pid: int
+    silent_s: float
+    bound_s: float
+    excused_s: float
+    busy_s: float
+    queued: int
 
 
 # -- provider side --------------------------------------------------------------------------
@@ -817,6 +854,32 @@ class UnloadCutShort(_Numbered):
     resource_id: str
 
 
+@_kind
+class ServerOverloaded(_Numbered):
+    """A server refused new loads: it had its `max_pending` loads queued or running.
+
+    Published by the provider registrar at a server's first refusal, then at most once a
+    second while refusals go on (each call refused waits and asks again, or raises
+    `OverloadedError`: its `CallFailed` says which). Shed loads are `LoadFailed` events
+    (`error_type` `DeadlineExceededError`).
+
+    Attributes:
+        registrar: name of the provider registrar.
+        server: name of the server.
+        pending: its new loads queued or running at this refusal (its queue's depth).
+        bound: its `max_pending` (its own, or its registrar's).
+        refused: calls it refused since the previous `ServerOverloaded` of it (this
+            one's included).
+        at: when it refused.
+    """
+
+    registrar: str
+    server: str
+    pending: int
+    bound: int
+    refused: int
+
+
 # -- recovery and the stream itself ---------------------------------------------------------
 
 
@@ -956,6 +1019,7 @@ Event: TypeAlias = (
     | ChildExited
     | ChildRestarted
     | SupervisorGaveUp
+    | ManagerOverloaded
     | ResourceLoaded
     | LoadFailed
     | ResourceUnloaded
@@ -974,6 +1038,7 @@ Event: TypeAlias = (
     | CatalogRestored
     | RegistrarStopped
     | UnloadCutShort
+    | ServerOverloaded
     | EventsDropped
 )
 """Any event of this module (a subscriber's callback receives these)."""

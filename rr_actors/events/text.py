@@ -18,11 +18,13 @@ from rr_actors.events.kinds import (
     EventsDropped,
     InDoubt,
     LoadFailed,
+    ManagerOverloaded,
     QueriesFetched,
     QueryForgotten,
     RegistrarStopped,
     ResourceLoaded,
     ResourceUnloaded,
+    ServerOverloaded,
     ServerQueriesListed,
     StatusDelivered,
     StatusHandled,
@@ -58,6 +60,13 @@ def describe(event: Event) -> str:  # noqa: PLR0911, PLR0912 - one case per even
             return (
                 f"supervisor {event.supervisor} gave up (more than {event.max_restarts} "
                 f"restarts within {event.period:g} s): {_text(event.reason)}"
+            )
+        case ManagerOverloaded():
+            return (
+                f"{event.manager} is overloaded, not hung: it answered its heartbeat after "
+                f"{_seconds(event.silent_s)} (bound {_seconds(event.bound_s)}), "
+                f"{_seconds(event.excused_s)} of it excused (its registrar busy for "
+                f"{_seconds(event.busy_s)}, {event.queued} messages queued) (pid {event.pid})"
             )
         case ResourceLoaded():
             return (
@@ -144,6 +153,11 @@ def describe(event: Event) -> str:  # noqa: PLR0911, PLR0912 - one case per even
             return f"{event.registrar} restored its catalog: {_counts(event.counts)}"
         case RegistrarStopped():
             return f"{event.registrar} stopped, its catalog holding {_counts(event.counts)}"
+        case ServerOverloaded():
+            return (
+                f"{event.registrar}/{event.server} is overloaded: {event.pending} loads queued "
+                f"or running (max_pending={event.bound}), {event.refused} calls refused"
+            )
         case UnloadCutShort():
             return (
                 f"{event.registrar}/{event.server}: the unload of {_id(event.resource_id)} was "

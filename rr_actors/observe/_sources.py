@@ -193,6 +193,8 @@ def _touched(event: events.Event) -> tuple[str, ...] | None:
             | events.StatusDelivered()
             | events.StatusHandled()
             | events.UnloadCutShort()
+            | events.ManagerOverloaded()
+            | events.ServerOverloaded()
             | events.QueriesFetched()
             | events.ServerQueriesListed()
         ):

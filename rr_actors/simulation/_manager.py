@@ -244,7 +244,7 @@ class SimulatedManager(ManagerProcess):
                 logger.error("manager %s hangs (%s): killing it", self.name, verdict.reason())
                 self.kill()
                 beat = None
-            elif verdict is not None:
+            elif isinstance(verdict, int):  # (no `Look`: it is made without probes)
                 self._send(Ping(verdict))
                 beat.sent(runtime.monotonic())
         self._finished(ended.exitcode)

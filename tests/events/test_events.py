@@ -33,6 +33,7 @@ EXAMPLES: list[events.Event] = [
     events.ChildExited("root", "erm", 4242, "killed by SIGKILL"),
     events.ChildRestarted("root", "erm", 4243, 0.0231),
     events.SupervisorGaveUp("root", "erm crashed 4 times within 5 s", 3, 5.0),
+    events.ManagerOverloaded("root", "erm", 4242, 1.25, 0.75, 1.1, 0.9, 312),
     events.ResourceLoaded("erm", "start_process", RID, QID, 0.0123, 77, "camera 0"),
     events.LoadFailed("erm", "start_process", RID, QID, "SensorError", "no camera"),
     events.ResourceUnloaded("erm", "start_process", RID),
@@ -55,6 +56,7 @@ EXAMPLES: list[events.Event] = [
     ),
     events.RegistrarStopped("cm", (), (), ((QID, "erm", "start_process", ""),), (0, 0, 1)),
     events.UnloadCutShort("erm", "start_process", RID),
+    events.ServerOverloaded("erm", "start_process", 1000, 1000, 17),
     events.EventsDropped(17),
 ]
 
@@ -102,7 +104,8 @@ def test_every_event_kind_has_its_own_fields_first_then_keyword_only_at_and_pid(
 ) -> None:
     names = [f.name for f in dataclasses.fields(event)]
     keyword_only = [f.name for f in dataclasses.fields(event) if f.kw_only]
-    if kind(event).startswith("Child"):  # a child's pid is one of its own fields
+    if kind(event).startswith("Child") or kind(event) == "ManagerOverloaded":
+        # a child's pid is one of its own fields (a manager's, the supervisor's event)
         assert ["at", "host", "hlc"] == keyword_only
         assert "pid" == names[2]
     else:
@@ -395,6 +398,12 @@ def test_from_dict_names_what_is_wrong(data: Any, named: str) -> None:
             "supervisor root gave up (more than 3 restarts within 5 s): erm crashed",
         ),
         (
+            events.ManagerOverloaded("root", "erm", 4242, 1.25, 0.75, 1.1, 0.9, 312),
+            "erm is overloaded, not hung: it answered its heartbeat after 1.25 s (bound 750.0 "
+            "ms), 1.10 s of it excused (its registrar busy for 900.0 ms, 312 messages queued) "
+            "(pid 4242)",
+        ),
+        (
             events.ResourceLoaded("erm", "start_process", RID, QID, 0.0123, 77, "camera 0"),
             "erm/start_process loaded 1a2b3c4d in 12.3 ms (query 5e6f7a8b)",
         ),
@@ -403,6 +412,10 @@ def test_from_dict_names_what_is_wrong(data: Any, named: str) -> None:
             "erm/cam failed to load 1a2b3c4d (query 5e6f7a8b): SensorError: no\\ncamera",
         ),
         (events.ResourceUnloaded("erm", "cam", RID), "erm/cam unloaded 1a2b3c4d"),
+        (
+            events.ServerOverloaded("erm", "cam", 4, 4, 17),
+            "erm/cam is overloaded: 4 loads queued or running (max_pending=4), 17 calls refused",
+        ),
         (
             events.UnloadCutShort("erm", "cam", RID),
             "erm/cam: the unload of 1a2b3c4d was cut short by a stop (in doubt at the next start)",

@@ -10,12 +10,15 @@ judgement waits on the heartbeat's own log lines (a handler that sets an event),
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
+import itertools
 import logging
 import os
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterator
 from multiprocessing.connection import Connection
 from typing import Any
@@ -24,9 +27,10 @@ import cloudpickle
 import pytest
 
 import rr_actors as rr
+from rr_actors import events
 from rr_actors._platform.base import CpuSample
 from rr_actors._process.control import Events, Ping, Pong, Ready, Stop, mp_context, start_forkserver
-from rr_actors._process.heartbeat import STARVED_LIMIT, Hang, Heartbeat
+from rr_actors._process.heartbeat import STARVED_LIMIT, Hang, Heartbeat, Late, Look
 from rr_actors._process.manager import ManagerExit, ManagerProcess
 from rr_actors.testing import SharedObjects, run_on_actor
 from tests.support.starving import busy_cpu, pinned, starved
@@ -334,6 +338,52 @@ def test_without_a_cpu_watch_the_whole_silence_counts() -> None:
     assert (None, Hang(silent=0.875)) == (beat.tick(0.75), beat.tick(1.125))
 
 
+def test_the_time_its_registrar_was_seen_working_does_not_count_against_it() -> None:
+    cpu = _Samples()  # (no time waiting for a CPU: only the probes' answers excuse)
+    lates: list[Late] = []
+    beat = Heartbeat("m", period=0.25, bound=0.75, cpu=cpu, now=0.0, probes=True)
+    beat.on_late = lates.append
+    assert 1 == beat.tick(0.25)
+    beat.sent(0.25)
+    assert Look(1) == beat.tick(0.5)  # late: a probe
+    beat.progress(1, pinged=10, handled=14, queued=300, now=0.5)  # busy since the ping
+    assert beat.tick(0.625) is None  # (woken by the pipe: not due)
+    assert Look(1) == beat.tick(0.75)  # 0.0 s counted
+    beat.progress(1, pinged=10, handled=20, queued=200, now=0.75)  # busy: 0.5 s in all
+    assert Look(1) == beat.tick(1.0)  # 0.25 s counted
+    beat.progress(1, pinged=10, handled=20, queued=200, now=1.0)  # stuck from here on
+
+    assert beat.answered(1, 1.125)  # (it answered after all: excused, reported)
+    assert [Late(silent=0.875, bound=0.75, excused=0.5, waited=0.0, busy=0.5, queued=200)] == lates
+    assert 2 == beat.tick(1.25)
+    beat.sent(1.25)  # (the previous answer was late: watched from its ping)
+    assert Look(2) == beat.tick(1.5)
+    beat.progress(2, pinged=21, handled=21, queued=250, now=1.5)  # stuck: counts
+    assert Look(2) == beat.tick(1.75)
+    beat.progress(2, pinged=21, handled=21, queued=250, now=1.75)
+    assert Look(2) == beat.tick(2.0)  # 0.75 s counted: not over the bound yet
+    assert Hang(silent=1.0, waited=0.0) == beat.tick(2.25)
+    assert 1 == len(lates)
+
+
+def test_a_manager_that_works_and_waits_for_a_cpu_in_turns_is_excused_for_both() -> None:
+    # every other probe shows work (1.0 s of the 2.0 s silence at the end), and it waited
+    # for a CPU 1.0 s in all, spread over it: 1.0 + 1.0 x (1 - 1.0 / 2.0) excused, 0.5 s
+    # counted (the larger of the two alone would count 1.0 s: hung at 0.75)
+    cpu = _Samples()
+    beat = Heartbeat("m", period=0.25, bound=0.75, cpu=cpu, now=0.0, probes=True)
+    assert 1 == beat.tick(0.25)
+    beat.sent(0.25)
+    handled, verdicts = 0, []
+    for look, now in enumerate([0.5, 0.75, 1.0, 1.25, 1.5, 1.75, 2.0, 2.25]):
+        cpu.next = CpuSample(stopped=False, waited=0.5 * (now - 0.25))
+        verdicts.append(beat.tick(now))
+        handled += 3 if look % 2 == 0 else 0
+        beat.progress(1, pinged=0, handled=handled, queued=9, now=now)
+
+    assert [Look(1)] * 8 == verdicts
+
+
 def test_a_silence_starts_when_its_ping_was_written_and_ends_with_its_answer() -> None:
     beat = Heartbeat("m", period=0.25, bound=0.75, cpu=None, now=0.0)
     assert 1 == beat.tick(0.25)
@@ -393,3 +443,149 @@ def test_a_manager_slower_than_the_heartbeat_period_but_within_its_timeout_is_no
 
     assert survived.wait(10.0), "killed as hung before its heartbeat_timeout ran out"
     assert (old, 0) == (sup.child(name).pid, sup.child(name).restarts)
+
+
+# -- busy: not hung (issue 53) --------------------------------------------------------------------
+
+
+class _Overloads:
+    """The tree's `ManagerOverloaded` events (`seen`); `first` is set at the first."""
+
+    def __init__(self) -> None:
+        self.seen: list[events.ManagerOverloaded] = []
+        self.first = threading.Event()
+
+    def __call__(self, event: events.Event) -> None:  # (the subscriber's thread)
+        if isinstance(event, events.ManagerOverloaded):
+            self.seen.append(event)
+            self.first.set()
+
+
+@contextlib.contextmanager
+def overloads(sup: rr.Supervisor) -> Iterator[_Overloads]:
+    """The tree's `ManagerOverloaded` events, from now on."""
+    heard = _Overloads()
+    subscription = sup.subscribe(heard)
+    try:
+        yield heard
+    finally:
+        subscription.close()
+
+
+def queue_slow_messages(count: int, seconds: float, done: Any) -> Callable[[Any], None]:
+    """Run in a manager: put `count` messages in its registrar's mailbox, each of which
+    holds the actor `seconds` (a handler waiting on I/O); the last one sets `done`."""
+
+    def fn(registrar: rr.ResourceRegistrar) -> None:
+        import threading  # noqa: PLC0415 - runs in the manager
+
+        from rr_actors.testing import run_on_actor  # noqa: PLC0415 - runs in the manager
+
+        for _ in range(count - 1):
+            run_on_actor(registrar, lambda: threading.Event().wait(seconds))
+        run_on_actor(registrar, done.set)
+
+    return fn
+
+
+def worked_through(done: Any, hangs: _Heard, timeout: float) -> None:
+    """Wait (at most `timeout` seconds) until `done` is set; fail at once if the manager
+    was judged hung meanwhile."""
+    deadline = time.monotonic() + timeout
+    while not done.wait(0.1):
+        assert not hangs.event.is_set(), hangs.records[0].getMessage()
+        assert time.monotonic() < deadline, f"not done within {timeout:g} s"
+
+
+def test_a_manager_whose_registrar_works_through_a_long_mailbox_is_overloaded_not_hung(
+    supervisors: Callable[..., rr.Supervisor], uid: str, process_helpers: SharedObjects
+) -> None:
+    # 75 messages of 20 ms ahead of its pings: an answer comes ~1.5 s late (3 bounds; on
+    # a loaded machine up to twice that, still well within the 5 s of `STARVED_LIMIT`),
+    # the actor blocked (not waiting for a CPU: nothing excused that before) but handling
+    # a message every 20 ms
+    name = f"erm-{uid}"
+    sup = supervisors([process(name, heartbeat=0.1, heartbeat_timeout=0.5)]).start()
+    pid = pid_of(sup, name)
+    done = process_helpers.event()
+
+    with (
+        overloads(sup) as overloaded,
+        heard("hangs") as hangs,
+        heard("registrar was busy") as warned,
+    ):
+        sup.run_in(name, queue_slow_messages(75, 0.02, done), timeout=10.0)
+        worked_through(done, hangs, 30.0)
+        answered = sup.registrar(f"app-{uid}").call(name, "echo", "after", timeout=15.0)
+        assert overloaded.first.wait(10.0), "no ManagerOverloaded for its late answers"
+
+    info = sup.child(name)
+    assert (pid, 0, "after") == (info.pid, info.restarts, answered.response)
+    assert ["WARNING"] == [r.levelname for r in warned.records], warned.records
+    late = overloaded.seen
+    assert all(e.manager == name and e.pid == pid for e in late), late
+    assert all(e.silent_s > e.bound_s == 0.5 and e.busy_s > 0.0 for e in late), late
+
+
+def burning_setup(seconds: float) -> Callable[[rr.ResourceRegistrar], None]:
+    """A manager's setup: server `burn`, whose `load` keeps its worker's CPU (and the GIL,
+    in turns) busy for `seconds` of that thread's CPU time."""
+
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        import time  # noqa: PLC0415 - runs in the manager
+
+        def load(request: Any) -> Any:
+            until = time.thread_time() + seconds
+            while time.thread_time() < until:
+                pass
+            return request
+
+        registrar.register_server("burn", load=load, unload=lambda r, s: None)
+
+    return setup
+
+
+async def flood(app: rr.ResourceRegistrar, name: str, workers: int, callers: int) -> None:
+    """For 4 s: `workers` awaited callers keep each worker of `name/burn` busy (new
+    requests, one after another), and `callers` more call its loaded request `"hot"` (a
+    dedup hit: no work, but a message for its registrar each)."""
+    numbers = itertools.count()
+    until = time.monotonic() + 4.0
+
+    async def loading() -> None:
+        while time.monotonic() < until:
+            await app.acall(name, "burn", next(numbers), timeout=30.0)
+
+    async def hitting() -> None:
+        while time.monotonic() < until:
+            with contextlib.suppress(rr.CallTimeoutError):
+                await app.acall(name, "burn", "hot", timeout=5.0)
+
+    await asyncio.gather(*(loading() for _ in range(workers)), *(hitting() for _ in range(callers)))
+
+
+def test_a_manager_saturated_with_loads_and_calls_is_overloaded_not_hung(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    # CPU-bound loads on all 16 of its workers and 300 callers of a loaded resource, for
+    # 4 s (8 bounds): its pings wait behind the calls in its mailbox, its registrar waits
+    # for the GIL behind its workers (a wait the kernel counts as sleep: not excused)
+    name = f"erm-{uid}"
+    config = rr.RegistrarConfig(name, max_workers=16)
+    spec = process(name, burning_setup(0.1), config=config, heartbeat=0.1, heartbeat_timeout=0.5)
+    sup = supervisors([spec]).start()
+    pid = pid_of(sup, name)
+    app = sup.registrar(f"app-{uid}")
+
+    app.call(name, "burn", "hot", timeout=15.0)
+    with overloads(sup) as overloaded, heard("hangs") as hangs:
+        asyncio.run(flood(app, name, 16, 300))
+        answered = app.call(name, "burn", "after", timeout=15.0)
+        assert overloaded.first.wait(10.0), "no ManagerOverloaded for its late answers"
+
+    info = sup.child(name)
+    assert not hangs.records, hangs.records[0].getMessage()
+    assert (pid, 0, "after") == (info.pid, info.restarts, answered.response)
+    late = overloaded.seen
+    assert all(e.manager == name and e.silent_s > e.bound_s for e in late), late
+    assert any(e.busy_s > 0.0 for e in late), late

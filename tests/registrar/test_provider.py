@@ -21,6 +21,7 @@ import subprocess
 import sys
 import textwrap
 import threading
+import time
 import traceback
 import uuid
 from collections.abc import Callable
@@ -1816,6 +1817,128 @@ class TestOverload:
             assert "held" == held.result(timeout=10).response == joins.result(10).response
         assert ["held", "waits"] == list(started)  # the refused one never ran
         assert 3 == len(provider.server_queries("leaf")) == len(consumer.client_queries())
+
+    def test_past_max_pending_a_caller_that_cannot_wait_is_refused_at_once(
+        self, make_registrar, gates, shared
+    ):
+        """`if_overloaded="raise"`: a call past `max_pending` gets `OverloadedError` at
+        once, however long its timeout, blocking or awaited; nothing is held for it."""
+        provider = make_registrar("provider", max_workers=1, max_pending=1)
+        consumer = make_registrar("consumer")
+        gate, started = gates(), shared.list()
+
+        serve_held_leaf(provider, gate, started)
+        with ThreadPoolExecutor(2) as pool:
+            held = pool.submit(consumer.call, provider.name, "leaf", "held", timeout=30)
+            assert wait_for(lambda: ["held"] == list(started), timeout=20)
+            refused = pool.submit(
+                consumer.call, provider.name, "leaf", "now", timeout=30, if_overloaded="raise"
+            )
+            with pytest.raises(rr.errors.OverloadedError) as error:
+                refused.result(timeout=10)  # (the load it waited for holds the worker 30 s)
+
+            async def awaited() -> Any:
+                return await consumer.acall(
+                    provider.name, "leaf", "later", timeout=30, if_overloaded="raise"
+                )
+
+            with pytest.raises(rr.errors.OverloadedError):
+                pool.submit(asyncio.run, awaited()).result(timeout=10)
+            assert (provider.name, "leaf", 1) == (error.value.registrar, error.value.server, 1)
+            gate.set()
+            assert "held" == held.result(timeout=10).response
+        assert ["held"] == list(started)  # the refused ones never ran
+        assert 1 == len(provider.server_queries("leaf")) == len(consumer.client_queries())
+
+    def test_a_servers_own_max_pending_overrides_the_registrars(
+        self, make_registrar, gates, shared
+    ):
+        """`register_server(max_pending=1)` on a registrar whose default is 1000: its
+        second new load is refused; another server of the registrar keeps the default."""
+        provider = make_registrar("provider", max_workers=1)
+        consumer = make_registrar("consumer")
+        gate, started = gates(), shared.list()
+
+        def load(request: Any) -> Any:
+            started.append(request)
+            if request == "held":
+                assert gate.wait(30)
+            return request
+
+        provider.register_server("leaf", load=load, unload=lambda r, s: None, max_pending=1)
+        provider.register_server("wide", load=lambda r: r, unload=lambda r, s: None)
+        with ThreadPoolExecutor(4) as pool:
+            held = pool.submit(consumer.call, provider.name, "leaf", "held", timeout=30)
+            assert wait_for(lambda: ["held"] == list(started), timeout=20)
+            with pytest.raises(rr.errors.OverloadedError) as refused:
+                consumer.call(provider.name, "leaf", "now", timeout=5, if_overloaded="raise")
+            assert (provider.name, "leaf", 1) == (
+                refused.value.registrar,
+                refused.value.server,
+                refused.value.bound,
+            )
+            # another server of the registrar queues behind the held worker: default bound
+            queued = [
+                pool.submit(consumer.call, provider.name, "wide", n, timeout=30) for n in range(3)
+            ]
+            gate.set()
+            assert [0, 1, 2] == [q.result(timeout=10).response for q in queued]
+            assert "held" == held.result(timeout=10).response
+        assert ["held"] == list(started)
+
+    @pytest.mark.parametrize("bad", [0, -1, 1.5, True, "10"])
+    def test_a_servers_max_pending_must_be_an_int_of_one_or_more(self, make_registrar, bad):
+        provider = make_registrar("provider")
+        with pytest.raises(rr.ConfigError, match="max_pending of server 'leaf' must be an int"):
+            provider.register_server(
+                "leaf", load=lambda r: r, unload=lambda r, s: None, max_pending=bad
+            )
+        with pytest.raises(rr.UnknownServerError):  # nothing was registered
+            provider.server_queries("leaf")
+
+    @pytest.mark.thread_only("subscribes to the provider's events in this process")
+    def test_a_server_that_refuses_loads_publishes_its_queue_depth_throttled(
+        self, make_registrar, gates, shared
+    ):
+        """`ServerOverloaded`: its first refusal at once (its loads queued or running,
+        its bound), then at most one a second, counting the refusals in between."""
+        provider = make_registrar("provider", max_workers=1, max_pending=1)
+        consumer = make_registrar("consumer")
+        gate, started = gates(), shared.list()
+        seen: list[rr.events.ServerOverloaded] = []
+        subscription = provider.subscribe(
+            lambda e: seen.append(e) if isinstance(e, rr.events.ServerOverloaded) else None
+        )
+
+        serve_held_leaf(provider, gate, started)
+        with ThreadPoolExecutor(1) as pool:
+            held = pool.submit(consumer.call, provider.name, "leaf", "held", timeout=30)
+            assert wait_for(lambda: ["held"] == list(started), timeout=20)
+            began = time.monotonic()
+            for n in range(3):
+                with pytest.raises(rr.errors.OverloadedError):
+                    consumer.call(provider.name, "leaf", n, timeout=30, if_overloaded="raise")
+            took = time.monotonic() - began
+            assert subscription.wait_delivered(timeout=10)
+            gate.set()
+            assert "held" == held.result(timeout=10).response
+        subscription.close()
+
+        first = seen[0]
+        assert (provider.name, "leaf", 1, 1, 1) == (
+            first.registrar,
+            first.server,
+            first.pending,
+            first.bound,
+            first.refused,
+        )
+        if took < 1.0:  # (the three refusals within the throttle's second: one event)
+            assert 1 == len(seen), seen
+
+    def test_if_overloaded_is_wait_or_raise(self, make_registrar):
+        consumer = make_registrar("consumer")
+        with pytest.raises(rr.ConfigError, match="if_overloaded must be 'wait' or 'raise'"):
+            consumer.call("elsewhere", "leaf", "x", timeout=1, if_overloaded="drop")
 
     @pytest.mark.thread_only("awaits acall in this process")
     def test_past_max_pending_an_awaited_call_waits_and_is_served(

@@ -829,6 +829,8 @@
       case "ChildExited":
       case "ChildRestarted":
       case "SupervisorGaveUp":
+      case "ManagerOverloaded":
+      case "ServerOverloaded":
       case "LoadFailed":
       case "InDoubt":
         pushRow({ kind: "child", event });
