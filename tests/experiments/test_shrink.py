@@ -565,3 +565,56 @@ def test_the_start_of_a_run_is_cut_with_a_fault_after_an_event_kept_as_it_is(
     assert [{"event": "CallAnswered", "registrar": "client-0", "nth": 2}] == [
         a["after"] for a in cut["faults"] if "after" in a
     ]
+
+
+@SHRINK
+def test_faults_timed_by_calls_are_shrunk_to_no_clients_and_the_faults_at_their_times(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # api killed after the client's 2nd and 4th answered calls: the calls only time the
+    # kills (a crash loop's, say), and no other pass drops the client an `after` fault
+    # waits for: with the kills at the times they fired, no client is needed.
+    monkeypatch.setattr(
+        shrink,
+        "violation_kinds",
+        lambda run: ["[probe] two"] if run.history.count('"ChildRestarted"') >= 2 else [],
+    )
+    text = ONE + "".join(
+        f'\n[[faults]]\nkind = "kill_manager"\ntarget = "api"\n'
+        f'after = {{ event = "CallAnswered", registrar = "client-0", nth = {nth} }}\n'
+        for nth in (2, 4)
+    )
+
+    shrunk = shrink.shrink(parse_plan(text), 1, budget=BUDGET, text=text)
+
+    assert shrunk.original_events > 30
+    assert shrunk.run.events <= 10
+    assert "no clients (each fault after an event at the time it fired)" in shrunk.steps
+    assert "after" not in shrunk.text
+
+
+@SHRINK
+def test_managers_idle_in_the_run_are_dropped_with_their_call_kinds_at_once(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # sensor (using feed) has a call kind the client draws once in a thousand: neither
+    # does anything before the first answer. The tree pass drops them a step at a time
+    # (calls to sensor made to feed, the `uses` cut, sensor dropped, ...), each step a
+    # new interleaving kept alone; the idle pass drops both at once (before the pass: 15
+    # events in 120 runs, feed kept).
+    probe(monkeypatch, "CallAnswered")
+    spares = "".join(
+        f'\n[[tree.children]]\nname = "{name}"\nsetup = "{SERVICE}"\n{options}'
+        for name, options in (("feed", ""), ("sensor", 'options = { uses = ["feed"] }\n'))
+    )
+    text = (
+        ONE.replace("\n[workload]", f"{spares}\n[workload]")
+        + '\n[[workload.calls]]\nmanager = "sensor"\nserver = "resource"\nweight = 0.001\n'
+    )
+
+    shrunk = shrink.shrink(parse_plan(text), 1, budget=BUDGET, text=text)
+
+    assert shrunk.original_events > 300
+    assert shrunk.run.events <= 12
+    assert "idle managers feed, sensor dropped" in shrunk.steps
+    assert "feed" not in shrunk.text
