@@ -507,25 +507,26 @@ class _Shrinker:
     def durations(self) -> None:
         """A shorter run: its end cut (the injections after it dropped), or its start (the
         injections before it dropped, the others that much earlier), largest cuts first."""
+        self.repeat(self.duration_cuts)
 
-        def candidates() -> Iterator[tuple[str, dict[str, Any]]]:
-            duration = self.data["duration"]
-            seen = _violation_at(self.best, self.kind, duration)
-            for margin in (NARROW, MARGIN):
-                if seen is not None and (shorter := round(seen + margin, 3)) < duration:
-                    yield (
-                        f"duration {duration:g} -> {shorter:g} s (the violation at {seen:.3f} s)",
-                        (self.until(shorter)),
-                    )
-            for fraction in (0.125, 0.25, 0.5, 0.75, 0.9):
-                shorter = round(duration * fraction, 3)
-                if not 0 < shorter < duration:
-                    continue
-                yield f"duration {duration:g} -> {shorter:g} s", self.until(shorter)
-                if (cut := self.from_(round(duration - shorter, 6))) is not None:
-                    yield f"the first {duration - shorter:g} s of {duration:g} cut", cut
-
-        self.repeat(candidates)
+    def duration_cuts(self) -> Iterator[tuple[str, dict[str, Any]]]:
+        """The candidates of `durations`: the end `NARROW`, then `MARGIN` after the
+        violation; then the end or the start cut at fractions of the duration."""
+        duration = self.data["duration"]
+        seen = _violation_at(self.best, self.kind, duration)
+        for margin in (NARROW, MARGIN):
+            if seen is not None and (shorter := round(seen + margin, 3)) < duration:
+                yield (
+                    f"duration {duration:g} -> {shorter:g} s (the violation at {seen:.3f} s)",
+                    (self.until(shorter)),
+                )
+        for fraction in (0.125, 0.25, 0.5, 0.75, 0.9):
+            shorter = round(duration * fraction, 3)
+            if not 0 < shorter < duration:
+                continue
+            yield f"duration {duration:g} -> {shorter:g} s", self.until(shorter)
+            if (cut := self.from_(round(duration - shorter, 6))) is not None:
+                yield f"the first {duration - shorter:g} s of {duration:g} cut", cut
 
     def from_(self, by: float) -> dict[str, Any] | None:
         """The data from `by` seconds on: the injections before dropped, the rest `by`
@@ -700,20 +701,7 @@ class _Shrinker:
             workload = self.data.get("workload")
             if not workload or workload.get("clients", _DEFAULTS["clients"]) == 0:
                 return
-            fired: dict[int, list[dict[str, Any]]] = {}
-            for line in map(json.loads, self.best.history.splitlines()):
-                if line.get("type") == "FaultInjected":
-                    fired.setdefault(line["fault"], []).append(line)
-            faults: list[dict[str, Any]] = []
-            atoms = self.data.get("faults", [])
-            for atom, table in zip(atoms, _tables(atoms), strict=True):
-                if "after" not in atom:
-                    faults.append(atom)
-                    continue
-                rest = {k: v for k, v in atom.items() if k not in ("after", "delay", "target")}
-                for line in fired.get(table, []):
-                    target = {"target": line["target"]} if line.get("target") else {}
-                    faults.append({**rest, **target, "at": round(line["injected_s"], 6)})
+            faults = self.unpin(self.data.get("faults", []))
             data = {**self.data, "faults": faults, "workload": {**workload, "clients": 0}}
             yield "no clients (each fault after an event at the time it fired)", data
 
@@ -722,12 +710,34 @@ class _Shrinker:
     def idle_managers(self) -> Iterator[tuple[str, dict[str, Any]]]:
         busy = _busy(self.best.history)
         idle = [m["name"] for m in _managers(self.data) if m["name"] not in busy]
-        for names in [idle] if len(idle) > 1 else []:
-            if (data := _without(self.data, names)) is not None:
-                yield f"idle managers {', '.join(names)} dropped", data
-        for name in idle:
-            if (data := _without(self.data, [name])) is not None:
-                yield f"idle manager {name} dropped", data
+        for names in ([idle] if len(idle) > 1 else []) + [[name] for name in idle]:
+            unpinned = {**self.data, "faults": self.unpin(self.data.get("faults", []), set(names))}
+            if (data := _without(unpinned, names)) is not None:
+                said = f"managers {', '.join(names)}" if len(names) > 1 else f"manager {names[0]}"
+                yield f"idle {said} dropped", data
+
+    def unpin(
+        self, atoms: list[dict[str, Any]], names: set[str] | None = None
+    ) -> list[dict[str, Any]]:
+        """The fault atoms with those after an event (all, or those whose trigger names one
+        of `names`) at the times they fired in the best run instead (none if they never
+        fired): a fault whose event goes with what a candidate drops, kept."""
+        fired: dict[int, list[dict[str, Any]]] = {}
+        for line in map(json.loads, self.best.history.splitlines()):
+            if line.get("type") == "FaultInjected":
+                fired.setdefault(line["fault"], []).append(line)
+        faults: list[dict[str, Any]] = []
+        for atom, table in zip(atoms, _tables(atoms), strict=True):
+            after = atom.get("after")
+            named = {v for v in after.values() if isinstance(v, str)} if after else set()
+            if not after or (names is not None and not named & names):
+                faults.append(atom)
+                continue
+            rest = {k: v for k, v in atom.items() if k not in ("after", "delay", "target")}
+            for line in fired.get(table, []):
+                target = {"target": line["target"]} if line.get("target") else {}
+                faults.append({**rest, **target, "at": round(line["injected_s"], 6)})
+        return faults
 
     def tree(self) -> None:
         self.repeat(self.direct_calls)
@@ -772,7 +782,8 @@ class _Shrinker:
             data = copy.deepcopy(self.data)
             if not _drop(data["tree"], name):
                 continue
-            data["faults"] = [a for a in data.get("faults", []) if _aimed(a) != {name}]
+            faults = self.unpin(data.get("faults", []), {name})
+            data["faults"] = [a for a in faults if _aimed(a) != {name}]
             for atom in data["faults"]:
                 if isinstance(atom.get("target"), list):
                     atom["target"] = [t for t in atom["target"] if t != name]
