@@ -335,9 +335,9 @@ PLANTS = (
         "a resource unloaded before its dependencies are released: its unload runs at "
         "once, its dependencies released beside it (rule 7's order)",
         "_registrar/provider.py",
-        "        self.releases.release_dependencies(resource.id, run_unload)\n",
-        "        run_unload()  # PLANTED: release_dependencies(resource.id, run_unload)\n"
-        "        self.releases.release_dependencies(resource.id, lambda: None)\n",
+        "            self.releases.release_dependencies(resource.id, run_unload)\n",
+        "            run_unload()  # PLANTED: release_dependencies(resource.id, run_unload)\n"
+        "            self.releases.release_dependencies(resource.id, lambda: None)\n",
         "simdoubt",
         "unload-order",
     ),
@@ -659,7 +659,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--only", help="plants to run, by name, comma-separated")
     parser.add_argument("--shrink", action="store_true", help="shrink each found seed")
     parser.add_argument("--budget", type=int, default=2500, help="most runs of one shrink")
-    parser.add_argument("--check", action="store_true", help="only check the edits apply")
+    parser.add_argument("--check", action="store_true", help="only check the edits apply and parse")
     parser.add_argument(
         "--out", type=Path, help="write each shrunk run to OUT/PLANT (`rr-actors replay`)"
     )
@@ -669,7 +669,10 @@ def main(argv: list[str] | None = None) -> int:
     if not chosen:
         parser.error(f"--only: none of {', '.join(p.name for p in PLANTS)}")
     for plant in chosen:
-        plant_text(plant, (PACKAGE / plant.file).read_text())
+        try:  # (an edit that no longer parses: indented as the code was before it moved)
+            compile(plant_text(plant, (PACKAGE / plant.file).read_text()), plant.file, "exec")
+        except SyntaxError as exc:
+            raise SystemExit(f"plant {plant.name!r}: the edit does not parse: {exc}") from None
     if options.check:
         print(f"{len(chosen)} plants apply")
         return 0

@@ -11,11 +11,11 @@
  │  candidates one by one:
  │     supervisors  fewer restarts before one gives up: 0, 1, 2, 4, ... (a crash loop
  │                  ends at its first restarts, where its violation shows)
- │     duration  ended 0.05 s after the violation (the last event the checker cites
- │               before the workload's end: a run's beginning does not depend on what
- │               comes later, so the cut keeps it); 1/8, 1/4, 1/2, 3/4, 9/10 of it: its
- │               end cut (the injections after it dropped) or its start (those before
- │               it dropped, the rest earlier)
+ │     duration  ended 0.005 s, then 0.05 s after the violation (the last event the
+ │               checker cites before the workload's end: a run's beginning does not
+ │               depend on what comes later, so the cut keeps it); 1/8, 1/4, 1/2,
+ │               3/4, 9/10 of it: its end cut (the injections after it dropped) or its
+ │               start (those before it dropped, the rest earlier)
  │     shift     every injection (and the end) earlier, as far as the first one
  │     faults    delete chunks of injections (delta debugging: halves, quarters, ... ones)
  │     pinned    an injection at a time fired after an event before it instead (one of
@@ -23,6 +23,9 @@
  │               a kill lost), `delay` the time between: kept at that moment when later
  │               passes move the schedule (kept if no more events)
  │     triggers  an `after` fault at the 1st, 2nd, 4th, ... matching event (a lower `nth`)
+ │     idle      drop the managers the run shows doing nothing (their start and stop
+ │               only; their call kinds, `uses` and faults go too)
+ │     unpinned  no clients, the faults after an event at the times they fired
  │     tree      call a manager's dependency directly, cut a `uses`, drop an unused manager
  │     workload  fewer calls awaited at once (the triggers' `nth` scaled alike, then not),
  │               fewer clients, fewer call kinds, a lower rate, cancels sooner after a
@@ -98,6 +101,12 @@ one of a few seeds, or, for a race one seed in a hundred shows, of a few hundred
 widening spends those runs only once the cheap cuts are done and the runs are small.
 """
 
+SHUFFLED = 12
+"""The seeds at least a candidate runs with when it drops a process (a manager, a client)
+or changes a client's draws (a call kind deleted): an interleaving as new as another
+seed's (reconcile-unread-ids' two idle managers dropped: 14 of 60 seeds violate, none of
+the first 3 tried)."""
+
 SEEDS = 20
 """The seeds the seed pass runs the current plan with: 1 to this (or the width)."""
 
@@ -114,6 +123,10 @@ CUT_S = 0.01
 
 MARGIN = 0.05
 """Seconds of the run kept after the violation, when the duration is cut there."""
+
+NARROW = 0.005
+"""The same, tried first: what comes after the violation is the end of the run (the calls
+still on their way failing at the end, say), unless the violation needs more of it."""
 
 _NOT_RUN = ("description", "repeat", "seed")
 """Top-level keys a simulated run does not read (its seed is the sweep's): left out."""
@@ -361,6 +374,8 @@ class _Shrinker:
             self.faults,
             self.pinned,
             self.triggers,
+            self.idle,
+            self.unpinned,
             self.tree,
             self.workload,
             self.options,
@@ -434,6 +449,11 @@ class _Shrinker:
         best = self.text(self.data)
         return (run.events, len(text), text) < (self.best.events, len(best), best)
 
+    def shuffled(self) -> int:
+        """The seeds a candidate with fewer processes or other draws runs with: at least
+        `SHUFFLED` (it changes the scheduler's every choice as another seed does)."""
+        return max(self.width, SHUFFLED)
+
     def first(
         self, candidates: Iterator[tuple[str, dict[str, Any]]], width: int | None = None
     ) -> bool:
@@ -488,25 +508,26 @@ class _Shrinker:
     def durations(self) -> None:
         """A shorter run: its end cut (the injections after it dropped), or its start (the
         injections before it dropped, the others that much earlier), largest cuts first."""
+        self.repeat(self.duration_cuts)
 
-        def candidates() -> Iterator[tuple[str, dict[str, Any]]]:
-            duration = self.data["duration"]
-            seen = _violation_at(self.best, self.kind, duration)
-            if seen is not None and seen + MARGIN < duration:
-                shorter = round(seen + MARGIN, 3)
+    def duration_cuts(self) -> Iterator[tuple[str, dict[str, Any]]]:
+        """The candidates of `durations`: the end `NARROW`, then `MARGIN` after the
+        violation; then the end or the start cut at fractions of the duration."""
+        duration = self.data["duration"]
+        seen = _violation_at(self.best, self.kind, duration)
+        for margin in (NARROW, MARGIN):
+            if seen is not None and (shorter := round(seen + margin, 3)) < duration:
                 yield (
                     f"duration {duration:g} -> {shorter:g} s (the violation at {seen:.3f} s)",
                     (self.until(shorter)),
                 )
-            for fraction in (0.125, 0.25, 0.5, 0.75, 0.9):
-                shorter = round(duration * fraction, 3)
-                if not 0 < shorter < duration:
-                    continue
-                yield f"duration {duration:g} -> {shorter:g} s", self.until(shorter)
-                if (cut := self.from_(round(duration - shorter, 6))) is not None:
-                    yield f"the first {duration - shorter:g} s of {duration:g} cut", cut
-
-        self.repeat(candidates)
+        for fraction in (0.125, 0.25, 0.5, 0.75, 0.9):
+            shorter = round(duration * fraction, 3)
+            if not 0 < shorter < duration:
+                continue
+            yield f"duration {duration:g} -> {shorter:g} s", self.until(shorter)
+            if (cut := self.from_(round(duration - shorter, 6))) is not None:
+                yield f"the first {duration - shorter:g} s of {duration:g} cut", cut
 
     def from_(self, by: float) -> dict[str, Any] | None:
         """The data from `by` seconds on: the injections before dropped, the rest `by`
@@ -664,10 +685,65 @@ class _Shrinker:
             trigger = ("faults", index, "after")
             self.repeat(functools.partial(self.counts, trigger, "nth", least=1))
 
+    def idle(self) -> None:
+        """Drop the managers whose only events in the best run are their start and stop
+        (with the call kinds to them, the `uses` of them and the faults aimed at them; no
+        clients if no call kind is left), all at once, then one at a time: one candidate
+        where the tree pass needs a call kind deleted, a `uses` cut and the manager dropped,
+        each kept alone."""
+        self.repeat(self.idle_managers, self.shuffled())
+
+    def unpinned(self) -> None:
+        """No clients, each fault after an event fired at the time it fired in the best run
+        instead (`at`): the calls that only timed the faults (a crash loop's kills after a
+        call answered) gone with them."""
+
+        def candidates() -> Iterator[tuple[str, dict[str, Any]]]:
+            workload = self.data.get("workload")
+            if not workload or workload.get("clients", _DEFAULTS["clients"]) == 0:
+                return
+            faults = self.unpin(self.data.get("faults", []))
+            data = {**self.data, "faults": faults, "workload": {**workload, "clients": 0}}
+            yield "no clients (each fault after an event at the time it fired)", data
+
+        self.repeat(candidates)
+
+    def idle_managers(self) -> Iterator[tuple[str, dict[str, Any]]]:
+        busy = _busy(self.best.history)
+        idle = [m["name"] for m in _managers(self.data) if m["name"] not in busy]
+        for names in ([idle] if len(idle) > 1 else []) + [[name] for name in idle]:
+            unpinned = {**self.data, "faults": self.unpin(self.data.get("faults", []), set(names))}
+            if (data := _without(unpinned, names)) is not None:
+                said = f"managers {', '.join(names)}" if len(names) > 1 else f"manager {names[0]}"
+                yield f"idle {said} dropped", data
+
+    def unpin(
+        self, atoms: list[dict[str, Any]], names: set[str] | None = None
+    ) -> list[dict[str, Any]]:
+        """The fault atoms with those after an event (all, or those whose trigger names one
+        of `names`) at the times they fired in the best run instead (none if they never
+        fired): a fault whose event goes with what a candidate drops, kept."""
+        fired: dict[int, list[dict[str, Any]]] = {}
+        for line in map(json.loads, self.best.history.splitlines()):
+            if line.get("type") == "FaultInjected":
+                fired.setdefault(line["fault"], []).append(line)
+        faults: list[dict[str, Any]] = []
+        for atom, table in zip(atoms, _tables(atoms), strict=True):
+            after = atom.get("after")
+            named = {v for v in after.values() if isinstance(v, str)} if after else set()
+            if not after or (names is not None and not named & names):
+                faults.append(atom)
+                continue
+            rest = {k: v for k, v in atom.items() if k not in ("after", "delay", "target")}
+            for line in fired.get(table, []):
+                target = {"target": line["target"]} if line.get("target") else {}
+                faults.append({**rest, **target, "at": round(line["injected_s"], 6)})
+        return faults
+
     def tree(self) -> None:
         self.repeat(self.direct_calls)
         self.repeat(self.cut_uses)
-        self.repeat(self.unused_managers)
+        self.repeat(self.unused_managers, self.shuffled())
 
     def direct_calls(self) -> Iterator[tuple[str, dict[str, Any]]]:
         """A workload call to a manager that `uses` another, to that other instead."""
@@ -693,8 +769,11 @@ class _Shrinker:
                 yield f"{manager['name']} no longer uses {use}", data
 
     def unused_managers(self) -> Iterator[tuple[str, dict[str, Any]]]:
-        """Drop a manager nobody calls or uses (and the injections aimed at it)."""
-        used = {c.get("manager") for c in self.data.get("workload", {}).get("calls", [])}
+        """Drop a manager nobody calls (no call kind names it, or there are no clients)
+        or uses (and the injections aimed at it)."""
+        workload = self.data.get("workload", {})
+        calls = workload.get("calls", []) if workload.get("clients", 1) else []
+        used = {c.get("manager") for c in calls}
         for manager in _managers(self.data):
             used |= {str(u).partition("/")[0] for u in manager.get("options", {}).get("uses", [])}
         for manager in _managers(self.data):
@@ -704,7 +783,8 @@ class _Shrinker:
             data = copy.deepcopy(self.data)
             if not _drop(data["tree"], name):
                 continue
-            data["faults"] = [a for a in data.get("faults", []) if _aimed(a) != {name}]
+            faults = self.unpin(data.get("faults", []), {name})
+            data["faults"] = [a for a in faults if _aimed(a) != {name}]
             for atom in data["faults"]:
                 if isinstance(atom.get("target"), list):
                     atom["target"] = [t for t in atom["target"] if t != name]
@@ -712,8 +792,9 @@ class _Shrinker:
 
     def workload(self) -> None:
         self.repeat(self.fewer_awaited)
-        self.repeat(lambda: self.numbers(("workload",), "clients", [1, 0.5, -1], whole=True))
-        self.repeat(self.fewer_calls)
+        fewer = functools.partial(self.numbers, ("workload",), "clients", [1, 0.5, -1])
+        self.repeat(functools.partial(fewer, whole=True), self.shuffled())
+        self.repeat(self.fewer_calls, self.shuffled())
         self.repeat(lambda: self.numbers(("workload",), "rate", [0.125, 0.25, 0.5]))
         if self.data.get("workload", {}).get("cancel"):
             self.repeat(lambda: self.numbers(("workload",), "cancel_within", [0, 0.5]))
@@ -910,6 +991,79 @@ def _violation_at(run: simulate.SimulatedRun, kind: str, duration: float) -> flo
     times = [json.loads(lines[n - 1])["at"] - start for n in finding.lines if 0 < n <= len(lines)]
     times = [t for t in times if t < duration]
     return max(times) if times else None
+
+
+_IDLE_EVENTS = frozenset({"CatalogRestored", "ChildStarted", "RegistrarStopped"})
+"""The events of a manager or client doing nothing: its start and its stop."""
+
+_NAME_FIELDS = ("registrar", "consumer", "serving_rr", "child", "target")
+"""The fields of an event naming a manager or a client (`_busy`)."""
+
+
+def _busy(history: str) -> set[str]:
+    """The names (managers, clients) a history's events name, but those of a start or a
+    stop (a `ChildExited` of the shutdown) and of an empty listing of ids."""
+    names: set[str] = set()
+    for line in map(json.loads, history.splitlines()):
+        kind = line.get("type")
+        if kind in _IDLE_EVENTS or (kind == "ChildExited" and line.get("stopped")):
+            continue
+        if kind == "ServerQueriesListed" and not line.get("query_ids"):
+            continue
+        names |= {v for k in _NAME_FIELDS if isinstance(v := line.get(k), str)}
+    return names
+
+
+def _without(data: dict[str, Any], names: list[str]) -> dict[str, Any] | None:
+    """The data without the managers `names`: the call kinds to them, the `uses` of them
+    and the faults aimed at them or after their events gone (`None`: one is a
+    supervisor's last child)."""
+    data = copy.deepcopy(data)
+    if not all(_drop(data["tree"], name) for name in names):
+        return None
+    gone = set(names)
+    workload = data.get("workload", {})
+    if "calls" in workload:
+        workload["calls"] = [c for c in workload["calls"] if c.get("manager") not in gone]
+        if not workload["calls"]:
+            workload["clients"] = 0  # (nothing left to call)
+    for manager in _managers(data):
+        options = manager.get("options", {})
+        if "uses" in options:
+            options["uses"] = [u for u in options["uses"] if str(u).partition("/")[0] not in gone]
+            if not options["uses"]:
+                del options["uses"]
+    faults = []
+    for atom in data.get("faults", []):
+        aimed = _aimed(atom)
+        after = atom.get("after", {})
+        if (aimed and aimed <= gone) or gone & {v for v in after.values() if isinstance(v, str)}:
+            continue
+        if isinstance(atom.get("target"), list):
+            atom["target"] = [t for t in atom["target"] if t not in gone]
+        faults.append(atom)
+    if "faults" in data:
+        data["faults"] = faults
+    return data
+
+
+def _tables(atoms: list[dict[str, Any]]) -> list[int]:
+    """The index of each fault atom's `[[faults]]` table in the plan's text (as
+    `_dump_atoms` groups them: the number a `FaultInjected`'s `fault` gives)."""
+    groups: dict[str, int] = {}
+    out: list[int] = []
+    tables = 0
+    for atom in atoms:
+        if not _timed(atom):  # (a table of its own)
+            out.append(tables)
+            tables += 1
+            continue
+        key = json.dumps({k: v for k, v in atom.items() if k != "at"}, sort_keys=True)
+        if key not in groups:
+            groups[key] = tables
+            tables += 1
+        out.append(groups[key])
+    return out
 
 
 def _drop(node: dict[str, Any], name: str) -> bool:
