@@ -58,6 +58,16 @@ SMALLEST = {
     ],
     "bench_persistence.py": ["--sizes", "100", "--rounds", "1", "--batch", "5"],
     "bench_store_write.py": ["--holders", "1,10", "--rounds", "1", "--batch", "5"],
+    "bench_status_hang.py": [
+        "--consumers",
+        "4",
+        "--registrars",
+        "2",
+        "--statuses",
+        "20",
+        "--senders",
+        "2",
+    ],
     "bench_outbox.py": ["--rounds", "1", "--loads", "5"],
     "bench_overload.py": [
         *("--seconds", "1", "--factor", "2", "--timeout", "0.5", "--window", "1", "--drain", "0.2"),
