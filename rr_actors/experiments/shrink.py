@@ -23,8 +23,7 @@
  │               a kill lost), `delay` the time between: kept at that moment when later
  │               passes move the schedule (kept if no more events)
  │     triggers  an `after` fault at the 1st, 2nd, 4th, ... matching event (a lower `nth`)
- │     idle      drop the managers the run shows doing nothing (their start and stop
- │               only; their call kinds, `uses` and faults go too)
+ │     idle      drop managers that only started and stopped (with their calls, faults)
  │     unpinned  no clients, the faults after an event at the times they fired
  │     tree      call a manager's dependency directly, cut a `uses`, drop an unused manager
  │     workload  fewer calls awaited at once (the triggers' `nth` scaled alike, then not),
@@ -36,8 +35,7 @@
  │               options, the faults: 0, 1/4, 1/2, 2, 4 times it (`status_every`,
  │               `status_wait`, a trigger's `delay`, ...: a longer interval or a higher
  │               rate can make fewer events too)
- │     seeds     the same plan under seeds 1..20 (or the width): the fewest events (the
- │               scheduler's choices made simpler: no pass edits them)
+ │     seeds     the same plan under seeds 1..20 (or the width): the fewest events
  │     round     injection times and the duration to fewer decimals (easier to read)
  │  a candidate = its TOML text, validated (`parse_plan`) and run whole on the simulation
  │  with the current seed, then seeds 1, 2, ... (`tries` in all; at each fixpoint the
