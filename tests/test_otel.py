@@ -613,6 +613,52 @@ def test_a_call_made_inside_a_traced_load_is_a_child_of_that_loads_server_span(
     assert 7 == len(spans)
 
 
+def test_an_unloads_dependency_releases_are_client_spans_under_its_server_span(
+    started: list[rr.ResourceRegistrar],
+    uid: str,
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    provider, exporter = exported
+    app, mid, leaf = (rr.ResourceRegistrar.start(f"{n}-{uid}") for n in ("app", "mid", "leaf"))
+    started.extend((app, mid, leaf))
+    leaf.register_server("leaf", load=lambda r: r, unload=lambda _q, _r: None)
+
+    def through(request: Any) -> Any:
+        return mid.call(leaf.name, "leaf", request, timeout=10).response
+
+    mid.register_server("mid", load=through, unload=lambda _q, _r: None)
+    tracings = [otel.trace(r, tracer_provider=provider, pair_within=60) for r in (app, mid, leaf)]
+    query = app.call(mid.name, "mid", 1, timeout=10)  # (untraced: the unload's trace alone)
+    with otel.root_span("mission step unload", tracer_provider=provider) as step:
+        app.unload(query.id, timeout=10)
+    app.client_queries(timeout=10)
+    mid.client_queries(timeout=10)
+    for tracing in tracings:
+        tracing.close()
+    spans = {s.context.span_id: s for s in exporter.get_finished_spans()}
+    orphans = [s.name for s in spans.values() if s.parent and s.parent.span_id not in spans]
+    assert [] == orphans
+
+    released = next(
+        s
+        for s in spans.values()
+        if s.kind == api.SpanKind.CLIENT and s.attributes["rr_actors.outcome"] == "dependency"
+    )
+    assert released.parent is not None
+    outer = spans[released.parent.span_id]
+    assert (api.SpanKind.SERVER, f"{mid.name}/mid", "released") == (
+        outer.kind,
+        outer.name,
+        outer.attributes["rr_actors.outcome"],
+    )
+    assert step.get_span_context().trace_id == released.context.trace_id
+    in_step = [s for s in spans.values() if s.context.trace_id == released.context.trace_id]
+    assert {"mission step unload", f"{mid.name}/mid", f"{leaf.name}/leaf"} <= {
+        s.name for s in in_step
+    }
+    assert 7 == len(in_step)  # step, 2 CLIENT, 2 SERVER, mid.unload, leaf.unload
+
+
 def test_each_status_hop_is_a_span_linked_to_the_spans_of_the_call_it_reached(
     started: list[rr.ResourceRegistrar],
     uid: str,
