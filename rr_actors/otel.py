@@ -55,6 +55,7 @@ import collections
 import contextlib
 import dataclasses
 import hashlib
+import itertools
 import os
 import threading
 import time
@@ -140,6 +141,25 @@ def _untraced(query_id: str, verb: str) -> str:
     span ids derived from its query id, so that its two sides, made by subscribers of
     different processes, meet, and a status hop names its spans (sampled)."""
     return f"00-{_derived(query_id, bits=128):032x}-{_derived(query_id, verb):016x}-01"
+
+
+def _late(waiting: dict[tuple[str, str], _Half], before: float, most: int) -> list[Any]:
+    """The keys of the sides waiting since before `before`, and of the oldest past `most`.
+
+    The sides are in the order they came (their `arrived`, but for a release parked for
+    its resource's unload, which may come a little behind a later side): the look stops
+    at the first side not late, so that a sweep after every event costs the sides it
+    makes spans of, not every side waiting (with one subscriber per registrar, each
+    side waits alone: `pair_within` seconds of calls)."""
+    late = []
+    for key, half in waiting.items():
+        if half.arrived > before:
+            break
+        late.append(key)
+    excess = len(waiting) - len(late) - most
+    if excess > 0:
+        late += itertools.islice(waiting, len(late), len(late) + excess)
+    return late
 
 
 @dataclasses.dataclass
@@ -682,8 +702,7 @@ class Tracing:
                 self._give_up(tracer, status_id, sent)
         lost = self._lost_at + self._pair_within if self._lost_at is not None else None
         for waiting in (self._clients, self._servers):
-            late = [k for k, h in waiting.items() if h.arrived <= before]
-            late += list(waiting)[: max(0, len(waiting) - len(late) - self._max_pending)]
+            late = _late(waiting, before, self._max_pending)
             for key in late:
                 alone = waiting.pop(key, None)
                 if alone is not None:

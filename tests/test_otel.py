@@ -950,3 +950,31 @@ def test_a_hop_whose_send_is_never_heard_goes_under_a_stand_in_marked_incomplete
     assert hop.parent is not None
     assert stand_in.context.span_id == hop.parent.span_id  # (no orphan)
     assert 10_000_000_000 == stand_in.start_time  # (its hop's delivery less its latency)
+
+
+def test_a_sweep_looks_at_the_late_sides_not_at_every_side_waiting(
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    provider, exporter = exported
+    tracing = otel.Tracing(tracer_provider=provider, pair_within=60, max_pending=100)
+    looked: list[int] = []
+
+    class Side(otel._Half):  # (counts the looks at when it came)
+        def __getattribute__(self, name: str) -> Any:
+            if name == "arrived":
+                looked.append(1)
+            return super().__getattribute__(name)
+
+    for n in range(50):  # CLIENT sides waiting alone (their SERVER sides: another process's)
+        side = Side("erm", "cam", n, n + 0.5, {"rr_actors.query_id": f"q{n}"})
+        side.arrived = float(n)
+        tracing._clients[(f"q{n}", "call")] = side
+    looked.clear()
+
+    tracing._sweep(tracing._current(), 1.5)  # q0 and q1 waited long enough
+
+    assert ["q2"] == [key for key, _ in list(tracing._clients)[:1]]
+    assert 2 == len(exporter.get_finished_spans())
+    assert len(looked) <= 3  # not 50: a sweep runs after every event
+    tracing.flush()
+    assert 50 == len(exporter.get_finished_spans())
