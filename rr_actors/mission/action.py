@@ -85,7 +85,8 @@ class Mission:
         step_span: called on the mission's thread with the name of each step of the
             mission (`"mission step load robot"`, `"... load lidar1"`, `"... drive"`,
             `"... unload"`), the context the step runs in (`rr-actors demo --trace`: a
-            new trace, `otel.root_span`).
+            new trace, `otel.root_span`); with it, the robot's host (two hosts) makes
+            spans of its tree too (`otel.Exporting`, by the `OTEL_*` variables).
 
     Attributes:
         supervisor: the managers' supervisor while the mission runs, else `None`.
@@ -114,6 +115,7 @@ class Mission:
         self._robot_observer = robot_observer
         self._on_supervisor = on_supervisor
         self._on_interrupt = on_interrupt
+        self._traced = step_span is not None
         self._step_span = step_span or (lambda _: contextlib.nullcontext())
         self._interrupted_at: float | None = None  # mission time of the Ctrl-C
         self._leaked_pids: list[int] = []
@@ -191,6 +193,7 @@ class Mission:
                     robot_observer=self._robot_observer,
                     say=self.say,
                     stack=hosts,
+                    trace=self._traced,
                 )
             else:
                 self.say(f"starting the managers erm, cm and rm ({cfg.isolation} isolation)")

@@ -44,6 +44,7 @@ from rr_actors.mission.run import (
 )
 from tests.support.demos import (
     assert_nothing_left,
+    assert_one_trace_per_step,
     interrupt_demo,
     one_line_after_the_story,
     report_with_everything,
@@ -198,17 +199,6 @@ def test_without_faults_the_robot_drives_through_and_the_demo_explains_the_missi
     assert not (tmp_path / "mission.png").exists()
 
 
-def console_spans(text: str) -> list[dict[str, Any]]:
-    """The spans OpenTelemetry's console exporter printed in `text` (one JSON object each)."""
-    decoder = json.JSONDecoder()
-    spans, at = [], text.find("{")
-    while at >= 0:
-        span, end = decoder.raw_decode(text, at)
-        spans.append(span)
-        at = text.find("{", end)
-    return spans
-
-
 def test_trace_exports_one_trace_per_mission_step_where_the_otel_variables_say(
     tmp_path: Path,
 ) -> None:
@@ -224,34 +214,8 @@ def test_trace_exports_one_trace_per_mission_step_where_the_otel_variables_say(
     )
 
     assert 0 == done.returncode, done.stderr[-2000:]
-    spans = console_spans(done.stdout[done.stdout.index("{") :])
-    by_id = {span["context"]["span_id"]: span for span in spans}
-    assert {"SpanKind.CLIENT", "SpanKind.SERVER", "SpanKind.INTERNAL"} <= {
-        span["kind"] for span in spans
-    }
+    spans = assert_one_trace_per_step(done.stdout)
     assert all("the robot" == span["resource"]["attributes"]["service.name"] for span in spans)
-    orphans = [s["name"] for s in spans if s["parent_id"] and s["parent_id"] not in by_id]
-    assert [] == orphans  # (an unload's dependency releases: their CLIENT spans too)
-    steps = {s["name"]: s["context"]["trace_id"] for s in spans if not s["parent_id"]}
-    step_names = ["load robot", "load lidar1", "drive", "unload"]
-    assert {f"mission step {name}" for name in step_names} <= set(steps)
-    roots = {trace: name for name, trace in steps.items()}
-    assert len(roots) == len(steps)  # one root a trace: each step a trace of its own
-    # (F4 kills cm while the robot stands: its restart is a trace of its own, linked)
-    assert {"restart cm"} == set(roots.values()) - {f"mission step {n}" for n in step_names}
-    for span in spans:  # every call, load and unload is in the trace of its step
-        if span["name"] != "restart cm":
-            assert roots[span["context"]["trace_id"]].startswith("mission step"), span["name"]
-    unloaded = [s for s in spans if s["context"]["trace_id"] == steps["mission step unload"]]
-    assert {"rm/robot", "cm/lidar", "erm/program", "robot.unload", "program.unload"} <= {
-        s["name"] for s in unloaded
-    }
-    (restart,) = [s for s in spans if s["name"] == "restart cm"]
-    linked = {
-        link["attributes"]["rr_actors.incarnation"]: by_id[link["context"]["span_id"]]["name"]
-        for link in restart["links"]
-    }
-    assert {"old": "cm/lidar", "new": "cm/lidar"} == linked
 
 
 def test_trace_with_an_exporter_not_installed_exits_2(
