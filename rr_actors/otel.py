@@ -38,8 +38,9 @@ OpenTelemetry span is current in the caller carries its W3C trace context to the
 provider (`rr_actors._core.traces`: the CLIENT span's id is drawn then, the SERVER
 span's derived from it), and its events carry it (`trace`, `caller_span`): the CLIENT
 span is made the caller's span's child, the SERVER span the CLIENT span's, with those
-ids (through the SDK's tracer), in whichever process each side is made; a `load` runs
-with that SERVER span current. An untraced call's ids are derived from its query id, so
+ids (through the SDK's tracer), in whichever process each side is made; a `load` (an
+unload's `unload` callback and dependency releases too) runs with that SERVER span
+current. An untraced call's ids are derived from its query id, so
 its sides meet too. A CLIENT span starts when its call began (its end event's `started`;
 without it, as events of schema 6 and before: where its server span starts, or at its
 own end). Lost events (`EventsDropped`) are counted (`Tracing.dropped`), and the spans

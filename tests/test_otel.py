@@ -978,3 +978,50 @@ def test_a_sweep_looks_at_the_late_sides_not_at_every_side_waiting(
     assert len(looked) <= 3  # not 50: a sweep runs after every event
     tracing.flush()
     assert 50 == len(exporter.get_finished_spans())
+
+
+@pytest.mark.parametrize("coroutine", [False, True])
+def test_an_unload_callback_runs_under_its_unloads_server_span(
+    started: list[rr.ResourceRegistrar],
+    uid: str,
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+    coroutine: bool,
+) -> None:
+    provider, exporter = exported
+    tracer = _caller(provider)
+    app, erm = (rr.ResourceRegistrar.start(f"{n}-{uid}") for n in ("app", "erm"))
+    started.extend((app, erm))
+
+    def unload(_request: Any, _response: Any) -> None:
+        with tracer.start_as_current_span("inside the unload"):
+            pass
+
+    async def aunload(request: Any, response: Any) -> None:
+        await asyncio.sleep(0)
+        unload(request, response)
+
+    async def aload(request: Any) -> Any:
+        return request
+
+    if coroutine:
+        erm.register_server("cam", load=aload, unload=aunload)
+    else:
+        erm.register_server("cam", load=lambda r: r, unload=unload)
+    tracings = [otel.trace(r, tracer_provider=provider, pair_within=60) for r in (app, erm)]
+    query = app.call(erm.name, "cam", 1, timeout=10)
+    with otel.root_span("mission step unload", tracer_provider=provider):
+        app.unload(query.id, timeout=10)
+    app.client_queries(timeout=10)
+    for tracing in tracings:
+        tracing.close()
+    spans = {s.context.span_id: s for s in exporter.get_finished_spans()}
+
+    inside = _one(tuple(spans.values()), "inside the unload", api.SpanKind.INTERNAL)
+    assert inside.parent is not None
+    server = spans[inside.parent.span_id]
+    assert (api.SpanKind.SERVER, "released") == (
+        server.kind,
+        server.attributes["rr_actors.outcome"],
+    )
+    step = _one(tuple(spans.values()), "mission step unload", api.SpanKind.INTERNAL)
+    assert step.context.trace_id == inside.context.trace_id

@@ -1090,7 +1090,10 @@ class ServerActor(Actor):
             message.reply.set_result(response)
 
     async def _aunload(self, message: RunUnload) -> None:
-        """A coroutine `unload`, on the process's loop, cancelled past `timeout`."""
+        """A coroutine `unload`, on the process's loop, cancelled past `timeout`, under
+        its unload's SERVER span (as `_aload`)."""
+        if message.trace:
+            traces.attach(message.trace)  # (the task's own context: nothing to detach)
         timeout = message.timeout
         bound = asyncio.timeout(timeout)
         try:
@@ -1136,12 +1139,15 @@ class ServerActor(Actor):
             LOADING.reset(token)
 
     def _unload(self, message: RunUnload) -> None:
+        traced = traces.attach(message.trace) if message.trace else None
         try:
             self.unload(message.request, message.response)
         except BaseException as exc:  # noqa: BLE001 - logged by the registrar, never lost
             message.reply.set_error(exc)
         else:
             message.reply.set_result(None)
+        finally:
+            traces.detach(traced)
 
 
 def _refuse_awaitable(response: Any) -> None:
@@ -1426,7 +1432,7 @@ class Teardown:
                 return
             done = self.registrar.come_back(unloaded)
             timeout = self.registrar.config.unload_timeout
-            server.ref.tell(RunUnload(resource.request, resource.response, done, timeout))
+            server.ref.tell(RunUnload(resource.request, resource.response, done, timeout, trace))
 
         def unloaded(_: Any, error: BaseException | None) -> None:
             overdue = isinstance(error, CallTimeoutError)
