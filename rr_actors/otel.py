@@ -14,7 +14,8 @@ spans are built afterwards, on the subscription's thread, from the events' `at` 
 What becomes a span (`docs/how-to/trace.md`):
 
 - a `call` (and an `unload`): a CLIENT span at the consumer (its `CallAnswered`,
-  `CallFailed`, `CallWithdrawn`; an unload's `QueryForgotten`) and a SERVER span at the
+  `CallFailed`, `CallWithdrawn`; an unload's `QueryForgotten`, a resource's dependency
+  releases' too, under the SERVER span of the unload that made them) and a SERVER span at the
   provider (`ResourceLoaded` then `ConsumerAdded`, a `ConsumerAdded` alone for a dedup
   hit, a `LoadFailed`; an unload's `ConsumerReleased`), named `<registrar>/<server>` and
   attributed by the RPC semantic conventions (`rpc.system` `"rr_actors"`, `rpc.service`
@@ -37,8 +38,9 @@ OpenTelemetry span is current in the caller carries its W3C trace context to the
 provider (`rr_actors._core.traces`: the CLIENT span's id is drawn then, the SERVER
 span's derived from it), and its events carry it (`trace`, `caller_span`): the CLIENT
 span is made the caller's span's child, the SERVER span the CLIENT span's, with those
-ids (through the SDK's tracer), in whichever process each side is made; a `load` runs
-with that SERVER span current. An untraced call's ids are derived from its query id, so
+ids (through the SDK's tracer), in whichever process each side is made; a `load` (an
+unload's `unload` callback and dependency releases too) runs with that SERVER span
+current. An untraced call's ids are derived from its query id, so
 its sides meet too. A CLIENT span starts when its call began (its end event's `started`;
 without it, as events of schema 6 and before: where its server span starts, or at its
 own end). Lost events (`EventsDropped`) are counted (`Tracing.dropped`), and the spans
@@ -51,12 +53,14 @@ they may have cut are marked `rr_actors.incomplete`.
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import hashlib
+import itertools
 import os
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any, Protocol
 
 from rr_actors import events
@@ -67,7 +71,15 @@ try:
 except ImportError:  # the otel extra is missing: every event is ignored
     _api = None  # type: ignore[assignment]
 
-__all__ = ["SCOPE", "SYSTEM", "Exporting", "Tracing", "provider_from_environment", "trace"]
+__all__ = [
+    "SCOPE",
+    "SYSTEM",
+    "Exporting",
+    "Tracing",
+    "provider_from_environment",
+    "root_span",
+    "trace",
+]
 
 SYSTEM = "rr_actors"
 """The `rpc.system` of every RPC span."""
@@ -76,7 +88,7 @@ SCOPE = "rr_actors.otel"
 """The instrumentation scope (the tracer's name)."""
 
 _CALL_ENDS = (events.CallAnswered, events.CallFailed, events.CallWithdrawn)
-_UNLOADS = frozenset({"unload", "unload unanswered"})
+_UNLOADS = frozenset({"unload", "unload unanswered", "dependency", "stop"})
 
 
 class _Chosen:
@@ -130,6 +142,25 @@ def _untraced(query_id: str, verb: str) -> str:
     span ids derived from its query id, so that its two sides, made by subscribers of
     different processes, meet, and a status hop names its spans (sampled)."""
     return f"00-{_derived(query_id, bits=128):032x}-{_derived(query_id, verb):016x}-01"
+
+
+def _late(waiting: dict[tuple[str, str], _Half], before: float, most: int) -> list[Any]:
+    """The keys of the sides waiting since before `before`, and of the oldest past `most`.
+
+    The sides are in the order they came (their `arrived`, but for a release parked for
+    its resource's unload, which may come a little behind a later side): the look stops
+    at the first side not late, so that a sweep after every event costs the sides it
+    makes spans of, not every side waiting (with one subscriber per registrar, each
+    side waits alone: `pair_within` seconds of calls)."""
+    late = []
+    for key, half in waiting.items():
+        if half.arrived > before:
+            break
+        late.append(key)
+    excess = len(waiting) - len(late) - most
+    if excess > 0:
+        late += itertools.islice(waiting, len(late), len(late) + excess)
+    return late
 
 
 @dataclasses.dataclass
@@ -672,8 +703,7 @@ class Tracing:
                 self._give_up(tracer, status_id, sent)
         lost = self._lost_at + self._pair_within if self._lost_at is not None else None
         for waiting in (self._clients, self._servers):
-            late = [k for k, h in waiting.items() if h.arrived <= before]
-            late += list(waiting)[: max(0, len(waiting) - len(late) - self._max_pending)]
+            late = _late(waiting, before, self._max_pending)
             for key in late:
                 alone = waiting.pop(key, None)
                 if alone is not None:
@@ -906,6 +936,45 @@ def trace(source: _Subscribable, **options: Any) -> Tracing:
     return tracing
 
 
+@contextlib.contextmanager
+def root_span(
+    name: str, *, tracer_provider: Any = None, attributes: dict[str, Any] | None = None
+) -> Iterator[Any]:
+    """A block run under a new trace: an INTERNAL span with no parent, current in it.
+
+    What `rr-actors demo --trace` runs each mission step under: the calls made in the
+    block (on this thread, or in a task started in it) carry its context, so their
+    spans are its descendants and the step is one trace. A span current when the block
+    starts is not its parent (a step is a trace of its own).
+
+        with otel.root_span("mission step drive"):   # the span ends with the block
+            registrar.call("cm", "lidar", request)    # CLIENT span: its child
+
+    Args:
+        name: the span's name.
+        tracer_provider: the provider to trace through; `None`: the global one.
+        attributes: the span's attributes.
+
+    Yields:
+        The span; `None` without the otel extra or a provider installed (no span made,
+        the block runs all the same).
+    """
+    if _api is None:
+        yield None
+        return
+    provider = tracer_provider if tracer_provider is not None else _api.get_tracer_provider()
+    if isinstance(provider, _api.ProxyTracerProvider | _api.NoOpTracerProvider):
+        yield None
+        return
+    from opentelemetry import context as _context  # noqa: PLC0415
+
+    tracer = provider.get_tracer(SCOPE)
+    with tracer.start_as_current_span(
+        name, context=_context.Context(), kind=_api.SpanKind.INTERNAL, attributes=attributes
+    ) as span:
+        yield span
+
+
 EXPORTERS = "opentelemetry_traces_exporter"
 """The entry-point group of span exporters, by the name `OTEL_TRACES_EXPORTER` gives."""
 
@@ -988,6 +1057,10 @@ class Exporting:
         tracing = trace(source, tracer_provider=self.provider)
         self._tracings.append(tracing)
         return tracing
+
+    def root_span(self, name: str, **options: Any) -> contextlib.AbstractContextManager[Any]:
+        """A block run under a new trace of this provider (`root_span`'s `name`, `attributes`)."""
+        return root_span(name, tracer_provider=self.provider, **options)
 
     def close(self) -> None:
         """Close every `Tracing` made (their spans made), then export what waits."""

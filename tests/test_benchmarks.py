@@ -73,6 +73,7 @@ SMALLEST = {
         *("--seconds", "1", "--factor", "2", "--timeout", "0.5", "--window", "1", "--drain", "0.2"),
     ],
     "bench_otel.py": ["--rounds", "1", "--batch", "5"],
+    "bench_otel_acall.py": ["--count", "20", "--batch", "5"],
     "bench_jobs.py": ["--plan", "simchain", "--seeds", "1-2"],
     "experiment_phases.py": ["first", "--repeat", "1", "--duration", "1.2"],
     "bench_setup.py": [  # (the tests of one file, in this interpreter: no venv, no install)

@@ -613,6 +613,52 @@ def test_a_call_made_inside_a_traced_load_is_a_child_of_that_loads_server_span(
     assert 7 == len(spans)
 
 
+def test_an_unloads_dependency_releases_are_client_spans_under_its_server_span(
+    started: list[rr.ResourceRegistrar],
+    uid: str,
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    provider, exporter = exported
+    app, mid, leaf = (rr.ResourceRegistrar.start(f"{n}-{uid}") for n in ("app", "mid", "leaf"))
+    started.extend((app, mid, leaf))
+    leaf.register_server("leaf", load=lambda r: r, unload=lambda _q, _r: None)
+
+    def through(request: Any) -> Any:
+        return mid.call(leaf.name, "leaf", request, timeout=10).response
+
+    mid.register_server("mid", load=through, unload=lambda _q, _r: None)
+    tracings = [otel.trace(r, tracer_provider=provider, pair_within=60) for r in (app, mid, leaf)]
+    query = app.call(mid.name, "mid", 1, timeout=10)  # (untraced: the unload's trace alone)
+    with otel.root_span("mission step unload", tracer_provider=provider) as step:
+        app.unload(query.id, timeout=10)
+    app.client_queries(timeout=10)
+    mid.client_queries(timeout=10)
+    for tracing in tracings:
+        tracing.close()
+    spans = {s.context.span_id: s for s in exporter.get_finished_spans()}
+    orphans = [s.name for s in spans.values() if s.parent and s.parent.span_id not in spans]
+    assert [] == orphans
+
+    released = next(
+        s
+        for s in spans.values()
+        if s.kind == api.SpanKind.CLIENT and s.attributes["rr_actors.outcome"] == "dependency"
+    )
+    assert released.parent is not None
+    outer = spans[released.parent.span_id]
+    assert (api.SpanKind.SERVER, f"{mid.name}/mid", "released") == (
+        outer.kind,
+        outer.name,
+        outer.attributes["rr_actors.outcome"],
+    )
+    assert step.get_span_context().trace_id == released.context.trace_id
+    in_step = [s for s in spans.values() if s.context.trace_id == released.context.trace_id]
+    assert {"mission step unload", f"{mid.name}/mid", f"{leaf.name}/leaf"} <= {
+        s.name for s in in_step
+    }
+    assert 7 == len(in_step)  # step, 2 CLIENT, 2 SERVER, mid.unload, leaf.unload
+
+
 def test_each_status_hop_is_a_span_linked_to_the_spans_of_the_call_it_reached(
     started: list[rr.ResourceRegistrar],
     uid: str,
@@ -904,3 +950,78 @@ def test_a_hop_whose_send_is_never_heard_goes_under_a_stand_in_marked_incomplete
     assert hop.parent is not None
     assert stand_in.context.span_id == hop.parent.span_id  # (no orphan)
     assert 10_000_000_000 == stand_in.start_time  # (its hop's delivery less its latency)
+
+
+def test_a_sweep_looks_at_the_late_sides_not_at_every_side_waiting(
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    provider, exporter = exported
+    tracing = otel.Tracing(tracer_provider=provider, pair_within=60, max_pending=100)
+    looked: list[int] = []
+
+    class Side(otel._Half):  # (counts the looks at when it came)
+        def __getattribute__(self, name: str) -> Any:
+            if name == "arrived":
+                looked.append(1)
+            return super().__getattribute__(name)
+
+    for n in range(50):  # CLIENT sides waiting alone (their SERVER sides: another process's)
+        side = Side("erm", "cam", n, n + 0.5, {"rr_actors.query_id": f"q{n}"})
+        side.arrived = float(n)
+        tracing._clients[(f"q{n}", "call")] = side
+    looked.clear()
+
+    tracing._sweep(tracing._current(), 1.5)  # q0 and q1 waited long enough
+
+    assert ["q2"] == [key for key, _ in list(tracing._clients)[:1]]
+    assert 2 == len(exporter.get_finished_spans())
+    assert len(looked) <= 3  # not 50: a sweep runs after every event
+    tracing.flush()
+    assert 50 == len(exporter.get_finished_spans())
+
+
+@pytest.mark.parametrize("coroutine", [False, True])
+def test_an_unload_callback_runs_under_its_unloads_server_span(
+    started: list[rr.ResourceRegistrar],
+    uid: str,
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+    coroutine: bool,
+) -> None:
+    provider, exporter = exported
+    tracer = _caller(provider)
+    app, erm = (rr.ResourceRegistrar.start(f"{n}-{uid}") for n in ("app", "erm"))
+    started.extend((app, erm))
+
+    def unload(_request: Any, _response: Any) -> None:
+        with tracer.start_as_current_span("inside the unload"):
+            pass
+
+    async def aunload(request: Any, response: Any) -> None:
+        await asyncio.sleep(0)
+        unload(request, response)
+
+    async def aload(request: Any) -> Any:
+        return request
+
+    if coroutine:
+        erm.register_server("cam", load=aload, unload=aunload)
+    else:
+        erm.register_server("cam", load=lambda r: r, unload=unload)
+    tracings = [otel.trace(r, tracer_provider=provider, pair_within=60) for r in (app, erm)]
+    query = app.call(erm.name, "cam", 1, timeout=10)
+    with otel.root_span("mission step unload", tracer_provider=provider):
+        app.unload(query.id, timeout=10)
+    app.client_queries(timeout=10)
+    for tracing in tracings:
+        tracing.close()
+    spans = {s.context.span_id: s for s in exporter.get_finished_spans()}
+
+    inside = _one(tuple(spans.values()), "inside the unload", api.SpanKind.INTERNAL)
+    assert inside.parent is not None
+    server = spans[inside.parent.span_id]
+    assert (api.SpanKind.SERVER, "released") == (
+        server.kind,
+        server.attributes["rr_actors.outcome"],
+    )
+    step = _one(tuple(spans.values()), "mission step unload", api.SpanKind.INTERNAL)
+    assert step.context.trace_id == inside.context.trace_id

@@ -66,6 +66,7 @@ __all__ = [
     "parse",
     "server_span",
     "span_id",
+    "under",
 ]
 
 _SERVER = 0x7272_5F61_6374_6F72  # (b"rr_actor"): a SERVER span's id is its CLIENT's xor this
@@ -176,6 +177,17 @@ def span_id(hexadecimal: str) -> int:
 def server_span(client_span: int) -> int:
     """The id of the SERVER span of the call whose CLIENT span is `client_span`."""
     return (client_span ^ _SERVER) & _MASK
+
+
+def under(traceparent: str) -> tuple[str, str] | None:
+    """The trace context of a call made by the provider of the call that carried
+    `traceparent` (a registrar's own: an unload's dependency releases), as `begin`'s:
+    a fresh CLIENT span under that call's SERVER span; `None` for `""` or a bad one."""
+    parsed = parse(traceparent)
+    if parsed is None:
+        return None
+    trace_id, client, flags = parsed
+    return f"00-{trace_id:032x}-{_new_span()}-{flags:02x}", f"{server_span(client):016x}"
 
 
 def caller_parent(traceparent: str, caller_span: str) -> Any:

@@ -62,7 +62,7 @@ import pykka
 from rr_actors import events
 from rr_actors._catalog import ClientRecord, ResourceState
 from rr_actors._core import hlc as _hlc
-from rr_actors._core import runtime
+from rr_actors._core import runtime, traces
 from rr_actors._core.actor import Actor, refuse
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.replies import FutureReply, Join
@@ -898,20 +898,32 @@ class Releases:
     # -- releasing one query ------------------------------------------------------------
 
     def release_dependencies(
-        self, rid: str, then: Callable[[], None], only: Collection[str] | None = None
+        self,
+        rid: str,
+        then: Callable[[], None],
+        only: Collection[str] | None = None,
+        trace: str = "",
     ) -> None:
         """Release every query resource `rid` holds as a dependency (`only`: those of
-        these query ids, a classroom's copy of `release_order`); then `then()`."""
+        these query ids, a classroom's copy of `release_order`); then `then()`. `trace`:
+        the traceparent of the `Unload` that unloads `rid` (its releases are its SERVER
+        span's calls, `_core/traces.py`), `""`: untraced."""
         join = Join(then)
         for record in self.registrar.catalog.dependencies(rid):
             if only is None or record.query.id in only:
-                self.release_client(record, join.add())
+                self.release_client(record, join.add(), traces.under(trace) if trace else None)
         for query_id, serving_rr in self.flights.take_dependencies(rid):
             give_back(serving_rr, query_id, self.registrar.name)
         join.seal()
 
-    def release_client(self, record: ClientRecord, then: Callable[[], None]) -> None:
-        """Unload one query this registrar holds; the record goes whatever the answer.
+    def release_client(
+        self,
+        record: ClientRecord,
+        then: Callable[[], None],
+        begun: tuple[str, str] | None = None,
+    ) -> None:
+        """Unload one query this registrar holds; the record goes whatever the answer
+        (`begun`: the trace context it is released in, as `send_unload`'s).
 
         A provider that cannot be reached keeps the id until it reconciles with this
         registrar after its restart (`reconcile`), which releases it (`unreleased`).
@@ -931,7 +943,7 @@ class Releases:
             )
             join.seal()
 
-        self.send_unload(query, answered)
+        self.send_unload(query, answered, begun)
 
     def on_release(self, message: Release, reply: Reply) -> None:
         query_id = message.query_id

@@ -494,6 +494,7 @@ class RunUnload:
     response: Any
     reply: Reply
     timeout: float | None = None
+    trace: str = ""  # the traceparent of the Unload that caused it: its SERVER span current
 
 
 @dataclasses.dataclass(frozen=True)

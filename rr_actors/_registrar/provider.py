@@ -1081,7 +1081,10 @@ class ServerActor(Actor):
             message.reply.set_result(response)
 
     async def _aunload(self, message: RunUnload) -> None:
-        """A coroutine `unload`, on the process's loop, cancelled past `timeout`."""
+        """A coroutine `unload`, on the process's loop, cancelled past `timeout`, under
+        its unload's SERVER span (as `_aload`)."""
+        if message.trace:
+            traces.attach(message.trace)  # (the task's own context: nothing to detach)
         timeout = message.timeout
         bound = asyncio.timeout(timeout)
         try:
@@ -1127,12 +1130,15 @@ class ServerActor(Actor):
             LOADING.reset(token)
 
     def _unload(self, message: RunUnload) -> None:
+        traced = traces.attach(message.trace) if message.trace else None
         try:
             self.unload(message.request, message.response)
         except BaseException as exc:  # noqa: BLE001 - logged by the registrar, never lost
             message.reply.set_error(exc)
         else:
             message.reply.set_result(None)
+        finally:
+            traces.detach(traced)
 
 
 def _refuse_awaitable(response: Any) -> None:
@@ -1284,7 +1290,7 @@ class Unloading:
             if reply is not None:
                 reply.set_result(None)
             return
-        self.teardown.unload_resource(resource, reply)
+        self.teardown.unload_resource(resource, reply, trace)
 
     def ask_to_reconcile(self, swept: set[str]) -> None:
         """This registrar serves (again): ask every registrar holding ids here to
@@ -1392,8 +1398,12 @@ class Teardown:
         self.under_way: dict[str, Resource] = {}
         self.idle: list[Callable[[], None]] = []  # what runs once none is under way
 
-    def unload_resource(self, resource: Resource, reply: Reply | None) -> None:
-        """The last consumer left: release the dependencies, then run `unload` (rule 7)."""
+    def unload_resource(self, resource: Resource, reply: Reply | None, trace: str = "") -> None:
+        """The last consumer left: release the dependencies, then run `unload` (rule 7).
+
+        `trace`: the traceparent the last `Unload` carried; the dependencies' releases
+        carry its SERVER span's context (`_core/traces.py`: their spans are its children).
+        """
         self.registrar.probe("unload_resource", resource)
         self.registrar.catalog.begin_unload(resource.id)
         self.registrar.commit()
@@ -1413,7 +1423,7 @@ class Teardown:
                 return
             done = self.registrar.come_back(unloaded)
             timeout = self.registrar.config.unload_timeout
-            server.ref.tell(RunUnload(resource.request, resource.response, done, timeout))
+            server.ref.tell(RunUnload(resource.request, resource.response, done, timeout, trace))
 
         def unloaded(_: Any, error: BaseException | None) -> None:
             overdue = isinstance(error, CallTimeoutError)
@@ -1435,7 +1445,7 @@ class Teardown:
                 )
             self.remove_resource(resource, unloaded=True)
             for ids in later:  # (a classroom's copy of `release_order`: after the unload)
-                self.releases.release_dependencies(resource.id, lambda: None, only=ids)
+                self.releases.release_dependencies(resource.id, lambda: None, only=ids, trace=trace)
             for waiting in self.unload_waiters.pop(resource.id):
                 if overdue:
                     waiting.set_error(error)  # type: ignore[arg-type]
@@ -1447,13 +1457,15 @@ class Teardown:
         later: list[set[str]] = []  # the dependencies to release after the unload
         step = steps.release_order  # (a classroom's copy of this step, `rr_actors.teach`)
         if step is None:
-            self.releases.release_dependencies(resource.id, run_unload)
+            self.releases.release_dependencies(resource.id, run_unload, trace=trace)
             return
         held = [r.query.id for r in self.registrar.catalog.dependencies(resource.id)]
         order = list(step(tuple(held)))
         cut = order.index(UNLOAD)
         later.append(set(order[cut + 1 :]) & set(held))
-        self.releases.release_dependencies(resource.id, run_unload, only=set(order[:cut]))
+        self.releases.release_dependencies(
+            resource.id, run_unload, only=set(order[:cut]), trace=trace
+        )
 
     def when_idle(self, then: Callable[[], None]) -> None:
         """Run `then()` once no unload is under way here (now if none is)."""

@@ -81,6 +81,11 @@ class Mission:
             the station's); the robot's managers start in a process in the robot's.
         robot_observer: with `link`: the robot's host shares its tree with the
             station's observer page (`on_supervisor` opens that page).
+        step_span: called on the mission's thread with the name of each step of the
+            mission (`"mission step load robot"`, `"... load lidar1"`, `"... drive"`,
+            `"... unload"`), the context the step runs in (`rr-actors demo --trace`: a
+            new trace, `otel.root_span`); with it, the robot's host (two hosts) makes
+            spans of its tree too (`otel.Exporting`, by the `OTEL_*` variables).
 
     Attributes:
         supervisor: the managers' supervisor while the mission runs, else `None`.
@@ -100,6 +105,7 @@ class Mission:
         on_interrupt: Callable[[float], object] | None = None,
         link: TwoHosts | None = None,
         robot_observer: RobotObserver | None = None,
+        step_span: Callable[[str], contextlib.AbstractContextManager[object]] | None = None,
     ) -> None:
         if (config.hosts == 2) != (link is not None):
             raise MissionError("a mission on two hosts needs their namespaces (and only it)")
@@ -108,6 +114,8 @@ class Mission:
         self._robot_observer = robot_observer
         self._on_supervisor = on_supervisor
         self._on_interrupt = on_interrupt
+        self._traced = step_span is not None
+        self._step_span = step_span or (lambda _: contextlib.nullcontext())
         self._interrupted_at: float | None = None  # mission time of the Ctrl-C
         self._leaked_pids: list[int] = []
         self.out = out
@@ -184,6 +192,7 @@ class Mission:
                     robot_observer=self._robot_observer,
                     say=self.say,
                     stack=hosts,
+                    trace=self._traced,
                 )
             else:
                 self.say(f"starting the managers erm, cm and rm ({cfg.isolation} isolation)")
@@ -274,12 +283,14 @@ class Mission:
     def _mission(self, loads: Loads, faults: Faults) -> tuple[float, float]:
         """Load the robot and LiDAR 1, drive; return when the drive started and ended."""
         cfg = self.config
-        robot = loads.robot()
+        with self._step_span("mission step load robot"):
+            robot = loads.robot()
         self.say(
             f"robot loaded: driver pid {robot.response['driver_pid']}, "
             f"navigation pid {robot.response['navigation_pid']}"
         )
-        lidar = loads.lidar("lidar1")
+        with self._step_span("mission step load lidar1"):
+            lidar = loads.lidar("lidar1")
         self.say(f"LiDAR 1 loaded: pid {lidar.response['pid']}")
         start = time.monotonic()
         self._robot.go()
@@ -298,12 +309,14 @@ class Mission:
                 f"goal reached after {self.clock.at(at) - self.clock.at(start):.2f} s", at=at
             ),
         )
-        arrived = drive.run()
+        with self._step_span("mission step drive"):
+            arrived = drive.run()
         return start, arrived
 
     def _unload_all(self, loads: Loads, faults: Faults) -> dict[str, int]:
         """Stop the robot, unload what the mission holds, count what the catalogs keep."""
-        self._robot.stop()
-        faults.notice_restarts()
-        loads.unload_all()
-        return loads.catalogs()
+        with self._step_span("mission step unload"):
+            self._robot.stop()
+            faults.notice_restarts()
+            loads.unload_all()
+            return loads.catalogs()

@@ -264,6 +264,8 @@ class RobotSettings:
         log: the file the robot's host's WARNINGs and ERRORs go to.
         observer: share the robot's tree with the station's observer page (`None`: no
             observer on the robot).
+        trace: make spans of the robot's tree there (`otel.Exporting`: the `OTEL_*`
+            variables, which it inherits; `rr-actors demo --hosts 2 --trace`).
     """
 
     system: str
@@ -276,6 +278,7 @@ class RobotSettings:
     isolation: str
     log: str
     observer: RobotObserver | None = None
+    trace: bool = False
 
 
 class _Subscription:
@@ -589,6 +592,7 @@ def open_two_hosts(
     robot_observer: RobotObserver | None,
     say: Callable[[str], None],
     stack: contextlib.ExitStack,
+    trace: bool = False,
 ) -> tuple[rr.ZenohNetwork, RobotHost]:
     """The station's side: start the robot's host (erm, rm), open the station's network.
 
@@ -603,6 +607,7 @@ def open_two_hosts(
         robot_observer: share the robot's tree with the station's page, or `None`.
         say: tells one line of the story (also from the robot host's reader thread).
         stack: where the closing goes.
+        trace: the robot's host makes spans of its tree (`RobotSettings.trace`).
 
     Raises:
         MissionError: the robot's host did not start.
@@ -634,6 +639,7 @@ def open_two_hosts(
             isolation=config.isolation,
             log=str(out / ROBOT_LOG),
             observer=robot_observer,
+            trace=trace,
         ),
         say=say,
         network=network,
@@ -745,6 +751,12 @@ def main(fd: int) -> None:
     with net, contextlib.ExitStack() as stack:  # (the stack first: the observer, then net)
         try:
             sup.subscribe(on_event)
+            if settings.trace:  # its spans exported once its tree stopped
+                from rr_actors import otel  # noqa: PLC0415 - only --trace needs it
+
+                exporting = otel.Exporting()
+                exporting.trace(sup)
+                stack.callback(exporting.close)
             if settings.observer is not None:  # (before the start: the page sees it start)
                 observer = sup.observe(
                     allow_faults=settings.observer.allow_faults,

@@ -158,6 +158,7 @@ def run_mission(
     on_interrupt: Callable[[float], object] | None = None,
     link: TwoHosts | None = None,
     robot_observer: RobotObserver | None = None,
+    step_span: Callable[[str], contextlib.AbstractContextManager[object]] | None = None,
 ) -> MissionReport:
     """Run the mission and write `report.json` (and `mission.png` if matplotlib is there).
 
@@ -179,6 +180,9 @@ def run_mission(
         robot_observer: with `link`: the robot's host shares its tree with the
             station's observer page, which `on_supervisor` opens (`rr-actors demo
             --hosts 2 --observe`).
+        step_span: called on the mission's thread with each step's name (`"mission step
+            drive"`, ...), the context the step runs in (`rr-actors demo --trace`: each
+            step a trace of its own, `otel.root_span`).
 
     Returns:
         The report.
@@ -206,6 +210,7 @@ def run_mission(
             on_interrupt=on_interrupt,
             link=link,
             robot_observer=robot_observer,
+            step_span=step_span,
         ).run()
         (path / "report.json").write_text(json.dumps(report.to_dict(), indent=2) + "\n")
         with contextlib.suppress(ImportError):
@@ -461,6 +466,7 @@ def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:  # noqa:
                 on_interrupt=on_interrupt,
                 link=link,
                 robot_observer=robot_observer,
+                step_span=exporting.root_span if exporting is not None else None,
             )
         except KeyboardInterrupt as exc:  # a Ctrl-C: the mission cleaned up (and said so)
             if not isinstance(exc, MissionInterruptedError):  # not while a mission ran

@@ -84,3 +84,16 @@ def test_an_untraced_program_does_not_import_opentelemetry() -> None:
     )
     assert 0 == done.returncode, done.stderr[-2000:]
     assert "[]" == done.stdout.strip()  # (its import costs milliseconds; no span can be current)
+
+
+def test_a_call_under_a_calls_server_span_is_a_fresh_client_span_in_its_trace() -> None:
+    carried = "00-" + "ab" * 16 + "-" + "0123456789abcdef" + "-01"
+
+    traceparent, caller_span = traces.under(carried) or ("", "")
+
+    trace_id, client, flags = traces.parse(traceparent) or (0, 0, 0)
+    assert (int("ab" * 16, 16), 1) == (trace_id, flags)
+    assert client not in (0, int("0123456789abcdef", 16))
+    assert traces.server_span(int("0123456789abcdef", 16)) == traces.span_id(caller_span)
+    assert traces.under("") is None
+    assert traces.under("00-bad") is None

@@ -43,7 +43,12 @@ from rr_actors.mission.hosts import (
 )
 from rr_actors.mission.run import main
 from rr_actors.testing import crash
-from tests.support.demos import interrupt_demo, one_line_after_the_story, ours
+from tests.support.demos import (
+    assert_one_trace_per_step,
+    interrupt_demo,
+    one_line_after_the_story,
+    ours,
+)
 from tests.support.observing import CHROMIUM_ARGS, chromium, get_json
 from tests.support.tls_lab import free_port
 
@@ -66,6 +71,20 @@ def demo(*options: str, cwd: Path, timeout: float = 150) -> subprocess.Completed
         env=env,
         check=False,
     )
+
+
+@needs_root
+@pytest.mark.timeout(200)
+def test_the_two_host_demo_traces_both_hosts_one_trace_per_mission_step(tmp_path: Path) -> None:
+    with pytest.MonkeyPatch.context() as env:
+        env.setenv("OTEL_TRACES_EXPORTER", "console")
+        options = ("--hosts", "2", "--fast", "--faults", "F4", "--distance", "2", "--quiet")
+        done = demo(*options, "--trace", "--out", "out", cwd=tmp_path)
+
+    assert 0 == done.returncode, done.stderr[-2000:]
+    spans = assert_one_trace_per_step(done.stdout)
+    loaded = {s["name"] for s in spans if s["name"].endswith(".load")}
+    assert {"robot.load", "program.load", "lidar.load"} <= loaded  # (robot.load: rm's, there)
 
 
 @needs_root

@@ -12,6 +12,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import psutil
 
@@ -156,3 +157,56 @@ def report_with_everything() -> MissionReport:
         stops=(),
         unplanned_restarts=restarts,
     )
+
+
+def console_spans(text: str) -> list[dict[str, Any]]:
+    """The spans OpenTelemetry's console exporter printed in `text` (one JSON object each;
+    other lines, the story's, skipped)."""
+    decoder = json.JSONDecoder()
+    spans, at = [], text.find("{")
+    while at >= 0:
+        try:
+            span, end = decoder.raw_decode(text, at)
+        except ValueError:
+            end = at + 1
+        else:
+            if isinstance(span, dict) and "context" in span:
+                spans.append(span)
+        at = text.find("{", end)
+    return spans
+
+
+STEPS = ("load robot", "load lidar1", "drive", "unload")
+"""The mission's steps, each a trace of its own (`mission step <step>`) with `--trace`."""
+
+
+def assert_one_trace_per_step(stdout: str) -> list[dict[str, Any]]:
+    """The spans of `demo --faults F4 --trace` (console exporter): each mission step one
+    trace, every parent exported, `restart cm` linked to both incarnations; the spans."""
+    spans = console_spans(stdout)
+    by_id = {span["context"]["span_id"]: span for span in spans}
+    assert {"SpanKind.CLIENT", "SpanKind.SERVER", "SpanKind.INTERNAL"} <= {
+        span["kind"] for span in spans
+    }
+    orphans = [s["name"] for s in spans if s["parent_id"] and s["parent_id"] not in by_id]
+    assert [] == orphans  # (an unload's dependency releases: their CLIENT spans too)
+    steps = {s["name"]: s["context"]["trace_id"] for s in spans if not s["parent_id"]}
+    assert {f"mission step {name}" for name in STEPS} <= set(steps)
+    roots = {trace: name for name, trace in steps.items()}
+    assert len(roots) == len(steps)  # one root a trace: each step a trace of its own
+    # (F4 kills cm while the robot stands: its restart is a trace of its own, linked)
+    assert {"restart cm"} == set(roots.values()) - {f"mission step {n}" for n in STEPS}
+    for span in spans:  # every call, load and unload is in the trace of its step
+        if span["name"] != "restart cm":
+            assert roots[span["context"]["trace_id"]].startswith("mission step"), span["name"]
+    unloaded = [s for s in spans if s["context"]["trace_id"] == steps["mission step unload"]]
+    assert {"rm/robot", "cm/lidar", "erm/program", "robot.unload", "program.unload"} <= {
+        s["name"] for s in unloaded
+    }
+    (restart,) = [s for s in spans if s["name"] == "restart cm"]
+    linked = {
+        link["attributes"]["rr_actors.incarnation"]: by_id[link["context"]["span_id"]]["name"]
+        for link in restart["links"]
+    }
+    assert {"old": "cm/lidar", "new": "cm/lidar"} == linked
+    return spans
