@@ -40,11 +40,11 @@ span's derived from it), and its events carry it (`trace`, `caller_span`): the C
 span is made the caller's span's child, the SERVER span the CLIENT span's, with those
 ids (through the SDK's tracer), in whichever process each side is made; a `load` (an
 unload's `unload` callback and dependency releases too) runs with that SERVER span
-current. An untraced call's ids are derived from its query id, so
-its sides meet too. A CLIENT span starts when its call began (its end event's `started`;
-without it, as events of schema 6 and before: where its server span starts, or at its
-own end). Lost events (`EventsDropped`) are counted (`Tracing.dropped`), and the spans
-they may have cut are marked `rr_actors.incomplete`.
+current. An untraced call's ids are derived from its query id, so its sides meet too.
+A CLIENT span starts when its call began (its end event's `started`; without it, as in
+events of schema 6 and before: where its server span starts, or at its own end). Lost
+events (`EventsDropped`) are counted (`Tracing.dropped`), the spans they may have cut
+marked `rr_actors.incomplete`.
 
 `provider_from_environment` and `Exporting` are what `rr-actors demo --trace` and
 `rr-actors experiment --trace` use: an SDK provider set up by the `OTEL_*` variables.
