@@ -46,8 +46,7 @@ events of schema 6 and before: where its server span starts, or at its own end).
 events (`EventsDropped`) are counted (`Tracing.dropped`), the spans they may have cut
 marked `rr_actors.incomplete`.
 
-`provider_from_environment` and `Exporting` are what `rr-actors demo --trace` and
-`rr-actors experiment --trace` use: an SDK provider set up by the `OTEL_*` variables.
+`provider_from_environment`, `Exporting`: the `--trace` commands' SDK, set by `OTEL_*`.
 """
 
 from __future__ import annotations
