@@ -49,7 +49,7 @@ _Ref = weakref.ref[Any]
 _cond = threading.Condition()
 _live: dict[str, set[_Ref]] = {}  # session's Zenoh id -> one per callback thread not ended
 _ending: dict[str, list[threading.Thread]] = {}  # threads whose callback was dropped
-_local = threading.local()  # `.callback`: this thread runs a tracked callback
+_local = threading.local()  # `.callback`: the session whose tracked callback this thread runs
 
 
 def tracked(session: zenoh.Session, callback: Callable[[T], object]) -> zenoh.handlers.Callback[T]:
@@ -60,8 +60,11 @@ def tracked(session: zenoh.Session, callback: Callable[[T], object]) -> zenoh.ha
     zid = str(session.zid())
 
     def run(sample: T) -> None:
-        _local.callback = True
-        callback(sample)
+        _local.callback = zid
+        try:
+            callback(sample)
+        finally:
+            _local.callback = None
 
     def gone(ref: _Ref) -> None:  # (its thread ended, or never began: a failed declare)
         with _cond:
@@ -98,7 +101,7 @@ def wait_ended(session: zenoh.Session, timeout: float = END_TIMEOUT) -> bool:
     """
     deadline = time.monotonic() + timeout
     zid = str(session.zid())
-    own = 1 if getattr(_local, "callback", False) else 0  # (closed from a callback)
+    own = 1 if getattr(_local, "callback", None) == zid else 0  # (closed from its callback)
     with _cond:
         ended = _cond.wait_for(lambda: len(_live.get(zid, ())) <= own, timeout)
         ending = _ending.pop(zid, [])
