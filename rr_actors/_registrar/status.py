@@ -143,9 +143,9 @@ class StatusRelay:
             if refused:
                 reply.set_error(refused[0])
             else:
-                lost = tuple(dict.fromkeys(gave_up))
-                reached = tuple(q for q in direct if q not in lost)
-                reply.set_result(StatusDelivery(reached, lost))
+                lost = dict.fromkeys(gave_up)  # (in order, each once; a set's lookups)
+                reached = tuple(q for q in direct if q not in lost)  # (not given up on)
+                reply.set_result(StatusDelivery(reached, tuple(lost)))
 
         self.notify(
             resource,
@@ -689,8 +689,8 @@ class Runner:
     or given up on at its `deadline` (the sender's patience) by the watchdog (one running
     after it let its lane go too: `_running`; one merged into a later call at its own),
     and at once if its lane's running callback was given up on: the sender waits one
-    patience for a hung consumer, not one per status. A coroutine callback runs on its loop (`on_loop`);
-    its call is given up on the same way.
+    patience for a hung consumer, not one per status. A coroutine callback runs on its
+    loop (`on_loop`); its call is given up on the same way.
     """
 
     def __init__(self) -> None:

@@ -7,6 +7,7 @@ registrars (`TestFanout`), a status on its way as its consumer releases the id
 
 from __future__ import annotations
 
+import asyncio
 import collections
 import contextlib
 import functools
@@ -414,6 +415,43 @@ class TestStatus:
         expected = rr.StatusDelivery((heard.id,), (hung.id,))
         assert (expected, expected) == (first, second)
         assert ["1", "2"] == [update.message for _query, update in box.updates]
+
+    @pytest.mark.thread_only("the loop a coroutine callback was registered from is here")
+    def test_a_hung_coroutine_callback_is_given_up_on_a_hung_server_on_status_is_not(
+        self, make_registrar
+    ):
+        """`send_status`'s docstring (review of the fan-out): a client's coroutine callback
+        is given up on after the patience as a plain one is; a server's own `on_status`
+        is not: it is waited for within the `timeout` (`CallTimeoutError`)."""
+        provider, consumer = make_registrar("provider"), make_registrar("consumer")
+        hang_server, gate = threading.Event(), threading.Event()
+
+        def on_status(_query: rr.Query, _update: rr.StatusUpdate) -> None:
+            if hang_server.is_set():
+                gate.wait(30)
+
+        provider.register_server("leaf", load=lambda r: r, unload=_no_unload, on_status=on_status)
+
+        async def hung(_query: rr.Query, _update: rr.StatusUpdate) -> None:
+            await asyncio.to_thread(gate.wait, 30)
+
+        async def main() -> tuple[rr.StatusDelivery, BaseException | None]:
+            query = await consumer.acall(provider.name, "leaf", "r", on_status=hung)
+            send = functools.partial(provider.send_status, query.id, rr.Status.UPDATE)
+            delivery = await asyncio.to_thread(send, "1", timeout=1.0)
+            hang_server.set()
+            try:
+                await asyncio.to_thread(send, "2", timeout=0.5)
+            except rr.CallTimeoutError as exc:
+                return delivery, exc
+            finally:
+                gate.set()
+            return delivery, None
+
+        delivery, error = asyncio.run(main())
+
+        assert ((), 1) == (delivery.reached, len(delivery.gave_up))
+        assert isinstance(error, rr.CallTimeoutError)
 
     def test_a_status_callback_that_raises_does_not_stop_delivery(
         self, make_registrar, serve, inbox
