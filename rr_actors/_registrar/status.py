@@ -136,8 +136,7 @@ class StatusRelay:
         refused: list[ConfigError] = []  # (parts that could not be sent: too large)
         gave_up: list[str] = []  # (consumer ids whose callbacks were given up on)
         direct = tuple(resource.consumers)
-        patience = asked.patience
-        deadline = None if patience is None else runtime.monotonic() + patience
+        deadline = _deadline(asked.patience)
 
         def then() -> None:  # (the thread of the last acknowledgement)
             if refused:
@@ -347,7 +346,7 @@ class StatusRelay:
         part of `join` is done after it."""
         done = join.add()
         if isinstance(callback, OnLoop):
-            callback.submit(query, update, then=lambda _error: done(), key=query.id)
+            callback.submit(query, update, then=_done_by(done), key=query.id)
             return
 
         def run() -> None:
@@ -385,8 +384,7 @@ class StatusRelay:
         catalog = self.registrar.catalog
         gave_up: list[str] = []
         join = _Join(lambda: reply.set_result(tuple(gave_up)), gave_up)
-        patience = message.patience
-        deadline = None if patience is None else runtime.monotonic() + patience
+        deadline = _deadline(message.patience)
         for query_id in DESK.first_time(message.event, message.query_ids):
             record = catalog.clients.get(query_id)
             if record is None:
@@ -645,6 +643,11 @@ def _settled(dones: Iterable[Callable[..., None]]) -> None:
             done()
         except Exception:  # (a join's part: it does not raise; a bug's trace if it did)
             logger.exception("a status acknowledgement raised")
+
+
+def _deadline(patience: float | None) -> float | None:
+    """The monotonic deadline `patience` seconds from now (`None`: none)."""
+    return None if patience is None else runtime.monotonic() + patience
 
 
 def _done_by(done: Callable[..., None]) -> Callable[[BaseException | None], None]:
@@ -994,7 +997,7 @@ class Desk:
         """
         calls: list[_Call] = []
         patience = batch.patience
-        deadline = None if patience is None else runtime.monotonic() + patience
+        deadline = _deadline(patience)
         for origin, ids in batch.parts:
             try:
                 peer = DIRECTORY.lookup(origin)
