@@ -89,8 +89,10 @@ class StatusDelivery:
     """What `send_status` reached (rule 9).
 
     Attributes:
-        reached: the resource's consumer ids whose callbacks ran (and on up their
-            dependency paths, unless given up on there), in no particular order.
+        reached: the resource's consumer ids not given up on, in no particular order:
+            each callback ran (and the status went on up its dependency paths), or its
+            registrar was gone or could not be sent the notice (a death watch's
+            business, rule 12) by the time the status got there.
         gave_up: consumer ids, at any hop, whose status callback had not returned
             within the `send_status`'s patience (half its timeout, or all of it but 1 s
             if that is more): busy or hung. Each still gets its latest status (and every

@@ -484,11 +484,13 @@ class Registrar:
         This server's `on_status` runs once; each consumer's status callback runs with its
         own query id, on a worker thread of the consumer's process (a coroutine one: on its
         loop); the status climbs every dependency path to the top consumers. Returns once
-        every callback on the way has run, or was given up on: a callback (on a worker
-        thread) that has not returned within the patience (half of `timeout`, or all of it
-        but 1 s if that is more), and at once while its id's earlier callback is still
-        given up on. A given-up id's statuses queue behind its callback, coalesced (its
-        latest, and every `FATAL`, in arrival order), and run once it returns.
+        every callback on the way has run, or was given up on: a consumer's callback
+        (plain or coroutine) that has not returned within the patience (half of `timeout`,
+        or all of it but 1 s if that is more), and at once while its id's earlier callback
+        is still given up on. A given-up id's statuses queue behind its callback, coalesced
+        (its latest, and every `FATAL`, in arrival order), and run once it returns. A
+        server's own `on_status` (this one's, and those up the dependency paths) is never
+        given up on: it is waited for, within `timeout`.
 
         Args:
             query_id: any consumer id of a resource this registrar serves.
@@ -497,8 +499,8 @@ class Registrar:
             timeout: seconds to wait for delivery along the whole path.
 
         Returns:
-            `StatusDelivery(reached, gave_up)`: the resource's consumer ids reached, and
-            the ids (at any hop) whose callbacks were given up on.
+            `StatusDelivery(reached, gave_up)`: the resource's consumer ids not given up
+            on, and the ids (at any hop) whose callbacks were given up on.
 
         Raises:
             UnknownQueryError: `query_id` is not a consumer id of a resource served here.
@@ -507,8 +509,8 @@ class Registrar:
                 consumer registrar in another process (named): that one did not hear it,
                 the others did (a `FATAL` still marks the resource, rule 1).
             CallTimeoutError: not delivered everywhere within `timeout` seconds (a
-                consumer's process that did not answer; a coroutine callback that did not
-                return: those are not given up on).
+                consumer's process that did not answer; a server's `on_status` on the way
+                that did not return: those are not given up on).
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
         """

@@ -136,16 +136,15 @@ class StatusRelay:
         refused: list[ConfigError] = []  # (parts that could not be sent: too large)
         gave_up: list[str] = []  # (consumer ids whose callbacks were given up on)
         direct = tuple(resource.consumers)
-        patience = asked.patience
-        deadline = None if patience is None else runtime.monotonic() + patience
+        deadline = _deadline(asked.patience)
 
         def then() -> None:  # (the thread of the last acknowledgement)
             if refused:
                 reply.set_error(refused[0])
             else:
-                lost = tuple(dict.fromkeys(gave_up))
-                reached = tuple(q for q in direct if q not in lost)
-                reply.set_result(StatusDelivery(reached, lost))
+                lost = dict.fromkeys(gave_up)  # (in order, each once; a set's lookups)
+                reached = tuple(q for q in direct if q not in lost)  # (not given up on)
+                reply.set_result(StatusDelivery(reached, tuple(lost)))
 
         self.notify(
             resource,
@@ -347,7 +346,7 @@ class StatusRelay:
         part of `join` is done after it."""
         done = join.add()
         if isinstance(callback, OnLoop):
-            callback.submit(query, update, then=lambda _error: done(), key=query.id)
+            callback.submit(query, update, then=_done_by(done), key=query.id)
             return
 
         def run() -> None:
@@ -385,8 +384,7 @@ class StatusRelay:
         catalog = self.registrar.catalog
         gave_up: list[str] = []
         join = _Join(lambda: reply.set_result(tuple(gave_up)), gave_up)
-        patience = message.patience
-        deadline = None if patience is None else runtime.monotonic() + patience
+        deadline = _deadline(message.patience)
         for query_id in DESK.first_time(message.event, message.query_ids):
             record = catalog.clients.get(query_id)
             if record is None:
@@ -518,7 +516,8 @@ class _Call:
     id), to publish a `StatusHandled` as the callback returns. `done` runs once, by the
     runner (`settle`): as the callback returns, or once it is given up on at `deadline`
     (monotonic seconds; `None`: never), its id then added to `gave_up`. `merged`: the
-    calls coalesced into it (`Runner`), settled with it.
+    calls coalesced into it (`Runner`), settled with it, or each at its own deadline if
+    that comes first; `wake`: the earliest deadline of it and those (`None`: none).
     """
 
     __slots__ = (
@@ -534,6 +533,7 @@ class _Call:
         "settled",
         "told",
         "update",
+        "wake",
     )
 
     def __init__(
@@ -552,6 +552,7 @@ class _Call:
         self.done = done
         self.told = told
         self.deadline = deadline
+        self.wake = deadline
         self.gave_up = gave_up
         self.seq = 0  # its place in the runner's arrival order
         self.opened = 0  # the stamp at which it first let its lane go (`Runner._waits`)
@@ -573,11 +574,34 @@ class _Call:
                     call.gave_up.append(call.query.id)
             dones.append(call.done)
         self.merged = []
+        self.wake = None
         return dones
 
     def overdue(self, now: float) -> bool:
         """Not settled, and past its deadline."""
         return not self.settled and self.deadline is not None and now >= self.deadline
+
+    def merge(self, calls: Iterable[_Call]) -> None:
+        """(Holding the runner's lock.) Take `calls` (and their merged ones) into it."""
+        for queued in calls:
+            self.merged.append(queued)
+            self.merged.extend(queued.merged)
+            queued.merged = []
+        self.wake = _earliest(self, *self.merged)
+
+    def lapse(self, now: float) -> list[Callable[..., None]]:
+        """(Holding the runner's lock.) Give up on it (and those merged into it) if past
+        its deadline, else on each merged call past its own: the `done`s to call."""
+        if self.wake is None or now < self.wake:
+            return []
+        if self.overdue(now):
+            return self.settle(True)
+        dones: list[Callable[..., None]] = []
+        for call in self.merged:
+            if call.overdue(now):
+                dones.extend(call.settle(True))
+        self.wake = _earliest(self, *self.merged)
+        return dones
 
     def __call__(self) -> None:
         told = self.told
@@ -606,6 +630,12 @@ def _arrival(call: _Call) -> int:
     return call.seq
 
 
+def _earliest(*calls: _Call) -> float | None:
+    """The earliest deadline of those of `calls` not settled (`None`: none)."""
+    deadlines = [c.deadline for c in calls if not c.settled and c.deadline is not None]
+    return min(deadlines, default=None)
+
+
 def _settled(dones: Iterable[Callable[..., None]]) -> None:
     """Call the `done`s of settled calls (outside the runner's lock)."""
     for done in dones:
@@ -613,6 +643,11 @@ def _settled(dones: Iterable[Callable[..., None]]) -> None:
             done()
         except Exception:  # (a join's part: it does not raise; a bug's trace if it did)
             logger.exception("a status acknowledgement raised")
+
+
+def _deadline(patience: float | None) -> float | None:
+    """The monotonic deadline `patience` seconds from now (`None`: none)."""
+    return None if patience is None else runtime.monotonic() + patience
 
 
 def _done_by(done: Callable[..., None]) -> Callable[[BaseException | None], None]:
@@ -654,10 +689,11 @@ class Runner:
     queued ones that are not `FATAL`s, which are acknowledged with it; so a hung callback's
     lane holds its latest status and the `FATAL`s, in arrival order, whatever the number
     sent. Acknowledgements (`_Call.settle`): a call is acknowledged as its callback returns,
-    or given up on at its `deadline` (the sender's patience) by the watchdog, and at once
-    if its lane's running callback was given up on: the sender waits one patience for a
-    hung consumer, not one per status. A coroutine callback runs on its loop (`on_loop`);
-    its call is given up on the same way.
+    or given up on at its `deadline` (the sender's patience) by the watchdog (one running
+    after it let its lane go too: `_running`; one merged into a later call at its own),
+    and at once if its lane's running callback was given up on: the sender waits one
+    patience for a hung consumer, not one per status. A coroutine callback runs on its
+    loop (`on_loop`); its call is given up on the same way.
     """
 
     def __init__(self) -> None:
@@ -665,6 +701,7 @@ class Runner:
         self._lanes: dict[str, collections.deque[_Call]] = {}  # id -> its queued calls
         self._open: list[tuple[int, str]] = []  # heap: (its first call's seq, id) of open lanes
         self._holders: dict[str, _Drainer] = {}  # id -> the drainer that holds its lane
+        self._running: dict[_Call, None] = {}  # calls in a callback (their lanes held or not)
         self._inside: set[_Drainer] = set()  # drainers in a callback, not given up
         self._drainers = 0  # drainers that take calls (not given up)
         self._arrived = 0  # calls queued so far (their `seq`)
@@ -698,7 +735,7 @@ class Runner:
                     running = holder.call
                     if running is not None and running.given_up:
                         dones.extend(call.settle(True))
-                    pending = pending or (not call.settled and call.deadline is not None)
+                    pending = pending or (not call.settled and call.wake is not None)
                     continue
                 if lane is not None:
                     lane.append(call)
@@ -823,6 +860,7 @@ class Runner:
                 drainer.call = call
                 drainer.started = runtime.monotonic()
                 self._holders[call.query.id] = drainer
+                self._running[call] = None
                 self._inside.add(drainer)
             token = when_waiting(functools.partial(self._waits, drainer, call))
             try:
@@ -830,6 +868,7 @@ class Runner:
             finally:
                 waited(token)
                 with self._lock:
+                    del self._running[call]
                     dones = call.settle(False)
                     self._inside.discard(drainer)
                     self._let_go(drainer, call)
@@ -841,26 +880,25 @@ class Runner:
                 self._kick(start, watch)
 
     def _give_up(self, now: float) -> tuple[list[Callable[..., None]], bool]:
-        """(Holding the lock.) Give up on the running and queued calls of held lanes past
-        their deadlines: their `done`s, and whether any call there still has a deadline to
-        come (the watchdog stays for it)."""
+        """(Holding the lock.) Give up on the running calls (their lanes held or let go)
+        and the queued calls of held lanes, each merged one too, past their deadlines:
+        their `done`s, and whether any call there still has a deadline to come (the
+        watchdog stays for it)."""
         dones: list[Callable[..., None]] = []
         waiting = False
+        for call in self._running:
+            dones.extend(call.lapse(now))
+            waiting = waiting or call.wake is not None
         for query_id, drainer in self._holders.items():
             running = drainer.call
             if running is None:
                 continue
-            if running.overdue(now):
-                dones.extend(running.settle(True))
             stuck = running.given_up  # (what queued behind it waits no more)
-            waiting = waiting or (not running.settled and running.deadline is not None)
             for call in self._lanes.get(query_id, ()):
                 if call.settled:
                     continue
-                if stuck or call.overdue(now):
-                    dones.extend(call.settle(True))
-                elif call.deadline is not None:
-                    waiting = True
+                dones.extend(call.settle(True) if stuck else call.lapse(now))
+                waiting = waiting or call.wake is not None
         for call in list(self._awaited):  # (coroutine callbacks)
             if call.overdue(now):
                 del self._awaited[call]
@@ -918,11 +956,9 @@ def _coalesce(lane: collections.deque[_Call], call: _Call) -> None:
     kept = [queued for queued in lane if queued.update.status is Status.FATAL]
     if len(kept) == len(lane):
         return
-    for queued in lane:
-        if queued.update.status is not Status.FATAL and not queued.settled:
-            call.merged.append(queued)
-            call.merged.extend(queued.merged)
-            queued.merged = []
+    call.merge(
+        queued for queued in lane if queued.update.status is not Status.FATAL and not queued.settled
+    )
     lane.clear()
     lane.extend(kept)
 
@@ -961,7 +997,7 @@ class Desk:
         """
         calls: list[_Call] = []
         patience = batch.patience
-        deadline = None if patience is None else runtime.monotonic() + patience
+        deadline = _deadline(patience)
         for origin, ids in batch.parts:
             try:
                 peer = DIRECTORY.lookup(origin)

@@ -7,6 +7,7 @@ registrars (`TestFanout`), a status on its way as its consumer releases the id
 
 from __future__ import annotations
 
+import asyncio
 import collections
 import contextlib
 import functools
@@ -20,6 +21,8 @@ import psutil
 import pytest
 
 import rr_actors as rr
+from rr_actors._core import runtime
+from rr_actors._core.replies import let_go
 from rr_actors._core.workers import Workers
 from rr_actors._registrar.status import Runner, _Call
 from rr_actors.testing import STEPS, RemoteRegistrar, catalog_snapshot, intercept
@@ -412,6 +415,43 @@ class TestStatus:
         expected = rr.StatusDelivery((heard.id,), (hung.id,))
         assert (expected, expected) == (first, second)
         assert ["1", "2"] == [update.message for _query, update in box.updates]
+
+    @pytest.mark.thread_only("the loop a coroutine callback was registered from is here")
+    def test_a_hung_coroutine_callback_is_given_up_on_a_hung_server_on_status_is_not(
+        self, make_registrar
+    ):
+        """`send_status`'s docstring (review of the fan-out): a client's coroutine callback
+        is given up on after the patience as a plain one is; a server's own `on_status`
+        is not: it is waited for within the `timeout` (`CallTimeoutError`)."""
+        provider, consumer = make_registrar("provider"), make_registrar("consumer")
+        hang_server, gate = threading.Event(), threading.Event()
+
+        def on_status(_query: rr.Query, _update: rr.StatusUpdate) -> None:
+            if hang_server.is_set():
+                gate.wait(30)
+
+        provider.register_server("leaf", load=lambda r: r, unload=_no_unload, on_status=on_status)
+
+        async def hung(_query: rr.Query, _update: rr.StatusUpdate) -> None:
+            await asyncio.to_thread(gate.wait, 30)
+
+        async def main() -> tuple[rr.StatusDelivery, BaseException | None]:
+            query = await consumer.acall(provider.name, "leaf", "r", on_status=hung)
+            send = functools.partial(provider.send_status, query.id, rr.Status.UPDATE)
+            delivery = await asyncio.to_thread(send, "1", timeout=1.0)
+            hang_server.set()
+            try:
+                await asyncio.to_thread(send, "2", timeout=0.5)
+            except rr.CallTimeoutError as exc:
+                return delivery, exc
+            finally:
+                gate.set()
+            return delivery, None
+
+        delivery, error = asyncio.run(main())
+
+        assert ((), 1) == (delivery.reached, len(delivery.gave_up))
+        assert isinstance(error, rr.CallTimeoutError)
 
     def test_a_status_callback_that_raises_does_not_stop_delivery(
         self, make_registrar, serve, inbox
@@ -952,6 +992,75 @@ class TestRunner:
         wait_for(lambda: len(acked) == 7, timeout=10.0)
         assert ["busy", "f1", "f2", "u4"] == heard
         assert ["busy", "f1", "f2", "u1", "u2", "u3", "u4"] == acked
+
+    def test_a_callback_that_waits_for_a_registrar_is_still_given_up_on_at_its_deadline(
+        self,
+    ) -> None:
+        """Review of the fan-out: a callback that let its lane go (`let_go`: it waits for a
+        registrar) was no longer checked against its deadline, its sender never answered.
+        Mutation caught: running calls found only through the lanes' holders."""
+        runner = Runner()
+        began, go = threading.Event(), threading.Event()
+        acked: list[str] = []
+        gave_up: list[str] = []
+        settled = threading.Event()
+
+        def hear(_query: rr.Query, _update: rr.StatusUpdate) -> None:
+            let_go()  # (as a `call` from inside it would)
+            began.set()
+            assert go.wait(10)
+
+        def done() -> None:
+            acked.append("x")
+            settled.set()
+
+        query = rr.Query("x", "leaf", "prov", "cons", "r", "r")
+        update = rr.StatusUpdate("x", rr.Status.UPDATE, "wait", "prov/leaf")
+        try:
+            runner.run([_Call(hear, query, update, done, None, runtime.monotonic() + 0.3, gave_up)])
+            assert began.wait(10)
+            assert settled.wait(3.0), "a callback that waits for a registrar never given up on"
+            assert (["x"], ["x"]) == (acked, gave_up)
+        finally:
+            go.set()
+
+    def test_a_status_merged_into_a_later_one_is_given_up_on_at_its_own_deadline(
+        self,
+    ) -> None:
+        """Review of the fan-out: a status coalesced into a later one was settled only at
+        the later one's deadline (never, if it had none). Mutation caught: only the newest
+        call's deadline checked."""
+        runner = Runner()
+        began, go = threading.Event(), threading.Event()
+        acked: list[str] = []
+        gave_up: list[str] = []
+        first = threading.Event()
+
+        def hear(_query: rr.Query, update: rr.StatusUpdate) -> None:
+            if update.message == "busy":
+                began.set()
+                assert go.wait(10)
+
+        def status(message: str, deadline: float | None) -> _Call:
+            def done() -> None:
+                acked.append(message)
+                first.set()
+
+            query = rr.Query("x", "leaf", "prov", "cons", "r", "r")
+            update = rr.StatusUpdate("x", rr.Status.UPDATE, message, "prov/leaf")
+            return _Call(hear, query, update, done, None, deadline, gave_up)
+
+        try:
+            runner.run([status("busy", None)])
+            assert began.wait(10)
+            runner.run([status("a", runtime.monotonic() + 0.3)])
+            runner.run([status("b", None)])  # (a is merged into it)
+            assert first.wait(3.0), "a merged status never given up on at its own deadline"
+            assert (["a"], ["x"]) == (acked, gave_up)
+        finally:
+            go.set()
+        wait_for(lambda: len(acked) == 3, timeout=10.0)
+        assert ["a", "busy", "b"] == acked
 
     def test_a_callback_that_raises_system_exit_leaves_the_runner_running_the_next(self) -> None:
         runner = Runner()
