@@ -33,7 +33,8 @@ keep the excuse honest:
   for a CPU would otherwise never be judged, and one that could not answer for that long
   is of no use to its peers either.
 
-Where the platform has no watch (`portable`), the silence counts whole: a fixed bound.
+Where the platform has no watch (`portable`), no wait for a CPU is known: only the time its
+registrar was seen busy (below) and the watcher's delay before its first look are excused.
 
 *Busy is not hung* (issue 53): time in which its registrar was seen handling messages
 does not count either (`Heartbeat.progress`; an excused late answer: `on_late`).
@@ -225,7 +226,10 @@ class Heartbeat:
         self._sent = 0
         self._silence: _Silence | None = None
         self._late = False  # the last answer came after a look at its silence
-        self._starved = LogThrottle(logger)  # one line at once, then one a minute at most
+        # one line at once, then one a minute at most: each kind on its own (one does not
+        # hide the other)
+        self._starved = LogThrottle(logger)  # waited for a CPU
+        self._busy = LogThrottle(logger)  # its registrar was busy
 
     def tick(self, now: float) -> int | Look | Hang | None:
         """The watcher's turn at `now` (after it read what the pipe held).
@@ -302,7 +306,9 @@ class Heartbeat:
         silence's run-queue delay counts only in the share of it not seen working:
         `_excused`).
         A registrar stuck in a handler handles nothing, so its silence counts; one stuck
-        right after a message gains at most one `step`. A process that cannot answer
+        right after a message gains the interval it was handled in: since the previous
+        answer, or for the first answer at most one `step` (a probe read late, its
+        watcher delayed, credits no more). A process that cannot answer
         (stopped, or one thread holding the GIL throughout) gains nothing; the
         `STARVED_LIMIT` holds for a busy one too.
         """
@@ -310,8 +316,8 @@ class Heartbeat:
         if silence is None or silence.number != number:
             return  # (a probe of an earlier silence)
         silence.probed = False
-        if silence.handled is None:
-            before, start = pinged, silence.sent
+        if silence.handled is None:  # (a stuck one's last message may have been the first
+            before, start = pinged, max(silence.sent, now - self.step)  # after the ping)
         else:
             before, start = silence.handled, silence.handled_at
         if handled > before:
@@ -358,7 +364,7 @@ class Heartbeat:
 
     def _warn(self, silence: _Silence, silent: float, counted: float) -> None:
         if silence.busy > silence.waited:
-            self._starved.warning(
+            self._busy.warning(
                 "manager %s has not answered its heartbeat for %.3f s, but it could run for "
                 "only %.3f s of that without handling a message (its registrar was busy with "
                 "other messages, %d queued: the manager is overloaded): not hung; it is "

@@ -197,7 +197,6 @@ class Provider:
         self.teardown = teardown
         self.loads: dict[str, list[Waiter]] = {}  # resource id -> the callers waiting for it
         self.pending: dict[str, int] = {}  # server -> its loads queued or running (admission)
-        self.refusals: dict[str, tuple[int, float]] = {}  # server -> (unpublished, last)
         self.loading_ids: dict[str, str] = {}  # a waiting caller's query id -> its resource
         self.abandoned: set[str] = set()  # query ids whose callers gave up while it loaded
         self.held_loads: list[Load] = []  # for servers `setup` has not registered yet
@@ -438,20 +437,21 @@ class Provider:
             *told, ok=lambda: reply.set_result(response), undo=undo, refuse=reply.set_error
         )
 
-    def refused(self, server: str, pending: int, bound: int) -> None:
+    def refused(self, server: Server, pending: int, bound: int) -> None:
         """A new load of `server` was refused: a `ServerOverloaded`, at most one a
-        `_REFUSALS_EVERY` seconds per server (the refusals between counted in the next)."""
+        `_REFUSALS_EVERY` seconds per server (the refusals between counted in the next;
+        a server registered again starts afresh: `Server.refusals`)."""
         publisher = self.registrar.events
         if not publisher.active:
             return
         now = runtime.monotonic()
-        count, last = self.refusals.get(server, (0, now - _REFUSALS_EVERY))
+        count, last = server.refusals or (0, now - _REFUSALS_EVERY)
         if now - last < _REFUSALS_EVERY:
-            self.refusals[server] = (count + 1, last)
+            server.refusals = (count + 1, last)
             return
-        self.refusals[server] = (0, now)
+        server.refusals = (0, now)
         name = self.registrar.name
-        publisher.publish(events.ServerOverloaded(name, server, pending, bound, count + 1))
+        publisher.publish(events.ServerOverloaded(name, server.name, pending, bound, count + 1))
 
     def start_load(self, server: Server, message: Load, waiter: Waiter, key: Any) -> None:
         """Load a request not loaded here (`key`: its `runtime_key` if it has no digest),
@@ -460,7 +460,7 @@ class Provider:
         bound = server.max_pending or self.registrar.config.max_pending
         pending = self.pending.get(server.name, 0)
         if pending >= bound:
-            self.refused(server.name, pending, bound)
+            self.refused(server, pending, bound)
             message.reply.set_error(
                 OverloadedError(
                     f"'{self.registrar.name}/{server.name}' has {pending} loads queued or "

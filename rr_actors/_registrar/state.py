@@ -102,6 +102,9 @@ class Server:
     closing: bool = False
     label: Callable[[Any], Any] | None = None
     max_pending: int | None = None
+    # new loads refused since its last `ServerOverloaded`, and when that was published
+    # (`Provider.refused`; kept here, it goes with the server when it is unregistered)
+    refusals: tuple[int, float] | None = None
 
 
 @dataclasses.dataclass

@@ -384,6 +384,45 @@ def test_a_manager_that_works_and_waits_for_a_cpu_in_turns_is_excused_for_both()
     assert [Look(1)] * 8 == verdicts
 
 
+def test_the_first_probe_credits_at_most_one_step_of_work_since_the_ping() -> None:
+    # its registrar handled one message after the ping, then got stuck; the probe's answer
+    # was read 2.0 s after the ping (a watcher held up): it gains one `step`, not 2.0 s
+    lates: list[Late] = []
+    beat = Heartbeat("m", period=0.25, bound=0.75, cpu=None, now=0.0, probes=True)
+    beat.on_late = lates.append
+    assert 1 == beat.tick(0.25)
+    beat.sent(0.25)
+    assert Look(1) == beat.tick(0.5)
+    beat.progress(1, pinged=10, handled=11, queued=0, now=2.25)
+
+    assert beat.answered(1, 2.25)
+    assert [0.25] == [late.busy for late in lates]
+
+
+def test_a_busy_registrars_warning_does_not_hide_a_starved_ones() -> None:
+    # two late silences within a minute, the first excused as busy, the second as waiting
+    # for a CPU: each kind is warned (a throttle shared by both would drop the second)
+    cpu = _Samples()
+    beat = Heartbeat("m", period=0.25, bound=0.75, cpu=cpu, now=0.0, probes=True)
+    assert 1 == beat.tick(0.25)
+    beat.sent(0.25)
+    with heard("has not answered its heartbeat") as warned:
+        for handled, now in enumerate([0.5, 0.75, 1.0, 1.25], 1):
+            beat.tick(now)  # busy all along: 0.25 s counted at 1.25
+            beat.progress(1, pinged=0, handled=5 * handled, queued=9, now=now)
+        assert beat.answered(1, 1.25)
+        assert 2 == beat.tick(1.25)
+        beat.sent(1.25)  # (watched from its ping)
+        for now in [1.5, 1.75, 2.0, 2.25]:
+            cpu.next = CpuSample(stopped=False, waited=now - 1.25)  # waited all along
+            assert beat.tick(now) in (None, Look(2))
+
+    assert [
+        ("registrar was busy" in r.getMessage(), "waited for a CPU" in r.getMessage())
+        for r in warned.records
+    ] == [(True, False), (False, True)], warned.records
+
+
 def test_a_silence_starts_when_its_ping_was_written_and_ends_with_its_answer() -> None:
     beat = Heartbeat("m", period=0.25, bound=0.75, cpu=None, now=0.0)
     assert 1 == beat.tick(0.25)
@@ -449,16 +488,18 @@ def test_a_manager_slower_than_the_heartbeat_period_but_within_its_timeout_is_no
 
 
 class _Overloads:
-    """The tree's `ManagerOverloaded` events (`seen`); `first` is set at the first."""
+    """The tree's `ManagerOverloaded` events (`seen`); `busy` is set at the first that
+    excused time its registrar was seen busy (`busy_s > 0`)."""
 
     def __init__(self) -> None:
         self.seen: list[events.ManagerOverloaded] = []
-        self.first = threading.Event()
+        self.busy = threading.Event()
 
     def __call__(self, event: events.Event) -> None:  # (the subscriber's thread)
         if isinstance(event, events.ManagerOverloaded):
             self.seen.append(event)
-            self.first.set()
+            if event.busy_s > 0.0:
+                self.busy.set()
 
 
 @contextlib.contextmanager
@@ -509,22 +550,20 @@ def test_a_manager_whose_registrar_works_through_a_long_mailbox_is_overloaded_no
     pid = pid_of(sup, name)
     done = process_helpers.event()
 
-    with (
-        overloads(sup) as overloaded,
-        heard("hangs") as hangs,
-        heard("registrar was busy") as warned,
-    ):
+    # (a late answer may be excused by its wait for a CPU alone, beside other tests: what
+    # is asserted is that one was excused as busy, and the manager lived on)
+    with overloads(sup) as overloaded, heard("hangs") as hangs:
         sup.run_in(name, queue_slow_messages(75, 0.02, done), timeout=10.0)
         worked_through(done, hangs, 30.0)
         answered = sup.registrar(f"app-{uid}").call(name, "echo", "after", timeout=15.0)
-        assert overloaded.first.wait(10.0), "no ManagerOverloaded for its late answers"
+        assert overloaded.busy.wait(10.0), ("no ManagerOverloaded excused as busy", overloaded.seen)
 
     info = sup.child(name)
+    assert not hangs.records, hangs.records[0].getMessage()
     assert (pid, 0, "after") == (info.pid, info.restarts, answered.response)
-    assert ["WARNING"] == [r.levelname for r in warned.records], warned.records
     late = overloaded.seen
     assert all(e.manager == name and e.pid == pid for e in late), late
-    assert all(e.silent_s > e.bound_s == 0.5 and e.busy_s > 0.0 for e in late), late
+    assert all(e.silent_s > e.bound_s == 0.5 for e in late), late
 
 
 def burning_setup(seconds: float) -> Callable[[rr.ResourceRegistrar], None]:
@@ -581,11 +620,10 @@ def test_a_manager_saturated_with_loads_and_calls_is_overloaded_not_hung(
     with overloads(sup) as overloaded, heard("hangs") as hangs:
         asyncio.run(flood(app, name, 16, 300))
         answered = app.call(name, "burn", "after", timeout=15.0)
-        assert overloaded.first.wait(10.0), "no ManagerOverloaded for its late answers"
+        assert overloaded.busy.wait(10.0), ("no ManagerOverloaded excused as busy", overloaded.seen)
 
     info = sup.child(name)
     assert not hangs.records, hangs.records[0].getMessage()
     assert (pid, 0, "after") == (info.pid, info.restarts, answered.response)
     late = overloaded.seen
     assert all(e.manager == name and e.silent_s > e.bound_s for e in late), late
-    assert any(e.busy_s > 0.0 for e in late), late

@@ -21,7 +21,6 @@ import subprocess
 import sys
 import textwrap
 import threading
-import time
 import traceback
 import uuid
 from collections.abc import Callable
@@ -1681,6 +1680,46 @@ def serve_held_leaf(provider: Any, gate: Any, started: Any, wait: float = 30.0) 
     provider.register_server("leaf", load=load, unload=lambda r, s: None)
 
 
+class _StillClock:
+    """`provider.py`'s `runtime`, but for its `monotonic`: `now`, which only the test
+    moves (from `start`, the real clock's when it was made)."""
+
+    def __init__(self) -> None:
+        self.start = self.now = runtime.monotonic()
+
+    def monotonic(self) -> float:
+        return self.now
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(runtime, name)
+
+
+class _Overloads:
+    """A provider's `ServerOverloaded` events (`events`), from its subscription."""
+
+    def __init__(self, provider: Any) -> None:
+        self.events: list[rr.events.ServerOverloaded] = []
+        self.subscription = provider.subscribe(self.heard)
+
+    def heard(self, event: rr.events.Event) -> None:  # (the subscriber's thread)
+        if isinstance(event, rr.events.ServerOverloaded):
+            self.events.append(event)
+
+    def wait_delivered(self, timeout: float) -> bool:
+        return self.subscription.wait_delivered(timeout=timeout)
+
+
+def overload_events(provider: Any, monkeypatch: pytest.MonkeyPatch) -> tuple[_Overloads, Any]:
+    """`provider`'s `ServerOverloaded` events from now on, and the clock its refusals are
+    throttled by (`_StillClock`: the provider module's alone; its calls' deadlines and the
+    rest of the runtime keep the real one)."""
+    from rr_actors._registrar import provider as module  # noqa: PLC0415
+
+    clock = _StillClock()
+    monkeypatch.setattr(module, "runtime", clock)
+    return _Overloads(provider), clock
+
+
 class TestOverload:
     """Issue 53: a load nobody waits for any more is shed before it runs (rule 17: its
     id given back, nothing left behind), and an unload never waits behind queued loads."""
@@ -1851,7 +1890,7 @@ class TestOverload:
         assert 1 == len(provider.server_queries("leaf")) == len(consumer.client_queries())
 
     def test_a_servers_own_max_pending_overrides_the_registrars(
-        self, make_registrar, gates, shared
+        self, make_registrar, gates, shared, eventually
     ):
         """`register_server(max_pending=1)` on a registrar whose default is 1000: its
         second new load is refused; another server of the registrar keeps the default."""
@@ -1878,9 +1917,19 @@ class TestOverload:
                 refused.value.bound,
             )
             # another server of the registrar queues behind the held worker: default bound
+            # (raise, and all 3 queued before the gate opens: were the bound of 1 applied to
+            # it, the 2nd and 3rd would be refused, not asked again and served later)
             queued = [
-                pool.submit(consumer.call, provider.name, "wide", n, timeout=30) for n in range(3)
+                pool.submit(
+                    consumer.call, provider.name, "wide", n, timeout=30, if_overloaded="raise"
+                )
+                for n in range(3)
             ]
+            assert eventually(
+                lambda: (
+                    3 == pending_work(provider).queued_callbacks or any(q.done() for q in queued)
+                )
+            )
             gate.set()
             assert [0, 1, 2] == [q.result(timeout=10).response for q in queued]
             assert "held" == held.result(timeout=10).response
@@ -1898,42 +1947,56 @@ class TestOverload:
 
     @pytest.mark.thread_only("subscribes to the provider's events in this process")
     def test_a_server_that_refuses_loads_publishes_its_queue_depth_throttled(
-        self, make_registrar, gates, shared
+        self, make_registrar, gates, shared, monkeypatch
     ):
         """`ServerOverloaded`: its first refusal at once (its loads queued or running,
         its bound), then at most one a second, counting the refusals in between."""
         provider = make_registrar("provider", max_workers=1, max_pending=1)
         consumer = make_registrar("consumer")
         gate, started = gates(), shared.list()
-        seen: list[rr.events.ServerOverloaded] = []
-        subscription = provider.subscribe(
-            lambda e: seen.append(e) if isinstance(e, rr.events.ServerOverloaded) else None
-        )
+        seen, clock = overload_events(provider, monkeypatch)
 
         serve_held_leaf(provider, gate, started)
         with ThreadPoolExecutor(1) as pool:
             held = pool.submit(consumer.call, provider.name, "leaf", "held", timeout=30)
             assert wait_for(lambda: ["held"] == list(started), timeout=20)
-            began = time.monotonic()
-            for n in range(3):
+            for n, at in enumerate([0.0, 0.0, 0.5, 0.999, 1.0, 1.5]):
+                clock.now = clock.start + at  # (the refusal is judged before it is answered)
                 with pytest.raises(rr.errors.OverloadedError):
                     consumer.call(provider.name, "leaf", n, timeout=30, if_overloaded="raise")
-            took = time.monotonic() - began
-            assert subscription.wait_delivered(timeout=10)
+            assert seen.wait_delivered(timeout=10)
             gate.set()
             assert "held" == held.result(timeout=10).response
-        subscription.close()
+        seen.subscription.close()
 
-        first = seen[0]
-        assert (provider.name, "leaf", 1, 1, 1) == (
-            first.registrar,
-            first.server,
-            first.pending,
-            first.bound,
-            first.refused,
-        )
-        if took < 1.0:  # (the three refusals within the throttle's second: one event)
-            assert 1 == len(seen), seen
+        # at 0.0 at once; at 1.0 the 4 refused since (0.0, 0.5, 0.999 and it); 1.5 counted
+        assert [(provider.name, "leaf", 1, 1, 1), (provider.name, "leaf", 1, 1, 4)] == [
+            (e.registrar, e.server, e.pending, e.bound, e.refused) for e in seen.events
+        ]
+
+    @pytest.mark.thread_only("subscribes to the provider's events in this process")
+    def test_a_server_registered_again_does_not_inherit_its_predecessors_refusals(
+        self, make_registrar, gates, shared, monkeypatch
+    ):
+        provider = make_registrar("provider", max_workers=1, max_pending=1)
+        consumer = make_registrar("consumer")
+        seen, _ = overload_events(provider, monkeypatch)
+        for _ in range(2):  # the clock stands still: within one throttled second
+            gate, started = gates(), shared.list()
+            serve_held_leaf(provider, gate, started)
+            with ThreadPoolExecutor(1) as pool:
+                held = pool.submit(consumer.call, provider.name, "leaf", "held", timeout=30)
+                assert wait_for(lambda started=started: ["held"] == list(started), timeout=20)
+                for n in range(2):  # the 1st published, the 2nd counted
+                    with pytest.raises(rr.errors.OverloadedError):
+                        consumer.call(provider.name, "leaf", n, timeout=30, if_overloaded="raise")
+                gate.set()
+                assert "held" == held.result(timeout=10).response
+            provider.unregister_server("leaf", timeout=10)
+        assert seen.wait_delivered(timeout=10)
+        seen.subscription.close()
+
+        assert [1, 1] == [e.refused for e in seen.events]  # (not one only: 1, then 2 later)
 
     def test_if_overloaded_is_wait_or_raise(self, make_registrar):
         consumer = make_registrar("consumer")
