@@ -335,9 +335,9 @@ PLANTS = (
         "a resource unloaded before its dependencies are released: its unload runs at "
         "once, its dependencies released beside it (rule 7's order)",
         "_registrar/provider.py",
-        "            self.releases.release_dependencies(resource.id, run_unload)\n",
+        "            self.releases.release_dependencies(resource.id, run_unload, trace=trace)\n",
         "            run_unload()  # PLANTED: release_dependencies(resource.id, run_unload)\n"
-        "            self.releases.release_dependencies(resource.id, lambda: None)\n",
+        "            self.releases.release_dependencies(resource.id, lambda: None, trace=trace)\n",
         "simdoubt",
         "unload-order",
     ),

@@ -464,7 +464,7 @@ def test_a_status_that_overtakes_the_answer_to_its_call_still_reaches_the_callba
     )
 
     [query] = seen.called
-    assert [None] == seen.done
+    assert [rr.StatusDelivery(reached=(query.id,), gave_up=())] == seen.done
     assert [(query.id, rr.Status.WARNING, "hot")] == [
         (u.query_id, u.status, u.message) for u in heard
     ]
@@ -521,11 +521,11 @@ def test_a_status_waiting_for_an_answer_is_settled_when_the_call_times_out_inste
     caller.join(TIMEOUT + 10)  # the call times out while its answer is held
 
     assert isinstance(called[0], rr.CallTimeoutError)
-    assert eventually(lambda: [("result", None)] == watched.answers, timeout=8)
+    assert eventually(lambda: [("result", ())] == watched.answers, timeout=8)  # none given up
     assert [] == heard
     gate.release.set()  # the late answer is given back
     sender.join(20)
-    assert [None] == sent
+    assert [()] == [delivery.gave_up for delivery in sent]
     assert eventually(lambda: [] == consumer.client_queries(), timeout=10)
 
 
@@ -550,7 +550,7 @@ def test_a_status_waiting_for_an_answer_is_answered_when_the_consumer_stops(
     gate.release.set()
     caller.join(10)
     sender.join(20)
-    assert [None] == sent
+    assert [()] == [delivery.gave_up for delivery in sent]
     assert isinstance(called[0], rr.RegistrarStoppedError)
 
 
