@@ -578,21 +578,29 @@ def test_the_providers_side_made_in_its_own_process_meets_the_callers_trace(
     assert server["context"]["span_id"] == load["parent_id"]
 
 
+def _traced_chain(
+    started: list[rr.ResourceRegistrar], uid: str, provider: TracerProvider
+) -> tuple[rr.ResourceRegistrar, rr.ResourceRegistrar, rr.ResourceRegistrar, list[otel.Tracing]]:
+    """app, mid, leaf: mid's `load` (plain: on a worker thread) calls leaf; each traced."""
+    app, mid, leaf = (rr.ResourceRegistrar.start(f"{n}-{uid}") for n in ("app", "mid", "leaf"))
+    started.extend((app, mid, leaf))
+    leaf.register_server("leaf", load=lambda r: r, unload=lambda _q, _r: None)
+
+    def through(request: Any) -> Any:
+        return mid.call(leaf.name, "leaf", request, timeout=10).response
+
+    mid.register_server("mid", load=through, unload=lambda _q, _r: None)
+    tracings = [otel.trace(r, tracer_provider=provider, pair_within=60) for r in (app, mid, leaf)]
+    return app, mid, leaf, tracings
+
+
 def test_a_call_made_inside_a_traced_load_is_a_child_of_that_loads_server_span(
     started: list[rr.ResourceRegistrar],
     uid: str,
     exported: tuple[TracerProvider, InMemorySpanExporter],
 ) -> None:
     provider, exporter = exported
-    app, mid, leaf = (rr.ResourceRegistrar.start(f"{n}-{uid}") for n in ("app", "mid", "leaf"))
-    started.extend((app, mid, leaf))
-    leaf.register_server("leaf", load=lambda r: r, unload=lambda _q, _r: None)
-
-    def through(request: Any) -> Any:  # (a plain load: on a worker thread)
-        return mid.call(leaf.name, "leaf", request, timeout=10).response
-
-    mid.register_server("mid", load=through, unload=lambda _q, _r: None)
-    tracings = [otel.trace(r, tracer_provider=provider, pair_within=60) for r in (app, mid, leaf)]
+    app, mid, leaf, tracings = _traced_chain(started, uid, provider)
     with _caller(provider).start_as_current_span("step"):
         app.call(mid.name, "mid", 1, timeout=10)
     app.client_queries(timeout=10)
@@ -619,15 +627,7 @@ def test_an_unloads_dependency_releases_are_client_spans_under_its_server_span(
     exported: tuple[TracerProvider, InMemorySpanExporter],
 ) -> None:
     provider, exporter = exported
-    app, mid, leaf = (rr.ResourceRegistrar.start(f"{n}-{uid}") for n in ("app", "mid", "leaf"))
-    started.extend((app, mid, leaf))
-    leaf.register_server("leaf", load=lambda r: r, unload=lambda _q, _r: None)
-
-    def through(request: Any) -> Any:
-        return mid.call(leaf.name, "leaf", request, timeout=10).response
-
-    mid.register_server("mid", load=through, unload=lambda _q, _r: None)
-    tracings = [otel.trace(r, tracer_provider=provider, pair_within=60) for r in (app, mid, leaf)]
+    app, mid, leaf, tracings = _traced_chain(started, uid, provider)
     query = app.call(mid.name, "mid", 1, timeout=10)  # (untraced: the unload's trace alone)
     with otel.root_span("mission step unload", tracer_provider=provider) as step:
         app.unload(query.id, timeout=10)
