@@ -15,15 +15,23 @@ unloaded at once (with the same bound). Printed per `--window` seconds (10):
 
 then, `--drain` seconds (10) after the offer ends, the loads still run for nobody.
 
+Callers (`--callers`): `asyncio` (one event loop, an awaited call per request, as
+many in flight as the offer makes), `threads` (10 threads, each a blocking call at a
+time, at most 40 a second each: the 400 together) or `thread` (one such thread). A
+blocking caller waits within its timeout, so threads offer no more than they can wait
+for: the bound slows them instead of queueing for them.
+
 Placements: `--placement thread` (both registrars in this process) or `process` (the
-provider in a manager process of a `Supervisor`); `--kind threads` (a blocking `load`:
+provider in a manager process of a `Supervisor`, with its default heartbeat: the
+provider's restarts, which a busy provider killed as hung would show, and the tree's
+stop time are printed); `--kind threads` (a blocking `load`:
 its calls wait for a worker) or `asyncio` (a coroutine `load`: no worker, but the
 server's own `asyncio.Semaphore(workers)` is its capacity, so calls queue in user code).
 
 Usage:
     python benchmarks/bench_overload.py [--placement thread|process]
-        [--kind threads|asyncio] [--seconds 30] [--factor 10] [--load-s 0.05]
-        [--workers 2] [--timeout 1.0] [--window 10] [--drain 10]
+        [--callers asyncio|threads|thread] [--kind threads|asyncio] [--seconds 30]
+        [--factor 10] [--load-s 0.05] [--workers 2] [--timeout 1.0] [--window 10] [--drain 10]
 """
 
 from __future__ import annotations
@@ -31,9 +39,11 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import itertools
 import os
 import platform
 import tempfile
+import threading
 import time
 import uuid
 from collections.abc import Callable
@@ -141,6 +151,64 @@ async def offer(app: Any, provider: str, args: argparse.Namespace) -> dict[str, 
     }
 
 
+def offer_blocking(
+    app: Any, provider: str, args: argparse.Namespace, threads: int
+) -> dict[str, Any]:
+    """Offer the load from `threads` threads, each a blocking call at a time (at most
+    `rate / threads` a second each); what came of each call."""
+    capacity = args.workers / args.load_s
+    spacing = threads / (capacity * args.factor)  # seconds between one thread's calls
+    gave_up: dict[int, float] = {}
+    acked: list[float] = []
+    unload_timeouts: list[float] = []
+    errors: dict[str, int] = {}
+    numbers = itertools.count()
+    lock = threading.Lock()
+    start = time.time()
+
+    def caller() -> None:
+        due = time.time()
+        while time.time() - start < args.seconds:
+            wait = due - time.time()
+            if wait > 0:
+                time.sleep(wait)  # (pacing the offer, not synchronising)
+            due = max(due + spacing, time.time())
+            with lock:
+                n = next(numbers)
+            try:
+                query = app.call(provider, "slow", n, timeout=args.timeout)
+            except rr.CallTimeoutError:
+                gave_up[n] = time.time()
+                continue
+            except rr.RrError as exc:
+                with lock:
+                    errors[type(exc).__name__] = errors.get(type(exc).__name__, 0) + 1
+                continue
+            acked.append(time.time())
+            try:
+                app.unload(query.id, timeout=args.timeout)
+            except rr.CallTimeoutError:
+                unload_timeouts.append(time.time())
+            except rr.RrError as exc:
+                with lock:
+                    errors[type(exc).__name__] = errors.get(type(exc).__name__, 0) + 1
+
+    workers = [threading.Thread(target=caller, name=f"caller-{i}") for i in range(threads)]
+    for worker in workers:
+        worker.start()
+    for worker in workers:
+        worker.join()
+    return {
+        "start": start,
+        "offered": next(numbers),
+        "gave_up": gave_up,
+        "acked": acked,
+        "unload_timeouts": unload_timeouts,
+        "errors": errors,
+        "capacity": capacity,
+    }
+
+
 def report(result: dict[str, Any], log: str, args: argparse.Namespace, rss: list[str]) -> None:
     start, gave_up = result["start"], result["gave_up"]
     runs = []
@@ -201,7 +269,11 @@ async def run(app: Any, provider: str, pid: int | None, args: argparse.Namespace
     rss: list[str] = []
     stop = asyncio.Event()
     sampler = asyncio.ensure_future(sample_rss(pid, args.window, rss, stop))
-    result = await offer(app, provider, args)
+    if args.callers == "asyncio":
+        result = await offer(app, provider, args)
+    else:
+        threads = 10 if args.callers == "threads" else 1
+        result = await asyncio.to_thread(offer_blocking, app, provider, args, threads)
     await asyncio.sleep(args.drain)  # loads queued for nobody would run on now
     ran_before = lines_in(log)
     await asyncio.sleep(1.0)
@@ -218,6 +290,7 @@ async def run(app: Any, provider: str, pid: int | None, args: argparse.Namespace
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--placement", choices=["thread", "process"], default="thread")
+    parser.add_argument("--callers", choices=["asyncio", "threads", "thread"], default="asyncio")
     parser.add_argument("--kind", choices=["threads", "asyncio"], default="threads")
     parser.add_argument("--seconds", type=float, default=30.0)
     parser.add_argument("--factor", type=float, default=10.0)
@@ -229,7 +302,8 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     print(
         f"python {platform.python_version()}, {platform.machine()}, rr_actors from "
-        f"{Path(rr.__file__).parent}; {args.placement} placement, {args.kind} load, "
+        f"{Path(rr.__file__).parent}; {args.placement} placement, {args.callers} callers, "
+        f"{args.kind} load, "
         f"{args.workers} workers x {args.load_s:g} s, {args.factor:g}x for {args.seconds:g} s, "
         f"timeout {args.timeout:g} s; load average {os.getloadavg()[0]:.1f}"
     )
@@ -248,12 +322,20 @@ def main(argv: list[str] | None = None) -> None:
                 app.stop()
                 provider.stop()
             return
-        spec = rr.ManagerSpec(
-            config.name, setup, isolation="process", config=config, heartbeat=None
-        )
-        with rr.Supervisor([spec]) as sup:
+        spec = rr.ManagerSpec(config.name, setup, isolation="process", config=config)
+        sup = rr.Supervisor([spec]).start()
+        try:
             app = sup.registrar(f"app-{suffix}")
-            asyncio.run(run(app, config.name, sup.child(config.name).pid, args, log))
+            pid = sup.child(config.name).pid
+            asyncio.run(run(app, config.name, pid, args, log))
+            after = sup.child(config.name).pid
+            print(
+                f"provider restarted (killed as hung or crashed): {'no' if after == pid else 'YES'}"
+            )
+        finally:
+            began = time.monotonic()
+            sup.stop()
+            print(f"the tree stopped in {time.monotonic() - began:.2f} s")
 
 
 if __name__ == "__main__":
