@@ -101,11 +101,33 @@ def server_setup(log: str, load_s: float, workers: int, kind: str) -> Callable[[
     return setup
 
 
+class GaveUp:
+    """The requests whose caller gave up, and when, kept in file `path` (one line each),
+    not in memory: a 10-minute offer gives up on some 200,000, which a dict here would
+    count as the consumer's RSS growth."""
+
+    def __init__(self, path: str) -> None:
+        self.path, self.count = path, 0
+        self._out = open(path, "a")  # noqa: SIM115 (closed by `read`)
+        self._lock = threading.Lock()
+
+    def add(self, request: int) -> None:
+        with self._lock:
+            self._out.write(f"{request} {time.time()}\n")
+            self.count += 1
+
+    def read(self) -> dict[int, float]:
+        """Request -> when its caller gave up (the file closed)."""
+        self._out.close()
+        with open(self.path) as lines:
+            return {int(n): float(at) for n, at in (line.split() for line in lines)}
+
+
 async def offer(app: Any, provider: str, args: argparse.Namespace) -> dict[str, Any]:
     """Offer the load; what came of each call."""
     capacity = args.workers / args.load_s
     rate = capacity * args.factor
-    gave_up: dict[int, float] = {}  # request -> when its caller gave up
+    gave_up = GaveUp(args.gave_up_log)
     acked: list[float] = []
     unload_timeouts: list[float] = []
     errors: dict[str, int] = {}
@@ -114,7 +136,7 @@ async def offer(app: Any, provider: str, args: argparse.Namespace) -> dict[str, 
         try:
             query = await app.acall(provider, "slow", n, timeout=args.timeout)
         except rr.CallTimeoutError:
-            gave_up[n] = time.time()
+            gave_up.add(n)
             return
         except rr.RrError as exc:
             errors[type(exc).__name__] = errors.get(type(exc).__name__, 0) + 1
@@ -158,7 +180,7 @@ def offer_blocking(
     `rate / threads` a second each); what came of each call."""
     capacity = args.workers / args.load_s
     spacing = threads / (capacity * args.factor)  # seconds between one thread's calls
-    gave_up: dict[int, float] = {}
+    gave_up = GaveUp(args.gave_up_log)
     acked: list[float] = []
     unload_timeouts: list[float] = []
     errors: dict[str, int] = {}
@@ -178,7 +200,7 @@ def offer_blocking(
             try:
                 query = app.call(provider, "slow", n, timeout=args.timeout)
             except rr.CallTimeoutError:
-                gave_up[n] = time.time()
+                gave_up.add(n)
                 continue
             except rr.RrError as exc:
                 with lock:
@@ -210,13 +232,14 @@ def offer_blocking(
 
 
 def report(result: dict[str, Any], log: str, args: argparse.Namespace, rss: list[str]) -> None:
-    start, gave_up = result["start"], result["gave_up"]
+    start, gave_up = result["start"], result["gave_up"].read()
     runs = []
     with contextlib.suppress(FileNotFoundError), open(log) as lines:
         for line in lines:
             at, request = line.split()
             runs.append((float(at), int(request)))
     wasted = [at for at, n in runs if n in gave_up and at > gave_up[n]]
+    late = max((at - gave_up[n] for at, n in runs if n in gave_up and at > gave_up[n]), default=0)
     print(
         f"\n| window (s) | offered/s | acked/s (capacity {result['capacity']:.0f}) "
         "| loads run | wasted | unl. t/o | RSS consumer / provider (MiB) |"
@@ -242,7 +265,8 @@ def report(result: dict[str, Any], log: str, args: argparse.Namespace, rss: list
         )
     print(
         f"\noffered {result['offered']}, acknowledged {len(result['acked'])}, gave up "
-        f"{len(gave_up)}, loads run {len(runs)} ({len(wasted)} after their caller gave up), "
+        f"{len(gave_up)}, loads run {len(runs)} ({len(wasted)} after their caller gave up, "
+        f"the latest {late * 1000:.1f} ms after), "
         f"unloads timed out {len(result['unload_timeouts'])}, other errors {result['errors']}"
     )
 
@@ -310,6 +334,7 @@ def main(argv: list[str] | None = None) -> None:
     suffix = uuid.uuid4().hex[:6]
     with tempfile.TemporaryDirectory() as tmp:
         log = str(Path(tmp) / "loads.log")
+        args.gave_up_log = str(Path(tmp) / "gave-up.log")
         setup = server_setup(log, args.load_s, args.workers, args.kind)
         config = rr.RegistrarConfig(name=f"overload-{suffix}", max_workers=args.workers)
         if args.placement == "thread":
