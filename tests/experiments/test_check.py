@@ -2425,7 +2425,7 @@ def test_restore_loses_id_takes_no_row_of_a_consumer_killed_before_the_restore()
     mutate, rule = MUTATIONS["restore-loses-id"]
     mutated = mutate(history)
     assert mutated is not None
-    (restore,) = (e for e in mutated if type(e) is events.CatalogRestored)
+    (restore,) = (e for e in mutated if type(e) is events.CatalogRestored and e.pid == P + 1)
     assert ((Q1, RID, "cm"),) == restore.consumers
     verdict = check.check(numbered(renumbered(mutated)))
     assert rule in {f.rule for f in verdict.findings if f.kind == "violation"}
