@@ -971,6 +971,7 @@ class ServerActor(Actor):
         # what its loads take, seconds: an average of the recent ones (`ran`), from 0
         # (optimistic: nothing is shed before a load has run)
         self.load_s = 0.0
+        self.learned = 0.0  # when `load_s` last moved, or a probe left (`runtime.monotonic()`)
 
     def on_receive(self, message: Any) -> None:
         if isinstance(message, RunLoad):
@@ -1037,13 +1038,21 @@ class ServerActor(Actor):
         times `_SHED_HEADROOM`.
 
         A load that would finish after its last caller gave up is work for nobody, which
-        under overload holds a worker that a load still in time needs (issue 53).
+        under overload holds a worker that a load still in time needs (issue 53). But the
+        average learns only from loads that run: once one slow load has pushed it past
+        what callers wait, every load would be shed for good. So a server whose average
+        has not moved for as long as its loads take runs the next one still in time
+        anyway (a probe, one per that time), and its average follows what loads take now.
         """
         deadline = message.place.deadline
         if deadline is None:
             return None
-        left, expected = deadline - runtime.monotonic(), self.load_s * _SHED_HEADROOM
+        now = runtime.monotonic()
+        left, expected = deadline - now, self.load_s * _SHED_HEADROOM
         if left > expected:
+            return None
+        if left > 0.0 and now - self.learned >= self.load_s:
+            self.learned = now  # (workers race here: a probe more or less, no harm)
             return None
         return DeadlineExceededError(
             f"the load of {describe(message.request)} at '{self.registrar}/{self.name}' was "
@@ -1056,6 +1065,7 @@ class ServerActor(Actor):
         """A load ran for `took` seconds: the average of the recent ones moves toward it
         (an exponentially weighted average; two workers racing lose one update, no more)."""
         self.load_s += _LOAD_S_WEIGHT * (took - self.load_s)
+        self.learned = runtime.monotonic()
 
     async def _aload(self, message: RunLoad) -> None:
         """A coroutine `load`, on the process's loop (its task's own context), under its

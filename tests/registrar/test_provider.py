@@ -21,6 +21,7 @@ import subprocess
 import sys
 import textwrap
 import threading
+import time
 import traceback
 import uuid
 from collections.abc import Callable
@@ -2796,3 +2797,53 @@ def test_fetch_queries_takes_no_clock_stamp_without_a_subscriber(
     finally:
         consumer.stop()
         provider.stop()
+
+
+def test_a_server_whose_one_slow_load_sheds_the_rest_runs_one_as_a_probe_and_serves_again() -> None:
+    """One load of 2 s among instant ones (called one after another on the other worker
+    meanwhile) puts the server's recent load time near 0.4 s (an average that moves a
+    fifth of the way per load), 1.5 times which leaves no caller of a 0.5 s timeout
+    enough time: the next loads are shed as they would start. The average learns only
+    from loads that run, so without a probe the server sheds every load for good
+    (issue 53's 10-minute overload at load 10: no load ran after minute 4). After
+    shedding for as long as its loads take, it runs the next load still in time
+    anyway, and serves again."""
+    slow_done = threading.Event()
+
+    def load(request: Any) -> Any:
+        if request == "slow":
+            time.sleep(2.0)  # (its duration: the outlier, not a wait for anything)
+            slow_done.set()
+        return request
+
+    suffix = uuid.uuid4().hex[:8]
+    config = rr.RegistrarConfig(name=f"shed-{suffix}", max_workers=2)
+    provider = rr.ResourceRegistrar.start(config)
+    app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"app-{suffix}"))
+    outcomes: list[str] = []  # (of the calls made after the slow load ended)
+    try:
+        provider.register_server("s", load=load, unload=lambda _request, _response: None)
+        with pytest.raises(rr.CallTimeoutError):
+            app.call(provider.name, "s", "slow", timeout=0.3)  # (gave up: it runs on)
+        ends = time.monotonic() + 30.0
+        n = 0
+        while time.monotonic() < ends and not ("shed" in outcomes and outcomes[-1] == "served"):
+            n += 1
+            after = slow_done.is_set()
+            try:
+                query = app.call(provider.name, "s", n, timeout=0.5)
+            except rr.DeadlineExceededError:
+                outcomes.append("shed")
+                continue
+            except rr.CallTimeoutError:
+                outcomes.append("timed out")
+                continue
+            app.unload(query.id, timeout=5.0)
+            if after:
+                outcomes.append("served")
+    finally:
+        app.stop()
+        provider.stop()
+    assert slow_done.is_set()
+    assert "shed" in outcomes, outcomes[:5]  # (the slow load's average shed the next ones)
+    assert "served" in outcomes[outcomes.index("shed") :], outcomes[-5:]  # (shed for good)
