@@ -10,6 +10,9 @@
 //   host/<member>/catalog/<name> | host/<member>/ended; each event has its "member"; a
 //   fault request names its "host" (observe/_hosts.py)
 //   state ──(render, once per burst of messages)──► tree, catalogs, graph (cytoscape), timeline, log
+//   a replay (hello.mode "replay", rr_actors/teach/replay.py): a "replay" section (the step,
+//   the story around it, what is in flight); its buttons, slider and story lines POST
+//   /api/control {step}, and the step's sections come back on the stream as any change does
 //
 // Every request carries the page's token (the URL's ?token=; the server also sets a cookie).
 // Everything from the server is shown through textContent (never parsed as HTML). The page
@@ -189,6 +192,7 @@
     const mode = state.hello ? state.hello.mode : document.body.dataset.mode;
     let text = up ? "live" : "disconnected";
     if (mode === "backups") text = "offline";
+    else if (mode === "replay" && up) text = "replay";
     else if (state.sections.ended) text = "ended";
     badge.textContent = text;
     badge.className = `badge ${text === "live" ? "up" : text === "disconnected" ? "down" : "still"}`;
@@ -218,6 +222,7 @@
     if (dirty.has("tree") || dirty.has("files")) renderTree(); // at once: restarts show fast
     if (dirty.has("catalogs")) renderCatalogs();
     if (dirty.has("graph")) renderGraph();
+    if (dirty.has("replay")) renderReplay();
     if (dirty.has("events") && listsLater === null) {
       const wait = Math.max(0, listsAt + LISTS_EVERY - Date.now());
       listsLater = setTimeout(() => {
@@ -235,6 +240,7 @@
     $("mode").textContent = hello.faults ? "teaching mode" : "";
     $("mode").hidden = !hello.faults;
     document.body.dataset.mode = hello.mode;
+    $("replay-panel").hidden = hello.mode !== "replay";
     setConnection(true);
   }
 
@@ -947,6 +953,85 @@
     $("log").replaceChildren(...items);
     $("log-note").textContent = `the last ${Math.min(state.log.length, MAX_LOG)}, newest first`;
   }
+
+  // -- a replay: one step at a time, asked of the server --------------------------------
+  const PLAY_EVERY = 400; // ms between two steps while playing
+  const replay = { asked: null, playing: null };
+
+  async function goTo(step) {
+    const section = state.sections.replay;
+    if (!section) return;
+    const target = Math.max(1, Math.min(section.steps, step));
+    replay.asked = target;
+    try {
+      const response = await fetch("/api/control", {
+        method: "POST",
+        headers: { "Content-Type": "application/json", "X-RR-Token": token },
+        body: JSON.stringify({ step: target }),
+      });
+      const answer = await response.json();
+      if (!answer.ok) notice(answer.message, true);
+    } catch (error) {
+      notice(`the request failed: ${error}`, true);
+    }
+  }
+  // (the step last asked for: clicks faster than the stream count from it)
+  const shownStep = () => (replay.asked !== null ? replay.asked : state.sections.replay ? state.sections.replay.step : 1);
+
+  function pause() {
+    clearInterval(replay.playing);
+    replay.playing = null;
+    $("replay-play").textContent = "\u25B6 play";
+    $("replay-panel").dataset.playing = "";
+  }
+  function play() {
+    if (replay.playing !== null) return pause();
+    $("replay-play").textContent = "\u23F8 pause";
+    $("replay-panel").dataset.playing = "1";
+    replay.playing = setInterval(() => {
+      const section = state.sections.replay;
+      if (!section || section.step >= section.steps) return pause();
+      if (replay.asked !== null && replay.asked > section.step) return; // (the last ask not shown yet)
+      goTo(section.step + 1);
+    }, PLAY_EVERY);
+  }
+
+  function renderReplay() {
+    const section = state.sections.replay;
+    if (!section) return;
+    const panel = $("replay-panel");
+    panel.dataset.step = section.step;
+    const scrub = $("replay-scrub");
+    scrub.max = section.steps;
+    if (document.activeElement !== scrub) scrub.value = section.step;
+    $("replay-where").textContent = `step ${section.step} of ${section.steps} · ${section.at_s.toFixed(3)} s · seed ${section.seed} · ${section.verdict}`;
+    $("replay-story").replaceChildren(...section.story.map((row) => {
+      const where = row.step === section.step ? "current" : row.step > section.step ? "future" : "past";
+      const stamp = row.who === "violation" ? "^" : `[${row.at_s.toFixed(3)} s] #${row.line}`;
+      return el("li", {
+        class: `${where}${row.marked ? " marked" : ""}`, "data-step": row.step, "data-who": row.who,
+        onclick: () => { pause(); goTo(row.step); },
+      }, `${row.step}. ${stamp} ${row.who === "violation" ? "" : row.who}  ${row.text}`);
+    }));
+    const flight = section.in_flight.map((row) =>
+      el("li", { "data-kind": row.kind, "data-id": row.id },
+        el("span", { class: "badge", text: row.kind }), " ", `${row.from} → ${row.to} `,
+        el("code", { text: row.id.slice(0, 8) }), ` (${row.then})`));
+    $("replay-flight").replaceChildren(...(flight.length ? flight : [el("li", { class: "muted", text: "nothing in flight" })]));
+  }
+
+  $("replay-first").addEventListener("click", () => { pause(); goTo(1); });
+  $("replay-back").addEventListener("click", () => { pause(); goTo(shownStep() - 1); });
+  $("replay-step").addEventListener("click", () => { pause(); goTo(shownStep() + 1); });
+  $("replay-play").addEventListener("click", play);
+  $("replay-scrub").addEventListener("input", (e) => { pause(); goTo(Number(e.target.value)); });
+  document.addEventListener("keydown", (e) => {
+    if (!state.hello || state.hello.mode !== "replay" || e.target.tagName === "INPUT") return;
+    if (e.key === "ArrowRight") { pause(); goTo(shownStep() + 1); }
+    else if (e.key === "ArrowLeft") { pause(); goTo(shownStep() - 1); }
+    else if (e.key === "Home") { pause(); goTo(1); }
+    else if (e.key === " ") { e.preventDefault(); play(); }
+  });
 
   // -- start ---------------------------------------------------------------------------
   setInterval(() => {
