@@ -963,6 +963,7 @@
     if (!section) return;
     const target = Math.max(1, Math.min(section.steps, step));
     replay.asked = target;
+    $("replay-panel").dataset.asked = target;
     try {
       const response = await fetch("/api/control", {
         method: "POST",
