@@ -122,7 +122,8 @@ def _replay(args: argparse.Namespace, out: TextIO) -> int:
     observer, shown = replay.open_replay(plan, run, port=args.port)
     with observer:
         out.write(
-            f"replay of {plan.name}, seed {run.seed} ({run.verdict}, {len(shown)} steps): "
+            f"replay of {plan.name}, seed {run.seed} ({len(shown)} steps; the checker: "
+            f"{run.verdict}): "
             f"{observer.url} (Ctrl-C stops)\n"
         )
         out.flush()

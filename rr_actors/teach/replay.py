@@ -399,7 +399,8 @@ def open_replay(
     replay = Replay(plan, run)
     hello = {
         "mode": "replay",
-        "title": f"replay of {plan.name}, seed {run.seed} ({run.verdict}, {len(replay)} steps)",
+        "title": f"replay of {plan.name}, seed {run.seed} ({len(replay)} steps; the "
+        f"checker: {run.verdict})",
         "pid": 0,
         "opened": time.time(),
     }

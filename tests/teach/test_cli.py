@@ -200,7 +200,7 @@ def test_replay_serves_the_seed_at_its_first_step_until_ctrl_c(
         line = child.stdout.readline()  # (the run, then the page: its URL)
         try:
             assert line.startswith("replay of camera, seed 2 ("), line
-            url = line.split(": ", 1)[1].split()[0]
+            url = next(word for word in line.split() if word.startswith("http://"))
             status, _, body = request(url, "/api/state")
             state = json.loads(body)
             assert (200, "replay") == (status, state["hello"]["mode"])

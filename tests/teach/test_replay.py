@@ -192,6 +192,8 @@ def test_the_page_plays_pauses_steps_and_scrubs(
             page.wait_for_selector(
                 f'#catalogs [data-registrar="camera"] [data-resource="{row["id"]}"]'
             )
+        where = DOCS_IMG if os.environ.get("RR_DOCS_SCREENSHOTS") == "1" else tmp_path
+        page.screenshot(path=str(where / "teach-replay.png"), full_page=True)
         # play: it goes on by itself; pause: it stops, and a step goes one on from there
         page.click("#replay-play")
         page.wait_for_function(
@@ -206,8 +208,6 @@ def test_the_page_plays_pauses_steps_and_scrubs(
         page.click("#replay-step")
         shows(page, asked + 1)
         assert asked + 1 == shown.shown
-        where = DOCS_IMG if os.environ.get("RR_DOCS_SCREENSHOTS") == "1" else tmp_path
-        page.screenshot(path=str(where / "teach-replay.png"), full_page=True)
         status, _, body = request(
             observer.url,
             "/api/control",

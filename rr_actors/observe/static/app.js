@@ -1005,7 +1005,7 @@
     const scrub = $("replay-scrub");
     scrub.max = section.steps;
     if (document.activeElement !== scrub) scrub.value = section.step;
-    $("replay-where").textContent = `step ${section.step} of ${section.steps} · ${section.at_s.toFixed(3)} s · seed ${section.seed} · ${section.verdict}`;
+    $("replay-where").textContent = `step ${section.step} of ${section.steps} · ${section.at_s.toFixed(3)} s · seed ${section.seed} · checker: ${section.verdict}`;
     $("replay-story").replaceChildren(...section.story.map((row) => {
       const where = row.step === section.step ? "current" : row.step > section.step ? "future" : "past";
       const stamp = row.who === "violation" ? "^" : `[${row.at_s.toFixed(3)} s] #${row.line}`;
