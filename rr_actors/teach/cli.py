@@ -119,7 +119,8 @@ def _replay(args: argparse.Namespace, out: TextIO) -> int:
     if code is not None:
         return code
     plan, run = grade.seed_run(folder, args.seed, args.plan)
-    observer, shown = replay.open_replay(plan, run, port=args.port)
+    rerun = grade.rerun(folder, args.seed)
+    observer, shown = replay.open_replay(plan, run, port=args.port, rerun=rerun)
     with observer:
         out.write(
             f"replay of {plan.name}, seed {run.seed} ({len(shown)} steps; the checker: "

@@ -36,7 +36,7 @@ from rr_actors.teach import replaced_step
 from rr_actors.teach.kit import Exercise, folder_exercise
 from rr_actors.teach.rules import RULES
 
-__all__ = ["STORY", "Failure", "Report", "check_folder", "replay_story", "seed_run"]
+__all__ = ["STORY", "Failure", "Report", "check_folder", "replay_story", "rerun", "seed_run"]
 
 STORY = 20
 """The most steps of the story a failing check prints."""
@@ -207,16 +207,30 @@ def seed_run(
         ConfigError: as `check_folder`; a setup that raised (its message); neither a
             folder nor a plan.
     """
+    if folder is None and plan_file is None:
+        raise ConfigError("a seed of what? give an exercise's folder or a plan (--plan)")
     if folder is None:
-        if plan_file is None:
-            raise ConfigError("a seed of what? give an exercise's folder or a plan (--plan)")
+        assert plan_file is not None
         plan = _plan(plan_file)
-        with _quiet():
-            return plan, _seed(plan, seed)
-    chosen, _state = folder_exercise(folder)
-    plan = _plan(folder / "plan.toml" if plan_file is None else plan_file)
-    with _quiet(), _student_step(chosen, folder):
-        return plan, _seed(plan, seed)
+    else:
+        folder_exercise(folder)
+        plan = _plan(folder / "plan.toml" if plan_file is None else plan_file)
+    return plan, rerun(folder, seed)(plan)
+
+
+def rerun(folder: Path | None, seed: int) -> Callable[[Plan], simulate.SimulatedRun]:
+    """What runs seed `seed` of a plan as `folder`'s check does (a protocol exercise's
+    `step.py` in place; `None`: no exercise): a replay's runs with a fault added."""
+
+    def run(plan: Plan) -> simulate.SimulatedRun:
+        if folder is None:
+            with _quiet():
+                return _seed(plan, seed)
+        chosen, _state = folder_exercise(folder)
+        with _quiet(), _student_step(chosen, folder):
+            return _seed(plan, seed)
+
+    return run
 
 
 def _seed(plan: Plan, seed: int) -> simulate.SimulatedRun:

@@ -26,21 +26,25 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
+from collections.abc import Callable
 from typing import Any
 
 from rr_actors import events
 from rr_actors.errors import ConfigError
 from rr_actors.experiments import check, simulate, story
-from rr_actors.experiments.plan import Plan, SupervisorPlan
+from rr_actors.experiments.plan import FaultKind, FaultPlan, Plan, SupervisorPlan, Trigger
 from rr_actors.observe._hub import Hub
 from rr_actors.observe._observer import Observer, require_extra
 from rr_actors.observe._sources import event_dict
 from rr_actors.observe._view import dependency_graph, summarise_catalog
 
-__all__ = ["CHECKPOINT", "WINDOW", "Replay", "open_replay"]
+__all__ = ["BRANCHES", "CHECKPOINT", "WINDOW", "Replay", "open_replay"]
 
 CHECKPOINT = 32
 """Steps between two kept states: a step is at most this many folds away from one."""
+
+BRANCHES: dict[str, FaultKind] = {"kill": "kill_manager", "cut": "cut_connections"}
+"""The faults a live replay's page adds (`Replay.branch`): the plan's fault kinds."""
 
 WINDOW = (12, 6)
 """Story lines the page shows before the step and after it."""
@@ -62,11 +66,21 @@ class Replay:
         hub: where `show` puts the sections (`None`: a hub of its own).
     """
 
-    def __init__(self, plan: Plan, run: simulate.SimulatedRun, hub: Hub | None = None) -> None:
-        self.plan = plan
-        self.run = run
+    def __init__(
+        self,
+        plan: Plan,
+        run: simulate.SimulatedRun,
+        hub: Hub | None = None,
+        rerun: Callable[[Plan], simulate.SimulatedRun] | None = None,
+    ) -> None:
         self.hub = hub if hub is not None else Hub(convert=event_dict)
         self.shown = 0
+        self.rerun = rerun
+        self._load(plan, run)
+
+    def _load(self, plan: Plan, run: simulate.SimulatedRun) -> None:
+        self.plan = plan
+        self.run = run
         texts = run.history.splitlines()
         numbered = dict(check.read_runs(texts).get(simulate.RUN, []))
         lines = story.story(run.history)
@@ -141,11 +155,65 @@ class Replay:
         return n
 
     def control(self, data: dict[str, Any]) -> dict[str, Any]:
-        """The page's request `{"step": n}`: show step `n`; the answer (JSON)."""
+        """The page's request: `{"step": n}` shows step `n`; `{"fault": "kill" | "cut",
+        "target": manager}` runs the seed again with that fault right after the step
+        shown (`branch`). The answer (JSON)."""
+        if "fault" in data:
+            kind, target = data.get("fault"), data.get("target")
+            if kind not in BRANCHES or not isinstance(target, str):
+                raise ConfigError(f"a fault is kill or cut of a manager, got {kind!r} {target!r}")
+            message = self.branch(kind, target)
+            return {"ok": True, "message": message, "step": self.shown, "steps": len(self)}
         step = data.get("step")
         if isinstance(step, bool) or not isinstance(step, int):
             raise ConfigError(f"a step is a whole number, got {step!r}")
         return {"ok": True, "step": self.show(step), "steps": len(self.steps)}
+
+    def branch(self, kind: str, target: str) -> str:
+        """Run the seed again with one more fault: `kind` (`BRANCHES`) of manager
+        `target`, right after the event of the step shown (the plan's `after` trigger:
+        that event's kind, its count so far); show the same step of the new run. What
+        happened, in words (where the fault landed; whether the steps before it stayed
+        the same).
+
+        Raises:
+            ConfigError: a replay without `rerun` (a recorded run); `target` is not a
+                process manager of the plan; nothing happened yet to trigger it on.
+        """
+        if self.rerun is None:
+            raise ConfigError("this replay shows a recorded run: it cannot run it again")
+        manager = self._managers.get(target)
+        if manager is None or manager.isolation != "process":
+            raise ConfigError(f"{target!r} is not a process manager of plan {self.plan.name}")
+        n = self.shown
+        at = next((m for m in range(n, 0, -1) if self.steps[m - 1].event is not None), 0)
+        if at == 0:
+            raise ConfigError("no event yet to put the fault after: step on first")
+        event = self.steps[at - 1].event
+        nth = sum(1 for s in self.steps[:at] if type(s.event) is type(event))
+        fault = FaultPlan(
+            kind=BRANCHES[kind],
+            targets=(target,),
+            after=Trigger(event=type(event).__name__, nth=nth),
+        )
+        before = [s.line.plain() for s in self.steps[:n]]
+        plan = dataclasses.replace(self.plan, faults=(*self.plan.faults, fault))
+        self._load(plan, self.rerun(plan))
+        landed = next(
+            (i for i, s in enumerate(self.steps, 1)
+             if i >= at and s.line.who == "fault" and s.line.plain() not in before
+             and s.line.text.startswith(f"{BRANCHES[kind]} {target}")),
+            None,
+        )  # fmt: skip
+        kept = min(n, landed - 1 if landed is not None else n)
+        same = [s.line.plain() for s in self.steps[:kept]] == before[:kept]
+        self.show(landed if landed is not None else n)  # (the fault's own step: next, its effect)
+        where = f"at step {landed}" if landed is not None else "nowhere (it did not fire)"
+        told = "the steps before it are the same" if same else "the steps before it changed"
+        return (
+            f"{BRANCHES[kind]} {target} after step {at}: run again ({len(self)} steps), "
+            f"the fault {where}; {told}"
+        )
 
     # -- the observer's source protocol ---------------------------------------------------
 
@@ -386,8 +454,11 @@ def open_replay(
     *,
     host: str = "127.0.0.1",
     port: int = 0,
+    rerun: Callable[[Plan], simulate.SimulatedRun] | None = None,
 ) -> tuple[Observer, Replay]:
-    """Open the observer's page on a replay of `run` (of `plan`), at its first step.
+    """Open the observer's page on a replay of `run` (of `plan`), at its first step;
+    with `rerun` (a plan's run of the same seed), the page's kill and cut buttons run it
+    again with that fault (`Replay.branch`).
 
     Returns:
         The open observer (its `url`; `close()` it) and the replay it shows.
@@ -396,13 +467,14 @@ def open_replay(
         ConfigError: the `observe` extra is missing; the port is in use.
     """
     require_extra()
-    replay = Replay(plan, run)
+    replay = Replay(plan, run, rerun=rerun)
     hello = {
         "mode": "replay",
         "title": f"replay of {plan.name}, seed {run.seed} ({len(replay)} steps; the "
         f"checker: {run.verdict})",
         "pid": 0,
         "opened": time.time(),
+        "branches": rerun is not None,
     }
     observer = Observer(
         replay,

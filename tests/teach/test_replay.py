@@ -220,3 +220,52 @@ def test_the_page_plays_pauses_steps_and_scrubs(
         observer.close()
         page.close()
     assert [] == errors
+
+
+def test_a_live_replay_kills_and_cuts_after_the_step_shown(browser: Any, tmp_path: Path) -> None:
+    _chosen, folder = kit.start("camera", tmp_path / "cam")
+    plan, run = grade.seed_run(folder, 1)
+    page = browser.new_page()
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    observer, shown = replay.open_replay(plan, run, rerun=grade.rerun(folder, 1))
+    try:
+        page.goto(observer.url)
+        shows(page, 1)
+        loaded = step_of(shown, events.ResourceLoaded, registrar="actions")
+        before = [s.line.plain() for s in shown.steps[:loaded]]
+        page.locator("#replay-scrub").evaluate(
+            "(e, n) => { e.value = n; e.dispatchEvent(new Event('input')); }", loaded
+        )
+        shows(page, loaded)
+        page.click('.node[data-child="camera"] [data-fault="kill"]')
+        page.click("#confirm-ok")
+        page.wait_for_selector("#notice:not([hidden])", timeout=30_000)
+        assert "kill_manager camera after step" in page.locator("#notice").inner_text()
+        killed = shown.shown  # the fault's own step, in the run made again
+        shows(page, killed)
+        assert "kill_manager camera: SIGKILL" in story_line(page)
+        assert before == [s.line.plain() for s in shown.steps[:loaded]]  # the same before it
+        assert ["kill_manager"] == [f.kind for f in shown.plan.faults][-1:]
+        exited = step_of(shown, events.ChildExited, killed, child="camera")
+        page.locator("#replay-scrub").evaluate(
+            "(e, n) => { e.value = n; e.dispatchEvent(new Event('input')); }", exited
+        )
+        shows(page, exited)
+        assert "restarting" == page.locator('.node[data-child="camera"]').get_attribute(
+            "data-state"
+        )
+        # a cut, then: the same way, its connections closed in the run made again
+        page.evaluate("() => { document.querySelector('#notice').hidden = true; }")
+        page.click('.node[data-child="actions"] [data-fault="cut"]')
+        page.click("#confirm-ok")
+        page.wait_for_selector("#notice:not([hidden])", timeout=30_000)
+        assert "cut_connections actions after step" in page.locator("#notice").inner_text()
+        shows(page, shown.shown)
+        assert "cut_connections actions: cut pid" in story_line(page)
+        assert ["kill_manager", "cut_connections"] == [f.kind for f in shown.plan.faults][-2:]
+    finally:
+        observer.close()
+        page.close()
+    assert [] == errors

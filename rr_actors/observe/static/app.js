@@ -146,6 +146,7 @@
   // Whether the page offers buttons for a host's managers: this host's teaching mode, or,
   // across hosts, that host's own allow_faults (it is asked, and decides, every time).
   function canFault(member) {
+    if (state.hello.mode === "replay") return Boolean(state.hello.branches);
     if (!system()) return Boolean(state.hello.faults) && !state.sections.ended;
     const host = hostOf(member);
     return Boolean(host && host.allow_faults && host.state === "live" && !state.sections[`host/${member}/ended`]);
@@ -288,6 +289,7 @@
   }
 
   async function fault(kind, body) {
+    if (state.hello.mode === "replay") return branch(kind, body.child);
     try {
       const response = await fetch(`/api/faults/${kind}`, {
         method: "POST",
@@ -437,6 +439,15 @@
           confirmThen(question(pid) + on, detail, label, () => fault(kind, member ? { child: name, pid, host: member } : { child: name, pid }));
         },
       });
+    if (state.hello.mode === "replay")
+      return el(
+        "span",
+        { class: "faults" },
+        button("kill", "run the seed again, its process killed right after this step", "kill", () => `Kill ${name} after this step?`,
+          "The seed runs again with that kill (kill_manager after this step's event); the steps before it stay as they were."),
+        button("cut", "run the seed again, its connections cut right after this step", "cut", () => `Cut ${name}'s links after this step?`,
+          "The seed runs again with that cut (cut_connections after this step's event): every link to it closes."),
+      );
     return el(
       "span",
       { class: "faults" },
@@ -791,6 +802,10 @@
         ],
       });
     }
+    if (!cy.scratch("taps")) {
+      cy.scratch("taps", true);
+      cy.on("tap", "edge", (e) => cutOnTap(e.target));
+    }
     const positions = layout(graph);
     cy.batch(() => {
       cy.elements().remove();
@@ -977,6 +992,34 @@
     }
   }
   // (the step last asked for: clicks faster than the stream count from it)
+  // A live replay (hello.branches): a kill or a cut runs the seed again with that fault
+  async function branch(kind, target) {
+    pause();
+    try {
+      const response = await fetch("/api/control", {
+        method: "POST",
+        headers: { "Content-Type": "application/json", "X-RR-Token": token },
+        body: JSON.stringify({ fault: kind, target }),
+      });
+      const answer = await response.json();
+      replay.asked = null;
+      notice(answer.message, !answer.ok);
+    } catch (error) {
+      notice(`the request failed: ${error}`, true);
+    }
+  }
+  function managerOf(nodeId) {
+    const name = nodeId.startsWith("res:") ? nodeId.split(":")[1] : nodeId.replace(/^reg:/, "");
+    const find = (node) => (node.name === name && node.kind === "manager" ? node : (node.children || []).map(find).find(Boolean));
+    return state.sections.tree ? find(state.sections.tree) : null;
+  }
+  function cutOnTap(edge) {
+    const manager = managerOf(edge.data("target"));
+    if (!canFault(null) || !manager || manager.isolation !== "process") return;
+    confirmThen(`Cut ${manager.name}'s links after this step?`,
+      "The seed runs again with that cut (cut_connections after this step's event): every link to it closes.",
+      "cut", () => branch("cut", manager.name));
+  }
   const shownStep = () => (replay.asked !== null ? replay.asked : state.sections.replay ? state.sections.replay.step : 1);
 
   function pause() {
