@@ -10,6 +10,8 @@
            observer's own page), "replay" (the step, the story around it, what is in flight)
  the page (the observer's, mode "replay"): first, back, play/pause, step, a slider, a
    click on a story line ── POST /api/control {"step": n} ─► show(n) ─► the stream
+ live (`rerun`): a manager's kill or cut ── {"fault", "target"} ─► branch: the plan and
+   one more fault `after` the shown step's event, run again (`rerun`), shown at the fault
 ```
 
 What each step shows is what the events say, never the registrars read: a child's state
@@ -470,8 +472,7 @@ def open_replay(
     replay = Replay(plan, run, rerun=rerun)
     hello = {
         "mode": "replay",
-        "title": f"replay of {plan.name}, seed {run.seed} ({len(replay)} steps; the "
-        f"checker: {run.verdict})",
+        "title": f"replay of {plan.name}, seed {run.seed}",
         "pid": 0,
         "opened": time.time(),
         "branches": rerun is not None,

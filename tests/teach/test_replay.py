@@ -1,7 +1,8 @@
 """A simulated seed replayed step by step (`rr_actors.teach.replay`): what each step shows
 is what the run's events say (the tree, the catalogs, what is in flight, the story), and
 the observer's page in a real chromium (Playwright) plays, pauses, steps, steps back and
-scrubs to an event. The screenshot goes to `docs/img/` with `RR_DOCS_SCREENSHOTS=1`."""
+scrubs to an event; live, a manager's kill and cut run the seed again with that fault.
+The screenshot goes to `docs/img/` with `RR_DOCS_SCREENSHOTS=1`."""
 
 from __future__ import annotations
 
@@ -192,8 +193,6 @@ def test_the_page_plays_pauses_steps_and_scrubs(
             page.wait_for_selector(
                 f'#catalogs [data-registrar="camera"] [data-resource="{row["id"]}"]'
             )
-        where = DOCS_IMG if os.environ.get("RR_DOCS_SCREENSHOTS") == "1" else tmp_path
-        page.screenshot(path=str(where / "teach-replay.png"), full_page=True)
         # play: it goes on by itself; pause: it stops, and a step goes one on from there
         page.click("#replay-play")
         page.wait_for_function(
@@ -253,9 +252,12 @@ def test_a_live_replay_kills_and_cuts_after_the_step_shown(browser: Any, tmp_pat
             "(e, n) => { e.value = n; e.dispatchEvent(new Event('input')); }", exited
         )
         shows(page, exited)
+        assert 0 == page.locator('[data-fault="fatal"]').count()  # (no FATAL: not a fault here)
         assert "restarting" == page.locator('.node[data-child="camera"]').get_attribute(
             "data-state"
         )
+        where = DOCS_IMG if os.environ.get("RR_DOCS_SCREENSHOTS") == "1" else tmp_path
+        page.screenshot(path=str(where / "teach-replay.png"), full_page=True)
         # a cut, then: the same way, its connections closed in the run made again
         page.evaluate("() => { document.querySelector('#notice').hidden = true; }")
         page.click('.node[data-child="actions"] [data-fault="cut"]')

@@ -641,7 +641,7 @@
 
   function resourceItem(section, resource, deps, member) {
     const fatal =
-      canFault(member) && section.available && section.kind.endsWith("manager") && resource.consumers.length
+      canFault(member) && state.hello.mode !== "replay" && section.available && section.kind.endsWith("manager") && resource.consumers.length
         ? el("button", {
             class: "danger",
             "data-fault": "fatal",
