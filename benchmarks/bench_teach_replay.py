@@ -11,7 +11,11 @@ For each exercise (`--exercises`) and seed (`--seeds`), the starter's run is rep
              showing that step, tree, catalogs, graph and story drawn, the next frame
              painted (`performance.now()` in the page: the request, the stream, the render)
 
-Prints a table: median, p90 and max in milliseconds (the target: at most 100 ms a step).
+    branch   `--branches` times (seed 1): a kill of a manager from the page at a random step
+             (`Replay.branch`: the seed run again with that fault, then folded)
+
+`--duration` runs each plan longer (more steps). Prints a table: median, p90 and max in
+milliseconds (the target: at most 100 ms a step).
 
     python benchmarks/bench_teach_replay.py                         # about a minute
     python benchmarks/bench_teach_replay.py --exercises camera --seeds 1 --clicks 5
@@ -20,6 +24,7 @@ Prints a table: median, p90 and max in milliseconds (the target: at most 100 ms 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import random
 import statistics
@@ -110,12 +115,25 @@ def browser(shown: replay.Replay, clicks: int, rng: random.Random) -> dict[str, 
     return times
 
 
+def branches(shown: replay.Replay, count: int, rng: random.Random) -> dict[str, list[float]]:
+    times: dict[str, list[float]] = {"branch: a kill, run again": []}
+    managers = [m.name for m in shown.plan.managers() if m.isolation == "process"]
+    for _ in range(count):
+        shown.show(rng.randint(2, len(shown)))
+        t0 = time.perf_counter()
+        shown.branch("kill", rng.choice(managers))
+        times["branch: a kill, run again"].append((time.perf_counter() - t0) * 1000)
+    return times
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--exercises", default="camera,restarts,refcount", help="comma-separated")
     parser.add_argument("--seeds", type=int, default=2, help="seeds 1..N of each")
     parser.add_argument("--jumps", type=int, default=200, help="random steps (server)")
     parser.add_argument("--clicks", type=int, default=30, help="steps and scrubs (browser)")
+    parser.add_argument("--branches", type=int, default=3, help="kills run again (seed 1)")
+    parser.add_argument("--duration", type=float, help="seconds of each run (default: its plan's)")
     args = parser.parse_args()
     print(f"python {sys.version.split()[0]}, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f}")
     rng = random.Random(1)  # noqa: S311 - which steps to scrub to, not a secret
@@ -125,14 +143,21 @@ def main() -> None:
             _chosen, folder = kit.start(name, Path(tmp) / name)
             for seed in range(1, args.seeds + 1):
                 plan, run = grade.seed_run(folder, seed)
+                rerun = grade.rerun(folder, seed)
+                if args.duration is not None:
+                    plan = dataclasses.replace(plan, duration=args.duration)
+                    run = rerun(plan)
                 t0 = time.perf_counter()
-                shown = replay.Replay(plan, run)
+                shown = replay.Replay(plan, run, rerun=rerun)
                 built = (time.perf_counter() - t0) * 1000
                 where = f"{name} seed {seed} ({len(shown)} steps, built in {built:.1f} ms)"
                 for what, values in server(shown, args.jumps, rng).items():
                     rows.append((where, what, len(values), *ms(values)))
                 if args.clicks > 0 and seed == 1:
                     for what, values in browser(shown, args.clicks, rng).items():
+                        rows.append((where, what, len(values), *ms(values)))
+                if args.branches > 0 and seed == 1:
+                    for what, values in branches(shown, args.branches, rng).items():
                         rows.append((where, what, len(values), *ms(values)))
     header = ("run", "per step", "n", "median ms", "p90 ms", "max ms")
     widths = [max(len(str(r[i])) for r in [header, *rows]) for i in range(len(header))]
