@@ -806,6 +806,14 @@
       cy.scratch("taps", true);
       cy.on("tap", "edge", (e) => cutOnTap(e.target));
     }
+    const ids = elements.map(({ data: d }) => `${d.id} ${d.parent || ""} ${d.source || ""} ${d.target || ""}`).sort().join("\n");
+    if (ids === cy.scratch("ids")) {
+      // the same nodes and arrows, in the same boxes (a state or a label changed): data only
+      cy.batch(() => elements.forEach((e) => cy.getElementById(e.data.id).data(e.data)));
+      $("graph").dataset.labels = JSON.stringify(cy.nodes('[kind = "resource"]').map((n) => n.data("label")));
+      return;
+    }
+    cy.scratch("ids", ids);
     const positions = layout(graph);
     cy.batch(() => {
       cy.elements().remove();
