@@ -90,6 +90,10 @@ SMALLEST = {
     "bench_simulation.py": ["--seeds", "1", "--no-real"],
     "bench_simulation_fidelity.py": ["--seeds", "1", "--runs", "2", "--duration", "0.5"],
     "bench_teach.py": ["--seeds", "1", "--only", "camera"],
+    "bench_teach_replay.py": [
+        *("--exercises", "camera", "--seeds", "1", "--jumps", "5", "--clicks", "2"),
+        *("--branches", "1", "--duration", "0.5"),
+    ],
     "bench_supervisor.py": ["--sizes", "10", "--crashes", "1", "--forkserver-first"],
     "bench_three_hosts.py": ["--rounds", "20", "--cuts", "1"],
     "bench_transport.py": ["--rounds", "20", "--paired-rounds", "2"],

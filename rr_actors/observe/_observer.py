@@ -23,6 +23,7 @@ import secrets
 import socket
 import threading
 import time
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, Protocol
 
 from rr_actors._extras import needs
@@ -202,6 +203,7 @@ class Observer:
         view: SystemView | None = None,
         share: Share | None = None,
         sock: socket.socket | None = None,
+        control: Callable[[dict[str, Any]], dict[str, Any]] | None = None,
     ) -> None:
         require_extra()
         from rr_actors.observe import _server  # noqa: PLC0415 - the observe extra
@@ -241,6 +243,7 @@ class Observer:
                 token=self._token,
                 hosts=allowed_hosts(host),
                 cookie=f"rr-observer-{self.port}",
+                control=control,
             )
             self._server: Server = _server.Server(app, sock, f"rr-observe-http-{self.port}")
         except BaseException:

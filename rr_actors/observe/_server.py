@@ -8,6 +8,8 @@
          ── POST /api/faults/KIND ── teaching mode only: JSON in, JSON out; across
                                      hosts, {"host": MEMBER, ...} goes to that host
                                      as a command (`_system.SystemView.fault`)
+         ── POST /api/control     ── a replay's page only (`rr_actors.teach.replay`):
+                                     {"step": N} in, the step shown out
  uvicorn thread (asyncio loop) ◄── Hub listeners (call_soon_threadsafe) ◄── source threads
 ```
 
@@ -62,6 +64,7 @@ from starlette.staticfiles import StaticFiles
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from rr_actors._platform import PLATFORM
+from rr_actors.errors import ConfigError
 from rr_actors.observe._faults import FaultRefused, Faults, inject
 from rr_actors.observe._hub import MAX_STREAMS, Hub, sse
 
@@ -219,6 +222,7 @@ def build_app(
     remote: Callable[[str, str, dict[str, Any]], str] | None = None,
     member: str | None = None,
     fault_events: Hub | None = None,
+    control: Callable[[dict[str, Any]], dict[str, Any]] | None = None,
 ) -> ASGIApp:
     """The observer's ASGI app.
 
@@ -235,6 +239,9 @@ def build_app(
             host, is this host's own).
         fault_events: the hub whose events record this host's own faults (default
             `hub`; across hosts, this host's own hub, which is shared).
+        control: a replay's step control: `control(request)`, the request's JSON
+            object in, the answer's out (a `ConfigError` is a refusal, 400); `None`:
+            the endpoint answers 404.
     """
     index = _index(hello)
     static = StaticFiles(directory=str(resources.files("rr_actors.observe").joinpath("static")))
@@ -260,16 +267,14 @@ def build_app(
             hub, _stream(hub, hello, request), ping=PING, send_timeout=SEND_TIMEOUT
         )
 
-    async def fault(request: Request) -> Response:  # noqa: PLR0911 - one answer per check
-        if faults is None and remote is None:
-            return _refuse(
-                "teaching mode is off: the observer was opened without allow_faults", 403
-            )
-        given = request.headers.get("x-rr-token", "")  # (the header: a cookie is not enough)
+    async def body_of(request: Request) -> dict[str, Any] | Response:
+        """The JSON object a button sent, or the refusal (the token in the header: a
+        cookie is not enough; a JSON content type; at most `MAX_BODY` bytes)."""
+        given = request.headers.get("x-rr-token", "")
         if not secrets.compare_digest(given.encode("utf-8", "replace"), token.encode()):
             return _refuse("wrong or missing token: open the URL the observer printed", 403)
         if request.headers.get("content-type", "").split(";")[0].strip() != "application/json":
-            return _refuse("a fault request is JSON (Content-Type: application/json)", 415)
+            return _refuse("a request is JSON (Content-Type: application/json)", 415)
         body = await request.body()
         if len(body) > MAX_BODY:
             return _refuse("request too large", 413)
@@ -279,6 +284,16 @@ def build_app(
             return _refuse("the body is not JSON", 400)
         if not isinstance(data, dict):
             return _refuse("the body must be a JSON object", 400)
+        return data
+
+    async def fault(request: Request) -> Response:  # noqa: PLR0911 - one answer per check
+        if faults is None and remote is None:
+            return _refuse(
+                "teaching mode is off: the observer was opened without allow_faults", 403
+            )
+        data = await body_of(request)
+        if isinstance(data, Response):
+            return data
         kind = request.path_params["kind"]
         target = data.get("host", member)
         if target is not None and target != member:
@@ -301,12 +316,25 @@ def build_app(
         (fault_events or hub).add_event(event)
         return JSONResponse({"ok": True, "message": message})
 
+    async def step(request: Request) -> Response:
+        if control is None:
+            return _refuse("this page replays nothing", 404)
+        data = await body_of(request)
+        if isinstance(data, Response):
+            return data
+        try:
+            answer = await anyio.to_thread.run_sync(control, data)
+        except ConfigError as exc:
+            return _refuse(str(exc), 400)
+        return JSONResponse(answer)
+
     app = Starlette(
         routes=[
             Route("/", page),
             Route("/api/state", full_state),
             Route("/api/stream", stream),
             Route("/api/faults/{kind}", fault, methods=["POST"]),
+            Route("/api/control", step, methods=["POST"]),
             Mount("/static", app=static, name="static"),
         ]
     )

@@ -1,9 +1,11 @@
-"""`rr-actors teach`: list, start, check, hint, solution (`rr_actors.teach`)."""
+"""`rr-actors teach`: list, start, check, hint, solution, replay (`rr_actors.teach`)."""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import threading
 from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
 
@@ -40,6 +42,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--plan", type=Path, help="run this plan instead of FOLDER/plan.toml (a shrunk one)"
     )
     check.add_argument("--json", type=Path, metavar="FILE", help="write the report as JSON")
+    replay = sub.add_parser(
+        "replay", help="a seed of a check step by step in the browser (the observer's page)"
+    )
+    replay.add_argument(
+        "folder",
+        nargs="?",
+        type=Path,
+        help="an exercise's folder (default: .; none with --plan)",
+    )
+    replay.add_argument("--seed", type=int, default=1, help="the seed (default: 1)")
+    replay.add_argument("--plan", type=Path, help="this plan (a shrunk one, or any simulable plan)")
+    replay.add_argument("--port", type=int, default=0, help="the page's port (default: a free one)")
+    replay.add_argument(
+        "--for", dest="duration", type=float, metavar="SECONDS", help="serve this long (Ctrl-C)"
+    )
     hint = sub.add_parser("hint", help="the next hint (the folder remembers those shown)")
     hint.add_argument("folder", nargs="?", type=Path, default=Path(), help="(default: .)")
     solution = sub.add_parser("solution", help="the solution's files (for a teacher)")
@@ -76,7 +93,44 @@ def main(args: argparse.Namespace, out: TextIO) -> int:
         return 0
     if command == "solution":
         return _solution(args, out)
+    if command == "replay":
+        return _replay(args, out)
     return _check(args, out)
+
+
+def _replay(args: argparse.Namespace, out: TextIO) -> int:
+    with needs("teach", "rr-actors teach replay"):
+        from rr_actors.experiments import sweep  # noqa: PLC0415 - the run's (hash seed)
+        from rr_actors.teach import grade, replay  # noqa: PLC0415 - the simulation
+    with needs("observe", "rr-actors teach replay"):
+        from rr_actors.observe import require_extra  # noqa: PLC0415
+
+        require_extra()
+    folder: Path | None = args.folder
+    if folder is None and args.plan is None:
+        folder = Path()
+    if folder is not None:
+        kit.folder_exercise(folder)  # (said before a child process starts)
+    argv = ["teach", "replay", *([str(folder)] if folder is not None else [])]
+    argv += ["--seed", str(args.seed), "--port", str(args.port)]
+    argv += ["--plan", str(args.plan)] if args.plan is not None else []
+    argv += ["--for", str(args.duration)] if args.duration is not None else []
+    code = sweep.hash_fixed(argv, out)  # (the seed's history as its check saw it)
+    if code is not None:
+        return code
+    plan, run = grade.seed_run(folder, args.seed, args.plan)
+    rerun = grade.rerun(folder, args.seed)
+    observer, shown = replay.open_replay(plan, run, port=args.port, rerun=rerun)
+    with observer:
+        out.write(
+            f"replay of {plan.name}, seed {run.seed} ({len(shown)} steps; the checker: "
+            f"{run.verdict}): "
+            f"{observer.url} (Ctrl-C stops)\n"
+        )
+        out.flush()
+        with contextlib.suppress(KeyboardInterrupt):
+            threading.Event().wait(args.duration)
+    return 0
 
 
 def _solution(args: argparse.Namespace, out: TextIO) -> int:

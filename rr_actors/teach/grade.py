@@ -36,7 +36,7 @@ from rr_actors.teach import replaced_step
 from rr_actors.teach.kit import Exercise, folder_exercise
 from rr_actors.teach.rules import RULES
 
-__all__ = ["STORY", "Failure", "Report", "check_folder", "replay_story"]
+__all__ = ["STORY", "Failure", "Report", "check_folder", "replay_story", "rerun", "seed_run"]
 
 STORY = 20
 """The most steps of the story a failing check prints."""
@@ -192,14 +192,52 @@ def replay_story(folder: Path, seed: int, plan_file: Path | None = None) -> list
     Raises:
         ConfigError: as `check_folder`; a setup that raised (its message).
     """
-    chosen, _state = folder_exercise(folder)
-    plan = _plan(folder / "plan.toml" if plan_file is None else plan_file)
-    with _quiet(), _student_step(chosen, folder):
-        try:
-            run = simulate.run_seed(plan, seed)
-        except RrError as exc:
-            raise ConfigError(f"seed {seed}: the tree did not start: {exc}") from None
+    _plan_of, run = seed_run(folder, seed, plan_file)
     return [s.plain() for s in story.story(run.history)]
+
+
+def seed_run(
+    folder: Path | None, seed: int, plan_file: Path | None = None
+) -> tuple[Plan, simulate.SimulatedRun]:
+    """One seed of a check run again: `folder`'s plan (or `plan_file`), with a protocol
+    exercise's `step.py` in place; without `folder`, `plan_file` alone (any plan the
+    simulation runs). The plan and the run.
+
+    Raises:
+        ConfigError: as `check_folder`; a setup that raised (its message); neither a
+            folder nor a plan.
+    """
+    if folder is None and plan_file is None:
+        raise ConfigError("a seed of what? give an exercise's folder or a plan (--plan)")
+    if folder is None:
+        assert plan_file is not None
+        plan = _plan(plan_file)
+    else:
+        folder_exercise(folder)
+        plan = _plan(folder / "plan.toml" if plan_file is None else plan_file)
+    return plan, rerun(folder, seed)(plan)
+
+
+def rerun(folder: Path | None, seed: int) -> Callable[[Plan], simulate.SimulatedRun]:
+    """What runs seed `seed` of a plan as `folder`'s check does (a protocol exercise's
+    `step.py` in place; `None`: no exercise): a replay's runs with a fault added."""
+
+    def run(plan: Plan) -> simulate.SimulatedRun:
+        if folder is None:
+            with _quiet():
+                return _seed(plan, seed)
+        chosen, _state = folder_exercise(folder)
+        with _quiet(), _student_step(chosen, folder):
+            return _seed(plan, seed)
+
+    return run
+
+
+def _seed(plan: Plan, seed: int) -> simulate.SimulatedRun:
+    try:
+        return simulate.run_seed(plan, seed)
+    except RrError as exc:
+        raise ConfigError(f"seed {seed}: the tree did not start: {exc}") from None
 
 
 def _plan(path: Path) -> Plan:

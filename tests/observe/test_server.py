@@ -201,6 +201,21 @@ def test_another_host_header_is_refused(tree: rr.Supervisor) -> None:
     assert 400 == status  # ... is refused (DNS rebinding)
 
 
+def test_a_page_that_replays_nothing_has_no_step_control(tree: rr.Supervisor) -> None:
+    observer = tree.observe()  # (a replay's page has one: rr_actors.teach.replay)
+    json_body = {"Content-Type": "application/json"}
+
+    status, _, body = request(
+        observer.url, "/api/control", method="POST", body=b'{"step": 2}', headers=json_body
+    )
+    refused, _, _ = request(
+        observer.url, "/api/control", method="POST", body=b"{}", with_token=False
+    )
+
+    assert (404, False) == (status, json.loads(body)["ok"])
+    assert 401 == refused  # (no token: refused before anything else)
+
+
 def test_a_host_other_machines_reach_needs_allow_remote(tree: rr.Supervisor) -> None:
     with pytest.raises(rr.ConfigError, match="allow_remote"):
         tree.observe(host="0.0.0.0")  # noqa: S104 - what the test refuses

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -14,6 +15,7 @@ from pathlib import Path
 import pytest
 
 from rr_actors.teach import kit
+from tests.support.observing import request
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -183,3 +185,29 @@ def test_story_needs_a_seed(tmp_path: Path) -> None:
 
     assert done.returncode == 1
     assert "--story tells one seed: add --seed S" in done.stderr
+
+
+@pytest.mark.parametrize("by_plan", [False, True], ids=["folder", "plan"])
+def test_replay_serves_the_seed_at_its_first_step_until_ctrl_c(
+    tmp_path: Path, by_plan: bool
+) -> None:
+    _chosen, folder = kit.start("camera", tmp_path / "cam")
+    argv = ["--plan", folder / "plan.toml"] if by_plan else [folder]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    command = [sys.executable, "-m", "rr_actors", "teach", "replay", *map(str, argv), "--seed", "2"]
+    with subprocess.Popen(command, stdout=subprocess.PIPE, text=True, env=env) as child:
+        assert child.stdout is not None
+        line = child.stdout.readline()  # (the run, then the page: its URL)
+        try:
+            assert line.startswith("replay of camera, seed 2 ("), line
+            url = next(word for word in line.split() if word.startswith("http://"))
+            status, _, body = request(url, "/api/state")
+            state = json.loads(body)
+            assert (200, "replay") == (status, state["hello"]["mode"])
+            assert (1, 2) == (
+                state["sections"]["replay"]["step"],
+                state["sections"]["replay"]["seed"],
+            )
+        finally:
+            child.send_signal(signal.SIGINT)
+            assert 0 == child.wait(timeout=60)

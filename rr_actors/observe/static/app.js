@@ -10,6 +10,9 @@
 //   host/<member>/catalog/<name> | host/<member>/ended; each event has its "member"; a
 //   fault request names its "host" (observe/_hosts.py)
 //   state ──(render, once per burst of messages)──► tree, catalogs, graph (cytoscape), timeline, log
+//   a replay (hello.mode "replay", rr_actors/teach/replay.py): a "replay" section (the step,
+//   the story around it, what is in flight); its buttons, slider and story lines POST
+//   /api/control {step}, and the step's sections come back on the stream as any change does
 //
 // Every request carries the page's token (the URL's ?token=; the server also sets a cookie).
 // Everything from the server is shown through textContent (never parsed as HTML). The page
@@ -143,6 +146,7 @@
   // Whether the page offers buttons for a host's managers: this host's teaching mode, or,
   // across hosts, that host's own allow_faults (it is asked, and decides, every time).
   function canFault(member) {
+    if (state.hello.mode === "replay") return Boolean(state.hello.branches);
     if (!system()) return Boolean(state.hello.faults) && !state.sections.ended;
     const host = hostOf(member);
     return Boolean(host && host.allow_faults && host.state === "live" && !state.sections[`host/${member}/ended`]);
@@ -189,6 +193,7 @@
     const mode = state.hello ? state.hello.mode : document.body.dataset.mode;
     let text = up ? "live" : "disconnected";
     if (mode === "backups") text = "offline";
+    else if (mode === "replay" && up) text = "replay";
     else if (state.sections.ended) text = "ended";
     badge.textContent = text;
     badge.className = `badge ${text === "live" ? "up" : text === "disconnected" ? "down" : "still"}`;
@@ -218,6 +223,7 @@
     if (dirty.has("tree") || dirty.has("files")) renderTree(); // at once: restarts show fast
     if (dirty.has("catalogs")) renderCatalogs();
     if (dirty.has("graph")) renderGraph();
+    if (dirty.has("replay")) renderReplay();
     if (dirty.has("events") && listsLater === null) {
       const wait = Math.max(0, listsAt + LISTS_EVERY - Date.now());
       listsLater = setTimeout(() => {
@@ -235,6 +241,7 @@
     $("mode").textContent = hello.faults ? "teaching mode" : "";
     $("mode").hidden = !hello.faults;
     document.body.dataset.mode = hello.mode;
+    $("replay-panel").hidden = hello.mode !== "replay";
     setConnection(true);
   }
 
@@ -282,6 +289,7 @@
   }
 
   async function fault(kind, body) {
+    if (state.hello.mode === "replay") return branch(kind, body.child);
     try {
       const response = await fetch(`/api/faults/${kind}`, {
         method: "POST",
@@ -431,6 +439,15 @@
           confirmThen(question(pid) + on, detail, label, () => fault(kind, member ? { child: name, pid, host: member } : { child: name, pid }));
         },
       });
+    if (state.hello.mode === "replay")
+      return el(
+        "span",
+        { class: "faults" },
+        button("kill", "run the seed again, its process killed right after this step", "kill", () => `Kill ${name} after this step?`,
+          "The seed runs again with that kill (kill_manager after this step's event); the steps before it stay as they were."),
+        button("cut", "run the seed again, its connections cut right after this step", "cut", () => `Cut ${name}'s links after this step?`,
+          "The seed runs again with that cut (cut_connections after this step's event): every link to it closes."),
+      );
     return el(
       "span",
       { class: "faults" },
@@ -624,7 +641,7 @@
 
   function resourceItem(section, resource, deps, member) {
     const fatal =
-      canFault(member) && section.available && section.kind.endsWith("manager") && resource.consumers.length
+      canFault(member) && state.hello.mode !== "replay" && section.available && section.kind.endsWith("manager") && resource.consumers.length
         ? el("button", {
             class: "danger",
             "data-fault": "fatal",
@@ -785,6 +802,18 @@
         ],
       });
     }
+    if (!cy.scratch("taps")) {
+      cy.scratch("taps", true);
+      cy.on("tap", "edge", (e) => cutOnTap(e.target));
+    }
+    const ids = elements.map(({ data: d }) => `${d.id} ${d.parent || ""} ${d.source || ""} ${d.target || ""}`).sort().join("\n");
+    if (ids === cy.scratch("ids")) {
+      // the same nodes and arrows, in the same boxes (a state or a label changed): data only
+      cy.batch(() => elements.forEach((e) => cy.getElementById(e.data.id).data(e.data)));
+      $("graph").dataset.labels = JSON.stringify(cy.nodes('[kind = "resource"]').map((n) => n.data("label")));
+      return;
+    }
+    cy.scratch("ids", ids);
     const positions = layout(graph);
     cy.batch(() => {
       cy.elements().remove();
@@ -947,6 +976,114 @@
     $("log").replaceChildren(...items);
     $("log-note").textContent = `the last ${Math.min(state.log.length, MAX_LOG)}, newest first`;
   }
+
+  // -- a replay: one step at a time, asked of the server --------------------------------
+  const PLAY_EVERY = 400; // ms between two steps while playing
+  const replay = { asked: null, playing: null };
+
+  async function goTo(step) {
+    const section = state.sections.replay;
+    if (!section) return;
+    const target = Math.max(1, Math.min(section.steps, step));
+    replay.asked = target;
+    $("replay-panel").dataset.asked = target;
+    try {
+      const response = await fetch("/api/control", {
+        method: "POST",
+        headers: { "Content-Type": "application/json", "X-RR-Token": token },
+        body: JSON.stringify({ step: target }),
+      });
+      const answer = await response.json();
+      if (!answer.ok) notice(answer.message, true);
+    } catch (error) {
+      notice(`the request failed: ${error}`, true);
+    }
+  }
+  // (the step last asked for: clicks faster than the stream count from it)
+  // A live replay (hello.branches): a kill or a cut runs the seed again with that fault
+  async function branch(kind, target) {
+    pause();
+    try {
+      const response = await fetch("/api/control", {
+        method: "POST",
+        headers: { "Content-Type": "application/json", "X-RR-Token": token },
+        body: JSON.stringify({ fault: kind, target }),
+      });
+      const answer = await response.json();
+      replay.asked = null;
+      notice(answer.message, !answer.ok);
+    } catch (error) {
+      notice(`the request failed: ${error}`, true);
+    }
+  }
+  function managerOf(nodeId) {
+    const name = nodeId.startsWith("res:") ? nodeId.split(":")[1] : nodeId.replace(/^reg:/, "");
+    const find = (node) => (node.name === name && node.kind === "manager" ? node : (node.children || []).map(find).find(Boolean));
+    return state.sections.tree ? find(state.sections.tree) : null;
+  }
+  function cutOnTap(edge) {
+    const manager = managerOf(edge.data("target"));
+    if (!canFault(null) || !manager || manager.isolation !== "process") return;
+    confirmThen(`Cut ${manager.name}'s links after this step?`,
+      "The seed runs again with that cut (cut_connections after this step's event): every link to it closes.",
+      "cut", () => branch("cut", manager.name));
+  }
+  const shownStep = () => (replay.asked !== null ? replay.asked : state.sections.replay ? state.sections.replay.step : 1);
+
+  function pause() {
+    clearInterval(replay.playing);
+    replay.playing = null;
+    $("replay-play").textContent = "\u25B6 play";
+    $("replay-panel").dataset.playing = "";
+  }
+  function play() {
+    if (replay.playing !== null) return pause();
+    $("replay-play").textContent = "\u23F8 pause";
+    $("replay-panel").dataset.playing = "1";
+    replay.playing = setInterval(() => {
+      const section = state.sections.replay;
+      if (!section || section.step >= section.steps) return pause();
+      if (replay.asked !== null && replay.asked > section.step) return; // (the last ask not shown yet)
+      goTo(section.step + 1);
+    }, PLAY_EVERY);
+  }
+
+  function renderReplay() {
+    const section = state.sections.replay;
+    if (!section) return;
+    const panel = $("replay-panel");
+    panel.dataset.step = section.step;
+    const scrub = $("replay-scrub");
+    scrub.max = section.steps;
+    if (document.activeElement !== scrub) scrub.value = section.step;
+    $("replay-where").textContent = `step ${section.step} of ${section.steps} · ${section.at_s.toFixed(3)} s · seed ${section.seed} · checker: ${section.verdict}`;
+    $("replay-story").replaceChildren(...section.story.map((row) => {
+      const where = row.step === section.step ? "current" : row.step > section.step ? "future" : "past";
+      const stamp = row.who === "violation" ? "^" : `[${row.at_s.toFixed(3)} s] #${row.line}`;
+      return el("li", {
+        class: `${where}${row.marked ? " marked" : ""}`, "data-step": row.step, "data-who": row.who,
+        onclick: () => { pause(); goTo(row.step); },
+      }, `${row.step}. ${stamp} ${row.who === "violation" ? "" : row.who}  ${row.text}`);
+    }));
+    const flight = section.in_flight.map((row) =>
+      el("li", { "data-kind": row.kind, "data-id": row.id },
+        el("span", { class: "badge", text: row.kind }), " ", `${row.from} → ${row.to} `,
+        el("code", { text: row.id.slice(0, 8) }), ` (${row.then})`));
+    $("replay-flight").replaceChildren(...(flight.length ? flight : [el("li", { class: "muted", text: "nothing in flight" })]));
+  }
+
+  $("replay-first").addEventListener("click", () => { pause(); goTo(1); });
+  $("replay-back").addEventListener("click", () => { pause(); goTo(shownStep() - 1); });
+  $("replay-step").addEventListener("click", () => { pause(); goTo(shownStep() + 1); });
+  $("replay-play").addEventListener("click", play);
+  $("replay-scrub").addEventListener("input", (e) => { pause(); goTo(Number(e.target.value)); });
+  document.addEventListener("keydown", (e) => {
+    if (!state.hello || state.hello.mode !== "replay" || e.target.tagName === "INPUT") return;
+    if (e.key === "ArrowRight") { pause(); goTo(shownStep() + 1); }
+    else if (e.key === "ArrowLeft") { pause(); goTo(shownStep() - 1); }
+    else if (e.key === "Home") { pause(); goTo(1); }
+    else if (e.key === " ") { e.preventDefault(); play(); }
+  });
 
   // -- start ---------------------------------------------------------------------------
   setInterval(() => {
