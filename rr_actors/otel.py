@@ -85,6 +85,9 @@ SYSTEM = "rr_actors"
 SCOPE = "rr_actors.otel"
 """The instrumentation scope (the tracer's name)."""
 
+SWEEP_EVERY = 0.05
+"""Seconds between two looks for what waited `pair_within` (or `pair_within`, if less)."""
+
 _CALL_ENDS = (events.CallAnswered, events.CallFailed, events.CallWithdrawn)
 _UNLOADS = frozenset({"unload", "unload unanswered", "dependency", "stop"})
 
@@ -292,6 +295,8 @@ class Tracing:
         self._opened: dict[tuple[int, str], _Opened] = {}
         self._lost_at: float | None = None  # (monotonic) when the stream last lost events
         self._lost_of: dict[int, int] = {}  # a process killed: events it built, lost
+        self._swept = 0.0  # (monotonic) the last sweep after an event
+        self._sweep_every = min(SWEEP_EVERY, self._pair_within)
         self.dropped = 0  # (the class docstring's Attributes)
 
     # -- the subscriber -----------------------------------------------------------------
@@ -319,7 +324,13 @@ class Tracing:
             return
         with self._lock:
             self._take(tracer, event)
-            self._sweep(tracer, time.monotonic() - self._pair_within)
+            # what waited `pair_within`, looked for at most every SWEEP_EVERY seconds (or
+            # once more sides wait than `max_pending`)
+            now = time.monotonic()
+            waiting = len(self._clients) + len(self._servers)
+            if now >= self._swept + self._sweep_every or waiting > self._max_pending:
+                self._swept = now
+                self._sweep(tracer, now - self._pair_within)
 
     def flush(self) -> None:
         """Make spans now of every side and restart still waiting for the rest."""
@@ -631,6 +642,8 @@ class Tracing:
             self._stalled[event.status_id] = sent
         else:
             self._hop(tracer, sent, event)
+            if not sent.upstream:  # (nothing of it waits any more)
+                self._stalled.pop(event.status_id, None)
 
     def _hop(
         self, tracer: Any, sent: _Sent, event: events.StatusDelivered, *, wait: bool = True
@@ -750,6 +763,7 @@ class Tracing:
         carried = (client.trace if client else "") or (server.trace if server else "")
         if not carried and not (server is not None and client is None and server.root):
             carried = _untraced(*key)
+        parsed = traces.parse(carried)
         if client is not None and server is not None:  # a side that did not know its server
             method = client.method or server.method
             client.method = server.method = method
@@ -759,7 +773,6 @@ class Tracing:
             if client.started:  # (when the call began: known since event schema 7)
                 start = client.started
             name = f"{client.service}/{client.method}"
-            parsed = traces.parse(carried)
             parent = traces.caller_parent(carried, client.caller_span)
             span = self._start(
                 tracer,
@@ -777,7 +790,6 @@ class Tracing:
             context = _api.set_span_in_context(span)
         if server is not None:
             name = f"{server.service}/{server.method}"
-            parsed = traces.parse(carried)
             ids = None
             if parsed is not None:  # its parent: the CLIENT span the call named
                 trace_id, client_span, flags = parsed
