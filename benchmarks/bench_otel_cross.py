@@ -25,6 +25,9 @@ A round is timed until everything it caused is done: the manager's events forwar
 (`flush_events`), the subscription's queue taken (`wait_delivered`), every span written
 (`force_flush`); the subscriber's and the exporter's threads compete for the GIL, so
 their work counts. The held query ids are unloaded after each timed batch, untimed.
+The CPU columns count the same rounds' CPU time of every thread of both processes
+(`/proc/<pid>/task/*/schedstat`, Linux; a thread that ended meanwhile is missed): on a
+loaded machine the wall-clock medians swing with the load, the CPU a call costs less.
 
     taskset -c 0 python benchmarks/bench_otel_cross.py [--rounds 15] [--batch 1000]
 """
@@ -49,6 +52,19 @@ from opentelemetry.sdk.trace.sampling import ALWAYS_ON
 
 import rr_actors as rr
 from rr_actors import otel
+
+
+def cpu_seconds(pids: list[int]) -> float:
+    """CPU seconds so far of the live threads of `pids` (0.0 where /proc has none)."""
+    total = 0
+    for pid in pids:
+        with contextlib.suppress(OSError):
+            for task in os.listdir(f"/proc/{pid}/task"):
+                path = f"/proc/{pid}/task/{task}/schedstat"
+                with contextlib.suppress(OSError), open(path) as stat:  # (one ended)
+                    total += int(stat.read().split()[0])
+    return total / 1e9
+
 
 ROWS = ("floor", "tracing off", "spans only", "tracing on", "traced")
 
@@ -80,6 +96,7 @@ class Bench:
         self.spans = spans
         self.written = 0
         self.per_call: dict[str, float] = {}
+        self.cpu: dict[str, list[float]] = {row: [] for row in ROWS}  # seconds per call
 
     def stop(self) -> None:
         self.sup.stop()
@@ -105,7 +122,9 @@ class Bench:
             if row == "traced"
             else contextlib.nullcontext()
         )
+        pids = [os.getpid(), self.sup.child(self.name).pid or 0]
         with span:
+            cpu = cpu_seconds(pids)
             began = time.perf_counter()
             held = [call(name, "res", "shared", timeout=60).id for _ in range(batch)]
             app.client_queries(timeout=60)  # (a later turn: the last CallAnswered is out)
@@ -114,6 +133,7 @@ class Bench:
                 assert tracing._subscription.wait_delivered(timeout=60)
                 self.processor.force_flush(timeout_millis=60_000)
             took = time.perf_counter() - began
+            self.cpu[row].append((cpu_seconds(pids) - cpu) / batch)
         for query_id in held:
             app.unload(query_id, timeout=60)
         app.client_queries(timeout=60)
@@ -154,12 +174,17 @@ def main(argv: list[str] | None = None) -> int:
     )
     off = statistics.median(times["tracing off"])
     floor = statistics.median(times["floor"])
-    print(f"{'row':<12} {'us/call':>9} {'vs floor':>9} {'vs off':>8} {'spans/op':>9}")
+    cpu_off = statistics.median(bench.cpu["tracing off"][-args.rounds :])
+    print(
+        f"{'row':<12} {'us/call':>9} {'vs floor':>9} {'vs off':>8} {'cpu us':>8} {'vs off':>8}"
+        f" {'spans/op':>9}"
+    )
     for row in ROWS:
         median = statistics.median(times[row])
+        cpu = statistics.median(bench.cpu[row][-args.rounds :])  # (not the warm-up's)
         print(
             f"{row:<12} {median * 1e6:>9.1f} {median / floor:>8.3f}x {median / off:>7.3f}x"
-            f" {bench.per_call[row]:>9.1f}"
+            f" {cpu * 1e6:>8.1f} {cpu / cpu_off:>7.3f}x {bench.per_call[row]:>9.1f}"
         )
     return 0
 
