@@ -26,7 +26,8 @@ What becomes a span (`docs/how-to/trace.md`):
 - a status: a PRODUCER `status <STATUS>` span (`StatusSent`, a trace of its own) and a
   CONSUMER `status <STATUS> hop <n>` span per delivery (`StatusDelivered`), under the hop
   that brought it to the registrar it came from, each linked to the CLIENT and SERVER
-  spans of the call whose query id it reached;
+  spans of the call whose query id it reached; a callback's run (`StatusHandled`), an
+  INTERNAL root linked to its hop, the calls made in it its children;
 - a restart: an INTERNAL `restart <child>` span from `ChildExited` to the restarted
   process's first `CatalogRestored`, naming the in-doubt queries (`InDoubt`), linked to
   the old incarnation's last SERVER span and the new one's first; the spans whose end
@@ -41,10 +42,9 @@ span is made the caller's span's child, the SERVER span the CLIENT span's, with 
 ids (through the SDK's tracer), in whichever process each side is made; a `load` (an
 unload's `unload` callback and dependency releases too) runs with that SERVER span
 current. An untraced call's ids are derived from its query id, so its sides meet too.
-A CLIENT span starts when its call began (its end event's `started`; without it, as in
-events of schema 6 and before: where its server span starts, or at its own end). Lost
-events (`EventsDropped`) are counted (`Tracing.dropped`), the spans they may have cut
-marked `rr_actors.incomplete`.
+A CLIENT span starts when its call began (its end event's `started`; without it: where
+its server span starts, or at its own end). Lost events (`EventsDropped`) are counted
+(`Tracing.dropped`), the spans they may have cut marked `rr_actors.incomplete`.
 
 `provider_from_environment`, `Exporting`: the `--trace` commands' SDK, set by `OTEL_*`.
 """
@@ -54,7 +54,6 @@ from __future__ import annotations
 import collections
 import contextlib
 import dataclasses
-import hashlib
 import itertools
 import os
 import threading
@@ -85,6 +84,9 @@ SYSTEM = "rr_actors"
 
 SCOPE = "rr_actors.otel"
 """The instrumentation scope (the tracer's name)."""
+
+SWEEP_EVERY = 0.05
+"""Seconds between two looks for what waited `pair_within` (or `pair_within`, if less)."""
 
 _CALL_ENDS = (events.CallAnswered, events.CallFailed, events.CallWithdrawn)
 _UNLOADS = frozenset({"unload", "unload unanswered", "dependency", "stop"})
@@ -130,10 +132,7 @@ def _ns(at: float) -> int:
     return int(at * 1e9)
 
 
-def _derived(*parts: str, bits: int = 64) -> int:
-    """An id of `bits` bits made from `parts` alone (the same in every process), not 0."""
-    digest = hashlib.blake2b("\0".join(parts).encode(), digest_size=bits // 8).digest()
-    return int.from_bytes(digest, "big") or 1
+_derived = traces.derived
 
 
 def _untraced(query_id: str, verb: str) -> str:
@@ -296,6 +295,8 @@ class Tracing:
         self._opened: dict[tuple[int, str], _Opened] = {}
         self._lost_at: float | None = None  # (monotonic) when the stream last lost events
         self._lost_of: dict[int, int] = {}  # a process killed: events it built, lost
+        self._swept = 0.0  # (monotonic) the last sweep after an event
+        self._sweep_every = min(SWEEP_EVERY, self._pair_within)
         self.dropped = 0  # (the class docstring's Attributes)
 
     # -- the subscriber -----------------------------------------------------------------
@@ -323,7 +324,13 @@ class Tracing:
             return
         with self._lock:
             self._take(tracer, event)
-            self._sweep(tracer, time.monotonic() - self._pair_within)
+            # what waited `pair_within`, looked for at most every SWEEP_EVERY seconds (or
+            # once more sides wait than `max_pending`)
+            now = time.monotonic()
+            waiting = len(self._clients) + len(self._servers)
+            if now >= self._swept + self._sweep_every or waiting > self._max_pending:
+                self._swept = now
+                self._sweep(tracer, now - self._pair_within)
 
     def flush(self) -> None:
         """Make spans now of every side and restart still waiting for the rest."""
@@ -385,6 +392,8 @@ class Tracing:
             self._status_sent(tracer, event)
         elif isinstance(event, events.StatusDelivered):
             self._status_delivered(tracer, event)
+        elif isinstance(event, events.StatusHandled):
+            self._status_handled(tracer, event)
         elif isinstance(event, events.ChildExited):
             self._exits[event.child] = event
         elif isinstance(event, events.ChildRestarted):
@@ -633,6 +642,8 @@ class Tracing:
             self._stalled[event.status_id] = sent
         else:
             self._hop(tracer, sent, event)
+            if not sent.upstream:  # (nothing of it waits any more)
+                self._stalled.pop(event.status_id, None)
 
     def _hop(
         self, tracer: Any, sent: _Sent, event: events.StatusDelivered, *, wait: bool = True
@@ -670,6 +681,32 @@ class Tracing:
             sent.reached[event.registrar] = (span.get_span_context(), event.at)
             for hop in sent.upstream.pop(event.registrar, []):
                 self._hop(tracer, sent, hop)
+
+    def _status_handled(self, tracer: Any, event: events.StatusHandled) -> None:
+        """A status callback's run: a trace of its own (the calls made in it its
+        children: it ran with these ids current), linked to the hop that brought it."""
+        hop = _api.SpanContext(
+            _derived(event.status_id, bits=128),
+            _derived(event.status_id, event.registrar, event.query_id),
+            is_remote=True,
+            trace_flags=_api.TraceFlags(1),
+        )
+        span = self._start(
+            tracer,
+            traces.status_callback(event.status_id, event.registrar, event.query_id),
+            f"status {event.status.name} callback",
+            context=_api.set_span_in_context(_api.INVALID_SPAN),  # (a root)
+            kind=_api.SpanKind.INTERNAL,
+            attributes={
+                "rr_actors.registrar": event.registrar,
+                "rr_actors.query_id": event.query_id,
+                "rr_actors.status": event.status.name,
+                "rr_actors.status_id": event.status_id,
+            },
+            links=[_api.Link(hop, {"rr_actors.status_id": event.status_id})],
+            start_time=_ns(hlc.seconds(event.began) if event.began else event.at),
+        )
+        span.end(end_time=_ns(event.at))
 
     # -- sides to spans -----------------------------------------------------------------
 
@@ -726,6 +763,7 @@ class Tracing:
         carried = (client.trace if client else "") or (server.trace if server else "")
         if not carried and not (server is not None and client is None and server.root):
             carried = _untraced(*key)
+        parsed = traces.parse(carried)
         if client is not None and server is not None:  # a side that did not know its server
             method = client.method or server.method
             client.method = server.method = method
@@ -735,7 +773,6 @@ class Tracing:
             if client.started:  # (when the call began: known since event schema 7)
                 start = client.started
             name = f"{client.service}/{client.method}"
-            parsed = traces.parse(carried)
             parent = traces.caller_parent(carried, client.caller_span)
             span = self._start(
                 tracer,
@@ -753,7 +790,6 @@ class Tracing:
             context = _api.set_span_in_context(span)
         if server is not None:
             name = f"{server.service}/{server.method}"
-            parsed = traces.parse(carried)
             ids = None
             if parsed is not None:  # its parent: the CLIENT span the call named
                 trace_id, client_span, flags = parsed

@@ -1025,3 +1025,88 @@ def test_an_unload_callback_runs_under_its_unloads_server_span(
     )
     step = _one(tuple(spans.values()), "mission step unload", api.SpanKind.INTERNAL)
     assert step.context.trace_id == inside.context.trace_id
+
+
+@pytest.mark.usefixtures("process_helpers")
+@pytest.mark.parametrize("coroutine", [False, True], ids=["plain", "coroutine"])
+def test_a_managers_calls_from_a_status_callback_are_a_trace_of_their_own(
+    supervisors: Callable[..., rr.Supervisor],
+    uid: str,
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+    coroutine: bool,
+) -> None:
+    # mid's load (under the app's step, so under its SERVER span) calls leaf with a
+    # status callback; on leaf's WARNING the callback calls leaf again, in mid's process
+    provider, exporter = exported
+    leaf, mid, again = f"leaf-{uid}", f"mid-{uid}", str(uuid.uuid4())
+
+    def serve_map(registrar: rr.ResourceRegistrar) -> None:
+        def on_cam(_query: rr.Query, update: rr.StatusUpdate) -> None:
+            if update.status is rr.Status.WARNING:
+                registrar.call(leaf, "cam", "again", timeout=10, query_id=again)
+
+        async def aon_cam(query: rr.Query, update: rr.StatusUpdate) -> None:
+            await asyncio.to_thread(on_cam, query, update)
+
+        def through(request: Any) -> Any:
+            on_status = aon_cam if coroutine else on_cam
+            return registrar.call(leaf, "cam", request, timeout=10, on_status=on_status).response
+
+        registrar.register_server("map", load=through, unload=lambda _q, _r: None)
+
+    sup = supervisors(
+        [
+            rr.ManagerSpec(leaf, _serve, isolation="process"),
+            rr.ManagerSpec(mid, serve_map, isolation="process"),
+        ]
+    ).start()
+    app = sup.registrar(f"app-{uid}")
+    called = threading.Event()
+
+    def heard(event: events.Event) -> None:
+        if isinstance(event, events.CallAnswered) and event.query_id == again:
+            called.set()
+
+    with sup.subscribe(heard), otel.trace(sup, tracer_provider=provider, pair_within=60):
+        with _caller(provider).start_as_current_span("step") as step:
+            app.call(mid, "map", 1, timeout=10)
+        held = sup.run_in(leaf, lambda r: r.server_queries("cam", timeout=10)[0].id)
+        sup.run_in(leaf, lambda r: r.send_status(held, rr.Status.WARNING, "lens dirty", timeout=10))
+        assert called.wait(timeout=20)
+        sup.run_in(mid, lambda r: r.client_queries(timeout=10))  # (its turn after: events out)
+        assert sup.flush_events(timeout=5)
+    spans = exporter.get_finished_spans()
+    by_id = {s.context.span_id: s for s in spans}
+
+    client = next(
+        s
+        for s in spans
+        if s.kind == api.SpanKind.CLIENT and s.attributes["rr_actors.query_id"] == again
+    )
+    step_trace = step.get_span_context().trace_id
+    assert client.context.trace_id != step_trace  # not under the load's SERVER span
+    hop = next(
+        s for s in spans if s.kind == api.SpanKind.CONSUMER and s.attributes["rr_actors.hop"] == 1
+    )
+    assert mid == hop.attributes["rr_actors.registrar"]
+    if coroutine:  # (no StatusHandled: no span of its run) an untraced call, a root
+        assert client.parent is None
+        return
+    assert client.parent is not None
+    run = by_id[client.parent.span_id]  # the callback's run: its trace's root
+    assert ("status WARNING callback", api.SpanKind.INTERNAL, None) == (
+        run.name,
+        run.kind,
+        run.parent,
+    )
+    assert (mid, hop.attributes["rr_actors.query_id"]) == (
+        run.attributes["rr_actors.registrar"],
+        run.attributes["rr_actors.query_id"],
+    )
+    assert run.context.trace_id == client.context.trace_id
+    [link] = run.links
+    assert (hop.context.trace_id, hop.context.span_id) == (
+        link.context.trace_id,
+        link.context.span_id,
+    )
+    assert run.start_time <= client.start_time <= run.end_time  # (begun in the run)

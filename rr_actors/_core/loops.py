@@ -33,7 +33,7 @@ import logging
 from collections.abc import Callable
 from typing import Any, TypeVar
 
-from rr_actors._core import runtime
+from rr_actors._core import runtime, traces
 from rr_actors._core.actor import OneShotFuture, mark_awaiting
 from rr_actors._core.replies import Steps, left, let_go, when_waiting
 from rr_actors._platform import fork
@@ -196,7 +196,8 @@ class OnLoop:
     thread it started in its context, `asyncio.to_thread`, blocks in a `send_status`)
     lets the next one of its key start beside it, since that one may be what it waits
     for. Each runs in a copy of the context it was bound in (as asyncio runs a callback
-    in its registrant's context).
+    in its registrant's context), with no OpenTelemetry span current: a status
+    callback's calls are traces of their own, not the binder's span's children.
 
     Args:
         fn: the coroutine function.
@@ -267,6 +268,7 @@ class OnLoop:
             await _behind(*before)
         error: BaseException | None = None
         when_waiting(functools.partial(_set_soon, self.loop, going))  # (this task's context)
+        traces.own_trace()  # (no span current: not the one it was bound under)
         try:
             await self.fn(*args)
         except Exception as exc:  # logged, as a callback run on a worker thread is

@@ -23,6 +23,7 @@ not import it: no span can be current until then), or with no span current in th
 
 from __future__ import annotations
 
+import hashlib
 import sys
 from typing import Any
 
@@ -62,10 +63,13 @@ __all__ = [
     "caller_parent",
     "context_of",
     "current",
+    "derived",
     "detach",
+    "own_trace",
     "parse",
     "server_span",
     "span_id",
+    "status_callback",
     "under",
 ]
 
@@ -226,3 +230,34 @@ def detach(token: object | None) -> None:
     """Undo `attach` (with its token; `None`: nothing was attached)."""
     if token is not None:
         _context.detach(token)
+
+
+def derived(*parts: str, bits: int = 64) -> int:
+    """An id of `bits` bits made from `parts` alone (the same in every process), not 0."""
+    digest = hashlib.blake2b("\0".join(parts).encode(), digest_size=bits // 8).digest()
+    return int.from_bytes(digest, "big") or 1
+
+
+def status_callback(status_id: str, registrar: str, query_id: str) -> tuple[int, int]:
+    """The (trace id, span id) of the span of a status callback's run: a trace of its own,
+    derived from what its `StatusHandled` names, so that the subscriber that makes the
+    span from that event gives it the ids the callback's calls named as their parent."""
+    parts = ("status callback", status_id, registrar, query_id)
+    return derived(*parts, bits=128), derived(*parts)
+
+
+def own_trace(callback: tuple[str, str, str] | None = None) -> object | None:
+    """Run what follows as a trace of its own: make current here, in a context of its
+    own, the span of the status callback `callback` names (`(status_id, registrar,
+    query_id)`: `status_callback`'s ids, sampled), or no span at all (`None`); what was
+    current (a span a `load` left, the context a coroutine callback was bound in) is
+    not its parent. Its token for `detach`; `None` where OpenTelemetry is not imported."""
+    if _context is None and not _bind():
+        return None
+    span = _trace.INVALID_SPAN
+    if callback is not None:
+        ids = status_callback(*callback)
+        made = _trace.SpanContext(*ids, is_remote=False, trace_flags=_trace.TraceFlags(1))
+        span = _trace.NonRecordingSpan(made)
+    token: object = _context.attach(_trace.set_span_in_context(span, _context.Context()))
+    return token

@@ -57,7 +57,7 @@ from typing import Any
 
 from rr_actors import events
 from rr_actors._catalog import Resource
-from rr_actors._core import hlc, runtime, steps
+from rr_actors._core import hlc, runtime, steps, traces
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.loops import OnLoop
@@ -606,11 +606,14 @@ class _Call:
     def __call__(self) -> None:
         told = self.told
         began = hlc.CLOCK.now() if told is not None else 0
+        # a trace of its own: its run's span (made of its StatusHandled), else no span
+        own = traces.own_trace((told[2], told[1], self.query.id) if told is not None else None)
         try:
             self.callback(self.query, self.update)
         except BaseException:  # (a SystemExit too: logged, and its drainer goes on)
             logger.exception("status callback for %s raised", self.query.id)
         finally:
+            traces.detach(own)
             if told is not None:
                 publisher, name, status_id = told
                 publisher.publish(

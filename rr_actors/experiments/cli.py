@@ -116,9 +116,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--trace",
         action="store_true",
-        help="make OpenTelemetry spans of each run's calls, loads and restarts, exported where "
-        "the OTEL_* environment variables say (OTEL_TRACES_EXPORTER: default otlp; console "
-        "prints them); needs the otel extra",
+        help="make OpenTelemetry spans of each run's steps (a client's call, unload, a "
+        "fault), calls, loads and restarts, exported where the OTEL_* environment variables "
+        "say (OTEL_TRACES_EXPORTER: default otlp, to a collector; the run processes' output "
+        "is not shown); needs the otel extra",
     )
     parser.add_argument(
         "--force",

@@ -29,8 +29,10 @@ schedule stays the same for the same seed; what it meets may not).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
+from collections.abc import Callable
 
 import rr_actors as rr
 from rr_actors import events
@@ -64,6 +66,8 @@ class Injector:
         wall_t0: the same instant on the wall clock (`time.time()`).
         hosts: with `[hosts]`, the namespaces and the other hosts' processes (what
             `cut`, `partition`, `freeze` and `kill_router` act on).
+        step_span: with `--trace`, what each fault's firing runs under, a trace each:
+            `otel.Exporting.root_span` (`step_span(name, attributes=...)`).
     """
 
     def __init__(
@@ -75,8 +79,10 @@ class Injector:
         t0: float,
         wall_t0: float,
         hosts: tuple[HostNetwork | None, dict[str, HostProcess]] = (None, {}),
+        step_span: Callable[..., contextlib.AbstractContextManager[object]] | None = None,
     ) -> None:
         self.sup = sup
+        self._step_span = step_span
         self.plan = plan
         self.t0 = t0
         self.wall_t0 = wall_t0
@@ -147,10 +153,16 @@ class Injector:
             self._log.record(fault, at, None, "due after the run ended", skipped=True)
 
     def _fire(self, fault: ScheduledFault, scheduled: float) -> None:
-        if fault.kind in HOST_KINDS:
-            self._hosts.fire(fault, scheduled)
-        else:
-            self._managers.fire(fault, scheduled)
+        step: contextlib.AbstractContextManager[object] = contextlib.nullcontext()
+        if self._step_span is not None:  # (--trace: the fault is a step, a trace of its own)
+            target = fault.target or "every process"
+            attributes = {"rr_actors.fault": fault.kind, "rr_actors.target": target}
+            step = self._step_span(f"fault {fault.kind} {target}", attributes=attributes)
+        with step:
+            if fault.kind in HOST_KINDS:
+                self._hosts.fire(fault, scheduled)
+            else:
+                self._managers.fire(fault, scheduled)
 
     def _abandon(self, exc: Exception, left: list[Fires]) -> None:
         """The agenda's loop failed: record every fault still to come as skipped."""

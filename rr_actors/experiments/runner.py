@@ -28,6 +28,7 @@ import random
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -323,6 +324,8 @@ class _Drive:
     unread: int = 0  # managers whose catalog could not be read at the end
     hosts: list[_hosts.HostProcess] = dataclasses.field(default_factory=list)  # the others
     network: HostNetwork | None = None  # with `[hosts]`: the namespaces
+    # with `--trace`: what each step (a client's call, unload..., a fault) runs under
+    step_span: Callable[..., contextlib.AbstractContextManager[object]] | None = None
 
 
 def execute(spec: RunSpec, run_dir: Path, *, stop: threading.Event | None = None) -> RunResult:
@@ -361,7 +364,9 @@ def execute(spec: RunSpec, run_dir: Path, *, stop: threading.Event | None = None
         if spec.trace:
             from rr_actors import otel  # noqa: PLC0415 - only tracing needs it
 
-            stack.enter_context(otel.Exporting()).trace(sup)  # (closed after the stop)
+            exporting = stack.enter_context(otel.Exporting())  # (closed after the stop)
+            exporting.trace(sup)
+            drive.step_span = exporting.root_span  # each step a trace of its own
         try:
             sup.start()
             try:
@@ -483,7 +488,9 @@ def _drive(
         observer = sup.observe(host="127.0.0.1", port=0)
         print(json.dumps({"observe": observer.url}), flush=True)  # noqa: T201 - to the experiment
     drive.clients = [
-        Client(i, sup, plan, spec.seed, run_dir=work, on_failure=stop.set)
+        Client(
+            i, sup, plan, spec.seed, run_dir=work, on_failure=stop.set, step_span=drive.step_span
+        )
         for i in range(plan.workload.clients)
     ]
     t0, drive.wall_t0 = time.monotonic(), time.time()
@@ -494,6 +501,7 @@ def _drive(
         t0=t0,
         wall_t0=drive.wall_t0,
         hosts=(drive.network, {h.name: h for h in drive.hosts}),
+        step_span=drive.step_span,
     )
     log.injector = injector
     for client in drive.clients:

@@ -220,6 +220,9 @@ class Client:
         run_dir: the run's directory (for `{run_dir}`).
         on_failure: called (on the client's thread) when the client stopped on an error
             of its own, kept in `failure`; the runner ends the run early with it.
+        step_span: with `--trace`, what each of its steps (a call with its retries, an
+            unload, a fetch, the reload after a `FATAL`) runs under, a trace each:
+            `otel.Exporting.root_span` (`step_span(name, attributes=...)`).
     """
 
     def __init__(
@@ -231,8 +234,10 @@ class Client:
         *,
         run_dir: Path,
         on_failure: Callable[[], None] = lambda: None,
+        step_span: Callable[..., contextlib.AbstractContextManager[object]] | None = None,
     ) -> None:
         self.index = index
+        self._step_span = step_span
         self.sup = sup
         self.workload: Workload = plan.workload
         self.base_dir = plan.base_dir
@@ -441,13 +446,23 @@ class Client:
                 f"(client {self.index})"
             ) from exc
 
+    def _step(self, verb: str, mix: CallMix) -> contextlib.AbstractContextManager[object]:
+        """The context one step runs in: with `--trace`, a span `<verb> <manager>/<server>`,
+        the root of a trace of its own (the step's calls its descendants)."""
+        if self._step_span is None:
+            return contextlib.nullcontext()
+        attributes = {"rr_actors.client": self.index, "rr_actors.step": verb}
+        return self._step_span(f"{verb} {mix.manager}/{mix.server}", attributes=attributes)
+
     def _call_one(self) -> None:
         if self.workload.awaited:
             mix = self._await_calls()
         else:
             mix = self._choose()
             request = self._request(mix)
-            self._hold(mix, request, self._call(mix, request))
+            with self._step("call", mix):
+                query = self._call(mix, request)
+            self._hold(mix, request, query)
         self._since_fetch += self.workload.awaited or 1
         every = self.workload.fetch_every
         if every and self._since_fetch >= every:
@@ -460,7 +475,7 @@ class Client:
         The answer is not used: its registrar's `QueriesFetched` is what the check reads.
         A failure (the provider down, a cut connection) is left: the next fetch comes.
         """
-        with contextlib.suppress(rr.RrError):
+        with contextlib.suppress(rr.RrError), self._step("fetch", mix):
             self.registrar.fetch_queries(mix.manager, mix.server, timeout=self.workload.timeout)
 
     def _hold(self, mix: CallMix, request: Any, query: rr.Query | None) -> None:
@@ -505,6 +520,10 @@ class Client:
     async def _awaited(self, mix: CallMix, request: Any, cancel_after: float | None) -> Any:
         """One awaited call (retried through restarts), cancelled after `cancel_after` s
         if given; its query, or `None` if it failed or was cancelled."""
+        with self._step("call", mix):  # (this task's context: the call's task copies it)
+            return await self._awaited_call(mix, request, cancel_after)
+
+    async def _awaited_call(self, mix: CallMix, request: Any, cancel_after: float | None) -> Any:
         start = self._now()
         task = asyncio.ensure_future(
             self.sup.acall_with_retry(
@@ -584,6 +603,10 @@ class Client:
         return query
 
     def _unload(self, held: _Held, deadline: float) -> None:
+        with self._step("unload", held.mix):
+            self._unload_in_step(held, deadline)
+
+    def _unload_in_step(self, held: _Held, deadline: float) -> None:
         self._by_id.pop(held.query.id, None)
         try:
             retrying(
@@ -616,9 +639,13 @@ class Client:
         if status is rr.Status.UPDATE:
             self.recoveries.append(ClientRecovery(held.mix.manager, heard, self._now()))
             return
-        # FATAL: the resource is gone. Release every id this client holds of it (the
-        # same resource may be held twice: equal requests), then load it again once and
-        # give each of them the new one.
+        with self._step("reload", held.mix):
+            self._recover(held, heard)
+
+    def _recover(self, held: _Held, heard: float) -> None:
+        """A FATAL: the resource is gone. Release every id this client holds of it (the
+        same resource may be held twice: equal requests), then load it again once and
+        give each of them the new one."""
         dead = [
             h for h in self._held if h.mix is held.mix and h.query.response == held.query.response
         ]

@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 import rr_actors as rr
+from rr_actors._core import traces
 from rr_actors.mission import programs
 
 __all__ = ["ProcessTable", "cm_setup", "erm_setup", "rm_setup"]
@@ -406,12 +407,20 @@ class _RobotManager:
     def on_driver_status(self, query: rr.Query, update: rr.StatusUpdate) -> None:
         """Client status callback of a driver query: restart a driver that died."""
         if update.status is rr.Status.FATAL:
+            # (a thread starts with no trace context: it carries the callback's, so that
+            # the restart's calls are in the trace of the callback's run, `--trace`)
+            traced = traces.current()
             threading.Thread(
-                target=self.restart_driver, args=(query,), name="rm-restart-driver", daemon=True
+                target=self.restart_driver,
+                args=(query, traced),
+                name="rm-restart-driver",
+                daemon=True,
             ).start()
 
-    def restart_driver(self, dead: rr.Query) -> None:
-        """Release the dead driver, start a new one, tell the robot's consumers (`UPDATE`)."""
+    def restart_driver(self, dead: rr.Query, traced: str = "") -> None:
+        """Release the dead driver, start a new one, tell the robot's consumers (`UPDATE`);
+        under the span `traced` names (the status callback's run), if any."""
+        traces.adopt(traced)
         try:
             with contextlib.suppress(rr.UnknownQueryError):
                 self.registrar.unload(dead.id)
