@@ -32,7 +32,7 @@ from rr_actors._core.wire import WIRE_VERSION
 from rr_actors._registrar.life import Served
 from rr_actors._registrar.messages import Fetch, Revoke
 from rr_actors._transport.codec import frame
-from rr_actors._transport.zenoh import presence
+from rr_actors._transport.zenoh import callbacks, presence
 from rr_actors._transport.zenoh.net import ZenohNetwork
 from rr_actors._transport.zenoh.wire import MESSAGE, PYTHON, VERSION, parse, payload_of
 from rr_actors.testing import run_on_actor
@@ -907,6 +907,34 @@ def test_a_message_over_the_registrars_limit_is_answered_unread(
     _value, error = pickle.loads(payload)
     assert (9, True) == (token, isinstance(error, rr.MessageTooLargeError))
     assert not evil.exists()
+
+
+# -- leaving ---------------------------------------------------------------------------------------
+
+
+def test_a_close_whose_writer_runs_past_its_wait_says_so_naming_the_thread(
+    net: ZenohNetwork, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The close joins each thread of the carrier that calls Zenoh (`callbacks.worker`),
+    within `END_TIMEOUT`; one still running then is named in a WARNING (it could abort
+    the process if it ran on into the interpreter's end)."""
+    monkeypatch.setattr(callbacks, "END_TIMEOUT", 0.2)
+    carrier = net.link()
+    inside, release = threading.Event(), threading.Event()
+    outbox = carrier.outbox(carrier.keys.registrar("held"))
+    assert outbox is not None
+    outbox.run(lambda: (inside.set(), release.wait(10)))
+    assert inside.wait(5)
+    carrier.retire(outbox, rr.RegistrarStoppedError("gone"))
+    try:
+        with caplog.at_level(logging.WARNING, logger="rr_actors"):
+            net.close()
+    finally:
+        release.set()
+
+    warned = [r.getMessage() for r in caplog.records if "had not ended" in r.getMessage()]
+    assert 1 == len(warned)
+    assert f"system {net.system}: rr-zput-held had not ended 0.2 s" in warned[0]
 
 
 class TestNeverWaitingOnAnActor:
