@@ -508,6 +508,12 @@ class Forwarder(Generic[E]):
         """
         self._outbox.stop(timeout=timeout, last=self._ship)
 
+    @property
+    def executor(self) -> SerialExecutor:
+        """The executor of its thread, which calls `send` (to be joined once closed: a
+        `send` into a library whose calls must not run on as the interpreter ends)."""
+        return self._outbox.executor
+
     def __repr__(self) -> str:
         closed = self._outbox.executor.closed
         return f"<Forwarder {self.name!r} dropped={self.dropped} closed={closed}>"

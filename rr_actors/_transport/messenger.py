@@ -712,6 +712,7 @@ class Messenger:
         self._lock = runtime.Lock()
         self._served: dict[str, Listening] = {}
         self._yielding: dict[str, Listening] = {}  # rule 22: given way, not ended yet
+        self._early: dict[str, list[Ranked]] = {}  # names being served: rivals heard meanwhile
         self._peers: dict[str, Remote] = {}
         self._carrier: Carrier | None = None
         self._lookup: Callable[[str], Peer] = DIRECTORY.lookup
@@ -776,10 +777,20 @@ class Messenger:
             self._unserve(old, stopped=False)
         if peer is not None:
             peer.close(RegistrarUnavailableError(f"registrar {name!r} moved into this process"))
-        listening = carrier.listen(endpoint)
+        with self._lock:
+            self._early[name] = []
+        try:
+            listening = carrier.listen(endpoint)
+        except BaseException:
+            with self._lock:
+                self._early.pop(name, None)
+            raise
         with self._lock:
             self._served[name] = listening
+            early = self._early.pop(name, [])
         listening.settle()
+        for rival in early:  # (told of before it was listed: its carrier served it already)
+            self.served_elsewhere(name, rival)
         runtime.Thread(
             target=self._watch_end, args=(listening,), name=f"rr-watch-{name}", daemon=True
         ).start()
@@ -895,8 +906,15 @@ class Messenger:
         if this process serves it and rule 22 keeps `rival` (by the system's `resolve=`
         policy, `resolution`; by default the one served first, by its clock stamp; of
         equal stamps, the lower process id), this one gives way (`give_way`). The process
-        of the one kept does nothing: this one sees it too, and yields."""
-        local = self.serving(name)
+        of the one kept does nothing: this one sees it too, and yields. Told while `serve`
+        lists it (a `Claim` can come once its carrier serves it, before it is listed), it
+        is settled once listed."""
+        with self._lock:
+            local = self._served.get(name)
+            early = self._early.get(name) if local is None else None
+            if early is not None:
+                early.append(rival)
+                return
         if not isinstance(local, Ranked) or rival.who == local.who:
             return
         if self.resolution.kept(name, [local, rival]) is local:

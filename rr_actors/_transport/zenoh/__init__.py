@@ -4,7 +4,8 @@ The link: `net` (`ZenohNetwork`: a router per host, the session it opens, one sy
 process), `carrier` (`ZenohCarrier`: the messenger's carrier: routes, serving, answers),
 `link` (frames both ways: outboxes and the inbox), `presence` (who serves what, from
 liveliness tokens: the carrier's reports), `wire` (the key expressions and the header),
-`callbacks` (Zenoh's callback threads, ended before the interpreter finalizes).
+`callbacks` (Zenoh's callback threads, and rr_actors' threads that call Zenoh, ended
+before the interpreter finalizes).
 The operations, apart: `ops/` (TLS, the access control, the link watch, the gate, the
 events across hosts, the command line's options). Nothing here imports `zenoh` at the
 package's import: only its modules do.

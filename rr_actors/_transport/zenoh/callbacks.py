@@ -1,4 +1,5 @@
-"""Zenoh's callback threads, ended before the interpreter finalizes.
+"""Zenoh's callback threads, and rr_actors' threads that call Zenoh, ended before the
+interpreter finalizes.
 
 zenoh-python runs each Python callback (a subscriber's, a queryable's, a liveliness
 subscriber's, a listener's) on a `threading.Thread` of its own, which waits in Rust for
@@ -8,15 +9,27 @@ is a daemon too, which the interpreter does not wait for. On CPython < 3.14 a th
 takes the GIL once the interpreter finalizes is ended by `pthread_exit`, whose unwinding
 through Zenoh's Rust frames makes glibc abort the process ("FATAL: exception not
 rethrown", SIGABRT; cpython#87135, pyo3#4874): a callback running as the program ends,
-or a callback thread woken by its session's close a moment too late.
+or a callback thread woken by its session's close a moment too late. So does a daemon
+thread of rr_actors inside a Zenoh call then (every call releases the GIL, on a closed
+session too): an outbox's writer, the presence thread, a decode thread, the events'
+forwarder, each with a task still running as the session closes (`worker`; the link
+watch and the gate join their own threads before the session closes).
 
 ```
  declare_*(key, tracked(session, fn))   its thread is counted (per session) while it lives
    zenoh's thread per callback ─► fn(sample) ... until the declaration goes
- ZenohCarrier.leave: session.close() ─► wait_ended(session): each such thread ended, joined
+ worker(session, executor)              an rr_actors thread that calls Zenoh (weakly held)
+ ZenohCarrier.leave: each executor closed (its owner's close) ─► session.close() (a Zenoh
+   call in progress returns) ─► wait_ended(session): each executor's thread and each
+   callback thread ended, joined
    (the exit hook closes a network left open as the main thread ends: `_core.exit`,
     before the interpreter finalizes)
 ```
+
+Why joined after the close, not before it: a thread held in a Zenoh call (a `get` that
+waits for its timeout, a put blocked by a congested link) returns only when the session
+closes; one that calls Zenoh once it closed gets an error at once, which each caller
+takes as "the session closed".
 
 How a thread is seen to end without a hook in zenoh-python: Zenoh calls the callback's
 `drop` on its thread as the thread ends (which names the thread, to join it). A
@@ -31,25 +44,55 @@ import threading
 import time
 import weakref
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 if TYPE_CHECKING:
     import zenoh
 
-__all__ = ["END_TIMEOUT", "live", "tracked", "wait_ended"]
+__all__ = ["END_TIMEOUT", "Worker", "live", "tracked", "wait_ended", "worker"]
 
 T = TypeVar("T")
 
 END_TIMEOUT = 2.0
-"""Seconds a session's close waits for its callback threads to end (they end at once: a
-callback of the carrier queues what it gets, never blocks)."""
+"""Seconds a session's close waits for its callback threads and its workers to end (they
+end at once: a callback of the carrier queues what it gets, never blocks; a worker's task
+finds the session closed)."""
+
+
+class Worker(Protocol):
+    """A thread of rr_actors that calls Zenoh, as its executor (`SerialExecutor`,
+    `Forwarder`): its owner closes it, the session's close joins it."""
+
+    @property
+    def name(self) -> str:
+        """Its thread's name (for the WARNING of one that did not end)."""
+        ...
+
+    def join(self, timeout: float | None) -> bool:
+        """Wait (at most `timeout` s) until it ended; whether it did."""
+        ...
+
+    def on_own_thread(self) -> bool:
+        """Whether the calling thread is its thread."""
+        ...
+
 
 _Ref = weakref.ref[Any]
 
 _cond = threading.Condition()
 _live: dict[str, set[_Ref]] = {}  # session's Zenoh id -> one per callback thread not ended
 _ending: dict[str, list[threading.Thread]] = {}  # threads whose callback was dropped
+_workers: dict[str, weakref.WeakSet[Worker]] = {}  # session's Zenoh id -> its workers
 _local = threading.local()  # `.callback`: the session whose tracked callback this thread runs
+
+
+def worker(session: zenoh.Session, executor: Worker) -> None:
+    """Count `executor` (whose thread calls Zenoh on `session`) among what the session's
+    close joins (`wait_ended`), once its owner closed it. Held weakly: one that ended and
+    was let go of is forgotten."""
+    zid = str(session.zid())
+    with _cond:
+        _workers.setdefault(zid, weakref.WeakSet()).add(executor)
 
 
 def tracked(session: zenoh.Session, callback: Callable[[T], object]) -> zenoh.handlers.Callback[T]:
@@ -92,21 +135,41 @@ def live(session: zenoh.Session) -> int:
         return len(_live.get(str(session.zid()), ()))
 
 
-def wait_ended(session: zenoh.Session, timeout: float = END_TIMEOUT) -> bool:
-    """Wait until every callback thread of `session` ended (the session closed, or their
-    declarations went), and join each: none then runs Python again.
+def wait_ended(session: zenoh.Session, timeout: float | None = None) -> list[str]:
+    """Wait until every worker of `session` (`worker`: its owner closed it) and every
+    callback thread of it (the session closed, or their declarations went) ended, and
+    join each: none then runs Python again.
 
-    Called after the session closed (the caller's thread; on a callback's own thread, that
-    one is not waited for). Returns whether all ended within `timeout` seconds.
+    Called after the session closed (the caller's thread; on a callback's own thread, or
+    a worker's, that one is not waited for).
+
+    Returns:
+        What had not ended within `timeout` seconds (`None`: `END_TIMEOUT`): each worker's
+        name, then the count of callback threads (`"2 Zenoh callback threads"`); empty
+        when all ended.
     """
-    deadline = time.monotonic() + timeout
+    deadline = time.monotonic() + (END_TIMEOUT if timeout is None else timeout)
     zid = str(session.zid())
+    with _cond:
+        workers = list(_workers.pop(zid, ()))
+    left = sorted(
+        executor.name
+        for executor in workers
+        if not executor.on_own_thread() and not executor.join(max(0.0, deadline - time.monotonic()))
+    )
     own = 1 if getattr(_local, "callback", None) == zid else 0  # (closed from its callback)
     with _cond:
-        ended = _cond.wait_for(lambda: len(_live.get(zid, ())) <= own, timeout)
+        _cond.wait_for(
+            lambda: len(_live.get(zid, ())) <= own, max(0.0, deadline - time.monotonic())
+        )
         ending = _ending.pop(zid, [])
     me = threading.current_thread()
     for thread in ending:
         if thread is not me:
             thread.join(max(0.0, deadline - time.monotonic()))
-    return ended and not any(thread.is_alive() for thread in ending if thread is not me)
+    with _cond:
+        running = max(len(_live.get(zid, ())) - own, 0)
+    running += sum(thread.is_alive() for thread in ending if thread is not me)
+    if running:
+        left.append(f"{running} Zenoh callback threads")
+    return left

@@ -452,9 +452,10 @@ class ZenohCarrier:
         return self.presence.names()
 
     def leave(self) -> None:
-        """Fail what waits, put what was sent (for `DRAIN_TIMEOUT` seconds at most),
-        close the session, then wait until Zenoh's callback threads ended (`callbacks`:
-        one that ran on into the interpreter's end would abort the process)."""
+        """Fail what waits, put what was sent (for `DRAIN_TIMEOUT` seconds at most), stop
+        this carrier's threads, close the session, then wait until they and Zenoh's
+        callback threads ended (`callbacks`: one that ran on into the interpreter's end,
+        inside a Zenoh call or a callback, would abort the process)."""
         self.replies.fail(None, RegistrarStoppedError("this process left the system"))
         self.events.close()
         self._outboxes.close(drain=DRAIN_TIMEOUT)  # (what was sent before goes out first)
@@ -464,11 +465,13 @@ class ZenohCarrier:
             self.session.close()  # type: ignore[no-untyped-call]
         if self._on_close is not None:
             self._on_close()
-        if not callbacks.wait_ended(self.session):
+        left = callbacks.wait_ended(self.session)
+        if left:
             logger.warning(
-                "system %s: %d Zenoh callback threads had not ended %g s after the session closed",
+                "system %s: %s had not ended %g s after the session closed (one that runs "
+                "Python as the interpreter ends aborts the process on CPython < 3.14)",
                 self.system,
-                callbacks.live(self.session),
+                ", ".join(left),
                 callbacks.END_TIMEOUT,
             )
 

@@ -61,6 +61,7 @@ from rr_actors._core.serial import SerialExecutor, Task
 from rr_actors._core.throttle import LogThrottle, short
 from rr_actors._transport.codec import NO_REPLY
 from rr_actors._transport.messenger import Listening, Lost, Messenger, Replies, run_lost
+from rr_actors._transport.zenoh import callbacks
 from rr_actors._transport.zenoh.wire import (
     ANSWER,
     MESSAGE,
@@ -118,6 +119,7 @@ class Outbox:
             self.declare()
         name = f"rr-zput-{key.rsplit('/', 1)[-1]}"
         self._queue = SerialExecutor(name, on_drop=self._lost)
+        callbacks.worker(session, self._queue)  # (joined by the session's close)
 
     @property
     def closed(self) -> bool:
@@ -285,6 +287,12 @@ class InboxOwner(Protocol):
         """What decoded messages are handed to."""
         ...
 
+    @property
+    def session(self) -> zenoh.Session:
+        """The session whose close joins the decode threads (they may call Zenoh: an
+        answer to a process not answered before declares its publisher)."""
+        ...
+
     def member(self, zid: str) -> bool:
         """Whether process `zid`'s liveliness token is here now (Zenoh's threads)."""
         ...
@@ -302,12 +310,14 @@ class Inbox:
     def __init__(self, owner: InboxOwner) -> None:
         self._owner = owner
         self._messenger = owner.messenger
+        self._session = owner.session
         self.replies = Replies()
         self._lock = threading.Lock()
         self._closed = False
         self._inboxes: dict[tuple[str, int], SerialExecutor] = {}
         self._warned: set[str] = set()
         self._strangers = SerialExecutor("rr-zread-strangers")
+        callbacks.worker(self._session, self._strangers)
         self._pending: dict[tuple[str, int], int] = {}  # frames on `_strangers`, by stream
         self._held = (0, 0)  # frames and bytes on `_strangers`
         self._arrived: set[str] = set()  # tokens that came while `_strangers` held frames
@@ -370,6 +380,7 @@ class Inbox:
                             self._wait_for_token(key, item, size)
                             return
                         inbox = SerialExecutor(f"rr-zread-{head.sender[:8]}-{kind}")
+                        callbacks.worker(self._session, inbox)
                         self._inboxes[key] = inbox
             if inbox.submit(task):
                 return

@@ -648,9 +648,9 @@ class ZenohNetwork(Messenger):
 
     def close(self) -> None:
         """Leave the system: stop serving, fail what waits, close the session, and wait (at
-        most 2 s) until Zenoh's callback threads ended: none of them runs Python after the
-        interpreter began to end, which aborts the process on CPython < 3.14 (idempotent;
-        a network never opened stays so)."""
+        most 2 s) until Zenoh's callback threads and rr_actors' threads that call Zenoh
+        ended: none of them runs Python after the interpreter began to end, which aborts
+        the process on CPython < 3.14 (idempotent; a network never opened stays so)."""
         if self._watch is not None:
             self._watch.close()  # before the session goes
         if self._gate is not None:

@@ -67,6 +67,7 @@ from rr_actors._core.serial import SerialExecutor
 from rr_actors._core.throttle import LogThrottle, short
 from rr_actors._transport.messenger import kept, rank, when
 from rr_actors._transport.resolve import FIRST_SERVED, Resolution
+from rr_actors._transport.zenoh import callbacks
 from rr_actors._transport.zenoh.callbacks import tracked
 from rr_actors._transport.zenoh.wire import HostKey, Keys, NameAt, ServerKey
 from rr_actors.errors import DuplicateNameError, RegistrarStoppedError, RegistrarUnavailableError
@@ -240,6 +241,7 @@ class Presence:
             "stopped": self._stopped_token,
         }
         self._queue = SerialExecutor("rr-zpresence")
+        callbacks.worker(session, self._queue)  # (its reports may call Zenoh)
         self._live = session.liveliness().declare_subscriber(
             self._keys.live(), tracked(session, self._on_live), history=True
         )

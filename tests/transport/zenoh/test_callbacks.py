@@ -1,11 +1,13 @@
-"""Zenoh's callback threads (`rr_actors._transport.zenoh.callbacks`): counted while they
-live, and ended before the interpreter finalizes, so that none takes the GIL then (on
-CPython < 3.14 glibc aborts the process: "FATAL: exception not rethrown").
+"""Zenoh's callback threads and rr_actors' threads that call Zenoh
+(`rr_actors._transport.zenoh.callbacks`): counted while they live, and ended before the
+interpreter finalizes, so that none takes the GIL then (on CPython < 3.14 glibc aborts
+the process: "FATAL: exception not rethrown").
 
 The exit tests run a program in its own interpreter: a callback declared from a daemon
 thread (as an actor's: its thread is a daemon too) runs as the program ends, held until
-the interpreter's `atexit` (at most `HOLD` s). Before the fix, every such program was
-killed by SIGABRT.
+the interpreter's `atexit` (at most `HOLD` s); or a thread of rr_actors (an outbox's
+writer, the presence thread) calls Zenoh on and on as the network closes (for `BUSY` s).
+Before the fix, every such program was killed by SIGABRT.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ pytest.importorskip("zenoh")
 
 import zenoh
 
+from rr_actors._core.serial import SerialExecutor
 from rr_actors._transport.zenoh import callbacks
 from rr_actors._transport.zenoh.ops.config import session_config
 
@@ -84,6 +87,81 @@ def test_a_program_whose_zenoh_callback_runs_as_it_ends_exits_without_an_abort(
     assert [(0, False, "ending\n")] * RUNS == results, done.stderr
 
 
+CALLING_RUNS = 2
+"""Programs run per thread and ending (each aborted before the fix, not by chance: 40 of
+40 did; each takes `BUSY` s more than a program of the first test)."""
+
+BUSY = 1.0
+"""Seconds the program's thread of rr_actors calls Zenoh on and on from when the network
+begins to close: well under `callbacks.END_TIMEOUT`, so that a loaded machine still ends
+it within the close's wait, and longer than a close that does not wait for it takes to
+reach the interpreter's end (so the thread is inside a Zenoh call then)."""
+
+CALLING = textwrap.dedent(
+    """
+    import sys, threading, time
+    import rr_actors as rr
+    from rr_actors.errors import RegistrarStoppedError
+
+    system, thread, ending, busy = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4])
+    net = rr.ZenohNetwork(system=system, tls=None)
+    carrier = net.link()
+    session, key = carrier.session, f"rr/{system}/obs/test/delta"
+    inside = threading.Event()
+
+    def calling(*_):  # a task of one of rr_actors' threads that calls Zenoh, `busy` s long
+        inside.set()
+        deadline = time.monotonic() + busy
+        while time.monotonic() < deadline:
+            try:
+                session.put(key, b"x")
+            except Exception:  # (the session closed meanwhile)
+                pass
+        print("done", flush=True)
+
+    if thread == "writer":  # an outbox's writer, retired as it runs (its destination went)
+        outbox = carrier.outbox(key)
+        outbox.run(calling)
+        assert inside.wait(10), "the writer did not run the task"
+        carrier.retire(outbox, RegistrarStoppedError("gone"))
+    else:  # the presence thread, as it runs what a process's end calls for
+        carrier.process_gone = calling
+        session.liveliness().declare_token(carrier.keys.proc("abc123")).undeclare()
+        assert inside.wait(10), "the presence thread did not hear the process go"
+    if ending == "close":
+        net.close()
+    print("ending", flush=True)  # "open": the exit hook closes the network
+    """
+)
+
+
+@pytest.mark.parametrize("ending", ["close", "open"])
+@pytest.mark.parametrize("thread", ["writer", "presence"])
+def test_a_program_whose_thread_calls_zenoh_as_its_network_closes_exits_without_an_abort(
+    thread: str, ending: str
+) -> None:
+    results = []
+    for _ in range(CALLING_RUNS):
+        done = subprocess.run(  # noqa: PLW1510 - the exit code is what is checked
+            [
+                sys.executable,
+                "-c",
+                CALLING,
+                f"zc-{uuid.uuid4().hex[:8]}",
+                thread,
+                ending,
+                str(BUSY),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        results.append((done.returncode, "FATAL" in done.stderr, done.stdout))
+
+    ended = "done\nending\n" if ending == "close" else "ending\ndone\n"  # (joined by the close)
+    assert [(0, False, ended)] * CALLING_RUNS == results, done.stderr
+
+
 @pytest.fixture
 def session() -> Iterator[zenoh.Session]:
     opened = zenoh.open(session_config("peer", [], [], 1.0))
@@ -104,7 +182,7 @@ def test_a_callback_thread_is_counted_until_its_subscriber_is_undeclared(
 
     assert before + 1 == callbacks.live(session)
     subscriber.undeclare()  # type: ignore[no-untyped-call]
-    assert callbacks.wait_ended(session, 5)
+    assert [] == callbacks.wait_ended(session, 5)
     assert before == callbacks.live(session)
 
 
@@ -125,14 +203,31 @@ def test_every_callback_thread_of_a_closed_session_is_ended_and_joined() -> None
 
     opened.close()  # type: ignore[no-untyped-call]
 
-    assert callbacks.wait_ended(opened, 5)
+    assert [] == callbacks.wait_ended(opened, 5)
     assert 0 == callbacks.live(opened)
     assert [] == [thread for thread in made if thread.is_alive()]
+
+
+def test_a_worker_is_joined_once_closed_and_named_while_it_runs_past_the_wait(
+    session: zenoh.Session,
+) -> None:
+    inside, release = threading.Event(), threading.Event()
+    held = SerialExecutor("rr-test-held")
+    callbacks.worker(session, held)
+    held.submit(lambda: (inside.set(), release.wait(10)))
+    assert inside.wait(5)
+    held.close(timeout=0)
+
+    assert ["rr-test-held"] == callbacks.wait_ended(session, 0.1)
+    release.set()
+    callbacks.worker(session, held)
+    assert [] == callbacks.wait_ended(session, 5)
+    assert held.join(0)
 
 
 def test_a_declaration_that_fails_leaves_nothing_to_wait_for(session: zenoh.Session) -> None:
     with pytest.raises(zenoh.ZError):
         session.declare_subscriber("test//bad", callbacks.tracked(session, lambda _: None))
 
-    assert callbacks.wait_ended(session, 5)
+    assert [] == callbacks.wait_ended(session, 5)
     assert 0 == callbacks.live(session)

@@ -32,7 +32,9 @@ from rr_actors._core.wire import WIRE_VERSION
 from rr_actors._registrar.life import Served
 from rr_actors._registrar.messages import Fetch, Revoke
 from rr_actors._transport.codec import frame
-from rr_actors._transport.zenoh import presence
+from rr_actors._transport.messenger import Messenger
+from rr_actors._transport.zenoh import callbacks, presence
+from rr_actors._transport.zenoh.carrier import ZenohCarrier
 from rr_actors._transport.zenoh.net import ZenohNetwork
 from rr_actors._transport.zenoh.wire import MESSAGE, PYTHON, VERSION, parse, payload_of
 from rr_actors.testing import run_on_actor
@@ -673,12 +675,15 @@ def _deaf_main(
     connect: str,
     name: str,
     deaf_to: str,
+    told_first: bool,
     control: multiprocessing.connection.Connection,
 ) -> None:
     """A router process whose presence never hears process `deaf_to`'s token of registrar
     `name` (as after a link that healed one way; every other token and every message
     crosses): it serves `name` too, says "ready", then "yielded" once its registrar ended
-    (within 10 s) or "serving", then waits to be told to stop."""
+    (within 10 s) or "serving", then waits to be told to stop. `told_first`: its serve
+    lists the registrar as served only once it was told of another server (at most 10 s
+    after its carrier served it: the moment in between, stretched)."""
     from tests.support.waiting import wait_for  # noqa: PLC0415
 
     apply = presence.Presence._apply
@@ -689,6 +694,21 @@ def _deaf_main(
             apply(self, item)
 
     presence.Presence._apply = deaf  # type: ignore[method-assign]
+    if told_first:
+        told = threading.Event()
+        served_elsewhere, listen = Messenger.served_elsewhere, ZenohCarrier.listen
+
+        def heard(self: Messenger, named: str, rival: Any) -> None:
+            served_elsewhere(self, named, rival)
+            told.set()
+
+        def listen_until_told(self: ZenohCarrier, endpoint: Any) -> Any:
+            local = listen(self, endpoint)
+            told.wait(10)
+            return local
+
+        Messenger.served_elsewhere = heard  # type: ignore[method-assign]
+        ZenohCarrier.listen = listen_until_told  # type: ignore[method-assign]
     network = rr.ZenohNetwork(system=system, connect=[connect], tls=None)
     registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
     try:
@@ -715,8 +735,28 @@ def test_a_process_that_does_not_hear_the_kept_server_is_told_by_its_process_and
     try:
         net.serve(Served(kept))
         zid = net.link().zid  # type: ignore[attr-defined]
-        _, control = children.start(_deaf_main, net.system, _tcp(net), name, zid)
+        _, control = children.start(_deaf_main, net.system, _tcp(net), name, zid, False)
         assert control.poll(20)
+        assert "yielded" == control.recv()
+        assert kept.is_alive()
+    finally:
+        kept.stop()
+
+
+def test_a_process_told_of_the_kept_server_before_it_lists_its_own_yields_once_it_does(
+    net: ZenohNetwork, children: Started
+) -> None:
+    """As above, the kept server's claim forced into the moment between the other
+    process's carrier serving the name (its token out) and its messenger listing it as
+    served: the claim is settled once it is listed (before, it was dropped, and both
+    served on: once in 4 full runs of the suite)."""
+    name = f"cm-{uuid.uuid4().hex[:6]}"
+    kept = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
+    try:
+        net.serve(Served(kept))
+        zid = net.link().zid  # type: ignore[attr-defined]
+        _, control = children.start(_deaf_main, net.system, _tcp(net), name, zid, True)
+        assert control.poll(30)
         assert "yielded" == control.recv()
         assert kept.is_alive()
     finally:
@@ -907,6 +947,34 @@ def test_a_message_over_the_registrars_limit_is_answered_unread(
     _value, error = pickle.loads(payload)
     assert (9, True) == (token, isinstance(error, rr.MessageTooLargeError))
     assert not evil.exists()
+
+
+# -- leaving ---------------------------------------------------------------------------------------
+
+
+def test_a_close_whose_writer_runs_past_its_wait_says_so_naming_the_thread(
+    net: ZenohNetwork, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The close joins each thread of the carrier that calls Zenoh (`callbacks.worker`),
+    within `END_TIMEOUT`; one still running then is named in a WARNING (it could abort
+    the process if it ran on into the interpreter's end)."""
+    monkeypatch.setattr(callbacks, "END_TIMEOUT", 0.2)
+    carrier = net.link()
+    inside, release = threading.Event(), threading.Event()
+    outbox = carrier.outbox(carrier.keys.registrar("held"))
+    assert outbox is not None
+    outbox.run(lambda: (inside.set(), release.wait(10)))
+    assert inside.wait(5)
+    carrier.retire(outbox, rr.RegistrarStoppedError("gone"))
+    try:
+        with caplog.at_level(logging.WARNING, logger="rr_actors"):
+            net.close()
+    finally:
+        release.set()
+
+    warned = [r.getMessage() for r in caplog.records if "had not ended" in r.getMessage()]
+    assert 1 == len(warned)
+    assert f"system {net.system}: rr-zput-held had not ended 0.2 s" in warned[0]
 
 
 class TestNeverWaitingOnAnActor:

@@ -56,6 +56,7 @@ import zenoh
 from rr_actors import events
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Forwarder, Publisher, Subscription
 from rr_actors._core.throttle import LogThrottle, short
+from rr_actors._transport.zenoh import callbacks
 from rr_actors._transport.zenoh.callbacks import tracked
 from rr_actors._transport.zenoh.wire import Keys
 from rr_actors.errors import ConfigError
@@ -211,6 +212,7 @@ class EventExport:
         self, session: zenoh.Session, keys: Keys, zid: str, seal: Seal | None = None
     ) -> None:
         self._seal = seal
+        self._session = session
         self._lock = threading.Lock()
         self._closed = False
         self._forwarder: Forwarder[events.Event] | None = None
@@ -233,6 +235,7 @@ class EventExport:
                 self._forwarder = Forwarder(
                     self._send, notice=events.EventsDropped, name="system-events"
                 )
+                callbacks.worker(self._session, self._forwarder.executor)  # (it puts)
                 events.everything().add_sink(self._forwarder)
                 self._sending.notify_all()
             elif not status.matching and self._forwarder is not None:
