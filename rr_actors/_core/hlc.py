@@ -175,7 +175,9 @@ class HybridClock:
         ConfigError: `max_offset` is not seconds above 0 and at most a year.
     """
 
-    __slots__ = ("_ended", "_last", "_lock", "_max_ahead", "_refusals", "physical", "refused")
+    # (no `__slots__`: a simulation keeps a clock per simulated process, and swaps an
+    # instance's `__dict__` whole at a switch between processes, where a slotted one's
+    # fields are copied out and back, one by one: `simulation/_processes.py`)
 
     def __init__(
         self,

@@ -306,20 +306,27 @@ def _own_garbage() -> Iterator[None]:
     (CPython's `gc.freeze`: moved out of the collector's generations) and one full
     collection at its end looks at the block's objects alone; then it is put back
     (`gc.unfreeze`). What was garbage before it is collected later, as it would have
-    been. Only where `gc.freeze` exists and nothing was frozen already (the caller's
-    own use of it is left alone); elsewhere it does nothing (the simulation's own
-    collection, `simulation.run`, frees a killed process's memory then).
+    been. The collector is off meanwhile (as the run's steps have it, `Scheduler.run`):
+    the young collections that the history and its verdict set off (some 35 a killheavy
+    seed) would walk what that one collection walks. Only where `gc.freeze` exists and
+    nothing was frozen already (the caller's own use of it is left alone); elsewhere it
+    does nothing (the simulation's own collection, `simulation.run`, frees a killed
+    process's memory then).
     """
     freeze = getattr(gc, "freeze", None)
     if freeze is None or gc.get_freeze_count() > 0:
         yield
         return
+    collecting = gc.isenabled()
+    gc.disable()
     freeze()
     try:
         yield
     finally:
         gc.collect()
         gc.unfreeze()
+        if collecting:
+            gc.enable()
 
 
 def _run_seed(plan: Plan, seed: int, started: float) -> SimulatedRun:

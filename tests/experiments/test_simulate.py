@@ -126,6 +126,24 @@ def test_a_seeds_world_is_collected_as_it_ends_and_the_heap_before_it_left_alone
     assert (run.verdict, after, gc.get_freeze_count()) == ("held", before, 0)
 
 
+def test_a_seeds_history_and_verdict_are_made_with_the_collector_off(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The young collections that a seed's history and verdict would set off are left to
+    its last, full one (`_own_garbage`); the collector is on again once it returned."""
+    enabled: list[bool] = []
+    check_history = check.check
+
+    def checked(history: Any) -> Any:
+        enabled.append(gc.isenabled())
+        return check_history(history)
+
+    monkeypatch.setattr(check, "check", checked)
+    run = simulate.run_seed(simkill(), 1)
+
+    assert (run.verdict, enabled, gc.isenabled()) == ("held", [False], True)
+
+
 @SWEEP
 def test_seeds_run_in_a_process_leave_no_file_open_without_the_garbage_collector(
     monkeypatch: pytest.MonkeyPatch,

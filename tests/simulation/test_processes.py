@@ -195,3 +195,16 @@ def test_each_process_keeps_its_own_state_of_a_plain_and_a_slotted_singleton(
     assert [99] == plain.items
     assert 0 == slotted.count
     assert not hasattr(slotted, "late")
+
+
+def test_every_registered_instance_is_swapped_whole_at_a_switch() -> None:
+    """A switch between simulated processes (most steps of a run) swaps each registered
+    singleton's `__dict__`, one assignment each; only a class (pykka's registry) has its
+    fields copied out and back in, one by one (a slotted instance would: the clock was)."""
+    from rr_actors._core import hlc  # noqa: PLC0415
+
+    states = States(runtime.process_states())
+    copied = [obj for _, obj, _, _ in states._copied]
+
+    assert [] == [obj for obj in copied if not isinstance(obj, type)]
+    assert hlc.CLOCK in [obj for _, obj in states._swapped]
