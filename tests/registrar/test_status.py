@@ -751,6 +751,16 @@ class Said:
             self.gate.wait(60)
 
 
+class AwaitedSaid(Said):
+    """`Said` as a coroutine callback (it runs on its loop): at `"0"` it awaits the gate
+    on a thread of its own (`asyncio.to_thread`), its loop free meanwhile."""
+
+    async def __call__(self, _query: rr.Query, update: rr.StatusUpdate) -> None:  # type: ignore[override]
+        self.said.append(update.message)
+        if self.gate is not None and update.message == "0":
+            await asyncio.to_thread(self.gate.wait, 60)
+
+
 def threads_of(registrar: Any, placement: str) -> int:
     """The threads of `registrar`'s process now."""
     if placement == "thread":
@@ -764,18 +774,20 @@ class TestHungConsumer:
 
     STATUSES = 2_000
 
+    @pytest.mark.parametrize("hang", [Said, AwaitedSaid], ids=["plain", "coroutine"])
     def test_a_hung_callback_costs_a_bounded_number_of_threads_and_is_named_as_given_up(
-        self, make_registrar, serve, gates, shared, registrar_placement
+        self, make_registrar, serve, gates, shared, registrar_placement, hang
     ):
-        """Mutation caught: `send_status` waits for every callback (it raised
-        `CallTimeoutError` at the first status, and each of the 2,000 waited its timeout);
-        a status queued behind a busy callback starts a thread; coalescing undone (the
-        hung id hears every status once its callback returns)."""
+        """Plain or coroutine alike. Mutation caught: `send_status` waits for every
+        callback (it raised `CallTimeoutError` at the first status, and each of the 2,000
+        waited its timeout); a status queued behind a busy callback starts a thread;
+        coalescing undone (the hung id hears every status once its callback returns; a
+        coroutine one's were each a task queued on its loop)."""
         provider, consumer = make_registrar("provider"), make_registrar("consumer")
         serve(provider, "leaf")
         gate = gates()
         hung_said, said = shared.list(), shared.list()
-        hung = consumer.call(provider.name, "leaf", "x", on_status=Said(hung_said, gate))
+        hung = consumer.call(provider.name, "leaf", "x", on_status=hang(hung_said, gate))
         others = [consumer.call(provider.name, "leaf", "x") for _ in range(2)]
         heard = consumer.call(provider.name, "leaf", "x", on_status=Said(said))
         before = threads_of(consumer, registrar_placement)
