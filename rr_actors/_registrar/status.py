@@ -3,7 +3,8 @@ path to the top (rule 9, thesis 4.2.4).
 
 ```
  send_status(id) ─► StatusRelay.notify(resource): a FATAL marks it failed first; its
-   server's on_status once; then its consumer registrars, by process (Routes.plan):
+   server's on_status once (on the Runner, a lane per resource, never given up on);
+   then its consumer registrars, by process (Routes.plan):
    this process ──────────► DESK.deliver(parts), on this actor's thread
    another process, known ─► one StatusBatch to that process's relay (a registrar there,
                              the same one each time: notices keep their order); a
@@ -209,7 +210,11 @@ class StatusRelay:
                 resource.response,
             )
             self.run_callback(
-                server.on_status, query, dataclasses.replace(update, query_id=query_id), join
+                server.on_status,
+                query,
+                dataclasses.replace(update, query_id=query_id),
+                join,
+                resource.id,
             )
         in_process: list[tuple[str, tuple[str, ...]]] = []
         elsewhere: list[tuple[str, tuple[str, ...]]] = []
@@ -340,28 +345,25 @@ class StatusRelay:
             refused.append(error)
 
     def run_callback(
-        self, callback: StatusCallback, query: Query, update: StatusUpdate, join: SharedJoin
+        self,
+        callback: StatusCallback,
+        query: Query,
+        update: StatusUpdate,
+        join: SharedJoin,
+        resource_id: str,
     ) -> None:
-        """Run a status callback on a worker thread (a coroutine one: on its loop); its
-        part of `join` is done after it."""
-        done = join.add()
+        """Run a server's `on_status` on the process's status runner (a coroutine one: on
+        its loop), in a lane of its own per resource: its statuses one at a time, in
+        order, coalesced behind one that runs (a hung one holds one thread, never this
+        registrar's workers); its part of `join` is done after it. Never given up on
+        (rule 9: the provider hears it before `send_status` returns, within its timeout).
+        """
+        lane = f"on_status\0{self.registrar.name}\0{resource_id}"
+        call = _Call(callback, query, update, join.add(), lane=lane)
         if isinstance(callback, OnLoop):
-            callback.submit(query, update, then=_done_by(done), key=query.id)
-            return
-
-        def run() -> None:
-            try:
-                callback(query, update)
-            except Exception:
-                logger.exception("status callback for %s raised", query.id)
-            finally:
-                done()
-
-        try:
-            self.registrar.workers.submit(run)
-        except RuntimeError:  # no thread could start: skip the callback, keep serving
-            logger.exception("no worker thread for the status callback of %s", query.id)
-            done()
+            DESK.runner.on_loop(call)
+        else:
+            DESK.runner.run((call,))
 
     def on_status_batch(self, batch: StatusBatch, reply: Reply) -> None:
         """A relay: deliver a status to the consumer registrars of this process in one
@@ -526,6 +528,7 @@ class _Call:
         "done",
         "gave_up",
         "given_up",
+        "lane",
         "merged",
         "opened",
         "query",
@@ -545,8 +548,10 @@ class _Call:
         told: tuple[Publisher[events.Event], str, str] | None = None,
         deadline: float | None = None,
         gave_up: list[str] | None = None,
+        lane: str | None = None,
     ) -> None:
         self.callback = callback
+        self.lane = query.id if lane is None else lane  # (its calls run one at a time)
         self.query = query
         self.update = update
         self.done = done
@@ -650,12 +655,6 @@ def _deadline(patience: float | None) -> float | None:
     return None if patience is None else runtime.monotonic() + patience
 
 
-def _done_by(done: Callable[..., None]) -> Callable[[BaseException | None], None]:
-    """A coroutine status callback's end (`OnLoop.submit`'s `then`): its part of the
-    join is done (what it raised was logged on its loop)."""
-    return lambda _error: done()
-
-
 class _Drainer:
     """One worker's turn at the runner's queue."""
 
@@ -726,7 +725,7 @@ class Runner:
             for call in calls:
                 self._arrived += 1
                 call.seq = self._arrived
-                query_id = call.query.id
+                query_id = call.lane
                 lane = self._lanes.get(query_id)
                 holder = self._holders.get(query_id)
                 if holder is not None:  # (behind its running callback)
@@ -749,7 +748,7 @@ class Runner:
         once while its id's running call is given up on)."""
         dones: list[Callable[..., None]] = []
         with self._lock:
-            running = self._on_loop.get(call.query.id)
+            running = self._on_loop.get(call.lane)
             if running is not None:
                 dones = _queue_behind(self._loop_lanes, call, running)
                 start = None
@@ -768,7 +767,7 @@ class Runner:
     def _hold_on_loop(self, call: _Call) -> _Call:
         """(Holding the lock.) `call` holds its id's coroutine lane (and is watched for
         its deadline, and those merged into it, if it is not settled): it runs now."""
-        self._on_loop[call.query.id] = call
+        self._on_loop[call.lane] = call
         if call.wake is not None:
             self._awaited[call] = None
         return call
@@ -780,14 +779,14 @@ class Runner:
             call.query,
             call.update,
             then=functools.partial(self._returned, call),
-            key=call.query.id,
+            key=call.lane,
             waits=functools.partial(self._loop_waits, call),
         )
 
     def _next_on_loop(self, call: _Call) -> _Call | None:
         """(Holding the lock.) `call` lets its id's coroutine lane go (if it holds it):
         the lane's next call, which holds it now, to submit (`None`: none)."""
-        query_id = call.query.id
+        query_id = call.lane
         if self._on_loop.get(query_id) is not call:
             return None
         del self._on_loop[query_id]
@@ -868,7 +867,7 @@ class Runner:
 
     def _let_go(self, drainer: _Drainer, call: _Call) -> None:
         """(Holding the lock.) Open the lane `drainer` holds for `call` (if it still does)."""
-        query_id = call.query.id
+        query_id = call.lane
         if self._holders.get(query_id) is not drainer or drainer.call is not call:
             return
         del self._holders[query_id]
@@ -899,7 +898,7 @@ class Runner:
                     return
                 drainer.call = call
                 drainer.started = runtime.monotonic()
-                self._holders[call.query.id] = drainer
+                self._holders[call.lane] = drainer
                 self._running[call] = None
                 self._inside.add(drainer)
             token = when_waiting(functools.partial(self._waits, drainer, call))
@@ -991,9 +990,9 @@ def _queue_behind(
     """(Holding the runner's lock.) Queue `call` in its id's lane of `lanes`, behind that
     id's `running` callback (on a worker thread, or a coroutine's on its loop), coalesced
     (`_coalesce`); given up on at once if that one was: the `done`s to call."""
-    lane = lanes.get(call.query.id)
+    lane = lanes.get(call.lane)
     if lane is None:
-        lane = lanes[call.query.id] = collections.deque()
+        lane = lanes[call.lane] = collections.deque()
     if call.update.status is not Status.FATAL:
         _coalesce(lane, call)
     lane.append(call)

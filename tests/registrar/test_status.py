@@ -809,6 +809,34 @@ class TestHungConsumer:
         # (the latest status, and every FATAL, in arrival order)
         assert ["0", "700", "1400", str(self.STATUSES - 1)] == list(hung_said)
 
+    def test_a_hung_server_on_status_holds_one_thread_not_its_registrars_workers(
+        self, make_registrar, gates, shared
+    ):
+        """A server's own `on_status` runs on the status runner, its statuses coalesced
+        behind one that hangs (it is not given up on: each `send_status` times out).
+        Mutation caught: on the registrar's workers, each status held one of them, and a
+        load of another server of the registrar waited behind them (`max_workers=2`)."""
+        provider = make_registrar("provider", max_workers=2)
+        consumer = make_registrar("consumer")
+        gate, said = gates(), shared.list()
+
+        def on_status(_query: rr.Query, update: rr.StatusUpdate) -> None:
+            said.append(update.message)
+            assert gate.wait(60)
+
+        provider.register_server("leaf", load=lambda r: r, unload=_no_unload, on_status=on_status)
+        provider.register_server("other", load=lambda r: r, unload=_no_unload)
+        query = consumer.call(provider.name, "leaf", "x", timeout=10)
+        try:
+            for number in range(6):
+                with pytest.raises(rr.CallTimeoutError):
+                    provider.send_status(query.id, rr.Status.UPDATE, str(number), timeout=0.3)
+            assert "y" == consumer.call(provider.name, "other", "y", timeout=10).response
+        finally:
+            gate.set()
+        assert wait_for(lambda: 2 == len(said), timeout=10)
+        assert ["0", "5"] == list(said)  # (the latest, once the hung one returned)
+
 
 class TestFanout:
     """A status to many consumer registrars of several processes, in one pass per process
