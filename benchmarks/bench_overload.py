@@ -15,6 +15,11 @@ unloaded at once (with the same bound). Printed per `--window` seconds (10):
 
 then, `--drain` seconds (10) after the offer ends, the loads still run for nobody.
 
+`--bystander`: a second consumer registrar makes one call a second meanwhile (timeout
+`--bystander-timeout`, 2 s), and its answers and their latency are printed: with a
+server bound (`--max-pending`, the provider's `max_pending`) that the flood fills, what
+is left of it for another consumer (issue 53: each takes at most its share).
+
 Placements: `--placement thread` (both registrars in this process) or `process` (the
 provider in a manager process of a `Supervisor`); `--kind threads` (a blocking `load`:
 its calls wait for a worker) or `asyncio` (a coroutine `load`: no worker, but the
@@ -24,6 +29,7 @@ Usage:
     python benchmarks/bench_overload.py [--placement thread|process]
         [--kind threads|asyncio] [--seconds 30] [--factor 10] [--load-s 0.05]
         [--workers 2] [--timeout 1.0] [--window 10] [--drain 10]
+        [--max-pending 1000] [--bystander] [--bystander-timeout 2.0]
 """
 
 from __future__ import annotations
@@ -89,6 +95,27 @@ def server_setup(log: str, load_s: float, workers: int, kind: str) -> Callable[[
         registrar.register_server("slow", load=aload, unload=aunload)
 
     return setup
+
+
+async def bystand(
+    other: Any, provider: str, args: argparse.Namespace, stop: asyncio.Event
+) -> list[float | str]:
+    """One call a second from another consumer until `stop`: each one's latency (s), or
+    the name of its error (requests -1, -2, ...: apart from the flood's)."""
+    outcomes: list[float | str] = []
+    n = 0
+    while not stop.is_set():
+        n += 1
+        began = time.perf_counter()
+        try:
+            query = await other.acall(provider, "slow", -n, timeout=args.bystander_timeout)
+            outcomes.append(time.perf_counter() - began)
+            await other.aunload(query.id, timeout=args.bystander_timeout)
+        except rr.RrError as exc:
+            outcomes.append(type(exc).__name__)
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(stop.wait(), max(0.0, 1.0 - (time.perf_counter() - began)))
+    return outcomes
 
 
 async def offer(app: Any, provider: str, args: argparse.Namespace) -> dict[str, Any]:
@@ -197,11 +224,32 @@ def lines_in(path: str) -> int:
         return sum(1 for _ in lines)
 
 
-async def run(app: Any, provider: str, pid: int | None, args: argparse.Namespace, log: str) -> None:
+async def run(
+    app: Any,
+    provider: str,
+    pid: int | None,
+    args: argparse.Namespace,
+    log: str,
+    other: Any = None,
+) -> None:
     rss: list[str] = []
     stop = asyncio.Event()
     sampler = asyncio.ensure_future(sample_rss(pid, args.window, rss, stop))
+    quiet = asyncio.Event()
+    bystander = asyncio.ensure_future(bystand(other, provider, args, quiet)) if other else None
     result = await offer(app, provider, args)
+    quiet.set()
+    if bystander is not None:
+        outcomes = await bystander
+        times = sorted(o for o in outcomes if isinstance(o, float))
+        failed = [o for o in outcomes if isinstance(o, str)]
+        print(
+            f"bystander: {len(times)} of {len(outcomes)} calls answered (timeout "
+            f"{args.bystander_timeout:g} s), latency median "
+            f"{times[len(times) // 2] if times else float('nan'):.3f} s, max "
+            f"{times[-1] if times else float('nan'):.3f} s; failed: "
+            f"{ {name: failed.count(name) for name in sorted(set(failed))} }"
+        )
     await asyncio.sleep(args.drain)  # loads queued for nobody would run on now
     ran_before = lines_in(log)
     await asyncio.sleep(1.0)
@@ -226,6 +274,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--timeout", type=float, default=1.0)
     parser.add_argument("--window", type=float, default=10.0)
     parser.add_argument("--drain", type=float, default=10.0)
+    parser.add_argument("--max-pending", type=int, default=1000)
+    parser.add_argument("--bystander", action="store_true")
+    parser.add_argument("--bystander-timeout", type=float, default=2.0)
     args = parser.parse_args(argv)
     print(
         f"python {platform.python_version()}, {platform.machine()}, rr_actors from "
@@ -237,14 +288,19 @@ def main(argv: list[str] | None = None) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         log = str(Path(tmp) / "loads.log")
         setup = server_setup(log, args.load_s, args.workers, args.kind)
-        config = rr.RegistrarConfig(name=f"overload-{suffix}", max_workers=args.workers)
+        config = rr.RegistrarConfig(
+            name=f"overload-{suffix}", max_workers=args.workers, max_pending=args.max_pending
+        )
         if args.placement == "thread":
             provider = rr.ResourceRegistrar.start(config)
             app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"app-{suffix}"))
+            other = rr.ResourceRegistrar.start(f"other-{suffix}") if args.bystander else None
             try:
                 setup(provider)
-                asyncio.run(run(app, provider.name, None, args, log))
+                asyncio.run(run(app, provider.name, None, args, log, other))
             finally:
+                if other is not None:
+                    other.stop()
                 app.stop()
                 provider.stop()
             return
@@ -253,7 +309,9 @@ def main(argv: list[str] | None = None) -> None:
         )
         with rr.Supervisor([spec]) as sup:
             app = sup.registrar(f"app-{suffix}")
-            asyncio.run(run(app, config.name, sup.child(config.name).pid, args, log))
+            other = sup.registrar(f"other-{suffix}") if args.bystander else None
+            pid = sup.child(config.name).pid
+            asyncio.run(run(app, config.name, pid, args, log, other))
 
 
 if __name__ == "__main__":
