@@ -21,6 +21,11 @@ time, at most 40 a second each: the 400 together) or `thread` (one such thread).
 blocking caller waits within its timeout, so threads offer no more than they can wait
 for: the bound slows them instead of queueing for them.
 
+`--bystander`: a second consumer registrar makes one call a second meanwhile (timeout
+`--bystander-timeout`, 2 s), and its answers and their latency are printed: with a
+server bound (`--max-pending`, the provider's `max_pending`) that the flood fills, what
+is left of it for another consumer (issue 53: each takes at most its share).
+
 Placements: `--placement thread` (both registrars in this process) or `process` (the
 provider in a manager process of a `Supervisor`, with its default heartbeat: the
 provider's restarts, which a busy provider killed as hung would show, and the tree's
@@ -32,6 +37,7 @@ Usage:
     python benchmarks/bench_overload.py [--placement thread|process]
         [--callers asyncio|threads|thread] [--kind threads|asyncio] [--seconds 30]
         [--factor 10] [--load-s 0.05] [--workers 2] [--timeout 1.0] [--window 10] [--drain 10]
+        [--max-pending 1000] [--bystander] [--bystander-timeout 2.0]
 """
 
 from __future__ import annotations
@@ -121,6 +127,27 @@ class GaveUp:
         self._out.close()
         with open(self.path) as lines:
             return {int(n): float(at) for n, at in (line.split() for line in lines)}
+
+
+async def bystand(
+    other: Any, provider: str, args: argparse.Namespace, stop: asyncio.Event
+) -> list[float | str]:
+    """One call a second from another consumer until `stop`: each one's latency (s), or
+    the name of its error (requests -1, -2, ...: apart from the flood's)."""
+    outcomes: list[float | str] = []
+    n = 0
+    while not stop.is_set():
+        n += 1
+        began = time.perf_counter()
+        try:
+            query = await other.acall(provider, "slow", -n, timeout=args.bystander_timeout)
+            outcomes.append(time.perf_counter() - began)
+            await other.aunload(query.id, timeout=args.bystander_timeout)
+        except rr.RrError as exc:
+            outcomes.append(type(exc).__name__)
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(stop.wait(), max(0.0, 1.0 - (time.perf_counter() - began)))
+    return outcomes
 
 
 async def offer(app: Any, provider: str, args: argparse.Namespace) -> dict[str, Any]:
@@ -289,15 +316,36 @@ def lines_in(path: str) -> int:
         return sum(1 for _ in lines)
 
 
-async def run(app: Any, provider: str, pid: int | None, args: argparse.Namespace, log: str) -> None:
+async def run(
+    app: Any,
+    provider: str,
+    pid: int | None,
+    args: argparse.Namespace,
+    log: str,
+    other: Any = None,
+) -> None:
     rss: list[str] = []
     stop = asyncio.Event()
     sampler = asyncio.ensure_future(sample_rss(pid, args.window, rss, stop))
+    quiet = asyncio.Event()
+    bystander = asyncio.ensure_future(bystand(other, provider, args, quiet)) if other else None
     if args.callers == "asyncio":
         result = await offer(app, provider, args)
     else:
         threads = 10 if args.callers == "threads" else 1
         result = await asyncio.to_thread(offer_blocking, app, provider, args, threads)
+    quiet.set()
+    if bystander is not None:
+        outcomes = await bystander
+        times = sorted(o for o in outcomes if isinstance(o, float))
+        failed = [o for o in outcomes if isinstance(o, str)]
+        print(
+            f"bystander: {len(times)} of {len(outcomes)} calls answered (timeout "
+            f"{args.bystander_timeout:g} s), latency median "
+            f"{times[len(times) // 2] if times else float('nan'):.3f} s, max "
+            f"{times[-1] if times else float('nan'):.3f} s; failed: "
+            f"{ {name: failed.count(name) for name in sorted(set(failed))} }"
+        )
     await asyncio.sleep(args.drain)  # loads queued for nobody would run on now
     ran_before = lines_in(log)
     await asyncio.sleep(1.0)
@@ -323,6 +371,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--timeout", type=float, default=1.0)
     parser.add_argument("--window", type=float, default=10.0)
     parser.add_argument("--drain", type=float, default=10.0)
+    parser.add_argument("--max-pending", type=int, default=1000)
+    parser.add_argument("--bystander", action="store_true")
+    parser.add_argument("--bystander-timeout", type=float, default=2.0)
     args = parser.parse_args(argv)
     print(
         f"python {platform.python_version()}, {platform.machine()}, rr_actors from "
@@ -336,14 +387,19 @@ def main(argv: list[str] | None = None) -> None:
         log = str(Path(tmp) / "loads.log")
         args.gave_up_log = str(Path(tmp) / "gave-up.log")
         setup = server_setup(log, args.load_s, args.workers, args.kind)
-        config = rr.RegistrarConfig(name=f"overload-{suffix}", max_workers=args.workers)
+        config = rr.RegistrarConfig(
+            name=f"overload-{suffix}", max_workers=args.workers, max_pending=args.max_pending
+        )
         if args.placement == "thread":
             provider = rr.ResourceRegistrar.start(config)
             app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"app-{suffix}"))
+            other = rr.ResourceRegistrar.start(f"other-{suffix}") if args.bystander else None
             try:
                 setup(provider)
-                asyncio.run(run(app, provider.name, None, args, log))
+                asyncio.run(run(app, provider.name, None, args, log, other))
             finally:
+                if other is not None:
+                    other.stop()
                 app.stop()
                 provider.stop()
             return
@@ -351,8 +407,9 @@ def main(argv: list[str] | None = None) -> None:
         sup = rr.Supervisor([spec]).start()
         try:
             app = sup.registrar(f"app-{suffix}")
+            other = sup.registrar(f"other-{suffix}") if args.bystander else None
             pid = sup.child(config.name).pid
-            asyncio.run(run(app, config.name, pid, args, log))
+            asyncio.run(run(app, config.name, pid, args, log, other))
             after = sup.child(config.name).pid
             print(
                 f"provider restarted (killed as hung or crashed): {'no' if after == pid else 'YES'}"

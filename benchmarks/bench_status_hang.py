@@ -14,11 +14,14 @@ sends `--statuses` statuses (2,000), each a `send_status(..., timeout=--timeout)
     gave up     sends whose result named a consumer given up on (when `send_status`
                 returns a `StatusDelivery`; "-" where it returns None)
     last heard  whether every healthy id heard the last status (its callback's record)
-    queued      calls waiting in the hung id's lane after the last send (thread placement:
-                the process's status runner, read directly; "-" in a manager process)
+    queued      calls waiting in the hung id's lane after the last send, and tasks on the
+                process's own loop (coroutine callbacks: each would run) (thread
+                placement: the process's status runner, read directly; "-" in a manager
+                process)
 
 Each placement runs twice: `hung` (the one hung callback) and its floor `none` (the
-same, no callback hangs), in the same run.
+same, no callback hangs), in the same run. `--callback coroutine`: the callbacks are
+`async def` (the hung one awaits its release on a thread of its own, `asyncio.to_thread`).
 
 Placements: `thread` (provider and consumers in this process) and `process` (the
 consumers in a manager process of a `System`, the provider here; the threads counted
@@ -27,12 +30,13 @@ are the manager's, read with psutil).
 Usage:
     python benchmarks/bench_status_hang.py [--placement thread process]
         [--consumers 200] [--registrars 4] [--statuses 2000] [--senders 4]
-        [--timeout 0.5]
+        [--timeout 0.5] [--callback plain|coroutine]
 """
 
 from __future__ import annotations
 
 import argparse
+import asyncio
 import contextlib
 import os
 import threading
@@ -47,7 +51,12 @@ from rr_actors.testing import RemoteRegistrar, System
 
 
 def consumer_setup(
-    address: Any, provider: str, registrars: int, consumers: int, hang: bool
+    address: Any,
+    provider: str,
+    registrars: int,
+    consumers: int,
+    hang: bool,
+    coroutine: bool = False,
 ) -> Callable[[rr.ResourceRegistrar], None]:
     """Consumer registrars (in the process of `host`), `consumers` ids of `provider`'s
     resource, the first id's callback hung if `hang`; server "probe" answers what the ids
@@ -68,13 +77,21 @@ def consumer_setup(
             with lock:
                 last[query.id] = update.message
 
+        async def record_awaited(query: rr.Query, update: rr.StatusUpdate) -> None:
+            if hung and query.id == hung[0] and update.message != "warm-up":
+                await asyncio.to_thread(release.wait)
+                return
+            with lock:
+                last[query.id] = update.message
+
+        callback = record_awaited if coroutine else record
         registrars_here.extend(
             rr.ResourceRegistrar.start(f"{host.name}-c{number}", network=network)
             for number in range(registrars)
         )
         for index in range(consumers):
             consumer = registrars_here[index % registrars]
-            query = consumer.call(provider, "leaf", "r", on_status=record, timeout=30)
+            query = consumer.call(provider, "leaf", "r", on_status=callback, timeout=30)
             if hang and index == 0:
                 hung.append(query.id)
 
@@ -103,10 +120,18 @@ def threads_of(pid: int | None) -> int:
 def queued_here() -> int:
     """The longest lane of this process's status runner now (its private state: a
     benchmark's look inside)."""
+    from rr_actors._core.loops import process_loop  # noqa: PLC0415
     from rr_actors._registrar.status import DESK  # noqa: PLC0415
 
-    lanes = DESK.runner._lanes
-    return max((len(lane) for lane in list(lanes.values())), default=0)
+    async def tasks() -> int:
+        return len(asyncio.all_tasks()) - 1  # (not this one)
+
+    on_loop = asyncio.run_coroutine_threadsafe(tasks(), process_loop()).result(timeout=30)
+    lanes = [
+        *list(DESK.runner._lanes.values()),
+        *list(getattr(DESK.runner, "_loop_lanes", {}).values()),
+    ]
+    return max((len(lane) for lane in lanes), default=0) + on_loop
 
 
 def heard_last(
@@ -138,6 +163,7 @@ def run(placement: str, hang: bool, args: argparse.Namespace) -> dict[str, Any]:
         args.registrars,
         args.consumers,
         hang,
+        args.callback == "coroutine",
     )
     if system is None:
         host = rr.ResourceRegistrar.start(f"host-{uid}")
@@ -201,10 +227,12 @@ def main() -> None:
     parser.add_argument("--statuses", type=int, default=2000)
     parser.add_argument("--senders", type=int, default=4)
     parser.add_argument("--timeout", type=float, default=0.5)
+    parser.add_argument("--callback", choices=["plain", "coroutine"], default="plain")
     args = parser.parse_args()
     print(
         f"{args.consumers} consumer ids on {args.registrars} registrars, {args.statuses} "
-        f"statuses from {args.senders} threads, timeout {args.timeout} s; "
+        f"statuses from {args.senders} threads, timeout {args.timeout} s, "
+        f"{args.callback} callbacks; "
         f"load {os.getloadavg()[0]:.1f}"
     )
     print(

@@ -186,7 +186,10 @@ class RegistrarConfig:
             and gets `OverloadedError` (naming the registrar, the server and the bound)
             when too little time is left. Default: 1000 (`DEFAULT_MAX_PENDING`), which
             ordinary loads never reach; a server registered with its own
-            (`register_server(..., max_pending=)`) has that one instead.
+            (`register_server(..., max_pending=)`) has that one instead. A consumer
+            registrar alone may take all of it; while others want loads there too, each
+            takes at most its share (the bound divided among them), so one that floods a
+            server cannot keep another's calls from it.
 
     Raises:
         ConfigError: a field is invalid; the message names it.

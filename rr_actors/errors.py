@@ -174,7 +174,8 @@ class DeadlineExceededError(CallTimeoutError):
 
 
 class OverloadedError(RrError):
-    """A server had as much work under way as its registrar's `max_pending` allows, for
+    """A server had as much work under way as its registrar's `max_pending` allows (or
+    the calling registrar its share of it, while other consumers want loads there), for
     as long as the call could wait.
 
     A call refused so waits and asks again (a blocking call on its thread, an awaited

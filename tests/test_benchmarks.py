@@ -67,10 +67,12 @@ SMALLEST = {
         "20",
         "--senders",
         "2",
+        *("--callback", "coroutine"),
     ],
     "bench_outbox.py": ["--rounds", "1", "--loads", "5"],
     "bench_overload.py": [
         *("--seconds", "1", "--factor", "2", "--timeout", "0.5", "--window", "1", "--drain", "0.2"),
+        *("--max-pending", "20", "--bystander"),
     ],
     "bench_otel.py": ["--rounds", "1", "--batch", "5"],
     "bench_otel_acall.py": ["--count", "20", "--batch", "5"],

@@ -235,24 +235,37 @@ class OnLoop:
         """`submit(*args)`: run a call on the loop; returns at once."""
         self.submit(*args)
 
-    def submit(self, *args: Any, then: Then | None = None, key: Any = None) -> None:
+    def submit(
+        self,
+        *args: Any,
+        then: Then | None = None,
+        key: Any = None,
+        waits: Callable[[], object] | None = None,
+    ) -> None:
         """Run `fn(*args)` on the loop after the calls of `key` submitted before (class
         docstring); `then(error)` on the loop thread once it ended (`error`: what it
-        raised, or `None`).
+        raised, or `None`); `waits()` (any thread, maybe more than once) as it lets the
+        next one of its key go (`replies.let_go`).
 
         A loop that is closed runs nothing: `then` gets a `RuntimeError` at once, here.
         """
         try:
-            self.loop.call_soon_threadsafe(self._start, args, then, key)
+            self.loop.call_soon_threadsafe(self._start, args, then, key, waits)
         except RuntimeError as exc:  # the loop was closed
             if then is not None:
                 then(exc)
 
-    def _start(self, args: tuple[Any, ...], then: Then | None, key: Any) -> None:
+    def _start(
+        self,
+        args: tuple[Any, ...],
+        then: Then | None,
+        key: Any,
+        waits: Callable[[], object] | None,
+    ) -> None:
         before = self._tails.get(key)
         going = asyncio.Event()
         task = self.loop.create_task(
-            self._run(before, going, args, then, key), context=self._context.copy()
+            self._run(before, going, args, then, key, waits), context=self._context.copy()
         )  # (a copy each: what one call sets in its context is its own)
         self._tails[key] = (task, going)
 
@@ -263,11 +276,13 @@ class OnLoop:
         args: tuple[Any, ...],
         then: Then | None,
         key: Any,
+        waits: Callable[[], object] | None,
     ) -> None:
         if before is not None:
             await _behind(*before)
         error: BaseException | None = None
-        when_waiting(functools.partial(_set_soon, self.loop, going))  # (this task's context)
+        # (this task's context)
+        when_waiting(functools.partial(_set_soon, self.loop, going, waits))
         traces.own_trace()  # (no span current: not the one it was bound under)
         try:
             await self.fn(*args)
@@ -283,10 +298,15 @@ class OnLoop:
             del self._tails[key]
 
 
-def _set_soon(loop: asyncio.AbstractEventLoop, event: asyncio.Event) -> None:
-    """Set `event` on `loop` (from any thread); a closed loop has nobody waiting."""
+def _set_soon(
+    loop: asyncio.AbstractEventLoop, event: asyncio.Event, waits: Callable[[], object] | None
+) -> None:
+    """Set `event` on `loop` (from any thread; a closed loop has nobody waiting), and
+    tell `waits` (its submitter's hook), if any."""
     with contextlib.suppress(RuntimeError):
         loop.call_soon_threadsafe(event.set)
+    if waits is not None:
+        waits()
 
 
 async def _behind(before: asyncio.Task[None], going: asyncio.Event) -> None:

@@ -490,7 +490,8 @@ class Registrar:
         is still given up on. A given-up id's statuses queue behind its callback, coalesced
         (its latest, and every `FATAL`, in arrival order), and run once it returns. A
         server's own `on_status` (this one's, and those up the dependency paths) is never
-        given up on: it is waited for, within `timeout`.
+        given up on: it is waited for, within `timeout`; its statuses queue behind it,
+        coalesced as well (one thread held, not one of its registrar's workers each).
 
         Args:
             query_id: any consumer id of a resource this registrar serves.

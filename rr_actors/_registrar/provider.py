@@ -128,6 +128,7 @@ from rr_actors.errors import (
 )
 
 __all__ = [
+    "Admission",
     "Lives",
     "Matching",
     "Provider",
@@ -151,6 +152,10 @@ slower than the average, need time too."""
 _REFUSALS_EVERY = 1.0
 """Seconds between two `ServerOverloaded` events of one server (its first refusal is
 published at once, the refusals in between are counted in the next)."""
+
+_WANTING = 2.0
+"""Seconds a consumer registrar refused a load of a server counts as wanting loads there
+(`Admission`): twenty times a refused caller's longest pause before it asks again."""
 
 _LOAD_S_WEIGHT = 0.2
 """How far one load's run time moves its server's average (`ServerActor.ran`): about the
@@ -188,6 +193,75 @@ class Lives:
         return life_order(life) < life_order(known)
 
 
+class Admission:
+    """Which new loads each server takes (issue 53): at most its bound under way, and of
+    them at most a fair share per consumer registrar while others want some.
+
+    A consumer's share at a server is the bound divided among the consumer registrars
+    that have loads under way there or were refused one within `_WANTING` seconds (itself
+    included; at least 1). A consumer alone takes the whole bound; once another is
+    refused, the first takes no more until it is under its share, so the slots its loads
+    free go to the other: one greedy consumer cannot keep the queue from the rest.
+    """
+
+    __slots__ = ("counted", "of", "pending", "wanting")
+
+    def __init__(self) -> None:
+        self.pending: dict[str, int] = {}  # server -> its loads queued or running
+        self.of: dict[str, dict[str, int]] = {}  # server -> consumer -> its loads of them
+        self.wanting: dict[str, dict[str, float]] = {}  # server -> consumer -> refused when
+        self.counted: dict[str, tuple[str, str]] = {}  # resource id -> (server, consumer)
+
+    def refusal(self, server: str, origin: str, bound: int) -> tuple[int, int, int] | None:
+        """Why `server` takes no new load of consumer `origin` now (noted as wanting
+        loads there), if it does not: (its loads under way, `origin`'s, its share)."""
+        pending = self.pending.get(server, 0)
+        if not pending:  # (the hot path: nothing under way, nobody to share with)
+            return None
+        mine = self.of.get(server, {}).get(origin, 0)
+        wanting = self.wanting.get(server, {})
+        now = runtime.monotonic()
+        for name in [name for name, when in wanting.items() if now - when > _WANTING]:
+            del wanting[name]
+        if not wanting:
+            self.wanting.pop(server, None)
+        consumers = {*self.of.get(server, ()), *wanting, origin}
+        share = max(1, bound // len(consumers))
+        if pending < bound and mine < share:
+            return None
+        self.wanting.setdefault(server, {})[origin] = now
+        return pending, mine, share
+
+    def admit(self, rid: str, server: str, origin: str) -> None:
+        """The load of `rid` starts, for consumer `origin`: one more under way."""
+        self.pending[server] = self.pending.get(server, 0) + 1
+        mine = self.of.setdefault(server, {})
+        mine[origin] = mine.get(origin, 0) + 1
+        self.counted[rid] = (server, origin)
+        wanting = self.wanting.get(server)
+        if wanting is not None and wanting.pop(origin, None) is not None and not wanting:
+            del self.wanting[server]
+
+    def done(self, rid: str) -> None:
+        """The load of `rid` ended (or was withdrawn): one less under way."""
+        counted = self.counted.pop(rid, None)
+        if counted is None:
+            return
+        server, origin = counted
+        left = self.pending[server] - 1
+        if left > 0:
+            self.pending[server] = left
+        else:
+            del self.pending[server]
+        mine = self.of[server]
+        if mine[origin] > 1:
+            mine[origin] -= 1
+        else:
+            del mine[origin]
+            if not mine:
+                del self.of[server]
+
+
 class Provider:
     """Serves this registrar's resources to consumers (its own calls included)."""
 
@@ -196,7 +270,7 @@ class Provider:
         self.releases = releases
         self.teardown = teardown
         self.loads: dict[str, list[Waiter]] = {}  # resource id -> the callers waiting for it
-        self.pending: dict[str, int] = {}  # server -> its loads queued or running (admission)
+        self.admission = Admission()  # each server's loads queued or running, by consumer
         self.loading_ids: dict[str, str] = {}  # a waiting caller's query id -> its resource
         self.abandoned: set[str] = set()  # query ids whose callers gave up while it loaded
         self.held_loads: list[Load] = []  # for servers `setup` has not registered yet
@@ -456,15 +530,23 @@ class Provider:
     def start_load(self, server: Server, message: Load, waiter: Waiter, key: Any) -> None:
         """Load a request not loaded here (`key`: its `runtime_key` if it has no digest),
         unless its server has `max_pending` loads under way already (its own, or the
-        registrar's: `OverloadedError`, its caller waits and asks again, `calls.py`)."""
+        registrar's), or its consumer its share of them (`Admission`): `OverloadedError`,
+        its caller waits and asks again (`calls.py`)."""
         bound = server.max_pending or self.registrar.config.max_pending
-        pending = self.pending.get(server.name, 0)
-        if pending >= bound:
+        origin = message.origin_rr
+        refused = self.admission.refusal(server.name, origin, bound)
+        if refused is not None:
+            pending, mine, share = refused
             self.refused(server, pending, bound)
+            why = (
+                f"has {pending} loads queued or running, its bound (max_pending={bound})"
+                if pending >= bound
+                else f"has {mine} loads of {origin!r} queued or running, its share of its "
+                f"bound (max_pending={bound}) while other consumers want loads there ({share})"
+            )
             message.reply.set_error(
                 OverloadedError(
-                    f"'{self.registrar.name}/{server.name}' has {pending} loads queued or "
-                    f"running, its bound (max_pending={bound}): it takes no more for now",
+                    f"'{self.registrar.name}/{server.name}' {why}: it takes no more for now",
                     self.registrar.name,
                     server.name,
                     bound,
@@ -492,7 +574,7 @@ class Provider:
             message.reply.set_error(failed)
             return
         self.loads[rid] = [waiter]
-        self.pending[server.name] = pending + 1
+        self.admission.admit(rid, server.name, origin)
         self.loading_ids[message.query_id] = rid
         self.load_started[rid] = runtime.monotonic()
         reply = self.registrar.come_back(lambda value, error: self.load_done(rid, value, error))
@@ -529,7 +611,7 @@ class Provider:
         for waiter in waiters:
             self.loading_ids.pop(waiter.query_id, None)
         resource = catalog.resources[rid]
-        self.done_pending(resource.server)
+        self.admission.done(rid)
         if self.registrar.events.active:
             published_load(self.registrar, resource, waiters[0], load_s, error)
         if error is not None:
@@ -658,7 +740,7 @@ class Provider:
         resource = catalog.resources[rid]
         for waiter in self.loads.pop(rid):
             self.loading_ids.pop(waiter.query_id, None)
-        self.done_pending(resource.server)
+        self.admission.done(rid)
         error = CallTimeoutError(
             f"the load of {describe(resource.request)} at '{self.registrar.name}/"
             f"{resource.server}' was withdrawn before it ran: every caller gave up"
@@ -675,14 +757,6 @@ class Provider:
                 waiter.reply.set_error(CallTimeoutError(f"call {waiter.query_id} was given up"))
 
         self.releases.release_dependencies(rid, gone)
-
-    def done_pending(self, server: str) -> None:
-        """A load of `server` ended (or was withdrawn): one less under way."""
-        left = self.pending.get(server, 0) - 1
-        if left > 0:
-            self.pending[server] = left
-        else:
-            self.pending.pop(server, None)
 
     def origin_under_way(self, query_id: str) -> str | None:
         """The registrar whose load of `query_id` is under way here, if one is."""

@@ -3,7 +3,8 @@ path to the top (rule 9, thesis 4.2.4).
 
 ```
  send_status(id) ─► StatusRelay.notify(resource): a FATAL marks it failed first; its
-   server's on_status once; then its consumer registrars, by process (Routes.plan):
+   server's on_status once (on the Runner, a lane per resource, never given up on);
+   then its consumer registrars, by process (Routes.plan):
    this process ──────────► DESK.deliver(parts), on this actor's thread
    another process, known ─► one StatusBatch to that process's relay (a registrar there,
                              the same one each time: notices keep their order); a
@@ -209,7 +210,11 @@ class StatusRelay:
                 resource.response,
             )
             self.run_callback(
-                server.on_status, query, dataclasses.replace(update, query_id=query_id), join
+                server.on_status,
+                query,
+                dataclasses.replace(update, query_id=query_id),
+                join,
+                resource.id,
             )
         in_process: list[tuple[str, tuple[str, ...]]] = []
         elsewhere: list[tuple[str, tuple[str, ...]]] = []
@@ -340,28 +345,25 @@ class StatusRelay:
             refused.append(error)
 
     def run_callback(
-        self, callback: StatusCallback, query: Query, update: StatusUpdate, join: SharedJoin
+        self,
+        callback: StatusCallback,
+        query: Query,
+        update: StatusUpdate,
+        join: SharedJoin,
+        resource_id: str,
     ) -> None:
-        """Run a status callback on a worker thread (a coroutine one: on its loop); its
-        part of `join` is done after it."""
-        done = join.add()
+        """Run a server's `on_status` on the process's status runner (a coroutine one: on
+        its loop), in a lane of its own per resource: its statuses one at a time, in
+        order, coalesced behind one that runs (a hung one holds one thread, never this
+        registrar's workers); its part of `join` is done after it. Never given up on
+        (rule 9: the provider hears it before `send_status` returns, within its timeout).
+        """
+        lane = f"on_status\0{self.registrar.name}\0{resource_id}"
+        call = _Call(callback, query, update, join.add(), lane=lane)
         if isinstance(callback, OnLoop):
-            callback.submit(query, update, then=_done_by(done), key=query.id)
-            return
-
-        def run() -> None:
-            try:
-                callback(query, update)
-            except Exception:
-                logger.exception("status callback for %s raised", query.id)
-            finally:
-                done()
-
-        try:
-            self.registrar.workers.submit(run)
-        except RuntimeError:  # no thread could start: skip the callback, keep serving
-            logger.exception("no worker thread for the status callback of %s", query.id)
-            done()
+            DESK.runner.on_loop(call)
+        else:
+            DESK.runner.run((call,))
 
     def on_status_batch(self, batch: StatusBatch, reply: Reply) -> None:
         """A relay: deliver a status to the consumer registrars of this process in one
@@ -526,6 +528,7 @@ class _Call:
         "done",
         "gave_up",
         "given_up",
+        "lane",
         "merged",
         "opened",
         "query",
@@ -545,8 +548,10 @@ class _Call:
         told: tuple[Publisher[events.Event], str, str] | None = None,
         deadline: float | None = None,
         gave_up: list[str] | None = None,
+        lane: str | None = None,
     ) -> None:
         self.callback = callback
+        self.lane = query.id if lane is None else lane  # (its calls run one at a time)
         self.query = query
         self.update = update
         self.done = done
@@ -653,12 +658,6 @@ def _deadline(patience: float | None) -> float | None:
     return None if patience is None else runtime.monotonic() + patience
 
 
-def _done_by(done: Callable[..., None]) -> Callable[[BaseException | None], None]:
-    """A coroutine status callback's end (`OnLoop.submit`'s `then`): its part of the
-    join is done (what it raised was logged on its loop)."""
-    return lambda _error: done()
-
-
 class _Drainer:
     """One worker's turn at the runner's queue."""
 
@@ -696,7 +695,9 @@ class Runner:
     after it let its lane go too: `_running`; one merged into a later call at its own),
     and at once if its lane's running callback was given up on: the sender waits one
     patience for a hung consumer, not one per status. A coroutine callback runs on its
-    loop (`on_loop`); its call is given up on the same way.
+    loop (`on_loop`), its id's calls one at a time there, in a lane of their own that
+    queues and coalesces behind the one running (the same step, `_queue_behind`); its
+    calls are given up on the same way.
     """
 
     def __init__(self) -> None:
@@ -711,7 +712,8 @@ class Runner:
         self._watching = False
         self._quiet_since = 0.0  # when the last callback ended with none running
         self._awaited: dict[_Call, None] = {}  # coroutine callbacks' calls not settled yet
-        self._stuck: dict[str, _Call] = {}  # id -> its latest coroutine call given up on
+        self._on_loop: dict[str, _Call] = {}  # id -> its coroutine call that holds its lane
+        self._loop_lanes: dict[str, collections.deque[_Call]] = {}  # id -> queued behind it
         self._workers = Workers("status")
 
     def run(self, calls: Iterable[_Call]) -> None:
@@ -726,18 +728,11 @@ class Runner:
             for call in calls:
                 self._arrived += 1
                 call.seq = self._arrived
-                query_id = call.query.id
+                query_id = call.lane
                 lane = self._lanes.get(query_id)
                 holder = self._holders.get(query_id)
                 if holder is not None:  # (behind its running callback)
-                    if lane is None:
-                        lane = self._lanes[query_id] = collections.deque()
-                    if call.update.status is not Status.FATAL:
-                        _coalesce(lane, call)
-                    lane.append(call)
-                    running = holder.call
-                    if running is not None and running.given_up:
-                        dones.extend(call.settle(True))
+                    dones.extend(_queue_behind(self._lanes, call, holder.call))
                     pending = pending or (not call.settled and call.wake is not None)
                     continue
                 if lane is not None:
@@ -750,36 +745,80 @@ class Runner:
         _settled(dones)
 
     def on_loop(self, call: _Call) -> None:
-        """Run a coroutine callback's `call` on its loop (`OnLoop.submit`, each id's in
-        order there), settled as it returns or at its deadline as given up on (at once
-        while a call of its id given up on has not returned)."""
-        callback = call.callback
-        assert isinstance(callback, OnLoop)
-        if call.deadline is None:
-            callback.submit(call.query, call.update, then=_done_by(call.done), key=call.query.id)
-            return
+        """Run a coroutine callback's `call` on its loop, each id's one at a time: behind
+        its id's call still running there, it waits in its lane, coalesced as a thread's
+        (`_queue_behind`); settled as it returns, or at its deadline as given up on (at
+        once while its id's running call is given up on)."""
         dones: list[Callable[..., None]] = []
         with self._lock:
-            if call.query.id in self._stuck:
-                dones = call.settle(True)
-                self._stuck[call.query.id] = call
+            running = self._on_loop.get(call.lane)
+            if running is not None:
+                dones = _queue_behind(self._loop_lanes, call, running)
+                start = None
+                timed = not call.settled and call.wake is not None
             else:
-                self._awaited[call] = None
-            watch = not self._watching
-            self._watching = True
+                start = self._hold_on_loop(call)
+                timed = call.deadline is not None
+            watch = timed and not self._watching
+            if watch:
+                self._watching = True
         self._kick(False, watch)
         _settled(dones)
-        then = functools.partial(self._returned, call)
-        callback.submit(call.query, call.update, then=then, key=call.query.id)
+        if start is not None:
+            self._submit(start)
+
+    def _hold_on_loop(self, call: _Call) -> _Call:
+        """(Holding the lock.) `call` holds its id's coroutine lane (and is watched for
+        its deadline, and those merged into it, if it is not settled): it runs now."""
+        self._on_loop[call.lane] = call
+        if call.wake is not None:
+            self._awaited[call] = None
+        return call
+
+    def _submit(self, call: _Call) -> None:
+        callback = call.callback
+        assert isinstance(callback, OnLoop)
+        callback.submit(
+            call.query,
+            call.update,
+            then=functools.partial(self._returned, call),
+            key=call.lane,
+            waits=functools.partial(self._loop_waits, call),
+        )
+
+    def _next_on_loop(self, call: _Call) -> _Call | None:
+        """(Holding the lock.) `call` lets its id's coroutine lane go (if it holds it):
+        the lane's next call, which holds it now, to submit (`None`: none)."""
+        query_id = call.lane
+        if self._on_loop.get(query_id) is not call:
+            return None
+        del self._on_loop[query_id]
+        lane = self._loop_lanes.get(query_id)
+        if not lane:
+            return None
+        following = lane.popleft()
+        if not lane:
+            del self._loop_lanes[query_id]
+        return self._hold_on_loop(following)
+
+    def _loop_waits(self, call: _Call) -> None:
+        """A coroutine callback's `call` waits for a registrar (`replies.let_go`): its
+        id's next call may start beside it (it may be what it waits for)."""
+        with self._lock:
+            following = self._next_on_loop(call)
+        if following is not None:
+            self._submit(following)
 
     def _returned(self, call: _Call, _error: BaseException | None) -> None:
-        """A coroutine callback's `call` returned (on its loop; what it raised was logged)."""
+        """A coroutine callback's `call` returned (on its loop; what it raised was
+        logged): settled (and those merged into it), its id's next call submitted."""
         with self._lock:
             self._awaited.pop(call, None)
-            if self._stuck.get(call.query.id) is call:
-                del self._stuck[call.query.id]
             dones = call.settle(False)
+            following = self._next_on_loop(call)
         _settled(dones)
+        if following is not None:
+            self._submit(following)
 
     def _wanted(self, pending: bool = False) -> tuple[bool, bool]:
         """(Holding the lock.) Whether to start a drainer (counted now: an open lane and
@@ -831,7 +870,7 @@ class Runner:
 
     def _let_go(self, drainer: _Drainer, call: _Call) -> None:
         """(Holding the lock.) Open the lane `drainer` holds for `call` (if it still does)."""
-        query_id = call.query.id
+        query_id = call.lane
         if self._holders.get(query_id) is not drainer or drainer.call is not call:
             return
         del self._holders[query_id]
@@ -862,7 +901,7 @@ class Runner:
                     return
                 drainer.call = call
                 drainer.started = runtime.monotonic()
-                self._holders[call.query.id] = drainer
+                self._holders[call.lane] = drainer
                 self._running[call] = None
                 self._inside.add(drainer)
             token = when_waiting(functools.partial(self._waits, drainer, call))
@@ -889,26 +928,22 @@ class Runner:
         watchdog stays for it)."""
         dones: list[Callable[..., None]] = []
         waiting = False
-        for call in self._running:
+        for call in [*self._running, *self._awaited]:  # (running: on a thread, on a loop)
             dones.extend(call.lapse(now))
+            if call.wake is None:
+                self._awaited.pop(call, None)
             waiting = waiting or call.wake is not None
-        for query_id, drainer in self._holders.items():
-            running = drainer.call
+        held = [(d.call, self._lanes.get(q, ())) for q, d in self._holders.items()]
+        held += [(c, self._loop_lanes.get(q, ())) for q, c in self._on_loop.items()]
+        for running, lane in held:
             if running is None:
                 continue
             stuck = running.given_up  # (what queued behind it waits no more)
-            for call in self._lanes.get(query_id, ()):
+            for call in lane:
                 if call.settled:
                     continue
                 dones.extend(call.settle(True) if stuck else call.lapse(now))
                 waiting = waiting or call.wake is not None
-        for call in list(self._awaited):  # (coroutine callbacks)
-            if call.overdue(now):
-                del self._awaited[call]
-                dones.extend(call.settle(True))
-                self._stuck[call.query.id] = call
-            else:
-                waiting = True
         return dones, waiting
 
     def _watch_start(self) -> None:
@@ -950,6 +985,23 @@ class Runner:
                     drainer.job.abandon()
             if start:
                 self._start()
+
+
+def _queue_behind(
+    lanes: dict[str, collections.deque[_Call]], call: _Call, running: _Call | None
+) -> list[Callable[..., None]]:
+    """(Holding the runner's lock.) Queue `call` in its id's lane of `lanes`, behind that
+    id's `running` callback (on a worker thread, or a coroutine's on its loop), coalesced
+    (`_coalesce`); given up on at once if that one was: the `done`s to call."""
+    lane = lanes.get(call.lane)
+    if lane is None:
+        lane = lanes[call.lane] = collections.deque()
+    if call.update.status is not Status.FATAL:
+        _coalesce(lane, call)
+    lane.append(call)
+    if running is not None and running.given_up:
+        return call.settle(True)
+    return []
 
 
 def _coalesce(lane: collections.deque[_Call], call: _Call) -> None:

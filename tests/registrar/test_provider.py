@@ -2030,6 +2030,65 @@ class TestOverload:
             assert "held" == held.result(timeout=10).response
         assert ["held", "waits"] == list(started)
 
+    def test_a_flooding_consumer_is_held_to_its_share_and_another_consumers_call_is_served(
+        self, make_registrar, gates, shared
+    ):
+        """A consumer alone takes a server's whole `max_pending`; once another is refused,
+        it takes no more than its share (the bound divided among the consumers that want
+        loads there): the slots its loads free go to the other consumer, whose call is
+        served within its timeout however hard the first one floods."""
+        provider = make_registrar("provider", max_workers=8, max_pending=4)
+        greedy, other = make_registrar("greedy"), make_registrar("other")
+        first, rest, theirs, started = gates(), gates(), gates(), shared.list()
+
+        def load(request: Any) -> Any:
+            started.append(request)
+            who, n = request
+            assert (theirs if who == "other" else first if n < 2 else rest).wait(60)
+            return request
+
+        provider.register_server("leaf", load=load, unload=lambda r, s: None)
+        target = (provider.name, "leaf")
+        flooding, refused, admitted = threading.Event(), [], []
+
+        def flood(k: int) -> None:  # asks again at once, as long as the test lets it
+            n = 100 * (k + 1)
+            while not flooding.is_set():
+                try:
+                    greedy.call(*target, ("greedy", n), timeout=60, if_overloaded="raise")
+                    admitted.append(n)
+                except rr.errors.OverloadedError:
+                    refused.append(n)
+
+        with ThreadPoolExecutor(8) as pool:
+            held = [pool.submit(greedy.call, *target, ("greedy", n), timeout=60) for n in range(4)]
+            assert wait_for(lambda: 4 == len(started), timeout=20)  # alone: the whole bound
+            with pytest.raises(rr.errors.OverloadedError, match="max_pending=4"):
+                greedy.call(*target, ("greedy", 4), timeout=30, if_overloaded="raise")
+            with pytest.raises(rr.errors.OverloadedError):  # the other wants loads there now
+                other.call(*target, ("other", 0), timeout=30, if_overloaded="raise")
+            waiting = pool.submit(other.call, *target, ("other", 0), timeout=30)
+            first.set()  # two of the greedy one's loads end: it has its share, 2 of 4
+            assert [("greedy", 0), ("greedy", 1)] == sorted(h.result(20).response for h in held[:2])
+            floods = [pool.submit(flood, k) for k in range(3)]
+            # the freed slots are the other's: its load starts while the greedy one floods
+            assert wait_for(lambda: ("other", 0) in started, timeout=25)
+            flooding.set()
+            for each in floods:
+                each.result(timeout=30)
+            assert [] == admitted  # every flooding call was refused
+            assert refused
+            with pytest.raises(rr.errors.OverloadedError, match="its share"):
+                greedy.call(*target, ("greedy", 5), timeout=30, if_overloaded="raise")
+            theirs.set()
+            assert ("other", 0) == waiting.result(timeout=20).response
+            rest.set()
+            assert [("greedy", 2), ("greedy", 3)] == [h.result(20).response for h in held[2:]]
+        # the books hold: the refused calls hold nothing, the served ones their ids
+        assert 5 == len(provider.server_queries("leaf"))
+        assert 4 == len(greedy.client_queries())
+        assert 1 == len(other.client_queries())
+
     def test_an_unload_is_not_queued_behind_loads(self, make_registrar, gates, shared, eventually):
         provider, consumer = make_registrar("provider", max_workers=1), make_registrar("consumer")
         first, rest, started, unloaded = gates(), gates(), shared.list(), shared.list()

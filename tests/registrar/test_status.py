@@ -751,6 +751,16 @@ class Said:
             self.gate.wait(60)
 
 
+class AwaitedSaid(Said):
+    """`Said` as a coroutine callback (it runs on its loop): at `"0"` it awaits the gate
+    on a thread of its own (`asyncio.to_thread`), its loop free meanwhile."""
+
+    async def __call__(self, _query: rr.Query, update: rr.StatusUpdate) -> None:  # type: ignore[override]
+        self.said.append(update.message)
+        if self.gate is not None and update.message == "0":
+            await asyncio.to_thread(self.gate.wait, 60)
+
+
 def threads_of(registrar: Any, placement: str) -> int:
     """The threads of `registrar`'s process now."""
     if placement == "thread":
@@ -764,18 +774,20 @@ class TestHungConsumer:
 
     STATUSES = 2_000
 
+    @pytest.mark.parametrize("hang", [Said, AwaitedSaid], ids=["plain", "coroutine"])
     def test_a_hung_callback_costs_a_bounded_number_of_threads_and_is_named_as_given_up(
-        self, make_registrar, serve, gates, shared, registrar_placement
+        self, make_registrar, serve, gates, shared, registrar_placement, hang
     ):
-        """Mutation caught: `send_status` waits for every callback (it raised
-        `CallTimeoutError` at the first status, and each of the 2,000 waited its timeout);
-        a status queued behind a busy callback starts a thread; coalescing undone (the
-        hung id hears every status once its callback returns)."""
+        """Plain or coroutine alike. Mutation caught: `send_status` waits for every
+        callback (it raised `CallTimeoutError` at the first status, and each of the 2,000
+        waited its timeout); a status queued behind a busy callback starts a thread;
+        coalescing undone (the hung id hears every status once its callback returns; a
+        coroutine one's were each a task queued on its loop)."""
         provider, consumer = make_registrar("provider"), make_registrar("consumer")
         serve(provider, "leaf")
         gate = gates()
         hung_said, said = shared.list(), shared.list()
-        hung = consumer.call(provider.name, "leaf", "x", on_status=Said(hung_said, gate))
+        hung = consumer.call(provider.name, "leaf", "x", on_status=hang(hung_said, gate))
         others = [consumer.call(provider.name, "leaf", "x") for _ in range(2)]
         heard = consumer.call(provider.name, "leaf", "x", on_status=Said(said))
         before = threads_of(consumer, registrar_placement)
@@ -796,6 +808,34 @@ class TestHungConsumer:
         assert [str(n) for n in range(self.STATUSES)] == list(said)
         # (the latest status, and every FATAL, in arrival order)
         assert ["0", "700", "1400", str(self.STATUSES - 1)] == list(hung_said)
+
+    def test_a_hung_server_on_status_holds_one_thread_not_its_registrars_workers(
+        self, make_registrar, gates, shared
+    ):
+        """A server's own `on_status` runs on the status runner, its statuses coalesced
+        behind one that hangs (it is not given up on: each `send_status` times out).
+        Mutation caught: on the registrar's workers, each status held one of them, and a
+        load of another server of the registrar waited behind them (`max_workers=2`)."""
+        provider = make_registrar("provider", max_workers=2)
+        consumer = make_registrar("consumer")
+        gate, said = gates(), shared.list()
+
+        def on_status(_query: rr.Query, update: rr.StatusUpdate) -> None:
+            said.append(update.message)
+            assert gate.wait(60)
+
+        provider.register_server("leaf", load=lambda r: r, unload=_no_unload, on_status=on_status)
+        provider.register_server("other", load=lambda r: r, unload=_no_unload)
+        query = consumer.call(provider.name, "leaf", "x", timeout=10)
+        try:
+            for number in range(6):
+                with pytest.raises(rr.CallTimeoutError):
+                    provider.send_status(query.id, rr.Status.UPDATE, str(number), timeout=0.3)
+            assert "y" == consumer.call(provider.name, "other", "y", timeout=10).response
+        finally:
+            gate.set()
+        assert wait_for(lambda: 2 == len(said), timeout=10)
+        assert ["0", "5"] == list(said)  # (the latest, once the hung one returned)
 
 
 class TestFanout:
