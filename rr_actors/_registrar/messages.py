@@ -127,8 +127,10 @@ class Load(WireMessage):
     (`DeadlineExceededError`). It crosses as the seconds left, as gRPC's `grpc-timeout`
     does (`__getstate__`), and becomes a deadline of the receiving process's clock when
     it is unpickled there (`__setstate__`): the clocks of two processes or hosts are
-    never compared, and the time on the way counts against it. Answer: the response,
-    or an error.
+    never compared, and the time on the way (in a pipe or socket before the receiver
+    reads it) is not counted, as in gRPC: under a 10x overload across processes, 21 of
+    23,164 loads started up to 36 ms after their caller gave up (`bench_overload.py`).
+    Answer: the response, or an error.
     """
 
     query_id: str
