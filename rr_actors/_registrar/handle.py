@@ -491,7 +491,7 @@ class Registrar:
         (its latest, and every `FATAL`, in arrival order), and run once it returns. A
         server's own `on_status` (this one's, and those up the dependency paths) is never
         given up on: it is waited for, within `timeout`; its statuses queue behind it,
-        coalesced as well (one thread held, not one of its registrar's workers each).
+        each run once, in order (one thread held, not one of its registrar's workers each).
 
         Args:
             query_id: any consumer id of a resource this registrar serves.

@@ -992,11 +992,13 @@ def _queue_behind(
 ) -> list[Callable[..., None]]:
     """(Holding the runner's lock.) Queue `call` in its id's lane of `lanes`, behind that
     id's `running` callback (on a worker thread, or a coroutine's on its loop), coalesced
-    (`_coalesce`); given up on at once if that one was: the `done`s to call."""
+    (`_coalesce`) if it is a consumer's callback (one with a `deadline`: a server's own
+    `on_status` runs once per status, rule 9, in order); given up on at once if that one
+    was: the `done`s to call."""
     lane = lanes.get(call.lane)
     if lane is None:
         lane = lanes[call.lane] = collections.deque()
-    if call.update.status is not Status.FATAL:
+    if call.update.status is not Status.FATAL and call.deadline is not None:
         _coalesce(lane, call)
     lane.append(call)
     if running is not None and running.given_up:

@@ -812,10 +812,12 @@ class TestHungConsumer:
     def test_a_hung_server_on_status_holds_one_thread_not_its_registrars_workers(
         self, make_registrar, gates, shared
     ):
-        """A server's own `on_status` runs on the status runner, its statuses coalesced
-        behind one that hangs (it is not given up on: each `send_status` times out).
-        Mutation caught: on the registrar's workers, each status held one of them, and a
-        load of another server of the registrar waited behind them (`max_workers=2`)."""
+        """A server's own `on_status` runs on the status runner, behind one that hangs
+        (it is not given up on: each `send_status` times out), each status once and in
+        order (rule 9: never coalesced, as a consumer's callbacks are). Mutation caught:
+        on the registrar's workers, each status held one of them, and a load of another
+        server of the registrar waited behind them (`max_workers=2`); coalesced (review
+        of issue 53: `send_status` acknowledged statuses its `on_status` never heard)."""
         provider = make_registrar("provider", max_workers=2)
         consumer = make_registrar("consumer")
         gate, said = gates(), shared.list()
@@ -834,8 +836,8 @@ class TestHungConsumer:
             assert "y" == consumer.call(provider.name, "other", "y", timeout=10).response
         finally:
             gate.set()
-        assert wait_for(lambda: 2 == len(said), timeout=10)
-        assert ["0", "5"] == list(said)  # (the latest, once the hung one returned)
+        assert wait_for(lambda: 6 == len(said), timeout=10)
+        assert ["0", "1", "2", "3", "4", "5"] == list(said)  # (each, once the hung one returned)
 
 
 class TestFanout:
@@ -1018,7 +1020,8 @@ class TestRunner:
         def status(message: str, code: rr.Status = rr.Status.UPDATE) -> _Call:
             query = rr.Query("x", "leaf", "prov", "cons", "r", "r")
             update = rr.StatusUpdate("x", code, message, "prov/leaf")
-            return _Call(hear, query, update, functools.partial(acked.append, message))
+            done = functools.partial(acked.append, message)
+            return _Call(hear, query, update, done, deadline=runtime.monotonic() + 60.0)
 
         runner.run([status("busy")])
         assert began.wait(10)
