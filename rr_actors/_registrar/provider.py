@@ -201,7 +201,10 @@ class Admission:
     that have loads under way there or were refused one within `_WANTING` seconds (itself
     included; at least 1). A consumer alone takes the whole bound; once another is
     refused, the first takes no more until it is under its share, so the slots its loads
-    free go to the other: one greedy consumer cannot keep the queue from the rest.
+    free go to the other: one greedy consumer cannot keep the queue from the rest. Free
+    slots are kept for the consumers that wait with fewer loads under way there (or as
+    many, and waiting longer): a consumer that asks again at once does not take the
+    last free slot from one that waits between its tries, whatever the shares.
     """
 
     __slots__ = ("counted", "of", "pending", "wanting")
@@ -209,27 +212,35 @@ class Admission:
     def __init__(self) -> None:
         self.pending: dict[str, int] = {}  # server -> its loads queued or running
         self.of: dict[str, dict[str, int]] = {}  # server -> consumer -> its loads of them
-        self.wanting: dict[str, dict[str, float]] = {}  # server -> consumer -> refused when
+        # server -> consumer -> (first refused, last refused) since it was last admitted
+        self.wanting: dict[str, dict[str, tuple[float, float]]] = {}
         self.counted: dict[str, tuple[str, str]] = {}  # resource id -> (server, consumer)
 
     def refusal(self, server: str, origin: str, bound: int) -> tuple[int, int, int] | None:
         """Why `server` takes no new load of consumer `origin` now (noted as wanting
         loads there), if it does not: (its loads under way, `origin`'s, its share)."""
         pending = self.pending.get(server, 0)
-        if not pending:  # (the hot path: nothing under way, nobody to share with)
+        if not pending and server not in self.wanting:  # (the hot path: nobody to share with)
             return None
-        mine = self.of.get(server, {}).get(origin, 0)
+        of = self.of.get(server, {})
+        mine = of.get(origin, 0)
         wanting = self.wanting.get(server, {})
         now = runtime.monotonic()
-        for name in [name for name, when in wanting.items() if now - when > _WANTING]:
+        for name in [name for name, (_, last) in wanting.items() if now - last > _WANTING]:
             del wanting[name]
         if not wanting:
             self.wanting.pop(server, None)
-        consumers = {*self.of.get(server, ()), *wanting, origin}
+        consumers = {*of, *wanting, origin}
         share = max(1, bound // len(consumers))
-        if pending < bound and mine < share:
+        since = wanting.get(origin, (now, now))[0]
+        ahead = sum(  # (others waiting with fewer under way, or as many and longer)
+            (of.get(name, 0), first) < (mine, since)
+            for name, (first, _) in wanting.items()
+            if name != origin
+        )
+        if pending + ahead < bound and mine < share:  # (a free slot each kept for those)
             return None
-        self.wanting.setdefault(server, {})[origin] = now
+        self.wanting.setdefault(server, {})[origin] = (since, now)
         return pending, mine, share
 
     def admit(self, rid: str, server: str, origin: str) -> None:
@@ -537,12 +548,14 @@ class Provider:
         refused = self.admission.refusal(server.name, origin, bound)
         if refused is not None:
             pending, mine, share = refused
-            self.refused(server, pending, bound)
+            if pending >= bound:  # (not a consumer held to its share: the server is full)
+                self.refused(server, pending, bound)
             why = (
                 f"has {pending} loads queued or running, its bound (max_pending={bound})"
                 if pending >= bound
                 else f"has {mine} loads of {origin!r} queued or running, its share of its "
-                f"bound (max_pending={bound}) while other consumers want loads there ({share})"
+                f"bound (max_pending={bound}) while other consumers want loads there "
+                f"({share}), or one that waits is served first"
             )
             message.reply.set_error(
                 OverloadedError(

@@ -36,6 +36,7 @@ from rr_actors._core import runtime
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.replies import FutureReply
 from rr_actors._registrar.messages import Load, Reconcile
+from rr_actors._registrar.provider import Admission
 from rr_actors._registrar.state import new_life
 from rr_actors._store import SCHEMA_VERSION
 from rr_actors.testing import (
@@ -2906,3 +2907,35 @@ def test_a_server_whose_one_slow_load_sheds_the_rest_runs_one_as_a_probe_and_ser
     assert slow_done.is_set()
     assert "shed" in outcomes, outcomes[:5]  # (the slow load's average shed the next ones)
     assert "served" in outcomes[outcomes.index("shed") :], outcomes[-5:]  # (shed for good)
+
+
+def test_a_freed_slot_goes_to_the_consumer_that_waits_not_to_one_that_asks_again_at_once() -> None:
+    """Review of issue 53's shares: with a bound below the number of consumers each
+    share rounds to 1, and the slot a flooding consumer's load freed went back to it (it
+    asks again at once; a refused caller pauses 5-100 ms between its tries). Free slots
+    are kept for the consumers that wait with fewer loads under way; spare ones are not."""
+    one = Admission()
+    one.admit("r1", "s", "A")
+    assert one.refusal("s", "B", 1) is not None  # (full: B waits)
+    one.done("r1")
+    assert one.refusal("s", "A", 1) is not None  # (the free slot is B's)
+    assert one.refusal("s", "B", 1) is None
+
+    three = Admission()
+    three.admit("x", "s", "A")
+    three.admit("y", "s", "B")
+    assert three.refusal("s", "C", 2) is not None
+    three.done("x")
+    assert three.refusal("s", "A", 2) is not None  # (C waits with none under way)
+    assert three.refusal("s", "C", 2) is None
+
+    spare = Admission()
+    for n in range(3):
+        spare.admit(f"a{n}", "s", "A")
+    spare.admit("b0", "s", "B")
+    spare.admit("b1", "s", "B")
+    spare.admit("b2", "s", "B")
+    spare.admit("b3", "s", "B")
+    spare.admit("b4", "s", "B")
+    assert spare.refusal("s", "B", 10) is not None  # (B past its share of 5)
+    assert spare.refusal("s", "A", 10) is None  # (a slot kept for nobody ahead of A)
