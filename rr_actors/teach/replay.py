@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -78,6 +79,9 @@ class Replay:
         self.hub = hub if hub is not None else Hub(convert=event_dict)
         self.shown = 0
         self.rerun = rerun
+        # the page's requests run on a server's threads: one at a time (a kill's rerun
+        # replaces the steps while a scrub would read them; a double click reruns once)
+        self._lock = threading.RLock()
         self._load(plan, run)
 
     def _load(self, plan: Plan, run: simulate.SimulatedRun) -> None:
@@ -146,20 +150,25 @@ class Replay:
 
     def show(self, n: int) -> int:
         """Put step `n`'s sections into the hub (clamped to 1..len); the step shown."""
-        n = max(1, min(int(n), len(self.steps))) if self.steps else 0
-        sections = self.sections(n)
-        for key in self.hub.keys("catalog/"):
-            if key not in sections:
-                self.hub.remove(key)
-        for key, value in sections.items():
-            self.hub.put(key, value)
-        self.shown = n
-        return n
+        with self._lock:
+            n = max(1, min(int(n), len(self.steps))) if self.steps else 0
+            sections = self.sections(n)
+            for key in self.hub.keys("catalog/"):
+                if key not in sections:
+                    self.hub.remove(key)
+            for key, value in sections.items():
+                self.hub.put(key, value)
+            self.shown = n
+            return n
 
     def control(self, data: dict[str, Any]) -> dict[str, Any]:
         """The page's request: `{"step": n}` shows step `n`; `{"fault": "kill" | "cut",
         "target": manager}` runs the seed again with that fault right after the step
-        shown (`branch`). The answer (JSON)."""
+        shown (`branch`). The answer (JSON). One request at a time (any thread)."""
+        with self._lock:
+            return self._control(data)
+
+    def _control(self, data: dict[str, Any]) -> dict[str, Any]:
         if "fault" in data:
             kind, target = data.get("fault"), data.get("target")
             if kind not in BRANCHES or not isinstance(target, str):

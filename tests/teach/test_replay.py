@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -151,6 +152,44 @@ def shows(page: Any, step: int) -> None:
 def story_line(page: Any) -> str:
     text: str = page.locator("#replay-story li.current").inner_text()
     return text
+
+
+def test_a_step_asked_while_a_kill_reruns_the_seed_waits_for_the_rerun(tmp_path: Path) -> None:
+    """Review of the replay: the page's requests run on the server's threads, and a
+    kill's rerun (seconds) replaced the steps while a scrub read them. A step asked
+    meanwhile now waits for the rerun and shows the new run's step."""
+    _chosen, folder = kit.start("camera", tmp_path / "cam")
+    plan, run = grade.seed_run(folder, 1)
+    rerun = grade.rerun(folder, 1)
+    inside, go = threading.Event(), threading.Event()
+
+    def held(new_plan: Any) -> Any:
+        inside.set()
+        assert go.wait(60)
+        return rerun(new_plan)
+
+    shown = replay.Replay(plan, run, rerun=held)
+    shown.show(10)
+    answers: dict[str, Any] = {}
+    kill = threading.Thread(
+        target=lambda: answers.update(kill=shown.control({"fault": "kill", "target": "camera"}))
+    )
+    kill.start()
+    assert inside.wait(60)
+    stepped = threading.Event()
+
+    def step() -> None:
+        answers["step"] = shown.control({"step": 5})
+        stepped.set()
+
+    scrub = threading.Thread(target=step)
+    scrub.start()
+    assert not stepped.wait(0.5)  # (it waits for the rerun: the steps are being replaced)
+    go.set()
+    kill.join(60)
+    scrub.join(60)
+    assert answers["step"] == {"ok": True, "step": 5, "steps": len(shown)}
+    assert answers["kill"]["steps"] == len(shown)
 
 
 def test_the_page_plays_pauses_steps_and_scrubs(
