@@ -8,8 +8,10 @@ message, the lines that show it), in the order of their lines.
 - `dependency` (rule 7): a call a manager makes is made while it loads a resource, and
   so is a dependency of that resource (`CallAnswered.parent` set): released with the
   resource, never left held by a manager for nothing.
-- `survives`: no supervisor gives up (`SupervisorGaveUp`): the tree's restart intensity
-  holds out under the exercise's faults.
+- `survives`: no supervisor gives up (`SupervisorGaveUp`, told at the crash it gave up
+  at): the tree's restart intensity holds out under the exercise's faults.
+- `alone`: a crashed manager is restarted alone, no sibling stopped with it (a restarted
+  manager restores its catalog: the thesis's mission drives on through F3-F5).
 - `once` (rules 2, 16): a retry of a call loads nothing while the call's first load
   holds its id: no second `ResourceLoaded` for a query id at a registrar, unless the
   first's id was released before it (`ConsumerReleased`: at a reconcile, the consumer
@@ -63,18 +65,65 @@ def dependency(history: Sequence[Line], managers: Collection[str]) -> list[Findi
 
 
 def survives(history: Sequence[Line], managers: Collection[str]) -> list[Finding]:
-    """`survives`: no supervisor gave up."""
-    return [
-        Finding(
-            "survives",
-            "violation",
-            f"supervisor {e.supervisor} gave up: {e.reason}",
-            (line,),
-            (e.supervisor, *managers),  # (its children's exits: the story before it)
-        )
-        for line, e in history
-        if isinstance(e, events.SupervisorGaveUp)
-    ]
+    """`survives`: no supervisor gave up. A give-up is told at the crash it gave up at
+    (the supervisor's last `ChildExited` before it that it did not stop itself), not at
+    `SupervisorGaveUp`, published once its children stopped: what their stop leaves (a
+    consumer stopped before its provider) is not the first thing wrong."""
+    found = []
+    crashed: dict[str, tuple[int, str]] = {}  # supervisor -> its last crash: line, child
+    for line, e in history:
+        if isinstance(e, events.ChildExited) and not e.stopped:
+            crashed[e.supervisor] = (line, e.child)
+        elif isinstance(e, events.SupervisorGaveUp):
+            at, child = crashed.get(e.supervisor, (line, ""))
+            said = f" at this exit of {child}" if child else ""
+            found.append(
+                Finding(
+                    "survives",
+                    "violation",
+                    f"supervisor {e.supervisor} gave up{said}: {e.reason}",
+                    (at,),
+                    (e.supervisor, *managers),  # (its children's exits: the story before it)
+                )
+            )
+    found.sort(key=lambda f: f.lines)
+    return found
+
+
+_Crash = tuple[int, events.ChildExited]
+"""A supervisor's crash of a child: its line, the exit."""
+
+
+def alone(history: Sequence[Line], managers: Collection[str]) -> list[Finding]:
+    """`alone`: a crashed manager is restarted alone: its supervisor stops no sibling to
+    restart it with the crash (`ChildExited.stopped`, then `ChildRestarted`), since a
+    restarted manager restores its catalog and its consumers keep their ids (the
+    thesis's mission: F3-F5, no stop). The stops of a give-up or of the run's end are
+    not judged (no restart follows them)."""
+    crashed: dict[str, _Crash] = {}  # supervisor -> its last crash
+    stopped: dict[tuple[str, str], tuple[int, _Crash]] = {}  # (supervisor, child) -> stop
+    found = []
+    for line, e in history:
+        if isinstance(e, events.ChildExited) and not e.stopped:
+            crashed[e.supervisor] = (line, e)
+        elif isinstance(e, events.ChildExited) and e.supervisor in crashed:
+            stopped[(e.supervisor, e.child)] = (line, crashed[e.supervisor])
+        elif isinstance(e, events.ChildRestarted) and (e.supervisor, e.child) in stopped:
+            at, (crash_line, crash) = stopped.pop((e.supervisor, e.child))
+            found.append(
+                Finding(
+                    "alone",
+                    "violation",
+                    f"supervisor {e.supervisor} stopped {e.child} to restart it with "
+                    f"{crash.child}'s crash ({crash.strategy or 'its strategy'}): "
+                    f"{e.child} had not crashed, and a restarted manager restores its "
+                    "catalog, so its siblings need not stop",
+                    (crash_line, at),
+                    (e.supervisor, crash.child, e.child, *managers),
+                )
+            )
+    found.sort(key=lambda f: f.lines)
+    return found
 
 
 def once(history: Sequence[Line], managers: Collection[str]) -> list[Finding]:
@@ -240,6 +289,7 @@ def loaded(history: Sequence[Line], managers: Collection[str]) -> list[Finding]:
 RULES: dict[str, Callable[[Sequence[Line], Collection[str]], list[Finding]]] = {
     "dependency": dependency,
     "survives": survives,
+    "alone": alone,
     "once": once,
     "warned": warned,
     "loaded": loaded,

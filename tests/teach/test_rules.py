@@ -1,5 +1,5 @@
-"""The kit's own rules (`rr_actors.teach.rules`): `dependency`, `survives`, `once`,
-`warned` and `loaded`, each on events built here, the line numbers as a history's."""
+"""The kit's own rules (`rr_actors.teach.rules`): `dependency`, `survives`, `alone`,
+`once`, `warned` and `loaded`, each on events built here, the line numbers as a history's."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ from rr_actors.teach.rules import (
     MARGIN_S,
     ROUND_S,
     RULES,
+    alone,
     dependency,
     loaded,
     once,
@@ -45,6 +46,51 @@ def test_a_give_up_breaks_survives_and_names_the_managers_for_the_story() -> Non
         ("survives", (7,), ("root", "lidar", "planner"))
     ]
     assert survives(history[:1], ["lidar"]) == []
+
+
+def test_a_give_up_is_told_at_the_crash_it_gave_up_at_not_at_the_stops_after_it() -> None:
+    # The supervisor stops its children (their exits, their stops) before it publishes
+    # the give-up: the finding points at the crash since its last restart, so that what
+    # those stops break (a consumer stopped before its provider: `end`) comes after it.
+    history = [
+        (1, events.ChildExited("root", "erm", 8, "killed by SIGKILL")),
+        (2, events.ChildRestarted("root", "erm", 11, 0.01)),
+        (3, events.ChildExited("root", "rm", 10, "killed by SIGKILL")),  # the last crash
+        (4, events.ChildExited("root", "cm", 9, "shutdown", normal=True, stopped=True)),
+        (5, events.ChildExited("root", "erm", 11, "shutdown", normal=True, stopped=True)),
+        (6, events.SupervisorGaveUp("root", "more than 1 restart(s) within 5 s", 1, 5.0)),
+    ]
+
+    found = survives(history, ["erm", "cm", "rm"])
+
+    assert [(f.rule, f.lines) for f in found] == [("survives", (3,))]
+    assert found[0].message.startswith("supervisor root gave up at this exit of rm: ")
+
+
+def test_a_sibling_stopped_and_restarted_with_a_crash_breaks_alone() -> None:
+    # erm's crash under one_for_all takes cm down and back up: a violation from the
+    # crash to cm's stop. rm's crash restarts rm alone, and the stops of the give-up (no
+    # restart after them) are not judged.
+    killed = {"reason": "killed by SIGKILL", "strategy": "one_for_all"}
+    history = [
+        (1, events.ChildExited("root", "erm", 8, **killed)),
+        (2, events.ChildExited("root", "cm", 9, "shutdown", normal=True, stopped=True)),
+        (3, events.ChildRestarted("root", "erm", 11, 0.01)),
+        (4, events.ChildRestarted("root", "cm", 12, 0.01)),
+        (5, events.ChildExited("root", "rm", 10, **killed)),
+        (6, events.ChildRestarted("root", "rm", 13, 0.01)),
+        (7, events.ChildExited("root", "erm", 11, **killed)),
+        (8, events.ChildExited("root", "cm", 12, "shutdown", normal=True, stopped=True)),
+        (9, events.SupervisorGaveUp("root", "more than 2 restart(s) within 5 s", 2, 5.0)),
+    ]
+
+    found = alone(history, ["erm", "cm", "rm"])
+
+    assert [(f.rule, f.lines, f.registrars[:3]) for f in found] == [
+        ("alone", (1, 2), ("root", "erm", "cm"))
+    ]
+    assert "stopped cm to restart it with erm's crash (one_for_all)" in found[0].message
+    assert alone(history[4:], ["erm", "cm", "rm"]) == []
 
 
 def test_a_call_loaded_again_while_its_first_load_holds_it_breaks_once() -> None:
@@ -128,6 +174,7 @@ def test_the_rules_are_listed_by_name() -> None:
     assert RULES == {
         "dependency": dependency,
         "survives": survives,
+        "alone": alone,
         "once": once,
         "warned": warned,
         "loaded": loaded,
