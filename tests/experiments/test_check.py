@@ -2073,11 +2073,16 @@ def second_server_to_the_end(h: History) -> History | None:
 
 def release_withdrawn_late(h: History) -> History | None:
     """A provider that releases an id its consumer withdrew (`CallWithdrawn`) only long
-    after (its `at` moved 5 s on): what issue 51's lost `Abandon` looked like."""
+    after (its `at` moved 5 s on): what issue 51's lost `Abandon` looked like. 5 s after
+    the withdrawal or the release, whichever is later: the rule counts from when that
+    life of the provider began to hold the id, which under load (a slow restart that
+    restores it, an `Add` queued past its call's timeout) can be more than 4 s after the
+    withdrawal, and a release 5 s after the withdrawal but just after that is the prompt
+    one `withdrawn` excuses (`simslow` under load; `withdrawn_then_restored`)."""
     withdrawn = {(e.registrar, e.query_id): e.at for e in h if type(e) is events.CallWithdrawn}
     for i, e in enumerate(h):
         if type(e) is events.ConsumerReleased and (e.consumer, e.query_id) in withdrawn:
-            late = dataclasses.replace(e, at=withdrawn[e.consumer, e.query_id] + 5.0)
+            late = dataclasses.replace(e, at=max(e.at, withdrawn[e.consumer, e.query_id]) + 5.0)
             return [*h[:i], late, *h[i + 1 :]]
     return None
 
@@ -2395,6 +2400,19 @@ def test_provider_lost_while_alive_takes_a_call_its_provider_holds_on_the_caller
         e for e in mutated if type(e) is events.QueryForgotten and e.reason == "provider lost"
     )
     assert ("app", "cm") == (forgot.registrar, forgot.serving_rr)
+    verdict = check.check(numbered(renumbered(mutated)))
+    assert rule in {f.rule for f in verdict.findings if f.kind == "violation"}
+
+
+def test_release_withdrawn_late_is_late_after_the_life_that_restored_the_id_began() -> None:
+    """Issue 51's shape: erm restored Q1 10 s after cm withdrew it and released it at
+    the reconcile. Its release moved to 5 s after the withdrawal is still before the
+    restore (`withdrawn` rightly excuses it); the mutation moves it 5 s after the release."""
+    history = withdrawn_then_restored(released_after=0.01)
+    assert "held" == check.check(numbered(history)).verdict
+    mutate, rule = MUTATIONS["release-withdrawn-late"]
+    mutated = mutate(history)
+    assert mutated is not None
     verdict = check.check(numbered(renumbered(mutated)))
     assert rule in {f.rule for f in verdict.findings if f.kind == "violation"}
 
