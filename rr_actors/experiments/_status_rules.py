@@ -15,8 +15,9 @@
 
 from __future__ import annotations
 
+import bisect
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from rr_actors import events
 from rr_actors._core import hlc
@@ -115,13 +116,14 @@ def status_path(history: Sequence[Line], facts: Facts) -> list[Finding]:
         if parent is not None:
             climbed[event.status_id, event.registrar, event.hop].add(parent)
     findings: list[Finding] = []
+    lost_tail = _lost_tail(history)
     for line, event in deliveries:
         holder = holder_at(facts, event.query_id, event.hlc)
         if holder is None:
             continue  # (whose it is, the run does not say)
         provider, rid, added = holder
         message = _off_path(event, provider, rid, facts, climbed)
-        if message is None:
+        if message is None or (message == _NOT_SENT and lost_tail(provider, event.hlc)):
             continue
         findings.append(
             Finding(
@@ -135,6 +137,38 @@ def status_path(history: Sequence[Line], facts: Facts) -> list[Finding]:
             )
         )
     return findings
+
+
+_NOT_SENT = "no StatusSent at its provider"
+
+
+def _lost_tail(history: Sequence[Line]) -> Callable[[str, int], bool]:
+    """Whether registrar `name`'s life at a stamp (the pid of its last own event at or
+    before it) wrote nothing after it and then exited: the events it published last
+    may have died with it unwritten (a SIGKILL takes the journal's tail, and the numbers
+    of one life show no gap at its end). A real `simslow` run (2026-11-25, load 14): db,
+    restarted, listed its queries and sent a WARNING, which reached client-3's ids at
+    hop 1, and was killed; its `StatusSent` was not in the file."""
+    own: dict[str, list[tuple[int, int]]] = defaultdict(list)  # name -> (stamp, pid)
+    exited: set[int] = set()
+    for _, event in history:
+        if isinstance(event, events.ChildExited):
+            exited.add(event.pid)
+        name, pid = getattr(event, "registrar", None), getattr(event, "pid", None)
+        if isinstance(name, str) and isinstance(pid, int) and event.hlc is not None:
+            own[name].append((event.hlc, pid))
+    for stamps in own.values():
+        stamps.sort()
+
+    def lost(name: str, stamp: int) -> bool:
+        stamps = own.get(name, [])
+        at = bisect.bisect_right(stamps, (stamp, float("inf"))) - 1
+        if at < 0:
+            return False
+        pid = stamps[at][1]
+        return pid in exited and not any(p == pid for _, p in stamps[at + 1 :])
+
+    return lost
 
 
 def _off_path(
@@ -153,7 +187,7 @@ def _off_path(
         return None  # its consumer told it FATAL itself (rules 19, 20)
     about = facts.sent.get(event.status_id)
     if about is None:
-        return f"no StatusSent at {provider}"
+        return _NOT_SENT
     sent_on = holder_at(facts, about, event.hlc)
     if sent_on is not None and sent_on[:2] != (provider, rid):
         return f"it was sent about {sent_on[1][:8]}, not {rid[:8]}"
