@@ -1973,7 +1973,7 @@ def drop_status_sent(h: History) -> History | None:
             for j, x in enumerate(h)
             if type(x) is events.StatusDelivered and x.status_id == e.status_id
         ]
-        if reached and last[e.registrar, e.pid] > max(reached):
+        if reached and last[e.registrar, e.pid] > max(i, *reached):  # (not the send itself)
             return _without(h, i)
     return None
 

@@ -580,7 +580,7 @@ class TestAccess:
             clients = [_silent_client(observer.url) for _ in range(150)]
             try:
                 assert _all_answered(clients, timeout=30)  # 32 streams said hello, the rest 503
-                for n in range(100):  # the catalog changes under the streams that do not read
+                for n in range(200):  # the catalog changes under the streams that do not read
                     app.unload(app.call("erm", "camera", f"churn-{n}").id)
                 grown = me.memory_info().rss
             finally:
