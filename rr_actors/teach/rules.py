@@ -12,6 +12,9 @@ message, the lines that show it), in the order of their lines.
   at): the tree's restart intensity holds out under the exercise's faults.
 - `alone`: a crashed manager is restarted alone, no sibling stopped with it (a restarted
   manager restores its catalog: the thesis's mission drives on through F3-F5).
+- `back`: a manager that exited is started again (`ChildRestarted` after its
+  `ChildExited`), unless its supervisor gave up: a `temporary` child (or a `transient`
+  one that ended normally) is never restarted, and the tree drives on without it.
 - `once` (rules 2, 16): a retry of a call loads nothing while the call's first load
   holds its id: no second `ResourceLoaded` for a query id at a registrar, unless the
   first's id was released before it (`ConsumerReleased`: at a reconcile, the consumer
@@ -129,6 +132,33 @@ def alone(history: Sequence[Line], managers: Collection[str]) -> list[Finding]:
             )
     found.sort(key=lambda f: f.lines)
     return found
+
+
+def back(history: Sequence[Line], managers: Collection[str]) -> list[Finding]:
+    """`back`: every exit of a manager (not a stop of its supervisor's) is followed by its
+    restart, or by its supervisor's give-up (`survives` judges that)."""
+    exited: dict[tuple[str, str], tuple[int, events.ChildExited]] = {}  # not restarted yet
+    for line, e in history:
+        if isinstance(e, events.ChildExited) and not e.stopped and e.child in managers:
+            exited.setdefault((e.supervisor, e.child), (line, e))
+        elif isinstance(e, events.ChildRestarted):
+            exited.pop((e.supervisor, e.child), None)
+        elif isinstance(e, events.SupervisorGaveUp):
+            for key in [k for k in exited if k[0] == e.supervisor]:
+                del exited[key]
+    return [
+        Finding(
+            "back",
+            "violation",
+            f"supervisor {e.supervisor} never started {e.child} again after this exit "
+            f"({e.reason}): its restart type is {e.restart or 'not restarted'!r} (a "
+            "temporary child is never restarted, a transient one only after a crash), so "
+            f"the tree went on without {e.child} to the end of the run",
+            (line,),
+            (e.supervisor, e.child, *managers),
+        )
+        for line, e in sorted(exited.values(), key=lambda item: item[0])
+    ]
 
 
 def once(history: Sequence[Line], managers: Collection[str]) -> list[Finding]:
@@ -367,6 +397,7 @@ RULES: dict[str, Callable[[Sequence[Line], Collection[str]], list[Finding]]] = {
     "dependency": dependency,
     "survives": survives,
     "alone": alone,
+    "back": back,
     "once": once,
     "warned": warned,
     "loaded": loaded,

@@ -1,5 +1,5 @@
 """The kit's own rules (`rr_actors.teach.rules`): `dependency`, `survives`, `alone`,
-`once`, `warned`, `loaded` and `kept`, each on events built here, the line numbers as a
+`back`, `once`, `warned`, `loaded` and `kept`, each on events built here, the line numbers as a
 history's."""
 
 from __future__ import annotations
@@ -10,6 +10,7 @@ from rr_actors.teach.rules import (
     ROUND_S,
     RULES,
     alone,
+    back,
     dependency,
     kept,
     loaded,
@@ -177,6 +178,7 @@ def test_the_rules_are_listed_by_name() -> None:
         "dependency": dependency,
         "survives": survives,
         "alone": alone,
+        "back": back,
         "once": once,
         "warned": warned,
         "loaded": loaded,
@@ -232,3 +234,22 @@ def test_the_minoritys_registrar_yielding_or_a_stop_at_the_end_holds_kept() -> N
 
     assert kept(minority, {"db", "api"}) == []
     assert kept([(n, e) for n, e in a_heal(yields_on="a") if n != 10], {"db", "api"}) == []
+
+
+def test_a_manager_never_started_again_after_its_exit_breaks_back() -> None:
+    # cm is temporary: its kill is its end; rm's kill is followed by its restart, and
+    # erm's by the give-up (`survives` says that one); the stops of the end are not exits
+    history = [
+        (1, events.ChildExited("root", "cm", 9, "killed by SIGKILL", restart="temporary")),
+        (2, events.ChildExited("root", "rm", 10, "killed by SIGKILL", restart="permanent")),
+        (3, events.ChildRestarted("root", "rm", 12, 0.01)),
+        (4, events.ChildExited("sub", "erm", 8, "killed by SIGKILL", restart="permanent")),
+        (5, events.SupervisorGaveUp("sub", "more than 0 restart(s) within 5 s", 0, 5.0)),
+        (6, events.ChildExited("root", "rm", 12, "shutdown", normal=True, stopped=True)),
+    ]
+
+    found = back(history, ["erm", "cm", "rm"])
+
+    assert [(f.rule, f.lines, f.registrars[:2]) for f in found] == [("back", (1,), ("root", "cm"))]
+    assert "its restart type is 'temporary'" in found[0].message
+    assert back(history[1:], ["erm", "cm", "rm"]) == []
