@@ -38,7 +38,9 @@ from typing import Any
 
 import rr_actors as rr
 from rr_actors import events
+from rr_actors._transport.resolve import RESOLVE_STRATEGIES
 from rr_actors.experiments.plan import Plan
+from rr_actors.experiments.reading import import_object
 
 __all__ = ["HostProcess", "HostSpec"]
 
@@ -76,13 +78,18 @@ class HostSpec:
 
 
 def network(spec: HostSpec) -> rr.ZenohNetwork:
-    """The host's `ZenohNetwork` (its router)."""
+    """The host's `ZenohNetwork` (its router), with the plan's rule 22 policy (`resolve`)."""
+    plan = spec.plan
+    resolve: Any = plan.hosts.resolve if plan.hosts is not None else "first_served"
+    if resolve not in RESOLVE_STRATEGIES:  # (a user's function, as a setup is imported)
+        resolve = import_object(resolve, base_dir=plan.base_dir)
     return rr.ZenohNetwork(
         system=SYSTEM,
         listen=list(spec.listen),
         connect=list(spec.connect),
         tls=rr.ZenohTLS(**spec.tls),
         lease=spec.lease,
+        resolve=resolve,
     )
 
 

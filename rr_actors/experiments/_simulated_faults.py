@@ -22,12 +22,12 @@
                         (_instrument.SETUP_FAULTS)
    partition_serving ─► SIGKILL now; its restart is cut off the other processes as it
                         serves, for `for` s, then healed (SimulatedNetwork.on_serve)
-   split_brain ───────► its process cut off every other one; beyond the cut a second
-                        server of its name starts (a supervisor of its own, "beyond-<n>",
+   split_brain ───────► its process (with [hosts]: its host's) cut off the others; on
+                        the run's side a second server of its name starts ("beyond-<n>",
                         its backup its own, the child temporary: a host that saw the name
                         lost, rule 19), on a thread of its own; `for` s later (not before
                         it serves: _HealOnceServed) the cut heals and rule 22 decides
-                        (the one served first is kept, the second yields); that
+                        (by [hosts]' resolve: first served by default); that
                         supervisor runs to the end of the run (`close`)
    deaf_manager ──────► its process cannot hear its router (SimulatedNetwork.deafen: it
                         serves no name, its calls and the calls to it fail, it hears
@@ -441,15 +441,29 @@ class SimulatedFaults:
         beyond the cut, heal `for` s after the cut (a thread of its own: the start takes
         virtual time)."""
         assert fault.target is not None
-        info = self.sup.child(fault.target)
-        if info.state != "running" or info.pid is None:
-            detail = f"{fault.target} was not running ({info.state})"
-            self.log.record(fault, at, None, detail, skipped=True)
-            return
-        pid, for_s = info.pid, self.plan.faults[fault.fault].for_s or 0.0
-        self.network.partition([pid])
+        for_s = self.plan.faults[fault.fault].for_s or 0.0
+        host = self.plan.host_of(fault.target)
+        if host is not None:  # (`[hosts]`: its whole host cut off; the second on the run's)
+            if self._cut is not None:
+                detail = f"{self._cut} was still cut (one partition at a time)"
+                self.log.record(fault, at, None, detail, skipped=True)
+                return
+            self._cut = host
+            pid = self._hosts[host]
+            self.network.partition([pid], started_by=True)
+            heal = _HealOnceServed(self._heal_hosts)
+            cut = f"host {host}"
+        else:
+            info = self.sup.child(fault.target)
+            if info.state != "running" or info.pid is None:
+                detail = f"{fault.target} was not running ({info.state})"
+                self.log.record(fault, at, None, detail, skipped=True)
+                return
+            pid = info.pid
+            self.network.partition([pid])
+            heal = _HealOnceServed(self.network.heal)
+            cut = f"pid {pid}"
         injected = self._now()
-        heal = _HealOnceServed(self.network.heal)
         self._at(runtime.monotonic() + for_s, heal.due, None)
         [manager] = [m for m in self.plan.managers() if m.name == fault.target]
         name = f"beyond-{len(self._beyond) + 1}"
@@ -466,13 +480,13 @@ class SimulatedFaults:
         try:
             beyond.start()
         except rr.RrError as exc:
-            detail = f"cut pid {pid} off; a second {fault.target} did not start: {exc}"
+            detail = f"cut {cut} off; a second {fault.target} did not start: {exc}"
             self.log.record(fault, at, injected, detail)
             heal.served()
             return
         second = beyond.child(fault.target).pid
         detail = (
-            f"cut pid {pid} off, for {for_s:g} s; a second {fault.target} serves beyond "
+            f"cut {cut} off, for {for_s:g} s; a second {fault.target} serves beyond "
             f"the cut (pid {second}, supervisor {name})"
         )
         if heal.overdue:

@@ -279,6 +279,8 @@ class HostsPlan(_Table, frozen=True):
     names: Annotated[tuple[Name, ...], Meta(min_length=2, max_length=MAX_HOSTS)]
     lease: Annotated[float, Meta(ge=0.01, le=3600)] = 1.0  # `ZenohNetwork(lease=)` of every host
     start_timeout: Seconds = 30.0  # a host's router and tree start within this long
+    # rule 22 at a heal: "first_served", "majority" or "module:function" (`resolve=`)
+    resolve: Annotated[str, Meta(min_length=1)] = "first_served"
 
     @property
     def home(self) -> str:

@@ -35,6 +35,7 @@ import msgspec
 import msgspec.inspect as mi
 from msgspec import UNSET
 
+from rr_actors._transport.resolve import RESOLVE_STRATEGIES
 from rr_actors.errors import ConfigError
 from rr_actors.experiments import plan as schema
 from rr_actors.experiments.plan import Plan, PlanError
@@ -336,6 +337,7 @@ class _Reader:
             for index, host in enumerate(plan.hosts.names):
                 twice = f"the host {host!r} is named twice"
                 self.refuse(host in plan.hosts.names[:index], ("hosts", "names", index), twice)
+            self.resolve(plan.hosts.resolve)
         last = plan.seed + plan.repeat - 1  # the seed of the last repeat (`runs.csv`, `--seed`)
         problem = f"with repeat = {plan.repeat}, the last run's seed {last} is past 64 bits"
         self.refuse(last > schema.MAX_SEED, ("seed",), problem)
@@ -351,6 +353,11 @@ class _Reader:
         if plan.compare is not None and not variant:  # a variant's setting has its value
             self.compare(plan.compare)
         return plan
+
+    def resolve(self, name: str) -> None:
+        """`[hosts]`'s `resolve`: a named strategy, or a function of two `Claimant`s."""
+        if name not in RESOLVE_STRATEGIES:
+            self.importable(("hosts", "resolve"), name, ("hosts", "resolve"), None, None)
 
     def tree(self, node: Any, path: KeyPath, seen: set[str]) -> None:
         """The rules of the tree node `node` and its children (`seen`: the names above)."""
@@ -505,6 +512,11 @@ class _Reader:
             refuse(thread, at, f"{kind} needs a process manager; {name!r} has isolation 'thread'")
             home = self.hosts.home if self.hosts is not None else None
             away = managers[name].host not in (None, home)
+            if kind == "split_brain" and self.hosts is not None:  # (its host is cut off)
+                here = "split_brain with [hosts] cuts its manager's host off the others, and "
+                here += f"{name!r} is on the run's own host ({home}), with the clients"
+                refuse(not away, at, here)
+                continue
             elsewhere = f"{kind} hits managers of the run's own host ({home}); {name!r} is on "
             refuse(away, at, f"{elsewhere}{managers[name].host!r} (fault it with freeze, cut, ...)")
 

@@ -59,10 +59,12 @@ from typing import TYPE_CHECKING, Any
 import rr_actors as rr
 from rr_actors import events
 from rr_actors._core import runtime
+from rr_actors._transport.resolve import RESOLVE_STRATEGIES
 from rr_actors.events.kinds import set_host
 from rr_actors.events.lines import to_lines
 from rr_actors.experiments import check
 from rr_actors.experiments.plan import SIMULATION_KINDS, Plan, PlanError
+from rr_actors.experiments.reading import import_object
 from rr_actors.experiments.results import FaultRecord
 from rr_actors.experiments.runner import (
     EVENT_QUEUE,
@@ -107,8 +109,6 @@ NOT_SIMULATED = {
 NOT_WITH_HOSTS = {
     "partition_serving": "it cuts its manager off with the simulated network's one "
     "partition, which the plan's cuts between hosts use",
-    "split_brain": "it cuts its manager off with the simulated network's one partition, "
-    "which the plan's cuts between hosts use",
     "kill_program": "the run's own host's part is the simulation's root process there, "
     "which cannot be killed",
 }
@@ -804,7 +804,10 @@ def _network_of(plan: Plan) -> simulation.SimulatedNetwork:
     if plan.hosts is None:
         return simulation.SimulatedNetwork()
     set_host(plan.hosts.home)
-    return simulation.SimulatedNetwork(lease=plan.hosts.lease)
+    resolve = plan.hosts.resolve
+    if resolve not in RESOLVE_STRATEGIES:  # (a user's function: `reading` imported it)
+        resolve = import_object(resolve, base_dir=plan.base_dir)
+    return simulation.SimulatedNetwork(lease=plan.hosts.lease, resolve=resolve)
 
 
 def _wait_serving(sup: rr.Supervisor, plan: Plan, hosts: list[_SimulatedHost]) -> list[str]:

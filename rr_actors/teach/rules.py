@@ -12,6 +12,9 @@ message, the lines that show it), in the order of their lines.
   at): the tree's restart intensity holds out under the exercise's faults.
 - `alone`: a crashed manager is restarted alone, no sibling stopped with it (a restarted
   manager restores its catalog: the thesis's mission drives on through F3-F5).
+- `back`: a manager that exited is started again (`ChildRestarted` after its
+  `ChildExited`), unless its supervisor gave up: a `temporary` child (or a `transient`
+  one that ended normally) is never restarted, and the tree drives on without it.
 - `once` (rules 2, 16): a retry of a call loads nothing while the call's first load
   holds its id: no second `ResourceLoaded` for a query id at a registrar, unless the
   first's id was released before it (`ConsumerReleased`: at a reconcile, the consumer
@@ -25,6 +28,11 @@ message, the lines that show it), in the order of their lines.
   the id it names, and no other. A round its provider's exit cut short is not judged.
 - `loaded`: every load the run started succeeded (no `LoadFailed`): a manager's
   resources are asked for as its providers can serve them.
+- `kept` (rule 22): at a heal, the registrar of a name that yields (its manager exits
+  normally while another process serves the name) is not the one that served a
+  majority of the hosts during the cut (its own host and the hosts of the consumers that
+  heard its answers, of every host the run's events name): what the majority's side
+  loaded is not undone.
 """
 
 from __future__ import annotations
@@ -124,6 +132,33 @@ def alone(history: Sequence[Line], managers: Collection[str]) -> list[Finding]:
             )
     found.sort(key=lambda f: f.lines)
     return found
+
+
+def back(history: Sequence[Line], managers: Collection[str]) -> list[Finding]:
+    """`back`: every exit of a manager (not a stop of its supervisor's) is followed by its
+    restart, or by its supervisor's give-up (`survives` judges that)."""
+    exited: dict[tuple[str, str], tuple[int, events.ChildExited]] = {}  # not restarted yet
+    for line, e in history:
+        if isinstance(e, events.ChildExited) and not e.stopped and e.child in managers:
+            exited.setdefault((e.supervisor, e.child), (line, e))
+        elif isinstance(e, events.ChildRestarted):
+            exited.pop((e.supervisor, e.child), None)
+        elif isinstance(e, events.SupervisorGaveUp):
+            for key in [k for k in exited if k[0] == e.supervisor]:
+                del exited[key]
+    return [
+        Finding(
+            "back",
+            "violation",
+            f"supervisor {e.supervisor} never started {e.child} again after this exit "
+            f"({e.reason}): its restart type is {e.restart or 'not restarted'!r} (a "
+            "temporary child is never restarted, a transient one only after a crash), so "
+            f"the tree went on without {e.child} to the end of the run",
+            (line,),
+            (e.supervisor, e.child, *managers),
+        )
+        for line, e in sorted(exited.values(), key=lambda item: item[0])
+    ]
 
 
 def once(history: Sequence[Line], managers: Collection[str]) -> list[Finding]:
@@ -286,12 +321,86 @@ def loaded(history: Sequence[Line], managers: Collection[str]) -> list[Finding]:
     ]
 
 
+def kept(history: Sequence[Line], managers: Collection[str]) -> list[Finding]:
+    """`kept`: no registrar that served a majority of the hosts during a cut yields."""
+    hosts = {e.host for _, e in history}
+    lives: dict[tuple[str, int], tuple[int, str]] = {}  # (name, pid) -> first line, host
+    ended: dict[tuple[str, int], int] = {}  # (name, pid) -> the line of its exit
+    added: dict[tuple[str, int], list[tuple[int, str]]] = defaultdict(list)  # line, consumer
+    asked: dict[tuple[str, str], tuple[int, tuple[str, int]]] = {}  # not answered yet
+    yielded: dict[tuple[str, int], list[int]] = defaultdict(list)  # lines of its releases
+    host_of: dict[str, str] = {}  # a consumer registrar -> its host
+    yields: list[tuple[int, events.ChildExited]] = []
+    for line, e in history:
+        name = getattr(e, "registrar", None)
+        if isinstance(name, str) and name in managers and isinstance(getattr(e, "pid", None), int):
+            lives.setdefault((name, e.pid), (line, e.host))
+        if isinstance(e, events.ConsumerAdded):
+            asked[(e.consumer, e.query_id)] = (line, (e.registrar, e.pid))
+        elif isinstance(e, events.CallAnswered):  # (an acknowledgement its consumer heard)
+            host_of[e.registrar] = e.host
+            if (e.registrar, e.query_id) in asked:
+                at, life = asked.pop((e.registrar, e.query_id))
+                added[life].append((at, e.registrar))
+        elif isinstance(e, events.ConsumerReleased) and e.reason == "name yielded":
+            yielded[(e.registrar, e.pid)].append(line)
+        elif isinstance(e, events.ChildExited) and e.child in managers:
+            if e.normal and not e.stopped and e.reason == "normal":
+                yields.append((line, e))
+            ended.setdefault((e.child, e.pid), line)
+
+    def side(life: tuple[str, int], since: int, until: int) -> set[str]:
+        """Its host and the hosts of the consumers it acknowledged between two lines."""
+        acked = {host_of.get(c, "") for n, c in added[life] if since < n <= until}
+        return {lives[life][1]} | acked - {""}
+
+    found = []
+    for line, e in yields:
+        mine = (e.child, e.pid)
+        rivals = [
+            life
+            for life, (first, _host) in lives.items()
+            if life[0] == e.child
+            and life[1] != e.pid
+            and first < line
+            and ended.get(life, line + 1) > line
+        ]
+        if mine not in lives or not rivals:
+            continue
+        other = rivals[0]
+        since = max(lives[mine][0], lives[other][0])  # (both served from here: the cut)
+        until = max((n for n, _ in added[mine]), default=since)  # (its last: the cut's end)
+        served, theirs = side(mine, since, until), side(other, since, until)
+        if 2 * len(served) <= len(hosts):
+            continue
+        undone = yielded[mine]
+        acked = sum(1 for n, _ in added[mine] if n > since)
+        found.append(
+            Finding(
+                "kept",
+                "violation",
+                f"at the heal, {e.child} of host {lives[mine][1]}, which served hosts "
+                f"{', '.join(sorted(served))} during the cut ({len(served)} of {len(hosts)}: "
+                f"the majority, {acked} load(s) acknowledged), yielded to {e.child} of host "
+                f"{lives[other][1]}, which served {', '.join(sorted(theirs))}: the minority's "
+                f"registrar was kept, and {len(undone)} load(s) the majority still held were "
+                "undone (FATAL to their consumers)",
+                (min(undone, default=line),),
+                (e.child,),
+            )
+        )
+    found.sort(key=lambda f: f.lines)
+    return found
+
+
 RULES: dict[str, Callable[[Sequence[Line], Collection[str]], list[Finding]]] = {
     "dependency": dependency,
     "survives": survives,
     "alone": alone,
+    "back": back,
     "once": once,
     "warned": warned,
     "loaded": loaded,
+    "kept": kept,
 }
 """The kit's rules by name (what an exercise's `rules` lists)."""

@@ -21,6 +21,7 @@ from typing import Any
 
 import pytest
 
+import rr_actors as rr
 from rr_actors._core import runtime
 from rr_actors.events.kinds import set_host, this_host
 from rr_actors.experiments import PlanError, check, parse_plan, services, simulate
@@ -1179,11 +1180,6 @@ for = 0.5
     [
         ('kind = "freeze"\ntarget = "b"\nfor = 0.5', "faults[0].kind", "'freeze' is not simulated"),
         ('kind = "kill_router"\ntarget = "b"', "faults[0].kind", "'kill_router' is not simulated"),
-        (
-            'kind = "split_brain"\ntarget = "api"\nfor = 0.5',
-            "faults[0].kind",
-            "not simulated with [hosts]",
-        ),
         ('kind = "kill_program"', "faults[0].kind", "'kill_program' is not simulated with"),
     ],
 )
@@ -1197,6 +1193,70 @@ def test_a_fault_between_hosts_the_simulation_does_not_model_is_refused_naming_i
 
     assert key == raised.value.key
     assert named in str(raised.value)
+
+
+def test_a_split_brain_with_hosts_cuts_another_hosts_manager_not_one_of_the_run_host() -> None:
+    fault = 'kind = "split_brain"\ntarget = "api"\nfor = 0.5'  # (api: the run's own host)
+
+    with pytest.raises(PlanError, match="cuts its manager's host off the others") as raised:
+        parse_plan(HOSTS + f"\n[[faults]]\n{fault}\nat = [1.0]\n")
+
+    assert "faults[0].target" == raised.value.key
+
+
+def test_a_resolve_that_is_neither_a_strategy_nor_a_function_is_refused() -> None:
+    for wrong, said in (("lowest", "not an import path"), ("os:sep", "is not callable")):
+        with pytest.raises(PlanError, match=said) as raised:
+            parse_plan(HOSTS.replace("lease = 2.0", f'lease = 2.0\nresolve = "{wrong}"'))
+        assert "hosts.resolve" == raised.value.key
+
+
+THREE = (
+    HOSTS.replace('names = ["a", "b"]', 'names = ["a", "b", "c"]\nlease = 0.3')
+    .replace("lease = 2.0\n", "")
+    .replace('host = "b"', 'host = "c"\nrestart = "transient"')
+    .replace(
+        'options = { uses = ["db"], load_s = 0.002 }', 'options = { uses = ["db"] }\nhost = "b"'
+    )
+    + '\n[[faults]]\nkind = "split_brain"\ntarget = "db"\nat = [0.5]\nfor = 0.6\n'
+)
+"""Three hosts: the clients on "a", api on "b", db on "c", whose host a split_brain cuts
+off while a second db serves on "a"."""
+
+
+def keep_the_later(first: rr.Claimant, second: rr.Claimant) -> rr.Claimant:
+    """A user's rule 22 policy: the registrar that began to serve later is kept."""
+    del first
+    return second
+
+
+@SWEEP
+@pytest.mark.parametrize(
+    ("resolve", "yields"),
+    [
+        ("first_served", "beyond-1"),
+        ("majority", "root-c"),
+        (f"{__name__}:keep_the_later", "root-c"),
+    ],
+    ids=["first_served", "majority", "a function"],
+)
+def test_a_split_brain_cuts_its_managers_host_and_the_plans_resolve_decides_the_heal(
+    resolve: str, yields: str
+) -> None:
+    plan = parse_plan(THREE.replace("[tree]", f'resolve = "{resolve}"\n\n[tree]', 1))
+
+    runs = simulate.simulate(plan, range(1, 3))
+
+    held(runs)
+    for run in runs:
+        [split] = fired(run)
+        assert split["detail"].startswith("cut host c off, for 0.6 s; a second db serves")
+        hosts = {
+            e["pid"]: e["host"] for e in lines(run, "CatalogRestored") if e["registrar"] == "db"
+        }
+        assert sorted(hosts.values()) == ["a", "c"]  # (the second on the run's own host)
+        exits = [e for e in lines(run, "ChildExited") if e["reason"] == "normal"]
+        assert [(e["supervisor"], e["child"]) for e in exits] == [(yields, "db")]
 
 
 def test_a_cut_between_two_of_three_hosts_is_refused_naming_partition() -> None:

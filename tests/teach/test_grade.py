@@ -105,6 +105,26 @@ def test_a_checkers_finding_is_told_on_the_run_shrunk_unless_asked_not_to(tmp_pa
     assert not (folder / grade.SHRUNK).exists()  # (the fixed failure's plan: gone)
 
 
+def test_a_survive_tree_that_never_restarts_a_killed_manager_fails_naming_back(
+    tmp_path: Path,
+) -> None:
+    # The solution's strategy and intensity, but cm temporary: F4 kills it for good and
+    # the mission drives on without its LiDAR; no supervisor gives up, no sibling stops.
+    _chosen, folder = kit.start("survive", tmp_path / "s")
+    solve("survive", folder)
+    plan = (folder / "plan.toml").read_text()
+    cm = 'name = "cm"\n'
+    (folder / "plan.toml").write_text(plan.replace(cm, cm + 'restart = "temporary"\n'))
+
+    report = grade.check_folder(folder, seeds=2)
+
+    assert report.failure is not None
+    assert report.failure.rule == "back"
+    assert report.failure.first_event is not None
+    assert "cm exited: killed by SIGKILL" in report.failure.first_event
+    assert "restart type is 'temporary'" in report.failure.message
+
+
 def test_an_intensity_too_high_to_stop_a_crash_loop_fails_before_any_run(
     tmp_path: Path,
 ) -> None:

@@ -1,5 +1,6 @@
 """The kit's own rules (`rr_actors.teach.rules`): `dependency`, `survives`, `alone`,
-`once`, `warned` and `loaded`, each on events built here, the line numbers as a history's."""
+`back`, `once`, `warned`, `loaded` and `kept`, each on events built here, the line numbers as a
+history's."""
 
 from __future__ import annotations
 
@@ -9,7 +10,9 @@ from rr_actors.teach.rules import (
     ROUND_S,
     RULES,
     alone,
+    back,
     dependency,
+    kept,
     loaded,
     once,
     survives,
@@ -175,7 +178,78 @@ def test_the_rules_are_listed_by_name() -> None:
         "dependency": dependency,
         "survives": survives,
         "alone": alone,
+        "back": back,
         "once": once,
         "warned": warned,
         "loaded": loaded,
+        "kept": kept,
     }
+
+
+def a_heal(yields_on: str) -> list[tuple[int, events.Event]]:
+    """db on host c (pid 5) and, during a cut, a second db on host a (pid 6) that the
+    clients (host a) and api (host b) load through; at the heal the one on `yields_on`
+    yields: its ids released ("name yielded"), its exit normal."""
+    pid = {"a": 6, "c": 5}[yields_on]
+    supervisor = {"a": "beyond-1", "c": "root-c"}[yields_on]
+    return [
+        (1, events.CatalogRestored("db", (), (), (), pid=5, host="c")),
+        (2, events.ConsumerAdded("db", "r1", "q1", "api", pid=5, host="c")),
+        (3, events.CallAnswered("api", "q1", "db", "resource", pid=3, host="b")),
+        (4, events.CatalogRestored("db", (), (), (), pid=6, host="a")),  # (the cut)
+        (5, events.ConsumerAdded("db", "r2", "q2", "client-0", pid=6, host="a")),
+        (6, events.CallAnswered("client-0", "q2", "db", "resource", pid=1, host="a")),
+        (7, events.ConsumerAdded("db", "r3", "q3", "api", pid=6, host="a")),
+        (8, events.CallAnswered("api", "q3", "db", "resource", pid=3, host="b")),
+        (9, events.ConsumerReleased("db", "r3", "q3", "api", "name yielded", pid=pid, host="a")),
+        (10, events.ChildExited(supervisor, "db", pid, "normal", normal=True, host=yields_on)),
+        (
+            11,
+            events.ChildExited("root-c", "db", 5, "shutdown", normal=True, stopped=True, host="c"),
+        ),
+    ]
+
+
+def test_the_majoritys_registrar_yielding_at_a_heal_breaks_kept_at_its_first_release() -> None:
+    found = kept(a_heal(yields_on="a"), {"db", "api"})
+
+    assert [(f.rule, f.kind, f.lines, f.registrars) for f in found] == [
+        ("kept", "violation", (9,), ("db",))
+    ]
+    assert found[0].message == (
+        "at the heal, db of host a, which served hosts a, b during the cut (2 of 3: the "
+        "majority, 2 load(s) acknowledged), yielded to db of host c, which served c: the "
+        "minority's registrar was kept, and 1 load(s) the majority still held were undone "
+        "(FATAL to their consumers)"
+    )
+
+
+def test_the_minoritys_registrar_yielding_or_a_stop_at_the_end_holds_kept() -> None:
+    # the lone host's db yields (what it acknowledged before the cut is not the
+    # majority's work during it, nor is an answer to api lost in the cut: api never
+    # heard it); a run's end stops db with "shutdown": no yield
+    lost = events.ConsumerAdded("db", "r9", "q9", "api", pid=5, host="c")
+    minority = [(n, e) for n, e in a_heal(yields_on="c") if n != 9] + [(12, lost)]
+    minority.sort(key=lambda line: 4.5 if line[0] == 12 else line[0])  # (after the cut)
+
+    assert kept(minority, {"db", "api"}) == []
+    assert kept([(n, e) for n, e in a_heal(yields_on="a") if n != 10], {"db", "api"}) == []
+
+
+def test_a_manager_never_started_again_after_its_exit_breaks_back() -> None:
+    # cm is temporary: its kill is its end; rm's kill is followed by its restart, and
+    # erm's by the give-up (`survives` says that one); the stops of the end are not exits
+    history = [
+        (1, events.ChildExited("root", "cm", 9, "killed by SIGKILL", restart="temporary")),
+        (2, events.ChildExited("root", "rm", 10, "killed by SIGKILL", restart="permanent")),
+        (3, events.ChildRestarted("root", "rm", 12, 0.01)),
+        (4, events.ChildExited("sub", "erm", 8, "killed by SIGKILL", restart="permanent")),
+        (5, events.SupervisorGaveUp("sub", "more than 0 restart(s) within 5 s", 0, 5.0)),
+        (6, events.ChildExited("root", "rm", 12, "shutdown", normal=True, stopped=True)),
+    ]
+
+    found = back(history, ["erm", "cm", "rm"])
+
+    assert [(f.rule, f.lines, f.registrars[:2]) for f in found] == [("back", (1,), ("root", "cm"))]
+    assert "its restart type is 'temporary'" in found[0].message
+    assert back(history[1:], ["erm", "cm", "rm"]) == []
