@@ -15,11 +15,20 @@ Rows:
     spans only     `otel.trace(sup, tracer_provider=...)`: an SDK provider sampling
                    everything (ALWAYS_ON) with no span processor: the spans made, not
                    exported (what the subscriber and the SDK's spans cost)
-    tracing on     `otel.trace(sup, tracer_provider=...)`: an SDK provider sampling
-                   everything (ALWAYS_ON), a `BatchSpanProcessor` exporting to a file
-                   (`ConsoleSpanExporter`, one JSON line a span), 2 spans a call
-    traced         `tracing on` with a span current in the caller: the calls' spans are
-                   made under it, with the ids the calls carried
+    on: <exporter> `otel.trace(sup, tracer_provider=...)`: an SDK provider sampling
+                   everything (ALWAYS_ON), a `BatchSpanProcessor` (what a user runs, and
+                   what `--trace` sets up) exporting to a file of its own, 2 spans a
+                   call; one row per `--exporter`:
+                     console    the SDK's `ConsoleSpanExporter`, one JSON line a span
+                                (`ReadableSpan.to_json`)
+                     otlp-file  OTLP protobuf (`opentelemetry-exporter-otlp-proto-common`'s
+                                `encode_spans`, what the OTLP exporters send): each batch
+                                one `ExportTraceServiceRequest`, its length before it
+    sampled 10%    the first exporter's row with `ParentBased(TraceIdRatioBased(0.1))`
+                   (`OTEL_TRACES_SAMPLER=parentbased_traceidratio`,
+                   `OTEL_TRACES_SAMPLER_ARG=0.1`): a trace in ten exported
+    traced         the first exporter's row with a span current in the caller: the
+                   calls' spans are made under it, with the ids the calls carried
 
 A round is timed until everything it caused is done: the manager's events forwarded
 (`flush_events`), the subscription's queue taken (`wait_delivered`), every span written
@@ -30,6 +39,7 @@ The CPU columns count the same rounds' CPU time of every thread of both processe
 loaded machine the wall-clock medians swing with the load, the CPU a call costs less.
 
     taskset -c 0 python benchmarks/bench_otel_cross.py [--rounds 15] [--batch 1000]
+        [--exporter console,otlp-file]   (default: both, otlp-file where installed)
 """
 
 from __future__ import annotations
@@ -47,11 +57,18 @@ from pathlib import Path
 from typing import Any
 
 from opentelemetry.sdk.trace import TracerProvider
-from opentelemetry.sdk.trace.export import BatchSpanProcessor, ConsoleSpanExporter
-from opentelemetry.sdk.trace.sampling import ALWAYS_ON
+from opentelemetry.sdk.trace.export import (
+    BatchSpanProcessor,
+    ConsoleSpanExporter,
+    SpanExporter,
+    SpanExportResult,
+)
+from opentelemetry.sdk.trace.sampling import ALWAYS_ON, ParentBased, TraceIdRatioBased
 
 import rr_actors as rr
 from rr_actors import otel
+
+EXPORTERS = ("console", "otlp-file")
 
 
 def cpu_seconds(pids: list[int]) -> float:
@@ -66,9 +83,6 @@ def cpu_seconds(pids: list[int]) -> float:
     return total / 1e9
 
 
-ROWS = ("floor", "tracing off", "spans only", "tracing on", "traced")
-
-
 def serve(registrar: rr.ResourceRegistrar) -> None:
     registrar.register_server("res", load=lambda r: r, unload=lambda _q, _r: None)
 
@@ -77,49 +91,116 @@ def line(span: Any) -> str:
     return str(span.to_json(indent=None)) + "\n"
 
 
+class OtlpFile(SpanExporter):
+    """OTLP protobuf to a file: each batch one `ExportTraceServiceRequest` (what the OTLP
+    exporters send, encoded by their common package), its length (4 bytes) before it."""
+
+    def __init__(self, out: Any) -> None:
+        from opentelemetry.exporter.otlp.proto.common.trace_encoder import (  # noqa: PLC0415
+            encode_spans,
+        )
+
+        self.encode, self.out = encode_spans, out
+
+    def export(self, spans: Any) -> SpanExportResult:
+        data = self.encode(spans).SerializeToString()
+        self.out.write(len(data).to_bytes(4, "big") + data)
+        return SpanExportResult.SUCCESS
+
+    def force_flush(self, timeout_millis: int = 30_000) -> bool:
+        self.out.flush()
+        return True
+
+
+class Counted(SpanExporter):
+    """An exporter, and the spans it was given."""
+
+    def __init__(self, inner: SpanExporter) -> None:
+        self.inner, self.count = inner, 0
+
+    def export(self, spans: Any) -> SpanExportResult:
+        self.count += len(spans)
+        return self.inner.export(spans)
+
+    def force_flush(self, timeout_millis: int = 30_000) -> bool:
+        return bool(self.inner.force_flush(timeout_millis))
+
+
+def installed(exporter: str) -> bool:
+    if exporter != "otlp-file":
+        return True
+    try:
+        import opentelemetry.exporter.otlp.proto.common.trace_encoder  # noqa: F401, PLC0415
+    except ImportError:
+        return False
+    return True
+
+
 class Bench:
-    def __init__(self, spans: Path) -> None:
+    def __init__(self, folder: Path, exporters: list[str]) -> None:
         tag = uuid.uuid4().hex[:6]
         self.name = f"bench-{tag}"
         spec = rr.ManagerSpec(self.name, serve, isolation="process", start_timeout=120.0)
         self.sup = rr.Supervisor([spec]).start()
         self.app = self.sup.registrar(f"app-{tag}")
         self.first = self.app.call(self.name, "res", "shared", timeout=60)
-        self.out = spans.open("a", encoding="utf-8")
-        self.provider = TracerProvider(sampler=ALWAYS_ON)
-        self.processor = BatchSpanProcessor(
-            ConsoleSpanExporter(out=self.out, formatter=line), max_queue_size=1 << 20
-        )
-        self.provider.add_span_processor(self.processor)
+        self.rows = ["floor", "tracing off", "spans only"]
+        self.providers: dict[str, tuple[TracerProvider, BatchSpanProcessor, Counted]] = {}
+        self.files: list[Any] = []
+        for exporter in exporters:
+            self.rows.append(f"on: {exporter}")
+            self._provider(f"on: {exporter}", exporter, folder, ALWAYS_ON)
+        first = exporters[0]
+        self.rows += [f"sampled 10%: {first}", f"traced: {first}"]
+        sampled = ParentBased(TraceIdRatioBased(0.1))
+        self._provider(f"sampled 10%: {first}", first, folder, sampled)
+        self.providers[f"traced: {first}"] = self.providers[f"on: {first}"]
         self.bare = TracerProvider(sampler=ALWAYS_ON)  # (no processor: nothing exported)
         self.caller = TracerProvider(sampler=ALWAYS_ON).get_tracer("bench")  # (no processor)
-        self.spans = spans
-        self.written = 0
+        self.written: dict[int, int] = {}
         self.per_call: dict[str, float] = {}
-        self.cpu: dict[str, list[float]] = {row: [] for row in ROWS}  # seconds per call
+        self.cpu: dict[str, list[float]] = {row: [] for row in self.rows}  # seconds per call
+
+    def _provider(self, row: str, exporter: str, folder: Path, sampler: Any) -> None:
+        path = folder / f"{len(self.files)}-{exporter}"
+        if exporter == "console":
+            out = path.open("a", encoding="utf-8")
+            inner: SpanExporter = ConsoleSpanExporter(out=out, formatter=line)
+        else:
+            out = path.open("ab")
+            inner = OtlpFile(out)
+        self.files.append(out)
+        counted = Counted(inner)
+        provider = TracerProvider(sampler=sampler)
+        processor = BatchSpanProcessor(counted, max_queue_size=1 << 20)
+        provider.add_span_processor(processor)
+        self.providers[row] = (provider, processor, counted)
 
     def stop(self) -> None:
         self.sup.stop()
-        self.provider.shutdown()
-        self.out.close()
+        for provider, _processor, _counted in self.providers.values():
+            provider.shutdown()
+        for out in self.files:
+            out.close()
 
     def round(self, row: str, batch: int) -> float:
         """Seconds per call of one batch of dedup hits in `row`'s setting."""
         tracing = None
+        exporting = self.providers.get(row)
         if row == "tracing off":
             tracing = otel.trace(self.sup, pair_within=60, max_pending=4 * batch + 100)
         elif row == "spans only":
             tracing = otel.trace(
                 self.sup, tracer_provider=self.bare, pair_within=60, max_pending=4 * batch + 100
             )
-        elif row in ("tracing on", "traced"):
+        elif exporting is not None:
             tracing = otel.trace(
-                self.sup, tracer_provider=self.provider, pair_within=60, max_pending=4 * batch + 100
+                self.sup, tracer_provider=exporting[0], pair_within=60, max_pending=4 * batch + 100
             )
         call, name, app = self.app.call, self.name, self.app
         span = (
             self.caller.start_as_current_span("step")
-            if row == "traced"
+            if row.startswith("traced")
             else contextlib.nullcontext()
         )
         pids = [os.getpid(), self.sup.child(self.name).pid or 0]
@@ -131,7 +212,8 @@ class Bench:
             assert self.sup.flush_events(timeout=60)
             if tracing is not None:
                 assert tracing._subscription.wait_delivered(timeout=60)
-                self.processor.force_flush(timeout_millis=60_000)
+            if exporting is not None:
+                exporting[1].force_flush(timeout_millis=60_000)
             took = time.perf_counter() - began
             self.cpu[row].append((cpu_seconds(pids) - cpu) / batch)
         for query_id in held:
@@ -141,10 +223,13 @@ class Bench:
             assert self.sup.flush_events(timeout=60)
             tracing.close(timeout=60)
             assert tracing.dropped == 0
-            self.processor.force_flush(timeout_millis=60_000)
-        written = sum(1 for _ in self.spans.open(encoding="utf-8"))
-        self.per_call[row] = (written - self.written) / (2 * batch)  # a call and its unload
-        self.written = written
+        written = 0
+        if exporting is not None:
+            exporting[1].force_flush(timeout_millis=60_000)
+            counted = exporting[2]
+            written = counted.count - self.written.get(id(counted), 0)
+            self.written[id(counted)] = counted.count
+        self.per_call[row] = written / (2 * batch)  # a call and its unload
         return took / batch
 
 
@@ -152,16 +237,32 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=15)
     parser.add_argument("--batch", type=int, default=1000)
+    parser.add_argument(
+        "--exporter",
+        default=",".join(e for e in EXPORTERS if installed(e)),
+        help=f"comma-separated, of {', '.join(EXPORTERS)} (default: those installed)",
+    )
     args = parser.parse_args(argv)
+    exporters = [e.strip() for e in args.exporter.split(",") if e.strip()]
+    for exporter in exporters:
+        if exporter not in EXPORTERS:
+            parser.error(f"--exporter {exporter!r}: one of {', '.join(EXPORTERS)}")
+        if not installed(exporter):
+            parser.error(
+                f"--exporter {exporter}: pip install opentelemetry-exporter-otlp-proto-common"
+            )
+    if not exporters:
+        parser.error("--exporter: at least one")
 
-    times: dict[str, list[float]] = {row: [] for row in ROWS}
     with tempfile.TemporaryDirectory() as folder:
-        bench = Bench(Path(folder) / "spans.jsonl")
+        bench = Bench(Path(folder), exporters)
+        rows = bench.rows
+        times: dict[str, list[float]] = {row: [] for row in rows}
         try:
-            for row in ROWS:  # warm-up, untimed
+            for row in rows:  # warm-up, untimed
                 bench.round(row, max(1, args.batch // 10))
             for _ in range(args.rounds):
-                for row in ROWS:
+                for row in rows:
                     times[row].append(bench.round(row, args.batch))
         finally:
             bench.stop()
@@ -176,14 +277,14 @@ def main(argv: list[str] | None = None) -> int:
     floor = statistics.median(times["floor"])
     cpu_off = statistics.median(bench.cpu["tracing off"][-args.rounds :])
     print(
-        f"{'row':<12} {'us/call':>9} {'vs floor':>9} {'vs off':>8} {'cpu us':>8} {'vs off':>8}"
+        f"{'row':<22} {'us/call':>9} {'vs floor':>9} {'vs off':>8} {'cpu us':>8} {'vs off':>8}"
         f" {'spans/op':>9}"
     )
-    for row in ROWS:
+    for row in rows:
         median = statistics.median(times[row])
         cpu = statistics.median(bench.cpu[row][-args.rounds :])  # (not the warm-up's)
         print(
-            f"{row:<12} {median * 1e6:>9.1f} {median / floor:>8.3f}x {median / off:>7.3f}x"
+            f"{row:<22} {median * 1e6:>9.1f} {median / floor:>8.3f}x {median / off:>7.3f}x"
             f" {cpu * 1e6:>8.1f} {cpu / cpu_off:>7.3f}x {bench.per_call[row]:>9.1f}"
         )
     return 0

@@ -135,11 +135,11 @@ def _ns(at: float) -> int:
 _derived = traces.derived
 
 
-def _untraced(query_id: str, verb: str) -> str:
-    """The traceparent an untraced call (or unload) is given here: its trace and CLIENT
-    span ids derived from its query id, so that its two sides, made by subscribers of
-    different processes, meet, and a status hop names its spans (sampled)."""
-    return f"00-{_derived(query_id, bits=128):032x}-{_derived(query_id, verb):016x}-01"
+def _untraced(query_id: str, verb: str) -> tuple[int, int, int]:
+    """The (trace id, CLIENT span id, flags) an untraced call (or unload) is given here:
+    derived from its query id, so that its two sides, made by subscribers of different
+    processes, meet, and a status hop names its spans (sampled)."""
+    return _derived(query_id, bits=128), _derived(query_id, verb), 1
 
 
 def _late(waiting: dict[tuple[str, str], _Half], before: float, most: int) -> list[Any]:
@@ -161,7 +161,7 @@ def _late(waiting: dict[tuple[str, str], _Half], before: float, most: int) -> li
     return late
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(slots=True)
 class _Child:
     """A user callback's INTERNAL span, under its server span."""
 
@@ -173,7 +173,7 @@ class _Child:
     lost: str = ""  # its end was lost: what ended it
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(slots=True)
 class _Half:
     """One side of an RPC, complete, waiting for its other side to be made a span."""
 
@@ -306,6 +306,8 @@ class Tracing:
         if _api is None:
             return None
         provider = self._provider if self._provider is not None else _api.get_tracer_provider()
+        if provider is self._tracer_of:  # (the one of the event before: no look)
+            return self._tracer
         if isinstance(provider, _api.ProxyTracerProvider | _api.NoOpTracerProvider):
             return None
         if provider is not self._tracer_of:
@@ -572,7 +574,7 @@ class Tracing:
         known = self._traced.get(query_id)
         if known is None:
             return []
-        parsed = traces.parse(known[0] or _untraced(query_id, "call"))
+        parsed = traces.parse(known[0]) if known[0] else _untraced(query_id, "call")
         if parsed is None:
             return []
         trace_id, client, flags = parsed
@@ -761,9 +763,12 @@ class Tracing:
         context = None
         # the ids the call carried; an untraced one's, derived from its query id
         carried = (client.trace if client else "") or (server.trace if server else "")
-        if not carried and not (server is not None and client is None and server.root):
-            carried = _untraced(*key)
-        parsed = traces.parse(carried)
+        if carried:
+            parsed = traces.parse(carried)
+        elif server is not None and client is None and server.root:
+            parsed = None
+        else:
+            parsed = _untraced(*key)
         if client is not None and server is not None:  # a side that did not know its server
             method = client.method or server.method
             client.method = server.method = method
@@ -773,7 +778,8 @@ class Tracing:
             if client.started:  # (when the call began: known since event schema 7)
                 start = client.started
             name = f"{client.service}/{client.method}"
-            parent = traces.caller_parent(carried, client.caller_span)
+            # (a caller's span: the call carried its trace)
+            parent = traces.caller_parent(carried, client.caller_span) if carried else None
             span = self._start(
                 tracer,
                 (parsed[0], parsed[1]) if parsed is not None else None,
@@ -809,9 +815,10 @@ class Tracing:
                 links=server.links,
                 start_time=_ns(server.start),
             )
-            inner = _api.set_span_in_context(span)
-            for child in server.children:
-                self._emit_child(tracer, inner, child, server.links)
+            if server.children:
+                inner = _api.set_span_in_context(span)
+                for child in server.children:
+                    self._emit_child(tracer, inner, child, server.links)
             self._end(span, server.error, max(server.end, server.start), server.lost)
             self._incarnations(server, span.get_span_context())
 

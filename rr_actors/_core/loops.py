@@ -196,8 +196,9 @@ class OnLoop:
     thread it started in its context, `asyncio.to_thread`, blocks in a `send_status`)
     lets the next one of its key start beside it, since that one may be what it waits
     for. Each runs in a copy of the context it was bound in (as asyncio runs a callback
-    in its registrant's context), with no OpenTelemetry span current: a status
-    callback's calls are traces of their own, not the binder's span's children.
+    in its registrant's context), with no OpenTelemetry span current but its run's
+    (`own`): a status callback's calls are traces of their own, not the binder's span's
+    children.
 
     Args:
         fn: the coroutine function.
@@ -241,16 +242,18 @@ class OnLoop:
         then: Then | None = None,
         key: Any = None,
         waits: Callable[[], object] | None = None,
+        own: tuple[str, str, str] | None = None,
     ) -> None:
         """Run `fn(*args)` on the loop after the calls of `key` submitted before (class
         docstring); `then(error)` on the loop thread once it ended (`error`: what it
         raised, or `None`); `waits()` (any thread, maybe more than once) as it lets the
-        next one of its key go (`replies.let_go`).
+        next one of its key go (`replies.let_go`); `own`: the status callback's run it is
+        (`traces.own_trace`), its span current across its awaits (`None`: no span).
 
         A loop that is closed runs nothing: `then` gets a `RuntimeError` at once, here.
         """
         try:
-            self.loop.call_soon_threadsafe(self._start, args, then, key, waits)
+            self.loop.call_soon_threadsafe(self._start, args, then, key, waits, own)
         except RuntimeError as exc:  # the loop was closed
             if then is not None:
                 then(exc)
@@ -261,11 +264,12 @@ class OnLoop:
         then: Then | None,
         key: Any,
         waits: Callable[[], object] | None,
+        own: tuple[str, str, str] | None,
     ) -> None:
         before = self._tails.get(key)
         going = asyncio.Event()
         task = self.loop.create_task(
-            self._run(before, going, args, then, key, waits), context=self._context.copy()
+            self._run(before, going, args, then, key, waits, own), context=self._context.copy()
         )  # (a copy each: what one call sets in its context is its own)
         self._tails[key] = (task, going)
 
@@ -277,13 +281,16 @@ class OnLoop:
         then: Then | None,
         key: Any,
         waits: Callable[[], object] | None,
+        own: tuple[str, str, str] | None,
     ) -> None:
         if before is not None:
             await _behind(*before)
         error: BaseException | None = None
         # (this task's context)
         when_waiting(functools.partial(_set_soon, self.loop, going, waits))
-        traces.own_trace()  # (no span current: not the one it was bound under)
+        # (its run's span current, in this task's context across its awaits; else no
+        # span: not the one it was bound under)
+        traces.own_trace(own)
         try:
             await self.fn(*args)
         except Exception as exc:  # logged, as a callback run on a worker thread is

@@ -406,13 +406,22 @@ class StatusRelay:
                     )
                 )
             callback = self.holdings.callback_of(query_id)
+            # (published on the callback's thread, or its loop's: the publisher itself,
+            # not the turn's)
+            told = self.registrar.published, self.registrar.name, message.event
             if isinstance(callback, OnLoop):  # (each id's in order, on its loop)
                 DESK.runner.on_loop(
-                    _Call(callback, record.query, update, join.add(), None, deadline, gave_up)
+                    _Call(
+                        callback,
+                        record.query,
+                        update,
+                        join.add(),
+                        told if active else None,
+                        deadline,
+                        gave_up,
+                    )
                 )
             elif callback is not None:  # (each id's in order with the desk's own)
-                # (published on the callback's thread: the publisher itself, not the turn's)
-                told = self.registrar.published, self.registrar.name, message.event
                 call = _Call(
                     callback,
                     record.query,
@@ -523,6 +532,7 @@ class _Call:
     """
 
     __slots__ = (
+        "began",
         "callback",
         "deadline",
         "done",
@@ -560,6 +570,7 @@ class _Call:
         self.wake = deadline
         self.gave_up = gave_up
         self.seq = 0  # its place in the runner's arrival order
+        self.began = 0  # (a coroutine's) the stamp at which it was handed to its loop
         self.opened = 0  # the stamp at which it first let its lane go (`Runner._waits`)
         self.settled = False  # its `done` ran, or is about to
         self.given_up = False  # settled as given up on
@@ -609,29 +620,36 @@ class _Call:
         return dones
 
     def __call__(self) -> None:
-        told = self.told
-        began = hlc.CLOCK.now() if told is not None else 0
+        began = self.begins()
         # a trace of its own: its run's span (made of its StatusHandled), else no span
-        own = traces.own_trace((told[2], told[1], self.query.id) if told is not None else None)
+        own = traces.own_trace(self.own())
         try:
             self.callback(self.query, self.update)
         except BaseException:  # (a SystemExit too: logged, and its drainer goes on)
             logger.exception("status callback for %s raised", self.query.id)
         finally:
             traces.detach(own)
-            if told is not None:
-                publisher, name, status_id = told
-                publisher.publish(
-                    events.StatusHandled(
-                        name,
-                        self.query.id,
-                        self.update.status,
-                        status_id,
-                        self.seq,
-                        began,
-                        self.opened,
-                    )
+            self.handled(began)
+
+    def begins(self) -> int:
+        """Its callback begins now: the stamp its `StatusHandled` gives (0: none told)."""
+        return hlc.CLOCK.now() if self.told is not None else 0
+
+    def own(self) -> tuple[str, str, str] | None:
+        """The run `traces.own_trace` makes current for its callback (its span's ids, from
+        what its `StatusHandled` names), `None` while no event is published: no span."""
+        told = self.told
+        return (told[2], told[1], self.query.id) if told is not None else None
+
+    def handled(self, began: int) -> None:
+        """Its callback returned: publish its `StatusHandled` (if told to)."""
+        if self.told is not None:
+            publisher, name, status_id = self.told
+            publisher.publish(
+                events.StatusHandled(
+                    name, self.query.id, self.update.status, status_id, self.seq, began, self.opened
                 )
+            )
 
 
 def _arrival(call: _Call) -> int:
@@ -751,6 +769,8 @@ class Runner:
         once while its id's running call is given up on)."""
         dones: list[Callable[..., None]] = []
         with self._lock:
+            self._arrived += 1  # (numbered with the threads' calls: `StatusHandled.arrived`)
+            call.seq = self._arrived
             running = self._on_loop.get(call.lane)
             if running is not None:
                 dones = _queue_behind(self._loop_lanes, call, running)
@@ -778,12 +798,14 @@ class Runner:
     def _submit(self, call: _Call) -> None:
         callback = call.callback
         assert isinstance(callback, OnLoop)
+        call.began = call.begins()  # (its lane is its: it begins as its loop takes it)
         callback.submit(
             call.query,
             call.update,
             then=functools.partial(self._returned, call),
             key=call.lane,
             waits=functools.partial(self._loop_waits, call),
+            own=call.own(),
         )
 
     def _next_on_loop(self, call: _Call) -> _Call | None:
@@ -804,6 +826,8 @@ class Runner:
     def _loop_waits(self, call: _Call) -> None:
         """A coroutine callback's `call` waits for a registrar (`replies.let_go`): its
         id's next call may start beside it (it may be what it waits for)."""
+        if not call.opened and call.told is not None:
+            call.opened = hlc.CLOCK.now()
         with self._lock:
             following = self._next_on_loop(call)
         if following is not None:
@@ -811,7 +835,9 @@ class Runner:
 
     def _returned(self, call: _Call, _error: BaseException | None) -> None:
         """A coroutine callback's `call` returned (on its loop; what it raised was
-        logged): settled (and those merged into it), its id's next call submitted."""
+        logged): its `StatusHandled` published, settled (and those merged into it), its
+        id's next call submitted."""
+        call.handled(call.began)
         with self._lock:
             self._awaited.pop(call, None)
             dones = call.settle(False)
@@ -1128,12 +1154,12 @@ class Desk:
                     )
                 )
             update = StatusUpdate(query_id, batch.status, batch.message, batch.source)
+            told = (targets.events, targets.name, batch.event) if publish else None
             if isinstance(callback, OnLoop):  # a coroutine: on its loop, no worker
                 self.runner.on_loop(
-                    _Call(callback, query, update, join.add(), None, deadline, join.gave_up)
+                    _Call(callback, query, update, join.add(), told, deadline, join.gave_up)
                 )
             else:
-                told = (targets.events, targets.name, batch.event) if publish else None
                 calls.append(
                     _Call(callback, query, update, join.add(), told, deadline, join.gave_up)
                 )

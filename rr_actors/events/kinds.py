@@ -798,14 +798,14 @@ class StatusDelivered(_Numbered):
 
 @_kind
 class StatusHandled(_Numbered):
-    """A consumer's status callback returned (one run on a worker thread, not a coroutine).
+    """A consumer's status callback returned (one run on a worker thread, or a coroutine's).
 
-    Published by the process's status runner on the callback's worker thread, as the
-    callback returns (or raises), after its `StatusDelivered`. With `arrived`, `began`
-    and `opened` a checker judges the runner's promise (rule 9; the check's rule
-    `status-order`): each query id's callbacks run one at a time, in the order their
-    statuses arrived; the next may begin before this one returned only once this one
-    waited for a registrar (`opened`).
+    Published by the process's status runner on the callback's worker thread (a
+    coroutine's: on its loop's thread), as the callback returns (or raises), after its
+    `StatusDelivered`. With `arrived`, `began` and `opened` a checker judges the runner's
+    promise (rule 9; the check's rule `status-order`): each query id's callbacks run one
+    at a time, in the order their statuses arrived; the next may begin before this one
+    returned only once this one waited for a registrar (`opened`).
 
     Attributes:
         registrar: name of the consumer registrar whose client's callback it was.

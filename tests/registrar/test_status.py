@@ -1281,11 +1281,15 @@ class TestTooLarge:
         assert ["repaired"] == [q.response for q in consumer.client_queries(timeout=10)]
 
 
-def test_each_callback_s_end_is_published_with_when_it_began_and_let_its_lane_go() -> None:
+@pytest.mark.parametrize("coroutine", [False, True], ids=["plain", "coroutine"])
+def test_each_callback_s_end_is_published_with_when_it_began_and_let_its_lane_go(
+    coroutine: bool,
+) -> None:
     """`StatusHandled` (issue 51 finding 6): as a callback returns, with its arrival place,
     the stamp it began at and the one it first waited for a registrar at; the check's
     `status-order` judges an id's callbacks by them. Here the outer callback sends a status
-    about its own resource: the inner one runs beside it once it waits (rule 9)."""
+    about its own resource: the inner one runs beside it once it waits (rule 9). A
+    coroutine callback's too (on its loop, awaiting the send)."""
     from rr_actors import events  # noqa: PLC0415
     from rr_actors._registrar import start_registrar  # noqa: PLC0415
     from rr_actors.experiments._status_rules import status_order  # noqa: PLC0415
@@ -1307,7 +1311,12 @@ def test_each_callback_s_end_is_published_with_when_it_began_and_let_its_lane_go
             if update.message == "outer":
                 provider.send_status(query.id, rr.Status.OK, "inner", timeout=5)
 
-        query = consumer.call(provider.name, "leaf", "a", on_status=reentrant)
+        async def areentrant(query: rr.Query, update: rr.StatusUpdate) -> None:
+            if update.message == "outer":
+                await provider.asend_status(query.id, rr.Status.OK, "inner", timeout=5)
+
+        on_status = areentrant if coroutine else reentrant
+        query = consumer.call(provider.name, "leaf", "a", on_status=on_status)
         provider.send_status(query.id, rr.Status.WARNING, "outer", timeout=15)
         assert wait_for(lambda: len(handled) == 2)
     finally:
