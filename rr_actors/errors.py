@@ -188,16 +188,28 @@ class OverloadedError(RrError):
         registrar: the provider registrar's name.
         server: the server's name there.
         bound: its registrar's `max_pending` (loads queued or running, per server).
+        retry_after: seconds after which the provider expects a slot for this caller
+            (as HTTP's `Retry-After`): the pause a waiting call takes before it asks
+            again; `None` when the provider has no estimate yet (no load has run).
     """
 
-    def __init__(self, message: str, registrar: str, server: str, bound: int) -> None:
+    def __init__(
+        self,
+        message: str,
+        registrar: str,
+        server: str,
+        bound: int,
+        retry_after: float | None = None,
+    ) -> None:
         super().__init__(message)
         self.registrar = registrar
         self.server = server
         self.bound = bound
+        self.retry_after = retry_after
 
     def __reduce__(self) -> tuple[Any, ...]:
-        return (type(self), (str(self), self.registrar, self.server, self.bound))
+        args = (str(self), self.registrar, self.server, self.bound, self.retry_after)
+        return (type(self), args)
 
 
 class RegistrarUnavailableError(RrError):

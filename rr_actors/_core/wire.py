@@ -73,7 +73,7 @@ from rr_actors.errors import (
 
 __all__ = ["WIRE_TYPES", "WIRE_VERSION", "Pickler", "WireMessage", "dumps", "plain"]
 
-WIRE_VERSION = 9
+WIRE_VERSION = 10
 """The version of what crosses between processes (these messages, pickled): a carrier
 that can meet a process of another version (the Zenoh one, across hosts) refuses its
 messages unread. Raise it when a `WireMessage` changes incompatibly. (2: the Zenoh
@@ -89,7 +89,9 @@ version 7 would not fence a restarted consumer's earlier loads, and a consumer o
 7 commits a record before its `Load` leaves, which one of 8 no longer does. 9: a `Load`
 and an `Unload` carry their caller's W3C trace context, `trace`, and a `Load` its caller's
 deadline, `deadline` (a monotonic time of each process, the seconds left on the wire): a
-process of version 8 would neither continue the trace nor shed a load too late.)"""
+process of version 8 would neither continue the trace nor shed a load too late. 10: an
+`OverloadedError` carries when to ask again, `retry_after`, which one of version 9 cannot
+unpickle.)"""
 
 WIRE_TYPES: set[type] = set()
 """Every `WireMessage` subclass (filled in as they are defined)."""

@@ -240,6 +240,16 @@ class Platform(Protocol):
         support: then only a firewall keeps a flood of failed handshakes off)."""
         ...
 
+    def monotonic_clock(self) -> str | None:
+        """A name of the clock `time.monotonic()` reads in this process: two processes
+        that give the same name read one clock, so a time of one is a time of the other
+        (`None`: the platform does not say; no other process's time is trusted then).
+
+        A refinement of the deadline a `Load` carries to another process: the time left
+        (which does not count its time in a pipe), or, on one clock, the deadline itself.
+        """
+        ...
+
 
 PARENT_GONE_EXIT = 70
 """The exit code of a manager process that found its parent gone."""
@@ -322,4 +332,8 @@ class PortablePlatform:
     def listener_gate(self, host: str, port: int) -> ListenerGate | None:
         """`None`: no gate (a firewall is the defence against a handshake flood)."""
         del host, port
+        return None
+
+    def monotonic_clock(self) -> str | None:
+        """`None`: a deadline crosses to another process as the time left."""
         return None

@@ -79,8 +79,9 @@ __all__ = [
 
 
 _FIRST_PAUSE = 0.005
-"""Seconds a call refused for overload (`OverloadedError`) waits before it asks again;
-each further refusal doubles it, up to `_LAST_PAUSE`."""
+"""Seconds a call refused for overload (`OverloadedError`) waits before it asks again,
+when its provider does not say (its `retry_after`, else); each further refusal doubles
+it, up to `_LAST_PAUSE`."""
 _LAST_PAUSE = 0.1
 
 
@@ -603,9 +604,11 @@ class Calls:
             assert attempt.state is AttemptState.FAILED  # (neither answered nor withdrawn)
             try:
                 attempt.get()  # raises what the call failed with
-            except OverloadedError:  # refused, holding nothing: wait, then ask again
+            except OverloadedError as refused:  # holding nothing: wait, then ask again
+                pause = pause if refused.retry_after is None else refused.retry_after
                 # a caller that cannot wait, or no time for a pause and the answer after it
-                if not wait_overloaded or deadline - runtime.monotonic() <= 2 * pause:
+                left = deadline - runtime.monotonic()
+                if not wait_overloaded or left <= pause + min(pause, _LAST_PAUSE):
                     raise
             yield OneShotFuture(), runtime.monotonic() + pause  # (never settled: a pause)
             pause = min(2 * pause, _LAST_PAUSE)

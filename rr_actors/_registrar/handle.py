@@ -396,9 +396,10 @@ class Registrar:
             query_id: the id to use (default: a fresh UUID4). Retrying with the same id is
                 idempotent: it never loads twice nor adds a second consumer.
             if_overloaded: what a call refused because the server has its
-                `max_pending` loads does: `"wait"` (pause, 5 ms doubling to 100 ms, and
-                ask again while `timeout` lasts) or `"raise"` (`OverloadedError` at once,
-                for a caller that cannot wait; nothing is held at the provider).
+                `max_pending` loads does: `"wait"` (pause as long as the provider says,
+                its `retry_after`, and ask again while `timeout` lasts) or `"raise"`
+                (`OverloadedError` at once, for a caller that cannot wait; nothing is
+                held at the provider).
 
         Returns:
             The `Query`, with the provider's `response` (in one process, the very object

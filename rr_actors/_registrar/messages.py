@@ -46,6 +46,7 @@ from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.replies import FutureReply
 from rr_actors._core.wire import WireMessage, plain
 from rr_actors._core.workers import Job
+from rr_actors._platform import PLATFORM
 from rr_actors._types import LoadCallback, Status, StatusCallback, UnloadCallback
 from rr_actors.errors import (
     CallTimeoutError,
@@ -112,6 +113,10 @@ __all__ = [
     "text_fields",
 ]
 
+_CLOCK = PLATFORM.monotonic_clock()
+"""The name of the clock `time.monotonic()` reads here (`None`: not known): a `Load`'s
+deadline crosses as itself to a process that reads the same one."""
+
 
 @dataclasses.dataclass(frozen=True)
 class Load(WireMessage):
@@ -126,10 +131,13 @@ class Load(WireMessage):
     `None`: never), by which a provider sheds a load that cannot finish in time
     (`DeadlineExceededError`). It crosses as the seconds left, as gRPC's `grpc-timeout`
     does (`__getstate__`), and becomes a deadline of the receiving process's clock when
-    it is unpickled there (`__setstate__`): the clocks of two processes or hosts are
-    never compared, and the time on the way (in a pipe or socket before the receiver
-    reads it) is not counted, as in gRPC: under a 10x overload across processes, 21 of
-    23,164 loads started up to 36 ms after their caller gave up (`bench_overload.py`).
+    it is unpickled there (`__setstate__`): the time on the way (in a pipe or socket
+    before the receiver reads it) is not counted. So beside it crosses the deadline
+    itself with the name of the sender's clock (`Platform.monotonic_clock`: on Linux
+    the boot and time namespace), and a receiver that reads the same clock (any process
+    of that host) keeps the deadline exact; another host's clock is never compared.
+    (Seconds left alone, 21 of 23,164 loads started up to 36 ms after their caller gave
+    up under a 10x overload across processes: `bench_overload.py`.)
     Answer: the response, or an error.
     """
 
@@ -144,17 +152,25 @@ class Load(WireMessage):
     deadline: float | None = None
 
     def __getstate__(self) -> dict[str, Any]:
-        """Its fields as it leaves this process: the deadline as the seconds left."""
+        """Its fields as it leaves this process: the deadline as the seconds left, and as
+        itself on this process's clock, named (`_CLOCK`), where the platform names it."""
         state = dict(self.__dict__)
-        if self.deadline is not None:
-            state["deadline"] = self.deadline - runtime.monotonic()
+        deadline = self.deadline
+        if deadline is not None:
+            state["deadline"] = deadline - runtime.monotonic()
+            if _CLOCK is not None:
+                state["clock"] = (_CLOCK, deadline)
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        """Its fields as it arrives: the seconds left as a deadline of this process."""
-        left = state.get("deadline")
+        """Its fields as it arrives: the deadline itself if it was taken on this
+        process's clock, else the seconds left as a deadline of this process's clock."""
+        left, clock = state.get("deadline"), state.pop("clock", None)
         if left is not None:
-            state["deadline"] = runtime.monotonic() + left
+            if clock is not None and clock[0] == _CLOCK is not None:
+                state["deadline"] = clock[1]
+            else:
+                state["deadline"] = runtime.monotonic() + left
         self.__dict__.update(state)
 
     def compensation(self) -> Abandon:

@@ -99,6 +99,7 @@ from rr_actors._registrar.messages import (
     load_error,
 )
 from rr_actors._registrar.state import (
+    Pace,
     Phase,
     Server,
     Shared,
@@ -157,6 +158,10 @@ _WANTING = 2.0
 """Seconds a consumer registrar refused a load of a server counts as wanting loads there
 (`Admission`): twenty times a refused caller's longest pause before it asks again."""
 
+_COME_BACK_MOST = 10.0
+"""The longest pause a refused caller is told to take before it asks again, seconds
+(`Admission.come_back`: for a caller with no deadline)."""
+
 _LOAD_S_WEIGHT = 0.2
 """How far one load's run time moves its server's average (`ServerActor.ran`): about the
 last ten loads count."""
@@ -207,7 +212,7 @@ class Admission:
     last free slot from one that waits between its tries, whatever the shares.
     """
 
-    __slots__ = ("counted", "of", "pending", "wanting")
+    __slots__ = ("counted", "of", "paced", "pending", "wanting")
 
     def __init__(self) -> None:
         self.pending: dict[str, int] = {}  # server -> its loads queued or running
@@ -215,6 +220,34 @@ class Admission:
         # server -> consumer -> (first refused, last refused) since it was last admitted
         self.wanting: dict[str, dict[str, tuple[float, float]]] = {}
         self.counted: dict[str, tuple[str, str]] = {}  # resource id -> (server, consumer)
+        # server -> consumer -> when the last of its refused callers was told to come back
+        self.paced: dict[str, dict[str, float]] = {}
+
+    def come_back(
+        self, server: str, origin: str, every: float, deadline: float | None
+    ) -> float | None:
+        """Seconds after which a caller of consumer `origin` refused at `server` should
+        ask again (`OverloadedError.retry_after`; `None`: no estimate, `every` is 0).
+
+        A slot frees about `every` seconds (what the server's loads take lately, per
+        worker), and the callers of `origin` told to come back before this one are
+        ahead of it: so each is told one slot later than the last, from now at the
+        earliest. Its place is kept only if it falls before its caller's `deadline`
+        (one told a time past it gives up at once, and holds no place). Kept by
+        consumer: another consumer's caller is not put behind a flood's.
+        """
+        if every <= 0.0:
+            return None
+        now = runtime.monotonic()
+        chains = self.paced.setdefault(server, {})
+        at = min(max(now, chains.get(origin, now)) + every, now + _COME_BACK_MOST)
+        for name in [name for name, last in chains.items() if last < now]:
+            del chains[name]  # (its callers came back already)
+        if deadline is None or at < deadline:
+            chains[origin] = at
+        if not chains:
+            del self.paced[server]
+        return at - now
 
     def refusal(self, server: str, origin: str, bound: int) -> tuple[int, int, int] | None:
         """Why `server` takes no new load of consumer `origin` now (noted as wanting
@@ -557,12 +590,16 @@ class Provider:
                 f"bound (max_pending={bound}) while other consumers want loads there "
                 f"({share}), or one that waits is served first"
             )
+            every = server.pace.load_s / self.registrar.workers.max_workers
+            after = self.admission.come_back(server.name, origin, every, message.deadline)
             message.reply.set_error(
                 OverloadedError(
-                    f"'{self.registrar.name}/{server.name}' {why}: it takes no more for now",
+                    f"'{self.registrar.name}/{server.name}' {why}: it takes no more for now"
+                    + ("" if after is None else f" (ask again in {after:.3f} s)"),
                     self.registrar.name,
                     server.name,
                     bound,
+                    after,
                 )
             )
             return
@@ -1043,6 +1080,7 @@ class ServerActor(Actor):
         workers: Workers,
         *,
         persisted: bool = False,
+        pace: Pace | None = None,
     ) -> None:
         super().__init__()
         self.persisted = persisted  # responses must pickle: the catalog stores them
@@ -1055,10 +1093,8 @@ class ServerActor(Actor):
         # its coroutines running (loop thread), in the order they started (a dict: a set
         # would cancel them in address order at a stop, which no replay repeats)
         self.tasks: dict[asyncio.Task[None], None] = {}
-        # what its loads take, seconds: an average of the recent ones (`ran`), from 0
-        # (optimistic: nothing is shed before a load has run)
-        self.load_s = 0.0
-        self.learned = 0.0  # when `load_s` last moved, or a probe left (`runtime.monotonic()`)
+        # what its loads take lately (`ran`), shared with the provider (`Server.pace`)
+        self.pace = Pace() if pace is None else pace
 
     def on_receive(self, message: Any) -> None:
         if isinstance(message, RunLoad):
@@ -1134,25 +1170,26 @@ class ServerActor(Actor):
         deadline = message.place.deadline
         if deadline is None:
             return None
-        now = runtime.monotonic()
-        left, expected = deadline - now, self.load_s * _SHED_HEADROOM
+        now, pace = runtime.monotonic(), self.pace
+        left, expected = deadline - now, pace.load_s * _SHED_HEADROOM
         if left > expected:
             return None
-        if left > 0.0 and now - self.learned >= self.load_s:
-            self.learned = now  # (workers race here: a probe more or less, no harm)
+        if left > 0.0 and now - pace.learned >= pace.load_s:
+            pace.learned = now  # (workers race here: a probe more or less, no harm)
             return None
         return DeadlineExceededError(
             f"the load of {describe(message.request)} at '{self.registrar}/{self.name}' was "
             f"shed before it started: {max(left, 0.0):.3f} s were left of its callers' "
-            f"timeout, and its loads take {self.load_s:.3f} s lately (it needs "
+            f"timeout, and its loads take {pace.load_s:.3f} s lately (it needs "
             f"{_SHED_HEADROOM:g} times that)"
         )
 
     def ran(self, took: float) -> None:
         """A load ran for `took` seconds: the average of the recent ones moves toward it
         (an exponentially weighted average; two workers racing lose one update, no more)."""
-        self.load_s += _LOAD_S_WEIGHT * (took - self.load_s)
-        self.learned = runtime.monotonic()
+        pace = self.pace
+        pace.load_s += _LOAD_S_WEIGHT * (took - pace.load_s)
+        pace.learned = runtime.monotonic()
 
     async def _aload(self, message: RunLoad) -> None:
         """A coroutine `load`, on the process's loop (its task's own context), under its
@@ -1716,6 +1753,7 @@ class Servers:
             raise DuplicateNameError(
                 f"resource server '{self.registrar.name}/{name}' already exists"
             )
+        pace = Pace()
         ref = ServerActor.start(
             self.registrar.name,
             name,
@@ -1723,9 +1761,15 @@ class Servers:
             message.unload,
             self.registrar.workers,
             persisted=self.registrar.saver.store is not None,
+            pace=pace,
         )
         self.registrar.servers[name] = Server(
-            name, ref, message.on_status, label=message.label, max_pending=message.max_pending
+            name,
+            ref,
+            message.on_status,
+            label=message.label,
+            max_pending=message.max_pending,
+            pace=pace,
         )
         self.teardown.run_parked(name)
         reply.set_result(None)

@@ -55,6 +55,7 @@ __all__ = [
     "POINTS",
     "Hook",
     "OpenReply",
+    "Pace",
     "Phase",
     "Probes",
     "Server",
@@ -91,10 +92,25 @@ class Phase(enum.Enum):
     """Stopped or dead: what still arrives is refused (`on_late`)."""
 
 
+class Pace:
+    """What a server's loads take lately: `load_s`, an average of the recent ones (from 0:
+    nothing is shed before a load has run), and `learned`, when it last moved or a probe
+    left (`time.monotonic()`). Its actor's workers write it (`provider.ServerActor.ran`);
+    the provider reads it too, to tell a refused caller when to ask again (a float
+    each, read or written whole: no lock)."""
+
+    __slots__ = ("learned", "load_s")
+
+    def __init__(self) -> None:
+        self.load_s = 0.0
+        self.learned = 0.0
+
+
 @dataclasses.dataclass
 class Server:
     """A registered resource server (its `label(request)`: `display.py`; its own bound of
-    new loads under way, `max_pending`, or `None`: the registrar's)."""
+    new loads under way, `max_pending`, or `None`: the registrar's; its `pace`, shared
+    with its actor)."""
 
     name: str
     ref: pykka.ActorRef[Any]  # (a `provider.ServerActor`)
@@ -105,6 +121,7 @@ class Server:
     # new loads refused since its last `ServerOverloaded`, and when that was published
     # (`Provider.refused`; kept here, it goes with the server when it is unregistered)
     refusals: tuple[int, float] | None = None
+    pace: Pace = dataclasses.field(default_factory=Pace)
 
 
 @dataclasses.dataclass

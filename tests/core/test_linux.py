@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import multiprocessing
 import os
+import time
 
 from rr_actors._platform.linux import LinuxPlatform
 
@@ -28,3 +30,20 @@ def test_releasing_free_memory_hands_freed_heap_pages_back_to_the_system() -> No
     assert len(kept) == 401
     returned = freed - _resident_bytes()
     assert returned > 20 * 2**20, f"only {returned / 2**20:.1f} MB went back to the system"
+
+
+# -- one clock for every process of a host (a Load's deadline crosses as itself) -----------
+
+
+def _clock_and_time() -> tuple[str | None, float]:
+    return LinuxPlatform().monotonic_clock(), time.monotonic()
+
+
+def test_another_process_of_this_host_names_the_same_monotonic_clock_and_reads_it() -> None:
+    before = time.monotonic()
+    with multiprocessing.get_context("spawn").Pool(1) as pool:
+        clock, there = pool.apply(_clock_and_time)
+    after = time.monotonic()
+
+    assert LinuxPlatform().monotonic_clock() == clock is not None
+    assert before <= there <= after  # a time of the other process is a time of this one

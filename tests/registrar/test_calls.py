@@ -7,6 +7,8 @@ before the registrar's next message (`TestOutcomes`), timeouts and providers tha
 
 from __future__ import annotations
 
+import asyncio
+import itertools
 import signal
 import sys
 import threading
@@ -21,6 +23,7 @@ import pykka
 import pytest
 
 import rr_actors as rr
+from rr_actors._core.directory import DIRECTORY
 from rr_actors._registrar.calls import BACKLOG
 from rr_actors.testing import (
     AttemptState,
@@ -1190,3 +1193,88 @@ class TestRaces:
             consumer.stop()
             for registrar in restarted:
                 registrar.stop()
+
+
+# -- for TestOverloadPause -----------------------------------------------------------------
+
+
+class _RefusesEveryLoad:
+    """A provider (a peer in this process's directory) that refuses every load for
+    overload, telling when to ask again (`retry_after`; `None`: it does not say), and
+    notes when each try came (`tries`, monotonic seconds)."""
+
+    def __init__(self, retry_after: float | None) -> None:
+        self.name = f"full-{uuid.uuid4().hex[:8]}"
+        self.retry_after = retry_after
+        self.tries: list[float] = []
+
+    def tell(self, message: Any) -> None:
+        self.tries.append(time.monotonic())
+        refused = rr.errors.OverloadedError(
+            "full", self.name, message.server, 1, retry_after=self.retry_after
+        )
+        message.reply.set_error(refused)
+
+    deliver = tell
+
+
+class TestOverloadPause:
+    """Issue 53: a call refused for overload asks again after the pause its provider
+    tells (`OverloadedError.retry_after`: when it expects a slot), not one it guesses;
+    told a pause past its timeout, it gives up at once."""
+
+    @pytest.fixture
+    def refusing(self) -> Iterator[Callable[[float | None], _RefusesEveryLoad]]:
+        made: list[_RefusesEveryLoad] = []
+
+        def make(retry_after: float | None) -> _RefusesEveryLoad:
+            provider = _RefusesEveryLoad(retry_after)
+            DIRECTORY.register(provider)
+            made.append(provider)
+            return provider
+
+        yield make
+        for provider in made:
+            DIRECTORY.unregister(provider, "stopped")
+
+    @pytest.mark.thread_only("its provider is a peer of this process's directory")
+    @pytest.mark.parametrize("awaited", [False, True], ids=["blocking", "awaited"])
+    def test_a_refused_call_asks_again_after_the_pause_its_provider_tells(
+        self, make_registrar, refusing, awaited: bool
+    ):
+        provider, consumer = refusing(0.5), make_registrar("consumer")
+
+        def call() -> Any:
+            if awaited:
+                return asyncio.run(consumer.acall(provider.name, "leaf", "x", timeout=2.0))
+            return consumer.call(provider.name, "leaf", "x", timeout=2.0)
+
+        with pytest.raises(rr.errors.OverloadedError) as refused:
+            call()
+
+        assert 0.5 == refused.value.retry_after
+        # at 0, 0.5, 1.0 and 1.5 s (then 0.5 s left: no more than the pause and an
+        # answer's time); its own pauses (5 ms doubling to 100 ms) ask about 20 times
+        assert 2 <= len(provider.tries) <= 4, provider.tries
+        pauses = [b - a for a, b in itertools.pairwise(provider.tries)]
+        assert all(pause >= 0.49 for pause in pauses), pauses
+
+    @pytest.mark.thread_only("its provider is a peer of this process's directory")
+    def test_a_provider_that_tells_no_pause_is_asked_again_after_a_doubling_one(
+        self, make_registrar, refusing
+    ):
+        provider, consumer = refusing(None), make_registrar("consumer")
+
+        with pytest.raises(rr.errors.OverloadedError):
+            consumer.call(provider.name, "leaf", "x", timeout=1.0)
+
+        assert len(provider.tries) > 3, provider.tries  # (5, 10, 20, 40, 80, 100 ms...)
+
+    @pytest.mark.thread_only("its provider is a peer of this process's directory")
+    def test_a_call_told_a_pause_past_its_timeout_gives_up_at_once(self, make_registrar, refusing):
+        provider, consumer = refusing(30.0), make_registrar("consumer")
+
+        with pytest.raises(rr.errors.OverloadedError, match="full"):
+            consumer.call(provider.name, "leaf", "x", timeout=10.0)
+
+        assert 1 == len(provider.tries)

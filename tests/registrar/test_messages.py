@@ -7,6 +7,7 @@ from __future__ import annotations
 import pickle
 import uuid
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import pytest
@@ -16,7 +17,7 @@ from rr_actors._core import runtime
 from rr_actors._core.replies import FutureReply, wait
 from rr_actors._registrar import messages
 from rr_actors._registrar.messages import Load
-from rr_actors.testing import MemoryNetwork, catalog_snapshot
+from rr_actors.testing import MemoryNetwork, catalog_snapshot, intercept
 
 # -- for TestBadNames ----------------------------------------------------------------------
 
@@ -205,20 +206,105 @@ def test_small_builtin_data_is_known_picklable_without_pickling_it(
 
 
 class TestLoadDeadline:
-    """A `Load`'s deadline crosses as the seconds left (issue 53): each process reads it
-    on its own monotonic clock, which no other process's clock is compared with."""
+    """A `Load`'s deadline crosses (issue 53) as itself to a process that reads the same
+    monotonic clock (the platform names it), else as the seconds left, read on the
+    receiver's own clock, which no other host's clock is compared with."""
 
-    def test_it_crosses_as_the_seconds_left_and_arrives_on_the_receivers_clock(
-        self, monkeypatch: pytest.MonkeyPatch
+    @pytest.mark.parametrize("clocks", [("host-a", "host-b"), (None, None)], ids=["two", "unnamed"])
+    def test_to_another_clock_it_crosses_as_the_seconds_left_and_arrives_on_the_receivers(
+        self, monkeypatch: pytest.MonkeyPatch, clocks: tuple[str | None, str | None]
     ):
-        monkeypatch.setattr(runtime, "monotonic", lambda: 1000.0)  # the sender's clock
+        monkeypatch.setattr(messages, "_CLOCK", clocks[0])  # the sender's
+        monkeypatch.setattr(runtime, "monotonic", lambda: 1000.0)
         load = Load("q", "leaf", "x", "consumer", (), FutureReply(), deadline=1002.5)
         pickled = pickle.dumps(load.detached())
-        monkeypatch.setattr(runtime, "monotonic", lambda: 7.0)  # the receiver's
+        monkeypatch.setattr(messages, "_CLOCK", clocks[1])  # the receiver's
+        monkeypatch.setattr(runtime, "monotonic", lambda: 7.0)
         arrived = pickle.loads(pickled)
         assert 9.5 == arrived.deadline  # 2.5 s left, as when it left
         assert ("q", "x", None) == (arrived.query_id, arrived.request, arrived.reply)
+        assert "clock" not in arrived.__dict__
+
+    def test_on_one_clock_it_crosses_as_itself_its_time_on_the_way_counted(
+        self, monkeypatch: pytest.MonkeyPatch
+    ):
+        monkeypatch.setattr(messages, "_CLOCK", "host-a")
+        monkeypatch.setattr(runtime, "monotonic", lambda: 1000.0)
+        load = Load("q", "leaf", "x", "consumer", (), FutureReply(), deadline=1002.5)
+        pickled = pickle.dumps(load.detached())
+        monkeypatch.setattr(runtime, "monotonic", lambda: 1004.0)  # 4 s in a pipe
+        arrived = pickle.loads(pickled)
+        assert 1002.5 == arrived.deadline  # passed: its caller gave up on the way
+        assert "clock" not in arrived.__dict__
 
     def test_a_load_without_a_deadline_crosses_without_one(self):
         load = Load("q", "leaf", "x", "consumer", (), FutureReply())
         assert pickle.loads(pickle.dumps(load.detached())).deadline is None
+
+    @pytest.mark.across_processes("the load waits in the pipe between two processes")
+    @pytest.mark.not_zenoh("holds the link's reading thread: Zenoh's would miss its lease")
+    @pytest.mark.skipif(messages._CLOCK is None, reason="the platform names no clock")
+    def test_a_load_whose_caller_gave_up_while_it_waited_in_the_pipe_never_runs(
+        self, make_registrar, gates, shared
+    ):
+        """Its time in the pipe counts (issue 53): the provider's thread that reads the
+        link is held while the load waits behind it, past its caller's timeout; when the
+        provider reads it, it is shed and its `load` never runs. The caller's `Abandon`
+        (which withdraws a load not yet started) is held back meanwhile, so the deadline
+        alone decides, as when a load races its `Abandon` to a free worker."""
+        provider = make_registrar("provider", max_workers=2)
+        consumer = make_registrar("consumer")
+        holding, release, giving_up, proceed = gates(), gates(), gates(), gates()
+        started = shared.list()
+
+        def load(request: Any) -> Any:
+            started.append(request)
+            return request
+
+        def hold_back_the_abandon(registrar: Any) -> None:
+            def before(query: Any) -> None:  # (the caller's thread, as it gives up)
+                if query.request == "late":
+                    giving_up.set()
+                    proceed.wait(30)
+
+            intercept(registrar, "withdraw", before=before)
+
+        provider.register_server("leaf", load=load, unload=lambda r, s: None)
+        consumer.run(hold_back_the_abandon, timeout=10)
+        holder = HoldsTheReader(provider.name, holding, release)
+        with ThreadPoolExecutor(2) as pool:
+            held = pool.submit(consumer.call, provider.name, "leaf", holder, timeout=60)
+            assert holding.wait(30)  # the link's reader unpickles it: the next load waits
+            late = pool.submit(consumer.call, provider.name, "leaf", "late", timeout=0.5)
+            assert giving_up.wait(30)  # its caller gave up; the load is still in the pipe
+            release.set()
+            assert "holder" == held.result(timeout=30).response
+            # a load sent after it has run, so it would have run before
+            assert "next" == consumer.call(provider.name, "leaf", "next", timeout=30).response
+            proceed.set()
+            with pytest.raises(rr.CallTimeoutError):
+                late.result(timeout=30)
+        assert ["holder", "next"] == list(started)
+        assert 2 == len(provider.server_queries("leaf")) == len(consumer.client_queries())
+
+
+class HoldsTheReader:
+    """A request whose unpickling, in the process that serves registrar `provider`, holds
+    the thread that reads the link it came by until `release` is set (`holding` set
+    meanwhile): the messages behind it wait in the pipe. Elsewhere it unpickles as itself."""
+
+    def __init__(self, provider: str, holding: Any, release: Any) -> None:
+        self.provider, self.holding, self.release = provider, holding, release
+
+    def __reduce__(self) -> Any:
+        return (_hold_the_reader, (self.provider, self.holding, self.release))
+
+
+def _hold_the_reader(provider: str, holding: Any, release: Any) -> Any:
+    from rr_actors._core.directory import DIRECTORY  # noqa: PLC0415
+
+    if not any(peer.name == provider for peer in DIRECTORY.local_peers()):
+        return HoldsTheReader(provider, holding, release)
+    holding.set()
+    release.wait(30)
+    return "holder"

@@ -2090,6 +2090,85 @@ class TestOverload:
         assert 4 == len(greedy.client_queries())
         assert 1 == len(other.client_queries())
 
+    def test_a_refused_call_is_told_to_ask_again_a_slot_after_its_consumers_last_one(
+        self, make_registrar, gates, shared
+    ):
+        """The provider paces its refused callers (as HTTP's `Retry-After`): a slot frees
+        about every load time per worker, and each refused caller of a consumer is told
+        to ask again one slot after the one refused before it; another consumer's
+        caller is not put behind them."""
+        provider = make_registrar("provider", max_workers=1, max_pending=1)
+        greedy, other = make_registrar("greedy"), make_registrar("other")
+        gate, never, started = gates(), gates(), shared.list()
+
+        def load(request: Any) -> Any:
+            started.append(request)
+            if request == "taught":  # its loads take 0.2 of >= 2 s lately (one ran)
+                never.wait(2.0)
+            elif request == "held":
+                assert gate.wait(30)
+            return request
+
+        provider.register_server("leaf", load=load, unload=lambda r, s: None)
+        target = (provider.name, "leaf")
+        assert "taught" == greedy.call(*target, "taught", timeout=30).response
+        hints = []
+        with ThreadPoolExecutor(1) as pool:
+            held = pool.submit(greedy.call, *target, "held", timeout=30)
+            assert wait_for(lambda: "held" in started, timeout=20)
+            for n in range(3):
+                with pytest.raises(rr.errors.OverloadedError) as refused:
+                    greedy.call(*target, n, timeout=30, if_overloaded="raise")
+                hints.append(refused.value.retry_after)
+            with pytest.raises(rr.errors.OverloadedError) as theirs:
+                other.call(*target, "other", timeout=30, if_overloaded="raise")
+            gate.set()
+            assert "held" == held.result(timeout=10).response
+        every = hints[0]  # one slot: its loads' time lately, over one worker
+        assert 0.4 <= every < 6.0, hints
+        assert hints == sorted(set(hints)), hints  # each one slot after the last (less
+        assert hints[2] > every  # the time between the calls)
+        assert every == pytest.approx(theirs.value.retry_after, abs=1e-6)
+        assert f"ask again in {every:.3f} s" in str(theirs.value)
+        assert ["taught", "held"] == list(started)  # the refused ones never ran
+
+    @pytest.mark.across_processes("one link between two processes carries both servers' loads")
+    def test_a_saturated_server_does_not_slow_another_server_called_over_the_same_link(
+        self, make_registrar, gates, shared
+    ):
+        """Flow across processes is the provider's answers, never the link's: a server
+        whose bound is full refuses its flood (each caller told when to ask again), and
+        another server of its registrar, called by the same consumer over the same link,
+        answers every call while the flood waits; then the flood is served too."""
+        provider = make_registrar("provider", max_workers=4)
+        consumer = make_registrar("consumer")
+        gate, never, started = gates(), gates(), shared.list()
+
+        def slow(request: Any) -> Any:
+            started.append(request)
+            if request == "taught":  # (its loads take some time lately: callers paced)
+                never.wait(0.3)
+            else:
+                assert gate.wait(60)
+            return request
+
+        provider.register_server("slow", load=slow, unload=lambda r, s: None, max_pending=2)
+        provider.register_server("quick", load=lambda r: r, unload=lambda r, s: None)
+        assert "taught" == consumer.call(provider.name, "slow", "taught", timeout=30).response
+        with ThreadPoolExecutor(8) as pool:
+            flood = [
+                pool.submit(consumer.call, provider.name, "slow", n, timeout=60) for n in range(8)
+            ]
+            assert wait_for(lambda: 3 == len(started), timeout=20)  # its bound: 2 under way
+            quick = [consumer.call(provider.name, "quick", n, timeout=20) for n in range(20)]
+            assert list(range(20)) == [q.response for q in quick]
+            assert 3 == len(started)  # the slow queue has not moved meanwhile
+            assert not any(call.done() for call in flood)  # its callers wait, none failed
+            gate.set()
+            assert list(range(8)) == [call.result(timeout=60).response for call in flood]
+        assert 9 == len(provider.server_queries("slow"))
+        assert 20 == len(provider.server_queries("quick"))
+
     def test_an_unload_is_not_queued_behind_loads(self, make_registrar, gates, shared, eventually):
         provider, consumer = make_registrar("provider", max_workers=1), make_registrar("consumer")
         first, rest, started, unloaded = gates(), gates(), shared.list(), shared.list()
