@@ -36,7 +36,7 @@ other as the router's). So the link cannot say whose a batch is once a router is
 between; the key expression and a field in the payload are whatever the sender wrote.
 A signature made where the batch was made, by the key of a certificate the system's CA
 issued to a member, names its host wherever the batch went: the host of an event is the
-member whose certificate sealed its batch, never its `host` field (`events.EventFeed`).
+member whose certificate sealed its batch, never its `host` field (`rr_actors.observe._feed`).
 
 A seal is `b"rs1" | length of the chain (2 bytes, big endian) | the chain (PEM, as the
 host's cert file holds it) | the signature`: ECDSA with SHA-256, Ed25519, or RSA-PSS

@@ -1,4 +1,4 @@
-"""The system's event stream over Zenoh on one host (`rr_actors._transport.zenoh.ops.events`).
+"""The system's event stream over Zenoh on one host (`rr_actors.observe._feed`).
 
 A `ZenohNetwork` on loopback (plain TCP: nothing crosses a machine), its registrars, and
 a raw Zenoh session that attaches through the router's Unix socket (as a buggy member
@@ -32,7 +32,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import events
-from rr_actors._transport.zenoh.ops import events as zenoh_events
+from rr_actors.observe import _feed as zenoh_events
 from tests.support import pki
 from tests.support.waiting import wait_for
 
@@ -158,7 +158,7 @@ def test_a_process_sends_its_events_only_while_someone_subscribes(
 def test_events_given_right_before_a_close_are_still_sent(net: rr.ZenohNetwork) -> None:
     # (a manager process's last events, as it stops: once dropped by a close that gave its
     # forwarder no time at all, and warned of on the demo's terminal)
-    from rr_actors._transport.zenoh.ops.events import EventExport, decode  # noqa: PLC0415
+    from rr_actors.observe._feed import EventExport, decode  # noqa: PLC0415
 
     keys = net.services().keys
     listening, exporting = _raw_session(net), _raw_session(net)
