@@ -22,6 +22,8 @@ import json
 import os
 import pickle
 import socket
+import subprocess
+import sys
 import threading
 import uuid
 from collections.abc import Iterator
@@ -377,3 +379,20 @@ def test_with_tls_the_host_of_an_event_is_the_member_whose_certificate_sealed_it
 def test_a_window_out_of_range_is_a_config_error(net: rr.ZenohNetwork, window: Any) -> None:
     with pytest.raises(rr.ConfigError, match="window"):
         net.subscribe_events(print, window=window)
+
+
+def test_a_manager_process_that_takes_the_feed_imports_no_supervisor_and_no_web_server() -> None:
+    """A process that attaches through its router unpickles the router's `Across` (its
+    address carries it), which imports this module there: it must not pull the
+    supervisor (the observer's protocol lives beside it, `_supervision.watching`) nor
+    the observer's web server."""
+    code = (
+        "import sys, rr_actors.observe._feed; "
+        "print(sorted(m for m in ('rr_actors._supervision.supervisor', 'starlette', "
+        "'uvicorn') if m in sys.modules))"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True
+    )
+
+    assert "[]" == done.stdout.strip()
