@@ -72,7 +72,7 @@ from rr_actors.errors import ConfigError
 from rr_actors.observe._links import LinkWatch, plain_unlinked
 
 if TYPE_CHECKING:
-    from rr_actors._transport.zenoh.ops.tls import Seal
+    from rr_actors.observe._seal import Seal
 
 __all__ = [
     "BATCHES_HELD",
@@ -539,7 +539,7 @@ class Across:
         tls = opened.tls
         self._seal: Seal | None = None
         if tls is not None:  # each batch sealed with this host's certificate
-            from rr_actors._transport.zenoh.ops.tls import Seal  # noqa: PLC0415 - cryptography
+            from rr_actors.observe._seal import Seal  # noqa: PLC0415 - cryptography
 
             self._seal = Seal(tls, opened.system)
         session = opened.session

@@ -302,7 +302,7 @@ def test_a_batch_whose_events_weigh_more_than_the_bound_is_read_up_to_it_and_cou
 
 def _sealer(directory: Path, name: str, ca: Any, members: list[str]) -> Any:
     """A `Seal` with the certificate of member `name` (issued by `ca` into `directory`)."""
-    from rr_actors._transport.zenoh.ops.tls import Seal  # noqa: PLC0415 - cryptography
+    from rr_actors.observe._seal import Seal  # noqa: PLC0415 - cryptography
 
     cert, key = pki.issue(directory, name, ["127.0.0.1"], ca=ca, key_type=KEY_TYPES[name])
     return Seal(rr.ZenohTLS(ca=ca[0], cert=cert, key=key, members=members), SEALED_SYSTEM)
@@ -330,7 +330,7 @@ def test_with_tls_the_host_of_an_event_is_the_member_whose_certificate_sealed_it
     stranger = _sealer(tmp_path, "stranger", ca, ["stranger"])  # (its CA, not a member)
     other_ca = pki.make_ca(tmp_path / "other", "lab")
     forger = _sealer(tmp_path / "other", "forger", other_ca, ["forger"])
-    from rr_actors._transport.zenoh.ops.tls import Seal  # noqa: PLC0415 - cryptography
+    from rr_actors.observe._seal import Seal  # noqa: PLC0415 - cryptography
 
     elsewhere = Seal(rr.ZenohTLS(ca=ca[0], cert=cert, key=key, members=members), "elsewhere")
     claims_robot = _in_doubt("claims-robot", 10)  # (`host` "robot": this host's name)

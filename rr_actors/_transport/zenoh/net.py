@@ -415,7 +415,7 @@ class ZenohNetwork(Messenger):
             WARNING each: whoever answers there can run code here). One that cannot be
             reached yet is no error (the other host may start later; Zenoh keeps
             trying): a WARNING names it, with TLS the reason from a handshake of our own
-            (`watch`), at most once a minute while it lasts.
+            (the link watch, `Beside`), at most once a minute while it lasts.
         tls: required. A `ZenohTLS`: mutual TLS on every link and Zenoh's access control
             (only `members` and this host's manager processes reach `rr/<system>/`; see
             `config`). `None`: plain TCP, for one trusted network only: anyone who
