@@ -55,6 +55,7 @@ if TYPE_CHECKING:  # at run time, `__getattr__` below imports each at its first 
     from rr_actors._store import quarantine_backup
     from rr_actors._supervision import ChildCounts as ChildCounts
     from rr_actors._supervision import ChildInfo, Supervisor
+    from rr_actors._supervision.watching import Observing
     from rr_actors._transport.resolve import Claimant
     from rr_actors._transport.zenoh.net import ZenohNetwork
     from rr_actors._transport.zenoh.ops.tls import ZenohTLS
@@ -117,6 +118,26 @@ the name's first use)."""
 _NEEDS_ZENOH = {"ZenohNetwork", "ZenohTLS"}
 
 
+def _observer() -> "Observing":
+    """The observer, as a supervisor finds it: the lab's (`rr_actors.observe`), imported
+    at a supervisor's first `observe` or `graph`, never by the runtime itself."""
+    from rr_actors.observe._observer import SUPERVISORS  # noqa: PLC0415 - the lab
+
+    return SUPERVISORS
+
+
+def _attach_lab(module: object) -> None:
+    """Attach the lab's parts a runtime module finds through a protocol of its own: the
+    observer to supervisors; the event feed across hosts and the link watch to Zenoh
+    sessions (`rr_actors.observe._feed` attaches itself when imported)."""
+    if getattr(module, "__name__", "") == "rr_actors._supervision":
+        from rr_actors._supervision.watching import attach_observer  # noqa: PLC0415
+
+        attach_observer(_observer)
+    elif getattr(module, "__name__", "") == "rr_actors._transport.zenoh.net":
+        from rr_actors.observe import _feed  # noqa: F401, PLC0415 - attaches itself
+
+
 def __getattr__(name: str) -> object:
     """A name of the runtime (`_RUNTIME`), its module imported at first use (PEP 562).
 
@@ -133,8 +154,10 @@ def __getattr__(name: str) -> object:
     if name in _NEEDS_ZENOH:
         with _extras.needs("zenoh", f"rr.{name}"):
             module = importlib.import_module(where)
+            _attach_lab(module)
     else:
         module = importlib.import_module(where)
+        _attach_lab(module)
     value = module if name == "events" else getattr(module, name)
     globals()[name] = value  # (the next use finds it here, as an eager import would)
     return value

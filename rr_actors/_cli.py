@@ -394,7 +394,7 @@ def _positive_seconds(text: str) -> float:
 
 
 def _events_arguments(parser: argparse.ArgumentParser) -> None:
-    from rr_actors._transport.zenoh.ops.options import add_network_arguments  # noqa: PLC0415
+    from rr_actors._tools.options import add_network_arguments  # noqa: PLC0415
 
     parser.add_argument(
         "--merge",
@@ -422,7 +422,7 @@ def _events(args: argparse.Namespace, out: TextIO) -> int:
     """Print the system's events (`--network`) or merge files (`--merge`), one JSON line each."""
     import threading  # noqa: PLC0415
 
-    from rr_actors._transport.zenoh.ops.options import network_from  # noqa: PLC0415
+    from rr_actors._tools.options import network_from  # noqa: PLC0415
     from rr_actors.events.lines import json_lines  # noqa: PLC0415
 
     if args.merge:

@@ -93,8 +93,8 @@ from rr_actors.errors import (
 if TYPE_CHECKING:
     import socket
 
+    from rr_actors._supervision.watching import Page
     from rr_actors._transport.base import Transport
-    from rr_actors.observe import Observer
 
 __all__ = [
     "Backoff",
@@ -713,7 +713,7 @@ class Supervisor(AsyncSupervision):
         keep_serving: bool = False,
         across_hosts: bool | None = None,
         sock: socket.socket | None = None,
-    ) -> Observer:
+    ) -> Page:
         """Serve a live web page of this tree at the returned observer's `url`.
 
         The page shows the supervision tree (state, pid, restarts, last exit, backoff

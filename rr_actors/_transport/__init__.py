@@ -11,8 +11,10 @@
   files, `attach`, who is lost, rule 19) and `link` (a connection each way);
 - `zenoh/`, the Zenoh carrier (extra `zenoh`, imported only when used): the link in
   `net`, `carrier`, `link`, `presence`, `wire`; its operations in `ops/` (TLS, the
-  access control, the link watch, the gate, events across hosts, options). The
-  operator's tooling (`rr-actors certs`) is `rr_actors._tools.certs`, not a carrier's.
+  access control, the gate). The operator's tooling (`rr-actors certs`, the command
+  line's network options) is `rr_actors._tools`; the event feed across hosts and the
+  link watch, which run beside a session (`zenoh.net.Beside`), are the observer's
+  (`rr_actors.observe._feed`).
 """
 
 from rr_actors._transport.base import Address, Endpoint, Transport

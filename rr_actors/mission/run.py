@@ -65,7 +65,7 @@ from rr_actors.mission.report import MissionReport
 
 if TYPE_CHECKING:
     from rr_actors import otel
-    from rr_actors.observe import Observer
+    from rr_actors._supervision.watching import Page as Observer  # (`sup.observe()`'s)
 
 CLOCK_SLACK = 0.05
 """Seconds the page's mission clock may be off before it is set again (`--observe`)."""

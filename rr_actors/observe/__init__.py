@@ -15,7 +15,10 @@ tree and the dependency graph as Mermaid or DOT text.
 Across hosts (a supervisor on a `ZenohNetwork`), `_share` shares each host's state as
 JSON and `_system` keeps a page of every host (`observe_system`: a page from a member
 without a tree); `_crossing` (what crosses, and its checks), `_liveness` (the hosts'
-and links' sections), `_faults_across` (fault commands to another host).
+and links' sections), `_faults_across` (fault commands to another host). Beside every
+Zenoh session (`_feed.Across`, attached when imported): the system's event stream
+(`_feed`, `ZenohNetwork.subscribe_events`; each batch sealed by its host, `_seal`) and
+a router's link watch (`_links`).
 
 Modules: `_view` (what is shown, as data), `_hub` (the sections and recent events, for
 every page), `_sources` (live tree, backups; a registrar's catalog, read in its own

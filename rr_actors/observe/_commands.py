@@ -150,6 +150,7 @@ def _network(args: argparse.Namespace) -> ZenohNetwork:
     """The `ZenohNetwork` of `rr-actors observe --system` (ConfigError naming the flag)."""
     with needs("zenoh", "--system"):
         from rr_actors._transport.zenoh.net import ZenohNetwork  # noqa: PLC0415 - an extra
+        from rr_actors.observe import _feed  # noqa: F401, PLC0415 - its event feed beside
     tls = None
     if args.certs is not None:
         if not args.name or not args.members:

@@ -27,6 +27,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, Protocol
 
 from rr_actors._extras import needs
+from rr_actors._supervision.watching import attach_observer
 from rr_actors.config import NAME, is_loopback
 from rr_actors.errors import ConfigError
 from rr_actors.observe._faults import Faults
@@ -47,7 +48,9 @@ if TYPE_CHECKING:
 
 __all__ = [
     "START_TIMEOUT",
+    "SUPERVISORS",
     "Observer",
+    "graph_of",
     "observe_backups",
     "observe_supervisor",
     "observe_system",
@@ -435,6 +438,28 @@ def observe_supervisor(
                 with contextlib.suppress(Exception):
                     part.close()
         raise
+
+
+def graph_of(sup: Observable, access: TreeAccess, format: str) -> str:
+    """The tree and its dependency graph as text (what `Supervisor.graph` does)."""
+    from rr_actors.observe._text import render  # noqa: PLC0415
+
+    tree, graph = LiveSource(sup, access).snapshot()
+    return render(graph, tree, format)
+
+
+class _Supervisors:
+    """The observer as supervisors find it (`rr_actors._supervision.watching.Observing`)."""
+
+    observe = staticmethod(observe_supervisor)
+    graph = staticmethod(graph_of)
+
+
+SUPERVISORS = _Supervisors()
+"""What this module attaches to this process's supervisors when imported (and `rr_actors`
+attaches, importing it at a supervisor's first `observe` or `graph`)."""
+
+attach_observer(lambda: SUPERVISORS)
 
 
 def observe_system(

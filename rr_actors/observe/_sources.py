@@ -21,7 +21,6 @@ another user's). Every wait is bounded; `close()` ends the threads.
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import logging
 import os
@@ -34,6 +33,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 from rr_actors import events
 from rr_actors._registrar import snapshot
 from rr_actors._store import read_backup
+from rr_actors._supervision.watching import TreeAccess
 from rr_actors.config import SupervisorSpec, managers
 from rr_actors.errors import ConfigError
 from rr_actors.observe._hub import Hub
@@ -123,44 +123,6 @@ class Observable(Protocol):
         self, name: str, fn: Callable[[ResourceRegistrar], Any], *, timeout: float = ...
     ) -> Any:
         """Run `fn(registrar)` in manager `name`'s process."""
-
-
-class Changes(Protocol):
-    """How the observer learns that the tree published a change (the supervision `Tree`)."""
-
-    def version(self) -> int:
-        """How many changes the tree has published so far."""
-        ...
-
-    def wait_changed(self, since: int, *, timeout: float) -> int:
-        """Block until the tree publishes a change after `since` (or is woken, or
-        `timeout` seconds pass); the version then."""
-        ...
-
-    def wake(self) -> None:
-        """Wake every `wait_changed` now (the observer closes)."""
-        ...
-
-
-@dataclasses.dataclass(frozen=True)
-class TreeAccess:
-    """What `Supervisor.observe` hands the observer besides the supervisor's public methods.
-
-    Attributes:
-        spec: the whole tree's specs.
-        changes: the tree's published changes (a wait for the next one).
-        restart_due: child name -> when its scheduled restart is due (wall clock, s).
-        running: whether the supervisor has started and not stopped.
-        registrars: the consumer registrars `Supervisor.registrar` started (this process).
-        network: the carrier given to the supervisor (`Supervisor(network=)`), or `None`.
-    """
-
-    spec: SupervisorSpec
-    changes: Changes
-    restart_due: Mapping[str, float]
-    running: Callable[[], bool]
-    registrars: Callable[[], list[ResourceRegistrar]]
-    network: object = None
 
 
 def event_dict(event: events.Event) -> dict[str, Any]:

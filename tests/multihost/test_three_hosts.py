@@ -174,7 +174,7 @@ def wait_for_name(name: str, timeout: float) -> None:
 
 def router_links() -> list[str]:
     """The member names at the other end of this worker's router's TLS links."""
-    session = hosts.KEPT["network"]._watch._session
+    session = hosts.KEPT["network"].services().session
     return sorted(
         str(link.auth_identifier)
         for link in session.info.links()

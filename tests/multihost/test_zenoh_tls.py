@@ -203,7 +203,7 @@ def call_fails(registrar: rr.ResourceRegistrar) -> str:
 
 def router_links() -> list[tuple[str, str]]:
     """This worker's router's TLS links: (the peer's common name, its locator)."""
-    session = hosts.KEPT["network"]._watch._session
+    session = hosts.KEPT["network"].services().session
     return [
         (str(link.auth_identifier), str(link.dst))
         for link in session.info.links()
@@ -458,9 +458,9 @@ def test_members_call_each_other_and_each_side_names_the_other(
 def unlinked_within(timeout: float) -> list[list[tuple[str, str]]]:
     """What this worker's link watch counts unlinked (`LinkWatch.unlinked`), looked at every
     `TICK` s for `timeout` s, as the watch looks: each non-empty answer."""
-    from rr_actors._transport.zenoh.ops.watch import TICK  # noqa: PLC0415
+    from rr_actors.observe._links import TICK  # noqa: PLC0415
 
-    watch = hosts.KEPT["network"]._watch
+    watch = hosts.KEPT["network"].beside  # (the lab's `Across`: its link watch)
     seen = []
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -507,7 +507,7 @@ def test_members_that_dial_each_other_are_linked_and_neither_warns(
 
 def grace() -> float:
     """Seconds a connect endpoint may stay unlinked before its WARNING."""
-    from rr_actors._transport.zenoh.ops.watch import GRACE  # noqa: PLC0415
+    from rr_actors.observe._links import GRACE  # noqa: PLC0415
 
     return GRACE
 

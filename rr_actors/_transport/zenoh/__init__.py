@@ -6,7 +6,8 @@ process), `carrier` (`ZenohCarrier`: the messenger's carrier: routes, serving, a
 liveliness tokens: the carrier's reports), `wire` (the key expressions and the header),
 `callbacks` (Zenoh's callback threads, and rr_actors' threads that call Zenoh, ended
 before the interpreter finalizes).
-The operations, apart: `ops/` (TLS, the access control, the link watch, the gate, the
-events across hosts, the command line's options). Nothing here imports `zenoh` at the
+The operations, apart: `ops/` (TLS, the access control, the gate). What runs beside a
+session (the events across hosts, the link watch) is the observer's (`net.Beside`), the
+command line's options `rr_actors._tools.options`. Nothing here imports `zenoh` at the
 package's import: only its modules do.
 """

@@ -70,7 +70,6 @@ from rr_actors._transport.messenger import (
 from rr_actors._transport.zenoh import callbacks
 from rr_actors._transport.zenoh.callbacks import tracked
 from rr_actors._transport.zenoh.link import DRAIN_TIMEOUT, Inbox, Outbox, Outboxes
-from rr_actors._transport.zenoh.ops.events import EventExport
 from rr_actors._transport.zenoh.presence import ASK_TIMEOUT, Presence, Server
 from rr_actors._transport.zenoh.wire import (
     ANSWER,
@@ -91,9 +90,6 @@ from rr_actors.errors import (
     UnknownRegistrarError,
     _known_names,
 )
-
-if TYPE_CHECKING:
-    from rr_actors._transport.zenoh.ops.tls import Seal
 
 __all__ = ["Local", "ZenohCarrier", "ZenohPeer"]
 
@@ -277,8 +273,8 @@ class ZenohCarrier:
             message; `""` when nothing is wrong.
         router: the Zenoh id of the router this process attached through (`None`: this
             process is a router); what it hears counts only while that one answers.
-        seal: seals the event batches this process sends and opens those it gets
-            (`ops.events`); `None` without TLS.
+        on_leave: called first as the carrier leaves (closes what runs beside the
+            session, `net.Beside`: the lab's event feed across hosts, a link watch).
         members: how many members the system has (its `ZenohTLS`'s); 0 without TLS:
             then the most hosts heard at once (`Presence.most`). A registrar served
             here publishes it with its side (rule 22's `majority`).
@@ -293,7 +289,7 @@ class ZenohCarrier:
         on_close: Callable[[], None] | None = None,
         link_trouble: Callable[[], str] | None = None,
         router: str | None = None,
-        seal: Seal | None = None,
+        on_leave: Callable[[], None] | None = None,
         members: int = 0,
     ) -> None:
         self.messenger = messenger
@@ -305,7 +301,7 @@ class ZenohCarrier:
         self.system = messenger.system
         self.session = session
         self.zid = str(session.zid())
-        self.seal = seal
+        self._on_leave = on_leave
         self.keys = Keys(self.system)
         self._speakers = dict(speakers or {})
         self._on_close = on_close
@@ -332,7 +328,6 @@ class ZenohCarrier:
         self._proc_token = session.liveliness().declare_token(self.keys.proc(self.zid))
         if router is None:  # (a host's router: its host token, rule 22's sides)
             self._hosts_heard(1)
-        self.events = EventExport(session, self.keys, self.zid, seal)  # (the system's stream)
 
     @property
     def closed(self) -> bool:
@@ -457,7 +452,8 @@ class ZenohCarrier:
         callback threads ended (`callbacks`: one that ran on into the interpreter's end,
         inside a Zenoh call or a callback, would abort the process)."""
         self.replies.fail(None, RegistrarStoppedError("this process left the system"))
-        self.events.close()
+        if self._on_leave is not None:
+            self._on_leave()
         self._outboxes.close(drain=DRAIN_TIMEOUT)  # (what was sent before goes out first)
         self._inbox.close()
         self.presence.close()

@@ -17,8 +17,9 @@ Each process's membership is a messenger (`rr_actors._transport.messenger`: the
 `Transport` surface) over a `ZenohCarrier` (`carrier`): the router's is the
 `ZenohNetwork` itself (its session opens at first use), a manager process's a
 `ZenohMember`. Between hosts, `tls/` (mutual TLS, only members admitted: `ops.config`,
-`ops.tls`, `ops.watch`, `ops.gate`) or, on one trusted network, `tcp/` (`tls=None`: a
-WARNING per endpoint naming who can reach it, on loopback every local user). What
+`ops.tls`, `ops.gate`; the link watch beside, `Beside`) or, on one trusted network,
+`tcp/` (`tls=None`: a WARNING per endpoint naming who can reach it, on loopback every
+local user). What
 crosses: `carrier` (and its collaborators); how presence works: `presence`. A process
 belongs to one system (the registrar directory is per process): joining a second one is
 a `ConfigError`. A process that opened a Zenoh session must not fork: Zenoh's runtime
@@ -41,7 +42,7 @@ import socket
 import tempfile
 import threading
 from collections.abc import Callable, Iterable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 import zenoh
 
@@ -56,25 +57,30 @@ from rr_actors._transport.messenger import Messenger
 from rr_actors._transport.resolve import Resolve
 from rr_actors._transport.zenoh.carrier import ZenohCarrier
 from rr_actors._transport.zenoh.ops.config import (
-    PROBE_TIMEOUT,
     endpoints,
     session_config,
     warn_plain_tcp,
     warn_unreachable,
 )
-from rr_actors._transport.zenoh.ops.events import EventFeed, check_window
 from rr_actors._transport.zenoh.ops.gate import HandshakeGate, MemberAddresses, open_gates
-from rr_actors._transport.zenoh.ops.watch import LinkWatch, MemberLink, plain_unlinked
-from rr_actors._transport.zenoh.presence import ASK_TIMEOUT
 from rr_actors._transport.zenoh.wire import Keys
 from rr_actors.config import check_name
 from rr_actors.errors import ConfigError, RegistrarStoppedError, RegistrarUnavailableError
 from rr_actors.events.kinds import set_host
 
 if TYPE_CHECKING:
-    from rr_actors._transport.zenoh.ops.tls import Seal, ZenohTLS
+    from rr_actors._transport.zenoh.ops.tls import ZenohTLS
 
-__all__ = ["Services", "ZenohAddress", "ZenohMember", "ZenohNetwork"]
+__all__ = [
+    "Beside",
+    "MemberLink",
+    "Opened",
+    "Services",
+    "ZenohAddress",
+    "ZenohMember",
+    "ZenohNetwork",
+    "attach_beside",
+]
 
 logger = logging.getLogger("rr_actors")
 
@@ -85,15 +91,6 @@ def _zenoh_log_from_env() -> None:
     handshake, which Zenoh tells nobody else)."""
     if os.environ.get("RUST_LOG"):
         zenoh.try_init_log_from_env()  # type: ignore[no-untyped-call]
-
-
-def _seal(tls: ZenohTLS | None, system: str) -> Seal | None:
-    """What seals this process's event batches with `tls` (`None` without TLS)."""
-    if tls is None:
-        return None
-    from rr_actors._transport.zenoh.ops.tls import Seal  # noqa: PLC0415 - cryptography
-
-    return Seal(tls, system)
 
 
 def _member_count(tls: ZenohTLS | None) -> int:
@@ -108,6 +105,90 @@ def _is_tls(tls: object) -> bool:
     except ImportError:  # without cryptography nobody could have made a ZenohTLS
         return False
     return isinstance(tls, ZenohTLS)
+
+
+# -- what runs beside a session, attached from above ----------------------------------------
+
+
+class MemberLink(NamedTuple):
+    """A member's link to this router as last seen (`Beside.member_links`).
+
+    Attributes:
+        member: its certificate's common name.
+        up: whether a link to it is open.
+        since: when that became so (wall clock, `time.time()` seconds).
+        where: its address, as last linked.
+        why: why there is no link (`""` while up): the probe's verdict for a `connect`
+            endpoint at its address, else that the link closed.
+    """
+
+    member: str
+    up: bool
+    since: float
+    where: str
+    why: str
+
+
+@dataclasses.dataclass(frozen=True)
+class Opened:
+    """A process's session that opened, as what runs beside it gets it (`Beside`).
+
+    Attributes:
+        system: the system's name.
+        session: the open session (router or client mode).
+        keys: the system's key expressions.
+        tls: this host's `ZenohTLS` (`None`: plain TCP).
+        connect: a router's `connect` endpoints (`None`: a process that attached).
+    """
+
+    system: str
+    session: zenoh.Session
+    keys: Keys
+    tls: ZenohTLS | None
+    connect: tuple[str, ...] | None
+
+
+class Beside(Protocol):
+    """What runs beside a process's Zenoh session: the lab's event feed across hosts and
+    link watch (`rr_actors.observe._feed`), which this package never imports. The lab
+    attaches its maker (`attach_beside`) when imported, and `rr_actors` imports it with
+    `rr.ZenohNetwork`; a router hands its maker to the processes that attach through it
+    (`ZenohAddress.beside`). Made as the session opens, closed before it closes."""
+
+    def subscribe_events(
+        self, callback: Callable[[events.Event], object], window: float, maxsize: int
+    ) -> Subscription[events.Event]:
+        """`ZenohNetwork.subscribe_events` (the arguments checked)."""
+        ...
+
+    def unlinked(self) -> list[tuple[str, str]]:
+        """A router's `connect` endpoints with no link now, each with why, in words."""
+        ...
+
+    def member_links(self) -> list[MemberLink]:
+        """Each member a router has been linked to, as last seen."""
+        ...
+
+    def close(self) -> None:
+        """Stop (idempotent): before the session closes."""
+        ...
+
+
+_BESIDE: list[Callable[[Opened], Beside]] = []  # the maker of what runs beside (one slot)
+
+
+def attach_beside(make: Callable[[Opened], Beside]) -> None:
+    """Run `make(opened)` beside every session this process opens from now on (a
+    router's; those that attach through it take their router's). The last call wins;
+    `make` must pickle by reference (a class or a module's function)."""
+    _BESIDE[:] = [make]
+
+
+def _check_window(window: object) -> float:
+    """`window` as seconds, or a `ConfigError` naming it."""
+    if isinstance(window, bool) or not isinstance(window, int | float) or not 0 <= window <= 60:
+        raise ConfigError(f"window must be seconds from 0 to 60, not {window!r}")
+    return float(window)
 
 
 # -- one system per process ----------------------------------------------------------------------
@@ -212,6 +293,9 @@ class ZenohAddress:
             too (every process of a system decides alike). A function crosses by value
             (cloudpickled, as a manager's `setup`): the address pickles with plain
             pickle even when it is a lambda or a nested function.
+        beside: what the router runs beside its session (`attach_beside`), which a
+            process that attaches runs too (pickled by reference: unpickling it imports
+            it there); `None`: nothing.
     """
 
     system: str
@@ -223,6 +307,7 @@ class ZenohAddress:
     max_offset: float = MAX_OFFSET
     tls: ZenohTLS | None = None
     resolve: Resolve = "first_served"
+    beside: Callable[[Opened], Beside] | None = None
 
     def __reduce__(self) -> tuple[Any, ...]:
         """Pickle a function `resolve` by value (cloudpickle), the rest as it is: a
@@ -270,6 +355,9 @@ class ZenohMember(Messenger):
             raise RegistrarUnavailableError(
                 f"cannot join system {address.system!r} through {address.socket_path!r}: {exc}"
             ) from exc
+        make = address.beside
+        opened = Opened(address.system, session, Keys(address.system), address.tls, None)
+        self.beside: Beside | None = None if make is None else make(opened)
         self.joined(
             ZenohCarrier(
                 self,
@@ -277,7 +365,7 @@ class ZenohMember(Messenger):
                 speakers={address.router_pid: address.router},
                 on_close=lambda: _left(self),
                 router=address.router,
-                seal=_seal(address.tls, address.system),
+                on_leave=None if self.beside is None else self.beside.close,
                 members=_member_count(address.tls),
             )
         )
@@ -327,7 +415,7 @@ class ZenohNetwork(Messenger):
             WARNING each: whoever answers there can run code here). One that cannot be
             reached yet is no error (the other host may start later; Zenoh keeps
             trying): a WARNING names it, with TLS the reason from a handshake of our own
-            (`watch`), at most once a minute while it lasts.
+            (the link watch, `Beside`), at most once a minute while it lasts.
         tls: required. A `ZenohTLS`: mutual TLS on every link and Zenoh's access control
             (only `members` and this host's manager processes reach `rr/<system>/`; see
             `config`). `None`: plain TCP, for one trusted network only: anyone who
@@ -409,7 +497,7 @@ class ZenohNetwork(Messenger):
         self._opened: ZenohCarrier | None = None
         self._runtime_dir: str | None = None
         self._address: ZenohAddress | None = None
-        self._watch: LinkWatch | None = None
+        self.beside: Beside | None = None
         self._gate: HandshakeGate | None = None
         self._members: MemberAddresses | None = None
 
@@ -455,14 +543,17 @@ class ZenohNetwork(Messenger):
             raise ConfigError(
                 f"ZenohNetwork {self.system!r} cannot listen on {list(self.listen)!r}: {exc}"
             ) from exc
+        make = _BESIDE[0] if _BESIDE else None
         try:
             if self.tls is None:
                 warn_unreachable(self.system, self.connect)
-            else:  # names the reason of an unlinked connect endpoint, and who links
-                self._watch = LinkWatch(self.system, session, self.tls, self.connect)
+            else:  # who links: a flood's gate never drops a member
                 self._members = MemberAddresses(self.system, session, self.tls)
                 self._gate = HandshakeGate(self.system, open_gates(self.listen), self._members.now)
-            watch, members, gate = self._watch, self._members, self._gate
+            if make is not None:  # (the event feed across hosts, the link watch)
+                opened = Opened(self.system, session, Keys(self.system), self.tls, self.connect)
+                self.beside = make(opened)
+            beside, members, gate = self.beside, self._members, self._gate
             self._runtime_dir = runtime_dir
             self._address = ZenohAddress(
                 self.system,
@@ -474,10 +565,11 @@ class ZenohNetwork(Messenger):
                 self.max_offset,
                 self.tls,
                 self.resolution.resolve,
+                make,
             )
 
             def closed() -> None:
-                for part in (watch, gate, members):
+                for part in (beside, gate, members):
                     if part is not None:
                         part.close()
                 _left(self)
@@ -487,8 +579,8 @@ class ZenohNetwork(Messenger):
                 self,
                 session,
                 on_close=closed,
-                link_trouble=lambda: _no_link(self._unlinked(session)),
-                seal=_seal(self.tls, self.system),
+                link_trouble=lambda: _no_link(self._unlinked()),
+                on_leave=None if beside is None else beside.close,
                 members=_member_count(self.tls),
             )
             self.joined(self._opened)
@@ -500,13 +592,13 @@ class ZenohNetwork(Messenger):
         return self
 
     def _unopened(self, session: zenoh.Session, runtime_dir: str) -> None:
-        """Close what `_open_router` made before it failed: the watch, the gate, the
-        session (whose threads are not daemons) and the runtime directory."""
-        for part in (self._watch, self._gate, self._members):
+        """Close what `_open_router` made before it failed: what ran beside, the gate,
+        the session (whose threads are not daemons) and the runtime directory."""
+        for part in (self.beside, self._gate, self._members):
             if part is not None:
                 with contextlib.suppress(Exception):
                     part.close()
-        self._watch = self._gate = self._members = None
+        self.beside = self._gate = self._members = None
         with contextlib.suppress(Exception):
             session.close()  # type: ignore[no-untyped-call]
         shutil.rmtree(runtime_dir, ignore_errors=True)
@@ -535,13 +627,13 @@ class ZenohNetwork(Messenger):
         carrier = self.link()
         if self.closed:
             raise RegistrarStoppedError(f"this process left system {self.system!r}")
-        watch = self._watch
+        beside = self.beside
         return Services(
             session=carrier.session,
             keys=carrier.keys,
             member=None if self.tls is None else self.tls.name,
             lease=self.lease,
-            links=(list) if watch is None else watch.member_links,
+            links=(list) if beside is None else beside.member_links,
         )
 
     def subscribe_events(
@@ -580,19 +672,22 @@ class ZenohNetwork(Messenger):
 
         Raises:
             ConfigError: `callback` is not callable, `window` not seconds from 0 to 60,
-                or `maxsize` not a positive int.
+                or `maxsize` not a positive int; or the event feed is not attached (the
+                runtime alone, without `rr_actors.observe`).
             RegistrarStoppedError: this process left the system (`close()`).
         """
         if not callable(callback):  # (before the session opens)
             raise ConfigError(f"callback must be callable, got {callback!r}")
-        window = check_window(window)
-        carrier = self.link()
+        window = _check_window(window)
+        self.link()
         if self.closed:
             raise RegistrarStoppedError("this process left the system")
-        feed = EventFeed(carrier.session, carrier.keys, window, carrier.seal)
-        subscription = feed.subscribe(callback, maxsize)
-        carrier.events.wait_sending(ASK_TIMEOUT)  # (this process's own, from now on)
-        return subscription
+        if self.beside is None:
+            raise ConfigError(
+                "the event stream across hosts is the observer's: import rr_actors.observe "
+                "before the network opens (rr.ZenohNetwork does)"
+            )
+        return self.beside.subscribe_events(callback, window, maxsize)
 
     def wait_for(self, name: str, *, timeout: float) -> None:
         """Wait until registrar `name` is served on this system (by any host); then return.
@@ -633,26 +728,20 @@ class ZenohNetwork(Messenger):
             raise RegistrarStoppedError(f"this process left system {self.system!r}")
         raise RegistrarUnavailableError(
             f"no registrar named {name!r} was served on system {self.system!r} within "
-            f"{timeout:g} s" + _no_link(self._unlinked(carrier.session))
+            f"{timeout:g} s" + _no_link(self._unlinked())
         )
 
-    def _unlinked(self, session: zenoh.Session) -> list[tuple[str, str]]:
-        """The `connect` endpoints with no link now, each with why: the link watch's
-        (TLS: the handshake's verdict), or a TCP connect's for plain TCP."""
-        watch = self._watch
-        if watch is not None:
-            return watch.unlinked()
-        if self.tls is None:
-            return plain_unlinked(session, self.connect, timeout=PROBE_TIMEOUT)
-        return []
+    def _unlinked(self) -> list[tuple[str, str]]:
+        """The `connect` endpoints with no link now, each with why (`Beside.unlinked`:
+        with TLS the link watch's handshake verdict, else a TCP connect's)."""
+        beside = self.beside
+        return [] if beside is None else beside.unlinked()
 
     def close(self) -> None:
         """Leave the system: stop serving, fail what waits, close the session, and wait (at
         most 2 s) until Zenoh's callback threads and rr_actors' threads that call Zenoh
         ended: none of them runs Python after the interpreter began to end, which aborts
         the process on CPython < 3.14 (idempotent; a network never opened stays so)."""
-        if self._watch is not None:
-            self._watch.close()  # before the session goes
         if self._gate is not None:
             self._gate.close()  # (its duplicate of a listening socket, too)
         if self._opened is not None:

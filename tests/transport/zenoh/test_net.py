@@ -407,6 +407,59 @@ def test_import_rr_actors_does_not_import_zenoh() -> None:
     subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
 
 
+def test_a_network_of_the_runtime_alone_runs_nothing_beside_its_session() -> None:
+    """The runtime reads alone (issue 54): a `ZenohNetwork` made from its module, in a
+    process that never imported the lab, opens and serves without it (no event feed, no
+    link watch: `Beside`), imports nothing of `rr_actors.observe`, and its
+    `subscribe_events` names the import that attaches the feed."""
+    code = textwrap.dedent(
+        """
+        import sys
+        from rr_actors._transport.zenoh.net import ZenohNetwork
+        from rr_actors.errors import ConfigError
+
+        net = ZenohNetwork(system=sys.argv[1], tls=None)
+        try:
+            print(net.names(), net.address.beside, net.beside)
+            try:
+                net.subscribe_events(print)
+            except ConfigError as exc:
+                print("refused:", exc)
+            print(sorted(m for m in sys.modules if m.startswith("rr_actors.observe")))
+        finally:
+            net.close()
+        """
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code, _system()],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=True,
+    )
+
+    opened, refused, lab = done.stdout.splitlines()
+    assert ("[] None None", "[]") == (opened, lab)
+    assert "refused: the event stream across hosts is the observer's: import " in refused
+
+
+def test_rr_zenoh_network_runs_the_labs_feed_and_watch_beside_and_hands_them_on() -> None:
+    """`rr.ZenohNetwork` attaches the lab's `Across` (the event feed, the link watch); the
+    address a manager process attaches through carries it by reference (unpickling it
+    there imports it), so that process sends its events too."""
+    net = rr.ZenohNetwork(system=_system(), tls=None)
+    try:
+        beside = pickle.loads(pickle.dumps(net.address)).beside
+        net.link()
+        kind = type(net.beside)
+
+        named = [f"{each.__module__}.{each.__qualname__}" for each in (beside, kind)]
+        assert ["rr_actors.observe._feed.Across"] * 2 == named
+        assert b"rr_actors.observe._feed" in pickle.dumps(net.address)
+    finally:
+        net.close()
+
+
 def test_the_runtime_directory_is_private_and_removed_at_close() -> None:
     net = rr.ZenohNetwork(system=_system(), tls=None)
     path = net.address.socket_path

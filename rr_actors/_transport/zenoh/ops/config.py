@@ -45,6 +45,7 @@ __all__ = [
     "PROBE_TIMEOUT",
     "endpoints",
     "parse_endpoint",
+    "remote",
     "session_config",
     "warn_plain_tcp",
     "warn_unreachable",
@@ -68,6 +69,13 @@ _MESSAGES = [
     "liveliness_query",
     "declare_liveliness_subscriber",
 ]
+
+
+def remote(locator: str) -> tuple[str, int | None]:
+    """The host and port of a locator such as `tls/10.0.0.2:7447` or `tls/[::1]:7447`."""
+    address = locator.split("/", 1)[-1].split("#", 1)[0]
+    host, _, port = address.rpartition(":")
+    return host.strip("[]"), int(port) if port.isdigit() else None
 
 
 def parse_endpoint(role: str, endpoint: object) -> tuple[str, str, int]:

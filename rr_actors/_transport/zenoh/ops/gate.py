@@ -65,8 +65,7 @@ import zenoh
 
 from rr_actors._platform import GATE_SOURCES, PLATFORM, ListenerGate
 from rr_actors._transport.zenoh.callbacks import tracked
-from rr_actors._transport.zenoh.ops.config import parse_endpoint
-from rr_actors._transport.zenoh.ops.watch import remote
+from rr_actors._transport.zenoh.ops.config import parse_endpoint, remote
 from rr_actors._transport.zenoh.wire import Keys
 from rr_actors.errors import ConfigError
 

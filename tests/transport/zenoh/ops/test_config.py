@@ -28,7 +28,7 @@ import rr_actors as rr
 from rr_actors._tools import certs as certs_tool
 from rr_actors._transport.codec import frame
 from rr_actors._transport.zenoh.ops.config import session_config
-from rr_actors._transport.zenoh.ops.watch import LinkWatch, handshake_trouble
+from rr_actors.observe._links import LinkWatch, handshake_trouble
 from rr_actors.testing import RemoteRegistrar, start_forkserver
 from tests.support import pki
 from tests.support.supervising import process

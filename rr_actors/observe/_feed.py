@@ -1,4 +1,10 @@
-"""The system's event stream over Zenoh: every member process's events, as JSON, to members.
+"""The system's event stream over Zenoh, and what the observer runs beside a Zenoh session.
+
+`Across` is what runs beside every session of a `ZenohNetwork` and of the processes that
+attach through it (`rr_actors._transport.zenoh.net.Beside`, which this module attaches
+when imported; `rr_actors` imports it with `rr.ZenohNetwork`): the process's events to
+the system (`EventExport`), the system's to a `subscribe_events` (`EventFeed`), and on a
+router the link watch (`_links`). The stream: every member process's events, as JSON.
 
 ```
  each member process (router or manager process)     a process that subscribes (any member)
@@ -58,11 +64,15 @@ from rr_actors._core.bus import DEFAULT_MAXSIZE, Forwarder, Publisher, Subscript
 from rr_actors._core.throttle import LogThrottle, short
 from rr_actors._transport.zenoh import callbacks
 from rr_actors._transport.zenoh.callbacks import tracked
+from rr_actors._transport.zenoh.net import MemberLink, Opened, attach_beside
+from rr_actors._transport.zenoh.ops.config import PROBE_TIMEOUT
+from rr_actors._transport.zenoh.presence import ASK_TIMEOUT
 from rr_actors._transport.zenoh.wire import Keys
 from rr_actors.errors import ConfigError
+from rr_actors.observe._links import LinkWatch, plain_unlinked
 
 if TYPE_CHECKING:
-    from rr_actors._transport.zenoh.ops.tls import Seal
+    from rr_actors.observe._seal import Seal
 
 __all__ = [
     "BATCHES_HELD",
@@ -73,9 +83,9 @@ __all__ = [
     "HELD_BYTES",
     "MAX_BATCH_BYTES",
     "QUEUED_BYTES",
+    "Across",
     "EventExport",
     "EventFeed",
-    "check_window",
     "decode",
     "encode",
     "weight",
@@ -516,8 +526,61 @@ class EventFeed:
                 self._weigh_out(sender, size)
 
 
-def check_window(window: object) -> float:
-    """`window` as seconds, or a `ConfigError` naming it."""
-    if isinstance(window, bool) or not isinstance(window, int | float) or not 0 <= window <= 60:
-        raise ConfigError(f"window must be seconds from 0 to 60, not {window!r}")
-    return float(window)
+class Across:
+    """What runs beside one process's Zenoh session (`net.Beside`): see the module docstring.
+
+    Args:
+        opened: the session, as it opened (`net.Opened`; `connect` is `None` in a process
+            that attached through its router, which watches no link).
+    """
+
+    def __init__(self, opened: Opened) -> None:
+        self._opened = opened
+        tls = opened.tls
+        self._seal: Seal | None = None
+        if tls is not None:  # each batch sealed with this host's certificate
+            from rr_actors.observe._seal import Seal  # noqa: PLC0415 - cryptography
+
+            self._seal = Seal(tls, opened.system)
+        session = opened.session
+        self._export = EventExport(session, opened.keys, str(session.zid()), self._seal)
+        self._watch: LinkWatch | None = None
+        if tls is not None and opened.connect is not None:  # a router: who links, and why
+            try:  # a connect endpoint is not (the reason in its WARNING)
+                self._watch = LinkWatch(opened.system, session, tls, opened.connect)
+            except BaseException:
+                self._export.close()
+                raise
+
+    def subscribe_events(
+        self, callback: Callable[[events.Event], object], window: float, maxsize: int
+    ) -> Subscription[events.Event]:
+        """`ZenohNetwork.subscribe_events`: a feed of its own, this process's events
+        sent from the return on (at most `ASK_TIMEOUT` s)."""
+        feed = EventFeed(self._opened.session, self._opened.keys, window, self._seal)
+        subscription = feed.subscribe(callback, maxsize)
+        self._export.wait_sending(ASK_TIMEOUT)
+        return subscription
+
+    def unlinked(self) -> list[tuple[str, str]]:
+        """A router's `connect` endpoints with no link now, each with why: the link
+        watch's (TLS: the handshake's verdict), or a TCP connect's for plain TCP."""
+        connect = self._opened.connect
+        if self._watch is not None:
+            return self._watch.unlinked()
+        if connect is None or self._opened.tls is not None:
+            return []
+        return plain_unlinked(self._opened.session, connect, timeout=PROBE_TIMEOUT)
+
+    def member_links(self) -> list[MemberLink]:
+        """Each member a TLS router has been linked to, as last seen (none without)."""
+        return [] if self._watch is None else self._watch.member_links()
+
+    def close(self) -> None:
+        """Stop watching, then sending (idempotent): before the session closes."""
+        if self._watch is not None:
+            self._watch.close()
+        self._export.close()
+
+
+attach_beside(Across)

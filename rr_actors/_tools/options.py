@@ -73,6 +73,7 @@ def network_from(args: argparse.Namespace) -> Any:
     if not args.system:
         raise ConfigError("--system NAME is required (the system's name)")
     from rr_actors._transport.zenoh.net import ZenohNetwork  # noqa: PLC0415 - the extra
+    from rr_actors.observe import _feed  # noqa: F401, PLC0415 - its event feed beside
 
     if args.plain:
         if args.certs or args.member or args.members:

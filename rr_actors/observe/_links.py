@@ -1,7 +1,8 @@
 """Who a TLS router is linked to, and why a `connect` endpoint is not: said on the logger.
 
-Zenoh decides who gets in (mutual TLS, then the access control of `config`); this
-module only tells the operator, on the `rr_actors` logger:
+Zenoh decides who gets in (mutual TLS, then the access control of the transport's
+`ops.config`); this module only tells the operator, on the `rr_actors` logger (a TLS
+router's `LinkWatch` runs beside its session: `_feed.Across`):
 
 - INFO when a member links: its certificate's common name and its address (both sides);
 - WARNING when a certificate signed by this system's CA but not in `members` links: Zenoh
@@ -47,31 +48,25 @@ import socket
 import ssl
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import TYPE_CHECKING, Any
 
 import zenoh
 
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._transport.zenoh.callbacks import tracked
-from rr_actors._transport.zenoh.ops.config import parse_endpoint
+from rr_actors._transport.zenoh.net import MemberLink
+from rr_actors._transport.zenoh.ops.config import parse_endpoint, remote
 
 if TYPE_CHECKING:
     from rr_actors._transport.zenoh.ops.tls import ZenohTLS
 
-__all__ = ["LinkWatch", "MemberLink", "handshake_trouble", "plain_unlinked", "remote"]
+__all__ = ["GRACE", "REPEAT", "TICK", "LinkWatch", "handshake_trouble", "plain_unlinked"]
 
 logger = logging.getLogger("rr_actors")
 
 GRACE = 2.0  # seconds a connect endpoint may stay unlinked before we probe it
 TICK = 0.5  # seconds between two looks at the connect endpoints
 REPEAT = 60.0  # seconds between two WARNINGs about one address or endpoint
-
-
-def remote(locator: str) -> tuple[str, int | None]:
-    """The host and port of a locator such as `tls/10.0.0.2:7447` or `tls/[::1]:7447`."""
-    address = locator.split("/", 1)[-1].split("#", 1)[0]
-    host, _, port = address.rpartition(":")
-    return host.strip("[]"), int(port) if port.isdigit() else None
 
 
 def _addresses(host: str) -> set[str]:
@@ -153,25 +148,6 @@ def plain_unlinked(
             reason = f"cannot reach it ({exc.strerror or exc})"
         unlinked.append((endpoint.endpoint, reason))
     return unlinked
-
-
-class MemberLink(NamedTuple):
-    """A member's link to this router as last seen (`LinkWatch.member_links`).
-
-    Attributes:
-        member: its certificate's common name.
-        up: whether a link to it is open.
-        since: when that became so (wall clock, `time.time()` seconds).
-        where: its address, as last linked.
-        why: why there is no link (`""` while up): the probe's verdict for a `connect`
-            endpoint at its address, else that the link closed.
-    """
-
-    member: str
-    up: bool
-    since: float
-    where: str
-    why: str
 
 
 class LinkWatch:
