@@ -349,7 +349,8 @@ def _run_seed(plan: Plan, seed: int, started: float) -> SimulatedRun:
     seen, records, wall_t0, calls = ran.value
     unplaced = _unplaced(folder)
     history = unplaced(_history(seen, records, seed, wall_t0))
-    verdict = check.check(check.numbered(seen))
+    resolve = plan.hosts.resolve if plan.hosts is not None else "first_served"
+    verdict = check.check(check.numbered(seen), resolve)
     return SimulatedRun(
         seed=seed,
         hash=history_hash(history),
