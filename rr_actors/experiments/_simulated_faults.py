@@ -114,6 +114,8 @@ class SimulatedFaults:
         state_dir: where second servers keep their backups (`None`: in memory).
         hosts: with `[hosts]`, the pid of each other host's process (its tree's and its
             managers' processes are the ones it started).
+        trees: with `[hosts]`, each other host's tree: a manager fault on a manager of
+            that host finds its process there (`sup` holds the first host's only).
         program: the run's program, when it runs in a process of its own (a plan with
             `kill_program`); `sup` is its tree, the one it runs now.
     """
@@ -130,12 +132,14 @@ class SimulatedFaults:
         on_event: Callable[[events.Event], None] | None = None,
         state_dir: Path | None = None,
         hosts: dict[str, int] | None = None,
+        trees: dict[str, rr.Supervisor] | None = None,
         program: Program | None = None,
     ) -> None:
         self.sup = sup
         self._program = program
         self._restarting = False  # the program was killed and is starting again
         self._hosts = dict(hosts or {})  # another host's name -> the pid of its process
+        self._trees = dict(trees or {})  # another host's name -> its tree
         self._cut: str | None = None  # the fault between hosts in force (its target)
         self._on_event = on_event
         self._state_dir = state_dir
@@ -288,7 +292,7 @@ class SimulatedFaults:
             thread.start()
             return
         assert fault.target is not None
-        info = self.sup.child(fault.target)
+        info = (tree := self._tree(fault.target)).child(fault.target)  # (its host's)
         if info.state != "running":
             detail = f"{fault.target} was not running ({info.state})"
             self.log.record(fault, at, None, detail, skipped=True)
@@ -296,7 +300,7 @@ class SimulatedFaults:
         if info.pid is None:  # a thread manager (reading allows only kill_manager, load_error)
             from rr_actors.testing import crash  # noqa: PLC0415 - as _manager_faults
 
-            crash(self.sup.run_in(fault.target, lambda registrar: registrar))
+            crash(tree.run_in(fault.target, lambda registrar: registrar))
             self.log.record(fault, at, self._now(), f"crashed the registrar of {fault.target}")
             return
         pid, kind = info.pid, fault.kind
@@ -336,6 +340,10 @@ class SimulatedFaults:
             simulation.kill(pid, signal.SIGKILL)
         else:  # (check_simulable refuses the others)
             raise AssertionError(f"fault kind {kind!r} is not simulated")
+
+    def _tree(self, manager: str) -> rr.Supervisor:
+        """The tree `manager` is a child of: its host's (`[hosts]`), else the run's."""
+        return self._trees.get(self.plan.host_of(manager) or "", self.sup)
 
     def _cut_hosts(self, fault: ScheduledFault, at: float) -> None:
         """`cut` (of two hosts' link) or `partition`: the processes of one side's hosts
@@ -536,7 +544,7 @@ class SimulatedFaults:
             arm_load_error, fault.target, plan.server, plan.loads, plan.for_s, plan.message
         )
         try:
-            self.sup.run_in(fault.target, arm, timeout=RUN_IN_TIMEOUT)
+            self._tree(fault.target).run_in(fault.target, arm, timeout=RUN_IN_TIMEOUT)
         except rr.RrError as exc:
             self.log.record(fault, at, None, f"{fault.target}: {exc}", skipped=True)
             return

@@ -29,6 +29,7 @@ import bisect
 import dataclasses
 import itertools
 import reprlib
+import tomllib
 from collections import defaultdict
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
@@ -153,10 +154,28 @@ def _loss_rule(history: Sequence[Line]) -> tuple[list[Finding], set[int]]:
     return findings, lossy
 
 
-def _one_name_rule(history: Sequence[Line], lives: dict[tuple[str, int], Life]) -> list[Finding]:
+KEEPS = {
+    "first_served": "the one served later yields",
+    "majority": "the one begun on a minority side yields (both on a majority side: the earlier)",
+}
+"""What each named rule 22 policy (`[hosts]`' `resolve`) keeps, as `one-name` words it."""
+
+
+def _one_name_rule(
+    history: Sequence[Line], lives: dict[tuple[str, int], Life], resolve: str
+) -> list[Finding]:
     """`one-name` (rule 22): a second server of a name and the one it served beside do
-    not both serve to the end of the run."""
+    not both serve to the end of the run, whichever one `resolve` (the plan's policy)
+    keeps. A life whose serving failed (its restart's `DuplicateNameError`, as a
+    `permanent` registrar that yielded is restarted into the one kept) does not serve."""
     exits = {(e.child, e.pid): e.reason for _, e in history if isinstance(e, events.ChildExited)}
+    refused = [  # (a restart into a name another serves: line, child, host)
+        (line, e.child, e.host)
+        for line, e in history
+        if isinstance(e, events.ChildExited)
+        and e.reason.startswith("failed to start")
+        and "DuplicateNameError" in e.reason
+    ]
     latest: dict[str, int] = {}
     for name, life in lives:
         latest[name] = max(latest.get(name, 0), life)
@@ -164,9 +183,15 @@ def _one_name_rule(history: Sequence[Line], lives: dict[tuple[str, int], Life]) 
     def to_the_end(name: str) -> Life | None:
         """The last life of `name` if it served to the end of the run."""
         record = lives[name, latest[name]]
-        reason = exits.get((name.partition("@")[0], record.pid))
+        child = name.partition("@")[0]
+        reason = exits.get((child, record.pid))
+        if any(
+            line > record.first_line and c == child and h == record.host for line, c, h in refused
+        ):
+            return None  # (it began, and its serve failed: the name was another's)
         return record if reason in (None, "shutdown") else None
 
+    keeps = KEEPS.get(resolve, f"resolve = {resolve!r} keeps one and the other yields")
     findings = []
     for (name, life), record in lives.items():
         if record.beside is None or latest[name] != life or to_the_end(name) is None:
@@ -181,7 +206,7 @@ def _one_name_rule(history: Sequence[Line], lives: dict[tuple[str, int], Life]) 
                 "violation",
                 f"two registrars {base} served to the end of the run: pid {other.pid}'s and "
                 f"pid {record.pid}'s, begun while the other served (behind a cut); once it "
-                f"healed, the one served later yields (rule 22)",
+                f"healed, {keeps} (rule 22)",
                 (other.first_line, record.first_line, record.last_line),
                 (base, name),
             )
@@ -189,12 +214,14 @@ def _one_name_rule(history: Sequence[Line], lives: dict[tuple[str, int], Life]) 
     return findings
 
 
-def check(history: Sequence[Line]) -> Verdict:
+def check(history: Sequence[Line], resolve: str = "first_served") -> Verdict:
     """Check one run's events against every rule of `RULES`.
 
     Args:
         history: the run's events in the order they were written, each with its line
             number (`read_runs` gives them).
+        resolve: the run's rule 22 policy (its plan's `[hosts]` `resolve`), as
+            `one-name` says which registrar of a name yields at a heal.
 
     Returns:
         The verdict and every finding. A violation about a registrar whose process lost
@@ -229,7 +256,7 @@ def check(history: Sequence[Line]) -> Verdict:
         *_supervision_rules.intensity(history),
         *strategy,
         *escalation,
-        *_one_name_rule(history, lives),
+        *_one_name_rule(history, lives, resolve),
     ]
     findings = [
         dataclasses.replace(f, kind="unverifiable", message=f"{f.message} (events were lost)")
@@ -361,7 +388,19 @@ def check_file(path: Path) -> dict[int, Verdict]:
             )
         raise ConfigError(f"no events.jsonl at {path}")
     runs = _runs(json_lines(file), f"{file} line")
-    return {run: check(history) for run, history in sorted(runs.items())}
+    resolve = _resolve_beside(file)
+    return {run: check(history, resolve) for run, history in sorted(runs.items())}
+
+
+def _resolve_beside(file: Path) -> str:
+    """The rule 22 policy of the plan copied beside `file` (its `plan.toml`'s `[hosts]`
+    `resolve`); `"first_served"`, the default, without one that says it."""
+    try:
+        hosts = tomllib.loads((file.parent / "plan.toml").read_text()).get("hosts", {})
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return "first_served"
+    resolve = hosts.get("resolve") if isinstance(hosts, dict) else None
+    return resolve if isinstance(resolve, str) and resolve else "first_served"
 
 
 def format_verdict(

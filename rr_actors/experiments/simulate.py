@@ -349,7 +349,8 @@ def _run_seed(plan: Plan, seed: int, started: float) -> SimulatedRun:
     seen, records, wall_t0, calls = ran.value
     unplaced = _unplaced(folder)
     history = unplaced(_history(seen, records, seed, wall_t0))
-    verdict = check.check(check.numbered(seen))
+    resolve = plan.hosts.resolve if plan.hosts is not None else "first_served"
+    verdict = check.check(check.numbered(seen), resolve)
     return SimulatedRun(
         seed=seed,
         hash=history_hash(history),
@@ -482,8 +483,8 @@ def _injector(
     **where: Any,
 ) -> tuple[SimulatedFaults, float]:
     """The run's fault injector, made as its workload starts (now: `t0`, monotonic
-    seconds), and that `t0`; `where` is what it kills besides managers (`hosts=` or
-    `program=`, `SimulatedFaults`)."""
+    seconds), and that `t0`; `where` is what it kills besides managers (`hosts=` and
+    `trees=`, or `program=`: `SimulatedFaults`)."""
     from rr_actors.experiments._simulated_faults import SimulatedFaults  # noqa: PLC0415 - greenlet
 
     t0, wall_t0 = runtime.monotonic(), runtime.wall()
@@ -531,7 +532,15 @@ def _world(
         clients = [Client(i, sup, plan, seed, run_dir=work) for i in range(plan.workload.clients)]
         progress.serving, progress.clients = True, clients
         faults, t0 = _injector(
-            sup, plan, network, seed, seen, folder, progress, hosts={h.name: h.pid for h in hosts}
+            sup,
+            plan,
+            network,
+            seed,
+            seen,
+            folder,
+            progress,
+            hosts={h.name: h.pid for h in hosts},
+            trees={h.name: h.sup for h in hosts if h.sup is not None},
         )
         injector.append(faults)
         faults.start()
@@ -891,6 +900,7 @@ class _SimulatedHost:
         self._commands: runtime.SimpleQueue[tuple[str, float]] = runtime.SimpleQueue()
         self._replies: runtime.SimpleQueue[object] = runtime.SimpleQueue()
         self._serving = False  # its main thread takes commands
+        self.sup: rr.Supervisor | None = None  # its tree, once built (a fault's target's)
         self.pid = simulation.start_process(self._main, name=f"host-{name}")
 
     def ask(self, op: str, timeout: float = 0.0) -> int:
@@ -929,6 +939,7 @@ class _SimulatedHost:
             )
             subscription = sup.subscribe(self._on_event, maxsize=EVENT_QUEUE)
             sup.start()
+            self.sup = sup
         except Exception as exc:  # noqa: BLE001 - the run's thread raises it
             if subscription is not None:  # (a start that failed leaves no subscriber)
                 subscription.close()

@@ -148,6 +148,7 @@ def check_folder(
     path = folder / "plan.toml" if plan_file is None else plan_file
     plan = _plan(path)
     managers = {m.name for m in plan.managers()}
+    resolve = plan.hosts.resolve if plan.hosts is not None else "first_served"
     shrink_to = (plan, path, shrink_budget) if shrink_budget > 0 else None
     started = time.process_time()
     hashes: set[str] = set()
@@ -164,7 +165,7 @@ def check_folder(
                 break
             hashes.add(run.hash)
             recorded += run.events
-            failure = _judge(chosen, folder, run, managers, shrink_to)
+            failure = _judge(chosen, folder, run, (managers, resolve), shrink_to)
             if raised:  # (whatever the verdict: a step that raises is wrong)
                 failure = _raised(chosen, folder, number, raised[0], failure)
             if on_seed is not None:
@@ -368,18 +369,19 @@ def _judge(
     chosen: Exercise,
     folder: Path,
     run: simulate.SimulatedRun,
-    managers: set[str],
+    known: tuple[set[str], str],
     shrink_to: tuple[Plan, Path, int] | None,
 ) -> Failure | None:
     """The first finding of `run` (the checker's, then the kit's), told; `None`: held.
 
     A checker's finding is told on the run shrunk (`shrink_to`: the plan, its file and
     the budget of runs; `shrink.shrink`), when the shrink finds it again: its plan is
-    written to the folder (`SHRUNK`) and the replay command runs it."""
+    written to the folder (`SHRUNK`) and the replay command runs it. `known`: the
+    plan's managers and its rule 22 policy (`[hosts]` `resolve`)."""
     kit_rules = [RULES[name] for name in chosen.rules]
     if run.verdict == "held" and not kit_rules:
         return None
-    numbered, findings = _findings(run, kit_rules, managers)
+    numbered, findings = _findings(run, kit_rules, *known)
     if not findings and run.verdict != "crashed":
         return None
     replay = f"rr-actors teach check {folder} --seed {run.seed} --story"
@@ -436,13 +438,14 @@ def _findings(
     run: simulate.SimulatedRun,
     kit_rules: list[Callable[[Sequence[check.Line], Collection[str]], list[check.Finding]]],
     managers: set[str],
+    resolve: str,
 ) -> tuple[list[check.Line], list[check.Finding]]:
     """A run's numbered events and its violations (the checker's and the kit's), the
     first broken first."""
     numbered = check.read_runs(run.history.splitlines()).get(simulate.RUN, [])
     findings: list[check.Finding] = []
     if run.verdict == "violated":
-        findings += [f for f in check.check(numbered).findings if f.kind == "violation"]
+        findings += [f for f in check.check(numbered, resolve).findings if f.kind == "violation"]
     for rule in kit_rules:
         findings += rule(numbered, managers)
     findings.sort(key=lambda f: max(f.lines, default=0))  # (broken at its last event)
@@ -463,7 +466,8 @@ def _shrunk(
         shrunk = shrink.shrink(plan, run.seed, budget=budget, text=path.read_text(encoding="utf-8"))
     except (ConfigError, RrError):
         return None
-    numbered, findings = _findings(shrunk.run, [], set())
+    resolve = plan.hosts.resolve if plan.hosts is not None else "first_served"
+    numbered, findings = _findings(shrunk.run, [], set(), resolve)
     same = [f for f in findings if shrink.violation_kind(f.rule, f.message) == shrunk.kind]
     if not same:
         return None

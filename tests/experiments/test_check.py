@@ -1531,6 +1531,85 @@ def test_two_servers_of_a_name_to_the_end_of_the_run_are_a_one_name_violation() 
     assert "two registrars erm served to the end of the run" in found.message
 
 
+REFUSED = (
+    "failed to start: manager 'erm' failed to start:\nrr_actors.errors.DuplicateNameError: a "
+    "registrar named 'erm' is already served on system 'simulated' (by process 101)"
+)
+"""A restart's exit into a name another serves (the simulation's words, shortened)."""
+
+
+def first_yields(restart_exit: str | None) -> list[events.Event]:
+    """`erm` served by P, and by P + 1 from its second load on (a cut); at the heal P
+    yields (a majority policy keeps P + 1) and its `permanent` supervisor restarts it:
+    the restart (P + 2) restores, then exits with `restart_exit` (`None`: it serves on
+    to the tree's shutdown); P + 1 serves to the end."""
+    p2, p3 = P + 1, P + 2
+    restart = [events.CatalogRestored("erm", (), (), (), pid=p3, seq=1)]
+    if restart_exit is None:
+        restart += [
+            events.RegistrarStopped("erm", (), (), (), pid=p3, seq=2),
+            events.ChildExited("root", "erm", p3, "shutdown"),
+        ]
+    else:
+        restart.append(events.ChildExited("root", "erm", P - 1, restart_exit))
+    return [
+        events.CatalogRestored("erm", (), (), (), pid=P, seq=1),
+        events.ResourceLoaded("erm", "cam", RID, Q1, 0.01, 42, "cam 0", pid=P, seq=2),
+        events.ConsumerAdded("erm", RID, Q1, "cm", pid=P, seq=3),
+        events.CatalogRestored("erm", (), (), (), pid=p2, seq=1),  # (behind a cut)
+        events.ResourceLoaded("erm", "cam", RID2, Q2, 0.01, 42, "cam 0", pid=p2, seq=2),
+        events.ConsumerAdded("erm", RID2, Q2, "cm", pid=p2, seq=3),
+        events.ConsumerReleased("erm", RID, Q1, "cm", "name yielded", pid=P, seq=4),
+        events.ResourceUnloaded("erm", "cam", RID, pid=P, seq=5),
+        events.RegistrarStopped("erm", (), (), (), pid=P, seq=6),
+        events.ChildExited("root", "erm", P, "normal"),
+        *restart,
+        events.ConsumerReleased("erm", RID2, Q2, "cm", pid=p2, seq=4),
+        events.ResourceUnloaded("erm", "cam", RID2, pid=p2, seq=5),
+        events.RegistrarStopped("cm", (), (), (), pid=C),
+        events.RegistrarStopped("erm", (), (), (), pid=p2, seq=6),
+        events.ChildExited("beyond", "erm", p2, "shutdown"),
+    ]
+
+
+POLICIES = ("first_served", "majority", "policy:keep")
+"""Rule 22 policies (`[hosts]` `resolve`): both named ones, and a function's."""
+
+
+@pytest.mark.parametrize("resolve", POLICIES)
+def test_a_yielded_registrars_restart_refused_its_name_does_not_serve(resolve: str) -> None:
+    """Issue 56: a `permanent` registrar that yields at a heal is restarted into
+    `DuplicateNameError` (OTP's `already_started`): the one kept serves alone."""
+    verdict = check.check(numbered(first_yields(REFUSED)), resolve)
+
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+
+
+@pytest.mark.parametrize("resolve", POLICIES)
+def test_two_servers_kept_after_a_heal_are_a_one_name_violation_under_each_policy(
+    resolve: str,
+) -> None:
+    """The mutations: the restart serves on (it started), or the second server is kept
+    beside the first; each policy's words say which one yields."""
+    for history in (first_yields(None), two_servers("shutdown")):
+        verdict = check.check(numbered(history), resolve)
+
+        assert ["one-name"] == [f.rule for f in verdict.findings if f.kind == "violation"]
+        keeps = check.KEEPS.get(resolve, f"resolve = {resolve!r} keeps one and the other yields")
+        assert f"healed, {keeps} (rule 22)" in verdict.findings[0].message
+
+
+def test_one_name_says_what_the_plan_beside_the_file_keeps(tmp_path: Path) -> None:
+    (tmp_path / "events.jsonl").write_text(
+        "".join(json.dumps(events.to_dict(e)) + "\n" for e in two_servers("shutdown"))
+    )
+    (tmp_path / "plan.toml").write_text('[hosts]\nresolve = "majority"\n')
+
+    [verdict] = check.check_file(tmp_path).values()
+
+    assert "the one begun on a minority side yields" in verdict.findings[0].message
+
+
 # -- rows left at the end, rule 7's order, the supervisor's intensity (issue 51) --------------
 
 

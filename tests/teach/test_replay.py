@@ -192,6 +192,27 @@ def test_a_step_asked_while_a_kill_reruns_the_seed_waits_for_the_rerun(tmp_path:
     assert answers["kill"]["steps"] == len(shown)
 
 
+@pytest.mark.parametrize("kind", ["kill", "cut"])
+def test_a_kill_or_cut_of_a_manager_on_another_host_fires_in_the_rerun(
+    kind: str, tmp_path: Path
+) -> None:
+    """Issue 56: with `[hosts]` a manager fault hit only the first host's managers; a
+    kill or cut of `db` (host c of the cut exercise) did not fire."""
+    _chosen, folder = kit.start("cut", tmp_path / "cut")
+    plan, run = grade.seed_run(folder, 1)
+    assert plan.host_of("db") not in (None, plan.hosts.names[0] if plan.hosts else None)
+    shown = replay.Replay(plan, run, rerun=grade.rerun(folder, 1))
+    shown.show(step_of(shown, events.CallAnswered))
+
+    told = shown.control({"fault": kind, "target": "db"})["message"]
+
+    fault = replay.BRANCHES[kind]
+    assert "it did not fire" not in told
+    assert f"{fault} db: " in shown.steps[shown.shown - 1].line.plain()
+    pid = {"kill": "SIGKILL pid ", "cut": "cut pid "}[kind]
+    assert pid in shown.steps[shown.shown - 1].line.plain()
+
+
 def test_the_page_plays_pauses_steps_and_scrubs(
     camera: replay.Replay, browser: Any, tmp_path: Path
 ) -> None:
