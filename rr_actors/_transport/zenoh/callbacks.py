@@ -18,7 +18,8 @@ watch and the gate join their own threads before the session closes).
 ```
  declare_*(key, tracked(session, fn))   its thread is counted (per session) while it lives
    zenoh's thread per callback ─► fn(sample) ... until the declaration goes
- worker(session, executor)              an rr_actors thread that calls Zenoh (weakly held)
+ worker(session, executor)              an rr_actors thread that calls Zenoh (weakly held;
+                                        once the close below waited: refused, joined at once)
  ZenohCarrier.leave: each executor closed (its owner's close) ─► session.close() (a Zenoh
    call in progress returns) ─► wait_ended(session): each executor's thread and each
    callback thread ended, joined
@@ -76,6 +77,10 @@ class Worker(Protocol):
         """Whether the calling thread is its thread."""
         ...
 
+    def close(self, *, timeout: float | None = 0.0) -> bool:
+        """Take no more tasks (those queued get `timeout` s); whether it ended."""
+        ...
+
 
 _Ref = weakref.ref[Any]
 
@@ -83,16 +88,29 @@ _cond = threading.Condition()
 _live: dict[str, set[_Ref]] = {}  # session's Zenoh id -> one per callback thread not ended
 _ending: dict[str, list[threading.Thread]] = {}  # threads whose callback was dropped
 _workers: dict[str, weakref.WeakSet[Worker]] = {}  # session's Zenoh id -> its workers
+_ended: set[str] = set()  # sessions whose close waited for their workers: none registers now
 _local = threading.local()  # `.callback`: the session whose tracked callback this thread runs
 
 
-def worker(session: zenoh.Session, executor: Worker) -> None:
+def worker(session: zenoh.Session, executor: Worker) -> bool:
     """Count `executor` (whose thread calls Zenoh on `session`) among what the session's
     close joins (`wait_ended`), once its owner closed it. Held weakly: one that ended and
-    was let go of is forgotten."""
+    was let go of is forgotten.
+
+    Returns:
+        Whether it was counted. Once the session closed and its close waited for its
+        workers (`wait_ended`), nothing would join one registered then: it is refused,
+        closed (what it was given and has not begun is dropped) and joined here, at once
+        (at most `END_TIMEOUT` s; a task it runs still ends first).
+    """
     zid = str(session.zid())
     with _cond:
-        _workers.setdefault(zid, weakref.WeakSet()).add(executor)
+        if zid not in _ended:
+            _workers.setdefault(zid, weakref.WeakSet()).add(executor)
+            return True
+    executor.close(timeout=0)
+    executor.join(END_TIMEOUT)  # (on its own thread: returns at once)
+    return False
 
 
 def tracked(session: zenoh.Session, callback: Callable[[T], object]) -> zenoh.handlers.Callback[T]:
@@ -150,7 +168,10 @@ def wait_ended(session: zenoh.Session, timeout: float | None = None) -> list[str
     """
     deadline = time.monotonic() + (END_TIMEOUT if timeout is None else timeout)
     zid = str(session.zid())
+    closed = session.is_closed()
     with _cond:
+        if closed:  # (a worker registered from now on is joined at once: `worker`)
+            _ended.add(zid)
         workers = list(_workers.pop(zid, ()))
     left = sorted(
         executor.name

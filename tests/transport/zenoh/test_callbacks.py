@@ -162,6 +162,84 @@ def test_a_program_whose_thread_calls_zenoh_as_its_network_closes_exits_without_
     assert [(0, False, ended)] * CALLING_RUNS == results, done.stderr
 
 
+LATE = textwrap.dedent(
+    """
+    import sys, threading, time
+    import rr_actors as rr
+    from rr_actors._core.serial import SerialExecutor
+    from rr_actors._transport.zenoh import callbacks
+
+    system, busy = sys.argv[1], float(sys.argv[2])
+    net = rr.ZenohNetwork(system=system, tls=None)
+    session = net.link().session
+    key, inside, closed = f"rr/{system}/obs/test/delta", threading.Event(), threading.Event()
+
+    def calling():  # a task of a thread of rr_actors that calls Zenoh, `busy` s long
+        inside.set()
+        deadline = time.monotonic() + busy
+        while time.monotonic() < deadline:
+            try:
+                session.put(key, b"x")
+            except Exception:  # (the session closed)
+                pass
+        print("done", flush=True)
+
+    late = SerialExecutor("rr-test-late")
+    late.submit(calling)
+    assert inside.wait(10), "the worker did not run its task"
+    registering = threading.Thread(  # held until the session closed: registered after
+        target=lambda: closed.wait(10) and print(callbacks.worker(session, late), flush=True),
+        daemon=True,
+    )
+    registering.start()
+    net.close()
+    closed.set()
+    registering.join(10)
+    print("ending", flush=True)
+    """
+)
+
+
+def test_a_program_whose_worker_is_registered_after_its_session_closed_exits_without_an_abort() -> (
+    None
+):
+    results = []
+    for _ in range(CALLING_RUNS):
+        done = subprocess.run(  # noqa: PLW1510 - the exit code is what is checked
+            [sys.executable, "-c", LATE, f"zl-{uuid.uuid4().hex[:8]}", str(BUSY)],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        results.append((done.returncode, "FATAL" in done.stderr, done.stdout))
+
+    # (refused, and joined at once: its task ended before the registration returned)
+    assert [(0, False, "done\nFalse\nending\n")] * CALLING_RUNS == results, done.stderr
+
+
+def test_a_worker_registered_after_its_session_closed_is_refused_and_joined_at_once() -> None:
+    opened = zenoh.open(session_config("peer", [], [], 1.0))
+    late, ran, go = SerialExecutor("rr-test-late"), threading.Event(), threading.Event()
+    late.submit(ran.set)
+    assert ran.wait(5)  # (its thread runs, and waits for tasks)
+    registered: list[bool] = []
+    registering = threading.Thread(
+        target=lambda: go.wait(10) and registered.append(callbacks.worker(opened, late)),
+        daemon=True,
+    )
+    registering.start()  # (held by `go` until the close waited for the session's workers)
+    opened.close()  # type: ignore[no-untyped-call]
+    assert [] == callbacks.wait_ended(opened, 5)
+
+    go.set()
+    registering.join(10)
+
+    assert [False] == registered
+    assert late.closed
+    assert late.join(0)
+    assert not late.submit(ran.set)
+
+
 @pytest.fixture
 def session() -> Iterator[zenoh.Session]:
     opened = zenoh.open(session_config("peer", [], [], 1.0))
