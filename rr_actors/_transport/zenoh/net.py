@@ -298,6 +298,9 @@ class Services:
         lease: seconds after which a silent peer counts as gone.
         links: each member's link to this router as last seen (empty without TLS: a
             plain TCP link names nobody).
+        on_leave: `on_leave(close)`: `close()` is called as this process leaves the
+            system, before its session closes (a service's threads that call Zenoh end
+            there; the carrier's `on_leave`); returns what forgets it.
     """
 
     session: zenoh.Session
@@ -305,6 +308,11 @@ class Services:
     member: str | None
     lease: float
     links: Callable[[], list[MemberLink]]
+    on_leave: Callable[[Callable[[], object]], Callable[[], None]] = lambda _close: _nothing
+
+
+def _nothing() -> None:
+    """What forgets a `close` given to a session of no carrier (tests'): nothing."""
 
 
 class ZenohNetwork(Messenger):
@@ -542,6 +550,7 @@ class ZenohNetwork(Messenger):
             member=None if self.tls is None else self.tls.name,
             lease=self.lease,
             links=(list) if watch is None else watch.member_links,
+            on_leave=carrier.on_leave,
         )
 
     def subscribe_events(
@@ -591,6 +600,7 @@ class ZenohNetwork(Messenger):
             raise RegistrarStoppedError("this process left the system")
         feed = EventFeed(carrier.session, carrier.keys, window, carrier.seal)
         subscription = feed.subscribe(callback, maxsize)
+        feed.forget = carrier.on_leave(feed.leave)  # (its subscriber goes before the session)
         carrier.events.wait_sending(ASK_TIMEOUT)  # (this process's own, from now on)
         return subscription
 

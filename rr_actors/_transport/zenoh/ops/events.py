@@ -322,6 +322,9 @@ class EventFeed:
         self._claiming = LogThrottle(logger, 60.0)
         self._subscriber: Any = None
         self._thread: threading.Thread | None = None
+        self._switching = threading.Lock()  # (`_switch` and `leave`)
+        self._left = False
+        self.forget: Callable[[], None] = lambda: None  # (`leave` forgotten by the network)
         self.publisher.watch_listeners(self._switch)
 
     def subscribe(
@@ -332,14 +335,31 @@ class EventFeed:
             callback, maxsize=maxsize, name="system-events", maxbytes=QUEUED_BYTES, weigh=weight
         )
 
+    def leave(self) -> None:
+        """The network leaves (before its session closes): the subscriber goes and the
+        merge thread ends; the subscription gets no event more, and its close then calls
+        no Zenoh."""
+        with self._switching:
+            self._left = True
+            self._off()
+
     def _switch(self, listened: bool) -> None:
-        if listened and self._subscriber is None:
-            self._thread = threading.Thread(target=self._merge, name="rr-events-merge", daemon=True)
-            self._thread.start()
-            self._subscriber = self._session.declare_subscriber(
-                self._keys.all_events(), tracked(self._session, self._on_sample)
-            )
-        elif not listened and self._subscriber is not None:
+        with self._switching:
+            if listened and self._subscriber is None and not self._left:
+                self._thread = threading.Thread(
+                    target=self._merge, name="rr-events-merge", daemon=True
+                )
+                self._thread.start()
+                self._subscriber = self._session.declare_subscriber(
+                    self._keys.all_events(), tracked(self._session, self._on_sample)
+                )
+            elif not listened:
+                self._off()
+                self.forget()
+
+    def _off(self) -> None:
+        """Undeclare the subscriber, end the merge thread (hold `_switching`)."""
+        if self._subscriber is not None:
             with contextlib.suppress(Exception):
                 self._subscriber.undeclare()
             self._subscriber = None
