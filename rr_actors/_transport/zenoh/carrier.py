@@ -534,14 +534,14 @@ class ZenohCarrier:
         A query after a declaration reaches the router after it (one link, in order), so
         its answer means other processes resolving the name find it.
         """
-        with contextlib.suppress(Exception):
+        with contextlib.suppress(Exception), callbacks.calling(self.session):
             for _reply in self.session.liveliness().get(key, timeout=ASK_TIMEOUT):
                 pass
 
     def mark_stopped(self, name: str) -> None:
         """Declare the "stopped" mark of `name` (before its token goes: peers then say
         "stopped"); it stays until the name is served here again."""
-        with contextlib.suppress(Exception):
+        with contextlib.suppress(Exception), callbacks.calling(self.session):
             self._stop_marks[name] = self.session.liveliness().declare_token(
                 self.keys.stopped(NameAt(name, self.zid))
             )

@@ -138,12 +138,13 @@ class Outbox:
     def declare(self) -> None:
         """Declare the publisher, if not yet (at creation, or on the writer thread)."""
         if self._publisher is None:
-            self._publisher = self._session.declare_publisher(
-                self.key,
-                congestion_control=zenoh.CongestionControl.BLOCK,
-                express=True,
-                reliability=zenoh.Reliability.RELIABLE,
-            )
+            with callbacks.calling(self._session):  # (at creation: a caller's thread)
+                self._publisher = self._session.declare_publisher(
+                    self.key,
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                    express=True,
+                    reliability=zenoh.Reliability.RELIABLE,
+                )
 
     def put(self, data: bytes, on_lost: Lost | None = None) -> bool:
         """Put `data` now (the writer thread only: `send`'s step, or a task of `run`);

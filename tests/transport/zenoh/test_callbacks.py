@@ -240,6 +240,37 @@ def test_a_worker_registered_after_its_session_closed_is_refused_and_joined_at_o
     assert not late.submit(ran.set)
 
 
+def test_a_call_under_way_is_waited_for_by_the_close_and_one_after_the_wait_refused() -> None:
+    opened = zenoh.open(session_config("peer", [], [], 1.0))
+    inside, release = threading.Event(), threading.Event()
+
+    def call() -> None:  # (a program's thread in a call: nothing joins it)
+        with callbacks.calling(opened):
+            inside.set()
+            release.wait(10)
+
+    caller = threading.Thread(target=call, daemon=True)
+    caller.start()
+    assert inside.wait(5)
+    opened.close()  # type: ignore[no-untyped-call]
+
+    assert ["1 Zenoh calls of other threads"] == callbacks.wait_ended(opened, 0.1)
+    release.set()
+    caller.join(5)
+    assert [] == callbacks.wait_ended(opened, 5)
+    with pytest.raises(callbacks.SessionEndedError), callbacks.calling(opened):
+        pytest.fail("a call began after the close waited")
+
+
+def test_calls_on_an_open_session_are_neither_waited_for_nor_refused(
+    session: zenoh.Session,
+) -> None:
+    with callbacks.calling(session):
+        assert [] == callbacks.wait_ended(session, 0)
+    with callbacks.calling(session):
+        pass
+
+
 @pytest.fixture
 def session() -> Iterator[zenoh.Session]:
     opened = zenoh.open(session_config("peer", [], [], 1.0))
