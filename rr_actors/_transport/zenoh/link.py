@@ -169,7 +169,8 @@ class Outbox:
         self._queue.close(timeout=timeout)  # (each dropped frame's `on_lost` runs: `_lost`)
         with contextlib.suppress(Exception):
             if self._publisher is not None:
-                self._publisher.undeclare()  # type: ignore[no-untyped-call]
+                with callbacks.calling(self._session):  # (a caller's thread, often)
+                    self._publisher.undeclare()  # type: ignore[no-untyped-call]
 
     @staticmethod
     def _lost(task: Task) -> None:
