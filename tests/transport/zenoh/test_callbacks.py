@@ -274,10 +274,10 @@ CALLERS = textwrap.dedent(
 )
 
 CALLER_RUNS = 3
-"""Programs run (a guard, not forced: no run of it aborted before either; see
-benchmarks/NOTES.md, 2026-11-26). With the network closed by the program and its
-registrar left running ("close"), about 1 run in 20 aborts, before and after: not
-understood, so not tested here."""
+"""Programs run (a guard, not forced: 1 of 40 such programs aborted before the calls
+were counted, 0 of 40 after; benchmarks/NOTES.md, 2026-11-26). With the network closed
+by the program and its registrar left running ("close"), about 1 run in 20 aborts,
+before and after: not understood, so not tested here."""
 
 
 @pytest.mark.parametrize("ending", ["open"])
