@@ -106,15 +106,25 @@ class FaultDesk:
         self._member = member
         self._faults = faults
         self._running = threading.BoundedSemaphore(MAX_FAULTS)
+        self._threads: set[threading.Thread] = set()  # commands running (each replies)
+        self._lock = threading.Lock()
+        self._closed = False
         key = services.keys.observer(ObserverKey(member, "fault"))
         self._queryable = services.session.declare_queryable(
             key, tracked(services.session, self._on_query)
         )
 
-    def close(self) -> None:
-        """Take no more commands (one running goes on to its end)."""
+    def close(self, timeout: float = 5.0) -> None:
+        """Take no more commands; wait (at most `timeout` s) for those running to answer
+        (they call Zenoh: not once the session closed)."""
+        with self._lock:
+            self._closed = True
+            running = list(self._threads)
         with contextlib.suppress(Exception):
             self._queryable.undeclare()  # type: ignore[no-untyped-call]
+        deadline = time.monotonic() + timeout
+        for thread in running:
+            thread.join(max(0.0, deadline - time.monotonic()))
 
     def _on_query(self, query: zenoh.Query) -> None:  # (Zenoh's thread: hand it over)
         if not self._running.acquire(blocking=False):
@@ -123,7 +133,16 @@ class FaultDesk:
         thread = threading.Thread(
             target=self._run, args=(query,), name="rr-observe-fault", daemon=True
         )
-        thread.start()
+        with self._lock:
+            if self._closed:
+                self._running.release()
+                closed = True
+            else:
+                self._threads.add(thread)
+                thread.start()
+                closed = False
+        if closed:
+            self._answer(query, False, f"{self._member} stopped taking commands", 503)
 
     def _run(self, query: zenoh.Query) -> None:
         try:
@@ -139,6 +158,8 @@ class FaultDesk:
             self._answer(query, False, "the command failed on this host (see its log)", 500)
         finally:
             self._running.release()
+            with self._lock:
+                self._threads.discard(threading.current_thread())
 
     def _command(self, data: bytes) -> str:
         """Check and run one fault command; what was done (`FaultRefused`: why not)."""

@@ -332,6 +332,9 @@ class EventFeed:
         self._claiming = LogThrottle(logger, 60.0)
         self._subscriber: Any = None
         self._thread: threading.Thread | None = None
+        self._switching = threading.Lock()  # (`_switch` and `leave`)
+        self._left = False
+        self.forget: Callable[[], None] = lambda: None  # (`leave` forgotten by the network)
         self.publisher.watch_listeners(self._switch)
 
     def subscribe(
@@ -342,14 +345,31 @@ class EventFeed:
             callback, maxsize=maxsize, name="system-events", maxbytes=QUEUED_BYTES, weigh=weight
         )
 
+    def leave(self) -> None:
+        """The network leaves (before its session closes): the subscriber goes and the
+        merge thread ends; the subscription gets no event more, and its close then calls
+        no Zenoh."""
+        with self._switching:
+            self._left = True
+            self._off()
+
     def _switch(self, listened: bool) -> None:
-        if listened and self._subscriber is None:
-            self._thread = threading.Thread(target=self._merge, name="rr-events-merge", daemon=True)
-            self._thread.start()
-            self._subscriber = self._session.declare_subscriber(
-                self._keys.all_events(), tracked(self._session, self._on_sample)
-            )
-        elif not listened and self._subscriber is not None:
+        with self._switching:
+            if listened and self._subscriber is None and not self._left:
+                self._thread = threading.Thread(
+                    target=self._merge, name="rr-events-merge", daemon=True
+                )
+                self._thread.start()
+                self._subscriber = self._session.declare_subscriber(
+                    self._keys.all_events(), tracked(self._session, self._on_sample)
+                )
+            elif not listened:
+                self._off()
+                self.forget()
+
+    def _off(self) -> None:
+        """Undeclare the subscriber, end the merge thread (hold `_switching`)."""
+        if self._subscriber is not None:
             with contextlib.suppress(Exception):
                 self._subscriber.undeclare()
             self._subscriber = None
@@ -545,6 +565,8 @@ class Across:
         session = opened.session
         self._export = EventExport(session, opened.keys, str(session.zid()), self._seal)
         self._watch: LinkWatch | None = None
+        self._feeds: set[EventFeed] = set()  # (ended first at `close`, while the session is open)
+        self._closed = False
         if tls is not None and opened.connect is not None:  # a router: who links, and why
             try:  # a connect endpoint is not (the reason in its WARNING)
                 self._watch = LinkWatch(opened.system, session, tls, opened.connect)
@@ -559,6 +581,10 @@ class Across:
         sent from the return on (at most `ASK_TIMEOUT` s)."""
         feed = EventFeed(self._opened.session, self._opened.keys, window, self._seal)
         subscription = feed.subscribe(callback, maxsize)
+        self._feeds.add(feed)
+        feed.forget = lambda: self._feeds.discard(feed)  # (its last listener went)
+        if self._closed:  # (the network left meanwhile: its subscriber goes at once)
+            feed.leave()
         self._export.wait_sending(ASK_TIMEOUT)
         return subscription
 
@@ -577,7 +603,11 @@ class Across:
         return [] if self._watch is None else self._watch.member_links()
 
     def close(self) -> None:
-        """Stop watching, then sending (idempotent): before the session closes."""
+        """End each feed's subscriber, stop watching, then sending (idempotent): before
+        the session closes, so that no thread of theirs calls Zenoh after it."""
+        self._closed = True
+        for feed in list(self._feeds):
+            feed.leave()
         if self._watch is not None:
             self._watch.close()
         self._export.close()

@@ -53,6 +53,7 @@ from typing import TYPE_CHECKING, Any
 import zenoh
 
 from rr_actors._core.serial import SerialExecutor
+from rr_actors._transport.zenoh import callbacks
 from rr_actors._transport.zenoh.callbacks import tracked
 from rr_actors._transport.zenoh.net import MemberLink
 from rr_actors._transport.zenoh.ops.config import parse_endpoint, remote
@@ -129,11 +130,12 @@ def plain_unlinked(
     if not endpoints:
         return []
     try:
-        links = {
-            remote(str(link.dst))
-            for link in session.info.links()
-            if str(link.dst).startswith("tcp/")
-        }
+        with callbacks.calling(session):
+            links = {
+                remote(str(link.dst))
+                for link in session.info.links()
+                if str(link.dst).startswith("tcp/")
+            }
     except Exception:  # noqa: BLE001 - the session closed under us: nothing to name
         return []
     dialled = {endpoint.port for endpoint in endpoints}
@@ -273,12 +275,14 @@ class LinkWatch:
         return links
 
     def _linked(self) -> set[tuple[str, int | None]]:
-        """The (host, port) of each TLS link to a member."""
-        return {
-            remote(str(link.dst))
-            for link in self._session.info.links()
-            if str(link.dst).startswith("tls/") and link.auth_identifier in self._tls.members
-        }
+        """The (host, port) of each TLS link to a member (the watch's thread, or a
+        caller's: `unlinked`)."""
+        with callbacks.calling(self._session):
+            return {
+                remote(str(link.dst))
+                for link in self._session.info.links()
+                if str(link.dst).startswith("tls/") and link.auth_identifier in self._tls.members
+            }
 
     def _look_at_endpoints(self) -> None:
         if not self._endpoints:

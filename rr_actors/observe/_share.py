@@ -111,6 +111,8 @@ class Share:
         )
         self._thread.start()
         self._token = session.liveliness().declare_token(self._key("here"))
+        self._forget = services.on_leave(self.close)  # (its thread puts: ended before the
+        # session closes, even if the observer stays open: `keep_serving`)
 
     def _key(self, part: str) -> str:
         return self._keys.observer(ObserverKey(self.member, part))
@@ -150,7 +152,9 @@ class Share:
             )
 
     def close(self, timeout: float = 5.0) -> None:
-        """Stop sharing: the token goes first (pages show this host stale), then the rest."""
+        """Stop sharing: the token goes first (pages show this host stale), then the rest;
+        its threads (and fault commands running) end within `timeout` s each. Its network
+        closes it too, before its session closes (`Services.on_leave`)."""
         if self._closing.is_set():
             return
         self._closing.set()
@@ -161,13 +165,14 @@ class Share:
         for declared in (self._token, self._state, self._desk, self._publisher):
             with contextlib.suppress(Exception):
                 if isinstance(declared, FaultDesk):
-                    declared.close()
+                    declared.close(timeout)
                 else:
                     declared.undeclare()  # type: ignore[no-untyped-call]
         self._thread.join(timeout)
         with contextlib.suppress(Exception):
             while self._queries:
                 self._queries.popleft().drop()  # type: ignore[no-untyped-call]
+        self._forget()
 
     # -- the thread -----------------------------------------------------------------------
 

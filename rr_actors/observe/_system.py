@@ -34,6 +34,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import logging
+import threading
 import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
@@ -126,6 +127,11 @@ class SystemView:
         self._events_of_system = (
             None if subscribe is None else subscribe(self._on_event, window=EVENTS_WINDOW)
         )
+        self._sending = threading.Condition()  # fault commands under way (`fault`)
+        self._faults_sent = 0
+        self._closed = False
+        self._forget = services.on_leave(self.close)  # (its threads call Zenoh: ended
+        # before the session closes, even if the observer stays open: `keep_serving`)
 
     def _on_link(self, _event: Any) -> None:  # (Zenoh's thread: a link came or went)
         self._executor.submit(functools.partial(self._refresh, graph=False))
@@ -150,7 +156,11 @@ class SystemView:
         self.hub.add_event(data)
 
     def close(self, timeout: float = 5.0) -> None:
-        """Stop following the hosts (within `timeout` seconds)."""
+        """Stop following the hosts (within `timeout` seconds, and as long again for the
+        fault commands under way). Its network closes it too, before its session closes
+        (`Services.on_leave`): none of its threads calls Zenoh after."""
+        with self._sending:
+            self._closed = True
         for declared in (self._deltas, self._tokens, self._links_listener):
             with contextlib.suppress(Exception):
                 declared.undeclare()  # type: ignore[no-untyped-call]
@@ -158,6 +168,9 @@ class SystemView:
             self._events_of_system.close(timeout=timeout)
         self._executor.close(timeout=0)
         self._executor.join(timeout)
+        with self._sending:
+            self._sending.wait_for(lambda: self._faults_sent == 0, timeout)
+        self._forget()
 
     def _mirror(self, member: str) -> Mirror:
         mirror = self._mirrors.get(member)
@@ -374,4 +387,13 @@ class SystemView:
             raise FaultRefused(f"no host {member!r} shares its tree with this page", 404)
         if self.member is None:
             raise FaultRefused("this page's host has no member name to send a command as", 403)
-        return send_fault(self._services, self.member, member, kind, data)
+        with self._sending:
+            if self._closed:
+                raise FaultRefused("this page's host left the system", 503)
+            self._faults_sent += 1
+        try:
+            return send_fault(self._services, self.member, member, kind, data)
+        finally:
+            with self._sending:
+                self._faults_sent -= 1
+                self._sending.notify_all()

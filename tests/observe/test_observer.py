@@ -1,5 +1,6 @@
 """The `Observer` handle (`rr_actors.observe._observer`): a context manager that needs the extra,
-and `Supervisor.observe(sock=...)`: the page served on a listening socket made by the caller.
+and `Supervisor.observe(sock=...)`: the page served on a listening socket made by the caller;
+one across hosts left open as its program ends.
 
 (`rr-actors demo --hosts 2 --observe` binds one in the machine's network namespace and
 hands it to the station's process, in a namespace of its own: tests/mission.)
@@ -13,6 +14,10 @@ hands it to the station's process, in a namespace of its own: tests/mission.)
 from __future__ import annotations
 
 import socket
+import subprocess
+import sys
+import textwrap
+import uuid
 from typing import Any
 
 import pytest
@@ -89,3 +94,72 @@ def test_observer_is_a_context_manager(tree: rr.Supervisor) -> None:
         assert "live" == get_json(observer.url, "/api/state")["hello"]["mode"]
 
     assert observer.closed
+
+
+# -- an observer across hosts left open as its program ends ---------------------------------------
+
+LEFT_OPEN = textwrap.dedent(
+    """
+    import sys, threading, time
+    import rr_actors as rr
+
+    system, thread, ending, busy = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4])
+    net = rr.ZenohNetwork(system=system, listen=[], connect=[], tls=None)
+    spec = rr.ManagerSpec("erm", setup=lambda r: None, isolation="thread")
+    sup = rr.Supervisor([spec], network=net).start()
+    observer = sup.observe(across_hosts=True, keep_serving=True)
+    session, key = net.services().session, f"rr/{system}/obs/test/delta"
+    inside = threading.Event()
+
+    def calling():  # a task of one of the observer's threads that calls Zenoh, `busy` s long
+        inside.set()
+        deadline = time.monotonic() + busy
+        while time.monotonic() < deadline:
+            try:
+                session.put(key, b"x")
+            except Exception:  # (the session closed meanwhile)
+                pass
+        print("done", flush=True)
+
+    if ending == "stopped":
+        sup.stop()  # the page stays open (keep_serving), the network too
+    if thread == "share":  # the share's thread, as it sends a delta of this host's state
+        observer._share.listen(lambda _: None if inside.is_set() else calling())
+        observer._source.hub.put("ended", {"at": time.time()})
+    else:  # the view's thread, as it asks another host for its state
+        observer._view._executor.submit(calling)
+    assert inside.wait(10), "the observer's thread did not run the task"
+    print("ending", flush=True)  # the exit hook closes the network ("open": stops the tree first)
+    """
+)
+
+LEFT_OPEN_RUNS = 2
+"""Programs run per thread and ending (each aborted before the fix: 2 of 2 each)."""
+
+BUSY = 1.0
+"""Seconds the observer's thread calls Zenoh on and on once the program ends: within the
+time its close waits for it, and longer than the exit takes without that wait."""
+
+
+@pytest.mark.parametrize(
+    ("thread", "ending"), [("share", "stopped"), ("view", "stopped"), ("view", "open")]
+)
+def test_an_observer_across_hosts_left_open_whose_thread_calls_zenoh_exits_without_an_abort(
+    thread: str, ending: str
+) -> None:
+    """keep_serving: the page outlives its tree (stopped by the program, or by the exit
+    hook: "open"), so only the network's close (the exit hook's) ends its threads. ("share",
+    "open" never aborted: the tree's stop waits for the share's last pass.)"""
+    pytest.importorskip("zenoh")
+    results = []
+    for _ in range(LEFT_OPEN_RUNS):
+        system = f"ob-{uuid.uuid4().hex[:8]}"
+        done = subprocess.run(  # noqa: PLW1510 - the exit code is what is checked
+            [sys.executable, "-c", LEFT_OPEN, system, thread, ending, str(BUSY)],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        results.append((done.returncode, "FATAL" in done.stderr, done.stdout))
+
+    assert [(0, False, "ending\ndone\n")] * LEFT_OPEN_RUNS == results, done.stderr

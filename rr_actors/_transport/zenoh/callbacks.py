@@ -18,10 +18,13 @@ watch and the gate join their own threads before the session closes).
 ```
  declare_*(key, tracked(session, fn))   its thread is counted (per session) while it lives
    zenoh's thread per callback ─► fn(sample) ... until the declaration goes
- worker(session, executor)              an rr_actors thread that calls Zenoh (weakly held)
+ worker(session, executor)              an rr_actors thread that calls Zenoh (weakly held;
+                                        once the close below waited: refused, joined at once)
+ with calling(session): <a Zenoh call>  on a thread no close joins (a program's, in a call):
+                                        counted; once the close below waited: refused
  ZenohCarrier.leave: each executor closed (its owner's close) ─► session.close() (a Zenoh
    call in progress returns) ─► wait_ended(session): each executor's thread and each
-   callback thread ended, joined
+   callback thread ended, joined; each call under way returned
    (the exit hook closes a network left open as the main thread ends: `_core.exit`,
     before the interpreter finalizes)
 ```
@@ -40,16 +43,26 @@ of a thread that ended is dropped later, when pyo3 next runs: not the end's sign
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 import weakref
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 if TYPE_CHECKING:
     import zenoh
 
-__all__ = ["END_TIMEOUT", "Worker", "live", "tracked", "wait_ended", "worker"]
+__all__ = [
+    "END_TIMEOUT",
+    "SessionEndedError",
+    "Worker",
+    "calling",
+    "live",
+    "tracked",
+    "wait_ended",
+    "worker",
+]
 
 T = TypeVar("T")
 
@@ -76,6 +89,10 @@ class Worker(Protocol):
         """Whether the calling thread is its thread."""
         ...
 
+    def close(self, *, timeout: float | None = 0.0) -> bool:
+        """Take no more tasks (those queued get `timeout` s); whether it ended."""
+        ...
+
 
 _Ref = weakref.ref[Any]
 
@@ -83,16 +100,63 @@ _cond = threading.Condition()
 _live: dict[str, set[_Ref]] = {}  # session's Zenoh id -> one per callback thread not ended
 _ending: dict[str, list[threading.Thread]] = {}  # threads whose callback was dropped
 _workers: dict[str, weakref.WeakSet[Worker]] = {}  # session's Zenoh id -> its workers
+_ended: set[str] = set()  # sessions whose close waited for their workers: none registers now
+_calls: dict[str, int] = {}  # session's Zenoh id -> calls under way on other threads (`calling`)
 _local = threading.local()  # `.callback`: the session whose tracked callback this thread runs
 
 
-def worker(session: zenoh.Session, executor: Worker) -> None:
+def worker(session: zenoh.Session, executor: Worker) -> bool:
     """Count `executor` (whose thread calls Zenoh on `session`) among what the session's
     close joins (`wait_ended`), once its owner closed it. Held weakly: one that ended and
-    was let go of is forgotten."""
+    was let go of is forgotten.
+
+    Returns:
+        Whether it was counted. Once the session closed and its close waited for its
+        workers (`wait_ended`), nothing would join one registered then: it is refused,
+        closed (what it was given and has not begun is dropped) and joined here, at once
+        (at most `END_TIMEOUT` s; a task it runs still ends first).
+    """
     zid = str(session.zid())
     with _cond:
-        _workers.setdefault(zid, weakref.WeakSet()).add(executor)
+        if zid not in _ended:
+            _workers.setdefault(zid, weakref.WeakSet()).add(executor)
+            return True
+    executor.close(timeout=0)
+    executor.join(END_TIMEOUT)  # (on its own thread: returns at once)
+    return False
+
+
+class SessionEndedError(Exception):
+    """A Zenoh call refused before it began: its session closed and its close waited for
+    the calls under way (`calling`); each caller takes it as the closed session's own
+    error."""
+
+
+@contextlib.contextmanager
+def calling(session: zenoh.Session) -> Iterator[None]:
+    """Around a Zenoh call on a thread that no close joins (a program's own thread in a
+    call, a server's): counted, so that the session's close waits until it returned
+    (`wait_ended`): none is then inside Zenoh as the interpreter ends.
+
+    Raises:
+        SessionEndedError: the session closed and its close waited for the calls under
+            way (nothing of Zenoh is called).
+    """
+    zid = str(session.zid())
+    with _cond:
+        if zid in _ended:
+            raise SessionEndedError(f"session {zid} closed")
+        _calls[zid] = _calls.get(zid, 0) + 1
+    try:
+        yield
+    finally:
+        with _cond:
+            left = _calls[zid] - 1
+            if left:
+                _calls[zid] = left
+            else:
+                del _calls[zid]
+                _cond.notify_all()
 
 
 def tracked(session: zenoh.Session, callback: Callable[[T], object]) -> zenoh.handlers.Callback[T]:
@@ -141,16 +205,20 @@ def wait_ended(session: zenoh.Session, timeout: float | None = None) -> list[str
     join each: none then runs Python again.
 
     Called after the session closed (the caller's thread; on a callback's own thread, or
-    a worker's, that one is not waited for).
+    a worker's, that one is not waited for). It then also waits until every call of
+    other threads under way (`calling`) returned, and refuses those that would begin.
 
     Returns:
         What had not ended within `timeout` seconds (`None`: `END_TIMEOUT`): each worker's
-        name, then the count of callback threads (`"2 Zenoh callback threads"`); empty
-        when all ended.
+        name, then the count of callback threads (`"2 Zenoh callback threads"`), then of
+        calls (`"1 Zenoh calls of other threads"`); empty when all ended.
     """
     deadline = time.monotonic() + (END_TIMEOUT if timeout is None else timeout)
     zid = str(session.zid())
+    closed = session.is_closed()
     with _cond:
+        if closed:  # (a worker registered from now on is joined at once: `worker`)
+            _ended.add(zid)
         workers = list(_workers.pop(zid, ()))
     left = sorted(
         executor.name
@@ -160,9 +228,11 @@ def wait_ended(session: zenoh.Session, timeout: float | None = None) -> list[str
     own = 1 if getattr(_local, "callback", None) == zid else 0  # (closed from its callback)
     with _cond:
         _cond.wait_for(
-            lambda: len(_live.get(zid, ())) <= own, max(0.0, deadline - time.monotonic())
+            lambda: len(_live.get(zid, ())) <= own and not (closed and _calls.get(zid)),
+            max(0.0, deadline - time.monotonic()),
         )
         ending = _ending.pop(zid, [])
+        calls = _calls.get(zid, 0) if closed else 0
     me = threading.current_thread()
     for thread in ending:
         if thread is not me:
@@ -172,4 +242,6 @@ def wait_ended(session: zenoh.Session, timeout: float | None = None) -> list[str
     running += sum(thread.is_alive() for thread in ending if thread is not me)
     if running:
         left.append(f"{running} Zenoh callback threads")
+    if calls:
+        left.append(f"{calls} Zenoh calls of other threads")
     return left

@@ -307,6 +307,9 @@ class ZenohCarrier:
         self._on_close = on_close
         self._link_trouble = link_trouble
         self._stop_marks: dict[str, Any] = {}
+        self._leaving: dict[int, Callable[[], object]] = {}  # `on_leave`'s, by number
+        self._leaving_numbers = 0
+        self._left = False  # (under `_host_lock`, as `_leaving`)
         self._outboxes = Outboxes(session, self.keys)
         self._inbox = Inbox(self)
         self.replies = self._inbox.replies
@@ -446,11 +449,43 @@ class ZenohCarrier:
         """The registrars of other processes of the system that serve now."""
         return self.presence.names()
 
+    def on_leave(self, close: Callable[[], object]) -> Callable[[], None]:
+        """Have `close()` called as this process leaves the system, first, while the
+        session is still open: what calls Zenoh on threads of its own besides the
+        carrier's (the observer across hosts, an event feed) ends them there, so that
+        none calls Zenoh once the session went (at the interpreter's end, a thread inside
+        a Zenoh call aborts the process). Once left, `close()` runs at once.
+
+        Returns:
+            What forgets it (its owner closed it first).
+        """
+        with self._host_lock:
+            if not self._left:
+                number = self._leaving_numbers = self._leaving_numbers + 1
+                self._leaving[number] = close
+
+                def forget() -> None:
+                    with self._host_lock:
+                        self._leaving.pop(number, None)
+
+                return forget
+        close()
+        return lambda: None
+
     def leave(self) -> None:
-        """Fail what waits, put what was sent (for `DRAIN_TIMEOUT` seconds at most), stop
-        this carrier's threads, close the session, then wait until they and Zenoh's
-        callback threads ended (`callbacks`: one that ran on into the interpreter's end,
-        inside a Zenoh call or a callback, would abort the process)."""
+        """Close what `on_leave` was given, fail what waits, put what was sent (for
+        `DRAIN_TIMEOUT` seconds at most), stop this carrier's threads, close the session,
+        then wait until they and Zenoh's callback threads ended (`callbacks`: one that
+        ran on into the interpreter's end, inside a Zenoh call or a callback, would abort
+        the process)."""
+        with self._host_lock:
+            self._left = True
+            leaving, self._leaving = list(self._leaving.values()), {}
+        for close in reversed(leaving):  # (newest first)
+            try:
+                close()
+            except Exception:
+                logger.exception("system %s: closing what used its session failed", self.system)
         self.replies.fail(None, RegistrarStoppedError("this process left the system"))
         if self._on_leave is not None:
             self._on_leave()
@@ -495,14 +530,14 @@ class ZenohCarrier:
         A query after a declaration reaches the router after it (one link, in order), so
         its answer means other processes resolving the name find it.
         """
-        with contextlib.suppress(Exception):
+        with contextlib.suppress(Exception), callbacks.calling(self.session):
             for _reply in self.session.liveliness().get(key, timeout=ASK_TIMEOUT):
                 pass
 
     def mark_stopped(self, name: str) -> None:
         """Declare the "stopped" mark of `name` (before its token goes: peers then say
         "stopped"); it stays until the name is served here again."""
-        with contextlib.suppress(Exception):
+        with contextlib.suppress(Exception), callbacks.calling(self.session):
             self._stop_marks[name] = self.session.liveliness().declare_token(
                 self.keys.stopped(NameAt(name, self.zid))
             )

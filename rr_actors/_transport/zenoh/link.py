@@ -138,12 +138,13 @@ class Outbox:
     def declare(self) -> None:
         """Declare the publisher, if not yet (at creation, or on the writer thread)."""
         if self._publisher is None:
-            self._publisher = self._session.declare_publisher(
-                self.key,
-                congestion_control=zenoh.CongestionControl.BLOCK,
-                express=True,
-                reliability=zenoh.Reliability.RELIABLE,
-            )
+            with callbacks.calling(self._session):  # (at creation: a caller's thread)
+                self._publisher = self._session.declare_publisher(
+                    self.key,
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                    express=True,
+                    reliability=zenoh.Reliability.RELIABLE,
+                )
 
     def put(self, data: bytes, on_lost: Lost | None = None) -> bool:
         """Put `data` now (the writer thread only: `send`'s step, or a task of `run`);
@@ -168,7 +169,8 @@ class Outbox:
         self._queue.close(timeout=timeout)  # (each dropped frame's `on_lost` runs: `_lost`)
         with contextlib.suppress(Exception):
             if self._publisher is not None:
-                self._publisher.undeclare()  # type: ignore[no-untyped-call]
+                with callbacks.calling(self._session):  # (a caller's thread, often)
+                    self._publisher.undeclare()  # type: ignore[no-untyped-call]
 
     @staticmethod
     def _lost(task: Task) -> None:

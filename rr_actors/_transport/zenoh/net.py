@@ -386,6 +386,9 @@ class Services:
         lease: seconds after which a silent peer counts as gone.
         links: each member's link to this router as last seen (empty without TLS: a
             plain TCP link names nobody).
+        on_leave: `on_leave(close)`: `close()` is called as this process leaves the
+            system, before its session closes (a service's threads that call Zenoh end
+            there; the carrier's `on_leave`); returns what forgets it.
     """
 
     session: zenoh.Session
@@ -393,6 +396,11 @@ class Services:
     member: str | None
     lease: float
     links: Callable[[], list[MemberLink]]
+    on_leave: Callable[[Callable[[], object]], Callable[[], None]] = lambda _close: _nothing
+
+
+def _nothing() -> None:
+    """What forgets a `close` given to a session of no carrier (tests'): nothing."""
 
 
 class ZenohNetwork(Messenger):
@@ -634,6 +642,7 @@ class ZenohNetwork(Messenger):
             member=None if self.tls is None else self.tls.name,
             lease=self.lease,
             links=(list) if beside is None else beside.member_links,
+            on_leave=carrier.on_leave,
         )
 
     def subscribe_events(

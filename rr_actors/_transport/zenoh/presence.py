@@ -448,14 +448,15 @@ class Presence:
             keys: list[str] = []
             why: str | None = None
             try:
-                replies = self._session.liveliness().get(
-                    self._keys.live_of(name), timeout=ASK_TIMEOUT
-                )
-                for reply in replies:
-                    if reply.ok is not None:
-                        keys.append(str(reply.ok.key_expr))
-                    else:  # ("Timeout": some answers may be missing)
-                        why = f"the network did not answer within {ASK_TIMEOUT:g} s"
+                with callbacks.calling(self._session):  # (a caller's thread, often)
+                    replies = self._session.liveliness().get(
+                        self._keys.live_of(name), timeout=ASK_TIMEOUT
+                    )
+                    for reply in replies:
+                        if reply.ok is not None:
+                            keys.append(str(reply.ok.key_expr))
+                        else:  # ("Timeout": some answers may be missing)
+                            why = f"the network did not answer within {ASK_TIMEOUT:g} s"
             except Exception as exc:  # noqa: BLE001 - a closed session, ...: not answered
                 logger.debug("system %s: asking who serves %s failed: %s", self._system, name, exc)
                 why = f"the question failed ({exc})"
@@ -488,8 +489,9 @@ class Presence:
         if self._router is None:
             return True
         try:
-            replies = self._session.get(self._keys.ping(self._router), timeout=ASK_TIMEOUT)
-            return any(reply.ok is not None for reply in replies)
+            with callbacks.calling(self._session):
+                replies = self._session.get(self._keys.ping(self._router), timeout=ASK_TIMEOUT)
+                return any(reply.ok is not None for reply in replies)
         except Exception as exc:  # noqa: BLE001 - a closed session: no answer
             logger.debug("system %s: pinging the router failed: %s", self._system, exc)
             return False
