@@ -3,6 +3,7 @@ stores and backups they start from, recording callbacks and a save-interval cloc
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import errno
 import hashlib
@@ -86,9 +87,15 @@ def child_gave_up_not_unloaded(names: tuple[str, str], paths: tuple[str, str], c
         threading.Event().wait(60)  # the parent kills this process here
 
     intercept(provider, "unload_resource", before=held_there)
-    with contextlib.suppress(rr.CallTimeoutError):  # its Abandon is sent as it gives up
-        consumer.call(p_name, "leaf", {"released": 1}, timeout=3.0)
-    assert started.is_set()  # (it ran: one withdrawn before it ran is never loaded)
+
+    async def give_up_once_it_runs() -> None:
+        call = asyncio.ensure_future(consumer.acall(p_name, "leaf", {"released": 1}))
+        assert await asyncio.to_thread(started.wait, 30)  # (one never run is never loaded)
+        call.cancel()  # withdrawn: its Abandon is sent before the cancellation ends
+        with contextlib.suppress(asyncio.CancelledError):
+            await call
+
+    asyncio.run(give_up_once_it_runs())
     ends.set()  # (its load ends after the Abandon: a consumer nobody holds)
     conn.recv()  # never answered
 
