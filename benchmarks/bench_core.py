@@ -7,7 +7,10 @@ the median and 90th percentile in microseconds and the ratio of each median to t
 median of a raw pykka ask (`ActorRef.ask` to a `ThreadingActor` that echoes).
 
 Usage:
-    python benchmarks/bench_core.py [--rounds 20] [--batch 200] [--profile FILE]
+    python benchmarks/bench_core.py [--rounds 20] [--batch 200] [--profile FILE] [--durable]
+
+`--durable`: every registrar keeps a backup with `save_on_modify` (a temporary folder),
+so each change is committed before it is answered.
 
 Operations:
     pykka ask           raw `ref.ask(x)` round trip to an echoing ThreadingActor
@@ -30,6 +33,7 @@ import itertools
 import platform
 import statistics
 import sys
+import tempfile
 import time
 import uuid
 from collections.abc import Callable
@@ -58,18 +62,19 @@ class ActorEcho(Actor):
 class Bench:
     """The actors and registrars every operation uses, started once."""
 
-    def __init__(self) -> None:
+    def __init__(self, *, durable: bool = False) -> None:
         suffix = uuid.uuid4().hex[:6]
+        self.folder = tempfile.TemporaryDirectory() if durable else None
         self.echo = Echo.start()
         self.actor_echo = ActorEcho.start()
-        self.provider = rr.ResourceRegistrar.start(f"bench-provider-{suffix}")
-        self.consumer = rr.ResourceRegistrar.start(f"bench-consumer-{suffix}")
+        self.provider = rr.ResourceRegistrar.start(self.config(f"bench-provider-{suffix}"))
+        self.consumer = rr.ResourceRegistrar.start(self.config(f"bench-consumer-{suffix}"))
         self.provider.register_server("res", load=lambda request: request, unload=_noop)
         self.holder = self.consumer.call(self.provider.name, "res", "shared")
         self.watched = self.consumer.call(self.provider.name, "res", "watched", on_status=_noop)
         self._unique = itertools.count()
         self._dedup_ids: list[str] = []
-        self.observed = rr.ResourceRegistrar.start(f"bench-observed-{suffix}")
+        self.observed = rr.ResourceRegistrar.start(self.config(f"bench-observed-{suffix}"))
         self.observed.register_server("res", load=lambda request: request, unload=_noop)
         self.consumer.call(self.observed.name, "res", "shared")
         self.subscription = self.observed.subscribe(_noop)
@@ -82,6 +87,15 @@ class Bench:
         self.provider.stop()
         self.echo.stop()
         self.actor_echo.stop()
+        if self.folder is not None:
+            self.folder.cleanup()
+
+    def config(self, name: str) -> rr.RegistrarConfig:
+        """`name`'s configuration: with `--durable`, a backup with `save_on_modify`."""
+        if self.folder is None:
+            return rr.RegistrarConfig(name=name)
+        backup = f"{self.folder.name}/{name}.db"
+        return rr.RegistrarConfig(name=name, backup_path=backup, save_on_modify=True)
 
     # -- operations (each does one operation) -----------------------------------------
 
@@ -133,9 +147,9 @@ def percentile(values: list[int], fraction: float) -> float:
     return float(ordered[index])
 
 
-def run(rounds: int, batch: int) -> list[tuple[str, float, float]]:
+def run(rounds: int, batch: int, *, durable: bool = False) -> list[tuple[str, float, float]]:
     """Measure every operation; return (name, median us, p90 us) rows."""
-    bench = Bench()
+    bench = Bench(durable=durable)
     try:
         ops: dict[str, Callable[[], None]] = {
             "pykka ask": bench.pykka_ask,
@@ -167,12 +181,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rounds", type=int, default=20, help="interleaved rounds (default 20)")
     parser.add_argument("--batch", type=int, default=200, help="operations per round and row")
     parser.add_argument("--profile", metavar="FILE", help="write cProfile stats of the run here")
+    parser.add_argument("--durable", action="store_true", help="registrars with backups")
     args = parser.parse_args(argv)
 
     profiler = cProfile.Profile() if args.profile else None
     if profiler is not None:
         profiler.enable()
-    rows = run(args.rounds, args.batch)
+    rows = run(args.rounds, args.batch, durable=args.durable)
     if profiler is not None:
         profiler.disable()
         profiler.dump_stats(args.profile)
@@ -181,6 +196,7 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"python {platform.python_version()}, pykka {importlib.metadata.version('pykka')}, "
         f"{args.rounds} rounds x {args.batch} operations per row, {sys.platform}"
+        f"{', durable registrars' if args.durable else ''}"
     )
     print()
     print("| operation | median (us) | p90 (us) | median / pykka ask |")

@@ -10,7 +10,7 @@ counted on its own, between two marks:
     actor    the same ask to rr_actors' own actor type (the registrars are built on it)
 
 `--count commits` counts SQLite commits instead, per hit, miss, unload and last unload,
-with a durable consumer and provider (`commits`).
+on each side, with a durable consumer and provider, then with a plain consumer (`commits`).
 
 How (`--count`):
 
@@ -355,23 +355,44 @@ def commits(calls: int, durability: str) -> None:
 
     Both registrars have a backup with `save_on_modify`; commits are counted by wrapping
     the store's one write path (`SqliteStore._run`: a call is a transaction), so the count
-    reads the same on any tree. Operations: a dedup hit, a miss (a new request: loaded),
-    the unload of a hit's id (not the last consumer) and the last unload (the resource is
-    unloaded).
+    reads the same on any tree, on each side. Operations: a dedup hit, a miss (a new
+    request: loaded), the unload of a hit's id (not the last consumer) and the last
+    unload (the resource is unloaded). Then the same with a plain consumer (no backup:
+    nothing on its side).
     """
     from rr_actors._store.sqlite import SqliteStore  # noqa: PLC0415 - a backup's store
 
-    made = [0]
+    made: collections.Counter[str] = collections.Counter()
     run = SqliteStore._run
 
     def counted_run(store: Any, ops: Any) -> None:
         run(store, ops)
-        made[0] += 1
+        made[Path(store.path).stem.split("-")[-1]] += 1
 
     SqliteStore._run = counted_run  # type: ignore[method-assign]
+    tables = {"durable": side_commits(calls, durability, made, durable_consumer=True)}
+    tables["plain"] = side_commits(calls, durability, made, durable_consumer=False)
+    SqliteStore._run = run  # type: ignore[method-assign]
+    print(f"SQLite commits per operation, one caller, durability={durability} ({calls} each)")
+    print("| operation | commits | provider | consumer | plain consumer: commits (its side) |")
+    print("|---|---:|---:|---:|---:|")
+    for name, (provider, consumer) in tables["durable"].items():
+        plain_p, plain_c = tables["plain"][name]
+        print(
+            f"| {name} | {provider + consumer:.2f} | {provider:.2f} | {consumer:.2f} "
+            f"| {plain_p + plain_c:.2f} ({plain_c:.2f}) |"
+        )
+
+
+def side_commits(
+    calls: int, durability: str, made: collections.Counter[str], *, durable_consumer: bool
+) -> dict[str, tuple[float, float]]:
+    """Each operation's commits per call: (the provider's, the consumer's)."""
     with tempfile.TemporaryDirectory() as work:
 
-        def durable(name: str) -> rr.ResourceRegistrar:
+        def start(name: str, *, durable: bool = True) -> rr.ResourceRegistrar:
+            if not durable:
+                return rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
             return rr.ResourceRegistrar.start(
                 rr.RegistrarConfig(
                     name=name,
@@ -381,7 +402,8 @@ def commits(calls: int, durability: str) -> None:
                 )
             )
 
-        provider, consumer = durable("commits-provider"), durable("commits-consumer")
+        provider = start("commits-provider")
+        consumer = start("commits-consumer", durable=durable_consumer)
         provider.register_server("res", load=lambda request: request, unload=_noop)
         consumer.call(provider.name, "res", "shared")  # held: every call of it after, a hit
         hits: list[str] = []
@@ -397,19 +419,15 @@ def commits(calls: int, durability: str) -> None:
         for name, operation in operations.items():
             provider.server_queries("res")  # (a round trip to each: nothing left over)
             consumer.client_queries()
-            before = made[0]
+            made.clear()
             for _ in range(calls):
                 operation()
             provider.server_queries("res")
             consumer.client_queries()
-            rows[name] = (made[0] - before) / calls
+            rows[name] = (made["provider"] / calls, made["consumer"] / calls)
         consumer.stop()
         provider.stop()
-    print(f"SQLite commits per operation, one caller, durability={durability} ({calls} each)")
-    print("| operation | commits |")
-    print("|---|---:|")
-    for name, per in rows.items():
-        print(f"| {name} | {per:.2f} |")
+    return rows
 
 
 def counted(args: argparse.Namespace) -> None:

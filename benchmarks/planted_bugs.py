@@ -121,8 +121,9 @@ PLANTS = (
         "the catalog refuses to remove a resource with consumers (an assertion), so the "
         "actor dies after the unload began: its restart finds it in doubt, still held",
         "_registrar/provider.py",
-        "        if not last or resource.state is not ResourceState.LOADED:\n",
-        "        if resource.state is not ResourceState.LOADED:  # PLANTED: consumers left\n",
+        "        if last and resource.state is ResourceState.LOADED:  # one commit with its"
+        " unload mark\n",
+        "        if resource.state is ResourceState.LOADED:  # PLANTED: consumers left\n",
         "simchain",
         "in-doubt",
     ),

@@ -257,6 +257,11 @@ class Catalog:
         self._dirty_resources.add(rid)
         return resource
 
+    def cancel_unload(self, rid: str) -> None:
+        """Mark an `UNLOADING` resource `LOADED` again (its unload was never written)."""
+        self.resources[rid].state = ResourceState.LOADED
+        self._dirty_resources.add(rid)
+
     def remove_resource(self, rid: str) -> Resource:
         """Delete a resource that has no consumers any more."""
         resource = self.resources.pop(rid)

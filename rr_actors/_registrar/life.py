@@ -591,8 +591,9 @@ class Restoring:
     def unload_unheld(self) -> None:
         """Unload restored resources that no consumer holds (rule 7).
 
-        Their last consumer left (or every caller of their load gave up) and that was
-        written, but a crash came before their unload began (it is written apart): no
+        Every caller of their load gave up and that was written (or an earlier version
+        wrote a last release apart from its unload mark, which is now one commit), but
+        a crash came before their unload began: no
         one holds an id to release them, so without this they would stay loaded, and
         hold their dependencies at other registrars, for good. Their unload runs once
         setup registered their server (or they are dropped if it does not).

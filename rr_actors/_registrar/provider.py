@@ -15,6 +15,7 @@
    │                                    waiting for a worker, nobody else waiting for
    │                                    it: withdrawn, never run, `withdraw`)
    │                                    └── the last consumer id? ─► unload_resource
+   │                                        (the release and the UNLOADING mark: one commit)
    │     (an Unload's answer carries the statuses still on their way to that id:
    │      `status.py`'s Unacknowledged, rule 9)
    ▼
@@ -1412,6 +1413,9 @@ class Unloading:
                 *told, ok=lambda: answer.set_result(None), undo=undo, refuse=answer.set_error
             )
             return
+        if last and resource.state is ResourceState.LOADED:  # one commit with its unload mark
+            self.teardown.unload_resource(resource, reply, trace, released=(query_id, origin, told))
+            return
         failed = shared.commit(*told)  # (written with it)
         if failed is not None and reply is not None:  # not durable: nothing changes
             catalog.add_consumer(resource.id, query_id, origin)
@@ -1420,11 +1424,8 @@ class Unloading:
             return
         if failed is not None:  # a give-up: carried out, written with the next write
             shared.publish(*told)
-        if not last or resource.state is not ResourceState.LOADED:
-            if reply is not None:
-                reply.set_result(None)
-            return
-        self.teardown.unload_resource(resource, reply, trace)
+        if reply is not None:
+            reply.set_result(None)
 
     def ask_to_reconcile(self, swept: set[str]) -> None:
         """This registrar serves (again): ask every registrar holding ids here to
@@ -1532,15 +1533,27 @@ class Teardown:
         self.under_way: dict[str, Resource] = {}
         self.idle: list[Callable[[], None]] = []  # what runs once none is under way
 
-    def unload_resource(self, resource: Resource, reply: Reply | None, trace: str = "") -> None:
+    def unload_resource(
+        self,
+        resource: Resource,
+        reply: Reply | None,
+        trace: str = "",
+        *,
+        released: tuple[str, str, tuple[events.Event, ...]] | None = None,
+    ) -> None:
         """The last consumer left: release the dependencies, then run `unload` (rule 7).
 
         `trace`: the traceparent the last `Unload` carried; the dependencies' releases
         carry its SERVER span's context (`_core/traces.py`: their spans are its children).
+        `released`: that consumer's release, not written yet (its id, its registrar, its
+        events): one transaction writes it with the resource's `UNLOADING` mark, so a
+        crash leaves the id held and the resource loaded, or both changed (the unload in
+        doubt, rule 16), never a resource nobody holds and nobody unloads. Not written
+        (a full disk): an `Unload` (`reply`) undoes both and fails; a give-up is carried
+        out and written with the next write that succeeds.
         """
-        self.registrar.probe("unload_resource", resource)
-        self.registrar.catalog.begin_unload(resource.id)
-        self.registrar.commit()
+        if not self.mark_unloading(resource, reply, released):
+            return
         self.unload_waiters[resource.id] = [] if reply is None else [reply]
         self.under_way[resource.id] = resource
 
@@ -1600,6 +1613,30 @@ class Teardown:
         self.releases.release_dependencies(
             resource.id, run_unload, only=set(order[:cut]), trace=trace
         )
+
+    def mark_unloading(
+        self,
+        resource: Resource,
+        reply: Reply | None,
+        released: tuple[str, str, tuple[events.Event, ...]] | None,
+    ) -> bool:
+        """Write `resource` `UNLOADING`, with its last consumer's release if `released`;
+        `False`: that release was an `Unload`, not written, undone and `reply` failed."""
+        shared = self.registrar
+        shared.probe("unload_resource", resource)
+        shared.catalog.begin_unload(resource.id)
+        told = () if released is None else released[2]
+        failed = shared.commit(*told)
+        if failed is not None and released is not None and reply is not None:
+            query_id, origin, _ = released  # not durable: nothing changes
+            shared.catalog.cancel_unload(resource.id)
+            shared.catalog.add_consumer(resource.id, query_id, origin)
+            shared.commit()
+            reply.set_error(failed)
+            return False
+        if failed is not None:  # (a give-up's events published all the same)
+            shared.publish(*told)
+        return True
 
     def when_idle(self, then: Callable[[], None]) -> None:
         """Run `then()` once no unload is under way here (now if none is)."""

@@ -278,6 +278,20 @@ def test_drain_changes_reports_touched_rows_once():
     assert not second
 
 
+def test_an_unload_cancelled_leaves_the_resource_loaded_and_its_row_to_write_again():
+    # (a last release and its UNLOADING mark are one commit: a refused write undoes both)
+    catalog = Catalog()
+    rid = loaded(catalog, "s", "x")
+    catalog.begin_unload(rid)
+    catalog.drain_changes()
+
+    catalog.cancel_unload(rid)
+
+    assert ResourceState.LOADED is catalog.resources[rid].state
+    assert [rid] == list(catalog.drain_changes().resources)
+    assert rid == catalog.find("s", "x").id
+
+
 def test_drain_changes_names_only_the_consumer_ids_added_or_released_in_their_last_order():
     catalog = Catalog()
     rid = loaded(catalog, "s", "x", consumer="held")

@@ -156,7 +156,8 @@ from rr_actors._registrar import provider
 from rr_actors.experiments.services import service
 
 _source = textwrap.dedent(inspect.getsource(provider.Unloading.release))
-_planted = _source.replace("if not last or resource.state", "if resource.state")
+_planted = _source.replace("if last and resource.state", "if resource.state")
+assert _planted != _source, "Unloading.release moved: write the plant again"
 # (a release that is not the last is answered after the turn's commit: that early return
 # planted away too, so every release of a loaded resource reaches the unload)
 _planted = _planted.replace(

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import contextvars
+import os
 import pickle
 import shutil
 import sqlite3
@@ -3018,3 +3019,144 @@ def test_a_freed_slot_goes_to_the_consumer_that_waits_not_to_one_that_asks_again
     spare.admit("b4", "s", "B")
     assert spare.refusal("s", "B", 10) is not None  # (B past its share of 5)
     assert spare.refusal("s", "A", 10) is None  # (a slot kept for nobody ahead of A)
+
+
+# -- a last unload's one commit (issue 52) -----------------------------------------------------
+
+
+def _leaf_setup(registrar: rr.ResourceRegistrar) -> None:
+    registrar.register_server("leaf", load=lambda r: f"loaded {r}", unload=lambda _q, _r: None)
+
+
+class _Heard:
+    """Collects the events a subscription delivers."""
+
+    def __init__(self) -> None:
+        self.events: list[Any] = []
+        self.lock = threading.Lock()
+
+    def __call__(self, event: Any) -> None:
+        with self.lock:
+            self.events.append(event)
+
+    def of(self, kind: type[Any]) -> list[Any]:
+        with self.lock:
+            return [e for e in self.events if isinstance(e, kind)]
+
+
+class TestLastUnloadCommit:
+    """A durable provider writes a last unload's release with its resource's `UNLOADING`
+    mark in one transaction (issue 52): the id held and the resource loaded, or both
+    changed and the unload in doubt (rule 16); never a release written alone."""
+
+    def test_a_hit_is_a_commit_on_each_side_and_a_last_unload_two_at_the_provider(
+        self, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    ) -> None:
+        from rr_actors._store.sqlite import SqliteStore  # noqa: PLC0415 - the one write path
+
+        made: dict[str, int] = {}
+        run = SqliteStore._run
+
+        def counted(store: Any, ops: Any) -> None:
+            run(store, ops)
+            side = Path(store.path).stem
+            made[side] = made.get(side, 0) + 1
+
+        monkeypatch.setattr(SqliteStore, "_run", counted)
+        uid = uuid.uuid4().hex[:8]
+        provider, consumer = (
+            rr.ResourceRegistrar.start(
+                rr.RegistrarConfig(
+                    f"{side}-{uid}", backup_path=tmp_path / f"{side}.db", save_on_modify=True
+                )
+            )
+            for side in ("p", "c")
+        )
+        try:
+            provider.register_server("leaf", load=lambda r: r, unload=lambda _q, _r: None)
+            consumer.call(provider.name, "leaf", "shared")  # held: the next call is a hit
+
+            def commits_of(operation: Callable[[], object]) -> dict[str, int]:
+                provider.server_queries("leaf")  # (a round trip to each: nothing left over)
+                consumer.client_queries()
+                made.clear()
+                operation()
+                provider.server_queries("leaf")
+                consumer.client_queries()
+                return dict(made)
+
+            hit = commits_of(lambda: consumer.call(provider.name, "leaf", "shared"))
+            alone = consumer.call(provider.name, "leaf", "alone")
+            last = commits_of(lambda: consumer.unload(alone.id))
+        finally:
+            consumer.stop()
+            provider.stop()
+
+        # the consumer's record, the provider's consumer id; the consumer's forget, the
+        # provider's release with its UNLOADING mark, then the resource's removal
+        assert ({"p": 1, "c": 1}, {"p": 2, "c": 1}) == (hit, last)
+
+    @pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+    @pytest.mark.usefixtures("by_value")  # (tests/conftest.py)
+    @pytest.mark.parametrize("kill", ["before", "after"])
+    def test_a_kill_at_a_last_unloads_commit_leaves_the_id_held_or_the_unload_in_doubt(
+        self, supervisors: Callable[..., rr.Supervisor], tmp_path: Path, kill: str
+    ) -> None:
+        # A real SIGKILL of the provider's manager process just before the commit (the
+        # `unload_resource` point: the release staged, not written) or just after it
+        # (its ConsumerReleased written with it, the unload not begun). Before: the
+        # restart holds the id, and the consumer, whose unload failed, leaves it out of
+        # its Reconcile, so it is released then ("reconcile") and the resource unloaded.
+        # After: the id is gone and the resource was unloading: in doubt (cut "unload").
+        # (Written apart, as before, a kill between them restored a resource nobody
+        # held, its release "unload" read from the outbox, and nothing in doubt.)
+        uid = uuid.uuid4().hex[:8]
+        p = f"p-{uid}"
+        spec = rr.ManagerSpec(p, _leaf_setup, isolation="process", heartbeat=None)
+        sup = supervisors([spec], state_dir=tmp_path / "state")
+        heard = _Heard()
+        subscription = sup.subscribe(heard)
+        sup.start()
+        app = sup.registrar(f"app-{uid}")
+        query = app.call(p, "leaf", "x", timeout=10)  # its only consumer
+        rid = sup.run_in(p, lambda r: [r_.id for r_ in catalog_snapshot(r).resources])[0]
+
+        def arm(registrar: rr.ResourceRegistrar) -> None:
+            import signal  # noqa: PLC0415 - runs in the provider's first process
+
+            from rr_actors import events  # noqa: PLC0415
+            from rr_actors.testing import intercept  # noqa: PLC0415
+
+            def die(_subject: Any) -> None:
+                os.kill(os.getpid(), signal.SIGKILL)
+
+            def die_once_released(told: Any) -> None:
+                if any(isinstance(e, events.ConsumerReleased) for e in told):
+                    die(told)
+
+            if kill == "before":
+                intercept(registrar, "unload_resource", before=die)
+            else:
+                intercept(registrar, "events_written", before=die_once_released)
+
+        sup.run_in(p, arm)
+        with pytest.raises(rr.RegistrarUnavailableError):
+            app.unload(query.id)
+        sup.wait_restarted(p, timeout=20)
+        in_doubt = sup.run_in(p, lambda r: [q.id for q in r.in_doubt])
+        assert wait_for(lambda: not sup.run_in(p, lambda r: catalog_snapshot(r).resources), 20)
+        assert sup.flush_events(timeout=10)
+        assert subscription.wait_delivered(timeout=10)
+        subscription.close()
+        app.stop()
+
+        released = [
+            e.reason
+            for e in heard.of(rr.events.ConsumerReleased)
+            if e.registrar == p and e.query_id == query.id
+        ]
+        cut = [e.cut for e in heard.of(rr.events.InDoubt) if e.query_id == rid]
+        if kill == "before":
+            assert ([], ["reconcile"], []) == (in_doubt, released, cut)
+        else:
+            assert ([rid], ["unload"], ["unload"]) == (in_doubt, released, cut)

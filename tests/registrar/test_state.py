@@ -760,6 +760,23 @@ class TestFullDisk:
         assert [held.id] == [q.id for q in provider.consumer.client_queries()]
         assert [] == provider.unloads
 
+    def test_a_last_unload_refused_on_a_full_disk_unloads_once_there_is_room_again(
+        self, provider: Provider, disk: Path
+    ) -> None:
+        # A last release is one commit with its resource's UNLOADING mark (issue 52):
+        # refused, both are undone, so the resource is loaded, held, and unloadable again.
+        held = provider.call("a")
+        _full(disk)
+        with pytest.raises(rr.CatalogWriteError):
+            provider.consumer.unload(held.id)
+        (disk / "filler").unlink()
+
+        provider.consumer.unload(held.id)
+
+        assert provider.unloaded.wait(5)
+        assert ["a"] == provider.unloads
+        assert wait_for(lambda: not catalog_snapshot(provider.registrar).resources, timeout=5)
+
     def test_hits_and_unloads_waiting_for_one_commit_on_a_full_disk_are_all_refused_undone(
         self, provider: Provider, disk: Path
     ) -> None:

@@ -3,6 +3,7 @@ stores and backups they start from, recording callbacks and a save-interval cloc
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import errno
 import hashlib
@@ -63,21 +64,39 @@ def child_stuck_in_load(names: tuple[str, str], paths: tuple[str, str], conn: An
     consumer.call(p_name, "stuck", {"job": 7}, timeout=60)
 
 
-def child_released_not_unloaded(names: tuple[str, str], paths: tuple[str, str], conn: Any) -> None:
-    """C releases its only id of a P leaf; P is held after the release was written and
-    before the leaf's unload began (the `unload_resource` point), then killed there."""
+def child_gave_up_not_unloaded(names: tuple[str, str], paths: tuple[str, str], conn: Any) -> None:
+    """C's only call of a P leaf gives up while its load runs; the load ends, written
+    loaded with no consumer, and P is held before the leaf's unload began (the
+    `unload_resource` point), then killed there. (A last release is written with its
+    unload mark: only a load whose every caller gave up leaves a resource nobody holds.)"""
     from rr_actors.testing import intercept  # noqa: PLC0415
 
-    p_name, _ = names
-    provider, consumer = start_pair(names, paths)
-    query = consumer.call(p_name, "leaf", {"released": 1})
+    p_name, c_name = names
+    started, ends = threading.Event(), threading.Event()
+
+    def load(request: Any) -> Any:
+        started.set()
+        ends.wait(60)
+        return {"leaf": request}
+
+    provider = start_provider(p_name, paths[0], load=load)
+    consumer = start_consumer(c_name, paths[1])
 
     def held_there(_resource: Any) -> None:
-        conn.send(query.id)  # (the actor is held here: no snapshot)
+        conn.send("held")  # (the actor is held here: no snapshot)
         threading.Event().wait(60)  # the parent kills this process here
 
     intercept(provider, "unload_resource", before=held_there)
-    threading.Thread(target=consumer.unload, args=(query.id,), daemon=True).start()
+
+    async def give_up_once_it_runs() -> None:
+        call = asyncio.ensure_future(consumer.acall(p_name, "leaf", {"released": 1}))
+        assert await asyncio.to_thread(started.wait, 30)  # (one never run is never loaded)
+        call.cancel()  # withdrawn: its Abandon is sent before the cancellation ends
+        with contextlib.suppress(asyncio.CancelledError):
+            await call
+
+    asyncio.run(give_up_once_it_runs())
+    ends.set()  # (its load ends after the Abandon: a consumer nobody holds)
     conn.recv()  # never answered
 
 
