@@ -637,7 +637,7 @@ def test_the_end_is_cut_5_ms_after_the_violation_before_50_ms(
         parse_plan(text), 1, text, 1, 1, lambda _line: None, lambda _runs: None
     )
     shrinker.explicit()
-    monkeypatch.setattr(shrink, "_violation_at", lambda _run, _kind, _duration: 0.5)
+    monkeypatch.setattr(shrink, "_violation_at", lambda _run, _kind, _duration, _judge: 0.5)
 
     candidates = list(shrinker.duration_cuts())[:2]
 
