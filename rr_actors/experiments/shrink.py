@@ -58,6 +58,7 @@ import itertools
 import json
 import logging
 import re
+import time
 import tomllib
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -297,6 +298,7 @@ def shrink(
     on_run: Callable[[int], None] | None = None,
     text: str | None = None,
     judge: Judge = violations,
+    cpu_until: float | None = None,
 ) -> Shrunk:
     """Shrink `plan` at `seed` (a violating run) to a small plan that violates the same way.
 
@@ -311,6 +313,8 @@ def shrink(
         text: the plan's TOML (default: its file's; a run directory's copy, say).
         judge: what a run violates (default: the checker's rules; a kit's rules too,
             `rr_actors.teach.grade`): the first of the seed's run is the kind kept.
+        cpu_until: a `time.process_time()` after which no run starts (the budget
+            spent then, if not before: a check's bound of CPU seconds).
 
     Returns:
         The smallest plan found, its seed and run.
@@ -328,7 +332,8 @@ def shrink(
         text = Path(str(plan.source)).read_text(encoding="utf-8")
     say = on_step or (lambda _line: None)
     ran = on_run or (lambda _runs: None)
-    return _Shrinker(plan, seed, text, budget, tries, say, ran, judge).run()
+    shrinker = _Shrinker(plan, seed, text, budget, tries, say, ran, judge, cpu_until)
+    return shrinker.run()
 
 
 class _Shrinker:
@@ -344,9 +349,10 @@ class _Shrinker:
         say: Callable[[str], None],
         ran: Callable[[int], None],
         judge: Judge = violations,
+        cpu_until: float | None = None,
     ) -> None:
         self.source = plan.source or "<plan>"
-        self.judge = judge
+        self.judge, self.cpu_until = judge, cpu_until
         self.budget, self.tries, self.say, self.ran = budget, tries, say, ran
         self.runs = 0
         self.width = tries  # seeds a candidate runs with at most (`attempt`)
@@ -376,6 +382,8 @@ class _Shrinker:
         finally:
             logger.setLevel(level)
         self.runs += 1
+        if self.cpu_until is not None and time.process_time() >= self.cpu_until:
+            self.budget = min(self.budget, self.runs)  # (its CPU spent: no run after this)
         self.ran(self.runs)
         return run
 

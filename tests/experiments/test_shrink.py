@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import io
 import json
+import time
 import tomllib
 from pathlib import Path
 
@@ -14,6 +15,7 @@ import pytest
 
 from rr_actors.__main__ import main
 from rr_actors.experiments import load_plan, plans, shrink, simulate, story, sweep
+from rr_actors.experiments.check import Finding
 from rr_actors.experiments.plan import Plan
 from rr_actors.experiments.reading import parse_plan
 from tests.experiments.test_simulate import PLAN, SERVICE
@@ -372,7 +374,7 @@ def probe(monkeypatch: pytest.MonkeyPatch, event: str) -> None:
     """Make "the violation" of every run an event of type `event` in its history (the
     kind `[probe] <event>`): a bug whose run is known, for a pass to shrink."""
 
-    def kinds(run: simulate.SimulatedRun) -> list[str]:
+    def kinds(run: simulate.SimulatedRun, _judge: shrink.Judge = shrink.violations) -> list[str]:
         types = {json.loads(line).get("type") for line in run.history.splitlines()}
         return [f"[probe] {event}"] if event in types else []
 
@@ -403,6 +405,40 @@ def test_a_fault_after_an_event_is_shrunk_to_fire_at_its_first_one(
     assert shrunk.run.events <= 20
     assert "faults.0.after.nth = 1" in shrunk.steps
     assert "nth = 1 }" in shrunk.text
+
+
+@SHRINK
+def test_a_judge_names_what_a_run_violates_and_its_first_kind_is_kept() -> None:
+    # Other rules than the checker's (a kit's): "more than 3 calls answered" is kept
+    # through the cuts, the run shrunk to the fewest events that still show it.
+    def judge(run: simulate.SimulatedRun) -> list[Finding]:
+        lines = run.history.splitlines()
+        answered = [n for n, line in enumerate(lines, 1) if '"CallAnswered"' in line]
+        if len(answered) <= 3:
+            return []
+        return [Finding("many", "violation", f"{len(answered)} calls answered", (answered[3],))]
+
+    text = ONE.replace("hold = 0\n", "hold = 0\nawaited = 40\n")
+
+    shrunk = shrink.shrink(parse_plan(text), 1, budget=BUDGET, text=text, judge=judge)
+
+    assert shrunk.kind == "[many] N calls answered"
+    assert shrunk.original_events > 100
+    assert shrunk.run.events < 40
+    assert len(judge(shrunk.run)) == 1
+    assert shrink.violation_kinds(shrunk.run) == []  # (the checker's rules: none broken)
+
+
+@SHRINK
+def test_a_shrink_makes_no_run_after_its_cpu_time(monkeypatch: pytest.MonkeyPatch) -> None:
+    probe(monkeypatch, "CallAnswered")
+    text = ONE.replace("hold = 0\n", "hold = 0\nawaited = 40\n")
+    spent = time.process_time()
+
+    shrunk = shrink.shrink(parse_plan(text), 1, budget=BUDGET, text=text, cpu_until=spent)
+
+    assert (shrunk.runs, shrunk.steps) == (1, ())  # (the seed's own run: nothing cut)
+    assert shrunk.run.events == shrunk.original_events > 100
 
 
 @SHRINK
