@@ -374,7 +374,7 @@ def probe(monkeypatch: pytest.MonkeyPatch, event: str) -> None:
     """Make "the violation" of every run an event of type `event` in its history (the
     kind `[probe] <event>`): a bug whose run is known, for a pass to shrink."""
 
-    def kinds(run: simulate.SimulatedRun, _judge: shrink.Judge = shrink.violations) -> list[str]:
+    def kinds(run: simulate.SimulatedRun, _judge: object = None) -> list[str]:
         types = {json.loads(line).get("type") for line in run.history.splitlines()}
         return [f"[probe] {event}"] if event in types else []
 
@@ -389,7 +389,7 @@ def test_a_fault_after_an_event_is_shrunk_to_fire_at_its_first_one(
     # 30 calls before it (the run cut before the kill loses it); only a lower `nth` ends
     # the run sooner (before the pass, 60 runs ended at 130-odd events). (A call answered
     # too: else the unpinned pass drops the client, the kill at the time it fired.)
-    def kinds(run: simulate.SimulatedRun) -> list[str]:
+    def kinds(run: simulate.SimulatedRun, _judge: object = None) -> list[str]:
         both = '"FaultInjected"' in run.history and '"CallAnswered"' in run.history
         return ["[probe] both"] if both else []
 
@@ -556,7 +556,9 @@ def test_a_kill_timed_to_cut_a_release_is_pinned_to_the_call_it_releases(
         lines = map(json.loads, run.history.splitlines())
         return any(line.get("reason") == "unload unanswered" for line in lines)
 
-    monkeypatch.setattr(shrink, "violation_kinds", lambda run: ["[probe] cut"] if cut(run) else [])
+    monkeypatch.setattr(
+        shrink, "violation_kinds", lambda run, _judge=None: ["[probe] cut"] if cut(run) else []
+    )
     base = (
         ONE.replace("duration = 3.0", "duration = 2.0")
         .replace("clients = 1", "clients = 3")
@@ -618,7 +620,9 @@ def test_faults_timed_by_calls_are_shrunk_to_no_clients_and_the_faults_at_their_
     monkeypatch.setattr(
         shrink,
         "violation_kinds",
-        lambda run: ["[probe] two"] if run.history.count('"ChildRestarted"') >= 2 else [],
+        lambda run, _judge=None: (
+            ["[probe] two"] if run.history.count('"ChildRestarted"') >= 2 else []
+        ),
     )
     text = ONE + "".join(
         f'\n[[faults]]\nkind = "kill_manager"\ntarget = "api"\n'
@@ -691,7 +695,7 @@ def test_a_candidate_with_fewer_clients_runs_with_more_seeds_than_another(
     # every choice of the scheduler as another seed does, so that candidate runs with 12
     # seeds from the start, not the 3 of a cut of a number (before: not kept in 120 runs;
     # reconcile-unread-ids' idle managers dropped: 14 of 60 seeds, none of the first 3).
-    def kinds(run: simulate.SimulatedRun) -> list[str]:
+    def kinds(run: simulate.SimulatedRun, _judge: object = None) -> list[str]:
         third = '"client-2"' in run.history and '"CallAnswered"' in run.history
         return ["[probe] third"] if third or run.seed == 9 else []
 
