@@ -210,7 +210,7 @@ def _told(report: grade.Report) -> str:
         elif (failure.shrunk_events or 0) > STORY:
             lines.append(
                 f"  (the shrink stopped at {failure.shrunk_events} events, not {STORY}: "
-                "the steps above are those of its run that concern the violation)"
+                "the steps below are those of its run that concern the violation)"
             )
         lines += [f"  {line}" for line in failure.story]
     if failure.replay:
