@@ -587,15 +587,12 @@ def shrunk(plan: Any, seed: int, rule: str, budget: int) -> dict[str, Any]:
     from rr_actors.errors import ConfigError  # noqa: PLC0415 - the copy's
     from rr_actors.experiments import shrink  # noqa: PLC0415
 
-    kinds = shrink.violation_kinds
+    def rule_first(run: Any) -> list[Any]:  # (the shrinker keeps a run's first kind)
+        return sorted(shrink.violations(run), key=lambda finding: finding.rule != rule)
 
-    def rule_first(run: Any) -> list[str]:  # (the shrinker keeps a run's first kind)
-        return sorted(kinds(run), key=lambda kind: not kind.startswith(f"[{rule}]"))
-
-    shrink.violation_kinds = rule_first
     started = time.process_time()
     try:
-        result = shrink.shrink(plan, seed, budget=budget, on_step=say)
+        result = shrink.shrink(plan, seed, budget=budget, on_step=say, judge=rule_first)
     except ConfigError as exc:  # (its run again did not violate: not replayed)
         return {"events": None, "kind": f"not shrunk: {exc}", "runs": 1, "cpu_s": 0.0}
     if out := os.environ.get("RR_PLANTED_OUT"):  # (`--out`: the shrunk run to read)

@@ -2,8 +2,8 @@
 
 ```
  shrink(plan, seed) ─ the seed's run: its first violation's kind (`violation_kind`:
- │                    "[end] db still holds query … of api, which stopped", ids and
- │                    numbers blotted out) is what every candidate must show again
+ │                    "[end] db still holds query … of api, which stopped", ids and numbers
+ │                    blotted out; the checker's, or a `judge`'s: a kit's) every candidate shows
  ├─ the plan as TOML data; its timed faults made explicit: one atom per injection the
  │  seed made (`every` and a choice among targets become `at` times and one target)
  ├─ greedy passes, biggest cuts first, again and again until the budget of runs is
@@ -58,6 +58,7 @@ import itertools
 import json
 import logging
 import re
+import time
 import tomllib
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -72,11 +73,13 @@ from rr_actors.experiments.schedule import fault_schedule
 __all__ = [
     "BUDGET",
     "TRIES",
+    "Judge",
     "Shrunk",
     "dump_plan",
     "shrink",
     "violation_kind",
     "violation_kinds",
+    "violations",
     "write",
 ]
 
@@ -179,17 +182,25 @@ def violation_kind(rule: str, message: str) -> str:
     return f"[{rule}] {text}"
 
 
-def violation_kinds(run: simulate.SimulatedRun) -> list[str]:
-    """The kinds of a run's violations, in the order of their first lines (none if held);
-    a crashed run's one: `[crashed] Type: message` (ids and numbers blotted out)."""
-    if run.verdict == "crashed":
-        crash = json.loads(run.history.splitlines()[-1])
-        return [violation_kind("crashed", f"{crash['error_type']}: {crash['message']}")]
+Judge = Callable[[simulate.SimulatedRun], list[check.Finding]]
+"""What a run violates: its findings of kind `"violation"`, the one to shrink first."""
+
+
+def violations(run: simulate.SimulatedRun) -> list[check.Finding]:
+    """The checker's violations of a run (none unless it violated): the default `Judge`."""
     if run.verdict != "violated":
         return []
     verdict = check.check(check.read_runs(run.history.splitlines()).get(simulate.RUN, []))
-    kinds = (violation_kind(f.rule, f.message) for f in verdict.findings if f.kind == "violation")
-    return list(dict.fromkeys(kinds))
+    return [f for f in verdict.findings if f.kind == "violation"]
+
+
+def violation_kinds(run: simulate.SimulatedRun, judge: Judge = violations) -> list[str]:
+    """The kinds of a run's violations as `judge` orders them (none if held); a crashed
+    run's one: `[crashed] Type: message` (ids and numbers blotted out)."""
+    if run.verdict == "crashed":
+        crash = json.loads(run.history.splitlines()[-1])
+        return [violation_kind("crashed", f"{crash['error_type']}: {crash['message']}")]
+    return list(dict.fromkeys(violation_kind(f.rule, f.message) for f in judge(run)))
 
 
 # -- the plan as TOML data, and back ----------------------------------------------------------
@@ -286,6 +297,8 @@ def shrink(
     on_step: Callable[[str], None] | None = None,
     on_run: Callable[[int], None] | None = None,
     text: str | None = None,
+    judge: Judge = violations,
+    cpu_until: float | None = None,
 ) -> Shrunk:
     """Shrink `plan` at `seed` (a violating run) to a small plan that violates the same way.
 
@@ -298,6 +311,10 @@ def shrink(
         on_step: called with a line for each kept candidate (progress).
         on_run: called with the number of runs made after each run (a progress bar).
         text: the plan's TOML (default: its file's; a run directory's copy, say).
+        judge: what a run violates (default: the checker's rules; a kit's rules too,
+            `rr_actors.teach.grade`): the first of the seed's run is the kind kept.
+        cpu_until: a `time.process_time()` after which no run starts (the budget
+            spent then, if not before: a check's bound of CPU seconds).
 
     Returns:
         The smallest plan found, its seed and run.
@@ -314,7 +331,9 @@ def shrink(
     if text is None:
         text = Path(str(plan.source)).read_text(encoding="utf-8")
     say = on_step or (lambda _line: None)
-    return _Shrinker(plan, seed, text, budget, tries, say, on_run or (lambda _runs: None)).run()
+    ran = on_run or (lambda _runs: None)
+    shrinker = _Shrinker(plan, seed, text, budget, tries, say, ran, judge, cpu_until)
+    return shrinker.run()
 
 
 class _Shrinker:
@@ -329,15 +348,18 @@ class _Shrinker:
         tries: int,
         say: Callable[[str], None],
         ran: Callable[[int], None],
+        judge: Judge = violations,
+        cpu_until: float | None = None,
     ) -> None:
         self.source = plan.source or "<plan>"
+        self.judge, self.cpu_until = judge, cpu_until
         self.budget, self.tries, self.say, self.ran = budget, tries, say, ran
         self.runs = 0
         self.width = tries  # seeds a candidate runs with at most (`attempt`)
         self.tried: set[tuple[str, int]] = set()
         self.steps: list[str] = []
         first = self.run_one(plan, seed)
-        kinds = violation_kinds(first)
+        kinds = violation_kinds(first, judge)
         if not kinds:
             raise ConfigError(f"seed {seed} does not violate a rule: nothing to shrink")
         self.kind, self.original_seed, self.original_events = kinds[0], seed, first.events
@@ -360,6 +382,8 @@ class _Shrinker:
         finally:
             logger.setLevel(level)
         self.runs += 1
+        if self.cpu_until is not None and time.process_time() >= self.cpu_until:
+            self.budget = min(self.budget, self.runs)  # (its CPU spent: no run after this)
         self.ran(self.runs)
         return run
 
@@ -429,7 +453,7 @@ class _Shrinker:
             self.tried.add((text, seed))
             run = self.run_one(plan, seed)
             smaller = run.events <= self.best.events if same else self.smaller(run, text)
-            if smaller and self.kind in violation_kinds(run):
+            if smaller and self.kind in violation_kinds(run, self.judge):
                 self.data, self.plan, self.seed, self.best = data, plan, seed, run
                 self.steps.append(what)
                 self.say(f"run {self.runs}: {what}: {run.events} events (seed {seed})")
@@ -512,7 +536,7 @@ class _Shrinker:
         """The candidates of `durations`: the end `NARROW`, then `MARGIN` after the
         violation; then the end or the start cut at fractions of the duration."""
         duration = self.data["duration"]
-        seen = _violation_at(self.best, self.kind, duration)
+        seen = _violation_at(self.best, self.kind, duration, self.judge)
         for margin in (NARROW, MARGIN):
             if seen is not None and (shorter := round(seen + margin, 3)) < duration:
                 yield (
@@ -562,7 +586,7 @@ class _Shrinker:
                 continue
             self.tried.add((text, seed))
             run = self.run_one(self.plan, seed)
-            if run.events < self.best.events and self.kind in violation_kinds(run):
+            if run.events < self.best.events and self.kind in violation_kinds(run, self.judge):
                 self.seed, self.best = seed, run
                 self.steps.append(f"seed {seed}")
                 self.say(f"run {self.runs}: seed {seed}: {run.events} events")
@@ -970,19 +994,13 @@ def _supervisors(data: dict[str, Any]) -> list[dict[str, Any]]:
     return list(walk(data["tree"])) if "tree" in data else []
 
 
-def _violation_at(run: simulate.SimulatedRun, kind: str, duration: float) -> float | None:
+def _violation_at(
+    run: simulate.SimulatedRun, kind: str, duration: float, judge: Judge
+) -> float | None:
     """When (seconds after the run's first event) the last event that shows `kind`'s
     first finding happened, of those within `duration` (`None`: no such event)."""
     lines = run.history.splitlines()
-    verdict = check.check(check.read_runs(lines).get(simulate.RUN, []))
-    finding = next(
-        (
-            f
-            for f in verdict.findings
-            if f.kind == "violation" and violation_kind(f.rule, f.message) == kind
-        ),
-        None,
-    )
+    finding = next((f for f in judge(run) if violation_kind(f.rule, f.message) == kind), None)
     if finding is None or not lines:
         return None
     start = json.loads(lines[0])["at"]

@@ -175,7 +175,7 @@ def _check(args: argparse.Namespace, out: TextIO) -> int:
 
 
 def _told(report: grade.Report) -> str:
-    from rr_actors.teach.grade import SHRUNK  # noqa: PLC0415 - imported by the check already
+    from rr_actors.teach.grade import SHRUNK, STORY  # noqa: PLC0415 - imported by the check
 
     failure = report.failure
     if failure is None:
@@ -205,6 +205,13 @@ def _told(report: grade.Report) -> str:
             f"the story ({failure.story_events} steps of {of}: the faults and the "
             "registrars concerned, up to the violation):"
         )
+        if failure.shrunk_events is None and failure.run_events > STORY:
+            lines.append("  (not shrunk: no smaller plan found that breaks it: the run's own)")
+        elif (failure.shrunk_events or 0) > STORY:
+            lines.append(
+                f"  (the shrink stopped at {failure.shrunk_events} events, not {STORY}: "
+                "the steps below are those of its run that concern the violation)"
+            )
         lines += [f"  {line}" for line in failure.story]
     if failure.replay:
         lines.append(f"replay it whole: {failure.replay}")

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import io
 import json
+import time
 import tomllib
 from pathlib import Path
 
@@ -14,6 +15,7 @@ import pytest
 
 from rr_actors.__main__ import main
 from rr_actors.experiments import load_plan, plans, shrink, simulate, story, sweep
+from rr_actors.experiments.check import Finding
 from rr_actors.experiments.plan import Plan
 from rr_actors.experiments.reading import parse_plan
 from tests.experiments.test_simulate import PLAN, SERVICE
@@ -373,7 +375,7 @@ def probe(monkeypatch: pytest.MonkeyPatch, event: str) -> None:
     """Make "the violation" of every run an event of type `event` in its history (the
     kind `[probe] <event>`): a bug whose run is known, for a pass to shrink."""
 
-    def kinds(run: simulate.SimulatedRun) -> list[str]:
+    def kinds(run: simulate.SimulatedRun, _judge: object = None) -> list[str]:
         types = {json.loads(line).get("type") for line in run.history.splitlines()}
         return [f"[probe] {event}"] if event in types else []
 
@@ -388,7 +390,7 @@ def test_a_fault_after_an_event_is_shrunk_to_fire_at_its_first_one(
     # 30 calls before it (the run cut before the kill loses it); only a lower `nth` ends
     # the run sooner (before the pass, 60 runs ended at 130-odd events). (A call answered
     # too: else the unpinned pass drops the client, the kill at the time it fired.)
-    def kinds(run: simulate.SimulatedRun) -> list[str]:
+    def kinds(run: simulate.SimulatedRun, _judge: object = None) -> list[str]:
         both = '"FaultInjected"' in run.history and '"CallAnswered"' in run.history
         return ["[probe] both"] if both else []
 
@@ -404,6 +406,40 @@ def test_a_fault_after_an_event_is_shrunk_to_fire_at_its_first_one(
     assert shrunk.run.events <= 20
     assert "faults.0.after.nth = 1" in shrunk.steps
     assert "nth = 1 }" in shrunk.text
+
+
+@SHRINK
+def test_a_judge_names_what_a_run_violates_and_its_first_kind_is_kept() -> None:
+    # Other rules than the checker's (a kit's): "more than 3 calls answered" is kept
+    # through the cuts, the run shrunk to the fewest events that still show it.
+    def judge(run: simulate.SimulatedRun) -> list[Finding]:
+        lines = run.history.splitlines()
+        answered = [n for n, line in enumerate(lines, 1) if '"CallAnswered"' in line]
+        if len(answered) <= 3:
+            return []
+        return [Finding("many", "violation", f"{len(answered)} calls answered", (answered[3],))]
+
+    text = ONE.replace("hold = 0\n", "hold = 0\nawaited = 40\n")
+
+    shrunk = shrink.shrink(parse_plan(text), 1, budget=BUDGET, text=text, judge=judge)
+
+    assert shrunk.kind == "[many] N calls answered"
+    assert shrunk.original_events > 100
+    assert shrunk.run.events < 40
+    assert len(judge(shrunk.run)) == 1
+    assert shrink.violation_kinds(shrunk.run) == []  # (the checker's rules: none broken)
+
+
+@SHRINK
+def test_a_shrink_makes_no_run_after_its_cpu_time(monkeypatch: pytest.MonkeyPatch) -> None:
+    probe(monkeypatch, "CallAnswered")
+    text = ONE.replace("hold = 0\n", "hold = 0\nawaited = 40\n")
+    spent = time.process_time()
+
+    shrunk = shrink.shrink(parse_plan(text), 1, budget=BUDGET, text=text, cpu_until=spent)
+
+    assert (shrunk.runs, shrunk.steps) == (1, ())  # (the seed's own run: nothing cut)
+    assert shrunk.run.events == shrunk.original_events > 100
 
 
 @SHRINK
@@ -521,7 +557,9 @@ def test_a_kill_timed_to_cut_a_release_is_pinned_to_the_call_it_releases(
         lines = map(json.loads, run.history.splitlines())
         return any(line.get("reason") == "unload unanswered" for line in lines)
 
-    monkeypatch.setattr(shrink, "violation_kinds", lambda run: ["[probe] cut"] if cut(run) else [])
+    monkeypatch.setattr(
+        shrink, "violation_kinds", lambda run, _judge=None: ["[probe] cut"] if cut(run) else []
+    )
     base = (
         ONE.replace("duration = 3.0", "duration = 2.0")
         .replace("clients = 1", "clients = 3")
@@ -583,7 +621,9 @@ def test_faults_timed_by_calls_are_shrunk_to_no_clients_and_the_faults_at_their_
     monkeypatch.setattr(
         shrink,
         "violation_kinds",
-        lambda run: ["[probe] two"] if run.history.count('"ChildRestarted"') >= 2 else [],
+        lambda run, _judge=None: (
+            ["[probe] two"] if run.history.count('"ChildRestarted"') >= 2 else []
+        ),
     )
     text = ONE + "".join(
         f'\n[[faults]]\nkind = "kill_manager"\ntarget = "api"\n'
@@ -638,7 +678,7 @@ def test_the_end_is_cut_5_ms_after_the_violation_before_50_ms(
         parse_plan(text), 1, text, 1, 1, lambda _line: None, lambda _runs: None
     )
     shrinker.explicit()
-    monkeypatch.setattr(shrink, "_violation_at", lambda _run, _kind, _duration: 0.5)
+    monkeypatch.setattr(shrink, "_violation_at", lambda _run, _kind, _duration, _judge: 0.5)
 
     candidates = list(shrinker.duration_cuts())[:2]
 
@@ -656,7 +696,7 @@ def test_a_candidate_with_fewer_clients_runs_with_more_seeds_than_another(
     # every choice of the scheduler as another seed does, so that candidate runs with 12
     # seeds from the start, not the 3 of a cut of a number (before: not kept in 120 runs;
     # reconcile-unread-ids' idle managers dropped: 14 of 60 seeds, none of the first 3).
-    def kinds(run: simulate.SimulatedRun) -> list[str]:
+    def kinds(run: simulate.SimulatedRun, _judge: object = None) -> list[str]:
         third = '"client-2"' in run.history and '"CallAnswered"' in run.history
         return ["[probe] third"] if third or run.seed == 9 else []
 

@@ -5,6 +5,7 @@ hints remembered in the folder; the solution behind `--teacher`; bad input said.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -14,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from rr_actors.teach import kit
+from rr_actors.teach import cli, grade, kit
 from tests.support.observing import request
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -211,3 +212,22 @@ def test_replay_serves_the_seed_at_its_first_step_until_ctrl_c(
         finally:
             child.send_signal(signal.SIGINT)
             assert 0 == child.wait(timeout=60)
+
+
+def test_a_story_not_shrunk_or_shrunk_to_more_than_20_events_says_so() -> None:
+    failure = grade.Failure(1, "kept", "words", "what broke", None, ("a step",), 1, 916, "r", 1, 26)
+    report = grade.Report("cut", False, 1, 1, 1, 916, 1.0, failure)
+
+    above = cli._told(report)
+    whole = cli._told(dataclasses.replace(report, failure=dataclasses.replace(
+        failure, shrunk_seed=None, shrunk_events=None
+    )))  # fmt: skip
+    short = cli._told(dataclasses.replace(report, failure=dataclasses.replace(
+        failure, shrunk_events=15
+    )))  # fmt: skip
+
+    assert "(the shrink stopped at 26 events, not 20:" in above
+    assert "(not shrunk:" in whole
+    assert "the 15 events of the run shrunk from 916" in short
+    assert "not shrunk" not in short
+    assert "stopped at" not in short

@@ -105,6 +105,34 @@ def test_a_checkers_finding_is_told_on_the_run_shrunk_unless_asked_not_to(tmp_pa
     assert not (folder / grade.SHRUNK).exists()  # (the fixed failure's plan: gone)
 
 
+def test_a_kit_rules_finding_is_told_on_the_run_shrunk_which_breaks_it_again(
+    tmp_path: Path,
+) -> None:
+    # survive's starter breaks `alone`, a kit rule the checker does not judge: the shrink
+    # keeps a plan that breaks it (judged by the kit's rules too), and its replay does.
+    _chosen, folder = kit.start("survive", tmp_path / "s")
+
+    whole = grade.check_folder(folder, seeds=1, shrink_budget=0).failure
+    shrunk = grade.check_folder(folder, seeds=1).failure
+
+    assert whole is not None
+    assert shrunk is not None
+    assert shrunk.rule == whole.rule == "alone"
+    assert shrunk.shrunk_events is not None
+    assert shrunk.shrunk_events < whole.run_events == shrunk.run_events
+    assert shrunk.story_events < whole.story_events
+    assert shrunk.story[-1].endswith(f"[alone] {shrunk.message}")
+    assert shrunk.replay.endswith(
+        f"--plan {folder / grade.SHRUNK} --seed {shrunk.shrunk_seed} --story"
+    )
+    replayed = grade.check_folder(
+        folder, seed=shrunk.shrunk_seed, plan_file=folder / grade.SHRUNK, shrink_budget=0
+    ).failure
+    assert replayed is not None
+    assert (replayed.rule, replayed.message) == ("alone", shrunk.message)
+    assert replayed.run_events == shrunk.shrunk_events
+
+
 def test_a_survive_tree_that_never_restarts_a_killed_manager_fails_naming_back(
     tmp_path: Path,
 ) -> None:
