@@ -836,10 +836,11 @@ class _Shrinker:
 
     def knobs(self) -> None:
         """Every other number of the workload, its calls, the managers and their options, the
-        faults and the supervisors (a manager's `status_every`, the workload's `status_wait`,
-        a fault's `for`, a supervisor's `period`, ...): 0, a quarter, a half, twice, four
-        times it (an interval longer, a rate higher: fewer events, or the same sooner; the
-        events decide what is kept)."""
+        faults and the supervisors that restarted as often as they may or gave up (a
+        manager's `status_every`, the workload's `status_wait`, a fault's `for`, such a
+        supervisor's `period`, ...): 0, a quarter, a half, twice, four times it (an interval
+        longer, a rate higher: fewer events, or the same sooner; the events decide what is
+        kept)."""
         tables: list[tuple[Any, ...]] = [("workload",)]
         calls = self.data.get("workload", {}).get("calls", [])
         tables += [("workload", "calls", index) for index in range(len(calls))]
@@ -848,7 +849,11 @@ class _Shrinker:
             if isinstance(manager.get("options"), dict):
                 tables.append(("*managers", index, "options"))
         tables += [("faults", index) for index in range(len(self.data.get("faults", [])))]
-        tables += [("*supervisors", index) for index in range(len(_supervisors(self.data)))]
+        restarts = _restarts(self.best.history)
+        for index, supervisor in enumerate(_supervisors(self.data)):
+            most = supervisor.get("max_restarts", _DEFAULTS["max_restarts"])
+            if restarts.get(supervisor.get("name", "root"), 0) >= most:  # (else moot)
+                tables.append(("*supervisors", index))
         for where in tables:
             if where[0] == "workload" and "workload" not in self.data:
                 continue
@@ -1010,6 +1015,17 @@ def _busy(history: str) -> set[str]:
             continue
         names |= {v for k in _NAME_FIELDS if isinstance(v := line.get(k), str)}
     return names
+
+
+def _restarts(history: str) -> dict[str, float]:
+    """The restarts each supervisor made in a history (infinitely many if it gave up)."""
+    counts: dict[str, float] = {}
+    for line in map(json.loads, history.splitlines()):
+        if line.get("type") == "ChildRestarted":
+            counts[line["supervisor"]] = counts.get(line["supervisor"], 0) + 1
+        elif line.get("type") == "SupervisorGaveUp":
+            counts[line["supervisor"]] = float("inf")
+    return counts
 
 
 def _without(data: dict[str, Any], names: list[str]) -> dict[str, Any] | None:
