@@ -12,7 +12,8 @@ Issue 42 section 3, "Power". Each row of `PLANTS` is one bug, a small edit of th
     the same seed on an unedited copy: that finding must not be there (else the row
       says "also unplanted": the plant did not cause it)
     `--shrink`: the found seed shrunk (`rr_actors.experiments.shrink`, at most `--budget`
-      runs) to a small plan whose run still violates the plant's rule, its events counted
+      runs) to a small plan whose run still violates the plant's rule, its events counted;
+      the shrunk plan at its seed on the unedited copy (it must not violate that rule)
 
 The worktree itself is never edited. Rows: the bug, the plan, the first seed whose run
 violated the rule, the seeds run, the violation's text, the CPU seconds of the search
@@ -493,6 +494,11 @@ def search(plant: Plant, seeds: int, budget: int) -> dict[str, Any]:
             seed = str(row["seed"])
             again = child(clean, "search", plant.plan, plant.rule, seed, "0", seed)
             row["also_unplanted"] = again["seed"] is not None
+            if (small := row.get("shrunk")) and small.get("text"):  # (a shrunk plan: the same)
+                text = Path(folder) / "shrunk.toml"
+                text.write_text(small["text"], encoding="utf-8")
+                arguments = (plant.plan, str(text), str(small["seed"]), plant.rule)
+                small["unplanted"] = child(clean, "shrunk", *arguments)["violations"]
     return row
 
 
@@ -539,6 +545,15 @@ def child_main(path: str, command: str, arguments: list[str]) -> None:
     logging.getLogger("rr_actors").setLevel(logging.ERROR)  # (a WARNING per kill)
     plan = load_plan(str(PLANS / f"{arguments[0]}.toml"))
     started = time.process_time()
+    if command == "shrunk":  # (the shrunk plan's text in a file, its seed, the rule)
+        from rr_actors.experiments.reading import parse_plan  # noqa: PLC0415
+
+        text = Path(arguments[1]).read_text(encoding="utf-8")
+        run = simulate.run_seed(parse_plan(text, source=plan.source), int(arguments[2]))
+        print(
+            json.dumps({"verdict": run.verdict, "violations": violated(run.findings, arguments[3])})
+        )
+        return
     if command == "baseline":
         rules: dict[str, list[int]] = {}
         seeds = int(arguments[1])
@@ -604,6 +619,8 @@ def shrunk(plan: Any, seed: int, rule: str, budget: int) -> dict[str, Any]:
         "kind": result.kind,
         "runs": result.runs,
         "cpu_s": time.process_time() - started,
+        "text": result.text,
+        "seed": result.seed,
     }
 
 
@@ -634,6 +651,8 @@ def table(rows: list[tuple[Plant, dict[str, Any]]], seeds: int, shrink: bool) ->
             small = row.get("shrunk")
             events = "-" if small is None or small["events"] is None else str(small["events"])
             spent = "" if small is None else f" ({small['runs']} runs, {small['cpu_s']:.0f} CPU s)"
+            if small is not None and small.get("unplanted"):
+                spent += " (also unplanted)"
             cells += (events + spent,)
         lines.append(cells)
     widths = [max(len(line[i]) for line in lines) for i in range(len(head))]
@@ -645,6 +664,12 @@ def table(rows: list[tuple[Plant, dict[str, Any]]], seeds: int, shrink: bool) ->
         print(f"    {row['violation'] or f'no [{plant.rule}] violation in {seeds} seeds'}")
         if row.get("shrunk") is not None:
             print(f"    shrunk, keeping: {row['shrunk']['kind']}")
+            if "unplanted" in row["shrunk"]:  # (its seed on the unedited code)
+                held = not row["shrunk"]["unplanted"]
+                print(
+                    f"    shrunk plan, seed {row['shrunk']['seed']}, unplanted: "
+                    f"{'no [' + plant.rule + '] violation' if held else 'ALSO VIOLATED'}"
+                )
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -268,6 +268,7 @@ def test_planted_bugs_writes_each_shrunk_run_under_out_with_the_steps_on_stderr(
     assert (tmp_path / "dedup" / "plan.toml").read_text().startswith("# Shrunk from")
     assert list((tmp_path / "dedup").glob("events-seed-*.jsonl"))
     assert "shrink: done after 3 runs" in done.stderr
+    assert "unplanted: no [dedup] violation" in done.stdout  # (the shrunk plan, unedited code)
 
 
 def test_every_planted_bug_applies_once_to_the_source_and_names_a_shipped_plan_and_rule(

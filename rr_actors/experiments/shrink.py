@@ -32,9 +32,9 @@
  │               (`fetch_every`), fewer keys, all or no calls shared, a shorter hold
  │     options   no (or half the) load and unload time of each manager
  │     knobs     any other number of the workload, its calls, the managers, their
- │               options, the faults: 0, 1/4, 1/2, 2, 4 times it (`status_every`,
- │               `status_wait`, a trigger's `delay`, ...: a longer interval or a higher
- │               rate can make fewer events too)
+ │               options, the faults, the supervisors: 0, 1/4, 1/2, 2, 4 times it
+ │               (`status_every`, a trigger's `delay`, a `period`, ...: a longer
+ │               interval or a higher rate can make fewer events too)
  │     seeds     the same plan under seeds 1..20 (or the width): the fewest events
  │     round     injection times and the duration to fewer decimals (easier to read)
  │  a candidate = its TOML text, validated (`parse_plan`) and run whole on the simulation
@@ -558,19 +558,22 @@ class _Shrinker:
         atoms = self.data.get("faults", [])
         if not all(_timed(a) or "after" in a for a in atoms):
             return None
+        duration = round(self.data["duration"] - by, 6)
         faults = [
             {**a, "at": round(a["at"] - by, 6)} if _timed(a) else a
             for a in atoms
-            if not _timed(a) or a["at"] >= by
+            if (a["at"] >= by if _timed(a) else _fires_within(a, duration))
         ]
-        return {**self.data, "duration": round(self.data["duration"] - by, 6), "faults": faults}
+        return {**self.data, "duration": duration, "faults": faults}
 
     def until(self, duration: float) -> dict[str, Any]:
-        """The data with another duration; the injections at or after it dropped."""
+        """The data with another duration; the injections at or after it dropped, and the
+        faults after an event whose `delay` reaches it (else the plan is refused: one that
+        never fires, and the cut never runs)."""
         faults = [
             atom
             for atom in self.data.get("faults", [])
-            if not isinstance(atom.get("at"), int | float) or atom["at"] < duration
+            if (atom["at"] < duration if _timed(atom) else _fires_within(atom, duration))
         ]
         return {**self.data, "duration": duration, "faults": faults}
 
@@ -792,7 +795,8 @@ class _Shrinker:
 
     def unused_managers(self) -> Iterator[tuple[str, dict[str, Any]]]:
         """Drop a manager nobody calls (no call kind names it, or there are no clients)
-        or uses (and the injections aimed at it)."""
+        or uses, with the injections aimed at it and the call kinds to it (with no clients:
+        else the plan names a manager it lacks, and the cut is never run)."""
         workload = self.data.get("workload", {})
         calls = workload.get("calls", []) if workload.get("clients", 1) else []
         used = {c.get("manager") for c in calls}
@@ -802,15 +806,9 @@ class _Shrinker:
             name = manager["name"]
             if name in used:
                 continue
-            data = copy.deepcopy(self.data)
-            if not _drop(data["tree"], name):
-                continue
-            faults = self.unpin(data.get("faults", []), {name})
-            data["faults"] = [a for a in faults if _aimed(a) != {name}]
-            for atom in data["faults"]:
-                if isinstance(atom.get("target"), list):
-                    atom["target"] = [t for t in atom["target"] if t != name]
-            yield f"manager {name} dropped", data
+            unpinned = {**self.data, "faults": self.unpin(self.data.get("faults", []), {name})}
+            if (data := _without(unpinned, [name])) is not None:
+                yield f"manager {name} dropped", data
 
     def workload(self) -> None:
         self.repeat(self.fewer_awaited)
@@ -861,10 +859,12 @@ class _Shrinker:
                     self.repeat(functools.partial(self.numbers, where, key, [0, 0.5]))
 
     def knobs(self) -> None:
-        """Every other number of the workload, its calls, the managers and their options and
-        the faults (a manager's `status_every`, the workload's `status_wait`, a fault's
-        `for`, ...): 0, a quarter, a half, twice, four times it (an interval longer, a
-        rate higher: fewer events, or the same sooner; the events decide what is kept)."""
+        """Every other number of the workload, its calls, the managers and their options, the
+        faults and the supervisors that restarted as often as they may or gave up (a
+        manager's `status_every`, the workload's `status_wait`, a fault's `for`, such a
+        supervisor's `period`, ...): 0, a quarter, a half, twice, four times it (an interval
+        longer, a rate higher: fewer events, or the same sooner; the events decide what is
+        kept)."""
         tables: list[tuple[Any, ...]] = [("workload",)]
         calls = self.data.get("workload", {}).get("calls", [])
         tables += [("workload", "calls", index) for index in range(len(calls))]
@@ -873,6 +873,11 @@ class _Shrinker:
             if isinstance(manager.get("options"), dict):
                 tables.append(("*managers", index, "options"))
         tables += [("faults", index) for index in range(len(self.data.get("faults", [])))]
+        restarts = _restarts(self.best.history)
+        for index, supervisor in enumerate(_supervisors(self.data)):
+            most = supervisor.get("max_restarts", _DEFAULTS["max_restarts"])
+            if restarts.get(supervisor.get("name", "root"), 0) >= most:  # (else moot)
+                tables.append(("*supervisors", index))
         for where in tables:
             if where[0] == "workload" and "workload" not in self.data:
                 continue
@@ -1030,6 +1035,17 @@ def _busy(history: str) -> set[str]:
     return names
 
 
+def _restarts(history: str) -> dict[str, float]:
+    """The restarts each supervisor made in a history (infinitely many if it gave up)."""
+    counts: dict[str, float] = {}
+    for line in map(json.loads, history.splitlines()):
+        if line.get("type") == "ChildRestarted":
+            counts[line["supervisor"]] = counts.get(line["supervisor"], 0) + 1
+        elif line.get("type") == "SupervisorGaveUp":
+            counts[line["supervisor"]] = float("inf")
+    return counts
+
+
 def _without(data: dict[str, Any], names: list[str]) -> dict[str, Any] | None:
     """The data without the managers `names`: the call kinds to them, the `uses` of them
     and the faults aimed at them or after their events gone (`None`: one is a
@@ -1101,6 +1117,13 @@ def _number(value: Any) -> bool:
 
 def _timed(atom: dict[str, Any]) -> bool:
     return isinstance(atom.get("at"), int | float)
+
+
+def _fires_within(atom: dict[str, Any], duration: float) -> bool:
+    """A fault not at a time (after an event, or kept whole) can fire in a run of
+    `duration`: its `delay` (after its event) is shorter."""
+    delay = atom.get("delay", 0)
+    return not ("after" in atom and _number(delay) and delay >= duration)
 
 
 def _aimed(atom: dict[str, Any]) -> set[str]:

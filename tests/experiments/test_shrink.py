@@ -708,3 +708,117 @@ def test_a_candidate_with_fewer_clients_runs_with_more_seeds_than_another(
     assert "workload.clients = 1" in shrunk.steps
     assert 9 == shrunk.seed
     assert shrunk.run.events <= 5
+
+
+SWAPPED = f"""\
+name = "swapped"
+duration = 0.5
+
+[tree]
+max_restarts = 0
+period = 10.0
+
+[[tree.children]]
+name = "pool"
+strategy = "one_for_all"
+max_restarts = 1
+period = 2.0
+
+[[tree.children.children]]
+name = "worker"
+setup = "{SERVICE}"
+
+[[tree.children.children]]
+name = "cache"
+setup = "{SERVICE}"
+
+[workload]
+clients = 0
+
+[[workload.calls]]
+manager = "cache"
+server = "resource"
+
+[[faults]]
+kind = "kill_manager"
+target = "worker"
+at = [0.0]
+
+[[faults]]
+kind = "kill_manager"
+target = "worker"
+after = {{ event = "ChildRestarted", child = "cache", nth = 1 }}
+
+[[faults]]
+kind = "kill_manager"
+target = "worker"
+after = {{ event = "ChildRestarted", child = "cache", nth = 1 }}
+delay = 0.3
+"""
+"""The planted bug `intensity-swapped` (benchmarks/planted_bugs.py) where the shrinker of
+2767bff5 left it at 400 runs: three kills of a pool's worker, 34 events."""
+
+
+@pytest.fixture
+def swapped(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Plant `intensity-swapped`: a supervisor's intensity built as `period` restarts
+    within `max_restarts` seconds; the violation kept: root (at most 0 restarts, 10 under
+    the bug) restarting pool when it gives up."""
+    from rr_actors._supervision import policy  # noqa: PLC0415
+
+    intensity = policy.RestartIntensity
+    monkeypatch.setattr(
+        policy, "RestartIntensity", lambda most, period, clock: intensity(period, most, clock)
+    )
+    kinds = shrink.violation_kinds
+    monkeypatch.setattr(
+        shrink, "violation_kinds", lambda run: [k for k in kinds(run) if "root did not" in k]
+    )
+
+
+@SHRINK
+@pytest.mark.usefixtures("swapped")
+def test_an_unused_manager_is_dropped_with_the_call_kinds_of_a_workload_without_clients() -> None:
+    # cache is restarted with worker (one_for_all) and nobody calls it (no clients), but a
+    # call kind names it: dropped alone, the plan named a manager it lacked and was never
+    # run (34 events at 400 runs); with its call kind, 18.
+    shrunk = shrink.shrink(parse_plan(SWAPPED), 3, budget=BUDGET, text=SWAPPED)
+
+    assert shrunk.original_events > 30
+    assert shrunk.run.events <= 20
+    assert "manager cache dropped" in shrunk.steps
+    assert "cache" not in shrunk.text
+
+
+@SHRINK
+@pytest.mark.usefixtures("swapped")
+def test_a_supervisors_period_is_shrunk_by_the_knobs_pass(monkeypatch: pytest.MonkeyPatch) -> None:
+    # Under the bug pool gives up at its third restart within 1 s (`period` 2.0 taken for
+    # max_restarts); with `period` 1.0 at its second, and the third kill goes: 27 events
+    # (cache kept: the unused-manager cut left out, as it was before it took cache).
+    monkeypatch.setattr(shrink._Shrinker, "unused_managers", lambda _self: iter(()))
+
+    shrunk = shrink.shrink(parse_plan(SWAPPED), 3, budget=200, text=SWAPPED)
+
+    assert shrunk.original_events > 30
+    assert shrunk.run.events <= 30
+    assert "pool.period = 1" in shrunk.steps
+
+
+@pytest.mark.usefixtures("swapped")
+def test_a_cut_of_the_end_drops_the_faults_after_an_event_delayed_past_it() -> None:
+    # A fault after an event `delay` later can only fire before the end: a cut to a run
+    # shorter than its delay without it is a plan the reading refuses ("it never fires"),
+    # and the shrinker never ran it (intensity-swapped's cuts to 0.062-0.25 s).
+    shrinker = shrink._Shrinker(
+        parse_plan(SWAPPED), 3, SWAPPED, 1, 1, lambda _line: None, lambda _runs: None
+    )
+    shrinker.explicit()
+
+    cuts = dict(shrinker.duration_cuts())
+    short, start = cuts["duration 0.5 -> 0.25 s"], cuts["the first 0.25 s of 0.5 cut"]
+
+    for data in (short, start):
+        parse_plan(shrinker.text(data))  # (no PlanError)
+        assert [0] == [a.get("delay", 0) for a in data["faults"] if "after" in a]
+    assert [0.0] == [a["at"] for a in short["faults"] if "at" in a]
