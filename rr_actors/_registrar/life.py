@@ -702,6 +702,9 @@ class Presence:
         self.lives: dict[str, str] = {}  # provider -> the life that asked for its round
         self.timers: dict[str, runtime.Cancellable] = {}
         self.round_count = 0
+        # names heard lost for good while a registrar of the name served (rule 22): the
+        # reconcile with that one is under way; lost if it is served no more
+        self.served_on: set[str] = set()
 
     # -- lost for good (rule 19) --------------------------------------------------------
 
@@ -731,9 +734,27 @@ class Presence:
 
     def lose(self, name: str) -> None:
         """Registrar `name` is gone and nobody will restart it: release what it held here,
-        report what this one held there `FATAL` and forget it (a second time: nothing)."""
+        report what this one held there `FATAL` and forget it (a second time: nothing).
+
+        Unless another registrar of the name serves it now (rule 22 kept it at a heal,
+        and the mark is of the one that yielded, given up on by its supervisor): what
+        is held at that one is held, so this one reconciles with it instead (rule 20:
+        the ids it does not hold are `FATAL`), and tells it to reconcile too. If the
+        name is not served by the time an attempt fails (a mark that overtook its
+        server's end), it is lost after all (`answered`)."""
         if name == self.registrar.name:
             return
+        if name in DIRECTORY.names():
+            logger.info(
+                "registrar %s: %s is lost for good, and a registrar named so serves: "
+                "it reconciles with that one (rule 22)",
+                self.registrar.name,
+                name,
+            )
+            self.served_on.add(name)
+            self.reach(name)
+            return
+        self.served_on.discard(name)
         self.stop_retrying(name)
         self.unloading.release_all_of(name)
         self.reconciling.lose_provider(name)
@@ -741,10 +762,17 @@ class Presence:
     # -- reachable again (rule 20) ------------------------------------------------------
 
     def on_peer_reachable(self, message: PeerReachable, _reply: Reply) -> None:
-        name = message.name
-        if name == self.registrar.name or self.registrar.phase is not Phase.SERVING:
+        if message.name != self.registrar.name:
+            self.reach(message.name)
+
+    def reach(self, name: str) -> None:
+        """Registrar `name` serves and can be reached: reconcile with it, both ways."""
+        if self.registrar.phase is not Phase.SERVING:
+            self.served_on.discard(name)
             return  # (during setup `on_ready` reconciles with everyone; stopping: nothing)
-        if self.reconciling.holds_at(name):
+        if not self.reconciling.holds_at(name):
+            self.served_on.discard(name)
+        else:
             self.round_count += 1
             self.attempt(name, self.round_count, 0)
         if self.registrar.catalog.consumers_from(name):
@@ -774,6 +802,8 @@ class Presence:
         if self.registrar.phase is not Phase.SERVING:
             self.stop_retrying(message.name)
             return
+        if self.lost_after_all(message.name):
+            return
         self.attempt(message.name, message.round, message.attempt, self.lives.get(message.name, ""))
 
     def attempt(self, name: str, round_: int, attempt: int, life: str = "") -> None:
@@ -796,6 +826,9 @@ class Presence:
             return  # a late answer of an attempt given up (the newer one decides)
         if error is None or isinstance(error, RegistrarStoppedError):
             self.stop_retrying(name)  # reconciled; or stopped: its restart reconciles
+            self.served_on.discard(name)
+            return
+        if self.lost_after_all(name):
             return
         logger.debug(
             "registrar %s: reconcile %d with %s failed (%s); retrying",
@@ -805,6 +838,14 @@ class Presence:
             error,
         )
         self.arm(name, round_, attempt + 1, retry_delay(attempt + 1))
+
+    def lost_after_all(self, name: str) -> bool:
+        """Whether `name`, heard lost while a registrar of its name served (`lose`), is
+        served no more: then it is lost (rule 19)."""
+        if name not in self.served_on or name in DIRECTORY.names():
+            return False
+        self.lose(name)
+        return True
 
     def arm(self, name: str, round_: int, attempt: int, delay: float) -> None:
         """Tell this actor `ReconcileRetry(name, round_, attempt)` after `delay` seconds."""
