@@ -15,7 +15,8 @@ its peers (lost for good, reachable again), stop or die, and say so.
    a consumer Reconcile with its providers (`consumer.py`), with everyone if restored
    (or once told `LostEverything`: restarted without a backup)
  peers (Presence): the membership ─ PeerLost(X) ─► lose(X): what X held here released
-   (`provider.py`), what is held at X FATAL, then forgotten (rule 19);
+   (`provider.py`), what is held at X FATAL, then forgotten (rule 19); X served on
+   (rule 22's kept one; the mark was the yielded one's) ─► as PeerReachable(X);
    PeerLost(X, stopped): only the release (rule 12); ConsumerDown (another process's
    mark) ─► into this process's membership; PeerReachable(X) ─► Reconcile with X,
    retried (ReconcileRetry: a bounded backoff, or `call_timeout` unanswered) until it
