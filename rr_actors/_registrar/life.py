@@ -15,7 +15,8 @@ its peers (lost for good, reachable again), stop or die, and say so.
    a consumer Reconcile with its providers (`consumer.py`), with everyone if restored
    (or once told `LostEverything`: restarted without a backup)
  peers (Presence): the membership ─ PeerLost(X) ─► lose(X): what X held here released
-   (`provider.py`), what is held at X FATAL, then forgotten (rule 19);
+   (`provider.py`), what is held at X FATAL, then forgotten (rule 19); X served now
+   (rule 22's kept one; the mark was the yielded one's) ─► a Reconcile with it first;
    PeerLost(X, stopped): only the release (rule 12); ConsumerDown (another process's
    mark) ─► into this process's membership; PeerReachable(X) ─► Reconcile with X,
    retried (ReconcileRetry: a bounded backoff, or `call_timeout` unanswered) until it
@@ -703,6 +704,9 @@ class Presence:
         self.lives: dict[str, str] = {}  # provider -> the life that asked for its round
         self.timers: dict[str, runtime.Cancellable] = {}
         self.round_count = 0
+        # names heard lost for good while a registrar of the name served (rule 22): the
+        # reconcile with that one is under way; lost if it fails or is not answered
+        self.served_on: set[str] = set()
 
     # -- lost for good (rule 19) --------------------------------------------------------
 
@@ -730,13 +734,33 @@ class Presence:
             return
         self.unloading.release_stopped(name)
 
-    def lose(self, name: str) -> None:
+    def lose(self, name: str, *, defer: bool = True) -> None:
         """Registrar `name` is gone and nobody will restart it: release what it held here,
-        report what this one held there `FATAL` and forget it (a second time: nothing)."""
+        report what this one held there `FATAL` and forget it (a second time: nothing).
+
+        Unless another registrar of the name serves it now (rule 22 kept it at a heal,
+        and the mark is of the one that yielded, given up on by its supervisor): the
+        ids held at that one are held, so this one first reconciles with it (rule 20:
+        those it does not hold are `FATAL`). If that attempt fails or is not answered
+        (a mark that overtook its own server's end, a stale AF_UNIX socket file), the
+        name is lost after all (`lost_after_all`)."""
         if name == self.registrar.name:
             return
-        self.stop_retrying(name)
         self.unloading.release_all_of(name)
+        serving = self.registrar.phase is Phase.SERVING and name in DIRECTORY.names()
+        if defer and serving and self.reconciling.holds_at(name):
+            logger.info(
+                "registrar %s: %s is lost for good, and a registrar named so serves: "
+                "it reconciles with that one first (rule 22)",
+                self.registrar.name,
+                name,
+            )
+            self.served_on.add(name)
+            self.round_count += 1
+            self.attempt(name, self.round_count, 0)
+            return
+        self.served_on.discard(name)
+        self.stop_retrying(name)
         self.reconciling.lose_provider(name)
 
     # -- reachable again (rule 20) ------------------------------------------------------
@@ -745,6 +769,7 @@ class Presence:
         name = message.name
         if name == self.registrar.name or self.registrar.phase is not Phase.SERVING:
             return  # (during setup `on_ready` reconciles with everyone; stopping: nothing)
+        self.served_on.discard(name)  # (a healed link: the reconcile decides)
         if self.reconciling.holds_at(name):
             self.round_count += 1
             self.attempt(name, self.round_count, 0)
@@ -775,6 +800,8 @@ class Presence:
         if self.registrar.phase is not Phase.SERVING:
             self.stop_retrying(message.name)
             return
+        if self.lost_after_all(message.name):
+            return
         self.attempt(message.name, message.round, message.attempt, self.lives.get(message.name, ""))
 
     def attempt(self, name: str, round_: int, attempt: int, life: str = "") -> None:
@@ -795,8 +822,11 @@ class Presence:
     def answered(self, name: str, round_: int, attempt: int, error: BaseException | None) -> None:
         if self.rounds.get(name) != (round_, attempt):
             return  # a late answer of an attempt given up (the newer one decides)
+        if error is not None and self.lost_after_all(name):
+            return
         if error is None or isinstance(error, RegistrarStoppedError):
             self.stop_retrying(name)  # reconciled; or stopped: its restart reconciles
+            self.served_on.discard(name)
             return
         logger.debug(
             "registrar %s: reconcile %d with %s failed (%s); retrying",
@@ -806,6 +836,14 @@ class Presence:
             error,
         )
         self.arm(name, round_, attempt + 1, retry_delay(attempt + 1))
+
+    def lost_after_all(self, name: str) -> bool:
+        """Whether `name` was heard lost while a registrar of its name served (`lose`), and
+        the reconcile with that one failed: then it is lost (rule 19)."""
+        if name not in self.served_on:
+            return False
+        self.lose(name, defer=False)
+        return True
 
     def arm(self, name: str, round_: int, attempt: int, delay: float) -> None:
         """Tell this actor `ReconcileRetry(name, round_, attempt)` after `delay` seconds."""

@@ -152,7 +152,9 @@ class Transport(Protocol):
       or the owner of an unsupervised manager process, tells every name `names()` lists),
       or from the carrier, which calls `Endpoint.peer_lost` with the name on every registrar it
       serves when the one who would say so is gone too (a host lost with its supervisor).
-      Its consumers then report `FATAL` for the ids they held there and forget them. A
+      Its consumers then report `FATAL` for the ids they held there and forget them (one
+      that hears it while another registrar of the name serves, rule 22's kept one,
+      reconciles with that one first: what it holds stays held). A
       carrier never calls `peer_lost` for a registrar whose supervisor is alive: that one
       restarts it, and its restored catalog keeps its consumers' ids (rule 15), or it
       sends the death watch if it gives up. Only a process that `Transport.supervised_by`

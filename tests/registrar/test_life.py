@@ -1225,6 +1225,50 @@ class TestProviderLost:
         finally:
             consumer.stop()
 
+    def test_a_name_heard_lost_while_a_registrar_of_it_serves_keeps_the_ids_held_there(
+        self, system: System, started: list[rr.ResourceRegistrar]
+    ) -> None:
+        # issue 51 (rule 22): the death watch of a registrar that yielded its name at a heal,
+        # given up on by its supervisor, reaches a consumer of the one kept: that one holds
+        # its ids, so they stay held (they were FATAL and forgotten, held to the end there)
+        unloads: list[str] = []
+        provider = rr.ResourceRegistrar.start(
+            named("provider"), setup=leaf_setup(unloads), network=system
+        )
+        consumer = rr.ResourceRegistrar.start(named("consumer"), network=system)
+        started.extend([consumer, provider])
+        heard: list[Any] = []
+        told, reconciled = threading.Event(), threading.Event()
+        intercept(consumer, "peer_lost", after=lambda _m: told.set())
+        intercept(provider, "reconcile", after=lambda _m: reconciled.set())
+        query = consumer.call(provider.name, "leaf", "camera", on_status=StatusHeard(heard))
+
+        Served(consumer).peer_lost(provider.name)  # (the mark of the one that yielded)
+        assert told.wait(BOUND)
+        assert [query.id] == [q.id for q in consumer.client_queries()]  # not forgotten
+        assert reconciled.wait(BOUND)  # with the one that serves: it holds the id
+
+        consumer.unload(query.id, timeout=BOUND)
+        assert ["camera"] == unloads
+        assert [] == heard
+
+    def test_a_name_heard_lost_whose_server_does_not_answer_is_lost_after_all(
+        self, system: System, started: list[rr.ResourceRegistrar]
+    ) -> None:
+        provider = RemoteRegistrar.start(named("provider"), system, setup=leaf_setup())
+        consumer = rr.ResourceRegistrar.start(named("consumer"), network=system)
+        started.append(consumer)
+        heard: list[Any] = []
+        query = consumer.call(provider.name, "leaf", "camera", on_status=StatusHeard(heard))
+
+        with expect_restart(provider.name):  # no death watch: the mark below is the only one
+            provider.kill()
+        Served(consumer).peer_lost(provider.name)  # (its socket file may still be listed)
+
+        assert wait_for(lambda: bool(heard), BOUND)
+        assert [(query.id, rr.Status.FATAL, f"{provider.name}/leaf")] == heard
+        assert [] == consumer.client_queries()
+
     def test_a_provider_its_supervisor_restarts_is_not_lost_its_consumers_keep_their_ids(
         self, supervisors: Callable[..., rr.Supervisor], tmp_path: Any
     ) -> None:
