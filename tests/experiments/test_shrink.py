@@ -772,7 +772,9 @@ def swapped(monkeypatch: pytest.MonkeyPatch) -> None:
     )
     kinds = shrink.violation_kinds
     monkeypatch.setattr(
-        shrink, "violation_kinds", lambda run: [k for k in kinds(run) if "root did not" in k]
+        shrink,
+        "violation_kinds",
+        lambda run, *judge: [k for k in kinds(run, *judge) if "root did not" in k],
     )
 
 
