@@ -157,7 +157,8 @@ published at once, the refusals in between are counted in the next)."""
 
 _WANTING = 2.0
 """Seconds a consumer registrar refused a load of a server counts as wanting loads there
-(`Admission`): twenty times a refused caller's longest pause before it asks again."""
+(`Admission`): twenty times a refused caller's longest pause before it asks again, counted
+from when it was told to come back (`Admission.come_back`) if that is later."""
 
 _COME_BACK_MOST = 10.0
 """The longest pause a refused caller is told to take before it asks again, seconds
@@ -246,6 +247,10 @@ class Admission:
             del chains[name]  # (its callers came back already)
         if deadline is None or at < deadline:
             chains[origin] = at
+            wanting = self.wanting.get(server, {})
+            if origin in wanting:  # (it wants loads until it is back, and `_WANTING` after)
+                first, last = wanting[origin]
+                wanting[origin] = (first, max(last, at))
         if not chains:
             del self.paced[server]
         return at - now
@@ -266,7 +271,7 @@ class Admission:
             self.wanting.pop(server, None)
         consumers = {*of, *wanting, origin}
         share = max(1, bound // len(consumers))
-        since = wanting.get(origin, (now, now))[0]
+        since, told = wanting.get(origin, (now, now))  # (`told`: when it is back, if later)
         ahead = sum(  # (others waiting with fewer under way, or as many and longer)
             (of.get(name, 0), first) < (mine, since)
             for name, (first, _) in wanting.items()
@@ -274,7 +279,7 @@ class Admission:
         )
         if pending + ahead < bound and mine < share:  # (a free slot each kept for those)
             return None
-        self.wanting.setdefault(server, {})[origin] = (since, now)
+        self.wanting.setdefault(server, {})[origin] = (since, max(now, told))
         return pending, mine, share
 
     def admit(self, rid: str, server: str, origin: str) -> None:

@@ -186,11 +186,13 @@ Judge = Callable[[simulate.SimulatedRun], list[check.Finding]]
 """What a run violates: its findings of kind `"violation"`, the one to shrink first."""
 
 
-def violations(run: simulate.SimulatedRun) -> list[check.Finding]:
-    """The checker's violations of a run (none unless it violated): the default `Judge`."""
+def violations(run: simulate.SimulatedRun, resolve: str = "first_served") -> list[check.Finding]:
+    """The checker's violations of a run (none unless it violated): the default `Judge`
+    (`shrink` gives it its plan's rule 22 policy, `resolve`, as `simulate` checks it)."""
     if run.verdict != "violated":
         return []
-    verdict = check.check(check.read_runs(run.history.splitlines()).get(simulate.RUN, []))
+    numbered = check.read_runs(run.history.splitlines()).get(simulate.RUN, [])
+    verdict = check.check(numbered, resolve)
     return [f for f in verdict.findings if f.kind == "violation"]
 
 
@@ -332,6 +334,9 @@ def shrink(
         text = Path(str(plan.source)).read_text(encoding="utf-8")
     say = on_step or (lambda _line: None)
     ran = on_run or (lambda _runs: None)
+    if judge is violations:  # (by the plan's rule 22 policy, as its runs were checked)
+        resolve = plan.hosts.resolve if plan.hosts is not None else "first_served"
+        judge = functools.partial(violations, resolve=resolve)
     shrinker = _Shrinker(plan, seed, text, budget, tries, say, ran, judge, cpu_until)
     return shrinker.run()
 

@@ -111,6 +111,9 @@ class Share:
         )
         self._thread.start()
         self._token = session.liveliness().declare_token(self._key("here"))
+        # (a network that left already closes it inside `on_leave`: its `close` ends by
+        # calling `_forget`, set before)
+        self._forget: Callable[[], None] = lambda: None
         self._forget = services.on_leave(self.close)  # (its thread puts: ended before the
         # session closes, even if the observer stays open: `keep_serving`)
 

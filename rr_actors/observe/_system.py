@@ -130,6 +130,9 @@ class SystemView:
         self._sending = threading.Condition()  # fault commands under way (`fault`)
         self._faults_sent = 0
         self._closed = False
+        # (a network that left already closes it inside `on_leave`: its `close` ends by
+        # calling `_forget`, set before)
+        self._forget: Callable[[], None] = lambda: None
         self._forget = services.on_leave(self.close)  # (its threads call Zenoh: ended
         # before the session closes, even if the observer stays open: `keep_serving`)
 

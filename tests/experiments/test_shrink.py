@@ -772,7 +772,9 @@ def swapped(monkeypatch: pytest.MonkeyPatch) -> None:
     )
     kinds = shrink.violation_kinds
     monkeypatch.setattr(
-        shrink, "violation_kinds", lambda run: [k for k in kinds(run) if "root did not" in k]
+        shrink,
+        "violation_kinds",
+        lambda run, *judge: [k for k in kinds(run, *judge) if "root did not" in k],
     )
 
 
@@ -822,3 +824,23 @@ def test_a_cut_of_the_end_drops_the_faults_after_an_event_delayed_past_it() -> N
         parse_plan(shrinker.text(data))  # (no PlanError)
         assert [0] == [a.get("delay", 0) for a in data["faults"] if "after" in a]
     assert [0.0] == [a["at"] for a in short["faults"] if "at" in a]
+
+
+def test_a_shrink_words_its_one_name_kind_by_the_plans_resolve(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Review of the checker's one-name by resolve: `simulate` checks a run by its plan's
+    `[hosts]` `resolve`, but the shrinker's default judge (`shrink.violations`) checked it
+    by `first_served`: a `majority` plan's one-name violation was kept and told as "the
+    one served later yields", which its run's own findings do not say."""
+    from rr_actors._transport.messenger import Messenger  # noqa: PLC0415
+    from tests.experiments.test_simulate import THREE  # noqa: PLC0415
+
+    monkeypatch.setattr(Messenger, "served_elsewhere", lambda *_: None)  # (never gives way)
+    text = THREE.replace("[tree]", 'resolve = "majority"\n\n[tree]', 1)
+
+    shrunk = shrink.shrink(parse_plan(text), 1, budget=1, text=text)
+
+    assert shrunk.kind.startswith("[one-name]"), shrunk.kind
+    assert "minority side" in shrunk.kind, shrunk.kind
+    assert any("the one begun on a minority side yields" in f for f in shrunk.run.findings)

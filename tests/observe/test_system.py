@@ -173,3 +173,38 @@ def test_a_page_opened_after_a_status_draws_it_as_a_page_open_during_it_did(
         page.live.locator("#timeline").inner_text() == page.late.locator("#timeline").inner_text()
     )
     assert "erm/camera '/dev/video0'" == page.sent["resource"]  # (the graph's label)
+
+
+# -- opened as its network leaves (`Services.on_leave`: a close at once) ---------------------
+
+
+def _left(session: zenoh.Session, member: str) -> Any:
+    """`services` of a network that left already: its carrier's `on_leave` runs `close()`
+    at once, before it returns what forgets it (`ZenohCarrier.on_leave`)."""
+    import dataclasses  # noqa: PLC0415
+
+    def on_leave(close: Any) -> Any:
+        close()
+        return lambda: None
+
+    return dataclasses.replace(services(session, member), on_leave=on_leave)
+
+
+def test_a_share_opened_as_its_network_leaves_is_closed_not_an_attribute_error(
+    sessions: tuple[zenoh.Session, zenoh.Session],
+) -> None:
+    """Review of the close ordering: `Share` and `SystemView` give their `close` to
+    `on_leave` as the last step of `__init__`, and `close` ends by calling what
+    `on_leave` returns; a network that left meanwhile closes them at once, inside that
+    call, before `_forget` is set: `AttributeError` from the constructor."""
+    mine, _theirs = sessions
+    share = Share(Hub(), _left(mine, "bravo"), "bravo", host={"title": "t", "pid": 1}, faults=None)
+    share.close()  # (closed already: nothing more)
+
+
+def test_a_system_view_opened_as_its_network_leaves_is_closed_not_an_attribute_error(
+    sessions: tuple[zenoh.Session, zenoh.Session],
+) -> None:
+    mine, _theirs = sessions
+    view = SystemView(Hub(), _left(mine, "alpha"), "alpha", None)
+    view.close(timeout=1.0)

@@ -3021,6 +3021,29 @@ def test_a_freed_slot_goes_to_the_consumer_that_waits_not_to_one_that_asks_again
     assert spare.refusal("s", "A", 10) is None  # (a slot kept for nobody ahead of A)
 
 
+def test_a_consumer_told_to_come_back_later_than_wanting_still_wants_until_it_does(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Review of the refusal's pacing: a refused consumer counts as wanting loads
+    (`_WANTING`, 2 s: twenty times the longest pause of 0.1 s) and a slot freed
+    meanwhile is kept for it; but it may now be told to come back up to 10 s later
+    (`retry_after`, a load's time per worker). It was forgotten before it came back:
+    a flooding consumer took the freed slot, and the paced one was refused again."""
+    now = [1000.0]
+    monkeypatch.setattr(runtime, "monotonic", lambda: now[0])
+    admission = Admission()
+    admission.admit("b0", "s", "B")  # (B floods: the bound of 1 is its)
+    assert admission.refusal("s", "A", 1) is not None
+    after = admission.come_back("s", "A", 5.0, None)  # (loads take 5 s: come back in 5)
+    assert after is not None
+    assert after > 2.0
+    now[0] += 3.0  # (A pauses; B's load ends, B asks again at once)
+    admission.done("b0")
+    assert admission.refusal("s", "B", 1) is not None  # (the free slot is kept for A)
+    now[0] += after - 3.0  # (A comes back when told)
+    assert admission.refusal("s", "A", 1) is None
+
+
 # -- a last unload's one commit (issue 52) -----------------------------------------------------
 
 
