@@ -225,4 +225,8 @@ def test_the_dev_extra_holds_every_import_of_the_tests_and_no_benchmark_peer() -
 
     assert {} == missing
     assert "xoscar" not in dev
-    assert ["xoscar>=0.12"] == project["optional-dependencies"]["bench"]
+    assert "opentelemetry-exporter-otlp-proto-common" not in dev
+    assert [
+        "xoscar>=0.12",  # bench_xoscar.py's peer
+        "opentelemetry-exporter-otlp-proto-common>=1.20",  # bench_otel_cross.py's OTLP encoder
+    ] == project["optional-dependencies"]["bench"]
