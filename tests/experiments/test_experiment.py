@@ -786,11 +786,11 @@ ONE_FOR_ALL = f"""\
         [[tree.children]]
         name = "c"
         setup = "{SERVICE}"
-        options = {{ load_s = 0.1 }}  # each client is always inside a call: one meets the kill
+        options = {{ load_s = 0.3 }}  # a client is nearly always inside a call: one meets the kill
         [workload]
         clients = 2
         rate = 20.0
-        hold = 0.1
+        hold = 0.02
         timeout = 5.0
         [[workload.calls]]
         manager = "c"
