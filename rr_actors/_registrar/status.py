@@ -409,19 +409,7 @@ class StatusRelay:
             # (published on the callback's thread, or its loop's: the publisher itself,
             # not the turn's)
             told = self.registrar.published, self.registrar.name, message.event
-            if isinstance(callback, OnLoop):  # (each id's in order, on its loop)
-                DESK.runner.on_loop(
-                    _Call(
-                        callback,
-                        record.query,
-                        update,
-                        join.add(),
-                        told if active else None,
-                        deadline,
-                        gave_up,
-                    )
-                )
-            elif callback is not None:  # (each id's in order with the desk's own)
+            if callback is not None:
                 call = _Call(
                     callback,
                     record.query,
@@ -431,7 +419,10 @@ class StatusRelay:
                     deadline,
                     gave_up,
                 )
-                DESK.runner.run((call,))
+                if isinstance(callback, OnLoop):  # (each id's in order, on its loop)
+                    DESK.runner.on_loop(call)
+                else:  # (each id's in order with the desk's own)
+                    DESK.runner.run((call,))
             climb = steps.climb  # (a classroom's copy of this step, `rr_actors.teach`)
             if climb is not None:
                 above = [
