@@ -373,6 +373,17 @@ class Odometry:
                 sample = json.loads(line)
                 self.samples.append((float(sample["t"]), float(sample["x"]), float(sample["v"])))
 
+    def last_standing(self) -> float | None:
+        """When the robot was last seen standing (monotonic seconds), if it ever was.
+
+        That is the latest sample at which the distance had not grown since the one before;
+        the robot moved only after it.
+        """
+        for previous, sample in zip(self.samples[-2::-1], self.samples[:0:-1], strict=True):
+            if sample[1] - previous[1] <= 1e-9:
+                return sample[0]
+        return None
+
     def arrival(self, distance_m: float) -> float | None:
         """When the odometry first reached `distance_m` (monotonic seconds), if it did."""
         for t, x, _ in self.samples:

@@ -13,7 +13,7 @@ and drives on (`Step`):
     Drive (a fault point reached) ─► Step.pause(fault, pids)
         robot.stop() ─► before_fault(fault, pids(fault))   (the CLI waits for Enter)
                      ─► robot stands? ─► robot.go() ─► robot moves?   (PAUSE_SETTLE s each)
-        ─► clock.add_pause(stop order, moving again)  ─► Drive injects the fault
+        ─► clock.add_pause(stop order, last seen standing)  ─► Drive injects the fault
 
 The pause is left out of the mission clock: no stamp, timeline row or plot counts the
 time the class took to press Enter.
@@ -101,31 +101,45 @@ class Step:
 
         The pause lasts from the stop order until the robot drives again: its coming to a
         halt and its start after the Enter belong to the pause, not to the fault that
-        follows (which would otherwise count them as the robot standing still).
+        follows (which would otherwise count them as the robot standing still). It ends
+        at the last odometry sample that saw the robot standing (or at the go order, if
+        that came later), not when the odometry is next read: a stop that follows the
+        first move (a program starved of CPU on a loaded machine) is then the fault's,
+        never folded into the pause.
 
         Args:
             fault: the fault about to be injected.
             pids: the lines of the processes a fault involves (`Faults.pids`).
         """
         paused = time.monotonic()
+        resumed: float | None = None
         self._robot.stop()
         try:
             self._before_fault(fault, pids(fault))
             self._wait_until_moving(False)  # (long done, unless Enter came at once)
+            went = time.monotonic()  # (before the order: no move the order caused precedes it)
             self._robot.go()
-            self._wait_until_moving(True)
+            if self._wait_until_moving(True):
+                resumed = max(went, self._robot.odometry.last_standing() or went)
         finally:  # (after a Ctrl-C at the prompt the robot waits for the unloading)
-            resumed = time.monotonic()
+            if resumed is None:  # (not seen moving within PAUSE_SETTLE, or interrupted)
+                resumed = time.monotonic()
             self._clock.add_pause(paused, resumed)
         return resumed - paused
 
-    def _wait_until_moving(self, moving: bool) -> None:
-        """Wait until the odometry says the robot moves (or stands), `PAUSE_SETTLE` s at most."""
+    def _wait_until_moving(self, moving: bool) -> bool:
+        """Wait until the odometry says the robot moves (or stands), `PAUSE_SETTLE` s at most.
+
+        Returns:
+            Whether it did within that bound.
+        """
         odometry = self._robot.odometry
         deadline = time.monotonic() + PAUSE_SETTLE
         while True:
             odometry.read()
             now = time.monotonic()
-            if odometry.moving(now) == moving or now >= deadline:
-                return
+            if odometry.moving(now) == moving:
+                return True
+            if now >= deadline:
+                return False
             time.sleep(TICK)  # the odometry is a file the driver appends to: look again
