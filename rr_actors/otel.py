@@ -30,7 +30,8 @@ What becomes a span (`docs/how-to/trace.md`):
   INTERNAL root linked to its hop, the calls made in it its children;
 - a restart: an INTERNAL `restart <child>` span from `ChildExited` to the restarted
   process's first `CatalogRestored`, naming the in-doubt queries (`InDoubt`), linked to
-  the old incarnation's last SERVER span and the new one's first; the spans whose end
+  the old incarnation's last SERVER span and the new one's first (a first span made after
+  `pair_within` finds the restart span ended: it links to it instead); the spans whose end
   the kill lost (a load that started and never finished) are ended at the exit, marked
   `rr_actors.end_lost` (status ERROR), and linked to it (and it to them).
 
@@ -293,6 +294,8 @@ class Tracing:
         # is named as the child); (the new pid, child): its restart span, still open
         self._last_of: dict[tuple[int, str], Any] = {}
         self._opened: dict[tuple[int, str], _Opened] = {}
+        # (the new pid, child): its restart span, ended before the new one's first span
+        self._restarted_by: dict[tuple[int, str], Any] = {}
         self._lost_at: float | None = None  # (monotonic) when the stream last lost events
         self._lost_of: dict[int, int] = {}  # a process killed: events it built, lost
         self._swept = 0.0  # (monotonic) the last sweep after an event
@@ -750,8 +753,13 @@ class Tracing:
                     clients = waiting is self._clients
                     self._emit(tracer, alone if clients else None, None if clients else alone, key)
         for child in [c for c, o in self._opened.items() if o.arrived <= before]:
-            self._close_restart(self._opened.pop(child))
+            opened = self._opened.pop(child)
+            self._close_restart(opened)  # (the new one's first span, if any, links to it)
+            self._restarted_by[child] = opened.span.get_span_context()
+            if len(self._restarted_by) > self._max_pending:
+                del self._restarted_by[next(iter(self._restarted_by))]
         if before == float("inf"):
+            self._restarted_by.clear()
             self._called.clear()
             self._doubts.clear()
             self._exits.clear()
@@ -805,6 +813,10 @@ class Tracing:
                         trace_id, client_span, is_remote=True, trace_flags=_api.TraceFlags(flags)
                     )
                     context = _api.set_span_in_context(_api.NonRecordingSpan(called))
+            links = server.links
+            restart = self._restarted_by.pop((server.pid, server.service), None)
+            if restart is not None and not server.lost:  # the first after a restart ended
+                links = [*links, _api.Link(restart, {"rr_actors.incarnation": "restart"})]
             span = self._start(
                 tracer,
                 ids,
@@ -812,7 +824,7 @@ class Tracing:
                 context=context,
                 kind=_api.SpanKind.SERVER,
                 attributes=server.attributes,
-                links=server.links,
+                links=links,
                 start_time=_ns(server.start),
             )
             if server.children:

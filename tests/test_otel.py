@@ -4,11 +4,13 @@ manager process and a real SIGKILL, exported by the SDK's `InMemorySpanExporter`
 from __future__ import annotations
 
 import asyncio
+import itertools
 import json
 import subprocess
 import sys
 import textwrap
 import threading
+import time
 import uuid
 from collections.abc import Callable
 from typing import Any
@@ -229,6 +231,54 @@ def test_a_killed_load_is_ended_and_marked_by_the_restart_span(
         assert [restart.context.span_id] == [link.context.span_id for link in span.links]
         assert span.end_time == restart.start_time  # ended at the kill
     assert restart.start_time <= restart.end_time
+
+
+@pytest.mark.usefixtures("process_helpers")
+def test_a_new_incarnations_first_span_after_pair_within_links_to_its_ended_restart_span(
+    supervisors: Callable[..., rr.Supervisor],
+    uid: str,
+    tmp_path: Any,
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    provider, exporter = exported
+    erm, other = f"erm-{uid}", f"other-{uid}"
+    specs = [rr.ManagerSpec(erm, _serve, isolation="process"), rr.ManagerSpec(other, _serve)]
+    sup = supervisors(specs, state_dir=tmp_path / "state").start()
+    app = sup.registrar(f"app-{uid}")
+
+    def restart_spans() -> list[ReadableSpan]:
+        return [s for s in exporter.get_finished_spans() if s.name == f"restart {erm}"]
+
+    with otel.trace(sup, tracer_provider=provider, pair_within=0.2) as tracing:
+        before = app.call(erm, "cam", 1, timeout=10)  # the old incarnation's last call
+        sigkill(sup, erm)
+        sup.wait_restarted(erm, timeout=10)
+        deadline = time.monotonic() + 30
+        for n in itertools.count():  # other calls' events, until a sweep ends the restart
+            assert time.monotonic() < deadline
+            app.call(other, "cam", n, timeout=10)
+            assert tracing._subscription.wait_delivered(timeout=5)
+            if restart_spans():
+                break
+        after = app.call(erm, "cam", -1, timeout=10)  # the new one's first, come late
+        app.client_queries(timeout=10)  # (a later turn: its CallAnswered is out)
+        assert sup.flush_events(timeout=5)
+        assert tracing._subscription.wait_delivered(timeout=5)
+    spans = exporter.get_finished_spans()
+
+    [restart] = restart_spans()
+    served = {
+        s.attributes["rr_actors.query_id"]: s
+        for s in spans
+        if s.kind == api.SpanKind.SERVER and s.name == f"{erm}/cam"
+    }
+    assert [("old", served[before.id].context.span_id)] == [
+        (link.attributes["rr_actors.incarnation"], link.context.span_id) for link in restart.links
+    ]
+    assert [("restart", restart.context.span_id)] == [
+        (link.attributes["rr_actors.incarnation"], link.context.span_id)
+        for link in served[after.id].links
+    ]
 
 
 def test_without_a_provider_no_span_is_made_and_nothing_fails(

@@ -44,7 +44,9 @@ from rr_actors.mission.hosts import (
 from rr_actors.mission.run import main
 from rr_actors.testing import crash
 from tests.support.demos import (
+    STEPS,
     assert_one_trace_per_step,
+    console_spans,
     interrupt_demo,
     one_line_after_the_story,
     ours,
@@ -85,6 +87,45 @@ def test_the_two_host_demo_traces_both_hosts_one_trace_per_mission_step(tmp_path
     spans = assert_one_trace_per_step(done.stdout)
     loaded = {s["name"] for s in spans if s["name"].endswith(".load")}
     assert {"robot.load", "program.load", "lidar.load"} <= loaded  # (robot.load: rm's, there)
+
+
+@needs_root
+@pytest.mark.timeout(300)
+def test_the_two_host_demo_with_every_fault_links_each_restart_to_both_incarnations(
+    tmp_path: Path,
+) -> None:
+    with pytest.MonkeyPatch.context() as env:
+        env.setenv("OTEL_TRACES_EXPORTER", "console")
+        done = demo("--hosts", "2", "--fast", "--trace", "--quiet", "--out", "out", cwd=tmp_path)
+
+    assert 0 == done.returncode, done.stderr[-2000:]
+    spans = console_spans(done.stdout)
+    by_id = {span["context"]["span_id"]: span for span in spans}
+    assert [] == [s["name"] for s in spans if s["parent_id"] and s["parent_id"] not in by_id]
+    steps = [s["context"]["trace_id"] for s in spans if s["name"].startswith("mission step")]
+    assert len(STEPS) == len(set(steps))  # each step a trace of its own
+    restarts = {s["name"]: s for s in spans if s["name"].startswith("restart ")}
+    assert {"restart erm", "restart cm", "restart rm"} == set(restarts)
+    for name, restart in restarts.items():
+        child = name.removeprefix("restart ")
+        links = [
+            (link["attributes"]["rr_actors.incarnation"], by_id[link["context"]["span_id"]])
+            for link in restart["links"]
+        ]
+        assert [f"{child}/"] == [s["name"][: len(child) + 1] for kind, s in links if kind == "old"]
+        # the new incarnation's first SERVER span: linked from the restart span while it is
+        # open (`pair_within`), else it links to the restart span (F3, F5: first called
+        # again after F6's heal, seconds later)
+        first = [s for kind, s in links if kind == "new"] + [
+            s
+            for s in spans
+            for link in s["links"]
+            if link["context"]["span_id"] == restart["context"]["span_id"]
+            and link["attributes"].get("rr_actors.incarnation") == "restart"
+        ]
+        assert 1 == len(first), name
+        assert first[0]["name"].startswith(f"{child}/")
+        assert "SpanKind.SERVER" == first[0]["kind"]
 
 
 @needs_root
