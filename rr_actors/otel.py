@@ -30,10 +30,9 @@ What becomes a span (`docs/how-to/trace.md`):
   INTERNAL root linked to its hop, the calls made in it its children;
 - a restart: an INTERNAL `restart <child>` span from `ChildExited` to the restarted
   process's first `CatalogRestored`, naming the in-doubt queries (`InDoubt`), linked to
-  the old incarnation's last SERVER span and the new one's first (a first span made after
-  `pair_within` finds the restart span ended: it links to it instead); the spans whose end
-  the kill lost (a load that started and never finished) are ended at the exit, marked
-  `rr_actors.end_lost` (status ERROR), and linked to it (and it to them).
+  the old incarnation's last SERVER span and the new one's first (or, made past
+  `pair_within`, that one links to it); the spans whose end the kill lost (a load that
+  started and never finished) are ended at the exit, marked `rr_actors.end_lost`, linked.
 
 A caller's trace continues through the call: a `call`, `acall` or `unload` made while an
 OpenTelemetry span is current in the caller carries its W3C trace context to the
