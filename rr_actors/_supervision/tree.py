@@ -40,7 +40,7 @@ from rr_actors._supervision.children import (
     restarts_after,
     snapshot,
 )
-from rr_actors._supervision.relay import EventRelay
+from rr_actors._supervision.watching import EventRelay
 from rr_actors.config import SupervisorSpec, managers, walk
 from rr_actors.errors import (
     CallTimeoutError,
