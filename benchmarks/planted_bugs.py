@@ -61,7 +61,7 @@ half of that fix, `DueAnswers.frozen` handing a `Reconcile` the withdrawn calls 
 of `simcancel` held (164 CPU s), so a full run would spend its 10,000 seeds on it.
 
 Issue 51's "program restarted" (a registrar without a backup, started again on a
-`state_dir`, is told it lost everything: `statedir.ran_before`) is the plant
+`state_dir`, is told it lost everything: `tree.ran_before`) is the plant
 `program-restart`, on `simprogram`: its fault `kill_program` (simulation only) SIGKILLs
 the run's program (its tree and its clients, a simulated process of their own) and
 starts it again on the same `state_dir`. That plan also found the fix racy: told

@@ -57,7 +57,6 @@ from rr_actors._supervision.children import (
     restarts_with_group,
 )
 from rr_actors._supervision.retry import give_back_abandoned
-from rr_actors._supervision.statedir import ran_before
 from rr_actors._supervision.tree import (
     Clock,
     Tree,
@@ -65,6 +64,7 @@ from rr_actors._supervision.tree import (
     consumer_down,
     death_watch_missed,
     lost_everything,
+    ran_before,
 )
 from rr_actors.config import ManagerSpec, RegistrarConfig, Strategy, SupervisorSpec, managers
 from rr_actors.errors import ConfigError, RrError, SupervisorGaveUpError
@@ -659,7 +659,7 @@ class Starting:
     def ran_before(self, name: str) -> bool:
         """Whether manager `name`, which keeps no backup, ran on this supervisor's state
         directory before (in a program killed since, say: the backups of the others may
-        hold its last run's ids); marks it there (`statedir.ran_before`). A mark that
+        hold its last run's ids); marks it there (`tree.ran_before`). A mark that
         cannot be written is a WARNING: the manager runs all the same."""
         if self.state_dir is None:
             return False

@@ -61,14 +61,15 @@ from rr_actors._supervision.children import (
     ThreadManager,
 )
 from rr_actors._supervision.policy import Node, RestartIntensity, left, registrar_names
-from rr_actors._supervision.statedir import StateDirLock, ran_before
 from rr_actors._supervision.tree import (
     Clock,
     RestartWait,
+    StateDirLock,
     Tree,
     find_child,
     locate,
     lost_everything,
+    ran_before,
 )
 from rr_actors._supervision.watching import TreeWatch
 from rr_actors._types import Query, StatusCallback
@@ -502,7 +503,7 @@ class Supervisor(AsyncSupervision):
         may hold its last run's ids, for nobody now. It is told it lost everything, as a
         manager restarted without a backup is: it reconciles with every registrar of the
         system, which releases those ids (rule 20), and those that hold ids at it hear
-        `FATAL` for each (`statedir.ran_before`)."""
+        `FATAL` for each (`tree.ran_before`)."""
         state_dir = self._spec.state_dir
         if state_dir is None or registrar.config.backup_path is not None:
             return  # (one with a backup reconciles with everyone itself when restored)

@@ -29,7 +29,7 @@ PORTABLE_MODULES = (
     "tests/process/test_child.py",  # (the tests of the kernel's name are Linux tricks only)
     "tests/process/test_manager.py",
     "tests/supervision/test_policy.py",  # (but PORTABLE_LEFT_OUT)
-    "tests/supervision/test_statedir.py",
+    "tests/supervision/test_tree.py::TestStateDir",
     "tests/supervision/test_supervisor.py",
     "tests/registrar/test_consumer.py::TestDurableConsumerKilled",
     "tests/registrar/test_life.py::TestCrash",
