@@ -260,6 +260,17 @@ def test_an_unknown_fault_is_a_command_line_error(capsys: pytest.CaptureFixture[
     assert "F9" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(("wrong", "meant"), [("F33", "F3"), ("FF2", "F2")])
+def test_a_mistyped_fault_is_answered_with_the_closest_one(
+    wrong: str, meant: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert 2 == main(["--faults", f"F1,{wrong}", "--out", "unused"])
+
+    assert f"unknown fault(s) ['{wrong}']; did you mean '{meant}'? (known: ['F1'," in (
+        capsys.readouterr().err
+    )
+
+
 # -- a manager killed by hand while the mission runs ---------------------------------------
 
 
