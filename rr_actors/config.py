@@ -18,7 +18,7 @@ from collections.abc import Callable, Iterator, Sequence
 from typing import Any, Literal
 
 from rr_actors._types import Setup
-from rr_actors.errors import ConfigError
+from rr_actors.errors import ConfigError, _known_names
 
 __all__ = [
     "DEFAULT_MAX_MESSAGE_BYTES",
@@ -261,7 +261,10 @@ class RegistrarConfig:
         fields = {f.name for f in dataclasses.fields(cls)}
         unknown = set(data) - fields - {"schema"}
         if unknown:
-            raise ConfigError(f"unknown RegistrarConfig fields: {sorted(unknown)}")
+            named = sorted(unknown)
+            raise ConfigError(
+                f"unknown RegistrarConfig fields: {named}" + _known_names(named[0], fields)
+            )
         return cls(**{k: v for k, v in data.items() if k in fields})
 
 

@@ -11,7 +11,6 @@ All errors pickle (they cross process boundaries) and keep their attributes when
 from __future__ import annotations
 
 import dataclasses
-import difflib
 from collections.abc import Iterable
 from typing import Any
 
@@ -51,6 +50,8 @@ def _known_names(name: object, known: Iterable[str], *, shown: int = 12) -> str:
     For example `"; did you mean 'camera'? (known: 'camera', 'filter')"`, or
     `" (none known)"`; at most `shown` names are listed.
     """
+    import difflib  # noqa: PLC0415 - an error's path only: `import rr_actors` leaves it out
+
     names = sorted(set(known))
     if not names:
         return " (none known)"

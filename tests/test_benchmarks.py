@@ -78,6 +78,7 @@ SMALLEST = {
     "bench_otel_acall.py": ["--count", "20", "--batch", "5"],
     "bench_otel_cross.py": ["--rounds", "1", "--batch", "5"],
     "bench_otel_mission.py": ["--rounds", "1", "--faults", "F4", "--distance", "2"],
+    "bench_import.py": ["--rounds", "1"],
     "bench_jobs.py": ["--plan", "simchain", "--seeds", "1-2"],
     "experiment_phases.py": ["first", "--repeat", "1", "--duration", "1.2"],
     "bench_setup.py": [  # (the tests of one file, in this interpreter: no venv, no install)

@@ -206,3 +206,14 @@ def test_a_host_is_loopback_only_when_it_names_this_machine_alone(
     host: str, loopback: bool
 ) -> None:
     assert loopback == is_loopback(host)
+
+
+def test_a_mistyped_field_of_a_saved_config_is_answered_with_the_closest_field() -> None:
+    data = {**rr.RegistrarConfig().to_dict(), "call_timout": 3.0}
+
+    with pytest.raises(rr.ConfigError) as caught:
+        rr.RegistrarConfig.from_dict(data)
+
+    assert str(caught.value).startswith(
+        "unknown RegistrarConfig fields: ['call_timout']; did you mean 'call_timeout'? (known: "
+    )

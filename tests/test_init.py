@@ -80,3 +80,25 @@ def test_every_error_is_in_the_errors_module_and_the_same_class_at_the_top() -> 
 
 def test_the_dependency_depth_is_the_configs_and_the_same_at_the_top() -> None:
     assert rr_actors.MAX_DEPENDENCY_DEPTH is config.MAX_DEPENDENCY_DEPTH == 64
+
+
+def test_importing_the_package_leaves_the_runtime_and_the_events_to_their_first_use() -> None:
+    """`import rr_actors` cost 1.35 s when it took the runtime and `events.kinds` with it
+    (issue 54 part 7); now only the errors, the configuration and the status types (the
+    figure, against `import pykka`, is in benchmarks/NOTES.md). A name of the runtime
+    imports its module at first use (PEP 562)."""
+    code = (
+        "import sys, rr_actors\n"
+        "heavy = ('rr_actors.events', 'rr_actors._registrar', 'rr_actors._supervision',\n"
+        "         'rr_actors._core', 'rr_actors._store', 'rr_actors._transport', 'pykka',\n"
+        "         'msgspec')\n"
+        "print(sorted(m for m in sys.modules if m.startswith(heavy)))\n"
+        "rr_actors.events.ChildRestarted, rr_actors.Supervisor\n"
+        "print('rr_actors.events.kinds' in sys.modules, 'rr_actors._supervision' in sys.modules)"
+    )
+    run = subprocess.run(
+        [sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=60
+    )
+
+    assert (run.returncode, run.stderr) == (0, "")
+    assert "[]\nTrue True\n" == run.stdout

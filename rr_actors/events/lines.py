@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import json
 import math
 import operator
@@ -165,7 +166,9 @@ def from_dict(data: dict[str, Any]) -> Event:
     name = data.get("type")
     reader = _READERS.get(name) if isinstance(name, str) else None
     if reader is None:
-        raise ConfigError(f"unknown event type {_shown(name)}")
+        close = difflib.get_close_matches(name, _READERS, n=1) if isinstance(name, str) else []
+        hint = f"; did you mean {close[0]!r}?" if close else ""
+        raise ConfigError(f"unknown event type {_shown(name)}{hint}")
     return reader.read(data, schema)
 
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import difflib
 import functools
 import importlib
 import inspect
@@ -27,7 +28,7 @@ import re
 import string
 import sys
 import tomllib
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +39,7 @@ from msgspec import UNSET
 from rr_actors._transport.resolve import RESOLVE_STRATEGIES
 from rr_actors.errors import ConfigError
 from rr_actors.experiments import plan as schema
+from rr_actors.experiments import plans as shipped_plans
 from rr_actors.experiments.plan import Plan, PlanError
 
 __all__ = ["import_object", "load_plan", "parse_plan"]
@@ -127,7 +129,11 @@ def load_plan(path: str | os.PathLike[str]) -> Plan:
     try:
         text = Path(source).read_text(encoding="utf-8")
     except OSError as exc:
-        raise PlanError(source, 0, "", f"cannot be read ({exc.strerror or exc})") from exc
+        problem = f"cannot be read ({exc.strerror or exc})"
+        if isinstance(exc, FileNotFoundError) and Path(source).parent == Path():
+            hint = _did_you_mean(Path(source).stem, shipped_plans.shipped())
+            problem += f"{hint} (a shipped plan: plans.find() finds it)" if hint else ""
+        raise PlanError(source, 0, "", problem) from exc
     except UnicodeDecodeError as exc:
         raise PlanError(source, 0, "", f"is not UTF-8 text ({exc.reason})") from exc
     return parse_plan(text, source=source, name=Path(source).stem)
@@ -237,6 +243,19 @@ def _allowed(message: str, info: Any, key: str) -> str:
     return f"must be {what}"
 
 
+def _did_you_mean(name: object, known: Iterable[str]) -> str:
+    """`"; did you mean 'duration'?"` for the known name closest to a mistyped `name`, or `""`."""
+    close = difflib.get_close_matches(name, list(known), n=1) if isinstance(name, str) else []
+    return f"; did you mean {close[0]!r}?" if close else ""
+
+
+def _unknown_key(key: object, known: Iterable[str]) -> str:
+    """The problem of an unknown key: the closest known key, then every key known there."""
+    names = sorted(known)
+    hint = _did_you_mean(key, names)
+    return f"unknown key{hint}{' ' if hint else '; '}known here: {', '.join(names)}"
+
+
 class _Reader:
     """Reads plan data into a `Plan`, turning every problem into a `PlanError`."""
 
@@ -276,12 +295,15 @@ class _Reader:
             if key and message.startswith("Object missing"):
                 problem = f"{key[1]!r} is missing{PURPOSE.get(key[1], '')}"
             elif key:
-                at, known = (*at, key[1]), ", ".join(sorted(f.encode_name for f in info.fields))
-                problem = f"unknown key; known here: {known}"
+                at = (*at, key[1])
+                problem = _unknown_key(key[1], (f.encode_name for f in info.fields))
             else:
                 at = held(self.data, at)
                 last = next((p for p in reversed(at) if isinstance(p, str)), "")
                 problem = f"{_allowed(message, info, last)}, got {_show(self.raw(at))}"
+                if isinstance(info, mi.LiteralType | mi.EnumType):  # a mistyped name
+                    known = info.cls.__members__ if isinstance(info, mi.EnumType) else info.values
+                    problem += _did_you_mean(self.raw(at), map(str, known))
             raise self.error(at, problem) from None
 
     # -- what TOML spells its own way, in the shapes of `plan`'s types --------------------------
@@ -289,7 +311,7 @@ class _Reader:
     def shape(self, data: dict[str, Any]) -> dict[str, Any]:
         """A copy of the plan's `data` in the shapes msgspec decodes into a `Plan`."""
         for key in (k for k in data if k not in KEYS):
-            raise self.error((key,), f"unknown key; known here: {', '.join(sorted(KEYS))}")
+            raise self.error((key,), _unknown_key(key, KEYS))
         data = copy.deepcopy(data)
         if isinstance(tree := data.get("tree"), dict):  # the top supervisor: `state`, no `restart`
             known = {f.encode_name for f in msgspec.structs.fields(schema.SupervisorPlan)}
@@ -404,11 +426,13 @@ class _Reader:
         hosts = self.hosts
         self.refuse(hosts is None, path, "names a host, but the plan has no [hosts] table")
         assert hosts is not None
-        known = f"no host {name!r} in [hosts] (hosts: {', '.join(hosts.names)})"
+        hint, listed = _did_you_mean(name, hosts.names), ", ".join(hosts.names)
+        known = f"no host {name!r} in [hosts]{hint} (hosts: {listed})"
         self.refuse(name not in hosts.names, path, known)
 
     def named(self, name: str, path: KeyPath) -> None:
-        problem = f"no manager {name!r} in the tree (managers: {', '.join(self.managers)})"
+        hint, listed = _did_you_mean(name, self.managers), ", ".join(self.managers)
+        problem = f"no manager {name!r} in the tree{hint} (managers: {listed})"
         self.refuse(name not in self.managers, path, problem)
 
     def template(self, value: Any, path: KeyPath) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 import os
 import signal
@@ -173,9 +174,12 @@ class MissionConfig:
                 f"cut_s must be longer than lease ({self.lease:g} s), got {self.cut_s!r}"
             )
         known = FAULTS + HOST_FAULTS
-        unknown = [f for f in self.faults if f not in known]
-        if unknown:
-            raise rr.ConfigError(f"faults: unknown fault(s) {unknown}; known: {list(known)}")
+        for field, named in (("faults", list(self.faults)), ("fault_at", list(self.fault_at))):
+            if unknown := [f for f in named if f not in known]:
+                close = difflib.get_close_matches(str(unknown[0]).upper(), known, n=1)
+                hint = f"; did you mean {close[0]!r}?" if close else ""
+                listed = list(known)
+                raise rr.ConfigError(f"{field}: unknown fault(s) {unknown}{hint} (known: {listed})")
         if self.hosts == 1 and any(f in HOST_FAULTS for f in self.faults):
             raise rr.ConfigError("faults: F6 (the WiFi cut) needs hosts=2 (--hosts 2)")
         object.__setattr__(self, "faults", tuple(f for f in known if f in self.faults))

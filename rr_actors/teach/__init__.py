@@ -25,7 +25,7 @@ from typing import Any
 
 from rr_actors._core import steps as _steps
 from rr_actors._types import Status
-from rr_actors.errors import ConfigError
+from rr_actors.errors import ConfigError, _known_names
 
 __all__ = ["STEPS", "replaced_step", "shipped_step"]
 
@@ -151,7 +151,9 @@ def shipped_step(name: str) -> Callable[..., Any]:
         ConfigError: `name` is not one of `STEPS`.
     """
     if name not in STEPS:
-        raise ConfigError(f"no protocol step {name!r}: the steps are {', '.join(sorted(STEPS))}")
+        raise ConfigError(
+            f"no protocol step {name!r}" + _known_names(name, STEPS, shown=len(STEPS))
+        )
     return STEPS[name]
 
 

@@ -25,7 +25,7 @@ from rr_actors._registrar.calls import CallAttempt
 from rr_actors._registrar.life import CatalogView
 from rr_actors._registrar.messages import RunOnActor
 from rr_actors._registrar.state import Hook, Probes
-from rr_actors.errors import ConfigError, RegistrarUnavailableError
+from rr_actors.errors import ConfigError, RegistrarUnavailableError, _known_names
 
 __all__ = [
     "Installed",
@@ -172,7 +172,8 @@ def intercept(
     """
     local = _local(registrar, "intercept")
     if step not in STEPS:
-        raise ConfigError(f"no registrar step is named {step!r}; steps: {sorted(STEPS)}")
+        hint = _known_names(step, STEPS, shown=len(STEPS))
+        raise ConfigError(f"no registrar step is named {step!r}{hint}")
     here = local._actor
     probes = here.probes
     if probes is None:

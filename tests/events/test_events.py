@@ -250,6 +250,18 @@ def test_from_dict_reads_a_schema_1_line_without_the_fields_added_since() -> Non
         events.from_dict(data)
 
 
+def test_from_dict_answers_a_mistyped_event_type_with_the_closest_one() -> None:
+    data = {**line(events.ConsumerReleased("erm", RID, QID, "cm", at=2.0, pid=9))}
+    data["type"] = "ConsumerRelease"
+
+    with pytest.raises(rr.ConfigError) as caught:
+        events.from_dict(data)
+
+    assert "unknown event type 'ConsumerRelease'; did you mean 'ConsumerReleased'?" == str(
+        caught.value
+    )
+
+
 def test_from_dict_reads_a_schema_4_query_forgotten_without_its_release_stamps() -> None:
     data = line(events.QueryForgotten("cm", QID, "erm", "unload", 5, 3, at=2.0, pid=9))
     del data["unload_sent"], data["reconciled"]

@@ -2623,3 +2623,17 @@ def test_each_mutation_of_a_simulated_plan_left_out_of_the_real_runs_is_caught_b
 def test_every_rule_but_the_events_rule_has_a_mutation() -> None:
     # (`events`, a loss, is not a broken rule: the mutations renumber to show none)
     assert set(check.RULES) - {"events"} == {rule for _, rule in MUTATIONS.values()}
+
+
+def test_check_of_a_simulations_output_points_to_its_seeds_and_replay(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A new user ran `rr-actors check` on an `experiment --simulate` folder (it has
+    `seeds.jsonl`, no `events.jsonl`): the error says where the verdicts are."""
+    (tmp_path / "seeds.jsonl").write_text('{"seed": 1}\n', encoding="utf-8")
+
+    assert 2 == main(["check", str(tmp_path)])
+
+    err = capsys.readouterr().err
+    assert f"no events.jsonl at {tmp_path}: it is a simulation's output; its seeds.jsonl" in err
+    assert f"`rr-actors replay {tmp_path} --seed S` re-runs one" in err

@@ -84,7 +84,14 @@ def test_a_manager_is_placed_on_its_host_and_the_others_on_the_first() -> None:
 def test_a_host_that_is_not_in_hosts_is_refused_naming_the_field() -> None:
     error = problem(TWO_HOSTS.replace('host = "b"', 'host = "z"'))
     assert "tree.children[0].host" == error.key
-    assert "no host 'z'" in error.problem
+    assert "no host 'z' in [hosts] (hosts: a, b)" == error.problem
+
+
+def test_a_host_mistyped_is_answered_with_the_closest_host() -> None:
+    text = TWO_HOSTS.replace('names = ["a", "b"]', 'names = ["a", "robot"]')
+    error = problem(text.replace('host = "b"', 'host = "robt"'))
+
+    assert "no host 'robt' in [hosts]; did you mean 'robot'? (hosts: a, robot)" == error.problem
 
 
 def test_a_host_without_a_hosts_table_is_refused() -> None:

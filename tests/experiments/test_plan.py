@@ -63,7 +63,10 @@ def test_an_unknown_backoff_key_is_refused_with_the_keys_it_takes() -> None:
     error = plan_error(BASE.replace("[tree]", "[tree]\nbackoff = { inital = 0.5 }"))
 
     assert (5, "tree.backoff.inital") == (error.line, error.key)
-    assert "unknown key; known here: factor, initial, jitter, max" == error.problem
+    assert (
+        "unknown key; did you mean 'initial'? known here: factor, initial, jitter, max"
+        == error.problem
+    )
 
 
 def test_a_random_interval_whose_max_is_below_its_min_is_refused() -> None:

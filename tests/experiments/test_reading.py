@@ -81,7 +81,57 @@ def test_an_unknown_key_names_the_key_and_its_line() -> None:
     error = plan_error(BASE.replace('strategy = "one_for_one"', 'stratgey = "one_for_one"'))
 
     assert (5, "tree.stratgey") == (error.line, error.key)
-    assert str(error).startswith("plan.toml:5: tree.stratgey: unknown key; known here:")
+    assert str(error).startswith(
+        "plan.toml:5: tree.stratgey: unknown key; did you mean 'strategy'? known here:"
+    )
+
+
+@pytest.mark.parametrize(
+    ("wrong", "key", "says"),
+    [
+        (("duration = 2.0", "duraton = 2.0"), "duraton", "unknown key; did you mean 'duration'? "),
+        (("clients = 1", "client = 1"), "workload.client", "did you mean 'clients'? known here"),
+        (
+            (
+                "[workload]",
+                '[[faults]]\nkind = "kill_manger"\ntarget = "db"\nat = 1.0\n\n[workload]',
+            ),
+            "faults[0].kind",
+            "got 'kill_manger'; did you mean 'kill_manager'?",
+        ),
+        (
+            ('manager = "api"', 'manager = "apj"'),
+            "workload.calls[0].manager",
+            "no manager 'apj' in the tree; did you mean 'api'? (managers: db, api)",
+        ),
+    ],
+    ids=["top key", "table key", "fault kind", "manager"],
+)
+def test_a_mistyped_name_is_answered_with_the_closest_known_one(
+    wrong: tuple[str, str], key: str, says: str
+) -> None:
+    error = plan_error(BASE.replace(*wrong))
+
+    assert key == error.key
+    assert says in error.problem
+
+
+def test_a_name_far_from_every_known_one_gets_no_guess() -> None:
+    error = plan_error(BASE.replace('manager = "api"', 'manager = "cache"'))
+
+    assert "did you mean" not in error.problem
+
+
+def test_a_missing_plan_file_whose_name_is_close_to_a_shipped_plan_names_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+
+    with pytest.raises(PlanError) as caught:
+        load_plan("frist")
+
+    assert "frist: cannot be read (" in str(caught.value)
+    assert "; did you mean 'first'? (a shipped plan: plans.find() finds it)" in str(caught.value)
 
 
 def test_an_unknown_key_of_a_child_names_the_child_by_index() -> None:
@@ -166,7 +216,7 @@ def test_a_trigger_on_an_unknown_event_is_refused() -> None:
 
     assert (25, "faults[0].after.event") == (error.line, error.key)
     assert error.problem.startswith("must be one of 'ChildStarted', 'ChildExited',")
-    assert error.problem.endswith(", got 'Restarted'")
+    assert error.problem.endswith(", got 'Restarted'; did you mean 'ChildRestarted'?")
 
 
 def test_a_trigger_on_a_field_the_event_does_not_have_is_refused() -> None:

@@ -260,6 +260,22 @@ def test_an_unknown_fault_is_a_command_line_error(capsys: pytest.CaptureFixture[
     assert "F9" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(("wrong", "meant"), [("F33", "F3"), ("FF2", "F2")])
+@pytest.mark.parametrize("option", ["--faults", "--fault-at"])
+def test_a_mistyped_fault_is_answered_with_the_closest_one(
+    option: str, wrong: str, meant: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`--fault-at F33=0.2` was taken and ignored: the demo ran without saying so."""
+    given = f"F1,{wrong}" if option == "--faults" else f"{wrong}=0.2"
+
+    assert 2 == main([option, given, "--out", str(tmp_path / "out")])
+
+    field = option.removeprefix("--").replace("-", "_")
+    assert f"{field}: unknown fault(s) ['{wrong}']; did you mean '{meant}'? (known: ['F1'," in (
+        capsys.readouterr().err
+    )
+
+
 # -- a manager killed by hand while the mission runs ---------------------------------------
 
 

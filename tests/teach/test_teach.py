@@ -97,7 +97,9 @@ def test_a_replaced_step_is_in_place_inside_its_block_only() -> None:
 
 
 def test_bad_steps_are_refused() -> None:
-    with pytest.raises(ConfigError, match=r"no protocol step 'clim': the steps are climb, "):
+    with pytest.raises(
+        ConfigError, match=r"no protocol step 'clim'; did you mean 'climb'\? \(known: "
+    ):
         shipped_step("clim")
     with pytest.raises(ConfigError, match=r"must be a function"), replaced_step("climb", 3):  # type: ignore[arg-type]
         pass

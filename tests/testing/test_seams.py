@@ -35,8 +35,10 @@ def pair() -> Iterator[tuple[rr.ResourceRegistrar, rr.ResourceRegistrar]]:
 def test_an_unknown_step_name_is_a_config_error_not_a_silent_no_op(pair: Any) -> None:
     provider, _ = pair
 
-    with pytest.raises(rr.ConfigError, match="no registrar step is named 'abandoned'"):
+    with pytest.raises(rr.ConfigError, match="no registrar step is named 'abandoned'") as caught:
         intercept(provider, "abandoned", before=lambda _: None)
+
+    assert "'abandoned'; did you mean 'abandon'? (known: 'abandon', 'answer'," in str(caught.value)
 
 
 def test_every_message_the_actor_handles_is_a_step_that_intercept_reaches(pair: Any) -> None:
