@@ -707,6 +707,9 @@ class Presence:
         # names heard lost for good while a registrar of the name served (rule 22): the
         # reconcile with that one is under way; lost if it fails or is not answered
         self.served_on: set[str] = set()
+        # consumers heard lost while a registrar of the name served: when their `Reconcile`
+        # is due (the provider half of `lose`; the rounds are `unloading.asked`)
+        self.asked_timers: dict[str, runtime.Cancellable] = {}
 
     # -- lost for good (rule 19) --------------------------------------------------------
 
@@ -743,11 +746,17 @@ class Presence:
         ids held at that one are held, so this one first reconciles with it (rule 20:
         those it does not hold are `FATAL`). If that attempt fails or is not answered
         (a mark that overtook its own server's end, a stale AF_UNIX socket file), the
-        name is lost after all (`lost_after_all`)."""
+        name is lost after all (`lost_after_all`). As a provider, the same: the ids of
+        consumer `name` held here are those of the one that serves, so this one asks it
+        for a `Reconcile` (`ReconcileAsk`: those it does not list are released) and
+        releases them all only if none comes within `call_timeout` (`unanswered`); its
+        loads under way here are given up at once (each call fails, holding nothing)."""
         if name == self.registrar.name:
             return
-        self.unloading.release_all_of(name)
         serving = self.registrar.phase is Phase.SERVING and name in DIRECTORY.names()
+        if not (defer and serving and self.ask_consumer(name)):
+            self.stop_asking(name)
+            self.unloading.release_all_of(name)
         if defer and serving and self.reconciling.holds_at(name):
             logger.info(
                 "registrar %s: %s is lost for good, and a registrar named so serves: "
@@ -794,7 +803,63 @@ class Presence:
             self.round_count += 1
             self.attempt(message.serving_rr, self.round_count, 0, message.life)
 
+    def ask_consumer(self, name: str) -> bool:
+        """Ask consumer `name` (a registrar of that name serves) for a `Reconcile`, and
+        arm its `call_timeout` (`unanswered`); whether it was asked (nothing of it held
+        here: no need; it cannot be told: not)."""
+        if not self.unloading.holds_of(name):
+            return False
+        self.unloading.give_up_loads_of(name)  # (a call given up fails: nothing held anywhere)
+        try:
+            DIRECTORY.lookup(name).tell(ReconcileAsk(self.registrar.name, life=self.registrar.life))
+        except RrError as exc:
+            logger.debug("registrar %s: %s cannot be asked: %s", self.registrar.name, name, exc)
+            return False
+        self.stop_asking(name)
+        self.round_count += 1
+        round_, ref = self.round_count, self.registrar.ref
+        self.unloading.asked[name] = round_
+
+        def due() -> None:
+            with contextlib.suppress(pykka.ActorDeadError):
+                assert ref is not None
+                ref.tell(ReconcileRetry(name, round_, 0, asked=True))
+
+        self.asked_timers[name] = self.timer(self.registrar.config.call_timeout, due)
+        # after the ask, in order, a reconcile of this one's own ids there (rule 20: safe at
+        # any time): one that cannot answer (a crashed one whose process still serves its
+        # name) fails it at once, and its ids here are released at once
+        self.reconciling.reconcile(name, then=functools.partial(self.probed, name, round_))
+        return True
+
+    def probed(self, name: str, round_: int, error: BaseException | None) -> None:
+        if error is not None:
+            self.unanswered(name, round_)
+
+    def unanswered(self, name: str, round_: int) -> None:
+        """The `Reconcile` asked of consumer `name` by round `round_` was due, or `name`
+        failed to answer this one's own sent after the ask: if the `Reconcile` did not come,
+        `name` is lost after all as a consumer (every id of it here released)."""
+        if self.unloading.asked.get(name) != round_:
+            return  # it came (or a newer ask waits)
+        self.stop_asking(name)
+        logger.info(
+            "registrar %s: %s, heard lost, did not reconcile: releasing its ids",
+            self.registrar.name,
+            name,
+        )
+        self.unloading.release_all_of(name)
+
+    def stop_asking(self, name: str) -> None:
+        self.unloading.asked.pop(name, None)
+        timer = self.asked_timers.pop(name, None)
+        if timer is not None:
+            timer.cancel()
+
     def on_reconcile_retry(self, message: ReconcileRetry, _reply: Reply) -> None:
+        if message.asked:
+            self.unanswered(message.name, message.round)
+            return
         if self.rounds.get(message.name) != (message.round, message.attempt - 1):
             return  # answered meanwhile, lost, or a newer round started
         if self.registrar.phase is not Phase.SERVING:
@@ -870,6 +935,8 @@ class Presence:
         """This registrar stops or died: no more retries."""
         for name in list(self.rounds):
             self.stop_retrying(name)
+        for name in list(self.asked_timers):
+            self.stop_asking(name)
 
 
 # -- the outside's views of it: a carrier's, the membership's -------------------------

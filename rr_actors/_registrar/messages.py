@@ -707,11 +707,14 @@ class KeepName:
 @dataclasses.dataclass(frozen=True)
 class ReconcileRetry:
     """Presence's own timer: send `Reconcile` attempt `attempt` of round `round` to `name`
-    (the last one failed, or was not answered in time). Handled by `life.py`'s `Presence`."""
+    (the last one failed, or was not answered in time). With `asked`: the `Reconcile`
+    asked of consumer `name` by round `round` (`Presence.lose`) was due: if it did not
+    come, release every id of `name`. Handled by `life.py`'s `Presence`."""
 
     name: str
     round: int
     attempt: int
+    asked: bool = False
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1312,6 +1312,8 @@ class Unloading:
         self.provider = provider
         self.teardown = teardown
         self.unacked = unacked  # (`status.py`: the statuses on their way, by consumer id)
+        # consumer -> the round of the `Reconcile` asked of it (`Presence.lose`), until it came
+        self.asked: dict[str, int] = {}
 
     def on_unload(self, message: Unload, reply: Reply) -> None:
         """Release the id; the answer carries the statuses still on their way to it.
@@ -1359,14 +1361,23 @@ class Unloading:
             holder = catalog.resource_of(query_id).consumers[query_id]
         return holder is not None and holder != origin_rr
 
+    def holds_of(self, origin_rr: str) -> bool:
+        """Whether consumer `origin_rr` holds ids here."""
+        return bool(self.registrar.catalog.consumers_from(origin_rr))
+
+    def give_up_loads_of(self, origin_rr: str) -> None:
+        """Give up the loads of consumer `origin_rr` under way here (each is answered as
+        given up, holding nothing on either side, or unloaded once it ends)."""
+        for query_id in self.provider.under_way_of(origin_rr):
+            self.provider.give_up(query_id)
+
     def release_all_of(self, origin_rr: str) -> None:
         """Consumer `origin_rr` is gone for good (`life.py`'s presence: the death watch, or a
         carrier's `peer_lost`): release every id it held here (each `unload` runs once;
         a second call finds none), and give up its loads under way here (each is
         unloaded once it ends: an answer to a lost consumer may be dropped unseen, as
         over Zenoh before its token goes, so that answer failing is not counted on)."""
-        for query_id in self.provider.under_way_of(origin_rr):
-            self.provider.give_up(query_id)
+        self.give_up_loads_of(origin_rr)
         for query_id in self.registrar.catalog.consumers_from(origin_rr):
             if self.registrar.catalog.has_consumer(query_id):  # (a release may have cascaded)
                 self.release(query_id, None, "death watch")
@@ -1487,6 +1498,7 @@ class Unloading:
         """
         catalog = self.registrar.catalog
         held = set(message.held)
+        self.asked.pop(message.origin_rr, None)  # (asked by `Presence.lose`: it came)
         self.provider.lives.reconciled(message.origin_rr, message.life)
         for query_id in self.provider.under_way_of(message.origin_rr):
             if query_id not in held:

@@ -846,7 +846,8 @@ class Messenger:
 
     def close(self) -> None:
         """Leave the system: stop serving (a clean stop says so), fail what waits, close
-        the carrier (idempotent). Registrars are not stopped; stop them first."""
+        the carrier (idempotent). Registrars are not stopped (one left running keeps this
+        process's registrars only); stop them first to release what they hold elsewhere."""
         with self._lock:
             if self.closed:
                 return

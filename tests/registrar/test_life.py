@@ -1252,6 +1252,51 @@ class TestProviderLost:
         assert ["camera"] == unloads
         assert [] == heard
 
+    def test_a_consumer_heard_lost_while_a_registrar_of_it_serves_keeps_the_ids_it_holds_here(
+        self, system: System, started: list[rr.ResourceRegistrar]
+    ) -> None:
+        # issue 51, the provider half: the death watch of a consumer that yielded its name
+        # reaches a provider of the one kept: the ids that one holds here stay held (they
+        # were released at once, their unload run under the consumer that still held them)
+        unloads: list[str] = []
+        provider = rr.ResourceRegistrar.start(
+            named("provider"), setup=leaf_setup(unloads), network=system
+        )
+        consumer = rr.ResourceRegistrar.start(named("consumer"), network=system)
+        started.extend([consumer, provider])
+        heard: list[Any] = []
+        told, reconciled = threading.Event(), threading.Event()
+        intercept(provider, "peer_lost", after=lambda _m: told.set())
+        intercept(provider, "reconcile", after=lambda _m: reconciled.set())
+        query = consumer.call(provider.name, "leaf", "camera", on_status=StatusHeard(heard))
+
+        Served(provider).peer_lost(consumer.name)  # (the mark of the one that yielded)
+        assert told.wait(BOUND)
+        assert [query.id] == [q.id for q in provider.server_queries("leaf")]  # not released
+        assert reconciled.wait(BOUND)  # asked of the one that serves: it holds the id
+        assert [query.id] == [q.id for q in provider.server_queries("leaf")]
+
+        consumer.unload(query.id, timeout=BOUND)
+        assert ["camera"] == unloads
+        assert [] == heard
+
+    def test_a_consumer_heard_lost_whose_registrar_does_not_reconcile_is_released_after_all(
+        self, system: System, started: list[rr.ResourceRegistrar]
+    ) -> None:
+        unloads: list[str] = []
+        config = rr.RegistrarConfig(name=named("provider"), call_timeout=1.0)
+        provider = rr.ResourceRegistrar.start(config, setup=leaf_setup(unloads), network=system)
+        started.append(provider)
+        consumer = RemoteRegistrar.start(named("consumer"), system)
+        consumer.call(provider.name, "leaf", "camera")
+
+        with expect_restart(consumer.name):  # no death watch: the mark below is the only one
+            consumer.kill()
+        Served(provider).peer_lost(consumer.name)  # (its socket file may still be listed)
+
+        assert wait_for(lambda: ["camera"] == unloads, BOUND)  # (its call_timeout, 1 s)
+        assert [] == provider.server_queries("leaf")
+
     def test_a_name_heard_lost_whose_server_does_not_answer_is_lost_after_all(
         self, system: System, started: list[rr.ResourceRegistrar]
     ) -> None:
@@ -1317,8 +1362,7 @@ class TestProviderLost:
             app.unload(at_crashing.id, timeout=5)
 
     def test_a_provider_lost_twice_reports_each_callback_once_and_unloads_once(
-        self,
-        started: list[rr.ResourceRegistrar],
+        self, started: list[rr.ResourceRegistrar], monkeypatch: pytest.MonkeyPatch
     ) -> None:
         unloads: list[Any] = []
         provider = rr.ResourceRegistrar.start(named("provider"), setup=leaf_setup(unloads))
@@ -1333,6 +1377,11 @@ class TestProviderLost:
         direct = middle.call(provider.name, "leaf", "camera", on_status=StatusHeard(direct_heard))
         top = app.call(middle.name, "composite", "lidar", on_status=StatusHeard(top_heard))
 
+        from rr_actors._core.directory import DIRECTORY  # noqa: PLC0415 - (pickled by value)
+
+        listed = DIRECTORY.names  # (lost: neither is served any more, as after a death;
+        gone = {provider.name, middle.name}  # one served is reconciled with first)
+        monkeypatch.setattr(DIRECTORY, "names", lambda: listed() - gone)
         for _ in range(2):  # as a carrier and the death watch may both say it
             Served(middle).peer_lost(provider.name)  # middle: its provider is lost
             Served(provider).peer_lost(middle.name)  # provider: its consumer is lost

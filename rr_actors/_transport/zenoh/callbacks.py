@@ -13,7 +13,10 @@ or a callback thread woken by its session's close a moment too late. So does a d
 thread of rr_actors inside a Zenoh call then (every call releases the GIL, on a closed
 session too): an outbox's writer, the presence thread, a decode thread, the events'
 forwarder, each with a task still running as the session closes (`worker`; the link
-watch and the gate join their own threads before the session closes).
+watch and the gate join their own threads before the session closes). And so does any
+thread that frees a Zenoh object (zenoh-python's free of a subscriber, a token, a
+publisher releases the GIL): a served registrar's record lets go of its subscriber and
+token where it undeclares them (`carrier.Local.stop`: the close's thread, if it runs on).
 
 ```
  declare_*(key, tracked(session, fn))   its thread is counted (per session) while it lives

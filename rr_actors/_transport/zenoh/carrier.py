@@ -191,19 +191,16 @@ class Local(Listening):
     def stop(self, *, stopped: bool) -> None:
         """Its subscriber and token go; a clean stop is marked before the token goes (peers
         say "stopped"); one that yields loses its subscriber first (nothing more reaches
-        it)."""
-        if self.yielded:
-            with contextlib.suppress(Exception):
-                self.subscriber.undeclare()
-            with contextlib.suppress(Exception):
-                self.token.undeclare()
-            return
-        if stopped:
+        it). Both are let go of here, on the stopping thread (`callbacks`: the close's, or
+        the registrar's watch before the close, which waits for it), never by whichever
+        thread drops the last reference to this (a registrar's, as the interpreter ends)."""
+        subscriber, token, self.subscriber, self.token = self.subscriber, self.token, None, None
+        first, then = (subscriber, token) if self.yielded else (token, subscriber)
+        if stopped and not self.yielded:
             self.carrier.mark_stopped(self.name)
-        with contextlib.suppress(Exception):
-            self.token.undeclare()
-        with contextlib.suppress(Exception):
-            self.subscriber.undeclare()
+        for declared in (first, then):
+            with contextlib.suppress(Exception):
+                declared.undeclare()
 
 
 def _pong(query: zenoh.Query) -> None:

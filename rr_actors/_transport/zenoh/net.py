@@ -750,7 +750,10 @@ class ZenohNetwork(Messenger):
         """Leave the system: stop serving, fail what waits, close the session, and wait (at
         most 2 s) until Zenoh's callback threads and rr_actors' threads that call Zenoh
         ended: none of them runs Python after the interpreter began to end, which aborts
-        the process on CPython < 3.14 (idempotent; a network never opened stays so)."""
+        the process on CPython < 3.14 (idempotent; a network never opened stays so). A
+        registrar on it still running stops being served, its Zenoh objects let go of
+        here (not by its threads at the interpreter's end); it runs on with this process's
+        registrars only: stop registrars first to release what they hold elsewhere."""
         if self._gate is not None:
             self._gate.close()  # (its duplicate of a listening socket, too)
         if self._opened is not None:
