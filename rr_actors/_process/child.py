@@ -98,7 +98,7 @@ from rr_actors._process.control import (
 )
 from rr_actors._process.tally import Journal
 from rr_actors._store.schema import expected_objects
-from rr_actors._transport.base import Address, Transport
+from rr_actors._transport.messenger import Address, Transport
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import CatalogCorruptError, RrError
 from rr_actors.events.kinds import number_events

@@ -39,7 +39,7 @@ from typing import Any
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._platform import PLATFORM
 from rr_actors._platform.base import PARENT_GONE_EXIT
-from rr_actors._transport.base import Address
+from rr_actors._transport.messenger import Address
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import CatalogCorruptError, RegistrarStoppedError
 

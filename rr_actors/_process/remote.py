@@ -43,8 +43,7 @@ from rr_actors._process.manager import ManagerExit, ManagerProcess
 from rr_actors._registrar.handle import Here, Registrar, RegistrarFacts, ResourceRegistrar
 from rr_actors._registrar.life import gone_for_good
 from rr_actors._registrar.messages import LOADING, LoadContext
-from rr_actors._transport.base import Address, Transport
-from rr_actors._transport.messenger import Remote
+from rr_actors._transport.messenger import Address, Remote, Transport
 from rr_actors._types import Query
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import (

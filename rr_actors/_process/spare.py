@@ -29,7 +29,7 @@ from rr_actors._platform import PLATFORM, forkserver
 from rr_actors._platform.base import ExitWatch
 from rr_actors._process.child import standby
 from rr_actors._process.control import PROCESS_PREFIX, Start, Warm, WarmUp, forker_pid, mp_context
-from rr_actors._transport.base import Address
+from rr_actors._transport.messenger import Address
 from rr_actors.config import RegistrarConfig
 
 __all__ = ["Spare", "SparePool"]

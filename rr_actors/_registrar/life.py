@@ -975,7 +975,7 @@ class Hearing:
 class Network(Protocol):
     """What `ResourceRegistrar.start(network=)` needs of a carrier: to serve a registrar.
 
-    Every carrier's `Transport` is one (`rr_actors._transport.base`; the registrar layer
+    Every carrier's `Transport` is one (`rr_actors._transport.messenger`; the registrar layer
     does not import the carriers). `serve` returns once the other processes of the
     system can reach the registrar, and the carrier stops serving it by itself when the
     registrar stops or dies.
@@ -1052,7 +1052,7 @@ def serve_on(network: Network, registrar: Servable) -> None:
 
 
 class Served:
-    """A registrar of this process as a carrier serves it (`rr_actors._transport.base.Endpoint`)."""
+    """A registrar of this process as a carrier serves it (`_transport.messenger.Endpoint`)."""
 
     __slots__ = ("registrar",)
 

@@ -43,7 +43,7 @@ from rr_actors.errors import RrError, SupervisorGaveUpError
 if TYPE_CHECKING:
     from rr_actors._process.spare import SparePool
     from rr_actors._supervision.watching import EventRelay
-    from rr_actors._transport.base import Address, Transport
+    from rr_actors._transport.messenger import Address, Transport
 
 __all__ = [
     "Child",

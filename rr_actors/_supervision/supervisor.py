@@ -95,7 +95,7 @@ if TYPE_CHECKING:
     import socket
 
     from rr_actors._supervision.watching import Page
-    from rr_actors._transport.base import Transport
+    from rr_actors._transport.messenger import Transport
 
 __all__ = [
     "Backoff",

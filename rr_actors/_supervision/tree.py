@@ -74,7 +74,7 @@ from rr_actors.errors import (
 )
 
 if TYPE_CHECKING:
-    from rr_actors._transport.base import Transport
+    from rr_actors._transport.messenger import Transport
 
 __all__ = [
     "CONSUMERS",

@@ -1,16 +1,9 @@
 """What crosses the wire: frames of `token + pickle`, with a fast path for small data.
 
-Wire format: one frame per message (`multiprocessing.connection` framing), `8-byte token
-(little endian) + payload`. Small builtin data and the wire protocol's own records are
-pickled by the C pickler alone (`plain`); everything else, the user's requests and
-responses included, by cloudpickle (so they may be closures). A message's `reply` never
-crosses: the sender keeps it under the token (0: no answer wanted). A receiver reads a
-frame's header before its body: a frame whose payload is over its limit is skipped
-without being kept (`Oversized`).
-
-How a value is pickled (`plain` data by the C pickler, the rest by cloudpickle, code
-keeping the name of its file) is `rr_actors._core.wire`'s, shared with the catalog's
-backup; this module frames the bytes and reads frames back.
+One frame per message (`multiprocessing.connection` framing): an 8-byte token (little
+endian; 0: no answer wanted, the sender keeps the reply under it), then the payload,
+pickled as `rr_actors._core.wire` says. A frame over the receiver's limit is skipped
+unread (`Oversized`).
 """
 
 from __future__ import annotations
@@ -50,11 +43,8 @@ _LONG_LENGTH = struct.Struct("!iQ")  # ... for frames over 2 GiB: -1, then the l
 
 @dataclasses.dataclass(frozen=True)
 class Claim(WireMessage):
-    """Rule 22, carrier to carrier: the process that serves the kept one of two servers of
-    registrar `name` tells the other's process so, on the name's key (it may not hear the
-    kept one's token: a link that healed one way). Its fields are those a token carries
-    (the messenger's `Ranked`): who serves it (`who`, `process` as a number), since when
-    (`stamp`, `_core.hlc`), its side and the members then."""
+    """Rule 22, carrier to carrier: the process of the kept one of two servers of `name`
+    tells the other's (which may not hear its token); its fields are a token's (`Sided`)."""
 
     name: str
     who: str
@@ -94,12 +84,7 @@ class Run(WireMessage):
 
 
 def frame(token: int, obj: Any) -> bytes:
-    """The bytes on the wire for `obj`: header, `token`, pickle; pickling errors propagate.
-
-    The header is `multiprocessing.connection`'s, so the receiver reads frames with
-    `Connection.recv_bytes`. Small builtin data (`plain`) is pickled by the C pickler
-    alone; everything else by cloudpickle.
-    """
+    """The bytes on the wire for `obj`: header, `token`, pickle; pickling errors propagate."""
     if plain(obj):
         payload = pickle.dumps(obj, pickle.HIGHEST_PROTOCOL)
         size = len(payload) + _TOKEN.size
@@ -141,14 +126,8 @@ _SKIP_CHUNK = 64 * 1024
 
 
 def frames(conn: Connection, limit: int | None = None) -> Iterator[bytes | bytearray | Oversized]:
-    """The frames received on `conn`, until it ends (EOF, a socket error, a bad header).
-
-    Reads each frame's header first (`multiprocessing.connection`'s framing), then its
-    body. A frame whose payload is over `limit` bytes is not kept: once its token is
-    read, an `Oversized` stands in for it (so it can be answered at once), then the rest
-    of it is read into a small buffer and dropped; the connection stays in step for the
-    frames after it.
-    """
+    """The frames received on `conn`, until it ends (EOF, a socket error, a bad header); one
+    over `limit` bytes is an `Oversized` (its token read, the rest read and dropped)."""
     fd = conn.fileno()
     try:
         while True:

@@ -3,50 +3,13 @@
 A carrier moves frames between this process and the others of a system and reports
 what it sees of them coming and going; the rest is here, once for every carrier, as
 xoscar writes calls, futures and errors once above its `Channel`. A `Messenger` is one
-process's membership of a system: the `Transport` surface (resolve, serve, run, names,
-close), the names served here, the reply tokens, the stand-in reply, size limits,
-compensation, "send when served" and telling every endpoint what the carrier reports.
-The carrier gives it a `Route` per registrar reached, a `Listening` per registrar
-served here, and a link back to the process a message came from (`Carrier`):
-
-```
- naming (any thread)
- Messenger.resolve(name) ─ served here? None ─ carrier.knows(name)? ─► carrier.peer(name)
- Messenger.serve(endpoint) ─ the old one of that name (a restart here) stops ─►
-   carrier.listen(endpoint) -> Listening ─ listed ─ listening.settle() ─ watched: its
-   end stops it (Listening.stop) ─ endpoint.listening()
- Messenger.run(name, fn): served here: fn on this thread; else peer.run(fn)
-
- sending (any thread)
- Remote.tell(message) ─► send(): encode (reply kept under a token), route = peer.route()
-   ├─ over route.limit? MessageTooLargeError; unpicklable? ConfigError (nothing sent)
-   ├─ route.pending.expect(reply)  (`Replies`: where it waits for its answer)
-   └─ route.send(frame) ──────────────────────► the carrier: to the name's process
-        False (the route went): forget the reply, route.broken(), once more or gone()
- on an actor's thread, to a name a carrier has to ask the network for (its `Lanes`):
-   send_when_served(): encode here; on the name's lane (a carrier's thread, in order
-   with what follows): lanes.found(name)? check size, expect, send now : fail the reply,
-   then lanes.retire(lane): what waits behind it fails after it, with its error
- Remote.run(fn) ─► submit(fn): tell(Run(fn, reply)) ─► wait (an event loop awaits it)
-
- receiving (the carrier's receiving thread calls the messenger)
- bytes for a registrar here ─► Messenger.message(endpoint, process, token, payload):
-   over its limit? refused unread; unpickle; `StandIn` reply; tell the registrar
- the stand-in answers ─► pickles? over the limit? ─► carrier.answer_to(process, frame);
-   lost on the way: the message's compensation() to the registrar (`compensate`)
- an answer ─► route.pending.answered / too_large / refused (`Replies`; too large or
-   unreadable: compensate)
-
-```
-
-What it does with what the carrier reports (a loss, a heal): `Messenger`'s docstring.
-
-Carriers: `unix/` (a route is one connection; answers go back on the connection a
-message came on; presence from the runtime directory's files), `zenoh/` (a route is a
-registrar's key and the server seen for it; answers go to the sender's answer key;
-presence from liveliness tokens) and the in-memory double
-(`rr_actors.testing.MemoryNetwork`). Nothing here blocks on a peer: what it sends is
-queued or dropped by the carrier.
+process's membership of a system, the `Transport` the registrar sees: naming, the reply
+tokens, the stand-in reply, size limits, compensation, "send when served" and telling
+every endpoint (`Endpoint`) what the carrier reports. The carrier gives it a `Route` per
+registrar reached, a `Listening` per registrar served here, and a link back to the
+process a message came from (`Carrier`). The flow, and the contract every carrier keeps:
+docs/explanation/architecture.md ("The messenger and its links") and
+docs/explanation/failure-semantics.md ("What every carrier keeps").
 """
 
 from __future__ import annotations
@@ -57,17 +20,16 @@ import datetime
 import itertools
 import logging
 import pickle
-from collections.abc import Callable, Iterable
-from typing import Any, NamedTuple, Protocol, TypeVar, runtime_checkable
+from collections.abc import Callable
+from typing import Any, NamedTuple, Protocol
 
 from rr_actors._core import runtime
 from rr_actors._core.directory import DIRECTORY, Peer, Reply
 from rr_actors._core.hlc import seconds
 from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.replies import FutureReply, wait
-from rr_actors._transport.base import Endpoint
 from rr_actors._transport.codec import NO_REPLY, Claim, Run, frame, payload_size, what
-from rr_actors._transport.resolve import FIRST_SERVED, Resolution
+from rr_actors._transport.resolve import FIRST_SERVED, Resolution, Sided
 from rr_actors.errors import (
     CallTimeoutError,
     ConfigError,
@@ -83,20 +45,20 @@ from rr_actors.errors import (
 )
 
 __all__ = [
+    "Address",
     "Carrier",
+    "Endpoint",
     "Lane",
     "Lanes",
     "Listening",
     "Lost",
     "Messenger",
     "Outgoing",
-    "Ranked",
     "Remote",
     "Replies",
     "Route",
     "StandIn",
-    "kept",
-    "rank",
+    "Transport",
     "run_lost",
     "send",
     "send_when_served",
@@ -119,41 +81,82 @@ Raises:
 """
 
 
+# -- what the messenger serves, and how another process joins ---------------------------------
+
+
+class Endpoint(Protocol):
+    """A registrar of this process, as the messenger serves it (`_registrar/life.py`'s
+    `Served`). The `peer_*`, `yield_name` and `keep_name` calls come on a carrier's
+    thread and return at once; what each rule asks of the registrar:
+    docs/explanation/failure-semantics.md ("What every carrier keeps")."""
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def max_message_bytes(self) -> int:
+        """The largest message or answer (pickled) it takes from another process."""
+        ...
+
+    def run(self, fn: Callable[[Any], Any]) -> Any:
+        """`fn(registrar)` on the calling thread."""
+        ...
+
+    def wait_ended(self, timeout: float | None = None) -> bool:
+        """Block until the registrar ended; whether it did."""
+        ...
+
+    def stopped_cleanly(self) -> bool:
+        """Whether it ended because its owner stopped it (not a crash)."""
+        ...
+
+    def listening(self) -> None:
+        """Served now: the other processes can reach it."""
+        ...
+
+    def peer_lost(self, name: str) -> None:
+        """Registrar `name` of another process is gone for good (rule 19)."""
+        ...
+
+    def peer_reachable(self, name: str) -> None:
+        """Registrar `name` can be reached again (a healed link, rule 20)."""
+        ...
+
+    def yield_name(self, reason: str) -> None:
+        """Another process's server of its name is kept (rule 22): unload, then stop."""
+        ...
+
+    def keep_name(self, reply: Reply) -> None:
+        """The one kept went for good while this one yields: `reply` gets whether it
+        serves on (rule 22)."""
+        ...
+
+
+class Address(Protocol):
+    """How another process joins the same system: it pickles; `attach()` joins there
+    (idempotent per process)."""
+
+    def attach(self) -> Messenger: ...
+
+
 # -- what a carrier implements --------------------------------------------------------------
 
 
 class Carrier(Protocol):
     """A carrier's link between this process and the others of its system: what the
-    messenger asks of it. What it tells the messenger is the other half: bytes for a
-    registrar served here (`Messenger.message`, `oversized`), an answer (the route's
-    `pending`: `Replies.answered`, `too_large`, `refused`), a route or a server gone
-    (`Replies.fail`), and its liveliness reports (`Messenger.lost`, `reachable`,
-    `served_elsewhere`), each with the evidence it has."""
+    messenger asks of it. It tells the messenger the rest: bytes for a registrar here
+    (`Messenger.message`), answers and losses (a route's `pending`: `Replies`), who is
+    lost, reachable or served twice (`Messenger.lost`, `reachable`, `served_elsewhere`)."""
 
-    def knows(self, name: str) -> bool:
-        """Whether registrar `name` of another process is served on the system, or was
-        (its messages then fail as for a registrar gone): a peer of it may be made.
-
-        Raises:
-            UnknownRegistrarError: the carrier asked, and nobody serves it (Zenoh).
-            RegistrarUnavailableError: it could not tell in time (a network that did
-                not answer).
-        """
-        ...
-
-    def peer(self, name: str) -> Remote:
-        """A peer of registrar `name` of another process (made once; the messenger keeps it)."""
+    def peer(self, name: str) -> Remote | None:
+        """A peer of registrar `name` of another process if it is served on the system, or
+        was (its messages then fail as for one gone); `None` if unknown. The messenger
+        keeps it. Raises as `Messenger.resolve`."""
         ...
 
     def listen(self, endpoint: Endpoint) -> Listening:
         """Take frames for a registrar of this process from now on (the server side).
-
-        Raises:
-            DuplicateNameError: another process of the system serves that name.
-            ConfigError: the carrier cannot serve it (a bad name or address).
-            RegistrarUnavailableError: it cannot tell in time whether another process
-                serves it.
-        """
+        Raises as `Messenger.serve`."""
         ...
 
     def answer_to(self, process: Any, data: bytes, on_lost: Lost | None) -> bool:
@@ -172,12 +175,8 @@ class Carrier(Protocol):
 
 
 class Route(Protocol):
-    """The way to one registrar's process, now (a carrier's): what a send needs of it.
-
-    The AF_UNIX carrier's route is a connection (`unix/link.py`'s `_Channel`), the
-    Zenoh carrier's the registrar's key and the server seen for it
-    (`zenoh/carrier.py`'s `_Route`), the in-memory double's its delivery queue.
-    """
+    """The way to one registrar's process, now: a connection (AF_UNIX), the registrar's
+    key and the server seen for it (Zenoh), a delivery queue (the in-memory double)."""
 
     @property
     def limit(self) -> int:
@@ -205,8 +204,7 @@ class Lane(Protocol):
     (Zenoh's outbox of a registrar's key): "send when served" runs there."""
 
     refusal: RrError | None
-    """Why it was retired (`Lanes.retire`): the error of every message that waited on it
-    (`None` while open, or once closed for another reason)."""
+    """Why it was retired (`Lanes.retire`): the error of what waited on it, else `None`."""
 
     def run(self, task: Callable[[], None]) -> bool:
         """Run `task` on the lane's thread, in order with what is sent to the name; False
@@ -227,10 +225,9 @@ class Lanes(Protocol):
         ...
 
     def found(self, name: str, lane: Lane) -> Route | RrError:
-        """On `lane`'s thread: ask the network for the server of `name` (bounded); its
-        route, whose `send` sends at once on this thread; else the error of the messages
-        held for it: nobody serves it (`unreached`), or the network could not tell in
-        time (`RegistrarUnavailableError`). The lane is then retired (`retire`)."""
+        """On `lane`'s thread: the route to the server of `name`, asked of the network
+        (bounded); else the error of what is held for it (`unreached`, or
+        `RegistrarUnavailableError`: the network could not tell), and it is retired."""
         ...
 
     def retire(self, lane: Lane, error: RrError) -> None:
@@ -244,12 +241,8 @@ class Lanes(Protocol):
 
 
 class Listening(abc.ABC):
-    """A registrar of this process as its carrier serves it: the server side of the link.
-
-    The messenger stops it once (`stop`, holding `lock`: a second stop waits until the
-    first is done), when the registrar ends, when this process leaves the system, or
-    when it yields its name (`yielded`, rule 22).
-    """
+    """A registrar of this process as its carrier serves it. The messenger stops it once
+    (`stop`, holding `lock`), as the registrar ends, this process leaves, or it yields."""
 
     def __init__(self, endpoint: Endpoint) -> None:
         self.endpoint = endpoint
@@ -279,54 +272,6 @@ class Listening(abc.ABC):
 # -- rule 22: two servers of one name ---------------------------------------------------------
 
 
-@runtime_checkable
-class Ranked(Protocol):
-    """A server of a name as rule 22 orders it: a carrier's view of a registrar served
-    here (its `Listening`) or in another process."""
-
-    @property
-    def stamp(self) -> int:
-        """When it began to serve (a `_core.hlc` stamp)."""
-        ...
-
-    @property
-    def who(self) -> str:
-        """Its process as the carrier names it (a Zenoh id, a simulated pid)."""
-        ...
-
-    @property
-    def rank(self) -> tuple[int, int]:
-        """Its place in rule 22's first-served order (`rank`)."""
-        ...
-
-    @property
-    def side(self) -> int:
-        """How many members its process heard when it began to serve (0: unknown)."""
-        ...
-
-    @property
-    def members(self) -> int:
-        """How many members the system had then, as its process counted them (0:
-        unknown)."""
-        ...
-
-
-R = TypeVar("R", bound=Ranked)
-
-
-def rank(stamp: int, process: int) -> tuple[int, int]:
-    """The place in rule 22's order of a server since `stamp` in process `process` (its
-    id as a number): of two servers of one name, the lower is kept (the earlier stamp;
-    of equal stamps, the lower process id, as claims tie-break)."""
-    return (stamp, process)
-
-
-def kept(servers: Iterable[R], resolution: Resolution = FIRST_SERVED, name: str = "") -> R | None:
-    """Which of the servers of registrar `name` is kept (rule 22: by the system's
-    `resolve=` policy, `resolution`; by default the lowest `rank`, served first)."""
-    return resolution.kept(name, servers)
-
-
 def when(stamp: int) -> str:
     """A registration stamp as people read it: UTC, to the microsecond."""
     at = datetime.datetime.fromtimestamp(seconds(stamp), datetime.UTC)
@@ -335,12 +280,8 @@ def when(stamp: int) -> str:
 
 class Remote(abc.ABC):
     """A registrar of another process as a `Peer`: `tell` and `run` are here; a carrier
-    gives each name its `route()` and the error of a name that cannot be reached.
-
-    A peer whose route may have to ask the network (Zenoh's) sends, on an actor's
-    thread, which must never wait on the network, a message to a name its carrier does
-    not see served from the name's lane (`send_when_served`, over the carrier's `Lanes`).
-    """
+    gives each name its `route()` and the error of a name that cannot be reached (a
+    Zenoh peer may send from a lane instead: `send_when_served`)."""
 
     name: str
 
@@ -349,8 +290,7 @@ class Remote(abc.ABC):
         """The way to the registrar now (a carrier's).
 
         Raises:
-            RegistrarUnavailableError: its process is gone or cannot be reached.
-            RegistrarStoppedError: it was stopped, or this process left the system.
+            RegistrarUnavailableError, RegistrarStoppedError: as `tell`.
         """
 
     @abc.abstractmethod
@@ -358,13 +298,8 @@ class Remote(abc.ABC):
         """The error of a message whose frame could not leave (the route went)."""
 
     def tell(self, message: Any) -> None:
-        """Send `message`; its reply (if any) is answered later. Never blocks on the peer.
-
-        Called from any thread of this process. Messages told to one peer from one
-        process arrive in the order they were told. A peer that is unreachable, frozen
-        or dies later fails the reply (`RegistrarUnavailableError`, or
-        `RegistrarStoppedError` if it was stopped); a caller waiting on it with a
-        timeout gets its `CallTimeoutError` in time.
+        """Send `message` (any thread; in order per peer; never blocks on the peer); its
+        reply, if any, is answered later or fails (the carrier contract's "send").
 
         Raises:
             ConfigError: the message (say, the request of a call) cannot be pickled.
@@ -380,26 +315,9 @@ class Remote(abc.ABC):
         self.tell(message)
 
     def run(self, fn: Callable[[Any], Any], *, timeout: float) -> Any:
-        """Run `fn(registrar)` in the registrar's process and return its result.
-
-        `fn` is cloudpickled (closures work) and runs on a fresh thread there, so it may
-        block, e.g. on `registrar.send_status(...)`.
-
-        Args:
-            fn: called with the remote `ResourceRegistrar`; its result must pickle.
-            timeout: seconds to wait for the result.
-
-        Returns:
-            What `fn` returned.
-
-        Raises:
-            CallTimeoutError: no result within `timeout` seconds.
-            RegistrarUnavailableError: the registrar's process died or is unreachable.
-            RegistrarStoppedError: the registrar was stopped.
-            ConfigError: `fn` does not pickle.
-            RrError: its result does not pickle (the message says so).
-            Exception: whatever `fn` raised, re-raised here.
-        """
+        """`fn(registrar)` (cloudpickled) on a fresh thread of the registrar's process;
+        what it returns, or raises. Raises as `Messenger.run`, and `ConfigError` (`fn`
+        does not pickle) or `RrError` (its result does not)."""
         return wait(self.submit(fn).future, timeout, f"run() on registrar {self.name!r}")
 
     def submit(self, fn: Callable[[Any], Any]) -> FutureReply:
@@ -476,18 +394,9 @@ def check_size(outgoing: Outgoing, name: str, limit: int) -> None:
 
 
 def send(peer: Remote, message: Any) -> None:
-    """Send `message` to registrar `peer.name` over `peer.route()`; its reply (if any)
-    waits on the route for the answer. Never blocks on the peer (see `Remote.tell`).
+    """`Remote.tell`: over `peer.route()`; a frame that cannot leave goes once more over a
+    fresh route if `Route.broken` allows (raises `peer.gone()` else)."""
 
-    A frame that cannot leave (the route just went) goes once more over a fresh route if
-    the carrier says one may take it (`Route.broken`), unless the route's end already
-    failed the reply.
-
-    Raises:
-        ConfigError: the message cannot be pickled.
-        MessageTooLargeError: pickled, it is over the registrar's `max_message_bytes`.
-        RrError: `peer.route()`'s error, or `peer.gone()` if the frame could not leave.
-    """
     outgoing = encode(peer.name, message)
     reply = outgoing.reply
     for _attempt in (1, 2):
@@ -508,18 +417,11 @@ def send(peer: Remote, message: Any) -> None:
 
 def send_when_served(peer: Remote, lanes: Lanes, message: Any) -> None:
     """Send `message` to registrar `peer.name`, which the carrier does not see served
-    (`Lanes.unseen`), without waiting: an actor's thread must answer its next message
-    (a supervisor's heartbeat too) however slow the network is.
-
-    It is framed here and queued on the name's lane, in order with what is sent to that
-    name after it; there the network is asked (`Lanes.found`), then the frame is sent
-    to the server found, or its reply fails: `Lanes.unreached` if nobody serves the
-    name, `RegistrarUnavailableError` if the network could not tell in time, and then
-    what waits behind it on the lane fails after it with the same error (messages told
-    to a name not served yet are delivered in order once it is, or refused in order);
-    `MessageTooLargeError` if it is over that server's `max_message_bytes`. A message
-    without a reply is then dropped (logged at debug level), as the registrar drops one
-    that cannot be sent at once.
+    (`Lanes.unseen`), without waiting (an actor's thread must answer its next message
+    however slow the network is): framed here, queued on the name's lane in order; there
+    the network is asked (`Lanes.found`), then it is sent, or its reply fails and so does
+    what waits behind it, with the same error (`Lanes.retire`). One without a reply is
+    then dropped (logged at debug level).
 
     Raises:
         ConfigError: the message cannot be pickled.
@@ -580,14 +482,9 @@ def _unsent(outgoing: Outgoing, error: RrError) -> None:
 
 
 class Replies(dict[int, tuple[Reply, Any, "Remote", int]]):
-    """Replies waiting for an answer, by token; each is answered exactly once.
-
-    An entry is `(reply, message, peer, limit)`: the reply, the message (for error texts
-    and its compensation), the peer it went to (a compensation goes back to it) and that
-    registrar's `max_message_bytes` (a larger answer is refused unread). Entries leave
-    only through atomic dict operations (`pop` by the receiving thread, `popitem` or
-    `pop` when they fail), so an answer and a failure never both reach one reply.
-    """
+    """Replies waiting for an answer, by token: `(reply, message, peer, limit)`. Entries
+    leave only through atomic dict operations, so an answer and a failure never both
+    reach one reply."""
 
     __slots__ = ()
 
@@ -602,7 +499,7 @@ class Replies(dict[int, tuple[Reply, Any, "Remote", int]]):
         return self.pop(token, None) is not None
 
     def take(self, name: str | None = None) -> list[Reply]:
-        """Stop waiting on registrar `name` (`None`: on every one); the replies, to fail."""
+        """Stop waiting on registrar `name` (`None`: every one); the replies, to fail."""
         taken: list[Reply] = []
         if name is None:
             while True:
@@ -627,9 +524,8 @@ class Replies(dict[int, tuple[Reply, Any, "Remote", int]]):
             reply.set_error(error)  # type: ignore[arg-type]
 
     def answered(self, token: int, payload: bytes | memoryview) -> None:
-        """Resolve the reply waiting for answer `token` (`payload`, pickled); an answer
-        over the limit or that cannot be unpickled fails it (see `answer_too_large`,
-        `answer`). An answer nobody waits for (any more) is dropped."""
+        """Resolve the reply waiting for answer `token` (`payload`, pickled; over the limit:
+        `answer_too_large`); an answer nobody waits for is dropped."""
         entry = self.pop(token, None)
         if entry is None:
             return
@@ -647,8 +543,7 @@ class Replies(dict[int, tuple[Reply, Any, "Remote", int]]):
             answer_too_large(reply, message, peer.name, size, limit, peer.tell)
 
     def refused(self, token: int, versions: str) -> None:
-        """Answer `token` says the message was of another version (`versions` says
-        which): not read there; its reply fails with a `TransferError`."""
+        """Answer `token`: the message was of another version (`versions`), not read."""
         entry = self.pop(token, None)
         if entry is not None:
             reply, message, peer, _limit = entry
@@ -665,29 +560,11 @@ class Replies(dict[int, tuple[Reply, Any, "Remote", int]]):
 
 
 class Messenger:
-    """One process's membership of a system over a carrier: the `Transport` surface
-    (`rr_actors._transport.base`), written once for every carrier.
-
-    A carrier's public class (the AF_UNIX `System`, a `ZenohNetwork`, the in-memory
-    double) is one, and gives it its `Carrier` (`joined`).
-
-    ```
-     what the carrier reports (its threads)
-     a route or a server gone ─► route.pending.fail / Replies.fail(name): at once
-     a registrar lost for good / reachable again ─► Messenger.lost / reachable: the
-       process's membership (`_core/membership.py`) records it and every registrar served
-       here hears it (rule 19, rule 20)
-     another process serves a name served here too (rule 22) ─► served_elsewhere(name,
-       rival): the decision, once for every carrier (the system's `resolve=` policy,
-       `resolution`, by default the one served first: `rank`, `kept`, `resolve.py`); this
-       one not kept ─► give_way: stop serving it, the registrar
-       yields its name; at its end, its consumers here reconcile with the one kept
-       (`reachable`); the one here kept ─► _claim: the carrier's `tell_server` puts a
-       `Claim` for the other's process (it may not hear this one: a heal heard one way),
-       whose messenger decides from it as from a token (`served_elsewhere`)
-     the one kept lost for good while the one here yields ─► lost(name) ─► _keep: the
-       registrar serves on once its unloads are done (`Endpoint.keep_name`), served again
-    ```
+    """One process's membership of a system over a carrier (the `Transport`), written once
+    for every carrier; a carrier's public class (the AF_UNIX `System`, a `ZenohNetwork`,
+    the in-memory double) is one and gives it its `Carrier` (`joined`). What it does with
+    what a carrier reports: docs/explanation/inside.md ("What the messenger does with what
+    a carrier reports").
 
     Args:
         system: the system's name (in messages; the AF_UNIX carrier's runtime directory).
@@ -712,10 +589,15 @@ class Messenger:
         self._lock = runtime.Lock()
         self._served: dict[str, Listening] = {}
         self._yielding: dict[str, Listening] = {}  # rule 22: given way, not ended yet
-        self._early: dict[str, list[Ranked]] = {}  # names being served: rivals heard meanwhile
+        self._early: dict[str, list[Sided]] = {}  # names being served: rivals heard meanwhile
         self._peers: dict[str, Remote] = {}
         self._carrier: Carrier | None = None
         self._lookup: Callable[[str], Peer] = DIRECTORY.lookup
+
+    @property
+    def address(self) -> Address:
+        """What to hand to processes that should join the same system (its carrier's)."""
+        raise NotImplementedError
 
     def joined(self, carrier: Carrier) -> None:
         """Its carrier is open: names not registered here are asked of it from now on."""
@@ -732,8 +614,8 @@ class Messenger:
     # -- the Transport surface -----------------------------------------------------------
 
     def resolve(self, name: str) -> Peer | None:
-        """A peer for registrar `name` of another process, or `None` if it is served here
-        (the directory's own record says stopped or died) or unknown to the carrier.
+        """A peer for registrar `name` of another process; `None` if it is served here or
+        unknown to the carrier.
 
         Raises:
             UnknownRegistrarError: the carrier asked, and nobody serves `name`.
@@ -744,20 +626,19 @@ class Messenger:
             return peer
         if self.closed or name in self._served:
             return None
-        carrier = self.link()
-        if not carrier.knows(name):
+        made = self.link().peer(name)
+        if made is None:
             return None
         with self._lock:
-            return self._peers.setdefault(name, carrier.peer(name))
+            return self._peers.setdefault(name, made)
 
     def names(self) -> list[str]:
         """The registrars of the system the carrier can reach now (any host)."""
         return [] if self.closed else self.link().names()
 
     def serve(self, endpoint: Endpoint) -> None:
-        """Make a registrar of this process reachable from the others of the system; the
-        carrier stops serving it by itself when it ends. Serving a name again (a
-        registrar restarted in this process) stops serving the old one first.
+        """Make a registrar of this process reachable from the others of the system until
+        it ends; serving a name again (a restart here) stops serving the old one first.
 
         Raises:
             DuplicateNameError: another process of the system serves that name.
@@ -797,9 +678,8 @@ class Messenger:
         endpoint.listening()
 
     def run(self, name: str, fn: Callable[[Any], Any], *, timeout: float) -> Any:
-        """Run `fn(registrar)` where registrar `name` lives and return what it returns:
-        on the calling thread for one served here, else through the carrier
-        (`Remote.run`).
+        """`fn(registrar)` where registrar `name` lives (here: on this thread; else
+        `Remote.run`); what it returns.
 
         Raises:
             UnknownServerError: nobody serves that name on the system.
@@ -823,25 +703,15 @@ class Messenger:
 
     def serving_trouble(self, name: str) -> tuple[float, str] | None:
         """For how long (seconds) and why registrar `name`, served here, has been unable to
-        take new connections (an AF_UNIX listener out of file descriptors keeps trying);
-        `None` if it can, or if it is not served here.
-
-        A manager process reports it with each heartbeat answer, so its supervisor can
-        restart a manager that stays unable to accept.
-        """
+        take new connections (a manager reports it with each heartbeat answer); `None` if
+        it can, or if it is not served here."""
         listening = self._served.get(name)
         return None if listening is None else listening.trouble()
 
     def supervised_by(self, pid: int | None) -> None:
-        """Say that process `pid` speaks for the registrars this process serves from now on
-        when this process dies (rule 19): it restarts them, or sends their death watch (a
-        manager process's supervisor, or the owner of a `RemoteRegistrar`; the manager
-        process says so, `_process/child.py`); `None`: nobody. Until then nobody does,
-        except for a registrar with `DIRECTORY.restart_expected(name)` (its own process).
-
-        Each carrier publishes it with what it serves from then on: AF_UNIX in
-        `<runtime_dir>/<name>.restart`, Zenoh in the registrar's liveliness token.
-        """
+        """Process `pid` speaks for the registrars this process serves from now on if it
+        dies (rule 19: it restarts them or sends their death watch; `None`: nobody). Each
+        carrier publishes it with what it serves from then on."""
         self.supervisor = pid
 
     def close(self) -> None:
@@ -880,12 +750,9 @@ class Messenger:
         return self._peers.get(name)
 
     def give_way(self, listening: Listening, reason: str) -> None:
-        """Another process's server of `listening`'s name is kept (rule 22, the carrier's
-        verdict): this one stops serving (nothing more reaches it; its consumers elsewhere
-        see it go and reconcile with the one kept), and the registrar unloads what it
-        serves and stops (`Endpoint.yield_name`); at its end, its consumers here
-        reconcile with the one kept too. As Erlang's `global` resolves a name registered
-        on both sides of a netsplit. `reason` says why (an ERROR line)."""
+        """Another process's server of `listening`'s name is kept (rule 22): this one stops
+        serving and its registrar yields (`Endpoint.yield_name`); `reason` says why (an
+        ERROR line)."""
         with listening.lock:
             if listening.ended:
                 return
@@ -902,21 +769,17 @@ class Messenger:
         listening.endpoint.yield_name(reason)
         listening.yield_told.set()  # (a `keep_name` is told after it: `_keep`)
 
-    def served_elsewhere(self, name: str, rival: Ranked) -> None:
-        """Another process serves registrar `name` too (its carrier sees both, rule 22):
-        if this process serves it and rule 22 keeps `rival` (by the system's `resolve=`
-        policy, `resolution`; by default the one served first, by its clock stamp; of
-        equal stamps, the lower process id), this one gives way (`give_way`). The process
-        of the one kept does nothing: this one sees it too, and yields. Told while `serve`
-        lists it (a `Claim` can come once its carrier serves it, before it is listed), it
-        is settled once listed."""
+    def served_elsewhere(self, name: str, rival: Sided) -> None:
+        """Another process serves registrar `name` too (rule 22): if one served here is
+        not the one `resolution` keeps, it gives way (`give_way`); if it is, the other's
+        process is told (`_claim`). Told while `serve` lists it, settled once listed."""
         with self._lock:
             local = self._served.get(name)
             early = self._early.get(name) if local is None else None
             if early is not None:
                 early.append(rival)
                 return
-        if not isinstance(local, Ranked) or rival.who == local.who:
+        if not isinstance(local, Sided) or rival.who == local.who:
             return
         if self.resolution.kept(name, [local, rival]) is local:
             self._claim(name, local, rival)
@@ -929,11 +792,9 @@ class Messenger:
             f"22), and resolve={self.resolution.resolve!r} keeps the other one",
         )
 
-    def _claim(self, name: str, local: Ranked, rival: Ranked) -> None:
-        """`local` (served here) is kept over `rival`: tell `rival`'s process, which may not
-        hear `local`'s token (a link that healed one way), so it yields all the same
-        (its carrier's `tell_server(name, rival, claim)`: Zenoh's and the simulated one;
-        a `Claim` heard here goes to `served_elsewhere`)."""
+    def _claim(self, name: str, local: Sided, rival: Sided) -> None:
+        """`local` (served here) is kept over `rival`: tell `rival`'s process (which may not
+        hear `local`'s token after a one-way heal) through the carrier's `tell_server`."""
         process = local.rank[1]
         claim = Claim(name, local.who, local.stamp, process, local.side, local.members)
         tell = getattr(self.link(), "tell_server", None)  # (carriers that see two servers)
@@ -956,12 +817,8 @@ class Messenger:
             ).start()
 
     def _keep(self, listening: Listening) -> None:
-        """The registrar kept in `listening`'s place went for good before `listening`'s
-        yield ended (rule 22): the name would be served by nobody. The registrar serves on
-        if it has not begun to stop (`Endpoint.keep_name`: once what it unloads is gone),
-        and the carrier serves it again; this process's consumers of it reconcile with it
-        (rule 20), as the others do once they see it served. If the carrier cannot serve it
-        (another process serves the name by now), it yields again."""
+        """The one kept in `listening`'s place went for good before its yield ended (rule
+        22): it serves on if it may (`Endpoint.keep_name`), else yields again."""
         name, endpoint = listening.name, listening.endpoint
         if not listening.yield_told.wait(5.0):  # (the give-way thread tells it next)
             return
@@ -1006,9 +863,8 @@ class Messenger:
         MEMBERSHIP.reachable(name, hearers=self._hearers())
 
     def forget_in_child(self) -> None:
-        """In a forked child: drop the parent's listeners and peers (their threads are not
-        here) without touching them; nobody speaks for the child's registrars. Takes no
-        lock (a thread of the parent may have held it at the fork)."""
+        """In a forked child: drop the parent's listeners and peers without touching them
+        (nobody speaks for the child's registrars). Takes no lock."""
         self._lock = runtime.Lock()
         served, peers = list(self._served.values()), list(self._peers.values())
         self._served.clear()
@@ -1034,9 +890,9 @@ class Messenger:
             self.reachable(listening.name)
 
     def _unserve(self, listening: Listening, *, stopped: bool) -> None:
-        """Stop serving `listening` (once; a second caller waits until it is done), then
-        let go of it: while it is listed, `close` finds it and waits too (a process may
-        exit right after its own `close`)."""
+        """Stop serving `listening` (once; a second caller, `close` too, waits until it is
+        done), then let go of it."""
+
         with listening.lock:
             if listening.ended:
                 return
@@ -1055,16 +911,10 @@ class Messenger:
         self, endpoint: Endpoint, process: Any, token: int, payload: bytes | memoryview
     ) -> None:
         """Deliver one message (`payload`, pickled) from `process` (answers go back to
-        it) to `endpoint`, a registrar served here (the carrier's receiving thread).
-
-        One over the registrar's `max_message_bytes` is refused unread (`oversized`). One
-        that wants an answer (`token`) gets a `StandIn` as its reply. One that cannot be
-        unpickled, or wants an answer but has no `reply` field, is answered with a
-        `TransferError` or `InternalError` (dropped if it wants none). A `Run` runs on a
-        fresh thread (`rr-run-<name>`), not on the registrar. If the registrar cannot be
-        told, the stand-in reply answers the error; a message that wants no answer, for a
-        registrar that is gone (stopped, dead, being restarted: a peer's message racing
-        its end), is dropped with one INFO line that says so.
+        it) to `endpoint`, a registrar served here (the carrier's receiving thread): over
+        its limit, refused unread (`oversized`); unreadable or unanswerable, answered with
+        the error; a `StandIn` as its reply; a `Run` on a fresh thread. One that wants no
+        answer, for a registrar gone meanwhile, is dropped with one INFO line.
 
         Raises:
             Exception: the registrar cannot be told for another reason and the message
@@ -1141,17 +991,17 @@ class Messenger:
             self._carrier.answer_to(process, frame(token, (None, error)), None)
 
 
+Transport = Messenger
+"""One process's membership of a system, over one carrier: what the registrar, the process
+layer and the supervisor see of a carrier (the contract every carrier keeps:
+docs/explanation/failure-semantics.md, "What every carrier keeps")."""
+
+
 class StandIn:
     """The stand-in for a sender's reply, given to a delivered message: answers to its
-    sender `process` (`carrier.answer_to`), for registrar `name` of this process (`limit`:
-    its `max_message_bytes`).
-
-    An answer that does not pickle, or is over `limit`, becomes an error answer (the
-    caller never hangs). When a successful answer does not reach its caller (it does not
-    pickle, is too large, or the caller is gone first), the message's `compensation()` is
-    told to the local registrar: for a `Load`, the consumer id it created is released
-    again.
-    """
+    sender `process` (`carrier.answer_to`). An answer that does not pickle or is over
+    `limit` becomes an error answer; one that does not reach its caller has the
+    message's `compensation()` told to registrar `name` (a `Load`'s id released)."""
 
     __slots__ = (
         "_carrier",
@@ -1231,9 +1081,8 @@ class StandIn:
 
 
 def compensate(message: Any, tell: Tell) -> None:
-    """The caller of `message` gets an error instead of its answer: undo what handling it
-    created by telling its `compensation()` (a `Load`'s: an `Abandon` of its consumer id),
-    if any, through `tell`; an `RrError` from `tell` is ignored."""
+    """The caller of `message` gets an error instead of its answer: tell its
+    `compensation()`, if any (a `Load`'s `Abandon`), through `tell` (an `RrError` ignored)."""
     compensation = message.compensation()
     if compensation is not None:
         with contextlib.suppress(RrError):
@@ -1243,9 +1092,8 @@ def compensate(message: Any, tell: Tell) -> None:
 def answer_too_large(
     reply: Reply, message: Any, name: str, size: int, limit: int, tell: Tell
 ) -> None:
-    """The answer of registrar `name` to `message` is `size` bytes pickled, over `limit`
-    (its `max_message_bytes`), and was not read: undo what it created (`compensate`),
-    then fail `reply` with a `MessageTooLargeError`."""
+    """The answer of registrar `name` to `message`, `size` bytes, is over `limit` and was
+    not read: `compensate`, then fail `reply` with a `MessageTooLargeError`."""
     compensate(message, tell)
     reply.set_error(
         MessageTooLargeError(
@@ -1258,13 +1106,8 @@ def answer_too_large(
 
 
 def answer(reply: Reply, message: Any, name: str, payload: bytes | memoryview, tell: Tell) -> None:
-    """Unpickle the answer (`payload`) of registrar `name` to `message`; resolve `reply`.
-
-    An answer that cannot be unpickled here fails `reply` with the message's
-    `unreadable_answer` error, after undoing what handling it created (`compensate`);
-    one that is not a `(value, error)` pair of an exception fails it with an
-    `InternalError`.
-    """
+    """Unpickle the answer (`payload`) of registrar `name` to `message`; resolve `reply`
+    (unreadable: its `unreadable_answer` error, after `compensate`)."""
     try:
         value, error = pickle.loads(payload)
     except BaseException as exc:  # noqa: BLE001 - any unpickling failure fails this answer

@@ -1,22 +1,8 @@
 """Which of two servers of one name is kept after a heal (rule 22): the system's policy.
 
-```
- a carrier sees two servers of one name (after a healed cut)
-   ─► each as a `Claimant` (plain data: name, process, served-since stamp, its side)
-   ─► `Resolution.keep(first, second)`: "first_served" | "majority" | the user's function
-        (an error or an answer that is neither claimant: WARNING, first served)
-   ─► the one kept serves on; the other yields (`Messenger.served_elsewhere`)
-```
-
-Every process of a system decides alone, from the same data (the servers' tokens), so
-every process must use the same policy and reach the same answer: a user's function
-must be deterministic (no clock, no randomness, no state of its own process).
-
-What each strategy loses (docs/explanation/failure-semantics.md): "first_served" keeps
-the registrar that served first, so what the other side loaded during the cut is undone
-(the lone host beats the majority); "majority" keeps the one whose side held a majority
-of the system's members when it began to serve, so what the minority side loaded is
-undone, as Akka's split-brain resolver (`keep-majority`) downs the minority.
+Each process decides alone from the same data (the servers' tokens, as `Claimant`s), so
+all must use the same policy, and a user's function must be deterministic; what each
+strategy loses: docs/explanation/failure-semantics.md ("Which one a heal keeps").
 """
 
 from __future__ import annotations
@@ -24,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from collections.abc import Callable, Iterable
-from typing import Protocol, TypeVar
+from typing import Protocol, TypeVar, runtime_checkable
 
 from rr_actors._core.hlc import seconds
 from rr_actors._core.throttle import LogThrottle
@@ -82,8 +68,11 @@ Resolve = str | Callable[[Claimant, Claimant], Claimant]
 """`resolve=`: `"first_served"`, `"majority"`, or `fn(first, second) -> the one kept`."""
 
 
+@runtime_checkable
 class Sided(Protocol):
-    """A server of a name as a carrier sees it (its `Ranked` with its side)."""
+    """A server of a name as rule 22 orders it: a carrier's `Listening` served here, or
+    one it sees elsewhere. `rank` is `(stamp, process id as a number)`: the lower served
+    first (of equal stamps, the lower process id, as claims tie-break)."""
 
     @property
     def stamp(self) -> int: ...

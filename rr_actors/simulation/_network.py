@@ -58,18 +58,15 @@ from typing import Any
 
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.hlc import CLOCK, from_seconds
-from rr_actors._transport.base import Endpoint
 from rr_actors._transport.codec import Claim, split_frame
 from rr_actors._transport.messenger import (
+    Endpoint,
     Lost,
     Messenger,
-    Ranked,
     Replies,
-    kept,
-    rank,
     run_lost,
 )
-from rr_actors._transport.resolve import Resolution, Resolve
+from rr_actors._transport.resolve import Resolution, Resolve, Sided
 from rr_actors.errors import RegistrarStoppedError, RegistrarUnavailableError, RrError
 from rr_actors.simulation import _primitives as sim
 from rr_actors.simulation._processes import Process
@@ -337,7 +334,7 @@ def served_by(served: _Served) -> Process:
 
 class _Server(_Served):
     """A registrar served on the simulated network: its process, who speaks for it when
-    its process dies (rule 19), the stamp of when it began to serve (`Ranked`, rule 22)."""
+    its process dies (rule 19), the stamp of when it began to serve (`Sided`, rule 22)."""
 
     def __init__(
         self, hub: _SimulatedHub, endpoint: Endpoint, process: Process, speaker: int | None
@@ -349,7 +346,7 @@ class _Server(_Served):
         # its process's clock read (on its thread), not ticked: a reading is no event, and
         # the histories of runs without a second server stay as they were
         self.stamp = max(CLOCK.last, from_seconds(CLOCK.wall()))
-        # its side as it began to serve (`Ranked`, the `majority` strategy): every live
+        # its side as it began to serve (`Sided`, the `majority` strategy): every live
         # process is a member here; those its process hears are on its side
         live = [one.pid for one in hub.sched.processes if one.alive]
         self.members = len(live)
@@ -363,7 +360,7 @@ class _Server(_Served):
     @property
     def rank(self) -> tuple[int, int]:
         """Its place in rule 22's order (`messenger.rank`: the pid for a tie)."""
-        return rank(self.stamp, self.process.pid)
+        return (self.stamp, self.process.pid)
 
 
 class _SimulatedHub(_Hub):
@@ -553,7 +550,7 @@ class _SimulatedHub(_Hub):
 
     def _kept(self, name: str, servers: list[_Server]) -> _Server | None:
         """The server of `name` kept of `servers` (rule 22, by the network's `resolve`)."""
-        return kept(servers, self.network.resolution, name)
+        return self.network.resolution.kept(name, servers)
 
     def apart(self, link: _Link) -> bool:
         """Whether `link` crosses the partition, leads to a process silent past its
@@ -805,7 +802,7 @@ class _SimulatedHub(_Hub):
             rivals = [other for other in servers if other is not server]
             self._on_thread(server.process, "rival", self._served_elsewhere, name, rivals)
 
-    def tell_server(self, name: str, server: Ranked, claim: Claim) -> None:
+    def tell_server(self, name: str, server: Sided, claim: Claim) -> None:
         """Rule 22: the kept server's process tells the other server of `name`'s process
         (`server.who`, which may not hear it) with `claim`, as Zenoh's carrier puts it on
         the name's key: on a thread of that process, unless the network between is cut."""

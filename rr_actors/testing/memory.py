@@ -42,15 +42,17 @@ from typing import TYPE_CHECKING, Any
 
 from rr_actors._core import runtime
 from rr_actors._core.serial import SerialExecutor, Task
-from rr_actors._transport.base import Address, Endpoint, Transport
 from rr_actors._transport.codec import split_frame
 from rr_actors._transport.messenger import (
+    Address,
     Carrier,
+    Endpoint,
     Listening,
     Lost,
     Messenger,
     Remote,
     Replies,
+    Transport,
     run_lost,
 )
 from rr_actors.config import check_seconds
@@ -198,14 +200,12 @@ class _Hub:
         self._answers = SerialExecutor("rr-mem-answers", on_drop=_lost)
         self._answers.start()  # (now: its thread is the network's process's)
 
-    def knows(self, name: str) -> bool:
-        return name in self._served or name in self._gone
-
     def names(self) -> list[str]:
         return [name for name, served in list(self._served.items()) if not served.cut]
 
-    def peer(self, name: str) -> _MemoryPeer:
-        return _MemoryPeer(self, name)
+    def peer(self, name: str) -> _MemoryPeer | None:
+        known = name in self._served or name in self._gone
+        return _MemoryPeer(self, name) if known else None
 
     def listen(self, endpoint: Endpoint) -> _Served:
         """Serve `endpoint` in a "process" of its own: refused while another serves its

@@ -6,7 +6,7 @@ manager's context and forkserver, its exit and CPU watches, a child's death with
 parent and its name, the runtime folder, the end of the main thread) run again in a
 subprocess with `RR_ACTORS_PLATFORM=portable`, as part of the normal run, so the
 fallback of each trick cannot rot. Modules that only use manager processes, through
-those places, are not run twice: `tests/transport/test_base.py` and
+those places, are not run twice: `tests/transport/test_transport.py` and
 `tests/transport/unix/test_link.py` (a third of this run's time) call no `PLATFORM`
 method of their own.
 """

@@ -698,7 +698,7 @@ def test_a_second_server_of_a_name_served_on_its_side_is_refused_and_the_first_s
     process that serves a name another live process serves is refused with
     `DuplicateNameError`, as on the real carriers (AF_UNIX: the name's `flock`; Zenoh:
     `Presence.wait_turn` sees its token), and the first serves on; the reference is
-    `tests/transport/test_base.py::TestAtTheCarrier::test_a_name_another_process_serves_is_refused_and_the_first_serves_on`.
+    `tests/transport/test_transport.py::TestAtTheCarrier::test_a_name_another_process_serves_is_refused_and_the_first_serves_on`.
     The simulated carrier ended the first on the network instead (its registrar ran on,
     reached by nobody) and let the second serve."""
 

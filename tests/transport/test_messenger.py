@@ -30,6 +30,7 @@ from rr_actors._registrar.messages import Fetch
 from rr_actors._transport import System
 from rr_actors._transport.unix.link import Listener
 from rr_actors.errors import InternalError, TransferError
+from rr_actors.testing import MemoryNetwork
 
 
 @pytest.fixture
@@ -213,3 +214,17 @@ class TestStoppingAListener:
 
         assert closed.is_set()
         assert not os.path.exists(listener.path)  # (the system's close removed the tombstone)
+
+
+def test_a_carrier_is_one_protocol_and_the_transport_is_the_messenger() -> None:
+    # Carriers only carry (issue 54): what a carrier gives the messenger is one protocol of
+    # at most eight members (open a route to a name, serve a name, answer, who can be
+    # reached, leave); the `Transport` the registrar sees is the messenger itself, and
+    # every carrier's membership is one.
+    from rr_actors._transport import messenger  # noqa: PLC0415
+
+    members = {name for name in vars(messenger.Carrier) if not name.startswith("_")}
+    assert {"peer", "listen", "answer_to", "names", "leave"} == members
+    assert messenger.Transport is messenger.Messenger
+    assert issubclass(System, messenger.Transport)
+    assert issubclass(MemoryNetwork, messenger.Transport)

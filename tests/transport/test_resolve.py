@@ -14,7 +14,7 @@ from rr_actors._transport.resolve import Resolution
 
 @dataclasses.dataclass(frozen=True)
 class Server:
-    """A carrier's view of a server (`Ranked`)."""
+    """A carrier's view of a server (`Sided`)."""
 
     who: str
     at: float

@@ -1,39 +1,8 @@
 """The AF_UNIX link: one connection per pair of processes and registrar, both ways.
 
-```
- process A (sender)                                         process B (serves "erm")
- RemotePeer("erm").route() ─ a _Channel: its Writer's thread connects, then the
-   authkey handshake (bounded) ──────────────── connect ──► Listener: accept thread
- send(frame): written inline if the socket takes it            _Accepted: handshake on
-   at once (MSG_DONTWAIT), else queued for the writer thread     its own thread, then
-                          ──────────────── frames ────────►    reads frames: messenger
-                                                                .message(endpoint, it)
- the channel's reader thread: answers ─► pending.answered ◄──── its Writer: answers
- the connection ends (EOF): what waits on it fails at once; the system judges the end
-   (rule 19: `system.py`)
-```
-
-Wire format: one frame per message (`multiprocessing.connection` framing), `8-byte token
-(little endian) + pickle` (`codec`). Both sides of a connection get one deadline,
-`HANDSHAKE_TIMEOUT` seconds, for everything before the first message: the connect (which
-waits for room in a full accept backlog) and every read and write of the handshake; a
-peer that trickles its handshake a byte at a time is cut off at the deadline. Nothing is
-unpickled from a connection before it passed the handshake
-(`multiprocessing.connection.deliver_challenge` / `answer_challenge`).
-
-Sending never blocks on the other process: a sender writes a frame itself only when
-nothing is queued and the socket takes all of it at once; otherwise the frame waits for
-the connection's writer thread (a `SerialExecutor`), the only thread that may block on a
-peer that does not read. A frozen peer therefore stalls only its own writer thread;
-callers still time out on their own timeouts.
-
-Each connection is bounded by the target's `max_message_bytes`, read from the `.limit`
-file its listener publishes: a larger message is refused before anything of it is sent,
-a larger answer is skipped unread (and the listener skips a larger message unread too).
-The listener holds the name's lock file for as long as it listens, so the socket path is
-its own. Its accept thread outlives running out of file descriptors: it backs off, tries
-again and says for how long it could not accept (`Listener.trouble`, for the manager's
-heartbeat answer).
+Frames are `codec`'s, after an authkey handshake bounded by `HANDSHAKE_TIMEOUT`; a
+sender never blocks on the other process (a connection's writer thread may). How and
+why: docs/explanation/inside.md ("The AF_UNIX link").
 """
 
 from __future__ import annotations
@@ -55,9 +24,16 @@ from multiprocessing.connection import Connection, answer_challenge, deliver_cha
 from typing import Protocol
 
 from rr_actors._core.serial import SerialExecutor, Task
-from rr_actors._transport.base import Endpoint
 from rr_actors._transport.codec import Oversized, frames, unframe
-from rr_actors._transport.messenger import Listening, Lost, Messenger, Remote, Replies, run_lost
+from rr_actors._transport.messenger import (
+    Endpoint,
+    Listening,
+    Lost,
+    Messenger,
+    Remote,
+    Replies,
+    run_lost,
+)
 from rr_actors.config import DEFAULT_MAX_MESSAGE_BYTES
 from rr_actors.errors import (
     ConfigError,
@@ -140,12 +116,8 @@ _LONG = struct.Struct("!Q")  # ... after a header of -1
 
 
 class _Timed:
-    """`send_bytes` and `recv_bytes` of `multiprocessing.connection` over `sock`, by `deadline`.
-
-    `deliver_challenge` and `answer_challenge` need only these two methods. Every read
-    and write waits at most until `deadline` (`time.monotonic()` seconds), so the whole
-    handshake, not each step of it, is bounded.
-    """
+    """`send_bytes` and `recv_bytes` (all `deliver_challenge` and `answer_challenge` need)
+    over `sock`, each bounded by `deadline`: the whole handshake is bounded."""
 
     __slots__ = ("deadline", "sock")
 
@@ -183,11 +155,8 @@ class _Timed:
 
 
 def handshake(sock: socket.socket, authkey: bytes, deadline: float, *, server: bool) -> None:
-    """Pass the mutual authkey handshake on `sock`, all of it before `deadline`
-    (`time.monotonic()` seconds).
-
-    The listening side (`server`) delivers its challenge first, the connecting side
-    answers it and then delivers its own. `sock` is left blocking (no timeout) afterwards.
+    """Pass the mutual authkey handshake on `sock` before `deadline` (monotonic seconds;
+    the `server` challenges first); `sock` is left blocking afterwards.
 
     Raises:
         AuthenticationError: the other side does not know `authkey`, or sent a malformed
@@ -237,16 +206,10 @@ def _send_timeout(sock: socket.socket, seconds: float) -> None:
 def connect(
     path: str, authkey: bytes, *, coming: Callable[[], bool] | None = None
 ) -> tuple[socket.socket, Connection]:
-    """Connect to `path` and pass the handshake, both within `HANDSHAKE_TIMEOUT` seconds.
-
-    When the listener's accept backlog is full (many peers connecting at once, or a
-    listener that is briefly out of file descriptors), the connect waits in the kernel
-    for room until the deadline, rather than failing at once: a blocking AF_UNIX
-    `connect` sleeps on the listener's queue, bounded by the socket's send timeout.
-    When nothing listens at `path` yet but `coming()` says a listener is on its way (a
-    restarted registrar holds its name's lock before it binds and listens), the connect
-    is tried again, at growing intervals up to `CONNECT_RETRY` seconds, until the
-    deadline: a message sent in that window waits for the listener rather than failing.
+    """Connect to `path` and pass the handshake, both within `HANDSHAKE_TIMEOUT` seconds: a
+    full accept backlog is waited out in the kernel, and while `coming()` says a listener
+    is on its way (a restart holds the name's lock before it listens) the connect is
+    tried again, up to `CONNECT_RETRY` seconds apart.
 
     Raises:
         OSError, EOFError: nothing listens there (and none is coming, or it did not come
@@ -287,12 +250,8 @@ coming (its name's lock held, its socket not listening yet)."""
 
 
 def lock_held(path: str) -> bool:
-    """Whether a process holds the name lock at `path` (a listener serves the name, or is
-    about to: it takes the lock before it binds).
-
-    Probes with a shared `flock` held for microseconds; a listener taking the lock meanwhile
-    retries (`LOCK_RETRY`). When it cannot tell, it says held (never a false loss).
-    """
+    """Whether a process holds (or is about to serve under) the name lock at `path`; a
+    shared `flock` held for microseconds probes it. Unsure: held (never a false loss)."""
     try:
         fd = os.open(path, os.O_RDONLY)
     except FileNotFoundError:
@@ -309,13 +268,9 @@ def lock_held(path: str) -> bool:
 
 
 class Writer:
-    """The send side of one connection: frames leave in the order they were sent.
-
-    A failed connect or a failed write of the writer thread closes the writer and calls
-    `on_failure(exc)` once; a sender whose own write fails gets False from `send` and
-    cleans up itself. The socket is closed after the last write (`shutdown` at `close`
-    ends a blocked one).
-    """
+    """The send side of one connection, in order. A failed connect or write of the writer
+    thread closes it and calls `on_failure(exc)` once; a sender's own failed write gets
+    False from `send`."""
 
     __slots__ = ("_closed", "_executor", "_lock", "_on_failure", "_sock")
 
@@ -337,13 +292,8 @@ class Writer:
         return self._closed
 
     def send(self, frame: bytes, on_lost: Lost | None = None) -> bool:
-        """Send `frame` or queue it (never blocks on the peer).
-
-        Returns:
-            True if the frame was sent or queued (if the connection ends before it is
-            sent, `on_lost` runs); False if the writer was closed or the connection broke
-            just now (the writer is then closed): nothing of the frame was sent.
-        """
+        """Send `frame` or queue it (never blocks on the peer; `on_lost` runs if the
+        connection ends first); False if nothing of it was sent (the writer is closed)."""
         if self._closed:
             return False
         task = _Frame(self, frame, on_lost)
@@ -368,13 +318,8 @@ class Writer:
             return True
 
     def close(self) -> bool:
-        """Stop sending and end the connection; queued frames are lost (their `on_lost`
-        runs). False if it was closed already.
-
-        The socket is shut down (here, and after the last write before it is closed,
-        whichever comes first), so a thread reading a duplicate of its descriptor wakes
-        and the peer reads the end at once.
-        """
+        """Stop sending and shut the connection down (a reader of its duplicate wakes);
+        queued frames are lost (their `on_lost` runs). False if it was closed already."""
         with self._lock:
             if self._closed:
                 return False
@@ -386,11 +331,8 @@ class Writer:
         return True
 
     def forget_in_child(self) -> None:
-        """In a forked child: close this process's copy of the socket, send nothing more.
-
-        Never `shutdown`: the socket is the parent's too, and a shutdown would end it for
-        the parent. Takes no lock (a thread of the parent may have held it at the fork).
-        """
+        """In a forked child: close this process's copy of the socket, never shut it down
+        (the parent's too). Takes no lock, as every `forget_in_child`."""
         self._closed = True
         self._lock = threading.Lock()
         self._executor = SerialExecutor(self._executor.name)
@@ -491,9 +433,7 @@ def _take_lock(path: str, name: str) -> int:
 
 
 def publish(path: str, text: str) -> None:
-    """Write `text` to `path`, atomically: to a temporary file, then renamed over `path`, so
-    a reader sees the old file or the new one, never half of one. The listener writes
-    its files while it holds the name's lock: no other process writes them meanwhile.
+    """Write `text` to `path` atomically (a temporary file renamed over it).
 
     Raises:
         OSError: the file cannot be written.
@@ -509,11 +449,8 @@ def publish(path: str, text: str) -> None:
 
 
 def read_limit(path: str) -> int:
-    """The limit published at `path`; `DEFAULT_MAX_MESSAGE_BYTES` if there is none.
-
-    A missing or unreadable file means the registrar is not listening (the connect then
-    fails) or was started by an older version: the default is the best guess.
-    """
+    """The limit published at `path`; `DEFAULT_MAX_MESSAGE_BYTES` if there is none (not
+    listening: the connect fails; or an older version)."""
     try:
         with open(path, "rb") as published:
             value = int(published.read(32))
@@ -526,12 +463,7 @@ def read_limit(path: str) -> int:
 
 
 class _Channel:
-    """One connection from this process to a remote registrar: the peer's `Route`.
-
-    `pending` holds the replies pending for an answer on it (the messenger's `Replies`:
-    each is answered, or failed when the channel is lost, exactly once). `limit` is the
-    target's `max_message_bytes`, both ways.
-    """
+    """One connection from this process to a remote registrar: the peer's `Route`."""
 
     __slots__ = ("limit", "peer", "pending", "reading", "writer")
 
@@ -592,12 +524,8 @@ class RemotePeer(Remote):
             self._open()
 
     def forget_in_child(self) -> None:
-        """In a forked child: drop the parent's connection (its threads are not here).
-
-        This process's copies of its descriptors are closed, never shut down (that would
-        end the parent's connection); its replies are the parent's callers' and are
-        dropped. The next `tell` connects anew, from the child. Takes no lock.
-        """
+        """In a forked child: drop the parent's connection and its replies (closed, never
+        shut down); the next `tell` connects anew."""
         self._lock = threading.Lock()
         channel, self._channel = self._channel, None
         if channel is None:
@@ -679,12 +607,7 @@ class RemotePeer(Remote):
         )
 
     def _read(self, channel: _Channel, conn: Connection) -> None:
-        """The reader thread of one connection: resolve answers until it ends.
-
-        An answer that cannot be unpickled here fails its reply; the message's
-        `compensation()` (a `Load`'s: an `Abandon` of its consumer id) goes back to the
-        peer, since the caller gets an error instead of what it asked for (`Replies`).
-        """
+        """The reader thread of one connection: resolve answers (`Replies`) until it ends."""
         pending = channel.pending
         try:
             for data in frames(conn, channel.limit):
@@ -739,11 +662,8 @@ class _Accepted:
         logger.debug("connection to a caller of %s lost: %s", self.listener.name, exc)
 
     def serve(self) -> None:
-        """Handshake, then deliver every message to the local registrar (its own thread).
-
-        The whole handshake must be done within `HANDSHAKE_TIMEOUT` seconds of the accept:
-        a peer that trickles it byte by byte is cut off at that deadline.
-        """
+        """Handshake (within `HANDSHAKE_TIMEOUT` of the accept), then deliver every message
+        to the local registrar (its own thread)."""
         listener = self.listener
         conn = self.conn
         try:
@@ -782,12 +702,9 @@ through once descriptors are free again."""
 
 
 class Listener(Listening):
-    """Accepts connections for one registrar served by this process (its `Listening`).
-
-    Holding the name's lock, it may unlink a socket left at its path by a process that
-    died; it publishes `.limit` and `.restart` (rule 19) before anyone connects. When
-    `accept` fails for lack of resources (`EMFILE`), it logs once, backs off (cut short
-    when one of its connections ends) and tries again while peers wait in the backlog.
+    """Accepts connections for one registrar served by this process (its `Listening`):
+    holding the name's lock, it publishes `.limit` and `.restart` before anyone connects;
+    out of descriptors, it logs once, backs off and tries again (`trouble`).
 
     Raises:
         DuplicateNameError: another process holds the name's lock.
@@ -827,10 +744,7 @@ class Listener(Listening):
         threading.Thread(target=self._accept, name=f"rr-listen-{self.name}", daemon=True).start()
 
     def trouble(self) -> tuple[float, str] | None:
-        """For how long (seconds) and why it has been unable to accept; `None` if it can.
-
-        Infinite seconds if its accept thread died (it never comes back by itself).
-        """
+        """`Listening.trouble`; infinite seconds if its accept thread died."""
         since = self._failing_since
         if since is None:
             return None
@@ -918,14 +832,10 @@ class Listener(Listening):
         self._wake.set()  # its descriptors are free: a listener backing off tries again
 
     def forget_in_child(self) -> None:
-        """In a forked child: let go of the parent's listener without touching it.
+        """In a forked child: close its copies of the socket, the name lock (a lock shared
+        with a child would outlive the parent) and every connection; nothing is shut down,
+        unlinked or written."""
 
-        Closes this process's copies of the listening socket, of the name lock's
-        descriptor (a lock shared with a child would outlive the parent: its peers would
-        think the name still served) and of every connection. Unlike `stop`, nothing is
-        shut down, unlinked or written: the socket, the lock and the files are the
-        parent's, which still serves the name. Takes no lock.
-        """
         self._closed = True
         connections = list(self._connections)
         self._connections.clear()

@@ -1,45 +1,8 @@
 """The AF_UNIX carrier: a system of registrars on one machine, met in a runtime directory.
 
-A *system* is a private runtime directory (mode 0700) plus a random authkey. Every
-process that takes part `attach`es it (an `AttachedSystem`: its messenger, with this
-carrier); each registrar it serves listens on `<runtime_dir>/<name>.sock` (the link:
-`link.py`). The directory is the system's rendezvous, and its files are the carrier's
-evidence of who serves what:
-
-```
- <name>.sock     the listener's socket: a process reaches the registrar there
- <name>.lock     its flock, held for as long as it listens: one name, one owner
- <name>.limit    its max_message_bytes, for senders (a larger message is never sent)
- <name>.restart  who speaks for it if its process dies: 0, or `<pid> <start time>`
- <name>.stopped  a tombstone: it was stopped cleanly (its messages fail as stopped)
-```
-
-Rule 19 (a registrar gone that nobody restarts is *lost*; the contract is in
-`rr_actors._transport.base`). Each listener publishes `<name>.restart`: `0` when nobody
-restarts the registrar, else the pid (and start time) of the process that speaks for it
-when it dies: the supervisor's process of a manager process (`_process/child.py` says so
-with `supervised_by`; that process restarts it, or sends the death watch if it gives up
-or owns an unsupervised `RemoteRegistrar`), or its own process while
-`DIRECTORY.restart_expected(name)` (a thread manager: it dies with that process). A
-process *judges* a registrar of another process when its connection to it ends or a
-connect to it fails (`UnixCarrier.ended`): a tombstone says stopped (nothing to do); a
-process that holds the name's lock serves it (after a grace of `ENDING_GRACE` s, for a
-process still exiting); otherwise, with no speaker or a speaker gone (or a zombie),
-every endpoint served in this process hears `peer_lost(name)` once (`Messenger.lost`,
-until the name is served again); with a living speaker, the name is *awaited*: polled
-every `AWAIT_POLL` s until it is served again (then this process, if it serves an
-endpoint, connects to it at once, so that its next death is seen too), stopped, or its
-speaker is gone too (then lost). The speaker's own process judges nothing of what it
-speaks for: it decides itself. The limits of this judgement: `UnixCarrier`'s docstring.
-
-Fork: a child forked from a process that joined a system is a member of it too (same
-runtime directory, same authkey), but none of the parent's listeners, connections or
-threads are its own. At the fork (`rr_actors._platform.fork`) each attached system drops
-them in the child: the child's copies of their descriptors are closed (never shut down,
-which would end them for the parent; the name locks' descriptors too, which would
-otherwise keep the parent's names locked after the parent died). The child then serves
-its own registrars and connects anew; and only the process that created a `System`
-removes its files at `close()`.
+Its files (`<name>.sock`, `.lock`, `.limit`, `.restart`, `.stopped`) say who serves what
+and who is lost for good (rule 19). How, why, and forks: docs/explanation/inside.md ("The
+AF_UNIX carrier").
 """
 
 from __future__ import annotations
@@ -55,8 +18,7 @@ import time
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._platform import PLATFORM, fork
-from rr_actors._transport.base import Endpoint
-from rr_actors._transport.messenger import Lost, Messenger
+from rr_actors._transport.messenger import Endpoint, Lost, Messenger
 from rr_actors._transport.unix.link import Listener, RemotePeer, _Accepted, lock_held
 from rr_actors.errors import ConfigError
 
@@ -121,23 +83,9 @@ class SystemAddress:
 class UnixCarrier:
     """The AF_UNIX carrier of one process's membership (the messenger's `Carrier`): names
     found in the runtime directory, a `RemotePeer` per name reached, a `Listener` per
-    registrar served, and who is lost (rule 19), judged from the directory's files on
-    the presence thread (`rr-unix-presence`).
-
-    The limits of judging who is lost (the module docstring):
-
-    - a process hears it only if it has, or tries, a connection to that registrar: one that
-      holds ids there has one (its calls opened it; it lasts until the peer ends), so the
-      gap is a consumer whose connection ended earlier for another reason and that sends
-      nothing: it hears at its next message (the failed connect is judged);
-    - the lock probe is a shared `flock` held for microseconds; a listener taking the name
-      meanwhile retries for `link.LOCK_RETRY` s before it reports `DuplicateNameError`;
-    - a pid is trusted with its start time where `/proc` has it; elsewhere a pid reused
-      by an unrelated process keeps a registrar awaited (not lost) until that one ends;
-    - what a speaker that lives on does with the name (a restart, or the death watch when
-      it gives up) is its own: the carrier waits only for its death;
-    - `DIRECTORY.restart_expected(name)` is read when the registrar starts serving.
-    """
+    registrar served, and who is lost (rule 19), judged from the directory's files on the
+    presence thread (`rr-unix-presence`). Why: docs/explanation/inside.md ("Judging who is
+    lost on one machine")."""
 
     def __init__(self, messenger: Messenger, address: SystemAddress) -> None:
         self.messenger = messenger
@@ -154,24 +102,19 @@ class UnixCarrier:
 
     # -- the Carrier -------------------------------------------------------------------
 
-    def knows(self, name: str) -> bool:
-        """Whether registrar `name` listens in the directory, or was stopped there."""
-        return os.path.exists(self.address.socket_path(name)) or os.path.exists(
-            self.address.tombstone_path(name)
-        )
-
-    def peer(self, name: str) -> RemotePeer:
-        return RemotePeer(self, name)
+    def peer(self, name: str) -> RemotePeer | None:
+        """A peer of registrar `name` if it listens in the directory, or was stopped there."""
+        address = self.address
+        if os.path.exists(address.socket_path(name)) or os.path.exists(
+            address.tombstone_path(name)
+        ):
+            return RemotePeer(self, name)
+        return None
 
     def listen(self, endpoint: Endpoint) -> Listener:
-        """Listen on `<runtime_dir>/<name>.sock`, holding the name's lock.
+        """Listen on `<runtime_dir>/<name>.sock`, holding `<name>.lock` (raises as
+        `Listener`)."""
 
-        Raises:
-            DuplicateNameError: a living process of the system already serves that name
-                (it holds the `flock` on `<runtime_dir>/<name>.lock`).
-            ConfigError: the socket path is too long or cannot be bound, or the lock
-                file cannot be opened.
-        """
         path = self.address.socket_path(endpoint.name)
         if len(os.fsencode(path)) > _MAX_SOCKET_PATH:
             raise ConfigError(
@@ -355,21 +298,22 @@ def _verdict_of(speaker: str) -> str:
 
 
 class AttachedSystem(Messenger):
-    """This process's membership of a system: its messenger over the AF_UNIX carrier.
-
-    Get one with [`attach`][rr_actors._transport.attach] (or `System.create`, which
-    attaches the creating process).
-    """
+    """This process's membership of a system: its messenger over the AF_UNIX carrier
+    (from [`attach`][rr_actors._transport.attach] or `System.create`)."""
 
     def __init__(self, address: SystemAddress) -> None:
         super().__init__(address.runtime_dir)
-        self.address = address
+        self._address = address
         self._unix = UnixCarrier(self, address)
         self.joined(self._unix)
 
+    @property
+    def address(self) -> SystemAddress:
+        return self._address
+
     def forget_in_child(self) -> None:
         """In a forked child: drop the parent's listeners, connections and presence
-        thread; stay attached (see the module's "Fork"). Takes no lock: makes them new."""
+        thread; stay attached (inside.md, "The AF_UNIX carrier"). Takes no lock: makes them new."""
         super().forget_in_child()
         self._unix.forget_in_child()
 
@@ -395,14 +339,8 @@ fork.after_fork_in_child("the AF_UNIX carrier", _forget_in_child)
 
 
 def attach(address: SystemAddress) -> AttachedSystem:
-    """Join the system at `address` from this process (idempotent per process).
-
-    Installs the directory resolver, so registrars of this process reach the system's
-    registrars in other processes by name.
-
-    Returns:
-        This process's `AttachedSystem` for that address (the same one if already attached).
-    """
+    """Join the system at `address` from this process: its `AttachedSystem` (the same one
+    if already attached), whose names the directory resolves from now on."""
     with _ATTACHED_LOCK:
         attached = _ATTACHED.get(address.runtime_dir)
         if attached is None or attached.closed:
@@ -458,12 +396,8 @@ class System(AttachedSystem):
         return system
 
     def close(self) -> None:
-        """Leave the system and remove its files (idempotent).
-
-        Removes the sockets, tombstones and lock files of the runtime directory, then the
-        directory itself if `create` made it and nothing else is left in it. In a child
-        forked from the creating process it only leaves the system (as `AttachedSystem`).
-        """
+        """Leave the system and remove its files, and the directory if `create` made it and
+        it is empty (idempotent; a forked child only leaves)."""
         super().close()
         if self._owner != os.getpid():
             return  # a forked child's copy: the files are its parent's system's

@@ -1,47 +1,8 @@
 """Zenoh's callback threads, and rr_actors' threads that call Zenoh, ended before the
 interpreter finalizes.
 
-zenoh-python runs each Python callback (a subscriber's, a queryable's, a liveliness
-subscriber's, a listener's) on a `threading.Thread` of its own, which waits in Rust for
-the next sample with the GIL released, and ends once its declaration went (undeclared, or
-its session closed). Declared from a daemon thread (an actor's, a manager's) that thread
-is a daemon too, which the interpreter does not wait for. On CPython < 3.14 a thread that
-takes the GIL once the interpreter finalizes is ended by `pthread_exit`, whose unwinding
-through Zenoh's Rust frames makes glibc abort the process ("FATAL: exception not
-rethrown", SIGABRT; cpython#87135, pyo3#4874): a callback running as the program ends,
-or a callback thread woken by its session's close a moment too late. So does a daemon
-thread of rr_actors inside a Zenoh call then (every call releases the GIL, on a closed
-session too): an outbox's writer, the presence thread, a decode thread, the events'
-forwarder, each with a task still running as the session closes (`worker`; the link
-watch and the gate join their own threads before the session closes). And so does any
-thread that frees a Zenoh object (zenoh-python's free of a subscriber, a token, a
-publisher releases the GIL): a served registrar's record lets go of its subscriber and
-token where it undeclares them (`carrier.Local.stop`: the close's thread, if it runs on).
-
-```
- declare_*(key, tracked(session, fn))   its thread is counted (per session) while it lives
-   zenoh's thread per callback ─► fn(sample) ... until the declaration goes
- worker(session, executor)              an rr_actors thread that calls Zenoh (weakly held;
-                                        once the close below waited: refused, joined at once)
- with calling(session): <a Zenoh call>  on a thread no close joins (a program's, in a call):
-                                        counted; once the close below waited: refused
- ZenohCarrier.leave: each executor closed (its owner's close) ─► session.close() (a Zenoh
-   call in progress returns) ─► wait_ended(session): each executor's thread and each
-   callback thread ended, joined; each call under way returned
-   (the exit hook closes a network left open as the main thread ends: `_core.exit`,
-    before the interpreter finalizes)
-```
-
-Why joined after the close, not before it: a thread held in a Zenoh call (a `get` that
-waits for its timeout, a put blocked by a congested link) returns only when the session
-closes; one that calls Zenoh once it closed gets an error at once, which each caller
-takes as "the session closed".
-
-How a thread is seen to end without a hook in zenoh-python: Zenoh calls the callback's
-`drop` on its thread as the thread ends (which names the thread, to join it). A
-declaration that failed before Zenoh made its thread never calls it, but drops the
-function at once (a weak reference says so): nothing is left to wait for. (The function
-of a thread that ended is dropped later, when pyo3 next runs: not the end's signal.)
+A thread that takes the GIL then aborts the process (cpython#87135, pyo3#4874). How and
+why: docs/explanation/inside.md ("Zenoh's threads at the end").
 """
 
 from __future__ import annotations

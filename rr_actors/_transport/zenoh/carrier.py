@@ -1,40 +1,7 @@
 """The Zenoh carrier: one process's link to a system of registrars over Eclipse Zenoh.
 
-Why publish/subscribe and not Zenoh's queryable + `get`: a registrar's messages are
-one-way (`StatusNotice`, `Unload`, ... want no answer; a `Load` is answered when its
-load is done, possibly minutes later), and an answer is just another one-way message
-back. A `get` would hold a Zenoh query open (and bounded by its own timeout) for as long
-as a load runs, and its answers would come on Zenoh's threads. With puts, every message
-is a frame of the AF_UNIX carrier (`codec.frame`: token + pickle; the reply stays with
-the sender under the token) behind a small header (`wire`), and the failure of a
-peer is seen through liveliness tokens, not through a query's end:
-
-```
- process A (sender)                                      process B (serves "erm")
- peer.tell(Load) ─ frame, token → waiting ─► outbox "erm" ── put rr/<s>/reg/erm ──►
-                                               (its writer thread)      subscriber callback
-                                                                          │ (never blocks:
-                                                                          ▼  queues it)
-                                                          inbox (A, message): decode thread
-                                                          messenger: unpickle; stand-in
-                                                          reply; tell erm
- inbox (B, answer): decode thread ◄─ put rr/<s>/ans/<A> ◄── outbox "A" ◄── reply.set_result
-   the route's pending: reply.set_result(value)             (B's writer thread for A)
-
- liveliness rr/<s>/live/**  ─► presence thread: tokens of processes, registrars, claims,
-                                "stopped" marks ─► this carrier: fail waiting replies,
-                                close outboxes; the messenger: lost, reachable, give_way
-```
-
-The carrier (`ZenohCarrier`, the messenger's `Carrier`): who is known (`knows`: what
-presence heard, else the network is asked), a `ZenohPeer` per name (its route: the
-registrar's key and the server seen for it, `_Route`), a `Local` per registrar served
-(its subscriber and liveliness token, after its claim: one name, one server), answers
-to the sender's answer key. The link's threads are `link.py`'s (outboxes, inbox), who
-serves what is `presence.py`'s, the key expressions and the header `wire.py`'s.
-
-Which thread may ask the network, one name's one server, and cuts and heals (rule 22):
-`ZenohCarrier`'s docstring.
+Puts both ways, presence by liveliness tokens. How a message crosses, and why:
+docs/explanation/inside.md ("The Zenoh carrier").
 """
 
 from __future__ import annotations
@@ -52,21 +19,20 @@ import zenoh
 from rr_actors._core.actor import on_actor_thread
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.hlc import CLOCK
-from rr_actors._transport.base import Endpoint
 from rr_actors._transport.codec import NO_REPLY, Claim, frame
 from rr_actors._transport.messenger import (
     Carrier,
+    Endpoint,
     Lane,
     Lanes,
     Listening,
     Lost,
     Messenger,
-    Ranked,
     Remote,
-    rank,
     send,
     send_when_served,
 )
+from rr_actors._transport.resolve import Sided
 from rr_actors._transport.zenoh import callbacks
 from rr_actors._transport.zenoh.callbacks import tracked
 from rr_actors._transport.zenoh.link import DRAIN_TIMEOUT, Inbox, Outbox, Outboxes
@@ -166,18 +132,18 @@ class Local(Listening):
         self.token: Any = None
         self.token_key = ""
         self.stamp = 0
-        self.side = 0  # the hosts this process heard as it began to serve (`Ranked`)
+        self.side = 0  # the hosts this process heard as it began to serve (`Sided`)
         self.members = 0  # the system's members then, as it counted them (0: unknown)
 
     @property
     def who(self) -> str:
-        """This process: its Zenoh id (`Ranked`)."""
+        """This process: its Zenoh id (`Sided`)."""
         return self.carrier.zid
 
     @property
     def rank(self) -> tuple[int, int]:
-        """Its place in rule 22's order (`messenger.rank`; the Zenoh id as a number)."""
-        return rank(self.stamp, int(self.carrier.zid, 16))
+        """Its place in rule 22's order (`Sided.rank`)."""
+        return (self.stamp, int(self.carrier.zid, 16))
 
     def settle(self) -> None:
         """A rival heard between its turn and now is settled (rule 22); return once the
@@ -210,54 +176,8 @@ def _pong(query: zenoh.Query) -> None:
 
 class ZenohCarrier:
     """This process's link to a system over an open Zenoh session (the messenger's
-    `Carrier`; how it moves a message: the module docstring).
-
-    Never on an actor's thread: a registrar's actor (and any `Actor`: `on_actor_thread`) must
-    answer its next message, a supervisor's heartbeat included (`hang` tolerance 0.75 s by
-    default), however slow the network is. So there `knows` and `route` never ask the
-    network; what this process's presence heard decides:
-
-    - a name served now: sent at once, as from any thread;
-    - a name heard to stop cleanly: `RegistrarStoppedError` at once (it holds nothing, rule
-      12; a registrar served again under its name is a new one, and reconciles itself);
-    - a name never heard of, or heard to die (a restart may be served already, its token
-      still on its way here): its peer comes at once and each message to it is sent when
-      served (`messenger.send_when_served`): framed, and queued on the name's outbox (its
-      lane); the writer thread asks the network (an answer that names no server is asked
-      again for a while: Zenoh's can be empty at once while the router holds the token),
-      then puts it to the server found, or fails its reply (`UnknownRegistrarError`, or
-      `RegistrarUnavailableError` for one that died, or when the network did not answer in
-      full), then what waits behind it with the same error. One queue per name keeps the
-      order of what this process sends to it, before and after it is seen served (a
-      message sent once it is seen goes on that queue too, behind those still held there).
-
-    Why not trust the tables alone: they may lag the network (a consumer's first call, or
-    a restarted provider's `ReconcileAsk`, can overtake its token here, and the answer, the
-    status or the `Reconcile` must still reach it; a process that just joined has not heard
-    the history yet). Why not wait on the actor: a router slow under load answers in up to
-    `ASK_TIMEOUT` (1 s), and a manager whose actor does not answer its heartbeat in time is
-    killed as hung. A user's thread (a call, `run`) still asks the network inline: its
-    caller waits anyway, and gets `UnknownRegistrarError` at once.
-
-    One name, one server: `listen` first declares a claim token, then asks the network for
-    servers and claims of the name. A server of another process is a `DuplicateNameError`;
-    of two claims that see each other the lower Zenoh id wins; a claim that sees a higher
-    one waits until that one either serves (then it yields) or withdraws. A claim is held
-    until the registrar's token is declared, so a rival never sees it go before the token
-    comes. (The router orders declarations and queries, so of two claims at least one sees
-    the other.) A process attached through a router that does not answer serves nothing: it
-    cannot hear the rest of the system (`Presence.question`).
-
-    Through cuts and heals (rule 22): a name whose server went beyond a cut is lost there
-    (rule 19), and may be served on this side; once the link heals, both registrars' tokens
-    are seen everywhere. Each carries the clock stamp of when it began to serve and its
-    side (the hosts heard then, out of the system's members): the one the system's
-    `resolve=` keeps (by default the one served first) is kept, and the process that serves
-    the other makes it yield
-    (`served_elsewhere` ─► `Messenger.served_elsewhere`, the decision every carrier
-    runs, ─► `Messenger.give_way`): ERROR, its subscriber and token go, it
-    unloads what it serves and stops; its consumers, wherever they are, reconcile with the
-    one kept (rule 20).
+    `Carrier`). Which thread may ask the network, one name's one server, cuts and heals:
+    docs/explanation/inside.md ("The Zenoh carrier's threads, names and heals").
 
     Args:
         messenger: this process's membership of the system.
@@ -335,24 +255,13 @@ class ZenohCarrier:
 
     # -- the Carrier -------------------------------------------------------------------
 
-    def knows(self, name: str) -> bool:
-        """Whether registrar `name` of another process is served, or was heard of.
-
-        A name not heard of yet is asked of the network (at most `ASK_TIMEOUT` seconds),
-        but not on an actor's thread: there its peer comes at once, and each message
-        sent to it is held on the name's writer thread until the network answered
-        (`send_when_served`).
-
-        Raises:
-            UnknownRegistrarError: nobody serves `name` on this system (the message names
-                the system).
-            RegistrarUnavailableError: the network did not answer in time, and nothing
-                heard here says that `name` is served.
-        """
+    def peer(self, name: str) -> ZenohPeer | None:
+        """`Carrier.peer`: a name not heard of yet is asked of the network (at most
+        `ASK_TIMEOUT` seconds), but not on an actor's thread (there: `send_when_served`)."""
         presence = self.presence
         known = presence.serves(name)  # (served elsewhere now: before a local record)
         if not known and not isinstance(DIRECTORY.gone_error(name), UnknownRegistrarError):
-            return False  # a registrar of this process that stopped or died
+            return None  # a registrar of this process that stopped or died
         known = known or presence.gone(name) is not None
         if not known and NAME.fullmatch(name):
             if on_actor_thread():
@@ -364,14 +273,10 @@ class ZenohCarrier:
                     raise self._untold(name, why)
         if not known:
             raise self._unknown_error(name)
-        return True
-
-    def peer(self, name: str) -> ZenohPeer:
         return ZenohPeer(self, name)
 
     def listen(self, endpoint: Endpoint) -> Local:
-        """Claim the name, then declare the registrar's subscriber and token (see the
-        module docstring).
+        """Claim the name, then declare the registrar's subscriber and token.
 
         Raises:
             DuplicateNameError: another process of the system serves that name.
@@ -430,11 +335,8 @@ class ZenohCarrier:
                 old.undeclare()
 
     def answer_to(self, process: str, data: bytes, on_lost: Lost | None) -> bool:
-        """Send an answer frame to process `process` (a Zenoh id); False if it is gone.
-
-        (A sender whose token has not been seen yet is not gone: its message may overtake
-        its token on the way through this process's threads.)
-        """
+        """`Carrier.answer_to` process `process` (a Zenoh id; one whose token is not seen
+        yet is not gone: its message may overtake its token)."""
         if self.presence.unreachable(process):
             return False
         outbox = self.outbox(self.keys.answers(process), process)
@@ -522,11 +424,8 @@ class ZenohCarrier:
         return known or (self.zid if DIRECTORY.restart_expected(name) else "none")
 
     def barrier(self, key: str) -> None:
-        """Return once the router this process talks to has seen the token `key`.
-
-        A query after a declaration reaches the router after it (one link, in order), so
-        its answer means other processes resolving the name find it.
-        """
+        """Return once the router this process talks to has seen the token `key` (a query
+        after a declaration reaches it after it)."""
         with contextlib.suppress(Exception), callbacks.calling(self.session):
             for _reply in self.session.liveliness().get(key, timeout=ASK_TIMEOUT):
                 pass
@@ -539,11 +438,10 @@ class ZenohCarrier:
                 self.keys.stopped(NameAt(name, self.zid))
             )
 
-    def tell_server(self, name: str, server: Ranked, claim: Claim) -> None:
-        """Rule 22: put `claim` (the kept server's, served here) on registrar `name`'s key,
-        for its other server, in process `server.who` (which may not hear this one's
-        token: a link that healed one way); that process's messenger decides as its own
-        presence would have (`Messenger.served_elsewhere`). Never blocks (an outbox)."""
+    def tell_server(self, name: str, server: Sided, claim: Claim) -> None:
+        """Rule 22: put `claim` (the kept server's, served here) on registrar `name`'s key
+        for its other server, in process `server.who` (`Messenger._claim`; an outbox)."""
+
         outbox = self.outbox(self.keys.registrar(name), server.who)
         if outbox is not None:
             outbox.send(envelope(MESSAGE, self.zid, frame(NO_REPLY, claim), CLOCK.send()))
@@ -586,13 +484,8 @@ class ZenohCarrier:
         return self._unknown_error(name)
 
     def route(self, name: str) -> _Route:
-        """The way to registrar `name` of another process now (`ZenohPeer.route`).
-
-        Raises:
-            RegistrarUnavailableError: no process serves it now (asked of the network,
-                but not on an actor's thread: there, what presence heard decides).
-            RegistrarStoppedError: it was stopped, or this process left the system.
-        """
+        """`Remote.route` of `ZenohPeer` (the network is asked, but not on an actor's
+        thread: there, what presence heard decides)."""
         server = self.presence.server(name)
         if server is None and not self.closed and not on_actor_thread():
             self.presence.question_until_seen(name)  # maybe served again, not heard yet
@@ -618,14 +511,8 @@ class ZenohCarrier:
         return self.outbox(self.keys.registrar(name), declared=False)
 
     def found(self, name: str, lane: Lane) -> _Route | RrError:
-        """On `lane`'s writer thread (the name's outbox): the server of `name`, asked of
-        the network if none is seen (an answer that names none is asked again for a
-        while: `question_until_seen`); else the error of a message to it: nobody serves
-        it (`unreached`), or the network did not answer in full (`question`: a timeout,
-        a router that does not answer), so nobody can tell: `RegistrarUnavailableError`,
-        as `knows` says on a user's thread. (The messenger then retires the outbox:
-        `retire`.) A server just seen gets a ping first (a put before its answer may be
-        lost)."""
+        """`Lanes.found`, on the name's outbox's writer thread (`question_until_seen`); a
+        server just seen gets a ping first (a put before its answer may be lost)."""
         presence = self.presence
         server = presence.server(name)
         why = None

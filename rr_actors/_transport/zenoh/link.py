@@ -1,47 +1,7 @@
 """The Zenoh link: frames both ways, one writer thread per destination key and one
 decode thread per sending process.
 
-```
- sending: ZenohCarrier.answer_to, a route's send ─► Outboxes.get(key) ─► Outbox(key).send
- send when served (the messenger) ──────────────────► Outbox(key).run(task): in order
-                                                          │ its writer thread (SerialExecutor)
-                                                          ▼
-          (a new outbox's first put: ping rr/<s>/ping/<zid> first; a task asks the
-           network for a registrar not seen served, then puts, or fails its reply)
-                                                 publisher.put ─► rr/<s>/reg/<name>
-                                                                  rr/<s>/ans/<zid>
-
- receiving: put rr/<s>/reg/<name> ─► subscriber callback (Zenoh's thread: never blocks,
-   never decodes) │ sender's token not here: the strangers' thread waits for it
-                  ▼ else queued                (bounded; then dropped, a WARNING)
-          Inbox (sender, message): decode thread (SerialExecutor)
-            version refused? the messenger: too large? unpickle; stand-in reply; tell
-            the registrar ─► reply.set_result ─► the carrier's answer_to(sender)
-   put rr/<s>/ans/<zid> ─► answers callback ─► Inbox (sender, answer): decode thread
-            Replies.answered (the messenger's): reply.set_result(value)
-```
-
-Sending. A sender never blocks on a peer and no answer is sent on an actor thread: one
-writer per destination (a registrar's key for requests, a process's answer key for
-answers), so messages from one process to one registrar keep their order (one writer,
-one Zenoh route, one decode thread there). Puts are reliable and block on a full queue
-(`CongestionControl.BLOCK`) on the writer thread only; Zenoh closes a link that stays
-blocked longer than half the lease. A process that leaves the system
-(`Outboxes.close`) first lets every writer put what it was given, for `DRAIN_TIMEOUT`
-seconds at most, as a socket's close sends what was written before it: the last
-messages of a registrar that stops (the `Abandon` of a call it withdraws) go out before
-the session closes. What is still queued then is lost.
-
-Receiving. Each process decodes on one thread per sending process and kind (messages,
-answers: a held answer never holds up a notice), and only for processes whose liveliness
-token is here (`Presence.member`): the sender id in a header is whatever the sender
-wrote, so a thread per claimed id would let one buggy member start threads without
-bound. The frames of any other sender wait on one thread for strangers, for its token
-(`STRANGER_GRACE`: Zenoh sends declarations ahead of data, so a frame may come before
-its sender's token, or after the token's end), and are dropped if it does not come.
-Nothing is unpickled on Zenoh's thread: unpickling may run code of the sender's choosing
-(a frame's flags say nothing a buggy sender cannot get wrong), and a blocked Zenoh
-thread stalls every message of its link.
+How and why: docs/explanation/inside.md ("The Zenoh link").
 """
 
 from __future__ import annotations
@@ -248,15 +208,9 @@ class Outboxes:
         self._pings_end = True
 
     def until_answered(self, zid: str) -> None:
-        """Ping process `zid` until it answers (at most `HEAL_TIMEOUT` s; writer thread).
+        """Ping process `zid` until it answers (at most `HEAL_TIMEOUT` s; writer thread): a
+        new link's tokens may come before what is put to it gets through."""
 
-        When a link comes up (a host that joins, a healed link) the process's tokens may
-        be here before what is sent to it gets through: a message put in between was lost
-        without a word (a call right after the heal, or a host's first call right after
-        it joined during a burst of refused handshakes, waited for its timeout). An
-        answered ping went the way the next put goes; it costs one round trip, once per
-        destination.
-        """
         deadline = time.monotonic() + HEAL_TIMEOUT
         pause = threading.Event()
         while not self._pings_end and time.monotonic() < deadline:
@@ -362,12 +316,9 @@ class Inbox:
 
     def _receive(self, head: Header, kind: int, item: Any, size: int) -> None:
         """Hand `item` (`size` bytes) to the decode thread of (sender, `kind`) (Zenoh's
-        callbacks).
+        callbacks); a sender whose token is not here waits on the strangers' (`_stranger`),
+        and so do its later frames until those are done (in order)."""
 
-        A sender whose process token is not here (yet) gets no thread of its own: its
-        frames wait on the one thread for strangers (`_stranger`), as do its later frames
-        until those before them are done (then they keep their order).
-        """
         key = (head.sender, kind)
         task = functools.partial(self._deliver if kind == MESSAGE else self._answered, item)
         for _attempt in (1, 2):  # (its inbox may have just finished: the sender went)

@@ -1,32 +1,7 @@
 """`ZenohNetwork`: a system of registrars across hosts, over Eclipse Zenoh.
 
-The process that makes a `ZenohNetwork` is its host's router (as rmw_zenoh's router per
-host): at first use it opens a ROUTER-mode Zenoh session that listens on `listen` and on
-a Unix socket in a private (0700) runtime directory, and connects to `connect`. Manager
-processes join through that socket (`net.address.attach()`: a CLIENT-mode session),
-never over TCP on loopback, which any local user could reach and send pickles to:
-
-```
- host A                                            host B
- router process (ZenohNetwork) ── tls/<A>:7447 ── router process (ZenohNetwork)
-   │ unixsock-stream/<runtime_dir>/router.sock       │
- manager processes (address.attach())              manager processes
-```
-
-Each process's membership is a messenger (`rr_actors._transport.messenger`: the
-`Transport` surface) over a `ZenohCarrier` (`carrier`): the router's is the
-`ZenohNetwork` itself (its session opens at first use), a manager process's a
-`ZenohMember`. Between hosts, `tls/` (mutual TLS, only members admitted: `ops.config`,
-`ops.tls`, `ops.gate`; the link watch beside, `Beside`) or, on one trusted network,
-`tcp/` (`tls=None`: a WARNING per endpoint naming who can reach it, on loopback every
-local user). What
-crosses: `carrier` (and its collaborators); how presence works: `presence`. A process
-belongs to one system (the registrar directory is per process): joining a second one is
-a `ConfigError`. A process that opened a Zenoh session must not fork: Zenoh's runtime
-threads are not in the child, whose session (and any new one) would hang. rr_actors
-starts manager processes with forkserver or spawn, and refuses such a child
-(`rr_actors._platform.fork`): its `ResourceRegistrar.start`, `Supervisor.start` and
-joining a system raise a `ConfigError` that names those start methods.
+A router per host (the process that makes it), its manager processes joined through its
+Unix socket (`ZenohMember`). How and why: docs/explanation/inside.md ("A Zenoh network").
 """
 
 from __future__ import annotations
@@ -52,8 +27,7 @@ from rr_actors._core.bus import DEFAULT_MAXSIZE, Subscription
 from rr_actors._core.exit import NETWORKS, stop_at_exit
 from rr_actors._core.hlc import CLOCK, MAX_OFFSET, check_max_offset
 from rr_actors._platform import fork
-from rr_actors._transport.base import Address, Transport
-from rr_actors._transport.messenger import Messenger
+from rr_actors._transport.messenger import Address, Messenger, Transport
 from rr_actors._transport.resolve import Resolve
 from rr_actors._transport.zenoh.carrier import ZenohCarrier
 from rr_actors._transport.zenoh.ops.config import (
@@ -343,7 +317,7 @@ class ZenohMember(Messenger):
 
     def __init__(self, address: ZenohAddress) -> None:
         super().__init__(address.system, resolve=address.resolve)
-        self.address = address
+        self._address = address
         set_host(address.member or socket.gethostname())
         CLOCK.max_offset = address.max_offset
         config = session_config(
@@ -370,6 +344,10 @@ class ZenohMember(Messenger):
             )
         )
         _close_at_exit(f"the membership of system {address.system!r}", self, self.close)
+
+    @property
+    def address(self) -> ZenohAddress:
+        return self._address
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,52 +1,7 @@
 """The Zenoh carrier's presence: who serves what, as the liveliness tokens say.
 
-```
- liveliness rr/<s>/live/**  ─► Presence._on_live (Zenoh's thread: queues, never blocks)
- Presence.question(name) ─ liveliness get ─┘  │
-                                             ▼
-                        presence thread (SerialExecutor): _apply, in order
-                          tables: process tokens, servers, claims, "stopped" marks,
-                                  supervisors awaited
-                                             │ then, outside the lock
-                                             ▼
-          PresenceEvents (the carrier): process_gone, server_gone, served_elsewhere
-            ─► fail waiting replies, close outboxes, yield a name served here to the
-               one kept (rule 22: `Messenger.give_way`)
-          Hearer (the messenger): lost, reachable ─► every endpoint here: peer_lost,
-               peer_reachable
-```
-
-- a registrar's token (`live/reg/<name>/<zid>/<sup>/<limit>/<stamp>`) goes: every reply waiting
-  on it fails with `RegistrarStoppedError` if its `stopped` mark came first (a clean stop
-  declares the mark before it drops the token), else with `RegistrarUnavailableError`;
-  later calls fail at once the same way;
-- it is *lost for good* (the endpoints' `peer_lost`) when it did not stop cleanly and
-  nobody restarts it: `<sup>` is `none`, or the process `<sup>` (its supervisor: the
-  router process of a manager process that router started, `supervised_by`, or its own
-  process when its `DIRECTORY.restart_expected`) has no token now or loses it later; a
-  process that merely attached through the router publishes `none`;
-- a registrar whose process token went (a cut link) and that comes back from the same
-  process (same Zenoh id: a healed link, not a restart) is `peer_reachable`; the first
-  message to that process waits (on its writer thread) until a ping of it is answered
-  (`rr/<s>/ping/<zid>`, `outbox`): its token may be back before what is put to it
-  gets through.
-
-Claims (`live/claim/<name>/<zid>`) and `wait_turn` are `listen`'s half of "one name, one
-server" (see `carrier`); what counts as the network's full answer: `wait_turn`.
-
-Two servers of one name (rule 22): a cut lets each side serve a name the other served
-(lost there, rule 19); after the heal both tokens are seen. Each token carries the clock
-stamp of when its registrar began to serve (`wire`), and each stamp heard is taken into
-this process's clock (`_core.hlc`), so a registrar served after this process saw another
-one serve has the later stamp, and its side (the hosts its process heard then: one
-`live/host` token per host's router, `hosts`; and the system's members). The one the
-system's `resolve=` keeps (by default the earlier (stamp, Zenoh id)) is kept, as every
-process decides alike from the same tokens (`messenger.kept`, the policy every carrier
-uses): `server()` is that one; the process that serves the other hears
-`served_elsewhere` and makes it yield (`Messenger.served_elsewhere`). When the one that
-yields goes, the one kept still serves: its consumers are told `reachable`, and reconcile with it.
-A restart seen before its predecessor's token went (the same process, or the same
-supervisor, with a later stamp) is no second server: the predecessor died.
+Who is gone, lost for good (rule 19), reachable again (rule 20); two servers of one name
+(rule 22). How and why: docs/explanation/inside.md ("Zenoh presence").
 """
 
 from __future__ import annotations
@@ -65,7 +20,7 @@ from rr_actors._core.hlc import CLOCK
 from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._core.throttle import LogThrottle, short
-from rr_actors._transport.messenger import kept, rank, when
+from rr_actors._transport.messenger import Messenger, when
 from rr_actors._transport.resolve import FIRST_SERVED, Resolution
 from rr_actors._transport.zenoh import callbacks
 from rr_actors._transport.zenoh.callbacks import tracked
@@ -83,7 +38,6 @@ __all__ = [
     "CLAIM_TIMEOUT",
     "EMPTY_BELIEVED",
     "NO_WAITING",
-    "Hearer",
     "Presence",
     "PresenceEvents",
     "Server",
@@ -98,7 +52,7 @@ the network to answer in full who serves the name (`Presence.wait_turn`)."""
 EMPTY_BELIEVED = 0.25
 """Seconds an empty answer about a name never heard to go is asked again (every
 `EMPTY_PAUSE`) before this process believes that nobody serves it
-(`Presence.question_until_seen`: "send when served", `knows`, `route`; not `wait_turn`): a
+(`Presence.question_until_seen`: "send when served", `peer`, `route`; not `wait_turn`): a
 client's liveliness query can come back empty at once, with no error, while its router
 holds a matching token (Zenoh 1.x; measured around a `serve` of the asking process: 24 to
 33 of 150 questions, each seen on a later question within 12 asks and 12 ms)."""
@@ -114,7 +68,7 @@ reports to the carrier and messenger run, `PresenceEvents`)."""
 
 
 class Server:
-    """A registrar of another process as its liveliness token says (`Ranked`)."""
+    """A registrar of another process as its liveliness token says (`Sided`)."""
 
     __slots__ = ("limit", "members", "side", "stamp", "supervisor", "zid")
 
@@ -135,8 +89,8 @@ class Server:
 
     @property
     def rank(self) -> tuple[int, int]:
-        """Its place in rule 22's order (`messenger.rank`; the Zenoh id as a number)."""
-        return rank(self.stamp, int(self.zid, 16))
+        """Its place in rule 22's order (`Sided.rank`)."""
+        return (self.stamp, int(self.zid, 16))
 
 
 def _server(token: ServerKey) -> Server:
@@ -159,18 +113,6 @@ class PresenceEvents(Protocol):
         one of the two that rule 22 does not keep yields: `carrier`)."""
 
 
-class Hearer(Protocol):
-    """What `Presence` reports to the messenger (on the presence thread, in order)."""
-
-    def lost(self, name: str) -> None:
-        """Registrar `name` is gone for good (nobody restarts it)."""
-
-    def reachable(self, name: str) -> None:
-        """Registrar `name` is back from the same process (a healed link), or a second
-        server of it yielded and the one kept serves on (rule 22): its consumers
-        reconcile with it."""
-
-
 class Presence:
     """The liveliness tables of one process's membership (written by its presence thread).
 
@@ -179,7 +121,7 @@ class Presence:
         session: the open session.
         zid: this process's Zenoh id (its own tokens are left out).
         events: told what follows from a change for the carrier (`PresenceEvents`).
-        hearer: told who is lost or reachable again (`Hearer`: the messenger).
+        hearer: the messenger, told who is lost or reachable again (`lost`, `reachable`).
         on_token: called with a process's Zenoh id and whether its token came (`True`)
             or went, once `member` says so (on Zenoh's thread: it must not block).
         router: the Zenoh id of the router this process attached through (`None`: it
@@ -199,7 +141,7 @@ class Presence:
         zid: str,
         events: PresenceEvents,
         *,
-        hearer: Hearer,
+        hearer: Messenger,
         on_token: Callable[[str, bool], None] | None = None,
         router: str | None = None,
         resolution: Resolution = FIRST_SERVED,
@@ -258,7 +200,7 @@ class Presence:
         servers = self._servers.get(name)
         if not servers:
             return None
-        return kept(list(servers.values()), self._resolution, name)
+        return self._resolution.kept(name, list(servers.values()))
 
     def hosts(self) -> int:
         """How many hosts this process hears now (their routers' host tokens), its own
@@ -298,22 +240,9 @@ class Presence:
             return True
 
     def wait_turn(self, name: str) -> None:
-        """With this process's claim on `name` declared: return once it may serve it.
-
-        It decides from a full answer of the network only (`question`): a question about
-        the name's tokens that timed out (a router too busy to answer within
-        `ASK_TIMEOUT`) or that this process's router did not answer is asked again (not
-        once the router's token went: then it refuses at once); an empty answer that is
-        not known to be whole would let two processes that claim the name at once each
-        see no rival, and both serve it, or a process that hears nothing of the system
-        serve a name served there. A full answer that names no server is believed at
-        once, unlike `question_until_seen`'s: asking again would add `EMPTY_BELIEVED`
-        to every serve of a new name, and a second server let in by Zenoh's mistake is
-        seen within milliseconds and yields (rule 22: the one served first is kept).
-        A process attached through a router counts an answer as full only if that router
-        answers a ping after it: Zenoh ends a liveliness query of a session with no route
-        at once, with no reply and no error, which is not "nobody serves it" (a process
-        whose router died hears nothing of the system).
+        """With this process's claim on `name` declared: return once it may serve it (on a
+        full answer of the network only: docs/explanation/inside.md, "When a claim may
+        serve").
 
         Raises:
             DuplicateNameError: another process serves it, or claims it and wins.
@@ -395,23 +324,14 @@ class Presence:
         self._queue.submit(functools.partial(self._apply, (put, key, None)))
 
     def member(self, zid: str) -> bool:
-        """Whether process `zid`'s token is here now, as Zenoh's callbacks heard it.
-
-        Updated on Zenoh's threads as the samples come (the presence thread applies them
-        later: `unreachable` may lag). A process declares its token before it sends
-        anything, but Zenoh sends declarations ahead of data: a frame may come before its
-        sender's token, or after the token's end (`inbox.STRANGER_GRACE`).
-        """
+        """Whether process `zid`'s token is here now, as Zenoh's callbacks heard it (ahead of
+        the presence thread: `unreachable` may lag)."""
         return zid in self._members
 
     def question_until_seen(self, name: str) -> str | None:
-        """`question`, asked again while its answer is full but names no server of `name`,
-        for `EMPTY_BELIEVED` seconds at most: an empty answer may be Zenoh's mistake (see
-        `EMPTY_BELIEVED`). Every question whose empty answer fails a caller asks this way
-        (the carrier's `knows`, `route` and `found`; `wait_turn` says why not). Believed at
-        once about a name whose last server this process heard go: the answer agrees with
-        what it heard, and what it decides is the error of a name heard to go (a restart
-        comes with its own token). What the last question returned."""
+        """`question`, asked again for `EMPTY_BELIEVED` seconds at most while a full answer
+        names no server of `name` (believed at once for a name heard to go). What the last
+        question returned."""
         deadline = time.monotonic() + EMPTY_BELIEVED
         pause = threading.Event()
         why = self.question(name)
@@ -426,19 +346,11 @@ class Presence:
         return why
 
     def question(self, name: str) -> str | None:
-        """Ask the network for the tokens of `name` (bounded) and apply what it answers.
+        """Ask the network for the tokens of `name` (bounded) and apply what it answers (a
+        token whose deletion was seen since is stale). `None` if the network answered in
+        full, else why not, in words (timed out, failed, the router did not answer a ping
+        after it, or not asked: `NO_WAITING`)."""
 
-        An answer for a token whose deletion was seen after the question was asked is
-        stale and left out.
-
-        Returns:
-            `None` if the network answered in full, else why not (words for an error
-            message): the question timed out (Zenoh then answers with an error reply,
-            alongside what came in time) or failed; this process's router did not
-            answer a ping after it (a session with no route gets no reply and no error:
-            that is no answer); or it was not asked (on a thread that must not wait:
-            `NO_WAITING`).
-        """
         if getattr(NO_WAITING, "active", False):
             return "not asked on this thread"  # (Zenoh's or the presence thread's)
         with self._changed:
@@ -480,12 +392,8 @@ class Presence:
                     del self._asking[asked_at]
 
     def _router_answers(self) -> bool:
-        """Whether this process's router answers a ping (at once for a router process).
-
-        Asked after a question to the network: Zenoh ends a query of a session with no
-        route at once, with no reply and no error (issue 40), so an empty answer from a
-        process whose router is gone would read as "nobody".
-        """
+        """Whether this process's router answers a ping (at once for a router process): a
+        query of a session with no route ends with no reply and no error."""
         if self._router is None:
             return True
         try:
@@ -667,7 +575,7 @@ class Presence:
     def _two_servers(self, name: str, servers: list[Server]) -> None:
         """Two processes serve `name` (rule 22): a WARNING once per pair, naming the one
         kept (the one that yields says so at ERROR, `carrier`)."""
-        winner = kept(servers, self._resolution, name)
+        winner = self._resolution.kept(name, servers)
         assert winner is not None
         for other in servers:
             mark = (name, other.zid, other.stamp)
@@ -694,7 +602,7 @@ class Presence:
             return []  # unknown, or a predecessor already counted dead
         del servers[zid]
         mine = self._mine.get(name)
-        if mine is not None and kept([_server(mine), server], self._resolution, name) is not server:
+        if mine is not None and self._resolution.kept(name, [_server(mine), server]) is not server:
             return []  # one that yielded to this process's own (rule 22): it held nothing
             # here (this process's consumers call its own). The one kept in place of this
             # process's own goes on as below: lost, it serves again (`Messenger.lost`)

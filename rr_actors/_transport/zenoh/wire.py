@@ -1,52 +1,7 @@
 """The Zenoh carrier's wire: key expressions and the header in front of every payload.
 
-Every key expression starts with `rr/<system>/`, so systems that share a network never
-see each other:
-
-```
- rr/<system>/reg/<name>                       messages for registrar <name> (its subscriber)
- rr/<system>/ans/<zid>                        answers for the process whose Zenoh id is <zid>
- rr/<system>/ping/<zid>                       its queryable: answers a ping (`outbox`)
- rr/<system>/ev/<zid>                         the events of process <zid>: JSON lines, never
-                                              a pickle (`events`)
- rr/<system>/live/proc/<zid>                  liveliness: process <zid> is a member
- rr/<system>/live/host/<zid>/<most>          liveliness: <zid> is a host's router; <most>
-                                              the most hosts it heard at once (a side's
-                                              size for rule 22's `majority`)
- rr/<system>/live/reg/<name>/<zid>/<sup>/<limit>/<stamp>/<side>/<members>
-                                              liveliness: <zid> serves <name>; <sup> is the
-                                              process that restarts it ("none": nobody),
-                                              <limit> its max_message_bytes, <stamp> the
-                                              hybrid logical clock stamp of when it began
-                                              to serve, <side> the hosts its process heard
-                                              then and <members> the system's (0:
-                                              unknown; which of two servers of one name is
-                                              kept: `presence`, rule 22)
- rr/<system>/live/claim/<name>/<zid>          liveliness: <zid> is about to serve <name>
- rr/<system>/live/stopped/<name>/<zid>        liveliness: <name> at <zid> was stopped cleanly
- rr/<system>/obs/<member>/state               the observer of host <member>: its whole
-                                              state (a queryable; JSON, never a pickle)
- rr/<system>/obs/<member>/delta               ... what changed since (puts; JSON, numbered)
- rr/<system>/obs/<member>/fault               ... a fault command for its managers (a
-                                              queryable; JSON in, JSON out)
- rr/<system>/obs/<member>/here                liveliness: <member> shares its observer state
- rr/<system>/cert/<member>                    the router of host <member>: its certificate
-                                              (a queryable; PEM, public; `members`)
-```
-
-`Keys` builds each of them and parses each liveliness token and observer key (`None`:
-malformed); no other module writes a key. Observer keys carry JSON only, outside `live/`.
-
-A payload is `header + frame`, where the frame is the AF_UNIX carrier's
-(`codec.frame`: length, 8-byte token, pickle) and the header says who speaks:
-
-```
- b"rz" | wire version (1 byte) | Python major, minor (1 byte each) | kind (1 byte)
-       | length of the sender's Zenoh id (1 byte) | the id (ASCII hex)
-```
-
-The clock stamp a message carries, and what a process of another version reads:
-`Header`'s docstring.
+`Keys` builds and parses every key (no other module writes one); `header` and `parse`
+the header. The layout: docs/explanation/inside.md ("The Zenoh wire").
 """
 
 from __future__ import annotations
@@ -188,7 +143,7 @@ def _skip(data: bytes | memoryview, at: int) -> int:
 
 def envelope(kind: int, sender: str, frame: bytes, stamp: int) -> bytes:
     """The payload of `frame` (`codec.frame`) of `kind`, sent by process `sender` with the
-    clock stamp `stamp` (see the module docstring)."""
+    clock stamp `stamp`."""
     cut = (12 if frame[:4] == _LONG else 4) + _TOKEN.size
     return b"".join(
         (header(kind | STAMPED, sender), frame[:cut], _TOKEN.pack(stamp), memoryview(frame)[cut:])
@@ -260,7 +215,7 @@ class NameAt(NamedTuple):
 
 
 OBSERVER_PARTS = ("state", "delta", "fault", "here")
-"""What a host's observer declares under `rr/<system>/obs/<member>/` (see the module docstring)."""
+"""What a host's observer declares under `rr/<system>/obs/<member>/`."""
 
 
 class ObserverKey(NamedTuple):
@@ -271,7 +226,7 @@ class ObserverKey(NamedTuple):
 
 
 class Keys:
-    """Every key expression of one system (see the module docstring): built and parsed here.
+    """Every key expression of one system (docs/explanation/inside.md): built and parsed here.
 
     A builder takes what the key says and writes it (`keys.server(ServerKey(...))`); its
     parser (`keys.parse_server(key)`) gives it back, or `None` for a malformed key.

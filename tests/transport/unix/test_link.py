@@ -200,7 +200,7 @@ class _CountingReply:
 
 def _lose_while_reading(system: System, answers: int) -> list[int]:
     """Close a peer's channel while a thread pops its answers; tokens not answered once."""
-    peer = system.link().peer(f"nobody-{uuid.uuid4().hex[:8]}")
+    peer = RemotePeer(system.link(), f"nobody-{uuid.uuid4().hex[:8]}")
     assert isinstance(peer, RemotePeer)
     channel = _Channel(Writer(None, lambda _exc: None))
     peer._channel = channel
@@ -298,7 +298,7 @@ def test_a_listener_out_of_file_descriptors_accepts_again_once_some_are_free(
     finally:
         for sock in raw:
             sock.close()
-    newcomer = system.link().peer(provider.name)  # a peer with a connection of its own
+    newcomer = RemotePeer(system.link(), provider.name)  # a peer with a connection of its own
     try:
         assert 0 == newcomer.run(load_count, timeout=10)
     finally:
@@ -346,7 +346,7 @@ def test_two_hundred_peers_connecting_at_once_to_a_busy_listener_all_get_through
 ) -> None:
     provider = start_provider()
     path = system.address.socket_path(provider.name)
-    peers = [system.link().peer(provider.name) for _ in range(200)]
+    peers = [RemotePeer(system.link(), provider.name) for _ in range(200)]
     outcomes: list[Any] = []
 
     def run(peer: RemotePeer) -> None:

@@ -1262,7 +1262,7 @@ class TestNeverWaitingOnAnActor:
         """The name is served, its token not heard here yet, and the network's answer
         about it did not come in full (a timed-out question, as under load): nobody can
         tell whether it is served, so the messages held for it are refused as unavailable
-        (as `knows` says on a user's thread), in the order told. (CI: message 2 was
+        (as `peer` says on a user's thread), in the order told. (CI: message 2 was
         refused "no registrar named there-..." first, then 1.)"""
         address, _router_pid = frozen_router
         timed_out = "the network did not answer within 30 s"
@@ -1320,7 +1320,7 @@ class TestNeverWaitingOnAnActor:
     def test_a_users_thread_finds_a_served_name_whose_first_answer_is_empty(
         self, frozen_router: tuple[Any, int], monkeypatch: pytest.MonkeyPatch
     ) -> None:
-        """`knows` asks again, as "send when served" does (it used to believe the one
+        """`peer` asks again, as "send when served" does (it used to believe the one
         empty answer: "no registrar named there-...")."""
         address, _router_pid = frozen_router
         asking = self._first_answer_empty(monkeypatch)

@@ -1,24 +1,7 @@
 """A Zenoh session's config from `ZenohNetwork`'s arguments: endpoints, TLS and access control.
 
-Everything here is checked or built before a session opens; only `warn_unreachable`
-talks to the network (one TCP connect per plain `connect` endpoint, at the open). The
-rules it writes down (issue 23, checked against eclipse-zenoh 1.10.2):
-
-- Endpoints are `tcp/<address>:<port>` with `tls=None` and `tls/<address>:<port>` with a
-  `ZenohTLS`; the other one is a `ConfigError` naming the endpoint.
-- With TLS, Zenoh's link protocols are limited to `tls` (other hosts) and `unixsock-stream`
-  (this host's manager processes, through the router's socket in its 0700 runtime
-  directory): a plain TCP link cannot be opened or accepted at all. Every TLS link is
-  mutual (`enable_mtls`), a listener's certificate must name the address dialled
-  (`verify_name_on_connect`), and a link is cut when the peer's certificate expires
-  (`close_link_on_expiration`).
-- Access control (Zenoh's ACL, default deny): every message kind under `rr/<system>/**`,
-  both directions, is allowed only for peers whose certificate's common name is in
-  `members` and for links over the Unix socket. Anything else, and any other key, is
-  dropped by Zenoh before it reaches a callback of ours.
-- Without TLS (`tls=None`, `tcp/` endpoints): a WARNING per endpoint naming who can send
-  this process pickles through it (`warn_plain_tcp`), and one per `connect` endpoint that
-  does not accept a connection at the open (`warn_unreachable`: Zenoh keeps trying).
+Checked before a session opens. The rules it writes down: docs/explanation/inside.md ("A
+Zenoh session's config").
 """
 
 from __future__ import annotations
@@ -180,7 +163,7 @@ def session_config(
 
     With `tls` (a router only: this host's own processes join it over its Unix socket):
     mutual TLS on every link, protocols limited to `tls` and `unixsock-stream`, and the
-    access control of the module docstring for `system`.
+    access control (docs/explanation/inside.md) for `system`.
     """
     lease_ms = max(1, round(lease * 1000))
     remote = [endpoint for endpoint in listen if not endpoint.startswith("unixsock-stream/")]

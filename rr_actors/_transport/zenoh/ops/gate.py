@@ -1,50 +1,7 @@
 """Keep a flood of failed TLS handshakes from locking members out of a router's `tls/` port.
 
-Zenoh 1.10's TLS listener pauses its accept loop 100 ms after every handshake that fails
-(`TLS_ACCEPT_THROTTLE_TIME` in zenoh-link-tls, a constant), and it takes up to 64
-connections into handshakes at once. Anyone who reaches the port can queue connections
-faster than that: each is paid 100 ms later, and a member's connection waits behind them
-(2 s of flood, minutes of lock-out). So, for each `tls/` listen endpoint, on the
-platform's gate on Zenoh's own listening socket (`_platform.linux_gate`; none on other
-platforms, where only a firewall helps):
-
-- the accept queue is shortened to `BACKLOG`: whatever is queued when a flood is seen
-  costs the listener at most (`BACKLOG` + 64) x 0.1 s;
-- every `TICK` s the socket table is read, counting per source address the connections
-  past the TCP handshake only (queued for accept, in a TLS handshake, linked, closing).
-  Half-open ones never count: a SYN with any source address (a member's) costs nothing
-  to forge, and the kernel holds what it answered for a minute while nobody is there to
-  reset it; completing the handshake takes receiving our SYN-ACK at that address;
-- a member's address (`member_addresses`: named in a member's certificate, or of a
-  member's link, up now or since this router started: `members`) is never dropped.
-  Every other address is a stranger, and strangers may hold `HOLD` connections, each
-  and together:
-  - a stranger over `HOLD` floods: every packet from it to the port is dropped by the
-    socket's filter, before the kernel answers its SYN (it costs the listener nothing
-    more), for `DROP` s (WARNING; INFO when it ends);
-  - strangers together over `HOLD`, each under it (one machine's many addresses, or
-    many machines), at two looks in a row, flood too: the port then takes packets from
-    members' addresses only, for `DROP` s (WARNING naming those; INFO when it ends).
-    (Two looks: members that dial a router just started are strangers to it until
-    linked, and their handshakes, however many, end within a look; a flood's stay.)
-
-  A drop ends on time, whatever the source sends meanwhile: one that waited for quiet
-  would last as long as anyone keeps sending with that source address. What is left to
-  the firewall: `HandshakeGate`'s docstring.
-
-```
- thread "rr-zenoh-gate", every TICK s:
-   member_addresses() ─► members (once per look)
-   per tls/ listen endpoint:
-     drops and a members-only spell whose DROP s are over ─► lifted, INFO
-     gate.peers(): connections past the TCP handshake, per source
-       a stranger over HOLD ─► dropped for DROP s, WARNING
-       strangers not dropped, together over HOLD, twice ─► members only for DROP s, WARNING
-     └─ gate.admit_only(members) while members only, else gate.drop_from(dropped)
-```
-
-Which addresses are members' (those the gate never drops), and how a router learns them:
-`MemberAddresses`'s docstring.
+Strangers over `HOLD` connections are dropped for `DROP` s, members never. How and why:
+docs/explanation/inside.md ("The handshake gate").
 """
 
 from __future__ import annotations
@@ -132,15 +89,8 @@ class _Port:
 
 
 class HandshakeGate:
-    """Drops the sources that flood a router's `tls/` listeners (see the module docstring).
-
-    Links already up are not touched (each keeps the filter it was accepted with; a few
-    instructions per packet). What is left to the firewall
-    (`docs/how-to/securing-registrars.md`): a flood from a member's address (members are
-    trusted; so are hosts behind a member's NAT), a flood of packets that fills the link, a
-    member's first link from an address its certificate does not name while the port takes
-    members' addresses only, more than `GATE_SOURCES` members' addresses (no filter holds
-    them: the port is then not turned to members only), platforms without a gate.
+    """Drops the sources that flood a router's `tls/` listeners; what it leaves to the
+    firewall: docs/explanation/inside.md ("What the gate leaves to the firewall").
 
     Args:
         system: the system's name, for the log lines.
@@ -299,40 +249,14 @@ def _reply_with(pem: bytes, query: zenoh.Query) -> None:
 
 
 class MemberAddresses:
-    """The addresses of the members of one router's system: those the gate never drops.
-
-    A TLS router knows a member by the certificate of its link, and Zenoh tells the
-    listener no more of that certificate than its common name. So each router answers a
-    `get` on `rr/<system>/cert/<its name>` with its own cert file (public: what it shows in
-    every handshake), and fetches the certificate of each member that links to it. A
-    member's addresses are then, from the strongest:
-
-    - the IP addresses its certificate names (subjectAltName), kept once the certificate
-      checks out as the handshake checks this host's own (`tls.member_addresses`: signed up
-      to the system's CA, in date, its common name the one it linked with): where the CA
-      says the member is, also while it is out of reach, also after it went away;
-    - the remote address of its link up now (behind a NAT, say, where no certificate names
-      it);
-    - the addresses its links came from since this router started (the last `LEARNED`).
-
-    Nothing here trusts what a member says of itself: a certificate anyone relays is the
-    CA's word. One that does not check out is said once (WARNING) and not used.
-
-    ```
-     thread "rr-zenoh-gate" (the gate's), at each look: MemberAddresses.now()
-       session.info.links(): member links up ─► learned addresses
-       a member linked, its certificate not known ─► session.get(rr/<system>/cert/<name>)
-       replies in (try_recv, never blocks) ─► tls.member_addresses() ─► named addresses
-     Zenoh's thread: a get on rr/<system>/cert/<this host> ─► the cert file's bytes
-    ```
+    """The addresses of the members of one router's system, which the gate never drops; how
+    a router learns them: docs/explanation/inside.md ("Which addresses are members'").
 
     Args:
         system: the system's name, for the log lines.
         session: the router's open Zenoh session.
         tls: this host's files (its cert is what it answers with) and the members.
         clock: seconds, monotonic (tests may pass their own).
-
-    `now` is called by one thread (the gate's); `close` by the session's closer.
     """
 
     def __init__(

@@ -1,4 +1,4 @@
-"""The carrier contract (`rr_actors._transport.base`), checked for every carrier.
+"""The carrier contract (`rr_actors._transport`: every `Messenger`), checked for every carrier.
 
 Registrars talk across real processes: a call and its dedup, unloads, fetches and
 statuses; notices that overtake the answer they are about; a peer that dies, stops,
