@@ -226,7 +226,7 @@ class Admission:
         self.paced: dict[str, dict[str, float]] = {}
 
     def come_back(
-        self, server: str, origin: str, every: float, deadline: float | None
+        self, server: str, origin: str, every: float, deadline: float | None, waits: bool = True
     ) -> float | None:
         """Seconds after which a caller of consumer `origin` refused at `server` should
         ask again (`OverloadedError.retry_after`; `None`: no estimate, `every` is 0).
@@ -234,9 +234,11 @@ class Admission:
         A slot frees about `every` seconds (what the server's loads take lately, per
         worker), and the callers of `origin` told to come back before this one are
         ahead of it: so each is told one slot later than the last, from now at the
-        earliest. Its place is kept only if it falls before its caller's `deadline`
-        (one told a time past it gives up at once, and holds no place). Kept by
-        consumer: another consumer's caller is not put behind a flood's.
+        earliest. Its place is kept only if its caller `waits` (`Load.waits`: one that
+        asked to be refused does not come back) and it falls before its caller's
+        `deadline` (one told a time past it gives up at once): a caller that holds no
+        place puts nobody behind it. Kept by consumer: another consumer's caller is not
+        put behind a flood's.
         """
         if every <= 0.0:
             return None
@@ -245,7 +247,7 @@ class Admission:
         at = min(max(now, chains.get(origin, now)) + every, now + _COME_BACK_MOST)
         for name in [name for name, last in chains.items() if last < now]:
             del chains[name]  # (its callers came back already)
-        if deadline is None or at < deadline:
+        if waits and (deadline is None or at < deadline):
             chains[origin] = at
             wanting = self.wanting.get(server, {})
             if origin in wanting:  # (it wants loads until it is back, and `_WANTING` after)
@@ -597,7 +599,9 @@ class Provider:
                 f"({share}), or one that waits is served first"
             )
             every = server.pace.load_s / self.registrar.workers.max_workers
-            after = self.admission.come_back(server.name, origin, every, message.deadline)
+            after = self.admission.come_back(
+                server.name, origin, every, message.deadline, message.waits
+            )
             message.reply.set_error(
                 OverloadedError(
                     f"'{self.registrar.name}/{server.name}' {why}: it takes no more for now"
