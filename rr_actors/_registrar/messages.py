@@ -501,6 +501,7 @@ class RunLoad:
     reply: Reply
     place: LoadPlace = dataclasses.field(default_factory=LoadPlace)
     trace: str = ""  # the traceparent its first caller's Load carried: the load runs under it
+    origin: str = ""  # its first caller's consumer registrar: its lane for a worker
 
 
 @dataclasses.dataclass(frozen=True)

@@ -641,7 +641,7 @@ class Provider:
         place = LoadPlace(message.deadline)
         self.places[rid] = (place, reply)
         chain = (*message.chain, rid)
-        server.ref.tell(RunLoad(rid, message.request, chain, reply, place, message.trace))
+        server.ref.tell(RunLoad(rid, message.request, chain, reply, place, message.trace, origin))
 
     def load_done(self, rid: str, response: Any, error: BaseException | None) -> None:
         """The load of `rid` returned `response` (or raised `error`): answer its waiters.
@@ -1139,7 +1139,7 @@ class ServerActor(Actor):
             self._spawn(self._aload(message))
             return None
         try:
-            return self.workers.submit(lambda: self._load(message))
+            return self.workers.submit(lambda: self._load(message), lane=message.origin)
         except RuntimeError as exc:  # no thread could start: this load fails, no other
             message.reply.set_error(load_error(self.registrar, self.name, _no_thread(exc)))
             return None

@@ -2136,6 +2136,36 @@ class TestOverload:
         assert f"ask again in {every:.3f} s" in str(theirs.value)
         assert ["taught", "held"] == list(started)  # the refused ones never ran
 
+    def test_a_consumer_s_load_waits_for_one_worker_turn_not_behind_another_s_backlog(
+        self, make_registrar, gates, shared, eventually
+    ):
+        """The queue for a worker takes turns between consumer registrars: a load of
+        one that asks while another's three wait is the next but one to start (the
+        first of the flood's was taken already), not the last (first come, first
+        served: "b" after "a2")."""
+        provider = make_registrar("provider", max_workers=1)
+        flood, other = make_registrar("flood"), make_registrar("other")
+        gate, started = gates(), shared.list()
+        serve_held_leaf(provider, gate, started)
+        target = (provider.name, "leaf")
+
+        def loading() -> int:
+            return len(catalog_snapshot(provider).resources)
+
+        with ThreadPoolExecutor(5) as pool:
+            calls = [pool.submit(flood.call, *target, "held", timeout=30)]
+            assert eventually(lambda: ["held"] == list(started))
+            for n in range(3):  # (queued in this order: each one's load begun first)
+                calls.append(pool.submit(flood.call, *target, f"a{n}", timeout=30))
+                assert eventually(lambda n=n: 2 + n == loading())
+            calls.append(pool.submit(other.call, *target, "b", timeout=30))
+            assert eventually(lambda: 5 == loading())
+            gate.set()
+            assert ["a0", "a1", "a2", "b", "held"] == sorted(
+                c.result(timeout=30).response for c in calls
+            )
+        assert ["held", "a0", "b", "a1", "a2"] == list(started)
+
     @pytest.mark.thread_only("watches the provider's admission in this process")
     def test_a_waiting_caller_behind_callers_that_asked_to_be_refused_is_served_in_time(
         self, make_registrar, gates, shared, monkeypatch
