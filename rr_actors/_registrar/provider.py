@@ -151,6 +151,12 @@ _SHED_HEADROOM = 1.5
 server's loads take lately (`ServerActor.shed`): its answer's way back, and a load
 slower than the average, need time too."""
 
+_PROBE_LEFT = 0.02
+"""Seconds a load must have left to run as a probe (`ServerActor.shed`): with less, its
+`load` would begin after its caller gave up (a worker's thread waits for the GIL about
+the interpreter's switch interval, 5 ms, per thread ahead of it; `bench_overload.py`
+found probes taken with 4 ms left whose `load` began 9 ms after their caller gave up)."""
+
 _REFUSALS_EVERY = 1.0
 """Seconds between two `ServerOverloaded` events of one server (its first refusal is
 published at once, the refusals in between are counted in the next)."""
@@ -1175,7 +1181,8 @@ class ServerActor(Actor):
         average learns only from loads that run: once one slow load has pushed it past
         what callers wait, every load would be shed for good. So a server whose average
         has not moved for as long as its loads take runs the next one still in time
-        anyway (a probe, one per that time), and its average follows what loads take now.
+        anyway (a probe, one per that time, with at least `_PROBE_LEFT` left), and its
+        average follows what loads take now.
         """
         deadline = message.place.deadline
         if deadline is None:
@@ -1184,7 +1191,7 @@ class ServerActor(Actor):
         left, expected = deadline - now, pace.load_s * _SHED_HEADROOM
         if left > expected:
             return None
-        if left > 0.0 and now - pace.learned >= pace.load_s:
+        if left > _PROBE_LEFT and now - pace.learned >= pace.load_s:
             pace.learned = now  # (workers race here: a probe more or less, no harm)
             return None
         return DeadlineExceededError(

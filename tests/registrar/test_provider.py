@@ -3071,6 +3071,35 @@ def test_a_server_whose_one_slow_load_sheds_the_rest_runs_one_as_a_probe_and_ser
     assert "served" in outcomes[outcomes.index("shed") :], outcomes[-5:]  # (shed for good)
 
 
+def test_a_probe_is_a_load_with_time_enough_left_to_begin_before_its_caller_gives_up(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Issue 53's 10-minute overload across processes: 5 of 23,006 loads began after
+    their caller gave up (the latest 10.6 ms). Instrumented, one of them was a probe
+    taken with 4 ms left, whose `load` began 9 ms after the deadline: a server whose
+    average is stale runs the next load still in time as a probe, but one with less
+    than 20 ms left would begin too late for anybody. It is shed; one with more is the
+    probe."""
+    from rr_actors._core.workers import Workers  # noqa: PLC0415
+    from rr_actors._registrar.messages import LoadPlace, RunLoad  # noqa: PLC0415
+    from rr_actors._registrar.provider import ServerActor  # noqa: PLC0415
+    from rr_actors._registrar.state import Pace  # noqa: PLC0415
+
+    monkeypatch.setattr(runtime, "monotonic", lambda: 1000.0)
+    pace = Pace()
+    pace.load_s, pace.learned = 1.0, 900.0  # (stale: nothing ran for 100 s)
+    server = ServerActor("rr", "s", lambda r: r, lambda r, s: None, Workers("t"), pace=pace)
+
+    def shed(left: float) -> rr.errors.RrError | None:
+        return server.shed(RunLoad("rid", "x", (), FutureReply(), LoadPlace(1000.0 + left)))
+
+    assert isinstance(shed(0.004), rr.DeadlineExceededError)
+    assert 900.0 == pace.learned  # (no probe taken)
+    assert shed(0.05) is None  # the probe
+    assert 1000.0 == pace.learned
+    assert isinstance(shed(0.05), rr.DeadlineExceededError)  # (one per load time)
+
+
 def test_a_freed_slot_goes_to_the_consumer_that_waits_not_to_one_that_asks_again_at_once() -> None:
     """Review of issue 53's shares: with a bound below the number of consumers each
     share rounds to 1, and the slot a flooding consumer's load freed went back to it (it
