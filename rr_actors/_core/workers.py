@@ -6,7 +6,7 @@
                        ├── fewer than max_workers? ──► a new worker thread runs it
                        └── otherwise ────────────────► queued: the next worker that is
                                                        free takes it (urgent jobs first,
-                                                       then FIFO)
+                                                       then one lane after another)
  job.cancel() ──► a queued job never runs (a running one is left alone)
  a job with a timeout ──► the watchdog (one thread, while jobs are watched): overdue ──►
      abandon it (its thread no longer counts; another may start) ──► on_overdue()
@@ -27,7 +27,11 @@ thread for as long as it hangs, and nothing else. Idle workers exit after
 
 An `urgent` job (an unload) jumps the queue: it waits for a free worker, never behind
 loads queued before it; a queued job whose owner no longer needs it (a load whose
-callers all gave up) is `cancel`led and skipped by the worker that takes it.
+callers all gave up) is `cancel`led and skipped by the worker that takes it. The other
+jobs queue in lanes (`submit`'s `lane`: a load's is its consumer registrar), first come
+first served within one, and a free worker takes the first job of the next lane in turn
+(round robin): a consumer that floods the queue delays another's load by one job per
+worker, not by its whole backlog.
 """
 
 from __future__ import annotations
@@ -120,7 +124,10 @@ class Workers:
         # else the first other one
         self._jobs: runtime.SimpleQueue[None] = runtime.SimpleQueue()
         self._urgent: collections.deque[Job] = collections.deque()
-        self._queue: collections.deque[Job] = collections.deque()
+        # the other jobs queued, by lane, and the lanes with jobs in the order they take
+        # their turns (a lane served goes to the back if it has more)
+        self._lanes: dict[str, collections.deque[Job]] = {}
+        self._turns: collections.deque[str] = collections.deque()
         self._idle = 0  # workers waiting for a job, minus jobs queued (negative: a backlog)
         self._live = 0  # worker threads that count against max_workers
         self._numbered = 0
@@ -153,6 +160,7 @@ class Workers:
         on_overdue: Callable[[], None] | None = None,
         quiet: bool = False,
         urgent: bool = False,
+        lane: str = "",
     ) -> Job:
         """Run `task` on a worker thread once one is free; its exceptions are logged.
 
@@ -167,6 +175,8 @@ class Workers:
                 owner expects and handles, such as the status runner's slice).
             urgent: if it must queue, it goes before every job that is not urgent (an
                 unload is not held up by loads queued before it).
+            lane: whose job it is, if it must queue: the lanes take turns, one job each
+                (a load's is its consumer's; "": the pool's own).
 
         Returns:
             The job (`abandon()` it to give up on it).
@@ -179,7 +189,10 @@ class Workers:
         with self._lock:
             if self._idle > 0 or self._live >= self._max:
                 self._idle -= 1  # an idle worker takes it, or the next one that comes free
-                (self._urgent if urgent else self._queue).append(job)
+                if urgent:
+                    self._urgent.append(job)
+                else:
+                    self._queue(job, lane)
                 self._jobs.put(None)
                 return job
             self._live += 1
@@ -228,7 +241,28 @@ class Workers:
                         return None
                 continue
             with self._lock:  # (each turn's job was queued before its turn)
-                return self._urgent.popleft() if self._urgent else self._queue.popleft()
+                return self._urgent.popleft() if self._urgent else self._take()
+
+    def _queue(self, job: Job, lane: str) -> None:
+        """Queue `job` last in `lane` (holding the lock); a lane with no job queued
+        takes its turn after the lanes that have some."""
+        jobs = self._lanes.get(lane)
+        if jobs is None:
+            jobs = self._lanes[lane] = collections.deque()
+            self._turns.append(lane)
+        jobs.append(job)
+
+    def _take(self) -> Job:
+        """The first job of the lane whose turn it is (holding the lock); that lane goes
+        last, or away once it has none left."""
+        lane = self._turns.popleft()
+        jobs = self._lanes[lane]
+        job = jobs.popleft()
+        if jobs:
+            self._turns.append(lane)
+        else:
+            del self._lanes[lane]
+        return job
 
     def _begin(self, job: Job) -> bool:
         """A worker takes `job`: whether to run it (an abandoned queued job is skipped)."""

@@ -569,7 +569,16 @@ class Calls:
                 # a notice that overtakes the answer waits; a durable call's is the actor's
                 self.due.expect(query_id, attempt, reply if self.commit_first else None)
                 load = Load(
-                    query_id, server, request, self.name, chain, reply, self.life, trace, deadline
+                    query_id,
+                    server,
+                    request,
+                    self.name,
+                    chain,
+                    reply,
+                    self.life,
+                    trace,
+                    deadline,
+                    wait_overloaded,
                 )
                 self.send(load, reply)
                 if not (yield attempt, deadline):  # the time is up: withdraw,

@@ -137,7 +137,9 @@ class Load(WireMessage):
     the boot and time namespace), and a receiver that reads the same clock (any process
     of that host) keeps the deadline exact; another host's clock is never compared.
     (Seconds left alone, 21 of 23,164 loads started up to 36 ms after their caller gave
-    up under a 10x overload across processes: `bench_overload.py`.)
+    up under a 10x overload across processes: `bench_overload.py`.) `waits`: whether its
+    caller asks again after an `OverloadedError` (`if_overloaded="wait"`): one that does
+    not is told when a slot may be free but keeps no place (`provider.Admission`).
     Answer: the response, or an error.
     """
 
@@ -150,6 +152,7 @@ class Load(WireMessage):
     life: str = ""
     trace: str = ""
     deadline: float | None = None
+    waits: bool = True
 
     def __getstate__(self) -> dict[str, Any]:
         """Its fields as it leaves this process: the deadline as the seconds left, and as
@@ -498,6 +501,7 @@ class RunLoad:
     reply: Reply
     place: LoadPlace = dataclasses.field(default_factory=LoadPlace)
     trace: str = ""  # the traceparent its first caller's Load carried: the load runs under it
+    origin: str = ""  # its first caller's consumer registrar: its lane for a worker
 
 
 @dataclasses.dataclass(frozen=True)

@@ -151,6 +151,12 @@ _SHED_HEADROOM = 1.5
 server's loads take lately (`ServerActor.shed`): its answer's way back, and a load
 slower than the average, need time too."""
 
+_PROBE_LEFT = 0.02
+"""Seconds a load must have left to run as a probe (`ServerActor.shed`): with less, its
+`load` would begin after its caller gave up (a worker's thread waits for the GIL about
+the interpreter's switch interval, 5 ms, per thread ahead of it; `bench_overload.py`
+found probes taken with 4 ms left whose `load` began 9 ms after their caller gave up)."""
+
 _REFUSALS_EVERY = 1.0
 """Seconds between two `ServerOverloaded` events of one server (its first refusal is
 published at once, the refusals in between are counted in the next)."""
@@ -226,7 +232,7 @@ class Admission:
         self.paced: dict[str, dict[str, float]] = {}
 
     def come_back(
-        self, server: str, origin: str, every: float, deadline: float | None
+        self, server: str, origin: str, every: float, deadline: float | None, waits: bool = True
     ) -> float | None:
         """Seconds after which a caller of consumer `origin` refused at `server` should
         ask again (`OverloadedError.retry_after`; `None`: no estimate, `every` is 0).
@@ -234,9 +240,11 @@ class Admission:
         A slot frees about `every` seconds (what the server's loads take lately, per
         worker), and the callers of `origin` told to come back before this one are
         ahead of it: so each is told one slot later than the last, from now at the
-        earliest. Its place is kept only if it falls before its caller's `deadline`
-        (one told a time past it gives up at once, and holds no place). Kept by
-        consumer: another consumer's caller is not put behind a flood's.
+        earliest. Its place is kept only if its caller `waits` (`Load.waits`: one that
+        asked to be refused does not come back) and it falls before its caller's
+        `deadline` (one told a time past it gives up at once): a caller that holds no
+        place puts nobody behind it. Kept by consumer: another consumer's caller is not
+        put behind a flood's.
         """
         if every <= 0.0:
             return None
@@ -245,7 +253,7 @@ class Admission:
         at = min(max(now, chains.get(origin, now)) + every, now + _COME_BACK_MOST)
         for name in [name for name, last in chains.items() if last < now]:
             del chains[name]  # (its callers came back already)
-        if deadline is None or at < deadline:
+        if waits and (deadline is None or at < deadline):
             chains[origin] = at
             wanting = self.wanting.get(server, {})
             if origin in wanting:  # (it wants loads until it is back, and `_WANTING` after)
@@ -597,7 +605,9 @@ class Provider:
                 f"({share}), or one that waits is served first"
             )
             every = server.pace.load_s / self.registrar.workers.max_workers
-            after = self.admission.come_back(server.name, origin, every, message.deadline)
+            after = self.admission.come_back(
+                server.name, origin, every, message.deadline, message.waits
+            )
             message.reply.set_error(
                 OverloadedError(
                     f"'{self.registrar.name}/{server.name}' {why}: it takes no more for now"
@@ -637,7 +647,7 @@ class Provider:
         place = LoadPlace(message.deadline)
         self.places[rid] = (place, reply)
         chain = (*message.chain, rid)
-        server.ref.tell(RunLoad(rid, message.request, chain, reply, place, message.trace))
+        server.ref.tell(RunLoad(rid, message.request, chain, reply, place, message.trace, origin))
 
     def load_done(self, rid: str, response: Any, error: BaseException | None) -> None:
         """The load of `rid` returned `response` (or raised `error`): answer its waiters.
@@ -1135,7 +1145,7 @@ class ServerActor(Actor):
             self._spawn(self._aload(message))
             return None
         try:
-            return self.workers.submit(lambda: self._load(message))
+            return self.workers.submit(lambda: self._load(message), lane=message.origin)
         except RuntimeError as exc:  # no thread could start: this load fails, no other
             message.reply.set_error(load_error(self.registrar, self.name, _no_thread(exc)))
             return None
@@ -1171,7 +1181,8 @@ class ServerActor(Actor):
         average learns only from loads that run: once one slow load has pushed it past
         what callers wait, every load would be shed for good. So a server whose average
         has not moved for as long as its loads take runs the next one still in time
-        anyway (a probe, one per that time), and its average follows what loads take now.
+        anyway (a probe, one per that time, with at least `_PROBE_LEFT` left), and its
+        average follows what loads take now.
         """
         deadline = message.place.deadline
         if deadline is None:
@@ -1180,7 +1191,7 @@ class ServerActor(Actor):
         left, expected = deadline - now, pace.load_s * _SHED_HEADROOM
         if left > expected:
             return None
-        if left > 0.0 and now - pace.learned >= pace.load_s:
+        if left > _PROBE_LEFT and now - pace.learned >= pace.load_s:
             pace.learned = now  # (workers race here: a probe more or less, no harm)
             return None
         return DeadlineExceededError(

@@ -1,7 +1,8 @@
 """Tests of `rr_actors/_core/workers.py`: the bounded pool that runs user callbacks.
 
 Its queue (issue 53): an urgent job (an unload) goes before the jobs queued before it,
-and a queued job that is cancelled (a load whose callers all gave up) never runs.
+a queued job that is cancelled (a load whose callers all gave up) never runs, and the
+lanes (consumers) take turns.
 """
 
 from __future__ import annotations
@@ -56,3 +57,20 @@ def test_a_cancelled_queued_job_never_runs_and_a_running_one_is_not_cancelled() 
     assert running.wait(10)
     assert not job.cancel()  # it runs on
     release.set()
+
+
+def test_the_lanes_take_turns_and_each_is_first_come_first_served() -> None:
+    """A lane that queued three jobs first does not hold back another's one: the
+    workers take one job of each lane with jobs in turn (round robin), in order within
+    a lane (first come, first served alone put "b 1" after "a 3")."""
+    pool, gate, ran, done = held_pool()
+    for n in (1, 2, 3):
+        pool.submit(lambda n=n: ran.append(f"a {n}"), lane="a")
+    pool.submit(lambda: ran.append("b 1"), lane="b")
+    pool.submit(lambda: ran.append("a 4"), lane="a")
+    pool.submit(lambda: ran.append("c 1"), lane="c")
+    pool.submit(done.set, lane="a")  # (the last of lane a: it runs last)
+    gate.set()
+
+    assert done.wait(10)
+    assert ["a 1", "b 1", "c 1", "a 2", "a 3", "a 4"] == ran

@@ -2091,13 +2091,17 @@ class TestOverload:
         assert 4 == len(greedy.client_queries())
         assert 1 == len(other.client_queries())
 
-    def test_a_refused_call_is_told_to_ask_again_a_slot_after_its_consumers_last_one(
+    def test_a_caller_that_asked_to_be_refused_puts_nobody_behind_it(
         self, make_registrar, gates, shared
     ):
         """The provider paces its refused callers (as HTTP's `Retry-After`): a slot frees
-        about every load time per worker, and each refused caller of a consumer is told
-        to ask again one slot after the one refused before it; another consumer's
-        caller is not put behind them."""
+        about every load time per worker, and a refused caller is told to ask again one
+        slot after the callers of its consumer that wait already. One that asked to be
+        refused (`if_overloaded="raise"`) is told when, but keeps no place: the next
+        caller of its consumer is told one slot too, not one slot later. (Before, each
+        was told one slot after the one refused before it: ten callers that never came
+        back put a waiting one ten slots back.) Another consumer's caller is not put
+        behind them either."""
         provider = make_registrar("provider", max_workers=1, max_pending=1)
         greedy, other = make_registrar("greedy"), make_registrar("other")
         gate, never, started = gates(), gates(), shared.list()
@@ -2117,7 +2121,7 @@ class TestOverload:
         with ThreadPoolExecutor(1) as pool:
             held = pool.submit(greedy.call, *target, "held", timeout=30)
             assert wait_for(lambda: "held" in started, timeout=20)
-            for n in range(3):
+            for n in range(4):
                 with pytest.raises(rr.errors.OverloadedError) as refused:
                     greedy.call(*target, n, timeout=30, if_overloaded="raise")
                 hints.append(refused.value.retry_after)
@@ -2127,11 +2131,89 @@ class TestOverload:
             assert "held" == held.result(timeout=10).response
         every = hints[0]  # one slot: its loads' time lately, over one worker
         assert 0.4 <= every < 6.0, hints
-        assert hints == sorted(set(hints)), hints  # each one slot after the last (less
-        assert hints[2] > every  # the time between the calls)
+        assert hints == pytest.approx([every] * 4, abs=1e-6)  # (not one slot after another)
         assert every == pytest.approx(theirs.value.retry_after, abs=1e-6)
         assert f"ask again in {every:.3f} s" in str(theirs.value)
         assert ["taught", "held"] == list(started)  # the refused ones never ran
+
+    def test_a_consumer_s_load_waits_for_one_worker_turn_not_behind_another_s_backlog(
+        self, make_registrar, gates, shared, eventually
+    ):
+        """The queue for a worker takes turns between consumer registrars: a load of
+        one that asks while another's three wait is the next but one to start (the
+        first of the flood's was taken already), not the last (first come, first
+        served: "b" after "a2")."""
+        provider = make_registrar("provider", max_workers=1)
+        flood, other = make_registrar("flood"), make_registrar("other")
+        gate, started = gates(), shared.list()
+        serve_held_leaf(provider, gate, started)
+        target = (provider.name, "leaf")
+
+        def loading() -> int:
+            return len(catalog_snapshot(provider).resources)
+
+        with ThreadPoolExecutor(5) as pool:
+            calls = [pool.submit(flood.call, *target, "held", timeout=30)]
+            assert eventually(lambda: ["held"] == list(started))
+            for n in range(3):  # (queued in this order: each one's load begun first)
+                calls.append(pool.submit(flood.call, *target, f"a{n}", timeout=30))
+                assert eventually(lambda n=n: 2 + n == loading())
+            calls.append(pool.submit(other.call, *target, "b", timeout=30))
+            assert eventually(lambda: 5 == loading())
+            gate.set()
+            assert ["a0", "a1", "a2", "b", "held"] == sorted(
+                c.result(timeout=30).response for c in calls
+            )
+        assert ["held", "a0", "b", "a1", "a2"] == list(started)
+
+    @pytest.mark.thread_only("watches the provider's admission in this process")
+    def test_a_waiting_caller_behind_callers_that_asked_to_be_refused_is_served_in_time(
+        self, make_registrar, gates, shared, monkeypatch
+    ):
+        """Ten callers of a consumer that asked to be refused are told to come back and
+        do not; a caller of the same consumer that waits, refused next with 4 s left, is
+        told one slot (0.6 s: its server's loads take 3 s lately), not eleven (past its
+        deadline: it gave up at once, with the slot about to free), and is served once
+        the slot frees."""
+        told: list[tuple[bool, float | None]] = []
+        waiter_told = threading.Event()
+        come_back = Admission.come_back
+
+        def watched(admission: Admission, *args: Any) -> float | None:
+            after = come_back(admission, *args)
+            told.append((args[-1], after))
+            if args[-1]:  # (a caller that waits)
+                waiter_told.set()
+            return after
+
+        monkeypatch.setattr(Admission, "come_back", watched)
+        provider = make_registrar("provider", max_workers=1, max_pending=1)
+        consumer = make_registrar("consumer")
+        gate, never, started = gates(), gates(), shared.list()
+
+        def load(request: Any) -> Any:
+            started.append(request)
+            if request == "taught":  # its loads take 0.2 of >= 3 s lately (one ran)
+                never.wait(3.0)
+            elif request == "held":
+                assert gate.wait(30)
+            return request
+
+        provider.register_server("leaf", load=load, unload=lambda r, s: None)
+        target = (provider.name, "leaf")
+        assert "taught" == consumer.call(*target, "taught", timeout=30).response
+        with ThreadPoolExecutor(2) as pool:
+            held = pool.submit(consumer.call, *target, "held", timeout=30)
+            assert wait_for(lambda: "held" in started, timeout=20)
+            for n in range(10):
+                with pytest.raises(rr.errors.OverloadedError):
+                    consumer.call(*target, n, timeout=30, if_overloaded="raise")
+            waits = pool.submit(consumer.call, *target, "waits", timeout=4)
+            assert waiter_told.wait(10)
+            gate.set()  # the slot frees while it pauses
+            assert "held" == held.result(timeout=10).response
+            assert "waits" == waits.result(timeout=10).response, told
+        assert ["taught", "held", "waits"] == list(started)
 
     @pytest.mark.across_processes("one link between two processes carries both servers' loads")
     def test_a_saturated_server_does_not_slow_another_server_called_over_the_same_link(
@@ -2989,6 +3071,35 @@ def test_a_server_whose_one_slow_load_sheds_the_rest_runs_one_as_a_probe_and_ser
     assert "served" in outcomes[outcomes.index("shed") :], outcomes[-5:]  # (shed for good)
 
 
+def test_a_probe_is_a_load_with_time_enough_left_to_begin_before_its_caller_gives_up(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Issue 53's 10-minute overload across processes: 5 of 23,006 loads began after
+    their caller gave up (the latest 10.6 ms). Instrumented, one of them was a probe
+    taken with 4 ms left, whose `load` began 9 ms after the deadline: a server whose
+    average is stale runs the next load still in time as a probe, but one with less
+    than 20 ms left would begin too late for anybody. It is shed; one with more is the
+    probe."""
+    from rr_actors._core.workers import Workers  # noqa: PLC0415
+    from rr_actors._registrar.messages import LoadPlace, RunLoad  # noqa: PLC0415
+    from rr_actors._registrar.provider import ServerActor  # noqa: PLC0415
+    from rr_actors._registrar.state import Pace  # noqa: PLC0415
+
+    monkeypatch.setattr(runtime, "monotonic", lambda: 1000.0)
+    pace = Pace()
+    pace.load_s, pace.learned = 1.0, 900.0  # (stale: nothing ran for 100 s)
+    server = ServerActor("rr", "s", lambda r: r, lambda r, s: None, Workers("t"), pace=pace)
+
+    def shed(left: float) -> rr.errors.RrError | None:
+        return server.shed(RunLoad("rid", "x", (), FutureReply(), LoadPlace(1000.0 + left)))
+
+    assert isinstance(shed(0.004), rr.DeadlineExceededError)
+    assert 900.0 == pace.learned  # (no probe taken)
+    assert shed(0.05) is None  # the probe
+    assert 1000.0 == pace.learned
+    assert isinstance(shed(0.05), rr.DeadlineExceededError)  # (one per load time)
+
+
 def test_a_freed_slot_goes_to_the_consumer_that_waits_not_to_one_that_asks_again_at_once() -> None:
     """Review of issue 53's shares: with a bound below the number of consumers each
     share rounds to 1, and the slot a flooding consumer's load freed went back to it (it
@@ -3042,6 +3153,20 @@ def test_a_consumer_told_to_come_back_later_than_wanting_still_wants_until_it_do
     assert admission.refusal("s", "B", 1) is not None  # (the free slot is kept for A)
     now[0] += after - 3.0  # (A comes back when told)
     assert admission.refusal("s", "A", 1) is None
+
+
+def test_callers_that_wait_are_told_one_slot_after_another_and_those_that_do_not_keep_none(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Each refused caller of a consumer that waits is told one slot after the one told
+    before it (they come back one a slot); one that does not wait (`Load.waits`) is told
+    where it would be, and the caller after it is told the same."""
+    monkeypatch.setattr(runtime, "monotonic", lambda: 1000.0)
+    admission = Admission()
+    assert [1.0, 2.0] == [admission.come_back("s", "A", 1.0, None) for _ in range(2)]
+    assert [3.0, 3.0] == [admission.come_back("s", "A", 1.0, None, False) for _ in range(2)]
+    assert 3.0 == admission.come_back("s", "A", 1.0, None)
+    assert 1.0 == admission.come_back("s", "B", 1.0, None, False)  # (not behind A's)
 
 
 # -- a last unload's one commit (issue 52) -----------------------------------------------------
