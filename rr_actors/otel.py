@@ -813,8 +813,10 @@ class Tracing:
                     )
                     context = _api.set_span_in_context(_api.NonRecordingSpan(called))
             links = server.links
-            restart = self._restarted_by.pop((server.pid, server.service), None)
-            if restart is not None and not server.lost:  # the first after a restart ended
+            restart = (
+                None if server.lost else self._restarted_by.pop((server.pid, server.service), None)
+            )
+            if restart is not None:  # the first after a restart ended
                 links = [*links, _api.Link(restart, {"rr_actors.incarnation": "restart"})]
             span = self._start(
                 tracer,

@@ -818,7 +818,8 @@ class Presence:
         self.stop_asking(name)
         self.round_count += 1
         round_, ref = self.round_count, self.registrar.ref
-        self.unloading.asked[name] = round_
+        held = frozenset(self.registrar.catalog.consumers_from(name))
+        self.unloading.asked[name] = (round_, held)
 
         def due() -> None:
             with contextlib.suppress(pykka.ActorDeadError):
@@ -839,16 +840,18 @@ class Presence:
     def unanswered(self, name: str, round_: int) -> None:
         """The `Reconcile` asked of consumer `name` by round `round_` was due, or `name`
         failed to answer this one's own sent after the ask: if the `Reconcile` did not come,
-        `name` is lost after all as a consumer (every id of it here released)."""
-        if self.unloading.asked.get(name) != round_:
+        `name` is lost after all as a consumer (every id it held here when asked released:
+        one loaded since is held by the registrar of that name that serves)."""
+        asked = self.unloading.asked.get(name)
+        if asked is None or asked[0] != round_:
             return  # it came (or a newer ask waits)
         self.stop_asking(name)
         logger.info(
-            "registrar %s: %s, heard lost, did not reconcile: releasing its ids",
+            "registrar %s: %s, heard lost, did not reconcile: releasing the ids it held when asked",
             self.registrar.name,
             name,
         )
-        self.unloading.release_all_of(name)
+        self.unloading.release_all_of(name, only=asked[1])  # (not those loaded since)
 
     def stop_asking(self, name: str) -> None:
         self.unloading.asked.pop(name, None)

@@ -1182,7 +1182,10 @@ class ServerActor(Actor):
         what callers wait, every load would be shed for good. So a server whose average
         has not moved for as long as its loads take runs the next one still in time
         anyway (a probe, one per that time, with at least `_PROBE_LEFT` left), and its
-        average follows what loads take now.
+        average follows what loads take now. Where no caller leaves that much, each load
+        shed while the average is stale moves it as a load that took nothing would: the
+        average forgets, until a load fits and runs (review of issue 53: callers with
+        20 ms timeouts otherwise had every load shed for good after one slow load).
         """
         deadline = message.place.deadline
         if deadline is None:
@@ -1191,9 +1194,11 @@ class ServerActor(Actor):
         left, expected = deadline - now, pace.load_s * _SHED_HEADROOM
         if left > expected:
             return None
-        if left > _PROBE_LEFT and now - pace.learned >= pace.load_s:
-            pace.learned = now  # (workers race here: a probe more or less, no harm)
-            return None
+        if now - pace.learned >= pace.load_s:  # stale
+            if left > _PROBE_LEFT:
+                pace.learned = now  # (workers race here: a probe more or less, no harm)
+                return None
+            pace.load_s -= _LOAD_S_WEIGHT * pace.load_s  # (too late to probe: forget)
         return DeadlineExceededError(
             f"the load of {describe(message.request)} at '{self.registrar}/{self.name}' was "
             f"shed before it started: {max(left, 0.0):.3f} s were left of its callers' "
@@ -1323,8 +1328,9 @@ class Unloading:
         self.provider = provider
         self.teardown = teardown
         self.unacked = unacked  # (`status.py`: the statuses on their way, by consumer id)
-        # consumer -> the round of the `Reconcile` asked of it (`Presence.lose`), until it came
-        self.asked: dict[str, int] = {}
+        # consumer -> the round of the `Reconcile` asked of it (`Presence.lose`) and the ids
+        # it held here then, until it came
+        self.asked: dict[str, tuple[int, frozenset[str]]] = {}
 
     def on_unload(self, message: Unload, reply: Reply) -> None:
         """Release the id; the answer carries the statuses still on their way to it.
@@ -1382,14 +1388,21 @@ class Unloading:
         for query_id in self.provider.under_way_of(origin_rr):
             self.provider.give_up(query_id)
 
-    def release_all_of(self, origin_rr: str) -> None:
+    def release_all_of(self, origin_rr: str, only: frozenset[str] | None = None) -> None:
         """Consumer `origin_rr` is gone for good (`life.py`'s presence: the death watch, or a
         carrier's `peer_lost`): release every id it held here (each `unload` runs once;
         a second call finds none), and give up its loads under way here (each is
         unloaded once it ends: an answer to a lost consumer may be dropped unseen, as
-        over Zenoh before its token goes, so that answer failing is not counted on)."""
-        self.give_up_loads_of(origin_rr)
+        over Zenoh before its token goes, so that answer failing is not counted on).
+
+        `only`: release just these of its ids (those it held when it was asked to
+        reconcile and did not; its loads were given up then): an id loaded since is held
+        by a registrar of that name that serves."""
+        if only is None:
+            self.give_up_loads_of(origin_rr)
         for query_id in self.registrar.catalog.consumers_from(origin_rr):
+            if only is not None and query_id not in only:
+                continue
             if self.registrar.catalog.has_consumer(query_id):  # (a release may have cascaded)
                 self.release(query_id, None, "death watch")
 

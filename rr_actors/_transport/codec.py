@@ -55,7 +55,7 @@ class Claim(WireMessage):
 
     @property
     def rank(self) -> tuple[int, int]:
-        """Its place in rule 22's first-served order (`messenger.rank`)."""
+        """Its place in rule 22's first-served order (`resolve.Sided.rank`)."""
         return (self.stamp, self.process)
 
 

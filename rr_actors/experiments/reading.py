@@ -302,7 +302,11 @@ class _Reader:
                 last = next((p for p in reversed(at) if isinstance(p, str)), "")
                 problem = f"{_allowed(message, info, last)}, got {_show(self.raw(at))}"
                 if isinstance(info, mi.LiteralType | mi.EnumType):  # a mistyped name
-                    known = info.cls.__members__ if isinstance(info, mi.EnumType) else info.values
+                    known = (
+                        [m.value for m in info.cls]
+                        if isinstance(info, mi.EnumType)
+                        else info.values
+                    )
                     problem += _did_you_mean(self.raw(at), map(str, known))
             raise self.error(at, problem) from None
 

@@ -359,7 +359,7 @@ class _Server(_Served):
 
     @property
     def rank(self) -> tuple[int, int]:
-        """Its place in rule 22's order (`messenger.rank`: the pid for a tie)."""
+        """Its place in rule 22's order (`resolve.Sided.rank`: the pid for a tie)."""
         return (self.stamp, self.process.pid)
 
 

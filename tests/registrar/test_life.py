@@ -1280,6 +1280,44 @@ class TestProviderLost:
         assert ["camera"] == unloads
         assert [] == heard
 
+    def test_a_consumer_asked_too_late_keeps_the_ids_it_loaded_after_the_ask(
+        self, system: System, started: list[rr.ResourceRegistrar]
+    ) -> None:
+        # review of issue 51's provider half: the ask's timer released every id of the
+        # name, an id the consumer that serves loaded after the ask too (its Reconcile
+        # late: a busy actor); only the ids held when it was asked are released
+        unloads: list[str] = []
+        config = rr.RegistrarConfig(name=named("provider"), call_timeout=1.0)
+        provider = rr.ResourceRegistrar.start(config, setup=leaf_setup(unloads), network=system)
+        consumer = rr.ResourceRegistrar.start(named("consumer"), network=system)
+        started.extend([consumer, provider])
+        first = consumer.call(provider.name, "leaf", "camera", timeout=BOUND)
+        asked, go = threading.Event(), threading.Event()
+        later: list[rr.Query] = []
+
+        def hold(_message: object) -> None:
+            asked.set()
+            go.wait(BOUND)  # (its Reconcile comes after the provider's call_timeout)
+
+        with intercept(consumer, "reconcile_ask", before=hold):
+            Served(provider).peer_lost(consumer.name)  # (the mark of one that yielded)
+            assert asked.wait(BOUND)
+            caller = threading.Thread(
+                target=lambda: later.append(
+                    consumer.call(provider.name, "leaf", "lidar", timeout=2 * BOUND)
+                )
+            )
+            caller.start()  # (sent from its thread; answered once the actor is free)
+            assert wait_for(lambda: ["camera"] == unloads, BOUND)  # the ask's timer: first
+            lidar = lambda: [q.id for q in provider.server_queries("leaf")]  # noqa: E731
+            assert wait_for(lambda: 1 == len(lidar()) and first.id not in lidar(), BOUND)
+            held = lidar()
+            go.set()
+            caller.join(2 * BOUND)
+
+        assert [later[0].id] == held  # the id loaded after the ask stays held
+        assert first.id not in held
+
     def test_a_consumer_heard_lost_whose_registrar_does_not_reconcile_is_released_after_all(
         self, system: System, started: list[rr.ResourceRegistrar]
     ) -> None:

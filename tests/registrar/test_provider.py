@@ -3100,6 +3100,30 @@ def test_a_probe_is_a_load_with_time_enough_left_to_begin_before_its_caller_give
     assert isinstance(shed(0.05), rr.DeadlineExceededError)  # (one per load time)
 
 
+def test_callers_too_short_for_a_probe_let_a_stale_average_forget_until_a_load_runs(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Review of the probe's 20 ms: loads take 5 ms, callers wait 20 ms, one slow load
+    pushed the average to 14 ms (21 ms needed): every load has 18 ms left, too little
+    for a probe, and the average learns only from loads that run: shed for good. Each
+    load shed while the average is stale now moves it as a load that took nothing."""
+    from rr_actors._core.workers import Workers  # noqa: PLC0415
+    from rr_actors._registrar.messages import LoadPlace, RunLoad  # noqa: PLC0415
+    from rr_actors._registrar.provider import ServerActor  # noqa: PLC0415
+    from rr_actors._registrar.state import Pace  # noqa: PLC0415
+
+    monkeypatch.setattr(runtime, "monotonic", lambda: 1000.0)
+    pace = Pace()
+    pace.load_s, pace.learned = 0.014, 999.0  # (stale: nothing ran for 1 s)
+    server = ServerActor("rr", "s", lambda r: r, lambda r, s: None, Workers("t"), pace=pace)
+    sheds = [
+        server.shed(RunLoad("rid", "x", (), FutureReply(), LoadPlace(1000.018))) for _ in range(3)
+    ]
+
+    assert [rr.DeadlineExceededError, type(None), type(None)] == [type(s) for s in sheds]
+    assert pace.load_s == pytest.approx(0.0112)  # (forgot once; the loads that fit run)
+
+
 def test_a_freed_slot_goes_to_the_consumer_that_waits_not_to_one_that_asks_again_at_once() -> None:
     """Review of issue 53's shares: with a bound below the number of consumers each
     share rounds to 1, and the slot a flooding consumer's load freed went back to it (it

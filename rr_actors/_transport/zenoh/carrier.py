@@ -289,6 +289,7 @@ class ZenohCarrier:
         if mark is not None:
             mark.undeclare()
         claim = session.liveliness().declare_token(keys.claim(NameAt(name, self.zid)))
+        local: Local | None = None
         try:
             self.presence.wait_turn(name)
             local = Local(self, endpoint)
@@ -310,6 +311,12 @@ class ZenohCarrier:
                 )
             )
             local.token = session.liveliness().declare_token(local.token_key)
+        except BaseException:  # (its subscriber undeclared and let go here, not freed
+            if local is not None and local.subscriber is not None:  # on some other thread)
+                subscriber, local.subscriber = local.subscriber, None
+                with contextlib.suppress(Exception):  # (the first error is the one to tell)
+                    subscriber.undeclare()
+            raise
         finally:  # after the token: a rival sees this one serve before the claim goes
             claim.undeclare()  # type: ignore[no-untyped-call]
         return local
