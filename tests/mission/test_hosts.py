@@ -112,7 +112,9 @@ def test_the_two_host_demo_with_every_fault_links_each_restart_to_both_incarnati
             (link["attributes"]["rr_actors.incarnation"], by_id[link["context"]["span_id"]])
             for link in restart["links"]
         ]
-        assert [f"{child}/"] == [s["name"][: len(child) + 1] for kind, s in links if kind == "old"]
+        # (the old incarnation's last span, when it was made before the restart span: one
+        # still waiting for its other side from the other host then is not linked, open)
+        assert all(s["name"].startswith(f"{child}/") for kind, s in links if kind == "old")
         # the new incarnation's first SERVER span: linked from the restart span while it is
         # open (`pair_within`), else it links to the restart span (F3, F5: first called
         # again after F6's heal, seconds later)
