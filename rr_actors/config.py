@@ -49,20 +49,16 @@ Strategy = Literal["one_for_one", "one_for_all", "rest_for_one"]
 Isolation = Literal["thread", "process"]
 
 NAME_MAX = 64
-"""The most characters in a registrar's, a system's or a member's name: the longest
-common name a certificate holds (X.509's `ub-common-name`), as a member's name is one."""
+"""The most characters in a registrar's, system's or member's name (X.509's `ub-common-name`)."""
 
 NAME = re.compile(rf"[A-Za-z0-9_][A-Za-z0-9_.\-]{{0,{NAME_MAX - 1}}}")
-"""A valid name, matched whole (`fullmatch`: `$` would accept a trailing newline): at most
-`NAME_MAX` characters. It names files (`<name>.db`, `<name>.sock`), so it never starts
-with `.` (`.`, `..`, hidden files) or `-` (read as an option by command-line tools)."""
+"""A valid name, matched whole (`fullmatch`), of at most `NAME_MAX` characters; it names
+files, so it never starts with `.` or `-`.
+"""
 
 
 def check_name(field: str, value: object, what: str = "a name") -> str:
     """`value` if it is a name (`NAME`), else `ConfigError` naming `field` and the rule broken.
-
-    The one check of registrar, system and member names; a name too long (more than
-    `NAME_MAX` characters) is told apart from one with a wrong character.
 
     Args:
         field: how the message names the argument or field (`"name"`, `"system"`).
@@ -88,18 +84,16 @@ DEFAULT_MAX_WORKERS = 64
 """Worker threads a registrar runs callbacks on at once, unless `max_workers` says otherwise."""
 
 DEFAULT_MAX_PENDING = 1000
-"""Loads a server may have queued or running at once, unless `max_pending` says otherwise:
-far more than ordinary use has (issue 53)."""
+"""Loads a server may have queued or running at once, unless `max_pending` says otherwise."""
 
 DEFAULT_MAX_MESSAGE_BYTES = 16 * 1024 * 1024
-"""The largest message (pickled) a registrar takes from another process, unless its
-`max_message_bytes` says otherwise: 16 MiB."""
+"""The largest pickled message (16 MiB) a registrar takes from another process by default."""
 
 
 MAX_DEPENDENCY_DEPTH = 64
-"""How deep a load chain may grow (a load whose `load` calls another, and so on): a call
-that would make it deeper fails with `DependencyCycleError` (runaway recursion, rule 6),
-rather than deadlock."""
+"""How deep a load chain may grow: a deeper call fails with `DependencyCycleError` (rule 6)
+rather than deadlock.
+"""
 
 
 def check_seconds(
@@ -107,8 +101,8 @@ def check_seconds(
 ) -> None:
     """Raise `ConfigError` naming `field` unless `value` is a finite number of seconds.
 
-    It must be positive (or, with `allow_zero`, non-negative); `None` passes with
-    `allow_none`. Booleans are refused although they are ints.
+    It must be positive (non-negative with `allow_zero`; `None` passes with `allow_none`); a
+    bool is refused.
     """
     if value is None and allow_none:
         return
@@ -123,6 +117,11 @@ def check_seconds(
         raise ConfigError(f"{field} must be a {kind} number of seconds, got {value!r}")
 
 
+def _check_count(field: str, value: object, least: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < least:
+        raise ConfigError(f"{field} must be an int >= {least}, got {value!r}")
+
+
 def check_choice(field: str, value: object, choices: Sequence[str]) -> None:
     """Raise `ConfigError` naming `field` unless `value` is one of `choices`."""
     if value not in choices:
@@ -130,10 +129,10 @@ def check_choice(field: str, value: object, choices: Sequence[str]) -> None:
 
 
 def is_loopback(host: str) -> bool:
-    """Whether `host` names this machine only (`localhost`, 127.0.0.0/8, `::1`): where the
-    observer and a carrier may listen without the user's leave to be reached from elsewhere.
+    """Whether `host` names this machine only (`localhost`, 127.0.0.0/8, `::1`).
 
-    A DNS name other than `localhost` is not (it may resolve anywhere).
+    Where the observer and a carrier may listen without the user's leave; a DNS name other than
+    `localhost` is not (it may resolve anywhere).
     """
     if host == "localhost":
         return True
@@ -145,51 +144,36 @@ def is_loopback(host: str) -> bool:
 
 @dataclasses.dataclass(frozen=True)
 class RegistrarConfig:
-    """How a [`ResourceRegistrar`][rr_actors.ResourceRegistrar] behaves.
-
-    Validated at construction; change a copy with `dataclasses.replace`.
+    """How a [`ResourceRegistrar`][rr_actors.ResourceRegistrar] behaves (TeMoto's `Configuration`).
 
     Attributes:
-        name: registrar name, unique within its system; letters, digits, `_`, `-`, `.`,
-            not starting with `.` or `-`, at most `NAME_MAX` (64) characters.
+        name: registrar name, unique within its system (`NAME`: letters, digits, `_`, `-`,
+            `.`, not starting with `.` or `-`, at most 64 characters).
         backup_path: SQLite file that keeps the catalog, or `None` for an in-memory catalog.
-        save_interval: with a backup, flush changes every this many seconds (`None`: never
-            on a timer). A crash loses at most one interval of changes.
-        save_on_modify: with a backup, make every load and unload durable before its
-            caller gets the answer.
-        erase_on_destruct: remove the backup after a clean `stop()` (a crash always keeps it).
+        save_interval: with a backup, flush changes every this many seconds (`None`: never on
+            a timer); a crash loses at most one interval of changes.
+        save_on_modify: with a backup, make every load and unload durable before its caller
+            gets the answer.
+        erase_on_destruct: remove the backup after a clean `stop()` (a crash keeps it).
         call_timeout: default `timeout` of every blocking call, in seconds.
-        durability: `"process"` survives a crash of the process (SQLite `synchronous=NORMAL`),
-            `"power"` also survives power loss (`synchronous=FULL`, slower).
-        max_workers: worker threads that may run this registrar's callbacks at once
-            (`load`, `unload`, status callbacks, comparisons of requests without a
-            digest); callbacks beyond it wait in a queue, in order, for one to come free.
-        compare_timeout: seconds the user code that matches a request without a digest
-            (a custom class) with the requests served may run (its `__eq__`, `__hash__`,
-            and pickling it for the backup); past them the call fails with
-            `CallTimeoutError` and the registrar goes on serving.
-        unload_timeout: seconds an `unload` callback may run (`None`: no bound); past
-            them the resource is dropped from the catalog as failed, and a caller still
-            waiting for the unload gets `CallTimeoutError`.
-        max_message_bytes: the largest message, in bytes once pickled, that crosses a
-            connection to this registrar from another process: a request or any other
-            message it receives, and every answer it sends back. A caller in another
-            process gets `MessageTooLargeError` before anything larger is sent; a larger
-            response fails its call the same way (the consumer id is released). Messages
-            within one process are not copied and not limited. Default: 16 MiB
-            (`DEFAULT_MAX_MESSAGE_BYTES`), so that a message of plain bytes costs a
-            manager far less than its default heartbeat timeout.
-        max_pending: loads each server of this registrar may have queued or running at
-            once (new loads: a dedup hit, or a caller joining a load under way, adds no
-            work and is never refused). Past it a call waits and asks again within its
-            `timeout` (a blocking one on its thread, an awaited one holding no thread),
-            and gets `OverloadedError` (naming the registrar, the server and the bound)
-            when too little time is left. Default: 1000 (`DEFAULT_MAX_PENDING`), which
-            ordinary loads never reach; a server registered with its own
-            (`register_server(..., max_pending=)`) has that one instead. A consumer
-            registrar alone may take all of it; while others want loads there too, each
-            takes at most its share (the bound divided among them), so one that floods a
-            server cannot keep another's calls from it.
+        durability: `"process"` survives a crash of the process (SQLite
+            `synchronous=NORMAL`), `"power"` also power loss (`synchronous=FULL`, slower).
+        max_workers: worker threads that may run its callbacks at once (`load`, `unload`,
+            status callbacks, comparisons of requests without a digest); more wait in order.
+        compare_timeout: seconds the user code matching a request without a digest may run
+            (`__eq__`, `__hash__`, pickling); past them the call fails with `CallTimeoutError`
+            and the registrar serves on.
+        unload_timeout: seconds an `unload` callback may run (`None`: no bound); past them the
+            resource is dropped as failed and a caller waiting gets `CallTimeoutError`.
+        max_message_bytes: the largest pickled message crossing a connection to or from this
+            registrar from another process; a larger request fails with
+            `MessageTooLargeError` before it is sent, a larger response fails its call the
+            same way. Messages within one process are not limited. Default 16 MiB.
+        max_pending: new loads each server may have queued or running at once (a dedup hit
+            is never refused). Past it a call waits and asks again within its `timeout`, and
+            gets `OverloadedError` when too little time is left. Default 1000; a server's own
+            `register_server(..., max_pending=)` wins. While several consumer registrars want
+            loads, each takes at most its share of the bound.
 
     Raises:
         ConfigError: a field is invalid; the message names it.
@@ -219,28 +203,11 @@ class RegistrarConfig:
                 raise ConfigError(f"{flag} must be a bool, got {getattr(self, flag)!r}")
         if self.durability not in ("process", "power"):
             raise ConfigError(f"durability must be 'process' or 'power', got {self.durability!r}")
-        if (
-            isinstance(self.max_workers, bool)
-            or not isinstance(self.max_workers, int)
-            or self.max_workers < 1
-        ):
-            raise ConfigError(f"max_workers must be an int >= 1, got {self.max_workers!r}")
-        if (
-            isinstance(self.max_pending, bool)
-            or not isinstance(self.max_pending, int)
-            or self.max_pending < 1
-        ):
-            raise ConfigError(f"max_pending must be an int >= 1, got {self.max_pending!r}")
+        _check_count("max_workers", self.max_workers, 1)
+        _check_count("max_pending", self.max_pending, 1)
         check_seconds("compare_timeout", self.compare_timeout)
         check_seconds("unload_timeout", self.unload_timeout, allow_none=True)
-        if (
-            isinstance(self.max_message_bytes, bool)
-            or not isinstance(self.max_message_bytes, int)
-            or self.max_message_bytes < 1
-        ):
-            raise ConfigError(
-                f"max_message_bytes must be an int >= 1, got {self.max_message_bytes!r}"
-            )
+        _check_count("max_message_bytes", self.max_message_bytes, 1)
 
     def to_dict(self) -> dict[str, Any]:
         """Return the configuration as plain JSON-able data (with a schema version)."""
@@ -268,19 +235,15 @@ class RegistrarConfig:
         return cls(**{k: v for k, v in data.items() if k in fields})
 
 
-# -- configuration -----------------------------------------------------------------------
-
-
 @dataclasses.dataclass(frozen=True)
 class Backoff:
     """Exponential backoff with jitter before a restart (something OTP does not have).
 
-    The n-th restart within the supervisor's intensity window waits
-    `min(max, initial * factor ** (n - 1))` seconds, scaled by a random factor in
-    `[1 - jitter, 1 + jitter]` (never beyond `max`). The default (`initial=0`) restarts at once.
+    The n-th restart within the intensity window waits `min(max, initial * factor ** (n - 1))`
+    seconds, scaled by a random factor in `[1 - jitter, 1 + jitter]` (never beyond `max`).
 
     Attributes:
-        initial: delay before the first restart, in seconds (0: no delay at all).
+        initial: delay before the first restart, in seconds (0, the default: none).
         factor: growth of the delay per further restart within the window (>= 1).
         max: the longest delay, in seconds.
         jitter: relative spread of the delay, from 0 (none) to 1.
@@ -335,39 +298,27 @@ class ManagerSpec:
 
     Attributes:
         name: the manager's registrar name, unique in the whole supervision tree.
-        setup: `setup(registrar)`, run in the manager after its catalog was restored and
-            before it accepts traffic; registers its servers. May be a closure (it is
-            cloudpickled for process managers). `None`: no servers. It runs on the main
-            thread of a process manager, and on the supervisor's own thread for a thread
-            manager. Either way the supervisor waits for it: supervision of the other
-            children (crash handling, restarts) pauses until it returns, so keep it short
-            (a process manager is bounded by `start_timeout`, a thread manager is not).
-        isolation: `"thread"` (the registrar runs in the supervisor's process) or
-            `"process"` (in its own OS process, so killing it kills nothing else).
-        restart: `"permanent"` (always restarted), `"transient"` (restarted only after an
-            abnormal exit) or `"temporary"` (never restarted).
-        config: the registrar's configuration; its `name` must equal `name`. Default:
+        setup: `setup(registrar)`: registers its servers, after the catalog was restored and
+            before traffic (`None`: no servers); cloudpickled for a process manager. Runs on
+            a process manager's main thread (bounded by `start_timeout`) or the supervisor's
+            thread for a thread manager (unbounded); supervision pauses until it returns.
+        isolation: `"thread"` (in the supervisor's process) or `"process"` (its own OS
+            process, so killing it kills nothing else).
+        restart: `"permanent"` (always restarted), `"transient"` (only after an abnormal
+            exit) or `"temporary"` (never).
+        config: the registrar's configuration, whose `name` must equal `name`. Default:
             `RegistrarConfig(name)`, with the supervisor's `state_dir` a backup at
             `<state_dir>/<name>.db` with `save_on_modify=True`.
-        shutdown: seconds a clean stop may take before the manager is killed. A process
-            manager is SIGKILLed. A thread cannot be killed: its registrar actor is told
-            to crash, which takes effect once it finishes the callback it is stuck in; a
-            restart that comes before that fails with `DuplicateNameError` (the old
-            registrar still holds the name) and counts as another crash, so the
-            supervisor gives up if the actor stays stuck.
-        heartbeat: seconds between heartbeat pings to a process manager (`None`: off). A
-            ping is answered through the registrar actor's mailbox, so a frozen process
-            and a stuck registrar both count as hung. Thread managers have no heartbeat.
-        heartbeat_timeout: seconds without an answer to a ping after which a process
-            manager counts as hung: it is killed and handled like a crash. Default:
-            three heartbeat periods (0.75 s with the default `heartbeat`). On Linux only
-            the time it could have run counts: time its threads waited for a CPU (an
-            overloaded machine) does not, up to ten times this bound; on any platform,
-            time its registrar was seen working through its mailbox (a busy manager: a
-            `ManagerOverloaded` event) does not either; a stopped or blocked manager is
-            hung at the bound (docs: "What counts as a hang"). A
-            manager whose answers say that it has been unable to accept connections for
-            that long (out of file descriptors, say) is killed the same way, as unhealthy.
+        shutdown: seconds a clean stop may take before the manager is killed: SIGKILL for a
+            process; a thread's registrar is told to crash once its callback returns (a
+            restart before then fails with `DuplicateNameError` and counts as a crash).
+        heartbeat: seconds between pings to a process manager, answered through its
+            registrar's mailbox (`None`: off; thread managers have none).
+        heartbeat_timeout: seconds without an answer after which a process manager is hung:
+            killed and handled like a crash (default three `heartbeat`s). Time it waited
+            for a CPU (Linux, up to ten times this bound) or its registrar was seen busy (a
+            `ManagerOverloaded` event) does not count (docs: "What counts as a hang"); a
+            manager unable to accept connections that long is killed as unhealthy.
         start_timeout: seconds a manager may take to restore, set up and serve.
 
     Raises:
@@ -409,8 +360,7 @@ class ManagerSpec:
 
     @property
     def hang_after(self) -> float | None:
-        """Seconds without a heartbeat answer after which it counts as hung (`None`: off):
-        seconds it could have run, on Linux (see `heartbeat_timeout`)."""
+        """Seconds without a heartbeat answer after which it is hung (`None`: off)."""
         if self.heartbeat is None:
             return None
         if self.heartbeat_timeout is not None:
@@ -422,9 +372,9 @@ class ManagerSpec:
 class SupervisorSpec:
     """A nested supervisor as a child of another (its arguments are `Supervisor`'s).
 
-    When it gives up, its parent sees a child that exited with OTP's `shutdown` (a
-    normal exit): a `permanent` one is restarted by the parent's own strategy and
-    intensity (escalation, as in OTP); a `transient` or `temporary` one stays down.
+    When it gives up, its parent sees OTP's `shutdown`: a `permanent` one is restarted by the
+    parent's strategy and intensity (escalation, as in OTP); a `transient` or `temporary` one
+    stays down.
 
     Attributes:
         name: the child's name in its parent (unique in the tree).
@@ -451,12 +401,7 @@ class SupervisorSpec:
         object.__setattr__(self, "children", tuple(self.children))
         check_choice("strategy", self.strategy, ("one_for_one", "one_for_all", "rest_for_one"))
         check_choice("restart", self.restart, ("permanent", "transient", "temporary"))
-        if (
-            isinstance(self.max_restarts, bool)
-            or not isinstance(self.max_restarts, int)
-            or (self.max_restarts < 0)
-        ):
-            raise ConfigError(f"max_restarts must be an int >= 0, got {self.max_restarts!r}")
+        _check_count("max_restarts", self.max_restarts, 0)
         check_seconds("period", self.period)
         if not isinstance(self.backoff, Backoff):
             raise ConfigError(f"backoff must be an rr_actors.Backoff, got {self.backoff!r}")
@@ -480,9 +425,6 @@ def walk(
     spec: SupervisorSpec, path: tuple[SupervisorSpec, ...] = ()
 ) -> Iterator[tuple[ManagerSpec | SupervisorSpec, tuple[SupervisorSpec, ...]]]:
     """Every child below `spec`, depth first, each with the supervisors above it.
-
-    The one walk over a spec tree: names, managers and state directories are read
-    through it.
 
     Yields:
         `(child, path)`: `path` runs from `spec` down to the child's own supervisor.

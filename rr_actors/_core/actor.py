@@ -1,32 +1,11 @@
 """pykka's threading actor with hand-offs that wake the other thread once, not twice.
 
-Every use of pykka's extension points for actor implementations, and of its private
-names (`_handle_receive`, `_actor_loop_running`, `_handle_failure`, `Envelope`; see
-`ContainedError` and "The turn" below), is in this file (pykka is pinned below its next
-major version in pyproject.toml).
-
-`Actor` plugs two cheaper parts into pykka through its documented extension points for
-actor implementations (`_create_actor_inbox`, `_create_future`, `_start_actor_loop`;
-pykka's own gevent and eventlet actors were built on them): a `queue.SimpleQueue` inbox
-(written in C, one lock per hand-off) and `OneShotFuture`, which hands its value over by
-releasing one lock. Its loop is pykka's with the turn added (below); `tell`, `ask`,
-`stop` and `on_failure` are pykka's.
-
-It also closes two gaps of pykka's around an actor's end. `ActorRef.tell` and `ask`
-check `is_alive()` and then put their envelope, while a stopping actor drains its inbox
-once: a message that passes the check just before the actor stops can land after the
-drain, and an ask is then never answered (its asker, say a blocking `ActorRef.stop`,
-waits forever). And pykka's drain drops tells, whatever they carried. Here every
-envelope left in the inbox when the loop ends, and every one put later, goes to the
-actor's `on_late` (by default `refuse`: an ask gets `ActorDeadError`, as pykka's drain
-gives it), so an actor whose tells carry obligations (the registrar's carry replies and
-consumer ids) can honour them.
-
-**The turn.** An actor handles one message at a time: its loop takes the inbox's `turn`
-(a lock) around each one. A carrier's receiving thread that has a message for an idle
-actor may take the turn itself and handle the message there (`deliver`) instead of
-waking the actor's thread; so may an event loop's thread that sends an awaited call's
-load (not to a durable registrar, whose step commits to disk: `directory.LocalPeer`):
+Every use of pykka's extension points (`_create_actor_inbox`, `_create_future`,
+`_start_actor_loop`) and private names (`_handle_receive`, `_actor_loop_running`,
+`_handle_failure`, `Envelope`) is in this file. `Actor` has a `queue.SimpleQueue` inbox and
+`OneShotFuture`s; every envelope left in its inbox when its loop ends, or put later, goes to
+its `on_late` (by default `refuse`, as pykka's drain), so tells that carry obligations are
+honoured. **The turn**: one thread at a time handles the actor's messages, in order:
 
 ```
  deliver(ref, message) (a carrier's receiving thread: it holds no lock)
@@ -38,15 +17,7 @@ load (not to a durable registrar, whose step commits to disk: `directory.LocalPe
    the envelopes waiting after it, a bounded number) ─► on_turn_end ─► give the turn back
 ```
 
-So one thread at a time handles the actor's messages, in the order they were put (a
-message handled in the turn never overtakes one put before it); only the thread differs.
-The carrier's thread counts as the actor's thread meanwhile (`on_actor_thread`). Only
-the kinds an actor lists run so (the registrar's `Load`, `Unload` and `Abandon`: short
-steps that hand user code to worker threads), and only from `deliver`, never from a
-`tell` (a user's thread, or another actor's, might hold a lock the handler takes).
-
-A child forked from this process forgets its parent's actors (`_forget_actors`). Why the
-hand-offs are built so: docs/explanation/inside.md, "One wake-up per hand-off".
+Why: docs/explanation/inside.md, "One wake-up per hand-off".
 """
 
 from __future__ import annotations
@@ -91,14 +62,10 @@ _ACTOR_THREAD = runtime.local()  # `active` on the thread of an `Actor`'s loop
 
 
 def on_actor_thread() -> bool:
-    """Whether the calling thread runs an actor's loop (an `Actor`'s thread), or steps an
-    awaited operation on an event loop (`awaiting`).
+    """Whether the calling thread runs an actor's loop, or steps an awaited operation (`awaiting`).
 
-    Such a thread must never wait on the network: a carrier asked for a registrar there
-    answers from what it knows and leaves the asking to a thread of its own (the Zenoh
-    carrier's outbox writer), so the actor answers its next message at once (a
-    supervisor's heartbeat comes through the mailbox too), and a loop runs its other
-    tasks meanwhile.
+    Such a thread must never wait on the network: a carrier asked there answers from what it
+    knows and leaves the asking to a thread of its own.
     """
     return bool(
         getattr(_ACTOR_THREAD, "active", False) or getattr(_ACTOR_THREAD, "awaiting", False)
@@ -107,13 +74,11 @@ def on_actor_thread() -> bool:
 
 def awaiting() -> bool:
     """Whether the calling thread steps an awaited operation on an event loop now
-    (`loops.run_steps_async` marks it, `mark_awaiting`): it may take an idle actor's
-    turn (`deliver`), and it must not wait on the network."""
+    (`mark_awaiting`)."""
     return bool(getattr(_ACTOR_THREAD, "awaiting", False))
 
 
 def mark_awaiting(on: bool) -> None:
-    """Mark (or unmark) the calling thread as stepping an awaited operation (`awaiting`)."""
     _ACTOR_THREAD.awaiting = on
 
 
@@ -128,23 +93,14 @@ GetHookFunc: TypeAlias = Callable[[float | None], T]
 
 
 SIGNAL_CHECK = 0.1
-"""Seconds the main thread blocks at most in one go in a `OneShotFuture`'s wait: a
-Ctrl-C its lock's wait did not see is raised within this."""
+"""Seconds the main thread blocks at most in one go in a future's wait (so Ctrl-C is seen)."""
 
 
 class OneShotFuture(pykka.Future[T]):
     """A pykka future whose value is handed over by releasing one lock.
 
-    Behaves as `pykka.ThreadingFuture`, with its interface and no more: `get(timeout=)`
-    blocks until `set`, `set_exception` or `set_get_hook` settled it, raises
-    `pykka.Timeout` after `timeout` seconds, and returns (or raises) the same value on
-    every later `get`; settling it a second time raises `queue.Full`. Any number of
-    threads may wait on it at once; a get hook runs once. (Who settles a registrar
-    call's future, when an answer races a timeout, is decided by its `CallAttempt`.)
-
-    Beyond pykka's interface, `add_done_callback(fn)` runs `fn(future)` once it is
-    settled, on the thread that settles it: an event loop awaits it through one
-    (`rr_actors._core.loops.settled`), with no thread blocked on it.
+    As `pykka.ThreadingFuture` (settling it twice raises `queue.Full`; a get hook runs once),
+    plus `add_done_callback`, through which an event loop awaits it.
     """
 
     def __init__(self) -> None:
@@ -163,16 +119,11 @@ class OneShotFuture(pykka.Future[T]):
     def _wait(self, timeout: float | None = None) -> bool:
         """Block until it is settled, at most `timeout` seconds; whether it is.
 
-        Waiters pass the hand-off lock on one after the other, so a waiter may run out of
-        time on it while another one holds it for a moment (preempted between taking and
-        passing it on) although the future was settled long before: a wait that runs out
-        therefore looks at the future once more before it reports a timeout.
-
-        The main thread blocks `SIGNAL_CHECK` seconds at most in one go: CPython runs
-        signal handlers between bytecodes, and a lock's wait wakes for a signal only if
-        the signal lands while it blocks. A Ctrl-C that lands as the thread goes to block
-        (after its last check), or that another thread took, is raised as the slice ends,
-        not when the whole wait does.
+        A wait that runs out looks once more (another waiter may hold the hand-off lock a
+        moment).
+        The main thread blocks in `SIGNAL_CHECK` slices: a lock's wait wakes for a signal only
+        if
+        the signal lands while it blocks.
         """
         if self._settled:
             return True
@@ -199,8 +150,7 @@ class OneShotFuture(pykka.Future[T]):
                 return False
 
     def wait(self, timeout: float | None = None) -> bool:
-        """Block until it is settled, at most `timeout` seconds; whether it is (what
-        `replies.run_steps` blocks on)."""
+        """Block until it is settled, at most `timeout` seconds; whether it is."""
         return self._wait(timeout)
 
     def get(self, *, timeout: float | None = None) -> T:
@@ -242,11 +192,9 @@ class OneShotFuture(pykka.Future[T]):
             raise runtime.Full
 
     def add_done_callback(self, fn: Callable[[OneShotFuture[T]], object]) -> None:
-        """Run `fn(self)` once it is settled: at once, on this thread, if it is already;
-        else on the thread that settles it. What `fn` raises is logged.
+        """Run `fn(self)` once settled: at once if it is, else on the thread that settles it.
 
-        Several callbacks run in the order they were added, each once. Meant for
-        wake-ups that must be quick and never block (`loop.call_soon_threadsafe`).
+        Callbacks run in order, each once; what one raises is logged. For quick wake-ups only.
         """
         callbacks = self._done_callbacks
         if callbacks is None:
@@ -266,7 +214,7 @@ class OneShotFuture(pykka.Future[T]):
             self._run_done_callbacks(callbacks)
 
     def _run_done_callbacks(self, callbacks: list[Callable[[OneShotFuture[T]], object]]) -> None:
-        """Run each callback of `callbacks` once: `pop` takes each for one thread only."""
+        """Run each of `callbacks` once (`pop` gives each to one thread)."""
         while True:
             try:
                 fn = callbacks.pop(0)
@@ -279,17 +227,10 @@ class OneShotFuture(pykka.Future[T]):
 
 
 class Inbox(LateQueue):
-    """An actor's inbox that hands on what is left, and what still arrives, once it closes,
-    with the actor's turn (module docstring).
+    """An actor's inbox with its turn; once closed, what is left and what arrives goes to `late`.
 
-    `close(late)` runs when the actor's loop ended; from then on whatever is put (by a
-    `tell` or `ask` that saw the actor alive a moment earlier) goes to `late` at once
-    (`Late`: it handles an envelope its actor will not handle any more, on any thread).
-
-    Every envelope put, or handled in the turn, takes a ticket (`itertools.count`: one
-    step, atomic in CPython); `handled` counts those handled and is written only in the
-    turn. An envelope may be handled in the turn only when `handled` equals its ticket:
-    every one put before it was handled.
+    Every envelope put, or handled in the turn, takes a ticket; `handled`, written only in the
+    turn, counts those handled: one may be handled in the turn only when it equals its ticket.
     """
 
     def __init__(self) -> None:
@@ -324,10 +265,9 @@ class Inbox(LateQueue):
 
 
 def refuse(envelope: Any) -> None:
-    """Answer a pykka envelope its actor will not handle, as pykka's own final drain does.
+    """Answer an envelope its actor will not handle, as pykka's final drain does.
 
-    A stop asked for is answered as done (`ActorRef.stop` returns True: the actor was
-    stopping); any other `ask` gets `ActorDeadError`; a `tell` has nobody to answer.
+    A stop is answered as done; any other `ask` gets `ActorDeadError`; a `tell` is dropped.
     """
     if envelope.reply_to is None:
         return
@@ -343,10 +283,9 @@ _WAKE = pykka._envelope.Envelope(None)
 
 
 def deliver(ref: pykka.ActorRef[Any], message: Any) -> None:
-    """`ref.tell(message)`, from a carrier's receiving thread: an idle `Actor` that lets
-    `message`'s kind in (`Actor.inline`) handles it on this thread, in its turn.
+    """`ref.tell(message)`, or handled on this thread in an idle `Actor`'s turn (`Actor.inline`).
 
-    The calling thread must hold no lock a handler might take (it runs the handler).
+    The calling thread must hold no lock a handler might take.
 
     Raises:
         pykka.ActorDeadError: the actor is not running.
@@ -364,40 +303,32 @@ def deliver(ref: pykka.ActorRef[Any], message: Any) -> None:
 class ContainedError(RuntimeError):
     """An actor's handler raised a `BaseException` that is not an `Exception`.
 
-    pykka takes such an exception (`SystemExit`, `KeyboardInterrupt`, ...) for the
-    process going down, and stops every actor of the process. Raised by user code an
-    actor ran (an `__eq__`, a `__reduce__`), it is a failure of that actor alone: `Actor`
-    re-raises it as this error, which pykka handles like any other failure of a handler
-    (`on_failure` runs, that actor stops, the others go on).
+    pykka would take it for the process going down and stop every actor; raised by user code
+    an actor ran, it fails that actor alone (`on_failure` runs, the others go on).
     """
 
 
 class Actor(pykka.ThreadingActor):
-    """`pykka.ThreadingActor` with an `Inbox` (a `queue.SimpleQueue`) and `OneShotFuture`s.
+    """`pykka.ThreadingActor` with an `Inbox`, `OneShotFuture`s and the turn.
 
-    A handler that raises a `BaseException` other than an `Exception` fails this actor
-    only (see `ContainedError`). Its thread is a daemon thread: a program whose main
-    thread ends is not kept alive by actors it forgot to stop (`rr_actors._core.exit`
-    stops them cleanly first).
+    A handler's `BaseException` fails this actor only (`ContainedError`). Its thread is a
+    daemon (`rr_actors._core.exit` stops actors cleanly first).
     """
 
     use_daemon_thread = True
     actor_inbox: Inbox
 
     inline: frozenset[type] = frozenset()
-    """The message kinds a carrier's receiving thread may handle in this actor's turn
-    (`deliver`); none by default."""
+    """The message kinds `deliver` may handle in this actor's turn; none by default."""
 
     drain: int = 1
-    """Messages the actor's thread handles in one turn at most: after a message, the
-    next ones already waiting in the inbox are handled before `on_turn_end`, until this
-    many were (the first included) or `drain_seconds` passed. 1: a turn a message."""
+    """Messages one turn handles at most (those already waiting after the first), within
+    `drain_seconds`. 1: a turn a message.
+    """
 
     drain_seconds: float = 0.0
-    """Seconds after a turn's first message past which it takes no more (`drain`)."""
-
     ends_turns: bool = False
-    """Whether `on_turn_end` runs at the end of each turn (off: not even called)."""
+    """Whether `on_turn_end` runs at the end of each turn."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -455,8 +386,8 @@ class Actor(pykka.ThreadingActor):
                     self._end_turn()
 
     def _drain_inbox(self, inbox: Inbox) -> None:
-        """Handle the envelopes waiting in `inbox` in this turn, up to `drain` in all (the
-        first included) or `drain_seconds` (the turn lock held: none is handled inline)."""
+        """Handle the envelopes waiting in `inbox` in this turn, within `drain` and
+        `drain_seconds`."""
         handled = 1
         until = runtime.monotonic() + self.drain_seconds
         while (
@@ -474,7 +405,6 @@ class Actor(pykka.ThreadingActor):
             handled += 1
 
     def _run_in_turn(self, envelope: Any) -> None:
-        """Handle `envelope` on a carrier's thread that holds the turn (`Inbox.run_or_put`)."""
         was = getattr(_ACTOR_THREAD, "active", False)
         _ACTOR_THREAD.active = True
         try:
@@ -488,9 +418,7 @@ class Actor(pykka.ThreadingActor):
             self.actor_inbox.put(_WAKE)
 
     def _end_turn(self) -> None:
-        """`on_turn_end`; what it raises fails the actor as a handler's failure of a tell
-        does (`on_failure` runs, the actor stops; not an `Exception`: as pykka, the process
-        is going down), so the loop always ends through its teardown."""
+        """`on_turn_end`; what it raises fails the actor as a tell's handler's failure does."""
         try:
             self.on_turn_end()
         except Exception:  # noqa: BLE001 - (as a tell's failure: `on_failure`, the actor stops)
@@ -500,9 +428,8 @@ class Actor(pykka.ThreadingActor):
             pykka.ActorRegistry.stop_all()
 
     def _fail(self) -> None:
-        """A tell's handler (or the turn's end) raised the exception being handled: as
-        pykka, it is logged, `on_failure` runs (what it raises is logged too), the actor
-        stops."""
+        """As pykka for a failed tell: logged, `on_failure` runs (its own failure logged), the
+        actor stops."""
         self._handle_failure(*sys.exc_info())
         try:
             self.on_failure(*sys.exc_info())
@@ -510,7 +437,7 @@ class Actor(pykka.ThreadingActor):
             self._handle_failure(*sys.exc_info())
 
     def _handle_envelope(self, envelope: Any) -> None:
-        """pykka's handling of one envelope (`Actor._actor_loop_running`'s body)."""
+        """pykka's handling of one envelope."""
         try:
             response = self._handle_receive(envelope.message)
             if envelope.reply_to is not None:
@@ -533,20 +460,13 @@ class Actor(pykka.ThreadingActor):
         self.on_ended()
 
     def end_now(self) -> None:
-        """End this actor from its own thread at once, skipping the rest of its inbox.
-
-        What is left in the inbox, and what arrives later, goes to `on_late` (pykka's
-        own `_stop`, wrapped here so that no other module uses pykka's private names).
-        """
+        """End this actor from its own thread at once; the rest of its inbox goes to `on_late`."""
         self._stop()
 
     def on_turn_end(self) -> None:
-        """Run at the end of each turn when `ends_turns`, in it: after the messages it
-        handled (one, or up to `drain` when more waited), before the next turn; on the
-        thread that had the turn.
+        """Run at the end of each turn when `ends_turns`, in it, on the thread that had the turn.
 
-        A registrar commits the changes of its turn's messages here, and releases their
-        answers after the commit (`rr_actors._registrar.state.Shared.end_turn`).
+        A registrar commits its turn's changes here, then releases their answers.
         """
 
     def on_ended(self) -> None:
@@ -555,21 +475,18 @@ class Actor(pykka.ThreadingActor):
     def on_late(self, envelope: Any) -> None:
         """Handle an envelope that arrived after this actor's loop ended.
 
-        Runs on the actor's thread for what was left in its inbox, and on the sender's
-        thread for what comes later. By default an ask gets `ActorDeadError` and a tell
-        is dropped, as in pykka; override it (thread-safely) for tells that carry
-        obligations.
+        Runs on the actor's thread for what was left, on the sender's thread for what comes
+        later;
+        by default `refuse`. Override it (thread-safely) for tells that carry obligations.
         """
         refuse(envelope)
 
 
 def _forget_actors() -> None:
-    """In a forked child: every actor of the parent is dead here (it has no thread).
+    """In a forked child: every actor of the parent is dead (its refs' `actor_stopped` set).
 
-    Each ref gets an `actor_stopped` event that is set (a new one: a thread of the parent
-    may have held the old one's lock at the fork), so `tell` and `ask` raise
-    `ActorDeadError` and waits on it return at once; each leaves pykka's registry, whose
-    lock (pykka's private `_actor_refs_lock`) is made new first for the same reason.
+    New events and a new registry lock: a parent's thread may have held the old ones at the
+    fork.
     """
     pykka.ActorRegistry._actor_refs_lock = runtime.RLock()
     for ref in pykka.ActorRegistry.get_all():

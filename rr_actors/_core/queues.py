@@ -1,10 +1,10 @@
 """What stands between a publisher and a slow consumer: bounded queues and their threads.
 
-A `Subscription` runs its callback on a thread of its own; a `Forwarder` ships batches to
-another process from a thread of its own (each a `SerialExecutor`). Both put events
-through an `_Outbox`, a bound that drops instead of blocking and remembers the gap it
-made, and both linger a moment after each batch so that a stream of events does not wake
-them once per event. `LateQueue`: a queue whose items go to a handler once it closed.
+A `Subscription` runs its callback, a `Forwarder` ships batches to another process, each
+on a thread of its own (a `SerialExecutor`) behind an `_Outbox`: a bound that drops
+instead of blocking and remembers the gap it made. Both linger a moment after each batch,
+so that a stream of events does not wake them once per event. `LateQueue`: a queue whose
+items go to a handler once it closed.
 """
 
 from __future__ import annotations
@@ -40,32 +40,19 @@ DEFAULT_MAXSIZE = 10_000
 """Events a subscription (or forwarder) holds before it drops new ones."""
 
 LINGER = 0.001
-"""Seconds a subscription's thread lets events pile up after a batch.
-
-A publish wakes the consumer thread only when it waits for an event; while it lingers,
-a burst of events (a call every 30-40 us) is put without waking anyone, and the next batch
-takes them all. On one CPU, one wake-up per event cost a dedup-hit call about 20% with
-one subscriber (`benchmarks/bench_core.py`); lingering costs each event up to this much
-delivery latency.
+"""Seconds a subscription's thread lets events pile up after a batch: a burst is put without
+a wake-up per event, each event delayed at most this much.
 """
 
 FORWARD_LINGER = 0.02
-"""Seconds a forwarder's thread lets events pile up after it shipped a batch.
-
-Longer than a subscription's `LINGER`: each batch a manager process ships wakes a thread
-in it and two in the supervisor's process (the reader, the subscriber). Calls every
-200-400 us into a manager process made a batch of 2-5 events with 1 ms, and an open
-observer cost a dedup-hit call +30 to +70% (`benchmarks/bench_observer.py`). An event
-after a quiet spell is shipped at once; only the events of a burst wait, at most this long.
+"""Seconds a forwarder's thread lets events pile up after a batch (each batch wakes three
+threads in two processes); an event after a quiet spell is shipped at once.
 """
 
 
 LOG_EVERY = 10.0
-"""Seconds between two log lines about the same trouble of one subscriber or forwarder.
-
-The first time a callback raises (or a queue overflows) is logged in full; what happens
-again is counted, and reported in one line at most this often (and when it closes): a
-callback that raises on every event must not write a traceback per event.
+"""Seconds between two log lines about the same trouble of one subscriber or forwarder: the
+first in full, the rest counted.
 """
 
 
@@ -76,13 +63,9 @@ Late = Callable[[Any], None]
 class LateQueue(queue.SimpleQueue[Any]):
     """A queue that, once closed, hands what is left in it and what is put later to `late`.
 
-    The put and the close each drain after their own write, so an item is handed on by
-    whichever comes second, and once (`get_nowait` is atomic). An actor's inbox
-    (`_core.actor.Inbox`) and the call outcomes a registrar takes (`DueAnswers`) are one.
-
-    A `queue.SimpleQueue` with its own (C) methods; made in a simulation, it is of the
-    subclass the runtime gives (`runtime.queue_class`), whose queue methods are the
-    simulation's. So its own methods call `_put`, never `SimpleQueue.put` by name.
+    The put and the close each drain after their own write: an item is handed on once, by
+    whichever comes second. Its own methods call `_put`, never `SimpleQueue.put` by name: in a
+    simulation it is of the runtime's subclass (`runtime.queue_class`).
     """
 
     _late: Late | None = None
@@ -112,20 +95,12 @@ class LateQueue(queue.SimpleQueue[Any]):
 
 
 class _Outbox(Generic[E]):
-    """A consumer's thread (a `SerialExecutor`) behind a bound that drops instead of
-    blocking and remembers the gap it made; the waits and the close a subscription and a
-    forwarder share.
+    """A consumer's thread behind a bound that drops instead of blocking and remembers the gap.
 
-    `put` runs on any publishing thread and never blocks; `handle(item)` runs on the
-    thread. With several publishing threads at once the bound may be passed by as many
-    events as there are threads (the size check and the put are not one step; a lock
-    would cost every publish). A gap's notice goes where the lost events would have been:
-    before the next event there is room for, or when the thread ran dry.
-
-    With `maxbytes`, items are also bounded by their weight (`weigh(item)`, bytes): what
-    is queued and not handled yet weighs at most `maxbytes` (an item heavier than that
-    alone is dropped); such puts take the lock (for items from another process, whose
-    size their sender chose).
+    `put` runs on any publishing thread and never blocks (without a lock the bound may be
+    passed by one event per publishing thread). A gap's notice goes where the lost events
+    would have been. With `maxbytes`, what is queued also weighs at most `maxbytes` bytes
+    (`weigh`), such puts taking the lock.
     """
 
     def __init__(
@@ -177,8 +152,7 @@ class _Outbox(Generic[E]):
             self._put_slowly(item)
 
     def _put_slowly(self, item: E, weight: int | None = None) -> None:
-        """Queue `item` (of `weight` bytes, with `maxbytes`) or drop it, opening or
-        widening a gap."""
+        """Queue `item` (of `weight` bytes) or drop it, opening or widening a gap."""
         warn = first = False
         with self._lock:
             full = self.executor.pending >= self._maxsize or (
@@ -233,7 +207,6 @@ class _Outbox(Generic[E]):
             self._gap = 0
 
     def close_gap(self) -> None:
-        """Queue the notice of an open gap now (before a wait, a close)."""
         if self._gap:
             with self._lock:
                 self._close_gap()
@@ -280,22 +253,14 @@ class _Outbox(Generic[E]):
 class Subscription(Generic[E]):
     """One subscriber's events: a bounded queue and a thread of its own that runs the callback.
 
-    Made by `subscribe` (`Supervisor.subscribe`, `ResourceRegistrar.subscribe`). The
-    callback runs on this subscription's own daemon thread (named `rr-events-<name>`),
-    never on the publishing thread and never in a registrar's mailbox, one event at a
-    time, in publish order. It may block or be slow: the publisher never waits for it.
-    When its queue is full, new events are dropped and counted (`dropped`); once there
-    is room again the callback gets one notice of the gap (`EventsDropped(count)` for
-    rr_actors' events) where the lost events would have been. With `maxbytes`, the same
-    holds when the events queued would weigh more than `maxbytes` bytes (`weigh(event)`):
-    for events from other processes, whose size their senders chose.
-
-    An exception from the callback is logged (logger `rr_actors`) and delivery goes on:
-    the first with its traceback, later ones as a count, at most once every `LOG_EVERY`
-    seconds (and when the subscription ends). Falling behind is likewise warned about
-    once, then at most once every `LOG_EVERY` seconds with the events dropped meanwhile.
-
-    Use it as a context manager (`with sup.subscribe(cb): ...`) or call `close()`.
+    Made by `Supervisor.subscribe` and `ResourceRegistrar.subscribe`. The callback runs on the
+    subscription's daemon thread (`rr-events-<name>`), never on the publishing thread nor in a
+    registrar's mailbox, one event at a time, in publish order; the publisher never waits for
+    it. When its queue is full (or, with `maxbytes`, too heavy), new events are dropped and
+    counted (`dropped`), and the callback later gets one notice of the gap (`EventsDropped`)
+    where they would have been. A callback's exception is logged (logger `rr_actors`: the
+    first with its traceback, then a count at most every `LOG_EVERY` seconds) and delivery goes
+    on. Use it as a context manager or call `close()`.
 
     Attributes:
         name: the subscription's name (in its thread's name and in log lines).
@@ -333,8 +298,7 @@ class Subscription(Generic[E]):
 
     @property
     def dropped(self) -> int:
-        """How many events this subscription dropped so far: because its queue was full,
-        or because a `close()` that ran out of time left them unhandled."""
+        """Events dropped so far: for a full queue, or left by a `close()` that ran out of time."""
         return self._outbox.dropped
 
     @property
@@ -345,32 +309,24 @@ class Subscription(Generic[E]):
     def wait_delivered(self, *, timeout: float | None = 5.0) -> bool:
         """Block until every event published before this call went through the callback.
 
-        Dropped events count as gone through once their notice was delivered. Useful in
-        tests and before a program exits.
+        A dropped event counts once its notice was delivered.
 
         Args:
             timeout: the longest wait, in seconds (`None`: no bound).
 
         Returns:
-            `True` when everything was delivered, `False` if `timeout` passed first (or
-            the subscription was closed before it could deliver everything).
+            `False` if `timeout` passed first (or it was closed before delivering everything).
 
         Raises:
-            RuntimeError: called from this subscription's own callback (it would wait
-                for itself).
+            RuntimeError: called from its own callback.
         """
         return self._outbox.wait(timeout=timeout, caller="wait_delivered()")
 
     def close(self, *, timeout: float | None = 5.0) -> None:
         """Unsubscribe, deliver what was already queued, and end the thread.
 
-        Events published after `close` started are not delivered. If the callback has
-        not worked through the queue within `timeout`, the rest is dropped (a WARNING
-        says so) and the thread ends after the event it is handling. Calling it again,
-        or from the callback itself (which then returns first), is fine.
-
-        Args:
-            timeout: how long to wait for the queued events, in seconds (`None`: no bound).
+        What is not delivered within `timeout` seconds (`None`: no bound) is dropped, with a
+        WARNING. Idempotent; from the callback itself it returns first.
         """
         if not self.closed:
             self._unsubscribe(self)
@@ -398,8 +354,8 @@ class Subscription(Generic[E]):
                 self._report_raised((item, exc))
 
     def _report_raised(self, latest: tuple[E, BaseException] | None) -> None:
-        """Log the callback's exceptions: the first in full, later ones as a count
-        (`latest`: the one that just happened; `None`: the subscription ends)."""
+        """Log the callback's exceptions: the first in full, later ones as a count (`None`: it
+        ends)."""
         raising = self._raising
         if latest is not None and not raising.logged:
             raising.logged, raising.unlogged = True, 0
@@ -426,21 +382,16 @@ class Subscription(Generic[E]):
 class Forwarder(Generic[E]):
     """A sink that ships events in batches from its own thread (to another process, say).
 
-    Add it to a publisher (`publisher.add_sink(forwarder)`). It puts each event in a
-    bounded buffer and returns; its daemon thread (named `rr-forward-<name>`) calls
-    `send(batch)` with everything that piled up (at most `max_batch` events, in publish
-    order). When the buffer is full, events are dropped and counted, and with a
-    `notice` factory the next batch carries `notice(count)` where they were lost. A
-    `send` that raises is logged (once per run of failures) and its batch counts as
-    dropped.
+    `publisher.add_sink(forwarder)`: it buffers each event and returns; its daemon thread
+    (`rr-forward-<name>`) calls `send(batch)` with what piled up, in publish order. A full
+    buffer drops events, and the next batch carries `notice(count)` where they were lost; a
+    `send` that raises is logged (once per run of failures) and its batch counts as dropped.
 
     Args:
-        send: called with a new list of events on the forwarder's thread (a manager
-            process sends it over its pipe to the supervisor's process). It may block.
+        send: called with a new list of events on the forwarder's thread; may block.
         maxsize: events the buffer holds before it drops new ones.
         max_batch: the most events one `send` gets.
-        notice: `notice(count)` makes the item that marks a gap (`EventsDropped`), or
-            `None` for no marker.
+        notice: makes the item that marks a gap (`EventsDropped`), or `None`.
         name: for the thread's name and log lines.
 
     Raises:
@@ -475,26 +426,21 @@ class Forwarder(Generic[E]):
         )
 
     def __call__(self, event: E) -> None:
-        """Buffer `event` for the next batch (on the publishing thread; never blocks)."""
+        """Buffer `event` for the next batch (never blocks)."""
         self._outbox.put(event)
 
     @property
     def dropped(self) -> int:
-        """Events lost so far: dropped for a full buffer, in a batch whose `send` raised, or
-        left unsent by a `close()` that ran out of time."""
+        """Events lost: for a full buffer, in a failed `send`, or left by a late `close()`."""
         return self._outbox.dropped + self._failed
 
     def wait_sent(self, *, timeout: float | None = 5.0) -> bool:
         """Block until every event given before this call was passed to `send` (or dropped).
 
-        Args:
-            timeout: the longest wait, in seconds (`None`: no bound).
-
-        Returns:
-            `True` when done, `False` if `timeout` passed first.
+        Returns `False` if `timeout` seconds (`None`: no bound) passed first.
 
         Raises:
-            RuntimeError: called from `send` itself (it would wait for itself).
+            RuntimeError: called from `send` itself.
         """
         return self._outbox.wait(timeout=timeout, caller="wait_sent()", first=self._ship)
 
@@ -502,16 +448,13 @@ class Forwarder(Generic[E]):
         """Send what is buffered (within `timeout` seconds) and end the thread. Idempotent.
 
         Remove it from its publisher first: events given after `close` are not sent.
-
-        Args:
-            timeout: how long to wait for the last batches, in seconds (`None`: no bound).
         """
         self._outbox.stop(timeout=timeout, last=self._ship)
 
     @property
     def executor(self) -> SerialExecutor:
-        """The executor of its thread, which calls `send` (to be joined once closed: a
-        `send` into a library whose calls must not run on as the interpreter ends)."""
+        """The executor of its thread (joined once closed, where `send` must not outlive the
+        interpreter)."""
         return self._outbox.executor
 
     def __repr__(self) -> str:

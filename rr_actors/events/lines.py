@@ -39,25 +39,14 @@ __all__ = [
 ]
 
 SCHEMA = 8
-"""Version of the dicts `to_dict` writes (the `"schema"` key); `from_dict` reads it and 7 to 1.
+"""Version of the dicts `to_dict` writes (the `"schema"` key); `from_dict` reads 1 to 8.
 
-Schema 2 added `seq`, request digests and labels, release reasons, in-doubt details and
-the catalog events; a schema 1 line may lack the fields that have defaults (`seq`: 0).
-Schema 3 added `host` (the member name of the host) and `hlc` (the hybrid logical clock
-stamp) to every event; a line of an older schema gets `host` `""` (not known) and the
-stamp of its `at` (`hlc.from_seconds`), so that old lines still sort by wall time.
-Schema 4 added `ChildExited`'s `restart`, `normal`, `stopped`, `max_restarts` and `period`
-(what a supervisor decided from); a line of an older schema gets `restart` `""` (not known).
-Schema 5 added `QueryForgotten`'s `unload_sent` and `reconciled` (when its release began,
-and when the list of the last reconcile with its provider answered before had left); a
-line of an older schema gets 0 for both (not known).
-Schema 6 added `ChildExited`'s `strategy` and `children` (which siblings a restart takes
-down, in which order); a line of an older schema gets `strategy` `""` (not known).
-Schema 7 added the W3C trace context a call carried (`trace`, and `caller_span` at the
-consumer) to `CallAnswered`, `CallFailed`, `CallWithdrawn`, `QueryForgotten`,
-`ConsumerAdded`, `ConsumerReleased` and `LoadFailed`, and the call's start (`started`)
-to the first three; a line of an older schema gets `""` and 0.0 (not known).
-Schema 8 added `ResourceLoaded`'s `trace` (the load's call's); an older line gets `""`.
+A field added since a line's schema gets its default: 2 added `seq` (0), digests, labels,
+reasons and the catalog events; 3 `host` (`""`) and `hlc` (the stamp of `at`); 4
+`ChildExited`'s `restart` (`""`), `normal`, `stopped`, `max_restarts`, `period`; 5
+`QueryForgotten`'s `unload_sent` and `reconciled` (0); 6 `ChildExited`'s `strategy` and
+`children`; 7 the calls' `trace`, `caller_span` (`""`) and `started` (0.0); 8
+`ResourceLoaded`'s `trace`.
 """
 
 _READS = (1, 2, 3, 4, 5, 6, 7, SCHEMA)
@@ -69,14 +58,8 @@ _TYPES: dict[str, type[Event]] = {cls.__name__: cls for cls in typing.get_args(E
 def to_dict(event: Event) -> dict[str, Any]:
     """Return `event` as JSON-able data: `"type"` (the class name), its fields, `"schema"`.
 
-    A `Status` becomes its name (`"FATAL"`). `json.dumps(to_dict(event))` is one line of
-    an `events.jsonl` file; [`from_dict`][rr_actors.events.from_dict] reads it back.
-
-    Args:
-        event: any event of this module.
-
-    Returns:
-        A new dict of strings, numbers and `"type"`/`"schema"` keys.
+    A `Status` becomes its name (`"FATAL"`), a tuple a list. `json.dumps(to_dict(event))` is one
+    line of an `events.jsonl` file; [`from_dict`][rr_actors.events.from_dict] reads it back.
     """
     data: dict[str, Any] = {"type": type(event).__name__}
     for field in dataclasses.fields(event):
@@ -91,10 +74,7 @@ def to_dict(event: Event) -> dict[str, Any]:
 
 
 def to_line(event: Event, extra: dict[str, Any] | None = None) -> str:
-    """`json.dumps({**to_dict(event), **extra})`: the same text, without its dict of lists.
-
-    Its fields' values go to the encoder as they are (a tuple is written as a list is,
-    a `Status` by its name), in the order `to_dict` gives them, read in one call.
+    """`json.dumps({**to_dict(event), **extra})`, without building the dict of lists.
 
     Args:
         event: any event of this module.
@@ -111,11 +91,10 @@ def to_line(event: Event, extra: dict[str, Any] | None = None) -> str:
 
 
 def to_lines(seen: Iterable[Event], extra: dict[str, Any] | None = None) -> str:
-    """Each event of `seen` as `to_line` writes it, a line each: an experiment's and a
-    simulated run's `events.jsonl`.
+    """Each event of `seen` as `to_line` writes it, a line each (an `events.jsonl`).
 
     Raises:
-        TypeError: a value JSON cannot hold (as `to_line`), before any line is made.
+        TypeError: a value JSON cannot hold, before any line is made.
     """
     return "".join([f"{to_line(event, extra)}\n" for event in seen])
 
@@ -127,7 +106,7 @@ def _status_name(value: object) -> str:
 
 
 _encode = json.JSONEncoder(default=_status_name).encode
-"""`json.dumps`'s own settings, and a `Status` by its name (as `to_dict` writes it)."""
+"""`json.dumps`'s own settings, and a `Status` by its name."""
 
 _LAYOUTS: dict[type[Event], tuple[tuple[str, ...], Callable[[Event], tuple[Any, ...]]]] = {
     cls: (
@@ -136,27 +115,19 @@ _LAYOUTS: dict[type[Event], tuple[tuple[str, ...], Callable[[Event], tuple[Any, 
     )
     for cls in _TYPES.values()
 }
-"""Each kind's keys (`to_dict`'s), and the getter of its fields' values (one C call: every
-kind has more than one field, so it gives a tuple)."""
+"""Each kind's keys (`to_dict`'s) and the getter of its fields' values (one C call)."""
 
 
 def from_dict(data: dict[str, Any]) -> Event:
     """Rebuild an event from [`to_dict`][rr_actors.events.to_dict] output.
 
-    Every field must be present (`at` and `pid` too: they say when and where it
-    happened, not when it was read) and of its type; an `int` is accepted for a `float`,
-    and a `float` must be finite (not `NaN`, not infinite: JSON text may say `NaN`).
-
-    Args:
-        data: a dict as `to_dict` returns it (for example, one parsed JSON line).
-
-    Returns:
-        An event equal to the one `to_dict` was given.
+    Every field must be present (`at` and `pid` too) and of its type; an `int` is accepted for a
+    `float`, and a `float` must be finite.
 
     Raises:
-        ConfigError: `data` is not a dict, has another `"schema"`, an unknown `"type"`,
-            unknown or missing fields, or a value of the wrong type (or a number that is
-            not finite); the message names what was wrong.
+        ConfigError: `data` is not a dict, has another `"schema"`, an unknown `"type"`, unknown
+            or missing fields, or a value of the wrong type or not finite; the message names
+            what was wrong.
     """
     if not isinstance(data, dict):
         raise ConfigError(f"an event must be a dict, got {type(data).__name__}")
@@ -213,13 +184,12 @@ def _optional(cls: type[Event]) -> set[str]:
 
 
 def _shown(value: object) -> str:
-    """`repr(value)`, abbreviated (`reprlib`: a field of a hostile file may be huge)."""
+    """`repr(value)`, abbreviated (a field of a hostile file may be huge)."""
     return reprlib.repr(value)
 
 
 def _converter(event: str, field: str, kind: Any) -> Callable[[Any], Any]:  # noqa: PLR0911
-    """The function that checks one field's value from a dict (and turns a status name
-    into a `Status`), raising a `ConfigError` naming `event.field`."""
+    """The checker of one field's value (a status name becomes a `Status`)."""
     args = typing.get_args(kind)
 
     def wrong(value: object) -> ConfigError:
@@ -300,12 +270,11 @@ _READERS: dict[str, _Reader] = {name: _Reader(cls) for name, cls in _TYPES.items
 
 
 def parse_json(text: str | bytes, where: str) -> Any:
-    """One line of a JSON lines file, parsed; what is wrong with it named with `where`.
+    """One line of a JSON lines file, parsed.
 
     Raises:
-        ConfigError: not UTF-8, not JSON, nested too deeply, or a number too long to
-            read (more than `sys.get_int_max_str_digits()` digits); the message begins
-            with `where` (`"line 3"`, `"events.jsonl line 3"`).
+        ConfigError: not UTF-8, not JSON, nested too deeply, or a number of more than
+            `sys.get_int_max_str_digits()` digits; the message begins with `where`.
     """
     try:
         return json.loads(text.decode("utf-8") if isinstance(text, bytes) else text)
@@ -323,26 +292,17 @@ def parse_json(text: str | bytes, where: str) -> Any:
 
 
 MAX_LINE_BYTES = 64 * 1024 * 1024
-"""The longest line `json_lines` reads (64 MiB): an event listing `LISTED_ROWS` rows of
-each kind is far shorter; a longer line is an error, not a reason to run out of memory."""
+"""The longest line `json_lines` reads (64 MiB): a longer one is an error, not an out-of-memory."""
 
 
 def json_lines(path: str | os.PathLike[str]) -> Iterator[tuple[int, Any]]:
-    """`(line number, parsed JSON)` of each non-blank line of a JSON lines file.
+    """`(line number, parsed JSON)` of each non-blank line of a JSON lines file (lines from 1).
 
-    For files of unknown origin (`rr-actors check`, `rr-actors events --merge`): what is
-    wrong with one is a `ConfigError` naming the file and the line, never a traceback.
-
-    Args:
-        path: an `events.jsonl` file (or any JSON lines file).
-
-    Yields:
-        `(number, value)`: the line number (1 for the first line) and its JSON value.
+    For files of unknown origin: what is wrong is a `ConfigError` naming the file and the line.
 
     Raises:
-        ConfigError: the file cannot be read (missing, a directory, no permission), or a
-            line is not UTF-8, longer than `MAX_LINE_BYTES`, or not JSON (nested too
-            deeply included).
+        ConfigError: the file cannot be read, or a line is not UTF-8, longer than
+            `MAX_LINE_BYTES`, or not JSON.
     """
     try:
         file = open(path, "rb")  # noqa: SIM115 - closed below; opened first to name the error
