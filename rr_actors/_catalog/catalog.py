@@ -59,7 +59,7 @@ from rr_actors._catalog.records import (
     ResourceState,
     UnreadRows,
 )
-from rr_actors._core import steps
+from rr_actors._core import runtime
 from rr_actors._types import Query
 from rr_actors.errors import UnknownQueryError
 
@@ -176,7 +176,7 @@ class Catalog:
         resources = self.resources
         index = self._index
         if digest is not None:
-            shares = steps.shares  # (a classroom's copy of this step, `rr_actors.teach`)
+            shares = runtime.steps.shares  # (a classroom's copy of this step, `rr_actors.teach`)
             for rid in index.with_digest(server, digest):
                 resource = resources[rid]
                 if shares is not None:

@@ -6,21 +6,14 @@
  if publisher.active:                     │
      publisher.publish(event) ──► INFO log line (`describe(event)`, `record.event`)
                               ├─► Subscription: bounded queue ──► its thread ──► callback(event)
-                              ├─► Forwarder: bounded queue ─────► its thread ──► send([e1, e2, ...])
+                              ├─► Forwarder: bounded queue ─────► its thread ──► send([e1, e2,
+                              ...])
                               └─► any other sink, called right here (must not block)
 ```
 
-- `Publisher.active` is one attribute read and a cached logger check, so a publisher
-  builds no event at all when nobody listens.
-- The sinks are a tuple replaced on every change (copy-on-write): `publish` reads it once
-  and needs no lock, so subscribing and unsubscribing are safe while many threads publish.
-- Each subscription owns a bounded queue and a daemon thread. When the queue is full the
-  event is dropped and counted, a WARNING is logged once per gap, and when the queue has
-  room again the subscriber gets one notice (made by the publisher's `notice(count)`
-  factory) where the gap is, so it knows what it missed.
-- A `Forwarder` ships batches to another process (the caller's `send`); a batch is
-  whatever piled up while the previous `send` ran, so it costs one `send` per event when
-  idle and far fewer under load.
+`Publisher.active` is one attribute read and a cached logger check, so nobody builds an
+event that nobody hears. The sinks are a tuple replaced on every change (copy-on-write):
+`publish` reads it once, without a lock. The queues and their gaps: `queues.py`.
 """
 
 from __future__ import annotations
@@ -48,22 +41,16 @@ _names = itertools.count(1)
 class Publisher(Generic[E]):
     """Where events are published: to subscriptions, other sinks and an INFO log line.
 
-    Publish only when someone listens, so that building the event costs nothing
-    otherwise:
-
-        if publisher.active:
-            publisher.publish(ResourceLoaded(...))
+    Publish only when someone listens (`if publisher.active: publisher.publish(...)`).
 
     Args:
-        logger: each event is also logged at INFO there (when that logger is enabled for
-            INFO), as `describe(event)` with the event in the record (`record.event`);
-            `None` for no log lines.
+        logger: each event is also logged at INFO there, as `describe(event)` with the event
+            in the record (`record.event`); `None` for no log lines.
         describe: the log line of an event (called on the publishing thread).
-        notice: `notice(count)` makes the item a subscriber gets after it lost `count`
-            events to a full queue (`None`: they are counted and logged only).
-        tap: a publisher that is also handed every event published here (not those
-            relayed or delivered here: each event once, where it happened); this one is
-            `active` whenever `tap` has a listener.
+        notice: `notice(count)` makes the item a subscriber gets after it lost `count` events
+            (`None`: they are counted and logged only).
+        tap: a publisher also handed every event published here (once, where it happened);
+            this one is `active` whenever `tap` has a listener.
     """
 
     def __init__(
@@ -86,8 +73,7 @@ class Publisher(Generic[E]):
 
     @property
     def active(self) -> bool:
-        """Whether anyone listens: a sink (a subscription counts), INFO on the logger, or a
-        publisher this one relays to that has a listener."""
+        """Whether anyone listens: a sink, INFO on the logger, or a listened upstream or tap."""
         if self._sinks:
             return True
         log = self._logger
@@ -103,7 +89,6 @@ class Publisher(Generic[E]):
         """Log `event` at INFO (if enabled) and hand it to every sink, in the order added.
 
         Runs on the caller's thread and never raises: a sink that raises is logged.
-        Subscriptions only queue the event here; their callbacks run on their own threads.
         """
         log = self._logger
         if log is not None and log.isEnabledFor(logging.INFO):
@@ -114,11 +99,8 @@ class Publisher(Generic[E]):
             tap.deliver(event)
 
     def deliver(self, event: E) -> None:
-        """Hand `event` to every sink (and to the publisher this one relays to), no log line.
-
-        For events that were logged where they happened: relayed from another publisher
-        of this process, or forwarded from another process.
-        """
+        """Hand `event` to every sink (and upstream), without a log line: it was logged where it
+        happened."""
         for sink in self._sinks:
             try:
                 sink(event)
@@ -137,19 +119,13 @@ class Publisher(Generic[E]):
         return upstream is not None and upstream.listened
 
     def relay_to(self, upstream: Publisher[E] | None) -> None:
-        """Hand every event published here on to `upstream`'s sinks too (`None`: stop).
-
-        This publisher is then `active` whenever `upstream` has a listener. Log lines stay
-        here: `upstream` does not log what it is relayed.
-        """
+        """Hand every event published here on to `upstream`'s sinks too (`None`: stop); not its log
+        lines."""
         self._upstream = upstream
 
     def watch_listeners(self, watcher: Callable[[bool], object]) -> Callable[[], None]:
-        """Call `watcher(True)` when this publisher gains its first sink, `watcher(False)`
-        when it loses its last one (on the thread that subscribes or closes).
-
-        Returns:
-            A function that stops the watching.
+        """Call `watcher(True)` at the first sink, `watcher(False)` after the last (on the thread
+        that subscribes or closes); returns the function that stops the watching.
         """
         with self._lock:
             self._watchers = (*self._watchers, watcher)
@@ -192,20 +168,20 @@ class Publisher(Generic[E]):
         """Call `callback(event)` for every event published from now on until closed.
 
         Args:
-            callback: runs on the subscription's own daemon thread (never the
-                publisher's), one event at a time, in publish order.
+            callback: runs on the subscription's own daemon thread, one event at a time, in
+                publish order.
             maxsize: events the subscription's queue holds before it drops new ones.
             name: for its thread's name and log lines (default `subscriber-<n>`).
-            maxbytes: with `weigh`, bytes the events queued may weigh before new ones
-                are dropped (`None`: no such bound).
+            maxbytes: with `weigh`, bytes the events queued may weigh before new ones are
+                dropped.
             weigh: `weigh(event)`, an event's weight in bytes (on the publishing thread).
 
         Returns:
             The subscription; `close()` it (or use it in a `with` block).
 
         Raises:
-            ConfigError: `callback` is not callable, `maxsize` not a positive int, or
-                `maxbytes` not a positive int given with `weigh`.
+            ConfigError: `callback` is not callable, `maxsize` not a positive int, or `maxbytes`
+                not a positive int given with `weigh`.
         """
         subscription = Subscription(
             callback,
@@ -223,19 +199,16 @@ class Publisher(Generic[E]):
         self.remove_sink(subscription._offer)
 
     def add_sink(self, sink: Sink[E]) -> None:
-        """Call `sink(event)` for every event published from now on, on the publishing thread.
-
-        A sink must return at once (queue the event, do not handle it) and should not raise.
-        """
+        """Call `sink(event)` for every event from now on, on the publishing thread (it must return
+        at once)."""
         with self._lock:
             before = bool(self._sinks)
             self._sinks = (*self._sinks, sink)
         self._changed(before, True)
 
     def remove_sink(self, sink: Sink[E]) -> None:
-        """Stop calling `sink` (the first one added that equals it); nothing if it is not there.
-
-        A publish that already started on another thread may still call it once.
+        """Stop calling `sink` (the first equal one); nothing if it is not there (a publish under
+        way may still call it once).
         """
         with self._lock:
             before = bool(self._sinks)

@@ -1,15 +1,11 @@
 """Where registrars find each other by name, and what a message is sent through.
 
-A *peer* is anything with `tell(message)`: a registrar actor in this process, or (with
-manager processes) a channel to a registrar in another process. The directory maps names
-to peers, remembers why a name went away (stopped or died, so callers get the right
-error: and a registrar that its supervisor is bringing back is neither, it is
-unavailable for now). Who is gone for good is the membership's (`membership.py`).
-
-In a child forked from this process, the parent's registrars are not the child's: the
-directory forgets them at the fork (`rr_actors._platform.fork`), and a handle of one used
-in the child gets a `RegistrarUnavailableError` that says so. The resolvers stay: a
-carrier the parent joined is the child's too (the carrier resets its own state).
+A *peer* is anything with `tell(message)`: a registrar actor in this process, or a channel
+to one in another process. The directory maps names to peers and remembers why a name went
+away, so callers get the right error (stopped, died, or unavailable while its supervisor
+brings it back); who is gone for good is `membership.py`'s. A forked child forgets its
+parent's registrars (a handle of one gets a `RegistrarUnavailableError` that says so) but
+keeps the resolvers (each carrier resets its own state).
 """
 
 from __future__ import annotations
@@ -54,10 +50,11 @@ class Peer(Protocol):
         """Send `message`; raise `RegistrarUnavailableError` if the registrar is dead."""
 
     def deliver(self, message: Any) -> None:
-        """`tell`, from a carrier's receiving thread (which holds no lock), or an event
-        loop's thread stepping an awaited call: a registrar of this process that is idle
-        may handle it on that thread (`_core/actor.py`'s turn); from a loop, not a
-        durable one (`LocalPeer`)."""
+        """`tell`, from a thread that holds no lock (a carrier's reader, or a loop's thread
+        stepping
+        an awaited call, not to a durable registrar): an idle local registrar may handle it
+        there.
+        """
 
 
 class LocalPeer:
@@ -66,8 +63,8 @@ class LocalPeer:
     Args:
         name: the registrar's name.
         ref: its actor (`None`: set by the actor when it starts).
-        durable: its steps write to disk before they answer (a backup with
-            `save_on_modify`): an event loop's thread never takes its turn (`deliver`).
+        durable: its steps write to disk before they answer: a loop's thread never takes its
+            turn.
     """
 
     def __init__(
@@ -98,7 +95,7 @@ class LocalPeer:
 
 
 class Directory:
-    """Names of the registrars of this process (and, later, of its system)."""
+    """Names of the registrars of this process, and the resolvers of those elsewhere."""
 
     def __init__(self) -> None:
         self._lock = runtime.Lock()
@@ -107,10 +104,7 @@ class Directory:
         self._resolvers: tuple[Callable[[str], Peer | None], ...] = ()  # replaced, not changed
         self._namers: dict[Callable[[str], Peer | None], Callable[[], Iterable[str]]] = {}
         self._restart_expected: set[str] = set()  # a crash is not "gone for good"
-        self._restarting: set[str] = set()
-        """Names of registrars that are down while their supervisor brings them back:
-        stopped (a group restart stops the crashed child's siblings) or crashed, a
-        caller gets `RegistrarUnavailableError` (retry), not `RegistrarStoppedError`."""
+        self._restarting: set[str] = set()  # down while their supervisor brings them back
         self._inherited: dict[str, int] = {}  # in a forked child: the parent's -> its pid
 
     def register(self, peer: Peer) -> None:
@@ -139,26 +133,19 @@ class Directory:
         resolver: Callable[[str], Peer | None],
         names: Callable[[], Iterable[str]] | None = None,
     ) -> None:
-        """Consult `resolver(name)` for names not registered in this process.
-
-        `names()`, if given, lists the names it knows, for the message of an unknown name.
-        """
+        """Consult `resolver(name)` for names not registered here (`names()`: those it knows)."""
         with self._lock:
             self._resolvers = (*self._resolvers, resolver)
             if names is not None:
                 self._namers[resolver] = names
 
     def remove_resolver(self, resolver: Callable[[str], Peer | None]) -> None:
-        """Stop consulting `resolver` (no-op if it was not added)."""
         with self._lock:
             self._resolvers = tuple(r for r in self._resolvers if r != resolver)
             self._namers.pop(resolver, None)
 
     def names(self) -> set[str]:
-        """Every registrar this process can reach now: its own, and those its resolvers name.
-
-        (A provider that starts tells them all to reconcile: rule 20.)
-        """
+        """Every registrar this process can reach now: its own, and those its resolvers name."""
         with self._lock:
             names = set(self._peers)
             namers = list(self._namers.values())
@@ -184,13 +171,9 @@ class Directory:
         raise self.gone_error(name)
 
     def gone_error(self, name: str) -> Exception:
-        """The error for a registrar that is not (or no longer) reachable.
-
-        In a forked child, `RegistrarUnavailableError` naming the parent for a registrar
-        of the parent's. `RegistrarUnavailableError` while its supervisor restarts it
-        (`restarting`), even if it was stopped for the restart; else
-        `RegistrarStoppedError` if it was stopped, `RegistrarUnavailableError` if it died,
-        `UnknownRegistrarError` if never seen.
+        """The error for a registrar not reachable: `RegistrarUnavailableError` for a forked
+        parent's or one being restarted, else `RegistrarStoppedError` (stopped),
+        `RegistrarUnavailableError` (died) or `UnknownRegistrarError` (never seen).
         """
         parent = self._inherited.get(name)
         if parent is not None:
@@ -212,17 +195,14 @@ class Directory:
         )
 
     def local_peers(self) -> list[Peer]:
-        """Every registrar registered in this process."""
         with self._lock:
             return list(self._peers.values())
 
     # -- restarts: what a supervisor (or a test) says of a registrar's next end ------------
 
     def expect_restart(self, name: str, expected: bool = True) -> None:
-        """Say whether a crash of registrar `name` will be followed by a restart.
-
-        While one is expected, its crash is not a consumer gone for good: no death watch
-        (`broadcast`) from the registrar itself; its supervisor decides.
+        """Say whether a crash of registrar `name` will be followed by a restart (then its
+        supervisor, not a death watch, decides).
         """
         with self._lock:
             if expected:
@@ -231,14 +211,11 @@ class Directory:
                 self._restart_expected.discard(name)
 
     def restart_expected(self, name: str) -> bool:
-        """Whether a crash of registrar `name` will be followed by a restart."""
         return name in self._restart_expected
 
     def mark_restarting(self, names: Iterable[str], restarting: bool = True) -> None:
-        """Say that registrars `names` are down for a restart (or no longer are).
-
-        While they are, a message to one of them fails with `RegistrarUnavailableError`
-        (retry), not `RegistrarStoppedError`, even after a clean stop for the restart.
+        """Say that registrars `names` are down for a restart (or no longer are): a message to one
+        fails with `RegistrarUnavailableError`, even after a clean stop for the restart.
         """
         with self._lock:
             if restarting:
@@ -247,11 +224,9 @@ class Directory:
                 self._restarting.difference_update(names)
 
     def broadcast(self, message: object, *, also: Iterable[str] = (), skip: str = "") -> None:
-        """Tell `message` to every registrar of this process and to those named in `also`.
+        """Tell `message` to every registrar of this process and those in `also`, but `skip`.
 
-        A restart that lost ids (`ReconcileAsk`) reaches everyone who may hold them this
-        way. Registrar `skip` is left out; one that cannot be reached is skipped
-        (logged at debug level).
+        One that cannot be reached is skipped (logged at debug level).
         """
         targets = {peer.name for peer in self.local_peers()} | set(also)
         targets.discard(skip)
@@ -262,8 +237,7 @@ class Directory:
                 logger.debug("%s: registrar %s unreachable", type(message).__name__, target)
 
     def forget_in_child(self, parent: int) -> None:
-        """In a child forked from process `parent`: the registrars of this process are
-        the parent's (their actors have no thread here); nothing restarts here either."""
+        """In a child forked from `parent`: this process's registrars are the parent's."""
         self._lock = runtime.Lock()  # a thread of the parent may have held it at the fork
         for name in self._peers:
             self._inherited[name] = parent

@@ -1,11 +1,9 @@
 """Stop what a program left running when its main thread ends.
 
-A registrar's actors and a supervisor's threads are daemon threads: they never keep a
-program alive by themselves. A Zenoh session's callback threads are not (zenoh-python
-makes them): a session left open keeps the interpreter waiting for them forever. So that
-a script that forgets `stop()` or `close()`, or raises before it, still ends cleanly
-(durable catalogs written, manager processes stopped, sessions closed), every running
-supervisor, registrar and network is listed here and stopped when the main thread ends:
+Actors and supervisors run on daemon threads, but a Zenoh session's threads are not: a
+session left open keeps the interpreter waiting forever. So that a script that forgets
+`stop()` or `close()` still ends cleanly, every running supervisor, registrar and network
+is listed here and stopped when the main thread ends:
 
 ```
  main thread ends (returns, or an exception's traceback was printed)
@@ -18,15 +16,9 @@ supervisor, registrar and network is listed here and stopped when the main threa
          and runs atexit
 ```
 
-A Ctrl-C that reaches the top of the main thread prints one line, `KeyboardInterrupt`,
-not its traceback (`sys.excepthook`, chained: any other exception goes to the hook that
-was there; `python -X dev` keeps the traceback); the interpreter then ends as Python
-does after a Ctrl-C (killed by SIGINT: a shell says 130) once the above ran.
-
-The hook is the platform's (`PLATFORM.at_main_thread_end`: CPython's private
-`threading._register_atexit` on the `linux` platform, `atexit` on the portable one): it
-runs while every thread still runs, and before `multiprocessing`'s own `atexit` handler
-terminates daemonic child processes (manager processes among them) without a clean stop.
+The hook is `PLATFORM.at_main_thread_end`: it runs while every thread still runs, before
+`multiprocessing`'s `atexit` terminates daemonic children. A Ctrl-C that reaches the top of
+the main thread prints one line, `KeyboardInterrupt` (`python -X dev` keeps the traceback).
 """
 
 from __future__ import annotations
@@ -58,8 +50,7 @@ EXIT_TIMEOUT = 10.0
 SUPERVISORS = 0
 REGISTRARS = 1
 NETWORKS = 2
-"""Tiers: supervisors stop first (they stop what they started), then registrars, then the
-networks they used."""
+"""Tiers: supervisors stop first (they stop what they started), then registrars, then networks."""
 
 _MIN_STOP = 0.1  # seconds each stop still gets once EXIT_TIMEOUT ran out
 
@@ -98,19 +89,16 @@ def stop_at_exit(
 ) -> None:
     """Have `stop(timeout)` called when the main thread ends, if `alive()` then.
 
-    Entries whose `alive()` is false are dropped as more are added (whenever their
-    number doubled), so a program that starts and stops many registrars keeps about
-    twice the running ones listed at most.
+    Entries no longer alive are pruned whenever their number doubled.
 
     Args:
         tier: `SUPERVISORS`, `REGISTRARS` or `NETWORKS` (lower tiers stop first).
         what: what it is, for people (`"registrar 'erm'"`).
-        alive: whether it still needs stopping (called on any thread, must be cheap).
+        alive: whether it still needs stopping (any thread; cheap).
         stop: stops it within `timeout` seconds; what it raises is logged.
-        provides: the registrar names it serves (a registrar's own; a tree's managers').
-        holds: `holds(timeout)`: the registrar names it holds ids at now (a consumer's
-            providers), asked once as the main thread ends, within `timeout` seconds;
-            what it raises counts as none.
+        provides: the registrar names it serves.
+        holds: `holds(timeout)`: the registrar names it holds ids at now, asked once at the
+            end; what it raises counts as none.
     """
     global _hooked  # (the hook: once per process)
     listed = _LISTED
@@ -133,13 +121,9 @@ def stop_at_exit(
 def stop_everything(timeout: float = EXIT_TIMEOUT) -> None:
     """Stop every listed supervisor and registrar that still runs; newest first per tier.
 
-    Runs on the main thread when it ends. One that holds ids at another still to stop
-    (a consumer registrar at a manager of a tree, or at a registrar of its own process)
-    stops first, so it releases them as its own `stop()` would, where the provider runs
-    its `unload` (not a release at a provider this exit already stopped: a WARNING, and
-    the id left in the provider's backup). A Ctrl-C while it runs skips the supervisors and
-    registrars left (their threads are daemon threads: the program still ends), not the
-    networks (the interpreter would wait for their sessions' threads).
+    One that holds ids at another still to stop goes first, so its release reaches a provider
+    that runs. A Ctrl-C meanwhile skips the supervisors and registrars left, not the networks
+    (the interpreter would wait for their sessions' threads).
     """
     deadline = runtime.monotonic() + timeout
     with _LISTED.lock:
@@ -168,11 +152,8 @@ def stop_everything(timeout: float = EXIT_TIMEOUT) -> None:
 
 
 def _in_order(entries: list[_Entry], deadline: float) -> list[_Entry]:
-    """`entries` (in tier order, newest first), each that holds ids at another before it.
-
-    A manager of a listed tree goes after the rest (its tree stops it first, in the
-    tree's own order: never on its own while the tree runs, which would restart it), and
-    the networks last. Where holdings make a cycle, the first in tier order goes first.
+    """`entries` with each that holds ids at another before it; a tree's managers (their tree
+    stops them) and the networks last. In a cycle, the first in tier order goes first.
     """
     running = [entry for entry in entries if entry[0] < NETWORKS and entry[2]()]
     managed = {name for entry in running if entry[0] == SUPERVISORS for name in entry[4]}
@@ -220,7 +201,6 @@ def _one_line_interrupts() -> None:
 
 
 def left_running() -> list[str]:
-    """What of the listed supervisors and registrars still runs, oldest first."""
     with _LISTED.lock:
         return [entry[1] for _, entry in sorted(_LISTED.entries.items()) if entry[2]()]
 

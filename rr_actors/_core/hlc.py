@@ -1,50 +1,23 @@
 """A hybrid logical clock (Kulkarni et al., 2014): one per process, stamps events and messages.
 
-Wall clocks of two machines differ, so a stream of events of several hosts ordered by
-wall time can put an effect before its cause. A hybrid logical clock keeps a stamp
-`(l, c)`: `l` is the greatest physical time this process has heard of (its own clock,
-or a stamp a message brought), `c` a counter that orders what happens while `l` stays
-the same. Then whenever event `e` happened before event `f` (in the same process, or
-`e` before a message whose receipt came before `f`), `stamp(e) < stamp(f)`; and `l` is
-the physical time wherever the clocks are consistent, never further ahead of the
-fastest clock of the system than that clock is of the others.
-
-A stamp is one int of 64 bits, so that it is one sort key, one JSON number, 8 bytes on
-the wire:
+A stamp `(l, c)`: `l` the greatest physical time this process has heard of (its own, or a
+stamp a message brought), `c` a counter. Whenever `e` happened before `f` (in one process,
+or through a message), `stamp(e) < stamp(f)`, and `l` is the physical time wherever the
+clocks agree. A stamp is one 64-bit int (one sort key, one JSON number, 8 bytes):
 
 ```
  stamp = l << COUNTER_BITS | c        l: microseconds since the epoch (52 bits: until 2112)
                                       c: the counter (COUNTER_BITS = 12 bits)
 ```
 
-In this packed form the paper's rules are two lines: a local event (or a send) takes
-`max(last + 1, physical << COUNTER_BITS)`, a receipt `max(last + 1, stamp + 1,
-physical << COUNTER_BITS)`. A counter past its 12 bits carries into `l` (4,096 events
-within one microsecond of `l`: `l` gets one microsecond ahead), which keeps every stamp
-of the process greater than the one before.
-
-Bounded, as the paper's and CockroachDB's `max-offset`: a received stamp more than
-`max_offset` seconds (`MAX_OFFSET` by default) ahead of this process's physical clock is
-not taken in. The message is handled as always, and the clock ticks as for a local
-event; the stamp is counted (`refused`) and a WARNING (at most one a minute) names the
-process it came from. So one stamp from a buggy member or a host whose clock is in the
-year 2100 does not carry every clock it reaches (and every stamp after) into its
-future, and `l` is never more than `max_offset` ahead of the fastest physical clock of
-the system. A clock never leaves its 64 bits: at their end (a physical clock past the
-year 2112) it stays at the last stamp (an ERROR says so, once), and it never raises.
-
-Processes of one host read one physical clock; a message between two of them takes
-more than a microsecond, so their stamps order cause before effect without carrying
-the stamp (the AF_UNIX carrier does not). Across hosts the Zenoh carrier carries the
-sender's stamp on every message and answer (`zenoh.wire`), and the receiver's clock
-takes it in (`receive`) before the message is handled.
-
-`CLOCK` is this process's clock. Its physical clock is `time.time_ns`, unless the
-environment variable `RR_ACTORS_CLOCK_SKEW` (seconds, a float) is set when this module
-is imported: then this process (and the manager processes it starts, which inherit the
-environment) reads a physical clock that many seconds off. That, and assigning
-`CLOCK.physical`, are seams for tests that skew one host's clock; events' `at`
-(`CLOCK.wall()`) reads the same physical clock as their stamps.
+A local event (or a send) takes `max(last + 1, physical << COUNTER_BITS)`, a receipt also
+`stamp + 1`; a counter past its 12 bits carries into `l`. A received stamp more than
+`max_offset` seconds ahead of the physical clock is refused (as CockroachDB's
+`max-offset`), and the clock never leaves its 64 bits and never raises: why, in
+docs/explanation/failure-semantics.md ("Its clock stamps"). The Zenoh carrier carries the
+sender's stamp on every message (`receive`); processes of one host share a physical clock
+and need not. `CLOCK` is this process's; `RR_ACTORS_CLOCK_SKEW` (seconds) at import, or
+assigning `CLOCK.physical`, skews it for tests.
 """
 
 from __future__ import annotations
@@ -86,18 +59,11 @@ SKEW_ENV = "RR_ACTORS_CLOCK_SKEW"
 
 MAX_OFFSET = 60.0
 """Seconds a received stamp may be ahead of this process's physical clock and still be
-taken in (`HybridClock.max_offset`; `ZenohNetwork(max_offset=...)` sets it).
-
-CockroachDB's `max-offset` is 0.5 s: its stamps order transactions, and a node whose
-clock is further off stops itself. Here stamps order an event timeline, and a robot may
-run without NTP (a clock without a battery starts where it stopped, and drifts seconds
-a day): a minute keeps cause before effect between hosts whose clocks differ by less,
-refuses a stamp from a clock that is plainly wrong (the year 2100, the last stamp of
-the range), and keeps every clock at most a minute ahead of the fastest host's."""
+taken in (`ZenohNetwork(max_offset=...)` sets it).
+"""
 
 MAX_OFFSET_LIMIT = 365 * 24 * 3600.0
-"""The largest `max_offset` allowed (one year): with any larger, a stamp could carry a
-clock past the end of its range before the physical clocks get near it."""
+"""The largest `max_offset` allowed (one year): a larger one could carry a clock past its range."""
 
 REFUSED_EVERY = 60.0
 """Seconds between two WARNINGs about refused stamps (what comes between is counted)."""
@@ -134,8 +100,8 @@ def seconds(stamp: int) -> float:
 
 
 def from_seconds(at: float) -> int:
-    """The stamp with physical part `at` (seconds since the epoch) and counter 0: what an
-    event written before events had stamps is ordered by (its `at`)."""
+    """The stamp of `at` (seconds since the epoch), counter 0: how an event older than stamps
+    sorts."""
     return pack(int(at * 1e6), 0)
 
 
@@ -161,23 +127,17 @@ class HybridClock:
     """A hybrid logical clock (see the module docstring). Thread-safe; it never raises.
 
     Args:
-        physical: the physical clock, nanoseconds since the epoch (`None`:
-            `runtime.wall_ns`, the stdlib's `time.time_ns` in a real run); injected by
-            tests.
-        max_offset: seconds a received stamp may be ahead of `physical` and be taken in
-            (see `MAX_OFFSET`); one further ahead is refused.
+        physical: the physical clock, nanoseconds since the epoch (`None`: `runtime.wall_ns`).
+        max_offset: seconds a received stamp may be ahead of `physical` and be taken in.
 
     Attributes:
-        refused: how many received stamps were refused so far (further ahead than
-            `max_offset`).
+        refused: how many received stamps were refused so far.
 
     Raises:
         ConfigError: `max_offset` is not seconds above 0 and at most a year.
     """
 
-    # (no `__slots__`: a simulation keeps a clock per simulated process, and swaps an
-    # instance's `__dict__` whole at a switch between processes, where a slotted one's
-    # fields are copied out and back, one by one: `simulation/_processes.py`)
+    # (no `__slots__`: a simulation swaps a clock's `__dict__` whole per simulated process)
 
     def __init__(
         self,
@@ -196,7 +156,6 @@ class HybridClock:
 
     @property
     def max_offset(self) -> float:
-        """Seconds a received stamp may be ahead of the physical clock and be taken in."""
         return (self._max_ahead >> COUNTER_BITS) / 1e6
 
     @max_offset.setter
@@ -204,7 +163,7 @@ class HybridClock:
         self._max_ahead = int(check_max_offset(seconds) * 1e6) << COUNTER_BITS
 
     def wall(self) -> float:
-        """The physical clock in seconds since the epoch (as `time.time()`): events' `at`."""
+        """The physical clock in seconds since the epoch: events' `at`."""
         return self.physical() / 1e9
 
     @property
@@ -213,8 +172,8 @@ class HybridClock:
         return self._last
 
     def now(self) -> int:
-        """The stamp of a local event or of a message sent now: greater than every stamp
-        this clock gave or took in before (at the end of the range: equal to the last)."""
+        """The stamp of a local event or a send: greater than every stamp before (at the range's
+        end, equal)."""
         pt = (self.physical() // 1000) << COUNTER_BITS
         with self._lock:
             last = self._last + 1
@@ -225,13 +184,12 @@ class HybridClock:
     send = now
 
     def receive(self, stamp: int, sender: str = "") -> int:
-        """Take in the stamp a message brought (before the message is handled); returns
-        the stamp of the receipt, greater than both `stamp` and every stamp before.
+        """Take in the stamp a message brought, before it is handled; the receipt's stamp.
 
-        A stamp that is not an int in 0..2**64-1 is ignored, and one more than
-        `max_offset` ahead of the physical clock is refused (counted in `refused`; a
-        WARNING at most once a minute names `sender`, the process it came from): then
-        the clock ticks as for a local event.
+        A stamp not an int in 0..2**64-1 is ignored, one more than `max_offset` ahead refused
+        (counted, a WARNING at most once a minute naming `sender`): the clock then ticks as for
+        a
+        local event.
         """
         if not isinstance(stamp, int) or not 0 <= stamp <= _MAX:
             return self.now()
@@ -278,5 +236,4 @@ class HybridClock:
 
 
 CLOCK = runtime.process_state(HybridClock(_skewed_ns if _SKEW_NS else None), HybridClock)
-"""This process's clock: every event is stamped by it, every message across hosts
-carries its stamp."""
+"""This process's clock: it stamps every event and every message across hosts."""

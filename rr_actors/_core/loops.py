@@ -13,14 +13,10 @@ Nothing here knows of registrars. Three bridges, each written once:
    the submission before it ──► then(error) on the loop thread once it ended
 ```
 
-Where a coroutine function runs: `OnLoop.bind(fn)` keeps the loop it is called from
-(the application's: a status callback registered from a coroutine runs on that loop), or,
-called from no loop, the process's own loop (`process_loop`): one thread, started at its
-first use, that runs every coroutine callback of the process's registrars that has no
-loop of its own (a server's coroutine `load` and `unload`). One loop per process, not per
-registrar: a coroutine that awaits costs no thread, so a second loop would buy nothing but
-a thread; a coroutine that blocks the loop (a `time.sleep`) would stall the others on it
-as it would on any asyncio loop.
+`OnLoop.bind(fn)` keeps the loop it is called from, or else the process's own loop
+(`process_loop`): one thread, started at first use, for every coroutine callback of the
+process's registrars that has no loop of its own (a coroutine that awaits costs no thread,
+so a loop per registrar would buy nothing).
 """
 
 from __future__ import annotations
@@ -56,8 +52,8 @@ Then = Callable[[BaseException | None], object]
 
 
 def is_coroutine_function(fn: object) -> bool:
-    """Whether calling `fn` gives a coroutine to await (an `async def` function, a
-    `functools.partial` of one, or an object whose `__call__` is one)."""
+    """Whether calling `fn` gives a coroutine (an `async def`, a partial of one, an async
+    `__call__`)."""
     if asyncio.iscoroutinefunction(fn):
         return True
     call = getattr(fn, "__call__", None)  # noqa: B004 - (the method, not callable())
@@ -65,7 +61,6 @@ def is_coroutine_function(fn: object) -> bool:
 
 
 def _wake(waiter: asyncio.Future[bool], value: bool) -> None:
-    """On the loop: resolve `waiter` unless it was resolved or cancelled already."""
     if not waiter.done():
         waiter.set_result(value)
 
@@ -81,8 +76,7 @@ def _wake_from(loop: asyncio.AbstractEventLoop, waiter: asyncio.Future[bool], _:
 async def settled(future: OneShotFuture[Any], timeout: float | None) -> bool:
     """Await `future` (settled by any thread) at most `timeout` seconds; whether it is.
 
-    No thread waits: the future's done callback wakes the running loop. An already
-    settled future returns without suspending.
+    No thread waits: the future's done callback wakes the running loop.
 
     Raises:
         asyncio.CancelledError: the awaiting task was cancelled.
@@ -103,8 +97,8 @@ async def settled(future: OneShotFuture[Any], timeout: float | None) -> bool:
 async def run_steps_async(steps: Steps[T]) -> T:
     """Run `steps` on the running loop, awaiting each future it waits for (`settled`).
 
-    A cancellation of the awaiting task is thrown into the steps at their `yield`, as
-    `replies.run_steps` throws a `KeyboardInterrupt`: they take the same way out.
+    A cancellation is thrown into the steps at their `yield`, as `replies.run_steps` throws a
+    `KeyboardInterrupt`.
     """
     mark_awaiting(True)  # (each step: this thread may take an idle actor's turn)
     try:
@@ -176,7 +170,6 @@ fork.after_fork_in_child("the process's event loop", _PROCESS_LOOP.forget)
 
 
 def on_process_loop() -> bool:
-    """Whether the calling thread runs the process's own event loop."""
     return _PROCESS_LOOP.ident == runtime.get_ident()
 
 
@@ -188,21 +181,11 @@ def process_loop() -> asyncio.AbstractEventLoop:
 class OnLoop:
     """A coroutine function and the event loop it runs on; submitted from any thread.
 
-    Each `submit` runs one call as a task of that loop, after the task of the submission
-    before it of the same key (a status callback's: the query id) has ended: the calls of
-    one key run in the order they were submitted, one at a time, however long each takes,
-    as a status callback's calls do on worker threads. A call that waits for a registrar
-    (`replies.let_go`: it awaits an `asend_status` about the resource it hears of, or a
-    thread it started in its context, `asyncio.to_thread`, blocks in a `send_status`)
-    lets the next one of its key start beside it, since that one may be what it waits
-    for. Each runs in a copy of the context it was bound in (as asyncio runs a callback
-    in its registrant's context), with no OpenTelemetry span current but its run's
-    (`own`): a status callback's calls are traces of their own, not the binder's span's
-    children.
-
-    Args:
-        fn: the coroutine function.
-        loop: the loop its calls run on.
+    Each `submit` runs one call as a task of the loop after the previous call of the same key
+    (a status callback's query id) ended, as a status callback's calls run on worker threads;
+    a call that waits for a registrar (`replies.let_go`) lets the next of its key start beside
+    it. Each runs in a copy of the context it was bound in, with no OpenTelemetry span current
+    but its run's (`own`).
     """
 
     __slots__ = ("_context", "_tails", "fn", "loop")
@@ -228,12 +211,11 @@ class OnLoop:
         return f"<OnLoop {getattr(self.fn, '__qualname__', self.fn)!r}>"
 
     def __reduce__(self) -> tuple[Any, ...]:
-        """Pickle as the coroutine function alone: a loop does not cross processes (the
-        other process binds it to a loop of its own)."""
+        """Pickle as the coroutine function alone: the other process binds it to a loop of its
+        own."""
         return (_unbound, (self.fn,))
 
     def __call__(self, *args: Any) -> None:
-        """`submit(*args)`: run a call on the loop; returns at once."""
         self.submit(*args)
 
     def submit(
@@ -244,13 +226,13 @@ class OnLoop:
         waits: Callable[[], object] | None = None,
         own: tuple[str, str, str] | None = None,
     ) -> None:
-        """Run `fn(*args)` on the loop after the calls of `key` submitted before (class
-        docstring); `then(error)` on the loop thread once it ended (`error`: what it
-        raised, or `None`); `waits()` (any thread, maybe more than once) as it lets the
-        next one of its key go (`replies.let_go`); `own`: the status callback's run it is
-        (`traces.own_trace`), its span current across its awaits (`None`: no span).
+        """Run `fn(*args)` on the loop after the calls of `key` submitted before.
 
-        A loop that is closed runs nothing: `then` gets a `RuntimeError` at once, here.
+        `then(error)` runs on the loop thread once it ended (what it raised, or `None`);
+        `waits()`
+        (any thread, maybe more than once) as it lets the next of its key go; `own`: the status
+        callback's run (`traces.own_trace`). A closed loop runs nothing: `then` gets a
+        `RuntimeError` at once, here.
         """
         try:
             self.loop.call_soon_threadsafe(self._start, args, then, key, waits, own)
@@ -308,8 +290,7 @@ class OnLoop:
 def _set_soon(
     loop: asyncio.AbstractEventLoop, event: asyncio.Event, waits: Callable[[], object] | None
 ) -> None:
-    """Set `event` on `loop` (from any thread; a closed loop has nobody waiting), and
-    tell `waits` (its submitter's hook), if any."""
+    """Set `event` on `loop` (from any thread), and tell `waits`, if any."""
     with contextlib.suppress(RuntimeError):
         loop.call_soon_threadsafe(event.set)
     if waits is not None:
@@ -317,8 +298,7 @@ def _set_soon(
 
 
 async def _behind(before: asyncio.Task[None], going: asyncio.Event) -> None:
-    """Until the call `before` ended, or let the next of its key go (`going`: it waits
-    for a registrar, `replies.let_go`)."""
+    """Until the call `before` ended, or let the next of its key go (`going`)."""
     if before.done() or going.is_set():
         return
     waiter = asyncio.ensure_future(going.wait())

@@ -1,9 +1,9 @@
 """The membership of this process: which registrars are gone for good, which are back.
 
 One per process (`MEMBERSHIP`), as Erlang's monitors are the runtime's and rmw_zenoh's
-graph cache is the node's (`GraphCache::parse_put/parse_del`). Whoever learns that a
-registrar will not come back says so here; every registrar of this process hears it
-from here, as one event (`peer_lost`), and one that starts later hears it when it joins:
+graph cache is the node's. Whoever learns that a registrar will not come back says so here;
+every registrar of this process hears it as one event, and one that starts later when it
+joins:
 
 ```
  a carrier's liveness (Messenger.lost) ─────────┐
@@ -22,17 +22,14 @@ from here, as one event (`peer_lost`), and one that starts later hears it when i
    holds here is stale: a stopped registrar holds nothing, rule 12)
 ```
 
-How long a record lives: until `X` is heard of again: a registrar named `X` joins in this
-process, its supervisor starts it again (`back`), or a carrier sees it reachable. A mark
-says "this incarnation will not come back", and only a later incarnation can make it
-false; until one is seen, every registrar that starts here must treat `X` as gone (a
-restored catalog may still hold ids at `X` or of `X`). A record is a name and a string,
-so keeping it for the life of the process costs nothing that matters.
+A record lives until `X` is heard of again (only a later incarnation can make a mark
+false): every registrar that starts here must treat `X` as gone meanwhile.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterable
 from typing import Protocol
 
 from rr_actors._core import runtime
@@ -44,9 +41,9 @@ logger = logging.getLogger("rr_actors")
 
 
 class Hearer(Protocol):
-    """What hears the membership's events (a registrar's presence role, through its
-    `Served` endpoint). Each call runs on the thread that reported the event and must
-    return at once; calling it twice is harmless."""
+    """What hears the membership's events (a registrar's presence role). Each call runs on the
+    thread that reported the event, must return at once, and may come twice.
+    """
 
     @property
     def name(self) -> str:
@@ -66,8 +63,8 @@ class Joined(Hearer, Protocol):
     """A hearer that joined (a registrar of this process): it hears stops for good too."""
 
     def peer_stopped(self, name: str) -> None:
-        """Registrar `name` was stopped and nobody will start it again (its supervisor
-        said so): it holds nothing (rule 12), so what it still holds here is stale."""
+        """Registrar `name` was stopped for good: it holds nothing (rule 12), what it holds here
+        is stale."""
         ...
 
 
@@ -80,11 +77,8 @@ class Membership:
         self._hearers: dict[str, Joined] = {}
 
     def join(self, hearer: Joined) -> dict[str, bool]:
-        """Let `hearer` hear every event from now on; return the names gone for good now,
-        each with whether it was stopped (`True`) rather than lost.
-
-        Atomic with `lost` and `stopped`: a mark is either in what this returns or heard
-        later. Its own name is back (a record of it is dropped).
+        """Let `hearer` hear every event from now on; return the names gone for good now (`True`:
+        stopped rather than lost). Atomic with `lost` and `stopped`; its own name is back.
         """
         with self._lock:
             self._hearers[hearer.name] = hearer
@@ -103,49 +97,32 @@ class Membership:
         Args:
             name: the registrar that will not come back.
             by: who says so (logged at debug level).
-            hearers: others to tell as well (a carrier's endpoints that did not join:
-                one named like a joined hearer is that hearer, told once).
+            hearers: others to tell as well (one named like a joined hearer is told once).
         """
         with self._lock:
             self._gone[name] = False
             targets: dict[str, Hearer] = {hearer.name: hearer for hearer in hearers}
             targets.update(self._hearers)
         logger.debug("membership: %s is gone for good (%s)", name, by)
-        for hearer in targets.values():
-            if hearer.name != name:
-                try:
-                    hearer.peer_lost(name)
-                except Exception:
-                    logger.exception("registrar %s: peer_lost(%s) failed", hearer.name, name)
+        _tell(targets.values(), "peer_lost", name)
 
     def stopped(self, name: str, *, by: str) -> None:
-        """Registrar `name` was stopped and will not be started again: record it, then
-        every registrar of this process hears it (`peer_stopped`). A record that it was
-        lost stays (a lost one holds nothing here either)."""
+        """Registrar `name` was stopped for good: record it (a record that it was lost stays), then
+        every joined hearer hears it.
+        """
         with self._lock:
             self._gone.setdefault(name, True)
             targets = list(self._hearers.values())
         logger.debug("membership: %s was stopped for good (%s)", name, by)
-        for hearer in targets:
-            if hearer.name != name:
-                try:
-                    hearer.peer_stopped(name)
-                except Exception:
-                    logger.exception("registrar %s: peer_stopped(%s) failed", hearer.name, name)
+        _tell(targets, "peer_stopped", name)
 
     def reachable(self, name: str, *, hearers: tuple[Hearer, ...] = ()) -> None:
-        """Registrar `name` can be reached again (a healed link): forget any record of
-        it, then every hearer (and `hearers`, as in `lost`) hears it."""
+        """Registrar `name` can be reached again: forget its record, then every hearer hears it."""
         with self._lock:
             self._gone.pop(name, None)
             targets: dict[str, Hearer] = {hearer.name: hearer for hearer in hearers}
             targets.update(self._hearers)
-        for hearer in targets.values():
-            if hearer.name != name:
-                try:
-                    hearer.peer_reachable(name)
-                except Exception:
-                    logger.exception("registrar %s: peer_reachable(%s) failed", hearer.name, name)
+        _tell(targets.values(), "peer_reachable", name)
 
     def back(self, name: str) -> None:
         """Registrar `name` is served again (a new incarnation): forget any record of it."""
@@ -153,18 +130,26 @@ class Membership:
             self._gone.pop(name, None)
 
     def gone(self) -> dict[str, bool]:
-        """The names gone for good now, each with whether it was stopped (not lost)."""
         with self._lock:
             return dict(self._gone)
 
     def forget_in_child(self) -> None:
-        """In a forked child: the parent's registrars do not hear here, and its records
-        are dropped too (a spare may serve long after the fork, when a name recorded
-        then may be back: the child hears what it needs from its supervisor,
-        `tell_gone`, and from its carrier)."""
+        """In a forked child: no hearers, no records (a spare may serve long after the fork: it
+        hears
+        from its supervisor and its carrier).
+        """
         self._lock = runtime.Lock()
         self._hearers.clear()
         self._gone.clear()
+
+
+def _tell(hearers: Iterable[Hearer], what: str, name: str) -> None:
+    for hearer in hearers:
+        if hearer.name != name:
+            try:
+                getattr(hearer, what)(name)
+            except Exception:
+                logger.exception("registrar %s: %s(%s) failed", hearer.name, what, name)
 
 
 MEMBERSHIP = runtime.process_state(Membership(), Membership)

@@ -1,12 +1,10 @@
 """Reply objects: where the answer to a message goes, and how a caller waits for it.
 
-A protocol that waits (a call: its commit, its answer) is written once as *steps*, a
-generator that yields a `Wait` for each future it needs and is sent back whether the
-future was settled in time ("sans I/O", as h11 and wsproto are written). Two drivers run
-it: `run_steps` blocks the calling thread on each future; `loops.run_steps_async` awaits
-it on an event loop (the future's done callback wakes the loop). An exception the driver
-gets while it waits (a `KeyboardInterrupt`, a cancelled task) is thrown into the steps
-at the `yield`, so both drivers take the same way out:
+A protocol that waits is written once as *steps*, a generator that yields a `Wait` per
+future it needs and is sent whether it settled in time ("sans I/O", as h11 is written).
+`run_steps` blocks the calling thread on each; `loops.run_steps_async` awaits it on an
+event loop. An exception the driver gets while it waits is thrown into the steps at the
+`yield`, so both drivers take the same way out:
 
 ```
  steps ──yield (future, deadline)──► driver: block / await until settled or deadline
@@ -89,9 +87,9 @@ def wait(future: pykka.Future[Any], timeout: float, what: str) -> Any:
 
 
 Wait: TypeAlias = tuple[OneShotFuture[Any], float | None]
-"""What steps wait for, `(future, deadline)`: `future` settled, until `deadline`
-(`runtime.monotonic()` seconds; `None`: without a bound). A plain tuple: the steps of every
-blocking call yield one, and a class's construction would cost them a call each."""
+"""`(future, deadline)` (`runtime.monotonic()` seconds; `None`: no bound): a plain tuple, as
+every blocking call's steps yield one.
+"""
 
 
 def left(deadline: float | None) -> float | None:
@@ -100,8 +98,7 @@ def left(deadline: float | None) -> float | None:
 
 
 Steps: TypeAlias = Generator[Wait, bool, T]
-"""A protocol's steps: yields `Wait`s, is sent whether each future settled in time,
-returns the result (module docstring)."""
+"""A protocol's steps: yields `Wait`s, is sent whether each settled in time, returns the result."""
 
 
 _LET_GO: contextvars.ContextVar[Callable[[], None] | None] = contextvars.ContextVar(
@@ -110,14 +107,11 @@ _LET_GO: contextvars.ContextVar[Callable[[], None] | None] = contextvars.Context
 
 
 def when_waiting(hook: Callable[[], None] | None) -> contextvars.Token[Callable[[], None] | None]:
-    """In the current context, `let_go` runs `hook()` (`None`: nothing); the token
-    returned, given to `waited`, takes it back.
+    """In the current context, `let_go` runs `hook()`; `waited(token)` takes it back.
 
-    A status callback runs with one (the status runner's, `OnLoop`'s): a callback that
-    waits for a registrar (a `send_status`, an `unload`, on its thread, or in its context:
-    a task it started, `asyncio.to_thread`, `contextvars.copy_context().run`; a plain
-    `threading.Thread` does not inherit it) may wait for its own id's next status, so
-    that one may start beside it. `hook` may run more than once, on any thread.
+    A status callback runs with one: when it (or a task it started in its context) waits for a
+    registrar, its own id's next status may start beside it. `hook` may run more than once, on
+    any thread.
     """
     return _LET_GO.set(hook)
 
@@ -135,16 +129,10 @@ def let_go() -> None:
 
 
 def run_steps(steps: Steps[T]) -> T:
-    """Run `steps` on the calling thread, blocking on each future it waits for.
+    """Run `steps` on the calling thread, blocking on each future it waits for (after `let_go`).
 
-    Before each wait, the hook `when_waiting` set in this context runs (`let_go`).
-
-    An exception the driver gets while the steps wait at a `yield` (a `KeyboardInterrupt`
-    in the wait, or as the driver goes to it) is thrown into them there: the steps
-    decide. One the steps raise ends them.
-
-    Raises:
-        Exception: what the steps raise (an interruption of a wait is thrown into them).
+    An exception the driver gets while the steps wait (a `KeyboardInterrupt`) is thrown into
+    them at the `yield`; what they raise ends them and is raised.
     """
     resume: Callable[[Any], Wait] = steps.send
     given: Any = None  # (sent to start them)
@@ -163,14 +151,10 @@ def run_steps(steps: Steps[T]) -> T:
 
 
 def on_own_thread(fn: Callable[[], T], name: str) -> Steps[T]:
-    """Steps that run `fn()` on a fresh daemon thread of its own and wait for its result.
+    """Steps that run `fn()` on a fresh daemon thread and wait for its result (what it raised).
 
-    For the few operations that block in code not written as steps (a process's start
-    or stop, a supervisor's): driven on a loop, they hold that one thread, never the
-    loop. Interrupted (a cancelled task), the steps stop waiting; `fn` runs on.
-
-    Raises:
-        BaseException: what `fn` raised.
+    For the few operations that block outside steps (a process's start or stop): on a loop
+    they hold that thread, never the loop. Interrupted, the steps stop waiting; `fn` runs on.
     """
     done: FutureReply = FutureReply()
 
@@ -192,8 +176,7 @@ def asked(future: OneShotFuture[Any], deadline: float, limit: float, what: str) 
     """Steps of one request: wait for `future` until `deadline`; its value, or its error.
 
     Raises:
-        CallTimeoutError: it was not settled by `deadline` (`limit`: the seconds, and
-            `what`: the operation, for the message).
+        CallTimeoutError: not settled by `deadline` (`limit` seconds, `what` for the message).
         Exception: whatever error the future holds.
     """
     if not (yield future, deadline):
@@ -238,11 +221,8 @@ Continuation = Callable[[Any, BaseException | None], None]
 class CallbackReply:
     """Answers by calling `then(value, error)` on the answering thread, at most once.
 
-    For continuations that touch no actor state (a status acknowledgement): no trip
-    through the asking actor's mailbox. `then` runs on whichever thread answers: a
-    connection's reader thread, a callback worker, or another registrar's actor thread;
-    so it must be quick and thread-safe. An exception from it is logged, never raised
-    into the answering thread.
+    For continuations that touch no actor state: `then` runs on any thread (a reader, a
+    worker, another actor), so it must be quick and thread-safe; what it raises is logged.
     """
 
     __slots__ = ("_lock", "_then")
@@ -287,10 +267,7 @@ class Tokens:
 
 
 class Join:
-    """Run `then()` once every started part is `done()` (in the actor thread).
-
-    Call `add()` before starting each part and `seal()` after the last one.
-    """
+    """Run `then()` once every part `add()`ed is `done()` and `seal()` was called (actor thread)."""
 
     __slots__ = ("_open", "_sealed", "_then")
 
@@ -324,10 +301,8 @@ class Join:
 
 
 class SharedJoin(Join):
-    """`Join` whose parts may report from any thread; `then()` runs once, on the thread
-    that completes the join (the last part's, or `seal()`'s), outside its lock.
-
-    `add()` and `seal()` are called by the thread that starts the parts.
+    """`Join` whose parts may report from any thread; `then()` runs once, outside the lock, on
+    the thread that completes it.
     """
 
     __slots__ = ("_lock",)

@@ -1,4 +1,5 @@
-"""The world the protocol runs in: real threads and clocks, or a simulation of them.
+"""The world the protocol runs in: real threads and clocks, or a simulation of them; and the
+protocol's own steps, or a classroom's copies of them.
 
 The protocol code (`_core`, `_catalog`, `_store`, `_supervision`, the registrar and the
 messenger) never uses `threading`, `time`, `uuid`, `random` or `queue` itself: it asks
@@ -12,19 +13,12 @@ this module, the only one that knows whether a simulation runs.
    objects, its virtual clock and its seeded randomness ◄────────────────────────────────┘
 ```
 
-Each name is read where an object is made or a function called (`runtime.Lock()`,
-`runtime.monotonic()`), never imported by value (`from ... import Lock` would keep the
-real one: `tests/test_repository.py` refuses it). So in a real run `runtime.Lock` *is*
-`threading.Lock`: the cost is the attribute read at construction, as `threading.Lock`'s
-own, and nothing per operation.
-
-Made here, the same in both worlds: query ids (`new_id`, from `urandom`) and one-shot
-timers (`thread_timer`, a daemon `Timer`; a test injects its own `StartTimer`).
-
-What is per process (the directory of registrars, the membership, the clock, pykka's
-registry) is registered here with `process_state`, as `_platform.fork` registers what a
-forked child lets go of: a simulation gives each simulated process its own. What is per
-thread is made with `local()`: a simulation gives each simulated thread its own contents.
+Each name is read where it is used (`runtime.Lock()`), never imported by value
+(`tests/test_repository.py` refuses it): in a real run `runtime.Lock` *is*
+`threading.Lock`, at the cost of one attribute read. Per-process state is registered with
+`process_state`, per-thread state made with `local()`: a simulation gives each simulated
+process and thread its own. `steps` holds the protocol steps an exercise of
+`rr_actors.teach` may replace, read the same way where each step runs.
 """
 
 from __future__ import annotations
@@ -35,8 +29,10 @@ import queue
 import random as _random
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Collection, Iterable, Mapping, Sequence, Set
 from typing import Any, Protocol, TypeVar
+
+from rr_actors._types import Status
 
 __all__ = [
     "SEAMS",
@@ -50,6 +46,7 @@ __all__ = [
     "RLock",
     "SimpleQueue",
     "StartTimer",
+    "Steps",
     "Thread",
     "Timer",
     "current_thread",
@@ -70,6 +67,7 @@ __all__ = [
     "random",
     "simulated",
     "sleep",
+    "steps",
     "thread_locals",
     "thread_timer",
     "urandom",
@@ -103,52 +101,41 @@ sleep = time.sleep
 urandom = os.urandom
 """`urandom(n)`: `n` random bytes (query ids, file tokens)."""
 random = _random.random
+"""A float in `[0, 1)`: jitter and backoff."""
 getrandbits = _random.getrandbits
 """`getrandbits(k)`: an int of `k` random bits (a traced call's span id)."""
-"""A float in `[0, 1)`: jitter and backoff."""
 get_ident = threading.get_ident
 current_thread = threading.current_thread
 getpid = os.getpid
 """The pid of the calling thread's process (in a simulation, its simulated process's)."""
 new_event_loop = asyncio.new_event_loop
-"""A new asyncio event loop (in a simulation, one on the virtual clock whose wait is a
-simulated thread's: `rr_actors.simulation._loop`)."""
+"""A new asyncio event loop (in a simulation, one on the virtual clock)."""
 
 
 def guards_files() -> bool:
-    """Whether the files the protocol keeps (its catalog backups) need guarding against
-    what happens to them outside it: another program deleting or replacing one, a log
-    cut short by an OS crash. Always in a real run; a simulation's backups are its own
-    (a private folder that none of its faults touches: it deletes, replaces and cuts
-    short nothing), so there the store skips the checks that only that needs (a `stat`
-    of the file and its `-wal` before each commit, the commit count beside the log)."""
+    """Whether the catalog backups need guarding against other programs and OS crashes (the
+    checks before each commit): always in a real run, never for a simulation's own files.
+    """
     return True
 
 
 def hold(file: F) -> F:
-    """`file` (an open file of the calling process with a `close()` that may be called
-    again: an `sqlite3.Connection`, a socket), registered as the process's: returned.
+    """`file` (closable more than once), registered as the calling process's; returned.
 
-    In a real run nothing happens: the kernel closes a process's files when it dies. In a
-    simulation, where a process's death is its tasks never running again in a process
-    that lives on, the simulated process that called it closes `file` when it ends (a
-    kill or an exit) or the run does, whichever comes first: not the garbage collector,
-    which may never (a dropped task that would not end keeps its frames, and what else
-    holds a run's objects, a traceback kept by a log handler, keeps them too).
+    Nothing in a real run (the kernel closes a dead process's files); in a simulation the
+    simulated process closes it when it ends, or the run does.
     """
     return file
 
 
 manager_process: Any = None
-"""`None` in a real run (`rr_actors._process` forks manager processes); in a simulation,
-what starts a simulated one instead (`ManagerProcess.start` hands over to it, with its
-own arguments)."""
+"""`None` in a real run; in a simulation, what starts a simulated manager process."""
 
 
 def queue_class(cls: type[Q]) -> type[Q]:
-    """The class to make for `cls`, a subclass of `queue.SimpleQueue` (`LateQueue`):
-    `cls` itself in a real run; in a simulation, a subclass of it whose queue methods
-    (`put`, `get`, ...) are the simulated queue's, where `cls` does not define its own."""
+    """The class to make for `cls`, a `queue.SimpleQueue` subclass: `cls` in a real run; in a
+    simulation, a subclass whose queue methods are the simulated queue's.
+    """
     return cls
 
 
@@ -189,9 +176,7 @@ _VARIANT = {digit: "89ab"[int(digit, 16) & 3] for digit in "0123456789abcdef"}
 
 
 def new_id() -> str:
-    """A random UUID4 as a string (`str(uuid.uuid4())` gives the same form): the hex digits
-    of 16 bytes from `urandom` (a simulation's seeded bytes), the version digit set to 4
-    and the variant digit to one of `89ab` (RFC 4122), without building a `uuid.UUID`."""
+    """A random UUID4 string from `urandom` (a simulation's seeded bytes), without a `uuid.UUID`."""
     h = urandom(16).hex()
     return f"{h[:8]}-{h[8:12]}-4{h[13:16]}-{_VARIANT[h[16]]}{h[17:20]}-{h[20:]}"
 
@@ -199,8 +184,7 @@ def new_id() -> str:
 class Cancellable(Protocol):
     """A started timer (`threading.Timer` is one)."""
 
-    def cancel(self) -> None:
-        """Stop the timer if it has not fired yet."""
+    def cancel(self) -> None: ...
 
 
 StartTimer = Callable[[float, Callable[[], None]], Cancellable]
@@ -208,8 +192,7 @@ StartTimer = Callable[[float, Callable[[], None]], Cancellable]
 
 
 def thread_timer(delay: float, fn: Callable[[], None]) -> Cancellable:
-    """Run `fn()` on a daemon `Timer` thread after `delay` seconds (the default
-    `StartTimer`)."""
+    """Run `fn()` on a daemon `Timer` thread after `delay` seconds (the default `StartTimer`)."""
     timer = Timer(delay, fn)
     timer.daemon = True
     timer.start()
@@ -224,9 +207,8 @@ _locals: list[threading.local] = []
 
 
 def use(seams: Mapping[str, Any] | None) -> None:
-    """Run the protocol on `seams` from now on (a value for every name of `SEAMS`), or on
-    the real threads and clocks again (`None`). For `rr_actors.simulation` only: objects
-    made before keep the world they were made in.
+    """Run the protocol on `seams` (a value for every name of `SEAMS`), or the real world again
+    (`None`). For `rr_actors.simulation` only: objects made before keep their world.
 
     Raises:
         ValueError: `seams` lacks a name of `SEAMS`, or has one that is not a seam.
@@ -239,41 +221,70 @@ def use(seams: Mapping[str, Any] | None) -> None:
 
 
 def simulated() -> bool:
-    """Whether a simulation runs now."""
     return _simulated
 
 
 def handles_signals() -> bool:
-    """Whether Python runs signal handlers on the calling thread (a `KeyboardInterrupt` is
-    raised there): the main thread of a real run; never a simulated thread."""
+    """Whether Python runs signal handlers on the calling thread: a real run's main thread."""
     return not _simulated and threading.current_thread() is threading.main_thread()
 
 
 def local() -> threading.local:
-    """A thread-local namespace (`threading.local`) that a simulation keeps per simulated
-    thread too (`thread_locals`). Made once, at import."""
+    """A `threading.local` that a simulation keeps per simulated thread too. Made once, at
+    import."""
     namespace = threading.local()
     _locals.append(namespace)
     return namespace
 
 
 def thread_locals() -> tuple[threading.local, ...]:
-    """Every namespace made by `local`, in the order made."""
     return tuple(_locals)
 
 
 def process_state(obj: T, fresh: Callable[[], object]) -> T:
-    """Register `obj` as state of this process; returns it.
+    """Register `obj` as state of this process (at the import of its module); returns it.
 
-    `fresh()` makes the state of a process that starts (an object whose attributes are
-    `obj`'s): a simulation sets `obj`'s attributes to a fresh one's in each simulated
-    process, and back when it ends. In a real run nothing happens: `obj` is the one
-    process's own. Call it once, at the import of the module that holds `obj`.
+    `fresh()` makes a starting process's state: a simulation gives each simulated process a
+    fresh one's attributes. Nothing in a real run.
     """
     _states.append((obj, fresh))
     return obj
 
 
 def process_states() -> tuple[tuple[object, Callable[[], object]], ...]:
-    """Every `(obj, fresh)` registered with `process_state`, in the order registered."""
     return tuple(_states)
+
+
+# -- the protocol's steps: its own, until a classroom exercise replaces one ---------------
+
+Reconcile = Callable[[Set[str], Set[str], Set[str]], tuple[Iterable[str], Iterable[str]]]
+"""`reconcile(mine, held, under_way) -> (ids to release, ids unknown)`."""
+
+
+class Steps:
+    """One slot per step of the protocol, `None` unless `rr_actors.teach.replaced_step` put
+    a student's copy there (seen by this OS process's registrars only: a simulated run's).
+    Each slot's shape is in `rr_actors.teach.STEPS`; `None` means the module named runs its
+    own."""
+
+    climb: Callable[[str | None, Collection[str], Status], Iterable[str]] | None = None
+    """The status climb (`_registrar/status.py`, `on_status_notice`)."""
+    shares: Callable[[Any, Any, bool, bool], bool] | None = None
+    """The dedup test of plain requests (`_catalog/catalog.py`, `_match`)."""
+    group: Callable[[str, Sequence[str], str], Iterable[str]] | None = None
+    """The restart group of a crash (`_supervision/policy.py`, `affected`)."""
+    unloads: Callable[[Collection[str]], bool] | None = None
+    """The last-release test: no id left (`_registrar/provider.py`, `release`)."""
+    in_doubt: Callable[[str], bool] | None = None
+    """The in-doubt test of a restored row's state (`_registrar/life.py`, `cut_short`)."""
+    reconcile: Reconcile | None = None
+    """The reconcile (`_registrar/provider.py`, `on_reconcile`)."""
+    release_order: Callable[[tuple[str, ...]], Iterable[str]] | None = None
+    """The teardown order, `"unload"` among the ids (`_registrar/provider.py`,
+    `unload_resource`)."""
+    recent: Callable[[tuple[float, ...], float, float], int] | None = None
+    """The count of restarts within the period (`_supervision/policy.py`,
+    `RestartIntensity.add`)."""
+
+
+steps = Steps()

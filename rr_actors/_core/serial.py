@@ -7,11 +7,10 @@
                                                                       └─ on_end() once, last
 ```
 
-The one "queue and a thread" of the package: the carriers' writers, decoders and presence
-thread, a supervisor's thread, event subscriptions and forwarders, the link watch. A
-submitter never blocks on a task (only on a short lock); a task that raises is logged and
-the next one runs. As `concurrent.futures.ThreadPoolExecutor` with one worker, plus what
-those callers need: running inline when idle, a drain with a bound, a flush, a tick.
+The package's one "queue and a thread" (carriers' writers and decoders, a supervisor's
+thread, event subscriptions and forwarders): `ThreadPoolExecutor` with one worker, plus
+running inline when idle, a bounded drain, a flush and a tick. A submitter never blocks
+on a task; a task that raises is logged and the next one runs.
 """
 
 from __future__ import annotations
@@ -30,7 +29,6 @@ logger = logging.getLogger("rr_actors")
 T = TypeVar("T")
 
 Task = Callable[[], object]
-"""A task: called with no arguments on the executor's thread; what it returns is ignored."""
 
 
 class _Mark:
@@ -58,22 +56,19 @@ class _Mark:
 class SerialExecutor:
     """One thread of its own that runs the tasks it is given one at a time, in order.
 
-    The thread (a daemon thread named `name`) starts at the first task that has to wait
-    for it and lives until the executor closes. A task that raises an `Exception` (or any
-    `BaseException`) is logged on the `rr_actors` logger with its traceback and the next
-    task runs; callers that want a quieter report catch in their task.
+    The daemon thread `name` starts at the first task that has to wait for it and lives until
+    the executor closes; what a task raises is logged (`rr_actors`) and the next task runs.
 
     Args:
         name: the thread's name (and the log lines').
-        linger: seconds the thread waits, once the queue ran empty, before it sleeps on
-            it: a burst of tasks submitted meanwhile is queued without waking it (a
-            `flush` or `close` cuts the wait short).
-        every: `(seconds, task)`: `task` also runs on the thread every `seconds`, between
-            two tasks (a long task delays it); it starts the thread at once.
+        linger: seconds the thread waits, once the queue ran empty, before it sleeps: a burst
+            submitted meanwhile does not wake it (`flush` or `close` cut it short).
+        every: `(seconds, task)`: `task` also runs every `seconds` between tasks; it starts
+            the thread at once.
         on_idle: runs on the thread each time the queue ran empty after a task.
         on_drop: called with each task that `close` drops (on the closing thread).
-        on_end: runs once, after the last task: on the executor's thread if it has one,
-            otherwise on the thread that closed it.
+        on_end: runs once, after the last task: on the executor's thread if it has one, else
+            on the thread that closed it.
     """
 
     def __init__(
@@ -114,11 +109,9 @@ class SerialExecutor:
 
     @property
     def pending(self) -> int:
-        """Tasks queued and not started yet."""
         return len(self._tasks)
 
     def on_own_thread(self) -> bool:
-        """Whether the calling thread is this executor's thread."""
         return self._thread is runtime.current_thread()
 
     # -- giving it work ----------------------------------------------------------------
@@ -130,19 +123,13 @@ class SerialExecutor:
                 self._start()
 
     def submit(self, task: Task, *, inline: Callable[[], Task | None] | None = None) -> bool:
-        """Run `task` after every task submitted before; returns at once.
+        """Run `task` after every task submitted before; returns at once, `False` if closed.
 
         Args:
             task: what to run on the executor's thread.
-            inline: if given and the executor is idle (nothing queued, nothing running),
-                `inline()` runs instead of `task`, at once, on the calling thread, under the
-                executor's lock: it must not block nor submit (a writer's non-blocking
-                send). It returns `None` (done) or a task that runs next on the executor's
-                thread. What it raises is raised here (nothing of it was queued).
-
-        Returns:
-            `True` if the task was queued or run; `False` if the executor is closed (it
-            was not).
+            inline: run instead, when the executor is idle, at once on the calling thread under
+                the lock (it must not block nor submit); it returns `None` (done) or the task to
+                run next. What it raises is raised here.
         """
         with self._lock:  # (the plain lock under `_cond`: no Python-level `__enter__`)
             if self._closing:
@@ -163,9 +150,8 @@ class SerialExecutor:
         """Run `fn()` on the executor's thread after what is queued, and return its result.
 
         Raises:
-            RuntimeError: called on the executor's own thread (it would wait for itself),
-                or the executor is closed (or closed before `fn` ran).
-            BaseException: whatever `fn` raised, re-raised here.
+            RuntimeError: called on its own thread, or the executor is (or got) closed first.
+            BaseException: whatever `fn` raised.
         """
         if self.on_own_thread():
             raise RuntimeError(f"call() on {self.name}'s own thread would wait for itself")
@@ -182,14 +168,10 @@ class SerialExecutor:
         return result
 
     def flush(self, *, timeout: float | None) -> bool:
-        """Block until every task submitted before this call ran (at most `timeout` s).
-
-        Returns:
-            `True` when they all ran; `False` if `timeout` passed first, or the executor
-            was closed and dropped some of them (or has not ended by then).
+        """Block until every task submitted before ran (at most `timeout` s); whether they all did.
 
         Raises:
-            RuntimeError: called on the executor's own thread (it would wait for itself).
+            RuntimeError: called on the executor's own thread.
         """
         if self.on_own_thread():
             raise RuntimeError(f"flush() on {self.name}'s own thread would wait for itself")
@@ -211,14 +193,8 @@ class SerialExecutor:
             self._end()
 
     def close(self, *, timeout: float | None = 0.0) -> bool:
-        """Take no more tasks; let those queued run for `timeout` s, then drop the rest.
-
-        Each dropped task goes to `on_drop`; the thread ends after the task it runs. On
-        the executor's own thread a `timeout` other than 0 only finishes (`finish`): it
-        cannot wait for itself. Calling it again is fine.
-
-        Args:
-            timeout: seconds the queued tasks get (0: drop them now; `None`: no bound).
+        """Take no more tasks; let those queued run for `timeout` s (`None`: no bound), then drop
+        the rest (each to `on_drop`). Idempotent; on its own thread it only finishes.
 
         Returns:
             Whether the executor ended (its last task returned) within `timeout`.
@@ -263,8 +239,10 @@ class SerialExecutor:
         self._thread.start()
 
     def _ends_now(self) -> bool:
-        """Whether the caller must run `on_end` now (hold `_cond`): closed, nothing queued
-        or running, and no thread to do it; with a thread, wake it to end."""
+        """Whether the caller must run `on_end` now (hold `_cond`): closed, idle, and no thread to
+        do
+        it (with one, wake it).
+        """
         if not self._closing or self._busy or self._ended or self._tasks:
             return False
         if self._thread is not None:
@@ -320,7 +298,6 @@ class SerialExecutor:
                 self._sleeping = False
 
     def _run(self) -> None:
-        """The executor's thread: each task in turn; `on_idle` and linger when it ran dry."""
         with self._cond:
             task = self._next()
         while task is not None:

@@ -11,14 +11,10 @@
                                                       context_of("00-T-C-F"): span S
 ```
 
-A traceparent (`"00-" 32 hex "-" 16 hex "-" 2 hex`, 55 characters) is a plain `str`:
-it pickles as one, a JSON line holds it, and an untraced call carries `""`. The spans
-themselves are made later, from the events, by `rr_actors.otel`: the ids are drawn here
-so that both sides, in whichever process their spans are made, name the same spans.
-
-Without the `otel` extra, before the application imported OpenTelemetry (this module does
-not import it: no span can be current until then), or with no span current in the caller
-(an empty context), `begin` returns `None` after a look-up or two and nothing is carried.
+A traceparent (55 characters) is a plain `str`, `""` for an untraced call. `rr_actors.otel`
+makes the spans later, from the events; the ids are drawn here so both sides name the same
+spans. OpenTelemetry is not imported here: until the application imported it no span can
+be current, and `begin` returns `None` after a look-up or two.
 """
 
 from __future__ import annotations
@@ -29,16 +25,13 @@ from typing import Any
 
 from rr_actors._core import runtime
 
-# OpenTelemetry's API, once bound (`_bind`). Not imported with this module: importing it
-# costs milliseconds (its context finds its runtime through entry points), and until the
-# application imported it no span can be current. A call looks it up in `sys.modules`.
+# OpenTelemetry's API, once bound (`_bind`): looked up in `sys.modules`, not imported.
 _context: Any = None
 _trace: Any = None
 
 
 def _bind(*, load: bool = False) -> bool:
-    """Bind OpenTelemetry's API if the application imported it (or, with `load`, import
-    it now); whether it is bound. `False`: the otel extra is missing, or not imported."""
+    """Bind OpenTelemetry's API if imported (with `load`, import it now); whether it is bound."""
     global _context, _trace
     if _context is not None:
         return True
@@ -78,18 +71,16 @@ _MASK = (1 << 64) - 1
 
 
 def _new_span() -> str:
-    """A fresh span id, 16 hex digits from `runtime.getrandbits` (a simulation's seeded
-    generator): neither 0 (invalid) nor one whose SERVER span's id would be 0."""
+    """A fresh span id (16 hex, `runtime.getrandbits`): neither 0 nor one whose SERVER span's is
+    0."""
     while True:
         span = runtime.getrandbits(64)
         if span not in (0, _SERVER):
             return f"{span:016x}"
 
 
-# The caller's span last seen, and what a traceparent under it is made of: its
-# `"00-<trace id>-"`, its `"-<flags>"` and its own id (`""`s: not a valid span). A caller
-# makes many calls under one span: each pays one identity check, not the formatting.
-# (Swapped whole: a tuple, so a thread reads one span's parts, never a mix.)
+# The caller's span last seen and its traceparent's parts (prefix, suffix, id), swapped
+# whole: many calls under one span pay one identity check, not the formatting.
 _last: tuple[object, str, str, str] = (None, "", "", "")
 
 
@@ -107,11 +98,9 @@ def _parts(span: Any) -> tuple[object, str, str, str]:
 def begin() -> tuple[str, str] | None:
     """The trace context of a call made now: `(traceparent, caller_span)` or `None`.
 
-    Read in the caller's thread or task (contextvars: an `acall` keeps its caller's
-    context across `await`). `traceparent` names the call's CLIENT span (a fresh id)
-    under the caller's trace id and sampled flag; `caller_span` is the id (16 hex) of the
-    caller's current span, the CLIENT span's parent. `None` without the extra or without
-    a valid span current.
+    `traceparent` names the call's CLIENT span (a fresh id) under the caller's trace and flags;
+    `caller_span` is the caller's current span's id (16 hex). `None` without the extra or a
+    valid current span.
     """
     if _context is None and not _bind():
         return None
@@ -129,8 +118,7 @@ def begin() -> tuple[str, str] | None:
 
 
 def current() -> str:
-    """The W3C traceparent of the span current here (a thread's or task's), `""` if none:
-    what a handle on a registrar of another process carries there (`adopt`)."""
+    """The traceparent of the span current here, `""` if none (what a handle carries to `adopt`)."""
     if _context is None and not _bind():
         return ""
     current = _context.get_current()
@@ -143,8 +131,8 @@ def current() -> str:
 
 
 def adopt(traceparent: str) -> None:
-    """Make the span `traceparent` names current here (a non-recording one: a caller's
-    span in another process), for the rest of this context; nothing for a bad one."""
+    """Make the (remote, non-recording) span `traceparent` names current in this context; nothing
+    for a bad one."""
     parsed = parse(traceparent)
     if parsed is None or not _bind(load=True):
         return
@@ -184,9 +172,9 @@ def server_span(client_span: int) -> int:
 
 
 def under(traceparent: str) -> tuple[str, str] | None:
-    """The trace context of a call made by the provider of the call that carried
-    `traceparent` (a registrar's own: an unload's dependency releases), as `begin`'s:
-    a fresh CLIENT span under that call's SERVER span; `None` for `""` or a bad one."""
+    """The trace context of a call the provider of `traceparent`'s call makes (an unload's
+    dependency releases): a fresh CLIENT span under that call's SERVER span; `None` if bad.
+    """
     parsed = parse(traceparent)
     if parsed is None:
         return None
@@ -207,9 +195,9 @@ def caller_parent(traceparent: str, caller_span: str) -> Any:
 
 
 def context_of(traceparent: str) -> Any:
-    """The OpenTelemetry context whose current span is the SERVER span of the call that
-    carried `traceparent` (a non-recording span: the real one is made from the events),
-    or `None` (nothing carried, or no extra). Spans made under it are its children."""
+    """The context whose current span is the (non-recording) SERVER span of the call that carried
+    `traceparent`, or `None`.
+    """
     parsed = parse(traceparent)
     if parsed is None or not _bind(load=True):
         return None
@@ -239,19 +227,17 @@ def derived(*parts: str, bits: int = 64) -> int:
 
 
 def status_callback(status_id: str, registrar: str, query_id: str) -> tuple[int, int]:
-    """The (trace id, span id) of the span of a status callback's run: a trace of its own,
-    derived from what its `StatusHandled` names, so that the subscriber that makes the
-    span from that event gives it the ids the callback's calls named as their parent."""
+    """The (trace id, span id) of a status callback's run: a trace of its own, derived from what
+    its `StatusHandled` names.
+    """
     parts = ("status callback", status_id, registrar, query_id)
     return derived(*parts, bits=128), derived(*parts)
 
 
 def own_trace(callback: tuple[str, str, str] | None = None) -> object | None:
-    """Run what follows as a trace of its own: make current here, in a context of its
-    own, the span of the status callback `callback` names (`(status_id, registrar,
-    query_id)`: `status_callback`'s ids, sampled), or no span at all (`None`); what was
-    current (a span a `load` left, the context a coroutine callback was bound in) is
-    not its parent. Its token for `detach`; `None` where OpenTelemetry is not imported."""
+    """Make current, in a context of its own, the span of the status callback `callback` names
+    (or no span): what was current is not its parent. Its token for `detach`, or `None`.
+    """
     if _context is None and not _bind():
         return None
     span = _trace.INVALID_SPAN

@@ -1,46 +1,23 @@
 """What crosses between processes: the contract a message offers carriers, and how a value
 is pickled to leave this process.
 
-A carrier (`rr_actors._transport`) moves messages between the processes of a system
-without knowing what they mean. Where it must act on a message's behalf, it asks the
-message:
+A carrier moves messages without knowing what they mean; where it must act on a message's
+behalf it asks the message: `detached()` (as it crosses, without its `reply`),
+`compensation()` (what undoes handling it when its answer is lost: a `Load`'s `Abandon`),
+`unreadable_answer()` / `unsendable_answer()` (its sender's error when the answer cannot
+be unpickled there, or pickled here). Every subclass is in `WIRE_TYPES`.
 
-- `detached()`: the message as it crosses, without its `reply` (the sender keeps that);
-- `compensation()`: what undoes the effect of handling it, when its answer is lost on the
-  way back (the registrar's `Load` is undone by an `Abandon` of its consumer id);
-- `unreadable_answer()` / `unsendable_answer()`: the error its sender gets when the
-  answer cannot be unpickled there, or pickled here.
-
-Every subclass is listed in `WIRE_TYPES`, which the codec pickles by reference on its
-fast path.
-
-`plain(value)`: small builtin data and such records, which the C pickler alone encodes
-byte for byte as cloudpickle would, without building a cloudpickle `Pickler` (a Python
-object, and a Python call per object pickled). The codec frames such a message with it,
-and the catalog's backup stores such a request or response with it (nor is one checked
-for being picklable: it is).
-
-`dumps(value)` / `Pickler`: everything else, the user's requests and responses included,
-is pickled by cloudpickle (so it may hold closures), with the wire's own types by
-reference, and code that keeps the file it was written in:
+`plain(value)`: small builtin data and such records, which the C pickler encodes as
+cloudpickle would, without a cloudpickle `Pickler`. `dumps(value)` / `Pickler`: the rest,
+the user's values included, by cloudpickle, with the wire's own types by reference and
+code that keeps its file's name:
 
 ```
  dumps: code object ──► (_named, (code as cloudpickle pickles it, code.co_filename))
  loads: _named(code named "<dynamic-code>", filename) ──► code.replace(co_filename=...)
 ```
 
-cloudpickle 3.1.3 names every code object it pickles by value `"<dynamic-code>"` (so a
-payload does not depend on where its function was defined: cloudpipe/cloudpickle#560,
-for notebooks) and has no option to keep the name. A callback run in another process
-(a `load`, a manager's `setup`: both are pickled by value when their module cannot be
-imported there), or a function inside a request restored from a backup, would then show
-no file in a traceback, and no source line: a failed load's cause (rule 4) or a
-manager's start error would not say where it failed. The pickling side still knows the
-name, so it is pickled beside the code and unpickling puts it back. Nested code (a
-closure's, a lambda's) is a code object of its own and is pickled the same way. With
-cloudpickle before 3.1.3 the name was already there; nothing else about the code
-changes. The frames of `rr_actors._transport.codec`, a manager's `setup` and the
-catalog's stored values (`rr_actors._store.codec`) are all pickled here.
+Why: docs/explanation/inside.md, "Code that keeps its file's name".
 """
 
 from __future__ import annotations
@@ -74,24 +51,10 @@ from rr_actors.errors import (
 __all__ = ["WIRE_TYPES", "WIRE_VERSION", "Pickler", "WireMessage", "dumps", "plain"]
 
 WIRE_VERSION = 10
-"""The version of what crosses between processes (these messages, pickled): a carrier
-that can meet a process of another version (the Zenoh one, across hosts) refuses its
-messages unread. Raise it when a `WireMessage` changes incompatibly. (2: the Zenoh
-carrier's messages carry a clock stamp after the frame's token. 3: a status reaches
-the registrars of a process as one `StatusBatch`. 4: a Zenoh registrar's liveliness
-token carries the clock stamp of when it began to serve, which decides which of two
-servers of one name is kept: rule 22. 5: an `Unload`'s answer carries the statuses
-still on their way to its id, `StatusOnItsWay`s: rule 9. 6: code pickled by value
-crosses with its file's name, put back by `_transport.codec._named`, which a process of
-version 5 lacks. 7: that function is `_core.wire._named`, which a process of version 6
-lacks. 8: a `Load` and a `Reconcile` carry their consumer's run, `life`: a provider of
-version 7 would not fence a restarted consumer's earlier loads, and a consumer of version
-7 commits a record before its `Load` leaves, which one of 8 no longer does. 9: a `Load`
-and an `Unload` carry their caller's W3C trace context, `trace`, and a `Load` its caller's
-deadline, `deadline` (a monotonic time of each process, the seconds left on the wire): a
-process of version 8 would neither continue the trace nor shed a load too late. 10: an
-`OverloadedError` carries when to ask again, `retry_after`, which one of version 9 cannot
-unpickle.)"""
+"""The version of what crosses between processes: a carrier that can meet another version
+(the Zenoh one) refuses its messages unread. Raise it when a `WireMessage` changes
+incompatibly (10: an `OverloadedError` carries `retry_after`).
+"""
 
 WIRE_TYPES: set[type] = set()
 """Every `WireMessage` subclass (filled in as they are defined)."""
@@ -112,9 +75,7 @@ class WireMessage:
     def detached(self) -> Any:
         """This message as it crosses to another process: without its `reply`.
 
-        A copy of its fields, not a second construction: the fields were checked when the
-        message was built, and a frozen dataclass's `__init__` sets each one through
-        `object.__setattr__` (a `Load` is detached on every call across processes).
+        A copy of its fields, not a second construction (a `Load` is detached on every call).
         """
         if not hasattr(self, "reply"):
             return self
@@ -123,10 +84,9 @@ class WireMessage:
         return copy
 
     def compensation(self) -> WireMessage | None:
-        """A message that undoes handling this one when its answer is lost, if any.
-
-        The carrier delivers it to the registrar that handled this message (the message's
-        target), as the one step that keeps a lost answer from leaking what it created.
+        """A message that undoes handling this one when its answer is lost, if any (delivered to
+        the
+        registrar that handled it).
         """
         return None
 
@@ -145,10 +105,7 @@ class WireMessage:
         )
 
 
-# Small builtin data (exact types: no subclass, nothing defined in `__main__`), the wire
-# protocol's records holding only such data, and status codes. `plain` looks at no more
-# than `_PLAIN_BUDGET` containers of at most `_PLAIN_WIDTH` items each; anything larger
-# or else is not plain (cloudpickle's).
+# Exact types only; `plain` walks at most `_PLAIN_BUDGET` containers of `_PLAIN_WIDTH` items.
 _PLAIN_ATOMS: frozenset[type] = frozenset({str, int, float, bool, type(None), bytes, Status})
 _PLAIN_SEQUENCES: frozenset[type] = frozenset({tuple, list, set, frozenset})
 _PLAIN_VALUE_RECORDS: frozenset[type] = frozenset({Query, StatusUpdate})  # (+ WIRE_TYPES)
@@ -184,9 +141,7 @@ def _plain_walk(item: Any, budget: int) -> int:
     return budget
 
 
-# Types pickled by reference with the C pickler's own machinery: cloudpickle's
-# `reducer_override` (a Python call per object) is skipped for them, as for every wire
-# message (`WIRE_TYPES`). Everything else goes through cloudpickle.
+# Pickled by reference by the C pickler (as `WIRE_TYPES`): no `reducer_override` call each.
 _VALUES_BY_REFERENCE: frozenset[type] = frozenset(
     {
         Query,
@@ -213,11 +168,8 @@ def _by_reference(kind: type) -> bool:
     return kind in _VALUES_BY_REFERENCE or kind in WIRE_TYPES
 
 
-# cloudpickle's own reducer of code objects, read once from its `Pickler.dispatch_table`
-# (pickle's documented hook; which types cloudpickle puts there is its own business, so
-# this is the one place rr_actors relies on it: tests/core/test_wire.py checks it).
-# A cloudpickle without it pickles code its own way, as it did before 3.1.3: file names
-# may then be lost again, nothing else.
+# cloudpickle's own reducer of code objects (the one reliance on its dispatch table:
+# tests/core/test_wire.py checks it; without it, file names may be lost, nothing else).
 _CLOUDPICKLE_CODE: Callable[[types.CodeType], Any] | None = cloudpickle.Pickler.dispatch_table.get(
     types.CodeType
 )
@@ -237,7 +189,7 @@ class _AsCloudpickleDoes:
 
 
 def _reduce_code(code: types.CodeType) -> tuple[Any, ...]:
-    """A code object crosses with the name of its file (see the module docstring)."""
+    """A code object crosses with the name of its file (module docstring)."""
     return _named, (_AsCloudpickleDoes(code), code.co_filename)
 
 
@@ -247,8 +199,8 @@ def _named(code: types.CodeType, filename: str) -> types.CodeType:
 
 
 class Pickler(cloudpickle.Pickler):  # type: ignore[misc]
-    """cloudpickle, with a fast path for the wire protocol's own types, and code that
-    keeps its file's name."""
+    """cloudpickle, with the wire protocol's own types by reference, and code that keeps its
+    file's name."""
 
     def reducer_override(self, obj: Any) -> Any:
         kind = type(obj)
@@ -260,9 +212,9 @@ class Pickler(cloudpickle.Pickler):  # type: ignore[misc]
 
 
 def dumps(value: Any) -> bytes:
-    """`value` pickled as it leaves this process: `plain` data by the C pickler, the rest
-    by cloudpickle, code keeping its file's name (a frame's payload, a manager's `setup`,
-    a stored request or response). Pickling errors propagate."""
+    """`value` pickled as it leaves this process: `plain` data by the C pickler, the rest by
+    `Pickler`. Pickling errors propagate.
+    """
     if plain(value):
         return pickle.dumps(value, pickle.HIGHEST_PROTOCOL)
     buffer = io.BytesIO()

@@ -12,26 +12,12 @@
      abandon it (its thread no longer counts; another may start) ──► on_overdue()
 ```
 
-A worker busy with a task that blocks (a nested `call`, a `send_status`, a hung
-callback) holds its thread, so tasks beyond `max_workers` wait for one to come free: a
-burst of blocked loads costs at most `max_workers` threads, not one each. A task that
-the pool cannot start a thread for, when none is free or may be added, raises
-`RuntimeError` from `submit`: that task alone fails (its caller answers its reply).
-
-A thread cannot be killed. A job that overran its `timeout` is *abandoned*: it stops
-counting against `max_workers` (so one hung callback cannot shrink the pool for good),
-its thread finishes it whenever it returns (if ever) and then exits, and whatever the
-task answers after that is the owner's to ignore. Each hung callback therefore costs one
-thread for as long as it hangs, and nothing else. Idle workers exit after
-`idle_timeout` seconds.
-
-An `urgent` job (an unload) jumps the queue: it waits for a free worker, never behind
-loads queued before it; a queued job whose owner no longer needs it (a load whose
-callers all gave up) is `cancel`led and skipped by the worker that takes it. The other
-jobs queue in lanes (`submit`'s `lane`: a load's is its consumer registrar), first come
-first served within one, and a free worker takes the first job of the next lane in turn
-(round robin): a consumer that floods the queue delays another's load by one job per
-worker, not by its whole backlog.
+A burst of blocked tasks costs at most `max_workers` threads. A thread cannot be killed: a
+job past its `timeout` is *abandoned* (it stops counting, its thread exits whenever it
+returns), so a hung callback costs one thread while it hangs and nothing else. Queued jobs
+wait in lanes taken round robin (a load's lane is its consumer registrar), so a consumer
+that floods the queue delays another's load by one job per worker, not its whole backlog;
+an `urgent` job (an unload) goes before them all. Idle workers exit after `idle_timeout`.
 """
 
 from __future__ import annotations
@@ -57,8 +43,7 @@ class _State(enum.Enum):
     ABANDONED = "abandoned"  # abandoned while it ran: its thread no longer counts
 
 
-def _nothing() -> None:
-    """The task of a cancelled job (never run)."""
+def _nothing() -> None: ...
 
 
 class Job:
@@ -84,23 +69,16 @@ class Job:
 
     @property
     def running(self) -> bool:
-        """Whether a worker runs it now (and it was not abandoned)."""
         return self._state is _State.RUNNING
 
     def abandon(self) -> bool:
-        """Give up on it: a queued job never runs; a running one stops counting.
-
-        Returns:
-            Whether it had not finished (nor been abandoned) yet.
-        """
+        """Give up on it (a queued job never runs; a running one stops counting); whether it had
+        not ended."""
         return self._pool._abandon(self)
 
     def cancel(self) -> bool:
-        """Withdraw it if it has not started: it never runs (a running one runs on).
-
-        Returns:
-            Whether it was still queued (it will not run).
-        """
+        """Withdraw it if it has not started (a running one runs on); whether it was still
+        queued."""
         return self._pool._cancel(self)
 
 
@@ -120,12 +98,10 @@ class Workers:
         self._max = max_workers
         self._idle_timeout = idle_timeout
         self._lock = runtime.Lock()
-        # one turn per queued job; a worker that takes a turn runs the first urgent job,
-        # else the first other one
+        # one turn per queued job: the first urgent job, else the next lane's
         self._jobs: runtime.SimpleQueue[None] = runtime.SimpleQueue()
         self._urgent: collections.deque[Job] = collections.deque()
-        # the other jobs queued, by lane, and the lanes with jobs in the order they take
-        # their turns (a lane served goes to the back if it has more)
+        # the other jobs by lane, and the lanes in the order they take their turns
         self._lanes: dict[str, collections.deque[Job]] = {}
         self._turns: collections.deque[str] = collections.deque()
         self._idle = 0  # workers waiting for a job, minus jobs queued (negative: a backlog)
@@ -138,13 +114,11 @@ class Workers:
 
     @property
     def max_workers(self) -> int:
-        """Threads that may run tasks at once."""
         return self._max
 
     @property
     def queued(self) -> int:
-        """Tasks waiting for a worker thread to come free (a cancelled one counts until
-        the worker that takes it skips it)."""
+        """Tasks waiting for a worker (a cancelled one counts until it is skipped)."""
         return max(0, -self._idle)
 
     @property
@@ -162,28 +136,21 @@ class Workers:
         urgent: bool = False,
         lane: str = "",
     ) -> Job:
-        """Run `task` on a worker thread once one is free; its exceptions are logged.
+        """Run `task` on a worker thread once one is free; what it raises is logged.
 
         Args:
-            task: what to run; whatever it raises (`BaseException` included) is logged and
-                the worker goes on.
-            timeout: seconds the task may run (counted from its start, not from the
-                queue); past them the job is abandoned and `on_overdue()` runs on the
-                watchdog's thread (it must be quick, and thread-safe).
+            task: what to run.
+            timeout: seconds the task may run once started; past them the job is abandoned and
+                `on_overdue()` runs on the watchdog's thread (quick, thread-safe).
             on_overdue: see `timeout`.
-            quiet: its abandonment is logged at DEBUG, not WARNING (an overrun its
-                owner expects and handles, such as the status runner's slice).
-            urgent: if it must queue, it goes before every job that is not urgent (an
-                unload is not held up by loads queued before it).
-            lane: whose job it is, if it must queue: the lanes take turns, one job each
-                (a load's is its consumer's; "": the pool's own).
-
-        Returns:
-            The job (`abandon()` it to give up on it).
+            quiet: its abandonment is logged at DEBUG, not WARNING (an overrun its owner
+                expects).
+            urgent: if it must queue, it goes before every job that is not urgent.
+            lane: whose job it is, if it must queue ("": the pool's own).
 
         Raises:
-            RuntimeError: no worker was free or could be added, and no thread could be
-                started (the OS refused it); the task will not run.
+            RuntimeError: no worker was free or could be added, and the OS refused a thread; the
+                task will not run.
         """
         job = Job(self, task, timeout, on_overdue, quiet)
         with self._lock:
@@ -244,8 +211,8 @@ class Workers:
                 return self._urgent.popleft() if self._urgent else self._take()
 
     def _queue(self, job: Job, lane: str) -> None:
-        """Queue `job` last in `lane` (holding the lock); a lane with no job queued
-        takes its turn after the lanes that have some."""
+        """Queue `job` last in `lane` (hold the lock); a new lane takes its turn after the
+        others."""
         jobs = self._lanes.get(lane)
         if jobs is None:
             jobs = self._lanes[lane] = collections.deque()
@@ -253,8 +220,8 @@ class Workers:
         jobs.append(job)
 
     def _take(self) -> Job:
-        """The first job of the lane whose turn it is (holding the lock); that lane goes
-        last, or away once it has none left."""
+        """The first job of the lane whose turn it is (hold the lock); that lane goes last, or
+        away."""
         lane = self._turns.popleft()
         jobs = self._lanes[lane]
         job = jobs.popleft()

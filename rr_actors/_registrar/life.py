@@ -58,7 +58,7 @@ import pykka
 
 from rr_actors import events
 from rr_actors._catalog import Catalog, ClientRecord, Resource, ResourceState
-from rr_actors._core import runtime, steps
+from rr_actors._core import runtime
 from rr_actors._core.actor import Actor, OneShotFuture, refuse
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.membership import MEMBERSHIP
@@ -522,7 +522,7 @@ class Lifecycle:
 
 def cut_short(catalog: Catalog) -> list[Resource]:
     """The restored resources a crash cut short: neither loaded nor unloaded (rule 16)."""
-    step = steps.in_doubt  # (a classroom's copy of this step, `rr_actors.teach`)
+    step = runtime.steps.in_doubt  # (a classroom's copy of this step, `rr_actors.teach`)
     if step is not None:
         return [r for r in catalog.resources.values() if step(r.state.value)]
     return [r for r in catalog.resources.values() if r.state is not ResourceState.LOADED]

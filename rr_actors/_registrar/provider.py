@@ -68,7 +68,7 @@ from rr_actors._catalog import (
     runtime_key,
 )
 from rr_actors._catalog.digest import requests_equal
-from rr_actors._core import runtime, steps, traces
+from rr_actors._core import runtime, traces
 from rr_actors._core.actor import Actor
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.loops import is_coroutine_function, process_loop
@@ -1439,7 +1439,7 @@ class Unloading:
             if shared.events.active
             else ()
         )
-        step = steps.unloads  # (a classroom's copy of this step, `rr_actors.teach`)
+        step = runtime.steps.unloads  # (a classroom's copy of this step, `rr_actors.teach`)
         last = not resource.consumers if step is None else step(frozenset(resource.consumers))
         if reply is not None and not last and resource.state is ResourceState.LOADED:
             answer = reply  # (not the last: answered once written, with the rest of the turn)
@@ -1528,7 +1528,7 @@ class Unloading:
             if query_id not in held:
                 self.provider.give_up(query_id)
         mine = catalog.consumer_ids_from(message.origin_rr)
-        step = steps.reconcile  # (a classroom's copy of this step, `rr_actors.teach`)
+        step = runtime.steps.reconcile  # (a classroom's copy of this step, `rr_actors.teach`)
         told: tuple[str, ...] | None = None
         if step is None:
             stale = sorted(mine - held)
@@ -1643,7 +1643,7 @@ class Teardown:
             self.check_idle()
 
         later: list[set[str]] = []  # the dependencies to release after the unload
-        step = steps.release_order  # (a classroom's copy of this step, `rr_actors.teach`)
+        step = runtime.steps.release_order  # (a classroom's copy of this step, `rr_actors.teach`)
         if step is None:
             self.releases.release_dependencies(resource.id, run_unload, trace=trace)
             return
@@ -1699,7 +1699,7 @@ class Teardown:
         `ResourceUnloaded` in the same transaction, published before anyone hears of it.
         """
         shared = self.registrar
-        if resource.consumers and steps.unloads is not None:  # a classroom's copy unloaded
+        if resource.consumers and runtime.steps.unloads is not None:  # a classroom's copy unloaded
             for query_id in list(resource.consumers):  # it under them: they lose it
                 shared.catalog.release(query_id)
         shared.catalog.remove_resource(resource.id)

@@ -58,7 +58,7 @@ from typing import Any
 
 from rr_actors import events
 from rr_actors._catalog import Resource
-from rr_actors._core import hlc, runtime, steps, traces
+from rr_actors._core import hlc, runtime, traces
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.loops import OnLoop
@@ -423,7 +423,7 @@ class StatusRelay:
                     DESK.runner.on_loop(call)
                 else:  # (each id's in order with the desk's own)
                     DESK.runner.run((call,))
-            climb = steps.climb  # (a classroom's copy of this step, `rr_actors.teach`)
+            climb = runtime.steps.climb  # (a classroom's copy of this step, `rr_actors.teach`)
             if climb is not None:
                 above = [
                     catalog.resources[r]

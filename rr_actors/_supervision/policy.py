@@ -43,7 +43,7 @@ from collections.abc import Callable, Sequence
 from typing import Protocol, TypeVar
 
 from rr_actors import events
-from rr_actors._core import runtime, steps
+from rr_actors._core import runtime
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._process.manager import ManagerExit
@@ -401,7 +401,7 @@ class Restarts:
         """
         children = self.record.children
         strategy, order = self.record.spec.strategy, [c.name for c in children]
-        step = steps.group  # (a classroom's copy of this step, `rr_actors.teach`)
+        step = runtime.steps.group  # (a classroom's copy of this step, `rr_actors.teach`)
         if step is None:
             names = affected(strategy, order, crashed.name)
         else:
@@ -492,7 +492,7 @@ class RestartIntensity:
         """Count one restart now; return `False` if that exceeds the intensity (give up)."""
         now = self.clock()
         self._times.append(now)
-        step = steps.recent  # (a classroom's copy of this step, `rr_actors.teach`)
+        step = runtime.steps.recent  # (a classroom's copy of this step, `rr_actors.teach`)
         if step is not None:  # (it sees every restart: it chooses those that count)
             return step(tuple(self._times), now, self.period) <= self.max_restarts
         while self._times and now - self._times[0] >= self.period:

@@ -23,7 +23,7 @@ from collections.abc import Callable, Collection, Iterable, Iterator, Sequence
 from collections.abc import Set as AbstractSet
 from typing import Any
 
-from rr_actors._core import steps as _steps
+from rr_actors._core import runtime as _runtime
 from rr_actors._types import Status
 from rr_actors.errors import ConfigError, _known_names
 
@@ -174,10 +174,10 @@ def replaced_step(name: str, step: Callable[..., Any]) -> Iterator[None]:
     shipped_step(name)
     if not callable(step):
         raise ConfigError(f"the step {name!r} must be a function, got {step!r}")
-    if getattr(_steps, name) is not None:
+    if getattr(_runtime.steps, name) is not None:
         raise ConfigError(f"the step {name!r} is replaced already (one copy at a time)")
-    setattr(_steps, name, step)
+    setattr(_runtime.steps, name, step)
     try:
         yield
     finally:
-        setattr(_steps, name, None)
+        setattr(_runtime.steps, name, None)

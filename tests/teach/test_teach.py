@@ -81,19 +81,19 @@ def test_the_shipped_recent_counts_the_restarts_within_the_period_this_one_inclu
 
 
 def test_a_replaced_step_is_in_place_inside_its_block_only() -> None:
-    from rr_actors._core import steps  # noqa: PLC0415 - where the registrar reads it
+    from rr_actors._core import runtime  # noqa: PLC0415 - where the registrar reads its steps
 
     def mine(parent: str | None, resources: object, status: Status) -> list[str]:
         return []
 
     with replaced_step("climb", mine):
-        assert steps.climb is mine
+        assert runtime.steps.climb is mine
         with pytest.raises(ConfigError, match="is replaced already"), replaced_step("climb", mine):
             pass
-    assert steps.climb is None
+    assert runtime.steps.climb is None
     with pytest.raises(RuntimeError), replaced_step("shares", lambda *a: True):
         raise RuntimeError
-    assert steps.shares is None
+    assert runtime.steps.shares is None
 
 
 def test_bad_steps_are_refused() -> None:
