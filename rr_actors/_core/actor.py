@@ -35,7 +35,7 @@ import pykka
 
 from rr_actors._core import runtime
 from rr_actors._core.queues import Late, LateQueue
-from rr_actors._platform import fork
+from rr_actors._platform import forkserver
 
 __all__ = [
     "SIGNAL_CHECK",
@@ -496,7 +496,7 @@ def _forget_actors() -> None:
         pykka.ActorRegistry.unregister(ref)
 
 
-fork.after_fork_in_child("the parent's actors", _forget_actors)
+forkserver.after_fork_in_child("the parent's actors", _forget_actors)
 
 
 def _fresh_registry() -> object:

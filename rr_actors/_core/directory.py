@@ -19,7 +19,7 @@ import pykka
 from rr_actors._core import runtime
 from rr_actors._core.actor import awaiting, deliver
 from rr_actors._core.membership import MEMBERSHIP
-from rr_actors._platform import fork
+from rr_actors._platform import forkserver
 from rr_actors.errors import (
     DuplicateNameError,
     RegistrarStoppedError,
@@ -250,7 +250,7 @@ DIRECTORY = runtime.process_state(Directory(), Directory)
 
 
 def _forget_in_child() -> None:
-    DIRECTORY.forget_in_child(fork.forked_from() or 0)
+    DIRECTORY.forget_in_child(forkserver.forked_from() or 0)
 
 
-fork.after_fork_in_child("the registrar directory", _forget_in_child)
+forkserver.after_fork_in_child("the registrar directory", _forget_in_child)

@@ -30,7 +30,7 @@ from collections.abc import Callable, Collection
 from types import TracebackType
 
 from rr_actors._core import runtime
-from rr_actors._platform import PLATFORM, fork
+from rr_actors._platform import PLATFORM, forkserver
 
 __all__ = [
     "EXIT_TIMEOUT",
@@ -211,4 +211,4 @@ def _forget_all() -> None:
     _LISTED.entries.clear()
 
 
-fork.after_fork_in_child("the exit hook's list", _forget_all)
+forkserver.after_fork_in_child("the exit hook's list", _forget_all)

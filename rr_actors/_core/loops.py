@@ -32,7 +32,7 @@ from typing import Any, TypeVar
 from rr_actors._core import runtime, traces
 from rr_actors._core.actor import OneShotFuture, mark_awaiting
 from rr_actors._core.replies import Steps, left, let_go, when_waiting
-from rr_actors._platform import fork
+from rr_actors._platform import forkserver
 
 __all__ = [
     "OnLoop",
@@ -166,7 +166,7 @@ class _ProcessLoop:
 
 
 _PROCESS_LOOP = runtime.process_state(_ProcessLoop(), _ProcessLoop)
-fork.after_fork_in_child("the process's event loop", _PROCESS_LOOP.forget)
+forkserver.after_fork_in_child("the process's event loop", _PROCESS_LOOP.forget)
 
 
 def on_process_loop() -> bool:

@@ -33,7 +33,7 @@ from collections.abc import Iterable
 from typing import Protocol
 
 from rr_actors._core import runtime
-from rr_actors._platform import fork
+from rr_actors._platform import forkserver
 
 __all__ = ["MEMBERSHIP", "Hearer", "Joined", "Membership"]
 
@@ -155,4 +155,4 @@ def _tell(hearers: Iterable[Hearer], what: str, name: str) -> None:
 MEMBERSHIP = runtime.process_state(Membership(), Membership)
 
 
-fork.after_fork_in_child("the membership", MEMBERSHIP.forget_in_child)
+forkserver.after_fork_in_child("the membership", MEMBERSHIP.forget_in_child)

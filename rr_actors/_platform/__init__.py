@@ -1,12 +1,10 @@
 """OS- and CPython-specific tricks, chosen once, each with a plain fallback.
 
-Everything rr_actors does that only works on Linux, with glibc, or by reaching into
-CPython's private machinery lives in `linux`; `base.PortablePlatform` does the same jobs
-plainly (or not at all, where the job is only an optimisation). `PLATFORM` is chosen once,
-at import: `linux` on Linux, the portable one elsewhere or when the environment variable
-`RR_ACTORS_PLATFORM=portable` is set (the test suite runs under both).
-
-`fork` is where every layer says what a child forked from this process must let go of.
+The Linux, glibc and CPython-private tricks live in `linux`; `base.PortablePlatform` does
+the same jobs plainly (or not at all, for an optimisation). `PLATFORM` is chosen once, at
+import: `linux` on Linux, the portable one elsewhere or with `RR_ACTORS_PLATFORM=portable`
+(the test suite runs under both). `forkserver` is where every layer says what a forked
+child lets go of.
 """
 
 from __future__ import annotations
@@ -14,7 +12,7 @@ from __future__ import annotations
 import os
 import sys
 
-from rr_actors._platform import fork, linux
+from rr_actors._platform import forkserver, linux
 from rr_actors._platform.base import (
     GATE_SOURCES,
     CpuSample,
@@ -48,4 +46,4 @@ def _choose() -> Platform:
 PLATFORM: Platform = _choose()
 """The platform's tricks, chosen once for this process (its children choose again)."""
 
-fork.after_fork_in_child("the forkserver", PLATFORM.forget_in_child)
+forkserver.after_fork_in_child("the forkserver", PLATFORM.forget_in_child)

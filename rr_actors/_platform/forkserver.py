@@ -1,24 +1,16 @@
-"""A forkserver of rr_actors' own, so that its preload holds whoever started CPython's.
+"""How processes are forked from this one: what a forked child lets go of, and a forkserver
+of rr_actors' own.
 
-What it buys: manager processes are forked from a server that has imported rr_actors
-even when the program used `multiprocessing`'s forkserver first (a `forkserver` pool or
-Process made before its `Supervisor`). CPython keeps one forkserver per process
-(`multiprocessing.forkserver._forkserver`) and reads its preload list once, when it
-starts: once the program had started it, rr_actors' `set_forkserver_preload` changed
-nothing, and every manager (re)start imported rr_actors after its fork (a restart took
-86-1,067 ms to serve again instead of 49-169 ms). Here a second instance of CPython's
-`ForkServer` class serves manager processes only; the program's forkserver, if any, is
-left alone (and never gets rr_actors' preload).
+`os.fork()` copies a process but only the thread that forked. Each layer that holds
+process-wide state says at its import how a child lets go of it (`after_fork_in_child`);
+one `os.register_at_fork` hook runs the resets in import order, lowest layer first. A reset
+that finds what a child cannot use (a Zenoh session) calls `refuse`: `check_usable` then
+raises a `ConfigError` naming the `spawn` and `forkserver` methods, never a silent timeout
+(docs/explanation/failure-semantics.md, "A forked child starts afresh").
 
-A fork through this server is bounded (`start_within`): CPython's `_launch` writes the
-pickled process to the new child's pipe and then reads the child's pid from the server,
-both with no bound, so a stopped server (SIGSTOP: a debugger, a hang) held the thread
-that started a manager for ever. Within a bound, the pid is awaited first (one `poll`),
-then the pickled process is written (a payload over the pipe's 64 KiB blocks until the
-child reads it: that write is bounded too). When the bound runs out, `TimeoutError` is
-raised and the pipes are closed: a child forked but not given all of its process is
-killed; one the server forks later (once it runs again) is given `_Unwanted` instead
-of its process and exits 0, so no late manager runs unseen.
+Manager processes are forked by a second instance of CPython's `ForkServer`, so that its
+preload of rr_actors holds even when the program started CPython's forkserver first; and
+a fork through it is bounded (`start_within`: CPython's `_launch` waits without a bound):
 
 ```
  caller (ManagerProcess.start, Spare.start)      rr_actors' server           child
@@ -30,14 +22,10 @@ of its process and exits 0, so no late manager runs unseen.
               the pid, the write unfinished: SIGKILL ───────────────────►  killed
 ```
 
-CPython-internal names, used in this file only: the `ForkServer` class, the forkserver
-`Popen` (whose `_launch` is copied below with two changes: it asks this instance, not
-the module's, and within a bound it reads the pid before it writes, each with one
-`poll`), `read_signed`, `ForkServerProcess` and `ForkServerContext`, and the instance's
-`_forkserver_pid`, `_forkserver_alive_fd`, `_forkserver_address`, `_inherited_fds` and
-`_lock`. They are the same in CPython 3.11, 3.12 and 3.13 (`SUPPORTED`); elsewhere
-`context` returns `None` and the caller uses CPython's forkserver as before (plain:
-`start_within` is then `process.start()`, with no bound).
+CPython-internal names (`ForkServer`, the forkserver `Popen`, whose `_launch` is copied
+below, `read_signed`, `ForkServerProcess`, `ForkServerContext` and the server's private
+fields) are used in this file only, checked on 3.11 to 3.13 (`SUPPORTED`); elsewhere
+`context` returns `None` and the caller uses CPython's forkserver, unbounded.
 """
 
 from __future__ import annotations
@@ -50,11 +38,98 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from multiprocessing.process import BaseProcess
 from typing import Any
 
-__all__ = ["SUPPORTED", "context", "forget_in_child", "server_pid", "start_within"]
+from rr_actors.errors import ConfigError
+
+__all__ = [
+    "SUPPORTED",
+    "after_fork_in_child",
+    "check_usable",
+    "context",
+    "forget_in_child",
+    "forked_from",
+    "refuse",
+    "server_pid",
+    "start_within",
+]
+
+_resets: list[tuple[str, Callable[[], None]]] = []
+_refusals: list[str] = []
+_parent: int | None = None  # the pid of the process this one was forked from
+_forking: int | None = None  # this process's pid, noted just before it forks
+
+
+def after_fork_in_child(what: str, reset: Callable[[], None]) -> None:
+    """Have `reset()` run in every child forked from this process, right after the fork.
+
+    Call it once per piece of state, at its module's import. A reset must not wait for a lock
+    a parent's thread may have held (replace it), shut a socket down (close it), nor stop or
+    join anything; what it raises refuses the child.
+
+    Args:
+        what: what it resets, for the refusal's message (`"the AF_UNIX carrier"`).
+        reset: runs in the child on its only thread, before the child's own code.
+    """
+    _resets.append((what, reset))
+
+
+def refuse(reason: str) -> None:
+    """Say that this forked child cannot run rr_actors: `check_usable` raises from now on.
+
+    Args:
+        reason: the end of "the process it was forked from ..." (`"had opened a Zenoh
+            session"`).
+    """
+    _refusals.append(reason)
+
+
+def forked_from() -> int | None:
+    """The pid of the process this one was forked from (after it ran rr_actors), else `None`."""
+    return _parent
+
+
+def check_usable(what: str) -> None:
+    """Raise `ConfigError` if this process was forked from one it cannot inherit from.
+
+    Args:
+        what: what is being started (`"registrar 'erm'"`), for the message.
+
+    Raises:
+        ConfigError: the parent had state the child cannot use (a Zenoh session); the message
+            names the `spawn` and `forkserver` methods.
+    """
+    if _refusals:
+        raise ConfigError(
+            f"cannot start {what}: this process was forked from process {_parent}, which "
+            f"{'; and '.join(_refusals)}; a forked child cannot use that. Start the process "
+            f"with the 'spawn' or 'forkserver' method instead "
+            f"(multiprocessing.get_context('spawn') or get_context('forkserver'))"
+        )
+
+
+def _before() -> None:
+    global _forking  # (one process-wide hook)
+    _forking = os.getpid()
+
+
+def _after_in_child() -> None:
+    global _parent  # (one process-wide hook)
+    _parent = _forking if _forking is not None else os.getppid()
+    for what, reset in _resets:
+        try:
+            reset()
+        except Exception as exc:  # noqa: BLE001 - the child is refused, not half reset
+            refuse(f"left {what} in a state the child could not reset ({exc!r})")
+
+
+os.register_at_fork(before=_before, after_in_child=_after_in_child)
+
+
+# -- rr_actors' own forkserver --------------------------------------------------------------
+
 
 SUPPORTED = sys.implementation.name == "cpython" and (3, 11) <= sys.version_info[:2] <= (3, 13)
 """Whether this Python's forkserver internals are the ones this file was checked against."""
@@ -172,9 +247,8 @@ def start_within(process: BaseProcess, seconds: float) -> None:
     """`process.start()`, the fork through this file's server bounded by `seconds`.
 
     Raises:
-        TimeoutError: the server did not fork it, or the child did not take its
-            pickled process, within `seconds` (nothing is left running). Only with
-            this file's context; with another, `process.start()` has no bound.
+        TimeoutError: the server did not fork it, or the child did not take its process, in
+            time (nothing is left running). With another context there is no bound.
     """
     _bound.deadline = time.monotonic() + seconds
     try:
@@ -184,14 +258,8 @@ def start_within(process: BaseProcess, seconds: float) -> None:
 
 
 def context(preload: Sequence[str]) -> Any:
-    """The forkserver context of rr_actors' own, its server preloading `preload`.
-
-    The preload is read when the server starts (at its first process, or at
-    `server_pid`); a later change applies only after it was restarted.
-
-    Returns:
-        The context (a `multiprocessing` forkserver context), or `None` on a Python
-        whose internals were not checked (`SUPPORTED`) or without a forkserver.
+    """The forkserver context of rr_actors' own, its server preloading `preload` (read when the
+    server starts), or `None` where not `SUPPORTED`.
     """
     global _context  # one per process, like CPython's
     if not SUPPORTED:
@@ -215,11 +283,8 @@ def server_pid(ctx: Any) -> int | None:
 
 
 def forget_in_child() -> None:
-    """In a child forked (plain `os.fork`) from this process: the server is the parent's.
-
-    The child cannot use it (`ensure_running` waits for it with `waitpid`, and it is not
-    the child's child): it is made as new (its pid, address, lock, and its copy of the
-    "alive" pipe, closed); the child's next manager process starts one of its own.
+    """In a child forked from this process: the server is the parent's (not the child's child),
+    so it is made as new; the child's next manager process starts one of its own.
     """
     global _LOCK  # a thread of the parent may have held it at the fork
     _LOCK = threading.Lock()

@@ -1,10 +1,8 @@
 """Linux (and glibc, and CPython-internal) tricks; `base.PortablePlatform` is the plain fallback.
 
-Each trick says what it buys. The CPython-private names used here (the forkserver's
-`_forkserver_pid`, `_forkserver_alive_fd`, `_forkserver_address`, `_inherited_fds` and
-`_lock`, `multiprocessing.spawn.get_preparation_data`) are used in this file only (and
-in `forkserver`, rr_actors' own forkserver), and each use degrades to the plain
-behaviour when the name is missing (another CPython).
+Each trick says what it buys. CPython's private names (the forkserver singleton's fields,
+`multiprocessing.spawn.get_preparation_data`) are used in this file and `forkserver` only,
+each use degrading to the plain behaviour where the name is missing.
 """
 
 from __future__ import annotations
@@ -58,17 +56,11 @@ def _malloc_trim() -> Callable[[int], object] | None:
 
 
 def _install_lean_preparation(prefix: str) -> None:
-    """Keep manager processes from re-running the parent's `__main__` module (idempotent).
+    """Keep manager processes named `prefix*` from re-running the parent's `__main__` (idempotent).
 
-    What it buys: 10-40 ms off every manager (re)start for a main script that imports
-    `argparse` and `statistics`, say. A forkserver or spawn child first "prepares": it
-    re-imports the parent's main script as `__mp_main__` so that objects pickled by
-    reference to `__main__` resolve. A manager never needs that (its target lives in
-    rr_actors, its setup is cloudpickled by value, its config is plain data). (The
-    forkserver's own `__main__` preload, meant to make this cheap, never runs on Python
-    <= 3.13: it looks for a `main_path` key that `get_preparation_data` does not
-    produce.) This wraps CPython's `multiprocessing.spawn.get_preparation_data` to drop
-    the main-module entries for processes whose name starts with `prefix` only.
+    What it buys: a manager's (re)start skips re-importing the parent's main script as
+    `__mp_main__`, which it never needs (its target is in rr_actors, its setup cloudpickled by
+    value). Wraps CPython's `get_preparation_data` to drop the main-module entries.
     """
     from multiprocessing import spawn  # noqa: PLC0415
 
@@ -89,15 +81,10 @@ def _install_lean_preparation(prefix: str) -> None:
 
 
 def _let_go_of_the_forkserver() -> None:
-    """Close this process's copy of the pipe that keeps the forkserver alive.
+    """Close this manager's copy of the pipe that keeps CPython's forkserver alive.
 
-    What it buys: the parent-death signal reaches a stuck manager at all. The forkserver
-    exits when the process that started it dies: it sees EOF on a pipe whose write end
-    only that process holds. But CPython hands a copy of that write end to every child
-    the forkserver forks (`forkserver._forkserver._forkserver_alive_fd`), so while one
-    manager lived the forkserver outlived the supervisor's process, and the parent-death
-    signal never came. A forkserver child never uses its copy: one that starts processes
-    with the forkserver context starts a forkserver of its own.
+    What it buys: the forkserver exits when the supervisor's process dies, so the parent-death
+    signal reaches a stuck manager (CPython hands every forked child a copy of the write end).
     """
     from multiprocessing import forkserver  # noqa: PLC0415
 
@@ -111,15 +98,9 @@ def _let_go_of_the_forkserver() -> None:
 
 
 def _forget_the_forkserver() -> None:
-    """In a child forked (plain `os.fork`) from a process that started a forkserver.
-
-    What it buys: the child starts manager processes with a forkserver of its own, as
-    the parent does. CPython keeps the parent's forkserver in a module singleton, which
-    the child cannot use: `ensure_running` waits for it with `waitpid`, and it is not the
-    child's child (`ChildProcessError`). The singleton is made as new (its pid, address,
-    lock and its copy of the "alive" pipe, closed); the next `ensure_running` starts one.
-    Where the attributes are missing (another CPython) nothing is touched: the portable
-    platform's spawn fallback is then what the child should use.
+    """In a child forked from a process that started CPython's forkserver: make its singleton new
+    (pid, address, lock, its copy of the "alive" pipe closed), so the child starts its own
+    (the parent's is not the child's child). Nothing where the fields are missing.
     """
     from multiprocessing import forkserver  # noqa: PLC0415
 
@@ -142,14 +123,10 @@ def _forget_the_forkserver() -> None:
 class PidfdExitWatch:
     """A `pidfd` and `/proc/<pid>` of a manager process: its exit, before its parent's word.
 
-    What it buys: 0.2-0.4 ms off crash detection (on the project's VM), and a crash seen
-    even while the forkserver is stopped or busy. With the forkserver context the
-    supervisor's process is not the manager's parent: the process sentinel becomes
-    readable once the forkserver has reaped the child and written its status. A `pidfd`
-    is readable as soon as the process has exited, and until it is reaped the kernel
-    still shows its exit status in `/proc/<pid>/stat` (field 52), read through a
-    directory descriptor opened while the process ran, so that a recycled pid cannot be
-    read instead. Linux 5.3 and later.
+    What it buys: a crash seen as soon as the process exited, even while the forkserver (its
+    parent, which reaps it) is stopped or busy. Until it is reaped, `/proc/<pid>/stat` (field
+    52) holds its exit status, read through a descriptor opened while it ran (a recycled pid
+    cannot be read instead). Linux 5.3 and later.
     """
 
     __slots__ = ("pidfd", "proc")
@@ -173,15 +150,11 @@ class PidfdExitWatch:
         return cls(pidfd, proc)
 
     def fileno(self) -> int:
-        """The pidfd: readable once the process has exited."""
         return self.pidfd
 
     def exitcode(self) -> int | None:
-        """The exit code as `Process.exitcode` gives it (`-N`: killed by signal N).
-
-        `None` while the process runs, and once its parent has reaped it (then the
-        sentinel has it).
-        """
+        """As `Process.exitcode`; `None` while it runs, and once reaped (the sentinel has it
+        then)."""
         try:
             stat_fd = os.open("stat", os.O_RDONLY, dir_fd=self.proc)
             try:
@@ -196,7 +169,6 @@ class PidfdExitWatch:
         return os.waitstatus_to_exitcode(int(fields[49]))
 
     def close(self) -> None:
-        """Close the pidfd and the `/proc/<pid>` descriptor."""
         for fd in (self.pidfd, self.proc):
             with contextlib.suppress(OSError):
                 os.close(fd)
@@ -215,19 +187,12 @@ class _Thread(NamedTuple):
 class ProcCpuWatch:
     """A process's run-queue delay and stopped state, read from `/proc/<pid>`.
 
-    What it buys: the heartbeat tells a manager starved of CPU (runnable, waiting its
-    turn on a loaded machine) from a hung one (stopped, blocked, or running without
-    answering). The kernel counts, per thread, its time on a CPU, its run-queue delay
-    and how many times it got a CPU (`/proc/<pid>/task/<tid>/schedstat`, in every
-    kernel built with `CONFIG_SCHED_INFO`, which that file needs); the process's state
-    (`/proc/<pid>/stat`, field 3) says `T` or `t` when it is stopped or traced. The
-    delay of a wait is added only when the wait ends, so a wait under way (a thread that
-    never gets a CPU) is estimated: a thread runnable (`R`) at two samples that did not
-    get a CPU in between, or ran for only part of that time, waited the rest. psutil does
-    not read the run-queue delay (its CPU times say what a process got, not what it
-    waited for), so this is read here, and only while a heartbeat answer is late: a
-    sample costs two reads per thread. Read through a directory descriptor opened while
-    the process ran, so that a recycled pid cannot be read instead.
+    What it buys: the heartbeat tells a manager starved of CPU from a hung one. Per thread
+    the kernel counts its time on a CPU, its run-queue delay and its arrivals
+    (`task/<tid>/schedstat`, `CONFIG_SCHED_INFO`); `stat`'s state says `T`/`t` when stopped.
+    A wait's delay is added only when it ends, so one under way is estimated: a thread
+    runnable at two samples without a CPU in between waited. Read only while an answer is
+    late, through a descriptor opened while the process ran.
     """
 
     __slots__ = ("at", "gone", "proc", "threads")
@@ -240,8 +205,8 @@ class ProcCpuWatch:
 
     @classmethod
     def open(cls, pid: int) -> ProcCpuWatch | None:
-        """Watch process `pid` (call it while the process runs); `None` if the kernel
-        does not say (no `/proc`, or no schedstat files)."""
+        """Watch process `pid` (call it while it runs); `None` without `/proc` or schedstat
+        files."""
         try:
             proc = os.open(f"/proc/{pid}", os.O_RDONLY | os.O_DIRECTORY)
         except OSError:
@@ -281,7 +246,6 @@ class ProcCpuWatch:
         return CpuSample(stopped=_state(stat) in ("T", "t"), waited=waited)
 
     def _thread(self, tid: str, before: _Thread | None, since: float) -> _Thread | None:
-        """Thread `tid`'s figures now (`None`: it ended meanwhile)."""
         try:
             ran, delay, arrivals = map(int, _read_at(self.proc, f"task/{tid}/schedstat").split())
             runnable = _state(_read_at(self.proc, f"task/{tid}/stat")) == "R"
@@ -298,7 +262,6 @@ class ProcCpuWatch:
         return _Thread(ran, delay, arrivals, runnable, pending)
 
     def close(self) -> None:
-        """Close the `/proc/<pid>` descriptor."""
         with contextlib.suppress(OSError):
             os.close(self.proc)
 
@@ -323,11 +286,7 @@ class LinuxPlatform:
     name = "linux"
 
     def release_free_memory(self) -> None:
-        """Return the C heap's free pages to the system (glibc's `malloc_trim(0)`).
-
-        glibc keeps freed memory mapped for reuse, and returns only the heap's top; this
-        releases every free page (about 0.5 ms after a 100k restore, 4-6 MB).
-        """
+        """glibc's `malloc_trim(0)`: every free page back to the system, not only the heap's top."""
         trim = _malloc_trim()
         if trim is not None:
             trim(0)
@@ -335,15 +294,11 @@ class LinuxPlatform:
     def manager_context(
         self, *, preload: Sequence[str] = (), lean_prefix: str | None = None
     ) -> multiprocessing.context.BaseContext:
-        """A forkserver context with `preload` imported once in the forkserver.
+        """A forkserver context with `preload` imported once in the server (rr_actors' own,
+        `forkserver`; else CPython's; spawn where there is none).
 
-        What it buys: every manager process is forked from a server that has already
-        imported rr_actors (and `preload`), so a (re)start does not pay those imports;
-        processes named `lean_prefix*` also skip re-importing the parent's main module
-        (see `_install_lean_preparation`). The server is rr_actors' own
-        (`rr_actors._platform.forkserver`), so the preload holds even when the program
-        started CPython's forkserver first; CPython's on another Python; spawn where
-        there is no forkserver.
+        What it buys: a manager's (re)start does not pay those imports; processes named
+        `lean_prefix*` also skip the parent's main module (`_install_lean_preparation`).
         """
         if lean_prefix is not None:
             _install_lean_preparation(lean_prefix)
@@ -357,14 +312,9 @@ class LinuxPlatform:
         return ctx
 
     def runtime_parent(self) -> str | None:
-        """A memory-backed directory for systems' runtime directories, unless `TMPDIR` is set.
+        """`$XDG_RUNTIME_DIR`, else `/dev/shm`, unless `TMPDIR` is set (`None`).
 
-        What it buys: each served registrar creates three files in its system's runtime
-        directory (its name's lock, its published limits); on a disk file system (`/tmp`
-        on ext4 here) a create took 0.5-1.3 ms under load, on a tmpfs 6 us: 2-4 ms off
-        each manager's start. `$XDG_RUNTIME_DIR` (the user's tmpfs, for sockets), else
-        `/dev/shm`; `None` (the temporary directory) when `TMPDIR` chooses one, or
-        neither is a writable directory.
+        What it buys: the files each served registrar creates are made on a tmpfs, not a disk.
         """
         if os.environ.get("TMPDIR"):
             return None
@@ -375,13 +325,10 @@ class LinuxPlatform:
         return None
 
     def forker_pid(self, ctx: multiprocessing.context.BaseContext) -> int | None:
-        """The forkserver's pid, read from CPython's private attribute (3.8 to 3.13).
+        """The forkserver's pid (started if it does not run; this process's with spawn; `None`
+        where the private field is missing).
 
-        Starts the forkserver if it does not run.
-
-        What it buys: the child can tell that the forkserver died between the fork and
-        its `prctl` (see `die_with_parent`). `None` (no check) where the attribute is
-        missing; this process's pid with spawn.
+        What it buys: the child tells that the forkserver died before its `prctl`.
         """
         if ctx.get_start_method() != "forkserver":
             return os.getpid()
@@ -397,18 +344,13 @@ class LinuxPlatform:
     def die_with_parent(self, expected_parent: int | None) -> None:
         """Have the kernel SIGKILL this process when the process that forked it dies.
 
-        What it buys: no orphan even of a manager too stuck to read its control pipe
-        (stopped, or deadlocked). That process is the forkserver with the forkserver
-        context (the supervisor's process with spawn); the forkserver exits when the
-        supervisor's process dies once no manager holds its "alive" pipe (see
-        `_let_go_of_the_forkserver`), so the signal also ends a manager whose supervisor
-        died. `prctl(PR_SET_PDEATHSIG)` only covers deaths after it ran: if the forking
-        process died between the fork and this call (the child was then re-parented, so
-        `getppid()` changed), the process exits here at once with code 70.
+        What it buys: no orphan even of a manager too stuck to read its control pipe. The forker
+        (the forkserver, which exits with the supervisor's process once no manager holds its
+        "alive" pipe) may have died before the `prctl`: then `getppid()` changed and it exits at
+        once with `PARENT_GONE_EXIT`.
 
         Args:
-            expected_parent: the pid of the process that forked this one (`None`:
-                unknown, no check).
+            expected_parent: the pid of the process that forked this one (`None`: no check).
         """
         _let_go_of_the_forkserver()
         libc = _libc()
@@ -421,20 +363,16 @@ class LinuxPlatform:
             os._exit(PARENT_GONE_EXIT)  # it died before prctl: the signal will never come
 
     def watch_exit(self, pid: int) -> PidfdExitWatch | None:
-        """A pidfd watch of process `pid` (see `PidfdExitWatch`); `None` before Linux 5.3."""
         return PidfdExitWatch.open(pid)
 
     def watch_cpu(self, pid: int) -> ProcCpuWatch | None:
-        """A `/proc` watch of process `pid`'s run-queue delay (see `ProcCpuWatch`)."""
         return ProcCpuWatch.open(pid)
 
     def set_process_name(self, title: str) -> None:
-        """Set the kernel's name of this process (`prctl(PR_SET_NAME)`, 15 bytes kept).
+        """`prctl(PR_SET_NAME)`, 15 bytes kept, ending at a whole UTF-8 character.
 
-        The bytes kept end at a whole UTF-8 character.
-
-        What it buys: manager processes told apart in `ps -o comm`, `top`, `pstree`
-        without the `setproctitle` package (which also rewrites the command line).
+        What it buys: manager processes told apart in `ps -o comm` and `top` without
+        `setproctitle`.
         """
         libc = _libc()
         with contextlib.suppress(AttributeError):
@@ -442,20 +380,16 @@ class LinuxPlatform:
             libc.prctl(_PR_SET_NAME, ctypes.c_char_p(kept), 0, 0, 0)
 
     def forget_in_child(self) -> None:
-        """In a forked child: a forkserver of its own at the next manager (see
-        `_forget_the_forkserver`, `own_forkserver.forget_in_child`); the lock of the lean
-        preparation made new."""
+        """In a forked child: a forkserver of its own at the next manager; the lean lock made
+        new."""
         global _LEAN_LOCK  # a thread of the parent may have held it at the fork
         _LEAN_LOCK = threading.Lock()
         _forget_the_forkserver()
         own_forkserver.forget_in_child()
 
     def at_main_thread_end(self, fn: Callable[[], None]) -> None:
-        """CPython's private `threading._register_atexit` (as `concurrent.futures` uses it).
-
-        What it buys: `fn` runs as soon as the main thread ends, before the interpreter
-        waits for non-daemon threads and before any `atexit` handler; `atexit` (the
-        portable way) where the hook is missing.
+        """CPython's private `threading._register_atexit` (as `concurrent.futures` uses it), else
+        `atexit`. What it buys: `fn` runs before the interpreter waits for non-daemon threads.
         """
         hook = getattr(threading, "_register_atexit", None)
         if hook is None:
@@ -468,24 +402,20 @@ class LinuxPlatform:
         return linux_names.watch_names()
 
     def listener_gate(self, host: str, port: int) -> linux_gate.LinuxListenerGate | None:
-        """A gate on the listening socket found in `/proc/self/fd` (`linux_gate`)."""
         sock = linux_gate.find_listener(host, port)
         return None if sock is None else linux_gate.LinuxListenerGate(sock)
 
     def monotonic_clock(self) -> str | None:
-        """This boot's id and this process's time namespace (`_monotonic_clock`)."""
         return _monotonic_clock()
 
 
 @functools.cache
 def _monotonic_clock() -> str | None:
-    """The name of `CLOCK_MONOTONIC` here: the kernel's boot id, and the time namespace
-    (Linux 5.6) that may offset the clock for the processes in it; `None` if unreadable.
+    """The name of `CLOCK_MONOTONIC` here: the boot id and the time namespace; `None` if
+    unreadable.
 
-    What it buys: `CLOCK_MONOTONIC` (`time.monotonic()`) is one clock for every process
-    of one boot of a kernel (in every container too) that shares a time namespace, so a
-    deadline carried between two of them is exact, its time in a pipe counted. Another
-    host, or the same one after a reboot, has another boot id.
+    What it buys: processes of one boot and namespace share the clock, so a deadline crosses
+    between them exact.
     """
     try:
         with open("/proc/sys/kernel/random/boot_id", encoding="ascii") as boot:

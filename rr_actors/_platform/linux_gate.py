@@ -1,29 +1,16 @@
 """A gate on a TCP listening socket of this process (Linux): what `zenoh/ops/gate.py` works with.
 
-Zenoh's listening socket lives in our process, so we may act on it through a duplicate of
-its descriptor, without touching Zenoh's own code:
+Zenoh's listening socket lives in our process, so we act on a duplicate of its descriptor
+(found by matching its inode from `/proc/net/tcp` with the links of `/proc/self/fd`; it
+shares Zenoh's file description, and nothing here accepts, reads or closes it for Zenoh):
 
-- `shorten_backlog(n)`: `listen(fd, n)` again on a listening socket changes only the
-  length of its accept queue (Linux `inet_listen`), so connections queued by the kernel
-  before the application accepts them are at most `n + 1`;
-- `drop_from(addresses)`: a classic BPF program (`SO_ATTACH_FILTER`) that drops every
-  packet from those source addresses; `admit_only(addresses)`: one that drops every
-  packet from any other. The kernel runs a socket's filter for a listening socket too
-  (`tcp_filter` in `tcp_v4_rcv`, before the SYN is answered or a cookie is checked), so
-  a dropped source never completes a connection: it costs the listener nothing. A
-  connection accepted later takes a copy of the filter attached then (`sk_clone_lock`):
-  links already up keep theirs (a few instructions per packet);
-- `peers()`: the remote addresses of this port's connections past the TCP handshake
-  (queued for accept, in a TLS handshake, linked, or closing), from `/proc/net/tcp`
-  and `tcp6` (those of this process's network namespace). Not the half-open ones
-  (`SYN_RECV`): anyone can send a SYN with any source address, and the kernel holds
-  what it answered for about a minute while nobody is there to reset it; a completed
-  handshake needs the source to have received our SYN-ACK.
-
-The descriptor is found by matching the socket's inode from `/proc/net/tcp` against the
-links of `/proc/self/fd`. The duplicate shares Zenoh's open file description (and its
-O_NONBLOCK): nothing here changes its blocking mode, accepts, reads or closes it for
-Zenoh (closing the duplicate closes only the duplicate).
+- `shorten_backlog(n)`: `listen(fd, n)` again changes only its accept queue's length;
+- `drop_from(addresses)` / `admit_only(addresses)`: a classic BPF filter
+  (`SO_ATTACH_FILTER`) that drops those sources' packets, or all others'. The kernel runs
+  it before a SYN is answered, so a dropped source costs the listener nothing; a
+  connection accepted later keeps a copy of the filter attached then;
+- `peers()`: the remote addresses of this port's connections past the TCP handshake, from
+  `/proc/net/tcp{,6}`; never `SYN_RECV` ones, whose source address anyone can forge.
 """
 
 from __future__ import annotations
@@ -62,8 +49,7 @@ def _insn(code: int, k: int, jt: int = 0, jf: int = 0) -> bytes:
 
 
 def _program(sources: Collection[str], *, listed: int, other: int) -> bytes:
-    """A socket filter whose verdict is `listed` for the packets whose IP source is one of
-    `sources`, `other` for the rest (`_ACCEPT` or `_DROP`)."""
+    """A socket filter: verdict `listed` for packets from `sources`, `other` for the rest."""
     v4 = [ipaddress.ip_address(s) for s in sources if ipaddress.ip_address(s).version == 4]
     v6 = [ipaddress.ip_address(s) for s in sources if ipaddress.ip_address(s).version == 6]
     tail4, tail6 = [], []
@@ -98,8 +84,7 @@ def _proc_address(hexa: str) -> str:
 
 
 def _sockets() -> list[tuple[str, int, str, str, int]]:
-    """(local address, local port, remote address, state, inode) of each TCP socket of
-    this network namespace."""
+    """(local address, local port, remote address, state, inode) of each TCP socket here."""
     found = []
     for table in ("/proc/net/tcp", "/proc/net/tcp6"):
         with contextlib.suppress(OSError), Path(table).open() as lines:
@@ -117,9 +102,7 @@ def _sockets() -> list[tuple[str, int, str, str, int]]:
 def handshaken(
     sockets: Iterable[tuple[str, int, str, str, int]], address: str, port: int
 ) -> collections.Counter[str]:
-    """Of `sockets` (as `_sockets()` gives them), how many connections to `address`:`port`
-    (or to `port` at any address, for a wildcard `address`) past the TCP handshake each
-    remote address holds."""
+    """Of `sockets`, the connections to `address`:`port` past the handshake, per remote address."""
     anywhere = ipaddress.ip_address(address).is_unspecified  # (0.0.0.0, ::)
     counts: collections.Counter[str] = collections.Counter()
     for local, local_port, remote, state, _ in sockets:
@@ -153,12 +136,8 @@ def find_listener(host: str, port: int) -> socket.socket | None:
 
 
 class LinuxListenerGate:
-    """A gate on one listening socket of this process (see the module docstring).
-
-    Args:
-        sock: a duplicate of the listening socket's descriptor (`find_listener`); closed
-            by `close`.
-    """
+    """A gate on one listening socket of this process, through `sock`, a duplicate
+    (`find_listener`) that `close` closes."""
 
     def __init__(self, sock: socket.socket) -> None:
         self._sock = sock
@@ -167,12 +146,11 @@ class LinuxListenerGate:
         self._filter: ctypes.Array[ctypes.c_char] | None = None
 
     def shorten_backlog(self, backlog: int) -> None:
-        """Let at most `backlog` (+1) connections wait in the kernel for an accept."""
         self._sock.listen(backlog)
 
     def drop_from(self, sources: Collection[str]) -> None:
-        """Drop every packet from `sources` (IP addresses; at most `MAX_SOURCES`) at this
-        socket from now on; none: drop nothing. Replaces the filter set before."""
+        """Drop every packet from `sources` (at most `MAX_SOURCES`; none: nothing), replacing the
+        filter."""
         if not sources:
             with contextlib.suppress(OSError):
                 self._sock.setsockopt(socket.SOL_SOCKET, _SO_DETACH_FILTER, 0)
@@ -180,9 +158,8 @@ class LinuxListenerGate:
         self._attach(_program(self._checked(sources), listed=_DROP, other=_ACCEPT))
 
     def admit_only(self, sources: Collection[str]) -> None:
-        """Drop every packet from any address but `sources` (IP addresses; at most
-        `MAX_SOURCES`; none: drop every packet) at this socket from now on. Replaces the
-        filter set before."""
+        """Drop every packet from any address but `sources` (at most `MAX_SOURCES`), replacing
+        the filter."""
         self._attach(_program(self._checked(sources), listed=_ACCEPT, other=_DROP))
 
     @staticmethod
@@ -198,11 +175,9 @@ class LinuxListenerGate:
         self._filter = buffer  # (the kernel copied it; kept only for a look in a debugger)
 
     def peers(self) -> collections.Counter[str]:
-        """How many connections to this socket's port past the TCP handshake each remote
-        address holds (queued for accept, in a TLS handshake, linked, or closing; not
-        half-open, not `TIME_WAIT`)."""
+        """Connections past the TCP handshake to this socket's port, per remote address."""
         return handshaken(_sockets(), self.address, self.port)
 
     def close(self) -> None:
-        """Close the duplicate (Zenoh's socket stays open; its filter stays attached)."""
+        """Close the duplicate (Zenoh's socket stays open, its filter attached)."""
         self._sock.close()

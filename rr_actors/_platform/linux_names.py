@@ -1,10 +1,8 @@
 """Whether a file's names may have changed, told by the kernel (inotify), not by `stat`.
 
 What it buys: a catalog backup's store checks before each commit that its path and its
-`-wal` still name the files it opened (`SqliteStore._keep_in_place`). Two `stat` calls
-cost about 4 us a commit, most of a one-row commit's own cost (about 6 us); asking the
-kernel whether anything happened to those names costs one `poll` (about 0.3 us), and
-the `stat` calls run only after something did.
+`-wal` still name the files it opened; one `poll` replaces two `stat` calls, which run
+only after something happened.
 
 ```
  arm(paths) --inotify_add_watch--> each file: its link count, attributes, a move or
@@ -15,18 +13,11 @@ the `stat` calls run only after something did.
               the watches of its inode "changed" --> quiet: none marked since `arm`
 ```
 
-It tells no more than that something may have changed (a `chmod` of the file marks it
-too): the caller checks with `stat` then and arms again, before it checks, so that a
-change made after the check is told next time. It is exact for what it watches:
-the kernel queues an event before the system call that caused it returns, so a change
-made before `quiet()` is asked is told by it. Not watched: a file system mounted over
-a directory of the path (which `stat` would see).
-
-One inotify instance serves every watch of the process (the kernel allows a user 128
-instances, and a test suite starts hundreds of registrars): a watch is refcounted per
-inode, since two backups in one directory share the directory's watch. A child forked
-from the process makes its own instance; a watch made in the parent is never quiet in
-the child (the caller checks with `stat` every time).
+It says only that something may have changed (a `chmod` too): the caller `stat`s and arms
+again before it checks. It is exact for what it watches (the kernel queues an event before
+the causing call returns); a mount over a directory of the path is not watched. One
+inotify instance serves the process (a user has 128), its watches refcounted per inode; a
+forked child makes its own, and a parent's watch is never quiet there.
 """
 
 from __future__ import annotations
@@ -42,7 +33,7 @@ import threading
 from collections.abc import Sequence
 from typing import Any
 
-from rr_actors._platform import fork
+from rr_actors._platform import forkserver
 
 __all__ = ["InotifyNameWatch", "watch_names"]
 
@@ -75,8 +66,8 @@ def _libc() -> Any:
 
 
 class _Instance:
-    """The process's inotify descriptor and which watch each of its watch descriptors
-    serves. Used from any thread (`lock`)."""
+    """The process's inotify descriptor and the watches its watch descriptors serve (any thread,
+    `lock`)."""
 
     def __init__(self, libc: Any, fd: int) -> None:
         self.libc = libc
@@ -148,8 +139,7 @@ _instance_lock = threading.Lock()
 
 
 def _shared() -> _Instance | None:
-    """The process's inotify instance, made at first use (`None`: inotify is missing or
-    refused, the limit of instances reached say)."""
+    """The process's inotify instance, made at first use (`None`: inotify missing or refused)."""
     global _instance
     with _instance_lock:
         if _instance is None:
@@ -164,8 +154,8 @@ def _shared() -> _Instance | None:
 
 
 def _forget_in_child() -> None:
-    """In a forked child: the parent's instance is not the child's (its events are the
-    parent's to read); the child makes its own at its first watch."""
+    """In a forked child: the parent's instance is not the child's; it makes its own at first
+    use."""
     global _instance, _instance_lock
     _instance_lock = threading.Lock()  # (a thread of the parent may have held it)
     if _instance is not None:
@@ -175,14 +165,11 @@ def _forget_in_child() -> None:
         _instance = None
 
 
-fork.after_fork_in_child("the inotify instance", _forget_in_child)
+forkserver.after_fork_in_child("the inotify instance", _forget_in_child)
 
 
 class InotifyNameWatch:
-    """Tells whether the names it was armed with may have changed (see the module).
-
-    Used by one thread at a time (a store's), any number of them in one process.
-    """
+    """Tells whether the names it was armed with may have changed (one thread at a time)."""
 
     def __init__(self, instance: _Instance) -> None:
         self._instance = instance
@@ -193,12 +180,8 @@ class InotifyNameWatch:
         self.changed = True  # (not armed yet)
 
     def arm(self, paths: Sequence[str]) -> bool:
-        """Watch `paths` (each an absolute path of a file that exists) from now on,
-        instead of what was watched before; the watch is quiet until one may change.
-
-        Returns:
-            Whether every one could be watched; if not, the watch is never quiet (the
-            caller checks with `stat` every time) until an `arm` that succeeds.
+        """Watch `paths` (absolute paths of existing files) instead of what was watched before;
+        whether every one is watched (if not, it is never quiet until an `arm` that succeeds).
         """
         instance = self._instance
         with instance.lock:
@@ -216,19 +199,17 @@ class InotifyNameWatch:
             return watched
 
     def quiet(self) -> bool:
-        """Whether nothing happened to the names armed since `arm` (about 0.3 us)."""
+        """Whether nothing happened to the names armed since `arm`."""
         instance = self._instance
         if instance.forked:  # (its descriptor is closed here, its number maybe reused)
             return False
-        # Nothing queued and no thread handing events out (it sets `reading` before it
-        # reads them, clears it once it marked their watches): no event concerns this one.
+        # nothing queued and no thread handing events out (`reading`): none concerns this one
         if self._poll.poll(0) or instance.reading:
             with instance.lock:
                 instance.drain()
         return not self.changed
 
     def close(self) -> None:
-        """Stop watching (idempotent)."""
         instance = self._instance
         with instance.lock:
             self._forget()
@@ -242,9 +223,9 @@ class InotifyNameWatch:
 
 
 def _targets(paths: Sequence[str]) -> tuple[list[tuple[bytes, int]], bool]:
-    """What to watch for `paths`: each file, and each directory and symbolic link on the
-    way to it, as itself and as what it points to (`IN_DONT_FOLLOW` or not); and whether
-    every one exists (else nothing would tell that it comes back)."""
+    """What to watch for `paths`: each file, and each directory and symbolic link on the way;
+    and whether every one exists.
+    """
     targets: dict[tuple[bytes, int], None] = {}
     complete = True
     for path in paths:

@@ -7,35 +7,15 @@ and one owner of a file whatever its name (`claim_file`: a lock on the file itse
  A: release(fd) ──► the file removed (still locked), then closed: the lock goes
  A's process dies however it dies ──► the kernel drops the lock (the file stays: no lock)
  B: a file removed between its open and its lock ──► opened again (a new owner's file)
-```
-
-Used for a supervisor tree's state directory (`<state_dir>/.lock`) and for a registrar's
-backup (`<backup_path>.lock`): two owners of one would each take the other's records
-for their own. `flock` locks an open file description, so a second claim conflicts
-within one process too (a POSIX `lockf` lock would not: it is the process's, and
-closing any descriptor of the file drops it), and the lock goes with the process's
-end, a SIGKILL included. A lock file left by a dead process is not a lock. A child
-forked from the owner would share the lock (the same open file): it closes its copies
-of the held descriptors at once (`fork.after_fork_in_child`), so the lock stays the
-owner's alone and goes when the owner lets go, whatever the child does. Without `fcntl`
-(not POSIX) nothing is locked: the claim always succeeds (documented).
-
-```
  owner A: claim_file(db) ──► (dev, inode) not held here ──► open it read-only, flock(EX, NB)
  owner B: claim_file(a hard link to db) ──► the same inode: flock fails ──► HeldError(the
           pid /proc/locks names, or this pid if it is one of this process's own claims)
 ```
 
-A lock file is found by its name; two names of one file (a hard link) would each have
-their own. `claim_file` locks the file itself, so every name of it shares the lock. It
-writes nothing and removes nothing. It is taken only where `flock` and POSIX (`fcntl`)
-locks are apart (Linux): SQLite locks the same file with POSIX locks, which a `flock`
-must not block (on BSD kernels the two kinds conflict). Closing a descriptor drops every
-POSIX lock this process holds on that file, SQLite's included; so the descriptor is
-opened only when this process holds no claim of that file (a second claim here is refused
-by the table of held files, without opening it), and closed only by `release_file` (once
-its owner closed its connections) or after a claim another process refused (this process
-writes nothing there).
+For a supervisor tree's state directory (`<state_dir>/.lock`) and a registrar's backup
+(`<backup_path>.lock`, and the backup itself). A forked child closes its copies of the
+held descriptors, so the lock stays the owner's. Without `fcntl` nothing is locked.
+Why `flock`, and when a descriptor may be closed: docs/explanation/inside.md, "Lock files".
 """
 
 from __future__ import annotations
@@ -44,7 +24,7 @@ import contextlib
 import os
 import sys
 
-from rr_actors._platform import fork
+from rr_actors._platform import forkserver
 
 try:
     import fcntl
@@ -57,12 +37,11 @@ _held: dict[int, str] = {}  # the descriptors of the locks this process holds: t
 _held_files: dict[tuple[int, int], int] = {}  # claim_file's: (st_dev, st_ino) -> descriptor
 
 FILE_LOCKS = fcntl is not None and sys.platform.startswith("linux")
-"""Whether `claim_file` locks anything: `flock` and POSIX locks are apart (Linux)."""
 
 
 class HeldError(Exception):
-    """The lock file is locked by another owner; `holder` is the pid it wrote there
-    (`"unknown"` if it has not yet)."""
+    """The lock file is locked by another owner; `holder` is the pid it wrote (`"unknown"`: not
+    yet)."""
 
     def __init__(self, holder: str) -> None:
         super().__init__(holder)
@@ -102,8 +81,7 @@ def claim(path: str | os.PathLike[str]) -> int:
 
 
 def release(fd: int) -> None:
-    """Release the lock `claim` returned: the lock file is removed while still held (the
-    next owner makes a new one), then closed, which releases the lock."""
+    """Release a `claim`: the lock file is removed while still held, then closed."""
     name = _held.pop(fd, None)
     if name is not None and _names(fd, name):  # (not another owner's, were ours deleted)
         with contextlib.suppress(OSError):
@@ -116,12 +94,11 @@ def claim_file(path: str | os.PathLike[str]) -> int | None:
     """Lock the existing file at `path` itself (whichever of its names), writing nothing.
 
     Returns:
-        The open (read-only) descriptor, held until `release_file(fd)` or the process's
-        end; `None` where such locks are not taken (`FILE_LOCKS`).
+        The open read-only descriptor, held until `release_file(fd)` or the process's end;
+        `None` where such locks are not taken (`FILE_LOCKS`: Linux only).
 
     Raises:
-        HeldError: another owner (in this process or another) holds the file, by this
-            name or another.
+        HeldError: another owner (in this process or another) holds the file, by any name.
         OSError: the file cannot be opened.
     """
     if not FILE_LOCKS:
@@ -143,10 +120,8 @@ def claim_file(path: str | os.PathLike[str]) -> int | None:
 
 
 def release_file(fd: int) -> None:
-    """Release a lock `claim_file` returned (close its descriptor; the file stays).
-
-    Only once this process's connections to the file are closed: closing the descriptor
-    drops this process's POSIX locks on it.
+    """Release a `claim_file` (close its descriptor; the file stays), only once this process's
+    connections to the file are closed: the close drops its POSIX locks on it.
     """
     for key, held in list(_held_files.items()):
         if held == fd:
@@ -156,8 +131,8 @@ def release_file(fd: int) -> None:
 
 
 def _flock_holder(key: tuple[int, int]) -> str:
-    """The pid holding a `flock` on the file `key` (`(st_dev, st_ino)`), from the
-    kernel's table of locks (`/proc/locks`); `"unknown"` if it does not say."""
+    """The pid holding a `flock` on the file `(st_dev, st_ino)`, from `/proc/locks`; else
+    `"unknown"`."""
     dev, ino = key
     where = f"{os.major(dev):02x}:{os.minor(dev):02x}:{ino}"
     with contextlib.suppress(OSError), open("/proc/locks", encoding="ascii") as table:
@@ -169,7 +144,6 @@ def _flock_holder(key: tuple[int, int]) -> str:
 
 
 def _names(fd: int, name: str) -> bool:
-    """Whether `name` still names the file open at `fd`."""
     try:
         return os.path.samestat(os.fstat(fd), os.stat(name))
     except OSError:
@@ -177,21 +151,18 @@ def _names(fd: int, name: str) -> bool:
 
 
 def _let_go_in_child() -> None:
-    """In a forked child: close the copies of the owner's lock descriptors (the lock
-    stays the owner's)."""
+    """In a forked child: close the copies of the owner's lock descriptors (the lock stays its)."""
     for fd in [*_held, *_held_files.values()]:
         with contextlib.suppress(OSError):
-            os.close(fd)  # (never removed: the file is the owner's; a child holds no
-            # POSIX lock of the parent's, so closing drops none)
+            os.close(fd)  # (not removed: the owner's; a child holds no POSIX lock to drop)
     _held.clear()
     _held_files.clear()
 
 
-fork.after_fork_in_child("the lock files this process holds", _let_go_in_child)
+forkserver.after_fork_in_child("the lock files this process holds", _let_go_in_child)
 
 
 def _holder(fd: int) -> str:
-    """The pid the holder wrote in the lock file (`"unknown"` if it has not yet)."""
     with contextlib.suppress(OSError, ValueError):
         return str(int(os.pread(fd, 32, 0).decode().strip()))
     return "unknown"

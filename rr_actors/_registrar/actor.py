@@ -60,7 +60,7 @@ from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.replies import Answer, Tokens
 from rr_actors._core.throttle import LogThrottle
-from rr_actors._platform import fork
+from rr_actors._platform import forkserver
 from rr_actors._registrar.calls import (
     CallFailed,
     ClientLoaded,
@@ -494,13 +494,13 @@ def launch(
         DuplicateNameError: a registrar with this name is already running here.
         CatalogCorruptError: the backup exists but cannot be read (it is left as is).
         ConfigError: the configuration, or its backup path, is invalid; or this process
-            was forked from one whose state a child cannot use (`rr_actors._platform.fork`).
+            was forked from one whose state a child cannot use (`rr_actors._platform.forkserver`).
     """
     if isinstance(config, str):
         config = RegistrarConfig(name=config)
     elif not isinstance(config, RegistrarConfig):
         raise ConfigError(f"config must be a RegistrarConfig or a name, got {config!r}")
-    fork.check_usable(f"registrar {config.name!r}")
+    forkserver.check_usable(f"registrar {config.name!r}")
     durable = config.save_on_modify and config.backup_path is not None
     peer = LocalPeer(config.name, None, durable=durable)
     DIRECTORY.register(peer)

@@ -64,7 +64,7 @@ from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.loops import OnLoop
 from rr_actors._core.replies import CallbackReply, SharedJoin, waited, when_waiting
 from rr_actors._core.workers import Job, Workers
-from rr_actors._platform import fork
+from rr_actors._platform import forkserver
 from rr_actors._registrar.calls import DueAnswers
 from rr_actors._registrar.consumer import Flights, Holdings
 from rr_actors._registrar.messages import SendStatus, StatusBatch, StatusNotice, StatusOnItsWay
@@ -1315,4 +1315,4 @@ class Unacknowledged:
             return tuple(self._of.pop(query_id, {}).values())
 
 
-fork.after_fork_in_child("the status desk", DESK.forget_in_child)
+forkserver.after_fork_in_child("the status desk", DESK.forget_in_child)

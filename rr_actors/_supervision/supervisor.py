@@ -49,7 +49,7 @@ from rr_actors._core import runtime
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Subscription
 from rr_actors._core.exit import SUPERVISORS, stop_at_exit
 from rr_actors._core.replies import Steps, run_steps
-from rr_actors._platform import fork
+from rr_actors._platform import forkserver
 from rr_actors._registrar import Registrar, ResourceRegistrar, Served, start_registrar
 from rr_actors._registrar.handle import blocking
 from rr_actors._supervision import retry
@@ -258,7 +258,7 @@ class Supervisor(AsyncSupervision):
                 process was forked from one whose state a child cannot use (a Zenoh
                 session): the message says to use the `spawn` or `forkserver` method.
         """
-        fork.check_usable(f"supervisor {self.name!r}")
+        forkserver.check_usable(f"supervisor {self.name!r}")
         if self._stopped:
             raise ConfigError(
                 f"supervisor {self.name!r} was stopped, and a supervisor cannot be restarted: "

@@ -19,7 +19,7 @@ from typing import Any, TypeAlias, TypeVar, cast, dataclass_transform
 
 from rr_actors._core import hlc as _hlc
 from rr_actors._core import runtime
-from rr_actors._platform import fork
+from rr_actors._platform import forkserver
 from rr_actors._types import Status
 
 __all__ = [
@@ -132,7 +132,7 @@ def _forked() -> None:
     _numbering = False
 
 
-fork.after_fork_in_child("the events' pid", _forked)
+forkserver.after_fork_in_child("the events' pid", _forked)
 
 
 # -- the stamps every kind carries ----------------------------------------------------------

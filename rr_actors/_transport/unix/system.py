@@ -17,7 +17,7 @@ import time
 
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.membership import MEMBERSHIP
-from rr_actors._platform import PLATFORM, fork
+from rr_actors._platform import PLATFORM, forkserver
 from rr_actors._transport.messenger import Endpoint, Lost, Messenger
 from rr_actors._transport.unix.link import Listener, RemotePeer, _Accepted, lock_held
 from rr_actors.errors import ConfigError
@@ -335,7 +335,7 @@ def _forget_in_child() -> None:
         attached.forget_in_child()
 
 
-fork.after_fork_in_child("the AF_UNIX carrier", _forget_in_child)
+forkserver.after_fork_in_child("the AF_UNIX carrier", _forget_in_child)
 
 
 def attach(address: SystemAddress) -> AttachedSystem:

@@ -26,7 +26,7 @@ from rr_actors._core import wire
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Subscription
 from rr_actors._core.exit import NETWORKS, stop_at_exit
 from rr_actors._core.hlc import CLOCK, MAX_OFFSET, check_max_offset
-from rr_actors._platform import fork
+from rr_actors._platform import forkserver
 from rr_actors._transport.messenger import Address, Messenger, Transport
 from rr_actors._transport.resolve import Resolve
 from rr_actors._transport.zenoh.carrier import ZenohCarrier
@@ -176,13 +176,13 @@ _OPENED: list[str] = []  # the systems this process opened a Zenoh session for
 def _refuse_in_child() -> None:
     """In a forked child: a process that opened a Zenoh session cannot be forked."""
     if _OPENED:
-        fork.refuse(
+        forkserver.refuse(
             f"had opened a Zenoh session (system {_OPENED[0]!r}), whose runtime threads "
             f"do not exist in a forked child"
         )
 
 
-fork.after_fork_in_child("the Zenoh carrier", _refuse_in_child)
+forkserver.after_fork_in_child("the Zenoh carrier", _refuse_in_child)
 
 
 def _join(
@@ -194,10 +194,10 @@ def _join(
     Raises:
         ConfigError: this process is a member of another system, or (for a second
             `ZenohNetwork` of the same system) a router of it already; or it was forked
-            from a process that had opened a Zenoh session (`rr_actors._platform.fork`).
+            from a process that had opened a Zenoh session (`rr_actors._platform.forkserver`).
     """
     global _MEMBER, _MEMBER_OWNER
-    fork.check_usable(f"a member of system {system!r}")
+    forkserver.check_usable(f"a member of system {system!r}")
     with _MEMBER_LOCK:
         member = _MEMBER
         if member is not None and not member.closed:
