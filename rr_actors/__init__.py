@@ -1,15 +1,14 @@
 """rr_actors: TeMoto's Resource Registrar as a Python actor framework.
 
-Registrars, resource servers and clients are pykka actors; the docs hold a tutorial,
-the semantics (`docs/explanation/semantics.md`) and the architecture.
-
-`import rr_actors` imports the errors, the configuration and the status types; the
-runtime (registrars, supervisors, the event stream) is imported at the first use of one of
-its names (`rr.ResourceRegistrar`, `from rr_actors import Supervisor`), as PEP 562 allows,
-so a program or command that only configures or reads pays for none of it.
+Registrars, resource servers and clients are pykka actors; the docs hold a tutorial, the
+semantics (`docs/explanation/semantics.md`) and the architecture. `import rr_actors`
+imports the errors, the configuration and the status types; the runtime is imported at
+the first use of one of its names (PEP 562), so a program that only configures pays for
+none of it.
 """
 
 import importlib
+from contextlib import nullcontext
 from typing import TYPE_CHECKING
 
 from rr_actors import _extras, _log
@@ -87,11 +86,9 @@ __all__ = [
     "ZenohTLS",
     "quarantine_backup",
 ]
-"""What a program uses (25 names, issue 54). The errors a caller catches most are here; every
-error is in `rr_actors.errors`, `MAX_DEPENDENCY_DEPTH` in `rr_actors.config`,
-`ChildCounts` beside `Supervisor.count_children`, `StatusDelivery` beside `send_status`.
-The names this module listed before are all still importable from it
-(`rr.UnknownServerError`, `rr.MAX_DEPENDENCY_DEPTH`)."""
+"""What a program uses (25 names, issue 54); every error is in `rr_actors.errors`. The names
+this module listed before are all still importable from it (`rr.UnknownServerError`).
+"""
 
 __version__ = "0.1.0"
 
@@ -112,24 +109,23 @@ _RUNTIME = {
     "ZenohNetwork": "rr_actors._transport.zenoh.net",
     "ZenohTLS": "rr_actors._transport.zenoh.ops.tls",
 }
-"""Each name of the runtime this module gives, and the module that defines it (imported at
-the name's first use)."""
+"""Each name of the runtime this module gives, and the module imported at its first use."""
 
 _NEEDS_ZENOH = {"ZenohNetwork", "ZenohTLS"}
 
 
 def _observer() -> "Observing":
-    """The observer, as a supervisor finds it: the lab's (`rr_actors.observe`), imported
-    at a supervisor's first `observe` or `graph`, never by the runtime itself."""
+    """The observer, as a supervisor finds it: the lab's, imported at a supervisor's first
+    `observe`."""
     from rr_actors.observe._observer import SUPERVISORS  # noqa: PLC0415 - the lab
 
     return SUPERVISORS
 
 
 def _attach_lab(module: object) -> None:
-    """Attach the lab's parts a runtime module finds through a protocol of its own: the
-    observer to supervisors; the event feed across hosts and the link watch to Zenoh
-    sessions (`rr_actors.observe._feed` attaches itself when imported)."""
+    """Attach the lab's parts a runtime module finds through a protocol of its own: the observer
+    to supervisors, the cross-host event feed and link watch to Zenoh sessions.
+    """
     if getattr(module, "__name__", "") == "rr_actors._supervision":
         from rr_actors._supervision.watching import attach_observer  # noqa: PLC0415
 
@@ -141,21 +137,15 @@ def _attach_lab(module: object) -> None:
 def __getattr__(name: str) -> object:
     """A name of the runtime (`_RUNTIME`), its module imported at first use (PEP 562).
 
-    `rr.ZenohNetwork` and `rr.ZenohTLS` import zenoh (and cryptography) only then; without
-    the zenoh extra, a `MissingExtraError` (an `ImportError`) names it and the command that
-    installs it.
-
     Raises:
         AttributeError: `name` is not one of this module's.
+        MissingExtraError: `rr.ZenohNetwork` or `rr.ZenohTLS` without the zenoh extra.
     """
     where = _RUNTIME.get(name)
     if where is None:
         raise AttributeError(f"module 'rr_actors' has no attribute {name!r}")
-    if name in _NEEDS_ZENOH:
-        with _extras.needs("zenoh", f"rr.{name}"):
-            module = importlib.import_module(where)
-            _attach_lab(module)
-    else:
+    needs = _extras.needs("zenoh", f"rr.{name}") if name in _NEEDS_ZENOH else nullcontext()
+    with needs:
         module = importlib.import_module(where)
         _attach_lab(module)
     value = module if name == "events" else getattr(module, name)

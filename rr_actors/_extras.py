@@ -5,15 +5,9 @@
                                                   MissingExtraError: rr.ZenohNetwork needs
                                                   an extra: pip install -e ".[zenoh]"
 
-The command in the message installs the extra into the installation that is running,
-and names it as pip does: `pip install -e "<checkout>[extra]"` when rr_actors runs from
-a source checkout (`.` when it is the working directory, as after the README's `pip
-install -e ".[demo]"`), else `pip install "rr-actors[extra]"`. The command line prints
-the error's one line and exits with 2 (`rr_actors._cli.main`): `rr-actors experiment
-needs an extra: pip install -e ".[experiments]"` when a whole command needs it (an empty
-`what`), `rr-actors demo: --hosts 2 needs an extra: ...` when an option does; 80 columns
-at most either way (the extra named once, in the command: "needs the experiments extra"
-took the line to 81-95).
+The command installs the extra into the running installation: `pip install -e
+"<checkout>[extra]"` from a source checkout (`.` when it is the working directory), else
+`pip install "rr-actors[extra]"`; with the message, at most 80 columns.
 """
 
 from __future__ import annotations
@@ -35,22 +29,16 @@ EXTRAS = {
     "title": "setproctitle: `ps` shows a manager process as `rr-actors: <name>`",
     "zenoh": "eclipse-zenoh, cryptography: registrars across hosts, mutual TLS, certs",
 }
-"""Each extra of `pyproject.toml` that a user installs, and what it brings."""
-
 DISTRIBUTION = "rr-actors"
 
 
 def _checkout() -> Path | None:
-    """The source checkout rr_actors runs from (`pip install -e`, or on `sys.path`), if so.
-
-    A checkout holds `pyproject.toml` beside the package; an installed wheel does not.
-    """
+    """The source checkout rr_actors runs from (`pyproject.toml` beside the package), if so."""
     root = Path(__file__).resolve().parent.parent
     return root if (root / "pyproject.toml").is_file() else None
 
 
 def install_command(extra: str) -> str:
-    """The command that installs `extra` into this installation of rr-actors."""
     checkout = _checkout()
     if checkout is None:
         return f'pip install "{DISTRIBUTION}[{extra}]"'
@@ -67,8 +55,8 @@ def needs(extra: str, what: str) -> Iterator[None]:
     """Turn an `ImportError` inside into a `MissingExtraError` naming `what` and `extra`.
 
     Raises:
-        MissingExtraError: an import inside failed (the `ImportError` is its cause); one
-            raised inside by an inner `needs` is raised again naming this `what`.
+        MissingExtraError: an import inside failed (its cause), or an inner `needs` raised
+            (raised again naming this `what`).
     """
     try:
         yield

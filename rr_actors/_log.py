@@ -7,21 +7,12 @@
                                                         on a terminal wrapped at words
                                                         to its width
 
-Python's last-resort handler prints a record's bare message, so a user cannot tell a
-WARNING from an ERROR, nor either from the program's own output. This handler stands in
-for it on the `rr_actors` logger (installed once, at `import rr_actors`) and says the
-level and the logger: `WARNING rr_actors: supervisor sup: child erm exited: killed by
-SIGKILL`. It gets out of the way as soon as the application configures logging, at any
-time, before or after the import: a handler on the root logger (`logging.basicConfig`),
-on `rr_actors` or on one of its children takes the records where the application says,
-and this one then writes nothing. As asyncio does, a library's warnings reach a
-terminal by default; unlike a `NullHandler`, they are never silently lost.
-
-On a terminal a line is as wide as the terminal at most (the terminal's `COLUMNS`, else
-its window size): the message wraps at words, each further line indented four columns
-(`manager erm has not answered its heartbeat for 0.812 s, but it could run for only ...`
-is 250 columns on one line). A word longer than a line (a path) stays whole, and so does
-a traceback, as Python prints it. In a pipe or a file a record stays one line, for grep.
+Python's last-resort handler prints a bare message; this one (installed at `import
+rr_actors`) says the level and the logger, and gets out of the way as soon as the
+application configures logging, before or after the import. As asyncio's, a library's
+warnings reach a terminal by default and are never silently lost. On a terminal a message
+wraps at words to its width (`COLUMNS`, else the window's), further lines indented; a
+traceback, and any line in a pipe or a file, stay whole.
 """
 
 from __future__ import annotations
@@ -40,15 +31,11 @@ FORMAT = "%(levelname)s %(name)s: %(message)s"
 LOGGER = "rr_actors"
 
 INDENT = "    "
-"""How the further lines of a record's message wrapped on a terminal start."""
 
 
 class DefaultHandler(logging.Handler):
-    """WARNING and above to the current `sys.stderr`, unless logging was configured.
-
-    "Configured" is decided per record (`configured`), so an application that calls
-    `logging.basicConfig` after `import rr_actors` still gets every record where it said,
-    and none twice on stderr.
+    """WARNING and above to the current `sys.stderr`, unless logging was configured (decided per
+    record, so a later `logging.basicConfig` takes over).
     """
 
     def __init__(self) -> None:
@@ -56,14 +43,12 @@ class DefaultHandler(logging.Handler):
         self.setFormatter(logging.Formatter(FORMAT))
 
     def handle(self, record: logging.LogRecord) -> bool:
-        """Emit `record` only when no other handler is on its way up."""
         if configured(record.name):
             return False
         return bool(super().handle(record))
 
     def emit(self, record: logging.LogRecord) -> None:
-        """Write the formatted record and a line break to `sys.stderr` (looked up now:
-        a test or a program may have replaced it)."""
+        """Write the record and a line break to `sys.stderr`, looked up now."""
         try:
             stream = sys.stderr
             text = self.format(record)
@@ -77,11 +62,8 @@ class DefaultHandler(logging.Handler):
 
 
 def terminal_width(stream: TextIO) -> int | None:
-    """The columns of the terminal `stream` writes to, or `None` if it is no terminal.
-
-    `COLUMNS` first, as `shutil.get_terminal_size` reads it (a user's `COLUMNS=80`, a
-    test's pseudo-terminal), then the terminal's window size.
-    """
+    """The columns of the terminal `stream` writes to (`COLUMNS` first), or `None` if no
+    terminal."""
     try:
         if not stream.isatty():
             return None
@@ -98,16 +80,16 @@ def terminal_width(stream: TextIO) -> int | None:
 
 
 def _wrapped(text: str, message_lines: int, width: int) -> str:
-    """`text` (a formatted record) with its first `message_lines` lines wrapped at words to
-    `width` columns; what follows (a traceback) as it is."""
+    """`text` with its first `message_lines` lines wrapped to `width`; a traceback after them as
+    it is."""
     lines = text.split("\n")
     head = [wrap(line, width) for line in lines[:message_lines]]
     return "\n".join([*head, *lines[message_lines:]])
 
 
 def wrap(line: str, width: int) -> str:
-    """`line` as it is if it fits `width` columns, else wrapped at words, each further
-    line indented by `INDENT` (a word longer than a line stays whole)."""
+    """`line`, wrapped at words to `width` with further lines indented by `INDENT` if it does not
+    fit."""
     if len(line) <= width:
         return line
     wrapped = textwrap.wrap(
@@ -117,10 +99,8 @@ def wrap(line: str, width: int) -> str:
 
 
 def configured(name: str = LOGGER) -> bool:
-    """Whether a handler other than `DefaultHandler` would get a record of logger `name`.
-
-    Walks from `name` up the logger tree as propagation does (stopping at a logger with
-    `propagate = False`), as `logging.Logger.callHandlers` finds handlers.
+    """Whether a handler other than `DefaultHandler` would get a record of logger `name` (as
+    propagation finds handlers).
     """
     logger: logging.Logger | None = logging.getLogger(name)
     while logger is not None:

@@ -21,15 +21,11 @@ __all__ = [
 
 
 class Setup(Protocol):
-    """A manager's setup: `setup(registrar)`, called once with its `ResourceRegistrar`.
-
-    It runs after the catalog was restored and before the registrar serves (registering
-    its servers, say). Any callable of one positional argument is one; the registrar's
-    type is not named here, below the layer that defines it (`rr_actors._registrar`).
+    """A manager's setup: `setup(registrar)`, called once with its `ResourceRegistrar` after the
+    catalog was restored and before it serves; any callable of one positional argument.
     """
 
-    def __call__(self, registrar: Any, /) -> object:
-        """Set the registrar up; what it returns is ignored."""
+    def __call__(self, registrar: Any, /) -> object: ...
 
 
 class Status(enum.Enum):
@@ -89,14 +85,11 @@ class StatusDelivery:
     """What `send_status` reached (rule 9).
 
     Attributes:
-        reached: the resource's consumer ids not given up on, in no particular order:
-            each callback ran (and the status went on up its dependency paths), or its
-            registrar was gone or could not be sent the notice (a death watch's
-            business, rule 12) by the time the status got there.
-        gave_up: consumer ids, at any hop, whose status callback had not returned
-            within the `send_status`'s patience (half its timeout, or all of it but 1 s
-            if that is more): busy or hung. Each still gets its latest status (and every
-            `FATAL`) once its callback returns; `send_status` did not wait for it.
+        reached: the consumer ids not given up on: each callback ran, or its registrar was gone
+            or unreachable by then (a death watch's business, rule 12).
+        gave_up: consumer ids, at any hop, whose callback had not returned within the
+            `send_status`'s patience (half its timeout, or all but 1 s if more); each still
+            gets its latest status (and every `FATAL`) once it returns.
     """
 
     reached: tuple[str, ...]
@@ -104,19 +97,17 @@ class StatusDelivery:
 
 
 StatusCallback = Callable[[Query, StatusUpdate], Awaitable[None] | None]
-"""`on_status(query, update)`: a server's or a client's status callback (a plain function,
-or a coroutine function: `async def on_status(query, update)`)."""
+"""`on_status(query, update)`: a server's or client's status callback (or a coroutine function)."""
 
 
 IfOverloaded = Literal["wait", "raise"]
-"""What a call refused for overload does (`Registrar.call`'s `if_overloaded`): `"wait"`
-and ask again within its timeout, or `"raise"` `OverloadedError` at once."""
+"""`Registrar.call`'s `if_overloaded`: `"wait"` and ask again within the timeout, or `"raise"` at
+once."""
 
 
 LoadCallback = Callable[[Any], Any]
-"""`load(request) -> response`: a resource server's load callback (or a coroutine
-function, `async def load(request)`)."""
+"""`load(request) -> response`: a resource server's load callback (or a coroutine function)."""
 
 UnloadCallback = Callable[[Any, Any], Awaitable[None] | None]
-"""`unload(request, response) -> None`: a resource server's unload callback (or a
-coroutine function)."""
+"""`unload(request, response) -> None`: a resource server's unload callback (or a coroutine
+function)."""

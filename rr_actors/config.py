@@ -1,9 +1,8 @@
 """Configuration as frozen, validated data: registrars, managers, supervisors, backoff.
 
 `RegistrarConfig` is TeMoto's `Configuration` (thesis table 4.2); `ManagerSpec` and
-`SupervisorSpec` are OTP's child specifications; `Backoff` is what OTP lacks. Each is
-validated at construction (`ConfigError` names the field) and changed with
-`dataclasses.replace`.
+`SupervisorSpec` are OTP's child specifications; `Backoff` is what OTP lacks. Each raises
+`ConfigError` naming the field at construction and is changed with `dataclasses.replace`.
 """
 
 from __future__ import annotations
@@ -52,19 +51,12 @@ NAME_MAX = 64
 """The most characters in a registrar's, system's or member's name (X.509's `ub-common-name`)."""
 
 NAME = re.compile(rf"[A-Za-z0-9_][A-Za-z0-9_.\-]{{0,{NAME_MAX - 1}}}")
-"""A valid name, matched whole (`fullmatch`), of at most `NAME_MAX` characters; it names
-files, so it never starts with `.` or `-`.
-"""
+"""A valid name (`fullmatch`): it names files, so it never starts with `.` or `-`."""
 
 
 def check_name(field: str, value: object, what: str = "a name") -> str:
-    """`value` if it is a name (`NAME`), else `ConfigError` naming `field` and the rule broken.
-
-    Args:
-        field: how the message names the argument or field (`"name"`, `"system"`).
-        value: what was given.
-        what: what a name is here, for the message (`"a member name"`).
-    """
+    """`value` if it is a name (`NAME`), else `ConfigError` naming `field` and `what` a name is
+    here."""
     if isinstance(value, str) and len(value) > NAME_MAX:
         raise ConfigError(
             f"{field} {value!r} is {len(value)} characters long: {what} has at most "
@@ -99,10 +91,8 @@ rather than deadlock.
 def check_seconds(
     field: str, value: object, *, allow_none: bool = False, allow_zero: bool = False
 ) -> None:
-    """Raise `ConfigError` naming `field` unless `value` is a finite number of seconds.
-
-    It must be positive (non-negative with `allow_zero`; `None` passes with `allow_none`); a
-    bool is refused.
+    """`ConfigError` naming `field` unless `value` is a finite positive number of seconds
+    (non-negative with `allow_zero`; `None` with `allow_none`; never a bool).
     """
     if value is None and allow_none:
         return
@@ -129,10 +119,8 @@ def check_choice(field: str, value: object, choices: Sequence[str]) -> None:
 
 
 def is_loopback(host: str) -> bool:
-    """Whether `host` names this machine only (`localhost`, 127.0.0.0/8, `::1`).
-
-    Where the observer and a carrier may listen without the user's leave; a DNS name other than
-    `localhost` is not (it may resolve anywhere).
+    """Whether `host` names this machine only (`localhost`, 127.0.0.0/8, `::1`; another DNS name
+    may resolve anywhere): where one may listen without the user's leave.
     """
     if host == "localhost":
         return True
@@ -147,33 +135,27 @@ class RegistrarConfig:
     """How a [`ResourceRegistrar`][rr_actors.ResourceRegistrar] behaves (TeMoto's `Configuration`).
 
     Attributes:
-        name: registrar name, unique within its system (`NAME`: letters, digits, `_`, `-`,
-            `.`, not starting with `.` or `-`, at most 64 characters).
+        name: registrar name, unique within its system (`NAME`, at most 64 characters).
         backup_path: SQLite file that keeps the catalog, or `None` for an in-memory catalog.
         save_interval: with a backup, flush changes every this many seconds (`None`: never on
             a timer); a crash loses at most one interval of changes.
-        save_on_modify: with a backup, make every load and unload durable before its caller
-            gets the answer.
+        save_on_modify: with a backup, every load and unload is durable before its answer.
         erase_on_destruct: remove the backup after a clean `stop()` (a crash keeps it).
         call_timeout: default `timeout` of every blocking call, in seconds.
         durability: `"process"` survives a crash of the process (SQLite
             `synchronous=NORMAL`), `"power"` also power loss (`synchronous=FULL`, slower).
-        max_workers: worker threads that may run its callbacks at once (`load`, `unload`,
-            status callbacks, comparisons of requests without a digest); more wait in order.
-        compare_timeout: seconds the user code matching a request without a digest may run
-            (`__eq__`, `__hash__`, pickling); past them the call fails with `CallTimeoutError`
-            and the registrar serves on.
-        unload_timeout: seconds an `unload` callback may run (`None`: no bound); past them the
-            resource is dropped as failed and a caller waiting gets `CallTimeoutError`.
-        max_message_bytes: the largest pickled message crossing a connection to or from this
-            registrar from another process; a larger request fails with
-            `MessageTooLargeError` before it is sent, a larger response fails its call the
-            same way. Messages within one process are not limited. Default 16 MiB.
-        max_pending: new loads each server may have queued or running at once (a dedup hit
-            is never refused). Past it a call waits and asks again within its `timeout`, and
-            gets `OverloadedError` when too little time is left. Default 1000; a server's own
-            `register_server(..., max_pending=)` wins. While several consumer registrars want
-            loads, each takes at most its share of the bound.
+        max_workers: worker threads running its callbacks at once; more wait, in order.
+        compare_timeout: seconds user code matching a request without a digest may run
+            (`__eq__`, `__hash__`, pickling); past them the call fails with `CallTimeoutError`.
+        unload_timeout: seconds an `unload` may run (`None`: no bound); past them the resource
+            is dropped as failed and a waiting caller gets `CallTimeoutError`.
+        max_message_bytes: the largest pickled message to or from this registrar across
+            processes (default 16 MiB); a larger one fails its call with
+            `MessageTooLargeError`, before a request is sent.
+        max_pending: new loads each server may have queued or running (default 1000; a
+            server's own `register_server(..., max_pending=)` wins; several consumers each
+            get a share). Past it a call waits and asks again within its `timeout`, then
+            raises `OverloadedError`.
 
     Raises:
         ConfigError: a field is invalid; the message names it.
@@ -298,27 +280,22 @@ class ManagerSpec:
 
     Attributes:
         name: the manager's registrar name, unique in the whole supervision tree.
-        setup: `setup(registrar)`: registers its servers, after the catalog was restored and
-            before traffic (`None`: no servers); cloudpickled for a process manager. Runs on
-            a process manager's main thread (bounded by `start_timeout`) or the supervisor's
-            thread for a thread manager (unbounded); supervision pauses until it returns.
-        isolation: `"thread"` (in the supervisor's process) or `"process"` (its own OS
-            process, so killing it kills nothing else).
-        restart: `"permanent"` (always restarted), `"transient"` (only after an abnormal
-            exit) or `"temporary"` (never).
-        config: the registrar's configuration, whose `name` must equal `name`. Default:
-            `RegistrarConfig(name)`, with the supervisor's `state_dir` a backup at
-            `<state_dir>/<name>.db` with `save_on_modify=True`.
-        shutdown: seconds a clean stop may take before the manager is killed: SIGKILL for a
-            process; a thread's registrar is told to crash once its callback returns (a
-            restart before then fails with `DuplicateNameError` and counts as a crash).
-        heartbeat: seconds between pings to a process manager, answered through its
-            registrar's mailbox (`None`: off; thread managers have none).
-        heartbeat_timeout: seconds without an answer after which a process manager is hung:
-            killed and handled like a crash (default three `heartbeat`s). Time it waited
-            for a CPU (Linux, up to ten times this bound) or its registrar was seen busy (a
-            `ManagerOverloaded` event) does not count (docs: "What counts as a hang"); a
-            manager unable to accept connections that long is killed as unhealthy.
+        setup: `setup(registrar)`, registering its servers after the restore and before
+            traffic (`None`: no servers); cloudpickled for a process manager. It runs on a
+            process manager's main thread (bounded by `start_timeout`) or the supervisor's
+            thread (unbounded), and supervision waits for it.
+        isolation: `"thread"` (in the supervisor's process) or `"process"` (its own).
+        restart: `"permanent"`, `"transient"` (only after an abnormal exit) or `"temporary"`.
+        config: its registrar's configuration (same `name`). Default: `RegistrarConfig(name)`,
+            with a supervisor's `state_dir` a backup `<state_dir>/<name>.db`, `save_on_modify`.
+        shutdown: seconds a clean stop may take before the manager is killed (a thread's
+            registrar is told to crash once its callback returns; a restart before then
+            fails with `DuplicateNameError`, counted as a crash).
+        heartbeat: seconds between pings to a process manager (`None`: off).
+        heartbeat_timeout: seconds without an answer after which a process manager is hung,
+            killed and handled as a crash (default three `heartbeat`s). Time spent waiting
+            for a CPU (Linux) or busy (`ManagerOverloaded`) does not count (docs: "What
+            counts as a hang"); one unable to accept connections that long is killed too.
         start_timeout: seconds a manager may take to restore, set up and serve.
 
     Raises:
@@ -372,9 +349,8 @@ class ManagerSpec:
 class SupervisorSpec:
     """A nested supervisor as a child of another (its arguments are `Supervisor`'s).
 
-    When it gives up, its parent sees OTP's `shutdown`: a `permanent` one is restarted by the
-    parent's strategy and intensity (escalation, as in OTP); a `transient` or `temporary` one
-    stays down.
+    When it gives up, its parent sees OTP's `shutdown`: a `permanent` one is restarted under
+    the parent's strategy and intensity (escalation, as in OTP); others stay down.
 
     Attributes:
         name: the child's name in its parent (unique in the tree).
@@ -417,18 +393,14 @@ class SupervisorSpec:
             seen.add(name)
 
     def has_processes(self) -> bool:
-        """Whether any manager in this subtree runs in its own process."""
         return any(isinstance(c, ManagerSpec) and c.isolation == "process" for c, _ in walk(self))
 
 
 def walk(
     spec: SupervisorSpec, path: tuple[SupervisorSpec, ...] = ()
 ) -> Iterator[tuple[ManagerSpec | SupervisorSpec, tuple[SupervisorSpec, ...]]]:
-    """Every child below `spec`, depth first, each with the supervisors above it.
-
-    Yields:
-        `(child, path)`: `path` runs from `spec` down to the child's own supervisor.
-    """
+    """Every child below `spec`, depth first, as `(child, path)`: the supervisors from `spec`
+    down."""
     path = (*path, spec)
     for child in spec.children:
         yield child, path
@@ -437,10 +409,8 @@ def walk(
 
 
 def tree_names(spec: SupervisorSpec) -> list[str]:
-    """The names of every child below `spec`, depth first (duplicates kept)."""
     return [child.name for child, _ in walk(spec)]
 
 
 def managers(spec: SupervisorSpec) -> list[ManagerSpec]:
-    """Every manager below `spec`, depth first."""
     return [child for child, _ in walk(spec) if isinstance(child, ManagerSpec)]

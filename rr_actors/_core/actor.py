@@ -1,11 +1,9 @@
 """pykka's threading actor with hand-offs that wake the other thread once, not twice.
 
 Every use of pykka's extension points (`_create_actor_inbox`, `_create_future`,
-`_start_actor_loop`) and private names (`_handle_receive`, `_actor_loop_running`,
-`_handle_failure`, `Envelope`) is in this file. `Actor` has a `queue.SimpleQueue` inbox and
-`OneShotFuture`s; every envelope left in its inbox when its loop ends, or put later, goes to
-its `on_late` (by default `refuse`, as pykka's drain), so tells that carry obligations are
-honoured. **The turn**: one thread at a time handles the actor's messages, in order:
+`_start_actor_loop`) and private names is in this file. `Actor` has a `queue.SimpleQueue`
+inbox, `OneShotFuture`s, an `on_late` for every envelope its loop leaves or gets after it
+ended, and a *turn*: one thread at a time handles its messages, in order:
 
 ```
  deliver(ref, message) (a carrier's receiving thread: it holds no lock)
@@ -117,13 +115,8 @@ class OneShotFuture(pykka.Future[T]):
         return "<rr_actors.OneShotFuture>"
 
     def _wait(self, timeout: float | None = None) -> bool:
-        """Block until it is settled, at most `timeout` seconds; whether it is.
-
-        A wait that runs out looks once more (another waiter may hold the hand-off lock a
-        moment).
-        The main thread blocks in `SIGNAL_CHECK` slices: a lock's wait wakes for a signal only
-        if
-        the signal lands while it blocks.
+        """Block until settled, at most `timeout` s; whether it is (a wait that runs out looks once
+        more). The main thread waits in `SIGNAL_CHECK` slices, so that a Ctrl-C is raised.
         """
         if self._settled:
             return True
@@ -437,7 +430,6 @@ class Actor(pykka.ThreadingActor):
             self._handle_failure(*sys.exc_info())
 
     def _handle_envelope(self, envelope: Any) -> None:
-        """pykka's handling of one envelope."""
         try:
             response = self._handle_receive(envelope.message)
             if envelope.reply_to is not None:

@@ -1,9 +1,8 @@
 """Stop what a program left running when its main thread ends.
 
-Actors and supervisors run on daemon threads, but a Zenoh session's threads are not: a
-session left open keeps the interpreter waiting forever. So that a script that forgets
-`stop()` or `close()` still ends cleanly, every running supervisor, registrar and network
-is listed here and stopped when the main thread ends:
+A Zenoh session's threads are not daemons: one left open keeps the interpreter waiting.
+So that a script that forgets `stop()` or `close()` still ends cleanly, every running
+supervisor, registrar and network is listed here:
 
 ```
  main thread ends (returns, or an exception's traceback was printed)
@@ -16,9 +15,8 @@ is listed here and stopped when the main thread ends:
          and runs atexit
 ```
 
-The hook is `PLATFORM.at_main_thread_end`: it runs while every thread still runs, before
-`multiprocessing`'s `atexit` terminates daemonic children. A Ctrl-C that reaches the top of
-the main thread prints one line, `KeyboardInterrupt` (`python -X dev` keeps the traceback).
+A Ctrl-C that reaches the top of the main thread prints one line (`python -X dev`: the
+traceback).
 """
 
 from __future__ import annotations
@@ -185,7 +183,6 @@ def _in_order(entries: list[_Entry], deadline: float) -> list[_Entry]:
 
 
 def _one_line_interrupts() -> None:
-    """Have `sys.excepthook` print one line for a Ctrl-C, chained to the hook there now."""
     previous = sys.excepthook
 
     def hook(
@@ -206,7 +203,6 @@ def left_running() -> list[str]:
 
 
 def _forget_all() -> None:
-    """In a forked child: the parent's registrars and supervisors are not ours to stop."""
     _LISTED.lock = runtime.Lock()  # a thread of the parent may have held it at the fork
     _LISTED.entries.clear()
 

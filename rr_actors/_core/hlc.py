@@ -1,23 +1,19 @@
 """A hybrid logical clock (Kulkarni et al., 2014): one per process, stamps events and messages.
 
-A stamp `(l, c)`: `l` the greatest physical time this process has heard of (its own, or a
-stamp a message brought), `c` a counter. Whenever `e` happened before `f` (in one process,
-or through a message), `stamp(e) < stamp(f)`, and `l` is the physical time wherever the
-clocks agree. A stamp is one 64-bit int (one sort key, one JSON number, 8 bytes):
+A stamp orders cause before effect across hosts, whatever their clocks say, and is the
+physical time wherever the clocks agree. It is one 64-bit int (one sort key, one JSON
+number, 8 bytes):
 
 ```
  stamp = l << COUNTER_BITS | c        l: microseconds since the epoch (52 bits: until 2112)
                                       c: the counter (COUNTER_BITS = 12 bits)
 ```
 
-A local event (or a send) takes `max(last + 1, physical << COUNTER_BITS)`, a receipt also
-`stamp + 1`; a counter past its 12 bits carries into `l`. A received stamp more than
-`max_offset` seconds ahead of the physical clock is refused (as CockroachDB's
-`max-offset`), and the clock never leaves its 64 bits and never raises: why, in
-docs/explanation/failure-semantics.md ("Its clock stamps"). The Zenoh carrier carries the
-sender's stamp on every message (`receive`); processes of one host share a physical clock
-and need not. `CLOCK` is this process's; `RR_ACTORS_CLOCK_SKEW` (seconds) at import, or
-assigning `CLOCK.physical`, skews it for tests.
+A local event takes `max(last + 1, physical << COUNTER_BITS)`, a receipt also `stamp + 1`.
+A stamp more than `max_offset` ahead is refused, and the clock never leaves its 64 bits:
+why, in docs/explanation/failure-semantics.md ("Its clock stamps"). The Zenoh carrier
+carries stamps (`receive`); one host's processes share a clock. `RR_ACTORS_CLOCK_SKEW`
+(seconds, at import) or `CLOCK.physical` skews it for tests.
 """
 
 from __future__ import annotations

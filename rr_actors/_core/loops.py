@@ -1,7 +1,5 @@
 """asyncio at the edge of the actors: awaiting a future, running coroutines on a loop.
 
-Nothing here knows of registrars. Three bridges, each written once:
-
 ```
  an event loop awaits a one-shot future (`settled`):
    loop thread: future.add_done_callback(wake) ──► await a loop future
@@ -13,10 +11,8 @@ Nothing here knows of registrars. Three bridges, each written once:
    the submission before it ──► then(error) on the loop thread once it ended
 ```
 
-`OnLoop.bind(fn)` keeps the loop it is called from, or else the process's own loop
-(`process_loop`): one thread, started at first use, for every coroutine callback of the
-process's registrars that has no loop of its own (a coroutine that awaits costs no thread,
-so a loop per registrar would buy nothing).
+A coroutine callback with no loop of its own runs on the process's loop (`process_loop`):
+one thread for all (a coroutine that awaits costs no thread).
 """
 
 from __future__ import annotations
@@ -66,7 +62,6 @@ def _wake(waiter: asyncio.Future[bool], value: bool) -> None:
 
 
 def _wake_from(loop: asyncio.AbstractEventLoop, waiter: asyncio.Future[bool], _: object) -> None:
-    """On the settling thread: wake the loop (a loop closed meanwhile: nobody waits)."""
     try:
         loop.call_soon_threadsafe(_wake, waiter, True)
     except RuntimeError:  # the loop was closed: its task is gone with it
@@ -290,7 +285,6 @@ class OnLoop:
 def _set_soon(
     loop: asyncio.AbstractEventLoop, event: asyncio.Event, waits: Callable[[], object] | None
 ) -> None:
-    """Set `event` on `loop` (from any thread), and tell `waits`, if any."""
     with contextlib.suppress(RuntimeError):
         loop.call_soon_threadsafe(event.set)
     if waits is not None:

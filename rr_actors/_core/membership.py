@@ -1,9 +1,8 @@
 """The membership of this process: which registrars are gone for good, which are back.
 
-One per process (`MEMBERSHIP`), as Erlang's monitors are the runtime's and rmw_zenoh's
-graph cache is the node's. Whoever learns that a registrar will not come back says so here;
-every registrar of this process hears it as one event, and one that starts later when it
-joins:
+One per process (`MEMBERSHIP`), as Erlang's monitors are the runtime's. Whoever learns
+that a registrar will not come back says so here; every registrar of this process hears
+it, and one that starts later hears it when it joins, until a later incarnation is seen:
 
 ```
  a carrier's liveness (Messenger.lost) ─────────┐
@@ -21,9 +20,6 @@ joins:
  a supervisor stopped X for good ─► stopped(X) ─► record, peer_stopped(X) (what X still
    holds here is stale: a stopped registrar holds nothing, rule 12)
 ```
-
-A record lives until `X` is heard of again (only a later incarnation can make a mark
-false): every registrar that starts here must treat `X` as gone meanwhile.
 """
 
 from __future__ import annotations
@@ -125,7 +121,6 @@ class Membership:
         _tell(targets.values(), "peer_reachable", name)
 
     def back(self, name: str) -> None:
-        """Registrar `name` is served again (a new incarnation): forget any record of it."""
         with self._lock:
             self._gone.pop(name, None)
 

@@ -184,7 +184,7 @@ class SerialExecutor:
     # -- ending it -----------------------------------------------------------------------
 
     def finish(self) -> None:
-        """Take no more tasks; those queued still run, then the thread ends. Returns at once."""
+        """Take no more tasks; those queued still run, then the thread ends."""
         with self._cond:
             self._closing = True
             self._hurry.set()
@@ -218,7 +218,6 @@ class SerialExecutor:
         return self._ended and not self._busy
 
     def join(self, timeout: float | None) -> bool:
-        """Wait (at most `timeout` s) until the executor ended; whether it did."""
         if self.on_own_thread():
             return False  # (it cannot end while it runs this)
         deadline = None if timeout is None else runtime.monotonic() + timeout
@@ -239,10 +238,8 @@ class SerialExecutor:
         self._thread.start()
 
     def _ends_now(self) -> bool:
-        """Whether the caller must run `on_end` now (hold `_cond`): closed, idle, and no thread to
-        do
-        it (with one, wake it).
-        """
+        """Whether the caller runs `on_end` now (hold `_cond`): closed, idle, no thread (else it
+        is woken)."""
         if not self._closing or self._busy or self._ended or self._tasks:
             return False
         if self._thread is not None:
@@ -261,7 +258,6 @@ class SerialExecutor:
                 logger.exception("%s: handling a dropped task failed", self.name)
 
     def _end(self) -> None:
-        """Run `on_end` (the caller set `_ended` and `_busy`), then wake `join`."""
         try:
             if self._on_end is not None:
                 self._on_end()

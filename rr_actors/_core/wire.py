@@ -1,16 +1,11 @@
 """What crosses between processes: the contract a message offers carriers, and how a value
 is pickled to leave this process.
 
-A carrier moves messages without knowing what they mean; where it must act on a message's
-behalf it asks the message: `detached()` (as it crosses, without its `reply`),
-`compensation()` (what undoes handling it when its answer is lost: a `Load`'s `Abandon`),
-`unreadable_answer()` / `unsendable_answer()` (its sender's error when the answer cannot
-be unpickled there, or pickled here). Every subclass is in `WIRE_TYPES`.
-
-`plain(value)`: small builtin data and such records, which the C pickler encodes as
-cloudpickle would, without a cloudpickle `Pickler`. `dumps(value)` / `Pickler`: the rest,
-the user's values included, by cloudpickle, with the wire's own types by reference and
-code that keeps its file's name:
+A carrier moves messages without knowing what they mean, and asks a `WireMessage` where it
+must act for it: `detached()`, `compensation()` (a `Load`'s `Abandon`),
+`unreadable_answer()`, `unsendable_answer()`. `plain` data is pickled by the C pickler
+alone (as cloudpickle would), the rest by cloudpickle (`Pickler`), the wire's own types by
+reference, and code keeping its file's name:
 
 ```
  dumps: code object ──► (_named, (code as cloudpickle pickles it, code.co_filename))
@@ -189,7 +184,6 @@ class _AsCloudpickleDoes:
 
 
 def _reduce_code(code: types.CodeType) -> tuple[Any, ...]:
-    """A code object crosses with the name of its file (module docstring)."""
     return _named, (_AsCloudpickleDoes(code), code.co_filename)
 
 

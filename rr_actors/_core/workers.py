@@ -12,12 +12,9 @@
      abandon it (its thread no longer counts; another may start) ──► on_overdue()
 ```
 
-A burst of blocked tasks costs at most `max_workers` threads. A thread cannot be killed: a
-job past its `timeout` is *abandoned* (it stops counting, its thread exits whenever it
-returns), so a hung callback costs one thread while it hangs and nothing else. Queued jobs
-wait in lanes taken round robin (a load's lane is its consumer registrar), so a consumer
-that floods the queue delays another's load by one job per worker, not its whole backlog;
-an `urgent` job (an unload) goes before them all. Idle workers exit after `idle_timeout`.
+A hung callback costs one thread while it hangs, nothing else. The lanes take turns
+(round robin): a consumer that floods the queue delays another's load by one job per
+worker, not by its whole backlog.
 """
 
 from __future__ import annotations
@@ -232,7 +229,6 @@ class Workers:
         return job
 
     def _begin(self, job: Job) -> bool:
-        """A worker takes `job`: whether to run it (an abandoned queued job is skipped)."""
         with self._lock:
             if job._state is not _State.QUEUED:
                 return False
@@ -249,7 +245,6 @@ class Workers:
         return True
 
     def _end(self, job: Job) -> bool:
-        """A worker is done with `job`: whether the worker still counts (not abandoned)."""
         with self._lock:
             self._watched.pop(job, None)
             if job._state is _State.ABANDONED:

@@ -50,6 +50,7 @@ __all__ = [
     "check_usable",
     "context",
     "forget_in_child",
+    "forget_server",
     "forked_from",
     "refuse",
     "server_pid",
@@ -282,23 +283,25 @@ def server_pid(ctx: Any) -> int | None:
     return pid if isinstance(pid, int) else None
 
 
-def forget_in_child() -> None:
-    """In a child forked from this process: the server is the parent's (not the child's child),
-    so it is made as new; the child's next manager process starts one of its own.
-    """
-    global _LOCK  # a thread of the parent may have held it at the fork
-    _LOCK = threading.Lock()
-    if _context is None:
-        return
-    server = _context.server
-    server._lock = threading.Lock()
+def forget_server(server: Any) -> None:
+    """In a forked child: make `server` (a CPython `ForkServer`) new; the parent's is not the
+    child's child. Its copy of the "alive" pipe is closed: the server ends with the parent."""
+    server._lock = threading.Lock()  # a thread of the parent may have held it at the fork
     if server._forkserver_pid is None:
-        return
-    fd = server._forkserver_alive_fd
+        return  # none was started (or a forkserver's child: it let go already)
+    fd = getattr(server, "_forkserver_alive_fd", None)
     if isinstance(fd, int):
         with contextlib.suppress(OSError):
-            os.close(fd)  # the parent's server ends with the parent, not with the child
+            os.close(fd)
     server._forkserver_alive_fd = None
     server._forkserver_pid = None
     server._forkserver_address = None
     server._inherited_fds = None
+
+
+def forget_in_child() -> None:
+    """In a forked child: this process's server is the parent's; the next manager starts one."""
+    global _LOCK  # a thread of the parent may have held it at the fork
+    _LOCK = threading.Lock()
+    if _context is not None:
+        forget_server(_context.server)

@@ -98,26 +98,12 @@ def _let_go_of_the_forkserver() -> None:
 
 
 def _forget_the_forkserver() -> None:
-    """In a child forked from a process that started CPython's forkserver: make its singleton new
-    (pid, address, lock, its copy of the "alive" pipe closed), so the child starts its own
-    (the parent's is not the child's child). Nothing where the fields are missing.
-    """
+    """In a forked child: CPython's forkserver singleton made new, where it has the fields."""
     from multiprocessing import forkserver  # noqa: PLC0415
 
     server = getattr(forkserver, "_forkserver", None)
-    if server is None or not hasattr(server, "_forkserver_pid"):
-        return
-    server._lock = threading.Lock()  # a thread of the parent may have held it at the fork
-    if server._forkserver_pid is None:
-        return  # none was started (or this is a forkserver's child: it let go already)
-    fd = getattr(server, "_forkserver_alive_fd", None)
-    if isinstance(fd, int):
-        with contextlib.suppress(OSError):
-            os.close(fd)  # the parent's forkserver ends with the parent, not with the child
-    server._forkserver_alive_fd = None
-    server._forkserver_pid = None
-    server._forkserver_address = None
-    server._inherited_fds = None
+    if server is not None and hasattr(server, "_forkserver_pid"):
+        own_forkserver.forget_server(server)
 
 
 class PidfdExitWatch:

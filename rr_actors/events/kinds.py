@@ -1,11 +1,10 @@
 """The event kinds: one frozen dataclass per thing a tree or a registrar does.
 
 Each has its own fields first, then the keyword-only stamps said once in `_Stamped` (`at`,
-`host`, `hlc`: every kind) and `_Numbered` (`pid`, `seq`: every kind but the supervisor's
-child events, whose `pid` is the child's). `_kind` puts the stamps after the own fields in
-the order of `_STAMPS`: the order of the JSON line's keys (`lines.to_line`), of the outbox
-row, of the pickled state and of the `repr`. Adding a kind: its class here (`@_kind`), in
-the `Event` union, and its line in `text.describe`.
+`host`, `hlc`) and `_Numbered` (`pid`, `seq`: all but the supervisor's child events). `_kind`
+puts them in the order of `_STAMPS`: the key order of the JSON line (`lines.to_line`), the
+outbox row, the pickle and the `repr`. A new kind: its class here (`@_kind`), in `Event`,
+and its line in `text.describe`.
 """
 
 from __future__ import annotations
@@ -79,10 +78,8 @@ def this_host() -> str:
 
 
 def set_host(name: str) -> None:
-    """Name this process's host in the events it builds from now on (`host`).
-
-    A member of a `ZenohNetwork` with `tls` names it by its certificate's common name; until
-    then, and without TLS, it is `socket.gethostname()`.
+    """Name this process's host in the events it builds from now on (`host`): a TLS member's
+    certificate common name; until then `socket.gethostname()`.
     """
     _HOST.name = name
 
@@ -99,10 +96,8 @@ def _next_seq() -> int:
 
 
 def number_events() -> None:
-    """Number the events this process builds from now on (a manager process does).
-
-    Each event then carries `seq` 1, 2, 3, ...: a gap in the forwarded stream is a lost event.
-    """
+    """Number the events this process builds from now on (`seq`: 1, 2, ...; a manager process
+    does)."""
     global _numbering
     _numbering = True
 
@@ -229,15 +224,13 @@ class _Numbered(_Stamped):
 
 @_kind
 class ChildStarted(_Stamped):
-    """A supervisor started a child (at its start, in order, or when added), and it serves.
-
-    A start after an exit is a [`ChildRestarted`][rr_actors.events.ChildRestarted] instead.
+    """A supervisor started a child (at its start, or when added), and it serves; after an exit
+    it is a [`ChildRestarted`][rr_actors.events.ChildRestarted].
 
     Attributes:
         supervisor: name of the supervisor.
         child: name of the child (a manager or a nested supervisor).
-        pid: the child's process (the supervisor's own for a thread manager or a nested
-            supervisor).
+        pid: the child's process (the supervisor's for a thread manager or a supervisor).
     """
 
     supervisor: str
@@ -247,27 +240,20 @@ class ChildStarted(_Stamped):
 
 @_kind
 class ChildExited(_Stamped):
-    """A child's incarnation ended: it crashed, was killed, exited, or was stopped.
-
-    Published by the supervisor when it sees the exit, before it decides on a restart.
+    """A child's incarnation ended (crashed, killed, exited, stopped), before any restart.
 
     Attributes:
         supervisor: name of the supervisor.
         child: name of the child.
         pid: the process of the incarnation that ended (as `ChildStarted.pid`).
         reason: why it ended, for people (as `ChildInfo.last_exit`).
-        restart: the child's restart type (`"permanent"`, `"transient"`, `"temporary"`); `""`
-            in a line of schema 3 or older.
-        normal: whether it ended normally (OTP's `normal`/`shutdown`: a `transient` child that
-            ends so is not restarted).
-        stopped: whether the supervisor stopped it itself (a sibling taken down, a give-up, a
-            shutdown): not an exit its intensity counts.
+        restart: the child's restart type; `""` before schema 4.
+        normal: it ended normally (OTP's `normal`/`shutdown`: a `transient` child stays down).
+        stopped: the supervisor stopped it itself: not an exit its intensity counts.
         max_restarts: the supervisor's intensity: more restarts than this ...
         period: ... within this many seconds and it gives up (OTP).
-        strategy: the supervisor's strategy (`"one_for_one"`, `"one_for_all"`,
-            `"rest_for_one"`); `""` in a line of schema 5 or older.
-        children: the supervisor's children in start order (the strategy stops them in
-            reverse); `()` in a line of schema 5 or older.
+        strategy: the supervisor's restart strategy; `""` before schema 6.
+        children: the supervisor's children in start order; `()` before schema 6.
         at: when the supervisor saw it.
     """
 
@@ -292,8 +278,7 @@ class ChildRestarted(_Stamped):
         supervisor: name of the supervisor.
         child: name of the child.
         pid: the new incarnation's process (as `ChildStarted.pid`).
-        restart_s: seconds from the supervisor seeing the exit to the new incarnation serving,
-            backoff included.
+        restart_s: seconds from the exit seen to serving again, backoff included.
     """
 
     supervisor: str
@@ -306,12 +291,12 @@ class ChildRestarted(_Stamped):
 class SupervisorGaveUp(_Numbered):
     """A supervisor exceeded its restart intensity and stopped all its children (OTP).
 
-    A nested supervisor's parent then treats it as one crashed child; the top supervisor raises
-    `SupervisorGaveUpError` to whoever waits on it.
+    A nested one's parent treats it as a crashed child; the top one raises
+    `SupervisorGaveUpError`.
 
     Attributes:
         supervisor: name of the supervisor that gave up.
-        reason: why, for people (the `SupervisorGaveUpError`'s message).
+        reason: why (the `SupervisorGaveUpError`'s message).
         max_restarts: its intensity: at most this many restarts ...
         period: ... within this many seconds.
     """
@@ -324,12 +309,8 @@ class SupervisorGaveUp(_Numbered):
 
 @_kind
 class ManagerOverloaded(_Stamped):
-    """A manager process answered its heartbeat late, overloaded: not hung, not killed.
-
-    Published by its supervisor when a ping's answer came after more than the manager's
-    `heartbeat_timeout` and the silence was excused (its registrar busy with other messages, or
-    its threads waiting for a CPU); at most one per ping. A silence not excused ends in a kill
-    (`ChildExited`, `"hung: ..."`).
+    """A manager process answered its heartbeat late but excused (busy, or waiting for a CPU):
+    not hung, not killed. At most one per ping.
 
     Attributes:
         supervisor: name of its supervisor.
@@ -338,8 +319,7 @@ class ManagerOverloaded(_Stamped):
         silent_s: seconds from the ping to its answer.
         bound_s: its `heartbeat_timeout` (seconds).
         excused_s: seconds of the silence that did not count against it.
-        busy_s: seconds of it its registrar was seen handling other messages (the rest of
-            `excused_s` it waited for a CPU).
+        busy_s: seconds of it its registrar was seen busy (the rest: waiting for a CPU).
         queued: messages in its registrar's mailbox when last asked (-1: not asked).
     """
 
@@ -358,24 +338,18 @@ class ManagerOverloaded(_Stamped):
 
 @_kind
 class ResourceLoaded(_Numbered):
-    """A server's `load` callback returned: a new resource is served.
-
-    Published before the result is written and its first consumer answered (a kill in between:
-    the restart reports it [`InDoubt`][rr_actors.events.InDoubt]). A duplicate request is a
-    [`ConsumerAdded`][rr_actors.events.ConsumerAdded] only.
+    """A server's `load` returned: a new resource is served (before its first consumer is written
+    and answered; a duplicate request is a `ConsumerAdded` only).
 
     Attributes:
         registrar: name of the provider registrar.
-        server: name of the resource server that loaded it.
+        server: name of the resource server.
         resource_id: the new resource's id.
         query_id: the id of the query that caused the load (its first consumer).
-        load_s: seconds the `load` callback took (its dependencies' loads included).
-        digest: the catalog's digest of a request of plain values (`None` otherwise): equal
-            digests at one registrar and server are equal requests (rule 1).
-        label: the request's bounded display label: the server's `label(request)` (waited for
-            at most `compare_timeout`; `"<label failed: ...>"` if it failed), else the
-            catalog's bounded `repr`; `None` if it has none.
-        trace: the W3C `traceparent` the call carried (as `CallAnswered.trace`).
+        load_s: seconds the `load` took (its dependencies' loads included).
+        digest: the catalog's digest of a request of plain values, else `None` (rule 1).
+        label: the request's bounded label (`label(request)`, else a bounded `repr`), or `None`.
+        trace: as `CallAnswered.trace`.
     """
 
     registrar: str
@@ -390,14 +364,12 @@ class ResourceLoaded(_Numbered):
 
 @_kind
 class LoadFailed(_Numbered):
-    """A server's `load` callback raised; the call fails with `ResourceLoadError`.
-
-    Published by the registrar whose `load` raised, after the sub-resources it had loaded were
-    unloaded.
+    """A server's `load` raised (the call fails with `ResourceLoadError`), after what it had
+    loaded was unloaded.
 
     Attributes:
         registrar: name of the provider registrar.
-        server: name of the resource server whose `load` raised.
+        server: name of the resource server.
         resource_id: the id the resource would have had.
         query_id: the id of the query that caused the load.
         error_type: `type(exc).__name__`.
@@ -416,14 +388,12 @@ class LoadFailed(_Numbered):
 
 @_kind
 class ResourceUnloaded(_Numbered):
-    """A server's `unload` callback ran (or raised): its last consumer released it.
-
-    Published after its dependencies were released and its removal written, the event in the
-    same transaction: the supervisor reads it from the backup's outbox after a SIGKILL.
+    """A server's `unload` ran (or raised) after its last consumer went; written in the same
+    transaction as the removal.
 
     Attributes:
         registrar: name of the provider registrar.
-        server: name of the resource server that served it.
+        server: name of the resource server.
         resource_id: the resource's id.
     """
 
@@ -434,16 +404,13 @@ class ResourceUnloaded(_Numbered):
 
 @_kind
 class ConsumerAdded(_Numbered):
-    """A query became a consumer of a served resource (a new load or a duplicate request).
-
-    Published when the id is recorded (with `save_on_modify`, in the same transaction), before
-    the caller is answered.
+    """A query became a consumer of a served resource, before the caller is answered.
 
     Attributes:
         registrar: name of the provider registrar.
         resource_id: the resource's id.
         query_id: the consumer's query id.
-        consumer: name of the consumer registrar (the query's `origin_rr`).
+        consumer: name of the consumer registrar.
         trace: as `CallAnswered.trace`.
     """
 
@@ -456,23 +423,17 @@ class ConsumerAdded(_Numbered):
 
 @_kind
 class ConsumerReleased(_Numbered):
-    """A consumer id of a served resource was released (an `unload`, or its consumer died).
-
-    Published when the id is removed (with `save_on_modify`, in the same transaction); if it
-    was the last, a [`ResourceUnloaded`][rr_actors.events.ResourceUnloaded] follows.
+    """A consumer id of a served resource was released; a `ResourceUnloaded` follows the last.
 
     Attributes:
         registrar: name of the provider registrar.
         resource_id: the resource's id.
         query_id: the released query id.
         consumer: name of the consumer registrar that held it.
-        reason: `"unload"`, `"abandoned"` (its caller gave the call up), `"death watch"` (its
-            consumer died for good), `"reconcile"` (its consumer no longer held it after a
-            restart), `"consumer stopped"` (stopped while this registrar was down),
-            `"server unregistered"`, `"name yielded"` (another registrar of its name was kept
-            after a healed link, rule 22) or `"refused"` (the load's commit failed or its
-            server closed: the caller got an error).
-        trace: the `traceparent` the `Unload` carried (as `CallAnswered.trace`), else `""`.
+        reason: `"unload"`, `"abandoned"` (its caller gave up), `"death watch"`,
+            `"reconcile"`, `"consumer stopped"`, `"server unregistered"`, `"name yielded"`
+            (rule 22) or `"refused"` (the load's commit failed or its server closed).
+        trace: the `Unload`'s, as `CallAnswered.trace`.
     """
 
     registrar: str
@@ -488,24 +449,17 @@ class ConsumerReleased(_Numbered):
 
 @_kind
 class CallAnswered(_Numbered):
-    """A consumer's call was answered and the consumer holds its query id now.
-
-    Published by the consumer registrar when it recorded the answer (a durable one committed),
-    before its caller is answered; the id is held until a
-    [`QueryForgotten`][rr_actors.events.QueryForgotten] of it.
+    """A consumer's call was answered: the consumer holds its query id until a `QueryForgotten`.
 
     Attributes:
         registrar: name of the consumer registrar.
         query_id: the call's query id.
         serving_rr: name of the provider registrar.
         server: name of the resource server there.
-        parent: the resource of this registrar whose `load` made the call (rule 5), `None` for
-            a call of its own.
-        retry: the consumer already knew this id (it held it, or an earlier call with it
-            failed as its provider died, rule 17): no second consumer.
-        started: when `call`/`acall` was made, wall clock seconds; 0.0 if not known.
-        trace: the W3C `traceparent` the call carried (trace id, CLIENT span id, sampled flag:
-            `rr_actors.otel`), `""` when no OpenTelemetry span was current in the caller.
+        parent: the resource of this registrar whose `load` made the call (rule 5), or `None`.
+        retry: the consumer already knew this id (rule 17): no second consumer.
+        started: when the call was made, wall clock seconds; 0.0 if not known.
+        trace: the W3C `traceparent` the call carried (`rr_actors.otel`), `""` if untraced.
         caller_span: the id (16 hex) of the span current in the caller; `""` with `trace`.
     """
 
@@ -522,20 +476,17 @@ class CallAnswered(_Numbered):
 
 @_kind
 class CallFailed(_Numbered):
-    """A consumer's call failed: its caller got an error, and holds no query id.
-
-    A withdrawn call is a [`CallWithdrawn`][rr_actors.events.CallWithdrawn] instead.
+    """A consumer's call failed (not withdrawn): its caller got an error, and holds no id.
 
     Attributes:
         registrar: name of the consumer registrar.
         query_id: the call's query id.
         serving_rr: name of the provider registrar.
         server: name of the resource server there.
-        error_type: the error's type name (`RegistrarUnavailableError`, ...).
+        error_type: the error's type name.
         message: the error's message.
-        may_have_executed: the provider died or stopped with the call in flight and may hold
-            the id (rule 17): the consumer keeps it until it reconciled with the provider's
-            next start, and a retry with the same id finds what it holds.
+        may_have_executed: the provider went with the call in flight and may hold the id
+            (rule 17): the consumer keeps it until it reconciled with the provider's restart.
         retry: as `CallAnswered.retry`.
         started: as `CallAnswered.started`.
         trace: as `CallAnswered.trace`.
@@ -557,17 +508,14 @@ class CallFailed(_Numbered):
 
 @_kind
 class CallWithdrawn(_Numbered):
-    """A consumer's call was given up before its answer: nothing is left of it (rule 17).
-
-    Published after the caller told the provider to give the id back.
+    """A consumer's call was given up before its answer, the id given back (rule 17).
 
     Attributes:
         registrar: name of the consumer registrar.
         query_id: the call's query id.
         serving_rr: name of the provider registrar.
         server: name of the resource server there.
-        reason: `"timeout"` (`CallTimeoutError`), `"interrupted"` (its caller stopped waiting
-            with an exception) or `"registrar stopped"`.
+        reason: `"timeout"`, `"interrupted"` or `"registrar stopped"`.
         started: as `CallAnswered.started`.
         trace: as `CallAnswered.trace`.
         caller_span: as `CallAnswered.caller_span`.
@@ -592,8 +540,7 @@ class QueriesFetched(_Numbered):
         serving_rr: name of the provider registrar.
         server: name of the resource server there.
         query_ids: the ids the answer listed, in its order.
-        started: the `hlc` stamp when the fetch began: the provider read its catalog between
-            `started` and `hlc`.
+        started: the `hlc` stamp when it began: the provider read between it and `hlc`.
     """
 
     registrar: str
@@ -611,7 +558,7 @@ class ServerQueriesListed(_Numbered):
         registrar: name of the provider registrar.
         server: name of its resource server.
         query_ids: the ids the answer listed, in its order.
-        started: the `hlc` stamp when the listing began (as `QueriesFetched.started`).
+        started: as `QueriesFetched.started`.
     """
 
     registrar: str
@@ -622,30 +569,22 @@ class ServerQueriesListed(_Numbered):
 
 @_kind
 class QueryForgotten(_Numbered):
-    """A consumer forgot a query id a `CallAnswered` or its `CatalogRestored` showed it holding.
+    """A consumer forgot a query id it held.
 
     Attributes:
         registrar: name of the consumer registrar.
         query_id: the forgotten query id.
         serving_rr: name of the provider registrar that served it.
-        reason: `"unload"` (answered by the provider), `"unload unanswered"` (the provider
-            died or stopped: it releases the id when it reconciles), `"dependency"` (released
-            with its resource), `"stop"`, `"revoked"` (the provider's server was
-            unregistered: `FATAL`), `"provider lost"` (gone for good, rule 19: `FATAL`),
-            `"unknown at reconcile"` (the provider's restart lost it, rule 20: `FATAL`),
-            `"late dependency"` (answered after its load failed or was unloading),
-            `"registrar stopped"` (answered while this registrar stopped), `"withdrawn"` (a
-            retry given up by its caller) or `"in doubt"` (restored with its call in flight,
-            or a sub-call of a resource gone: given back at the restart).
-        unload_sent: for a release (`"unload"`, `"unload unanswered"`, `"dependency"`,
-            `"stop"`), the `hlc` stamp its `Unload` left at; else 0.
-        reconciled: with `unload_sent`, the stamp at which the last reconcile list with its
-            provider answered before that `Unload` left had left (rule 20); 0 if none. A
-            release that left before the reconcile with a restarted provider (without a
-            backup) owes no `FATAL` for the id.
-        trace: for an `unload`, the `traceparent` its `Unload` carried (as
-            `CallAnswered.trace`).
-        caller_span: with `trace`, the id (16 hex) of the span current in `unload`'s caller.
+        reason: `"unload"`, `"unload unanswered"` (the provider releases it when it
+            reconciles), `"dependency"`, `"stop"`, `"revoked"` (`FATAL`), `"provider lost"`
+            (rule 19, `FATAL`), `"unknown at reconcile"` (rule 20, `FATAL`), `"late
+            dependency"`, `"registrar stopped"`, `"withdrawn"` or `"in doubt"`.
+        unload_sent: for a release, the `hlc` stamp its `Unload` left at; else 0.
+        reconciled: with `unload_sent`, the stamp at which the last reconcile with its
+            provider answered before had left (rule 20: a release before a restarted
+            provider's reconcile owes no `FATAL`); 0 if none.
+        trace: for an `unload`, as `CallAnswered.trace`.
+        caller_span: with `trace`, as `CallAnswered.caller_span`.
     """
 
     registrar: str
@@ -663,10 +602,7 @@ class QueryForgotten(_Numbered):
 
 @_kind
 class StatusSent(_Numbered):
-    """A provider sent a status notification about a loaded resource (`send_status`).
-
-    Published before delivery starts; each consumer that receives it publishes a
-    [`StatusDelivered`][rr_actors.events.StatusDelivered].
+    """A provider sent a status about a loaded resource (`send_status`), before delivery.
 
     Attributes:
         registrar: name of the provider registrar.
@@ -685,17 +621,14 @@ class StatusSent(_Numbered):
 
 @_kind
 class StatusDelivered(_Numbered):
-    """A status notification reached one consumer (one hop on its way to the top).
-
-    Published once the client's status callback for this query ran (before the consumer passes
-    it on to its own consumers).
+    """A status reached one consumer: its client's status callback ran.
 
     Attributes:
         registrar: name of the consumer registrar that received it.
         query_id: the receiver's own query id for the resource.
         status: the status code.
-        hop: registrars the status crossed to get here (1: a direct consumer of the sender).
-        latency_s: seconds from `send_status` to this delivery, on the wall clock.
+        hop: registrars the status crossed (1: a direct consumer of the sender).
+        latency_s: seconds from `send_status` to this delivery, wall clock.
         status_id: its `StatusSent.status_id`; a query id gets each send once.
     """
 
@@ -709,22 +642,19 @@ class StatusDelivered(_Numbered):
 
 @_kind
 class StatusHandled(_Numbered):
-    """A consumer's status callback returned (or raised).
+    """A consumer's status callback returned (or raised), on its worker thread or loop.
 
-    Published on the callback's worker thread (a coroutine's: its loop's thread), after its
-    `StatusDelivered`. With `arrived`, `began` and `opened` a checker judges rule 9 (check
-    `status-order`): an id's callbacks run one at a time in arrival order, the next beginning
-    early only once this one waited for a registrar (`opened`).
+    A checker judges rule 9 (`status-order`) with `arrived`, `began` and `opened`: an id's
+    callbacks run one at a time in arrival order, the next early only once this one waited.
 
     Attributes:
-        registrar: name of the consumer registrar whose client's callback it was.
+        registrar: name of the consumer registrar.
         query_id: the receiver's own query id (the callback's `query.id`).
         status: the status code.
         status_id: its `StatusSent.status_id`.
         arrived: the callback's place in its process's arrival order (1, 2, ...).
         began: the `hlc` stamp as it began; it returned at `hlc`.
-        opened: the stamp at which it first waited for a registrar (a `send_status`, `call`
-            or `unload` from inside it), 0 if it never did.
+        opened: the stamp at which it first waited for a registrar, 0 if it never did.
     """
 
     registrar: str
@@ -738,15 +668,12 @@ class StatusHandled(_Numbered):
 
 @_kind
 class UnloadCutShort(_Numbered):
-    """A clean `stop()` ended while a resource's unload was still under way.
-
-    `stop()` waits at most half its timeout for its resources' unloads; one still under way is
-    cut short: its callback runs on to its end (its result goes nowhere) and the resource stays
-    in the backup as unloading, reported `InDoubt` (`cut="unload"`, rule 16) at the next start.
+    """A clean `stop()` gave up waiting (half its timeout) for an unload under way: the callback
+    runs on, and the next start reports it `InDoubt` (`cut="unload"`, rule 16).
 
     Attributes:
         registrar: name of the provider registrar that stopped.
-        server: name of the resource server whose unload was cut short.
+        server: name of the resource server.
         resource_id: the resource's id.
     """
 
@@ -757,18 +684,15 @@ class UnloadCutShort(_Numbered):
 
 @_kind
 class ServerOverloaded(_Numbered):
-    """A server refused new loads: it had its `max_pending` loads queued or running.
-
-    Published at a server's first refusal, then at most once a second while refusals go on
-    (each refused call's `CallFailed` says how it ended). Shed loads are `LoadFailed`
-    (`DeadlineExceededError`).
+    """A server refused new loads at its `max_pending`: at its first refusal, then at most once a
+    second (shed loads are `LoadFailed`, `DeadlineExceededError`).
 
     Attributes:
         registrar: name of the provider registrar.
         server: name of the server.
-        pending: its new loads queued or running at this refusal.
-        bound: its `max_pending` (its own, or its registrar's).
-        refused: calls it refused since its previous `ServerOverloaded`, this one's included.
+        pending: its new loads queued or running.
+        bound: its `max_pending`.
+        refused: calls it refused since its previous `ServerOverloaded`, this one included.
     """
 
     registrar: str
@@ -783,10 +707,8 @@ class ServerOverloaded(_Numbered):
 
 @_kind
 class InDoubt(_Numbered):
-    """A restarted registrar found a query whose load started but was never committed (rule 16).
-
-    Published at every restore that finds it, with the same `query_id`: an entry stays in the
-    backup until a `setup` offered it returned (`ResourceRegistrar.settle_in_doubt`).
+    """A restarted registrar found a load started but never committed (rule 16): at every restore
+    until a `setup` offered it returned (`ResourceRegistrar.settle_in_doubt`).
 
     Attributes:
         registrar: name of the restored registrar.
@@ -803,16 +725,13 @@ class InDoubt(_Numbered):
 
 @_kind
 class EventsDropped(_Numbered):
-    """Events were lost here: a queue was full, or a manager process was killed.
-
-    Delivered in the stream where the gap is, after the events that did arrive.
+    """Events were lost here, at this place in the stream.
 
     Attributes:
         count: how many events were lost in this gap.
-        cause: `"full"` (a subscriber's queue, a forwarder's buffer or a bound on bytes),
-            `"killed"` (a dead manager process's events built but not forwarded, counted by
-            its supervisor after the exit) or `"refused"` (a batch no member's certificate
-            sealed, at a TLS `ZenohNetwork.subscribe_events`).
+        cause: `"full"` (a queue, a buffer or a bound on bytes), `"killed"` (a dead manager
+            process's events not forwarded, counted by its supervisor) or `"refused"` (a
+            batch no member's certificate sealed).
         pid: the process that lost them.
     """
 
@@ -831,24 +750,21 @@ LISTED_ROWS = 10_000
 
 @_kind
 class CatalogRestored(_Numbered):
-    """A registrar with a backup started: what its catalog holds, before it serves.
+    """A registrar with a backup started: what its catalog holds, before setup and any call.
 
-    Published once per start with a backup (an empty or new one too), before setup and any
-    call; a checker re-synchronises here. In-doubt resources are listed, then reported by
-    `InDoubt`.
+    A checker re-synchronises here; in-doubt resources are listed, then reported `InDoubt`.
 
     Attributes:
         registrar: name of the restored registrar.
         resources: `(resource id, server, state, digest, failed)` per served resource: `state`
-            `"loaded"`, `"loading"` or `"unloading"`, `digest` in decimal (`""` if none),
-            `failed` `"failed"` if reported `FATAL`, else `""`.
+            `"loaded"`, `"loading"` or `"unloading"`, `digest` in decimal or `""`, `failed`
+            `"failed"` (reported `FATAL`) or `""`.
         consumers: `(query id, resource id, consumer registrar)` per consumer id.
         clients: `(query id, serving registrar, server, parent resource id or "")` per query
             this registrar holds.
         counts: `(resources, consumers, clients)`.
-        complete: `False` when a kind had more than `LISTED_ROWS` rows: none are listed.
-        digest: a SHA-256 (hex, first 16 digits) of the three kinds' sorted rows; `""` when
-            they are not listed.
+        complete: `False` when a kind had over `LISTED_ROWS` rows: none are listed.
+        digest: SHA-256 (16 hex) of the sorted rows; `""` when they are not listed.
     """
 
     registrar: str
@@ -862,11 +778,7 @@ class CatalogRestored(_Numbered):
 
 @_kind
 class RegistrarStopped(_Numbered):
-    """A registrar stopped cleanly: what its catalog still holds at the end (rule 12).
-
-    Published when `stop()` finished unloading what it held as a consumer; a killed registrar
-    publishes none. Its fields are `CatalogRestored`'s.
-    """
+    """A registrar stopped cleanly (rule 12): what its catalog still holds, as `CatalogRestored`."""
 
     registrar: str
     resources: Rows

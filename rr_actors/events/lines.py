@@ -188,7 +188,7 @@ def _shown(value: object) -> str:
     return reprlib.repr(value)
 
 
-def _converter(event: str, field: str, kind: Any) -> Callable[[Any], Any]:  # noqa: PLR0911
+def _converter(event: str, field: str, kind: Any) -> Callable[[Any], Any]:
     """The checker of one field's value (a status name becomes a `Status`)."""
     args = typing.get_args(kind)
 
@@ -209,14 +209,14 @@ def _converter(event: str, field: str, kind: Any) -> Callable[[Any], Any]:  # no
             return tuple(item(v) for v in value)
 
         return items
-    if kind is str:
+    if kind is str or kind is bool:
 
-        def text(value: Any) -> str:
-            if type(value) is not str:
+        def exact(value: Any) -> Any:
+            if type(value) is not kind:
                 raise wrong(value)
             return value
 
-        return text
+        return exact
     if kind is float:
 
         def real(value: Any) -> float:
@@ -247,14 +247,6 @@ def _converter(event: str, field: str, kind: Any) -> Callable[[Any], Any]:  # no
             return value
 
         return whole
-    if kind is bool:
-
-        def flag(value: Any) -> bool:
-            if type(value) is not bool:
-                raise wrong(value)
-            return value
-
-        return flag
     if kind is Status:
 
         def status(value: Any) -> Status:

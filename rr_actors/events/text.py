@@ -4,39 +4,12 @@ from __future__ import annotations
 
 import typing
 
-from rr_actors.events.kinds import (
-    CallAnswered,
-    CallFailed,
-    CallWithdrawn,
-    CatalogRestored,
-    ChildExited,
-    ChildRestarted,
-    ChildStarted,
-    ConsumerAdded,
-    ConsumerReleased,
-    Event,
-    EventsDropped,
-    InDoubt,
-    LoadFailed,
-    ManagerOverloaded,
-    QueriesFetched,
-    QueryForgotten,
-    RegistrarStopped,
-    ResourceLoaded,
-    ResourceUnloaded,
-    ServerOverloaded,
-    ServerQueriesListed,
-    StatusDelivered,
-    StatusHandled,
-    StatusSent,
-    SupervisorGaveUp,
-    UnloadCutShort,
-)
+from rr_actors.events import kinds
 
 __all__ = ["describe"]
 
 
-def describe(event: Event) -> str:  # noqa: PLR0911, PLR0912 - one case per event kind
+def describe(event: kinds.Event) -> str:  # noqa: PLR0911, PLR0912 - one case per event kind
     """Return one human line about `event` (the INFO log line and terminal timelines).
 
     Ids are shortened to their first 8 characters; durations are in ms below a second.
@@ -50,124 +23,124 @@ def describe(event: Event) -> str:  # noqa: PLR0911, PLR0912 - one case per even
         One line without a line break, for example `"erm restarted after 23.1 ms (pid 4242)"`.
     """
     match event:
-        case ChildStarted():
+        case kinds.ChildStarted():
             return f"{event.child} started (pid {event.pid})"
-        case ChildExited():
+        case kinds.ChildExited():
             return f"{event.child} exited: {_text(event.reason)} (pid {event.pid})"
-        case ChildRestarted():
+        case kinds.ChildRestarted():
             return f"{event.child} restarted after {_seconds(event.restart_s)} (pid {event.pid})"
-        case SupervisorGaveUp():
+        case kinds.SupervisorGaveUp():
             return (
                 f"supervisor {event.supervisor} gave up (more than {event.max_restarts} "
                 f"restarts within {event.period:g} s): {_text(event.reason)}"
             )
-        case ManagerOverloaded():
+        case kinds.ManagerOverloaded():
             return (
                 f"{event.manager} is overloaded, not hung: it answered its heartbeat after "
                 f"{_seconds(event.silent_s)} (bound {_seconds(event.bound_s)}), "
                 f"{_seconds(event.excused_s)} of it excused (its registrar busy for "
                 f"{_seconds(event.busy_s)}, {event.queued} messages queued) (pid {event.pid})"
             )
-        case ResourceLoaded():
+        case kinds.ResourceLoaded():
             return (
                 f"{event.registrar}/{event.server} loaded {_id(event.resource_id)} "
                 f"in {_seconds(event.load_s)} (query {_id(event.query_id)})"
             )
-        case LoadFailed():
+        case kinds.LoadFailed():
             return (
                 f"{event.registrar}/{event.server} failed to load {_id(event.resource_id)} "
                 f"(query {_id(event.query_id)}): {event.error_type}: {_text(event.message)}"
             )
-        case ResourceUnloaded():
+        case kinds.ResourceUnloaded():
             return f"{event.registrar}/{event.server} unloaded {_id(event.resource_id)}"
-        case ConsumerAdded():
+        case kinds.ConsumerAdded():
             return (
                 f"{event.registrar}: {event.consumer} consumes {_id(event.resource_id)} "
                 f"(query {_id(event.query_id)})"
             )
-        case ConsumerReleased():
+        case kinds.ConsumerReleased():
             why = "" if event.reason == "unload" else f", {event.reason}"
             return (
                 f"{event.registrar}: {event.consumer} released {_id(event.resource_id)} "
                 f"(query {_id(event.query_id)}{why})"
             )
-        case CallAnswered():
+        case kinds.CallAnswered():
             of = "" if event.parent is None else f" for {_id(event.parent)}"
             again = ", a retry" if event.retry else ""
             return (
                 f"{event.registrar}: call {_id(event.query_id)} to "
                 f"{event.serving_rr}/{event.server} answered{of}{again}"
             )
-        case CallFailed():
+        case kinds.CallFailed():
             maybe = " (it may have executed: held until reconciled)" * event.may_have_executed
             return (
                 f"{event.registrar}: call {_id(event.query_id)} to "
                 f"{event.serving_rr}/{event.server} failed{maybe}: {event.error_type}: "
                 f"{_text(event.message)}"
             )
-        case CallWithdrawn():
+        case kinds.CallWithdrawn():
             return (
                 f"{event.registrar}: call {_id(event.query_id)} to "
                 f"{event.serving_rr}/{event.server} withdrawn ({event.reason})"
             )
-        case QueriesFetched():
+        case kinds.QueriesFetched():
             return (
                 f"{event.registrar} fetched {len(event.query_ids)} queries it holds at "
                 f"{event.serving_rr}/{event.server}"
             )
-        case ServerQueriesListed():
+        case kinds.ServerQueriesListed():
             return (
                 f"{event.registrar} listed {len(event.query_ids)} queries of its server "
                 f"{event.server}"
             )
-        case QueryForgotten():
+        case kinds.QueryForgotten():
             return (
                 f"{event.registrar} forgot query {_id(event.query_id)} held at "
                 f"{event.serving_rr} ({event.reason})"
             )
-        case StatusSent():
+        case kinds.StatusSent():
             return (
                 f"{event.registrar} sent {event.status.name} for query {_id(event.query_id)}: "
                 f"{_text(event.message)}"
             )
-        case StatusDelivered():
+        case kinds.StatusDelivered():
             return (
                 f"{event.registrar} received {event.status.name} for query "
                 f"{_id(event.query_id)} (hop {event.hop}, {_seconds(event.latency_s)} after "
                 f"it was sent)"
             )
-        case StatusHandled():
+        case kinds.StatusHandled():
             waited = " (it waited for a registrar)" if event.opened else ""
             return (
                 f"{event.registrar}: the callback of {event.status.name} for query "
                 f"{_id(event.query_id)} returned{waited}"
             )
-        case InDoubt():
+        case kinds.InDoubt():
             cut = event.cut or "load"
             return (
                 f"{event.registrar}: query {_id(event.query_id)} is in doubt "
                 f"(its {cut} started before a crash and was never committed; found at each "
                 f"restart until a setup offered it returns)"
             )
-        case CatalogRestored():
+        case kinds.CatalogRestored():
             return f"{event.registrar} restored its catalog: {_counts(event.counts)}"
-        case RegistrarStopped():
+        case kinds.RegistrarStopped():
             return f"{event.registrar} stopped, its catalog holding {_counts(event.counts)}"
-        case ServerOverloaded():
+        case kinds.ServerOverloaded():
             return (
                 f"{event.registrar}/{event.server} is overloaded: {event.pending} loads queued "
                 f"or running (max_pending={event.bound}), {event.refused} calls refused"
             )
-        case UnloadCutShort():
+        case kinds.UnloadCutShort():
             return (
                 f"{event.registrar}/{event.server}: the unload of {_id(event.resource_id)} was "
                 f"cut short by a stop (in doubt at the next start)"
             )
-        case EventsDropped(cause="killed"):
+        case kinds.EventsDropped(cause="killed"):
             return f"{event.count} events of process {event.pid} lost: it died before it sent them"
-        case EventsDropped(cause="refused"):
+        case kinds.EventsDropped(cause="refused"):
             return f"{event.count} events refused: no member's certificate sealed them"
-        case EventsDropped():
+        case kinds.EventsDropped():
             return f"{event.count} events dropped (a subscriber or forwarder fell behind)"
     typing.assert_never(event)
 
