@@ -1,10 +1,9 @@
 """rr_actors: TeMoto's Resource Registrar as a Python actor framework.
 
-Registrars, resource servers and clients are pykka actors; the docs hold a tutorial, the
-semantics (`docs/explanation/semantics.md`) and the architecture. `import rr_actors`
-imports the errors, the configuration and the status types; the runtime is imported at
-the first use of one of its names (PEP 562), so a program that only configures pays for
-none of it.
+Registrars, resource servers and clients are pykka actors; the docs hold a tutorial, the semantics
+(`docs/explanation/semantics.md`) and the architecture. `import rr_actors` imports the errors, the
+configuration and the status types; the runtime is imported at the first use of one of its names
+(PEP 562), so a program that only configures pays for none of it.
 """
 
 import importlib
@@ -26,8 +25,7 @@ from rr_actors.errors import (
 )
 
 # isort: split
-# The names `__all__` listed before it was cut to what a program uses (issue 54), still
-# importable from here: a program written against them runs on.
+# The names `__all__` listed before issue 54, still importable from here.
 from rr_actors.config import MAX_DEPENDENCY_DEPTH  # noqa: F401
 from rr_actors.errors import (  # noqa: F401
     CatalogCorruptError,

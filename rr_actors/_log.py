@@ -7,12 +7,11 @@
                                                         on a terminal wrapped at words
                                                         to its width
 
-Python's last-resort handler prints a bare message; this one (installed at `import
-rr_actors`) says the level and the logger, and gets out of the way as soon as the
-application configures logging, before or after the import. As asyncio's, a library's
-warnings reach a terminal by default and are never silently lost. On a terminal a message
-wraps at words to its width (`COLUMNS`, else the window's), further lines indented; a
-traceback, and any line in a pipe or a file, stay whole.
+Python's last-resort handler prints a bare message; this one (installed at `import rr_actors`) says
+the level and the logger, and gets out of the way as soon as the application configures logging,
+before or after the import. As asyncio's, a library's warnings reach a terminal by default and are
+never silently lost. On a terminal a message wraps at words to its width (`COLUMNS`, else the
+window's), further lines indented; a traceback, and any line in a pipe or a file, stay whole.
 """
 
 from __future__ import annotations
@@ -80,8 +79,6 @@ def terminal_width(stream: TextIO) -> int | None:
 
 
 def _wrapped(text: str, message_lines: int, width: int) -> str:
-    """`text` with its first `message_lines` lines wrapped to `width`; a traceback after them as
-    it is."""
     lines = text.split("\n")
     head = [wrap(line, width) for line in lines[:message_lines]]
     return "\n".join([*head, *lines[message_lines:]])

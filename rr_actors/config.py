@@ -137,25 +137,24 @@ class RegistrarConfig:
     Attributes:
         name: registrar name, unique within its system (`NAME`, at most 64 characters).
         backup_path: SQLite file that keeps the catalog, or `None` for an in-memory catalog.
-        save_interval: with a backup, flush changes every this many seconds (`None`: never on
-            a timer); a crash loses at most one interval of changes.
+        save_interval: with a backup, flush changes every this many seconds (`None`: never on a
+            timer); a crash loses at most one interval of changes.
         save_on_modify: with a backup, every load and unload is durable before its answer.
         erase_on_destruct: remove the backup after a clean `stop()` (a crash keeps it).
         call_timeout: default `timeout` of every blocking call, in seconds.
-        durability: `"process"` survives a crash of the process (SQLite
-            `synchronous=NORMAL`), `"power"` also power loss (`synchronous=FULL`, slower).
+        durability: `"process"` survives a crash of the process (SQLite `synchronous=NORMAL`),
+            `"power"` also power loss (`synchronous=FULL`, slower).
         max_workers: worker threads running its callbacks at once; more wait, in order.
-        compare_timeout: seconds user code matching a request without a digest may run
-            (`__eq__`, `__hash__`, pickling); past them the call fails with `CallTimeoutError`.
-        unload_timeout: seconds an `unload` may run (`None`: no bound); past them the resource
-            is dropped as failed and a waiting caller gets `CallTimeoutError`.
-        max_message_bytes: the largest pickled message to or from this registrar across
-            processes (default 16 MiB); a larger one fails its call with
-            `MessageTooLargeError`, before a request is sent.
-        max_pending: new loads each server may have queued or running (default 1000; a
-            server's own `register_server(..., max_pending=)` wins; several consumers each
-            get a share). Past it a call waits and asks again within its `timeout`, then
-            raises `OverloadedError`.
+        compare_timeout: seconds user code matching a request without a digest may run (`__eq__`,
+            `__hash__`, pickling); past them the call fails with `CallTimeoutError`.
+        unload_timeout: seconds an `unload` may run (`None`: no bound); past them the resource is
+            dropped as failed and a waiting caller gets `CallTimeoutError`.
+        max_message_bytes: the largest pickled message to or from this registrar across processes
+            (default 16 MiB); a larger one fails its call with `MessageTooLargeError`, before a
+            request is sent.
+        max_pending: new loads each server may have queued or running (default 1000; a server's own
+            `register_server(..., max_pending=)` wins; several consumers each get a share). Past it
+            a call waits and asks again within its `timeout`, then raises `OverloadedError`.
 
     Raises:
         ConfigError: a field is invalid; the message names it.

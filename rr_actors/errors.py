@@ -65,8 +65,7 @@ class DuplicateNameError(ConfigError):
 
 
 class DuplicateQueryIdError(ConfigError):
-    """A call reused a query id that names another call (another request or server) at its
-    provider.
+    """A call reused a query id that names another call (another request or server) at its provider.
 
     A retry must repeat the same request to the same server; the provider changed nothing.
     """
@@ -76,8 +75,8 @@ class MessageTooLargeError(ConfigError):
     """A message is larger than the receiving registrar's `max_message_bytes`.
 
     Raised at the sender before anything is sent, or instead of an answer too large (the call's
-    consumer id is released). A `ConfigError`: sending it again fails the same way; send less,
-    or raise `RegistrarConfig.max_message_bytes`.
+    consumer id released). Sending it again fails the same way: send less, or raise
+    `RegistrarConfig.max_message_bytes`.
 
     Attributes:
         size: the message's size in bytes, pickled.
@@ -96,15 +95,12 @@ class MessageTooLargeError(ConfigError):
 class MissingExtraError(ConfigError, ImportError):
     """What was asked for needs an optional extra of rr-actors that is not installed.
 
-    The message is one short line with the command that installs it (`rr.ZenohNetwork needs an
-    extra: pip install -e ".[zenoh]"`); the failed import is its `__cause__`. Also an
-    `ImportError`, which code trying an optional import catches; the command line prints the
-    line and exits with 2.
+    One short line with the command that installs it (`rr.ZenohNetwork needs an extra: pip
+    install -e ".[zenoh]"`); the failed import is its `__cause__`. Also an `ImportError`.
 
     Attributes:
-        what: what needs the extra (`"rr.ZenohNetwork"`, `"--hosts 2"`; `""`: the whole
-            command).
-        extra: the extra's name in `pyproject.toml` (`"zenoh"`, `"observe"`, ...).
+        what: what needs the extra (`""`: the whole command).
+        extra: the extra's name in `pyproject.toml`.
         command: the command that installs it.
     """
 
@@ -150,27 +146,20 @@ class CallTimeoutError(RrError, TimeoutError):
 
 class DeadlineExceededError(CallTimeoutError):
     """A load was shed before it started: its caller's `timeout` left less than 1.5 times what
-    the server's loads take lately.
-
-    Raised at once: nothing was loaded and the provider holds nothing for the call. A
-    `CallTimeoutError`. Retry later or with a longer timeout.
+    the server's loads take lately. Nothing was loaded; retry later or with a longer timeout.
     """
 
 
 class OverloadedError(RrError):
-    """A server had its `max_pending` loads under way (or the caller its share of them) for as
-    long as the call could wait.
-
-    A refused call waits and asks again while its `timeout` lasts; this is raised when too
-    little is left, or at once with `call(..., if_overloaded="raise")`. The provider holds
-    nothing of the call.
+    """A server had its `max_pending` loads under way (or the caller its share) for as long as
+    the call could wait (or at once, with `if_overloaded="raise"`). The provider holds nothing.
 
     Attributes:
         registrar: the provider registrar's name.
         server: the server's name there.
-        bound: its registrar's `max_pending` (loads queued or running, per server).
+        bound: its registrar's `max_pending` (per server).
         retry_after: seconds after which the provider expects a slot for this caller (as
-            HTTP's `Retry-After`); `None` when it has no estimate yet.
+            HTTP's `Retry-After`); `None` without an estimate.
     """
 
     def __init__(
@@ -228,8 +217,8 @@ class CatalogWriteError(RrError):
 
     Attributes:
         path: the backup file.
-        cause: what went wrong (`"ENOSPC (No space left on device): ..."`).
-        errno: the OS error number when it is known, else `None`.
+        cause: what went wrong.
+        errno: the OS error number, if known.
     """
 
     def __init__(self, path: str, cause: str, errno: int | None = None) -> None:
@@ -247,11 +236,8 @@ class SupervisorGaveUpError(RrError):
 
 
 class TransferError(RrError):
-    """A message, its answer, or an error could not cross between processes.
-
-    It did not pickle in the sender or unpickle in the receiver; the message says which and
-    why. Where rr_actors can tell before sending it raises `ConfigError`; a lost `Load` answer
-    is a `ResourceLoadError` (its consumer id released).
+    """A message, its answer, or an error did not pickle in the sender or unpickle in the
+    receiver (the message says which and why).
     """
 
 
@@ -262,14 +248,9 @@ class InternalError(RrError):
 
 @dataclasses.dataclass(frozen=True)
 class ErrorFrame:
-    """One failed load's part of a [`ResourceLoadError`][rr_actors.errors.ResourceLoadError] stack.
-
-    Attributes:
-        registrar: name of the registrar whose server failed to load.
-        server: name of that resource server.
-        exc_type: qualified name of the exception raised there.
-        message: `str()` of that exception.
-        traceback: formatted traceback text, as produced where it was raised.
+    """One failed load's part of a [`ResourceLoadError`][rr_actors.errors.ResourceLoadError] stack:
+    the `registrar` and `server` that failed, the exception's qualified name (`exc_type`), its
+    `str()` (`message`) and its formatted `traceback`.
     """
 
     registrar: str
@@ -290,10 +271,9 @@ class ResourceLoadError(RrError):
     """A `load` callback raised, here or further down the dependency chain.
 
     Like TeMoto's `TemotoErrorStack` (thesis 4.3.4): `stack` holds one
-    [`ErrorFrame`][rr_actors.errors.ErrorFrame] per load it failed on its way up (one per
-    registrar or server crossed), the origin first. Sub-resources loaded inside the failed load
-    were unloaded first. The origin's traceback is its `__cause__` (as `concurrent.futures`
-    does), set again when it is unpickled.
+    [`ErrorFrame`][rr_actors.errors.ErrorFrame] per load it failed through, the origin first,
+    whose traceback is its `__cause__` (as `concurrent.futures` does). Sub-resources loaded
+    inside the failed load were unloaded first.
     """
 
     def __init__(self, stack: tuple[ErrorFrame, ...]) -> None:

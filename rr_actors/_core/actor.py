@@ -82,8 +82,7 @@ def mark_awaiting(on: bool) -> None:
 
 T = TypeVar("T")
 
-# The shapes of pykka's own (private) aliases for what `sys.exc_info()` returns and for a
-# get hook.
+# pykka's own (private) aliases: what `sys.exc_info()` returns, and a get hook
 OptExcInfo: TypeAlias = tuple[
     type[BaseException] | None, BaseException | None, TracebackType | None
 ]
@@ -325,8 +324,7 @@ class Actor(pykka.ThreadingActor):
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
-        # pykka makes these with `threading` and `uuid`: the runtime's instead (a
-        # simulation's event and seeded id, in a simulation)
+        # pykka makes these with `threading` and `uuid`: the runtime's instead
         stopped = runtime.Event()
         self.actor_stopped = self._actor_ref.actor_stopped = stopped
         self.actor_urn = self._actor_ref.actor_urn = f"urn:uuid:{runtime.new_id()}"
@@ -467,8 +465,7 @@ class Actor(pykka.ThreadingActor):
     def on_late(self, envelope: Any) -> None:
         """Handle an envelope that arrived after this actor's loop ended.
 
-        Runs on the actor's thread for what was left, on the sender's thread for what comes
-        later;
+        Runs on the actor's thread for what was left, on the sender's thread for what comes later;
         by default `refuse`. Override it (thread-safely) for tells that carry obligations.
         """
         refuse(envelope)
@@ -477,8 +474,7 @@ class Actor(pykka.ThreadingActor):
 def _forget_actors() -> None:
     """In a forked child: every actor of the parent is dead (its refs' `actor_stopped` set).
 
-    New events and a new registry lock: a parent's thread may have held the old ones at the
-    fork.
+    New events and a new registry lock: a parent's thread may have held the old ones at the fork.
     """
     pykka.ActorRegistry._actor_refs_lock = runtime.RLock()
     for ref in pykka.ActorRegistry.get_all():
@@ -492,7 +488,6 @@ forkserver.after_fork_in_child("the parent's actors", _forget_actors)
 
 
 def _fresh_registry() -> object:
-    """pykka's registry (its private fields) in a process that starts: no actors."""
     return types.SimpleNamespace(_actor_refs=[], _actor_refs_lock=runtime.RLock())
 
 

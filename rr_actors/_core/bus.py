@@ -44,13 +44,12 @@ class Publisher(Generic[E]):
     Publish only when someone listens (`if publisher.active: publisher.publish(...)`).
 
     Args:
-        logger: each event is also logged at INFO there, as `describe(event)` with the event
-            in the record (`record.event`); `None` for no log lines.
-        describe: the log line of an event (called on the publishing thread).
-        notice: `notice(count)` makes the item a subscriber gets after it lost `count` events
-            (`None`: they are counted and logged only).
-        tap: a publisher also handed every event published here (once, where it happened);
-            this one is `active` whenever `tap` has a listener.
+        logger: where each event is also logged at INFO (`describe(event)`, the event in
+            `record.event`); `None`: no log lines.
+        describe: the log line of an event.
+        notice: `notice(count)`, the item a subscriber gets after losing `count` events.
+        tap: a publisher also handed each event published here; this one is `active`
+            whenever `tap` has a listener.
     """
 
     def __init__(
@@ -165,23 +164,17 @@ class Publisher(Generic[E]):
         maxbytes: int | None = None,
         weigh: Callable[[E], int] | None = None,
     ) -> Subscription[E]:
-        """Call `callback(event)` for every event published from now on until closed.
+        """Call `callback(event)` on a thread of its own for every event from now on until closed.
 
         Args:
-            callback: runs on the subscription's own daemon thread, one event at a time, in
-                publish order.
-            maxsize: events the subscription's queue holds before it drops new ones.
+            callback: runs on the subscription's daemon thread, one event at a time, in order.
+            maxsize: events its queue holds before it drops new ones.
             name: for its thread's name and log lines (default `subscriber-<n>`).
-            maxbytes: with `weigh`, bytes the events queued may weigh before new ones are
-                dropped.
-            weigh: `weigh(event)`, an event's weight in bytes (on the publishing thread).
-
-        Returns:
-            The subscription; `close()` it (or use it in a `with` block).
+            maxbytes: with `weigh`, bytes its queued events may weigh before new ones drop.
+            weigh: an event's weight in bytes (run on the publishing thread).
 
         Raises:
-            ConfigError: `callback` is not callable, `maxsize` not a positive int, or `maxbytes`
-                not a positive int given with `weigh`.
+            ConfigError: `callback` is not callable, or `maxsize` or `maxbytes` not a positive int.
         """
         subscription = Subscription(
             callback,

@@ -50,10 +50,8 @@ class Peer(Protocol):
         """Send `message`; raise `RegistrarUnavailableError` if the registrar is dead."""
 
     def deliver(self, message: Any) -> None:
-        """`tell`, from a thread that holds no lock (a carrier's reader, or a loop's thread
-        stepping
-        an awaited call, not to a durable registrar): an idle local registrar may handle it
-        there.
+        """`tell`, from a thread that holds no lock (a carrier's reader, or a loop's thread stepping
+        an awaited call, not to a durable registrar): an idle local registrar may handle it there.
         """
 
 
@@ -63,8 +61,7 @@ class LocalPeer:
     Args:
         name: the registrar's name.
         ref: its actor (`None`: set by the actor when it starts).
-        durable: its steps write to disk before they answer: a loop's thread never takes its
-            turn.
+        durable: its steps write to disk before they answer: a loop's thread never takes its turn.
     """
 
     def __init__(

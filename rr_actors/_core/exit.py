@@ -1,8 +1,8 @@
 """Stop what a program left running when its main thread ends.
 
-A Zenoh session's threads are not daemons: one left open keeps the interpreter waiting.
-So that a script that forgets `stop()` or `close()` still ends cleanly, every running
-supervisor, registrar and network is listed here:
+A Zenoh session's threads are not daemons: one left open keeps the interpreter waiting. So that a
+script that forgets `stop()` or `close()` still ends cleanly, every running supervisor, registrar
+and network is listed here:
 
 ```
  main thread ends (returns, or an exception's traceback was printed)
@@ -15,8 +15,7 @@ supervisor, registrar and network is listed here:
          and runs atexit
 ```
 
-A Ctrl-C that reaches the top of the main thread prints one line (`python -X dev`: the
-traceback).
+A Ctrl-C that reaches the top of the main thread prints one line (`python -X dev`: the traceback).
 """
 
 from __future__ import annotations

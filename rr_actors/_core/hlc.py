@@ -1,19 +1,18 @@
 """A hybrid logical clock (Kulkarni et al., 2014): one per process, stamps events and messages.
 
-A stamp orders cause before effect across hosts, whatever their clocks say, and is the
-physical time wherever the clocks agree. It is one 64-bit int (one sort key, one JSON
-number, 8 bytes):
+A stamp orders cause before effect across hosts, whatever their clocks say, and is the physical time
+wherever the clocks agree. It is one 64-bit int (one sort key, one JSON number, 8 bytes):
 
 ```
  stamp = l << COUNTER_BITS | c        l: microseconds since the epoch (52 bits: until 2112)
                                       c: the counter (COUNTER_BITS = 12 bits)
 ```
 
-A local event takes `max(last + 1, physical << COUNTER_BITS)`, a receipt also `stamp + 1`.
-A stamp more than `max_offset` ahead is refused, and the clock never leaves its 64 bits:
-why, in docs/explanation/failure-semantics.md ("Its clock stamps"). The Zenoh carrier
-carries stamps (`receive`); one host's processes share a clock. `RR_ACTORS_CLOCK_SKEW`
-(seconds, at import) or `CLOCK.physical` skews it for tests.
+A local event takes `max(last + 1, physical << COUNTER_BITS)`, a receipt also `stamp + 1`. A stamp
+more than `max_offset` ahead is refused, and the clock never leaves its 64 bits: why, in
+docs/explanation/failure-semantics.md ("Its clock stamps"). The Zenoh carrier carries stamps
+(`receive`); one host's processes share a clock. `RR_ACTORS_CLOCK_SKEW` (seconds, at import) or
+`CLOCK.physical` skews it for tests.
 """
 
 from __future__ import annotations
@@ -183,8 +182,7 @@ class HybridClock:
         """Take in the stamp a message brought, before it is handled; the receipt's stamp.
 
         A stamp not an int in 0..2**64-1 is ignored, one more than `max_offset` ahead refused
-        (counted, a WARNING at most once a minute naming `sender`): the clock then ticks as for
-        a
+        (counted, a WARNING at most once a minute naming `sender`): the clock then ticks as for a
         local event.
         """
         if not isinstance(stamp, int) or not 0 <= stamp <= _MAX:

@@ -154,7 +154,6 @@ class _ProcessLoop:
         loop.run_forever()
 
     def forget(self) -> None:
-        """In a forked child: the parent's loop thread is not there; a new one starts."""
         self._lock = runtime.Lock()
         self._loop = None
         self.ident = None
@@ -223,8 +222,7 @@ class OnLoop:
     ) -> None:
         """Run `fn(*args)` on the loop after the calls of `key` submitted before.
 
-        `then(error)` runs on the loop thread once it ended (what it raised, or `None`);
-        `waits()`
+        `then(error)` runs on the loop thread once it ended (what it raised, or `None`); `waits()`
         (any thread, maybe more than once) as it lets the next of its key go; `own`: the status
         callback's run (`traces.own_trace`). A closed loop runs nothing: `then` gets a
         `RuntimeError` at once, here.
@@ -265,8 +263,7 @@ class OnLoop:
         error: BaseException | None = None
         # (this task's context)
         when_waiting(functools.partial(_set_soon, self.loop, going, waits))
-        # (its run's span current, in this task's context across its awaits; else no
-        # span: not the one it was bound under)
+        # (its run's span current across its awaits; else none, not the binder's)
         traces.own_trace(own)
         try:
             await self.fn(*args)

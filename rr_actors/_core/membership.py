@@ -130,8 +130,7 @@ class Membership:
 
     def forget_in_child(self) -> None:
         """In a forked child: no hearers, no records (a spare may serve long after the fork: it
-        hears
-        from its supervisor and its carrier).
+        hears from its supervisor and its carrier).
         """
         self._lock = runtime.Lock()
         self._hearers.clear()

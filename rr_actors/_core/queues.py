@@ -1,10 +1,9 @@
 """What stands between a publisher and a slow consumer: bounded queues and their threads.
 
-A `Subscription` runs its callback, a `Forwarder` ships batches to another process, each
-on a thread of its own (a `SerialExecutor`) behind an `_Outbox`: a bound that drops
-instead of blocking and remembers the gap it made. Both linger a moment after each batch,
-so that a stream of events does not wake them once per event. `LateQueue`: a queue whose
-items go to a handler once it closed.
+A `Subscription` runs its callback, a `Forwarder` ships batches to another process, each on a thread
+of its own (a `SerialExecutor`) behind an `_Outbox`: a bound that drops instead of blocking and
+remembers the gap it made. Both linger a moment after each batch, so that a stream of events does
+not wake them once per event. `LateQueue`: a queue whose items go to a handler once it closed.
 """
 
 from __future__ import annotations
@@ -152,7 +151,6 @@ class _Outbox(Generic[E]):
             self._put_slowly(item)
 
     def _put_slowly(self, item: E, weight: int | None = None) -> None:
-        """Queue `item` (of `weight` bytes) or drop it, opening or widening a gap."""
         warn = first = False
         with self._lock:
             full = self.executor.pending >= self._maxsize or (
@@ -253,14 +251,12 @@ class _Outbox(Generic[E]):
 class Subscription(Generic[E]):
     """One subscriber's events: a bounded queue and a thread of its own that runs the callback.
 
-    Made by `Supervisor.subscribe` and `ResourceRegistrar.subscribe`. The callback runs on the
-    subscription's daemon thread (`rr-events-<name>`), never on the publishing thread nor in a
-    registrar's mailbox, one event at a time, in publish order; the publisher never waits for
-    it. When its queue is full (or, with `maxbytes`, too heavy), new events are dropped and
-    counted (`dropped`), and the callback later gets one notice of the gap (`EventsDropped`)
-    where they would have been. A callback's exception is logged (logger `rr_actors`: the
-    first with its traceback, then a count at most every `LOG_EVERY` seconds) and delivery goes
-    on. Use it as a context manager or call `close()`.
+    Made by `Supervisor.subscribe` and `ResourceRegistrar.subscribe`. The callback runs on its
+    own daemon thread (`rr-events-<name>`), one event at a time, in publish order; the
+    publisher never waits for it. A full queue (or, with `maxbytes`, too heavy) drops new
+    events, counted (`dropped`), and the callback later gets one `EventsDropped` where they
+    would have been. What the callback raises is logged (the first with its traceback, then a
+    count at most every `LOG_EVERY` s). A context manager, or call `close()`.
 
     Attributes:
         name: the subscription's name (in its thread's name and in log lines).
@@ -307,15 +303,9 @@ class Subscription(Generic[E]):
         return self._outbox.executor.closed
 
     def wait_delivered(self, *, timeout: float | None = 5.0) -> bool:
-        """Block until every event published before this call went through the callback.
-
-        A dropped event counts once its notice was delivered.
-
-        Args:
-            timeout: the longest wait, in seconds (`None`: no bound).
-
-        Returns:
-            `False` if `timeout` passed first (or it was closed before delivering everything).
+        """Block until every event published before went through the callback (a dropped one: its
+        notice), at most `timeout` seconds (`None`: no bound); `False` if the time ran out or it was
+        closed first.
 
         Raises:
             RuntimeError: called from its own callback.
@@ -382,17 +372,10 @@ class Subscription(Generic[E]):
 class Forwarder(Generic[E]):
     """A sink that ships events in batches from its own thread (to another process, say).
 
-    `publisher.add_sink(forwarder)`: it buffers each event and returns; its daemon thread
-    (`rr-forward-<name>`) calls `send(batch)` with what piled up, in publish order. A full
-    buffer drops events, and the next batch carries `notice(count)` where they were lost; a
-    `send` that raises is logged (once per run of failures) and its batch counts as dropped.
-
-    Args:
-        send: called with a new list of events on the forwarder's thread; may block.
-        maxsize: events the buffer holds before it drops new ones.
-        max_batch: the most events one `send` gets.
-        notice: makes the item that marks a gap (`EventsDropped`), or `None`.
-        name: for the thread's name and log lines.
+    `publisher.add_sink(forwarder)`: each event is buffered, and its daemon thread
+    (`rr-forward-<name>`) calls `send(batch)` (may block) with what piled up, at most
+    `max_batch`, in order. A full buffer (`maxsize`) drops events, the next batch carrying
+    `notice(count)`; a `send` that raises is logged and its batch counts as dropped.
 
     Raises:
         ConfigError: `maxsize` or `max_batch` is not a positive int.
@@ -435,9 +418,8 @@ class Forwarder(Generic[E]):
         return self._outbox.dropped + self._failed
 
     def wait_sent(self, *, timeout: float | None = 5.0) -> bool:
-        """Block until every event given before this call was passed to `send` (or dropped).
-
-        Returns `False` if `timeout` seconds (`None`: no bound) passed first.
+        """Block until every event given before was passed to `send` (or dropped), at most `timeout`
+        seconds; `False` if the time ran out.
 
         Raises:
             RuntimeError: called from `send` itself.

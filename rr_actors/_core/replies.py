@@ -1,10 +1,9 @@
 """Reply objects: where the answer to a message goes, and how a caller waits for it.
 
-A protocol that waits is written once as *steps*, a generator that yields a `Wait` per
-future it needs and is sent whether it settled in time ("sans I/O", as h11 is written).
-`run_steps` blocks the calling thread on each; `loops.run_steps_async` awaits it on an
-event loop. An exception the driver gets while it waits is thrown into the steps at the
-`yield`, so both drivers take the same way out:
+A protocol that waits is written once as *steps*, a generator that yields a `Wait` per future it
+needs and is sent whether it settled in time ("sans I/O", as h11 is written). `run_steps` blocks the
+calling thread on each; `loops.run_steps_async` awaits it on an event loop. An exception the driver
+gets while it waits is thrown into the steps at the `yield`, so both drivers take the same way out:
 
 ```
  steps ──yield (future, deadline)──► driver: block / await until settled or deadline
@@ -291,7 +290,6 @@ class Join:
             self._then()
 
     def _count(self, parts: int, *, seal: bool) -> bool:
-        """Count `parts` more open parts (or fewer), maybe seal; whether to fire now."""
         self._open += parts
         self._sealed = self._sealed or seal
         if self._sealed and self._open == 0:

@@ -6,10 +6,8 @@
                            ─ again after `every` s: log it with the count since the last line
 ```
 
-A trouble that a peer can cause once per message (a flood of what is not a message, a
-member that claims a thousand sender ids) must cost a bounded number of log lines, and
-each line a bounded length (`short`): a log that grows by a line per message is itself a
-way to fill a disk.
+A trouble a peer can cause once per message must cost a bounded number of log lines, each
+of bounded length (`short`): else the log is a way to fill a disk.
 """
 
 from __future__ import annotations
@@ -24,19 +22,16 @@ from rr_actors._core import runtime
 __all__ = ["EVERY", "LogThrottle", "Throttle", "short"]
 
 EVERY = 60.0
-"""Seconds between two log lines about the same trouble caused by a peer (the first one is
-logged at once)."""
+"""Seconds between two log lines about the same trouble caused by a peer."""
 
 
 class Throttle:
-    """Says when a repeated trouble may be logged again: the first time, then at most every
-    `every` seconds. Counts what happened in between.
-
-    Not locked: its owner holds a lock around `due` and the fields (or uses `LogThrottle`).
+    """When a repeated trouble may be logged again (the first time, then every `every` s), and
+    how many happened meanwhile (`unlogged`). Not locked: its owner locks (or `LogThrottle`).
 
     Args:
         every: seconds between two log lines.
-        clock: seconds, monotonic (tests may pass their own; `None`: `runtime.monotonic`).
+        clock: monotonic seconds (`None`: `runtime.monotonic`).
     """
 
     __slots__ = ("clock", "every", "logged", "next_at", "unlogged")
@@ -49,7 +44,7 @@ class Throttle:
         self.unlogged = 0  # how many happened since the last log line
 
     def due(self) -> bool:
-        """Count one more; whether a line may be logged now (then the count restarts)."""
+        """Count one more; whether a line may be logged now."""
         self.unlogged += 1
         now = self.clock()
         if now < self.next_at:
@@ -59,15 +54,13 @@ class Throttle:
 
 
 class LogThrottle:
-    """One kind of repeated WARNING: the first is logged in full, later ones are counted and
-    logged at most once every `every` seconds, with the count since the previous line.
-
-    Thread-safe: any thread may call `warning`.
+    """One kind of repeated WARNING, thread-safe: the first logged in full, later ones at most
+    every `every` seconds with the count since the previous line.
 
     Args:
         logger: where the lines go.
         every: seconds between two lines.
-        clock: seconds, monotonic (tests may pass their own; `None`: `runtime.monotonic`).
+        clock: monotonic seconds (`None`: `runtime.monotonic`).
     """
 
     def __init__(
@@ -82,7 +75,7 @@ class LogThrottle:
         self._throttle = Throttle(every, clock=clock)
 
     def warning(self, message: str, *args: Any) -> None:
-        """Log `message % args` at WARNING if due (`Throttle`), else only count it."""
+        """Log `message % args` at WARNING if due, else only count it."""
         throttle = self._throttle
         with self._lock:
             if not throttle.due():
@@ -105,10 +98,8 @@ _SHORT_WIDTH = 256
 
 
 def short(value: Any) -> str:
-    """A bounded `repr` of `value` (at most 256 characters) for a log line; never raises.
-
-    Use it only for values whose `repr` runs no user code (builtin data, strings a peer
-    sent): `reprlib` calls the `__repr__` of anything else.
+    """A bounded `repr` (at most 256 characters) for a log line; never raises. Only for values
+    whose `repr` runs no user code (builtin data, what a peer sent).
     """
     try:
         text = _SHORT.repr(value)

@@ -79,8 +79,7 @@ def _new_span() -> str:
             return f"{span:016x}"
 
 
-# The caller's span last seen and its traceparent's parts (prefix, suffix, id), swapped
-# whole: many calls under one span pay one identity check, not the formatting.
+# The caller's span last seen and its traceparent's parts, swapped whole (one check a call).
 _last: tuple[object, str, str, str] = (None, "", "", "")
 
 

@@ -79,8 +79,7 @@ class WireMessage:
         return copy
 
     def compensation(self) -> WireMessage | None:
-        """A message that undoes handling this one when its answer is lost, if any (delivered to
-        the
+        """A message that undoes handling this one when its answer is lost, if any (delivered to the
         registrar that handled it).
         """
         return None
@@ -163,8 +162,7 @@ def _by_reference(kind: type) -> bool:
     return kind in _VALUES_BY_REFERENCE or kind in WIRE_TYPES
 
 
-# cloudpickle's own reducer of code objects (the one reliance on its dispatch table:
-# tests/core/test_wire.py checks it; without it, file names may be lost, nothing else).
+# cloudpickle's own reducer of code objects (tests/core/test_wire.py checks it is there).
 _CLOUDPICKLE_CODE: Callable[[types.CodeType], Any] | None = cloudpickle.Pickler.dispatch_table.get(
     types.CodeType
 )
@@ -188,7 +186,6 @@ def _reduce_code(code: types.CodeType) -> tuple[Any, ...]:
 
 
 def _named(code: types.CodeType, filename: str) -> types.CodeType:
-    """`code` with its file's name put back, where cloudpickle changed it."""
     return code if code.co_filename == filename else code.replace(co_filename=filename)
 
 

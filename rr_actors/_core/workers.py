@@ -140,8 +140,7 @@ class Workers:
             timeout: seconds the task may run once started; past them the job is abandoned and
                 `on_overdue()` runs on the watchdog's thread (quick, thread-safe).
             on_overdue: see `timeout`.
-            quiet: its abandonment is logged at DEBUG, not WARNING (an overrun its owner
-                expects).
+            quiet: its abandonment is logged at DEBUG, not WARNING (an overrun its owner expects).
             urgent: if it must queue, it goes before every job that is not urgent.
             lane: whose job it is, if it must queue ("": the pool's own).
 
@@ -319,7 +318,6 @@ class Workers:
                         logger.exception("an overdue job's handler raised")
 
     def _overdue(self) -> list[Job] | None:
-        """Wait (holding the lock) until some jobs are overdue; `None` when idle long."""
         idle_since = runtime.monotonic()
         while True:
             now = runtime.monotonic()

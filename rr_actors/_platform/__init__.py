@@ -1,10 +1,9 @@
 """OS- and CPython-specific tricks, chosen once, each with a plain fallback.
 
-The Linux, glibc and CPython-private tricks live in `linux`; `base.PortablePlatform` does
-the same jobs plainly (or not at all, for an optimisation). `PLATFORM` is chosen once, at
-import: `linux` on Linux, the portable one elsewhere or with `RR_ACTORS_PLATFORM=portable`
-(the test suite runs under both). `forkserver` is where every layer says what a forked
-child lets go of.
+The Linux, glibc and CPython-private tricks live in `linux`; `base.PortablePlatform` does the same
+jobs plainly (or not at all, for an optimisation). `PLATFORM` is chosen once, at import: `linux` on
+Linux, the portable one elsewhere or with `RR_ACTORS_PLATFORM=portable` (the test suite runs under
+both). `forkserver` is where every layer says what a forked child lets go of.
 """
 
 from __future__ import annotations

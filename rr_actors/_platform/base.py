@@ -100,8 +100,7 @@ class NameWatch(Protocol):
 
     def arm(self, paths: Sequence[str]) -> bool:
         """Watch the absolute paths `paths` instead; whether every one is watched (if not, it is
-        never
-        quiet until an `arm` that succeeds).
+        never quiet until an `arm` that succeeds).
         """
         ...
 
@@ -151,8 +150,7 @@ class Platform(Protocol):
         ...
 
     def watch_cpu(self, pid: int) -> CpuWatch | None:
-        """What tells whether process `pid` waits for a CPU (in the parent), or `None`: without it
-        a
+        """What tells whether process `pid` waits for a CPU (in the parent), or `None`: without it a
         manager silent past its bound is hung whatever the reason.
         """
         ...

@@ -1,16 +1,12 @@
 """How processes are forked from this one: what a forked child lets go of, and a forkserver
 of rr_actors' own.
 
-`os.fork()` copies a process but only the thread that forked. Each layer that holds
-process-wide state says at its import how a child lets go of it (`after_fork_in_child`);
-one `os.register_at_fork` hook runs the resets in import order, lowest layer first. A reset
-that finds what a child cannot use (a Zenoh session) calls `refuse`: `check_usable` then
-raises a `ConfigError` naming the `spawn` and `forkserver` methods, never a silent timeout
-(docs/explanation/failure-semantics.md, "A forked child starts afresh").
-
-Manager processes are forked by a second instance of CPython's `ForkServer`, so that its
-preload of rr_actors holds even when the program started CPython's forkserver first; and
-a fork through it is bounded (`start_within`: CPython's `_launch` waits without a bound):
+Each layer with process-wide state says at its import how a forked child lets go of it
+(`after_fork_in_child`: one `os.register_at_fork` hook, lowest layer first); a child that
+cannot go on is refused (`refuse`, `check_usable`), never left to time out
+(docs/explanation/failure-semantics.md, "A forked child starts afresh"). Manager processes
+are forked by a second instance of CPython's `ForkServer`, so its preload holds even when
+the program started CPython's first, and within a bound (`start_within`):
 
 ```
  caller (ManagerProcess.start, Spare.start)      rr_actors' server           child
@@ -22,10 +18,8 @@ a fork through it is bounded (`start_within`: CPython's `_launch` waits without 
               the pid, the write unfinished: SIGKILL ───────────────────►  killed
 ```
 
-CPython-internal names (`ForkServer`, the forkserver `Popen`, whose `_launch` is copied
-below, `read_signed`, `ForkServerProcess`, `ForkServerContext` and the server's private
-fields) are used in this file only, checked on 3.11 to 3.13 (`SUPPORTED`); elsewhere
-`context` returns `None` and the caller uses CPython's forkserver, unbounded.
+CPython's private forkserver names are used in this file only, checked on 3.11 to 3.13
+(`SUPPORTED`); elsewhere `context` returns `None` (CPython's forkserver, unbounded).
 """
 
 from __future__ import annotations
@@ -78,12 +72,8 @@ def after_fork_in_child(what: str, reset: Callable[[], None]) -> None:
 
 
 def refuse(reason: str) -> None:
-    """Say that this forked child cannot run rr_actors: `check_usable` raises from now on.
-
-    Args:
-        reason: the end of "the process it was forked from ..." (`"had opened a Zenoh
-            session"`).
-    """
+    """Say that this forked child cannot run rr_actors (`reason` ends "the process it was forked
+    from ...")."""
     _refusals.append(reason)
 
 
@@ -154,8 +144,7 @@ else:
         """CPython's forkserver `Popen`, asking rr_actors' server to fork."""
 
         def _launch(self, process_obj: Any) -> None:
-            # CPython 3.11-3.13's `popen_forkserver.Popen._launch`, with rr_actors'
-            # server instead of the module's, and within `start_within`'s bound
+            # CPython 3.11-3.13's `Popen._launch`: this server, within `start_within`'s bound
             prep_data = _spawn.get_preparation_data(process_obj._name)
             buf = io.BytesIO()
             _mp_context.set_spawning_popen(self)

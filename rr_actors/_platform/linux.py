@@ -36,7 +36,6 @@ _LEAN_LOCK = threading.Lock()
 
 @functools.cache
 def _libc() -> Any:
-    """The C library through ctypes (`None` if it cannot be loaded)."""
     try:
         return ctypes.CDLL(None, use_errno=True)
     except OSError:
@@ -45,7 +44,6 @@ def _libc() -> Any:
 
 @functools.cache
 def _malloc_trim() -> Callable[[int], object] | None:
-    """glibc's `malloc_trim`; `None` with another C library."""
     try:
         trim = _libc().malloc_trim
     except (AttributeError, TypeError):
@@ -253,12 +251,10 @@ class ProcCpuWatch:
 
 
 def _state(stat: str) -> str:
-    """The state letter of a `/proc/.../stat` line (field 3, after the name)."""
     return stat[stat.rindex(")") + 2 :][:1]
 
 
 def _read_at(directory: int, path: str) -> str:
-    """The text of the small file `path` under the directory descriptor `directory`."""
     fd = os.open(path, os.O_RDONLY, dir_fd=directory)
     try:
         return os.read(fd, 4096).decode("ascii", "replace")
@@ -357,8 +353,7 @@ class LinuxPlatform:
     def set_process_name(self, title: str) -> None:
         """`prctl(PR_SET_NAME)`, 15 bytes kept, ending at a whole UTF-8 character.
 
-        What it buys: manager processes told apart in `ps -o comm` and `top` without
-        `setproctitle`.
+        What it buys: manager processes told apart in `ps -o comm` and `top` without `setproctitle`.
         """
         libc = _libc()
         with contextlib.suppress(AttributeError):
@@ -397,11 +392,10 @@ class LinuxPlatform:
 
 @functools.cache
 def _monotonic_clock() -> str | None:
-    """The name of `CLOCK_MONOTONIC` here: the boot id and the time namespace; `None` if
-    unreadable.
+    """The name of `CLOCK_MONOTONIC` here: the boot id and the time namespace; `None` if unreadable.
 
-    What it buys: processes of one boot and namespace share the clock, so a deadline crosses
-    between them exact.
+    What it buys: processes of one boot and namespace share the clock, so a deadline crosses between
+    them exact.
     """
     try:
         with open("/proc/sys/kernel/random/boot_id", encoding="ascii") as boot:

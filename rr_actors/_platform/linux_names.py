@@ -54,7 +54,6 @@ _EVENT = struct.Struct("iIII")  # wd, mask, cookie, len (then len bytes of name)
 
 @functools.cache
 def _libc() -> Any:
-    """The C library's inotify functions (`None` without them)."""
     try:
         libc = ctypes.CDLL(None, use_errno=True)
         libc.inotify_init1.argtypes = [ctypes.c_int]
@@ -154,8 +153,6 @@ def _shared() -> _Instance | None:
 
 
 def _forget_in_child() -> None:
-    """In a forked child: the parent's instance is not the child's; it makes its own at first
-    use."""
     global _instance, _instance_lock
     _instance_lock = threading.Lock()  # (a thread of the parent may have held it)
     if _instance is not None:

@@ -151,7 +151,6 @@ def _names(fd: int, name: str) -> bool:
 
 
 def _let_go_in_child() -> None:
-    """In a forked child: close the copies of the owner's lock descriptors (the lock stays its)."""
     for fd in [*_held, *_held_files.values()]:
         with contextlib.suppress(OSError):
             os.close(fd)  # (not removed: the owner's; a child holds no POSIX lock to drop)

@@ -1,22 +1,25 @@
 """What a supervision tree and its registrars do, as frozen dataclasses (one per event kind).
 
-Subscribe with `Supervisor.subscribe(callback)` (every child and registrar of the tree,
-manager processes included), `ResourceRegistrar.subscribe(callback)` (one registrar) or
+Subscribe with `Supervisor.subscribe(callback)` (every child and registrar of the tree, manager
+processes included), `ResourceRegistrar.subscribe(callback)` (one registrar) or
 `net.subscribe_events(callback)` (every host of a `ZenohNetwork`); the first two return an
-[`rr_actors.Subscription`][rr_actors.Subscription], and the callback runs on a subscriber
-thread of its own, never in a registrar's mailbox.
+[`rr_actors.Subscription`][rr_actors.Subscription], whose callback runs on a thread of its own,
+never in a registrar's mailbox.
 
-Every event has its own fields first, then keyword-only stamps: `at` (wall clock,
-`time.time()` seconds), `pid` (its process; a child event's is the child's), `seq` (its
-number among its process's events, where a gap shows a lost event; 0 where not numbered),
-`host` (the member name of its host) and `hlc`, a hybrid logical clock stamp (Kulkarni et
-al., 2014): sorting several hosts' events by it ([`order`][rr_actors.events.order]) puts
-every cause before its effects, whatever the clocks say.
+Every event has its own fields first, then keyword-only stamps: `at` (wall clock, `time.time()`
+seconds), `pid` (its process; a child event's is the child's), `seq` (its number among its process's
+events, where a gap shows a lost event; 0 where not numbered), `host` (the member name of its host)
+and `hlc`, a hybrid logical clock stamp (Kulkarni et al., 2014): sorting several hosts' events by it
+([`order`][rr_actors.events.order]) puts every cause before its effects, whatever the clocks say.
+Fields named alike mean alike: `registrar` is the registrar that published it (the provider for a
+server's event, the consumer for a call's), `server` a resource server of it (of `serving_rr`, the
+provider, in a call's event), `resource_id` and `query_id` the ids (UUID4), `supervisor` and `child`
+names, `status` the status code; a call's `started`, `trace` and `caller_span` are as
+[`CallAnswered`][rr_actors.events.CallAnswered] says. Durations are in seconds.
 
 Events pickle; [`to_dict`][rr_actors.events.to_dict] / [`from_dict`][rr_actors.events.from_dict]
 turn them into JSON-able dicts and back (one line each in `events.jsonl`);
-[`describe`][rr_actors.events.describe] gives the human line also logged at INFO. Durations
-are in seconds; ids are UUID4 strings.
+[`describe`][rr_actors.events.describe] gives the human line also logged at INFO.
 """
 
 from __future__ import annotations

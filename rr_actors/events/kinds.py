@@ -1,10 +1,9 @@
 """The event kinds: one frozen dataclass per thing a tree or a registrar does.
 
-Each has its own fields first, then the keyword-only stamps said once in `_Stamped` (`at`,
-`host`, `hlc`) and `_Numbered` (`pid`, `seq`: all but the supervisor's child events). `_kind`
-puts them in the order of `_STAMPS`: the key order of the JSON line (`lines.to_line`), the
-outbox row, the pickle and the `repr`. A new kind: its class here (`@_kind`), in `Event`,
-and its line in `text.describe`.
+Each has its own fields first, then the keyword-only stamps said once in `_Stamped` (`at`, `host`,
+`hlc`) and `_Numbered` (`pid`, `seq`: all but the supervisor's child events). `_kind` puts them in
+the order of `_STAMPS`: the key order of the JSON line (`lines.to_line`), the outbox row, the pickle
+and the `repr`. A new kind: its class here (`@_kind`), in `Event`, and its line in `text.describe`.
 """
 
 from __future__ import annotations
@@ -182,8 +181,7 @@ def _kind(cls: type[_T]) -> type[_T]:
             annotation, factory = stamps[name]
             annotations[name] = annotation
             namespace[name] = dataclasses.field(default_factory=factory)
-    # Not derived from its stamps classes at run time: `object.__setattr__`, which a frozen
-    # `__init__` calls per field, walks the class's bases of Python classes each time.
+    # Not derived from its stamps classes: a frozen `__init__`'s setattr walks Python bases.
     bases = tuple(base for base in cls.__bases__ if base not in _STAMPED) or (object,)
     kind = cast("type[_T]", type(cls.__name__, bases, namespace))
     return dataclasses.dataclass(frozen=True, slots=True)(kind)
@@ -228,7 +226,6 @@ class ChildStarted(_Stamped):
     it is a [`ChildRestarted`][rr_actors.events.ChildRestarted].
 
     Attributes:
-        supervisor: name of the supervisor.
         child: name of the child (a manager or a nested supervisor).
         pid: the child's process (the supervisor's for a thread manager or a supervisor).
     """
@@ -243,8 +240,6 @@ class ChildExited(_Stamped):
     """A child's incarnation ended (crashed, killed, exited, stopped), before any restart.
 
     Attributes:
-        supervisor: name of the supervisor.
-        child: name of the child.
         pid: the process of the incarnation that ended (as `ChildStarted.pid`).
         reason: why it ended, for people (as `ChildInfo.last_exit`).
         restart: the child's restart type; `""` before schema 4.
@@ -275,8 +270,6 @@ class ChildRestarted(_Stamped):
     """A supervisor restarted a child after an exit, and the new incarnation serves.
 
     Attributes:
-        supervisor: name of the supervisor.
-        child: name of the child.
         pid: the new incarnation's process (as `ChildStarted.pid`).
         restart_s: seconds from the exit seen to serving again, backoff included.
     """
@@ -291,8 +284,7 @@ class ChildRestarted(_Stamped):
 class SupervisorGaveUp(_Numbered):
     """A supervisor exceeded its restart intensity and stopped all its children (OTP).
 
-    A nested one's parent treats it as a crashed child; the top one raises
-    `SupervisorGaveUpError`.
+    A nested one's parent treats it as a crashed child; the top one raises `SupervisorGaveUpError`.
 
     Attributes:
         supervisor: name of the supervisor that gave up.
@@ -313,7 +305,6 @@ class ManagerOverloaded(_Stamped):
     not hung, not killed. At most one per ping.
 
     Attributes:
-        supervisor: name of its supervisor.
         manager: name of the manager.
         pid: its process.
         silent_s: seconds from the ping to its answer.
@@ -342,14 +333,11 @@ class ResourceLoaded(_Numbered):
     and answered; a duplicate request is a `ConsumerAdded` only).
 
     Attributes:
-        registrar: name of the provider registrar.
-        server: name of the resource server.
         resource_id: the new resource's id.
         query_id: the id of the query that caused the load (its first consumer).
         load_s: seconds the `load` took (its dependencies' loads included).
         digest: the catalog's digest of a request of plain values, else `None` (rule 1).
         label: the request's bounded label (`label(request)`, else a bounded `repr`), or `None`.
-        trace: as `CallAnswered.trace`.
     """
 
     registrar: str
@@ -368,13 +356,10 @@ class LoadFailed(_Numbered):
     loaded was unloaded.
 
     Attributes:
-        registrar: name of the provider registrar.
-        server: name of the resource server.
         resource_id: the id the resource would have had.
         query_id: the id of the query that caused the load.
         error_type: `type(exc).__name__`.
         message: `str(exc)`.
-        trace: as `CallAnswered.trace`.
     """
 
     registrar: str
@@ -390,11 +375,6 @@ class LoadFailed(_Numbered):
 class ResourceUnloaded(_Numbered):
     """A server's `unload` ran (or raised) after its last consumer went; written in the same
     transaction as the removal.
-
-    Attributes:
-        registrar: name of the provider registrar.
-        server: name of the resource server.
-        resource_id: the resource's id.
     """
 
     registrar: str
@@ -407,11 +387,8 @@ class ConsumerAdded(_Numbered):
     """A query became a consumer of a served resource, before the caller is answered.
 
     Attributes:
-        registrar: name of the provider registrar.
-        resource_id: the resource's id.
         query_id: the consumer's query id.
         consumer: name of the consumer registrar.
-        trace: as `CallAnswered.trace`.
     """
 
     registrar: str
@@ -426,8 +403,6 @@ class ConsumerReleased(_Numbered):
     """A consumer id of a served resource was released; a `ResourceUnloaded` follows the last.
 
     Attributes:
-        registrar: name of the provider registrar.
-        resource_id: the resource's id.
         query_id: the released query id.
         consumer: name of the consumer registrar that held it.
         reason: `"unload"`, `"abandoned"` (its caller gave up), `"death watch"`,
@@ -452,10 +427,6 @@ class CallAnswered(_Numbered):
     """A consumer's call was answered: the consumer holds its query id until a `QueryForgotten`.
 
     Attributes:
-        registrar: name of the consumer registrar.
-        query_id: the call's query id.
-        serving_rr: name of the provider registrar.
-        server: name of the resource server there.
         parent: the resource of this registrar whose `load` made the call (rule 5), or `None`.
         retry: the consumer already knew this id (rule 17): no second consumer.
         started: when the call was made, wall clock seconds; 0.0 if not known.
@@ -479,18 +450,11 @@ class CallFailed(_Numbered):
     """A consumer's call failed (not withdrawn): its caller got an error, and holds no id.
 
     Attributes:
-        registrar: name of the consumer registrar.
-        query_id: the call's query id.
-        serving_rr: name of the provider registrar.
-        server: name of the resource server there.
         error_type: the error's type name.
         message: the error's message.
         may_have_executed: the provider went with the call in flight and may hold the id
             (rule 17): the consumer keeps it until it reconciled with the provider's restart.
         retry: as `CallAnswered.retry`.
-        started: as `CallAnswered.started`.
-        trace: as `CallAnswered.trace`.
-        caller_span: as `CallAnswered.caller_span`.
     """
 
     registrar: str
@@ -511,14 +475,7 @@ class CallWithdrawn(_Numbered):
     """A consumer's call was given up before its answer, the id given back (rule 17).
 
     Attributes:
-        registrar: name of the consumer registrar.
-        query_id: the call's query id.
-        serving_rr: name of the provider registrar.
-        server: name of the resource server there.
         reason: `"timeout"`, `"interrupted"` or `"registrar stopped"`.
-        started: as `CallAnswered.started`.
-        trace: as `CallAnswered.trace`.
-        caller_span: as `CallAnswered.caller_span`.
     """
 
     registrar: str
@@ -536,9 +493,6 @@ class QueriesFetched(_Numbered):
     """A consumer fetched the ids it holds at a provider's server (`fetch_queries`, rule 10).
 
     Attributes:
-        registrar: name of the consumer registrar.
-        serving_rr: name of the provider registrar.
-        server: name of the resource server there.
         query_ids: the ids the answer listed, in its order.
         started: the `hlc` stamp when it began: the provider read between it and `hlc`.
     """
@@ -555,8 +509,6 @@ class ServerQueriesListed(_Numbered):
     """A provider listed the queries its own server holds (`server_queries`, rule 10).
 
     Attributes:
-        registrar: name of the provider registrar.
-        server: name of its resource server.
         query_ids: the ids the answer listed, in its order.
         started: as `QueriesFetched.started`.
     """
@@ -572,9 +524,7 @@ class QueryForgotten(_Numbered):
     """A consumer forgot a query id it held.
 
     Attributes:
-        registrar: name of the consumer registrar.
         query_id: the forgotten query id.
-        serving_rr: name of the provider registrar that served it.
         reason: `"unload"`, `"unload unanswered"` (the provider releases it when it
             reconciles), `"dependency"`, `"stop"`, `"revoked"` (`FATAL`), `"provider lost"`
             (rule 19, `FATAL`), `"unknown at reconcile"` (rule 20, `FATAL`), `"late
@@ -605,9 +555,7 @@ class StatusSent(_Numbered):
     """A provider sent a status about a loaded resource (`send_status`), before delivery.
 
     Attributes:
-        registrar: name of the provider registrar.
         query_id: the query id `send_status` was given.
-        status: the status code.
         message: the provider's free text.
         status_id: this send's id (a UUID4), named by each of its `StatusDelivered`.
     """
@@ -624,9 +572,7 @@ class StatusDelivered(_Numbered):
     """A status reached one consumer: its client's status callback ran.
 
     Attributes:
-        registrar: name of the consumer registrar that received it.
         query_id: the receiver's own query id for the resource.
-        status: the status code.
         hop: registrars the status crossed (1: a direct consumer of the sender).
         latency_s: seconds from `send_status` to this delivery, wall clock.
         status_id: its `StatusSent.status_id`; a query id gets each send once.
@@ -648,9 +594,7 @@ class StatusHandled(_Numbered):
     callbacks run one at a time in arrival order, the next early only once this one waited.
 
     Attributes:
-        registrar: name of the consumer registrar.
         query_id: the receiver's own query id (the callback's `query.id`).
-        status: the status code.
         status_id: its `StatusSent.status_id`.
         arrived: the callback's place in its process's arrival order (1, 2, ...).
         began: the `hlc` stamp as it began; it returned at `hlc`.
@@ -670,11 +614,6 @@ class StatusHandled(_Numbered):
 class UnloadCutShort(_Numbered):
     """A clean `stop()` gave up waiting (half its timeout) for an unload under way: the callback
     runs on, and the next start reports it `InDoubt` (`cut="unload"`, rule 16).
-
-    Attributes:
-        registrar: name of the provider registrar that stopped.
-        server: name of the resource server.
-        resource_id: the resource's id.
     """
 
     registrar: str
@@ -688,8 +627,6 @@ class ServerOverloaded(_Numbered):
     second (shed loads are `LoadFailed`, `DeadlineExceededError`).
 
     Attributes:
-        registrar: name of the provider registrar.
-        server: name of the server.
         pending: its new loads queued or running.
         bound: its `max_pending`.
         refused: calls it refused since its previous `ServerOverloaded`, this one included.
@@ -711,7 +648,6 @@ class InDoubt(_Numbered):
     until a `setup` offered it returned (`ResourceRegistrar.settle_in_doubt`).
 
     Attributes:
-        registrar: name of the restored registrar.
         query_id: the in-doubt resource's id.
         server: the server it belongs to (`""` in older events).
         cut: what the crash cut short: `"load"` or `"unload"` (`""`: not known).
@@ -755,7 +691,6 @@ class CatalogRestored(_Numbered):
     A checker re-synchronises here; in-doubt resources are listed, then reported `InDoubt`.
 
     Attributes:
-        registrar: name of the restored registrar.
         resources: `(resource id, server, state, digest, failed)` per served resource: `state`
             `"loaded"`, `"loading"` or `"unloading"`, `digest` in decimal or `""`, `failed`
             `"failed"` (reported `FATAL`) or `""`.

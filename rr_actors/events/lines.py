@@ -41,12 +41,11 @@ __all__ = [
 SCHEMA = 8
 """Version of the dicts `to_dict` writes (the `"schema"` key); `from_dict` reads 1 to 8.
 
-A field added since a line's schema gets its default: 2 added `seq` (0), digests, labels,
-reasons and the catalog events; 3 `host` (`""`) and `hlc` (the stamp of `at`); 4
-`ChildExited`'s `restart` (`""`), `normal`, `stopped`, `max_restarts`, `period`; 5
-`QueryForgotten`'s `unload_sent` and `reconciled` (0); 6 `ChildExited`'s `strategy` and
-`children`; 7 the calls' `trace`, `caller_span` (`""`) and `started` (0.0); 8
-`ResourceLoaded`'s `trace`.
+A field added since a line's schema gets its default: 2 added `seq` (0), digests, labels, reasons
+and the catalog events; 3 `host` (`""`) and `hlc` (the stamp of `at`); 4 `ChildExited`'s `restart`
+(`""`), `normal`, `stopped`, `max_restarts`, `period`; 5 `QueryForgotten`'s `unload_sent` and
+`reconciled` (0); 6 `ChildExited`'s `strategy` and `children`; 7 the calls' `trace`, `caller_span`
+(`""`) and `started` (0.0); 8 `ResourceLoaded`'s `trace`.
 """
 
 _READS = (1, 2, 3, 4, 5, 6, 7, SCHEMA)
@@ -189,7 +188,6 @@ def _shown(value: object) -> str:
 
 
 def _converter(event: str, field: str, kind: Any) -> Callable[[Any], Any]:
-    """The checker of one field's value (a status name becomes a `Status`)."""
     args = typing.get_args(kind)
 
     def wrong(value: object) -> ConfigError:
