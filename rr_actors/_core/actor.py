@@ -60,10 +60,8 @@ _ACTOR_THREAD = runtime.local()  # `active` on the thread of an `Actor`'s loop
 
 
 def on_actor_thread() -> bool:
-    """Whether the calling thread runs an actor's loop, or steps an awaited operation (`awaiting`).
-
-    Such a thread must never wait on the network: a carrier asked there answers from what it
-    knows and leaves the asking to a thread of its own.
+    """Whether the calling thread runs an actor's loop or steps an awaited operation: such a thread
+    must never wait on the network (a carrier answers there from what it knows).
     """
     return bool(
         getattr(_ACTOR_THREAD, "active", False) or getattr(_ACTOR_THREAD, "awaiting", False)
@@ -94,10 +92,8 @@ SIGNAL_CHECK = 0.1
 
 
 class OneShotFuture(pykka.Future[T]):
-    """A pykka future whose value is handed over by releasing one lock.
-
-    As `pykka.ThreadingFuture` (settling it twice raises `queue.Full`; a get hook runs once),
-    plus `add_done_callback`, through which an event loop awaits it.
+    """A pykka future handed over by releasing one lock: `pykka.ThreadingFuture`'s interface,
+    settling twice raises `queue.Full`, plus `add_done_callback` (how a loop awaits it).
     """
 
     def __init__(self) -> None:
@@ -184,9 +180,8 @@ class OneShotFuture(pykka.Future[T]):
             raise runtime.Full
 
     def add_done_callback(self, fn: Callable[[OneShotFuture[T]], object]) -> None:
-        """Run `fn(self)` once settled: at once if it is, else on the thread that settles it.
-
-        Callbacks run in order, each once; what one raises is logged. For quick wake-ups only.
+        """Run `fn(self)` once settled (at once if it is, else on the settling thread), each
+        callback once, in order; what one raises is logged. For quick wake-ups only.
         """
         callbacks = self._done_callbacks
         if callbacks is None:
@@ -220,9 +215,7 @@ class OneShotFuture(pykka.Future[T]):
 
 class Inbox(LateQueue):
     """An actor's inbox with its turn; once closed, what is left and what arrives goes to `late`.
-
-    Every envelope put, or handled in the turn, takes a ticket; `handled`, written only in the
-    turn, counts those handled: one may be handled in the turn only when it equals its ticket.
+    Each envelope takes a ticket; one is handled in the turn only once `handled` equals it.
     """
 
     def __init__(self) -> None:
@@ -257,10 +250,7 @@ class Inbox(LateQueue):
 
 
 def refuse(envelope: Any) -> None:
-    """Answer an envelope its actor will not handle, as pykka's final drain does.
-
-    A stop is answered as done; any other `ask` gets `ActorDeadError`; a `tell` is dropped.
-    """
+    """Answer an envelope as pykka's final drain does: a stop as done, an ask `ActorDeadError`."""
     if envelope.reply_to is None:
         return
     if isinstance(envelope.message, pykka.messages._ActorStop):  # (as pykka's own drain)
@@ -275,12 +265,8 @@ _WAKE = pykka._envelope.Envelope(None)
 
 
 def deliver(ref: pykka.ActorRef[Any], message: Any) -> None:
-    """`ref.tell(message)`, or handled on this thread in an idle `Actor`'s turn (`Actor.inline`).
-
-    The calling thread must hold no lock a handler might take.
-
-    Raises:
-        pykka.ActorDeadError: the actor is not running.
+    """`ref.tell(message)`, or handled on this thread in an idle `Actor`'s turn (`Actor.inline`);
+    the caller holds no lock a handler might take. `pykka.ActorDeadError` if it is not running.
     """
     if type(message) not in ref.actor_class.inline:
         ref.tell(message)
@@ -293,18 +279,14 @@ def deliver(ref: pykka.ActorRef[Any], message: Any) -> None:
 
 
 class ContainedError(RuntimeError):
-    """An actor's handler raised a `BaseException` that is not an `Exception`.
-
-    pykka would take it for the process going down and stop every actor; raised by user code
-    an actor ran, it fails that actor alone (`on_failure` runs, the others go on).
+    """A handler raised a `BaseException` not an `Exception`: it fails that actor alone (pykka
+    would take it for the process going down and stop every actor).
     """
 
 
 class Actor(pykka.ThreadingActor):
-    """`pykka.ThreadingActor` with an `Inbox`, `OneShotFuture`s and the turn.
-
-    A handler's `BaseException` fails this actor only (`ContainedError`). Its thread is a
-    daemon (`rr_actors._core.exit` stops actors cleanly first).
+    """`pykka.ThreadingActor` with an `Inbox`, `OneShotFuture`s and the turn, on a daemon thread
+    (`rr_actors._core.exit` stops actors cleanly first).
     """
 
     use_daemon_thread = True
@@ -454,27 +436,23 @@ class Actor(pykka.ThreadingActor):
         self._stop()
 
     def on_turn_end(self) -> None:
-        """Run at the end of each turn when `ends_turns`, in it, on the thread that had the turn.
-
-        A registrar commits its turn's changes here, then releases their answers.
+        """Run at the end of each turn when `ends_turns`, in it (a registrar commits its turn's
+        changes here, then releases their answers).
         """
 
     def on_ended(self) -> None:
         """Run on the actor's thread once its loop ended and its inbox went to `on_late`."""
 
     def on_late(self, envelope: Any) -> None:
-        """Handle an envelope that arrived after this actor's loop ended.
-
-        Runs on the actor's thread for what was left, on the sender's thread for what comes later;
-        by default `refuse`. Override it (thread-safely) for tells that carry obligations.
+        """An envelope that arrived after the loop ended (on the actor's thread for what was left,
+        the sender's for what comes later): `refuse` it, unless overridden (thread-safely).
         """
         refuse(envelope)
 
 
 def _forget_actors() -> None:
-    """In a forked child: every actor of the parent is dead (its refs' `actor_stopped` set).
-
-    New events and a new registry lock: a parent's thread may have held the old ones at the fork.
+    """In a forked child: every actor of the parent is dead (new events and registry lock: a
+    parent's thread may have held the old ones).
     """
     pykka.ActorRegistry._actor_refs_lock = runtime.RLock()
     for ref in pykka.ActorRegistry.get_all():

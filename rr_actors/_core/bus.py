@@ -39,17 +39,10 @@ _names = itertools.count(1)
 
 
 class Publisher(Generic[E]):
-    """Where events are published: to subscriptions, other sinks and an INFO log line.
-
-    Publish only when someone listens (`if publisher.active: publisher.publish(...)`).
-
-    Args:
-        logger: where each event is also logged at INFO (`describe(event)`, the event in
-            `record.event`); `None`: no log lines.
-        describe: the log line of an event.
-        notice: `notice(count)`, the item a subscriber gets after losing `count` events.
-        tap: a publisher also handed each event published here; this one is `active`
-            whenever `tap` has a listener.
+    """Where events are published: to subscriptions, other sinks and an INFO log line (`logger`,
+    `describe(event)`, the event in `record.event`). `notice(count)` is what a subscriber gets
+    after losing `count` events; `tap` is also handed each event published here (this one is
+    `active` while `tap` is listened to). Publish only when `active`.
     """
 
     def __init__(
@@ -85,10 +78,7 @@ class Publisher(Generic[E]):
         return tap is not None and bool(tap._sinks)
 
     def publish(self, event: E) -> None:
-        """Log `event` at INFO (if enabled) and hand it to every sink, in the order added.
-
-        Runs on the caller's thread and never raises: a sink that raises is logged.
-        """
+        """Log `event` at INFO (if enabled) and hand it to every sink, in order; never raises."""
         log = self._logger
         if log is not None and log.isEnabledFor(logging.INFO):
             self._log(log, event)

@@ -56,12 +56,8 @@ class Peer(Protocol):
 
 
 class LocalPeer:
-    """A registrar actor in this process.
-
-    Args:
-        name: the registrar's name.
-        ref: its actor (`None`: set by the actor when it starts).
-        durable: its steps write to disk before they answer: a loop's thread never takes its turn.
+    """A registrar actor in this process (`ref` set when it starts); a `durable` one's steps write
+    to disk before they answer, so a loop's thread never takes its turn.
     """
 
     def __init__(
@@ -105,11 +101,7 @@ class Directory:
         self._inherited: dict[str, int] = {}  # in a forked child: the parent's -> its pid
 
     def register(self, peer: Peer) -> None:
-        """Publish a registrar under its name.
-
-        Raises:
-            DuplicateNameError: a living registrar already has that name.
-        """
+        """Publish a registrar under its name (`DuplicateNameError` if a living one has it)."""
         with self._lock:
             if peer.name in self._peers:
                 raise DuplicateNameError(f"a registrar named {peer.name!r} is already running")
@@ -151,13 +143,7 @@ class Directory:
         return names
 
     def lookup(self, name: str) -> Peer:
-        """Return the peer of registrar `name`.
-
-        Raises:
-            UnknownRegistrarError: no registrar of that name was ever seen.
-            RegistrarStoppedError: it was stopped for good.
-            RegistrarUnavailableError: it died, or is being restarted.
-        """
+        """The peer of registrar `name`, or the error `gone_error` gives."""
         peer = self._peers.get(name)  # a dict read is atomic; writers hold the lock
         if peer is not None:
             return peer
@@ -221,9 +207,8 @@ class Directory:
                 self._restarting.difference_update(names)
 
     def broadcast(self, message: object, *, also: Iterable[str] = (), skip: str = "") -> None:
-        """Tell `message` to every registrar of this process and those in `also`, but `skip`.
-
-        One that cannot be reached is skipped (logged at debug level).
+        """Tell `message` to every registrar of this process and those in `also`, but `skip` (one
+        unreachable is skipped).
         """
         targets = {peer.name for peer in self.local_peers()} | set(also)
         targets.discard(skip)

@@ -84,18 +84,11 @@ def stop_at_exit(
     provides: Collection[str] = (),
     holds: _Names = _nowhere,
 ) -> None:
-    """Have `stop(timeout)` called when the main thread ends, if `alive()` then.
+    """Have `stop(timeout)` called when the main thread ends, if `alive()` (cheap, any thread) then.
 
-    Entries no longer alive are pruned whenever their number doubled.
-
-    Args:
-        tier: `SUPERVISORS`, `REGISTRARS` or `NETWORKS` (lower tiers stop first).
-        what: what it is, for people (`"registrar 'erm'"`).
-        alive: whether it still needs stopping (any thread; cheap).
-        stop: stops it within `timeout` seconds; what it raises is logged.
-        provides: the registrar names it serves.
-        holds: `holds(timeout)`: the registrar names it holds ids at now, asked once at the
-            end; what it raises counts as none.
+    `tier` orders the stops (lower first); `what` names it for people; `provides` are the registrar
+    names it serves, `holds(timeout)` those it holds ids at (asked once at the end; raising counts
+    as none). Entries no longer alive are pruned when their number doubled.
     """
     global _hooked  # (the hook: once per process)
     listed = _LISTED

@@ -119,17 +119,9 @@ def _skewed_ns() -> int:
 
 
 class HybridClock:
-    """A hybrid logical clock (see the module docstring). Thread-safe; it never raises.
-
-    Args:
-        physical: the physical clock, nanoseconds since the epoch (`None`: `runtime.wall_ns`).
-        max_offset: seconds a received stamp may be ahead of `physical` and be taken in.
-
-    Attributes:
-        refused: how many received stamps were refused so far.
-
-    Raises:
-        ConfigError: `max_offset` is not seconds above 0 and at most a year.
+    """A hybrid logical clock (module docstring), thread-safe, never raising: `physical` in
+    nanoseconds (`None`: `runtime.wall_ns`); `refused` counts stamps refused for being more than
+    `max_offset` seconds ahead (`ConfigError` unless above 0 and at most a year).
     """
 
     # (no `__slots__`: a simulation swaps a clock's `__dict__` whole per simulated process)
@@ -179,11 +171,9 @@ class HybridClock:
     send = now
 
     def receive(self, stamp: int, sender: str = "") -> int:
-        """Take in the stamp a message brought, before it is handled; the receipt's stamp.
-
-        A stamp not an int in 0..2**64-1 is ignored, one more than `max_offset` ahead refused
-        (counted, a WARNING at most once a minute naming `sender`): the clock then ticks as for a
-        local event.
+        """Take in a message's stamp before it is handled; the receipt's stamp. One that is not an
+        int in 0..2**64-1 is ignored, one too far ahead refused (counted, a WARNING at most once a
+        minute naming `sender`).
         """
         if not isinstance(stamp, int) or not 0 <= stamp <= _MAX:
             return self.now()

@@ -69,12 +69,8 @@ def _wake_from(loop: asyncio.AbstractEventLoop, waiter: asyncio.Future[bool], _:
 
 
 async def settled(future: OneShotFuture[Any], timeout: float | None) -> bool:
-    """Await `future` (settled by any thread) at most `timeout` seconds; whether it is.
-
-    No thread waits: the future's done callback wakes the running loop.
-
-    Raises:
-        asyncio.CancelledError: the awaiting task was cancelled.
+    """Await `future` (settled by any thread) at most `timeout` seconds; whether it is. No thread
+    waits: its done callback wakes the loop.
     """
     if future._settled:
         return True
@@ -90,10 +86,8 @@ async def settled(future: OneShotFuture[Any], timeout: float | None) -> bool:
 
 
 async def run_steps_async(steps: Steps[T]) -> T:
-    """Run `steps` on the running loop, awaiting each future it waits for (`settled`).
-
-    A cancellation is thrown into the steps at their `yield`, as `replies.run_steps` throws a
-    `KeyboardInterrupt`.
+    """Run `steps` on the running loop, awaiting each future (`settled`); a cancellation is thrown
+    into them at their `yield`.
     """
     mark_awaiting(True)  # (each step: this thread may take an idle actor's turn)
     try:
@@ -175,11 +169,9 @@ def process_loop() -> asyncio.AbstractEventLoop:
 class OnLoop:
     """A coroutine function and the event loop it runs on; submitted from any thread.
 
-    Each `submit` runs one call as a task of the loop after the previous call of the same key
-    (a status callback's query id) ended, as a status callback's calls run on worker threads;
-    a call that waits for a registrar (`replies.let_go`) lets the next of its key start beside
-    it. Each runs in a copy of the context it was bound in, with no OpenTelemetry span current
-    but its run's (`own`).
+    Calls of one key (a status callback's query id) run one at a time in order, unless one
+    waits for a registrar (`replies.let_go`); each in a copy of the binder's context, with no
+    OpenTelemetry span current but its run's (`own`).
     """
 
     __slots__ = ("_context", "_tails", "fn", "loop")
@@ -220,12 +212,9 @@ class OnLoop:
         waits: Callable[[], object] | None = None,
         own: tuple[str, str, str] | None = None,
     ) -> None:
-        """Run `fn(*args)` on the loop after the calls of `key` submitted before.
-
-        `then(error)` runs on the loop thread once it ended (what it raised, or `None`); `waits()`
-        (any thread, maybe more than once) as it lets the next of its key go; `own`: the status
-        callback's run (`traces.own_trace`). A closed loop runs nothing: `then` gets a
-        `RuntimeError` at once, here.
+        """Run `fn(*args)` on the loop after the calls of `key` before; `then(error)` on the loop
+        thread once it ended, `waits()` (any thread) as it lets the next go, `own` its run's span. A
+        closed loop runs nothing: `then` gets a `RuntimeError` here.
         """
         try:
             self.loop.call_soon_threadsafe(self._start, args, then, key, waits, own)

@@ -88,12 +88,8 @@ class Membership:
                 del self._hearers[hearer.name]
 
     def lost(self, name: str, *, by: str, hearers: tuple[Hearer, ...] = ()) -> None:
-        """Registrar `name` is gone for good: record it, then every hearer hears it.
-
-        Args:
-            name: the registrar that will not come back.
-            by: who says so (logged at debug level).
-            hearers: others to tell as well (one named like a joined hearer is told once).
+        """Registrar `name` is gone for good (`by` says who says so): record it, then every hearer
+        and `hearers` (one named like a joined hearer is told once) hears it.
         """
         with self._lock:
             self._gone[name] = False

@@ -60,11 +60,8 @@ Late = Callable[[Any], None]
 
 
 class LateQueue(queue.SimpleQueue[Any]):
-    """A queue that, once closed, hands what is left in it and what is put later to `late`.
-
-    The put and the close each drain after their own write: an item is handed on once, by
-    whichever comes second. Its own methods call `_put`, never `SimpleQueue.put` by name: in a
-    simulation it is of the runtime's subclass (`runtime.queue_class`).
+    """A queue that, once closed, hands what is left and what is put later to `late`, each item
+    once. Its methods call `_put`, not `SimpleQueue.put`: a simulation subclasses it.
     """
 
     _late: Late | None = None
@@ -94,12 +91,9 @@ class LateQueue(queue.SimpleQueue[Any]):
 
 
 class _Outbox(Generic[E]):
-    """A consumer's thread behind a bound that drops instead of blocking and remembers the gap.
-
-    `put` runs on any publishing thread and never blocks (without a lock the bound may be
-    passed by one event per publishing thread). A gap's notice goes where the lost events
-    would have been. With `maxbytes`, what is queued also weighs at most `maxbytes` bytes
-    (`weigh`), such puts taking the lock.
+    """A consumer's thread behind a bound that drops instead of blocking and remembers the gap
+    (whose notice goes where the lost events were). `put` never blocks; with `maxbytes`, what
+    is queued also weighs at most that (`weigh`), those puts taking the lock.
     """
 
     def __init__(
@@ -303,20 +297,15 @@ class Subscription(Generic[E]):
         return self._outbox.executor.closed
 
     def wait_delivered(self, *, timeout: float | None = 5.0) -> bool:
-        """Block until every event published before went through the callback (a dropped one: its
-        notice), at most `timeout` seconds (`None`: no bound); `False` if the time ran out or it was
-        closed first.
-
-        Raises:
-            RuntimeError: called from its own callback.
+        """Block until every event published before went through the callback (or its notice), at
+        most `timeout` seconds (`None`: no bound); `False` if the time ran out or it was closed.
+        `RuntimeError` from its own callback.
         """
         return self._outbox.wait(timeout=timeout, caller="wait_delivered()")
 
     def close(self, *, timeout: float | None = 5.0) -> None:
-        """Unsubscribe, deliver what was already queued, and end the thread.
-
-        What is not delivered within `timeout` seconds (`None`: no bound) is dropped, with a
-        WARNING. Idempotent; from the callback itself it returns first.
+        """Unsubscribe, deliver what was queued within `timeout` seconds (the rest dropped, with a
+        WARNING), and end the thread. Idempotent; from the callback it returns first.
         """
         if not self.closed:
             self._unsubscribe(self)
@@ -419,17 +408,13 @@ class Forwarder(Generic[E]):
 
     def wait_sent(self, *, timeout: float | None = 5.0) -> bool:
         """Block until every event given before was passed to `send` (or dropped), at most `timeout`
-        seconds; `False` if the time ran out.
-
-        Raises:
-            RuntimeError: called from `send` itself.
+        seconds; `False` if the time ran out. `RuntimeError` from `send` itself.
         """
         return self._outbox.wait(timeout=timeout, caller="wait_sent()", first=self._ship)
 
     def close(self, *, timeout: float | None = 5.0) -> None:
-        """Send what is buffered (within `timeout` seconds) and end the thread. Idempotent.
-
-        Remove it from its publisher first: events given after `close` are not sent.
+        """Send what is buffered (within `timeout` seconds) and end the thread. Idempotent; remove
+        it from its publisher first.
         """
         self._outbox.stop(timeout=timeout, last=self._ship)
 

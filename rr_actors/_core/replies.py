@@ -72,11 +72,8 @@ class FutureReply:
 
 
 def wait(future: pykka.Future[Any], timeout: float, what: str) -> Any:
-    """Wait for `future` at most `timeout` seconds (after `let_go`, as `run_steps`).
-
-    Raises:
-        CallTimeoutError: nothing arrived in time.
-        Exception: whatever error the future holds.
+    """Wait for `future` at most `timeout` seconds (after `let_go`): its value, its error, or
+    `CallTimeoutError` naming `what`.
     """
     let_go()
     try:
@@ -106,11 +103,8 @@ _LET_GO: contextvars.ContextVar[Callable[[], None] | None] = contextvars.Context
 
 
 def when_waiting(hook: Callable[[], None] | None) -> contextvars.Token[Callable[[], None] | None]:
-    """In the current context, `let_go` runs `hook()`; `waited(token)` takes it back.
-
-    A status callback runs with one: when it (or a task it started in its context) waits for a
-    registrar, its own id's next status may start beside it. `hook` may run more than once, on
-    any thread.
+    """In the current context, `let_go` runs `hook()` (any thread, maybe often) until
+    `waited(token)`: a status callback that waits for a registrar lets its id's next start.
     """
     return _LET_GO.set(hook)
 
@@ -128,10 +122,8 @@ def let_go() -> None:
 
 
 def run_steps(steps: Steps[T]) -> T:
-    """Run `steps` on the calling thread, blocking on each future it waits for (after `let_go`).
-
-    An exception the driver gets while the steps wait (a `KeyboardInterrupt`) is thrown into
-    them at the `yield`; what they raise ends them and is raised.
+    """Run `steps` on the calling thread, blocking on each future (after `let_go`); an exception
+    while they wait is thrown into them at the `yield`.
     """
     resume: Callable[[Any], Wait] = steps.send
     given: Any = None  # (sent to start them)
@@ -150,10 +142,8 @@ def run_steps(steps: Steps[T]) -> T:
 
 
 def on_own_thread(fn: Callable[[], T], name: str) -> Steps[T]:
-    """Steps that run `fn()` on a fresh daemon thread and wait for its result (what it raised).
-
-    For the few operations that block outside steps (a process's start or stop): on a loop
-    they hold that thread, never the loop. Interrupted, the steps stop waiting; `fn` runs on.
+    """Steps that run `fn()` on a fresh daemon thread and wait for its result: for the few
+    operations that block outside steps (on a loop they hold that thread, never the loop).
     """
     done: FutureReply = FutureReply()
 
@@ -172,11 +162,8 @@ def on_own_thread(fn: Callable[[], T], name: str) -> Steps[T]:
 
 
 def asked(future: OneShotFuture[Any], deadline: float, limit: float, what: str) -> Steps[Any]:
-    """Steps of one request: wait for `future` until `deadline`; its value, or its error.
-
-    Raises:
-        CallTimeoutError: not settled by `deadline` (`limit` seconds, `what` for the message).
-        Exception: whatever error the future holds.
+    """Steps of one request: `future`'s value or error by `deadline`, else `CallTimeoutError`
+    (`limit` seconds, `what` for the message).
     """
     if not (yield future, deadline):
         raise CallTimeoutError(f"{what} timed out after {limit:g} s")
@@ -218,10 +205,8 @@ Continuation = Callable[[Any, BaseException | None], None]
 
 
 class CallbackReply:
-    """Answers by calling `then(value, error)` on the answering thread, at most once.
-
-    For continuations that touch no actor state: `then` runs on any thread (a reader, a
-    worker, another actor), so it must be quick and thread-safe; what it raises is logged.
+    """Answers by calling `then(value, error)` on the answering thread, at most once: it must be
+    quick and thread-safe; what it raises is logged.
     """
 
     __slots__ = ("_lock", "_then")

@@ -119,10 +119,8 @@ def guards_files() -> bool:
 
 
 def hold(file: F) -> F:
-    """`file` (closable more than once), registered as the calling process's; returned.
-
-    Nothing in a real run (the kernel closes a dead process's files); in a simulation the
-    simulated process closes it when it ends, or the run does.
+    """`file` (closable twice), registered as the calling process's: in a simulation, closed when
+    the simulated process or the run ends; nothing in a real run.
     """
     return file
 
@@ -206,11 +204,8 @@ _locals: list[threading.local] = []
 
 
 def use(seams: Mapping[str, Any] | None) -> None:
-    """Run the protocol on `seams` (a value for every name of `SEAMS`), or the real world again
-    (`None`). For `rr_actors.simulation` only: objects made before keep their world.
-
-    Raises:
-        ValueError: `seams` lacks a name of `SEAMS`, or has one that is not a seam.
+    """Run the protocol on `seams` (every name of `SEAMS`; `ValueError` otherwise), or the real
+    world again (`None`). For `rr_actors.simulation` only.
     """
     global _simulated  # (this module's one switch)
     if seams is not None and set(seams) != set(SEAMS):
@@ -241,10 +236,8 @@ def thread_locals() -> tuple[threading.local, ...]:
 
 
 def process_state(obj: T, fresh: Callable[[], object]) -> T:
-    """Register `obj` as state of this process (at the import of its module); returns it.
-
-    `fresh()` makes a starting process's state: a simulation gives each simulated process a
-    fresh one's attributes. Nothing in a real run.
+    """Register `obj` (at its module's import) as this process's state; returns it. A simulation
+    gives each simulated process `fresh()`'s attributes; nothing in a real run.
     """
     _states.append((obj, fresh))
     return obj

@@ -54,21 +54,13 @@ class _Mark:
 
 
 class SerialExecutor:
-    """One thread of its own that runs the tasks it is given one at a time, in order.
+    """One thread of its own (daemon, `name`, started at the first task that waits) that runs
+    its tasks one at a time, in order; what a task raises is logged and the next runs.
 
-    The daemon thread `name` starts at the first task that has to wait for it and lives until
-    the executor closes; what a task raises is logged (`rr_actors`) and the next task runs.
-
-    Args:
-        name: the thread's name (and the log lines').
-        linger: seconds the thread waits, once the queue ran empty, before it sleeps: a burst
-            submitted meanwhile does not wake it (`flush` or `close` cut it short).
-        every: `(seconds, task)`: `task` also runs every `seconds` between tasks; it starts
-            the thread at once.
-        on_idle: runs on the thread each time the queue ran empty after a task.
-        on_drop: called with each task that `close` drops (on the closing thread).
-        on_end: runs once, after the last task: on the executor's thread if it has one, else
-            on the thread that closed it.
+    `linger`: seconds the thread waits once the queue ran empty, so a burst does not wake it;
+    `every`: `(seconds, task)` also run between tasks; `on_idle` when the queue ran empty;
+    `on_drop` with each task `close` drops; `on_end` once, last (on the executor's thread if
+    it has one, else the closing thread).
     """
 
     def __init__(
@@ -123,13 +115,9 @@ class SerialExecutor:
                 self._start()
 
     def submit(self, task: Task, *, inline: Callable[[], Task | None] | None = None) -> bool:
-        """Run `task` after every task submitted before; returns at once, `False` if closed.
-
-        Args:
-            task: what to run on the executor's thread.
-            inline: run instead, when the executor is idle, at once on the calling thread under
-                the lock (it must not block nor submit); it returns `None` (done) or the task to
-                run next. What it raises is raised here.
+        """Run `task` after every task submitted before; `False` if closed. When idle, `inline()`
+        runs instead, on this thread under the lock (no blocking, no submit), returning `None` or
+        the task to run next; what it raises is raised here.
         """
         with self._lock:  # (the plain lock under `_cond`: no Python-level `__enter__`)
             if self._closing:
@@ -147,11 +135,8 @@ class SerialExecutor:
             return True
 
     def call(self, fn: Callable[[], T]) -> T:
-        """Run `fn()` on the executor's thread after what is queued, and return its result.
-
-        Raises:
-            RuntimeError: called on its own thread, or the executor is (or got) closed first.
-            BaseException: whatever `fn` raised.
+        """Run `fn()` on the executor's thread after what is queued; its result or error.
+        `RuntimeError` on its own thread or once closed.
         """
         if self.on_own_thread():
             raise RuntimeError(f"call() on {self.name}'s own thread would wait for itself")
@@ -169,9 +154,7 @@ class SerialExecutor:
 
     def flush(self, *, timeout: float | None) -> bool:
         """Block until every task submitted before ran (at most `timeout` s); whether they all did.
-
-        Raises:
-            RuntimeError: called on the executor's own thread.
+        `RuntimeError` on its own thread.
         """
         if self.on_own_thread():
             raise RuntimeError(f"flush() on {self.name}'s own thread would wait for itself")
@@ -193,11 +176,8 @@ class SerialExecutor:
             self._end()
 
     def close(self, *, timeout: float | None = 0.0) -> bool:
-        """Take no more tasks; let those queued run for `timeout` s (`None`: no bound), then drop
-        the rest (each to `on_drop`). Idempotent; on its own thread it only finishes.
-
-        Returns:
-            Whether the executor ended (its last task returned) within `timeout`.
+        """Take no more tasks; let those queued run for `timeout` s, then drop the rest (to
+        `on_drop`); whether it ended in time. Idempotent; on its own thread it only finishes.
         """
         self.finish()
         if timeout != 0:

@@ -26,12 +26,8 @@ EVERY = 60.0
 
 
 class Throttle:
-    """When a repeated trouble may be logged again (the first time, then every `every` s), and
-    how many happened meanwhile (`unlogged`). Not locked: its owner locks (or `LogThrottle`).
-
-    Args:
-        every: seconds between two log lines.
-        clock: monotonic seconds (`None`: `runtime.monotonic`).
+    """When a repeated trouble may be logged again (first, then every `every` s on `clock`), and
+    how many happened meanwhile (`unlogged`). Not locked: its owner locks.
     """
 
     __slots__ = ("clock", "every", "logged", "next_at", "unlogged")
@@ -54,13 +50,8 @@ class Throttle:
 
 
 class LogThrottle:
-    """One kind of repeated WARNING, thread-safe: the first logged in full, later ones at most
-    every `every` seconds with the count since the previous line.
-
-    Args:
-        logger: where the lines go.
-        every: seconds between two lines.
-        clock: monotonic seconds (`None`: `runtime.monotonic`).
+    """One kind of repeated WARNING to `logger`, thread-safe: the first in full, later ones at
+    most every `every` seconds with the count since the previous line.
     """
 
     def __init__(

@@ -80,12 +80,8 @@ class Job:
 
 
 class Workers:
-    """Run zero-argument callables on at most `max_workers` reused daemon threads.
-
-    Args:
-        name: names the threads (`rr-<name>-worker-<n>`).
-        max_workers: threads that may run tasks at once; further tasks queue.
-        idle_timeout: seconds an idle worker waits for a task before it exits.
+    """Run zero-argument callables on at most `max_workers` reused daemon threads
+    (`rr-<name>-worker-<n>`), an idle one exiting after `idle_timeout` seconds.
     """
 
     def __init__(
@@ -135,18 +131,10 @@ class Workers:
     ) -> Job:
         """Run `task` on a worker thread once one is free; what it raises is logged.
 
-        Args:
-            task: what to run.
-            timeout: seconds the task may run once started; past them the job is abandoned and
-                `on_overdue()` runs on the watchdog's thread (quick, thread-safe).
-            on_overdue: see `timeout`.
-            quiet: its abandonment is logged at DEBUG, not WARNING (an overrun its owner expects).
-            urgent: if it must queue, it goes before every job that is not urgent.
-            lane: whose job it is, if it must queue ("": the pool's own).
-
-        Raises:
-            RuntimeError: no worker was free or could be added, and the OS refused a thread; the
-                task will not run.
+        `timeout`: seconds it may run once started, then it is abandoned and `on_overdue()` runs
+        on the watchdog's thread (logged at DEBUG if `quiet`). If it must queue, an `urgent` one
+        goes first, the others by `lane` in turns. `RuntimeError`: no worker was free and the OS
+        refused a thread.
         """
         job = Job(self, task, timeout, on_overdue, quiet)
         with self._lock:

@@ -49,12 +49,8 @@ class ExitWatch(Protocol):
 
 @dataclasses.dataclass(frozen=True, slots=True)
 class CpuSample:
-    """What the kernel says of one process's use of the CPUs, at one moment.
-
-    Attributes:
-        stopped: it is stopped (`SIGSTOP`, job control, a debugger): it cannot run at all.
-        waited: seconds its threads spent runnable but waiting for a CPU since the watch
-            began, summed over its threads.
+    """One process's use of the CPUs: `stopped` (it cannot run at all), and `waited`, seconds its
+    threads spent runnable but waiting for a CPU since the watch began.
     """
 
     stopped: bool
@@ -123,12 +119,8 @@ class Platform(Protocol):
     def manager_context(
         self, *, preload: Sequence[str] = (), lean_prefix: str | None = None
     ) -> multiprocessing.context.BaseContext:
-        """The multiprocessing context manager processes are started with: never a plain `fork` of
-        the threaded parent (`forkserver`, else `spawn`).
-
-        Args:
-            preload: modules a forkserver may import once for all its children.
-            lean_prefix: processes named with it need not re-import the parent's main module.
+        """The context manager processes start with: never a plain `fork` of the threaded parent.
+        `preload`: what a forkserver imports once; `lean_prefix`: processes that skip `__main__`.
         """
         ...
 

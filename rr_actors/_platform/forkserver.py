@@ -58,15 +58,10 @@ _forking: int | None = None  # this process's pid, noted just before it forks
 
 
 def after_fork_in_child(what: str, reset: Callable[[], None]) -> None:
-    """Have `reset()` run in every child forked from this process, right after the fork.
-
-    Call it once per piece of state, at its module's import. A reset must not wait for a lock
-    a parent's thread may have held (replace it), shut a socket down (close it), nor stop or
-    join anything; what it raises refuses the child.
-
-    Args:
-        what: what it resets, for the refusal's message (`"the AF_UNIX carrier"`).
-        reset: runs in the child on its only thread, before the child's own code.
+    """Have `reset()` run in every child forked from this process, on its only thread, before its
+    own code. Call it once per piece of state, at import; `what` names it in a refusal. A reset
+    replaces locks, closes (never shuts down) sockets, joins nothing; what it raises refuses
+    the child.
     """
     _resets.append((what, reset))
 
@@ -83,14 +78,8 @@ def forked_from() -> int | None:
 
 
 def check_usable(what: str) -> None:
-    """Raise `ConfigError` if this process was forked from one it cannot inherit from.
-
-    Args:
-        what: what is being started (`"registrar 'erm'"`), for the message.
-
-    Raises:
-        ConfigError: the parent had state the child cannot use (a Zenoh session); the message
-            names the `spawn` and `forkserver` methods.
+    """`ConfigError` (naming `spawn` and `forkserver`) if this process was forked from one whose
+    state it cannot use; `what` is what is being started.
     """
     if _refusals:
         raise ConfigError(
@@ -234,11 +223,8 @@ def _write(fd: int, data: memoryview, deadline: float) -> None:
 
 
 def start_within(process: BaseProcess, seconds: float) -> None:
-    """`process.start()`, the fork through this file's server bounded by `seconds`.
-
-    Raises:
-        TimeoutError: the server did not fork it, or the child did not take its process, in
-            time (nothing is left running). With another context there is no bound.
+    """`process.start()` through this file's server within `seconds`, else `TimeoutError` (nothing
+    is left running); with another context, unbounded.
     """
     _bound.deadline = time.monotonic() + seconds
     try:

@@ -169,14 +169,11 @@ class _Thread(NamedTuple):
 
 
 class ProcCpuWatch:
-    """A process's run-queue delay and stopped state, read from `/proc/<pid>`.
+    """A process's run-queue delay and stopped state, from `/proc/<pid>` (opened while it ran).
 
-    What it buys: the heartbeat tells a manager starved of CPU from a hung one. Per thread
-    the kernel counts its time on a CPU, its run-queue delay and its arrivals
-    (`task/<tid>/schedstat`, `CONFIG_SCHED_INFO`); `stat`'s state says `T`/`t` when stopped.
-    A wait's delay is added only when it ends, so one under way is estimated: a thread
-    runnable at two samples without a CPU in between waited. Read only while an answer is
-    late, through a descriptor opened while the process ran.
+    What it buys: the heartbeat tells a manager starved of CPU from a hung one. The kernel
+    counts per thread its delay (`schedstat`) only when a wait ends: one under way is
+    estimated (runnable at two samples without a CPU between). Read only while late.
     """
 
     __slots__ = ("at", "gone", "proc", "threads")
@@ -324,15 +321,10 @@ class LinuxPlatform:
         return pid if isinstance(pid, int) else None
 
     def die_with_parent(self, expected_parent: int | None) -> None:
-        """Have the kernel SIGKILL this process when the process that forked it dies.
+        """Have the kernel SIGKILL this process when its forker dies (`prctl(PR_SET_PDEATHSIG)`).
 
-        What it buys: no orphan even of a manager too stuck to read its control pipe. The forker
-        (the forkserver, which exits with the supervisor's process once no manager holds its
-        "alive" pipe) may have died before the `prctl`: then `getppid()` changed and it exits at
-        once with `PARENT_GONE_EXIT`.
-
-        Args:
-            expected_parent: the pid of the process that forked this one (`None`: no check).
+        What it buys: no orphan even of a manager too stuck to read its control pipe. If the forker
+        (`expected_parent`) died before the `prctl`, it exits at once (`PARENT_GONE_EXIT`).
         """
         _let_go_of_the_forkserver()
         libc = _libc()

@@ -49,14 +49,8 @@ class HeldError(Exception):
 
 
 def claim(path: str | os.PathLike[str]) -> int:
-    """Create `path` if needed (mode 0600), lock it for this owner and write this pid.
-
-    Returns:
-        The open descriptor: the lock is held until `release(fd)` (or the process ends).
-
-    Raises:
-        HeldError: another owner (in this process or another) holds it.
-        OSError: the file cannot be created or opened.
+    """Create `path` (0600), lock it and write this pid; the descriptor holds the lock until
+    `release` or the process's end. `HeldError` if another owner holds it.
     """
     name = os.fspath(path)
     while True:
@@ -91,15 +85,9 @@ def release(fd: int) -> None:
 
 
 def claim_file(path: str | os.PathLike[str]) -> int | None:
-    """Lock the existing file at `path` itself (whichever of its names), writing nothing.
-
-    Returns:
-        The open read-only descriptor, held until `release_file(fd)` or the process's end;
-        `None` where such locks are not taken (`FILE_LOCKS`: Linux only).
-
-    Raises:
-        HeldError: another owner (in this process or another) holds the file, by any name.
-        OSError: the file cannot be opened.
+    """Lock the existing file at `path` itself (by any name), writing nothing; the read-only
+    descriptor holds it until `release_file`. `None` where not taken (`FILE_LOCKS`: Linux);
+    `HeldError` if another owner holds it.
     """
     if not FILE_LOCKS:
         return None
