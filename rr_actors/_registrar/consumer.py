@@ -21,7 +21,8 @@
 ```
 
 Each part owns its state and changes another's through its methods only, all on the
-actor's thread: docs/explanation/inside.md, "The consumer's parts".
+actor's thread: docs/explanation/inside.md, "The consumer's parts" and "The consumer's
+reconcile".
 """
 
 from __future__ import annotations
@@ -1087,7 +1088,7 @@ class Reconciling:
     ) -> None:
         """Tell `serving_rr` which ids this registrar holds there (`Reconcile`); `then(error)`
         runs on this actor once the answer was handled. Why it is frozen and epoch-bound:
-        docs/explanation/inside.md, "The consumer's parts"."""
+        docs/explanation/inside.md, "The consumer's reconcile"."""
         with self.due.frozen() as (due, withdrawn):
             listing = self.listing(serving_rr, due, withdrawn, life)
             self.registrar.send(
