@@ -14,8 +14,9 @@
 Like OTP's `gen:do_call`: a provider that dies fails the reply at once. A reply that
 races the timeout, a stop or a death is decided by one state under one lock, the call's
 `CallAttempt` (SENDING ─► SENT ─► ANSWERED | RECORDING ─► ANSWERED | FAILED, or FAILED,
-or WITHDRAWN); the party whose transition took it acts on the state it left. Who does
-what, and presumed abort: docs/explanation/inside.md, "A call's outcome".
+or WITHDRAWN; docs/explanation/architecture.md, "One call attempt's states"); the party
+whose transition took it acts on the state it left. Who does what, and presumed abort:
+docs/explanation/inside.md, "A call's outcome".
 """
 
 from __future__ import annotations
