@@ -1,45 +1,25 @@
 """The registrar actor: started (`launch`), its parts built, each message dispatched.
 
 ```
- launch(config): the name claimed here, the catalog opened (restored from its backup),
-   what the restore left in doubt listed, the actor started ─► Launched (for the handle)
+ launch(config): the name claimed, the catalog opened (restored), the actor started
 
               ┌─────────────────── RegistrarActor (one mailbox, one thread) ───────────────┐
  message ───► │ the call outcomes handed over before it are taken first (`calls.py`)      │
               │ DISPATCH: type ─► (step name, the part's on_<step>)                        │
-              │  life.py      Lifecycle  Flush Crash Save Stop Ready Reachable Snapshot    │
-              │                          YieldName; death (on_failure)                    │
-              │               Restoring  SettleInDoubt; the sweep of a restored catalog    │
-              │               Presence   PeerLost ConsumerDown PeerReachable ReconcileRetry│
-              │                          ReconcileAsk                                      │
-              │  provider.py  Provider   Load            Unloading  Unload Abandon Reconcile│
-              │               Servers    Fetch RegisterServer UnregisterServer             │
-              │                          UpdateResponse ListServerQueries                  │
-              │               Teardown   (runs unloads for the parts above)               │
-              │  status.py    StatusRelay  SendStatus StatusBatch StatusNotice             │
-              │  consumer.py  Answers    ClientLoaded CallFailed                           │
-              │               Holdings   Revoke ResponseUpdated SetStatusCallback          │
-              │                          ListClientQueries OpenClient                      │
-              │               Releases   Release         Reconciling  LostEverything       │
-              │               Flights    (the calls in flight, for the parts above)        │
+              │  life.py      Lifecycle, Restoring, Presence                              │
+              │  provider.py  Provider, Unloading, Servers, Teardown                      │
+              │  status.py    StatusRelay                                                 │
+              │  consumer.py  Answers, Holdings, Releases, Reconciling, Flights           │
               │  state.py     Shared: config, catalog, saver, servers, phase, workers      │
               └────────────────────────────────────────────────────────────────────────────┘
 ```
 
-Each module's parts call only the modules below them (life, provider, status, consumer,
-in that order; a layers contract in `pyproject.toml` checks it), and the actor builds
-them bottom first. It never blocks: what it needs from another actor arrives later as a
-message that resumes the work (`Shared.send`, `Join`), and user callbacks run on worker
-threads, so a slow or hung callback never blocks the mailbox. Every clause of `DISPATCH`
-has one shape, `on_<step>(message, reply)`: `reply` is the message's own (held open for
-a message from the handle, `asked`), or `NO_REPLY`; the step names are what
-`rr_actors.testing.intercept` accepts.
-
-A durable registrar (`save_on_modify` with a backup) commits once per turn: its actor
-takes the messages waiting in its mailbox into the turn (up to `DRAIN`, or
-`DRAIN_SECONDS`), their steps stage their changes (`Shared.commit_then`), and
-`on_turn_end` writes them in one transaction, then releases their answers and events
-(`Shared.end_turn`; docs/explanation/architecture.md, "One turn's transaction").
+The parts call only the modules below them (a layers contract in `pyproject.toml`).
+The actor never blocks: what it needs from another actor arrives later as a message
+(`Shared.send`, `Join`), and user callbacks run on worker threads. Every clause of
+`DISPATCH` is `on_<step>(message, reply)`; the step names are what
+`rr_actors.testing.intercept` accepts. A durable registrar commits once per turn
+(docs/explanation/architecture.md, "One turn's transaction").
 """
 
 from __future__ import annotations
@@ -140,30 +120,23 @@ logger = logging.getLogger("rr_actors")
 
 
 DRAIN = 64
-"""Messages a durable registrar handles in one turn at most when they wait in its inbox
-(`Actor.drain`): their changes commit in one transaction, then their answers go."""
+"""Messages a durable registrar takes into one turn at most (`Actor.drain`)."""
 
 DRAIN_SECONDS = 0.02
-"""Seconds after a turn's first message past which a durable registrar takes no more
-into that turn (`Actor.drain_seconds`): the first answer of a turn waits no longer."""
+"""Seconds after a turn's first message past which no more are taken into that turn."""
 
 
 Handler = Callable[[Any, Reply], None]
-"""`handle(message, reply)`, run on the actor's thread: every clause of `DISPATCH` has this
-shape. `reply` is where the message's answer goes: its `reply` field (held open for a
-message from the handle, `asked`), or `NO_REPLY` for a message that wants no answer."""
+"""`handle(message, reply)`, run on the actor's thread: `reply` is the message's own (held
+open for a message from the handle, `asked`), or `NO_REPLY`."""
 
 Binder = Callable[["RegistrarActor"], Handler]
-"""What makes a `Handler` of one actor (run once, when the actor is built): a role's
-`on_<step>` method."""
+"""What makes a `Handler` of one actor (run once, when it is built): a role's `on_<step>`."""
 
 
 def asked(bind: Binder) -> Binder:
-    """A clause for a message from the handle: `handle(message, reply)` with an open reply.
-
-    The reply is open while unanswered (a death fails it, `Lifecycle.fail_waiting`), and
-    an `RrError` the handler raises is its caller's answer: the registrar keeps serving.
-    """
+    """A clause for a message from the handle, with an open reply (a death fails it); an
+    `RrError` the handler raises is its caller's answer."""
 
     def bound(actor: RegistrarActor) -> Handler:
         handle = bind(actor)
@@ -259,13 +232,9 @@ STEPS: frozenset[str] = MESSAGE_STEPS | POINTS
 
 
 class RegistrarActor(Actor):
-    """The registrar actor: dispatches each message to the part that owns it."""
-
     inline = frozenset({Load, Unload, Abandon, DurableLoaded})
     """What a carrier's receiving thread handles in the registrar's turn when it is idle
-    (`rr_actors._core.actor.deliver`): a consumer's load, unload and abandon, and a
-    durable call's answer (`calls.py`'s `ClientReply`: the thread that brings it), whose
-    steps are short and run user code only on worker threads."""
+    (`_core.actor.deliver`): short steps that run user code only on workers."""
 
     shared: Shared
     provider: Provider
@@ -356,7 +325,6 @@ class RegistrarActor(Actor):
 
     @property
     def name(self) -> str:
-        """The registrar's name."""
         return self.shared.name
 
     def on_start(self) -> None:
@@ -372,7 +340,6 @@ class RegistrarActor(Actor):
         self.dispatch(message)
 
     def dispatch(self, message: Any) -> None:
-        """Handle `message` with its role's handler (the outcomes waiting are not taken)."""
         entry = self.handlers.get(type(message)) or self.inherited(type(message))
         if entry is None:  # (shown without running its __repr__: a peer's object)
             text = plain_text(message) or f"<a {type(message).__qualname__[:80]} object>"
@@ -412,9 +379,8 @@ class RegistrarActor(Actor):
             raise
 
     def inherited(self, kind: type) -> tuple[str, Handler, TextFields] | None:
-        """The clause of a subclass of a message in `DISPATCH` (`DurableLoaded` is a
-        `ClientLoaded`), with the subclass's own text fields, kept for its next one;
-        `None` for an unknown message."""
+        """The clause of a subclass of a message in `DISPATCH` (`DurableLoaded`), kept for its
+        next one; `None` for an unknown message."""
         for base in kind.__mro__[1:-1]:  # (not the class itself, nor `object`)
             entry = self.handlers.get(base)
             if entry is not None:
@@ -424,7 +390,6 @@ class RegistrarActor(Actor):
         return None
 
     def on_turn_end(self) -> None:
-        """The turn's changes, one transaction; then their answers (`Shared.end_turn`)."""
         shared = self.shared
         if shared.dirty or shared.staged:
             shared.end_turn()
@@ -439,7 +404,6 @@ class RegistrarActor(Actor):
         self.lifecycle.ended.set(None)
 
     def on_late(self, envelope: Any) -> None:
-        """A message that arrived after this actor's loop ended (any thread)."""
         self.lifecycle.refuse(envelope, DIRECTORY.gone_error(self.name))
 
 
@@ -452,22 +416,17 @@ EVENT_LOG = logging.getLogger("rr_actors.events")
 
 @dataclass(frozen=True, slots=True)
 class Launched:
-    """A registrar actor just started, and what its handle shares with it."""
-
     config: RegistrarConfig
     ref: pykka.ActorRef[RegistrarActor]
     restored: bool
-    """Whether its catalog was restored from a backup."""
     in_doubt: tuple[Query, ...]
     """Resources the restore found neither loaded nor unloaded (thesis 4.3.3)."""
     due: DueAnswers
     died: runtime.Event
-    """Set when a crash of the actor was fully handled."""
     ended: OneShotFuture[None]
     """Settled when the actor handed on its last message (an event loop awaits it)."""
     published: Publisher[events.Event]
     clients: Clients
-    """Its client actors: the actor starts them, the handle looks them up."""
     in_doubt_texts: tuple[tuple[str, str | None], ...] = ()
     life: str = ""
     """Its run (`Shared.life`): each `Load` its calls send carries it."""
@@ -483,18 +442,15 @@ def launch(
 ) -> Launched:
     """Restore the catalog and start the actor (on the calling thread).
 
-    Args:
-        config: a `RegistrarConfig`, or just a name.
-        setting_up: whether a `setup` runs before it serves others (loads wait for it).
-        upstream: a publisher its events are relayed to as well (a supervisor's tree).
-        hold_in_doubt: keep the in-doubt entries in the backup until the manager settles
-            them (`ResourceRegistrar.settle_in_doubt`; a `setup` runs first).
+    `setting_up`: a `setup` runs before it serves others; `upstream`: a publisher its
+    events are relayed to as well; `hold_in_doubt`: keep in-doubt entries in the backup
+    until the manager settles them.
 
     Raises:
         DuplicateNameError: a registrar with this name is already running here.
         CatalogCorruptError: the backup exists but cannot be read (it is left as is).
-        ConfigError: the configuration, or its backup path, is invalid; or this process
-            was forked from one whose state a child cannot use (`rr_actors._platform.forkserver`).
+        ConfigError: the configuration or its backup path is invalid; or this process
+            was forked from one whose state a child cannot use.
     """
     if isinstance(config, str):
         config = RegistrarConfig(name=config)

@@ -2,7 +2,6 @@
 
 ```
  caller thread (Calls.steps)           consumer registrar actor          provider
- ───────────────────────────           ────────────────────────          ────────
  due.expect(id, attempt)
  attempt.sent(); Load(its run: life) ──────────────────────────────────► on_load
  attempt.wait(answer | error | timeout) ◄──── ClientReply (the answering thread) ◄─┘
@@ -12,27 +11,12 @@
              CallFailed ────► due.outcomes + TakeOutcomes ──► forget the attempt's record
 ```
 
-Like OTP's `gen:do_call` (monitor, send, receive the reply, the 'DOWN' or the timeout):
-a provider that dies fails the reply at once (`RegistrarUnavailableError`), not after
-the timeout. What a reply that races the timeout, a stop or a death does is decided by
-one state under one lock, the call's `CallAttempt`; each transition returns the state
-it leaves, and the party that took it acts on that state:
-
-```
-          sent()            answer(value): a plain call (its caller records it)
- SENDING ───────► SENT ─────────────────────────────────────────► ANSWERED
-    │              │ └─take(): a durable call's answer ──► RECORDING  ▲
-    │              │     settle(value): committed ───────────┴───────┘
-    │              │     settle(error): not kept ──────────────────┐
-    │              │  fail(error): an error answer, the provider    ▼
-    ├──────────────┴─ died, the registrar stopped or died ──────► FAILED
-    │              │  withdraw(): the caller's time ran out, or it
-    └──────────────┴─ was interrupted ──────────────────────────► WITHDRAWN
-```
-
-A plain call's outcome waits for the actor (`DueAnswers.outcomes`); a durable one is
-committed by the actor before its caller gets it (`consumer.py`). Why, and presumed
-abort: docs/explanation/inside.md, "A call's outcome".
+Like OTP's `gen:do_call`: a provider that dies fails the reply at once. A reply that
+races the timeout, a stop or a death is decided by one state under one lock, the call's
+`CallAttempt` (SENDING ─► SENT ─► ANSWERED | RECORDING ─► ANSWERED | FAILED, or FAILED,
+or WITHDRAWN; docs/explanation/architecture.md, "One call attempt's states"); the party
+whose transition took it acts on the state it left. Who does what, and presumed abort:
+docs/explanation/inside.md, "A call's outcome".
 """
 
 from __future__ import annotations
@@ -79,9 +63,8 @@ __all__ = [
 
 
 _FIRST_PAUSE = 0.005
-"""Seconds a call refused for overload (`OverloadedError`) waits before it asks again,
-when its provider does not say (its `retry_after`, else); each further refusal doubles
-it, up to `_LAST_PAUSE`."""
+"""Seconds a call refused for overload waits before it asks again when its provider does
+not say (its `retry_after`); each further refusal doubles it, up to `_LAST_PAUSE`."""
 _LAST_PAUSE = 0.1
 
 
@@ -111,36 +94,10 @@ _OPEN = (AttemptState.SENDING, AttemptState.SENT)
 class CallAttempt(OneShotFuture[Any]):
     """One attempt of a call: the future its caller waits on, settled through one `state`.
 
-    Three threads race over it (the module's second diagram): its caller (whose time may
-    run out), the thread that brings the answer (a connection's reader, or the
-    provider's actor), and its registrar's actor (which commits a durable call's answer,
-    and fails the calls in flight when it stops or dies).
-
-    ```
-     transition (who)                returns    what its caller does then
-     sent() (the caller)             SENT       sends the Load
-                                     FAILED     sends nothing: the registrar stopped
-     answer(v) (answering thread)    ANSWERED   nothing: the caller wakes, records it
-                                     WITHDRAWN  nothing: the caller gave the id back
-     take() (actor: durable answer)  RECORDING  commits the record, then settle() on
-                                                every path
-                                     WITHDRAWN  drops the answer (the caller gave the
-                                     or FAILED  id back; a stopping registrar does too)
-     settle(v | e) (the actor)       ANSWERED   nothing more: the caller wakes
-                                     or FAILED
-     fail(e) (any)                   FAILED     nothing more: the caller wakes
-     fail_open(e) (the actor stops)  True       gives a durable call's id back (Abandon)
-                                     False      nothing: its outcome comes
-     withdraw() (the caller)         WITHDRAWN  gives the id back (Abandon), tells its
-                                                registrar (CallFailed): nothing is left
-                                     RECORDING  waits for the commit, reads the outcome
-                                     ANSWERED   reads the outcome (the answer won)
-                                     or FAILED
-    ```
-
-    A transition that does not apply leaves the state as it is (the first settle wins;
-    only the actor that took a `RECORDING` attempt settles it). Entering `ANSWERED` or
-    `FAILED` wakes the caller (`get` returns the value or raises the error).
+    Its caller, the answering thread and its registrar's actor race over it; each
+    transition returns the state it leaves (the table: docs/explanation/inside.md, "A call's
+    outcome"); one that does not apply changes nothing. Entering `ANSWERED` or `FAILED`
+    wakes the caller.
     """
 
     # What its events tell (set by its caller when known): when the call began (wall
@@ -160,18 +117,13 @@ class CallAttempt(OneShotFuture[Any]):
 
     @property
     def awaited(self) -> bool:
-        """Whether a notice waits for this call's answer (`mark_awaited`): its caller then
-        wakes the registrar actor for the outcome it hands over (`DueAnswers`)."""
+        """Whether a notice waits for this call's answer: its caller then wakes the actor."""
         with self._state_lock:
             return self._awaited
 
     def mark_awaited(self) -> None:
-        """The registrar actor: a notice waits for this call's answer (`awaited`).
-
-        Under the state lock, like every transition: the caller that reads the mark after
-        it handed its outcome over, and the actor that takes the outcomes after it marked,
-        are ordered by it, so one of the two sees the other's write.
-        """
+        """The registrar actor: a notice waits for this call's answer. Under the state lock, so
+        the caller reading it and the actor taking the outcomes see each other's write."""
         with self._state_lock:
             self._awaited = True
 
@@ -212,8 +164,8 @@ class CallAttempt(OneShotFuture[Any]):
             return self.state
 
     def fail_open(self, error: BaseException) -> bool:
-        """The registrar actor, as it stops: fail the call with `error` if it is still
-        open (`SENDING` or `SENT`); whether this did (else its outcome comes anyway)."""
+        """The registrar actor, as it stops: fail the call with `error` if it is still open;
+        whether this did (else its outcome comes anyway)."""
         with self._state_lock:
             if self.state not in _OPEN:
                 return False
@@ -249,12 +201,8 @@ class ClientLoaded:
 
 @dataclasses.dataclass(frozen=True, slots=True)
 class DurableLoaded(ClientLoaded):
-    """A durable call's answer: the registrar commits its record, then answers the caller.
-
-    Its caller still waits (`CallAttempt.take`); told by the answering thread. Handled
-    as a `ClientLoaded` (the same step, `client_loaded`); its type is what says the
-    registrar answers the caller.
-    """
+    """A durable call's answer, told by the answering thread: the registrar takes the attempt,
+    commits its record, then answers the caller (handled as a `ClientLoaded`)."""
 
 
 @dataclasses.dataclass(frozen=True, slots=True)  # (one per call: slots build faster)
@@ -275,8 +223,7 @@ class CallFailed:
 
 @dataclasses.dataclass(frozen=True)
 class TakeOutcomes:
-    """Wake the actor for the outcomes waiting in `DueAnswers.outcomes` (taken before
-    every message it handles: this one only wakes it for those something waits for)."""
+    """Wake the actor for the outcomes waiting in `DueAnswers.outcomes` that something awaits."""
 
 
 BACKLOG = 64
@@ -288,19 +235,10 @@ Outcome = ClientLoaded | CallFailed
 class DueAnswers:
     """The query ids whose answer a consumer has not recorded yet, with their attempt.
 
-    Shared by the registrar's callers and its actor: a caller adds its query id before
-    its `Load` leaves; the actor removes it once it handled that attempt's answer
-    (`ClientLoaded`) or failure (`CallFailed`). Across processes the provider's notices
-    about a query (status, response update, revoke) travel on the provider's connection
-    to this registrar's listener, while the answer comes back on this process's
-    connection to the provider, read by another thread: a notice can overtake the answer
-    it is about. The actor holds such a notice until the query id is no longer due. The
-    lock makes "remove it if it is still this attempt's" atomic against a retry that
-    reuses the query id.
-
-    `outcomes` holds the outcomes of plain calls in the order their threads handed them
-    over (the module's first diagram). Once the actor ended, an outcome handed over goes to its
-    `late` handler at once (a `LateQueue`), which gives the id back.
+    Shared by the callers (which add an id before its `Load` leaves) and the actor (which
+    removes it once it handled the outcome); a notice that overtook its answer (another
+    connection) waits until its id is no longer due. `outcomes`: plain calls' outcomes,
+    in hand-over order; once the actor ended, each goes to `late`, which gives the id back.
     """
 
     __slots__ = ("_attempts", "_durable", "_lock", "outcomes")
@@ -315,21 +253,13 @@ class DueAnswers:
         return query_id in self._attempts
 
     def ids(self) -> frozenset[str]:
-        """A snapshot of the query ids whose answer is due."""
         with self._lock:
             return frozenset(self._attempts)
 
     @contextlib.contextmanager
     def frozen(self) -> Iterator[tuple[frozenset[str], frozenset[str]]]:
-        """The ids due, and those of them whose caller withdrew the call, with no call
-        starting until the block ends.
-
-        A caller's `expect` waits for the block, so whatever it sends follows what the
-        block sent on the same channel (a `Reconcile` lists every call sent before it).
-        A withdrawn call is due until the actor handled its `CallFailed`; its id was
-        given back already (its `Abandon` may have died with the provider), so a
-        `Reconcile` must not list it (issue 51).
-        """
+        """The ids due, and those whose caller withdrew the call, with no call starting until the
+        block ends (a `Reconcile` lists every call sent before it, none of the withdrawn)."""
         with self._lock:
             withdrawn = frozenset(
                 q for q, a in self._attempts.items() if a.state is AttemptState.WITHDRAWN
@@ -339,8 +269,8 @@ class DueAnswers:
     def expect(
         self, query_id: str, attempt: CallAttempt, durable: ClientReply | None = None
     ) -> None:
-        """A call `attempt` with `query_id` is about to be sent (any thread); `durable`:
-        a durable call's reply (its registrar answers it: `durable_calls`)."""
+        """A call `attempt` with `query_id` is about to be sent (any thread); `durable`: its
+        registrar answers it."""
         with self._lock:
             self._attempts[query_id] = attempt
             if durable is not None:
@@ -349,7 +279,6 @@ class DueAnswers:
                 self._durable.pop(query_id, None)
 
     def durable_attempt(self, query_id: str) -> CallAttempt | None:
-        """The attempt of `query_id`'s call due, if it is a durable one."""
         with self._lock:
             return self._attempts.get(query_id) if query_id in self._durable else None
 
@@ -359,12 +288,8 @@ class DueAnswers:
             return list(self._durable.values())
 
     def awaited(self, query_id: str) -> bool:
-        """The actor: a notice waits for `query_id`'s answer; whether it is still due.
-
-        Marks its attempt (`CallAttempt.awaited`): its caller, reading the mark after it
-        handed the outcome over, wakes the actor for it. The actor takes the outcomes
-        once more after marking, so one of the two sees the other's write.
-        """
+        """The actor: a notice waits for `query_id`'s answer (its attempt marked); whether it is
+        still due."""
         attempt = self._attempts.get(query_id)
         if attempt is None:
             return False
@@ -382,22 +307,9 @@ class DueAnswers:
 
 
 class ClientReply:
-    """The answer to a consumer's load: hand it to the caller, who records it.
-
-    The caller's thread wakes with the value and hands the consumer's registrar the
-    client record itself: the answering thread (a connection's reader, or the provider's
-    actor) wakes one thread, not two, and the caller's later `unload` finds the record
-    (`DueAnswers.outcomes`). A notice about the query that reaches the registrar before
-    the record waits for it (`DueAnswers`).
-
-    With `commit_first` (a durable consumer) the answer goes to the registrar as a
-    `DurableLoaded`: it takes the attempt, commits the record and then settles it (or,
-    finding it withdrawn, gives the id back). Nothing was written before the load was
-    sent (presumed abort, the module docstring).
-
-    It also describes the call (its id, provider, server, request and parent), so that
-    the caller's thread builds one `Query`, the answered one.
-    """
+    """The answer to a consumer's load: the caller's thread wakes with the value and hands
+    the record over (one thread woken, not two); with `commit_first`, a `DurableLoaded` to
+    the registrar instead. It describes the call, so the caller builds one `Query`."""
 
     __slots__ = (
         "attempt",
@@ -433,7 +345,6 @@ class ClientReply:
         self.commit_first = calls.commit_first
 
     def query(self, response: Any = None) -> Query:
-        """The call's query, with `response`."""
         return Query(
             self.query_id, self.server, self.serving_rr, self.calls.name, self.request, response
         )
@@ -478,18 +389,9 @@ class ClientReply:
 class Calls:
     """The caller-thread side of one registrar's calls (its handle holds one).
 
-    Args:
-        ref: the consumer registrar actor.
-        name: its name.
-        due: the answers due, shared with the actor.
-        commit_first: its calls are durable (a backup with `save_on_modify`): an answer
-            is committed before its caller gets it.
-        stored: its client records are stored (a backup), so requests and responses
-            must pickle.
-        life: the registrar's run (`Shared.life`), carried by each `Load`.
-        probes: the registrar's test probes, read when a call is withdrawn.
-        events: the registrar's events: when anyone listens (`active`), a plain call's
-            answer wakes the actor, which publishes its `CallAnswered` at once.
+    `commit_first`: its calls are durable (an answer is committed before its caller gets
+    it); `stored`: requests and responses must pickle; `life`: the registrar's run, carried
+    by each `Load`; `events`: while anyone listens, a plain answer wakes the actor.
     """
 
     def __init__(
@@ -530,27 +432,10 @@ class Calls:
     ) -> Steps[Query]:
         """A call's steps: send its load, wait for its answer until `deadline` (rule 17).
 
-        Each wait is a `yield` (`replies.Steps`): `run_steps` blocks the caller's thread
-        on it, `loops.run_steps_async` awaits it. An exception thrown in at a wait (a
-        `KeyboardInterrupt`, a cancelled task) withdraws the call as a timeout does.
-
-        Args:
-            query_id: the call's query id.
-            serving_rr: the provider registrar's name.
-            server: the server's name there.
-            request: what the call asks for.
-            parent: the resource of this registrar the call is a dependency of, if any.
-            chain: the resources being loaded further up (cycle detection).
-            on_status: the client status callback to record with the answer.
-            limit: the call's timeout in seconds (for the error message).
-            deadline: when to give up (`time.monotonic()` seconds).
-            begun: the caller's trace context (`_core/traces.py`'s `begin`): the
-                `Load` carries its traceparent, the call's events both.
-            wait_overloaded: whether a refusal for overload is asked again after a pause
-                (while the time lasts), or raised at once (`if_overloaded="raise"`).
-
-        Returns:
-            The call's `Query`, with its response.
+        Each wait is a `yield` (`replies.Steps`); an exception thrown in at a wait withdraws
+        the call as a timeout does. `parent`: the resource the call is a dependency of;
+        `chain`: those loading further up; `limit`: the timeout, seconds (for the message);
+        `begun`: the caller's trace context; `wait_overloaded`: ask again after a refusal.
 
         Raises:
             CallTimeoutError: no answer in time; the call was withdrawn.
@@ -623,8 +508,7 @@ class Calls:
             pause = min(2 * pause, _LAST_PAUSE)
 
     def new_attempt(self, begun: tuple[str, str] | None) -> CallAttempt:
-        """A call's attempt, stamped with when it began (while events are made) and with
-        its caller's trace context `begun` (`(traceparent, caller's span)`, or `None`)."""
+        """A call's attempt, stamped with when it began and its caller's trace context `begun`."""
         attempt = self.attempt_type()
         if self.events.active:  # (its events say when it began)
             attempt.started = hlc.CLOCK.wall()
@@ -633,18 +517,9 @@ class Calls:
         return attempt
 
     def send(self, load: Load, reply: ClientReply) -> None:
-        """Send a call's `load` from the caller's thread (nothing is written first, also
-        for a durable call: presumed abort, the module docstring).
-
-        Along the client's route rather than through the client's mailbox: one thread
-        hand-off less; mailbox order still holds, a later withdrawal reaches its actors
-        after this. From an event loop's thread (an awaited call), an idle provider of
-        this process handles the load in its turn on that thread, as a carrier's
-        receiving thread may (`_core/actor.py`): a dedup hit is answered before the
-        call awaits anything, and the loop is not woken from another thread. A durable
-        provider's load (`save_on_modify`) goes to its own thread: its commit would
-        hold the loop (`LocalPeer.deliver`).
-        """
+        """Send a call's `load` from the caller's thread, along the client's route (one hand-off
+        less; mailbox order holds). From an event loop's thread an idle provider of this
+        process may handle it there; a durable provider's goes to its own thread."""
         if reply.attempt.sent() is not AttemptState.SENT:  # this registrar stopped
             return  # meanwhile and failed it: nothing to send
         probes = self.probes()
@@ -660,14 +535,9 @@ class Calls:
             reply.set_error(exc, sent=False)
 
     def withdraw(self, reply: ClientReply, attempt: CallAttempt, why: str = "timeout") -> None:
-        """Take back a call whose caller stopped waiting: leave nothing behind (rule 17).
-
-        The caller withdrew `attempt`, so an answer that comes later is dropped (or, for a
-        durable call, not kept). Told from the caller's thread, like the `Load`: the
-        provider sees the `Abandon` after the `Load` and before any retry this caller makes
-        with the same id. Not for a call that failed: its provider may hold a committed id
-        that a retry with the same id must find (`Supervisor.call_with_retry`).
-        """
+        """Take back a call whose caller stopped waiting (rule 17): an answer coming later is
+        dropped; the `Abandon`, told from this thread, follows the `Load` and precedes any
+        retry. Not for a failed call: a retry with its id must find it."""
         probes = self.probes()
         if probes is not None:
             probes.fire("withdraw", reply.query())
@@ -684,15 +554,9 @@ class Calls:
             self.hand_over(withdrawn, wake=True)  # the record
 
     def hand_over(self, outcome: Outcome, *, wake: bool) -> None:
-        """Give the registrar actor a call's `outcome` to record (any thread).
-
-        A plain call's waits in `due.outcomes` (module docstring); the actor is woken for
-        it with `wake`, when a notice waits for its answer, or when `BACKLOG` wait. A
-        durable registrar's go through its mailbox, in order with its answers.
-
-        Raises:
-            pykka.ActorDeadError: the registrar actor is not running.
-        """
+        """Give the registrar actor a call's `outcome` (any thread): a plain one waits in
+        `due.outcomes` (the actor woken with `wake`, for an awaited one, or past `BACKLOG`); a
+        durable registrar's goes through its mailbox. `pykka.ActorDeadError` if it ended."""
         if self.commit_first:
             self.ref.tell(outcome)
             return

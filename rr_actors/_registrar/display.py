@@ -9,29 +9,10 @@
            ──► the record's text set (if it still holds that value) ──► written
 ```
 
-An observer, live or reading a backup, shows these texts and never calls `repr` itself:
-a backup's values are never unpickled to show them (that would run code from the file),
-and a `__repr__` that hangs or raises costs one worker thread once, when the value is
-stored, never a refresh of the observer (`rr_actors.observe`). A text is a bounded
-`repr` (at most `TEXT_WIDTH` characters); a failure is recorded in its place
-(`<repr failed: ValueError>`) and never retried. The texts themselves are made by
-`rr_actors._catalog.texts` (pure functions). The cost: a plain value's text on the actor
-thread (a few microseconds for a small dict), a worker round trip and one more write for
-any other value or a label.
-
-A consumer's client records get their texts from `ClientTexts`: one text per request
-object it holds, not one per call. Made per call, a dedup hit with a request of a user
-class (a dataclass, say) cost a worker round trip and a second write on every call, and a
-`repr` that hangs held a worker thread for `compare_timeout` on every call: "costs once"
-did not hold for a caller that reuses its request. Made only when read (a snapshot, a
-write to the backup) would have kept the per-call cost at zero, but a stored record is
-written when it is added, so the texts would have been made two ways. Sharing by identity
-runs no user code, keeps nothing alive that no record holds, and covers the common case,
-a caller (or a `Supervisor`'s retry) passing the same object again; an equal new object
-gets its own text, as before. A record that is not written (no backup) gets its text when
-something first reads it (a snapshot: the observer, `catalog_snapshot`), if its request
-is of a built-in type: a dedup hit nobody looks at makes none (`ClientTexts.added`,
-`fill`); a request of a user class has its `repr` run on a worker at once, as before.
+An observer never calls `repr` itself: a backup's values are never unpickled to show
+them, and a `__repr__` that hangs or raises costs one worker thread once, when the value
+is stored. The texts are made by `rr_actors._catalog.texts` (pure functions). Why client
+records share one text per request object: docs/explanation/inside.md, "Display texts".
 """
 
 from __future__ import annotations
@@ -80,13 +61,9 @@ def show_request(
     label: Callable[[Any], Any] | None,
     labelled: Callable[[], None] | None = None,
 ) -> None:
-    """Give a resource just begun its request's text (and label); call before its write.
-
-    Runs on the actor thread; a text that needs user code comes later, and is written
-    then (or with the next write). `labelled()` runs on the actor thread once the
-    label's text is set (made, or failed: bounded by `compare_timeout`), if there is
-    a `label`.
-    """
+    """Give a resource just begun its request's text (and label), on the actor thread, before
+    its write; one that needs user code is written later. `labelled()` runs once the label
+    is set, if there is a `label`."""
     catalog = shared.catalog
     rid = resource.id
 
@@ -124,18 +101,9 @@ def show_response(shared: Shared, resource: Resource) -> None:
 
 
 class ClientTexts:
-    """The request texts of one registrar's client records: one per request object held.
-
-    A consumer's records of calls made with the same request object (the dedup hits of a
-    caller that reuses its request) share that object's text: the first record to hold
-    the object (`is`: no user code) makes it, and each record added while that one is
-    held takes it (or waits with it for the worker that makes it). Once that record went,
-    the next one makes the text again and holds it for the rest. Another object, even an
-    equal one, gets a text of its own (`==` would run user code on the actor thread).
-    Nothing outlives the records: the table maps an object's `id` to the query id of a
-    record that holds it (so the id is not reused while that record is there), and is
-    rebuilt from the records when it outgrows them.
-    """
+    """The request texts of one registrar's client records: one per request object held
+    (`is`: no user code), shared by the records holding it; the table maps an object's
+    `id` to a record holding it, and is rebuilt when it outgrows the records."""
 
     __slots__ = ("due", "holders", "shared", "waiting")
 
@@ -146,9 +114,8 @@ class ClientTexts:
         self.due: list[str] = []  # query ids of records added whose text nobody read yet
 
     def added(self, record: ClientRecord) -> None:
-        """A client record was just added (before its write): its text now if it is
-        written (a backup) or its request is not of a built-in type (its `repr` runs on a
-        worker at once, as it always did), else when something first reads it (`fill`)."""
+        """A client record was just added (before its write): its text now if it is written or
+        its request is not of a built-in type, else when first read (`fill`)."""
         query_id = record.query.id
         if self.shared.saver.store is not None or type(record.query.request) not in _BUILTIN:
             self.show(query_id)
@@ -160,14 +127,12 @@ class ClientTexts:
             self.due = [q for q in due if q in clients]
 
     def fill(self) -> None:
-        """Give each record added since the last read its text (`show`, in the order they
-        were added): before a snapshot copies the records."""
+        """Give each record added since the last read its text, in order: before a snapshot."""
         due, self.due = self.due, []
         for query_id in due:
             self.show(query_id)
 
     def show(self, query_id: str) -> None:
-        """Give a client record just added its request's text (before its write)."""
         clients = self.shared.catalog.clients
         record = clients.get(query_id)
         if record is None or record.request_text is not None:

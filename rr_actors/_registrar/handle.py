@@ -1,41 +1,24 @@
 """The registrar's handle: one class wherever its actor lives, callable from any thread.
 
-A `Registrar` is what user code holds. Its surface is written here once: each blocking
-method, its awaitable twin and `watch`. Each runs one *operation* where the registrar's
-actor lives, the handle's `_actor` (as pykka's one `ActorRef` puts a message into
-whichever inbox its actor has):
-
 ```
  reg.call(...)        ─► blocking(       reg._actor.steps(Here.call, ...)) the thread blocks
  await reg.acall(...) ─► run_steps_async(reg._actor.steps(Here.call, ...)) the loop awaits
                                                   │
-   Here: the actor in this process ───────────────┼─► Here.call(here, ...), here: send the
-     (a ResourceRegistrar's)                      │   actor its message (`messages.py`;
-                                                  │   `calls.py` for a call), yield the
-                                                  │   future of its answer, return it
-   There: in another process of the system ───────┴─► one `Run` of Here.call there, over
-     (`_process/remote.py`, a RemoteRegistrar's)      the carrier; its answer wakes the
-                                                      thread or the loop here
+   Here: the actor in this process ───────────────┼─► Here.call(here, ...): send the actor
+     (a ResourceRegistrar's)                      │   its message, yield the future of its
+                                                  │   answer, return it
+   There: in another process ─────────────────────┴─► one `Run` of Here.call there,
+     (`_process/remote.py`)                           over the carrier
  task cancelled, KeyboardInterrupt ─► thrown in at the yield: the call is withdrawn as a
-                                      timeout withdraws it (its id given back), then raised
+                                      timeout withdraws it, then raised
 ```
 
 An operation is a method of `Here` that returns its *steps* (`_core/replies.py`: a
-generator that yields `(future, deadline)` for each wait): `run_steps` drives them on the
-calling thread, `loops.run_steps_async` on the running loop, so both twins have the same
-arguments, results, errors and timeouts, and no thread waits per awaited call. The names
-of the twins follow the prefix Django gave its async ORM (`aget`, `asave`) and the
-language its own (`anext`, `aclose`): `acall` is `call`, awaited. A protocol built on
-a call (`Supervisor.call_with_retry`, `_supervision/retry.py`) takes the call's steps
-(`call_steps`) among its own, and is driven the same two ways (`blocking`).
-
-`ResourceRegistrar` is the handle on a registrar started in this process (its `start`,
-`subscribe`); `rr_actors.testing.RemoteRegistrar` (`_process/remote.py`) the handle on one
-in a manager process (its start, `kill`). The handle never touches the catalog itself,
-and the rest of the package reaches an actor of this process only through its `Here`
-(`tell`, `ask`, `wait_stopped`, `crash`, `ping`, `ref`): nothing else holds the actor's
-ref or builds a message to it from a closure. Starting the actor, before there is a
-handle, is `actor.py`'s (`launch`).
+generator yielding `(future, deadline)` per wait): `run_steps` drives them on the calling
+thread, `loops.run_steps_async` on the running loop, so both twins have the same
+arguments, results, errors and timeouts (`acall` is `call`, awaited: Django's `aget`).
+The rest of the package reaches an actor of this process only through its `Here`;
+starting the actor is `actor.py`'s (`launch`).
 """
 
 from __future__ import annotations
@@ -118,8 +101,8 @@ T = TypeVar("T")
 P = ParamSpec("P")
 
 STOP_WAITS_FOR_UNLOADS = 0.5
-"""The share of `stop()`'s timeout it waits for the unloads under way (the rest is left
-to write the backup and stop the servers): 5 s with the default `call_timeout`."""
+"""The share of `stop()`'s timeout it waits for the unloads under way (the rest: to write
+the backup and stop the servers)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -140,17 +123,13 @@ class Placement(Protocol):
         timeout: float | None,
         *args: P.args,
         **kwargs: P.kwargs,
-    ) -> Steps[T]:
-        """The steps of the operation `op(here, timeout, *args)`, run where the actor is."""
-        ...
+    ) -> Steps[T]: ...
 
     def stop(self, timeout: float | None) -> Steps[None]:
         """The steps of stopping the registrar (rule 12); a stopped one is a no-op."""
         ...
 
-    def is_alive(self) -> bool:
-        """Whether the registrar is running."""
-        ...
+    def is_alive(self) -> bool: ...
 
     def state(self) -> str:
         """What the handle's `repr` says of it ("running", a pid; or nothing)."""
@@ -164,27 +143,20 @@ class Registrar:
     waits for the registrar at most `timeout` seconds (default: the config's
     `call_timeout`) and raises `CallTimeoutError` when they run out. Each has an
     awaitable twin for event loops (`acall`, `aunload`, ..., `watch`): the same
-    operation, errors and timeout, awaited from any running event loop, any number at
-    once, with no thread held while it waits. Cancelling the awaiting task withdraws
-    what it waits for as its timeout would: a cancelled `acall` gives its query id back
-    (if its load completes later, the id is released; nothing is left held) and raises
-    `asyncio.CancelledError`; a cancelled `aunload`, `asend_status`, ... stops waiting
-    for what was already sent, exactly as one that timed out.
+    operation, errors and timeout, with no thread held while it waits. Cancelling the
+    awaiting task withdraws what it waits for as its timeout would (a cancelled `acall`
+    gives its query id back) and raises `asyncio.CancelledError`.
 
     A registrar of this process is a [`ResourceRegistrar`][rr_actors.ResourceRegistrar],
-    one in a manager process a
-    [`RemoteRegistrar`][rr_actors.testing.RemoteRegistrar]: code written against
-    `Registrar` (an application's actions, `Supervisor.call_with_retry`) does not change
-    between them. For the latter, arguments, callbacks and results cross processes
-    cloudpickled (callbacks may be closures) and callbacks run in the registrar's
-    process, on the threads a registrar there would use.
+    one in a manager process a [`RemoteRegistrar`][rr_actors.testing.RemoteRegistrar]:
+    for the latter, arguments, callbacks and results cross processes cloudpickled and
+    callbacks run in the registrar's process.
     """
 
     _actor: Placement
 
     def __init__(self, facts: RegistrarFacts, actor: Placement) -> None:
-        """Made by a kind of handle (`ResourceRegistrar`, `RemoteRegistrar`), with where
-        its actor lives; user code starts or reaches a registrar through those."""
+        """Made by `ResourceRegistrar` or `RemoteRegistrar`, with where its actor lives."""
         self._facts = facts
         self._actor = actor
 
@@ -207,15 +179,11 @@ class Registrar:
     def in_doubt(self) -> tuple[Query, ...]:
         """Loads (or unloads) a crash cut short in the last run, found at restore (rule 16).
 
-        Each is a `Query` whose `id` is the resource id, whose `request` is what the load
-        was for and whose `response` is `None` for a load that never finished. They are
-        no longer in the catalog and their dependencies were released; the manager
-        decides whether something its callback started must be cleaned up.
-
-        The backup keeps them until the manager's `setup` has returned (or the manager
-        called `settle_in_doubt`): if the manager dies during `setup`, the next restore
-        reports the same entries again. A registrar started without `setup` forgets
-        them at once.
+        Each is a `Query` whose `id` is the resource id, `request` what the load was for and
+        `response` `None` for a load that never finished. They left the catalog and their
+        dependencies were released; the manager decides what to clean up. The backup keeps
+        them until `setup` returned (or `settle_in_doubt`); without `setup`, they are forgotten
+        at once.
         """
         return self._facts.in_doubt
 
@@ -226,11 +194,9 @@ class Registrar:
     def settle_in_doubt(self, query_id: str | None = None, *, timeout: float | None = None) -> None:
         """Say that in-doubt entry `query_id` (default: every one) is handled (rule 16).
 
-        Its row leaves the backup, so a restart no longer reports it in `in_doubt`.
-        The registrar does this itself once `setup` returns; call it from `setup` to
-        settle each entry as soon as what its load started was cleaned up (a long
-        `setup` that dies later then offers only the others again). Settling an entry
-        again is a no-op.
+        Its row leaves the backup, so a restart no longer reports it in `in_doubt`. The
+        registrar does this itself once `setup` returns; call it from `setup` to settle each
+        entry as soon as it is cleaned up. Settling an entry again is a no-op.
 
         Args:
             query_id: the `id` of one of `in_doubt`'s queries, or `None` for all.
@@ -238,9 +204,8 @@ class Registrar:
 
         Raises:
             UnknownQueryError: `query_id` is not the id of an entry of `in_doubt`.
-            CatalogWriteError: the backup could not be written (a full disk): the entry
-                is settled here, but a restart before the next write that succeeds
-                offers it again.
+            CatalogWriteError: the backup could not be written (a full disk): settled here,
+                but a restart before the next successful write offers it again.
             CallTimeoutError: no answer within `timeout` seconds.
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
@@ -250,12 +215,7 @@ class Registrar:
     async def asettle_in_doubt(
         self, query_id: str | None = None, *, timeout: float | None = None
     ) -> None:
-        """`settle_in_doubt`, awaited (rule 16): for a `setup` that cleans up what the
-        in-doubt loads started with coroutines of its own (`asyncio.run` inside it), and
-        settles each entry as its clean-up ends, without holding up the others.
-
-        Raises what `settle_in_doubt` raises.
-        """
+        """As `settle_in_doubt`, awaited (for a `setup` that cleans up with coroutines)."""
         await run_steps_async(self._actor.steps(Here.settle_in_doubt, timeout, query_id))
 
     # -- servers ----------------------------------------------------------------------
@@ -273,12 +233,6 @@ class Registrar:
     ) -> None:
         """Register a resource server `"<registrar>/<name>"`.
 
-        Under overload, its loads queued or running are bounded by `max_pending` (a call
-        past it waits and asks again within its timeout, then gets `OverloadedError`),
-        and a queued load whose caller's timeout
-        would run out before it ends (by what its recent loads took) fails at once with
-        `DeadlineExceededError` without running.
-
         Args:
             name: server name, unique on this registrar.
             load: `load(request) -> response`; runs on a worker thread of the registrar's
@@ -288,22 +242,16 @@ class Registrar:
             on_status: `on_status(query, update)`, run once on a worker thread when a status
                 about one of this server's resources is sent or passes through.
             timeout: seconds to wait for the registrar.
-            label: `label(request) -> str`, a short name for a resource that the observer
-                shows (`lidar2` rather than the whole request). It runs once per resource,
-                when its load starts, on a worker thread of the registrar's process,
-                bounded by `RegistrarConfig.compare_timeout`; the text is kept in the
-                catalog (and its backup), cut to 40 characters. If it raises (anything,
-                `SystemExit` included), returns something else than a `str` or overruns
-                the bound, the label reads `<label failed: ...>`; the load is not
-                affected, but a load that ends first waits for its label (at most that
-                bound) while someone listens to events, so that its
-                `ResourceLoaded.label` is this one. Without it, the observer shows what
-                tells the server's requests apart.
-            max_pending: new loads this server may have queued or running at once
-                (an int >= 1); `None`: the registrar's `RegistrarConfig.max_pending`
-                (default 1000). A server whose loads are heavy (memory, a device) takes
-                a small one; a dedup hit, or a call joining a load under way, is never
-                refused.
+            label: `label(request) -> str`, the short name the observer shows for a resource
+                (`lidar2`). It runs once per resource as its load starts, on a worker thread,
+                bounded by `RegistrarConfig.compare_timeout`; kept cut to 40 characters. If it
+                fails (raises, returns a non-`str`, overruns) the label reads
+                `<label failed: ...>`; the load is not affected.
+            max_pending: new loads this server may have queued or running at once (an int
+                >= 1; `None`: `RegistrarConfig.max_pending`). A call past it waits and asks
+                again within its timeout, then gets `OverloadedError`; a dedup hit, or a call
+                joining a load under way, is never refused. A queued load whose caller's
+                timeout would run out before it ends fails with `DeadlineExceededError`.
 
         Raises:
             ConfigError: a callback is not callable (or, to a registrar in another
@@ -329,16 +277,9 @@ class Registrar:
         label: Callable[[Any], str] | None = None,
         max_pending: int | None = None,
     ) -> None:
-        """`register_server`, awaited.
-
-        `load`, `unload` and `on_status` may be coroutine functions (`async def`): they
-        then run on the event loop of the registrar's process (one thread for all of
-        them), a slow one awaiting without holding a thread; plain ones run on worker
-        threads. Either kind may be registered through either twin.
-
-        Raises what `register_server` raises, and `ConfigError` when `label` is a coroutine
-        function.
-        """
+        """As `register_server`, awaited. `load`, `unload` and `on_status` may be coroutine
+        functions (through either twin): they then run on the event loop of the registrar's
+        process; `ConfigError` if `label` is one."""
         steps = self._actor.steps(
             Here.register_server, timeout, name, load, unload, on_status, label, max_pending
         )
@@ -356,7 +297,7 @@ class Registrar:
         blocking(self._actor.steps(Here.unregister_server, timeout, name))
 
     async def aunregister_server(self, name: str, *, timeout: float | None = None) -> None:
-        """`unregister_server`, awaited (rule 12): the same errors."""
+        """As `unregister_server`, awaited."""
         await run_steps_async(self._actor.steps(Here.unregister_server, timeout, name))
 
     # -- consumer API -----------------------------------------------------------------
@@ -374,32 +315,25 @@ class Registrar:
     ) -> Query:
         """Ask `target_rr/server` for the resource `request` describes (rules 1-6, 17).
 
-        The provider runs `load(request)` unless an equal (`==`) request is loaded or
-        loading there; either way this call becomes one more consumer with its own id.
-        Made from inside a `load` callback (of any process), the call carries that load's
-        context: the query is recorded as a dependency of the resource being loaded when
-        that load runs on this registrar, and is part of its chain for cycle detection.
-        Made while an OpenTelemetry span is current (the `otel` extra), the call carries
-        its W3C trace context to the provider: `rr_actors.otel` makes its spans that
-        span's children, and the provider's `load` runs under them.
+        The provider runs `load(request)` unless an equal (`==`) request is loaded or loading
+        there; either way this call becomes one more consumer with its own id. Made from
+        inside a `load` callback, the query is a dependency of the resource being loaded (on
+        this registrar) and part of its chain for cycle detection. Made under an
+        OpenTelemetry span (the `otel` extra), the provider's spans are its children.
 
         Args:
             target_rr: name of the provider registrar (this one's own name works too).
             server: server name on it.
-            request: any value; equal requests mean the same resource. Between
-                registrars of one process it is passed, not copied (as pykka passes
-                messages): do not change it after the call, or the provider's catalog
-                holds the changed value and may no longer match equal requests to it.
+            request: any value; equal requests mean the same resource. Within one process
+                it is passed, not copied: do not change it after the call.
             on_status: client status callback `on_status(query, update)`, run on a worker
                 thread of this registrar's process.
             timeout: seconds to wait for the answer.
             query_id: the id to use (default: a fresh UUID4). Retrying with the same id is
                 idempotent: it never loads twice nor adds a second consumer.
-            if_overloaded: what a call refused because the server has its
-                `max_pending` loads does: `"wait"` (pause as long as the provider says,
-                its `retry_after`, and ask again while `timeout` lasts) or `"raise"`
-                (`OverloadedError` at once, for a caller that cannot wait; nothing is
-                held at the provider).
+            if_overloaded: when the server has its `max_pending` loads: `"wait"` (pause its
+                `retry_after` and ask again while `timeout` lasts) or `"raise"`
+                (`OverloadedError` at once; nothing is held at the provider).
 
         Returns:
             The `Query`, with the provider's `response` (in one process, the very object
@@ -411,15 +345,12 @@ class Registrar:
             UnknownServerError: no such registrar or server.
             CallTimeoutError: no answer in time; the query id is released if it loads later.
             OverloadedError: the server has its `max_pending` loads, and this caller does
-                not wait (`if_overloaded="raise"`) or its time left is too short for
-                another try; nothing is held.
+                not wait or has too little time left to try again; nothing is held.
             RegistrarUnavailableError: the provider died (it may have executed the load).
             RegistrarStoppedError: this registrar or the provider was stopped.
-            ConfigError: `target_rr` or `server` is not a str, `query_id` not a
-                non-empty str, `on_status` not callable, `if_overloaded` neither `"wait"`
-                nor `"raise"`; or the request, or the response,
-                cannot be pickled where it must be: across processes, or into this
-                registrar's backup (its client record); the provider then holds nothing.
+            ConfigError: an argument of the wrong type (`target_rr`, `server`, `query_id`,
+                `on_status`, `if_overloaded`); or the request or response cannot be pickled
+                where it must be (across processes, or into this registrar's backup).
         """
         steps = self._actor.steps(
             Here.call, timeout, target_rr, server, request, on_status, query_id, if_overloaded
@@ -437,16 +368,9 @@ class Registrar:
         query_id: str | None = None,
         if_overloaded: IfOverloaded = "wait",
     ) -> Query:
-        """`call`, awaited (rules 1-6, 17): the provider's answer wakes the loop.
-
-        Awaited inside a coroutine `load` of this registrar, the query is recorded as a
-        dependency of the resource being loaded, as `call` inside a plain `load` is.
-        `on_status` may be a coroutine function: it then runs on the loop this call was
-        awaited from, one update at a time (see `StatusWatch` for an iterator instead).
-
-        Raises what `call` raises, and `asyncio.CancelledError` when the awaiting task is
-        cancelled: the call is then withdrawn as a timed-out one is (nothing is left held).
-        """
+        """As `call`, awaited. Inside a coroutine `load` of this registrar the query is that
+        resource's dependency. `on_status` may be a coroutine function: it runs on the loop this
+        was awaited from (`watch` gives an iterator instead). Cancelled: withdrawn as on timeout."""
         steps = self._actor.steps(
             Here.call, timeout, target_rr, server, request, on_status, query_id, if_overloaded
         )
@@ -456,25 +380,23 @@ class Registrar:
         """Release one consumer id obtained from `call` (rules 7-8).
 
         The provider's `unload` callback runs when the last consumer id of the resource is
-        released, after that resource's own dependencies were released; this returns
-        when that is done.
+        released, after that resource's own dependencies were released; this returns when
+        that is done.
 
         Raises:
             UnknownQueryError: the id is unknown here or already released (nothing changes).
             CallTimeoutError: not finished within `timeout` seconds.
-            RegistrarUnavailableError: the provider died (or could not be reached) before
-                it answered: it may or may not have released the id. The release is
-                done all the same: this registrar no longer holds the id (a second
-                `unload` raises `UnknownQueryError`), the provider releases it when it
-                reconciles with this registrar after its restart (its `unload` callback
-                runs once in all), and nobody gets `FATAL` for it (rule 20).
-            RegistrarStoppedError: this registrar was stopped; or the provider was (the
-                id is released as for `RegistrarUnavailableError`, at its next start).
+            RegistrarUnavailableError: the provider died (or could not be reached) before it
+                answered. The id is released all the same: this registrar no longer holds it,
+                the provider releases it when it reconciles after its restart (its `unload`
+                runs once), and nobody gets `FATAL` for it (rule 20).
+            RegistrarStoppedError: this registrar was stopped; or the provider was (the id
+                is released as for `RegistrarUnavailableError`, at its next start).
         """
         blocking(self._actor.steps(Here.unload, timeout, query_id))
 
     async def aunload(self, query_id: str, *, timeout: float | None = None) -> None:
-        """`unload`, awaited (rules 7-8): the same errors."""
+        """As `unload`, awaited."""
         await run_steps_async(self._actor.steps(Here.unload, timeout, query_id))
 
     def send_status(
@@ -482,17 +404,14 @@ class Registrar:
     ) -> StatusDelivery:
         """Tell every consumer of the resource behind `query_id` about its status (rule 9).
 
-        This server's `on_status` runs once; each consumer's status callback runs with its
-        own query id, on a worker thread of the consumer's process (a coroutine one: on its
-        loop); the status climbs every dependency path to the top consumers. Returns once
-        every callback on the way has run, or was given up on: a consumer's callback
-        (plain or coroutine) that has not returned within the patience (half of `timeout`,
-        or all of it but 1 s if that is more), and at once while its id's earlier callback
-        is still given up on. A given-up id's statuses queue behind its callback, coalesced
-        (its latest, and every `FATAL`, in arrival order), and run once it returns. A
-        server's own `on_status` (this one's, and those up the dependency paths) is never
-        given up on: it is waited for, within `timeout`; its statuses queue behind it,
-        each run once, in order (one thread held, not one of its registrar's workers each).
+        This server's `on_status` runs once; each consumer's status callback runs with its own
+        query id, on a worker thread of the consumer's process (a coroutine one: on its loop);
+        the status climbs every dependency path to the top consumers. Returns once every
+        callback on the way has run, or was given up on: a consumer's callback not returned
+        within the patience (half of `timeout`, or all of it but 1 s if more), and at once
+        while its id's earlier callback is still given up on (its statuses then queue,
+        coalesced to the latest and every `FATAL`). A server's own `on_status` is never given
+        up on: it is waited for, within `timeout`.
 
         Args:
             query_id: any consumer id of a resource this registrar serves.
@@ -507,12 +426,9 @@ class Registrar:
         Raises:
             UnknownQueryError: `query_id` is not a consumer id of a resource served here.
             ConfigError: `status` is not a `Status`, `query_id` or `message` not a str.
-            MessageTooLargeError: the status is over the `max_message_bytes` of a
-                consumer registrar in another process (named): that one did not hear it,
-                the others did (a `FATAL` still marks the resource, rule 1).
-            CallTimeoutError: not delivered everywhere within `timeout` seconds (a
-                consumer's process that did not answer; a server's `on_status` on the way
-                that did not return: those are not given up on).
+            MessageTooLargeError: the status is over the `max_message_bytes` of a consumer
+                registrar in another process (named): it did not hear it, the others did.
+            CallTimeoutError: not delivered everywhere within `timeout` seconds.
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
         """
@@ -523,19 +439,14 @@ class Registrar:
     async def asend_status(
         self, query_id: str, status: Status, message: str = "", *, timeout: float | None = None
     ) -> StatusDelivery:
-        """`send_status`, awaited (rule 9): done once every callback on the way has run
-        (a coroutine one: once it returned) or was given up on.
-
-        Returns and raises what `send_status` does.
-        """
+        """As `send_status`, awaited (a coroutine callback on the way counts once it returned)."""
         steps = self._actor.steps(Here.send_status, timeout, query_id, status, message)
         delivery: StatusDelivery = await run_steps_async(steps)
         return delivery
 
     def server_queries(self, server: str, *, timeout: float | None = None) -> list[Query]:
-        """Every consumer query of this registrar's `server`, each id once (rule 10).
-
-        Its subscribers hear the answer's ids (`events.ServerQueriesListed`).
+        """Every consumer query of this registrar's `server`, each id once (rule 10); its
+        subscribers hear the answer's ids (`events.ServerQueriesListed`).
 
         Raises:
             UnknownServerError: no such server here.
@@ -546,15 +457,14 @@ class Registrar:
         return blocking(self._actor.steps(Here.server_queries, timeout, server))
 
     async def aserver_queries(self, server: str, *, timeout: float | None = None) -> list[Query]:
-        """`server_queries`, awaited (rule 10): the same errors."""
+        """As `server_queries`, awaited."""
         return await run_steps_async(self._actor.steps(Here.server_queries, timeout, server))
 
     def fetch_queries(
         self, target_rr: str, server: str, *, timeout: float | None = None
     ) -> list[Query]:
-        """The queries this registrar holds at `target_rr/server`, as the provider has them.
-
-        Used after a restart to learn what this registrar had asked for (thesis 4.2.5).
+        """The queries this registrar holds at `target_rr/server`, as the provider has them:
+        after a restart, what it had asked for (thesis 4.2.5).
 
         Raises:
             UnknownServerError: no such registrar or server.
@@ -567,7 +477,7 @@ class Registrar:
     async def afetch_queries(
         self, target_rr: str, server: str, *, timeout: float | None = None
     ) -> list[Query]:
-        """`fetch_queries`, awaited (rule 10): the same errors."""
+        """As `fetch_queries`, awaited."""
         steps = self._actor.steps(Here.fetch_queries, timeout, target_rr, server)
         return await run_steps_async(steps)
 
@@ -582,7 +492,7 @@ class Registrar:
         return blocking(self._actor.steps(Here.client_queries, timeout))
 
     async def aclient_queries(self, *, timeout: float | None = None) -> list[Query]:
-        """`client_queries`, awaited: the same errors."""
+        """As `client_queries`, awaited."""
         return await run_steps_async(self._actor.steps(Here.client_queries, timeout))
 
     def set_status_callback(
@@ -590,8 +500,8 @@ class Registrar:
     ) -> None:
         """Attach (or replace) the client status callback of a query this registrar holds.
 
-        Status callbacks are code, so they are not in the backup: re-attach them after a
-        restart (rule 11). The callback runs in the registrar's process.
+        Callbacks are not in the backup: re-attach them after a restart (rule 11). The
+        callback runs in the registrar's process.
 
         Raises:
             UnknownQueryError: this registrar holds no such query.
@@ -606,22 +516,17 @@ class Registrar:
     async def aset_status_callback(
         self, query_id: str, callback: StatusCallback, *, timeout: float | None = None
     ) -> None:
-        """`set_status_callback`, awaited (rule 11); a coroutine `callback` runs on the
-        loop this was awaited from.
-
-        Raises what `set_status_callback` raises.
-        """
+        """As `set_status_callback`, awaited; a coroutine `callback` runs on the awaiting loop."""
         steps = self._actor.steps(Here.set_status_callback, timeout, query_id, callback)
         await run_steps_async(steps)
 
     def update_response(
         self, query_id: str, response: Any, *, timeout: float | None = None
     ) -> None:
-        """Replace the stored response of the resource behind `query_id` (asynchronous loads).
+        """Replace the stored response of the resource behind `query_id` (thesis 4.3.2).
 
-        Like TeMoto's catalog response update (thesis 4.3.2). Returns once every
-        consumer's client record holds the new response too (a consumer that cannot be
-        reached is logged and skipped).
+        Returns once every consumer's client record holds the new response too (a consumer
+        that cannot be reached is logged and skipped).
 
         Args:
             query_id: any consumer id of a resource this registrar serves.
@@ -632,10 +537,9 @@ class Registrar:
             UnknownQueryError: `query_id` is not a consumer id of a resource served here.
             ConfigError: the response cannot be pickled and this registrar keeps a backup
                 (nothing changes), or a consumer registrar of this process that keeps one
-                refused it (its client record keeps the old response, as below).
-            MessageTooLargeError: the response is over the `max_message_bytes` of a
-                consumer registrar in another process (named): its client record keeps
-                the old response; this registrar's catalog and the others have the new.
+                refused it (its record keeps the old response).
+            MessageTooLargeError: over the `max_message_bytes` of a consumer registrar in
+                another process (named): its record keeps the old response.
             CallTimeoutError: not delivered within `timeout` seconds.
             RegistrarStoppedError: this registrar was stopped.
             RegistrarUnavailableError: this registrar died.
@@ -645,7 +549,7 @@ class Registrar:
     async def aupdate_response(
         self, query_id: str, response: Any, *, timeout: float | None = None
     ) -> None:
-        """`update_response`, awaited (rule 11): the same errors."""
+        """As `update_response`, awaited."""
         steps = self._actor.steps(Here.update_response, timeout, query_id, response)
         await run_steps_async(steps)
 
@@ -660,24 +564,22 @@ class Registrar:
         blocking(self._actor.steps(Here.save_catalog, timeout))
 
     async def asave_catalog(self, *, timeout: float | None = None) -> None:
-        """`save_catalog`, awaited: the same errors."""
+        """As `save_catalog`, awaited."""
         await run_steps_async(self._actor.steps(Here.save_catalog, timeout))
 
     def stop(self, *, timeout: float | None = None) -> None:
         """Stop the registrar (rule 12); for the owner of a manager process, the process too.
 
-        Unloads everything it holds as a consumer (newest first), waits for the unloads of
-        its own resources that are under way (their `unload` callbacks running, on worker
-        threads) until `STOP_WAITS_FOR_UNLOADS` of `timeout` has passed, then stops its servers
-        and clients. An unload still under way then is cut short: it stops anyway and
-        publishes `events.UnloadCutShort`; that resource stays in the backup as unloading
-        (in doubt at the next start, rule 16). What its servers serve stays in the
-        catalog for a restart. With `erase_on_destruct` the backup is removed. Stopping a
+        Unloads everything it holds as a consumer (newest first), waits for the unloads of its
+        own resources under way until `STOP_WAITS_FOR_UNLOADS` of `timeout` has passed, then
+        stops its servers and clients. An unload still under way is cut short
+        (`events.UnloadCutShort`; in doubt at the next start, rule 16). What its servers serve
+        stays in the catalog for a restart; `erase_on_destruct` removes the backup. Stopping a
         stopped (or dead) registrar is a no-op.
 
         Args:
-            timeout: seconds the whole stop may take (`None`: the registrar's
-                `call_timeout`); the owner of a manager process kills it after that.
+            timeout: seconds the whole stop may take (`None`: `call_timeout`); the owner of
+                a manager process kills it after that.
 
         Raises:
             CallTimeoutError: not finished within `timeout` seconds (a manager process
@@ -688,42 +590,26 @@ class Registrar:
         blocking(self._actor.stop(timeout))
 
     async def astop(self, *, timeout: float | None = None) -> None:
-        """`stop`, awaited (rule 12): the same errors."""
+        """As `stop`, awaited."""
         await run_steps_async(self._actor.stop(timeout))
 
     def watch(self, query_id: str, *, maxsize: int = 256) -> StatusWatch:
-        """The status updates of query `query_id`, as an async iterator.
+        """The status updates of query `query_id`, as an async iterator (`rr.StatusUpdate`s).
 
-        ```python
-        async for update in reg.watch(query.id):   # rr.StatusUpdate, in order
-            print(update.status, update.message)
-        ```
-
-        Once opened (its first step, or `async with`) it is the query's status callback
-        (it replaces the one the call was made with, as `aset_status_callback` does).
-        Iteration ends after a `FATAL` (the resource is gone for good, rule 19) or once
-        the watch is closed (`aclose()`, or leaving its `async with` block; a closed
-        watch drops what comes; `closed` says whether it is). An `async for` that
-        breaks, or whose task is cancelled (a stream whose client left), leaves it
-        open: use `async with` to close it. It does not end when the query is
-        released: its reader decides when to stop. Updates are queued for it on the
-        loop it was opened on; past `maxsize` the oldest is dropped (and counted in
-        `dropped`), so a reader that falls behind never holds the registrar.
+        Once opened (its first step, or `async with`) it is the query's status callback (as
+        `aset_status_callback`). Iteration ends after a `FATAL` (rule 19) or once it is closed
+        (`aclose()`, or leaving its `async with` block); a `break` or a cancelled task leaves it
+        open. Updates are queued on the loop it was opened on; past `maxsize` the oldest is
+        dropped (counted in `dropped`), so a slow reader never holds the registrar.
 
         Args:
             query_id: a query this registrar holds (from `call` or `acall`).
             maxsize: updates kept for a reader that falls behind.
 
-        Returns:
-            The watch: iterate it with `async for` from a coroutine on one loop.
-
         Raises:
-            ConfigError: the registrar runs in another process (watch from a registrar
-                of this process that holds the query, or register a status callback
-                there: `aset_status_callback`, it runs in the registrar's process); or
-                `maxsize` is not a positive int (at once). The first step of the
-                iteration raises what `aset_status_callback` raises (an unknown id:
-                `UnknownQueryError`).
+            ConfigError: the registrar runs in another process (set a status callback
+                there instead), or `maxsize` is not a positive int. The first step of the
+                iteration raises what `aset_status_callback` raises.
         """
         if not isinstance(self._actor, Here):
             raise ConfigError(
@@ -753,8 +639,7 @@ class Registrar:
 
 
 class Here:
-    """The actor in this process (a `ResourceRegistrar`'s): its ref, the call protocol on
-    the caller's thread (`calls.py`), its client actors; an operation's steps run here."""
+    """The actor in this process (a `ResourceRegistrar`'s): an operation's steps run here."""
 
     def __init__(self, launched: Launched) -> None:
         config = launched.config
@@ -786,15 +671,12 @@ class Here:
         *args: P.args,
         **kwargs: P.kwargs,
     ) -> Steps[T]:
-        """`op`'s steps, here (on the thread or loop that drives them)."""
         return op(self, timeout, *args, **kwargs)
 
     def is_alive(self) -> bool:
-        """Whether the registrar actor is running."""
         return self.ref.is_alive()
 
     def state(self) -> str:
-        """What the handle's `repr` says: "running" or "stopped"."""
         return "running" if self.ref.is_alive() else "stopped"
 
     # -- the operations: each returns the steps of one method of `Registrar` ------------
@@ -992,14 +874,12 @@ class Here:
     # -- how the package reaches the actor ----------------------------------------------
 
     def limit(self, timeout: float | None) -> float:
-        """`timeout`, checked, or the registrar's `call_timeout` for `None`."""
         if timeout is None:
             return self.config.call_timeout
         check_seconds("timeout", timeout)
         return float(timeout)
 
     def tell(self, message: Any) -> bool:
-        """Send the actor `message` without waiting; whether the actor was running."""
         try:
             self.ref.tell(message)
         except pykka.ActorDeadError:
@@ -1007,13 +887,8 @@ class Here:
         return True
 
     def ask(self, message: Asked, timeout: float | None, what: str) -> Any:
-        """Send the actor `message` and wait at most `timeout` seconds for its answer.
-
-        Raises:
-            CallTimeoutError: no answer in time (`what` names the operation).
-            RegistrarStoppedError, RegistrarUnavailableError: it was stopped, or it died.
-            RrError: the error the actor answered with.
-        """
+        """Send the actor `message` and wait at most `timeout` seconds for its answer: what it
+        answered, or `CallTimeoutError` (`what` names the operation), or its stop or death."""
         return blocking(self.asking(message, timeout, what))
 
     def asking(self, message: Asked, timeout: float | None, what: str) -> Steps[Any]:
@@ -1027,12 +902,8 @@ class Here:
         return future.get()
 
     def wait_stopped(self, timeout: float | None = None) -> bool:
-        """Block until the actor's thread ended (stopped, or died and its death handled:
-        its backup closed, its callers answered); whether it did within `timeout` s.
-
-        pykka marks an actor stopped before its `on_failure` runs: a supervisor that
-        restarted a crashed registrar at that mark had the old one's backup still open.
-        """
+        """Whether the actor's thread ended within `timeout` s (stopped, or died and its death
+        handled: pykka marks it stopped before its `on_failure` ran)."""
         deadline = None if timeout is None else runtime.monotonic() + timeout
         if not self.ref.actor_stopped.wait(timeout):
             return False
@@ -1040,7 +911,6 @@ class Here:
         return self.ended.wait(left)
 
     def crash(self) -> None:
-        """Make the actor die as if a bug hit it (`testing.crash`, a forced stop)."""
         self.ref.tell(Crash())
 
     def ping(self, reply: Reply) -> None:
@@ -1061,12 +931,9 @@ class Here:
 
 
 class ResourceRegistrar(Registrar):
-    """A manager's resource registrar in this process (thesis 4.3.1, `RrBase`).
-
-    Start one with [`ResourceRegistrar.start`][rr_actors.ResourceRegistrar.start]. It is
-    the one handle, [`Registrar`][rr_actors.Registrar], whose actor is here; its
-    callbacks run on worker threads of this process (coroutine ones on its event loop).
-    """
+    """A manager's resource registrar in this process (thesis 4.3.1, `RrBase`): the
+    [`Registrar`][rr_actors.Registrar] whose actor is here; its callbacks run on worker
+    threads of this process (coroutine ones on its event loop)."""
 
     _actor: Here
 
@@ -1088,17 +955,13 @@ class ResourceRegistrar(Registrar):
         Args:
             config: a `RegistrarConfig`, or just a name (all other fields default).
             setup: `setup(registrar)`, run on the calling thread after the catalog was
-                restored and before the registrar serves other registrars: loads that
-                arrive meanwhile for servers it has not registered yet wait for it (a
-                manager's start-up). If it raises, the registrar is stopped and the error
-                propagates. The `in_doubt` entries stay in the backup until it returned
-                (`settle_in_doubt`).
-            network: a carrier (any `Transport`: an AF_UNIX `System`, a `ZenohNetwork`)
-                to serve it on, after `setup`, from the calling thread: the registrars
-                of the system's other processes (and hosts) reach it by name from then
-                on, and it reaches theirs. It stops being served when it stops or dies.
-                `None`: reachable from this process only (unless a system this process
-                serves on reaches it otherwise).
+                restored and before the registrar serves other registrars (their loads for
+                servers not registered yet wait for it). If it raises, the registrar is
+                stopped and the error propagates. The `in_doubt` entries stay in the backup
+                until it returned (`settle_in_doubt`).
+            network: a carrier (any `Transport`: an AF_UNIX `System`, a `ZenohNetwork`) to
+                serve it on, after `setup`: the system's other processes reach it by name,
+                and it theirs, until it stops or dies. `None`: this process only.
 
         Returns:
             The handle of the running registrar.
@@ -1109,20 +972,12 @@ class ResourceRegistrar(Registrar):
                 stopped again.
             CatalogCorruptError: the backup exists but cannot be read (it is left as is).
             ConfigError: the configuration, or its backup path, is invalid; `network` is
-                not a carrier, or cannot serve it; or this process was forked from one
-                whose state a forked child cannot use (it had opened a Zenoh session): the
-                message says to start the process with the `spawn` or `forkserver` method.
+                not a carrier, or cannot serve it; or this process was forked from one that
+                had opened a Zenoh session (start it with `spawn` or `forkserver`).
             RegistrarStoppedError: this process left `network`'s system (it was closed).
 
-        Fork: a process forked (`os.fork`, `multiprocessing`'s "fork" method) from one
-        that runs rr_actors may start registrars of its own and call, on the AF_UNIX
-        systems its parent joined (the same `System` object, or its address's
-        `attach()`): at the fork the child lets go of its parent's listeners,
-        connections and threads. Its parent's registrars are not the child's: a handle
-        of one used in the child raises `RegistrarUnavailableError` at once (reach that
-        registrar by name from a registrar of the child's instead). A child of a process
-        that had opened a Zenoh session is refused (`ConfigError`, above): use `spawn`
-        or `forkserver` there.
+        A forked child may start registrars of its own; its parent's handles raise
+        `RegistrarUnavailableError` there (docs/explanation/failure-semantics.md).
         """
         check_network(network)
         registrar = start_registrar(config, setup=setup)
@@ -1138,12 +993,10 @@ class ResourceRegistrar(Registrar):
     ) -> Subscription[events.Event]:
         """Call `callback(event)` for every event of this registrar from now on.
 
-        Events are the frozen dataclasses of `rr_actors.events` (a load, a failed load,
-        an unload, a consumer added or released, a status sent or delivered here, an
-        in-doubt query at restore). The callback runs on a subscriber thread of its own,
-        never in the registrar's mailbox, one event at a time in the order they happened;
-        a slow callback never slows the registrar: past `maxsize` queued events, new ones
-        are dropped, counted (`Subscription.dropped`) and reported by an `EventsDropped`.
+        Events are the frozen dataclasses of `rr_actors.events`. The callback runs on a
+        subscriber thread of its own, one event at a time in order; past `maxsize` queued
+        events, new ones are dropped, counted (`Subscription.dropped`) and reported by an
+        `EventsDropped`: a slow callback never slows the registrar.
 
         Args:
             callback: `callback(event)`; what it raises is logged.
@@ -1181,13 +1034,10 @@ class StatusWatch:
 
     @property
     def closed(self) -> bool:
-        """Whether it was closed (`aclose()`, or its `async with` block was left): it
-        then drops every update that comes. An iteration that ended after a `FATAL`
-        leaves it open until then."""
+        """Whether it was closed (`aclose()`, or its `async with` left): it drops what comes."""
         return self._closed
 
     async def _receive(self, _query: Query, update: StatusUpdate) -> None:
-        """The query's status callback, on the watch's loop."""
         updates = self._updates
         if updates is None or self._closed:
             return
@@ -1228,8 +1078,8 @@ class StatusWatch:
         return update
 
     async def aclose(self) -> None:
-        """Stop collecting: updates that come later are dropped; iteration ends, also
-        for a reader that waits for the next update (in another task of the loop)."""
+        """Stop collecting: later updates are dropped; iteration ends, also for a reader
+        waiting for the next update."""
         self._closed = True
         updates = self._updates
         if updates is not None:  # wake a reader waiting for the next update: it ends
@@ -1251,13 +1101,9 @@ def start_registrar(
     upstream: Publisher[events.Event] | None = None,
     hold_in_doubt: bool = False,
 ) -> ResourceRegistrar:
-    """`ResourceRegistrar.start`, with its events also relayed to `upstream` from the first.
-
-    A supervisor passes its tree's publisher, so the events of a restore (`InDoubt`)
-    reach the tree's subscribers too. With `hold_in_doubt` the in-doubt entries stay in
-    the backup until the caller settles them (`settle_in_doubt`: a manager process runs
-    its `setup` itself); with `setup`, they do until `setup` returned.
-    """
+    """`ResourceRegistrar.start`, with its events also relayed to `upstream` (a supervisor's
+    tree) from the first; `hold_in_doubt`: in-doubt entries stay in the backup until the
+    caller settles them (a manager process runs its `setup` itself)."""
     launched = launch(
         config,
         setting_up=setup is not None,
@@ -1289,11 +1135,8 @@ def start_registrar(
 
 
 def snapshot(registrar: ResourceRegistrar, *, timeout: float, check: bool) -> CatalogView:
-    """A consistent copy of `registrar`'s catalog rows and servers, made on its actor thread.
-
-    For `rr_actors.testing.catalog_snapshot` (with `check`: the catalog's invariants are
-    checked first) and the observer (without). Runs on the caller's thread, in the
-    registrar's process; the actor is held for the copy only.
+    """A consistent copy of `registrar`'s catalog rows and servers, made on its actor thread
+    (`testing.catalog_snapshot` with `check`: its invariants checked first; the observer).
 
     Raises:
         AssertionError: with `check`, an index of the catalog disagrees with its rows.
@@ -1319,33 +1162,24 @@ def call_steps(
     timeout: float | None,
     query_id: str | None,
 ) -> Steps[Query]:
-    """The steps `consumer.call(...)` runs blocking and `acall` awaits, for a protocol
-    built on a call that drives them among its own (`Supervisor.call_with_retry` and its
-    twin, `_supervision/retry.py`).
-
-    Raises:
-        ConfigError: an argument is invalid (at once; see `Registrar.call`).
-    """
+    """The steps `consumer.call(...)` runs blocking and `acall` awaits, for a protocol built
+    on a call (`Supervisor.call_with_retry`); `ConfigError` at once for a bad argument."""
     actor = consumer._actor
     return actor.steps(Here.call, timeout, target_rr, server, request, on_status, query_id)
 
 
 def _after(first: Steps[Any], then: Steps[T]) -> Steps[T]:
-    """The steps of `first`, then those of `then` (its result)."""
     yield from first
     return (yield from then)
 
 
 def blocking(steps: Steps[T]) -> T:
-    """Run an operation's `steps` on the calling thread (`replies.run_steps`): each
-    blocking method of the handle, and `Supervisor.call_with_retry`, which is built on
-    `call_steps`.
+    """Run an operation's `steps` on the calling thread (`replies.run_steps`).
 
     Raises:
         ConfigError: the calling thread is the process's own event loop (a coroutine
-            `load`, `unload` or status callback runs there): blocking it would stall
-            every coroutine callback of the process, and a call to a coroutine server
-            would wait for itself; await the operation's async twin instead.
+            callback runs there): blocking it would stall every coroutine callback of
+            the process; await the async twin instead.
     """
     if on_process_loop():
         steps.close()
@@ -1358,8 +1192,7 @@ def blocking(steps: Steps[T]) -> T:
 
 
 def _check_names(**names: object) -> None:
-    """`ConfigError` naming the first argument that is not a str (a registrar's or a
-    server's name): refused here, before anything is sent or recorded."""
+    """`ConfigError` naming the first argument that is not a str, before anything is sent."""
     for field, value in names.items():
         if not isinstance(value, str):
             raise ConfigError(f"{field} must be a name (a str), got {value!r}")

@@ -5,43 +5,22 @@ its peers (lost for good, reachable again), stop or die, and say so.
  SETTING_UP ──ready──► SERVING ──stop()──► STOPPING ──► ENDED
       └──────────────────┴── crash (a bug, testing.crash) ─────► ENDED (death)
 
- start (Lifecycle.on_start): CatalogRestored; join the membership (the peers lost
-   meanwhile are heard now); Restoring.settle_in_doubt: each resource a crash cut short
-   (rule 16) ─► InDoubt, its dependencies released, forgotten (held out of the backup
-   while `setup` runs); each call in flight then given back; unload_unheld ─► the sweep
-   of the restored catalog, one slice per turn of the mailbox, after it serves
- serve (now, or on Ready once `setup` returned; Reachable: a carrier serves it):
-   as a provider ReconcileAsk to its consumers (after the sweep, which names them), as
-   a consumer Reconcile with its providers (`consumer.py`), with everyone if restored
-   (or once told `LostEverything`: restarted without a backup)
- peers (Presence): the membership ─ PeerLost(X) ─► lose(X): what X held here released
-   (`provider.py`), what is held at X FATAL, then forgotten (rule 19); X served now
-   (rule 22's kept one; the mark was the yielded one's) ─► a Reconcile with it first;
-   PeerLost(X, stopped): only the release (rule 12); ConsumerDown (another process's
-   mark) ─► into this process's membership; PeerReachable(X) ─► Reconcile with X,
-   retried (ReconcileRetry: a bounded backoff, or `call_timeout` unanswered) until it
-   is answered (rule 20), and ReconcileAsk to X if X holds ids here; ReconcileAsk from
-   X (it restarted) ─► the same retried Reconcile with X
- stop (Stop; YieldName, rule 22: what it serves released and unloaded first):
-   its durable calls withdrawn, failed calls and releases given back, what it holds
-   released, newest first (rule 12) ─► the unloads under way, until `unloads_until`
-   ─► RegistrarStopped; the backup flushed and closed ─► its children ─► ENDED
- death (on_failure): every waiter failed at once (RegistrarUnavailableError), nothing
-   more written; no restart expected ─► gone_for_good: the death watch
- the death watch (functions the supervisor and the process layer call):
-   gone_for_good(X, also) ─► this process's membership records X; ConsumerDown(X) to
-   each of `also` elsewhere │ back(X) │ tell_gone(Y, X) │ lost_everything(X):
-   ReconcileAsk to all, and LostEverything to X (it reconciles with everyone)
- the outside's views of it: Served (a carrier: listening, peer_lost, peer_reachable,
-   yield_name), Hearing (this process's membership: peer_lost, peer_stopped,
-   peer_reachable), each a message to its mailbox
+ start: CatalogRestored; join the membership; settle_in_doubt (rule 16) ─► InDoubt;
+   the sweep of the restored catalog, one slice per turn, after it serves
+ serve (Ready, Reachable): ReconcileAsk to its consumers, Reconcile with its providers
+ peers (Presence): PeerLost(X) ─► lose(X): what X held here released, what is held
+   at X FATAL (rule 19); PeerReachable(X), ReconcileAsk ─► Reconcile with X, retried
+   until answered (rule 20)
+ stop (Stop; YieldName, rule 22): calls withdrawn, what it holds released newest
+   first, the unloads under way until `unloads_until` ─► the backup closed ─► ENDED
+ death (on_failure): every waiter failed at once, nothing more written
+ the death watch (the supervisor and process layers): gone_for_good, back, tell_gone,
+   lost_everything
+ the outside's views: Served (a carrier), Hearing (this process's membership)
 ```
 
 Why a restarted provider is not lost, and who knows who is gone: docs/explanation/inside.md,
-"A registrar's peers". Each part owns its state: the open requests, the stop under way
-and the flush timer (`Lifecycle`), the in-doubt ids and the sweep's progress
-(`Restoring`), the reconcile rounds being retried (`Presence`); the phase is the
-record's (`state.py`).
+"A registrar's peers". The phase is the record's (`state.py`).
 """
 
 from __future__ import annotations
@@ -145,8 +124,6 @@ class CatalogView:
 
 
 class Lifecycle:
-    """Starts, stops and buries one registrar actor; answers the handle's requests."""
-
     def __init__(
         self,
         shared: Shared,
@@ -178,13 +155,11 @@ class Lifecycle:
         self.actor = actor  # (the actor machinery only: its mailbox, `end_now`)
         self.died = died  # set once a crash was fully handled (death watch included)
         self.ended = ended  # set once the actor's thread handed on its last message
-        # not answered yet: a death fails them, oldest first (a dict keeps the order they
-        # came in; a set of objects iterates in address order, which no replay repeats)
+        # a dict: a death fails them oldest first (a set's address order no replay repeats)
         self.open_requests: dict[OpenReply, None] = {}
         self.stop_waiters: list[Reply] | None = None  # while a stop is under way
         self.flush_timer: runtime.Cancellable | None = None
-        # while it yields its name (rule 22): `None`, or where `KeepName`'s answer goes
-        # once its unloads are done (the one kept went meanwhile: it serves on)
+        # while it yields its name (rule 22): where `KeepName`'s answer goes, else `None`
         self.keepers: list[Reply] | None = None
         self.hearer = Hearing(shared.peer)  # what this process's membership tells it
 
@@ -192,14 +167,12 @@ class Lifecycle:
 
     def on_start(self) -> None:
         publish_restored(self.registrar)  # before anything is served
-        # from now on it hears who is lost (`PeerLost`); who was lost before it started
-        # (while it was down, or before its restore) it hears now: a mark is never missed
+        # who was lost before it started it hears now: a mark is never missed
         gone = MEMBERSHIP.join(self.hearer)
         # every provider the restored catalog knows, also those settle_in_doubt forgets
         providers = {record.query.serving_rr for record in self.registrar.catalog.clients.values()}
         self.reconciling.expect_reconcile(providers)
-        # what it released or gave up while a provider was down is in no row: with a
-        # backup, it reconciles with every registrar of the system (rule 20)
+        # what it released while a provider was down is in no row: reconcile with all (rule 20)
         self.reconciling.everyone = self.registrar.saver.store is not None
         self.restoring.settle_in_doubt()
         self.restoring.unload_unheld()
@@ -213,20 +186,12 @@ class Lifecycle:
             self.reconcile()
 
     def reconcile(self) -> None:
-        """It serves: reconcile what its restored catalog says with its peers' catalogs.
-
-        As a provider it asks every consumer holding ids here for the ids it holds
-        (`ReconcileAsk`), as a consumer it tells every provider it holds ids at which
-        ids it holds (`Reconcile`): ids released while one side was down are released,
-        and ids one side lost in its restart are reported to the consumer as `FATAL`.
-        While the sweep of a restored catalog is under way, the provider's side waits
-        for it (it names the consumers to ask: `Restoring`).
-        """
+        """It serves: as a provider ask its consumers for their ids (`ReconcileAsk`, after the
+        sweep, which names them), as a consumer tell its providers which it holds (`Reconcile`)."""
         self.restoring.ask_consumers()
         self.reconciling.reconcile_all()
 
     def on_reachable(self, _message: Reachable, reply: Reply) -> None:
-        """A carrier serves it: the other processes can reach it (and answer it) now."""
         if self.registrar.phase is Phase.SERVING:  # (during setup, `on_ready` reconciles)
             self.reconcile()
         reply.set_result(None)
@@ -269,9 +234,8 @@ class Lifecycle:
     # -- requests from the handle -----------------------------------------------------
 
     def on_snapshot(self, message: Snapshot, reply: Reply) -> None:
-        """Copy the catalog's rows (a restored row decodes its values here, once); with
-        `check`, after checking the catalog's invariants (a failure is the caller's
-        `AssertionError`, not this registrar's death)."""
+        """Copy the catalog's rows; with `check`, after checking its invariants (a failure is
+        the caller's `AssertionError`, not this registrar's death)."""
         try:
             if message.check:
                 self.registrar.catalog.check_invariants()
@@ -294,13 +258,8 @@ class Lifecycle:
     # -- stop -------------------------------------------------------------------------
 
     def on_yield_name(self, message: YieldName, _reply: Reply) -> None:
-        """Another registrar of this name is kept (rule 22; the carrier no longer serves
-        this one): unload every resource it serves, then stop as `stop()` does.
-
-        It waits `call_timeout` seconds at most for what it serves to be gone (a load
-        under way finishes, then is unloaded; an `unload` runs): then it stops anyway,
-        and what is still under way is in doubt at its next start (rule 16). If the one
-        kept goes for good meanwhile (`on_keep_name`), it serves again instead."""
+        """Another registrar of this name is kept (rule 22): unload every resource it serves
+        (for `call_timeout` at most), then stop as `stop()` does, unless `on_keep_name` comes."""
         phase = self.registrar.phase
         if phase not in (Phase.SETTING_UP, Phase.SERVING):
             return  # stopping or ended already
@@ -333,10 +292,8 @@ class Lifecycle:
         self.servers.give_up_all(stop)
 
     def on_keep_name(self, message: KeepName, _reply: Reply) -> None:
-        """The registrar kept in this one's place went for good while this one yields
-        (rule 22, the carrier's news): once what it unloads is gone, it serves again
-        (`serve_again`) instead of stopping, and `message.reply` gets `True`; `False` if
-        it is not yielding, or began to stop already."""
+        """The one kept in this one's place went for good while this one yields (rule 22): serve
+        again once what it unloads is gone (`reply`: `True`); `False` if it began to stop."""
         if self.keepers is None or self.stop_waiters is not None:
             message.reply.set_result(False)
             return
@@ -348,10 +305,8 @@ class Lifecycle:
         self.keepers.append(message.reply)
 
     def serve_again(self, phase: Phase, reopen: list[Server], keep: list[Reply]) -> None:
-        """A yield given up (`on_keep_name`): what it served is unloaded and its consumers'
-        ids released; the servers open before the yield take loads again, the registrar
-        is back in `phase` (the carrier serves it again once `keep` is answered; its consumers
-        reconcile with it, rule 20: an id it no longer holds is `FATAL`)."""
+        """A yield given up: the servers open before it take loads again, back in `phase`
+        (its consumers reconcile with it, rule 20)."""
         for server in reopen:
             server.closing = False
         self.registrar.phase = phase
@@ -359,9 +314,8 @@ class Lifecycle:
             one.set_result(True)
 
     def on_stop(self, message: Stop, reply: Reply) -> None:
-        """Unload what this registrar holds as a consumer (newest first), wait for the
-        unloads under way here until `message.unloads_until` (`time.monotonic()`
-        seconds; `None`: no wait), then stop (rule 12)."""
+        """Unload what this registrar holds as a consumer (newest first), wait for the unloads
+        under way here until `message.unloads_until` (monotonic; `None`: no wait), then stop."""
         if self.stop_waiters is not None:  # one is under way (a yield's, another caller's)
             self.stop_waiters.append(reply)
             return
@@ -419,10 +373,8 @@ class Lifecycle:
         next_one()
 
     def wait_for_unloads(self, until: float | None, then: Callable[[], None]) -> None:
-        """Run `then()` once no unload is under way here, or at `until` (monotonic
-        seconds) at the latest: each unload still under way then is cut short
-        (`UnloadCutShort`; the resource stays unloading in the backup, in doubt at the
-        next start). Its callback runs on, on its worker thread; its answer goes nowhere."""
+        """Run `then()` once no unload is under way here, or at `until` (monotonic) at the latest:
+        each still under way is cut short (`UnloadCutShort`, in doubt at the next start)."""
         done = False
         timer: runtime.Cancellable | None = None
 
@@ -469,7 +421,6 @@ class Lifecycle:
         )
 
     def die(self) -> None:
-        """A crash: fail every waiting caller, release this consumer's ids elsewhere."""
         self.registrar.phase = Phase.ENDED
         self.presence.close()
         MEMBERSHIP.leave(self.hearer)
@@ -488,8 +439,7 @@ class Lifecycle:
     # -- whoever still waits ----------------------------------------------------------
 
     def fail_waiting(self, error: RrError) -> None:
-        """Answer everyone still waiting on this actor with `error` (it stops or died); the
-        handle requests oldest first."""
+        """Answer everyone still waiting on this actor with `error` (handle requests first)."""
         self.provider.fail_waiting(error)
         self.flights.fail_waiting(error)
         for request in list(self.open_requests):
@@ -507,7 +457,6 @@ class Lifecycle:
         self.refuse_message(envelope.message, error)
 
     def refuse_message(self, message: Any, error: Exception) -> None:
-        """Answer what `message` obliges this actor to, as it will not handle it; any thread."""
         pending = getattr(message, "reply", None)
         if pending is not None:
             pending.set_error(error)
@@ -529,8 +478,6 @@ def cut_short(catalog: Catalog) -> list[Resource]:
 
 
 class Restoring:
-    """Settles what the last run left in doubt, and sweeps the restored catalog."""
-
     def __init__(
         self,
         shared: Shared,
@@ -553,15 +500,9 @@ class Restoring:
         self.reconcile_owed = False  # `ask_consumers` came during the sweep
 
     def settle_in_doubt(self) -> None:
-        """Drop restored resources whose load or unload a crash cut short (rule 16).
-
-        They were reported to the manager as `in_doubt`; what they held as dependencies
-        is released, so nothing they started at other servers leaks. A top-level call that
-        was in flight is given up at its provider (its caller died with the last run), and
-        so is a dependency whose resource is gone (a sub-call that outlived its load).
-        With `hold_in_doubt` (a `setup` runs), their rows stay in the backup as they were
-        until the manager settles them (`on_settle_in_doubt`).
-        """
+        """Drop restored resources whose load or unload a crash cut short (rule 16), releasing
+        their dependencies and giving up calls in flight; with `hold_in_doubt` their rows stay in
+        the backup until the manager settles them."""
         catalog = self.registrar.catalog
         doubtful = cut_short(catalog)
         self.in_doubt_ids = frozenset(r.id for r in doubtful)
@@ -590,28 +531,15 @@ class Restoring:
         self.registrar.commit()
 
     def unload_unheld(self) -> None:
-        """Unload restored resources that no consumer holds (rule 7).
-
-        Every caller of their load gave up and that was written (or an earlier version
-        wrote a last release apart from its unload mark, which is now one commit), but
-        a crash came before their unload began: no
-        one holds an id to release them, so without this they would stay loaded, and
-        hold their dependencies at other registrars, for good. Their unload runs once
-        setup registered their server (or they are dropped if it does not).
-        """
+        """Unload restored resources that no consumer holds (rule 7): a crash came between their
+        last release and their unload; they run once setup registered their server."""
         for resource in self.registrar.catalog.unheld():
             self.teardown.unload_resource(resource, None)
         self.sweep(0)
 
     def sweep(self, after: int) -> None:
-        """Sweep the restored resources still in the backup, one slice per turn.
-
-        Each slice (`Catalog.sweep`: `SWEEP_ROWS` resources, a few ms) unloads those no
-        consumer holds (as `unload_unheld`) and notes the registrars holding ids in it
-        (whom `ask_consumers` asks); the next slice is a message to itself, behind what
-        arrived meanwhile, so calls are served between slices. A restart reads these
-        rows after it serves, not before: a catalog of one slice is swept at once.
-        """
+        """Sweep the restored resources still in the backup, one slice per turn (calls are
+        served between slices): unload those nobody holds, note who holds ids (`ask_consumers`)."""
         if self.registrar.phase in (Phase.STOPPING, Phase.ENDED):
             return
         try:
@@ -635,22 +563,15 @@ class Restoring:
             self.unloading.ask_to_reconcile(self.swept_origins)
 
     def ask_consumers(self) -> None:
-        """It serves: ask every consumer holding ids here for the ids it holds
-        (`ReconcileAsk`); while the sweep is under way, once it is done (the sweep
-        names the consumers to ask)."""
+        """It serves: ask every consumer holding ids here to reconcile (once the sweep is done)."""
         if self.sweeping:
             self.reconcile_owed = True
         else:
             self.unloading.ask_to_reconcile(self.swept_origins)
 
     def on_settle_in_doubt(self, message: SettleInDoubt, reply: Reply) -> None:
-        """The manager handled in-doubt entry `query_id` (`None`: every one): write it off.
-
-        Its row leaves the backup now (or as it was left: its dependencies may still be
-        being released); a later restore no longer offers it. Settling one twice is a
-        no-op. A write that fails is the caller's error (`CatalogWriteError`): the entry
-        stays settled in memory, and the next write that succeeds takes it out.
-        """
+        """The manager handled in-doubt entry `query_id` (`None`: every one): its row leaves the
+        backup. A failed write is the caller's `CatalogWriteError` (settled in memory still)."""
         query_id = message.query_id
         if query_id is None:
             rids = set(self.in_doubt_ids)
@@ -686,8 +607,6 @@ def retry_delay(attempt: int) -> float:
 
 
 class Presence:
-    """What a peer lost for good, or reachable again, means for this registrar."""
-
     def __init__(
         self,
         registrar: Shared,
@@ -704,11 +623,9 @@ class Presence:
         self.lives: dict[str, str] = {}  # provider -> the life that asked for its round
         self.timers: dict[str, runtime.Cancellable] = {}
         self.round_count = 0
-        # names heard lost for good while a registrar of the name served (rule 22): the
-        # reconcile with that one is under way; lost if it fails or is not answered
+        # names lost while a namesake served (rule 22): lost if the reconcile with it fails
         self.served_on: set[str] = set()
-        # consumers heard lost while a registrar of the name served: when their `Reconcile`
-        # is due (the provider half of `lose`; the rounds are `unloading.asked`)
+        # consumers lost while a namesake served: when their `Reconcile` is due
         self.asked_timers: dict[str, runtime.Cancellable] = {}
 
     # -- lost for good (rule 19) --------------------------------------------------------
@@ -720,8 +637,8 @@ class Presence:
             self.lose(message.name)
 
     def on_consumer_down(self, message: ConsumerDown, _reply: Reply) -> None:
-        """The wire mark of another process's death watch: into this process's
-        membership, which tells every registrar here (this one too: `PeerLost`)."""
+        """Another process's death watch mark: into this process's membership, which tells every
+        registrar here (`PeerLost`)."""
         by = f"a death-watch mark to {self.registrar.name}"
         if message.stopped:
             MEMBERSHIP.stopped(message.origin_rr, by=by)
@@ -729,28 +646,20 @@ class Presence:
             MEMBERSHIP.lost(message.origin_rr, by=by)
 
     def stopped(self, name: str) -> None:
-        """Registrar `name` was stopped and nobody will start it again: it holds nothing
-        (rule 12), so every id of it still here is released (ids it forgot while this
-        one was down, which no reconcile will name now); what this one holds there is
-        left as a stop leaves it."""
+        """Registrar `name` was stopped for good: it holds nothing (rule 12), so every id of it
+        still here is released; what this one holds there is left as a stop leaves it."""
         if name == self.registrar.name:
             return
         self.unloading.release_stopped(name)
 
     def lose(self, name: str, *, defer: bool = True) -> None:
-        """Registrar `name` is gone and nobody will restart it: release what it held here,
-        report what this one held there `FATAL` and forget it (a second time: nothing).
+        """Registrar `name` is gone and nobody will restart it: release what it held here, report
+        what this one held there `FATAL` and forget it (rule 19).
 
-        Unless another registrar of the name serves it now (rule 22 kept it at a heal,
-        and the mark is of the one that yielded, given up on by its supervisor): the
-        ids held at that one are held, so this one first reconciles with it (rule 20:
-        those it does not hold are `FATAL`). If that attempt fails or is not answered
-        (a mark that overtook its own server's end, a stale AF_UNIX socket file), the
-        name is lost after all (`lost_after_all`). As a provider, the same: the ids of
-        consumer `name` held here are those of the one that serves, so this one asks it
-        for a `Reconcile` (`ReconcileAsk`: those it does not list are released) and
-        releases them all only if none comes within `call_timeout` (`unanswered`); its
-        loads under way here are given up at once (each call fails, holding nothing)."""
+        Unless another registrar of the name serves now (rule 22 kept it): then reconcile with
+        it first (`lost_after_all` if that fails), and as a provider ask it for a `Reconcile`,
+        releasing its ids only if none comes within `call_timeout`.
+        """
         if name == self.registrar.name:
             return
         serving = self.registrar.phase is Phase.SERVING and name in DIRECTORY.names()
@@ -793,20 +702,15 @@ class Presence:
                 )
 
     def on_reconcile_ask(self, message: ReconcileAsk, _reply: Reply) -> None:
-        """Provider `serving_rr` (re)started, or was told this one may hold ids there, and
-        asks for a `Reconcile` (rule 20): sent, and retried as after a healed link until
-        it is answered. One sent once could be lost: a restarted provider asks as it
-        starts and again once its carrier serves it, and a connection that failed while
-        it came back fails every frame queued on it (both answers, under load); the ids
-        it lost would then stay held here, never reported `FATAL`."""
+        """Provider `serving_rr` asks for a `Reconcile` (rule 20): sent, and retried until it is
+        answered (one sent once could be lost as its connection fails while it comes back)."""
         if self.reconciling.asked(message):
             self.round_count += 1
             self.attempt(message.serving_rr, self.round_count, 0, message.life)
 
     def ask_consumer(self, name: str) -> bool:
-        """Ask consumer `name` (a registrar of that name serves) for a `Reconcile`, and
-        arm its `call_timeout` (`unanswered`); whether it was asked (nothing of it held
-        here: no need; it cannot be told: not)."""
+        """Ask consumer `name` for a `Reconcile`, with its `call_timeout` armed; whether it was
+        asked (nothing of it held here, or it cannot be told: not)."""
         if not self.unloading.holds_of(name):
             return False
         self.unloading.give_up_loads_of(name)  # (a call given up fails: nothing held anywhere)
@@ -827,9 +731,7 @@ class Presence:
                 ref.tell(ReconcileRetry(name, round_, 0, asked=True))
 
         self.asked_timers[name] = self.timer(self.registrar.config.call_timeout, due)
-        # after the ask, in order, a reconcile of this one's own ids there (rule 20: safe at
-        # any time): one that cannot answer (a crashed one whose process still serves its
-        # name) fails it at once, and its ids here are released at once
+        # then a reconcile of this one's ids there: one that cannot answer fails it at once
         self.reconciling.reconcile(name, then=functools.partial(self.probed, name, round_))
         return True
 
@@ -838,10 +740,8 @@ class Presence:
             self.unanswered(name, round_)
 
     def unanswered(self, name: str, round_: int) -> None:
-        """The `Reconcile` asked of consumer `name` by round `round_` was due, or `name`
-        failed to answer this one's own sent after the ask: if the `Reconcile` did not come,
-        `name` is lost after all as a consumer (every id it held here when asked released:
-        one loaded since is held by the registrar of that name that serves)."""
+        """The `Reconcile` asked of consumer `name` by round `round_` did not come in time: it is
+        lost as a consumer (every id it held here when asked released)."""
         asked = self.unloading.asked.get(name)
         if asked is None or asked[0] != round_:
             return  # it came (or a newer ask waits)
@@ -873,12 +773,8 @@ class Presence:
         self.attempt(message.name, message.round, message.attempt, self.lives.get(message.name, ""))
 
     def attempt(self, name: str, round_: int, attempt: int, life: str = "") -> None:
-        """Send `Reconcile` attempt `attempt` of round `round_` to provider `name`, whose
-        life `life` asked for it ("": not known: a link healed, `PeerReachable`).
-
-        An attempt not answered within `call_timeout` is retried (a token that is back
-        is not yet a peer that answers: a carrier may lose what it is sent meanwhile).
-        """
+        """Send `Reconcile` attempt `attempt` of round `round_` to provider `name` (`life`: the
+        life that asked, "": not known), retried unless answered within `call_timeout`."""
         self.stop_retrying(name)
         self.rounds[name] = (round_, attempt)
         self.lives[name] = life
@@ -906,8 +802,7 @@ class Presence:
         self.arm(name, round_, attempt + 1, retry_delay(attempt + 1))
 
     def lost_after_all(self, name: str) -> bool:
-        """Whether `name` was heard lost while a registrar of its name served (`lose`), and
-        the reconcile with that one failed: then it is lost (rule 19)."""
+        """Whether `name` was lost while a namesake served and the reconcile with it failed."""
         if name not in self.served_on:
             return False
         self.lose(name, defer=False)
@@ -935,7 +830,6 @@ class Presence:
             timer.cancel()
 
     def close(self) -> None:
-        """This registrar stops or died: no more retries."""
         for name in list(self.rounds):
             self.stop_retrying(name)
         for name in list(self.asked_timers):
@@ -946,8 +840,8 @@ class Presence:
 
 
 class Hearing:
-    """How this process's membership tells a registrar actor who is lost or reachable
-    again (any thread; told to an actor that ended, dropped: it holds nothing any more)."""
+    """How this process's membership tells a registrar actor who is lost or reachable again
+    (any thread; to an actor that ended, dropped)."""
 
     __slots__ = ("peer",)
 
@@ -956,33 +850,25 @@ class Hearing:
 
     @property
     def name(self) -> str:
-        """The registrar's name."""
         return self.peer.name
 
     def peer_lost(self, name: str) -> None:
-        """Registrar `name` is gone for good (rule 19): `Presence`."""
         with contextlib.suppress(RrError):
             self.peer.tell(PeerLost(name))
 
     def peer_stopped(self, name: str) -> None:
-        """Registrar `name` was stopped for good (its supervisor says): `Presence`."""
         with contextlib.suppress(RrError):
             self.peer.tell(PeerLost(name, stopped=True))
 
     def peer_reachable(self, name: str) -> None:
-        """Registrar `name` answers again (a healed link, rule 20): `Presence`."""
         with contextlib.suppress(RrError):
             self.peer.tell(PeerReachable(name))
 
 
 class Network(Protocol):
-    """What `ResourceRegistrar.start(network=)` needs of a carrier: to serve a registrar.
-
-    Every carrier's `Transport` is one (`rr_actors._transport.messenger`; the registrar layer
-    does not import the carriers). `serve` returns once the other processes of the
-    system can reach the registrar, and the carrier stops serving it by itself when the
-    registrar stops or dies.
-    """
+    """What `ResourceRegistrar.start(network=)` needs of a carrier (every `Transport` is one):
+    `serve` returns once the other processes can reach the registrar, which is served until
+    it stops or dies."""
 
     def serve(self, endpoint: Served) -> None:
         """Make the registrar reachable from the other processes (and hosts) of the system.
@@ -998,42 +884,28 @@ class Network(Protocol):
 class ActorHere(Protocol):
     """How `Served` reaches a started registrar's actor (`handle.Here` is one)."""
 
-    def tell(self, message: Any) -> bool:
-        """Send the actor `message` without waiting; whether the actor was running."""
-        ...
+    def tell(self, message: Any) -> bool: ...
 
     def wait_stopped(self, timeout: float | None = None) -> bool:
-        """Block until the actor's thread ended (stopped, or died and its death handled);
-        whether it did."""
+        """Block until the actor's thread ended (stopped, or died and its death handled)."""
         ...
 
 
 class Servable(Protocol):
-    """What a carrier's `Served` uses of a started registrar (`handle.ResourceRegistrar`
-    is one; this module comes before the handle, so it names it by this only)."""
+    """What a carrier's `Served` uses of a started registrar (`handle.ResourceRegistrar`)."""
 
     @property
-    def name(self) -> str:
-        """The registrar's name."""
-        ...
+    def name(self) -> str: ...
 
     @property
-    def config(self) -> RegistrarConfig:
-        """The configuration it was started with."""
-        ...
+    def config(self) -> RegistrarConfig: ...
 
-    def is_alive(self) -> bool:
-        """Whether the registrar actor is running."""
-        ...
+    def is_alive(self) -> bool: ...
 
-    def stop(self, *, timeout: float | None = None) -> None:
-        """Stop the registrar (rule 12)."""
-        ...
+    def stop(self, *, timeout: float | None = None) -> None: ...
 
     @property
-    def _actor(self) -> ActorHere:
-        """Its actor, in this process."""
-        ...
+    def _actor(self) -> ActorHere: ...
 
 
 def check_network(network: object) -> None:
@@ -1064,7 +936,6 @@ class Served:
 
     @property
     def name(self) -> str:
-        """The registrar's name."""
         return self.registrar.name
 
     @property
@@ -1073,11 +944,9 @@ class Served:
         return self.registrar.config.max_message_bytes
 
     def run(self, fn: Callable[[Any], Any]) -> Any:
-        """Run `fn(registrar)` on the calling thread."""
         return fn(self.registrar)
 
     def wait_ended(self, timeout: float | None = None) -> bool:
-        """Block until the registrar actor ended (stopped or died); whether it did."""
         return self.registrar._actor.wait_stopped(timeout)
 
     def stopped_cleanly(self) -> bool:
@@ -1087,26 +956,21 @@ class Served:
         return isinstance(DIRECTORY.gone_error(self.registrar.name), RegistrarStoppedError)
 
     def listening(self) -> None:
-        """The other processes of the system can reach it now: it reconciles with its peers
-        again (those in other processes could not answer it before)."""
+        """The other processes can reach it now: it reconciles with its peers again."""
         self.registrar._actor.tell(Reachable(FutureReply()))  # (nobody waits: `serve` must not)
 
     def peer_lost(self, name: str) -> None:
-        """Registrar `name` of another process is gone for good (rule 19): `Presence`."""
         self.registrar._actor.tell(PeerLost(name))
 
     def peer_reachable(self, name: str) -> None:
-        """Registrar `name` of another process answers again (a healed link): `Presence`."""
         self.registrar._actor.tell(PeerReachable(name))
 
     def yield_name(self, reason: str) -> None:
-        """Another process's registrar of this name is kept (rule 22): this one unloads
-        what it serves and stops (`Lifecycle`)."""
+        """Another process's registrar of this name is kept (rule 22): this one yields."""
         self.registrar._actor.tell(YieldName(reason))
 
     def keep_name(self, reply: Reply) -> None:
-        """The one kept went for good while this one yields (rule 22): it serves again if
-        it has not begun to stop (`reply`: `True`), else `False` (`Lifecycle`)."""
+        """The one kept went for good while this one yields (rule 22): serve again if it can."""
         self.registrar._actor.tell(KeepName(reply))
 
 
@@ -1114,20 +978,13 @@ class Served:
 
 
 def _mark(name: str, *, stopped: bool = False) -> ConsumerDown:
-    """The mark "registrar `name` will not come back", as the wire carries it."""
     return ConsumerDown(name, stopped)
 
 
 def gone_for_good(name: str, *, also: Iterable[str] = (), stopped: bool = False) -> None:
     """Registrar `name` is gone and nobody will restart it: this process's membership
-    records it (every registrar here hears it, now or when it starts), and each of `also`
-    of another process gets the mark. One that cannot be reached is skipped: a registrar
-    that restarts hears it from its supervisor (`tell_gone`), one of another process
-    from its own carrier or membership.
-
-    With `stopped`, `name` was stopped cleanly (its supervisor stopped it for good): it
-    holds nothing (rule 12), so what it still holds anywhere is released; what is held
-    at it is left as a stop leaves it."""
+    records it, and each of `also` of another process gets the mark (skipped if unreachable).
+    `stopped`: stopped cleanly, so it holds nothing (rule 12) and what it held is released."""
     if stopped:
         MEMBERSHIP.stopped(name, by="its supervisor")
     else:
@@ -1141,38 +998,24 @@ def gone_for_good(name: str, *, also: Iterable[str] = (), stopped: bool = False)
 
 
 def back(name: str) -> None:
-    """Registrar `name` is started again (by its supervisor): it is no longer gone."""
     MEMBERSHIP.back(name)
 
 
 def gone() -> dict[str, bool]:
-    """The registrars this process knows are gone for good (its membership), each with
-    whether it was stopped (not lost)."""
+    """The registrars this process knows are gone for good, each with whether it was stopped."""
     return MEMBERSHIP.gone()
 
 
 def tell_gone(target: str, name: str, *, stopped: bool = False) -> None:
-    """Tell registrar `target` only that registrar `name` is gone for good (`stopped`:
-    as `gone_for_good`).
-
-    Raises:
-        RrError: `target` cannot be reached.
-    """
+    """Tell registrar `target` only that registrar `name` is gone for good (`stopped`: as
+    `gone_for_good`); `RrError` if `target` cannot be reached."""
     DIRECTORY.lookup(target).tell(_mark(name, stopped=stopped))
 
 
 def lost_everything(name: str, *, also: Iterable[str] = (), handle: Any = None) -> None:
-    """Registrar `name` restarted with an empty catalog (its supervisor restarted it
-    without a backup): every registrar of this process, and those named in `also`, that
-    holds ids there reconciles with it, and `name` itself reconciles with every registrar
-    of the system (`LostEverything`): the ids its last run held are held for nobody, and
-    each provider releases those its new list does not name (rule 20). One killed again
-    before it heard it is told at its next restart.
-
-    `handle`: the `ResourceRegistrar` of `name`, told through it: one just started (a
-    consumer of `Supervisor.registrar`) may not have taken its place in the directory
-    yet (its actor's `on_start` did not run: "still starting"), and the message would
-    be lost; its actor's mailbox takes it at once."""
+    """Registrar `name` restarted without a backup: those here and in `also` holding ids
+    there reconcile with it, and it with everyone (`LostEverything`, rule 20). `handle`: its
+    `ResourceRegistrar`, through which it is told (it may not be in the directory yet)."""
     DIRECTORY.broadcast(ReconcileAsk(name, holds_yours=False), also=also, skip=name)
     if handle is not None:
         handle._actor.tell(LostEverything())  # (the package's own handle)
@@ -1187,13 +1030,8 @@ def lost_everything(name: str, *, also: Iterable[str] = (), handle: Any = None) 
 
 
 def _catalog_rows(shared: Shared) -> dict[str, object]:
-    """The rows, counts and digest of a catalog event (see `CatalogRestored`).
-
-    Up to `LISTED_ROWS` rows of each kind are listed, read from the backup as plain
-    strings (no resource is read into memory for it); above that only the counts are
-    given, and no digest: it would cost a read of every row, which is what a restore
-    no longer does before it serves (issue 34).
-    """
+    """The rows, counts and digest of a catalog event (`CatalogRestored`): up to
+    `LISTED_ROWS` rows of each kind, read as plain strings; above that only counts."""
     catalog = shared.catalog
     clients = tuple(
         (qid, record.query.serving_rr, record.query.server, record.parent or "")
@@ -1210,8 +1048,7 @@ def _catalog_rows(shared: Shared) -> dict[str, object]:
             "digest": "",
         }
     kinds: tuple[Rows, Rows, Rows] = (tuple(rows[0]), tuple(rows[1]), clients)
-    # each row's fields joined by \x1f and ended by \x1e, each kind ended by \x1d: hashed
-    # as one string (one `update`, not two per row)
+    # hashed as one string (one `update`, not two per row)
     digest = hashlib.sha256("".join(map(_digested, kinds)).encode())
     return {
         "resources": kinds[0],
@@ -1224,20 +1061,18 @@ def _catalog_rows(shared: Shared) -> dict[str, object]:
 
 
 def _digested(listed: Rows) -> str:
-    """One kind's rows as the digest reads them: sorted, each row's fields joined by
-    \x1f and ended by \x1e, the kind ended by \x1d (joined in C: no Python step a row)."""
+    """One kind's rows as the digest reads them: sorted, fields joined by \x1f, rows ended
+    by \x1e, the kind by \x1d."""
     if not listed:
         return "\x1d"
     return "\x1e".join(map("\x1f".join, sorted(listed))) + "\x1e\x1d"
 
 
 def publish_restored(shared: Shared) -> None:
-    """Publish `CatalogRestored` (a registrar with a backup starts; its actor thread)."""
     if shared.events.active and shared.saver.store is not None:
         shared.events.publish(events.CatalogRestored(shared.name, **_catalog_rows(shared)))  # type: ignore[arg-type]
 
 
 def publish_stopped(shared: Shared) -> None:
-    """Publish `RegistrarStopped` (a clean stop gave back what it held; its actor thread)."""
     if shared.events.active:
         shared.events.publish(events.RegistrarStopped(shared.name, **_catalog_rows(shared)))  # type: ignore[arg-type]

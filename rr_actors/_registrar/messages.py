@@ -3,29 +3,19 @@
 ```
  consumer ── Load Unload Abandon Fetch Reconcile ─────────────────────────► provider
  provider ── StatusBatch StatusNotice Revoke ResponseUpdated ReconcileAsk ─► consumer
- death watch ── ConsumerDown ─► every registrar of the other processes
- death watch ── LostEverything ─► a registrar restarted without a backup
-                                              (the wire: `WireMessage`s, they pickle)
+ death watch ── ConsumerDown LostEverything ─► registrars (the wire: they pickle)
  registrar ── RunLoad RunUnload ─► its server actor; handle ── FetchVia ─► a client actor
  timers, carriers, the membership ── Flush Crash Reachable PeerLost PeerReachable
                                      YieldName ReconcileRetry Ping ─► the registrar
  the handle ── RegisterServer Release Stop ... (each with its reply) ─► the registrar
- a caller's thread ── ClientLoaded CallFailed TakeOutcomes ─► the registrar
-                                              (the call protocol's own: `calls.py`)
-
- a load callback's thread: LOADING = LoadContext(registrar, resource, chain)
-   ─► a call made there records a dependency (rule 5) and extends the chain (rule 6)
-   ─► what it raised: load_error ─► ResourceLoadError, one error_frame per registrar
+ a caller's thread ── ClientLoaded CallFailed TakeOutcomes ─► the registrar (`calls.py`)
+ a load callback's thread: LOADING = LoadContext(registrar, resource, chain): a call
+   made there records a dependency (rule 5) and extends the chain (rule 6)
 ```
 
-Each is a frozen dataclass. A `reply` field holds where the answer goes: a local object
-in-process; a carrier replaces it by a token when the message crosses processes. A
-message from the handle carries its reply, and the handle sends it with `_ask`.
-
-To add a message: define it here, add it to the actor's one dispatch table (`DISPATCH`
-in `actor.py`: its step name and the role that handles it), and, for a wire message,
-make sure what it carries pickles (`docs/explanation/architecture.md`, "Adding a
-message").
+Each is a frozen dataclass; a `reply` field holds where the answer goes (a carrier
+replaces it by a token across processes). To add one: define it here, add it to
+`DISPATCH` in `actor.py` (docs/explanation/architecture.md, "Adding a message").
 """
 
 from __future__ import annotations
@@ -122,25 +112,12 @@ deadline crosses as itself to a process that reads the same one."""
 class Load(WireMessage):
     """Consumer -> provider: load `request` on `server` for consumer id `query_id`.
 
-    `chain` holds the ids of the resources being loaded further up the call chain
-    (for cycle detection). `life`: the run of `origin_rr` that sent it (`Shared.life`;
-    "": not known); a provider that heard a `Reconcile` of a later run refuses it
-    (presumed abort: that run does not hold the id, `provider.py`'s `Lives`). `trace`:
-    the W3C traceparent of the call's CLIENT span (`_core/traces.py`), `""` untraced.
-    `deadline`: when its caller gives up (`time.monotonic()` seconds of this process;
-    `None`: never), by which a provider sheds a load that cannot finish in time
-    (`DeadlineExceededError`). It crosses as the seconds left, as gRPC's `grpc-timeout`
-    does (`__getstate__`), and becomes a deadline of the receiving process's clock when
-    it is unpickled there (`__setstate__`): the time on the way (in a pipe or socket
-    before the receiver reads it) is not counted. So beside it crosses the deadline
-    itself with the name of the sender's clock (`Platform.monotonic_clock`: on Linux
-    the boot and time namespace), and a receiver that reads the same clock (any process
-    of that host) keeps the deadline exact; another host's clock is never compared.
-    (Seconds left alone, 21 of 23,164 loads started up to 36 ms after their caller gave
-    up under a 10x overload across processes: `bench_overload.py`.) `waits`: whether its
-    caller asks again after an `OverloadedError` (`if_overloaded="wait"`): one that does
-    not is told when a slot may be free but keeps no place (`provider.Admission`).
-    Answer: the response, or an error.
+    `chain`: the resources loading further up (cycle detection). `life`: the run of
+    `origin_rr` that sent it (a later run's `Reconcile` fences it: `provider.Lives`).
+    `trace`: the traceparent of its CLIENT span (`""`: untraced). `deadline`: when its
+    caller gives up (monotonic; `None`: never), crossing as the seconds left, or as itself
+    to a process on the same clock (docs/explanation/inside.md, "The provider"). `waits`:
+    its caller asks again after an `OverloadedError`. Answer: the response, or an error.
     """
 
     query_id: str
@@ -155,8 +132,7 @@ class Load(WireMessage):
     waits: bool = True
 
     def __getstate__(self) -> dict[str, Any]:
-        """Its fields as it leaves this process: the deadline as the seconds left, and as
-        itself on this process's clock, named (`_CLOCK`), where the platform names it."""
+        """Its fields as it leaves: the deadline as seconds left, and as itself with `_CLOCK`."""
         state = dict(self.__dict__)
         deadline = self.deadline
         if deadline is not None:
@@ -166,8 +142,7 @@ class Load(WireMessage):
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        """Its fields as it arrives: the deadline itself if it was taken on this
-        process's clock, else the seconds left as a deadline of this process's clock."""
+        """Its fields as it arrives: the deadline itself on the same clock, else seconds left."""
         left, clock = state.get("deadline"), state.pop("clock", None)
         if left is not None:
             if clock is not None and clock[0] == _CLOCK is not None:
@@ -212,14 +187,9 @@ class Load(WireMessage):
 
 @dataclasses.dataclass(frozen=True)
 class Unload(WireMessage):
-    """Consumer -> provider: release consumer id `query_id`.
-
-    Answer: the statuses about it still on their way to the consumer (`StatusOnItsWay`s,
-    a tuple, mostly empty: rule 9, a release crossing a status); an `UnloadOverran` when
-    the release unloaded the resource and its `unload` overran `unload_timeout` (released
-    all the same, so it carries them too); or an error (nothing released). `trace`: the
-    W3C traceparent of the unload's CLIENT span (`_core/traces.py`), `""` untraced.
-    """
+    """Consumer -> provider: release consumer id `query_id` (`trace`: its CLIENT span's).
+    Answer: the statuses still on their way to it (`StatusOnItsWay`s, rule 9), an
+    `UnloadOverran` (released, its `unload` overran), or an error (nothing released)."""
 
     query_id: str
     origin_rr: str
@@ -230,9 +200,7 @@ class Unload(WireMessage):
 @dataclasses.dataclass(frozen=True)
 class Abandon(WireMessage):
     """Consumer -> provider: the caller gave up on `query_id`; release it when possible.
-
-    Answer (to a stopping consumer, which waits for it: `reply` set): `None` once it was
-    released here, or was not held."""
+    Answer (to a stopping consumer, `reply` set): `None` once released, or not held."""
 
     query_id: str
     origin_rr: str
@@ -252,12 +220,9 @@ class Fetch(WireMessage):
 class StatusNotice(WireMessage):
     """Provider -> consumer: a status about the resources behind `query_ids`.
 
-    `event` identifies one `send_status` so that a callback reached twice (diamond
-    dependencies) runs once; `hop` counts the registrars it reached on the way (1: the
-    sender's own consumers) and `sent_at` is when it was sent (wall clock, seconds), for
-    the `StatusDelivered` event. `patience`: seconds from its arrival after which a
-    callback that has not returned is given up on (`None`: wait for it). Answer: the ids
-    given up on, on the way (a tuple, maybe empty), once delivered along the whole path.
+    `event`: one `send_status` (a callback reached twice runs once); `hop`: registrars on
+    the way; `sent_at`: wall clock; `patience`: seconds after which a callback is given up
+    on (`None`: never). Answer: the ids given up on, once delivered along the whole path.
     """
 
     query_ids: tuple[str, ...]
@@ -273,14 +238,9 @@ class StatusNotice(WireMessage):
 
 @dataclasses.dataclass(frozen=True)
 class StatusBatch(WireMessage):
-    """Provider -> a registrar of another process: one status for consumer registrars there.
-
-    `parts` holds (consumer registrar, its query ids) for each registrar of that process
-    (as far as the provider knows) that holds the resource; the registrar it is sent to
-    delivers them all in one pass (`status.py`). The other fields are a `StatusNotice`'s.
-    Answer: `({registrar: its process's key} for every registrar reached, the ids given
-    up on)`, once the status was delivered along the whole path.
-    """
+    """Provider -> a registrar of another process: one status for each `(registrar, ids)` of
+    `parts`, delivered in one pass; the rest as `StatusNotice`. Answer: `({registrar: its
+    process's key}, the ids given up on)`."""
 
     parts: tuple[tuple[str, tuple[str, ...]], ...]
     status: Status
@@ -315,9 +275,8 @@ class StatusBatch(WireMessage):
 
 @dataclasses.dataclass(frozen=True)
 class StatusOnItsWay:
-    """A status a provider sent on to a consumer id, not acknowledged yet when that id's
-    `Unload` was answered: the answer carries it (rule 9). The other fields are a
-    `StatusNotice`'s; `event` makes it reach the id once whichever way comes first."""
+    """A status sent on to a consumer id, unacknowledged when its `Unload` was answered: the
+    answer carries it (rule 9); `event` makes it reach the id once."""
 
     status: Status
     message: str
@@ -342,9 +301,8 @@ class StatusOnItsWay:
 
 @dataclasses.dataclass(frozen=True)
 class UnloadOverran:
-    """The answer to an `Unload` that released its id, whose resource's `unload` then
-    overran `unload_timeout` (`error`, for the consumer's caller): the id is released all
-    the same, so the answer carries the statuses still on their way to it (rule 9)."""
+    """The answer to an `Unload` that released its id but whose `unload` overran
+    `unload_timeout` (`error`); it carries the statuses still on their way (rule 9)."""
 
     on_its_way: tuple[StatusOnItsWay, ...]
     error: CallTimeoutError
@@ -359,10 +317,7 @@ class Revoke(WireMessage):
 
 @dataclasses.dataclass(frozen=True)
 class ResponseUpdated(WireMessage):
-    """Provider -> consumer: the stored response of these consumer ids changed.
-
-    Answer: `None` once the consumer's client records hold the new response.
-    """
+    """Provider -> consumer: the stored response of these ids changed. Answer: `None`."""
 
     query_ids: tuple[str, ...]
     response: Any
@@ -371,17 +326,10 @@ class ResponseUpdated(WireMessage):
 
 @dataclasses.dataclass(frozen=True)
 class Reconcile(WireMessage):
-    """Consumer -> provider: registrar `origin_rr` holds exactly `held` at you.
+    """Consumer -> provider: registrar `origin_rr` holds exactly `held` at you (rule 20).
 
-    Sent after a restart of either side (a consumer's start, or a provider's
-    `ReconcileAsk`). `held` lists the consumer's client records at this provider, its
-    calls whose answer is due, and its calls that failed as this provider died (they may
-    be retried with the same id); not the ids whose `Unload` failed so (released). The
-    provider releases every consumer id of `origin_rr` it holds that is not in `held`,
-    and gives up its loads under way for `origin_rr` that are not in it (an earlier
-    run's: presumed abort); it answers with the ids of `held` it neither holds nor has
-    a load under way for. `life`: the run of `origin_rr` that sent it (`Shared.life`;
-    "": not known): from then on the provider refuses the `Load`s of earlier runs.
+    The provider releases the others of `origin_rr`'s ids, gives up its loads not listed,
+    answers the listed ids it does not know, and refuses `Load`s of runs before `life`.
     """
 
     origin_rr: str
@@ -392,14 +340,8 @@ class Reconcile(WireMessage):
 
 @dataclasses.dataclass(frozen=True)
 class ReconcileAsk(WireMessage):
-    """Provider -> consumer: `serving_rr` (re)started with ids of yours: send a `Reconcile`.
-
-    With `holds_yours=False` it names none of yours (it tells every registrar of the
-    system: its restart may have lost ids you hold): send one only if you hold ids there.
-    `life`: a token drawn at each start of `serving_rr` (`Shared.life`), the same in
-    every ask of that run ("": not known); the ids it kept for a retry in that life are
-    listed again, those an earlier life kept are not (released: rule 17).
-    """
+    """Provider -> consumer: `serving_rr` (re)started with ids of yours: send a `Reconcile`
+    (`holds_yours=False`: only if you hold ids there). `life`: its run's token."""
 
     serving_rr: str
     holds_yours: bool = True
@@ -408,33 +350,22 @@ class ReconcileAsk(WireMessage):
 
 @dataclasses.dataclass(frozen=True)
 class LostEverything(WireMessage):
-    """Death watch -> a registrar its supervisor restarted without a backup: you restarted
-    with an empty catalog, so no row names the providers where your last run held ids
-    (held there for nobody now): send every registrar of the system a `Reconcile`, as one
-    restored from a backup does (rule 20)."""
+    """Death watch -> a registrar restarted without a backup: send every registrar of the
+    system a `Reconcile`, as one restored from a backup does (rule 20)."""
 
 
 @dataclasses.dataclass(frozen=True)
 class ConsumerDown(WireMessage):
-    """Death watch -> a registrar of another process: registrar `origin_rr` died (or, with
-    `stopped`, was stopped) and will not come back: the mark on the wire.
-
-    Its receiver feeds it into its process's membership (`life.py`'s presence), which tells
-    every registrar there `PeerLost`: the ids `origin_rr` held there are released, and
-    (not `stopped`) the ids held at it get `FATAL` and are forgotten (rule 19)."""
+    """Death watch -> a registrar of another process: `origin_rr` died (or, `stopped`, was
+    stopped) and will not come back; into that process's membership (rule 19)."""
 
     origin_rr: str
     stopped: bool = False
 
 
 def give_back(serving_rr: str, query_id: str, origin_rr: str) -> None:
-    """Tell provider `serving_rr` to release consumer id `query_id` whenever it can.
-
-    The one way a registrar gives an id back that its caller will not hold (a call given
-    up, an answer that cannot be kept, a dependency whose resource is gone). Best effort:
-    a provider that cannot be reached holds nothing this registrar could release (if it
-    died it restores the id, and its consumer's restart or death watch settles it).
-    """
+    """Tell provider `serving_rr` to release consumer id `query_id` whenever it can: the one
+    way an id its caller will not hold is given back. Best effort."""
     with contextlib.suppress(RrError):
         DIRECTORY.lookup(serving_rr).tell(Abandon(query_id, origin_rr))
 
@@ -443,15 +374,8 @@ def give_back(serving_rr: str, query_id: str, origin_rr: str) -> None:
 
 
 class LoadPlace:
-    """A load's place in the queue for a worker, shared by the registrar (which may
-    `withdraw` it: its callers all gave up) and its server actor (which `takes` it).
-
-    `deadline`: when the last of its callers gives up (`time.monotonic()` seconds;
-    `None`: one never does), which the server reads as a worker takes the load, to shed
-    it if it cannot finish in time (`ServerActor.shed`).
-
-    Thread-safe: the registrar's and the server's threads both use it.
-    """
+    """A load's place in the queue for a worker (thread-safe): the registrar may `withdraw`
+    it, its server actor `take`s it, and sheds it past `deadline` (monotonic; `None`: never)."""
 
     __slots__ = ("_job", "_lock", "_state", "deadline")
 
@@ -462,14 +386,12 @@ class LoadPlace:
         self.deadline = deadline
 
     def extend(self, deadline: float | None) -> None:
-        """On the registrar's thread: one more caller waits for it, until `deadline`."""
         with self._lock:
             if self.deadline is not None:
                 self.deadline = None if deadline is None else max(self.deadline, deadline)
 
     def take(self, start: Callable[[], Job | None]) -> None:
-        """On the server's thread: `start()` the load (its worker job, or `None` if it
-        started at once), unless it was withdrawn meanwhile."""
+        """On the server's thread: `start()` the load unless withdrawn (its job, or `None`)."""
         with self._lock:
             if self._state != "sent":
                 return
@@ -477,8 +399,7 @@ class LoadPlace:
             self._state = "started" if self._job is None else "queued"
 
     def withdraw(self) -> bool:
-        """On the registrar's thread: whether the load was withdrawn before it started
-        (it never runs, and its reply is never answered by the server)."""
+        """On the registrar's thread: whether the load was withdrawn before it started."""
         with self._lock:
             if self._state == "sent":
                 self._state = "withdrawn"
@@ -492,8 +413,8 @@ class LoadPlace:
 
 @dataclasses.dataclass(frozen=True)
 class RunLoad:
-    """Registrar -> its server actor: run `load(request)` for resource `resource_id`
-    (unless the registrar withdraws it from `place` before a worker takes it)."""
+    """Registrar -> its server actor: run `load(request)` for `resource_id` (unless withdrawn
+    from `place` first)."""
 
     resource_id: str
     request: Any
@@ -506,11 +427,8 @@ class RunLoad:
 
 @dataclasses.dataclass(frozen=True)
 class RunUnload:
-    """Registrar -> its server actor: run `unload(request, response)`.
-
-    Past `timeout` seconds (`None`: no bound) the reply gets `CallTimeoutError` and the
-    callback's worker is abandoned.
-    """
+    """Registrar -> its server actor: run `unload(request, response)`; past `timeout` s the
+    reply gets `CallTimeoutError` and the worker is abandoned."""
 
     request: Any
     response: Any
@@ -538,9 +456,7 @@ class Crash:
 
 
 # -- from the handle (never leave the process) ------------------------------------------
-# Each carries its reply: the handle waits on it (a `FutureReply`), or, for `Reachable`
-# and `Ping`, nobody or the manager's control loop does. The actor answers them through an
-# open reply, so a death fails whoever still waits.
+# Each carries its reply, answered through an open reply: a death fails whoever waits.
 
 
 class Asked(Protocol):
@@ -552,8 +468,8 @@ class Asked(Protocol):
 
 @dataclasses.dataclass(frozen=True)
 class RegisterServer:
-    """Register resource server `name` with its callbacks and its bound of new loads
-    under way (`None`: the registrar's `max_pending`). Answer: `None`."""
+    """Register server `name` with its callbacks and bound (`None`: the registrar's
+    `max_pending`). Answer: `None`."""
 
     name: str
     load: LoadCallback
@@ -574,9 +490,7 @@ class UnregisterServer:
 
 @dataclasses.dataclass(frozen=True)
 class Release:
-    """Release consumer id `query_id` this registrar holds (`unload`). Answer: `None`.
-
-    `begun`: the trace context of the caller of `unload` (`_core/traces.py`'s `begin`)."""
+    """Release consumer id `query_id` (`begun`: the caller's trace context). Answer: `None`."""
 
     query_id: str
     reply: FutureReply
@@ -585,8 +499,8 @@ class Release:
 
 @dataclasses.dataclass(frozen=True)
 class SendStatus:
-    """Send a status about the resource behind `query_id`, giving up on callbacks that
-    have not returned within `patience` seconds. Answer: a `StatusDelivery`."""
+    """Send a status about the resource behind `query_id`, giving up on callbacks after
+    `patience` seconds. Answer: a `StatusDelivery`."""
 
     query_id: str
     status: Status
@@ -621,8 +535,7 @@ class SetStatusCallback:
 
 @dataclasses.dataclass(frozen=True)
 class UpdateResponse:
-    """Replace the response of the resource behind `query_id`. Answer: `None` once the
-    consumers hold it too."""
+    """Replace the response behind `query_id`. Answer: `None` once the consumers hold it."""
 
     query_id: str
     response: Any
@@ -638,11 +551,8 @@ class Save:
 
 @dataclasses.dataclass(frozen=True)
 class Stop:
-    """Stop the registrar (rule 12). Answer: `None` once stopped.
-
-    `unloads_until`: until when (`time.monotonic()` seconds, in this process) the stop
-    waits for the unloads under way here (`None`: it does not wait).
-    """
+    """Stop the registrar (rule 12), waiting for the unloads under way until
+    `unloads_until` (monotonic; `None`: no wait). Answer: `None`."""
 
     reply: FutureReply
     unloads_until: float | None = None
@@ -657,8 +567,7 @@ class Ready:
 
 @dataclasses.dataclass(frozen=True)
 class SettleInDoubt:
-    """The manager handled in-doubt entry `query_id` (`None`: all of them): the backup
-    forgets it. Answer: `None`."""
+    """The in-doubt entry `query_id` (`None`: all) is handled: forget it. Answer: `None`."""
 
     query_id: str | None
     reply: FutureReply
@@ -673,9 +582,8 @@ class Reachable:
 
 @dataclasses.dataclass(frozen=True)
 class PeerLost:
-    """This process's membership (`rr_actors._core.membership`): registrar `name` is gone
-    and nobody will restart it (rule 19), or, with `stopped`, it was stopped for good (it
-    holds nothing: rule 12). The one local message for "lost"; handled by `life.py`'s `Presence`."""
+    """Membership: registrar `name` is gone for good (rule 19), or with `stopped`, stopped
+    for good (rule 12). The one local message for "lost" (`life.Presence`)."""
 
     name: str
     stopped: bool = False
@@ -683,37 +591,31 @@ class PeerLost:
 
 @dataclasses.dataclass(frozen=True)
 class PeerReachable:
-    """A carrier: registrar `name` of another process can be reached again after it could
-    not be (a healed link, not a restart). Handled by `life.py`'s `Presence`."""
+    """A carrier: registrar `name` of another process can be reached again (a healed link)."""
 
     name: str
 
 
 @dataclasses.dataclass(frozen=True)
 class YieldName:
-    """A carrier: another process serves this registrar's name too and is kept (rule 22);
-    the carrier stopped serving this one. It unloads what it serves, then stops (`reason`
-    says why). Handled by `life.py`'s `Lifecycle`."""
+    """A carrier: another process's registrar of this name is kept (rule 22): unload, then
+    stop (`reason`)."""
 
     reason: str
 
 
 @dataclasses.dataclass(frozen=True)
 class KeepName:
-    """A carrier: the registrar kept in this one's place went for good while this one
-    yields (rule 22): if it has not begun to stop, it serves its name again once what it
-    unloads is gone, and `reply` gets `True`; else `False`. Handled by `life.py`'s
-    `Lifecycle`."""
+    """A carrier: the one kept went for good while this one yields (rule 22): serve again
+    if not stopping (`reply`: `True`), else `False`."""
 
     reply: Reply
 
 
 @dataclasses.dataclass(frozen=True)
 class ReconcileRetry:
-    """Presence's own timer: send `Reconcile` attempt `attempt` of round `round` to `name`
-    (the last one failed, or was not answered in time). With `asked`: the `Reconcile`
-    asked of consumer `name` by round `round` (`Presence.lose`) was due: if it did not
-    come, release every id of `name`. Handled by `life.py`'s `Presence`."""
+    """Presence's timer: send `Reconcile` attempt `attempt` of `round` to `name`; with
+    `asked`, the `Reconcile` asked of consumer `name` is due (release its ids if absent)."""
 
     name: str
     round: int
@@ -754,12 +656,10 @@ class RunOnActor:
 
 
 TextFields: TypeAlias = tuple[tuple[str, bool], ...]
-"""`(name, may be None)` of a message type's fields declared `str` or `str | None`."""
 
 
 @functools.cache
 def text_fields(kind: type) -> TextFields:
-    """The fields of message type `kind` that `misfit` checks (found once a type)."""
     fields = dataclasses.fields(kind) if dataclasses.is_dataclass(kind) else ()
     return tuple(
         (f.name, f.type == "str | None") for f in fields if f.type in ("str", "str | None")
@@ -767,14 +667,8 @@ def text_fields(kind: type) -> TextFields:
 
 
 def misfit(message: object, names: TextFields) -> ConfigError | None:
-    """A `ConfigError` naming the field of `message` among `names` (`text_fields`) that
-    holds something else than a str (`None` if none does).
-
-    A careless caller (`unload(["id"])`) or a buggy peer must not make a registrar die of
-    a `TypeError` deep in a handler (an unhashable id, a name `difflib` cannot read): the
-    registrar refuses the message instead. Only the value's type is shown: its `repr` is
-    a peer's code.
-    """
+    """A `ConfigError` naming the field of `message` among `names` that is not a str (`None`
+    if none): a registrar refuses a bad message rather than die of a `TypeError`."""
     for name, optional in names:
         value = getattr(message, name)
         if (
@@ -794,8 +688,8 @@ def misfit(message: object, names: TextFields) -> ConfigError | None:
 
 @dataclasses.dataclass(frozen=True)
 class LoadContext:
-    """What is being loaded on the current thread (read by `call` to record dependencies):
-    `chain` holds the ids of the resources being loaded on the way here, this one last."""
+    """What is being loaded on this thread (read by `call` to record dependencies);
+    `chain`: the resources being loaded on the way here, this one last."""
 
     registrar: str
     resource_id: str
@@ -809,11 +703,8 @@ LOADING: contextvars.ContextVar[LoadContext | None] = contextvars.ContextVar(
 
 
 def check_picklable(value: Any, what: str) -> None:
-    """Raise `ConfigError` if `value` cannot be stored in a catalog backup.
-
-    Whatever pickling it raises (a user `__reduce__` raising `SystemExit` too) is that.
-    Small builtin data (`wire.plain`: most requests and responses) is not pickled here.
-    """
+    """`ConfigError` if `value` cannot be stored in a catalog backup (whatever pickling
+    raises); small builtin data (`wire.plain`) is not pickled here."""
     if plain(value):  # (it pickles; the backup pickles it again anyway when it stores it)
         return
     try:
@@ -825,8 +716,7 @@ def check_picklable(value: Any, what: str) -> None:
 
 
 def exception_text(exc: BaseException) -> str:
-    """`str(exc)`, or a placeholder if even that raises (it is user code too: a
-    `SystemExit` from `__str__` is contained as well)."""
+    """`str(exc)`, or a placeholder if even that raises (user code too)."""
     try:
         return str(exc)
     except BaseException:  # noqa: BLE001 - the error message must not fail
@@ -841,9 +731,8 @@ def error_frame(
     *,
     with_traceback: bool = True,
 ) -> ErrorFrame:
-    """The frame a failed load adds to a `ResourceLoadError`'s stack (the one builder):
-    `message` says what failed (`str(exc)` by default), with `exc`'s formatted traceback
-    unless `with_traceback` is false."""
+    """The frame a failed load adds to a `ResourceLoadError`'s stack: `message` (default
+    `str(exc)`), with `exc`'s traceback unless `with_traceback` is false."""
     return ErrorFrame(
         registrar=registrar,
         server=server,
@@ -854,11 +743,8 @@ def error_frame(
 
 
 def load_error(registrar: str, server: str, exc: BaseException) -> RrError:
-    """Turn what a `load` callback raised into the error its callers get (rule 4).
-
-    A `DependencyCycleError` raised further down passes through unchanged; anything else
-    becomes a `ResourceLoadError` whose stack gains this registrar's frame.
-    """
+    """What a `load` raised as its callers get it (rule 4): a `DependencyCycleError` as is,
+    else a `ResourceLoadError` with this registrar's frame."""
     inner: BaseException | None = exc
     while inner is not None and not isinstance(inner, ResourceLoadError | DependencyCycleError):
         inner = inner.__cause__

@@ -1,50 +1,25 @@
 """The provider side of a registrar actor: a resource's life, loaded once, shared, unloaded once.
 
 ```
- Load ─► Provider.on_load ── its query id known? a retry: the stored response, or it
-   │          waits again; an id reused for another call: DuplicateQueryIdError (rule 2)
-   │   ── an equal request loaded? ──yes──► share: one more consumer id (a dedup hit)
+ Load ─► Provider.on_load ── its id known? a retry (or DuplicateQueryIdError, rule 2)
+   │   ── an equal request loaded? ─► share: one more consumer id (a dedup hit)
    │   │      (user code, a request's __hash__ and __eq__, off the actor: Matching)
-   │   ├── loading? ──► wait for it (one load per resource, rule 3)
-   │   ├── unloading? ──► parked until it is gone (Teardown.when_gone), then afresh
-   │   └── new ──► start_load ─RunLoad─► ServerActor ─► a worker: load(request) in a
-   │               LoadContext (its calls are its dependencies, rule 5), or a task of
-   │               the process's loop (async def) ─► load_done ─► answer its waiters
-   │               (a failure: its dependencies released, then it is forgotten, rule 4)
- Unload / Abandon ─► Unloading.release(id) ── its load under way? ─► give_up (still
-   │                                    waiting for a worker, nobody else waiting for
-   │                                    it: withdrawn, never run, `withdraw`)
+   │   ├── loading? ─► wait for it (one load per resource, rule 3)
+   │   ├── unloading? ─► parked until it is gone (Teardown.when_gone), then afresh
+   │   └── new ─► start_load ─RunLoad─► ServerActor ─► load(request) on a worker or
+   │              the process's loop ─► load_done ─► answer its waiters
+ Unload / Abandon ─► Unloading.release(id) ── its load under way? ─► give_up
    │                                    └── the last consumer id? ─► unload_resource
-   │                                        (the release and the UNLOADING mark: one commit)
-   │     (an Unload's answer carries the statuses still on their way to that id:
-   │      `status.py`'s Unacknowledged, rule 9)
    ▼
- Teardown.unload_resource ─► its dependencies released (`consumer.py`'s Releases)
-   ─RunUnload─► ServerActor ─► unload(request, response) ─► remove_resource: written
-   at once with its ResourceUnloaded ─► the loads parked behind it ─► its waiters
- Servers: RegisterServer (its restored resources' parked unloads run), UnregisterServer
-   (FATAL to its consumers through `status.py`, their ids revoked, each resource
-   unloaded: rule 12), Fetch (rule 10), UpdateResponse (rule 11), give_up_all (the name
-   yielded, rule 22: every consumer id released unsaid, every resource unloaded)
- Reconcile (a consumer's list) ─► Unloading.on_reconcile: the ids it no longer holds
-   released, its loads under way that it does not list given up, those held here
-   that this one lost named; its run noted (`Lives`): a Load of an earlier run is
-   refused from then on (presumed abort, `calls.py`); it serves again ─►
-   ask_to_reconcile: ReconcileAsk to every consumer holding ids here (rule 20)
+ Teardown.unload_resource ─► its dependencies released ─RunUnload─► ServerActor ─►
+   unload(request, response) ─► remove_resource ─► the loads parked behind it
+ Reconcile ─► Unloading.on_reconcile: ids no longer held released, loads not listed
+   given up, those it lost named; earlier runs' Loads refused from then on (`Lives`)
 ```
 
-A resource belongs to its server; its consumers are query ids (one per call, rule 2). A
-resource its provider reported `FATAL` (`Resource.failed`) is no equal request's match,
-also one reported so while user code compared: the request is loaded afresh beside it
-(rule 1; `status.py` marks it).
-
+A resource belongs to its server; its consumers are query ids (one per call, rule 2).
 Why the actor never waits for user code, how coroutine callbacks run, and who decides
-under overload (admission, shedding, withdrawal): docs/explanation/inside.md, "The
-provider".
-
-Each part owns its state: the loads and their waiters (`Provider`), the loads whose match
-user code decides (`Matching`), the unloads under way, parked or waited for (`Teardown`);
-`Unloading` has none, it changes the catalog's consumers and asks the others.
+under overload: docs/explanation/inside.md, "The provider".
 """
 
 from __future__ import annotations
@@ -147,44 +122,29 @@ __all__ = [
 logger = logging.getLogger("rr_actors")
 
 _SHED_HEADROOM = 1.5
-"""A queued load is shed unless its callers' time left exceeds this many times what its
-server's loads take lately (`ServerActor.shed`): its answer's way back, and a load
-slower than the average, need time too."""
+"""A queued load is shed unless its callers' time left exceeds this times its server's load time."""
 
 _PROBE_LEFT = 0.02
 """Seconds a load must have left to run as a probe (`ServerActor.shed`): with less, its
-`load` would begin after its caller gave up (a worker's thread waits for the GIL about
-the interpreter's switch interval, 5 ms, per thread ahead of it; `bench_overload.py`
-found probes taken with 4 ms left whose `load` began 9 ms after their caller gave up)."""
+`load` would begin after its caller gave up (GIL switch interval per thread ahead)."""
 
 _REFUSALS_EVERY = 1.0
-"""Seconds between two `ServerOverloaded` events of one server (its first refusal is
-published at once, the refusals in between are counted in the next)."""
+"""Seconds between two `ServerOverloaded` events of one server (refusals between counted)."""
 
 _WANTING = 2.0
-"""Seconds a consumer registrar refused a load of a server counts as wanting loads there
-(`Admission`): twenty times a refused caller's longest pause before it asks again, counted
-from when it was told to come back (`Admission.come_back`) if that is later."""
+"""Seconds a refused consumer registrar counts as wanting loads there (`Admission`): twenty
+times a refused caller's longest pause."""
 
 _COME_BACK_MOST = 10.0
-"""The longest pause a refused caller is told to take before it asks again, seconds
-(`Admission.come_back`: for a caller with no deadline)."""
+"""The longest pause a refused caller is told to take before it asks again, seconds."""
 
 _LOAD_S_WEIGHT = 0.2
-"""How far one load's run time moves its server's average (`ServerActor.ran`): about the
-last ten loads count."""
+"""How far one load's run time moves its server's average: about the last ten loads count."""
 
 
 class Lives:
-    """The run of each consumer registrar that reconciled here last (`Reconcile.life`).
-
-    Presumed abort (`calls.py`): a consumer commits nothing before its `Load` leaves, so
-    a run that died with a call on its way holds nothing of it. Its next run reconciles
-    with every registrar (rule 20): what it does not list is released here, and a
-    `Load` of an earlier run that arrives after that is refused (`fenced`), else it
-    would hold an id for nobody. A `Load` of a later run than the one that reconciled
-    (its `Reconcile` not here yet) is served: that `Reconcile` lists it.
-    """
+    """The run of each consumer registrar that reconciled here last (`Reconcile.life`): a
+    `Load` of an earlier run is refused (presumed abort: docs/explanation/inside.md)."""
 
     __slots__ = ("_reconciled",)
 
@@ -192,13 +152,11 @@ class Lives:
         self._reconciled: dict[str, str] = {}  # consumer registrar -> its run
 
     def reconciled(self, origin_rr: str, life: str) -> None:
-        """Run `life` of `origin_rr` reconciled here ("": not known, nothing noted)."""
         if life:
             self._reconciled[origin_rr] = life
 
     def fenced(self, origin_rr: str, life: str) -> bool:
-        """Whether a `Load` of run `life` of `origin_rr` came from a run earlier than the
-        one that reconciled here last."""
+        """Whether run `life` of `origin_rr` is earlier than the one that reconciled here last."""
         known = self._reconciled.get(origin_rr)
         # (most loads come from the run that reconciled last: no order to work out)
         if not life or known is None or life == known:
@@ -207,18 +165,9 @@ class Lives:
 
 
 class Admission:
-    """Which new loads each server takes (issue 53): at most its bound under way, and of
-    them at most a fair share per consumer registrar while others want some.
-
-    A consumer's share at a server is the bound divided among the consumer registrars
-    that have loads under way there or were refused one within `_WANTING` seconds (itself
-    included; at least 1). A consumer alone takes the whole bound; once another is
-    refused, the first takes no more until it is under its share, so the slots its loads
-    free go to the other: one greedy consumer cannot keep the queue from the rest. Free
-    slots are kept for the consumers that wait with fewer loads under way there (or as
-    many, and waiting longer): a consumer that asks again at once does not take the
-    last free slot from one that waits between its tries, whatever the shares.
-    """
+    """Which new loads each server takes: at most its bound under way, and of them at most
+    a fair share per consumer registrar while others want some (docs/explanation/inside.md,
+    "The provider"). Free slots go first to consumers with fewer loads under way there."""
 
     __slots__ = ("counted", "of", "paced", "pending", "wanting")
 
@@ -234,17 +183,10 @@ class Admission:
     def come_back(
         self, server: str, origin: str, every: float, deadline: float | None, waits: bool = True
     ) -> float | None:
-        """Seconds after which a caller of consumer `origin` refused at `server` should
-        ask again (`OverloadedError.retry_after`; `None`: no estimate, `every` is 0).
-
-        A slot frees about `every` seconds (what the server's loads take lately, per
-        worker), and the callers of `origin` told to come back before this one are
-        ahead of it: so each is told one slot later than the last, from now at the
-        earliest. Its place is kept only if its caller `waits` (`Load.waits`: one that
-        asked to be refused does not come back) and it falls before its caller's
-        `deadline` (one told a time past it gives up at once): a caller that holds no
-        place puts nobody behind it. Kept by consumer: another consumer's caller is not
-        put behind a flood's.
+        """Seconds after which a caller of `origin` refused at `server` should ask again
+        (`OverloadedError.retry_after`; `None`: no estimate): one slot (`every`) after the last
+        caller of `origin` told to come back; its place is kept only if it `waits` and it falls
+        before its `deadline`.
         """
         if every <= 0.0:
             return None
@@ -264,8 +206,8 @@ class Admission:
         return at - now
 
     def refusal(self, server: str, origin: str, bound: int) -> tuple[int, int, int] | None:
-        """Why `server` takes no new load of consumer `origin` now (noted as wanting
-        loads there), if it does not: (its loads under way, `origin`'s, its share)."""
+        """Why `server` takes no new load of consumer `origin` now, if it does not (noted as
+        wanting loads there): (its loads under way, `origin`'s, its share)."""
         pending = self.pending.get(server, 0)
         if not pending and server not in self.wanting:  # (the hot path: nobody to share with)
             return None
@@ -291,7 +233,6 @@ class Admission:
         return pending, mine, share
 
     def admit(self, rid: str, server: str, origin: str) -> None:
-        """The load of `rid` starts, for consumer `origin`: one more under way."""
         self.pending[server] = self.pending.get(server, 0) + 1
         mine = self.of.setdefault(server, {})
         mine[origin] = mine.get(origin, 0) + 1
@@ -301,7 +242,6 @@ class Admission:
             del self.wanting[server]
 
     def done(self, rid: str) -> None:
-        """The load of `rid` ended (or was withdrawn): one less under way."""
         counted = self.counted.pop(rid, None)
         if counted is None:
             return
@@ -321,8 +261,6 @@ class Admission:
 
 
 class Provider:
-    """Serves this registrar's resources to consumers (its own calls included)."""
-
     def __init__(self, shared: Shared, releases: Releases, teardown: Teardown) -> None:
         self.registrar = shared
         self.releases = releases
@@ -345,7 +283,6 @@ class Provider:
     # -- load -------------------------------------------------------------------------
 
     def refusal(self, message: Load) -> RrError | None:
-        """Why this registrar cannot take `message` at all, if it cannot."""
         server = self.registrar.servers.get(message.server)
         if server is None or server.closing:
             return UnknownServerError(
@@ -370,7 +307,6 @@ class Provider:
         return None
 
     def on_load(self, message: Load, _reply: Reply) -> None:
-        """Serve `message` (its answer goes to `message.reply`, which its waiters keep)."""
         if (
             self.registrar.phase is Phase.SETTING_UP
             and message.server not in self.registrar.servers
@@ -383,12 +319,8 @@ class Provider:
         self.serve(message)
 
     def serve(self, message: Load) -> None:
-        """Serve a load: find what its query id and its request name, then act (rules 1-3).
-
-        What only user code can decide (a request without a digest: its `__hash__`,
-        pickling it, its `__eq__`) runs on a worker (`Matching`), and the load goes on
-        from the step that waited for it.
-        """
+        """Serve a load (rules 1-3); what only user code can decide (a request without a
+        digest) runs on a worker (`Matching`), and the load goes on from the step that waited."""
         refusal = self.refusal(message)
         if refusal is not None:
             message.reply.set_error(refusal)
@@ -414,7 +346,6 @@ class Provider:
         )
 
     def resumed(self, message: Load, error: BaseException | None) -> bool:
-        """Back from a worker: whether the load goes on (else its caller was answered)."""
         if error is None:
             error = self.refusal(message)  # (the server may have closed meanwhile)
         if error is not None:
@@ -423,11 +354,8 @@ class Provider:
         return True
 
     def identify(self, message: Load, key: Any, digest: int | None) -> None:
-        """Check what the load's query id names already: a retry, or an id reused (rule 2).
-
-        `key` is the request's `runtime_key` if it has no digest (else `None`); `digest`
-        its digest, if it has one.
-        """
+        """Check what the load's query id names already: a retry, or an id reused (rule 2);
+        `key`: the request's `runtime_key` if it has no digest."""
         catalog = self.registrar.catalog
         known: Resource | None = None
         holder: str | None = None
@@ -471,7 +399,6 @@ class Provider:
         )
 
     def retried(self, message: Load, known: Resource, key: Any, *, same: bool) -> None:
-        """A load with a query id known here: a retry of that call, or an id reused."""
         if not same:
             message.reply.set_error(self.reused(message, known.server))
         elif self.registrar.catalog.has_consumer(message.query_id):  # answered: the stored response
@@ -488,7 +415,6 @@ class Provider:
             self.look_up(message, key, request_digest(message.request))
 
     def look_up(self, message: Load, key: Any, digest: int | None) -> None:
-        """Find an equal request on the server (rule 1), user code off this thread."""
         found, undecided = self.registrar.catalog.lookup(
             message.server, message.request, key, digest=digest
         )
@@ -508,7 +434,6 @@ class Provider:
         )
 
     def matched(self, message: Load, key: Any, resource: Resource | None) -> None:
-        """Act on what the request matched: share it, wait for it, or load it (rules 1-3, 6)."""
         refusal = self.registrar.unwritable()  # a full disk: serve what is stored, nothing new
         if refusal is not None:
             message.reply.set_error(refusal)
@@ -545,7 +470,6 @@ class Provider:
                 self.places[resource.id][0].extend(message.deadline)
 
     def share(self, resource: Resource, message: Load) -> None:
-        """A dedup hit: one more consumer of a loaded resource (rules 1-2)."""
         shared = self.registrar
         shared.catalog.add_consumer(resource.id, message.query_id, message.origin_rr)
         told = (
@@ -570,9 +494,7 @@ class Provider:
         )
 
     def refused(self, server: Server, pending: int, bound: int) -> None:
-        """A new load of `server` was refused: a `ServerOverloaded`, at most one a
-        `_REFUSALS_EVERY` seconds per server (the refusals between counted in the next;
-        a server registered again starts afresh: `Server.refusals`)."""
+        """A load of `server` was refused: one `ServerOverloaded` per `_REFUSALS_EVERY` at most."""
         publisher = self.registrar.events
         if not publisher.active:
             return
@@ -586,10 +508,8 @@ class Provider:
         publisher.publish(events.ServerOverloaded(name, server.name, pending, bound, count + 1))
 
     def start_load(self, server: Server, message: Load, waiter: Waiter, key: Any) -> None:
-        """Load a request not loaded here (`key`: its `runtime_key` if it has no digest),
-        unless its server has `max_pending` loads under way already (its own, or the
-        registrar's), or its consumer its share of them (`Admission`): `OverloadedError`,
-        its caller waits and asks again (`calls.py`)."""
+        """Load a request not loaded here, unless its server or its consumer has its share of
+        loads under way (`Admission`): then `OverloadedError`."""
         bound = server.max_pending or self.registrar.config.max_pending
         origin = message.origin_rr
         refused = self.admission.refusal(server.name, origin, bound)
@@ -650,12 +570,8 @@ class Provider:
         server.ref.tell(RunLoad(rid, message.request, chain, reply, place, message.trace, origin))
 
     def load_done(self, rid: str, response: Any, error: BaseException | None) -> None:
-        """The load of `rid` returned `response` (or raised `error`): answer its waiters.
-
-        If its label is still being made on a worker (the load was faster), this waits
-        for it (`labelled`, bounded by `compare_timeout`), so that its `ResourceLoaded`
-        names the label, not the request's text.
-        """
+        """The load of `rid` returned `response` (or raised `error`): answer its waiters (after
+        its label, if that is still being made, so that `ResourceLoaded` names it)."""
         if self.places.pop(rid, None) is None:  # withdrawn before it ran (`withdraw`)
             return
         load_s = runtime.monotonic() - self.load_started.pop(rid)
@@ -666,7 +582,6 @@ class Provider:
         self.loaded(rid, response, error, load_s)
 
     def labelled(self, rid: str) -> None:
-        """The label of `rid` is made (or failed): finish its load if it was waiting."""
         then = self.labelling.pop(rid, None)
         if then is not None:
             then()
@@ -725,11 +640,7 @@ class Provider:
             self.teardown.unload_resource(resource, None)
 
     def _add_consumers(self, rid: str, waiters: list[Waiter]) -> list[Waiter]:
-        """Make the waiters of a finished load its consumers; the ones still waiting.
-
-        A waiter whose caller gave up meanwhile is answered and holds nothing; a retry
-        listed twice is added once.
-        """
+        """Make the waiters of a finished load its consumers (one that gave up holds nothing)."""
         catalog = self.registrar.catalog
         live = []
         for waiter in waiters:
@@ -743,20 +654,18 @@ class Provider:
         return live
 
     def serve_held(self) -> None:
-        """Setup is done: serve the loads that waited for it (unknown servers now fail),
-        and release restored resources of servers setup did not bring back."""
+        """Setup is done: serve the loads that waited for it, and release restored resources of
+        servers setup did not bring back."""
         held, self.held_loads = self.held_loads, []
         for load in held:
             self.on_load(load, load.reply)
         self.teardown.settle_parked()
 
     def serve_parked(self, rid: str) -> None:
-        """Resource `rid` is gone: serve the loads parked behind its unload, afresh."""
         for load in self.after_unload.pop(rid, ()):
             self.on_load(load, load.reply)
 
     def unpark(self, query_id: str) -> Load | None:
-        """Take the load of `query_id` out of the held, parked or queued loads, if there."""
         for loads in [self.held_loads, *self.after_unload.values()]:
             for load in loads:
                 if load.query_id == query_id:
@@ -765,14 +674,8 @@ class Provider:
         return self.matching.take(query_id)
 
     def give_up(self, query_id: str) -> bool:
-        """The caller of `query_id` gave up: drop its load if it is under way here.
-
-        Whether it was: a load not started yet (held, parked behind an unload, queued for
-        a match) never starts and its caller is answered as given up; one whose request
-        user code compares is answered when that is done; one that runs is answered,
-        holding nothing, when it finishes; one still waiting for a worker, all of whose
-        callers gave up, is withdrawn and never runs (`withdraw`).
-        """
+        """The caller of `query_id` gave up: drop its load if it is under way here (whether it
+        was); one still waiting for a worker, all of whose callers gave up, never runs."""
         parked = self.unpark(query_id)
         if parked is not None:
             parked.reply.set_error(CallTimeoutError(f"call {query_id} was given up"))
@@ -786,10 +689,8 @@ class Provider:
         return False
 
     def withdraw(self, rid: str) -> None:
-        """Shed the load of `rid` if every caller waiting for it gave up and it waits
-        for a worker still: it never runs, and its callers are answered as given up
-        (rule 17: nothing is left behind). One that runs finishes, and is unloaded then.
-        """
+        """Shed the load of `rid` if every caller gave up and it still waits for a worker: it
+        never runs, and its callers are answered as given up (rule 17)."""
         waiters = self.loads.get(rid, [])
         if not waiters or any(w.query_id not in self.abandoned for w in waiters):
             return
@@ -825,7 +726,6 @@ class Provider:
         self.releases.release_dependencies(rid, gone)
 
     def origin_under_way(self, query_id: str) -> str | None:
-        """The registrar whose load of `query_id` is under way here, if one is."""
         rid = self.loading_ids.get(query_id)
         waiters = self.loads.get(rid, []) if rid is not None else []
         loads: list[Waiter | Load] = [
@@ -837,7 +737,6 @@ class Provider:
         return next((load.origin_rr for load in loads if load.query_id == query_id), None)
 
     def under_way_of(self, origin_rr: str) -> list[str]:
-        """The query ids of registrar `origin_rr` whose loads are under way here."""
         loads = [
             *self.matching.waiting(),
             *self.held_loads,
@@ -848,14 +747,12 @@ class Provider:
         return list(dict.fromkeys(ids))
 
     def under_way(self) -> set[str]:
-        """The query ids whose loads are under way here (waiting, parked, held, matched)."""
         ids = {*self.loading_ids, *(load.query_id for load in self.matching.waiting())}
         ids.update(load.query_id for load in self.held_loads)
         ids.update(load.query_id for loads in self.after_unload.values() for load in loads)
         return ids
 
     def fail_waiting(self, error: RrError) -> None:
-        """Answer every caller waiting on a load or an unload here with `error`."""
         for waiters in self.loads.values():
             for waiter in waiters:
                 waiter.reply.set_error(error)
@@ -873,8 +770,7 @@ def published_load(
     load_s: float,
     error: BaseException | None,
 ) -> None:
-    """Publish how a load ended (`ResourceLoaded` or `LoadFailed`), for the call of
-    `waiter` (the first: the one that started it)."""
+    """Publish how a load ended (`ResourceLoaded` or `LoadFailed`), for the call of `waiter`."""
     query_id = waiter.query_id
     if error is None:
         digest = resource.digest
@@ -914,16 +810,8 @@ Then = Callable[[Any, BaseException | None], None]
 
 
 def prepare(request: Any, *, pickled: str | None) -> Any:
-    """On a worker: a request's `runtime_key` (its `__hash__`), and a check that it pickles.
-
-    Args:
-        request: a request without a digest.
-        pickled: what to call the request in the error if it must pickle (the registrar
-            keeps a backup), else `None`.
-
-    Raises:
-        ConfigError: it must pickle and does not.
-    """
+    """On a worker: a request's `runtime_key` (its `__hash__`), and a check that it pickles
+    (`pickled`: its name in the `ConfigError`, or `None` when no backup is kept)."""
     key = runtime_key(request)
     if pickled is not None:
         check_picklable(request, pickled)
@@ -931,12 +819,8 @@ def prepare(request: Any, *, pickled: str | None) -> Any:
 
 
 def first_equal(request: Any, candidates: list[Any]) -> int | None:
-    """On a worker: the index of the first candidate request `== request`, if any.
-
-    A comparison that raises an `Exception` (or whose result has no truth value) means
-    "different", as `rr_actors._catalog.digest.requests_equal` has it; any other
-    `BaseException` propagates (its call fails).
-    """
+    """On a worker: the index of the first candidate `== request`, if any; an `Exception`
+    from `__eq__` means "different", any other `BaseException` propagates."""
     for index, stored in enumerate(candidates):
         if requests_equal(stored, request):
             return index
@@ -944,8 +828,6 @@ def first_equal(request: Any, candidates: list[Any]) -> int | None:
 
 
 class Matching:
-    """The loads whose match user code decides, per server, one at a time."""
-
     def __init__(self, shared: Shared, serve: Callable[[Load], None]) -> None:
         self.registrar = shared
         self.serve = serve  # (`Provider.serve`: for the loads queued behind a match)
@@ -954,24 +836,16 @@ class Matching:
         self.given_up: set[str] = set()  # ids of loads in flight whose caller gave up
 
     def busy(self, server: str) -> bool:
-        """Whether a match of `server` runs: its loads must `queue`."""
         return server in self.in_flight or server in self.queued
 
     def queue(self, load: Load) -> None:
-        """Hold `load` until the matches before it for its server are done."""
         self.queued.setdefault(load.server, collections.deque()).append(load)
 
     def run(self, load: Load, what: str, work: Callable[[], Any], then: Then) -> None:
-        """Run `work()` (user code) on a worker for `load`; then `then(result, error)` here.
-
-        `then` runs on the actor thread, unless the load's caller gave up meanwhile (it
-        is then answered as given up) or the registrar failed it (`fail_waiting`).
-        `error` is what `work` raised if that was an `Exception`; a `ConfigError` if it
-        raised anything else (`SystemExit`, ...); `CallTimeoutError` if it overran
-        `compare_timeout`; `RuntimeError` if no thread could run it. Once `then`
-        returned, the loads queued behind this one are served, in order, until one of
-        them needs a match of its own. `what` says what the work does, for error
-        messages ("comparing the request").
+        """Run `work()` (user code) on a worker for `load`; then `then(result, error)` here,
+        unless its caller gave up or the registrar failed it. `error`: what `work` raised (an
+        `Exception`), else `ConfigError`; `CallTimeoutError` past `compare_timeout`. The loads
+        queued behind it are served next.
         """
         server = load.server
         self.in_flight[server] = load
@@ -1022,7 +896,6 @@ class Matching:
             done.set_error(RuntimeError(f"no worker thread could start for {what}: {exc}"))
 
     def next_in_line(self, server: str) -> None:
-        """Serve the loads queued for `server`, until one starts a match of its own."""
         while server not in self.in_flight:
             waiting = self.queued.get(server)
             if not waiting:
@@ -1034,7 +907,6 @@ class Matching:
             self.serve(load)
 
     def take(self, query_id: str) -> Load | None:
-        """Take the queued load of `query_id` out (its caller gave up), if it is queued."""
         for server, loads in self.queued.items():
             for load in loads:
                 if load.query_id == query_id:
@@ -1045,24 +917,20 @@ class Matching:
         return None
 
     def give_up(self, query_id: str) -> bool:
-        """Whether `query_id`'s load is in flight here; it is answered as given up if so."""
         if any(load.query_id == query_id for load in self.in_flight.values()):
             self.given_up.add(query_id)
             return True
         return False
 
     def named(self, query_id: str) -> Load | None:
-        """The load with `query_id` in flight or queued here, if any."""
         if not self.in_flight and not self.queued:  # (the usual case: nothing here)
             return None
         return next((load for load in self.waiting() if load.query_id == query_id), None)
 
     def waiting(self) -> list[Load]:
-        """Every load here: the ones in flight, then the queued ones."""
         return [*self.in_flight.values(), *(load for q in self.queued.values() for load in q)]
 
     def fail_waiting(self, error: RrError) -> None:
-        """Answer every load here with `error` (the registrar stops or died)."""
         for load in self.waiting():
             load.reply.set_error(error)
         self.in_flight.clear()
@@ -1074,18 +942,14 @@ class Matching:
 
 
 def _no_thread(exc: RuntimeError) -> RuntimeError:
-    """What a callback that got no worker thread fails with (the OS refused a thread)."""
     error = RuntimeError(f"no worker thread could be started for the callback: {exc}")
     error.__cause__ = exc
     return error
 
 
 class ServerActor(Actor):
-    """A resource server: owns its callbacks and runs them on the registrar's workers.
-
-    `load` and `unload` run on a worker thread of the registrar's process, never on an
-    actor thread, so different requests to one server load concurrently.
-    """
+    """A resource server: owns its callbacks and runs them on the registrar's workers (never
+    on an actor thread), so different requests to one server load concurrently."""
 
     def __init__(
         self,
@@ -1139,8 +1003,8 @@ class ServerActor(Actor):
                 message.reply.set_error(_no_thread(exc))
 
     def _start_load(self, message: RunLoad) -> Job | None:
-        """Start a load: its worker job while it waits for a thread (the registrar may
-        withdraw it until one takes it), `None` if it started at once or failed."""
+        """Start a load: its worker job while it waits for a thread (withdrawable until one
+        takes it), `None` if it started at once or failed."""
         if self.on_loop[0]:
             self._spawn(self._aload(message))
             return None
@@ -1151,7 +1015,6 @@ class ServerActor(Actor):
             return None
 
     def on_stop(self) -> None:
-        """Cancel its coroutines still running (a load fails, an unload is cut short)."""
         if self.on_loop[0] or self.on_loop[1]:
             loop = process_loop()
             tasks = self.tasks
@@ -1161,7 +1024,6 @@ class ServerActor(Actor):
                 return
 
     def _spawn(self, coroutine: Coroutine[Any, Any, None]) -> None:
-        """Run `coroutine` as a task of the process's loop, kept until it ends."""
         tasks = self.tasks
 
         def start() -> None:
@@ -1172,21 +1034,9 @@ class ServerActor(Actor):
         process_loop().call_soon_threadsafe(start)
 
     def shed(self, message: RunLoad) -> DeadlineExceededError | None:
-        """As its load would start: the error that sheds it, if its callers' deadline
-        (`LoadPlace.deadline`) leaves less time than this server's loads take (`load_s`),
-        times `_SHED_HEADROOM`.
-
-        A load that would finish after its last caller gave up is work for nobody, which
-        under overload holds a worker that a load still in time needs (issue 53). But the
-        average learns only from loads that run: once one slow load has pushed it past
-        what callers wait, every load would be shed for good. So a server whose average
-        has not moved for as long as its loads take runs the next one still in time
-        anyway (a probe, one per that time, with at least `_PROBE_LEFT` left), and its
-        average follows what loads take now. Where no caller leaves that much, each load
-        shed while the average is stale moves it as a load that took nothing would: the
-        average forgets, until a load fits and runs (review of issue 53: callers with
-        20 ms timeouts otherwise had every load shed for good after one slow load).
-        """
+        """As its load would start: the error that sheds it, if its callers' deadline leaves
+        less than `_SHED_HEADROOM` times what this server's loads take (`load_s`). A stale
+        average is probed: docs/explanation/inside.md, "The provider"."""
         deadline = message.place.deadline
         if deadline is None:
             return None
@@ -1207,15 +1057,13 @@ class ServerActor(Actor):
         )
 
     def ran(self, took: float) -> None:
-        """A load ran for `took` seconds: the average of the recent ones moves toward it
-        (an exponentially weighted average; two workers racing lose one update, no more)."""
+        """A load ran for `took` seconds: the recent average moves toward it (workers may race)."""
         pace = self.pace
         pace.load_s += _LOAD_S_WEIGHT * (took - pace.load_s)
         pace.learned = runtime.monotonic()
 
     async def _aload(self, message: RunLoad) -> None:
-        """A coroutine `load`, on the process's loop (its task's own context), under its
-        call's SERVER span (`_core/traces.py`: spans made in it are that span's)."""
+        """A coroutine `load`, on the process's loop, under its call's SERVER span."""
         shed = self.shed(message)
         if shed is not None:
             message.reply.set_error(shed)
@@ -1237,8 +1085,7 @@ class ServerActor(Actor):
             message.reply.set_result(response)
 
     async def _aunload(self, message: RunUnload) -> None:
-        """A coroutine `unload`, on the process's loop, cancelled past `timeout`, under
-        its unload's SERVER span (as `_aload`)."""
+        """A coroutine `unload`, on the process's loop, cancelled past `timeout`, under its span."""
         if message.trace:
             traces.attach(message.trace)  # (the task's own context: nothing to detach)
         timeout = message.timeout
@@ -1298,12 +1145,8 @@ class ServerActor(Actor):
 
 
 def _refuse_awaitable(response: Any) -> None:
-    """A plain `load` that returned an awaitable (a callable object whose call makes a
-    coroutine) fails: nobody would await it. It is closed (no "never awaited" warning).
-
-    Raises:
-        TypeError: `response` is awaitable.
-    """
+    """A plain `load` that returned an awaitable fails (`TypeError`): nobody would await it.
+    It is closed (no "never awaited" warning)."""
     if not inspect.isawaitable(response):
         return
     close = getattr(response, "close", None)
@@ -1319,8 +1162,6 @@ def _refuse_awaitable(response: Any) -> None:
 
 
 class Unloading:
-    """Releases consumer ids; a resource nobody holds any more is unloaded (`Teardown`)."""
-
     def __init__(
         self, shared: Shared, provider: Provider, teardown: Teardown, unacked: Unacknowledged
     ) -> None:
@@ -1333,17 +1174,8 @@ class Unloading:
         self.asked: dict[str, tuple[int, frozenset[str]]] = {}
 
     def on_unload(self, message: Unload, reply: Reply) -> None:
-        """Release the id; the answer carries the statuses still on their way to it.
-
-        A status sent on to the consumer before this `Unload` came travels on another
-        connection than the answer and may come after it: the consumer would have
-        forgotten the id. So the answer carries each status sent to that id whose
-        acknowledgement has not come (`Unacknowledged`), and the consumer delivers those
-        that did not reach it first before it forgets the id (rule 9). An `unload` that
-        overran `unload_timeout` released the id all the same: its answer carries them
-        with its error (`UnloadOverran`; the time it ran is no bound on theirs). An error
-        answer carries none: refused, the consumer keeps the id and they still come.
-        """
+        """Release the id; the answer carries the statuses still on their way to it (rule 9:
+        they travel on another connection and may come after it), also with an `UnloadOverran`."""
         query_id, unacked = message.query_id, self.unacked
 
         def answered(_value: Any, error: BaseException | None) -> None:
@@ -1370,8 +1202,8 @@ class Unloading:
         reply.set_result(None)  # (a consumer's stop waits for it; a tell's goes nowhere)
 
     def held_by_another(self, query_id: str, origin_rr: str) -> bool:
-        """Whether `query_id` is held (or loading) here for a registrar other than
-        `origin_rr`: an id is one caller's (rule 2), only it gives the id back."""
+        """Whether `query_id` is held (or loading) here for a registrar other than `origin_rr`:
+        only its caller gives an id back (rule 2)."""
         holder = self.provider.origin_under_way(query_id)
         catalog = self.registrar.catalog
         if holder is None and catalog.has_consumer(query_id):
@@ -1379,25 +1211,16 @@ class Unloading:
         return holder is not None and holder != origin_rr
 
     def holds_of(self, origin_rr: str) -> bool:
-        """Whether consumer `origin_rr` holds ids here."""
         return bool(self.registrar.catalog.consumers_from(origin_rr))
 
     def give_up_loads_of(self, origin_rr: str) -> None:
-        """Give up the loads of consumer `origin_rr` under way here (each is answered as
-        given up, holding nothing on either side, or unloaded once it ends)."""
+        """Give up the loads of consumer `origin_rr` under way here (each answered or unloaded)."""
         for query_id in self.provider.under_way_of(origin_rr):
             self.provider.give_up(query_id)
 
     def release_all_of(self, origin_rr: str, only: frozenset[str] | None = None) -> None:
-        """Consumer `origin_rr` is gone for good (`life.py`'s presence: the death watch, or a
-        carrier's `peer_lost`): release every id it held here (each `unload` runs once;
-        a second call finds none), and give up its loads under way here (each is
-        unloaded once it ends: an answer to a lost consumer may be dropped unseen, as
-        over Zenoh before its token goes, so that answer failing is not counted on).
-
-        `only`: release just these of its ids (those it held when it was asked to
-        reconcile and did not; its loads were given up then): an id loaded since is held
-        by a registrar of that name that serves."""
+        """Consumer `origin_rr` is gone for good: release every id it held here (or `only`
+        these), and give up its loads under way (each unloaded once it ends)."""
         if only is None:
             self.give_up_loads_of(origin_rr)
         for query_id in self.registrar.catalog.consumers_from(origin_rr):
@@ -1409,12 +1232,9 @@ class Unloading:
     def release(self, query_id: str, reply: Reply | None, reason: str, trace: str = "") -> None:
         """Release consumer id `query_id` (rules 7-8); answer `reply` when it is done.
 
-        `reason` is what the `ConsumerReleased` event says (see its `reason`); `trace`:
-        the traceparent its `Unload` carried (`_core/traces.py`).
-
-        While a durable registrar's backup cannot be written an `Unload` is refused
-        (nothing changes; the consumer keeps the id and may try again); a give-up
-        (`reply` is `None`) is carried out and written with the next write that succeeds.
+        `reason`: what `ConsumerReleased` says; `trace`: its `Unload`'s traceparent. While the
+        backup cannot be written an `Unload` is refused; a give-up (`reply` is `None`) is
+        carried out and written with the next write that succeeds.
         """
         unwritable = self.registrar.unwritable() if reply is not None else None
         if unwritable is not None:
@@ -1468,12 +1288,9 @@ class Unloading:
             reply.set_result(None)
 
     def ask_to_reconcile(self, swept: set[str]) -> None:
-        """This registrar serves (again): ask every registrar holding ids here to
-        `Reconcile` (one that cannot be reached reconciles at its own start); release
-        the ids of one that was stopped for good meanwhile; and, with a backup (which
-        may have lost ids: a save interval, a truncated WAL), tell every other
-        registrar of the system, which may hold ids this one lost (rule 20). `swept`:
-        the registrars holding ids in the restored rows still in the backup."""
+        """This registrar serves (again): ask every registrar holding ids here to `Reconcile`,
+        release those of one stopped for good meanwhile, and with a backup tell every other
+        registrar too (it may hold ids this one lost, rule 20). `swept`: holders in the backup."""
         origins = self.registrar.catalog.consumer_origins() | swept
         for origin in sorted(origins):
             try:
@@ -1488,8 +1305,7 @@ class Unloading:
             self.ask_everyone(set(origins))
 
     def ask_everyone(self, asked: set[str]) -> None:
-        """Tell every registrar of the system not in `asked` that this one (re)started:
-        those that hold ids here reconcile (the ids this one lost are reported `FATAL`)."""
+        """Tell every registrar not in `asked` that this one (re)started: holders reconcile."""
         for name in sorted(DIRECTORY.names() - asked - {self.registrar.name}):
             with contextlib.suppress(RrError):
                 DIRECTORY.lookup(name).tell(
@@ -1497,8 +1313,7 @@ class Unloading:
                 )
 
     def release_stopped(self, origin: str) -> None:
-        """Consumer `origin` was stopped for good while this registrar was down: it holds
-        nothing (rule 12), so every id of it here is released (each `unload` runs once)."""
+        """Consumer `origin` was stopped for good while this one was down: release its ids."""
         ids = self.registrar.catalog.consumers_from(origin)
         if ids:
             logger.warning(
@@ -1561,8 +1376,6 @@ UNLOAD = "unload"
 
 
 class Teardown:
-    """Unloads this registrar's resources and forgets them once they are gone."""
-
     def __init__(self, shared: Shared, releases: Releases) -> None:
         self.registrar = shared
         self.releases = releases
@@ -1584,14 +1397,9 @@ class Teardown:
     ) -> None:
         """The last consumer left: release the dependencies, then run `unload` (rule 7).
 
-        `trace`: the traceparent the last `Unload` carried; the dependencies' releases
-        carry its SERVER span's context (`_core/traces.py`: their spans are its children).
-        `released`: that consumer's release, not written yet (its id, its registrar, its
-        events): one transaction writes it with the resource's `UNLOADING` mark, so a
-        crash leaves the id held and the resource loaded, or both changed (the unload in
-        doubt, rule 16), never a resource nobody holds and nobody unloads. Not written
-        (a full disk): an `Unload` (`reply`) undoes both and fails; a give-up is carried
-        out and written with the next write that succeeds.
+        `released`: that consumer's release, written in one transaction with the resource's
+        `UNLOADING` mark (never a resource nobody holds and nobody unloads); not written, an
+        `Unload` (`reply`) undoes both and fails. `trace`: the last `Unload`'s traceparent.
         """
         if not self.mark_unloading(resource, reply, released):
             return
@@ -1680,24 +1488,16 @@ class Teardown:
         return True
 
     def when_idle(self, then: Callable[[], None]) -> None:
-        """Run `then()` once no unload is under way here (now if none is)."""
         self.idle.append(then)
         self.check_idle()
 
     def check_idle(self) -> None:
-        """Run what waits for no unload to be under way, if none is."""
         while not self.under_way and self.idle:
             self.idle.pop(0)()
 
     def remove_resource(self, resource: Resource, *, unloaded: bool = False) -> None:
-        """Forget a resource that is gone (unloaded, or its load failed); serve the loads
-        parked behind its unload.
-
-        An unload (`unloaded`) is written at once, also without `save_on_modify` (a
-        crash before the next flush would restore the resource, and reconciling with
-        its consumers would run its `unload` a second time), with its
-        `ResourceUnloaded` in the same transaction, published before anyone hears of it.
-        """
+        """Forget a resource that is gone; serve the loads parked behind its unload. An unload
+        is written at once (a restore would run it again), with its `ResourceUnloaded`."""
         shared = self.registrar
         if resource.consumers and runtime.steps.unloads is not None:  # a classroom's copy unloaded
             for query_id in list(resource.consumers):  # it under them: they lose it
@@ -1723,19 +1523,16 @@ class Teardown:
             server.ref.stop(block=False)
 
     def wait_for_unload(self, resource: Resource, reply: Reply) -> None:
-        """Answer `reply` once `resource`'s unload is done (at once if it is not unloading)."""
         if resource.id in self.unload_waiters:
             self.unload_waiters[resource.id].append(reply)
         else:
             reply.set_result(None)
 
     def run_parked(self, server: str) -> None:
-        """Server `server` was registered: run the unloads of its restored resources."""
         for run_unload in self.parked_unloads.pop(server, ()):
             run_unload()
 
     def settle_parked(self) -> None:
-        """Setup is done: release restored resources of servers it did not bring back."""
         for server, unloads in list(self.parked_unloads.items()):
             if server not in self.registrar.servers:  # setup did not bring it back: release anyway
                 logger.warning(
@@ -1749,11 +1546,9 @@ class Teardown:
                     run_unload()
 
     def when_gone(self, rid: str, then: Callable[[], None]) -> None:
-        """Run `then()` once resource `rid` (unloading) is gone (`remove_resource`)."""
         self.gone.setdefault(rid, []).append(then)
 
     def fail_waiting(self, error: RrError) -> None:
-        """Answer every caller waiting on an unload here with `error`."""
         for replies in self.unload_waiters.values():
             for reply in replies:
                 reply.set_error(error)
@@ -1769,9 +1564,8 @@ def _log_failure(
     _: Any,
     error: BaseException | None,
 ) -> None:
-    """A continuation that logs a failed answer, then runs `then()`; a message that could
-    not be sent at all (a `ConfigError`: too large for its receiver) is added to `refused`,
-    for its caller to hear of (a consumer gone is only logged)."""
+    """A continuation that logs a failed answer, then runs `then()`; a message too large
+    for its receiver (`ConfigError`) is added to `refused`."""
     if error is not None:
         logger.warning("%s failed: %s", what, error)
         if isinstance(error, ConfigError):
@@ -1780,8 +1574,6 @@ def _log_failure(
 
 
 class Servers:
-    """The resource servers of one registrar, and what is done to a whole server."""
-
     def __init__(self, shared: Shared, teardown: Teardown, status: StatusRelay) -> None:
         self.registrar = shared
         self.teardown = teardown
@@ -1810,11 +1602,7 @@ class Servers:
         )
 
     def server(self, name: str) -> Server:
-        """The open server `name`.
-
-        Raises:
-            UnknownServerError: there is none (or it is closing).
-        """
+        """The open server `name`; `UnknownServerError` if none (or it is closing)."""
         server = self.registrar.servers.get(name)
         if server is None or server.closing:
             raise UnknownServerError(
@@ -1872,13 +1660,8 @@ class Servers:
         join.seal()
 
     def give_up_all(self, then: Callable[[], None]) -> None:
-        """This registrar yields its name (rule 22): close every server, release every
-        consumer id of its resources without telling the consumer (each reconciles with
-        the registrar that keeps the name, rule 20), unload each resource, then `then()`.
-
-        Unloads under way are waited for, and so are loads under way: each finishes on a
-        closed server, so its callers get an error and it is unloaded (`provider.py`).
-        """
+        """This registrar yields its name (rule 22): close every server, release every consumer
+        id unsaid, unload each resource (loads and unloads under way waited for), then `then()`."""
         join = Join(then)
         for server in list(self.registrar.servers.values()):
             server.closing = True
@@ -1892,7 +1675,6 @@ class Servers:
         join.seal()
 
     def give_up(self, resource: Resource, then: Callable[[], None]) -> None:
-        """Release every consumer id of `resource` (`"name yielded"`), then unload it."""
         released = list(resource.consumers.items())
         for query_id, _ in released:
             self.registrar.catalog.release(query_id)
@@ -1906,7 +1688,6 @@ class Servers:
         self.teardown.unload_resource(resource, self.registrar.come_back(lambda *_: then()))
 
     def close_resource(self, resource: Resource, then: Callable[[], None]) -> None:
-        """Send FATAL to a resource's consumers, revoke their ids, unload it (rule 12)."""
         self.registrar.probe("close_resource", resource)
         query_id = next(iter(resource.consumers))
         update = StatusUpdate(

@@ -3,28 +3,20 @@
 ```
  Shared: the registrar's record, held by each part as `self.registrar` (the actor's
  thread only, but `probes`)
-   config, name       its configuration
    catalog            what it serves and holds (`_catalog`): the actor its one writer
    saver              the save policy over its backup (or over nothing)
-     commit(*told)    the catalog's changes to the saver with the events that tell of
-                      them (written now: one transaction), then published; a failed
-                      write (a full disk) is returned, the changes kept pending
-     unwritable()     why a durable registrar refuses new loads now
-   phase              SETTING_UP ─ready─► SERVING ─stop─► STOPPING ─► ENDED (death: ENDED)
-   servers            server name ─► Server(ref, on_status, closing, label);
-                      servers_settled: setup returned, a server it did not bring back
-                      is gone for good
-   workers            the threads that run user callbacks
-   tokens, ref        come_back(then), send(target, make, then): the answer to what it
-                      asks comes back through its mailbox (the actor never waits)
+     commit(*told)    changes and the events telling of them, one transaction, then
+                      published; a failed write returned, the changes kept pending
+   phase              SETTING_UP ─ready─► SERVING ─stop─► STOPPING ─► ENDED
+   servers, workers   its resource servers; the threads that run user callbacks
+   come_back, send    the answer to what it asks comes back through its mailbox
    events             its publisher: an event is built only while it is `active`
-   held_in_doubt      restored in-doubt ids whose settling waits for `setup` (rule 16)
-   probes             Probes: hooks on named steps (`rr_actors.testing.intercept`);
-                      a message's step, or a POINT inside one (`probe(step, subject)`)
+   probes             hooks on named steps (`rr_actors.testing.intercept`)
 ```
 
 A name that no step has raises `ConfigError` in `intercept`, so renaming a step cannot
-turn a race test into one that passes without racing anything.
+turn a race test into one that passes without racing anything. How a turn's changes
+are written: docs/explanation/architecture.md, "One turn's transaction".
 """
 
 from __future__ import annotations
@@ -72,7 +64,6 @@ logger = logging.getLogger("rr_actors")
 
 
 def consumers_by_origin(resource: Resource) -> dict[str, tuple[str, ...]]:
-    """A resource's consumer ids, grouped by the registrar that holds them."""
     by_origin: dict[str, list[str]] = {}
     for query_id, origin in resource.consumers.items():
         by_origin.setdefault(origin, []).append(query_id)
@@ -85,7 +76,6 @@ class Phase(enum.Enum):
     SETTING_UP = "setting up"
     """`start(setup=)` runs: loads for servers it has not registered yet are held."""
     SERVING = "serving"
-    """Serving every request."""
     STOPPING = "stopping"
     """`stop()` releases what it holds as a consumer; new loads are refused."""
     ENDED = "ended"
@@ -93,11 +83,9 @@ class Phase(enum.Enum):
 
 
 class Pace:
-    """What a server's loads take lately: `load_s`, an average of the recent ones (from 0:
-    nothing is shed before a load has run), and `learned`, when it last moved or a probe
-    left (`time.monotonic()`). Its actor's workers write it (`provider.ServerActor.ran`);
-    the provider reads it too, to tell a refused caller when to ask again (a float
-    each, read or written whole: no lock)."""
+    """What a server's loads take lately: `load_s`, the recent average (from 0), and
+    `learned`, when it last moved or a probe left (monotonic). Floats read or written
+    whole: no lock."""
 
     __slots__ = ("learned", "load_s")
 
@@ -108,9 +96,8 @@ class Pace:
 
 @dataclasses.dataclass
 class Server:
-    """A registered resource server (its `label(request)`: `display.py`; its own bound of
-    new loads under way, `max_pending`, or `None`: the registrar's; its `pace`, shared
-    with its actor)."""
+    """A registered resource server (`max_pending`: its bound, `None`: the registrar's;
+    `pace`: shared with its actor)."""
 
     name: str
     ref: pykka.ActorRef[Any]  # (a `provider.ServerActor`)
@@ -118,8 +105,7 @@ class Server:
     closing: bool = False
     label: Callable[[Any], Any] | None = None
     max_pending: int | None = None
-    # new loads refused since its last `ServerOverloaded`, and when that was published
-    # (`Provider.refused`; kept here, it goes with the server when it is unregistered)
+    # refusals since its last `ServerOverloaded`, and when that was (`Provider.refused`)
     refusals: tuple[int, float] | None = None
     pace: Pace = dataclasses.field(default_factory=Pace)
 
@@ -136,13 +122,8 @@ class Waiter:
 
 class OpenReply:
     """A handle request's reply, known to its actor until answered (a crash fails it).
-
-    Answered on the actor thread (after the commit of its turn, if the turn staged a
-    change: `Shared.after_commit`), or, for `send_status`, on the thread of the last
-    acknowledgement (at once): so `open_requests` (a dict used as an ordered set: in the
-    order the requests came) is only ever changed by single dict operations (set an
-    item, pop one) and read as a copy (`list(...)`), each atomic.
-    """
+    Answered on the actor thread or a status's last acknowledgement: `open_requests` is
+    changed by single dict operations only and read as a copy."""
 
     __slots__ = ("open", "reply", "shared")
 
@@ -189,9 +170,8 @@ NO_REPLY: Reply = _NoReply()
 
 @dataclasses.dataclass(slots=True)
 class Staged:
-    """A step whose change waits for its turn's commit (`Shared.commit_then`): what it
-    does then. `undo` `None`: `ok` runs after a failed write too; `refuse` `None`: a
-    death leaves its caller to `Lifecycle.fail_waiting`."""
+    """A step whose change waits for its turn's commit: what it does then (`undo` `None`:
+    `ok` runs after a failed write too; `refuse` `None`: a death leaves it to `fail_waiting`)."""
 
     ok: Callable[[], None]
     undo: Callable[[CatalogWriteError], None] | None
@@ -199,9 +179,8 @@ class Staged:
 
 
 class TurnEvents:
-    """A registrar's publisher as its parts see it (`Shared.events`): while its turn has
-    changes staged, an event published is held and published after the turn's commit
-    (`Shared.end_turn`), in order with the events of those changes; else at once."""
+    """A registrar's publisher as its parts see it: while its turn has changes staged, an
+    event is held and published after the turn's commit, in order; else at once."""
 
     __slots__ = ("_published", "_shared")
 
@@ -211,11 +190,9 @@ class TurnEvents:
 
     @property
     def active(self) -> bool:
-        """Whether anyone listens (`Publisher.active`)."""
         return self._published.active
 
     def publish(self, event: events.Event) -> None:
-        """Publish `event` (actor's thread), after the turn's commit if one is pending."""
         shared = self._shared
         if shared.dirty:
             shared.held.append((event, False))
@@ -227,22 +204,14 @@ _STARTS = itertools.count()  # registrars started in this process (`Shared.life`
 
 
 def new_life() -> str:
-    """A token for one run of a registrar (`Shared.life`): its process, the wall clock
-    (`runtime.wall_ns`) and a count of this process's starts, so no two starts share it
-    and a later start orders after an earlier one (`life_order`); a simulation draws
-    nothing from its seed for it."""
+    """A token for one run of a registrar (`Shared.life`): process, wall clock and this
+    process's count of starts, so a later start orders after (`life_order`)."""
     return f"{runtime.getpid()}.{runtime.wall_ns()}.{next(_STARTS)}"
 
 
 def life_order(life: str) -> tuple[int, int]:
-    """Where `life` (`new_life`'s) comes among the runs of one registrar: its start's
-    wall clock, then its process's count of starts; `(0, 0)` for "" or a token not
-    made by `new_life` (no order known).
-
-    The runs of one name follow each other (a restart comes after its run ended), so
-    the later start orders after, as long as the host's wall clock does not step back
-    across a restart by more than the restart took (`docs/explanation/failure-semantics.md`).
-    """
+    """Where `life` comes among the runs of one registrar (`(0, 0)`: no order known); holds
+    while the wall clock does not step back across a restart more than the restart took."""
     _pid, _, rest = life.partition(".")
     wall, _, count = rest.partition(".")
     if not (wall.isdigit() and count.isdigit()):
@@ -251,8 +220,6 @@ def life_order(life: str) -> tuple[int, int]:
 
 
 class Shared:
-    """The registrar's record: what every part of its actor reads and writes."""
-
     def __init__(
         self,
         config: RegistrarConfig,
@@ -291,14 +258,11 @@ class Shared:
         self.staged: list[Staged] = []
         self.held: list[tuple[events.Event, bool]] = []  # (event, told by a staged change)
         self.held_in_doubt: set[str] = set()
-        # this run of the registrar (`new_life`), the same in every `ReconcileAsk`,
-        # `Reconcile` and `Load` it sends (`consumer.py`'s `Flights.kept_at`; a
-        # provider fences the loads of an earlier run: `provider.py`'s `Lives`)
+        # this run (`new_life`), in every `ReconcileAsk`, `Reconcile` and `Load` it sends
         self.life = life or new_life()
 
     @property
     def stopping(self) -> bool:
-        """Whether it stops (or ended): it takes no new loads and keeps no new answers."""
         return self.phase is Phase.STOPPING or self.phase is Phase.ENDED
 
     # -- the turn: one transaction for the messages a turn handled ----------------------
@@ -310,24 +274,13 @@ class Shared:
         undo: Callable[[CatalogWriteError], None],
         refuse: Callable[[RrError], None],
     ) -> None:
-        """Commit the catalog's changes and the events `told` of them; then run `ok()`
-        (the step's answer), or `undo(error)` if the write failed.
+        """Commit the catalog's changes and the events `told` of them; then run `ok()` (the
+        step's answer), or `undo(error)` if the write failed.
 
-        In a turn of a durable registrar (`in_turn`: `save_on_modify` with a backup) the
-        changes are staged: written with every other change of the turn in one
-        transaction at its end (`end_turn`), and `ok` runs after that commit, so the
-        answer is released only once its change is durable (rules 14-16). Otherwise
-        they are committed now (`commit`), as before.
-
-        Args:
-            told: the events of the changes: in the outbox with them, published after
-                the commit, before `ok`; dropped if the write fails.
-            ok: the change is durable: answer (the actor's thread).
-            undo: the write failed (`CatalogWriteError`: a full disk): undo the change
-                in memory (no commit: the turn commits the undoing once) and fail the
-                caller with the error.
-            refuse: the registrar died before the turn's commit (`abort_turn`): fail
-                the caller with the error (nothing is written any more).
+        In a turn of a durable registrar (`in_turn`) the changes are staged and written with
+        the turn's others at its end (`end_turn`); `ok` runs after that commit, so an answer
+        is released only once its change is durable (rules 14-16). `refuse(error)`: the
+        registrar died before the turn's commit.
         """
         if not (self.in_turn and self.saver.durable):
             failed = self.commit(*told)
@@ -352,38 +305,28 @@ class Shared:
         self.staged.append(Staged(ok, undo, refuse))
 
     def after_commit(self, then: Callable[[], None]) -> bool:
-        """Run `then()` after the turn's commit if changes wait for it (`False`: none wait,
-        run it now). For an answer that may tell of a staged change (a handle's request:
-        `OpenReply`); it runs after a failed write too."""
+        """Run `then()` after the turn's commit if changes wait for it (`False`: none wait, run
+        it now); it runs after a failed write too."""
         if not self.dirty:
             return False
         self.staged.append(Staged(then, None, None))
         return True
 
     def holds_here(self) -> bool:
-        """Whether the calling thread has the turn that staged changes (an answer given
-        there waits for its commit; one from another thread, a status acknowledgement's,
-        tells of no staged change and goes at once)."""
+        """Whether the calling thread has the turn that staged changes (an answer from another
+        thread tells of no staged change)."""
         return self.turn_thread == runtime.get_ident()
 
     def end_turn(self) -> CatalogWriteError | None:
-        """Commit what the turn staged, one transaction, then release what waits for it.
-
-        Runs at the end of each turn (`RegistrarActor.on_turn_end`), and at any other
-        commit of the turn (`commit`: that change joins the transaction), so changes
-        reach the file in the order they were made. Committed: the held events are
-        published (in order), then each staged step's `ok` runs, in the order they were
-        staged. The write failed: the events published outside a change are published,
-        the staged steps undone (newest first) and that undoing committed (or kept
-        pending), and the error returned.
-        """
+        """Commit what the turn staged, one transaction, then release what waits for it: the
+        held events published, each staged `ok` run in order. Failed: each staged step undone
+        (newest first), that undoing committed, the error returned."""
         failed: CatalogWriteError | None = None
         while self.dirty or self.staged:  # (an answer released may stage more)
             failed = self._write_turn() or failed
         return failed
 
     def _write_turn(self) -> CatalogWriteError | None:
-        """One transaction of `end_turn`: what is staged and held now; `None` if written."""
         staged, held = self.staged, self.held
         self.staged, self.held, self.dirty = [], [], False
         told = [event for event, _ in held]
@@ -410,9 +353,8 @@ class Shared:
     def unwritten(
         self, staged: list[Staged], held: list[tuple[events.Event, bool]], exc: CatalogWriteError
     ) -> None:
-        """The turn's write failed (`exc`): publish the events told outside a change, undo
-        each staged step (newest first), commit that undoing (or keep it pending), then
-        release the answers that wait for the write whatever its outcome."""
+        """The turn's write failed (`exc`): publish the events told outside a change, undo each
+        staged step (newest first), commit that, then release the answers that wait."""
         for event, of_change in held:
             if not of_change:
                 self.published.publish(event)
@@ -425,8 +367,8 @@ class Shared:
                 step.ok()
 
     def abort_turn(self, error: RrError) -> None:
-        """The registrar died in a turn: what it staged is never written, nor answered as
-        done; each staged step's caller is failed with `error` (its `refuse`)."""
+        """The registrar died in a turn: nothing staged is written or answered as done; each
+        staged step's caller gets `error` (its `refuse`)."""
         staged, held = self.staged, self.held
         self.staged, self.held, self.dirty = [], [], False
         for event, of_change in held:
@@ -446,26 +388,15 @@ class Shared:
         )
 
     def commit(self, *told: events.Event, now: bool = False) -> CatalogWriteError | None:
-        """Hand the catalog's changes to the save policy (durable now, or at the next flush),
-        and publish the events `told` that tell of them.
+        """Hand the catalog's changes to the save policy and publish the events `told` of them.
 
-        Written at once (`save_on_modify`, or `now`: "whatever the policy"), the changes
-        and their events are one transaction (the backup's outbox, `_store/outbox.py`),
-        and the events are published after it: a SIGKILL after the commit cannot lose
-        them (the supervisor's side reads them from the backup after the exit). Left for
-        the interval's flush, the events are published now (a crash loses the change
-        within the save window, not its event).
-
-        Args:
-            told: the events of the changes (built only when `events.active`).
-            now: write them now whatever the save policy (an unload: `Teardown`).
+        Written at once (`save_on_modify`, or `now`), changes and events are one transaction
+        (the backup's outbox), published after it: a SIGKILL after the commit cannot lose them.
+        Left for the interval's flush, the events are published now.
 
         Returns:
-            `None`, or the error of a write that failed (a full disk): the changes stay
-            pending in memory and go with the next write that succeeds, and `told` is
-            not published: a step whose caller waits for durability undoes its change
-            and fails the caller with it; one whose change stands publishes them itself
-            (`publish`).
+            `None`, or the error of a failed write (a full disk): the changes stay pending
+            and `told` is not published (the caller undoes, or publishes them itself).
         """
         if self.dirty:  # with what the turn staged, one transaction
             return self._join_turn(told)
@@ -491,21 +422,9 @@ class Shared:
         return None
 
     def _join_turn(self, told: tuple[events.Event, ...]) -> CatalogWriteError | None:
-        """`commit` in a turn that staged changes: this change, and its events `told`,
-        are written in the turn's transaction (then the turn's end releases its steps).
-
-        Not a transaction of their own after the staged one: a staged row is written as
-        the catalog holds it at the write (the live row), so it already carries this
-        change, while the staged events tell only of the staged ones. A hit staged, then
-        its id released by its caller's `Abandon` in the same turn, would commit its
-        `ConsumerAdded` without the id, and a kill before the release's own commit would
-        lose the `ConsumerReleased`: an id acknowledged, then lost (issue 51).
-
-        Returns:
-            The error of the write that carried this change (`CatalogWriteError`: the
-            staged steps were undone, `told` dropped; the caller undoes its change), or
-            `None`.
-        """
+        """`commit` in a turn that staged changes: written in the turn's transaction, not one of
+        its own after it (a staged row is written as it is at the write, so it carries this
+        change: its events must go with it). The write's error (`told` dropped), or `None`."""
         changes = self.catalog.drain_changes()
         for rid in self.held_in_doubt.intersection(changes.resources):
             del changes.resources[rid]  # written once settled (`settle_held`)
@@ -517,7 +436,6 @@ class Shared:
         return failed
 
     def publish(self, *told: events.Event) -> None:
-        """Publish events built while `events.active` (this actor's thread)."""
         for event in told:
             self.events.publish(event)
 
@@ -529,11 +447,8 @@ class Shared:
         return self.commit()
 
     def unwritable(self) -> CatalogWriteError | None:
-        """Why a durable registrar must refuse new loads now: its backup cannot be written.
-
-        While an earlier write failed, each new load first tries it again (`Saver.retry`);
-        `None` once it succeeds (or for a registrar without `save_on_modify`).
-        """
+        """Why a durable registrar must refuse new loads now (its backup cannot be written; each
+        new load retries the write), `None` once it can."""
         saver = self.saver
         if not saver.durable or saver.failure is None:
             return None
@@ -544,16 +459,12 @@ class Shared:
         return saver.failure
 
     def come_back(self, then: Continuation) -> TokenReply:
-        """A reply that runs `then(value, error)` back on this actor's thread."""
         assert self.ref is not None
         return self.tokens.reply(self.ref, then)
 
     def send(self, target: str, make: Callable[[Reply], Any], then: Continuation) -> None:
-        """Send `make(reply)` to registrar `target`; `then(value, error)` runs on the answer.
-
-        The actor never waits: the answer comes back through its mailbox. A target that
-        cannot be reached answers at once with its error.
-        """
+        """Send `make(reply)` to registrar `target`; `then(value, error)` runs here on the answer
+        (at once with its error if it cannot be reached)."""
         reply = self.come_back(then)
         try:
             DIRECTORY.lookup(target).tell(make(reply))
@@ -561,7 +472,6 @@ class Shared:
             reply.set_error(exc)
 
     def probe(self, step: str, subject: Any) -> None:
-        """Fire the test probes of a named point `step` (no-op without probes)."""
         probes = self.probes
         if probes is not None:
             probes.fire(step, subject)
@@ -588,8 +498,6 @@ POINTS: frozenset[str] = frozenset(
 
 
 class Probes:
-    """The hooks installed on one registrar, by step name (any thread may fire them)."""
-
     def __init__(self) -> None:
         self._lock = runtime.Lock()
         self._before: dict[str, tuple[Hook, ...]] = {}
@@ -604,14 +512,12 @@ class Probes:
                 self._after[step] = (*self._after.get(step, ()), after)
 
     def remove(self, step: str, *, before: Hook | None, after: Hook | None) -> None:
-        """Remove hooks `add` installed (no-op for hooks that are not there)."""
         with self._lock:
             for table, hook in ((self._before, before), (self._after, after)):
                 if hook is not None and hook in table.get(step, ()):
                     table[step] = tuple(h for h in table[step] if h is not hook)
 
     def around(self, step: str, subject: Any, run: Callable[[Any], None]) -> None:
-        """Run `run(subject)` between the `before` and `after` hooks of `step`."""
         for hook in self._before.get(step, ()):
             hook(subject)
         run(subject)

@@ -3,46 +3,22 @@ path to the top (rule 9, thesis 4.2.4).
 
 ```
  send_status(id) ─► StatusRelay.notify(resource): a FATAL marks it failed first; its
-   server's on_status once (on the Runner, a lane per resource, never given up on);
-   then its consumer registrars, by process (Routes.plan):
+   server's on_status once (on the Runner, never given up on); then its consumer
+   registrars, by process (Routes.plan):
    this process ──────────► DESK.deliver(parts), on this actor's thread
-   another process, known ─► one StatusBatch to that process's relay (a registrar there,
-                             the same one each time: notices keep their order); a
-                             registrar alone there: a StatusNotice
-   not known yet ─────────► a StatusBatch to the consumer registrar itself; every
-                             answer says which process each one it reached is in
- a StatusBatch at a relay ─► on_status_batch ─► DESK.deliver(parts), on its thread
- DESK.deliver, per consumer registrar of its process (what it published: StatusTargets)
-   an id with a callback, loaded, not a dependency, its answer not due ─► the callback,
-     queued on the process's Runner (no trip through that registrar's mailbox)
-   any other id (a dependency to climb, an answer on its way) ─► a StatusNotice
-   a registrar that moved elsewhere ─► its part, forwarded to it
- StatusNotice at a consumer ─► on_status_notice: each client's callback, queued on the
-   same Runner (each id's statuses in order, whichever way each came); a dependency ─►
-   notify(its parent resource) ─► ... to the top
- acknowledgements: one SharedJoin per status, counted where they arrive; the last one
-   answers the sender; until its own comes, a status sent to another process waits in
-   Unacknowledged, by consumer id ─► taken by the answer to that id's Unload, which the
-   consumer delivers before it forgets the id (provider.py, consumer.py's Releases)
+   another process, known ─► one StatusBatch to that process's relay
+   not known yet ─────────► a StatusBatch to the consumer (its answer says where it is)
+ DESK.deliver, per consumer registrar of its process (StatusTargets)
+   an id with a callback, loaded, not a dependency ─► the callback, on the Runner
+   any other id ─► a StatusNotice ─► on_status_notice ─► callbacks; a dependency ─►
+     notify(its parent resource) ─► ... to the top
+ acknowledgements: one SharedJoin per status; one sent to another process waits in
+   Unacknowledged until acknowledged, or taken by the answer to that id's Unload
 ```
 
-A `FATAL` its provider sends about a resource marks it `failed` in the catalog first
-(`Catalog.mark_failed`, stored): no equal request matches it any more, a new call loads
-a new resource, and the dead one stays with its consumers until they release it. A
-`FATAL` that climbs from a dependency does not mark the resources above it: their
-provider hears it (`on_status`) and decides, repairs it or sends `FATAL` about it itself.
-
-A `send_status` is one event (a UUID): a callback reached twice through a diamond of
-dependencies runs once, and each (event, id) pair is delivered once in its process
-(`Desk.first_time`, asked as it is delivered: by the desk's direct path, by
-`on_status_notice`), so a batch sent again after its relay failed does not run a callback
-twice, nor does a status an `Unload`'s answer carried that had come its own way first.
-Callbacks run on worker threads (`Runner`: in arrival order, a lane per consumer id), so
-a callback may call `call`, `unload` or `send_status` on any registrar without deadlock.
-A slow or hung callback holds one thread and its own id's next statuses, coalesced behind
-it (the latest wins, every `FATAL` kept); a `send_status` gives up on it after its
-patience and names its id (`StatusDelivery.gave_up`). Each consumer registrar's actor is
-the only writer of what the desk reads of it (`consumer.py`'s `Holdings`).
+Why a `FATAL` marks only its own resource, how each status reaches an id once, and how
+the `Runner` orders, coalesces and gives up on callbacks: docs/explanation/inside.md,
+"Statuses".
 """
 
 from __future__ import annotations
@@ -92,8 +68,6 @@ _SEEN_EVENTS = 4096  # (event, resource) pairs remembered to run each callback o
 
 
 class StatusRelay:
-    """Delivers statuses: this registrar's own, and those passing through it."""
-
     def __init__(
         self, shared: Shared, flights: Flights, holdings: Holdings, unacked: Unacknowledged
     ) -> None:
@@ -126,9 +100,7 @@ class StatusRelay:
             else ()
         )
         if status is Status.FATAL and not resource.failed:
-            # Dead: no equal request matches it any more (rule 1), before anyone hears
-            # of it; durable as a load is (a write that fails stays pending in memory),
-            # with its StatusSent in the same write.
+            # no equal request matches it any more (rule 1), written with its StatusSent
             shared.catalog.mark_failed(resource.id)
             if shared.commit(*told) is not None:
                 shared.publish(*told)
@@ -174,19 +146,11 @@ class StatusRelay:
     ) -> None:
         """Run this server's `on_status` once and pass the status on to every consumer.
 
-        `hop` is the number of registrars the notices reach on the way from the sender
-        (its own consumers are hop 1); `sent_at` is when the status was sent (wall clock).
-        A notice that cannot be sent at all (over its receiver's `max_message_bytes`) is
-        logged and added to `refused` (if given): it is not a consumer gone, it is a
-        status lost, and its sender must hear of it.
-
-        `deadline` (monotonic seconds, `None`: none): a consumer's callback that has not
-        returned by then is given up on, its id added to `gave_up` (`Runner`).
-
-        `then()` runs once every callback and consumer on the way acknowledged, on the
-        thread of the last acknowledgement (a reader thread, a worker, another registrar's
-        actor, or this one): it must not touch this actor's state, and must come back
-        through the mailbox (`Shared.come_back`) if it has to.
+        `hop`: registrars on the way from the sender (its consumers are hop 1); `sent_at`: when
+        it was sent (wall clock). A notice over its receiver's `max_message_bytes` is logged and
+        added to `refused`. A consumer's callback not returned by `deadline` (monotonic) is
+        given up on (`gave_up`). `then()` runs once all acknowledged, on the thread of the last
+        one: it must come back through the mailbox (`Shared.come_back`) to touch this actor.
         """
         key = (event, resource.id)
         if key in self.seen_events:
@@ -253,7 +217,6 @@ class StatusRelay:
         join: _Join,
         refused: list[ConfigError] | None = None,
     ) -> None:
-        """Send `batch`'s status to registrar `origin` alone, as a `StatusNotice`."""
         done = join.add()
         routes = self.routes
         unacked = self.unacked
@@ -292,10 +255,8 @@ class StatusRelay:
         join: _Join,
         refused: list[ConfigError] | None = None,
     ) -> None:
-        """Send `batch` to registrar `relay` (any thread); its answer completes a part of
-        `join`, and of `unacked` (its parts were entered there as they left). Sent to a
-        relay that fails, each part goes again to its own registrar (the desk there
-        delivers what had reached it once)."""
+        """Send `batch` to registrar `relay` (any thread), a part of `join` and of `unacked`; a
+        relay that fails: each part goes again to its own registrar."""
         done = join.add()
         routes = self.routes
         unacked = self.unacked
@@ -329,9 +290,8 @@ class StatusRelay:
         error: BaseException,
         refused: list[ConfigError] | None,
     ) -> None:
-        """A status part was not delivered to `target` (any thread). One gone is its death
-        watch's business; one that could not be sent (a `ConfigError`: over its receiver's
-        `max_message_bytes`) is a status lost: logged, and told its sender (`refused`)."""
+        """A status part was not delivered to `target` (any thread): one gone is its death
+        watch's business; one too large is a status lost, logged and told (`refused`)."""
         if not isinstance(error, ConfigError):
             return
         logger.warning(
@@ -352,12 +312,8 @@ class StatusRelay:
         join: SharedJoin,
         resource_id: str,
     ) -> None:
-        """Run a server's `on_status` on the process's status runner (a coroutine one: on
-        its loop), in a lane of its own per resource: its statuses one at a time, in
-        order, coalesced behind one that runs (a hung one holds one thread, never this
-        registrar's workers); its part of `join` is done after it. Never given up on
-        (rule 9: the provider hears it before `send_status` returns, within its timeout).
-        """
+        """Run a server's `on_status` on the process's status runner, in a lane per resource,
+        never given up on (rule 9); its part of `join` is done after it."""
         lane = f"on_status\0{self.registrar.name}\0{resource_id}"
         call = _Call(callback, query, update, join.add(), lane=lane)
         if isinstance(callback, OnLoop):
@@ -366,8 +322,8 @@ class StatusRelay:
             DESK.runner.run((call,))
 
     def on_status_batch(self, batch: StatusBatch, reply: Reply) -> None:
-        """A relay: deliver a status to the consumer registrars of this process in one
-        pass; answer (once) with the process each one reached is in."""
+        """A relay: deliver a status to the consumer registrars of this process in one pass;
+        answer with the process each one reached is in."""
         homes: dict[str, str] = {self.registrar.name: process()}
         gave_up: list[str] = []
         join = _Join(lambda: reply.set_result((homes, tuple(gave_up))), gave_up)
@@ -375,12 +331,7 @@ class StatusRelay:
         join.seal()
 
     def on_status_notice(self, message: StatusNotice, reply: Reply) -> None:
-        """Consumer side: run the client callbacks, climb to the dependent resources.
-
-        Each id once per status (`Desk.first_time`, as the desk's own deliveries): a
-        status an `Unload`'s answer carried (`consumer.py`'s `Releases`) may have come
-        its own way first, or come after it.
-        """
+        """Consumer side: run the client callbacks (each id once a status), climb up."""
         if self.flights.parked(message):
             return
         catalog = self.registrar.catalog
@@ -406,8 +357,7 @@ class StatusRelay:
                     )
                 )
             callback = self.holdings.callback_of(query_id)
-            # (published on the callback's thread, or its loop's: the publisher itself,
-            # not the turn's)
+            # (on the callback's thread or loop: the publisher itself, not the turn's)
             told = self.registrar.published, self.registrar.name, message.event
             if callback is not None:
                 call = _Call(
@@ -453,9 +403,8 @@ class StatusRelay:
 
 
 SLICE = 0.05
-"""Seconds a status callback may run before the other ids' callbacks queued behind it go
-on without it, on another worker thread (wall clock: what they wait, whatever the
-cause; its own id's wait for it)."""
+"""Seconds a status callback may run before the callbacks of other ids queued behind it go
+on without it, on another worker thread (wall clock)."""
 
 _LINGER = 1.0
 """Seconds the runner's watchdog stays after the last callback ended."""
@@ -490,8 +439,7 @@ class StatusTargets:
 
 
 class _Join(SharedJoin):
-    """A status's join in this process, and the consumer ids given up on in it (a list
-    that parts on any thread append to, read once the join is complete)."""
+    """A status's join in this process, and the consumer ids given up on in it (any thread)."""
 
     __slots__ = ("gave_up",)
 
@@ -501,7 +449,6 @@ class _Join(SharedJoin):
 
 
 def _counted(join: _Join, done: Callable[..., None]) -> Callable[[Any, Any], None]:
-    """A `StatusNotice`'s answer (the ids given up on beyond it) as a part of `join`."""
 
     def answered(value: Any, error: BaseException | None) -> None:
         if error is None and isinstance(value, tuple):
@@ -514,12 +461,9 @@ def _counted(join: _Join, done: Callable[..., None]) -> Callable[[Any, Any], Non
 class _Call:
     """One status callback to run, and the part of its batch's join it completes.
 
-    `told`, while events are published: (the registrar's publisher, its name, the status's
-    id), to publish a `StatusHandled` as the callback returns. `done` runs once, by the
-    runner (`settle`): as the callback returns, or once it is given up on at `deadline`
-    (monotonic seconds; `None`: never), its id then added to `gave_up`. `merged`: the
-    calls coalesced into it (`Runner`), settled with it, or each at its own deadline if
-    that comes first; `wake`: the earliest deadline of it and those (`None`: none).
+    `done` runs once (`settle`): as the callback returns, or when given up on at `deadline`
+    (monotonic; `None`: never). `merged`: the calls coalesced into it; `wake`: the earliest
+    deadline among them. `told`: what its `StatusHandled` needs, while events are published.
     """
 
     __slots__ = (
@@ -568,8 +512,7 @@ class _Call:
         self.merged: list[_Call] = []
 
     def settle(self, giving_up: bool) -> list[Callable[..., None]]:
-        """(Holding the runner's lock.) Settle it and those merged into it, once each:
-        the `done`s to call (outside the lock), in arrival order."""
+        """(Holding the runner's lock.) Settle it and those merged, once each: `done`s to call."""
         dones: list[Callable[..., None]] = []
         for call in (*sorted(self.merged, key=_arrival), self):  # (in arrival order)
             if call.settled:
@@ -585,11 +528,9 @@ class _Call:
         return dones
 
     def overdue(self, now: float) -> bool:
-        """Not settled, and past its deadline."""
         return not self.settled and self.deadline is not None and now >= self.deadline
 
     def merge(self, calls: Iterable[_Call]) -> None:
-        """(Holding the runner's lock.) Take `calls` (and their merged ones) into it."""
         for queued in calls:
             self.merged.append(queued)
             self.merged.extend(queued.merged)
@@ -597,8 +538,8 @@ class _Call:
         self.wake = _earliest(self, *self.merged)
 
     def lapse(self, now: float) -> list[Callable[..., None]]:
-        """(Holding the runner's lock.) Give up on it (and those merged into it) if past
-        its deadline, else on each merged call past its own: the `done`s to call."""
+        """(Holding the runner's lock.) Give up on it (and those merged) if past its deadline,
+        else on each merged call past its own: the `done`s to call."""
         if self.wake is None or now < self.wake:
             return []
         if self.overdue(now):
@@ -623,17 +564,14 @@ class _Call:
             self.handled(began)
 
     def begins(self) -> int:
-        """Its callback begins now: the stamp its `StatusHandled` gives (0: none told)."""
         return hlc.CLOCK.now() if self.told is not None else 0
 
     def own(self) -> tuple[str, str, str] | None:
-        """The run `traces.own_trace` makes current for its callback (its span's ids, from
-        what its `StatusHandled` names), `None` while no event is published: no span."""
+        """The run `traces.own_trace` makes current for its callback (`None`: no span)."""
         told = self.told
         return (told[2], told[1], self.query.id) if told is not None else None
 
     def handled(self, began: int) -> None:
-        """Its callback returned: publish its `StatusHandled` (if told to)."""
         if self.told is not None:
             publisher, name, status_id = self.told
             publisher.publish(
@@ -648,13 +586,11 @@ def _arrival(call: _Call) -> int:
 
 
 def _earliest(*calls: _Call) -> float | None:
-    """The earliest deadline of those of `calls` not settled (`None`: none)."""
     deadlines = [c.deadline for c in calls if not c.settled and c.deadline is not None]
     return min(deadlines, default=None)
 
 
 def _settled(dones: Iterable[Callable[..., None]]) -> None:
-    """Call the `done`s of settled calls (outside the runner's lock)."""
     for done in dones:
         try:
             done()
@@ -663,13 +599,10 @@ def _settled(dones: Iterable[Callable[..., None]]) -> None:
 
 
 def _deadline(patience: float | None) -> float | None:
-    """The monotonic deadline `patience` seconds from now (`None`: none)."""
     return None if patience is None else runtime.monotonic() + patience
 
 
 class _Drainer:
-    """One worker's turn at the runner's queue."""
-
     __slots__ = ("abandoned", "call", "job", "started")
 
     def __init__(self) -> None:
@@ -680,33 +613,10 @@ class _Drainer:
 
 
 class Runner:
-    """Runs the status callbacks of this process, in the order they arrived, each consumer
-    id's one at a time, on as few worker threads as keeps them going: one while each
-    callback returns at once; another as soon as every one is inside a callback when more
-    arrive (a callback that calls `send_status`), or once one has run for `SLICE` seconds.
-
-    Each query id has a *lane*: its queued calls, in arrival order. A drainer takes the
-    earliest-arrived call of a lane that is open, and holds that lane closed while the
-    callback runs. The watchdog gives up a drainer whose callback has run for `SLICE`
-    seconds (it finishes that callback and ends) and starts another for the other lanes;
-    the given-up one keeps its lane closed until its callback returns: being slow, hung or
-    starved of the CPU costs an id its own wait (one thread), never its order, nor the
-    other ids' callbacks. A lane opens early only when its callback waits for a registrar
-    (`replies.let_go`: a `send_status`, `call` or `unload` from inside it, or in its
-    context: a task it started, `asyncio.to_thread`; not a plain thread, which does not
-    inherit the context): its next status may be what it waits for (rule 9: no deadlock).
-
-    Behind a running callback, the lane coalesces (`_coalesce`): a status replaces the
-    queued ones that are not `FATAL`s, which are acknowledged with it; so a hung callback's
-    lane holds its latest status and the `FATAL`s, in arrival order, whatever the number
-    sent. Acknowledgements (`_Call.settle`): a call is acknowledged as its callback returns,
-    or given up on at its `deadline` (the sender's patience) by the watchdog (one running
-    after it let its lane go too: `_running`; one merged into a later call at its own),
-    and at once if its lane's running callback was given up on: the sender waits one
-    patience for a hung consumer, not one per status. A coroutine callback runs on its
-    loop (`on_loop`), its id's calls one at a time there, in a lane of their own that
-    queues and coalesces behind the one running (the same step, `_queue_behind`); its
-    calls are given up on the same way.
+    """Runs this process's status callbacks in arrival order, each consumer id's one at a
+    time (a lane per id), on as few worker threads as keeps them going; a watchdog gives up
+    on a callback past `SLICE` or its deadline. How lanes open, coalesce and give up:
+    docs/explanation/inside.md, "Statuses".
     """
 
     def __init__(self) -> None:
@@ -726,11 +636,8 @@ class Runner:
         self._workers = Workers("status")
 
     def run(self, calls: Iterable[_Call]) -> None:
-        """Queue `calls`; start a drainer if none is free to take them.
-
-        A call for an id whose callback runs (its lane held) coalesces what its lane
-        queued (`_coalesce`); if that running callback was given up on, the call is
-        given up on at once (acknowledged so; it stays queued to run after it)."""
+        """Queue `calls`; start a drainer if none is free. Behind a running callback its lane
+        coalesces; behind one given up on, the call is given up on at once."""
         dones: list[Callable[..., None]] = []
         pending = False  # (a call behind a running callback, to give up on in time)
         with self._lock:
@@ -754,10 +661,8 @@ class Runner:
         _settled(dones)
 
     def on_loop(self, call: _Call) -> None:
-        """Run a coroutine callback's `call` on its loop, each id's one at a time: behind
-        its id's call still running there, it waits in its lane, coalesced as a thread's
-        (`_queue_behind`); settled as it returns, or at its deadline as given up on (at
-        once while its id's running call is given up on)."""
+        """Run a coroutine callback's `call` on its loop, each id's one at a time, coalesced
+        behind its running call as on a thread (`_queue_behind`)."""
         dones: list[Callable[..., None]] = []
         with self._lock:
             self._arrived += 1  # (numbered with the threads' calls: `StatusHandled.arrived`)
@@ -779,8 +684,7 @@ class Runner:
             self._submit(start)
 
     def _hold_on_loop(self, call: _Call) -> _Call:
-        """(Holding the lock.) `call` holds its id's coroutine lane (and is watched for
-        its deadline, and those merged into it, if it is not settled): it runs now."""
+        """(Holding the lock.) `call` holds its id's coroutine lane (watched for its deadline)."""
         self._on_loop[call.lane] = call
         if call.wake is not None:
             self._awaited[call] = None
@@ -800,8 +704,7 @@ class Runner:
         )
 
     def _next_on_loop(self, call: _Call) -> _Call | None:
-        """(Holding the lock.) `call` lets its id's coroutine lane go (if it holds it):
-        the lane's next call, which holds it now, to submit (`None`: none)."""
+        """(Holding the lock.) `call` lets its id's coroutine lane go: the next call to submit."""
         query_id = call.lane
         if self._on_loop.get(query_id) is not call:
             return None
@@ -815,8 +718,8 @@ class Runner:
         return self._hold_on_loop(following)
 
     def _loop_waits(self, call: _Call) -> None:
-        """A coroutine callback's `call` waits for a registrar (`replies.let_go`): its
-        id's next call may start beside it (it may be what it waits for)."""
+        """A coroutine callback's `call` waits for a registrar (`replies.let_go`): its id's next
+        call may start beside it (it may be what it waits for)."""
         if not call.opened and call.told is not None:
             call.opened = hlc.CLOCK.now()
         with self._lock:
@@ -825,9 +728,7 @@ class Runner:
             self._submit(following)
 
     def _returned(self, call: _Call, _error: BaseException | None) -> None:
-        """A coroutine callback's `call` returned (on its loop; what it raised was
-        logged): its `StatusHandled` published, settled (and those merged into it), its
-        id's next call submitted."""
+        """A coroutine callback's `call` returned: publish, settle, submit its id's next call."""
         call.handled(call.began)
         with self._lock:
             self._awaited.pop(call, None)
@@ -838,10 +739,8 @@ class Runner:
             self._submit(following)
 
     def _wanted(self, pending: bool = False) -> tuple[bool, bool]:
-        """(Holding the lock.) Whether to start a drainer (counted now: an open lane and
-        every drainer inside a callback), and the watchdog (marked now: not running while
-        a lane is open, a callback runs, or a call queued behind one has a deadline:
-        `pending`)."""
+        """(Holding the lock.) Whether to start a drainer (counted now), and the watchdog
+        (marked now)."""
         start = bool(self._open) and self._drainers == len(self._inside)
         if start:
             self._drainers += 1
@@ -875,7 +774,6 @@ class Runner:
             _settled(skipped)
 
     def _take(self) -> _Call | None:
-        """(Holding the lock.) The earliest-arrived call of an open lane (its lane closed)."""
         if not self._open:
             return None
         _seq, query_id = heapq.heappop(self._open)
@@ -886,7 +784,6 @@ class Runner:
         return call
 
     def _let_go(self, drainer: _Drainer, call: _Call) -> None:
-        """(Holding the lock.) Open the lane `drainer` holds for `call` (if it still does)."""
         query_id = call.lane
         if self._holders.get(query_id) is not drainer or drainer.call is not call:
             return
@@ -896,8 +793,8 @@ class Runner:
             heapq.heappush(self._open, (lane[0].seq, query_id))
 
     def _waits(self, drainer: _Drainer, call: _Call) -> None:
-        """`call`'s callback waits for a registrar (`replies.let_go`, any thread, any time,
-        more than once): its lane opens, if its drainer still holds it for it."""
+        """`call`'s callback waits for a registrar (`replies.let_go`, any thread, repeatable):
+        its lane opens, if its drainer still holds it."""
         if not call.opened and call.told is not None:
             call.opened = hlc.CLOCK.now()
         with self._lock:
@@ -906,7 +803,6 @@ class Runner:
         self._kick(start, watch)
 
     def _drain(self, drainer: _Drainer) -> None:
-        """A worker's turn: run queued calls until none it may take is left."""
         while True:
             with self._lock:
                 if drainer.abandoned:
@@ -939,10 +835,8 @@ class Runner:
                 self._kick(start, watch)
 
     def _give_up(self, now: float) -> tuple[list[Callable[..., None]], bool]:
-        """(Holding the lock.) Give up on the running calls (their lanes held or let go)
-        and the queued calls of held lanes, each merged one too, past their deadlines:
-        their `done`s, and whether any call there still has a deadline to come (the
-        watchdog stays for it)."""
+        """(Holding the lock.) Give up on running calls and queued calls of held lanes past their
+        deadlines: their `done`s, and whether a deadline is still to come."""
         dones: list[Callable[..., None]] = []
         waiting = False
         for call in [*self._running, *self._awaited]:  # (running: on a thread, on a loop)
@@ -972,9 +866,8 @@ class Runner:
                 self._watching = False
 
     def _watch(self) -> None:
-        """The watchdog: every `SLICE`, give up drainers whose callback overran it (their
-        lanes stay closed), and the calls past their deadline (`_give_up`); end after a
-        second with no callback running and none to give up on."""
+        """The watchdog: every `SLICE`, give up drainers whose callback overran it and calls past
+        their deadline; end after a second with nothing to do."""
         while True:
             runtime.sleep(SLICE)
             now = runtime.monotonic()
@@ -1007,11 +900,9 @@ class Runner:
 def _queue_behind(
     lanes: dict[str, collections.deque[_Call]], call: _Call, running: _Call | None
 ) -> list[Callable[..., None]]:
-    """(Holding the runner's lock.) Queue `call` in its id's lane of `lanes`, behind that
-    id's `running` callback (on a worker thread, or a coroutine's on its loop), coalesced
-    (`_coalesce`) if it is a consumer's callback (one with a `deadline`: a server's own
-    `on_status` runs once per status, rule 9, in order); given up on at once if that one
-    was: the `done`s to call."""
+    """(Holding the runner's lock.) Queue `call` in its id's lane behind its `running`
+    callback, coalesced if it is a consumer's (a server's own `on_status` runs once per
+    status, rule 9); given up on at once if that one was: the `done`s to call."""
     lane = lanes.get(call.lane)
     if lane is None:
         lane = lanes[call.lane] = collections.deque()
@@ -1024,9 +915,8 @@ def _queue_behind(
 
 
 def _coalesce(lane: collections.deque[_Call], call: _Call) -> None:
-    """(Holding the runner's lock.) `call`, not a `FATAL`, replaces the calls `lane`
-    queued that are not `FATAL`s (the latest status wins): they are merged into it (their
-    senders hear of it as it is settled); the `FATAL`s stay, in their order."""
+    """(Holding the runner's lock.) `call`, not a `FATAL`, replaces the queued calls of
+    `lane` that are not `FATAL`s (merged into it); the `FATAL`s stay, in order."""
     kept = [queued for queued in lane if queued.update.status is Status.FATAL]
     if len(kept) == len(lane):
         return
@@ -1038,8 +928,6 @@ def _coalesce(lane: collections.deque[_Call], call: _Call) -> None:
 
 
 class Desk:
-    """This process's status desk: delivers a status to its registrars in one pass."""
-
     def __init__(self) -> None:
         self.targets: weakref.WeakKeyDictionary[LocalPeer, StatusTargets] = (
             weakref.WeakKeyDictionary()
@@ -1050,7 +938,6 @@ class Desk:
         self.key = runtime.urandom(16).hex()  # this process's (`process`)
 
     def serve(self, peer: LocalPeer, targets: StatusTargets) -> None:
-        """Read `targets` for the registrar behind `peer` (while the directory has it)."""
         with self._lock:
             self.targets[peer] = targets
 
@@ -1061,13 +948,9 @@ class Desk:
         homes: dict[str, str] | None,
         here: tuple[str, Callable[[Any], None]],
     ) -> None:
-        """Deliver `batch`'s parts (on an actor thread); each adds its parts to `join`,
-        and the ids given up on to `join.gave_up` (`batch.patience` from now).
-
-        `homes`, if given, gets the process of each registrar reached (the answer).
-        `here` is the registrar whose actor runs this, and how it handles a message at
-        once (its `dispatch`): its own ids that need its actor need no trip through its
-        mailbox.
+        """Deliver `batch`'s parts (on an actor thread) as parts of `join` (given-up ids in
+        `join.gave_up`). `homes`: gets the process of each registrar reached. `here`: the
+        registrar running this and its `dispatch`, so its own ids need no trip through its mailbox.
         """
         calls: list[_Call] = []
         patience = batch.patience
@@ -1116,9 +999,8 @@ class Desk:
         calls: list[_Call],
         deadline: float | None = None,
     ) -> tuple[str, ...]:
-        """Queue the callbacks of the ids `targets` has (those the status has not reached
-        yet); the others, to go through its registrar's mailbox (`on_status_notice`
-        takes each once there)."""
+        """Queue the callbacks of the ids `targets` has (not reached yet); the others, to go
+        through its registrar's mailbox."""
         slow: list[str] = []
         ready: list[tuple[str, tuple[Query, StatusCallback]]] = []
         entries, due = targets.entries, targets.due
@@ -1164,7 +1046,6 @@ class Desk:
         join: _Join,
         homes: dict[str, str] | None,
     ) -> None:
-        """Send `part` on to its registrar in another process; its answer joins ours."""
         done = join.add()
 
         def answered(value: Any, error: BaseException | None) -> None:
@@ -1181,9 +1062,7 @@ class Desk:
             reply.set_error(exc)
 
     def first_time(self, event: str, ids: tuple[str, ...]) -> tuple[str, ...]:
-        """Those of `ids` that event `event` has not reached here yet (marked now): each
-        delivery to an id in this process asks, as it delivers (`direct`, and
-        `StatusRelay.on_status_notice` on its registrar's actor)."""
+        """Those of `ids` that event `event` has not reached here yet (marked now)."""
         seen = self._seen
         fresh = []
         with self._lock:
@@ -1210,14 +1089,9 @@ DESK = runtime.process_state(Desk(), Desk)
 
 
 class Routes:
-    """Where a provider sends its statuses for registrars of other processes.
-
-    `homes` maps a consumer registrar to its process (learned from the answers), and
-    `relays` each process to the registrar there that gets this provider's batches for
-    it (the first one learned, kept while it answers: one connection, one mailbox, so
-    the batches keep their order). Hints only: a wrong one costs a forward at the other
-    end. Written by the threads that answer, read by the provider's actor.
-    """
+    """Where a provider sends its statuses for registrars of other processes: `homes` (consumer
+    -> process) and `relays` (process -> the registrar there that takes its batches, kept
+    while it answers, so they keep their order). Hints: a wrong one costs a forward."""
 
     def __init__(self) -> None:
         self._lock = runtime.Lock()
@@ -1225,12 +1099,8 @@ class Routes:
         self.relays: dict[str, str] = {}
 
     def plan(self, parts: Iterable[tuple[str, tuple[str, ...]]]) -> list[tuple[str, Parts, bool]]:
-        """Group `parts` by process: (the relay, the parts it gets, whether as a batch).
-
-        A registrar whose process is not known yet gets a batch of its own part (its
-        answer says where it is); one alone in its process among `parts`, a plain
-        `StatusNotice` (`False`: what a status to one registrar always was).
-        """
+        """Group `parts` by process: (the relay, its parts, whether as a batch); a registrar of an
+        unknown process gets a batch of its own, one alone in its process a `StatusNotice`."""
         groups: dict[str, list[tuple[str, tuple[str, ...]]]] = {}
         planned: list[tuple[str, Parts, bool]] = []
         with self._lock:
@@ -1249,7 +1119,6 @@ class Routes:
         return planned
 
     def learn(self, homes: dict[str, str]) -> None:
-        """Registrars are in these processes (an answer said so)."""
         with self._lock:
             if len(self.homes) > _HOMES:  # (registrars come and go: start over)
                 self.homes.clear()
@@ -1260,13 +1129,11 @@ class Routes:
                 self.homes[name] = home
 
     def forget(self, names: Iterable[str]) -> None:
-        """Registrars that did not answer: ask them again where they are."""
         with self._lock:
             for name in names:
                 self.drop(name)
 
     def drop(self, name: str) -> None:
-        """(Holding the lock.) Forget `name`'s home and any relay role it had."""
         self.homes.pop(name, None)
         for home in [home for home, relay in self.relays.items() if relay == name]:
             del self.relays[home]
@@ -1274,23 +1141,14 @@ class Routes:
 
 class Unacknowledged:
     """The statuses a provider sent on to consumer ids in other processes, by id, until
-    their answers came (an acknowledgement, or an error): the answer to an id's `Unload`
-    carries those of that id (rule 9: `provider.py`'s `Unloading`).
-
-    Across processes a notice and the answer to its consumer's `Unload` travel on two
-    connections, and the answer can come first; the consumer would forget the id, then
-    find nothing to deliver the notice to. In this process nothing overtakes a notice: it
-    is delivered, or in its registrar's mailbox, before this actor handles the `Unload`.
-    Entered by the provider's actor as the notices leave, cleared by the threads that
-    answer, taken by the actor as it answers an `Unload`.
-    """
+    answered; the answer to an id's `Unload` carries those of that id (rule 9): they travel
+    on another connection and may come after it. Actor enters, answering threads clear."""
 
     def __init__(self) -> None:
         self._lock = runtime.Lock()
         self._of: dict[str, dict[str, StatusOnItsWay]] = {}  # id -> event -> status
 
     def leaving(self, parts: Parts, batch: StatusBatch) -> None:
-        """`batch`'s status leaves for the ids of `parts`."""
         status = batch.on_its_way()
         with self._lock:
             for _origin, ids in parts:
@@ -1298,7 +1156,6 @@ class Unacknowledged:
                     self._of.setdefault(query_id, {})[status.event] = status
 
     def answered(self, parts: Parts, event: str) -> None:
-        """The answer to status `event` for the ids of `parts` came (any thread)."""
         with self._lock:
             for _origin, ids in parts:
                 for query_id in ids:
@@ -1309,8 +1166,7 @@ class Unacknowledged:
                             del self._of[query_id]
 
     def take(self, query_id: str) -> tuple[StatusOnItsWay, ...]:
-        """The statuses still on their way to `query_id`, in the order they left (its
-        `Unload` is answered now: none leaves for it any more)."""
+        """The statuses still on their way to `query_id`, in the order they left (taken now)."""
         with self._lock:
             return tuple(self._of.pop(query_id, {}).values())
 
