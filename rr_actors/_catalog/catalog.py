@@ -11,7 +11,7 @@ rows and their indexes; it works with two collaborators, and the store drains it
    │ hit:  has_consumer ─► lookup ─► add_consumer                  clients (records.py)
    │ release ─► begin_unload ─► remove_resource; client records    indexes: query id ->
    ▼                                                               resource, resource ->
- Catalog ──► RequestIndex (index.py): which resources of a         its dependencies
+ Catalog ──► RequestIndex (below): which resources of a            its dependencies
    │         server may serve a request, by digest
    ├──► UnreadRows: a restored catalog's backlog, the rows still in the backup
    │    (the store's reader, _store/restore.py), read in when a lookup needs them
@@ -40,17 +40,18 @@ by the registrar's sweep (`sweep`), one slice at a time.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from typing import Any
 
 from rr_actors._catalog.digest import (
     NO_DIGEST,
+    UNHASHABLE,
+    candidates_without_digest,
     identity_equality,
     request_digest,
     requests_equal,
     runtime_key,
 )
-from rr_actors._catalog.index import RequestIndex
 from rr_actors._catalog.records import (
     Changes,
     ClientRecord,
@@ -63,7 +64,7 @@ from rr_actors._core import steps
 from rr_actors._types import Query
 from rr_actors.errors import UnknownQueryError
 
-__all__ = ["Catalog"]
+__all__ = ["Catalog", "RequestIndex"]
 
 
 _UNKNOWN: Any = object()
@@ -644,6 +645,98 @@ class Catalog:
                 assert record.parent in resources, f"dependency {qid} has no owner"
                 deps.setdefault(record.parent, []).append(qid)
         assert deps == self._deps, "dependency index out of sync"
+
+
+class RequestIndex:
+    """The resource ids of each server, by request digest or by in-process key.
+
+    It holds ids only; the resources are the `Catalog`'s. It writes one field of a
+    resource: its `digest`, computed once when a resource new here is indexed.
+    """
+
+    def __init__(self) -> None:
+        # per server: request digest -> resource ids (most requests), and in-process
+        # key (`runtime_key`) -> resource ids for requests without a digest
+        self._digested: dict[str, dict[int, list[str]]] = {}
+        self._others: dict[str, dict[Any, list[str]]] = {}
+        self._other_keys: dict[str, Any] = {}  # resource id -> its key in `_others`
+
+    def add(self, resource: Resource, key: Any = None) -> None:
+        """Index a resource new here (`key`: see `Catalog.begin_load`) or read back (no key).
+
+        A request read back from the backup without a digest is indexed with the
+        unhashable ones rather than by its `hash()`: no code of its class runs for that.
+        """
+        digest = resource.digest
+        if digest is None:
+            digest = request_digest(resource.request)
+            resource.digest = NO_DIGEST if digest is None else digest
+            if key is None and digest is None:
+                key = runtime_key(resource.request)
+        if digest is not None and digest != NO_DIGEST:
+            index = self._digested.setdefault(resource.server, {})
+            index.setdefault(digest, []).append(resource.id)
+        else:
+            key = self._other_keys[resource.id] = UNHASHABLE if key is None else key
+            self._others.setdefault(resource.server, {}).setdefault(key, []).append(resource.id)
+
+    def restore(self, resources: Iterable[Resource]) -> None:
+        """Index stored resources; those whose digest is known without looking at their
+        request (a restored request stays encoded until first used)."""
+        index = self._digested
+        for resource in resources:
+            digest = resource.digest
+            if digest is not None and digest != NO_DIGEST:
+                server = index.get(resource.server)
+                if server is None:
+                    server = index[resource.server] = {}
+                bucket = server.get(digest)
+                if bucket is None:
+                    server[digest] = [resource.id]
+                else:
+                    bucket.append(resource.id)
+            else:
+                self.add(resource)
+
+    def remove(self, resource: Resource) -> None:
+        """Take a resource out of the index."""
+        key = self._other_keys.pop(resource.id, None)
+        buckets: dict[Any, list[str]]
+        if key is None:
+            key, buckets = resource.digest, self._digested[resource.server]
+        else:
+            buckets = self._others[resource.server]
+        bucket = buckets[key]
+        bucket.remove(resource.id)
+        if not bucket:
+            del buckets[key]
+
+    def with_digest(self, server: str, digest: int) -> Sequence[str]:
+        """The ids of `server`'s resources whose request digest is `digest`."""
+        digested = self._digested.get(server)
+        return digested.get(digest, ()) if digested else ()
+
+    def undecided(self, server: str, request: Any, digest: int | None, key: Any) -> list[str]:
+        """The ids of `server`'s resources whose requests only a `==` can compare with
+        `request` (one of user code, or a plain value against a custom `__eq__`);
+        `digest`: the request's (`None`: it has none), `key`: else its `runtime_key`."""
+        others = self._others.get(server)
+        if digest is not None:
+            # A stored request without a digest may still be equal (rare). A plain
+            # request's `runtime_key` is a built-in `hash()` (or none): no user code.
+            return candidates_without_digest(others, runtime_key(request)) if others else []
+        undecided = candidates_without_digest(others, key) if others else []
+        digested = self._digested.get(server)
+        if digested and not identity_equality(request):
+            # A custom `__eq__` may equal a plain value: compare with every one.
+            undecided += [rid for bucket in digested.values() for rid in bucket]
+        return undecided
+
+    def ids_of(self, server: str) -> Iterator[str]:
+        """The ids of every resource of `server`: those with a digest first."""
+        for index in (self._digested, self._others):
+            for bucket in index.get(server, {}).values():
+                yield from bucket
 
 
 def _stored_order(resource: Resource) -> float:

@@ -68,8 +68,7 @@ from rr_actors._process.control import (
     stopped_cleanly,
 )
 from rr_actors._process.heartbeat import Hang, Heartbeat, Late, Look
-from rr_actors._process.received import Received
-from rr_actors._process.tally import Tally
+from rr_actors._process.tally import Received, Tally
 from rr_actors._transport.messenger import Address
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import CallTimeoutError, RegistrarUnavailableError, RrError

@@ -6,7 +6,7 @@
        row per numbered event (`plan_told`: a ring of `SLOTS` rows, by the event's seq)
    ──► committed ──► the events are published (journal, forwarder: `_process/tally.py`)
  SIGKILL between the commit and the publish: the journal never had them, and no later
- event shows a gap ──► after the exit, the supervisor's side (`_process/received.py`):
+ event shows a gap ──► after the exit, the supervisor's side (`_process/tally.py`, `Received`):
    read_told(backup, pid) ──► the dead process's events it never received, delivered
    before its `ChildExited`
  the registrar's next start (`SqliteStore.open`) ──► `clear`: the outbox emptied
