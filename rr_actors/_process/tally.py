@@ -48,20 +48,14 @@ logger = logging.getLogger("rr_actors")
 
 _SIZE = 8  # one unsigned 64-bit counter, in the machine's byte order
 
-_RECORD = struct.Struct("=QI")
-"""A journal record's head: the event's number (`seq`, 0 if it has none) and the length
-of its pickle in bytes, in the machine's byte order; the pickle follows."""
+_RECORD = struct.Struct("=QI")  # a record's head: the event's seq, its pickle's length
 
 JOURNAL_BYTES = 1 << 20
 """Past this size (bytes) the journal is cut back after a sent batch (about 5 000 events)."""
 
 
 class Tally:
-    """The shared counter of one manager process's events (one incarnation each).
-
-    Attributes:
-        path: the file, to hand to the child (`open`).
-    """
+    """The shared counter of one manager process's events (one incarnation each)."""
 
     def __init__(self, path: str, fd: int, mapped: mmap.mmap) -> None:
         self.path = path
@@ -71,10 +65,8 @@ class Tally:
 
     @classmethod
     def create(cls) -> Tally | None:
-        """A new counter at 0 (supervisor's side); `None` if no file could be made.
-
-        Without one the manager runs as before: a loss at a kill is then not counted.
-        """
+        """A new counter at 0 (supervisor's side); `None` if no file could be made (a loss
+        at a kill is then not counted)."""
         try:
             fd, path = tempfile.mkstemp(prefix="rr-events-")
         except OSError:
@@ -96,11 +88,8 @@ class Tally:
         return int(self._view[0])
 
     def after(self, seq: int) -> list[Any]:
-        """The journal's events numbered above `seq`, in their order (after the exit).
-
-        Only those records are unpickled. A record cut short (the process died within its
-        `write`), or one that does not unpickle, ends the reading.
-        """
+        """The journal's events numbered above `seq`, in order (a record cut short, or one
+        that does not unpickle, ends the reading)."""
         if self._map is None:
             return []
         found: list[Any] = []
@@ -126,7 +115,6 @@ class Tally:
         return found
 
     def close(self) -> None:
-        """Remove the file and unmap it. Idempotent."""
         if self._map is None:
             return
         self._view.release()
@@ -139,12 +127,7 @@ class Tally:
 
 
 class Journal:
-    """The child's side: events kept as published, the number of the last one kept.
-
-    The number is stored after the event's record was written (a `write` to a file is
-    not cut short by a signal), so a SIGKILL between the two leaves a record the count
-    does not name yet: `Tally.after` finds it all the same.
-    """
+    """The child's side: events kept as published, the number of the last one kept."""
 
     def __init__(self, path: str, mark: Callable[[int], object], fd: int) -> None:
         self.path = path
@@ -156,11 +139,7 @@ class Journal:
 
     @classmethod
     def open(cls, path: str) -> Journal | None:
-        """Open the file the supervisor's process made; `None` if it cannot be used.
-
-        Without one the events are numbered all the same: a loss then shows only as a
-        gap, and not at all at the end of an incarnation.
-        """
+        """Open the file the supervisor's process made; `None` if it cannot be used."""
         try:
             fd = os.open(path, os.O_RDWR | os.O_APPEND)
         except OSError:
@@ -174,12 +153,7 @@ class Journal:
         return cls(path, functools.partial(view.__setitem__, 0), fd)  # one C call per event
 
     def __call__(self, event: Any) -> bytes | None:
-        """Append `event` (a sink of the manager's event hub: the publishing thread).
-
-        Returns:
-            Its pickle (what the forwarder may send instead of pickling it again), or
-            `None` if it could not be kept.
-        """
+        """Append `event` (the publishing thread); its pickle, or `None` if not kept."""
         seq = getattr(event, "seq", 0)
         data: bytes | None = None
         try:  # per event: a try costs nothing, `suppress` a context manager
@@ -193,7 +167,6 @@ class Journal:
         return data
 
     def sent(self) -> None:
-        """A batch was sent (the forwarder's thread): cut the journal back if it is big."""
         try:
             if os.fstat(self._fd).st_size > JOURNAL_BYTES:
                 os.ftruncate(self._fd, _SIZE)
@@ -202,22 +175,14 @@ class Journal:
 
 
 HOLES = 4096
-"""Numbers below the last one that arrived and are still missing, kept at most (events
-built on two threads may be sent out of order; one its outbox holds is delivered)."""
+"""Missing numbers below the last one that arrived, kept at most (events built on two
+threads may be sent out of order)."""
 
 
 class Received:
     """The events one manager process forwarded, to `on_events`; and those it lost.
 
-    Keeps the number (`seq`) of the last event that arrived and the numbers below it
-    still missing; after the exit, the process's `Tally` and its registrar's outbox
-    give back what it never sent, and the rest (the events a SIGKILL caught in its
-    buffer) is published as one `EventsDropped(cause="killed")`.
-
-    Args:
-        on_events: where the batches go (`None`: nowhere; nothing is counted).
-        tally: the process's journal (`None`: none could be made).
-        backup: its registrar's backup file (`None`: it has none), an absolute path.
+    `tally`: its journal (`None`: none); `backup`: its registrar's backup file, absolute.
     """
 
     def __init__(
@@ -233,7 +198,6 @@ class Received:
         self.holes: set[int] = set()
 
     def deliver(self, name: str, batch: list[Any]) -> None:
-        """Hand a batch to `on_events` (the watcher thread, or the starting thread)."""
         if self.on_events is None:
             return
         last, holes = self.last_seq, self.holes
@@ -252,10 +216,7 @@ class Received:
             logger.exception("events of manager %s could not be delivered", name)
 
     def drain(self, name: str, conn: Connection) -> None:
-        """Read what the process sent before it ended (still in the pipe): its last events.
-
-        The exit can wake the watcher before the pipe's last messages are read.
-        """
+        """Read what the process sent before it ended (still in the pipe)."""
         for _ in range(10_000):  # bounded: the pipe holds what a dead process wrote
             try:
                 if not conn.poll(0):
@@ -267,17 +228,13 @@ class Received:
                 self.deliver(name, message.batch)
 
     def close(self) -> None:
-        """Remove the tally unread (a start given up): its events are not counted."""
         tally, self.tally = self.tally, None
         if tally is not None:
             tally.close()
 
     def count_lost(self, name: str, pid: int) -> None:
-        """After the exit: deliver what its journal and its outbox kept but it never sent;
-        publish what is still missing (`EventsDropped(cause="killed")`); remove the tally.
-
-        Call it before anything restarts the manager (its next start empties the outbox).
-        """
+        """After the exit: deliver what its journal and outbox kept but it never sent, then
+        an `EventsDropped` for the rest (before a restart empties the outbox)."""
         tally = self.tally
         if tally is None or self.on_events is None:
             self.close()
@@ -308,6 +265,5 @@ class Received:
 
 
 def _seq(event: Any) -> int:
-    """An event's number in its process (0: it has none)."""
     seq: int = getattr(event, "seq", 0)
     return seq
