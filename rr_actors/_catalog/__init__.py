@@ -2,9 +2,8 @@
 
 ```
  catalog   Catalog: the resources, their consumers, the client records and the changes
-    │      the store drains; written only by its registrar actor
- index     RequestIndex: which resources of a server may serve a request, by digest
-    │
+    │      the store drains; written only by its registrar actor; RequestIndex: which
+    │      resources of a server may serve a request, by digest
  records   the rows (Resource, ClientRecord, Changes) and UnreadRows (the backlog of a
            restored catalog: the store's reader of the backup)
  digest    request digests, so that equal (`==`) requests meet without comparing all

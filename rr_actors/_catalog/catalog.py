@@ -1,9 +1,8 @@
 """The resource catalog: what a registrar serves and holds, as data; no threads, no locks.
 
-The catalog records what a registrar serves (resources, each with its consumers' query
-ids) and what it holds elsewhere (client records, some of them dependencies of its own
-resources). Only the registrar actor writes it, so it has no locks. `Catalog` owns its
-rows and their indexes; it works with two collaborators, and the store drains it:
+What a registrar serves (resources, with their consumers' query ids) and holds elsewhere
+(client records, some of them dependencies of its own resources); only the registrar
+actor writes it:
 
 ```
  the registrar actor
@@ -11,7 +10,7 @@ rows and their indexes; it works with two collaborators, and the store drains it
    │ hit:  has_consumer ─► lookup ─► add_consumer                  clients (records.py)
    │ release ─► begin_unload ─► remove_resource; client records    indexes: query id ->
    ▼                                                               resource, resource ->
- Catalog ──► RequestIndex (index.py): which resources of a         its dependencies
+ Catalog ──► RequestIndex (below): which resources of a            its dependencies
    │         server may serve a request, by digest
    ├──► UnreadRows: a restored catalog's backlog, the rows still in the backup
    │    (the store's reader, _store/restore.py), read in when a lookup needs them
@@ -20,37 +19,27 @@ rows and their indexes; it works with two collaborators, and the store drains it
         writes the rows as they are then, one transaction
 ```
 
-Requests are matched by `==` through digests (`rr_actors._catalog.digest`): the index
-gives the candidates, and the catalog compares the plain ones itself.
-
-A resource its provider reported `FATAL` is marked `failed` (`mark_failed`) and is never
-matched again: an equal request loads a new resource, while the dead one stays, held by
-its consumers under their ids, until each released it (docs/explanation/semantics.md,
-rule 1). FATAL means dead: sharing a dead resource would let one holder that never
-releases it keep every later consumer from a working one.
-
-It opens no file itself, but it is not free of I/O: a restored catalog asks the
-`UnreadRows` it was given (the store's reader of the backup) for the resources a lookup
-needs and has not read yet, and a restored resource decodes its request and response
-from their stored bytes on first use (`records.Resource`). A restore does not read every
-row: the resources traffic needs are read when a lookup first needs them, and the rest
-by the registrar's sweep (`sweep`), one slice at a time.
+Requests are matched by `==` through digests (`digest.py`): the index gives the
+candidates, the catalog compares the plain ones itself. A resource reported `FATAL` is
+never matched again (rule 1, docs/explanation/semantics.md). It opens no file, but a
+restored catalog reads rows through its `UnreadRows` and decodes values on first use.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from typing import Any
 
 from rr_actors._catalog.digest import (
     NO_DIGEST,
+    UNHASHABLE,
+    candidates_without_digest,
     identity_equality,
     request_digest,
     requests_equal,
     runtime_key,
 )
-from rr_actors._catalog.index import RequestIndex
 from rr_actors._catalog.records import (
     Changes,
     ClientRecord,
@@ -63,41 +52,28 @@ from rr_actors._core import runtime
 from rr_actors._types import Query
 from rr_actors.errors import UnknownQueryError
 
-__all__ = ["Catalog"]
+__all__ = ["Catalog", "RequestIndex"]
 
 
-_UNKNOWN: Any = object()
-"""A `digest` argument not given (`None` means "the request has none")."""
+_UNKNOWN: Any = object()  # a `digest` argument not given (`None`: the request has none)
 
 
 class _DirtySet(dict[str, None]):
     """An insertion-ordered set of row ids (so the store can keep the rows' order)."""
 
-    # `add(key)`: `self[key] = None`, in C (it is on every change's path); a key already
-    # in keeps its place either way
-    add: Any = dict.setdefault
+    add: Any = dict.setdefault  # (in C: on every change's path)
 
 
 class _NoDirt(_DirtySet):
-    """The changed rows of a catalog nobody persists: none are kept (nobody drains them)."""
+    """The changed rows of a catalog nobody persists: none are kept."""
 
-    # `add(key)`: `self.get(key)`, in C, which keeps nothing
     add: Any = dict.get
 
 
 class Catalog:
-    """The bookkeeping of one registrar (thesis 4.3.2), without the locks.
-
-    Methods that look resources up (`find`, `resource_of`, `has_consumer`,
-    `resources_of`, ...) see those still in the backup too (they read them in).
-
-    Attributes:
-        resources: the resources in memory, by id: in creation order but for those read
-            back from the backup, which an ordered listing puts back in their stored
-            order when asked (a restored catalog's others are still in the backup).
-        clients: the client records, by query id, oldest first.
-        track_changes: whether changed rows are kept for the store (`drain_changes`).
-    """
+    """The bookkeeping of one registrar (thesis 4.3.2), without the locks; lookups see the
+    resources still in the backup too (they read them in). `resources`: those in memory
+    (read-back ones in stored order only once an ordered listing asks)."""
 
     def __init__(self, *, track_changes: bool = True) -> None:
         self.track_changes = track_changes
@@ -111,20 +87,15 @@ class Catalog:
         # the ids of the rows changed since the last drain, in the order they first changed
         self._dirty_resources = _DirtySet() if track_changes else _NoDirt()
         self._dirty_clients = _DirtySet() if track_changes else _NoDirt()
-        # resource id -> the consumer ids added or released since the last drain, in the
-        # order they last changed (`Changes.consumers`); those whose every consumer the
-        # store compares (`mark_changed`)
+        # `Changes.consumers`; the resources whose every consumer is compared (`mark_changed`)
         self._touched: dict[str, dict[str, None]] = {}
         self._whole: set[str] = set()
 
     # -- matching ---------------------------------------------------------------------
 
     def find(self, server: str, request: Any) -> Resource | None:
-        """Return the resource of `server` whose request `== request`, if any.
-
-        Runs `==` (and the request's `hash()`) itself, user code included: the registrar
-        uses `lookup` instead, and runs what user code remains off its actor thread.
-        """
+        """The resource of `server` whose request `== request`, if any (runs user code: the
+        registrar uses `lookup`)."""
         key = None if request_digest(request) is not None else runtime_key(request)
         found, undecided = self.lookup(server, request, key)
         if found is not None:
@@ -137,24 +108,14 @@ class Catalog:
     def lookup(
         self, server: str, request: Any, key: Any = None, *, digest: Any = _UNKNOWN
     ) -> tuple[Resource | None, list[Resource]]:
-        """Look `request` up among the resources of `server` as far as plain values go.
+        """Look `request` up among the resources of `server`, running no user code.
 
-        Runs no code of the request's classes, nor of the stored requests' classes:
-        plain values (those with a digest, `request_digest`) are compared here; the
-        resources only a `==` that runs such code can judge are returned, for the
-        caller to compare (the registrar does it off its actor thread, with a bound).
-        Restored requests it needs are read from the backup first. A resource marked
-        `failed` is never returned.
-
-        Args:
-            key: for a request without a digest, its `runtime_key` (the caller computes
-                it: it runs the request's `__hash__`); ignored for a plain request.
-            digest: `request_digest(request)`, if the caller has it already.
+        Plain values are compared here; `key`: a request's `runtime_key` when it has no
+        digest (the caller computes it). A `failed` resource is never returned.
 
         Returns:
             `(found, undecided)`: the resource whose plain request `== request`, or
-            `None`; and when none was found, the resources whose requests may still
-            `== request` (in the order `find` compares them), else `[]`.
+            `None`; then the resources only a user `==` can judge (for the caller).
         """
         if digest is _UNKNOWN:
             digest = request_digest(request)
@@ -172,7 +133,6 @@ class Catalog:
     def _match(
         self, server: str, request: Any, digest: int | None, key: Any
     ) -> tuple[Resource | None, list[Resource]]:
-        """`lookup` among the resources in memory."""
         resources = self.resources
         index = self._index
         if digest is not None:
@@ -194,9 +154,7 @@ class Catalog:
     # -- a resource's life ------------------------------------------------------------
 
     def begin_load(self, rid: str, server: str, request: Any, *, key: Any = None) -> Resource:
-        """Add a resource in the `LOADING` state; `key`: for a request without a digest,
-        its `runtime_key` if the caller computed it already (off the actor thread: it
-        runs the request's `__hash__`)."""
+        """Add a resource in the `LOADING` state (`key`: as for `lookup`)."""
         resource = Resource(rid, server, request)
         self.resources[rid] = resource
         self._index.add(resource, key)
@@ -238,12 +196,8 @@ class Catalog:
         self._dirty_resources.add(rid)
 
     def mark_failed(self, rid: str) -> Resource:
-        """Mark a resource dead: its provider reported it `FATAL`.
-
-        From now on no request matches it (`find`, `lookup`): an equal request loads a
-        new resource. It keeps its consumers until each releases it, and it is unloaded
-        as any other when the last one does.
-        """
+        """Mark a resource dead (reported `FATAL`): never matched again; it keeps its
+        consumers until each releases it."""
         resource = self.resources[rid]
         if not resource.failed:
             resource.failed = True
@@ -297,7 +251,6 @@ class Catalog:
         return resource
 
     def _touch(self, rid: str, query_id: str) -> None:
-        """Note that consumer `query_id` of resource `rid` was added or released."""
         ids = self._touched.get(rid)
         if ids is None:
             self._touched[rid] = {query_id: None}
@@ -306,11 +259,7 @@ class Catalog:
             ids[query_id] = None
 
     def resource_of(self, query_id: str) -> Resource:
-        """Return the resource a consumer id belongs to.
-
-        Raises:
-            UnknownQueryError: the id is not a consumer of any resource here.
-        """
+        """The resource a consumer id belongs to (`UnknownQueryError`)."""
         rid = self._by_consumer.get(query_id)
         if rid is None:
             rid = self._read_consumer(query_id)
@@ -377,12 +326,8 @@ class Catalog:
         return [r for r in self._in_order().values() if r.server == server]
 
     def unheld(self) -> list[Resource]:
-        """Resources in memory loaded that no consumer holds, oldest first (`sweep` finds
-        those still in the backup).
-
-        A restored catalog may have some: their last consumer left, and a crash came
-        before their unload began.
-        """
+        """Resources in memory loaded that no consumer holds, oldest first (a crash before
+        their unload began; `sweep` finds those still in the backup)."""
         return [
             resource
             for resource in self._in_order().values()
@@ -391,13 +336,8 @@ class Catalog:
 
     def sweep(self, after: int) -> tuple[list[Resource], set[str], int | None]:
         """Look at the next slice of the resources still in the backup (row keys above
-        `after`, a bounded number of them).
-
-        Returns:
-            `(unheld, origins, last)`: those in it loaded and held by no consumer (read
-            into memory now), the registrars holding consumer ids in it, and the row
-            key to sweep on from (`None`: nothing is left to sweep).
-        """
+        `after`): those loaded and unheld (read in now), the registrars holding consumer
+        ids in it, and the row key to sweep on from (`None`: nothing is left)."""
         if self._unread is None:
             return [], set(), None
         unheld, origins, last = self._unread.sweep(after)
@@ -411,18 +351,10 @@ class Catalog:
         return self._in_order()
 
     def rows(self, limit: int) -> tuple[list[tuple[str, ...]], list[tuple[str, ...]]] | None:
-        """Every resource and consumer id as a row of strings, reading none from the backup.
-
-        Args:
-            limit: the most rows of either kind to return.
-
-        Returns:
-            `(resources, consumers)`, oldest first: `(id, server, state, digest, failed)`
-            per resource (`digest` in decimal, `""` for a request without one; `failed`
-            `"failed"` if its provider reported it `FATAL`, else `""`), and `(query id,
-            resource id, consumer registrar)` per consumer id, by resource, in arrival
-            order; `None` if either kind has more than `limit` rows.
-        """
+        """Every resource and consumer id as a row of strings, reading none from the backup:
+        `(id, server, state, digest or "", "failed" or "")` per resource, oldest first, and
+        `(query id, resource id, consumer registrar)` per consumer id, by resource, in
+        arrival order; `None` if either kind has more than `limit` rows."""
         resources: list[tuple[float, tuple[str, ...]]] = []
         consumers: list[tuple[float, tuple[str, ...]]] = []
         for resource in self._in_order().values():
@@ -465,11 +397,7 @@ class Catalog:
         return len(resources) + unread[0], held + unread[1]
 
     def _in_order(self) -> dict[str, Resource]:
-        """`resources`, oldest first: restored ones in their stored order, then newer ones.
-
-        Lookups read restored resources in whatever order traffic asks for them; they are
-        put back in order (a stable sort, in place) only when an ordered listing is asked for.
-        """
+        """`resources`, oldest first (sorted in place only when asked)."""
         resources = self.resources
         if self._unsorted:
             ordered = sorted(resources.values(), key=_stored_order)
@@ -481,8 +409,7 @@ class Catalog:
     # -- the backlog: a restored catalog's rows still in the backup -------------------
 
     def _read_consumer(self, query_id: str) -> str | None:
-        """Read in the resource `query_id` is a consumer of; its id, or `None` if the
-        backup has none (or there is no backlog)."""
+        """Read in the resource `query_id` is a consumer of; its id, or `None`."""
         unread = self._unread
         if unread is None:
             return None
@@ -493,7 +420,6 @@ class Catalog:
         return resource.id
 
     def _read_in(self, resources: list[Resource]) -> None:
-        """Take resources read back from the backup (nothing is marked changed)."""
         by_consumer = self._by_consumer
         for resource in resources:
             rid = resource.id
@@ -534,11 +460,7 @@ class Catalog:
         self._dirty_clients.add(query_id)
 
     def remove_client(self, query_id: str) -> ClientRecord:
-        """Delete an outbound query record.
-
-        Raises:
-            UnknownQueryError: no such record.
-        """
+        """Delete an outbound query record (`UnknownQueryError`)."""
         record = self.clients.pop(query_id, None)
         if record is None:
             raise UnknownQueryError(f"unknown or released query id {query_id!r}")
@@ -558,25 +480,15 @@ class Catalog:
     # -- persistence ------------------------------------------------------------------
 
     def mark_changed(self, rid: str) -> None:
-        """Have the next drain report resource `rid` as it is now (its row, or its removal).
-
-        For a change whose write was held back (an in-doubt resource settled while its
-        manager's `setup` runs): the write of what it is by then is owed, every consumer
-        compared (the changes drained meanwhile were not written).
-        """
+        """Have the next drain report resource `rid` as it is now, every consumer compared
+        (a change whose write was held back)."""
         self._dirty_resources.add(rid)
         if self.track_changes:
             self._whole.add(rid)
 
     def drain_changes(self) -> Changes:
-        """Return and forget the rows changed since the last drain: each as it is now,
-        or `None` if it was removed; in the order they first changed. With each changed
-        resource, the consumer ids added or released since (`Changes.consumers`; every
-        one compared for a resource `mark_changed` named).
-
-        Without `track_changes` (a catalog nobody persists) this is always empty, and
-        nothing is kept meanwhile (a registrar without a backup never drains).
-        """
+        """Return and forget the rows changed since the last drain, in the order they first
+        changed (always empty without `track_changes`)."""
         resources, clients = self.resources, self.clients
         touched, whole = self._touched, self._whole
         changes = Changes(
@@ -597,12 +509,8 @@ class Catalog:
         clients: Iterable[ClientRecord],
         unread: UnreadRows | None = None,
     ) -> Catalog:
-        """Build a catalog from stored rows, in their stored order (nothing is marked changed).
-
-        Resources whose `digest` is known are indexed without looking at their request
-        (a restored request stays encoded until first used). `unread` holds the stored
-        resources not given in `resources`: lookups read them when they need them.
-        """
+        """Build a catalog from stored rows, in their stored order (nothing is marked
+        changed); `unread`: the stored resources not given, read when needed."""
         catalog = cls(track_changes=True)
         if unread is not None and unread.remaining:
             catalog._unread = unread
@@ -621,9 +529,7 @@ class Catalog:
         return catalog
 
     def check_invariants(self) -> None:
-        """Raise `AssertionError` if the indexes disagree with the rows (for tests):
-        the consumer ids' index, no request loaded twice (but a failed one's), the
-        dependencies' index, each dependency's owner served here."""
+        """Raise `AssertionError` if the indexes disagree with the rows (for tests)."""
         resources = self.read_all()
         by_consumer = {q: r.id for r in resources.values() for q in r.consumers}
         assert by_consumer == self._by_consumer, "consumer index out of sync"
@@ -646,8 +552,84 @@ class Catalog:
         assert deps == self._deps, "dependency index out of sync"
 
 
+class RequestIndex:
+    """The resource ids of each server, by request digest or by in-process key (it writes
+    one field of a resource: its `digest`, once)."""
+
+    def __init__(self) -> None:
+        self._digested: dict[str, dict[int, list[str]]] = {}
+        self._others: dict[str, dict[Any, list[str]]] = {}
+        self._other_keys: dict[str, Any] = {}  # resource id -> its key in `_others`
+
+    def add(self, resource: Resource, key: Any = None) -> None:
+        """Index a resource new here (`key`: see `Catalog.begin_load`) or read back (no key:
+        without a digest it goes with the unhashable ones, running no code of its class)."""
+        digest = resource.digest
+        if digest is None:
+            digest = request_digest(resource.request)
+            resource.digest = NO_DIGEST if digest is None else digest
+            if key is None and digest is None:
+                key = runtime_key(resource.request)
+        if digest is not None and digest != NO_DIGEST:
+            index = self._digested.setdefault(resource.server, {})
+            index.setdefault(digest, []).append(resource.id)
+        else:
+            key = self._other_keys[resource.id] = UNHASHABLE if key is None else key
+            self._others.setdefault(resource.server, {}).setdefault(key, []).append(resource.id)
+
+    def restore(self, resources: Iterable[Resource]) -> None:
+        """Index stored resources (by a known digest without decoding their request)."""
+        index = self._digested
+        for resource in resources:
+            digest = resource.digest
+            if digest is not None and digest != NO_DIGEST:
+                server = index.get(resource.server)
+                if server is None:
+                    server = index[resource.server] = {}
+                bucket = server.get(digest)
+                if bucket is None:
+                    server[digest] = [resource.id]
+                else:
+                    bucket.append(resource.id)
+            else:
+                self.add(resource)
+
+    def remove(self, resource: Resource) -> None:
+        key = self._other_keys.pop(resource.id, None)
+        buckets: dict[Any, list[str]]
+        if key is None:
+            key, buckets = resource.digest, self._digested[resource.server]
+        else:
+            buckets = self._others[resource.server]
+        bucket = buckets[key]
+        bucket.remove(resource.id)
+        if not bucket:
+            del buckets[key]
+
+    def with_digest(self, server: str, digest: int) -> Sequence[str]:
+        digested = self._digested.get(server)
+        return digested.get(digest, ()) if digested else ()
+
+    def undecided(self, server: str, request: Any, digest: int | None, key: Any) -> list[str]:
+        """The ids of `server`'s resources only a user `==` can compare with `request`."""
+        others = self._others.get(server)
+        if digest is not None:
+            # (a plain request's `runtime_key` is a built-in `hash()`: no user code)
+            return candidates_without_digest(others, runtime_key(request)) if others else []
+        undecided = candidates_without_digest(others, key) if others else []
+        digested = self._digested.get(server)
+        if digested and not identity_equality(request):
+            # A custom `__eq__` may equal a plain value: compare with every one.
+            undecided += [rid for bucket in digested.values() for rid in bucket]
+        return undecided
+
+    def ids_of(self, server: str) -> Iterator[str]:
+        for index in (self._digested, self._others):
+            for bucket in index.get(server, {}).values():
+                yield from bucket
+
+
 def _stored_order(resource: Resource) -> float:
-    """Sort key: a restored resource's row key in its backup; one created since is newer."""
     order: float = resource.__dict__.get("_order", math.inf)
     return order
 

@@ -1,17 +1,11 @@
 """Request digests: when two requests are `==`, without comparing every pair.
 
 Dedup is by `==` on the request value, also for unhashable values: requests are bucketed
-by `request_digest`, a deterministic digest of a canonical form (mappings as item sets,
-sequences in order, numbers by their value), and within a bucket compared with `==`. The
-digest covers only built-in values whose `==` it mirrors (and subclasses that keep their
-base's `==`), so two such requests that are `==` meet in the same bucket. The digest may
-be stored: a restored catalog indexes its resources from their stored digests without
-decoding a request. Any other request (a custom class, a subclass with its own `__eq__`
-such as `Counter`, a value whose comparison raises) has no digest: it is bucketed by its
-in-process `hash()` when its class defines one together with its `__eq__`, otherwise with
-the unhashable ones, and compared with `==` against every candidate that could equal it.
-Finding a request never raises because of its value: a comparison that raises means
-"different".
+by `request_digest`, a deterministic (storable) digest of a canonical form that covers
+only built-in values whose `==` it mirrors, and compared with `==` within a bucket. Any
+other request has no digest: it is bucketed by its in-process `hash()` when its class
+defines one with its `__eq__`, else with the unhashable ones. A comparison that raises
+means "different".
 """
 
 from __future__ import annotations
@@ -52,9 +46,8 @@ DIGEST_SCHEME = (
     f"rr4-py{sys.version_info[0]}.{sys.version_info[1]}-w{sys.hash_info.width}"
     f"-{sys.hash_info.modulus}"
 )
-"""Names the digest function. It combines parts with `hash()` of tuples and frozensets
-of integers, which is deterministic but may change with Python's version or word size:
-a backup written under another scheme has its digests recomputed when it is opened."""
+"""Names the digest function (`hash()` of tuples of integers may change with Python's
+version or word size: a backup of another scheme has its digests recomputed)."""
 
 
 def _blake(data: bytes) -> int:
@@ -108,11 +101,7 @@ def _digest(value: Any) -> int:  # noqa: PLR0911 - one return per kind of value
 
 
 def _enum_member(value: enum.Enum, cls: type) -> int:
-    """A plain enum member equals only itself: its class's path and its name name it.
-
-    Members are pickled by name, so the same member has the same digest in every process.
-    (IntEnum and StrEnum keep their base's `==` and are digested as that value.)
-    """
+    """A plain enum member equals only itself: its class's path and its name name it."""
     name = value._name_
     if type(name) is not str:  # a composite Flag without a name: leave it to `==`
         raise _Opaque
@@ -153,26 +142,11 @@ def _digest_subclass(value: Any, cls: type) -> int:
 def request_digest(request: Any) -> int | None:
     """A deterministic 64-bit digest of a request, such that `a == b` implies equal digests.
 
-    The same in every process (it may be stored): strings and bytes are digested with
-    BLAKE2b, numbers by their `hash()` (which Python defines from the value, so that
-    `1`, `1.0` and `True` agree, and which is not randomised), mappings as an
-    order-free combination of their items, sets likewise, lists and tuples in order.
-
-    Only values whose `==` the digest mirrors get one: built-in strings, bytes, numbers,
-    `None`, members of enums that keep identity equality (digested by class path and
-    name), and dicts, lists, tuples, sets and frozensets of them, including subclasses
-    that keep their base's `__eq__` and `__hash__` (IntEnum, StrEnum, namedtuple,
-    OrderedDict, defaultdict). Such a *plain value* is digested and compared without
-    running any code of its classes (containers are read through their base's methods):
-    neither can raise nor hang.
-
-    Returns:
-        The digest (never `NO_DIGEST`), or `None` for a value with other parts (a
-        custom class, a container subclass with its own `__eq__` such as `Counter`, a
-        `Mapping` that is not a dict, an enum with its own `__eq__`) or one that raises
-        while being digested (`Decimal("sNaN")`, a nesting too deep), whose equality only
-        `==` can judge; the catalog indexes those by their in-process `hash()` instead,
-        which is never stored.
+    Only *plain values* get one: built-in strings (BLAKE2b), bytes, numbers (their
+    `hash()`), `None`, enum members with identity equality, and dicts, lists, tuples, sets
+    of them (subclasses too that keep their base's `__eq__` and `__hash__`), digested
+    without running code of their classes. `None` for any other value, or one that raises
+    while digested (`Decimal("sNaN")`, a nesting too deep). Never `NO_DIGEST`.
     """
     try:
         return _digest(request)
@@ -181,12 +155,8 @@ def request_digest(request: Any) -> int | None:
 
 
 def runtime_key(request: Any) -> Any:
-    """The in-process bucket of a request that has no digest (never stored).
-
-    A class that overrides `__eq__` but keeps a built-in `__hash__` (a tuple subclass
-    with a tolerance, say) hashes inconsistently with its `==`: it goes with the
-    unhashable requests, which are compared with every candidate.
-    """
+    """The in-process bucket of a request that has no digest (never stored); a class that
+    overrides `__eq__` but keeps a built-in `__hash__` goes with the unhashable ones."""
     cls = type(request)
     hasher: object = cls.__hash__
     owner = getattr(hasher, "__objclass__", None)
@@ -202,11 +172,7 @@ def runtime_key(request: Any) -> Any:
 
 
 def request_bucket(request: Any) -> Any:
-    """Return a hashable key such that `a == b` implies equal keys (for the usual types).
-
-    The key is the request's digest (`request_digest`); values without one fall back to
-    their `hash()`, and unhashable ones share one bucket compared by `==` alone.
-    """
+    """A hashable key such that `a == b` implies equal keys: the digest, else `runtime_key`."""
     digest = request_digest(request)
     return digest if digest is not None else runtime_key(request)
 
@@ -235,11 +201,8 @@ def candidates_without_digest(others: dict[Any, list[str]], key: Any) -> list[st
 
 
 def describe(value: Any, limit: int = 200) -> str:
-    """A `repr` of a plain value (cut at `limit` characters), else its type's name.
-
-    For log lines and error messages written on an actor's thread: a custom class's
-    `__repr__` is user code, which may raise or hang; a plain value's is not.
-    """
+    """A `repr` of a plain value (cut at `limit` characters), else its type's name (user
+    code may raise or hang on an actor's thread)."""
     if request_digest(value) is None:
         return f"<{type(value).__module__}.{type(value).__qualname__} object>"
     text = reprlib.repr(value)

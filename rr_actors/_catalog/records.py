@@ -30,30 +30,14 @@ class ResourceState(enum.Enum):
 
 @dataclasses.dataclass
 class Resource:
-    """A resource a server of this registrar serves.
+    """A resource a server of this registrar serves (a restored one decodes its request and
+    response on first access, or raises `CatalogCorruptError`).
 
-    A resource restored from a backup decodes its request and its response on first
-    access (most restored resources are not looked at before traffic resumes); a stored
-    value that cannot be decoded then raises `CatalogCorruptError` naming the backup.
-
-    Attributes:
-        id: resource id (UUID4 string), stable for the resource's life.
-        server: name of the server that loaded it.
-        request: the request that describes it.
-        response: what `load` returned (`None` while loading).
-        state: life-cycle state.
-        consumers: consumer query id -> origin registrar name, in arrival order.
-        digest: `request_digest(request)`, `NO_DIGEST` if it has none, `None` if not known
-            yet (computed when the catalog indexes it).
-        response_version: counts the catalog's writes of `response` (`finish_load`,
-            `set_response`), so the store writes each one even when the provider passes
-            the same, mutated object again; decoding a restored response leaves it alone.
-        request_text, response_text: bounded `repr`s of the values, made once by the
-            registrar that owns them (`None`: not made yet); what observers show.
-        label: what its server's `label(request)` returned (`None`: none, or not yet).
-        failed: its provider reported it `FATAL` (`Catalog.mark_failed`): it is no longer
-            matched by an equal request (a new call loads a new resource), and it stays
-            until its consumers released it.
+    `consumers`: query id -> origin registrar, in arrival order; `digest`: `NO_DIGEST` if
+    it has none, `None` if not known yet; `response_version`: counts the catalog's writes
+    of `response` (the store writes each, even the same mutated object); `*_text`,
+    `label`: made once by its registrar (`None`: not yet); `failed`: reported `FATAL`,
+    never matched again.
     """
 
     id: str
@@ -70,7 +54,7 @@ class Resource:
     failed: bool = False
 
     def __getattr__(self, name: str) -> Any:
-        # Only called when `name` is not in the instance: a restored, still encoded value.
+        # (only for a name not in the instance: a restored, still encoded value)
         if name in _LAZY:
             encoded = self.__dict__.get("_encoded")
             if encoded is not None:
@@ -97,21 +81,8 @@ class Resource:
         *,
         failed: bool = False,
     ) -> Resource:
-        """A stored resource whose request and response are decoded on first access.
-
-        Args:
-            rid: resource id.
-            server: server name.
-            state: life-cycle state.
-            digest: the stored request digest (or `NO_DIGEST`).
-            blobs: the encoded request and response.
-            decode: `decode(rid, "request" | "response", blob)` returns the value or
-                raises `CatalogCorruptError`.
-            order: its place in the backup (row key), to list restored resources in
-                their stored order.
-            texts: the stored `(request_text, response_text, label)`.
-            failed: the stored `failed` mark.
-        """
+        """A stored resource whose request and response (`blobs`) are decoded on first
+        access; `order`: its row key in the backup."""
         resource = cls.__new__(cls)
         resource.__dict__ = {
             "id": rid,
@@ -131,27 +102,16 @@ class Resource:
 
 
 Decoder = Callable[[str, str, "bytes | None"], Any]
-"""`decode(resource_id, field, blob)`: turns a stored value back into an object."""
+"""`decode(resource_id, field, blob)`: a stored value back (or `CatalogCorruptError`)."""
 
 _LAZY = {"request": 0, "response": 1}
-# Without class attributes the two values are looked up in the instance, and a missing
-# (still encoded) one reaches `__getattr__`. `__init__` keeps its defaults.
-del Resource.response
+del Resource.response  # (no class attribute: a still encoded one reaches `__getattr__`)
 
 
 @dataclasses.dataclass
 class ClientRecord:
-    """A query this registrar holds at some server (its own servers included).
-
-    Attributes:
-        query: the query, `origin_rr` being this registrar.
-        parent: id of this registrar's resource that owns the query as a dependency,
-            or `None` for a top-level call.
-        loaded: `False` while the call is in flight.
-        response_version: counts `client_loaded` calls, so the store writes each response.
-        request_text: a bounded `repr` of the request, made once by this registrar
-            (`None`: not made yet); what observers show.
-    """
+    """A query this registrar holds at some server (`parent`: the resource of its own that
+    owns it as a dependency, `None` for a top-level call)."""
 
     query: Query
     parent: str | None = None
@@ -164,12 +124,8 @@ class ClientRecord:
 class Changes:
     """Rows changed since the last drain: id -> new row, or `None` when deleted.
 
-    `consumers` says which consumer ids of a changed resource may have changed (been
-    added or released since the last drain), so that a write looks at those only, not
-    at every holder of a widely shared resource: resource id -> those query ids, in the
-    order they last changed (an empty dict: none did). A resource of `resources` not
-    listed there has every consumer compared (the safe default of a `Changes` built by
-    hand).
+    `consumers`: resource id -> the consumer ids added or released since, in the order
+    they last changed; a resource not listed has every consumer compared.
     """
 
     resources: dict[str, Resource | None]
@@ -198,46 +154,35 @@ class Changes:
 
 
 Listing = tuple[list[tuple[float, tuple[str, ...]]], list[tuple[float, tuple[str, ...]]]]
-"""Resource rows and consumer rows as strings, each after its sort key (its resource's
-row key in the backup): what `UnreadRows.listing` returns."""
+"""Resource rows and consumer rows as strings, each after its resource's row key."""
 
 
 class UnreadRows(Protocol):
-    """Served resources of a restored catalog still in its backup (see `Catalog.restore`).
-
-    Each method returns resources not returned before, with their consumers; once
-    returned, a resource lives in the catalog's memory and is never returned again.
-    """
+    """Served resources of a restored catalog still in its backup: each method returns
+    resources not returned before, with their consumers (`remaining`: some may be left)."""
 
     remaining: bool
-    """Whether some may not have been returned yet (`False` once `every` returned)."""
 
-    def by_request(self, server: str, digest: int) -> list[Resource]:
-        """Those of `server` whose request digest is `digest`."""
+    def by_request(self, server: str, digest: int) -> list[Resource]: ...
 
-    def by_consumer(self, query_id: str) -> Resource | None:
-        """The one that has consumer `query_id`, if any."""
+    def by_consumer(self, query_id: str) -> Resource | None: ...
 
-    def of_server(self, server: str) -> list[Resource]:
-        """Every one of `server`, oldest first."""
+    def of_server(self, server: str) -> list[Resource]: ...
 
-    def with_origin(self, origin_rr: str) -> list[Resource]:
-        """Every one with a consumer from registrar `origin_rr`."""
+    def with_origin(self, origin_rr: str) -> list[Resource]: ...
 
     def consumer_ids_from(self, origin_rr: str) -> list[str]:
-        """Their consumer ids that registrar `origin_rr` holds (reading no resource)."""
+        """Their consumer ids that `origin_rr` holds, reading no resource."""
+        ...
 
     def sweep(self, after: int) -> tuple[list[Resource], set[str], int | None]:
-        """The next slice after row key `after`: those loaded that no consumer holds
-        (returned), the registrars of every consumer in it, its last row key (`None`:
-        no slice is left)."""
+        """As `Catalog.sweep`."""
+        ...
 
     def listing(self, limit: int) -> Listing | None:
-        """`(row key, row)` of each one and of each of their consumers, without
-        returning them; `None` if either kind has more than `limit`."""
+        """As `Catalog.rows`, without returning them."""
+        ...
 
-    def counts(self) -> tuple[int, int]:
-        """How many there are, and how many consumer ids they have."""
+    def counts(self) -> tuple[int, int]: ...
 
-    def every(self) -> list[Resource]:
-        """All of them, oldest first."""
+    def every(self) -> list[Resource]: ...

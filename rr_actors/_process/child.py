@@ -1,29 +1,13 @@
 """The child's side of a manager process: `main`, `standby` and the control loop.
 
-Runs only in manager processes (never in the supervisor's process). In the child, `main`:
-
-0. lets SIGINT pass (a handler that does nothing): a Ctrl-C in a terminal goes to its
-   whole foreground process group, manager processes included, and is the supervisor's
-   process's to handle (it stops the tree in order, as OTP leaves shutdown to the
-   supervisor); `standby` does the same,
-1. asks the platform to end it when the process that forked it dies
-   (`Platform.die_with_parent`: with the forkserver context that is the forkserver, not
-   the supervisor's process) and names the process for `ps` (`rr-actors: <name>`),
-2. attaches to the system (saying that the supervisor's process speaks for its registrar
-   if this process dies: rule 19, `Transport.supervised_by`, any carrier)
-   and starts the registrar, which restores its catalog,
-3. runs the (cloudpickled) `setup(registrar)`, then settles the in-doubt entries it was
-   offered (kept in the backup until then: a death during `setup` offers them again),
-   then serves the registrar on the system,
-4. reports `ready` over its control pipe and answers control requests: `stop`, `ping`
-   (the heartbeat, answered through the registrar actor's mailbox, with how long its
-   listener has been unable to accept connections, if it has), `probe` (a late ping's:
-   answered at once, with how far its registrar got through its mailbox) and `events` (whether to
-   forward the registrar's events: only while the supervisor's process has listeners),
-5. exits at once when the control pipe reaches EOF: the supervisor's process is gone,
-6. exits with code 0 when its registrar was stopped cleanly by code in the manager (a
-   `transient` manager is then not restarted, as in a thread), with code 71 when the
-   registrar actor died.
+Runs only in manager processes. `main` lets SIGINT pass (a Ctrl-C is the supervisor's
+to handle: it stops the tree in order, as OTP leaves shutdown to the supervisor), dies
+with the process that forked it, attaches to the system (its supervisor's process speaks
+for it if it dies: rule 19), starts the registrar (which restores its catalog), runs
+`setup(registrar)`, settles the in-doubt entries it was offered, serves, reports `Ready`
+and answers control requests. It exits at EOF on the control pipe (the supervisor's
+process is gone), with 0 when its registrar was stopped cleanly by code in the manager
+(a `transient` manager is then not restarted), with 71 when the registrar actor died.
 
 ```
  parent (ManagerProcess)            control pipe                child (this module)
@@ -42,11 +26,8 @@ Runs only in manager processes (never in the supervisor's process). In the child
    (EOF: the parent is gone) ──────────────────────────────────►  exit 70
 ```
 
-The messages are `rr_actors._process.control`'s classes; the control loop dispatches on
-their type through one table (`_HANDLERS`).
-
-Running a function against the registrar (`Supervisor.run_in`) goes over the system's
-transport (`AttachedSystem.run`), not over the control pipe.
+The messages are `control.py`'s classes; the control loop dispatches on their type
+(`_HANDLERS`). `Supervisor.run_in` goes over the system's transport, not this pipe.
 """
 
 from __future__ import annotations
@@ -111,18 +92,12 @@ __all__ = ["main", "set_title", "standby"]
 logger = logging.getLogger("rr_actors")
 
 START_HOLD = 1.0
-"""Seconds at most the events of a start are held back from the supervisor's process
-(`_EventLine`): `Ready` goes first; a setup that takes longer forwards from then on."""
+"""Seconds at most the events of a start are held back so that `Ready` goes first."""
 
 
 def set_title(name: str) -> None:
-    """Name this process after its manager for `ps`, `top` and `pstree`.
-
-    The kernel's 15-byte process name (`ps -o comm`, `top`; Linux's `prctl(PR_SET_NAME)`)
-    becomes the name itself, which a prefix would crowd out. With the `setproctitle`
-    package installed (extra `title`) the command line becomes `rr-actors: <name>` too
-    (`ps aux`).
-    """
+    """Name this process after its manager for `ps` and `top` (the kernel's 15-byte name
+    is the name itself; with `setproctitle`, the command line `rr-actors: <name>`)."""
     try:
         import setproctitle  # noqa: PLC0415 - optional; preloaded by the forkserver
     except ImportError:
@@ -146,12 +121,8 @@ class _Control:
 
 
 class _Pong:
-    """A reply that answers a heartbeat ping once the registrar actor got to it.
-
-    The answer carries how long (and why) the registrar's listener has been unable to
-    accept connections, if it has: a manager that can no longer accept is as useless to
-    new peers as a hung one, and its supervisor judges both by the same bound.
-    """
+    """A reply that answers a heartbeat ping once the registrar actor got to it, with how
+    long (and why) its listener cannot accept connections (judged as a hang)."""
 
     def __init__(
         self, control: _Control, number: int, trouble: Callable[[], tuple[float, str] | None]
@@ -168,11 +139,8 @@ class _Pong:
 
 
 def _supervisor_pid(conn: Connection) -> int:
-    """The pid of the supervisor's process: the one that made the control pipe.
-
-    Both ends of a socket pair carry the credentials of the process that made it (Linux
-    `SO_PEERCRED`); elsewhere, the parent process (the supervisor's with "fork").
-    """
+    """The pid of the process that made the control pipe (Linux `SO_PEERCRED`; elsewhere
+    the parent process)."""
     option = getattr(socket, "SO_PEERCRED", None)
     if option is not None:
         fd = os.dup(conn.fileno())
@@ -190,7 +158,6 @@ def _supervisor_pid(conn: Connection) -> int:
 
 
 def _exit(code: int, attached: Transport | None) -> None:
-    """Leave the system (peers then see "stopped" or "died" at once), flush, exit."""
     if attached is not None:
         with contextlib.suppress(Exception):
             attached.close()
@@ -210,17 +177,8 @@ def main(
 ) -> None:
     """Run one manager: restore, set up, serve, then answer control requests until stopped.
 
-    Runs as the target of a manager process (never in the supervisor's process).
-
-    Args:
-        setup: `wire.dumps(setup_function_or_None)` (cloudpickle).
-        config: the registrar's configuration (its backup is restored before `setup`).
-        address: the system's `SystemAddress`, or `None` to run unattached.
-        conn: the child's end of the control pipe.
-        parent: the pid of the process that forked this one (`Platform.die_with_parent`).
-        forward: forward the registrar's events from the start (until told otherwise).
-        tally: the file where it counts the events it builds (`rr_actors._process.tally`:
-            its supervisor's process reads it after a SIGKILL), or `None`.
+    `setup`: cloudpickled (or of `None`); `address`: `None` runs unattached; `parent`: the
+    forking process's pid; `tally`: the journal's file (`tally.py`), or `None`.
     """
     _let_ctrl_c_pass()  # first: a Ctrl-C from here on is the supervisor's
     PLATFORM.die_with_parent(parent)
@@ -229,14 +187,8 @@ def main(
 
 
 def _let_ctrl_c_pass() -> None:
-    """Let a Ctrl-C in the terminal pass: its supervisor stops this manager, in order.
-
-    The terminal sends SIGINT to every process of its foreground group, manager processes
-    included; each would print a `KeyboardInterrupt` traceback and die before its
-    supervisor could stop it cleanly. A handler that does nothing, not `SIG_IGN`: the
-    processes a manager starts (`exec`) get the default back, so a Ctrl-C still reaches
-    them (`SIG_IGN` would be inherited).
-    """
+    """Let a Ctrl-C in the terminal pass: its supervisor stops this manager, in order (a
+    handler that does nothing, not `SIG_IGN`, which the processes it `exec`s would inherit)."""
     signal.signal(signal.SIGINT, _ctrl_c_passes)
 
 
@@ -245,16 +197,9 @@ def _ctrl_c_passes(signum: int, frame: object) -> None:
 
 
 def _warm_up() -> None:
-    """Pay a fresh process's first-use costs while it idles as a spare, not after a crash.
-
-    A forked child shares its parent's memory copy-on-write: the first write to a page
-    (Python writes reference counts and GC headers everywhere) copies it, which made the
-    first registrar start in a new process about twice as slow as in a warm one. A full
-    collection touches every tracked object (and so most of the heap) once. Making the
-    schema objects a backup is checked against (`schema.expected_objects`, every migration
-    run on an in-memory SQLite database) initialises the library too, and took 2-3 ms of
-    each restore at 1k entries when a restarted manager made them.
-    """
+    """Pay a fresh process's first-use costs while it idles as a spare, not after a crash:
+    a full collection copies the heap's copy-on-write pages once; the schema objects a
+    backup is checked against are made once."""
     import gc  # noqa: PLC0415
 
     gc.collect()
@@ -262,20 +207,9 @@ def _warm_up() -> None:
 
 
 def standby(conn: Connection, parent: int | None = None, warm: bool = True) -> None:
-    """Wait, started but idle, until the parent hands over a manager's arguments; run it.
-
-    Runs as the target of a spare manager process (see `rr_actors._process.spare`): the
-    interpreter start, the forkserver's fork and the child's bootstrap are paid before a
-    manager crashes, not after. It warms up (unless it was handed a manager already),
-    says `Warm()`, and exits when the control pipe reaches EOF unused.
-
-    Args:
-        conn: the child's end of the control pipe; the first message is a `Start` with
-            `main`'s arguments, or (`warm=False`) a `WarmUp` before it.
-        parent: the pid of the process that forked this one (`Platform.die_with_parent`).
-        warm: warm up at once; `False` (a spare forked ahead of a start in order): only
-            when told (`WarmUp`), so that it does not compete with the starts.
-    """
+    """A spare (`spare.py`): wait, started but idle, for a `Start` with `main`'s arguments,
+    and run it; exit at EOF unused. It warms up at once, or (`warm=False`: forked ahead of
+    a start in order) when told (`WarmUp`), so that it does not compete with the starts."""
     _let_ctrl_c_pass()  # first: a Ctrl-C from here on is the supervisor's
     PLATFORM.die_with_parent(parent)
     set_title("spare")
@@ -295,10 +229,8 @@ def standby(conn: Connection, parent: int | None = None, warm: bool = True) -> N
 
 
 class _Pickled:
-    """An event as the journal pickled it, forwarded in its place: pickled in a batch, it
-    is those bytes (copied), not the event's fields walked again, and it unpickles as the
-    event in the supervisor's process (`pickle.loads` of them). A restart's
-    `CatalogRestored` (up to 10,000 rows of each kind) is pickled once, not twice."""
+    """An event as the journal pickled it, forwarded in its place (pickled once, not twice);
+    it unpickles as the event."""
 
     __slots__ = ("data",)
 
@@ -312,19 +244,10 @@ class _Pickled:
 class _EventLine:
     """Forwards this process's registrar events to the supervisor's process while asked to.
 
-    The registrar relays its events to `hub`; while forwarding is on, `hub`'s one sink is a
-    `Forwarder` that sends batches over the control pipe (its own thread), so the
-    registrar is `active` (builds events) only then. The forwarder (and its thread) is
-    made at the first switch on, not at the start: most managers never forward (their
-    tree has no listener), and a thread less is a shorter start.
-
-    The events of the start (its `CatalogRestored`, which lists the restored catalog, up
-    to 10,000 rows of each kind; its setup's) are journaled as they are published but
-    sent only after `Ready` (`started`), or once the start took `START_HOLD` seconds:
-    a restart is not held up by their pickling, their passage through the pipe and their
-    unpickling in the supervisor's process, which reads `Ready` first. Their order is
-    kept: they are sent in the order they were published, before any event published
-    after them.
+    While on, `hub`'s one sink is a `Forwarder` (made at the first switch on) sending
+    batches over the control pipe, so the registrar builds events only then. The events of
+    the start are journaled at once but sent after `Ready` (or `START_HOLD`), in order, so
+    that a restart is not held up by them.
     """
 
     def __init__(
@@ -338,7 +261,6 @@ class _EventLine:
     ) -> None:
         self.control = control
         self.name = name
-        # a SIGKILL loses what is not sent yet: the journal keeps it, the tally counts it
         self.journal = None if tally is None else Journal.open(tally)
         number_events()
         self.hub: Publisher[events.Event] = events.publisher()
@@ -350,7 +272,6 @@ class _EventLine:
         self.switch(on=on)
 
     def started(self) -> None:
-        """`Ready` (or `Failed`) was sent: send the events held back (any thread)."""
         self._held.set()
 
     @staticmethod
@@ -368,7 +289,6 @@ class _EventLine:
             self.journal.sent()
 
     def switch(self, *, on: bool) -> None:
-        """Forward from now on, or stop forwarding (control loop thread)."""
         if on and not self.on:
             if self.forwarder is None or self.sink is None:
                 self.forwarder = Forwarder(
@@ -387,12 +307,10 @@ class _EventLine:
         self.on = on
 
     def flush(self, timeout: float) -> None:
-        """Send what is buffered (before a clean exit)."""
         if self.forwarder is not None:
             self.forwarder.close(timeout=timeout)
 
     def sync(self, control: _Control, token: int, timeout: float) -> None:
-        """Send what is buffered, then `EventsSynced(token)` after it (own thread)."""
         if self.forwarder is not None:
             self.forwarder.wait_sent(timeout=timeout)
         control.send(EventsSynced(token))
@@ -446,11 +364,7 @@ def _run_manager(
 
 
 class _ControlLoop:
-    """The child's control loop: answer pings, forward events or not, stop; exit on EOF.
-
-    Each message of the parent's is handled by the method its type maps to in
-    `_HANDLERS`, on the control loop's thread.
-    """
+    """The child's control loop: answer pings, forward events or not, stop; exit on EOF."""
 
     def __init__(
         self,
@@ -473,7 +387,6 @@ class _ControlLoop:
         self.pinged = (0, 0)  # the last ping's number, and the handled count when it came
 
     def run(self) -> None:
-        """Handle the parent's messages in order until `Stop`, or EOF (the parent is gone)."""
         while True:
             try:
                 message = self.conn.recv()
@@ -486,7 +399,6 @@ class _ControlLoop:
             handler(self, message)
 
     def trouble(self) -> tuple[float, str] | None:
-        """For how long and why the registrar's listener cannot accept connections, if so."""
         if self.attached is None:
             return None
         return self.attached.serving_trouble(self.registrar.name)
@@ -498,7 +410,7 @@ class _ControlLoop:
 
     def probe(self, message: Probe) -> None:
         """Answer at once: how far the registrar actor got through its mailbox (a busy
-        one is not hung: `rr_actors._process.heartbeat`)."""
+        one is not hung: `heartbeat.py`)."""
         inbox = self.inbox
         number, pinged = self.pinged
         handled = inbox.handled
@@ -515,7 +427,6 @@ class _ControlLoop:
         self.line.switch(on=message.on)
 
     def sync_events(self, message: SyncEvents) -> None:
-        """On a thread of its own: the loop keeps answering pings meanwhile."""
         threading.Thread(
             target=self.line.sync,
             args=(self.control, message.token, message.timeout),
@@ -524,7 +435,6 @@ class _ControlLoop:
         ).start()
 
     def stop(self, message: Stop) -> None:
-        """Stop the registrar, send its last events, exit (0, or 1 if it did not stop)."""
         registrar = self.registrar
         self.stopping.set()
         if message.restarting:  # stopped to be restarted with its group:
@@ -546,4 +456,3 @@ _HANDLERS: dict[type[Any], Callable[[_ControlLoop, Any], None]] = {
     SyncEvents: _ControlLoop.sync_events,
     Stop: _ControlLoop.stop,
 }
-"""What the child does with each message of the parent's (`Start` is `standby`'s)."""

@@ -18,26 +18,22 @@
    Stop(timeout, restarting) ───────────────────────────────────►  registrar.stop(); exit
 ```
 
-Each message is a frozen dataclass; each end dispatches on its type through one table
-(`child._HANDLERS`, `ManagerProcess._HANDLERS`). They are pickled by the pipe
-(`multiprocessing.connection`), between processes of one machine and one installation.
-
-How manager processes start, and what both ends agree on besides: the multiprocessing
-context comes from the platform (`rr_actors._platform`): with the tricks, a forkserver of
-rr_actors' own that has preloaded rr_actors (whoever started CPython's); plainly, a
-forkserver (or spawn) without preload. Both sides agree on the exit codes below and on
-what a clean stop is.
+Each message is a frozen dataclass, pickled by the pipe; each end dispatches on its type
+through one table. Both ends agree too on the exit codes, on what a clean stop is, and
+on the multiprocessing context (the platform's: a forkserver, preloaded with the tricks).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import multiprocessing.context
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from multiprocessing.connection import Connection
+from multiprocessing.process import BaseProcess
 from typing import Any
 
 from rr_actors._core.directory import DIRECTORY
-from rr_actors._platform import PLATFORM
+from rr_actors._platform import PLATFORM, forkserver
 from rr_actors._platform.base import PARENT_GONE_EXIT
 from rr_actors._transport.messenger import Address
 from rr_actors.config import RegistrarConfig
@@ -65,6 +61,7 @@ __all__ = [
     "SyncEvents",
     "Warm",
     "WarmUp",
+    "fork",
     "forker_pid",
     "mp_context",
     "preload",
@@ -78,16 +75,7 @@ __all__ = [
 
 @dataclasses.dataclass(frozen=True, slots=True)
 class Start:
-    """Run this manager (to a spare idling in `standby`): `child.main`'s arguments.
-
-    Attributes:
-        setup: `wire.dumps(setup_function_or_None)` (cloudpickle).
-        config: the registrar's configuration.
-        address: the system to attach to, or `None` to run unattached.
-        forward: forward the registrar's events from the start.
-        tally: the file where it counts the events it builds (`rr_actors._process.tally`),
-            or `None`.
-    """
+    """Run this manager (to a spare idling in `standby`): `child.main`'s arguments."""
 
     setup: bytes
     config: RegistrarConfig
@@ -110,8 +98,7 @@ class Ping:
 
 @dataclasses.dataclass(frozen=True, slots=True)
 class Probe:
-    """Ping `number` is late: answer `Progress` at once, from the control loop (not
-    through the registrar's mailbox, where the ping waits)."""
+    """Ping `number` is late: answer `Progress` at once, from the control loop."""
 
     number: int
 
@@ -133,13 +120,7 @@ class SyncEvents:
 
 @dataclasses.dataclass(frozen=True, slots=True)
 class Stop:
-    """Stop the registrar within `timeout` seconds and exit.
-
-    Attributes:
-        timeout: seconds the registrar's clean stop may take.
-        restarting: it is stopped to be restarted with its group: no tombstone, so its
-            peers see it unavailable for now, not stopped for good.
-    """
+    """Stop the registrar within `timeout` seconds and exit (`restarting`: no tombstone)."""
 
     timeout: float
     restarting: bool = False
@@ -162,14 +143,8 @@ class Ready:
 
 @dataclasses.dataclass(frozen=True, slots=True)
 class Failed:
-    """The manager could not start (its setup raised, say).
-
-    Attributes:
-        traceback: what it raised, with its traceback, as text.
-        corrupt: what it raised if that was a `CatalogCorruptError` (its backup cannot
-            be read), which the parent raises as it is: the recovery needs its `path`
-            (`quarantine_backup`). Pickled by its `__reduce__` (two strings).
-    """
+    """The manager could not start; `corrupt`: a `CatalogCorruptError` it raised, which
+    the parent raises as it is (the recovery needs its `path`)."""
 
     traceback: str
     corrupt: CatalogCorruptError | None = None
@@ -177,13 +152,8 @@ class Failed:
 
 @dataclasses.dataclass(frozen=True, slots=True)
 class Pong:
-    """The answer to `Ping(number)`.
-
-    Attributes:
-        number: the ping's number.
-        trouble: `None`, or for how long (seconds) and why the registrar's listener has
-            been unable to accept connections.
-    """
+    """The answer to `Ping(number)`; `trouble`: for how long (seconds) and why the
+    registrar's listener has been unable to accept connections, if so."""
 
     number: int
     trouble: tuple[float, str] | None = None
@@ -191,14 +161,8 @@ class Pong:
 
 @dataclasses.dataclass(frozen=True, slots=True)
 class Progress:
-    """The answer to `Probe(number)`: whether the registrar works through its mailbox.
-
-    Attributes:
-        number: the ping's number.
-        pinged: messages its registrar actor had handled when ping `number` arrived.
-        handled: messages it has handled now.
-        queued: messages waiting in its mailbox now.
-    """
+    """The answer to `Probe(number)`: messages its registrar had handled when the ping
+    arrived (`pinged`), has handled now, and that wait in its mailbox."""
 
     number: int
     pinged: int
@@ -221,10 +185,7 @@ class EventsSynced:
 
 
 FromParent = WarmUp | Start | Ping | Probe | Forward | SyncEvents | Stop
-"""What the parent sends down a control pipe."""
-
 FromChild = Warm | Ready | Failed | Pong | Progress | Events | EventsSynced
-"""What a manager process sends up its control pipe."""
 
 
 # -- how manager processes start ---------------------------------------------------------------
@@ -233,16 +194,11 @@ ACTOR_DIED_EXIT = 71
 """The exit code of a manager process whose registrar actor died (a crash)."""
 
 STOPPED_EXIT = 72
-"""The exit code of a manager process whose registrar stopped cleanly (code in the manager
-stopped it, or the supervisor's `Stop`): its one normal exit. A process that exits 0 (a
-library's `exit(0)`, an `os._exit(0)` in a callback) ended without stopping its
-registrar: nothing it held was let go, so it is judged a crash (`manager.describe`)."""
+"""The exit code of a manager process whose registrar stopped cleanly: its one normal
+exit (an exit 0 let nothing go: a crash)."""
 
-PROCESS_PREFIX = "rr-manager-"
-"""The `multiprocessing` name of every manager process starts with it."""
-
-TITLE_PREFIX = "rr-actors: "
-"""The process title of a manager process (`ps`) is this prefix and the manager's name."""
+PROCESS_PREFIX = "rr-manager-"  # every manager process's `multiprocessing` name
+TITLE_PREFIX = "rr-actors: "  # and its process title (`ps`), before the manager's name
 
 _PRELOAD = (
     "rr_actors._process.child",
@@ -251,8 +207,7 @@ _PRELOAD = (
     "rr_actors._store.sqlite",
     "hmac",  # the transport's authkey handshake imports it lazily
     "setproctitle",  # if installed (the forkserver skips what does not import)
-)
-"""What a forkserver imports once for every manager process it forks (a platform trick)."""
+)  # what a forkserver imports once for every manager process it forks
 
 _preload_more: tuple[str, ...] = ()  # `preload`'s modules, after `_PRELOAD`
 
@@ -264,28 +219,39 @@ def mp_context() -> multiprocessing.context.BaseContext:
 
 
 def preload(modules: Sequence[str]) -> None:
-    """Have the forkserver import `modules` too, once, for every manager process it forks.
-
-    What it buys: a manager whose setup lives in one of `modules` does not import it
-    after each fork. It takes effect only if the forkserver of this process has not
-    started yet (the preload is read when it starts), and only where there is one
-    (`Platform.manager_context`). A module that raises `ImportError` there is skipped;
-    one that raises anything else ends the forkserver, and every manager start fails
-    with it. Keep to modules that import without side effects (no threads started).
-
-    Args:
-        modules: module names (`"package.module"`), added to those already asked for.
-    """
+    """Have the forkserver import `modules` too, once, for every manager process it forks
+    (only if it has not started yet). A module that raises anything but `ImportError`
+    there ends the forkserver: keep to modules without side effects."""
     global _preload_more
     _preload_more = tuple(dict.fromkeys((*_preload_more, *modules)))
 
 
-def start_forkserver() -> None:
-    """Start the forkserver now (if manager processes use one), not at the first manager.
+def fork(
+    target: Callable[..., None],
+    args: Callable[[Connection, int | None], tuple[Any, ...]],
+    name: str,
+    timeout: float,
+) -> tuple[BaseProcess, Connection]:
+    """Start a manager process running `target(*args(its pipe end, forker_pid))`; the
+    process and the parent's end of its pipe (`TimeoutError`: not forked within `timeout`)."""
+    ctx = mp_context()
+    parent_conn, child_conn = ctx.Pipe(duplex=True)
+    process = ctx.Process(  # type: ignore[attr-defined]
+        target=target, args=args(child_conn, forker_pid(ctx)), name=name, daemon=True
+    )
+    try:
+        forkserver.start_within(process, timeout)
+    except BaseException:
+        parent_conn.close()
+        raise
+    finally:
+        child_conn.close()
+    return process, parent_conn
 
-    The forkserver (and multiprocessing's resource tracker) are long-lived helper children
-    of this process; tests that count child processes start them before counting.
-    """
+
+def start_forkserver() -> None:
+    """Start the forkserver now (if manager processes use one), not at the first manager
+    (tests that count child processes start it before counting)."""
     ctx = mp_context()
     if ctx.get_start_method() == "forkserver" and forker_pid(ctx) is None:
         from multiprocessing import forkserver  # noqa: PLC0415
@@ -294,19 +260,11 @@ def start_forkserver() -> None:
 
 
 def forker_pid(ctx: multiprocessing.context.BaseContext) -> int | None:
-    """The pid of the process that forks manager processes, if the platform can tell.
-
-    Handed to the child so that it can tell whether that process died before the child
-    asked to be killed with it (`Platform.die_with_parent`).
-    """
+    """The pid of the process that forks manager processes, if the platform can tell."""
     return PLATFORM.forker_pid(ctx)
 
 
 def stopped_cleanly(name: str) -> bool:
-    """Whether registrar `name` of this process, no longer running, was stopped by code.
-
-    `False` if its actor died (a crash). The same test for both placements, so a
-    `transient` manager whose registrar was stopped cleanly is not restarted in a
-    thread or in a process alike.
-    """
+    """Whether registrar `name` of this process, no longer running, was stopped by code
+    (not a crash): the same test for both placements."""
     return isinstance(DIRECTORY.gone_error(name), RegistrarStoppedError)

@@ -12,41 +12,13 @@
 ```
 
 A manager is *hung* when it has not answered a ping for `bound` seconds of time in which
-it could have run. An answer needs a few milliseconds of CPU in the manager (its control
-loop, its registrar's mailbox); on a machine with more runnable threads than CPUs it
-waits for them, and a bound on the wall clock alone kills healthy managers there. So the
-silence is reduced by the time the manager's threads spent runnable but waiting for a
-CPU, which the kernel counts (`Platform.watch_cpu`: Linux's run-queue delay). What stays
-counts against it: time it was stopped (`SIGSTOP`, a debugger: it cannot even wait for a
-CPU), blocked (a deadlock, a lock, I/O) or running without answering. The watcher's own
-delays do not count either: a silence starts when its ping was written, and what the
-pipe holds is read before a silence is judged (`ManagerProcess._watch`). Two bounds
-keep the excuse honest:
-
-- the first `step` seconds of a silence count whole (unless a probe shows its registrar
-  worked since the ping), unless the previous answer was late too (the watch is read
-  only once an answer is late, or from the ping on after a late one: reading it at
-  every ping would cost two files per thread, four times a second, per manager, on a
-  quiet machine too);
-- a manager silent for `STARVED_LIMIT` times its bound is hung however long it waited:
-  one whose registrar is stuck while other threads of it (busy callbacks) keep waiting
-  for a CPU would otherwise never be judged, and one that could not answer for that long
-  is of no use to its peers either.
-
-Where the platform has no watch (`portable`), no wait for a CPU is known: only the time its
-registrar was seen busy (below) and the watcher's delay before its first look are excused.
-
-*Busy is not hung* (issue 53): time in which its registrar was seen handling messages
-does not count either (`Heartbeat.progress`; an excused late answer: `on_late`).
-
-Alternatives weighed: a phi accrual failure detector (Hayashibara et al. 2004; Akka,
-Cassandra) learns the distribution of past answer times and suspects a peer when the
-current silence is improbable under it. It suits peers across a network, where nothing
-better is known; here the kernel knows why a silence lasts. Learning comes too late for
-a sudden load (a burst of manager starts: the distribution was learned from the quiet
-answers before it), and it would lengthen the detection of a real hang after every slow
-period. psutil reads CPU times and a state, not the run-queue delay: it could tell
-"stopped", not "starved" from "stuck".
+it could have run: the time its threads waited for a CPU (the kernel's run-queue delay,
+`Platform.watch_cpu`) and the time its registrar was seen handling messages (a probe's
+answer: busy is not hung) do not count; time stopped, blocked or running without
+answering does. The first `step` seconds count whole (the watch is read only once an
+answer is late), and a silence of `STARVED_LIMIT` times the bound is a hang however it
+was spent. Why this and not a phi accrual detector: docs/explanation/failure-semantics.md,
+"What counts as a hang".
 """
 
 from __future__ import annotations
@@ -63,22 +35,13 @@ __all__ = ["STARVED_LIMIT", "Hang", "Heartbeat", "Late", "Look"]
 logger = logging.getLogger("rr_actors")
 
 STARVED_LIMIT = 10.0
-"""A manager silent for this many times its bound is hung, however long it waited for a
-CPU (7.5 s with the default bound)."""
+"""A manager silent for this many times its bound is hung, however long it waited."""
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
 class Hang:
-    """A silence judged a hang: the manager is to be killed.
-
-    Attributes:
-        silent: seconds since the ping it did not answer was sent.
-        waited: seconds of that its threads waited for a CPU (`None`: not known here).
-        stopped: it was stopped (`SIGSTOP`, a debugger) when judged.
-        starved: it was judged only by `STARVED_LIMIT` (it waited for a CPU, or its
-            registrar was busy with other messages, nearly all along).
-        busy: seconds of the silence its registrar was seen handling other messages.
-    """
+    """A silence judged a hang: the manager is to be killed (seconds; `waited`: `None` if
+    not known; `starved`: judged only by `STARVED_LIMIT`)."""
 
     silent: float
     waited: float | None = None
@@ -87,7 +50,6 @@ class Hang:
     busy: float = 0.0
 
     def reason(self) -> str:
-        """What it was, for people: `no heartbeat answer for 0.751 s (stopped: ...)`."""
         text = f"no heartbeat answer for {self.silent:.3f} s"
         if self.stopped:
             return text + " (stopped: SIGSTOP or a debugger)"
@@ -108,26 +70,15 @@ class Hang:
 
 @dataclasses.dataclass(frozen=True, slots=True)
 class Look:
-    """A late silence is being looked at: send the manager a `Probe(number)` (its answer
-    goes to `Heartbeat.progress`)."""
+    """Send the manager a `Probe(number)` (its answer goes to `Heartbeat.progress`)."""
 
     number: int
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
 class Late:
-    """A silence past the bound that was excused: the manager answered late, overloaded.
-
-    Attributes:
-        silent: seconds from the ping to its answer.
-        bound: the bound it passed (`Heartbeat.bound`, seconds).
-        excused: seconds of that which did not count (`busy`, and the share of `waited`
-            outside it).
-        waited: seconds of it its threads waited for a CPU (0.0: not known here).
-        busy: seconds of it its registrar was handling other messages.
-        queued: messages waiting in its registrar's mailbox at the last probe answered
-            (-1: none was).
-    """
+    """A silence past the bound that was excused: the manager answered late, overloaded
+    (seconds; `queued`: its mailbox's depth at the last probe answered, -1: none was)."""
 
     silent: float
     bound: float
@@ -138,8 +89,7 @@ class Late:
 
 
 class _Silence:
-    """One ping in flight: when it was sent, the watch's reading once it was late, and what
-    the probes' answers said of its registrar's progress."""
+    """One ping in flight, the watch's reading once it was late, the probes' answers."""
 
     __slots__ = (
         "base",
@@ -172,33 +122,20 @@ class _Silence:
 
 
 def _excused(waited: float, busy: float, silent: float) -> float:
-    """Seconds of a `silent`-second silence that do not count: the `busy` ones (its
-    registrar was seen working), and of the `waited` ones (waiting for a CPU, spread over
-    the silence as far as anyone knows) the share that fell outside them. Never more
-    than `silent`; the larger of the two when one is 0."""
+    """Seconds of a silence that do not count: the `busy` ones, and the share of the `waited`
+    ones (spread over the silence) that fell outside them."""
     if silent <= 0.0:
         return 0.0
     return busy + waited * max(0.0, 1.0 - busy / silent)
 
 
 class Heartbeat:
-    """When to ping one manager, and whether its silence is a hang (its watcher thread).
+    """When to ping one manager, and whether its silence is a hang (its watcher thread
+    alone calls it; one ping in flight at a time).
 
-    One ping is in flight at a time. Not thread-safe: the manager's watcher thread alone
-    calls it.
-
-    Args:
-        name: the manager's name (for the log).
-        period: seconds between pings.
-        bound: seconds of silence, in time it could have run, after which it is hung
-            (`ManagerSpec.hang_after`).
-        cpu: the platform's watch of its process, or `None` (no time waiting for a CPU
-            is known: without `probes`, the silence counts whole).
-        now: the monotonic time now (the first ping goes a `period` later).
-        probes: whether the manager answers probes (`tick` then returns a `Look` at each
-            look at a late silence: send it a `Probe`, hand its answer to `progress`).
-        on_late: called (on the caller's thread) with a `Late` when a ping is answered
-            after more than `bound` seconds that were excused.
+    `period`, `bound` (`ManagerSpec.hang_after`): seconds; `cpu`: the platform's watch
+    (`None`: no CPU wait known); `probes`: `tick` returns a `Look` at each look at a late
+    silence; `on_late`: called with a `Late` when an answer past `bound` was excused.
     """
 
     def __init__(
@@ -218,27 +155,18 @@ class Heartbeat:
         self.cpu = cpu
         self.probes = probes
         self.on_late = on_late
-        self.step = min(period, bound / 3)
-        """Seconds between looks at a silence (a hang is seen within `bound + step`)."""
-        self.wake_at = now + period
-        """When the watcher must call `tick` next (monotonic seconds)."""
+        self.step = min(period, bound / 3)  # seconds between looks at a silence
+        self.wake_at = now + period  # when the watcher calls `tick` next
         self._next_ping = self.wake_at
         self._sent = 0
         self._silence: _Silence | None = None
         self._late = False  # the last answer came after a look at its silence
-        # one line at once, then one a minute at most: each kind on its own (one does not
-        # hide the other)
         self._starved = LogThrottle(logger)  # waited for a CPU
         self._busy = LogThrottle(logger)  # its registrar was busy
 
     def tick(self, now: float) -> int | Look | Hang | None:
-        """The watcher's turn at `now` (after it read what the pipe held).
-
-        Returns:
-            The number of a ping to send now (then call `sent`), a `Look` (send a probe;
-            only with `probes`), a `Hang` (kill the manager), or `None`. `wake_at` says
-            when to call again.
-        """
+        """The watcher's turn at `now`: the number of a ping to send (then call `sent`), a
+        `Look`, a `Hang`, or `None`; `wake_at` says when to call again."""
         silence = self._silence
         if silence is None:
             if now < self._next_ping:
@@ -255,9 +183,7 @@ class Heartbeat:
         return self._judge(silence, now)
 
     def sent(self, now: float) -> None:
-        """The ping `tick` asked for was written to the pipe at `now`: its silence starts
-        then (a watcher slow to send it, waiting for the GIL, does not count against the
-        manager)."""
+        """The ping was written at `now`: its silence starts then."""
         silence = self._silence
         if silence is not None:
             silence.sent = now
@@ -268,10 +194,7 @@ class Heartbeat:
                 silence.base = None if self.cpu is None else self.cpu.sample()
 
     def answered(self, number: int, now: float) -> bool:
-        """Ping `number` was answered (read at `now`); whether it is the one in flight.
-
-        An answer after more than `bound` seconds that were excused goes to `on_late`.
-        """
+        """Ping `number` was answered at `now`; whether it is the one in flight."""
         silence = self._silence
         if silence is None or silence.number != number:
             return False  # (an answer to an earlier ping, or none in flight)
@@ -294,24 +217,10 @@ class Heartbeat:
         return True
 
     def progress(self, number: int, pinged: int, handled: int, queued: int, now: float) -> None:
-        """A probe of ping `number` was answered (read at `now`): its registrar had handled
-        `pinged` messages when the ping reached its process, `handled` now, and `queued`
-        wait in its mailbox.
-
-        A saturated manager answers late: its ping waits behind the calls in its mailbox,
-        and its registrar waits for the GIL behind busy workers, which the kernel counts
-        as sleep, not as waiting for a CPU. The manager's control loop answers a probe at
-        once (`Inbox.handled`, its mailbox's size): the time since the previous answer (or
-        since the ping) in which the count grew was spent working and does not count (a
-        silence's run-queue delay counts only in the share of it not seen working:
-        `_excused`).
-        A registrar stuck in a handler handles nothing, so its silence counts; one stuck
-        right after a message gains the interval it was handled in: since the previous
-        answer, or for the first answer at most one `step` (a probe read late, its
-        watcher delayed, credits no more). A process that cannot answer
-        (stopped, or one thread holding the GIL throughout) gains nothing; the
-        `STARVED_LIMIT` holds for a busy one too.
-        """
+        """A probe of ping `number` was answered at `now`: its registrar had handled
+        `pinged` messages at the ping, `handled` now, `queued` wait. The time since the
+        previous answer (the first: at most one `step`) in which the count grew was spent
+        working and does not count."""
         silence = self._silence
         if silence is None or silence.number != number:
             return  # (a probe of an earlier silence)
@@ -325,7 +234,6 @@ class Heartbeat:
         silence.handled, silence.handled_at, silence.queued = handled, now, queued
 
     def close(self) -> None:
-        """Release the platform's watch."""
         if self.cpu is not None:
             self.cpu.close()
 
@@ -356,7 +264,6 @@ class Heartbeat:
         return self._look(silence)
 
     def _look(self, silence: _Silence) -> Look | None:
-        """A probe to send now, if the manager answers them and none is unanswered."""
         if not self.probes or silence.probed:
             return None
         silence.probed = True

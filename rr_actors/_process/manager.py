@@ -16,18 +16,10 @@
                                exit seen ──► on_exit(ManagerExit) ──► the supervisor's mailbox
 ```
 
-[`ManagerProcess`][rr_actors._process.manager.ManagerProcess] owns the process and its
-control pipe; one watcher thread per process blocks on the process sentinel, the pipe and,
-where the platform has one, an early exit watch (`Platform.watch_exit`: on Linux a pidfd,
-which tells the exit before the forkserver has reaped the child), and sends the heartbeat
-pings. A manager is killed and reported like a crash when it is *hung* (no answer to a
-ping for `heartbeat_timeout` seconds of time it could have run: `Heartbeat` judges that,
-`rr_actors._process.heartbeat`) or *unhealthy*: its answers say that its listener has
-been unable to accept connections (out of file descriptors, say) for that long. What
-the pipe holds is read before a silence is judged: an answer that came while the watcher
-thread itself waited (for the GIL, for a CPU) counts. The child's side is
-`rr_actors._process.child`; spares are in `rr_actors._process.spare`; the messages of
-the control pipe are `rr_actors._process.control`'s.
+A manager is killed and reported like a crash when it is *hung* (`heartbeat.py`) or
+*unhealthy*: its answers say its listener has been unable to accept connections for as
+long. What the pipe holds is read before a silence is judged. The exit watch
+(`Platform.watch_exit`, a pidfd on Linux) tells an exit before the forkserver reaps it.
 """
 
 from __future__ import annotations
@@ -44,7 +36,7 @@ from multiprocessing.process import BaseProcess
 from typing import TYPE_CHECKING, Any
 
 from rr_actors._core import runtime
-from rr_actors._platform import PLATFORM, forkserver
+from rr_actors._platform import PLATFORM
 from rr_actors._process.child import main
 from rr_actors._process.control import (
     ACTOR_DIED_EXIT,
@@ -62,14 +54,13 @@ from rr_actors._process.control import (
     Ready,
     Stop,
     SyncEvents,
-    forker_pid,
+    fork,
     mp_context,
     start_forkserver,
     stopped_cleanly,
 )
 from rr_actors._process.heartbeat import Hang, Heartbeat, Late, Look
-from rr_actors._process.received import Received
-from rr_actors._process.tally import Tally
+from rr_actors._process.tally import Received, Tally
 from rr_actors._transport.messenger import Address
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import CallTimeoutError, RegistrarUnavailableError, RrError
@@ -88,30 +79,17 @@ __all__ = [
 
 logger = logging.getLogger("rr_actors")
 
-_SHUTDOWN_SIGNALS = frozenset({signal.SIGTERM})
-"""Signals that ask a process to stop: an exit by one is OTP's `shutdown`, not a crash."""
+_SHUTDOWN_SIGNALS = frozenset({signal.SIGTERM})  # OTP's `shutdown`, not a crash
 
-_READ_AT_ONCE = 1000
-"""Messages of a manager's the watcher reads in one turn at most (then it judges anyway:
-a manager that floods its pipe cannot put off the judgement of its silence for ever)."""
+_READ_AT_ONCE = 1000  # a manager that floods its pipe cannot put off its judgement
 
 
 class ManagerExit:
     """Why a child (a manager process or thread, a nested supervisor) ended.
 
-    After OTP's exit reasons: `normal` and `shutdown` (here: `normal=True`) do not restart
-    a `transient` child; anything else (a crash) does.
-
-    Attributes:
-        reason: what happened, for people (`ChildInfo.last_exit`).
-        normal: whether it counts as a normal exit (a `transient` child is then not
-            restarted): its registrar was stopped cleanly, it was asked to stop (SIGTERM,
-            OTP's `shutdown`), or it is a nested supervisor that gave up (which in OTP
-            exits with `shutdown`).
-        clean: whether it let go of what it held itself (its registrar's clean stop
-            released its consumer ids). A child that is down for good and did not is
-            released by the death watch. Default: `normal`; a manager ended by SIGTERM
-            is normal but not clean.
+    After OTP's exit reasons: `normal` and `shutdown` (`normal=True`) do not restart a
+    `transient` child. `clean`: it let go of what it held itself (else the death watch
+    releases it); default `normal` (a SIGTERM is normal but not clean).
     """
 
     __slots__ = ("clean", "normal", "reason")
@@ -130,11 +108,9 @@ _EXITS: dict[int, tuple[str, bool]] = {
     0: ("exited with code 0 without stopping its registrar", False),  # nothing let go
     ACTOR_DIED_EXIT: ("registrar actor died", False),
 }
-"""The reason and whether it is normal, of each exit code a manager process's end has."""
 
 
 def describe(exitcode: int | None) -> ManagerExit:
-    """How a manager process ended, from its exit code (`Process.exitcode`)."""
     if exitcode is None:
         return ManagerExit("unknown exit", normal=False)
     known = _EXITS.get(exitcode)
@@ -153,11 +129,8 @@ def describe(exitcode: int | None) -> ManagerExit:
 
 
 class ManagerProcess:
-    """The parent's handle on one running manager process (one incarnation).
-
-    Start with [`start`][rr_actors._process.manager.ManagerProcess.start]; `on_exit(ManagerExit)`
-    runs once on the watcher thread when the process ends, whatever the cause.
-    """
+    """The parent's handle on one running manager process (one incarnation); `on_exit`
+    runs once on the watcher thread when the process ends, whatever the cause."""
 
     def __init__(
         self,
@@ -223,29 +196,15 @@ class ManagerProcess:
     ) -> ManagerProcess:
         """Start a manager process and wait until it serves (its catalog restored).
 
-        Args:
-            name, setup, config, address: what the manager runs (see `main`).
-            start_timeout: seconds it may take to restore, set up and serve.
-            heartbeat, heartbeat_timeout: seconds between pings (`None`: no heartbeat),
-                and of silence before it counts as hung (`None`: three periods).
-            on_exit: called once, on the watcher thread, with how it ended.
-            spare: an idle pre-started process to run it in (else a new one is started;
-                also if the spare died meanwhile).
-            forward_events: whether the manager forwards its registrar's events from its
-                start (`forward_events` switches it later).
-            on_events: called on the watcher thread with each batch of events the
-                manager forwards (`rr_actors.events` values, in the order they happened).
-            on_overloaded: called on the watcher thread with its pid and a `Late` when the
-                manager answered a ping after more than its bound, the silence excused (it
-                was busy, or waited for a CPU: `rr_actors._process.heartbeat`; that was
-                logged, a WARNING).
+        Seconds: `start_timeout`, `heartbeat` (`None`: none), `heartbeat_timeout` (`None`:
+        three periods). `on_exit`, `on_events` (each forwarded batch) and `on_overloaded`
+        (a late answer excused) run on the watcher thread.
 
         Raises:
-            CatalogCorruptError: its backup cannot be read: the error raised in the
-                manager, with its `path` (a note holds the manager's traceback).
-            RegistrarUnavailableError: it failed otherwise (setup raised, ...) or died
-                before it was ready; the message holds its traceback.
-            CallTimeoutError: it was not ready within `start_timeout` seconds (it is killed).
+            CatalogCorruptError: its backup cannot be read (with its `path`; a note holds
+                the manager's traceback).
+            RegistrarUnavailableError: it failed otherwise or died before it was ready.
+            CallTimeoutError: it was not ready within `start_timeout` seconds (killed).
         """
         simulated = runtime.manager_process
         if simulated is not None:  # a simulated process (`rr_actors.simulation`)
@@ -308,19 +267,11 @@ class ManagerProcess:
         return True
 
     def forward_events(self, on: bool) -> None:
-        """Tell the manager to forward its registrar's events (`on`) or to stop forwarding."""
         self._send(Forward(on))
 
     def sync_events(self, timeout: float) -> bool:
-        """Block until what the manager forwarded before this call reached `on_events`.
-
-        Also true once it has switched to what it was last told (`forward_events`): the
-        manager handles its control messages in order.
-
-        Returns:
-            Whether that happened within `timeout` seconds (`True` once it exited, too:
-            nothing more will come).
-        """
+        """Block until what the manager forwarded before this call reached `on_events`;
+        whether it did within `timeout` seconds (`True` once it exited)."""
         token = next(self._sync_tokens)  # atomic in CPython
         done = self._syncs[token] = runtime.Event()
         try:
@@ -331,16 +282,8 @@ class ManagerProcess:
             self._syncs.pop(token, None)
 
     def stop(self, timeout: float, *, restarting: bool = False) -> ManagerExit:
-        """Ask the manager to stop its registrar and exit; kill it after `timeout` seconds.
-
-        Args:
-            timeout: seconds it gets to stop cleanly.
-            restarting: it is stopped to be restarted (with its group): its peers then
-                see it unavailable for now, not stopped for good (it leaves no tombstone).
-
-        Returns:
-            How it ended (`"shutdown"`, or `"killed: shutdown timeout"`, or what it died of).
-        """
+        """Ask the manager to stop its registrar and exit; kill it after `timeout` seconds
+        (`restarting`: its peers see it unavailable for now, not stopped for good)."""
         self._stopping = True
         self._send(Stop(timeout, restarting))
         if self.exited.wait(timeout) and self.exit is not None:
@@ -352,14 +295,12 @@ class ManagerProcess:
         return ManagerExit(f"killed: no clean stop within {timeout:g} s", normal=False)
 
     def kill(self) -> None:
-        """SIGKILL the process (no cleanup; its backup keeps what was written)."""
         with contextlib.suppress(OSError, ValueError):
             self.process.kill()
 
     # -- the watcher thread -----------------------------------------------------------
 
     def _watch(self) -> None:
-        """Block on the sentinel, the exit watch and the control pipe; ping on the heartbeat."""
         waitables: list[Any] = [self.process.sentinel, self.conn]
         if self._exit_watch is not None:
             waitables.append(self._exit_watch)
@@ -393,7 +334,6 @@ class ManagerProcess:
         self._finish(exitcode)
 
     def _ended(self, woke: list[Any], waitables: list[Any]) -> tuple[bool, int | None]:
-        """Whether the process ended, and its exit code if the exit watch read it early."""
         if self.process.sentinel in woke:
             return True, None
         watch = self._exit_watch
@@ -405,8 +345,8 @@ class ManagerProcess:
         return False, None
 
     def _read_available(self, waitables: list[Any], now: float) -> tuple[float, str] | None:
-        """Read what the manager has sent (`_READ_AT_ONCE` messages at most); the health
-        its answer to the ping in flight says, if that came (see `_read_control`)."""
+        """Read what the manager has sent; the health its answer to the ping in flight
+        says, if that came."""
         health = None
         for _ in range(_READ_AT_ONCE):
             if self.conn not in waitables or not _readable(self.conn):
@@ -417,14 +357,8 @@ class ManagerProcess:
         return health
 
     def _read_control(self, waitables: list[Any], now: float) -> tuple[float, str] | None:
-        """Read one message of the manager's; if it answers the ping in flight, its health.
-
-        Returns:
-            `None` unless the message answers the ping in flight; then for how long
-            (seconds) and why the manager has been unable to accept connections (`0.0,
-            ""` if it can). A batch of forwarded events is handed to `on_events` here
-            (the watcher thread).
-        """
+        """Read one message; if it answers the ping in flight, for how long (seconds) and
+        why the manager has been unable to accept connections (`0.0, ""`: it can)."""
         try:
             message = self.conn.recv()
         except (EOFError, OSError):
@@ -437,7 +371,6 @@ class ManagerProcess:
         return handler(self, message, now)
 
     def _events(self, message: Events, _now: float) -> None:
-        """A batch of forwarded events: to `on_events` (the watcher thread)."""
         self._received.deliver(self.name, message.batch)
 
     def _synced(self, message: EventsSynced, _now: float) -> None:
@@ -446,21 +379,18 @@ class ManagerProcess:
             waiting.set()
 
     def _pong(self, message: Pong, now: float) -> tuple[float, str] | None:
-        """The health a pong of the ping in flight says; `None` for another one."""
         if self._beat is None or not self._beat.answered(message.number, now):
             return None
         trouble = message.trouble
         return (0.0, "") if trouble is None else (float(trouble[0]), str(trouble[1]))
 
     def _progress(self, message: Progress, now: float) -> None:
-        """A probe's answer: how far the registrar got through its mailbox."""
         if self._beat is not None:
             self._beat.progress(
                 message.number, message.pinged, message.handled, message.queued, now
             )
 
     def _late(self, late: Late) -> None:
-        """A late answer was excused (the heartbeat logged it): to `on_overloaded`."""
         if self._on_overloaded is None:
             return
         try:
@@ -481,7 +411,6 @@ class ManagerProcess:
         self.kill()
 
     def _finish(self, exitcode: int | None) -> None:
-        """Report the exit; `exitcode` if it was read before the parent reaped the process."""
         if exitcode is None:
             self.process.join(5.0)
             exitcode = self.process.exitcode
@@ -518,17 +447,11 @@ _HANDLERS: dict[type[Any], Callable[[ManagerProcess, Any, float], tuple[float, s
     Pong: ManagerProcess._pong,
     Progress: ManagerProcess._progress,
 }
-"""What the watcher thread does with each message of a running manager's (`Ready`,
-`Failed` and `Warm` come before it runs: `_await_ready`)."""
 
 
 def release(process: BaseProcess) -> None:
-    """Close the descriptors a reaped process object holds (its sentinel pipe, ...).
-
-    Not left to the garbage collector: whoever keeps a reference (an error's traceback
-    that went through `Supervisor.run_in`, say) would keep them open. A process that is
-    not reaped yet keeps them (`close` refuses); they go with the object then.
-    """
+    """Close the descriptors a reaped process object holds (not left to the garbage
+    collector: a traceback that keeps a reference would keep them open)."""
     with contextlib.suppress(ValueError, OSError):
         process.close()
 
@@ -543,30 +466,17 @@ def _launch(
     tally: Tally | None,
     start_timeout: float,
 ) -> tuple[Any, Connection]:
-    """Hand the manager to `spare`, or start a new process for it; the process and pipe.
-
-    A fork that takes longer than `start_timeout` (a stopped forkserver) raises
-    `TimeoutError` (`forkserver.start_within`), its pipe closed.
-    """
+    """Hand the manager to `spare`, or start a new process for it (`TimeoutError`: the
+    fork took longer than `start_timeout`)."""
     path = None if tally is None else tally.path
     if spare is not None and spare.take(name, setup, config, address, forward=forward, tally=path):
         return spare.process, spare.conn
-    ctx = mp_context()
-    parent_conn, child_conn = ctx.Pipe(duplex=True)
-    process = ctx.Process(  # type: ignore[attr-defined]
-        target=main,
-        args=(setup, config, address, child_conn, forker_pid(ctx), forward, path),
-        name=f"{PROCESS_PREFIX}{name}",
-        daemon=True,
+    return fork(
+        main,
+        lambda conn, forker: (setup, config, address, conn, forker, forward, path),
+        f"{PROCESS_PREFIX}{name}",
+        start_timeout,
     )
-    try:
-        forkserver.start_within(process, start_timeout)
-    except BaseException:
-        parent_conn.close()
-        raise
-    finally:
-        child_conn.close()
-    return process, parent_conn
 
 
 def _await_ready(
@@ -578,15 +488,8 @@ def _await_ready(
     *,
     deadline: float | None = None,
 ) -> None:
-    """Wait for the manager's `ready` (skipping a spare's `warm`); raise if it never comes.
-
-    A manager sends the events of its start (its restore's, its setup's) after `Ready`
-    (the watcher thread reads them), unless its start takes longer than the child's
-    `START_HOLD`: those that come before go to `received` as they come, and so do those
-    of a start that fails (with the count of those it built and never sent). `deadline`
-    (`runtime.monotonic`) ends the `start_timeout` that began before the process was
-    forked (default: from now).
-    """
+    """Wait for the manager's `Ready`; raise if it never comes (events before it go to
+    `received`; `deadline`: when `start_timeout` ends, default from now)."""
     if deadline is None:
         deadline = runtime.monotonic() + start_timeout
     pid = process.pid
@@ -614,28 +517,30 @@ def _await_ready(
         if ready is None and (process.sentinel in woke or left <= 0):
             if left <= 0:
                 process.kill()
-            process.join(5.0)
-            received.drain(name, conn)
-            received.count_lost(name, pid)
-            conn.close()
-            reason = describe(process.exitcode).reason
-            release(process)
+            reason = _reap(name, process, conn, received)
             if left <= 0:
                 raise CallTimeoutError(f"manager {name!r} was not ready within {start_timeout:g} s")
             raise RegistrarUnavailableError(f"manager {name!r} died while starting ({reason})")
     if isinstance(ready, Failed):
-        process.join(5.0)
-        received.drain(name, conn)
-        received.count_lost(name, pid)
-        conn.close()
-        release(process)
+        _reap(name, process, conn, received)
         raise _start_failed(name, pid, ready)
 
 
+def _reap(name: str, process: BaseProcess, conn: Connection, received: Received) -> str:
+    """After a start that failed: count its events, close its pipe; how it ended."""
+    assert process.pid is not None  # (started)
+    process.join(5.0)
+    received.drain(name, conn)
+    received.count_lost(name, process.pid)
+    conn.close()
+    reason = describe(process.exitcode).reason
+    release(process)
+    return reason
+
+
 def _start_failed(name: str, pid: int, failed: Failed) -> RrError:
-    """What a manager's start that sent `failed` raises: the `CatalogCorruptError` it
-    raised, as a registrar's start raises it in-process (its `path` is the recovery's:
-    `quarantine_backup`), else `RegistrarUnavailableError` with its traceback."""
+    """What a start that sent `failed` raises: its `CatalogCorruptError` (as in-process),
+    else `RegistrarUnavailableError` with its traceback."""
     if failed.corrupt is not None:
         failed.corrupt.add_note(f"raised in manager {name!r} (pid {pid}):\n{failed.traceback}")
         return failed.corrupt
@@ -643,7 +548,6 @@ def _start_failed(name: str, pid: int, failed: Failed) -> RrError:
 
 
 def _readable(conn: Connection) -> bool:
-    """Whether `conn` has a message (or its end) to read now."""
     try:
         return conn.poll(0)
     except (OSError, EOFError):

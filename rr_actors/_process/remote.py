@@ -1,8 +1,7 @@
 """A registrar's actor in another process of a system, and the handle on it.
 
-A `RemoteRegistrar` is the one handle (`_registrar/handle.py`'s `Registrar`) whose actor
-is `There`: each operation runs where the registrar is, over the system's carrier (any
-carrier: `Address.attach()`, `Transport.resolve`, `Remote.submit`):
+A `RemoteRegistrar` is the one handle (`Registrar`) whose actor is `There`: each
+operation runs where the registrar is, over the system's carrier:
 
 ```
  reg.call(...) / await reg.acall(...) ─► There.steps(Here.call, timeout, ...)
@@ -18,10 +17,7 @@ carrier: `Address.attach()`, `Transport.resolve`, `Remote.submit`):
 ```
 
 The owner of a manager process (`RemoteRegistrar.start`) holds it as `Owner`, a `There`
-whose stop and liveness are the process's: it can `kill` it, and when the process dies
-without being stopped it tells every registrar of the system that this consumer is gone
-(death watch), as a supervisor does for a child it will not restart. Tests run one body
-over both placements with it (`rr_actors.testing` re-exports it).
+whose stop and liveness are the process's (its death unstopped is a death watch).
 """
 
 from __future__ import annotations
@@ -60,13 +56,11 @@ T = TypeVar("T")
 P = ParamSpec("P")
 
 FORWARD_MARGIN = 10.0
-"""Seconds an operation run in another process may take beyond its own `timeout`
-(the carrier, and scheduling)."""
+"""Seconds an operation run in another process may take beyond its own `timeout`."""
 
 
 class There:
-    """The actor in another process of the system (or in this one, found by its name):
-    an operation's steps run there, one `Run` each."""
+    """The actor in another process of the system (or in this one, found by its name)."""
 
     def __init__(self, config: RegistrarConfig, address: Address) -> None:
         self.config = config
@@ -79,7 +73,6 @@ class There:
         *args: P.args,
         **kwargs: P.kwargs,
     ) -> Steps[T]:
-        """`op`'s steps where the registrar is (the module docstring draws it)."""
         name = self.config.name
         limit = _margin(timeout, self.config)
         transport = self.address.attach()
@@ -103,42 +96,35 @@ class There:
         return result
 
     def stop(self, timeout: float | None) -> Steps[None]:
-        """Its `Here.stop`, there; one stopped or dead already is no error."""
         limit = self.config.call_timeout if timeout is None else timeout
         with contextlib.suppress(RegistrarStoppedError, RegistrarUnavailableError):
             yield from self.steps(Here.stop, limit)
 
     def is_alive(self) -> bool:
-        """Whether it answers that it runs."""
         try:
             return bool(self.run(_is_alive, self.config.call_timeout + FORWARD_MARGIN))
         except RrError:
             return False
 
     def state(self) -> str:
-        """Nothing (whether it runs would be asked across processes, for a `repr`)."""
         return ""
 
     @property
     def pid(self) -> int | None:
-        """`None`: the process is not this one's."""
         return None
 
     def run(self, fn: Callable[[ResourceRegistrar], Any], timeout: float | None) -> Any:
-        """`RemoteRegistrar.run`: `fn(registrar)` where it is, over the carrier."""
         limit = self.config.call_timeout if timeout is None else timeout
         return self.address.attach().run(self.config.name, fn, timeout=limit)
 
     def kill(self, timeout: float) -> None:
-        """`RemoteRegistrar.kill` from a handle that does not own the process: it
-        SIGKILLs itself, and its owner does the rest."""
+        """Not the owner: it SIGKILLs itself, and its owner does the rest."""
         with contextlib.suppress(RegistrarUnavailableError, RegistrarStoppedError):
             self.run(_kill_own_process, timeout)
 
 
 class Owner(There):
-    """The actor in a manager process this process started and owns (`Owner.start`):
-    stopped and watched as that process."""
+    """The actor in a manager process this process started and owns."""
 
     def __init__(self, config: RegistrarConfig, address: Address) -> None:
         super().__init__(config, address)
@@ -150,7 +136,6 @@ class Owner(There):
     def start(
         cls, config: RegistrarConfig, address: Address, setup: bytes, start_timeout: float
     ) -> Owner:
-        """Start the manager process (`RemoteRegistrar.start` documents it)."""
         owner = cls(config, address)
         owner.process = ManagerProcess.start(
             config.name,
@@ -165,7 +150,6 @@ class Owner(There):
         return owner
 
     def stop(self, timeout: float | None) -> Steps[None]:
-        """The process's stop, on a thread of its own (a loop awaits it, never runs it)."""
         stop = functools.partial(self._stop_process, timeout)
         return on_own_thread(stop, f"rr-stop-{self.config.name}")
 
@@ -185,20 +169,16 @@ class Owner(There):
         raise RegistrarUnavailableError(f"registrar {name!r} did not stop cleanly: {result.reason}")
 
     def is_alive(self) -> bool:
-        """Whether the manager process runs."""
         return not self._process().exited.is_set()
 
     def state(self) -> str:
-        """The process's pid."""
         return f"pid {self.pid}"
 
     @property
     def pid(self) -> int | None:
-        """The manager process's pid."""
         return self._process().pid
 
     def kill(self, timeout: float) -> None:
-        """SIGKILL the process; return once its death watch went out."""
         self._process().kill()
         if not self.down.wait(timeout):
             raise CallTimeoutError(f"manager {self.config.name!r} not dead within {timeout:g} s")
@@ -208,8 +188,8 @@ class Owner(There):
         return self.process
 
     def _exited(self, how: ManagerExit) -> None:
-        """Runs on the manager's watcher thread when the process ended: unless it was
-        stopped or a restart is expected, its death watch (rule 19; `life.py's Presence`)."""
+        """The process ended (its watcher thread): unless stopped or a restart is expected,
+        its death watch (rule 19)."""
         try:
             name = self.config.name
             if not how.clean and not self.stopping and not DIRECTORY.restart_expected(name):
@@ -224,25 +204,17 @@ class Owner(There):
 class RemoteRegistrar(Registrar):
     """A handle on a registrar that lives in a manager process of a system.
 
-    It is the one handle, [`Registrar`][rr_actors.Registrar] (the methods of a
-    `ResourceRegistrar`, with the same arguments, results and errors), whose actor is in
-    that process: each method runs the registrar's own operation there, over the
-    system's carrier, and returns its result or re-raises its error (rr_actors errors
-    pickle). Arguments, callbacks and results are cloudpickled, so callbacks may be
-    closures; they run in the registrar's process, on the threads a local registrar
-    would use. The handle itself pickles: a callback that captured it and runs in the
-    registrar's own process calls the registrar directly on its own thread (so a call
-    inside a `load` callback is still recorded as a dependency), and from any other
-    process of the system it goes over the carrier again.
+    The one handle, [`Registrar`][rr_actors.Registrar] (same arguments, results and
+    errors), whose actor is in that process: each method runs there, over the system's
+    carrier. Arguments, callbacks and results are cloudpickled (callbacks may be
+    closures) and callbacks run in the registrar's process, on the threads a local
+    registrar would use. The handle pickles; in the registrar's own process it calls the
+    registrar directly (a call inside a `load` is still a dependency).
 
-    Start one with [`start`][rr_actors.testing.RemoteRegistrar.start] (the *owner*
-    handle, which owns the manager process and can [`kill`][rr_actors.testing.RemoteRegistrar.kill]
-    it), or reach an existing registrar of a system (a supervised manager, say) with the
-    constructor. When an owned manager process dies without being stopped, the owner tells
-    every registrar of the system that this consumer is gone (death watch), as a
-    supervisor does for a child it will not restart (unless a restart is expected:
-    `rr_actors.testing.expect_restart`): its consumers' ids are released and the ids
-    held there get `FATAL` at their consumers (rule 19).
+    [`start`][rr_actors.testing.RemoteRegistrar.start] returns the *owner* handle, which
+    can [`kill`][rr_actors.testing.RemoteRegistrar.kill] the process; the constructor
+    reaches an existing registrar. An owned process that dies unstopped is a death watch
+    (rule 19), unless a restart is expected (`rr_actors.testing.expect_restart`).
     """
 
     _actor: There
@@ -261,8 +233,8 @@ class RemoteRegistrar(Registrar):
             config: the registrar's configuration (its `call_timeout` is the default
                 timeout of this handle's methods), or just its name.
             address: the system's address (any carrier's `Address`; it pickles).
-            restored: what `restored` reports (the owner handle learns it at start).
-            in_doubt: what `in_doubt` reports (likewise).
+            restored: what `restored` reports.
+            in_doubt: what `in_doubt` reports.
         """
         config = RegistrarConfig(name=config) if isinstance(config, str) else config
         super().__init__(RegistrarFacts(config, restored, in_doubt), There(config, address))
@@ -278,9 +250,8 @@ class RemoteRegistrar(Registrar):
     ) -> RemoteRegistrar:
         """Start a registrar in a new manager process of `system`; return the owner handle.
 
-        The process is started with the forkserver (or spawn) context; there it attaches
-        the system, starts the registrar (restoring its catalog), runs `setup(registrar)`
-        and serves it. It dies with this process.
+        There it restores its catalog, runs `setup(registrar)` and serves; it dies with
+        this process.
 
         Args:
             config: the registrar's configuration, or just its name.
@@ -294,17 +265,15 @@ class RemoteRegistrar(Registrar):
 
         Raises:
             ConfigError: `config` is invalid or `setup` does not pickle.
-            CatalogCorruptError: its backup cannot be read (raised as in the manager,
-                with its `path`).
+            CatalogCorruptError: its backup cannot be read (with its `path`).
             RegistrarUnavailableError: the manager failed to start otherwise (its
-                traceback, say a `DuplicateNameError`, is in the message).
+                traceback is in the message).
             CallTimeoutError: it was not ready within `start_timeout` seconds.
         """
         if isinstance(config, str):
             config = RegistrarConfig(name=config)
         elif not isinstance(config, RegistrarConfig):
             raise ConfigError(f"config must be a RegistrarConfig or a name, got {config!r}")
-        # a Transport has its `address`; an Address has none (both are protocols)
         address = cast("Address", getattr(system, "address", system))
         try:
             payload = wire.dumps(setup)  # (its code keeps its file: a traceback shows it)
@@ -323,7 +292,7 @@ class RemoteRegistrar(Registrar):
         return handle
 
     def __reduce__(self) -> tuple[Any, ...]:
-        """Pickle as a plain (non-owner) handle: the manager process stays with its owner."""
+        """Pickle as a plain (non-owner) handle."""
         facts = self._facts
         return (_rebuild, (facts.config, self._actor.address, facts.restored, facts.in_doubt))
 
@@ -335,8 +304,8 @@ class RemoteRegistrar(Registrar):
     def run(self, fn: Callable[[ResourceRegistrar], Any], *, timeout: float | None = None) -> Any:
         """Run `fn(registrar)` in the registrar's process and return its result.
 
-        `fn` is cloudpickled (closures work); in the registrar's own process it runs on
-        the calling thread, elsewhere on a fresh thread of the registrar's process.
+        `fn` is cloudpickled; in the registrar's own process it runs on the calling
+        thread, elsewhere on a fresh thread of the registrar's process.
 
         Args:
             fn: called with the `ResourceRegistrar`; its result must pickle.
@@ -358,9 +327,7 @@ class RemoteRegistrar(Registrar):
     def kill(self, *, timeout: float = 5.0) -> None:
         """SIGKILL the registrar's manager process; return once it is dead.
 
-        For the owner handle, this also waits until the system's registrars were told
-        that this consumer is gone (death watch). From another handle, the process kills
-        itself and its owner does the rest.
+        The owner handle also waits until the death watch went out.
 
         Args:
             timeout: seconds to wait for the death.
@@ -372,11 +339,8 @@ class RemoteRegistrar(Registrar):
 
 
 def _margin(timeout: object, config: RegistrarConfig) -> float:
-    """How long to wait for an operation there: its own `timeout`, and `FORWARD_MARGIN`.
-
-    An invalid `timeout` is passed on untouched (the registrar rejects it with the same
-    `ConfigError` as a local one); the wait then uses the default.
-    """
+    """How long to wait for an operation there (an invalid `timeout`, which the registrar
+    rejects, waits the default)."""
     valid = isinstance(timeout, int | float) and not isinstance(timeout, bool) and timeout > 0
     limit = float(cast("float", timeout)) if valid else config.call_timeout
     return limit + FORWARD_MARGIN
@@ -391,9 +355,8 @@ def _drive_there(
     traceparent: str,
     registrar: ResourceRegistrar,
 ) -> T:
-    """In the registrar's process, on a thread of its own: run the operation's steps, in
-    the load context of the caller (a call made inside a load elsewhere) and under the
-    caller's OpenTelemetry span (`traceparent`, `""`: none), so its trace continues."""
+    """In the registrar's process: run the operation's steps in the caller's load context
+    and OpenTelemetry span (`traceparent`, `""`: none)."""
     steps = functools.partial(op, registrar._actor, timeout, *args, **kwargs)
     if context is None and not traceparent:
         return run_steps(steps())
@@ -406,8 +369,7 @@ def _drive_there(
 
 
 def _give_back(peer: Remote, future: Any) -> None:
-    """An operation whose caller stopped waiting here got its answer there: a call's
-    query is released there (on the answering thread; nobody waits for it)."""
+    """A call whose caller stopped waiting got its answer there: release its query there."""
     try:
         query = future.get(timeout=0)
     except Exception:  # noqa: BLE001 - failed there: nothing is held

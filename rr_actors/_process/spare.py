@@ -8,10 +8,8 @@
    close() ──► every idle spare: EOF on its pipe ──► exits
 ```
 
-A restart hands the manager's arguments to a process that already runs: the process
-start (forkserver fork and child bootstrap) and its first-use costs (`_warm_up`) are off
-the restart path. The pool keeps `size` spares; a crash that comes right after a restart
-then still finds one that has finished warming up (the one started last may not have).
+A restart hands the manager's arguments to a process that already runs and has paid
+its first-use costs (`_warm_up`): those are off the restart path.
 """
 
 from __future__ import annotations
@@ -25,10 +23,10 @@ from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
 from typing import Any
 
-from rr_actors._platform import PLATFORM, forkserver
+from rr_actors._platform import PLATFORM
 from rr_actors._platform.base import ExitWatch
 from rr_actors._process.child import standby
-from rr_actors._process.control import PROCESS_PREFIX, Start, Warm, WarmUp, forker_pid, mp_context
+from rr_actors._process.control import PROCESS_PREFIX, Start, Warm, WarmUp, fork
 from rr_actors._transport.messenger import Address
 from rr_actors.config import RegistrarConfig
 
@@ -37,19 +35,14 @@ __all__ = ["Spare", "SparePool"]
 logger = logging.getLogger("rr_actors")
 
 FORK_TIMEOUT = 5.0
-"""Seconds a spare's fork may take (a stopped forkserver): the filler thread gives up
-then, so that `SparePool.close` does not wait for it longer."""
+"""Seconds a spare's fork may take (a stopped forkserver) before the filler gives up."""
 
 REAP_GRACE = 0.5
 """Seconds `Spare.close` waits for the forkserver to reap a spare that has exited."""
 
 
 class Spare:
-    """A manager process started ahead of need, idle until it is given a manager to run.
-
-    A spare that is never used exits when [`close`][rr_actors._process.spare.Spare.close]d
-    (or when its parent dies, like any manager process).
-    """
+    """A manager process started ahead of need, idle until it is given a manager to run."""
 
     def __init__(self, process: BaseProcess, conn: Connection, *, lean: bool = False) -> None:
         self.process = process
@@ -59,29 +52,14 @@ class Spare:
 
     @classmethod
     def start(cls, *, lean: bool = False) -> Spare:
-        """Start a spare process (returns once it was forked; it idles on its pipe).
-
-        Args:
-            lean: it warms up only when told (`warm_up`), not at once.
-
-        Raises:
-            TimeoutError: it was not forked within `FORK_TIMEOUT` seconds.
-        """
-        ctx = mp_context()
-        parent_conn, child_conn = ctx.Pipe(duplex=True)
-        process = ctx.Process(  # type: ignore[attr-defined]
-            target=standby,
-            args=(child_conn, forker_pid(ctx), not lean),
-            name=f"{PROCESS_PREFIX}spare",
-            daemon=True,
+        """Start a spare process, once forked (`lean`: it warms up only when told;
+        `TimeoutError`: not forked within `FORK_TIMEOUT` seconds)."""
+        process, parent_conn = fork(
+            standby,
+            lambda conn, forker: (conn, forker, not lean),
+            f"{PROCESS_PREFIX}spare",
+            FORK_TIMEOUT,
         )
-        try:
-            forkserver.start_within(process, FORK_TIMEOUT)
-        except BaseException:
-            parent_conn.close()
-            raise
-        finally:
-            child_conn.close()
         return cls(process, parent_conn, lean=lean)
 
     def warm_up(self) -> None:
@@ -122,13 +100,8 @@ class Spare:
         return True
 
     def close(self, timeout: float = 5.0) -> None:
-        """Release an unused spare: it sees EOF and exits; killed after `timeout` seconds.
-
-        Its exit is seen by the platform's exit watch where there is one (a pidfd), not
-        only by the process sentinel, which waits for the forkserver to reap it: a
-        stopped forkserver (a hang) then holds each spare's close `REAP_GRACE` seconds,
-        not twice `timeout`.
-        """
+        """Release an unused spare: it sees EOF and exits; killed after `timeout` seconds
+        (its exit seen by the exit watch too: a stopped forkserver holds it `REAP_GRACE`)."""
         with contextlib.suppress(OSError):
             self.conn.close()
         pid = self.process.pid
@@ -156,20 +129,8 @@ def _exited(process: BaseProcess, watch: ExitWatch | None, timeout: float) -> bo
 
 
 class SparePool:
-    """Up to `size` idle spare processes, started by a thread of its own.
-
-    [`take`][rr_actors._process.spare.SparePool.take] may be called from any thread;
-    [`refill`][rr_actors._process.spare.SparePool.refill] asks the filler thread to top the
-    pool up once no refill was asked for `delay` seconds. The supervisor calls it once a
-    start was published: a new spare's fork and warm-up then compete neither with the
-    restart they follow nor with a crash that comes right after it (the other spare
-    serves that one).
-
-    Args:
-        size: how many spares to keep (0: none, `take` always returns `None`).
-        name: for the filler thread's name and log lines.
-        delay: seconds from a `refill` to the start of the next spare.
-    """
+    """Up to `size` idle spare processes, started by a thread of its own (`delay`: seconds
+    from a `refill` to the start of the next spare)."""
 
     def __init__(self, size: int, name: str, *, delay: float = 0.0) -> None:
         self.size = size
@@ -197,34 +158,21 @@ class SparePool:
             return spare
 
     def ahead(self, starts: int) -> None:
-        """Fork the processes of `starts` manager starts in order ahead of their turn.
-
-        For the start of a tree (`Supervisor.start`): while a manager starts, the filler
-        forks spares for the ones after it (up to `size`, no delay, and without their
-        warm-up, which would compete with the starts): the next start then only waits
-        for the manager's own start (restore, setup, serve), not also for a process.
-        Each `take` counts one start. `ahead(0)` ends it: the spares left warm up
-        now, and refills wait `delay` seconds as before.
-        """
+        """Fork the processes of `starts` manager starts in order ahead of their turn
+        (unwarmed; each `take` counts one); `ahead(0)` ends it, the spares left warm up."""
         with self._cond:
             self._ahead = starts or None
             self._taken = 0
             if not starts:
-                # Forked ahead: warm up now, for a restart. Under the lock, so that a spare
-                # `take` hands out gets its `Start` after its `WarmUp`, never at the same
-                # time from another thread (a pipe's `send` is not thread-safe).
+                # under the lock: a taken spare gets its `Start` after its `WarmUp`
                 for spare in self._idle:
                     spare.warm_up()
         if starts:
             self._refill_at(time.monotonic())
 
     def refill(self) -> None:
-        """Have the filler thread start spares until there are `size`, `delay` s from now.
-
-        Returns at once. Each call postpones a refill that is not under way yet: while
-        (re)starts follow each other closely (a crash loop), no spare's warm-up competes
-        with them; the pool is topped up once they have been quiet for `delay` seconds.
-        """
+        """Top the pool up `delay` seconds from now (each call postpones a refill not under
+        way: in a crash loop no warm-up competes with the restarts)."""
         self._refill_at(time.monotonic() + self.delay)
 
     def _refill_at(self, due: float) -> None:
@@ -253,13 +201,11 @@ class SparePool:
             spare.close()
 
     def _wanted(self) -> int:
-        """Spares to keep: `size`; while ahead, no more than the starts after the current."""
         if self._ahead is None:
             return self.size
         return min(self.size, max(0, self._ahead - max(self._taken, 1)))
 
     def _fill(self) -> None:
-        """The filler thread: when a refill is due, start spares until there are `size`."""
         while True:
             with self._cond:
                 while not self._closed and (self._due is None or self._due > time.monotonic()):

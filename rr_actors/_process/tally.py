@@ -1,39 +1,27 @@
-"""A manager process's events that outlive a SIGKILL: a journal, and a count of them.
+"""A manager process's events that outlive a SIGKILL: its journal, and what the parent
+received of them and lost.
 
 ```
  supervisor's process                         manager process
    Tally.create() ── a file ──────────────►   Journal(path): each event published
-                                              appended (pickled) to the file, then its
-                                              seq stored as the last one kept
+                                              appended (pickled), then its seq stored
+                                              as the last one kept
+   Received.deliver ◄── Events(batch) over the control pipe
    ... the process exits (or is killed) ...
-   tally.after(last seq received) ─────────►  the events it never sent, delivered
-   tally.built() - what arrived ───────────►  EventsDropped(lost, cause="killed")
+   Received.drain: what is still in the pipe
+   Received.count_lost: tally.after(last seq received), then the backup's outbox
+     (`_store/outbox.py`: events committed, then killed before their publishing);
+     what is still missing ──► one EventsDropped(cause="killed")
 ```
 
-A manager process numbers its events (`seq`) and forwards them in batches from a thread
-of its own; a SIGKILL (a fault, or the heartbeat killing a hung manager) would lose the
-events still in its buffer, and nothing comes after them to show a gap. So the child
-appends each event it publishes to a file of its incarnation (one `write` per event, on
-the publishing thread), then stores that event's number in the file's first 8 bytes
-(one store into a memory map). After the exit the supervisor's side delivers the
-journal's events that never arrived, then counts what is still missing (numbered but
-not in the journal: cut from it, below, or not picklable) and publishes it as one
-`EventsDropped` with the dead process's pid. The file is removed once it was read.
-
-The number is stored after the write, not when the event is built: a kill between the
-two (the few microseconds of pickling) would otherwise count as lost an event that the
-registrar had not yet published, and so had not yet answered on (a registrar publishes
-an event before it answers the call it records). A kill there is a kill just before the
-event: the restored catalog (`CatalogRestored`) has what it would have said.
-
-The journal is cut back to nothing after a batch was sent once it holds more than
-`JOURNAL_BYTES`: an event published between the batch's start and the cut is then not
-in the journal; if the process dies before it sends it, it is counted as lost, not
-kept. The file layout: the counter (8 bytes), then one record per event: its number and
-the length of its pickle (`_RECORD`: 8 and 4 bytes), then the pickle. The reader skips
-the records of events that arrived without unpickling them (a restart's
-`CatalogRestored` lists up to 10,000 rows of each kind: unpickling it took 1-5 ms of
-each exit, before the supervisor heard of it).
+A SIGKILL loses the events still in the forwarder's buffer, and nothing after them shows
+a gap; so the child journals each event it publishes (one `write`, then its number into a
+memory map) and the parent reads back, after the exit, what never arrived. The number is
+stored after the write: a kill between the two is a kill just before the event (the
+restored catalog says what it would have). Past `JOURNAL_BYTES` the journal is cut back
+after a sent batch; an event published meanwhile and never sent is counted lost, not kept.
+Layout: an 8-byte counter, then per event a `_RECORD` head (seq, pickle length) and the
+pickle; records of events that arrived are skipped unread.
 """
 
 from __future__ import annotations
@@ -47,28 +35,27 @@ import pickle
 import struct
 import tempfile
 from collections.abc import Callable
+from multiprocessing.connection import Connection
 from typing import Any
 
-__all__ = ["JOURNAL_BYTES", "Journal", "Tally"]
+from rr_actors._process.control import Events
+from rr_actors._store.outbox import read_told
+from rr_actors.events import EventsDropped
+
+__all__ = ["HOLES", "JOURNAL_BYTES", "Journal", "Received", "Tally"]
 
 logger = logging.getLogger("rr_actors")
 
 _SIZE = 8  # one unsigned 64-bit counter, in the machine's byte order
 
-_RECORD = struct.Struct("=QI")
-"""A journal record's head: the event's number (`seq`, 0 if it has none) and the length
-of its pickle in bytes, in the machine's byte order; the pickle follows."""
+_RECORD = struct.Struct("=QI")  # a record's head: the event's seq, its pickle's length
 
 JOURNAL_BYTES = 1 << 20
 """Past this size (bytes) the journal is cut back after a sent batch (about 5 000 events)."""
 
 
 class Tally:
-    """The shared counter of one manager process's events (one incarnation each).
-
-    Attributes:
-        path: the file, to hand to the child (`open`).
-    """
+    """The shared counter of one manager process's events (one incarnation each)."""
 
     def __init__(self, path: str, fd: int, mapped: mmap.mmap) -> None:
         self.path = path
@@ -78,10 +65,8 @@ class Tally:
 
     @classmethod
     def create(cls) -> Tally | None:
-        """A new counter at 0 (supervisor's side); `None` if no file could be made.
-
-        Without one the manager runs as before: a loss at a kill is then not counted.
-        """
+        """A new counter at 0 (supervisor's side); `None` if no file could be made (a loss
+        at a kill is then not counted)."""
         try:
             fd, path = tempfile.mkstemp(prefix="rr-events-")
         except OSError:
@@ -103,11 +88,8 @@ class Tally:
         return int(self._view[0])
 
     def after(self, seq: int) -> list[Any]:
-        """The journal's events numbered above `seq`, in their order (after the exit).
-
-        Only those records are unpickled. A record cut short (the process died within its
-        `write`), or one that does not unpickle, ends the reading.
-        """
+        """The journal's events numbered above `seq`, in order (a record cut short, or one
+        that does not unpickle, ends the reading)."""
         if self._map is None:
             return []
         found: list[Any] = []
@@ -133,7 +115,6 @@ class Tally:
         return found
 
     def close(self) -> None:
-        """Remove the file and unmap it. Idempotent."""
         if self._map is None:
             return
         self._view.release()
@@ -146,12 +127,7 @@ class Tally:
 
 
 class Journal:
-    """The child's side: events kept as published, the number of the last one kept.
-
-    The number is stored after the event's record was written (a `write` to a file is
-    not cut short by a signal), so a SIGKILL between the two leaves a record the count
-    does not name yet: `Tally.after` finds it all the same.
-    """
+    """The child's side: events kept as published, the number of the last one kept."""
 
     def __init__(self, path: str, mark: Callable[[int], object], fd: int) -> None:
         self.path = path
@@ -163,11 +139,7 @@ class Journal:
 
     @classmethod
     def open(cls, path: str) -> Journal | None:
-        """Open the file the supervisor's process made; `None` if it cannot be used.
-
-        Without one the events are numbered all the same: a loss then shows only as a
-        gap, and not at all at the end of an incarnation.
-        """
+        """Open the file the supervisor's process made; `None` if it cannot be used."""
         try:
             fd = os.open(path, os.O_RDWR | os.O_APPEND)
         except OSError:
@@ -181,12 +153,7 @@ class Journal:
         return cls(path, functools.partial(view.__setitem__, 0), fd)  # one C call per event
 
     def __call__(self, event: Any) -> bytes | None:
-        """Append `event` (a sink of the manager's event hub: the publishing thread).
-
-        Returns:
-            Its pickle (what the forwarder may send instead of pickling it again), or
-            `None` if it could not be kept.
-        """
+        """Append `event` (the publishing thread); its pickle, or `None` if not kept."""
         seq = getattr(event, "seq", 0)
         data: bytes | None = None
         try:  # per event: a try costs nothing, `suppress` a context manager
@@ -200,9 +167,103 @@ class Journal:
         return data
 
     def sent(self) -> None:
-        """A batch was sent (the forwarder's thread): cut the journal back if it is big."""
         try:
             if os.fstat(self._fd).st_size > JOURNAL_BYTES:
                 os.ftruncate(self._fd, _SIZE)
         except OSError:
             pass
+
+
+HOLES = 4096
+"""Missing numbers below the last one that arrived, kept at most (events built on two
+threads may be sent out of order)."""
+
+
+class Received:
+    """The events one manager process forwarded, to `on_events`; and those it lost.
+
+    `tally`: its journal (`None`: none); `backup`: its registrar's backup file, absolute.
+    """
+
+    def __init__(
+        self,
+        on_events: Callable[[list[Any]], None] | None,
+        tally: Tally | None,
+        backup: str | None = None,
+    ) -> None:
+        self.on_events = on_events
+        self.tally = tally
+        self.backup = backup
+        self.last_seq = 0
+        self.holes: set[int] = set()
+
+    def deliver(self, name: str, batch: list[Any]) -> None:
+        if self.on_events is None:
+            return
+        last, holes = self.last_seq, self.holes
+        for event in batch:
+            seq = _seq(event)
+            if seq > last:
+                if seq > last + 1 and len(holes) < HOLES:
+                    holes.update(range(last + 1, min(seq, last + 1 + HOLES - len(holes))))
+                last = seq
+            elif seq:
+                holes.discard(seq)
+        self.last_seq = last
+        try:
+            self.on_events(batch)
+        except Exception:
+            logger.exception("events of manager %s could not be delivered", name)
+
+    def drain(self, name: str, conn: Connection) -> None:
+        """Read what the process sent before it ended (still in the pipe)."""
+        for _ in range(10_000):  # bounded: the pipe holds what a dead process wrote
+            try:
+                if not conn.poll(0):
+                    return
+                message = conn.recv()
+            except (EOFError, OSError, ValueError):
+                return
+            if isinstance(message, Events):
+                self.deliver(name, message.batch)
+
+    def close(self) -> None:
+        tally, self.tally = self.tally, None
+        if tally is not None:
+            tally.close()
+
+    def count_lost(self, name: str, pid: int) -> None:
+        """After the exit: deliver what its journal and outbox kept but it never sent, then
+        an `EventsDropped` for the rest (before a restart empties the outbox)."""
+        tally = self.tally
+        if tally is None or self.on_events is None:
+            self.close()
+            return
+        self.tally = None
+        try:
+            arrived = self.last_seq
+            kept = tally.after(arrived)
+            # (a record written just before the kill may be newer than the number stored)
+            last = max([tally.built(), *(_seq(e) for e in kept)])
+        finally:
+            tally.close()
+        seen = {_seq(e) for e in kept}
+        told = [
+            event
+            for event in (read_told(self.backup, pid) if self.backup is not None else ())
+            if (_seq(event) > arrived or _seq(event) in self.holes) and _seq(event) not in seen
+        ]
+        if told:  # committed, then killed before their publishing: the journal lacks them
+            last = max(last, *(_seq(e) for e in told))
+            kept = sorted([*kept, *told], key=_seq)
+        if kept:
+            self.deliver(name, kept)
+        lost = last - arrived - sum(1 for e in kept if _seq(e) > arrived)
+        if lost > 0:
+            logger.warning("manager %s (pid %d) died with %d events unsent", name, pid, lost)
+            self.deliver(name, [EventsDropped(lost, pid=pid, cause="killed")])
+
+
+def _seq(event: Any) -> int:
+    seq: int = getattr(event, "seq", 0)
+    return seq

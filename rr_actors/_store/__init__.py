@@ -1,14 +1,8 @@
 """The catalog's backup: the save policy (`saver`) over an embedded SQLite file.
 
-The store knows the catalog's rows and nothing of actors: the registrar hands it the
-`Changes` it drained from its catalog, and gets back what a restart restores.
-
-Modules, lowest first: `codec` (stored values), `schema` (version, migrations),
-`restore` (reading rows back, lazily), `files` (the path and the file: check, create,
-validate, write again after a deletion, inspect, quarantine), `plan` (the statements of
-a write), `checkpoints` (the background checkpointer), `commits` (the log's commits
-counted beside it: a WAL cut short is reported), `sqlite` (`SqliteStore`: writes),
-`saver` (the save policy).
+The store knows the catalog's rows and nothing of actors. Modules, lowest first: `codec`,
+`schema`, `restore`, `files`, `plan`, `checkpoints`, `commits`, `outbox`, `sqlite`
+(`SqliteStore`), `saver`.
 """
 
 from rr_actors._store.codec import Unreadable

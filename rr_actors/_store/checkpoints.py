@@ -7,7 +7,7 @@
 ```
 
 Used by a store opened with `background_checkpoints` (a registrar without
-`save_on_modify`); the others keep SQLite's own automatic checkpoints.
+`save_on_modify`); the others keep SQLite's own.
 """
 
 from __future__ import annotations
@@ -31,50 +31,16 @@ __all__ = [
 logger = logging.getLogger("rr_actors")
 
 
-CHECKPOINT_EVERY = 256
-"""WAL pages written between two background checkpoints, about: each statement counts
-one, plus a page per 4 KiB of a large request or response."""
-
-PAGE = 4096
-"""Bytes in a WAL page (SQLite's default page size), for the count above."""
-
-CHECKPOINT_BUSY_TIMEOUT = 0.1
-"""Seconds a `RESTART` checkpoint waits for readers; the writer waits at most as long."""
-
-WAL_LIMIT = 16_384
-"""WAL frames (4 KiB pages) past which a checkpoint makes the writer wait for it."""
-
-WAL_KEPT = 8 * 1024 * 1024
-"""Bytes of WAL file kept when the log restarts after background checkpoints
-(`journal_size_limit`); more is cut off. Twice what SQLite's own checkpoints let it reach."""
+CHECKPOINT_EVERY = 256  # WAL pages, about, between two background checkpoints
+PAGE = 4096  # bytes in a WAL page (SQLite's default)
+CHECKPOINT_BUSY_TIMEOUT = 0.1  # seconds a `RESTART` checkpoint waits for readers
+WAL_LIMIT = 16_384  # WAL frames past which a checkpoint makes the writer wait for it
+WAL_KEPT = 8 * 1024 * 1024  # bytes of WAL kept when the log restarts (`journal_size_limit`)
 
 
 class Checkpointer:
-    """Copies committed WAL pages into the database file, on its own thread.
-
-    SQLite's automatic checkpoint runs inside the commit that crosses its threshold: one
-    flush in a few paid for copying the log into the file and syncing both, the largest
-    part of a batched change's cost in a large catalog. A store opened with
-    `background_checkpoints` (a registrar without `save_on_modify`) switches it off
-    (`wal_autocheckpoint = 0`) and wakes this thread every `CHECKPOINT_EVERY` pages or so
-    instead, as SQLite's WAL documentation suggests for writers that must not stall. It
-    runs `PRAGMA wal_checkpoint(PASSIVE)` on its own connection, which never blocks the
-    writer (and SQLite releases the GIL while it copies). A commit is exactly as durable
-    as before: it is in the WAL either way, and SQLite repairs a checkpoint cut short by a
-    crash when the file is next opened. (Under a steady stream of one-change commits, a
-    concurrent copy measured twice as slow per commit as SQLite's own checkpoints, so a
-    `save_on_modify` registrar keeps those.)
-
-    A passive checkpoint cannot restart the log while the writer keeps appending; once
-    the log holds more than `WAL_LIMIT` frames the checkpoint is `RESTART`, which holds
-    new writes back while it waits for readers on older snapshots, for at most
-    `CHECKPOINT_BUSY_TIMEOUT` (far below the writer's own 5 s busy timeout, so a reader
-    that lingers, `rr-actors inspect` on a live file say, delays a write by that much and
-    never fails it); so the WAL stays bounded under any load. The thread starts at the
-    first wake-up: a store that writes little never has one. If it cannot start, or
-    cannot open its connection, `wake` says so and the store goes back to SQLite's own
-    checkpoints.
-    """
+    """Copies committed WAL pages into the database file, on its own thread, started at the
+    first wake-up (why and how: "The backup's file", docs/explanation/inside.md)."""
 
     def __init__(self, path: Path, synchronous: str) -> None:
         self._path = path.resolve()  # the thread connects later: a chdir must not matter
@@ -83,16 +49,13 @@ class Checkpointer:
         self._closing = False
         self._thread: runtime.Thread | None = None
         self._db: sqlite3.Connection | None = None  # the thread's connection, once open
-        self.done = runtime.Condition()
-        """Notified after each checkpoint (tests and benchmarks wait on it)."""
+        self.done = runtime.Condition()  # notified after each checkpoint
         self._running = False
         self.checkpoints = 0
-        self.last: tuple[int, int, int] | None = None
-        """The last checkpoint's `(busy, frames in the log, frames copied)`."""
+        self.last: tuple[int, int, int] | None = None  # (busy, frames in the log, copied)
 
     def wake(self) -> bool:
-        """Ask for a checkpoint soon; `False` if no thread can do it (it could not start,
-        or could not open its connection)."""
+        """Ask for a checkpoint soon; `False` if no thread can do it."""
         if self._closing:
             return True
         if self._thread is not None and not self._thread.is_alive():
@@ -117,8 +80,8 @@ class Checkpointer:
             )
 
     def close(self, timeout: float = 10.0) -> None:
-        """Stop the thread, interrupting the checkpoint in progress (it is safe to cut one
-        short: the next one, or the next open, finishes the copy). Waits `timeout` s."""
+        """Stop the thread, interrupting the checkpoint in progress (safe: the next one, or
+        the next open, finishes the copy); wait `timeout` seconds."""
         self._closing = True
         self._wake.set()
         db = self._db

@@ -5,17 +5,9 @@
  row --check_row / check_keys (no unpickling)--> Resource.encoded --decode, on first use--> value
 ```
 
-Requests and responses are stored as they cross between processes (`wire.dumps`:
-cloudpickle, code keeping its file's name; small builtin data by the C pickler alone,
-which encodes it byte for byte as cloudpickle does; `NULL` for `None`). A
-resource's state is stored as a small integer (`STATE_CODES`).
-
-Reading validates cheaply what it does not decode: every stored value must look like a
-whole pickle (protocol header, final STOP opcode), every state code must be known, and no
-resource id, consumer query id or client query id may appear twice. A resource row is
-validated when it is read, so a damaged row a restore left on disk raises
-`CatalogCorruptError` (naming the file and the resource) when it is first used, as does a
-value that passes and still cannot be decoded (its class is not importable here).
+Values are stored as they cross between processes (`wire.dumps`; `NULL` for `None`).
+Reading validates cheaply what it does not decode (a whole pickle, a known state, no id
+twice), so a damaged row left on disk raises `CatalogCorruptError` when first used.
 """
 
 from __future__ import annotations
@@ -50,30 +42,20 @@ __all__ = [
 ]
 
 STATE_CODES = {ResourceState.LOADING: 0, ResourceState.LOADED: 1, ResourceState.UNLOADING: 2}
-"""The stored code of each resource state (the `state` column)."""
-
 STATES_BY_CODE = tuple(STATE_CODES)
-"""`STATES_BY_CODE[code]` is the state stored as `code`."""
 
 
 def dumps(value: Any) -> bytes | None:
-    """Encode a request or response for a row (`None` is stored as `NULL`), as it is
-    pickled to leave the process (`wire.dumps`: small builtin data by the C pickler, the
-    rest by cloudpickle, code keeping its file's name for a traceback after a restore)."""
+    """Encode a request or response for a row (`None` is stored as `NULL`)."""
     return None if value is None else wire.dumps(value)
 
 
 def loads(blob: bytes | None) -> Any:
-    """Decode a stored request or response (`NULL` is `None`)."""
     return None if blob is None else pickle.loads(blob)
 
 
 def decode(path: str, rid: str, field: str, blob: bytes | None) -> Any:
-    """Decode a restored resource's stored value on first use (see `Resource.encoded`).
-
-    Raises:
-        CatalogCorruptError: the value cannot be unpickled here (naming `path` and `rid`).
-    """
+    """Decode a restored resource's stored value on first use (`CatalogCorruptError`)."""
     try:
         return loads(blob)
     except Exception as exc:
@@ -100,7 +82,6 @@ def check_values(row: Any) -> None:
 
 
 def _check_state(row: Any) -> None:
-    """Raise `ValueError` if a resource row's state code is unknown."""
     state = row[3]
     if type(state) is not int or not 0 <= state < len(STATES_BY_CODE):
         raise ValueError(f"resource {row[1]} has an unknown state {state!r}")
@@ -113,11 +94,8 @@ def check_row(row: Any) -> None:
 
 
 def check_keys(rows: list[Any], consumer_rows: list[Any], client_rows: list[Any]) -> None:
-    """Raise `ValueError` for a duplicate id or an unknown state code.
-
-    A resource id, a consumer query id and a client query id each name one row; a second
-    row with the same id would silently replace the first in the catalog.
-    """
+    """Raise `ValueError` for a duplicate id (it would replace the first silently) or an
+    unknown state code."""
     for row in rows:
         _check_state(row)
     for what, ids in (
@@ -130,7 +108,6 @@ def check_keys(rows: list[Any], consumer_rows: list[Any], client_rows: list[Any]
 
 
 def first_duplicate(values: list[Any]) -> Any:
-    """The first value of `values` that appears twice (`None` if none does)."""
     seen: set[Any] = set()
     for value in values:
         if value in seen:
@@ -157,12 +134,8 @@ class Unreadable:
 
 @dataclasses.dataclass(frozen=True)
 class NotUnpickled:
-    """Stands for a stored request or response that was not unpickled (a reader that
-    shows the stored display texts instead: unpickling runs code from the file).
-
-    Attributes:
-        size: length of the pickle, in bytes.
-    """
+    """Stands for a stored request or response that was not unpickled (`size`: of the
+    pickle, in bytes)."""
 
     size: int
 
@@ -171,7 +144,6 @@ class NotUnpickled:
 
 
 def not_unpickled(_rid: str, _field: str, blob: bytes | None) -> Any:
-    """Stand for a stored value without decoding it (`None` stays `None`)."""
     return None if blob is None else NotUnpickled(len(blob) if type(blob) is bytes else 0)
 
 
@@ -183,8 +155,7 @@ def lenient_decode(_rid: str, _field: str, blob: bytes | None) -> Any:
         return Unreadable(f"{type(exc).__name__}: {exc}", len(blob or b""))
 
 
-_DAMAGE_CODES = frozenset({"SQLITE_CORRUPT", "SQLITE_NOTADB"})
-"""SQLite's (primary) result codes for a file whose pages are not what it wrote."""
+_DAMAGE_CODES = frozenset({"SQLITE_CORRUPT", "SQLITE_NOTADB"})  # pages not as written
 
 
 def damaged_file(exc: BaseException) -> bool:
@@ -199,17 +170,8 @@ def damaged_file(exc: BaseException) -> bool:
 
 @contextlib.contextmanager
 def as_corrupt(path: str, on_damage: Callable[[str], None] | None = None) -> Iterator[None]:
-    """Translate what SQLite or unpickling raises about a bad file.
-
-    Args:
-        path: the file, named in the error.
-        on_damage: told why, when SQLite says the file's pages are damaged
-            (`damaged_file`), before the error is raised.
-
-    Raises:
-        CatalogCorruptError: in place of an `sqlite3.DatabaseError` or of an error that
-            unpickling or a row check raises, naming `path`.
-    """
+    """Raise `CatalogCorruptError`, naming `path`, for what SQLite, unpickling or a row
+    check raises (`on_damage` told first when the pages are damaged)."""
     try:
         yield
     except sqlite3.DatabaseError as exc:

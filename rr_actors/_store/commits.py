@@ -8,28 +8,12 @@
              --> WARNING naming the file and how many commits are gone
 ```
 
-SQLite replays the WAL up to its first incomplete frame and drops everything after it
-without a word, so a log cut short (a copy made without it, a failing disk, an OS crash
-with `durability="process"`) loses acknowledged commits silently. The count kept beside
-it (written after each commit, not fsynced: a count that did not reach the disk only
-hides a loss, it never invents one) tells how many commits the last generation of the
-log held. A generation ends when a checkpoint copied all of it into the database file
-and the log restarts (new salts): the count restarts with it. The first commit of a
-generation (or of a store: a restarted registrar appends to the log it replayed) counts
-the commit frames already in the log, once. A clean close removes the
-count (SQLite then removes the log).
-
-The salts are read from the header SQLite keeps in its `-shm` file (a copy of the log
-header's, which `lost_commits` compares them with), mapped read-only: a memory read
-instead of a `pread` of the log's header (0.5 us of a commit's 6). SQLite maps that file
-itself and never shortens it while a connection (ours) has it open; without it (it
-cannot be mapped), the log's header is read.
-
-The check reads the log's frame headers only (24 bytes a frame), not its pages, and not
-the checksums: a log cut short is what it detects, not one damaged in its middle. A
-database file written after the last count (a checkpoint, by this store or by another
-program that opened the backup and removed its log on closing) holds what the log held:
-nothing is reported then.
+Why ("A truncated WAL loses its newest commits"): docs/explanation/failure-semantics.md.
+The count (not fsynced: a count lost only hides a loss, never invents one) restarts with
+each generation of the log (new salts), read from the `-shm` SQLite maps (a memory read,
+else the log's header). The check reads frame headers only: it detects a log cut short,
+not one damaged in its middle; a database file written after the last count reports
+nothing.
 """
 
 from __future__ import annotations
@@ -46,8 +30,7 @@ __all__ = ["SUFFIX", "CommitCount", "lost_commits"]
 
 logger = logging.getLogger("rr_actors")
 
-SUFFIX = "-commits"
-"""The suffix of the count's file, beside the backup (`erm.db-commits`)."""
+SUFFIX = "-commits"  # the count's file, beside the backup (`erm.db-commits`)
 
 _RECORD = struct.Struct(">8sQ")  # the log's salts, the commits of that generation
 _WAL_HEADER = 32
@@ -57,12 +40,8 @@ _SHM_SALTS = slice(32, 40)  # the salts in the shared memory's first header (`Wa
 
 
 class CommitCount:
-    """Counts the commits of the current WAL generation of backup `file`.
-
-    Used by the thread that writes the backup (the registrar's). Never raises: a count
-    that cannot be kept only costs the check at the next restore. Not `kept`, it counts
-    nothing and writes no file (a simulation's backups: nothing cuts their logs short).
-    """
+    """Counts the commits of the current WAL generation of backup `file` (the writer's
+    thread; never raises; not `kept`: a simulation's, counts nothing)."""
 
     def __init__(self, file: Path, *, kept: bool = True) -> None:
         self.kept = kept
@@ -74,12 +53,9 @@ class CommitCount:
         self._fds: dict[str, int] = {}  # "count", "wal": the files it keeps open
         self._shm: mmap.mmap | None = None  # the -shm's first page, read-only
         self._shm_tried = False
-        # (a count dropped without `close`, as a registrar killed in a simulation drops
-        # it, closes its files: a killed process's are closed by the kernel)
         weakref.finalize(self, _close_fds, self._fds)
 
     def committed(self) -> None:
-        """A write transaction was committed (call it after each one)."""
         if not self.kept:
             return
         shm, count = self._shm, self._fds.get("count")
@@ -116,7 +92,6 @@ class CommitCount:
             logger.debug("the commit count %s cannot be kept: %s", self.path, exc)
 
     def _map_shm(self) -> mmap.mmap | None:
-        """Map the -shm's first page (once; `None` if it cannot be: the log is read)."""
         self._shm_tried = True
         try:
             fd = os.open(self._shm_name, os.O_RDONLY | os.O_CLOEXEC)
@@ -137,13 +112,11 @@ class CommitCount:
             shm.close()
 
     def reopen(self) -> None:
-        """The store writes to a new file (it was deleted and written again): a new log."""
         _close_fds(self._fds)
         self._unmap_shm()
         self._salts, self._count = b"", 0
 
     def close(self) -> None:
-        """The backup was closed cleanly (SQLite removed its log): forget the count."""
         _close_fds(self._fds)
         self._unmap_shm()
         with contextlib.suppress(OSError):
@@ -157,10 +130,8 @@ def _close_fds(fds: dict[str, int]) -> None:
 
 
 def lost_commits(file: Path) -> tuple[int, str] | None:
-    """How many counted commits the WAL of `file` no longer holds, and why; else `None`.
-
-    Call it before anything opens the file (SQLite may checkpoint and remove the log).
-    """
+    """How many counted commits the WAL of `file` no longer holds, and why; else `None`
+    (before anything opens the file)."""
     try:
         record = Path(f"{file}{SUFFIX}").read_bytes()[: _RECORD.size]
         checkpointed = os.stat(file).st_mtime_ns > os.stat(f"{file}{SUFFIX}").st_mtime_ns
@@ -193,7 +164,6 @@ def _compare(fd: int, salts: bytes, counted: int) -> tuple[int, str] | None:
 
 
 def _commit_frames(fd: int, header: bytes, limit: int | None = None) -> int:
-    """The complete commit frames of the log generation `header` starts (up to `limit`)."""
     salts = header[16:24]
     page_size = struct.unpack(">I", header[8:12])[0]
     size = os.fstat(fd).st_size

@@ -13,12 +13,10 @@
    to give one up; refused while a registrar has it open)
 ```
 
-A new file is built under a temporary name and linked into place complete, so the backup
-path either does not exist or holds a whole catalog. An existing file is validated
-through a read-only connection before anything writes to it; whatever is wrong raises
-`CatalogCorruptError` (or `ConfigError` for an unusable path) and leaves it untouched.
-Every file the store creates is readable and writable by its owner only (`FILE_MODE`),
-whatever the umask; SQLite gives the `-wal`, `-shm` and `-journal` files the same mode.
+A new file is linked into place complete; an existing one is validated read-only before
+anything writes to it; every file is its owner's only (`FILE_MODE`). Why: "What the backup
+survives" and "Who may see a backup", docs/explanation/failure-semantics.md, and
+docs/how-to/persistence.md.
 """
 
 from __future__ import annotations
@@ -71,32 +69,17 @@ __all__ = [
 _HEADER = b"SQLite format 3\x00"
 
 SIDE_FILES = ("-wal", "-shm", "-journal")
-"""The suffixes of the files SQLite keeps next to a database."""
-
 LOCK_SUFFIX = ".lock"
-"""The suffix of a backup's lock file (`claim`): `<backup_path>.lock`, symbolic links
-resolved."""
-
-SYNCHRONOUS = {"process": "NORMAL", "power": "FULL"}
-"""SQLite's `synchronous` level for each `RegistrarConfig.durability`."""
+SYNCHRONOUS = {"process": "NORMAL", "power": "FULL"}  # by `RegistrarConfig.durability`
 
 
 _LONGEST_SIDE = max(len(suffix) for suffix in SIDE_FILES)
 
-SQLITE_MAX_PATH = 512
-"""Bytes in the longest absolute path SQLite opens (its unix VFS's `MAX_PATHNAME`), side
-files' suffixes included."""
+SQLITE_MAX_PATH = 512  # bytes, side files' suffixes included (its unix VFS's MAX_PATHNAME)
 
 
 def check_location(path: Path) -> None:
-    """Raise `ConfigError` if `path` cannot hold a backup.
-
-    Raises:
-        ConfigError: naming `path`: its directory is missing, is a file or cannot be
-            written; its name (with SQLite's `-journal` suffix) is longer than the file
-            system allows, or the whole path longer than SQLite opens; it is a directory,
-            or a symbolic link to nothing; the file exists and cannot be read and written.
-    """
+    """Raise `ConfigError`, naming `path`, if it cannot hold a backup."""
     name = str(path)
     parent = path.parent
     try:
@@ -127,7 +110,6 @@ def check_location(path: Path) -> None:
 
 
 def _length_problem(path: Path) -> str | None:
-    """Why SQLite could not name the file `path` or its side files (or `None`)."""
     try:
         name_max = os.pathconf(path.parent, "PC_NAME_MAX")
     except (OSError, ValueError):
@@ -157,7 +139,6 @@ def connect(path: Path, *, read_only: bool) -> sqlite3.Connection:
 
 
 def _file_problem(path: Path) -> str | None:
-    """What is wrong with the file itself, judged from its header (or `None`)."""
     size = path.stat().st_size
     if size == 0:
         return "the file is empty (an rr_actors catalog is never empty)"
@@ -177,28 +158,19 @@ def _file_problem(path: Path) -> str | None:
 
 
 def _has_log(path: Path) -> bool:
-    """Whether a non-empty WAL lies next to `path`.
-
-    A checkpoint copies the log's pages in page order, page 1 (the header, with the new
-    page count) first: a process killed during one that grows the file leaves it shorter
-    than its header says, and SQLite completes it from the log when it is next opened.
-    """
+    """Whether a non-empty WAL lies next to `path` (a checkpoint killed while it grew the
+    file leaves it shorter than its header says, and the log completes it)."""
     try:
         return Path(f"{path}-wal").stat().st_size > 0
     except OSError:
         return False
 
 
-FILE_MODE = 0o600
-"""Permissions of every file the store creates (SQLite gives its side files the same)."""
+FILE_MODE = 0o600  # every file the store creates (SQLite gives its side files the same)
 
 
 def temporary_path(path: Path, purpose: str) -> Path:
-    """A new name next to `path` for a file built before it is moved into place.
-
-    `.<name>.<8 hex>.<purpose>` if SQLite can open that (see `check_location`), else
-    the shorter `.<8 hex>.<purpose>`.
-    """
+    """A new name next to `path` for a file built before it is moved into place."""
     token = runtime.urandom(4).hex()
     named = path.with_name(f".{path.name}.{token}.{purpose}")
     if _length_problem(named) is None:
@@ -207,12 +179,8 @@ def temporary_path(path: Path, purpose: str) -> Path:
 
 
 def _private_file(path: Path) -> None:
-    """Create an empty file at `path` that only its owner may read and write.
-
-    SQLite opens an empty file as a new database and gives the `-wal`, `-shm` and
-    `-journal` files it makes for it the database file's permissions. `fchmod` sets them
-    whatever the umask (which `open` applies to its mode).
-    """
+    """Create an empty file at `path` that only its owner may read and write (`fchmod`:
+    whatever the umask)."""
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, FILE_MODE)
     try:
         os.fchmod(fd, FILE_MODE)
@@ -221,12 +189,8 @@ def _private_file(path: Path) -> None:
 
 
 class BackupLock:
-    """The locks that make one store the one registrar of a backup (`claim`).
-
-    `<file>.lock` (the file's real path: every symbolic link to it finds the same lock
-    file, which names the holder's pid) and the file itself (`lockfile.claim_file`: every
-    hard link to it shares that lock), taken once the file exists (`hold_file`).
-    """
+    """The locks that make one store the one registrar of a backup: `<real path>.lock`
+    (one for every symbolic link) and the file itself (one for every hard link)."""
 
     def __init__(self, path: Path, real: Path, name_fd: int) -> None:
         self._path = path
@@ -235,12 +199,8 @@ class BackupLock:
         self._file_fd: int | None = None
 
     def hold_file(self) -> None:
-        """Lock the file itself (it exists now), unless this lock already does.
-
-        Raises:
-            ConfigError: another registrar has the file open under another name (a hard
-                link), naming both and its pid.
-        """
+        """Lock the file itself (it exists now); `ConfigError` if another registrar has it
+        open under another name."""
         if self._file_fd is not None:
             return
         try:
@@ -251,8 +211,7 @@ class BackupLock:
             raise ConfigError(f"backup_path {str(self._path)!r} cannot be locked: {exc}") from exc
 
     def file_replaced(self) -> None:
-        """Lock the new file at the path instead (`SqliteStore._keep_in_place` wrote it
-        there once every connection to the old one was closed)."""
+        """Lock the new file at the path instead (`SqliteStore._keep_in_place`)."""
         file_fd, self._file_fd = self._file_fd, None
         if file_fd is not None:
             lockfile.release_file(file_fd)
@@ -260,7 +219,6 @@ class BackupLock:
             self.hold_file()
 
     def release(self) -> None:
-        """Release both locks (idempotent)."""
         file_fd, self._file_fd = self._file_fd, None
         name_fd, self._name_fd = self._name_fd, None
         if file_fd is not None:
@@ -278,21 +236,12 @@ def _in_use(path: Path, real: Path, holder: str, how: str = "") -> ConfigError:
 
 
 def claim(path: Path) -> BackupLock | None:
-    """Make the caller the one registrar of the backup at `path`, until `release()`.
-
-    Two registrars on one file would each restore the other's rows as its own, and
-    release there what its consumers do not hold at it: the other's catalog would go.
-    So the store holds an exclusive lock (`_platform.lockfile`: the kernel drops it when
-    the process ends, however it ends) on `<file>.lock` while it is open, `<file>` being
-    the path with every symbolic link resolved, and on the file itself if it exists
-    (else `hold_file()` once it was created): two names of one file, a symbolic link or
-    a hard link, are one backup. Returns the locks; `None` in a simulation, whose files
-    are its own.
+    """Make the caller the one registrar of the backup at `path`, until `release()` (why:
+    docs/how-to/persistence.md); `None` in a simulation, whose files are its own.
 
     Raises:
-        ConfigError: naming `path` (and the file it resolves to): another registrar (of
-            this process or another, the message names its pid) has it open, under this
-            name or another, or the lock file cannot be made.
+        ConfigError: another registrar has it open (naming its pid), or the lock file
+            cannot be made.
     """
     if not runtime.guards_files():
         return None
@@ -318,22 +267,14 @@ def claim(path: Path) -> BackupLock | None:
 
 
 def remove_files(path: Path, suffixes: tuple[str, ...] = ("", *SIDE_FILES)) -> None:
-    """Remove `path` and its side files (those that exist)."""
     for suffix in suffixes:
         with contextlib.suppress(FileNotFoundError):
             Path(f"{path}{suffix}").unlink()
 
 
 def create(path: Path) -> None:
-    """Build an empty catalog under a temporary name, then link it into place.
-
-    The backup path therefore never holds a half-created file. If another process
-    created it first, that file wins (and is validated like any existing file). The file
-    is created with mode `FILE_MODE` (0600), and so are SQLite's side files.
-
-    Raises:
-        ConfigError: the file cannot be created (naming `path` and the cause).
-    """
+    """Build an empty catalog under a temporary name, then link it into place (a file
+    another process created first wins); `ConfigError` if it cannot be created."""
     tmp = temporary_path(path, "creating")
     try:
         _private_file(tmp)
@@ -356,15 +297,8 @@ def create(path: Path) -> None:
 
 
 def copy_aside(db: sqlite3.Connection, path: Path) -> Path:
-    """Copy the database `db` has open into a new file next to `path`; return its name.
-
-    The copy holds every committed page as `db` sees it (its log included), in WAL mode,
-    with mode `FILE_MODE`. It reads through `db`, so it works when the file `db` opened
-    was deleted. On failure nothing is left behind.
-
-    Raises:
-        sqlite3.Error, OSError: the copy could not be written (a full disk, say).
-    """
+    """Copy the database `db` has open (even deleted) into a new file next to `path`;
+    its name. Raises `sqlite3.Error` or `OSError`, leaving nothing behind."""
     tmp = temporary_path(path, "rewriting")
     try:
         _private_file(tmp)
@@ -381,15 +315,8 @@ def copy_aside(db: sqlite3.Connection, path: Path) -> Path:
 
 
 def put_in_place(tmp: Path, path: Path) -> None:
-    """Move the complete file `tmp` to `path`, over whatever is there.
-
-    Side files at `path` are removed first: they belong to a file that is gone, and
-    SQLite would apply a stale `-wal` to the new one. Only call it once every connection
-    to the file that was at `path` is closed.
-
-    Raises:
-        OSError: the move failed; `tmp` is kept (it may be the only whole copy left).
-    """
+    """Move the complete file `tmp` to `path`, its stale side files removed first (every
+    connection to the old file closed). `OSError`: `tmp` is kept, maybe the only copy."""
     remove_files(path, SIDE_FILES)
     os.replace(tmp, path)
     remove_files(tmp, SIDE_FILES)
@@ -397,11 +324,7 @@ def put_in_place(tmp: Path, path: Path) -> None:
 
 @contextlib.contextmanager
 def read_only(path: Path, *, tidy: bool) -> Iterator[sqlite3.Connection]:
-    """A read-only connection; with `tidy`, remove the `-wal`/`-shm` files it created.
-
-    A read-only connection to a WAL-mode file creates those files but cannot delete
-    them; an empty `-wal` holds nothing, so removing what we created changes nothing.
-    """
+    """A read-only connection; with `tidy`, remove the empty `-wal`/`-shm` it created."""
     existed = {suffix: Path(f"{path}{suffix}").exists() for suffix in ("-wal", "-shm")}
     db = connect(path, read_only=True)
     try:
@@ -417,7 +340,6 @@ def read_only(path: Path, *, tidy: bool) -> Iterator[sqlite3.Connection]:
 
 
 def validate(path: Path, *, tidy: bool) -> int:
-    """Check an existing file without writing to it; return its schema version."""
     name = str(path)
     problem = _file_problem(path)
     if problem is not None:
@@ -427,7 +349,6 @@ def validate(path: Path, *, tidy: bool) -> int:
 
 
 def prepare(db: sqlite3.Connection, name: str, durability: str, version: int) -> None:
-    """Check that `db` is writable, switch on WAL and the durability, migrate it."""
     try:
         db.execute("BEGIN IMMEDIATE")  # can we write here at all?
         db.execute("ROLLBACK")
@@ -461,7 +382,6 @@ class Backup:
 
 
 def _is_file(path: Path) -> bool:
-    """Whether `path` names a file (`False` for a name no file can have, too long, say)."""
     try:
         return path.is_file()
     except OSError:
@@ -469,11 +389,7 @@ def _is_file(path: Path) -> bool:
 
 
 def foreign_owner(path: Path) -> str | None:
-    """Why `path` (or its `-wal`) is not the current user's to unpickle, or `None`.
-
-    Unpickling runs code from the file: a backup another user wrote must not be decoded
-    by this one (root included), whatever the file's mode lets it read.
-    """
+    """Why `path` (or its `-wal`) is not the current user's to unpickle, or `None`."""
     me = os.geteuid()
     for name in (str(path), f"{path}-wal"):
         try:
@@ -486,11 +402,7 @@ def foreign_owner(path: Path) -> str | None:
 
 
 def check_pages(db: sqlite3.Connection, name: str) -> None:
-    """Check every page of the file (`PRAGMA quick_check`), writing nothing.
-
-    Raises:
-        CatalogCorruptError: a page is damaged (naming `name` and what SQLite found).
-    """
+    """Check every page of the file (`PRAGMA quick_check`; `CatalogCorruptError`)."""
     with as_corrupt(name):
         found = db.execute("PRAGMA quick_check").fetchall()
     if found != [("ok",)]:
@@ -502,14 +414,9 @@ def check_pages(db: sqlite3.Connection, name: str) -> None:
 def read_backup(path: str | os.PathLike[str], *, unpickle: bool = True) -> Backup:
     """Read a catalog backup without changing it (it may belong to a running registrar).
 
-    A file of an older schema version is copied into memory and migrated there; the file
-    itself is never migrated by reading it.
-
-    Stored requests and responses that cannot be unpickled in this process (their
-    classes are not importable here) come back as `Unreadable` placeholders. Unpickling
-    runs code from the file: a file (or `-wal`) another user owns is refused. Without
-    `unpickle`, nothing is unpickled (every value is a `NotUnpickled`), any owner's file
-    is read, and only the display texts the registrar stored show the values.
+    An older schema is migrated in memory, never in the file. Values whose classes are
+    not importable here come back as `Unreadable`; without `unpickle`, every value is a
+    `NotUnpickled` (only the stored display texts show them) and any owner's file is read.
 
     Args:
         path: the backup file.
@@ -548,11 +455,8 @@ def read_backup(path: str | os.PathLike[str], *, unpickle: bool = True) -> Backu
 
 @contextlib.contextmanager
 def gc_paused() -> Iterator[None]:
-    """Pause the cyclic garbage collector while a catalog is built (restores twice as fast).
-
-    Building 100k rows allocates many containers and no cycles; each allocation burst
-    would otherwise trigger collections that rescan every object built so far.
-    """
+    """Pause the cyclic garbage collector while a catalog is built (many containers, no
+    cycles: each burst would rescan every object built so far)."""
     was_enabled = gc.isenabled()
     gc.disable()
     try:
@@ -576,13 +480,9 @@ class Rows:
 def read_rows(
     db: sqlite3.Connection, decode: Callable[[str, str, bytes | None], Any], *, lenient: bool
 ) -> Rows:
-    """Read every row in one read transaction (a consistent snapshot, also of a live file).
-
-    Restored resources keep their request and response encoded: `decode` runs on first
-    access. Requests without a stored digest are decoded at once (the catalog indexes
-    them by `hash()`, which only the value can give). With `lenient` (inspection) every
-    value is decoded at once and the cheap pickle check is skipped (`decode` is lenient).
-    """
+    """Read every row in one read transaction (a snapshot, also of a live file). Values stay
+    encoded until first used, but requests without a digest; `lenient` (inspection)
+    decodes every value at once."""
     db.execute("BEGIN")
     try:
         rows = db.execute(RESOURCES).fetchall()
@@ -652,10 +552,7 @@ def read_rows(
 
 @contextlib.contextmanager
 def _migrated_copy(db: sqlite3.Connection, version: int) -> Iterator[sqlite3.Connection]:
-    """`db` itself if it has the current schema, else a migrated copy in memory.
-
-    An older file is read as the code reads a current one, without writing to it.
-    """
+    """`db` itself if it has the current schema, else a migrated copy in memory."""
     if version == schema.SCHEMA_VERSION:
         yield db
         return
@@ -671,10 +568,9 @@ def _migrated_copy(db: sqlite3.Connection, version: int) -> Iterator[sqlite3.Con
 def quarantine_backup(path: str | os.PathLike[str]) -> Path:
     """Move a catalog backup that cannot be used out of the way, keeping it for analysis.
 
-    The file (and its `-wal`/`-shm` companions) is renamed to
-    `<path>.corrupt-<UTC timestamp>`; a registrar started on `path` afterwards starts with
-    an empty catalog. This is the one explicit way to give up a backup: rr_actors never
-    does it on its own. A registrar that has the file open keeps it (`ConfigError`).
+    The file and its companions are renamed to `<path>.corrupt-<UTC timestamp>`; a
+    registrar started on `path` afterwards starts empty. rr_actors never does this on its
+    own.
 
     Args:
         path: the backup file, as in `RegistrarConfig.backup_path`.
@@ -706,12 +602,10 @@ def quarantine_backup(path: str | os.PathLike[str]) -> Path:
     return target
 
 
-FileId = tuple[int, int]
-"""A file's `(st_dev, st_ino)`: which file a name stands for."""
+FileId = tuple[int, int]  # (st_dev, st_ino)
 
 
 def file_ids(path: Path | str) -> tuple[FileId | None, FileId | None]:
-    """Which files `path` and its `-wal` name now (`None` for a name that names none)."""
     ids: list[FileId | None] = []
     for name in (os.fspath(path), f"{path}-wal"):
         try:
@@ -724,13 +618,8 @@ def file_ids(path: Path | str) -> tuple[FileId | None, FileId | None]:
 
 
 def moved(path: Path | str, known: tuple[FileId | None, FileId | None]) -> str | None:
-    """Why `path` (or its `-wal`) no longer names the file a connection opened, or `None`.
-
-    A file deleted while it is open stays readable and writable through the connection,
-    but a crash takes it (and every commit in it) away; so does one replaced by another.
-    `known` is what `file_ids` said when the connection was opened (a `-wal` not known
-    yet is not checked). Two `stat` calls (a few microseconds).
-    """
+    """Why `path` (or its `-wal`) no longer names the file a connection opened (`known`:
+    `file_ids` then), or `None`."""
     now = file_ids(path)
     for what, was, is_now in (("the file", known[0], now[0]), ("its -wal", known[1], now[1])):
         if was is None or was == is_now:
@@ -740,7 +629,6 @@ def moved(path: Path | str, known: tuple[FileId | None, FileId | None]) -> str |
 
 
 def write_error(path: str, exc: BaseException) -> CatalogWriteError:
-    """The `CatalogWriteError` for a failed write to the backup `path`."""
     if isinstance(exc, OSError) and exc.errno is not None:
         name = errno_names.errorcode.get(exc.errno, str(exc.errno))
         return CatalogWriteError(path, f"{name} ({exc.strerror})", exc.errno)

@@ -8,14 +8,10 @@ wrote (its mirror) to the catalog's current rows.
    mirror entries to set once they committed (`GONE`: remove)
 ```
 
-Only what differs reaches the file, addressed by row key (`seq`): a consumer id added is
-one `INSERT`, a response set again (`response_version`) one `UPDATE`, so the cost of a
-change does not depend on the catalog's size. Nor on how widely a resource is shared:
-of a resource's consumers, only the ids the catalog says were added or released
-(`Changes.consumers`) are looked at, one statement each; the others are not visited
-(a resource with 1,000 holders and one new one plans one `INSERT`, in the time one
-holder's does). Values are pickled here (`codec.dumps`): one that cannot be raises
-before anything is written.
+Only what differs reaches the file, addressed by row key (`seq`), and of a resource's
+consumers only the ids `Changes.consumers` names: a change costs the same however large
+the catalog or widely shared the resource. Values are pickled here, before anything is
+written.
 """
 
 from __future__ import annotations
@@ -29,11 +25,8 @@ from rr_actors._store.restore import Mirror, Texts
 
 __all__ = ["GONE", "Op", "plan_client", "plan_resource"]
 
-Op = tuple[str, tuple[Any, ...]]
-"""One planned SQL statement and its parameters."""
-
-GONE = object()
-"""Marks a mirror entry to delete once a write committed."""
+Op = tuple[str, tuple[Any, ...]]  # one planned SQL statement and its parameters
+GONE = object()  # a mirror entry to delete once a write committed
 
 
 def plan_resource(
@@ -45,20 +38,9 @@ def plan_resource(
     seq: int,
     touched: dict[str, None] | None = None,
 ) -> int:
-    """Plan the statements for resource `rid` (`None`: removed); return the last row key.
-
-    Args:
-        written: the mirror of every resource row (not changed here).
-        ops: statements planned so far; this resource's are appended.
-        mirrors: `(table, key, value)` entries to set in the mirror once `ops` committed.
-        rid: the resource's id.
-        resource: its current state in the catalog, or `None` if it was removed.
-        seq: the last row key used so far; new rows get the keys after it.
-        touched: the consumer ids that may have changed since the last write
-            (`Changes.consumers`), in the order they last changed: only those are
-            looked at, so the plan does not grow with the resource's holders; `None`:
-            compare every consumer (a resource not written yet has all of its inserted).
-    """
+    """Append to `ops` the statements for resource `rid` (`None`: removed), and to `mirrors`
+    the `(table, key, value)` entries to set once they committed; the last row key.
+    `touched`: the consumer ids to look at (`None`: every one)."""
     old = written.get(rid)
     if resource is None:
         if old is not None:
@@ -135,8 +117,7 @@ def plan_resource(
 
 
 def _resource_update(old: Mirror, resource: Resource, texts: Texts) -> Op:
-    """The one `UPDATE` that brings a written resource row up to date (some column of it
-    differs: `plan_resource` compares them first)."""
+    """The one `UPDATE` that brings a written resource row up to date."""
     columns: list[str] = []
     values: list[Any] = []
     if old.response_version != resource.response_version:
@@ -164,11 +145,8 @@ def plan_client(
     record: ClientRecord | None,
     seq: int,
 ) -> int:
-    """Plan the statements for client record `qid` (`None`: removed), as `plan_resource`.
-
-    `written` maps each written client query id to its `(row key, response_version,
-    request_text)`.
-    """
+    """Plan the statements for client record `qid` (`None`: removed), as `plan_resource`
+    (`written`: query id -> `(row key, response_version, request_text)`)."""
     old = written.get(qid)
     if record is None:
         if old is not None:

@@ -10,16 +10,9 @@
                    resources and consumers' registrars, between calls
 ```
 
-Restoring reads no consumer id and no other served resource (`SqliteStore.restore`):
-each is read when the catalog first looks it up, through the indexes (a consumer id
-through `consumers_by_query`, a request through `resources_by_request`). So what a
-restart reads before it serves does not grow with the catalog; what grows (finding
-the unheld resources, the registrars to reconcile with) is read after it serves, a
-slice at a time (`sweep`).
-
-`files.read_rows` reads everything in one snapshot instead (`SqliteStore.load`, `read_backup`).
-Either way a restored resource keeps its request and response encoded until first used
-(`Resource.encoded`).
+So what a restart reads before it serves does not grow with the catalog: each other row
+is read through the indexes when the catalog first looks it up. Either way a restored
+resource keeps its values encoded until first used (`Resource.encoded`).
 """
 
 from __future__ import annotations
@@ -118,18 +111,13 @@ _LISTED_RESOURCES = (  # a resource as `Catalog.rows` lists it: (id, server, sta
     + " ".join(f"WHEN {code} THEN '{state.value}'" for code, state in enumerate(STATES_BY_CODE))
     + " ELSE CAST(state AS TEXT) END, coalesce(CAST(digest AS TEXT), ''), "
     "CASE WHEN failed THEN 'failed' ELSE '' END FROM resources WHERE seq <= ? ORDER BY seq LIMIT ?"
-)
-"""The unread resources as listed rows (`Unread.listing`), with their row keys, oldest
-first. (Unread rows are all loaded, with a digest: a restore reads the others at once,
-`RESOURCES_AT_ONCE`, and refuses an unknown state there; the `ELSE` is never taken.)"""
+)  # (unread rows are loaded, with a digest: the `ELSE` is never taken)
 
 _LISTED_CONSUMERS = (
     "SELECT c.resource, c.query_id, r.id, c.origin_rr FROM consumers c "
     "JOIN resources r ON r.seq = c.resource WHERE c.resource <= ? "
     "ORDER BY c.resource, c.seq LIMIT ?"
 )
-"""The unread consumer ids as listed rows (query id, resource id, consumer registrar),
-with their resource's row key, by resource, in arrival order."""
 
 # (S608: the SQL is built from this module's constants only)
 RESOURCES = f"SELECT {RESOURCE_COLUMNS} FROM resources ORDER BY seq"  # noqa: S608
@@ -154,37 +142,21 @@ class RowStore(Protocol):
     closed: bool
 
     @property
-    def connection(self) -> sqlite3.Connection:
-        """The store's connection to its file."""
-        ...
+    def connection(self) -> sqlite3.Connection: ...
 
-    def adopt(self, row: Any, consumer_rows: list[Any]) -> Resource:
-        """Build a stored resource with its consumers; from now on the store mirrors it."""
-        ...
+    def adopt(self, row: Any, consumer_rows: list[Any]) -> Resource: ...
 
-    def mirrored(self, last: int) -> tuple[int, int]:
-        """Resource rows (and their consumer rows) up to key `last` it mirrors: those in
-        memory that are still in the file."""
-        ...
+    def mirrored(self, last: int) -> tuple[int, int]: ...
 
-    def found_damaged(self, why: str) -> None:
-        """SQLite said the file's pages are damaged: write nothing more to it."""
-        ...
+    def found_damaged(self, why: str) -> None: ...
 
 
-SWEEP_ROWS = 2_000
-"""Restored resources one slice of `Unread.sweep` looks at (a few ms of SQLite)."""
+SWEEP_ROWS = 2_000  # restored resources one slice of `Unread.sweep` looks at
 
 
 class Unread:
-    """The served resources of a restored backup that are not in memory yet (`UnreadRows`).
-
-    A restore reads the resources in doubt and the clients; the other resources stay in
-    the file until the catalog asks for one (by request digest, by consumer id, by
-    server, ...). Reading one builds it with its consumers, records its mirror in the
-    store and never returns it again: from then on memory is the truth. Rows written
-    after the restore (`seq > last`) are the catalog's own and never read.
-    """
+    """The served resources of a restored backup not in memory yet (`UnreadRows`): one read
+    is adopted by the store and never returned again; rows after `last` are never read."""
 
     def __init__(self, store: RowStore, last: int, read: set[int], *, remaining: bool) -> None:
         self._store = store
@@ -244,14 +216,7 @@ class Unread:
         return [query_id for query_id, resource in rows if resource not in self._read]
 
     def sweep(self, after: int) -> tuple[list[Resource], set[str], int | None]:
-        """Look at the next `SWEEP_ROWS` restored resources (row keys above `after`).
-
-        Returns:
-            `(unheld, origins, last)`: the unread ones among them that are loaded and
-            held by no consumer (read now), the registrars their consumers (read or
-            not) belong to, and the last row key looked at (`None`: it was the last
-            slice).
-        """
+        """Look at the next `SWEEP_ROWS` restored resources (as `Catalog.sweep`)."""
         if not self.remaining:
             return [], set(), None
         self._check_open()
@@ -287,14 +252,8 @@ class Unread:
         return resources
 
     def listing(self, limit: int) -> Listing | None:
-        """The unread resources and consumers as rows, without reading them; `None` if
-        either kind has more than `limit` rows.
-
-        Returns:
-            `(resources, consumers)`: `(row key, (id, server, state, digest, failed))`
-            per resource, oldest first; `(row key, (query id, resource id, consumer
-            registrar))` per consumer, by resource, in arrival order.
-        """
+        """The unread resources and consumers as rows keyed by row key, without reading
+        them (as `Catalog.rows`); `None` if either kind has more than `limit`."""
         if not self.remaining:
             return [], []
         self._check_open()
@@ -339,11 +298,7 @@ class Unread:
         return self._take(seqs)
 
     def _take(self, seqs: list[int]) -> list[Resource]:
-        """Read resource rows `seqs` with their consumers; hand over all of them or none.
-
-        Every row is read and checked before any is adopted, so a damaged one fails the
-        lookup without marking its healthy neighbours read (they stay on disk, whole).
-        """
+        """Read resource rows `seqs` with their consumers; hand over all of them or none."""
         store = self._store
         db = store.connection
         read = []
@@ -359,8 +314,7 @@ class Unread:
         return resources
 
     def _reading(self) -> contextlib.AbstractContextManager[None]:
-        """`as_corrupt` for a read of the store's file: damage SQLite reports there
-        turns the store read-only (`found_damaged`)."""
+        """`as_corrupt`; damage SQLite reports turns the store read-only."""
         return as_corrupt(self._store.path, self._store.found_damaged)
 
     def _check_open(self) -> None:
@@ -372,14 +326,7 @@ class Unread:
 
 @dataclasses.dataclass
 class Restored:
-    """What `SqliteStore.restore` read: enough to serve, the rest on first use.
-
-    Attributes:
-        resources: resources read at once (in doubt, without a digest, or owning a
-            dependency), oldest first.
-        clients: every client record, oldest first.
-        unread: the other served resources, read when the catalog first needs them.
-    """
+    """What `SqliteStore.restore` read: enough to serve, the rest (`unread`) on first use."""
 
     resources: list[Resource]
     clients: list[ClientRecord]

@@ -11,13 +11,10 @@ docs/explanation/semantics.md).
  SqliteStore.restore / load: `restore` reads it back; `checkpoints` copies the WAL off-thread
 ```
 
-One file per registrar, in WAL mode. Every `write` is one transaction, so a crash at any
-instant leaves the old or the new catalog, never a torn one; the events that tell of a
-write's changes go in its transaction too (`outbox`). A write touches only the
-rows that changed (the store keeps a small mirror of what it wrote to compute the
-difference), so its cost does not grow with the catalog. A write that fails (a full
-disk) raises `CatalogWriteError` and changes neither the file nor the mirror, so the same
-changes can be written again later.
+One file per registrar, in WAL mode; every `write` is one transaction, touching only the
+rows that differ from the store's mirror of what it wrote, so its cost does not grow
+with the catalog. A write that fails changes neither file nor mirror. What each failure
+costs: "What the backup survives", docs/explanation/failure-semantics.md.
 """
 
 from __future__ import annotations
@@ -89,10 +86,7 @@ logger = logging.getLogger("rr_actors")
 
 
 class SqliteStore:
-    """A `CatalogStore` in one SQLite file. Used by one thread at a time (the registrar's).
-
-    Open it with [`SqliteStore.open`][rr_actors._store.sqlite.SqliteStore.open].
-    """
+    """A `CatalogStore` in one SQLite file, used by one thread at a time (the registrar's)."""
 
     def __init__(
         self,
@@ -106,15 +100,13 @@ class SqliteStore:
     ) -> None:
         self.path = str(path)
         self._file = path.absolute()  # the same file after a chdir
-        self._name = str(self._file)  # (what `_keep_in_place` stats once told of a change)
+        self._name = str(self._file)
         self._names = (self._name, f"{self._name}-wal")
         self._db = db
-        self._lock = lock  # (`files.claim`: this store is the file's one registrar)
+        self._lock = lock
         self._synchronous = synchronous
         self._guarded = runtime.guards_files()  # (not in a simulation: its files are its own)
-        # the files the connection opened (`_keep_in_place`)
         self._ids = file_ids(self._name) if self._guarded else (None, None)
-        # tells when those names may have changed, so that most commits stat nothing
         self._watch = PLATFORM.watch_names() if self._guarded else None
         self._aside: Path | None = None  # a whole copy not moved into place yet
         self._checkpointer: Checkpointer | None = None
@@ -123,8 +115,6 @@ class SqliteStore:
         self._unchecked = 0  # pages (about) written since the checkpointer was last woken
         self.checkpoint_every = checkpoints.CHECKPOINT_EVERY
         self._created = created
-        # Whether the file's pages were checked (`check_pages`) before this store first
-        # writes; why they are damaged, once found (nothing more is written then).
         self._checked = created or not self._guarded
         self._damaged: str | None = None
         self._loaded = False
@@ -132,18 +122,13 @@ class SqliteStore:
         # query id -> (row key, response_version, request_text)
         self._clients: dict[str, tuple[int, int, str | None]] = {}
         self._seq = 0
-        # resources a write that failed had changed: the next write of each compares all
-        # of its consumers (`Changes.consumers` of the failed one may never come again)
+        # resources a failed write changed: their next write compares every consumer
         self._owed: set[str] = set()
         self.closed = False
-        self._decode = functools.partial(codec.decode, self.path)  # decodes a stored value lazily
-        # beside the WAL: a log cut short is seen
+        self._decode = functools.partial(codec.decode, self.path)
         self._commits = CommitCount(self._file, kept=self._guarded)
-        self.lost_commits = 0
-        """Commits of the last run that its WAL no longer held when this store opened."""
-        self.commits = 0
-        """Write transactions this store committed since it opened (one per `write` that
-        changed the file)."""
+        self.lost_commits = 0  # of the last run, that its WAL no longer held
+        self.commits = 0  # write transactions since it opened
 
     @classmethod
     def open(
@@ -155,26 +140,13 @@ class SqliteStore:
     ) -> SqliteStore:
         """Open the backup at `path`, creating an empty one if there is no file.
 
-        Args:
-            path: the backup file; its directory must exist and be writable.
-            durability: `"process"` (SQLite `synchronous=NORMAL`: a commit survives a
-                crash of the process) or `"power"` (`synchronous=FULL`: it also survives
-                power loss, at the cost of an fsync per commit).
-            background_checkpoints: copy the WAL into the file on a thread of its own
-                (`Checkpointer`) instead of inside every few hundredth commit. For
-                writes in bursts (a `save_interval` flush); a steady stream of small
-                commits (`save_on_modify`) is slower with it (the copy competes with it).
-
-        Returns:
-            The open store; `load()` returns `None` if it was created just now.
+        `durability`: `"process"` (`synchronous=NORMAL`) or `"power"` (`FULL`, an fsync a
+        commit); `background_checkpoints`: copy the WAL on a thread (`Checkpointer`).
 
         Raises:
-            ConfigError: the path cannot hold a backup (missing directory, a directory,
-                read-only file or location), the file (or its `-wal`) belongs to another
-                user (restoring it would unpickle, so run, what that user wrote), or
-                another registrar has it open (`files.claim`, naming its pid).
-            CatalogCorruptError: the file exists but is not a usable rr_actors catalog
-                (garbage, truncated, another program's database, a newer schema, ...).
+            ConfigError: the path cannot hold a backup, the file belongs to another user,
+                or another registrar has it open.
+            CatalogCorruptError: the file is not a usable rr_actors catalog.
         """
         file = Path(os.fspath(path))
         check_location(file)
@@ -194,14 +166,13 @@ class SqliteStore:
         durability: Literal["process", "power"],
         background_checkpoints: bool,
     ) -> SqliteStore:
-        """`open`'s work once the file is claimed (`lock`, released by `close`)."""
         created = False
         lost = None
         if not file.exists():
             create(file)
             created = True
         if lock is not None:
-            lock.hold_file()  # (the file itself, now that it exists: every name of it)
+            lock.hold_file()
         foreign = foreign_owner(file)
         if foreign is not None:
             raise ConfigError(
@@ -255,15 +226,11 @@ class SqliteStore:
 
     @property
     def connection(self) -> sqlite3.Connection:
-        """The store's connection to its file (the lazy restore reads rows through it)."""
         return self._db
 
     def load(self) -> tuple[list[Resource], list[ClientRecord]] | None:
-        """Every stored row, oldest first; `None` if the file was created by `open`.
-
-        Raises:
-            CatalogCorruptError: a row or a stored value cannot be read.
-        """
+        """Every stored row, oldest first; `None` if `open` created the file
+        (`CatalogCorruptError`)."""
         try:
             with as_corrupt(self.path), gc_paused():
                 rows = read_rows(self._db, self._decode, lenient=False)
@@ -282,18 +249,8 @@ class SqliteStore:
         return rows.resources, rows.clients
 
     def restore(self) -> Restored | None:
-        """Read what a registrar needs to serve again; `None` if `open` created the file.
-
-        Unlike `load`, it does not read every served resource: the resources in doubt or
-        without a stored digest, those owning a dependency and the client records are
-        read in one read transaction; every other resource, and every consumer id, is
-        read from the file when the catalog first needs it (`unread`, through the
-        indexes). So what it reads grows with those rows only, not with the catalog.
-
-        Raises:
-            CatalogCorruptError: the backup cannot be read (duplicate ids, unknown
-                states, ...); a resource read later that cannot be read raises it then.
-        """
+        """Read what a registrar needs to serve again (`restore.py`); `None` if `open`
+        created the file (`CatalogCorruptError`)."""
         try:
             with as_corrupt(self.path), gc_paused():
                 self._db.execute("BEGIN")
@@ -328,9 +285,7 @@ class SqliteStore:
         except CatalogCorruptError:
             self.close(erase=False)
             raise
-        # A consumer row's key must only be above those of its resource's other
-        # consumers: `adopt` raises `_seq` past them as it reads a resource, so the
-        # largest consumer key of the file is never needed (a scan of every row).
+        # (`adopt` raises `_seq` past each resource's consumer keys: no scan of them all)
         self._seq = max([self._seq, *client_seqs.values()])
         self._loaded = True
         if self._created and not last and not clients:
@@ -340,10 +295,7 @@ class SqliteStore:
         return Restored(resources, clients, unread)
 
     def adopt(self, row: Any, consumer_rows: list[Any]) -> Resource:
-        """Build a stored resource with its consumers; from now on the store mirrors it.
-
-        Called by `restore` and by `Unread` when it reads a resource left on disk.
-        """
+        """Build a stored resource with its consumers; from now on the store mirrors it."""
         seq, rid, server, state, digest, request, response, *texts, failed = row
         resource = Resource.encoded(
             rid,
@@ -367,8 +319,7 @@ class SqliteStore:
         return resource
 
     def mirrored(self, last: int) -> tuple[int, int]:
-        """Resource rows with a key up to `last` that the store mirrors (in memory, still in
-        the file), and their consumer rows."""
+        """Mirrored resource rows with a key up to `last`, and their consumer rows."""
         resources = consumers = 0
         for mirror in self._resources.values():
             if mirror.seq <= last:
@@ -377,40 +328,16 @@ class SqliteStore:
         return resources, consumers
 
     def write(self, changes: Changes, told: Sequence[events.Event] = ()) -> None:
-        """Apply `changes` (current rows, `None` for deleted ones) as one transaction.
-
-        The numbered events of `told` (those that tell of `changes`) are written in the
-        same transaction, in the outbox (`outbox.py`): a kill after the commit leaves
-        them for the supervisor's side to read.
-
-        Only what differs from the last write reaches the file; rows are addressed by
-        their key, so the cost of a change does not depend on the catalog's size. Of a
-        changed resource's consumers, only the ids `changes.consumers` names (added or
-        released since) are looked at, one statement each, so neither does it depend on
-        how many hold the resource; a resource it does not name has every consumer
-        compared, and so has, at its next write, each resource of a write that raised.
-        The
-        statements are planned first (values are pickled then: one that cannot be raises
-        before anything is written); a single statement is its own transaction (most
-        changes: a consumer id added or released), several run between `BEGIN IMMEDIATE`
-        and `COMMIT`. What the store remembers of the file changes only once committed.
-
-        Before it commits, it checks that the path still names the file it writes to
-        (`_keep_in_place`): a backup deleted or replaced while the registrar runs is
-        written again, whole, with a WARNING.
+        """Apply `changes` (current rows, `None` for deleted ones) and the numbered events
+        of `told` (in the outbox) as one transaction: only what differs from the mirror,
+        of a resource's consumers only those `changes.consumers` names. The statements are
+        planned (pickled) before anything is written; the mirror changes once committed.
 
         Raises:
-            CatalogWriteError: the write (or writing the file again) failed: a full
-                disk (`errno` `ENOSPC`), an I/O error, ... Nothing of `changes` was
-                written, and the store is as before: write them again later (with what
-                changed since) and they are written.
-            CatalogWriteError: the file is damaged (`damaged`: SQLite reports its
-                pages malformed, now or earlier, or the check of its pages before the
-                first write failed); its cause says so, chained from the
-                `CatalogCorruptError`. Nothing is written to that file any more, so it
-                stays as it was (rule 15).
-            CatalogCorruptError: rows that the first write had to read first (`load`)
-                cannot be read.
+            CatalogWriteError: the write failed (a full disk, `errno` `ENOSPC`; the store
+                is as before: write them again later), or the file is damaged (chained
+                from the `CatalogCorruptError`; nothing is written to it any more).
+            CatalogCorruptError: rows the first write had to read (`load`) cannot be read.
         """
         owed = self._owed
         try:
@@ -430,9 +357,6 @@ class SqliteStore:
             if ops:
                 self._commit(ops)
         except BaseException:
-            # the consumers these changes added or released may be told again by nobody
-            # (a caller that drops the changes): the next write of each resource compares
-            # every one of its consumers
             owed.update(changes.resources)
             raise
         if owed:
@@ -446,16 +370,10 @@ class SqliteStore:
 
     @property
     def damaged(self) -> str | None:
-        """Why the file is damaged (SQLite reports its pages malformed), or `None`.
-
-        Once set, the store writes nothing more to the file, so it stays as it was
-        found: every `write` raises `CatalogWriteError` saying so, and `close` writes
-        nothing either.
-        """
+        """Why the file is damaged, or `None`; once set, nothing more is written to it."""
         return self._damaged
 
     def found_damaged(self, why: str) -> None:
-        """SQLite reported the file's pages damaged (`why`): write nothing more to it."""
         if self._damaged is None:
             self._damaged = why
             logger.error(
@@ -467,18 +385,8 @@ class SqliteStore:
             )
 
     def _refuse_if_damaged(self) -> None:
-        """Raise if the file is damaged; check its pages first if no write did yet.
-
-        The check (`PRAGMA quick_check`: every page, see failure-semantics.md) runs
-        once, before the first write of a store that opened an existing file: the lazy
-        restore (`restore.py`) reads only what it needs, and a page it did not read may
-        be damaged. A write would change the damaged file (and SQLite may spread the
-        damage); refusing leaves it as it was.
-
-        Raises:
-            CatalogWriteError: the file is damaged (chained from the
-                `CatalogCorruptError` that says how).
-        """
+        """Raise `CatalogWriteError` if the file is damaged; check its pages first, once,
+        before the first write (the lazy restore left pages unread)."""
         if not self._checked and self._damaged is None:
             self._checked = True
             try:
@@ -495,7 +403,6 @@ class SqliteStore:
         ) from corrupt
 
     def _commit(self, ops: list[Op]) -> None:
-        """Run `ops` as one transaction, on a file not found damaged, at the path."""
         if not self._checked or self._damaged is not None:
             self._refuse_if_damaged()
         watch = self._watch  # (`_keep_in_place`'s first step, spared a call)
@@ -539,30 +446,10 @@ class SqliteStore:
                 self._checkpointer = None
 
     def _keep_in_place(self) -> None:
-        """Write the whole catalog to a new file if the path lost the one being written.
-
-        A backup deleted while its registrar runs stays usable through the open
-        connection, so nothing would fail, and the next crash would take every commit
-        with it. So before each commit the store checks that the path and its `-wal`
-        still name the files it opened, and if not, copies what it has (every committed
-        page, read through its connection) to a new file and moves it into place, then
-        writes there. Nothing committed is lost; a crash between the deletion and this
-        commit loses the whole file (see failure-semantics.md).
-
-        The check is two `stat` calls, made only when something may have happened to
-        those names: the platform's watch (`Platform.watch_names`: inotify on Linux, one
-        `poll` a commit) is told of a deletion, a replacement, a rename of the file or of
-        a directory on its path, before the system call that made it returns. It is
-        armed again before each check, so a change made during one is told next time.
-        Where there is no watch, every commit `stat`s.
-
-        Only where the files need guarding (`runtime.guards_files`: not in a simulation,
-        whose backups nothing else touches).
-
-        Raises:
-            CatalogWriteError: the copy could not be written or moved into place (the
-                store keeps writing to the file it has, and tries again next time).
-        """
+        """Write the whole catalog to a new file if the path lost the one being written
+        ("A deleted backup", failure-semantics.md); two `stat`s, only once the platform's
+        watch (`Platform.watch_names`) told of a change. `CatalogWriteError`: the copy
+        failed (retried next time)."""
         if not self._guarded:
             return
         if self._aside is None:
@@ -611,12 +498,8 @@ class SqliteStore:
             self._db.close()
 
     def close(self, *, erase: bool) -> None:
-        """Close the database; with `erase`, delete the file and its companions.
-
-        Without `erase`, a file deleted or replaced since the last commit is written
-        again first (as `write` does); if that fails, the failure is logged (ERROR) and
-        the store closed all the same: closing never raises.
-        """
+        """Close the database; with `erase`, delete the file and its companions. Without, a
+        file deleted since the last commit is written again first; never raises."""
         try:
             if not self.closed:
                 if not erase and self._damaged is None:
@@ -642,11 +525,7 @@ class SqliteStore:
 
 
 def _open_writes(db: sqlite3.Connection, name: str, version: int) -> bool:
-    """Whether opening the file writes to it (a migration, or last run's outbox to clear).
-
-    Raises:
-        CatalogCorruptError: SQLite reports the file damaged.
-    """
+    """Whether opening the file writes to it (a migration, or last run's outbox to clear)."""
     if version != schema.SCHEMA_VERSION:
         return True
     with as_corrupt(name):

@@ -4,27 +4,13 @@
  await sup.astart() / astop() / aregistrar(...) ──► the blocking step on a thread of its
      own for that one operation (it forks processes, joins threads): never on the loop
  await sup.await_restarted(name) ──► the restart wait's steps (`tree.RestartWait`): a
-     tree watcher settles a future at the publish that decides it, and wakes the loop
-     (call_soon_threadsafe); no thread waits
- await sup.acall_with_retry(...) ──► the retry's steps (`retry.py`): the consumer's call
-     and the restart wait, both awaited; no thread waits
+     tree watcher settles a future at the publish that decides it; no thread waits
+ await sup.acall_with_retry(...) ──► the retry's steps (`retry.py`), awaited
  async with sup: ... ──► astart() ... astop() (and the give-up re-raised, as `with`)
 ```
 
-Starting and stopping a tree are rare and short and block in code written for threads
-(process starts, joins): each holds one thread of its own while it runs, so the loop
-goes on. A wait for a child, which may be long, holds none; nor does a call that waits
-out a restart. A cancelled `astart` stops what it started once the start is done:
-nothing is left running.
-
-Two blocking methods have no twin. `run_in` runs `fn(registrar)`, blocking code by its
-contract (handed a `ResourceRegistrar`, it calls its blocking methods), on the calling
-thread for a thread manager: from a loop it belongs on a thread,
-`await asyncio.to_thread(sup.run_in, name, fn)`; to reach a manager from a loop, await
-a registrar's twins instead (`aregistrar`, then `acall`). `flush_events` synchronises
-with subscriptions whose callbacks run on subscriber threads, never on a loop, for code
-that then blocks on `Subscription.wait_delivered` (a test, a script); it is bounded by
-its `timeout`: from a loop, `await asyncio.to_thread(sup.flush_events)`.
+`run_in` and `flush_events` have no twin (blocking by contract): from a loop,
+`await asyncio.to_thread(sup.run_in, name, fn)`.
 """
 
 from __future__ import annotations
@@ -47,8 +33,7 @@ __all__ = ["AsyncSupervision"]
 
 
 class AsyncSupervision:
-    """The awaitable twins of `Supervisor`'s start, stop, waits, `registrar` and
-    `call_with_retry`."""
+    """The awaitable twins of `Supervisor`'s methods."""
 
     if TYPE_CHECKING:  # what `Supervisor` (the one subclass) provides, for the checker only
 
@@ -80,12 +65,10 @@ class AsyncSupervision:
         ) -> Steps[Query]: ...
 
     async def astart(self) -> Any:
-        """`start`, awaited: every child started in order; the loop runs meanwhile.
-
-        Cancelled, it stops the supervisor once the start is done (nothing is left).
+        """As `start`, awaitable; cancelled, it stops the supervisor once the start is done.
 
         Raises:
-            SupervisorGaveUpError: a child failed to start (see `start`).
+            SupervisorGaveUpError: as for `start`.
             ConfigError: as for `start`.
         """
         lock = runtime.Lock()
@@ -111,7 +94,7 @@ class AsyncSupervision:
         return self
 
     async def astop(self, *, timeout: float | None = None) -> None:
-        """`stop`, awaited: its registrars, then every child in reverse order.
+        """As `stop`, awaitable.
 
         Raises:
             ConfigError: `timeout` is not a positive number of seconds.
@@ -123,11 +106,11 @@ class AsyncSupervision:
         )
 
     async def aregistrar(self, config: RegistrarConfig | str) -> ResourceRegistrar:
-        """`registrar`, awaited: a consumer registrar in this process, on the tree's carrier.
+        """As `registrar`, awaitable.
 
         Raises:
-            DuplicateNameError: a registrar of that name runs in this process.
-            ConfigError: the configuration is invalid or the supervisor is not running.
+            DuplicateNameError: as for `registrar`.
+            ConfigError: as for `registrar`.
         """
         registrar: ResourceRegistrar = await run_steps_async(
             on_own_thread(lambda: self.registrar(config), f"rr-registrar-{self.name}")
@@ -137,18 +120,14 @@ class AsyncSupervision:
     async def await_restarted(
         self, name: str, *, timeout: float, restarts: int | None = None
     ) -> ChildInfo:
-        """`wait_restarted`, awaited ("a" + `wait_restarted`): no thread waits for it.
-
-        Returns:
-            The child's snapshot, running.
+        """As `wait_restarted`, awaitable; no thread waits for it.
 
         Raises:
-            CallTimeoutError: not restarted within `timeout` seconds.
-            SupervisorGaveUpError: the tree gave up on it (see `wait_restarted`).
-            RegistrarUnavailableError: it exited for good, or its supervisor was stopped.
-            UnknownServerError: no child of that name.
-            ConfigError: `name` is not a str, `timeout` not a positive number of seconds,
-                or `restarts` neither an int nor `None`.
+            CallTimeoutError: as for `wait_restarted`.
+            SupervisorGaveUpError: as for `wait_restarted`.
+            RegistrarUnavailableError: as for `wait_restarted`.
+            UnknownServerError: as for `wait_restarted`.
+            ConfigError: as for `wait_restarted`.
         """
         info: ChildInfo = await run_steps_async(self._restart_wait(name, timeout, restarts))
         return info
@@ -164,27 +143,19 @@ class AsyncSupervision:
         timeout: float | None = None,
         query_id: str | None = None,
     ) -> Query:
-        """`call_with_retry`, awaited: the consumer's call awaited, a restart of
-        `target_rr` awaited (the tree wakes the loop when it publishes it), the same call
-        again with the same query id; no thread is held while it waits.
-
-        The same arguments, result, errors and `timeout` (for the whole call, restarts
-        included) as `call_with_retry`. Cancelling the awaiting task withdraws the call
-        as a timeout would: an attempt in flight is withdrawn (its id given back), and
-        while it waits for the restart the id is abandoned at the provider (at once if
-        it runs again, else when it is back).
+        """As `call_with_retry`, awaitable; no thread is held while it waits. Cancelling
+        the task withdraws the call as a timeout would (the id given back or abandoned).
 
         Raises:
-            RegistrarUnavailableError: the provider died and will not be restarted.
-            SupervisorGaveUpError: the tree gave up on the provider while the call waited.
-            CallTimeoutError: no answer (restart included) within `timeout` seconds.
+            RegistrarUnavailableError: as for `call_with_retry`.
+            SupervisorGaveUpError: as for `call_with_retry`.
+            CallTimeoutError: as for `call_with_retry`.
             ResourceLoadError: as for `Registrar.acall`.
             DependencyCycleError: as for `Registrar.acall`.
             UnknownServerError: as for `Registrar.acall`.
-            RegistrarStoppedError: as for `Registrar.acall` (not when the supervisor
-                stopped the provider to restart it).
+            RegistrarStoppedError: as for `call_with_retry`.
             ConfigError: as for `call_with_retry`; nothing was sent.
-            asyncio.CancelledError: the awaiting task was cancelled (see above).
+            asyncio.CancelledError: the awaiting task was cancelled.
         """
         steps = self._retry(consumer, target_rr, server, request, on_status, timeout, query_id)
         query: Query = await run_steps_async(steps)

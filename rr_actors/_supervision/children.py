@@ -1,21 +1,11 @@
 """A supervisor's children: the per-child record, its snapshots, its restart type's
 meaning, and the running adapters.
 
-Every running child, whatever it is, offers `pid` and `stop(timeout) -> ManagerExit`:
-
-* `ThreadManager`: a registrar in this process; its death is seen by a watcher thread
-  blocked on the registrar actor's stop event;
-* `ProcessManager`: a manager process (`rr_actors._process.manager.ManagerProcess`),
-  started in a spare process when the tree has one; its death is seen by the process's
-  watcher thread;
-* `NestedSupervisor`: a supervisor below this one (a `Level`: `rr_actors._supervision.policy.Node`).
-
-Each tells its end to the supervisor through an `on_exit(ManagerExit)` callback (run on
-the watcher thread), which posts it to the supervisor's mailbox.
-
-A child's restart type says whether it comes back (OTP's): after an exit of its own
-(`restarts_after`: read by `Restarts`, and by the tree's lookups for a nested supervisor
-that gave up) and when a sibling's crash restarts its group (`restarts_with_group`).
+Every running child offers `pid` and `stop(timeout) -> ManagerExit`: a `ThreadManager`
+(a registrar in this process), a `ProcessManager` (`_process/manager.py`) or a
+`NestedSupervisor`; each tells its end through `on_exit(ManagerExit)`, run on its watcher
+thread. A restart type says whether a child comes back (OTP's): after an exit of its own
+(`restarts_after`) and with its group (`restarts_with_group`).
 """
 
 from __future__ import annotations
@@ -62,7 +52,7 @@ __all__ = [
 logger = logging.getLogger("rr_actors")
 
 ChildState = Literal["starting", "running", "restarting", "stopping", "stopped", "exited"]
-"""Where a child is in its life (see `ChildInfo.state`)."""
+"""Where a child is in its life (`ChildInfo.state`)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,12 +66,10 @@ class ChildInfo:
         restart: its restart type.
         state: `"starting"`, `"running"`, `"restarting"` (down, restart pending),
             `"stopping"`, `"stopped"` (by the supervisor) or `"exited"` (down on its own
-            and not restarted: temporary, or transient after a normal exit; a transient
-            one comes back when a sibling's crash restarts its group under
-            `one_for_all` or `rest_for_one`, as in OTP).
+            and not restarted; a transient one comes back with its group, as in OTP).
         pid: the process id of a running process manager, else `None`.
-        restarts: how many times it was restarted so far, counting the times it came
-            back with its nested supervisor when the parent restarted that one.
+        restarts: how many times it was restarted so far (with its nested supervisor
+            too).
         last_exit: why its last incarnation ended (`None` before the first exit).
     """
 
@@ -119,7 +107,6 @@ def snapshot(
     restarts: int,
     last_exit: str | None,
 ) -> ChildInfo:
-    """The `ChildInfo` of a child of that spec."""
     return ChildInfo(
         name=spec.name,
         kind="supervisor" if isinstance(spec, SupervisorSpec) else "manager",
@@ -136,23 +123,14 @@ def snapshot(
 
 
 def restarts_after(restart: RestartType, *, normal: bool) -> bool:
-    """Whether a child that exited on its own is restarted (OTP's restart types).
-
-    Args:
-        restart: `"permanent"` (always), `"transient"` (only after an abnormal exit: not
-            after `normal` or `shutdown`) or `"temporary"` (never).
-        normal: whether the exit was normal (`ManagerExit.normal`).
-    """
+    """Whether a child that exited on its own is restarted (OTP: `permanent` always,
+    `transient` after an abnormal exit, `temporary` never)."""
     return restart == "permanent" or (restart == "transient" and not normal)
 
 
 def restarts_with_group(restart: RestartType) -> bool:
-    """Whether a sibling comes back when a crash restarts its group (one_for_all, rest_for_one).
-
-    As in OTP, every child but a `temporary` one: a `transient` child that had exited
-    normally is restarted with the group too (OTP keeps it in the child list; only
-    temporary children are removed when they end).
-    """
+    """Whether a sibling comes back when a crash restarts its group: as in OTP, every
+    child but a `temporary` one (a `transient` one that exited normally too)."""
     return restart != "temporary"
 
 
@@ -165,11 +143,8 @@ class Running(Protocol):
     pid: int | None
 
     def stop(self, timeout: float | None, *, restarting: bool = False) -> ManagerExit:
-        """Stop it (within `timeout` seconds, `None`: its spec's `shutdown`); how it ended.
-
-        With `restarting`, it is stopped to be started again (a group restart): its
-        callers meanwhile get `RegistrarUnavailableError`, not `RegistrarStoppedError`.
-        """
+        """Stop it (within `timeout` seconds, `None`: its spec's `shutdown`); how it ended
+        (`restarting`: to be started again, its callers get `RegistrarUnavailableError`)."""
         ...
 
 
@@ -188,8 +163,6 @@ class ThreadManager:
     ) -> None:
         self.spec = spec
         self.stopping = False
-        # setup runs before the registrar serves: loads arriving meanwhile wait for it;
-        # its events reach the tree's subscribers from the first (a restore's in-doubt)
         upstream = relay.publisher if relay is not None else None
         registrar = start_registrar(config, setup=spec.setup, upstream=upstream)
         try:
@@ -213,10 +186,7 @@ class ThreadManager:
         runtime.Thread(target=watch, name=f"rr-watch-{spec.name}", daemon=True).start()
 
     def stop(self, timeout: float | None, *, restarting: bool = False) -> ManagerExit:
-        """Stop the registrar cleanly; tell its actor to crash if that takes too long.
-
-        (`restarting`: `DIRECTORY.mark_restarting` has its name already, this process's.)
-        """
+        """Stop the registrar cleanly; tell its actor to crash if that takes too long."""
         timeout = self.spec.shutdown if timeout is None else timeout
         self.stopping = True
         registrar = self.registrar
@@ -257,9 +227,6 @@ class ProcessManager:
     ) -> ProcessManager:
         """Start the manager (in a spare if there is one) and wait until it serves.
 
-        Its registrar's events are forwarded to `relay` while the tree has listeners; so
-        is a `ManagerOverloaded` of `supervisor`'s when it answers its heartbeat late.
-
         Raises:
             CatalogCorruptError: its backup cannot be read (with its `path`).
             RegistrarUnavailableError: it failed to start or died while starting.
@@ -287,7 +254,6 @@ class ProcessManager:
         return cls(handle, spec.shutdown)
 
     def stop(self, timeout: float | None, *, restarting: bool = False) -> ManagerExit:
-        """Ask the process to stop; it is killed after `timeout` (or its `shutdown`) seconds."""
         limit = self.handle_shutdown if timeout is None else timeout
         return self.handle.stop(limit, restarting=restarting)
 
@@ -299,18 +265,12 @@ class Level(Protocol):
     children: list[Child]
 
     @property
-    def gave_up(self) -> SupervisorGaveUpError | None:
-        """Why it gave up (`None` while it has not)."""
-        ...
+    def gave_up(self) -> SupervisorGaveUpError | None: ...
 
     @property
-    def giving_up(self) -> bool:
-        """Whether it is stopping its children to give up (waiters conclude nothing)."""
-        ...
+    def giving_up(self) -> bool: ...
 
-    def stop(self, timeout: float | None = None, *, restarting: bool = False) -> None:
-        """Stop every child in reverse start order, then the supervisor (idempotent)."""
-        ...
+    def stop(self, timeout: float | None = None, *, restarting: bool = False) -> None: ...
 
 
 class NestedSupervisor:
@@ -322,7 +282,6 @@ class NestedSupervisor:
         self.node = node
 
     def stop(self, timeout: float | None, *, restarting: bool = False) -> ManagerExit:
-        """Stop the nested supervisor and its children (a clean `shutdown`)."""
         self.node.stop(timeout=timeout, restarting=restarting)
         return ManagerExit("shutdown", normal=True)
 
@@ -332,11 +291,8 @@ class NestedSupervisor:
 
 @dataclasses.dataclass
 class Child:
-    """What a supervisor knows of one child (mutated on the supervisor's thread only).
-
-    `published` is the snapshot waiters and `which_children` read (replaced under the
-    tree's lock at each publish); the other fields are the supervisor's working state.
-    """
+    """What a supervisor knows of one child (mutated on the supervisor's thread only;
+    `published`: the snapshot waiters read, replaced under the tree's lock)."""
 
     spec: ManagerSpec | SupervisorSpec
     state: ChildState = "stopped"
@@ -354,7 +310,6 @@ class Child:
 
     @property
     def name(self) -> str:
-        """The child's name."""
         return self.spec.name
 
     def info(self, restarts: int) -> ChildInfo:

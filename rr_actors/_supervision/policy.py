@@ -1,10 +1,9 @@
 """One supervisor and its restart policy: its record, its mailbox, a child's end and what
 comes of it, and starting and stopping its children.
 
-After OTP's `supervisor.erl`, one module over one record (its state record; `restart/3`
-with one clause per strategy; `start_children`, `do_restart`, `terminate_children`): each
-event runs on the node's thread (a `SerialExecutor`), one at a time, and every step ends
-by publishing the children's snapshots to the tree's waiters.
+After OTP's `supervisor.erl`, one module over one record (`restart/3`, `start_children`,
+`do_restart`, `terminate_children`): each event runs on the node's thread, one at a
+time, and every step ends by publishing the children's snapshots to the tree's waiters.
 
 ```
               ┌────────────────── Node (one mailbox, one thread) ──────────────────────┐
@@ -19,16 +18,10 @@ by publishing the children's snapshots to the tree's waiters.
               └────────────────────────────────────────────────────────────────────────┘
 ```
 
-The module reads top down, each role calling only the roles below it: `Node`; restarting
-(`Exits`, `Restarts`; the pure `RestartIntensity` and `affected`); starting (`Starting`);
-stopping (`Stopping`, `mark`, `unmark`); what they share (the two messages `Exited` and
-`Restart`, `Record`: the node as its roles see it, `pid_of`). Each role owns its own state
-and holds the record, never another role's fields; what one role needs of another it asks
-by a method. A nested supervisor is a `Node` too; when it gives up it tells its parent,
-which sees an exited child (OTP: a supervisor that gives up exits with `shutdown`).
-
-Each role's own path, drawn in its class: `Restarts` (a child's end and what comes of it),
-`Starting`, `Stopping`; how a restart runs through the layers: "How a restart flows" in
+It reads top down, each role calling only the roles below it and owning its own state:
+`Node`; restarting (`Exits`, `Restarts`, `RestartIntensity`, `affected`); `Starting`;
+`Stopping`; what they share (`Exited`, `Restart`, `Record`). A nested supervisor is a
+`Node` too. How a restart runs through the layers: "How a restart flows" in
 docs/explanation/architecture.md.
 """
 
@@ -99,13 +92,8 @@ T = TypeVar("T")
 class Node:
     """One supervisor of a tree (the root or a nested one): its record, mailbox and roles.
 
-    Args:
-        spec: what it supervises and how.
-        tree: what the whole tree shares.
-        parent: the supervisor above it (`None` for the root).
-        state_dir: the parent's state directory (its managers' default, unless `spec`
-            names one).
-        on_gave_up: called (on this supervisor's thread) when it gives up.
+    `state_dir`: the parent's (its managers' default, unless `spec` names one);
+    `on_gave_up`: called on this supervisor's thread when it gives up.
     """
 
     def __init__(
@@ -136,17 +124,14 @@ class Node:
 
     @property
     def name(self) -> str:
-        """The supervisor's name."""
         return self.spec.name
 
     @property
     def parent(self) -> Node | None:
-        """The supervisor above it (`None` for the root)."""
         return self._parent
 
     @property
     def gave_up(self) -> SupervisorGaveUpError | None:
-        """Why it gave up (`None` while it has not)."""
         return self.restarts.gave_up
 
     @property
@@ -155,7 +140,6 @@ class Node:
         return self.restarts.giving_up
 
     def root(self) -> Node:
-        """The tree's root supervisor (this one, or the top of its parents)."""
         node = self
         while node.parent is not None:
             node = node.parent
@@ -164,11 +148,7 @@ class Node:
     # -- life cycle (any thread but its own) -------------------------------------------
 
     def start(self) -> None:
-        """Start the mailbox thread and every child in order.
-
-        Raises:
-            SupervisorGaveUpError: a child failed to start (the others were stopped).
-        """
+        """Start the mailbox thread and every child in order (`SupervisorGaveUpError`)."""
         self._running = True
         try:
             self._mailbox.call(functools.partial(self._then_publish, self.starting.start_all))
@@ -185,11 +165,8 @@ class Node:
         deadline: float | None = None,
         restarting: bool = False,
     ) -> None:
-        """Stop every child in reverse start order, then the mailbox thread (idempotent).
-
-        With `restarting`, the parent stops this supervisor to start it again (a group
-        restart): its managers' callers meanwhile get `RegistrarUnavailableError`.
-        """
+        """Stop every child in reverse start order, then the mailbox thread (idempotent;
+        `restarting`: the parent starts it again, its managers' callers retry)."""
         if deadline is None and timeout is not None:
             deadline = runtime.monotonic() + timeout
         if not self._running:
@@ -211,7 +188,6 @@ class Node:
     def _nest(
         self, spec: SupervisorSpec, on_gave_up: Callable[[SupervisorGaveUpError], None]
     ) -> Node:
-        """Start a supervisor below this one (this thread waits until it started)."""
         nested = Node(
             spec, self.tree, self, state_dir=self.starting.state_dir, on_gave_up=on_gave_up
         )
@@ -229,8 +205,6 @@ class Node:
         self._mailbox.submit(functools.partial(self._then_publish, self._handle, event))
 
     def _then_publish(self, fn: Callable[..., T], *args: object) -> T:
-        """Run `fn(*args)`, then `publish` (this supervisor's thread, one step at a time;
-        what `fn` raises is logged by the thread, or raised to `call`'s caller)."""
         try:
             return fn(*args)
         finally:
@@ -256,13 +230,7 @@ class Node:
 
 
 class Exits:
-    """Takes a child's reported end: drops a stale one, notes it, hands it to `Restarts`.
-
-    Args:
-        record: the supervisor whose children it watches.
-        restarts: decides what comes next (and knows whether this supervisor gave up).
-        stopping: notes the exit (`ChildExited`).
-    """
+    """Takes a child's reported end: drops a stale one, notes it, hands it to `Restarts`."""
 
     def __init__(self, record: Record, restarts: Restarts, stopping: Stopping) -> None:
         self.record = record
@@ -270,7 +238,6 @@ class Exits:
         self.stopping = stopping
 
     def on_exited(self, event: Exited) -> None:
-        """Child `event.name`'s incarnation `event.incarnation` ended with `event.exit`."""
         record = self.record
         child = next((c for c in record.children if c.name == event.name), None)
         if child is None or child.incarnation != event.incarnation or self.restarts.gave_up:
@@ -291,10 +258,6 @@ class Exits:
 
 class Restarts:
     """Decides whether and how a crashed child comes back, and gives up past the intensity.
-
-    A child's end is taken on the supervisor's thread; its restart type, the restart
-    intensity and the strategy decide whether it comes back, with which siblings, or
-    whether the supervisor gives up.
 
     ```
      ThreadManager watcher: its registrar actor stopped ──────────────────────────┐
@@ -317,18 +280,8 @@ class Restarts:
     ```
 
     An incarnation stopped on purpose was bumped by `Stopping.stop_child` first, so its
-    watcher's report is stale here. A child's restart type is read by `restarts_after` and
-    `restarts_with_group`, in `children.py`, as the tree's lookups read it too. `Exits` holds
-    no state of its own: what it changes is the crashed child's record. `Restarts` holds the
-    intensity window, the generation and timers of pending restarts, and whether (and why)
-    this supervisor gave up.
-
-    Args:
-        record: the supervisor whose children it restarts.
-        starting: starts them again.
-        stopping: stops the siblings that go down with a crashed child.
-        on_gave_up: called (on this supervisor's thread) when it gave up: a nested
-            supervisor's parent posts itself an `Exited`.
+    watcher's report is stale. Holds the intensity window, the generation and timers of
+    pending restarts, and whether (and why) this supervisor gave up.
     """
 
     def __init__(
@@ -367,7 +320,6 @@ class Restarts:
         self._schedule(self._take_down_with(child))
 
     def on_restart(self, event: Restart) -> None:
-        """Start the children `event` names again (unless it is stale)."""
         record = self.record
         self._timers.pop(id(event), None)  # (it ran: nothing to cancel any more)
         if event.generation != self._generation or self.gave_up is not None:
@@ -394,11 +346,8 @@ class Restarts:
         self._due.clear()
 
     def _take_down_with(self, crashed: Child) -> tuple[str, ...]:
-        """Stop the siblings the strategy restarts with `crashed`; the names to restart.
-
-        Siblings stop in reverse start order. A `temporary` sibling is stopped for good;
-        every other one comes back, a `transient` one that had exited normally too (OTP).
-        """
+        """Stop the siblings the strategy restarts with `crashed` (reverse start order);
+        the names to restart."""
         children = self.record.children
         strategy, order = self.record.spec.strategy, [c.name for c in children]
         step = runtime.steps.group  # (a classroom's copy of this step, `rr_actors.teach`)
@@ -435,11 +384,8 @@ class Restarts:
         self._timers[id(event)] = tree.timer(delay, lambda: record.post(event))
 
     def give_up(self, crashed: Child) -> None:
-        """Stop every child in reverse start order, then report the give-up (OTP: shutdown).
-
-        Waiters conclude nothing while it runs (`giving_up`); the give-up is published
-        once every child has stopped.
-        """
+        """Stop every child in reverse start order, then report the give-up (OTP: shutdown);
+        published once every child has stopped."""
         record, stopping = self.record, self.stopping
         spec = record.spec
         error = SupervisorGaveUpError(
@@ -506,14 +452,8 @@ class RestartIntensity:
 
 
 def affected(strategy: Strategy, names: Sequence[str], crashed: str) -> tuple[str, ...]:
-    """The children a crash of `crashed` takes down with it, in start order, itself included.
-
-    Args:
-        strategy: `"one_for_one"` (itself), `"one_for_all"` (every child) or
-            `"rest_for_one"` (itself and the children started after it).
-        names: every child's name, in start order.
-        crashed: the child that crashed.
-    """
+    """The children a crash of `crashed` takes down with it (OTP's strategies), in start
+    order (`names`), itself included."""
     if strategy == "one_for_one":
         return (crashed,)
     if strategy == "one_for_all":
@@ -524,36 +464,22 @@ def affected(strategy: Strategy, names: Sequence[str], crashed: str) -> tuple[st
 # -- starting: in start order, or one again (OTP's start_children, do_restart) -------------
 
 Nest = Callable[[SupervisorSpec, Callable[[SupervisorGaveUpError], None]], Level]
-"""`nest(spec, on_gave_up)`: start a supervisor below this one (a `Node`), which
-calls `on_gave_up` (on its own thread) when it gives up."""
+"""`nest(spec, on_gave_up)`: start a supervisor below this one (a `Node`)."""
 
 
 class Starting:
     """Starts children, in order at the supervisor's start, or one at a restart.
 
     ```
-     Node.start ─► start_all: each child in start order ─► start_child
-                      └─ one fails: the started ones stop (reverse order) ─► SupervisorGaveUpError
-     Restarts.on_restart ─► start_child
-     start_child ─► a manager: ThreadManager (this process) or ProcessManager (a spare process),
-                               its config (`<state_dir>/<name>.db` with the tree's state_dir)
-                  └ a supervisor: a nested Node (`nest`), which gives up by posting Exited
+     start_child ─► a manager: ThreadManager or ProcessManager (a spare process), its
+                    config (`<state_dir>/<name>.db`); a supervisor: a nested Node (`nest`)
                 ─► running; ChildStarted / ChildRestarted; abandoned ids given back;
-                   after a restart, the death watch it missed (and, with no backup, FATAL
-                   for what was held at it, and what it held released: lost_everything;
-                   also at the first start of one that ran on the state_dir before)
+                   after a restart, the death watch it missed; without a backup,
+                   lost_everything
     ```
 
-    Each child is handed a watcher callback (run on its watcher thread) that posts its end
-    to the supervisor's mailbox as `Exited`, with the incarnation it started. `Starting`'s own
-    state: the state directory its managers' catalogs go to.
-
-    Args:
-        record: the supervisor whose children it starts.
-        stopping: stops what started when a later child fails to start.
-        state_dir: where its managers keep their catalogs (`None`: in memory, unless a
-            manager's spec names a config).
-        nest: starts a nested supervisor.
+    Each child's watcher posts its end as `Exited`, with the incarnation it started.
+    `state_dir`: where its managers keep their catalogs (`None`: in memory).
     """
 
     def __init__(
@@ -570,11 +496,8 @@ class Starting:
         self.nest = nest
 
     def start_all(self) -> None:
-        """Start every child in order; if one fails, stop those started (reverse order).
-
-        Raises:
-            SupervisorGaveUpError: a child failed to start.
-        """
+        """Start every child in order; if one fails, stop those started (reverse order) and
+        raise `SupervisorGaveUpError`."""
         record = self.record
         started: list[Child] = []
         for child in record.children:
@@ -605,7 +528,6 @@ class Starting:
         )
 
     def start_child(self, child: Child) -> None:
-        """Start one incarnation of `child`; raise what its start raised."""
         record = self.record
         child.incarnation += 1
         child.state = "starting"
@@ -657,10 +579,8 @@ class Starting:
             lost_everything(record.root(), child.name, tree.processes.system)
 
     def ran_before(self, name: str) -> bool:
-        """Whether manager `name`, which keeps no backup, ran on this supervisor's state
-        directory before (in a program killed since, say: the backups of the others may
-        hold its last run's ids); marks it there (`tree.ran_before`). A mark that
-        cannot be written is a WARNING: the manager runs all the same."""
+        """`tree.ran_before` on this supervisor's state directory (a mark that cannot be
+        written is a WARNING: the manager runs all the same)."""
         if self.state_dir is None:
             return False
         try:
@@ -670,7 +590,6 @@ class Starting:
             return False
 
     def _watch(self, child: Child) -> Callable[[ManagerExit], None]:
-        """What `child`'s watcher calls when this incarnation ends: post `Exited`."""
         post, name, incarnation = self.record.post, child.name, child.incarnation
 
         def exited(result: ManagerExit) -> None:
@@ -679,7 +598,6 @@ class Starting:
         return exited
 
     def _published_start(self, child: Child, *, restarted: bool) -> None:
-        """Publish `ChildStarted`, or `ChildRestarted` with the time it was down."""
         record = self.record
         down_since = record.tree.down_since.pop(child.name, None)
         publisher = record.tree.events.publisher
@@ -709,27 +627,24 @@ _MIN_STOP = 1e-3  # seconds a child still gets to stop when an overall stop boun
 
 
 def left(deadline: float | None) -> float | None:
-    """Seconds left until `deadline` (at least 1 ms), or `None` without one."""
+    """Seconds left until `deadline` (at least 1 ms)."""
     if deadline is None:
         return None
     return max(deadline - runtime.monotonic(), _MIN_STOP)
 
 
 def registrar_names(spec: ManagerSpec | SupervisorSpec) -> list[str]:
-    """The registrar names of a child: its own, or those of the managers below it."""
     if isinstance(spec, ManagerSpec):
         return [spec.name]
     return [manager.name for manager in managers(spec)]
 
 
 def mark(child: Child) -> None:
-    """`child` (its managers, for a nested supervisor) is down and will be restarted:
-    its callers get `RegistrarUnavailableError` (retry), not `RegistrarStoppedError`."""
+    """`child` is down and will be restarted: its callers get `RegistrarUnavailableError`."""
     DIRECTORY.mark_restarting(registrar_names(child.spec))
 
 
 def unmark(child: Child) -> None:
-    """`child` serves again, or is down for good: the restart mark goes."""
     DIRECTORY.mark_restarting(registrar_names(child.spec), restarting=False)
 
 
@@ -737,20 +652,11 @@ class Stopping:
     """Stops children, and releases what those that will not come back held.
 
     ```
-     Node.stop ─► stop_all (reverse start order) ─┐
-     Restarts: a group's siblings, a give-up ─────┼─► stop_child: its spec's shutdown (bounded by
-     Starting: rolling back a failed start ───────┘   the deadline), then a kill ─► note_exit
-                                                        └─ final? ─► forget
-     forget ─► death watch (rule 19): a dead manager is lost (`lose`: its consumers' ids
-               released, the ids held at it FATAL); one stopped for good is stale (rule 12)
-     mark / unmark ─► DIRECTORY.mark_restarting: down for a moment, callers retry
+     stop_all, a group's siblings, a give-up, a failed start's rollback ─► stop_child: its
+       spec's shutdown (bounded by the deadline), then a kill ─► note_exit; final? ─► forget
+     forget ─► death watch (rule 19): a dead manager is lost (`lose`); one stopped for
+               good is stale (rule 12)
     ```
-
-    `Stopping`'s own state: whether the parent stops this supervisor to start it again
-    (`to_restart`), which keeps its managers marked as restarting while they are down.
-
-    Args:
-        record: the supervisor whose children it stops.
     """
 
     def __init__(self, record: Record) -> None:
@@ -758,8 +664,6 @@ class Stopping:
         self.to_restart = False  # the parent stops this tree to start it again
 
     def stop_all(self, deadline: float | None = None, *, restarting: bool = False) -> None:
-        """Stop every child in reverse start order, each for good (`restarting`: the
-        parent starts this supervisor again, its managers stay marked meanwhile)."""
         self.to_restart = restarting
         for child in reversed(self.record.children):
             self.stop_child(child, final=True, deadline=deadline, restarting=restarting)
@@ -772,11 +676,7 @@ class Stopping:
         deadline: float | None = None,
         restarting: bool = False,
     ) -> None:
-        """Stop a running child (its spec's shutdown, bounded by `deadline`, then a kill).
-
-        `final`: it is not started again by this supervisor (`forget`). `restarting`: it
-        is stopped to be started again (marked `DIRECTORY.mark_restarting`).
-        """
+        """Stop a running child (`final`: not started again; `restarting`: it will be)."""
         running = child.running
         if running is None:
             if final:
@@ -804,11 +704,8 @@ class Stopping:
     def note_exit(
         self, child: Child, pid: int, reason: str, *, normal: bool = False, stopped: bool = False
     ) -> None:
-        """Note when `child` went down, and publish `ChildExited`.
-
-        `normal`: it ended normally; `stopped`: this supervisor stopped it (a shutdown,
-        a sibling taken down): no exit the restart intensity counts.
-        """
+        """Note when `child` went down, and publish `ChildExited` (`stopped`: by this
+        supervisor, not an exit the restart intensity counts)."""
         tree = self.record.tree
         tree.down_since[child.name] = runtime.monotonic()
         publisher = tree.events.publisher
@@ -831,11 +728,7 @@ class Stopping:
             )
 
     def forget(self, child: Child, *, dead: bool) -> None:
-        """The child will not come back: release what it held (death watch) if it died.
-
-        Its callers get `RegistrarStoppedError` (or, if it died, `...UnavailableError`)
-        from now on, unless the parent is stopping this whole supervisor to restart it.
-        """
+        """The child will not come back: release what it held (death watch) if it died."""
         if not self.to_restart:
             unmark(child)
         if isinstance(child.spec, ManagerSpec):
@@ -850,8 +743,7 @@ class Stopping:
                 self.lose(name)
 
     def lose(self, name: str) -> None:
-        """Manager `name` is gone and nobody will restart it (death watch, rule 19):
-        its consumers' ids are released, and the ids held at it are `FATAL`."""
+        """Manager `name` is gone and nobody will restart it (death watch, rule 19)."""
         DIRECTORY.expect_restart(name, expected=False)
         record = self.record
         consumer_down(record.root(), name, record.tree.processes.system)  # (recorded first:
@@ -863,8 +755,6 @@ class Stopping:
 
 @dataclasses.dataclass(frozen=True)
 class Exited:
-    """Child `name`'s incarnation `incarnation` ended (posted by its watcher)."""
-
     name: str
     incarnation: int
     exit: ManagerExit
@@ -879,40 +769,26 @@ class Restart:
 
 
 class Record(Level, Protocol):
-    """One supervisor as its roles see it (a `Node`): what it supervises, the tree it
-    is part of, its children's records, and its mailbox."""
+    """One supervisor as its roles see it (a `Node`)."""
 
     tree: Tree
 
     @property
-    def name(self) -> str:
-        """The supervisor's name."""
-        ...
+    def name(self) -> str: ...
 
     @property
-    def parent(self) -> Record | None:
-        """The supervisor above it (`None` for the root)."""
-        ...
+    def parent(self) -> Record | None: ...
 
-    def root(self) -> Level:
-        """The tree's root supervisor."""
-        ...
+    def root(self) -> Level: ...
 
-    def post(self, event: Exited | Restart) -> None:
-        """Queue `event` for this supervisor's thread (any thread; returns at once)."""
-        ...
+    def post(self, event: Exited | Restart) -> None: ...
 
-    def cast(self, fn: Callable[[], object]) -> None:
-        """Run `fn` on this supervisor's thread after what is queued now."""
-        ...
+    def cast(self, fn: Callable[[], object]) -> None: ...
 
-    def publish(self) -> None:
-        """Publish the children's snapshots and wake every waiter of the tree."""
-        ...
+    def publish(self) -> None: ...
 
 
 def pid_of(child: Child) -> int:
-    """The process a child runs in: its own (a process manager), else this one."""
     running = child.running
     pid = running.pid if running is not None else None
     return pid if pid is not None else runtime.getpid()

@@ -13,11 +13,8 @@
                             down?    ── kept in the tree; sent by its next start
 ```
 
-The retry is written once, as steps (`replies.Steps`): the consumer's call
-(`call_steps`) and the restart wait (`tree.RestartWait`) are steps of their own, so
-`Supervisor.call_with_retry` runs it blocking and `acall_with_retry` awaits it, with no
-thread held while it waits. Built on the one handle class, `Registrar`, so the consumer
-may be any registrar handle (in this process, or in a manager process).
+Written once, as steps (`replies.Steps`): `call_with_retry` runs them blocking,
+`acall_with_retry` awaits them; the consumer may be any `Registrar` handle.
 """
 
 from __future__ import annotations
@@ -50,20 +47,17 @@ __all__ = [
     "restart_after_failure",
 ]
 
-_WAITING_STATES = ("stopping", "restarting", "starting")
-"""States of a provider that its supervisor stopped to restart it."""
+_WAITING_STATES = ("stopping", "restarting", "starting")  # stopped by its supervisor to restart
 
 
 class Restarts(Protocol):
     """What `call_with_retry` asks of a supervision tree (a `Supervisor`)."""
 
-    def child(self, name: str) -> ChildInfo:
-        """The snapshot of child `name` anywhere in the tree (`UnknownServerError`)."""
-        ...
+    def child(self, name: str) -> ChildInfo: ...
 
-    def _restart_wait(self, name: str, timeout: float, restarts: int | None) -> Steps[ChildInfo]:
-        """The steps of a wait for child `name`'s restart (see `Supervisor.wait_restarted`)."""
-        ...
+    def _restart_wait(
+        self, name: str, timeout: float, restarts: int | None
+    ) -> Steps[ChildInfo]: ...
 
 
 def _lookup(tree: Restarts, name: str) -> ChildInfo | None:
@@ -89,15 +83,8 @@ def call_with_retry(
     timeout: float | None = None,
     query_id: str | None = None,
 ) -> Steps[Query]:
-    """The steps of `Supervisor.call_with_retry` (which documents it) and its twin.
-
-    Args:
-        tree: the supervisor whose tree holds `target_rr`.
-        abandon: `abandon(provider, query_id, origin)`: give the id back at the provider,
-            now or when it is back (see `abandon_after_restart`).
-        consumer, target_rr, server, request, on_status, timeout, query_id: as for
-            `Supervisor.call_with_retry`.
-    """
+    """The steps of `Supervisor.call_with_retry` (which documents it); `abandon(provider,
+    query_id, origin)` gives the id back, now or when it is back."""
     _check(consumer, target_rr, server, request, timeout, query_id)
     limit = timeout if timeout is not None else consumer.config.call_timeout
     qid = query_id or runtime.new_id()
@@ -149,28 +136,13 @@ def call_with_retry(
 
 
 def restart_after_failure(before: ChildInfo, now: ChildInfo | None, tried_again_at: int) -> int:
-    """The restart to wait for after a call failed as unavailable, made when the tree said
-    `before` (and says `now`): the one that brings it back, with the restarts it had
-    counted (`before.restarts`), if it was down then; else the next one
-    (`before.restarts + 1`) if the provider was killed since (down now, gone, or
-    restarted since), or if the call was tried again at once at this count already
-    (`tried_again_at`); else `before`'s own (at once).
+    """The restart count to wait for after a call failed as unavailable (the tree said
+    `before` when the call began, says `now`): `before.restarts` if it was down then (the
+    start under way brings it back); `+ 1` if it was killed since, or was tried again at
+    once at this count already; else `before.restarts` (try again at once).
 
-    Down when asked (restarting, starting, stopping for a restart) it runs again only
-    by a start, so "running, with at least `before.restarts`" is that start; "+ 1" would
-    be one more than it needs where the count went up before the tree showed it
-    running: a manager whose nested supervisor its parent restarts has started again,
-    and counted it, while that supervisor still starts its other children (the tree
-    shows it `starting` until then). A child that exited or was stopped for good is
-    still asked "+ 1", which the tree answers at once with `RegistrarUnavailableError`.
-
-    A call may fail as unavailable with no restart to come: the provider was restarted
-    before `before` was read and this process does not see it served yet (across hosts
-    its token is on its way). Waiting for "the count + 1" then waits for a restart that
-    never comes, until the timeout (the mission's F5, `mission/hosts.py`). Trying again
-    at once only once per count bounds the other case by the tree's own event: killed,
-    and not seen by the tree yet, the provider fails every call at once; after one, the
-    wait is for the restart the tree will make once it sees the kill, not a spin.
+    Trying again at once, once per count: a provider restarted before `before` was read
+    may not be seen served here yet (across hosts), and no further restart would come.
     """
     if before.state not in ("running", "exited", "stopped"):
         return before.restarts
@@ -192,7 +164,6 @@ def _check(
     timeout: float | None,
     query_id: object,
 ) -> None:
-    """`ConfigError` for an argument `call_with_retry` cannot use, before anything is sent."""
     if not isinstance(consumer, Registrar):
         raise ConfigError(
             "call_with_retry(consumer, target_rr, server, request): the consumer comes "
@@ -213,12 +184,8 @@ def _check(
 
 
 def abandon_after_restart(tree: Tree, root: Level, name: str, query_id: str, origin: str) -> None:
-    """Abandon `query_id` at provider `name`: now if it runs, else when it is back.
-
-    Under the tree's abandon lock, which `give_back_abandoned` takes after a child was
-    marked running: an id is either sent here or handed to the next start, never left
-    behind.
-    """
+    """Abandon `query_id` at provider `name`: now if it runs, else when it is back (under
+    the lock `give_back_abandoned` takes: never left behind)."""
     with tree.abandon_lock:
         child = find_child(root, name)
         if child is None or child.state != "running" or child.running is None:

@@ -1,19 +1,11 @@
 """Supervision trees of managers, after Erlang/OTP's `supervisor` (design principles, sup_princ).
 
 A [`Supervisor`][rr_actors.Supervisor] starts its children (managers, or nested
-supervisors) in order, watches them and restarts them by policy:
-
-* strategies `one_for_one`, `one_for_all`, `rest_for_one` (which siblings restart with a
-  crashed child);
-* restart types `permanent` (always restarted), `transient` (restarted after an abnormal
-  exit), `temporary` (never restarted);
-* restart intensity: more than `max_restarts` restarts within `period` seconds and the
-  supervisor gives up: it stops every child and reports `SupervisorGaveUpError` (to its
-  parent supervisor, which treats it as a child that exited with OTP's `shutdown`, or to
-  its owner);
-* what OTP lacks: exponential [`Backoff`][rr_actors.Backoff] with jitter before a restart.
-
-Who does what (each in its own module of `rr_actors._supervision`):
+supervisors) in order and restarts them by strategy (`one_for_one`, `one_for_all`,
+`rest_for_one`), restart type (`permanent`, `transient`, `temporary`) and restart
+intensity (more than `max_restarts` within `period` seconds: it gives up, and its parent
+sees a child that exited with OTP's `shutdown`); plus what OTP lacks, an exponential
+[`Backoff`][rr_actors.Backoff] with jitter. Who does what:
 
 ```
  Supervisor (this module: the public handle; owns the transport, spares, state-dir lock)
@@ -29,10 +21,8 @@ Who does what (each in its own module of `rr_actors._supervision`):
    aio.py: the awaitable twins (AsyncSupervision, this class's base)
 ```
 
-The supervisor is a thread with a mailbox: one event at a time, never polling. A manager
-process's death is seen by a watcher thread blocked on the process sentinel; a thread
-manager's death by a watcher blocked on its registrar actor's stop event. Time (the
-intensity window and the backoff timers) goes through an injectable `clock` and `timer`.
+The supervisor is a thread with a mailbox: one event at a time, never polling (a watcher
+thread blocks on each child's end). Time goes through an injectable `clock` and `timer`.
 """
 
 from __future__ import annotations
@@ -113,33 +103,21 @@ SPARE_PROCESSES = 2
 """Idle manager processes a tree with process managers keeps ready (see `SparePool`)."""
 
 SPARE_DELAY = 0.1
-"""Seconds from a (re)start of a process manager to the start of the spare replacing the
-one it used: a crash within that time meets no warm-up competing for the CPU."""
+"""Seconds from a process manager's (re)start to the start of the spare replacing the one
+it used."""
 
 
 class Supervisor(AsyncSupervision):
     """Starts managers in order, restarts them by policy, stops them in reverse order.
 
-    Follows Erlang/OTP's supervisor (strategies, restart types, restart intensity with
-    escalation), plus exponential backoff with jitter. Use it as a context manager, or call
-    [`start`][rr_actors.Supervisor.start] and [`stop`][rr_actors.Supervisor.stop]. From an
-    event loop: `async with sup:`, `await sup.astart()`, `await sup.astop()`, `await
-    sup.await_restarted(...)`, `await sup.aregistrar(...)`, `await
-    sup.acall_with_retry(...)` (the loop never blocks).
-
-    ```python
-    sup = rr.Supervisor([rr.ManagerSpec("erm", setup=erm_setup, isolation="process"),
-                         rr.ManagerSpec("cm", setup=cm_setup)],
-                        strategy="one_for_one", max_restarts=3, period=5.0, state_dir="state")
-    with sup:
-        app = sup.registrar("action")
-        app.call("cm", "filtered_camera", {...})
-    ```
+    Erlang/OTP's supervisor (strategies, restart types, restart intensity with
+    escalation), plus exponential backoff with jitter. A context manager, or call
+    [`start`][rr_actors.Supervisor.start] and [`stop`][rr_actors.Supervisor.stop]; from an
+    event loop, `async with sup:` and the awaitable twins (`astart`, `astop`, ...).
 
     Args:
-        children: `ManagerSpec` and `SupervisorSpec` values, started in this order; one
-            spec alone is a tree of that one child (`Supervisor(spec)` is
-            `Supervisor([spec])`).
+        children: `ManagerSpec` and `SupervisorSpec` values, started in this order (one
+            spec alone: a tree of that one child).
         strategy: `"one_for_one"` (restart the crashed child), `"one_for_all"` (restart
             every child) or `"rest_for_one"` (restart it and the children started after it).
         max_restarts: at most this many restarts within `period` seconds; one more and the
@@ -147,24 +125,20 @@ class Supervisor(AsyncSupervision):
         period: the intensity window, in seconds.
         backoff: delay before restarts (default: none).
         state_dir: directory for the managers' catalogs (`<state_dir>/<name>.db`,
-            `save_on_modify=True`) unless a spec gives its own `config`. One supervisor
-            tree at a time uses it: `start` locks it (`<state_dir>/.lock`, holding the
-            holder's pid) until `stop` or the process's death. It also remembers the
-            registrars started without a backup (`registrar()`'s, and managers whose own
-            config has none: `<state_dir>/.consumers/`), whose next start releases what
-            their last run held.
+            `save_on_modify=True`) unless a spec gives its own `config`. `start` locks it
+            (`<state_dir>/.lock`, the holder's pid) until `stop` or the process's death.
+            It remembers the registrars started without a backup
+            (`<state_dir>/.consumers/`), whose next start releases what their last run held.
         name: this supervisor's name (for logs and thread names).
-        clock: monotonic clock in seconds for the intensity window (injectable for tests;
-            `None`: the process's, `time.monotonic`).
-        timer: `timer(delay, fn)` that runs `fn` after `delay` seconds (injectable for tests);
-            a zero delay restarts without a timer.
-        random: float in `[0, 1)` for the backoff jitter (injectable for tests; `None`:
-            `random.random`).
-        network: the carrier the tree's managers and `registrar()`s are served on: any
-            `Transport` (an AF_UNIX `System`, a `ZenohNetwork`); its process managers
-            join it through its `address`. The supervisor does not close it (its owner
-            does, after `stop`). Default: a private AF_UNIX system made at `start` when
-            the tree has process managers, closed at `stop`.
+        clock: monotonic clock in seconds for the intensity window (`None`:
+            `time.monotonic`).
+        timer: `timer(delay, fn)` that runs `fn` after `delay` seconds; a zero delay
+            restarts without a timer.
+        random: float in `[0, 1)` for the backoff jitter (`None`: `random.random`).
+        network: the carrier (`Transport`: an AF_UNIX `System`, a `ZenohNetwork`) the
+            tree's managers and `registrar()`s are served on; its owner closes it after
+            `stop`. Default: a private AF_UNIX system, made at `start` when the tree has
+            process managers, closed at `stop`.
 
     Raises:
         ConfigError: an argument is invalid; the message names it.
@@ -230,8 +204,7 @@ class Supervisor(AsyncSupervision):
 
     @property
     def system(self) -> Transport | None:
-        """The carrier its managers are served on while it runs: the `network` it was
-        given, or its private AF_UNIX system (`None` without either)."""
+        """The carrier its managers are served on while it runs (`None`: none)."""
         return self._tree.processes.system
 
     @property
@@ -245,18 +218,14 @@ class Supervisor(AsyncSupervision):
         """Start every child in order; return once all are running (serving).
 
         Raises:
-            SupervisorGaveUpError: a child failed to start (its setup raised, its backup
-                could not be read, ...); the children already started were stopped again,
-                in reverse order. The cause is chained: a backup that cannot be read is
-                a `CatalogCorruptError` with its `path` there, in either placement (see
-                `quarantine_backup`).
-            ConfigError: a process manager's `setup` cannot be pickled, the supervisor is
-                running, or it was stopped (a supervisor starts once: make a new one with
-                the same specs; its managers' catalogs are restored), or a `state_dir` of
-                the tree is in use by another supervisor (the message names the holder's
-                pid; see `state_dir`); or this
-                process was forked from one whose state a child cannot use (a Zenoh
-                session): the message says to use the `spawn` or `forkserver` method.
+            SupervisorGaveUpError: a child failed to start; those started were stopped
+                again, in reverse order. The cause is chained (a backup that cannot be
+                read: `CatalogCorruptError` with its `path`, see `quarantine_backup`).
+            ConfigError: a process manager's `setup` cannot be pickled; the supervisor is
+                running or was stopped (it starts once: make a new one, its managers'
+                catalogs are restored); a `state_dir` of the tree is locked by another
+                supervisor (the message names its pid); or this process was forked from
+                one whose state a child cannot use (a Zenoh session).
         """
         forkserver.check_usable(f"supervisor {self.name!r}")
         if self._stopped:
@@ -292,20 +261,18 @@ class Supervisor(AsyncSupervision):
         """Stop the registrars from `registrar()`, then every child in reverse start order.
 
         Each child gets its spec's `shutdown` seconds to stop cleanly before it is killed
-        (see `ManagerSpec.shutdown` for what that means for a thread manager). Stopping a
-        stopped supervisor is a no-op.
+        (`ManagerSpec.shutdown`). Idempotent.
 
         Args:
-            timeout: an overall bound in seconds: a child still running when it ran out
-                gets no more than what is left of it (at least 1 ms) before it is killed,
-                even if its `shutdown` is longer. `None`: every child gets its full
-                `shutdown`. The bound starts once the supervisor's thread takes up the
-                stop (it first finishes a child start that is under way).
+            timeout: an overall bound in seconds (`None`: every child gets its full
+                `shutdown`): a child still running when it ran out gets what is left (at
+                least 1 ms), then is killed. It starts once the supervisor's thread takes
+                up the stop (after a child start under way).
 
         Raises:
             ConfigError: `timeout` is not a positive number of seconds, or it was called
-                on one of the tree's supervisors' threads (from a thread manager's
-                `setup`), where it would wait for itself: nothing was stopped.
+                on one of the tree's supervisors' threads (a thread manager's `setup`),
+                where it would wait for itself: nothing was stopped.
         """
         if timeout is not None:
             check_seconds("timeout", timeout)
@@ -339,7 +306,6 @@ class Supervisor(AsyncSupervision):
             raise self._node.gave_up
 
     def _release(self) -> None:
-        """Release what the tree held: spares, the transport system, the state-dir lock."""
         self._tree.processes.close()
         if self._lock is not None:
             self._lock.release()
@@ -365,15 +331,12 @@ class Supervisor(AsyncSupervision):
     def child(self, name: str) -> ChildInfo:
         """The snapshot of the child `name`, searched through nested supervisors too.
 
-        A child of a nested supervisor that is down (being restarted by its parent, say)
-        has that supervisor's state (`"restarting"`, ...) and no pid. After `stop` every
-        child is `"stopped"`, with no pid.
+        A child of a nested supervisor that is down has that supervisor's state and no
+        pid; after `stop` every child is `"stopped"`, with no pid.
 
         Raises:
             UnknownServerError: no child of that name in this tree.
-            ConfigError: `name` is not a str, or the supervisor is not started yet (no
-                child runs, none has a pid: start it first, `with sup:`; the specs are
-                what it was given, `which_children` lists them as `"stopped"`).
+            ConfigError: `name` is not a str, or the supervisor is not started yet.
         """
         info = self.snapshot(name)  # an unknown name first: it is wrong started or not
         if not self._started:
@@ -384,8 +347,7 @@ class Supervisor(AsyncSupervision):
         return info
 
     def snapshot(self, name: str) -> ChildInfo:
-        """`child(name)` at any time, before `start` too (every child `"stopped"` then, as
-        the observer shows a tree before it starts).
+        """`child(name)` at any time, before `start` too (every child `"stopped"` then).
 
         Raises:
             UnknownServerError: no child of that name in this tree.
@@ -407,30 +369,24 @@ class Supervisor(AsyncSupervision):
         """Wait until child `name` (anywhere in the tree) was restarted and is running again.
 
         A child of a nested supervisor counts as restarted also when its supervisor was
-        restarted by its parent (escalation): restart counts are kept per name across
-        incarnations of the nested supervisor.
+        (escalation): restart counts are kept per name.
 
         Args:
             name: the child's name.
             timeout: seconds to wait at most.
             restarts: wait until it was restarted at least this many times in total.
-                Default: one more restart than the previous `wait_restarted` for this
-                child returned (1 the first time), so "kill, wait, kill, wait" works even
-                when a restart completes before the wait starts.
+                Default: one more than the previous `wait_restarted` for this child
+                returned (1 the first time), so "kill, wait, kill, wait" works.
 
         Returns:
             The child's snapshot, running.
 
         Raises:
             CallTimeoutError: not restarted within `timeout` seconds.
-            SupervisorGaveUpError: the tree gave up on it: its supervisor gave up and no
-                supervisor above will restart that one (the top one gave up, or a nested
-                one whose restart type is `temporary` or `transient`). Raised once the
-                supervisor that gave up has stopped all its children (`gave_up` is set).
+            SupervisorGaveUpError: its supervisor gave up and none above restarts that
+                one; raised once the one that gave up stopped all its children.
             RegistrarUnavailableError: it exited for good (temporary, or transient after a
-                normal exit under `one_for_one`; under `one_for_all` and `rest_for_one`
-                a transient child waits for a group restart) or its supervisor was
-                stopped.
+                normal exit under `one_for_one`) or its supervisor was stopped.
             UnknownServerError: no child of that name.
             ConfigError: `name` is not a str, `timeout` not a positive number of seconds,
                 or `restarts` neither an int nor `None`.
@@ -438,9 +394,7 @@ class Supervisor(AsyncSupervision):
         return run_steps(self._restart_wait(name, timeout, restarts))
 
     def _restart_wait(self, name: str, timeout: float, restarts: int | None) -> Steps[ChildInfo]:
-        """The steps of a wait for child `name`'s restart (`tree.RestartWait`), its
-        arguments checked: `wait_restarted` runs them, `await_restarted` and the retry's
-        steps (`retry.py`) await them."""
+        """`wait_restarted`'s steps, its arguments checked (also awaited: `aio`, `retry`)."""
         _check_child_name(name)
         check_seconds("timeout", timeout)
         if restarts is not None and (isinstance(restarts, bool) or not isinstance(restarts, int)):
@@ -454,17 +408,10 @@ class Supervisor(AsyncSupervision):
     def registrar(self, config: RegistrarConfig | str) -> ResourceRegistrar:
         """Start a consumer registrar in this process, served on this supervisor's carrier.
 
-        Process managers (and, with a `network`, the other processes and hosts of that
-        system) can reach it (status notifications, nested calls). It is not
-        supervised; the supervisor stops it first when it stops. Its events go to the
-        supervisor's subscribers too (`subscribe`).
-
-        With a `state_dir` and no backup of its own, the name is remembered there
-        (`<state_dir>/.consumers/<name>`): started again on the same `state_dir` (the
-        program killed, then run again), it is told as it starts that it lost
-        everything: it reconciles with every registrar of the system, which releases
-        the ids its last run held in the managers' restored catalogs (each `unload`
-        once; rule 20). Its own calls may start at once: the list leaves before them.
+        Not supervised; the supervisor stops it first when it stops. Its events go to
+        the supervisor's subscribers too. With a `state_dir` and no backup of its own,
+        its name is remembered there: started again on that `state_dir`, it reconciles
+        with every registrar, which releases the ids its last run held (rule 20).
 
         Args:
             config: a `RegistrarConfig` or a name.
@@ -498,12 +445,7 @@ class Supervisor(AsyncSupervision):
         return registrar
 
     def _reconcile_last_run(self, registrar: ResourceRegistrar) -> None:
-        """A consumer registrar without a backup on a `state_dir` tree: if one of its name
-        ran there before (its program killed, then started again), the managers' backups
-        may hold its last run's ids, for nobody now. It is told it lost everything, as a
-        manager restarted without a backup is: it reconciles with every registrar of the
-        system, which releases those ids (rule 20), and those that hold ids at it hear
-        `FATAL` for each (`tree.ran_before`)."""
+        """If one of its name ran on this `state_dir` before, it lost everything (rule 20)."""
         state_dir = self._spec.state_dir
         if state_dir is None or registrar.config.backup_path is not None:
             return  # (one with a backup reconciles with everyone itself when restored)
@@ -517,8 +459,7 @@ class Supervisor(AsyncSupervision):
         """Run `fn(registrar)` against manager `name`'s registrar, where it lives.
 
         For a process manager `fn` is cloudpickled and runs on a fresh thread of that
-        process, over the tree's carrier (`Transport.run`); its result must
-        pickle. For a thread manager it runs on the calling thread.
+        process (its result must pickle); for a thread manager, on the calling thread.
 
         Args:
             name: the manager's name (anywhere in the tree).
@@ -576,18 +517,10 @@ class Supervisor(AsyncSupervision):
     ) -> Query:
         """`consumer.call(...)`, waiting out a restart of `target_rr` and retrying.
 
-        The consumer comes first: `sup.call_with_retry(app, "erm", "camera", request)`
-        (a name first is told so, not a missing argument).
-
         Every attempt uses the same caller-generated query id, so the provider's restored
-        catalog recognises a retry of a call it already answered before it died: the
-        resource is never loaded twice and no second consumer id is created. If the wait
-        for the restart runs out, the id is abandoned at the provider (at once if it runs
-        again by then, else when it comes back), so nothing leaks; so it is when the wait
-        is interrupted (a `KeyboardInterrupt`; for `acall_with_retry`, its task
-        cancelled). A restart of the provider's nested supervisor by its parent
-        (escalation) is waited out too. From an event loop, await its twin,
-        `acall_with_retry`: the same, with no thread held while it waits.
+        catalog recognises a retry of a call it answered before it died (never loaded
+        twice, no second consumer id). If the wait runs out or is interrupted, the id is
+        abandoned at the provider (now, or when it comes back): nothing leaks.
 
         Args:
             consumer: the calling registrar.
@@ -611,11 +544,10 @@ class Supervisor(AsyncSupervision):
             UnknownServerError: as for `ResourceRegistrar.call`.
             RegistrarStoppedError: as for `ResourceRegistrar.call` (not when the
                 supervisor stopped the provider to restart it).
-            ConfigError: `consumer` is not a registrar (the message shows the order of
-                the arguments), `request` is missing, `timeout` not a positive number of
-                seconds, or as for `ResourceRegistrar.call`; nothing was sent. Also when
-                called on rr_actors' own event loop (a coroutine `load`, say): await
-                `acall_with_retry` there.
+            ConfigError: `consumer` is not a registrar, `request` is missing, `timeout`
+                not a positive number of seconds, or as for `ResourceRegistrar.call`;
+                nothing was sent. Also on rr_actors' own event loop (await
+                `acall_with_retry` there).
         """
         return blocking(
             self._retry(consumer, target_rr, server, request, on_status, timeout, query_id)
@@ -631,8 +563,6 @@ class Supervisor(AsyncSupervision):
         timeout: float | None,
         query_id: str | None,
     ) -> Steps[Query]:
-        """The steps of `call_with_retry` (`retry.py`): run blocking there, awaited by
-        `acall_with_retry`."""
         abandon = functools.partial(retry.abandon_after_restart, self._tree, self._node)
         return retry.call_with_retry(
             self,
@@ -656,18 +586,11 @@ class Supervisor(AsyncSupervision):
     ) -> Subscription[events.Event]:
         """Call `callback(event)` for every event of the tree from now on, until closed.
 
-        Events are the frozen dataclasses of `rr_actors.events`: what every supervisor of
-        the tree does with its children (`ChildStarted`, `ChildExited`, `ChildRestarted`,
-        `SupervisorGaveUp`) and what every registrar of the tree does (its managers', in
-        threads or in processes, and those of `registrar()`). Events of manager processes
-        are forwarded to this process while anyone subscribes; subscribe before `start`
-        to see the children start.
-
-        The callback runs on a subscriber thread of its own, never in a registrar's
-        mailbox or the supervisor's, one event at a time, in the order they reached this
-        process (a manager process's own events in the order they happened there). A slow
-        callback never slows the tree: past `maxsize` queued events new ones are dropped,
-        counted (`Subscription.dropped`) and reported by one `EventsDropped`.
+        Events (`rr_actors.events`) of every supervisor and registrar of the tree, in
+        threads or processes; subscribe before `start` to see the children start. The
+        callback runs on a subscriber thread of its own, one event at a time, in the
+        order they reached this process; past `maxsize` queued events new ones are
+        dropped, counted (`Subscription.dropped`) and reported by one `EventsDropped`.
 
         Args:
             callback: `callback(event)`; what it raises is logged.
@@ -688,10 +611,8 @@ class Supervisor(AsyncSupervision):
     def flush_events(self, *, timeout: float = 5.0) -> bool:
         """Bring the events of every manager process that happened before the call here.
 
-        A manager process forwards its events in batches, so they reach this process a
-        little after they happened. This returns once each running manager process has
-        handed everything it had to this process's subscriptions (their queues); then
-        `Subscription.wait_delivered` waits for the callbacks.
+        Returns once each running manager process handed what it had to this process's
+        subscriptions; `Subscription.wait_delivered` then waits for the callbacks.
 
         Args:
             timeout: the longest wait, in seconds.
@@ -717,61 +638,36 @@ class Supervisor(AsyncSupervision):
     ) -> Page:
         """Serve a live web page of this tree at the returned observer's `url`.
 
-        The page shows the supervision tree (state, pid, restarts, last exit, backoff
-        countdown; a restart flashes), each registrar's catalog, the dependency graph
-        across registrars (the TeMoto thesis's figure 2.7, live) and a timeline of the
-        status notifications with their hops and latencies. It follows the tree's
-        events (`subscribe`) and reads each registrar's catalog in the registrar's own
-        process (`run_in`), at most twice a second. The server runs on a
-        thread of its own in this process (uvicorn); the observer is closed with the
-        supervisor (`stop`), unless `keep_serving`, or by its `close()`. May be called
-        before `start` (the page then sees the children start) but not after `stop`.
-
-        Every request to the page must carry the token of its `url` (`?token=...`):
-        the page shows every catalog, request values included, so only whoever has
-        the URL sees it. At most 32 pages are open at once.
+        The tree, each registrar's catalog, the dependency graph (the TeMoto thesis's
+        figure 2.7, live) and a timeline of status notifications. The server runs on a
+        thread of its own (uvicorn); the observer closes with the supervisor unless
+        `keep_serving`. Every request must carry the `url`'s token (`?token=...`); at
+        most 32 pages are open at once. The observer's reference page says more.
 
         Args:
             host: the address to listen on. A loopback address (the default) keeps the
                 page on this machine; any other needs `allow_remote=True`.
             port: the port (0: a free one; the `url` says which).
-            allow_faults: teaching mode: buttons on the page SIGKILL a process manager,
-                SIGSTOP it (a hang; its heartbeat makes the supervisor kill and restart
-                it, or a resume button sends SIGCONT) and send FATAL on a resource, each
-                after a confirmation. The buttons send the `url`'s token back:
-                share the URL only with whom may use them.
-            allow_remote: allow a `host` that other machines can reach. They then see
-                every catalog (requests and responses as `repr`s), and with
-                `allow_faults` whoever has the URL can kill managers. Nothing from the
-                browser is ever unpickled.
+            allow_faults: teaching mode: buttons that SIGKILL or SIGSTOP a process
+                manager and send FATAL on a resource (whoever has the URL may use them).
+            allow_remote: allow a `host` that other machines can reach (they see every
+                catalog; nothing from the browser is ever unpickled).
             keep_serving: after the supervisor stops, keep serving its final state
-                (the page says it ended) until the observer's `close()`, so that it
-                can be discussed (`rr-actors demo --observe --linger`).
+                until the observer's `close()`.
             across_hosts: share this host's tree with the system's other hosts and show
-                theirs (each host's tree grouped under its member name, their catalogs,
-                the dependency edges between them, every host's events and the link
-                between each pair of hosts). `None` (the default): when the supervisor's
-                `network` is a
-                [`ZenohNetwork`][rr_actors._transport.zenoh.net.ZenohNetwork]. What crosses
-                is JSON on the system's `rr/<system>/obs/<member>/` keys, seen by
-                members only; with `allow_faults`, the members' pages may also fault
-                this host's managers (docs: the observer's reference, "Across hosts").
-            sock: a listening TCP socket to serve on instead of binding `host:port`
-                (both then unused; the `url` gives its address): for example one
-                bound in another network namespace and inherited, as `rr-actors demo
-                --hosts 2 --observe` serves the station's page on the machine's own
-                loopback. The observer closes it when it closes, or fails to open.
+                theirs (`None`: when `network` is a
+                [`ZenohNetwork`][rr_actors._transport.zenoh.net.ZenohNetwork]).
+            sock: a listening TCP socket to serve on instead of binding `host:port`;
+                the observer closes it when it closes, or fails to open.
 
         Returns:
             The open [`Observer`][rr_actors.observe.Observer] (`url`, `close()`).
 
         Raises:
-            ConfigError: the `observe` extra is not installed (`pip install
-                'rr-actors[observe]'`), the port is in use, `host` is not a loopback
-                address and `allow_remote` is false, the supervisor was stopped,
-                `across_hosts=True` without a `ZenohNetwork`, or `sock` is not a
-                listening TCP socket (or not on a loopback address, without
-                `allow_remote`).
+            ConfigError: the `observe` extra is not installed, the port is in use,
+                `host` (or `sock`) is not on a loopback address without `allow_remote`,
+                the supervisor was stopped, `across_hosts=True` without a
+                `ZenohNetwork`, or `sock` is not a listening TCP socket.
         """
         if self._stopped:
             raise ConfigError(f"supervisor {self.name!r} was stopped: nothing to observe")
@@ -788,12 +684,9 @@ class Supervisor(AsyncSupervision):
     def graph(self, format: str = "mermaid") -> str:
         """The tree and the dependency graph across its registrars, as text, now.
 
-        Supervisors are hexagons with an arrow to each child; a manager's registrar is
-        a box holding its resources; each query is a dashed arrow from the resource that
-        holds it as a dependency (or the registrar, for a top-level call) to the
-        provider's resource (the TeMoto thesis's figure 2.7). Catalogs are read in the
-        registrars' own processes, as the observer does; a manager that is down is
-        drawn without its resources.
+        Supervisors are hexagons, a registrar a box holding its resources, each query a
+        dashed arrow to the provider's resource (the TeMoto thesis's figure 2.7); a
+        manager that is down is drawn without its resources.
 
         Args:
             format: `"mermaid"` (a flowchart, for Markdown) or `"dot"` (Graphviz).
@@ -808,13 +701,11 @@ class Supervisor(AsyncSupervision):
 
 
 def _check_child_name(name: object) -> None:
-    """`ConfigError` unless `name` is a str (a child's name; an unknown one is looked up)."""
     if not isinstance(name, str):
         raise ConfigError(f"name must be a child's name (a str), got {name!r}")
 
 
 def _check_network(network: object) -> None:
-    """`Supervisor(network=)`: `None` or a carrier (`serve`, `run`, `names`, `address`)."""
     if network is None:
         return
     needed = ("serve", "run", "names", "resolve", "close")
@@ -827,8 +718,7 @@ def _check_network(network: object) -> None:
 
 
 def _state_dirs(spec: SupervisorSpec) -> list[Any]:
-    """Every state directory a tree's managers use by default (a supervisor's own, or the
-    nearest one above it)."""
+    """Every state directory a tree's managers use by default."""
     dirs = [spec.state_dir] if spec.state_dir is not None else []
     for child, path in walk(spec):
         if isinstance(child, SupervisorSpec):

@@ -8,31 +8,11 @@
    a wait (RestartWait) ◄── watchers: each publish looks, a decided wait's future settles
 ```
 
-Nested supervisors are replaced when their parent restarts them; what must outlive an
-incarnation lives in the `Tree`, keyed by child name (names are unique in a tree). Every
-supervisor of the tree publishes its children's snapshots under the tree's one condition,
-so one waiter (`RestartWait`) can watch a child anywhere in the tree. A waiter learns
-an outcome only from a settled tree: while a supervisor on the child's path is giving up
-(stopping its children), nothing is concluded.
-
-One tree per state directory (`StateDirLock`): two trees sharing one would share their
-managers' backups (after a restart each would hold the other's consumer ids). The first
-tree to start claims `<state_dir>/.lock` (`_platform.lockfile`: an exclusive `flock`, its
-pid written there); a second one (in this process or another) gets `ConfigError` naming
-that pid. The lock goes at the tree's stop (the file removed), or when its process dies,
-however it dies (a stale `.lock` file left by a dead process is not a lock). Each
-manager's backup is claimed the same way on its own (`<backup_path>.lock`), whoever
-starts it. A simulation takes no lock (`runtime.guards_files`: its files are its own):
-its processes are one OS process, whose lock a killed simulated program would never let go.
-
-The directory also remembers the registrars of the tree that keep no backup and may hold
-ids at those that do (`ran_before`): the consumers `registrar()` starts without one, and
-the managers whose own config has none (`<state_dir>/.consumers/<name>`, an empty file
-each). Their ids are in the other managers' backups, and such a registrar's next start
-(in a program started again after a SIGKILL, say) holds none of them: the supervisor
-tells it that it lost everything (`lost_everything`), and reconciling releases them (rule
-20). The marks stay: a name started once is reconciled at each later start, as a
-registrar with a backup reconciles at each of its starts.
+What must outlive a nested supervisor's incarnation lives in the `Tree`, keyed by child
+name. Every supervisor publishes its children's snapshots under the tree's one condition,
+so one waiter (`RestartWait`) watches a child anywhere; nothing is concluded while a
+supervisor on its path is giving up. The state directory (`StateDirLock`, `ran_before`):
+docs/explanation/failure-semantics.md, "One tree per state directory".
 """
 
 from __future__ import annotations
@@ -101,18 +81,8 @@ Clock = Callable[[], float]
 
 
 class Processes:
-    """What the process managers of a tree share while it runs.
-
-    Their cloudpickled setups, the carrier they join (this process is a member too) and
-    the spare processes they start in. Empty until `open` (at the supervisor's start),
-    and again after `close`.
-
-    Args:
-        spec: the whole tree's specs.
-        network: the carrier given to the supervisor (`Supervisor(network=)`), or `None`
-            for a private AF_UNIX `System` made at `open` when the tree has process
-            managers (and closed at `close`; a given one is left open).
-    """
+    """What the process managers of a tree share while it runs (from `open` to `close`):
+    their pickled setups, the carrier, the spares. `network`: `Supervisor(network=)`."""
 
     def __init__(self, spec: SupervisorSpec, network: Transport | None = None) -> None:
         self.spec = spec
@@ -122,12 +92,7 @@ class Processes:
         self.spares: SparePool | None = None
 
     def open(self, spares: int, spare_delay: float) -> None:
-        """Pickle the process managers' setups; take the carrier (a given one, or a new
-        private system if there are process managers); start the spares.
-
-        Raises:
-            ConfigError: a setup cannot be pickled, or the given carrier was closed.
-        """
+        """Raises `ConfigError`: a setup cannot be pickled, or the given carrier was closed."""
         for manager in managers(self.spec):
             if manager.isolation == "process":
                 try:
@@ -151,20 +116,17 @@ class Processes:
             self.spares = SparePool(spares, self.spec.name, delay=spare_delay)
 
     def start_ahead(self, on: bool) -> None:
-        """While `on` (the supervisor's start), fork each process manager's process ahead
-        of its start in order (`SparePool.ahead`)."""
+        """While `on` (the supervisor's start), fork process managers' processes ahead."""
         if self.spares is not None:
             starts = sum(1 for m in managers(self.spec) if m.isolation == "process")
             self.spares.ahead(starts if on else 0)
 
     def close_spares(self) -> None:
-        """Release the idle spares and start no more (before the children stop)."""
         if self.spares is not None:
             self.spares.close()
 
     def close(self) -> None:
-        """Release the spares and leave the system it made (its files are removed); a
-        network given to the supervisor stays open (its owner closes it)."""
+        """Release the spares and leave the system it made (a given network stays open)."""
         self.close_spares()
         system, self.system = self.system, None
         if system is not None and system is not self.network:
@@ -173,14 +135,7 @@ class Processes:
 
 
 class Tree:
-    """What every supervisor of one tree shares (made by the root, kept across incarnations).
-
-    Args:
-        spec: the root supervisor's spec (the whole tree).
-        clock, timer, random: the injectable time and jitter sources of every supervisor
-            of the tree (see `Supervisor`).
-        network: the carrier the tree's managers are served on (see `Processes`).
-    """
+    """What every supervisor of one tree shares (made by the root, kept across incarnations)."""
 
     def __init__(
         self,
@@ -192,10 +147,9 @@ class Tree:
         network: Transport | None = None,
     ) -> None:
         self.spec = spec
-        self.cond = runtime.Condition()  # published snapshots of the whole tree; waiters
-        # woken at each change (lock held), in the order they came: a dict, not a set (a
-        # set of callbacks iterates in the order of their addresses, which a simulated seed's
-        # history would then depend on: a wake is a choice point)
+        self.cond = runtime.Condition()  # published snapshots of the whole tree
+        # waiters woken at each change, in the order they came (a set's order would make a
+        # simulated seed's history depend on addresses)
         self.watchers: dict[Callable[[], object], None] = {}
         self._version = 0  # changes published so far (`wait_changed`)
         self.specs = {child.name: child for child, _ in walk(spec)}
@@ -215,12 +169,11 @@ class Tree:
         self._mailboxes: weakref.WeakSet[SerialExecutor] = weakref.WeakSet()  # every Node's
 
     def add_mailbox(self, mailbox: SerialExecutor) -> None:
-        """A supervisor of this tree runs its events on `mailbox` (`on_a_supervisors_thread`)."""
         self._mailboxes.add(mailbox)
 
     def on_a_supervisors_thread(self) -> bool:
         """Whether the calling thread is one of the tree's supervisors' (a thread manager's
-        `setup` runs there): a wait for one of them there could wait for itself."""
+        `setup` runs there)."""
         return any(mailbox.on_own_thread() for mailbox in list(self._mailboxes))
 
     # -- changes: what waiters (wait_restarted, the observer) wait for ----------------------
@@ -233,12 +186,11 @@ class Tree:
             wake()
 
     def version(self) -> int:
-        """How many changes were published so far."""
         return self._version
 
     def wait_changed(self, since: int, *, timeout: float) -> int:
-        """Block until a change after version `since` is published, `wake` is called or
-        `timeout` seconds pass (whichever first); return the version then."""
+        """Block until a change after version `since`, `wake`, or `timeout` seconds; return
+        the version then."""
         with self.cond:
             if self._version == since:
                 self.cond.wait(timeout)
@@ -266,12 +218,8 @@ class Tree:
 class Found:
     """A child found anywhere in the tree.
 
-    Attributes:
-        info: its snapshot (as published).
-        gave_up: a give-up on its path that is final (nobody above restarts it).
-        settling: a supervisor on its path is giving up right now: its state is not final.
-        revivable: it exited (a `transient` child, after a normal exit) but a crash of a
-            sibling restarts it with its group (one_for_all, rest_for_one; as in OTP).
+    `gave_up`: a final give-up on its path; `settling`: a supervisor on its path is giving
+    up now; `revivable`: a `transient` child that exited, which a group restart revives.
     """
 
     info: ChildInfo
@@ -281,10 +229,8 @@ class Found:
 
 
 def locate(level: Level, tree: Tree, name: str, down: ChildState | None = None) -> Found | None:
-    """Find `name` below `level` by the specs, whether its supervisor runs or not.
-
-    Call with the tree's lock held. `down`: the state of a supervisor above that is down.
-    """
+    """Find `name` below `level`, whether its supervisor runs or not (the tree's lock held;
+    `down`: the state of a supervisor above that is down)."""
     settling = level.giving_up and level.gave_up is None
     for child in level.children:
         info = child.published
@@ -324,7 +270,6 @@ def _locate_below(child: Child, tree: Tree, name: str, state: ChildState) -> Fou
 
 
 def find_child(level: Level, name: str) -> Child | None:
-    """The live `Child` record of `name` below `level` (in running supervisors), if any."""
     for child in list(level.children):
         if child.name == name:
             return child
@@ -350,57 +295,34 @@ def _process_managers(level: Level) -> list[str]:
 def consumer_down(
     root: Level, name: str, network: Transport | None = None, *, stopped: bool = False
 ) -> None:
-    """Death watch: this process's membership records that registrar `name` is gone for
-    good, and every living registrar is told.
+    """Death watch (rule 19): registrar `name` is gone for good; every living registrar is
+    told (`stopped`: it stopped cleanly, what it holds is stale, rule 12)."""
+    life.gone_for_good(name, also=_living(root, network), stopped=stopped)
 
-    Its consumers' ids are released where it held them, and the ids held at it get
-    `FATAL` at their consumers (rule 19; `_registrar/life.py`, its presence). With `stopped` (it
-    was stopped cleanly and will not be started again), only the first: what it still
-    holds anywhere is stale (rule 12).
 
-    `root`: the tree's root supervisor (its living process managers are told too);
-    `network`: the tree's carrier, whose registrars (other processes, other hosts) are
-    told too. A manager started later hears it at its start (`death_watch_missed`).
-    """
+def _living(root: Level, network: Transport | None) -> list[str]:
+    """The tree's living process managers, and the registrars of its carrier."""
     living = _process_managers(root)
     if network is not None and not network.closed:
         living.extend(network.names())
-    life.gone_for_good(name, also=living, stopped=stopped)
+    return living
 
 
 def comes_back(name: str) -> None:
-    """Manager `name` is being started again: it is no longer gone for good."""
     life.back(name)
 
 
 def lost_everything(
     root: Level, name: str, network: Transport | None = None, handle: Any = None
 ) -> None:
-    """Manager `name`, which keeps no backup, restarted with an empty catalog: every
-    registrar of the system that holds ids there reconciles with it, and hears `FATAL`
-    for each, and `name` reconciles with every registrar of the system, which releases
-    the ids its last run held there (rule 20; a manager with a backup does both itself
-    when it serves again).
-
-    `root`: the tree's root supervisor (its living process managers are told too);
-    `network`: the tree's carrier, whose registrars are told too; `handle`: `name`'s
-    `ResourceRegistrar`, if it was just started here (`life.lost_everything`).
-    """
-    living = _process_managers(root)
-    if network is not None and not network.closed:
-        living.extend(network.names())
-    life.lost_everything(name, also=living, handle=handle)
+    """Registrar `name`, which keeps no backup, restarted empty: it and every registrar of
+    the system reconcile (rule 20). `handle`: its `ResourceRegistrar`, if started here."""
+    life.lost_everything(name, also=_living(root, network), handle=handle)
 
 
 def death_watch_missed(name: str) -> None:
-    """Manager `name` (re)started: tell it which registrars are gone for good, as this
-    process's membership knows them (the death watch records a mark before it sends it).
-
-    It may have been down when their death watch went out (`consumer_down`), and have
-    restored their ids from its backup; those are released now, and what it held at
-    a lost one is `FATAL`. (One that holds none of their ids releases nothing.) A
-    manager of this process heard them already when it started (its membership).
-    """
+    """Manager `name` (re)started: tell it which registrars are gone for good (it may
+    have been down when their death watch went out, and restored their ids)."""
     for gone, stopped in sorted(life.gone().items()):
         if gone == name:
             continue
@@ -412,9 +334,7 @@ def death_watch_missed(name: str) -> None:
 
 
 class RestartWait:
-    """One wait for a child's restart (`Supervisor.wait_restarted`, `await_restarted`,
-    `call_with_retry`'s): its condition, checked with the tree's lock held at each
-    publish, and its outcome; `steps` waits for it, on a thread or awaited on a loop."""
+    """One wait for a child's restart: its condition, checked at each publish, and its outcome."""
 
     def __init__(
         self, tree: Tree, root: Level, root_name: str, name: str, restarts: int | None
@@ -427,7 +347,6 @@ class RestartWait:
         self.outcome: list[ChildInfo | RrError] = []
 
     def settled(self) -> bool:
-        """Whether it is decided (the tree's lock held)."""
         tree, root, name = self.tree, self.root, self.name
         found = locate(root, tree, name)
         if found is None:
@@ -457,16 +376,8 @@ class RestartWait:
         return bool(self.outcome)
 
     def steps(self, timeout: float) -> Steps[ChildInfo]:
-        """Wait until it is decided, at most `timeout` seconds (`replies.Steps`: blocking
-        with `run_steps`, awaited with `run_steps_async`).
-
-        A watcher of the tree looks at each publish and settles a future once the wait
-        is decided: nothing polls, and an awaited wait holds no thread.
-
-        Raises:
-            CallTimeoutError: not decided within `timeout` seconds.
-            RrError: what it came to (`result`).
-        """
+        """Wait until it is decided, at most `timeout` seconds (a watcher of the tree settles
+        a future: nothing polls). Raises `CallTimeoutError`, or what it came to."""
         tree = self.tree
         deadline = runtime.monotonic() + timeout
         decided = FutureReply()
@@ -494,7 +405,6 @@ class RestartWait:
         return self.result()
 
     def timed_out(self, timeout: float) -> CallTimeoutError:
-        """The error of a wait that ran out (the tree's lock held)."""
         found = locate(self.root, self.tree, self.name)
         state = f" (state {found.info.state}, {found.info.restarts} restarts)" if found else ""
         return CallTimeoutError(
@@ -502,7 +412,6 @@ class RestartWait:
         )
 
     def result(self) -> ChildInfo:
-        """The child's snapshot, running; or raise what it came to."""
         result = self.outcome[-1]
         if isinstance(result, RrError):
             raise result
@@ -513,10 +422,7 @@ class RestartWait:
 # -- the state directory: one tree per directory, and the registrars it remembers ---------
 
 LOCK_NAME = ".lock"
-"""The lock file's name in a state directory."""
-
-CONSUMERS = ".consumers"
-"""The folder of a state directory that marks the registrars without a backup started on it."""
+CONSUMERS = ".consumers"  # marks the registrars without a backup started on it
 
 
 class StateDirLock:
@@ -527,12 +433,8 @@ class StateDirLock:
 
     @classmethod
     def acquire(cls, directories: Iterable[str | os.PathLike[str]]) -> StateDirLock:
-        """Create each directory if needed and lock it for this supervisor.
-
-        Raises:
-            ConfigError: a directory is locked by another supervisor (the message names
-                the directory and the holder's pid), or cannot be created or locked.
-        """
+        """Create and lock each directory; `ConfigError` if one is locked by another
+        supervisor (naming its pid) or cannot be created or locked."""
         fds: list[int] = []
         try:
             unique = sorted({os.path.abspath(os.fspath(d)) for d in directories})
@@ -543,7 +445,6 @@ class StateDirLock:
         return cls(fds)
 
     def release(self) -> None:
-        """Release every lock (idempotent)."""
         fds, self._fds = self._fds, []
         for fd in fds:
             lockfile.release(fd)
@@ -552,7 +453,7 @@ class StateDirLock:
 def _lock(directory: str) -> int | None:
     try:
         os.makedirs(directory, exist_ok=True)
-        if not runtime.guards_files():  # (a simulation: see the module's docstring)
+        if not runtime.guards_files():  # (a simulation: its files are its own)
             return None
         return lockfile.claim(os.path.join(directory, LOCK_NAME))
     except lockfile.HeldError as held:
@@ -567,13 +468,8 @@ def _lock(directory: str) -> int | None:
 
 
 def ran_before(directory: str | os.PathLike[str], name: str) -> bool:
-    """Mark that registrar `name`, which keeps no backup, runs on state directory
-    `directory`; return whether it was marked already (a registrar of that name ran
-    there before: its ids may still be held in the managers' backups).
-
-    Raises:
-        ConfigError: the mark cannot be written (the message names the file).
-    """
+    """Mark that registrar `name`, which keeps no backup, runs on `directory`; whether it
+    was marked already. `ConfigError`: the mark cannot be written."""
     folder = os.path.join(os.fspath(directory), CONSUMERS)
     mark = os.path.join(folder, name)
     try:

@@ -1,12 +1,8 @@
 """What a supervisor shows of its tree: its event stream and the observer's page.
 
-`TreeWatch` is the part of [`Supervisor`][rr_actors.Supervisor] that lets people and
-programs see the tree work; the supervisor holds one and hands it `subscribe` and
-`flush_events` (the tree's event stream, manager processes included: `EventRelay`),
-`observe` (a live web page) and `graph` (the same picture as text). The supervisor's
-methods document them.
-
-How the tree's events reach its subscribers, in the supervisor's process:
+`TreeWatch` is the part of [`Supervisor`][rr_actors.Supervisor] behind `subscribe`,
+`flush_events`, `observe` and `graph` (the supervisor's methods document them). How the
+tree's events reach its subscribers, in the supervisor's process:
 
 ```
  supervisors (Node) ── ChildStarted/Exited/Restarted, SupervisorGaveUp ──► publish ──┐
@@ -17,22 +13,11 @@ How the tree's events reach its subscribers, in the supervisor's process:
                                                                                   ─► subscriptions
 ```
 
-Each event is logged at INFO once, where it happened (a manager process logs its own);
-the tree's publisher only logs the supervisors' events. Manager processes forward their
-events only while the tree has a listener, so a tree nobody watches builds no event in
-its manager processes (`watch_listeners` switches them on and off). The switch reaches
-each process asynchronously: what a process made before it heard "off" may still arrive
-after a new listener came, so a forwarded event older than the last switch on (by its
-`at`: the switch's time is read from the clock events' `at` is, `hlc.CLOCK`, a skewed
-one included) is dropped; a new listener hears what happens from the moment it
-subscribed.
-
-The observer is the lab's (`rr_actors.observe`), which the runtime never imports: a
-supervisor finds it through `Observing`, a protocol this module owns, in a slot the
-observer fills (`attach_observer`) when it is imported, and `rr_actors` fills at a
-supervisor's first use (`rr.Supervisor`: the observer itself is imported only at the
-first `observe` or `graph`). What the supervisor hands it is `TreeAccess`; what it keeps
-of an open page, a `Page`.
+Manager processes forward their events only while the tree has a listener (a tree
+nobody watches builds none); the switch reaches each process asynchronously, so a
+forwarded event older than the last switch on (by its `at`, on `hlc.CLOCK`) is dropped.
+The observer is the lab's, which the runtime never imports: a supervisor finds it through
+`Observing`, in the slot `attach_observer` fills.
 """
 
 from __future__ import annotations
@@ -72,11 +57,7 @@ SWITCH_TIMEOUT = 2.0
 
 
 class EventRelay:
-    """A tree's publisher, and the switch of its manager processes' forwarding.
-
-    Attributes:
-        publisher: where the tree's events are published (`Supervisor.subscribe`).
-    """
+    """A tree's publisher, and the switch of its manager processes' forwarding."""
 
     def __init__(self) -> None:
         self.publisher: Publisher[events.Event] = events.publisher(EVENT_LOG)
@@ -88,15 +69,11 @@ class EventRelay:
 
     @property
     def forwarding(self) -> bool:
-        """Whether manager processes should forward their events now (someone listens)."""
         return self._listened
 
     def attach(self, process: ManagerProcess, *, forwarding: bool) -> None:
-        """Switch a manager process with the others from now on.
-
-        `forwarding` is what it was started with; if the tree's listeners changed since,
-        it is told at once, so no switch is missed.
-        """
+        """Switch a manager process with the others from now on (`forwarding`: what it was
+        started with; told at once if that changed since)."""
         with self._lock:
             self._processes = [p for p in self._processes if not p.exited.is_set()]
             self._processes.append(process)
@@ -104,11 +81,8 @@ class EventRelay:
                 process.forward_events(self._listened)
 
     def sync(self, timeout: float) -> bool:
-        """Block until what every manager process forwarded before the call was delivered.
-
-        Returns:
-            Whether every one answered within `timeout` seconds.
-        """
+        """Block until what every manager process forwarded before the call was delivered;
+        whether every one answered within `timeout` seconds."""
         deadline = runtime.monotonic() + timeout
         with self._lock:
             processes = [p for p in self._processes if not p.exited.is_set()]
@@ -118,17 +92,14 @@ class EventRelay:
         return answered
 
     def deliver(self, batch: list[Any]) -> None:
-        """Hand events a manager process forwarded to the tree's subscribers (watcher
-        thread); one made before the last switch on was made while nobody listened."""
+        """Hand forwarded events to the tree's subscribers (the watcher thread)."""
         since = self._since
         for event in batch:
             if getattr(event, "at", since) >= since:
                 self.publisher.deliver(event)
 
     def overloaded(self, supervisor: str, manager: str, pid: int, late: Late) -> None:
-        """Manager process `manager` of `supervisor` answered its heartbeat late, excused
-        (its watcher thread): a `ManagerOverloaded`, published here, where it was seen
-        (logged at INFO too; the heartbeat's WARNING said it first)."""
+        """Publish a `ManagerOverloaded`: `manager` answered its heartbeat late, excused."""
         if self.publisher.active:
             self.publisher.publish(
                 events.ManagerOverloaded(
@@ -158,18 +129,11 @@ class EventRelay:
 class Changes(Protocol):
     """How the observer learns that the tree published a change (the supervision `Tree`)."""
 
-    def version(self) -> int:
-        """How many changes the tree has published so far."""
-        ...
+    def version(self) -> int: ...
 
-    def wait_changed(self, since: int, *, timeout: float) -> int:
-        """Block until the tree publishes a change after `since` (or is woken, or
-        `timeout` seconds pass); the version then."""
-        ...
+    def wait_changed(self, since: int, *, timeout: float) -> int: ...
 
-    def wake(self) -> None:
-        """Wake every `wait_changed` now (the observer closes)."""
-        ...
+    def wake(self) -> None: ...
 
 
 class _Carrying(Protocol):
@@ -179,7 +143,7 @@ class _Carrying(Protocol):
 
 class Watched(Changes, Protocol):
     """What a tree shares that its watch reads (the supervision `Tree`, which imports this
-    module for its `EventRelay`: a protocol here, so neither imports the other)."""
+    module: a protocol, so neither imports the other)."""
 
     @property
     def spec(self) -> SupervisorSpec: ...
@@ -196,16 +160,8 @@ class Watched(Changes, Protocol):
 
 @dataclasses.dataclass(frozen=True)
 class TreeAccess:
-    """What `Supervisor.observe` hands the observer besides the supervisor's public methods.
-
-    Attributes:
-        spec: the whole tree's specs.
-        changes: the tree's published changes (a wait for the next one).
-        restart_due: child name -> when its scheduled restart is due (wall clock, s).
-        running: whether the supervisor has started and not stopped.
-        registrars: the consumer registrars `Supervisor.registrar` started (this process).
-        network: the carrier given to the supervisor (`Supervisor(network=)`), or `None`.
-    """
+    """What `Supervisor.observe` hands the observer besides the supervisor's public methods
+    (`restart_due`: child name -> when its restart is due, wall clock, seconds)."""
 
     spec: SupervisorSpec
     changes: Changes
@@ -223,25 +179,19 @@ class Page(Protocol):
     keep_serving: bool
 
     @property
-    def closed(self) -> bool:
-        """Whether the page was closed."""
-        ...
+    def closed(self) -> bool: ...
 
     def set_clock(self, origin: float, label: str = ...) -> None:
         """Show times on the page as seconds since `origin` (wall clock), named `label`."""
         ...
 
-    def refresh(self) -> None:
-        """Read the tree's catalogs once more, now."""
-        ...
+    def refresh(self) -> None: ...
 
     def source_ended(self) -> None:
         """The supervisor stopped: close the page, or (`keep_serving`) say it ended."""
         ...
 
-    def close(self, *, timeout: float = ...) -> None:
-        """Stop serving the page."""
-        ...
+    def close(self, *, timeout: float = ...) -> None: ...
 
     def __enter__(self) -> Self: ...
 
@@ -254,8 +204,7 @@ class _Named(Protocol):
 
 
 class Observing(Protocol):
-    """The observer as supervisors find it (`attach_observer`): `sup` is the supervisor,
-    whose public methods it reads; `access` the rest (`TreeAccess`)."""
+    """The observer as supervisors find it (`attach_observer`)."""
 
     def observe(
         self,
@@ -269,26 +218,21 @@ class Observing(Protocol):
         keep_serving: bool,
         across_hosts: bool | None,
         sock: socket.socket | None,
-    ) -> Page:
-        """Open the live page of a tree (`Supervisor.observe`)."""
-        ...
+    ) -> Page: ...
 
-    def graph(self, sup: Any, access: TreeAccess, format: str) -> str:
-        """Draw the tree and its dependency graph as text (`Supervisor.graph`)."""
-        ...
+    def graph(self, sup: Any, access: TreeAccess, format: str) -> str: ...
 
 
 _FOUND: list[Callable[[], Observing]] = []  # where this process's observer is (one slot)
 
 
 def attach_observer(find: Callable[[], Observing]) -> None:
-    """Tell every supervisor of this process where its observer is: `find()` returns it
-    (and may import it: it is called at each `observe` and `graph`). The last call wins."""
+    """Tell every supervisor of this process where its observer is (`find()`, called at
+    each `observe` and `graph`, may import it). The last call wins."""
     _FOUND[:] = [find]
 
 
 def _observer() -> Observing:
-    """This process's observer (`attach_observer`)."""
     if not _FOUND:
         raise ConfigError(
             "no observer is attached in this process: import rr_actors.observe (a "
@@ -298,14 +242,7 @@ def _observer() -> Observing:
 
 
 class TreeWatch:
-    """The event stream and the observers of one supervision tree.
-
-    Args:
-        sup: the supervisor (its public methods are what the observer reads).
-        tree: what the tree shares (its events, its published changes, its specs).
-        running: whether the supervisor has started and not stopped.
-        registrars: the consumer registrars `Supervisor.registrar` started.
-    """
+    """The event stream and the observers of one supervision tree."""
 
     def __init__(
         self,
@@ -324,13 +261,11 @@ class TreeWatch:
     def subscribe(
         self, callback: Callable[[events.Event], object], *, maxsize: int
     ) -> Subscription[events.Event]:
-        """`Supervisor.subscribe`."""
         return self.tree.events.publisher.subscribe(
             callback, maxsize=maxsize, name=f"{self.sup.name}-events"
         )
 
     def flush_events(self, *, timeout: float) -> bool:
-        """`Supervisor.flush_events`."""
         check_seconds("timeout", timeout)
         return self.tree.events.sync(timeout)
 
@@ -345,7 +280,6 @@ class TreeWatch:
         across_hosts: bool | None,
         sock: socket.socket | None = None,
     ) -> Page:
-        """`Supervisor.observe` (once the supervisor checked it is not stopped)."""
         observer = _observer().observe(
             self.sup,
             self.access(),
@@ -361,24 +295,21 @@ class TreeWatch:
         return observer
 
     def graph(self, format: str) -> str:
-        """`Supervisor.graph`."""
         return _observer().graph(self.sup, self.access(), format)
 
     def last_look(self) -> None:
-        """Observers that outlive the tree read its catalogs once more, before it stops."""
+        """Observers that outlive the tree read its catalogs once more."""
         for observer in self.observers:
             if observer.keep_serving:
                 observer.refresh()
 
     def close_observers(self) -> None:
-        """The supervisor stopped: close every observer opened so far, but those opened
-        with `keep_serving`, which go on showing the final state until their `close()`."""
+        """The supervisor stopped: close every observer (but those that `keep_serving`)."""
         observers, self.observers = self.observers, []
         for observer in observers:
             observer.source_ended()
 
     def access(self) -> TreeAccess:
-        """What the observer needs of this tree besides the supervisor's public methods."""
         return TreeAccess(
             spec=self.tree.spec,
             changes=self.tree,

@@ -63,7 +63,7 @@ from rr_actors._process.control import (
 )
 from rr_actors._process.heartbeat import Hang, Heartbeat
 from rr_actors._process.manager import ManagerExit, ManagerProcess, describe
-from rr_actors._process.received import Received
+from rr_actors._process.tally import Received
 from rr_actors._registrar import Served, start_registrar
 from rr_actors._transport.messenger import Address, Transport
 from rr_actors.config import RegistrarConfig

@@ -35,8 +35,8 @@ import rr_actors as rr
 from rr_actors import testing
 from rr_actors._process.control import Events, Failed, forker_pid, mp_context, start_forkserver
 from rr_actors._process.manager import ManagerExit, ManagerProcess, _await_ready
-from rr_actors._process.received import Received
 from rr_actors._process.spare import Spare
+from rr_actors._process.tally import Received
 from rr_actors.testing import RemoteRegistrar, SharedObjects
 from tests.support.supervising import (
     ManualTimer,
