@@ -1,11 +1,7 @@
 """How registrar messages cross processes: the messenger and its carriers.
 
-- `messenger`: what every carrier does with a name and a message, written once
-  (`Messenger`, the `Transport` the registrar sees; `Endpoint`, `Address`; what a carrier
-  implements: `Carrier`, `Route`, `Listening`, `Remote`); `codec`: frames and pickling;
-  `resolve`: which of two servers of one name is kept (rule 22);
-- `unix/`, the AF_UNIX carrier; `zenoh/`, the Zenoh carrier (extra `zenoh`, imported
-  only when used), its operations (TLS, access control, the gate) in `zenoh/ops/`.
+`messenger` (what every carrier does with a name and a message, written once), `codec`
+(frames), `resolve` (rule 22's policy); the carriers `unix/` and `zenoh/` (extra).
 """
 
 from rr_actors._transport.messenger import Address, Endpoint, Transport

@@ -43,8 +43,8 @@ _LONG_LENGTH = struct.Struct("!iQ")  # ... for frames over 2 GiB: -1, then the l
 
 @dataclasses.dataclass(frozen=True)
 class Claim(WireMessage):
-    """Rule 22, carrier to carrier: the process of the kept one of two servers of `name`
-    tells the other's (which may not hear its token); its fields are a token's (`Sided`)."""
+    """Rule 22, carrier to carrier: the kept one of two servers of `name` tells the
+    other's process (which may not hear its token); its fields are a token's (`Sided`)."""
 
     name: str
     who: str
@@ -55,7 +55,6 @@ class Claim(WireMessage):
 
     @property
     def rank(self) -> tuple[int, int]:
-        """Its place in rule 22's first-served order (`resolve.Sided.rank`)."""
         return (self.stamp, self.process)
 
 
@@ -67,8 +66,7 @@ class Run(WireMessage):
     reply: Reply | None
 
     def start(self, run: Callable[[Callable[[Any], Any]], Any], thread_name: str) -> None:
-        """Run `run(self.fn)` on a fresh daemon thread (it may block; it is rare) and
-        answer its result or error through `self.reply`. Both carriers' receivers use it."""
+        """Run `run(self.fn)` on a fresh daemon thread; answer its result or error."""
         reply = self.reply
         assert reply is not None
 
@@ -105,19 +103,14 @@ def frame(token: int, obj: Any) -> bytes:
 
 @dataclasses.dataclass(frozen=True)
 class Oversized:
-    """A received frame whose payload was over the limit: skipped, only its token kept.
-
-    Attributes:
-        token: the frame's token (`NO_REPLY`: no answer wanted).
-        size: its payload's size in bytes.
-    """
+    """A received frame whose payload (`size` bytes) was over the limit: only its token kept."""
 
     token: int
     size: int
 
 
 def payload_size(data: bytes | memoryview) -> int:
-    """The size in bytes of the payload (the pickled message) of a frame made by `frame`."""
+    """The size in bytes of the pickle in a frame made by `frame`."""
     header = _LONG_LENGTH.size if data[:4] == b"\xff\xff\xff\xff" else _LENGTH.size
     return len(data) - header - _TOKEN.size
 
@@ -150,13 +143,8 @@ def frames(conn: Connection, limit: int | None = None) -> Iterator[bytes | bytea
 
 
 def _read(fd: int, size: int, *, at_start: bool = False) -> Any:
-    """Exactly `size` bytes from `fd` (a `bytes`, or a `bytearray` if it took several reads).
-
-    Returns `None` at an end of the stream before the first byte when `at_start`.
-
-    Raises:
-        EOFError: the stream ended part of the way.
-    """
+    """Exactly `size` bytes from `fd` (`None` at the stream's end before the first byte,
+    when `at_start`; else `EOFError`)."""
     if size == 0:
         return b""
     data = os.read(fd, size)
@@ -190,7 +178,7 @@ def _skip(fd: int, size: int) -> None:
 
 
 def unframe(data: bytes | bytearray) -> tuple[int, memoryview]:
-    """Split a received frame into token and payload; raises ValueError if it is too short."""
+    """Token and payload of a received frame (ValueError if it is too short)."""
     if len(data) < _TOKEN.size:
         raise ValueError(f"a frame of {len(data)} bytes is too short to hold a token")
     (token,) = _TOKEN.unpack_from(data)

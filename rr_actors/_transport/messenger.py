@@ -1,15 +1,11 @@
 """The messenger: what every carrier does with a name and a message, written once.
 
-A carrier moves frames between this process and the others of a system and reports
-what it sees of them coming and going; the rest is here, once for every carrier, as
-xoscar writes calls, futures and errors once above its `Channel`. A `Messenger` is one
-process's membership of a system, the `Transport` the registrar sees: naming, the reply
-tokens, the stand-in reply, size limits, compensation, "send when served" and telling
-every endpoint (`Endpoint`) what the carrier reports. The carrier gives it a `Route` per
-registrar reached, a `Listening` per registrar served here, and a link back to the
-process a message came from (`Carrier`). The flow, and the contract every carrier keeps:
-docs/explanation/architecture.md ("The messenger and its links") and
-docs/explanation/failure-semantics.md ("What every carrier keeps").
+A carrier moves frames and reports who comes and goes; the rest is here, as xoscar
+writes calls, futures and errors once above its `Channel`. A `Messenger` is one
+process's membership of a system (the `Transport`): naming, reply tokens, the stand-in
+reply, size limits, compensation, "send when served", and telling every `Endpoint` what
+the carrier reports. The flow: docs/explanation/architecture.md ("The messenger and its
+links"); the contract: docs/explanation/failure-semantics.md ("What every carrier keeps").
 """
 
 from __future__ import annotations
@@ -68,68 +64,33 @@ __all__ = [
 logger = logging.getLogger("rr_actors")
 
 _GONE = (RegistrarStoppedError, RegistrarUnavailableError, UnknownRegistrarError)
-"""What `DIRECTORY.lookup` raises for a registrar that is not (or no longer) here."""
 
 Lost = Callable[[], None]
 """Called (on any thread) when a queued frame could not be sent: the link ended."""
 
-Tell = Callable[[Any], object]
-"""Tells a message (a compensation) to the registrar an answer came from.
-
-Raises:
-    RrError: it cannot be told (suppressed by `compensate`).
-"""
+Tell = Callable[[Any], object]  # tells a compensation to the registrar an answer came from
 
 
 # -- what the messenger serves, and how another process joins ---------------------------------
 
 
 class Endpoint(Protocol):
-    """A registrar of this process, as the messenger serves it (`_registrar/life.py`'s
+    """A registrar of this process as the messenger serves it (`_registrar/life.py`'s
     `Served`). The `peer_*`, `yield_name` and `keep_name` calls come on a carrier's
-    thread and return at once; what each rule asks of the registrar:
-    docs/explanation/failure-semantics.md ("What every carrier keeps")."""
+    thread and return at once (rules 19, 20, 22)."""
 
     @property
     def name(self) -> str: ...
-
     @property
-    def max_message_bytes(self) -> int:
-        """The largest message or answer (pickled) it takes from another process."""
-        ...
-
-    def run(self, fn: Callable[[Any], Any]) -> Any:
-        """`fn(registrar)` on the calling thread."""
-        ...
-
-    def wait_ended(self, timeout: float | None = None) -> bool:
-        """Block until the registrar ended; whether it did."""
-        ...
-
-    def stopped_cleanly(self) -> bool:
-        """Whether it ended because its owner stopped it (not a crash)."""
-        ...
-
-    def listening(self) -> None:
-        """Served now: the other processes can reach it."""
-        ...
-
-    def peer_lost(self, name: str) -> None:
-        """Registrar `name` of another process is gone for good (rule 19)."""
-        ...
-
-    def peer_reachable(self, name: str) -> None:
-        """Registrar `name` can be reached again (a healed link, rule 20)."""
-        ...
-
-    def yield_name(self, reason: str) -> None:
-        """Another process's server of its name is kept (rule 22): unload, then stop."""
-        ...
-
-    def keep_name(self, reply: Reply) -> None:
-        """The one kept went for good while this one yields: `reply` gets whether it
-        serves on (rule 22)."""
-        ...
+    def max_message_bytes(self) -> int: ...  # pickled, from another process, both ways
+    def run(self, fn: Callable[[Any], Any]) -> Any: ...  # `fn(registrar)` on this thread
+    def wait_ended(self, timeout: float | None = None) -> bool: ...
+    def stopped_cleanly(self) -> bool: ...  # (its owner stopped it: not a crash)
+    def listening(self) -> None: ...  # served now: other processes can reach it
+    def peer_lost(self, name: str) -> None: ...  # gone for good (rule 19)
+    def peer_reachable(self, name: str) -> None: ...  # a healed link (rule 20)
+    def yield_name(self, reason: str) -> None: ...  # another's server is kept (rule 22)
+    def keep_name(self, reply: Reply) -> None: ...  # the kept one went: serve on? (rule 22)
 
 
 class Address(Protocol):
@@ -143,106 +104,74 @@ class Address(Protocol):
 
 
 class Carrier(Protocol):
-    """A carrier's link between this process and the others of its system: what the
-    messenger asks of it. It tells the messenger the rest: bytes for a registrar here
-    (`Messenger.message`), answers and losses (a route's `pending`: `Replies`), who is
-    lost, reachable or served twice (`Messenger.lost`, `reachable`, `served_elsewhere`)."""
+    """What the messenger asks of a carrier. The carrier tells it the rest: bytes for a
+    registrar here (`message`), answers and losses (a route's `Replies`), who is lost,
+    reachable or served twice (`lost`, `reachable`, `served_elsewhere`)."""
 
     def peer(self, name: str) -> Remote | None:
-        """A peer of registrar `name` of another process if it is served on the system, or
-        was (its messages then fail as for one gone); `None` if unknown. The messenger
-        keeps it. Raises as `Messenger.resolve`."""
-        ...
+        """A peer of registrar `name` if it is served elsewhere, or was; `None` if
+        unknown. Raises as `Messenger.resolve`."""
 
     def listen(self, endpoint: Endpoint) -> Listening:
-        """Take frames for a registrar of this process from now on (the server side).
-        Raises as `Messenger.serve`."""
-        ...
+        """Take frames for `endpoint` from now on. Raises as `Messenger.serve`."""
 
     def answer_to(self, process: Any, data: bytes, on_lost: Lost | None) -> bool:
-        """Send an answer frame back to `process` (the sender the carrier named with the
-        message; never blocks on it); False if it is gone (nothing sent)."""
-        ...
+        """Send an answer frame back to `process`, the sender the carrier named with the
+        message (never blocks); False if it is gone."""
 
-    def names(self) -> list[str]:
-        """The registrars of the system it can reach now (see `Transport.names`)."""
-        ...
-
-    def leave(self) -> None:
-        """This process leaves the system (served registrars are stopped already): fail
-        what still waits, end its threads, close what it opened."""
-        ...
+    def names(self) -> list[str]: ...  # the registrars it can reach now
+    def leave(self) -> None: ...  # fail what waits, end its threads, close what it opened
 
 
 class Route(Protocol):
-    """The way to one registrar's process, now: a connection (AF_UNIX), the registrar's
-    key and the server seen for it (Zenoh), a delivery queue (the in-memory double)."""
+    """The way to one registrar's process now (a connection, Zenoh's key and server seen,
+    the double's delivery queue)."""
 
     @property
-    def limit(self) -> int:
-        """The registrar's `max_message_bytes`: the largest message, and answer, both ways."""
-        ...
-
+    def limit(self) -> int: ...  # the registrar's max_message_bytes, both ways
     @property
-    def pending(self) -> Replies:
-        """Where the replies of messages sent over it wait for their answers."""
-        ...
+    def pending(self) -> Replies: ...  # the replies of messages sent over it
 
     def send(self, data: bytes) -> bool:
-        """Send a frame (ordered per route; never blocks on the peer); False if nothing of
-        it left (the route is gone)."""
-        ...
+        """Send a frame (in order; never blocks); False if nothing of it left."""
 
     def broken(self) -> bool:
-        """A frame could not leave: close the route (what still waits on it fails);
-        whether a fresh route may take the frame (True: `send` tries once more)."""
-        ...
+        """A frame could not leave: close the route (what waits fails); whether a fresh
+        route may take the frame (`send` tries once more)."""
 
 
 class Lane(Protocol):
-    """A carrier's ordered queue to one name, with a thread that may wait on the network
-    (Zenoh's outbox of a registrar's key): "send when served" runs there."""
+    """An ordered queue to one name whose thread may wait on the network (Zenoh's outbox
+    of a registrar's key): "send when served" runs there."""
 
-    refusal: RrError | None
-    """Why it was retired (`Lanes.retire`): the error of what waited on it, else `None`."""
+    refusal: RrError | None  # why it was retired (`Lanes.retire`)
 
     def run(self, task: Callable[[], None]) -> bool:
-        """Run `task` on the lane's thread, in order with what is sent to the name; False
-        if the lane is closed. If it closes before `task` ran, `task.dropped()` runs."""
-        ...
+        """Run `task` on the lane's thread, in order; False if closed. Closed before it
+        ran: `task.dropped()` runs."""
 
 
 class Lanes(Protocol):
     """What "send when served" asks of a carrier whose routes may have to ask the network
-    (Zenoh's; its peers' `tell` decides when: `unseen`, on an actor's thread)."""
+    (Zenoh's peers decide when: `unseen`, on an actor's thread)."""
 
-    def unseen(self, name: str) -> bool:
-        """Whether it sees no server of `name` now, and did not hear it stop."""
-        ...
-
-    def lane(self, name: str) -> Lane | None:
-        """The lane of `name` (`None`: this process left the system)."""
-        ...
+    def unseen(self, name: str) -> bool: ...  # no server seen now, and none heard to stop
+    def lane(self, name: str) -> Lane | None: ...  # `None`: this process left the system
 
     def found(self, name: str, lane: Lane) -> Route | RrError:
-        """On `lane`'s thread: the route to the server of `name`, asked of the network
-        (bounded); else the error of what is held for it (`unreached`, or
-        `RegistrarUnavailableError`: the network could not tell), and it is retired."""
-        ...
+        """On `lane`'s thread: the route to `name`'s server, asked of the network
+        (bounded); else the error of what is held for it."""
 
     def retire(self, lane: Lane, error: RrError) -> None:
-        """On `lane`'s thread, after its message failed with `error`: the lane is nobody's
-        from now on, and what waits on it fails with `error` too, in order (`refusal`)."""
-        ...
+        """On `lane`'s thread: nobody's from now on; what waits fails with `error`, in
+        order (`refusal`)."""
 
-    def unreached(self, name: str) -> RrError:
-        """The error of a message held for `name` when nobody serves it."""
-        ...
+    def unreached(self, name: str) -> RrError: ...  # nobody serves `name`
 
 
 class Listening(abc.ABC):
-    """A registrar of this process as its carrier serves it. The messenger stops it once
-    (`stop`, holding `lock`), as the registrar ends, this process leaves, or it yields."""
+    """A registrar of this process as its carrier serves it; the messenger stops it once
+    (`stop`, holding `lock`)."""
 
     def __init__(self, endpoint: Endpoint) -> None:
         self.endpoint = endpoint
@@ -254,12 +183,10 @@ class Listening(abc.ABC):
 
     @abc.abstractmethod
     def stop(self, *, stopped: bool) -> None:
-        """Stop taking frames for it; `stopped`: it was stopped cleanly (say so to the
-        others: their messages fail with `RegistrarStoppedError`, not unavailable)."""
+        """Stop taking frames; `stopped`: cleanly (others then get `RegistrarStoppedError`)."""
 
     def settle(self) -> None:  # noqa: B027 - a hook: most carriers need nothing
-        """Listed as served now: settle what the carrier heard meanwhile (Zenoh: a rival
-        server, rule 22) and return once the others can find it."""
+        """Listed as served: settle what was heard meanwhile; return once others find it."""
 
     def trouble(self) -> tuple[float, str] | None:
         """For how long (seconds) and why it has been unable to take new connections."""
@@ -273,56 +200,48 @@ class Listening(abc.ABC):
 
 
 def when(stamp: int) -> str:
-    """A registration stamp as people read it: UTC, to the microsecond."""
+    """A registration stamp as UTC, to the microsecond."""
     at = datetime.datetime.fromtimestamp(seconds(stamp), datetime.UTC)
     return at.strftime("%Y-%m-%d %H:%M:%S.%f UTC")
 
 
 class Remote(abc.ABC):
-    """A registrar of another process as a `Peer`: `tell` and `run` are here; a carrier
-    gives each name its `route()` and the error of a name that cannot be reached (a
-    Zenoh peer may send from a lane instead: `send_when_served`)."""
+    """A registrar of another process as a `Peer`; a carrier gives each its `route()` and
+    `gone()` error (a Zenoh peer may send from a lane instead: `send_when_served`)."""
 
     name: str
 
     @abc.abstractmethod
     def route(self) -> Route:
-        """The way to the registrar now (a carrier's).
-
-        Raises:
-            RegistrarUnavailableError, RegistrarStoppedError: as `tell`.
-        """
+        """The way to the registrar now. Raises as `tell`."""
 
     @abc.abstractmethod
     def gone(self) -> RrError:
         """The error of a message whose frame could not leave (the route went)."""
 
     def tell(self, message: Any) -> None:
-        """Send `message` (any thread; in order per peer; never blocks on the peer); its
-        reply, if any, is answered later or fails (the carrier contract's "send").
+        """Send `message` (any thread; in order per peer; never blocks on the peer).
 
         Raises:
-            ConfigError: the message (say, the request of a call) cannot be pickled.
-            MessageTooLargeError: pickled, it is larger than the remote registrar's
-                `max_message_bytes`; nothing of it was sent.
-            RegistrarUnavailableError: the registrar's process is known to be unreachable.
+            ConfigError: the message cannot be pickled.
+            MessageTooLargeError: pickled, it is over the remote registrar's
+                `max_message_bytes`; nothing was sent.
+            RegistrarUnavailableError: its process is known to be unreachable.
             RegistrarStoppedError: it was stopped, or this process left the system.
         """
         send(self, message)
 
     def deliver(self, message: Any) -> None:
-        """`tell` (a registrar of another process is never run on this thread)."""
-        self.tell(message)
+        self.tell(message)  # (a registrar of another process never runs on this thread)
 
     def run(self, fn: Callable[[Any], Any], *, timeout: float) -> Any:
-        """`fn(registrar)` (cloudpickled) on a fresh thread of the registrar's process;
-        what it returns, or raises. Raises as `Messenger.run`, and `ConfigError` (`fn`
-        does not pickle) or `RrError` (its result does not)."""
+        """`fn(registrar)` (cloudpickled) on a fresh thread of its process; what it
+        returns. Raises as `Messenger.run`, or `ConfigError`/`RrError` if `fn` or its
+        result does not pickle."""
         return wait(self.submit(fn).future, timeout, f"run() on registrar {self.name!r}")
 
     def submit(self, fn: Callable[[Any], Any]) -> FutureReply:
-        """`run` without the wait: send `fn`; its result (or error) settles the reply's
-        future (an error sending it too), whoever waits for it, a thread or a loop."""
+        """`run` without the wait: the reply's future settles with its result or error."""
         reply = FutureReply()
         try:
             self.tell(Run(fn, reply))
@@ -338,7 +257,7 @@ class Remote(abc.ABC):
 
 
 def run_lost(callbacks: list[Lost]) -> None:
-    """Run the `on_lost` of frames that did not leave; one that raises is logged."""
+    """Run the `on_lost` of frames that did not leave, logging one that raises."""
     for on_lost in callbacks:
         try:
             on_lost()
@@ -352,7 +271,7 @@ _TOKENS = itertools.count(1)
 
 
 class Outgoing(NamedTuple):
-    """A message made ready to send: its reply kept here under `token`, `data` its frame."""
+    """A message ready to send: its reply kept under `token`, `data` its frame."""
 
     message: Any
     reply: Reply | None
@@ -361,11 +280,7 @@ class Outgoing(NamedTuple):
 
 
 def encode(name: str, message: Any) -> Outgoing:
-    """Detach `message`'s reply (kept here under a fresh token) and frame it for `name`.
-
-    Raises:
-        ConfigError: the message (say, the request of a call) cannot be pickled.
-    """
+    """Detach `message`'s reply (kept under a fresh token) and frame it (`ConfigError`)."""
     reply: Reply | None = getattr(message, "reply", None)
     if reply is not None:
         message = message.detached()
@@ -378,11 +293,7 @@ def encode(name: str, message: Any) -> Outgoing:
 
 
 def check_size(outgoing: Outgoing, name: str, limit: int) -> None:
-    """Refuse a message over registrar `name`'s `limit` before anything of it is sent.
-
-    Raises:
-        MessageTooLargeError: pickled, it is larger than `limit` bytes.
-    """
+    """Raises `MessageTooLargeError` if `outgoing` is over registrar `name`'s `limit`."""
     size = payload_size(outgoing.data)
     if size > limit:
         raise MessageTooLargeError(
@@ -394,9 +305,8 @@ def check_size(outgoing: Outgoing, name: str, limit: int) -> None:
 
 
 def send(peer: Remote, message: Any) -> None:
-    """`Remote.tell`: over `peer.route()`; a frame that cannot leave goes once more over a
-    fresh route if `Route.broken` allows (raises `peer.gone()` else)."""
-
+    """`Remote.tell`: a frame that cannot leave goes once more over a fresh route if
+    `Route.broken` allows, else raises `peer.gone()`."""
     outgoing = encode(peer.name, message)
     reply = outgoing.reply
     for _attempt in (1, 2):
@@ -416,12 +326,10 @@ def send(peer: Remote, message: Any) -> None:
 
 
 def send_when_served(peer: Remote, lanes: Lanes, message: Any) -> None:
-    """Send `message` to registrar `peer.name`, which the carrier does not see served
-    (`Lanes.unseen`), without waiting (an actor's thread must answer its next message
-    however slow the network is): framed here, queued on the name's lane in order; there
-    the network is asked (`Lanes.found`), then it is sent, or its reply fails and so does
-    what waits behind it, with the same error (`Lanes.retire`). One without a reply is
-    then dropped (logged at debug level).
+    """Send `message` to `peer.name`, not seen served (`Lanes.unseen`), without waiting
+    (an actor's thread must answer its next message however slow the network is):
+    queued on the name's lane, where the network is asked (`Lanes.found`), then sent, or
+    its reply fails and so does what waits behind it (`Lanes.retire`).
 
     Raises:
         ConfigError: the message cannot be pickled.
@@ -448,8 +356,7 @@ class _WhenServed:
         self.outgoing = outgoing
         self.lane = lane
 
-    def __call__(self) -> None:
-        """On the lane's thread: find the server, then send (or fail the reply)."""
+    def __call__(self) -> None:  # (on the lane's thread)
         peer, outgoing = self.peer, self.outgoing
         route = self.lanes.found(peer.name, self.lane)
         if isinstance(route, RrError):  # this one fails first, then what waits behind it:
@@ -469,8 +376,7 @@ class _WhenServed:
             _unsent(outgoing, peer.gone())
 
     def dropped(self) -> None:
-        """The lane closed before it ran: its reply fails (nothing was sent), with the
-        error of the message before it if the lane was retired."""
+        """The lane closed before it ran: its reply fails, as the one before it did."""
         _unsent(self.outgoing, self.lane.refusal or self.lanes.unreached(self.peer.name))
 
 
@@ -483,14 +389,12 @@ def _unsent(outgoing: Outgoing, error: RrError) -> None:
 
 class Replies(dict[int, tuple[Reply, Any, "Remote", int]]):
     """Replies waiting for an answer, by token: `(reply, message, peer, limit)`. Entries
-    leave only through atomic dict operations, so an answer and a failure never both
-    reach one reply."""
+    leave only through atomic dict operations: an answer and a failure never both reach
+    one reply."""
 
     __slots__ = ()
 
     def expect(self, outgoing: Outgoing, peer: Remote, limit: int) -> None:
-        """`outgoing`'s reply waits for the answer of `peer` (at most `limit` bytes: a
-        larger one is refused unread)."""
         assert outgoing.reply is not None
         self[outgoing.token] = (outgoing.reply, outgoing.message, peer, limit)
 
@@ -515,8 +419,7 @@ class Replies(dict[int, tuple[Reply, Any, "Remote", int]]):
         return taken
 
     def fail(self, name: str | None, error: RrError | Callable[[], RrError]) -> None:
-        """Fail every reply waiting on registrar `name` (`None`: every one) with `error`
-        (or what `error()` returns, made only if one waits)."""
+        """Fail every reply waiting on `name` (`None`: all) with `error` (or `error()`)."""
         taken = self.take(name)
         if taken and not isinstance(error, RrError):
             error = error()
@@ -524,8 +427,7 @@ class Replies(dict[int, tuple[Reply, Any, "Remote", int]]):
             reply.set_error(error)  # type: ignore[arg-type]
 
     def answered(self, token: int, payload: bytes | memoryview) -> None:
-        """Resolve the reply waiting for answer `token` (`payload`, pickled; over the limit:
-        `answer_too_large`); an answer nobody waits for is dropped."""
+        """Resolve the reply waiting for `token` (an answer nobody waits for is dropped)."""
         entry = self.pop(token, None)
         if entry is None:
             return
@@ -536,14 +438,14 @@ class Replies(dict[int, tuple[Reply, Any, "Remote", int]]):
         answer(reply, message, peer.name, payload, peer.tell)
 
     def too_large(self, token: int, size: int) -> None:
-        """Answer `token` was `size` bytes, over its limit, and was skipped unread."""
+        """Answer `token` was `size` bytes, over its limit: skipped unread."""
         entry = self.pop(token, None)
         if entry is not None:
             reply, message, peer, limit = entry
             answer_too_large(reply, message, peer.name, size, limit, peer.tell)
 
     def refused(self, token: int, versions: str) -> None:
-        """Answer `token`: the message was of another version (`versions`), not read."""
+        """Answer `token`: the message was of another version, not read."""
         entry = self.pop(token, None)
         if entry is not None:
             reply, message, peer, _limit = entry
@@ -560,19 +462,17 @@ class Replies(dict[int, tuple[Reply, Any, "Remote", int]]):
 
 
 class Messenger:
-    """One process's membership of a system over a carrier (the `Transport`), written once
-    for every carrier; a carrier's public class (the AF_UNIX `System`, a `ZenohNetwork`,
-    the in-memory double) is one and gives it its `Carrier` (`joined`). What it does with
-    what a carrier reports: docs/explanation/inside.md ("What the messenger does with what
-    a carrier reports").
+    """One process's membership of a system over a carrier (the `Transport`); a carrier's
+    public class (`System`, `ZenohNetwork`, the in-memory double) is one and gives it its
+    `Carrier` (`joined`). What it does with the carrier's reports:
+    docs/explanation/inside.md ("What the messenger does with what a carrier reports").
 
     Args:
-        system: the system's name (in messages; the AF_UNIX carrier's runtime directory).
-        resolver: whether the directory asks it for names not registered here (the
-            in-memory double's "processes" are all this one: it is not asked).
-        resolve: which of two servers of one name is kept after a heal (rule 22:
-            `rr_actors._transport.resolve.Resolution`); every process of a system must
-            use the same.
+        system: the system's name (the AF_UNIX carrier's runtime directory).
+        resolver: whether the directory asks it for names not registered here (not the
+            in-memory double's, whose "processes" are all this one).
+        resolve: which of two servers of one name is kept after a heal (rule 22,
+            `Resolution`); the same in every process of a system.
 
     Raises:
         ConfigError: `resolve` is not a strategy (`Resolution`).
@@ -596,7 +496,7 @@ class Messenger:
 
     @property
     def address(self) -> Address:
-        """What to hand to processes that should join the same system (its carrier's)."""
+        """What to hand to processes that should join the same system."""
         raise NotImplementedError
 
     def joined(self, carrier: Carrier) -> None:
@@ -606,7 +506,7 @@ class Messenger:
             DIRECTORY.add_resolver(self.resolve, self.names)
 
     def link(self) -> Carrier:
-        """The carrier (a network that opens at first use, Zenoh's, opens it here)."""
+        """The carrier (Zenoh's opens here, at first use)."""
         carrier = self._carrier
         assert carrier is not None, "a messenger is used before its carrier joined"
         return carrier
@@ -614,8 +514,7 @@ class Messenger:
     # -- the Transport surface -----------------------------------------------------------
 
     def resolve(self, name: str) -> Peer | None:
-        """A peer for registrar `name` of another process; `None` if it is served here or
-        unknown to the carrier.
+        """A peer for registrar `name` of another process; `None` if served here or unknown.
 
         Raises:
             UnknownRegistrarError: the carrier asked, and nobody serves `name`.
@@ -637,8 +536,8 @@ class Messenger:
         return [] if self.closed else self.link().names()
 
     def serve(self, endpoint: Endpoint) -> None:
-        """Make a registrar of this process reachable from the others of the system until
-        it ends; serving a name again (a restart here) stops serving the old one first.
+        """Make a registrar of this process reachable from the others until it ends (a
+        restart here stops serving the old one first).
 
         Raises:
             DuplicateNameError: another process of the system serves that name.
@@ -670,7 +569,7 @@ class Messenger:
             self._served[name] = listening
             early = self._early.pop(name, [])
         listening.settle()
-        for rival in early:  # (told of before it was listed: its carrier served it already)
+        for rival in early:  # (told of before it was listed)
             self.served_elsewhere(name, rival)
         runtime.Thread(
             target=self._watch_end, args=(listening,), name=f"rr-watch-{name}", daemon=True
@@ -678,8 +577,7 @@ class Messenger:
         endpoint.listening()
 
     def run(self, name: str, fn: Callable[[Any], Any], *, timeout: float) -> Any:
-        """`fn(registrar)` where registrar `name` lives (here: on this thread; else
-        `Remote.run`); what it returns.
+        """`fn(registrar)` where registrar `name` lives (here: on this thread); its result.
 
         Raises:
             UnknownServerError: nobody serves that name on the system.
@@ -702,22 +600,19 @@ class Messenger:
         return peer.run(fn, timeout=timeout)
 
     def serving_trouble(self, name: str) -> tuple[float, str] | None:
-        """For how long (seconds) and why registrar `name`, served here, has been unable to
-        take new connections (a manager reports it with each heartbeat answer); `None` if
-        it can, or if it is not served here."""
+        """`Listening.trouble` of registrar `name` served here (a manager reports it with
+        each heartbeat answer); `None` if it has none or is not served here."""
         listening = self._served.get(name)
         return None if listening is None else listening.trouble()
 
     def supervised_by(self, pid: int | None) -> None:
-        """Process `pid` speaks for the registrars this process serves from now on if it
-        dies (rule 19: it restarts them or sends their death watch; `None`: nobody). Each
-        carrier publishes it with what it serves from then on."""
+        """Process `pid` speaks for the registrars served from now on if this one dies
+        (rule 19; `None`: nobody); each carrier publishes it with what it serves."""
         self.supervisor = pid
 
     def close(self) -> None:
-        """Leave the system: stop serving (a clean stop says so), fail what waits, close
-        the carrier (idempotent). Registrars are not stopped (one left running keeps this
-        process's registrars only); stop them first to release what they hold elsewhere."""
+        """Leave the system: stop serving, fail what waits, close the carrier (idempotent).
+        Registrars are not stopped: stop them first to release what they hold elsewhere."""
         with self._lock:
             if self.closed:
                 return
@@ -738,21 +633,17 @@ class Messenger:
     # -- who serves what, for the carrier ------------------------------------------------
 
     def serving(self, name: str) -> Listening | None:
-        """The registrar `name` served here, if any."""
         return self._served.get(name)
 
     def served(self) -> list[str]:
-        """The names served here."""
         return list(self._served)
 
     def peer(self, name: str) -> Remote | None:
-        """The peer made for registrar `name` of another process, if any."""
         return self._peers.get(name)
 
     def give_way(self, listening: Listening, reason: str) -> None:
-        """Another process's server of `listening`'s name is kept (rule 22): this one stops
-        serving and its registrar yields (`Endpoint.yield_name`); `reason` says why (an
-        ERROR line)."""
+        """Another process's server of the name is kept (rule 22): stop serving, and the
+        registrar yields (`Endpoint.yield_name`); `reason` goes in an ERROR line."""
         with listening.lock:
             if listening.ended:
                 return
@@ -770,9 +661,8 @@ class Messenger:
         listening.yield_told.set()  # (a `keep_name` is told after it: `_keep`)
 
     def served_elsewhere(self, name: str, rival: Sided) -> None:
-        """Another process serves registrar `name` too (rule 22): if one served here is
-        not the one `resolution` keeps, it gives way (`give_way`); if it is, the other's
-        process is told (`_claim`). Told while `serve` lists it, settled once listed."""
+        """Another process serves `name` too (rule 22): the one here gives way if
+        `resolution` keeps the other, else the other's process is told (`_claim`)."""
         with self._lock:
             local = self._served.get(name)
             early = self._early.get(name) if local is None else None
@@ -793,8 +683,8 @@ class Messenger:
         )
 
     def _claim(self, name: str, local: Sided, rival: Sided) -> None:
-        """`local` (served here) is kept over `rival`: tell `rival`'s process (which may not
-        hear `local`'s token after a one-way heal) through the carrier's `tell_server`."""
+        """Tell `rival`'s process (which may not hear `local` after a one-way heal) that
+        `local` is kept, through the carrier's `tell_server`."""
         process = local.rank[1]
         claim = Claim(name, local.who, local.stamp, process, local.side, local.members)
         tell = getattr(self.link(), "tell_server", None)  # (carriers that see two servers)
@@ -806,8 +696,8 @@ class Messenger:
             logger.debug("could not tell process %s of %s's claim: %s", rival.who, name, exc)
 
     def lost(self, name: str) -> None:
-        """Registrar `name` is gone for good (rule 19): this process's membership records it
-        and every endpoint served here but `name` hears it (`rr_actors._core.membership`)."""
+        """Registrar `name` is gone for good (rule 19): `MEMBERSHIP` records it and every
+        endpoint served here but `name` hears it."""
         logger.info("registrar %s of system %s is lost (nobody restarts it)", name, self.system)
         MEMBERSHIP.lost(name, by=f"the carrier of {self.system}", hearers=self._hearers())
         yielding = self._yielding.get(name)
@@ -817,8 +707,8 @@ class Messenger:
             ).start()
 
     def _keep(self, listening: Listening) -> None:
-        """The one kept in `listening`'s place went for good before its yield ended (rule
-        22): it serves on if it may (`Endpoint.keep_name`), else yields again."""
+        """The one kept in `listening`'s place went before its yield ended (rule 22): it
+        serves on if it may (`Endpoint.keep_name`)."""
         name, endpoint = listening.name, listening.endpoint
         if not listening.yield_told.wait(5.0):  # (the give-way thread tells it next)
             return
@@ -857,14 +747,13 @@ class Messenger:
         self.reachable(name)
 
     def reachable(self, name: str) -> None:
-        """Registrar `name` is back from the same process (a healed link, rule 20), or the
-        one kept of two servers (rule 22): every endpoint served here but `name` hears it."""
+        """Registrar `name` is back (a healed link, rule 20; the one kept, rule 22): every
+        endpoint served here but `name` hears it."""
         logger.info("registrar %s of system %s is reachable again", name, self.system)
         MEMBERSHIP.reachable(name, hearers=self._hearers())
 
     def forget_in_child(self) -> None:
-        """In a forked child: drop the parent's listeners and peers without touching them
-        (nobody speaks for the child's registrars). Takes no lock."""
+        """In a forked child: drop the parent's listeners and peers untouched (no lock)."""
         self._lock = runtime.Lock()
         served, peers = list(self._served.values()), list(self._peers.values())
         self._served.clear()
@@ -890,9 +779,7 @@ class Messenger:
             self.reachable(listening.name)
 
     def _unserve(self, listening: Listening, *, stopped: bool) -> None:
-        """Stop serving `listening` (once; a second caller, `close` too, waits until it is
-        done), then let go of it."""
-
+        """Stop serving `listening` once (a second caller waits until it is done)."""
         with listening.lock:
             if listening.ended:
                 return
@@ -910,14 +797,12 @@ class Messenger:
     def message(
         self, endpoint: Endpoint, process: Any, token: int, payload: bytes | memoryview
     ) -> None:
-        """Deliver one message (`payload`, pickled) from `process` (answers go back to
-        it) to `endpoint`, a registrar served here (the carrier's receiving thread): over
-        its limit, refused unread (`oversized`); unreadable or unanswerable, answered with
-        the error; a `StandIn` as its reply; a `Run` on a fresh thread. One that wants no
-        answer, for a registrar gone meanwhile, is dropped with one INFO line.
+        """Deliver one message from `process` to `endpoint` (the carrier's receiving
+        thread): over its limit, refused unread; unreadable or unanswerable, answered with
+        the error; a `StandIn` as its reply; a `Run` on a fresh thread.
 
         Raises:
-            Exception: the registrar cannot be told for another reason and the message
+            Exception: the registrar cannot be told, not for being gone, and the message
                 wants no answer (the carrier logs it).
         """
         name, limit = endpoint.name, endpoint.max_message_bytes
@@ -941,15 +826,7 @@ class Messenger:
                 return
             carrier = self._carrier
             assert carrier is not None
-            reply = StandIn(
-                carrier,
-                process,
-                name,
-                limit,
-                token,
-                message,
-                self._lookup,
-            )
+            reply = StandIn(carrier, process, name, limit, token, message, self._lookup)
             object.__setattr__(message, "reply", reply)  # a fresh copy, ours to fill in
         if type(message) is Run:
             message.start(endpoint.run, f"rr-run-{name}")
@@ -973,9 +850,8 @@ class Messenger:
                 raise
 
     def oversized(self, endpoint: Endpoint, process: Any, token: int, size: int) -> None:
-        """A message of `size` bytes for `endpoint` is over its `max_message_bytes`: it is
-        not read; logged, and answered with a `MessageTooLargeError` to `process` if it
-        wants an answer (`token`)."""
+        """A message of `size` bytes is over `endpoint`'s limit: not read; logged, and
+        answered with a `MessageTooLargeError`."""
         limit = endpoint.max_message_bytes
         error = MessageTooLargeError(
             f"a message of {size} bytes for registrar {endpoint.name!r} is over its "
@@ -992,16 +868,13 @@ class Messenger:
 
 
 Transport = Messenger
-"""One process's membership of a system, over one carrier: what the registrar, the process
-layer and the supervisor see of a carrier (the contract every carrier keeps:
-docs/explanation/failure-semantics.md, "What every carrier keeps")."""
+"""What the registrar, the process layer and the supervisor see of a carrier."""
 
 
 class StandIn:
-    """The stand-in for a sender's reply, given to a delivered message: answers to its
-    sender `process` (`carrier.answer_to`). An answer that does not pickle or is over
-    `limit` becomes an error answer; one that does not reach its caller has the
-    message's `compensation()` told to registrar `name` (a `Load`'s id released)."""
+    """A delivered message's reply: answers its sender `process`. An answer that does not
+    pickle or is over `limit` becomes an error; one that does not reach its caller has
+    the message's `compensation()` told to registrar `name`."""
 
     __slots__ = (
         "_carrier",
@@ -1050,13 +923,7 @@ class StandIn:
             data = frame(self._token, (None, self._unpicklable(value, error, exc)))
             error = exc
         if payload_size(data) > self._limit:
-            too_large = MessageTooLargeError(
-                f"the answer to the {what(self._message, self._name)} is "
-                f"{payload_size(data)} bytes pickled, over registrar "
-                f"{self._name!r}'s max_message_bytes ({self._limit})",
-                payload_size(data),
-                self._limit,
-            )
+            too_large = _too_large(self._message, self._name, payload_size(data), self._limit)
             if error is None:
                 self._compensate()  # its caller gets an error
             data = frame(self._token, (None, too_large))
@@ -1065,8 +932,7 @@ class StandIn:
         if not self._carrier.answer_to(self._process, data, on_lost) and on_lost is not None:
             on_lost()
 
-    def _compensate(self) -> None:
-        """The answer did not reach its caller: undo what handling the message created."""
+    def _compensate(self) -> None:  # (the answer did not reach its caller)
         name, lookup = self._name, self._lookup
         compensate(self._message, lambda compensation: lookup(name).tell(compensation))
 
@@ -1081,33 +947,33 @@ class StandIn:
 
 
 def compensate(message: Any, tell: Tell) -> None:
-    """The caller of `message` gets an error instead of its answer: tell its
-    `compensation()`, if any (a `Load`'s `Abandon`), through `tell` (an `RrError` ignored)."""
+    """The caller of `message` gets an error instead of its answer: `tell` its
+    `compensation()`, if any (a `Load`'s `Abandon`; an `RrError` ignored)."""
     compensation = message.compensation()
     if compensation is not None:
         with contextlib.suppress(RrError):
             tell(compensation)
 
 
-def answer_too_large(
-    reply: Reply, message: Any, name: str, size: int, limit: int, tell: Tell
-) -> None:
-    """The answer of registrar `name` to `message`, `size` bytes, is over `limit` and was
-    not read: `compensate`, then fail `reply` with a `MessageTooLargeError`."""
-    compensate(message, tell)
-    reply.set_error(
-        MessageTooLargeError(
-            f"the answer to the {what(message, name)} is {size} bytes pickled, over "
-            f"registrar {name!r}'s max_message_bytes ({limit})",
-            size,
-            limit,
-        )
+def _too_large(message: Any, name: str, size: int, limit: int) -> MessageTooLargeError:
+    return MessageTooLargeError(
+        f"the answer to the {what(message, name)} is {size} bytes pickled, over "
+        f"registrar {name!r}'s max_message_bytes ({limit})",
+        size,
+        limit,
     )
 
 
+def answer_too_large(
+    reply: Reply, message: Any, name: str, size: int, limit: int, tell: Tell
+) -> None:
+    """An answer over `limit` was not read: `compensate`, then fail `reply`."""
+    compensate(message, tell)
+    reply.set_error(_too_large(message, name, size, limit))
+
+
 def answer(reply: Reply, message: Any, name: str, payload: bytes | memoryview, tell: Tell) -> None:
-    """Unpickle the answer (`payload`) of registrar `name` to `message`; resolve `reply`
-    (unreadable: its `unreadable_answer` error, after `compensate`)."""
+    """Resolve `reply` with the answer `payload` (unreadable: after `compensate`)."""
     try:
         value, error = pickle.loads(payload)
     except BaseException as exc:  # noqa: BLE001 - any unpickling failure fails this answer

@@ -29,8 +29,7 @@ __all__ = [
 
 logger = logging.getLogger("rr_actors")
 
-RESOLVE_STRATEGIES = ("first_served", "majority")
-"""The named strategies of `resolve=` (or a function of two `Claimant`s)."""
+RESOLVE_STRATEGIES = ("first_served", "majority")  # or a function of two `Claimant`s
 
 
 @dataclasses.dataclass(frozen=True)
@@ -41,9 +40,8 @@ class Claimant:
     Attributes:
         name: the registrar's name.
         process: its process as the carrier names it (a Zenoh id, a simulated pid).
-        stamp: when it began to serve: a hybrid logical clock stamp (`rr_actors` takes
-            every stamp it hears into its clock, so one served after its process heard
-            of the other has the later stamp); the lower served first.
+        stamp: when it began to serve, a hybrid logical clock stamp (one served after
+            its process heard of the other has the later stamp); the lower served first.
         served_since: `stamp` as wall-clock seconds since the epoch (`time.time()`).
         side: how many members of the system its process heard when it began to serve,
             its own host included (`0`: unknown).
@@ -70,9 +68,8 @@ Resolve = str | Callable[[Claimant, Claimant], Claimant]
 
 @runtime_checkable
 class Sided(Protocol):
-    """A server of a name as rule 22 orders it: a carrier's `Listening` served here, or
-    one it sees elsewhere. `rank` is `(stamp, process id as a number)`: the lower served
-    first (of equal stamps, the lower process id, as claims tie-break)."""
+    """A server of a name as rule 22 orders it (here or elsewhere). `rank` is `(stamp,
+    process id as a number)`: the lower served first."""
 
     @property
     def stamp(self) -> int: ...
@@ -90,11 +87,7 @@ S = TypeVar("S", bound=Sided)
 
 
 def check_resolve(value: object) -> Resolve:
-    """`value` if it is a strategy `resolve=` takes.
-
-    Raises:
-        ConfigError: it is neither one of `RESOLVE_STRATEGIES` nor a callable.
-    """
+    """`value` if it is a strategy `resolve=` takes, else `ConfigError`."""
     if isinstance(value, str) and value in RESOLVE_STRATEGIES:
         return value
     if callable(value) and not isinstance(value, str | type):
@@ -109,14 +102,9 @@ class Resolution:
     """A system's rule 22 policy: which of two servers of one name is kept.
 
     Args:
-        resolve: `"first_served"` (the lower stamp; of equal stamps, the lower process
-            id), `"majority"` (the one that began to serve on a side with a majority of
-            the members; if both did, the later, whose side could not hear the earlier;
-            if neither did, first served), or a function given the two `Claimant`s
-            (first served first) that returns the one kept. It runs on a carrier's
-            thread, in every process that sees both servers, possibly often: it must be
-            fast and deterministic. An exception, or an answer that is neither, falls
-            back to first served with a WARNING.
+        resolve: `"first_served"`, `"majority"` or a function of the two `Claimant`s, as
+            `ZenohNetwork`'s; a function runs on a carrier's thread in every process
+            that sees both, possibly often: it must be fast and deterministic.
 
     Raises:
         ConfigError: `resolve` is none of those.
@@ -130,8 +118,7 @@ class Resolution:
         return f"Resolution({self.resolve!r})"
 
     def kept(self, name: str, servers: Iterable[S]) -> S | None:
-        """Which of `servers` (of registrar `name`) is kept: each against the one kept of
-        those before it, in first-served order (so every process folds them alike)."""
+        """Which of `servers` of `name` is kept: folded in first-served order."""
         ordered = sorted(servers, key=lambda server: server.rank)
         if not ordered:
             return None
@@ -152,8 +139,7 @@ class Resolution:
         return second if self._ask(one, two) is two else first
 
     def _ask(self, one: Claimant, two: Claimant) -> Claimant:
-        """The user's function's answer, or `one` (first served) with a WARNING if it
-        raised or answered neither."""
+        """The user's function's answer, or `one` with a WARNING if it failed."""
         resolve = self.resolve
         assert callable(resolve)
         try:
@@ -181,7 +167,6 @@ class Resolution:
 
 
 def claimant(name: str, server: Sided) -> Claimant:
-    """`server` of registrar `name` as plain data."""
     return Claimant(
         name=name,
         process=server.who,
@@ -193,4 +178,3 @@ def claimant(name: str, server: Sided) -> Claimant:
 
 
 FIRST_SERVED = Resolution()
-"""The default policy (what every carrier did before `resolve=`)."""

@@ -52,11 +52,9 @@ __all__ = [
     "Writer",
     "connect",
     "handshake",
-    "publish",
-    "read_limit",
+    "lock_held",
     "shutdown",
     "split",
-    "take_name_lock",
 ]
 
 logger = logging.getLogger("rr_actors")
@@ -65,8 +63,7 @@ HANDSHAKE_TIMEOUT = 5.0
 """Seconds a connection gets to connect and pass the authkey handshake (both sides)."""
 
 LOCK_RETRY = 0.2
-"""Seconds a listener keeps trying to take a name lock that is held: another process may
-be probing it for a few microseconds (`lock_held`, rule 19), which is no owner."""
+"""Seconds a listener retries a held name lock: a probe (`lock_held`) holds it briefly."""
 
 
 class Paths(Protocol):
@@ -85,28 +82,15 @@ class Rendezvous(Protocol):
     """What the link needs of its system (`system.UnixCarrier`)."""
 
     @property
-    def address(self) -> Paths:
-        """Where registrars of the system are found."""
-        ...
-
+    def address(self) -> Paths: ...
     @property
-    def closed(self) -> bool:
-        """Whether this process left the system (no new channel is opened then)."""
-        ...
-
+    def closed(self) -> bool: ...  # this process left the system: no new channel
     @property
-    def messenger(self) -> Messenger:
-        """What a listener hands the messages it reads."""
-        ...
-
-    def speaker(self, name: str) -> str:
-        """What registrar `name`, served here, publishes in its `.restart` file (rule 19)."""
-        ...
+    def messenger(self) -> Messenger: ...
+    def speaker(self, name: str) -> str: ...  # what `name`'s `.restart` file says (rule 19)
 
     def ended(self, name: str) -> None:
-        """The connection to registrar `name` of another process ended, or a connect to it
-        failed: find out (on another thread) whether it is lost (rule 19). Returns at once."""
-        ...
+        """A connection to `name` ended or failed: is it lost (rule 19)? Returns at once."""
 
 
 # -- a connection: made, authenticated, written ---------------------------------------------
@@ -116,8 +100,8 @@ _LONG = struct.Struct("!Q")  # ... after a header of -1
 
 
 class _Timed:
-    """`send_bytes` and `recv_bytes` (all `deliver_challenge` and `answer_challenge` need)
-    over `sock`, each bounded by `deadline`: the whole handshake is bounded."""
+    """`send_bytes` and `recv_bytes` (what the challenges need) over `sock`, bounded by
+    `deadline`."""
 
     __slots__ = ("deadline", "sock")
 
@@ -133,7 +117,7 @@ class _Timed:
 
     def send_bytes(self, data: bytes) -> None:
         self.sock.settimeout(self._left())
-        self.sock.sendall(_HEADER.pack(len(data)) + data)  # (one bound for the whole send)
+        self.sock.sendall(_HEADER.pack(len(data)) + data)
 
     def recv_bytes(self, maxlength: int | None = None) -> bytes:
         (size,) = _HEADER.unpack(self._recv(_HEADER.size))
@@ -155,12 +139,11 @@ class _Timed:
 
 
 def handshake(sock: socket.socket, authkey: bytes, deadline: float, *, server: bool) -> None:
-    """Pass the mutual authkey handshake on `sock` before `deadline` (monotonic seconds;
-    the `server` challenges first); `sock` is left blocking afterwards.
+    """Pass the mutual authkey handshake on `sock` before `deadline` (monotonic; the
+    `server` challenges first); `sock` is left blocking.
 
     Raises:
-        AuthenticationError: the other side does not know `authkey`, or sent a malformed
-            challenge.
+        AuthenticationError: the other side does not know `authkey`, or is malformed.
         TimeoutError: it was not done by `deadline`.
         OSError, EOFError: the connection broke or the other side sent garbage.
     """
@@ -186,16 +169,12 @@ def shutdown(sock: socket.socket) -> None:
 
 
 def split(sock: socket.socket) -> tuple[socket.socket, Connection]:
-    """`sock` for writing plus a `Connection` on a duplicate descriptor for reading.
-
-    Raises:
-        OSError: no descriptor is left for the duplicate (`EMFILE`, `ENFILE`).
-    """
+    """`sock` for writing, a `Connection` on a duplicate for reading (OSError: `EMFILE`)."""
     return sock, Connection(os.dup(sock.fileno()))
 
 
 def _send_timeout(sock: socket.socket, seconds: float) -> None:
-    """Bound (or with 0, unbound) blocking sends on `sock`, and so a blocking `connect`."""
+    """Bound (0: unbound) blocking sends on `sock`, and so a blocking `connect`."""
     sock.setsockopt(
         socket.SOL_SOCKET,
         socket.SO_SNDTIMEO,
@@ -206,15 +185,13 @@ def _send_timeout(sock: socket.socket, seconds: float) -> None:
 def connect(
     path: str, authkey: bytes, *, coming: Callable[[], bool] | None = None
 ) -> tuple[socket.socket, Connection]:
-    """Connect to `path` and pass the handshake, both within `HANDSHAKE_TIMEOUT` seconds: a
-    full accept backlog is waited out in the kernel, and while `coming()` says a listener
-    is on its way (a restart holds the name's lock before it listens) the connect is
-    tried again, up to `CONNECT_RETRY` seconds apart.
+    """Connect to `path` and pass the handshake, within `HANDSHAKE_TIMEOUT` seconds; a
+    full backlog is waited out in the kernel, and while `coming()` says a listener is on
+    its way (a restart holds the name's lock before it listens) the connect is retried.
 
     Raises:
-        OSError, EOFError: nothing listens there (and none is coming, or it did not come
-            by the deadline), the backlog stayed full until the deadline
-            (`BlockingIOError`), or the connection broke.
+        OSError, EOFError: nothing listens there (and none came by the deadline), the
+            backlog stayed full (`BlockingIOError`), or the connection broke.
         TimeoutError: the handshake did not finish by the deadline.
         AuthenticationError: the listener does not know the system's authkey.
     """
@@ -245,13 +222,12 @@ def connect(
 
 
 CONNECT_RETRY = 0.05
-"""The longest pause, in seconds, between two tries of a connect to a listener that is
-coming (its name's lock held, its socket not listening yet)."""
+"""The longest pause, in seconds, between two connects to a listener that is coming."""
 
 
 def lock_held(path: str) -> bool:
-    """Whether a process holds (or is about to serve under) the name lock at `path`; a
-    shared `flock` held for microseconds probes it. Unsure: held (never a false loss)."""
+    """Whether a process holds the name lock at `path` (a shared `flock` probes it for
+    microseconds). Unsure: held (never a false loss)."""
     try:
         fd = os.open(path, os.O_RDONLY)
     except FileNotFoundError:
@@ -268,9 +244,8 @@ def lock_held(path: str) -> bool:
 
 
 class Writer:
-    """The send side of one connection, in order. A failed connect or write of the writer
-    thread closes it and calls `on_failure(exc)` once; a sender's own failed write gets
-    False from `send`."""
+    """The send side of one connection, in order. The writer thread's failed connect or
+    write closes it and calls `on_failure(exc)` once."""
 
     __slots__ = ("_closed", "_executor", "_lock", "_on_failure", "_sock")
 
@@ -288,12 +263,11 @@ class Writer:
 
     @property
     def closed(self) -> bool:
-        """Whether the writer was closed (nothing more is sent)."""
         return self._closed
 
     def send(self, frame: bytes, on_lost: Lost | None = None) -> bool:
-        """Send `frame` or queue it (never blocks on the peer; `on_lost` runs if the
-        connection ends first); False if nothing of it was sent (the writer is closed)."""
+        """Send `frame` or queue it (never blocks; `on_lost` runs if the connection ends
+        first); False if nothing of it was sent."""
         if self._closed:
             return False
         task = _Frame(self, frame, on_lost)
@@ -305,8 +279,7 @@ class Writer:
             return False
 
     def connect_with(self, connect: Callable[[], object]) -> None:
-        """Run `connect` first on the writer thread of a writer made without a socket; it
-        gives the socket with `attach` (or fails the writer)."""
+        """Run `connect` first on the writer thread; it gives the socket (`attach`)."""
         self._executor.submit(connect)
 
     def attach(self, sock: socket.socket) -> bool:
@@ -318,8 +291,8 @@ class Writer:
             return True
 
     def close(self) -> bool:
-        """Stop sending and shut the connection down (a reader of its duplicate wakes);
-        queued frames are lost (their `on_lost` runs). False if it was closed already."""
+        """Stop sending and shut the connection down (its reader wakes); queued frames are
+        lost (their `on_lost` runs). False if it was closed already."""
         with self._lock:
             if self._closed:
                 return False
@@ -331,8 +304,7 @@ class Writer:
         return True
 
     def forget_in_child(self) -> None:
-        """In a forked child: close this process's copy of the socket, never shut it down
-        (the parent's too). Takes no lock, as every `forget_in_child`."""
+        """In a forked child: close this process's copy of the socket, never shut it down."""
         self._closed = True
         self._lock = threading.Lock()
         self._executor = SerialExecutor(self._executor.name)
@@ -341,21 +313,19 @@ class Writer:
             self._sock.close()
 
     def fail(self, exc: BaseException) -> None:
-        """Close because of `exc` (a failed connect or write) and report it once."""
+        """Close because of a failed connect or write; report it once."""
         if self.close():
             self._on_failure(exc)
 
     def _close_socket(self) -> None:  # (after the last write: the executor's `on_end`)
         if self._sock is not None:
-            # shut down before closing, here too: were it closed first, a shutdown after
-            # would fail (EBADF) and the reader's duplicate descriptor would keep the
-            # connection open: the peer would never see its end
+            # shut down first: closed, the reader's duplicate would keep the connection open
             shutdown(self._sock)
             self._sock.close()
 
 
 class _Frame:
-    """One frame to send (or the part of it the socket did not take at once)."""
+    """One frame to send (or what the socket did not take at once)."""
 
     __slots__ = ("data", "on_lost", "writer")
 
@@ -377,8 +347,7 @@ class _Frame:
         self.data = memoryview(self.data)[sent:]
         return self
 
-    def __call__(self) -> None:
-        """Send it all (the writer thread: may block on the peer)."""
+    def __call__(self) -> None:  # (the writer thread: may block on the peer)
         sock = self.writer._sock
         try:
             if sock is not None:
@@ -396,48 +365,60 @@ def _lost(task: Task) -> None:
         run_lost([task.on_lost])
 
 
+def _read(
+    conn: Connection,
+    limit: int,
+    whole: Callable[[int, memoryview], object],
+    oversized: Callable[[int, int], object],
+    kind: str,
+    name: str,
+) -> None:
+    """Hand each frame read from `conn` to `whole(token, payload)`, or one over `limit`
+    to `oversized(token, size)`, until it ends; one that raises is logged."""
+    for data in frames(conn, limit):
+        try:
+            if isinstance(data, Oversized):
+                oversized(data.token, data.size)
+            else:
+                whole(*unframe(data))
+        except Exception:
+            logger.exception("dropped a malformed %s of registrar %s", kind, name)
+
+
 # -- the files of a served name ----------------------------------------------------------------
 
 
-def take_name_lock(path: str, name: str) -> int:
-    """Open and `flock` the lock file of registrar `name`; the descriptor holds the lock.
+def _take_lock(path: str, name: str) -> int:
+    """Open and `flock` registrar `name`'s lock file (retried for `LOCK_RETRY` seconds);
+    the descriptor holds the lock.
 
     Raises:
         DuplicateNameError: another process (or listener) holds it.
         ConfigError: the file cannot be opened.
     """
-    try:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
-    except OSError as exc:
-        raise ConfigError(f"cannot open the lock file {path!r}: {exc}") from exc
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError as exc:
-        os.close(fd)
-        raise DuplicateNameError(f"registrar {name!r} is already served on this system") from exc
-    return fd
-
-
-def _take_lock(path: str, name: str) -> int:
-    """`take_name_lock`, retried for `LOCK_RETRY` seconds while it is held."""
     deadline = time.monotonic() + LOCK_RETRY
     pause = 0.002
     while True:
         try:
-            return take_name_lock(path, name)
-        except DuplicateNameError:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
+        except OSError as exc:
+            raise ConfigError(f"cannot open the lock file {path!r}: {exc}") from exc
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            os.close(fd)
             if time.monotonic() >= deadline:
-                raise
+                raise DuplicateNameError(
+                    f"registrar {name!r} is already served on this system"
+                ) from exc
+        else:
+            return fd
         time.sleep(pause)  # (a probe is over in microseconds; an owner stays)
         pause = min(2 * pause, 0.05)
 
 
 def publish(path: str, text: str) -> None:
-    """Write `text` to `path` atomically (a temporary file renamed over it).
-
-    Raises:
-        OSError: the file cannot be written.
-    """
+    """Write `text` to `path` atomically (OSError if it cannot)."""
     folder, name = os.path.split(path)
     temporary = os.path.join(folder, f".{name}")
     fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
@@ -449,8 +430,7 @@ def publish(path: str, text: str) -> None:
 
 
 def read_limit(path: str) -> int:
-    """The limit published at `path`; `DEFAULT_MAX_MESSAGE_BYTES` if there is none (not
-    listening: the connect fails; or an older version)."""
+    """The limit published at `path`, else `DEFAULT_MAX_MESSAGE_BYTES`."""
     try:
         with open(path, "rb") as published:
             value = int(published.read(32))
@@ -480,20 +460,17 @@ class _Channel:
         self.reading: Connection | None = None  # the reader thread's (a duplicate descriptor)
 
     def send(self, data: bytes) -> bool:
-        """Write or queue a frame (`Writer.send`); False if the connection is gone."""
         return self.writer.send(data)
 
-    def broken(self) -> bool:
-        """Nothing of a frame left: close the channel (what waits fails); a fresh one may
-        take the frame."""
+    def broken(self) -> bool:  # (a fresh channel may take the frame)
         if self.peer is not None:
             self.peer._lose(self, None)
         return True
 
 
 class RemotePeer(Remote):
-    """A registrar in another process of the system, reached through its socket (`tell`,
-    `run`: `Remote`; its route is one connection, made lazily on its writer thread)."""
+    """A registrar of another process, reached through its socket: its route is one
+    connection, made lazily on its writer thread."""
 
     def __init__(self, system: Rendezvous, name: str) -> None:
         self.name = name
@@ -503,7 +480,6 @@ class RemotePeer(Remote):
         self._channel: _Channel | None = None
 
     def route(self) -> _Channel:
-        """The connection, or a new one whose writer thread connects."""
         channel = self._channel
         if channel is None or channel.writer.closed:
             channel = self._open()
@@ -513,7 +489,6 @@ class RemotePeer(Remote):
         return self._gone("lost its connection")
 
     def close(self, error: RrError) -> None:
-        """Close the connection; outstanding answers fail with `error`."""
         channel = self._channel
         if channel is not None:
             self._lose(channel, error)
@@ -524,8 +499,7 @@ class RemotePeer(Remote):
             self._open()
 
     def forget_in_child(self) -> None:
-        """In a forked child: drop the parent's connection and its replies (closed, never
-        shut down); the next `tell` connects anew."""
+        """In a forked child: drop the parent's connection and replies, never shut down."""
         self._lock = threading.Lock()
         channel, self._channel = self._channel, None
         if channel is None:
@@ -556,7 +530,7 @@ class RemotePeer(Remote):
         return channel
 
     def _connect(self, channel: _Channel) -> None:
-        """The writer thread of `channel`, first: connect, start its reader."""
+        """`channel`'s writer thread, first: connect, start its reader."""
         try:
             coming = functools.partial(lock_held, self._system.address.lock_path(self.name))
             sock, conn = connect(self._path, self._system.address.authkey, coming=coming)
@@ -582,7 +556,6 @@ class RemotePeer(Remote):
         ).start()
 
     def _failed(self, channel: _Channel, exc: BaseException) -> None:
-        """`channel`'s writer failed (connect or write): fail what waits on it."""
         if isinstance(exc, RrError):
             self._lose(channel, exc)
         else:
@@ -607,17 +580,10 @@ class RemotePeer(Remote):
         )
 
     def _read(self, channel: _Channel, conn: Connection) -> None:
-        """The reader thread of one connection: resolve answers (`Replies`) until it ends."""
+        """The reader thread of one connection: resolve answers until it ends."""
         pending = channel.pending
         try:
-            for data in frames(conn, channel.limit):
-                try:
-                    if isinstance(data, Oversized):
-                        pending.too_large(data.token, data.size)
-                    else:
-                        pending.answered(*unframe(data))
-                except Exception:
-                    logger.exception("dropped a malformed answer from registrar %s", self.name)
+            _read(conn, channel.limit, pending.answered, pending.too_large, "answer", self.name)
         finally:
             self._lose(channel, None)
             conn.close()
@@ -629,11 +595,7 @@ class RemotePeer(Remote):
 
 
 class _Accepted:
-    """One accepted connection on the provider side; its reader runs on its own thread.
-
-    Raises:
-        OSError: no file descriptor is left for its reading side (`EMFILE`, ...).
-    """
+    """One accepted connection of a listener, read on its own thread (OSError: `EMFILE`)."""
 
     def __init__(self, listener: Listener, sock: socket.socket, deadline: float) -> None:
         self.listener = listener
@@ -642,19 +604,15 @@ class _Accepted:
         self.writer = Writer(self.sock, self._failed, f"rr-answer-{listener.name}")
 
     def send(self, frame: bytes, on_lost: Lost | None = None) -> bool:
-        """Send or queue an answer; False (it is dropped) if the connection is gone."""
         if self.writer.send(frame, on_lost):
             return True
         logger.debug("answer of %s dropped: the caller's connection is gone", self.listener.name)
         return False
 
-    def close(self) -> None:
-        """End the connection (any thread); the reader thread then cleans up."""
+    def close(self) -> None:  # (any thread; the reader thread then cleans up)
         self.writer.close()
 
-    def forget_in_child(self) -> None:
-        """In a forked child: close this process's copies of the descriptors (not shut
-        down: the connection is the parent's)."""
+    def forget_in_child(self) -> None:  # (closed, not shut down: the parent's)
         self.writer.forget_in_child()
         self.conn.close()
 
@@ -662,8 +620,7 @@ class _Accepted:
         logger.debug("connection to a caller of %s lost: %s", self.listener.name, exc)
 
     def serve(self) -> None:
-        """Handshake (within `HANDSHAKE_TIMEOUT` of the accept), then deliver every message
-        to the local registrar (its own thread)."""
+        """Handshake, then deliver every message to the registrar (its own thread)."""
         listener = self.listener
         conn = self.conn
         try:
@@ -676,35 +633,31 @@ class _Accepted:
                     logger.warning("registrar %s refused a connection: %s", listener.name, exc)
                 return
             messenger, endpoint = listener.messenger, listener.endpoint
-            for data in frames(conn, listener.max_message_bytes):
-                try:
-                    if isinstance(data, Oversized):
-                        messenger.oversized(endpoint, self, data.token, data.size)
-                    else:
-                        messenger.message(endpoint, self, *unframe(data))
-                except Exception:
-                    logger.exception("registrar %s dropped a malformed message", listener.name)
+            _read(
+                conn,
+                listener.max_message_bytes,
+                functools.partial(messenger.message, endpoint, self),
+                functools.partial(messenger.oversized, endpoint, self),
+                "message",
+                listener.name,
+            )
         finally:
             self.writer.close()
             conn.close()
             listener.forget(self)
 
 
-_SHORTAGE = frozenset({errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM})
-"""`accept` errors that mean "out of resources for now": back off and try again."""
+_SHORTAGE = frozenset({errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM})  # back off
 
+# seconds before a failed `accept` is retried (doubling), well below HANDSHAKE_TIMEOUT
 _BACKOFF_FIRST = 0.01
 _BACKOFF_MAX = 0.5
-"""Seconds the listener waits before it retries an `accept` that failed (doubling).
-
-Well below `HANDSHAKE_TIMEOUT`: a peer waiting in the backlog meanwhile still gets
-through once descriptors are free again."""
 
 
 class Listener(Listening):
-    """Accepts connections for one registrar served by this process (its `Listening`):
-    holding the name's lock, it publishes `.limit` and `.restart` before anyone connects;
-    out of descriptors, it logs once, backs off and tries again (`trouble`).
+    """Accepts connections for a registrar served here: holding the name's lock, it
+    publishes `.limit` and `.restart` before anyone connects; out of descriptors, it
+    logs once, backs off and retries (`trouble`).
 
     Raises:
         DuplicateNameError: another process holds the name's lock.
@@ -769,16 +722,14 @@ class Listener(Listening):
                     return
                 if exc.errno == errno.ECONNABORTED:  # the peer gave up before the accept
                     continue
-                self._cannot_accept(exc, backoff)
-                backoff = min(2 * backoff, _BACKOFF_MAX)
+                backoff = self._cannot_accept(exc, backoff)
                 continue
             deadline = time.monotonic() + HANDSHAKE_TIMEOUT
             try:
                 accepted = _Accepted(self, sock, deadline)
             except OSError as exc:  # no descriptor for its reading side
                 sock.close()
-                self._cannot_accept(exc, backoff)
-                backoff = min(2 * backoff, _BACKOFF_MAX)
+                backoff = self._cannot_accept(exc, backoff)
                 continue
             if self._failing_since is not None:
                 self._accepting_again()
@@ -797,11 +748,10 @@ class Listener(Listening):
                 self.forget(accepted)
                 accepted.close()
                 accepted.conn.close()
-                self._cannot_accept(OSError(errno.EAGAIN, f"no thread: {exc}"), backoff)
-                backoff = min(2 * backoff, _BACKOFF_MAX)
+                backoff = self._cannot_accept(OSError(errno.EAGAIN, f"no thread: {exc}"), backoff)
 
-    def _cannot_accept(self, exc: OSError, backoff: float) -> None:
-        """Note a failed accept (log the first of a run), then wait before the next."""
+    def _cannot_accept(self, exc: OSError, backoff: float) -> float:
+        """Note a failed accept (log the first of a run), wait `backoff`; the next one."""
         if self._failing_since is None:
             self._failing_since = time.monotonic()
             self._failure = f"{type(exc).__name__}: {exc}"
@@ -817,6 +767,7 @@ class Listener(Listening):
             logger.debug("registrar %s: accept failed: %s", self.name, exc)
         self._wake.clear()
         self._wake.wait(backoff)  # cut short when a connection ends or the listener closes
+        return min(2 * backoff, _BACKOFF_MAX)
 
     def _accepting_again(self) -> None:
         trouble = self.trouble()
@@ -832,10 +783,8 @@ class Listener(Listening):
         self._wake.set()  # its descriptors are free: a listener backing off tries again
 
     def forget_in_child(self) -> None:
-        """In a forked child: close its copies of the socket, the name lock (a lock shared
-        with a child would outlive the parent) and every connection; nothing is shut down,
-        unlinked or written."""
-
+        """In a forked child: close its copies of the socket, the name lock (one shared
+        with a child would outlive the parent) and every connection; nothing else."""
         self._closed = True
         connections = list(self._connections)
         self._connections.clear()
@@ -847,7 +796,7 @@ class Listener(Listening):
             accepted.forget_in_child()
 
     def stop(self, *, stopped: bool) -> None:
-        """Stop listening; with `stopped`, leave a tombstone so peers say "stopped"."""
+        """Stop listening; `stopped` leaves a tombstone (peers then say "stopped")."""
         with self._lock:
             self._closed = True
             connections = list(self._connections)

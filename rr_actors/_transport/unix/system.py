@@ -30,16 +30,14 @@ _MAX_SOCKET_PATH = 107  # sun_path is 108 bytes with the terminating NUL (Linux)
 _RUNTIME_SUFFIXES = (".sock", ".stopped", ".lock", ".limit", ".restart")  # a system's files
 
 ENDING_GRACE = 0.5
-"""Seconds a registrar whose connection ended may still hold its lock (its process is
-still exiting) before the process that holds it counts as serving it."""
+"""Seconds a registrar whose connection ended may hold its lock (its process exiting)
+before the lock's holder counts as serving it."""
 
 AWAIT_POLL = 0.1
-"""Seconds between two looks at a registrar awaited (gone, its speaker alive): served
-again, stopped, or its speaker gone too (then it is lost)."""
+"""Seconds between two looks at a registrar gone whose speaker lives."""
 
 NOBODY = "0"
-"""What a `.restart` file holds when nobody speaks for the registrar: it is lost when
-its process dies."""
+"""A `.restart` file's "nobody speaks for it": it is lost when its process dies."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,24 +53,23 @@ class SystemAddress:
     authkey: bytes = dataclasses.field(repr=False)
 
     def socket_path(self, name: str) -> str:
-        """The path registrar `name` listens on."""
         return os.path.join(self.runtime_dir, f"{name}.sock")
 
     def tombstone_path(self, name: str) -> str:
-        """A file that says registrar `name` was stopped cleanly (not crashed)."""
+        """Says registrar `name` was stopped cleanly (not crashed)."""
         return os.path.join(self.runtime_dir, f"{name}.stopped")
 
     def lock_path(self, name: str) -> str:
-        """The file whose `flock` the process serving registrar `name` holds."""
+        """Its `flock` is held by the process serving registrar `name`."""
         return os.path.join(self.runtime_dir, f"{name}.lock")
 
     def limit_path(self, name: str) -> str:
-        """A file that holds registrar `name`'s `max_message_bytes` (decimal), for senders."""
+        """Holds registrar `name`'s `max_message_bytes` (decimal), for senders."""
         return os.path.join(self.runtime_dir, f"{name}.limit")
 
     def restart_path(self, name: str) -> str:
-        """A file that says who speaks for registrar `name` if its process dies: `0` for
-        nobody, else `<pid> <start time>` of that process (rule 19)."""
+        """Who speaks for registrar `name` if its process dies (rule 19): `0` for nobody,
+        else `<pid> <start time>`."""
         return os.path.join(self.runtime_dir, f"{name}.restart")
 
     def attach(self) -> AttachedSystem:
@@ -81,11 +78,10 @@ class SystemAddress:
 
 
 class UnixCarrier:
-    """The AF_UNIX carrier of one process's membership (the messenger's `Carrier`): names
-    found in the runtime directory, a `RemotePeer` per name reached, a `Listener` per
-    registrar served, and who is lost (rule 19), judged from the directory's files on the
-    presence thread (`rr-unix-presence`). Why: docs/explanation/inside.md ("Judging who is
-    lost on one machine")."""
+    """The AF_UNIX `Carrier`: names found in the runtime directory, a `RemotePeer` per
+    name reached, a `Listener` per registrar served, and who is lost (rule 19), judged
+    on the presence thread: docs/explanation/inside.md ("Judging who is lost on one
+    machine")."""
 
     def __init__(self, messenger: Messenger, address: SystemAddress) -> None:
         self.messenger = messenger
@@ -103,7 +99,7 @@ class UnixCarrier:
     # -- the Carrier -------------------------------------------------------------------
 
     def peer(self, name: str) -> RemotePeer | None:
-        """A peer of registrar `name` if it listens in the directory, or was stopped there."""
+        """A peer of registrar `name` if it listens in the directory, or was stopped."""
         address = self.address
         if os.path.exists(address.socket_path(name)) or os.path.exists(
             address.tombstone_path(name)
@@ -112,9 +108,7 @@ class UnixCarrier:
         return None
 
     def listen(self, endpoint: Endpoint) -> Listener:
-        """Listen on `<runtime_dir>/<name>.sock`, holding `<name>.lock` (raises as
-        `Listener`)."""
-
+        """Listen on `<runtime_dir>/<name>.sock`, holding `<name>.lock`."""
         path = self.address.socket_path(endpoint.name)
         if len(os.fsencode(path)) > _MAX_SOCKET_PATH:
             raise ConfigError(
@@ -124,11 +118,9 @@ class UnixCarrier:
         return Listener(self, endpoint)
 
     def answer_to(self, process: _Accepted, data: bytes, on_lost: Lost | None) -> bool:
-        """An answer goes back on the connection its message came on (`process`)."""
         return process.send(data, on_lost)
 
     def names(self) -> list[str]:
-        """The names of the registrars that listen in the system now (any process)."""
         try:
             entries = os.listdir(self.address.runtime_dir)
         except OSError:
@@ -145,9 +137,8 @@ class UnixCarrier:
     # -- what the link asks of its system ------------------------------------------------
 
     def speaker(self, name: str) -> str:
-        """What registrar `name`, served here, publishes in its `.restart` file: the
-        process `supervised_by` named, else this process while
-        `DIRECTORY.restart_expected(name)` (a thread manager), else `0` (nobody)."""
+        """The `.restart` file of `name`: the process `supervised_by` named, else this one
+        while `DIRECTORY.restart_expected(name)` (a thread manager), else nobody."""
         supervisor = self.messenger.supervisor
         if supervisor is not None:
             return _identity(supervisor)
@@ -156,8 +147,6 @@ class UnixCarrier:
         return NOBODY
 
     def ended(self, name: str) -> None:
-        """The connection to registrar `name` ended, or a connect to it failed: judge, on
-        the presence thread, whether it is lost (rule 19)."""
         with self._presence:
             if self.closed:
                 return
@@ -170,7 +159,6 @@ class UnixCarrier:
             self._presence.notify_all()
 
     def forget_in_child(self) -> None:
-        """In a forked child: drop the parent's presence thread and verdicts."""
         self._presence = threading.Condition()
         self._judging.clear()
         self._awaited.clear()
@@ -180,7 +168,7 @@ class UnixCarrier:
     # -- rule 19: is a registrar of another process lost? --------------------------------
 
     def _judge_loop(self) -> None:
-        """The presence thread: judges ended registrars and polls the awaited ones."""
+        """The presence thread: judge ended registrars, poll the awaited ones."""
         while True:
             with self._presence:
                 if self.closed:
@@ -249,14 +237,14 @@ class UnixCarrier:
 
 
 def _identity(pid: int) -> str:
-    """`<pid> <start time>` of process `pid` (just the pid where `/proc` does not say)."""
+    """`<pid> <start time>` of process `pid` (the pid alone where `/proc` does not say)."""
     start = _start_time(pid)
     return f"{pid} {start}" if start else f"{pid}"
 
 
 def _start_time(pid: int) -> str | None:
-    """Process `pid`'s start time (Linux `/proc/<pid>/stat`, field 22); `None` if unknown
-    (no `/proc`) or it is not running (gone, or a zombie: it speaks for nobody)."""
+    """Process `pid`'s start time (`/proc/<pid>/stat`, field 22); `None` if unknown
+    (no `/proc`, or gone), `""` for a zombie (it speaks for nobody)."""
     try:
         with open(f"/proc/{pid}/stat", "rb") as stat:
             fields = stat.read().rsplit(b")", 1)[1].split()
@@ -313,7 +301,7 @@ class AttachedSystem(Messenger):
 
     def forget_in_child(self) -> None:
         """In a forked child: drop the parent's listeners, connections and presence
-        thread; stay attached (inside.md, "The AF_UNIX carrier"). Takes no lock: makes them new."""
+        thread; stay attached (inside.md, "The AF_UNIX carrier")."""
         super().forget_in_child()
         self._unix.forget_in_child()
 
@@ -352,9 +340,8 @@ def attach(address: SystemAddress) -> AttachedSystem:
 class System(AttachedSystem):
     """A system of registrars across processes, as its owner (the main process) holds it.
 
-    It is an `AttachedSystem` of the creating process; `close()` also removes the files the
-    system put in the runtime directory, and the directory itself if `create` made it (in
-    the creating process only: in a child forked from it, `close()` just leaves).
+    An `AttachedSystem` whose `close()` also removes the system's files in the runtime
+    directory, and the directory if `create` made it (a forked child's only leaves).
     Hand `address` to the processes that should join.
     """
 

@@ -31,9 +31,7 @@ __all__ = [
 T = TypeVar("T")
 
 END_TIMEOUT = 2.0
-"""Seconds a session's close waits for its callback threads and its workers to end (they
-end at once: a callback of the carrier queues what it gets, never blocks; a worker's task
-finds the session closed)."""
+"""Seconds a session's close waits for its callback threads and its workers to end."""
 
 
 class Worker(Protocol):
@@ -41,21 +39,10 @@ class Worker(Protocol):
     `Forwarder`): its owner closes it, the session's close joins it."""
 
     @property
-    def name(self) -> str:
-        """Its thread's name (for the WARNING of one that did not end)."""
-        ...
-
-    def join(self, timeout: float | None) -> bool:
-        """Wait (at most `timeout` s) until it ended; whether it did."""
-        ...
-
-    def on_own_thread(self) -> bool:
-        """Whether the calling thread is its thread."""
-        ...
-
-    def close(self, *, timeout: float | None = 0.0) -> bool:
-        """Take no more tasks (those queued get `timeout` s); whether it ended."""
-        ...
+    def name(self) -> str: ...
+    def join(self, timeout: float | None) -> bool: ...
+    def on_own_thread(self) -> bool: ...
+    def close(self, *, timeout: float | None = 0.0) -> bool: ...  # queued get `timeout` s
 
 
 _Ref = weakref.ref[Any]
@@ -71,15 +58,8 @@ _local = threading.local()  # `.callback`: the session whose tracked callback th
 
 def worker(session: zenoh.Session, executor: Worker) -> bool:
     """Count `executor` (whose thread calls Zenoh on `session`) among what the session's
-    close joins (`wait_ended`), once its owner closed it. Held weakly: one that ended and
-    was let go of is forgotten.
-
-    Returns:
-        Whether it was counted. Once the session closed and its close waited for its
-        workers (`wait_ended`), nothing would join one registered then: it is refused,
-        closed (what it was given and has not begun is dropped) and joined here, at once
-        (at most `END_TIMEOUT` s; a task it runs still ends first).
-    """
+    close joins (`wait_ended`), held weakly; whether it was counted. Once the close
+    waited for its workers, one registered then is refused, closed and joined at once."""
     zid = str(session.zid())
     with _cond:
         if zid not in _ended:
@@ -91,20 +71,17 @@ def worker(session: zenoh.Session, executor: Worker) -> bool:
 
 
 class SessionEndedError(Exception):
-    """A Zenoh call refused before it began: its session closed and its close waited for
-    the calls under way (`calling`); each caller takes it as the closed session's own
-    error."""
+    """A Zenoh call refused before it began: its session closed (`calling`); callers take
+    it as the closed session's own error."""
 
 
 @contextlib.contextmanager
 def calling(session: zenoh.Session) -> Iterator[None]:
-    """Around a Zenoh call on a thread that no close joins (a program's own thread in a
-    call, a server's): counted, so that the session's close waits until it returned
-    (`wait_ended`): none is then inside Zenoh as the interpreter ends.
+    """Around a Zenoh call on a thread no close joins (a program's, a server's): counted,
+    so the session's close waits until it returned (`wait_ended`).
 
     Raises:
-        SessionEndedError: the session closed and its close waited for the calls under
-            way (nothing of Zenoh is called).
+        SessionEndedError: the session closed and its close waited for the calls.
     """
     zid = str(session.zid())
     with _cond:
@@ -124,8 +101,8 @@ def calling(session: zenoh.Session) -> Iterator[None]:
 
 
 def tracked(session: zenoh.Session, callback: Callable[[T], object]) -> zenoh.handlers.Callback[T]:
-    """`callback`, to declare on `session` (any `declare_*` that takes a handler): called
-    on Zenoh's callback thread for it, one sample at a time, as `callback` is."""
+    """`callback`, to declare on `session` (any `declare_*` that takes a handler), with its
+    Zenoh callback thread tracked until it ends."""
     import zenoh  # noqa: PLC0415 - (the observer's modules import this one without Zenoh)
 
     zid = str(session.zid())
@@ -164,18 +141,13 @@ def live(session: zenoh.Session) -> int:
 
 
 def wait_ended(session: zenoh.Session, timeout: float | None = None) -> list[str]:
-    """Wait until every worker of `session` (`worker`: its owner closed it) and every
-    callback thread of it (the session closed, or their declarations went) ended, and
-    join each: none then runs Python again.
-
-    Called after the session closed (the caller's thread; on a callback's own thread, or
-    a worker's, that one is not waited for). It then also waits until every call of
-    other threads under way (`calling`) returned, and refuses those that would begin.
+    """After the session closed: wait until its workers, callback threads and calls under
+    way (`calling`) ended, and refuse calls from now on (the calling thread, if one of
+    them, is not waited for).
 
     Returns:
         What had not ended within `timeout` seconds (`None`: `END_TIMEOUT`): each worker's
-        name, then the count of callback threads (`"2 Zenoh callback threads"`), then of
-        calls (`"1 Zenoh calls of other threads"`); empty when all ended.
+        name, then `"2 Zenoh callback threads"`, `"1 Zenoh calls of other threads"`.
     """
     deadline = time.monotonic() + (END_TIMEOUT if timeout is None else timeout)
     zid = str(session.zid())

@@ -63,16 +63,15 @@ logger = logging.getLogger("rr_actors")
 
 
 class ZenohPeer(Remote):
-    """A registrar of another process of the system, reached over Zenoh (`run`: `Remote`;
-    its route is its key and the server seen for it; its lane, the key's outbox)."""
+    """A registrar of another process over Zenoh: its route is its key and the server seen
+    for it; its lane, the key's outbox."""
 
     def __init__(self, carrier: ZenohCarrier, name: str) -> None:
         self.name = name
         self._carrier = carrier
 
     def tell(self, message: Any) -> None:
-        """Send `message` (`Remote.tell`); on an actor's thread, to a registrar this
-        process does not see served, without waiting: `send_when_served`."""
+        """`Remote.tell`; on an actor's thread, to one not seen served: `send_when_served`."""
         carrier = self._carrier
         if on_actor_thread() and carrier.unseen(self.name):
             send_when_served(self, carrier, message)
@@ -87,8 +86,8 @@ class ZenohPeer(Remote):
 
 
 class _Route:
-    """The way to registrar `name` now: the server seen for it, its outbox (`Route`).
-    `now`: the outbox whose thread sends (a message sent when served): put at once."""
+    """The way to registrar `name` now: the server seen for it, its outbox. `now`: the
+    outbox whose thread sends (sent when served): put at once."""
 
     __slots__ = ("_carrier", "_now", "limit", "name", "pending", "zid")
 
@@ -121,8 +120,7 @@ class _Route:
 
 
 class Local(Listening):
-    """A registrar served by this process: its subscriber and token, the clock stamp of
-    when it began to serve (rule 22)."""
+    """A registrar served here: its subscriber and token, when it began to serve (rule 22)."""
 
     def __init__(self, carrier: ZenohCarrier, endpoint: Endpoint) -> None:
         super().__init__(endpoint)
@@ -137,17 +135,14 @@ class Local(Listening):
 
     @property
     def who(self) -> str:
-        """This process: its Zenoh id (`Sided`)."""
         return self.carrier.zid
 
     @property
     def rank(self) -> tuple[int, int]:
-        """Its place in rule 22's order (`Sided.rank`)."""
         return (self.stamp, int(self.carrier.zid, 16))
 
     def settle(self) -> None:
-        """A rival heard between its turn and now is settled (rule 22); return once the
-        router this process talks to has seen its token."""
+        """Settle a rival heard meanwhile (rule 22); return once the router saw its token."""
         carrier = self.carrier
         rival = carrier.presence.server(self.name)
         if rival is not None:
@@ -155,11 +150,9 @@ class Local(Listening):
         carrier.barrier(self.token_key)
 
     def stop(self, *, stopped: bool) -> None:
-        """Its subscriber and token go; a clean stop is marked before the token goes (peers
-        say "stopped"); one that yields loses its subscriber first (nothing more reaches
-        it). Both are let go of here, on the stopping thread (`callbacks`: the close's, or
-        the registrar's watch before the close, which waits for it), never by whichever
-        thread drops the last reference to this (a registrar's, as the interpreter ends)."""
+        """Its subscriber and token go (one that yields loses its subscriber first; a
+        clean stop is marked before the token goes), let go of on the stopping thread,
+        never by whichever drops the last reference (`callbacks`)."""
         subscriber, token, self.subscriber, self.token = self.subscriber, self.token, None, None
         first, then = (subscriber, token) if self.yielded else (token, subscriber)
         if stopped and not self.yielded:
@@ -170,32 +163,15 @@ class Local(Listening):
 
 
 def _pong(query: zenoh.Query) -> None:
-    """Answer a ping (Zenoh's callback thread)."""
     query.reply(query.key_expr, b"")
 
 
 class ZenohCarrier:
-    """This process's link to a system over an open Zenoh session (the messenger's
-    `Carrier`). Which thread may ask the network, one name's one server, cuts and heals:
-    docs/explanation/inside.md ("The Zenoh carrier's threads, names and heals").
-
-    Args:
-        messenger: this process's membership of the system.
-        session: the open session (router or client mode).
-        speakers: the Zenoh ids of the processes `supervised_by` can name, by pid (the
-            router of this host, for a process that attached through it).
-        on_close: called once the carrier closed.
-        link_trouble: says why a registrar may not be seen (`ZenohNetwork`'s connect
-            endpoints it has no link to), as the end of an `UnknownRegistrarError`'s
-            message; `""` when nothing is wrong.
-        router: the Zenoh id of the router this process attached through (`None`: this
-            process is a router); what it hears counts only while that one answers.
-        on_leave: called first as the carrier leaves (closes what runs beside the
-            session, `net.Beside`: the lab's event feed across hosts, a link watch).
-        members: how many members the system has (its `ZenohTLS`'s); 0 without TLS:
-            then the most hosts heard at once (`Presence.most`). A registrar served
-            here publishes it with its side (rule 22's `majority`).
-    """
+    """This process's `Carrier` over an open Zenoh session: docs/explanation/inside.md
+    ("The Zenoh carrier's threads, names and heals"). `speakers`: the Zenoh ids
+    `supervised_by` can name, by pid; `link_trouble`: why a registrar may not be seen;
+    `router`: the one this process attached through (`None`: it is one); `members`: the
+    system's (0: the most hosts heard at once, rule 22's `majority`)."""
 
     def __init__(
         self,
@@ -256,8 +232,8 @@ class ZenohCarrier:
     # -- the Carrier -------------------------------------------------------------------
 
     def peer(self, name: str) -> ZenohPeer | None:
-        """`Carrier.peer`: a name not heard of yet is asked of the network (at most
-        `ASK_TIMEOUT` seconds), but not on an actor's thread (there: `send_when_served`)."""
+        """`Carrier.peer`: a name not heard of is asked of the network (`ASK_TIMEOUT`),
+        but not on an actor's thread (there: `send_when_served`)."""
         presence = self.presence
         known = presence.serves(name)  # (served elsewhere now: before a local record)
         if not known and not isinstance(DIRECTORY.gone_error(name), UnknownRegistrarError):
@@ -276,14 +252,8 @@ class ZenohCarrier:
         return ZenohPeer(self, name)
 
     def listen(self, endpoint: Endpoint) -> Local:
-        """Claim the name, then declare the registrar's subscriber and token.
-
-        Raises:
-            DuplicateNameError: another process of the system serves that name.
-            RegistrarUnavailableError: the network did not say in time whether another
-                process serves it (`Presence.wait_turn`): not served, try again.
-            RegistrarStoppedError: this process left the system meanwhile.
-        """
+        """Claim the name, then declare the registrar's subscriber and token; raises as
+        `Presence.wait_turn`."""
         name, keys, session = endpoint.name, self.keys, self.session
         mark = self._stop_marks.pop(name, None)
         if mark is not None:
@@ -322,14 +292,12 @@ class ZenohCarrier:
         return local
 
     def _members(self) -> int:
-        """How many members the system has, as this process counts them (rule 22's
-        `majority`): its TLS members, else the most hosts heard at once (0: unknown)."""
+        """The system's members as counted here (rule 22's `majority`; 0: unknown)."""
         return self._system_members or self.presence.most(self._router)
 
     def _hosts_heard(self, count: int) -> None:
-        """`count` hosts were heard at once, by this router or by one it hears: its host
-        token says so if that is the most yet (declared anew, then the old one goes: a
-        process that hears it never misses it)."""
+        """`count` hosts were heard at once: the host token says so if that is the most yet
+        (the new one declared before the old one goes)."""
         with self._host_lock:
             if count <= self._host_most or self.closed:
                 return
@@ -342,8 +310,7 @@ class ZenohCarrier:
                 old.undeclare()
 
     def answer_to(self, process: str, data: bytes, on_lost: Lost | None) -> bool:
-        """`Carrier.answer_to` process `process` (a Zenoh id; one whose token is not seen
-        yet is not gone: its message may overtake its token)."""
+        """`Carrier.answer_to` a Zenoh id (one whose token is not seen yet is not gone)."""
         if self.presence.unreachable(process):
             return False
         outbox = self.outbox(self.keys.answers(process), process)
@@ -352,19 +319,12 @@ class ZenohCarrier:
         )
 
     def names(self) -> list[str]:
-        """The registrars of other processes of the system that serve now."""
         return self.presence.names()
 
     def on_leave(self, close: Callable[[], object]) -> Callable[[], None]:
-        """Have `close()` called as this process leaves the system, first, while the
-        session is still open: what calls Zenoh on threads of its own besides the
-        carrier's (the observer across hosts, an event feed) ends them there, so that
-        none calls Zenoh once the session went (at the interpreter's end, a thread inside
-        a Zenoh call aborts the process). Once left, `close()` runs at once.
-
-        Returns:
-            What forgets it (its owner closed it first).
-        """
+        """Have `close()` called first as this process leaves, with the session still
+        open, to end its owner's threads that call Zenoh (`callbacks`); at once if left.
+        Returns what forgets it."""
         with self._host_lock:
             if not self._left:
                 number = self._leaving_numbers = self._leaving_numbers + 1
@@ -379,11 +339,9 @@ class ZenohCarrier:
         return lambda: None
 
     def leave(self) -> None:
-        """Close what `on_leave` was given, fail what waits, put what was sent (for
-        `DRAIN_TIMEOUT` seconds at most), stop this carrier's threads, close the session,
-        then wait until they and Zenoh's callback threads ended (`callbacks`: one that
-        ran on into the interpreter's end, inside a Zenoh call or a callback, would abort
-        the process)."""
+        """Close what `on_leave` was given, fail what waits, put what was sent (at most
+        `DRAIN_TIMEOUT` s), close the session, then wait until this carrier's and Zenoh's
+        threads ended (`callbacks`)."""
         with self._host_lock:
             self._left = True
             leaving, self._leaving = list(self._leaving.values()), {}
@@ -413,8 +371,7 @@ class ZenohCarrier:
             )
 
     def wait_served(self, name: str, *, timeout: float) -> bool:
-        """Whether registrar `name` is served (here or by another process) within `timeout`
-        seconds: returns as soon as its token is seen (`Presence.wait_serving`)."""
+        """Whether registrar `name` is served (anywhere) within `timeout` seconds."""
         if self.messenger.serving(name) is not None:
             return True
         return self.presence.wait_serving(name, timeout=timeout)
@@ -422,41 +379,33 @@ class ZenohCarrier:
     # -- serving -------------------------------------------------------------------------
 
     def _speaker(self, name: str) -> str:
-        """Who restarts registrar `name`, as its token says (rule 19): the process
-        `supervised_by` named, if this process knows its Zenoh id (only the router it
-        attached through), else this process while `DIRECTORY.restart_expected(name)`,
-        else `none`: such a registrar is lost when its process dies."""
+        """Who restarts registrar `name` (rule 19): the process `supervised_by` named, if
+        its Zenoh id is known, else this one while `DIRECTORY.restart_expected(name)`,
+        else `none` (lost when its process dies)."""
         supervisor = self.messenger.supervisor
         known = None if supervisor is None else self._speakers.get(supervisor)
         return known or (self.zid if DIRECTORY.restart_expected(name) else "none")
 
     def barrier(self, key: str) -> None:
-        """Return once the router this process talks to has seen the token `key` (a query
-        after a declaration reaches it after it)."""
+        """Return once the router has seen the token `key` (a query follows a declaration)."""
         with contextlib.suppress(Exception), callbacks.calling(self.session):
             for _reply in self.session.liveliness().get(key, timeout=ASK_TIMEOUT):
                 pass
 
     def mark_stopped(self, name: str) -> None:
-        """Declare the "stopped" mark of `name` (before its token goes: peers then say
-        "stopped"); it stays until the name is served here again."""
+        """Declare `name`'s "stopped" mark (until the name is served here again)."""
         with contextlib.suppress(Exception), callbacks.calling(self.session):
             self._stop_marks[name] = self.session.liveliness().declare_token(
                 self.keys.stopped(NameAt(name, self.zid))
             )
 
     def tell_server(self, name: str, server: Sided, claim: Claim) -> None:
-        """Rule 22: put `claim` (the kept server's, served here) on registrar `name`'s key
-        for its other server, in process `server.who` (`Messenger._claim`; an outbox)."""
-
+        """Rule 22: put `claim` on `name`'s key for its other server (`Messenger._claim`)."""
         outbox = self.outbox(self.keys.registrar(name), server.who)
         if outbox is not None:
             outbox.send(envelope(MESSAGE, self.zid, frame(NO_REPLY, claim), CLOCK.send()))
 
     def served_elsewhere(self, name: str, server: Server) -> None:
-        """Another process serves registrar `name` (the presence thread): the messenger
-        decides, as for every carrier, whether one served here gives way to it
-        (`Messenger.served_elsewhere`, rule 22)."""
         self.messenger.served_elsewhere(name, server)
 
     # -- sending -------------------------------------------------------------------------
@@ -485,14 +434,12 @@ class ZenohCarrier:
         )
 
     def unreached(self, name: str) -> RrError:
-        """The error of a message to `name` that found no server: gone, or unknown."""
         if self.closed or self.presence.gone(name) is not None:
             return self.gone_error(name)
         return self._unknown_error(name)
 
     def route(self, name: str) -> _Route:
-        """`Remote.route` of `ZenohPeer` (the network is asked, but not on an actor's
-        thread: there, what presence heard decides)."""
+        """`ZenohPeer.route` (the network is asked, but not on an actor's thread)."""
         server = self.presence.server(name)
         if server is None and not self.closed and not on_actor_thread():
             self.presence.question_until_seen(name)  # maybe served again, not heard yet
@@ -504,22 +451,18 @@ class ZenohCarrier:
     # -- sending when served (the messenger's `Lanes`) ---------------------------------------
 
     def unseen(self, name: str) -> bool:
-        """Whether this process sees no server of registrar `name` and did not hear it
-        stop (never heard of, or died: maybe served again, not yet heard here)."""
         presence = self.presence
         return (
             not self.closed and presence.server(name) is None and presence.gone(name) != "stopped"
         )
 
     def lane(self, name: str) -> Outbox | None:
-        """The outbox of registrar `name`'s key; its publisher is declared on its writer
-        thread, after the network was asked (a liveliness query right after a
-        publisher's declaration can come back empty at once)."""
+        """`name`'s outbox, declared on its thread after the network was asked (a query
+        right after a publisher's declaration can come back empty)."""
         return self.outbox(self.keys.registrar(name), declared=False)
 
     def found(self, name: str, lane: Lane) -> _Route | RrError:
-        """`Lanes.found`, on the name's outbox's writer thread (`question_until_seen`); a
-        server just seen gets a ping first (a put before its answer may be lost)."""
+        """`Lanes.found`; a server just seen gets a ping first (a put before may be lost)."""
         presence = self.presence
         server = presence.server(name)
         why = None
@@ -539,16 +482,12 @@ class ZenohCarrier:
         return _Route(self, name, server, now=outbox)
 
     def retire(self, lane: Lane, error: RrError) -> None:
-        """Nobody serves the name of `lane` (or nobody could tell): the outbox is retired;
-        what waits on it fails with `error` (its tasks' `dropped`), and its writer ends."""
         assert isinstance(lane, Outbox)
         lane.refusal = error
         self._outboxes.retire(lane)
 
     def outbox(self, key: str, zid: str | None = None, *, declared: bool = True) -> Outbox | None:
-        """The outbox of `key`, whose subscriber is in process `zid` (if known: then the
-        first put of a new outbox waits for that process's answer to a ping); see
-        `Outboxes.get` for `declared`. `None` once this process left the system."""
+        """`Outboxes.get`; `None` once this process left the system."""
         if self.closed:
             return None
         return self._outboxes.get(key, zid, declared=declared)
@@ -556,11 +495,9 @@ class ZenohCarrier:
     # -- what the inbox asks ---------------------------------------------------------------
 
     def member(self, zid: str) -> bool:
-        """Whether process `zid`'s liveliness token is here now (see `Presence.member`)."""
         return self.presence.member(zid)
 
     def refuse_version(self, sender: str, token: int) -> None:
-        """Tell process `sender` that its message `token` was of another version."""
         outbox = self.outbox(self.keys.answers(sender))
         if outbox is not None:
             outbox.send(header(VERSION, self.zid) + struct.pack("!i", 8) + struct.pack("<Q", token))
@@ -568,14 +505,12 @@ class ZenohCarrier:
     # -- what presence reports (the presence thread, in order) -----------------------------
 
     def process_gone(self, zid: str) -> None:
-        """Process `zid`'s token went: its answer outbox closes, its inboxes finish."""
         answers = self._outboxes.pop(self.keys.answers(zid))
         if answers is not None:
             answers.close()
         self._inbox.finish(zid)  # what it sent before it went is still delivered
 
     def server_gone(self, name: str) -> None:
-        """The last server of `name` went: what waits on it fails, its outbox closes."""
         self.replies.fail(name, lambda: self.gone_error(name))
         outbox = self._outboxes.pop(self.keys.registrar(name))
         if outbox is not None:

@@ -50,12 +50,10 @@ logger = logging.getLogger("rr_actors")
 # -- sending: the outboxes ------------------------------------------------------------------
 
 HEAL_TIMEOUT = 2.0
-"""Seconds the first message to a process (just seen, or back from a healed link) waits
-for its answer to a ping (then it is sent anyway)."""
+"""Seconds the first message to a process just seen waits for its answer to a ping."""
 
 DRAIN_TIMEOUT = 1.0
-"""Seconds a process that leaves the system gives its writers, all together, to put what
-they were given before it closes its session."""
+"""Seconds a process that leaves gives its writers, together, to put what they hold."""
 
 
 class Outbox:
@@ -90,9 +88,7 @@ class Outbox:
         return self._queue.submit(functools.partial(self.put, data, on_lost))
 
     def run(self, task: Callable[[], None]) -> bool:
-        """Queue `task` to run on the writer thread, in order with what is sent (it may
-        wait there, and `put`); False if the outbox is closed. If the outbox closes
-        before it runs, its `dropped()` (if it has one) is called instead."""
+        """`Lane.run`: `task` may wait on the writer thread, and `put`."""
         return self._queue.submit(task)
 
     def declare(self) -> None:
@@ -107,8 +103,8 @@ class Outbox:
                 )
 
     def put(self, data: bytes, on_lost: Lost | None = None) -> bool:
-        """Put `data` now (the writer thread only: `send`'s step, or a task of `run`);
-        False if the session closed (then `on_lost` runs)."""
+        """Put `data` now (the writer thread only); False if the session closed (then
+        `on_lost` runs)."""
         ready, self._ready = self._ready, None
         if ready is not None:
             ready()
@@ -124,8 +120,7 @@ class Outbox:
         return True
 
     def close(self, timeout: float = 0.0) -> None:
-        """Stop sending: what is queued gets `timeout` seconds to be put (0: none), then
-        what is still queued is lost (its `on_lost` runs)."""
+        """Stop sending: what is queued gets `timeout` seconds, then is lost (`on_lost`)."""
         self._queue.close(timeout=timeout)  # (each dropped frame's `on_lost` runs: `_lost`)
         with contextlib.suppress(Exception):
             if self._publisher is not None:
@@ -153,10 +148,8 @@ class Outboxes:
         self._pings_end = False  # `until_answered` gives up (`close`)
 
     def get(self, key: str, first_to: str | None = None, *, declared: bool = True) -> Outbox:
-        """The outbox of `key`; the first put of a new one to process `first_to` waits
-        until that process answers a ping (`until_answered`). A new one made with
-        `declared=False` declares its publisher on its writer thread (`declare`, or its
-        first put)."""
+        """The outbox of `key`; a new one's first put waits until process `first_to`
+        answers a ping; `declared=False`: it declares its publisher on its thread."""
         outbox = self._outboxes.get(key)
         if outbox is not None and not outbox.closed:
             return outbox
@@ -175,28 +168,21 @@ class Outboxes:
             return fresh  # closed: it drops what it is given
         return outbox
 
-    def pop(self, key: str) -> Outbox | None:
-        """Forget the outbox of `key` (its destination went); the caller closes it."""
+    def pop(self, key: str) -> Outbox | None:  # (its destination went; the caller closes it)
         with self._lock:
             return self._outboxes.pop(key, None)
 
     def retire(self, outbox: Outbox) -> None:
-        """Forget `outbox` (if it is still its key's) and close it: what is queued on it
-        is dropped (its `on_lost`, or `dropped()`, runs). Its destination is nobody's."""
+        """Forget `outbox` (if still its key's) and close it: what is queued is dropped."""
         with self._lock:
             if self._outboxes.get(outbox.key) is outbox:
                 del self._outboxes[outbox.key]
         outbox.close()
 
     def close(self, drain: float = 0.0) -> None:
-        """Close every outbox: what is queued gets `drain` seconds, all outboxes together,
-        to be put (their writers put in parallel); what is still queued then is lost.
-
-        A first put waiting for its ping (`until_answered`) stops waiting at once when
-        there is a drain (what is queued behind it gets that time), and only once every
-        queue was dropped when there is none: what was queued behind it is lost, never
-        put in the moment between the two.
-        """
+        """Close every outbox: what is queued gets `drain` seconds, all together; then it
+        is lost. A put waiting for its ping stops waiting at once with a drain, and only
+        once every queue was dropped without (nothing behind it is put meanwhile)."""
         with self._lock:
             self._closed = True
             outboxes = list(self._outboxes.values())
@@ -210,7 +196,6 @@ class Outboxes:
     def until_answered(self, zid: str) -> None:
         """Ping process `zid` until it answers (at most `HEAL_TIMEOUT` s; writer thread): a
         new link's tokens may come before what is put to it gets through."""
-
         deadline = time.monotonic() + HEAL_TIMEOUT
         pause = threading.Event()
         while not self._pings_end and time.monotonic() < deadline:
@@ -226,42 +211,27 @@ class Outboxes:
 # -- receiving: the inbox ---------------------------------------------------------------------
 
 STRANGER_GRACE = 2.0
-"""Seconds a frame of a process whose liveliness token is not here waits for the token
-(Zenoh may hand this process a frame before the token its sender declared first); then
-it is dropped. A frame of a process whose token went less than this long ago is
-delivered (Zenoh may hand it over after the token's end, sent later)."""
+"""Seconds a frame of a process whose liveliness token is not here (yet, or for this
+long) waits for it before it is dropped (docs/explanation/inside.md, "The Zenoh link")."""
 
-STRANGERS_HELD = (10_000, 64 * 1024 * 1024)
-"""Frames and bytes of such processes held at most; beyond, new ones are dropped."""
+STRANGERS_HELD = (10_000, 64 * 1024 * 1024)  # frames and bytes of such processes, at most
 
 
 class InboxOwner(Protocol):
     """What the inbox asks of its carrier (`carrier.ZenohCarrier`)."""
 
     @property
-    def messenger(self) -> Messenger:
-        """What decoded messages are handed to."""
-        ...
-
+    def messenger(self) -> Messenger: ...
     @property
-    def session(self) -> zenoh.Session:
-        """The session whose close joins the decode threads (they may call Zenoh: an
-        answer to a process not answered before declares its publisher)."""
-        ...
-
-    def member(self, zid: str) -> bool:
-        """Whether process `zid`'s liveliness token is here now (Zenoh's threads)."""
-        ...
-
-    def refuse_version(self, sender: str, token: int) -> None:
-        """Tell process `sender` that its message `token` was of another version."""
-        ...
+    def session(self) -> zenoh.Session: ...  # its close joins the decode threads
+    def member(self, zid: str) -> bool: ...  # process `zid`'s token is here now
+    def refuse_version(self, sender: str, token: int) -> None: ...  # tell it: not read
 
 
 class Inbox:
-    """The decode queues of one process (one per sending process and kind); what they
-    decode goes to the messenger: messages for the registrars served here, answers for
-    the replies waiting here (`replies`, by token: every route's `pending`)."""
+    """The decode queues of one process (one per sending process and kind), to the
+    messenger: messages for registrars served here, answers for `replies` (every route's
+    `pending`)."""
 
     def __init__(self, owner: InboxOwner) -> None:
         self._owner = owner
@@ -284,16 +254,14 @@ class Inbox:
     # -- the queues --------------------------------------------------------------------------
 
     def finish(self, sender: str) -> None:
-        """Process `sender` went: what it sent before is still decoded, then its threads end."""
+        """Process `sender` went: what it sent is still decoded, then its threads end."""
         for kind in (MESSAGE, ANSWER):
             inbox = self._inboxes.pop((sender, kind), None)
             if inbox is not None:
                 inbox.finish()
 
     def process_token(self, zid: str, present: bool) -> None:
-        """Process `zid`'s token came (`present`) or went (Zenoh's thread): what of it
-        waits on the strangers' thread may go on. (A frame may still come after its token
-        went: Zenoh sends a declaration before data sent earlier.)"""
+        """Process `zid`'s token came or went (Zenoh's thread): its strangers may go on."""
         now = time.monotonic()
         with self._lock:
             if not present:
@@ -304,8 +272,7 @@ class Inbox:
         with self._joined:
             self._joined.notify_all()
 
-    def close(self) -> None:
-        """Stop decoding: what is queued is dropped."""
+    def close(self) -> None:  # (what is queued is dropped)
         with self._lock:
             self._closed = True
             inboxes = [*self._inboxes.values(), self._strangers]
@@ -315,10 +282,8 @@ class Inbox:
             inbox.close(timeout=0)
 
     def _receive(self, head: Header, kind: int, item: Any, size: int) -> None:
-        """Hand `item` (`size` bytes) to the decode thread of (sender, `kind`) (Zenoh's
-        callbacks); a sender whose token is not here waits on the strangers' (`_stranger`),
-        and so do its later frames until those are done (in order)."""
-
+        """Hand `item` to the decode thread of (sender, `kind`) (Zenoh's callbacks); a
+        sender whose token is not here waits on the strangers' thread (in order)."""
         key = (head.sender, kind)
         task = functools.partial(self._deliver if kind == MESSAGE else self._answered, item)
         for _attempt in (1, 2):  # (its inbox may have just finished: the sender went)
@@ -339,16 +304,14 @@ class Inbox:
                 return
 
     def _heard(self, sender: str) -> bool:
-        """Whether process `sender`'s token is here, came since a frame of it waits, or
-        went less than `STRANGER_GRACE` seconds ago."""
+        """Whether `sender`'s token is here, came since, or went within `STRANGER_GRACE`."""
         if self._owner.member(sender) or sender in self._arrived:
             return True
         left = self._left.get(sender)
         return left is not None and time.monotonic() - left < STRANGER_GRACE
 
     def _wait_for_token(self, key: tuple[str, int], item: Any, size: int) -> None:
-        """Queue `item` of a sender whose token is not here on the strangers' thread (hold
-        `_lock`); over `STRANGERS_HELD`, drop it."""
+        """Queue `item` on the strangers' thread (hold `_lock`), or drop it if too many."""
         count, held = self._held
         if count >= STRANGERS_HELD[0] or held + size > STRANGERS_HELD[1]:
             self._dropped.warning(
@@ -365,9 +328,7 @@ class Inbox:
         self._strangers.submit(functools.partial(self._stranger, entry))
 
     def _stranger(self, entry: tuple[float, tuple[str, int], Any, int]) -> None:
-        """Handle one frame of a sender whose token was not here (the strangers' thread):
-        once its token comes, as its own thread would; dropped if it does not come within
-        `STRANGER_GRACE` seconds of the frame."""
+        """The strangers' thread: one frame, once its sender's token comes, else dropped."""
         deadline, (sender, kind), item, size = entry
         try:
             with self._joined:
@@ -410,9 +371,7 @@ class Inbox:
         if head is not None:
             self._receive(head, ANSWER, (data, head), len(data))
 
-    def _deliver(self, item: tuple[Listening, bytes, Header]) -> None:
-        """Decode one message for a registrar of this process and tell it (its sender's
-        decode thread)."""
+    def _deliver(self, item: tuple[Listening, bytes, Header]) -> None:  # (its decode thread)
         local, data, head = item
         token, payload = payload_of(data, head)
         if not head.ours:
@@ -423,7 +382,6 @@ class Inbox:
         self._messenger.message(local.endpoint, head.sender, token, payload)
 
     def _refuse_version(self, name: str, head: Header, token: int) -> None:
-        """A message of another version: not unpickled; its sender is told why."""
         if head.sender not in self._warned:
             self._warned.add(head.sender)
             logger.warning(
@@ -436,9 +394,7 @@ class Inbox:
         if token != NO_REPLY:
             self._owner.refuse_version(head.sender, token)
 
-    def _answered(self, item: tuple[bytes, Header]) -> None:
-        """Decode one answer and resolve the reply waiting for it (its sender's decode
-        thread)."""
+    def _answered(self, item: tuple[bytes, Header]) -> None:  # (its decode thread)
         data, head = item
         token, payload = payload_of(data, head)
         if head.kind == VERSION or not head.ours:

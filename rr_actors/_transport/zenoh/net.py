@@ -60,16 +60,14 @@ logger = logging.getLogger("rr_actors")
 
 
 def _zenoh_log_from_env() -> None:
-    """Zenoh's own log on standard output when `RUST_LOG` asks for it (zenoh-python reads
-    the variable only when asked; e.g. `RUST_LOG=zenoh_link_tls=warn` shows each refused
-    handshake, which Zenoh tells nobody else)."""
+    """Zenoh's own log on standard output when `RUST_LOG` asks for it (e.g.
+    `RUST_LOG=zenoh_link_tls=warn`: each refused handshake, which Zenoh tells nobody else)."""
     if os.environ.get("RUST_LOG"):
         zenoh.try_init_log_from_env()  # type: ignore[no-untyped-call]
 
 
 def _member_count(tls: ZenohTLS | None) -> int:
-    """How many members a system has, as this host's `tls` names them (itself included);
-    0 without TLS (rule 22's `majority` then counts the most hosts heard at once)."""
+    """How many members `tls` names (itself included); 0 without TLS."""
     return 0 if tls is None else len({*tls.members, tls.name})
 
 
@@ -85,35 +83,19 @@ def _is_tls(tls: object) -> bool:
 
 
 class MemberLink(NamedTuple):
-    """A member's link to this router as last seen (`Beside.member_links`).
+    """A member's link to this router as last seen (`Beside.member_links`)."""
 
-    Attributes:
-        member: its certificate's common name.
-        up: whether a link to it is open.
-        since: when that became so (wall clock, `time.time()` seconds).
-        where: its address, as last linked.
-        why: why there is no link (`""` while up): the probe's verdict for a `connect`
-            endpoint at its address, else that the link closed.
-    """
-
-    member: str
+    member: str  # its certificate's common name
     up: bool
-    since: float
-    where: str
-    why: str
+    since: float  # when it became so (`time.time()` seconds)
+    where: str  # its address, as last linked
+    why: str  # why there is no link (`""` while up)
 
 
 @dataclasses.dataclass(frozen=True)
 class Opened:
-    """A process's session that opened, as what runs beside it gets it (`Beside`).
-
-    Attributes:
-        system: the system's name.
-        session: the open session (router or client mode).
-        keys: the system's key expressions.
-        tls: this host's `ZenohTLS` (`None`: plain TCP).
-        connect: a router's `connect` endpoints (`None`: a process that attached).
-    """
+    """A process's session that opened, as what runs beside it gets it (`Beside`);
+    `connect` is `None` in a process that attached."""
 
     system: str
     session: zenoh.Session
@@ -124,42 +106,27 @@ class Opened:
 
 class Beside(Protocol):
     """What runs beside a process's Zenoh session: the lab's event feed across hosts and
-    link watch (`rr_actors.observe._feed`), which this package never imports. The lab
-    attaches its maker (`attach_beside`) when imported, and `rr_actors` imports it with
-    `rr.ZenohNetwork`; a router hands its maker to the processes that attach through it
-    (`ZenohAddress.beside`). Made as the session opens, closed before it closes."""
+    link watch (`rr_actors.observe._feed`, attached from above: `attach_beside`; a router
+    hands it to those that attach through it). Made as the session opens, closed before."""
 
     def subscribe_events(
         self, callback: Callable[[events.Event], object], window: float, maxsize: int
-    ) -> Subscription[events.Event]:
-        """`ZenohNetwork.subscribe_events` (the arguments checked)."""
-        ...
-
-    def unlinked(self) -> list[tuple[str, str]]:
-        """A router's `connect` endpoints with no link now, each with why, in words."""
-        ...
-
-    def member_links(self) -> list[MemberLink]:
-        """Each member a router has been linked to, as last seen."""
-        ...
-
-    def close(self) -> None:
-        """Stop (idempotent): before the session closes."""
-        ...
+    ) -> Subscription[events.Event]: ...  # `ZenohNetwork.subscribe_events`, checked
+    def unlinked(self) -> list[tuple[str, str]]: ...  # connect endpoints with no link, why
+    def member_links(self) -> list[MemberLink]: ...
+    def close(self) -> None: ...  # (idempotent: before the session closes)
 
 
 _BESIDE: list[Callable[[Opened], Beside]] = []  # the maker of what runs beside (one slot)
 
 
 def attach_beside(make: Callable[[Opened], Beside]) -> None:
-    """Run `make(opened)` beside every session this process opens from now on (a
-    router's; those that attach through it take their router's). The last call wins;
-    `make` must pickle by reference (a class or a module's function)."""
+    """Run `make(opened)` beside every session this process opens from now on (the last
+    call wins; `make` must pickle by reference)."""
     _BESIDE[:] = [make]
 
 
 def _check_window(window: object) -> float:
-    """`window` as seconds, or a `ConfigError` naming it."""
     if isinstance(window, bool) or not isinstance(window, int | float) or not 0 <= window <= 60:
         raise ConfigError(f"window must be seconds from 0 to 60, not {window!r}")
     return float(window)
@@ -174,7 +141,6 @@ _OPENED: list[str] = []  # the systems this process opened a Zenoh session for
 
 
 def _refuse_in_child() -> None:
-    """In a forked child: a process that opened a Zenoh session cannot be forked."""
     if _OPENED:
         forkserver.refuse(
             f"had opened a Zenoh session (system {_OPENED[0]!r}), whose runtime threads "
@@ -188,14 +154,8 @@ forkserver.after_fork_in_child("the Zenoh carrier", _refuse_in_child)
 def _join(
     system: str, owner: object, open_member: Callable[[], ZenohMember | ZenohNetwork]
 ) -> ZenohMember | ZenohNetwork:
-    """This process's membership of `system`: the one it has, or a new one from
-    `open_member` (which opened its carrier).
-
-    Raises:
-        ConfigError: this process is a member of another system, or (for a second
-            `ZenohNetwork` of the same system) a router of it already; or it was forked
-            from a process that had opened a Zenoh session (`rr_actors._platform.forkserver`).
-    """
+    """This process's membership of `system`: the one it has, or `open_member()`.
+    ConfigError: a member of another system, a router of it already, or forked."""
     global _MEMBER, _MEMBER_OWNER
     forkserver.check_usable(f"a member of system {system!r}")
     with _MEMBER_LOCK:
@@ -227,15 +187,13 @@ def _left(member: Messenger) -> None:
 
 
 def _close_at_exit(what: str, member: Messenger, close: Callable[[], None]) -> None:
-    """Close `member`'s session when the main thread ends, if the program did not: Zenoh's
-    callback threads are not daemons, so an open session keeps the interpreter waiting
-    for them forever (after an error, or a Ctrl-C, as much as after a forgotten
-    `close()`). `_core.exit` runs it after the supervisors and registrars stopped."""
+    """Close `member`'s session when the main thread ends, if the program did not (Zenoh's
+    threads are not daemons: the interpreter would wait for them forever)."""
     stop_at_exit(NETWORKS, what, lambda: not member.closed, lambda _timeout: close())
 
 
 def _no_link(unlinked: list[tuple[str, str]]) -> str:
-    """What to add to an error about a name not seen: the connect endpoints with no link."""
+    """The end of an error about a name not seen: the connect endpoints with no link."""
     if not unlinked:
         return ""
     links = "; ".join(f"{endpoint} ({reason})" for endpoint, reason in unlinked)
@@ -254,22 +212,16 @@ class ZenohAddress:
         socket_path: the router's Unix socket (in its 0700 runtime directory).
         lease: seconds after which a silent peer counts as gone.
         router: the router process's Zenoh id.
-        router_pid: the router process's pid: a manager process it started (its
-            supervisor's, `supervised_by`) publishes `router` as its supervisor (rule 19).
-        member: this host's member name (its certificate's common name), which the
-            events of a process that attaches carry (`events.set_host`); `""` without TLS.
-        max_offset: the network's `max_offset`, which the clock of a process that
-            attaches takes (`HybridClock.max_offset`).
-        tls: the network's `ZenohTLS` (`None`: plain TCP): a process that attaches seals
-            the event batches it sends with this host's certificate, and opens those it
-            gets (`seal`).
-        resolve: the network's `resolve` (rule 22), which a process that attaches uses
-            too (every process of a system decides alike). A function crosses by value
-            (cloudpickled, as a manager's `setup`): the address pickles with plain
-            pickle even when it is a lambda or a nested function.
-        beside: what the router runs beside its session (`attach_beside`), which a
-            process that attaches runs too (pickled by reference: unpickling it imports
-            it there); `None`: nothing.
+        router_pid: its pid: a manager process it started publishes `router` as its
+            supervisor (rule 19).
+        member: this host's member name, on the events of a process that attaches (`""`
+            without TLS).
+        max_offset: the network's `max_offset`, which that process's clock takes.
+        tls: the network's `ZenohTLS` (`None`: plain TCP).
+        resolve: the network's `resolve` (rule 22); a function crosses by value
+            (cloudpickled: the address pickles with plain pickle even then).
+        beside: what the router runs beside its session (`attach_beside`), run there too
+            (pickled by reference); `None`: nothing.
     """
 
     system: str
@@ -284,8 +236,7 @@ class ZenohAddress:
     beside: Callable[[Opened], Beside] | None = None
 
     def __reduce__(self) -> tuple[Any, ...]:
-        """Pickle a function `resolve` by value (cloudpickle), the rest as it is: a
-        process manager's start arguments are pickled with plain pickle."""
+        """A function `resolve` by value (a manager's start arguments use plain pickle)."""
         fields = {field.name: getattr(self, field.name) for field in dataclasses.fields(self)}
         if callable(self.resolve):
             del fields["resolve"]
@@ -303,13 +254,12 @@ class ZenohAddress:
 
 
 def _address_by_value(fields: dict[str, Any], resolve: bytes) -> ZenohAddress:
-    """A `ZenohAddress` of `fields` whose `resolve` function was cloudpickled."""
     return ZenohAddress(**fields, resolve=pickle.loads(resolve))
 
 
 class ZenohMember(Messenger):
     """A manager process's membership of a system, joined through its host's router
-    (`ZenohAddress.attach`): a messenger over a CLIENT-mode session's carrier.
+    (`ZenohAddress.attach`, a CLIENT-mode session).
 
     Raises:
         RegistrarUnavailableError: the router cannot be reached.
@@ -352,21 +302,16 @@ class ZenohMember(Messenger):
 
 @dataclasses.dataclass(frozen=True)
 class Services:
-    """What rr_actors' own services on a system (the observer across hosts) get of its
-    router (`ZenohNetwork.services`).
+    """What rr_actors' own services (the observer across hosts) get of a router
+    (`ZenohNetwork.services`).
 
     Attributes:
-        session: the router's open Zenoh session; declare on it only `keys`' observer
-            keys (the access control admits them for members only).
+        session: the router's open session; declare on it only `keys`' observer keys.
         keys: the system's key expressions.
-        member: this host's member name (its certificate's common name), `None` without
-            TLS.
+        member: this host's member name, `None` without TLS.
         lease: seconds after which a silent peer counts as gone.
-        links: each member's link to this router as last seen (empty without TLS: a
-            plain TCP link names nobody).
-        on_leave: `on_leave(close)`: `close()` is called as this process leaves the
-            system, before its session closes (a service's threads that call Zenoh end
-            there; the carrier's `on_leave`); returns what forgets it.
+        links: each member's link to this router as last seen (empty without TLS).
+        on_leave: `ZenohCarrier.on_leave`.
     """
 
     session: zenoh.Session
@@ -378,7 +323,7 @@ class Services:
 
 
 def _nothing() -> None:
-    """What forgets a `close` given to a session of no carrier (tests'): nothing."""
+    """What forgets a `close` given to a session of no carrier (tests')."""
 
 
 class ZenohNetwork(Messenger):
@@ -386,49 +331,34 @@ class ZenohNetwork(Messenger):
 
     Hand it to `ResourceRegistrar.start(..., network=net)` and
     `Supervisor(..., network=net)`: the process that makes it is its host's router; it
-    opens its Zenoh session at first use. All arguments are keyword-only.
+    opens its Zenoh session at first use. All arguments are keyword-only; what each
+    means in practice: docs/how-to/two-machines.md.
 
     Args:
-        system: the system's name, as a registrar name (`rr_actors.config.NAME`:
-            `[A-Za-z0-9_.-]`, at most 64 characters); every key expression starts with
-            `rr/<system>/`, so systems sharing a network never see each other.
+        system: the system's name, as a registrar name (`rr_actors.config.NAME`); every
+            key expression starts with `rr/<system>/`.
         listen: Zenoh endpoints to listen on, `tls/<address>:<port>` with `tls`,
-            `tcp/<address>:<port>` without (the firewall must let that port in). With
-            `tls=None` every endpoint gets a WARNING saying who can reach it: on
-            loopback every user and process on this machine, elsewhere anyone who
-            reaches the address; each can run code as this process's user.
-        connect: endpoints of other hosts' routers, in the same form (with `tls=None` a
-            WARNING each: whoever answers there can run code here). One that cannot be
-            reached yet is no error (the other host may start later; Zenoh keeps
-            trying): a WARNING names it, with TLS the reason from a handshake of our own
-            (the link watch, `Beside`), at most once a minute while it lasts.
+            `tcp/<address>:<port>` without (then a WARNING each names who can reach it
+            and run code as this process's user).
+        connect: endpoints of other hosts' routers, in the same form. One that cannot be
+            reached yet is no error (Zenoh keeps trying): a WARNING names it, with TLS
+            the reason from a handshake of our own, at most once a minute.
         tls: required. A `ZenohTLS`: mutual TLS on every link and Zenoh's access control
-            (only `members` and this host's manager processes reach `rr/<system>/`; see
-            `config`). `None`: plain TCP, for one trusted network only: anyone who
-            reaches a port (on loopback: every local user) can send pickles, which run
-            as code.
-        lease: seconds (default 1.0) after which a silent peer (a cut link, a frozen
-            process) counts as gone. Zenoh's own default is 10 s.
-        max_offset: seconds (default 60.0, `rr_actors._core.hlc.MAX_OFFSET`) a clock stamp
-            that comes with a message may be ahead of this host's clock and still be
-            taken in by the hybrid logical clock of this process and of the processes that
-            join through it; one further ahead is refused (counted, and a WARNING a
-            minute names the process it came from), as the HLC paper (Kulkarni et al.
-            2014) and CockroachDB's `max-offset` bound it. Set it above the most the
-            hosts' clocks may differ by: their events are merged in cause-before-effect
-            order only within it (`docs/explanation/failure-semantics.md`).
+            (only `members` and this host's manager processes reach `rr/<system>/`).
+            `None`: plain TCP, for one trusted network only: anyone who reaches a port
+            can send pickles, which run as code.
+        lease: seconds (default 1.0) after which a silent peer counts as gone.
+        max_offset: seconds (default 60.0) a message's clock stamp may be ahead of this
+            host's clock and still be taken in by the hybrid logical clock (Kulkarni et
+            al. 2014; CockroachDB's `max-offset`); one further ahead is refused with a
+            WARNING a minute. Set it above the most the hosts' clocks may differ by.
         resolve: which of two registrars serving one name is kept when a healed cut
-            shows both (rule 22; the other yields: it unloads what it served and stops,
-            and its consumers reconcile with the one kept): `"first_served"` (default:
-            the one that began to serve first), `"majority"` (the one whose side held a
-            strict majority of the system's members, more than half, when it began to
-            serve; if neither side had one, first served; if both did, the later), or a
-            function `(first, second) -> the one kept` given two `rr.Claimant`s, first
-            served first. Every host of the system must pass the same, and a function
-            must be deterministic: each process decides alone from the same data. One
-            that raises, or answers neither, falls back to
-            first served with a WARNING. What each loses:
-            `docs/explanation/failure-semantics.md`.
+            shows both (rule 22; the other yields): `"first_served"` (default),
+            `"majority"` (the one whose side held more than half the members when it
+            began to serve; neither: first served; both: the later), or a deterministic
+            function `(first, second) -> the one kept` of two `rr.Claimant`s (one that
+            raises or answers neither: first served, with a WARNING). The same on every
+            host; what each loses: docs/explanation/failure-semantics.md.
 
     Raises:
         ConfigError: a bad `system` (or one longer than 64 characters), a malformed
@@ -453,7 +383,7 @@ class ZenohNetwork(Messenger):
     ) -> None:
         super().__init__(check_name("system", system, "a system name"), resolve=resolve)
         if callable(resolve):
-            try:  # (as it crosses to the manager processes, in `ZenohAddress`)
+            try:  # (it crosses to the manager processes, in `ZenohAddress`)
                 wire.dumps(resolve)
             except Exception as exc:
                 raise ConfigError(
@@ -508,7 +438,6 @@ class ZenohNetwork(Messenger):
             return self._opened
 
     def _open_router(self) -> ZenohNetwork:
-        # the member name on this process's events (the host name without TLS)
         set_host(self.tls.name if self.tls is not None else socket.gethostname())
         CLOCK.max_offset = self.max_offset
         runtime_dir = tempfile.mkdtemp(prefix="rr-zenoh-")  # mode 0700
@@ -578,8 +507,7 @@ class ZenohNetwork(Messenger):
         return self
 
     def _unopened(self, session: zenoh.Session, runtime_dir: str) -> None:
-        """Close what `_open_router` made before it failed: what ran beside, the gate,
-        the session (whose threads are not daemons) and the runtime directory."""
+        """Close what `_open_router` made before it failed."""
         for part in (self.beside, self._gate, self._members):
             if part is not None:
                 with contextlib.suppress(Exception):
@@ -632,20 +560,13 @@ class ZenohNetwork(Messenger):
     ) -> Subscription[events.Event]:
         """Call `callback(event)` for every event of every host of the system from now on.
 
-        What every member process publishes (each host's supervisors, registrars and
-        manager processes; this process's own too) crosses as JSON lines on
-        `rr/<system>/ev/<zid>`, never as pickles, and only between members (the access
-        control of `tls`). A process sends its events only while someone subscribes, so
-        another process's events are seen from about when the subscription reached it
-        (a link's latency later); this process's own from the return (at most 1 s).
-        Each event carries `host` (its host's member name) and `hlc` (its hybrid logical
-        clock stamp): events are held `window` seconds after they arrive and handed over
-        in `hlc` order, so that a cause on one host comes before its effect on another
-        (one process's events are always in order).
-
-        The callback runs on a subscriber thread of its own, one event at a time; a slow
-        one never slows any host: past `maxsize` queued events new ones are dropped,
-        counted and reported by one `EventsDropped`.
+        Events cross as JSON lines (never pickles), between members only, and only while
+        someone subscribes (another process's from about when the subscription reached
+        it). Each carries `host` (its member name) and `hlc` (its hybrid logical clock
+        stamp): events are held `window` seconds and handed over in `hlc` order, a cause
+        on one host before its effect on another. The callback runs on a subscriber
+        thread of its own, one event at a time; past `maxsize` queued events new ones are
+        dropped, counted and reported by one `EventsDropped`.
 
         Args:
             callback: `callback(event)`; what it raises is logged.
@@ -677,14 +598,11 @@ class ZenohNetwork(Messenger):
         return self.beside.subscribe_events(callback, window, maxsize)
 
     def wait_for(self, name: str, *, timeout: float) -> None:
-        """Wait until registrar `name` is served on this system (by any host); then return.
+        """Wait until registrar `name` is served on this system (by any host).
 
-        For a program whose other machine may start after it: its first call would
-        otherwise fail at once with `UnknownRegistrarError`. Returns as soon as the
-        registrar's presence (its Zenoh liveliness token) reaches this process, which
-        needs a link to its host; at once if it is served already (this process's own
-        registrars included). Opens the session if it is not open yet. Runs on the
-        caller's thread; nothing is polled (it waits on the presence thread's news).
+        For a program whose other machine may start after it (its first call would fail
+        at once with `UnknownRegistrarError`): returns as soon as the registrar's presence
+        reaches this process, at once if it is served already. Opens the session.
 
         Args:
             name: the registrar's name.
@@ -719,19 +637,15 @@ class ZenohNetwork(Messenger):
         )
 
     def _unlinked(self) -> list[tuple[str, str]]:
-        """The `connect` endpoints with no link now, each with why (`Beside.unlinked`:
-        with TLS the link watch's handshake verdict, else a TCP connect's)."""
         beside = self.beside
         return [] if beside is None else beside.unlinked()
 
     def close(self) -> None:
         """Leave the system: stop serving, fail what waits, close the session, and wait (at
-        most 2 s) until Zenoh's callback threads and rr_actors' threads that call Zenoh
-        ended: none of them runs Python after the interpreter began to end, which aborts
-        the process on CPython < 3.14 (idempotent; a network never opened stays so). A
-        registrar on it still running stops being served, its Zenoh objects let go of
-        here (not by its threads at the interpreter's end); it runs on with this process's
-        registrars only: stop registrars first to release what they hold elsewhere."""
+        most 2 s) until the threads that call Zenoh ended (one running at the
+        interpreter's end aborts the process on CPython < 3.14). Idempotent. A registrar
+        still running stops being served and runs on with this process's registrars
+        only: stop registrars first to release what they hold elsewhere."""
         if self._gate is not None:
             self._gate.close()  # (its duplicate of a listening socket, too)
         if self._opened is not None:

@@ -29,8 +29,7 @@ from rr_actors.errors import DuplicateNameError, RegistrarStoppedError, Registra
 
 logger = logging.getLogger("rr_actors")
 
-_DELETED_KEPT = 1024
-"""Deletions remembered beyond which those older than every `ask` in flight are pruned."""
+_DELETED_KEPT = 1024  # deletions remembered beyond which those no question needs go
 
 __all__ = [
     "ASK_PAUSE",
@@ -44,95 +43,39 @@ __all__ = [
 ]
 
 ASK_TIMEOUT = 1.0
-"""Seconds a miss of `resolve` (or `serve`'s check for the name) asks the network (never
-on an actor's thread: there the name's writer thread asks, see `carrier`)."""
+"""Seconds a question to the network waits (never on an actor's thread)."""
 CLAIM_TIMEOUT = 5.0
-"""Seconds `serve` waits for a rival claim of the same name to serve or withdraw, and for
-the network to answer in full who serves the name (`Presence.wait_turn`)."""
+"""Seconds `wait_turn` waits for a rival claim to serve or withdraw, and for a full answer."""
 EMPTY_BELIEVED = 0.25
-"""Seconds an empty answer about a name never heard to go is asked again (every
-`EMPTY_PAUSE`) before this process believes that nobody serves it
-(`Presence.question_until_seen`: "send when served", `peer`, `route`; not `wait_turn`): a
-client's liveliness query can come back empty at once, with no error, while its router
-holds a matching token (Zenoh 1.x; measured around a `serve` of the asking process: 24 to
-33 of 150 questions, each seen on a later question within 12 asks and 12 ms)."""
+"""Seconds an empty answer about a name never heard to go is asked again before it is
+believed (`question_until_seen`): a client's liveliness query can come back empty at
+once while its router holds a matching token (Zenoh 1.x)."""
 EMPTY_PAUSE = 0.005
-"""Seconds between two questions of `Presence.question_until_seen`."""
+"""Seconds between two questions of `question_until_seen`."""
 ASK_PAUSE = 0.1
-"""Seconds `wait_turn` waits before it asks again after a question that failed at once
-(a timed-out one took `ASK_TIMEOUT` already); news of a token cuts it short."""
+"""Seconds `wait_turn` waits before asking again after a question that failed at once."""
 
 NO_WAITING = threading.local()
-"""`active` on threads that must not wait on the network: the presence thread (what its
-reports to the carrier and messenger run, `PresenceEvents`)."""
+"""`active` on threads that must not wait on the network (the presence thread)."""
 
 
-class Server:
-    """A registrar of another process as its liveliness token says (`Sided`)."""
-
-    __slots__ = ("limit", "members", "side", "stamp", "supervisor", "zid")
-
-    def __init__(
-        self, zid: str, supervisor: str, limit: int, stamp: int = 0, side: int = 0, members: int = 0
-    ) -> None:
-        self.zid = zid
-        self.supervisor = supervisor
-        self.limit = limit
-        self.stamp = stamp  # when it began to serve (`_core.hlc`)
-        self.side = side  # the members its process heard then (0: unknown)
-        self.members = members  # the system's members then, as it counted them (0: unknown)
-
-    @property
-    def who(self) -> str:
-        """Its process: the Zenoh id."""
-        return self.zid
-
-    @property
-    def rank(self) -> tuple[int, int]:
-        """Its place in rule 22's order (`Sided.rank`)."""
-        return (self.stamp, int(self.zid, 16))
-
-
-def _server(token: ServerKey) -> Server:
-    """A registrar's token as presence keeps it."""
-    return Server(token.zid, token.supervisor, token.limit, token.stamp, token.side, token.members)
+Server = ServerKey  # a registrar of another process as its liveliness token says (`Sided`)
 
 
 class PresenceEvents(Protocol):
-    """What `Presence` reports to its carrier (on the presence thread, in order, outside
-    its lock)."""
+    """What `Presence` reports to its carrier (the presence thread, in order, unlocked)."""
 
-    def process_gone(self, zid: str) -> None:
-        """Process `zid`'s token went: what was open to and from it ends."""
-
-    def server_gone(self, name: str) -> None:
-        """The last server of registrar `name` went: what waits on it fails."""
-
-    def served_elsewhere(self, name: str, server: Server) -> None:
-        """Another process serves registrar `name` (if this process serves it too, the
-        one of the two that rule 22 does not keep yields: `carrier`)."""
+    def process_gone(self, zid: str) -> None: ...  # what was open to and from it ends
+    def server_gone(self, name: str) -> None: ...  # the last one went: what waits fails
+    def served_elsewhere(self, name: str, server: Server) -> None: ...  # (rule 22)
 
 
 class Presence:
     """The liveliness tables of one process's membership (written by its presence thread).
-
-    Args:
-        system: the system's name (for error messages).
-        session: the open session.
-        zid: this process's Zenoh id (its own tokens are left out).
-        events: told what follows from a change for the carrier (`PresenceEvents`).
-        hearer: the messenger, told who is lost or reachable again (`lost`, `reachable`).
-        on_token: called with a process's Zenoh id and whether its token came (`True`)
-            or went, once `member` says so (on Zenoh's thread: it must not block).
-        router: the Zenoh id of the router this process attached through (`None`: it
-            is a router): an answer counts as full only if that router answers a ping
-            after it (`question`).
-        resolution: which of two servers of one name is kept (rule 22: the system's
-            `resolve=`; by default the one served first).
-        on_hosts: called with the most hosts heard at once, here or by a router heard,
-            when that grows (on the presence thread: the router re-declares its host
-            token with it, so every router's converges on the system's, `most`).
-    """
+    `events` and `hearer` (the messenger) are told what follows from a change; `on_token`
+    (Zenoh's thread: never blocks) whether a process's token came; `router`: the one this
+    process attached through (`None`: it is one); `on_hosts`: the most hosts heard at
+    once, when that grows."""
 
     def __init__(
         self,
@@ -195,27 +138,24 @@ class Presence:
         return bool(self._servers.get(name))
 
     def server(self, name: str) -> Server | None:
-        """The server of `name` in another process that rule 22 keeps, if any (of two
-        seen after a healed link, the one served first; the other yields)."""
+        """The server of `name` in another process that rule 22 keeps, if any."""
         servers = self._servers.get(name)
         if not servers:
             return None
         return self._resolution.kept(name, list(servers.values()))
 
     def hosts(self) -> int:
-        """How many hosts this process hears now (their routers' host tokens), its own
-        included once its router's token is here."""
+        """How many hosts this process hears now (their routers' host tokens)."""
         return len({host.zid for host in list(self._host_keys)})
 
     def most(self, router: str | None) -> int:
-        """The most hosts heard at once, by this process or by a router it hears; 0
-        (unknown) in a process whose router's (`router`) host token is not here yet."""
+        """The most hosts heard at once, here or by a router heard; 0 until `router`'s
+        host token is here."""
         if router is not None and all(host.zid != router for host in list(self._host_keys)):
             return 0
         return self._most
 
     def names(self) -> list[str]:
-        """The registrars of other processes that serve now."""
         return sorted(name for name, servers in list(self._servers.items()) if servers)
 
     def gone(self, name: str) -> str | None:
@@ -223,13 +163,11 @@ class Presence:
         return self._gone.get(name)
 
     def unreachable(self, zid: str) -> bool:
-        """Whether process `zid` went and is not back. (A process whose token was not seen
-        yet is not: its message may overtake its token here.)"""
+        """Whether process `zid` went and is not back (one never seen is not)."""
         return zid in self._vanished and zid not in self._procs
 
     def wait_serving(self, name: str, *, timeout: float) -> bool:
-        """Whether another process serves `name` now or starts to within `timeout` seconds
-        (woken by each applied event; False at the timeout or once closed)."""
+        """Whether another process serves `name` within `timeout` seconds."""
         deadline = time.monotonic() + timeout
         with self._changed:
             while not self._servers.get(name):
@@ -240,17 +178,14 @@ class Presence:
             return True
 
     def wait_turn(self, name: str) -> None:
-        """With this process's claim on `name` declared: return once it may serve it (on a
-        full answer of the network only: docs/explanation/inside.md, "When a claim may
-        serve").
+        """With this process's claim on `name` declared: return once it may serve it
+        (docs/explanation/inside.md, "When a claim may serve").
 
         Raises:
             DuplicateNameError: another process serves it, or claims it and wins.
             RegistrarUnavailableError: the network did not answer in full within
-                `CLAIM_TIMEOUT` seconds (whether another process serves it is unknown;
-                the message says why, e.g. no link to this process's router), or its
-                last server went without a clean stop and its supervisor may restart it
-                (not lost: rule 22).
+                `CLAIM_TIMEOUT` seconds, or its last server went without a clean stop
+                and its supervisor may restart it (rule 22).
             RegistrarStoppedError: this process left the system meanwhile.
         """
         me = int(self._zid, 16)
@@ -295,9 +230,8 @@ class Presence:
                 self._changed.wait(left)
 
     def _refuse_awaited(self, name: str) -> None:
-        """Raise if `name`'s last server went without a clean stop and is not lost: its
-        supervisor may restart it (hold the lock). A death-watch mark heard here
-        (`MEMBERSHIP`: a supervisor that gave up) says it is lost after all."""
+        """Raise if `name`'s last server died and its supervisor may restart it (hold the
+        lock), unless a death watch heard here (`MEMBERSHIP`) says it is lost."""
         supervisor = self._awaiting.get(name)
         if supervisor is None or MEMBERSHIP.gone().get(name) is not None:
             return
@@ -324,14 +258,12 @@ class Presence:
         self._queue.submit(functools.partial(self._apply, (put, key, None)))
 
     def member(self, zid: str) -> bool:
-        """Whether process `zid`'s token is here now, as Zenoh's callbacks heard it (ahead of
-        the presence thread: `unreachable` may lag)."""
+        """Whether process `zid`'s token is here now, as Zenoh's callbacks heard it."""
         return zid in self._members
 
     def question_until_seen(self, name: str) -> str | None:
-        """`question`, asked again for `EMPTY_BELIEVED` seconds at most while a full answer
-        names no server of `name` (believed at once for a name heard to go). What the last
-        question returned."""
+        """`question`, asked again for `EMPTY_BELIEVED` seconds while a full answer names
+        no server of `name` (at once for a name heard to go); the last one's answer."""
         deadline = time.monotonic() + EMPTY_BELIEVED
         pause = threading.Event()
         why = self.question(name)
@@ -346,11 +278,8 @@ class Presence:
         return why
 
     def question(self, name: str) -> str | None:
-        """Ask the network for the tokens of `name` (bounded) and apply what it answers (a
-        token whose deletion was seen since is stale). `None` if the network answered in
-        full, else why not, in words (timed out, failed, the router did not answer a ping
-        after it, or not asked: `NO_WAITING`)."""
-
+        """Ask the network for the tokens of `name` (bounded) and apply the answer; `None`
+        if it answered in full, else why not, in words."""
         if getattr(NO_WAITING, "active", False):
             return "not asked on this thread"  # (Zenoh's or the presence thread's)
         with self._changed:
@@ -392,8 +321,8 @@ class Presence:
                     del self._asking[asked_at]
 
     def _router_answers(self) -> bool:
-        """Whether this process's router answers a ping (at once for a router process): a
-        query of a session with no route ends with no reply and no error."""
+        """Whether this process's router answers a ping (a query with no route ends with no
+        reply and no error)."""
         if self._router is None:
             return True
         try:
@@ -405,7 +334,6 @@ class Presence:
             return False
 
     def close(self) -> None:
-        """Stop applying events (and waking `wait_serving`)."""
         self._queue.close(timeout=0)
         with self._changed:
             self._changed.notify_all()
@@ -434,10 +362,7 @@ class Presence:
                 logger.exception("presence: %s after %s failed", action, key)
 
     def _change(self, put: bool, key: str) -> list[Callable[[], None]]:
-        """Apply one event to the tables (holding the lock); what to do after.
-
-        A malformed key (a buggy member's token) is ignored with a rate-limited WARNING.
-        """
+        """Apply one event to the tables (holding the lock); what to do after."""
         token = self._tokens.get(self._keys.kind(key))
         if token is None:
             return []  # (a kind of token a later version may add)
@@ -470,7 +395,7 @@ class Presence:
             elif self._mine.get(server.name) == server:
                 del self._mine[server.name]
             return []
-        return self._server_event(put, server.name, _server(server))
+        return self._server_event(put, server.name, server)
 
     def _host_token(self, put: bool, key: str) -> list[Callable[[], None]] | None:
         host = self._keys.parse_host(key)
@@ -530,7 +455,6 @@ class Presence:
         return actions
 
     def _server_event(self, put: bool, name: str, server: Server) -> list[Callable[[], None]]:
-        """A server's token of registrar `name` came or went."""
         servers = self._servers.setdefault(name, {})
         zid = server.zid
         if not put:
@@ -542,16 +466,14 @@ class Presence:
             return []  # a predecessor's late news (an answer of `ask`): it died
         dead = [z for z, other in servers.items() if self._follows(server, other)]
         actions: list[Callable[[], None]] = []
-        if dead:  # a restart seen before its predecessor's token went (one name, one
-            # server per supervisor): that one died; what waits on it fails now, not at
-            # its timeout (its token's end, when it comes, finds it gone already)
+        if dead:  # a restart seen before its predecessor's token went: that one died
             self._last[name] = dead[-1]
             for gone in dead:
                 del servers[gone]
             actions.append(functools.partial(self._events.server_gone, name))
         mine = self._mine.get(name)
         if servers or mine is not None:
-            here = [] if mine is None else [_server(mine)]
+            here = [] if mine is None else [mine]
             self._two_servers(name, [*here, *servers.values(), server])
         servers[zid] = server
         self._gone.pop(name, None)
@@ -564,17 +486,15 @@ class Presence:
 
     @staticmethod
     def _follows(server: Server, other: Server) -> bool:
-        """Whether `server` is a later incarnation of `other` (a restart): the same
-        process, or the same supervisor, and a later stamp. Two of those never serve at
-        once (a process serves a name once; a supervisor runs one child of a name)."""
+        """Whether `server` is a restart of `other`: the same process, or supervisor, and
+        a later stamp (two of those never serve at once)."""
         same = server.zid == other.zid or (
             server.supervisor != "none" and server.supervisor == other.supervisor
         )
         return same and server.stamp > other.stamp
 
     def _two_servers(self, name: str, servers: list[Server]) -> None:
-        """Two processes serve `name` (rule 22): a WARNING once per pair, naming the one
-        kept (the one that yields says so at ERROR, `carrier`)."""
+        """Two processes serve `name` (rule 22): a WARNING once per pair."""
         winner = self._resolution.kept(name, servers)
         assert winner is not None
         for other in servers:
@@ -594,7 +514,6 @@ class Presence:
             )
 
     def _server_went(self, name: str, server: Server) -> list[Callable[[], None]]:
-        """A server's token of registrar `name` went."""
         servers = self._servers.setdefault(name, {})
         zid = server.zid
         known = servers.get(zid)
@@ -602,12 +521,9 @@ class Presence:
             return []  # unknown, or a predecessor already counted dead
         del servers[zid]
         mine = self._mine.get(name)
-        if mine is not None and self._resolution.kept(name, [_server(mine), server]) is not server:
-            return []  # one that yielded to this process's own (rule 22): it held nothing
-            # here (this process's consumers call its own). The one kept in place of this
-            # process's own goes on as below: lost, it serves again (`Messenger.lost`)
-        if servers:  # one of two that yielded (rule 22): the one kept serves on, and
-            # the consumers of the one that went reconcile with it (rule 20)
+        if mine is not None and self._resolution.kept(name, [mine, server]) is not server:
+            return []  # one that yielded to this process's own (rule 22): it held nothing here
+        if servers:  # one of two that yielded: its consumers reconcile with the kept (rule 20)
             return [functools.partial(self._hearer.reachable, name)]
         stopped = NameAt(name, zid) in self._stopped
         self._gone[name] = "stopped" if stopped else "died"

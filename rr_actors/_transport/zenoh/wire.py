@@ -29,15 +29,10 @@ __all__ = [
     "NameAt",
     "ObserverKey",
     "ServerKey",
-    "claim_key",
     "envelope",
     "header",
-    "host_key",
     "parse",
     "payload_of",
-    "proc_key",
-    "server_key",
-    "stopped_key",
     "versions_text",
 ]
 
@@ -48,10 +43,8 @@ ANSWER = 1
 VERSION = 2
 """An answer saying the message was of another version and was not read."""
 PLAIN = 0x80
-"""A flag of the kind byte that older senders of this wire version set when the pickle held
-only builtin data (their receivers decoded such a frame on Zenoh's own thread). It is no
-longer set, and ignored when read: a buggy sender can flag anything, so no frame is
-unpickled on Zenoh's thread."""
+"""A flag of the kind byte older senders set for builtin data; ignored when read (a buggy
+sender can flag anything: no frame is unpickled on Zenoh's thread)."""
 
 STAMPED = 0x40
 """A flag of the kind byte: an 8-byte clock stamp follows the frame's token (`envelope`)."""
@@ -62,40 +55,18 @@ _MAGIC = b"rz"
 _FIXED = struct.Struct("!2sBBBBB")  # magic, wire version, Python major, minor, kind, id length
 
 
-class Header:
+class Header(NamedTuple):
     """What a payload's header says: who sent it, in which versions, what kind it is, and
-    the sender's clock stamp (`None`: none came).
+    the sender's clock stamp (`None`: none came). Its layout never changes, so another
+    wire or Python version can always read it: docs/explanation/inside.md ("The Zenoh
+    wire")."""
 
-    A message or an answer carries the sender's hybrid logical clock stamp (`_core.hlc`):
-    its kind has the `STAMPED` flag, and the 8-byte stamp (little endian) follows the
-    frame's token, before the pickle (`envelope`). There, a process of another wire version
-    still reads the token, to answer `VERSION`; the frame's length field is not the
-    frame's then (it is never read: the sample's length is). The receiver's clock takes the
-    stamp in before the message is handled (`inbox`).
-
-    The header's layout never changes, so a process of another rr_actors wire version or
-    Python minor version can always read it: nothing after it is unpickled unless both
-    versions match (pickles do not cross those safely); a message of another version is
-    answered with a `VERSION` frame that carries no pickle, only the header.
-    """
-
-    __slots__ = ("kind", "python", "sender", "size", "stamp", "wire")
-
-    def __init__(
-        self,
-        wire: int,
-        python: tuple[int, int],
-        kind: int,
-        sender: str,
-        size: int,
-        stamp: int | None = None,
-    ):
-        self.wire = wire
-        self.python = python
-        self.kind = kind & ~(PLAIN | STAMPED)  # (PLAIN is ignored: see `PLAIN`)
-        self.sender = sender
-        self.size = size  # bytes of the header: the frame starts there
-        self.stamp = stamp
+    wire: int
+    python: tuple[int, int]
+    kind: int  # without the flags (`PLAIN` is ignored)
+    sender: str
+    size: int  # bytes of the header: the frame starts there
+    stamp: int | None = None
 
     @property
     def ours(self) -> bool:
@@ -127,12 +98,10 @@ def parse(data: bytes) -> Header | None:
         if len(data) < at + _TOKEN.size:
             return None
         (stamp,) = _TOKEN.unpack_from(data, at)
-    return Header(wire, (major, minor), kind, sender, end, stamp)
+    return Header(wire, (major, minor), kind & ~(PLAIN | STAMPED), sender, end, stamp)
 
 
 _TOKEN = struct.Struct("<Q")
-
-
 _LONG = b"\xff\xff\xff\xff"  # the length field of a frame over 2 GiB starts so
 
 
@@ -142,21 +111,16 @@ def _skip(data: bytes | memoryview, at: int) -> int:
 
 
 def envelope(kind: int, sender: str, frame: bytes, stamp: int) -> bytes:
-    """The payload of `frame` (`codec.frame`) of `kind`, sent by process `sender` with the
-    clock stamp `stamp`."""
-    cut = (12 if frame[:4] == _LONG else 4) + _TOKEN.size
+    """The payload of `frame` (`codec.frame`) of `kind`, sent by `sender` at `stamp`."""
+    cut = _skip(frame, 0) + _TOKEN.size
     return b"".join(
         (header(kind | STAMPED, sender), frame[:cut], _TOKEN.pack(stamp), memoryview(frame)[cut:])
     )
 
 
 def payload_of(data: bytes, head: Header) -> tuple[int, memoryview]:
-    """The token and the pickle of the frame after `head` (nothing is unpickled).
-
-    The frame's own length field (`multiprocessing.connection`'s: 4 bytes, or 12 for a
-    frame over 2 GiB) is skipped: the Zenoh sample's length is the frame's. So is the
-    clock stamp after the token, if `head` says there is one.
-    """
+    """The token and the pickle of the frame after `head`, skipping its length field (the
+    sample's length is the frame's) and the clock stamp."""
     body = memoryview(data)[head.size :]
     skip = _skip(body, 0)
     if len(body) < skip + _TOKEN.size:
@@ -167,19 +131,14 @@ def payload_of(data: bytes, head: Header) -> tuple[int, memoryview]:
 
 
 def versions_text(theirs: Header) -> str:
-    """`wire version W on Python X.Y` for the sender of `theirs` and for this process."""
     return (
         f"rr_actors wire version {theirs.wire} on Python {theirs.python[0]}.{theirs.python[1]}"
         f" there, wire version {WIRE_VERSION} on Python {PYTHON[0]}.{PYTHON[1]} here"
     )
 
 
-# -- key expressions ---------------------------------------------------------------------------
-#
-# `Keys` builds every key of a system and parses the liveliness ones: nothing else writes a
-# key. One parser per kind of token (`rr/<system>/live/<kind>/...`): each returns `None` for
-# a malformed key (a value, never an exception), so that a token a buggy member declared
-# costs a log line, not the presence thread's work or a `serve`.
+# -- key expressions: `Keys` builds every key; a parser returns `None` for a malformed key, ---
+# never raises: a token a buggy member declared costs a log line, not the presence thread
 
 _ZID = re.compile(r"[0-9a-f]{1,32}")  # a Zenoh id as `str(session.zid())` writes it
 _LIMIT_DIGITS = 19  # max_message_bytes: an int64 at most (and int() stays cheap)
@@ -198,6 +157,14 @@ class ServerKey(NamedTuple):
     stamp: int  # the clock stamp of when it began to serve (`_core.hlc`)
     side: int = 0  # the hosts its process heard then, its own included (0: unknown)
     members: int = 0  # the system's members then, as its process counted them (0: unknown)
+
+    @property
+    def who(self) -> str:  # (`resolve.Sided`)
+        return self.zid
+
+    @property
+    def rank(self) -> tuple[int, int]:
+        return (self.stamp, int(self.zid, 16))
 
 
 class HostKey(NamedTuple):
@@ -226,14 +193,8 @@ class ObserverKey(NamedTuple):
 
 
 class Keys:
-    """Every key expression of one system (docs/explanation/inside.md): built and parsed here.
-
-    A builder takes what the key says and writes it (`keys.server(ServerKey(...))`); its
-    parser (`keys.parse_server(key)`) gives it back, or `None` for a malformed key.
-
-    Args:
-        system: the system's name (a registrar name: `rr_actors.config.NAME`).
-    """
+    """Every key expression of one system (`system`: a registrar name), built and parsed
+    here: `keys.server(ServerKey(...))` writes what `keys.parse_server(key)` gives back."""
 
     __slots__ = ("prefix",)
 
@@ -255,16 +216,14 @@ class Keys:
         return f"{self.prefix}/ans/{zid}"
 
     def ping(self, zid: str) -> str:
-        """Process `zid`'s queryable that answers a ping (`outbox`)."""
+        """Process `zid`'s queryable that answers a ping."""
         return f"{self.prefix}/ping/{zid}"
 
     def events(self, zid: str) -> str:
-        """Process `zid`'s events (JSON lines: `events`)."""
+        """Process `zid`'s events (JSON lines)."""
         return f"{self.prefix}/ev/{zid}"
 
     def all_events(self) -> str:
-        """The events of every process of the system (what a system-wide subscriber
-        declares)."""
         return f"{self.prefix}/ev/*"
 
     def live(self) -> str:
@@ -280,12 +239,10 @@ class Keys:
         return f"{self.prefix}/live/proc/{zid}"
 
     def server(self, server: ServerKey) -> str:
-        """A registrar's token: `server.zid` serves `server.name`."""
         name, zid, supervisor, limit, stamp, side, members = server
         return f"{self.prefix}/live/reg/{name}/{zid}/{supervisor}/{limit}/{stamp}/{side}/{members}"
 
     def host(self, host: HostKey) -> str:
-        """A host's token: `host.zid` is its router."""
         return f"{self.prefix}/live/host/{host.zid}/{host.most}"
 
     def claim(self, at: NameAt) -> str:
@@ -297,11 +254,10 @@ class Keys:
         return f"{self.prefix}/live/stopped/{at.name}/{at.zid}"
 
     def observer(self, at: ObserverKey) -> str:
-        """Host `at.member`'s observer key `at.part` (one of `OBSERVER_PARTS`)."""
         return f"{self.prefix}/obs/{at.member}/{at.part}"
 
     def observers(self, part: str) -> str:
-        """Key `part` of every host's observer (what a page's host subscribes to)."""
+        """Key `part` of every host's observer."""
         return f"{self.prefix}/obs/*/{part}"
 
     def certificate(self, member: str) -> str:
@@ -311,8 +267,6 @@ class Keys:
     # -- parsed ----------------------------------------------------------------------------
 
     def parse_observer(self, key: str) -> ObserverKey | None:
-        """What an observer key `<prefix>/obs/<member>/<part>` says, or `None` if it is
-        malformed (a member that is not a name, a part not in `OBSERVER_PARTS`)."""
         head = f"{self.prefix}/obs/"
         if not key.startswith(head):
             return None
@@ -322,110 +276,72 @@ class Keys:
         return ObserverKey(parts[0], parts[1])
 
     def kind(self, key: str) -> str:
-        """The kind of the liveliness token `key` (`proc`, `reg`, `claim`, `stopped`, or
-        what a later version may add); `""` if `key` is not a token of this system."""
+        """The kind of the liveliness token `key` (`proc`, `reg`, ..., or what a later
+        version may add); `""` if `key` is not a token of this system."""
         head = f"{self.prefix}/live/"
         return key[len(head) :].split("/", 1)[0] if key.startswith(head) else ""
 
     def parse_proc(self, key: str) -> str | None:
-        """The Zenoh id in a process token, or `None` (see `proc_key`)."""
-        return proc_key(key, self.prefix)
+        parts = self._live(key, "proc", 1)
+        return parts[0] if parts is not None and _zid(parts[0]) else None
 
     def parse_server(self, key: str) -> ServerKey | None:
-        """What a registrar's token says, or `None` (see `server_key`)."""
-        return server_key(key, self.prefix)
+        """What a registrar's token says (one without `<side>/<members>`: 0, unknown)."""
+        parts = self._live(key, "reg", 5, 7)
+        if parts is None:
+            return None
+        name, zid, supervisor, limit, stamp, *sides = parts
+        if not (
+            NAME.fullmatch(name)
+            and _zid(zid)
+            and (supervisor == "none" or _zid(supervisor))
+            and _number(limit, _LIMIT_DIGITS)
+            and int(limit) > 0
+            and _number(stamp, _STAMP_DIGITS)
+            and int(stamp) < 1 << 64
+            and all(_number(count, _COUNT_DIGITS) for count in sides)
+        ):
+            return None
+        side, members = (int(count) for count in sides) if sides else (0, 0)
+        return ServerKey(name, zid, supervisor, int(limit), int(stamp), side, members)
 
     def parse_host(self, key: str) -> HostKey | None:
-        """What a host's token says, or `None` (see `host_key`)."""
-        return host_key(key, self.prefix)
+        parts = self._live(key, "host", 2)
+        if parts is None or not _zid(parts[0]) or not _number(parts[1], _COUNT_DIGITS):
+            return None
+        return HostKey(parts[0], int(parts[1]))
 
     def parse_claim(self, key: str) -> NameAt | None:
-        """What a claim says, or `None` (see `claim_key`)."""
-        return claim_key(key, self.prefix)
+        return self._name_at(key, "claim")
 
     def parse_stopped(self, key: str) -> NameAt | None:
-        """What a "stopped" mark says, or `None` (see `stopped_key`)."""
-        return stopped_key(key, self.prefix)
+        return self._name_at(key, "stopped")
 
+    def _live(self, key: str, kind: str, *counts: int) -> list[str] | None:
+        """The segments after `<prefix>/live/<kind>/`, if as many as one of `counts`."""
+        head = f"{self.prefix}/live/{kind}/"
+        if not key.startswith(head):
+            return None
+        parts = key[len(head) :].split("/")
+        return parts if len(parts) in counts else None
 
-def _live_parts(key: str, prefix: str, kind: str, *counts: int) -> list[str] | None:
-    """The segments after `<prefix>/live/<kind>/` of `key` if there are as many as one
-    of `counts`, or `None`."""
-    head = f"{prefix}/live/{kind}/"
-    if not key.startswith(head):
-        return None
-    parts = key[len(head) :].split("/")
-    return parts if len(parts) in counts else None
+    def _name_at(self, key: str, kind: str) -> NameAt | None:
+        parts = self._live(key, kind, 2)
+        if parts is None or not NAME.fullmatch(parts[0]) or not _zid(parts[1]):
+            return None
+        return NameAt(parts[0], parts[1])
 
 
 def _zid(text: str) -> bool:
     return _ZID.fullmatch(text) is not None
 
 
-def proc_key(key: str, prefix: str) -> str | None:
-    """The Zenoh id in a process token `<prefix>/live/proc/<zid>`, or `None` if malformed."""
-    parts = _live_parts(key, prefix, "proc", 1)
-    return parts[0] if parts is not None and _zid(parts[0]) else None
-
-
 def _number(text: str, digits: int) -> bool:
-    """Whether `text` is a decimal number of at most `digits` ASCII digits, written as
-    `str(int)` writes it (no leading zero: a key parsed is the key built)."""
+    """Whether `text` is at most `digits` ASCII digits as `str(int)` writes them (no
+    leading zero: a key parsed is the key built)."""
     return (
         text.isascii()
         and text.isdigit()
         and len(text) <= digits
         and (text == "0" or not text.startswith("0"))
     )
-
-
-def server_key(key: str, prefix: str) -> ServerKey | None:
-    """What a registrar's token
-    `<prefix>/live/reg/<name>/<zid>/<sup>/<limit>/<stamp>[/<side>/<members>]` says (one
-    without its side: 0, unknown), or `None` if it is malformed (a name that is not one,
-    an id that is not hex, a limit that is not a positive integer, a stamp that is not
-    one of 64 bits, a side or a count of members that is not a small number)."""
-    parts = _live_parts(key, prefix, "reg", 5, 7)
-    if parts is None:
-        return None
-    name, zid, supervisor, limit, stamp, *sides = parts
-    if not (
-        NAME.fullmatch(name)
-        and _zid(zid)
-        and (supervisor == "none" or _zid(supervisor))
-        and _number(limit, _LIMIT_DIGITS)
-        and int(limit) > 0
-        and _number(stamp, _STAMP_DIGITS)
-        and int(stamp) < 1 << 64
-        and all(_number(count, _COUNT_DIGITS) for count in sides)
-    ):
-        return None
-    side, members = (int(count) for count in sides) if sides else (0, 0)
-    return ServerKey(name, zid, supervisor, int(limit), int(stamp), side, members)
-
-
-def host_key(key: str, prefix: str) -> HostKey | None:
-    """What a host's token `<prefix>/live/host/<zid>/<most>` says, or `None` if it is
-    malformed."""
-    parts = _live_parts(key, prefix, "host", 2)
-    if parts is None or not _zid(parts[0]) or not _number(parts[1], _COUNT_DIGITS):
-        return None
-    return HostKey(parts[0], int(parts[1]))
-
-
-def _name_at(key: str, prefix: str, kind: str) -> NameAt | None:
-    parts = _live_parts(key, prefix, kind, 2)
-    if parts is None or not NAME.fullmatch(parts[0]) or not _zid(parts[1]):
-        return None
-    return NameAt(parts[0], parts[1])
-
-
-def claim_key(key: str, prefix: str) -> NameAt | None:
-    """What a claim `<prefix>/live/claim/<name>/<zid>` says, or `None` if malformed."""
-    return _name_at(key, prefix, "claim")
-
-
-def stopped_key(key: str, prefix: str) -> NameAt | None:
-    """What a "stopped" mark `<prefix>/live/stopped/<name>/<zid>` says, or `None` if
-    malformed."""
-    return _name_at(key, prefix, "stopped")

@@ -13,32 +13,28 @@ from rr_actors._transport.zenoh.wire import (
     Keys,
     NameAt,
     ServerKey,
-    claim_key,
-    host_key,
-    proc_key,
-    server_key,
-    stopped_key,
 )
 from rr_actors.config import NAME
 
 P = "rr/lab"
+KEYS = Keys("lab")
 ZID = "a0f481d091d919019faefa4c91471a5"
 
 
 def test_well_formed_keys_say_what_their_tokens_mean() -> None:
-    assert ZID == proc_key(f"{P}/live/proc/{ZID}", P)
-    assert ServerKey("erm", ZID, "none", 1024, 7) == server_key(
-        f"{P}/live/reg/erm/{ZID}/none/1024/7", P
+    assert ZID == KEYS.parse_proc(f"{P}/live/proc/{ZID}")
+    assert ServerKey("erm", ZID, "none", 1024, 7) == KEYS.parse_server(
+        f"{P}/live/reg/erm/{ZID}/none/1024/7"
     )
-    assert ServerKey("erm", ZID, "ab12", 1, 2**64 - 1) == server_key(
-        f"{P}/live/reg/erm/{ZID}/ab12/1/{2**64 - 1}", P
+    assert ServerKey("erm", ZID, "ab12", 1, 2**64 - 1) == KEYS.parse_server(
+        f"{P}/live/reg/erm/{ZID}/ab12/1/{2**64 - 1}"
     )
-    assert ServerKey("erm", ZID, "none", 1024, 7, side=2, members=3) == server_key(
-        f"{P}/live/reg/erm/{ZID}/none/1024/7/2/3", P
+    assert ServerKey("erm", ZID, "none", 1024, 7, side=2, members=3) == KEYS.parse_server(
+        f"{P}/live/reg/erm/{ZID}/none/1024/7/2/3"
     )
-    assert NameAt("erm", ZID) == claim_key(f"{P}/live/claim/erm/{ZID}", P)
-    assert NameAt("erm", ZID) == stopped_key(f"{P}/live/stopped/erm/{ZID}", P)
-    assert HostKey(ZID, 3) == host_key(f"{P}/live/host/{ZID}/3", P)
+    assert NameAt("erm", ZID) == KEYS.parse_claim(f"{P}/live/claim/erm/{ZID}")
+    assert NameAt("erm", ZID) == KEYS.parse_stopped(f"{P}/live/stopped/erm/{ZID}")
+    assert HostKey(ZID, 3) == KEYS.parse_host(f"{P}/live/host/{ZID}/3")
 
 
 @pytest.mark.parametrize(
@@ -52,7 +48,7 @@ def test_well_formed_keys_say_what_their_tokens_mean() -> None:
     ],
 )
 def test_a_malformed_process_token_is_none(rest: str) -> None:
-    assert proc_key(f"{P}/live/proc/{rest}", P) is None
+    assert KEYS.parse_proc(f"{P}/live/proc/{rest}") is None
 
 
 @pytest.mark.parametrize(
@@ -82,23 +78,23 @@ def test_a_malformed_process_token_is_none(rest: str) -> None:
     ],
 )
 def test_a_malformed_registrar_token_is_none(rest: str) -> None:
-    assert server_key(f"{P}/live/reg/{rest}", P) is None
+    assert KEYS.parse_server(f"{P}/live/reg/{rest}") is None
 
 
 @pytest.mark.parametrize("rest", [ZID, f"{ZID}/-1", f"{ZID}/x", "not-hex/1", f"{ZID}/1/2"])
 def test_a_malformed_host_token_is_none(rest: str) -> None:
-    assert host_key(f"{P}/live/host/{rest}", P) is None
+    assert KEYS.parse_host(f"{P}/live/host/{rest}") is None
 
 
-@pytest.mark.parametrize("parse", [claim_key, stopped_key])
+@pytest.mark.parametrize("parse", [KEYS.parse_claim, KEYS.parse_stopped])
 @pytest.mark.parametrize("rest", ["erm/not-hex", "erm", f"erm/{ZID}/more", f"-x/{ZID}"])
 def test_a_malformed_claim_or_stopped_mark_is_none(parse: object, rest: str) -> None:
-    kind = "claim" if parse is claim_key else "stopped"
-    assert parse(f"{P}/live/{kind}/{rest}", P) is None  # type: ignore[operator]
+    kind = "claim" if parse == KEYS.parse_claim else "stopped"
+    assert parse(f"{P}/live/{kind}/{rest}") is None  # type: ignore[operator]
 
 
 def test_a_key_of_another_system_is_none() -> None:
-    assert proc_key(f"rr/other/live/proc/{ZID}", P) is None
+    assert KEYS.parse_proc(f"rr/other/live/proc/{ZID}") is None
 
 
 # -- Keys: built, then parsed back ---------------------------------------------------------------

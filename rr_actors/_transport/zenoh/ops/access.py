@@ -1,10 +1,8 @@
 """Who else can read or change a private file or directory, and who this process runs as.
 
-One check for every private thing the Zenoh carrier reads: a host's key (`ZenohTLS` warns),
-the CA's key and its directory (`rr-actors certs` refuses without `--force`). A private
-file is this user's and open to nobody else (mode `0600` or less); a private directory
-is this user's and writable by nobody else (another user could put, rename or replace
-files in it).
+One check for a host's key (`ZenohTLS` warns) and the CA's key and directory (`rr-actors
+certs` refuses): a private file is this user's, mode `0600` or less; a private directory
+is this user's and writable by nobody else.
 """
 
 from __future__ import annotations
@@ -52,11 +50,7 @@ def _foreign(st: os.stat_result) -> str | None:
 
 
 def private_file_trouble(path: str | os.PathLike[str]) -> str | None:
-    """Why the private file `path` (a key) is not private, with the fix; `None` if it is.
-
-    Raises:
-        OSError: `path` cannot be looked at.
-    """
+    """Why the file `path` (a key) is not private, with the fix; `None` if it is (OSError)."""
     st = os.stat(path)
     foreign = _foreign(st)
     if foreign is not None:
@@ -71,14 +65,8 @@ def private_file_trouble(path: str | os.PathLike[str]) -> str | None:
 
 
 def private_dir_trouble(path: str | os.PathLike[str]) -> str | None:
-    """Why the directory `path` is not private, with the fix; `None` if it is.
-
-    A directory another user owns, or that group or others may write to, is not: they
-    could plant, rename or replace the files in it.
-
-    Raises:
-        OSError: `path` cannot be looked at.
-    """
+    """Why the directory `path` is not private (others could plant, rename or replace its
+    files), with the fix; `None` if it is (OSError)."""
     st = os.stat(path)
     foreign = _foreign(st)
     if foreign is not None:

@@ -1,7 +1,6 @@
 """A Zenoh session's config from `ZenohNetwork`'s arguments: endpoints, TLS and access control.
 
-Checked before a session opens. The rules it writes down: docs/explanation/inside.md ("A
-Zenoh session's config").
+The rules it writes down: docs/explanation/inside.md ("A Zenoh session's config").
 """
 
 from __future__ import annotations
@@ -91,8 +90,8 @@ def endpoints(role: str, given: object, *, tls: bool) -> tuple[str, ...]:
     """The endpoints of `role` ("listen" or "connect"), checked against `tls`.
 
     Raises:
-        ConfigError: `given` is not a list of endpoints, one is malformed, a `tcp/` one with
-            TLS (plain TCP would bypass it) or a `tls/` one without.
+        ConfigError: not a list of endpoints, one malformed, a `tcp/` one with TLS (it
+            would bypass it) or a `tls/` one without.
     """
     if isinstance(given, str | bytes) or not isinstance(given, Iterable):
         example = "tls/10.0.0.1:7447" if tls else "tcp/10.0.0.1:7447"
@@ -159,20 +158,15 @@ def session_config(
     system: str = "",
     tls: ZenohTLS | None = None,
 ) -> zenoh.Config:
-    """The session's Zenoh config: only the endpoints given, `lease` seconds, no scouting.
-
-    With `tls` (a router only: this host's own processes join it over its Unix socket):
-    mutual TLS on every link, protocols limited to `tls` and `unixsock-stream`, and the
-    access control (docs/explanation/inside.md) for `system`.
-    """
+    """The session's Zenoh config: only the endpoints given, `lease` seconds, no scouting;
+    with `tls` (a router's), mutual TLS and the access control for `system`."""
     lease_ms = max(1, round(lease * 1000))
     remote = [endpoint for endpoint in listen if not endpoint.startswith("unixsock-stream/")]
     link: dict[str, Any] = {
         "tx": {
             "lease": lease_ms,
             "keep_alive": 4,
-            # a link blocked for half the lease is closed: a frozen reader does
-            # not stall the router's other links until the lease of theirs runs out
+            # a link blocked for half the lease is closed: a frozen reader stalls no other
             "queue": {"congestion_control": {"block": {"wait_before_close": lease_ms * 500}}},
         }
     }
@@ -190,15 +184,10 @@ def session_config(
         "scouting": {
             "multicast": {"enabled": False},
             "gossip": {"enabled": False},
-            # a router's open waits `delay` ms (500) for links to other routers, its own
-            # `connect` ones and those that connect to its TCP `listen`; with neither (one
-            # host, scouting off) there is nothing to wait for
+            # a router's open waits `delay` ms (500) for links: with none to come, no wait
             **({"delay": 0} if mode == "router" and not connect and not remote else {}),
         },
-        # no shared memory: a session keeps open, for good, a segment file
-        # (/dev/shm/*.zenoh) of each process of the host it shared one with (a
-        # supervisor's restarted managers: one more open file each; rr_actors sends
-        # no buffer of its own through it, so nothing is lost)
+        # no shared memory: a session keeps each peer's segment file open for good
         "transport": {"link": link, "shared_memory": {"enabled": False}},
     }
     if tls is not None:
@@ -224,12 +213,8 @@ def _who_answers(host: str, port: int) -> str:
 
 
 def warn_plain_tcp(system: str, listen: Iterable[str], connect: Iterable[str]) -> None:
-    """A WARNING per plain-TCP endpoint, naming who can send this process pickles through it.
-
-    Unpickling runs code, and plain TCP asks nobody who they are: loopback is no
-    exception (every local user can connect to it, where the Unix carrier's 0700 runtime
-    directory lets in only this user), and a `connect` endpoint trusts whoever answers.
-    """
+    """A WARNING per plain-TCP endpoint, naming who can send this process pickles through
+    it (loopback too: every local user)."""
     me = user()
     for endpoint in listen:
         _, host, _ = parse_endpoint("listen", endpoint)
@@ -258,8 +243,7 @@ PROBE_TIMEOUT = 0.5
 
 
 def warn_unreachable(system: str, connect: Iterable[str]) -> None:
-    """A WARNING per plain-TCP `connect` endpoint that does not accept a connection now
-    (no error: the other host may start later, and Zenoh keeps trying)."""
+    """A WARNING per plain-TCP `connect` endpoint that does not accept a connection now."""
     for endpoint in connect:
         _, host, port = parse_endpoint("connect", endpoint)
         try:

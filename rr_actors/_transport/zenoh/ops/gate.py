@@ -50,9 +50,8 @@ DROP = 60.0  # seconds a drop (or a members-only spell) lasts, whatever is sent 
 
 
 def open_gates(listen: Iterable[str]) -> list[ListenerGate]:
-    """The platform's gates on this process's listening sockets of the `tls/` endpoints
-    of `listen` (Zenoh's, once its session is open); none for port 0 or where the
-    platform has no gate."""
+    """The platform's gates on the listening sockets of `listen`'s `tls/` endpoints
+    (none for port 0, or where the platform has no gate)."""
     gates = []
     for endpoint in listen:
         if not endpoint.startswith("tls/"):
@@ -79,8 +78,6 @@ def open_gates(listen: Iterable[str]) -> list[ListenerGate]:
 
 @dataclasses.dataclass
 class _Port:
-    """What the gate keeps of one listening socket."""
-
     gate: ListenerGate
     dropped: dict[str, float] = dataclasses.field(default_factory=dict)  # source -> until
     members_only: float | None = None  # until when only members' addresses get in
@@ -89,17 +86,10 @@ class _Port:
 
 
 class HandshakeGate:
-    """Drops the sources that flood a router's `tls/` listeners; what it leaves to the
-    firewall: docs/explanation/inside.md ("What the gate leaves to the firewall").
-
-    Args:
-        system: the system's name, for the log lines.
-        gates: the gates on the listening sockets (`open_gates`); closed by `close`.
-        member_addresses: the members' addresses now (`members.MemberAddresses.now`),
-            called once per look, on the gate's thread.
-        clock: seconds, monotonic (tests may pass their own).
-        start: start the thread (tests call `look` themselves).
-    """
+    """Drops the sources that flood a router's `tls/` listeners (`gates`, closed by
+    `close`); `member_addresses()` (`MemberAddresses.now`) is called once per look, on
+    the gate's thread; `start=False`: tests `look` themselves. What it leaves to the
+    firewall: docs/explanation/inside.md ("What the gate leaves to the firewall")."""
 
     def __init__(
         self,
@@ -120,17 +110,14 @@ class HandshakeGate:
             self._thread.start()
 
     def dropping(self) -> set[str]:
-        """The source addresses dropped now (at any gate; not counting a members-only
-        spell's)."""
+        """The source addresses dropped now (not counting a members-only spell's)."""
         return {source for port in self._ports for source in port.dropped}
 
     def members_only(self) -> bool:
-        """Whether some gate takes packets from members' addresses only now."""
         return any(port.members_only is not None for port in self._ports)
 
     def close(self) -> None:
-        """Stop, and let go of the sockets (idempotent); call before the session closes
-        (a duplicate of a listening socket would keep its port listening)."""
+        """Stop, and let go of the sockets (idempotent), before the session closes."""
         self._stop.set()
         if self._thread.is_alive() and threading.current_thread() is not self._thread:
             self._thread.join(timeout=5.0)
@@ -244,20 +231,13 @@ _ASK_TIMEOUT = 2.0  # seconds a get of a certificate waits for its answer
 
 
 def _reply_with(pem: bytes, query: zenoh.Query) -> None:
-    """Answer a question for this host's certificate (Zenoh's callback thread)."""
     query.reply(query.key_expr, pem)
 
 
 class MemberAddresses:
-    """The addresses of the members of one router's system, which the gate never drops; how
-    a router learns them: docs/explanation/inside.md ("Which addresses are members'").
-
-    Args:
-        system: the system's name, for the log lines.
-        session: the router's open Zenoh session.
-        tls: this host's files (its cert is what it answers with) and the members.
-        clock: seconds, monotonic (tests may pass their own).
-    """
+    """The addresses of the members of one router's system, which the gate never drops
+    (it answers with `tls.cert`); how it learns them: docs/explanation/inside.md ("Which
+    addresses are members'")."""
 
     def __init__(
         self,
@@ -285,17 +265,14 @@ class MemberAddresses:
         )
 
     def close(self) -> None:
-        """Stop answering for this host's certificate (idempotent)."""
         try:
             self._queryable.undeclare()  # type: ignore[no-untyped-call]
         except Exception:
             logger.debug("undeclaring the certificate's queryable failed", exc_info=True)
 
     def now(self) -> set[str]:
-        """The members' addresses now: named in their certificates, or their links' (up
-        now, or the last `LEARNED` each since this router started). Asks for the
-        certificate of a member linked whose certificate is not known yet, without
-        waiting for it (it counts from a later call)."""
+        """The members' addresses now: named in their certificates, or their links' (the
+        last `LEARNED` each); asks for an unknown certificate without waiting."""
         up = self._links()
         for name in {name for name, _ in up} - self._up:
             self._asked.pop(name, None)  # linked anew (restarted, maybe with a new certificate)
@@ -324,7 +301,7 @@ class MemberAddresses:
         return known
 
     def _links(self) -> set[tuple[str, str]]:
-        """(member name, remote address) of each TLS link of the router to a member."""
+        """(member, remote address) of each TLS link of the router to a member."""
         return {
             (str(link.auth_identifier), remote(str(link.dst))[0])
             for link in self._session.info.links()
@@ -346,7 +323,7 @@ class MemberAddresses:
                     break
 
     def _check(self, name: str, pem: bytes) -> bool:
-        """Keep the addresses of `name`'s certificate `pem`, if it checks out (True)."""
+        """Keep the addresses of `name`'s certificate `pem`, if it checks out."""
         from rr_actors._transport.zenoh.ops.tls import member_addresses  # noqa: PLC0415 - cryptography
 
         try:

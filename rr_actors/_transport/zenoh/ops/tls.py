@@ -1,8 +1,7 @@
 """`ZenohTLS`: a host's certificates for mutual TLS between the hosts of a system.
 
-Read and checked once, when the object is made, with `cryptography` (never zenoh), so a
-wrong file is a `ConfigError` in the program that named it, not a refused handshake
-that Zenoh reports only on its standard output:
+Checked once, when made, with `cryptography`: a wrong file is a `ConfigError` in the
+program that named it, not a handshake Zenoh refuses on its standard output only:
 
 ```
  ca.pem ───────────┐
@@ -12,10 +11,7 @@ that Zenoh reports only on its standard output:
                                                                              not_after)
 ```
 
-`ZenohNetwork` hands the paths to Zenoh (`transport/link/tls`) and `members` to its
-access control; the files themselves are read again by Zenoh when the session opens.
-What they sign (the event batches a host sends) is the observer's
-(`rr_actors.observe._seal`).
+`ZenohNetwork` hands the paths to Zenoh and `members` to its access control.
 """
 
 from __future__ import annotations
@@ -61,7 +57,6 @@ def _path(argument: str, value: object) -> str:
 
 
 def _read(argument: str, path: str) -> bytes:
-    """The bytes of `path`; ConfigError naming it if it is missing or cannot be read."""
     try:
         data = Path(path).read_bytes()
     except FileNotFoundError:
@@ -121,8 +116,7 @@ def _signed_by(cert: x509.Certificate, issuer: x509.Certificate) -> bool:
     return True
 
 
-def _check_key_type(path: str, key: object) -> None:
-    """ConfigError unless rustls (Zenoh's TLS) can sign with `key`."""
+def _check_key_type(path: str, key: object) -> None:  # (what rustls, Zenoh's TLS, signs)
     if isinstance(key, ec.EllipticCurvePrivateKey) and isinstance(key.curve, _CURVES):
         return
     if isinstance(key, ed25519.Ed25519PrivateKey):
@@ -143,7 +137,6 @@ def _check_key_type(path: str, key: object) -> None:
 
 
 def _check_uses(path: str, cert: x509.Certificate) -> None:
-    """ConfigError if an extendedKeyUsage leaves out TLS client or server use."""
     try:
         uses = set(cert.extensions.get_extension_for_class(x509.ExtendedKeyUsage).value)
     except x509.ExtensionNotFound:
@@ -177,49 +170,40 @@ def _members(members: object) -> tuple[str, ...]:
 class ZenohTLS:
     """A host's CA, certificate, key and the system's members, checked when made.
 
-    The system has its own certificate authority (`ca`): every host holds `ca` and its
-    own certificate and key, and admits the hosts whose certificate's common name is in
-    `members`. As ROS 2's SROS2 keystore: one CA per system, one identity per participant.
-    Make the files with `rr-actors certs init` / `rr-actors certs issue` (or any PKI whose
-    certificates have both TLS uses and the addresses peers dial).
+    The system has its own certificate authority (`ca`); every host holds `ca`, its own
+    certificate and key, and admits the hosts whose certificate's common name is in
+    `members` (as ROS 2's SROS2 keystore: one CA per system, one identity per
+    participant). Make the files with `rr-actors certs`: docs/how-to/securing-registrars.md.
 
     Args:
         ca: path (str or `os.PathLike`) to a PEM file of the system's CA certificate(s)
-            (more than one is allowed: all are trusted, e.g. the old and the new CA while
-            it is replaced).
-        cert: path to this host's PEM certificate: the host's own first, then any
-            intermediate CA certificates, each signed by the next; the last is signed
-            by a CA of `ca`.
-        key: path to the certificate's private key, PEM, unencrypted (PKCS#8, PKCS#1 or
-            SEC1): ECDSA P-256 or P-384, Ed25519, or RSA of 2048 bits or more.
-        members: the common names admitted (an iterable of str, not one str), named like
-            registrars; non-empty, and this host's own name must be one. Order is kept,
-            duplicates dropped.
+            (all are trusted: the old and the new CA while it is replaced).
+        cert: path to this host's PEM certificate, then any intermediates, each signed
+            by the next, the last by a CA of `ca`.
+        key: path to its private key, PEM, unencrypted: ECDSA P-256 or P-384, Ed25519,
+            or RSA of 2048 bits or more.
+        members: the common names admitted (an iterable of str), named like registrars;
+            non-empty, this host's own among them. Order kept, duplicates dropped.
 
     Attributes:
         ca, cert, key: the absolute paths.
         members: the names admitted, a tuple.
-        name: this host's certificate's subject common name (its member name).
+        name: this host's certificate's common name (its member name).
         addresses: the certificate's subject alternative names (IP addresses and DNS
-            names, as strings, in its order): the addresses peers may dial this host at.
+            names, in its order): where peers may dial this host.
         not_after: when the certificate ends (a timezone-aware UTC datetime).
 
     Raises:
-        ConfigError: naming the argument and file (or the name) and what is wrong: a
-            path that is not str/PathLike; a file missing, unreadable (e.g. a directory)
-            or not PEM; `ca` without a certificate, or one that is not a CA
-            (BasicConstraints CA=true), expired or not yet valid; `cert` without a
-            certificate, expired or not yet valid (with the dates, UTC), not signed by
-            `ca` (or through an intermediate that is not a CA), without a common name,
-            with an extendedKeyUsage lacking TLS server or client use; `key` not a
-            private key, encrypted, of a type rustls cannot use, or not the certificate's;
-            `members` not an iterable of names, empty, a name that is not a member name,
-            or without this host's name.
+        ConfigError: naming the argument and file and what is wrong: a path that is not
+            one; a file missing, unreadable or not PEM; `ca` without a CA certificate, or
+            one out of date; `cert` out of date (with the dates, UTC), not signed by `ca`
+            (or through an intermediate that is no CA), without a common name, or without
+            both TLS uses; `key` not a private key, encrypted, of a type rustls cannot
+            use, or not the certificate's; `members` not names, empty, or without this
+            host's name.
 
-    A key file open to group or others, or owned by another user, logs a WARNING on
-    the `rr_actors` logger naming it, its mode or owner, and the fix (`chmod 600`,
-    `chown`). The object is read-only; Zenoh reads the
-    files again when a `ZenohNetwork` opens its session.
+    A key file open to group or others, or owned by another user, logs a WARNING naming
+    the fix (`chmod 600`, `chown`). The object is read-only.
     """
 
     __slots__ = ("addresses", "ca", "cert", "key", "members", "name", "not_after")
@@ -262,7 +246,6 @@ class ZenohTLS:
         self.addresses = _addresses(leaf)
 
     def __setattr__(self, name: str, value: object) -> None:
-        """Each attribute is set once, when the object is made: make a new one to change it."""
         if hasattr(self, name):
             raise AttributeError(f"ZenohTLS.{name} is read-only: make a new ZenohTLS")
         object.__setattr__(self, name, value)
@@ -286,20 +269,15 @@ def _addresses(cert: x509.Certificate) -> tuple[str, ...]:
 
 
 def authorities(path: str) -> list[x509.Certificate]:
-    """The CA certificates of file `path`, each a CA and in date now.
-
-    Raises:
-        ConfigError: as `ZenohTLS` for its `ca`.
-    """
+    """The CA certificates of file `path`, each a CA and in date now (raises as `ZenohTLS`)."""
     return _authorities(path, datetime.datetime.now(datetime.UTC))
 
 
 def leaf_of(
     chain: bytes, trusted: list[x509.Certificate], now: datetime.datetime
 ) -> x509.Certificate | None:
-    """The host certificate first in PEM `chain` (a host's `cert` file as it is), if every
-    certificate of it is in date at `now`, signed by the next (each intermediate a CA),
-    the last by one of `trusted`; else `None`. Never raises."""
+    """The host certificate first in PEM `chain` (a `cert` file) if the chain checks out
+    at `now` up to one of `trusted`; else `None`."""
     try:
         certificates = x509.load_pem_x509_certificates(chain)
         if not certificates:
@@ -310,12 +288,10 @@ def leaf_of(
 
 
 def member_of(cert: x509.Certificate) -> str | None:
-    """The member name of host certificate `cert`: its subject common name, if any."""
     return _common_name(cert)
 
 
 def _authorities(path: str, now: datetime.datetime) -> list[x509.Certificate]:
-    """The CA certificates of `path`: each a CA, in date."""
     authorities = _certificates("ca", path)
     for authority in authorities:
         what = f"ca {path} ({authority.subject.rfc4514_string()})"
@@ -326,7 +302,6 @@ def _authorities(path: str, now: datetime.datetime) -> list[x509.Certificate]:
 
 
 def _leaf(path: str, ca: str, now: datetime.datetime) -> x509.Certificate:
-    """The host's certificate of `path` (first), its chain checked up to a CA of `ca`."""
     chain = _certificates("cert", path)
     leaf = _checked_chain(chain, _authorities(ca, now), f"cert {path}", f"ca {ca}", now)
     _check_uses(path, leaf)
@@ -340,8 +315,8 @@ def _checked_chain(
     ca: str,
     now: datetime.datetime,
 ) -> x509.Certificate:
-    """The first certificate of `chain`, once each of it is in date and signed by the
-    next, the last by one of `authorities` (`what` and `ca` name them in the error)."""
+    """The first of `chain`, once each is in date and signed by the next, the last by one
+    of `authorities` (`what` and `ca` name them in the error)."""
     for index, link in enumerate(chain):
         this = what + (f" (intermediate {index})" if index else "")
         if index and not _is_ca(link):  # Zenoh's TLS (webpki) refuses such a chain
@@ -361,14 +336,9 @@ def _checked_chain(
 
 
 def member_addresses(pem: bytes, tls: ZenohTLS, name: str) -> tuple[str, ...]:
-    """The IP addresses that member `name`'s certificate names (subjectAltName), from
-    `pem` (its cert file: its certificate, then any intermediates), checked as this
-    host's own: in date, signed up to a CA of `tls.ca`, its common name `name`, and
-    `name` one of `tls.members`. What the handshake gate never drops (`gate`).
-
-    Raises:
-        ConfigError: the certificate is not that, saying why (the caller logs it).
-    """
+    """The IP addresses member `name`'s cert file `pem` names, checked as this host's
+    own (in date, signed up to `tls.ca`, common name `name`, one of `tls.members`): what
+    the gate never drops. Raises `ConfigError` saying why not."""
     if name not in tls.members:
         raise ConfigError(f"{name!r} is not in members {list(tls.members)}")
     what = f"the certificate of member {name!r}"
