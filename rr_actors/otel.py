@@ -164,6 +164,12 @@ def _late(waiting: dict[tuple[str, str], _Half], before: float, most: int) -> li
     return late
 
 
+def _old(half: _Half, exited: events.ChildExited, restarted: events.ChildRestarted) -> bool:
+    """Whether `half` (a SERVER side) is of the incarnation that exited (a thread's restart
+    keeps its pid: a side that ended before the exit)."""
+    return half.pid == exited.pid and (exited.pid != restarted.pid or half.end <= exited.at)
+
+
 @dataclasses.dataclass(slots=True)
 class _Child:
     """A user callback's INTERNAL span, under its server span."""
@@ -960,7 +966,7 @@ class Tracing:
                 _Child(f"{load.server}.load", half.start, load.at, load_attributes)
             )
             self._server(tracer, (load.query_id, "call"), half)
-        doubts = self._cut_unloads(tracer, exited, doubts, opened)
+        doubts = self._cut_unloads(tracer, restart, doubts, opened)
         for doubt in doubts:  # started, never committed: cut inside its callback
             # its query id is the resource's (the call's is not known at the provider):
             # a load's call is the one failed call to that server that may have executed;
@@ -997,23 +1003,18 @@ class Tracing:
         their callers' (another host's subscriber makes those, or the caller's is late):
         its last span is among them, and its restart span links to it when it starts
         (OpenTelemetry takes links then). A caller's side heard later is made alone, with
-        the ids the call carried: still the parent. (A thread's restart keeps its pid:
-        its sides ended before the exit only.)"""
-        old = (exited.pid, exited.child)
-        same_pid = exited.pid == restarted.pid
+        the ids the call carried: still the parent."""
         for key in [
             key
             for key, half in self._servers.items()
-            if (half.pid, half.service) == old
-            and not half.lost
-            and not (same_pid and half.end > exited.at)
+            if half.service == exited.child and not half.lost and _old(half, exited, restarted)
         ]:
             self._alone(tracer, self._servers, key)
 
     def _cut_unloads(
         self,
         tracer: Any,
-        exited: events.ChildExited,
+        restart: _Restart,
         doubts: list[events.InDoubt],
         opened: _Opened,
     ) -> list[events.InDoubt]:
@@ -1021,10 +1022,13 @@ class Tracing:
         `ResourceUnloaded` never came): each ended at the exit, marked, its `unload`
         callback's span under it ended so too (the `InDoubt` of its resource, if any, is
         this span). The doubts left: those of no release heard."""
+        exited = restart.exited
         ended_by = f"restart {exited.child}"
         lost = {"rr_actors.end_lost": True, "rr_actors.ended_by": ended_by}
         named = {(d.registrar, d.query_id): d for d in doubts if d.cut == "unload"}
-        for resource in [r for r, (_k, h) in self._unloading.items() if h.pid == exited.pid]:
+        for resource in [
+            r for r, (_k, h) in self._unloading.items() if _old(h, exited, restart.restarted)
+        ]:
             key, half = self._unloading.pop(resource)
             self._released.pop(resource, None)  # (the next incarnation's unload: its own)
             doubt = named.pop(resource, None)
