@@ -89,6 +89,9 @@ SWEEP_EVERY = 0.05
 """Seconds between two looks for what waited `pair_within` (or `pair_within`, if less)."""
 
 _CALL_ENDS = (events.CallAnswered, events.CallFailed, events.CallWithdrawn)
+# the context of a span with no parent (not one under what is current where it is made:
+# `flush` may run in a thread with a span of its own current)
+_ROOT: Any = _api.set_span_in_context(_api.INVALID_SPAN) if _api is not None else None
 _UNLOADS = frozenset({"unload", "unload unanswered", "dependency", "stop"})
 
 
@@ -159,6 +162,12 @@ def _late(waiting: dict[tuple[str, str], _Half], before: float, most: int) -> li
     if excess > 0:
         late += itertools.islice(waiting, len(late), len(late) + excess)
     return late
+
+
+def _old(half: _Half, exited: events.ChildExited, restarted: events.ChildRestarted) -> bool:
+    """Whether `half` (a SERVER side) is of the incarnation that exited (a thread's restart
+    keeps its pid: a side that ended before the exit)."""
+    return half.pid == exited.pid and (exited.pid != restarted.pid or half.end <= exited.at)
 
 
 @dataclasses.dataclass(slots=True)
@@ -289,9 +298,10 @@ class Tracing:
         self._traced: dict[str, tuple[str, str]] = {}  # query id: its trace, serving registrar
         self._statuses: collections.OrderedDict[str, _Sent] = collections.OrderedDict()
         self._stalled: dict[str, _Sent] = {}  # the sends some of whose hops wait
-        # (pid, registrar): the last SERVER span made of its events (a manager's registrar
-        # is named as the child); (the new pid, child): its restart span, still open
-        self._last_of: dict[tuple[int, str], Any] = {}
+        # (pid, registrar): the SERVER span made of its events that ended last, its end (a
+        # manager's registrar is named as the child); (the new pid, child): its restart
+        # span, still open
+        self._last_of: dict[tuple[int, str], tuple[float, Any]] = {}
         self._opened: dict[tuple[int, str], _Opened] = {}
         # (the new pid, child): its restart span, ended before the new one's first span
         self._restarted_by: dict[tuple[int, str], Any] = {}
@@ -730,27 +740,20 @@ class Tracing:
 
     def _sweep(self, tracer: Any, before: float) -> None:
         """Make spans alone of the restarts and sides waiting since before `before`."""
+        for pid in [p for p, r in self._restarts.items() if r.arrived <= before]:
+            restart = self._restarts.pop(pid)  # (first: the releases whose unload it cut)
+            self._restart_span(tracer, restart, restart.restored or restart.restarted.at)
         for resource in [r for r, (_k, h) in self._unloading.items() if h.arrived <= before]:
             self._server(tracer, *self._unloading.pop(resource))
-        for pid in [p for p, r in self._restarts.items() if r.arrived <= before]:
-            restart = self._restarts.pop(pid)
-            self._restart_span(tracer, restart, restart.restored or restart.restarted.at)
         for status_id, sent in list(self._stalled.items()):
             if not (sent.waiting or sent.upstream):
                 del self._stalled[status_id]
             elif sent.arrived <= before:
                 del self._stalled[status_id]
                 self._give_up(tracer, status_id, sent)
-        lost = self._lost_at + self._pair_within if self._lost_at is not None else None
         for waiting in (self._clients, self._servers):
-            late = _late(waiting, before, self._max_pending)
-            for key in late:
-                alone = waiting.pop(key, None)
-                if alone is not None:
-                    if lost is not None and alone.arrived <= lost:  # its other side: lost?
-                        alone.attributes["rr_actors.incomplete"] = True
-                    clients = waiting is self._clients
-                    self._emit(tracer, alone if clients else None, None if clients else alone, key)
+            for key in _late(waiting, before, self._max_pending):
+                self._alone(tracer, waiting, key)
         for child in [c for c, o in self._opened.items() if o.arrived <= before]:
             opened = self._opened.pop(child)
             self._close_restart(opened)  # (the new one's first span, if any, links to it)
@@ -763,6 +766,18 @@ class Tracing:
             self._doubts.clear()
             self._exits.clear()
             self._restored.clear()
+
+    def _alone(self, tracer: Any, waiting: dict[tuple[str, str], _Half], key: Any) -> None:
+        """Make the side of `key` waiting in `waiting` (`_clients`, `_servers`) a span alone
+        (marked incomplete if it may have waited for a side the stream lost)."""
+        alone = waiting.pop(key, None)
+        if alone is None:
+            return
+        lost = self._lost_at + self._pair_within if self._lost_at is not None else None
+        if lost is not None and alone.arrived <= lost:  # its other side: lost?
+            alone.attributes["rr_actors.incomplete"] = True
+        clients = waiting is self._clients
+        self._emit(tracer, alone if clients else None, None if clients else alone, key)
 
     def _emit(
         self, tracer: Any, client: _Half | None, server: _Half | None, key: tuple[str, str]
@@ -793,7 +808,7 @@ class Tracing:
                 name,
                 context=_api.set_span_in_context(_api.NonRecordingSpan(parent))
                 if parent is not None
-                else None,
+                else _ROOT,
                 kind=_api.SpanKind.CLIENT,
                 attributes=client.attributes,
                 links=client.links,
@@ -822,7 +837,7 @@ class Tracing:
                 tracer,
                 ids,
                 name,
-                context=context,
+                context=context if context is not None else _ROOT,
                 kind=_api.SpanKind.SERVER,
                 attributes=server.attributes,
                 links=links,
@@ -851,7 +866,7 @@ class Tracing:
     def _emit_child(self, tracer: Any, context: Any, child: _Child, links: list[Any]) -> None:
         span = tracer.start_span(
             child.name,
-            context=context,
+            context=context if context is not None else _ROOT,
             kind=_api.SpanKind.INTERNAL,
             attributes=child.attributes,
             links=links,
@@ -887,8 +902,10 @@ class Tracing:
         if not server.pid or server.lost:
             return
         incarnation = (server.pid, server.service)
-        self._last_of.pop(incarnation, None)  # (the most recent last: the oldest first out)
-        self._last_of[incarnation] = made
+        known = self._last_of.pop(incarnation, None)  # (the most recent last: oldest out)
+        if known is None or known[0] <= server.end:  # (one made before may have ended later)
+            known = (server.end, made)
+        self._last_of[incarnation] = known
         if len(self._last_of) > self._max_pending:
             del self._last_of[next(iter(self._last_of))]
         opened = self._opened.pop(incarnation, None)
@@ -902,7 +919,9 @@ class Tracing:
         opened.span.end(end_time=_ns(opened.end))
 
     def _restart_span(self, tracer: Any, restart: _Restart, end: float) -> None:
-        """The restart's span; the spans the kill cut short, ended at the exit and marked."""
+        """The restart's span, linked to the old incarnation's last span (its sides still
+        waiting for their callers' made first, alone: `_settle`); the spans the kill cut
+        short, ended at the exit and marked."""
         exited, restarted = restart.exited, restart.restarted
         doubts = self._doubts.pop(restarted.pid, [])
         attributes: dict[str, Any] = {
@@ -918,12 +937,14 @@ class Tracing:
         if lost_events:  # the dead process built them, never forwarded: spans missing
             attributes["rr_actors.events_lost"] = lost_events
             attributes["rr_actors.incomplete"] = True
+        self._settle(tracer, exited, restarted)
         last = self._last_of.pop((exited.pid, exited.child), None)  # the old one's last span
         span = tracer.start_span(
             f"restart {exited.child}",
+            context=_ROOT,
             kind=_api.SpanKind.INTERNAL,
             attributes=attributes,
-            links=[_api.Link(last, {"rr_actors.incarnation": "old"})] if last else [],
+            links=[_api.Link(last[1], {"rr_actors.incarnation": "old"})] if last else [],
             start_time=_ns(exited.at),
         )
         # open until the new incarnation's first span links to it (or `pair_within`)
@@ -945,14 +966,17 @@ class Tracing:
                 _Child(f"{load.server}.load", half.start, load.at, load_attributes)
             )
             self._server(tracer, (load.query_id, "call"), half)
+        doubts = self._cut_unloads(tracer, restart, doubts, opened)
         for doubt in doubts:  # started, never committed: cut inside its callback
             # its query id is the resource's (the call's is not known at the provider):
-            # its call is the one failed call to that server that may have executed
+            # a load's call is the one failed call to that server that may have executed;
+            # an unload's release, not heard (not a last consumer's `unload`): none
             calls = [
                 key
                 for key, half in self._clients.items()
                 if (half.service, half.method) == (doubt.registrar, doubt.server)
                 and half.attributes.get("rr_actors.may_have_executed")
+                and doubt.cut in ("load", "")
             ]
             query_id = calls[0][0] if len(calls) == 1 else doubt.query_id
             attributes = self._rpc(doubt.registrar, doubt.server, query_id) | lost
@@ -966,7 +990,61 @@ class Tracing:
             half.children.append(
                 _Child(f"{doubt.server}.{verb}", exited.at, exited.at, callback, lost=ended_by)
             )
-            self._server(tracer, (query_id, "call" if verb == "load" else "unload"), half)
+            key = (query_id, "call" if verb == "load" else "unload")
+            if half.root:  # (no other side to wait for)
+                self._emit(tracer, None, half, key)
+            else:
+                self._server(tracer, key, half)
+
+    def _settle(
+        self, tracer: Any, exited: events.ChildExited, restarted: events.ChildRestarted
+    ) -> None:
+        """Make spans now, alone, of the old incarnation's SERVER sides still waiting for
+        their callers' (another host's subscriber makes those, or the caller's is late):
+        its last span is among them, and its restart span links to it when it starts
+        (OpenTelemetry takes links then). A caller's side heard later is made alone, with
+        the ids the call carried: still the parent."""
+        for key in [
+            key
+            for key, half in self._servers.items()
+            if half.service == exited.child and not half.lost and _old(half, exited, restarted)
+        ]:
+            self._alone(tracer, self._servers, key)
+
+    def _cut_unloads(
+        self,
+        tracer: Any,
+        restart: _Restart,
+        doubts: list[events.InDoubt],
+        opened: _Opened,
+    ) -> list[events.InDoubt]:
+        """The old incarnation's last releases whose unload's end the kill lost (their
+        `ResourceUnloaded` never came): each ended at the exit, marked, its `unload`
+        callback's span under it ended so too (the `InDoubt` of its resource, if any, is
+        this span). The doubts left: those of no release heard."""
+        exited = restart.exited
+        ended_by = f"restart {exited.child}"
+        lost = {"rr_actors.end_lost": True, "rr_actors.ended_by": ended_by}
+        named = {(d.registrar, d.query_id): d for d in doubts if d.cut == "unload"}
+        for resource in [
+            r for r, (_k, h) in self._unloading.items() if _old(h, exited, restart.restarted)
+        ]:
+            key, half = self._unloading.pop(resource)
+            self._released.pop(resource, None)  # (the next incarnation's unload: its own)
+            doubt = named.pop(resource, None)
+            half.attributes.update(lost)
+            if doubt is not None:
+                half.attributes["rr_actors.in_doubt"] = True
+                half.method = half.method or doubt.server
+                half.attributes["rpc.method"] = half.method
+            half.links = [_api.Link(opened.span.get_span_context())]
+            half.lost, half.restart, half.end = ended_by, opened, max(half.end, exited.at)
+            callback = {"rr_actors.resource_id": resource[1]} | lost
+            half.children.append(
+                _Child(f"{half.method}.unload", half.start, half.end, callback, lost=ended_by)
+            )
+            self._server(tracer, key, half)
+        return [d for d in doubts if d.cut != "unload" or (d.registrar, d.query_id) in named]
 
 
 def trace(source: _Subscribable, **options: Any) -> Tracing:

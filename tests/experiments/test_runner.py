@@ -13,7 +13,7 @@ from pathlib import Path
 from tests.support.demos import console_spans
 
 PLAN = """\
-duration = 1.0
+duration = 3.0
 seed = 1
 [tree]
 strategy = "one_for_one"
@@ -35,7 +35,7 @@ server = "resource"
 [[faults]]
 kind = "kill_manager"
 target = "db"
-at = 0.5
+at = 1.5
 """
 
 RUN = textwrap.dedent(

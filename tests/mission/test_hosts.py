@@ -112,8 +112,16 @@ def test_the_two_host_demo_with_every_fault_links_each_restart_to_both_incarnati
             (link["attributes"]["rr_actors.incarnation"], by_id[link["context"]["span_id"]])
             for link in restart["links"]
         ]
-        # (the old incarnation's last span, when it was made before the restart span: one
-        # still waiting for its other side from the other host then is not linked, open)
+        # the old incarnation's last SERVER span (also one still waiting for its caller's
+        # side, heard on the other host), and any span whose end the kill lost
+        last = [
+            s
+            for kind, s in links
+            if kind == "old" and not s["attributes"].get("rr_actors.end_lost")
+        ]
+        assert [(f"{child}/", "SpanKind.SERVER")] == [
+            (s["name"][: len(child) + 1], s["kind"]) for s in last
+        ], name
         assert all(s["name"].startswith(f"{child}/") for kind, s in links if kind == "old")
         # the new incarnation's first SERVER span: linked from the restart span while it is
         # open (`pair_within`), else it links to the restart span (F3, F5: first called
