@@ -52,9 +52,6 @@ from rr_actors._core import runtime
 from rr_actors._types import Query
 from rr_actors.errors import UnknownQueryError
 
-__all__ = ["Catalog", "RequestIndex"]
-
-
 _UNKNOWN: Any = object()  # a `digest` argument not given (`None`: the request has none)
 
 

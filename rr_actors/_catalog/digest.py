@@ -19,19 +19,6 @@ import sys
 from collections import OrderedDict
 from typing import Any
 
-__all__ = [
-    "DIGEST_SCHEME",
-    "NO_DIGEST",
-    "UNHASHABLE",
-    "candidates_without_digest",
-    "describe",
-    "identity_equality",
-    "request_bucket",
-    "request_digest",
-    "requests_equal",
-    "runtime_key",
-]
-
 UNHASHABLE = ("<unhashable>",)
 
 NO_DIGEST = -1

@@ -9,16 +9,6 @@ from typing import Any, Protocol
 
 from rr_actors._types import Query
 
-__all__ = [
-    "Changes",
-    "ClientRecord",
-    "Decoder",
-    "Listing",
-    "Resource",
-    "ResourceState",
-    "UnreadRows",
-]
-
 
 class ResourceState(enum.Enum):
     """Life cycle of a served resource."""

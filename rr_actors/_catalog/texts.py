@@ -11,17 +11,6 @@ import reprlib
 from collections.abc import Callable
 from typing import Any
 
-__all__ = [
-    "LABEL_WIDTH",
-    "NOT_SHOWN_OLD",
-    "NOT_SHOWN_YET",
-    "TEXT_WIDTH",
-    "display_text",
-    "is_plain",
-    "label_text",
-    "plain_text",
-]
-
 NOT_SHOWN_OLD = "<not shown: written by an older version>"
 """The display text of a value a version without display texts stored (before schema v4)."""
 

@@ -29,8 +29,6 @@ from rr_actors.errors import (
     _known_names,
 )
 
-__all__ = ["DIRECTORY", "Directory", "LocalPeer", "Peer", "Reply"]
-
 logger = logging.getLogger("rr_actors")
 
 

@@ -29,16 +29,6 @@ from types import TracebackType
 from rr_actors._core import runtime
 from rr_actors._platform import PLATFORM, forkserver
 
-__all__ = [
-    "EXIT_TIMEOUT",
-    "NETWORKS",
-    "REGISTRARS",
-    "SUPERVISORS",
-    "left_running",
-    "stop_at_exit",
-    "stop_everything",
-]
-
 logger = logging.getLogger("rr_actors")
 
 EXIT_TIMEOUT = 10.0

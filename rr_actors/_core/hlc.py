@@ -26,21 +26,6 @@ from rr_actors._core import runtime
 from rr_actors._core.throttle import Throttle
 from rr_actors.errors import ConfigError
 
-__all__ = [
-    "CLOCK",
-    "COUNTER_BITS",
-    "MAX_OFFSET",
-    "MAX_OFFSET_LIMIT",
-    "REFUSED_EVERY",
-    "SKEW_ENV",
-    "HybridClock",
-    "check_max_offset",
-    "from_seconds",
-    "pack",
-    "seconds",
-    "unpack",
-]
-
 logger = logging.getLogger("rr_actors")
 
 COUNTER_BITS = 12

@@ -30,15 +30,6 @@ from rr_actors._core.actor import OneShotFuture, mark_awaiting
 from rr_actors._core.replies import Steps, left, let_go, when_waiting
 from rr_actors._platform import forkserver
 
-__all__ = [
-    "OnLoop",
-    "is_coroutine_function",
-    "on_process_loop",
-    "process_loop",
-    "run_steps_async",
-    "settled",
-]
-
 logger = logging.getLogger("rr_actors")
 
 T = TypeVar("T")

@@ -31,8 +31,6 @@ from typing import Protocol
 from rr_actors._core import runtime
 from rr_actors._platform import forkserver
 
-__all__ = ["MEMBERSHIP", "Hearer", "Joined", "Membership"]
-
 logger = logging.getLogger("rr_actors")
 
 

@@ -20,17 +20,6 @@ from rr_actors._core.serial import SerialExecutor, Task
 from rr_actors._core.throttle import Throttle
 from rr_actors.errors import ConfigError
 
-__all__ = [
-    "DEFAULT_MAXSIZE",
-    "FORWARD_LINGER",
-    "LINGER",
-    "LOG_EVERY",
-    "Forwarder",
-    "Late",
-    "LateQueue",
-    "Subscription",
-]
-
 logger = logging.getLogger("rr_actors")
 
 E = TypeVar("E")

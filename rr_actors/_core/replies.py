@@ -29,26 +29,6 @@ from rr_actors._core import runtime
 from rr_actors._core.actor import OneShotFuture
 from rr_actors.errors import CallTimeoutError
 
-__all__ = [
-    "Answer",
-    "CallbackReply",
-    "FutureReply",
-    "Join",
-    "SharedJoin",
-    "Steps",
-    "TokenReply",
-    "Tokens",
-    "Wait",
-    "asked",
-    "left",
-    "let_go",
-    "on_own_thread",
-    "run_steps",
-    "wait",
-    "waited",
-    "when_waiting",
-]
-
 T = TypeVar("T")
 
 logger = logging.getLogger("rr_actors")

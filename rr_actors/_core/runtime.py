@@ -33,48 +33,6 @@ from typing import Any, Protocol, TypeVar
 
 from rr_actors._types import Status
 
-__all__ = [
-    "SEAMS",
-    "TIMEOUT_MAX",
-    "Cancellable",
-    "Condition",
-    "Empty",
-    "Event",
-    "Full",
-    "Lock",
-    "RLock",
-    "SimpleQueue",
-    "StartTimer",
-    "Steps",
-    "Thread",
-    "Timer",
-    "current_thread",
-    "get_ident",
-    "getpid",
-    "getrandbits",
-    "guards_files",
-    "handles_signals",
-    "hold",
-    "local",
-    "manager_process",
-    "monotonic",
-    "new_event_loop",
-    "new_id",
-    "process_state",
-    "process_states",
-    "queue_class",
-    "random",
-    "simulated",
-    "sleep",
-    "steps",
-    "thread_locals",
-    "thread_timer",
-    "urandom",
-    "use",
-    "wall",
-    "wall_ns",
-]
-
 T = TypeVar("T")
 Q = TypeVar("Q", bound=queue.SimpleQueue[Any])
 F = TypeVar("F")

@@ -22,8 +22,6 @@ from typing import Any, TypeVar
 
 from rr_actors._core import runtime
 
-__all__ = ["SerialExecutor", "Task"]
-
 logger = logging.getLogger("rr_actors")
 
 T = TypeVar("T")

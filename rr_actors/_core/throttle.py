@@ -19,8 +19,6 @@ from typing import Any
 
 from rr_actors._core import runtime
 
-__all__ = ["EVERY", "LogThrottle", "Throttle", "short"]
-
 EVERY = 60.0
 """Seconds between two log lines about the same trouble caused by a peer."""
 

@@ -49,23 +49,6 @@ def _bind(*, load: bool = False) -> bool:
     return True
 
 
-__all__ = [
-    "adopt",
-    "attach",
-    "begin",
-    "caller_parent",
-    "context_of",
-    "current",
-    "derived",
-    "detach",
-    "own_trace",
-    "parse",
-    "server_span",
-    "span_id",
-    "status_callback",
-    "under",
-]
-
 _SERVER = 0x7272_5F61_6374_6F72  # (b"rr_actor"): a SERVER span's id is its CLIENT's xor this
 _MASK = (1 << 64) - 1
 

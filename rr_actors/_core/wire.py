@@ -43,8 +43,6 @@ from rr_actors.errors import (
     UnknownServerError,
 )
 
-__all__ = ["WIRE_TYPES", "WIRE_VERSION", "Pickler", "WireMessage", "dumps", "plain"]
-
 WIRE_VERSION = 10
 """The version of what crosses between processes: a carrier that can meet another version
 (the Zenoh one) refuses its messages unread. Raise it when a `WireMessage` changes

@@ -27,8 +27,6 @@ from collections.abc import Callable
 from rr_actors._core import runtime
 from rr_actors.config import DEFAULT_MAX_WORKERS
 
-__all__ = ["Job", "Workers"]
-
 logger = logging.getLogger("rr_actors")
 
 

@@ -17,18 +17,6 @@ from typing import Protocol
 
 from rr_actors._platform import forkserver
 
-__all__ = [
-    "GATE_SOURCES",
-    "PARENT_GONE_EXIT",
-    "CpuSample",
-    "CpuWatch",
-    "ExitWatch",
-    "ListenerGate",
-    "NameWatch",
-    "Platform",
-    "PortablePlatform",
-]
-
 GATE_SOURCES = 256
 """Source addresses a `ListenerGate` drops (or admits) at most (more is a firewall's job)."""
 

@@ -38,19 +38,6 @@ from typing import Any
 
 from rr_actors.errors import ConfigError
 
-__all__ = [
-    "SUPPORTED",
-    "after_fork_in_child",
-    "check_usable",
-    "context",
-    "forget_in_child",
-    "forget_server",
-    "forked_from",
-    "refuse",
-    "server_pid",
-    "start_within",
-]
-
 _resets: list[tuple[str, Callable[[], None]]] = []
 _refusals: list[str] = []
 _parent: int | None = None  # the pid of the process this one was forked from

@@ -25,8 +25,6 @@ from rr_actors._platform import forkserver as own_forkserver
 from rr_actors._platform import linux_gate, linux_names
 from rr_actors._platform.base import PARENT_GONE_EXIT, CpuSample, PortablePlatform
 
-__all__ = ["PARENT_GONE_EXIT", "LinuxPlatform", "PidfdExitWatch", "ProcCpuWatch"]
-
 logger = logging.getLogger("rr_actors")
 
 _PR_SET_PDEATHSIG = 1

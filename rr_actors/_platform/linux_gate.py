@@ -27,8 +27,6 @@ from pathlib import Path
 
 from rr_actors._platform.base import GATE_SOURCES
 
-__all__ = ["LinuxListenerGate", "find_listener", "handshaken"]
-
 _SO_ATTACH_FILTER = 26
 _SO_DETACH_FILTER = 27
 _LISTEN = "0A"

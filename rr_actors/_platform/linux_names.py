@@ -35,8 +35,6 @@ from typing import Any
 
 from rr_actors._platform import forkserver
 
-__all__ = ["InotifyNameWatch", "watch_names"]
-
 _IN_ATTRIB = 0x4
 _IN_MOVE_SELF = 0x800
 _IN_DELETE_SELF = 0x400

@@ -31,8 +31,6 @@ try:
 except ImportError:  # pragma: no cover - not POSIX: no lock (documented)
     fcntl = None  # type: ignore[assignment]
 
-__all__ = ["HeldError", "claim", "claim_file", "release", "release_file"]
-
 _held: dict[int, str] = {}  # the descriptors of the locks this process holds: their files
 _held_files: dict[tuple[int, int], int] = {}  # claim_file's: (st_dev, st_ino) -> descriptor
 

@@ -87,8 +87,6 @@ from rr_actors.events.kinds import number_events
 if TYPE_CHECKING:
     from rr_actors._registrar import ResourceRegistrar
 
-__all__ = ["main", "set_title", "standby"]
-
 logger = logging.getLogger("rr_actors")
 
 START_HOLD = 1.0

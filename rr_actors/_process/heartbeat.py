@@ -30,8 +30,6 @@ from collections.abc import Callable
 from rr_actors._core.throttle import LogThrottle
 from rr_actors._platform.base import CpuSample, CpuWatch
 
-__all__ = ["STARVED_LIMIT", "Hang", "Heartbeat", "Late", "Look"]
-
 logger = logging.getLogger("rr_actors")
 
 STARVED_LIMIT = 10.0

@@ -50,8 +50,6 @@ from rr_actors.errors import (
     RrError,
 )
 
-__all__ = ["FORWARD_MARGIN", "Owner", "RemoteRegistrar", "There"]
-
 T = TypeVar("T")
 P = ParamSpec("P")
 

@@ -30,8 +30,6 @@ from rr_actors._process.control import PROCESS_PREFIX, Start, Warm, WarmUp, fork
 from rr_actors._transport.messenger import Address
 from rr_actors.config import RegistrarConfig
 
-__all__ = ["Spare", "SparePool"]
-
 logger = logging.getLogger("rr_actors")
 
 FORK_TIMEOUT = 5.0

@@ -42,8 +42,6 @@ from rr_actors._process.control import Events
 from rr_actors._store.outbox import read_told
 from rr_actors.events import EventsDropped
 
-__all__ = ["HOLES", "JOURNAL_BYTES", "Journal", "Received", "Tally"]
-
 logger = logging.getLogger("rr_actors")
 
 _SIZE = 8  # one unsigned 64-bit counter, in the machine's byte order

@@ -101,21 +101,6 @@ from rr_actors.config import RegistrarConfig
 from rr_actors.errors import ConfigError, RegistrarUnavailableError, RrError
 from rr_actors.events import Event
 
-__all__ = [
-    "DISPATCH",
-    "DRAIN",
-    "DRAIN_SECONDS",
-    "EVENT_LOG",
-    "MESSAGE_STEPS",
-    "STEPS",
-    "Binder",
-    "Handler",
-    "Launched",
-    "RegistrarActor",
-    "asked",
-    "launch",
-]
-
 logger = logging.getLogger("rr_actors")
 
 

@@ -47,21 +47,6 @@ from rr_actors.errors import (
     RrError,
 )
 
-__all__ = [
-    "BACKLOG",
-    "AttemptState",
-    "CallAttempt",
-    "CallFailed",
-    "Calls",
-    "ClientLoaded",
-    "ClientReply",
-    "DueAnswers",
-    "DurableLoaded",
-    "Outcome",
-    "TakeOutcomes",
-]
-
-
 _FIRST_PAUSE = 0.005
 """Seconds a call refused for overload waits before it asks again when its provider does
 not say (its `retry_after`); each further refusal doubles it, up to `_LAST_PAUSE`."""

@@ -82,28 +82,6 @@ from rr_actors.errors import (
     UnknownQueryError,
 )
 
-__all__ = [
-    "GONE",
-    "Action",
-    "Answers",
-    "ClientActor",
-    "Clients",
-    "Flights",
-    "Holdings",
-    "InFlight",
-    "Listing",
-    "Notice",
-    "Reconciling",
-    "Releases",
-    "answer_event",
-    "decide",
-    "publish_answered",
-    "publish_failed",
-    "publish_forgotten",
-    "publish_refused",
-    "retry_held_at",
-]
-
 logger = logging.getLogger("rr_actors")
 
 

@@ -24,8 +24,6 @@ from rr_actors._catalog import ClientRecord, Resource
 from rr_actors._catalog.texts import display_text, label_text, plain_text
 from rr_actors._registrar.state import Shared
 
-__all__ = ["ClientTexts", "show_request", "show_response"]
-
 _BUILTIN = frozenset({str, bytes, int, float, complex, bool, type(None), dict, list, tuple, set})
 """Requests of these exact types get their record's text when it is first read."""
 

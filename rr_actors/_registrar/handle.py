@@ -83,20 +83,6 @@ from rr_actors._types import (
 from rr_actors.config import RegistrarConfig, check_seconds
 from rr_actors.errors import CallTimeoutError, ConfigError, RegistrarStoppedError
 
-__all__ = [
-    "STOP_WAITS_FOR_UNLOADS",
-    "Here",
-    "Placement",
-    "Registrar",
-    "RegistrarFacts",
-    "ResourceRegistrar",
-    "StatusWatch",
-    "blocking",
-    "call_steps",
-    "snapshot",
-    "start_registrar",
-]
-
 T = TypeVar("T")
 P = ParamSpec("P")
 

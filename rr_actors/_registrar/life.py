@@ -77,31 +77,6 @@ from rr_actors.errors import (
 )
 from rr_actors.events.kinds import LISTED_ROWS, Rows
 
-__all__ = [
-    "RETRY_FIRST",
-    "RETRY_MAX",
-    "ActorHere",
-    "CatalogView",
-    "Hearing",
-    "Lifecycle",
-    "Network",
-    "Presence",
-    "Restoring",
-    "Servable",
-    "Served",
-    "back",
-    "check_network",
-    "cut_short",
-    "gone",
-    "gone_for_good",
-    "lost_everything",
-    "publish_restored",
-    "publish_stopped",
-    "retry_delay",
-    "serve_on",
-    "tell_gone",
-]
-
 logger = logging.getLogger("rr_actors")
 
 

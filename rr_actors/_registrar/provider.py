@@ -104,21 +104,6 @@ from rr_actors.errors import (
     _known_names,
 )
 
-__all__ = [
-    "Admission",
-    "Lives",
-    "Matching",
-    "Provider",
-    "ServerActor",
-    "Servers",
-    "Teardown",
-    "Then",
-    "Unloading",
-    "first_equal",
-    "prepare",
-    "published_load",
-]
-
 logger = logging.getLogger("rr_actors")
 
 _SHED_HEADROOM = 1.5

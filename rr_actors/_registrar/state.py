@@ -42,24 +42,6 @@ from rr_actors._types import StatusCallback
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import CatalogWriteError, RrError
 
-__all__ = [
-    "NO_REPLY",
-    "POINTS",
-    "Hook",
-    "OpenReply",
-    "Pace",
-    "Phase",
-    "Probes",
-    "Server",
-    "Shared",
-    "Staged",
-    "TurnEvents",
-    "Waiter",
-    "consumers_by_origin",
-    "life_order",
-    "new_life",
-]
-
 logger = logging.getLogger("rr_actors")
 
 

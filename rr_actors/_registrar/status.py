@@ -48,19 +48,6 @@ from rr_actors._registrar.state import NO_REPLY, Shared, consumers_by_origin
 from rr_actors._types import Query, Status, StatusCallback, StatusDelivery, StatusUpdate
 from rr_actors.errors import ConfigError, RrError, UnknownQueryError
 
-__all__ = [
-    "DESK",
-    "SLICE",
-    "Desk",
-    "Parts",
-    "Routes",
-    "Runner",
-    "StatusRelay",
-    "StatusTargets",
-    "Unacknowledged",
-    "process",
-]
-
 logger = logging.getLogger("rr_actors")
 
 

@@ -19,15 +19,6 @@ from pathlib import Path
 
 from rr_actors._core import runtime
 
-__all__ = [
-    "CHECKPOINT_BUSY_TIMEOUT",
-    "CHECKPOINT_EVERY",
-    "PAGE",
-    "WAL_KEPT",
-    "WAL_LIMIT",
-    "Checkpointer",
-]
-
 logger = logging.getLogger("rr_actors")
 
 

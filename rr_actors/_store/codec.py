@@ -23,24 +23,6 @@ from rr_actors._catalog import ResourceState
 from rr_actors._core import wire
 from rr_actors.errors import CatalogCorruptError
 
-__all__ = [
-    "STATES_BY_CODE",
-    "STATE_CODES",
-    "NotUnpickled",
-    "Unreadable",
-    "as_corrupt",
-    "check_keys",
-    "check_row",
-    "check_values",
-    "damaged_file",
-    "decode",
-    "dumps",
-    "first_duplicate",
-    "lenient_decode",
-    "loads",
-    "not_unpickled",
-]
-
 STATE_CODES = {ResourceState.LOADING: 0, ResourceState.LOADED: 1, ResourceState.UNLOADING: 2}
 STATES_BY_CODE = tuple(STATE_CODES)
 

@@ -26,8 +26,6 @@ import struct
 import weakref
 from pathlib import Path
 
-__all__ = ["SUFFIX", "CommitCount", "lost_commits"]
-
 logger = logging.getLogger("rr_actors")
 
 SUFFIX = "-commits"  # the count's file, beside the backup (`erm.db-commits`)

@@ -47,25 +47,6 @@ from rr_actors._store.codec import (
 from rr_actors._store.restore import CLIENTS, RESOURCES, Mirror, client_records
 from rr_actors.errors import CatalogCorruptError, CatalogWriteError, ConfigError
 
-__all__ = [
-    "SIDE_FILES",
-    "SYNCHRONOUS",
-    "Backup",
-    "BackupLock",
-    "Rows",
-    "check_location",
-    "connect",
-    "create",
-    "foreign_owner",
-    "gc_paused",
-    "prepare",
-    "quarantine_backup",
-    "read_backup",
-    "read_only",
-    "read_rows",
-    "validate",
-]
-
 _HEADER = b"SQLite format 3\x00"
 
 SIDE_FILES = ("-wal", "-shm", "-journal")

@@ -37,8 +37,6 @@ from rr_actors._store.files import read_only, validate
 from rr_actors.errors import RrError
 from rr_actors.events.lines import SCHEMA
 
-__all__ = ["SLOTS", "clear", "plan_told", "read_told"]
-
 logger = logging.getLogger("rr_actors")
 
 SLOTS = 256

@@ -23,8 +23,6 @@ from rr_actors._store import codec
 from rr_actors._store.codec import STATE_CODES
 from rr_actors._store.restore import Mirror, Texts
 
-__all__ = ["GONE", "Op", "plan_client", "plan_resource"]
-
 Op = tuple[str, tuple[Any, ...]]  # one planned SQL statement and its parameters
 GONE = object()  # a mirror entry to delete once a write committed
 

@@ -28,21 +28,6 @@ from rr_actors._store.codec import STATES_BY_CODE, as_corrupt, check_row
 from rr_actors._types import Query
 from rr_actors.errors import CatalogCorruptError, RegistrarStoppedError
 
-__all__ = [
-    "CLIENTS",
-    "CLIENT_COLUMNS",
-    "CONSUMERS_OF",
-    "RESOURCES_AT_ONCE",
-    "RESOURCE_COLUMNS",
-    "SWEEP_ROWS",
-    "Mirror",
-    "Restored",
-    "RowStore",
-    "Texts",
-    "Unread",
-    "client_records",
-]
-
 
 class Mirror:
     """What the store last wrote for one resource (to write only the difference)."""

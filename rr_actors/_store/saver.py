@@ -31,8 +31,6 @@ from rr_actors.errors import CatalogWriteError
 if TYPE_CHECKING:
     from rr_actors._store.restore import Restored
 
-__all__ = ["CatalogStore", "Saver", "open_catalog", "open_store", "timer_factory"]
-
 logger = logging.getLogger("rr_actors")
 
 _NOTHING = Changes({}, {})  # (what is pending when nothing is: never changed in place)

@@ -24,19 +24,6 @@ from rr_actors._catalog.texts import NOT_SHOWN_OLD
 from rr_actors._store.codec import as_corrupt, loads
 from rr_actors.errors import CatalogCorruptError
 
-__all__ = [
-    "APPLICATION_ID",
-    "INDEXES",
-    "MIGRATIONS",
-    "SCHEMA_VERSION",
-    "check_objects",
-    "expected_objects",
-    "migrate",
-    "refresh_digests",
-    "rollback",
-    "schema_version",
-]
-
 APPLICATION_ID = 0x72724163  # "rrAc": `PRAGMA application_id` of every catalog file
 
 SCHEMA_VERSION = 7

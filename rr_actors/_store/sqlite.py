@@ -80,8 +80,6 @@ from rr_actors._store.restore import (
 from rr_actors._store.schema import rollback
 from rr_actors.errors import CatalogCorruptError, CatalogWriteError, ConfigError
 
-__all__ = ["SqliteStore"]
-
 logger = logging.getLogger("rr_actors")
 
 

@@ -29,8 +29,6 @@ if TYPE_CHECKING:
     from rr_actors._supervision.children import ChildInfo
     from rr_actors._types import Query, StatusCallback
 
-__all__ = ["AsyncSupervision"]
-
 
 class AsyncSupervision:
     """The awaitable twins of `Supervisor`'s methods."""

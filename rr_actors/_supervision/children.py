@@ -35,20 +35,6 @@ if TYPE_CHECKING:
     from rr_actors._supervision.watching import EventRelay
     from rr_actors._transport.messenger import Address, Transport
 
-__all__ = [
-    "Child",
-    "ChildCounts",
-    "ChildInfo",
-    "ChildState",
-    "Level",
-    "NestedSupervisor",
-    "ProcessManager",
-    "Running",
-    "ThreadManager",
-    "restarts_after",
-    "restarts_with_group",
-]
-
 logger = logging.getLogger("rr_actors")
 
 ChildState = Literal["starting", "running", "restarting", "stopping", "stopped", "exited"]

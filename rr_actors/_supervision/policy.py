@@ -62,25 +62,6 @@ from rr_actors._supervision.tree import (
 from rr_actors.config import ManagerSpec, RegistrarConfig, Strategy, SupervisorSpec, managers
 from rr_actors.errors import ConfigError, RrError, SupervisorGaveUpError
 
-__all__ = [
-    "Exited",
-    "Exits",
-    "Nest",
-    "Node",
-    "Record",
-    "Restart",
-    "RestartIntensity",
-    "Restarts",
-    "Starting",
-    "Stopping",
-    "affected",
-    "left",
-    "mark",
-    "pid_of",
-    "registrar_names",
-    "unmark",
-]
-
 logger = logging.getLogger("rr_actors")
 
 T = TypeVar("T")

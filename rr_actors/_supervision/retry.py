@@ -38,15 +38,6 @@ from rr_actors.errors import (
     UnknownServerError,
 )
 
-__all__ = [
-    "MISSING",
-    "Restarts",
-    "abandon_after_restart",
-    "call_with_retry",
-    "give_back_abandoned",
-    "restart_after_failure",
-]
-
 _WAITING_STATES = ("stopping", "restarting", "starting")  # stopped by its supervisor to restart
 
 

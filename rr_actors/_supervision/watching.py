@@ -40,18 +40,6 @@ if TYPE_CHECKING:
 
     from rr_actors._registrar import ResourceRegistrar
 
-__all__ = [
-    "SWITCH_TIMEOUT",
-    "Changes",
-    "EventRelay",
-    "Observing",
-    "Page",
-    "TreeAccess",
-    "TreeWatch",
-    "Watched",
-    "attach_observer",
-]
-
 SWITCH_TIMEOUT = 2.0
 """Seconds a first subscriber waits, at most, for the manager processes to forward."""
 

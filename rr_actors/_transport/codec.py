@@ -21,18 +21,6 @@ from rr_actors._core import runtime
 from rr_actors._core.directory import Reply
 from rr_actors._core.wire import Pickler, WireMessage, plain
 
-__all__ = [
-    "NO_REPLY",
-    "Claim",
-    "Oversized",
-    "Run",
-    "frame",
-    "frames",
-    "payload_size",
-    "unframe",
-    "what",
-]
-
 NO_REPLY = 0
 """The token of a message that wants no answer."""
 

@@ -40,27 +40,6 @@ from rr_actors.errors import (
     _known_names,
 )
 
-__all__ = [
-    "Address",
-    "Carrier",
-    "Endpoint",
-    "Lane",
-    "Lanes",
-    "Listening",
-    "Lost",
-    "Messenger",
-    "Outgoing",
-    "Remote",
-    "Replies",
-    "Route",
-    "StandIn",
-    "Transport",
-    "run_lost",
-    "send",
-    "send_when_served",
-    "when",
-]
-
 logger = logging.getLogger("rr_actors")
 
 _GONE = (RegistrarStoppedError, RegistrarUnavailableError, UnknownRegistrarError)

@@ -16,17 +16,6 @@ from rr_actors._core.hlc import seconds
 from rr_actors._core.throttle import LogThrottle
 from rr_actors.errors import ConfigError
 
-__all__ = [
-    "FIRST_SERVED",
-    "RESOLVE_STRATEGIES",
-    "Claimant",
-    "Resolution",
-    "Resolve",
-    "Sided",
-    "check_resolve",
-    "claimant",
-]
-
 logger = logging.getLogger("rr_actors")
 
 RESOLVE_STRATEGIES = ("first_served", "majority")  # or a function of two `Claimant`s

@@ -43,20 +43,6 @@ from rr_actors.errors import (
     RrError,
 )
 
-__all__ = [
-    "HANDSHAKE_TIMEOUT",
-    "LOCK_RETRY",
-    "Listener",
-    "RemotePeer",
-    "Rendezvous",
-    "Writer",
-    "connect",
-    "handshake",
-    "lock_held",
-    "shutdown",
-    "split",
-]
-
 logger = logging.getLogger("rr_actors")
 
 HANDSHAKE_TIMEOUT = 5.0

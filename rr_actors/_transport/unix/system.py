@@ -22,8 +22,6 @@ from rr_actors._transport.messenger import Endpoint, Lost, Messenger
 from rr_actors._transport.unix.link import Listener, RemotePeer, _Accepted, lock_held
 from rr_actors.errors import ConfigError
 
-__all__ = ["AttachedSystem", "System", "SystemAddress", "UnixCarrier", "attach"]
-
 logger = logging.getLogger("rr_actors")
 
 _MAX_SOCKET_PATH = 107  # sun_path is 108 bytes with the terminating NUL (Linux)

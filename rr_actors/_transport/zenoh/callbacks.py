@@ -17,17 +17,6 @@ from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 if TYPE_CHECKING:
     import zenoh
 
-__all__ = [
-    "END_TIMEOUT",
-    "SessionEndedError",
-    "Worker",
-    "calling",
-    "live",
-    "tracked",
-    "wait_ended",
-    "worker",
-]
-
 T = TypeVar("T")
 
 END_TIMEOUT = 2.0

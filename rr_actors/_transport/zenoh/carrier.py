@@ -57,8 +57,6 @@ from rr_actors.errors import (
     _known_names,
 )
 
-__all__ = ["Local", "ZenohCarrier", "ZenohPeer"]
-
 logger = logging.getLogger("rr_actors")
 
 

@@ -34,17 +34,6 @@ from rr_actors._transport.zenoh.wire import (
 )
 from rr_actors.errors import RrError
 
-__all__ = [
-    "DRAIN_TIMEOUT",
-    "HEAL_TIMEOUT",
-    "STRANGERS_HELD",
-    "STRANGER_GRACE",
-    "Inbox",
-    "InboxOwner",
-    "Outbox",
-    "Outboxes",
-]
-
 logger = logging.getLogger("rr_actors")
 
 # -- sending: the outboxes ------------------------------------------------------------------

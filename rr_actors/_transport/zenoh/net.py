@@ -45,17 +45,6 @@ from rr_actors.events.kinds import set_host
 if TYPE_CHECKING:
     from rr_actors._transport.zenoh.ops.tls import ZenohTLS
 
-__all__ = [
-    "Beside",
-    "MemberLink",
-    "Opened",
-    "Services",
-    "ZenohAddress",
-    "ZenohMember",
-    "ZenohNetwork",
-    "attach_beside",
-]
-
 logger = logging.getLogger("rr_actors")
 
 

@@ -31,17 +31,6 @@ logger = logging.getLogger("rr_actors")
 
 _DELETED_KEPT = 1024  # deletions remembered beyond which those no question needs go
 
-__all__ = [
-    "ASK_PAUSE",
-    "ASK_TIMEOUT",
-    "CLAIM_TIMEOUT",
-    "EMPTY_BELIEVED",
-    "NO_WAITING",
-    "Presence",
-    "PresenceEvents",
-    "Server",
-]
-
 ASK_TIMEOUT = 1.0
 """Seconds a question to the network waits (never on an actor's thread)."""
 CLAIM_TIMEOUT = 5.0

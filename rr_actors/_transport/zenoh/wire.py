@@ -15,27 +15,6 @@ from rr_actors._core.wire import WIRE_VERSION
 from rr_actors._transport.codec import NO_REPLY
 from rr_actors.config import NAME
 
-__all__ = [
-    "ANSWER",
-    "MESSAGE",
-    "OBSERVER_PARTS",
-    "PLAIN",
-    "PYTHON",
-    "STAMPED",
-    "VERSION",
-    "Header",
-    "HostKey",
-    "Keys",
-    "NameAt",
-    "ObserverKey",
-    "ServerKey",
-    "envelope",
-    "header",
-    "parse",
-    "payload_of",
-    "versions_text",
-]
-
 MESSAGE = 0
 """A message for a registrar (its frame's token says whether it wants an answer)."""
 ANSWER = 1

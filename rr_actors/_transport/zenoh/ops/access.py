@@ -10,8 +10,6 @@ from __future__ import annotations
 import os
 import stat
 
-__all__ = ["private_dir_trouble", "private_file_trouble", "user"]
-
 _GROUP_OTHERS = 0o077  # every permission bit of group and others
 _GROUP_OTHERS_READ = 0o044
 _GROUP_OTHERS_WRITE = 0o022

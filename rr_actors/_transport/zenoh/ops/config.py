@@ -23,16 +23,6 @@ from rr_actors.errors import ConfigError
 if TYPE_CHECKING:
     from rr_actors._transport.zenoh.ops.tls import ZenohTLS
 
-__all__ = [
-    "PROBE_TIMEOUT",
-    "endpoints",
-    "parse_endpoint",
-    "remote",
-    "session_config",
-    "warn_plain_tcp",
-    "warn_unreachable",
-]
-
 logger = logging.getLogger("rr_actors")
 
 _ENDPOINT = re.compile(

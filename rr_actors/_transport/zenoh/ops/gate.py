@@ -29,18 +29,6 @@ from rr_actors.errors import ConfigError
 if TYPE_CHECKING:
     from rr_actors._transport.zenoh.ops.tls import ZenohTLS
 
-__all__ = [
-    "ASK_AGAIN",
-    "BACKLOG",
-    "DROP",
-    "HOLD",
-    "LEARNED",
-    "TICK",
-    "HandshakeGate",
-    "MemberAddresses",
-    "open_gates",
-]
-
 logger = logging.getLogger("rr_actors")
 
 BACKLOG = 16  # connections the kernel queues for Zenoh's accept at most

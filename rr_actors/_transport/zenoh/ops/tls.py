@@ -33,14 +33,6 @@ from rr_actors._transport.zenoh.ops.access import private_file_trouble
 from rr_actors.config import check_name
 from rr_actors.errors import ConfigError
 
-__all__ = [
-    "ZenohTLS",
-    "authorities",
-    "leaf_of",
-    "member_addresses",
-    "member_of",
-]
-
 logger = logging.getLogger("rr_actors")
 
 _CURVES = (ec.SECP256R1, ec.SECP384R1)  # the ECDSA curves rustls signs and verifies with
