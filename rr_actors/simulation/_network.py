@@ -1,5 +1,5 @@
 """The simulated carrier: the in-memory network between simulated processes, with delays,
-order per link, cuts and heals (docs/explanation/simulation.md, "The simulated network").
+order per link, cuts and heals.
 
 ```
  process A: Remote.tell ─► messenger ─► hub.route(name) ─► A's link to name (one per
@@ -16,7 +16,8 @@ order per link, cuts and heals (docs/explanation/simulation.md, "The simulated n
  deafen(pid) / hear(pid) ─► a process that cannot hear its router, then rejoined
 ```
 
-The faults a plan aims at it: `SimulatedNetwork`'s docstring. Naming, replies, stand-ins,
+All of it: docs/explanation/simulation.md, "The simulated network". The faults a plan
+aims at it: `SimulatedNetwork`'s docstring. Naming, replies, stand-ins,
 sizes and compensation are the messenger's. A kill drops what is on the wire to the killed
 process; what it sent before it died still arrives, as a socket's buffered bytes do.
 """
