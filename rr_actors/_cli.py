@@ -152,10 +152,8 @@ def _tree(lines: list[str], prefix: str, items: Sequence[tuple[str, list[Any]]])
 
 
 def render_tree(backup: Backup) -> str:
-    """A backup as a tree: servers -> resources -> consumer ids and dependencies.
-
-    Resources whose load or unload a crash cut short are marked `[IN DOUBT: ...]`.
-    """
+    """A backup as a tree (servers, resources, consumer ids, dependencies; `[IN DOUBT: ...]`
+    marked)."""
     data_deps: dict[str, list[ClientRecord]] = {}
     for record in backup.clients:
         if record.parent is not None:
@@ -642,11 +640,7 @@ _INVALID_CHOICE = re.compile(r"invalid choice: '(?P<name>[^']*)' \(choose from (
 
 
 class _Parser(argparse.ArgumentParser):
-    """An argument parser whose "invalid choice" error says which choice was meant.
-
-    `rr-actors experimnt` reads `invalid choice: 'experimnt'; did you mean
-    'experiment'? (known: ...)`; every other error reads as argparse writes it.
-    """
+    """An argument parser whose "invalid choice" error says which choice was meant."""
 
     def error(self, message: str) -> NoReturn:
         """Print the usage and `message` (with the closest choice) on stderr; exit 2."""

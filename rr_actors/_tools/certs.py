@@ -95,11 +95,8 @@ def _install(tmp: Path, path: Path, force: bool) -> None:
 
 
 def _write_all(files: dict[Path, tuple[bytes, int]], *, force: bool) -> None:
-    """Write each file (data, mode) to a temporary name in its directory, then rename them.
-
-    Without `force`, a file that appeared since `_refuse_existing` is left alone, and so
-    are the others (those already renamed are removed again): ConfigError.
-    """
+    """Write each file (data, mode) to a temporary name in its directory, then rename them all;
+    without `force`, a file that appeared meanwhile stops it (`ConfigError`, the rest undone)."""
     temporary: dict[Path, Path] = {}
     installed: list[Path] = []
     try:

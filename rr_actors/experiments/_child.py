@@ -43,11 +43,7 @@ def _watch_parent(stop: threading.Event, parent: int) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the run in the directory `argv[0]` for the experiment `argv[1]` (its pid).
-
-    Returns:
-        The exit code: 0 (`result.pickle` written), or `STOPPED_EXIT`.
-    """
+    """Run the run in `argv[0]` for the experiment of pid `argv[1]`; 0 or `STOPPED_EXIT`."""
     args = list(sys.argv[1:] if argv is None else argv)
     run_dir = Path(args[0])
     parent = int(args[1]) if len(args) > 1 else os.getppid()

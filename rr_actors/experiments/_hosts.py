@@ -196,11 +196,8 @@ class HostProcess:
         return reply
 
     def ask(self, op: str, *, within: float, **args: Any) -> Any:
-        """Send one command to the host process; its reply.
-
-        Raises:
-            RrError: no reply within `within` seconds (it may be frozen or restarting).
-        """
+        """Send one command to the host process; its reply (`RrError`: none within `within`
+        seconds)."""
         process = self.process
         if process is None or process.stdin is None:
             raise rr.RrError(f"host {self.name} is not running")

@@ -222,10 +222,7 @@ def cut_connections() -> int:
 
 
 def catches_cut_signal(pid: int) -> bool:
-    """Whether process `pid` has a handler for `CUT_SIGNAL` (from `/proc/<pid>/status`).
-
-    Without one the signal would kill it, so the injector checks before it sends.
-    """
+    """Whether process `pid` handles `CUT_SIGNAL` (else the signal would kill it)."""
     try:
         with open(f"/proc/{pid}/status", encoding="ascii") as status:
             for line in status:

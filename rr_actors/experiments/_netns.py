@@ -138,11 +138,8 @@ class HostNetwork:
                 self.set_link(one, other, up=up)
 
     def enter(self, host: str) -> None:
-        """Move the calling thread (at start: the whole process) into `host`'s namespace.
-
-        Raises:
-            OSError: `setns(2)` failed.
-        """
+        """Move the calling thread (at start: the whole process) into `host`'s namespace (`OSError`
+        if `setns(2)` failed)."""
         libc = ctypes.CDLL(None, use_errno=True)
         fd = os.open(f"/run/netns/{self.namespaces[host]}", os.O_RDONLY)
         try:

@@ -65,11 +65,8 @@ class Program(Protocol):
         ...
 
     def start(self) -> rr.Supervisor:
-        """Start it again on its `state_dir`; its tree, once it serves.
-
-        Raises:
-            Exception: what its tree raised as it started.
-        """
+        """Start it again on its `state_dir`; its tree once it serves (raising what the tree
+        raised)."""
         ...
 
 
@@ -323,10 +320,9 @@ class SimulatedFaults:
         return self._trees.get(self.plan.host_of(manager) or "", self.sup)
 
     def _cut_hosts(self, fault: ScheduledFault, at: float) -> None:
-        """`cut` (of two hosts' link) or `partition`: the processes of one side's hosts
-        cut off the others' (`SimulatedNetwork.partition`), healed `for` s later; recorded
-        as a real run records it. One at a time: the simulated network holds one
-        partition, so one due while another is in force is skipped, saying so."""
+        """`cut` or `partition`: one side's hosts' processes cut off (`SimulatedNetwork.partition`),
+        healed `for` s later; one due while another is in force is skipped (one partition at
+        most)."""
         plan = self.plan.faults[fault.fault]
         assert self.plan.hosts is not None
         names, home = self.plan.hosts.names, self.plan.hosts.home

@@ -105,11 +105,8 @@ def main() -> None:
 
 
 class Trigger:
-    """The run process's end of the trigger process, which sends signals.
-
-    `send` hands it a pidfd, a signal and a due time; `on_sent(sent_at, errno)` is called
-    on this object's reader thread when the signal went out (or could not: `errno`).
-    """
+    """The run process's end of the trigger process: `send` hands it a pidfd, a signal and a due
+    time; `on_sent(sent_at, errno)` is called on this object's reader thread."""
 
     def __init__(self) -> None:
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)

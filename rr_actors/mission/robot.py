@@ -119,11 +119,7 @@ class Step:
         return resumed - paused
 
     def _wait_until_moving(self, moving: bool) -> bool:
-        """Wait until the odometry says the robot moves (or stands), `PAUSE_SETTLE` s at most.
-
-        Returns:
-            Whether it did within that bound.
-        """
+        """Whether the odometry says the robot moves (or stands) within `PAUSE_SETTLE` s."""
         odometry = self._robot.odometry
         deadline = time.monotonic() + PAUSE_SETTLE
         while True:

@@ -111,10 +111,8 @@ def prepare_out(path: Path, *, what: str = "out") -> Path:
 
 
 def _check_not_others(path: Path, what: str) -> None:
-    """A mission empties `path/state` and `path/bus` (`Mission.run`), and on two hosts
-    replaces `path/certs` (`make_certs`): refuse a folder that holds one of them with files
-    in it and that no mission used (no `OUT_LOCK` in it), such as `--out ~` with the
-    user's own `~/state`, before anything is removed."""
+    """Refuse a folder whose `state`, `bus` or `certs` (which a mission empties) hold files no
+    mission wrote (no `OUT_LOCK`), such as `--out ~`, before anything is removed."""
     if (path / OUT_LOCK).exists():
         return  # a mission's folder: its state/, bus/ and certs/ are a mission's
     for sub in ("state", "bus", "certs"):

@@ -77,10 +77,8 @@ MAX_BATCH_BYTES = 16 * 1024 * 1024
 """A batch over this many bytes is dropped unread by a subscriber."""
 
 HELD_BYTES = (16 * 1024 * 1024, 64 * 1024 * 1024)
-"""Bytes a system-wide subscriber holds of one sending process's events, and of all
-processes' together, from a batch's arrival until its events go to the subscription's
-queue (batches waiting to be read, events held `window` seconds; an event counts as
-`weight`). A batch that would pass either bound is dropped whole, unread."""
+"""Bytes a subscriber holds of one sending process's events, and of all together, until they
+go to the subscription's queue (an event weighs `weight`); a batch past either is dropped."""
 
 QUEUED_BYTES = 32 * 1024 * 1024
 """Bytes of events (`weight`) a system-wide subscription queues for its callback, besides
@@ -111,10 +109,8 @@ def encode(batch: list[events.Event]) -> bytes:
 
 
 def decode(data: bytes) -> tuple[list[events.Event], int]:
-    """The events of a batch `encode` made, and how many lines were not events.
-
-    Only JSON is parsed (`json.loads`, `events.from_dict`): nothing is unpickled.
-    """
+    """The events of a batch `encode` made (JSON only, nothing unpickled), and how many lines were
+    not."""
     found: list[events.Event] = []
     bad = 0
     for line, _ in _lines(data):

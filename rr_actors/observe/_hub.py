@@ -120,11 +120,8 @@ class Hub:
         self.closed = False
 
     def put(self, key: str, value: Any) -> bool:
-        """Set section `key` to `value` (a JSON-able value); tell the listeners if it changed.
-
-        Returns:
-            Whether it changed.
-        """
+        """Set section `key` to a JSON-able `value`; tell the listeners and return True if it
+        changed."""
         with self._lock:
             current = self._sections.get(key)
             if current is not None and current.value == value:
@@ -166,11 +163,8 @@ class Hub:
         self._notify()
 
     def changes(self, seen: dict[str, int], last_seq: int, *, with_events: bool = True) -> Changes:
-        """What changed since a page saw the versions `seen` and the event `last_seq`.
-
-        `seen` is updated to the versions returned. With `with_events=False` only the sections
-        are looked at (the events wait for a later look).
-        """
+        """What changed since a page saw the versions `seen` (updated) and the event `last_seq`
+        (`with_events=False`: the sections only)."""
         with self._lock:
             sections = []
             for key, section in self._sections.items():
@@ -232,11 +226,8 @@ class Hub:
         return out, last_seq
 
     def _encoded(self, key: str, section: _Section, *, patch: bool) -> bytes:
-        """Section `key` as its whole value, or as the patch from the version before.
-
-        Each is encoded when a page first needs it: while every page keeps up, the
-        whole value of a changed section is never encoded at all.
-        """
+        """Section `key` as its whole value or the patch from the version before, encoded on first
+        need."""
         if patch:
             if section.patch is None:
                 change = diff(section.old, section.value)
@@ -250,11 +241,8 @@ class Hub:
         return section.full
 
     def listen(self, listener: Callable[[], None]) -> Callable[[], None]:
-        """Call `listener()` (on the changing thread; it must not block) after each change.
-
-        Returns:
-            A function that removes the listener.
-        """
+        """Call `listener()` after each change (on the changing thread: it must not block); the
+        remover."""
         with self._lock:
             self._listeners.append(listener)
 
@@ -279,11 +267,8 @@ class Hub:
             return self._streams.wait_for(lambda: self._open_streams == 0, timeout)
 
     def open_stream(self, limit: int = MAX_STREAMS) -> bool:
-        """Count one more open page stream, unless `limit` are open (`close` waits for them).
-
-        Returns:
-            Whether it was counted; if so, `close_stream()` must follow.
-        """
+        """Count one more open stream unless `limit` are open; if counted (True), `close_stream()`
+        follows."""
         with self._streams:
             if self._open_streams >= limit:
                 return False

@@ -101,10 +101,8 @@ class Seal:
         return self._signing
 
     def open(self, data: bytes, seal: bytes | None) -> str | None:
-        """The member whose certificate sealed batch `data` with `seal`; `None` if none
-        did (no seal, a malformed one, a chain the system's CA did not issue or out of
-        date, a common name not in `members`, a signature that does not match). Never
-        raises."""
+        """The member whose certificate sealed batch `data` with `seal`; `None` if none did (never
+        raises)."""
         if seal is None or len(seal) < _HEAD.size:
             return None
         magic, length = _HEAD.unpack_from(seal)

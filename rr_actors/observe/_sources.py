@@ -58,10 +58,7 @@ __all__ = [
 logger = logging.getLogger("rr_actors")
 
 CATALOG_INTERVAL = 0.5
-"""Seconds between two rounds of catalog snapshots (changes within it are shown together).
-
-Each round asks every registrar that changed for a copy of its catalog, in its own
-process: it competes with the work it shows, so a round at most twice a second."""
+"""Seconds between two rounds of catalog snapshots (each competes with the work it shows)."""
 
 FULL_REFRESH = 5.0
 """Seconds after which every catalog is read again, even without an event about it."""

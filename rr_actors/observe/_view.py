@@ -48,10 +48,8 @@ short = display_text
 
 
 def shown(text: Any, width: int = REPR_WIDTH) -> str:
-    """A stored display text as the page gets it: a string, at most `width` characters.
-
-    A backup is not the reader's: its texts are checked (a non-string is not shown).
-    """
+    """A stored display text as the page gets it: a string (else not shown), `width` chars at
+    most."""
     if text is None:
         return NOT_SHOWN_YET
     if type(text) is not str:

@@ -453,10 +453,8 @@ def _shrunk(
     shrink_to: tuple[Plan, Path, int, float],
     judge: shrink.Judge,
 ) -> tuple[simulate.SimulatedRun, list[check.Line], check.Finding, int] | None:
-    """`run` shrunk to a smaller plan showing its first violation again (as `judge`, the
-    check's rules, orders them: the one told), its plan written to `folder / SHRUNK`:
-    the shrunk run, its events, its finding and seed (`None`: the shrink did not find it
-    again, or failed: the run is told as it is)."""
+    """`run` shrunk to a smaller plan showing its first violation again (its plan written to
+    `folder / SHRUNK`): run, events, finding and seed; `None`: not found again."""
     plan, path, budget, cpu_until = shrink_to
     text = path.read_text(encoding="utf-8")
     try:
@@ -486,9 +484,8 @@ def _who(event: Any) -> str:
 
 
 def _cut(steps: list[story.StoryLine], index: int, who: set[str]) -> list[story.StoryLine]:
-    """At most `STORY` steps ending at `steps[index]`: the faults and the steps of `who`
-    (the registrars the finding names) before it, the latest ones; all steps if `who`
-    is empty or names none of them."""
+    """At most `STORY` steps ending at `steps[index]`: the latest faults and steps of `who` (all
+    steps if `who` names none)."""
     before = [s for s in steps[:index] if s.line > 0 and s.who != "violation"]
     kept = [s for s in before if s.who in who or s.who == "fault"] if who else before
     kept = kept or before
