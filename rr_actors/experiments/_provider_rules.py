@@ -12,6 +12,7 @@
 ```
 
 Every lookup is a dict's: a run of a million events is checked in one linear pass.
+Each rule's windows and what it excuses: docs/how-to/check-a-run.md.
 """
 
 from __future__ import annotations

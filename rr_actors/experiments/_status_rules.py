@@ -11,6 +11,8 @@
          send: that answer carried it), or the one to send it on died first
  StatusHandled ──► status_order: each id's callbacks one at a time, in arrival order
 ```
+
+Each rule's windows and what it excuses: docs/how-to/check-a-run.md.
 """
 
 from __future__ import annotations

@@ -12,6 +12,7 @@
 A supervisor's events come from its own thread in the order it decided: a group's stops
 right after the exit that decided it, its restarts in one step. A supervisor started
 again (after its give-up, or a second `ChildStarted` of a name) counts afresh (OTP).
+Each rule's windows and what it excuses: docs/how-to/check-a-run.md.
 """
 
 from __future__ import annotations
