@@ -963,7 +963,8 @@ def root_span(
     """A block run under a new trace: an INTERNAL span with no parent, current in it.
 
     What `rr-actors demo --trace` runs each mission step under: the calls made in the block
-    (on this thread, or in a task started in it) are its descendants.
+    (on this thread, or in a task started in it) are its descendants; a span current when
+    the block starts is not its parent (each step is a trace of its own).
 
         with otel.root_span("mission step drive"):   # the span ends with the block
             registrar.call("cm", "lidar", request)    # CLIENT span: its child
