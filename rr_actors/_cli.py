@@ -100,19 +100,11 @@ def _client_dict(record: ClientRecord) -> dict[str, Any]:
 
 
 def backup_to_dict(backup: Backup) -> dict[str, Any]:
-    """A backup as JSON-able data (requests and responses as their `repr`).
-
-    Args:
-        backup: what `read_backup` returned.
-
-    Returns:
-        `{"path", "schema_version", "servers": {server: [resource, ...]}, "clients": [...]}`
-        where a resource has `id`, `state`, `in_doubt`, `failed` (its provider
-        reported it `FATAL`: no equal request is matched with it), `request`,
-        `response`, `consumers` (`query_id`, `origin_rr`) and `dependencies` (client
-        records), and
-        `clients` lists the top-level queries this registrar holds elsewhere.
-    """
+    """A backup as JSON-able data (requests and responses as their `repr`):
+    `{"path", "schema_version", "servers": {server: [resource, ...]}, "clients": [...]}`, a
+    resource with `id`, `state`, `in_doubt`, `failed` (reported `FATAL`), `request`,
+    `response`, `consumers` (`query_id`, `origin_rr`) and `dependencies` (client records);
+    `clients`: the top-level queries this registrar holds elsewhere."""
     dependencies: dict[str, list[ClientRecord]] = {}
     for record in backup.clients:
         if record.parent is not None:
@@ -160,10 +152,8 @@ def _tree(lines: list[str], prefix: str, items: Sequence[tuple[str, list[Any]]])
 
 
 def render_tree(backup: Backup) -> str:
-    """A backup as a tree: servers -> resources -> consumer ids and dependencies.
-
-    Resources whose load or unload a crash cut short are marked `[IN DOUBT: ...]`.
-    """
+    """A backup as a tree (servers, resources, consumer ids, dependencies; `[IN DOUBT: ...]`
+    marked)."""
     data_deps: dict[str, list[ClientRecord]] = {}
     for record in backup.clients:
         if record.parent is not None:
@@ -473,15 +463,12 @@ not events (no `schema`, no `hlc`); merged at their `at`, the wall clock."""
 
 
 def _merged_line(data: Any, previous: int) -> tuple[int, str]:
-    """One line of an events file as `--merge` prints it, and its stamp.
-
-    An event is printed as `events.to_dict` writes it, with the `run` and `seed` an
-    experiment gave it; an experiment's fault line as it is, stamped at its `at` (at the
-    line before it in its file, `previous`, if it has none: a fault never injected).
+    """One line of an events file as `--merge` prints it (`events.to_dict`'s, with its `run` and
+    `seed`; a fault line as it is, stamped at its `at` or else `previous`), and its stamp.
 
     Raises:
-        ConfigError: not an event, an event with a field of neither (or one of a wrong
-            type), or a fault line whose `at` is not a number.
+        ConfigError: not an event or fault line, a field of a wrong type, a fault's `at` not
+            a number.
     """
     if isinstance(data, dict) and "schema" not in data and data.get("type") in FAULT_LINES:
         at = data.get("at")
@@ -653,11 +640,7 @@ _INVALID_CHOICE = re.compile(r"invalid choice: '(?P<name>[^']*)' \(choose from (
 
 
 class _Parser(argparse.ArgumentParser):
-    """An argument parser whose "invalid choice" error says which choice was meant.
-
-    `rr-actors experimnt` reads `invalid choice: 'experimnt'; did you mean
-    'experiment'? (known: ...)`; every other error reads as argparse writes it.
-    """
+    """An argument parser whose "invalid choice" error says which choice was meant."""
 
     def error(self, message: str) -> NoReturn:
         """Print the usage and `message` (with the closest choice) on stderr; exit 2."""
@@ -692,11 +675,9 @@ def main(argv: Sequence[str] | None = None, out: TextIO | None = None) -> int:
         out: where results go (default: standard output). Errors go to standard error.
 
     Returns:
-        The exit code: 0 on success, 1 when the backup cannot be read or a `certs` file
-        is refused (the message names the file and the cause), 2 for a usage error, 2
-        when the command needs an extra that is not installed (one line names it and the
-        command that installs it), and 2 without a command (after printing the help on
-        standard output: nothing was done).
+        The exit code: 0 on success; 1 when the backup cannot be read or a `certs` file is
+        refused (the message names the file and the cause); 2 for a usage error, a missing
+        extra (one line names it and how to install it), or no command (the help printed).
     """
     parser = build_parser()
     args, unknown = parser.parse_known_args(argv)

@@ -4,47 +4,24 @@
                                              # through the application's TracerProvider
 
 Used as OpenTelemetry's instrumentation libraries are: it traces through the global
-`TracerProvider` the application installs (`opentelemetry.trace.set_tracer_provider`,
-read at every event, so one installed later is used from then on). With none installed
-(the API's no-op one) or without the `otel` extra (`opentelemetry-api`), an event costs
-one look-up and no span object is made. Nothing is traced in a registrar's turn: the
-spans are built afterwards, on the subscription's thread, from the events' `at` stamps
-(seconds, turned into ns).
+`TracerProvider` the application installs (read at every event). With none installed, or
+without the `otel` extra (`opentelemetry-api`), an event costs one look-up and no span is
+made. Nothing is traced in a registrar's turn: spans are built afterwards, on the
+subscription's thread, from the events' `at` stamps (seconds, turned into ns).
 
-What becomes a span (`docs/how-to/trace.md`):
+What becomes a span (the table: `docs/how-to/trace.md`): a `call` or `unload` (a CLIENT
+span at the consumer, a SERVER span at the provider, its child, by the RPC semantic
+conventions); a user callback (INTERNAL `<server>.load`, `<server>.unload`); a status (a
+PRODUCER span, a CONSUMER span per hop, linked to the call's spans; a callback's run); a
+restart (INTERNAL `restart <child>`, linked to the old and new incarnations' spans; spans
+whose end a kill lost are ended at the exit, marked `rr_actors.end_lost`).
 
-- a `call` (and an `unload`): a CLIENT span at the consumer (its `CallAnswered`,
-  `CallFailed`, `CallWithdrawn`; an unload's `QueryForgotten`, a resource's dependency
-  releases' too, under the SERVER span of the unload that made them) and a SERVER span at the
-  provider (`ResourceLoaded` then `ConsumerAdded`, a `ConsumerAdded` alone for a dedup
-  hit, a `LoadFailed`; an unload's `ConsumerReleased`), named `<registrar>/<server>` and
-  attributed by the RPC semantic conventions (`rpc.system` `"rr_actors"`, `rpc.service`
-  the provider registrar, `rpc.method` the server); the server span is the client's
-  child (the two meet by query id);
-- a user callback: an INTERNAL `<server>.load` span (from `load_s`; a failed load's
-  carries its exception as an `exception` event) and `<server>.unload` span;
-- a status: a PRODUCER `status <STATUS>` span (`StatusSent`, a trace of its own) and a
-  CONSUMER `status <STATUS> hop <n>` span per delivery (`StatusDelivered`), under the hop
-  that brought it to the registrar it came from, each linked to the CLIENT and SERVER
-  spans of the call whose query id it reached; a callback's run (`StatusHandled`), an
-  INTERNAL root linked to its hop, the calls made in it its children;
-- a restart: an INTERNAL `restart <child>` span from `ChildExited` to the restarted
-  process's first `CatalogRestored`, naming the in-doubt queries (`InDoubt`), linked to
-  the old incarnation's last SERVER span and the new one's first (or, made past
-  `pair_within`, that one links to it); the spans whose end the kill lost (a load that
-  started and never finished) are ended at the exit, marked `rr_actors.end_lost`, linked.
-
-A caller's trace continues through the call: a `call`, `acall` or `unload` made while an
-OpenTelemetry span is current in the caller carries its W3C trace context to the
-provider (`rr_actors._core.traces`: the CLIENT span's id is drawn then, the SERVER
-span's derived from it), and its events carry it (`trace`, `caller_span`): the CLIENT
-span is made the caller's span's child, the SERVER span the CLIENT span's, with those
-ids (through the SDK's tracer), in whichever process each side is made; a `load` (an
-unload's `unload` callback and dependency releases too) runs with that SERVER span
-current. An untraced call's ids are derived from its query id, so its sides meet too.
-A CLIENT span starts when its call began (its end event's `started`; without it: where
-its server span starts, or at its own end). Lost events (`EventsDropped`) are counted
-(`Tracing.dropped`), the spans they may have cut marked `rr_actors.incomplete`.
+A caller's trace continues through the call: a `call`, `acall` or `unload` made under a
+current span carries its W3C trace context to the provider (`rr_actors._core.traces`),
+which runs `load` with the SERVER span current; the span ids are chosen then, so both
+sides meet in whichever process each is made (an untraced call's derive from its query
+id). Lost events (`EventsDropped`) are counted (`Tracing.dropped`), the spans they may
+have cut marked `rr_actors.incomplete`.
 
 `provider_from_environment`, `Exporting`: the `--trace` commands' SDK, set by `OTEL_*`.
 """
@@ -96,13 +73,10 @@ _UNLOADS = frozenset({"unload", "unload unanswered", "dependency", "stop"})
 
 
 class _Chosen:
-    """An id generator that gives the ids chosen for the next span, else its inner one's.
+    """An id generator giving the ids chosen for the next span (per thread), else its inner one's.
 
-    A call's CLIENT and SERVER spans have the ids its trace context named when the call
-    was made (`rr_actors._core.traces`), so that both sides, built by subscribers of
-    different processes, and the spans the user made in its `load`, meet. The SDK's
-    tracer draws its ids from its `id_generator`; this one is put there (the ids chosen
-    per thread: the tracer of a scope is shared).
+    A call's two sides, made by subscribers of different processes, must get the ids its
+    trace context named (`rr_actors._core.traces`).
     """
 
     def __init__(self, inner: Any) -> None:
@@ -148,11 +122,9 @@ def _untraced(query_id: str, verb: str) -> tuple[int, int, int]:
 def _late(waiting: dict[tuple[str, str], _Half], before: float, most: int) -> list[Any]:
     """The keys of the sides waiting since before `before`, and of the oldest past `most`.
 
-    The sides are in the order they came (their `arrived`, but for a release parked for
-    its resource's unload, which may come a little behind a later side): the look stops
-    at the first side not late, so that a sweep after every event costs the sides it
-    makes spans of, not every side waiting (with one subscriber per registrar, each
-    side waits alone: `pair_within` seconds of calls)."""
+    Sides are in arrival order, so the look stops at the first one not late (a sweep per
+    event costs the spans it makes, not every side waiting).
+    """
     late = []
     for key, half in waiting.items():
         if half.arrived > before:
@@ -238,27 +210,24 @@ class _Sent:
 class Tracing:
     """The subscriber that makes spans of events: `callback(event)` of a subscription.
 
-    Attach it with `Supervisor.subscribe(tracing)` or `ResourceRegistrar.subscribe`
-    (or let [`trace`][rr_actors.otel.trace] do it). Its calls run on the subscription's
-    thread; `flush` and `close` may be called from any thread.
+    Attach it with `Supervisor.subscribe(tracing)` or `ResourceRegistrar.subscribe` (or let
+    [`trace`][rr_actors.otel.trace] do it). Its calls run on the subscription's thread;
+    `flush` and `close` may be called from any thread.
 
     Args:
-        tracer_provider: the provider to trace through; `None` (the default): the
-            global one, `opentelemetry.trace.get_tracer_provider()`, read at each event.
-        pair_within: seconds a side of a call (or a restart without a
-            `CatalogRestored`, a restart span for the new incarnation's first span, a
-            status hop for its send or the hop before it) waits for the rest before it
-            is made a span alone.
+        tracer_provider: the provider to trace through; `None` (the default): the global
+            one, `opentelemetry.trace.get_tracer_provider()`, read at each event.
+        pair_within: seconds a side of a call (a restart, a status hop) waits for the rest
+            before it is made a span alone.
         max_pending: sides waiting at most; past it, the oldest is made a span alone
             (also the bound of the query ids, status sends and processes remembered).
 
     Attributes:
         dropped: events the stream said were lost before this subscriber took them
-            (the `count`s of the `EventsDropped` it took); read from any thread.
+            (the `count`s of its `EventsDropped`); read from any thread.
 
     Raises:
-        ConfigError: `pair_within` not a positive number or `max_pending` not a
-            positive int.
+        ConfigError: `pair_within` not a positive number or `max_pending` not a positive int.
     """
 
     def __init__(
@@ -355,12 +324,8 @@ class Tracing:
             self._sweep(tracer, float("inf"))
 
     def close(self, *, timeout: float = 5.0) -> None:
-        """Close the subscription `trace` made (if any), then `flush`.
-
-        Args:
-            timeout: seconds to wait at most for the events already queued for this
-                subscriber to be taken first.
-        """
+        """Close the subscription `trace` made (if any), then `flush`; `timeout`: seconds at most to
+        wait for the events already queued for this subscriber."""
         if self._subscription is not None:
             self._subscription.wait_delivered(timeout=timeout)
             self._subscription.close()
@@ -1075,10 +1040,9 @@ def root_span(
 ) -> Iterator[Any]:
     """A block run under a new trace: an INTERNAL span with no parent, current in it.
 
-    What `rr-actors demo --trace` runs each mission step under: the calls made in the
-    block (on this thread, or in a task started in it) carry its context, so their
-    spans are its descendants and the step is one trace. A span current when the block
-    starts is not its parent (a step is a trace of its own).
+    What `rr-actors demo --trace` runs each mission step under: the calls made in the block
+    (on this thread, or in a task started in it) are its descendants; a span current when
+    the block starts is not its parent (each step is a trace of its own).
 
         with otel.root_span("mission step drive"):   # the span ends with the block
             registrar.call("cm", "lidar", request)    # CLIENT span: its child
@@ -1089,8 +1053,7 @@ def root_span(
         attributes: the span's attributes.
 
     Yields:
-        The span; `None` without the otel extra or a provider installed (no span made,
-        the block runs all the same).
+        The span; `None` without the otel extra or a provider installed (the block runs).
     """
     if _api is None:
         yield None
@@ -1114,19 +1077,14 @@ EXPORTERS = "opentelemetry_traces_exporter"
 
 def provider_from_environment() -> Any:
     """An SDK `TracerProvider` set up by the `OTEL_*` environment variables, as
-    OpenTelemetry's automatic instrumentation (`opentelemetry-instrument`) sets one up.
+    `opentelemetry-instrument` sets one up.
 
-    `OTEL_TRACES_EXPORTER`: the exporters, comma-separated names of the
-    `opentelemetry_traces_exporter` entry points (`console` comes with the SDK, `otlp`
-    with `opentelemetry-exporter-otlp`; default `otlp`; `none`: no exporter), each
-    behind a `BatchSpanProcessor` (its `OTEL_BSP_*` variables); the resource
-    (`OTEL_SERVICE_NAME`, `OTEL_RESOURCE_ATTRIBUTES`), the sampler
-    (`OTEL_TRACES_SAMPLER`, `OTEL_TRACES_SAMPLER_ARG`) and the limits are the SDK's
-    own reading of them; each exporter reads its own (`OTEL_EXPORTER_OTLP_ENDPOINT`, ...).
+    `OTEL_TRACES_EXPORTER`: comma-separated `opentelemetry_traces_exporter` entry points
+    (`console`, `otlp` (default), `none`), each behind a `BatchSpanProcessor`; the resource,
+    sampler and limits are the SDK's own reading of `OTEL_*`, and each exporter reads its own.
 
     Returns:
-        The provider (not installed as the global one); `shutdown()` it to export what
-        its processors still hold.
+        The provider (not installed as the global one); `shutdown()` it to export the rest.
 
     Raises:
         ConfigError: the SDK (`opentelemetry-sdk`, the `otel` extra) is missing, or an
@@ -1165,15 +1123,14 @@ def provider_from_environment() -> Any:
 
 
 class Exporting:
-    """What `--trace` does (`rr-actors demo`, `rr-actors experiment`): the spans of the
-    trees it is given, exported where the `OTEL_*` environment variables say.
+    """What `--trace` does (`rr-actors demo`, `rr-actors experiment`): the spans of the trees it
+    is given, exported where the `OTEL_*` environment variables say.
 
         with otel.Exporting() as exporting:      # provider_from_environment()
             exporting.trace(sup)                 # otel.trace(sup, tracer_provider=...)
             ...                                  # on leaving: close each, then export
 
-    The provider becomes the global one unless the application installed one first (so
-    spans the application makes in this process, its loads' included, go there too).
+    The provider becomes the global one unless the application installed one first.
 
     Raises:
         ConfigError: as `provider_from_environment`.

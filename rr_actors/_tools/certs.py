@@ -6,20 +6,12 @@
                                        signed with DIR/ca.key                 with ca.pem
 ```
 
-The certificates are what `ZenohTLS` accepts: the CA is a CA (BasicConstraints CA=true,
-keyCertSign), a host's certificate names the member in its common name and every address
-peers dial in its subject alternative names, and has both TLS uses (a host listens and
-connects). Keys are ECDSA P-256, PKCS#8, unencrypted, written 0600 (certificates 0644).
-A file is written to a temporary file in the same directory, then renamed over its name:
-a crash leaves the old file or the new one, never half of one. Without `force` it is
-hard-linked instead, which fails if the name appeared meanwhile (another writer, or a
-symlink): what is there is never replaced.
-
-The CA stays private: `init` makes DIR 0700, and refuses an existing DIR that another
-user owns or that group or others may write to (they may have planted files in it, or
-swap the CA later); `issue` refuses such a DIR too, and a `ca.key` that is another
-user's or open to group or others (the check `ZenohTLS` makes of a host's key, in
-`access`). `force` goes ahead anyway.
+The certificates are what `ZenohTLS` accepts (ECDSA P-256 keys, PKCS#8, unencrypted,
+0600; certificates 0644). A file is written to a temporary file in the same directory,
+then renamed over its name (never half a file); without `force`, hard-linked instead, so
+what appeared there meanwhile is never replaced. The CA stays private: DIR is made 0700,
+and without `force` a DIR or `ca.key` another user owns, or that group or others may
+write, is refused (the check `ZenohTLS` makes of a host's key).
 """
 
 from __future__ import annotations
@@ -103,11 +95,8 @@ def _install(tmp: Path, path: Path, force: bool) -> None:
 
 
 def _write_all(files: dict[Path, tuple[bytes, int]], *, force: bool) -> None:
-    """Write each file (data, mode) to a temporary name in its directory, then rename them.
-
-    Without `force`, a file that appeared since `_refuse_existing` is left alone, and so
-    are the others (those already renamed are removed again): ConfigError.
-    """
+    """Write each file (data, mode) to a temporary name in its directory, then rename them all;
+    without `force`, a file that appeared meanwhile stops it (`ConfigError`, the rest undone)."""
     temporary: dict[Path, Path] = {}
     installed: list[Path] = []
     try:
@@ -161,28 +150,23 @@ def init_ca(
 ) -> tuple[Path, Path]:
     """Make a system's certificate authority: `directory/ca.pem` and `directory/ca.key`.
 
-    The CA's subject is `CN=<system>, O=rr_actors CA` (a name of `NAME_MAX`, 64
-    characters, fills a common name); it is valid for `CA_DAYS` days (BasicConstraints
-    CA=true, keyCertSign and cRLSign, both critical; ECDSA P-256). The directory is made
-    (0700) if missing; an existing one must be this user's and writable by nobody else
-    (another user could have planted files there, or swap the CA later). The key is
-    written 0600.
+    Subject `CN=<system>, O=rr_actors CA`, valid `CA_DAYS` days (BasicConstraints CA=true,
+    keyCertSign and cRLSign, critical; ECDSA P-256). The directory is made 0700 if missing.
 
     Args:
         directory: where the files go.
         system: the system's name (as `ZenohNetwork(system=...)`), named in the CA.
-        force: replace existing files (certificates issued by the old CA stop being
-            accepted by hosts that get the new `ca.pem`), and write into a directory
-            that is not private.
+        force: replace existing files (hosts given the new `ca.pem` stop accepting the old
+            CA's certificates), and write into a directory that is not private.
 
     Returns:
         The paths of `ca.pem` and `ca.key`.
 
     Raises:
-        ConfigError: `system` is not a system name (or longer than 64 characters);
-            without `force`, `ca.pem` or `ca.key` exists, or the directory belongs to
-            another user or is writable by group or others (nothing is written); the
-            directory cannot be made or written.
+        ConfigError: `system` is not a system name (or longer than 64 characters); without
+            `force`, `ca.pem` or `ca.key` exists, or the directory is another user's or
+            writable by group or others (nothing is written); the directory cannot be made
+            or written.
     """
     check_name("system", system, "a system name")
     path = _directory(directory, force=force)
@@ -287,31 +271,27 @@ def issue_cert(
 ) -> tuple[Path, Path]:
     """Issue a host's certificate with the CA in `directory`: `NAME.pem` and `NAME.key`.
 
-    Common name `name` (the member name); subject alternative names every address (an
-    IP address, else a DNS name; default `name` as a DNS name): peers check the address
-    they dial against these. Both TLS uses (serverAuth, clientAuth), digitalSignature,
-    not a CA, ECDSA P-256; valid from `CLOCK_SKEW` ago for `days` days. The key is
-    written 0600.
+    Common name `name`; subject alternative names every address (IP, else DNS; default `name`
+    as DNS), which peers check the address they dial against. serverAuth and clientAuth, not
+    a CA, ECDSA P-256; valid from `CLOCK_SKEW` ago for `days` days; the key written 0600.
 
     Args:
         directory: holds `ca.pem` and `ca.key` (from `init_ca`); the files go there.
         name: the member name, as in `ZenohTLS(members=...)`.
         addresses: the IP addresses and DNS names peers dial this host at.
         days: how long the certificate is valid, a positive int.
-        force: replace an existing certificate of that name, and sign with a CA key or
-            in a directory that is not private.
+        force: replace an existing certificate of that name, and sign with a CA key or in a
+            directory that is not private.
 
     Returns:
         The paths of `NAME.pem` and `NAME.key`.
 
     Raises:
-        ConfigError: `name` is not a member name (or longer than 64 characters) or is
-            `ca`; `days` is not a positive int or ends after the year 9999; `addresses`
-            is a str, or an address is neither an IP address nor a DNS name (a port,
-            'tls/' or brackets in it); there is no readable CA in `directory`; without
-            `force` (nothing is written): `NAME.pem` or `NAME.key` exists, `ca.key` is
-            open to group or others or owned by another user, or `directory` is
-            writable by group or others or owned by another user.
+        ConfigError: `name` is not a member name (or over 64 characters) or is `ca`; `days`
+            is not a positive int or ends after 9999; `addresses` is a str, or an address is
+            neither an IP address nor a DNS name; no readable CA in `directory`; without
+            `force` (nothing is written): the files exist, or `ca.key` or `directory` is
+            another user's or open to group or others.
     """
     check_name("name", name, "a member name")
     if name == "ca":

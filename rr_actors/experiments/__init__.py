@@ -9,20 +9,12 @@ for row in results.rows():
 ```
 
 `rr-actors experiment PLAN --out DIR` does the same from the command line (PLAN: a file,
-or the name of a plan shipped in `plans`: `rr-actors experiment --list`). A plan
-names the managers by the import path of their `setup`, the clients' calls, the faults
-(SIGKILL a manager or a resource's process, SIGSTOP a manager for a while, make loads
-raise, cut a manager's connections) and when they come (fixed times, seeded random
-intervals, or after an event). Every run is a fresh run process; the same seed gives the
-same fault schedule. The plan format: `docs/reference/plan.md`.
-
-Modules: `plan` (a plan as data; its field types are the schema), `reading` (reading
-and validating plans: msgspec checks the types, `reading` the rules between values),
-`schedule` (the seeded fault schedule),
-`runner` / `workload` / `inject` (one run, in its run process), `metrics` (numbers from
-events), `experiment` (`run`: the runs and the output files), `plot` (figures),
-`services` (a generic manager for plans), `cli` (`rr-actors experiment`).
-It needs Linux (pidfds, `/proc`).
+or the name of a plan shipped in `plans`: `rr-actors experiment --list`). A plan names
+the managers by their `setup`'s import path, the clients' calls, the faults and when they
+come (fixed times, seeded random intervals, or after an event). Every run is a fresh run
+process; the same seed gives the same fault schedule. The plan format:
+`docs/reference/plan.md`; the modules: docs/reference/modules.md. It needs Linux
+(pidfds, `/proc`).
 """
 
 from rr_actors._extras import needs

@@ -8,24 +8,15 @@ event of the run), and what each did.
    counts it; at its n-th ──► (fault, event time + delay) ┘    (any thread; refused once
                                                                 stopped): a heap of _Due
    the "rr-injector" thread: a timed wait to the earliest, then runs it ◄────────────┘
-     (a fault's preparation: ManagerFaults or HostFaults fire it; or an undo)
- ManagerFaults, HostFaults, Injector (skips) ── FaultLog.record(fault, scheduled, injected,
-   detail) ──► records (FaultRecord, in order)
+ ManagerFaults, HostFaults, Injector (skips) ── FaultLog.record ──► records (in order)
  stop ──► Agenda.stop: the firings still due; Triggered.take: the faults whose trigger
           never came ──► the Injector records both as skipped
  the loop fails (a bug, an OverflowError) ──► on_failure(exc, the firings still due)
 ```
 
-An action is a fault's preparation (`fires`: the fault and its due time from the run's
-t0, so that what never ran can be recorded) or an undo (a hung manager resumed, a cut
-healed); `wait_until(due)` is a timed wait, then a short spin (the last `SPIN` s). A
-simulated run (`_simulated_faults.py`) keeps its own agenda in virtual time and uses
-`Triggered` and `FaultLog` as they are.
-
-Each keeps its own state under its own lock: `Agenda` the heap, the stopped flag and the
-thread; `Triggered` the waiting faults with the matches seen so far; `FaultLog` the
-records, written from several threads (the injector's, the trigger process's reader, a
-load error's).
+An action is a fault's preparation (`fires`) or an undo; `wait_until(due)` is a timed wait,
+then a spin of the last `SPIN` s. A simulated run keeps its own agenda in virtual time and
+uses `Triggered` and `FaultLog` as they are. Each class keeps its state under its own lock.
 """
 
 from __future__ import annotations
@@ -210,17 +201,9 @@ class FaultLog:
         target: str | None = None,
         skipped: bool = False,
     ) -> None:
-        """Record `fault` (any thread).
-
-        Args:
-            fault: the scheduled fault.
-            scheduled: when it was due, seconds from the run's t0 (`None`: its trigger
-                never came).
-            injected: when it was fired, seconds from t0 (`None`: it was not).
-            detail: what was done, or why not.
-            target: what it struck, when not the fault's own target.
-            skipped: it was not fired.
-        """
+        """Record `fault` (any thread): `scheduled` and `injected` in seconds from the run's t0
+        (`None`: its trigger never came / it was not fired), `detail` what was done or why not,
+        `target` what it struck when not the fault's own."""
         record = FaultRecord(
             fault=fault.fault,
             n=fault.n,

@@ -1,11 +1,8 @@
 """The run process: `python -m rr_actors.experiments._child RUN_DIR PARENT_PID` runs one run.
 
-It reads `RUN_DIR/spec.pickle` (a `RunSpec` the experiment wrote), runs it with
-`runner.execute`, and writes `RUN_DIR/result.pickle` (a `RunResult`). SIGTERM or SIGINT,
-or the death of the experiment that started it (`PARENT_PID`; if it died before this
-process looked, this one was re-parented and ends at once), ends the run early: the tree
-is stopped and no result is written (exit code 3). Either way its managers' forkserver
-is killed before it exits (`_end_forkserver`).
+It runs `RUN_DIR/spec.pickle` with `runner.execute` into `RUN_DIR/result.pickle`. SIGTERM,
+SIGINT or the experiment's death (`PARENT_PID`) ends the run early: the tree is stopped,
+no result written (exit code 3). Its managers' forkserver is killed before it exits.
 """
 
 from __future__ import annotations
@@ -46,11 +43,7 @@ def _watch_parent(stop: threading.Event, parent: int) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the run in the directory `argv[0]` for the experiment `argv[1]` (its pid).
-
-    Returns:
-        The exit code: 0 (`result.pickle` written), or `STOPPED_EXIT`.
-    """
+    """Run the run in `argv[0]` for the experiment of pid `argv[1]`; 0 or `STOPPED_EXIT`."""
     args = list(sys.argv[1:] if argv is None else argv)
     run_dir = Path(args[0])
     parent = int(args[1]) if len(args) > 1 else os.getppid()
@@ -81,14 +74,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _end_forkserver() -> None:
-    """SIGKILL the forkserver this process started for its managers (the tree has stopped).
-
-    What it buys: 0.3-0.5 s of every run. Left alone it exits only after this process
-    has (at the end of a pipe only this process holds open), and then tears down the
-    interpreter with every module it preloaded, while the experiment waits for it (the
-    run's leak sweep; its standard output). It holds nothing that needs a clean exit:
-    every manager it forked is gone (stopped, or killed as leaked by `execute`).
-    """
+    """SIGKILL the managers' forkserver (the tree has stopped): left alone, it would exit after
+    this process and the experiment would wait for its teardown."""
     me = os.getpid()
     _procs.kill(
         [

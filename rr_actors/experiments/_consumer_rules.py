@@ -2,22 +2,16 @@
 `retry-kept`, `left`, `fetch`).
 
 ```
- steps ──► answered: each consumer's answered calls, life by life, against what its
-       │   providers added ──► findings, and the spans `status-reached` asks about
- QueryForgotten (provider lost, unknown at reconcile) + the provider pass's holdings
-       ──► reported_lost: its provider's life that held the id had not lost it
- steps (+ the history's exits) ──► end: what providers still hold, life by life,
-       for consumers that stopped
- steps ──► withdrawn: what providers still hold at the end, of calls their consumers
-       withdrew (and did not have answered again)
- steps ──► retry-kept: a failed call's id that the provider's next life restored, released
-       by a reconcile of that life while its consumer could still retry it
- steps (+ the give-ups) ──► left: the rows each registrar's last stop lists that no
-       consumer still running holds
- steps + the provider pass's holdings ──► fetch: each QueriesFetched against what its
-       provider held for that consumer while it was asked; each ServerQueriesListed
-       against what that server held while it was asked
+ steps ──► answered: each consumer's answered calls against what its providers added
+ QueryForgotten + the provider pass's holdings ──► reported_lost
+ steps (+ the history's exits) ──► end: what providers still hold for stopped consumers
+ steps ──► withdrawn: what providers still hold of withdrawn calls
+ steps ──► retry-kept: a failed call's id released while its consumer could retry it
+ steps (+ the give-ups) ──► left: a last stop's rows no running consumer holds
+ steps + holdings ──► fetch: QueriesFetched, ServerQueriesListed against what was held
 ```
+
+Each rule's windows and what it excuses: docs/how-to/check-a-run.md.
 """
 
 from __future__ import annotations
@@ -48,12 +42,8 @@ _SHOWN = 3
 def answered(  # noqa: PLR0912 - one branch per event kind
     steps: Sequence[Step], facts: Facts, wanted: Collection[tuple[str, str]]
 ) -> tuple[list[Finding], dict[tuple[str, str], list[Span]]]:
-    """`answered`: the consumer's side of each call, against what it and its provider say.
-
-    Returns:
-        The findings, and for each (consumer, query id) of `wanted`, the spans it held
-        it in (`status-reached`).
-    """
+    """`answered`: each call's consumer side against its provider; the findings, and the spans
+    each (consumer, query id) of `wanted` held it in (`status-reached`)."""
     findings: list[Finding] = []
     held: dict[str, dict[str, int]] = defaultdict(dict)  # consumer -> answered id -> line
     restored: dict[str, dict[str, int]] = defaultdict(dict)  # consumer -> restored id -> line
@@ -132,15 +122,12 @@ def reported_lost(
     holdings: dict[tuple[str, str], list[Holding]],
     lives: dict[tuple[str, int], Life],
 ) -> list[Finding]:
-    """`reported-lost`: a consumer tells itself `FATAL` for an id only if its provider
-    lost it.
+    """`reported-lost`: a consumer tells itself `FATAL` for an id only if its provider lost it.
 
-    `unknown at reconcile` (rule 20): the provider's life that answered had not added
-    it, or had released it. `provider lost` (rule 19): the provider's life that held it
-    died; one that was seen alive after, on the same host, was not lost (across hosts a
-    cut link counts as lost: the provider may run on over there), unless that life let
-    the id go at its reconcile with the consumer (the consumer heard it reachable again:
-    it could not hear it before, as a process that cannot hear its router, rule 19).
+    `unknown at reconcile` (rule 20): the provider's life that answered had not added it, or
+    had released it. `provider lost` (rule 19): the life that held it died; one seen alive
+    after on the same host was not lost (across hosts a cut counts as lost), unless it let the
+    id go at its reconcile with the consumer.
     """
     reconciled: set[tuple[str, str, str, int]] = {
         (e.registrar, e.consumer, e.query_id, e.hlc)
@@ -189,12 +176,8 @@ def reported_lost(
 
 
 def end(steps: Sequence[Step], history: Sequence[Line]) -> list[Finding]:
-    """`end`: at the end, no provider holds an id of a consumer that stopped.
-
-    A provider holds what its events added and did not release, life by life: a new
-    life holds what its `CatalogRestored` lists, or nothing (a restart without a backup
-    forgets every id; its consumers learn it at their reconcile, rule 20).
-    """
+    """`end`: at the end, no provider holds an id of a consumer that stopped (life by life: a new
+    life holds what its `CatalogRestored` lists, or nothing)."""
     stopped: dict[str, int] = {}  # consumer -> line of its (last) RegistrarStopped
     last_pid: dict[str, int] = {}
     exited: dict[tuple[str, int], int] = {}  # (child, pid) -> line of its ChildExited
@@ -246,13 +229,9 @@ withdrawal or from when that life of the provider began to hold it, whichever is
 def withdrawn(steps: Sequence[Step]) -> list[Finding]:
     """`withdrawn` (rules 17, 20): a call its consumer withdrew leaves nothing held.
 
-    A `CallWithdrawn` (its caller timed out or was cancelled) whose id the consumer did
-    not have answered later (a retry with the same id) is released at its provider: by
-    its `Abandon`, or, if that died with the provider, when the restarted provider
-    reconciles with the consumer. A life of the provider that held it (added, or
-    restored from its backup) for `WITHDRAWN_BOUND_S` after the withdrawal (wall clock
-    `at`) is a violation: issue 51, where the consumer listed such an id as a failed
-    call to retry, and the restarted provider kept it until the consumer stopped.
+    A `CallWithdrawn` not answered later (a retry) is released by its `Abandon` or at the
+    restarted provider's reconcile; a provider's life holding it `WITHDRAWN_BOUND_S` after
+    the withdrawal (wall clock `at`) is a violation.
     """
     called: dict[tuple[str, str], tuple[int, float, str]] = {}  # (consumer, id) -> ...
     # provider -> id -> (consumer, line, since): held in its current life
@@ -289,18 +268,10 @@ def withdrawn(steps: Sequence[Step]) -> list[Finding]:
 def retry_kept(steps: Sequence[Step]) -> list[Finding]:
     """`retry-kept` (rule 17 case 3, rule 20): a failed call's id waits for its retry.
 
-    A call that failed as its provider died or stopped (`CallFailed.may_have_executed`)
-    may have run; the provider's next life that restores the id keeps it for a retry
-    with the same id: its consumer lists it in every `Reconcile` that life asks for (a
-    life asks more than once: as it starts, and once it is served). That life releasing
-    it by a reconcile (`ConsumerReleased` "reconcile") while the consumer could still
-    retry it is a violation: the retry would load afresh. The consumer could retry it
-    while nothing of it ended the wait since the failure: no new life or stop of it, no
-    answer, withdrawal or forgetting of that id, and no load or unload of its own ended
-    (a dependency's load that ended gives its failed calls back: `LoadFailed`,
-    `ResourceUnloaded`, which this rule does not tell apart). A later life may release
-    it (no retry came while the first one lived). Issue 51: a second ask of one life
-    released it (a full CI run; `killheavy` seed 9).
+    A call that failed as its provider died (`CallFailed.may_have_executed`) may have run; the
+    next life that restores the id keeps it while its consumer could still retry it (no new
+    life or stop of the consumer, no answer, withdrawal or forgetting of the id, no load or
+    unload of its own ended). Releasing it by a reconcile meanwhile is a violation.
     """
     findings: list[Finding] = []
     # (consumer, id) -> (line of its failure, provider, the provider's life that restored
@@ -384,19 +355,12 @@ def _held_on(
 def left(
     steps: Sequence[Step], history: Sequence[Line], lives: dict[tuple[str, int], Life]
 ) -> list[Finding]:
-    """`left`: a registrar's last stop (the run's end: every client unloaded, every
-    manager reconciled) lists no row that a consumer still running does not hold.
+    """`left`: a registrar's last stop lists no row that a consumer still running does not hold.
 
-    A resource row is left unless a consumer that had not stopped before (its last
-    event a later stop, or no stop: killed, or still running) holds it; a client row is
-    left unless it is a dependency of a resource that is not. A resource kept as
-    `unloading` is not left (the stop cut its unload short: the next start finishes it,
-    in doubt). Not judged: a stop that is not its registrar's last event, one that lists
-    no rows (`complete` false), a second server's, and a stop in a registrar's last life
-    when a supervisor gave up in it or after it (a give-up stops its children with their
-    consumers' rows, which nobody can release, and a load it cut short; its
-    `SupervisorGaveUp` is published once they stopped: intensity's plan with clients,
-    `--simulate` seed 91, a resource still `loading`).
+    A client row is left unless it is a dependency of a resource that is not; a resource kept
+    `unloading` is not left. Not judged: a stop that is not the registrar's last event, one
+    not `complete`, a second server's, and a last life in or after which a supervisor gave up
+    (its children stop with their consumers' rows).
     """
     gave_up = [line for line, e in history if isinstance(e, events.SupervisorGaveUp)]
     last_line: dict[str, int] = {}
@@ -453,18 +417,10 @@ def fetch(
 ) -> list[Finding]:
     """`fetch` (rule 10): a fetch lists what its provider held for its consumer.
 
-    A fetch's provider read its catalog between the fetch's `started` and its `hlc`
-    stamps. Each id it listed was held by that provider at some instant of that window
-    (a holding that began before its end and ended after its start); and each id its
-    consumer had answered (`CallAnswered`, in this life of the consumer, at that server)
-    before the window, not withdrawn nor forgotten by it since, that the provider held
-    throughout the window, is listed. Not judged: a fetch whose window a life of its
-    provider began or ended in (a restart, a stop, a second server of its name).
-
-    A provider's listing of its own server's queries (`ServerQueriesListed`) is judged
-    the same way, in the life it was made in: each id it listed was held by it at some
-    instant of its window, and each id that server held throughout the window, for any
-    consumer, is listed. Not judged: a second server's listing.
+    Within the window between the fetch's `started` and `hlc` stamps, each listed id was held
+    at some instant, and each id the consumer had answered there before it (not withdrawn nor
+    forgotten) and held throughout is listed. A `ServerQueriesListed` is judged alike, for any
+    consumer. Not judged: a window a provider's life began or ended in; a second server's.
     """
     answers: dict[str, dict[str, tuple[str, str, int]]] = defaultdict(dict)
     by_name: dict[str, list[tuple[int, Life]]] = defaultdict(list)

@@ -2,31 +2,21 @@
 
 ```
  history [(line, event), ...] ──► walk ──► steps: (registrar, line, event, new, life)
-                              │        └─► lives: (registrar, life) -> Life: its first and
-                              │            last stamp, the stamp it ended at, its host
+                              │        └─► lives: (registrar, life) -> Life
                               └─► gather ──► Facts: what the whole run says, wherever
-                                            in it (who forgot what, who was told FATAL,
-                                            dependency paths, deliveries, ...)
 ```
 
-A registrar's *life* (an incarnation) begins at a `CatalogRestored`, at its first event
-in another process (a restarted manager process), or at its first event after a
-`ChildExited` of its own process (a restarted thread manager) or after its
-`RegistrarStopped`. It ends at that `ChildExited` or `RegistrarStopped`, or where the
-next one begins.
+A registrar's *life* (an incarnation) begins at a `CatalogRestored`, at its first event in
+another process, or at its first event after a `ChildExited` of its own process or its
+`RegistrarStopped`; it ends at that exit or stop, or where the next one begins. A *second
+server* of a name (only a cut lets one be, rule 22) is another process whose events of that
+registrar begin while the one it would follow still serves: it is checked as a registrar
+`<name>@<pid>`, its life recording which one it served `beside`.
 
-A *second server* of a name is another process whose events of that registrar begin
-while the one it would follow still serves: that one has not ended, and publishes again
-later (a later line, a later stamp). Only a cut lets that be (rule 22: each side may
-serve a name the other lost). Its events are checked as a registrar of their own, named
-`<name>@<pid>` (`@` is in no name), whose life records which life it served `beside`.
-
-Two clocks are used. Within one registrar, the order of its lines (events of one process
-reach the run's subscription in the order they were published). Across registrars, the
-events' hybrid logical clock stamps (`hlc`): a stamp orders a cause before its effects,
-in one process, across the processes of a host, and across hosts (the carrier brings
-the sender's stamp); the order of lines does not (each process forwards its own
-events, in batches).
+Two clocks: within one registrar, the order of its lines (one process publishes in order);
+across registrars, the hybrid logical clock stamps (`hlc`), which order a cause before its
+effects across processes and hosts (the order of lines does not: each process forwards its
+events in batches).
 """
 
 from __future__ import annotations
@@ -125,12 +115,9 @@ def registrar_of(event: events.Event) -> str | None:
 def walk(history: Sequence[Line]) -> tuple[list[Step], dict[tuple[str, int], Life]]:
     """Each registrar event with its life, and the lives (see the module docstring).
 
-    A `StatusDelivered` or `StatusHandled` belongs to the life its registrar is in and
-    begins none (a process's status desk may publish it for a registrar, from another
-    thread); a
-    `RegistrarStopped` ends its life, and begins one first if it comes from another
-    process (a restart without a backup that published nothing before its stop). The
-    events of a second server of a name are those of the registrar `<name>@<pid>`.
+    A `StatusDelivered` or `StatusHandled` belongs to the life its registrar is in and begins
+    none (a status desk may publish it from another thread); a `RegistrarStopped` from another
+    process begins a life first (a restart without a backup that published nothing else).
     """
     walker = _Walk(history)
     exited, step = walker.exited, walker.step
@@ -164,10 +151,8 @@ class _Walk:
 
     @property
     def last(self) -> dict[tuple[str, int], tuple[int, int]]:
-        """`(name, pid)` -> the line and the greatest stamp of its last event (all but
-        `StatusDelivered` and `StatusHandled`), in the whole history: read once, where a
-        registrar's events first come from another process while the one before has not
-        ended."""
+        """`(name, pid)` -> the line and greatest stamp of its last event (statuses' deliveries
+        aside)."""
         if self._last is None:
             self._last = {}
             for line, event in self.history:
@@ -275,37 +260,30 @@ _ENDING = (events.StatusDelivered, events.StatusHandled, events.RegistrarStopped
 
 @dataclasses.dataclass
 class Facts:
-    """What the whole run says, wherever in it (query and status ids are UUIDs: unique
-    across registrars).
+    """What the whole run says, wherever in it (query and status ids are UUIDs).
 
     Attributes:
         with_backup: registrars that published a `CatalogRestored`.
-        forgot: (provider, query id) -> the stamp of the first `QueryForgotten` of it by
-            its consumer.
-        released: (provider, query id) -> `(unload_sent, reconciled)` of that `QueryForgotten`,
-            if its consumer forgot it on the answer to its release (`unload_sent` > 0).
+        forgot: (provider, query id) -> the stamp of its consumer's first `QueryForgotten`.
+        released: (provider, query id) -> `(unload_sent, reconciled)` of that `QueryForgotten`
+            if forgotten on the answer to its release.
         fatal: query id -> the line of the first `FATAL` its holder was told.
         fatal_at: query id -> the stamp of that `FATAL`.
         added: query ids some provider added (`ConsumerAdded`, or a catalog's rows).
         held_at: query id -> (provider, resource id, line of its `ConsumerAdded` or row).
-        held_on: query id -> `(stamp, provider, resource id, line)` of each of those, in
-            order: a retry of a call with the same id, after a restart without a backup,
-            adds it to a new resource (`holder_at`).
+        held_on: query id -> `(stamp, provider, resource id, line)` of each of those, in order
+            (a retry after a restart without a backup adds it to a new resource).
         parent: (consumer, query id) -> the consumer's resource it is a dependency of.
         sent: status id -> the query id it was sent about (its `StatusSent`).
         reported: (consumer, query id) told `FATAL` by its consumer itself (`REPORTED`).
         delivered: (status id, query id) of every `StatusDelivered`.
         last_delivery: status id -> the greatest stamp of its deliveries.
-        first_delivery: (status id, registrar, hop) -> the least stamp of its deliveries
-            to that registrar at that hop.
+        first_delivery: (status id, registrar, hop) -> the least stamp of those deliveries.
         lost: (provider, query id) its consumer reported lost itself (`REPORTED`).
         told_self: (line, consumer, query id) of each `QueryForgotten` of `REPORTED`.
-        outcomes: query id -> `(stamp, answered)` of each of its consumer's
-            `CallAnswered` (`True`) and `CallFailed` (`False`), in order.
-        fetched: (provider, query id) a fetch listed, or its consumer had answered at a
-            provider it fetched from (`QueriesFetched`), or a provider that listed its own
-            server's queries (`ServerQueriesListed`) held: their holdings are kept for
-            `fetch`.
+        outcomes: query id -> `(stamp, answered)` of each `CallAnswered` / `CallFailed`.
+        fetched: (provider, query id) whose holdings `fetch` needs (listed by a fetch or a
+            `ServerQueriesListed`, or answered at a provider fetched from).
     """
 
     with_backup: set[str] = dataclasses.field(default_factory=set)

@@ -8,9 +8,6 @@
    kill_router ─► SIGKILL the host's router process (no undo)
  Injector.stop ──► heal_all: every undo still pending, now
 ```
-
-Signals go through pidfds, which always mean the process that was looked up. Its own
-state: the undos still pending, by key.
 """
 
 from __future__ import annotations

@@ -11,11 +11,9 @@
       Supervisor(the managers with `host` = it, network=)    of file: stop the tree and exit
         └─ manager processes: CLIENT sessions through the router's Unix socket
 
-A host fault acts on these: `freeze` SIGSTOPs the host process (the router, so every message
-in or out of the host's managers stops, and the host's supervisor with it; the manager
-processes themselves keep running), `kill_router` SIGKILLs it (its managers die with it:
-`PR_SET_PDEATHSIG`) and `HostProcess` starts it again at once, as a service manager would
-(the new tree restores every manager's catalog from the host's state directory).
+`freeze` SIGSTOPs a host process (its router and supervisor; its managers run on);
+`kill_router` SIGKILLs it (its managers die with it) and `HostProcess` starts it again at
+once, restoring every manager's catalog.
 """
 
 from __future__ import annotations
@@ -198,11 +196,8 @@ class HostProcess:
         return reply
 
     def ask(self, op: str, *, within: float, **args: Any) -> Any:
-        """Send one command to the host process; its reply.
-
-        Raises:
-            RrError: no reply within `within` seconds (it may be frozen or restarting).
-        """
+        """Send one command to the host process; its reply (`RrError`: none within `within`
+        seconds)."""
         process = self.process
         if process is None or process.stdin is None:
             raise rr.RrError(f"host {self.name} is not running")

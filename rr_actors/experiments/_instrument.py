@@ -1,27 +1,18 @@
 """What an experiment adds inside each manager: a switch that makes loads raise, and a cut.
 
-Runs where the manager runs (its own process, or the run process for a thread manager).
-The run builds every `ManagerSpec` with `setup=functools.partial(instrumented_setup, path,
-options)`, so the manager imports its real setup by path and calls it with a registrar
-whose `register_server` wraps each `load`:
+Runs where the manager runs. Every `ManagerSpec` gets `setup=functools.partial(
+instrumented_setup, path, options)`: the real setup runs with a registrar whose
+`register_server` wraps each `load` (a coroutine one in a coroutine, `_aguarded`):
 
     injector ──Supervisor.run_in(name, arm_load_error(...))──► _SWITCHES.armed[name] (this module)
     client ──call──► registrar ──load(request)──► _guarded: armed to raise? ──► InjectedLoadError
                                                               else ──► the setup's own load
 
-A coroutine `load` (`async def`) is wrapped by a coroutine function (`_aguarded`), so the
-registrar still awaits it on its loop.
-
-On the simulation (`simulate.py`) the same switch is armed the same way: its state is
-per simulated process (`runtime.process_state`), its clock the virtual one; and a
-`kill_in_setup` fault arms `SETUP_FAULTS[name]`, which the next setup of that manager
-runs once the plan's setup returned, before the manager serves (nothing arms it in a real
-run).
-
-`cut_connections` (run on the manager's main thread by a SIGUSR2 handler, so that the
-injector fires it at an exact time with one signal) shuts down every connection of the
-manager's registrar over the system's AF_UNIX sockets: calls in flight on them fail with
-`RegistrarUnavailableError` and the next message connects again, as after a network blip.
+On the simulation the switch is per simulated process (virtual clock), and `kill_in_setup`
+arms `SETUP_FAULTS[name]`, run after the next setup returned, before the manager serves.
+`cut_connections` (a SIGUSR2 handler on the manager's main thread, fired at an exact time)
+shuts down every AF_UNIX connection of the registrar: calls in flight fail with
+`RegistrarUnavailableError` and the next message connects again.
 """
 
 from __future__ import annotations
@@ -231,10 +222,7 @@ def cut_connections() -> int:
 
 
 def catches_cut_signal(pid: int) -> bool:
-    """Whether process `pid` has a handler for `CUT_SIGNAL` (from `/proc/<pid>/status`).
-
-    Without one the signal would kill it, so the injector checks before it sends.
-    """
+    """Whether process `pid` handles `CUT_SIGNAL` (else the signal would kill it)."""
     try:
         with open(f"/proc/{pid}/status", encoding="ascii") as status:
             for line in status:

@@ -12,9 +12,6 @@ their resource processes killed, their loads made to fail.
    kill_manager of a thread manager ──► its registrar crashes (at the due time, here)
    load_error ──► a thread: Supervisor.run_in(manager, arm_load_error): its next loads raise
 ```
-
-Its own state: the hung managers (their pidfds), those resumed while still alive, and
-the load errors' threads.
 """
 
 from __future__ import annotations

@@ -8,10 +8,8 @@
       ├─ set_link / set_links: `ip -n NS link set rrv<j> down|up` (a cut; a partition)
       └─ close(): ip netns del (also of runs whose process is gone: `sweep_stale`)
 
-Why: a veth between every two hosts (not a bridge) makes a cut one link's business, as
-`tests/hosts.py` does for two hosts; every namespace is named after the run process's pid,
-so parallel runs never clash and a killed run's are swept by the next. Nothing is made in
-the machine's own namespace.
+A veth per pair (not a bridge) makes a cut one link's business; names carry the run
+process's pid, so parallel runs never clash and a killed run's are swept by the next.
 """
 
 from __future__ import annotations
@@ -140,11 +138,8 @@ class HostNetwork:
                 self.set_link(one, other, up=up)
 
     def enter(self, host: str) -> None:
-        """Move the calling thread (at start: the whole process) into `host`'s namespace.
-
-        Raises:
-            OSError: `setns(2)` failed.
-        """
+        """Move the calling thread (at start: the whole process) into `host`'s namespace (`OSError`
+        if `setns(2)` failed)."""
         libc = ctypes.CDLL(None, use_errno=True)
         fd = os.open(f"/run/netns/{self.namespaces[host]}", os.O_RDONLY)
         try:

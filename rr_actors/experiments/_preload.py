@@ -3,14 +3,10 @@
     run process: preload_setups(plan) ── RR_ACTORS_PRELOAD={base_dir, modules} ──► forkserver
     forkserver: import rr_actors.experiments._preload ── imports each module ── forks managers
 
-A manager's setup is cloudpickled by reference, so each manager (re)start imported its
-module (and `rr_actors.experiments`, for `instrumented_setup`) after its fork; imported
-here, every manager the forkserver forks has them. CPython's forkserver imports its
-preload by name, without the `sys.path` of the process that started it (3.11-3.12), so
-the run process names the modules and the plan's directory in `RR_ACTORS_PRELOAD`; this
-module imports each with that directory first on `sys.path`, skips one that raises (its
-manager imports it after the fork, and reports the error, as before), and removes the
-variable, so that the managers and their programs do not inherit it.
+CPython's forkserver imports its preload without the caller's `sys.path` (3.11-3.12), so
+the modules and the plan's directory come in `RR_ACTORS_PRELOAD`; each is imported with
+that directory first (one that raises is skipped: its manager reports it after the fork),
+and the variable is removed so managers and programs do not inherit it.
 """
 
 from __future__ import annotations

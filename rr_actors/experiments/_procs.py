@@ -1,14 +1,9 @@
 """Finding every process an experiment started, wherever it ended up in the process tree.
 
-Each run process is started with `RR_ACTORS_EXPERIMENT=<token>` in its environment. Every
-process it starts inherits it: the forkserver and the manager processes forked from it,
-and the programs managers start (`subprocess` passes the environment on), even those in
-sessions of their own or re-parented after their parent died. `/proc/<pid>/environ` shows
-the environment a process started with, so a scan of `/proc` finds them all (Linux).
-
-It also finds the processes a fault may kill: the OS processes a manager started for its
-resources (`resource_processes`), each with its creation time (`start_time`), so that a
-pid reused by another process is never taken for the one looked up.
+Each run process is started with `RR_ACTORS_EXPERIMENT=<token>`, which every process it
+starts inherits (forkserver, managers, their programs, re-parented or not); a scan of
+`/proc/<pid>/environ` finds them all (Linux). Also the resource processes a fault may kill
+(`resource_processes`), each with its creation time, so a reused pid is never taken.
 """
 
 from __future__ import annotations
@@ -141,16 +136,8 @@ def children(pid: int) -> list[int]:
 
 
 def resource_processes(sup: rr.Supervisor, managers: list[str]) -> list[tuple[str, int, int]]:
-    """The child processes of the running process managers among `managers`.
-
-    Args:
-        sup: the run's supervisor.
-        managers: the managers to look at, in order.
-
-    Returns:
-        `(manager, pid, creation time)` sorted by manager order, creation time and pid
-        (a stable order, so a seeded pick chooses alike in alike runs).
-    """
+    """`(manager, pid, creation time)` of the child processes of the running process managers
+    among `managers`, in manager order, then creation time and pid (a seeded pick is stable)."""
     found: list[tuple[int, int, int, str]] = []
     for order, name in enumerate(managers):
         info = sup.child(name)

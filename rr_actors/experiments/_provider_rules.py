@@ -1,25 +1,18 @@
-"""The provider's side of a run: one pass over each provider registrar's catalog, as its
-events tell it (rules `kept`, `unload-once`, `no-leak`, `one-resource`, `release-match`,
-`in-doubt`, `dedup`, `restore-first`); the order of an unload against its resource's
-dependencies (`unload-order`); and those dependencies kept while it is held
-(`dependency-held`).
+"""The provider's side of a run: one pass over each provider's catalog as its events tell it
+(`kept`, `unload-once`, `no-leak`, `one-resource`, `release-match`, `in-doubt`, `dedup`,
+`restore-first`), `unload-order` and `dependency-held`.
 
 ```
- steps (_history.walk) ──► Providers.run: per registrar a Catalog (held ids, holders per
-                           resource, live digests, releases not yet unloaded), one
-                           handler per event kind
+ steps (_history.walk) ──► Providers.run: per registrar a Catalog, a handler per event kind
                               ├─► findings
                               ├─► holdings: (provider, query id) -> when each life held it
-                              │   (for `reported-lost`, only the ids it asks about)
-                              └─► expected: who a status should reach, where it was sent
-                                  or climbed from (for `status-reached`)
- steps ──► unload_order: each resource's dependencies (CallAnswered.parent, a restore's
-           client rows), forgotten by their registrar before its ResourceUnloaded
- steps ──► dependency_held: the same dependencies, not forgotten while their resource
-           has a consumer id (ConsumerAdded, a restore's consumer rows)
+                              └─► expected: who a status should reach (`status-reached`)
+ steps ──► unload_order: each resource's dependencies forgotten before its ResourceUnloaded
+ steps ──► dependency_held: those dependencies kept while their resource has a consumer
 ```
 
 Every lookup is a dict's: a run of a million events is checked in one linear pass.
+Each rule's windows and what it excuses: docs/how-to/check-a-run.md.
 """
 
 from __future__ import annotations
@@ -130,11 +123,8 @@ class Providers:
     """The provider pass: feed it every step (`run`), then read its findings.
 
     Args:
-        facts: what the whole run says (who restores a catalog, who forgot or was told
-            `FATAL` what and when, dependency paths, which ids were reported lost:
-            their holdings are kept for `reported-lost`; the ids of fetches, for `fetch`).
-        lives: each registrar's lives (`_history.walk`): when the one a restart without
-            a backup follows ended, for the releases that crossed it.
+        facts: what the whole run says (`_history.Facts`).
+        lives: each registrar's lives (`_history.walk`).
     """
 
     def __init__(self, facts: Facts, lives: dict[tuple[str, int], Life] | None = None) -> None:
@@ -200,11 +190,8 @@ class Providers:
         catalog.life = life
 
     def failed(self, qid: str, since: int, stamp: int) -> bool:
-        """Whether the call of `qid`, added at `since`, had failed for its caller at
-        `stamp` (a restart without a backup, which may lose it: its caller holds no id,
-        rule 17): its consumer's last outcome of it between the two was a `CallFailed`,
-        or, with none between, its first one after (the failure seen after the restart
-        began)."""
+        """Whether the call of `qid`, added at `since`, had failed for its caller at `stamp` (rule
+        17)."""
         outcomes = [(at, answered) for at, answered in self.outcomes.get(qid, ()) if at > since]
         before = [answered for at, answered in outcomes if at < stamp]
         if before:
@@ -212,11 +199,8 @@ class Providers:
         return bool(outcomes) and not outcomes[0][1]
 
     def ended(self, name: str, life: int, restart: int) -> int:
-        """The stamp before which no consumer can have reconciled with the restart (at
-        `restart`, the first event of the next life) that follows life `life` of `name`:
-        its end, if its `ChildExited` or `RegistrarStopped` shows it; else its last event
-        (the restart's first event may come well after it reconciled with its
-        consumers)."""
+        """The stamp before which no consumer can have reconciled with the restart after `life`: its
+        end if its exit or stop shows it, else its last event."""
         record = self.lives.get((name, life))
         if record is None:
             return 0
@@ -225,24 +209,14 @@ class Providers:
         return record.last
 
     def crossed(self, name: str, qid: str, ended: int) -> bool:
-        """Whether the consumer of `qid` forgot it on the answer to a release whose
-        `Unload` left before any reconcile of it with `name` begun after the life that
-        ended at `ended` was answered (`QueryForgotten.reconciled`): a release on its way
-        when `name` was killed, or sent before its consumer reconciled with the restart
-        (without a backup), which no longer knew the id. The consumer let it go (its
-        reconcile skips an id being released): no `FATAL` is owed (rule 20)."""
+        """Whether the consumer forgot `qid` on the answer to a release sent before it reconciled
+        with `name`'s restart after `ended`: it let it go, no `FATAL` is owed (rule 20)."""
         released = self.release_stamps.get((name, qid))
         return released is not None and released[1] < ended
 
     def died_before(self, consumer: str, stamp: int) -> bool:
-        """Whether `consumer`'s life at `stamp` (the one begun last before it) had
-        published its last event before it and was followed by another life: it was
-        killed before the restart at `stamp`, as a program killed with its managers is
-        (`kill_program`), and it keeps no backup (its next life holds nothing of that
-        one's). What it released just before is committed, and its events
-        (`ConsumerReleased`, `QueryForgotten`) may be lost with the program; nobody
-        holds the id any more, so no `FATAL` is owed. (One with a backup restores its
-        holds: a row lost at its provider is reported to it at its reconcile.)"""
+        """Whether `consumer`'s life at `stamp` ended (killed without a backup, as `kill_program`
+        does) before it: its last releases' events may be lost, and no `FATAL` is owed."""
         if consumer in self.with_backup:
             return False
         if self._by_name is None:
@@ -266,10 +240,8 @@ class Providers:
         why: str,
         let_go_by: int | None = None,
     ) -> None:
-        """`kept`: the ids held before a restart (at `line`, `stamp`) that it lost (all
-        but `spared`: those its restore kept, or whose call had failed for its caller) are
-        violations, unless their consumer was told `FATAL` since it was added, or had
-        forgotten them before `let_go_by` (the restart, if not given)."""
+        """`kept`: the ids a restart lost (all but `spared`) are violations, unless their consumer
+        was told `FATAL` since, or forgot them before `let_go_by`."""
         let_go_by = stamp if let_go_by is None else let_go_by
         for qid, held in catalog.held.items():
             if qid in spared:
@@ -505,11 +477,8 @@ class Providers:
         catalog.pending.pop(rid, None)
 
     def stopped(self, name: str, catalog: _Catalog, line: int, event: Any) -> None:
-        """A clean stop lists every id it holds (`kept`). Every resource whose last holder
-        was released was unloaded by now (a stop waits for the unloads under way, or
-        reports them cut short), or is kept in the catalog as unloading (in doubt at the
-        next start); one the restore found unheld may also be kept as loaded, for the
-        next start's sweep (`no-leak`)."""
+        """A clean stop lists every id it holds (`kept`); a resource whose last holder was released
+        is unloaded or kept as unloading (or loaded, for the next start's sweep: `no-leak`)."""
         if not event.complete:
             catalog.pending.clear()  # (what it keeps is not listed: nothing to compare)
             return
@@ -559,14 +528,8 @@ its instance would be a cycle, which only the garbage collector frees)."""
 
 
 def unload_order(steps: list[Step]) -> list[Finding]:
-    """`unload-order` (rule 7): a resource's `unload` runs after its own dependencies were
-    released: each query its registrar holds for it (a `CallAnswered` with it as
-    `parent`, or a restored client row) is forgotten (`QueryForgotten`) before its
-    `ResourceUnloaded`.
-
-    Lines of one registrar are in the order it published them. A new life holds the
-    dependencies its `CatalogRestored` lists (none without a backup).
-    """
+    """`unload-order` (rule 7): a resource's dependencies (its `CallAnswered` `parent`s, restored
+    client rows) are forgotten before its `ResourceUnloaded`, in its registrar's line order."""
     findings: list[Finding] = []
     deps: dict[str, dict[str, dict[str, int]]] = defaultdict(dict)  # name -> rid -> qid -> line
     parent_of: dict[str, dict[str, str]] = defaultdict(dict)  # name -> qid -> rid
@@ -609,14 +572,11 @@ lost it: `FATAL`), which its consumer forgets whatever holds it."""
 
 
 def dependency_held(steps: list[Step]) -> list[Finding]:
-    """`dependency-held` (rule 7: dependencies belong to the resource): a registrar does
-    not forget a dependency of one of its resources (a query it answered with that
-    resource as `parent`, or a restored client row with one) while that resource still
-    has a consumer id, unless its provider ended it (`PROVIDER_ENDED`).
+    """`dependency-held` (rule 7): a registrar does not forget a dependency of one of its
+    resources while that resource has a consumer id, unless its provider ended it.
 
-    A resource's consumer ids are its registrar's own lines: a restore's rows, then its
-    `ConsumerAdded` and `ConsumerReleased`. Not judged in a life whose `CatalogRestored`
-    did not list its rows (`complete` false).
+    Consumer ids are the registrar's own lines (restored rows, `ConsumerAdded`,
+    `ConsumerReleased`); a life whose `CatalogRestored` is not `complete` is not judged.
     """
     findings: list[Finding] = []
     holders: dict[str, dict[str, dict[str, int]]] = defaultdict(dict)  # name -> rid -> qid -> line

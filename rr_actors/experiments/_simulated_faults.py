@@ -5,48 +5,28 @@
                           `after` ─► Triggered (_agenda.py) ◄─ on_event (the run's    │
                                      subscriber): the n-th match ─► at its due time ───┘
  the thread "rr-simulated-faults": each action at its time, in order
-   kill_manager ──────► simulation.kill(pid, SIGKILL) (a thread manager: its registrar
-                        crashed, as for real)
+   kill_manager ──────► simulation.kill(pid, SIGKILL)
    hang_manager ──────► SIGSTOP; `for` later SIGCONT (unless it was killed meanwhile)
-   cut_connections ───► SimulatedNetwork.cut_connections(pid): its links close
-   load_error ────────► Supervisor.run_in(manager, arm_load_error) on a thread of its own
-   cut, partition ────► one side's hosts' processes (each host's and every one it started)
-                        cut off the others' (SimulatedNetwork.partition); `for` s later
-                        healed; one at a time (one due meanwhile: skipped)
-   only here (plan.SIMULATION_KINDS):
-   duplicate_delivery ► its links close, and each made to it within `for` s delivers its
-                        first frame twice (SimulatedNetwork.duplicate_first)
-   kill_before_answer ► its next answer (not an error) never leaves: SIGKILL then
-                        (SimulatedNetwork.kill_at_answer)
-   kill_in_setup ─────► SIGKILL now, and SIGKILL again inside its restart's setup
-                        (_instrument.SETUP_FAULTS)
-   partition_serving ─► SIGKILL now; its restart is cut off the other processes as it
-                        serves, for `for` s, then healed (SimulatedNetwork.on_serve)
-   split_brain ───────► its process (with [hosts]: its host's) cut off the others; on
-                        the run's side a second server of its name starts ("beyond-<n>",
-                        its backup its own, the child temporary: a host that saw the name
-                        lost, rule 19), on a thread of its own; `for` s later (not before
-                        it serves: _HealOnceServed) the cut heals and rule 22 decides
-                        (by [hosts]' resolve: first served by default); that
-                        supervisor runs to the end of the run (`close`)
-   deaf_manager ──────► its process cannot hear its router (SimulatedNetwork.deafen: it
-                        serves no name, its calls and the calls to it fail, it hears
-                        every other name lost, rule 19); `for` s later it hears again
-                        (`hear`: a heal for it, rule 20)
-   kill_program ──────► the run's program (its own simulated process: `simulate`'s
-                        `_SimulatedProgram`) SIGKILLed, its managers' processes with it;
-                        started again at once on the same state_dir, on a thread of its
-                        own (its managers restore their backups, its clients call again
-                        under the same names); the manager faults due meanwhile skipped
- stop ─► hung managers continued; armed faults that never fired, triggers that never
-         came and faults due after the end recorded as skipped (FaultLog); deaf
-         managers hear again
+   cut_connections ───► SimulatedNetwork.cut_connections(pid)
+   load_error ────────► Supervisor.run_in(manager, arm_load_error), a thread of its own
+   cut, partition ────► SimulatedNetwork.partition of the hosts' processes; `for` s later
+                        healed; one at a time
+   duplicate_delivery ► SimulatedNetwork.duplicate_first      (plan.SIMULATION_KINDS)
+   kill_before_answer ► SimulatedNetwork.kill_at_answer
+   kill_in_setup ─────► SIGKILL now and inside its restart's setup (SETUP_FAULTS)
+   partition_serving ─► SIGKILL; its restart cut off as it serves (on_serve), healed
+   split_brain ───────► its process cut off; a second server of its name beyond the cut
+                        ("beyond-<n>"); healed `for` s later, not before it serves
+                        (_HealOnceServed): rule 22 decides
+   deaf_manager ──────► SimulatedNetwork.deafen, `for` s later `hear`
+   kill_program ──────► the program's process SIGKILLed (its managers too), started again
+                        at once on the same state_dir
+ stop ─► hung managers continued, deaf ones hear; what never fired recorded as skipped
  close (after the tree's stop) ─► the supervisors of second servers stop
 ```
 
-Every time is virtual and every choice the scheduler's, so the same seed injects the same
-faults at the same instants. A fault aimed at a point (an answer, a setup, a serve) is
-recorded when it fires there.
+What each kind does: docs/reference/plan.md. Every time is virtual and every choice the
+scheduler's, so the same seed injects the same faults at the same instants.
 """
 
 from __future__ import annotations
@@ -85,11 +65,8 @@ class Program(Protocol):
         ...
 
     def start(self) -> rr.Supervisor:
-        """Start it again on its `state_dir`; its tree, once it serves.
-
-        Raises:
-            Exception: what its tree raised as it started.
-        """
+        """Start it again on its `state_dir`; its tree once it serves (raising what the tree
+        raised)."""
         ...
 
 
@@ -112,12 +89,9 @@ class SimulatedFaults:
         wall_t0: `runtime.wall()` then (events' times are on it).
         on_event: what the run's events go to (a second server's supervisor's too).
         state_dir: where second servers keep their backups (`None`: in memory).
-        hosts: with `[hosts]`, the pid of each other host's process (its tree's and its
-            managers' processes are the ones it started).
-        trees: with `[hosts]`, each other host's tree: a manager fault on a manager of
-            that host finds its process there (`sup` holds the first host's only).
-        program: the run's program, when it runs in a process of its own (a plan with
-            `kill_program`); `sup` is its tree, the one it runs now.
+        hosts: with `[hosts]`, the pid of each other host's process.
+        trees: with `[hosts]`, each other host's tree (where its managers' processes are).
+        program: the run's program when it runs in a process of its own (`kill_program`).
     """
 
     def __init__(
@@ -346,10 +320,9 @@ class SimulatedFaults:
         return self._trees.get(self.plan.host_of(manager) or "", self.sup)
 
     def _cut_hosts(self, fault: ScheduledFault, at: float) -> None:
-        """`cut` (of two hosts' link) or `partition`: the processes of one side's hosts
-        cut off the others' (`SimulatedNetwork.partition`), healed `for` s later; recorded
-        as a real run records it. One at a time: the simulated network holds one
-        partition, so one due while another is in force is skipped, saying so."""
+        """`cut` or `partition`: one side's hosts' processes cut off (`SimulatedNetwork.partition`),
+        healed `for` s later; one due while another is in force is skipped (one partition at
+        most)."""
         plan = self.plan.faults[fault.fault]
         assert self.plan.hosts is not None
         names, home = self.plan.hosts.names, self.plan.hosts.home
@@ -554,14 +527,8 @@ class SimulatedFaults:
 
 
 class _HealOnceServed:
-    """A `split_brain`'s heal: due `for` s after the cut, and not before the second
-    server serves (or failed to start): a heal before that would let it start beside the
-    first with no cut between them, and the fault would not be the one it names.
-
-    Both sides run on simulated threads of one OS thread, switched only where one blocks
-    or takes a lock: the flags need no lock (taking one would be a choice point of the
-    scheduler, and the runs whose start is quick would change).
-    """
+    """A `split_brain`'s heal: due `for` s after the cut and not before the second server serves
+    (or failed to start). Its flags need no lock (one OS thread; a lock would be a choice point)."""
 
     def __init__(self, heal: Callable[[], None]) -> None:
         self.heal = heal

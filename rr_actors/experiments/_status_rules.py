@@ -11,6 +11,8 @@
          send: that answer carried it), or the one to send it on died first
  StatusHandled ──► status_order: each id's callbacks one at a time, in arrival order
 ```
+
+Each rule's windows and what it excuses: docs/how-to/check-a-run.md.
 """
 
 from __future__ import annotations
@@ -57,14 +59,10 @@ def status_once(history: Sequence[Line]) -> list[Finding]:
 
 
 def status_order(history: Sequence[Line]) -> list[Finding]:
-    """`status-order` (rule 9): each query id's status callbacks run one at a time, in the
-    order their statuses arrived at its process's runner (`StatusHandled.arrived`).
+    """`status-order` (rule 9): each id's status callbacks run one at a time, in arrival order.
 
-    A callback may begin only once every callback of its id that arrived before it
-    returned (its `StatusHandled` stamp), or waited for a registrar (`opened`: its id's
-    next status may be what it waits for). One finding per callback that began earlier:
-    beside one that arrived before it, or before it. A callback that never returned (the
-    run ended first, its process died) has no `StatusHandled` and is not judged.
+    A callback may begin once every earlier-arrived one of its id returned, or `opened` (waited
+    for a registrar). A callback that never returned is not judged.
     """
     by_id: dict[tuple[str, int, str, str], list[tuple[int, events.StatusHandled]]]
     by_id = defaultdict(list)
@@ -143,12 +141,8 @@ _NOT_SENT = "no StatusSent at its provider"
 
 
 def _lost_tail(history: Sequence[Line]) -> Callable[[str, int], bool]:
-    """Whether registrar `name`'s life at a stamp (the pid of its last own event at or
-    before it) wrote nothing after it and then exited: the events it published last
-    may have died with it unwritten (a SIGKILL takes the journal's tail, and the numbers
-    of one life show no gap at its end). A real `simslow` run (2026-11-25, load 14): db,
-    restarted, listed its queries and sent a WARNING, which reached client-3's ids at
-    hop 1, and was killed; its `StatusSent` was not in the file."""
+    """Whether `name`'s life at a stamp wrote nothing after it and then exited (its last events
+    may have died unwritten with it: a SIGKILL takes the journal's tail)."""
     own: dict[str, list[tuple[int, int]]] = defaultdict(list)  # name -> (stamp, pid)
     exited: set[int] = set()
     for _, event in history:
@@ -204,33 +198,16 @@ def status_reached(
 ) -> list[Finding]:
     """`status-reached`: every holder that held its id throughout a status got it.
 
-    Throughout: from before the status was sent on to it (`Expected.since`) until after
-    the status's last delivery in the run, in one life of the holder; or, for an id that
-    is not a dependency, until after the status reached another id of its registrar at
-    that hop (a process's status desk delivers those in one pass, `_registrar/status.py`; a
-    dependency's status climbs through its registrar's mailbox, where a release queued
-    before it may come first). The one that sends it on must have gone on after it did
-    (an event of the same life later: a kill right after the send, before the notice
-    left, reaches nobody). A consumer that tells itself `FATAL` (`REPORTED`) delivers it
-    before it forgets the id. Nor does a status reach a holder cut off its sender (a process
-    that cannot hear its router, rule 19 both ways): the sender heard the holder lost
-    and let its id go (`death watch`), and the holder forgot it as one it could not
-    reach (its reconcile found it gone, `FATAL`; or its unload went unanswered). Nor
-    does a status that reached nobody reach a holder whose life ended (its process
-    killed) within `LOST_WITH_HOLDER_S` of the send: it was on its way to a process that
-    died, which no restart redelivers (`simshare` seed 70: the only holder killed three
-    of its events after the send); a holder that lived longer was owed it. Nor does a
-    status reach a holder restarted but not serving again yet when it was sent (its
-    catalog restored, its supervisor's `ChildRestarted` of that process still to come):
-    nobody can reach it then, and the provider does not keep the status for it
-    (failure-semantics.md; a real run of `simshare`, CI load: sent 5 ms before the
-    restarted holder served).
+    Throughout: from before it was sent on to it (`Expected.since`) until after its last
+    delivery, in one life; for an id not a dependency, until it reached another id of its
+    registrar at that hop (a status desk delivers those in one pass). The sender must have gone
+    on after the send. Excused: a holder cut off its sender (rule 19: each let the id go); a
+    holder killed within `LOST_WITH_HOLDER_S` of a send that reached nobody; a holder restarted
+    but not serving yet (failure-semantics.md).
 
-    Letting the id go early excuses no holder whose release crossed the status (rule 9):
-    its sender released the id on its `Unload` after it sent the status on to it, in the
-    same life, and went on after (the answer left), and the holder forgot it on that
-    answer (`ANSWERED`). The answer carried every status sent to that id and not yet
-    acknowledged, and the holder delivers those before it forgets the id.
+    Letting the id go early excuses no holder whose release crossed the status (rule 9): the
+    answer to its `Unload` carried every status not yet acknowledged, delivered before it
+    forgets the id (`ANSWERED`).
     """
     cut_off = _cut_off(history)
     released = _released_on_unload(steps)
@@ -370,10 +347,7 @@ _UNREACHED = ("unknown at reconcile", "unload unanswered")
 
 
 def _cut_off(history: Sequence[Line]) -> set[tuple[str, str, str]]:
-    """(provider, consumer, query id) of each id the provider let go because it heard
-    the consumer lost (`death watch`) while the consumer lived on and then forgot it as
-    one whose provider it could not reach (`_UNREACHED`: its reconcile found it gone, or
-    its unload went unanswered): the two could not hear each other (a cut)."""
+    """(provider, consumer, query id) of each id both sides let go as unreachable (a cut)."""
     released: set[tuple[str, str, str]] = set()
     cut: set[tuple[str, str, str]] = set()
     for _, event in history:

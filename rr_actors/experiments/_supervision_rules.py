@@ -1,28 +1,18 @@
 """The supervisors' side of a run (rules `intensity`, `strategy`, `escalation`).
 
 ```
- ChildExited (not stopped by the supervisor, its restart type restarts it: counted)
-   + SupervisorGaveUp ──► per supervisor, in line order: each counted exit, and whether
-   the supervisor gave up at it ──► against OTP's intensity: more than `max_restarts`
-   counted exits within `period` s ──► findings
- ChildStarted / ChildExited / ChildRestarted / SupervisorGaveUp, per supervisor (host,
-   name), in line order ──► Strategies: each decision (an exit it did not cause) against
-   OTP's strategy and restart types: the siblings stopped after it (its group, reverse
-   start order; every child at a give-up), the group restarted (start order), no
-   restart of a child its type leaves down ──► findings (`strategy`)
+ ChildExited (counted) + SupervisorGaveUp ──► per supervisor ──► OTP's intensity: more
+   than `max_restarts` counted exits within `period` s ──► findings
+ ChildStarted / ChildExited / ChildRestarted / SupervisorGaveUp ──► Strategies: each
+   decision against OTP's strategy and restart types (siblings stopped in reverse start
+   order, the group restarted in start order) ──► `strategy`
    + a nested supervisor's give-up ──► its parent's next exit of it (`escalation`)
 ```
 
-A supervisor's events come from its own thread, in the order it decided: a give-up is
-decided at the exit it follows (the stops of its children come between them, each a
-`ChildExited` marked `stopped`); a group's siblings are stopped right after the exit
-that decided it, before anything else of that supervisor; a group is restarted in one
-step (a `ChildRestarted` each, in start order) unless a start fails (the child that
-failed then has an exit of its own, which decides again). A supervisor started again
-counts afresh (OTP): after its give-up, or where it starts a child a second time
-(`ChildStarted` again for a name: a restart is a `ChildRestarted`, so that is a new run
-of that supervisor, a nested one restarted by its parent, or its program killed and
-started again).
+A supervisor's events come from its own thread in the order it decided: a group's stops
+right after the exit that decided it, its restarts in one step. A supervisor started
+again (after its give-up, or a second `ChildStarted` of a name) counts afresh (OTP).
+Each rule's windows and what it excuses: docs/how-to/check-a-run.md.
 """
 
 from __future__ import annotations
@@ -51,13 +41,10 @@ def counted(event: events.ChildExited) -> bool:
 
 
 def intensity(history: Sequence[Line]) -> list[Finding]:
-    """`intensity`: a supervisor gives up exactly when more than `max_restarts` counted
-    exits fall within `period` seconds (OTP), at the exit that makes them so.
+    """`intensity`: a supervisor gives up exactly when more than `max_restarts` counted exits
+    fall within `period` seconds (OTP), at the exit that makes them so.
 
-    An exit of a line of schema 3 or older (`restart` not known) is not judged, nor one
-    that a window's edge holds or leaves out depending on `SLACK_S`. The window starts
-    empty again after a give-up and at a new run of the supervisor (a second
-    `ChildStarted` of one of its children: see the module's docstring).
+    Not judged: schema 3 or older (`restart` unknown), an exit within `SLACK_S` of the edge.
     """
     decisions: dict[str, list[tuple[int, events.Event]]] = defaultdict(list)
     for line, event in history:
@@ -120,10 +107,7 @@ def intensity(history: Sequence[Line]) -> list[Finding]:
 
 
 ESCALATED_S = 1.0
-"""Seconds after a nested supervisor's give-up within which its parent may stop it
-instead of taking its exit (the parent was stopping it as it gave up: a shutdown); a
-stop later than that, or no exit at all while the run goes on past it, is a give-up
-the parent never saw."""
+"""Seconds after a nested give-up within which its parent may stop it instead (a shutdown)."""
 
 
 def group(strategy: str, children: Sequence[str], crashed: str) -> tuple[str, ...]:
@@ -410,16 +394,10 @@ def _names(members: Sequence[str], left: Sequence[str]) -> str:
 
 
 def strategy(history: Sequence[Line]) -> tuple[list[Finding], list[Finding]]:
-    """`strategy` and `escalation`, as OTP defines them (`Strategies`): a decision's
-    siblings stopped and restarted as its strategy says, no restart a restart type
-    forbids, and a nested supervisor's give-up taken by its parent as its exit.
+    """`strategy` and `escalation` as OTP defines them (`Strategies`); the two lists of findings.
 
-    An exit of a line of schema 5 or older (`strategy` not known) is not judged, nor a
-    restart still due when the history ends (a backoff the run's end cut), nor a give-up
-    less than `ESCALATED_S` before the history's last event.
-
-    Returns:
-        The `strategy` findings, and the `escalation` ones.
+    Not judged: schema 5 or older, a restart still due at the end, a give-up less than
+    `ESCALATED_S` before the last event.
     """
     judge = Strategies()
     for line, event in history:

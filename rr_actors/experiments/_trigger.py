@@ -7,17 +7,10 @@
                                                         pidfd_send_signal ── time.monotonic()
       record the fault ◄──── (seq, sent_at, errno) ─── reply
 
-Why a process: the run process is busy (clients, registrars, event delivery), and a
-thread that wakes there must wait for Python's interpreter lock first. This process has
-one thread and does nothing else, so a signal leaves within a fraction of a millisecond
-of its due time unless the machine itself has no CPU to give. CLOCK_MONOTONIC is
-system-wide on Linux, so due times and send times mean the same in both processes.
-
-It runs as a script (`python _trigger.py FD`) and imports only the standard library, so
-it is up in tens of milliseconds; it takes real-time priority when it may (see
-`prioritise`). It exits when the run process closes its end. `Trigger` is the run
-process's end: the handle the injector uses, which starts this process, hands it
-pidfds with their due times, and reads its replies on a thread of its own.
+A process because a thread of the busy run process would wait for the interpreter lock;
+this one does nothing else (real-time priority when it may: `prioritise`) and imports only
+the standard library. CLOCK_MONOTONIC is system-wide, so due times mean the same in both.
+It exits when the run process closes its end; `Trigger` is that end.
 """
 
 from __future__ import annotations
@@ -112,11 +105,8 @@ def main() -> None:
 
 
 class Trigger:
-    """The run process's end of the trigger process, which sends signals.
-
-    `send` hands it a pidfd, a signal and a due time; `on_sent(sent_at, errno)` is called
-    on this object's reader thread when the signal went out (or could not: `errno`).
-    """
+    """The run process's end of the trigger process: `send` hands it a pidfd, a signal and a due
+    time; `on_sent(sent_at, errno)` is called on this object's reader thread."""
 
     def __init__(self) -> None:
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)

@@ -7,20 +7,15 @@
  check(history) ──────────────────────┴─► _history: each registrar's lives, the run's facts
      ├─► _provider_rules: one pass over each provider's catalog
      ├─► _status_rules: each status's deliveries, against who should have got it
-     ├─► _consumer_rules: each consumer's calls; the ids it told itself were lost;
-     │   the rows left at each registrar's last stop; what each fetch listed
-     ├─► _supervision_rules: each supervisor's give-ups, against its intensity; the
-     │   children each decision stops and restarts; each nested give-up's escalation
+     ├─► _consumer_rules: each consumer's calls, lost ids, rows left, fetches
+     ├─► _supervision_rules: give-ups, strategies, escalations
      └─► events lost ──► findings (violation / unverifiable, each with the line
                          numbers of the events that show it) ──► Verdict
 ```
 
-The rules checked (`RULES`), each with what it means, its windows and what cannot be
-checked, are the table of `docs/how-to/check-a-run.md`.
-
-`held` is a verdict (no finding), not a rule. The checker re-synchronises a registrar's
-state at each `CatalogRestored`; it compares lines within one registrar, and clock stamps
-(`hlc`) across registrars. Every step is a dict lookup: its time grows with the events.
+The rules (`RULES`), their windows and what cannot be checked: the table of
+`docs/how-to/check-a-run.md`. Lines are compared within one registrar, clock stamps
+(`hlc`) across registrars; every step is a dict lookup.
 """
 
 from __future__ import annotations
@@ -294,16 +289,11 @@ def read_runs(lines: Iterable[str]) -> dict[int, list[Line]]:
 
 
 def numbered(seen: Iterable[events.Event]) -> list[Line]:
-    """One run's events as published, numbered as the lines of its `events.jsonl` (1 for
-    the first): what `read_runs` gives for that file, without writing and reading it.
-
-    A simulated run's verdict comes from it (`simulate.run_seed`): its events are the
-    ones its file's lines would be read back as, and their catalog rows are checked as
-    `read_runs` checks them, so that both give the same verdict.
+    """One run's events as published, numbered as the lines of its `events.jsonl` would be (1
+    first), their rows checked as `read_runs` checks them: the same verdict, no JSON.
 
     Raises:
-        ConfigError: a catalog event's row too short, or a digest that is not a number;
-            the message names the line.
+        ConfigError: a catalog event's row too short, or a digest not a number; names the line.
     """
     history = list(enumerate(seen, start=1))
     for number, event in history:
@@ -352,8 +342,7 @@ def _check_rows(event: events.Event) -> None:
     """A catalog event's rows are as wide as the rules read them, and its digests numbers.
 
     Raises:
-        ConfigError: a row with fewer fields, or a digest that is not a whole number of
-            at most 40 digits; the message names the field and shows the row.
+        ConfigError: a short row, or a digest not a whole number of at most 40 digits.
     """
     if not isinstance(event, _CATALOG):
         return

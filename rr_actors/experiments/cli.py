@@ -4,15 +4,10 @@
     rr-actors experiment strategies --out results
     rr-actors experiment plan.toml --out results --repeat 5 --seed 42 --force
 
-On a terminal with `rich` installed (`pip install 'rr-actors[experiments]'`) a progress
-bar shows the runs; elsewhere one line per finished run. At the end: a summary per
-compared value, how late the faults were injected and why any was skipped, the runs'
-verdicts, and the files written. Exit codes: 0 done; 1 a run failed; 2 bad input
-(the plan, an option, the output directory, the platform), found before anything
-started; 130 interrupted (Ctrl-C), 143 stopped (SIGTERM), 129 its terminal hung up
-(SIGHUP), with the finished runs kept and nothing else left behind. A full disk under
-`--out` is exit 1, one line; the files then hold the runs written before it, and agree
-with each other.
+A progress bar with `rich` (`pip install 'rr-actors[experiments]'`), else a line per run;
+at the end a summary per compared value, the faults' lateness and skips, the verdicts and
+the files written. Exit codes: `main`'s. A full disk under `--out` is exit 1 in one line,
+the files then agreeing with each other.
 """
 
 from __future__ import annotations
@@ -183,15 +178,9 @@ def wrap(text: str, width: int = RUN_LINE_WIDTH, indent: str = "    ") -> list[s
 
 
 def run_line(result: RunResult, runs: int) -> str:
-    """One finished run, in lines of at most `RUN_LINE_WIDTH` columns.
-
-    `run 2/4 rest_for_one seed 1: 46 calls ok, 0 failed, 4 restarts, rec. p50 172 ms`:
-    the compared value without its setting (the summary's header names it), and the
-    run's median recovery as the summary's `rec. p50` column. A line too long wraps at
-    words, indented; nothing is cut (a value is shown whole). The run's verdict
-    (`rr_actors.experiments.check`) ends it, and each of its findings follows on lines
-    of their own, wrapped the same way.
-    """
+    """One finished run in lines of at most `RUN_LINE_WIDTH` columns (wrapped at words, never
+    cut): `run 2/4 rest_for_one seed 1: 46 calls ok, 0 failed, 4 restarts, rec. p50 172 ms`,
+    then its verdict, and each finding on lines of their own."""
     value = "" if result.value is None else show_value(result.value)
     rest = (
         f"seed {result.seed}: {result.calls_ok} calls ok, {result.calls_failed} failed, "
@@ -254,14 +243,9 @@ FAULT_REASONS_SHOWN = 3
 
 
 def fault_line(results: Results) -> str | None:
-    """How the injector kept the runs' schedules, under the summary (`None`: no fault).
-
-    `faults: 12 injected, 0.6-1.0 s late; 1 skipped (run 3: db was not running
-    (restarting))`: how late the injections were against their due times (the
-    injector's own error: `late_ms` in faults.csv), and each reason a fault did not fire,
-    with the first run it happened in; the same reason with other pids is counted with
-    it (`+2 like it`).
-    """
+    """How late the injections were and why any was skipped (first run; alike reasons counted
+    `+2 like it`), under the summary: `faults: 12 injected, 0.6-1.0 s late; 1 skipped (...)`;
+    `None`: no fault."""
     faults = list(results.faults())
     if not faults:
         return None

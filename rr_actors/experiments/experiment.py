@@ -1,18 +1,14 @@
 """`run(plan)`: every run of an experiment in a fresh run process, and what they leave in `out`.
 
 run(plan) ── validate everything (plan, out, platform, --observe) ── nothing started yet
-   for repeat r, for each compared value v:            (values interleaved, so slow
-      run process (python -m ..._child)                 periods of the machine spread
-        RR_ACTORS_EXPERIMENT=<token> in its env         over all of them)
+   for repeat r, for each compared value v (interleaved: slow periods spread over all):
+      run process (python -m ..._child, RR_ACTORS_EXPERIMENT=<token> in its env)
         ── runner.execute ──► result.pickle, events.jsonl
       the run's processes still alive: leaks (killed)
-      out/: events.jsonl += the run's events; faults.csv += its faults;
-            runs.csv rewritten: every finished run, under the union of their columns
-   plots (matplotlib): recovery.png, timeline.png (matplotlib imported on a thread of
-        its own while the runs go)
-Ctrl-C (or SIGTERM, SIGHUP): the run process is told to stop (SIGTERM), every process
-        of the run is killed, the runs finished so far stay written and plotted, the
-        work directory (rr-experiment-* in the temporary directory) is removed.
+      out/: events.jsonl, faults.csv appended; runs.csv rewritten (union of columns)
+   plots (matplotlib, imported on a thread meanwhile): recovery.png, timeline.png
+Ctrl-C (or SIGTERM, SIGHUP): the run process is told to stop, every process of the run
+        is killed, the finished runs stay written and plotted, the work directory goes.
 """
 
 from __future__ import annotations
@@ -90,14 +86,12 @@ class ExperimentError(RrError):
 class ExperimentInterruptedError(KeyboardInterrupt):
     """The experiment was interrupted (Ctrl-C); every process it started was stopped.
 
-    It is a `KeyboardInterrupt`, not an `RrError`: the user stopped it, nothing failed,
-    and an `except RrError` (or `except Exception`) around `run` must not swallow a Ctrl-C.
-    Catch it by name to get the runs that finished.
+    A `KeyboardInterrupt`, not an `RrError`: the user stopped it, nothing failed, and an
+    `except Exception` around `run` must not swallow it. Catch it by name for the runs.
 
     Attributes:
         results: the runs that finished before the interruption (also written to `out`).
-        signum: the signal that interrupted it: `SIGINT` (Ctrl-C), `SIGTERM` or `SIGHUP`
-            (its terminal hung up).
+        signum: the signal: `SIGINT` (Ctrl-C), `SIGTERM` or `SIGHUP` (its terminal hung up).
     """
 
     def __init__(self, results: Results, signum: int = signal.SIGINT) -> None:
@@ -156,8 +150,7 @@ def prepare_out(path: Path, *, force: bool, what: str = "out") -> Path:
 
     Args:
         path: the output directory (created if missing).
-        force: replace the files an experiment writes (`OUTPUT_FILES`) if `path` is not
-            empty; other files in it are left alone.
+        force: replace the files an experiment writes (`OUTPUT_FILES`) in a non-empty `path`.
         what: how error messages name it (`"--out"` on the command line).
 
     Raises:
@@ -207,43 +200,39 @@ def run(
 ) -> Results:
     """Run every run of an experiment, each in a fresh run process; return the results.
 
-    The runs of a repeat take the compared values in turn (repeat 1 of every value, then
-    repeat 2, ...); repeat `r` of every value uses the seed `seed + r - 1`, so compared
-    values meet the same fault schedule. Everything is validated before the first run
-    starts.
+    Repeat `r` of every compared value uses the seed `seed + r - 1` (values in turn within a
+    repeat), so compared values meet the same fault schedule. Everything is validated before
+    the first run starts.
 
     Args:
         plan: a `Plan`, or the path of a plan file.
         out: directory for `events.jsonl`, `runs.csv`, `faults.csv`, `recovery.png`,
-            `timeline.png` (and `plan.toml`, a copy of the plan file); `None`: write
-            nothing, return the results only.
+            `timeline.png` and `plan.toml`; `None`: write nothing.
         repeat: runs per compared value instead of the plan's `repeat`.
         seed: the seed of the first repeat instead of the plan's `seed`.
-        duration: seconds per run instead of the plan's `duration` (faults scheduled after
-            it are dropped).
+        duration: seconds per run instead of the plan's (later faults are dropped).
         force: replace the experiment files in a non-empty `out`.
         observe: serve the live observer page of each run (`Supervisor.observe`).
-        record_events: subscribe to the tree (needed for every metric that comes from
-            events: restarts, unavailability, recovery); off only to measure its cost.
+        record_events: subscribe to the tree (every metric from events needs it); off only
+            to measure its cost.
         progress: called with a `Progress` about 10 times a second (on this thread).
         on_observe: called with `(run, url)` when a run's observer page is up.
-        trace: make OpenTelemetry spans of each run's tree (`rr_actors.otel.Exporting`,
-            in the run process: the `OTEL_*` environment variables say where they go).
+        trace: make OpenTelemetry spans of each run's tree (`rr_actors.otel.Exporting`, in
+            the run process; the `OTEL_*` environment variables say where they go).
 
     Returns:
         The results of every run.
 
     Raises:
         PlanError: the plan is invalid (names the file, line and key), or has a fault
-            kind that only a simulation injects (`simulate`).
+            kind that only a simulation injects.
         ConfigError: an override is out of range, `out` is not usable (or not empty
-            without `force`), this platform cannot run experiments (or the plan has
-            `[hosts]` and this process is not root), or `observe` was asked
-            for and the `observe` extra is not installed, or `trace` and the `otel`
-            extra's SDK, or an exporter `OTEL_TRACES_EXPORTER` names, is not.
+            without `force`), this platform cannot run experiments (or `[hosts]` without
+            root), or the extra `observe` or `trace` need (or an `OTEL_TRACES_EXPORTER`
+            exporter) is not installed.
         ExperimentError: a run process failed; the runs finished before it are kept.
-        ExperimentInterruptedError: Ctrl-C (a `KeyboardInterrupt`); every process of the
-            experiment was stopped, the runs finished so far are kept (its `results`).
+        ExperimentInterruptedError: Ctrl-C; every process of the experiment was stopped,
+            the runs finished so far are kept (its `results`).
     """
     if not isinstance(plan, Plan):
         plan = load_plan(plan)
@@ -350,12 +339,8 @@ class _Experiment:
             self.progress(self._progress(spec, result.duration_s, result))
 
     def _interrupted(self) -> None:
-        """After a Ctrl-C: stop the run under way, kill its processes, keep it if it ended.
-
-        `current` is set before the run process starts and cleared only once its result
-        was kept, so a Ctrl-C at any point of `_one` finds the processes to kill (by the
-        run's token) and a run that had already finished is not lost.
-        """
+        """After a Ctrl-C: stop the run under way, kill its processes (by token), keep it if it
+        ended."""
         current = self.current
         if current is None:
             return
@@ -467,11 +452,7 @@ class _Experiment:
     # -- files ----------------------------------------------------------------------------
 
     def _write(self, result: RunResult, run_dir: Path) -> None:
-        """Add a run to the files; if a write fails (a full disk), put them back as they were.
-
-        The appended files are cut back to their sizes before this run, and `runs.csv` is
-        replaced only once it is whole, so the three files always hold the same runs.
-        """
+        """Add a run to the files; if a write fails, cut them back so they hold the same runs."""
         if self.out is None:
             return
         appended = [self.out / "events.jsonl", self.out / "faults.csv"]
@@ -513,13 +494,7 @@ class _Experiment:
 
 
 def _import_plot_soon() -> None:
-    """Import the plot module (and matplotlib) on a thread of its own, while the runs go.
-
-    What it buys: the import (1-3 s) is no longer paid after the last run, on a machine
-    with a core to spare while a run process starts. The plots are still drawn after
-    the last run (`_plot` waits for the import if it has not finished); without
-    matplotlib nothing changes (`_plot` warns).
-    """
+    """Import the plot module (matplotlib: 1-3 s) on a thread of its own while the runs go."""
 
     def load() -> None:
         with contextlib.suppress(ImportError):
@@ -579,12 +554,8 @@ def _blank(value: float | None) -> float | str:
 
 
 def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
-    """Write `path` anew: every row, under the union of their columns.
-
-    Runs of different compared values may have different columns (a compared manager
-    name makes its own `unavailable_s_<name>`); a column new in a row goes before the
-    column after it in that row (at the end if none), and rows without it leave it empty.
-    """
+    """Write `path` anew: every row under the union of their columns (a new one after its left
+    neighbour)."""
     columns: list[str] = []
     for row in rows:
         keys = list(row)
@@ -653,12 +624,8 @@ def _ignoring_signals() -> contextlib.AbstractContextManager[None]:
 
 
 def _terminating_as_interrupt() -> contextlib.AbstractContextManager[None]:
-    """SIGTERM or SIGHUP raises `_Terminated` (a `KeyboardInterrupt`) while the runs go on.
-
-    Without it either ends the process at once (a SIGHUP: the terminal it ran in was
-    closed): the run's processes and the work directory in the temporary directory would
-    be left behind (main thread only).
-    """
+    """SIGTERM or SIGHUP raises `_Terminated` (a `KeyboardInterrupt`) so the run's processes and
+    work directory are cleaned up (main thread only)."""
 
     def terminated(signum: int, _frame: object) -> None:
         raise _Terminated(signum)

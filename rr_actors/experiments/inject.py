@@ -14,17 +14,12 @@
    a thread manager's crash; load_error (Supervisor.run_in)
        └──────────────────── FaultLog: every fault fired or skipped ──────────────────┘
  stop ──► the agenda stops; hung managers resumed, faults between hosts undone; what never
-          fired (a trigger that did not come, a fault due after the end) recorded as skipped
+          fired recorded as skipped
 ```
 
-`Agenda`, `Triggered` and `FaultLog` are the timetable the roles share (`_agenda.py`):
-when each fault fires, and what each did.
-
-Signals go through pidfds, which always mean the process that was looked up, never a
-later one that reused its pid. They leave from a separate single-threaded process so that
-a busy run process (its clients hold the interpreter lock) does not make them late. A
-fault whose manager is not running when it is prepared is recorded as skipped (the
-schedule stays the same for the same seed; what it meets may not).
+Signals go through pidfds (never a pid reused since the look-up), from a separate
+single-threaded process so that a busy run process does not make them late. A fault whose
+manager is not running when prepared is recorded as skipped.
 """
 
 from __future__ import annotations
@@ -116,16 +111,9 @@ class Injector:
         self._agenda.start()
 
     def stop(self, *, timeout: float = 5.0) -> None:
-        """Stop firing; resume every hung manager now; record what did not fire as skipped.
-
-        Every scheduled fault ends up in `records`: a trigger that never came, and a
-        triggered fault that came due after the run ended (its event happened in the run,
-        its `delay` took it past the end), are recorded as skipped.
-
-        Args:
-            timeout: seconds to wait for each of the injector's threads and for the
-                trigger process's last replies.
-        """
+        """Stop firing; resume every hung manager now; record what did not fire as skipped (so every
+        scheduled fault ends up in `records`); `timeout`: seconds for each of the injector's
+        threads and the trigger process's last replies."""
         unfired = self._agenda.stop(timeout)
         self._managers.join(timeout)
         self._trigger.close(timeout=timeout)

@@ -62,11 +62,8 @@ def down_intervals(
 ) -> Down:
     """When each manager did not serve, from the child events of a run.
 
-    An interval opens at a `ChildExited` of the manager and closes at its next
-    `ChildStarted` or `ChildRestarted`. A kill or hang injected into a manager opens its
-    interval at the injection instead (the supervisor sees the exit a little later, a
-    hang much later), unless the manager was already down; a hung manager that was
-    resumed (`SIGCONT`) before anyone killed it serves again from then.
+    An interval opens at a `ChildExited` (or at a kill or hang injected into a serving
+    manager) and closes at its next `ChildStarted` or `ChildRestarted` (or its `SIGCONT`).
 
     Args:
         seen: the run's events, in any order.
@@ -134,20 +131,11 @@ def recovery_time(
 ) -> float | None:
     """Seconds from `fault`'s injection until the system served again, or `None`.
 
-    What "served again" means depends on the kind (`docs/reference/plan.md`):
-
-    - `kill_manager`, `hang_manager`: the manager served again and every other manager
-      that went down meanwhile too (one_for_all and rest_for_one restart siblings); an
-      outage of another manager that began before the fault is not this fault's;
-    - `kill_resource`: a client got its resource back (reloaded after the `FATAL`, or
-      told `UPDATE` by a manager that replaced the process itself), having heard of the
-      failure after the kill from the manager whose process was killed, or from one that
-      holds resources of it (a `ConsumerAdded` at it names that one, directly or through
-      others);
-    - `load_error`: the manager completed a load after the fault ended (its last
-      failing load, or the end of `for`);
-    - `cut_connections`: the manager answered a call again (a consumer was added at
-      it: a client's call, or a nested load of another manager).
+    "Served again" per kind (`docs/reference/plan.md`, "Recovery"): `kill_manager`,
+    `hang_manager`: the manager and every other that went down meanwhile serve again;
+    `kill_resource`: a client that heard of the failure got its resource back;
+    `load_error`: a load completed after the fault ended; `cut_connections`: the manager
+    answered a call again.
 
     Args:
         fault: an injected fault.
@@ -155,13 +143,12 @@ def recovery_time(
         seen: the run's events.
         t0: the wall-clock start of the run (`time.time()` seconds).
         client_recoveries: every time a client got a resource back.
-        load_error_until: for `load_error`, when the fault ended (its last injected load
-            failure, or the end of `for`; seconds from the run's start), or `None` if it
-            never ended.
+        load_error_until: for `load_error`, when the fault ended (seconds from the run's
+            start), or `None` if it never ended.
 
     Returns:
         Seconds from the injection to the recovery; `None` if the fault was not injected,
-        has no target, or the system did not recover from it within the events given.
+        has no target, or the system did not recover within the events given.
     """
     if fault.injected_s is None or fault.target is None:
         return None
@@ -197,18 +184,11 @@ def recovery_time(
 
 
 def restarts(seen: Iterable[events.Event], managers: Sequence[str]) -> tuple[int, int]:
-    """How many times the tree restarted a manager, and a nested supervisor.
+    """How many times the tree restarted a manager, and a nested supervisor:
+    `(restarts of managers, restarts of nested supervisors)`.
 
-    A nested supervisor's restart also restarts each of its managers (each has its own
-    `ChildRestarted`): those count among the managers' restarts, the supervisor's own
-    restart among the supervisors'.
-
-    Args:
-        seen: the run's events.
-        managers: the managers' names (every other restarted child is a supervisor).
-
-    Returns:
-        `(restarts of managers, restarts of nested supervisors)`.
+    A nested supervisor's restart counts once among the supervisors' and once per manager
+    it restarted among the managers'; `managers` are the managers' names.
     """
     of_managers = of_supervisors = 0
     for event in seen:
@@ -295,16 +275,9 @@ def host_fault_times(
     seen: Sequence[events.Event],
     t0: float,
 ) -> tuple[float | None, float | None, float | None]:
-    """`(time to fail, time to heal, recovery)` of a fault between hosts, in seconds.
-
-    Time to fail: from the injection to the first call of a client to one of
-    `providers` (the affected hosts' managers) that failed (`CallFailed`; a retry may
-    still succeed). Time to heal: from the fault's end (`for` after the injection; for
-    `kill_router`, the first such failure: the router is gone at once) to the first call
-    answered by one of them (`CallAnswered`) after it. Recovery: from the injection to
-    that answer. `None` where it did not happen in the run (no call failed: the fault
-    was shorter than the lease, say).
-    """
+    """`(time to fail, time to heal, recovery)` of a fault between hosts, in seconds (`None`: not
+    in the run): to the first failed call to `providers`; from the fault's end (`kill_router`:
+    that failure) to the first call answered after it; from the injection to that answer."""
     if fault.injected_s is None or fault.skipped:
         return None, None, None
     start = fault.injected_s

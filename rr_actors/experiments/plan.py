@@ -341,14 +341,13 @@ class Plan:
     def with_changes(
         self, *, repeat: int | None = None, seed: int | None = None, duration: float | None = None
     ) -> Plan:
-        """A copy with another `repeat`, `seed` or `duration` (`None`: keep), for every variant
-        (a shorter `duration` drops the faults after the new end).
+        """A copy with another `repeat`, `seed` or `duration` (`None`: keep), for every variant (a
+        shorter `duration` drops the faults after the new end).
 
         Raises:
-            ConfigError: `repeat` is not from 1 to `MAX_REPEAT`, `seed` not 64 bits (nor
-                the last repeat's, `seed + repeat - 1`), `duration` not in (0,
-                `MAX_SECONDS`], or so long that an `every` fault would inject more than
-                `MAX_INJECTIONS` times.
+            ConfigError: `repeat` not from 1 to `MAX_REPEAT`, `seed` (or `seed + repeat - 1`) not
+                64 bits, `duration` not in (0, `MAX_SECONDS`], or an `every` fault past
+                `MAX_INJECTIONS`.
         """
         changes: dict[str, Any] = {}
         for key, value, hint, what in (

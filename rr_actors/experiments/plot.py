@@ -1,11 +1,8 @@
 """The experiment's figures: recovery times per compared value, and timelines of runs.
 
-A plan with `[hosts]` gets per-host figures: in `recovery.png` each fault's point has
-the colour of the host it hit (a manager's host; for a fault between hosts, the hosts it
-took from the clients), grouped side by side, and a second row shows the faults between
-hosts: time to fail and time to heal. In `timeline.png` each manager's lane names its
-host, each fault's line has its host's colour, and a fault between hosts is hatched for
-as long as it lasted.
+With `[hosts]`, points and lines take the colour of the host a fault hit (`recovery.png`
+gets a row for faults between hosts: time to fail and heal; `timeline.png` names each
+lane's host and hatches faults between hosts while they last).
 
 Needs matplotlib (`pip install 'rr-actors[experiments]'`); importing this module without
 it raises `ImportError`, which `run` takes as "no plots".
@@ -59,13 +56,9 @@ def _label(results: Results, value: Any) -> str:
 
 
 def _fault_host(plan: Plan, fault: FaultRecord) -> str:
-    """The host a fault hit, as its points are labelled (`"b"`, `"b+c"`).
-
-    A fault on a manager (or its process) hit the manager's host; one without a target
-    (a `kill_resource` that picked any process) the run's own host. A fault between hosts
-    hit the hosts whose managers it took from the clients (the far end of a cut link, the
-    side of a partition without the clients, a frozen or killed router's host).
-    """
+    """The host a fault hit, as its points are labelled (`"b"`, `"b+c"`): its manager's, the
+    run's own for an untargeted `kill_resource`, for a fault between hosts those it took
+    from the clients."""
     assert plan.hosts is not None
     names = plan.hosts.names
     if fault.kind in HOST_KINDS:

@@ -6,12 +6,9 @@
     any step refuses a key path ─► _Reader.error: the part of it the plan wrote (`held`),
     its line (`line_of`) ─► PlanError(source, line, key, problem)
 
-`_Reader.check` words msgspec's errors from the type that refused the value. `tomllib`
-gives no positions, so a key's line is the first line at which the text up to there
-(closed by a bracket or quotes if it stops inside an array or a string) holds it, found
-by bisection (a 20,000-line plan takes a few parses): `[[tree.children]]` on line 3 is
-`("tree", "children", 0)` -> 3, and its `name = "erm"` on line 4
-`("tree", "children", 0, "name")` -> 4. The format is documented in `docs/reference/plan.md`.
+`tomllib` gives no positions, so a key's line is found by bisection: the first line at
+which the text up to there (closed by a bracket or quotes) holds it. The format:
+`docs/reference/plan.md`.
 """
 
 from __future__ import annotations

@@ -26,19 +26,15 @@ class FaultRecord:
         n: which injection of that fault (0, 1, ...).
         kind: the fault kind.
         target: the manager it hit (for `kill_resource`, the manager of the process).
-        scheduled_s: when it was meant to fire (for a triggered fault: the trigger's
-            time plus its delay).
-        injected_s: when it fired (right after the signal or the switch), or `None` if
-            it was skipped.
+        scheduled_s: when it was meant to fire (triggered: the trigger's time plus delay).
+        injected_s: when it fired, or `None` if it was skipped.
         detail: what it did, for people (`"SIGKILL pid 4242"`), or why it was skipped.
-        skipped: whether it did nothing (its manager was not running, no process to kill,
-            the run ended before its trigger, or before the trigger's `delay` ran out).
-        fail_s: a fault between hosts: seconds from the injection to the first call to
-            an affected host's manager that failed (`None`: none failed).
-        heal_s: a fault between hosts: seconds from its end to the first call that
-            such a manager answered again.
-        recovery_s: seconds from the injection until the system served again (see
-            `docs/reference/plan.md`, "Recovery"), or `None` if it did not within the run.
+        skipped: whether it did nothing (no manager or process, the run ended first).
+        fail_s: a fault between hosts: seconds from the injection to the first failed
+            call to an affected host's manager (`None`: none failed).
+        heal_s: a fault between hosts: seconds from its end to the first call answered again.
+        recovery_s: seconds from the injection until the system served again
+            (docs/reference/plan.md, "Recovery"), or `None` if not within the run.
     """
 
     fault: int
@@ -102,41 +98,35 @@ class RunResult:
         started_at: wall-clock start of the workload (`time.time()` seconds).
         duration_s: seconds of workload and faults.
         calls_ok: calls that returned a response.
-        calls_failed: calls that failed (after retries, or at once: a load that raised).
+        calls_failed: calls that failed (after retries, or at once).
         calls_retried: calls that needed more than one attempt (ok or not).
-        unavailable_s: per manager, seconds it did not serve (from a kill or hang of it,
-            or from its exit, until it served again).
-        restarts: restarts of managers in the whole tree (a manager restarted with its
-            nested supervisor counts too).
+        unavailable_s: per manager, seconds it did not serve (from a kill, hang or exit).
+        restarts: restarts of managers in the whole tree (nested ones included).
         gave_up: whether the top supervisor gave up (restart intensity exceeded).
-        recovery_median_s: median recovery time of the run's faults (`None`: none recovered).
+        recovery_median_s: median recovery time of the faults (`None`: none recovered).
         recovery_p90_s: 90th percentile of the same.
         unrecovered: faults injected that did not recover within the run.
         leaked_processes: processes the run started that were still alive after it.
-        catalog_entries_left: rows left in the catalogs of the clients and of the managers
-            that could be read after the clients unloaded everything.
+        catalog_entries_left: rows left in the readable catalogs after the clients unloaded.
         events: events recorded.
         events_dropped: events lost to a full queue (then the metrics are incomplete).
         faults: every scheduled fault of the run.
         calls: every call of the run.
-        down: per manager, the `(start, end)` intervals it did not serve (`end` is
-            `None` if it was still down when the run ended).
+        down: per manager, the `(start, end)` intervals it did not serve (`end` `None`:
+            still down at the end).
         restart_times: per manager, when it served again after each exit.
-        give_ups: `(supervisor, time)` of each supervisor that gave up (restart intensity
-            exceeded).
+        give_ups: `(supervisor, time)` of each supervisor that gave up.
         supervisor_restarts: restarts of nested supervisors.
-        catalogs_unread: managers whose catalog could not be read at the end (not
-            running: a temporary one that exited, a subtree that gave up); their rows are
-            not in `catalog_entries_left`.
-        verdict: the run's verdict from its events (`rr_actors.experiments.check`):
-            `"held"`, `"violated"` or `"unverifiable"` (`""`: not checked, no events).
+        catalogs_unread: managers whose catalog could not be read at the end (not in
+            `catalog_entries_left`).
+        verdict: the verdict from its events (`check`): `"held"`, `"violated"`,
+            `"unverifiable"` (`""`: not checked).
         violations: findings that are violations.
         unverifiable: findings that could not be checked (events were lost).
-        findings: each finding with its window of events, as `rr-actors check` prints
-            them (line numbers of the run's own `events.jsonl`).
+        findings: each finding with its window of events, as `rr-actors check` prints them.
         check_s: seconds the check took.
-        hosts: the plan's hosts (empty without `[hosts]`): the row then has the medians
-            of `fail_s` and `heal_s` and a `recovery_s_<host>` per host.
+        hosts: the plan's hosts (empty without `[hosts]`: then the row has the medians of
+            `fail_s`, `heal_s` and a `recovery_s_<host>` per host).
     """
 
     plan: str

@@ -87,11 +87,9 @@ class RunSpec:
         run: the run's number in the experiment (1, 2, ...).
         repeat: its number among the runs of its value (1, 2, ...).
         seed: its seed.
-        record_events: subscribe to the tree and write `events.jsonl` (without, the
-            metrics that come from events stay empty: for measuring what recording costs).
+        record_events: subscribe to the tree and write `events.jsonl` (off: to measure it).
         observe: serve the live observer page (`Supervisor.observe`) during the run.
-        trace: make OpenTelemetry spans of the tree (`rr_actors.otel.Exporting`: the
-            `OTEL_*` environment variables say where they go), exported at its end.
+        trace: make OpenTelemetry spans of the tree (`otel.Exporting`, by `OTEL_*`).
         token: the value of `RR_ACTORS_EXPERIMENT` that marks this run's processes.
     """
 
@@ -120,18 +118,12 @@ def build_tree(
     Args:
         plan: the plan.
         state_dir: the directory of the managers' durable catalogs (`None`: in memory).
-        seed: the run's seed: the backoff jitter of the whole tree draws from a generator
-            seeded with it, so the same seed gives the same restart delays.
-        host: with `[hosts]`, the host whose part of the tree this is (its managers, and
-            the nested supervisors above them); `None`: the run's own host.
+        seed: the run's seed (the tree's backoff jitter draws from it).
+        host: with `[hosts]`, the host whose part of the tree this is; `None`: the run's own.
         network: the carrier the tree is served on (`None`: this machine's AF_UNIX one).
 
-    Returns:
-        The supervisor, not started.
-
     Raises:
-        ConfigError: the plan's tree is not a valid supervision tree (`parse_plan`
-            checked it already, so only for a plan built by hand).
+        ConfigError: the tree is not a valid supervision tree (only for a plan built by hand).
     """
     top = plan.tree
     if plan.hosts is not None:
@@ -157,14 +149,8 @@ PRELOAD_MODULE = "rr_actors.experiments._preload"
 
 
 def preload_setups(plan: Plan) -> None:
-    """Start the managers' forkserver now, importing the modules of the plan's setups once.
-
-    What it buys: a manager (re)start no longer imports them after its fork (about 0.4 s
-    of each start and restart of the shipped plans' managers: `rr_actors.experiments`
-    for `instrumented_setup`, then the setup's own module; `_preload` says how). Call
-    it before the run's first manager starts (a run process is fresh); once this
-    process's forkserver runs it changes nothing.
-    """
+    """Start the managers' forkserver now, importing the plan's setups' modules once, so a
+    manager (re)start does not import them after its fork; before the first manager starts."""
     modules = [m.setup.partition(":")[0] for m in plan.managers()]
     named = {"base_dir": plan.base_dir, "modules": modules}
     os.environ[_procs.PRELOAD_VARIABLE] = json.dumps(named)
@@ -233,12 +219,8 @@ def fault_line(record: FaultRecord, *, run: int, seed: int, wall_t0: float) -> d
 
 
 class _EventLog:
-    """The run's subscriber: keeps every event and feeds the injector's triggers.
-
-    It does no more on the subscriber thread than append (the JSON lines are written
-    after the tree stopped, by `write`), so that recording costs the workload as little
-    as it can (`benchmarks/bench_experiments.py` measures it).
-    """
+    """The run's subscriber: keeps every event (JSON is written after the tree stopped) and
+    feeds the injector's triggers."""
 
     def __init__(self) -> None:
         self.seen: list[events.Event] = []
@@ -252,13 +234,8 @@ class _EventLog:
 
     @property
     def dropped(self) -> int:
-        """Events lost to a full queue (from the `EventsDropped` notices).
-
-        The notices count both the drops of the run's own subscription (its notice comes
-        once the queue has room again, at the latest when it is drained) and those of
-        the manager processes' event forwarders, so they are the whole count: adding
-        `Subscription.dropped` would count the subscription's drops twice.
-        """
+        """Events lost to a full queue, from the `EventsDropped` notices (which count the
+        subscription's own drops too: do not add `Subscription.dropped`)."""
         return sum(e.count for e in self.seen if isinstance(e, events.EventsDropped))
 
     def write(self, path: Path, run: int, seed: int) -> None:
@@ -273,12 +250,8 @@ def _catalog_size(registrar: rr.ResourceRegistrar) -> int:
 
 
 def wait_all_serving(sup: rr.Supervisor, names: list[str], timeout: float) -> None:
-    """Wait (bounded) until every manager runs again; skip those that will not come back.
-
-    A manager is waited for until it runs with at least the restarts it has counted,
-    not one more: one whose nested supervisor is being restarted by its parent shows
-    that supervisor's state, though it has already started again (and counted it).
-    """
+    """Wait (bounded) until every manager runs again with the restarts it counted (not one more);
+    skip those that will not come back."""
     deadline = runtime.monotonic() + timeout
     for name in names:
         info = sup.child(name)
@@ -340,12 +313,10 @@ def execute(spec: RunSpec, run_dir: Path, *, stop: threading.Event | None = None
         The run's result (its `leaked_processes` counts what this process could see).
 
     Raises:
-        RrError: the tree did not start (a manager's setup raised, say:
-            `ManagerStartError`), or could not be built (`ConfigError`, for a plan
-            built by hand), or a client could not build a request (`ConfigError`
-            naming `workload.calls[i]`, the key and the cause: a request factory or
-            template raised). Anything else the plan's own code raises in the run
-            process (a setup) comes out as it was raised.
+        RrError: the tree did not start (`ManagerStartError`) or could not be built
+            (`ConfigError`), or a client could not build a request (`ConfigError` naming
+            `workload.calls[i]`, the key and the cause). What the plan's own code raises
+            otherwise comes out as it was raised.
     """
     stop = stop if stop is not None else threading.Event()
     sys.setswitchinterval(SWITCH_INTERVAL)

@@ -45,19 +45,12 @@ class ScheduledFault:
 
 
 def fault_schedule(plan: Plan, seed: int) -> tuple[ScheduledFault, ...]:
-    """Every injection of one run: timed ones sorted by time, then triggered ones.
-
-    Args:
-        plan: the plan (one compared value of it).
-        seed: the run's seed.
-
-    Returns:
-        The schedule; equal for equal plans and seeds.
+    """Every injection of one run: timed ones sorted by time, then triggered ones; equal for
+    equal plans and seeds.
 
     Raises:
-        ConfigError: a fault could inject more than `MAX_INJECTIONS` times (only a plan
-            built by hand: reading refuses such a plan, and bounding the count is what
-            makes the loop of an `every` fault end).
+        ConfigError: a fault could inject more than `MAX_INJECTIONS` times (a plan built by
+            hand: reading refuses it).
     """
     timed: list[ScheduledFault] = []
     triggered: list[ScheduledFault] = []

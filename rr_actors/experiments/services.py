@@ -42,28 +42,22 @@ def service(
 ) -> None:
     """Register one resource server whose loads take `load_s` and load what it `uses`.
 
-    Runs in the manager (its process or thread), as every `setup` does. The response to a
-    request is `{"server": "<registrar>/<server>", "request": request}`. With
-    `status_every`, a thread of the manager sends a `WARNING` status (`"scheduled"`)
-    every `status_every` seconds about the first query the server holds (none when it
-    holds none), as a provider that reports on its resources does; it ends when the
-    registrar stops (or with the manager's process). With `list_every`, a thread of the
-    manager lists the queries the server holds (`server_queries`) every `list_every`
-    seconds, as a provider that looks over its resources does: its registrar publishes
-    each answer (`ServerQueriesListed`), which the check's `fetch` rule compares with its
-    catalog (the status thread's listings are published too).
+    Runs in the manager, as every `setup` does. The response to a request is
+    `{"server": "<registrar>/<server>", "request": request}`. With `status_every`, a thread
+    of the manager sends a `WARNING` status (`"scheduled"`) about the first query the server
+    holds; with `list_every`, one lists its queries (`server_queries`, published as
+    `ServerQueriesListed` for the check's `fetch` rule). Both end with the registrar.
 
     Args:
         registrar: the manager's registrar.
         server: the server's name.
-        load_s: seconds each load takes (simulated work; the load's worker thread waits).
+        load_s: seconds each load takes (the load's worker thread waits).
         unload_s: seconds each unload takes.
-        uses: `"manager/server"` of other managers: each load calls every one of them
-            with the same request (nested loads: dependencies of the resource, released
-            with it). A bare `"manager"` means its server `resource`.
-        uses_request: the request each load sends to `uses` instead of its own (`None`:
-            its own): every resource of this server then depends on one resource
-            there, shared, and a status about it climbs to all of them.
+        uses: `"manager/server"` of other managers (a bare `"manager"`: its server
+            `resource`): each load calls every one with the same request (dependencies of
+            the resource, released with it).
+        uses_request: the request each load sends to `uses` instead of its own (`None`: its
+            own): every resource then depends on one shared resource there.
         status_every: seconds between two statuses the server sends (0: none).
         list_every: seconds between two listings of the server's queries (0: none).
 

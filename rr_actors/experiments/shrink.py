@@ -1,48 +1,17 @@
 """Shrink a violating seed to a small plan that still violates the same way (`--shrink`).
 
 ```
- shrink(plan, seed) ─ the seed's run: its first violation's kind (`violation_kind`:
- │                    "[end] db still holds query … of api, which stopped", ids and numbers
- │                    blotted out; the checker's, or a `judge`'s: a kit's) every candidate shows
- ├─ the plan as TOML data; its timed faults made explicit: one atom per injection the
- │  seed made (`every` and a choice among targets become `at` times and one target)
- ├─ greedy passes, biggest cuts first, again and again until the budget of runs is
- │  spent or a round at the widest search keeps nothing; a pass tries smaller
- │  candidates one by one:
- │     supervisors  fewer restarts before one gives up: 0, 1, 2, 4, ... (a crash loop
- │                  ends at its first restarts, where its violation shows)
- │     duration  ended 0.005 s, then 0.05 s after the violation (the last event the
- │               checker cites before the workload's end: a run's beginning does not
- │               depend on what comes later, so the cut keeps it); 1/8, 1/4, 1/2,
- │               3/4, 9/10 of it: its end cut (the injections after it dropped) or its
- │               start (those before it dropped, the rest earlier)
- │     shift     every injection (and the end) earlier, as far as the first one
- │     faults    delete chunks of injections (delta debugging: halves, quarters, ... ones)
- │     pinned    an injection at a time fired after an event before it instead (one of
- │               the nearest, or one about what the injection cut: a call whose release
- │               a kill lost), `delay` the time between: kept at that moment when later
- │               passes move the schedule (kept if no more events)
- │     triggers  an `after` fault at the 1st, 2nd, 4th, ... matching event (a lower `nth`)
- │     idle      drop managers that only started and stopped (with their calls, faults)
- │     unpinned  no clients, the faults after an event at the times they fired
- │     tree      call a manager's dependency directly, cut a `uses`, drop an unused manager
- │     workload  fewer calls awaited at once (the triggers' `nth` scaled alike, then not),
- │               fewer clients, fewer call kinds, a lower rate, cancels sooner after a
- │               call starts (`cancel_within`), a fetch after fewer calls or none
- │               (`fetch_every`), fewer keys, all or no calls shared, a shorter hold
- │     options   no (or half the) load and unload time of each manager
- │     knobs     any other number of the workload, its calls, the managers, their
- │               options, the faults, the supervisors: 0, 1/4, 1/2, 2, 4 times it
- │               (`status_every`, a trigger's `delay`, a `period`, ...: a longer
- │               interval or a higher rate can make fewer events too)
- │     seeds     the same plan under seeds 1..20 (or the width): the fewest events
- │     round     injection times and the duration to fewer decimals (easier to read)
+ shrink(plan, seed) ─ the seed's run: its first violation's kind (`violation_kind`: the
+ │                    message, ids and numbers blotted out; the checker's or a `judge`'s)
+ ├─ the plan as TOML data; its timed faults made explicit (one atom per injection)
+ ├─ greedy passes, biggest cuts first, until the budget of runs is spent or a round at
+ │  the widest search keeps nothing: supervisors, duration, shift, faults (delta
+ │  debugging), pinned, triggers, idle, unpinned, tree, workload, options, knobs, seeds,
+ │  round (each pass: docs/how-to/simulate.md, "Shrink it")
  │  a candidate = its TOML text, validated (`parse_plan`) and run whole on the simulation
- │  with the current seed, then seeds 1, 2, ... (`tries` in all; at each fixpoint the
- │  width grows 4 times, up to `MOST_TRIES`); kept if one of them shows the same
- │  violation kind and is smaller: fewer events, or as many and a shorter text (or one
- │  as long that sorts first: the shortlex order, so the passes end); that seed is then
- │  the shrunk run's; each text and seed runs at most once
+ │  with the current seed, then seeds 1, 2, ... (`tries`; the width grows 4 times at each
+ │  fixpoint, up to `MOST_TRIES`); kept if one run shows the same kind and is smaller:
+ │  fewer events, or as many and a shorter text (shortlex, so the passes end)
  ◄── Shrunk: the plan's text, its seed, its run (history, hash, events), the kind
  write(shrunk, out): out/plan.toml (a header says what it shows), out/seeds.jsonl,
                      out/events-seed-S.jsonl: a run directory `rr-actors replay` reads
@@ -95,18 +64,12 @@ WIDEN = 4
 MOST_TRIES = 1000
 """The most seeds a candidate runs with (the widest search: its fixpoint ends a shrink).
 
-Why other seeds than the run's: the seed drives the scheduler and the clients' arrival
-times, so any change of the plan (but a cut of its end) gives another interleaving; a violation that
-needs a rare one is lost by most candidates under the seed alone, and found again under
-one of a few seeds, or, for a race one seed in a hundred shows, of a few hundred: the
-widening spends those runs only once the cheap cuts are done and the runs are small.
+Any change of the plan gives another interleaving, so a violation that needs a rare one
+is lost under the seed alone and found again under a few (a few hundred for a rare race).
 """
 
 SHUFFLED = 12
-"""The seeds at least a candidate runs with when it drops a process (a manager, a client)
-or changes a client's draws (a call kind deleted): an interleaving as new as another
-seed's (reconcile-unread-ids' two idle managers dropped: 14 of 60 seeds violate, none of
-the first 3 tried)."""
+"""The fewest seeds a candidate that drops a process or changes a client's draws runs with."""
 
 SEEDS = 20
 """The seeds the seed pass runs the current plan with: 1 to this (or the width)."""
@@ -441,10 +404,8 @@ class _Shrinker:
     def attempt(
         self, what: str, data: dict[str, Any], *, same: bool = False, width: int | None = None
     ) -> bool:
-        """Run the candidate `data` (the current seed, then 1, 2, ... up to `width`, the
-        search's width by default); keep it if it shows the violation kind and is
-        `smaller` than the best so far (`same`: the same plan said another way, kept if it
-        shows the kind in no more events)."""
+        """Run the candidate `data` (up to `width` seeds); keep it if it shows the kind and is
+        `smaller`."""
         text = self.text(data)
         try:
             plan = parse_plan(text, source=self.source, name=self.plan.name)
@@ -557,9 +518,8 @@ class _Shrinker:
                 yield f"the first {duration - shorter:g} s of {duration:g} cut", cut
 
     def from_(self, by: float) -> dict[str, Any] | None:
-        """The data from `by` seconds on: the injections before dropped, the rest `by`
-        earlier; a fault after an event kept as it is (a pinned one: its event comes when
-        it comes). `None` if a fault is at no time and after no event (kept whole)."""
+        """The data from `by` seconds on (earlier injections dropped); `None` if a fault has no
+        time."""
         atoms = self.data.get("faults", [])
         if not all(_timed(a) or "after" in a for a in atoms):
             return None
@@ -572,9 +532,8 @@ class _Shrinker:
         return {**self.data, "duration": duration, "faults": faults}
 
     def until(self, duration: float) -> dict[str, Any]:
-        """The data with another duration; the injections at or after it dropped, and the
-        faults after an event whose `delay` reaches it (else the plan is refused: one that
-        never fires, and the cut never runs)."""
+        """The data with another duration; the injections (and `after` delays) reaching it
+        dropped."""
         faults = [
             atom
             for atom in self.data.get("faults", [])
@@ -583,9 +542,8 @@ class _Shrinker:
         return {**self.data, "duration": duration, "faults": faults}
 
     def seeds(self) -> None:
-        """The current plan under seeds 1 to `SEEDS` (or the search's width): the seed whose
-        run shows the kind in the fewest events (the scheduler's choices made simpler: no
-        pass edits them)."""
+        """The current plan under seeds 1 to `SEEDS`: the seed showing the kind in the fewest
+        events."""
         text = self.text(self.data)
         for seed in range(1, max(SEEDS, self.width) + 1):
             if self.runs >= self.budget:
@@ -628,21 +586,18 @@ class _Shrinker:
         self.repeat(candidates)
 
     def pinned(self) -> None:
-        """Each timed injection fired after one of the events before it instead
-        (`after = { event = ..., registrar = ..., nth = ... }`, `delay` the time between):
-        the same run, and a kill at a narrow moment (a release on its way) that stays at
-        that moment when a later pass changes the workload's schedule (fewer clients, call
-        kinds, managers). Kept if the run shows the kind in no more events."""
+        """Each timed injection fired `after` an event before it instead (`delay` the time between).
+
+        A kill at a narrow moment then stays there when a later pass changes the schedule.
+        """
         for index in range(len(self.data.get("faults", []))):
             for what, data in self.pins(index):
                 if self.runs >= self.budget or self.attempt(what, data, same=True):
                     break
 
     def pins(self, index: int) -> Iterator[tuple[str, dict[str, Any]]]:
-        """The candidates of `pinned` for the fault atom at `index` (none unless timed and
-        its injection is in the best run's history): the events before it about what the
-        events just after it are about (the call whose release a kill cut) first, nearest
-        first, then the nearest events."""
+        """The `pinned` candidates for atom `index`: events about what it cut first, then the
+        nearest."""
         atom = self.data["faults"][index]
         if not _timed(atom):
             return
@@ -716,17 +671,13 @@ class _Shrinker:
             self.repeat(functools.partial(self.counts, trigger, "nth", least=1))
 
     def idle(self) -> None:
-        """Drop the managers whose only events in the best run are their start and stop
-        (with the call kinds to them, the `uses` of them and the faults aimed at them; no
-        clients if no call kind is left), all at once, then one at a time: one candidate
-        where the tree pass needs a call kind deleted, a `uses` cut and the manager dropped,
-        each kept alone."""
+        """Drop the managers that only started and stopped (with their call kinds, `uses`,
+        faults)."""
         self.repeat(self.idle_managers, self.shuffled())
 
     def unpinned(self) -> None:
-        """No clients, each fault after an event fired at the time it fired in the best run
-        instead (`at`): the calls that only timed the faults (a crash loop's kills after a
-        call answered) gone with them."""
+        """No clients, each fault `after` an event fired at the time it fired in the best run
+        instead."""
 
         def candidates() -> Iterator[tuple[str, dict[str, Any]]]:
             workload = self.data.get("workload")
@@ -750,9 +701,8 @@ class _Shrinker:
     def unpin(
         self, atoms: list[dict[str, Any]], names: set[str] | None = None
     ) -> list[dict[str, Any]]:
-        """The fault atoms with those after an event (all, or those whose trigger names one
-        of `names`) at the times they fired in the best run instead (none if they never
-        fired): a fault whose event goes with what a candidate drops, kept."""
+        """The fault atoms with those `after` an event (all, or naming `names`) at their fired
+        times."""
         fired: dict[int, list[dict[str, Any]]] = {}
         for line in map(json.loads, self.best.history.splitlines()):
             if line.get("type") == "FaultInjected":
@@ -799,9 +749,7 @@ class _Shrinker:
                 yield f"{manager['name']} no longer uses {use}", data
 
     def unused_managers(self) -> Iterator[tuple[str, dict[str, Any]]]:
-        """Drop a manager nobody calls (no call kind names it, or there are no clients)
-        or uses, with the injections aimed at it and the call kinds to it (with no clients:
-        else the plan names a manager it lacks, and the cut is never run)."""
+        """Drop a manager nobody calls or uses, with the injections aimed at it and calls to it."""
         workload = self.data.get("workload", {})
         calls = workload.get("calls", []) if workload.get("clients", 1) else []
         used = {c.get("manager") for c in calls}
@@ -833,9 +781,8 @@ class _Shrinker:
         self.repeat(lambda: self.numbers(("workload",), "hold", [0, 0.5]))
 
     def fewer_awaited(self) -> Iterator[tuple[str, dict[str, Any]]]:
-        """Fewer calls awaited at once (1, a quarter, a half); each first with the `nth` of
-        every `after` fault scaled alike (a kill after the 32nd of 100 calls withdrawn comes
-        after the 8th of 25: at the same point of the first batch), then without."""
+        """Fewer calls awaited at once (1, a quarter, a half); each with `nth` scaled alike, then
+        not."""
         for what, data in self.numbers(("workload",), "awaited", [1, 0.25, 0.5], whole=True):
             fraction = data["workload"]["awaited"] / self.data["workload"]["awaited"]
             scaled = copy.deepcopy(data)
@@ -864,12 +811,8 @@ class _Shrinker:
                     self.repeat(functools.partial(self.numbers, where, key, [0, 0.5]))
 
     def knobs(self) -> None:
-        """Every other number of the workload, its calls, the managers and their options, the
-        faults and the supervisors that restarted as often as they may or gave up (a
-        manager's `status_every`, the workload's `status_wait`, a fault's `for`, such a
-        supervisor's `period`, ...): 0, a quarter, a half, twice, four times it (an interval
-        longer, a rate higher: fewer events, or the same sooner; the events decide what is
-        kept)."""
+        """Every other number of the plan (workload, managers, faults, supervisors that gave up or
+        restarted as often as they may): 0, a quarter, a half, twice, four times it."""
         tables: list[tuple[Any, ...]] = [("workload",)]
         calls = self.data.get("workload", {}).get("calls", [])
         tables += [("workload", "calls", index) for index in range(len(calls))]
@@ -1052,9 +995,7 @@ def _restarts(history: str) -> dict[str, float]:
 
 
 def _without(data: dict[str, Any], names: list[str]) -> dict[str, Any] | None:
-    """The data without the managers `names`: the call kinds to them, the `uses` of them
-    and the faults aimed at them or after their events gone (`None`: one is a
-    supervisor's last child)."""
+    """The data without managers `names` and what names them (`None`: one is a last child)."""
     data = copy.deepcopy(data)
     if not all(_drop(data["tree"], name) for name in names):
         return None

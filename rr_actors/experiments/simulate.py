@@ -2,41 +2,23 @@
 
 ```
  simulate(plan, seeds) ─► per seed: run_seed(plan, seed)
-   simulation.run(world, seed=S) ─ one OS thread, greenlets, a virtual clock ───────────┐
-     world():  SimulatedNetwork; build_tree (the runner's: every setup instrumented,    │
-               manager processes simulated, their backups real SQLite files)            │
-               subscribe ─► _EventLog (the runner's)                                    │
-               sup.start(); with [hosts] each other host's process (its own tree,       │
-                 its events to the same log, driven by commands: _SimulatedHost)        │
-               the workload's Clients (workload.py, simulated threads)                  │
-               the injector: fault_schedule(plan, S) on simulated processes and links   │
-                 (SimulatedFaults, _simulated_faults.py), `after` ones from the events  │
-               sleep(duration); faults stop; wait_all_serving; clients stop;            │
-               count_entries (the runner's settling); flush; sup.stop(); the            │
-               injector's close (the supervisors of `split_brain`'s second servers)     │
-   ◄── the events, the fault records, t0 ◄──────────────────────────────────────────────┘
-   history = events.jsonl's text (the runner's lines: `at` in virtual seconds, pids the
-             simulated ones, `run` = 1, `seed` = S) + the fault lines
-   hash    = sha256 of the history; verdict = check.check(check.numbered(events)): the
-             events as published, not the history's JSON read back (the same verdict)
+   simulation.run(world, seed=S) ─ one OS thread, greenlets, a virtual clock ─────┐
+     world(): SimulatedNetwork; build_tree (the runner's, managers simulated);     │
+              subscribe ─► _EventLog; sup.start(); other hosts (_SimulatedHost);   │
+              the Clients; the injector (fault_schedule(plan, S), `after` ones);  │
+              sleep(duration); faults stop; settle; flush; sup.stop()             │
+   ◄── the events, the fault records, t0 ◄────────────────────────────────────────┘
+   history = events.jsonl's text (`at` in virtual seconds, `seed` = S) + fault lines
+   hash = sha256(history); verdict = check.check(check.numbered(events))
  ◄── SimulatedRun(seed, hash, verdict, findings, history, ...)
 ```
 
-The same seed gives the same history byte for byte, in this process and in another one
-started with the same `PYTHONHASHSEED` (the iteration order of a set of strings depends
-on it: `rr-actors experiment --simulate` runs under `PYTHONHASHSEED=0`).
-
-Simulated: the manager faults `kill_manager`, `hang_manager`, `cut_connections`,
-`load_error` and the kinds only a simulation can aim (`plan.SIMULATION_KINDS`), at fixed
-or random times or `after` an event (`_simulated_faults.py`); managers in processes or
-threads; a `[compare]` plan with its first value; `[hosts]`: each other host a
-simulated process of its own (`_SimulatedHost`: its part of the tree, as a real run's
-host process; its events named by it, `set_host`), and the faults between hosts `cut`
-(two hosts) and `partition` on the simulated network; `kill_program`: the tree and the
-clients in a simulated process of their own (`_SimulatedProgram`, driven by commands as
-a host is), which the fault kills and starts again on the same state_dir.
-`kill_resource`, `freeze`, `kill_router` and the mission's ERM setup are refused with a
-`PlanError` naming them and why (`check_simulable`), never skipped silently.
+The same seed gives the same history byte for byte, in any process started with the same
+`PYTHONHASHSEED` (`rr-actors experiment --simulate` runs under `PYTHONHASHSEED=0`).
+Simulated: the manager faults, the kinds only a simulation can aim (`plan.SIMULATION_KINDS`),
+`[compare]` (its first value), `[hosts]` (each other host a simulated process, `cut` and
+`partition` on the simulated network) and `kill_program`; what is not simulated is refused
+with a `PlanError` (`check_simulable`), never skipped silently.
 """
 
 from __future__ import annotations
@@ -132,16 +114,12 @@ PREEMPT = 0.05
 """The probability that a simulated thread yields at a choice point (`simulation.run`)."""
 
 RAM_DIR = "/dev/shm"  # noqa: S108 - a private folder is made in it (mkdtemp)
-"""Where a run's folder (its managers' SQLite backups) is made, if there is such a
-folder (Linux's tmpfs) and `TMPDIR` does not choose another: a simulated kill keeps the
-files anyway, so a disk adds nothing but its system calls' cost (the OS's temporary
-folder otherwise)."""
+"""Where a run's folder (its managers' SQLite backups) is made: tmpfs if there is one and
+`TMPDIR` does not choose another (a simulated kill keeps the files anyway)."""
 
 
 SCRATCH = "<run>"
-"""What a history says for its run's folder (the managers' backups, the clients'
-`{run_dir}`): a random temporary folder, whose name would make each replay's history
-another."""
+"""What a history says for its run's folder (random: naming it would make each replay differ)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -151,10 +129,9 @@ class SimulatedRun:
     Attributes:
         seed: the seed.
         hash: the SHA-256 of `history` (hex): the same for the same plan and seed.
-        verdict: `check`'s verdict of its events: `"held"`, `"violated"`, `"unverifiable"`;
-            or `"crashed"`: the system raised once it served (an assertion of the
-            catalog, a deadlock: its `findings` line names the exception, its virtual
-            time and step; its history ends with a `CRASH_LINE` line).
+        verdict: `check`'s verdict: `"held"`, `"violated"`, `"unverifiable"`; or `"crashed"`:
+            the system raised once it served (a `findings` line names the exception, its
+            virtual time and step; the history ends with a `CRASH_LINE` line).
         violations: how many findings are violations.
         unverifiable: how many findings are unverifiable.
         findings: the verdict's lines (`check.format_verdict`, without its first).
@@ -163,7 +140,7 @@ class SimulatedRun:
         faults: how many faults it injected (skipped ones not counted).
         calls_ok: the workload's calls answered.
         calls_failed: the workload's calls that failed.
-        entries_left: rows left in the catalogs at the end (the runner's count, settled).
+        entries_left: rows left in the catalogs at the end (settled).
         virtual_s: the virtual seconds the run took, setup and shutdown included.
         cpu_s: the CPU seconds it took (not part of the history).
         errors: exceptions that ended simulated threads (`name: Type: message`).
@@ -189,19 +166,14 @@ class SimulatedRun:
 def check_simulable(plan: Plan) -> None:
     """Refuse what the simulation does not model, naming it and why.
 
-    A plan with `[compare]` runs as read: with its first compared value (as its first
-    runs do for real); simulate another value's plan with `plan.variants[i][1]`. A plan
-    with `[hosts]` runs each host as a simulated process of its own (its part of the
-    tree, its managers' processes started by it), the hosts joined by one simulated
-    network with the plan's `lease`; `cut` and `partition` cut some hosts' processes
-    off the others' (`SimulatedNetwork.partition`).
+    A `[compare]` plan runs with its first value (simulate another with `plan.variants[i][1]`).
+    With `[hosts]`, each host is a simulated process on one simulated network with the plan's
+    `lease`; `cut` and `partition` use `SimulatedNetwork.partition`.
 
     Raises:
-        PlanError: a fault kind other than those of `SIMULATED_KINDS` (`kill_resource`,
-            `freeze`, `kill_router`), or a setup of `NOT_SIMULATED_SETUPS`; with
-            `[hosts]`: a kind of `NOT_WITH_HOSTS`, a `cut` between more than two hosts
-            (the link's two ends would still reach each other through a third). (A
-            manager's fault aimed at another host's manager: `parse_plan` refuses it.)
+        PlanError: a fault kind not in `SIMULATED_KINDS` (`kill_resource`, `freeze`,
+            `kill_router`), a setup of `NOT_SIMULATED_SETUPS`; with `[hosts]`: a kind of
+            `NOT_WITH_HOSTS`, or a `cut` between more than two hosts.
     """
     source = plan.source or "<plan>"
     hosts = plan.hosts
@@ -250,14 +222,13 @@ def simulate(
 ) -> list[SimulatedRun]:
     """Run `plan` on the simulation once per seed; each run's history, hash and verdict.
 
-    An exception the system raises once its tree served (in a seed's run: an assertion
-    of the catalog, a deadlock, a run past its limits) is that seed's result, verdict
-    `"crashed"`, not an error: the next seed runs.
+    An exception the system raises once its tree served (an assertion of the catalog, a
+    deadlock) is that seed's result, verdict `"crashed"`: the next seed runs.
 
     Args:
         plan: the plan (`check_simulable` must accept it).
         seeds: the seeds, in the order to run them.
-        on_run: called with each run as it finishes (a progress bar).
+        on_run: called with each run as it finishes (in the caller's thread).
 
     Returns:
         The runs, in the order of `seeds`.
@@ -279,15 +250,7 @@ def simulate(
 
 
 def run_seed(plan: Plan, seed: int) -> SimulatedRun:
-    """Run `plan` on the simulation with `seed`: one history, its hash and its verdict.
-
-    The seed's garbage (its simulated world: actors, threads) is collected as it ends,
-    and only its (`_own_garbage`); its CPU time includes that. Its backups' files are
-    closed already (as each process died, or as the run ended: `runtime.hold`).
-
-    Raises:
-        The errors of `simulate`.
-    """
+    """Run `plan` on the simulation with `seed` (see `simulate`, whose errors it raises)."""
     check_simulable(plan)
     started = time.process_time()
     with _own_garbage():
@@ -297,21 +260,10 @@ def run_seed(plan: Plan, seed: int) -> SimulatedRun:
 
 @contextlib.contextmanager
 def _own_garbage() -> Iterator[None]:
-    """Collect the garbage made inside the block as it ends, without the rest of the heap.
+    """Collect the block's garbage at its end, in one full collection that skips the older heap.
 
-    A seed leaves its whole simulated world as garbage, in reference cycles: its full
-    collection is what costs, and with the heap around it (every module, a test
-    process's objects) it cost as much again (some 0.12 s each three killheavy seeds,
-    a twentieth of their CPU). So what was alive before is put aside for the block
-    (CPython's `gc.freeze`: moved out of the collector's generations) and one full
-    collection at its end looks at the block's objects alone; then it is put back
-    (`gc.unfreeze`). What was garbage before it is collected later, as it would have
-    been. The collector is off meanwhile (as the run's steps have it, `Scheduler.run`):
-    the young collections that the history and its verdict set off (some 35 a killheavy
-    seed) would walk what that one collection walks. Only where `gc.freeze` exists and
-    nothing was frozen already (the caller's own use of it is left alone); elsewhere it
-    does nothing (the simulation's own collection, `simulation.run`, frees a killed
-    process's memory then).
+    Uses `gc.freeze` (if nothing is frozen already), with the collector off meanwhile: a seed's
+    world is all cyclic garbage, and walking the whole heap doubled its cost.
     """
     freeze = getattr(gc, "freeze", None)
     if freeze is None or gc.get_freeze_count() > 0:
@@ -386,9 +338,8 @@ def _crashed(
     unplaced: Callable[[str], str],
     started: float,
 ) -> SimulatedRun:
-    """The run of a seed whose system raised `exc` once it served: verdict `"crashed"`,
-    its history what it recorded until then (the tree stopped after it included), then
-    a `CRASH_LINE` line with the exception, its virtual time and step."""
+    """A seed's run whose system raised `exc` once it served: verdict `"crashed"`, a `CRASH_LINE`
+    last."""
     at_s, step = getattr(exc, "simulated_at", (0.0, 0))
     seen = list(progress.log.seen) if progress.log is not None else []
     records = list(progress.faults.records) if progress.faults is not None else []
@@ -436,9 +387,7 @@ def _scratch_parent() -> str | None:
 
 
 def _unplaced(folder: Path) -> Callable[[str], str]:
-    """What turns a text of the run made in `folder` into one that names `SCRATCH`
-    instead (`folder` is random: a history naming it would not replay). Its path as
-    given and resolved, each as written and as escaped in a JSON string."""
+    """What replaces `folder` (as given, resolved, JSON-escaped) with `SCRATCH` in a run's text."""
     forms = {str(folder), os.path.realpath(folder)}
     forms |= {json.dumps(form)[1:-1] for form in forms}
     ordered = sorted(forms, key=len, reverse=True)  # (a longer form holds a shorter)
@@ -482,9 +431,7 @@ def _injector(
     progress: _Progress,
     **where: Any,
 ) -> tuple[SimulatedFaults, float]:
-    """The run's fault injector, made as its workload starts (now: `t0`, monotonic
-    seconds), and that `t0`; `where` is what it kills besides managers (`hosts=` and
-    `trees=`, or `program=`: `SimulatedFaults`)."""
+    """The run's fault injector, made as its workload starts, and that `t0` (monotonic seconds)."""
     from rr_actors.experiments._simulated_faults import SimulatedFaults  # noqa: PLC0415 - greenlet
 
     t0, wall_t0 = runtime.monotonic(), runtime.wall()
@@ -579,9 +526,7 @@ def _world(
 def _program_world(
     plan: Plan, seed: int, folder: Path, progress: _Progress
 ) -> tuple[list[events.Event], list[FaultRecord], float, tuple[int, int, int]]:
-    """`_world` for a plan that kills the program (`kill_program`): the same steps, with
-    the tree and the clients in a simulated process of their own (`_SimulatedProgram`)
-    rather than the simulation's root, which only drives the run."""
+    """`_world` for a `kill_program` plan: the tree and clients in a `_SimulatedProgram`."""
     from rr_actors import simulation  # noqa: PLC0415 - the simulation extra (greenlet)
 
     network = simulation.SimulatedNetwork()  # (check_simulable refuses it with [hosts])
@@ -629,24 +574,9 @@ def _program_world(
 
 
 class _SimulatedProgram:
-    """The run's program, on the simulation, when its plan kills it (`kill_program`): a
-    simulated process of its own (not the simulation's root, which cannot be killed),
-    whose main thread builds and starts the plan's tree on the run's `state_dir`, makes
-    the workload's clients (each a consumer registrar of `Supervisor.registrar`), then
-    runs the commands `ask` sends, one at a time. `kill` ends it as a SIGKILL does (every
-    thread of it; its managers' processes die with it, as `PR_SET_PDEATHSIG` makes real
-    ones); `start` starts it again on the same `state_dir`: its managers restore their
-    backups, and its clients (the same names) start calling at once, until the run's
-    deadline.
-
-    Args:
-        plan: the plan (no `[hosts]`: `check_simulable`).
-        state_dir: its tree's `state_dir` (`None`: in memory).
-        seed: the run's seed.
-        network: the run's simulated network.
-        on_event: what its tree's events go to (the run's subscriber).
-        work: the run's folder (for `{run_dir}`).
-    """
+    """The program of a `kill_program` plan: a simulated process of its own that builds its tree
+    on `state_dir`, makes the clients, then runs what `ask` sends; `kill` ends it as SIGKILL
+    does (its managers with it), `start` starts it again on the same `state_dir`."""
 
     def __init__(
         self,
@@ -672,12 +602,7 @@ class _SimulatedProgram:
         self._serving = False  # its main thread takes commands
 
     def start(self) -> rr.Supervisor:
-        """Start a life of the program; return its tree once it serves and its clients
-        are made (and call, once the workload began: `go`).
-
-        Raises:
-            Exception: what its tree raised as it started (a setup's error).
-        """
+        """Start a life of the program; its tree once it serves and its clients are made."""
         from rr_actors import simulation  # noqa: PLC0415 - the simulation extra (greenlet)
 
         self._commands, self._replies = runtime.SimpleQueue(), runtime.SimpleQueue()
@@ -705,13 +630,11 @@ class _SimulatedProgram:
         self.ask("go")
 
     def ask(self, op: str, timeout: float = 0.0) -> int:
-        """Run `op` on the program (`"go"`, `"wait_serving"` for `timeout` virtual
-        seconds, `"stop_clients"`, `"count"`: its catalogs' entries, settled, `"flush"`);
-        the count, or 0.
+        """Run `op` (`"go"`, `"wait_serving"`, `"stop_clients"`, `"count"`, `"flush"`); the count,
+        or 0.
 
         Raises:
-            RrError: the program is not running (it did not start again), or what `op`
-                raised there (`wait_serving`: a manager did not serve in time).
+            RrError: the program is not running, or what `op` raised there.
         """
         if not self._serving:
             raise rr.RrError("the run's program is not running (it did not start again)")
@@ -804,10 +727,8 @@ class _SimulatedProgram:
 
 
 def _network_of(plan: Plan) -> simulation.SimulatedNetwork:
-    """The run's simulated network (in the simulation's main process): with `[hosts]`,
-    the plan's lease, and this process named the run's own host in its events (as a
-    real run's member names: the checker judges a registrar lost across hosts by them;
-    the real process's name is kept)."""
+    """The run's simulated network: with `[hosts]`, the plan's lease, this process named the run's
+    host."""
     from rr_actors import simulation  # noqa: PLC0415 - the simulation extra (greenlet)
 
     if plan.hosts is None:
@@ -820,9 +741,7 @@ def _network_of(plan: Plan) -> simulation.SimulatedNetwork:
 
 
 def _wait_serving(sup: rr.Supervisor, plan: Plan, hosts: list[_SimulatedHost]) -> list[str]:
-    """Wait (`recovery_timeout`) until every manager of the run's own host serves, then
-    each other host's (a host's that does not: not an error, as for real); the names of
-    the run's own host's managers.
+    """Wait until the run's own host's managers serve, then the others'; the own host's names.
 
     Raises:
         RrError: a manager of the run's own host did not serve in time.
@@ -865,20 +784,8 @@ def _start_hosts(
 
 
 class _SimulatedHost:
-    """Another host of a plan with `[hosts]`, on the simulation: a simulated process of
-    its own (as a real run's host process), whose main thread builds and starts its
-    part of the tree (`build_tree(host=)`: its managers' processes are started by it,
-    so a cut of the host cuts them, restarts included), then runs the commands `ask`
-    sends, one at a time, as `_host_child` does for real.
-
-    Args:
-        plan: the plan.
-        name: the host's name.
-        state_dir: its managers' backups (`None`: in memory).
-        seed: the run's seed.
-        network: the run's simulated network.
-        on_event: what its tree's events go to (the run's subscriber).
-    """
+    """Another host of a `[hosts]` plan: a simulated process that builds its part of the tree
+    (`build_tree(host=)`) then runs what `ask` sends, as `_host_child` does for real."""
 
     def __init__(
         self,
@@ -904,14 +811,8 @@ class _SimulatedHost:
         self.pid = simulation.start_process(self._main, name=f"host-{name}")
 
     def ask(self, op: str, timeout: float = 0.0) -> int:
-        """Run `op` on the host (`"start"`: wait until its tree serves, `"wait_serving"`
-        for `timeout` virtual seconds, `"count"`: its catalogs' entries, `"flush"`);
-        the count, or 0.
-
-        Raises:
-            Exception: what its tree raised as it started (a setup's error), or as it
-                counted (`wait_serving`'s `RrError` is not raised: as for real).
-        """
+        """Run `op` (`"start"`, `"wait_serving"`, `"count"`, `"flush"`) on the host; the count, or
+        0."""
         if op != "start":
             self._commands.put((op, timeout))
         reply = self._replies.get()

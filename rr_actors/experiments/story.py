@@ -3,17 +3,13 @@
 ```
  history (events.jsonl's text: the events, then the fault lines)
    check.read_runs ─► (line, event) ─► events.text.describe: what happened, in words
-   fault lines (FaultInjected / FaultSkipped) ─► "kill_manager api: SIGKILL pid 20"
-   each fault placed before the first event at or after its time (the events keep
-   their order: a kill's exit comes after the kill)
+   fault lines ─► "kill_manager api: SIGKILL pid 20", before the first event at or
+   after its time
    check.check ─► the findings: their lines marked `>>`, each violation told under the
-                  last line it points at
-   a crashed run's last line (`Crashed`) ─► "crashed  AssertionError: ... (step N)", at
-                  its virtual time
+                  last line it points at; a crashed run's `Crashed` line last
  ─► lines: `[  0.300 s] #12  api      pid 3   api exited: killed by SIGKILL (pid 3)`
-    (virtual seconds from the run's first event, the history's line number, who: the
-    registrar, the manager or "fault"; the simulated pid); on a terminal with rich,
-    faults in yellow and the violation in red, a long line wrapped under its text
+    (virtual seconds, line number, who, simulated pid); with rich, faults in yellow and
+    the violation in red
 ```
 """
 

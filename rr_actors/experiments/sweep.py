@@ -2,23 +2,17 @@
 
 ```
  experiment PLAN --simulate --seeds 1-500 --out DIR
-   PYTHONHASHSEED is not 0? ─► the same command again in a child process with it
-                               (a hash then replays in any process), its output passed on,
-                               a Ctrl-C, SIGTERM or SIGHUP passed on to it (`hash_fixed`)
+   PYTHONHASHSEED is not 0? ─► the same command in a child process with it (`hash_fixed`)
    DIR/plan.toml (the plan's copy)
-   simulate.run_seed per seed ─► a progress bar (a terminal with rich) or a line per
-                                 violating seed and a `seeds: N/M run` line every
-                                 `PROGRESS_SECONDS`; DIR/seeds.jsonl: a line per seed (its
-                                 hash, verdict, counts); DIR/events-seed-S.jsonl: the
-                                 history of each seed that did not hold; DIR/log.txt:
-                                 the simulated system's error lines, by seed
-   ◄── a summary table, the violating seeds; exit 0 (1: a run failed; 2: bad input;
-       128 + the signal that stopped it: the seed running cancelled, its folder removed)
+   simulate.run_seed per seed ─► a progress bar or lines; DIR/seeds.jsonl: a line per
+                                 seed; DIR/events-seed-S.jsonl: each seed that did not
+                                 hold; DIR/log.txt: the system's error lines, by seed
+   ◄── a summary, the violating seeds; exit 0 (1: a run failed; 2: bad input;
+       128 + the signal that stopped it)
 
  replay DIR --seed S
    DIR/plan.toml, DIR/seeds.jsonl's line of S ─► simulate.run_seed ─► its hash printed
-   and compared with the recorded one; exit 0 same, 1 not; 2 bad input (no such seed,
-   a file not regular or too big, a line not a seed's: `_open_regular`, `_seed_lines`)
+   and compared with the recorded one; exit 0 same, 1 not; 2 bad input
 ```
 """
 
@@ -159,9 +153,8 @@ def hash_fixed(argv: list[str], stream: TextIO) -> int | None:
     """Run `rr-actors ARGV` in a child with `PYTHONHASHSEED=0` unless this process has it;
     its exit code (`None`: this process has it, go on here).
 
-    A Ctrl-C, SIGTERM or SIGHUP this process gets meanwhile is passed on to the child,
-    which stops as it would alone (its run ends, its folder goes: `stopping_on_signals`);
-    this process waits for it (never kills it: a killed child would leave its folder).
+    A Ctrl-C, SIGTERM or SIGHUP meanwhile is passed on to the child, which stops as it would
+    alone; this process waits for it (a killed child would leave its folder).
     """
     if os.environ.get("PYTHONHASHSEED") == HASH_SEED:
         return None
@@ -201,10 +194,9 @@ class _Stopped(KeyboardInterrupt):
 
 
 def stopping_on_signals() -> contextlib.AbstractContextManager[None]:
-    """The first of `STOP_SIGNALS` raises a `KeyboardInterrupt` in the main thread; the
-    ones after it are ignored until the block ends (the seed running is cancelled and
-    its folder removed meanwhile: `simulate.run_seed`). `stopped_code` gives the exit
-    code. Elsewhere than on the main thread: nothing changes."""
+    """The first of `STOP_SIGNALS` raises `KeyboardInterrupt` in the main thread, later ones are
+    ignored until the block ends (`stopped_code` gives the exit code); off the main thread,
+    nothing."""
 
     def first(signum: int, _frame: object) -> None:
         for number in STOP_SIGNALS:
@@ -288,13 +280,11 @@ def run_seeds(
     jobs: int = 1,
     runs: list[simulate.SimulatedRun] | None = None,
 ) -> list[simulate.SimulatedRun]:
-    """Run each seed, a line of `out/seeds.jsonl` and a step of `display` (`cli.Display`)
-    each, the history of each that did not hold in `out/events-seed-S.jsonl`, the
-    simulated system's error lines in `out/log.txt` (`_SystemLog`).
+    """Run each seed: a line of `out/seeds.jsonl`, a step of `display`, the history of each that
+    did not hold in `out/events-seed-S.jsonl`, the system's error lines in `out/log.txt`.
 
-    With `jobs` above 1 the seeds run in that many worker processes (`_Workers`), each
-    seed alone in its process as `replay` runs it; what is written is the same, in seed
-    order: a seed's hash does not depend on where it ran.
+    With `jobs` above 1 the seeds run in that many worker processes (`_Workers`); what is
+    written is the same, in seed order.
 
     Args:
         plan: the plan (`simulate.check_simulable` must accept it).
@@ -302,17 +292,16 @@ def run_seeds(
         out: the run directory (`prepare`d).
         display: the progress (`cli.Display`).
         jobs: processes to run seeds in (1: this one).
-        runs: the list to append each finished run to (the caller's: a stop leaves it
-            with the seeds that ran, for the summary); a new one if `None`.
+        runs: the list to append each finished run to (a stop leaves the seeds that ran);
+            a new one if `None`.
 
     Returns:
-        `runs`; those that held without their history (`""`: a seed's is megabytes,
-        and only the others' are read again, by `--shrink`).
+        `runs`; those that held without their history (`""`).
 
     Raises:
         RrError: what `simulate.simulate` raises (with the seed in a note).
-        KeyboardInterrupt: one of `STOP_SIGNALS` (`stopping_on_signals`): the seeds
-            running are cancelled and their folders removed, in every worker too.
+        KeyboardInterrupt: one of `STOP_SIGNALS`: the seeds running are cancelled and
+            their folders removed, in every worker too.
     """
     runs = [] if runs is None else runs
     bar = display.bar
@@ -403,27 +392,12 @@ class _Caught(logging.Handler):
 
 
 class _Workers:
-    """`jobs` worker processes running seeds (`--jobs`): a `multiprocessing` pool.
+    """`jobs` spawned worker processes running seeds (`--jobs`): a `multiprocessing` pool.
 
-    ```
-     this process                                  each worker (spawned: a clean
-       pool.imap(_run_one, seeds) ── a seed ────►   interpreter, PYTHONHASHSEED as here)
-       ◄── (its run, its error lines), in seed order  simulate.run_seed, alone
-       a stop or a failed seed: terminate ─SIGTERM─► the seed running cancelled (its
-                                                      folder removed), then it exits
-    ```
-
-    Spawned, not forked: a fork would copy this process's threads' locks (the progress
-    bar's) and what the simulation patched, and a seed must start as `replay`'s does. A
-    worker ignores SIGINT (a Ctrl-C reaches the whole process group: this process
-    decides) and takes SIGTERM as a stop (`_worker_started`). Each worker starts with
-    `STOP_SIGNALS` blocked (the mask of the thread that spawns it, kept across `exec`)
-    until its handlers are set: a Ctrl-C while it still imports waits, then is ignored,
-    instead of a `KeyboardInterrupt` traceback from `spawn_main`. The pool's own threads,
-    which spawn replacement workers, are started with that mask too. The resource
-    tracker is started first: its start unblocks SIGINT and SIGTERM in the thread that
-    starts it (CPython 3.11-3.13 `multiprocessing.resource_tracker`), which would undo
-    the mask for the workers spawned after it.
+    Spawned, not forked: a fork would copy this process's threads' locks and the simulation's
+    patches. A worker ignores SIGINT (this process decides) and takes SIGTERM as a stop; it
+    starts with `STOP_SIGNALS` blocked until its handlers are set, so the resource tracker
+    (whose start unblocks them, CPython 3.11-3.13) is started before any worker.
     """
 
     def __init__(self, jobs: int) -> None:
@@ -511,11 +485,8 @@ def _warnings_off() -> Iterator[None]:
 
 
 class _SystemLog:
-    """The simulated system's lines of ERROR and up, each with its seed, in `path`: they
-    are the simulated system's, as a real run's go to its `stderr.txt` (`experiment.py`),
-    and a fault's expected outcome can be one (rule 22: a second server yields at a heal
-    with an ERROR, on Zenoh as on the simulation). Each seed's are caught where it ran
-    (`_run_one`); the file is made at the first line."""
+    """The simulated system's ERROR lines, each with its seed, in `path` (made at the first
+    line)."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
@@ -636,14 +607,12 @@ def _error(command: str, message: str) -> None:
 
 
 def recorded_plan(run_dir: Path, seed: int) -> tuple[Plan, dict[str, Any]]:
-    """The plan of a run directory (its `plan.toml`, its setups imported from the original
-    file's folder, the duration it ran) and the line of `seed` in its `seeds.jsonl`.
+    """The plan of a run directory (its setups from the original's folder) and the line of `seed`.
 
     Raises:
-        ConfigError: no such file or line; a file that is not a regular file, is bigger
-            than its limit (`PLAN_LIMIT`, `LINE_LIMIT` a line) or not UTF-8; a line that
-            is not a seed's (each message names the file, and the line); the plan
-            invalid or not simulable (`PlanError` naming `RUN/plan.toml`).
+        ConfigError: no such file or line; a file not regular, too big (`PLAN_LIMIT`,
+            `LINE_LIMIT`) or not UTF-8; a line not a seed's; the plan invalid or not
+            simulable (`PlanError` naming `RUN/plan.toml`).
     """
     recorded = _recorded(run_dir, seed)
     path = run_dir / "plan.toml"
@@ -667,9 +636,7 @@ def read_plan_text(path: Path) -> str:
     """The text of a run directory's `plan.toml`, read within `PLAN_LIMIT` bytes.
 
     Raises:
-        ConfigError: it cannot be opened, is not a regular file (a device, a pipe: a
-            link to `/dev/zero` is refused, not read), is bigger than `PLAN_LIMIT`
-            bytes, or is not UTF-8.
+        ConfigError: it cannot be opened, is not a regular file, is too big or not UTF-8.
     """
     with _open_regular(path) as file:
         data = file.read(PLAN_LIMIT + 1)
@@ -689,10 +656,7 @@ def _read_from(plan: Plan, source: str) -> Plan:
 
 @contextlib.contextmanager
 def _open_regular(path: Path) -> Iterator[BinaryIO]:
-    """`path` opened for reading in binary, if it is a regular file (a link is followed).
-
-    It is opened without blocking (a FIFO would block the open) and checked on the open
-    descriptor (not a name that could change between a check and the open).
+    """`path` opened in binary if it is a regular file: opened without blocking, checked on the fd.
 
     Raises:
         ConfigError: it cannot be opened or is not a regular file.
@@ -815,9 +779,7 @@ def shrink_seed(
     tries: int = shrink.TRIES,
     text: str | None = None,
 ) -> shrink.Shrunk:
-    """Shrink one violating seed (`shrink.shrink`), a line of `display` per kept step, and
-    write the shrunk run into `out` (`shrink.write`: `rr-actors replay OUT`); `text` the
-    plan's TOML (default: its file's).
+    """Shrink one violating seed (`shrink.shrink`) and write the shrunk run into `out`.
 
     Raises:
         ConfigError: the seed does not violate (or the plan has no file).
@@ -861,8 +823,7 @@ def shrink_violations(
     *,
     budget: int = shrink.BUDGET,
 ) -> list[shrink.Shrunk]:
-    """`--shrink`: the first violating seed of each violation kind, shrunk into
-    `out/shrunk-seed-S` (one kind is one bug; its other seeds would shrink to it again).
+    """`--shrink`: the first violating seed of each kind, shrunk into `out/shrunk-seed-S`.
 
     Raises:
         RrError: a run failed.
@@ -890,8 +851,7 @@ def _recorded(run_dir: Path, seed: int) -> dict[str, Any]:
     """The line of `seed` in `RUN/seeds.jsonl`.
 
     Raises:
-        ConfigError: no such file, a line that is not a seed's (`_seed_lines`), or no
-            line of that seed.
+        ConfigError: no such file, a line not a seed's, or no line of that seed.
     """
     run: list[int] = []
     for number, line in _seed_lines(run_dir):
@@ -931,14 +891,11 @@ _FIELDS: tuple[tuple[str, tuple[type, ...], str], ...] = (
 
 
 def _seed_lines(run_dir: Path) -> Iterator[tuple[int, dict[str, Any]]]:
-    """Each line of `RUN/seeds.jsonl` with its number (1-based), read one at a time,
-    each within `LINE_LIMIT` bytes; blank lines skipped.
+    """Each line of `RUN/seeds.jsonl` with its number (1-based), blank ones skipped.
 
     Raises:
-        ConfigError: no such file, or it is not a regular file; a line too long, not
-            UTF-8, not JSON (cut short, nested too deeply, a number too long to read),
-            not an object, or without a whole-number `seed`; the message names the
-            file and the line.
+        ConfigError: no such file or not regular; a line too long (`LINE_LIMIT`), not UTF-8,
+            not a JSON object with a whole-number `seed` (the message names file and line).
     """
     path = run_dir / SEEDS_FILE
     if not run_dir.exists():
@@ -981,8 +938,7 @@ def _check_fields(
     where: str,
     fields: tuple[tuple[str, tuple[type, ...], str], ...] = _FIELDS,
 ) -> None:
-    """Refuse a line without one of `fields` of its type; a line without `plan` gets
-    `None` (the run directory's copy is the plan).
+    """Refuse a line without one of `fields` of its type (`plan` missing: `None`).
 
     Raises:
         ConfigError: the message names the line (`where`) and the field.

@@ -8,38 +8,13 @@ Each client has a consumer registrar of its own (`Supervisor.registrar`) and one
     a status came (its callback queues it) ──► FATAL: unload, load again (a recovery)
                                                UPDATE: the manager replaced it (a recovery)
 
-With `awaited = N`, each call that comes due is N calls at once instead, each awaited
-(`Supervisor.acall_with_retry`) on the client's own event loop, and a seeded share
-`cancel` of them is cancelled 0 to `cancel_within` seconds after it started (the awaiting
-task cancelled: the call is withdrawn, as a timed-out one is). A cancelled call is not
-recorded; one answered before its cancel is held and unloaded like any other.
-
-With `fetch_every = N`, after every N calls (each awaited call counted) the client asks
-the provider of the last one for the ids it holds at that server
-(`ResourceRegistrar.fetch_queries`); its registrar publishes `QueriesFetched`, which the
-check's `fetch` rule compares with the provider's catalog. A fetch that fails (its
-provider down) is not retried nor recorded as a call.
-
-With `status_wait = S`, each status callback of the first `slow_clients` clients waits
-`S` seconds before it returns (a slow or hung consumer, on the status runner's worker
-thread): the runner's watchdog gives it up after `SLICE` and its id's next statuses wait
-behind it (`_registrar/status.py`), which the check's `status-order` rule judges.
-
-What came due while a call blocked (statuses heard, holds run out) is handled before the
-next call, the statuses first: a `FATAL` about a resource the client still held (not yet
-released, though its hold may have run out while the call blocked) is acted on, as the
-provider still counted the client among its consumers.
-
-Calls come at `rate` per second per client (seeded Poisson or fixed gaps), on a schedule
-fixed in advance (an open-loop load): the calls that fell due while one call waited out a
-restart follow it back to back, as the requests of many independent users would. Every
-call is recorded (`CallRecord`); so are the times a client got a resource back after a
-failure (`recoveries`).
-
-A request the client cannot build (its factory raised, say) is a mistake in the plan, not
-a failure of the tree: it is not recorded as a failed call, which would count it as
-unavailability. The client stops, keeps the error in `failure`, calls `on_failure`, and
-the run fails with it (`runner` raises it once the clients have stopped).
+Calls come at `rate` per second per client on a schedule fixed in advance (an open-loop
+load: calls due while one waited out a restart follow it back to back). What came due
+while a call blocked is handled before the next call, statuses first (a `FATAL` about a
+resource still held is acted on). `awaited`, `cancel`, `fetch_every` and `status_wait`:
+docs/reference/plan.md. Every call is recorded (`CallRecord`), and so are `recoveries`.
+A request the client cannot build is a mistake in the plan, not a failed call: the client
+stops, keeps it in `failure`, calls `on_failure`, and the run fails with it.
 """
 
 from __future__ import annotations
@@ -101,17 +76,13 @@ def render_request(template: Any, key: str, context: RequestContext) -> Any:
     """Fill a request template: `{key}`, `{client}`, `{run_dir}` in strings; `"{pid}"` -> pid.
 
     Args:
-        template: the template from the plan (any TOML value).
+        template: the template from the plan (any TOML value; not changed).
         key: the request's key (`"shared-2"`, `"unique-0-17"`).
         context: the call's context.
 
-    Returns:
-        The request (a new value; the template is not changed).
-
     Raises:
-        ValueError, KeyError, IndexError: a string of the template that `str.format`
-            cannot fill (a field other than `key`, `client`, `run_dir`, `pid`, or a
-            bad format spec); no rr_actors error.
+        ValueError, KeyError, IndexError: a string `str.format` cannot fill (another field,
+            a bad format spec); no rr_actors error.
     """
     if isinstance(template, dict):
         return {k: render_request(v, key, context) for k, v in template.items()}
@@ -136,9 +107,8 @@ def retrying(
 ) -> T:
     """Run `action` until it succeeds, waiting out restarts of `provider` and cut connections.
 
-    When `action` fails with `RegistrarUnavailableError` or `RegistrarStoppedError`: if
-    the provider was restarted or is down, wait for its next restart; if it still runs
-    (a cut connection), try again after a short pause.
+    On `RegistrarUnavailableError` or `RegistrarStoppedError`: wait for the provider's next
+    restart if it was restarted or is down, else (a cut connection) retry after a pause.
 
     Args:
         sup: the supervisor of `provider`.
@@ -218,11 +188,10 @@ class Client:
         plan: the plan (its `workload` says what to do).
         seed: the run's seed (each client draws from its own generator).
         run_dir: the run's directory (for `{run_dir}`).
-        on_failure: called (on the client's thread) when the client stopped on an error
-            of its own, kept in `failure`; the runner ends the run early with it.
-        step_span: with `--trace`, what each of its steps (a call with its retries, an
-            unload, a fetch, the reload after a `FATAL`) runs under, a trace each:
-            `otel.Exporting.root_span` (`step_span(name, attributes=...)`).
+        on_failure: called on the client's thread when it stopped on an error of its own
+            (kept in `failure`); the runner ends the run early with it.
+        step_span: with `--trace`, what each step (a call with its retries, an unload, a
+            fetch, a reload) runs under: `otel.Exporting.root_span`.
     """
 
     def __init__(
@@ -308,14 +277,9 @@ class Client:
                 )
 
     def _release_given_up(self, mix: CallMix, request: Any, query_id: str, deadline: float) -> None:
-        """Release the id of a call that gave up during an outage, in case it was taken.
+        """Release the id of a call that gave up during an outage, in case the provider took it.
 
-        A call in flight when its provider died may or may not have been recorded by it;
-        the client gave up on it, so nobody would release it. Calling again with the same
-        id is idempotent (the provider answers from its restored catalog, or loads), and
-        the unload that follows releases it either way. (`Supervisor.call_with_retry`
-        abandons such ids itself; this workload retries on its own, to also retry at once
-        through cut connections.)
+        Calling again with the same id is idempotent, and the unload that follows releases it.
         """
         call = functools.partial(self.registrar.call, mix.manager, mix.server, request)
         with contextlib.suppress(rr.RrError):
@@ -379,17 +343,11 @@ class Client:
         # Statuses that came after the end: nothing more to do than unload at stop().
 
     def _catch_up(self) -> bool:
-        """Handle the statuses heard, then unload the holds that ran out.
+        """Handle the statuses heard, then unload the holds that ran out; False once `stop` was
+        asked.
 
-        While a call blocks (a retry through a restart, a slow load), a `FATAL` may come
-        for a resource whose hold runs out, or ran out already, before the call returns:
-        the client still holds it (it has not released it; the provider still counts it
-        among the consumers, and a shared resource stays loaded for it), so the status is
-        acted on first: released and loaded again, a recovery. Only a hold the client
-        released before the status came finds nothing held (nothing to recover).
-
-        Returns:
-            False once `stop` was asked for (the statuses still queued are left).
+        A `FATAL` heard while a call blocked is acted on even if the hold ran out meanwhile: the
+        client has not released it, so the provider still counts it among the consumers.
         """
         while True:
             try:
@@ -419,8 +377,7 @@ class Client:
         """A request of `mix` with a shared or a unique key.
 
         Raises:
-            ConfigError: the factory (or the template) raised; the message names the
-                call of the plan, the key and the cause.
+            ConfigError: the factory (or template) raised; names the call, the key and the cause.
         """
         if self.rng.random() < mix.shared:
             key = f"shared-{self.rng.randrange(mix.keys)}"
@@ -470,11 +427,8 @@ class Client:
             self._fetch(mix)
 
     def _fetch(self, mix: CallMix) -> None:
-        """Ask `mix`'s provider for the ids this client holds at its server (`fetch_every`).
-
-        The answer is not used: its registrar's `QueriesFetched` is what the check reads.
-        A failure (the provider down, a cut connection) is left: the next fetch comes.
-        """
+        """Ask `mix`'s provider for the ids this client holds there (only its `QueriesFetched`
+        counts)."""
         with contextlib.suppress(rr.RrError), self._step("fetch", mix):
             self.registrar.fetch_queries(mix.manager, mix.server, timeout=self.workload.timeout)
 
@@ -488,15 +442,10 @@ class Client:
             self._by_id[query.id] = held
 
     def _await_calls(self) -> CallMix:
-        """`awaited` calls at once, awaited on this client's loop; cancel a share of them.
+        """`awaited` calls at once on this client's loop, a share cancelled; the last one's kind.
 
-        Each call's kind, request, whether it is cancelled and when are drawn from the
-        client's generator before any is sent (the same seed, the same calls). A call
-        cancelled before its answer is withdrawn (its id given back: rule 17) and not
-        recorded; the others are recorded and held as a blocking call's are.
-
-        Returns:
-            The kind of the last call of the batch.
+        Every draw is made before any call is sent (the same seed, the same calls); a cancelled
+        call is withdrawn (rule 17) and not recorded.
         """
         work = self.workload
         batch = []
@@ -676,14 +625,10 @@ class Client:
             self._release_later.append((manager, query_id))
 
     def _reload(self, held: _Held) -> rr.Query | None:
-        """Load a failed resource again, until the answer is not the dead one.
+        """Load a failed resource again until the answer is not the dead one (bounded by `timeout`).
 
-        Equal requests mean the same resource: while another consumer still holds the dead
-        one (it heard the same `FATAL` and has not released it yet), a reload gets the dead
-        one back. Release it again and retry after a pause, until every holder let go and
-        the provider loads a new one (bounded by the workload's `timeout`). A reload that
-        failed (its provider busy loading the new one, on a loaded machine) is tried again
-        the same way.
+        While another consumer still holds the dead one, an equal request gets it back: release
+        it and retry after a pause.
         """
         deadline = runtime.monotonic() + self.workload.timeout
         pause = _RETRY_PAUSE

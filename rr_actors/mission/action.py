@@ -13,13 +13,9 @@
                    ─► _unload_all: Robot.stop(), Loads.unload_all(), Loads.catalogs()
                 ─► kill_left_behind (faults.py) ─► build_report (report.py)
 
-The collaborators share no fields: each is handed the others it calls. A Ctrl-C
-(`KeyboardInterrupt` in the mission's thread) anywhere on the way is told to
-`on_interrupt` at once; the same cleanup runs, then `MissionInterruptedError` is raised.
-
-Every call to a manager goes through `Trees.call_with_retry` or
-`retry_through_restarts`, so a manager that was restarted for any reason (a fault, or a
-kill by hand) is waited for, not taken as a failure of the mission.
+The collaborators share no fields: each is handed the others it calls. A Ctrl-C runs the
+same cleanup, then raises `MissionInterruptedError`. Every call to a manager waits out its
+restarts (`Trees.call_with_retry`, `retry_through_restarts`), whatever restarted it.
 """
 
 from __future__ import annotations
@@ -65,32 +61,26 @@ class Mission:
 
     Args:
         config: what to do.
-        out: directory for the topics (`bus/`) and the managers' catalogs (`state/`);
-            those two are emptied at the start.
+        out: directory for the topics (`bus/`) and the managers' catalogs (`state/`), both
+            emptied at the start.
         say: called with each line of the story (from the mission's and other threads).
         progress: called with where the mission is, about every `TICK` seconds.
-        on_supervisor: called with the managers' supervisor before it starts (to open
-            its observer: `rr-actors demo --observe`); what it raises fails the run.
-        before_fault: called on the mission's thread before each fault, with the fault
-            and the processes it involves (one line each), while the robot waits
-            (`rr-actors demo --step`); the fault is injected when it returns.
-        on_interrupt: called on the mission's thread with the mission time (seconds)
-            of a Ctrl-C, before the mission unloads everything (`rr-actors demo` then
-            says so); once, however many Ctrl-Cs follow.
-        link: with `config.hosts == 2`: the two hosts' namespaces (this process runs in
-            the station's); the robot's managers start in a process in the robot's.
-        robot_observer: with `link`: the robot's host shares its tree with the
-            station's observer page (`on_supervisor` opens that page).
-        step_span: called on the mission's thread with the name of each step of the
-            mission (`"mission step load robot"`, `"... load lidar1"`, `"... drive"`,
-            `"... unload"`), the context the step runs in (`rr-actors demo --trace`: a
-            new trace, `otel.root_span`); with it, the robot's host (two hosts) makes
-            spans of its tree too (`otel.Exporting`, by the `OTEL_*` variables).
+        on_supervisor: called with the managers' supervisor before it starts (to open its
+            observer); what it raises fails the run.
+        before_fault: called on the mission's thread before each fault, with the fault and
+            the processes it involves, while the robot waits; the fault follows its return.
+        on_interrupt: called once on the mission's thread with the mission time (seconds) of
+            a Ctrl-C, before the mission unloads everything.
+        link: with `config.hosts == 2`: the two hosts' namespaces (this process runs in the
+            station's; the robot's managers start in a process in the robot's).
+        robot_observer: with `link`: the robot's host shares its tree with the station's page.
+        step_span: called on the mission's thread with each step's name (`"mission step load
+            robot"`, `"... drive"`, ...), the context it runs in (`otel.root_span` for
+            `--trace`; the robot's host then makes spans of its tree too).
 
     Attributes:
         supervisor: the managers' supervisor while the mission runs, else `None`.
-        clock: the mission clock (since the mission started, without `--step`'s pauses)
-            of the story's stamps, the progress line and the report.
+        clock: the mission clock (of the story's stamps, the progress line and the report).
     """
 
     def __init__(

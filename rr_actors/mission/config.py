@@ -75,15 +75,14 @@ class MissionError(rr.RrError):
 class MissionInterruptedError(KeyboardInterrupt):
     """Ctrl-C (SIGINT) ended the mission; everything was unloaded and stopped all the same.
 
-    It is a `KeyboardInterrupt`, not an `RrError` (as `ExperimentInterruptedError`): the
-    user stopped it, nothing failed, and an `except RrError` (or `except Exception`)
-    around `run_mission` must not swallow a Ctrl-C. No report was written.
+    A `KeyboardInterrupt`, not an `RrError` (as `ExperimentInterruptedError`): an `except
+    Exception` around `run_mission` must not swallow it. No report was written.
 
     Attributes:
         at_s: the mission time (seconds, `--step`'s pauses left out) of the Ctrl-C.
         failed_unloads: how many of the mission's unloads failed while it cleaned up.
-        leaked: pids of the mission's programs that were still alive after the
-            managers stopped (they were killed).
+        leaked: pids of the mission's programs still alive after the managers stopped
+            (killed).
     """
 
     def __init__(self, at_s: float, failed_unloads: int, leaked: list[int]) -> None:
@@ -126,12 +125,10 @@ class MissionConfig:
         cmd_timeout: seconds after which the driver's watchdog treats a command as stale.
         recovery_timeout: seconds a fault may take to be recovered before the mission fails.
         call_timeout: timeout of the mission's calls, in seconds.
-        hosts: 1 (every manager under one supervisor) or 2 (the robot's and the
-            station's, in two network namespaces: `rr-actors demo --hosts 2`, as root).
-        cut_s: F6: seconds the link between the hosts stays down; longer than `lease`
-            (a shorter cut is not seen).
-        lease: with `hosts=2`: seconds after which a silent host counts as gone (3 s:
-            "a few seconds over Wi-Fi", and a loaded machine's hosts stay linked).
+        hosts: 1 (one supervisor) or 2 (the robot's and the station's, in two network
+            namespaces: `rr-actors demo --hosts 2`, as root).
+        cut_s: F6: seconds the link between the hosts stays down (longer than `lease`).
+        lease: with `hosts=2`: seconds after which a silent host counts as gone.
 
     Raises:
         ConfigError: a field is invalid; the message names it.

@@ -41,9 +41,8 @@ class Drive:
         step: the pauses before the faults (`--step`), or `None`.
         clock: the mission clock (of the progress line).
         progress: called with where the mission is, about every `TICK` seconds.
-        arrived: called once on the mission's thread with the arrival time (a
-            `time.monotonic()` value) as soon as the robot is seen at the goal, before
-            `run` waits out a fault still recovering (its story comes after).
+        arrived: called once on the mission's thread with the arrival time (monotonic) as
+            soon as the robot is seen at the goal.
     """
 
     def __init__(

@@ -14,11 +14,8 @@
     RobotHost ──robot_saw()──► F6: when the robot's host saw the station go, and come back
     Mission (at the end) ──kill_left_behind(bus)──► programs still alive, SIGKILLed
 
-The times come from the supervisor's event stream (`Supervisor.subscribe`): when it saw a
-manager exit, and how long the restart took. Every wait for a restart names the restart
-count it waits for, counted from the count before the kill, so a manager that was also
-killed by hand (before, or while the mission waits) cannot make a wait return early or
-miss its restart.
+Times come from the supervisor's events. Every wait for a restart names the restart count
+it waits for, so a kill by hand cannot make it return early or miss its restart.
 """
 
 from __future__ import annotations
@@ -119,12 +116,9 @@ def retry_through_restarts(
 ) -> T:
     """Run `action`; if manager `name` was down or died meanwhile, wait for its restart, retry.
 
-    After an unavailable error it waits for the next restart only if the tree says
-    `name` was killed since it was asked (`restart_after_failure`); else for the one
-    that ran then (at once, or once the station sees it served), and tries again (once
-    per restart count: then the next restart). `name` down when asked is waited for
-    until it runs with the restarts it had counted, not one more (its nested
-    supervisor's restart counts it before the tree shows it running).
+    After an unavailable error it waits for the next restart only if `name` was killed since
+    (`restart_after_failure`), else for the one under way; once per restart count. `name`
+    down when asked is waited for until it runs with the restarts it had counted.
 
     Args:
         sup: the supervisor of `name` (or the mission's `Trees`).

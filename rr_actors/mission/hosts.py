@@ -13,17 +13,11 @@ station's side of starting both hosts.
                                    not cut it)              flush_events on its Supervisor
            say() ◄── "robot: ..." story lines, ChildExited / ChildRestarted events ──┘
 
-`Trees` answers the few questions the mission asks of the managers' supervisors
-(`child`, `wait_restarted`, `run_in`, `subscribe`, `flush_events`, `call_with_retry`)
-whichever host a manager is on: on one host it is one `Supervisor`; across two the
-robot's managers answer through `RobotHost`, the station's handle on the robot's host.
-That socket pair is the teacher's hand on the robot, not the robot's network: the
-registrars' traffic crosses the veth, over Zenoh with mutual TLS, and only it is cut.
-
-The robot's host watches the station: when the station's `mission` registrar is gone
-from its view (a cut link is seen when the `lease` runs out), it stops the robot
-itself (the goal paused) and says so; the mission drives on once it loaded the robot
-again after the heal.
+`Trees` answers the mission's few questions of the managers' supervisors whichever host a
+manager is on. The socket pair is the teacher's hand on the robot: only the registrars'
+Zenoh traffic crosses the veth, and only it is cut. When the station's `mission`
+registrar is gone from the robot's view (after the `lease`), the robot's host stops the
+robot itself; the mission drives on once it loaded the robot again after the heal.
 """
 
 from __future__ import annotations
@@ -188,13 +182,8 @@ class Trees:
         on_status: rr.StatusCallback,
         timeout: float,
     ) -> rr.Query:
-        """`app.call(...)`, waiting out a restart of `provider` (as `Supervisor.call_with_retry`).
-
-        Every attempt uses one query id, so a provider that answered before it died
-        recognises the retry from its restored catalog. After an unavailable error it
-        waits for the next restart only if `provider` was killed since the attempt
-        began (`retry.restart_after_failure`), else for the one that ran then (once per
-        restart count).
+        """`app.call(...)`, waiting out a restart of `provider` (as `Supervisor.call_with_retry`,
+        one query id for every attempt).
 
         Raises:
             RegistrarUnavailableError, CallTimeoutError: as `Supervisor.call_with_retry`.
@@ -231,13 +220,8 @@ class Trees:
 
 @dataclasses.dataclass(frozen=True)
 class RobotObserver:
-    """The robot's host shares its tree with the station's observer page
-    (`rr-actors demo --hosts 2 --observe`).
-
-    The robot's supervisor opens its observer across hosts (`sup.observe()`): its tree,
-    catalogs and links reach the station's page over Zenoh. The page that observer also
-    serves is on the robot's own loopback, which no browser reaches: the station's page
-    shows both hosts.
+    """The robot's host shares its tree with the station's observer page (`--hosts 2 --observe`):
+    its own page is on the robot's loopback, which no browser reaches.
 
     Attributes:
         allow_faults: the station's page may kill, hang and FATAL the robot's managers
@@ -258,14 +242,11 @@ class RobotSettings:
         connect: the station's.
         lease: seconds after which a silent peer counts as gone.
         state: the robot's managers' state directory.
-        bus: the programs' topics (the robot's host pauses the goal when it loses the
-            station).
+        bus: the programs' topics (the robot's host pauses the goal when it loses the station).
         isolation: the managers' isolation.
         log: the file the robot's host's WARNINGs and ERRORs go to.
-        observer: share the robot's tree with the station's observer page (`None`: no
-            observer on the robot).
-        trace: make spans of the robot's tree there (`otel.Exporting`: the `OTEL_*`
-            variables, which it inherits; `rr-actors demo --hosts 2 --trace`).
+        observer: share the robot's tree with the station's observer page (`None`: no).
+        trace: make spans of the robot's tree there (`otel.Exporting`, inherited `OTEL_*`).
     """
 
     system: str
@@ -294,15 +275,10 @@ class _Subscription:
 class RobotHost:
     """The station's handle on the robot's host process (see the module docstring).
 
-    Make it with `RobotHost.start`; `close()` stops the robot's managers and the process.
-    Its methods may be called from any thread.
-
-    A restart's news and the restarted registrar reach the station by two ways: the news
-    over the socket pair, the registrar's token over the network (the station's presence
-    thread applies it, late under load). With the station's `network`, `wait_restarted`
-    returns only once the station sees the manager served too: else a call right after it
-    finds nobody serving the name (`RegistrarUnavailableError`), as if it had died again
-    (CI, load 25: F5 waited for a second restart of rm that never came).
+    Make it with `RobotHost.start`; `close()` stops the robot's managers and the process. Its
+    methods may be called from any thread. With the station's `network`, `wait_restarted`
+    returns only once the station sees the manager served too (its token comes over the
+    network, the news over the socket pair: a call in between would find nobody).
 
     Attributes:
         pid: the robot's host process.
@@ -345,12 +321,10 @@ class RobotHost:
         """Start the robot's host (`prefix` puts it in the robot's namespace) and its managers.
 
         Args:
-            prefix: the command that runs a program on the robot's host
-                (`ip netns exec <namespace>`).
+            prefix: the command that runs a program on the robot's host (`ip netns exec <ns>`).
             settings: what it starts.
             say: receives its story lines (on this handle's reader thread).
-            network: the station's (`wait_restarted` waits until it sees the manager
-                served), or `None`.
+            network: the station's (`wait_restarted` waits until it sees the manager served).
 
         Raises:
             MissionError: it did not start (its error, or its output, is in the message).
@@ -551,13 +525,8 @@ def managers_tree(
     network: rr.ZenohNetwork | None,
     name: str | None,
 ) -> rr.Supervisor:
-    """A host's supervisor of the managers `names` (not started): one for one, permanent.
-
-    Where this process's rr_actors WARNINGs go to a file (the run's log: `rr-actors
-    demo`'s, the robot host's), its manager processes' go too, not to the terminal:
-    a loss that a fault causes on purpose (F6: `registrar cm: erm is gone and nobody will
-    restart it`) is the story's to tell.
-    """
+    """A host's supervisor of the managers `names` (not started): one for one, permanent; its
+    manager processes log where this process does (the story tells deliberate losses)."""
     setups = managers.setups()
     log = _this_process_log()
     specs = [
@@ -594,9 +563,8 @@ def open_two_hosts(
     stack: contextlib.ExitStack,
     trace: bool = False,
 ) -> tuple[rr.ZenohNetwork, RobotHost]:
-    """The station's side: start the robot's host (erm, rm), open the station's network.
-
-    Both are closed by `stack` (the robot's host first, then the network).
+    """The station's side: start the robot's host (erm, rm), open the station's network; both
+    closed by `stack` (the robot's host first).
 
     Args:
         link: the two hosts' namespaces (this process runs in the station's).

@@ -57,9 +57,8 @@ def _catalog_size(registrar: rr.ResourceRegistrar) -> int:
 class Loads:
     """The queries the mission holds, loaded from the managers and unloaded at the end.
 
-    Every call waits out a restart of the manager it talks to (`Trees.call_with_retry`,
-    `retry_through_restarts`), but `robot_once` and `unload_now`, which F6 wants to fail
-    fast. Runs on the mission's thread; the status callbacks only queue.
+    Every call waits out a restart of its manager but `robot_once` and `unload_now` (F6 wants
+    them to fail fast). Runs on the mission's thread; the status callbacks only queue.
 
     Args:
         config: the mission (its timeouts, the programs' rates, the seed).

@@ -3,18 +3,16 @@
 - [`erm_setup`][rr_actors.mission.managers.erm_setup]: the *external resource manager*.
   Its server `program` starts one of the robot's programs as an OS process per distinct
   request, watches it through a pidfd and sends `FATAL` to every consumer when it dies.
-  After a restart it re-adopts the processes its restored catalog names, checking pid
-  *and* creation time so that a reused pid cannot fool it.
-- [`cm_setup`][rr_actors.mission.managers.cm_setup]: the *component manager*. Its server
-  `lidar` builds a LiDAR component from an ERM process (a dependency of the component).
-- [`rm_setup`][rr_actors.mission.managers.rm_setup]: the *robot manager*. Its server
-  `robot` loads the robot: a motor driver and a navigation process from the ERM. When
-  the driver dies, the robot manager restarts it itself and sends `UPDATE` to the
-  robot's consumers.
+  After a restart it re-adopts the processes its restored catalog names (pid *and*
+  creation time checked: a reused pid cannot fool it).
+- [`cm_setup`][rr_actors.mission.managers.cm_setup]: the *component manager*: its server
+  `lidar` builds a LiDAR component from an ERM process (a dependency).
+- [`rm_setup`][rr_actors.mission.managers.rm_setup]: the *robot manager*: its server
+  `robot` loads a motor driver and a navigation process from the ERM; when the driver
+  dies, it restarts it itself and sends `UPDATE` to the robot's consumers.
 
-Each runs unchanged in a thread of the caller's process or in a manager process of its
-own under a [`Supervisor`][rr_actors.Supervisor]; they keep no state that the registrar's
-catalog does not also hold, so a restarted manager picks up where the killed one was.
+Each runs unchanged in a thread or in a manager process of its own; they keep no state
+the catalog does not hold, so a restarted manager picks up where the killed one was.
 """
 
 from __future__ import annotations
@@ -110,13 +108,8 @@ class _Watched:
 
 
 class ProcessTable:
-    """The ERM's running programs: start, watch, stop and re-adopt them.
-
-    Each program is watched by a thread blocked in `select` on the program's pidfd, so an
-    exit is seen at once (no polling), and for re-adopted processes too, which are not
-    this process's children. Signals go through the pidfd (`pidfd_send_signal`), which
-    always means the process that was started, never a later one that reused its pid.
-    """
+    """The ERM's running programs: start, watch (a thread in `select` on each pidfd, re-adopted
+    ones too), stop and re-adopt them; signals go through the pidfd, never a reused pid."""
 
     def __init__(self, registrar: rr.ResourceRegistrar, server: str = PROGRAM_SERVER) -> None:
         self.registrar = registrar

@@ -6,12 +6,8 @@
     F6, the WiFi cut ───► ip link set rr0 down (both ends): packets vanish, no FIN is sent;
                           ip link set rr0 up: Zenoh dials again by itself
 
-This is the one Linux-specific part of the demo across hosts, and it shells out to
-iproute2's `ip` (`ip netns` needs root). The veth pair is made inside the two
-namespaces, so nothing appears in the machine's own namespace. Namespace names carry
-the demo's pid: a demo killed before its cleanup leaves namespaces whose pid is dead,
-and the next demo deletes them (`sweep_stale`). Processes left inside are SIGKILLed
-before a namespace is deleted.
+It shells out to iproute2's `ip` (root). Namespace names carry the demo's pid, so the
+next demo deletes those a killed one left (`sweep_stale`), SIGKILLing what is inside.
 """
 
 from __future__ import annotations
@@ -113,11 +109,8 @@ def sweep_stale() -> list[str]:
 
 
 class TwoHosts:
-    """The station's and the robot's network namespaces, joined by a veth pair.
-
-    `TwoHosts.make()` creates them (in the demo's first process); the mission's process,
-    started inside the station's namespace, takes them by name (`TwoHosts(...)`) to cut
-    and heal the link.
+    """The station's and the robot's network namespaces, joined by a veth pair (`make()` creates
+    them; the mission's process takes them by name to cut and heal the link).
 
     Args:
         station: the station's namespace.

@@ -1,22 +1,14 @@
 """What `rr-actors demo` shows: the story as it happens, a live progress line, the timeline.
 
 Two renderers with one interface (`MissionOutput`), chosen once by `make_output`:
+`RichOutput` on a terminal with `rich` (`pip install 'rr-actors[demo]'`): the story
+scrolls above a live progress line never wider than the terminal, other processes'
+standard error goes above it too (`stderr.StderrLines`), then the timeline fits the
+terminal; `PlainOutput` elsewhere: lines wrapped at words to 80 columns, no progress line.
 
-- `RichOutput` on a terminal, when `rich` is installed (`pip install 'rr-actors[demo]'`):
-  the story scrolls above a live progress line that `rich` redraws in place (never wider
-  than the terminal, so nothing wraps or stays behind), then the timeline as a table
-  that fits the terminal's width. What any process of the demo writes to standard error
-  meanwhile (the same terminal) goes above the live line too, wrapped at words
-  (`stderr.StderrLines`), not on from its end;
-- `PlainOutput` everywhere else (a pipe, a file, no `rich`): plain lines wrapped at
-  words to 80 columns (a story line under its text), no progress line, and a timeline
-  that fits 80 columns.
-
-`--quiet` keeps the timeline and the report's paths and drops the story and the
-progress line, in both. `--step` uses the same renderers: while it waits for Enter
-(`hold`), the progress line is taken down so the prompt and the typing show. After a
-Ctrl-C (`interrupt`) both show one line, `interrupted at 8.0 s: unloading...`, which
-`end_interrupt` ends once the mission has cleaned up; the story is dropped meanwhile.
+`--quiet` keeps only the timeline and the report's paths. While `--step` waits for Enter
+(`hold`), the progress line is taken down. After a Ctrl-C (`interrupt`) both show
+`interrupted at 8.0 s: unloading...`, ended by `end_interrupt`; the story is dropped.
 """
 
 from __future__ import annotations

@@ -6,17 +6,9 @@
     │ stops shaded; a box where the zoom looks       │ │ was heard and recovered   │
     └────────────────────────────────────────────────┘ └───────────────────────────┘
 
-Across two hosts (`demo --hosts 2`) each fault's marker names where it struck, as the
-timeline does (`F4 station`, `F6 both`), and F6's cut link is hatched from the cut until
-the link was up again.
-
-The thesis's run is redrawn from the figures its section 6.2 gives for figure 6.5 (32 s
-without faults, 43 s with them; stopped 3 s at F1 and 5 s at F2, not at F3-F5) over this
-run's path: the same distance, its stops where this demo injects F1 and F2 by default,
-driving at the constant speed that makes 43 s. Its exact path and speed profile are not
-in the thesis's text, so that curve is labelled as redrawn. The x axis is the mission
-clock of the story and the timeline (`MissionClock`); the thesis's run starts when this
-one's drive did.
+Across two hosts each fault's marker names where it struck (`F4 station`), and F6's cut
+is hatched. The thesis's run is redrawn from section 6.2's figures (43 s with faults,
+stopped 3 s at F1 and 5 s at F2) over this run's path, so it is labelled as redrawn.
 
 Needs matplotlib (`pip install 'rr-actors[demo]'`); importing this module without it
 raises `ImportError`, which `run_mission` takes as "no plot".
@@ -51,17 +43,9 @@ STOPPED = "tab:red"
 
 
 def thesis_trace(distance_m: float, start_s: float = 0.0) -> list[tuple[float, float]]:
-    """The thesis's run (section 6.2, figure 6.5) as `(t, x)` corners over a path.
-
-    Args:
-        distance_m: the path's length (this run's).
-        start_s: when its drive starts.
-
-    Returns:
-        The corners of the piecewise-linear curve: it drives at the speed that makes the
-        thesis's 43 s and stands still for its stops (3 s at F1, 5 s at F2), placed where
-        the demo injects those faults by default.
-    """
+    """The thesis's run (section 6.2, figure 6.5) as the `(t, x)` corners of a piecewise-linear
+    curve over `distance_m` from `start_s`: the speed that makes 43 s, and its stops (3 s at
+    F1, 5 s at F2) where the demo injects those faults by default."""
     total = THESIS["mission_time_s"]["with_faults"]
     stops = {
         f: seconds for f, seconds in THESIS["robot_stopped_s"].items() if seconds > 0

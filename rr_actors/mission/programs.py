@@ -1,25 +1,18 @@
 """The robot's programs: a LiDAR, a motor driver and a navigation node, as real processes.
 
 The external resource manager starts these with `python programs.py <program> ...` (the
-file runs as a script and imports only the standard library, so a program is up in tens
-of milliseconds). They talk over *topics*: small JSON files in a bus directory, each
-replaced atomically (`os.replace`) on every publish, as a ROS topic would carry them:
+standard library only: up in tens of milliseconds). They talk over *topics*: small JSON
+files in a bus directory, each replaced atomically (`os.replace`) on every publish:
 
 - `lidar` publishes `scan.json` (`{"lidar", "seq", "t", "ranges"}`) at `--rate` Hz.
 - `navigation` reads `scan.json`, `odom.json` and the mission's `goal.json`, and publishes
   `cmd_vel.json`: the goal speed while the goal is ahead, not paused and the latest scan
   is fresh and clear; 0 otherwise (a robot without a working LiDAR must not drive).
 - `driver` reads `cmd_vel.json` and integrates it into odometry: it publishes `odom.json`
-  and appends every sample to `odom.jsonl` (the mission's record of the run). A stale
-  command (older than `--cmd-timeout`) means 0 (a watchdog, as motor drivers have).
+  and appends every sample to `odom.jsonl`. A command older than `--cmd-timeout` means 0.
 
-Killing a program really stops its data: no scans means navigation commands 0; no driver
-means no motion. Every program writes `pids/<pid>.json` (pid and creation time) when it
-starts, so the mission can prove afterwards that none is left, and exits when the process
-given by `--watch-pid` (the mission) dies, so none outlives a killed mission either.
-
-Times are `time.monotonic()` seconds: CLOCK_MONOTONIC is system-wide on Linux, so the
-mission compares them with its own.
+Every program writes `pids/<pid>.json` (pid and creation time) when it starts, and exits
+when the process `--watch-pid` dies. Times are `time.monotonic()` seconds (system-wide).
 """
 
 from __future__ import annotations

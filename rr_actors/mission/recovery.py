@@ -114,12 +114,9 @@ class Recovery:
     def ride_out_cut(self, record: FaultRecord) -> None:
         """F6 on the station: the link is cut; fail fast, wait for the heal, load again.
 
-        The station heard `FATAL` for the robot (its provider `rm` is on the far side:
-        lost, rule 19) and for the LiDAR (`cm` lost the ERM's program it depends on), and
-        forgot the robot's id. The robot's host stopped the robot itself. Each call made
-        during the cut fails at once (`RegistrarUnavailableError`), not at its timeout;
-        once the link is back the mission loads the robot and the LiDAR again, and the
-        reconciliation releases, at the robot, the ids the station forgot (rule 20).
+        The station heard `FATAL` for the robot (`rm` lost, rule 19) and the LiDAR, and forgot
+        the robot's id; calls fail at once during the cut. Once the link is back the mission
+        loads both again, and the reconcile releases the forgotten ids at the robot (rule 20).
 
         Raises:
             MissionError: the robot was not back within `recovery_timeout`.

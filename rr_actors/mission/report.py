@@ -5,12 +5,10 @@
     UnplannedRestart (restarts no fault made) ┘                          │
                                                                          └─► timeline_rows()
 
-Every time is `time.monotonic()` (system-wide on Linux, so the programs' timestamps in
-`odom.jsonl` compare with the mission's) until the report, which counts on the *mission
-clock* (`MissionClock`): seconds since the mission started, without the pauses for Enter
-of `rr-actors demo --step`. The story's stamps, the timeline, the plot and the observer's
-page share that clock. The *mission time* (`MissionReport.mission_time_s`) is a duration
-on it: the drive's, from its start to the goal, as the thesis counts it.
+Times are `time.monotonic()` (system-wide on Linux, as the programs' `odom.jsonl`) until
+the report, which counts on the *mission clock* (`MissionClock`: seconds since the start,
+without `--step`'s pauses). The *mission time* (`MissionReport.mission_time_s`) is the
+drive's duration on it, as the thesis counts it.
 """
 
 from __future__ import annotations
@@ -50,14 +48,8 @@ MOVING_GAP = 0.5
 
 
 class MissionClock:
-    """Mission time: seconds since `start`, without the pauses (`--step`'s waits for Enter).
-
-    Times of day are `time.monotonic()` seconds. A time inside a pause reads as the
-    pause's start, so a pause takes no mission time and a stop during it lasts nothing.
-
-    Args:
-        start: when the mission started (monotonic seconds).
-    """
+    """Mission time: seconds since `start` (monotonic seconds), without `--step`'s pauses; a time
+    inside a pause reads as the pause's start."""
 
     def __init__(self, start: float) -> None:
         self.start = start
@@ -89,14 +81,11 @@ class FaultResult:
     Attributes:
         id: `"F1"` ... `"F5"`.
         what: a short description.
-        injected_at_s: when the SIGKILL was sent (mission time: since the mission started,
-            without `--step`'s pauses).
-        detected_after_s: from injection until the fault was seen (F1, F2: the mission
-            heard `FATAL`; F3-F5: the manager's death was seen from its pidfd, the event
-            the supervisor's process sentinel reports).
-        recovered_after_s: from injection until it was recovered (F1: LiDAR 2 serving and
-            the robot released; F2: the robot manager's `UPDATE`; F3-F5: the restarted
-            manager answered from its restored catalog).
+        injected_at_s: when the SIGKILL was sent (mission time).
+        detected_after_s: from injection until the fault was seen (F1, F2: `FATAL` heard;
+            F3-F5: the manager's death seen from its pidfd).
+        recovered_after_s: from injection until it was recovered (F1: LiDAR 2 serving;
+            F2: the robot manager's `UPDATE`; F3-F5: the restarted manager answered).
         robot_stopped_s: how long the robot stood still because of it (from odometry).
         note: what the recovery found (e.g. what the restarted ERM re-adopted).
         host: where it struck (`"robot"`, `"station"`, `"both"` for F6; one host: "").
@@ -116,16 +105,14 @@ class FaultResult:
 
 @dataclasses.dataclass(frozen=True)
 class UnplannedRestart:
-    """A manager exit that no injected fault caused (it was killed by hand, say).
-
-    Its times come from the supervisor's events (`ChildExited`, `ChildRestarted`).
+    """A manager exit that no injected fault caused (killed by hand, say), from the
+    supervisor's `ChildExited` and `ChildRestarted`.
 
     Attributes:
         manager: the manager's name.
         seen_at_s: when the supervisor saw it exit (mission time).
         pid: the process that exited.
-        restarted_after_s: how long its restart took (`ChildRestarted.restart_s`), or
-            `None` if it had not come back by the end.
+        restarted_after_s: how long its restart took, or `None` if it had not come back.
     """
 
     manager: str
@@ -153,32 +140,25 @@ class UnplannedExit:
 
 @dataclasses.dataclass(frozen=True)
 class MissionReport:
-    """The outcome of a mission (written as `report.json`).
-
-    Every time (`injected_at_s`, `trace`, `stops`, ...) is mission time: seconds since
-    the mission started (as the story's stamps), without `--step`'s pauses for Enter.
+    """The outcome of a mission (written as `report.json`); every time is mission time.
 
     Attributes:
-        mission_time_s: the mission time, as the thesis counts it: from the start of the
-            drive until the goal was reached, seconds (without pauses). The terminal
-            prints it at the end; the story says it at the goal.
+        mission_time_s: from the start of the drive until the goal, seconds (as the thesis
+            counts it; printed at the end).
         distance_m: distance the odometry measured.
         nominal_time_s: distance over speed: the drive without any stop.
         faults: one result per injected fault.
         leaked_processes: mission programs still alive after everything was unloaded.
-        catalog_entries_left: catalog rows (resources and client records) left in all
-            registrars after everything was unloaded.
+        catalog_entries_left: catalog rows left in all registrars after the unloading.
         catalog_entries_by_registrar: the same, per registrar (-1: it could not be read).
-        trace: `(t, x)` odometry samples, mission time and metres.
-        stops: `(start, end)` of every interval the robot stood still, mission time.
+        trace: `(t, x)` odometry samples, seconds and metres.
+        stops: `(start, end)` of every interval the robot stood still.
         unplanned_restarts: manager restarts that no injected fault caused.
-        drive_started_s: when the drive started (mission time); the drive ended at
-            `drive_started_s + mission_time_s`.
-        pauses_s: when the mission paused for Enter (`--step`), mission time.
+        drive_started_s: when the drive started (it ended at `+ mission_time_s`).
+        pauses_s: when the mission paused for Enter (`--step`).
         paused_s: how long those pauses took together (left out of every time).
-        hosts: across two hosts (`hosts=2`), each host's figures: its managers, the
-            faults that struck it, its managers' restarts, and F6 as it saw it; empty
-            on one host.
+        hosts: across two hosts, each host's figures (managers, faults, restarts, F6 as it
+            saw it); empty on one host.
     """
 
     mission_time_s: float
@@ -297,12 +277,8 @@ HOST_SHORT_WHAT = {
 
 
 def timeline_rows(report: MissionReport) -> list[TimelineRow]:
-    """Turn what happened into the timeline's rows, in time order.
-
-    This is the one place that decides what the timeline shows: every injected fault,
-    and every manager exit that no fault caused, at the time the supervisor saw it, with
-    how long its restart took (the supervisor's `ChildExited` and `ChildRestarted`).
-    """
+    """Turn what happened into the timeline's rows, in time order: every injected fault and
+    every exit no fault caused (the one place that decides what the timeline shows)."""
     hosts = bool(report.hosts)  # two hosts: the label names where (and `what` is shorter)
     where = {m: h for h, figures in report.hosts.items() for m in figures["managers"]}
     rows = [
@@ -374,11 +350,8 @@ class Odometry:
                 self.samples.append((float(sample["t"]), float(sample["x"]), float(sample["v"])))
 
     def last_standing(self) -> float | None:
-        """When the robot was last seen standing (monotonic seconds), if it ever was.
-
-        That is the latest sample at which the distance had not grown since the one before;
-        the robot moved only after it.
-        """
+        """When the robot was last seen standing (monotonic seconds: distance not grown), if
+        ever."""
         for previous, sample in zip(self.samples[-2::-1], self.samples[:0:-1], strict=True):
             if sample[1] - previous[1] <= 1e-9:
                 return sample[0]
@@ -392,12 +365,8 @@ class Odometry:
         return None
 
     def stops(self, start: float, end: float) -> list[tuple[float, float]]:
-        """Intervals within `[start, end]` in which the distance did not grow (monotonic s).
-
-        Between two consecutive samples the robot stood still if the distance did not
-        grow. A driver that died publishes nothing, and its successor starts from the last
-        distance, so the time without a driver counts as standing still too.
-        """
+        """Intervals within `[start, end]` (monotonic s) in which the distance did not grow (time
+        without a driver counts as standing)."""
         stops: list[tuple[float, float]] = []
         previous: tuple[float, float] | None = None
         for t, x, _ in self.samples:

@@ -4,9 +4,6 @@
                                                            │ the navigation program drives to it
     Drive, Step ◄── odometry.read() ◄── bus/odom.jsonl ◄───┘ the motor driver appends each sample
 
-Both are topic files (`programs.publish`, `programs.read_topic`): the mission talks to
-the robot's programs only through them, whichever host those programs run on.
-
 `rr-actors demo --step` stops the robot before each fault, shows the class the pids,
 and drives on (`Step`):
 
@@ -15,8 +12,7 @@ and drives on (`Step`):
                      ─► robot stands? ─► robot.go() ─► robot moves?   (PAUSE_SETTLE s each)
         ─► clock.add_pause(stop order, last seen standing)  ─► Drive injects the fault
 
-The pause is left out of the mission clock: no stamp, timeline row or plot counts the
-time the class took to press Enter.
+The pause is left out of the mission clock.
 """
 
 from __future__ import annotations
@@ -99,13 +95,8 @@ class Step:
     def pause(self, fault: str, pids: Callable[[str], list[str]]) -> float:
         """Stop the robot, hand the fault to `before_fault`, drive on; the seconds it took.
 
-        The pause lasts from the stop order until the robot drives again: its coming to a
-        halt and its start after the Enter belong to the pause, not to the fault that
-        follows (which would otherwise count them as the robot standing still). It ends
-        at the last odometry sample that saw the robot standing (or at the go order, if
-        that came later), not when the odometry is next read: a stop that follows the
-        first move (a program starved of CPU on a loaded machine) is then the fault's,
-        never folded into the pause.
+        The pause runs from the stop order to the last odometry sample that saw the robot
+        standing (or the go order, if later): a stop after the first move is the fault's.
 
         Args:
             fault: the fault about to be injected.
@@ -128,11 +119,7 @@ class Step:
         return resumed - paused
 
     def _wait_until_moving(self, moving: bool) -> bool:
-        """Wait until the odometry says the robot moves (or stands), `PAUSE_SETTLE` s at most.
-
-        Returns:
-            Whether it did within that bound.
-        """
+        """Whether the odometry says the robot moves (or stands) within `PAUSE_SETTLE` s."""
         odometry = self._robot.odometry
         deadline = time.monotonic() + PAUSE_SETTLE
         while True:

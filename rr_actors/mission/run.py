@@ -13,14 +13,9 @@ drives a path while five faults hit it, each a real SIGKILL:
 | F5 | the robot manager | nothing: it restarts and restores its catalog |
 
 At the end everything is unloaded; the mission checks that no process is left and every
-catalog is empty, prints a timeline and writes `report.json` and `mission.png`.
-
-Run it with `rr-actors demo` (or `python -m rr_actors.mission`, or
-`python examples/jackal_mission.py`); `--help` lists the options. It needs Linux.
-
-The modules: `config` (what to do), `action` (the mission itself), `faults` (injecting
-them, following the restarts), `report` (timing, the report, the timeline's rows),
-`output` (what the terminal shows), this one (the entry points).
+catalog is empty, prints a timeline and writes `report.json` and `mission.png`. Run it
+with `rr-actors demo` (or `python -m rr_actors.mission`); `--help` lists the options. It
+needs Linux.
 """
 
 from __future__ import annotations
@@ -71,12 +66,8 @@ CLOCK_SLACK = 0.05
 """Seconds the page's mission clock may be off before it is set again (`--observe`)."""
 
 CLOCK_LABEL = "mission clock"
-"""What the page calls its clock: the story's stamps, not the mission time (`--observe`).
-
-The *mission time* the terminal prints at the end (`MissionReport.mission_time_s`) is a
-duration, the drive's (as the thesis counts it); the mission clock tells when, since the
-mission started. Calling both "mission time" showed two figures under one name.
-"""
+"""What the page calls its clock: the story's stamps, since the mission started (`--observe`);
+not the *mission time*, a duration (`MissionReport.mission_time_s`)."""
 
 __all__ = [
     "DEFAULT_OUT",
@@ -96,19 +87,15 @@ DEFAULT_OUT = "rr-actors-demo"
 
 
 def prepare_out(path: Path, *, what: str = "out") -> Path:
-    """Create the output directory if needed and check that files can be written in it.
+    """Create the output directory if needed and check that files can be written in it; `path`.
 
     Args:
         path: the output directory.
         what: how error messages name it (`"--out"` on the command line).
 
-    Returns:
-        `path`.
-
     Raises:
-        ConfigError: `path` is a file, or cannot be created or written to, or it holds a
-            `state/`, `bus/` or `certs/` that no mission wrote (the mission empties
-            them); the message names it and the cause.
+        ConfigError: `path` is a file, cannot be created or written to, or holds a `state/`,
+            `bus/` or `certs/` that no mission wrote; the message names it and the cause.
     """
     if path.exists() and not path.is_dir():
         raise rr.ConfigError(f"{what} {str(path)!r} is a file, not a directory")
@@ -124,10 +111,8 @@ def prepare_out(path: Path, *, what: str = "out") -> Path:
 
 
 def _check_not_others(path: Path, what: str) -> None:
-    """A mission empties `path/state` and `path/bus` (`Mission.run`), and on two hosts
-    replaces `path/certs` (`make_certs`): refuse a folder that holds one of them with files
-    in it and that no mission used (no `OUT_LOCK` in it), such as `--out ~` with the
-    user's own `~/state`, before anything is removed."""
+    """Refuse a folder whose `state`, `bus` or `certs` (which a mission empties) hold files no
+    mission wrote (no `OUT_LOCK`), such as `--out ~`, before anything is removed."""
     if (path / OUT_LOCK).exists():
         return  # a mission's folder: its state/, bus/ and certs/ are a mission's
     for sub in ("state", "bus", "certs"):
@@ -167,22 +152,19 @@ def run_mission(
         out: output directory (created if needed).
         say: receives each line of the story (from the mission's and other threads).
         progress: receives where the mission is, about 50 times a second while it drives.
-        on_supervisor: receives the managers' supervisor before it starts (for example,
-            to open its observer: `sup.observe()`, closed with the supervisor).
-        before_fault: called on the mission's thread before each fault with the fault
-            and the processes it involves (one line each), while the robot waits; the
-            fault is injected when it returns (`rr-actors demo --step`).
-        on_interrupt: called on the mission's thread with the mission time (seconds) of
-            a Ctrl-C, before the mission unloads everything and stops its managers.
-        link: with `config.hosts == 2`: the two hosts' namespaces, made by
-            `rr-actors demo --hosts 2` (which runs this in the station's namespace, with
-            the certificates in `out/certs`).
-        robot_observer: with `link`: the robot's host shares its tree with the
-            station's observer page, which `on_supervisor` opens (`rr-actors demo
-            --hosts 2 --observe`).
+        on_supervisor: receives the managers' supervisor before it starts (to open its
+            observer: `sup.observe()`).
+        before_fault: called on the mission's thread before each fault with the fault and
+            the processes it involves (one line each), while the robot waits; the fault is
+            injected when it returns (`rr-actors demo --step`).
+        on_interrupt: called on the mission's thread with the mission time (seconds) of a
+            Ctrl-C, before the mission unloads everything and stops its managers.
+        link: with `config.hosts == 2`: the two hosts' namespaces (`rr-actors demo --hosts 2`
+            runs this in the station's namespace, certificates in `out/certs`).
+        robot_observer: with `link`: the robot's host shares its tree with the station's
+            observer page, which `on_supervisor` opens.
         step_span: called on the mission's thread with each step's name (`"mission step
-            drive"`, ...), the context the step runs in (`rr-actors demo --trace`: each
-            step a trace of its own, `otel.root_span`).
+            drive"`, ...), the context the step runs in (`otel.root_span` for `--trace`).
 
     Returns:
         The report.
@@ -190,10 +172,10 @@ def run_mission(
     Raises:
         MissionError: the mission could not be completed (it still cleaned up), or this
             platform cannot run it (it needs Linux).
-        MissionInterruptedError: a Ctrl-C (`KeyboardInterrupt` in the thread that runs the
-            mission) ended it; it still cleaned up. No report is written.
-        ConfigError: `out` is a file, or cannot be created or written to, or another
-            mission is running there (`lock_out`).
+        MissionInterruptedError: a Ctrl-C (`KeyboardInterrupt` in the mission's thread)
+            ended it; it still cleaned up. No report is written.
+        ConfigError: `out` is a file, cannot be created or written to, or another mission
+            is running there (`lock_out`).
     """
     reason = unsupported_platform()
     if reason is not None:
@@ -228,14 +210,12 @@ OUT_LOCK = ".demo.lock"
 def lock_out(path: Path) -> Iterator[None]:
     """Hold an exclusive `flock` on `path/.demo.lock` (with this pid in it) meanwhile.
 
-    A mission empties its folder's `state/` and `bus/` before it starts, which would
-    pull them from under another mission running there (and around the supervisor's
-    lock on `state/`); so it takes this lock first. The kernel drops it when the file is
-    closed, at the end or when the process dies, however it dies.
+    A mission empties its folder's `state/` and `bus/`, which would pull them from under
+    another mission there; the kernel drops the lock however the process ends.
 
     Raises:
-        ConfigError: another mission holds the lock; the message names the folder, that
-            mission's pid and the way out (another `--out`).
+        ConfigError: another mission holds the lock (the message names its pid and the way
+            out: another `--out`).
     """
     import fcntl  # noqa: PLC0415 - POSIX only; the mission needs Linux (checked first)
 
@@ -395,10 +375,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         argv: the arguments without the program name (default: `sys.argv[1:]`).
 
     Returns:
-        0 when the mission completed, every fault was recovered and nothing was left
-        behind; 1 otherwise; 2 for a bad command line, an output directory that cannot
-        be written, or a platform other than Linux; 130 after a Ctrl-C (the mission
-        unloaded everything first, and said so in one line).
+        0 when the mission completed, every fault was recovered and nothing was left behind;
+        1 otherwise; 2 for a bad command line, an unusable output directory or a platform
+        other than Linux; 130 after a Ctrl-C (the mission unloaded everything first).
     """
     return run(parser().parse_args(argv))
 
@@ -409,15 +388,12 @@ def _error(message: str) -> None:
 
 
 def run(args: argparse.Namespace, stream: TextIO | None = None) -> int:  # noqa: PLR0911 - an exit code per outcome
-    """Run the mission the parsed command line `args` asks for; returns the exit code.
+    """Run the mission the parsed `args` ask for (see `add_arguments`); the exit code, as `main`'s.
 
     Args:
         args: parsed by a parser that `add_arguments` set up.
-        stream: where the story and the timeline go (default: standard output); errors
-            go to standard error.
-
-    Returns:
-        The exit code, as for `main`.
+        stream: where the story and the timeline go (default: standard output); errors go
+            to standard error.
     """
     stream = sys.stdout if stream is None else stream
     reason = unsupported_platform()
@@ -496,15 +472,10 @@ LOG = "rr-actors.log"
 
 @contextlib.contextmanager
 def _logging_to(path: Path) -> Iterator[None]:
-    """Send rr_actors' WARNING and ERROR lines to `path`, not the terminal, while it runs.
+    """Send rr_actors' WARNING and ERROR lines to `path` while it runs (manager processes too).
 
-    The mission kills managers and programs on purpose, and the story tells each: the
-    supervisor's WARNING for every one of them (`child erm exited: killed by SIGKILL`) would
-    only interleave with it. This stands in for rr_actors' own handler (`rr_actors._log`,
-    which prints them when nothing is configured), in the manager processes too
-    (`hosts.managers_tree`: they append to the same file); a program that configured
-    logging itself (a handler on the root or the `rr_actors` logger) keeps its own
-    configuration.
+    The supervisor's WARNING for each deliberate kill would interleave with the story; a
+    program that configured logging itself keeps its own configuration.
     """
     logger = logging.getLogger("rr_actors")
     if _log.configured():
@@ -526,12 +497,8 @@ INTERRUPTED = 128 + signal.SIGINT
 
 @contextlib.contextmanager
 def _one_interrupt(output: MissionOutput) -> Iterator[Callable[[float], None]]:
-    """The mission's `on_interrupt`: say so on `output`, and ignore further Ctrl-Cs.
-
-    The first Ctrl-C starts the line `interrupted at 8.0 s: unloading...`; a second one
-    would cut the unloading short (and leave processes for the mission to kill), so
-    SIGINT is ignored until the mission has cleaned up and this context ends.
-    """
+    """The mission's `on_interrupt`: say so on `output`, and ignore further Ctrl-Cs (a second one
+    would cut the unloading short)."""
     previous: list[Any] = []
 
     def on_interrupt(at_s: float) -> None:
@@ -740,12 +707,8 @@ def make_certs(directory: Path, link: TwoHosts) -> None:
 
 
 def _page_socket(port: int) -> socket.socket:
-    """`--hosts 2 --observe`: the observer's listening socket, on this machine's loopback.
-
-    It is bound here, in the machine's own network namespace, and the station's process
-    (in its namespace) inherits it and serves the page on it: a socket stays in the
-    namespace it was made in, so the user's browser reaches the page at
-    `http://127.0.0.1:<port>/`, while the station's loopback is its own.
+    """`--hosts 2 --observe`: the observer's listening socket, bound on this machine's loopback
+    and inherited by the station's process (a socket stays in the namespace it was made in).
 
     Raises:
         ConfigError: the observe extra is missing, or the port cannot be listened on.
@@ -763,13 +726,8 @@ def _page_socket(port: int) -> socket.socket:
 
 def _two_hosts(args: argparse.Namespace, out: Path, stream: TextIO) -> int:
     """`--hosts 2`: make the namespaces and certificates, run the station's process in its
-    namespace (it starts the robot's), then delete everything, however it ended.
-
-    The station's process tells the story on this terminal and handles a Ctrl-C (the
-    terminal sends it to both); this one waits for it, ignoring SIGINT meanwhile. With
-    `--observe`, the page's socket is bound here first (`_page_socket`) and handed to
-    the station's process.
-    """
+    namespace (it starts the robot's; it handles Ctrl-C, this one ignores SIGINT), then
+    delete everything, however it ended."""
     try:
         page = _page_socket(args.port) if args.observe else None
     except rr.ConfigError as exc:

@@ -10,20 +10,11 @@
                                                      as they come
 ```
 
-`rich` redraws its live line in place and leaves the cursor at the line's end. A line
-that another writer puts on the same terminal meanwhile (a manager process's WARNING
-before its `setup` sent its log to the run's file, Python's own warnings, a thread's
-traceback) runs on from there: on an 80-column terminal, one line of 80 columns plus its
-own (a loaded CI run of `rr-actors demo --step` showed one of 121). `rich` takes care of
-this for its own process's `sys.stderr` only (`redirect_stderr`); the other processes of
-the demo write to the file descriptor. So while the demo's output is open, fd 2 is a
-pipe, and every line written to it is shown by the output, which knows where the live
-line is.
-
-Only when fd 2 is the very terminal the output draws on (`open` returns `None`
-otherwise: a redirected stderr stays where the user sent it). After `close`, fd 2 is the
-terminal again; the processes started meanwhile still hold the pipe, so the reader goes
-on passing what they write to the terminal until the last of them has closed it.
+`rich` redraws its live line in place, so a line another process writes to the terminal
+meanwhile runs on from the cursor; `rich` only redirects its own process's `sys.stderr`.
+So while the output is open, fd 2 is a pipe whose lines the output shows. Only when fd 2
+is the terminal the output draws on (`open` returns `None` otherwise). After `close`, fd 2
+is the terminal again, and the reader passes on what earlier children still write.
 """
 
 from __future__ import annotations

@@ -8,24 +8,13 @@
                                                                  check is dropped
 ```
 
-Keys (`rr_actors._transport.zenoh.wire.Keys`, all under `rr/<system>/obs/<member>/`):
-`delta`, `state`, `fault`, `here`. The system's access control admits them for members
-only (mutual TLS, then Zenoh's ACL on `rr/<system>/**`).
-
-What crosses is JSON (`json`, never a pickle), and what a host receives is checked before
-it reaches the page (`valid_*`): a section it does not know, a value of the wrong shape,
-a message too big or out of sequence is dropped (out of sequence: the whole state is
-asked again). So is a section or an event with a number that is not finite (`finite`):
-Python's `json` reads and writes `NaN` and `Infinity`, a browser's `JSON.parse` refuses
-the whole message that holds one, and a page's events of every host go in one message.
-Each event and each section is checked on its own, so one bad one costs only itself.
-The page shows every text with `textContent`, never as HTML.
-
-A delta is `{"v": 1, "member", "instance", "seq", "sections": [[key, "v"|"p", value or
-patch]], "events": [...], "missed"}`; a patch is `_delta.diff`'s. The state is `{"v": 1,
-"member", "instance", "seq", "sections": {key: value}, "events": [...]}`, consistent
-with the delta numbered `seq`. The shared sections (`shared`) are `host` (member, title,
-pid, allow_faults), `tree`, `catalog/<registrar>`, `links` (`link_row`), `ended`.
+Keys (`rr_actors._transport.zenoh.wire.Keys`, under `rr/<system>/obs/<member>/`, members
+only): `delta`, `state`, `fault`, `here`. JSON only, and each section and event is checked
+on its own (`valid_*`, `finite`: a non-finite number would make a browser refuse the whole
+message); one out of sequence has the state asked again. A delta's sections are
+`[key, "v"|"p", value or patch]` (`_delta.diff`); the state's are `{key: value}`,
+consistent with the delta numbered `seq`. Shared sections (`shared`): `host`, `tree`,
+`catalog/<registrar>`, `links` (`link_row`), `ended`.
 """
 
 from __future__ import annotations

@@ -9,16 +9,11 @@
 A patch is a JSON object with exactly one of these keys:
 
 - `{"v": value}`: the value is replaced whole;
-- `{"d": {key: patch, ...}, "x": [key, ...]}`: a dict whose keys in `d` changed (each
-  by its own patch; a new key's patch is `{"v": ...}`) and whose keys in `x` went;
+- `{"d": {key: patch, ...}, "x": [key, ...]}`: a dict's changed keys and removed ones;
 - `{"l": {id: patch, ...}, "k": field, "x": [id, ...], "i": [[index, id], ...]}`: a list
-  of rows that each carry a unique id in `field` (`"id"`, `"query_id"` or `"name"`, the
-  first that every row has): rows changed or added by id, rows removed, and where the
-  added rows go (`"i"`, ascending indexes in the new list; the kept rows keep their
-  order). When the kept rows were reordered, `"o"` gives the whole new order instead.
-
-So a catalog of 10,000 resources in which one consumer was added costs the page a few
-hundred bytes, not the whole catalog again.
+  of rows with a unique id in `field` (`"id"`, `"query_id"` or `"name"`): rows changed or
+  added, removed, and the added rows' ascending indexes; `"o"` the whole new order when
+  the kept rows were reordered.
 """
 
 from __future__ import annotations

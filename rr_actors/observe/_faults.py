@@ -5,11 +5,9 @@
    (JSON only, with the observer's token) ─► Faults.<kind>(...) ─► checks ─► the signal, or a FATAL
 ```
 
-What the browser sends is JSON: names, a pid and a resource id, each checked against the
-live tree before anything happens. A signal goes to a pid only if that pid is the one the
-supervisor has for the named process manager right now (a page that shows an older
-incarnation gets a refusal, never a kill of another process), through a pidfd where
-there is one, so the pid cannot be reused between the check and the signal.
+Every field is checked against the live tree first: a signal goes only to the pid the
+supervisor has for that process manager now (an older incarnation's page gets a refusal),
+through a pidfd where there is one, so the pid cannot be reused in between.
 """
 
 from __future__ import annotations
@@ -146,11 +144,7 @@ class Faults:
             os.close(fd)
 
     def _forget_exited(self) -> None:
-        """Close the pidfds of stopped processes that have exited since (a heartbeat's kill).
-
-        A pidfd becomes readable when its process exits; one hang's pidfd at most stays
-        open after the heartbeat ended that hang, until the next button or `resume_all`.
-        """
+        """Close the pidfds of stopped processes that have exited since (a heartbeat's kill)."""
         with self._lock:
             gone = [pid for pid, fd in self._stopped.items() if fd is not None and _exited(fd)]
             fds = [self._stopped.pop(pid) for pid in gone]
@@ -159,10 +153,8 @@ class Faults:
                 os.close(fd)
 
     def resume_all(self) -> None:
-        """SIGCONT every process a hang button stopped that still exists (at close).
-
-        Closes every pidfd it kept, also of processes that have exited meanwhile.
-        """
+        """SIGCONT every process a hang button stopped that still exists (at close); close every
+        pidfd."""
         with self._lock:
             stopped, self._stopped = self._stopped, {}
         for pid, fd in stopped.items():
@@ -179,11 +171,8 @@ class Faults:
     # -- a FATAL ----------------------------------------------------------------------------
 
     def fatal(self, registrar: str, resource_id: str) -> str:
-        """Send FATAL on `registrar`'s resource `resource_id` to all its consumers.
-
-        Blocks until it was delivered (at most `FATAL_TIMEOUT` seconds): call it from a
-        worker thread.
-        """
+        """Send FATAL on `registrar`'s resource `resource_id` to all its consumers; blocks until
+        delivered (`FATAL_TIMEOUT` s at most): a worker thread's call."""
         if registrar not in self.specs:
             raise FaultRefused(f"{registrar!r} is not a manager of this tree", 404)
         section = self.catalogs(registrar)
@@ -223,13 +212,9 @@ KINDS = ("kill", "hang", "resume", "fatal")
 
 
 def inject(faults: Faults, kind: str, data: dict[str, Any]) -> str:
-    """Run one fault request, checked field by field (a FATAL waits for its delivery: run
-    it on a worker thread). What the page's POST body, or another host's fault command,
-    holds: `{"child": NAME, "pid": PID}` for kill, hang and resume; `{"registrar": NAME,
-    "resource_id": ID}` for fatal.
-
-    Returns:
-        What was done, in words.
+    """Run one fault request, checked field by field (a FATAL waits for its delivery: run it on
+    a worker thread): `{"child": NAME, "pid": PID}` for kill, hang and resume; `{"registrar":
+    NAME, "resource_id": ID}` for fatal. What was done, in words.
 
     Raises:
         FaultRefused: a malformed request, an unknown kind, or a fault that cannot be

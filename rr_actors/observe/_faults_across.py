@@ -11,10 +11,8 @@
  "B: what it did" or FaultRefused ◄── {"ok", "message", "status"} ◄─┘
 ```
 
-A fault command is `{"kind": "kill"|"hang"|"resume"|"fatal", "by": member, ...}` with
-the fields of the page's own request (`_faults.inject`); the answer `{"ok", "message",
-"status"}`. A host that was not opened with `allow_faults=True` refuses every one, with
-that reason. A FATAL waits for its delivery, so each command runs on a thread of its own.
+A command is `{"kind": "kill"|"hang"|"resume"|"fatal", "by": member, ...}` with the page's
+request's fields; a host without `allow_faults=True` refuses every one.
 """
 
 from __future__ import annotations
@@ -55,15 +53,8 @@ MAX_FAULTS = 4
 
 def send_fault(services: Services, by: str, member: str, kind: str, data: dict[str, Any]) -> str:
     """Ask host `member`'s `FaultDesk` to inject a fault into one of its managers; what it did.
-
-    Runs on the calling thread (it waits up to `FAULT_TIMEOUT` seconds for the answer).
-
-    Args:
-        services: the router's session and what goes with it.
-        by: this host's member name (the command says who sends it).
-        member: the host asked.
-        kind: the fault (`_faults.KINDS`).
-        data: the page's request (its `host` field is left out).
+    Waits up to `FAULT_TIMEOUT` seconds, on the calling thread; `by` is this host's member
+    name, `kind` one of `_faults.KINDS`, `data` the page's request.
 
     Raises:
         FaultRefused: that host refused (its reason), or did not answer.

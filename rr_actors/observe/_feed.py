@@ -1,10 +1,9 @@
 """The system's event stream over Zenoh, and what the observer runs beside a Zenoh session.
 
-`Across` is what runs beside every session of a `ZenohNetwork` and of the processes that
-attach through it (`rr_actors._transport.zenoh.net.Beside`, which this module attaches
-when imported; `rr_actors` imports it with `rr.ZenohNetwork`): the process's events to
-the system (`EventExport`), the system's to a `subscribe_events` (`EventFeed`), and on a
-router the link watch (`_links`). The stream: every member process's events, as JSON.
+`Across` runs beside every session of a `ZenohNetwork` and of the processes that attach
+through it (`rr_actors._transport.zenoh.net.Beside`, attached when this module is
+imported): the process's events to the system (`EventExport`), the system's to a
+`subscribe_events` (`EventFeed`), and on a router the link watch (`_links`).
 
 ```
  each member process (router or manager process)     a process that subscribes (any member)
@@ -16,29 +15,10 @@ router the link watch (`_links`). The stream: every member process's events, as 
                           ─► the subscription's own thread ─► callback(event)
 ```
 
-- Each process sends the events published in it (`events.everything()`: once each, where
-  it happened; a manager process's own, not those it forwards to its supervisor), in
-  batches, only while some subscriber anywhere in the system matches its key (Zenoh's
-  matching status): nobody listening costs nothing but the matching listener.
-- What crosses is plain data: one `json.dumps(events.to_dict(event))` line per event
-  (the `events.jsonl` form). The subscriber parses JSON and checks every field
-  (`events.from_dict`); it never unpickles. A line that is not an event is dropped, with
-  a WARNING (at most one a minute) naming the sender's key.
-- Only members see the stream and only members put on it: the keys are under
-  `rr/<system>/`, which the access control of a `ZenohNetwork` with `tls` admits for
-  members' certificates and this host's own processes only (`config`).
-- With `tls`, each batch is sealed by its host (`seal`: the host's certificate and its
-  signature, as Zenoh's attachment), and an event's `host` is the member whose
-  certificate sealed its batch, never what the event says: one that says another is
-  delivered as its sealer's (a WARNING a minute names both); a batch no member sealed
-  is dropped. Without `tls` nobody is known: `host` is what the sender wrote.
-- Bounded: what a subscriber holds of each sender and of all is bounded in bytes
-  (`HELD_BYTES`, `QUEUED_BYTES`); a batch past a bound is dropped, counted in an
-  `EventsDropped` and warned of.
-- Merged by the hybrid logical clock: a process's own events arrive in order (one
-  publisher, reliable puts); those of different processes are held `window` seconds
-  after they arrived and released in `hlc` order, so an effect on one host never comes
-  before its cause on another unless its cause arrived more than `window` later.
+What crosses (plain JSON, never pickles), to whom (members only), the bounds in bytes and
+the merge by `hlc`: docs/reference/events.md. With `tls`, each batch is sealed by its host
+(`seal`) and an event's `host` is its sealer, never what the event says; a batch no member
+sealed is dropped.
 """
 
 from __future__ import annotations
@@ -97,10 +77,8 @@ MAX_BATCH_BYTES = 16 * 1024 * 1024
 """A batch over this many bytes is dropped unread by a subscriber."""
 
 HELD_BYTES = (16 * 1024 * 1024, 64 * 1024 * 1024)
-"""Bytes a system-wide subscriber holds of one sending process's events, and of all
-processes' together, from a batch's arrival until its events go to the subscription's
-queue (batches waiting to be read, events held `window` seconds; an event counts as
-`weight`). A batch that would pass either bound is dropped whole, unread."""
+"""Bytes a subscriber holds of one sending process's events, and of all together, until they
+go to the subscription's queue (an event weighs `weight`); a batch past either is dropped."""
 
 QUEUED_BYTES = 32 * 1024 * 1024
 """Bytes of events (`weight`) a system-wide subscription queues for its callback, besides
@@ -131,10 +109,8 @@ def encode(batch: list[events.Event]) -> bytes:
 
 
 def decode(data: bytes) -> tuple[list[events.Event], int]:
-    """The events of a batch `encode` made, and how many lines were not events.
-
-    Only JSON is parsed (`json.loads`, `events.from_dict`): nothing is unpickled.
-    """
+    """The events of a batch `encode` made (JSON only, nothing unpickled), and how many lines were
+    not."""
     found: list[events.Event] = []
     bad = 0
     for line, _ in _lines(data):
@@ -291,25 +267,17 @@ class _Batch(NamedTuple):
 class EventFeed:
     """One system-wide subscription's side: the Zenoh subscriber and the merge thread.
 
-    What it holds is bounded in bytes, so that no member can fill this process's memory
-    with events: of each sending process (its key `rr/<system>/ev/<zid>`) and of all
-    together, from a batch's arrival until its events go to the subscription
-    (`HELD_BYTES`), then in the subscription's queue (`QUEUED_BYTES`). A batch past a
-    bound is dropped whole, unread: its events are counted in the `EventsDropped` the
-    callback gets next, and a WARNING (at most one a minute) names its sender and the
-    bound.
-
-    With a `seal`, each event's `host` is the member whose certificate sealed its batch:
-    an event that says another host is delivered as that member's (a WARNING a minute
-    names both), and a batch no member sealed is dropped (counted, warned of).
+    What it holds is bounded in bytes, per sending process and in all (`HELD_BYTES`, then
+    `QUEUED_BYTES` in the subscription's queue): a batch past a bound is dropped whole,
+    counted in the next `EventsDropped` and warned of (once a minute). With a `seal`, an
+    event's `host` is the member that sealed its batch.
 
     Args:
         session: the process's open Zenoh session.
         keys: the system's key expressions.
         window: seconds an event is held for those of other processes to overtake it
             (see `ZenohNetwork.subscribe_events`).
-        seal: opens each batch's seal (`None`: without TLS, `host` is what the sender
-            wrote).
+        seal: opens each batch's seal (`None`: without TLS, `host` is what the sender wrote).
     """
 
     def __init__(

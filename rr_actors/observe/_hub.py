@@ -6,19 +6,12 @@
   event subscription, backup poller)                        └── changes(seen, last_seq) ◄── wakes
 ```
 
-A section (`"tree"`, `"graph"`, `"catalog/<registrar>"`, ...) holds one JSON-able value
-and a version; a page's stream remembers the versions it sent and asks for what changed
-since, so a slow page skips intermediate values instead of queueing them: what a page
-costs is bounded whatever happens. What a stream sends is encoded here once and shared
-by every page (`messages`): a page that has the previous version gets the change as a
-patch (`_delta.diff`), any other page the whole value; neither is encoded per page.
-At most `MAX_STREAMS` streams are open at once (`open_stream`).
-
-Events are kept in a ring of the last `RING` events, each with a sequence number; a
-page that fell further behind is told how many it missed. An event is turned into its
-JSON-able dict (`convert`) and its JSON only when a page first asks for it, and a page
-gets at most `BATCH` events at a time: with no page open, keeping an event costs an
-append, and a flood of events costs a page a bounded amount.
+A section holds one JSON-able value and a version; a page's stream asks for what changed
+since the versions it sent, so a slow page skips intermediate values (its cost bounded).
+Messages are encoded once and shared (`messages`: a patch, `_delta.diff`, for a page at
+the previous version). Events are kept in a ring of `RING`, converted to JSON only when a
+page first asks, at most `BATCH` at a time; a page that fell behind is told how many it
+missed. At most `MAX_STREAMS` streams are open at once.
 """
 
 from __future__ import annotations
@@ -127,11 +120,8 @@ class Hub:
         self.closed = False
 
     def put(self, key: str, value: Any) -> bool:
-        """Set section `key` to `value` (a JSON-able value); tell the listeners if it changed.
-
-        Returns:
-            Whether it changed.
-        """
+        """Set section `key` to a JSON-able `value`; tell the listeners and return True if it
+        changed."""
         with self._lock:
             current = self._sections.get(key)
             if current is not None and current.value == value:
@@ -173,11 +163,8 @@ class Hub:
         self._notify()
 
     def changes(self, seen: dict[str, int], last_seq: int, *, with_events: bool = True) -> Changes:
-        """What changed since a page saw the versions `seen` and the event `last_seq`.
-
-        `seen` is updated to the versions returned. With `with_events=False` only the sections
-        are looked at (the events wait for a later look).
-        """
+        """What changed since a page saw the versions `seen` (updated) and the event `last_seq`
+        (`with_events=False`: the sections only)."""
         with self._lock:
             sections = []
             for key, section in self._sections.items():
@@ -198,13 +185,9 @@ class Hub:
         return entries, max(0, first - last_seq - 1) if last_seq < self._seq else 0
 
     def _event(self, entry: list[Any]) -> tuple[dict[str, Any], str]:
-        """A ring entry `[seq, event]` as a dict and as JSON (each made once, then kept).
-
-        An event with a number that is not finite (`NaN`, `Infinity`: Python's `json`
-        writes them, a page's `JSON.parse` refuses the whole message of events that
-        holds one) goes to the pages as a `Refused` event that says so instead: the
-        others of its message are not lost with it.
-        """
+        """A ring entry `[seq, event]` as a dict and as JSON, made once; one with a non-finite
+        number
+        goes as a `Refused` event (a page's `JSON.parse` would refuse the whole message)."""
         if len(entry) == 2:  # (converting twice at once, for two pages, does no harm)
             event = entry[1]
             if not isinstance(event, dict):
@@ -221,15 +204,11 @@ class Hub:
     def messages(
         self, seen: dict[str, int], last_seq: int, *, with_events: bool = True
     ) -> tuple[list[bytes], int]:
-        """What a page's stream sends next, encoded: the changed sections, then new events.
-
-        A section the page has at its previous version goes as a `patch` event, any other
-        as a `section` event; both encodings are made once and shared by every page.
-        `seen` is updated as in `changes`.
+        """What a page's stream sends next, encoded once and shared: changed sections (a `patch` for
+        a page at the previous version), then new events; `seen` is updated as in `changes`.
 
         Returns:
-            The messages, and the sequence number of the last event they hold (or
-            `last_seq` when they hold none).
+            The messages, and the sequence number of their last event (else `last_seq`).
         """
         out = []
         with self._lock:
@@ -247,11 +226,8 @@ class Hub:
         return out, last_seq
 
     def _encoded(self, key: str, section: _Section, *, patch: bool) -> bytes:
-        """Section `key` as its whole value, or as the patch from the version before.
-
-        Each is encoded when a page first needs it: while every page keeps up, the
-        whole value of a changed section is never encoded at all.
-        """
+        """Section `key` as its whole value or the patch from the version before, encoded on first
+        need."""
         if patch:
             if section.patch is None:
                 change = diff(section.old, section.value)
@@ -265,11 +241,8 @@ class Hub:
         return section.full
 
     def listen(self, listener: Callable[[], None]) -> Callable[[], None]:
-        """Call `listener()` (on the changing thread; it must not block) after each change.
-
-        Returns:
-            A function that removes the listener.
-        """
+        """Call `listener()` after each change (on the changing thread: it must not block); the
+        remover."""
         with self._lock:
             self._listeners.append(listener)
 
@@ -286,23 +259,16 @@ class Hub:
         return self._seq
 
     def close(self, *, timeout: float = 2.0) -> bool:
-        """Mark the hub closed, wake every listener, wait for the pages' streams to end.
-
-        Returns:
-            Whether every stream ended within `timeout` seconds (ended cleanly, a page
-            sees a finished response rather than a cut connection).
-        """
+        """Mark the hub closed, wake every listener; whether every page's stream ended within
+        `timeout` seconds (a page then sees a finished response, not a cut)."""
         self.closed = True
         self._notify()
         with self._streams:
             return self._streams.wait_for(lambda: self._open_streams == 0, timeout)
 
     def open_stream(self, limit: int = MAX_STREAMS) -> bool:
-        """Count one more open page stream, unless `limit` are open (`close` waits for them).
-
-        Returns:
-            Whether it was counted; if so, `close_stream()` must follow.
-        """
+        """Count one more open stream unless `limit` are open; if counted (True), `close_stream()`
+        follows."""
         with self._streams:
             if self._open_streams >= limit:
                 return False

@@ -1,21 +1,13 @@
 """Who a TLS router is linked to, and why a `connect` endpoint is not: said on the logger.
 
-Zenoh decides who gets in (mutual TLS, then the access control of the transport's
-`ops.config`); this module only tells the operator, on the `rr_actors` logger (a TLS
-router's `LinkWatch` runs beside its session: `_feed.Across`):
-
-- INFO when a member links: its certificate's common name and its address (both sides);
-- WARNING when a certificate signed by this system's CA but not in `members` links: Zenoh
-  drops every message of it both ways; at most once per address per minute;
-- WARNING when a `connect` endpoint has no link `GRACE` seconds after start or after its
-  link is lost, with the reason from our own handshake (`handshake_trouble`); at most once per
-  endpoint per minute while it lasts. A handshake that finds nothing wrong (the listener
-  accepts this host) warns only if the next one, `GRACE` seconds later, finds the same and
-  there is still no link: Zenoh's own link is then most likely on its way.
-
-It also keeps, for the observer across hosts, each member's link as last seen: up or
-cut, since when (wall clock) and why (`member_links`). A plain-TCP network has no watch:
-`plain_unlinked` names its unlinked `connect` endpoints when an error is made.
+Zenoh decides who gets in; this module only tells the operator, on the `rr_actors`
+logger (the lines: docs/how-to/securing-registrars.md): INFO when a member links; WARNING
+when a certificate of this system's CA but not in `members` links, or when a `connect`
+endpoint has no link `GRACE` seconds after start or after its link is lost, with the
+reason from a handshake of our own (`handshake_trouble`; one that finds nothing wrong
+warns only if the next finds the same). Each at most once per address a minute. It also
+keeps each member's link as last seen for the observer (`member_links`); a plain-TCP
+network has no watch (`plain_unlinked`).
 
 ```
  Zenoh's thread: link event ─submit─► watch thread "rr-zenoh-watch" (SerialExecutor)
@@ -25,18 +17,10 @@ cut, since when (wall clock) and why (`member_links`). A plain-TCP network has n
                                                     handshake_trouble() ─► WARNING
 ```
 
-The Zenoh callback only queues the event for the watch thread (a callback must never
-block: logging handlers are user code); the watch thread does the rest. (Not Zenoh's
-`FifoChannel`: it has no receive with a timeout for the ticks, and a full one blocks
-Zenoh's thread.) A link is "to" an endpoint when
-its remote address is one of the endpoint's host's addresses and its port is the
-endpoint's, or a port no `connect` endpoint has (that host dialled us: two routers that
-dial each other share one link). So a link to one port of a host does not hide that
-another port there (an impostor, say) refuses us. A host name is resolved again only
-while its endpoint is unlinked, at most every `GRACE` s (a lookup may block for seconds).
-
-Why a `connect` endpoint is not linked: one TLS handshake of our own, and why it is
-needed (`handshake_trouble`).
+The Zenoh callback only queues (it must never block). A link is "to" an endpoint when its
+remote address is one of the endpoint host's addresses and its port the endpoint's, or a
+port no `connect` endpoint has (two routers that dial each other share one link); a host
+name is resolved again only while unlinked, at most every `GRACE` s.
 """
 
 from __future__ import annotations
@@ -119,13 +103,8 @@ class _Endpoint:
 def plain_unlinked(
     session: zenoh.Session, connect: tuple[str, ...], *, timeout: float
 ) -> list[tuple[str, str]]:
-    """The plain-TCP `connect` endpoints with no link now, each with why, in words.
-
-    For a `ZenohNetwork` with `tls=None`, where no `LinkWatch` runs: asked on the caller's
-    thread (an `UnknownRegistrarError` being made, a `wait_for` that timed out). A link is
-    to an endpoint as in `LinkWatch` (its host's address, and its port or one no endpoint
-    has); the reason is what a TCP connect there gets now, within `timeout` seconds each.
-    """
+    """The plain-TCP `connect` endpoints with no link now, each with why (a TCP connect within
+    `timeout` seconds each), for a `ZenohNetwork` with `tls=None`; on the caller's thread."""
     endpoints = [_Endpoint(endpoint) for endpoint in connect]
     if not endpoints:
         return []
@@ -257,12 +236,8 @@ class LinkWatch:
                 self._members[name] = MemberLink(name, False, now, known.where, why)
 
     def member_links(self) -> list[MemberLink]:
-        """Each member this router has been linked to, as last seen (any thread).
-
-        A member whose link is cut and whose address is a `connect` endpoint's that the
-        watch probed since gets the probe's verdict as `why` (what a TLS handshake there
-        gets now: no answer, a refused certificate, ...).
-        """
+        """Each member this router has been linked to, as last seen (any thread); a cut one's `why`
+        is the watch's last probe of its address."""
         links = []
         for known in list(self._members.values()):
             why = known.why
@@ -335,13 +310,8 @@ class LinkWatch:
     # -- asked by callers ------------------------------------------------------------------
 
     def unlinked(self) -> list[tuple[str, str]]:
-        """The `connect` endpoints with no link to a member now, each with why, in words.
-
-        Runs on the caller's thread (an `UnknownRegistrarError` being made, a
-        `ZenohNetwork.wait_for` that timed out). The reason is the watch's last probe
-        (`probe`); an endpoint not probed yet is probed now, which takes up to
-        a few seconds (a TLS handshake's timeout) when its host does not answer.
-        """
+        """The `connect` endpoints with no link to a member now, each with why (the last probe; one
+        not probed yet is probed now, up to a handshake's timeout), on the caller's thread."""
         if self._thread.closed or not self._endpoints:
             return []
         linked = self._linked()
@@ -403,25 +373,16 @@ def _verdict(exc: ssl.SSLCertVerificationError, host: str, tls: ZenohTLS) -> str
 def handshake_trouble(tls: ZenohTLS, host: str, port: int, *, timeout: float = 2.0) -> str | None:
     """Why a mutual-TLS link with `host:port` fails, in words; `None` if the listener accepts us.
 
-    zenoh-python 1.10 does not tell Python that a handshake was refused: a refused
-    `zenoh.open` returns normally, retries every 1-4 s and logs the reason at DEBUG on stdout.
-    So when a `connect` endpoint stays unlinked, rr_actors dials it once with Python's `ssl`
-    and the same files (the watch decides when), and names what went wrong:
-
-    - the listener's alert, sent when it refuses this host's certificate (TLS 1.3 sends it
-      after the client's side of the handshake, so the probe reads once to receive it):
-      `unknown ca`, `certificate expired`, `certificate required`, ...;
-    - or its own verdict on the listener's certificate, the checks Zenoh makes as a client:
-      not signed by this system's CA, or not naming the address dialled
-      (`verify_name_on_connect`), or out of its validity dates;
-    - or that the address cannot be reached at all.
-
-    Runs on the watch thread; never on a Zenoh callback (it blocks up to `timeout`).
+    zenoh-python 1.10 does not tell Python that a handshake was refused (it retries and logs
+    at DEBUG), so this dials once with Python's `ssl` and the same files, and names the
+    listener's alert (`unknown ca`, `certificate expired`, ...; TLS 1.3 sends it after the
+    client's side, so the probe reads once), or its own verdict on the listener's
+    certificate (Zenoh's client checks: CA, `verify_name_on_connect`, dates), or that the
+    address cannot be reached. Blocks up to `timeout`: the watch thread only.
 
     Args:
         tls: this host's files (`ca`, `cert`, `key` are paths).
-        host: the address dialled (an IP or a DNS name), checked against the listener's
-            certificate as Zenoh does.
+        host: the address dialled (an IP or a DNS name).
         port: the listener's TCP port.
         timeout: seconds for the connection and the handshake each.
 

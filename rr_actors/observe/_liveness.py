@@ -3,17 +3,13 @@
 ```
  SystemView ── mirrors (one Mirror a host: its token here?, its state synced?, sections)
       │
-      └─► Liveness.hosts() ─► "hosts": each host live (token and state), joining (token, no
-      │                        state yet) or stale (no token: since when, and why)
-      └─► Liveness.links() ─► "links": each pair of hosts up or down, since when, why:
-                               what either end last said of the link (its "links"
-                               section; this host's own links are read now), else a host
-                               gone stale
-      └─► Liveness.why(member): a stale host's cause: its supervisor stopped ("ended"), a
-                               link this host saw cut, or its token went (the lease)
+      └─► Liveness.hosts() ─► "hosts": each host live, joining (token, no state yet) or
+      │                        stale (no token: since when, and why)
+      └─► Liveness.links() ─► "links": each pair of hosts up or down, since when, why
+      └─► Liveness.why(member): a stale host's cause (ended, a cut link, its token went)
 ```
 
-Runs on the `SystemView`'s executor thread, as the mirrors change only there.
+Runs on the `SystemView`'s executor thread, where the mirrors change.
 """
 
 from __future__ import annotations

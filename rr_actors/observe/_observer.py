@@ -178,18 +178,16 @@ class Observer:
     `rr-actors observe --state DIR` (backups); not constructed directly.
 
     Attributes:
-        url: the page's address, with its token (`?token=...`): every request to the
-            observer must carry it (the page keeps it in a cookie, and the buttons
-            send it back), so whoever has the URL sees every catalog, and in
-            teaching mode may use the buttons; give it only to them.
+        url: the page's address, with its token (`?token=...`), which every request must
+            carry: whoever has the URL sees every catalog (and may use the teaching
+            buttons); give it only to them.
         host: the address it listens on.
         port: the port it listens on.
         allow_faults: whether the teaching mode's buttons work (for this host's own
-            managers; across hosts, each host's own `allow_faults` decides for its).
-        member: this host's member name when the page shows every host of a system
-            (`None`: this host only).
-        keep_serving: whether the page outlives the supervisor (it then shows the
-            final state until `close()`).
+            managers; across hosts, each host decides for its own).
+        member: this host's member name when the page shows every host (`None`: this one).
+        keep_serving: whether the page outlives the supervisor (showing the final state
+            until `close()`).
     """
 
     def __init__(
@@ -284,11 +282,9 @@ class Observer:
     def source_ended(self) -> None:
         """What it shows will not change any more (its supervisor stopped).
 
-        Without `keep_serving`, the observer closes. With it, the live source stops,
-        the page says the tree ended and keeps showing its final state until
-        `close()`; across hosts, that final state is shared before this returns (at
-        most 2 s, `_share.FLUSH_TIMEOUT`), so that it reaches the other hosts' pages
-        before the network closes.
+        Without `keep_serving`, the observer closes. With it, the page keeps showing the final
+        state until `close()`; across hosts, that state is shared before this returns (at most
+        `_share.FLUSH_TIMEOUT` seconds).
         """
         if not self.keep_serving:
             self.close()
@@ -310,9 +306,8 @@ class Observer:
     def close(self, *, timeout: float = 5.0) -> None:
         """Stop serving: open pages show that they are disconnected. Idempotent.
 
-        A manager that a hang button stopped (SIGSTOP) and that still exists gets
-        SIGCONT. Runs on the calling thread; waits for the observer's threads at most
-        `timeout` seconds each.
+        A manager a hang button stopped gets SIGCONT. Waits for the observer's threads at most
+        `timeout` seconds each, on the calling thread.
         """
         with self._lock:
             if self._closed:
@@ -469,8 +464,8 @@ def observe_system(
     port: int = 0,
     allow_remote: bool = False,
 ) -> Observer:
-    """Open the page of every host of a system, from a process that has no tree of its own
-    (what `rr-actors observe --system` does): it shares nothing, only shows.
+    """Open the page of every host of a system from a process without a tree of its own
+    (`rr-actors observe --system`): it shares nothing, only shows.
 
     Args:
         network: an `rr.ZenohNetwork` this process joins the system with (a member).
@@ -483,8 +478,7 @@ def observe_system(
 
     Raises:
         ConfigError: `network` is not a `ZenohNetwork`, the port is in use, the host is
-            not a loopback address and `allow_remote` is false, or the `observe` extra
-            is not installed.
+            not a loopback address without `allow_remote`, or the `observe` extra is missing.
     """
     services = services_of(network, required=True)
     assert services is not None
@@ -526,10 +520,8 @@ def observe_backups(
     port: int = 0,
     allow_remote: bool = False,
 ) -> Observer:
-    """Open the page of a state directory's backups: no live system, nothing written.
-
-    The page shows every backup's catalog and the dependency graph across them, and
-    follows the files as a running tree changes them (every `POLL_INTERVAL` seconds).
+    """Open the page of a state directory's backups: no live system, nothing written; it follows
+    the files every `POLL_INTERVAL` seconds.
 
     Args:
         state_dir: a supervisor's `state_dir` (its `<name>.db` files).
@@ -541,9 +533,9 @@ def observe_backups(
         The open observer; `close()` it.
 
     Raises:
-        ConfigError: the directory does not exist or holds no backup; the port is in
-            use; the host is not a loopback address and `allow_remote` is false; the
-            `observe` extra is not installed.
+        ConfigError: the directory does not exist or holds no backup; the port is in use;
+            the host is not a loopback address without `allow_remote`; the `observe` extra
+            is not installed.
         CatalogCorruptError: a backup cannot be read (the error names the file).
     """
     hub = Hub()

@@ -10,23 +10,11 @@
    attachment                                         ─► the member name, or None
 ```
 
-Why a seal and not the link: Zenoh's access control judges a message by the
-certificate of the link it arrives on, and a router member forwards what other members
-sent (where two hosts reach each other only through a third, what one sends reaches the
-other as the router's). So the link cannot say whose a batch is once a router is
-between; the key expression and a field in the payload are whatever the sender wrote.
-A signature made where the batch was made, by the key of a certificate the system's CA
-issued to a member, names its host wherever the batch went: the host of an event is the
-member whose certificate sealed its batch, never its `host` field (`_feed`).
-
-A seal is `b"rs1" | length of the chain (2 bytes, big endian) | the chain (PEM, as the
-host's cert file holds it) | the signature`: ECDSA with SHA-256, Ed25519, or RSA-PSS
-with SHA-256, as the key is. What is signed is SHA-256 of `rr-events/<system>\0` and the
-batch, so a batch of one system is not one of another.
-
-It protects against a member that writes another host's name in its events (a bug, a
-relay); it does not protect against one that runs code on another member (members are
-trusted with code: pickles), which could read that host's key.
+A link cannot say whose a batch is once a router member forwards it, so the host that
+made it signs it (docs/how-to/securing-registrars.md). A seal is `b"rs1" | chain length
+(2 bytes, big endian) | the chain (PEM) | the signature` (ECDSA or RSA-PSS with SHA-256,
+or Ed25519) over SHA-256 of `rr-events/<system>\0` and the batch. It stops a member
+naming another host in its events, not one that runs code on another member.
 """
 
 from __future__ import annotations
@@ -113,10 +101,8 @@ class Seal:
         return self._signing
 
     def open(self, data: bytes, seal: bytes | None) -> str | None:
-        """The member whose certificate sealed batch `data` with `seal`; `None` if none
-        did (no seal, a malformed one, a chain the system's CA did not issue or out of
-        date, a common name not in `members`, a signature that does not match). Never
-        raises."""
+        """The member whose certificate sealed batch `data` with `seal`; `None` if none did (never
+        raises)."""
         if seal is None or len(seal) < _HEAD.size:
             return None
         magic, length = _HEAD.unpack_from(seal)

@@ -13,25 +13,12 @@
  uvicorn thread (asyncio loop) ◄── Hub listeners (call_soon_threadsafe) ◄── source threads
 ```
 
-Who gets in (the trust model, see docs/explanation/failure-semantics.md):
-
-- Every route needs the observer's token: the `?token=` of the URL it printed, an
-  `X-RR-Token` header, or the cookie the page's first answer set (`HttpOnly`,
-  `SameSite=Strict`, named after the port); none is 401, a wrong one 403. The page
-  shows every catalog, request values included, so it is as private as the backups.
-- Every request must name an allowed host in its `Host` header: the loopback names, the
-  address the observer listens on, and for a wildcard address this machine's names. A
-  page of another site that resolves its own name to this machine (DNS rebinding) gets
-  400, with or without `allow_remote`.
-- The fault endpoints also want the token in the `X-RR-Token` header (a cookie alone is
-  not enough) and a JSON content type: a page of another origin cannot send either
-  without a CORS preflight this server never answers.
-- Cost is bounded: at most `MAX_STREAMS` streams (one more gets 503); a stream whose
-  client does not take a message within `SEND_TIMEOUT` seconds is ended, and a closed
-  connection whose peer still does not read is aborted after `ABORT_AFTER` seconds (its
-  unsent bytes freed); a connection that sends no request is closed after uvicorn's
-  keep-alive timeout. Everything the browser sends is JSON or a URL; nothing from it is
-  ever unpickled.
+Who gets in (docs/explanation/failure-semantics.md, docs/reference/observer.md): every
+route needs the token (`?token=`, an `X-RR-Token` header, or the page's `HttpOnly`,
+`SameSite=Strict` cookie; none: 401, a wrong one: 403) and an allowed `Host` header (DNS
+rebinding: 400); the fault endpoints want the header and a JSON content type (no CORS
+preflight is ever answered). Streams, silent clients and idle connections are bounded;
+nothing the browser sends is unpickled.
 """
 
 from __future__ import annotations
@@ -233,15 +220,11 @@ def build_app(
         token: what every request must carry (query, header or cookie).
         hosts: the accepted names in the `Host` header (without a port).
         cookie: the name of the cookie that keeps the token for the page's requests.
-        remote: across hosts, sends a fault to another host: `remote(member, kind,
-            data)` (that host decides; `FaultRefused` says why not).
-        member: this host's member name across hosts (a request naming it, or no
-            host, is this host's own).
-        fault_events: the hub whose events record this host's own faults (default
-            `hub`; across hosts, this host's own hub, which is shared).
-        control: a replay's step control: `control(request)`, the request's JSON
-            object in, the answer's out (a `ConfigError` is a refusal, 400); `None`:
-            the endpoint answers 404.
+        remote: across hosts, sends a fault to another host: `remote(member, kind, data)`.
+        member: this host's member name across hosts (a request naming it, or none, is ours).
+        fault_events: the hub recording this host's own faults (default `hub`).
+        control: a replay's step control, JSON object in and out (a `ConfigError` is a 400);
+            `None`: the endpoint answers 404.
     """
     index = _index(hello)
     static = StaticFiles(directory=str(resources.files("rr_actors.observe").joinpath("static")))
@@ -411,12 +394,8 @@ async def _stream(hub: Hub, hello: dict[str, Any], request: Request) -> AsyncIte
 
 
 class _Transport:
-    """An asyncio transport that aborts a closed connection whose peer does not read.
-
-    `transport.close()` keeps the unsent bytes until the peer takes them, which a peer
-    that never reads never does: after `ABORT_AFTER` seconds they are dropped
-    (`abort()`). Everything else is the transport's own.
-    """
+    """An asyncio transport that aborts a closed connection whose peer has not read for
+    `ABORT_AFTER` s."""
 
     def __init__(self, transport: asyncio.Transport, loop: asyncio.AbstractEventLoop) -> None:
         self._transport = transport
@@ -436,14 +415,9 @@ class _Transport:
 
 
 class _Protocol(H11Protocol):
-    """uvicorn's HTTP/1.1 protocol, with two bounds of a connection's life.
-
-    (A private extension point of uvicorn, used only here: `Config(http=<class>)`.)
-    A connection that sends no request is closed after the keep-alive timeout, as
-    an idle keep-alive connection is; a closed one whose peer does not read is
-    aborted (`_Transport`); its kernel send buffer is `SEND_BUFFER` bytes, so that a
-    peer that does not read makes a stream's send wait (and time out) soon.
-    """
+    """uvicorn's HTTP/1.1 protocol (a private extension point, used only here) with two bounds: an
+    idle connection closes after the keep-alive timeout, a closed one is aborted
+    (`_Transport`); its send buffer is `SEND_BUFFER` bytes, so a silent peer times out soon."""
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
@@ -468,19 +442,9 @@ class _Protocol(H11Protocol):
 
 
 def _release_memory_soon(loop: asyncio.AbstractEventLoop) -> None:
-    """Hand the memory of closed connections back to the system, `RELEASE_AFTER` s from now.
-
-    A stream to a page that does not read holds whole encoded sections in its
-    connection's buffers (copies made per connection by the HTTP framing). When such
-    connections go, that memory is kept twice over: by reference cycles of the ended
-    streams (exceptions with their tracebacks, the frames they hold; the cyclic garbage
-    collector gets to them whenever it runs next), and then by the C heap of the
-    server's thread (glibc keeps freed memory for reuse). 150 silent pages left the
-    process up to 100 MiB bigger for good. So: a full collection, then
-    `PLATFORM.release_free_memory` (glibc's `malloc_trim`), on the server's thread,
-    once a burst of closing connections is over (every object of a closed connection
-    is gone by then: the streams end as soon as their connection is lost).
-    """
+    """A full collection, then `PLATFORM.release_free_memory` (glibc's `malloc_trim`), on the
+    server's thread `RELEASE_AFTER` s from now: closed streams' buffers are held by cycles and
+    then by the C heap."""
     now = loop.time()
     began, due = _RELEASES.pop(loop, (now, None))
     if due is not None:

@@ -11,11 +11,8 @@
                  FaultDesk (_faults_across.py): the fault queryable
 ```
 
-Each message is made under one lock, so the state answered is consistent with the delta
-numbered its `seq` (`_crossing.py` says what crosses). A supervisor that stops shares
-its final state before its network closes (`flush`).
-
-Threads: `Share` has one (`rr-observe-share-<member>`); Zenoh's callbacks only queue.
+Each message is made under one lock, so a state is consistent with the delta numbered its
+`seq`. One thread (`rr-observe-share-<member>`); Zenoh's callbacks only queue.
 """
 
 from __future__ import annotations
@@ -65,9 +62,8 @@ class Share:
         member: this host's member name.
         host: what the page says of this host (title, pid).
         faults: the teaching mode's faults (`None`: every fault command is refused).
-        all_events: share every event of the hub; `False`: only the observer's own
-            (a fault from a page), when the pages get the events of every host from the
-            system's event stream (`ZenohNetwork.subscribe_events`).
+        all_events: share every event of the hub; `False`: only the observer's own, when
+            pages get every host's events from the system's event stream.
     """
 
     def __init__(
@@ -141,12 +137,8 @@ class Share:
         }
 
     def flush(self, timeout: float = FLUSH_TIMEOUT) -> bool:
-        """Wait until what the hub holds now was shared (a pass of the share's thread that
-        began after this call ended); whether it was within `timeout` seconds.
-
-        A supervisor that stops shares its final state so before its network closes
-        (`Observer.source_ended`). Runs on the calling thread; not on the share's own.
-        """
+        """Wait until what the hub holds now was shared; whether within `timeout` seconds (calling
+        thread, never the share's own; a stopping supervisor's final state)."""
         with self._passes:
             begun = self._started
             self._wake.set()

@@ -4,19 +4,15 @@
  LiveSource (a running Supervisor)
    tree watcher thread ── waits on the tree's condition (each publish) ──► "tree"
    event subscription ─── every event (to_dict + describe) ──────────────► events
-        ├─ a StatusSent: named here, once (StatusNames: the catalog last read,
-        │  the ConsumerAdded and ResourceLoaded seen before it)
+        ├─ a StatusSent: named here, once (StatusNames)
         └─ marks registrars dirty ──► catalog refresher thread ──────────► "catalog/<name>",
                                       (Supervisor.run_in(name, catalog_of))  "graph"
  BackupSource (a state directory)
    poller thread ── a backup file changed ── read_backup ──► "files", "catalog/<name>", "graph"
 ```
 
-Both only read: the live source asks each registrar for a copy of its rows (in its own
-process, `catalog_of`), the backup source reads the files read-only
-(`rr_actors._store.read_backup`) and unpickles nothing: it shows the display texts each
-registrar stored with its values (unpickling would run code from a file that may be
-another user's). Every wait is bounded; `close()` ends the threads.
+Both only read, and unpickle nothing (they show the display texts each registrar stored:
+a file may be another user's). Every wait is bounded; `close()` ends the threads.
 """
 
 from __future__ import annotations
@@ -62,10 +58,7 @@ __all__ = [
 logger = logging.getLogger("rr_actors")
 
 CATALOG_INTERVAL = 0.5
-"""Seconds between two rounds of catalog snapshots (changes within it are shown together).
-
-Each round asks every registrar that changed for a copy of its catalog, in its own
-process: it competes with the work it shows, so a round at most twice a second."""
+"""Seconds between two rounds of catalog snapshots (each competes with the work it shows)."""
 
 FULL_REFRESH = 5.0
 """Seconds after which every catalog is read again, even without an event about it."""
@@ -174,27 +167,13 @@ def _keep(names: dict[tuple[str, str, str], str], key: tuple[str, str, str], val
 
 
 class StatusNames:
-    """Names each status sent by the resource it is about, once, as it enters a history.
+    """Names each status sent by the resource it is about, once, as it enters a history, so every
+    page (open during the send or later) draws the same row.
 
-    Every page draws the name the event carries: a page open during the send and one
-    opened later draw the same row. Were it left to each page's own catalog at its render,
-    the first would draw it from a catalog older than the second's (the observer read that
-    catalog during the load, or a read under load failed and kept it, or, across hosts, the
-    provider's host shared its catalog after the event stream brought the send; the next
-    catalog came after the live page drew the row). Named then, not later: the provider may
-    unload the resource right after (a FATAL), before a page shows it.
-
-    The catalog last known may lag the send; the provider's own `ConsumerAdded` and
-    `ResourceLoaded` do not: it publishes them before it answers the consumer, so before
-    any status to it, and its events reach a history in the order it published them (one
-    tree's subscription; across hosts, one process's events on the system's event stream).
-    So `name`: the graph's label of the resource the consumer holds (by the catalog, else by
-    its `ConsumerAdded`), else the `ResourceLoaded`'s label, else (neither was seen: the
-    observer began later and has no catalog listing it yet) the query id, fixed too.
-
-    Fed events on one thread (not locked), each host's in their order; a registrar is
-    known by its host and its name (two of one name, each on its side of a cut, are two).
-    Keeps at most `NAMES_KEPT` consumers and as many resources.
+    `name`: the graph's label of the resource the consumer holds (by the catalog last known,
+    else its `ConsumerAdded`), else the `ResourceLoaded`'s label, else the query id: the
+    provider publishes those events before any status about them. Fed on one thread (not
+    locked); a registrar is known by host and name; at most `NAMES_KEPT` of each are kept.
     """
 
     def __init__(self) -> None:
@@ -217,13 +196,8 @@ class StatusNames:
 
     def name(self, sent: events.StatusSent, catalog: Mapping[str, Any] | None) -> str:
         """`"<registrar>/<server> <label>"` of the resource `sent` is about, else
-        `"<registrar> (query <first 8 of its id>)"`.
-
-        Args:
-            sent: the status sent.
-            catalog: the provider's catalog summary last known (`summarise_catalog`), or
-                `None`.
-        """
+        `"<registrar> (query <first 8 of its id>)"`; `catalog`: the provider's summary, or
+        `None`."""
         held = self._held.get((sent.host, sent.registrar, sent.query_id))
         name = resource_name(catalog, sent.query_id, held)
         if name is None and held is not None:
@@ -232,24 +206,14 @@ class StatusNames:
 
 
 def catalog_of(registrar: ResourceRegistrar, *, timeout: float) -> Any:
-    """The registrar's catalog summary (see `rr_actors.observe._view`).
+    """The registrar's catalog summary (see `rr_actors.observe._view`): plain dicts, lists, strings.
 
-    Runs in the registrar's process (through `Supervisor.run_in` for a manager), on the
-    caller's thread. The registrar copies its rows and its servers' names on its own
-    actor thread (`rr_actors._registrar.snapshot`, as `rr_actors.testing.catalog_snapshot`
-    does), so the copy is consistent and the registrar is held for a copy only. No `repr`
-    runs here: the summary shows the display texts the registrar made once, when it
-    stored each value (plain dicts and strings: nothing of the user's to unpickle).
-
-    Args:
-        registrar: a registrar of this process.
-        timeout: seconds to wait for the registrar.
-
-    Returns:
-        The catalog summary: plain dicts, lists and strings.
+    Runs in the registrar's process on the caller's thread; the registrar copies its rows on
+    its actor thread (`rr_actors._registrar.snapshot`). No `repr` runs: the summary shows the
+    display texts stored with each value.
 
     Raises:
-        CallTimeoutError: the registrar did not answer within `timeout`.
+        CallTimeoutError: the registrar did not answer within `timeout` seconds.
         RegistrarStoppedError: it was stopped.
         RegistrarUnavailableError: it died.
     """
@@ -308,11 +272,7 @@ class LiveSource:
             thread.join(timeout)
 
     def snapshot(self) -> tuple[dict[str, Any], dict[str, Any]]:
-        """The tree and the dependency graph now, read on the calling thread (no threads).
-
-        Returns:
-            `(tree, graph)` as the page gets them.
-        """
+        """`(tree, graph)` now, as the page gets them, read on the calling thread."""
         tree = self.tree()
         self._note_states(tree)
         self._refresh(None)
@@ -400,11 +360,8 @@ class LiveSource:
     # -- events ---------------------------------------------------------------------------
 
     def _on_event(self, event: events.Event) -> None:
-        """Runs on the subscription's thread, one event at a time (kept as it is: cheap).
-
-        A status sent is named here, once (`StatusNames`), from the catalog last read
-        (`_catalogs`, replaced whole) and the provider's events before it.
-        """
+        """Runs on the subscription's thread, one event at a time; names a status sent
+        (`StatusNames`)."""
         if isinstance(event, events.StatusSent):
             section = self._catalogs.get(event.registrar)
             name = self._names.name(event, section and section["catalog"])
@@ -510,10 +467,8 @@ def backup_files(state_dir: str | os.PathLike[str]) -> list[Path]:
 
 
 def read_catalogs(files: list[Path]) -> dict[str, dict[str, Any]]:
-    """Read every backup (registrar name: the file's stem) into catalog summaries.
-
-    Nothing is unpickled (`read_backup(unpickle=False)`): a summary shows the display
-    texts the registrar stored, so a backup any user wrote can be looked at safely.
+    """Read every backup (registrar name: the file's stem) into catalog summaries, unpickling
+    nothing.
 
     Raises:
         CatalogCorruptError: a file is not a readable catalog (the error names it).
@@ -541,15 +496,8 @@ def _signature(file: Path) -> tuple[int, ...]:
 
 
 class BackupSource:
-    """Keeps the hub's sections up to date with the backups of a state directory.
-
-    Reads them once at construction (so a bad directory fails before anything is
-    served), then looks for changes every `POLL_INTERVAL` seconds on a thread. Nothing
-    is written to the directory.
-
-    Args:
-        state_dir: the directory (a supervisor's `state_dir`).
-        hub: where the sections go.
+    """Keeps the hub's sections up to date with the backups of a state directory (read once at
+    construction, then polled every `POLL_INTERVAL` seconds on a thread; nothing written).
 
     Raises:
         ConfigError: the directory does not exist or holds no backup.

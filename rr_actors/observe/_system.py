@@ -9,24 +9,12 @@
                   LinkWatch ─► "links" (each member's link: up, or cut since when, why)
 ```
 
-The system's event stream (`subscribe`: its own thread) ─► `_on_event`: each event with
-its `member`; a `StatusSent` named then, once (`StatusNames`: its host's events before it,
-its host's catalog in the page's hub), as a live source names its own tree's.
-
-In the view (one executor thread, `rr-observe-system`; Zenoh's callbacks only queue):
-
-```
- delta ─► decode ─► _apply_delta: the next seq? patch the mirror's sections ─► _publish
-                                  a gap?  ─► _ask its state (this host's own: Share.state)
- state ─► decode ─► _apply_state: newer than the mirror? replace its sections ─► _publish
- token ─► _token: here (ask its state) or gone (since when, why: Liveness.why)
- link event, every LINKS_EVERY s ─► _tick: ask the hosts that lag ─► _refresh:
-          "hosts", "links" (Liveness), "graph" (every host's catalogs, `dependency_graph`)
-```
-
-`_crossing.py` says what crosses and how it is checked; `_share.py` is the sending
-side; `_liveness.py` the hosts' and links' sections; `_faults_across.py` the fault
-commands (`SystemView.fault`).
+The view runs on one executor thread (`rr-observe-system`; Zenoh's callbacks only queue):
+a delta patches the mirror if it is the next `seq`, else the host's state is asked; a
+newer state replaces it; a token says a host is here or gone; every `LINKS_EVERY` s the
+hosts that lag are asked and `hosts`, `links`, `graph` refreshed. The system's event
+stream goes to `_on_event`. `_crossing.py`: what crosses; `_share.py`: the sending side;
+`_liveness.py`: hosts' and links' sections; `_faults_across.py`: fault commands.
 """
 
 from __future__ import annotations
@@ -77,19 +65,16 @@ hybrid logical clock order; `ZenohNetwork.subscribe_events`)."""
 class SystemView:
     """Keeps a page's hub up to date with every host's shared state.
 
-    Sections of the page's hub: `hosts`, `links`, `graph` (across every host), and per
-    host `host/<member>/tree`, `host/<member>/catalog/<registrar>`,
-    `host/<member>/ended`; every host's events, each with its `member`: from the
-    system's event stream (`subscribe`, in hybrid logical clock order) when there is
-    one, else as each host shares them.
+    Sections of the page's hub: `hosts`, `links`, `graph`, and per host
+    `host/<member>/tree`, `host/<member>/catalog/<registrar>`, `host/<member>/ended`; every
+    host's events, each with its `member` (from `subscribe`, in `hlc` order, when given).
 
     Args:
         hub: the page's hub.
         services: the router's session and what goes with it.
         member: this host's member name (`None`: it shares nothing, only shows).
         share: this host's share (its own state comes from it directly, not over Zenoh).
-        subscribe: the system's event stream (`ZenohNetwork.subscribe_events`), or
-            `None`.
+        subscribe: the system's event stream (`ZenohNetwork.subscribe_events`), or `None`.
     """
 
     def __init__(
@@ -140,15 +125,8 @@ class SystemView:
         self._executor.submit(functools.partial(self._refresh, graph=False))
 
     def _on_event(self, event: events_module.Event) -> None:  # (its subscriber thread)
-        """An event of the system's stream into the page's history, with its `member`.
-
-        A status sent is named now, once, as a live source names its own tree's
-        (`StatusNames`): a page open during it and one opened later draw the same row. From
-        its host's events before it (its provider's `ConsumerAdded` and `ResourceLoaded`
-        come first on the stream: one process's events keep their order), else from that
-        host's catalog in the page's hub (its last value, replaced whole: read here, on the
-        stream's thread, as the view's thread may replace it meanwhile).
-        """
+        """An event of the system's stream into the page's history, with its `member`; a status sent
+        is named now (`StatusNames`, from its host's events and that host's catalog in the hub)."""
         data = event_dict(event)
         member = data["member"] = data.get("host") or "?"
         if isinstance(event, events_module.StatusSent):
@@ -378,10 +356,8 @@ class SystemView:
     # -- a fault on another host ---------------------------------------------------------------
 
     def fault(self, member: str, kind: str, data: dict[str, Any]) -> str:
-        """Ask host `member` to inject a fault into one of its managers; what it did.
-
-        Runs on the calling thread (a worker thread of the server: it waits up to
-        `FAULT_TIMEOUT` seconds for the answer: `send_fault`).
+        """Ask host `member` to inject a fault into one of its managers; what it did. Waits up to
+        `FAULT_TIMEOUT` seconds, on the calling thread (a server worker).
 
         Raises:
             FaultRefused: that host refused (its reason), did not answer, or is not known.

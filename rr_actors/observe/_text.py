@@ -5,14 +5,11 @@
  graph (dependency_graph)                     ┴─► render(graph, tree, "mermaid" | "dot") ─► str
 ```
 
-The drawing: supervisors are hexagons, with an arrow to each child; a registrar with
-resources is a box (a Mermaid subgraph, a DOT cluster) holding them, one without is a
-plain node; a resource reads its label (`dependency_graph`: its server's `label(request)`,
-else what tells it apart from the server's other resources); each query is a dashed
-arrow from the resource (or registrar) that holds it to the provider's resource: the
-TeMoto thesis's figure 2.7. Arrows carry no query ids (on crossing arrows they overlap);
-only an orphan's says "no client record". Node names (`s1`, `r1`, `n1`, ...) are given
-in drawing order, so the same state draws the same text.
+Supervisors are hexagons with an arrow to each child; a registrar with resources is a
+box (a Mermaid subgraph, a DOT cluster) holding them, labelled as `dependency_graph`
+says; each query is a dashed arrow from its holder to the provider's resource (the
+thesis's figure 2.7), with no query id (only an orphan's says "no client record"). Node
+names are given in drawing order, so the same state draws the same text.
 """
 
 from __future__ import annotations

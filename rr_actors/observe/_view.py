@@ -16,13 +16,8 @@ A catalog summary is::
      "clients": [{"query_id", "serving_rr", "server", "request", "parent", "loaded"}],
      "in_doubt": [{"id", "request"}]}
 
-Requests and responses are shown by the display texts their registrar made once, when
-it stored them (`rr_actors._catalog.texts`): a summary never calls `repr` and never
-decodes a stored value, so a `__repr__` that hangs cannot stop a refresh, and a backup is
-shown without unpickling anything (that would run code from the file). A resource's
-`label` is what its server's `label(request)` returned, else what tells its request
-apart from the server's other requests (`default_labels`): the one short name the graph
-draws and the status timeline writes.
+Requests and responses are shown by the display texts their registrar stored
+(`rr_actors._catalog.texts`): no `repr` is called and nothing is unpickled.
 """
 
 from __future__ import annotations
@@ -53,10 +48,8 @@ short = display_text
 
 
 def shown(text: Any, width: int = REPR_WIDTH) -> str:
-    """A stored display text as the page gets it: a string, at most `width` characters.
-
-    A backup is not the reader's: its texts are checked (a non-string is not shown).
-    """
+    """A stored display text as the page gets it: a string (else not shown), `width` chars at
+    most."""
     if text is None:
         return NOT_SHOWN_YET
     if type(text) is not str:
@@ -233,14 +226,9 @@ def _labels(resources: list[dict[str, Any]]) -> list[str]:
 def resource_name(
     catalog: Mapping[str, Any] | None, query_id: str, resource_id: str | None = None
 ) -> str | None:
-    """`"<registrar>/<server> <label>"` of the resource a consumer's `query_id` holds.
-
-    How the status timeline names the resource a status is about: by the short label
-    the graph draws, not by its request's text. `resource_id` is the resource the
-    consumer holds when that is known otherwise (its provider's `ConsumerAdded`): its row
-    names it in a catalog read before the consumer was added (during the load). `None`
-    if `catalog` (a catalog summary) has neither.
-    """
+    """`"<registrar>/<server> <label>"` of the resource a consumer's `query_id` holds (or
+    `resource_id`, when its `ConsumerAdded` said), as the status timeline names it; `None` if
+    `catalog` has neither."""
     if catalog is None:
         return None
     for resource in catalog["resources"]:
@@ -255,15 +243,10 @@ def resource_name(
 def default_labels(texts: Sequence[str]) -> list[str]:
     """Short labels for one server's resources, from their requests' display texts.
 
-    A server's requests often share most of their items (the demo's all name the same
-    bus); what tells them apart is the rest. So for dict requests, each label is the
-    items whose text differs between the server's requests (just the value if one item
-    is left: `jackal-driver`, not `'name': 'jackal-driver'`). Any other request, a
-    server's only resource, or requests that differ nowhere visible keep the whole text.
-
-    Computed here, from the stored display texts, not stored: what differs depends on
-    which resources the server holds now, and a backup's reader decodes no value. A text
-    is a bounded `repr`, so items past its cut are not compared.
+    For dict requests, each label is the items whose text differs between the server's
+    requests (the value alone if one is left: `jackal-driver`); any other request, a server's
+    only resource, or requests that differ nowhere visible keep the whole text. Computed, not
+    stored: it depends on which resources the server holds now.
 
     Args:
         texts: the display texts of one server's requests.
@@ -332,28 +315,23 @@ def dependency_graph(
 ) -> dict[str, Any]:
     """The dependency graph across registrars: who holds which resource, through which query.
 
-    Nodes are registrars (`"reg:<name>"`, compound: their resources are inside) and
-    resources (`"res:<registrar>:<id>"`, labelled with their server's `label(request)`,
-    else with what tells them apart from their server's other resources:
-    `default_labels`). An edge is one
-    query, from the resource that holds it as a dependency (or from the registrar, for
-    a top-level call) to the provider's resource that serves it: the thesis's figure
-    2.7. A query whose provider's catalog is not known points to the provider registrar.
+    Nodes are registrars (`"reg:<name>"`, compound) and resources (`"res:<registrar>:<id>"`,
+    labelled by `label(request)` or `default_labels`). An edge is one query, from the
+    resource holding it as a dependency (or the registrar, for a top-level call) to the
+    provider's resource serving it (or the provider, if its catalog is not known): the
+    thesis's figure 2.7.
 
     Args:
         catalogs: registrar name -> its catalog summary (`None`: not known now).
         states: registrar name -> what to show of it (`"running"`, `"restarting"`, ...).
-        hosts: registrar name -> the member name of its host (the observer across
-            hosts): each node gets its `"host"` (`None`: not known), each edge `"crosses"`
-            (whether its two ends are on known, different hosts).
+        hosts: registrar name -> the member name of its host: each node gets its `"host"`,
+            each edge `"crosses"` (its ends on known, different hosts).
 
     Returns:
         `{"nodes": [{"id", "kind", "label", "parent", "state", ...}], "edges": [{"id",
-        "source", "target", "label", "query_id", "loaded", "orphan"}]}`, in a stable
-        order. An edge's label is empty (query ids drawn on crossing edges overlap),
-        except an orphan's. An
-        orphan edge is a consumer id at a provider whose consumer's catalog is known and
-        holds no such query (a consumer restarted without a backup, say).
+        "source", "target", "label", "query_id", "loaded", "orphan"}]}`, in a stable order.
+        An edge's label is empty but an orphan's: a consumer id whose consumer's known
+        catalog holds no such query.
     """
     graph = _Graph(catalogs, states or {})
     for name in catalogs:
@@ -377,17 +355,8 @@ def dependency_graph(
 
 
 def registrar_ranks(graph: Mapping[str, Any]) -> dict[str, int]:
-    """Each registrar's row in a layered drawing: consumers above their providers.
-
-    The rank is the longest chain of registrars that consume from it (0: nobody does).
-    A cycle of registrars (a self-call, or two that serve each other) is cut, not looped.
-
-    Args:
-        graph: what `dependency_graph` returned.
-
-    Returns:
-        Registrar name -> rank.
-    """
+    """Each registrar's row in a layered drawing: the longest chain of registrars consuming from
+    it (0: nobody does); cycles are cut. `graph` is what `dependency_graph` returned."""
     owner = {n["id"]: (n.get("parent") or n["id"]) for n in graph["nodes"]}
     names = [n["id"] for n in graph["nodes"] if n["kind"] == "registrar"]
     above: dict[str, set[str]] = {name: set() for name in names}

@@ -7,29 +7,15 @@
    _selector.select(timeout) ─► no file to watch: wait on a simulated Event for at most
                                  `timeout` virtual seconds (None: until woken)
  any simulated thread: call_soon_threadsafe ─► _write_to_self ─► that Event is set
- the scheduler, when another task runs: asyncio's running loop is the task's own, as
-   its thread-local contents are (`asyncio._get_running_loop`/`_set_running_loop`: per
-   OS thread, and every simulated thread runs on the run's one OS thread)
+ the scheduler, when another task runs: asyncio's running loop is the task's own
  the run's end (`close_all`): its tasks dropped, every loop it made is closed
 ```
 
-asyncio's `BaseEventLoop` runs everything but the wait: its `_run_once` asks
-`self._selector.select(timeout)` for the files that are ready, hands them to
-`_process_events`, and `call_soon_threadsafe` wakes the wait with `_write_to_self`.
-Those three hooks are asyncio's own, not public API (`selector_events.py` fills them for
-the real loops); this file is the one place that uses them, for CPython 3.11 to 3.14
-(`tests/simulation/test_loop.py` runs it on the interpreter CI has). Where they are not
-there, `new_event_loop` raises `SimulationError` naming the Python: coroutine callbacks
-are then not simulated, as before this file.
-
-What a simulated loop cannot do: watch a file or a socket (`add_reader`, `sock_*`,
-`create_connection`: `NotImplementedError`, as a loop without a selector), run a
-subprocess, or run a callback on a real thread (`run_in_executor`, `asyncio.to_thread`:
-a real thread would not be simulated). A coroutine callback that awaits a sleep, a
-future, a lock or an `rr_actors` call does all it does in virtual time. asyncio's
-per-thread state (the running loop, the async generators' hooks) is each simulated
-thread's own; the policy's "current" loop (`asyncio.get_event_loop()` where none runs)
-is not: it is the OS thread's, the last one set.
+It fills asyncio's private hooks `_selector.select`, `_process_events` and
+`_write_to_self` (CPython 3.11 to 3.14; elsewhere `new_event_loop` raises
+`SimulationError`). It cannot watch a file or socket (`NotImplementedError`), run a
+subprocess, or run on a real thread (`run_in_executor`). The policy's "current" loop
+(`asyncio.get_event_loop()` where none runs) is the OS thread's, not each task's.
 """
 
 from __future__ import annotations
@@ -128,12 +114,8 @@ def new_event_loop(sched: Scheduler) -> SimulatedEventLoop:
 
 
 def close_all(sched: Scheduler) -> None:
-    """Close the loops of a run that is over (its tasks dropped: none runs its loop).
-    A process's own loop runs until its process ends, as for real, and is closed here,
-    not left to the garbage collector's "unclosed event loop" warning. A coroutine still
-    pending on one (its task waited when the run ended) is closed first: its `finally`
-    blocks run now, with nothing of them logged, as `Scheduler.drop` does for the
-    run's threads, not in whatever thread the collector later runs in."""
+    """Close the loops of a run that is over, pending coroutines first (their `finally`
+    unlogged)."""
     for loop in sched.loops:
         if loop.is_closed() or loop.is_running():
             continue

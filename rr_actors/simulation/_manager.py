@@ -18,16 +18,9 @@
         ──► on_exit(ManagerExit) ─► the supervisor's mailbox (the real `_supervision`)
 ```
 
-The handle is a `ManagerProcess` whose requests (`stop`, `sync_events`,
-`forward_events`) are the real class's, sent on a simulated queue instead of a pipe; a
-kill is `Scheduler.end(process, -SIGKILL)`: its tasks never run again, its backup file
-keeps what committed. Its `stop_process`/`continue_process` are SIGSTOP and SIGCONT.
-While the tree has listeners (`Forward(on)`), the registrar's events go to the parent one
-by one on the same queue (`Events`), before the answer to a `SyncEvents`; what a kill
-kept from being sent is not counted (no tally: issue 42, step 3). Those of its start go
-as they are published, before `Ready`, where a real manager process holds them until
-after `Ready` (`_process/child.py`): no rule of the checker depends on the order of a
-manager's events and its supervisor's, and each seed keeps the history it had.
+The handle is a real `ManagerProcess` on a simulated queue instead of a pipe
+(docs/explanation/simulation.md). Unlike a real manager process, the events of its start
+go before `Ready` (no rule depends on that order, and each seed keeps its history).
 """
 
 from __future__ import annotations

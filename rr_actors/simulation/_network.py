@@ -6,45 +6,18 @@ order per link, cuts and heals.
    sending process and served registrar; made at A's first send)
    _Link.send(frame) ─► its wire to B: after a seeded delay, in order (FIFO per link),
    on a thread of B's (`_Wire`) ─► the messenger: unpickle, tell the registrar
- B's answer ─► answer_to(link) ─► the link's wire back: after a delay, in order, on a
-   thread of A's ─► link.pending.answered
- partition(pids) ─► links across fail what waits on them; sends across raise "cannot be
-   reached"; what is on the wire across is dropped when it arrives; a process made
-   during the cut is on its parent's side (a restart beyond the cut stays there); with a
-   lease, a cut past it makes each side hear the other's tokens go: every name served
-   only across it whose speaker it does not hear is lost for it (rule 19); one whose
-   speaker is on its side is awaited (`_awaited_across`), lost if that speaker goes
- listen(endpoint) ─► refused while another live process on its side of a partition
-   serves the name (`DuplicateNameError`, as AF_UNIX's lock and Zenoh's `wait_turn`;
-   one silent past its lease: `RegistrarUnavailableError`, not lost); one its own
-   process served is let go (a restart there); one beyond a cut serves on
- a name served on both sides of a partition: each sender routes to the one on its
-   side; each server carries its serve stamp (the HLC of its process as it listens)
- heal() ─► links work again; a name served on both sides: each of its processes hears
-   of the others (`Messenger.served_elsewhere`, the decision Zenoh's presence runs:
-   by the network's `resolve=`, by default the one served first is kept, the other
-   gives way and yields, rule 22; a server's side for `"majority"`: the live processes
-   its process heard as it began to serve), and from now on every sender routes to
-   the one kept (`kept`); every process hears each name
-   across as reachable again (rule 20: its consumers reconcile), on a thread of its own;
-   heal(unheard=pids): those processes do not hear the others' servers (a link that heals
-   one way): the kept one's process tells them (`tell_server`, a `Claim`, as Zenoh's
-   carrier puts it on the name's key)
- a process ends ─► what it served ends (`_Hub.end`, its own servers: not another's of the
-   name beyond a cut): every link to it fails what waits
- rule 19, as the real carriers judge it: each server carries its speaker (who restarts
-   it: its membership's `supervised_by`, or its own process while
-   `DIRECTORY.restart_expected`); a name gone unclean (its process ended, or silent past
-   the lease) that nobody else serves ─► no speaker, or one not heard: every process
-   that hears the network hears `Messenger.lost` (on a thread of its own); else awaited
-   (`_awaiting`), lost once its speaker's process ends
- deafen(pid) ─► the process cannot hear its router (Zenoh's member whose router went):
-   divided from every other, its `listen` refused (`wait_turn`'s words), every name
-   served elsewhere lost for it, its own judged by the others as above; hear(pid) ─►
-   rejoined as at a heal (rule 22 decides, each side hears the other reachable)
+ B's answer ─► answer_to(link) ─► the link's wire back, likewise ─► link.pending.answered
+ partition(pids) ─► links across fail what waits; sends across raise; the wire dropped
+ listen(endpoint) ─► refused while another live process on its side serves the name
+ heal() ─► links work again; a name served on both sides: rule 22 keeps one (`kept`);
+   every process hears the names across reachable again (rule 20)
+ a process ends ─► what it served ends; a name gone unclean that nobody else serves:
+   lost for every process (rule 19) unless its speaker is heard (then awaited)
+ deafen(pid) / hear(pid) ─► a process that cannot hear its router, then rejoined
 ```
 
-The faults a plan aims at it: `SimulatedNetwork`'s docstring. Naming, replies, stand-ins,
+All of it: docs/explanation/simulation.md, "The simulated network". The faults a plan
+aims at it: `SimulatedNetwork`'s docstring. Naming, replies, stand-ins,
 sizes and compensation are the messenger's. A kill drops what is on the wire to the killed
 process; what it sent before it died still arrives, as a socket's buffered bytes do.
 """
@@ -86,32 +59,23 @@ class SimulatedNetwork(MemoryNetwork):
     """An in-memory network between simulated processes (made inside a simulated run):
     each frame after a seeded delay, in order per link; `partition` and `heal`.
 
-    ```
-     the faults a plan aims (rr_actors.experiments, on the simulation):
-     cut_connections(pid) ─► every link from or to the process is shut down (`_Link.sever`):
-       what was sent on it still arrives, then what waits on it fails (an EOF); a send or
-       an answer after the cut fails at its writer (an answer is compensated); the next
-       send makes a new link (dialled again), as after a real connection's shutdown
-     duplicate_first(name, until) ─► each link made to `name` before `until` puts its first
-       frame on the wire twice (a retry after a reconnect that the peer had received)
-     kill_at_answer(pid, fire) ─► the process's next answer that is not an error (what the
-       call changed committed in its backup) never leaves: `fire()`, then it is SIGKILLed
-     on_serve(name, fire) ─► when a process next serves `name`: `fire(pid)` (on its thread)
-    ```
+    The fault hooks a plan aims (rr_actors.experiments, on the simulation):
+    `cut_connections(pid)` shuts every link of the process down (what was sent arrives,
+    then what waits fails; the next send dials again); `duplicate_first(name, until)` puts
+    the first frame of each link made to `name` before `until` on the wire twice;
+    `kill_at_answer(pid, fire)` SIGKILLs the process at its next non-error answer (after
+    the commit), `fire()` first; `on_serve(name, fire)` calls `fire(pid)` (on that
+    process's thread) when a process next serves `name`.
 
     Args:
         system: its name (`MemoryAddress` finds it by that name).
         delay: `(least, most)` seconds a frame takes on a link.
         lease: seconds a stopped process is heard (a liveliness lease) before what it
-            serves cannot be reached; `None`: for ever (its heartbeat judges it). A
-            process stopped (SIGSTOP) past it is silent: the links to what it serves
-            fail what waits, as at a cut; once it runs again, it is reachable again (a
-            presence thread of the network's process looks every quarter lease).
+            serves cannot be reached (reachable again once it runs); `None`: for ever.
         resolve: which of two servers of one name is kept after a heal (rule 22), as
-            `rr.ZenohNetwork`'s `resolve`: `"first_served"` (default), `"majority"` or
-            a function of two `rr.Claimant`s. Here every live process is a member: a
-            server's `side` is the live processes its process heard when it began to
-            serve (itself included), `members` all live processes then.
+            `rr.ZenohNetwork`'s `resolve`: `"first_served"` (default), `"majority"` or a
+            function of two `rr.Claimant`s (a server's `side`: the live processes its
+            process heard as it began to serve).
 
     Raises:
         ConfigError: `resolve` is none of those.
@@ -135,11 +99,10 @@ class SimulatedNetwork(MemoryNetwork):
         """Cut the processes of pids `side` off the others (both ways) until `heal`.
 
         Args:
-            side: the pids of the processes cut off.
-            started_by: with each process of `side`, every live one it started, and those
-                they started (a host's processes: its supervisor's and its managers').
-                Without, only the pids given (a process made during the cut is on its
-                parent's side either way).
+            side: the pids of the processes cut off (a process made during the cut is on its
+                parent's side).
+            started_by: with each process of `side`, every live one it started, recursively
+                (a host's processes).
         """
         hub = self._simulated()
         pids = set(side)
@@ -153,10 +116,8 @@ class SimulatedNetwork(MemoryNetwork):
         """Join every process again; each hears the names across as reachable again.
 
         Args:
-            unheard: pids of processes that do not hear the servers of the others after
-                the heal (a link that heals one way: their own tokens are heard, messages
-                cross both ways, but no other process's server of a name they serve
-                reaches them; Zenoh's presence would not tell them of it).
+            unheard: pids of processes that do not hear the others' servers after the heal (a
+                link that heals one way, as Zenoh's presence would leave it).
         """
         self._simulated().heal(frozenset(unheard))
 
@@ -183,13 +144,10 @@ class SimulatedNetwork(MemoryNetwork):
         self._simulated().serving[name] = fire
 
     def deafen(self, pid: int) -> None:
-        """Process `pid` cannot hear its router (its router went, or the link is one way),
-        until `hear(pid)`: it hears nothing of the system and the system nothing of it.
-        What waits on its links fails and its sends raise `RegistrarUnavailableError`;
-        it serves no name (`listen` refuses one it cannot tell is free, as Zenoh's
-        `Presence.wait_turn` does); every name served elsewhere is lost for it, and what
-        it serves is gone for the others (lost for good unless its speaker is heard:
-        rule 19)."""
+        """Process `pid` cannot hear its router until `hear(pid)`: what waits on its links fails,
+        its
+        sends raise `RegistrarUnavailableError`, it serves no name, and every name across is lost
+        for it (its own judged by rule 19 for the others)."""
         self._simulated().deafen(pid)
 
     def hear(self, pid: int) -> None:
@@ -313,10 +271,8 @@ class _Link:
         self.pending.fail(None, error)
 
     def sever(self) -> None:
-        """A cut shut it down, as `shutdown()` does a connection of the system's sockets:
-        nothing more is sent on it (a send or an answer fails at its writer), what was
-        sent arrives (it was in the reader's queue), and what still waits for an answer
-        fails once the answers already on their way arrived (an EOF after the bytes)."""
+        """A cut shut it down, as `shutdown()` a socket: what was sent arrives, then waiters
+        fail."""
         self.closed = self.severed = True
         error = RegistrarUnavailableError(
             f"registrar {self.served.endpoint.name!r}: the connection was cut"
@@ -408,10 +364,8 @@ class _SimulatedHub(_Hub):
         return _Server(self, endpoint, process, self._speaker(endpoint.name, process))
 
     def _speaker(self, name: str, process: Process) -> int | None:
-        """Who speaks for registrar `name` served in `process` if that process dies, as
-        the real carriers publish it (rule 19): the process its membership is
-        `supervised_by`, else its own while `DIRECTORY.restart_expected(name)`, else
-        nobody (read on its thread: its membership and directory are in)."""
+        """Who speaks for `name` in `process` if it dies (rule 19): its `supervised_by`, else itself
+        while `DIRECTORY.restart_expected(name)`, else nobody."""
         member = self.network.address.attach()
         supervisor: int | None = getattr(member, "supervisor", None)
         if supervisor is not None:
@@ -419,18 +373,12 @@ class _SimulatedHub(_Hub):
         return process.pid if DIRECTORY.restart_expected(name) else None
 
     def listen(self, endpoint: Endpoint) -> _Served:
-        """Serve `endpoint` in its process: refused while a process on its side of a
-        partition serves the name (as the real carriers refuse it: AF_UNIX's lock, Zenoh's
-        `wait_turn`), or while its own process cannot hear its router (`deafen`); one
-        beyond the cut serves on, for the processes of its side (rule 22 decides at the
-        heal). One its own process served is let go first (a registrar restarted there:
-        `Messenger.serve` does so for a process's own names).
+        """Serve `endpoint` in its process (one its own process served is let go first).
 
         Raises:
-            DuplicateNameError: another process on its side serves that name.
-            RegistrarUnavailableError: the one that serves it is silent past its lease
-                (not lost: it may run again; Zenoh refuses such a name, rule 22), or this
-                process is deaf (Zenoh's `wait_turn` cannot tell the name is free).
+            DuplicateNameError: another process on its side of a partition serves that name.
+            RegistrarUnavailableError: the one that serves it is silent past its lease, or this
+                process is deaf (as Zenoh's `wait_turn` cannot tell the name is free).
             RegistrarStoppedError: the network was closed.
         """
         name = endpoint.name
@@ -706,10 +654,8 @@ class _SimulatedHub(_Hub):
     # -- lost for good (rule 19) ------------------------------------------------------
 
     def _judge(self, name: str, server: _Server) -> None:
-        """`name`'s server went without a clean stop, or is heard no more (a lease, a
-        deaf process), and nobody serves it on: lost for good if nobody speaks for it or
-        its speaker is gone too (every process that hears the network hears `lost`);
-        else awaited, lost if its speaker goes later (the real carriers' rule 19)."""
+        """`name`'s server went unclean and nobody serves it on: lost, or awaited while its speaker
+        lives."""
         speaker = server.speaker
         if speaker is not None and speaker != server.process.pid and self._heard(speaker):
             self._awaiting[name] = speaker
@@ -719,11 +665,8 @@ class _SimulatedHub(_Hub):
         self._lost(name, server.process.pid)
 
     def _judge_across(self) -> None:
-        """A partition outlasted the lease: each side hears the tokens of the other go,
-        as Zenoh's do. Each live process hears lost every name served only across it
-        whose speaker it does not hear (none, the server's own process, or across too);
-        one whose speaker is on its side is awaited (rule 19). At the heal each hears
-        them reachable again (rule 20: its consumers reconcile)."""
+        """A partition outlasted the lease: each side hears the other's names lost or awaited (rule
+        19)."""
         for process in self.sched.processes:
             if not process.alive or process.pid in self._deaf:
                 continue

@@ -1,8 +1,8 @@
 """The stdlib's threads, locks, events, conditions and queues, on the scheduler.
 
-Each object behaves as its `threading` (or `queue`) namesake, with the methods the
-protocol code uses, and keeps its state in plain fields: one task runs at a time, so
-nothing here needs a lock. What would block a real thread suspends the task instead:
+Each behaves as its `threading` (or `queue`) namesake, for the methods the protocol code
+uses, with plain fields (one task runs at a time). What would block a real thread
+suspends the task instead:
 
 ```
  Lock.acquire (taken) ─┐                         ┌─ Lock.release ─ wake the first waiter
@@ -13,10 +13,8 @@ nothing here needs a lock. What would block a real thread suspends the task inst
  sleep ────────────────┘                         └─ (nothing: its deadline)
 ```
 
-A woken task takes the lock (or the item) only if it is still free when it runs, as a
-real thread's would be taken by a barging one meanwhile, and waits again otherwise.
-Every operation that would not block is a choice point (`Scheduler.pause`) where a
-real thread could be preempted.
+A woken task takes the lock (or item) only if still free when it runs (as a barging real
+thread could take it first). Every non-blocking operation is a choice point.
 """
 
 from __future__ import annotations
@@ -414,13 +412,8 @@ class SimpleQueue:
 
 
 def queue_class(sched: Scheduler, made: dict[type, type], cls: type) -> type:
-    """`runtime.queue_class` in a simulation: a subclass of `cls` (a `queue.SimpleQueue`
-    subclass) whose raw queue operations are a simulated `SimpleQueue`'s; its own
-    methods (`LateQueue.put`) stay, and call them (`_put`). Made once per class (`made`).
-
-    Each instance gets the simulated queue's methods themselves as its attributes (bound
-    to its own simulated queue), so an operation costs no call more than the simulated
-    queue's: some 50,000 a seed."""
+    """`runtime.queue_class` in a simulation: a subclass of `cls` whose raw queue operations are a
+    simulated `SimpleQueue`'s, bound per instance (no extra call); made once per class."""
     if cls in made:
         return made[cls]
     raw = {name: name for name in ("get", "get_nowait", "empty", "qsize")}  # (its, the queue's)

@@ -2,24 +2,18 @@
 
 ```
  Scheduler.spawn(body, process=P) ─► a task of P (a thread started by a task of P is P's)
- a step to a task of Q ─► States.install(Q): what P's singletons hold now is kept as
-   P's, Q's is put in (DIRECTORY, MEMBERSHIP, CLOCK, pykka's registry, ...: every
-   object registered with `runtime.process_state`; the run's end puts the real ones back)
+ a step to a task of Q ─► States.install(Q): P's singletons (every object registered
+   with `runtime.process_state`) kept as P's, Q's put in
  Scheduler.end(P, exitcode) (SIGKILL: -9; an exit: its code)
-   ├─ its tasks are never switched to again: no `finally` block runs, as after a SIGKILL
-   │  (dropped with the run's other tasks when the run is over)
-   ├─ the simulated locks they held are let go (only the carrier's objects are shared
-   │  between simulated processes: in a real run a dead process holds nothing of theirs)
-   ├─ the files P holds (`runtime.hold`: its backups' SQLite connections) closed, as the
-   │  kernel closes a dead process's: a transaction it had begun is rolled back
-   └─ `P.at_end` run (the kernel's part: the carrier closes P's links; its watcher hears)
+   ├─ its tasks are never switched to again: no `finally` block runs
+   ├─ the simulated locks they held of shared (carrier) objects are let go
+   ├─ the files P holds (`runtime.hold`) closed: an open transaction rolls back
+   └─ `P.at_end` run (the carrier closes P's links; its watcher hears)
  Scheduler.stop(P) (SIGSTOP): its tasks stay off the ready list until `cont(P)` (SIGCONT)
 ```
 
-What a process keeps on its disk (SQLite backups: real files) is not its state here: a
-kill drops its memory and keeps its files with exactly the transactions that committed.
-The run's end closes the files of every process still alive (`close_files`): none is
-left open for the garbage collector to find, or not.
+A kill drops a process's memory and keeps its files (SQLite backups) with exactly the
+transactions that committed; the run's end closes the files of every live process.
 """
 
 from __future__ import annotations
@@ -93,10 +87,8 @@ def _fields(obj: object) -> list[str]:
 class States:
     """The objects registered with `runtime.process_state`, and whose state they hold.
 
-    An object whose fields all live in its `__dict__` (most) has a `__dict__` per
-    process, swapped whole at a switch (one assignment, whatever its size; the one in use
-    is the process's own, so nothing is read back); the others (slotted ones, a class)
-    have their fields' values copied out (a tuple) and back in, where they differ.
+    A `__dict__` object's dict is swapped whole at a switch; slotted ones and classes have
+    their fields copied out and back in where they differ.
 
     Args:
         registered: `(obj, fresh)` pairs (`runtime.process_states()`).

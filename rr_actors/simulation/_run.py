@@ -3,22 +3,16 @@
 ```
  run(fn, seed=S) ─► a thread "rr-simulation" ─┬─ runtime.use(the simulated seams)
    (the caller waits for it, bounded)         ├─ the main process (pid 1): a fresh state of
-                                              │  each runtime.process_state (the directory,
-                                              │  the membership, the clock, pykka's registry)
+                                              │  each runtime.process_state
                                               ├─ Scheduler.run(): fn() as the task
                                               │  "MainThread", and every thread it starts
-                                              │  (a process it starts: start_process, a
-                                              │  manager process; kill(pid, sig))
                                               └─ the states put back, the real seams back
  ◄── Run(seed, hash, steps, elapsed, value, errors, trace): the same for the same seed
 ```
 
-The run's result is made as soon as the main task and the non-daemon threads ended;
-then every greenlet left (an actor still waiting for mail) is ended where it waits
-(`Scheduler.drop`: its `finally` blocks run then, unlogged, and change nothing of the
-run), since a greenlet left suspended when its thread ends is never freed; then the
-files every process still holds are closed (`runtime.hold`: a killed process's were as
-it died). Nothing of a run is left in the process but what it returned.
+Once the main task and the non-daemon threads ended, the result is made, every greenlet
+left is ended where it waits (`Scheduler.drop`: a suspended greenlet is never freed) and
+the files every process still holds are closed: nothing of a run is left but its result.
 """
 
 from __future__ import annotations
@@ -100,8 +94,8 @@ def run(
     """Run `fn()` on a simulated world: every thread a greenlet of one OS thread, chosen
     by a scheduler seeded with `seed`, on a virtual clock.
 
-    The run ends when `fn` and every non-daemon thread it started returned; daemon
-    threads still waiting then (an actor's loop) are dropped.
+    The run ends when `fn` and every non-daemon thread it started returned; daemon threads
+    still waiting then (an actor's loop) are dropped.
 
     Args:
         fn: the run's main task (the simulated process's main thread).
@@ -111,8 +105,7 @@ def run(
         until: virtual seconds the run may last.
         max_steps: switches the run may take.
         trace: keep each step in `Run.trace`, not only its hash.
-        timeout: real seconds the caller waits for the run (`None`: no bound); past
-            them, its thread blocks for real (a real socket, a real lock).
+        timeout: real seconds the caller waits for the run (`None`: no bound).
 
     Returns:
         The run's seed, trace hash, steps, virtual time, `fn`'s value and thread errors.
@@ -120,12 +113,11 @@ def run(
     Raises:
         DeadlockError: nothing could run and nothing was due before `fn` returned.
         LimitError: past `until` or `max_steps`.
-        SimulationError: the run did not end within `timeout` real seconds (the process
-            should end: its runtime stays simulated), or a simulation already runs.
-        BaseException: what `fn` raised (with the seed in a note, and the virtual
-            seconds and the step it was raised at as `simulated_at`); or what interrupted
-            the caller's wait (a `KeyboardInterrupt`), once the run, cancelled, ended
-            (within `CANCEL_TIMEOUT` seconds): the caller may then remove what it made.
+        SimulationError: the run did not end within `timeout` real seconds (its thread
+            blocks for real; the process should end), or a simulation already runs.
+        BaseException: what `fn` raised (with the seed in a note and `simulated_at`); or
+            what interrupted the caller's wait (`KeyboardInterrupt`), once the cancelled
+            run ended (within `CANCEL_TIMEOUT` seconds).
     """
     if runtime.simulated():
         raise SimulationError("a simulation already runs in this process (one at a time)")
@@ -206,11 +198,8 @@ def _wait_ended(thread: threading.Thread, ended: threading.Event, timeout: float
 
 
 COLLECT_AFTER = 64
-"""Simulated processes that ended (in runs of this process) before their garbage is
-collected: a killed process's memory is left to the collector (its files are not: it
-closed them as it died, `runtime.hold`), and a crash loop's is much. A full collection
-after every run would cost more than most runs (some 0.1 s in a test process's heap), so
-it comes once this many ended."""
+"""Ended simulated processes before a full garbage collection (a killed one's memory is left
+to the collector; one collection per run would cost more than most runs)."""
 
 _ended = 0
 
@@ -229,10 +218,8 @@ def _simulate(
     outcome: list[Any],
     ended: threading.Event,
 ) -> None:
-    """The run's OS thread: the seams and states in, the scheduler, then back out.
-    `outcome` gets `(True, the Run)` or `(False, what to raise)`, made before the tasks
-    left are dropped (`Scheduler.drop`: nothing they do then is part of the run); `ended`
-    is set once all of that is done."""
+    """The run's OS thread: seams and states in, the scheduler, then out; `outcome` gets
+    `(True, Run)` or `(False, what to raise)` before the tasks left are dropped."""
     try:
         _simulate_in(make, fn, outcome)
     finally:
@@ -428,9 +415,8 @@ def pid() -> int:
 def start_process(target: Callable[[], object], *, name: str) -> int:
     """Start a simulated process that runs `target()` as its main thread; its pid.
 
-    Its per-process state (the directory of registrars, the membership, the clock,
-    pykka's registry, ...) is its own, fresh; the threads it starts are its own. It ends
-    when killed (`kill`), never by itself: a process whose threads all ended idles.
+    Its per-process state (directory, membership, clock, pykka's registry) is its own and
+    fresh. It ends only when killed (`kill`): a process whose threads all ended idles.
 
     Raises:
         RuntimeError: no simulation runs on the calling thread.
@@ -443,10 +429,9 @@ def start_process(target: Callable[[], object], *, name: str) -> int:
 
 
 def kill(pid: int, sig: int = signal.SIGKILL) -> None:
-    """Send `sig` to simulated process `pid`, as `os.kill`: `SIGKILL` (or another
-    deadly signal) ends it at once (no `finally` block of its runs; what it served is cut
-    off the network; its backup keeps what committed), `SIGSTOP` stops running it,
-    `SIGCONT` runs it again. A process that ended already is left alone.
+    """Send `sig` to simulated process `pid`, as `os.kill`: `SIGKILL` (or another deadly
+    signal) ends it at once (no `finally` runs; its backup keeps what committed),
+    `SIGSTOP` stops it, `SIGCONT` runs it again. An ended process is left alone.
 
     Raises:
         RuntimeError: no simulation runs on the calling thread.

@@ -12,23 +12,11 @@ virtual clock.
    └──────────────────────────────────────────────────────────────────────────────────────┘
 ```
 
-Time is virtual: it stands still while tasks run, and moves only when none is ready, to
-the next deadline. So a run takes no real time for its waits, and what happens at one
-virtual instant is ordered only by the seeded choices. Every choice is drawn from one
-`random.Random(seed)` (the data of a run, its ids and jitter, from another), so a seed
-replays its run exactly; the trace hash covers each step's task and virtual time. A
-choice is among the ready tasks in the order of their numbers, never the order they
-were woken in (a step that wakes several from a set of objects wakes them in the order
-of their addresses), and the garbage collector runs only between two steps
-(`GC_STEPS`): nothing of the process (its heap, its other threads, real time) counts.
-
-A task is blocked only by the simulated primitives (`_primitives.py`), which call
-`block` and `wake`; a choice point (`pause`) is where a real thread could be preempted
-although it would not block (an uncontended lock, a put): with probability `preempt`
-the task yields there and the scheduler chooses again, which is what makes the
-interleavings a seed search finds differ. (What is drawn is the number of choice points
-until the next yield, geometric: the same odds, one draw a yield instead of one a
-choice point.)
+Time stands still while tasks run and jumps to the next deadline when none is ready. Every
+choice is drawn from one `random.Random(seed)` among the ready tasks in number order (never
+wake order), and the collector runs only between steps (`GC_STEPS`): a seed replays its
+run exactly. A choice point (`pause`, where a real thread could be preempted without
+blocking) yields with probability `preempt` (drawn as a geometric count of choice points).
 """
 
 from __future__ import annotations
@@ -89,13 +77,9 @@ DROP_TRIES = 3
 """Times a task left at the end of a run is thrown `GreenletExit` before it is given up."""
 
 GC_STEPS = 1_000
-"""Steps between two collections of garbage while a run runs. The collector is off
-meanwhile: left on, it would run when allocations (the run's, and those of any other
-thread of the process) reached its threshold, in the middle of whichever task allocated;
-the finalizers of what it frees (a `__del__`, a generator's `finally`, a weakref's
-callback) would then run there, and where the freed memory is reused decides the
-addresses of new objects (the order of a set of them). Between two steps, where the
-scheduler runs, the same seed collects the same garbage at the same point every time."""
+"""Steps between two collections (the collector is off meanwhile): a collection mid-task would
+run finalizers there and change the addresses of new objects, so the same seed collects the
+same garbage at the same point."""
 
 _NOTHING: dict[
     str, Any
@@ -277,12 +261,10 @@ class Scheduler:
         return run
 
     def current(self) -> Task:
-        """The task that runs now (for the run's own OS thread: the simulated objects'
-        callers; another thread asks `current_or_none`).
+        """The task that runs now.
 
         Raises:
-            RuntimeError: the caller is no simulated thread (the scheduler itself, or a
-                real thread that used an object of the simulation).
+            RuntimeError: the caller is no simulated thread (another thread asks `current_or_none`).
         """
         task = self.running
         if task is None:
@@ -326,11 +308,8 @@ class Scheduler:
             self._ready.append(task)
 
     def pause(self) -> None:
-        """A choice point: with probability `preempt`, the calling task yields and the
-        scheduler chooses again (it may choose the same task).
-
-        The primitives inline it (`gap -= 1`, then `yield_now()` if it went below 0): a
-        run has hundreds of thousands of choice points."""
+        """A choice point: with probability `preempt`, the calling task yields (the primitives
+        inline it)."""
         self.gap -= 1
         if self.gap < 0:
             self.yield_now()
@@ -439,10 +418,8 @@ class Scheduler:
         self._cancelled = True
 
     def _install_locals(self, task: Task) -> None:
-        """Put `task`'s contents of the `runtime.local()` namespaces in; those in now are
-        kept as their task's (unless it ended). Only when another task runs than the one
-        whose they are: its own stay in between. asyncio's running loop, once a run made
-        a loop (`_loop.py`), and its async generators' hooks are swapped the same way."""
+        """Swap in `task`'s contents of the `runtime.local()` namespaces (and asyncio's running
+        loop)."""
         was, self._in_locals = self._in_locals, task
         keep = was is not None and not was.ended
         for i, contents in enumerate(self._contents):
@@ -465,16 +442,11 @@ class Scheduler:
             sys.set_asyncgen_hooks(*task.hooks)
 
     def drop(self) -> int:
-        """End every task left (the run is over: its trace and hash are final); how many
-        would not end.
+        """End every task left; how many would not end.
 
-        A greenlet left suspended when its OS thread ends is never freed, nor is what
-        its frames hold (greenlet's "a cycle of greenlets is a leak", before CPython
-        3.15): each run would keep its actors, catalogs and threads. So each task left is
-        thrown `GreenletExit` where it waits, and its `finally` blocks run now, in
-        simulated threads nobody schedules any more, with nothing of them logged
-        (`_quiet`): what they do can no longer change the run. One that waits again is
-        thrown it again, `DROP_TRIES` times at most.
+        A greenlet suspended when its OS thread ends is never freed, so each is thrown
+        `GreenletExit` where it waits (`DROP_TRIES` times at most), its `finally` blocks run
+        unlogged (`_quiet`): the run is over, they change nothing of it.
         """
         self.preempt = 0.0  # (no choice points: a `finally` block runs through)
         self.gap = self._next_gap()
@@ -536,12 +508,9 @@ class Scheduler:
         return process
 
     def end(self, process: Process, exitcode: int) -> None:
-        """End `process` (a SIGKILL: `-9`; an exit: its code): its tasks are never run
-        again (no `finally` block of theirs runs), the simulated locks they held are let
-        go (those another process made: only the carrier's objects are shared; its own
-        stay as they were, a future's lock too), then its `at_end` callbacks run. From
-        one of its own tasks, never returns. The files it held (`runtime.hold`) are
-        closed before its `at_end` callbacks run."""
+        """End `process` (a SIGKILL: `-9`; an exit: its code): its tasks never run again, the locks
+        of other processes' objects they held are let go, its files closed, then its `at_end`
+        callbacks run. From one of its own tasks, never returns."""
         if not process.alive:
             return
         process.exitcode = exitcode

@@ -98,49 +98,33 @@ STEPS: dict[str, Callable[..., Any]] = {
     "shares": _shares,
     "unloads": _unloads,
 }
-"""The steps a classroom's copy may replace, each name with the registrar's own code.
+"""The steps a classroom's copy may replace, each name with the registrar's own code
+(`shipped_step`), each with its shape:
 
-Each step's shape (`shipped_step` gives the registrar's own code as a function of it):
-
-- `climb(parent, resources, status) -> ids`: where a status delivered to a consumer id
-  climbs: `parent` the id of the resource that id is a dependency of (`None`: a client's
-  own call), `resources` the ids of the resources its registrar serves (a collection:
-  `in` is what to ask it), `status` the `rr_actors.Status`; returns the ids of the
-  resources to notify in turn (an iterable of `str`; ids not in `resources` are skipped).
+- `climb(parent, resources, status) -> ids`: the resources to notify in turn of a status
+  delivered to a consumer id (`parent`: the resource it is a dependency of, `None` for a
+  client's own call; `resources`: a collection of the ids the registrar serves; ids not
+  in it are skipped).
 - `shares(stored, request, loading, failed) -> bool`: whether a resource loaded (or
-  loading: `loading`) for request `stored` serves a new call of `request` (rule 1:
-  equal requests share one resource); `failed`: its provider reported it `FATAL`.
-  Asked for plain requests (those the catalog digests: numbers, strings, tuples,
-  dicts of them...), of the same server, on the registrar's actor thread.
-- `group(strategy, names, crashed) -> names`: the children a crash of child `crashed`
-  takes down with it, itself included: `strategy` the supervisor's (`"one_for_one"`,
-  `"one_for_all"`, `"rest_for_one"`), `names` every child's name in start order (a
-  tuple of `str`); returns the names to stop and restart (an iterable of `str`; the
-  supervisor stops them in reverse start order, then starts them in start order). Runs
-  on the supervisor's thread.
-- `unloads(left) -> bool`: whether the release of one consumer id of a loaded resource
-  unloads it: `left` the consumer ids still on it after that release (a frozenset of
-  query ids, maybe empty). Asked on the registrar's actor thread at each release.
-- `in_doubt(state) -> bool`: whether a row restored from a backup was cut short by a
-  crash (rule 16): `state` its state there, `"loading"`, `"loaded"` or `"unloading"`.
-  Asked as the registrar starts, before it serves (its launching thread, then its
-  actor thread).
-- `reconcile(mine, held, under_way) -> (release, unknown)`: a provider's side of a
-  reconcile with one consumer: `mine` the query ids it holds for that consumer, `held`
-  those the consumer says it holds there, `under_way` those whose loads are under way
-  here (frozensets of `str`); returns the ids to release here (those not in `mine` are
-  skipped) and the ids to answer as unknown (the consumer reports them `FATAL`), two
-  iterables of `str`. Asked on the provider's actor thread.
-- `release_order(dependencies) -> order`: when a resource's last consumer left, the
-  query ids of the calls it holds as dependencies (a tuple of `str`, oldest first)
-  and `"unload"` (its provider's unload callback), in the order they run: every id
-  and `"unload"` once (a list). Those before `"unload"` are released before it runs,
-  those after once it is done. Asked on the registrar's actor thread.
-- `recent(times, now, period) -> int`: at a child's exit that its supervisor would
-  restart, how many restarts count toward its intensity: `times` every restart counted
-  since the supervisor (re)started, this one last (a tuple of monotonic seconds), `now`
-  this one's time, `period` the supervisor's (seconds). Above `max_restarts`, the
-  supervisor gives up. Asked on the supervisor's thread.
+  `loading`) for `stored` serves a new call of `request` (rule 1); `failed`: reported
+  `FATAL`. Asked for plain requests of one server, on the registrar's actor thread.
+- `group(strategy, names, crashed) -> names`: the children (start-ordered `names`) a crash
+  of `crashed` takes down with it, itself included, per `strategy` (`"one_for_one"`,
+  `"one_for_all"`, `"rest_for_one"`); on the supervisor's thread.
+- `unloads(left) -> bool`: whether a release unloads a loaded resource, `left` the
+  frozenset of consumer ids still on it; on the registrar's actor thread.
+- `in_doubt(state) -> bool`: whether a restored row (`"loading"`, `"loaded"`,
+  `"unloading"`) was cut short by a crash (rule 16); as the registrar starts.
+- `reconcile(mine, held, under_way) -> (release, unknown)`: a provider's reconcile with
+  one consumer (frozensets of `str`: its ids for it, those the consumer holds there, those
+  loading); the ids to release (not in `mine`: skipped) and to answer unknown (reported
+  `FATAL`); on the provider's actor thread.
+- `release_order(dependencies) -> order`: at a resource's last release, its dependencies'
+  query ids (oldest first) and `"unload"`, each once, in the order they run (those before
+  `"unload"` released before it, the rest after); on the registrar's actor thread.
+- `recent(times, now, period) -> int`: at a restartable exit, how many restarts count
+  toward intensity (`times`: monotonic seconds of every restart since the supervisor
+  started, this one last; `period` in seconds); on the supervisor's thread.
 """
 
 
@@ -161,15 +145,13 @@ def shipped_step(name: str) -> Callable[..., Any]:
 def replaced_step(name: str, step: Callable[..., Any]) -> Iterator[None]:
     """Inside the block, the registrars of this OS process run `step` as their step `name`.
 
-    Only the registrars of this process see it: those of a simulated run
-    (`rr_actors.simulation`, `rr_actors.experiments.simulate`), never a manager in a real
-    process of its own. The step runs on the registrar's actor thread (a simulated one):
-    it must return at once and must not call a registrar. The registrar's own code is
-    back when the block ends, even on an error.
+    Only this process's registrars see it (a simulated run's, never a real manager
+    process's). It runs on the registrar's actor thread: it must return at once and must not
+    call a registrar. The registrar's own code is back when the block ends, even on an error.
 
     Raises:
-        ConfigError: `name` is not one of `STEPS`, `step` is not callable, or another
-            copy of the step is in place (blocks of one step do not nest).
+        ConfigError: `name` is not one of `STEPS`, `step` is not callable, or another copy
+            of the step is in place (blocks of one step do not nest).
     """
     shipped_step(name)
     if not callable(step):

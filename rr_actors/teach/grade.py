@@ -2,16 +2,14 @@
 
 ```
  check(folder) ─ the exercise (folder's .teach.json), its plan (folder/plan.toml, its
- │               setups imported from the folder: the student's modules, fresh)
- │               a protocol exercise: folder/step.py's function in the registrar's place
- │               (`replaced_step`)
+ │               setups imported fresh from the folder); a protocol exercise:
+ │               folder/step.py's function in the registrar's place (`replaced_step`)
  ├─ seeds 1..N (or one: `seed`): simulate.run_seed ─► the checker's verdict + the kit's
- │  rules (`rules.py`) over the run's events; the first seed that breaks one ends it
- └─► Report: passed; seeds run; interleavings (distinct histories); CPU seconds; the
-     first failure: the rule in words, the finding, its first violating event, a story
-     of at most `STORY` steps (the steps of the registrars it names and the faults,
-     before it) of the run shrunk to a smaller plan that breaks the same rule (judged
-     by the same rules, the kit's too: `shrink.shrink`), the command that replays it
+ │  rules (`rules.py`); the first seed that breaks one ends it
+ └─► Report: passed; seeds run; interleavings; CPU seconds; the first failure: the rule
+     in words, the finding, its first violating event, a story of at most `STORY` steps
+     of the run shrunk to a smaller plan breaking the same rule (`shrink.shrink`), the
+     command that replays it
 ```
 """
 
@@ -68,11 +66,10 @@ class Failure:
         story: the story's lines (at most `STORY` steps and the violation's line).
         story_events: how many steps of the run the story kept.
         run_events: how many events the whole run had.
-        replay: the command that tells the seed's whole story (the shrunk plan's, if
-            shrunk; `""`: the plan broke the rule before any run, `intensity-bound`).
-        shrunk_seed: the seed of the shrunk plan (`SHRUNK` in the folder) the story
-            tells; `None`: the story is the run's own (a crash, no shrink asked, or a
-            shrink that did not find the violation again).
+        replay: the command that tells the seed's whole story (the shrunk plan's, if shrunk;
+            `""`: the plan broke the rule before any run).
+        shrunk_seed: the seed of the shrunk plan (`SHRUNK` in the folder) the story tells;
+            `None`: the story is the run's own.
         shrunk_events: the shrunk run's events (`None`: not shrunk).
     """
 
@@ -133,18 +130,15 @@ def check_folder(
         folder: the folder `start` wrote, as the student changed it.
         seed: one seed to run (a replay).
         seeds: run seeds 1 to this instead of the exercise's (at least 1).
-        plan_file: run this plan instead of `folder/plan.toml` (a shrunk one, `SHRUNK`);
-            its setups are imported from its own folder.
+        plan_file: run this plan instead of `folder/plan.toml` (a shrunk one, `SHRUNK`),
+            its setups imported from its own folder.
         shrink_budget: the most runs a failure's shrink makes (0: no shrink).
         on_seed: called with each seed once it ran (progress).
 
-    Returns:
-        The report.
-
     Raises:
         ConfigError: `folder` is not an exercise's folder; its `plan.toml` is missing or
-            wrong (the plan's error: file, line, key); a protocol exercise's `step.py`
-            is missing, does not import or lacks its step's function.
+            wrong (file, line, key); a protocol exercise's `step.py` is missing, does not
+            import or lacks its step's function.
     """
     chosen, _state = folder_exercise(folder)
     count = chosen.seeds if seeds is None else seeds
@@ -206,13 +200,11 @@ def replay_story(folder: Path, seed: int, plan_file: Path | None = None) -> list
 def seed_run(
     folder: Path | None, seed: int, plan_file: Path | None = None
 ) -> tuple[Plan, simulate.SimulatedRun]:
-    """One seed of a check run again: `folder`'s plan (or `plan_file`), with a protocol
-    exercise's `step.py` in place; without `folder`, `plan_file` alone (any plan the
-    simulation runs). The plan and the run.
+    """One seed of a check run again: `folder`'s plan (or `plan_file`, alone without `folder`),
+    a protocol exercise's `step.py` in place; the plan and the run.
 
     Raises:
-        ConfigError: as `check_folder`; a setup that raised (its message); neither a
-            folder nor a plan.
+        ConfigError: as `check_folder`; a setup that raised; neither a folder nor a plan.
     """
     if folder is None and plan_file is None:
         raise ConfigError("a seed of what? give an exercise's folder or a plan (--plan)")
@@ -378,13 +370,9 @@ def _judge(
     known: tuple[set[str], str],
     shrink_to: tuple[Plan, Path, int, float] | None,
 ) -> Failure | None:
-    """The first finding of `run` (the checker's, then the kit's), told; `None`: held.
-
-    The finding is told on the run shrunk (`shrink_to`: the plan, its file, the budget
-    of runs and the CPU time it ends at; `shrink.shrink`, judged by the checker's rules
-    and the exercise's), when the shrink finds it again: its plan is written to the
-    folder (`SHRUNK`) and the replay command runs it. `known`: the plan's managers and
-    its rule 22 policy (`[hosts]` `resolve`)."""
+    """The first finding of `run` (the checker's, then the kit's), told on the run shrunk
+    (`shrink_to`) if the shrink finds it again; `None`: held. `known`: the plan's managers and
+    its rule 22 policy."""
     kit_rules = [RULES[name] for name in chosen.rules]
     if run.verdict == "held" and not kit_rules:
         return None
@@ -465,10 +453,8 @@ def _shrunk(
     shrink_to: tuple[Plan, Path, int, float],
     judge: shrink.Judge,
 ) -> tuple[simulate.SimulatedRun, list[check.Line], check.Finding, int] | None:
-    """`run` shrunk to a smaller plan showing its first violation again (as `judge`, the
-    check's rules, orders them: the one told), its plan written to `folder / SHRUNK`:
-    the shrunk run, its events, its finding and seed (`None`: the shrink did not find it
-    again, or failed: the run is told as it is)."""
+    """`run` shrunk to a smaller plan showing its first violation again (its plan written to
+    `folder / SHRUNK`): run, events, finding and seed; `None`: not found again."""
     plan, path, budget, cpu_until = shrink_to
     text = path.read_text(encoding="utf-8")
     try:
@@ -498,9 +484,8 @@ def _who(event: Any) -> str:
 
 
 def _cut(steps: list[story.StoryLine], index: int, who: set[str]) -> list[story.StoryLine]:
-    """At most `STORY` steps ending at `steps[index]`: the faults and the steps of `who`
-    (the registrars the finding names) before it, the latest ones; all steps if `who`
-    is empty or names none of them."""
+    """At most `STORY` steps ending at `steps[index]`: the latest faults and steps of `who` (all
+    steps if `who` names none)."""
     before = [s for s in steps[:index] if s.line > 0 and s.who != "violation"]
     kept = [s for s in before if s.who in who or s.who == "fault"] if who else before
     kept = kept or before

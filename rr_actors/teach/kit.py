@@ -61,13 +61,12 @@ class Exercise:
         seeds: how many seeds a check runs (1 to this).
         rule: the rule it is about, in words (what a failing check prints first).
         rules: the kit's own rules checked besides the checker's (`rules.RULES`).
-        step: a protocol exercise's step (`rr_actors.teach.STEPS`), the student's copy
-            of it being `step.py`'s function of that name; `None` for a use exercise.
+        step: a protocol exercise's step (`rr_actors.teach.STEPS`, `step.py`'s function of
+            that name); `None` for a use exercise.
         hints: the hints, in the order `hint` gives them.
         folder: the exercise's folder in the package.
-        most_restarts_per_s: the highest restart intensity a supervisor of the plan may
-            have (`max_restarts / period`), above which it would not stop a crash loop
-            soon enough; `None`: any.
+        most_restarts_per_s: the highest `max_restarts / period` a supervisor of the plan
+            may have (it must stop a crash loop soon enough); `None`: any.
     """
 
     name: str
@@ -203,8 +202,8 @@ def next_hint(folder: Path) -> tuple[Exercise, int, str | None]:
     """The next hint of `folder`'s exercise, remembered as shown in its `STATE`.
 
     Returns:
-        The exercise, the hint's number (1 for the first) and its text; past the last
-        one: the number of hints and `None` (nothing more is remembered).
+        The exercise, the hint's number (1 first) and its text; past the last one: the
+        number of hints and `None`.
 
     Raises:
         ConfigError: as `folder_exercise`.

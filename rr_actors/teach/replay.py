@@ -14,13 +14,9 @@
    one more fault `after` the shown step's event, run again (`rerun`), shown at the fault
 ```
 
-What each step shows is what the events say, never the registrars read: a child's state
-and pid (its `ChildStarted`, `ChildExited`, `ChildRestarted`, `SupervisorGaveUp`), each
-registrar's rows (`CatalogRestored` replaces them; `ResourceLoaded`, `ConsumerAdded`,
-`ConsumerReleased`, `ResourceUnloaded`, `CallAnswered`, `QueryForgotten`, `InDoubt`
-change them), and in flight: the calls begun and not yet answered (a `CallAnswered`,
-`CallFailed` or `CallWithdrawn` later in the run, its `started` at or before the step)
-and the statuses sent whose last delivery comes later.
+Each step shows what the events say, never the registrars read: the children's states,
+each registrar's rows (from the catalog events), and in flight the calls begun and not
+yet answered and the statuses whose last delivery comes later.
 """
 
 from __future__ import annotations
@@ -181,15 +177,12 @@ class Replay:
         return {"ok": True, "step": self.show(step), "steps": len(self.steps)}
 
     def branch(self, kind: str, target: str) -> str:
-        """Run the seed again with one more fault: `kind` (`BRANCHES`) of manager
-        `target`, right after the event of the step shown (the plan's `after` trigger:
-        that event's kind, its count so far); show the same step of the new run. What
-        happened, in words (where the fault landed; whether the steps before it stayed
-        the same).
+        """Run the seed again with one more fault, `kind` (`BRANCHES`) of manager `target`, right
+        after the shown step's event; show the same step of the new run. What happened, in words.
 
         Raises:
-            ConfigError: a replay without `rerun` (a recorded run); `target` is not a
-                process manager of the plan; nothing happened yet to trigger it on.
+            ConfigError: a replay without `rerun`; `target` is not a process manager of the
+                plan; nothing happened yet to trigger it on.
         """
         if self.rerun is None:
             raise ConfigError("this replay shows a recorded run: it cannot run it again")

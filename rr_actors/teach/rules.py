@@ -1,38 +1,25 @@
 """The kit's own rules: what an exercise asks of a student's code that the checker's rules
 (`rr_actors.experiments.check.RULES`) do not judge, over the same numbered events.
 
-Each rule takes a run's events (`(line, event)`, the lines of its history) and the
-names of the plan's managers, and gives findings (`check.Finding`: rule, `"violation"`,
-message, the lines that show it), in the order of their lines.
+Each rule takes a run's `(line, event)`s and the plan's managers' names, and gives
+findings (`check.Finding`) in line order.
 
-- `dependency` (rule 7): a call a manager makes is made while it loads a resource, and
-  so is a dependency of that resource (`CallAnswered.parent` set): released with the
-  resource, never left held by a manager for nothing.
-- `survives`: no supervisor gives up (`SupervisorGaveUp`, told at the crash it gave up
-  at): the tree's restart intensity holds out under the exercise's faults.
-- `alone`: a crashed manager is restarted alone, no sibling stopped with it (a restarted
-  manager restores its catalog: the thesis's mission drives on through F3-F5).
-- `back`: a manager that exited is started again (`ChildRestarted` after its
-  `ChildExited`), unless its supervisor gave up: a `temporary` child (or a `transient`
-  one that ended normally) is never restarted, and the tree drives on without it.
-- `once` (rules 2, 16): a retry of a call loads nothing while the call's first load
-  holds its id: no second `ResourceLoaded` for a query id at a registrar, unless the
-  first's id was released before it (`ConsumerReleased`: at a reconcile, the consumer
-  had not heard the answer) or a restart reported the first's resource in doubt
-  (`InDoubt`: its load was cut short before it was committed).
-- `warned` (rule 9): a provider's round of statuses (its `StatusSent`s less than
-  `ROUND_S` apart) is sent about every resource of the servers it names that had a
-  consumer throughout it (from `MARGIN_S` before its first send to `ROUND_S` after its
-  last: one released meanwhile may be released before its turn came): one
-  status per resource, since a status reaches every consumer of the resource behind
-  the id it names, and no other. A round its provider's exit cut short is not judged.
-- `loaded`: every load the run started succeeded (no `LoadFailed`): a manager's
-  resources are asked for as its providers can serve them.
-- `kept` (rule 22): at a heal, the registrar of a name that yields (its manager exits
-  normally while another process serves the name) is not the one that served a
-  majority of the hosts during the cut (its own host and the hosts of the consumers that
-  heard its answers, of every host the run's events name): what the majority's side
-  loaded is not undone.
+- `dependency` (rule 7): a call a manager makes is made while it loads a resource (so
+  `CallAnswered.parent` is set): released with it, never held for nothing.
+- `survives`: no supervisor gives up under the exercise's faults.
+- `alone`: a crashed manager is restarted alone, no sibling stopped with it.
+- `back`: a manager that exited is started again unless its supervisor gave up (a
+  `temporary` child, or a `transient` one that ended normally, never is).
+- `once` (rules 2, 16): a retry loads nothing while the first load holds its id: no
+  second `ResourceLoaded` for a query id at a registrar unless the first's id was
+  released (`ConsumerReleased`) or reported `InDoubt` before it.
+- `warned` (rule 9): a provider's round of statuses (`StatusSent`s less than `ROUND_S`
+  apart) names every resource of its servers that had a consumer throughout it (from
+  `MARGIN_S` before to `ROUND_S` after), one status each; a round its provider's exit
+  cut short is not judged.
+- `loaded`: every load the run started succeeded (no `LoadFailed`).
+- `kept` (rule 22): at a heal, the registrar of a name that yields is not the one that
+  served a majority of the hosts during the cut.
 """
 
 from __future__ import annotations
@@ -103,11 +90,8 @@ _Crash = tuple[int, events.ChildExited]
 
 
 def alone(history: Sequence[Line], managers: Collection[str]) -> list[Finding]:
-    """`alone`: a crashed manager is restarted alone: its supervisor stops no sibling to
-    restart it with the crash (`ChildExited.stopped`, then `ChildRestarted`), since a
-    restarted manager restores its catalog and its consumers keep their ids (the
-    thesis's mission: F3-F5, no stop). The stops of a give-up or of the run's end are
-    not judged (no restart follows them)."""
+    """`alone`: a crashed manager is restarted with no sibling stopped (its catalog restores);
+    the stops of a give-up or of the run's end are not judged."""
     crashed: dict[str, _Crash] = {}  # supervisor -> its last crash
     stopped: dict[tuple[str, str], tuple[int, _Crash]] = {}  # (supervisor, child) -> stop
     found = []

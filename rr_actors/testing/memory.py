@@ -1,15 +1,10 @@
 """An in-memory carrier: a test double of a system of registrars across processes.
 
-`MemoryNetwork` is a carrier (a `Transport`, like an AF_UNIX `System` or a
-`ZenohNetwork`) whose "processes" are in this one: every registrar served on it counts as
-running in a process of its own, with a messenger of its own; the network itself is the
-test's process. What it carries is what the others carry: frames (pickled messages,
-`codec.frame`) handed from one thread to another, never the Python objects, so a message
-that does not pickle, one over `max_message_bytes` and an answer that cannot reach its
-caller behave as they do across processes. Everything else (naming, replies kept under a
-token, stand-in replies, size limits both ways, compensation, failing what waits on a
-registrar that went) is the messenger's (`rr_actors._transport.messenger`), as for every
-carrier; this file is only the link, its `Carrier`:
+`MemoryNetwork` is a carrier (a `Transport`, like an AF_UNIX `System` or a `ZenohNetwork`)
+whose "processes" are in this one: every registrar served on it counts as running in a
+process of its own. It carries frames (pickled, `codec.frame`), never Python objects, so
+unpicklable or oversized messages behave as across processes; everything else is the
+messenger's (`rr_actors._transport.messenger`); this file is only the link:
 
 ```
  network.resolve(name).tell(m) ─► messenger: encode, check size, keep the reply ─►
@@ -18,20 +13,9 @@ carrier; this file is only the link, its `Carrier`:
    answer_to(route) ─► the answers thread (rr-mem-answers) ─► the route's `pending`
 ```
 
-Select it as any carrier: `ResourceRegistrar.start(config, network=MemoryNetwork())`
-serves the registrar on it, `MemoryNetwork.run(name, fn)` runs a function where the
-registrar lives (through the carrier), `MemoryNetwork.resolve(name)` is the peer a
-registrar of another process would get. Registrars of one process find each other in
-the process's directory first (the network is no resolver of the directory), so it is
-what a test sends through `resolve` and `run` that crosses this carrier; a registrar's
-own calls to another registrar of this process do not. `cut(name)` makes the process
-serving `name` gone, as a `SIGKILL` would: what waits on it fails at once with
-`RegistrarUnavailableError`, later sends raise it.
-
-It cannot join another process (`address.attach()` works in this process only), has no
-liveness by lease and never reports a registrar lost for good (rule 19) or reachable
-again (rule 20): the messenger's `lost` and `reachable` are the AF_UNIX and Zenoh
-carriers' business.
+Registrars of one process find each other in its directory first: only what a test sends
+through `resolve` and `run` crosses this carrier (docs/reference/testing.md). It joins no
+other process, has no lease and reports no registrar lost (rule 19) or reachable (rule 20).
 """
 
 from __future__ import annotations
@@ -94,9 +78,8 @@ class MemoryAddress:
     system: str
 
     def attach(self) -> Transport:
-        """The network of that name (this process's); in a simulated process other than
-        the one that made it, that process's membership of it (one per process; a new
-        one once it left, as a process whose registrar stopped does as it exits).
+        """The network of that name (this process's); in another simulated process, that process's
+        membership of it (a new one once it left).
 
         Raises:
             RegistrarStoppedError: it was closed, or it is another process's.
@@ -208,9 +191,7 @@ class _Hub:
         return _MemoryPeer(self, name) if known else None
 
     def listen(self, endpoint: Endpoint) -> _Served:
-        """Serve `endpoint` in a "process" of its own: refused while another serves its
-        name, as the real carriers refuse it (one name, one registrar); one whose
-        registrar ended, or that was cut or stopped, serves no more (a restart serves).
+        """Serve `endpoint` in a "process" of its own (one name, one registrar).
 
         Raises:
             DuplicateNameError: another "process" serves that name.
@@ -304,9 +285,8 @@ class _Hub:
 
 
 class MemoryNetwork(Messenger):
-    """An in-memory system of registrars: each one served on it counts as running in a
-    process of its own (see the module docstring). A test double: a `Transport` that
-    passes the carrier contract's cases that make sense in one process.
+    """An in-memory system of registrars, each in a "process" of its own (see the module
+    docstring): a `Transport` test double.
 
     Args:
         system: its name (`MemoryAddress` finds it by that name in this process).
@@ -334,12 +314,10 @@ class MemoryNetwork(Messenger):
         return MemoryAddress(self.system)
 
     def serve(self, endpoint: Endpoint) -> None:
-        """Serve a registrar of this process on the network, in a "process" of its own;
-        it stops being served when it ends.
+        """Serve a registrar of this process on the network until it ends.
 
         Raises:
-            DuplicateNameError: another registrar served on it has that name (one name,
-                one registrar, as on every carrier).
+            DuplicateNameError: another registrar served on it has that name.
             RegistrarStoppedError: the network was closed.
         """
         process = Messenger(self.system, resolver=False)
@@ -347,8 +325,7 @@ class MemoryNetwork(Messenger):
         process.serve(endpoint)
 
     def run(self, name: str, fn: Callable[[Any], Any], *, timeout: float) -> Any:
-        """Run `fn(registrar)` where registrar `name` lives, through the carrier (see
-        `Transport.run`).
+        """Run `fn(registrar)` where registrar `name` lives, through the carrier (`Transport.run`).
 
         Raises:
             UnknownServerError: nobody serves that name on the network.
@@ -369,14 +346,12 @@ class MemoryNetwork(Messenger):
             del _MEMBERS.by_system[self.system]
 
     def cut(self, name: str) -> None:
-        """The process serving registrar `name` is gone (a `SIGKILL`, a cut link): every
-        reply waiting on it fails at once with `RegistrarUnavailableError`, frames on
-        the way to it are dropped, later sends to it raise that error. Its registrar
-        keeps running in this process (stop it yourself). Cutting it again does nothing.
+        """The process serving `name` is gone (a `SIGKILL`): replies waiting on it fail at once with
+        `RegistrarUnavailableError`, frames to it are dropped, later sends raise. Its registrar
+        runs on here (stop it yourself). Cutting again does nothing.
 
         Raises:
-            UnknownRegistrarError: no registrar of that name was ever served on the
-                network (a typo would otherwise cut nothing, and the test pass for it).
+            UnknownRegistrarError: no registrar of that name was ever served on the network.
         """
         self._hub.cut(name)
 

@@ -90,12 +90,9 @@ _Manager.register("Records", _RecordsState, Records)
 class SharedObjects:
     """Events, barriers, locks and lists that a test shares with callbacks in any process.
 
-    A `multiprocessing` `SyncManager` (one helper process, started with the forkserver or
-    spawn context) holds the objects; what you get are proxies that pickle (cloudpickle
-    too), so callbacks that captured them work in manager processes. Every process started
-    by this one (same authkey) can use them.
-
-    Use as a context manager, or `start()` / `close()`.
+    A `multiprocessing` `SyncManager` (one helper process, forkserver or spawn) holds them;
+    its proxies pickle (cloudpickle too), so callbacks that captured them work in manager
+    processes started by this one. Use as a context manager, or `start()` / `close()`.
     """
 
     def __init__(self) -> None:

@@ -22,15 +22,8 @@ def shipped() -> dict[str, Path]:
 
 
 def find(plan: str) -> Path:
-    """The plan file `plan` names: a file, else the shipped plan of that name.
-
-    Args:
-        plan: a path, or the name of a shipped plan (`"first"`, or `"first.toml"`).
-
-    Returns:
-        The path; a path that is neither a file nor a shipped plan's name comes back as
-        it is (reading it then says it cannot be read).
-    """
+    """The plan file `plan` names (a path, or a shipped plan's name with or without `.toml`);
+    anything else comes back as it is (reading it then says it cannot be read)."""
     path = Path(plan)
     if path.exists() or path.parent != Path():
         return path
