@@ -1,11 +1,9 @@
 """The messenger: what every carrier does with a name and a message, written once.
 
-A carrier moves frames and reports who comes and goes; the rest is here, as xoscar
-writes calls, futures and errors once above its `Channel`. A `Messenger` is one
-process's membership of a system (the `Transport`): naming, reply tokens, the stand-in
-reply, size limits, compensation, "send when served", and telling every `Endpoint` what
-the carrier reports. The flow: docs/explanation/architecture.md ("The messenger and its
-links"); the contract: docs/explanation/failure-semantics.md ("What every carrier keeps").
+A carrier moves frames and reports who comes and goes; the rest (naming, reply tokens,
+size limits, compensation, "send when served") is here, as xoscar's above its `Channel`.
+Flow: docs/explanation/architecture.md ("The messenger and its links"); contract:
+docs/explanation/failure-semantics.md ("What every carrier keeps").
 """
 
 from __future__ import annotations
@@ -50,13 +48,8 @@ Lost = Callable[[], None]
 Tell = Callable[[Any], object]  # tells a compensation to the registrar an answer came from
 
 
-# -- what the messenger serves, and how another process joins ---------------------------------
-
-
 class Endpoint(Protocol):
-    """A registrar of this process as the messenger serves it (`_registrar/life.py`'s
-    `Served`). The `peer_*`, `yield_name` and `keep_name` calls come on a carrier's
-    thread and return at once (rules 19, 20, 22)."""
+    """A registrar served here (`_registrar/life.py`'s `Served`); `peer_*` return at once."""
 
     @property
     def name(self) -> str: ...
@@ -73,38 +66,29 @@ class Endpoint(Protocol):
 
 
 class Address(Protocol):
-    """How another process joins the same system: it pickles; `attach()` joins there
-    (idempotent per process)."""
+    """Pickles; `attach()` joins the same system in another process (idempotent)."""
 
     def attach(self) -> Messenger: ...
 
 
-# -- what a carrier implements --------------------------------------------------------------
-
-
 class Carrier(Protocol):
-    """What the messenger asks of a carrier. The carrier tells it the rest: bytes for a
-    registrar here (`message`), answers and losses (a route's `Replies`), who is lost,
-    reachable or served twice (`lost`, `reachable`, `served_elsewhere`)."""
+    """What the messenger asks of a carrier (the carrier reports back via `Messenger`)."""
 
     def peer(self, name: str) -> Remote | None:
-        """A peer of registrar `name` if it is served elsewhere, or was; `None` if
-        unknown. Raises as `Messenger.resolve`."""
+        """A peer of `name` served elsewhere, or once; `None` if unknown. Raises as `resolve`."""
 
     def listen(self, endpoint: Endpoint) -> Listening:
         """Take frames for `endpoint` from now on. Raises as `Messenger.serve`."""
 
     def answer_to(self, process: Any, data: bytes, on_lost: Lost | None) -> bool:
-        """Send an answer frame back to `process`, the sender the carrier named with the
-        message (never blocks); False if it is gone."""
+        """Send an answer frame back to `process` (never blocks); False if it is gone."""
 
     def names(self) -> list[str]: ...  # the registrars it can reach now
     def leave(self) -> None: ...  # fail what waits, end its threads, close what it opened
 
 
 class Route(Protocol):
-    """The way to one registrar's process now (a connection, Zenoh's key and server seen,
-    the double's delivery queue)."""
+    """The way to one registrar's process now (a connection, a Zenoh key, a queue)."""
 
     @property
     def limit(self) -> int: ...  # the registrar's max_message_bytes, both ways
@@ -115,42 +99,35 @@ class Route(Protocol):
         """Send a frame (in order; never blocks); False if nothing of it left."""
 
     def broken(self) -> bool:
-        """A frame could not leave: close the route (what waits fails); whether a fresh
-        route may take the frame (`send` tries once more)."""
+        """A frame could not leave: close the route; whether `send` may try a fresh one."""
 
 
 class Lane(Protocol):
-    """An ordered queue to one name whose thread may wait on the network (Zenoh's outbox
-    of a registrar's key): "send when served" runs there."""
+    """An ordered queue to one name whose thread may wait on the network."""
 
     refusal: RrError | None  # why it was retired (`Lanes.retire`)
 
     def run(self, task: Callable[[], None]) -> bool:
-        """Run `task` on the lane's thread, in order; False if closed. Closed before it
-        ran: `task.dropped()` runs."""
+        """Run `task` on the lane's thread, in order; False if closed (then `dropped()`)."""
 
 
 class Lanes(Protocol):
-    """What "send when served" asks of a carrier whose routes may have to ask the network
-    (Zenoh's peers decide when: `unseen`, on an actor's thread)."""
+    """What "send when served" asks of a carrier whose routes may ask the network."""
 
     def unseen(self, name: str) -> bool: ...  # no server seen now, and none heard to stop
     def lane(self, name: str) -> Lane | None: ...  # `None`: this process left the system
 
     def found(self, name: str, lane: Lane) -> Route | RrError:
-        """On `lane`'s thread: the route to `name`'s server, asked of the network
-        (bounded); else the error of what is held for it."""
+        """On `lane`'s thread: the route to `name`'s server (bounded), or the error."""
 
     def retire(self, lane: Lane, error: RrError) -> None:
-        """On `lane`'s thread: nobody's from now on; what waits fails with `error`, in
-        order (`refusal`)."""
+        """On `lane`'s thread: nobody's from now on; what waits fails with `error`."""
 
     def unreached(self, name: str) -> RrError: ...  # nobody serves `name`
 
 
 class Listening(abc.ABC):
-    """A registrar of this process as its carrier serves it; the messenger stops it once
-    (`stop`, holding `lock`)."""
+    """A registrar here as its carrier serves it; stopped once (`stop`, holding `lock`)."""
 
     def __init__(self, endpoint: Endpoint) -> None:
         self.endpoint = endpoint
@@ -185,8 +162,7 @@ def when(stamp: int) -> str:
 
 
 class Remote(abc.ABC):
-    """A registrar of another process as a `Peer`; a carrier gives each its `route()` and
-    `gone()` error (a Zenoh peer may send from a lane instead: `send_when_served`)."""
+    """A registrar of another process as a `Peer`; a carrier gives `route()`, `gone()`."""
 
     name: str
 
@@ -199,24 +175,14 @@ class Remote(abc.ABC):
         """The error of a message whose frame could not leave (the route went)."""
 
     def tell(self, message: Any) -> None:
-        """Send `message` (any thread; in order per peer; never blocks on the peer).
-
-        Raises:
-            ConfigError: the message cannot be pickled.
-            MessageTooLargeError: pickled, it is over the remote registrar's
-                `max_message_bytes`; nothing was sent.
-            RegistrarUnavailableError: its process is known to be unreachable.
-            RegistrarStoppedError: it was stopped, or this process left the system.
-        """
+        """Send `message` (any thread; in order; never blocks). Raises as `Peer.tell`."""
         send(self, message)
 
     def deliver(self, message: Any) -> None:
         self.tell(message)  # (a registrar of another process never runs on this thread)
 
     def run(self, fn: Callable[[Any], Any], *, timeout: float) -> Any:
-        """`fn(registrar)` (cloudpickled) on a fresh thread of its process; what it
-        returns. Raises as `Messenger.run`, or `ConfigError`/`RrError` if `fn` or its
-        result does not pickle."""
+        """`fn(registrar)` on a fresh thread of its process. Raises as `Messenger.run`."""
         return wait(self.submit(fn).future, timeout, f"run() on registrar {self.name!r}")
 
     def submit(self, fn: Callable[[Any], Any]) -> FutureReply:
@@ -229,7 +195,7 @@ class Remote(abc.ABC):
         return reply
 
     def close(self, error: RrError) -> None:  # noqa: B027 - a hook: most carriers need nothing
-        """Drop the route this peer holds, if any; what waits on it fails with `error`."""
+        """Drop its route, if any; what waits on it fails with `error`."""
 
     def forget_in_child(self) -> None:  # noqa: B027 - a hook: most carriers need nothing
         """In a forked child: drop the parent's route without touching it."""
@@ -284,8 +250,7 @@ def check_size(outgoing: Outgoing, name: str, limit: int) -> None:
 
 
 def send(peer: Remote, message: Any) -> None:
-    """`Remote.tell`: a frame that cannot leave goes once more over a fresh route if
-    `Route.broken` allows, else raises `peer.gone()`."""
+    """`Remote.tell`: retried once over a fresh route if `Route.broken` allows."""
     outgoing = encode(peer.name, message)
     reply = outgoing.reply
     for _attempt in (1, 2):
@@ -305,14 +270,9 @@ def send(peer: Remote, message: Any) -> None:
 
 
 def send_when_served(peer: Remote, lanes: Lanes, message: Any) -> None:
-    """Send `message` to `peer.name`, not seen served (`Lanes.unseen`), without waiting
-    (an actor's thread must answer its next message however slow the network is):
-    queued on the name's lane, where the network is asked (`Lanes.found`), then sent, or
-    its reply fails and so does what waits behind it (`Lanes.retire`).
+    """Queue `message` for `peer.name` (not seen served) on its lane, without waiting.
 
-    Raises:
-        ConfigError: the message cannot be pickled.
-        RrError: `peer.gone()` if no lane takes it (this process left the system).
+    Raises `ConfigError` (does not pickle) or `peer.gone()` (this process left).
     """
     outgoing = encode(peer.name, message)
     for _attempt in (1, 2):  # (the second: its lane was just retired, nobody's)
@@ -367,9 +327,7 @@ def _unsent(outgoing: Outgoing, error: RrError) -> None:
 
 
 class Replies(dict[int, tuple[Reply, Any, "Remote", int]]):
-    """Replies waiting for an answer, by token: `(reply, message, peer, limit)`. Entries
-    leave only through atomic dict operations: an answer and a failure never both reach
-    one reply."""
+    """By token: `(reply, message, peer, limit)`; entries leave only by atomic dict ops."""
 
     __slots__ = ()
 
@@ -441,17 +399,13 @@ class Replies(dict[int, tuple[Reply, Any, "Remote", int]]):
 
 
 class Messenger:
-    """One process's membership of a system over a carrier (the `Transport`); a carrier's
-    public class (`System`, `ZenohNetwork`, the in-memory double) is one and gives it its
-    `Carrier` (`joined`). What it does with the carrier's reports:
+    """One process's membership of a system over a carrier (the `Transport`): see
     docs/explanation/inside.md ("What the messenger does with what a carrier reports").
 
     Args:
         system: the system's name (the AF_UNIX carrier's runtime directory).
-        resolver: whether the directory asks it for names not registered here (not the
-            in-memory double's, whose "processes" are all this one).
-        resolve: which of two servers of one name is kept after a heal (rule 22,
-            `Resolution`); the same in every process of a system.
+        resolver: whether the directory asks it for names not registered here.
+        resolve: which of two servers of one name is kept after a heal (`Resolution`).
 
     Raises:
         ConfigError: `resolve` is not a strategy (`Resolution`).
@@ -493,11 +447,9 @@ class Messenger:
     # -- the Transport surface -----------------------------------------------------------
 
     def resolve(self, name: str) -> Peer | None:
-        """A peer for registrar `name` of another process; `None` if served here or unknown.
+        """A peer for `name` elsewhere; `None` if served here or unknown.
 
-        Raises:
-            UnknownRegistrarError: the carrier asked, and nobody serves `name`.
-            RegistrarUnavailableError: the carrier could not tell in time.
+        Raises `UnknownRegistrarError` (nobody serves it), `RegistrarUnavailableError`.
         """
         peer = self._peers.get(name)
         if peer is not None:
@@ -515,15 +467,10 @@ class Messenger:
         return [] if self.closed else self.link().names()
 
     def serve(self, endpoint: Endpoint) -> None:
-        """Make a registrar of this process reachable from the others until it ends (a
-        restart here stops serving the old one first).
+        """Make a registrar here reachable from other processes until it ends.
 
-        Raises:
-            DuplicateNameError: another process of the system serves that name.
-            ConfigError: the carrier cannot serve it (a bad name or address).
-            RegistrarUnavailableError: the carrier cannot tell in time whether another
-                process serves it.
-            RegistrarStoppedError: this process left the system.
+        Raises `DuplicateNameError`, `ConfigError` (bad name or address),
+        `RegistrarUnavailableError` (no answer in time), `RegistrarStoppedError` (left).
         """
         name = endpoint.name
         carrier = self.link()
@@ -556,13 +503,10 @@ class Messenger:
         endpoint.listening()
 
     def run(self, name: str, fn: Callable[[Any], Any], *, timeout: float) -> Any:
-        """`fn(registrar)` where registrar `name` lives (here: on this thread); its result.
+        """`fn(registrar)` where registrar `name` lives (here: on this thread).
 
-        Raises:
-            UnknownServerError: nobody serves that name on the system.
-            CallTimeoutError: no result within `timeout` seconds.
-            RegistrarUnavailableError: its process died or cannot be reached.
-            RegistrarStoppedError: it was stopped.
+        Raises `UnknownServerError`, `CallTimeoutError` (`timeout` s),
+        `RegistrarUnavailableError`, `RegistrarStoppedError`.
         """
         listening = self._served.get(name)
         if listening is not None:
@@ -579,19 +523,16 @@ class Messenger:
         return peer.run(fn, timeout=timeout)
 
     def serving_trouble(self, name: str) -> tuple[float, str] | None:
-        """`Listening.trouble` of registrar `name` served here (a manager reports it with
-        each heartbeat answer); `None` if it has none or is not served here."""
+        """`Listening.trouble` of `name` served here, or `None`."""
         listening = self._served.get(name)
         return None if listening is None else listening.trouble()
 
     def supervised_by(self, pid: int | None) -> None:
-        """Process `pid` speaks for the registrars served from now on if this one dies
-        (rule 19; `None`: nobody); each carrier publishes it with what it serves."""
+        """Process `pid` speaks for registrars served from now on if this one dies (rule 19)."""
         self.supervisor = pid
 
     def close(self) -> None:
-        """Leave the system: stop serving, fail what waits, close the carrier (idempotent).
-        Registrars are not stopped: stop them first to release what they hold elsewhere."""
+        """Leave the system: stop serving, fail what waits, close the carrier (idempotent)."""
         with self._lock:
             if self.closed:
                 return
@@ -621,8 +562,7 @@ class Messenger:
         return self._peers.get(name)
 
     def give_way(self, listening: Listening, reason: str) -> None:
-        """Another process's server of the name is kept (rule 22): stop serving, and the
-        registrar yields (`Endpoint.yield_name`); `reason` goes in an ERROR line."""
+        """Another process's server of the name is kept (rule 22): stop serving, yield."""
         with listening.lock:
             if listening.ended:
                 return
@@ -640,8 +580,7 @@ class Messenger:
         listening.yield_told.set()  # (a `keep_name` is told after it: `_keep`)
 
     def served_elsewhere(self, name: str, rival: Sided) -> None:
-        """Another process serves `name` too (rule 22): the one here gives way if
-        `resolution` keeps the other, else the other's process is told (`_claim`)."""
+        """Another process serves `name` too (rule 22): give way or tell it (`_claim`)."""
         with self._lock:
             local = self._served.get(name)
             early = self._early.get(name) if local is None else None
@@ -662,8 +601,7 @@ class Messenger:
         )
 
     def _claim(self, name: str, local: Sided, rival: Sided) -> None:
-        """Tell `rival`'s process (which may not hear `local` after a one-way heal) that
-        `local` is kept, through the carrier's `tell_server`."""
+        """Tell `rival`'s process that `local` is kept (it may not hear after a one-way heal)."""
         process = local.rank[1]
         claim = Claim(name, local.who, local.stamp, process, local.side, local.members)
         tell = getattr(self.link(), "tell_server", None)  # (carriers that see two servers)
@@ -675,8 +613,7 @@ class Messenger:
             logger.debug("could not tell process %s of %s's claim: %s", rival.who, name, exc)
 
     def lost(self, name: str) -> None:
-        """Registrar `name` is gone for good (rule 19): `MEMBERSHIP` records it and every
-        endpoint served here but `name` hears it."""
+        """Registrar `name` is gone for good (rule 19): tell `MEMBERSHIP` and every endpoint."""
         logger.info("registrar %s of system %s is lost (nobody restarts it)", name, self.system)
         MEMBERSHIP.lost(name, by=f"the carrier of {self.system}", hearers=self._hearers())
         yielding = self._yielding.get(name)
@@ -686,8 +623,7 @@ class Messenger:
             ).start()
 
     def _keep(self, listening: Listening) -> None:
-        """The one kept in `listening`'s place went before its yield ended (rule 22): it
-        serves on if it may (`Endpoint.keep_name`)."""
+        """The one kept in `listening`'s place went before its yield ended (rule 22)."""
         name, endpoint = listening.name, listening.endpoint
         if not listening.yield_told.wait(5.0):  # (the give-way thread tells it next)
             return
@@ -726,8 +662,7 @@ class Messenger:
         self.reachable(name)
 
     def reachable(self, name: str) -> None:
-        """Registrar `name` is back (a healed link, rule 20; the one kept, rule 22): every
-        endpoint served here but `name` hears it."""
+        """Registrar `name` is back (rules 20, 22): every other endpoint here hears it."""
         logger.info("registrar %s of system %s is reachable again", name, self.system)
         MEMBERSHIP.reachable(name, hearers=self._hearers())
 
@@ -776,13 +711,9 @@ class Messenger:
     def message(
         self, endpoint: Endpoint, process: Any, token: int, payload: bytes | memoryview
     ) -> None:
-        """Deliver one message from `process` to `endpoint` (the carrier's receiving
-        thread): over its limit, refused unread; unreadable or unanswerable, answered with
-        the error; a `StandIn` as its reply; a `Run` on a fresh thread.
+        """Deliver one message from `process` to `endpoint` (the carrier's thread).
 
-        Raises:
-            Exception: the registrar cannot be told, not for being gone, and the message
-                wants no answer (the carrier logs it).
+        Raises what telling the registrar raised if no answer is wanted (the carrier logs).
         """
         name, limit = endpoint.name, endpoint.max_message_bytes
         if len(payload) > limit:
@@ -829,8 +760,7 @@ class Messenger:
                 raise
 
     def oversized(self, endpoint: Endpoint, process: Any, token: int, size: int) -> None:
-        """A message of `size` bytes is over `endpoint`'s limit: not read; logged, and
-        answered with a `MessageTooLargeError`."""
+        """Over `endpoint`'s limit: not read; answered with a `MessageTooLargeError`."""
         limit = endpoint.max_message_bytes
         error = MessageTooLargeError(
             f"a message of {size} bytes for registrar {endpoint.name!r} is over its "
@@ -851,9 +781,7 @@ Transport = Messenger
 
 
 class StandIn:
-    """A delivered message's reply: answers its sender `process`. An answer that does not
-    pickle or is over `limit` becomes an error; one that does not reach its caller has
-    the message's `compensation()` told to registrar `name`."""
+    """A delivered message's reply to `process`; one that does not arrive is compensated."""
 
     __slots__ = (
         "_carrier",
@@ -926,8 +854,7 @@ class StandIn:
 
 
 def compensate(message: Any, tell: Tell) -> None:
-    """The caller of `message` gets an error instead of its answer: `tell` its
-    `compensation()`, if any (a `Load`'s `Abandon`; an `RrError` ignored)."""
+    """The caller of `message` gets an error instead: `tell` its `compensation()`, if any."""
     compensation = message.compensation()
     if compensation is not None:
         with contextlib.suppress(RrError):
