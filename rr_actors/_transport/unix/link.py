@@ -1,8 +1,7 @@
 """The AF_UNIX link: one connection per pair of processes and registrar, both ways.
 
-Frames are `codec`'s, after an authkey handshake bounded by `HANDSHAKE_TIMEOUT`; a
-sender never blocks on the other process (a connection's writer thread may). How and
-why: docs/explanation/inside.md ("The AF_UNIX link").
+Frames are `codec`'s, after an authkey handshake; a sender never blocks on the other
+process. How and why: docs/explanation/inside.md ("The AF_UNIX link").
 """
 
 from __future__ import annotations
@@ -86,8 +85,7 @@ _LONG = struct.Struct("!Q")  # ... after a header of -1
 
 
 class _Timed:
-    """`send_bytes` and `recv_bytes` (what the challenges need) over `sock`, bounded by
-    `deadline`."""
+    """`send_bytes` and `recv_bytes` over `sock`, bounded by `deadline`."""
 
     __slots__ = ("deadline", "sock")
 
@@ -125,13 +123,9 @@ class _Timed:
 
 
 def handshake(sock: socket.socket, authkey: bytes, deadline: float, *, server: bool) -> None:
-    """Pass the mutual authkey handshake on `sock` before `deadline` (monotonic; the
-    `server` challenges first); `sock` is left blocking.
+    """Pass the mutual authkey handshake on `sock` before `deadline` (monotonic).
 
-    Raises:
-        AuthenticationError: the other side does not know `authkey`, or is malformed.
-        TimeoutError: it was not done by `deadline`.
-        OSError, EOFError: the connection broke or the other side sent garbage.
+    Raises `AuthenticationError`, `TimeoutError`, `OSError` or `EOFError`.
     """
     timed = _Timed(sock, deadline)
     try:
@@ -171,15 +165,10 @@ def _send_timeout(sock: socket.socket, seconds: float) -> None:
 def connect(
     path: str, authkey: bytes, *, coming: Callable[[], bool] | None = None
 ) -> tuple[socket.socket, Connection]:
-    """Connect to `path` and pass the handshake, within `HANDSHAKE_TIMEOUT` seconds; a
-    full backlog is waited out in the kernel, and while `coming()` says a listener is on
-    its way (a restart holds the name's lock before it listens) the connect is retried.
+    """Connect to `path` and pass the handshake within `HANDSHAKE_TIMEOUT` seconds,
+    retried while `coming()` says a listener is on its way (a restart).
 
-    Raises:
-        OSError, EOFError: nothing listens there (and none came by the deadline), the
-            backlog stayed full (`BlockingIOError`), or the connection broke.
-        TimeoutError: the handshake did not finish by the deadline.
-        AuthenticationError: the listener does not know the system's authkey.
+    Raises `OSError`/`EOFError` (nobody listens), `TimeoutError`, `AuthenticationError`.
     """
     deadline = time.monotonic() + HANDSHAKE_TIMEOUT
     pause = CONNECT_RETRY / 64
@@ -212,8 +201,7 @@ CONNECT_RETRY = 0.05
 
 
 def lock_held(path: str) -> bool:
-    """Whether a process holds the name lock at `path` (a shared `flock` probes it for
-    microseconds). Unsure: held (never a false loss)."""
+    """Whether a process holds the name lock at `path`; unsure: held (no false loss)."""
     try:
         fd = os.open(path, os.O_RDONLY)
     except FileNotFoundError:
@@ -230,8 +218,7 @@ def lock_held(path: str) -> bool:
 
 
 class Writer:
-    """The send side of one connection, in order. The writer thread's failed connect or
-    write closes it and calls `on_failure(exc)` once."""
+    """The send side of one connection, in order; a failure calls `on_failure(exc)` once."""
 
     __slots__ = ("_closed", "_executor", "_lock", "_on_failure", "_sock")
 
@@ -252,8 +239,7 @@ class Writer:
         return self._closed
 
     def send(self, frame: bytes, on_lost: Lost | None = None) -> bool:
-        """Send `frame` or queue it (never blocks; `on_lost` runs if the connection ends
-        first); False if nothing of it was sent."""
+        """Send `frame` or queue it (never blocks); False if nothing of it was sent."""
         if self._closed:
             return False
         task = _Frame(self, frame, on_lost)
@@ -277,8 +263,7 @@ class Writer:
             return True
 
     def close(self) -> bool:
-        """Stop sending and shut the connection down (its reader wakes); queued frames are
-        lost (their `on_lost` runs). False if it was closed already."""
+        """Shut the connection down; queued frames are lost. False if closed already."""
         with self._lock:
             if self._closed:
                 return False
@@ -359,8 +344,7 @@ def _read(
     kind: str,
     name: str,
 ) -> None:
-    """Hand each frame read from `conn` to `whole(token, payload)`, or one over `limit`
-    to `oversized(token, size)`, until it ends; one that raises is logged."""
+    """Hand each frame read from `conn` to `whole`, or `oversized` over `limit`, until EOF."""
     for data in frames(conn, limit):
         try:
             if isinstance(data, Oversized):
@@ -375,12 +359,9 @@ def _read(
 
 
 def _take_lock(path: str, name: str) -> int:
-    """Open and `flock` registrar `name`'s lock file (retried for `LOCK_RETRY` seconds);
-    the descriptor holds the lock.
+    """The descriptor holding `name`'s lock (retried `LOCK_RETRY` s).
 
-    Raises:
-        DuplicateNameError: another process (or listener) holds it.
-        ConfigError: the file cannot be opened.
+    Raises `DuplicateNameError` (held elsewhere) or `ConfigError` (cannot open).
     """
     deadline = time.monotonic() + LOCK_RETRY
     pause = 0.002
@@ -455,8 +436,7 @@ class _Channel:
 
 
 class RemotePeer(Remote):
-    """A registrar of another process, reached through its socket: its route is one
-    connection, made lazily on its writer thread."""
+    """A registrar of another process: its route is one connection, made lazily."""
 
     def __init__(self, system: Rendezvous, name: str) -> None:
         self.name = name
@@ -641,13 +621,9 @@ _BACKOFF_MAX = 0.5
 
 
 class Listener(Listening):
-    """Accepts connections for a registrar served here: holding the name's lock, it
-    publishes `.limit` and `.restart` before anyone connects; out of descriptors, it
-    logs once, backs off and retries (`trouble`).
+    """Accepts connections for a registrar served here, holding the name's lock.
 
-    Raises:
-        DuplicateNameError: another process holds the name's lock.
-        ConfigError: the lock file cannot be opened, or the socket cannot be bound.
+    Raises `DuplicateNameError` or `ConfigError` (lock file or socket unusable).
     """
 
     def __init__(self, system: Rendezvous, endpoint: Endpoint) -> None:
@@ -769,8 +745,7 @@ class Listener(Listening):
         self._wake.set()  # its descriptors are free: a listener backing off tries again
 
     def forget_in_child(self) -> None:
-        """In a forked child: close its copies of the socket, the name lock (one shared
-        with a child would outlive the parent) and every connection; nothing else."""
+        """In a forked child: close its copies of the socket, the lock and connections."""
         self._closed = True
         connections = list(self._connections)
         self._connections.clear()

@@ -1,8 +1,7 @@
 """The AF_UNIX carrier: a system of registrars on one machine, met in a runtime directory.
 
-Its files (`<name>.sock`, `.lock`, `.limit`, `.restart`, `.stopped`) say who serves what
-and who is lost for good (rule 19). How, why, and forks: docs/explanation/inside.md ("The
-AF_UNIX carrier").
+Its files say who serves what and who is lost for good (rule 19): see
+docs/explanation/inside.md ("The AF_UNIX carrier").
 """
 
 from __future__ import annotations
@@ -66,8 +65,7 @@ class SystemAddress:
         return os.path.join(self.runtime_dir, f"{name}.limit")
 
     def restart_path(self, name: str) -> str:
-        """Who speaks for registrar `name` if its process dies (rule 19): `0` for nobody,
-        else `<pid> <start time>`."""
+        """Who speaks for `name` if its process dies: `0`, or `<pid> <start time>`."""
         return os.path.join(self.runtime_dir, f"{name}.restart")
 
     def attach(self) -> AttachedSystem:
@@ -76,10 +74,7 @@ class SystemAddress:
 
 
 class UnixCarrier:
-    """The AF_UNIX `Carrier`: names found in the runtime directory, a `RemotePeer` per
-    name reached, a `Listener` per registrar served, and who is lost (rule 19), judged
-    on the presence thread: docs/explanation/inside.md ("Judging who is lost on one
-    machine")."""
+    """The AF_UNIX `Carrier`: inside.md ("Judging who is lost on one machine")."""
 
     def __init__(self, messenger: Messenger, address: SystemAddress) -> None:
         self.messenger = messenger
@@ -135,8 +130,7 @@ class UnixCarrier:
     # -- what the link asks of its system ------------------------------------------------
 
     def speaker(self, name: str) -> str:
-        """The `.restart` file of `name`: the process `supervised_by` named, else this one
-        while `DIRECTORY.restart_expected(name)` (a thread manager), else nobody."""
+        """The `.restart` file of `name`: `supervised_by`'s, else this one, else nobody."""
         supervisor = self.messenger.supervisor
         if supervisor is not None:
             return _identity(supervisor)
@@ -198,9 +192,7 @@ class UnixCarrier:
                     self._presence.wait()
 
     def _verdict(self, name: str) -> str:
-        """`served` (here, or by a process that holds its lock), `stopped`, `lost`,
-        `awaited` (its speaker lives), `ours` (this process speaks for it) or `unknown`
-        (it published no `.restart` file)."""
+        """`served`, `stopped`, `lost`, `awaited`, `ours` or `unknown` (no `.restart`)."""
         address = self.address
         if self.messenger.serving(name) is not None:
             return "served"
@@ -241,8 +233,7 @@ def _identity(pid: int) -> str:
 
 
 def _start_time(pid: int) -> str | None:
-    """Process `pid`'s start time (`/proc/<pid>/stat`, field 22); `None` if unknown
-    (no `/proc`, or gone), `""` for a zombie (it speaks for nobody)."""
+    """Process `pid`'s start time; `None` if unknown, `""` for a zombie."""
     try:
         with open(f"/proc/{pid}/stat", "rb") as stat:
             fields = stat.read().rsplit(b")", 1)[1].split()
@@ -284,8 +275,7 @@ def _verdict_of(speaker: str) -> str:
 
 
 class AttachedSystem(Messenger):
-    """This process's membership of a system: its messenger over the AF_UNIX carrier
-    (from [`attach`][rr_actors._transport.attach] or `System.create`)."""
+    """This process's messenger over the AF_UNIX carrier (`attach`, `System.create`)."""
 
     def __init__(self, address: SystemAddress) -> None:
         super().__init__(address.runtime_dir)
@@ -298,8 +288,7 @@ class AttachedSystem(Messenger):
         return self._address
 
     def forget_in_child(self) -> None:
-        """In a forked child: drop the parent's listeners, connections and presence
-        thread; stay attached (inside.md, "The AF_UNIX carrier")."""
+        """In a forked child: drop the parent's listeners, connections, presence thread."""
         super().forget_in_child()
         self._unix.forget_in_child()
 
@@ -325,8 +314,7 @@ forkserver.after_fork_in_child("the AF_UNIX carrier", _forget_in_child)
 
 
 def attach(address: SystemAddress) -> AttachedSystem:
-    """Join the system at `address` from this process: its `AttachedSystem` (the same one
-    if already attached), whose names the directory resolves from now on."""
+    """Join the system at `address` from this process (idempotent)."""
     with _ATTACHED_LOCK:
         attached = _ATTACHED.get(address.runtime_dir)
         if attached is None or attached.closed:
@@ -336,29 +324,17 @@ def attach(address: SystemAddress) -> AttachedSystem:
 
 
 class System(AttachedSystem):
-    """A system of registrars across processes, as its owner (the main process) holds it.
-
-    An `AttachedSystem` whose `close()` also removes the system's files in the runtime
-    directory, and the directory if `create` made it (a forked child's only leaves).
-    Hand `address` to the processes that should join.
-    """
+    """A system of registrars across processes, as its owner holds it; hand `address` on."""
 
     _made_dir = False
     _owner = 0  # the pid of the process that created it
 
     @classmethod
     def create(cls, runtime_dir: str | None = None) -> System:
-        """Create the private runtime directory and a random authkey, and attach.
+        """Create the private runtime directory (0700) and a random authkey, and attach.
 
-        Args:
-            runtime_dir: directory to use (created with mode 0700 if missing; an existing
-                one must belong to this user and is made 0700, and `close()` leaves it and
-                whatever else it holds in place); default: a fresh directory in a memory-backed
-                one where the platform has it (`$XDG_RUNTIME_DIR`, `/dev/shm`, unless
-                `TMPDIR` is set), else in the temporary directory.
-
-        Raises:
-            ConfigError: `runtime_dir` cannot be used.
+        `runtime_dir` given is kept on `close()`; default: a fresh one in memory-backed
+        storage where there is one. Raises `ConfigError` if it cannot be used.
         """
         if runtime_dir is None:
             runtime_dir = tempfile.mkdtemp(prefix="rr-", dir=PLATFORM.runtime_parent())  # 0700
@@ -381,8 +357,7 @@ class System(AttachedSystem):
         return system
 
     def close(self) -> None:
-        """Leave the system and remove its files, and the directory if `create` made it and
-        it is empty (idempotent; a forked child only leaves)."""
+        """Leave and remove its files, and the directory if `create` made it (idempotent)."""
         super().close()
         if self._owner != os.getpid():
             return  # a forked child's copy: the files are its parent's system's
