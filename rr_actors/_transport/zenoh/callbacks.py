@@ -24,8 +24,7 @@ END_TIMEOUT = 2.0
 
 
 class Worker(Protocol):
-    """A thread of rr_actors that calls Zenoh, as its executor (`SerialExecutor`,
-    `Forwarder`): its owner closes it, the session's close joins it."""
+    """A thread of rr_actors that calls Zenoh: its owner closes it, the session joins it."""
 
     @property
     def name(self) -> str: ...
@@ -46,9 +45,7 @@ _local = threading.local()  # `.callback`: the session whose tracked callback th
 
 
 def worker(session: zenoh.Session, executor: Worker) -> bool:
-    """Count `executor` (whose thread calls Zenoh on `session`) among what the session's
-    close joins (`wait_ended`), held weakly; whether it was counted. Once the close
-    waited for its workers, one registered then is refused, closed and joined at once."""
+    """Count `executor` (weakly) among what the session's close joins; whether it was."""
     zid = str(session.zid())
     with _cond:
         if zid not in _ended:
@@ -60,17 +57,14 @@ def worker(session: zenoh.Session, executor: Worker) -> bool:
 
 
 class SessionEndedError(Exception):
-    """A Zenoh call refused before it began: its session closed (`calling`); callers take
-    it as the closed session's own error."""
+    """A Zenoh call refused before it began: its session closed (`calling`)."""
 
 
 @contextlib.contextmanager
 def calling(session: zenoh.Session) -> Iterator[None]:
-    """Around a Zenoh call on a thread no close joins (a program's, a server's): counted,
-    so the session's close waits until it returned (`wait_ended`).
+    """Around a Zenoh call on a thread no close joins: the close waits for it.
 
-    Raises:
-        SessionEndedError: the session closed and its close waited for the calls.
+    Raises `SessionEndedError` once the session closed.
     """
     zid = str(session.zid())
     with _cond:
@@ -90,8 +84,7 @@ def calling(session: zenoh.Session) -> Iterator[None]:
 
 
 def tracked(session: zenoh.Session, callback: Callable[[T], object]) -> zenoh.handlers.Callback[T]:
-    """`callback`, to declare on `session` (any `declare_*` that takes a handler), with its
-    Zenoh callback thread tracked until it ends."""
+    """`callback`, to declare on `session`, with its Zenoh thread tracked until it ends."""
     import zenoh  # noqa: PLC0415 - (the observer's modules import this one without Zenoh)
 
     zid = str(session.zid())
@@ -130,13 +123,8 @@ def live(session: zenoh.Session) -> int:
 
 
 def wait_ended(session: zenoh.Session, timeout: float | None = None) -> list[str]:
-    """After the session closed: wait until its workers, callback threads and calls under
-    way (`calling`) ended, and refuse calls from now on (the calling thread, if one of
-    them, is not waited for).
-
-    Returns:
-        What had not ended within `timeout` seconds (`None`: `END_TIMEOUT`): each worker's
-        name, then `"2 Zenoh callback threads"`, `"1 Zenoh calls of other threads"`.
+    """After the session closed: wait for its workers, callback threads and calls,
+    and refuse calls from now on. Returns what had not ended within `timeout` seconds.
     """
     deadline = time.monotonic() + (END_TIMEOUT if timeout is None else timeout)
     zid = str(session.zid())

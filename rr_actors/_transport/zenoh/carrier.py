@@ -61,8 +61,7 @@ logger = logging.getLogger("rr_actors")
 
 
 class ZenohPeer(Remote):
-    """A registrar of another process over Zenoh: its route is its key and the server seen
-    for it; its lane, the key's outbox."""
+    """A registrar of another process over Zenoh; its lane is the key's outbox."""
 
     def __init__(self, carrier: ZenohCarrier, name: str) -> None:
         self.name = name
@@ -84,8 +83,7 @@ class ZenohPeer(Remote):
 
 
 class _Route:
-    """The way to registrar `name` now: the server seen for it, its outbox. `now`: the
-    outbox whose thread sends (sent when served): put at once."""
+    """The server seen for `name` and its outbox (`now`: put at once, on its thread)."""
 
     __slots__ = ("_carrier", "_now", "limit", "name", "pending", "zid")
 
@@ -148,9 +146,7 @@ class Local(Listening):
         carrier.barrier(self.token_key)
 
     def stop(self, *, stopped: bool) -> None:
-        """Its subscriber and token go (one that yields loses its subscriber first; a
-        clean stop is marked before the token goes), let go of on the stopping thread,
-        never by whichever drops the last reference (`callbacks`)."""
+        """Undeclare its subscriber and token on this thread (`callbacks`)."""
         subscriber, token, self.subscriber, self.token = self.subscriber, self.token, None, None
         first, then = (subscriber, token) if self.yielded else (token, subscriber)
         if stopped and not self.yielded:
@@ -166,10 +162,7 @@ def _pong(query: zenoh.Query) -> None:
 
 class ZenohCarrier:
     """This process's `Carrier` over an open Zenoh session: docs/explanation/inside.md
-    ("The Zenoh carrier's threads, names and heals"). `speakers`: the Zenoh ids
-    `supervised_by` can name, by pid; `link_trouble`: why a registrar may not be seen;
-    `router`: the one this process attached through (`None`: it is one); `members`: the
-    system's (0: the most hosts heard at once, rule 22's `majority`)."""
+    ("The Zenoh carrier's threads, names and heals")."""
 
     def __init__(
         self,
@@ -230,8 +223,7 @@ class ZenohCarrier:
     # -- the Carrier -------------------------------------------------------------------
 
     def peer(self, name: str) -> ZenohPeer | None:
-        """`Carrier.peer`: a name not heard of is asked of the network (`ASK_TIMEOUT`),
-        but not on an actor's thread (there: `send_when_served`)."""
+        """`Carrier.peer`; a name not heard of is asked of the network (not on an actor)."""
         presence = self.presence
         known = presence.serves(name)  # (served elsewhere now: before a local record)
         if not known and not isinstance(DIRECTORY.gone_error(name), UnknownRegistrarError):
@@ -250,8 +242,7 @@ class ZenohCarrier:
         return ZenohPeer(self, name)
 
     def listen(self, endpoint: Endpoint) -> Local:
-        """Claim the name, then declare the registrar's subscriber and token; raises as
-        `Presence.wait_turn`."""
+        """Claim the name, then declare subscriber and token. Raises as `wait_turn`."""
         name, keys, session = endpoint.name, self.keys, self.session
         mark = self._stop_marks.pop(name, None)
         if mark is not None:
@@ -294,8 +285,7 @@ class ZenohCarrier:
         return self._system_members or self.presence.most(self._router)
 
     def _hosts_heard(self, count: int) -> None:
-        """`count` hosts were heard at once: the host token says so if that is the most yet
-        (the new one declared before the old one goes)."""
+        """`count` hosts were heard at once: the host token says so if that is the most."""
         with self._host_lock:
             if count <= self._host_most or self.closed:
                 return
@@ -320,9 +310,7 @@ class ZenohCarrier:
         return self.presence.names()
 
     def on_leave(self, close: Callable[[], object]) -> Callable[[], None]:
-        """Have `close()` called first as this process leaves, with the session still
-        open, to end its owner's threads that call Zenoh (`callbacks`); at once if left.
-        Returns what forgets it."""
+        """Have `close()` called first as this process leaves; returns what forgets it."""
         with self._host_lock:
             if not self._left:
                 number = self._leaving_numbers = self._leaving_numbers + 1
@@ -337,9 +325,7 @@ class ZenohCarrier:
         return lambda: None
 
     def leave(self) -> None:
-        """Close what `on_leave` was given, fail what waits, put what was sent (at most
-        `DRAIN_TIMEOUT` s), close the session, then wait until this carrier's and Zenoh's
-        threads ended (`callbacks`)."""
+        """Close what `on_leave` got, fail what waits, drain, close the session, join."""
         with self._host_lock:
             self._left = True
             leaving, self._leaving = list(self._leaving.values()), {}
@@ -377,9 +363,7 @@ class ZenohCarrier:
     # -- serving -------------------------------------------------------------------------
 
     def _speaker(self, name: str) -> str:
-        """Who restarts registrar `name` (rule 19): the process `supervised_by` named, if
-        its Zenoh id is known, else this one while `DIRECTORY.restart_expected(name)`,
-        else `none` (lost when its process dies)."""
+        """Who restarts `name` (rule 19): `supervised_by`'s, else this one, else `none`."""
         supervisor = self.messenger.supervisor
         known = None if supervisor is None else self._speakers.get(supervisor)
         return known or (self.zid if DIRECTORY.restart_expected(name) else "none")
@@ -455,8 +439,7 @@ class ZenohCarrier:
         )
 
     def lane(self, name: str) -> Outbox | None:
-        """`name`'s outbox, declared on its thread after the network was asked (a query
-        right after a publisher's declaration can come back empty)."""
+        """`name`'s outbox, declared on its thread after the network was asked."""
         return self.outbox(self.keys.registrar(name), declared=False)
 
     def found(self, name: str, lane: Lane) -> _Route | RrError:

@@ -36,7 +36,6 @@ from rr_actors.errors import RrError
 
 logger = logging.getLogger("rr_actors")
 
-# -- sending: the outboxes ------------------------------------------------------------------
 
 HEAL_TIMEOUT = 2.0
 """Seconds the first message to a process just seen waits for its answer to a ping."""
@@ -92,8 +91,7 @@ class Outbox:
                 )
 
     def put(self, data: bytes, on_lost: Lost | None = None) -> bool:
-        """Put `data` now (the writer thread only); False if the session closed (then
-        `on_lost` runs)."""
+        """Put `data` now (writer thread only); False if the session closed."""
         ready, self._ready = self._ready, None
         if ready is not None:
             ready()
@@ -137,8 +135,7 @@ class Outboxes:
         self._pings_end = False  # `until_answered` gives up (`close`)
 
     def get(self, key: str, first_to: str | None = None, *, declared: bool = True) -> Outbox:
-        """The outbox of `key`; a new one's first put waits until process `first_to`
-        answers a ping; `declared=False`: it declares its publisher on its thread."""
+        """The outbox of `key`; a new one's first put waits for `first_to` to answer a ping."""
         outbox = self._outboxes.get(key)
         if outbox is not None and not outbox.closed:
             return outbox
@@ -169,9 +166,7 @@ class Outboxes:
         outbox.close()
 
     def close(self, drain: float = 0.0) -> None:
-        """Close every outbox: what is queued gets `drain` seconds, all together; then it
-        is lost. A put waiting for its ping stops waiting at once with a drain, and only
-        once every queue was dropped without (nothing behind it is put meanwhile)."""
+        """Close every outbox: what is queued gets `drain` seconds in all, then is lost."""
         with self._lock:
             self._closed = True
             outboxes = list(self._outboxes.values())
@@ -183,8 +178,7 @@ class Outboxes:
         self._pings_end = True
 
     def until_answered(self, zid: str) -> None:
-        """Ping process `zid` until it answers (at most `HEAL_TIMEOUT` s; writer thread): a
-        new link's tokens may come before what is put to it gets through."""
+        """Ping process `zid` until it answers (at most `HEAL_TIMEOUT` s; writer thread)."""
         deadline = time.monotonic() + HEAL_TIMEOUT
         pause = threading.Event()
         while not self._pings_end and time.monotonic() < deadline:
@@ -196,8 +190,6 @@ class Outboxes:
                 return
             pause.wait(0.01)  # (no queryable seen yet: a get returns at once)
 
-
-# -- receiving: the inbox ---------------------------------------------------------------------
 
 STRANGER_GRACE = 2.0
 """Seconds a frame of a process whose liveliness token is not here (yet, or for this
@@ -218,9 +210,7 @@ class InboxOwner(Protocol):
 
 
 class Inbox:
-    """The decode queues of one process (one per sending process and kind), to the
-    messenger: messages for registrars served here, answers for `replies` (every route's
-    `pending`)."""
+    """The decode queues of one process, one per sending process and kind."""
 
     def __init__(self, owner: InboxOwner) -> None:
         self._owner = owner
@@ -239,8 +229,6 @@ class Inbox:
         self._left: dict[str, float] = {}  # tokens that went in the last STRANGER_GRACE s
         self._joined = threading.Condition(threading.Lock())
         self._dropped = LogThrottle(logger)
-
-    # -- the queues --------------------------------------------------------------------------
 
     def finish(self, sender: str) -> None:
         """Process `sender` went: what it sent is still decoded, then its threads end."""
@@ -271,8 +259,7 @@ class Inbox:
             inbox.close(timeout=0)
 
     def _receive(self, head: Header, kind: int, item: Any, size: int) -> None:
-        """Hand `item` to the decode thread of (sender, `kind`) (Zenoh's callbacks); a
-        sender whose token is not here waits on the strangers' thread (in order)."""
+        """Hand `item` to the decode thread of (sender, `kind`) (Zenoh's callbacks)."""
         key = (head.sender, kind)
         task = functools.partial(self._deliver if kind == MESSAGE else self._answered, item)
         for _attempt in (1, 2):  # (its inbox may have just finished: the sender went)
@@ -345,8 +332,6 @@ class Inbox:
                 left_of_it = self._pending.pop((sender, kind)) - 1
                 if left_of_it:
                     self._pending[(sender, kind)] = left_of_it
-
-    # -- decoding ----------------------------------------------------------------------------
 
     def on_message(self, local: Listening, sample: zenoh.Sample) -> None:
         data = sample.payload.to_bytes()

@@ -61,10 +61,7 @@ class PresenceEvents(Protocol):
 
 class Presence:
     """The liveliness tables of one process's membership (written by its presence thread).
-    `events` and `hearer` (the messenger) are told what follows from a change; `on_token`
-    (Zenoh's thread: never blocks) whether a process's token came; `router`: the one this
-    process attached through (`None`: it is one); `on_hosts`: the most hosts heard at
-    once, when that grows."""
+    `on_token` runs on Zenoh's thread (never blocks); `router` is `None` if this is one."""
 
     def __init__(
         self,
@@ -138,8 +135,7 @@ class Presence:
         return len({host.zid for host in list(self._host_keys)})
 
     def most(self, router: str | None) -> int:
-        """The most hosts heard at once, here or by a router heard; 0 until `router`'s
-        host token is here."""
+        """The most hosts heard at once, here or by a router heard; 0 until known."""
         if router is not None and all(host.zid != router for host in list(self._host_keys)):
             return 0
         return self._most
@@ -167,15 +163,10 @@ class Presence:
             return True
 
     def wait_turn(self, name: str) -> None:
-        """With this process's claim on `name` declared: return once it may serve it
-        (docs/explanation/inside.md, "When a claim may serve").
+        """Return once this claim may serve `name` (inside.md, "When a claim may serve").
 
-        Raises:
-            DuplicateNameError: another process serves it, or claims it and wins.
-            RegistrarUnavailableError: the network did not answer in full within
-                `CLAIM_TIMEOUT` seconds, or its last server went without a clean stop
-                and its supervisor may restart it (rule 22).
-            RegistrarStoppedError: this process left the system meanwhile.
+        Raises `DuplicateNameError`, `RegistrarUnavailableError` (no full answer within
+        `CLAIM_TIMEOUT` s, or a supervisor may restart it), `RegistrarStoppedError`.
         """
         me = int(self._zid, 16)
         deadline = time.monotonic() + CLAIM_TIMEOUT
@@ -219,8 +210,7 @@ class Presence:
                 self._changed.wait(left)
 
     def _refuse_awaited(self, name: str) -> None:
-        """Raise if `name`'s last server died and its supervisor may restart it (hold the
-        lock), unless a death watch heard here (`MEMBERSHIP`) says it is lost."""
+        """Raise if `name`'s last server died and its supervisor may restart it (hold lock)."""
         supervisor = self._awaiting.get(name)
         if supervisor is None or MEMBERSHIP.gone().get(name) is not None:
             return
@@ -251,8 +241,7 @@ class Presence:
         return zid in self._members
 
     def question_until_seen(self, name: str) -> str | None:
-        """`question`, asked again for `EMPTY_BELIEVED` seconds while a full answer names
-        no server of `name` (at once for a name heard to go); the last one's answer."""
+        """`question`, asked again for `EMPTY_BELIEVED` s while no server of `name` is named."""
         deadline = time.monotonic() + EMPTY_BELIEVED
         pause = threading.Event()
         why = self.question(name)
@@ -267,8 +256,7 @@ class Presence:
         return why
 
     def question(self, name: str) -> str | None:
-        """Ask the network for the tokens of `name` (bounded) and apply the answer; `None`
-        if it answered in full, else why not, in words."""
+        """Ask for the tokens of `name` and apply them; `None` if answered in full, else why."""
         if getattr(NO_WAITING, "active", False):
             return "not asked on this thread"  # (Zenoh's or the presence thread's)
         with self._changed:
@@ -310,8 +298,7 @@ class Presence:
                     del self._asking[asked_at]
 
     def _router_answers(self) -> bool:
-        """Whether this process's router answers a ping (a query with no route ends with no
-        reply and no error)."""
+        """Whether this process's router answers a ping."""
         if self._router is None:
             return True
         try:
@@ -475,8 +462,7 @@ class Presence:
 
     @staticmethod
     def _follows(server: Server, other: Server) -> bool:
-        """Whether `server` is a restart of `other`: the same process, or supervisor, and
-        a later stamp (two of those never serve at once)."""
+        """Whether `server` is a restart of `other`: same process or supervisor, later stamp."""
         same = server.zid == other.zid or (
             server.supervisor != "none" and server.supervisor == other.supervisor
         )

@@ -35,10 +35,7 @@ _FIXED = struct.Struct("!2sBBBBB")  # magic, wire version, Python major, minor, 
 
 
 class Header(NamedTuple):
-    """What a payload's header says: who sent it, in which versions, what kind it is, and
-    the sender's clock stamp (`None`: none came). Its layout never changes, so another
-    wire or Python version can always read it: docs/explanation/inside.md ("The Zenoh
-    wire")."""
+    """What a payload's header says (sender, versions, kind, clock stamp); a fixed layout."""
 
     wire: int
     python: tuple[int, int]
@@ -98,8 +95,7 @@ def envelope(kind: int, sender: str, frame: bytes, stamp: int) -> bytes:
 
 
 def payload_of(data: bytes, head: Header) -> tuple[int, memoryview]:
-    """The token and the pickle of the frame after `head`, skipping its length field (the
-    sample's length is the frame's) and the clock stamp."""
+    """The token and the pickle of the frame after `head`."""
     body = memoryview(data)[head.size :]
     skip = _skip(body, 0)
     if len(body) < skip + _TOKEN.size:
@@ -115,9 +111,6 @@ def versions_text(theirs: Header) -> str:
         f" there, wire version {WIRE_VERSION} on Python {PYTHON[0]}.{PYTHON[1]} here"
     )
 
-
-# -- key expressions: `Keys` builds every key; a parser returns `None` for a malformed key, ---
-# never raises: a token a buggy member declared costs a log line, not the presence thread
 
 _ZID = re.compile(r"[0-9a-f]{1,32}")  # a Zenoh id as `str(session.zid())` writes it
 _LIMIT_DIGITS = 19  # max_message_bytes: an int64 at most (and int() stays cheap)
@@ -172,15 +165,12 @@ class ObserverKey(NamedTuple):
 
 
 class Keys:
-    """Every key expression of one system (`system`: a registrar name), built and parsed
-    here: `keys.server(ServerKey(...))` writes what `keys.parse_server(key)` gives back."""
+    """Every key expression of one system, built and parsed (a parser never raises)."""
 
     __slots__ = ("prefix",)
 
     def __init__(self, system: str) -> None:
         self.prefix = f"rr/{system}"
-
-    # -- built -----------------------------------------------------------------------------
 
     def everything(self) -> str:
         """Every key of the system: what its access-control rule allows."""
@@ -243,8 +233,6 @@ class Keys:
         """The queryable of host `member`'s router that answers with its certificate."""
         return f"{self.prefix}/cert/{member}"
 
-    # -- parsed ----------------------------------------------------------------------------
-
     def parse_observer(self, key: str) -> ObserverKey | None:
         head = f"{self.prefix}/obs/"
         if not key.startswith(head):
@@ -255,8 +243,7 @@ class Keys:
         return ObserverKey(parts[0], parts[1])
 
     def kind(self, key: str) -> str:
-        """The kind of the liveliness token `key` (`proc`, `reg`, ..., or what a later
-        version may add); `""` if `key` is not a token of this system."""
+        """The kind of the liveliness token `key`; `""` if not a token of this system."""
         head = f"{self.prefix}/live/"
         return key[len(head) :].split("/", 1)[0] if key.startswith(head) else ""
 
@@ -316,8 +303,7 @@ def _zid(text: str) -> bool:
 
 
 def _number(text: str, digits: int) -> bool:
-    """Whether `text` is at most `digits` ASCII digits as `str(int)` writes them (no
-    leading zero: a key parsed is the key built)."""
+    """Whether `text` is at most `digits` ASCII digits as `str(int)` writes them."""
     return (
         text.isascii()
         and text.isdigit()
