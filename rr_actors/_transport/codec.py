@@ -1,9 +1,7 @@
 """What crosses the wire: frames of `token + pickle`, with a fast path for small data.
 
-One frame per message (`multiprocessing.connection` framing): an 8-byte token (little
-endian; 0: no answer wanted, the sender keeps the reply under it), then the payload,
-pickled as `rr_actors._core.wire` says. A frame over the receiver's limit is skipped
-unread (`Oversized`).
+One frame per message (`multiprocessing.connection` framing): an 8-byte little-endian
+token (0: no answer wanted), then the payload as `rr_actors._core.wire` pickles it.
 """
 
 from __future__ import annotations
@@ -31,8 +29,7 @@ _LONG_LENGTH = struct.Struct("!iQ")  # ... for frames over 2 GiB: -1, then the l
 
 @dataclasses.dataclass(frozen=True)
 class Claim(WireMessage):
-    """Rule 22, carrier to carrier: the kept one of two servers of `name` tells the
-    other's process (which may not hear its token); its fields are a token's (`Sided`)."""
+    """Rule 22: the kept one of two servers of `name` tells the other's process."""
 
     name: str
     who: str
@@ -107,8 +104,7 @@ _SKIP_CHUNK = 64 * 1024
 
 
 def frames(conn: Connection, limit: int | None = None) -> Iterator[bytes | bytearray | Oversized]:
-    """The frames received on `conn`, until it ends (EOF, a socket error, a bad header); one
-    over `limit` bytes is an `Oversized` (its token read, the rest read and dropped)."""
+    """The frames received on `conn` until it ends; one over `limit` is an `Oversized`."""
     fd = conn.fileno()
     try:
         while True:
@@ -131,8 +127,7 @@ def frames(conn: Connection, limit: int | None = None) -> Iterator[bytes | bytea
 
 
 def _read(fd: int, size: int, *, at_start: bool = False) -> Any:
-    """Exactly `size` bytes from `fd` (`None` at the stream's end before the first byte,
-    when `at_start`; else `EOFError`)."""
+    """Exactly `size` bytes from `fd`; at EOF `None` if `at_start`, else `EOFError`."""
     if size == 0:
         return b""
     data = os.read(fd, size)

@@ -1,8 +1,7 @@
 """Which of two servers of one name is kept after a heal (rule 22): the system's policy.
 
-Each process decides alone from the same data (the servers' tokens, as `Claimant`s), so
-all must use the same policy, and a user's function must be deterministic; what each
-strategy loses: docs/explanation/failure-semantics.md ("Which one a heal keeps").
+Each process decides alone from the same `Claimant`s, so all use one deterministic policy:
+docs/explanation/failure-semantics.md ("Which one a heal keeps").
 """
 
 from __future__ import annotations
@@ -23,19 +22,16 @@ RESOLVE_STRATEGIES = ("first_served", "majority")  # or a function of two `Claim
 
 @dataclasses.dataclass(frozen=True)
 class Claimant:
-    """One of two registrars that serve one name after a healed cut (rule 22), as every
-    process of the system sees it: what a `resolve=` function is given.
+    """One of two servers of one name after a healed cut (rule 22), as `resolve=` gets it.
 
     Attributes:
         name: the registrar's name.
         process: its process as the carrier names it (a Zenoh id, a simulated pid).
-        stamp: when it began to serve, a hybrid logical clock stamp (one served after
-            its process heard of the other has the later stamp); the lower served first.
+        stamp: when it began to serve (hybrid logical clock); the lower served first.
         served_since: `stamp` as wall-clock seconds since the epoch (`time.time()`).
-        side: how many members of the system its process heard when it began to serve,
-            its own host included (`0`: unknown).
-        members: how many members the system had then, as its process counted them
-            (`0`: unknown).
+        side: members its process heard when it began to serve, its own included (`0`:
+            unknown).
+        members: members the system had then, as its process counted them (`0`: unknown).
     """
 
     name: str
@@ -57,8 +53,7 @@ Resolve = str | Callable[[Claimant, Claimant], Claimant]
 
 @runtime_checkable
 class Sided(Protocol):
-    """A server of a name as rule 22 orders it (here or elsewhere). `rank` is `(stamp,
-    process id as a number)`: the lower served first."""
+    """A server of a name as rule 22 orders it; `rank`: the lower served first."""
 
     @property
     def stamp(self) -> int: ...
@@ -88,16 +83,7 @@ def check_resolve(value: object) -> Resolve:
 
 
 class Resolution:
-    """A system's rule 22 policy: which of two servers of one name is kept.
-
-    Args:
-        resolve: `"first_served"`, `"majority"` or a function of the two `Claimant`s, as
-            `ZenohNetwork`'s; a function runs on a carrier's thread in every process
-            that sees both, possibly often: it must be fast and deterministic.
-
-    Raises:
-        ConfigError: `resolve` is none of those.
-    """
+    """A system's rule 22 policy (`resolve` as `ZenohNetwork`'s); `ConfigError` if bad."""
 
     def __init__(self, resolve: object = "first_served") -> None:
         self.resolve = check_resolve(resolve)

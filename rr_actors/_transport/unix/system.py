@@ -89,8 +89,6 @@ class UnixCarrier:
     def closed(self) -> bool:
         return self.messenger.closed
 
-    # -- the Carrier -------------------------------------------------------------------
-
     def peer(self, name: str) -> RemotePeer | None:
         """A peer of registrar `name` if it listens in the directory, or was stopped."""
         address = self.address
@@ -127,8 +125,6 @@ class UnixCarrier:
             if _ATTACHED.get(self.address.runtime_dir) is self.messenger:
                 del _ATTACHED[self.address.runtime_dir]
 
-    # -- what the link asks of its system ------------------------------------------------
-
     def speaker(self, name: str) -> str:
         """The `.restart` file of `name`: `supervised_by`'s, else this one, else nobody."""
         supervisor = self.messenger.supervisor
@@ -156,8 +152,6 @@ class UnixCarrier:
         self._awaited.clear()
         self._lost.clear()
         self._judge_thread = None
-
-    # -- rule 19: is a registrar of another process lost? --------------------------------
 
     def _judge_loop(self) -> None:
         """The presence thread: judge ended registrars, poll the awaited ones."""

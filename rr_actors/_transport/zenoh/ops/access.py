@@ -63,8 +63,7 @@ def private_file_trouble(path: str | os.PathLike[str]) -> str | None:
 
 
 def private_dir_trouble(path: str | os.PathLike[str]) -> str | None:
-    """Why the directory `path` is not private (others could plant, rename or replace its
-    files), with the fix; `None` if it is (OSError)."""
+    """Why the directory `path` is not private, with the fix; `None` if it is."""
     st = os.stat(path)
     foreign = _foreign(st)
     if foreign is not None:

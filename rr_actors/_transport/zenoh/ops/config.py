@@ -77,12 +77,7 @@ def parse_endpoint(role: str, endpoint: object) -> tuple[str, str, int]:
 
 
 def endpoints(role: str, given: object, *, tls: bool) -> tuple[str, ...]:
-    """The endpoints of `role` ("listen" or "connect"), checked against `tls`.
-
-    Raises:
-        ConfigError: not a list of endpoints, one malformed, a `tcp/` one with TLS (it
-            would bypass it) or a `tls/` one without.
-    """
+    """The endpoints of `role`, checked against `tls`; raises `ConfigError`."""
     if isinstance(given, str | bytes) or not isinstance(given, Iterable):
         example = "tls/10.0.0.1:7447" if tls else "tcp/10.0.0.1:7447"
         raise ConfigError(
@@ -148,8 +143,7 @@ def session_config(
     system: str = "",
     tls: ZenohTLS | None = None,
 ) -> zenoh.Config:
-    """The session's Zenoh config: only the endpoints given, `lease` seconds, no scouting;
-    with `tls` (a router's), mutual TLS and the access control for `system`."""
+    """The session's Zenoh config; with `tls`, mutual TLS and access control for `system`."""
     lease_ms = max(1, round(lease * 1000))
     remote = [endpoint for endpoint in listen if not endpoint.startswith("unixsock-stream/")]
     link: dict[str, Any] = {
@@ -185,9 +179,6 @@ def session_config(
     return zenoh.Config.from_json5(json.dumps(settings))
 
 
-# -- plain TCP: who can reach an endpoint -------------------------------------------------
-
-
 def _who_reaches(host: str) -> str:
     if is_loopback(host):
         return "every user and process on this machine"
@@ -203,8 +194,7 @@ def _who_answers(host: str, port: int) -> str:
 
 
 def warn_plain_tcp(system: str, listen: Iterable[str], connect: Iterable[str]) -> None:
-    """A WARNING per plain-TCP endpoint, naming who can send this process pickles through
-    it (loopback too: every local user)."""
+    """A WARNING per plain-TCP endpoint, naming who can send this process pickles."""
     me = user()
     for endpoint in listen:
         _, host, _ = parse_endpoint("listen", endpoint)

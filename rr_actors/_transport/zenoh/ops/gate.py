@@ -38,8 +38,7 @@ DROP = 60.0  # seconds a drop (or a members-only spell) lasts, whatever is sent 
 
 
 def open_gates(listen: Iterable[str]) -> list[ListenerGate]:
-    """The platform's gates on the listening sockets of `listen`'s `tls/` endpoints
-    (none for port 0, or where the platform has no gate)."""
+    """The platform's gates on the listening sockets of `listen`'s `tls/` endpoints."""
     gates = []
     for endpoint in listen:
         if not endpoint.startswith("tls/"):
@@ -74,10 +73,8 @@ class _Port:
 
 
 class HandshakeGate:
-    """Drops the sources that flood a router's `tls/` listeners (`gates`, closed by
-    `close`); `member_addresses()` (`MemberAddresses.now`) is called once per look, on
-    the gate's thread; `start=False`: tests `look` themselves. What it leaves to the
-    firewall: docs/explanation/inside.md ("What the gate leaves to the firewall")."""
+    """Drops the sources that flood a router's `tls/` listeners: docs/explanation/inside.md
+    ("What the gate leaves to the firewall")."""
 
     def __init__(
         self,
@@ -211,8 +208,6 @@ class HandshakeGate:
             port.gate.drop_from(port.dropped)  # (none: the filter is taken off)
 
 
-# -- the members' addresses -----------------------------------------------------------------
-
 LEARNED = 4  # addresses kept per member, of those its links came from (the newest)
 ASK_AGAIN = 5.0  # seconds before a certificate asked for and not had is asked for again
 _ASK_TIMEOUT = 2.0  # seconds a get of a certificate waits for its answer
@@ -223,9 +218,7 @@ def _reply_with(pem: bytes, query: zenoh.Query) -> None:
 
 
 class MemberAddresses:
-    """The addresses of the members of one router's system, which the gate never drops
-    (it answers with `tls.cert`); how it learns them: docs/explanation/inside.md ("Which
-    addresses are members'")."""
+    """The members' addresses the gate never drops: inside.md ("Which addresses are members'")."""
 
     def __init__(
         self,
@@ -259,8 +252,7 @@ class MemberAddresses:
             logger.debug("undeclaring the certificate's queryable failed", exc_info=True)
 
     def now(self) -> set[str]:
-        """The members' addresses now: named in their certificates, or their links' (the
-        last `LEARNED` each); asks for an unknown certificate without waiting."""
+        """The members' addresses now, from their certificates or links (never waits)."""
         up = self._links()
         for name in {name for name, _ in up} - self._up:
             self._asked.pop(name, None)  # linked anew (restarted, maybe with a new certificate)
