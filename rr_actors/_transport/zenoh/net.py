@@ -49,8 +49,7 @@ logger = logging.getLogger("rr_actors")
 
 
 def _zenoh_log_from_env() -> None:
-    """Zenoh's own log on standard output when `RUST_LOG` asks for it (e.g.
-    `RUST_LOG=zenoh_link_tls=warn`: each refused handshake, which Zenoh tells nobody else)."""
+    """Zenoh's own log on standard output when `RUST_LOG` asks for it."""
     if os.environ.get("RUST_LOG"):
         zenoh.try_init_log_from_env()  # type: ignore[no-untyped-call]
 
@@ -83,8 +82,7 @@ class MemberLink(NamedTuple):
 
 @dataclasses.dataclass(frozen=True)
 class Opened:
-    """A process's session that opened, as what runs beside it gets it (`Beside`);
-    `connect` is `None` in a process that attached."""
+    """A process's opened session, as `Beside` gets it (`connect`: `None` if attached)."""
 
     system: str
     session: zenoh.Session
@@ -94,9 +92,8 @@ class Opened:
 
 
 class Beside(Protocol):
-    """What runs beside a process's Zenoh session: the lab's event feed across hosts and
-    link watch (`rr_actors.observe._feed`, attached from above: `attach_beside`; a router
-    hands it to those that attach through it). Made as the session opens, closed before."""
+    """What runs beside a process's Zenoh session (`rr_actors.observe._feed`, attached
+    from above by `attach_beside`): made as the session opens, closed before."""
 
     def subscribe_events(
         self, callback: Callable[[events.Event], object], window: float, maxsize: int
@@ -110,8 +107,7 @@ _BESIDE: list[Callable[[Opened], Beside]] = []  # the maker of what runs beside 
 
 
 def attach_beside(make: Callable[[Opened], Beside]) -> None:
-    """Run `make(opened)` beside every session this process opens from now on (the last
-    call wins; `make` must pickle by reference)."""
+    """Run `make(opened)` beside every session opened from now on (the last call wins)."""
     _BESIDE[:] = [make]
 
 
@@ -143,8 +139,7 @@ forkserver.after_fork_in_child("the Zenoh carrier", _refuse_in_child)
 def _join(
     system: str, owner: object, open_member: Callable[[], ZenohMember | ZenohNetwork]
 ) -> ZenohMember | ZenohNetwork:
-    """This process's membership of `system`: the one it has, or `open_member()`.
-    ConfigError: a member of another system, a router of it already, or forked."""
+    """This process's membership of `system`, or `open_member()`; else `ConfigError`."""
     global _MEMBER, _MEMBER_OWNER
     forkserver.check_usable(f"a member of system {system!r}")
     with _MEMBER_LOCK:
@@ -176,8 +171,7 @@ def _left(member: Messenger) -> None:
 
 
 def _close_at_exit(what: str, member: Messenger, close: Callable[[], None]) -> None:
-    """Close `member`'s session when the main thread ends, if the program did not (Zenoh's
-    threads are not daemons: the interpreter would wait for them forever)."""
+    """Close `member`'s session when the main thread ends (Zenoh's threads are not daemons)."""
     stop_at_exit(NETWORKS, what, lambda: not member.closed, lambda _timeout: close())
 
 
@@ -201,16 +195,12 @@ class ZenohAddress:
         socket_path: the router's Unix socket (in its 0700 runtime directory).
         lease: seconds after which a silent peer counts as gone.
         router: the router process's Zenoh id.
-        router_pid: its pid: a manager process it started publishes `router` as its
-            supervisor (rule 19).
-        member: this host's member name, on the events of a process that attaches (`""`
-            without TLS).
+        router_pid: its pid (a manager it started names `router` its supervisor).
+        member: this host's member name (`""` without TLS).
         max_offset: the network's `max_offset`, which that process's clock takes.
         tls: the network's `ZenohTLS` (`None`: plain TCP).
-        resolve: the network's `resolve` (rule 22); a function crosses by value
-            (cloudpickled: the address pickles with plain pickle even then).
-        beside: what the router runs beside its session (`attach_beside`), run there too
-            (pickled by reference); `None`: nothing.
+        resolve: the network's `resolve` (rule 22); a function crosses cloudpickled.
+        beside: what the router runs beside its session (`attach_beside`), or `None`.
     """
 
     system: str
@@ -233,12 +223,7 @@ class ZenohAddress:
         return (ZenohAddress, tuple(fields.values()))
 
     def attach(self) -> ZenohMember | ZenohNetwork:
-        """Join the system from this process (idempotent): a CLIENT-mode session.
-
-        Raises:
-            ConfigError: this process is a member of another system.
-            RegistrarUnavailableError: the router cannot be reached.
-        """
+        """Join from this process (idempotent); `ConfigError`, `RegistrarUnavailableError`."""
         return _join(self.system, None, lambda: ZenohMember(self))
 
 
@@ -247,12 +232,7 @@ def _address_by_value(fields: dict[str, Any], resolve: bytes) -> ZenohAddress:
 
 
 class ZenohMember(Messenger):
-    """A manager process's membership of a system, joined through its host's router
-    (`ZenohAddress.attach`, a CLIENT-mode session).
-
-    Raises:
-        RegistrarUnavailableError: the router cannot be reached.
-    """
+    """A manager process's membership, joined through its host's router (CLIENT mode)."""
 
     def __init__(self, address: ZenohAddress) -> None:
         super().__init__(address.system, resolve=address.resolve)
@@ -291,17 +271,8 @@ class ZenohMember(Messenger):
 
 @dataclasses.dataclass(frozen=True)
 class Services:
-    """What rr_actors' own services (the observer across hosts) get of a router
-    (`ZenohNetwork.services`).
-
-    Attributes:
-        session: the router's open session; declare on it only `keys`' observer keys.
-        keys: the system's key expressions.
-        member: this host's member name, `None` without TLS.
-        lease: seconds after which a silent peer counts as gone.
-        links: each member's link to this router as last seen (empty without TLS).
-        on_leave: `ZenohCarrier.on_leave`.
-    """
+    """What rr_actors' own services get of a router; declare only `keys`' observer keys.
+    `member` is `None` and `links` empty without TLS."""
 
     session: zenoh.Session
     keys: Keys
@@ -521,8 +492,7 @@ class ZenohNetwork(Messenger):
         return self._runtime_dir
 
     def services(self) -> Services:
-        """The router's session and what goes with it, for rr_actors' own services (the
-        observer across hosts); opens the session.
+        """The router's session, for rr_actors' own services (opens it).
 
         Raises:
             RegistrarStoppedError: this process left the system (`close()`).
@@ -589,9 +559,7 @@ class ZenohNetwork(Messenger):
     def wait_for(self, name: str, *, timeout: float) -> None:
         """Wait until registrar `name` is served on this system (by any host).
 
-        For a program whose other machine may start after it (its first call would fail
-        at once with `UnknownRegistrarError`): returns as soon as the registrar's presence
-        reaches this process, at once if it is served already. Opens the session.
+        For a program whose other machine may start after it. Opens the session.
 
         Args:
             name: the registrar's name.
@@ -630,11 +598,9 @@ class ZenohNetwork(Messenger):
         return [] if beside is None else beside.unlinked()
 
     def close(self) -> None:
-        """Leave the system: stop serving, fail what waits, close the session, and wait (at
-        most 2 s) until the threads that call Zenoh ended (one running at the
-        interpreter's end aborts the process on CPython < 3.14). Idempotent. A registrar
-        still running stops being served and runs on with this process's registrars
-        only: stop registrars first to release what they hold elsewhere."""
+        """Leave the system: stop serving, fail what waits, close the session, and wait
+        (at most 2 s) for the threads that call Zenoh. Idempotent. Stop registrars first
+        to release what they hold elsewhere."""
         if self._gate is not None:
             self._gate.close()  # (its duplicate of a listening socket, too)
         if self._opened is not None:
