@@ -127,7 +127,9 @@ class Registrar:
 
     Its methods may be called from any thread, including from inside callbacks; each
     waits for the registrar at most `timeout` seconds (default: the config's
-    `call_timeout`) and raises `CallTimeoutError` when they run out. Each has an
+    `call_timeout`). Every method raises `CallTimeoutError` when they run out,
+    `RegistrarStoppedError` when this registrar was stopped and `RegistrarUnavailableError`
+    when it died; a method's docstring lists only its other errors. Each has an
     awaitable twin for event loops (`acall`, `aunload`, ..., `watch`): the same
     operation, errors and timeout, with no thread held while it waits. Cancelling the
     awaiting task withdraws what it waits for as its timeout would (a cancelled `acall`
@@ -192,9 +194,6 @@ class Registrar:
             UnknownQueryError: `query_id` is not the id of an entry of `in_doubt`.
             CatalogWriteError: the backup could not be written (a full disk): settled here,
                 but a restart before the next successful write offers it again.
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
         """
         blocking(self._actor.steps(Here.settle_in_doubt, timeout, query_id))
 
@@ -244,9 +243,6 @@ class Registrar:
                 process, does not pickle), the name is invalid, or `max_pending` is not
                 an int >= 1 (nor `None`).
             DuplicateNameError: a server with this name exists on this registrar.
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
         """
         op = Here.register_server
         steps = self._actor.steps(op, timeout, name, load, unload, on_status, label, max_pending)
@@ -276,9 +272,6 @@ class Registrar:
 
         Raises:
             UnknownServerError: no such server here.
-            CallTimeoutError: not finished within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
         """
         blocking(self._actor.steps(Here.unregister_server, timeout, name))
 
@@ -371,7 +364,6 @@ class Registrar:
 
         Raises:
             UnknownQueryError: the id is unknown here or already released (nothing changes).
-            CallTimeoutError: not finished within `timeout` seconds.
             RegistrarUnavailableError: the provider died (or could not be reached) before it
                 answered. The id is released all the same: this registrar no longer holds it,
                 the provider releases it when it reconciles after its restart (its `unload`
@@ -415,8 +407,6 @@ class Registrar:
             MessageTooLargeError: the status is over the `max_message_bytes` of a consumer
                 registrar in another process (named): it did not hear it, the others did.
             CallTimeoutError: not delivered everywhere within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
         """
         steps = self._actor.steps(Here.send_status, timeout, query_id, status, message)
         delivery: StatusDelivery = blocking(steps)
@@ -436,9 +426,6 @@ class Registrar:
 
         Raises:
             UnknownServerError: no such server here.
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
         """
         return blocking(self._actor.steps(Here.server_queries, timeout, server))
 
@@ -455,7 +442,6 @@ class Registrar:
         Raises:
             UnknownServerError: no such registrar or server.
             ConfigError: `target_rr` or `server` is not a str.
-            CallTimeoutError: no answer within `timeout` seconds.
             RegistrarUnavailableError: the provider died.
         """
         return blocking(self._actor.steps(Here.fetch_queries, timeout, target_rr, server))
@@ -468,13 +454,7 @@ class Registrar:
         return await run_steps_async(steps)
 
     def client_queries(self, *, timeout: float | None = None) -> list[Query]:
-        """Every query this registrar holds at servers (its own included), oldest first.
-
-        Raises:
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
-        """
+        """Every query this registrar holds at servers (its own included), oldest first."""
         return blocking(self._actor.steps(Here.client_queries, timeout))
 
     async def aclient_queries(self, *, timeout: float | None = None) -> list[Query]:
@@ -493,9 +473,6 @@ class Registrar:
             UnknownQueryError: this registrar holds no such query.
             ConfigError: `callback` is not callable (or, to a registrar in another
                 process, does not pickle).
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
         """
         blocking(self._actor.steps(Here.set_status_callback, timeout, query_id, callback))
 
@@ -526,9 +503,6 @@ class Registrar:
                 refused it (its record keeps the old response).
             MessageTooLargeError: over the `max_message_bytes` of a consumer registrar in
                 another process (named): its record keeps the old response.
-            CallTimeoutError: not delivered within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
         """
         blocking(self._actor.steps(Here.update_response, timeout, query_id, response))
 
@@ -540,13 +514,7 @@ class Registrar:
         await run_steps_async(steps)
 
     def save_catalog(self, *, timeout: float | None = None) -> None:
-        """Write every pending change of the catalog to the backup now (no-op without one).
-
-        Raises:
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
-        """
+        """Write every pending change of the catalog to the backup now (no-op without one)."""
         blocking(self._actor.steps(Here.save_catalog, timeout))
 
     async def asave_catalog(self, *, timeout: float | None = None) -> None:
@@ -1037,7 +1005,6 @@ class StatusWatch:
 
         Raises:
             UnknownQueryError: the registrar holds no such query.
-            CallTimeoutError: no answer within `timeout` seconds.
             RegistrarStoppedError: the registrar was stopped.
             RegistrarUnavailableError: the registrar died.
         """
@@ -1126,7 +1093,6 @@ def snapshot(registrar: ResourceRegistrar, *, timeout: float, check: bool) -> Ca
 
     Raises:
         AssertionError: with `check`, an index of the catalog disagrees with its rows.
-        CallTimeoutError: no answer within `timeout` seconds.
         RegistrarStoppedError, RegistrarUnavailableError: it was stopped, or it died.
     """
     here = registrar._actor
