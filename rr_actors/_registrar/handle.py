@@ -599,7 +599,7 @@ class Here:
         config = launched.config
         self.config = config
         self.ref: pykka.ActorRef[RegistrarActor] = launched.ref
-        self.clients = launched.clients  # one cache: the actor starts, the handle looks up
+        self.clients = launched.clients
         self.died = launched.died  # set when a crash of the actor was fully handled
         self.ended = launched.ended  # set when the actor handed on its last message
         self.published = launched.published
@@ -709,7 +709,7 @@ class Here:
             chain = context.chain
             if context.registrar == self.config.name:
                 parent = context.resource_id
-        if self.config.backup_path is not None:  # its client record is stored
+        if self.config.backup_path is not None:
             check_picklable(request, f"the request of a call to '{target_rr}/{server}'")
         steps = self.calls.steps(
             query_id or runtime.new_id(),
@@ -799,7 +799,7 @@ class Here:
         )
 
     def update_response(self, timeout: float | None, query_id: str, response: Any) -> Steps[None]:
-        if self.config.backup_path is not None:  # the catalog stores it
+        if self.config.backup_path is not None:
             check_picklable(response, f"the new response of {query_id!r}")
         return self.asking(
             UpdateResponse(query_id, response, FutureReply()),
@@ -841,12 +841,10 @@ class Here:
         return True
 
     def ask(self, message: Asked, timeout: float | None, what: str) -> Any:
-        """Send the actor `message` and wait at most `timeout` seconds for its answer: what it
-        answered, or `CallTimeoutError` (`what` names the operation), or its stop or death."""
+        """The actor's answer to `message`; `CallTimeoutError` names the operation `what`."""
         return blocking(self.asking(message, timeout, what))
 
     def asking(self, message: Asked, timeout: float | None, what: str) -> Steps[Any]:
-        """`ask`'s steps: send `message`, wait for its answer."""
         limit = self.limit(timeout)
         if not self.tell(message):
             raise DIRECTORY.gone_error(self.config.name) from None
@@ -856,8 +854,7 @@ class Here:
         return future.get()
 
     def wait_stopped(self, timeout: float | None = None) -> bool:
-        """Whether the actor's thread ended within `timeout` s (stopped, or died and its death
-        handled: pykka marks it stopped before its `on_failure` ran)."""
+        """Whether the actor ended (and its death was handled) within `timeout` s."""
         deadline = None if timeout is None else runtime.monotonic() + timeout
         if not self.ref.actor_stopped.wait(timeout):
             return False
@@ -868,13 +865,13 @@ class Here:
         self.ref.tell(Crash())
 
     def ping(self, reply: Reply) -> None:
-        """Ask the actor to answer `reply` (`None`) once it gets to it (a heartbeat)."""
+        """A heartbeat: the actor answers `reply` once it gets to it."""
         self.tell(Ping(reply))
 
     def client(
         self, target_rr: str, server: str, timeout: float
     ) -> Steps[pykka.ActorRef[ClientActor]]:
-        """The client actor for `target_rr/server`, asked of the actor on first use."""
+        """The client actor for `target_rr/server` (the actor starts it on first use)."""
         client = self.clients.get(target_rr, server)
         if client is None or not client.is_alive():
             started: pykka.ActorRef[ClientActor] = yield from self.asking(
@@ -1004,9 +1001,7 @@ class StatusWatch:
         """Become the query's status callback now (the first `__anext__` does it too).
 
         Raises:
-            UnknownQueryError: the registrar holds no such query.
-            RegistrarStoppedError: the registrar was stopped.
-            RegistrarUnavailableError: the registrar died.
+            UnknownQueryError: the registrar holds no such query; and as `Registrar`'s methods.
         """
         if self._updates is None:
             self._updates = asyncio.Queue(self._maxsize)
@@ -1031,8 +1026,7 @@ class StatusWatch:
         return update
 
     async def aclose(self) -> None:
-        """Stop collecting: later updates are dropped; iteration ends, also for a reader
-        waiting for the next update."""
+        """Stop collecting: later updates are dropped; iteration ends, also for a waiting reader."""
         self._closed = True
         updates = self._updates
         if updates is not None:  # wake a reader waiting for the next update: it ends
@@ -1054,9 +1048,8 @@ def start_registrar(
     upstream: Publisher[events.Event] | None = None,
     hold_in_doubt: bool = False,
 ) -> ResourceRegistrar:
-    """`ResourceRegistrar.start`, with its events also relayed to `upstream` (a supervisor's
-    tree) from the first; `hold_in_doubt`: in-doubt entries stay in the backup until the
-    caller settles them (a manager process runs its `setup` itself)."""
+    """`ResourceRegistrar.start`, its events relayed to `upstream`; `hold_in_doubt`: the
+    caller settles the in-doubt entries (a manager process runs its `setup` itself)."""
     launched = launch(
         config,
         setting_up=setup is not None,
@@ -1088,13 +1081,8 @@ def start_registrar(
 
 
 def snapshot(registrar: ResourceRegistrar, *, timeout: float, check: bool) -> CatalogView:
-    """A consistent copy of `registrar`'s catalog rows and servers, made on its actor thread
-    (`testing.catalog_snapshot` with `check`: its invariants checked first; the observer).
-
-    Raises:
-        AssertionError: with `check`, an index of the catalog disagrees with its rows.
-        RegistrarStoppedError, RegistrarUnavailableError: it was stopped, or it died.
-    """
+    """A copy of `registrar`'s catalog made on its actor thread; `check`: its invariants
+    asserted first (`testing.catalog_snapshot`)."""
     here = registrar._actor
     view: CatalogView = here.ask(
         Snapshot(check, FutureReply()),
@@ -1114,8 +1102,7 @@ def call_steps(
     timeout: float | None,
     query_id: str | None,
 ) -> Steps[Query]:
-    """The steps `consumer.call(...)` runs blocking and `acall` awaits, for a protocol built
-    on a call (`Supervisor.call_with_retry`); `ConfigError` at once for a bad argument."""
+    """The steps of `consumer.call(...)`, for a protocol built on one (`call_with_retry`)."""
     actor = consumer._actor
     return actor.steps(Here.call, timeout, target_rr, server, request, on_status, query_id)
 
@@ -1126,13 +1113,7 @@ def _after(first: Steps[Any], then: Steps[T]) -> Steps[T]:
 
 
 def blocking(steps: Steps[T]) -> T:
-    """Run an operation's `steps` on the calling thread (`replies.run_steps`).
-
-    Raises:
-        ConfigError: the calling thread is the process's own event loop (a coroutine
-            callback runs there): blocking it would stall every coroutine callback of
-            the process; await the async twin instead.
-    """
+    """Run `steps` on the calling thread; `ConfigError` on the process's event loop."""
     if on_process_loop():
         steps.close()
         raise ConfigError(
@@ -1144,7 +1125,7 @@ def blocking(steps: Steps[T]) -> T:
 
 
 def _check_names(**names: object) -> None:
-    """`ConfigError` naming the first argument that is not a str, before anything is sent."""
+    """`ConfigError` naming the first argument that is not a str."""
     for field, value in names.items():
         if not isinstance(value, str):
             raise ConfigError(f"{field} must be a name (a str), got {value!r}")
