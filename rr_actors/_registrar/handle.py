@@ -167,11 +167,10 @@ class Registrar:
     def in_doubt(self) -> tuple[Query, ...]:
         """Loads (or unloads) a crash cut short in the last run, found at restore (rule 16).
 
-        Each is a `Query` whose `id` is the resource id, `request` what the load was for and
-        `response` `None` for a load that never finished. They left the catalog and their
-        dependencies were released; the manager decides what to clean up. The backup keeps
-        them until `setup` returned (or `settle_in_doubt`); without `setup`, they are forgotten
-        at once.
+        Each is a `Query`: `id` the resource id, `request` what it was for, `response` `None`
+        for a load that never finished. They left the catalog, their dependencies released;
+        the manager cleans up. The backup keeps them until `setup` returned (or
+        `settle_in_doubt`); without `setup`, they are forgotten at once.
         """
         return self._facts.in_doubt
 
@@ -182,9 +181,9 @@ class Registrar:
     def settle_in_doubt(self, query_id: str | None = None, *, timeout: float | None = None) -> None:
         """Say that in-doubt entry `query_id` (default: every one) is handled (rule 16).
 
-        Its row leaves the backup, so a restart no longer reports it in `in_doubt`. The
-        registrar does this itself once `setup` returns; call it from `setup` to settle each
-        entry as soon as it is cleaned up. Settling an entry again is a no-op.
+        Its row leaves the backup, so a restart no longer reports it. The registrar does this
+        once `setup` returns; call it from `setup` to settle each entry as it is cleaned up.
+        Settling an entry again is a no-op.
 
         Args:
             query_id: the `id` of one of `in_doubt`'s queries, or `None` for all.
@@ -227,11 +226,10 @@ class Registrar:
             on_status: `on_status(query, update)`, run once on a worker thread when a status
                 about one of this server's resources is sent or passes through.
             timeout: seconds to wait for the registrar.
-            label: `label(request) -> str`, the short name the observer shows for a resource
-                (`lidar2`). It runs once per resource as its load starts, on a worker thread,
-                bounded by `RegistrarConfig.compare_timeout`; kept cut to 40 characters. If it
-                fails (raises, returns a non-`str`, overruns) the label reads
-                `<label failed: ...>`; the load is not affected.
+            label: `label(request) -> str`, the observer's short name for a resource
+                (`lidar2`, cut to 40 characters): run on a worker thread as its load starts,
+                within `RegistrarConfig.compare_timeout`; if it fails (raises, returns a
+                non-`str`, overruns) it reads `<label failed: ...>`, the load goes on.
             max_pending: new loads this server may have queued or running at once (an int
                 >= 1; `None`: `RegistrarConfig.max_pending`). A call past it waits and asks
                 again within its timeout, then gets `OverloadedError`; a dedup hit, or a call
@@ -295,10 +293,9 @@ class Registrar:
         """Ask `target_rr/server` for the resource `request` describes (rules 1-6, 17).
 
         The provider runs `load(request)` unless an equal (`==`) request is loaded or loading
-        there; either way this call becomes one more consumer with its own id. Made from
-        inside a `load` callback, the query is a dependency of the resource being loaded (on
-        this registrar) and part of its chain for cycle detection. Made under an
-        OpenTelemetry span (the `otel` extra), the provider's spans are its children.
+        there; either way this call becomes one more consumer with its own id. Made inside a
+        `load` callback, the query is a dependency of that resource (and in its chain for
+        cycle detection); under an OpenTelemetry span, the provider's spans are its children.
 
         Args:
             target_rr: name of the provider registrar (this one's own name works too).
@@ -327,9 +324,8 @@ class Registrar:
                 not wait or has too little time left to try again; nothing is held.
             RegistrarUnavailableError: the provider died (it may have executed the load).
             RegistrarStoppedError: this registrar or the provider was stopped.
-            ConfigError: an argument of the wrong type (`target_rr`, `server`, `query_id`,
-                `on_status`, `if_overloaded`); or the request or response cannot be pickled
-                where it must be (across processes, or into this registrar's backup).
+            ConfigError: an argument of the wrong type; or the request or response does not
+                pickle where it must (across processes, or into this registrar's backup).
         """
         steps = self._actor.steps(
             Here.call, timeout, target_rr, server, request, on_status, query_id, if_overloaded
@@ -358,18 +354,15 @@ class Registrar:
     def unload(self, query_id: str, *, timeout: float | None = None) -> None:
         """Release one consumer id obtained from `call` (rules 7-8).
 
-        The provider's `unload` callback runs when the last consumer id of the resource is
-        released, after that resource's own dependencies were released; this returns when
-        that is done.
+        The provider's `unload` runs, after the resource's own dependencies were released,
+        when its last consumer id is; this returns when that is done.
 
         Raises:
             UnknownQueryError: the id is unknown here or already released (nothing changes).
-            RegistrarUnavailableError: the provider died (or could not be reached) before it
-                answered. The id is released all the same: this registrar no longer holds it,
-                the provider releases it when it reconciles after its restart (its `unload`
-                runs once), and nobody gets `FATAL` for it (rule 20).
-            RegistrarStoppedError: this registrar was stopped; or the provider was (the id
-                is released as for `RegistrarUnavailableError`, at its next start).
+            RegistrarUnavailableError, RegistrarStoppedError: the provider died (or could not
+                be reached), or was stopped, before it answered. The id is released all the
+                same: the provider releases it when it reconciles at its next start (its
+                `unload` runs once), and nobody gets `FATAL` for it (rule 20).
         """
         blocking(self._actor.steps(Here.unload, timeout, query_id))
 
@@ -382,14 +375,13 @@ class Registrar:
     ) -> StatusDelivery:
         """Tell every consumer of the resource behind `query_id` about its status (rule 9).
 
-        This server's `on_status` runs once; each consumer's status callback runs with its own
-        query id, on a worker thread of the consumer's process (a coroutine one: on its loop);
-        the status climbs every dependency path to the top consumers. Returns once every
-        callback on the way has run, or was given up on: a consumer's callback not returned
-        within the patience (half of `timeout`, or all of it but 1 s if more), and at once
-        while its id's earlier callback is still given up on (its statuses then queue,
-        coalesced to the latest and every `FATAL`). A server's own `on_status` is never given
-        up on: it is waited for, within `timeout`.
+        This server's `on_status` runs once (waited for, within `timeout`); each consumer's
+        status callback runs with its own query id on a worker thread of the consumer's
+        process (a coroutine one: on its loop), up every dependency path to the top. Returns
+        once every callback on the way has run or was given up on: not returned within the
+        patience (half of `timeout`, or all of it but 1 s if more), or its id's earlier
+        callback still given up on (its statuses then queue, coalesced to the latest and
+        every `FATAL`).
 
         Args:
             query_id: any consumer id of a resource this registrar serves.
@@ -488,8 +480,8 @@ class Registrar:
     ) -> None:
         """Replace the stored response of the resource behind `query_id` (thesis 4.3.2).
 
-        Returns once every consumer's client record holds the new response too (a consumer
-        that cannot be reached is logged and skipped).
+        Returns once every consumer's client record holds it too (one unreachable is logged
+        and skipped).
 
         Args:
             query_id: any consumer id of a resource this registrar serves.
@@ -524,12 +516,11 @@ class Registrar:
     def stop(self, *, timeout: float | None = None) -> None:
         """Stop the registrar (rule 12); for the owner of a manager process, the process too.
 
-        Unloads everything it holds as a consumer (newest first), waits for the unloads of its
-        own resources under way until `STOP_WAITS_FOR_UNLOADS` of `timeout` has passed, then
-        stops its servers and clients. An unload still under way is cut short
-        (`events.UnloadCutShort`; in doubt at the next start, rule 16). What its servers serve
-        stays in the catalog for a restart; `erase_on_destruct` removes the backup. Stopping a
-        stopped (or dead) registrar is a no-op.
+        Unloads what it holds as a consumer (newest first), waits for its resources' unloads
+        under way for `STOP_WAITS_FOR_UNLOADS` of `timeout`, then stops its servers and
+        clients; an unload still under way is cut short (`events.UnloadCutShort`; in doubt at
+        the next start, rule 16). Its catalog stays for a restart (`erase_on_destruct` removes
+        the backup). Stopping a stopped (or dead) registrar is a no-op.
 
         Args:
             timeout: seconds the whole stop may take (`None`: `call_timeout`); the owner of
@@ -550,11 +541,10 @@ class Registrar:
     def watch(self, query_id: str, *, maxsize: int = 256) -> StatusWatch:
         """The status updates of query `query_id`, as an async iterator (`rr.StatusUpdate`s).
 
-        Once opened (its first step, or `async with`) it is the query's status callback (as
-        `aset_status_callback`). Iteration ends after a `FATAL` (rule 19) or once it is closed
-        (`aclose()`, or leaving its `async with` block); a `break` or a cancelled task leaves it
-        open. Updates are queued on the loop it was opened on; past `maxsize` the oldest is
-        dropped (counted in `dropped`), so a slow reader never holds the registrar.
+        Once opened (its first step, or `async with`) it is the query's status callback.
+        Iteration ends after a `FATAL` (rule 19) or once closed (`aclose()`, leaving its
+        `async with`); a `break` or a cancelled task leaves it open. Updates queue on the
+        loop it was opened on; past `maxsize` the oldest is dropped (counted in `dropped`).
 
         Args:
             query_id: a query this registrar holds (from `call` or `acall`).
@@ -945,9 +935,8 @@ class ResourceRegistrar(Registrar):
         """Call `callback(event)` for every event of this registrar from now on.
 
         Events are the frozen dataclasses of `rr_actors.events`. The callback runs on a
-        subscriber thread of its own, one event at a time in order; past `maxsize` queued
-        events, new ones are dropped, counted (`Subscription.dropped`) and reported by an
-        `EventsDropped`: a slow callback never slows the registrar.
+        subscriber thread of its own, one event at a time in order; past `maxsize` queued,
+        new ones are dropped, counted (`Subscription.dropped`) and reported (`EventsDropped`).
 
         Args:
             callback: `callback(event)`; what it raises is logged.
