@@ -92,8 +92,7 @@ def check_seconds(
     field: str, value: object, *, allow_none: bool = False, allow_zero: bool = False
 ) -> None:
     """`ConfigError` naming `field` unless `value` is a finite positive number of seconds
-    (non-negative with `allow_zero`; `None` with `allow_none`; never a bool).
-    """
+    (non-negative with `allow_zero`; `None` with `allow_none`; never a bool)."""
     if value is None and allow_none:
         return
     if (
@@ -120,8 +119,7 @@ def check_choice(field: str, value: object, choices: Sequence[str]) -> None:
 
 def is_loopback(host: str) -> bool:
     """Whether `host` names this machine only (`localhost`, 127.0.0.0/8, `::1`; another DNS name
-    may resolve anywhere): where one may listen without the user's leave.
-    """
+    may resolve anywhere): where one may listen without the user's leave."""
     if host == "localhost":
         return True
     try:

@@ -61,8 +61,7 @@ _ACTOR_THREAD = runtime.local()  # `active` on the thread of an `Actor`'s loop
 
 def on_actor_thread() -> bool:
     """Whether the calling thread runs an actor's loop or steps an awaited operation: such a thread
-    must never wait on the network (a carrier answers there from what it knows).
-    """
+    must never wait on the network (a carrier answers there from what it knows)."""
     return bool(
         getattr(_ACTOR_THREAD, "active", False) or getattr(_ACTOR_THREAD, "awaiting", False)
     )
@@ -93,8 +92,7 @@ SIGNAL_CHECK = 0.1
 
 class OneShotFuture(pykka.Future[T]):
     """A pykka future handed over by releasing one lock: `pykka.ThreadingFuture`'s interface,
-    settling twice raises `queue.Full`, plus `add_done_callback` (how a loop awaits it).
-    """
+    settling twice raises `queue.Full`, plus `add_done_callback` (how a loop awaits it)."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -111,8 +109,7 @@ class OneShotFuture(pykka.Future[T]):
 
     def _wait(self, timeout: float | None = None) -> bool:
         """Block until settled, at most `timeout` s; whether it is (a wait that runs out looks once
-        more). The main thread waits in `SIGNAL_CHECK` slices, so that a Ctrl-C is raised.
-        """
+        more). The main thread waits in `SIGNAL_CHECK` slices, so that a Ctrl-C is raised."""
         if self._settled:
             return True
         end: float | None = None  # (sliced: when the whole wait ends)
@@ -181,8 +178,7 @@ class OneShotFuture(pykka.Future[T]):
 
     def add_done_callback(self, fn: Callable[[OneShotFuture[T]], object]) -> None:
         """Run `fn(self)` once settled (at once if it is, else on the settling thread), each
-        callback once, in order; what one raises is logged. For quick wake-ups only.
-        """
+        callback once, in order; what one raises is logged. For quick wake-ups only."""
         callbacks = self._done_callbacks
         if callbacks is None:
             with _CALLBACKS_MADE:  # (two threads adding the first at once: one list)
@@ -215,8 +211,7 @@ class OneShotFuture(pykka.Future[T]):
 
 class Inbox(LateQueue):
     """An actor's inbox with its turn; once closed, what is left and what arrives goes to `late`.
-    Each envelope takes a ticket; one is handled in the turn only once `handled` equals it.
-    """
+    Each envelope takes a ticket; one is handled in the turn only once `handled` equals it."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -266,8 +261,7 @@ _WAKE = pykka._envelope.Envelope(None)
 
 def deliver(ref: pykka.ActorRef[Any], message: Any) -> None:
     """`ref.tell(message)`, or handled on this thread in an idle `Actor`'s turn (`Actor.inline`);
-    the caller holds no lock a handler might take. `pykka.ActorDeadError` if it is not running.
-    """
+    the caller holds no lock a handler might take. `pykka.ActorDeadError` if it is not running."""
     if type(message) not in ref.actor_class.inline:
         ref.tell(message)
         return
@@ -280,14 +274,12 @@ def deliver(ref: pykka.ActorRef[Any], message: Any) -> None:
 
 class ContainedError(RuntimeError):
     """A handler raised a `BaseException` not an `Exception`: it fails that actor alone (pykka
-    would take it for the process going down and stop every actor).
-    """
+    would take it for the process going down and stop every actor)."""
 
 
 class Actor(pykka.ThreadingActor):
     """`pykka.ThreadingActor` with an `Inbox`, `OneShotFuture`s and the turn, on a daemon thread
-    (`rr_actors._core.exit` stops actors cleanly first).
-    """
+    (`rr_actors._core.exit` stops actors cleanly first)."""
 
     use_daemon_thread = True
     actor_inbox: Inbox
@@ -437,23 +429,20 @@ class Actor(pykka.ThreadingActor):
 
     def on_turn_end(self) -> None:
         """Run at the end of each turn when `ends_turns`, in it (a registrar commits its turn's
-        changes here, then releases their answers).
-        """
+        changes here, then releases their answers)."""
 
     def on_ended(self) -> None:
         """Run on the actor's thread once its loop ended and its inbox went to `on_late`."""
 
     def on_late(self, envelope: Any) -> None:
         """An envelope that arrived after the loop ended (on the actor's thread for what was left,
-        the sender's for what comes later): `refuse` it, unless overridden (thread-safely).
-        """
+        the sender's for what comes later): `refuse` it, unless overridden (thread-safely)."""
         refuse(envelope)
 
 
 def _forget_actors() -> None:
     """In a forked child: every actor of the parent is dead (new events and registry lock: a
-    parent's thread may have held the old ones).
-    """
+    parent's thread may have held the old ones)."""
     pykka.ActorRegistry._actor_refs_lock = runtime.RLock()
     for ref in pykka.ActorRegistry.get_all():
         stopped = runtime.Event()

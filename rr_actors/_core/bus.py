@@ -42,8 +42,7 @@ class Publisher(Generic[E]):
     """Where events are published: to subscriptions, other sinks and an INFO log line (`logger`,
     `describe(event)`, the event in `record.event`). `notice(count)` is what a subscriber gets
     after losing `count` events; `tap` is also handed each event published here (this one is
-    `active` while `tap` is listened to). Publish only when `active`.
-    """
+    `active` while `tap` is listened to). Publish only when `active`."""
 
     def __init__(
         self,
@@ -114,8 +113,7 @@ class Publisher(Generic[E]):
 
     def watch_listeners(self, watcher: Callable[[bool], object]) -> Callable[[], None]:
         """Call `watcher(True)` at the first sink, `watcher(False)` after the last (on the thread
-        that subscribes or closes); returns the function that stops the watching.
-        """
+        that subscribes or closes); returns the function that stops the watching."""
         with self._lock:
             self._watchers = (*self._watchers, watcher)
 
@@ -191,8 +189,7 @@ class Publisher(Generic[E]):
 
     def remove_sink(self, sink: Sink[E]) -> None:
         """Stop calling `sink` (the first equal one); nothing if it is not there (a publish under
-        way may still call it once).
-        """
+        way may still call it once)."""
         with self._lock:
             before = bool(self._sinks)
             sinks = list(self._sinks)

@@ -55,8 +55,7 @@ class Peer(Protocol):
 
 class LocalPeer:
     """A registrar actor in this process (`ref` set when it starts); a `durable` one's steps write
-    to disk before they answer, so a loop's thread never takes its turn.
-    """
+    to disk before they answer, so a loop's thread never takes its turn."""
 
     def __init__(
         self, name: str, ref: pykka.ActorRef[Any] | None = None, *, durable: bool = False
@@ -154,8 +153,7 @@ class Directory:
     def gone_error(self, name: str) -> Exception:
         """The error for a registrar not reachable: `RegistrarUnavailableError` for a forked
         parent's or one being restarted, else `RegistrarStoppedError` (stopped),
-        `RegistrarUnavailableError` (died) or `UnknownRegistrarError` (never seen).
-        """
+        `RegistrarUnavailableError` (died) or `UnknownRegistrarError` (never seen)."""
         parent = self._inherited.get(name)
         if parent is not None:
             return RegistrarUnavailableError(
@@ -183,8 +181,7 @@ class Directory:
 
     def expect_restart(self, name: str, expected: bool = True) -> None:
         """Say whether a crash of registrar `name` will be followed by a restart (then its
-        supervisor, not a death watch, decides).
-        """
+        supervisor, not a death watch, decides)."""
         with self._lock:
             if expected:
                 self._restart_expected.add(name)
@@ -196,8 +193,7 @@ class Directory:
 
     def mark_restarting(self, names: Iterable[str], restarting: bool = True) -> None:
         """Say that registrars `names` are down for a restart (or no longer are): a message to one
-        fails with `RegistrarUnavailableError`, even after a clean stop for the restart.
-        """
+        fails with `RegistrarUnavailableError`, even after a clean stop for the restart."""
         with self._lock:
             if restarting:
                 self._restarting.update(names)
@@ -206,8 +202,7 @@ class Directory:
 
     def broadcast(self, message: object, *, also: Iterable[str] = (), skip: str = "") -> None:
         """Tell `message` to every registrar of this process and those in `also`, but `skip` (one
-        unreachable is skipped).
-        """
+        unreachable is skipped)."""
         targets = {peer.name for peer in self.local_peers()} | set(also)
         targets.discard(skip)
         for target in sorted(targets):

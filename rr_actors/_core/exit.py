@@ -133,8 +133,7 @@ def stop_everything(timeout: float = EXIT_TIMEOUT) -> None:
 
 def _in_order(entries: list[_Entry], deadline: float) -> list[_Entry]:
     """`entries` with each that holds ids at another before it; a tree's managers (their tree
-    stops them) and the networks last. In a cycle, the first in tier order goes first.
-    """
+    stops them) and the networks last. In a cycle, the first in tier order goes first."""
     running = [entry for entry in entries if entry[0] < NETWORKS and entry[2]()]
     managed = {name for entry in running if entry[0] == SUPERVISORS for name in entry[4]}
     left = [e for e in running if e[0] == SUPERVISORS or not managed.intersection(e[4])]

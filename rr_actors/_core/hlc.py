@@ -106,8 +106,7 @@ def _skewed_ns() -> int:
 class HybridClock:
     """A hybrid logical clock (module docstring), thread-safe, never raising: `physical` in
     nanoseconds (`None`: `runtime.wall_ns`); `refused` counts stamps refused for being more than
-    `max_offset` seconds ahead (`ConfigError` unless above 0 and at most a year).
-    """
+    `max_offset` seconds ahead (`ConfigError` unless above 0 and at most a year)."""
 
     # (no `__slots__`: a simulation swaps a clock's `__dict__` whole per simulated process)
 
@@ -158,8 +157,7 @@ class HybridClock:
     def receive(self, stamp: int, sender: str = "") -> int:
         """Take in a message's stamp before it is handled; the receipt's stamp. One that is not an
         int in 0..2**64-1 is ignored, one too far ahead refused (counted, a WARNING at most once a
-        minute naming `sender`).
-        """
+        minute naming `sender`)."""
         if not isinstance(stamp, int) or not 0 <= stamp <= _MAX:
             return self.now()
         pt = (self.physical() // 1000) << COUNTER_BITS

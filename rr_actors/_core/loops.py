@@ -61,8 +61,7 @@ def _wake_from(loop: asyncio.AbstractEventLoop, waiter: asyncio.Future[bool], _:
 
 async def settled(future: OneShotFuture[Any], timeout: float | None) -> bool:
     """Await `future` (settled by any thread) at most `timeout` seconds; whether it is. No thread
-    waits: its done callback wakes the loop.
-    """
+    waits: its done callback wakes the loop."""
     if future._settled:
         return True
     loop = asyncio.get_running_loop()
@@ -78,8 +77,7 @@ async def settled(future: OneShotFuture[Any], timeout: float | None) -> bool:
 
 async def run_steps_async(steps: Steps[T]) -> T:
     """Run `steps` on the running loop, awaiting each future (`settled`); a cancellation is thrown
-    into them at their `yield`.
-    """
+    into them at their `yield`."""
     mark_awaiting(True)  # (each step: this thread may take an idle actor's turn)
     try:
         future, deadline = next(steps)
@@ -205,8 +203,7 @@ class OnLoop:
     ) -> None:
         """Run `fn(*args)` on the loop after the calls of `key` before; `then(error)` on the loop
         thread once it ended, `waits()` (any thread) as it lets the next go, `own` its run's span. A
-        closed loop runs nothing: `then` gets a `RuntimeError` here.
-        """
+        closed loop runs nothing: `then` gets a `RuntimeError` here."""
         try:
             self.loop.call_soon_threadsafe(self._start, args, then, key, waits, own)
         except RuntimeError as exc:  # the loop was closed

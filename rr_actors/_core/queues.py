@@ -50,8 +50,7 @@ Late = Callable[[Any], None]
 
 class LateQueue(queue.SimpleQueue[Any]):
     """A queue that, once closed, hands what is left and what is put later to `late`, each item
-    once. Its methods call `_put`, not `SimpleQueue.put`: a simulation subclasses it.
-    """
+    once. Its methods call `_put`, not `SimpleQueue.put`: a simulation subclasses it."""
 
     _late: Late | None = None
     _put = queue.SimpleQueue.put
@@ -82,8 +81,7 @@ class LateQueue(queue.SimpleQueue[Any]):
 class _Outbox(Generic[E]):
     """A consumer's thread behind a bound that drops instead of blocking and remembers the gap
     (whose notice goes where the lost events were). `put` never blocks; with `maxbytes`, what
-    is queued also weighs at most that (`weigh`), those puts taking the lock.
-    """
+    is queued also weighs at most that (`weigh`), those puts taking the lock."""
 
     def __init__(
         self,
@@ -288,14 +286,12 @@ class Subscription(Generic[E]):
     def wait_delivered(self, *, timeout: float | None = 5.0) -> bool:
         """Block until every event published before went through the callback (or its notice), at
         most `timeout` seconds (`None`: no bound); `False` if the time ran out or it was closed.
-        `RuntimeError` from its own callback.
-        """
+        `RuntimeError` from its own callback."""
         return self._outbox.wait(timeout=timeout, caller="wait_delivered()")
 
     def close(self, *, timeout: float | None = 5.0) -> None:
         """Unsubscribe, deliver what was queued within `timeout` seconds (the rest dropped, with a
-        WARNING), and end the thread. Idempotent; from the callback it returns first.
-        """
+        WARNING), and end the thread. Idempotent; from the callback it returns first."""
         if not self.closed:
             self._unsubscribe(self)
         self._outbox.stop(timeout=timeout)
@@ -397,14 +393,12 @@ class Forwarder(Generic[E]):
 
     def wait_sent(self, *, timeout: float | None = 5.0) -> bool:
         """Block until every event given before was passed to `send` (or dropped), at most `timeout`
-        seconds; `False` if the time ran out. `RuntimeError` from `send` itself.
-        """
+        seconds; `False` if the time ran out. `RuntimeError` from `send` itself."""
         return self._outbox.wait(timeout=timeout, caller="wait_sent()", first=self._ship)
 
     def close(self, *, timeout: float | None = 5.0) -> None:
         """Send what is buffered (within `timeout` seconds) and end the thread. Idempotent; remove
-        it from its publisher first.
-        """
+        it from its publisher first."""
         self._outbox.stop(timeout=timeout, last=self._ship)
 
     @property

@@ -115,8 +115,7 @@ class SerialExecutor:
     def submit(self, task: Task, *, inline: Callable[[], Task | None] | None = None) -> bool:
         """Run `task` after every task submitted before; `False` if closed. When idle, `inline()`
         runs instead, on this thread under the lock (no blocking, no submit), returning `None` or
-        the task to run next; what it raises is raised here.
-        """
+        the task to run next; what it raises is raised here."""
         with self._lock:  # (the plain lock under `_cond`: no Python-level `__enter__`)
             if self._closing:
                 return False
@@ -134,8 +133,7 @@ class SerialExecutor:
 
     def call(self, fn: Callable[[], T]) -> T:
         """Run `fn()` on the executor's thread after what is queued; its result or error.
-        `RuntimeError` on its own thread or once closed.
-        """
+        `RuntimeError` on its own thread or once closed."""
         if self.on_own_thread():
             raise RuntimeError(f"call() on {self.name}'s own thread would wait for itself")
         mark = _Mark(fn)
@@ -152,8 +150,7 @@ class SerialExecutor:
 
     def flush(self, *, timeout: float | None) -> bool:
         """Block until every task submitted before ran (at most `timeout` s); whether they all did.
-        `RuntimeError` on its own thread.
-        """
+        `RuntimeError` on its own thread."""
         if self.on_own_thread():
             raise RuntimeError(f"flush() on {self.name}'s own thread would wait for itself")
         mark = _Mark()
@@ -175,8 +172,7 @@ class SerialExecutor:
 
     def close(self, *, timeout: float | None = 0.0) -> bool:
         """Take no more tasks; let those queued run for `timeout` s, then drop the rest (to
-        `on_drop`); whether it ended in time. Idempotent; on its own thread it only finishes.
-        """
+        `on_drop`); whether it ended in time. Idempotent; on its own thread it only finishes."""
         self.finish()
         if timeout != 0:
             if self.on_own_thread():

@@ -155,8 +155,7 @@ def server_span(client_span: int) -> int:
 
 def under(traceparent: str) -> tuple[str, str] | None:
     """The trace context of a call the provider of `traceparent`'s call makes (an unload's
-    dependency releases): a fresh CLIENT span under that call's SERVER span; `None` if bad.
-    """
+    dependency releases): a fresh CLIENT span under that call's SERVER span; `None` if bad."""
     parsed = parse(traceparent)
     if parsed is None:
         return None
@@ -178,8 +177,7 @@ def caller_parent(traceparent: str, caller_span: str) -> Any:
 
 def context_of(traceparent: str) -> Any:
     """The context whose current span is the (non-recording) SERVER span of the call that carried
-    `traceparent`, or `None`.
-    """
+    `traceparent`, or `None`."""
     parsed = parse(traceparent)
     if parsed is None or not _bind(load=True):
         return None
@@ -210,16 +208,14 @@ def derived(*parts: str, bits: int = 64) -> int:
 
 def status_callback(status_id: str, registrar: str, query_id: str) -> tuple[int, int]:
     """The (trace id, span id) of a status callback's run: a trace of its own, derived from what
-    its `StatusHandled` names.
-    """
+    its `StatusHandled` names."""
     parts = ("status callback", status_id, registrar, query_id)
     return derived(*parts, bits=128), derived(*parts)
 
 
 def own_trace(callback: tuple[str, str, str] | None = None) -> object | None:
     """Make current, in a context of its own, the span of the status callback `callback` names
-    (or no span): what was current is not its parent. Its token for `detach`, or `None`.
-    """
+    (or no span): what was current is not its parent. Its token for `detach`, or `None`."""
     if _context is None and not _bind():
         return None
     span = _trace.INVALID_SPAN

@@ -78,8 +78,7 @@ class WireMessage:
 
     def compensation(self) -> WireMessage | None:
         """A message that undoes handling this one when its answer is lost, if any (delivered to the
-        registrar that handled it).
-        """
+        registrar that handled it)."""
         return None
 
     def unreadable_answer(self, target: str, exc: BaseException) -> RrError:
@@ -202,8 +201,7 @@ class Pickler(cloudpickle.Pickler):  # type: ignore[misc]
 
 def dumps(value: Any) -> bytes:
     """`value` pickled as it leaves this process: `plain` data by the C pickler, the rest by
-    `Pickler`. Pickling errors propagate.
-    """
+    `Pickler`. Pickling errors propagate."""
     if plain(value):
         return pickle.dumps(value, pickle.HIGHEST_PROTOCOL)
     buffer = io.BytesIO()

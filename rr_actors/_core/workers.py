@@ -79,8 +79,7 @@ class Job:
 
 class Workers:
     """Run zero-argument callables on at most `max_workers` reused daemon threads
-    (`rr-<name>-worker-<n>`), an idle one exiting after `idle_timeout` seconds.
-    """
+    (`rr-<name>-worker-<n>`), an idle one exiting after `idle_timeout` seconds."""
 
     def __init__(
         self, name: str, *, max_workers: int = DEFAULT_MAX_WORKERS, idle_timeout: float = 10.0

@@ -78,8 +78,7 @@ def this_host() -> str:
 
 def set_host(name: str) -> None:
     """Name this process's host in the events it builds from now on (`host`): a TLS member's
-    certificate common name; until then `socket.gethostname()`.
-    """
+    certificate common name; until then `socket.gethostname()`."""
     _HOST.name = name
 
 
@@ -374,8 +373,7 @@ class LoadFailed(_Numbered):
 @_kind
 class ResourceUnloaded(_Numbered):
     """A server's `unload` ran (or raised) after its last consumer went; written in the same
-    transaction as the removal.
-    """
+    transaction as the removal."""
 
     registrar: str
     server: str
@@ -613,8 +611,7 @@ class StatusHandled(_Numbered):
 @_kind
 class UnloadCutShort(_Numbered):
     """A clean `stop()` gave up waiting (half its timeout) for an unload under way: the callback
-    runs on, and the next start reports it `InDoubt` (`cut="unload"`, rule 16).
-    """
+    runs on, and the next start reports it `InDoubt` (`cut="unload"`, rule 16)."""
 
     registrar: str
     server: str
