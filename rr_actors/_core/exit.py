@@ -75,11 +75,9 @@ def stop_at_exit(
     holds: _Names = _nowhere,
 ) -> None:
     """Have `stop(timeout)` called when the main thread ends, if `alive()` (cheap, any thread) then.
-
     `tier` orders the stops (lower first); `what` names it for people; `provides` are the registrar
     names it serves, `holds(timeout)` those it holds ids at (asked once at the end; raising counts
-    as none). Entries no longer alive are pruned when their number doubled.
-    """
+    as none). Entries no longer alive are pruned when their number doubled."""
     global _hooked  # (the hook: once per process)
     listed = _LISTED
     with listed.lock:
@@ -100,11 +98,9 @@ def stop_at_exit(
 
 def stop_everything(timeout: float = EXIT_TIMEOUT) -> None:
     """Stop every listed supervisor and registrar that still runs; newest first per tier.
-
     One that holds ids at another still to stop goes first, so its release reaches a provider
     that runs. A Ctrl-C meanwhile skips the supervisors and registrars left, not the networks
-    (the interpreter would wait for their sessions' threads).
-    """
+    (the interpreter would wait for their sessions' threads)."""
     deadline = runtime.monotonic() + timeout
     with _LISTED.lock:
         entries = [

@@ -55,9 +55,7 @@ WIRE_TYPES: set[type] = set()
 
 class WireMessage:
     """Base of the frozen dataclasses that cross between processes.
-
-    A message that wants an answer has a `reply` field (a `Reply`); the others do not.
-    """
+    A message that wants an answer has a `reply` field (a `Reply`); the others do not."""
 
     __slots__ = ()
 
@@ -67,9 +65,7 @@ class WireMessage:
 
     def detached(self) -> Any:
         """This message as it crosses to another process: without its `reply`.
-
-        A copy of its fields, not a second construction (a `Load` is detached on every call).
-        """
+        A copy of its fields, not a second construction (a `Load` is detached on every call)."""
         if not hasattr(self, "reply"):
             return self
         copy = object.__new__(type(self))

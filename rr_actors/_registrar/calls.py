@@ -78,12 +78,10 @@ _OPEN = (AttemptState.SENDING, AttemptState.SENT)
 
 class CallAttempt(OneShotFuture[Any]):
     """One attempt of a call: the future its caller waits on, settled through one `state`.
-
     Its caller, the answering thread and its registrar's actor race over it; each
     transition returns the state it leaves (the table: docs/explanation/inside.md, "A call's
     outcome"); one that does not apply changes nothing. Entering `ANSWERED` or `FAILED`
-    wakes the caller.
-    """
+    wakes the caller."""
 
     # What its events tell (set by its caller when known): when the call began (wall
     # clock seconds, 0.0: not known) and its trace context (`_core/traces.py`).
@@ -219,12 +217,10 @@ Outcome = ClientLoaded | CallFailed
 
 class DueAnswers:
     """The query ids whose answer a consumer has not recorded yet, with their attempt.
-
     Shared by the callers (which add an id before its `Load` leaves) and the actor (which
     removes it once it handled the outcome); a notice that overtook its answer (another
     connection) waits until its id is no longer due. `outcomes`: plain calls' outcomes,
-    in hand-over order; once the actor ended, each goes to `late`, which gives the id back.
-    """
+    in hand-over order; once the actor ended, each goes to `late`, which gives the id back."""
 
     __slots__ = ("_attempts", "_durable", "_lock", "outcomes")
 
@@ -373,11 +369,9 @@ class ClientReply:
 
 class Calls:
     """The caller-thread side of one registrar's calls (its handle holds one).
-
     `commit_first`: its calls are durable (an answer is committed before its caller gets
     it); `stored`: requests and responses must pickle; `life`: the registrar's run, carried
-    by each `Load`; `events`: while anyone listens, a plain answer wakes the actor.
-    """
+    by each `Load`; `events`: while anyone listens, a plain answer wakes the actor."""
 
     def __init__(
         self,

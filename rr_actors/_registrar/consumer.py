@@ -635,11 +635,9 @@ class Holdings:
         began: Began = NOT_BEGUN,
     ) -> None:
         """Forget a query this registrar held: its record and its status callback.
-
         `commit=False`: the caller commits. `reason`: what its `QueryForgotten` says, published
         for one whose holding was told (`None`: the caller published it). `began`: the stamps
-        of its release (`Releases.reconciled`).
-        """
+        of its release (`Releases.reconciled`)."""
         record = self.registrar.catalog.clients.get(query_id)
         if record is not None:
             told = query_id in self.answered_in or query_id in self.restored

@@ -55,14 +55,12 @@ deadline crosses as itself to a process that reads the same one."""
 @dataclasses.dataclass(frozen=True)
 class Load(WireMessage):
     """Consumer -> provider: load `request` on `server` for consumer id `query_id`.
-
     `chain`: the resources loading further up (cycle detection). `life`: the run of
     `origin_rr` that sent it (a later run's `Reconcile` fences it: `provider.Lives`).
     `trace`: the traceparent of its CLIENT span (`""`: untraced). `deadline`: when its
     caller gives up (monotonic; `None`: never), crossing as the seconds left, or as itself
     to a process on the same clock (docs/explanation/inside.md, "The provider"). `waits`:
-    its caller asks again after an `OverloadedError`. Answer: the response, or an error.
-    """
+    its caller asks again after an `OverloadedError`. Answer: the response, or an error."""
 
     query_id: str
     server: str
@@ -163,11 +161,9 @@ class Fetch(WireMessage):
 @dataclasses.dataclass(frozen=True)
 class StatusNotice(WireMessage):
     """Provider -> consumer: a status about the resources behind `query_ids`.
-
     `event`: one `send_status` (a callback reached twice runs once); `hop`: registrars on
     the way; `sent_at`: wall clock; `patience`: seconds after which a callback is given up
-    on (`None`: never). Answer: the ids given up on, once delivered along the whole path.
-    """
+    on (`None`: never). Answer: the ids given up on, once delivered along the whole path."""
 
     query_ids: tuple[str, ...]
     status: Status
@@ -271,10 +267,8 @@ class ResponseUpdated(WireMessage):
 @dataclasses.dataclass(frozen=True)
 class Reconcile(WireMessage):
     """Consumer -> provider: registrar `origin_rr` holds exactly `held` at you (rule 20).
-
     The provider releases the others of `origin_rr`'s ids, gives up its loads not listed,
-    answers the listed ids it does not know, and refuses `Load`s of runs before `life`.
-    """
+    answers the listed ids it does not know, and refuses `Load`s of runs before `life`."""
 
     origin_rr: str
     held: tuple[str, ...]

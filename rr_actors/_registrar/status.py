@@ -132,13 +132,11 @@ class StatusRelay:
         deadline: float | None = None,
     ) -> None:
         """Run this server's `on_status` once and pass the status on to every consumer.
-
         `hop`: registrars on the way from the sender (its consumers are hop 1); `sent_at`: when
         it was sent (wall clock). A notice over its receiver's `max_message_bytes` is logged and
         added to `refused`. A consumer's callback not returned by `deadline` (monotonic) is
         given up on (`gave_up`). `then()` runs once all acknowledged, on the thread of the last
-        one: it must come back through the mailbox (`Shared.come_back`) to touch this actor.
-        """
+        one: it must come back through the mailbox (`Shared.come_back`) to touch this actor."""
         key = (event, resource.id)
         if key in self.seen_events:
             then()
@@ -447,11 +445,9 @@ def _counted(join: _Join, done: Callable[..., None]) -> Callable[[Any, Any], Non
 
 class _Call:
     """One status callback to run, and the part of its batch's join it completes.
-
     `done` runs once (`settle`): as the callback returns, or when given up on at `deadline`
     (monotonic; `None`: never). `merged`: the calls coalesced into it; `wake`: the earliest
-    deadline among them. `told`: what its `StatusHandled` needs, while events are published.
-    """
+    deadline among them. `told`: what its `StatusHandled` needs, while events are published."""
 
     __slots__ = (
         "began",
