@@ -152,18 +152,8 @@ class Publisher(Generic[E]):
         maxbytes: int | None = None,
         weigh: Callable[[E], int] | None = None,
     ) -> Subscription[E]:
-        """Call `callback(event)` on a thread of its own for every event from now on until closed.
-
-        Args:
-            callback: runs on the subscription's daemon thread, one event at a time, in order.
-            maxsize: events its queue holds before it drops new ones.
-            name: for its thread's name and log lines (default `subscriber-<n>`).
-            maxbytes: with `weigh`, bytes its queued events may weigh before new ones drop.
-            weigh: an event's weight in bytes (run on the publishing thread).
-
-        Raises:
-            ConfigError: `callback` is not callable, or `maxsize` or `maxbytes` not a positive int.
-        """
+        """A `Subscription` of `callback` to every event from now on (`ConfigError`: a bad
+        argument); `maxbytes` bounds its queue's weight too, `weigh(event)` on the publisher."""
         subscription = Subscription(
             callback,
             name=name or f"subscriber-{next(_names)}",

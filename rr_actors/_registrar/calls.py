@@ -410,16 +410,10 @@ class Calls:
         wait_overloaded: bool = True,
     ) -> Steps[Query]:
         """A call's steps: send its load, wait for its answer until `deadline` (rule 17).
-
-        Each wait is a `yield` (`replies.Steps`); an exception thrown in at a wait withdraws
-        the call as a timeout does. `parent`: the resource the call is a dependency of;
-        `chain`: those loading further up; `limit`: the timeout, seconds (for the message);
-        `begun`: the caller's trace context; `wait_overloaded`: ask again after a refusal.
-
-        Raises:
-            CallTimeoutError: no answer in time; the call was withdrawn.
-            RrError: what the call failed with.
-        """
+        Raises `CallTimeoutError` (withdrawn, as when an exception is thrown in at a wait) or
+        what it failed with. `parent`: the resource it is a dependency of; `chain`:
+        those loading further up; `limit`: the timeout in s; `begun`: the trace context;
+        `wait_overloaded`: ask again after a refusal."""
         pause = _FIRST_PAUSE
         while True:  # (again only after an `OverloadedError`: the provider holds nothing)
             attempt = self.new_attempt(begun)

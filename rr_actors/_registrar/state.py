@@ -369,15 +369,9 @@ class Shared:
 
     def commit(self, *told: events.Event, now: bool = False) -> CatalogWriteError | None:
         """Hand the catalog's changes to the save policy and publish the events `told` of them.
-
-        Written at once (`save_on_modify`, or `now`), changes and events are one transaction
-        (the backup's outbox), published after it: a SIGKILL after the commit cannot lose them.
-        Left for the interval's flush, the events are published now.
-
-        Returns:
-            `None`, or the error of a failed write (a full disk): the changes stay pending
-            and `told` is not published (the caller undoes, or publishes them itself).
-        """
+        Written at once (`save_on_modify`, `now`), changes and events are one transaction (the
+        outbox), published after it; left for the interval's flush, the events go now. Returns
+        the error of a failed write (changes pending, `told` unpublished), else `None`."""
         if self.dirty:  # with what the turn staged, one transaction
             return self._join_turn(told)
         if self.saver.store is None:  # nothing persists this catalog
