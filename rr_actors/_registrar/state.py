@@ -78,8 +78,7 @@ class Pace:
 
 @dataclasses.dataclass
 class Server:
-    """A registered resource server (`max_pending`: its bound, `None`: the registrar's;
-    `pace`: shared with its actor)."""
+    """A registered resource server (`max_pending` `None`: the registrar's)."""
 
     name: str
     ref: pykka.ActorRef[Any]  # (a `provider.ServerActor`)
@@ -285,16 +284,14 @@ class Shared:
         self.staged.append(Staged(ok, undo, refuse))
 
     def after_commit(self, then: Callable[[], None]) -> bool:
-        """Run `then()` after the turn's commit if changes wait for it (`False`: none wait, run
-        it now); it runs after a failed write too."""
+        """Run `then()` after the turn's commit, failed or not (`False`: nothing staged; run it)."""
         if not self.dirty:
             return False
         self.staged.append(Staged(then, None, None))
         return True
 
     def holds_here(self) -> bool:
-        """Whether the calling thread has the turn that staged changes (an answer from another
-        thread tells of no staged change)."""
+        """Whether the calling thread has the turn that staged changes."""
         return self.turn_thread == runtime.get_ident()
 
     def end_turn(self) -> CatalogWriteError | None:
@@ -347,8 +344,7 @@ class Shared:
                 step.ok()
 
     def abort_turn(self, error: RrError) -> None:
-        """The registrar died in a turn: nothing staged is written or answered as done; each
-        staged step's caller gets `error` (its `refuse`)."""
+        """The registrar died in a turn: each staged step is refused `error`, nothing written."""
         staged, held = self.staged, self.held
         self.staged, self.held, self.dirty = [], [], False
         for event, of_change in held:
@@ -437,8 +433,7 @@ class Shared:
         return self.tokens.reply(self.ref, then)
 
     def send(self, target: str, make: Callable[[Reply], Any], then: Continuation) -> None:
-        """Send `make(reply)` to registrar `target`; `then(value, error)` runs here on the answer
-        (at once with its error if it cannot be reached)."""
+        """Send `make(reply)` to registrar `target`; `then(value, error)` runs on the answer."""
         reply = self.come_back(then)
         try:
             DIRECTORY.lookup(target).tell(make(reply))

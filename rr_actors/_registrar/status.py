@@ -307,8 +307,7 @@ class StatusRelay:
             DESK.runner.run((call,))
 
     def on_status_batch(self, batch: StatusBatch, reply: Reply) -> None:
-        """A relay: deliver a status to the consumer registrars of this process in one pass;
-        answer with the process each one reached is in."""
+        """A relay: deliver a status to this process's consumer registrars; answer their homes."""
         homes: dict[str, str] = {self.registrar.name: process()}
         gave_up: list[str] = []
         join = _Join(lambda: reply.set_result((homes, tuple(gave_up))), gave_up)
@@ -721,8 +720,7 @@ class Runner:
             self._submit(following)
 
     def _wanted(self, pending: bool = False) -> tuple[bool, bool]:
-        """(Holding the lock.) Whether to start a drainer (counted now), and the watchdog
-        (marked now)."""
+        """(Holding the lock.) Whether to start a drainer, and the watchdog (counted now)."""
         start = bool(self._open) and self._drainers == len(self._inside)
         if start:
             self._drainers += 1
@@ -981,8 +979,7 @@ class Desk:
         calls: list[_Call],
         deadline: float | None = None,
     ) -> tuple[str, ...]:
-        """Queue the callbacks of the ids `targets` has (not reached yet); the others, to go
-        through its registrar's mailbox."""
+        """Queue the callbacks of the ids `targets` has, not reached yet; return the others."""
         slow: list[str] = []
         ready: list[tuple[str, tuple[Query, StatusCallback]]] = []
         entries, due = targets.entries, targets.due
