@@ -68,8 +68,7 @@ def on_actor_thread() -> bool:
 
 
 def awaiting() -> bool:
-    """Whether the calling thread steps an awaited operation on an event loop now
-    (`mark_awaiting`)."""
+    """Whether the calling thread steps an awaited operation now (`mark_awaiting`)."""
     return bool(getattr(_ACTOR_THREAD, "awaiting", False))
 
 
@@ -351,8 +350,7 @@ class Actor(pykka.ThreadingActor):
                     self._end_turn()
 
     def _drain_inbox(self, inbox: Inbox) -> None:
-        """Handle the envelopes waiting in `inbox` in this turn, within `drain` and
-        `drain_seconds`."""
+        """Handle the envelopes waiting in `inbox`, within `drain` and `drain_seconds`."""
         handled = 1
         until = runtime.monotonic() + self.drain_seconds
         while (
@@ -393,8 +391,7 @@ class Actor(pykka.ThreadingActor):
             pykka.ActorRegistry.stop_all()
 
     def _fail(self) -> None:
-        """As pykka for a failed tell: logged, `on_failure` runs (its own failure logged), the
-        actor stops."""
+        """As pykka for a failed tell: logged, `on_failure` runs (failing: logged), it stops."""
         self._handle_failure(*sys.exc_info())
         try:
             self.on_failure(*sys.exc_info())

@@ -87,8 +87,7 @@ class Publisher(Generic[E]):
             tap.deliver(event)
 
     def deliver(self, event: E) -> None:
-        """Hand `event` to every sink (and upstream), without a log line: it was logged where it
-        happened."""
+        """Hand `event` to every sink (and upstream), without a log line (logged at its origin)."""
         for sink in self._sinks:
             try:
                 sink(event)
@@ -107,8 +106,7 @@ class Publisher(Generic[E]):
         return upstream is not None and upstream.listened
 
     def relay_to(self, upstream: Publisher[E] | None) -> None:
-        """Hand every event published here on to `upstream`'s sinks too (`None`: stop); not its log
-        lines."""
+        """Hand every event published here on to `upstream`'s sinks, not its log (`None`: stop)."""
         self._upstream = upstream
 
     def watch_listeners(self, watcher: Callable[[bool], object]) -> Callable[[], None]:
@@ -170,8 +168,7 @@ class Publisher(Generic[E]):
         self.remove_sink(subscription._offer)
 
     def add_sink(self, sink: Sink[E]) -> None:
-        """Call `sink(event)` for every event from now on, on the publishing thread (it must return
-        at once)."""
+        """Call `sink(event)` for every event from now on, on the publishing thread (quick)."""
         with self._lock:
             before = bool(self._sinks)
             self._sinks = (*self._sinks, sink)

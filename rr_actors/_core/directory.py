@@ -201,8 +201,7 @@ class Directory:
                 self._restarting.difference_update(names)
 
     def broadcast(self, message: object, *, also: Iterable[str] = (), skip: str = "") -> None:
-        """Tell `message` to every registrar of this process and those in `also`, but `skip` (one
-        unreachable is skipped)."""
+        """Tell `message` to every registrar here and in `also` but `skip` (best effort)."""
         targets = {peer.name for peer in self.local_peers()} | set(also)
         targets.discard(skip)
         for target in sorted(targets):

@@ -80,8 +80,7 @@ def seconds(stamp: int) -> float:
 
 
 def from_seconds(at: float) -> int:
-    """The stamp of `at` (seconds since the epoch), counter 0: how an event older than stamps
-    sorts."""
+    """The stamp of `at` (epoch seconds), counter 0: where an event older than stamps sorts."""
     return pack(int(at * 1e6), 0)
 
 
@@ -143,8 +142,7 @@ class HybridClock:
         return self._last
 
     def now(self) -> int:
-        """The stamp of a local event or a send: greater than every stamp before (at the range's
-        end, equal)."""
+        """A local event's or a send's stamp: above every one before (at the range's end, equal)."""
         pt = (self.physical() // 1000) << COUNTER_BITS
         with self._lock:
             last = self._last + 1

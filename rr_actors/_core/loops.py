@@ -39,8 +39,7 @@ Then = Callable[[BaseException | None], object]
 
 
 def is_coroutine_function(fn: object) -> bool:
-    """Whether calling `fn` gives a coroutine (an `async def`, a partial of one, an async
-    `__call__`)."""
+    """Whether `fn` returns a coroutine (`async def`, a partial of one, an async `__call__`)."""
     if asyncio.iscoroutinefunction(fn):
         return True
     call = getattr(fn, "__call__", None)  # noqa: B004 - (the method, not callable())
@@ -76,8 +75,7 @@ async def settled(future: OneShotFuture[Any], timeout: float | None) -> bool:
 
 
 async def run_steps_async(steps: Steps[T]) -> T:
-    """Run `steps` on the running loop, awaiting each future (`settled`); a cancellation is thrown
-    into them at their `yield`."""
+    """Run `steps` on the running loop (`settled`); a cancellation is thrown in at their `yield`."""
     mark_awaiting(True)  # (each step: this thread may take an idle actor's turn)
     try:
         future, deadline = next(steps)
@@ -184,8 +182,7 @@ class OnLoop:
         return f"<OnLoop {getattr(self.fn, '__qualname__', self.fn)!r}>"
 
     def __reduce__(self) -> tuple[Any, ...]:
-        """Pickle as the coroutine function alone: the other process binds it to a loop of its
-        own."""
+        """Pickle as the coroutine function alone: the other process binds a loop of its own."""
         return (_unbound, (self.fn,))
 
     def __call__(self, *args: Any) -> None:

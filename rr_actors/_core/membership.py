@@ -56,8 +56,7 @@ class Joined(Hearer, Protocol):
     """A hearer that joined (a registrar of this process): it hears stops for good too."""
 
     def peer_stopped(self, name: str) -> None:
-        """Registrar `name` was stopped for good: it holds nothing (rule 12), what it holds here
-        is stale."""
+        """Registrar `name` was stopped for good: what it holds here is stale (rule 12)."""
         ...
 
 

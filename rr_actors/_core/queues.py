@@ -318,8 +318,7 @@ class Subscription(Generic[E]):
                 self._report_raised((item, exc))
 
     def _report_raised(self, latest: tuple[E, BaseException] | None) -> None:
-        """Log the callback's exceptions: the first in full, later ones as a count (`None`: it
-        ends)."""
+        """Log the callback's exceptions: the first in full, later as a count (`None`: it ends)."""
         raising = self._raising
         if latest is not None and not raising.logged:
             raising.logged, raising.unlogged = True, 0
@@ -403,8 +402,7 @@ class Forwarder(Generic[E]):
 
     @property
     def executor(self) -> SerialExecutor:
-        """The executor of its thread (joined once closed, where `send` must not outlive the
-        interpreter)."""
+        """Its thread's executor (joined once closed: `send` must not outlive the interpreter)."""
         return self._outbox.executor
 
     def __repr__(self) -> str:

@@ -178,8 +178,7 @@ def handles_signals() -> bool:
 
 
 def local() -> threading.local:
-    """A `threading.local` that a simulation keeps per simulated thread too. Made once, at
-    import."""
+    """A `threading.local` that a simulation keeps per simulated thread too (made at import)."""
     namespace = threading.local()
     _locals.append(namespace)
     return namespace

@@ -210,8 +210,7 @@ class SerialExecutor:
         self._thread.start()
 
     def _ends_now(self) -> bool:
-        """Whether the caller runs `on_end` now (hold `_cond`): closed, idle, no thread (else it
-        is woken)."""
+        """Whether the caller runs `on_end` now (hold `_cond`): closed, idle, no thread."""
         if not self._closing or self._busy or self._ended or self._tasks:
             return False
         if self._thread is not None:

@@ -54,8 +54,7 @@ _MASK = (1 << 64) - 1
 
 
 def _new_span() -> str:
-    """A fresh span id (16 hex, `runtime.getrandbits`): neither 0 nor one whose SERVER span's is
-    0."""
+    """A fresh span id (16 hex): neither 0 nor one whose SERVER span's is 0."""
     while True:
         span = runtime.getrandbits(64)
         if span not in (0, _SERVER):
@@ -111,8 +110,7 @@ def current() -> str:
 
 
 def adopt(traceparent: str) -> None:
-    """Make the (remote, non-recording) span `traceparent` names current in this context; nothing
-    for a bad one."""
+    """Make the remote span `traceparent` names current in this context (bad: nothing)."""
     parsed = parse(traceparent)
     if parsed is None or not _bind(load=True):
         return
@@ -174,8 +172,7 @@ def caller_parent(traceparent: str, caller_span: str) -> Any:
 
 
 def context_of(traceparent: str) -> Any:
-    """The context whose current span is the (non-recording) SERVER span of the call that carried
-    `traceparent`, or `None`."""
+    """The context whose current span is the SERVER span of `traceparent`'s call, or `None`."""
     parsed = parse(traceparent)
     if parsed is None or not _bind(load=True):
         return None
@@ -205,8 +202,7 @@ def derived(*parts: str, bits: int = 64) -> int:
 
 
 def status_callback(status_id: str, registrar: str, query_id: str) -> tuple[int, int]:
-    """The (trace id, span id) of a status callback's run: a trace of its own, derived from what
-    its `StatusHandled` names."""
+    """The (trace id, span id) of a status callback's run, from what its `StatusHandled` names."""
     parts = ("status callback", status_id, registrar, query_id)
     return derived(*parts, bits=128), derived(*parts)
 

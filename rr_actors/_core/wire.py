@@ -73,8 +73,7 @@ class WireMessage:
         return copy
 
     def compensation(self) -> WireMessage | None:
-        """A message that undoes handling this one when its answer is lost, if any (delivered to the
-        registrar that handled it)."""
+        """What undoes handling this when its answer is lost, if any (to the registrar that did)."""
         return None
 
     def unreadable_answer(self, target: str, exc: BaseException) -> RrError:
@@ -183,8 +182,7 @@ def _named(code: types.CodeType, filename: str) -> types.CodeType:
 
 
 class Pickler(cloudpickle.Pickler):  # type: ignore[misc]
-    """cloudpickle, with the wire protocol's own types by reference, and code that keeps its
-    file's name."""
+    """cloudpickle: the wire's own types by reference, code keeping its file's name."""
 
     def reducer_override(self, obj: Any) -> Any:
         kind = type(obj)

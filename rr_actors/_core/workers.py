@@ -67,13 +67,11 @@ class Job:
         return self._state is _State.RUNNING
 
     def abandon(self) -> bool:
-        """Give up on it (a queued job never runs; a running one stops counting); whether it had
-        not ended."""
+        """Give up on it (queued: never runs; running: stops counting); whether it had not ended."""
         return self._pool._abandon(self)
 
     def cancel(self) -> bool:
-        """Withdraw it if it has not started (a running one runs on); whether it was still
-        queued."""
+        """Withdraw it if it has not started; whether it was still queued."""
         return self._pool._cancel(self)
 
 
@@ -190,8 +188,7 @@ class Workers:
                 return self._urgent.popleft() if self._urgent else self._take()
 
     def _queue(self, job: Job, lane: str) -> None:
-        """Queue `job` last in `lane` (hold the lock); a new lane takes its turn after the
-        others."""
+        """Queue `job` last in `lane` (hold the lock); a new lane's turn comes after the others."""
         jobs = self._lanes.get(lane)
         if jobs is None:
             jobs = self._lanes[lane] = collections.deque()
@@ -199,8 +196,7 @@ class Workers:
         jobs.append(job)
 
     def _take(self) -> Job:
-        """The first job of the lane whose turn it is (hold the lock); that lane goes last, or
-        away."""
+        """The first job of the lane whose turn it is (hold the lock); it goes last or away."""
         lane = self._turns.popleft()
         jobs = self._lanes[lane]
         job = jobs.popleft()

@@ -250,8 +250,7 @@ class DueAnswers:
     def expect(
         self, query_id: str, attempt: CallAttempt, durable: ClientReply | None = None
     ) -> None:
-        """A call `attempt` with `query_id` is about to be sent (any thread); `durable`: its
-        registrar answers it."""
+        """Call `attempt` for `query_id` is about to leave; `durable`: the registrar answers it."""
         with self._lock:
             self._attempts[query_id] = attempt
             if durable is not None:
@@ -269,8 +268,7 @@ class DueAnswers:
             return list(self._durable.values())
 
     def awaited(self, query_id: str) -> bool:
-        """The actor: a notice waits for `query_id`'s answer (its attempt marked); whether it is
-        still due."""
+        """The actor: a notice waits for `query_id`'s answer; whether it is still due."""
         attempt = self._attempts.get(query_id)
         if attempt is None:
             return False

@@ -351,8 +351,7 @@ class LoadPlace:
 
 @dataclasses.dataclass(frozen=True)
 class RunLoad:
-    """Registrar -> its server actor: run `load(request)` for `resource_id` (unless withdrawn
-    from `place` first)."""
+    """Registrar -> its server actor: run `load(request)` unless withdrawn from `place`."""
 
     resource_id: str
     request: Any
@@ -536,8 +535,7 @@ class PeerReachable:
 
 @dataclasses.dataclass(frozen=True)
 class YieldName:
-    """A carrier: another process's registrar of this name is kept (rule 22): unload, then
-    stop (`reason`)."""
+    """A carrier: another process's registrar of this name is kept (rule 22): unload, stop."""
 
     reason: str
 

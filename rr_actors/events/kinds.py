@@ -53,8 +53,7 @@ __all__ = [
 
 
 class _Host:
-    """The member name this process's events carry (a simulated process starts with its
-    creator's)."""
+    """The member name this process's events carry (a simulated process: its creator's)."""
 
     def __init__(self, name: str) -> None:
         self.name = name
@@ -94,8 +93,7 @@ def _next_seq() -> int:
 
 
 def number_events() -> None:
-    """Number the events this process builds from now on (`seq`: 1, 2, ...; a manager process
-    does)."""
+    """Number the events this process builds from now on (`seq`; a manager process does)."""
     global _numbering
     _numbering = True
 
