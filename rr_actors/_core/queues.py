@@ -349,10 +349,7 @@ class Forwarder(Generic[E]):
     (`rr-forward-<name>`) calls `send(batch)` (may block) with what piled up, at most
     `max_batch`, in order. A full buffer (`maxsize`) drops events, the next batch carrying
     `notice(count)`; a `send` that raises is logged and its batch counts as dropped.
-
-    Raises:
-        ConfigError: `maxsize` or `max_batch` is not a positive int.
-    """
+    `ConfigError`: `maxsize` or `max_batch` is not a positive int."""
 
     def __init__(
         self,

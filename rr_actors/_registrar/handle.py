@@ -230,16 +230,14 @@ class Registrar:
                 (`lidar2`, cut to 40 characters): run on a worker thread as its load starts,
                 within `RegistrarConfig.compare_timeout`; if it fails (raises, returns a
                 non-`str`, overruns) it reads `<label failed: ...>`, the load goes on.
-            max_pending: new loads this server may have queued or running at once (an int
-                >= 1; `None`: `RegistrarConfig.max_pending`). A call past it waits and asks
-                again within its timeout, then gets `OverloadedError`; a dedup hit, or a call
-                joining a load under way, is never refused. A queued load whose caller's
-                timeout would run out before it ends fails with `DeadlineExceededError`.
+            max_pending: new loads it may have queued or running (an int >= 1; `None`:
+                `RegistrarConfig.max_pending`); past it a call waits within its timeout, then
+                gets `OverloadedError` (a dedup hit, or one joining a load, never does). A
+                queued load whose caller's timeout would end first: `DeadlineExceededError`.
 
         Raises:
-            ConfigError: a callback is not callable (or, to a registrar in another
-                process, does not pickle), the name is invalid, or `max_pending` is not
-                an int >= 1 (nor `None`).
+            ConfigError: a callback is not callable (or, to another process, does not
+                pickle), the name is invalid, or `max_pending` is not an int >= 1 (nor `None`).
             DuplicateNameError: a server with this name exists on this registrar.
         """
         op = Here.register_server
@@ -895,14 +893,12 @@ class ResourceRegistrar(Registrar):
 
         Args:
             config: a `RegistrarConfig`, or just a name (all other fields default).
-            setup: `setup(registrar)`, run on the calling thread after the catalog was
-                restored and before the registrar serves other registrars (their loads for
-                servers not registered yet wait for it). If it raises, the registrar is
-                stopped and the error propagates. The `in_doubt` entries stay in the backup
-                until it returned (`settle_in_doubt`).
-            network: a carrier (any `Transport`: an AF_UNIX `System`, a `ZenohNetwork`) to
-                serve it on, after `setup`: the system's other processes reach it by name,
-                and it theirs, until it stops or dies. `None`: this process only.
+            setup: `setup(registrar)`, run on the calling thread after the restore, before
+                it serves other registrars (their loads wait for it); if it raises, the
+                registrar is stopped and the error propagates. `in_doubt` entries stay in
+                the backup until it returned (`settle_in_doubt`).
+            network: a carrier (any `Transport`: a `System`, a `ZenohNetwork`) to serve it
+                on after `setup`, by name, until it stops or dies. `None`: this process only.
 
         Returns:
             The handle of the running registrar.
@@ -912,9 +908,9 @@ class ResourceRegistrar(Registrar):
                 (with `network`) another process of the system serves that name; it was
                 stopped again.
             CatalogCorruptError: the backup exists but cannot be read (it is left as is).
-            ConfigError: the configuration, or its backup path, is invalid; `network` is
-                not a carrier, or cannot serve it; or this process was forked from one that
-                had opened a Zenoh session (start it with `spawn` or `forkserver`).
+            ConfigError: the configuration or its backup path is invalid; `network` is not
+                a carrier or cannot serve it; or this process was forked from one with a Zenoh
+                session (start it with `spawn` or `forkserver`).
             RegistrarStoppedError: this process left `network`'s system (it was closed).
 
         A forked child may start registrars of its own; its parent's handles raise
