@@ -632,9 +632,8 @@ class Holdings:
         began: Began = NOT_BEGUN,
     ) -> None:
         """Forget a query this registrar held: its record and its status callback.
-        `commit=False`: the caller commits. `reason`: what its `QueryForgotten` says, published
-        for one whose holding was told (`None`: the caller published it). `began`: the stamps
-        of its release (`Releases.reconciled`)."""
+        `commit=False`: the caller commits. `reason`: its `QueryForgotten`'s, if its holding was
+        told (`None`: the caller published it); `began`: its release's stamps."""
         record = self.registrar.catalog.clients.get(query_id)
         if record is not None:
             told = query_id in self.answered_in or query_id in self.restored

@@ -256,11 +256,9 @@ class Shared:
         refuse: Callable[[RrError], None],
     ) -> None:
         """Commit the catalog's changes and the events `told` of them; then run `ok()` (the
-        step's answer), or `undo(error)` if the write failed.
-        In a turn of a durable registrar (`in_turn`) the changes are staged and written with
-        the turn's others at its end (`end_turn`); `ok` runs after that commit, so an answer
-        is released only once its change is durable (rules 14-16). `refuse(error)`: the
-        registrar died before the turn's commit."""
+        step's answer), or `undo(error)` if the write failed. In a durable registrar's turn
+        they are staged and written at its end (`end_turn`), so an answer is released only
+        once its change is durable (rules 14-16); `refuse(error)`: it died before that."""
         if not (self.in_turn and self.saver.durable):
             failed = self.commit(*told)
             if failed is None:

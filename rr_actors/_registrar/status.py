@@ -132,11 +132,10 @@ class StatusRelay:
         deadline: float | None = None,
     ) -> None:
         """Run this server's `on_status` once and pass the status on to every consumer.
-        `hop`: registrars on the way from the sender (its consumers are hop 1); `sent_at`: when
-        it was sent (wall clock). A notice over its receiver's `max_message_bytes` is logged and
-        added to `refused`. A consumer's callback not returned by `deadline` (monotonic) is
-        given up on (`gave_up`). `then()` runs once all acknowledged, on the thread of the last
-        one: it must come back through the mailbox (`Shared.come_back`) to touch this actor."""
+        `hop`: registrars from the sender (its consumers: 1); `sent_at`: wall clock. A notice
+        over its receiver's `max_message_bytes` is logged, into `refused`; a callback not
+        returned by `deadline` (monotonic) is given up on (`gave_up`). `then()` runs once all
+        acknowledged, on the last one's thread (`Shared.come_back` to touch this actor)."""
         key = (event, resource.id)
         if key in self.seen_events:
             then()
@@ -928,10 +927,9 @@ class Desk:
         homes: dict[str, str] | None,
         here: tuple[str, Callable[[Any], None]],
     ) -> None:
-        """Deliver `batch`'s parts (on an actor thread) as parts of `join` (given-up ids in
-        `join.gave_up`). `homes`: gets the process of each registrar reached. `here`: the
-        registrar running this and its `dispatch`, so its own ids need no trip through its mailbox.
-        """
+        """Deliver `batch`'s parts (on an actor thread) as parts of `join` (given up: in
+        `join.gave_up`); `homes` gets each reached registrar's process; `here`: the registrar
+        running this and its `dispatch` (its own ids skip its mailbox)."""
         calls: list[_Call] = []
         patience = batch.patience
         deadline = _deadline(patience)
