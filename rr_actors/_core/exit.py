@@ -98,9 +98,8 @@ def stop_at_exit(
 
 def stop_everything(timeout: float = EXIT_TIMEOUT) -> None:
     """Stop every listed supervisor and registrar that still runs; newest first per tier.
-    One that holds ids at another still to stop goes first, so its release reaches a provider
-    that runs. A Ctrl-C meanwhile skips the supervisors and registrars left, not the networks
-    (the interpreter would wait for their sessions' threads)."""
+    One holding ids at another goes first (its release reaches a running provider). A Ctrl-C
+    skips the supervisors and registrars left, not the networks (their threads would hang)."""
     deadline = runtime.monotonic() + timeout
     with _LISTED.lock:
         entries = [

@@ -79,8 +79,7 @@ def _parts(span: Any) -> tuple[object, str, str, str]:
 def begin() -> tuple[str, str] | None:
     """The trace context of a call made now: `(traceparent, caller_span)` or `None`.
     `traceparent` names the call's CLIENT span (a fresh id) under the caller's trace and flags;
-    `caller_span` is the caller's current span's id (16 hex). `None` without the extra or a
-    valid current span."""
+    `caller_span`: the caller's current span's id (16 hex). `None`: no extra or valid span."""
     if _context is None and not _bind():
         return None
     current = _context.get_current()

@@ -125,10 +125,9 @@ class Workers:
         lane: str = "",
     ) -> Job:
         """Run `task` on a worker thread once one is free; what it raises is logged.
-        `timeout`: seconds it may run once started, then it is abandoned and `on_overdue()` runs
-        on the watchdog's thread (logged at DEBUG if `quiet`). If it must queue, an `urgent` one
-        goes first, the others by `lane` in turns. `RuntimeError`: no worker was free and the OS
-        refused a thread."""
+        `timeout`: seconds it may run, then it is abandoned, `on_overdue()` on the watchdog's
+        thread (DEBUG if `quiet`). Queued: `urgent` first, the others by `lane` in turns.
+        `RuntimeError`: no worker was free and the OS refused a thread."""
         job = Job(self, task, timeout, on_overdue, quiet)
         with self._lock:
             if self._idle > 0 or self._live >= self._max:

@@ -55,12 +55,11 @@ deadline crosses as itself to a process that reads the same one."""
 @dataclasses.dataclass(frozen=True)
 class Load(WireMessage):
     """Consumer -> provider: load `request` on `server` for consumer id `query_id`.
-    `chain`: the resources loading further up (cycle detection). `life`: the run of
-    `origin_rr` that sent it (a later run's `Reconcile` fences it: `provider.Lives`).
-    `trace`: the traceparent of its CLIENT span (`""`: untraced). `deadline`: when its
-    caller gives up (monotonic; `None`: never), crossing as the seconds left, or as itself
-    to a process on the same clock (docs/explanation/inside.md, "The provider"). `waits`:
-    its caller asks again after an `OverloadedError`. Answer: the response, or an error."""
+    `chain`: those loading further up (cycles); `life`: the run of `origin_rr` that sent it
+    (fenced by a later run's `Reconcile`); `trace`: its CLIENT span's traceparent (`""`:
+    none); `deadline`: when its caller gives up (monotonic; `None`: never), crossing as the
+    seconds left or, to the same clock, as itself (docs/explanation/inside.md, "The
+    provider"); `waits`: asks again after `OverloadedError`. Answer: the response, or an error."""
 
     query_id: str
     server: str
