@@ -232,12 +232,11 @@ class _Outbox(Generic[E]):
 class Subscription(Generic[E]):
     """One subscriber's events: a bounded queue and a thread of its own that runs the callback.
 
-    Made by `Supervisor.subscribe` and `ResourceRegistrar.subscribe`. The callback runs on its
-    own daemon thread (`rr-events-<name>`), one event at a time, in publish order; the
-    publisher never waits for it. A full queue (or, with `maxbytes`, too heavy) drops new
-    events, counted (`dropped`), and the callback later gets one `EventsDropped` where they
-    would have been. What the callback raises is logged (the first with its traceback, then a
-    count at most every `LOG_EVERY` s). A context manager, or call `close()`.
+    Made by `Supervisor.subscribe` and `ResourceRegistrar.subscribe`; the callback runs on
+    its thread (`rr-events-<name>`) one event at a time in publish order. A full queue (or,
+    with `maxbytes`, too heavy) drops new events, counted (`dropped`); the callback later
+    gets one `EventsDropped` in their place. What it raises is logged (the first with its
+    traceback, then a count at most every `LOG_EVERY` s). A context manager, or `close()`.
 
     Attributes:
         name: the subscription's name (in its thread's name and in log lines).

@@ -78,10 +78,9 @@ _OPEN = (AttemptState.SENDING, AttemptState.SENT)
 
 class CallAttempt(OneShotFuture[Any]):
     """One attempt of a call: the future its caller waits on, settled through one `state`.
-    Its caller, the answering thread and its registrar's actor race over it; each
-    transition returns the state it leaves (the table: docs/explanation/inside.md, "A call's
-    outcome"); one that does not apply changes nothing. Entering `ANSWERED` or `FAILED`
-    wakes the caller."""
+    Its caller, the answering thread and the actor race over it; each transition returns the
+    state it leaves, or changes nothing (docs/explanation/inside.md, "A call's outcome").
+    Entering `ANSWERED` or `FAILED` wakes the caller."""
 
     # What its events tell (set by its caller when known): when the call began (wall
     # clock seconds, 0.0: not known) and its trace context (`_core/traces.py`).
@@ -217,10 +216,9 @@ Outcome = ClientLoaded | CallFailed
 
 class DueAnswers:
     """The query ids whose answer a consumer has not recorded yet, with their attempt.
-    Shared by the callers (which add an id before its `Load` leaves) and the actor (which
-    removes it once it handled the outcome); a notice that overtook its answer (another
-    connection) waits until its id is no longer due. `outcomes`: plain calls' outcomes,
-    in hand-over order; once the actor ended, each goes to `late`, which gives the id back."""
+    Callers add an id before its `Load` leaves, the actor removes it once it handled the
+    outcome; a notice that overtook its answer waits until its id is no longer due.
+    `outcomes`: plain calls' outcomes in hand-over order; after the actor ended, to `late`."""
 
     __slots__ = ("_attempts", "_durable", "_lock", "outcomes")
 
@@ -488,9 +486,8 @@ class Calls:
         return attempt
 
     def send(self, load: Load, reply: ClientReply) -> None:
-        """Send a call's `load` from the caller's thread, along the client's route (one hand-off
-        less; mailbox order holds). From an event loop's thread an idle provider of this
-        process may handle it there; a durable provider's goes to its own thread."""
+        """Send a call's `load` from the caller's thread, along the client's route (mailbox
+        order holds); on a loop's thread an idle non-durable local provider may handle it."""
         if reply.attempt.sent() is not AttemptState.SENT:  # this registrar stopped
             return  # meanwhile and failed it: nothing to send
         probes = self.probes()
@@ -525,9 +522,8 @@ class Calls:
             self.hand_over(withdrawn, wake=True)  # the record
 
     def hand_over(self, outcome: Outcome, *, wake: bool) -> None:
-        """Give the registrar actor a call's `outcome` (any thread): a plain one waits in
-        `due.outcomes` (the actor woken with `wake`, for an awaited one, or past `BACKLOG`); a
-        durable registrar's goes through its mailbox. `pykka.ActorDeadError` if it ended."""
+        """Give the actor a call's `outcome` (any thread): a durable one by mailbox, else into
+        `due.outcomes` (`wake` if awaited or past `BACKLOG`); `pykka.ActorDeadError` if ended."""
         if self.commit_first:
             self.ref.tell(outcome)
             return
