@@ -153,9 +153,8 @@ class HybridClock:
     send = now
 
     def receive(self, stamp: int, sender: str = "") -> int:
-        """Take in a message's stamp before it is handled; the receipt's stamp. One that is not an
-        int in 0..2**64-1 is ignored, one too far ahead refused (counted, a WARNING at most once a
-        minute naming `sender`)."""
+        """Take in a message's stamp before it is handled; the receipt's stamp. Not an int in
+        0..2**64-1: ignored; too far ahead: refused, counted (WARNING a minute, naming `sender`)."""
         if not isinstance(stamp, int) or not 0 <= stamp <= _MAX:
             return self.now()
         pt = (self.physical() // 1000) << COUNTER_BITS

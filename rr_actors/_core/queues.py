@@ -79,9 +79,8 @@ class LateQueue(queue.SimpleQueue[Any]):
 
 
 class _Outbox(Generic[E]):
-    """A consumer's thread behind a bound that drops instead of blocking and remembers the gap
-    (whose notice goes where the lost events were). `put` never blocks; with `maxbytes`, what
-    is queued also weighs at most that (`weigh`), those puts taking the lock."""
+    """A consumer's thread behind a bound that drops (`put` never blocks) and remembers the gap
+    for its notice; with `maxbytes`, what is queued weighs at most that (those puts lock)."""
 
     def __init__(
         self,
@@ -283,9 +282,8 @@ class Subscription(Generic[E]):
         return self._outbox.executor.closed
 
     def wait_delivered(self, *, timeout: float | None = 5.0) -> bool:
-        """Block until every event published before went through the callback (or its notice), at
-        most `timeout` seconds (`None`: no bound); `False` if the time ran out or it was closed.
-        `RuntimeError` from its own callback."""
+        """Block at most `timeout` s until every event published before was through the callback
+        (or its notice); `False` if not, or closed. `RuntimeError` from its own callback."""
         return self._outbox.wait(timeout=timeout, caller="wait_delivered()")
 
     def close(self, *, timeout: float | None = 5.0) -> None:

@@ -177,9 +177,8 @@ class StatusNotice(WireMessage):
 
 @dataclasses.dataclass(frozen=True)
 class StatusBatch(WireMessage):
-    """Provider -> a registrar of another process: one status for each `(registrar, ids)` of
-    `parts`, delivered in one pass; the rest as `StatusNotice`. Answer: `({registrar: its
-    process's key}, the ids given up on)`."""
+    """Provider -> another process's registrar: one status per `(registrar, ids)` of `parts`,
+    in one pass, the rest as `StatusNotice`. Answer: `({registrar: process key}, given-up ids)`."""
 
     parts: tuple[tuple[str, tuple[str, ...]], ...]
     status: Status

@@ -65,9 +65,8 @@ class Phase(enum.Enum):
 
 
 class Pace:
-    """What a server's loads take lately: `load_s`, the recent average (from 0), and
-    `learned`, when it last moved or a probe left (monotonic). Floats read or written
-    whole: no lock."""
+    """What a server's loads take lately: `load_s`, the recent average (from 0); `learned`,
+    when it last moved or a probe left (monotonic). Floats, read whole: no lock."""
 
     __slots__ = ("learned", "load_s")
 
@@ -390,9 +389,8 @@ class Shared:
         return None
 
     def _join_turn(self, told: tuple[events.Event, ...]) -> CatalogWriteError | None:
-        """`commit` in a turn that staged changes: written in the turn's transaction, not one of
-        its own after it (a staged row is written as it is at the write, so it carries this
-        change: its events must go with it). The write's error (`told` dropped), or `None`."""
+        """`commit` in a turn that staged changes: in the turn's transaction (a staged row is
+        written as it then is, with this change: its events go with it). The error, or `None`."""
         changes = self.catalog.drain_changes()
         for rid in self.held_in_doubt.intersection(changes.resources):
             del changes.resources[rid]  # written once settled (`settle_held`)

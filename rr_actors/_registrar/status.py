@@ -1066,9 +1066,9 @@ DESK = runtime.process_state(Desk(), Desk)
 
 
 class Routes:
-    """Where a provider sends its statuses for registrars of other processes: `homes` (consumer
-    -> process) and `relays` (process -> the registrar there that takes its batches, kept
-    while it answers, so they keep their order). Hints: a wrong one costs a forward."""
+    """Where a provider sends statuses for other processes: `homes` (consumer -> process),
+    `relays` (process -> its registrar taking batches, kept while it answers: order holds).
+    Hints: a wrong one costs a forward."""
 
     def __init__(self) -> None:
         self._lock = runtime.Lock()
