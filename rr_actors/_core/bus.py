@@ -39,10 +39,9 @@ _names = itertools.count(1)
 
 
 class Publisher(Generic[E]):
-    """Where events are published: to subscriptions, other sinks and an INFO log line (`logger`,
-    `describe(event)`, the event in `record.event`). `notice(count)` is what a subscriber gets
-    after losing `count` events; `tap` is also handed each event published here (this one is
-    `active` while `tap` is listened to). Publish only when `active`."""
+    """Where events are published: to sinks and an INFO log line (`describe(event)`, the event
+    in `record.event`). `notice(count)`: what a subscriber gets after losing `count` events;
+    `tap` also gets each event (this one is `active` while it is). Publish only when `active`."""
 
     def __init__(
         self,

@@ -103,9 +103,9 @@ def _skewed_ns() -> int:
 
 
 class HybridClock:
-    """A hybrid logical clock (module docstring), thread-safe, never raising: `physical` in
-    nanoseconds (`None`: `runtime.wall_ns`); `refused` counts stamps refused for being more than
-    `max_offset` seconds ahead (`ConfigError` unless above 0 and at most a year)."""
+    """A hybrid logical clock (module docstring), thread-safe, never raising: `physical` in ns
+    (`None`: `runtime.wall_ns`); `refused` counts stamps over `max_offset` s ahead (`ConfigError`
+    unless above 0 and at most a year)."""
 
     # (no `__slots__`: a simulation swaps a clock's `__dict__` whole per simulated process)
 

@@ -155,9 +155,9 @@ def process_loop() -> asyncio.AbstractEventLoop:
 
 class OnLoop:
     """A coroutine function and the event loop it runs on; submitted from any thread.
-    Calls of one key (a status callback's query id) run one at a time in order, unless one
-    waits for a registrar (`replies.let_go`); each in a copy of the binder's context, with no
-    OpenTelemetry span current but its run's (`own`)."""
+    Calls of one key (a callback's query id) run one at a time in order, unless one waits for
+    a registrar (`replies.let_go`); each in a copy of the binder's context, with only its run's
+    OpenTelemetry span current (`own`)."""
 
     __slots__ = ("_context", "_tails", "fn", "loop")
 

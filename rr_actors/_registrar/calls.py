@@ -284,9 +284,8 @@ class DueAnswers:
 
 
 class ClientReply:
-    """The answer to a consumer's load: the caller's thread wakes with the value and hands
-    the record over (one thread woken, not two); with `commit_first`, a `DurableLoaded` to
-    the registrar instead. It describes the call, so the caller builds one `Query`."""
+    """The answer to a consumer's load: wakes the caller's thread, which hands the record over
+    (one wake-up); with `commit_first`, a `DurableLoaded` to the registrar. Describes the call."""
 
     __slots__ = (
         "attempt",
