@@ -75,9 +75,9 @@ def stop_at_exit(
     holds: _Names = _nowhere,
 ) -> None:
     """Have `stop(timeout)` called when the main thread ends, if `alive()` (cheap, any thread) then.
-    `tier` orders the stops (lower first); `what` names it for people; `provides` are the registrar
-    names it serves, `holds(timeout)` those it holds ids at (asked once at the end; raising counts
-    as none). Entries no longer alive are pruned when their number doubled."""
+    `tier` orders the stops (lower first); `what` names it; `provides`: the registrars it serves,
+    `holds(timeout)`: those it holds ids at (asked at the end; raising: none). Dead entries are
+    pruned when their number doubled."""
     global _hooked  # (the hook: once per process)
     listed = _LISTED
     with listed.lock:

@@ -364,9 +364,9 @@ class ClientReply:
 
 class Calls:
     """The caller-thread side of one registrar's calls (its handle holds one).
-    `commit_first`: its calls are durable (an answer is committed before its caller gets
-    it); `stored`: requests and responses must pickle; `life`: the registrar's run, carried
-    by each `Load`; `events`: while anyone listens, a plain answer wakes the actor."""
+    `commit_first`: an answer is committed before its caller gets it; `stored`: requests and
+    responses must pickle; `life`: the run each `Load` carries; `events`: while anyone
+    listens, a plain answer wakes the actor."""
 
     def __init__(
         self,

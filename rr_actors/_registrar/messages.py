@@ -160,9 +160,9 @@ class Fetch(WireMessage):
 @dataclasses.dataclass(frozen=True)
 class StatusNotice(WireMessage):
     """Provider -> consumer: a status about the resources behind `query_ids`.
-    `event`: one `send_status` (a callback reached twice runs once); `hop`: registrars on
-    the way; `sent_at`: wall clock; `patience`: seconds after which a callback is given up
-    on (`None`: never). Answer: the ids given up on, once delivered along the whole path."""
+    `event`: one `send_status` (a callback reached twice runs once); `hop`: registrars on the
+    way; `sent_at`: wall clock; `patience`: seconds before a callback is given up on (`None`:
+    never). Answer: the ids given up on, once delivered along the whole path."""
 
     query_ids: tuple[str, ...]
     status: Status
@@ -239,8 +239,8 @@ class StatusOnItsWay:
 
 @dataclasses.dataclass(frozen=True)
 class UnloadOverran:
-    """The answer to an `Unload` that released its id but whose `unload` overran
-    `unload_timeout` (`error`); it carries the statuses still on their way (rule 9)."""
+    """An `Unload` answer: released, but the `unload` overran (`error`); with the statuses
+    still on their way (rule 9)."""
 
     on_its_way: tuple[StatusOnItsWay, ...]
     error: CallTimeoutError

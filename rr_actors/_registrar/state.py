@@ -101,9 +101,8 @@ class Waiter:
 
 
 class OpenReply:
-    """A handle request's reply, known to its actor until answered (a crash fails it).
-    Answered on the actor thread or a status's last acknowledgement: `open_requests` is
-    changed by single dict operations only and read as a copy."""
+    """A handle request's reply, known to its actor until answered (a crash fails it). Answered
+    on any thread: `open_requests` changes by single dict operations, read as a copy."""
 
     __slots__ = ("open", "reply", "shared")
 
@@ -292,9 +291,8 @@ class Shared:
         return self.turn_thread == runtime.get_ident()
 
     def end_turn(self) -> CatalogWriteError | None:
-        """Commit what the turn staged, one transaction, then release what waits for it: the
-        held events published, each staged `ok` run in order. Failed: each staged step undone
-        (newest first), that undoing committed, the error returned."""
+        """Commit what the turn staged in one transaction, then publish its held events and run
+        each staged `ok` in order; failed: undo each (newest first), commit that, return it."""
         failed: CatalogWriteError | None = None
         while self.dirty or self.staged:  # (an answer released may stage more)
             failed = self._write_turn() or failed

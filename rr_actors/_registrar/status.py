@@ -443,9 +443,9 @@ def _counted(join: _Join, done: Callable[..., None]) -> Callable[[Any, Any], Non
 
 class _Call:
     """One status callback to run, and the part of its batch's join it completes.
-    `done` runs once (`settle`): as the callback returns, or when given up on at `deadline`
-    (monotonic; `None`: never). `merged`: the calls coalesced into it; `wake`: the earliest
-    deadline among them. `told`: what its `StatusHandled` needs, while events are published."""
+    `done` runs once (`settle`): as the callback returns, or given up on at `deadline`
+    (monotonic; `None`: never). `merged`: the calls coalesced into it, `wake` their earliest
+    deadline; `told`: what its `StatusHandled` needs (while events are published)."""
 
     __slots__ = (
         "began",
@@ -1117,9 +1117,9 @@ class Routes:
 
 
 class Unacknowledged:
-    """The statuses a provider sent on to consumer ids in other processes, by id, until
-    answered; the answer to an id's `Unload` carries those of that id (rule 9): they travel
-    on another connection and may come after it. Actor enters, answering threads clear."""
+    """Statuses sent on to consumer ids in other processes, by id, until answered; an id's
+    `Unload` answer carries its own (they may come after it, on another connection; rule 9).
+    Actor enters, answering threads clear."""
 
     def __init__(self) -> None:
         self._lock = runtime.Lock()
