@@ -48,9 +48,8 @@ class Peer(Protocol):
         """Send `message`; raise `RegistrarUnavailableError` if the registrar is dead."""
 
     def deliver(self, message: Any) -> None:
-        """`tell`, from a thread that holds no lock (a carrier's reader, or a loop's thread stepping
-        an awaited call, not to a durable registrar): an idle local registrar may handle it there.
-        """
+        """`tell` from a thread holding no lock (a carrier's reader; a loop's, to a non-durable
+        registrar): an idle local registrar may handle it there."""
 
 
 class LocalPeer:

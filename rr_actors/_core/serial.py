@@ -52,12 +52,11 @@ class _Mark:
 
 
 class SerialExecutor:
-    """One thread of its own (daemon, `name`, started at the first task that waits) that runs
-    its tasks one at a time, in order; what a task raises is logged and the next runs.
-    `linger`: seconds the thread waits once the queue ran empty, so a burst does not wake it;
-    `every`: `(seconds, task)` also run between tasks; `on_idle` when the queue ran empty;
-    `on_drop` with each task `close` drops; `on_end` once, last (on the executor's thread if
-    it has one, else the closing thread)."""
+    """One daemon thread (`name`, started at the first task that waits) running its tasks one at
+    a time, in order; what one raises is logged. `linger`: seconds the thread waits once the
+    queue ran empty (a burst does not wake it); `every`: `(seconds, task)` also run between
+    tasks; `on_idle` when the queue ran empty; `on_drop` with each task `close` drops; `on_end`
+    once, last (on its thread if it has one, else the closing thread)."""
 
     def __init__(
         self,
