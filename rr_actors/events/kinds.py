@@ -137,13 +137,8 @@ _STAMPED: dict[type, dict[str, tuple[str, Any]]] = {}
 
 @dataclass_transform(frozen_default=True, kw_only_default=True)
 def _stamps(cls: type[_T]) -> type[_T]:
-    """Take the fields of `cls` as stamps for the kinds deriving from it.
-
-    A frozen keyword-only dataclass to a type checker; at run time a plain class without them.
-
-    Raises:
-        TypeError: a field of `cls` is not named in `_STAMPS`.
-    """
+    """Take the fields of `cls` as stamps for the kinds deriving from it (`TypeError`: one not
+    in `_STAMPS`): a frozen keyword-only dataclass to a type checker, at run time without them."""
     annotations = inspect.get_annotations(cls)
     if unknown := sorted(annotations.keys() - set(_STAMPS)):
         raise TypeError(f"{cls.__name__}: {unknown} are not stamps (see _STAMPS)")
@@ -159,11 +154,8 @@ def _stamps(cls: type[_T]) -> type[_T]:
 
 @dataclass_transform(frozen_default=True)
 def _kind(cls: type[_T]) -> type[_T]:
-    """`cls` as a kind: a frozen slotted dataclass, its own fields first, then its bases' stamps.
-
-    Raises:
-        TypeError: `cls` declares a field named as a stamp it inherits.
-    """
+    """`cls` as a kind: a frozen slotted dataclass, its own fields first, then its bases' stamps
+    (`TypeError`: it declares a field named as a stamp it inherits)."""
     stamps: dict[str, tuple[str, Any]] = {}
     for base in cls.__mro__[1:]:
         stamps.update(_STAMPED.get(base, {}))
