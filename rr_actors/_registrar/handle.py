@@ -900,9 +900,6 @@ class ResourceRegistrar(Registrar):
             network: a carrier (any `Transport`: a `System`, a `ZenohNetwork`) to serve it
                 on after `setup`, by name, until it stops or dies. `None`: this process only.
 
-        Returns:
-            The handle of the running registrar.
-
         Raises:
             DuplicateNameError: a registrar with this name is already running here, or
                 (with `network`) another process of the system serves that name; it was
@@ -933,13 +930,11 @@ class ResourceRegistrar(Registrar):
         Events are the frozen dataclasses of `rr_actors.events`. The callback runs on a
         subscriber thread of its own, one event at a time in order; past `maxsize` queued,
         new ones are dropped, counted (`Subscription.dropped`) and reported (`EventsDropped`).
+        `close()` the subscription it returns (or use it in a `with` block).
 
         Args:
             callback: `callback(event)`; what it raises is logged.
             maxsize: events queued for it before new ones are dropped.
-
-        Returns:
-            The subscription; `close()` it (or use it in a `with` block).
 
         Raises:
             ConfigError: `callback` is not callable, or `maxsize` not a positive int.
