@@ -1055,9 +1055,8 @@ class Reconciling:
         then: Callable[[BaseException | None], None] | None = None,
         life: str = "",
     ) -> None:
-        """Tell `serving_rr` which ids this registrar holds there (`Reconcile`); `then(error)`
-        runs on this actor once the answer was handled. Why it is frozen and epoch-bound:
-        docs/explanation/inside.md, "The consumer's reconcile"."""
+        """Tell `serving_rr` the ids held there (`Reconcile`); `then(error)` here once handled.
+        Why frozen and epoch-bound: docs/explanation/inside.md, "The consumer's reconcile"."""
         with self.due.frozen() as (due, withdrawn):
             listing = self.listing(serving_rr, due, withdrawn, life)
             self.registrar.send(

@@ -594,10 +594,9 @@ class _Drainer:
 
 
 class Runner:
-    """Runs this process's status callbacks in arrival order, each consumer id's one at a
-    time (a lane per id), on as few worker threads as keeps them going; a watchdog gives up
-    on a callback past `SLICE` or its deadline. How lanes open, coalesce and give up:
-    docs/explanation/inside.md, "Statuses"."""
+    """Runs this process's status callbacks in arrival order, each id's one at a time (a lane
+    per id), on as few worker threads as keep them going; a watchdog gives up on one past
+    `SLICE` or its deadline (docs/explanation/inside.md, "Statuses")."""
 
     def __init__(self) -> None:
         self._lock = runtime.Lock()
