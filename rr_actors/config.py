@@ -92,8 +92,7 @@ def check_seconds(
     field: str, value: object, *, allow_none: bool = False, allow_zero: bool = False
 ) -> None:
     """`ConfigError` naming `field` unless `value` is a finite positive number of seconds
-    (non-negative with `allow_zero`; `None` with `allow_none`; never a bool).
-    """
+    (non-negative with `allow_zero`; `None` with `allow_none`; never a bool)."""
     if value is None and allow_none:
         return
     if (
@@ -120,8 +119,7 @@ def check_choice(field: str, value: object, choices: Sequence[str]) -> None:
 
 def is_loopback(host: str) -> bool:
     """Whether `host` names this machine only (`localhost`, 127.0.0.0/8, `::1`; another DNS name
-    may resolve anywhere): where one may listen without the user's leave.
-    """
+    may resolve anywhere): where one may listen without the user's leave."""
     if host == "localhost":
         return True
     try:
@@ -155,9 +153,6 @@ class RegistrarConfig:
         max_pending: new loads each server may have queued or running (default 1000; a server's own
             `register_server(..., max_pending=)` wins; several consumers each get a share). Past it
             a call waits and asks again within its `timeout`, then raises `OverloadedError`.
-
-    Raises:
-        ConfigError: a field is invalid; the message names it.
     """
 
     name: str = "untitled"
@@ -228,9 +223,6 @@ class Backoff:
         factor: growth of the delay per further restart within the window (>= 1).
         max: the longest delay, in seconds.
         jitter: relative spread of the delay, from 0 (none) to 1.
-
-    Raises:
-        ConfigError: a field is invalid; the message names it.
     """
 
     initial: float = 0.0
@@ -296,9 +288,6 @@ class ManagerSpec:
             for a CPU (Linux) or busy (`ManagerOverloaded`) does not count (docs: "What
             counts as a hang"); one unable to accept connections that long is killed too.
         start_timeout: seconds a manager may take to restore, set up and serve.
-
-    Raises:
-        ConfigError: a field is invalid; the message names it.
     """
 
     name: str
@@ -357,9 +346,6 @@ class SupervisorSpec:
         strategy, max_restarts, period, backoff: as for `Supervisor`.
         restart: its restart type in the parent.
         state_dir: where its managers keep their catalogs (default: the parent's).
-
-    Raises:
-        ConfigError: a field is invalid; the message names it.
     """
 
     name: str

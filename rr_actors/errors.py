@@ -146,8 +146,7 @@ class CallTimeoutError(RrError, TimeoutError):
 
 class DeadlineExceededError(CallTimeoutError):
     """A load was shed before it started: its caller's `timeout` left less than 1.5 times what
-    the server's loads take lately. Nothing was loaded; retry later or with a longer timeout.
-    """
+    the server's loads take lately. Nothing was loaded; retry later or with a longer timeout."""
 
 
 class OverloadedError(RrError):
@@ -237,8 +236,7 @@ class SupervisorGaveUpError(RrError):
 
 class TransferError(RrError):
     """A message, its answer, or an error did not pickle in the sender or unpickle in the
-    receiver (the message says which and why).
-    """
+    receiver (the message says which and why)."""
 
 
 class InternalError(RrError):
@@ -250,8 +248,7 @@ class InternalError(RrError):
 class ErrorFrame:
     """One failed load's part of a [`ResourceLoadError`][rr_actors.errors.ResourceLoadError] stack:
     the `registrar` and `server` that failed, the exception's qualified name (`exc_type`), its
-    `str()` (`message`) and its formatted `traceback`.
-    """
+    `str()` (`message`) and its formatted `traceback`."""
 
     registrar: str
     server: str

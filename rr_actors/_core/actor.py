@@ -61,16 +61,14 @@ _ACTOR_THREAD = runtime.local()  # `active` on the thread of an `Actor`'s loop
 
 def on_actor_thread() -> bool:
     """Whether the calling thread runs an actor's loop or steps an awaited operation: such a thread
-    must never wait on the network (a carrier answers there from what it knows).
-    """
+    must never wait on the network (a carrier answers there from what it knows)."""
     return bool(
         getattr(_ACTOR_THREAD, "active", False) or getattr(_ACTOR_THREAD, "awaiting", False)
     )
 
 
 def awaiting() -> bool:
-    """Whether the calling thread steps an awaited operation on an event loop now
-    (`mark_awaiting`)."""
+    """Whether the calling thread steps an awaited operation now (`mark_awaiting`)."""
     return bool(getattr(_ACTOR_THREAD, "awaiting", False))
 
 
@@ -93,8 +91,7 @@ SIGNAL_CHECK = 0.1
 
 class OneShotFuture(pykka.Future[T]):
     """A pykka future handed over by releasing one lock: `pykka.ThreadingFuture`'s interface,
-    settling twice raises `queue.Full`, plus `add_done_callback` (how a loop awaits it).
-    """
+    settling twice raises `queue.Full`, plus `add_done_callback` (how a loop awaits it)."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -111,8 +108,7 @@ class OneShotFuture(pykka.Future[T]):
 
     def _wait(self, timeout: float | None = None) -> bool:
         """Block until settled, at most `timeout` s; whether it is (a wait that runs out looks once
-        more). The main thread waits in `SIGNAL_CHECK` slices, so that a Ctrl-C is raised.
-        """
+        more). The main thread waits in `SIGNAL_CHECK` slices, so that a Ctrl-C is raised."""
         if self._settled:
             return True
         end: float | None = None  # (sliced: when the whole wait ends)
@@ -181,8 +177,7 @@ class OneShotFuture(pykka.Future[T]):
 
     def add_done_callback(self, fn: Callable[[OneShotFuture[T]], object]) -> None:
         """Run `fn(self)` once settled (at once if it is, else on the settling thread), each
-        callback once, in order; what one raises is logged. For quick wake-ups only.
-        """
+        callback once, in order; what one raises is logged. For quick wake-ups only."""
         callbacks = self._done_callbacks
         if callbacks is None:
             with _CALLBACKS_MADE:  # (two threads adding the first at once: one list)
@@ -215,8 +210,7 @@ class OneShotFuture(pykka.Future[T]):
 
 class Inbox(LateQueue):
     """An actor's inbox with its turn; once closed, what is left and what arrives goes to `late`.
-    Each envelope takes a ticket; one is handled in the turn only once `handled` equals it.
-    """
+    Each envelope takes a ticket; one is handled in the turn only once `handled` equals it."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -266,8 +260,7 @@ _WAKE = pykka._envelope.Envelope(None)
 
 def deliver(ref: pykka.ActorRef[Any], message: Any) -> None:
     """`ref.tell(message)`, or handled on this thread in an idle `Actor`'s turn (`Actor.inline`);
-    the caller holds no lock a handler might take. `pykka.ActorDeadError` if it is not running.
-    """
+    the caller holds no lock a handler might take. `pykka.ActorDeadError` if it is not running."""
     if type(message) not in ref.actor_class.inline:
         ref.tell(message)
         return
@@ -280,14 +273,12 @@ def deliver(ref: pykka.ActorRef[Any], message: Any) -> None:
 
 class ContainedError(RuntimeError):
     """A handler raised a `BaseException` not an `Exception`: it fails that actor alone (pykka
-    would take it for the process going down and stop every actor).
-    """
+    would take it for the process going down and stop every actor)."""
 
 
 class Actor(pykka.ThreadingActor):
     """`pykka.ThreadingActor` with an `Inbox`, `OneShotFuture`s and the turn, on a daemon thread
-    (`rr_actors._core.exit` stops actors cleanly first).
-    """
+    (`rr_actors._core.exit` stops actors cleanly first)."""
 
     use_daemon_thread = True
     actor_inbox: Inbox
@@ -359,8 +350,7 @@ class Actor(pykka.ThreadingActor):
                     self._end_turn()
 
     def _drain_inbox(self, inbox: Inbox) -> None:
-        """Handle the envelopes waiting in `inbox` in this turn, within `drain` and
-        `drain_seconds`."""
+        """Handle the envelopes waiting in `inbox`, within `drain` and `drain_seconds`."""
         handled = 1
         until = runtime.monotonic() + self.drain_seconds
         while (
@@ -401,8 +391,7 @@ class Actor(pykka.ThreadingActor):
             pykka.ActorRegistry.stop_all()
 
     def _fail(self) -> None:
-        """As pykka for a failed tell: logged, `on_failure` runs (its own failure logged), the
-        actor stops."""
+        """As pykka for a failed tell: logged, `on_failure` runs (failing: logged), it stops."""
         self._handle_failure(*sys.exc_info())
         try:
             self.on_failure(*sys.exc_info())
@@ -437,23 +426,20 @@ class Actor(pykka.ThreadingActor):
 
     def on_turn_end(self) -> None:
         """Run at the end of each turn when `ends_turns`, in it (a registrar commits its turn's
-        changes here, then releases their answers).
-        """
+        changes here, then releases their answers)."""
 
     def on_ended(self) -> None:
         """Run on the actor's thread once its loop ended and its inbox went to `on_late`."""
 
     def on_late(self, envelope: Any) -> None:
         """An envelope that arrived after the loop ended (on the actor's thread for what was left,
-        the sender's for what comes later): `refuse` it, unless overridden (thread-safely).
-        """
+        the sender's for what comes later): `refuse` it, unless overridden (thread-safely)."""
         refuse(envelope)
 
 
 def _forget_actors() -> None:
     """In a forked child: every actor of the parent is dead (new events and registry lock: a
-    parent's thread may have held the old ones).
-    """
+    parent's thread may have held the old ones)."""
     pykka.ActorRegistry._actor_refs_lock = runtime.RLock()
     for ref in pykka.ActorRegistry.get_all():
         stopped = runtime.Event()

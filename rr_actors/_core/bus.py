@@ -39,11 +39,9 @@ _names = itertools.count(1)
 
 
 class Publisher(Generic[E]):
-    """Where events are published: to subscriptions, other sinks and an INFO log line (`logger`,
-    `describe(event)`, the event in `record.event`). `notice(count)` is what a subscriber gets
-    after losing `count` events; `tap` is also handed each event published here (this one is
-    `active` while `tap` is listened to). Publish only when `active`.
-    """
+    """Where events are published: to sinks and an INFO log line (`describe(event)`, the event
+    in `record.event`). `notice(count)`: what a subscriber gets after losing `count` events;
+    `tap` also gets each event (this one is `active` while it is). Publish only when `active`."""
 
     def __init__(
         self,
@@ -88,8 +86,7 @@ class Publisher(Generic[E]):
             tap.deliver(event)
 
     def deliver(self, event: E) -> None:
-        """Hand `event` to every sink (and upstream), without a log line: it was logged where it
-        happened."""
+        """Hand `event` to every sink (and upstream), without a log line (logged at its origin)."""
         for sink in self._sinks:
             try:
                 sink(event)
@@ -108,14 +105,12 @@ class Publisher(Generic[E]):
         return upstream is not None and upstream.listened
 
     def relay_to(self, upstream: Publisher[E] | None) -> None:
-        """Hand every event published here on to `upstream`'s sinks too (`None`: stop); not its log
-        lines."""
+        """Hand every event published here on to `upstream`'s sinks, not its log (`None`: stop)."""
         self._upstream = upstream
 
     def watch_listeners(self, watcher: Callable[[bool], object]) -> Callable[[], None]:
         """Call `watcher(True)` at the first sink, `watcher(False)` after the last (on the thread
-        that subscribes or closes); returns the function that stops the watching.
-        """
+        that subscribes or closes); returns the function that stops the watching."""
         with self._lock:
             self._watchers = (*self._watchers, watcher)
 
@@ -154,18 +149,8 @@ class Publisher(Generic[E]):
         maxbytes: int | None = None,
         weigh: Callable[[E], int] | None = None,
     ) -> Subscription[E]:
-        """Call `callback(event)` on a thread of its own for every event from now on until closed.
-
-        Args:
-            callback: runs on the subscription's daemon thread, one event at a time, in order.
-            maxsize: events its queue holds before it drops new ones.
-            name: for its thread's name and log lines (default `subscriber-<n>`).
-            maxbytes: with `weigh`, bytes its queued events may weigh before new ones drop.
-            weigh: an event's weight in bytes (run on the publishing thread).
-
-        Raises:
-            ConfigError: `callback` is not callable, or `maxsize` or `maxbytes` not a positive int.
-        """
+        """A `Subscription` of `callback` to every event from now on (`ConfigError`: a bad
+        argument); `maxbytes` bounds its queue's weight too, `weigh(event)` on the publisher."""
         subscription = Subscription(
             callback,
             name=name or f"subscriber-{next(_names)}",
@@ -182,8 +167,7 @@ class Publisher(Generic[E]):
         self.remove_sink(subscription._offer)
 
     def add_sink(self, sink: Sink[E]) -> None:
-        """Call `sink(event)` for every event from now on, on the publishing thread (it must return
-        at once)."""
+        """Call `sink(event)` for every event from now on, on the publishing thread (quick)."""
         with self._lock:
             before = bool(self._sinks)
             self._sinks = (*self._sinks, sink)
@@ -191,8 +175,7 @@ class Publisher(Generic[E]):
 
     def remove_sink(self, sink: Sink[E]) -> None:
         """Stop calling `sink` (the first equal one); nothing if it is not there (a publish under
-        way may still call it once).
-        """
+        way may still call it once)."""
         with self._lock:
             before = bool(self._sinks)
             sinks = list(self._sinks)

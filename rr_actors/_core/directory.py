@@ -48,15 +48,13 @@ class Peer(Protocol):
         """Send `message`; raise `RegistrarUnavailableError` if the registrar is dead."""
 
     def deliver(self, message: Any) -> None:
-        """`tell`, from a thread that holds no lock (a carrier's reader, or a loop's thread stepping
-        an awaited call, not to a durable registrar): an idle local registrar may handle it there.
-        """
+        """`tell` from a thread holding no lock (a carrier's reader; a loop's, to a non-durable
+        registrar): an idle local registrar may handle it there."""
 
 
 class LocalPeer:
     """A registrar actor in this process (`ref` set when it starts); a `durable` one's steps write
-    to disk before they answer, so a loop's thread never takes its turn.
-    """
+    to disk before they answer, so a loop's thread never takes its turn."""
 
     def __init__(
         self, name: str, ref: pykka.ActorRef[Any] | None = None, *, durable: bool = False
@@ -154,8 +152,7 @@ class Directory:
     def gone_error(self, name: str) -> Exception:
         """The error for a registrar not reachable: `RegistrarUnavailableError` for a forked
         parent's or one being restarted, else `RegistrarStoppedError` (stopped),
-        `RegistrarUnavailableError` (died) or `UnknownRegistrarError` (never seen).
-        """
+        `RegistrarUnavailableError` (died) or `UnknownRegistrarError` (never seen)."""
         parent = self._inherited.get(name)
         if parent is not None:
             return RegistrarUnavailableError(
@@ -183,8 +180,7 @@ class Directory:
 
     def expect_restart(self, name: str, expected: bool = True) -> None:
         """Say whether a crash of registrar `name` will be followed by a restart (then its
-        supervisor, not a death watch, decides).
-        """
+        supervisor, not a death watch, decides)."""
         with self._lock:
             if expected:
                 self._restart_expected.add(name)
@@ -196,8 +192,7 @@ class Directory:
 
     def mark_restarting(self, names: Iterable[str], restarting: bool = True) -> None:
         """Say that registrars `names` are down for a restart (or no longer are): a message to one
-        fails with `RegistrarUnavailableError`, even after a clean stop for the restart.
-        """
+        fails with `RegistrarUnavailableError`, even after a clean stop for the restart."""
         with self._lock:
             if restarting:
                 self._restarting.update(names)
@@ -205,9 +200,7 @@ class Directory:
                 self._restarting.difference_update(names)
 
     def broadcast(self, message: object, *, also: Iterable[str] = (), skip: str = "") -> None:
-        """Tell `message` to every registrar of this process and those in `also`, but `skip` (one
-        unreachable is skipped).
-        """
+        """Tell `message` to every registrar here and in `also` but `skip` (best effort)."""
         targets = {peer.name for peer in self.local_peers()} | set(also)
         targets.discard(skip)
         for target in sorted(targets):

@@ -75,11 +75,9 @@ def stop_at_exit(
     holds: _Names = _nowhere,
 ) -> None:
     """Have `stop(timeout)` called when the main thread ends, if `alive()` (cheap, any thread) then.
-
-    `tier` orders the stops (lower first); `what` names it for people; `provides` are the registrar
-    names it serves, `holds(timeout)` those it holds ids at (asked once at the end; raising counts
-    as none). Entries no longer alive are pruned when their number doubled.
-    """
+    `tier` orders the stops (lower first); `what` names it; `provides`: the registrars it serves,
+    `holds(timeout)`: those it holds ids at (asked at the end; raising: none). Dead entries are
+    pruned when their number doubled."""
     global _hooked  # (the hook: once per process)
     listed = _LISTED
     with listed.lock:
@@ -100,11 +98,8 @@ def stop_at_exit(
 
 def stop_everything(timeout: float = EXIT_TIMEOUT) -> None:
     """Stop every listed supervisor and registrar that still runs; newest first per tier.
-
-    One that holds ids at another still to stop goes first, so its release reaches a provider
-    that runs. A Ctrl-C meanwhile skips the supervisors and registrars left, not the networks
-    (the interpreter would wait for their sessions' threads).
-    """
+    One holding ids at another goes first (its release reaches a running provider). A Ctrl-C
+    skips the supervisors and registrars left, not the networks (their threads would hang)."""
     deadline = runtime.monotonic() + timeout
     with _LISTED.lock:
         entries = [
@@ -133,8 +128,7 @@ def stop_everything(timeout: float = EXIT_TIMEOUT) -> None:
 
 def _in_order(entries: list[_Entry], deadline: float) -> list[_Entry]:
     """`entries` with each that holds ids at another before it; a tree's managers (their tree
-    stops them) and the networks last. In a cycle, the first in tier order goes first.
-    """
+    stops them) and the networks last. In a cycle, the first in tier order goes first."""
     running = [entry for entry in entries if entry[0] < NETWORKS and entry[2]()]
     managed = {name for entry in running if entry[0] == SUPERVISORS for name in entry[4]}
     left = [e for e in running if e[0] == SUPERVISORS or not managed.intersection(e[4])]

@@ -80,8 +80,7 @@ def seconds(stamp: int) -> float:
 
 
 def from_seconds(at: float) -> int:
-    """The stamp of `at` (seconds since the epoch), counter 0: how an event older than stamps
-    sorts."""
+    """The stamp of `at` (epoch seconds), counter 0: where an event older than stamps sorts."""
     return pack(int(at * 1e6), 0)
 
 
@@ -104,10 +103,9 @@ def _skewed_ns() -> int:
 
 
 class HybridClock:
-    """A hybrid logical clock (module docstring), thread-safe, never raising: `physical` in
-    nanoseconds (`None`: `runtime.wall_ns`); `refused` counts stamps refused for being more than
-    `max_offset` seconds ahead (`ConfigError` unless above 0 and at most a year).
-    """
+    """A hybrid logical clock (module docstring), thread-safe, never raising: `physical` in ns
+    (`None`: `runtime.wall_ns`); `refused` counts stamps over `max_offset` s ahead (`ConfigError`
+    unless above 0 and at most a year)."""
 
     # (no `__slots__`: a simulation swaps a clock's `__dict__` whole per simulated process)
 
@@ -144,8 +142,7 @@ class HybridClock:
         return self._last
 
     def now(self) -> int:
-        """The stamp of a local event or a send: greater than every stamp before (at the range's
-        end, equal)."""
+        """A local event's or a send's stamp: above every one before (at the range's end, equal)."""
         pt = (self.physical() // 1000) << COUNTER_BITS
         with self._lock:
             last = self._last + 1
@@ -156,10 +153,8 @@ class HybridClock:
     send = now
 
     def receive(self, stamp: int, sender: str = "") -> int:
-        """Take in a message's stamp before it is handled; the receipt's stamp. One that is not an
-        int in 0..2**64-1 is ignored, one too far ahead refused (counted, a WARNING at most once a
-        minute naming `sender`).
-        """
+        """Take in a message's stamp before it is handled; the receipt's stamp. Not an int in
+        0..2**64-1: ignored; too far ahead: refused, counted (WARNING a minute, naming `sender`)."""
         if not isinstance(stamp, int) or not 0 <= stamp <= _MAX:
             return self.now()
         pt = (self.physical() // 1000) << COUNTER_BITS

@@ -39,8 +39,7 @@ Then = Callable[[BaseException | None], object]
 
 
 def is_coroutine_function(fn: object) -> bool:
-    """Whether calling `fn` gives a coroutine (an `async def`, a partial of one, an async
-    `__call__`)."""
+    """Whether `fn` returns a coroutine (`async def`, a partial of one, an async `__call__`)."""
     if asyncio.iscoroutinefunction(fn):
         return True
     call = getattr(fn, "__call__", None)  # noqa: B004 - (the method, not callable())
@@ -61,8 +60,7 @@ def _wake_from(loop: asyncio.AbstractEventLoop, waiter: asyncio.Future[bool], _:
 
 async def settled(future: OneShotFuture[Any], timeout: float | None) -> bool:
     """Await `future` (settled by any thread) at most `timeout` seconds; whether it is. No thread
-    waits: its done callback wakes the loop.
-    """
+    waits: its done callback wakes the loop."""
     if future._settled:
         return True
     loop = asyncio.get_running_loop()
@@ -77,9 +75,7 @@ async def settled(future: OneShotFuture[Any], timeout: float | None) -> bool:
 
 
 async def run_steps_async(steps: Steps[T]) -> T:
-    """Run `steps` on the running loop, awaiting each future (`settled`); a cancellation is thrown
-    into them at their `yield`.
-    """
+    """Run `steps` on the running loop (`settled`); a cancellation is thrown in at their `yield`."""
     mark_awaiting(True)  # (each step: this thread may take an idle actor's turn)
     try:
         future, deadline = next(steps)
@@ -159,11 +155,9 @@ def process_loop() -> asyncio.AbstractEventLoop:
 
 class OnLoop:
     """A coroutine function and the event loop it runs on; submitted from any thread.
-
-    Calls of one key (a status callback's query id) run one at a time in order, unless one
-    waits for a registrar (`replies.let_go`); each in a copy of the binder's context, with no
-    OpenTelemetry span current but its run's (`own`).
-    """
+    Calls of one key (a callback's query id) run one at a time in order, unless one waits for
+    a registrar (`replies.let_go`); each in a copy of the binder's context, with only its run's
+    OpenTelemetry span current (`own`)."""
 
     __slots__ = ("_context", "_tails", "fn", "loop")
 
@@ -188,8 +182,7 @@ class OnLoop:
         return f"<OnLoop {getattr(self.fn, '__qualname__', self.fn)!r}>"
 
     def __reduce__(self) -> tuple[Any, ...]:
-        """Pickle as the coroutine function alone: the other process binds it to a loop of its
-        own."""
+        """Pickle as the coroutine function alone: the other process binds a loop of its own."""
         return (_unbound, (self.fn,))
 
     def __call__(self, *args: Any) -> None:
@@ -205,8 +198,7 @@ class OnLoop:
     ) -> None:
         """Run `fn(*args)` on the loop after the calls of `key` before; `then(error)` on the loop
         thread once it ended, `waits()` (any thread) as it lets the next go, `own` its run's span. A
-        closed loop runs nothing: `then` gets a `RuntimeError` here.
-        """
+        closed loop runs nothing: `then` gets a `RuntimeError` here."""
         try:
             self.loop.call_soon_threadsafe(self._start, args, then, key, waits, own)
         except RuntimeError as exc:  # the loop was closed

@@ -36,8 +36,7 @@ logger = logging.getLogger("rr_actors")
 
 class Hearer(Protocol):
     """What hears the membership's events (a registrar's presence role). Each call runs on the
-    thread that reported the event, must return at once, and may come twice.
-    """
+    thread that reported the event, must return at once, and may come twice."""
 
     @property
     def name(self) -> str:
@@ -57,8 +56,7 @@ class Joined(Hearer, Protocol):
     """A hearer that joined (a registrar of this process): it hears stops for good too."""
 
     def peer_stopped(self, name: str) -> None:
-        """Registrar `name` was stopped for good: it holds nothing (rule 12), what it holds here
-        is stale."""
+        """Registrar `name` was stopped for good: what it holds here is stale (rule 12)."""
         ...
 
 
@@ -72,8 +70,7 @@ class Membership:
 
     def join(self, hearer: Joined) -> dict[str, bool]:
         """Let `hearer` hear every event from now on; return the names gone for good now (`True`:
-        stopped rather than lost). Atomic with `lost` and `stopped`; its own name is back.
-        """
+        stopped rather than lost). Atomic with `lost` and `stopped`; its own name is back."""
         with self._lock:
             self._hearers[hearer.name] = hearer
             self._gone.pop(hearer.name, None)
@@ -87,8 +84,7 @@ class Membership:
 
     def lost(self, name: str, *, by: str, hearers: tuple[Hearer, ...] = ()) -> None:
         """Registrar `name` is gone for good (`by` says who says so): record it, then every hearer
-        and `hearers` (one named like a joined hearer is told once) hears it.
-        """
+        and `hearers` (one named like a joined hearer is told once) hears it."""
         with self._lock:
             self._gone[name] = False
             targets: dict[str, Hearer] = {hearer.name: hearer for hearer in hearers}
@@ -98,8 +94,7 @@ class Membership:
 
     def stopped(self, name: str, *, by: str) -> None:
         """Registrar `name` was stopped for good: record it (a record that it was lost stays), then
-        every joined hearer hears it.
-        """
+        every joined hearer hears it."""
         with self._lock:
             self._gone.setdefault(name, True)
             targets = list(self._hearers.values())
@@ -124,8 +119,7 @@ class Membership:
 
     def forget_in_child(self) -> None:
         """In a forked child: no hearers, no records (a spare may serve long after the fork: it
-        hears from its supervisor and its carrier).
-        """
+        hears from its supervisor and its carrier)."""
         self._lock = runtime.Lock()
         self._hearers.clear()
         self._gone.clear()

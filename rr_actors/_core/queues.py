@@ -50,8 +50,7 @@ Late = Callable[[Any], None]
 
 class LateQueue(queue.SimpleQueue[Any]):
     """A queue that, once closed, hands what is left and what is put later to `late`, each item
-    once. Its methods call `_put`, not `SimpleQueue.put`: a simulation subclasses it.
-    """
+    once. Its methods call `_put`, not `SimpleQueue.put`: a simulation subclasses it."""
 
     _late: Late | None = None
     _put = queue.SimpleQueue.put
@@ -80,10 +79,8 @@ class LateQueue(queue.SimpleQueue[Any]):
 
 
 class _Outbox(Generic[E]):
-    """A consumer's thread behind a bound that drops instead of blocking and remembers the gap
-    (whose notice goes where the lost events were). `put` never blocks; with `maxbytes`, what
-    is queued also weighs at most that (`weigh`), those puts taking the lock.
-    """
+    """A consumer's thread behind a bound that drops (`put` never blocks) and remembers the gap
+    for its notice; with `maxbytes`, what is queued weighs at most that (those puts lock)."""
 
     def __init__(
         self,
@@ -234,12 +231,11 @@ class _Outbox(Generic[E]):
 class Subscription(Generic[E]):
     """One subscriber's events: a bounded queue and a thread of its own that runs the callback.
 
-    Made by `Supervisor.subscribe` and `ResourceRegistrar.subscribe`. The callback runs on its
-    own daemon thread (`rr-events-<name>`), one event at a time, in publish order; the
-    publisher never waits for it. A full queue (or, with `maxbytes`, too heavy) drops new
-    events, counted (`dropped`), and the callback later gets one `EventsDropped` where they
-    would have been. What the callback raises is logged (the first with its traceback, then a
-    count at most every `LOG_EVERY` s). A context manager, or call `close()`.
+    Made by `Supervisor.subscribe` and `ResourceRegistrar.subscribe`; the callback runs on
+    its thread (`rr-events-<name>`) one event at a time in publish order. A full queue (or,
+    with `maxbytes`, too heavy) drops new events, counted (`dropped`); the callback later
+    gets one `EventsDropped` in their place. What it raises is logged (the first with its
+    traceback, then a count at most every `LOG_EVERY` s). A context manager, or `close()`.
 
     Attributes:
         name: the subscription's name (in its thread's name and in log lines).
@@ -286,16 +282,13 @@ class Subscription(Generic[E]):
         return self._outbox.executor.closed
 
     def wait_delivered(self, *, timeout: float | None = 5.0) -> bool:
-        """Block until every event published before went through the callback (or its notice), at
-        most `timeout` seconds (`None`: no bound); `False` if the time ran out or it was closed.
-        `RuntimeError` from its own callback.
-        """
+        """Block at most `timeout` s until every event published before was through the callback
+        (or its notice); `False` if not, or closed. `RuntimeError` from its own callback."""
         return self._outbox.wait(timeout=timeout, caller="wait_delivered()")
 
     def close(self, *, timeout: float | None = 5.0) -> None:
         """Unsubscribe, deliver what was queued within `timeout` seconds (the rest dropped, with a
-        WARNING), and end the thread. Idempotent; from the callback it returns first.
-        """
+        WARNING), and end the thread. Idempotent; from the callback it returns first."""
         if not self.closed:
             self._unsubscribe(self)
         self._outbox.stop(timeout=timeout)
@@ -322,8 +315,7 @@ class Subscription(Generic[E]):
                 self._report_raised((item, exc))
 
     def _report_raised(self, latest: tuple[E, BaseException] | None) -> None:
-        """Log the callback's exceptions: the first in full, later ones as a count (`None`: it
-        ends)."""
+        """Log the callback's exceptions: the first in full, later as a count (`None`: it ends)."""
         raising = self._raising
         if latest is not None and not raising.logged:
             raising.logged, raising.unlogged = True, 0
@@ -354,10 +346,7 @@ class Forwarder(Generic[E]):
     (`rr-forward-<name>`) calls `send(batch)` (may block) with what piled up, at most
     `max_batch`, in order. A full buffer (`maxsize`) drops events, the next batch carrying
     `notice(count)`; a `send` that raises is logged and its batch counts as dropped.
-
-    Raises:
-        ConfigError: `maxsize` or `max_batch` is not a positive int.
-    """
+    `ConfigError`: `maxsize` or `max_batch` is not a positive int."""
 
     def __init__(
         self,
@@ -397,20 +386,17 @@ class Forwarder(Generic[E]):
 
     def wait_sent(self, *, timeout: float | None = 5.0) -> bool:
         """Block until every event given before was passed to `send` (or dropped), at most `timeout`
-        seconds; `False` if the time ran out. `RuntimeError` from `send` itself.
-        """
+        seconds; `False` if the time ran out. `RuntimeError` from `send` itself."""
         return self._outbox.wait(timeout=timeout, caller="wait_sent()", first=self._ship)
 
     def close(self, *, timeout: float | None = 5.0) -> None:
         """Send what is buffered (within `timeout` seconds) and end the thread. Idempotent; remove
-        it from its publisher first.
-        """
+        it from its publisher first."""
         self._outbox.stop(timeout=timeout, last=self._ship)
 
     @property
     def executor(self) -> SerialExecutor:
-        """The executor of its thread (joined once closed, where `send` must not outlive the
-        interpreter)."""
+        """Its thread's executor (joined once closed: `send` must not outlive the interpreter)."""
         return self._outbox.executor
 
     def __repr__(self) -> str:

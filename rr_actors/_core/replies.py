@@ -53,8 +53,7 @@ class FutureReply:
 
 def wait(future: pykka.Future[Any], timeout: float, what: str) -> Any:
     """Wait for `future` at most `timeout` seconds (after `let_go`): its value, its error, or
-    `CallTimeoutError` naming `what`.
-    """
+    `CallTimeoutError` naming `what`."""
     let_go()
     try:
         return future.get(timeout=timeout)
@@ -84,8 +83,7 @@ _LET_GO: contextvars.ContextVar[Callable[[], None] | None] = contextvars.Context
 
 def when_waiting(hook: Callable[[], None] | None) -> contextvars.Token[Callable[[], None] | None]:
     """In the current context, `let_go` runs `hook()` (any thread, maybe often) until
-    `waited(token)`: a status callback that waits for a registrar lets its id's next start.
-    """
+    `waited(token)`: a status callback that waits for a registrar lets its id's next start."""
     return _LET_GO.set(hook)
 
 
@@ -103,8 +101,7 @@ def let_go() -> None:
 
 def run_steps(steps: Steps[T]) -> T:
     """Run `steps` on the calling thread, blocking on each future (after `let_go`); an exception
-    while they wait is thrown into them at the `yield`.
-    """
+    while they wait is thrown into them at the `yield`."""
     resume: Callable[[Any], Wait] = steps.send
     given: Any = None  # (sent to start them)
     while True:
@@ -123,8 +120,7 @@ def run_steps(steps: Steps[T]) -> T:
 
 def on_own_thread(fn: Callable[[], T], name: str) -> Steps[T]:
     """Steps that run `fn()` on a fresh daemon thread and wait for its result: for the few
-    operations that block outside steps (on a loop they hold that thread, never the loop).
-    """
+    operations that block outside steps (on a loop they hold that thread, never the loop)."""
     done: FutureReply = FutureReply()
 
     def run() -> None:
@@ -143,8 +139,7 @@ def on_own_thread(fn: Callable[[], T], name: str) -> Steps[T]:
 
 def asked(future: OneShotFuture[Any], deadline: float, limit: float, what: str) -> Steps[Any]:
     """Steps of one request: `future`'s value or error by `deadline`, else `CallTimeoutError`
-    (`limit` seconds, `what` for the message).
-    """
+    (`limit` seconds, `what` for the message)."""
     if not (yield future, deadline):
         raise CallTimeoutError(f"{what} timed out after {limit:g} s")
     return future.get(timeout=0)
@@ -186,8 +181,7 @@ Continuation = Callable[[Any, BaseException | None], None]
 
 class CallbackReply:
     """Answers by calling `then(value, error)` on the answering thread, at most once: it must be
-    quick and thread-safe; what it raises is logged.
-    """
+    quick and thread-safe; what it raises is logged."""
 
     __slots__ = ("_lock", "_then")
 
@@ -265,8 +259,7 @@ class Join:
 
 class SharedJoin(Join):
     """`Join` whose parts may report from any thread; `then()` runs once, outside the lock, on
-    the thread that completes it.
-    """
+    the thread that completes it."""
 
     __slots__ = ("_lock",)
 

@@ -71,15 +71,13 @@ new_event_loop = asyncio.new_event_loop
 
 def guards_files() -> bool:
     """Whether the catalog backups need guarding against other programs and OS crashes (the
-    checks before each commit): always in a real run, never for a simulation's own files.
-    """
+    checks before each commit): always in a real run, never for a simulation's own files."""
     return True
 
 
 def hold(file: F) -> F:
     """`file` (closable twice), registered as the calling process's: in a simulation, closed when
-    the simulated process or the run ends; nothing in a real run.
-    """
+    the simulated process or the run ends; nothing in a real run."""
     return file
 
 
@@ -89,8 +87,7 @@ manager_process: Any = None
 
 def queue_class(cls: type[Q]) -> type[Q]:
     """The class to make for `cls`, a `queue.SimpleQueue` subclass: `cls` in a real run; in a
-    simulation, a subclass whose queue methods are the simulated queue's.
-    """
+    simulation, a subclass whose queue methods are the simulated queue's."""
     return cls
 
 
@@ -163,8 +160,7 @@ _locals: list[threading.local] = []
 
 def use(seams: Mapping[str, Any] | None) -> None:
     """Run the protocol on `seams` (every name of `SEAMS`; `ValueError` otherwise), or the real
-    world again (`None`). For `rr_actors.simulation` only.
-    """
+    world again (`None`). For `rr_actors.simulation` only."""
     global _simulated  # (this module's one switch)
     if seams is not None and set(seams) != set(SEAMS):
         raise ValueError(f"a simulation replaces exactly {SEAMS}, not {tuple(seams)}")
@@ -182,8 +178,7 @@ def handles_signals() -> bool:
 
 
 def local() -> threading.local:
-    """A `threading.local` that a simulation keeps per simulated thread too. Made once, at
-    import."""
+    """A `threading.local` that a simulation keeps per simulated thread too (made at import)."""
     namespace = threading.local()
     _locals.append(namespace)
     return namespace
@@ -195,8 +190,7 @@ def thread_locals() -> tuple[threading.local, ...]:
 
 def process_state(obj: T, fresh: Callable[[], object]) -> T:
     """Register `obj` (at its module's import) as this process's state; returns it. A simulation
-    gives each simulated process `fresh()`'s attributes; nothing in a real run.
-    """
+    gives each simulated process `fresh()`'s attributes; nothing in a real run."""
     _states.append((obj, fresh))
     return obj
 

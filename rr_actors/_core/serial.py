@@ -52,14 +52,11 @@ class _Mark:
 
 
 class SerialExecutor:
-    """One thread of its own (daemon, `name`, started at the first task that waits) that runs
-    its tasks one at a time, in order; what a task raises is logged and the next runs.
-
-    `linger`: seconds the thread waits once the queue ran empty, so a burst does not wake it;
-    `every`: `(seconds, task)` also run between tasks; `on_idle` when the queue ran empty;
-    `on_drop` with each task `close` drops; `on_end` once, last (on the executor's thread if
-    it has one, else the closing thread).
-    """
+    """One daemon thread (`name`, started at the first task that waits) running its tasks one at
+    a time, in order; what one raises is logged. `linger`: seconds the thread waits once the
+    queue ran empty (a burst does not wake it); `every`: `(seconds, task)` also run between
+    tasks; `on_idle` when the queue ran empty; `on_drop` with each task `close` drops; `on_end`
+    once, last (on its thread if it has one, else the closing thread)."""
 
     def __init__(
         self,
@@ -115,8 +112,7 @@ class SerialExecutor:
     def submit(self, task: Task, *, inline: Callable[[], Task | None] | None = None) -> bool:
         """Run `task` after every task submitted before; `False` if closed. When idle, `inline()`
         runs instead, on this thread under the lock (no blocking, no submit), returning `None` or
-        the task to run next; what it raises is raised here.
-        """
+        the task to run next; what it raises is raised here."""
         with self._lock:  # (the plain lock under `_cond`: no Python-level `__enter__`)
             if self._closing:
                 return False
@@ -134,8 +130,7 @@ class SerialExecutor:
 
     def call(self, fn: Callable[[], T]) -> T:
         """Run `fn()` on the executor's thread after what is queued; its result or error.
-        `RuntimeError` on its own thread or once closed.
-        """
+        `RuntimeError` on its own thread or once closed."""
         if self.on_own_thread():
             raise RuntimeError(f"call() on {self.name}'s own thread would wait for itself")
         mark = _Mark(fn)
@@ -152,8 +147,7 @@ class SerialExecutor:
 
     def flush(self, *, timeout: float | None) -> bool:
         """Block until every task submitted before ran (at most `timeout` s); whether they all did.
-        `RuntimeError` on its own thread.
-        """
+        `RuntimeError` on its own thread."""
         if self.on_own_thread():
             raise RuntimeError(f"flush() on {self.name}'s own thread would wait for itself")
         mark = _Mark()
@@ -175,8 +169,7 @@ class SerialExecutor:
 
     def close(self, *, timeout: float | None = 0.0) -> bool:
         """Take no more tasks; let those queued run for `timeout` s, then drop the rest (to
-        `on_drop`); whether it ended in time. Idempotent; on its own thread it only finishes.
-        """
+        `on_drop`); whether it ended in time. Idempotent; on its own thread it only finishes."""
         self.finish()
         if timeout != 0:
             if self.on_own_thread():
@@ -216,8 +209,7 @@ class SerialExecutor:
         self._thread.start()
 
     def _ends_now(self) -> bool:
-        """Whether the caller runs `on_end` now (hold `_cond`): closed, idle, no thread (else it
-        is woken)."""
+        """Whether the caller runs `on_end` now (hold `_cond`): closed, idle, no thread."""
         if not self._closing or self._busy or self._ended or self._tasks:
             return False
         if self._thread is not None:

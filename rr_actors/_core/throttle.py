@@ -25,8 +25,7 @@ EVERY = 60.0
 
 class Throttle:
     """When a repeated trouble may be logged again (first, then every `every` s on `clock`), and
-    how many happened meanwhile (`unlogged`). Not locked: its owner locks.
-    """
+    how many happened meanwhile (`unlogged`). Not locked: its owner locks."""
 
     __slots__ = ("clock", "every", "logged", "next_at", "unlogged")
 
@@ -49,8 +48,7 @@ class Throttle:
 
 class LogThrottle:
     """One kind of repeated WARNING to `logger`, thread-safe: the first in full, later ones at
-    most every `every` seconds with the count since the previous line.
-    """
+    most every `every` seconds with the count since the previous line."""
 
     def __init__(
         self,
@@ -88,8 +86,7 @@ _SHORT_WIDTH = 256
 
 def short(value: Any) -> str:
     """A bounded `repr` (at most 256 characters) for a log line; never raises. Only for values
-    whose `repr` runs no user code (builtin data, what a peer sent).
-    """
+    whose `repr` runs no user code (builtin data, what a peer sent)."""
     try:
         text = _SHORT.repr(value)
     except Exception as exc:  # noqa: BLE001 - a log line must not fail

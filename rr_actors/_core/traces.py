@@ -54,8 +54,7 @@ _MASK = (1 << 64) - 1
 
 
 def _new_span() -> str:
-    """A fresh span id (16 hex, `runtime.getrandbits`): neither 0 nor one whose SERVER span's is
-    0."""
+    """A fresh span id (16 hex): neither 0 nor one whose SERVER span's is 0."""
     while True:
         span = runtime.getrandbits(64)
         if span not in (0, _SERVER):
@@ -79,11 +78,8 @@ def _parts(span: Any) -> tuple[object, str, str, str]:
 
 def begin() -> tuple[str, str] | None:
     """The trace context of a call made now: `(traceparent, caller_span)` or `None`.
-
     `traceparent` names the call's CLIENT span (a fresh id) under the caller's trace and flags;
-    `caller_span` is the caller's current span's id (16 hex). `None` without the extra or a
-    valid current span.
-    """
+    `caller_span`: the caller's current span's id (16 hex). `None`: no extra or valid span."""
     if _context is None and not _bind():
         return None
     current = _context.get_current()
@@ -113,8 +109,7 @@ def current() -> str:
 
 
 def adopt(traceparent: str) -> None:
-    """Make the (remote, non-recording) span `traceparent` names current in this context; nothing
-    for a bad one."""
+    """Make the remote span `traceparent` names current in this context (bad: nothing)."""
     parsed = parse(traceparent)
     if parsed is None or not _bind(load=True):
         return
@@ -155,8 +150,7 @@ def server_span(client_span: int) -> int:
 
 def under(traceparent: str) -> tuple[str, str] | None:
     """The trace context of a call the provider of `traceparent`'s call makes (an unload's
-    dependency releases): a fresh CLIENT span under that call's SERVER span; `None` if bad.
-    """
+    dependency releases): a fresh CLIENT span under that call's SERVER span; `None` if bad."""
     parsed = parse(traceparent)
     if parsed is None:
         return None
@@ -177,9 +171,7 @@ def caller_parent(traceparent: str, caller_span: str) -> Any:
 
 
 def context_of(traceparent: str) -> Any:
-    """The context whose current span is the (non-recording) SERVER span of the call that carried
-    `traceparent`, or `None`.
-    """
+    """The context whose current span is the SERVER span of `traceparent`'s call, or `None`."""
     parsed = parse(traceparent)
     if parsed is None or not _bind(load=True):
         return None
@@ -209,17 +201,14 @@ def derived(*parts: str, bits: int = 64) -> int:
 
 
 def status_callback(status_id: str, registrar: str, query_id: str) -> tuple[int, int]:
-    """The (trace id, span id) of a status callback's run: a trace of its own, derived from what
-    its `StatusHandled` names.
-    """
+    """The (trace id, span id) of a status callback's run, from what its `StatusHandled` names."""
     parts = ("status callback", status_id, registrar, query_id)
     return derived(*parts, bits=128), derived(*parts)
 
 
 def own_trace(callback: tuple[str, str, str] | None = None) -> object | None:
     """Make current, in a context of its own, the span of the status callback `callback` names
-    (or no span): what was current is not its parent. Its token for `detach`, or `None`.
-    """
+    (or no span): what was current is not its parent. Its token for `detach`, or `None`."""
     if _context is None and not _bind():
         return None
     span = _trace.INVALID_SPAN

@@ -55,9 +55,7 @@ WIRE_TYPES: set[type] = set()
 
 class WireMessage:
     """Base of the frozen dataclasses that cross between processes.
-
-    A message that wants an answer has a `reply` field (a `Reply`); the others do not.
-    """
+    A message that wants an answer has a `reply` field (a `Reply`); the others do not."""
 
     __slots__ = ()
 
@@ -67,9 +65,7 @@ class WireMessage:
 
     def detached(self) -> Any:
         """This message as it crosses to another process: without its `reply`.
-
-        A copy of its fields, not a second construction (a `Load` is detached on every call).
-        """
+        A copy of its fields, not a second construction (a `Load` is detached on every call)."""
         if not hasattr(self, "reply"):
             return self
         copy = object.__new__(type(self))
@@ -77,9 +73,7 @@ class WireMessage:
         return copy
 
     def compensation(self) -> WireMessage | None:
-        """A message that undoes handling this one when its answer is lost, if any (delivered to the
-        registrar that handled it).
-        """
+        """What undoes handling this when its answer is lost, if any (to the registrar that did)."""
         return None
 
     def unreadable_answer(self, target: str, exc: BaseException) -> RrError:
@@ -188,8 +182,7 @@ def _named(code: types.CodeType, filename: str) -> types.CodeType:
 
 
 class Pickler(cloudpickle.Pickler):  # type: ignore[misc]
-    """cloudpickle, with the wire protocol's own types by reference, and code that keeps its
-    file's name."""
+    """cloudpickle: the wire's own types by reference, code keeping its file's name."""
 
     def reducer_override(self, obj: Any) -> Any:
         kind = type(obj)
@@ -202,8 +195,7 @@ class Pickler(cloudpickle.Pickler):  # type: ignore[misc]
 
 def dumps(value: Any) -> bytes:
     """`value` pickled as it leaves this process: `plain` data by the C pickler, the rest by
-    `Pickler`. Pickling errors propagate.
-    """
+    `Pickler`. Pickling errors propagate."""
     if plain(value):
         return pickle.dumps(value, pickle.HIGHEST_PROTOCOL)
     buffer = io.BytesIO()

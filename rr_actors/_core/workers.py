@@ -67,20 +67,17 @@ class Job:
         return self._state is _State.RUNNING
 
     def abandon(self) -> bool:
-        """Give up on it (a queued job never runs; a running one stops counting); whether it had
-        not ended."""
+        """Give up on it (queued: never runs; running: stops counting); whether it had not ended."""
         return self._pool._abandon(self)
 
     def cancel(self) -> bool:
-        """Withdraw it if it has not started (a running one runs on); whether it was still
-        queued."""
+        """Withdraw it if it has not started; whether it was still queued."""
         return self._pool._cancel(self)
 
 
 class Workers:
     """Run zero-argument callables on at most `max_workers` reused daemon threads
-    (`rr-<name>-worker-<n>`), an idle one exiting after `idle_timeout` seconds.
-    """
+    (`rr-<name>-worker-<n>`), an idle one exiting after `idle_timeout` seconds."""
 
     def __init__(
         self, name: str, *, max_workers: int = DEFAULT_MAX_WORKERS, idle_timeout: float = 10.0
@@ -128,12 +125,9 @@ class Workers:
         lane: str = "",
     ) -> Job:
         """Run `task` on a worker thread once one is free; what it raises is logged.
-
-        `timeout`: seconds it may run once started, then it is abandoned and `on_overdue()` runs
-        on the watchdog's thread (logged at DEBUG if `quiet`). If it must queue, an `urgent` one
-        goes first, the others by `lane` in turns. `RuntimeError`: no worker was free and the OS
-        refused a thread.
-        """
+        `timeout`: seconds it may run, then it is abandoned, `on_overdue()` on the watchdog's
+        thread (DEBUG if `quiet`). Queued: `urgent` first, the others by `lane` in turns.
+        `RuntimeError`: no worker was free and the OS refused a thread."""
         job = Job(self, task, timeout, on_overdue, quiet)
         with self._lock:
             if self._idle > 0 or self._live >= self._max:
@@ -193,8 +187,7 @@ class Workers:
                 return self._urgent.popleft() if self._urgent else self._take()
 
     def _queue(self, job: Job, lane: str) -> None:
-        """Queue `job` last in `lane` (hold the lock); a new lane takes its turn after the
-        others."""
+        """Queue `job` last in `lane` (hold the lock); a new lane's turn comes after the others."""
         jobs = self._lanes.get(lane)
         if jobs is None:
             jobs = self._lanes[lane] = collections.deque()
@@ -202,8 +195,7 @@ class Workers:
         jobs.append(job)
 
     def _take(self) -> Job:
-        """The first job of the lane whose turn it is (hold the lock); that lane goes last, or
-        away."""
+        """The first job of the lane whose turn it is (hold the lock); it goes last or away."""
         lane = self._turns.popleft()
         jobs = self._lanes[lane]
         job = jobs.popleft()

@@ -78,12 +78,9 @@ _OPEN = (AttemptState.SENDING, AttemptState.SENT)
 
 class CallAttempt(OneShotFuture[Any]):
     """One attempt of a call: the future its caller waits on, settled through one `state`.
-
-    Its caller, the answering thread and its registrar's actor race over it; each
-    transition returns the state it leaves (the table: docs/explanation/inside.md, "A call's
-    outcome"); one that does not apply changes nothing. Entering `ANSWERED` or `FAILED`
-    wakes the caller.
-    """
+    Its caller, the answering thread and the actor race over it; each transition returns the
+    state it leaves, or changes nothing (docs/explanation/inside.md, "A call's outcome").
+    Entering `ANSWERED` or `FAILED` wakes the caller."""
 
     # What its events tell (set by its caller when known): when the call began (wall
     # clock seconds, 0.0: not known) and its trace context (`_core/traces.py`).
@@ -219,12 +216,9 @@ Outcome = ClientLoaded | CallFailed
 
 class DueAnswers:
     """The query ids whose answer a consumer has not recorded yet, with their attempt.
-
-    Shared by the callers (which add an id before its `Load` leaves) and the actor (which
-    removes it once it handled the outcome); a notice that overtook its answer (another
-    connection) waits until its id is no longer due. `outcomes`: plain calls' outcomes,
-    in hand-over order; once the actor ended, each goes to `late`, which gives the id back.
-    """
+    Callers add an id before its `Load` leaves, the actor removes it once it handled the
+    outcome; a notice that overtook its answer waits until its id is no longer due.
+    `outcomes`: plain calls' outcomes in hand-over order; after the actor ended, to `late`."""
 
     __slots__ = ("_attempts", "_durable", "_lock", "outcomes")
 
@@ -254,8 +248,7 @@ class DueAnswers:
     def expect(
         self, query_id: str, attempt: CallAttempt, durable: ClientReply | None = None
     ) -> None:
-        """A call `attempt` with `query_id` is about to be sent (any thread); `durable`: its
-        registrar answers it."""
+        """Call `attempt` for `query_id` is about to leave; `durable`: the registrar answers it."""
         with self._lock:
             self._attempts[query_id] = attempt
             if durable is not None:
@@ -273,8 +266,7 @@ class DueAnswers:
             return list(self._durable.values())
 
     def awaited(self, query_id: str) -> bool:
-        """The actor: a notice waits for `query_id`'s answer (its attempt marked); whether it is
-        still due."""
+        """The actor: a notice waits for `query_id`'s answer; whether it is still due."""
         attempt = self._attempts.get(query_id)
         if attempt is None:
             return False
@@ -292,9 +284,8 @@ class DueAnswers:
 
 
 class ClientReply:
-    """The answer to a consumer's load: the caller's thread wakes with the value and hands
-    the record over (one thread woken, not two); with `commit_first`, a `DurableLoaded` to
-    the registrar instead. It describes the call, so the caller builds one `Query`."""
+    """The answer to a consumer's load: wakes the caller's thread, which hands the record over
+    (one wake-up); with `commit_first`, a `DurableLoaded` to the registrar. Describes the call."""
 
     __slots__ = (
         "attempt",
@@ -373,11 +364,9 @@ class ClientReply:
 
 class Calls:
     """The caller-thread side of one registrar's calls (its handle holds one).
-
-    `commit_first`: its calls are durable (an answer is committed before its caller gets
-    it); `stored`: requests and responses must pickle; `life`: the registrar's run, carried
-    by each `Load`; `events`: while anyone listens, a plain answer wakes the actor.
-    """
+    `commit_first`: an answer is committed before its caller gets it; `stored`: requests and
+    responses must pickle; `life`: the run each `Load` carries; `events`: while anyone
+    listens, a plain answer wakes the actor."""
 
     def __init__(
         self,
@@ -416,16 +405,10 @@ class Calls:
         wait_overloaded: bool = True,
     ) -> Steps[Query]:
         """A call's steps: send its load, wait for its answer until `deadline` (rule 17).
-
-        Each wait is a `yield` (`replies.Steps`); an exception thrown in at a wait withdraws
-        the call as a timeout does. `parent`: the resource the call is a dependency of;
-        `chain`: those loading further up; `limit`: the timeout, seconds (for the message);
-        `begun`: the caller's trace context; `wait_overloaded`: ask again after a refusal.
-
-        Raises:
-            CallTimeoutError: no answer in time; the call was withdrawn.
-            RrError: what the call failed with.
-        """
+        Raises `CallTimeoutError` (withdrawn, as when an exception is thrown in at a wait) or
+        what it failed with. `parent`: the resource it is a dependency of; `chain`:
+        those loading further up; `limit`: the timeout in s; `begun`: the trace context;
+        `wait_overloaded`: ask again after a refusal."""
         pause = _FIRST_PAUSE
         while True:  # (again only after an `OverloadedError`: the provider holds nothing)
             attempt = self.new_attempt(begun)
@@ -502,9 +485,8 @@ class Calls:
         return attempt
 
     def send(self, load: Load, reply: ClientReply) -> None:
-        """Send a call's `load` from the caller's thread, along the client's route (one hand-off
-        less; mailbox order holds). From an event loop's thread an idle provider of this
-        process may handle it there; a durable provider's goes to its own thread."""
+        """Send a call's `load` from the caller's thread, along the client's route (mailbox
+        order holds); on a loop's thread an idle non-durable local provider may handle it."""
         if reply.attempt.sent() is not AttemptState.SENT:  # this registrar stopped
             return  # meanwhile and failed it: nothing to send
         probes = self.probes()
@@ -539,9 +521,8 @@ class Calls:
             self.hand_over(withdrawn, wake=True)  # the record
 
     def hand_over(self, outcome: Outcome, *, wake: bool) -> None:
-        """Give the registrar actor a call's `outcome` (any thread): a plain one waits in
-        `due.outcomes` (the actor woken with `wake`, for an awaited one, or past `BACKLOG`); a
-        durable registrar's goes through its mailbox. `pykka.ActorDeadError` if it ended."""
+        """Give the actor a call's `outcome` (any thread): a durable one by mailbox, else into
+        `due.outcomes` (`wake` if awaited or past `BACKLOG`); `pykka.ActorDeadError` if ended."""
         if self.commit_first:
             self.ref.tell(outcome)
             return

@@ -178,8 +178,7 @@ class Flights:
             self.landed(query_id)
 
     def reset(self, query_id: str, provider: str | None, parent: str | None = None) -> None:
-        """A new outcome of `query_id`'s call; `parent`: the load that made it (given back when
-        that load ends, `take_dependencies`)."""
+        """A new outcome of `query_id`'s call; `parent`: the load that made it."""
         self.settle(query_id, provider)
         self.unkeep(query_id)
         if provider is not None and parent is not None:
@@ -264,8 +263,7 @@ class Flights:
             self.redeliver(outcomes.get())
 
     def parked(self, notice: Notice) -> bool:
-        """Hold `notice` while the answer to one of its queries is on its way; handled again
-        (`answered`) once that outcome was."""
+        """Hold `notice` while the answer to one of its queries is on its way (`answered`)."""
         for query_id in notice.query_ids:
             if self.due.awaited(query_id):
                 self.take_outcomes()  # (handed over before the mark was read?)
@@ -506,8 +504,7 @@ class Answers:
         self.holdings.held(query.id, message.on_status)
 
     def keep_durable(self, message: ClientLoaded, told: tuple[events.Event, ...]) -> None:
-        """Commit a durable answer with its `CallAnswered`, then answer its caller; not
-        written: give the id back, fail the call."""
+        """Commit a durable answer, then answer its caller; not written: give the id back."""
         query = message.record.query
         self.holdings.held(query.id, message.on_status)  # (a notice may come next)
 
@@ -635,11 +632,8 @@ class Holdings:
         began: Began = NOT_BEGUN,
     ) -> None:
         """Forget a query this registrar held: its record and its status callback.
-
-        `commit=False`: the caller commits. `reason`: what its `QueryForgotten` says, published
-        for one whose holding was told (`None`: the caller published it). `began`: the stamps
-        of its release (`Releases.reconciled`).
-        """
+        `commit=False`: the caller commits. `reason`: its `QueryForgotten`'s, if its holding was
+        told (`None`: the caller published it); `began`: its release's stamps."""
         record = self.registrar.catalog.clients.get(query_id)
         if record is not None:
             told = query_id in self.answered_in or query_id in self.restored
@@ -659,8 +653,7 @@ class Holdings:
         return self.status_callbacks.get(query_id)
 
     def publish_target(self, query_id: str) -> None:
-        """Let the status desk run `query_id`'s callback without this mailbox (`status.py`):
-        a loaded query with a callback that is not a dependency."""
+        """Let the status desk run a loaded, non-dependency `query_id`'s callback (`status.py`)."""
         record = self.registrar.catalog.clients.get(query_id)
         callback = self.status_callbacks.get(query_id)
         if record is None or callback is None or record.parent is not None or not record.loaded:
@@ -925,8 +918,7 @@ class Releases:
             )
 
     def give_back_unsettled(self, given_back: Join) -> None:
-        """This registrar stops: give back the ids of unsettled and kept calls, and of failed
-        releases; each provider's answer is a part of `given_back`."""
+        """On stop: give back unsettled and kept calls' ids and failed releases (`given_back`)."""
         for query_id, serving_rr in self.flights.take_unsettled():
             self.give_back_before_stop(serving_rr, query_id, given_back)
         for query_id, serving_rr in self.unreleased.items():
@@ -1042,8 +1034,7 @@ class Reconciling:
         self.releases.settle_listed(serving_rr, listing)
 
     def asked(self, message: ReconcileAsk) -> bool:
-        """Whether to send a `Reconcile` to an asking provider now (not if nothing is held
-        there and it asked everyone; during setup: once it is done)."""
+        """Whether to send an asking provider a `Reconcile` now (setup: once done; none owed)."""
         if not message.holds_yours and not self.holds_at(message.serving_rr):
             return False  # (told as every registrar of the system is: nothing to reconcile)
         if self.registrar.phase is Phase.SETTING_UP:  # its status callbacks are not attached yet
@@ -1064,9 +1055,8 @@ class Reconciling:
         then: Callable[[BaseException | None], None] | None = None,
         life: str = "",
     ) -> None:
-        """Tell `serving_rr` which ids this registrar holds there (`Reconcile`); `then(error)`
-        runs on this actor once the answer was handled. Why it is frozen and epoch-bound:
-        docs/explanation/inside.md, "The consumer's reconcile"."""
+        """Tell `serving_rr` the ids held there (`Reconcile`); `then(error)` here once handled.
+        Why frozen and epoch-bound: docs/explanation/inside.md, "The consumer's reconcile"."""
         with self.due.frozen() as (due, withdrawn):
             listing = self.listing(serving_rr, due, withdrawn, life)
             self.registrar.send(

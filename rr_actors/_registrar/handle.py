@@ -127,7 +127,9 @@ class Registrar:
 
     Its methods may be called from any thread, including from inside callbacks; each
     waits for the registrar at most `timeout` seconds (default: the config's
-    `call_timeout`) and raises `CallTimeoutError` when they run out. Each has an
+    `call_timeout`). Every method raises `CallTimeoutError` when they run out,
+    `RegistrarStoppedError` when this registrar was stopped and `RegistrarUnavailableError`
+    when it died; a method's docstring lists only its other errors. Each has an
     awaitable twin for event loops (`acall`, `aunload`, ..., `watch`): the same
     operation, errors and timeout, with no thread held while it waits. Cancelling the
     awaiting task withdraws what it waits for as its timeout would (a cancelled `acall`
@@ -165,11 +167,10 @@ class Registrar:
     def in_doubt(self) -> tuple[Query, ...]:
         """Loads (or unloads) a crash cut short in the last run, found at restore (rule 16).
 
-        Each is a `Query` whose `id` is the resource id, `request` what the load was for and
-        `response` `None` for a load that never finished. They left the catalog and their
-        dependencies were released; the manager decides what to clean up. The backup keeps
-        them until `setup` returned (or `settle_in_doubt`); without `setup`, they are forgotten
-        at once.
+        Each is a `Query`: `id` the resource id, `request` what it was for, `response` `None`
+        for a load that never finished. They left the catalog, their dependencies released;
+        the manager cleans up. The backup keeps them until `setup` returned (or
+        `settle_in_doubt`); without `setup`, they are forgotten at once.
         """
         return self._facts.in_doubt
 
@@ -180,9 +181,9 @@ class Registrar:
     def settle_in_doubt(self, query_id: str | None = None, *, timeout: float | None = None) -> None:
         """Say that in-doubt entry `query_id` (default: every one) is handled (rule 16).
 
-        Its row leaves the backup, so a restart no longer reports it in `in_doubt`. The
-        registrar does this itself once `setup` returns; call it from `setup` to settle each
-        entry as soon as it is cleaned up. Settling an entry again is a no-op.
+        Its row leaves the backup, so a restart no longer reports it. The registrar does this
+        once `setup` returns; call it from `setup` to settle each entry as it is cleaned up.
+        Settling an entry again is a no-op.
 
         Args:
             query_id: the `id` of one of `in_doubt`'s queries, or `None` for all.
@@ -192,9 +193,6 @@ class Registrar:
             UnknownQueryError: `query_id` is not the id of an entry of `in_doubt`.
             CatalogWriteError: the backup could not be written (a full disk): settled here,
                 but a restart before the next successful write offers it again.
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
         """
         blocking(self._actor.steps(Here.settle_in_doubt, timeout, query_id))
 
@@ -228,25 +226,19 @@ class Registrar:
             on_status: `on_status(query, update)`, run once on a worker thread when a status
                 about one of this server's resources is sent or passes through.
             timeout: seconds to wait for the registrar.
-            label: `label(request) -> str`, the short name the observer shows for a resource
-                (`lidar2`). It runs once per resource as its load starts, on a worker thread,
-                bounded by `RegistrarConfig.compare_timeout`; kept cut to 40 characters. If it
-                fails (raises, returns a non-`str`, overruns) the label reads
-                `<label failed: ...>`; the load is not affected.
-            max_pending: new loads this server may have queued or running at once (an int
-                >= 1; `None`: `RegistrarConfig.max_pending`). A call past it waits and asks
-                again within its timeout, then gets `OverloadedError`; a dedup hit, or a call
-                joining a load under way, is never refused. A queued load whose caller's
-                timeout would run out before it ends fails with `DeadlineExceededError`.
+            label: `label(request) -> str`, the observer's short name for a resource
+                (`lidar2`, cut to 40 characters): run on a worker thread as its load starts,
+                within `RegistrarConfig.compare_timeout`; if it fails (raises, returns a
+                non-`str`, overruns) it reads `<label failed: ...>`, the load goes on.
+            max_pending: new loads it may have queued or running (an int >= 1; `None`:
+                `RegistrarConfig.max_pending`); past it a call waits within its timeout, then
+                gets `OverloadedError` (a dedup hit, or one joining a load, never does). A
+                queued load whose caller's timeout would end first: `DeadlineExceededError`.
 
         Raises:
-            ConfigError: a callback is not callable (or, to a registrar in another
-                process, does not pickle), the name is invalid, or `max_pending` is not
-                an int >= 1 (nor `None`).
+            ConfigError: a callback is not callable (or, to another process, does not
+                pickle), the name is invalid, or `max_pending` is not an int >= 1 (nor `None`).
             DuplicateNameError: a server with this name exists on this registrar.
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
         """
         op = Here.register_server
         steps = self._actor.steps(op, timeout, name, load, unload, on_status, label, max_pending)
@@ -276,9 +268,6 @@ class Registrar:
 
         Raises:
             UnknownServerError: no such server here.
-            CallTimeoutError: not finished within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
         """
         blocking(self._actor.steps(Here.unregister_server, timeout, name))
 
@@ -302,10 +291,9 @@ class Registrar:
         """Ask `target_rr/server` for the resource `request` describes (rules 1-6, 17).
 
         The provider runs `load(request)` unless an equal (`==`) request is loaded or loading
-        there; either way this call becomes one more consumer with its own id. Made from
-        inside a `load` callback, the query is a dependency of the resource being loaded (on
-        this registrar) and part of its chain for cycle detection. Made under an
-        OpenTelemetry span (the `otel` extra), the provider's spans are its children.
+        there; either way this call becomes one more consumer with its own id. Made inside a
+        `load` callback, the query is a dependency of that resource (and in its chain for
+        cycle detection); under an OpenTelemetry span, the provider's spans are its children.
 
         Args:
             target_rr: name of the provider registrar (this one's own name works too).
@@ -334,9 +322,8 @@ class Registrar:
                 not wait or has too little time left to try again; nothing is held.
             RegistrarUnavailableError: the provider died (it may have executed the load).
             RegistrarStoppedError: this registrar or the provider was stopped.
-            ConfigError: an argument of the wrong type (`target_rr`, `server`, `query_id`,
-                `on_status`, `if_overloaded`); or the request or response cannot be pickled
-                where it must be (across processes, or into this registrar's backup).
+            ConfigError: an argument of the wrong type; or the request or response does not
+                pickle where it must (across processes, or into this registrar's backup).
         """
         steps = self._actor.steps(
             Here.call, timeout, target_rr, server, request, on_status, query_id, if_overloaded
@@ -365,19 +352,15 @@ class Registrar:
     def unload(self, query_id: str, *, timeout: float | None = None) -> None:
         """Release one consumer id obtained from `call` (rules 7-8).
 
-        The provider's `unload` callback runs when the last consumer id of the resource is
-        released, after that resource's own dependencies were released; this returns when
-        that is done.
+        The provider's `unload` runs, after the resource's own dependencies were released,
+        when its last consumer id is; this returns when that is done.
 
         Raises:
             UnknownQueryError: the id is unknown here or already released (nothing changes).
-            CallTimeoutError: not finished within `timeout` seconds.
-            RegistrarUnavailableError: the provider died (or could not be reached) before it
-                answered. The id is released all the same: this registrar no longer holds it,
-                the provider releases it when it reconciles after its restart (its `unload`
-                runs once), and nobody gets `FATAL` for it (rule 20).
-            RegistrarStoppedError: this registrar was stopped; or the provider was (the id
-                is released as for `RegistrarUnavailableError`, at its next start).
+            RegistrarUnavailableError, RegistrarStoppedError: the provider died (or could not
+                be reached), or was stopped, before it answered. The id is released all the
+                same: the provider releases it when it reconciles at its next start (its
+                `unload` runs once), and nobody gets `FATAL` for it (rule 20).
         """
         blocking(self._actor.steps(Here.unload, timeout, query_id))
 
@@ -390,14 +373,13 @@ class Registrar:
     ) -> StatusDelivery:
         """Tell every consumer of the resource behind `query_id` about its status (rule 9).
 
-        This server's `on_status` runs once; each consumer's status callback runs with its own
-        query id, on a worker thread of the consumer's process (a coroutine one: on its loop);
-        the status climbs every dependency path to the top consumers. Returns once every
-        callback on the way has run, or was given up on: a consumer's callback not returned
-        within the patience (half of `timeout`, or all of it but 1 s if more), and at once
-        while its id's earlier callback is still given up on (its statuses then queue,
-        coalesced to the latest and every `FATAL`). A server's own `on_status` is never given
-        up on: it is waited for, within `timeout`.
+        This server's `on_status` runs once (waited for, within `timeout`); each consumer's
+        status callback runs with its own query id on a worker thread of the consumer's
+        process (a coroutine one: on its loop), up every dependency path to the top. Returns
+        once every callback on the way has run or was given up on: not returned within the
+        patience (half of `timeout`, or all of it but 1 s if more), or its id's earlier
+        callback still given up on (its statuses then queue, coalesced to the latest and
+        every `FATAL`).
 
         Args:
             query_id: any consumer id of a resource this registrar serves.
@@ -415,8 +397,6 @@ class Registrar:
             MessageTooLargeError: the status is over the `max_message_bytes` of a consumer
                 registrar in another process (named): it did not hear it, the others did.
             CallTimeoutError: not delivered everywhere within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
         """
         steps = self._actor.steps(Here.send_status, timeout, query_id, status, message)
         delivery: StatusDelivery = blocking(steps)
@@ -436,9 +416,6 @@ class Registrar:
 
         Raises:
             UnknownServerError: no such server here.
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
         """
         return blocking(self._actor.steps(Here.server_queries, timeout, server))
 
@@ -455,7 +432,6 @@ class Registrar:
         Raises:
             UnknownServerError: no such registrar or server.
             ConfigError: `target_rr` or `server` is not a str.
-            CallTimeoutError: no answer within `timeout` seconds.
             RegistrarUnavailableError: the provider died.
         """
         return blocking(self._actor.steps(Here.fetch_queries, timeout, target_rr, server))
@@ -468,13 +444,7 @@ class Registrar:
         return await run_steps_async(steps)
 
     def client_queries(self, *, timeout: float | None = None) -> list[Query]:
-        """Every query this registrar holds at servers (its own included), oldest first.
-
-        Raises:
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
-        """
+        """Every query this registrar holds at servers (its own included), oldest first."""
         return blocking(self._actor.steps(Here.client_queries, timeout))
 
     async def aclient_queries(self, *, timeout: float | None = None) -> list[Query]:
@@ -493,9 +463,6 @@ class Registrar:
             UnknownQueryError: this registrar holds no such query.
             ConfigError: `callback` is not callable (or, to a registrar in another
                 process, does not pickle).
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
         """
         blocking(self._actor.steps(Here.set_status_callback, timeout, query_id, callback))
 
@@ -511,8 +478,8 @@ class Registrar:
     ) -> None:
         """Replace the stored response of the resource behind `query_id` (thesis 4.3.2).
 
-        Returns once every consumer's client record holds the new response too (a consumer
-        that cannot be reached is logged and skipped).
+        Returns once every consumer's client record holds it too (one unreachable is logged
+        and skipped).
 
         Args:
             query_id: any consumer id of a resource this registrar serves.
@@ -526,9 +493,6 @@ class Registrar:
                 refused it (its record keeps the old response).
             MessageTooLargeError: over the `max_message_bytes` of a consumer registrar in
                 another process (named): its record keeps the old response.
-            CallTimeoutError: not delivered within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
         """
         blocking(self._actor.steps(Here.update_response, timeout, query_id, response))
 
@@ -540,13 +504,7 @@ class Registrar:
         await run_steps_async(steps)
 
     def save_catalog(self, *, timeout: float | None = None) -> None:
-        """Write every pending change of the catalog to the backup now (no-op without one).
-
-        Raises:
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarStoppedError: this registrar was stopped.
-            RegistrarUnavailableError: this registrar died.
-        """
+        """Write every pending change of the catalog to the backup now (no-op without one)."""
         blocking(self._actor.steps(Here.save_catalog, timeout))
 
     async def asave_catalog(self, *, timeout: float | None = None) -> None:
@@ -556,12 +514,11 @@ class Registrar:
     def stop(self, *, timeout: float | None = None) -> None:
         """Stop the registrar (rule 12); for the owner of a manager process, the process too.
 
-        Unloads everything it holds as a consumer (newest first), waits for the unloads of its
-        own resources under way until `STOP_WAITS_FOR_UNLOADS` of `timeout` has passed, then
-        stops its servers and clients. An unload still under way is cut short
-        (`events.UnloadCutShort`; in doubt at the next start, rule 16). What its servers serve
-        stays in the catalog for a restart; `erase_on_destruct` removes the backup. Stopping a
-        stopped (or dead) registrar is a no-op.
+        Unloads what it holds as a consumer (newest first), waits for its resources' unloads
+        under way for `STOP_WAITS_FOR_UNLOADS` of `timeout`, then stops its servers and
+        clients; an unload still under way is cut short (`events.UnloadCutShort`; in doubt at
+        the next start, rule 16). Its catalog stays for a restart (`erase_on_destruct` removes
+        the backup). Stopping a stopped (or dead) registrar is a no-op.
 
         Args:
             timeout: seconds the whole stop may take (`None`: `call_timeout`); the owner of
@@ -582,11 +539,10 @@ class Registrar:
     def watch(self, query_id: str, *, maxsize: int = 256) -> StatusWatch:
         """The status updates of query `query_id`, as an async iterator (`rr.StatusUpdate`s).
 
-        Once opened (its first step, or `async with`) it is the query's status callback (as
-        `aset_status_callback`). Iteration ends after a `FATAL` (rule 19) or once it is closed
-        (`aclose()`, or leaving its `async with` block); a `break` or a cancelled task leaves it
-        open. Updates are queued on the loop it was opened on; past `maxsize` the oldest is
-        dropped (counted in `dropped`), so a slow reader never holds the registrar.
+        Once opened (its first step, or `async with`) it is the query's status callback.
+        Iteration ends after a `FATAL` (rule 19) or once closed (`aclose()`, leaving its
+        `async with`); a `break` or a cancelled task leaves it open. Updates queue on the
+        loop it was opened on; past `maxsize` the oldest is dropped (counted in `dropped`).
 
         Args:
             query_id: a query this registrar holds (from `call` or `acall`).
@@ -631,7 +587,7 @@ class Here:
         config = launched.config
         self.config = config
         self.ref: pykka.ActorRef[RegistrarActor] = launched.ref
-        self.clients = launched.clients  # one cache: the actor starts, the handle looks up
+        self.clients = launched.clients
         self.died = launched.died  # set when a crash of the actor was fully handled
         self.ended = launched.ended  # set when the actor handed on its last message
         self.published = launched.published
@@ -741,7 +697,7 @@ class Here:
             chain = context.chain
             if context.registrar == self.config.name:
                 parent = context.resource_id
-        if self.config.backup_path is not None:  # its client record is stored
+        if self.config.backup_path is not None:
             check_picklable(request, f"the request of a call to '{target_rr}/{server}'")
         steps = self.calls.steps(
             query_id or runtime.new_id(),
@@ -831,7 +787,7 @@ class Here:
         )
 
     def update_response(self, timeout: float | None, query_id: str, response: Any) -> Steps[None]:
-        if self.config.backup_path is not None:  # the catalog stores it
+        if self.config.backup_path is not None:
             check_picklable(response, f"the new response of {query_id!r}")
         return self.asking(
             UpdateResponse(query_id, response, FutureReply()),
@@ -873,12 +829,10 @@ class Here:
         return True
 
     def ask(self, message: Asked, timeout: float | None, what: str) -> Any:
-        """Send the actor `message` and wait at most `timeout` seconds for its answer: what it
-        answered, or `CallTimeoutError` (`what` names the operation), or its stop or death."""
+        """The actor's answer to `message`; `CallTimeoutError` names the operation `what`."""
         return blocking(self.asking(message, timeout, what))
 
     def asking(self, message: Asked, timeout: float | None, what: str) -> Steps[Any]:
-        """`ask`'s steps: send `message`, wait for its answer."""
         limit = self.limit(timeout)
         if not self.tell(message):
             raise DIRECTORY.gone_error(self.config.name) from None
@@ -888,8 +842,7 @@ class Here:
         return future.get()
 
     def wait_stopped(self, timeout: float | None = None) -> bool:
-        """Whether the actor's thread ended within `timeout` s (stopped, or died and its death
-        handled: pykka marks it stopped before its `on_failure` ran)."""
+        """Whether the actor ended (and its death was handled) within `timeout` s."""
         deadline = None if timeout is None else runtime.monotonic() + timeout
         if not self.ref.actor_stopped.wait(timeout):
             return False
@@ -900,13 +853,13 @@ class Here:
         self.ref.tell(Crash())
 
     def ping(self, reply: Reply) -> None:
-        """Ask the actor to answer `reply` (`None`) once it gets to it (a heartbeat)."""
+        """A heartbeat: the actor answers `reply` once it gets to it."""
         self.tell(Ping(reply))
 
     def client(
         self, target_rr: str, server: str, timeout: float
     ) -> Steps[pykka.ActorRef[ClientActor]]:
-        """The client actor for `target_rr/server`, asked of the actor on first use."""
+        """The client actor for `target_rr/server` (the actor starts it on first use)."""
         client = self.clients.get(target_rr, server)
         if client is None or not client.is_alive():
             started: pykka.ActorRef[ClientActor] = yield from self.asking(
@@ -940,26 +893,21 @@ class ResourceRegistrar(Registrar):
 
         Args:
             config: a `RegistrarConfig`, or just a name (all other fields default).
-            setup: `setup(registrar)`, run on the calling thread after the catalog was
-                restored and before the registrar serves other registrars (their loads for
-                servers not registered yet wait for it). If it raises, the registrar is
-                stopped and the error propagates. The `in_doubt` entries stay in the backup
-                until it returned (`settle_in_doubt`).
-            network: a carrier (any `Transport`: an AF_UNIX `System`, a `ZenohNetwork`) to
-                serve it on, after `setup`: the system's other processes reach it by name,
-                and it theirs, until it stops or dies. `None`: this process only.
-
-        Returns:
-            The handle of the running registrar.
+            setup: `setup(registrar)`, run on the calling thread after the restore, before
+                it serves other registrars (their loads wait for it); if it raises, the
+                registrar is stopped and the error propagates. `in_doubt` entries stay in
+                the backup until it returned (`settle_in_doubt`).
+            network: a carrier (any `Transport`: a `System`, a `ZenohNetwork`) to serve it
+                on after `setup`, by name, until it stops or dies. `None`: this process only.
 
         Raises:
             DuplicateNameError: a registrar with this name is already running here, or
                 (with `network`) another process of the system serves that name; it was
                 stopped again.
             CatalogCorruptError: the backup exists but cannot be read (it is left as is).
-            ConfigError: the configuration, or its backup path, is invalid; `network` is
-                not a carrier, or cannot serve it; or this process was forked from one that
-                had opened a Zenoh session (start it with `spawn` or `forkserver`).
+            ConfigError: the configuration or its backup path is invalid; `network` is not
+                a carrier or cannot serve it; or this process was forked from one with a Zenoh
+                session (start it with `spawn` or `forkserver`).
             RegistrarStoppedError: this process left `network`'s system (it was closed).
 
         A forked child may start registrars of its own; its parent's handles raise
@@ -980,16 +928,13 @@ class ResourceRegistrar(Registrar):
         """Call `callback(event)` for every event of this registrar from now on.
 
         Events are the frozen dataclasses of `rr_actors.events`. The callback runs on a
-        subscriber thread of its own, one event at a time in order; past `maxsize` queued
-        events, new ones are dropped, counted (`Subscription.dropped`) and reported by an
-        `EventsDropped`: a slow callback never slows the registrar.
+        subscriber thread of its own, one event at a time in order; past `maxsize` queued,
+        new ones are dropped, counted (`Subscription.dropped`) and reported (`EventsDropped`).
+        `close()` the subscription it returns (or use it in a `with` block).
 
         Args:
             callback: `callback(event)`; what it raises is logged.
             maxsize: events queued for it before new ones are dropped.
-
-        Returns:
-            The subscription; `close()` it (or use it in a `with` block).
 
         Raises:
             ConfigError: `callback` is not callable, or `maxsize` not a positive int.
@@ -1036,10 +981,7 @@ class StatusWatch:
         """Become the query's status callback now (the first `__anext__` does it too).
 
         Raises:
-            UnknownQueryError: the registrar holds no such query.
-            CallTimeoutError: no answer within `timeout` seconds.
-            RegistrarStoppedError: the registrar was stopped.
-            RegistrarUnavailableError: the registrar died.
+            UnknownQueryError: the registrar holds no such query; and as `Registrar`'s methods.
         """
         if self._updates is None:
             self._updates = asyncio.Queue(self._maxsize)
@@ -1064,8 +1006,7 @@ class StatusWatch:
         return update
 
     async def aclose(self) -> None:
-        """Stop collecting: later updates are dropped; iteration ends, also for a reader
-        waiting for the next update."""
+        """Stop collecting: later updates are dropped; iteration ends, also for a waiting reader."""
         self._closed = True
         updates = self._updates
         if updates is not None:  # wake a reader waiting for the next update: it ends
@@ -1087,9 +1028,8 @@ def start_registrar(
     upstream: Publisher[events.Event] | None = None,
     hold_in_doubt: bool = False,
 ) -> ResourceRegistrar:
-    """`ResourceRegistrar.start`, with its events also relayed to `upstream` (a supervisor's
-    tree) from the first; `hold_in_doubt`: in-doubt entries stay in the backup until the
-    caller settles them (a manager process runs its `setup` itself)."""
+    """`ResourceRegistrar.start`, its events relayed to `upstream`; `hold_in_doubt`: the
+    caller settles the in-doubt entries (a manager process runs its `setup` itself)."""
     launched = launch(
         config,
         setting_up=setup is not None,
@@ -1121,14 +1061,8 @@ def start_registrar(
 
 
 def snapshot(registrar: ResourceRegistrar, *, timeout: float, check: bool) -> CatalogView:
-    """A consistent copy of `registrar`'s catalog rows and servers, made on its actor thread
-    (`testing.catalog_snapshot` with `check`: its invariants checked first; the observer).
-
-    Raises:
-        AssertionError: with `check`, an index of the catalog disagrees with its rows.
-        CallTimeoutError: no answer within `timeout` seconds.
-        RegistrarStoppedError, RegistrarUnavailableError: it was stopped, or it died.
-    """
+    """A copy of `registrar`'s catalog made on its actor thread; `check`: its invariants
+    asserted first (`testing.catalog_snapshot`)."""
     here = registrar._actor
     view: CatalogView = here.ask(
         Snapshot(check, FutureReply()),
@@ -1148,8 +1082,7 @@ def call_steps(
     timeout: float | None,
     query_id: str | None,
 ) -> Steps[Query]:
-    """The steps `consumer.call(...)` runs blocking and `acall` awaits, for a protocol built
-    on a call (`Supervisor.call_with_retry`); `ConfigError` at once for a bad argument."""
+    """The steps of `consumer.call(...)`, for a protocol built on one (`call_with_retry`)."""
     actor = consumer._actor
     return actor.steps(Here.call, timeout, target_rr, server, request, on_status, query_id)
 
@@ -1160,13 +1093,7 @@ def _after(first: Steps[Any], then: Steps[T]) -> Steps[T]:
 
 
 def blocking(steps: Steps[T]) -> T:
-    """Run an operation's `steps` on the calling thread (`replies.run_steps`).
-
-    Raises:
-        ConfigError: the calling thread is the process's own event loop (a coroutine
-            callback runs there): blocking it would stall every coroutine callback of
-            the process; await the async twin instead.
-    """
+    """Run `steps` on the calling thread; `ConfigError` on the process's event loop."""
     if on_process_loop():
         steps.close()
         raise ConfigError(
@@ -1178,7 +1105,7 @@ def blocking(steps: Steps[T]) -> T:
 
 
 def _check_names(**names: object) -> None:
-    """`ConfigError` naming the first argument that is not a str, before anything is sent."""
+    """`ConfigError` naming the first argument that is not a str."""
     for field, value in names.items():
         if not isinstance(value, str):
             raise ConfigError(f"{field} must be a name (a str), got {value!r}")

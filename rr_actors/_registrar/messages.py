@@ -55,14 +55,11 @@ deadline crosses as itself to a process that reads the same one."""
 @dataclasses.dataclass(frozen=True)
 class Load(WireMessage):
     """Consumer -> provider: load `request` on `server` for consumer id `query_id`.
-
-    `chain`: the resources loading further up (cycle detection). `life`: the run of
-    `origin_rr` that sent it (a later run's `Reconcile` fences it: `provider.Lives`).
-    `trace`: the traceparent of its CLIENT span (`""`: untraced). `deadline`: when its
-    caller gives up (monotonic; `None`: never), crossing as the seconds left, or as itself
-    to a process on the same clock (docs/explanation/inside.md, "The provider"). `waits`:
-    its caller asks again after an `OverloadedError`. Answer: the response, or an error.
-    """
+    `chain`: those loading further up (cycles); `life`: the run of `origin_rr` that sent it
+    (fenced by a later run's `Reconcile`); `trace`: its CLIENT span's traceparent (`""`:
+    none); `deadline`: when its caller gives up (monotonic; `None`: never), crossing as the
+    seconds left or, to the same clock, as itself (docs/explanation/inside.md, "The
+    provider"); `waits`: asks again after `OverloadedError`. Answer: the response, or an error."""
 
     query_id: str
     server: str
@@ -163,11 +160,9 @@ class Fetch(WireMessage):
 @dataclasses.dataclass(frozen=True)
 class StatusNotice(WireMessage):
     """Provider -> consumer: a status about the resources behind `query_ids`.
-
-    `event`: one `send_status` (a callback reached twice runs once); `hop`: registrars on
-    the way; `sent_at`: wall clock; `patience`: seconds after which a callback is given up
-    on (`None`: never). Answer: the ids given up on, once delivered along the whole path.
-    """
+    `event`: one `send_status` (a callback reached twice runs once); `hop`: registrars on the
+    way; `sent_at`: wall clock; `patience`: seconds before a callback is given up on (`None`:
+    never). Answer: the ids given up on, once delivered along the whole path."""
 
     query_ids: tuple[str, ...]
     status: Status
@@ -182,9 +177,8 @@ class StatusNotice(WireMessage):
 
 @dataclasses.dataclass(frozen=True)
 class StatusBatch(WireMessage):
-    """Provider -> a registrar of another process: one status for each `(registrar, ids)` of
-    `parts`, delivered in one pass; the rest as `StatusNotice`. Answer: `({registrar: its
-    process's key}, the ids given up on)`."""
+    """Provider -> another process's registrar: one status per `(registrar, ids)` of `parts`,
+    in one pass, the rest as `StatusNotice`. Answer: `({registrar: process key}, given-up ids)`."""
 
     parts: tuple[tuple[str, tuple[str, ...]], ...]
     status: Status
@@ -245,8 +239,8 @@ class StatusOnItsWay:
 
 @dataclasses.dataclass(frozen=True)
 class UnloadOverran:
-    """The answer to an `Unload` that released its id but whose `unload` overran
-    `unload_timeout` (`error`); it carries the statuses still on their way (rule 9)."""
+    """An `Unload` answer: released, but the `unload` overran (`error`); with the statuses
+    still on their way (rule 9)."""
 
     on_its_way: tuple[StatusOnItsWay, ...]
     error: CallTimeoutError
@@ -271,10 +265,8 @@ class ResponseUpdated(WireMessage):
 @dataclasses.dataclass(frozen=True)
 class Reconcile(WireMessage):
     """Consumer -> provider: registrar `origin_rr` holds exactly `held` at you (rule 20).
-
     The provider releases the others of `origin_rr`'s ids, gives up its loads not listed,
-    answers the listed ids it does not know, and refuses `Load`s of runs before `life`.
-    """
+    answers the listed ids it does not know, and refuses `Load`s of runs before `life`."""
 
     origin_rr: str
     held: tuple[str, ...]
@@ -357,8 +349,7 @@ class LoadPlace:
 
 @dataclasses.dataclass(frozen=True)
 class RunLoad:
-    """Registrar -> its server actor: run `load(request)` for `resource_id` (unless withdrawn
-    from `place` first)."""
+    """Registrar -> its server actor: run `load(request)` unless withdrawn from `place`."""
 
     resource_id: str
     request: Any
@@ -542,8 +533,7 @@ class PeerReachable:
 
 @dataclasses.dataclass(frozen=True)
 class YieldName:
-    """A carrier: another process's registrar of this name is kept (rule 22): unload, then
-    stop (`reason`)."""
+    """A carrier: another process's registrar of this name is kept (rule 22): unload, stop."""
 
     reason: str
 

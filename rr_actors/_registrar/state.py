@@ -65,9 +65,8 @@ class Phase(enum.Enum):
 
 
 class Pace:
-    """What a server's loads take lately: `load_s`, the recent average (from 0), and
-    `learned`, when it last moved or a probe left (monotonic). Floats read or written
-    whole: no lock."""
+    """What a server's loads take lately: `load_s`, the recent average (from 0); `learned`,
+    when it last moved or a probe left (monotonic). Floats, read whole: no lock."""
 
     __slots__ = ("learned", "load_s")
 
@@ -78,8 +77,7 @@ class Pace:
 
 @dataclasses.dataclass
 class Server:
-    """A registered resource server (`max_pending`: its bound, `None`: the registrar's;
-    `pace`: shared with its actor)."""
+    """A registered resource server (`max_pending` `None`: the registrar's)."""
 
     name: str
     ref: pykka.ActorRef[Any]  # (a `provider.ServerActor`)
@@ -103,9 +101,8 @@ class Waiter:
 
 
 class OpenReply:
-    """A handle request's reply, known to its actor until answered (a crash fails it).
-    Answered on the actor thread or a status's last acknowledgement: `open_requests` is
-    changed by single dict operations only and read as a copy."""
+    """A handle request's reply, known to its actor until answered (a crash fails it). Answered
+    on any thread: `open_requests` changes by single dict operations, read as a copy."""
 
     __slots__ = ("open", "reply", "shared")
 
@@ -257,13 +254,9 @@ class Shared:
         refuse: Callable[[RrError], None],
     ) -> None:
         """Commit the catalog's changes and the events `told` of them; then run `ok()` (the
-        step's answer), or `undo(error)` if the write failed.
-
-        In a turn of a durable registrar (`in_turn`) the changes are staged and written with
-        the turn's others at its end (`end_turn`); `ok` runs after that commit, so an answer
-        is released only once its change is durable (rules 14-16). `refuse(error)`: the
-        registrar died before the turn's commit.
-        """
+        step's answer), or `undo(error)` if the write failed. In a durable registrar's turn
+        they are staged and written at its end (`end_turn`), so an answer is released only
+        once its change is durable (rules 14-16); `refuse(error)`: it died before that."""
         if not (self.in_turn and self.saver.durable):
             failed = self.commit(*told)
             if failed is None:
@@ -287,22 +280,19 @@ class Shared:
         self.staged.append(Staged(ok, undo, refuse))
 
     def after_commit(self, then: Callable[[], None]) -> bool:
-        """Run `then()` after the turn's commit if changes wait for it (`False`: none wait, run
-        it now); it runs after a failed write too."""
+        """Run `then()` after the turn's commit, failed or not (`False`: nothing staged; run it)."""
         if not self.dirty:
             return False
         self.staged.append(Staged(then, None, None))
         return True
 
     def holds_here(self) -> bool:
-        """Whether the calling thread has the turn that staged changes (an answer from another
-        thread tells of no staged change)."""
+        """Whether the calling thread has the turn that staged changes."""
         return self.turn_thread == runtime.get_ident()
 
     def end_turn(self) -> CatalogWriteError | None:
-        """Commit what the turn staged, one transaction, then release what waits for it: the
-        held events published, each staged `ok` run in order. Failed: each staged step undone
-        (newest first), that undoing committed, the error returned."""
+        """Commit what the turn staged in one transaction, then publish its held events and run
+        each staged `ok` in order; failed: undo each (newest first), commit that, return it."""
         failed: CatalogWriteError | None = None
         while self.dirty or self.staged:  # (an answer released may stage more)
             failed = self._write_turn() or failed
@@ -349,8 +339,7 @@ class Shared:
                 step.ok()
 
     def abort_turn(self, error: RrError) -> None:
-        """The registrar died in a turn: nothing staged is written or answered as done; each
-        staged step's caller gets `error` (its `refuse`)."""
+        """The registrar died in a turn: each staged step is refused `error`, nothing written."""
         staged, held = self.staged, self.held
         self.staged, self.held, self.dirty = [], [], False
         for event, of_change in held:
@@ -371,15 +360,9 @@ class Shared:
 
     def commit(self, *told: events.Event, now: bool = False) -> CatalogWriteError | None:
         """Hand the catalog's changes to the save policy and publish the events `told` of them.
-
-        Written at once (`save_on_modify`, or `now`), changes and events are one transaction
-        (the backup's outbox), published after it: a SIGKILL after the commit cannot lose them.
-        Left for the interval's flush, the events are published now.
-
-        Returns:
-            `None`, or the error of a failed write (a full disk): the changes stay pending
-            and `told` is not published (the caller undoes, or publishes them itself).
-        """
+        Written at once (`save_on_modify`, `now`), changes and events are one transaction (the
+        outbox), published after it; left for the interval's flush, the events go now. Returns
+        the error of a failed write (changes pending, `told` unpublished), else `None`."""
         if self.dirty:  # with what the turn staged, one transaction
             return self._join_turn(told)
         if self.saver.store is None:  # nothing persists this catalog
@@ -404,9 +387,8 @@ class Shared:
         return None
 
     def _join_turn(self, told: tuple[events.Event, ...]) -> CatalogWriteError | None:
-        """`commit` in a turn that staged changes: written in the turn's transaction, not one of
-        its own after it (a staged row is written as it is at the write, so it carries this
-        change: its events must go with it). The write's error (`told` dropped), or `None`."""
+        """`commit` in a turn that staged changes: in the turn's transaction (a staged row is
+        written as it then is, with this change: its events go with it). The error, or `None`."""
         changes = self.catalog.drain_changes()
         for rid in self.held_in_doubt.intersection(changes.resources):
             del changes.resources[rid]  # written once settled (`settle_held`)
@@ -445,8 +427,7 @@ class Shared:
         return self.tokens.reply(self.ref, then)
 
     def send(self, target: str, make: Callable[[Reply], Any], then: Continuation) -> None:
-        """Send `make(reply)` to registrar `target`; `then(value, error)` runs here on the answer
-        (at once with its error if it cannot be reached)."""
+        """Send `make(reply)` to registrar `target`; `then(value, error)` runs on the answer."""
         reply = self.come_back(then)
         try:
             DIRECTORY.lookup(target).tell(make(reply))

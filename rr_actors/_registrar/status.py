@@ -132,13 +132,10 @@ class StatusRelay:
         deadline: float | None = None,
     ) -> None:
         """Run this server's `on_status` once and pass the status on to every consumer.
-
-        `hop`: registrars on the way from the sender (its consumers are hop 1); `sent_at`: when
-        it was sent (wall clock). A notice over its receiver's `max_message_bytes` is logged and
-        added to `refused`. A consumer's callback not returned by `deadline` (monotonic) is
-        given up on (`gave_up`). `then()` runs once all acknowledged, on the thread of the last
-        one: it must come back through the mailbox (`Shared.come_back`) to touch this actor.
-        """
+        `hop`: registrars from the sender (its consumers: 1); `sent_at`: wall clock. A notice
+        over its receiver's `max_message_bytes` is logged, into `refused`; a callback not
+        returned by `deadline` (monotonic) is given up on (`gave_up`). `then()` runs once all
+        acknowledged, on the last one's thread (`Shared.come_back` to touch this actor)."""
         key = (event, resource.id)
         if key in self.seen_events:
             then()
@@ -309,8 +306,7 @@ class StatusRelay:
             DESK.runner.run((call,))
 
     def on_status_batch(self, batch: StatusBatch, reply: Reply) -> None:
-        """A relay: deliver a status to the consumer registrars of this process in one pass;
-        answer with the process each one reached is in."""
+        """A relay: deliver a status to this process's consumer registrars; answer their homes."""
         homes: dict[str, str] = {self.registrar.name: process()}
         gave_up: list[str] = []
         join = _Join(lambda: reply.set_result((homes, tuple(gave_up))), gave_up)
@@ -447,11 +443,9 @@ def _counted(join: _Join, done: Callable[..., None]) -> Callable[[Any, Any], Non
 
 class _Call:
     """One status callback to run, and the part of its batch's join it completes.
-
-    `done` runs once (`settle`): as the callback returns, or when given up on at `deadline`
-    (monotonic; `None`: never). `merged`: the calls coalesced into it; `wake`: the earliest
-    deadline among them. `told`: what its `StatusHandled` needs, while events are published.
-    """
+    `done` runs once (`settle`): as the callback returns, or given up on at `deadline`
+    (monotonic; `None`: never). `merged`: the calls coalesced into it, `wake` their earliest
+    deadline; `told`: what its `StatusHandled` needs (while events are published)."""
 
     __slots__ = (
         "began",
@@ -600,11 +594,9 @@ class _Drainer:
 
 
 class Runner:
-    """Runs this process's status callbacks in arrival order, each consumer id's one at a
-    time (a lane per id), on as few worker threads as keeps them going; a watchdog gives up
-    on a callback past `SLICE` or its deadline. How lanes open, coalesce and give up:
-    docs/explanation/inside.md, "Statuses".
-    """
+    """Runs this process's status callbacks in arrival order, each id's one at a time (a lane
+    per id), on as few worker threads as keep them going; a watchdog gives up on one past
+    `SLICE` or its deadline (docs/explanation/inside.md, "Statuses")."""
 
     def __init__(self) -> None:
         self._lock = runtime.Lock()
@@ -726,8 +718,7 @@ class Runner:
             self._submit(following)
 
     def _wanted(self, pending: bool = False) -> tuple[bool, bool]:
-        """(Holding the lock.) Whether to start a drainer (counted now), and the watchdog
-        (marked now)."""
+        """(Holding the lock.) Whether to start a drainer, and the watchdog (counted now)."""
         start = bool(self._open) and self._drainers == len(self._inside)
         if start:
             self._drainers += 1
@@ -935,10 +926,9 @@ class Desk:
         homes: dict[str, str] | None,
         here: tuple[str, Callable[[Any], None]],
     ) -> None:
-        """Deliver `batch`'s parts (on an actor thread) as parts of `join` (given-up ids in
-        `join.gave_up`). `homes`: gets the process of each registrar reached. `here`: the
-        registrar running this and its `dispatch`, so its own ids need no trip through its mailbox.
-        """
+        """Deliver `batch`'s parts (on an actor thread) as parts of `join` (given up: in
+        `join.gave_up`); `homes` gets each reached registrar's process; `here`: the registrar
+        running this and its `dispatch` (its own ids skip its mailbox)."""
         calls: list[_Call] = []
         patience = batch.patience
         deadline = _deadline(patience)
@@ -986,8 +976,7 @@ class Desk:
         calls: list[_Call],
         deadline: float | None = None,
     ) -> tuple[str, ...]:
-        """Queue the callbacks of the ids `targets` has (not reached yet); the others, to go
-        through its registrar's mailbox."""
+        """Queue the callbacks of the ids `targets` has, not reached yet; return the others."""
         slow: list[str] = []
         ready: list[tuple[str, tuple[Query, StatusCallback]]] = []
         entries, due = targets.entries, targets.due
@@ -1076,9 +1065,9 @@ DESK = runtime.process_state(Desk(), Desk)
 
 
 class Routes:
-    """Where a provider sends its statuses for registrars of other processes: `homes` (consumer
-    -> process) and `relays` (process -> the registrar there that takes its batches, kept
-    while it answers, so they keep their order). Hints: a wrong one costs a forward."""
+    """Where a provider sends statuses for other processes: `homes` (consumer -> process),
+    `relays` (process -> its registrar taking batches, kept while it answers: order holds).
+    Hints: a wrong one costs a forward."""
 
     def __init__(self) -> None:
         self._lock = runtime.Lock()
@@ -1127,9 +1116,9 @@ class Routes:
 
 
 class Unacknowledged:
-    """The statuses a provider sent on to consumer ids in other processes, by id, until
-    answered; the answer to an id's `Unload` carries those of that id (rule 9): they travel
-    on another connection and may come after it. Actor enters, answering threads clear."""
+    """Statuses sent on to consumer ids in other processes, by id, until answered; an id's
+    `Unload` answer carries its own (they may come after it, on another connection; rule 9).
+    Actor enters, answering threads clear."""
 
     def __init__(self) -> None:
         self._lock = runtime.Lock()

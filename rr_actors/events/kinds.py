@@ -53,8 +53,7 @@ __all__ = [
 
 
 class _Host:
-    """The member name this process's events carry (a simulated process starts with its
-    creator's)."""
+    """The member name this process's events carry (a simulated process: its creator's)."""
 
     def __init__(self, name: str) -> None:
         self.name = name
@@ -78,8 +77,7 @@ def this_host() -> str:
 
 def set_host(name: str) -> None:
     """Name this process's host in the events it builds from now on (`host`): a TLS member's
-    certificate common name; until then `socket.gethostname()`.
-    """
+    certificate common name; until then `socket.gethostname()`."""
     _HOST.name = name
 
 
@@ -95,8 +93,7 @@ def _next_seq() -> int:
 
 
 def number_events() -> None:
-    """Number the events this process builds from now on (`seq`: 1, 2, ...; a manager process
-    does)."""
+    """Number the events this process builds from now on (`seq`; a manager process does)."""
     global _numbering
     _numbering = True
 
@@ -140,13 +137,8 @@ _STAMPED: dict[type, dict[str, tuple[str, Any]]] = {}
 
 @dataclass_transform(frozen_default=True, kw_only_default=True)
 def _stamps(cls: type[_T]) -> type[_T]:
-    """Take the fields of `cls` as stamps for the kinds deriving from it.
-
-    A frozen keyword-only dataclass to a type checker; at run time a plain class without them.
-
-    Raises:
-        TypeError: a field of `cls` is not named in `_STAMPS`.
-    """
+    """Take the fields of `cls` as stamps for the kinds deriving from it (`TypeError`: one not
+    in `_STAMPS`): a frozen keyword-only dataclass to a type checker, at run time without them."""
     annotations = inspect.get_annotations(cls)
     if unknown := sorted(annotations.keys() - set(_STAMPS)):
         raise TypeError(f"{cls.__name__}: {unknown} are not stamps (see _STAMPS)")
@@ -162,11 +154,8 @@ def _stamps(cls: type[_T]) -> type[_T]:
 
 @dataclass_transform(frozen_default=True)
 def _kind(cls: type[_T]) -> type[_T]:
-    """`cls` as a kind: a frozen slotted dataclass, its own fields first, then its bases' stamps.
-
-    Raises:
-        TypeError: `cls` declares a field named as a stamp it inherits.
-    """
+    """`cls` as a kind: a frozen slotted dataclass, its own fields first, then its bases' stamps
+    (`TypeError`: it declares a field named as a stamp it inherits)."""
     stamps: dict[str, tuple[str, Any]] = {}
     for base in cls.__mro__[1:]:
         stamps.update(_STAMPED.get(base, {}))
@@ -374,8 +363,7 @@ class LoadFailed(_Numbered):
 @_kind
 class ResourceUnloaded(_Numbered):
     """A server's `unload` ran (or raised) after its last consumer went; written in the same
-    transaction as the removal.
-    """
+    transaction as the removal."""
 
     registrar: str
     server: str
@@ -613,8 +601,7 @@ class StatusHandled(_Numbered):
 @_kind
 class UnloadCutShort(_Numbered):
     """A clean `stop()` gave up waiting (half its timeout) for an unload under way: the callback
-    runs on, and the next start reports it `InDoubt` (`cut="unload"`, rule 16).
-    """
+    runs on, and the next start reports it `InDoubt` (`cut="unload"`, rule 16)."""
 
     registrar: str
     server: str
