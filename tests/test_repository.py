@@ -495,31 +495,15 @@ def over_budgets() -> dict[str, str | None]:
     }
 
 
-STILL_OVER = {
-    "runtime lines",
-    "runtime files",
-    "transport lines",
-    "docstring share",
-}
-"""The budgets main does not meet yet (issue 54, its other parts move the code): each fails
-with what is over it, and passes the build as an expected failure, strictly: once it holds,
-the test says so and its name leaves this set."""
-
-
 @pytest.mark.parametrize(
     "budget",
     [
-        pytest.param(
-            name, marks=[pytest.mark.xfail(name in STILL_OVER, strict=True, reason="issue 54")]
-        )
-        for name in (
-            "runtime lines",
-            "runtime files",
-            "transport lines",
-            "small modules",
-            "docstring share",
-            "module docstrings",
-        )
+        "runtime lines",
+        "runtime files",
+        "transport lines",
+        "small modules",
+        "docstring share",
+        "module docstrings",
     ],
 )
 def test_the_runtime_keeps_within_its_budget(budget: str) -> None:
