@@ -73,7 +73,7 @@ from rr_actors.errors import (
 
 __all__ = ["WIRE_TYPES", "WIRE_VERSION", "Pickler", "WireMessage", "dumps", "plain"]
 
-WIRE_VERSION = 10
+WIRE_VERSION = 11
 """The version of what crosses between processes (these messages, pickled): a carrier
 that can meet a process of another version (the Zenoh one, across hosts) refuses its
 messages unread. Raise it when a `WireMessage` changes incompatibly. (2: the Zenoh
@@ -91,7 +91,8 @@ and an `Unload` carry their caller's W3C trace context, `trace`, and a `Load` it
 deadline, `deadline` (a monotonic time of each process, the seconds left on the wire): a
 process of version 8 would neither continue the trace nor shed a load too late. 10: an
 `OverloadedError` carries when to ask again, `retry_after`, which one of version 9 cannot
-unpickle.)"""
+unpickle. 11: a `Reconcile` echoes the provider's `ReconcileAsk.round`: a provider of
+version 11 would not count the answer of a consumer of version 10 as its ask's.)"""
 
 WIRE_TYPES: set[type] = set()
 """Every `WireMessage` subclass (filled in as they are defined)."""

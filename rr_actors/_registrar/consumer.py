@@ -1289,6 +1289,7 @@ class Reconciling:
         serving_rr: str,
         then: Callable[[BaseException | None], None] | None = None,
         life: str = "",
+        ask: int = 0,
     ) -> None:
         """Tell `serving_rr` which ids this registrar holds there (`Reconcile`).
 
@@ -1304,14 +1305,14 @@ class Reconciling:
         are left out of the list, so the provider releases them (`Releases.unreleased`).
         `then(error)` runs (on this actor) once the answer was handled: `None`, or why it
         failed (`life.py`'s presence retries). `life`: the provider's life that asked
-        (its `ReconcileAsk.life`; "": not known).
+        (its `ReconcileAsk.life`; "": not known); `ask`: its `ReconcileAsk.round`, echoed.
         """
         with self.due.frozen() as (due, withdrawn):
             listing = self.listing(serving_rr, due, withdrawn, life)
             self.registrar.send(
                 serving_rr,
                 lambda reply: Reconcile(
-                    self.registrar.name, listing.held, reply, self.registrar.life
+                    self.registrar.name, listing.held, reply, self.registrar.life, ask
                 ),
                 lambda unknown, error: self.reconciled(serving_rr, unknown, error, listing, then),
             )

@@ -382,12 +382,14 @@ class Reconcile(WireMessage):
     run's: presumed abort); it answers with the ids of `held` it neither holds nor has
     a load under way for. `life`: the run of `origin_rr` that sent it (`Shared.life`;
     "": not known): from then on the provider refuses the `Load`s of earlier runs.
+    `round`: the `ReconcileAsk.round` it answers (0: none).
     """
 
     origin_rr: str
     held: tuple[str, ...]
     reply: Reply
     life: str = ""
+    round: int = 0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -398,12 +400,14 @@ class ReconcileAsk(WireMessage):
     system: its restart may have lost ids you hold): send one only if you hold ids there.
     `life`: a token drawn at each start of `serving_rr` (`Shared.life`), the same in
     every ask of that run ("": not known); the ids it kept for a retry in that life are
-    listed again, those an earlier life kept are not (released: rule 17).
+    listed again, those an earlier life kept are not (released: rule 17). `round`: a
+    provider's ask after your name was heard lost (0: another ask); the answer echoes it.
     """
 
     serving_rr: str
     holds_yours: bool = True
     life: str = ""
+    round: int = 0
 
 
 @dataclasses.dataclass(frozen=True)
