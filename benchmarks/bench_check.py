@@ -45,7 +45,7 @@ from rr_actors.__main__ import main
 from rr_actors._core import hlc
 from rr_actors._types import Status
 from rr_actors.events.lines import json_lines
-from rr_actors.experiments import check
+from rr_actors_lab.experiments import check
 
 CHAIN = ("edge", "api", "db")
 """The providers, each loading from the next one (edge's loads load at api, and so on)."""

@@ -3,7 +3,7 @@
 Issue 40: 40 batches of 14.3 MiB from one member (each under the 16 MiB a batch may have)
 raised a `ZenohNetwork.subscribe_events` subscriber's memory from 45 to 632 MiB, still
 there a minute later, with no WARNING. Now what a subscriber holds is bounded
-(`rr_actors.observe._feed.HELD_BYTES`, `QUEUED_BYTES`); what is past the
+(`rr_actors_lab.observe._feed.HELD_BYTES`, `QUEUED_BYTES`); what is past the
 bounds is dropped, counted in an `EventsDropped` and warned of.
 
 Each row runs in a fresh Python process (its memory is its own): a `ZenohNetwork` on its

@@ -31,11 +31,11 @@ import sys
 from typing import Any
 
 import rr_actors as rr
-from rr_actors.experiments import Plan, RunResult, parse_plan, run
-from rr_actors.experiments._trigger import NO_REALTIME
-from rr_actors.experiments.metrics import percentile
+from rr_actors_lab.experiments import Plan, RunResult, parse_plan, run
+from rr_actors_lab.experiments._trigger import NO_REALTIME
+from rr_actors_lab.experiments.metrics import percentile
 
-SERVICE = "rr_actors.experiments.services:service"
+SERVICE = "rr_actors_lab.experiments.services:service"
 
 TREE = f"""\
 [tree]

@@ -45,8 +45,8 @@ import psutil
 from playwright.sync_api import sync_playwright
 
 import rr_actors as rr
-from rr_actors.mission.config import MissionConfig
-from rr_actors.mission.run import run_mission
+from rr_actors_lab.mission.config import MissionConfig
+from rr_actors_lab.mission.run import run_mission
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # the repository: tests.support
 from tests.support.observing import CHROMIUM_ARGS, chromium, stream

@@ -1,4 +1,4 @@
-"""What tracing with OpenTelemetry (`rr_actors.otel`) costs an in-process dedup-hit call.
+"""What tracing with OpenTelemetry (`rr_actors_lab.otel`) costs an in-process dedup-hit call.
 
 One consumer registrar calls a resource another one already serves (a dedup hit), `--batch`
 times per round; the table shows the median time per call over `--rounds` rounds, each row

@@ -47,7 +47,7 @@ from opentelemetry.sdk.trace.export import SimpleSpanProcessor
 from opentelemetry.sdk.trace.export.in_memory_span_exporter import InMemorySpanExporter
 
 import rr_actors as rr
-from rr_actors import otel
+from rr_actors_lab import otel
 
 
 class _Logged(logging.Handler):

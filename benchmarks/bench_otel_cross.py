@@ -1,4 +1,4 @@
-"""What tracing (`rr_actors.otel`) costs a cross-process dedup hit, spans exported to a file.
+"""What tracing (`rr_actors_lab.otel`) costs a cross-process dedup hit, spans exported to a file.
 
 A consumer registrar in this process calls a resource a manager process already serves
 (a dedup hit over AF_UNIX), `--batch` times per round; one `otel.trace(sup)` subscriber
@@ -66,7 +66,7 @@ from opentelemetry.sdk.trace.export import (
 from opentelemetry.sdk.trace.sampling import ALWAYS_ON, ParentBased, TraceIdRatioBased
 
 import rr_actors as rr
-from rr_actors import otel
+from rr_actors_lab import otel
 
 EXPORTERS = ("console", "otlp-file")
 

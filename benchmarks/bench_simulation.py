@@ -72,9 +72,9 @@ import pykka
 import rr_actors
 from rr_actors import simulation
 from rr_actors._core import runtime
-from rr_actors.experiments import simulate
-from rr_actors.experiments.reading import load_plan
 from rr_actors.simulation import _run
+from rr_actors_lab.experiments import simulate
+from rr_actors_lab.experiments.reading import load_plan
 
 PLANS = Path(rr_actors.__file__).parent / "experiments" / "plans"
 

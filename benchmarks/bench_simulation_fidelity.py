@@ -98,8 +98,8 @@ def shake(rng: random.Random, kept: list[Any]) -> None:
 def worker(args: argparse.Namespace) -> None:
     """One process: every seed `--runs` times; a JSON line per run (and its history, if
     asked for, on the side)."""
-    from rr_actors.experiments import simulate  # noqa: PLC0415 - after the hash seed check
-    from rr_actors.experiments.reading import load_plan  # noqa: PLC0415
+    from rr_actors_lab.experiments import simulate  # noqa: PLC0415 - after the hash seed check
+    from rr_actors_lab.experiments.reading import load_plan  # noqa: PLC0415
 
     if os.environ.get("PYTHONHASHSEED") != HASH_SEED:
         raise SystemExit(f"a worker runs under PYTHONHASHSEED={HASH_SEED}")

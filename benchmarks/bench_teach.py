@@ -51,7 +51,7 @@ def main() -> None:
     args = parser.parse_args()
 
     sys.path.insert(0, str(ROOT))
-    from rr_actors.teach import kit  # noqa: PLC0415 - this checkout's
+    from rr_actors_lab.teach import kit  # noqa: PLC0415 - this checkout's
 
     floor, _ = run("teach", "list")
     chosen = [e for e in kit.exercises() if not args.only or e.name in args.only]

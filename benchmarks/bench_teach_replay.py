@@ -37,7 +37,7 @@ from typing import Any
 from playwright.sync_api import sync_playwright
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # this repository's, tests.support
-from rr_actors.teach import grade, kit, replay
+from rr_actors_lab.teach import grade, kit, replay
 from tests.support.observing import CHROMIUM_ARGS, chromium
 
 CLICK = """async ([button, target]) => {

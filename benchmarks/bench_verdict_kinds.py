@@ -4,7 +4,7 @@
     python benchmarks/bench_verdict_kinds.py --plans simchain,simretry --runs 1 --seeds 1-5
 
 Issue 42's fidelity figure: "a shipped plan's real and simulated runs give the same
-verdict kinds". For each plan of `rr_actors/experiments/plans/` (or `--plans`):
+verdict kinds". For each plan of `rr_actors_lab/experiments/plans/` (or `--plans`):
 
     check_simulable(plan) ─► refused: a row saying why (no run, real or simulated)
     the plan as the simulation runs it: a `[compare]` cut to its first value
@@ -48,9 +48,9 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 import rr_actors
-from rr_actors.experiments import check, load_plan
-from rr_actors.experiments.plan import PlanError
-from rr_actors.experiments.simulate import check_simulable
+from rr_actors_lab.experiments import check, load_plan
+from rr_actors_lab.experiments.plan import PlanError
+from rr_actors_lab.experiments.simulate import check_simulable
 
 ROOT = Path(__file__).resolve().parent.parent
 PLANS = Path(rr_actors.__file__).parent / "experiments" / "plans"

@@ -2,7 +2,7 @@
 
     python benchmarks/experiment_phases.py PLAN [--repeat 2] [--duration S] [--out DIR]
 
-Runs `rr_actors.experiments.run(PLAN)` in this process with timestamps around its phases:
+Runs `rr_actors_lab.experiments.run(PLAN)` in this process with timestamps around its phases:
 here (the run process's start and wait, the sweep for leaked processes, the files, the
 plots), in each run process (started through this file, `--child`, which wraps the
 runner's steps before it runs `_child.main`) and in each manager (its setup is wrapped:
@@ -11,7 +11,7 @@ clock (`time.time()`), appended as a JSON line to one trace file, so that they l
 with the events the run records (`events.jsonl`: a kill's `FaultInjected`, the
 supervisor's `ChildExited`, the new incarnation's `CatalogRestored`, `ChildRestarted`).
 
-It measures any tree that has `rr_actors.experiments` (run it with `PYTHONPATH=TREE`);
+It measures any tree that has `rr_actors_lab.experiments` (run it with `PYTHONPATH=TREE`);
 a step a tree lacks is left out of its table. Not a timed test: it prints a table.
 """
 
@@ -95,13 +95,13 @@ def _child(argv: list[str]) -> int:
     start = time.time()
     import cloudpickle  # noqa: PLC0415
 
-    from rr_actors.experiments import _child as child  # noqa: PLC0415
-    from rr_actors.experiments import runner  # noqa: PLC0415
+    from rr_actors_lab.experiments import _child as child  # noqa: PLC0415
+    from rr_actors_lab.experiments import runner  # noqa: PLC0415
 
     _note("run: imports", start, time.time())
     import rr_actors as rr  # noqa: PLC0415
     from rr_actors._core import queues  # noqa: PLC0415
-    from rr_actors.experiments import inject, workload  # noqa: PLC0415
+    from rr_actors_lab.experiments import inject, workload  # noqa: PLC0415
 
     cloudpickle.register_pickle_by_value(sys.modules[__name__])
     original_spec = runner._child_spec
@@ -158,7 +158,7 @@ def _child(argv: list[str]) -> int:
 def _parent(args: argparse.Namespace) -> None:
     import subprocess  # noqa: PLC0415
 
-    from rr_actors.experiments import _procs, experiment  # noqa: PLC0415
+    from rr_actors_lab.experiments import _procs, experiment  # noqa: PLC0415
 
     trace = Path(args.out) / "phases.jsonl"
     trace.unlink(missing_ok=True)
@@ -167,7 +167,7 @@ def _parent(args: argparse.Namespace) -> None:
 
     class Popen(real_popen):  # type: ignore[misc,valid-type]
         def __init__(self, argv: list[str], *a: Any, **kw: Any) -> None:
-            if argv[1:3] == ["-m", "rr_actors.experiments._child"]:  # the run process
+            if argv[1:3] == ["-m", "rr_actors_lab.experiments._child"]:  # the run process
                 argv = [argv[0], __file__, "--child", *argv[3:]]
                 kw["env"] = {**kw.get("env", os.environ), "RR_PHASES_SPAWNED": repr(time.time())}
             super().__init__(argv, *a, **kw)
@@ -185,13 +185,13 @@ def _parent(args: argparse.Namespace) -> None:
     _timed(experiment._Experiment, "_plot", "experiment: plots")
     _timed(experiment._Experiment, "_collect", "experiment: read the result")
     try:
-        from rr_actors.experiments import plot  # noqa: PLC0415
+        from rr_actors_lab.experiments import plot  # noqa: PLC0415
     except ImportError:
         pass
     else:
         _timed(plot, "plot_recovery", "experiment: draw recovery.png")
         _timed(plot, "plot_timeline", "experiment: draw timeline.png")
-    from rr_actors.experiments import plans  # noqa: PLC0415
+    from rr_actors_lab.experiments import plans  # noqa: PLC0415
 
     plan = plans.find(args.plan) or args.plan
     started = time.time()

@@ -7,11 +7,11 @@ Issue 42 section 3, "Power". Each row of `PLANTS` is one bug, a small edit of th
       found exactly once: the script stops, naming the plant, when the code moved)
     a child process with PYTHONPATH at the copy (and PYTHONHASHSEED=0, as a sweep has):
       seeds 1, 2, ... of the plant's shipped plan on the simulation
-      (`rr_actors.experiments.simulate.run_seed`) until the first seed with a violation
+      (`rr_actors_lab.experiments.simulate.run_seed`) until the first seed with a violation
       of the plant's rule (the kind of finding the bug must cause), or `--seeds` seeds
     the same seed on an unedited copy: that finding must not be there (else the row
       says "also unplanted": the plant did not cause it)
-    `--shrink`: the found seed shrunk (`rr_actors.experiments.shrink`, at most `--budget`
+    `--shrink`: the found seed shrunk (`rr_actors_lab.experiments.shrink`, at most `--budget`
       runs) to a small plan whose run still violates the plant's rule, its events counted;
       the shrunk plan at its seed on the unedited copy (it must not violate that rule)
 
@@ -33,7 +33,7 @@ it met (what the search finds in today's code).
 
 Why these plans: no shipped plan simulated as shipped (each has a `[compare]` or a fault
 kind the simulation did not inject yet), so two were added to
-`rr_actors/experiments/plans/` for this: `simchain` (a chain `api -> db` under kills,
+`rr_actors_lab/experiments/plans/` for this: `simchain` (a chain `api -> db` under kills,
 restored from backups: restores, lazy reads, reconciles, consumers restarted; and a
 temporary manager lost for good: a `FATAL` climbing a dependency path) and `simretry`
 (one manager killed every 0.1-0.3 s while four clients call it back to back: retries
@@ -97,7 +97,7 @@ class Plant:
     file: str  # relative to rr_actors/
     old: str  # found exactly once in the file
     new: str
-    plan: str  # a plan of rr_actors/experiments/plans/ (its stem)
+    plan: str  # a plan of rr_actors_lab/experiments/plans/ (its stem)
     rule: str  # the checker's rule whose violation the bug causes
 
 
@@ -537,7 +537,7 @@ def child_main(path: str, command: str, arguments: list[str]) -> None:
     import logging  # noqa: PLC0415
 
     import rr_actors  # noqa: PLC0415 - the copy's, from PYTHONPATH
-    from rr_actors.experiments import load_plan, simulate  # noqa: PLC0415
+    from rr_actors_lab.experiments import load_plan, simulate  # noqa: PLC0415
 
     here = Path(rr_actors.__file__).resolve()
     if not here.is_relative_to(Path(path).resolve()):
@@ -546,7 +546,7 @@ def child_main(path: str, command: str, arguments: list[str]) -> None:
     plan = load_plan(str(PLANS / f"{arguments[0]}.toml"))
     started = time.process_time()
     if command == "shrunk":  # (the shrunk plan's text in a file, its seed, the rule)
-        from rr_actors.experiments.reading import parse_plan  # noqa: PLC0415
+        from rr_actors_lab.experiments.reading import parse_plan  # noqa: PLC0415
 
         text = Path(arguments[1]).read_text(encoding="utf-8")
         run = simulate.run_seed(parse_plan(text, source=plan.source), int(arguments[2]))
@@ -596,11 +596,11 @@ def say(line: str) -> None:
 
 
 def shrunk(plan: Any, seed: int, rule: str, budget: int) -> dict[str, Any]:
-    """`seed`'s run shrunk (`rr_actors.experiments.shrink`) keeping a violation of `rule`:
+    """`seed`'s run shrunk (`rr_actors_lab.experiments.shrink`) keeping a violation of `rule`:
     the events of the shrunk run, the violation kind it kept, the runs it made and their
     CPU seconds."""
     from rr_actors.errors import ConfigError  # noqa: PLC0415 - the copy's
-    from rr_actors.experiments import shrink  # noqa: PLC0415
+    from rr_actors_lab.experiments import shrink  # noqa: PLC0415
 
     def rule_first(run: Any) -> list[Any]:  # (the shrinker keeps a run's first kind)
         return sorted(shrink.violations(run), key=lambda finding: finding.rule != rule)
@@ -611,7 +611,7 @@ def shrunk(plan: Any, seed: int, rule: str, budget: int) -> dict[str, Any]:
     except ConfigError as exc:  # (its run again did not violate: not replayed)
         return {"events": None, "kind": f"not shrunk: {exc}", "runs": 1, "cpu_s": 0.0}
     if out := os.environ.get("RR_PLANTED_OUT"):  # (`--out`: the shrunk run to read)
-        from rr_actors.experiments.sweep import seed_line  # noqa: PLC0415
+        from rr_actors_lab.experiments.sweep import seed_line  # noqa: PLC0415
 
         shrink.write(result, Path(out), seed_line(result.run, result.plan))
     return {

@@ -13,7 +13,7 @@ This is the same program as `rr-actors demo`; see docs/tutorial/mission.md.
 
 import sys
 
-from rr_actors.mission import main
+from rr_actors_lab.mission import main
 
 if __name__ == "__main__":
     sys.exit(main(sys.argv[1:]))

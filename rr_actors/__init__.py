@@ -115,7 +115,7 @@ _NEEDS_ZENOH = {"ZenohNetwork", "ZenohTLS"}
 def _observer() -> "Observing":
     """The observer, as a supervisor finds it: the lab's, imported at a supervisor's first
     `observe`."""
-    from rr_actors.observe._observer import SUPERVISORS  # noqa: PLC0415 - the lab
+    from rr_actors_lab.observe._observer import SUPERVISORS  # noqa: PLC0415 - the lab
 
     return SUPERVISORS
 
@@ -129,7 +129,7 @@ def _attach_lab(module: object) -> None:
 
         attach_observer(_observer)
     elif getattr(module, "__name__", "") == "rr_actors._transport.zenoh.net":
-        from rr_actors.observe import _feed  # noqa: F401, PLC0415 - attaches itself
+        from rr_actors_lab.observe import _feed  # noqa: F401, PLC0415 - attaches itself
 
 
 def __getattr__(name: str) -> object:

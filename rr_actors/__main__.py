@@ -12,7 +12,7 @@ arguments the way `rr-actors` does, e.g. before running it with a seam of your o
 
 from __future__ import annotations
 
-from rr_actors._cli import build_parser, main
+from rr_actors_lab._cli import build_parser, main
 
 __all__ = ["build_parser", "main"]
 

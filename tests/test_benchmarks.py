@@ -21,7 +21,7 @@ from types import ModuleType
 
 import pytest
 
-from rr_actors.experiments import check, load_plan
+from rr_actors_lab.experiments import check, load_plan
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -239,7 +239,7 @@ def test_verdict_kinds_counts_the_rules_of_violations_and_compares_their_sets() 
 
 def test_verdict_kinds_runs_a_compared_plan_at_its_first_value(tmp_path: Path) -> None:
     kinds = _script("bench_verdict_kinds")
-    source = ROOT / "rr_actors" / "experiments" / "plans" / "hang.toml"
+    source = ROOT / "rr_actors_lab" / "experiments" / "plans" / "hang.toml"
     cut = load_plan(kinds.first_value_only(source, tmp_path))
     whole = load_plan(source)
     assert whole.compare is not None

@@ -1,4 +1,4 @@
-"""The `rr-actors` command line (`rr_actors._cli`): the command itself and the subcommands
+"""The `rr-actors` command line (`rr_actors_lab._cli`): the command itself and the subcommands
 it implements (`inspect`, `events`, `check`'s files); those another package implements
 (`demo`, `experiment`, `observe`, `graph`, `certs`) are tested with that package."""
 
@@ -525,7 +525,7 @@ strategy = "one_for_one"
 
 [[tree.children]]
 name = "db"
-setup = "rr_actors.experiments.services:service"
+setup = "rr_actors_lab.experiments.services:service"
 
 [workload]
 clients = 1

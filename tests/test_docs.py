@@ -73,7 +73,7 @@ import pytest
 
 import rr_actors
 from rr_actors import errors
-from rr_actors.experiments import parse_plan
+from rr_actors_lab.experiments import parse_plan
 from tests.support import selecting
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -557,7 +557,7 @@ def test_no_page_example_or_docstring_cites_a_design_document_the_reader_does_no
 
 
 def test_git_ignores_what_the_demo_writes_by_default() -> None:
-    from rr_actors.mission.run import DEFAULT_OUT  # noqa: PLC0415
+    from rr_actors_lab.mission.run import DEFAULT_OUT  # noqa: PLC0415
 
     ignored = (ROOT / ".gitignore").read_text().splitlines()
 

@@ -100,7 +100,7 @@ API_CASES = [
         "import rr_actors as rr\nwith rr.Supervisor([]) as sup:\n    sup.observe()",
         "the observer",
     ),
-    ("experiments", "import rr_actors.experiments", "rr_actors.experiments"),
+    ("experiments", "import rr_actors_lab.experiments", "rr_actors_lab.experiments"),
     ("simulation", "import rr_actors.simulation", "rr_actors.simulation"),
 ]
 

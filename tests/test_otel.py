@@ -1,4 +1,4 @@
-"""OpenTelemetry spans from the event stream (`rr_actors.otel`): on real registrars, a real
+"""OpenTelemetry spans from the event stream (`rr_actors_lab.otel`): on real registrars, a real
 manager process and a real SIGKILL, exported by the SDK's `InMemorySpanExporter`."""
 
 from __future__ import annotations
@@ -341,7 +341,7 @@ def test_it_traces_through_the_global_provider_the_application_installs_later() 
             InMemorySpanExporter,
         )
         import rr_actors as rr
-        from rr_actors import otel
+        from rr_actors_lab import otel
 
         erm = rr.ResourceRegistrar.start("erm")
         erm.register_server("cam", load=lambda r: r, unload=lambda q, r: None)
@@ -371,7 +371,7 @@ def test_without_the_extra_tracing_takes_events_and_makes_nothing() -> None:
         import sys
         sys.modules["opentelemetry"] = None  # as if the otel extra were not installed
         import rr_actors as rr
-        from rr_actors import otel
+        from rr_actors_lab import otel
 
         erm = rr.ResourceRegistrar.start("erm")
         erm.register_server("cam", load=lambda r: r, unload=lambda q, r: None)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from rr_actors.experiments import RequestContext
+from rr_actors_lab.experiments import RequestContext
 
 
 def lidar(key: str, context: RequestContext) -> dict[str, Any]:

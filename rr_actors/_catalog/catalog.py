@@ -133,7 +133,9 @@ class Catalog:
         resources = self.resources
         index = self._index
         if digest is not None:
-            shares = runtime.steps.shares  # (a classroom's copy of this step, `rr_actors.teach`)
+            shares = (
+                runtime.steps.shares
+            )  # (a classroom's copy of this step, `rr_actors_lab.teach`)
             for rid in index.with_digest(server, digest):
                 resource = resources[rid]
                 if shares is not None:

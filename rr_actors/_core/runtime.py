@@ -17,7 +17,7 @@ Each name is read where it is used (`runtime.Lock()`), never imported by value
 (`tests/test_repository.py` refuses it): in a real run `runtime.Lock` *is* `threading.Lock`, at the
 cost of one attribute read. Per-process state is registered with `process_state`, per-thread state
 made with `local()`: a simulation gives each simulated process and thread its own. `steps` holds the
-protocol steps an exercise of `rr_actors.teach` may replace, read the same way where each step runs.
+protocol steps an exercise of `rr_actors_lab.teach` may replace, read the same way where each step runs.
 """
 
 from __future__ import annotations
@@ -206,9 +206,9 @@ Reconcile = Callable[[Set[str], Set[str], Set[str]], tuple[Iterable[str], Iterab
 
 
 class Steps:
-    """One slot per step of the protocol, `None` unless `rr_actors.teach.replaced_step` put a
+    """One slot per step of the protocol, `None` unless `rr_actors_lab.teach.replaced_step` put a
     student's copy there (seen by this OS process's registrars only: a simulated run's). Each slot's
-    shape is in `rr_actors.teach.STEPS`; `None` means the module named runs its own."""
+    shape is in `rr_actors_lab.teach.STEPS`; `None` means the module named runs its own."""
 
     climb: Callable[[str | None, Collection[str], Status], Iterable[str]] | None = None
     """The status climb (`_registrar/status.py`, `on_status_notice`)."""

@@ -11,7 +11,7 @@
                                                       context_of("00-T-C-F"): span S
 ```
 
-A traceparent (55 characters) is a plain `str`, `""` for an untraced call. `rr_actors.otel`
+A traceparent (55 characters) is a plain `str`, `""` for an untraced call. `rr_actors_lab.otel`
 makes the spans later, from the events; the ids are drawn here so both sides name the same
 spans. OpenTelemetry is not imported here: until the application imported it no span can
 be current, and `begin` returns `None` after a look-up or two.

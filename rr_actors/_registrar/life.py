@@ -446,7 +446,7 @@ class Lifecycle:
 
 def cut_short(catalog: Catalog) -> list[Resource]:
     """The restored resources a crash cut short: neither loaded nor unloaded (rule 16)."""
-    step = runtime.steps.in_doubt  # (a classroom's copy of this step, `rr_actors.teach`)
+    step = runtime.steps.in_doubt  # (a classroom's copy of this step, `rr_actors_lab.teach`)
     if step is not None:
         return [r for r in catalog.resources.values() if step(r.state.value)]
     return [r for r in catalog.resources.values() if r.state is not ResourceState.LOADED]

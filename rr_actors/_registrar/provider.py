@@ -1256,7 +1256,7 @@ class Unloading:
             if shared.events.active
             else ()
         )
-        step = runtime.steps.unloads  # (a classroom's copy of this step, `rr_actors.teach`)
+        step = runtime.steps.unloads  # (a classroom's copy of this step, `rr_actors_lab.teach`)
         last = not resource.consumers if step is None else step(frozenset(resource.consumers))
         if reply is not None and not last and resource.state is ResourceState.LOADED:
             answer = reply  # (not the last: answered once written, with the rest of the turn)
@@ -1346,7 +1346,7 @@ class Unloading:
             if query_id not in held:
                 self.provider.give_up(query_id)
         mine = catalog.consumer_ids_from(message.origin_rr)
-        step = runtime.steps.reconcile  # (a classroom's copy of this step, `rr_actors.teach`)
+        step = runtime.steps.reconcile  # (a classroom's copy of this step, `rr_actors_lab.teach`)
         told: tuple[str, ...] | None = None
         if step is None:
             stale = sorted(mine - held)
@@ -1454,7 +1454,9 @@ class Teardown:
             self.check_idle()
 
         later: list[set[str]] = []  # the dependencies to release after the unload
-        step = runtime.steps.release_order  # (a classroom's copy of this step, `rr_actors.teach`)
+        step = (
+            runtime.steps.release_order
+        )  # (a classroom's copy of this step, `rr_actors_lab.teach`)
         if step is None:
             self.releases.release_dependencies(resource.id, run_unload, trace=trace)
             return

@@ -356,7 +356,7 @@ class StatusRelay:
                     DESK.runner.on_loop(call)
                 else:  # (each id's in order with the desk's own)
                     DESK.runner.run((call,))
-            climb = runtime.steps.climb  # (a classroom's copy of this step, `rr_actors.teach`)
+            climb = runtime.steps.climb  # (a classroom's copy of this step, `rr_actors_lab.teach`)
             if climb is not None:
                 above = [
                     catalog.resources[r]

@@ -331,7 +331,7 @@ class Restarts:
         the names to restart."""
         children = self.record.children
         strategy, order = self.record.spec.strategy, [c.name for c in children]
-        step = runtime.steps.group  # (a classroom's copy of this step, `rr_actors.teach`)
+        step = runtime.steps.group  # (a classroom's copy of this step, `rr_actors_lab.teach`)
         if step is None:
             names = affected(strategy, order, crashed.name)
         else:
@@ -419,7 +419,7 @@ class RestartIntensity:
         """Count one restart now; return `False` if that exceeds the intensity (give up)."""
         now = self.clock()
         self._times.append(now)
-        step = runtime.steps.recent  # (a classroom's copy of this step, `rr_actors.teach`)
+        step = runtime.steps.recent  # (a classroom's copy of this step, `rr_actors_lab.teach`)
         if step is not None:  # (it sees every restart: it chooses those that count)
             return step(tuple(self._times), now, self.period) <= self.max_restarts
         while self._times and now - self._times[0] >= self.period:

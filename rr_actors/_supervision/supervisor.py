@@ -661,7 +661,7 @@ class Supervisor(AsyncSupervision):
                 the observer closes it when it closes, or fails to open.
 
         Returns:
-            The open [`Observer`][rr_actors.observe.Observer] (`url`, `close()`).
+            The open [`Observer`][rr_actors_lab.observe.Observer] (`url`, `close()`).
 
         Raises:
             ConfigError: the `observe` extra is not installed, the port is in use,

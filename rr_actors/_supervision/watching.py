@@ -161,7 +161,7 @@ class TreeAccess:
 
 class Page(Protocol):
     """An open observer's page, as `Supervisor.observe` returns it
-    ([`rr_actors.observe.Observer`][rr_actors.observe.Observer] is the one)."""
+    ([`rr_actors_lab.observe.Observer`][rr_actors_lab.observe.Observer] is the one)."""
 
     url: str
     keep_serving: bool
@@ -223,7 +223,7 @@ def attach_observer(find: Callable[[], Observing]) -> None:
 def _observer() -> Observing:
     if not _FOUND:
         raise ConfigError(
-            "no observer is attached in this process: import rr_actors.observe (a "
+            "no observer is attached in this process: import rr_actors_lab.observe (a "
             "supervisor made as rr.Supervisor finds it by itself)"
         )
     return _FOUND[0]()

@@ -418,7 +418,7 @@ class CallAnswered(_Numbered):
         parent: the resource of this registrar whose `load` made the call (rule 5), or `None`.
         retry: the consumer already knew this id (rule 17): no second consumer.
         started: when the call was made, wall clock seconds; 0.0 if not known.
-        trace: the W3C `traceparent` the call carried (`rr_actors.otel`), `""` if untraced.
+        trace: the W3C `traceparent` the call carried (`rr_actors_lab.otel`), `""` if untraced.
         caller_span: the id (16 hex) of the span current in the caller; `""` with `trace`.
     """
 

@@ -59,7 +59,7 @@ class SimulatedNetwork(MemoryNetwork):
     """An in-memory network between simulated processes (made inside a simulated run):
     each frame after a seeded delay, in order per link; `partition` and `heal`.
 
-    The fault hooks a plan aims (rr_actors.experiments, on the simulation):
+    The fault hooks a plan aims (rr_actors_lab.experiments, on the simulation):
     `cut_connections(pid)` shuts every link of the process down (what was sent arrives,
     then what waits fails; the next send dials again); `duplicate_first(name, until)` puts
     the first frame of each link made to `name` before `until` on the wire twice;

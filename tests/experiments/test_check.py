@@ -1,4 +1,4 @@
-"""rr_actors.experiments.check: a clean history holds; one seeded violation of each rule is
+"""rr_actors_lab.experiments.check: a clean history holds; one seeded violation of each rule is
 found, with the lines that show it; mutations of a real history are found too."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import pytest
 import rr_actors as rr
 from rr_actors import events
 from rr_actors.__main__ import main
-from rr_actors.experiments import (
+from rr_actors_lab.experiments import (
     PlanError,
     _supervision_rules,
     check,

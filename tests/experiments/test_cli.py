@@ -1,4 +1,4 @@
-"""The experiment's command line (`rr_actors.experiments.cli`): `rr-actors experiment`: bad
+"""The experiment's command line (`rr_actors_lab.experiments.cli`): `rr-actors experiment`: bad
 input is refused before anything starts (exit code 2), a run prints its summary, and Ctrl-C (a
 real SIGINT) stops every process and keeps finished runs."""
 
@@ -26,15 +26,15 @@ import psutil
 import pytest
 
 import rr_actors as rr
-import rr_actors.observe
+import rr_actors_lab.observe
 from rr_actors.__main__ import main
-from rr_actors.experiments import Progress, RunResult, parse_plan
-from rr_actors.experiments.cli import Display, fault_line, summary_lines
-from rr_actors.experiments.results import FaultRecord, Results
+from rr_actors_lab.experiments import Progress, RunResult, parse_plan
+from rr_actors_lab.experiments.cli import Display, fault_line, summary_lines
+from rr_actors_lab.experiments.results import FaultRecord, Results
 from tests.support import selecting
 from tests.support.small_disk import fill, mounted
 
-SERVICE = "rr_actors.experiments.services:service"
+SERVICE = "rr_actors_lab.experiments.services:service"
 
 PLAN = f"""\
 name = "tiny"
@@ -147,8 +147,8 @@ def test_an_output_directory_that_is_not_empty_exits_2_without_force(
 def test_observe_without_the_observe_extra_exits_2(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setitem(sys.modules, "rr_actors.observe._server", None)  # as if not installed
-    monkeypatch.delattr(rr.observe, "_server", raising=False)
+    monkeypatch.setitem(sys.modules, "rr_actors_lab.observe._server", None)  # as if not installed
+    monkeypatch.delattr(rr_actors_lab.observe, "_server", raising=False)
 
     code, err = refused(capsys, write_plan(tmp_path), tmp_path / "out", "--observe")
 

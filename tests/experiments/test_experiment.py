@@ -1,4 +1,4 @@
-"""`run(plan)` (`rr_actors.experiments.experiment`): experiments for real: runs in fresh
+"""`run(plan)` (`rr_actors_lab.experiments.experiment`): experiments for real: runs in fresh
 processes, every fault kind, the files, seeds, leaks.
 
 One experiment with every fault kind (two runs) is shared by the tests that read its
@@ -25,9 +25,10 @@ from typing import Any, ClassVar
 import pytest
 
 import rr_actors as rr
-import rr_actors.observe
+import rr_actors_lab.observe
 from rr_actors import events
-from rr_actors.experiments import (
+from rr_actors.testing import pending_work
+from rr_actors_lab.experiments import (
     ExperimentError,
     ExperimentInterruptedError,
     Progress,
@@ -37,13 +38,12 @@ from rr_actors.experiments import (
     run,
     runner,
 )
-from rr_actors.experiments._child import STOPPED_EXIT
-from rr_actors.experiments._instrument import CUT_SIGNAL
-from rr_actors.experiments._procs import processes_with, wait_gone
-from rr_actors.experiments.runner import build_tree, wait_all_serving
-from rr_actors.testing import pending_work
+from rr_actors_lab.experiments._child import STOPPED_EXIT
+from rr_actors_lab.experiments._instrument import CUT_SIGNAL
+from rr_actors_lab.experiments._procs import processes_with, wait_gone
+from rr_actors_lab.experiments.runner import build_tree, wait_all_serving
 
-SERVICE = "rr_actors.experiments.services:service"
+SERVICE = "rr_actors_lab.experiments.services:service"
 
 LIDAR = '{ name = "lidar-{key}", bus = "{run_dir}/bus", watch_pid = "{pid}", rate = 5.0, seed = 0 }'
 """A request of the mission's cm: a LiDAR program that erm starts (a process to kill)."""
@@ -68,11 +68,11 @@ heartbeat = 0.25
 
 [[tree.children]]
 name = "erm"
-setup = "rr_actors.mission.managers:erm_setup"
+setup = "rr_actors_lab.mission.managers:erm_setup"
 
 [[tree.children]]
 name = "cm"
-setup = "rr_actors.mission.managers:cm_setup"
+setup = "rr_actors_lab.mission.managers:cm_setup"
 
 [workload]
 clients = 2
@@ -299,11 +299,11 @@ seed = 10
 
 [[tree.children]]
 name = "erm"
-setup = "rr_actors.mission.managers:erm_setup"
+setup = "rr_actors_lab.mission.managers:erm_setup"
 
 [[tree.children]]
 name = "cm"
-setup = "rr_actors.mission.managers:cm_setup"
+setup = "rr_actors_lab.mission.managers:cm_setup"
 
 [[tree.children]]
 name = "slow"
@@ -557,8 +557,8 @@ def test_with_observe_each_run_serves_its_observer_page_while_it_runs() -> None:
 def test_observe_without_the_observe_extra_is_refused_before_anything_starts(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    monkeypatch.setitem(sys.modules, "rr_actors.observe._server", None)  # as if not installed
-    monkeypatch.delattr(rr.observe, "_server", raising=False)
+    monkeypatch.setitem(sys.modules, "rr_actors_lab.observe._server", None)  # as if not installed
+    monkeypatch.delattr(rr_actors_lab.observe, "_server", raising=False)
 
     with pytest.raises(rr.ConfigError, match=r"needs an extra: pip install .*\[observe\]"):
         run(parse_plan(RANDOM_KILLS), observe=True)
@@ -980,7 +980,7 @@ def test_a_run_process_whose_experiment_already_died_stops_at_once(tmp_path: Pat
     gone = subprocess.Popen([sys.executable, "-c", "pass"])
     gone.wait(10)
     child = subprocess.Popen(
-        [sys.executable, "-m", "rr_actors.experiments._child", str(tmp_path), str(gone.pid)],
+        [sys.executable, "-m", "rr_actors_lab.experiments._child", str(tmp_path), str(gone.pid)],
         env={**os.environ, "RR_ACTORS_EXPERIMENT": token},
         stdin=subprocess.DEVNULL,
     )

@@ -1,4 +1,4 @@
-"""The other hosts of a run (`rr_actors.experiments._hosts`): plans across hosts: host
+"""The other hosts of a run (`rr_actors_lab.experiments._hosts`): plans across hosts: host
 placement, faults between hosts (cut, partition, freeze, kill_router), their schedule, and one
 real run on two network namespaces (root)."""
 
@@ -13,10 +13,10 @@ from pathlib import Path
 import pytest
 
 from rr_actors.errors import ConfigError
-from rr_actors.experiments import PlanError, fault_schedule, parse_plan, run
-from rr_actors.experiments._netns import PREFIX
+from rr_actors_lab.experiments import PlanError, fault_schedule, parse_plan, run
+from rr_actors_lab.experiments._netns import PREFIX
 
-SERVICE = "rr_actors.experiments.services:service"
+SERVICE = "rr_actors_lab.experiments.services:service"
 
 TWO_HOSTS = f"""\
 name = "two"

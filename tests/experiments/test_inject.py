@@ -1,4 +1,4 @@
-"""The injector (`rr_actors.experiments.inject`) when its loop fails: the faults it could not
+"""The injector (`rr_actors_lab.experiments.inject`) when its loop fails: the faults it could not
 fire are recorded, not lost."""
 
 from __future__ import annotations
@@ -9,10 +9,10 @@ import time
 from typing import Any, cast
 
 import rr_actors as rr
-from rr_actors.experiments import parse_plan
-from rr_actors.experiments.inject import Injector
-from rr_actors.experiments.plan import Trigger
-from rr_actors.experiments.schedule import ScheduledFault
+from rr_actors_lab.experiments import parse_plan
+from rr_actors_lab.experiments.inject import Injector
+from rr_actors_lab.experiments.plan import Trigger
+from rr_actors_lab.experiments.schedule import ScheduledFault
 
 PLAN = """\
 duration = 2.0
@@ -20,7 +20,7 @@ duration = 2.0
 [tree]
 [[tree.children]]
 name = "db"
-setup = "rr_actors.experiments.services:service"
+setup = "rr_actors_lab.experiments.services:service"
 """
 
 

@@ -1,11 +1,11 @@
-"""A run's numbers from its events (`rr_actors.experiments.metrics`): down intervals,
+"""A run's numbers from its events (`rr_actors_lab.experiments.metrics`): down intervals,
 unavailability, recovery per fault kind."""
 
 from __future__ import annotations
 
 from rr_actors import events
-from rr_actors.experiments import FaultRecord
-from rr_actors.experiments.metrics import (
+from rr_actors_lab.experiments import FaultRecord
+from rr_actors_lab.experiments.metrics import (
     ClientRecovery,
     down_intervals,
     percentile,

@@ -1,4 +1,4 @@
-"""A plan as data and as its schema (`rr_actors.experiments.plan`): what the types refuse (read
+"""A plan as data and as its schema (`rr_actors_lab.experiments.plan`): what the types refuse (read
 with msgspec), worded with the key, line, value, choices, and the limits they carry."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from rr_actors.__main__ import main
-from rr_actors.experiments import PlanError, parse_plan
+from rr_actors_lab.experiments import PlanError, parse_plan
 
 BASE = """\
 name = "t"
@@ -21,7 +21,7 @@ duration = 2.0
 
 [[tree.children]]
 name = "db"
-setup = "rr_actors.experiments.services:service"
+setup = "rr_actors_lab.experiments.services:service"
 
 [workload]
 clients = 1
@@ -105,7 +105,7 @@ def test_a_message_too_long_names_its_limit() -> None:
     assert error.problem.startswith("must be a string of length <= 10000, got 'xxx")
 
 
-SERVICE = "rr_actors.experiments.services:service"
+SERVICE = "rr_actors_lab.experiments.services:service"
 HUGE = "9" * 400
 
 HUGE_BASE = f"""\

@@ -1,4 +1,4 @@
-"""The shipped plans (`rr_actors.experiments.plans`): every shipped plan (and those of
+"""The shipped plans (`rr_actors_lab.experiments.plans`): every shipped plan (and those of
 examples/experiments/) runs (shortened: one repeat, a shorter duration) and shows what its docs
 page says it shows.
 
@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from rr_actors.experiments import Results, RunResult, load_plan, plans, run
+from rr_actors_lab.experiments import Results, RunResult, load_plan, plans, run
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples" / "experiments"
 
@@ -242,7 +242,7 @@ class TestFromAWheel:
         assert "the format: " in " ".join(help_text.split())  # the shipped reference, named
         # The footer names the shipped folder relative to the package (80 columns, no absolute
         # path, issue 44): the reference is there, in the installed wheel.
-        assert "rr_actors/experiments/plans/" in listed
+        assert "rr_actors_lab/experiments/plans/" in listed
         assert "plan-reference.md" in listed
         reference = Path(where.strip()).parent / "experiments" / "plans" / "plan-reference.md"
         assert reference.is_file()

@@ -1,4 +1,4 @@
-"""The experiment's figures (`rr_actors.experiments.plot`): recovery.png and timeline.png across
+"""The experiment's figures (`rr_actors_lab.experiments.plot`): recovery.png and timeline.png across
 hosts: per-host recovery, each fault's host, the time to fail and to heal of faults between
 hosts, the verdict in the titles. Drawn from results built by hand (no run, no namespaces) and
 read back from the figures."""
@@ -16,11 +16,11 @@ pytest.importorskip("matplotlib")
 import matplotlib.pyplot as plt
 from matplotlib.figure import Figure
 
-from rr_actors.experiments import parse_plan
-from rr_actors.experiments.plot import plot_recovery, plot_timeline
-from rr_actors.experiments.results import CallRecord, FaultRecord, Results, RunResult
+from rr_actors_lab.experiments import parse_plan
+from rr_actors_lab.experiments.plot import plot_recovery, plot_timeline
+from rr_actors_lab.experiments.results import CallRecord, FaultRecord, Results, RunResult
 
-SERVICE = "rr_actors.experiments.services:service"
+SERVICE = "rr_actors_lab.experiments.services:service"
 
 TREE = f"""\
 [tree]

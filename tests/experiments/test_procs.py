@@ -1,4 +1,4 @@
-"""The processes of an experiment's run (`rr_actors.experiments._procs`): waiting until
+"""The processes of an experiment's run (`rr_actors_lab.experiments._procs`): waiting until
 they are gone works whatever the numbers of their pidfds."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from rr_actors.experiments._procs import wait_gone
+from rr_actors_lab.experiments._procs import wait_gone
 
 MANY = 1100
 """Descriptors opened first: past 1024, which `select.select` refuses (`ValueError:

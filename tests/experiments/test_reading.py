@@ -1,4 +1,4 @@
-"""Reading a plan (`rr_actors.experiments.reading`): what a valid plan becomes, every bad
+"""Reading a plan (`rr_actors_lab.experiments.reading`): what a valid plan becomes, every bad
 input as a PlanError with its line, and the line of a key in a TOML text."""
 
 from __future__ import annotations
@@ -12,12 +12,12 @@ import pytest
 
 import rr_actors as rr
 from rr_actors.__main__ import main
-from rr_actors.experiments import PlanError, load_plan, parse_plan, reading
-from rr_actors.experiments.reading import key_lines
+from rr_actors_lab.experiments import PlanError, load_plan, parse_plan, reading
+from rr_actors_lab.experiments.reading import key_lines
 
-EXAMPLES = Path(__file__).resolve().parents[2] / "rr_actors" / "experiments" / "plans"
+EXAMPLES = Path(__file__).resolve().parents[2] / "rr_actors_lab" / "experiments" / "plans"
 
-SERVICE = "rr_actors.experiments.services:service"
+SERVICE = "rr_actors_lab.experiments.services:service"
 
 BASE = f"""\
 name = "t"
@@ -148,7 +148,7 @@ def test_a_setup_that_does_not_import_is_refused_with_the_module_named() -> None
 
 
 def test_a_setup_without_that_attribute_is_refused() -> None:
-    error = plan_error(BASE.replace(SERVICE, "rr_actors.experiments.services:nothing", 1))
+    error = plan_error(BASE.replace(SERVICE, "rr_actors_lab.experiments.services:nothing", 1))
 
     assert "has no attribute 'nothing'" in error.problem
 
@@ -636,7 +636,7 @@ duration = 2.0
 
 [[tree.children]]
 name = "db"
-setup = "rr_actors.experiments.services:service"
+setup = "rr_actors_lab.experiments.services:service"
 
 [[faults]]
 kind = "kill_manager"
@@ -728,7 +728,7 @@ duration = -2.0
 
 [[tree.children]]
 name = "db"
-setup = "rr_actors.experiments.services:service"
+setup = "rr_actors_lab.experiments.services:service"
 
 [workload]
 clients = 1

@@ -1,4 +1,4 @@
-"""What an experiment gives back (`rr_actors.experiments.results`): runs.csv when compared
+"""What an experiment gives back (`rr_actors_lab.experiments.results`): runs.csv when compared
 values give runs different columns: every column is kept."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import csv
 from pathlib import Path
 
-from rr_actors.experiments import parse_plan, run
+from rr_actors_lab.experiments import parse_plan, run
 
 PLAN = """\
 name = "renamed"
@@ -15,7 +15,7 @@ duration = 0.3
 [tree]
 [[tree.children]]
 name = "a"
-setup = "rr_actors.experiments.services:service"
+setup = "rr_actors_lab.experiments.services:service"
 isolation = "thread"
 
 [compare]

@@ -1,4 +1,4 @@
-"""One run (`rr_actors.experiments.runner.execute`) traced with OpenTelemetry: its run
+"""One run (`rr_actors_lab.experiments.runner.execute`) traced with OpenTelemetry: its run
 process, a real tree of manager processes, a real SIGKILL, the spans printed by the SDK's
 console exporter as `OTEL_TRACES_EXPORTER=console` says."""
 
@@ -20,10 +20,10 @@ strategy = "one_for_one"
 max_restarts = 5
 [[tree.children]]
 name = "db"
-setup = "rr_actors.experiments.services:service"
+setup = "rr_actors_lab.experiments.services:service"
 [[tree.children]]
 name = "api"
-setup = "rr_actors.experiments.services:service"
+setup = "rr_actors_lab.experiments.services:service"
 options = { uses = ["db"], load_s = 0.005 }
 [workload]
 clients = 1
@@ -43,7 +43,7 @@ RUN = textwrap.dedent(
     import sys
     from pathlib import Path
 
-    from rr_actors.experiments import parse_plan, runner
+    from rr_actors_lab.experiments import parse_plan, runner
 
     plan = parse_plan(sys.argv[1])
     spec = runner.RunSpec(plan, "", None, run=1, repeat=1, seed=1, trace=True)

@@ -1,4 +1,4 @@
-"""The fault schedule (`rr_actors.experiments.schedule`): a pure function of the plan and the
+"""The fault schedule (`rr_actors_lab.experiments.schedule`): a pure function of the plan and the
 seed."""
 
 from __future__ import annotations
@@ -8,10 +8,10 @@ import dataclasses
 import pytest
 
 from rr_actors.errors import ConfigError
-from rr_actors.experiments import fault_schedule, parse_plan
-from rr_actors.experiments.plan import FaultPlan
+from rr_actors_lab.experiments import fault_schedule, parse_plan
+from rr_actors_lab.experiments.plan import FaultPlan
 
-SERVICE = "rr_actors.experiments.services:service"
+SERVICE = "rr_actors_lab.experiments.services:service"
 
 TREE = f"""\
 duration = 10.0

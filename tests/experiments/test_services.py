@@ -1,4 +1,4 @@
-"""rr_actors.experiments.services: the generic manager's statuses on a schedule."""
+"""rr_actors_lab.experiments.services: the generic manager's statuses on a schedule."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import uuid
 import pytest
 
 import rr_actors as rr
-from rr_actors.experiments.services import service
+from rr_actors_lab.experiments.services import service
 
 
 def test_a_service_with_status_every_sends_a_warning_to_its_consumer_until_it_stops() -> None:

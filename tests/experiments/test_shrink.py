@@ -1,7 +1,7 @@
-"""`--shrink` and `rr-actors shrink` (`rr_actors.experiments.shrink`): a violating seed of a
+"""`--shrink` and `rr-actors shrink` (`rr_actors_lab.experiments.shrink`): a violating seed of a
 plan with a planted bug shrunk to a smaller plan that violates the same way, written as a
 run that `replay` and `experiment --simulate` run again with the same hash; and `replay
---story` (`rr_actors.experiments.story`): the run told step by step, the violation marked."""
+--story` (`rr_actors_lab.experiments.story`): the run told step by step, the violation marked."""
 
 from __future__ import annotations
 
@@ -14,10 +14,10 @@ from pathlib import Path
 import pytest
 
 from rr_actors.__main__ import main
-from rr_actors.experiments import load_plan, plans, shrink, simulate, story, sweep
-from rr_actors.experiments.check import Finding
-from rr_actors.experiments.plan import Plan
-from rr_actors.experiments.reading import parse_plan
+from rr_actors_lab.experiments import load_plan, plans, shrink, simulate, story, sweep
+from rr_actors_lab.experiments.check import Finding
+from rr_actors_lab.experiments.plan import Plan
+from rr_actors_lab.experiments.reading import parse_plan
 from tests.experiments.test_simulate import PLAN, SERVICE
 from tests.experiments.test_sweep import BUGGY
 
@@ -51,7 +51,7 @@ def buggy(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     (tmp_path / "buggy.py").write_text(BUGGY)
     monkeypatch.syspath_prepend(str(tmp_path))
     plan = tmp_path / "plan.toml"
-    plan.write_text(PLAN.replace("rr_actors.experiments.services:service", "buggy:setup"))
+    plan.write_text(PLAN.replace("rr_actors_lab.experiments.services:service", "buggy:setup"))
     return plan
 
 
@@ -155,7 +155,7 @@ import inspect
 import textwrap
 
 from rr_actors._registrar import provider
-from rr_actors.experiments.services import service
+from rr_actors_lab.experiments.services import service
 
 _source = textwrap.dedent(inspect.getsource(provider.Unloading.release))
 _planted = _source.replace("if last and resource.state", "if resource.state")
@@ -186,7 +186,7 @@ def crash_loop(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     (tmp_path / "unloadheld.py").write_text(UNLOAD_HELD)
     monkeypatch.syspath_prepend(str(tmp_path))
     plan = tmp_path / "plan.toml"
-    plan.write_text(PLAN.replace("rr_actors.experiments.services:service", "unloadheld:setup"))
+    plan.write_text(PLAN.replace("rr_actors_lab.experiments.services:service", "unloadheld:setup"))
     return plan
 
 
@@ -292,7 +292,9 @@ at = [0.5]
 def test_replay_story_tells_the_run_step_by_step_with_the_violation_marked(
     tmp_path: Path, buggy: Path
 ) -> None:
-    buggy.write_text(STORY_PLAN.replace("rr_actors.experiments.services:service", "buggy:setup"))
+    buggy.write_text(
+        STORY_PLAN.replace("rr_actors_lab.experiments.services:service", "buggy:setup")
+    )
     out = tmp_path / "out"
     assert 0 == command("experiment", str(buggy), "--simulate", "--out", str(out))[0]
     assert "violated" == recorded(out)[1]["verdict"]

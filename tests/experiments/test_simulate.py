@@ -1,4 +1,4 @@
-"""A plan on the simulation (`rr_actors.experiments.simulate`): its tree, workload and
+"""A plan on the simulation (`rr_actors_lab.experiments.simulate`): its tree, workload and
 faults in virtual time, one seed a run: the checker's verdict, the same history (hash)
 for the same seed in this process and in another, a planted bug found and replayed; each
 fault kind's effect in the history (the plan's kinds and those only a simulation can
@@ -24,14 +24,14 @@ import pytest
 import rr_actors as rr
 from rr_actors._core import runtime
 from rr_actors.events.kinds import set_host, this_host
-from rr_actors.experiments import PlanError, check, parse_plan, services, simulate
-from rr_actors.experiments.plan import Plan
+from rr_actors_lab.experiments import PlanError, check, parse_plan, services, simulate
+from rr_actors_lab.experiments.plan import Plan
 
 pytest.importorskip("greenlet")  # (the simulation extra)
 
 ROOT = Path(__file__).resolve().parent.parent.parent
 
-SERVICE = "rr_actors.experiments.services:service"
+SERVICE = "rr_actors_lab.experiments.services:service"
 
 PLAN = f"""\
 name = "simkill"
@@ -154,8 +154,8 @@ def test_seeds_run_in_a_process_leave_no_file_open_without_the_garbage_collector
     process's SQLite files stayed open until collected, and a test process that kept a
     run's objects (a log record's traceback) or a task that would not end (simslow's
     hung callback) held them for good (CI: one worker past 1024 descriptors)."""
-    from rr_actors.experiments import load_plan  # noqa: PLC0415
     from rr_actors.simulation import _run  # noqa: PLC0415
+    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
 
     def open_files() -> int:
         return len(os.listdir("/proc/self/fd"))
@@ -217,7 +217,7 @@ def test_the_same_seed_gives_the_same_history_here_and_in_another_process() -> N
 
     script = (
         "import logging, sys; logging.disable(logging.WARNING)\n"
-        "from rr_actors.experiments import parse_plan, simulate\n"
+        "from rr_actors_lab.experiments import parse_plan, simulate\n"
         "print(simulate.run_seed(parse_plan(sys.stdin.read()), 7).hash)\n"
     )
     env = {**os.environ, "PYTHONHASHSEED": "0"}
@@ -350,7 +350,7 @@ def test_a_seed_that_meets_a_failed_write_gives_one_history_whatever_its_run_fol
 
 
 def test_a_seed_gives_the_same_history_alone_and_after_other_seeds_in_the_process() -> None:
-    from rr_actors.experiments import load_plan  # noqa: PLC0415
+    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
 
     plan = load_plan(PLANS / "simretry.toml")
     # (seed 43 restarts api while two clients wait for it: with the tree's waits woken in
@@ -714,7 +714,7 @@ def test_a_split_brain_shorter_than_the_second_servers_start_heals_once_it_serve
 def test_a_run_whose_fault_fails_to_close_still_cleans_up_for_the_next_seed(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    from rr_actors.experiments._simulated_faults import SimulatedFaults  # noqa: PLC0415
+    from rr_actors_lab.experiments._simulated_faults import SimulatedFaults  # noqa: PLC0415
 
     plan = with_faults('kind = "split_brain"\ntarget = "db"\nat = 0.5\nfor = 0.6')
     clean = simulate.run_seed(plan, 1)
@@ -805,7 +805,7 @@ def test_simslow_s_hung_callback_holds_back_its_id_s_next_statuses(
 ) -> None:
     # issue 51 finding 6: without per-id lanes, the watchdog gave up client-0's callback
     # after 50 ms and that id's next status ran beside it (every seed of 1-60 violated)
-    from rr_actors.experiments import load_plan  # noqa: PLC0415
+    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
 
     plan = load_plan(PLANS / "simslow.toml")
 
@@ -831,7 +831,7 @@ def test_simslow_s_hung_callback_holds_back_its_id_s_next_statuses(
 
 @SWEEP
 def test_the_simheal_plan_holds_for_seeds_1_to_20() -> None:
-    from rr_actors.experiments import load_plan  # noqa: PLC0415
+    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
 
     plan = load_plan(PLANS / "simheal.toml")
 
@@ -847,7 +847,7 @@ def test_the_simnostate_plan_holds_for_seeds_1_to_30_its_releases_crossing_resta
     # the restart, which no longer knows its id; 3 of 30 seeds of simchain with
     # `state = false` were `kept` violations before its `QueryForgotten` said when the
     # release left against its consumer's last reconcile
-    from rr_actors.experiments import load_plan  # noqa: PLC0415
+    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
 
     plan = load_plan(PLANS / "simnostate.toml")
 
@@ -867,7 +867,7 @@ def test_the_simprogram_plan_holds_at_seed_1_its_killed_programs_client_ids_rele
     # longer hold. Without `Supervisor.registrar` telling them they lost everything
     # (b52ff0e6), or with it told through the directory, where a registrar just started
     # is "still starting" (the message dropped), this seed is `left` and `end` violations.
-    from rr_actors.experiments import load_plan  # noqa: PLC0415
+    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
 
     plan = load_plan(PLANS / "simprogram.toml")
 
@@ -918,7 +918,7 @@ def test_every_simulated_kind_in_one_plan_gives_the_same_history_for_the_same_se
 
 
 def test_a_kind_only_a_simulation_aims_is_refused_by_a_real_run() -> None:
-    from rr_actors.experiments import run  # noqa: PLC0415
+    from rr_actors_lab.experiments import run  # noqa: PLC0415
 
     plan = with_faults('kind = "kill_in_setup"\ntarget = "db"\nat = 0.5')
 
@@ -930,7 +930,7 @@ def test_a_kind_only_a_simulation_aims_is_refused_by_a_real_run() -> None:
 
 
 def test_kill_program_is_refused_by_a_real_run_saying_the_run_process_is_the_program() -> None:
-    from rr_actors.experiments import run  # noqa: PLC0415
+    from rr_actors_lab.experiments import run  # noqa: PLC0415
 
     plan = with_faults('kind = "kill_program"\nat = 0.5')
 
@@ -978,7 +978,7 @@ def test_a_kind_only_a_simulation_aims_is_validated_as_the_others(
 
 # -- the shipped plans ---------------------------------------------------------------------
 
-PLANS = ROOT / "rr_actors" / "experiments" / "plans"
+PLANS = ROOT / "rr_actors_lab" / "experiments" / "plans"
 
 
 SIMULATED = [
@@ -1012,7 +1012,7 @@ def test_every_shipped_plan_is_simulated_or_refused_here() -> None:
 @SWEEP
 @pytest.mark.parametrize("name", SIMULATED)
 def test_a_shipped_plan_holds_on_the_simulation(name: str) -> None:
-    from rr_actors.experiments import load_plan  # noqa: PLC0415
+    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
 
     plan = load_plan(PLANS / f"{name}.toml")
 
@@ -1024,7 +1024,7 @@ def test_a_shipped_plan_holds_on_the_simulation(name: str) -> None:
 
 @SWEEP
 def test_killheavy_runs_its_kills_and_cuts_on_the_simulation() -> None:
-    from rr_actors.experiments import load_plan  # noqa: PLC0415
+    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
 
     plan = load_plan(PLANS / "killheavy.toml").with_changes(duration=2.0)
 
@@ -1037,7 +1037,7 @@ def test_killheavy_runs_its_kills_and_cuts_on_the_simulation() -> None:
 
 @SWEEP
 def test_a_compared_plan_runs_its_first_value_and_each_value_as_its_own_plan() -> None:
-    from rr_actors.experiments import load_plan  # noqa: PLC0415
+    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
 
     plan = load_plan(PLANS / "first.toml")
     (first, as_read), (second, other) = plan.variants
@@ -1058,7 +1058,7 @@ def test_a_compared_plan_runs_its_first_value_and_each_value_as_its_own_plan() -
 def test_a_shipped_plan_the_simulation_does_not_model_is_a_plan_error_naming_it(
     name: str, key: str, named: str
 ) -> None:
-    from rr_actors.experiments import load_plan  # noqa: PLC0415
+    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
 
     with pytest.raises(PlanError) as raised:
         simulate.simulate(load_plan(PLANS / f"{name}.toml"), range(1))
@@ -1266,7 +1266,7 @@ def test_a_yielded_name_its_supervisor_gives_up_on_is_not_lost_at_the_one_kept()
     # said "db is lost" to api, which made FATAL and forgot the ids it held at the db kept
     # on host a (held there to the end: 5 of 5 seeds violated `end`); it reconciles with
     # the one kept instead (rule 22), which holds them
-    solution = ROOT / "rr_actors" / "teach" / "exercises" / "cut" / "solution" / "plan.toml"
+    solution = ROOT / "rr_actors_lab" / "teach" / "exercises" / "cut" / "solution" / "plan.toml"
     text = solution.read_text().replace('restart = "transient"', 'restart = "permanent"', 1)
     assert 'restart = "permanent"' in text
     plan = parse_plan(text)
@@ -1292,7 +1292,7 @@ def test_a_cut_between_two_of_three_hosts_is_refused_naming_partition() -> None:
 
 @SWEEP
 def test_each_simulated_host_names_its_events_so_a_loss_across_hosts_is_judged_so() -> None:
-    from rr_actors.experiments import load_plan  # noqa: PLC0415
+    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
 
     plan = load_plan(PLANS / "simhosts.toml")  # (cuts past its lease: db lost across)
 

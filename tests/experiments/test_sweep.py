@@ -1,5 +1,5 @@
 """`rr-actors experiment PLAN --simulate --seeds A-B` and `rr-actors replay RUN --seed S`
-(`rr_actors.experiments.sweep`): a verdict and a hash per seed, the violating seeds named
+(`rr_actors_lab.experiments.sweep`): a verdict and a hash per seed, the violating seeds named
 and their histories kept, a replay that gives the same hash (exit 1 if not)."""
 
 from __future__ import annotations
@@ -19,9 +19,9 @@ import pytest
 
 from rr_actors.__main__ import main
 from rr_actors.errors import ConfigError
-from rr_actors.experiments import simulate, sweep
-from rr_actors.experiments.cli import Display
-from rr_actors.experiments.plan import Plan
+from rr_actors_lab.experiments import simulate, sweep
+from rr_actors_lab.experiments.cli import Display
+from rr_actors_lab.experiments.plan import Plan
 from tests.experiments.test_simulate import BASE, PLAN, plant_second_load, simkill
 from tests.support import selecting
 
@@ -37,7 +37,7 @@ equal request instead of a dedup hit (undone by the test's monkeypatch)."""
 
 from rr_actors._catalog.records import ResourceState
 from rr_actors._registrar.provider import Provider
-from rr_actors.experiments.services import service
+from rr_actors_lab.experiments.services import service
 
 _matched = Provider.matched
 
@@ -140,7 +140,7 @@ def test_a_planted_bug_names_the_violating_seeds_keeps_their_histories_and_repla
     monkeypatch.setattr(Provider, "matched", Provider.matched)  # (put back at the end)
     (tmp_path / "buggy.py").write_text(BUGGY)
     plan, out = tmp_path / "plan.toml", tmp_path / "out"
-    plan.write_text(PLAN.replace("rr_actors.experiments.services:service", "buggy:setup"))
+    plan.write_text(PLAN.replace("rr_actors_lab.experiments.services:service", "buggy:setup"))
     monkeypatch.syspath_prepend(str(tmp_path))
 
     code, printed = command(
@@ -303,7 +303,7 @@ folder exists), then serves as usual.\"\"\"
 import contextlib
 import os
 
-from rr_actors.experiments.services import service
+from rr_actors_lab.experiments.services import service
 
 
 def setup(registrar, *, fifo):
@@ -323,7 +323,7 @@ def marked_plan(folder: Path, fifo: Path) -> Path:
     plan = folder / "plan.toml"
     plan.write_text(
         PLAN.replace(
-            'name = "db"\nsetup = "rr_actors.experiments.services:service"',
+            'name = "db"\nsetup = "rr_actors_lab.experiments.services:service"',
             f'name = "db"\nsetup = "sweep_marker:setup"\noptions = {{ fifo = "{fifo}" }}',
         )
     )

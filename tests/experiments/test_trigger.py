@@ -1,4 +1,4 @@
-"""The trigger process (`rr_actors.experiments._trigger`): signals leave at their due time,
+"""The trigger process (`rr_actors_lab.experiments._trigger`): signals leave at their due time,
 through the pidfd they were given."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from rr_actors.experiments.inject import Trigger
+from rr_actors_lab.experiments.inject import Trigger
 
 
 @pytest.fixture

@@ -1,4 +1,4 @@
-"""The workload (`rr_actors.experiments.workload`) when a client cannot build a request: the
+"""The workload (`rr_actors_lab.experiments.workload`) when a client cannot build a request: the
 run fails, naming the cause; awaited and cancelled calls; fetches."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from rr_actors.experiments import ExperimentError, load_plan, run
+from rr_actors_lab.experiments import ExperimentError, load_plan, run
 
 PLAN = """\
 name = "bad-factory"
@@ -18,7 +18,7 @@ duration = 120.0  # longer than pytest-timeout: the run must end when the client
 [tree]
 [[tree.children]]
 name = "api"
-setup = "rr_actors.experiments.services:service"
+setup = "rr_actors_lab.experiments.services:service"
 isolation = "thread"
 
 [workload]
@@ -60,7 +60,7 @@ duration = 1.0
 [tree]
 [[tree.children]]
 name = "api"
-setup = "rr_actors.experiments.services:service"
+setup = "rr_actors_lab.experiments.services:service"
 options = { load_s = 0.002 }
 
 [workload]

@@ -1,4 +1,4 @@
-"""Injecting the mission's faults (`rr_actors.mission.faults`): where each one strikes, and
+"""Injecting the mission's faults (`rr_actors_lab.mission.faults`): where each one strikes, and
 following a manager through its restart."""
 
 from __future__ import annotations
@@ -12,10 +12,10 @@ from typing import Any, cast
 import pytest
 
 import rr_actors as rr
-from rr_actors.mission import MissionConfig
-from rr_actors.mission.faults import Faults, fault_points, retry_through_restarts
-from rr_actors.mission.hosts import Trees, managers_tree
 from rr_actors.testing import crash
+from rr_actors_lab.mission import MissionConfig
+from rr_actors_lab.mission.faults import Faults, fault_points, retry_through_restarts
+from rr_actors_lab.mission.hosts import Trees, managers_tree
 
 
 def test_a_fault_jittered_past_the_goal_strikes_at_the_goal() -> None:

@@ -1,4 +1,4 @@
-"""The mission's hosts (`rr_actors.mission.hosts`): `rr-actors demo --hosts 2`: the mission on
+"""The mission's hosts (`rr_actors_lab.mission.hosts`): `rr-actors demo --hosts 2`: the mission on
 two hosts (network namespaces), F6, cleanup.
 
 The demo runs as a command, as a user runs it: it makes two namespaces joined by a veth,
@@ -31,7 +31,8 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._transport.zenoh import presence
-from rr_actors.mission.hosts import (
+from rr_actors.testing import crash
+from rr_actors_lab.mission.hosts import (
     MEMBERS,
     SYSTEM,
     RobotHost,
@@ -41,8 +42,7 @@ from rr_actors.mission.hosts import (
     host_network,
     managers_tree,
 )
-from rr_actors.mission.run import main
-from rr_actors.testing import crash
+from rr_actors_lab.mission.run import main
 from tests.support.demos import (
     STEPS,
     assert_one_trace_per_step,
@@ -488,7 +488,7 @@ class TestWithThePage:
         monkeypatch.setattr(os, "geteuid", lambda: 0)  # (as root: the check of root passes)
         monkeypatch.setattr(shutil, "which", lambda name: f"/usr/sbin/{name}")
         made: list[object] = []
-        monkeypatch.setattr("rr_actors.mission.netns.TwoHosts.make", classmethod(made.append))
+        monkeypatch.setattr("rr_actors_lab.mission.netns.TwoHosts.make", classmethod(made.append))
         with socket.create_server(("127.0.0.1", 0)) as taken:
             port = taken.getsockname()[1]
 
@@ -519,7 +519,7 @@ class TestRobotHost:
     @pytest.fixture
     def hosts(self, tmp_path: Path) -> Iterator[tuple[rr.ZenohNetwork, RobotHost]]:
         """The station's network and the robot's host (started, rm seen served)."""
-        from rr_actors._tools import certs as certs_tool  # noqa: PLC0415 - the tls extra
+        from rr_actors_lab._tools import certs as certs_tool  # noqa: PLC0415 - the tls extra
 
         certs = tmp_path / "certs"
         certs_tool.init_ca(certs, SYSTEM)

@@ -1,4 +1,4 @@
-"""What the mission holds (`rr_actors.mission.loads`): `Loads.unload_now` (F6: cm's LiDARs let
+"""What the mission holds (`rr_actors_lab.mission.loads`): `Loads.unload_now` (F6: cm's LiDARs let
 go of at once) when the provider dies meanwhile.
 
 Seen in a two-host demo run under load: during F6's cut, cm was killed by its heartbeat
@@ -20,9 +20,9 @@ from pathlib import Path
 import pytest
 
 import rr_actors as rr
-from rr_actors.mission.config import MissionConfig
-from rr_actors.mission.loads import Loads
 from rr_actors.testing import SharedObjects
+from rr_actors_lab.mission.config import MissionConfig
+from rr_actors_lab.mission.loads import Loads
 from tests.registrar.test_consumer import dying_provider
 
 pytestmark = [

@@ -1,4 +1,4 @@
-"""The mission's managers (`rr_actors.mission.managers`): what the erm adopts after a
+"""The mission's managers (`rr_actors_lab.mission.managers`): what the erm adopts after a
 restart."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import uuid
 from pathlib import Path
 
 import rr_actors as rr
-from rr_actors.mission.managers import ProcessTable
-from rr_actors.mission.programs import start_time
+from rr_actors_lab.mission.managers import ProcessTable
+from rr_actors_lab.mission.programs import start_time
 from tests.support.demos import console_spans
 
 

@@ -1,4 +1,4 @@
-"""What `rr-actors demo` shows (`rr_actors.mission.output`): the story, the progress line and
+"""What `rr-actors demo` shows (`rr_actors_lab.mission.output`): the story, the progress line and
 the timeline, on a pipe or a terminal, within 80 columns."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from rich.console import Console
 
-from rr_actors.mission.output import (
+from rr_actors_lab.mission.output import (
     PlainOutput,
     Progress,
     RichOutput,
@@ -19,7 +19,7 @@ from rr_actors.mission.output import (
     progress_table,
     timeline,
 )
-from rr_actors.mission.run import parser, run
+from rr_actors_lab.mission.run import parser, run
 from tests.support.demos import ANSI, report_with_everything
 
 

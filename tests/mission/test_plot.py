@@ -1,4 +1,4 @@
-"""The mission's figure (`rr_actors.mission.plot`): `mission.png`: this run beside the thesis's
+"""The mission's figure (`rr_actors_lab.mission.plot`): `mission.png`: this run beside the thesis's
 run (figure 6.5), and a zoom on a stop.
 
 With `RR_DOCS_SCREENSHOTS=1` the last test runs the full mission and redraws the
@@ -25,10 +25,10 @@ import matplotlib.pyplot as plt
 from matplotlib.figure import Figure
 from matplotlib.image import imread
 
-from rr_actors.mission import FaultResult, MissionReport
-from rr_actors.mission.config import MissionConfig
-from rr_actors.mission.plot import plot, thesis_trace
-from rr_actors.mission.run import run_mission
+from rr_actors_lab.mission import FaultResult, MissionReport
+from rr_actors_lab.mission.config import MissionConfig
+from rr_actors_lab.mission.plot import plot, thesis_trace
+from rr_actors_lab.mission.run import run_mission
 
 DOCS_IMG = Path(__file__).resolve().parents[2] / "docs" / "img"
 

@@ -1,11 +1,11 @@
-"""Timing and the report (`rr_actors.mission.report`): the odometry log read back."""
+"""Timing and the report (`rr_actors_lab.mission.report`): the odometry log read back."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
-from rr_actors.mission.report import Odometry
+from rr_actors_lab.mission.report import Odometry
 
 
 def test_the_odometry_counts_a_gap_without_a_driver_as_a_stop(tmp_path: Path) -> None:

@@ -1,4 +1,4 @@
-"""Stepping (`rr_actors.mission.robot`'s `Step`): `rr-actors demo --step` on an 80-column
+"""Stepping (`rr_actors_lab.mission.robot`'s `Step`): `rr-actors demo --step` on an 80-column
 terminal: rich output, and pauses left out of time.
 
 A class takes its time before pressing Enter: here each Enter comes `PAUSE` seconds
@@ -19,11 +19,11 @@ from typing import Any
 
 import pytest
 
-from rr_actors.mission import programs
-from rr_actors.mission.config import MissionConfig
-from rr_actors.mission.report import MissionClock
-from rr_actors.mission.robot import PAUSE_SETTLE, Robot, Step
-from rr_actors.mission.run import parser, run
+from rr_actors_lab.mission import programs
+from rr_actors_lab.mission.config import MissionConfig
+from rr_actors_lab.mission.report import MissionClock
+from rr_actors_lab.mission.robot import PAUSE_SETTLE, Robot, Step
+from rr_actors_lab.mission.run import parser, run
 from tests.support import selecting
 
 ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
@@ -244,7 +244,7 @@ def test_step_in_a_real_80_column_terminal_waits_for_each_enter(tmp_path: Path) 
 def test_demo_step_pauses_before_each_fault_and_prints_the_pids(
     tmp_path: Path, process_helpers: Any, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from rr_actors.mission import run as demo  # noqa: PLC0415
+    from rr_actors_lab.mission import run as demo  # noqa: PLC0415
 
     monkeypatch.setattr(sys, "stdin", io.StringIO("\n" * 5))
     args = demo.parser().parse_args(["--fast", "--step", "--out", str(tmp_path)])

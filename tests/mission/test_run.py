@@ -1,4 +1,4 @@
-"""Running the thesis's mission (`rr_actors.mission.run`): `run_mission` and `rr-actors demo`,
+"""Running the thesis's mission (`rr_actors_lab.mission.run`): `run_mission` and `rr-actors demo`,
 in --fast mode, for real, and the command line's errors, Ctrl-C and `--out`.
 
 Every run starts three manager processes under a supervisor and the robot's programs as
@@ -22,17 +22,17 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
-from rr_actors.mission import FAULTS, MissionError, MissionReport
-from rr_actors.mission.action import Mission
-from rr_actors.mission.config import MissionConfig
-from rr_actors.mission.faults import fault_points
-from rr_actors.mission.output import (
+from rr_actors_lab.mission import FAULTS, MissionError, MissionReport
+from rr_actors_lab.mission.action import Mission
+from rr_actors_lab.mission.config import MissionConfig
+from rr_actors_lab.mission.faults import fault_points
+from rr_actors_lab.mission.output import (
     PlainOutput,
     Progress,
     timeline,
 )
-from rr_actors.mission.programs import start_time
-from rr_actors.mission.run import (
+from rr_actors_lab.mission.programs import start_time
+from rr_actors_lab.mission.run import (
     _hooks,
     _mission_clock,
     config_from_args,
@@ -188,7 +188,7 @@ def test_each_fault_alone_is_recovered_and_leaves_nothing_behind(
 def test_without_faults_the_robot_drives_through_and_the_demo_explains_the_missing_plot(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    monkeypatch.setitem(sys.modules, "rr_actors.mission.plot", None)  # as without matplotlib
+    monkeypatch.setitem(sys.modules, "rr_actors_lab.mission.plot", None)  # as without matplotlib
 
     code = main(["--fast", "--no-faults", "--distance", "2", "--out", str(tmp_path)])
     report = json.loads((tmp_path / "report.json").read_text())
@@ -641,7 +641,7 @@ def test_demo_observe_serves_the_final_state_until_ctrl_c_and_says_so(
 
 
 def test_allow_faults_without_observe_is_a_usage_error(tmp_path: Path) -> None:
-    from rr_actors.mission import run as demo  # noqa: PLC0415
+    from rr_actors_lab.mission import run as demo  # noqa: PLC0415
 
     args = demo.parser().parse_args(["--fast", "--allow-faults", "--out", str(tmp_path)])
 
@@ -654,7 +654,7 @@ def test_allow_faults_without_observe_is_a_usage_error(tmp_path: Path) -> None:
 def test_demo_observe_prints_the_url_and_serves_for_the_whole_run(
     tmp_path: Path, process_helpers: Any
 ) -> None:
-    from rr_actors.mission import run as demo  # noqa: PLC0415
+    from rr_actors_lab.mission import run as demo  # noqa: PLC0415
 
     args = demo.parser().parse_args(
         ["--fast", "--observe", "--linger", "0", "--out", str(tmp_path), "--quiet"]
@@ -673,7 +673,7 @@ def test_demo_observe_on_a_port_in_use_fails_before_the_mission(
 ) -> None:
     import socket  # noqa: PLC0415
 
-    from rr_actors.mission import run as demo  # noqa: PLC0415
+    from rr_actors_lab.mission import run as demo  # noqa: PLC0415
 
     taken = socket.socket()
     taken.bind(("127.0.0.1", 0))

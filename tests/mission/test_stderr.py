@@ -1,4 +1,4 @@
-"""`rr_actors.mission.stderr`: what any process of the demo writes to standard error while
+"""`rr_actors_lab.mission.stderr`: what any process of the demo writes to standard error while
 the live progress line shows, on a real terminal (a pseudo-terminal of 80 columns).
 
 The program under test is a user's, run as one: the demo's own output (`make_output` on
@@ -20,7 +20,7 @@ MANAGER_WRITES = textwrap.dedent(
     """
     import logging, sys
     import rr_actors as rr
-    from rr_actors.mission.output import Progress, make_output
+    from rr_actors_lab.mission.output import Progress, make_output
 
     def setup(erm):  # in the manager's process, logging not configured: to its stderr
         logging.getLogger("rr_actors").warning(

@@ -321,7 +321,7 @@ def view_system(argv: list[str], bound: float) -> dict[str, Any]:
     import urllib.request  # noqa: PLC0415
 
     from rr_actors.__main__ import build_parser  # noqa: PLC0415
-    from rr_actors.observe._commands import run_observe  # noqa: PLC0415
+    from rr_actors_lab.observe._commands import run_observe  # noqa: PLC0415
 
     printed = threading.Event()
 

@@ -458,7 +458,7 @@ def test_members_call_each_other_and_each_side_names_the_other(
 def unlinked_within(timeout: float) -> list[list[tuple[str, str]]]:
     """What this worker's link watch counts unlinked (`LinkWatch.unlinked`), looked at every
     `TICK` s for `timeout` s, as the watch looks: each non-empty answer."""
-    from rr_actors.observe._links import TICK  # noqa: PLC0415
+    from rr_actors_lab.observe._links import TICK  # noqa: PLC0415
 
     watch = hosts.KEPT["network"].beside  # (the lab's `Across`: its link watch)
     seen = []
@@ -507,7 +507,7 @@ def test_members_that_dial_each_other_are_linked_and_neither_warns(
 
 def grace() -> float:
     """Seconds a connect endpoint may stay unlinked before its WARNING."""
-    from rr_actors.observe._links import GRACE  # noqa: PLC0415
+    from rr_actors_lab.observe._links import GRACE  # noqa: PLC0415
 
     return GRACE
 

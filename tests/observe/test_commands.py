@@ -1,4 +1,4 @@
-"""The observer's commands (`rr_actors.observe._commands`): `rr-actors observe --state DIR` and
+"""The observer's commands (`rr_actors_lab.observe._commands`): `rr-actors observe --state DIR` and
 `rr-actors graph --state DIR`."""
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors.__main__ import main
-from rr_actors.observe import observe_backups
+from rr_actors_lab.observe import observe_backups
 from tests.support.observed_tree import REQUEST, figure_27
 from tests.support.observing import get_json, request, wait_state
 

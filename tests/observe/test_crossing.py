@@ -1,4 +1,4 @@
-"""What crosses hosts for the observer (`rr_actors.observe._crossing`): keys, JSON, and what is
+"""What crosses hosts for the observer (`rr_actors_lab.observe._crossing`): keys, JSON, and what is
 refused.
 
 Two plain Zenoh sessions of this process stand for two hosts on loopback (no rr_actors
@@ -29,17 +29,17 @@ import zenoh
 import rr_actors as rr
 from rr_actors import events
 from rr_actors._transport.zenoh.wire import ObserverKey
-from rr_actors.observe._crossing import (
+from rr_actors_lab.observe._crossing import (
     decode,
     valid_catalog,
     valid_event,
     valid_section,
     valid_tree,
 )
-from rr_actors.observe._faults import FaultRefused
-from rr_actors.observe._hub import Hub
-from rr_actors.observe._share import Share
-from rr_actors.observe._system import SystemView
+from rr_actors_lab.observe._faults import FaultRefused
+from rr_actors_lab.observe._hub import Hub
+from rr_actors_lab.observe._share import Share
+from rr_actors_lab.observe._system import SystemView
 from tests.support.observing import KEYS, request, services, wait_section
 from tests.support.supervising import echo_setup
 from tests.support.waiting import wait_for

@@ -1,4 +1,4 @@
-"""The observer's patches (`rr_actors.observe._delta`): what changed in a section, small, and
+"""The observer's patches (`rr_actors_lab.observe._delta`): what changed in a section, small, and
 exact when applied."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from typing import Any
 from hypothesis import given
 from hypothesis import strategies as st
 
-from rr_actors.observe._delta import apply, diff
+from rr_actors_lab.observe._delta import apply, diff
 
 _scalars = st.one_of(st.none(), st.booleans(), st.integers(-5, 5), st.text(max_size=3))
 _rows = st.lists(

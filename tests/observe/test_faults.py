@@ -1,4 +1,4 @@
-"""Teaching mode (`rr_actors.observe._faults`): the faults the page's buttons inject, against a
+"""Teaching mode (`rr_actors_lab.observe._faults`): the faults the page's buttons inject, against a
 real uvicorn on a loopback port, and what is refused."""
 
 from __future__ import annotations

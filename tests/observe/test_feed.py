@@ -1,4 +1,4 @@
-"""The system's event stream over Zenoh on one host (`rr_actors.observe._feed`).
+"""The system's event stream over Zenoh on one host (`rr_actors_lab.observe._feed`).
 
 A `ZenohNetwork` on loopback (plain TCP: nothing crosses a machine), its registrars, and
 a raw Zenoh session that attaches through the router's Unix socket (as a buggy member
@@ -34,7 +34,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import events
-from rr_actors.observe import _feed as zenoh_events
+from rr_actors_lab.observe import _feed as zenoh_events
 from tests.support import pki
 from tests.support.waiting import wait_for
 
@@ -160,7 +160,7 @@ def test_a_process_sends_its_events_only_while_someone_subscribes(
 def test_events_given_right_before_a_close_are_still_sent(net: rr.ZenohNetwork) -> None:
     # (a manager process's last events, as it stops: once dropped by a close that gave its
     # forwarder no time at all, and warned of on the demo's terminal)
-    from rr_actors.observe._feed import EventExport, decode  # noqa: PLC0415
+    from rr_actors_lab.observe._feed import EventExport, decode  # noqa: PLC0415
 
     keys = net.services().keys
     listening, exporting = _raw_session(net), _raw_session(net)
@@ -302,7 +302,7 @@ def test_a_batch_whose_events_weigh_more_than_the_bound_is_read_up_to_it_and_cou
 
 def _sealer(directory: Path, name: str, ca: Any, members: list[str]) -> Any:
     """A `Seal` with the certificate of member `name` (issued by `ca` into `directory`)."""
-    from rr_actors.observe._seal import Seal  # noqa: PLC0415 - cryptography
+    from rr_actors_lab.observe._seal import Seal  # noqa: PLC0415 - cryptography
 
     cert, key = pki.issue(directory, name, ["127.0.0.1"], ca=ca, key_type=KEY_TYPES[name])
     return Seal(rr.ZenohTLS(ca=ca[0], cert=cert, key=key, members=members), SEALED_SYSTEM)
@@ -330,7 +330,7 @@ def test_with_tls_the_host_of_an_event_is_the_member_whose_certificate_sealed_it
     stranger = _sealer(tmp_path, "stranger", ca, ["stranger"])  # (its CA, not a member)
     other_ca = pki.make_ca(tmp_path / "other", "lab")
     forger = _sealer(tmp_path / "other", "forger", other_ca, ["forger"])
-    from rr_actors.observe._seal import Seal  # noqa: PLC0415 - cryptography
+    from rr_actors_lab.observe._seal import Seal  # noqa: PLC0415 - cryptography
 
     elsewhere = Seal(rr.ZenohTLS(ca=ca[0], cert=cert, key=key, members=members), "elsewhere")
     claims_robot = _in_doubt("claims-robot", 10)  # (`host` "robot": this host's name)
@@ -387,7 +387,7 @@ def test_a_manager_process_that_takes_the_feed_imports_no_supervisor_and_no_web_
     supervisor (the observer's protocol lives beside it, `_supervision.watching`) nor
     the observer's web server."""
     code = (
-        "import sys, rr_actors.observe._feed; "
+        "import sys, rr_actors_lab.observe._feed; "
         "print(sorted(m for m in ('rr_actors._supervision.supervisor', 'starlette', "
         "'uvicorn') if m in sys.modules))"
     )

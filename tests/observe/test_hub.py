@@ -1,4 +1,4 @@
-"""What the page shows, kept once for every open page (`rr_actors.observe._hub`): sections,
+"""What the page shows, kept once for every open page (`rr_actors_lab.observe._hub`): sections,
 patches and the recent events."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from rr_actors.observe._hub import BATCH, Hub
+from rr_actors_lab.observe._hub import BATCH, Hub
 
 # -- the hub ---------------------------------------------------------------------------------
 

@@ -1,4 +1,4 @@
-"""The link watch (`rr_actors.observe._links`): host names looked up only
+"""The link watch (`rr_actors_lab.observe._links`): host names looked up only
 while unlinked, warnings once a minute; `TestWithTLS`: the handshake probe and the
 watch against real Zenoh listeners on loopback.
 """
@@ -19,9 +19,9 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
-from rr_actors.observe import _links as zenoh_watch
-from rr_actors.observe._links import GRACE, TICK, LinkWatch, handshake_trouble
 from rr_actors.testing import start_forkserver
+from rr_actors_lab.observe import _links as zenoh_watch
+from rr_actors_lab.observe._links import GRACE, TICK, LinkWatch, handshake_trouble
 from tests.support import pki
 from tests.support.tls_lab import (
     Lab,

@@ -1,4 +1,4 @@
-"""The `Observer` handle (`rr_actors.observe._observer`): a context manager that needs the extra,
+"""The `Observer` handle (`rr_actors_lab.observe._observer`): a context manager that needs the extra,
 and `Supervisor.observe(sock=...)`: the page served on a listening socket made by the caller;
 one across hosts left open as its program ends.
 
@@ -23,7 +23,7 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
-from rr_actors.observe import Observer
+from rr_actors_lab.observe import Observer
 from tests.support.observed_tree import figure_27
 from tests.support.observing import (
     base,
@@ -79,10 +79,10 @@ def test_the_observer_needs_the_observe_extra_to_serve(
 ) -> None:
     import sys  # noqa: PLC0415
 
-    import rr_actors.observe  # noqa: PLC0415
+    import rr_actors_lab.observe  # noqa: PLC0415
 
-    monkeypatch.setitem(sys.modules, "rr_actors.observe._server", None)  # as if not installed
-    monkeypatch.delattr(rr_actors.observe, "_server", raising=False)
+    monkeypatch.setitem(sys.modules, "rr_actors_lab.observe._server", None)  # as if not installed
+    monkeypatch.delattr(rr_actors_lab.observe, "_server", raising=False)
 
     with pytest.raises(rr.MissingExtraError, match=r"needs an extra: pip install .*\[observe\]"):
         tree.observe()

@@ -1,4 +1,4 @@
-"""The observer's page (`rr_actors/observe/static/`: its HTML and JavaScript) in a real browser:
+"""The observer's page (`rr_actors_lab/observe/static/`: its HTML and JavaScript) in a real browser:
 Playwright driving Debian's chromium.
 
 `playwright install` cannot download a browser here, so the tests launch the system's
@@ -172,7 +172,7 @@ def test_the_offline_page_shows_the_backups(
     app = sup.registrar("action")
     query = app.call("cm", "filtered_camera", REQUEST)
 
-    from rr_actors.observe import observe_backups  # noqa: PLC0415
+    from rr_actors_lab.observe import observe_backups  # noqa: PLC0415
 
     with observe_backups(state) as observer:  # (the files of a running tree: read-only)
         page.goto(observer.url)
@@ -403,7 +403,7 @@ class TestInAClass:
     def test_demo_allow_faults_shows_the_buttons_and_the_mission_time_and_lingers_after_the_end(
         self, tabs: Any, process_helpers: Any, tmp_path: Path
     ) -> None:
-        from rr_actors.mission import run as demo  # noqa: PLC0415
+        from rr_actors_lab.mission import run as demo  # noqa: PLC0415
 
         args = demo.parser().parse_args(
             [
@@ -461,7 +461,7 @@ class TestInAClass:
         sup = figure_27(supervisors, state_dir=state).start()
         action = sup.registrar("action")
         query = action.call("cm", "filtered_camera", REQUEST)
-        from rr_actors.observe import observe_backups  # noqa: PLC0415
+        from rr_actors_lab.observe import observe_backups  # noqa: PLC0415
 
         with observe_backups(state) as observer:
             page = tabs()

@@ -1,4 +1,4 @@
-"""The observer's web server (`rr_actors.observe._server`) and its event stream, against a real
+"""The observer's web server (`rr_actors_lab.observe._server`) and its event stream, against a real
 uvicorn on a loopback port: the page, the stream, bad input, who gets in and what a page costs."""
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import psutil
 import pytest
 
 import rr_actors as rr
-from rr_actors.observe import _hub, _server
+from rr_actors_lab.observe import _hub, _server
 from tests.support import selecting
 from tests.support.observed_tree import REQUEST, figure_27
 from tests.support.observing import (
@@ -202,7 +202,7 @@ def test_another_host_header_is_refused(tree: rr.Supervisor) -> None:
 
 
 def test_a_page_that_replays_nothing_has_no_step_control(tree: rr.Supervisor) -> None:
-    observer = tree.observe()  # (a replay's page has one: rr_actors.teach.replay)
+    observer = tree.observe()  # (a replay's page has one: rr_actors_lab.teach.replay)
     json_body = {"Content-Type": "application/json"}
 
     status, _, body = request(

@@ -1,4 +1,4 @@
-"""Where the page's sections come from (`rr_actors.observe._sources`): the observer's trust
+"""Where the page's sections come from (`rr_actors_lab.observe._sources`): the observer's trust
 boundary at a directory of backups (issue 21, bugs 1 and 5): looking at a backup runs nothing
 from it, and a crafted file fails fast; a live tree's status sent, named once; a live
 registrar's catalog read in its own process, which a hostile `__repr__` does not stop (bug 6)."""
@@ -28,8 +28,8 @@ from rr_actors._catalog.texts import NOT_SHOWN_OLD
 from rr_actors._store import SqliteStore, read_backup, schema
 from rr_actors._store.codec import dumps
 from rr_actors.config import SupervisorSpec
-from rr_actors.observe._hub import Hub
-from rr_actors.observe._sources import LiveSource, TreeAccess, event_dict, read_catalogs
+from rr_actors_lab.observe._hub import Hub
+from rr_actors_lab.observe._sources import LiveSource, TreeAccess, event_dict, read_catalogs
 
 
 def run(*argv: str) -> tuple[int, str]:

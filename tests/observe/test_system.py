@@ -1,4 +1,4 @@
-"""A page's view of every host (`rr_actors.observe._system`): a status sent on another host
+"""A page's view of every host (`rr_actors_lab.observe._system`): a status sent on another host
 is named once, as it enters the page's history, from what that host's provider published
 before it, not at each render from the page's copy of its catalog (issue 51).
 
@@ -27,9 +27,9 @@ import zenoh
 import rr_actors as rr
 from rr_actors import events
 from rr_actors.events import kinds
-from rr_actors.observe._hub import Hub
-from rr_actors.observe._share import Share
-from rr_actors.observe._system import SystemView
+from rr_actors_lab.observe._hub import Hub
+from rr_actors_lab.observe._share import Share
+from rr_actors_lab.observe._system import SystemView
 from tests.support import pki
 from tests.support.gating import GatedLoad
 from tests.support.observed_tree import device, figure_27

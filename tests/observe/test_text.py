@@ -1,4 +1,4 @@
-"""The supervision tree and the dependency graph as text (`rr_actors.observe._text`): Mermaid or
+"""The supervision tree and the dependency graph as text (`rr_actors_lab.observe._text`): Mermaid or
 Graphviz DOT, escaped, the same for the same catalogs."""
 
 from __future__ import annotations
@@ -6,8 +6,8 @@ from __future__ import annotations
 import pytest
 
 import rr_actors as rr
-from rr_actors.observe._text import render
-from rr_actors.observe._view import dependency_graph, summarise_catalog
+from rr_actors_lab.observe._text import render
+from rr_actors_lab.observe._view import dependency_graph, summarise_catalog
 from tests.support.observed_tree import REQUEST
 from tests.support.observing import figure_27, resource
 

@@ -1,4 +1,4 @@
-"""What the observer shows, as data (`rr_actors.observe._view`): catalog summaries, the
+"""What the observer shows, as data (`rr_actors_lab.observe._view`): catalog summaries, the
 dependency graph, and a resource read by what tells it apart (issue 24, item 2)."""
 
 from __future__ import annotations
@@ -6,8 +6,8 @@ from __future__ import annotations
 from typing import Any
 
 from rr_actors._catalog import Resource, ResourceState
-from rr_actors.observe._text import render
-from rr_actors.observe._view import (
+from rr_actors_lab.observe._text import render
+from rr_actors_lab.observe._view import (
     default_labels,
     dependency_graph,
     registrar_ranks,

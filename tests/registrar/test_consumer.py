@@ -509,7 +509,7 @@ class TestDurableConsumerKilled:
         # backup knows nothing of the call (presumed abort); its restart reconciles and
         # `db` releases the id. Re-seed if schedules drift (a seed where this is found).
         pytest.importorskip("greenlet")  # (the simulation extra)
-        from rr_actors.experiments import load_plan, plans, simulate  # noqa: PLC0415
+        from rr_actors_lab.experiments import load_plan, plans, simulate  # noqa: PLC0415
 
         run = simulate.run_seed(load_plan(plans.find("simchain")), 12)
 
@@ -960,7 +960,7 @@ class TestReconcile:
         # second reconcile the id of a client's call that failed as it died); so was
         # `killheavy` seed 9.
         pytest.importorskip("greenlet")  # (the simulation extra)
-        from rr_actors.experiments import load_plan, plans, simulate  # noqa: PLC0415
+        from rr_actors_lab.experiments import load_plan, plans, simulate  # noqa: PLC0415
 
         run = simulate.run_seed(load_plan(plans.find("simretry")), seed)
 

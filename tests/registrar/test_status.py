@@ -1292,7 +1292,7 @@ def test_each_callback_s_end_is_published_with_when_it_began_and_let_its_lane_go
     coroutine callback's too (on its loop, awaiting the send)."""
     from rr_actors import events  # noqa: PLC0415
     from rr_actors._registrar import start_registrar  # noqa: PLC0415
-    from rr_actors.experiments._status_rules import status_order  # noqa: PLC0415
+    from rr_actors_lab.experiments._status_rules import status_order  # noqa: PLC0415
 
     upstream = events.publisher()
     handled: list[events.StatusHandled] = []

@@ -839,7 +839,7 @@ def host_main(
     control: multiprocessing.connection.Connection,
 ) -> None:
     """The robot's host: its router, a supervisor of manager process `provider`; on
-    "stop", the tree stops, then the network closes (as `rr_actors.mission.hosts.main`)."""
+    "stop", the tree stops, then the network closes (as `rr_actors_lab.mission.hosts.main`)."""
     net = rr.ZenohNetwork(system=system, listen=[listen], connect=[connect], tls=None)
     sup = rr.Supervisor(
         [rr.ManagerSpec(provider, setup=setup_servers, isolation="process", restart="permanent")],

@@ -476,7 +476,7 @@ def test_a_restarted_consumer_giving_up_a_sub_call_its_provider_then_loses_check
     # The checker used to see neither the release (lost with the kill) nor the consumer
     # forgetting the id (a restored record dropped unannounced): "lost in a restore,
     # neither released nor reported FATAL".
-    from rr_actors.experiments.check import check  # noqa: PLC0415
+    from rr_actors_lab.experiments.check import check  # noqa: PLC0415
 
     p, c = f"p-{uid}", f"c-{uid}"
     sup = supervisors(
@@ -687,7 +687,7 @@ def _run(code: str) -> list[str]:
     return done.stdout.splitlines()
 
 
-LAB = 'sorted(m for m in sys.modules if m.startswith("rr_actors.observe"))'
+LAB = 'sorted(m for m in sys.modules if m.startswith("rr_actors_lab.observe"))'
 
 
 def test_a_supervisor_of_a_process_that_attached_no_observer_says_how_to_attach_one() -> None:
@@ -706,12 +706,14 @@ def test_a_supervisor_of_a_process_that_attached_no_observer_says_how_to_attach_
         except ConfigError as exc:
             print("refused:", exc)
         print({LAB})
-        import rr_actors.observe
+        import rr_actors_lab.observe
         print(sup.graph().splitlines()[0])
         """
     )
 
-    assert "refused: no observer is attached in this process: import rr_actors.observe" in refused
+    assert (
+        "refused: no observer is attached in this process: import rr_actors_lab.observe" in refused
+    )
     assert ("[]", "flowchart TB") == (imported, drawn)
 
 
@@ -724,7 +726,7 @@ def test_rr_supervisor_finds_the_observer_itself_importing_it_at_the_first_graph
         sup = rr.Supervisor(rr.SupervisorSpec("root", ()))
         print({LAB})
         print(sup.graph().splitlines()[0])
-        print("rr_actors.observe._observer" in {LAB})
+        print("rr_actors_lab.observe._observer" in {LAB})
         """
     )
 

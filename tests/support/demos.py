@@ -16,7 +16,7 @@ from typing import Any
 
 import psutil
 
-from rr_actors.mission import FAULTS, FaultResult, MissionReport, UnplannedRestart
+from rr_actors_lab.mission import FAULTS, FaultResult, MissionReport, UnplannedRestart
 from tests.support import selecting
 
 ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")

@@ -27,8 +27,8 @@ import rr_actors as rr
 from rr_actors._catalog import ClientRecord, Resource, ResourceState
 from rr_actors._transport.zenoh.net import Services
 from rr_actors._transport.zenoh.wire import Keys
-from rr_actors.observe._delta import apply
-from rr_actors.observe._view import short, summarise_catalog
+from rr_actors_lab.observe._delta import apply
+from rr_actors_lab.observe._view import short, summarise_catalog
 from tests.support.observed_tree import REQUEST
 
 CHROMIUM = os.environ.get("RR_CHROMIUM", "/usr/bin/chromium")
@@ -251,8 +251,8 @@ class HeldMission:
 def mission_held_before(fault: str, out: Path) -> Iterator[HeldMission]:
     """Run the `--fast` mission under an observer; it stops before `fault` (e.g. "F4")
     until the block ends, then finishes (joined, with a bound)."""
-    from rr_actors.mission.config import MissionConfig  # noqa: PLC0415 - the mission is big
-    from rr_actors.mission.run import run_mission  # noqa: PLC0415
+    from rr_actors_lab.mission.config import MissionConfig  # noqa: PLC0415 - the mission is big
+    from rr_actors_lab.mission.run import run_mission  # noqa: PLC0415
 
     urls: list[str] = []
     opened, held, go_on = threading.Event(), threading.Event(), threading.Event()

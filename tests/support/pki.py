@@ -3,7 +3,7 @@
 `make_ca` writes a system's CA; `issue` writes a host's certificate and key, signed by a CA
 or self-signed, and can make the odd ones a test needs (expired, not yet valid, another
 CA, no clientAuth, a key type Zenoh's TLS cannot use). Files are PEM; keys are PKCS#8,
-unencrypted, mode 0600. The shape follows `rr-actors certs` (rr_actors/_tools/certs.py)
+unencrypted, mode 0600. The shape follows `rr-actors certs` (rr_actors_lab/_tools/certs.py)
 unless told otherwise:
 
     ca_pem, ca_key = make_ca(tmp_path)

@@ -1,4 +1,4 @@
-"""`rr-actors teach` (`rr_actors.teach.cli`), run as a student runs it: a real
+"""`rr-actors teach` (`rr_actors_lab.teach.cli`), run as a student runs it: a real
 `python -m rr_actors` process per command. Each exercise's starter fails its check and its
 solution passes (on a few seeds: the benchmark runs the exercises' 200); the JSON report;
 hints remembered in the folder; the solution behind `--teacher`; bad input said."""
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from rr_actors.teach import cli, grade, kit
+from rr_actors_lab.teach import cli, grade, kit
 from tests.support.observing import request
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -1,4 +1,4 @@
-"""A check of a student's folder (`rr_actors.teach.grade`), in this process: the report,
+"""A check of a student's folder (`rr_actors_lab.teach.grade`), in this process: the report,
 the failure told (the rule, the violating event, a story of at most 20 steps), the
 student's modules read afresh, a setup that raises said as such."""
 
@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from rr_actors.experiments import check
-from rr_actors.teach import grade, kit
-from rr_actors.teach.rules import RULES
+from rr_actors_lab.experiments import check
+from rr_actors_lab.teach import grade, kit
+from rr_actors_lab.teach.rules import RULES
 
 
 def solve(name: str, folder: Path) -> None:

@@ -1,4 +1,4 @@
-"""The exercises and a student's folder (`rr_actors.teach.kit`)."""
+"""The exercises and a student's folder (`rr_actors_lab.teach.kit`)."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 
 from rr_actors import ConfigError
-from rr_actors.experiments.reading import load_plan
-from rr_actors.teach import STEPS, kit
-from rr_actors.teach.rules import RULES
+from rr_actors_lab.experiments.reading import load_plan
+from rr_actors_lab.teach import STEPS, kit
+from rr_actors_lab.teach.rules import RULES
 
 
 @pytest.mark.parametrize("chosen", kit.exercises(), ids=lambda e: e.name)

@@ -1,4 +1,4 @@
-"""A simulated seed replayed step by step (`rr_actors.teach.replay`): what each step shows
+"""A simulated seed replayed step by step (`rr_actors_lab.teach.replay`): what each step shows
 is what the run's events say (the tree, the catalogs, what is in flight, the story), and
 the observer's page in a real chromium (Playwright) plays, pauses, steps, steps back and
 scrubs to an event; live, a manager's kill and cut run the seed again with that fault.
@@ -19,7 +19,7 @@ import pytest
 
 from rr_actors import events
 from rr_actors.errors import ConfigError
-from rr_actors.teach import grade, kit, replay
+from rr_actors_lab.teach import grade, kit, replay
 from tests.support.observing import CHROMIUM_ARGS, chromium, request
 
 DOCS_IMG = Path(__file__).resolve().parents[2] / "docs" / "img"

@@ -1,11 +1,11 @@
-"""The kit's own rules (`rr_actors.teach.rules`): `dependency`, `survives`, `alone`,
+"""The kit's own rules (`rr_actors_lab.teach.rules`): `dependency`, `survives`, `alone`,
 `back`, `once`, `warned`, `loaded` and `kept`, each on events built here, the line numbers as a
 history's."""
 
 from __future__ import annotations
 
 from rr_actors import Status, events
-from rr_actors.teach.rules import (
+from rr_actors_lab.teach.rules import (
     MARGIN_S,
     ROUND_S,
     RULES,

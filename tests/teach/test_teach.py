@@ -1,4 +1,4 @@
-"""The kit's public seam (`rr_actors.teach`): a protocol step replaced inside a block,
+"""The kit's public seam (`rr_actors_lab.teach`): a protocol step replaced inside a block,
 the registrar's own code back after it; the shipped steps as functions."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from rr_actors import ConfigError, Status
-from rr_actors.teach import STEPS, replaced_step, shipped_step
+from rr_actors_lab.teach import STEPS, replaced_step, shipped_step
 
 
 def test_the_shipped_climb_goes_to_the_parent_it_serves_whatever_the_status() -> None:

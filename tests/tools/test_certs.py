@@ -1,4 +1,4 @@
-"""A system's certificates (`rr_actors._tools.certs`): `rr-actors certs init` and
+"""A system's certificates (`rr_actors_lab._tools.certs`): `rr-actors certs init` and
 `rr-actors certs issue`, a system's CA and its hosts' certificates.
 
 Run through `rr_actors.__main__.main` and once through the installed console script; the
@@ -29,8 +29,8 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 import rr_actors as rr
 from rr_actors.__main__ import main
-from rr_actors._tools.certs import issue_cert
 from rr_actors.errors import ConfigError
+from rr_actors_lab._tools.certs import issue_cert
 from tests.support.pki import make_ca
 from tests.support.tls_lab import free_port, router
 

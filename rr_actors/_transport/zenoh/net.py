@@ -92,7 +92,7 @@ class Opened:
 
 
 class Beside(Protocol):
-    """What runs beside a process's Zenoh session (`rr_actors.observe._feed`, attached
+    """What runs beside a process's Zenoh session (`rr_actors_lab.observe._feed`, attached
     from above by `attach_beside`): made as the session opens, closed before."""
 
     def subscribe_events(
@@ -540,7 +540,7 @@ class ZenohNetwork(Messenger):
         Raises:
             ConfigError: `callback` is not callable, `window` not seconds from 0 to 60,
                 or `maxsize` not a positive int; or the event feed is not attached (the
-                runtime alone, without `rr_actors.observe`).
+                runtime alone, without `rr_actors_lab.observe`).
             RegistrarStoppedError: this process left the system (`close()`).
         """
         if not callable(callback):  # (before the session opens)
@@ -551,7 +551,7 @@ class ZenohNetwork(Messenger):
             raise RegistrarStoppedError("this process left the system")
         if self.beside is None:
             raise ConfigError(
-                "the event stream across hosts is the observer's: import rr_actors.observe "
+                "the event stream across hosts is the observer's: import rr_actors_lab.observe "
                 "before the network opens (rr.ZenohNetwork does)"
             )
         return self.beside.subscribe_events(callback, window, maxsize)

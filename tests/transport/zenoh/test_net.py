@@ -410,7 +410,7 @@ def test_import_rr_actors_does_not_import_zenoh() -> None:
 def test_a_network_of_the_runtime_alone_runs_nothing_beside_its_session() -> None:
     """The runtime reads alone (issue 54): a `ZenohNetwork` made from its module, in a
     process that never imported the lab, opens and serves without it (no event feed, no
-    link watch: `Beside`), imports nothing of `rr_actors.observe`, and its
+    link watch: `Beside`), imports nothing of `rr_actors_lab.observe`, and its
     `subscribe_events` names the import that attaches the feed."""
     code = textwrap.dedent(
         """
@@ -425,7 +425,7 @@ def test_a_network_of_the_runtime_alone_runs_nothing_beside_its_session() -> Non
                 net.subscribe_events(print)
             except ConfigError as exc:
                 print("refused:", exc)
-            print(sorted(m for m in sys.modules if m.startswith("rr_actors.observe")))
+            print(sorted(m for m in sys.modules if m.startswith("rr_actors_lab.observe")))
         finally:
             net.close()
         """
@@ -454,8 +454,8 @@ def test_rr_zenoh_network_runs_the_labs_feed_and_watch_beside_and_hands_them_on(
         kind = type(net.beside)
 
         named = [f"{each.__module__}.{each.__qualname__}" for each in (beside, kind)]
-        assert ["rr_actors.observe._feed.Across"] * 2 == named
-        assert b"rr_actors.observe._feed" in pickle.dumps(net.address)
+        assert ["rr_actors_lab.observe._feed.Across"] * 2 == named
+        assert b"rr_actors_lab.observe._feed" in pickle.dumps(net.address)
     finally:
         net.close()
 

@@ -25,11 +25,11 @@ import pytest
 import zenoh
 
 import rr_actors as rr
-from rr_actors._tools import certs as certs_tool
 from rr_actors._transport.codec import frame
 from rr_actors._transport.zenoh.ops.config import session_config
-from rr_actors.observe._links import LinkWatch, handshake_trouble
 from rr_actors.testing import RemoteRegistrar, start_forkserver
+from rr_actors_lab._tools import certs as certs_tool
+from rr_actors_lab.observe._links import LinkWatch, handshake_trouble
 from tests.support import pki
 from tests.support.supervising import process
 from tests.support.tls_lab import MEMBERS, Lab, Logged, caught_log, free_port, listener, open_router

@@ -21,9 +21,9 @@ import pytest
 import zenoh
 
 import rr_actors as rr
-from rr_actors._tools import certs as certs_tool
 from rr_actors._transport.zenoh.ops.tls import member_addresses
 from rr_actors.errors import ConfigError
+from rr_actors_lab._tools import certs as certs_tool
 from tests.support import pki
 from tests.support.pki import DAY, issue, make_ca, make_intermediate
 from tests.test_docs import ROOT, blocks, commands

@@ -1,0 +1,561 @@
+"""The consumer's side of a run (rules `answered`, `reported-lost`, `end`, `withdrawn`,
+`retry-kept`, `left`, `fetch`).
+
+```
+ steps ──► answered: each consumer's answered calls against what its providers added
+ QueryForgotten + the provider pass's holdings ──► reported_lost
+ steps (+ the history's exits) ──► end: what providers still hold for stopped consumers
+ steps ──► withdrawn: what providers still hold of withdrawn calls
+ steps ──► retry-kept: a failed call's id released while its consumer could retry it
+ steps (+ the give-ups) ──► left: a last stop's rows no running consumer holds
+ steps + holdings ──► fetch: QueriesFetched, ServerQueriesListed against what was held
+```
+
+Each rule's windows and what it excuses: docs/how-to/check-a-run.md.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Collection, Sequence
+
+from rr_actors import events
+from rr_actors_lab.experiments._history import REPORTED, Facts, Finding, Life, Line, Step
+from rr_actors_lab.experiments._provider_rules import Holding
+from rr_actors_lab.experiments._status_rules import Span
+
+__all__ = [
+    "WITHDRAWN_BOUND_S",
+    "answered",
+    "end",
+    "fetch",
+    "left",
+    "reported_lost",
+    "retry_kept",
+    "withdrawn",
+]
+
+_SHOWN = 3
+"""Rows of a `left` finding whose first line its window shows (besides the stop's)."""
+
+
+def answered(  # noqa: PLR0912 - one branch per event kind
+    steps: Sequence[Step], facts: Facts, wanted: Collection[tuple[str, str]]
+) -> tuple[list[Finding], dict[tuple[str, str], list[Span]]]:
+    """`answered`: each call's consumer side against its provider; the findings, and the spans
+    each (consumer, query id) of `wanted` held it in (`status-reached`)."""
+    findings: list[Finding] = []
+    held: dict[str, dict[str, int]] = defaultdict(dict)  # consumer -> answered id -> line
+    restored: dict[str, dict[str, int]] = defaultdict(dict)  # consumer -> restored id -> line
+    spans: dict[tuple[str, str], list[Span]] = defaultdict(list)
+
+    def found(message: str, lines: tuple[int, ...], *registrars: str) -> None:
+        findings.append(Finding("answered", "violation", message, lines, registrars))
+
+    def began(name: str, qid: str, life: int, stamp: int) -> None:
+        key = (name, qid)
+        if key in wanted:
+            kept = spans[key]
+            if not kept or kept[-1][0] != life or kept[-1][2] is not None:
+                kept.append((life, stamp, None, 0))
+
+    def ended(name: str, qid: str, stamp: int, line: int) -> None:
+        key = (name, qid)
+        if key in wanted and spans.get(key) and spans[key][-1][2] is None:
+            life, since, _, _ = spans[key][-1]
+            spans[key][-1] = (life, since, stamp, line)
+
+    for name, line, event, new, life in steps:
+        if new:
+            held[name].clear()
+            restored[name].clear()
+        if isinstance(event, events.CatalogRestored):
+            restored[name] = {row[0]: line for row in event.clients}
+            for qid in restored[name]:
+                began(name, qid, life, event.hlc)
+        elif isinstance(event, events.CallAnswered):
+            qid = event.query_id
+            if qid in held[name] and not event.retry:
+                found(
+                    f"{name}: call {qid[:8]} answered twice, not as a retry",
+                    (held[name][qid], line),
+                    name,
+                )
+            if qid not in facts.added:
+                found(
+                    f"{name}: call {qid[:8]} answered, but {event.serving_rr} never added "
+                    f"it (no ConsumerAdded)",
+                    (line,),
+                    name,
+                    event.serving_rr,
+                )
+            held[name].setdefault(qid, line)
+            began(name, qid, life, event.hlc)
+        elif isinstance(event, events.QueryForgotten):
+            qid = event.query_id
+            if held[name].pop(qid, None) is None and qid not in restored[name]:
+                found(
+                    f"{name}: query {qid[:8]} forgotten ({event.reason}) but not held",
+                    (line,),
+                    name,
+                )
+            restored[name].pop(qid, None)
+            ended(name, qid, event.hlc, line)
+        elif isinstance(event, events.RegistrarStopped) and event.complete:
+            listed = {row[0] for row in event.clients}
+            for how, ids in (("answered", held[name]), ("restored", restored[name])):
+                for qid, at in ids.items():
+                    if qid not in listed:
+                        found(
+                            f"{name}: call {qid[:8]} {how}, but at its stop neither "
+                            f"forgotten nor listed",
+                            (at, line),
+                            name,
+                        )
+            held[name].clear()
+            restored[name].clear()
+    return findings, spans
+
+
+def reported_lost(
+    history: Sequence[Line],
+    holdings: dict[tuple[str, str], list[Holding]],
+    lives: dict[tuple[str, int], Life],
+) -> list[Finding]:
+    """`reported-lost`: a consumer tells itself `FATAL` for an id only if its provider lost it.
+
+    `unknown at reconcile` (rule 20): the provider's life that answered had not added it, or
+    had released it. `provider lost` (rule 19): the life that held it died; one seen alive
+    after on the same host was not lost (across hosts a cut counts as lost), unless it let the
+    id go at its reconcile with the consumer.
+    """
+    reconciled: set[tuple[str, str, str, int]] = {
+        (e.registrar, e.consumer, e.query_id, e.hlc)
+        for _, e in history
+        if isinstance(e, events.ConsumerReleased) and e.reason == "reconcile"
+    }
+    findings: list[Finding] = []
+    seconds: dict[str, list[Life]] = defaultdict(list)  # name -> lives of second servers
+    for life in lives.values():
+        if life.beside is not None:
+            seconds[life.beside[0]].append(life)
+    for line, event in history:
+        if not isinstance(event, events.QueryForgotten) or event.reason not in REPORTED:
+            continue
+        provider, qid, stamp = event.serving_rr, event.query_id, event.hlc
+        if any(s.start <= stamp and not s.ended_before(stamp) for s in seconds[provider]):
+            continue  # (two served the name, behind a cut: either may have answered)
+        for holding in holdings.get((provider, qid), ()):
+            if holding.since >= stamp or (holding.until is not None and holding.until <= stamp):
+                continue
+            life = lives[provider, holding.life]
+            if life.ended_before(stamp):
+                continue
+            if event.reason == "provider lost" and not (
+                life.last > stamp and life.host and life.host == event.host
+            ):
+                continue
+            if event.reason == "provider lost" and (
+                (provider, event.registrar, qid, holding.until) in reconciled
+            ):
+                continue  # (behind a cut: reconciled once heard again)
+            findings.append(
+                Finding(
+                    "reported-lost",
+                    "violation",
+                    f"{event.registrar}: query {qid[:8]} told FATAL ({event.reason}) and "
+                    f"forgotten, but {provider} held it (added in its life that "
+                    f"{'answered' if event.reason != 'provider lost' else 'ran on'}, not "
+                    f"released)",
+                    (holding.line, line),
+                    (event.registrar, provider),
+                )
+            )
+            break
+    return findings
+
+
+def end(steps: Sequence[Step], history: Sequence[Line]) -> list[Finding]:
+    """`end`: at the end, no provider holds an id of a consumer that stopped (life by life: a new
+    life holds what its `CatalogRestored` lists, or nothing)."""
+    stopped: dict[str, int] = {}  # consumer -> line of its (last) RegistrarStopped
+    last_pid: dict[str, int] = {}
+    exited: dict[tuple[str, int], int] = {}  # (child, pid) -> line of its ChildExited
+    for line, event in history:
+        if isinstance(event, events.ChildExited):
+            exited.setdefault((event.child, event.pid), line)
+    held: dict[str, dict[str, tuple[str, int]]] = defaultdict(dict)  # provider -> qid -> ...
+    for name, line, event, new, _life in steps:
+        if new:
+            stopped.pop(name, None)  # it came back
+            held[name].clear()  # (a restore lists what it holds again)
+        if isinstance(event, events.RegistrarStopped):
+            stopped[name] = line
+            for qid, _rid, consumer, *_ in event.consumers:
+                held[name].setdefault(qid, (consumer, line))
+            continue
+        last_pid[name] = event.pid
+        if isinstance(event, events.CatalogRestored):
+            held[name] = {qid: (c, line) for qid, _rid, c, *_ in event.consumers}
+        elif isinstance(event, events.ConsumerAdded):
+            held[name][event.query_id] = (event.consumer, line)
+        elif isinstance(event, events.ConsumerReleased):
+            held[name].pop(event.query_id, None)
+    findings = []
+    for provider, ids in held.items():
+        down = stopped.get(provider, exited.get((provider, last_pid.get(provider, -1))))
+        for qid, (consumer, line) in ids.items():
+            # a provider down when its consumer stopped is told at its next start (rule 12)
+            up = consumer in stopped and (down is None or down > stopped[consumer])
+            if up and consumer != provider:
+                findings.append(
+                    Finding(
+                        "end",
+                        "violation",
+                        f"{provider} still holds query {qid[:8]} of {consumer}, which stopped",
+                        (line, stopped[consumer]),
+                        (provider, consumer),
+                    )
+                )
+    return findings
+
+
+WITHDRAWN_BOUND_S = 1.0
+"""Seconds by which a provider has released a withdrawn id it holds, counted from the
+withdrawal or from when that life of the provider began to hold it, whichever is later
+(its `Abandon`, or the reconcile after its restart, takes milliseconds)."""
+
+
+def withdrawn(steps: Sequence[Step]) -> list[Finding]:
+    """`withdrawn` (rules 17, 20): a call its consumer withdrew leaves nothing held.
+
+    A `CallWithdrawn` not answered later (a retry) is released by its `Abandon` or at the
+    restarted provider's reconcile; a provider's life holding it `WITHDRAWN_BOUND_S` after
+    the withdrawal (wall clock `at`) is a violation.
+    """
+    called: dict[tuple[str, str], tuple[int, float, str]] = {}  # (consumer, id) -> ...
+    # provider -> id -> (consumer, line, since): held in its current life
+    holding: dict[str, dict[str, tuple[str, int, float]]] = defaultdict(dict)
+    # (provider, id) -> [(consumer, line, since, until)]: each span a life held it
+    spans: dict[tuple[str, str], list[tuple[str, int, float, float]]] = defaultdict(list)
+    last: dict[str, float] = {}  # provider -> `at` of its last event
+
+    def close(name: str, qid: str, until: float) -> None:
+        consumer, line, since = holding[name].pop(qid)
+        spans[name, qid].append((consumer, line, since, until))
+
+    for name, line, event, new, _life in steps:
+        if new:
+            for qid in list(holding[name]):  # (the life before ended with its last event)
+                close(name, qid, last.get(name, event.at))
+        last[name] = event.at
+        if isinstance(event, events.CallWithdrawn):
+            called[name, event.query_id] = (line, event.at, event.serving_rr)
+        elif isinstance(event, events.CallAnswered):
+            called.pop((name, event.query_id), None)  # (answered again: held, a retry)
+        elif isinstance(event, events.CatalogRestored):
+            holding[name] = {qid: (c, line, event.at) for qid, _rid, c, *_ in event.consumers}
+        elif isinstance(event, events.ConsumerAdded):
+            holding[name][event.query_id] = (event.consumer, line, event.at)
+        elif isinstance(event, events.ConsumerReleased) and event.query_id in holding[name]:
+            close(name, event.query_id, event.at)
+    for name, held in holding.items():  # (held to the end of the run)
+        for qid in list(held):
+            close(name, qid, last[name])
+    return _held_on(called, spans)
+
+
+def retry_kept(steps: Sequence[Step]) -> list[Finding]:
+    """`retry-kept` (rule 17 case 3, rule 20): a failed call's id waits for its retry.
+
+    A call that failed as its provider died (`CallFailed.may_have_executed`) may have run; the
+    next life that restores the id keeps it while its consumer could still retry it (no new
+    life or stop of the consumer, no answer, withdrawal or forgetting of the id, no load or
+    unload of its own ended). Releasing it by a reconcile meanwhile is a violation.
+    """
+    findings: list[Finding] = []
+    # (consumer, id) -> (line of its failure, provider, the provider's life that restored
+    # it since: None until one did)
+    waiting: dict[tuple[str, str], tuple[int, str, int | None]] = {}
+    lives: dict[str, int] = {}  # registrar -> its current life
+
+    def forget_all(consumer: str) -> None:
+        for key in [k for k in waiting if k[0] == consumer]:
+            del waiting[key]
+
+    for name, line, event, new, life in steps:
+        lives[name] = life
+        if new:
+            forget_all(name)
+        if isinstance(event, events.CallFailed):
+            waiting.pop((name, event.query_id), None)
+            if event.may_have_executed:
+                waiting[name, event.query_id] = (line, event.serving_rr, None)
+        elif isinstance(event, events.CallAnswered | events.CallWithdrawn | events.QueryForgotten):
+            waiting.pop((name, event.query_id), None)
+        elif isinstance(
+            event, events.RegistrarStopped | events.LoadFailed | events.ResourceUnloaded
+        ):
+            forget_all(name)
+        if isinstance(event, events.CatalogRestored):
+            for qid, _rid, consumer, *_ in event.consumers:
+                key = (consumer, qid)
+                if key in waiting and waiting[key][1] == name:
+                    failed, provider, restored = waiting[key]
+                    if restored is None:
+                        waiting[key] = (failed, provider, life)
+                    elif restored != life:
+                        del waiting[key]  # (a later life: it may release it)
+        elif (
+            isinstance(event, events.ConsumerReleased)
+            and event.reason == "reconcile"
+            and waiting.get((event.consumer, event.query_id), (0, "", None))[1:] == (name, life)
+        ):
+            failed = waiting.pop((event.consumer, event.query_id))[0]
+            findings.append(
+                Finding(
+                    "retry-kept",
+                    "violation",
+                    f"{name} released query {event.query_id[:8]} of {event.consumer} at a "
+                    f"reconcile of the life that restored it, while {event.consumer} could "
+                    f"still retry that call, which failed as {name} died (rule 17)",
+                    (failed, line),
+                    (name, event.consumer),
+                )
+            )
+    return findings
+
+
+def _held_on(
+    called: dict[tuple[str, str], tuple[int, float, str]],
+    spans: dict[tuple[str, str], list[tuple[str, int, float, float]]],
+) -> list[Finding]:
+    """`withdrawn`'s findings: each withdrawal (`called`) whose provider held the id for
+    `WITHDRAWN_BOUND_S` after it, in one of the `spans` that life held it."""
+    findings = []
+    for (consumer, qid), (line, at, provider) in called.items():
+        for holder, added, since, until in spans.get((provider, qid), ()):
+            kept = until - max(since, at)
+            if holder == consumer and kept >= WITHDRAWN_BOUND_S:
+                findings.append(
+                    Finding(
+                        "withdrawn",
+                        "violation",
+                        f"{provider} held query {qid[:8]} of {consumer} for {kept:.1f} s "
+                        f"after {consumer} withdrew that call, and after that life of "
+                        f"{provider} began to hold it",
+                        (line, added),
+                        (provider, consumer),
+                    )
+                )
+                break
+    return findings
+
+
+def left(
+    steps: Sequence[Step], history: Sequence[Line], lives: dict[tuple[str, int], Life]
+) -> list[Finding]:
+    """`left`: a registrar's last stop lists no row that a consumer still running does not hold.
+
+    A client row is left unless it is a dependency of a resource that is not; a resource kept
+    `unloading` is not left. Not judged: a stop that is not the registrar's last event, one
+    not `complete`, a second server's, and a last life in or after which a supervisor gave up
+    (its children stop with their consumers' rows).
+    """
+    gave_up = [line for line, e in history if isinstance(e, events.SupervisorGaveUp)]
+    last_line: dict[str, int] = {}
+    stops: dict[str, tuple[int, events.RegistrarStopped, int]] = {}
+    came: dict[tuple[str, str], int] = {}  # (registrar, resource or query id) -> last line
+    for name, line, event, _new, life in steps:
+        last_line[name] = line
+        if isinstance(event, events.RegistrarStopped):
+            stops[name] = (line, event, life)
+        elif isinstance(event, events.ResourceLoaded):
+            came[name, event.resource_id] = line
+        elif isinstance(event, events.CallAnswered):
+            came[name, event.query_id] = line
+        elif isinstance(event, events.CatalogRestored):  # (listed again: the latest shows it)
+            for row in (*event.resources, *event.clients):
+                came[name, row[0]] = line
+    final = {name: line for name, (line, _, _) in stops.items() if last_line[name] == line}
+    findings = []
+    for name, (line, stop, life) in stops.items():
+        begun = lives[name, life].first_line
+        if final.get(name) != line or not stop.complete or "@" in name:
+            continue
+        if any(begun <= at for at in gave_up):  # (published once its children stopped)
+            continue
+
+        def running(consumer: str, stopped_at: int = line) -> bool:
+            return not final.get(consumer, stopped_at) < stopped_at
+
+        kept = {rid for _qid, rid, consumer, *_ in stop.consumers if running(consumer)}
+        resources = [
+            row[0] for row in stop.resources if row[0] not in kept and row[2] != "unloading"
+        ]
+        clients = [row[0] for row in stop.clients if row[3] not in kept]
+        if not resources and not clients:
+            continue
+        shown = sorted({came[name, i] for i in (*resources, *clients) if (name, i) in came})
+        findings.append(
+            Finding(
+                "left",
+                "violation",
+                f"{name} stopped at the end of the run with {len(resources)} resources and "
+                f"{len(clients)} client records left that no running consumer holds",
+                (*shown[:_SHOWN], line),
+                (name,),
+            )
+        )
+    return findings
+
+
+def fetch(
+    steps: Sequence[Step],
+    holdings: dict[tuple[str, str], list[Holding]],
+    lives: dict[tuple[str, int], Life],
+) -> list[Finding]:
+    """`fetch` (rule 10): a fetch lists what its provider held for its consumer.
+
+    Within the window between the fetch's `started` and `hlc` stamps, each listed id was held
+    at some instant, and each id the consumer had answered there before it (not withdrawn nor
+    forgotten) and held throughout is listed. A `ServerQueriesListed` is judged alike, for any
+    consumer. Not judged: a window a provider's life began or ended in; a second server's.
+    """
+    answers: dict[str, dict[str, tuple[str, str, int]]] = defaultdict(dict)
+    by_name: dict[str, list[tuple[int, Life]]] = defaultdict(list)
+    for (name, number), record in lives.items():
+        by_name[name.partition("@")[0]].append((number, record))
+    findings: list[Finding] = []
+    throughout: dict[str, list[tuple[str, Holding]]] | None = None  # provider -> its ids
+    for name, line, event, new, life in steps:
+        if new:
+            answers[name].clear()
+        if isinstance(event, events.CallAnswered):
+            answers[name][event.query_id] = (event.serving_rr, event.server, event.hlc)
+        elif isinstance(event, events.QueryForgotten | events.CallWithdrawn | events.CallFailed):
+            answers[name].pop(event.query_id, None)
+        elif isinstance(event, events.QueriesFetched):
+            spanning = _spanning(by_name[event.serving_rr], event.started, event.hlc)
+            if spanning is not None:
+                findings += _fetched(line, event, spanning, answers[name], holdings)
+        elif isinstance(event, events.ServerQueriesListed) and name == event.registrar:
+            if throughout is None:
+                throughout = defaultdict(list)
+                for (provider, qid), held in holdings.items():
+                    throughout[provider] += [(qid, h) for h in held]
+            findings += _listed(line, event, life, throughout[name], holdings)
+    return findings
+
+
+def _listed(
+    line: int,
+    event: events.ServerQueriesListed,
+    life: int,
+    held: list[tuple[str, Holding]],
+    holdings: dict[tuple[str, str], list[Holding]],
+) -> list[Finding]:
+    """`fetch`'s findings about one listing of a provider's own server (at `line`, in
+    its `life`); `held`: every holding of that provider the pass kept."""
+    name, server, start, stop = event.registrar, event.server, event.started, event.hlc
+    findings = [
+        Finding(
+            "fetch",
+            "violation",
+            f"{name}: a listing of its server {server} listed query {qid[:8]}, which "
+            f"{name} did not hold while asked",
+            (line,),
+            (name,),
+        )
+        for qid in event.query_ids
+        if not any(
+            h.life == life and h.since < stop and (h.until is None or h.until > start)
+            for h in holdings.get((name, qid), ())
+        )
+    ]
+    listed = set(event.query_ids)
+    for qid, h in held:
+        if (
+            qid not in listed
+            and h.life == life
+            and h.server == server
+            and h.since < start
+            and (h.until is None or h.until > stop)
+        ):
+            listed.add(qid)  # (one finding an id)
+            findings.append(
+                Finding(
+                    "fetch",
+                    "violation",
+                    f"{name}: a listing of its server {server} did not list query "
+                    f"{qid[:8]}, which it held throughout the listing",
+                    (h.line, line),
+                    (name,),
+                )
+            )
+    return findings
+
+
+def _spanning(lives: list[tuple[int, Life]], start: int, stop: int) -> int | None:
+    """The one life of these (a provider's, its second servers' too) that spans the
+    window from `start` to `stop` (stamps), or `None`: none does, or one began or ended
+    in it."""
+    overlapping = [
+        (number, life)
+        for number, life in lives
+        if life.start <= stop and (life.end is None or life.end >= start)
+    ]
+    if len(overlapping) != 1:
+        return None
+    number, life = overlapping[0]
+    if life.start > start or (life.end is not None and life.end <= stop):
+        return None
+    return number
+
+
+def _fetched(
+    line: int,
+    event: events.QueriesFetched,
+    life: int,
+    answers: dict[str, tuple[str, str, int]],
+    holdings: dict[tuple[str, str], list[Holding]],
+) -> list[Finding]:
+    """`fetch`'s findings about one fetch (at `line`), whose provider's `life` spans it;
+    `answers`: its consumer's answered ids (id -> provider, server, stamp)."""
+    name, provider, start, stop = event.registrar, event.serving_rr, event.started, event.hlc
+    findings = [
+        Finding(
+            "fetch",
+            "violation",
+            f"{name}: a fetch from {provider}/{event.server} listed query "
+            f"{qid[:8]}, which {provider} did not hold while asked",
+            (line,),
+            (name, provider),
+        )
+        for qid in event.query_ids
+        if not any(
+            h.since < stop and (h.until is None or h.until > start)
+            for h in holdings.get((provider, qid), ())
+        )
+    ]
+    listed = set(event.query_ids)
+    for qid, (serving, server, stamp) in answers.items():
+        if serving != provider or server != event.server or stamp >= start or qid in listed:
+            continue
+        held = [
+            h
+            for h in holdings.get((provider, qid), ())
+            if h.life == life and h.since < start and (h.until is None or h.until > stop)
+        ]
+        if held:
+            findings.append(
+                Finding(
+                    "fetch",
+                    "violation",
+                    f"{name}: a fetch from {provider}/{event.server} did not list query "
+                    f"{qid[:8]}, which {provider} held for it throughout the fetch",
+                    (held[0].line, line),
+                    (name, provider),
+                )
+            )
+    return findings

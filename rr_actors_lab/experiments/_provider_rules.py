@@ -1,0 +1,623 @@
+"""The provider's side of a run: one pass over each provider's catalog as its events tell it
+(`kept`, `unload-once`, `no-leak`, `one-resource`, `release-match`, `in-doubt`, `dedup`,
+`restore-first`), `unload-order` and `dependency-held`.
+
+```
+ steps (_history.walk) ──► Providers.run: per registrar a Catalog, a handler per event kind
+                              ├─► findings
+                              ├─► holdings: (provider, query id) -> when each life held it
+                              └─► expected: who a status should reach (`status-reached`)
+ steps ──► unload_order: each resource's dependencies forgotten before its ResourceUnloaded
+ steps ──► dependency_held: those dependencies kept while their resource has a consumer
+```
+
+Every lookup is a dict's: a run of a million events is checked in one linear pass.
+Each rule's windows and what it excuses: docs/how-to/check-a-run.md.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections import defaultdict
+from collections.abc import Callable
+from typing import Any
+
+from rr_actors import events
+from rr_actors._types import Status
+from rr_actors_lab.experiments._history import Facts, Finding, Life, Step
+
+__all__ = ["PROVIDER_ENDED", "Expected", "Holding", "Providers", "dependency_held", "unload_order"]
+
+
+@dataclasses.dataclass(slots=True)
+class _Held:
+    resource_id: str
+    consumer: str
+    line: int
+    stamp: int  # (of its ConsumerAdded, or of the restore that listed it first)
+
+
+@dataclasses.dataclass(slots=True)
+class Holding:
+    """One life of a provider holding a query id (for `reported-lost` and `fetch`).
+
+    Attributes:
+        life: the provider's life.
+        since: the stamp it began holding it (its `ConsumerAdded`, or the restore).
+        line: that event's line.
+        until: the stamp it let it go (released, in doubt, or its catalog taken again
+            at the next life), `None` if it held it to the end of the run.
+        server: the provider's server that held it (`""`: not known).
+    """
+
+    life: int
+    since: int
+    line: int
+    until: int | None = None
+    server: str = ""
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class Expected:
+    """A holder a status should reach (for `status-reached`).
+
+    Attributes:
+        status_id: the status (its `StatusSent.status_id`).
+        query_id: the holder's query id.
+        holder: the consumer registrar that holds it.
+        hop: the hop it should reach it at.
+        sender: the registrar that sent it on to it (the provider, or the consumer of
+            the dependency it climbed from).
+        life: the sender's life then.
+        since: the stamp of the send (`StatusSent`, or the delivery it climbs from).
+        line: that event's line.
+    """
+
+    status_id: str
+    query_id: str
+    holder: str
+    hop: int
+    sender: str
+    life: int
+    since: int
+    line: int
+
+
+@dataclasses.dataclass(slots=True)
+class _Catalog:
+    """What the events say one provider registrar holds now."""
+
+    pid: int | None = None
+    life: int = -1
+    held: dict[str, _Held] = dataclasses.field(default_factory=dict)  # query id -> ...
+    holders: dict[str, dict[str, None]] = dataclasses.field(default_factory=dict)
+    # resource id -> its held query ids
+    live: dict[str, tuple[str, int | None, int]] = dataclasses.field(default_factory=dict)
+    # resource id -> (server, digest, line): matched by equal requests
+    digests: dict[tuple[str, int], dict[str, None]] = dataclasses.field(default_factory=dict)
+    # (server, digest) -> its live resource ids
+    unloaded: dict[str, int] = dataclasses.field(default_factory=dict)  # rid -> line
+    pending: dict[str, tuple[int, bool]] = dataclasses.field(default_factory=dict)
+    # resource id -> (line its last holder was released, whether a restore showed it)
+    blind: bool = False  # the last restore listed no rows: who holds what is not known
+
+    def forget_all(self) -> None:
+        self.held.clear()
+        self.holders.clear()
+        self.live.clear()
+        self.digests.clear()
+        self.pending.clear()
+
+    def make_live(self, rid: str, server: str, digest: int | None, line: int) -> None:
+        self.live[rid] = (server, digest, line)
+        if digest is not None:
+            self.digests.setdefault((server, digest), {})[rid] = None
+
+    def not_live(self, rid: str) -> None:
+        found = self.live.pop(rid, None)
+        if found is not None and found[1] is not None:
+            self.digests.get((found[0], found[1]), {}).pop(rid, None)
+
+
+class Providers:
+    """The provider pass: feed it every step (`run`), then read its findings.
+
+    Args:
+        facts: what the whole run says (`_history.Facts`).
+        lives: each registrar's lives (`_history.walk`).
+    """
+
+    def __init__(self, facts: Facts, lives: dict[tuple[str, int], Life] | None = None) -> None:
+        self.with_backup = facts.with_backup
+        self.forgot = facts.forgot
+        self.release_stamps = facts.released
+        self.lives = lives or {}
+        self.fatal_at = facts.fatal_at
+        self.parent = facts.parent
+        self.watch = facts.lost | facts.fetched
+        self.outcomes = facts.outcomes
+        self.catalogs: dict[str, _Catalog] = defaultdict(_Catalog)
+        self._by_name: dict[str, list[Life]] | None = None  # each registrar's lives
+        self.findings: list[Finding] = []
+        self.holdings: dict[tuple[str, str], list[Holding]] = defaultdict(list)
+        self.server_of: dict[tuple[str, str], str] = {}  # (provider, resource id) -> server
+        self.expected: list[Expected] = []
+
+    def found(self, rule: str, message: str, lines: tuple[int, ...], *names: str) -> None:
+        self.findings.append(Finding(rule, "violation", message, lines, names))
+
+    def run(self, steps: list[Step]) -> None:
+        """Replay every step on its registrar's catalog."""
+        handlers = _HANDLERS
+        catalogs = self.catalogs
+        for name, line, event, new, life in steps:
+            catalog = catalogs[name]
+            if new:
+                self.begin(name, catalog, line, event, life)
+            handler = handlers.get(type(event))
+            if handler is not None:
+                handler(self, name, catalog, line, event)
+
+    # -- lives -------------------------------------------------------------------------------
+
+    def begin(self, name: str, catalog: _Catalog, line: int, event: Any, life: int) -> None:
+        """A new life of `name`: it restores first, or it lost what it held."""
+        restoring = isinstance(event, events.CatalogRestored)
+        if name in self.with_backup and not restoring:
+            self.found(
+                "restore-first",
+                f"{name} (pid {event.pid}) published {type(event).__name__} before its "
+                f"CatalogRestored",
+                (line,),
+                name,
+            )
+        if not restoring and catalog.pid is not None:
+            ended = self.ended(name, catalog.life, event.hlc)
+            unheld = {
+                q
+                for q, held in catalog.held.items()
+                if self.failed(q, held.stamp, event.hlc) or self.crossed(name, q, ended)
+            }
+            # (forgotten since the end of the life before, by no release that crossed the
+            # restart: owed a FATAL; the restart's first event may come much later)
+            self.lose(
+                name, catalog, unheld, line, event.hlc, "in a restart without a backup", ended
+            )
+            self.let_go_all(name, catalog, event.hlc)
+            catalog.forget_all()
+            catalog.blind = False
+        catalog.pid = event.pid
+        catalog.life = life
+
+    def failed(self, qid: str, since: int, stamp: int) -> bool:
+        """Whether the call of `qid`, added at `since`, had failed for its caller at `stamp` (rule
+        17)."""
+        outcomes = [(at, answered) for at, answered in self.outcomes.get(qid, ()) if at > since]
+        before = [answered for at, answered in outcomes if at < stamp]
+        if before:
+            return not before[-1]
+        return bool(outcomes) and not outcomes[0][1]
+
+    def ended(self, name: str, life: int, restart: int) -> int:
+        """The stamp before which no consumer can have reconciled with the restart after `life`: its
+        end if its exit or stop shows it, else its last event."""
+        record = self.lives.get((name, life))
+        if record is None:
+            return 0
+        if record.end is not None and record.end < restart:
+            return record.end
+        return record.last
+
+    def crossed(self, name: str, qid: str, ended: int) -> bool:
+        """Whether the consumer forgot `qid` on the answer to a release sent before it reconciled
+        with `name`'s restart after `ended`: it let it go, no `FATAL` is owed (rule 20)."""
+        released = self.release_stamps.get((name, qid))
+        return released is not None and released[1] < ended
+
+    def died_before(self, consumer: str, stamp: int) -> bool:
+        """Whether `consumer`'s life at `stamp` ended (killed without a backup, as `kill_program`
+        does) before it: its last releases' events may be lost, and no `FATAL` is owed."""
+        if consumer in self.with_backup:
+            return False
+        if self._by_name is None:
+            self._by_name = defaultdict(list)
+            for (name, _number), record in sorted(self.lives.items()):
+                self._by_name[name].append(record)
+        begun = [life for life in self._by_name.get(consumer, ()) if life.start < stamp]
+        if not begun:
+            return False
+        last = max(begun, key=lambda life: life.start)
+        followed = any(life.start > last.start for life in self._by_name[consumer])
+        return followed and last.last < stamp and last.end is not None
+
+    def lose(
+        self,
+        name: str,
+        catalog: _Catalog,
+        spared: set[str],
+        line: int,
+        stamp: int,
+        why: str,
+        let_go_by: int | None = None,
+    ) -> None:
+        """`kept`: the ids a restart lost (all but `spared`) are violations, unless their consumer
+        was told `FATAL` since, or forgot them before `let_go_by`."""
+        let_go_by = stamp if let_go_by is None else let_go_by
+        for qid, held in catalog.held.items():
+            if qid in spared:
+                continue
+            # its consumer had let it go: the release was committed, and the kill came
+            # before its `ConsumerReleased` was published (the restore shows the commit)
+            if self.forgot.get((name, qid), let_go_by) < let_go_by:
+                continue
+            if self.died_before(held.consumer, stamp):
+                continue
+            told = self.fatal_at.get(qid)
+            if told is None or told < held.stamp:
+                self.found(
+                    "kept",
+                    f"{name}: query {qid[:8]} of {held.consumer} (resource "
+                    f"{held.resource_id[:8]}) was lost {why}, neither released nor "
+                    f"reported FATAL",
+                    (held.line, line),
+                    name,
+                    held.consumer,
+                )
+
+    # -- who holds what ----------------------------------------------------------------------
+
+    def hold(self, name: str, catalog: _Catalog, held: _Held, qid: str) -> None:
+        """`qid` is held on `held.resource_id` (again, if it was held there: a retry; one
+        held on another resource was let go first)."""
+        again = qid in catalog.held
+        catalog.held[qid] = held
+        catalog.holders.setdefault(held.resource_id, {})[qid] = None
+        catalog.pending.pop(held.resource_id, None)
+        if not again and (name, qid) in self.watch:
+            server = self.server_of.get((name, held.resource_id), "")
+            self.holdings[name, qid].append(
+                Holding(catalog.life, held.stamp, held.line, server=server)
+            )
+
+    def let_go(self, name: str, catalog: _Catalog, qid: str, stamp: int) -> _Held | None:
+        held = catalog.held.pop(qid, None)
+        if held is None:
+            return None
+        ids = catalog.holders.get(held.resource_id)
+        if ids is not None:
+            ids.pop(qid, None)
+            if not ids:
+                del catalog.holders[held.resource_id]
+        if (name, qid) in self.watch:
+            for holding in self.holdings[name, qid]:
+                if holding.until is None:
+                    holding.until = stamp
+        return held
+
+    def let_go_all(self, name: str, catalog: _Catalog, stamp: int) -> None:
+        for qid in [q for q in catalog.held if (name, q) in self.watch]:
+            self.let_go(name, catalog, qid, stamp)
+
+    # -- one handler per event kind ----------------------------------------------------------
+
+    def restored(self, name: str, catalog: _Catalog, line: int, event: Any) -> None:
+        if not event.complete:
+            self.findings.append(
+                Finding(
+                    "kept",
+                    "unverifiable",
+                    f"{name} restored more rows than are listed ({event.counts})",
+                    (line,),
+                    (name,),
+                )
+            )
+            self.let_go_all(name, catalog, event.hlc)
+            catalog.forget_all()
+            catalog.blind = True
+            return
+        kept = {row[0] for row in event.consumers}
+        self.lose(name, catalog, kept, line, event.hlc, "in a restore")
+        before = {qid: (held.line, held.stamp) for qid, held in catalog.held.items()}
+        pending = dict(catalog.pending)
+        self.let_go_all(name, catalog, event.hlc)
+        catalog.forget_all()
+        catalog.blind = False
+        for row in event.resources:
+            self.server_of[name, row[0]] = row[1]
+        for qid, rid, consumer, *_ in event.consumers:
+            was, at = before.get(qid, (line, event.hlc))
+            self.hold(name, catalog, _Held(rid, consumer, was, at), qid)
+        for row in event.resources:
+            rid = row[0]
+            if len(row) > 4 and row[4]:  # reported FATAL: matched no more
+                continue
+            catalog.make_live(rid, row[1], int(row[3]) if len(row) > 3 and row[3] else None, line)
+        # what no consumer holds is unloaded once it serves (its sweep); what was being
+        # unloaded is reported in doubt; what is not listed was unloaded (its event lost
+        # to the kill)
+        for row in event.resources:
+            rid = row[0]
+            if rid not in catalog.holders and row[2] == "loaded":
+                catalog.pending[rid] = (pending[rid][0] if rid in pending else line, True)
+
+    def loaded(self, name: str, catalog: _Catalog, line: int, event: Any) -> None:
+        if event.digest is not None:
+            twins = catalog.digests.get((event.server, event.digest))
+            if twins:
+                rid = next(iter(twins))
+                self.found(
+                    "dedup",
+                    f"{name}/{event.server}: equal requests loaded twice ({rid[:8]} still "
+                    f"live when {event.resource_id[:8]} loaded)",
+                    (catalog.live[rid][2], line),
+                    name,
+                )
+        catalog.make_live(event.resource_id, event.server, event.digest, line)
+        self.server_of[name, event.resource_id] = event.server
+
+    def load_failed(self, name: str, catalog: _Catalog, line: int, event: Any) -> None:
+        catalog.not_live(event.resource_id)
+        catalog.pending.pop(event.resource_id, None)
+
+    def status_sent(self, name: str, catalog: _Catalog, line: int, event: Any) -> None:
+        about = catalog.held.get(event.query_id)
+        if about is None:
+            return
+        if event.status is Status.FATAL:  # dead: an equal request loads a new one (rule 1)
+            catalog.not_live(about.resource_id)
+        if event.status_id:
+            self.expect(name, catalog, about.resource_id, event, 1, line)
+
+    def status_delivered(self, name: str, catalog: _Catalog, line: int, event: Any) -> None:
+        """A delivery to a dependency climbs to the holders of the resource it is one of."""
+        rid = self.parent.get((name, event.query_id))
+        if rid is not None and event.status_id:
+            self.expect(name, catalog, rid, event, event.hop + 1, line)
+
+    def expect(
+        self, name: str, catalog: _Catalog, rid: str, event: Any, hop: int, line: int
+    ) -> None:
+        for qid in catalog.holders.get(rid, ()):
+            holder = catalog.held[qid].consumer
+            self.expected.append(
+                Expected(event.status_id, qid, holder, hop, name, catalog.life, event.hlc, line)
+            )
+
+    def in_doubt(self, name: str, catalog: _Catalog, line: int, event: Any) -> None:
+        rid = event.query_id  # (the in-doubt resource's id)
+        catalog.not_live(rid)
+        catalog.pending.pop(rid, None)
+        for qid in list(catalog.holders.get(rid, ())):
+            held = catalog.held[qid]
+            self.found(
+                "in-doubt",
+                f"{name}: {rid[:8]} reported in doubt ({event.cut or 'cut'} not committed) "
+                f"while {held.consumer} held it (query {qid[:8]}, committed)",
+                (held.line, line),
+                name,
+                held.consumer,
+            )
+            self.let_go(name, catalog, qid, event.hlc)
+
+    def cut_short(self, name: str, catalog: _Catalog, line: int, event: Any) -> None:
+        catalog.pending.pop(event.resource_id, None)  # in doubt at the next start
+
+    def added(self, name: str, catalog: _Catalog, line: int, event: Any) -> None:
+        rid, qid = event.resource_id, event.query_id
+        if rid in catalog.unloaded:
+            self.found(
+                "unload-once",
+                f"{name}: {event.consumer} consumes {rid[:8]} (query {qid[:8]}) after its unload",
+                (catalog.unloaded[rid], line),
+                name,
+                event.consumer,
+            )
+        old = catalog.held.get(qid)
+        if old is not None and old.resource_id != rid:
+            self.found(
+                "one-resource",
+                f"{name}: query {qid[:8]} of {event.consumer} added to {rid[:8]} while it "
+                f"held {old.resource_id[:8]} (a retry of an id loads nothing, rule 2)",
+                (old.line, line),
+                name,
+                event.consumer,
+            )
+            self.let_go(name, catalog, qid, event.hlc)
+        self.hold(name, catalog, _Held(rid, event.consumer, line, event.hlc), qid)
+
+    def released(self, name: str, catalog: _Catalog, line: int, event: Any) -> None:
+        qid = event.query_id
+        held = self.let_go(name, catalog, qid, event.hlc)
+        if held is None:
+            if not catalog.blind:
+                self.found(
+                    "unload-once",
+                    f"{name}: query {qid[:8]} of {event.consumer} released ({event.reason}) "
+                    f"but not held",
+                    (line,),
+                    name,
+                    event.consumer,
+                )
+            return
+        if held.resource_id != event.resource_id:
+            self.found(
+                "release-match",
+                f"{name}: query {qid[:8]} of {held.consumer} released from "
+                f"{event.resource_id[:8]}, but it held {held.resource_id[:8]}",
+                (held.line, line),
+                name,
+                held.consumer,
+            )
+        if held.resource_id not in catalog.holders and not catalog.blind:
+            catalog.pending[held.resource_id] = (line, False)
+
+    def unloaded(self, name: str, catalog: _Catalog, line: int, event: Any) -> None:
+        rid = event.resource_id
+        if rid in catalog.unloaded:
+            self.found(
+                "unload-once",
+                f"{name}/{event.server}: {rid[:8]} unloaded twice",
+                (catalog.unloaded[rid], line),
+                name,
+            )
+        holders = catalog.holders.get(rid)
+        if holders:
+            qid = next(iter(holders))
+            held = catalog.held[qid]
+            self.found(
+                "unload-once",
+                f"{name}/{event.server}: {rid[:8]} unloaded while {held.consumer} still "
+                f"held it (query {qid[:8]})",
+                (held.line, line),
+                name,
+                held.consumer,
+            )
+        catalog.unloaded[rid] = line
+        catalog.not_live(rid)
+        catalog.pending.pop(rid, None)
+
+    def stopped(self, name: str, catalog: _Catalog, line: int, event: Any) -> None:
+        """A clean stop lists every id it holds (`kept`); a resource whose last holder was released
+        is unloaded or kept as unloading (or loaded, for the next start's sweep: `no-leak`)."""
+        if not event.complete:
+            catalog.pending.clear()  # (what it keeps is not listed: nothing to compare)
+            return
+        if not catalog.blind:
+            rows = {row[0] for row in event.consumers}
+            for qid, held in catalog.held.items():
+                if qid not in rows:
+                    self.found(
+                        "kept",
+                        f"{name}: query {qid[:8]} of {held.consumer} (resource "
+                        f"{held.resource_id[:8]}) is not listed at its stop, but was never "
+                        f"released",
+                        (held.line, line),
+                        name,
+                        held.consumer,
+                    )
+        listed = {row[0]: row[2] for row in event.resources}
+        for rid, (since, restored) in catalog.pending.items():
+            kept = listed.get(rid)
+            if kept in ("loading", "unloading") or (restored and kept == "loaded"):
+                continue
+            self.found(
+                "no-leak",
+                f"{name}: {rid[:8]} was released by its last consumer but never unloaded "
+                f"(nor reported in doubt) before {name} stopped",
+                (since, line),
+                name,
+            )
+        catalog.pending.clear()
+
+
+_HANDLERS: dict[type, Callable[[Providers, str, _Catalog, int, Any], None]] = {
+    events.CatalogRestored: Providers.restored,
+    events.ResourceLoaded: Providers.loaded,
+    events.LoadFailed: Providers.load_failed,
+    events.StatusSent: Providers.status_sent,
+    events.StatusDelivered: Providers.status_delivered,
+    events.InDoubt: Providers.in_doubt,
+    events.UnloadCutShort: Providers.cut_short,
+    events.ConsumerAdded: Providers.added,
+    events.ConsumerReleased: Providers.released,
+    events.ResourceUnloaded: Providers.unloaded,
+    events.RegistrarStopped: Providers.stopped,
+}
+"""`Providers.run`'s handler of each event kind (the class's functions: bound methods in
+its instance would be a cycle, which only the garbage collector frees)."""
+
+
+def unload_order(steps: list[Step]) -> list[Finding]:
+    """`unload-order` (rule 7): a resource's dependencies (its `CallAnswered` `parent`s, restored
+    client rows) are forgotten before its `ResourceUnloaded`, in its registrar's line order."""
+    findings: list[Finding] = []
+    deps: dict[str, dict[str, dict[str, int]]] = defaultdict(dict)  # name -> rid -> qid -> line
+    parent_of: dict[str, dict[str, str]] = defaultdict(dict)  # name -> qid -> rid
+    for name, line, event, new, _life in steps:
+        if new:
+            deps[name].clear()
+            parent_of[name].clear()
+        if isinstance(event, events.CatalogRestored):
+            for qid, _serving, _server, parent, *_ in event.clients:
+                if parent:
+                    deps[name].setdefault(parent, {})[qid] = line
+                    parent_of[name][qid] = parent
+        elif isinstance(event, events.CallAnswered) and event.parent is not None:
+            deps[name].setdefault(event.parent, {}).setdefault(event.query_id, line)
+            parent_of[name][event.query_id] = event.parent
+        elif isinstance(event, events.QueryForgotten):
+            rid = parent_of[name].pop(event.query_id, None)
+            if rid is not None:
+                deps[name].get(rid, {}).pop(event.query_id, None)
+        elif isinstance(event, events.ResourceUnloaded):
+            held = deps[name].pop(event.resource_id, {})
+            for qid, at in held.items():
+                parent_of[name].pop(qid, None)
+                findings.append(
+                    Finding(
+                        "unload-order",
+                        "violation",
+                        f"{name}: resource {event.resource_id[:8]} unloaded while it still "
+                        f"held its dependency {qid[:8]} (rule 7: its dependencies first)",
+                        (at, line),
+                        (name,),
+                    )
+                )
+    return findings
+
+
+PROVIDER_ENDED = ("revoked", "provider lost", "unknown at reconcile")
+"""`QueryForgotten` reasons of a query its provider ended (unregistered its server, or
+lost it: `FATAL`), which its consumer forgets whatever holds it."""
+
+
+def dependency_held(steps: list[Step]) -> list[Finding]:
+    """`dependency-held` (rule 7): a registrar does not forget a dependency of one of its
+    resources while that resource has a consumer id, unless its provider ended it.
+
+    Consumer ids are the registrar's own lines (restored rows, `ConsumerAdded`,
+    `ConsumerReleased`); a life whose `CatalogRestored` is not `complete` is not judged.
+    """
+    findings: list[Finding] = []
+    holders: dict[str, dict[str, dict[str, int]]] = defaultdict(dict)  # name -> rid -> qid -> line
+    parent_of: dict[str, dict[str, tuple[str, int]]] = defaultdict(
+        dict
+    )  # name -> qid -> (rid, line)
+    unjudged: set[str] = set()
+    for name, line, event, new, _life in steps:
+        if new:
+            holders[name].clear()
+            parent_of[name].clear()
+            unjudged.discard(name)
+        if isinstance(event, events.CatalogRestored):
+            if not event.complete:
+                unjudged.add(name)
+            for qid, rid, _origin in event.consumers:
+                holders[name].setdefault(rid, {})[qid] = line
+            for qid, _serving, _server, parent, *_ in event.clients:
+                if parent:
+                    parent_of[name][qid] = (parent, line)
+        elif isinstance(event, events.ConsumerAdded):
+            holders[name].setdefault(event.resource_id, {})[event.query_id] = line
+        elif isinstance(event, events.ConsumerReleased):
+            holders[name].get(event.resource_id, {}).pop(event.query_id, None)
+        elif isinstance(event, events.CallAnswered) and event.parent is not None:
+            parent_of[name].setdefault(event.query_id, (event.parent, line))
+        elif isinstance(event, events.QueryForgotten):
+            rid, since = parent_of[name].pop(event.query_id, ("", 0))
+            held = holders[name].get(rid)
+            if not held or name in unjudged or event.reason in PROVIDER_ENDED:
+                continue
+            holder, at = next(iter(held.items()))
+            findings.append(
+                Finding(
+                    "dependency-held",
+                    "violation",
+                    f"{name}: dependency {event.query_id[:8]} of resource {rid[:8]} "
+                    f"forgotten ({event.reason}) while {holder[:8]} still held that resource "
+                    "(rule 7: dependencies belong to the resource)",
+                    (since, at, line),
+                    (name,),
+                )
+            )
+    return findings

@@ -1,0 +1,360 @@
+"""A status's deliveries (rules `status-once`, `status-path`, `status-reached`).
+
+```
+ StatusDelivered ──► status_once: each (status, holder's id) once
+                 └─► status_path: on a dependency path from its send (hop 1: a holder
+                     of the resource it was sent about; hop n: a holder of a resource
+                     one of whose dependencies got it at hop n-1)
+ Expected (the provider pass: the holders at the send, and up each dependency that got
+ it) ──► status_reached: each got it, unless it let its id go before the status's last
+         delivery (not on the answer to an Unload its sender released it on after the
+         send: that answer carried it), or the one to send it on died first
+ StatusHandled ──► status_order: each id's callbacks one at a time, in arrival order
+```
+
+Each rule's windows and what it excuses: docs/how-to/check-a-run.md.
+"""
+
+from __future__ import annotations
+
+import bisect
+from collections import defaultdict
+from collections.abc import Callable, Sequence
+
+from rr_actors import events
+from rr_actors._core import hlc
+from rr_actors_lab.experiments._history import Facts, Finding, Life, Line, Step, holder_at
+from rr_actors_lab.experiments._provider_rules import Expected
+
+__all__ = ["ANSWERED", "Span", "status_once", "status_order", "status_path", "status_reached"]
+
+Span = tuple[int, int, int | None, int]
+"""A consumer holding a query id in one of its lives: `(life, stamp it began holding it,
+stamp it let it go or None, line of that QueryForgotten or 0)`."""
+
+
+def status_once(history: Sequence[Line]) -> list[Finding]:
+    """`status-once`: each status send reaches each holder once per path."""
+    findings: list[Finding] = []
+    seen: dict[tuple[str, str, str], int] = {}
+    for line, event in history:
+        if not isinstance(event, events.StatusDelivered) or not event.status_id:
+            continue
+        key = (event.status_id, event.registrar, event.query_id)
+        first = seen.get(key)
+        if first is None:
+            seen[key] = line
+            continue
+        findings.append(
+            Finding(
+                "status-once",
+                "violation",
+                f"{event.registrar}: status {event.status_id[:8]} ({event.status.name}) "
+                f"reached query {event.query_id[:8]} twice on one path",
+                (first, line),
+                (event.registrar,),
+            )
+        )
+    return findings
+
+
+def status_order(history: Sequence[Line]) -> list[Finding]:
+    """`status-order` (rule 9): each id's status callbacks run one at a time, in arrival order.
+
+    A callback may begin once every earlier-arrived one of its id returned, or `opened` (waited
+    for a registrar). A callback that never returned is not judged.
+    """
+    by_id: dict[tuple[str, int, str, str], list[tuple[int, events.StatusHandled]]]
+    by_id = defaultdict(list)
+    for line, event in history:
+        if isinstance(event, events.StatusHandled):
+            by_id[event.host, event.pid, event.registrar, event.query_id].append((line, event))
+    findings: list[Finding] = []
+    for handled in by_id.values():
+        handled.sort(key=lambda entry: entry[1].arrived)
+        limit, before = 0, handled[0]  # (the latest a next one may begin, and whose)
+        for line, event in handled:
+            if event.began < limit:
+                findings.append(_out_of_order(before, (line, event)))
+            free = event.opened or event.hlc
+            if free > limit:
+                limit, before = free, (line, event)
+    return findings
+
+
+def _out_of_order(
+    before: tuple[int, events.StatusHandled], late: tuple[int, events.StatusHandled]
+) -> Finding:
+    """`status-order`'s finding: `late` began before `before` (arrived first) let it."""
+    first, event = before[1], late[1]
+    how = "before it began" if event.began < first.began else "while it ran"
+    return Finding(
+        "status-order",
+        "violation",
+        f"{event.registrar}: the callback of status {event.status_id[:8]} "
+        f"({event.status.name}) for query {event.query_id[:8]} began {how}: the callback "
+        f"of status {first.status_id[:8]} ({first.status.name}), which arrived before "
+        f"it, had neither returned nor waited for a registrar",
+        tuple(sorted((before[0], late[0]))),
+        (event.registrar,),
+    )
+
+
+def status_path(history: Sequence[Line], facts: Facts) -> list[Finding]:
+    """`status-path`: each delivery of a status is on a dependency path from its send."""
+    # (status id, registrar, hop) -> the resources of that registrar it climbed to
+    climbed: dict[tuple[str, str, int], set[str]] = defaultdict(set)
+    deliveries = [
+        (line, event)
+        for line, event in history
+        if isinstance(event, events.StatusDelivered) and event.status_id
+    ]
+    for _, event in deliveries:
+        parent = facts.parent.get((event.registrar, event.query_id))
+        if parent is not None:
+            climbed[event.status_id, event.registrar, event.hop].add(parent)
+    findings: list[Finding] = []
+    lost_tail = _lost_tail(history)
+    for line, event in deliveries:
+        holder = holder_at(facts, event.query_id, event.hlc)
+        if holder is None:
+            continue  # (whose it is, the run does not say)
+        provider, rid, added = holder
+        message = _off_path(event, provider, rid, facts, climbed)
+        if message is None or (message == _NOT_SENT and lost_tail(provider, event.hlc)):
+            continue
+        findings.append(
+            Finding(
+                "status-path",
+                "violation",
+                f"{event.registrar}: status {event.status_id[:8]} ({event.status.name}) "
+                f"reached query {event.query_id[:8]} at hop {event.hop} off any path: "
+                f"{message}",
+                (added, line),
+                (event.registrar, provider),
+            )
+        )
+    return findings
+
+
+_NOT_SENT = "no StatusSent at its provider"
+
+
+def _lost_tail(history: Sequence[Line]) -> Callable[[str, int], bool]:
+    """Whether `name`'s life at a stamp wrote nothing after it and then exited (its last events
+    may have died unwritten with it: a SIGKILL takes the journal's tail)."""
+    own: dict[str, list[tuple[int, int]]] = defaultdict(list)  # name -> (stamp, pid)
+    exited: set[int] = set()
+    for _, event in history:
+        if isinstance(event, events.ChildExited):
+            exited.add(event.pid)
+        name, pid = getattr(event, "registrar", None), getattr(event, "pid", None)
+        if isinstance(name, str) and isinstance(pid, int) and event.hlc is not None:
+            own[name].append((event.hlc, pid))
+    for stamps in own.values():
+        stamps.sort()
+
+    def lost(name: str, stamp: int) -> bool:
+        stamps = own.get(name, [])
+        at = bisect.bisect_right(stamps, (stamp, float("inf"))) - 1
+        if at < 0:
+            return False
+        pid = stamps[at][1]
+        return pid in exited and not any(p == pid for _, p in stamps[at + 1 :])
+
+    return lost
+
+
+def _off_path(
+    event: events.StatusDelivered,
+    provider: str,
+    rid: str,
+    facts: Facts,
+    climbed: dict[tuple[str, str, int], set[str]],
+) -> str | None:
+    """Why delivery `event` (of an id held at `provider`'s `rid`) is on no path, or `None`."""
+    if event.hop > 1:
+        if rid in climbed.get((event.status_id, provider, event.hop - 1), ()):
+            return None
+        return f"no dependency of {rid[:8]} got it at {provider} one hop before"
+    if (event.registrar, event.query_id) in facts.reported:
+        return None  # its consumer told it FATAL itself (rules 19, 20)
+    about = facts.sent.get(event.status_id)
+    if about is None:
+        return _NOT_SENT
+    sent_on = holder_at(facts, about, event.hlc)
+    if sent_on is not None and sent_on[:2] != (provider, rid):
+        return f"it was sent about {sent_on[1][:8]}, not {rid[:8]}"
+    return None
+
+
+def status_reached(
+    expected: Sequence[Expected],
+    facts: Facts,
+    spans: dict[tuple[str, str], list[Span]],
+    lives: dict[tuple[str, int], Life],
+    history: Sequence[Line],
+    steps: Sequence[Step],
+) -> list[Finding]:
+    """`status-reached`: every holder that held its id throughout a status got it.
+
+    Throughout: from before it was sent on to it (`Expected.since`) until after its last
+    delivery, in one life; for an id not a dependency, until it reached another id of its
+    registrar at that hop (a status desk delivers those in one pass). The sender must have gone
+    on after the send. Excused: a holder cut off its sender (rule 19: each let the id go); a
+    holder killed within `LOST_WITH_HOLDER_S` of a send that reached nobody; a holder restarted
+    but not serving yet (failure-semantics.md).
+
+    Letting the id go early excuses no holder whose release crossed the status (rule 9): the
+    answer to its `Unload` carried every status not yet acknowledged, delivered before it
+    forgets the id (`ANSWERED`).
+    """
+    cut_off = _cut_off(history)
+    released = _released_on_unload(steps)
+    restarts = _restarts(history)
+    reasons = {line: e.reason for line, e in history if isinstance(e, events.QueryForgotten)}
+    findings: list[Finding] = []
+    for line, holder, qid in facts.told_self:
+        if facts.fatal.get(qid, line) >= line:
+            findings.append(
+                Finding(
+                    "status-reached",
+                    "violation",
+                    f"{holder}: query {qid[:8]} forgotten as lost, but the FATAL it tells "
+                    f"itself never reached it",
+                    (line,),
+                    (holder,),
+                )
+            )
+    for want in expected:
+        if (want.status_id, want.query_id) in facts.delivered:
+            continue
+        if (want.sender, want.holder, want.query_id) in cut_off:
+            continue
+        sender = lives.get((want.sender, want.life))
+        if sender is None or sender.last_line <= want.line:
+            continue  # it may have died before it sent it on
+        end = facts.last_delivery.get(want.status_id, want.since)
+        if (want.holder, want.query_id) not in facts.parent:
+            beside = facts.first_delivery.get((want.status_id, want.holder, want.hop), end)
+            end = min(end, beside)
+        end = max(end, want.since)
+        for life, began, until, forgot_at in spans.get((want.holder, want.query_id), ()):
+            if began >= want.since:
+                continue  # (held from before the send only)
+            record = lives[want.holder, life]
+            if _not_serving_yet(want, record, life, restarts):
+                continue
+            let_go = until if until is not None else record.last
+            release = released.get((want.sender, want.query_id))
+            carried = (
+                until is not None
+                and reasons.get(forgot_at) in ANSWERED
+                and _released_after(want, release, sender, until)
+            )
+            if not carried and (
+                let_go <= end
+                or (until is None and record.ended_before(end))
+                or (until is None and _died_with_it(want, record, facts))
+            ):
+                continue
+            how = "held it throughout"
+            lines: tuple[int, ...] = (want.line, forgot_at) if forgot_at else (want.line,)
+            if let_go <= end and release is not None:
+                how = "the answer to its Unload carried it (its release crossed the status)"
+                lines = (want.line, release[1], forgot_at)
+            findings.append(
+                Finding(
+                    "status-reached",
+                    "violation",
+                    f"{want.holder}: status {want.status_id[:8]} never reached query "
+                    f"{want.query_id[:8]} (hop {want.hop}, from {want.sender}), though {how}",
+                    lines,
+                    (want.holder, want.sender),
+                )
+            )
+            break
+    return findings
+
+
+def _restarts(history: Sequence[Line]) -> dict[str, list[tuple[int, int]]]:
+    """Child name -> `(stamp, pid)` of each of its `ChildRestarted`, in order."""
+    restarts: dict[str, list[tuple[int, int]]] = defaultdict(list)
+    for _, event in history:
+        if isinstance(event, events.ChildRestarted):
+            restarts[event.child].append((event.hlc, event.pid))
+    return restarts
+
+
+def _not_serving_yet(
+    want: Expected, record: Life, life: int, restarts: dict[str, list[tuple[int, int]]]
+) -> bool:
+    """Whether `want`'s holder, in its life `record` (a restart: not its first life), was
+    not serving yet when the status was sent on to it: the `ChildRestarted` that says
+    its process (`record.pid`) serves again comes after the send."""
+    if life == 0:
+        return False
+    for stamp, pid in restarts.get(want.holder, ()):
+        if stamp >= record.start and pid == record.pid:
+            return stamp > want.since
+    return False
+
+
+LOST_WITH_HOLDER_S = 1.0
+"""Seconds after a status's send within which its holder's death loses it (`status-reached`,
+for a status that reached nobody): it was on its way to the process that died."""
+
+
+def _died_with_it(want: Expected, record: Life, facts: Facts) -> bool:
+    """Whether `want`'s status reached nobody and its holder's life `record` ended within
+    `LOST_WITH_HOLDER_S` of the send (it died with the status on its way to it)."""
+    if record.end is None or want.status_id in facts.last_delivery:
+        return False
+    since = hlc.unpack(want.since)[0]
+    return hlc.unpack(record.end)[0] - since <= LOST_WITH_HOLDER_S * 1_000_000
+
+
+ANSWERED = ("unload", "dependency", "stop")
+"""How a consumer forgets an id on the answer to its `Unload` (which carries the statuses
+on their way to it, `consumer.py`'s `Releases`)."""
+
+
+def _released_on_unload(steps: Sequence[Step]) -> dict[tuple[str, str], tuple[int, int, int]]:
+    """(provider, query id) -> (its life, line, stamp) of each release on an `Unload`."""
+    return {
+        (name, event.query_id): (life, line, event.hlc)
+        for name, line, event, _, life in steps
+        if isinstance(event, events.ConsumerReleased) and event.reason == "unload"
+    }
+
+
+def _released_after(
+    want: Expected, release: tuple[int, int, int] | None, sender: Life, forgot: int
+) -> bool:
+    """Whether `want`'s sender released its id on an `Unload` (`release`: life, line,
+    stamp) after it sent the status on to it, in that life, and went on after (its answer
+    left), before its holder forgot it (stamp `forgot`: on that answer)."""
+    return (
+        release is not None
+        and release[0] == want.life
+        and want.line < release[1] < sender.last_line
+        and release[2] < forgot
+    )
+
+
+_UNREACHED = ("unknown at reconcile", "unload unanswered")
+"""How a consumer forgets an id at a provider it could not hear (`_cut_off`)."""
+
+
+def _cut_off(history: Sequence[Line]) -> set[tuple[str, str, str]]:
+    """(provider, consumer, query id) of each id both sides let go as unreachable (a cut)."""
+    released: set[tuple[str, str, str]] = set()
+    cut: set[tuple[str, str, str]] = set()
+    for _, event in history:
+        if isinstance(event, events.ConsumerReleased) and event.reason == "death watch":
+            released.add((event.registrar, event.consumer, event.query_id))
+        elif isinstance(event, events.QueryForgotten) and event.reason in _UNREACHED:
+            key = (event.serving_rr, event.registrar, event.query_id)
+            if key in released:
+                cut.add(key)
+    return cut

@@ -1,0 +1,409 @@
+"""The supervisors' side of a run (rules `intensity`, `strategy`, `escalation`).
+
+```
+ ChildExited (counted) + SupervisorGaveUp ──► per supervisor ──► OTP's intensity: more
+   than `max_restarts` counted exits within `period` s ──► findings
+ ChildStarted / ChildExited / ChildRestarted / SupervisorGaveUp ──► Strategies: each
+   decision against OTP's strategy and restart types (siblings stopped in reverse start
+   order, the group restarted in start order) ──► `strategy`
+   + a nested supervisor's give-up ──► its parent's next exit of it (`escalation`)
+```
+
+A supervisor's events come from its own thread in the order it decided: a group's stops
+right after the exit that decided it, its restarts in one step. A supervisor started
+again (after its give-up, or a second `ChildStarted` of a name) counts afresh (OTP).
+Each rule's windows and what it excuses: docs/how-to/check-a-run.md.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections import defaultdict
+from collections.abc import Sequence
+
+from rr_actors import events
+from rr_actors_lab.experiments._history import Finding, Line
+
+__all__ = ["ESCALATED_S", "SLACK_S", "Strategies", "counted", "group", "intensity", "strategy"]
+
+SLACK_S = 0.01
+"""Seconds an exit may lie either side of a window's edge and not be judged: the
+supervisor reads its own clock a moment after it stamps `ChildExited.at`."""
+
+
+def counted(event: events.ChildExited) -> bool:
+    """Whether OTP counts `event` against its supervisor's restart intensity: an exit it
+    did not cause, of a child its restart type restarts after it (`permanent` always,
+    `transient` after an abnormal end; `temporary` never)."""
+    if event.stopped:
+        return False
+    return event.restart == "permanent" or (event.restart == "transient" and not event.normal)
+
+
+def intensity(history: Sequence[Line]) -> list[Finding]:
+    """`intensity`: a supervisor gives up exactly when more than `max_restarts` counted exits
+    fall within `period` seconds (OTP), at the exit that makes them so.
+
+    Not judged: schema 3 or older (`restart` unknown), an exit within `SLACK_S` of the edge.
+    """
+    decisions: dict[str, list[tuple[int, events.Event]]] = defaultdict(list)
+    for line, event in history:
+        judged = isinstance(event, events.ChildExited) and event.restart and counted(event)
+        if judged or isinstance(event, (events.SupervisorGaveUp, events.ChildStarted)):
+            decisions[event.supervisor].append((line, event))  # type: ignore[union-attr]
+    findings: list[Finding] = []
+    for supervisor, seen in decisions.items():
+        window: list[tuple[float, int]] = []  # (at, line) of the counted exits, in order
+        started: set[str] = set()  # the children this run of it started
+        for index, (line, event) in enumerate(seen):
+            if isinstance(event, events.ChildStarted):
+                if event.child in started:  # (a new run of it: it counts afresh)
+                    window.clear()
+                    started.clear()
+                started.add(event.child)
+                continue
+            if not isinstance(event, events.ChildExited):
+                window.clear()  # (a supervisor started again counts afresh)
+                continue
+            after = seen[index + 1] if index + 1 < len(seen) else None  # (its decision)
+            gave_up = after is not None and isinstance(after[1], events.SupervisorGaveUp)
+            period, most = event.period, event.max_restarts
+            window = [(at, at_line) for at, at_line in window if event.at - at < period + SLACK_S]
+            window.append((event.at, line))
+            surely = [
+                at_line
+                for at, at_line in window
+                if at_line == line or event.at - at < period - SLACK_S
+            ]
+            if len(surely) > most and not gave_up:
+                lines = tuple(surely[-(most + 1) :])
+                findings.append(
+                    Finding(
+                        "intensity",
+                        "violation",
+                        f"supervisor {supervisor} did not give up at {event.child}'s exit: "
+                        f"{len(surely)} restarts within {period:g} s, more than its "
+                        f"max_restarts {most}",
+                        lines,
+                    )
+                )
+            elif len(window) <= most and gave_up:
+                assert after is not None
+                lines = (*(at_line for _, at_line in window), after[0])
+                findings.append(
+                    Finding(
+                        "intensity",
+                        "violation",
+                        f"supervisor {supervisor} gave up at {event.child}'s exit after "
+                        f"{len(window)} restarts within {period:g} s, not more than its "
+                        f"max_restarts {most}",
+                        lines,
+                    )
+                )
+    return findings
+
+
+# -- strategy: which children a decision stops and restarts, in which order (OTP) -------------
+
+
+ESCALATED_S = 1.0
+"""Seconds after a nested give-up within which its parent may stop it instead (a shutdown)."""
+
+
+def group(strategy: str, children: Sequence[str], crashed: str) -> tuple[str, ...]:
+    """The children OTP's `strategy` restarts with `crashed`, in start order (itself too).
+
+    Args:
+        strategy: `"one_for_one"` (itself), `"one_for_all"` (every child) or
+            `"rest_for_one"` (itself and the children started after it).
+        children: the supervisor's children, in start order.
+        crashed: the child whose exit decides.
+    """
+    if crashed not in children or strategy == "one_for_one":
+        return (crashed,)
+    if strategy == "one_for_all":
+        return tuple(children)
+    return tuple(children[children.index(crashed) :])
+
+
+def _restarts_after(event: events.ChildExited) -> bool:
+    """Whether OTP restarts a child after `event` (an exit its supervisor did not cause)."""
+    return event.restart == "permanent" or (event.restart == "transient" and not event.normal)
+
+
+@dataclasses.dataclass(slots=True)
+class _Group:
+    """The children one decision restarts, in start order."""
+
+    line: int  # of the exit that decided it
+    crashed: str
+    strategy: str
+    members: tuple[str, ...]
+
+
+@dataclasses.dataclass(slots=True)
+class _Decision:
+    """An exit that restarts its child (or makes its supervisor give up), and the stops
+    that followed it."""
+
+    line: int
+    event: events.ChildExited
+    running: frozenset[str]  # the children running as it was decided (not the crashed one)
+    stops: list[tuple[int, str]] = dataclasses.field(default_factory=list)
+
+
+@dataclasses.dataclass(slots=True)
+class _Supervisor:
+    """One supervisor's children, as its events show them."""
+
+    running: set[str] = dataclasses.field(default_factory=set)
+    types: dict[str, str] = dataclasses.field(default_factory=dict)  # child -> restart type
+    exits: dict[str, tuple[int, events.ChildExited]] = dataclasses.field(default_factory=dict)
+    pending: dict[str, _Group] = dataclasses.field(default_factory=dict)  # due to restart
+    deciding: _Decision | None = None
+    batch: tuple[_Group, int] | None = None  # a group being restarted, its latest line
+    owed: dict[str, tuple[_Group, int, tuple[str, ...]]] = dataclasses.field(
+        default_factory=dict
+    )  # the first child a restart left out -> its group, that restart's line, those left
+
+
+class Strategies:
+    """Follows every supervisor's decisions, line by line (`see`), then `end`.
+
+    `findings` holds the `strategy` and `escalation` violations found.
+    """
+
+    def __init__(self) -> None:
+        self.supervisors: dict[tuple[str, str], _Supervisor] = {}
+        self.parents: dict[tuple[str, str], str] = {}  # (host, child) -> its supervisor
+        self.gave_up: dict[tuple[str, str], tuple[int, float, str]] = {}  # line, at, parent
+        self.findings: list[Finding] = []
+        self.last_at = 0.0
+
+    def see(self, line: int, event: events.Event) -> None:
+        """Take the history's next line."""
+        self.last_at = max(self.last_at, event.at)
+        if not isinstance(
+            event,
+            events.ChildStarted
+            | events.ChildExited
+            | events.ChildRestarted
+            | events.SupervisorGaveUp,
+        ):
+            return
+        key = (event.host, event.supervisor)
+        s = self.supervisors.setdefault(key, _Supervisor())
+        stopped = isinstance(event, events.ChildExited) and event.stopped
+        if s.deciding is not None and not stopped:
+            self._decided(key, s, gave_up=isinstance(event, events.SupervisorGaveUp))
+        if s.batch is not None and not (
+            isinstance(event, events.ChildRestarted) and s.pending.get(event.child) is s.batch[0]
+        ):
+            self._batch_ended(s)
+        if isinstance(event, events.SupervisorGaveUp):
+            self._unescalated(key, line, "gave up again")
+            parent = self.parents.get(key)
+            if parent is not None:
+                self.gave_up[key] = (line, event.at, parent)
+            self.supervisors[key] = _Supervisor()  # (it starts afresh, if restarted)
+            return
+        self.parents[event.host, event.child] = event.supervisor
+        if isinstance(event, events.ChildStarted | events.ChildRestarted):
+            self._unescalated((event.host, event.child), line, "was started again")
+        if isinstance(event, events.ChildStarted):
+            s.running.add(event.child)
+        elif isinstance(event, events.ChildExited):
+            self._exited(key, s, line, event)
+        else:
+            self._restarted(key, s, line, event)
+
+    def end(self) -> None:
+        """The history ended: judge what it shows already."""
+        for key, s in self.supervisors.items():
+            if s.deciding is not None:
+                self._decided(key, s, gave_up=False, ended=True)
+            if s.batch is not None:
+                self._batch_ended(s)
+            for first, (g, line, left) in s.owed.items():
+                self._found(
+                    "strategy",
+                    f"supervisor {key[1]} ({g.strategy}) restarted {_names(g.members, left)}"
+                    f" after {g.crashed}'s exit but never {_listed(left)} ({first} did not "
+                    f"fail to start): its group, {_listed(g.members)}, restarts together",
+                    (g.line, line),
+                )
+        for (_, nested), (line, at, parent) in self.gave_up.items():
+            if self.last_at - at > ESCALATED_S:
+                self._found(
+                    "escalation",
+                    f"supervisor {nested} gave up and its parent {parent} never saw it "
+                    f"exit ({self.last_at - at:.3f} s of events after)",
+                    (line,),
+                )
+
+    # -- each event ---------------------------------------------------------------------
+
+    def _unescalated(self, nested: tuple[str, str], line: int, then: str) -> None:
+        """`nested` gave up, and `then` (at `line`) before its parent took its exit."""
+        gave_up = self.gave_up.pop(nested, None)
+        if gave_up is not None:
+            self._found(
+                "escalation",
+                f"supervisor {nested[1]} gave up and {then} before its parent "
+                f"{gave_up[2]} saw it exit",
+                (gave_up[0], line),
+            )
+
+    def _exited(
+        self, key: tuple[str, str], s: _Supervisor, line: int, event: events.ChildExited
+    ) -> None:
+        child = event.child
+        nested = (event.host, child)
+        if nested in self.supervisors:  # a nested supervisor ended: it starts afresh
+            inner = self.supervisors[nested]
+            if inner.deciding is not None:
+                self._decided(nested, inner, gave_up=False, ended=True)
+            self.supervisors[nested] = _Supervisor()
+        gave_up = self.gave_up.pop(nested, None)
+        if gave_up is not None and event.stopped and event.at - gave_up[1] > ESCALATED_S:
+            self._found(
+                "escalation",
+                f"supervisor {child} gave up and its parent {key[1]} stopped it "
+                f"{event.at - gave_up[1]:.3f} s later without taking its exit",
+                (gave_up[0], line),
+            )
+        s.running.discard(child)
+        if event.restart:
+            s.types[child] = event.restart
+        if not event.strategy:
+            s.exits.pop(child, None)  # (a line of schema 5 or older: not judged)
+            return
+        s.exits[child] = (line, event)
+        if event.stopped:
+            if s.deciding is not None:
+                s.deciding.stops.append((line, child))
+            return
+        s.owed.pop(child, None)  # (its start failed: this exit decides again)
+        if _restarts_after(event):
+            s.deciding = _Decision(line, event, frozenset(s.running))
+        else:
+            s.pending.pop(child, None)
+
+    def _decided(
+        self, key: tuple[str, str], s: _Supervisor, *, gave_up: bool, ended: bool = False
+    ) -> None:
+        """The stops after a decision are all seen: were they its group's?"""
+        decision, s.deciding = s.deciding, None
+        assert decision is not None
+        event = decision.event
+        crashed, children = event.child, event.children
+        members = children if gave_up else group(event.strategy, children, crashed)
+        expected = [c for c in reversed(members) if c != crashed and c in decision.running]
+        stops = decision.stops
+        shown = [c for _, c in stops]
+        fine = shown == expected
+        if ended and not fine:  # (the history ended, or a stop of them all came after)
+            rest = [c for c in reversed(children) if c in decision.running and c not in expected]
+            after = shown[len(expected) :]
+            fine = expected[: len(shown)] == shown or (
+                shown[: len(expected)] == expected and rest[: len(after)] == after
+            )
+        if not fine:
+            what = "gave up" if gave_up else f"restarts {crashed}"
+            whose = "every running child" if gave_up else f"its {event.strategy} group"
+            self._found(
+                "strategy",
+                f"supervisor {key[1]} {what} at {crashed}'s exit and stopped "
+                f"{_listed(shown) or 'none'}, not {_listed(expected) or 'none'} "
+                f"({whose}, in reverse start order)",
+                (decision.line, *(at for at, _ in stops)),
+            )
+        if gave_up:
+            return
+        back = tuple(
+            m
+            for m in members
+            if m == crashed
+            or (
+                s.types.get(m) != "temporary"
+                and (
+                    m in decision.running
+                    or m in s.pending
+                    or (m in s.exits and not s.exits[m][1].stopped)
+                )
+            )
+        )
+        restarted = _Group(decision.line, crashed, event.strategy, back)
+        s.pending.update(dict.fromkeys(back, restarted))
+
+    def _restarted(
+        self, key: tuple[str, str], s: _Supervisor, line: int, event: events.ChildRestarted
+    ) -> None:
+        child = event.child
+        s.running.add(child)
+        exit_ = s.exits.get(child)
+        restarted = s.pending.pop(child, None)
+        if exit_ is None:
+            return  # (its exit is of schema 5 or older, or not in the history: not judged)
+        if s.types.get(child) == "temporary" or restarted is None:
+            exit_line, last = exit_
+            if last.stopped:
+                why = "it was stopped, in no group restarted since"
+            else:
+                how = "a normal" if last.normal else "an abnormal"
+                why = f"a {last.restart} child after {how} exit"
+            self._found(
+                "strategy",
+                f"supervisor {key[1]} restarted {child}, which OTP leaves down: {why}",
+                (exit_line, line),
+            )
+            return
+        before = restarted.members[: restarted.members.index(child)]
+        skipped = tuple(m for m in before if s.pending.get(m) is restarted)
+        if skipped:
+            self._found(
+                "strategy",
+                f"supervisor {key[1]} ({restarted.strategy}) restarted {child} before "
+                f"{_listed(skipped)}: the group of {restarted.crashed}'s exit restarts "
+                f"{_listed(restarted.members)}, in start order",
+                (restarted.line, line),
+            )
+            for m in skipped:  # (found once: not owed again)
+                s.pending.pop(m, None)
+        s.batch = (restarted, line)
+
+    def _batch_ended(self, s: _Supervisor) -> None:
+        """A group's restart ended: every member it left must have failed to start."""
+        assert s.batch is not None
+        restarted, line = s.batch
+        s.batch = None
+        left = tuple(m for m in restarted.members if s.pending.get(m) is restarted)
+        if left:
+            s.owed[left[0]] = (restarted, line, left)
+
+    def _found(self, rule: str, message: str, lines: tuple[int, ...]) -> None:
+        self.findings.append(Finding(rule, "violation", message, tuple(sorted(set(lines)))))
+
+
+def _listed(names: Sequence[str]) -> str:
+    return ", ".join(names)
+
+
+def _names(members: Sequence[str], left: Sequence[str]) -> str:
+    return _listed([m for m in members if m not in left]) or "none"
+
+
+def strategy(history: Sequence[Line]) -> tuple[list[Finding], list[Finding]]:
+    """`strategy` and `escalation` as OTP defines them (`Strategies`); the two lists of findings.
+
+    Not judged: schema 5 or older, a restart still due at the end, a give-up less than
+    `ESCALATED_S` before the last event.
+    """
+    judge = Strategies()
+    for line, event in history:
+        judge.see(line, event)
+    judge.end()
+    return (
+        [f for f in judge.findings if f.rule == "strategy"],
+        [f for f in judge.findings if f.rule == "escalation"],
+    )

@@ -1,0 +1,415 @@
+"""A verdict per run: check the semantic rules a run's events can show (events in, findings out).
+
+```
+ events.jsonl ──► read_runs ──► {run: [(line, event), ...]}
+ a run's events, as published ──► numbered ──► the same, without the JSON (a simulated run)
+                                      │
+ check(history) ──────────────────────┴─► _history: each registrar's lives, the run's facts
+     ├─► _provider_rules: one pass over each provider's catalog
+     ├─► _status_rules: each status's deliveries, against who should have got it
+     ├─► _consumer_rules: each consumer's calls, lost ids, rows left, fetches
+     ├─► _supervision_rules: give-ups, strategies, escalations
+     └─► events lost ──► findings (violation / unverifiable, each with the line
+                         numbers of the events that show it) ──► Verdict
+```
+
+The rules (`RULES`), their windows and what cannot be checked: the table of
+`docs/how-to/check-a-run.md`. Lines are compared within one registrar, clock stamps
+(`hlc`) across registrars; every step is a dict lookup.
+"""
+
+from __future__ import annotations
+
+import bisect
+import dataclasses
+import itertools
+import reprlib
+import tomllib
+from collections import defaultdict
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+from rr_actors import events
+from rr_actors.errors import ConfigError
+from rr_actors.events.lines import json_lines, parse_json
+from rr_actors_lab.experiments import _consumer_rules, _status_rules, _supervision_rules
+from rr_actors_lab.experiments._history import Finding, Life, Line, gather, registrar_of, walk
+from rr_actors_lab.experiments._provider_rules import Providers, dependency_held, unload_order
+
+__all__ = [
+    "RULES",
+    "Finding",
+    "Line",
+    "Verdict",
+    "check",
+    "check_file",
+    "format_verdict",
+    "numbered",
+    "read_runs",
+]
+
+RULES = (
+    "kept",
+    "unload-once",
+    "no-leak",
+    "one-resource",
+    "release-match",
+    "in-doubt",
+    "dedup",
+    "restore-first",
+    "status-once",
+    "status-reached",
+    "status-path",
+    "status-order",
+    "answered",
+    "reported-lost",
+    "end",
+    "withdrawn",
+    "retry-kept",
+    "left",
+    "unload-order",
+    "dependency-held",
+    "intensity",
+    "strategy",
+    "escalation",
+    "one-name",
+    "fetch",
+    "events",
+)
+"""The rules `check` checks, by name (`docs/how-to/check-a-run.md` says what each means)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Verdict:
+    """A run's verdict: `"held"`, `"violated"` or `"unverifiable"`, with its findings.
+
+    Attributes:
+        verdict: `"violated"` if any finding is a violation, else `"unverifiable"` if any
+            is unverifiable, else `"held"`.
+        events: how many events were checked.
+        findings: every finding, in the order of their first line.
+    """
+
+    verdict: str
+    events: int
+    findings: tuple[Finding, ...]
+
+    @property
+    def violations(self) -> int:
+        """How many findings are violations."""
+        return sum(f.kind == "violation" for f in self.findings)
+
+    @property
+    def unverifiable(self) -> int:
+        """How many findings are unverifiable."""
+        return sum(f.kind == "unverifiable" for f in self.findings)
+
+
+def _loss_rule(history: Sequence[Line]) -> tuple[list[Finding], set[int]]:
+    """`events`: every lost event (a notice, a gap in a process's numbers); the pids."""
+    findings: list[Finding] = []
+    lossy: set[int] = set()
+    numbers: dict[int, list[tuple[int, int]]] = defaultdict(list)
+    dropped: list[int] = []  # lines of the notices, in order
+    for line, event in history:
+        if isinstance(event, events.EventsDropped):
+            dropped.append(line)
+            lossy.add(event.pid)
+            why = " (it was killed before it sent them)" if event.cause == "killed" else ""
+            findings.append(
+                Finding(
+                    "events",
+                    "unverifiable",
+                    f"{event.count} events lost in process {event.pid}{why}",
+                    (line,),
+                )
+            )
+        seq = getattr(event, "seq", 0)
+        if seq:
+            numbers[event.pid].append((seq, line))
+    for pid, seen in numbers.items():
+        seen.sort()
+        for (a, la), (b, lb) in itertools.pairwise(seen):
+            if b - a <= 1:
+                continue
+            low, high = min(la, lb), max(la, lb)
+            first = bisect.bisect_left(dropped, low)
+            if first < len(dropped) and dropped[first] <= high:
+                continue  # (a notice between them counted it)
+            lossy.add(pid)
+            findings.append(
+                Finding(
+                    "events",
+                    "unverifiable",
+                    f"{b - a - 1} events of process {pid} missing (seq {a + 1}..{b - 1})",
+                    (la, lb),
+                )
+            )
+    return findings, lossy
+
+
+KEEPS = {
+    "first_served": "the one served later yields",
+    "majority": "the one begun on a minority side yields (both on a majority side: the earlier)",
+}
+"""What each named rule 22 policy (`[hosts]`' `resolve`) keeps, as `one-name` words it."""
+
+
+def _one_name_rule(
+    history: Sequence[Line], lives: dict[tuple[str, int], Life], resolve: str
+) -> list[Finding]:
+    """`one-name` (rule 22): a second server of a name and the one it served beside do
+    not both serve to the end of the run, whichever one `resolve` (the plan's policy)
+    keeps. A life whose serving failed (its restart's `DuplicateNameError`, as a
+    `permanent` registrar that yielded is restarted into the one kept) does not serve."""
+    exits = {(e.child, e.pid): e.reason for _, e in history if isinstance(e, events.ChildExited)}
+    refused = [  # (a restart into a name another serves: line, child, host)
+        (line, e.child, e.host)
+        for line, e in history
+        if isinstance(e, events.ChildExited)
+        and e.reason.startswith("failed to start")
+        and "DuplicateNameError" in e.reason
+    ]
+    latest: dict[str, int] = {}
+    for name, life in lives:
+        latest[name] = max(latest.get(name, 0), life)
+
+    def to_the_end(name: str) -> Life | None:
+        """The last life of `name` if it served to the end of the run."""
+        record = lives[name, latest[name]]
+        child = name.partition("@")[0]
+        reason = exits.get((child, record.pid))
+        if any(
+            line > record.first_line and c == child and h == record.host for line, c, h in refused
+        ):
+            return None  # (it began, and its serve failed: the name was another's)
+        return record if reason in (None, "shutdown") else None
+
+    keeps = KEEPS.get(resolve, f"resolve = {resolve!r} keeps one and the other yields")
+    findings = []
+    for (name, life), record in lives.items():
+        if record.beside is None or latest[name] != life or to_the_end(name) is None:
+            continue
+        base = record.beside[0]
+        other = to_the_end(base)  # (the one it served beside, or its restart)
+        if other is None:
+            continue
+        findings.append(
+            Finding(
+                "one-name",
+                "violation",
+                f"two registrars {base} served to the end of the run: pid {other.pid}'s and "
+                f"pid {record.pid}'s, begun while the other served (behind a cut); once it "
+                f"healed, {keeps} (rule 22)",
+                (other.first_line, record.first_line, record.last_line),
+                (base, name),
+            )
+        )
+    return findings
+
+
+def check(history: Sequence[Line], resolve: str = "first_served") -> Verdict:
+    """Check one run's events against every rule of `RULES`.
+
+    Args:
+        history: the run's events in the order they were written, each with its line
+            number (`read_runs` gives them).
+        resolve: the run's rule 22 policy (its plan's `[hosts]` `resolve`), as
+            `one-name` says which registrar of a name yields at a heal.
+
+    Returns:
+        The verdict and every finding. A violation about a registrar whose process lost
+        events counts as unverifiable (the lost events may explain it).
+    """
+    losses, lossy = _loss_rule(history)
+    lossy_registrars = {
+        name for _, e in history if e.pid in lossy and (name := registrar_of(e)) is not None
+    }
+    steps, lives = walk(history)
+    facts = gather(history)
+    providers = Providers(facts, lives)
+    providers.run(steps)
+    wanted = {(want.holder, want.query_id) for want in providers.expected}
+    answered, spans = _consumer_rules.answered(steps, facts, wanted)
+    strategy, escalation = _supervision_rules.strategy(history)
+    found = [
+        *providers.findings,
+        *_status_rules.status_once(history),
+        *_status_rules.status_reached(providers.expected, facts, spans, lives, history, steps),
+        *_status_rules.status_path(history, facts),
+        *_status_rules.status_order(history),
+        *answered,
+        *_consumer_rules.reported_lost(history, providers.holdings, lives),
+        *_consumer_rules.end(steps, history),
+        *_consumer_rules.withdrawn(steps),
+        *_consumer_rules.retry_kept(steps),
+        *_consumer_rules.left(steps, history, lives),
+        *_consumer_rules.fetch(steps, providers.holdings, lives),
+        *unload_order(steps),
+        *dependency_held(steps),
+        *_supervision_rules.intensity(history),
+        *strategy,
+        *escalation,
+        *_one_name_rule(history, lives, resolve),
+    ]
+    findings = [
+        dataclasses.replace(f, kind="unverifiable", message=f"{f.message} (events were lost)")
+        if f.kind == "violation" and lossy_registrars.intersection(f.registrars)
+        else f
+        for f in found
+    ]
+    findings = sorted([*losses, *findings], key=lambda f: (min(f.lines, default=0), f.rule))
+    if any(f.kind == "violation" for f in findings):
+        verdict = "violated"
+    elif findings:
+        verdict = "unverifiable"
+    else:
+        verdict = "held"
+    return Verdict(verdict, len(history), tuple(findings))
+
+
+# -- reading and printing ----------------------------------------------------------------------
+
+
+def read_runs(lines: Iterable[str]) -> dict[int, list[Line]]:
+    """The events of each run of an `events.jsonl` (other lines, such as faults, skipped).
+
+    Args:
+        lines: the file's lines.
+
+    Returns:
+        Run number (the line's `"run"`, 0 without one) -> its events with line numbers.
+
+    Raises:
+        ConfigError: a line is not JSON, or an event line that cannot be read; the
+            message names the line.
+    """
+    return _runs(_parsed(lines), "line")
+
+
+def numbered(seen: Iterable[events.Event]) -> list[Line]:
+    """One run's events as published, numbered as the lines of its `events.jsonl` would be (1
+    first), their rows checked as `read_runs` checks them: the same verdict, no JSON.
+
+    Raises:
+        ConfigError: a catalog event's row too short, or a digest not a number; names the line.
+    """
+    history = list(enumerate(seen, start=1))
+    for number, event in history:
+        if isinstance(event, _CATALOG):  # (the others have no rows: no call for them)
+            try:
+                _check_rows(event)
+            except ConfigError as exc:
+                raise ConfigError(f"line {number}: {exc}") from None
+    return history
+
+
+def _parsed(lines: Iterable[str]) -> Iterator[tuple[int, Any]]:
+    for number, text in enumerate(lines, start=1):
+        if text.strip():
+            yield number, parse_json(text, f"line {number}")
+
+
+def _runs(numbered: Iterable[tuple[int, Any]], where: str) -> dict[int, list[Line]]:
+    """The events of each run of `(line number, JSON value)` pairs; `where` names a line
+    in errors (`"line"`, or `"<file> line"`)."""
+    runs: dict[int, list[Line]] = defaultdict(list)
+    for number, data in numbered:
+        if not isinstance(data, dict) or "schema" not in data:
+            continue  # a fault line
+        run = data.pop("run", 0)
+        data.pop("seed", None)
+        if isinstance(run, bool) or not isinstance(run, int) or run < 0:
+            raise ConfigError(f"{where} {number}: run must be an int >= 0, got {reprlib.repr(run)}")
+        try:
+            event = events.from_dict(data)
+            _check_rows(event)
+        except ConfigError as exc:
+            raise ConfigError(f"{where} {number}: {exc}") from None
+        runs[run].append((number, event))
+    return dict(runs)
+
+
+_CATALOG = (events.CatalogRestored, events.RegistrarStopped)
+"""The kinds with rows (`_check_rows`)."""
+
+_ROW_FIELDS = {"resources": 3, "consumers": 3, "clients": 4}
+"""The fields a row of a catalog event has at least (its kind's docstring names them)."""
+
+
+def _check_rows(event: events.Event) -> None:
+    """A catalog event's rows are as wide as the rules read them, and its digests numbers.
+
+    Raises:
+        ConfigError: a short row, or a digest not a whole number of at most 40 digits.
+    """
+    if not isinstance(event, _CATALOG):
+        return
+    kind = type(event).__name__
+    for field, least in _ROW_FIELDS.items():
+        for row in getattr(event, field):
+            if len(row) < least:
+                raise ConfigError(
+                    f"{kind}.{field}: a row of fewer than {least} fields: {reprlib.repr(row)}"
+                )
+    for row in event.resources:
+        digest = row[3] if len(row) > 3 else ""
+        if digest and not (len(digest) <= 40 and digest.lstrip("-").isdecimal()):
+            raise ConfigError(
+                f"{kind}.resources: a digest that is not a whole number: {reprlib.repr(row)}"
+            )
+
+
+def check_file(path: Path) -> dict[int, Verdict]:
+    """Check every run of an `events.jsonl` file (or of a directory holding one).
+
+    Raises:
+        ConfigError: no such file, or it cannot be read, or a line that cannot be read
+            (named with the file).
+    """
+    file = path / "events.jsonl" if path.is_dir() else path
+    if not file.is_file():
+        if (path / "seeds.jsonl").is_file():
+            raise ConfigError(
+                f"no events.jsonl at {path}: it is a simulation's output; its seeds.jsonl "
+                f"says each seed's verdict, and `rr-actors replay {path} --seed S` re-runs one"
+            )
+        raise ConfigError(f"no events.jsonl at {path}")
+    runs = _runs(json_lines(file), f"{file} line")
+    resolve = _resolve_beside(file)
+    return {run: check(history, resolve) for run, history in sorted(runs.items())}
+
+
+def _resolve_beside(file: Path) -> str:
+    """The rule 22 policy of the plan copied beside `file` (its `plan.toml`'s `[hosts]`
+    `resolve`); `"first_served"`, the default, without one that says it."""
+    try:
+        hosts = tomllib.loads((file.parent / "plan.toml").read_text()).get("hosts", {})
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return "first_served"
+    resolve = hosts.get("resolve") if isinstance(hosts, dict) else None
+    return resolve if isinstance(resolve, str) and resolve else "first_served"
+
+
+def format_verdict(
+    run: int, verdict: Verdict, show: Callable[[int], str] | None = None
+) -> list[str]:
+    """The lines `rr-actors check` prints for one run: each finding with its window.
+
+    Args:
+        run: the run's number.
+        verdict: its verdict.
+        show: `show(line_number)` gives the text of a line (`None`: numbers only, each
+            `line N` with nothing after it).
+    """
+    out = [
+        f"run {run}: {verdict.verdict} ({verdict.events} events, {verdict.violations} "
+        f"violations, {verdict.unverifiable} unverifiable)"
+    ]
+    for finding in verdict.findings:
+        out.append(f"  {finding.kind} [{finding.rule}] {finding.message}")
+        for number in finding.lines:
+            text = show(number) if show is not None else ""
+            out.append(f"    line {number}: {text}".rstrip() if text else f"    line {number}")
+    return out
