@@ -8,6 +8,10 @@ configuration and the status types; the runtime is imported at the first use of 
 
 import importlib
 from contextlib import nullcontext
+
+import importlib.abc
+import importlib.machinery
+import sys
 from typing import TYPE_CHECKING
 
 from rr_actors import _extras, _log
@@ -153,3 +157,35 @@ def __getattr__(name: str) -> object:
 
 def __dir__() -> list[str]:
     return sorted({*globals(), *_RUNTIME})
+
+
+_LAB = ("experiments", "mission", "observe", "teach", "otel", "_cli", "_tools")
+"""The lab's modules that lived under `rr_actors` before they moved beside it, to
+`rr_actors_lab` (issue 54): `rr_actors.experiments` and its submodules still import."""
+
+
+class _LabNames(importlib.abc.MetaPathFinder, importlib.abc.Loader):
+    """`rr_actors.<lab module>[.sub]` as another name of `rr_actors_lab.<lab module>[.sub]`:
+    the same module object (one `Plan` class, whichever name imported it), so a program
+    written before the move runs on. Ahead of the path finder, which would load a second
+    copy from the lab's directory."""
+
+    def find_spec(
+        self, fullname: str, path: object = None, target: object = None
+    ) -> importlib.machinery.ModuleSpec | None:
+        parts = fullname.split(".")
+        if len(parts) < 2 or parts[0] != "rr_actors" or parts[1] not in _LAB:
+            return None
+        return importlib.machinery.ModuleSpec(fullname, self)
+
+    def create_module(self, spec: importlib.machinery.ModuleSpec) -> None:
+        return None  # a placeholder, replaced in `sys.modules` by the lab's module
+
+    def exec_module(self, module: object) -> None:
+        name = getattr(module, "__name__", "")
+        lab = importlib.import_module("rr_actors_lab" + name.removeprefix("rr_actors"))
+        sys.modules[name] = lab  # (the import system returns what `sys.modules` holds)
+
+
+if not any(isinstance(finder, _LabNames) for finder in sys.meta_path):
+    sys.meta_path.insert(0, _LabNames())

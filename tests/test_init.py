@@ -102,3 +102,56 @@ def test_importing_the_package_leaves_the_runtime_and_the_events_to_their_first_
 
     assert (run.returncode, run.stderr) == (0, "")
     assert "[]\nTrue True\n" == run.stdout
+
+
+LAB_MODULES = ["experiments", "mission", "observe", "teach", "otel", "_cli", "_tools"]
+"""The lab's modules that lived under `rr_actors` before they moved to `rr_actors_lab`."""
+
+
+def test_the_lab_imports_under_its_former_names_as_the_same_modules() -> None:
+    """The lab moved beside the runtime (issue 54 part 1); a program written before imports
+    it as it did: `rr_actors.experiments` (and its submodules) is `rr_actors_lab.experiments`,
+    one module, so one class whichever name imported it. Both orders, in a fresh process."""
+    code = (
+        "import importlib, sys\n"
+        "import rr_actors\n"
+        "from rr_actors.experiments.plan import PlanError as old\n"
+        "from rr_actors_lab.experiments.plan import PlanError as new\n"
+        "import rr_actors_lab.mission.config as new_config\n"
+        "import rr_actors.mission.config as old_config\n"
+        "from rr_actors import otel\n"
+        f"for name in {LAB_MODULES!r}:\n"
+        "    old_m = importlib.import_module('rr_actors.' + name)\n"
+        "    new_m = importlib.import_module('rr_actors_lab.' + name)\n"
+        "    print(name, old_m is new_m, sys.modules['rr_actors.' + name] is new_m)\n"
+        "print(old is new, old_config is new_config, otel is sys.modules['rr_actors_lab.otel'])\n"
+        "twins = [m for m in list(sys.modules) if m.startswith('rr_actors.experiments')]\n"
+        "print(old.__module__, all(sys.modules[m] is sys.modules['rr_actors_lab' + m[9:]]\n"
+        "                          for m in twins))\n"
+    )
+    run = subprocess.run(
+        [sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=60
+    )
+
+    assert (run.returncode, run.stderr) == (0, "")
+    assert [f"{name} True True" for name in LAB_MODULES] + [
+        "True True True",
+        "rr_actors_lab.experiments.plan True",
+    ] == run.stdout.splitlines()
+
+
+def test_the_runtime_runs_without_importing_the_lab() -> None:
+    """A program that uses the runtime alone (a supervisor, a registrar, the events) never
+    imports the lab: the runtime reads alone (issue 54 part 1)."""
+    code = (
+        "import sys, rr_actors as rr\n"
+        "rr.Supervisor, rr.ResourceRegistrar, rr.events.ChildRestarted, rr.errors\n"
+        "import rr_actors.testing\n"
+        "print(sorted(m for m in sys.modules if m.startswith('rr_actors_lab')))\n"
+    )
+    run = subprocess.run(
+        [sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=60
+    )
+
+    assert (run.returncode, run.stderr) == (0, "")
+    assert "[]\n" == run.stdout

@@ -166,33 +166,34 @@ def test_the_protocol_uses_threads_clocks_ids_and_randomness_only_through_the_ru
 
 
 MIRRORED = {
-    "": ("",),
-    "catalog": ("_catalog",),
-    "core": ("_core", "_platform"),
-    "events": ("events",),
-    "experiments": ("experiments",),
-    "mission": ("mission",),
-    "observe": ("observe",),
-    "process": ("_process",),
-    "registrar": ("_registrar",),
-    "simulation": ("simulation",),
-    "store": ("_store",),
-    "supervision": ("_supervision",),
-    "teach": ("teach",),
-    "testing": ("testing",),
-    "tools": ("_tools",),
-    "transport": ("_transport",),
-    "transport/unix": ("_transport/unix",),
-    "transport/zenoh": ("_transport/zenoh",),
-    "transport/zenoh/ops": ("_transport/zenoh/ops",),
+    "": ("rr_actors", "rr_actors_lab"),
+    "catalog": ("rr_actors/_catalog",),
+    "core": ("rr_actors/_core", "rr_actors/_platform"),
+    "events": ("rr_actors/events",),
+    "experiments": ("rr_actors_lab/experiments",),
+    "mission": ("rr_actors_lab/mission",),
+    "observe": ("rr_actors_lab/observe",),
+    "process": ("rr_actors/_process",),
+    "registrar": ("rr_actors/_registrar",),
+    "simulation": ("rr_actors/simulation",),
+    "store": ("rr_actors/_store",),
+    "supervision": ("rr_actors/_supervision",),
+    "teach": ("rr_actors_lab/teach",),
+    "testing": ("rr_actors/testing",),
+    "tools": ("rr_actors_lab/_tools",),
+    "transport": ("rr_actors/_transport",),
+    "transport/unix": ("rr_actors/_transport/unix",),
+    "transport/zenoh": ("rr_actors/_transport/zenoh",),
+    "transport/zenoh/ops": ("rr_actors/_transport/zenoh/ops",),
 }
 """Each test folder (its path under `tests/`; `""` is `tests/` itself) and the packages of
-`rr_actors` (their paths under `rr_actors/`) whose modules its test modules mirror.
+`rr_actors` and `rr_actors_lab` (their paths from the repository's root) whose modules its
+test modules mirror.
 
-A folder's `test_<name>.py` names a runtime module of one of its packages `P` when
-`rr_actors/P/<name>.py` or `rr_actors/P/_<name>.py` exists (the leading underscore of a
-private module dropped), or a package `rr_actors/P/<name>/` or `rr_actors/P/_<name>/`, or
-when `<name>` is `P`'s own name without its underscore (the package as a whole: its
+A folder's `test_<name>.py` names a module of one of its packages `P` when `P/<name>.py`
+or `P/_<name>.py` exists (the leading underscore of a private module dropped), or a
+package `P/<name>/` or `P/_<name>/`, or when `<name>` is `P`'s own name without its
+underscore (the package as a whole: its
 `__init__.py`). A nested test folder `tests/a/b/` mirrors its own packages, listed under
 `"a/b"`."""
 
@@ -225,8 +226,8 @@ def _names(test_folder: str) -> set[str]:
     """The `<name>`s a test module of `test_folder` may be called `test_<name>.py` after."""
     names = set()
     for package in MIRRORED[test_folder]:
-        where = ROOT / "rr_actors" / package
-        if package:
+        where = ROOT / package
+        if "/" in package:
             names.add(where.name.removeprefix("_"))
         for entry in where.iterdir():
             is_package = entry.is_dir() and (entry / "__init__.py").exists()
@@ -357,11 +358,13 @@ def test_the_changelog_rule_tells_private_and_test_names_from_public_ones(
 
 # -- the runtime reads alone: its budget (issue 54 part 2) --------------------------------------
 
-LAB = {"experiments", "mission", "observe", "teach", "_tools", "_cli.py", "__main__.py", "otel.py"}
-"""The tools above the runtime (issue 54 part 1): experiments, mission, observer, teaching kit,
-certificates tooling, command line, tracing export. They import the runtime, never the reverse."""
+LAB = ("rr_actors_lab/", "rr_actors/__main__.py")
+"""The tools beside the runtime (issue 54 part 1): rr_actors_lab (experiments, mission,
+observer, teaching kit, certificates tooling, command line, tracing export), and
+`python -m rr_actors`, which runs its command line. They import the runtime, never the
+reverse (the import-linter contract "The runtime never imports the lab")."""
 
-RUNTIME_SEAMS = {"testing", "simulation"}
+RUNTIME_SEAMS = ("rr_actors/testing/", "rr_actors/simulation/")
 """The runtime's seams, beside the code they replace: neither runtime nor lab."""
 
 RUNTIME_LINES = 32_000
@@ -372,7 +375,7 @@ SMALL_MODULES = 13
 DOCSTRING_SHARE = 0.30
 SCREEN = 50
 
-EXERCISES = "teach/exercises/"
+EXERCISES = "rr_actors_lab/teach/exercises/"
 """A classroom exercise's starter and solution files: copied into a student's folder, never
 imported by the package, so no module of it (they are small by design)."""
 
@@ -423,25 +426,28 @@ def lines_of(text: str) -> Lines:
 
 
 def modules() -> dict[str, Lines]:
-    """Every module of rr_actors/ (its path under it) with its lines."""
-    package = ROOT / "rr_actors"
+    """Every module of rr_actors/ and rr_actors_lab/ (its path from the repository's root)
+    with its lines."""
     return {
-        path.relative_to(package).as_posix(): lines_of(path.read_text(encoding="utf-8"))
-        for path in sorted(package.rglob("*.py"))
+        path.relative_to(ROOT).as_posix(): lines_of(path.read_text(encoding="utf-8"))
+        for package in ("rr_actors", "rr_actors_lab")
+        for path in sorted((ROOT / package).rglob("*.py"))
     }
 
 
 def part(name: str) -> str:
-    """`lab`, `seam` or `runtime`: where the module `name` (a path under rr_actors/) sits."""
-    top = name.split("/", maxsplit=1)[0]
-    return "lab" if top in LAB else "seam" if top in RUNTIME_SEAMS else "runtime"
+    """`lab`, `seam` or `runtime`: where the module `name` (a path from the root) sits."""
+    return (
+        "lab" if name.startswith(LAB) else "seam" if name.startswith(RUNTIME_SEAMS) else "runtime"
+    )
 
 
 def by_package(found: dict[str, Lines], figure: str) -> str:
     """The biggest packages (or top-level modules) of `found` by `figure`, for a message."""
     sums: dict[str, int] = {}
     for name, lines in found.items():
-        sums[name.split("/")[0]] = sums.get(name.split("/")[0], 0) + getattr(lines, figure)
+        key = "/".join(name.split("/")[:2])  # rr_actors/_core, rr_actors_lab/experiments
+        sums[key] = sums.get(key, 0) + getattr(lines, figure)
     return ", ".join(f"{k} {v}" for k, v in sorted(sums.items(), key=lambda kv: -kv[1])[:6])
 
 
@@ -458,7 +464,9 @@ def over_budgets() -> dict[str, str | None]:
     assert len(runtime) > 50  # the walk found the runtime
     assert any(part(name) == "lab" for name in found)  # and the lab
     lines = sum(each.total for each in runtime.values())
-    transport = sum(each.total for name, each in found.items() if name.startswith("_transport/"))
+    transport = sum(
+        each.total for name, each in found.items() if name.startswith("rr_actors/_transport/")
+    )
     files = {name: Lines(1, 0, 0, 0) for name in runtime}
     small = [
         f"{name} {each.code}"
@@ -513,7 +521,7 @@ def test_the_runtime_keeps_within_its_budget(budget: str) -> None:
     modules a program imports (`__init__`, `config`, `errors`, `_types`, `_log`, `_extras`),
     holds at most `RUNTIME_LINES` lines (all of them: code, docstrings, comments, blank) in
     at most `RUNTIME_FILES` files (35,729 and 109 at f55ac6b, where the issue was filed),
-    `_transport/` at most `TRANSPORT_LINES`. Across all of rr_actors/: at most
+    `_transport/` at most `TRANSPORT_LINES`. Across rr_actors/ and rr_actors_lab/: at most
     `SMALL_MODULES` modules (no `__init__.py`, no exercise file) of fewer than `SMALL`
     code lines (a small module is a role split whose story its neighbour tells); docstring
     lines at most `DOCSTRING_SHARE` of code lines (the rest is said once, or in

@@ -1,5 +1,5 @@
-"""Write `docs/reference/modules.md`: every module of `rr_actors`, by package, with the first
-paragraph of its docstring.
+"""Write `docs/reference/modules.md`: every module of `rr_actors` (the runtime) and
+`rr_actors_lab` (its tools), by package, with the first paragraph of its docstring.
 
 Run from the repository's root after a module's docstring changed, or a module came or
 went: `python docs/hooks/modules.py`. `tests/test_docs.py` fails while the page is not what
@@ -14,14 +14,15 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
-PACKAGE = ROOT / "rr_actors"
+PACKAGES = (ROOT / "rr_actors", ROOT / "rr_actors_lab")
 PAGE = ROOT / "docs" / "reference" / "modules.md"
 
 HEADER = """\
 # Modules
 
-Every module of `rr_actors`, package by package, with the first paragraph of its
-docstring: where each part of the framework lives. A name starting with `_` is private:
+Every module of `rr_actors` (the runtime) and `rr_actors_lab` (the tools beside it),
+package by package, with the first paragraph of its docstring: where each part of the
+framework lives. A name starting with `_` is private:
 its module may change in any release; the public API is on the [API page](api.md). The
 layers, and how a call and a restart go through them, are explained in
 [Architecture](../explanation/architecture.md).
@@ -49,7 +50,7 @@ def render() -> str:
     """The page's text: a section per package (the package itself first), a table row per
     module, in name order."""
     packages: dict[str, list[Path]] = {}
-    for path in sorted(PACKAGE.rglob("*.py")):
+    for path in sorted(p for package in PACKAGES for p in package.rglob("*.py")):
         if "__pycache__" in path.parts or not (path.parent / "__init__.py").is_file():
             continue  # (a file outside a package: data, such as an exercise's starter)
         packages.setdefault(module_name(path.parent / "__init__.py"), []).append(path)

@@ -1,6 +1,6 @@
-"""The `Observer` handle (`rr_actors_lab.observe._observer`): a context manager that needs the extra,
-and `Supervisor.observe(sock=...)`: the page served on a listening socket made by the caller;
-one across hosts left open as its program ends.
+"""The `Observer` handle (`rr_actors_lab.observe._observer`): a context manager that needs
+the extra, and `Supervisor.observe(sock=...)`: the page served on a listening socket made by
+the caller; one across hosts left open as its program ends.
 
 (`rr-actors demo --hosts 2 --observe` binds one in the machine's network namespace and
 hands it to the station's process, in a namespace of its own: tests/mission.)
