@@ -198,7 +198,8 @@ class TestFromAWheel:
     def test_the_wheel_lists_and_runs_a_shipped_plan_from_anywhere(self, tmp_path: Path) -> None:
         env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
         source = tmp_path / "source"
-        shutil.copytree(ROOT / "rr_actors", source / "rr_actors", symlinks=False)
+        for package in ("rr_actors", "rr_actors_lab"):  # the runtime and the lab beside it
+            shutil.copytree(ROOT / package, source / package, symlinks=False)
         for name in ("pyproject.toml", "README.md", "LICENSE"):
             shutil.copy(ROOT / name, source / name)
         sh(sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
@@ -224,7 +225,11 @@ class TestFromAWheel:
         elsewhere.mkdir()
 
         where = sh(
-            python, "-c", "import rr_actors; print(rr_actors.__file__)", cwd=elsewhere, env=env
+            python,
+            "-c",
+            "import rr_actors_lab; print(rr_actors_lab.__file__)",
+            cwd=elsewhere,
+            env=env,
         )
         listed = sh(venv / "bin" / "rr-actors", "experiment", "--list", cwd=elsewhere, env=env)
         help_text = sh(venv / "bin" / "rr-actors", "experiment", "--help", cwd=elsewhere, env=env)
