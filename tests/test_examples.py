@@ -147,7 +147,8 @@ def _needs(example: Path) -> set[str]:
     top = ast.parse(example.read_text()).body
     names = {a.name for n in top if isinstance(n, ast.Import) for a in n.names}
     names |= {n.module for n in top if isinstance(n, ast.ImportFrom) and n.module and not n.level}
-    roots = {name.split(".")[0] for name in names} - {*sys.stdlib_module_names, "rr_actors"}
+    ours = {"rr_actors", "rr_actors_lab"}  # the runtime and the lab: one distribution
+    roots = {name.split(".")[0] for name in names} - {*sys.stdlib_module_names, *ours}
     return {root.replace("_", "-") for root in roots - {"__future__"}}
 
 
