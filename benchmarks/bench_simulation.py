@@ -69,14 +69,14 @@ from typing import Any
 import greenlet
 import pykka
 
-import rr_actors
+import rr_actors_lab
 from rr_actors import simulation
 from rr_actors._core import runtime
 from rr_actors.simulation import _run
 from rr_actors_lab.experiments import simulate
 from rr_actors_lab.experiments.reading import load_plan
 
-PLANS = Path(rr_actors.__file__).parent / "experiments" / "plans"
+PLANS = Path(rr_actors_lab.__file__).parent / "experiments" / "plans"
 
 
 def killheavy_without_cut(folder: Path) -> Path:

@@ -51,10 +51,10 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import rr_actors
+import rr_actors_lab
 
 ROOT = Path(__file__).resolve().parent.parent
-PLANS = Path(rr_actors.__file__).parent / "experiments" / "plans"
+PLANS = Path(rr_actors_lab.__file__).parent / "experiments" / "plans"
 HASH_SEED = "0"
 """The `PYTHONHASHSEED` of a sweep (`rr-actors experiment --simulate`)."""
 

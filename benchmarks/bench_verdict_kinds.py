@@ -47,13 +47,13 @@ import tomllib
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
-import rr_actors
+import rr_actors_lab
 from rr_actors_lab.experiments import check, load_plan
 from rr_actors_lab.experiments.plan import PlanError
 from rr_actors_lab.experiments.simulate import check_simulable
 
 ROOT = Path(__file__).resolve().parent.parent
-PLANS = Path(rr_actors.__file__).parent / "experiments" / "plans"
+PLANS = Path(rr_actors_lab.__file__).parent / "experiments" / "plans"
 TIMEOUT = 1800.0
 """Seconds one command (a plan's real runs, or its seeds) may take before it counts as hung."""
 

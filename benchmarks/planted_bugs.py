@@ -85,7 +85,7 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGE = ROOT / "rr_actors"
-PLANS = PACKAGE / "experiments" / "plans"
+PLANS = ROOT / "rr_actors_lab" / "experiments" / "plans"
 
 
 @dataclasses.dataclass(frozen=True)

@@ -550,7 +550,10 @@ def test_readme_starts_with_the_demo_and_the_test_command_that_ci_runs() -> None
 
 
 def test_no_page_example_or_docstring_cites_a_design_document_the_reader_does_not_have() -> None:
-    readable = [*PAGES, *(ROOT / "examples").glob("*.py"), *(ROOT / "rr_actors").rglob("*.py")]
+    readable = [*PAGES, *(ROOT / "examples").glob("*.py")]
+    readable += [
+        p for package in ("rr_actors", "rr_actors_lab") for p in (ROOT / package).rglob("*.py")
+    ]
     citing = [rel(path) for path in readable if re.search(r"\bDESIGN\b", path.read_text())]
 
     assert [] == citing
@@ -831,7 +834,8 @@ def test_the_modules_page_lists_every_module_with_its_docstrings_first_paragraph
     script = modules_script()
     modules = sorted(  # (a file outside a package is data: an exercise's starter)
         p
-        for p in (ROOT / "rr_actors").rglob("*.py")
+        for package in ("rr_actors", "rr_actors_lab")
+        for p in (ROOT / package).rglob("*.py")
         if "__pycache__" not in p.parts and (p.parent / "__init__.py").is_file()
     )
     rows = [line for line in script.render().splitlines() if line.startswith("| `rr_actors")]

@@ -215,7 +215,11 @@ def test_the_dev_extra_holds_every_import_of_the_tests_and_no_benchmark_peer() -
         for alias in node.names
         if not isinstance(node, ast.ImportFrom) or node.module
     }
-    third_party = modules - set(sys.stdlib_module_names) - {"rr_actors", "tests", "__future__"}
+    third_party = (
+        modules
+        - set(sys.stdlib_module_names)
+        - {"rr_actors", "rr_actors_lab", "tests", "__future__"}
+    )
     owners = importlib.metadata.packages_distributions()
     missing = {
         module: owners.get(module)

@@ -43,7 +43,7 @@ def test_what_the_readme_and_tutorials_write_is_ignored_by_git(written: str) -> 
 def test_no_module_of_the_package_imports_itself_back() -> None:
     """No import circle between modules, even through an import for a type only (issue 31)."""
     grimp = pytest.importorskip("grimp")  # (installed with import-linter: the dev extra)
-    graph = grimp.build_graph("rr_actors", exclude_type_checking_imports=False)
+    graph = grimp.build_graph("rr_actors", "rr_actors_lab", exclude_type_checking_imports=False)
     circles = set()
     for importer in graph.modules:
         for imported in graph.find_modules_directly_imported_by(importer):
@@ -63,7 +63,10 @@ MARKERS = ("<<<<<<< ", ">>>>>>> ")
 def test_no_file_holds_a_merge_conflict_left_in_it() -> None:
     # One was committed in the architecture page's message table and no build saw it:
     # markdown renders the markers as text.
-    roots = [ROOT / name for name in ("docs", "rr_actors", "tests", "benchmarks", "examples")]
+    roots = [
+        ROOT / name
+        for name in ("docs", "rr_actors", "rr_actors_lab", "tests", "benchmarks", "examples")
+    ]
     files = [p for root in roots for p in root.rglob("*") if p.suffix in {".md", ".py", ".toml"}]
     files += [p for p in ROOT.iterdir() if p.suffix in {".md", ".toml"}]
     assert len(files) > 100  # the walk found the tree
