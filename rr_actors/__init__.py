@@ -7,11 +7,10 @@ configuration and the status types; the runtime is imported at the first use of 
 """
 
 import importlib
-from contextlib import nullcontext
-
 import importlib.abc
 import importlib.machinery
 import sys
+from contextlib import nullcontext
 from typing import TYPE_CHECKING
 
 from rr_actors import _extras, _log

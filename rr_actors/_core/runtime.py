@@ -17,7 +17,8 @@ Each name is read where it is used (`runtime.Lock()`), never imported by value
 (`tests/test_repository.py` refuses it): in a real run `runtime.Lock` *is* `threading.Lock`, at the
 cost of one attribute read. Per-process state is registered with `process_state`, per-thread state
 made with `local()`: a simulation gives each simulated process and thread its own. `steps` holds the
-protocol steps an exercise of `rr_actors_lab.teach` may replace, read the same way where each step runs.
+protocol steps an exercise of `rr_actors_lab.teach` may replace, read the same way where
+each step runs.
 """
 
 from __future__ import annotations

@@ -206,7 +206,7 @@ class StatusNames:
 
 
 def catalog_of(registrar: ResourceRegistrar, *, timeout: float) -> Any:
-    """The registrar's catalog summary (see `rr_actors_lab.observe._view`): plain dicts, lists, strings.
+    """The registrar's catalog summary (`rr_actors_lab.observe._view`): plain dicts, lists, strings.
 
     Runs in the registrar's process on the caller's thread; the registrar copies its rows on
     its actor thread (`rr_actors._registrar.snapshot`). No `repr` runs: the summary shows the
