@@ -9,6 +9,7 @@ configuration and the status types; the runtime is imported at the first use of 
 import importlib
 import importlib.abc
 import importlib.machinery
+import importlib.util
 import sys
 from contextlib import nullcontext
 from typing import TYPE_CHECKING
@@ -175,7 +176,14 @@ class _LabNames(importlib.abc.MetaPathFinder, importlib.abc.Loader):
         parts = fullname.split(".")
         if len(parts) < 2 or parts[0] != "rr_actors" or parts[1] not in _LAB:
             return None
-        return importlib.machinery.ModuleSpec(fullname, self)
+        if parts[-1] == "__main__":  # (`python -m rr_actors.mission`: the path finder runs it)
+            return None
+        lab = importlib.util.find_spec("rr_actors_lab" + fullname.removeprefix("rr_actors"))
+        if lab is None:  # (no such module: the path finder says so, by its own name)
+            return None
+        spec = importlib.machinery.ModuleSpec(fullname, self)
+        spec.submodule_search_locations = lab.submodule_search_locations  # (a package's)
+        return spec
 
     def create_module(self, spec: importlib.machinery.ModuleSpec) -> None:
         return None  # a placeholder, replaced in `sys.modules` by the lab's module

@@ -155,3 +155,26 @@ def test_the_runtime_runs_without_importing_the_lab() -> None:
 
     assert (run.returncode, run.stderr) == (0, "")
     assert "[]\n" == run.stdout
+
+
+def test_a_former_lab_name_runs_with_dash_m_and_a_missing_one_is_named_as_asked() -> None:
+    """`python -m rr_actors.mission` ran the demo before the move and still does; a module
+    that does not exist is not found under the name the program asked for."""
+    run = subprocess.run(
+        [sys.executable, "-m", "rr_actors.mission", "--help"],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    missing = subprocess.run(
+        [sys.executable, "-c", "import rr_actors.experiments.no_such_module"],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+
+    assert (0, "") == (run.returncode, run.stderr)
+    assert run.stdout.startswith("usage: rr-actors demo")
+    assert "No module named 'rr_actors.experiments.no_such_module'" in missing.stderr

@@ -43,10 +43,10 @@ from rr_actors.errors import (
     UnknownServerError,
 )
 
-WIRE_VERSION = 11
+WIRE_VERSION = 10
 """The version of what crosses between processes: a carrier that can meet another version
 (the Zenoh one) refuses its messages unread. Raise it when a `WireMessage` changes
-incompatibly (11: a `Reconcile` echoes the provider's `ReconcileAsk.round`).
+incompatibly (10: an `OverloadedError` carries `retry_after`).
 """
 
 WIRE_TYPES: set[type] = set()

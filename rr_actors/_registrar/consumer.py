@@ -1054,17 +1054,15 @@ class Reconciling:
         serving_rr: str,
         then: Callable[[BaseException | None], None] | None = None,
         life: str = "",
-        ask: int = 0,
     ) -> None:
         """Tell `serving_rr` the ids held there (`Reconcile`); `then(error)` here once handled.
-        `ask`: the `ReconcileAsk.round` answered, echoed. Why frozen and epoch-bound:
-        docs/explanation/inside.md, "The consumer's reconcile"."""
+        Why frozen and epoch-bound: docs/explanation/inside.md, "The consumer's reconcile"."""
         with self.due.frozen() as (due, withdrawn):
             listing = self.listing(serving_rr, due, withdrawn, life)
             self.registrar.send(
                 serving_rr,
                 lambda reply: Reconcile(
-                    self.registrar.name, listing.held, reply, self.registrar.life, ask
+                    self.registrar.name, listing.held, reply, self.registrar.life
                 ),
                 lambda unknown, error: self.reconciled(serving_rr, unknown, error, listing, then),
             )

@@ -596,7 +596,6 @@ class Presence:
         # provider -> (its reconcile round, the attempt waited for), until answered
         self.rounds: dict[str, tuple[int, int]] = {}
         self.lives: dict[str, str] = {}  # provider -> the life that asked for its round
-        self.asks: dict[str, int] = {}  # provider -> the `ReconcileAsk.round` it answers
         self.timers: dict[str, runtime.Cancellable] = {}
         self.round_count = 0
         # names lost while a namesake served (rule 22): lost if the reconcile with it fails
@@ -682,7 +681,7 @@ class Presence:
         answered (one sent once could be lost as its connection fails while it comes back)."""
         if self.reconciling.asked(message):
             self.round_count += 1
-            self.attempt(message.serving_rr, self.round_count, 0, message.life, message.round)
+            self.attempt(message.serving_rr, self.round_count, 0, message.life)
 
     def ask_consumer(self, name: str) -> bool:
         """Ask consumer `name` for a `Reconcile`, with its `call_timeout` armed; whether it was
@@ -690,19 +689,16 @@ class Presence:
         if not self.unloading.holds_of(name):
             return False
         self.unloading.give_up_loads_of(name)  # (a call given up fails: nothing held anywhere)
-        self.round_count += 1
-        round_, ref = self.round_count, self.registrar.ref
         try:
-            DIRECTORY.lookup(name).tell(
-                ReconcileAsk(self.registrar.name, life=self.registrar.life, round=round_)
-            )
+            DIRECTORY.lookup(name).tell(ReconcileAsk(self.registrar.name, life=self.registrar.life))
         except RrError as exc:
             logger.debug("registrar %s: %s cannot be asked: %s", self.registrar.name, name, exc)
             return False
         self.stop_asking(name)
+        self.round_count += 1
+        round_, ref = self.round_count, self.registrar.ref
         held = frozenset(self.registrar.catalog.consumers_from(name))
-        # (cleared by its answer, or a later run's `Reconcile`: not by one its lost run sent)
-        self.unloading.asked[name] = (round_, held, self.unloading.provider.lives.newest(name))
+        self.unloading.asked[name] = (round_, held)
 
         def due() -> None:
             with contextlib.suppress(pykka.ActorDeadError):
@@ -749,19 +745,17 @@ class Presence:
             return
         if self.lost_after_all(message.name):
             return
-        life, ask = self.lives.get(message.name, ""), self.asks.get(message.name, 0)
-        self.attempt(message.name, message.round, message.attempt, life, ask)
+        self.attempt(message.name, message.round, message.attempt, self.lives.get(message.name, ""))
 
-    def attempt(self, name: str, round_: int, attempt: int, life: str = "", ask: int = 0) -> None:
+    def attempt(self, name: str, round_: int, attempt: int, life: str = "") -> None:
         """Send `Reconcile` attempt `attempt` of round `round_` to provider `name` (`life`: the
-        life that asked, "": not known; `ask`: its `ReconcileAsk.round`, 0: none), retried
-        unless answered within `call_timeout`."""
+        life that asked, "": not known), retried unless answered within `call_timeout`."""
         self.stop_retrying(name)
         self.rounds[name] = (round_, attempt)
-        self.lives[name], self.asks[name] = life, ask
+        self.lives[name] = life
         self.arm(name, round_, attempt + 1, self.registrar.config.call_timeout)
         self.reconciling.reconcile(
-            name, then=lambda error: self.answered(name, round_, attempt, error), life=life, ask=ask
+            name, then=lambda error: self.answered(name, round_, attempt, error), life=life
         )
 
     def answered(self, name: str, round_: int, attempt: int, error: BaseException | None) -> None:
@@ -806,7 +800,6 @@ class Presence:
     def stop_retrying(self, name: str) -> None:
         self.rounds.pop(name, None)
         self.lives.pop(name, None)
-        self.asks.pop(name, None)
         timer = self.timers.pop(name, None)
         if timer is not None:
             timer.cancel()

@@ -131,25 +131,14 @@ class Lives:
     """The run of each consumer registrar that reconciled here last (`Reconcile.life`): a
     `Load` of an earlier run is refused (presumed abort: docs/explanation/inside.md)."""
 
-    __slots__ = ("_newest", "_reconciled")
+    __slots__ = ("_reconciled",)
 
     def __init__(self) -> None:
         self._reconciled: dict[str, str] = {}  # consumer registrar -> its run
-        self._newest: dict[str, str] = {}  # consumer registrar -> its latest run heard of
 
     def reconciled(self, origin_rr: str, life: str) -> None:
         if life:
             self._reconciled[origin_rr] = life
-        self.heard(origin_rr, life)
-
-    def heard(self, origin_rr: str, life: str) -> None:
-        """A `Load` or a `Reconcile` of run `life` of `origin_rr` came."""
-        if life_order(life) > life_order(self._newest.get(origin_rr, "")):
-            self._newest[origin_rr] = life
-
-    def newest(self, origin_rr: str) -> str:
-        """The latest run of `origin_rr` heard of here ("": none)."""
-        return self._newest.get(origin_rr, "")
 
     def fenced(self, origin_rr: str, life: str) -> bool:
         """Whether run `life` of `origin_rr` is earlier than the one that reconciled here last."""
@@ -321,7 +310,6 @@ class Provider:
         if refusal is not None:
             message.reply.set_error(refusal)
             return
-        self.lives.heard(message.origin_rr, message.life)
         self.abandoned.discard(message.query_id)  # a retry: its caller is back
         digest = request_digest(message.request)
         if digest is not None:  # a plain value: decided on this thread
@@ -1166,9 +1154,9 @@ class Unloading:
         self.provider = provider
         self.teardown = teardown
         self.unacked = unacked  # (`status.py`: the statuses on their way, by consumer id)
-        # consumer -> the round of the `Reconcile` asked of it (`Presence.lose`), the ids
-        # it held here then and its latest run heard of here then, until it came
-        self.asked: dict[str, tuple[int, frozenset[str], str]] = {}
+        # consumer -> the round of the `Reconcile` asked of it (`Presence.lose`) and the ids
+        # it held here then, until it came
+        self.asked: dict[str, tuple[int, frozenset[str]]] = {}
 
     def on_unload(self, message: Unload, reply: Reply) -> None:
         """Release the id; the answer carries the statuses still on their way to it (rule 9:
@@ -1334,13 +1322,7 @@ class Unloading:
         """
         catalog = self.registrar.catalog
         held = set(message.held)
-        asked = self.asked.get(message.origin_rr)
-        if asked is not None and (  # (asked by `Presence.lose`: the answer, or a later run's)
-            message.round == asked[0]
-            or not message.life
-            or life_order(message.life) > life_order(asked[2])
-        ):
-            del self.asked[message.origin_rr]
+        self.asked.pop(message.origin_rr, None)  # (asked by `Presence.lose`: it came)
         self.provider.lives.reconciled(message.origin_rr, message.life)
         for query_id in self.provider.under_way_of(message.origin_rr):
             if query_id not in held:

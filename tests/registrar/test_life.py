@@ -33,13 +33,12 @@ import pytest
 import rr_actors as rr
 from rr_actors import events
 from rr_actors._catalog import Catalog
-from rr_actors._core.directory import DIRECTORY, Reply
+from rr_actors._core.directory import Reply
 from rr_actors._core.replies import FutureReply
 from rr_actors._registrar import Served, life, start_registrar
 from rr_actors._registrar.actor import RegistrarActor
 from rr_actors._registrar.handle import STOP_WAITS_FOR_UNLOADS
 from rr_actors._registrar.life import RETRY_FIRST, RETRY_MAX, retry_delay
-from rr_actors._registrar.messages import Reconcile
 from rr_actors._registrar.state import OpenReply
 from rr_actors._store import restore
 from rr_actors._store.files import read_backup
@@ -1332,37 +1331,6 @@ class TestProviderLost:
         with expect_restart(consumer.name):  # no death watch: the mark below is the only one
             consumer.kill()
         Served(provider).peer_lost(consumer.name)  # (its socket file may still be listed)
-
-        assert wait_for(lambda: ["camera"] == unloads, BOUND)  # (its call_timeout, 1 s)
-        assert [] == provider.server_queries("leaf")
-
-    def test_a_late_reconcile_of_the_lost_run_does_not_stand_in_for_the_answer_asked(
-        self, system: System, started: list[rr.ResourceRegistrar]
-    ) -> None:
-        # issue 51's leftover: the consumer's run that was heard lost sent a Reconcile
-        # listing its id just before it died, and it comes after the provider asked the
-        # name for one: it cleared the ask, so the id stayed held for a caller that left
-        # (no answer came, and the ask's timer found nothing to release)
-        unloads: list[str] = []
-        config = rr.RegistrarConfig(name=named("provider"), call_timeout=1.0)
-        provider = rr.ResourceRegistrar.start(config, setup=leaf_setup(unloads), network=system)
-        started.append(provider)
-        consumer = RemoteRegistrar.start(named("consumer"), system)
-        lives: list[str] = []
-        with intercept(provider, "load", after=lambda m: lives.append(m.life)):
-            query = consumer.call(provider.name, "leaf", "camera")
-        late = FutureReply()
-
-        def sent_before_it_died(_message: object) -> None:  # (comes right after the ask)
-            DIRECTORY.lookup(provider.name).tell(
-                Reconcile(consumer.name, (query.id,), late, lives[0])
-            )
-
-        with expect_restart(consumer.name):  # no death watch: the mark below is the only one
-            consumer.kill()
-        with intercept(provider, "peer_lost", after=sent_before_it_died):
-            Served(provider).peer_lost(consumer.name)  # (its socket file may still be listed)
-            assert () == late.future.get(timeout=BOUND)  # (it held the id then)
 
         assert wait_for(lambda: ["camera"] == unloads, BOUND)  # (its call_timeout, 1 s)
         assert [] == provider.server_queries("leaf")
