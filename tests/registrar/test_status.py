@@ -605,7 +605,8 @@ class TestStatus:
         query = consumer.call(provider.name, "leaf", "x", on_status=lambda q, u: gate.wait(30))
 
         with ThreadPoolExecutor(1) as pool:
-            sending = pool.submit(provider.send_status, query.id, rr.Status.OK, "", timeout=0.3)
+            # (2 s: 1 s of patience, then 1 s for the answer to come back, under load too)
+            sending = pool.submit(provider.send_status, query.id, rr.Status.OK, "", timeout=2.0)
             try:
                 delivery = sending.result(timeout=10)  # (15 s, half the default, if ignored)
             finally:
