@@ -9,6 +9,14 @@ import sys
 import rr_actors
 from rr_actors import config, errors
 
+
+def python(*argv: str) -> subprocess.CompletedProcess[str]:
+    """`python *argv` in a fresh interpreter, its output captured (a minute at most)."""
+    return subprocess.run(
+        [sys.executable, *argv], check=False, capture_output=True, text=True, timeout=60
+    )
+
+
 BEFORE_ISSUE_54 = [
     "MAX_DEPENDENCY_DEPTH",
     "Backoff",
@@ -66,9 +74,7 @@ def test_every_name_the_package_offered_before_still_imports() -> None:
         f"try:\n    from rr_actors import {name}\nexcept ImportError as e:\n    print(e)"
         for name in BEFORE_ISSUE_54
     )
-    run = subprocess.run(
-        [sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=60
-    )
+    run = python("-c", code)
 
     assert (run.returncode, run.stdout, run.stderr) == (0, "", "")
 
@@ -96,9 +102,7 @@ def test_importing_the_package_leaves_the_runtime_and_the_events_to_their_first_
         "rr_actors.events.ChildRestarted, rr_actors.Supervisor\n"
         "print('rr_actors.events.kinds' in sys.modules, 'rr_actors._supervision' in sys.modules)"
     )
-    run = subprocess.run(
-        [sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=60
-    )
+    run = python("-c", code)
 
     assert (run.returncode, run.stderr) == (0, "")
     assert "[]\nTrue True\n" == run.stdout
@@ -129,9 +133,7 @@ def test_the_lab_imports_under_its_former_names_as_the_same_modules() -> None:
         "print(old.__module__, all(sys.modules[m] is sys.modules['rr_actors_lab' + m[9:]]\n"
         "                          for m in twins))\n"
     )
-    run = subprocess.run(
-        [sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=60
-    )
+    run = python("-c", code)
 
     assert (run.returncode, run.stderr) == (0, "")
     assert [f"{name} True True" for name in LAB_MODULES] + [
@@ -149,9 +151,7 @@ def test_the_runtime_runs_without_importing_the_lab() -> None:
         "import rr_actors.testing\n"
         "print(sorted(m for m in sys.modules if m.startswith('rr_actors_lab')))\n"
     )
-    run = subprocess.run(
-        [sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=60
-    )
+    run = python("-c", code)
 
     assert (run.returncode, run.stderr) == (0, "")
     assert "[]\n" == run.stdout
@@ -160,20 +160,8 @@ def test_the_runtime_runs_without_importing_the_lab() -> None:
 def test_a_former_lab_name_runs_with_dash_m_and_a_missing_one_is_named_as_asked() -> None:
     """`python -m rr_actors.mission` ran the demo before the move and still does; a module
     that does not exist is not found under the name the program asked for."""
-    run = subprocess.run(
-        [sys.executable, "-m", "rr_actors.mission", "--help"],
-        check=False,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
-    missing = subprocess.run(
-        [sys.executable, "-c", "import rr_actors.experiments.no_such_module"],
-        check=False,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    run = python("-m", "rr_actors.mission", "--help")
+    missing = python("-c", "import rr_actors.experiments.no_such_module")
 
     assert (0, "") == (run.returncode, run.stderr)
     assert run.stdout.startswith("usage: rr-actors demo")
