@@ -20,7 +20,10 @@ The heartbeat is off (`--heartbeat` on): its pings run whether or not a restart 
 Run it from the root of the tree to count: the forkservers' `python -c` puts the working
 folder first on `sys.path`, so the managers import that tree's packages.
 
-Usage: python benchmarks/count_restart.py [--rounds 3] [--heartbeat] [--list]
+`--hit` counts the same window with no kill: the consumer's call is a dedup hit (its
+request loaded already), a cross-process call's files by the same method.
+
+Usage: python benchmarks/count_restart.py [--rounds 3] [--heartbeat] [--list] [--hit]
 """
 
 from __future__ import annotations
@@ -36,7 +39,6 @@ import sys
 import tempfile
 import threading
 import time
-import uuid
 from pathlib import Path
 from typing import Any
 
@@ -162,22 +164,22 @@ def ours(paths: list[str]) -> set[str]:
     return found
 
 
-def restart_round(sup: Any, folder: str, path: str, n: int) -> dict[str, set[str]]:
-    """One restart counted: the files each role's process ran."""
+def restart_round(sup: Any, folder: str, path: str, n: int, kill: bool) -> dict[str, set[str]]:
+    """One restart counted (or, not `kill`, one dedup hit): the files each process ran."""
     signal_all(folder, signal.SIGUSR1, ".marked")
-    pid = sup.child("provider").pid
-    os.kill(pid, signal.SIGKILL)
-    sup.wait_restarted("provider", timeout=BOUND)
-    ask(path, f"after-{n}")
+    if kill:
+        os.kill(sup.child("provider").pid, signal.SIGKILL)
+        sup.wait_restarted("provider", timeout=BOUND)
+    ask(path, f"after-{n}" if kill else "warm-up")
     files = signal_all(folder, signal.SIGUSR2, ".files")
     roles = {
         os.getpid(): "supervisor",
-        sup.child("provider").pid: "provider (new)",
+        sup.child("provider").pid: "provider",
         sup.child("consumer").pid: "consumer",
     }
     counted: dict[str, set[str]] = {
         "supervisor": set(),
-        "provider (new)": set(),
+        "provider": set(),
         "consumer": set(),
         "other": set(),
     }
@@ -191,6 +193,7 @@ def main() -> int:
     parser.add_argument("--rounds", type=int, default=3, help="restarts counted (default 3)")
     parser.add_argument("--heartbeat", action="store_true", help="the managers' heartbeat on")
     parser.add_argument("--list", action="store_true", help="the files of the last round")
+    parser.add_argument("--hit", action="store_true", help="no kill: a dedup hit's files")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as work:
         folder, hooks = Path(work, "marks"), Path(work, "hooks")
@@ -203,12 +206,14 @@ def main() -> int:
         )
         sys.path.insert(0, str(hooks))
         importlib.import_module("sitecustomize")  # (this process's tracer)
-        rounds = run(args.rounds, args.heartbeat, str(folder), work)
-    report(rounds, args.list)
+        rounds = run(args.rounds, args.heartbeat, str(folder), work, kill=not args.hit)
+    report(rounds, args.list, "a dedup hit" if args.hit else "SIGKILL to the first call answered")
     return 0
 
 
-def run(rounds: int, heartbeat: bool, folder: str, work: str) -> list[dict[str, set[str]]]:
+def run(
+    rounds: int, heartbeat: bool, folder: str, work: str, *, kill: bool
+) -> list[dict[str, set[str]]]:
     import rr_actors as rr  # noqa: PLC0415 - after the tracer is installed
 
     path = str(Path(work, "consumer.sock"))
@@ -225,19 +230,18 @@ def run(rounds: int, heartbeat: bool, folder: str, work: str) -> list[dict[str, 
     state_dir = Path(work, "state")
     sup = rr.Supervisor(specs, max_restarts=rounds + 1, period=3600.0, state_dir=state_dir)
     with sup:
-        ask(path, f"warm-up-{uuid.uuid4().hex[:6]}")
-        return [restart_round(sup, folder, path, n) for n in range(rounds)]
+        ask(path, "warm-up")
+        return [restart_round(sup, folder, path, n, kill) for n in range(rounds)]
 
 
-def report(rounds: list[dict[str, set[str]]], listed: bool) -> None:
-    print("distinct rr_actors/ and rr_actors_lab/ files run, SIGKILL to the first call answered")
-    print("| round | supervisor | provider (new) | consumer | other | all processes |")
+def report(rounds: list[dict[str, set[str]]], listed: bool, window: str) -> None:
+    print(f"distinct rr_actors/ and rr_actors_lab/ files run, {window}")
+    print("| round | supervisor | provider | consumer | other | all processes |")
     print("|---|---:|---:|---:|---:|---:|")
     for n, counted in enumerate(rounds, 1):
         every = set().union(*counted.values())
         row = " | ".join(
-            str(len(counted[role]))
-            for role in ("supervisor", "provider (new)", "consumer", "other")
+            str(len(counted[role])) for role in ("supervisor", "provider", "consumer", "other")
         )
         print(f"| {n} | {row} | {len(every)} |")
     if listed and rounds:
