@@ -114,6 +114,7 @@ SMALLEST = {
     ],
     "count_cross.py": ["--calls", "5", "--profile", "--durable"],
     "count_dedup.py": ["--calls", "5", "--profile"],
+    "count_restart.py": ["--rounds", "1"],
     "minimal_hit.py": ["--rounds", "1"],
     "planted_bugs.py": ["--only", "dedup", "--seeds", "3"],
     "stress_cancel.py": ["--runs", "1", "--calls", "200"],

@@ -347,7 +347,7 @@ def _run_manager(
     stopping = threading.Event()
 
     def watch_actor() -> None:
-        registrar._actor.wait_stopped()
+        registrar.wait_ended()
         if stopping.is_set():
             return  # the supervisor's `stop`: the control loop exits
         if stopped_cleanly(registrar.name):  # code in the manager called registrar.stop()
@@ -356,7 +356,7 @@ def _run_manager(
 
     control.send(Ready(os.getpid()))
     line.started()  # the events of its start follow `Ready`, in their order
-    # after `Ready`: a death before it started is seen at once (`_wait_stopped` returns)
+    # after `Ready`: a death before it started is seen at once (`wait_ended` returns)
     threading.Thread(target=watch_actor, name="rr-manager-actor-watch", daemon=True).start()
     _ControlLoop(conn, control, registrar, attached, stopping, line).run()
 

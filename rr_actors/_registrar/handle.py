@@ -841,14 +841,6 @@ class Here:
             raise CallTimeoutError(f"{what} timed out after {limit:g} s")
         return future.get()
 
-    def wait_stopped(self, timeout: float | None = None) -> bool:
-        """Whether the actor ended (and its death was handled) within `timeout` s."""
-        deadline = None if timeout is None else runtime.monotonic() + timeout
-        if not self.ref.actor_stopped.wait(timeout):
-            return False
-        left = None if deadline is None else max(0.0, deadline - runtime.monotonic())
-        return self.ended.wait(left)
-
     def crash(self) -> None:
         self.ref.tell(Crash())
 
@@ -941,6 +933,19 @@ class ResourceRegistrar(Registrar):
         """
         published = self._actor.published
         return published.subscribe(callback, maxsize=maxsize, name=f"{self.name}-events")
+
+    def tell(self, message: object) -> bool:
+        """Put `message` in the registrar's mailbox without waiting: how a carrier tells it of
+        its peers (`Served`). `False` once it ended; one it does not know is logged, ignored."""
+        return self._actor.tell(message)
+
+    def wait_ended(self, timeout: float | None = None) -> bool:
+        """Whether it ended (stopped, or died and its death handled) within `timeout` s."""
+        deadline = None if timeout is None else runtime.monotonic() + timeout
+        if not self._actor.ref.actor_stopped.wait(timeout):
+            return False
+        left = None if deadline is None else max(0.0, deadline - runtime.monotonic())
+        return self._actor.ended.wait(left)
 
 
 class StatusWatch:

@@ -856,16 +856,6 @@ class Network(Protocol):
         ...
 
 
-class ActorHere(Protocol):
-    """How `Served` reaches a started registrar's actor (`handle.Here` is one)."""
-
-    def tell(self, message: Any) -> bool: ...
-
-    def wait_stopped(self, timeout: float | None = None) -> bool:
-        """Block until the actor's thread ended (stopped, or died and its death handled)."""
-        ...
-
-
 class Servable(Protocol):
     """What a carrier's `Served` uses of a started registrar (`handle.ResourceRegistrar`)."""
 
@@ -879,8 +869,9 @@ class Servable(Protocol):
 
     def stop(self, *, timeout: float | None = None) -> None: ...
 
-    @property
-    def _actor(self) -> ActorHere: ...
+    def tell(self, message: object) -> bool: ...
+
+    def wait_ended(self, timeout: float | None = None) -> bool: ...
 
 
 def check_network(network: object) -> None:
@@ -922,7 +913,7 @@ class Served:
         return fn(self.registrar)
 
     def wait_ended(self, timeout: float | None = None) -> bool:
-        return self.registrar._actor.wait_stopped(timeout)
+        return self.registrar.wait_ended(timeout)
 
     def stopped_cleanly(self) -> bool:
         """Whether it ended because its owner stopped it (not a crash, not still running)."""
@@ -932,21 +923,21 @@ class Served:
 
     def listening(self) -> None:
         """The other processes can reach it now: it reconciles with its peers again."""
-        self.registrar._actor.tell(Reachable(FutureReply()))  # (nobody waits: `serve` must not)
+        self.registrar.tell(Reachable(FutureReply()))  # (nobody waits: `serve` must not)
 
     def peer_lost(self, name: str) -> None:
-        self.registrar._actor.tell(PeerLost(name))
+        self.registrar.tell(PeerLost(name))
 
     def peer_reachable(self, name: str) -> None:
-        self.registrar._actor.tell(PeerReachable(name))
+        self.registrar.tell(PeerReachable(name))
 
     def yield_name(self, reason: str) -> None:
         """Another process's registrar of this name is kept (rule 22): this one yields."""
-        self.registrar._actor.tell(YieldName(reason))
+        self.registrar.tell(YieldName(reason))
 
     def keep_name(self, reply: Reply) -> None:
         """The one kept went for good while this one yields (rule 22): serve again if it can."""
-        self.registrar._actor.tell(KeepName(reply))
+        self.registrar.tell(KeepName(reply))
 
 
 # -- the death watch -------------------------------------------------------------------
@@ -987,13 +978,13 @@ def tell_gone(target: str, name: str, *, stopped: bool = False) -> None:
     DIRECTORY.lookup(target).tell(_mark(name, stopped=stopped))
 
 
-def lost_everything(name: str, *, also: Iterable[str] = (), handle: Any = None) -> None:
+def lost_everything(name: str, *, also: Iterable[str] = (), handle: Servable | None = None) -> None:
     """Registrar `name` restarted without a backup: those here and in `also` holding ids
     there reconcile with it, and it with everyone (`LostEverything`, rule 20). `handle`: its
     `ResourceRegistrar`, through which it is told (it may not be in the directory yet)."""
     DIRECTORY.broadcast(ReconcileAsk(name, holds_yours=False), also=also, skip=name)
     if handle is not None:
-        handle._actor.tell(LostEverything())  # (the package's own handle)
+        handle.tell(LostEverything())
         return
     try:
         DIRECTORY.lookup(name).tell(LostEverything())

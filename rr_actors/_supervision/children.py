@@ -161,7 +161,7 @@ class ThreadManager:
         self.registrar = registrar
 
         def watch() -> None:
-            registrar._actor.wait_stopped()
+            registrar.wait_ended()
             if self.stopping:
                 return
             if stopped_cleanly(spec.name):  # code in the manager called registrar.stop()
@@ -186,7 +186,7 @@ class ThreadManager:
             )
             with contextlib.suppress(Exception):
                 registrar._actor.crash()
-            registrar._actor.wait_stopped(timeout)
+            registrar.wait_ended(timeout)
             return ManagerExit(f"killed: no clean stop within {timeout:g} s", normal=False)
         return ManagerExit("shutdown", normal=True)
 

@@ -381,7 +381,7 @@ class _Child:
     def watch_actor(self) -> None:
         """Exit when the registrar actor ends: `STOPPED_EXIT` if code in the manager stopped it."""
         registrar = self.registrar
-        registrar._actor.wait_stopped()
+        registrar.wait_ended()
         if not self.stopping.is_set():
             self.exit(STOPPED_EXIT if stopped_cleanly(registrar.name) else ACTOR_DIED_EXIT)
 

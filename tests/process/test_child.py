@@ -274,7 +274,7 @@ class TestInDoubtUntilSetupReturned:
             caller.start()
             assert loading.wait(10.0)
             rr.testing.crash(started)  # the load is cut short: in doubt
-            assert started._actor.wait_stopped(10.0)
+            assert started.wait_ended(10.0)
             gate.set()
             caller.join(10.0)
             assert [rr.RegistrarUnavailableError] == [type(exc) for exc in failed]

@@ -23,7 +23,7 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
-from rr_actors.testing import RemoteRegistrar, SharedObjects, catalog_snapshot, intercept
+from rr_actors.testing import RemoteRegistrar, SharedObjects, catalog_snapshot, crash, intercept
 from tests.registrar.conftest import MakeRegistrar, Shared
 from tests.support.awaited import LOOP_THREAD, awaited
 from tests.support.gating import GatedLoad
@@ -45,6 +45,26 @@ def test_both_kinds_of_handle_are_the_one_registrar_class_and_repeat_none_of_its
     for kind in (rr.ResourceRegistrar, RemoteRegistrar):
         assert issubclass(kind, rr.Registrar)
         assert set() == surface & set(vars(kind))  # its own: start, subscribe, kill, ...
+
+
+def test_tell_hands_a_message_to_the_actor_and_wait_ended_says_whether_it_ended() -> None:
+    from rr_actors._core.replies import FutureReply  # noqa: PLC0415 - a carrier's kind
+    from rr_actors._registrar.messages import Ping  # noqa: PLC0415
+
+    stopped = rr.ResourceRegistrar.start(f"told-{uuid.uuid4().hex[:8]}")
+    crashed = rr.ResourceRegistrar.start(f"told-{uuid.uuid4().hex[:8]}")
+    answered = FutureReply()
+    assert stopped.tell(object())  # (unknown: logged and ignored, the actor serves on)
+    assert stopped.tell(Ping(answered))
+    assert answered.future.get(timeout=20) is None  # the actor got it, after the unknown
+    assert not stopped.wait_ended(0.01)  # running: not ended within the bound
+    stopped.stop()
+    crash(crashed)
+
+    for ended in (stopped, crashed):
+        assert ended.wait_ended(20)
+        assert not ended.is_alive()
+        assert not ended.tell(Ping(FutureReply()))  # no mailbox any more
 
 
 class AsyncGated:
@@ -459,7 +479,7 @@ def test_a_crashed_registrar_counts_as_stopped_once_its_death_was_handled_and_it
     registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name, backup_path=path))
 
     def watch() -> None:
-        assert registrar._actor.wait_stopped(20)
+        assert registrar.wait_ended(20)
         order.append("stopped")
 
     watcher = threading.Thread(target=watch)
