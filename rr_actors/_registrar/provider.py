@@ -144,7 +144,8 @@ class Lives:
 
     def heard(self, origin_rr: str, life: str) -> None:
         """A `Load` or a `Reconcile` of run `life` of `origin_rr` came."""
-        if life_order(life) > life_order(self._newest.get(origin_rr, "")):
+        newest = self._newest.get(origin_rr, "")
+        if life != newest and life_order(life) > life_order(newest):  # (most: the same run)
             self._newest[origin_rr] = life
 
     def newest(self, origin_rr: str) -> str:
