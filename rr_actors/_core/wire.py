@@ -43,10 +43,11 @@ from rr_actors.errors import (
     UnknownServerError,
 )
 
-WIRE_VERSION = 10
+WIRE_VERSION = 11
 """The version of what crosses between processes: a carrier that can meet another version
 (the Zenoh one) refuses its messages unread. Raise it when a `WireMessage` changes
-incompatibly (10: an `OverloadedError` carries `retry_after`).
+incompatibly (10: an `OverloadedError` carries `retry_after`; 11: a `Reconcile` echoes the
+`ReconcileAsk.round` it answers, which a consumer of version 10 does not).
 """
 
 WIRE_TYPES: set[type] = set()

@@ -203,14 +203,7 @@ class Heartbeat:
         excused = _excused(silence.waited, silence.busy, silent)
         if silent > self.bound and excused > 0.0 and self.on_late is not None:
             self.on_late(
-                Late(
-                    silent,
-                    self.bound,
-                    excused,
-                    silence.waited,
-                    silence.busy,
-                    silence.queued,
-                )
+                Late(silent, self.bound, excused, silence.waited, silence.busy, silence.queued)
             )
         return True
 

@@ -176,6 +176,7 @@ class ManagerProcess:
         self.exited = runtime.Event()
         self.exit: ManagerExit | None = None
         self._exit_watch = PLATFORM.watch_exit(self.pid)
+        self.forwarding = False  # as last told (`forward_events`); `start` sets it
 
     @classmethod
     def start(
@@ -253,6 +254,7 @@ class ManagerProcess:
             received=received,
             on_overloaded=on_overloaded,
         )
+        handle.forwarding = forward_events
         runtime.Thread(target=handle._watch, name=f"rr-watch-{name}", daemon=True).start()
         return handle
 
@@ -267,6 +269,7 @@ class ManagerProcess:
         return True
 
     def forward_events(self, on: bool) -> None:
+        self.forwarding = on  # (what the exit reads: nobody listens, nothing to count)
         self._send(Forward(on))
 
     def sync_events(self, timeout: float) -> bool:
@@ -415,7 +418,7 @@ class ManagerProcess:
             self.process.join(5.0)
             exitcode = self.process.exitcode
         self._received.drain(self.name, self.conn)  # what it sent before it died, then
-        self._received.count_lost(self.name, self.pid)  # what it built but never sent
+        self._received.count_lost(self.name, self.pid, listened=self.forwarding)  # (unsent)
         with self._send_lock, contextlib.suppress(OSError):  # (never under a request
             self.conn.close()  # being written: that would write to no descriptor)
         if self._hung is not None:

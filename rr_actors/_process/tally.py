@@ -230,11 +230,12 @@ class Received:
         if tally is not None:
             tally.close()
 
-    def count_lost(self, name: str, pid: int) -> None:
+    def count_lost(self, name: str, pid: int, *, listened: bool = True) -> None:
         """After the exit: deliver what its journal and outbox kept but it never sent, then
-        an `EventsDropped` for the rest (before a restart empties the outbox)."""
+        an `EventsDropped` for the rest (before a restart empties the outbox); neither is
+        read if nobody `listened` (a later subscriber hears nothing older than itself)."""
         tally = self.tally
-        if tally is None or self.on_events is None:
+        if tally is None or self.on_events is None or not listened:
             self.close()
             return
         self.tally = None

@@ -975,22 +975,23 @@ class Reconciling:
         self.releases = releases
         self.due = due
         self.redeliver = redeliver
-        self.asked_to_reconcile: set[str] = set()
+        self.asked_to_reconcile: dict[str, int] = {}  # provider -> the ask's round (0: none)
         self.everyone = False
 
     def expect_reconcile(self, providers: Iterable[str]) -> None:
-        self.asked_to_reconcile.update(providers)
+        for provider in providers:
+            self.asked_to_reconcile.setdefault(provider, 0)
 
     def reconcile_all(self) -> None:
         """This registrar serves (again): reconcile with every provider it holds ids at, those
         that asked during setup, and (`everyone`) every registrar it can reach now."""
         providers = {record.query.serving_rr for record in self.registrar.catalog.clients.values()}
-        providers |= self.asked_to_reconcile
+        providers |= self.asked_to_reconcile.keys()
         if self.everyone:
             providers |= DIRECTORY.names() - {self.registrar.name}
-        self.asked_to_reconcile.clear()
-        for serving_rr in sorted(providers):
-            self.reconcile(serving_rr)
+        asks, self.asked_to_reconcile = self.asked_to_reconcile, {}
+        for serving_rr in sorted(providers):  # (an ask's answer echoes its round)
+            self.reconcile(serving_rr, ask=asks.get(serving_rr, 0))
 
     # -- what it holds at a provider --------------------------------------------------
 
@@ -1038,7 +1039,8 @@ class Reconciling:
         if not message.holds_yours and not self.holds_at(message.serving_rr):
             return False  # (told as every registrar of the system is: nothing to reconcile)
         if self.registrar.phase is Phase.SETTING_UP:  # its status callbacks are not attached yet
-            self.asked_to_reconcile.add(message.serving_rr)
+            asks = self.asked_to_reconcile
+            asks[message.serving_rr] = message.round or asks.get(message.serving_rr, 0)
             return False
         return True
 
@@ -1054,15 +1056,17 @@ class Reconciling:
         serving_rr: str,
         then: Callable[[BaseException | None], None] | None = None,
         life: str = "",
+        ask: int = 0,
     ) -> None:
         """Tell `serving_rr` the ids held there (`Reconcile`); `then(error)` here once handled.
-        Why frozen and epoch-bound: docs/explanation/inside.md, "The consumer's reconcile"."""
+        Why frozen and epoch-bound: docs/explanation/inside.md, "The consumer's reconcile".
+        `ask`: the `ReconcileAsk.round` it answers, echoed."""
         with self.due.frozen() as (due, withdrawn):
             listing = self.listing(serving_rr, due, withdrawn, life)
             self.registrar.send(
                 serving_rr,
                 lambda reply: Reconcile(
-                    self.registrar.name, listing.held, reply, self.registrar.life
+                    self.registrar.name, listing.held, reply, self.registrar.life, ask
                 ),
                 lambda unknown, error: self.reconciled(serving_rr, unknown, error, listing, then),
             )

@@ -596,6 +596,7 @@ class Presence:
         # provider -> (its reconcile round, the attempt waited for), until answered
         self.rounds: dict[str, tuple[int, int]] = {}
         self.lives: dict[str, str] = {}  # provider -> the life that asked for its round
+        self.asks: dict[str, int] = {}  # provider -> the `ReconcileAsk.round` it answers
         self.timers: dict[str, runtime.Cancellable] = {}
         self.round_count = 0
         # names lost while a namesake served (rule 22): lost if the reconcile with it fails
@@ -667,10 +668,8 @@ class Presence:
             self.round_count += 1
             self.attempt(name, self.round_count, 0)
         if self.registrar.catalog.consumers_from(name):
-            try:
-                DIRECTORY.lookup(name).tell(
-                    ReconcileAsk(self.registrar.name, life=self.registrar.life)
-                )
+            try:  # (with the round of an ask standing, `ask_consumer`: its answer clears it)
+                DIRECTORY.lookup(name).tell(self.unloading.ask(name))
             except RrError as exc:
                 logger.debug(
                     "registrar %s: %s not reachable yet: %s", self.registrar.name, name, exc
@@ -681,7 +680,7 @@ class Presence:
         answered (one sent once could be lost as its connection fails while it comes back)."""
         if self.reconciling.asked(message):
             self.round_count += 1
-            self.attempt(message.serving_rr, self.round_count, 0, message.life)
+            self.attempt(message.serving_rr, self.round_count, 0, message.life, message.round)
 
     def ask_consumer(self, name: str) -> bool:
         """Ask consumer `name` for a `Reconcile`, with its `call_timeout` armed; whether it was
@@ -689,16 +688,19 @@ class Presence:
         if not self.unloading.holds_of(name):
             return False
         self.unloading.give_up_loads_of(name)  # (a call given up fails: nothing held anywhere)
+        self.round_count += 1
+        round_, ref = self.round_count, self.registrar.ref
         try:
-            DIRECTORY.lookup(name).tell(ReconcileAsk(self.registrar.name, life=self.registrar.life))
+            DIRECTORY.lookup(name).tell(
+                ReconcileAsk(self.registrar.name, life=self.registrar.life, round=round_)
+            )
         except RrError as exc:
             logger.debug("registrar %s: %s cannot be asked: %s", self.registrar.name, name, exc)
             return False
         self.stop_asking(name)
-        self.round_count += 1
-        round_, ref = self.round_count, self.registrar.ref
         held = frozenset(self.registrar.catalog.consumers_from(name))
-        self.unloading.asked[name] = (round_, held)
+        # (cleared by its answer, or a later run's `Reconcile`: not by one its lost run sent)
+        self.unloading.asked[name] = (round_, held, self.unloading.provider.lives.newest(name))
 
         def due() -> None:
             with contextlib.suppress(pykka.ActorDeadError):
@@ -747,15 +749,17 @@ class Presence:
             return
         self.attempt(message.name, message.round, message.attempt, self.lives.get(message.name, ""))
 
-    def attempt(self, name: str, round_: int, attempt: int, life: str = "") -> None:
+    def attempt(self, name: str, round_: int, attempt: int, life: str = "", ask: int = 0) -> None:
         """Send `Reconcile` attempt `attempt` of round `round_` to provider `name` (`life`: the
-        life that asked, "": not known), retried unless answered within `call_timeout`."""
+        life that asked, "": not known; `ask`: its `ReconcileAsk.round`), retried unless
+        answered within `call_timeout`."""
+        ask = ask or self.asks.get(name, 0)  # (an ask not answered yet: a newer round answers it)
         self.stop_retrying(name)
         self.rounds[name] = (round_, attempt)
-        self.lives[name] = life
+        self.lives[name], self.asks[name] = life, ask
         self.arm(name, round_, attempt + 1, self.registrar.config.call_timeout)
         self.reconciling.reconcile(
-            name, then=lambda error: self.answered(name, round_, attempt, error), life=life
+            name, then=lambda error: self.answered(name, round_, attempt, error), life=life, ask=ask
         )
 
     def answered(self, name: str, round_: int, attempt: int, error: BaseException | None) -> None:
@@ -800,6 +804,7 @@ class Presence:
     def stop_retrying(self, name: str) -> None:
         self.rounds.pop(name, None)
         self.lives.pop(name, None)
+        self.asks.pop(name, None)
         timer = self.timers.pop(name, None)
         if timer is not None:
             timer.cancel()

@@ -266,22 +266,26 @@ class ResponseUpdated(WireMessage):
 class Reconcile(WireMessage):
     """Consumer -> provider: registrar `origin_rr` holds exactly `held` at you (rule 20).
     The provider releases the others of `origin_rr`'s ids, gives up its loads not listed,
-    answers the listed ids it does not know, and refuses `Load`s of runs before `life`."""
+    answers the listed ids it does not know, and refuses `Load`s of runs before `life`.
+    `round`: the `ReconcileAsk.round` it answers (0: none)."""
 
     origin_rr: str
     held: tuple[str, ...]
     reply: Reply
     life: str = ""
+    round: int = 0
 
 
 @dataclasses.dataclass(frozen=True)
 class ReconcileAsk(WireMessage):
     """Provider -> consumer: `serving_rr` (re)started with ids of yours: send a `Reconcile`
-    (`holds_yours=False`: only if you hold ids there). `life`: its run's token."""
+    (`holds_yours=False`: only if you hold ids there). `life`: its run's token. `round`: an
+    ask after your name was heard lost (0: another); the answer echoes it."""
 
     serving_rr: str
     holds_yours: bool = True
     life: str = ""
+    round: int = 0
 
 
 @dataclasses.dataclass(frozen=True)

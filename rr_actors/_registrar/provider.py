@@ -131,14 +131,26 @@ class Lives:
     """The run of each consumer registrar that reconciled here last (`Reconcile.life`): a
     `Load` of an earlier run is refused (presumed abort: docs/explanation/inside.md)."""
 
-    __slots__ = ("_reconciled",)
+    __slots__ = ("_newest", "_reconciled")
 
     def __init__(self) -> None:
         self._reconciled: dict[str, str] = {}  # consumer registrar -> its run
+        self._newest: dict[str, str] = {}  # consumer registrar -> its latest run heard of
 
     def reconciled(self, origin_rr: str, life: str) -> None:
         if life:
             self._reconciled[origin_rr] = life
+        self.heard(origin_rr, life)
+
+    def heard(self, origin_rr: str, life: str) -> None:
+        """A `Load` or a `Reconcile` of run `life` of `origin_rr` came."""
+        newest = self._newest.get(origin_rr, "")
+        if life != newest and life_order(life) > life_order(newest):  # (most: the same run)
+            self._newest[origin_rr] = life
+
+    def newest(self, origin_rr: str) -> str:
+        """The latest run of `origin_rr` heard of here ("": none)."""
+        return self._newest.get(origin_rr, "")
 
     def fenced(self, origin_rr: str, life: str) -> bool:
         """Whether run `life` of `origin_rr` is earlier than the one that reconciled here last."""
@@ -310,6 +322,7 @@ class Provider:
         if refusal is not None:
             message.reply.set_error(refusal)
             return
+        self.lives.heard(message.origin_rr, message.life)
         self.abandoned.discard(message.query_id)  # a retry: its caller is back
         digest = request_digest(message.request)
         if digest is not None:  # a plain value: decided on this thread
@@ -1154,9 +1167,9 @@ class Unloading:
         self.provider = provider
         self.teardown = teardown
         self.unacked = unacked  # (`status.py`: the statuses on their way, by consumer id)
-        # consumer -> the round of the `Reconcile` asked of it (`Presence.lose`) and the ids
-        # it held here then, until it came
-        self.asked: dict[str, tuple[int, frozenset[str]]] = {}
+        # consumer -> the round of the `Reconcile` asked of it (`Presence.lose`), the ids
+        # it held here then and its latest run heard of here then, until it came
+        self.asked: dict[str, tuple[int, frozenset[str], str]] = {}
 
     def on_unload(self, message: Unload, reply: Reply) -> None:
         """Release the id; the answer carries the statuses still on their way to it (rule 9:
@@ -1279,15 +1292,19 @@ class Unloading:
         origins = self.registrar.catalog.consumer_origins() | swept
         for origin in sorted(origins):
             try:
-                DIRECTORY.lookup(origin).tell(
-                    ReconcileAsk(self.registrar.name, life=self.registrar.life)
-                )
+                DIRECTORY.lookup(origin).tell(self.ask(origin))
             except RegistrarStoppedError:
                 self.release_stopped(origin)
             except RrError:
                 pass
         if self.registrar.saver.store is not None:
             self.ask_everyone(set(origins))
+
+    def ask(self, origin: str) -> ReconcileAsk:
+        """A `ReconcileAsk` for consumer `origin`, with the round of the ask standing for it
+        (`Presence.ask_consumer`), so that its answer clears that ask too (`on_reconcile`)."""
+        round_ = self.asked[origin][0] if origin in self.asked else 0
+        return ReconcileAsk(self.registrar.name, life=self.registrar.life, round=round_)
 
     def ask_everyone(self, asked: set[str]) -> None:
         """Tell every registrar not in `asked` that this one (re)started: holders reconcile."""
@@ -1322,7 +1339,13 @@ class Unloading:
         """
         catalog = self.registrar.catalog
         held = set(message.held)
-        self.asked.pop(message.origin_rr, None)  # (asked by `Presence.lose`: it came)
+        asked = self.asked.get(message.origin_rr)
+        if asked is not None and (  # (asked by `Presence.lose`: the answer, or a later run's)
+            message.round == asked[0]
+            or not message.life
+            or life_order(message.life) > life_order(asked[2])
+        ):
+            del self.asked[message.origin_rr]
         self.provider.lives.reconciled(message.origin_rr, message.life)
         for query_id in self.provider.under_way_of(message.origin_rr):
             if query_id not in held:

@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from rr_actors import events
-from rr_actors._store.files import read_only, validate
+from rr_actors._store.files import read_only
 from rr_actors.errors import RrError
 from rr_actors.events.lines import SCHEMA
 
@@ -103,9 +103,6 @@ _ADDED: dict[int, dict[str, tuple[str, ...]]] = {
 }  # the fields each event schema added (an older row has no value for them)
 
 
-_VERSION = 7  # the first backup schema with an outbox
-
-
 def plan_told(told: Iterable[events.Event], ops: list[tuple[str, tuple[Any, ...]]]) -> None:
     for event in told:
         seq = getattr(event, "seq", 0)
@@ -122,10 +119,11 @@ def clear(db: sqlite3.Connection) -> None:
 
 def read_told(path: str | Path, pid: int) -> list[events.Event]:
     """The events process `pid` wrote in the outbox of backup `path`, by their `seq` (read
-    only, after it ended; never raises: what cannot be read yields nothing)."""
+    only, after it ended, on one connection and with no schema check: on the exit's path;
+    never raises: what cannot be read, a backup older than the outbox too, yields nothing)."""
     file = Path(path)
     try:
-        if not file.is_file() or validate(file, tidy=True) < _VERSION:
+        if not file.is_file():
             return []
         with read_only(file, tidy=True) as db:
             rows = db.execute(

@@ -29,23 +29,12 @@ from pathlib import Path
 from typing import Any, Literal
 
 from rr_actors import events
-from rr_actors._catalog import (
-    NO_DIGEST,
-    Changes,
-    ClientRecord,
-    Resource,
-)
+from rr_actors._catalog import NO_DIGEST, Changes, ClientRecord, Resource
 from rr_actors._core import runtime
 from rr_actors._platform import PLATFORM
 from rr_actors._store import checkpoints, codec, outbox, schema
 from rr_actors._store.checkpoints import Checkpointer
-from rr_actors._store.codec import (
-    STATES_BY_CODE,
-    as_corrupt,
-    check_keys,
-    check_row,
-    damaged_file,
-)
+from rr_actors._store.codec import STATES_BY_CODE, as_corrupt, check_keys, check_row, damaged_file
 from rr_actors._store.commits import CommitCount, lost_commits
 from rr_actors._store.files import (
     SYNCHRONOUS,

@@ -4,9 +4,14 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import select
+import signal
 import time
+from multiprocessing.connection import Connection
+from pathlib import Path
 
-from rr_actors._platform.linux import LinuxPlatform
+from rr_actors._platform import linux_names
+from rr_actors._platform.linux import LinuxPlatform, PidfdExitWatch
 
 # -- freed memory goes back to the system (the observer's server uses it) -------------------
 
@@ -47,3 +52,42 @@ def test_another_process_of_this_host_names_the_same_monotonic_clock_and_reads_i
 
     assert LinuxPlatform().monotonic_clock() == clock is not None
     assert before <= there <= after  # a time of the other process is a time of this one
+
+
+# -- a killed manager's exit does not wait for its inotify watches to be torn down ---------
+
+
+def _watch_a_file_then_wait(path: str, ready: Connection) -> None:
+    """A process with an inotify watch armed on `path` (as a catalog backup's store arms
+    one); it says so, then waits to be killed."""
+    watch = linux_names.watch_names()
+    assert watch is not None
+    watch.arm([path])
+    ready.send(os.getpid())
+    ready.recv()  # never answered: the test kills this process
+
+
+def test_the_exit_watch_holds_the_processes_inotify_watches_past_its_kill(tmp_path: Path) -> None:
+    watched = tmp_path / "backup.db"
+    watched.touch()
+    ours, theirs = multiprocessing.Pipe()
+    process = multiprocessing.get_context("spawn").Process(
+        target=_watch_a_file_then_wait, args=(str(watched), theirs), daemon=True
+    )
+    process.start()
+    try:
+        assert ours.poll(60), "the process did not arm its watch"
+        pid = ours.recv()
+        watch = PidfdExitWatch.open(pid)
+        assert watch is not None
+        os.kill(pid, signal.SIGKILL)
+        assert select.select([watch], [], [], 30)[0], "its exit was not seen"
+        assert watch.exitcode() == -signal.SIGKILL  # (a zombie: seen before it is reaped)
+        # its watch outlived it in the copy held here: the kill did not destroy it
+        (held,) = watch.held
+        assert "inotify wd:" in Path(f"/proc/self/fdinfo/{held}").read_text()
+        watch.close()
+        assert not Path(f"/proc/self/fd/{held}").exists()
+    finally:
+        process.kill()
+        process.join(30)

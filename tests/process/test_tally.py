@@ -159,3 +159,18 @@ def test_an_event_in_neither_is_still_counted_lost(tally: Tally, tmp_path: Path)
 
     [lost] = got
     assert (events.EventsDropped, 1, "killed") == (type(lost), lost.count, lost.cause)
+
+
+def test_nothing_is_read_back_at_an_exit_nobody_listens_to(tally: Tally, tmp_path: Path) -> None:
+    # (a later subscriber hears nothing older than itself: reading them would be for nobody)
+    journal = Journal.open(tally.path)
+    assert journal is not None
+    backup = tmp_path / "erm.db"
+    journal(added(1))
+    committed(backup, [added(1), added(2)])
+    got: list[Any] = []
+    received = Received(got.extend, tally, str(backup))
+
+    received.count_lost("erm", PID, listened=False)
+
+    assert ([], None) == (got, received.tally)  # read nothing, counted nothing; closed

@@ -33,12 +33,13 @@ import pytest
 import rr_actors as rr
 from rr_actors import events
 from rr_actors._catalog import Catalog
-from rr_actors._core.directory import Reply
+from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.replies import FutureReply
 from rr_actors._registrar import Served, life, start_registrar
 from rr_actors._registrar.actor import RegistrarActor
 from rr_actors._registrar.handle import STOP_WAITS_FOR_UNLOADS
 from rr_actors._registrar.life import RETRY_FIRST, RETRY_MAX, retry_delay
+from rr_actors._registrar.messages import Reconcile, ReconcileAsk, ReconcileRetry
 from rr_actors._registrar.state import OpenReply
 from rr_actors._store import restore
 from rr_actors._store.files import read_backup
@@ -47,6 +48,7 @@ from rr_actors.testing import (
     RemoteRegistrar,
     SharedObjects,
     System,
+    actor_ref,
     catalog_snapshot,
     crash,
     expect_restart,
@@ -323,6 +325,25 @@ def _say_consumer_down(registrar: rr.ResourceRegistrar, consumer: str) -> None:
     from rr_actors._registrar.messages import ConsumerDown  # noqa: PLC0415
 
     DIRECTORY.lookup(registrar.name).tell(ConsumerDown(consumer))
+
+
+# -- for TestProviderLost ------------------------------------------------------------------
+
+
+def _asking(
+    system: System, started: list[rr.ResourceRegistrar], unloads: list[str]
+) -> rr.ResourceRegistrar:
+    """A provider of this process whose asks' timers never fire by themselves (`_ask_due`)."""
+    config = rr.RegistrarConfig(name=named("provider"), call_timeout=600.0)
+    provider = rr.ResourceRegistrar.start(config, setup=leaf_setup(unloads), network=system)
+    started.append(provider)
+    return provider
+
+
+def _ask_due(provider: rr.ResourceRegistrar, name: str, round_: int) -> None:
+    """The provider's timer of its ask `round_` of consumer `name` fires now (handled)."""
+    actor_ref(provider).tell(ReconcileRetry(name, round_, 0, asked=True))
+    provider.client_queries()  # (a round trip: handled)
 
 
 class TestStartup:
@@ -1334,6 +1355,130 @@ class TestProviderLost:
 
         assert wait_for(lambda: ["camera"] == unloads, BOUND)  # (its call_timeout, 1 s)
         assert [] == provider.server_queries("leaf")
+
+    def test_a_late_reconcile_of_the_lost_run_does_not_stand_in_for_the_answer_asked(
+        self, system: System, started: list[rr.ResourceRegistrar]
+    ) -> None:
+        # issue 51's leftover: the consumer's run that was heard lost sent a Reconcile
+        # listing its id just before it died, and it comes after the provider asked the
+        # name for one: it cleared the ask, so the id stayed held for a caller that left
+        # (no answer came, and the ask's timer found nothing to release)
+        unloads: list[str] = []
+        config = rr.RegistrarConfig(name=named("provider"), call_timeout=1.0)
+        provider = rr.ResourceRegistrar.start(config, setup=leaf_setup(unloads), network=system)
+        started.append(provider)
+        consumer = RemoteRegistrar.start(named("consumer"), system)
+        lives: list[str] = []
+        with intercept(provider, "load", after=lambda m: lives.append(m.life)):
+            query = consumer.call(provider.name, "leaf", "camera")
+        late = FutureReply()
+
+        def sent_before_it_died(_message: object) -> None:  # (comes right after the ask)
+            DIRECTORY.lookup(provider.name).tell(
+                Reconcile(consumer.name, (query.id,), late, lives[0])
+            )
+
+        with expect_restart(consumer.name):  # no death watch: the mark below is the only one
+            consumer.kill()
+        with intercept(provider, "peer_lost", after=sent_before_it_died):
+            Served(provider).peer_lost(consumer.name)  # (its socket file may still be listed)
+            assert () == late.future.get(timeout=BOUND)  # (it held the id then)
+
+        assert wait_for(lambda: ["camera"] == unloads, BOUND)  # (its call_timeout, 1 s)
+        assert [] == provider.server_queries("leaf")
+
+    # The answer to an ask is told by the round it echoes. In the three tests below the one
+    # that serves answers on another path than the plain ask: its answer must clear the ask,
+    # or the ask's timer (fired here right after the answer) releases the ids it just listed.
+
+    def test_an_ask_on_a_healed_link_carries_the_round_of_the_ask_standing(
+        self, system: System, started: list[rr.ResourceRegistrar]
+    ) -> None:
+        unloads: list[str] = []
+        provider = _asking(system, started, unloads)
+        consumer = rr.ResourceRegistrar.start(named("consumer"), network=system)
+        started.append(consumer)
+        query = consumer.call(provider.name, "leaf", "camera", timeout=BOUND)
+        asks: list[ReconcileAsk] = []
+        answered = threading.Event()
+
+        def lost_with_the_link(message: ReconcileAsk) -> None:
+            asks.append(message)
+            if len(asks) == 1:  # (a step that fails so is dropped; the registrar serves on)
+                raise rr.RrError("the ask is lost with the link")
+
+        with (
+            intercept(consumer, "reconcile_ask", before=lost_with_the_link),
+            intercept(provider, "reconcile", after=lambda _m: answered.set()),
+        ):
+            Served(provider).peer_lost(consumer.name)  # (the mark of one that yielded)
+            assert wait_for(lambda: 1 == len(asks), BOUND)
+            Served(provider).peer_reachable(consumer.name)  # the link healed: asked again
+            assert answered.wait(BOUND)
+
+        _ask_due(provider, consumer.name, asks[0].round)
+        assert [query.id] == [q.id for q in provider.server_queries("leaf")]
+        assert [] == unloads
+
+    def test_an_ask_heard_during_setup_is_answered_with_its_round(
+        self, system: System, started: list[rr.ResourceRegistrar]
+    ) -> None:
+        unloads: list[str] = []
+        provider = _asking(system, started, unloads)
+        name, handles, asks = named("consumer"), [], []
+        loaded, heard, answered = threading.Event(), threading.Event(), threading.Event()
+
+        def setup(registrar: rr.ResourceRegistrar) -> None:  # (it loads, then waits)
+            handles.append(registrar.call(provider.name, "leaf", "camera", timeout=BOUND))
+            intercept(registrar, "reconcile_ask", after=asks.append)
+            loaded.set()
+            heard.wait(BOUND)
+
+        def start() -> None:
+            handles.append(rr.ResourceRegistrar.start(name, setup=setup, network=system))
+
+        starting = threading.Thread(target=start)
+        with intercept(provider, "reconcile", after=lambda _m: answered.set()):
+            starting.start()
+            assert loaded.wait(BOUND)
+            Served(provider).peer_lost(name)  # (the mark of one that yielded)
+            assert wait_for(lambda: 1 == len(asks), BOUND)
+            heard.set()  # its setup ends: it answers the ask it heard
+            starting.join(BOUND)
+            started.append(handles[1])
+            assert answered.wait(BOUND)
+
+        _ask_due(provider, name, asks[0].round)
+        assert [handles[0].id] == [q.id for q in provider.server_queries("leaf")]
+        assert [] == unloads
+
+    def test_a_newer_reconcile_round_answers_the_ask_standing(
+        self, system: System, started: list[rr.ResourceRegistrar]
+    ) -> None:
+        unloads: list[str] = []
+        provider = _asking(system, started, unloads)
+        consumer = rr.ResourceRegistrar.start(named("consumer"), network=system)
+        started.append(consumer)
+        query = consumer.call(provider.name, "leaf", "camera", timeout=BOUND)
+        asks: list[ReconcileAsk] = []
+        answers: list[Reconcile] = []
+
+        def fails_the_first(message: Reconcile) -> None:
+            answers.append(message)
+            if len(answers) == 1:  # (a newer round starts there before it hears of this)
+                Served(consumer).peer_reachable(provider.name)
+                raise rr.RrError("the first answer fails")
+
+        with (
+            intercept(consumer, "reconcile_ask", after=asks.append),
+            intercept(provider, "reconcile", before=fails_the_first),
+        ):
+            Served(provider).peer_lost(consumer.name)  # (the mark of one that yielded)
+            assert wait_for(lambda: 2 == len(answers), BOUND)
+
+        _ask_due(provider, consumer.name, asks[0].round)
+        assert [query.id] == [q.id for q in provider.server_queries("leaf")]
+        assert [] == unloads
 
     def test_a_name_heard_lost_whose_server_does_not_answer_is_lost_after_all(
         self, system: System, started: list[rr.ResourceRegistrar]
