@@ -10,6 +10,7 @@ is also a built-in `TimeoutError`. All errors pickle with their attributes. Besi
 from __future__ import annotations
 
 import dataclasses
+import importlib
 from collections.abc import Iterable
 from typing import TYPE_CHECKING, Any
 
@@ -46,14 +47,10 @@ __all__ = [
 
 
 def __getattr__(name: str) -> Callable[[str | PathLike[str]], Path]:
-    """`quarantine_backup`, found at its first use as the package finds its runtime names: the
-    store imports this module, this module (the bottom layer) imports nothing of the store."""
+    """`quarantine_backup`, at its first use: the store imports this module, never the reverse."""
     if name != "quarantine_backup":
         raise AttributeError(f"module 'rr_actors.errors' has no attribute {name!r}")
-    import importlib  # noqa: PLC0415
-
-    store = importlib.import_module("rr_actors._store.files")
-    return store.quarantine_backup  # type: ignore[no-any-return]
+    return importlib.import_module("rr_actors._store.files").quarantine_backup  # type: ignore[no-any-return]
 
 
 class RrError(Exception):
