@@ -39,10 +39,10 @@ Both counted modes run each operation `--calls` and three times `--calls` times 
 print the difference over the difference (fixed costs cancel: the marks, the sync). A
 hit's answer is recorded by the consumer's actor before its next message: every phase
 ends with a message to that actor (`server_queries` of an empty server), so the hit's
-record counts in the hit's phase. `--durable` (with `cpu`) gives both registrars a
-backup with `save_on_modify` (a temporary folder). `--user` makes the request an
-instance of a user class (its `repr`, `==` and `hash` are user code, run off the actor
-thread).
+record counts in the hit's phase. `--durable` (with `cpu`, `callgrind`, `bytecodes`)
+gives both registrars a backup with `save_on_modify` (a temporary folder). `--user`
+makes the request an instance of a user class (its `repr`, `==` and `hash` are user
+code, run off the actor thread).
 
 Usage:
     python benchmarks/count_dedup.py [--calls 1000]
@@ -464,6 +464,7 @@ def callgrind(args: argparse.Namespace) -> None:
     """Run this script under callgrind; print the instructions per operation."""
     command = [sys.executable, str(Path(__file__).resolve()), "--calls", str(args.calls)]
     command += ["--count", "inside-callgrind", *(["--user"] if args.user else [])]
+    command += ["--durable"] if args.durable else []
     with tempfile.TemporaryDirectory() as work:
         stdout = callgrind_run(command, work)
         found = re.search(r"^PID (\d+)$", stdout, re.MULTILINE)

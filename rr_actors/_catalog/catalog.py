@@ -500,17 +500,18 @@ class Catalog:
     def drain_changes(self) -> Changes:
         """Return and forget the rows changed since the last drain, in the order they first
         changed (always empty without `track_changes`)."""
-        resources, clients = self.resources, self._clients
+        resources, clients, dirty = self.resources, self._clients, self._dirty_resources
         touched, whole = self._touched, self._whole
-        changes = Changes(
-            {rid: resources.get(rid) for rid in self._dirty_resources},
-            {qid: clients.get(qid) for qid in self._dirty_clients},
-            {rid: touched.get(rid) or {} for rid in self._dirty_resources if rid not in whole},
+        changes = Changes(  # (no comprehension run for nothing: most turns change one kind)
+            {rid: resources.get(rid) for rid in dirty} if dirty else {},
+            {qid: clients.get(qid) for qid in self._dirty_clients} if self._dirty_clients else {},
+            {rid: touched.get(rid) or {} for rid in dirty if rid not in whole} if dirty else {},
         )
-        self._dirty_resources.clear()
+        dirty.clear()
         self._dirty_clients.clear()
         self._touched = {}
-        whole.clear()
+        if whole:
+            whole.clear()
         return changes
 
     @classmethod

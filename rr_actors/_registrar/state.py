@@ -31,7 +31,7 @@ from typing import Any
 import pykka
 
 from rr_actors import events
-from rr_actors._catalog import Catalog, Resource
+from rr_actors._catalog import Catalog, Changes, Resource
 from rr_actors._core import runtime
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
@@ -265,9 +265,7 @@ class Shared:
                 undo(failed)
                 self.commit()
             return
-        changes = self.catalog.drain_changes()
-        for rid in self.held_in_doubt.intersection(changes.resources):
-            del changes.resources[rid]  # written once settled (`settle_held`)
+        changes = self._drain()
         if changes:
             self.saver.stage(changes)
             if not self.dirty:
@@ -276,7 +274,8 @@ class Shared:
             self.publish(*told)
             ok()
             return
-        self.held.extend((event, True) for event in told)
+        if told:
+            self.held.extend((event, True) for event in told)
         self.staged.append(Staged(ok, undo, refuse))
 
     def after_commit(self, then: Callable[[], None]) -> bool:
@@ -301,10 +300,11 @@ class Shared:
     def _write_turn(self) -> CatalogWriteError | None:
         staged, held = self.staged, self.held
         self.staged, self.held, self.dirty = [], [], False
-        told = [event for event, _ in held]
+        told = [event for event, _ in held] if held else ()
         healthy = self.saver.failure is None
         try:
-            self.probe("turn_commit", staged)  # (staged, not written: a kill loses it)
+            if self.probes is not None:  # (staged, not written: a kill loses it)
+                self.probes.fire("turn_commit", staged)
             self.saver.write(told)
         except CatalogWriteError as exc:
             if healthy:
@@ -368,9 +368,7 @@ class Shared:
         if self.saver.store is None:  # nothing persists this catalog
             self.publish(*told)
             return None
-        changes = self.catalog.drain_changes()
-        for rid in self.held_in_doubt.intersection(changes.resources):
-            del changes.resources[rid]  # written once settled (`settle_held`)
+        changes = self._drain()
         if not changes and not (now and self.saver.pending):
             self.publish(*told)
             return None
@@ -389,9 +387,7 @@ class Shared:
     def _join_turn(self, told: tuple[events.Event, ...]) -> CatalogWriteError | None:
         """`commit` in a turn that staged changes: in the turn's transaction (a staged row is
         written as it then is, with this change: its events go with it). The error, or `None`."""
-        changes = self.catalog.drain_changes()
-        for rid in self.held_in_doubt.intersection(changes.resources):
-            del changes.resources[rid]  # written once settled (`settle_held`)
+        changes = self._drain()
         if changes:
             self.saver.stage(changes)
         self.held.extend((event, True) for event in told)
@@ -402,6 +398,13 @@ class Shared:
     def publish(self, *told: events.Event) -> None:
         for event in told:
             self.events.publish(event)
+
+    def _drain(self) -> Changes:
+        changes = self.catalog.drain_changes()
+        if self.held_in_doubt:  # written once settled (`settle_held`)
+            for rid in self.held_in_doubt.intersection(changes.resources):
+                del changes.resources[rid]
+        return changes
 
     def settle_held(self, rids: set[str]) -> CatalogWriteError | None:
         """Write what became of held in-doubt resources `rids` (settled now), as `commit`."""

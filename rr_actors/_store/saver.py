@@ -82,7 +82,6 @@ class Saver:
             config.save_interval if store is not None and not config.save_on_modify else None
         )
         self._pending = _NOTHING  # (never changed in place: `_take` replaces it)
-        self._told: Sequence[events.Event] = ()  # (only while `changed` writes them)
         self._failure: CatalogWriteError | None = None
 
     @property
@@ -116,11 +115,7 @@ class Saver:
         self._take(changes)
         if not (self.on_modify or now):
             return False
-        self._told = told
-        try:
-            self.flush()
-        finally:
-            self._told = ()
+        self.write(told)
         return True
 
     def stage(self, changes: Changes) -> None:
@@ -140,24 +135,21 @@ class Saver:
     def write(self, told: Sequence[events.Event] = ()) -> None:
         """Write what is pending now with `told`, one transaction (the end of a registrar's
         turn). `CatalogWriteError`: the changes stay pending, `told` is dropped."""
-        self._told = told
-        try:
-            self.flush()
-        finally:
-            self._told = ()
-
-    def flush(self) -> None:
-        """Write what accumulated since the last write (`CatalogWriteError`: it stays
-        pending)."""
-        if self.store is None or not self._pending:
+        store, pending = self.store, self._pending
+        if store is None or not pending:
             return
         try:
-            self.store.write(self._pending, self._told)
+            store.write(pending, told)
         except CatalogWriteError as exc:
             self._failure = exc
             raise
         self._pending = _NOTHING
         self._failure = None
+
+    def flush(self) -> None:
+        """Write what accumulated since the last write (`CatalogWriteError`: it stays
+        pending)."""
+        self.write()
 
     def retry(self) -> bool:
         """Try again to write what is pending; whether nothing is pending any more."""
