@@ -53,13 +53,13 @@ if TYPE_CHECKING:  # at run time, `__getattr__` below imports each at its first 
     from rr_actors import events as events  # `rr.events.to_dict(...)`, as `rr.errors` is
     from rr_actors._core.bus import Subscription
     from rr_actors._registrar import Registrar, ResourceRegistrar, StatusWatch
-    from rr_actors._store import quarantine_backup
     from rr_actors._supervision import ChildCounts as ChildCounts
     from rr_actors._supervision import ChildInfo, Supervisor
     from rr_actors._supervision.watching import Observing
     from rr_actors._transport.resolve import Claimant
     from rr_actors._transport.zenoh.net import ZenohNetwork
     from rr_actors._transport.zenoh.ops.tls import ZenohTLS
+    from rr_actors.errors import quarantine_backup as quarantine_backup
 
 __all__ = [
     "Backoff",
@@ -86,9 +86,8 @@ __all__ = [
     "UnknownQueryError",
     "ZenohNetwork",
     "ZenohTLS",
-    "quarantine_backup",
 ]
-"""What a program uses (25 names, issue 54); every error is in `rr_actors.errors`. The names
+"""What a program uses (24 names, issue 54); every error is in `rr_actors.errors`. The names
 this module listed before are all still importable from it (`rr.UnknownServerError`).
 """
 
@@ -103,7 +102,7 @@ _RUNTIME = {
     "Registrar": "rr_actors._registrar",
     "ResourceRegistrar": "rr_actors._registrar",
     "StatusWatch": "rr_actors._registrar",
-    "quarantine_backup": "rr_actors._store",
+    "quarantine_backup": "rr_actors.errors",
     "ChildCounts": "rr_actors._supervision",
     "ChildInfo": "rr_actors._supervision",
     "Supervisor": "rr_actors._supervision",

@@ -88,6 +88,23 @@ def test_the_dependency_depth_is_the_configs_and_the_same_at_the_top() -> None:
     assert rr_actors.MAX_DEPENDENCY_DEPTH is config.MAX_DEPENDENCY_DEPTH == 64
 
 
+def test_quarantine_backup_is_beside_the_error_it_recovers_from_imported_at_first_use() -> None:
+    """Out of the top's `__all__` (issue 54 part 5), in `rr_actors.errors` beside
+    `CatalogCorruptError`: the store's function, which `import rr_actors.errors` leaves
+    unimported until the name is used; `rr.quarantine_backup` still the same function."""
+    code = (
+        "import sys, rr_actors as rr, rr_actors.errors as errors\n"
+        "print('rr_actors._store' in sys.modules, 'quarantine_backup' in rr.__all__)\n"
+        "from rr_actors.errors import CatalogCorruptError, quarantine_backup\n"
+        "from rr_actors._store.files import quarantine_backup as the_stores\n"
+        "print(quarantine_backup is the_stores is rr.quarantine_backup,\n"
+        "      'quarantine_backup' in errors.__all__, hasattr(errors, 'restore_backup'))"
+    )
+    run = python("-c", code)
+
+    assert (run.returncode, run.stderr, run.stdout) == (0, "", "False False\nTrue True False\n")
+
+
 def test_importing_the_package_leaves_the_runtime_and_the_events_to_their_first_use() -> None:
     """`import rr_actors` cost 1.35 s when it took the runtime and `events.kinds` with it
     (issue 54 part 7); now only the errors, the configuration and the status types (the

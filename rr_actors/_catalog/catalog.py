@@ -28,7 +28,7 @@ restored catalog reads rows through its `UnreadRows` and decodes values on first
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence, ValuesView
 from typing import Any
 
 from rr_actors._catalog.digest import (
@@ -75,7 +75,7 @@ class Catalog:
     def __init__(self, *, track_changes: bool = True) -> None:
         self.track_changes = track_changes
         self.resources: dict[str, Resource] = {}
-        self.clients: dict[str, ClientRecord] = {}
+        self._clients: dict[str, ClientRecord] = {}  # query id -> its record, oldest first
         self._index = RequestIndex()
         self._by_consumer: dict[str, str] = {}  # query id -> its resource's id (in memory)
         self._deps: dict[str, list[str]] = {}  # resource id -> the query ids it owns
@@ -432,19 +432,31 @@ class Catalog:
 
     # -- client records ---------------------------------------------------------------
 
+    def client(self, query_id: str) -> ClientRecord | None:
+        """The client record of `query_id` (an outbound query), `None` if there is none."""
+        return self._clients.get(query_id)
+
+    def client_records(self) -> ValuesView[ClientRecord]:
+        """Every client record, oldest first (a live view: copy it to change the catalog)."""
+        return self._clients.values()
+
+    def providers(self) -> set[str]:
+        """The registrars that serve a client record of this catalog."""
+        return {record.query.serving_rr for record in self._clients.values()}
+
     def add_client(self, record: ClientRecord) -> None:
         """Record an outbound query (in flight until `client_loaded`)."""
         qid = record.query.id
-        if qid in self.clients:
+        if qid in self._clients:
             raise ValueError(f"query id {qid} is already a client record")
-        self.clients[qid] = record
+        self._clients[qid] = record
         if record.parent is not None:
             self._deps.setdefault(record.parent, []).append(qid)
         self._dirty_clients.add(qid)
 
     def client_loaded(self, query_id: str, response: Any) -> ClientRecord | None:
         """Mark an outbound query answered; `None` if the record is gone."""
-        record = self.clients.get(query_id)
+        record = self._clients.get(query_id)
         if record is None:
             return None
         record.query = record.query.with_response(response)
@@ -455,12 +467,12 @@ class Catalog:
 
     def set_client_text(self, query_id: str, request_text: str) -> None:
         """Set a client record's request display text."""
-        self.clients[query_id].request_text = request_text
+        self._clients[query_id].request_text = request_text
         self._dirty_clients.add(query_id)
 
     def remove_client(self, query_id: str) -> ClientRecord:
         """Delete an outbound query record (`UnknownQueryError`)."""
-        record = self.clients.pop(query_id, None)
+        record = self._clients.pop(query_id, None)
         if record is None:
             raise UnknownQueryError(f"unknown or released query id {query_id!r}")
         if record.parent is not None:
@@ -474,7 +486,7 @@ class Catalog:
     def dependencies(self, rid: str) -> list[ClientRecord]:
         """The client records owned by resource `rid`, oldest first (rule 5: when it is
         unloaded, they are released)."""
-        return [self.clients[qid] for qid in self._deps.get(rid, ())]
+        return [self._clients[qid] for qid in self._deps.get(rid, ())]
 
     # -- persistence ------------------------------------------------------------------
 
@@ -488,7 +500,7 @@ class Catalog:
     def drain_changes(self) -> Changes:
         """Return and forget the rows changed since the last drain, in the order they first
         changed (always empty without `track_changes`)."""
-        resources, clients, dirty = self.resources, self.clients, self._dirty_resources
+        resources, clients, dirty = self.resources, self._clients, self._dirty_resources
         touched, whole = self._touched, self._whole
         changes = Changes(  # (no comprehension run for nothing: most turns change one kind)
             {rid: resources.get(rid) for rid in dirty} if dirty else {},
@@ -521,9 +533,9 @@ class Catalog:
             for resource in catalog.resources.values()
             for query_id in resource.consumers
         }
-        catalog.clients = {record.query.id: record for record in clients}
+        catalog._clients = {record.query.id: record for record in clients}
         deps = catalog._deps
-        for qid, record in catalog.clients.items():
+        for qid, record in catalog._clients.items():
             if record.parent is not None:
                 deps.setdefault(record.parent, []).append(qid)
         return catalog
@@ -545,7 +557,7 @@ class Catalog:
                 ]
                 assert not equal, f"resource {resource.id} is loaded twice"
         deps: dict[str, list[str]] = {}
-        for qid, record in self.clients.items():
+        for qid, record in self._clients.items():
             if record.parent is not None:
                 assert record.parent in resources, f"dependency {qid} has no owner"
                 deps.setdefault(record.parent, []).append(qid)

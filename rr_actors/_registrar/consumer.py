@@ -436,7 +436,7 @@ class Answers:
         """Decide what `message`'s answer does, and do it. A durable answer is kept only while
         its caller still waits: the actor takes the attempt before it commits."""
         query = message.record.query
-        held = self.registrar.catalog.clients.get(query.id)
+        held = self.registrar.catalog.client(query.id)
         retry = self.flights.was_unsettled(query.id) or (held is not None and held.loaded)
         # (a retry of a call that failed as it died, or that its provider kept)
         self.flights.reset(query.id, None)
@@ -490,7 +490,7 @@ class Answers:
         durable = isinstance(message, DurableLoaded)
         if durable and self.unstorable(message):
             return
-        if query.id in catalog.clients:  # a retry of one held (or a record restored
+        if catalog.client(query.id) is not None:  # a retry of one held (or a record restored
             catalog.client_loaded(query.id, query.response)  # pending, an older backup)
         else:
             catalog.add_client(message.record)
@@ -564,7 +564,7 @@ class Answers:
             message.attempt.settle(query.response)
 
     def on_call_failed(self, message: CallFailed, _reply: Reply) -> None:
-        known = self.registrar.catalog.clients.get(message.query_id)
+        known = self.registrar.catalog.client(message.query_id)
         publish_failed(
             self.registrar,
             message,
@@ -575,7 +575,7 @@ class Answers:
         if current is None or current is message.attempt:
             # (set if it may hold the id: a retry may follow; settled, or unsettled again)
             self.flights.reset(message.query_id, retry_held_at(message), message.parent)
-        record = self.registrar.catalog.clients.get(message.query_id)
+        record = self.registrar.catalog.client(message.query_id)
         try:
             if current is not None and current is not message.attempt:
                 pass  # a stale failure of an earlier attempt: a retry's is due
@@ -613,7 +613,8 @@ class Holdings:
         self.targets = targets  # what the status desk of this process reads of it
         self.epoch = 0  # how many `Reconcile` lists it built (`new_epoch`)
         self.answered_in: dict[str, int] = {}  # query id -> its answer's epoch (none: 0)
-        self.restored = set(shared.catalog.clients)  # listed by its `CatalogRestored`
+        # the ids its `CatalogRestored` listed
+        self.restored = {r.query.id for r in shared.catalog.client_records()}
 
     # -- holding and forgetting queries -------------------------------------------------
 
@@ -634,7 +635,7 @@ class Holdings:
         """Forget a query this registrar held: its record and its status callback.
         `commit=False`: the caller commits. `reason`: its `QueryForgotten`'s, if its holding was
         told (`None`: the caller published it); `began`: its release's stamps."""
-        record = self.registrar.catalog.clients.get(query_id)
+        record = self.registrar.catalog.client(query_id)
         if record is not None:
             told = query_id in self.answered_in or query_id in self.restored
             self.restored.discard(query_id)
@@ -654,7 +655,7 @@ class Holdings:
 
     def publish_target(self, query_id: str) -> None:
         """Let the status desk run a loaded, non-dependency `query_id`'s callback (`status.py`)."""
-        record = self.registrar.catalog.clients.get(query_id)
+        record = self.registrar.catalog.client(query_id)
         callback = self.status_callbacks.get(query_id)
         if record is None or callback is None or record.parent is not None or not record.loaded:
             self.targets.pop(query_id, None)
@@ -695,14 +696,14 @@ class Holdings:
     # -- operations the handle asks for -------------------------------------------------
 
     def on_set_status_callback(self, message: SetStatusCallback, reply: Reply) -> None:
-        if message.query_id not in self.registrar.catalog.clients:
+        if self.registrar.catalog.client(message.query_id) is None:
             raise UnknownQueryError(f"unknown or released query id {message.query_id!r}")
         self.status_callbacks[message.query_id] = message.callback
         self.publish_target(message.query_id)
         reply.set_result(None)
 
     def on_list_client_queries(self, _message: ListClientQueries, reply: Reply) -> None:
-        reply.set_result([r.query for r in self.registrar.catalog.clients.values() if r.loaded])
+        reply.set_result([r.query for r in self.registrar.catalog.client_records() if r.loaded])
 
     def on_open_client(self, message: OpenClient, reply: Reply) -> None:
         """The client actor for `target_rr/server`, started on first use (thesis 4.3.3)."""
@@ -786,7 +787,7 @@ class Releases:
 
     def on_release(self, message: Release, reply: Reply) -> None:
         query_id = message.query_id
-        record = self.registrar.catalog.clients.get(query_id)
+        record = self.registrar.catalog.client(query_id)
         if record is None or not record.loaded:
             catalog = self.registrar.catalog
             if record is None and catalog.has_consumer(query_id):  # (a provider's own id)
@@ -985,7 +986,7 @@ class Reconciling:
     def reconcile_all(self) -> None:
         """This registrar serves (again): reconcile with every provider it holds ids at, those
         that asked during setup, and (`everyone`) every registrar it can reach now."""
-        providers = {record.query.serving_rr for record in self.registrar.catalog.clients.values()}
+        providers = self.registrar.catalog.providers()
         providers |= self.asked_to_reconcile.keys()
         if self.everyone:
             providers |= DIRECTORY.names() - {self.registrar.name}
@@ -999,10 +1000,7 @@ class Reconciling:
         return (
             self.flights.held_at(serving_rr)
             or bool(self.releases.unreleased_at(serving_rr))
-            or any(
-                record.query.serving_rr == serving_rr
-                for record in self.registrar.catalog.clients.values()
-            )
+            or serving_rr in self.registrar.catalog.providers()
         )
 
     def listing(
@@ -1015,8 +1013,8 @@ class Reconciling:
         """The list of a `Reconcile` to `serving_rr` leaving now, a new epoch. `withdrawn` ids
         are never listed, so the provider releases them; `life`: the asking life (`kept_at`)."""
         held = {
-            query_id
-            for query_id, record in self.registrar.catalog.clients.items()
+            record.query.id
+            for record in self.registrar.catalog.client_records()
             if record.query.serving_rr == serving_rr
         }
         held |= {q for q, provider in self.flights.unsettled().items() if provider == serving_rr}
@@ -1095,7 +1093,7 @@ class Reconciling:
         found them (one answered after it is held by its own answer)."""
         lost: dict[str, list[str]] = {}
         for query_id in unknown:
-            record = self.registrar.catalog.clients.get(query_id)
+            record = self.registrar.catalog.client(query_id)
             if (
                 record is None
                 or not record.loaded
@@ -1125,9 +1123,9 @@ class Reconciling:
     def lose_provider(self, serving_rr: str) -> None:
         """Provider `serving_rr` is gone for good (rule 19): `FATAL` to its ids, then forget."""
         lost: dict[str, list[str]] = {}
-        for query_id, record in list(self.registrar.catalog.clients.items()):
+        for record in list(self.registrar.catalog.client_records()):
             if record.query.serving_rr == serving_rr and record.loaded:
-                lost.setdefault(record.query.server, []).append(query_id)
+                lost.setdefault(record.query.server, []).append(record.query.id)
         self.settle_listed(serving_rr)  # nobody holds them there any more
         for server, ids in sorted(lost.items()):
             logger.warning(

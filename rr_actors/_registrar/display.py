@@ -120,9 +120,9 @@ class ClientTexts:
             return
         due = self.due
         due.append(query_id)
-        clients = self.shared.catalog.clients
-        if len(due) > 2 * len(clients) + 64:  # records gone before anyone read them
-            self.due = [q for q in due if q in clients]
+        catalog = self.shared.catalog
+        if len(due) > 2 * len(catalog.client_records()) + 64:  # records gone unread
+            self.due = [q for q in due if catalog.client(q) is not None]
 
     def fill(self) -> None:
         """Give each record added since the last read its text, in order: before a snapshot."""
@@ -131,13 +131,13 @@ class ClientTexts:
             self.show(query_id)
 
     def show(self, query_id: str) -> None:
-        clients = self.shared.catalog.clients
-        record = clients.get(query_id)
+        catalog = self.shared.catalog
+        record = catalog.client(query_id)
         if record is None or record.request_text is not None:
             return
         request = record.query.request
         holder_id = self.holders.get(id(request))
-        holder = None if holder_id is None else clients.get(holder_id)
+        holder = None if holder_id is None else catalog.client(holder_id)
         if holder is not None and holder.query.request is request:
             if holder.request_text is not None:
                 record.request_text = holder.request_text
@@ -146,8 +146,9 @@ class ClientTexts:
             if waiting is not None:  # its text is on its way
                 waiting.append(query_id)
                 return
-        if len(self.holders) > 2 * len(clients) + 64:  # stale entries: records gone
-            self.holders = {id(r.query.request): q for q, r in clients.items()}
+        records = catalog.client_records()
+        if len(self.holders) > 2 * len(records) + 64:  # stale entries: records gone
+            self.holders = {id(r.query.request): r.query.id for r in records}
         self.holders[id(request)] = query_id
         text = plain_text(request)
         if text is not None:
@@ -162,7 +163,7 @@ class ClientTexts:
         """A worker made the text of `query_id`'s request: give it to each record waiting."""
         catalog = self.shared.catalog
         for waiting_id in [query_id, *self.waiting.pop(query_id, ())]:
-            record = catalog.clients.get(waiting_id)
+            record = catalog.client(waiting_id)
             if record is not None and record.request_text is None:
                 catalog.set_client_text(waiting_id, text)
         self.shared.commit()

@@ -145,7 +145,7 @@ class Lifecycle:
         # who was lost before it started it hears now: a mark is never missed
         gone = MEMBERSHIP.join(self.hearer)
         # every provider the restored catalog knows, also those settle_in_doubt forgets
-        providers = {record.query.serving_rr for record in self.registrar.catalog.clients.values()}
+        providers = self.registrar.catalog.providers()
         self.reconciling.expect_reconcile(providers)
         # what it released while a provider was down is in no row: reconcile with all (rule 20)
         self.reconciling.everyone = self.registrar.saver.store is not None
@@ -220,9 +220,7 @@ class Lifecycle:
                     dataclasses.replace(r, consumers=dict(r.consumers))
                     for r in self.registrar.catalog.read_all().values()
                 ),
-                clients=tuple(
-                    dataclasses.replace(c) for c in self.registrar.catalog.clients.values()
-                ),
+                clients=tuple(map(dataclasses.replace, self.registrar.catalog.client_records())),
                 servers=tuple(self.registrar.servers),
             )
         except Exception as exc:  # noqa: BLE001 - an exception here would kill the registrar
@@ -308,7 +306,7 @@ class Lifecycle:
         releases.give_back_unsettled(given_back)
         tops = [
             r
-            for r in reversed(self.registrar.catalog.clients.values())
+            for r in reversed(list(self.registrar.catalog.client_records()))
             if r.parent is None and r.loaded
         ]
 
@@ -497,7 +495,7 @@ class Restoring:
             self.releases.release_dependencies(
                 resource.id, functools.partial(self.teardown.remove_resource, resource)
             )
-        for record in list(catalog.clients.values()):
+        for record in list(catalog.client_records()):
             orphan = record.parent is not None and record.parent not in catalog.resources
             if orphan or (record.parent is None and not record.loaded):
                 query = record.query
@@ -1005,8 +1003,8 @@ def _catalog_rows(shared: Shared) -> dict[str, object]:
     `LISTED_ROWS` rows of each kind, read as plain strings; above that only counts."""
     catalog = shared.catalog
     clients = tuple(
-        (qid, record.query.serving_rr, record.query.server, record.parent or "")
-        for qid, record in catalog.clients.items()
+        (record.query.id, record.query.serving_rr, record.query.server, record.parent or "")
+        for record in catalog.client_records()
     )
     rows = catalog.rows(LISTED_ROWS)
     if rows is None or len(clients) > LISTED_ROWS:

@@ -71,7 +71,7 @@ class StatusRelay:
         try:
             resource = shared.catalog.resource_of(query_id)
         except UnknownQueryError:
-            held = shared.catalog.clients.get(query_id)
+            held = shared.catalog.client(query_id)
             if held is None:
                 raise
             raise UnknownQueryError(  # (a consumer's own id: only its provider sends)
@@ -322,7 +322,7 @@ class StatusRelay:
         join = _Join(lambda: reply.set_result(tuple(gave_up)), gave_up)
         deadline = _deadline(message.patience)
         for query_id in DESK.first_time(message.event, message.query_ids):
-            record = catalog.clients.get(query_id)
+            record = catalog.client(query_id)
             if record is None:
                 continue
             update = StatusUpdate(query_id, message.status, message.message, message.source)

@@ -6,7 +6,7 @@ The store knows the catalog's rows and nothing of actors. Modules, lowest first:
 """
 
 from rr_actors._store.codec import Unreadable
-from rr_actors._store.files import Backup, gc_paused, quarantine_backup, read_backup
+from rr_actors._store.files import Backup, gc_paused, read_backup
 from rr_actors._store.restore import Restored
 from rr_actors._store.saver import CatalogStore, Saver, open_catalog, open_store
 from rr_actors._store.schema import APPLICATION_ID, SCHEMA_VERSION
@@ -24,6 +24,5 @@ __all__ = [
     "gc_paused",
     "open_catalog",
     "open_store",
-    "quarantine_backup",
     "read_backup",
 ]

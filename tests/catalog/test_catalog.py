@@ -220,6 +220,23 @@ def test_dependencies_are_listed_by_owner_oldest_first():
     catalog.check_invariants()
 
 
+def test_the_catalog_answers_for_its_client_records_by_id_oldest_first_and_by_provider():
+    """The registrar asks the catalog for its client records (issue 54 part 4), it does not
+    read its dict: one by id, all oldest first (a live view), the registrars serving them."""
+    catalog = Catalog()
+    for qid, provider in (("q1", "p"), ("q2", "other"), ("q3", "p")):
+        catalog.add_client(ClientRecord(Query(qid, "leaf", provider, "me", qid)))
+    records = catalog.client_records()
+
+    assert "q2" == catalog.client("q2").query.id
+    assert catalog.client("nope") is None
+    assert ["q1", "q2", "q3"] == [r.query.id for r in records]
+    assert {"p", "other"} == catalog.providers()
+    catalog.remove_client("q2")
+    assert (None, 2, {"p"}) == (catalog.client("q2"), len(records), catalog.providers())
+    assert not hasattr(catalog, "clients")  # (the dict is the catalog's own)
+
+
 def test_check_invariants_catches_a_resource_loaded_twice():
     catalog = Catalog()
     loaded(catalog, "s", "x")
@@ -260,7 +277,7 @@ def test_restore_rebuilds_the_indexes():
     rid = loaded(catalog, "s", {"a": [1]})
     catalog.add_client(ClientRecord(Query("d", "leaf", "p", "me", 1), parent=rid, loaded=True))
 
-    restored = Catalog.restore(catalog.resources.values(), catalog.clients.values())
+    restored = Catalog.restore(catalog.resources.values(), catalog.client_records())
 
     restored.check_invariants()
     assert rid == restored.find("s", {"a": [1]}).id
@@ -413,7 +430,7 @@ class CatalogMachine(RuleBasedStateMachine):
 
     @rule(qid=consumes(deps))
     def remove_dependency(self, qid):
-        if qid is not None and qid in self.catalog.clients:
+        if qid is not None and self.catalog.client(qid) is not None:
             self.catalog.remove_client(qid)
 
     @precondition(lambda self: any(not ids for ids in self.model.values()))

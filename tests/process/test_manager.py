@@ -348,7 +348,7 @@ def test_a_manager_whose_backup_is_corrupt_fails_start_with_a_catalog_corrupt_er
     assert isinstance(corrupt, rr.CatalogCorruptError)
     assert str(backup) == corrupt.path
 
-    rr.quarantine_backup(corrupt.path)  # the documented recovery: then the tree starts
+    rr.errors.quarantine_backup(corrupt.path)  # the documented recovery: then the tree starts
     sup = supervisors([spec], state_dir=tmp_path).start()
     assert "after" == sup.registrar(f"app-{uid}").call(name, "echo", "after").response
 

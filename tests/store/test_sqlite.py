@@ -236,7 +236,7 @@ def test_a_client_response_mutated_in_place_and_loaded_again_is_written(tmp_path
     store.write(catalog.drain_changes())
     store.close(erase=False)
 
-    assert {"status": "running"} == reopen(tmp_path / "p.db").clients["d1"].query.response
+    assert {"status": "running"} == reopen(tmp_path / "p.db").client("d1").query.response
 
 
 def test_decoding_a_restored_response_writes_no_value(
@@ -247,7 +247,7 @@ def test_decoding_a_restored_response_writes_no_value(
     rows = store.load()
     assert rows is not None
     catalog = Catalog.restore(*rows)
-    _ = catalog.resources["r1"].response, catalog.clients["d1"].query.response
+    _ = catalog.resources["r1"].response, catalog.client("d1").query.response
     catalog.add_consumer("r1", "q2", "C")  # dirties the row
     dumped: list[Any] = []
     monkeypatch.setattr(codec, "dumps", dumped.append)
@@ -505,12 +505,13 @@ def check(paths: tuple[Path, Path], model: Model) -> None:
     """The invariants and the acknowledged operations, on the backups just left behind."""
     provider, consumer = restored(paths[0]), restored(paths[1])
     served = {q for r in provider.resources.values() for q in r.consumers}
-    held = {q for q, record in consumer.clients.items() if record.loaded}
+    held = {record.query.id for record in consumer.client_records() if record.loaded}
     present = model.loaded - model.unload_started
     assert set() == present - served, "an acknowledged load is missing at the provider"
     assert set() == present - held, "an acknowledged load is missing at the consumer"
     assert set() == model.unloaded & served, "an acknowledged unload is back at the provider"
-    assert set() == model.unloaded & set(consumer.clients), "an acknowledged unload is back"
+    held_any = {record.query.id for record in consumer.client_records()}
+    assert set() == model.unloaded & held_any, "an acknowledged unload is back"
 
 
 def run_kills(

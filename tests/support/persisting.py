@@ -222,7 +222,7 @@ def rows_of(catalog: Catalog) -> Any:
             (r.id, r.server, r.request, r.response, r.state, list(r.consumers.items()))
             for r in catalog.resources.values()
         ],
-        [(c.query, c.parent, c.loaded) for c in catalog.clients.values()],
+        [(c.query, c.parent, c.loaded) for c in catalog.client_records()],
     )
 
 
@@ -264,10 +264,12 @@ def random_program(rng: random.Random, catalog: Catalog, steps: int) -> Iterator
             parent = rng.choice([None, *catalog.resources])
             qid = str(uuid.uuid4())
             catalog.add_client(ClientRecord(make_query(qid, rng.randrange(9)), parent))
-        elif choice == 6 and catalog.clients:
-            catalog.client_loaded(rng.choice(list(catalog.clients)), rng.randrange(9))
-        elif choice == 7 and catalog.clients:
-            catalog.remove_client(rng.choice(list(catalog.clients)))
+        elif choice in (6, 7) and catalog.client_records():
+            qid = rng.choice([c.query.id for c in catalog.client_records()])
+            if choice == 6:
+                catalog.client_loaded(qid, rng.randrange(9))
+            else:
+                catalog.remove_client(qid)
         yield
 
 
