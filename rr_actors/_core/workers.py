@@ -14,7 +14,8 @@
 
 A hung callback costs one thread while it hangs, nothing else. The lanes take turns
 (round robin): a consumer that floods the queue delays another's load by one job per
-worker, not by its whole backlog.
+worker, not by its whole backlog. A `held` job (one that starts a coroutine) keeps its
+worker's place, not its thread, until `release()`: coroutine loads queue and take turns too.
 """
 
 from __future__ import annotations
@@ -44,7 +45,9 @@ def _nothing() -> None: ...
 class Job:
     """One task submitted to a `Workers` pool (see `Workers.submit`)."""
 
-    __slots__ = ("_deadline", "_on_overdue", "_pool", "_quiet", "_state", "_timeout", "task")
+    __slots__ = (
+        "_deadline", "_held", "_on_overdue", "_pool", "_quiet", "_state", "_timeout", "task"
+    )  # fmt: skip
 
     def __init__(
         self,
@@ -53,8 +56,10 @@ class Job:
         timeout: float | None,
         on_overdue: Callable[[], None] | None,
         quiet: bool = False,
+        held: bool = False,
     ) -> None:
         self._pool = pool
+        self._held = held
         self.task = task
         self._timeout = timeout
         self._on_overdue = on_overdue
@@ -123,12 +128,14 @@ class Workers:
         quiet: bool = False,
         urgent: bool = False,
         lane: str = "",
+        held: bool = False,
     ) -> Job:
         """Run `task` on a worker thread once one is free; what it raises is logged.
         `timeout`: seconds it may run, then it is abandoned, `on_overdue()` on the watchdog's
         thread (DEBUG if `quiet`). Queued: `urgent` first, the others by `lane` in turns.
+        `held`: its place stays taken once `task` returned, until `release()`.
         `RuntimeError`: no worker was free and the OS refused a thread."""
-        job = Job(self, task, timeout, on_overdue, quiet)
+        job = Job(self, task, timeout, on_overdue, quiet, held)
         with self._lock:
             if self._idle > 0 or self._live >= self._max:
                 self._idle -= 1  # an idle worker takes it, or the next one that comes free
@@ -222,13 +229,41 @@ class Workers:
         return True
 
     def _end(self, job: Job) -> bool:
+        """Whether its thread goes on: not if abandoned, nor if a held job kept its place
+        and no other is free."""
         with self._lock:
             self._watched.pop(job, None)
             if job._state is _State.ABANDONED:
                 return False
             if job._state is _State.RUNNING:
                 job._state = _State.DONE
+                if job._held:  # (the thread takes another place, if one is free)
+                    self._live += 1
+                    if self._live > self._max:
+                        self._live -= 1
+                        return False
             return True
+
+    def release(self) -> None:
+        """A held job's work ended: its place goes to the next queued job."""
+        with self._lock:
+            self._live -= 1
+            spare = self._spare()
+        if spare:
+            self._start_spare()
+
+    def _spare(self) -> bool:
+        """(Holding the lock.) Whether a place is free for a queued job: then it is taken."""
+        spare = self._idle < 0 and self._live < self._max
+        self._live += spare
+        return spare
+
+    def _start_spare(self) -> None:
+        try:
+            self._start_worker(None)
+        except RuntimeError:
+            with self._lock:
+                self._live -= 1
 
     def _cancel(self, job: Job) -> bool:
         with self._lock:
@@ -251,9 +286,7 @@ class Workers:
             job._state = _State.ABANDONED
             self._abandoned += 1
             self._live -= 1  # its thread runs on, uncounted
-            backlog = self._idle < 0 and self._live < self._max
-            if backlog:
-                self._live += 1
+            backlog = self._spare()
         log = logger.debug if job._quiet else logger.warning
         log(
             "registrar %s: a callback overran its time and was abandoned; its thread "
@@ -262,11 +295,7 @@ class Workers:
             self._abandoned,
         )
         if backlog:  # a queued job may run now on a new worker
-            try:
-                self._start_worker(None)
-            except RuntimeError:
-                with self._lock:
-                    self._live -= 1
+            self._start_spare()
         return True
 
     # -- the watchdog -----------------------------------------------------------------
