@@ -1683,6 +1683,21 @@ def serve_held_leaf(provider: Any, gate: Any, started: Any, wait: float = 30.0) 
     provider.register_server("leaf", load=load, unload=lambda r, s: None)
 
 
+def serve_held_coroutine_leaf(provider: Any, gate: Any, started: Any) -> None:
+    """`serve_held_leaf`, with a coroutine `load` (its wait at `gate` on another thread)."""
+
+    async def load(request: Any) -> Any:
+        started.append(request)
+        if request == "held":
+            assert await asyncio.to_thread(gate.wait, 30.0)
+        return request
+
+    async def unload(_request: Any, _response: Any) -> None:
+        pass
+
+    provider.register_server("leaf", load=load, unload=unload)
+
+
 class _StillClock:
     """`provider.py`'s `runtime`, but for its `monotonic`: `now`, which only the test
     moves (from `start`, the real clock's when it was made)."""
@@ -2143,10 +2158,24 @@ class TestOverload:
         one that asks while another's three wait is the next but one to start (the
         first of the flood's was taken already), not the last (first come, first
         served: "b" after "a2")."""
+        self.one_worker_turn(make_registrar, gates, shared, eventually, serve_held_leaf)
+
+    def test_a_coroutine_load_waits_for_one_worker_turn_too(
+        self, make_registrar, gates, shared, eventually
+    ):
+        """The same with a coroutine `load`: while it runs it holds its worker's place
+        (not its thread), so the next loads queue in their consumers' lanes, which take
+        turns (before, each began at once on the loop: no queue, no turns, nothing shed)."""
+        self.one_worker_turn(make_registrar, gates, shared, eventually, serve_held_coroutine_leaf)
+
+    @staticmethod
+    def one_worker_turn(
+        make_registrar: Any, gates: Any, shared: Any, eventually: Any, serve: Any
+    ) -> None:
         provider = make_registrar("provider", max_workers=1)
         flood, other = make_registrar("flood"), make_registrar("other")
         gate, started = gates(), shared.list()
-        serve_held_leaf(provider, gate, started)
+        serve(provider, gate, started)
         target = (provider.name, "leaf")
 
         def queued() -> int:
