@@ -44,7 +44,7 @@ from rr_actors._catalog import (
 )
 from rr_actors._catalog.digest import requests_equal
 from rr_actors._core import runtime, traces
-from rr_actors._core.actor import Actor
+from rr_actors._core.actor import Actor, deliver
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.loops import is_coroutine_function, process_loop
 from rr_actors._core.replies import CallbackReply, Join
@@ -552,7 +552,8 @@ class Provider:
         place = LoadPlace(message.deadline)
         self.places[rid] = (place, reply)
         chain = (*message.chain, rid)
-        server.ref.tell(RunLoad(rid, message.request, chain, reply, place, message.trace, origin))
+        run = RunLoad(rid, message.request, chain, reply, place, message.trace, origin)
+        deliver(server.ref, run)  # (its actor idle: queued for a worker here, no wake-up)
 
     def load_done(self, rid: str, response: Any, error: BaseException | None) -> None:
         """The load of `rid` returned `response` (or raised `error`): answer its waiters (after
@@ -938,6 +939,8 @@ def _no_thread(exc: RuntimeError) -> RuntimeError:
 class ServerActor(Actor):
     """A resource server: owns its callbacks and runs them on the registrar's workers (never
     on an actor thread), so different requests to one server load concurrently."""
+
+    inline = frozenset({RunLoad})  # (a load queued for a worker from its sender's thread)
 
     def __init__(
         self,
