@@ -229,36 +229,30 @@ class Workers:
         return True
 
     def _end(self, job: Job) -> bool:
-        """Whether its thread goes on: not if abandoned, nor if a held job kept its place
-        and no other is free."""
+        """Whether its thread goes on: not if abandoned, nor if no place is left for it."""
         with self._lock:
             self._watched.pop(job, None)
             if job._state is _State.ABANDONED:
                 return False
             if job._state is _State.RUNNING:
                 job._state = _State.DONE
-                if job._held:  # (the thread takes another place, if one is free)
-                    self._live += 1
-                    if self._live > self._max:
-                        self._live -= 1
-                        return False
+                if job._held and self._live >= self._max:  # (the job keeps its place,
+                    return False  # and no other is free for the thread)
+                self._live += job._held
             return True
 
     def release(self) -> None:
         """A held job's work ended: its place goes to the next queued job."""
         with self._lock:
             self._live -= 1
-            spare = self._spare()
-        if spare:
-            self._start_spare()
+        self._refill()
 
-    def _spare(self) -> bool:
-        """(Holding the lock.) Whether a place is free for a queued job: then it is taken."""
-        spare = self._idle < 0 and self._live < self._max
-        self._live += spare
-        return spare
-
-    def _start_spare(self) -> None:
+    def _refill(self) -> None:
+        """A job waits and a place is free: a new worker takes it."""
+        with self._lock:
+            if self._idle >= 0 or self._live >= self._max:
+                return
+            self._live += 1
         try:
             self._start_worker(None)
         except RuntimeError:
@@ -286,7 +280,6 @@ class Workers:
             job._state = _State.ABANDONED
             self._abandoned += 1
             self._live -= 1  # its thread runs on, uncounted
-            backlog = self._spare()
         log = logger.debug if job._quiet else logger.warning
         log(
             "registrar %s: a callback overran its time and was abandoned; its thread "
@@ -294,8 +287,7 @@ class Workers:
             self._name,
             self._abandoned,
         )
-        if backlog:  # a queued job may run now on a new worker
-            self._start_spare()
+        self._refill()  # a queued job may run now on a new worker
         return True
 
     # -- the watchdog -----------------------------------------------------------------

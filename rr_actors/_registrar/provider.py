@@ -44,7 +44,7 @@ from rr_actors._catalog import (
 )
 from rr_actors._catalog.digest import requests_equal
 from rr_actors._core import runtime, traces
-from rr_actors._core.actor import Actor, deliver
+from rr_actors._core.actor import Actor
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.loops import is_coroutine_function, process_loop
 from rr_actors._core.replies import CallbackReply, Join
@@ -552,8 +552,7 @@ class Provider:
         place = LoadPlace(message.deadline)
         self.places[rid] = (place, reply)
         chain = (*message.chain, rid)
-        run = RunLoad(rid, message.request, chain, reply, place, message.trace, origin)
-        deliver(server.ref, run)  # (its actor idle: queued for a worker here, no wake-up)
+        server.ref.tell(RunLoad(rid, message.request, chain, reply, place, message.trace, origin))
 
     def load_done(self, rid: str, response: Any, error: BaseException | None) -> None:
         """The load of `rid` returned `response` (or raised `error`): answer its waiters (after
@@ -927,9 +926,6 @@ class Matching:
 # -- server actors ---------------------------------------------------------------------
 
 
-def _nothing() -> None: ...
-
-
 def _no_thread(exc: RuntimeError) -> RuntimeError:
     error = RuntimeError(f"no worker thread could be started for the callback: {exc}")
     error.__cause__ = exc
@@ -939,8 +935,6 @@ def _no_thread(exc: RuntimeError) -> RuntimeError:
 class ServerActor(Actor):
     """A resource server: owns its callbacks and runs them on the registrar's workers (never
     on an actor thread), so different requests to one server load concurrently."""
-
-    inline = frozenset({RunLoad})  # (a load queued for a worker from its sender's thread)
 
     def __init__(
         self,
@@ -1018,15 +1012,13 @@ class ServerActor(Actor):
             except RuntimeError:  # (the loop is closed: nothing runs there any more)
                 return
 
-    def _spawn(
-        self, coroutine: Coroutine[Any, Any, None], ended: Callable[[], None] = _nothing
-    ) -> None:
+    def _spawn(self, coroutine: Coroutine[Any, Any, None], then: Any = None) -> None:
         tasks = self.tasks
 
         def start() -> None:
             task = asyncio.get_running_loop().create_task(coroutine)
             tasks[task] = None
-            task.add_done_callback(lambda done: (tasks.pop(done, None), ended()))
+            task.add_done_callback(lambda done: (tasks.pop(done, None), then and then()))
 
         process_loop().call_soon_threadsafe(start)
 
