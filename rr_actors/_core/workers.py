@@ -12,10 +12,9 @@
      abandon it (its thread no longer counts; another may start) ──► on_overdue()
 ```
 
-A hung callback costs one thread while it hangs, nothing else. The lanes take turns
-(round robin): a consumer that floods the queue delays another's load by one job per
-worker, not by its whole backlog. A `held` job (one that starts a coroutine) keeps its
-worker's place, not its thread, until `release()`: coroutine loads queue and take turns too.
+A hung callback costs one thread while it hangs, nothing else. The lanes take turns (round robin):
+a consumer that floods the queue delays another's load by one job per worker, not by its whole
+backlog. A `held` job (a coroutine load) keeps its place, not its thread, until `release()`.
 """
 
 from __future__ import annotations
@@ -104,6 +103,7 @@ class Workers:
         self._watched: dict[Job, float] = {}  # running jobs with a timeout -> deadline
         self._watching = runtime.Condition(self._lock)
         self._watchdog = False  # a watchdog thread runs
+        self._freed, self._parked = runtime.Condition(self._lock), 0  # (threads waiting a place)
 
     @property
     def max_workers(self) -> int:
@@ -229,26 +229,30 @@ class Workers:
         return True
 
     def _end(self, job: Job) -> bool:
-        """Whether its thread goes on: not if abandoned, nor if no place is left for it."""
         with self._lock:
             self._watched.pop(job, None)
             if job._state is _State.ABANDONED:
                 return False
             if job._state is _State.RUNNING:
                 job._state = _State.DONE
-                if job._held and self._live >= self._max:  # (the job keeps its place,
-                    return False  # and no other is free for the thread)
-                self._live += job._held
+                if job._held:  # (it keeps its place: the thread goes on once another frees)
+                    self._parked += 1
+                    while self._live >= self._max:
+                        self._freed.wait()
+                    self._parked -= 1
+                    self._live += 1
             return True
 
     def release(self) -> None:
         """A held job's work ended: its place goes to the next queued job."""
         with self._lock:
             self._live -= 1
+            if self._parked:  # (a thread that ran a held job takes the place)
+                self._freed.notify()
+                return
         self._refill()
 
-    def _refill(self) -> None:
-        """A job waits and a place is free: a new worker takes it."""
+    def _refill(self) -> None:  # (a job waits and a place is free: a new worker takes it)
         with self._lock:
             if self._idle >= 0 or self._live >= self._max:
                 return
