@@ -103,7 +103,6 @@ class Workers:
         self._watched: dict[Job, float] = {}  # running jobs with a timeout -> deadline
         self._watching = runtime.Condition(self._lock)
         self._watchdog = False  # a watchdog thread runs
-        self._freed, self._parked = runtime.Condition(self._lock), 0  # (threads waiting a place)
 
     @property
     def max_workers(self) -> int:
@@ -137,7 +136,10 @@ class Workers:
         `RuntimeError`: no worker was free and the OS refused a thread."""
         job = Job(self, task, timeout, on_overdue, quiet, held)
         with self._lock:
-            if self._idle > 0 or self._live >= self._max:
+            if held and self._idle >= 0 and self._live < self._max:  # a place free: no thread
+                self._live += 1
+                job._state = _State.DONE
+            elif self._idle > 0 or self._live >= self._max:
                 self._idle -= 1  # an idle worker takes it, or the next one that comes free
                 if urgent:
                     self._urgent.append(job)
@@ -145,7 +147,11 @@ class Workers:
                     self._queue(job, lane)
                 self._jobs.put(None)
                 return job
-            self._live += 1
+            else:
+                self._live += 1
+        if job._state is _State.DONE:
+            task()  # (it starts the job's work, on this thread: `release()` once that ended)
+            return job
         try:
             self._start_worker(job)
         except RuntimeError:
@@ -235,21 +241,15 @@ class Workers:
                 return False
             if job._state is _State.RUNNING:
                 job._state = _State.DONE
-                if job._held:  # (it keeps its place: the thread goes on once another frees)
-                    self._parked += 1
-                    while self._live >= self._max:
-                        self._freed.wait()
-                    self._parked -= 1
-                    self._live += 1
+                if job._held and self._live >= self._max:  # (the job keeps its place,
+                    return False  # and no other is free for the thread: it ends)
+                self._live += job._held
             return True
 
     def release(self) -> None:
         """A held job's work ended: its place goes to the next queued job."""
         with self._lock:
             self._live -= 1
-            if self._parked:  # (a thread that ran a held job takes the place)
-                self._freed.notify()
-                return
         self._refill()
 
     def _refill(self) -> None:  # (a job waits and a place is free: a new worker takes it)
