@@ -30,8 +30,9 @@ Placements: `--placement thread` (both registrars in this process) or `process` 
 provider in a manager process of a `Supervisor`, with its default heartbeat: the
 provider's restarts, which a busy provider killed as hung would show, and the tree's
 stop time are printed); `--kind threads` (a blocking `load`:
-its calls wait for a worker) or `asyncio` (a coroutine `load`: no worker, but the
-server's own `asyncio.Semaphore(workers)` is its capacity, so calls queue in user code).
+its calls wait for a worker) or `asyncio` (a coroutine `load`: it holds a worker's place,
+not its thread, while it runs, so its calls queue for a worker too; its own
+`asyncio.Semaphore(workers)` no longer queues any, as the registrar runs no more at once).
 
 Usage:
     python benchmarks/bench_overload.py [--placement thread|process]

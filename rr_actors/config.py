@@ -142,7 +142,8 @@ class RegistrarConfig:
         call_timeout: default `timeout` of every blocking call, in seconds.
         durability: `"process"` survives a crash of the process (SQLite `synchronous=NORMAL`),
             `"power"` also power loss (`synchronous=FULL`, slower).
-        max_workers: worker threads running its callbacks at once; more wait, in order.
+        max_workers: worker threads running its callbacks at once (a running coroutine
+            `load` holds a place, not a thread); more wait, in order.
         compare_timeout: seconds user code matching a request without a digest may run (`__eq__`,
             `__hash__`, pickling); past them the call fails with `CallTimeoutError`.
         unload_timeout: seconds an `unload` may run (`None`: no bound); past them the resource is

@@ -12,9 +12,9 @@
      abandon it (its thread no longer counts; another may start) ──► on_overdue()
 ```
 
-A hung callback costs one thread while it hangs, nothing else. The lanes take turns
-(round robin): a consumer that floods the queue delays another's load by one job per
-worker, not by its whole backlog.
+A hung callback costs one thread while it hangs, nothing else. The lanes take turns (round robin):
+a consumer that floods the queue delays another's load by one job per worker, not by its whole
+backlog. A `held` job (a coroutine load) keeps its place, not its thread, until `release()`.
 """
 
 from __future__ import annotations
@@ -44,7 +44,9 @@ def _nothing() -> None: ...
 class Job:
     """One task submitted to a `Workers` pool (see `Workers.submit`)."""
 
-    __slots__ = ("_deadline", "_on_overdue", "_pool", "_quiet", "_state", "_timeout", "task")
+    __slots__ = (
+        "_deadline", "_held", "_on_overdue", "_pool", "_quiet", "_state", "_timeout", "task"
+    )  # fmt: skip
 
     def __init__(
         self,
@@ -53,8 +55,10 @@ class Job:
         timeout: float | None,
         on_overdue: Callable[[], None] | None,
         quiet: bool = False,
+        held: bool = False,
     ) -> None:
         self._pool = pool
+        self._held = held
         self.task = task
         self._timeout = timeout
         self._on_overdue = on_overdue
@@ -123,14 +127,19 @@ class Workers:
         quiet: bool = False,
         urgent: bool = False,
         lane: str = "",
+        held: bool = False,
     ) -> Job:
         """Run `task` on a worker thread once one is free; what it raises is logged.
         `timeout`: seconds it may run, then it is abandoned, `on_overdue()` on the watchdog's
         thread (DEBUG if `quiet`). Queued: `urgent` first, the others by `lane` in turns.
+        `held`: its place stays taken once `task` returned, until `release()`.
         `RuntimeError`: no worker was free and the OS refused a thread."""
-        job = Job(self, task, timeout, on_overdue, quiet)
+        job = Job(self, task, timeout, on_overdue, quiet, held)
         with self._lock:
-            if self._idle > 0 or self._live >= self._max:
+            if held and self._idle >= 0 and self._live < self._max:  # a place free: no thread
+                self._live += 1
+                job._state = _State.DONE
+            elif self._idle > 0 or self._live >= self._max:
                 self._idle -= 1  # an idle worker takes it, or the next one that comes free
                 if urgent:
                     self._urgent.append(job)
@@ -138,7 +147,11 @@ class Workers:
                     self._queue(job, lane)
                 self._jobs.put(None)
                 return job
-            self._live += 1
+            else:
+                self._live += 1
+        if job._state is _State.DONE:
+            task()  # (it starts the job's work, on this thread: `release()` once that ended)
+            return job
         try:
             self._start_worker(job)
         except RuntimeError:
@@ -228,7 +241,27 @@ class Workers:
                 return False
             if job._state is _State.RUNNING:
                 job._state = _State.DONE
+                if job._held and self._live >= self._max:  # (the job keeps its place,
+                    return False  # and no other is free for the thread: it ends)
+                self._live += job._held
             return True
+
+    def release(self) -> None:
+        """A held job's work ended: its place goes to the next queued job."""
+        with self._lock:
+            self._live -= 1
+        self._refill()
+
+    def _refill(self) -> None:  # (a job waits and a place is free: a new worker takes it)
+        with self._lock:
+            if self._idle >= 0 or self._live >= self._max:
+                return
+            self._live += 1
+        try:
+            self._start_worker(None)
+        except RuntimeError:
+            with self._lock:
+                self._live -= 1
 
     def _cancel(self, job: Job) -> bool:
         with self._lock:
@@ -251,9 +284,6 @@ class Workers:
             job._state = _State.ABANDONED
             self._abandoned += 1
             self._live -= 1  # its thread runs on, uncounted
-            backlog = self._idle < 0 and self._live < self._max
-            if backlog:
-                self._live += 1
         log = logger.debug if job._quiet else logger.warning
         log(
             "registrar %s: a callback overran its time and was abandoned; its thread "
@@ -261,12 +291,7 @@ class Workers:
             self._name,
             self._abandoned,
         )
-        if backlog:  # a queued job may run now on a new worker
-            try:
-                self._start_worker(None)
-            except RuntimeError:
-                with self._lock:
-                    self._live -= 1
+        self._refill()  # a queued job may run now on a new worker
         return True
 
     # -- the watchdog -----------------------------------------------------------------

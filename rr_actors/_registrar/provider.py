@@ -1001,13 +1001,17 @@ class ServerActor(Actor):
                 message.reply.set_error(_no_thread(exc))
 
     def _start_load(self, message: RunLoad) -> Job | None:
-        """Start a load: its worker job while it waits for a thread (withdrawable until one
-        takes it), `None` if it started at once or failed."""
-        if self.on_loop[0]:
-            self._spawn(self._aload(message))
-            return None
+        """Start a load: its worker job while it waits for a place (withdrawable until one
+        takes it), `None` if it failed. A coroutine's job holds its place while it runs."""
+        held = self.on_loop[0]
         try:
-            return self.workers.submit(lambda: self._load(message), lane=message.origin)
+            return self.workers.submit(
+                (lambda: self._spawn(self._aload(message), self.workers.release))
+                if held
+                else lambda: self._load(message),
+                lane=message.origin,
+                held=held,
+            )
         except RuntimeError as exc:  # no thread could start: this load fails, no other
             message.reply.set_error(load_error(self.registrar, self.name, _no_thread(exc)))
             return None
@@ -1021,13 +1025,13 @@ class ServerActor(Actor):
             except RuntimeError:  # (the loop is closed: nothing runs there any more)
                 return
 
-    def _spawn(self, coroutine: Coroutine[Any, Any, None]) -> None:
+    def _spawn(self, coroutine: Coroutine[Any, Any, None], then: Any = None) -> None:
         tasks = self.tasks
 
         def start() -> None:
             task = asyncio.get_running_loop().create_task(coroutine)
             tasks[task] = None
-            task.add_done_callback(lambda done: tasks.pop(done, None))
+            task.add_done_callback(lambda done: (tasks.pop(done, None), then and then()))
 
         process_loop().call_soon_threadsafe(start)
 

@@ -2,11 +2,12 @@
 
 Its queue (issue 53): an urgent job (an unload) goes before the jobs queued before it,
 a queued job that is cancelled (a load whose callers all gave up) never runs, and the
-lanes (consumers) take turns.
+lanes (consumers) take turns, held jobs (coroutine loads) too.
 """
 
 from __future__ import annotations
 
+import queue
 import threading
 
 from rr_actors._core.workers import Workers
@@ -74,3 +75,32 @@ def test_the_lanes_take_turns_and_each_is_first_come_first_served() -> None:
 
     assert done.wait(10)
     assert ["a 1", "b 1", "c 1", "a 2", "a 3", "a 4"] == ran
+
+
+def test_a_held_job_keeps_its_place_until_released_and_held_jobs_take_turns_too() -> None:
+    """A held job (a coroutine load: its task starts it on a loop and returns) keeps its
+    worker's place until `release()` (the coroutine ended): the next job starts only
+    then; held jobs wait in lanes that take turns, as the others do."""
+    pool = Workers("test-workers", max_workers=1, idle_timeout=1.0)
+    log: list[str] = []
+    seen: queue.SimpleQueue[str] = queue.SimpleQueue()
+
+    def job(name: str, lane: str = "", held: bool = True) -> None:
+        pool.submit(lambda: (log.append(name), seen.put(name)), lane=lane, held=held)
+
+    job("held")
+    for n in (1, 2, 3):
+        job(f"a {n}", "a")
+    job("b 1", "b")
+    job("c 1", "c", held=False)  # (a plain job: its place is free once it returned)
+    for step, names in enumerate([["held"], ["a 1"], ["b 1"], ["c 1", "a 2"], ["a 3"]]):
+        if step:
+            log.append("release")
+            pool.release()
+        assert names == [seen.get(timeout=10) for _ in names]
+    pool.release()
+
+    assert [
+        *("held", "release", "a 1", "release", "b 1"),
+        *("release", "c 1", "a 2", "release", "a 3"),
+    ] == log

@@ -126,8 +126,9 @@ def test_a_cancelled_acall_is_withdrawn_and_leaves_nothing_held(
 
 @pytest.mark.thread_only("counts this process's threads while calls are in flight")
 def test_awaited_calls_in_flight_hold_no_thread_each(make_registrar: MakeRegistrar) -> None:
-    provider, consumer = make_registrar("provider"), make_registrar("consumer")
-    calls = 300
+    calls = 300  # (each running coroutine load holds one of `max_workers` places, no thread)
+    provider = make_registrar("provider", max_workers=calls)
+    consumer = make_registrar("consumer")
     gate: concurrent.futures.Future[None] = concurrent.futures.Future()  # (any loop's)
     all_started: concurrent.futures.Future[None] = concurrent.futures.Future()
     started = itertools.count(1)

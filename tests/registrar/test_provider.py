@@ -1669,10 +1669,13 @@ class TestUserCode:
         assert len(leaf.loads) == (registrar_placement == "thread")
 
 
-def serve_held_leaf(provider: Any, gate: Any, started: Any, wait: float = 30.0) -> None:
+def serve_held_leaf(
+    provider: Any, gate: Any, started: Any, wait: float = 30.0, coroutine: bool = False
+) -> None:
     """Serve `leaf` on `provider`: each load records its request in `started` and
     answers it; the load of `"held"` waits at `gate` (at most `wait` seconds), holding a
-    worker (with `max_workers=1`, the next loads queue behind it)."""
+    worker (with `max_workers=1`, the next loads queue behind it); `coroutine`: a
+    coroutine `load` (`as_coroutine`)."""
 
     def load(request: Any) -> Any:
         started.append(request)
@@ -1680,7 +1683,24 @@ def serve_held_leaf(provider: Any, gate: Any, started: Any, wait: float = 30.0) 
             assert gate.wait(wait)
         return request
 
-    provider.register_server("leaf", load=load, unload=lambda r, s: None)
+    if coroutine:
+        provider.register_server("leaf", load=as_coroutine(load), unload=_adrop)
+    else:
+        provider.register_server("leaf", load=load, unload=lambda r, s: None)
+
+
+def serve_held_coroutine_leaf(provider: Any, gate: Any, started: Any) -> None:
+    """`serve_held_leaf`, its `load` a coroutine (that awaits the same on another thread)."""
+    serve_held_leaf(provider, gate, started, coroutine=True)
+
+
+def as_coroutine(load: Callable[[Any], Any]) -> Callable[[Any], Any]:
+    """A coroutine `load` that awaits `load(request)` run on another thread."""
+
+    async def aload(request: Any) -> Any:
+        return await asyncio.to_thread(load, request)
+
+    return aload
 
 
 class _StillClock:
@@ -1789,6 +1809,16 @@ class TestOverload:
         """Each call's deadline travels with its `Load` (as seconds left across
         processes); a load whose callers' time left is less than the server's loads take
         lately is answered at once with `DeadlineExceededError` and never runs."""
+        self.shed_before_it_runs(make_registrar, gates, shared, coroutine=False)
+
+    def test_a_queued_coroutine_load_whose_deadline_is_too_near_is_shed_too(
+        self, make_registrar, gates, shared
+    ):
+        """The same with a coroutine `load` (before, each began at once on the loop)."""
+        self.shed_before_it_runs(make_registrar, gates, shared, coroutine=True)
+
+    @staticmethod
+    def shed_before_it_runs(make_registrar: Any, gates: Any, shared: Any, coroutine: bool) -> None:
         held_s, margin = 5.0, 0.5  # the held load teaches the server that loads take ~1 s
         provider, consumer = make_registrar("provider", max_workers=1), make_registrar("consumer")
         never, started = gates(), shared.list()
@@ -1799,7 +1829,10 @@ class TestOverload:
                 never.wait(held_s)
             return request
 
-        provider.register_server("leaf", load=load, unload=lambda r, s: None)
+        if coroutine:
+            provider.register_server("leaf", load=as_coroutine(load), unload=_adrop)
+        else:
+            provider.register_server("leaf", load=load, unload=lambda r, s: None)
         with ThreadPoolExecutor(9) as pool:
             held = pool.submit(consumer.call, provider.name, "leaf", "held", timeout=30)
             assert wait_for(lambda: 1 == len(started), timeout=20)
@@ -2143,10 +2176,24 @@ class TestOverload:
         one that asks while another's three wait is the next but one to start (the
         first of the flood's was taken already), not the last (first come, first
         served: "b" after "a2")."""
+        self.one_worker_turn(make_registrar, gates, shared, eventually, serve_held_leaf)
+
+    def test_a_coroutine_load_waits_for_one_worker_turn_too(
+        self, make_registrar, gates, shared, eventually
+    ):
+        """The same with a coroutine `load`: while it runs it holds its worker's place
+        (not its thread), so the next loads queue in their consumers' lanes, which take
+        turns (before, each began at once on the loop: no queue, no turns, nothing shed)."""
+        self.one_worker_turn(make_registrar, gates, shared, eventually, serve_held_coroutine_leaf)
+
+    @staticmethod
+    def one_worker_turn(
+        make_registrar: Any, gates: Any, shared: Any, eventually: Any, serve: Any
+    ) -> None:
         provider = make_registrar("provider", max_workers=1)
         flood, other = make_registrar("flood"), make_registrar("other")
         gate, started = gates(), shared.list()
-        serve_held_leaf(provider, gate, started)
+        serve(provider, gate, started)
         target = (provider.name, "leaf")
 
         def queued() -> int:
