@@ -61,11 +61,11 @@ class Outbox:
         self._ready = ready  # runs on the writer thread before the first put
         self._session = session
         self._publisher: zenoh.Publisher | None = None
-        if declared:
-            self.declare()
         name = f"rr-zput-{key.rsplit('/', 1)[-1]}"
-        self._queue = SerialExecutor(name, on_drop=self._lost)
-        callbacks.worker(session, self._queue)  # (joined by the session's close)
+        self._queue = SerialExecutor(name, on_drop=self._lost, on_end=self._let_go)
+        if callbacks.worker(session, self._queue) and declared:  # (joined by the close)
+            with contextlib.suppress(callbacks.SessionEndedError):  # (then its puts fail)
+                self.declare()
 
     @property
     def closed(self) -> bool:
@@ -107,12 +107,19 @@ class Outbox:
         return True
 
     def close(self, timeout: float = 0.0) -> None:
-        """Stop sending: what is queued gets `timeout` seconds, then is lost (`on_lost`)."""
+        """Stop sending: what is queued gets `timeout` seconds, then is lost (`on_lost`);
+        the publisher goes once the task under way ended (`_let_go`)."""
         self._queue.close(timeout=timeout)  # (each dropped frame's `on_lost` runs: `_lost`)
-        with contextlib.suppress(Exception):
-            if self._publisher is not None:
-                with callbacks.calling(self._session):  # (a caller's thread, often)
-                    self._publisher.undeclare()  # type: ignore[no-untyped-call]
+
+    def _let_go(self) -> None:
+        """The queue's last step (on the writer thread; the closer's if it never had one):
+        the publisher is undeclared and freed here, not wherever the outbox goes last (a
+        publisher's free releases the GIL: docs/explanation/inside.md)."""
+        publisher, self._publisher = self._publisher, None
+        with contextlib.suppress(Exception), callbacks.calling(self._session):
+            if publisher is not None:
+                publisher.undeclare()  # type: ignore[no-untyped-call]
+            publisher = None  # (freed while counted, if the session is still open)
 
     @staticmethod
     def _lost(task: Task) -> None:

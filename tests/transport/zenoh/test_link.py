@@ -307,6 +307,89 @@ def test_a_close_without_a_drain_drops_the_queue_before_the_ping_under_way_ends(
     assert [how for _, how in seen][1:] == ["lost", "lost"]
 
 
+class _Watched:
+    """`session`, its publishers wrapped: each one's undeclare and free name their thread."""
+
+    def __init__(self, session: zenoh.Session) -> None:
+        self._session = session
+        self.undeclared: queue.Queue[str] = queue.Queue()
+        self.freed: queue.Queue[str] = queue.Queue()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._session, name)
+
+    def declare_publisher(self, *args: Any, **kwargs: Any) -> Any:
+        watched = self
+
+        class Publisher:
+            def __init__(self) -> None:
+                self.real = watched._session.declare_publisher(*args, **kwargs)
+
+            def put(self, data: bytes) -> None:
+                self.real.put(data)
+
+            def undeclare(self) -> None:
+                watched.undeclared.put(threading.current_thread().name)
+                self.real.undeclare()
+
+            def __del__(self) -> None:
+                watched.freed.put(threading.current_thread().name)
+
+        return Publisher()
+
+
+def test_a_closed_outbox_lets_its_publisher_go_on_its_writer_thread(
+    session: zenoh.Session,
+) -> None:
+    # zenoh-python's free of a publisher releases the GIL: it must happen on a thread the
+    # session's close joins, not wherever the outbox's last reference goes (kept here).
+    keys = Keys(f"test-{uuid.uuid4().hex[:8]}")
+    watched = _Watched(session)
+    outboxes = Outboxes(watched, keys)  # type: ignore[arg-type]
+    outbox = outboxes.get(keys.registrar("provider"))
+    assert outbox.send(b"started")  # (its writer thread runs)
+
+    outboxes.close()
+
+    writer = "rr-zput-provider"
+    assert (watched.undeclared.get(timeout=WAIT), watched.freed.get(timeout=WAIT)) == (
+        writer,
+        writer,
+    )
+    assert outbox.closed
+
+
+def test_a_publisher_declared_by_the_task_under_way_at_the_close_is_undeclared_after_it(
+    session: zenoh.Session,
+) -> None:
+    # A lane's outbox declares its publisher on its writer thread once the network said
+    # who serves the name (`ZenohCarrier.found`); the server's going closes the outbox
+    # meanwhile: the publisher declared after the close must still go.
+    keys = Keys(f"test-{uuid.uuid4().hex[:8]}")
+    watched = _Watched(session)
+    outboxes = Outboxes(watched, keys)  # type: ignore[arg-type]
+    lane = outboxes.get(keys.registrar("provider"), declared=False)
+    asking, answered = threading.Event(), threading.Event()
+
+    def found() -> None:  # (as `ZenohCarrier.found`: asks the network, then declares)
+        asking.set()
+        assert answered.wait(WAIT)
+        lane.declare()
+
+    assert lane.run(found)
+    assert asking.wait(WAIT)
+    popped = outboxes.pop(lane.key)  # (`ZenohCarrier.server_gone`)
+    assert popped is lane
+    lane.close()
+    answered.set()
+
+    writer = "rr-zput-provider"
+    assert (watched.undeclared.get(timeout=WAIT), watched.freed.get(timeout=WAIT)) == (
+        writer,
+        writer,
+    )
+
+
 class TestABuggyMember:
     """A buggy member of a Zenoh system: what it sends costs bounded threads and log lines,
     and nothing it sends runs on Zenoh's threads or breaks `serve` (issue 29, items 5-7).
