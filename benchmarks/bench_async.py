@@ -85,8 +85,13 @@ async def _noop_unload(_request: Any, _response: Any) -> None:
 async def in_flight(calls: int) -> dict[str, Any]:
     """`calls` awaited calls in flight at once, each waiting on the provider's gate."""
     suffix = uuid.uuid4().hex[:6]
-    provider = rr.ResourceRegistrar.start(
-        rr.RegistrarConfig(name=f"async-provider-{suffix}", call_timeout=120.0)
+    provider = rr.ResourceRegistrar.start(  # (a server sized to take them all at once)
+        rr.RegistrarConfig(
+            name=f"async-provider-{suffix}",
+            call_timeout=120.0,
+            max_workers=calls,
+            max_pending=calls,
+        )
     )
     consumer = rr.ResourceRegistrar.start(
         rr.RegistrarConfig(name=f"async-consumer-{suffix}", call_timeout=120.0)
