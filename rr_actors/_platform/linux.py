@@ -29,7 +29,8 @@ logger = logging.getLogger("rr_actors")
 
 _PR_SET_PDEATHSIG = 1
 _PR_SET_NAME = 15
-_PIDFD_GETFD = 438  # (the syscall's number on every architecture)
+_PIDFD_GETFD = 438  # (the syscall's number on every architecture but alpha)
+_HELD: set[int] = set()  # every watch's inotify copies: a forked child closes its own
 _LEAN_LOCK = threading.Lock()
 
 
@@ -127,6 +128,7 @@ class PidfdExitWatch:
                 for fd in os.listdir(fds):
                     if os.readlink(fd, dir_fd=fds) == "anon_inode:inotify":
                         self.held.append(_libc().syscall(_PIDFD_GETFD, pidfd, int(fd), 0))
+                        _HELD.add(self.held[-1])
             finally:
                 os.close(fds)
 
@@ -164,9 +166,20 @@ class PidfdExitWatch:
         return os.waitstatus_to_exitcode(int(fields[49]))
 
     def close(self) -> None:
+        _HELD.difference_update(self.held)
         for fd in (self.pidfd, self.proc, *self.held):  # (-1: not held)
             with contextlib.suppress(OSError):
                 os.close(fd)
+
+
+def _close_held() -> None:
+    for fd in _HELD:  # (the parent's watches' copies: kept, they would outlive its managers)
+        with contextlib.suppress(OSError):
+            os.close(fd)
+    _HELD.clear()
+
+
+own_forkserver.after_fork_in_child("the exit watches' inotify copies", _close_held)
 
 
 class _Thread(NamedTuple):

@@ -91,3 +91,32 @@ def test_the_exit_watch_holds_the_processes_inotify_watches_past_its_kill(tmp_pa
     finally:
         process.kill()
         process.join(30)
+
+
+def test_a_child_forked_from_the_watcher_does_not_keep_the_watches_copies(tmp_path: Path) -> None:
+    # a copy kept in a fork of the supervisor's process would keep the manager's inotify
+    # instance (one of 128 a user) alive as long as that child runs
+    watched = tmp_path / "backup.db"
+    watched.touch()
+    ours, theirs = multiprocessing.Pipe()
+    process = multiprocessing.get_context("spawn").Process(
+        target=_watch_a_file_then_wait, args=(str(watched), theirs), daemon=True
+    )
+    process.start()
+    watch = None
+    try:
+        assert ours.poll(60), "the process did not arm its watch"
+        watch = PidfdExitWatch.open(ours.recv())
+        assert watch is not None
+        (held,) = watch.held
+        child = os.fork()
+        if child == 0:  # (the child: exit 0 only if its copy of `held` was closed)
+            os._exit(0 if not os.path.exists(f"/proc/self/fd/{held}") else 1)
+        _, status = os.waitpid(child, 0)
+        assert os.waitstatus_to_exitcode(status) == 0, "the forked child kept the copy"
+        assert Path(f"/proc/self/fd/{held}").exists()  # (the watcher's own is kept)
+    finally:
+        if watch is not None:
+            watch.close()
+        process.kill()
+        process.join(30)
