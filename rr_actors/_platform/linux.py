@@ -55,11 +55,9 @@ def _malloc_trim() -> Callable[[int], object] | None:
 
 def _install_lean_preparation(prefix: str) -> None:
     """Keep manager processes named `prefix*` from re-running the parent's `__main__` (idempotent).
-
     What it buys: a manager's (re)start skips re-importing the parent's main script as
     `__mp_main__`, which it never needs (its target is in rr_actors, its setup cloudpickled by
-    value). Wraps CPython's `get_preparation_data` to drop the main-module entries.
-    """
+    value). Wraps CPython's `get_preparation_data` to drop the main-module entries."""
     from multiprocessing import spawn  # noqa: PLC0415
 
     with _LEAN_LOCK:
@@ -79,11 +77,9 @@ def _install_lean_preparation(prefix: str) -> None:
 
 
 def _let_go_of_the_forkserver() -> None:
-    """Close this manager's copy of the pipe that keeps CPython's forkserver alive.
-
-    What it buys: the forkserver exits when the supervisor's process dies, so the parent-death
-    signal reaches a stuck manager (CPython hands every forked child a copy of the write end).
-    """
+    """Close this manager's copy of the pipe that keeps CPython's forkserver alive. What it buys:
+    the forkserver exits when the supervisor's process dies, so the parent-death signal reaches a
+    stuck manager (CPython hands every forked child a copy of the write end)."""
     from multiprocessing import forkserver  # noqa: PLC0415
 
     server = getattr(forkserver, "_forkserver", None)
@@ -105,16 +101,13 @@ def _forget_the_forkserver() -> None:
 
 
 class PidfdExitWatch:
-    """A `pidfd` and `/proc/<pid>` of a manager process: its exit, before its parent's word.
-
-    What it buys: a crash seen as soon as the process exited, even while the forkserver (its
-    parent, which reaps it) is stopped or busy. Until it is reaped, `/proc/<pid>/stat` (field
-    52) holds its exit status, read through a descriptor opened while it ran (a recycled pid
-    cannot be read instead). Linux 5.3 and later. It holds copies of the process's inotify
-    descriptors (`pidfd_getfd`, 5.6): a killed process's exit (its pidfd readable, its
-    zombie) waits for the kernel to destroy the watches of the last copy (an SRCU grace
-    period: 1-2 ms quiet, 15-45 under load); `close` pays that instead, once it was seen.
-    """
+    """A `pidfd` and `/proc/<pid>` of a manager process: its exit, before its parent's word. What it
+    buys: a crash seen as soon as the process exited, even while the forkserver (its parent, which
+    reaps it) is stopped or busy. Until it is reaped, `/proc/<pid>/stat` (field 52) holds its exit
+    status, read through a descriptor opened while it ran (a recycled pid cannot be read instead).
+    Linux 5.3 and later. It holds copies of the process's inotify descriptors (`pidfd_getfd`, 5.6):
+    a killed process's exit (its pidfd readable, its zombie) waits for the kernel to destroy the
+    watches of the last copy (an SRCU grace period); `close` pays that instead, once it was seen."""
 
     __slots__ = ("held", "pidfd", "proc")
 
@@ -193,12 +186,10 @@ class _Thread(NamedTuple):
 
 
 class ProcCpuWatch:
-    """A process's run-queue delay and stopped state, from `/proc/<pid>` (opened while it ran).
-
-    What it buys: the heartbeat tells a manager starved of CPU from a hung one. The kernel
-    counts per thread its delay (`schedstat`) only when a wait ends: one under way is
-    estimated (runnable at two samples without a CPU between). Read only while late.
-    """
+    """A process's run-queue delay and stopped state, from `/proc/<pid>` (opened while it ran). What
+    it buys: the heartbeat tells a manager starved of CPU from a hung one. The kernel counts per
+    thread its delay (`schedstat`) only when a wait ends: one under way is estimated (runnable at
+    two samples without a CPU between). Read only while late."""
 
     __slots__ = ("at", "gone", "proc", "threads")
 
@@ -298,11 +289,9 @@ class LinuxPlatform:
         self, *, preload: Sequence[str] = (), lean_prefix: str | None = None
     ) -> multiprocessing.context.BaseContext:
         """A forkserver context with `preload` imported once in the server (rr_actors' own,
-        `forkserver`; else CPython's; spawn where there is none).
-
-        What it buys: a manager's (re)start does not pay those imports; processes named
-        `lean_prefix*` also skip the parent's main module (`_install_lean_preparation`).
-        """
+        `forkserver`; else CPython's; spawn where there is none). What it buys: a manager's
+        (re)start does not pay those imports; processes named `lean_prefix*` also skip the parent's
+        main module (`_install_lean_preparation`)."""
         if lean_prefix is not None:
             _install_lean_preparation(lean_prefix)
         if "forkserver" not in multiprocessing.get_all_start_methods():
@@ -315,10 +304,8 @@ class LinuxPlatform:
         return ctx
 
     def runtime_parent(self) -> str | None:
-        """`$XDG_RUNTIME_DIR`, else `/dev/shm`, unless `TMPDIR` is set (`None`).
-
-        What it buys: the files each served registrar creates are made on a tmpfs, not a disk.
-        """
+        """`$XDG_RUNTIME_DIR`, else `/dev/shm`, unless `TMPDIR` is set (`None`). What it buys: the
+        files each served registrar creates are made on a tmpfs, not a disk."""
         if os.environ.get("TMPDIR"):
             return None
         shm = "/dev/shm"  # noqa: S108 - the parent of a fresh 0700 directory (mkdtemp)
@@ -328,11 +315,9 @@ class LinuxPlatform:
         return None
 
     def forker_pid(self, ctx: multiprocessing.context.BaseContext) -> int | None:
-        """The forkserver's pid (started if it does not run; this process's with spawn; `None`
-        where the private field is missing).
-
-        What it buys: the child tells that the forkserver died before its `prctl`.
-        """
+        """The forkserver's pid (started if it does not run; this process's with spawn; `None` where
+        the private field is missing). What it buys: the child tells that the forkserver died before
+        its `prctl`."""
         if ctx.get_start_method() != "forkserver":
             return os.getpid()
         own = own_forkserver.server_pid(ctx)
@@ -346,10 +331,8 @@ class LinuxPlatform:
 
     def die_with_parent(self, expected_parent: int | None) -> None:
         """Have the kernel SIGKILL this process when its forker dies (`prctl(PR_SET_PDEATHSIG)`).
-
         What it buys: no orphan even of a manager too stuck to read its control pipe. If the forker
-        (`expected_parent`) died before the `prctl`, it exits at once (`PARENT_GONE_EXIT`).
-        """
+        (`expected_parent`) died before the `prctl`, it exits at once (`PARENT_GONE_EXIT`)."""
         _let_go_of_the_forkserver()
         libc = _libc()
         try:
@@ -367,10 +350,8 @@ class LinuxPlatform:
         return ProcCpuWatch.open(pid)
 
     def set_process_name(self, title: str) -> None:
-        """`prctl(PR_SET_NAME)`, 15 bytes kept, ending at a whole UTF-8 character.
-
-        What it buys: manager processes told apart in `ps -o comm` and `top` without `setproctitle`.
-        """
+        """`prctl(PR_SET_NAME)`, 15 bytes kept, ending at a whole UTF-8 character. What it buys:
+        manager processes told apart in `ps -o comm` and `top` without `setproctitle`."""
         libc = _libc()
         with contextlib.suppress(AttributeError):
             kept = title.encode()[:15].decode(errors="ignore").encode()
@@ -409,10 +390,8 @@ class LinuxPlatform:
 @functools.cache
 def _monotonic_clock() -> str | None:
     """The name of `CLOCK_MONOTONIC` here: the boot id and the time namespace; `None` if unreadable.
-
     What it buys: processes of one boot and namespace share the clock, so a deadline crosses between
-    them exact.
-    """
+    them exact."""
     try:
         with open("/proc/sys/kernel/random/boot_id", encoding="ascii") as boot:
             boot_id = boot.read().strip()

@@ -6,27 +6,11 @@ with the process that forked it, attaches to the system (its supervisor's proces
 for it if it dies: rule 19), starts the registrar (which restores its catalog), runs
 `setup(registrar)`, settles the in-doubt entries it was offered, serves, reports `Ready`
 and answers control requests. It exits at EOF on the control pipe (the supervisor's
-process is gone), with 0 when its registrar was stopped cleanly by code in the manager
-(a `transient` manager is then not restarted), with 71 when the registrar actor died.
+process is gone: `PARENT_GONE_EXIT`), with `STOPPED_EXIT` when its registrar was stopped
+cleanly (by `Stop`, or by code in the manager: a `transient` manager is then not
+restarted), with `ACTOR_DIED_EXIT` when the registrar actor died.
 
-```
- parent (ManagerProcess)            control pipe                child (this module)
-   start ─────────── Start(setup, config, address, forward) ──►  standby (a spare only)
-         ◄──────────────── Warm()  (a spare, once warmed up)
-         ◄──────────────── Ready(pid) | Failed(traceback, corrupt)
-   ping  ─────────────────── Ping(n) ──────────────────────────►  registrar mailbox
-         ◄──────────────── Pong(n, trouble)  (None, or (seconds, why) it cannot accept)
-   probe ─────────────────── Probe(n)  (ping n is late) ───────►  the control loop
-         ◄──────────────── Progress(n, pinged, handled, queued)  (its registrar's mailbox)
-   events ───────────────── Forward(on) ───────────────────────►  forward events or not
-         ◄──────────────── Events([event, ...])  (batches, while on; a start's after Ready)
-   sync  ─────────────────── SyncEvents(n, timeout) ───────────►  send what is buffered
-         ◄──────────────── EventsSynced(n)  (after those batches)
-   stop  ─────────────────── Stop(timeout, restarting) ────────►  registrar.stop(); exit 0
-   (EOF: the parent is gone) ──────────────────────────────────►  exit 70
-```
-
-The messages are `control.py`'s classes; the control loop dispatches on their type
+The requests and answers, drawn: `control.py`; the control loop dispatches on their type
 (`_HANDLERS`). `Supervisor.run_in` goes over the system's transport, not this pipe.
 """
 

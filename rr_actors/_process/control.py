@@ -16,6 +16,7 @@
    SyncEvents(token, timeout) ──────────────────────────────────►  send what is buffered
                                           ◄──────── EventsSynced(token)
    Stop(timeout, restarting) ───────────────────────────────────►  registrar.stop(); exit
+   (EOF: the parent is gone) ───────────────────────────────────►  exit PARENT_GONE_EXIT
 ```
 
 Each message is a frozen dataclass, pickled by the pipe; each end dispatches on its type

@@ -14,14 +14,11 @@ received of them and lost.
      what is still missing ──► one EventsDropped(cause="killed")
 ```
 
-A SIGKILL loses the events still in the forwarder's buffer, and nothing after them shows
-a gap; so the child journals each event it publishes (one `write`, then its number into a
-memory map) and the parent reads back, after the exit, what never arrived. The number is
-stored after the write: a kill between the two is a kill just before the event (the
-restored catalog says what it would have). Past `JOURNAL_BYTES` the journal is cut back
-after a sent batch; an event published meanwhile and never sent is counted lost, not kept.
-Layout: an 8-byte counter, then per event a `_RECORD` head (seq, pickle length) and the
-pickle; records of events that arrived are skipped unread.
+Why: "What a SIGKILL can and cannot lose of the event stream", failure-semantics.md. An
+event's number goes into the memory map after its `write`: a kill between the two is a kill
+just before the event. Past `JOURNAL_BYTES` the journal is cut back after a sent batch (an
+event published meanwhile and never sent counts lost). Layout: an 8-byte counter, then per
+event a `_RECORD` head (seq, pickle length) and the pickle, skipped unread once it arrived.
 """
 
 from __future__ import annotations

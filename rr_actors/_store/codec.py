@@ -55,10 +55,8 @@ def _not_a_pickle(blob: bytes | None) -> bool:
 
 
 def check_values(row: Any) -> None:
-    """Raise `ValueError` if a resource row's request or response cannot be a pickle.
-
-    A cheap check of what a restore leaves encoded (about 0.3 us a row).
-    """
+    """Raise `ValueError` if a resource row's request or response cannot be a pickle (a cheap
+    check of what a restore leaves encoded)."""
     if _not_a_pickle(row[5]) or _not_a_pickle(row[6]):
         raise ValueError(f"the stored request or response of resource {row[1]} is not a pickle")
 

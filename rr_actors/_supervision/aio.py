@@ -63,12 +63,7 @@ class AsyncSupervision:
         ) -> Steps[Query]: ...
 
     async def astart(self) -> Any:
-        """As `start`, awaitable; cancelled, it stops the supervisor once the start is done.
-
-        Raises:
-            SupervisorGaveUpError: as for `start`.
-            ConfigError: as for `start`.
-        """
+        """As `start`, awaitable; cancelled, it stops the supervisor once the start is done."""
         lock = runtime.Lock()
         state = {"cancelled": False, "started": False}
 
@@ -92,11 +87,7 @@ class AsyncSupervision:
         return self
 
     async def astop(self, *, timeout: float | None = None) -> None:
-        """As `stop`, awaitable.
-
-        Raises:
-            ConfigError: `timeout` is not a positive number of seconds.
-        """
+        """As `stop`, awaitable."""
         if timeout is not None:
             check_seconds("timeout", timeout)
         await run_steps_async(
@@ -104,12 +95,7 @@ class AsyncSupervision:
         )
 
     async def aregistrar(self, config: RegistrarConfig | str) -> ResourceRegistrar:
-        """As `registrar`, awaitable.
-
-        Raises:
-            DuplicateNameError: as for `registrar`.
-            ConfigError: as for `registrar`.
-        """
+        """As `registrar`, awaitable."""
         registrar: ResourceRegistrar = await run_steps_async(
             on_own_thread(lambda: self.registrar(config), f"rr-registrar-{self.name}")
         )
@@ -118,15 +104,7 @@ class AsyncSupervision:
     async def await_restarted(
         self, name: str, *, timeout: float, restarts: int | None = None
     ) -> ChildInfo:
-        """As `wait_restarted`, awaitable; no thread waits for it.
-
-        Raises:
-            CallTimeoutError: as for `wait_restarted`.
-            SupervisorGaveUpError: as for `wait_restarted`.
-            RegistrarUnavailableError: as for `wait_restarted`.
-            UnknownServerError: as for `wait_restarted`.
-            ConfigError: as for `wait_restarted`.
-        """
+        """As `wait_restarted`, awaitable; no thread waits for it."""
         info: ChildInfo = await run_steps_async(self._restart_wait(name, timeout, restarts))
         return info
 
@@ -142,19 +120,7 @@ class AsyncSupervision:
         query_id: str | None = None,
     ) -> Query:
         """As `call_with_retry`, awaitable; no thread is held while it waits. Cancelling
-        the task withdraws the call as a timeout would (the id given back or abandoned).
-
-        Raises:
-            RegistrarUnavailableError: as for `call_with_retry`.
-            SupervisorGaveUpError: as for `call_with_retry`.
-            CallTimeoutError: as for `call_with_retry`.
-            ResourceLoadError: as for `Registrar.acall`.
-            DependencyCycleError: as for `Registrar.acall`.
-            UnknownServerError: as for `Registrar.acall`.
-            RegistrarStoppedError: as for `call_with_retry`.
-            ConfigError: as for `call_with_retry`; nothing was sent.
-            asyncio.CancelledError: the awaiting task was cancelled.
-        """
+        the task withdraws the call as a timeout would (the id given back or abandoned)."""
         steps = self._retry(consumer, target_rr, server, request, on_status, timeout, query_id)
         query: Query = await run_steps_async(steps)
         return query

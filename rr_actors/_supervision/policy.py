@@ -240,29 +240,13 @@ class Exits:
 class Restarts:
     """Decides whether and how a crashed child comes back, and gives up past the intensity.
 
-    ```
-     ThreadManager watcher: its registrar actor stopped ──────────────────────────┐
-     ManagerProcess watcher (_process/manager.py): the process ended; or no       │
-       heartbeat answer within `hang_after` (hung) / unhealthy ─► killed ─────────┼─► Exited(name,
-     a nested Node gave up (Starting: escalate) ──────────────────────────────────┤   incarnation,
-     a restart failed to start (Restarts.on_restart) ─────────────────────────────┘   exit)
-       ──► mailbox ──► Exits.on_exited: stale (an older incarnation, or this one gave up)? dropped
-                       else: the exit noted (Stopping.note_exit: ChildExited)
-     Restarts.after_exit(child, exit)
-       ├─ its restart type (restarts_after): not restarted ─► exited ─► Stopping.forget
-       ├─ RestartIntensity.add: more than max_restarts within period ─► give_up: every
-       │    child stopped (reverse order), SupervisorGaveUp; on_gave_up (the parent: Exited)
-       └─ take_down_with: the strategy's group (affected) stopped (reverse order); a
-          sibling comes back unless temporary (restarts_with_group); marked
-            ─► schedule: backoff ─► timer ── Restart(names, generation) ──► mailbox
-     mailbox ─► Restarts.on_restart: Starting.start_child each whose latest Restart it is
-                (a failure posts Exited: a crash)
-     Node.stop / give_up ─► Restarts.cancel: a new generation, every pending Restart stale
-    ```
-
-    An incarnation stopped on purpose was bumped by `Stopping.stop_child` first, so its
-    watcher's report is stale. Holds the intensity window, the generation and timers of
-    pending restarts, and whether (and why) this supervisor gave up.
+    `after_exit`: the restart type (`restarts_after`), then `RestartIntensity.add` (past it:
+    `give_up`), then the strategy's group taken down and a `Restart` scheduled after the
+    backoff; `on_restart` starts each child whose latest `Restart` it is (a failed start
+    posts `Exited`, a crash). An exit is stale (dropped by `Exits`) when its incarnation is
+    older, as after `Stopping.stop_child`, or this supervisor gave up; `cancel` makes every
+    pending `Restart` stale (a new generation). The flow: "How a restart flows",
+    docs/explanation/architecture.md.
     """
 
     def __init__(
@@ -282,8 +266,7 @@ class Restarts:
         self.gave_up: SupervisorGaveUpError | None = None
         self.giving_up = False
         self._generation = 0
-        # id(Restart) -> its pending backoff timer
-        self._timers: dict[int, runtime.Cancellable] = {}
+        self._timers: dict[int, runtime.Cancellable] = {}  # id(Restart) -> its backoff timer
         self._due: dict[str, Restart] = {}  # each child's latest scheduled Restart
 
     def after_exit(self, child: Child, exit: ManagerExit) -> None:
