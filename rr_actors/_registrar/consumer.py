@@ -983,16 +983,20 @@ class Reconciling:
         for provider in providers:
             self.asked_to_reconcile.setdefault(provider, 0)
 
-    def reconcile_all(self) -> None:
+    def reconcile_all(self) -> dict[str, int]:
         """This registrar serves (again): reconcile with every provider it holds ids at, those
-        that asked during setup, and (`everyone`) every registrar it can reach now."""
+        that asked during setup, and (`everyone`) every registrar it can reach now; but those
+        that asked with a round, returned (provider -> round) for `Presence.attempt` to answer:
+        retried, and its newer rounds echo that round until one is answered."""
         providers = self.registrar.catalog.providers()
         providers |= self.asked_to_reconcile.keys()
         if self.everyone:
             providers |= DIRECTORY.names() - {self.registrar.name}
         asks, self.asked_to_reconcile = self.asked_to_reconcile, {}
-        for serving_rr in sorted(providers):  # (an ask's answer echoes its round)
-            self.reconcile(serving_rr, ask=asks.get(serving_rr, 0))
+        rounds = {serving_rr: round_ for serving_rr, round_ in asks.items() if round_}
+        for serving_rr in sorted(providers - rounds.keys()):
+            self.reconcile(serving_rr)
+        return rounds
 
     # -- what it holds at a provider --------------------------------------------------
 

@@ -164,7 +164,9 @@ class Lifecycle:
         """It serves: as a provider ask its consumers for their ids (`ReconcileAsk`, after the
         sweep, which names them), as a consumer tell its providers which it holds (`Reconcile`)."""
         self.restoring.ask_consumers()
-        self.reconciling.reconcile_all()
+        for serving_rr, ask in sorted(self.reconciling.reconcile_all().items()):  # (setup's)
+            self.presence.round_count += 1
+            self.presence.attempt(serving_rr, self.presence.round_count, 0, ask=ask)
 
     def on_reachable(self, _message: Reachable, reply: Reply) -> None:
         if self.registrar.phase is Phase.SERVING:  # (during setup, `on_ready` reconciles)

@@ -1344,10 +1344,10 @@ class Unloading:
         catalog = self.registrar.catalog
         held = set(message.held)
         asked = self.asked.get(message.origin_rr)
-        if asked is not None and (  # (asked by `Presence.lose`: the answer, or a later run's)
-            message.round == asked[0]
+        if asked is not None and (  # (asked by `Presence.lose`: the answer, or a later run's;
+            message.round == asked[0]  # none heard of since this run began: only the answer)
             or not message.life
-            or life_order(message.life) > life_order(asked[2])
+            or (asked[2] != "" and life_order(message.life) > life_order(asked[2]))
         ):
             del self.asked[message.origin_rr]
         self.provider.lives.reconciled(message.origin_rr, message.life)

@@ -1387,7 +1387,51 @@ class TestProviderLost:
         assert wait_for(lambda: ["camera"] == unloads, BOUND)  # (its call_timeout, 1 s)
         assert [] == provider.server_queries("leaf")
 
-    # The answer to an ask is told by the round it echoes. In the three tests below the one
+    def test_a_late_reconcile_before_any_heard_since_a_restart_does_not_stand_in_for_the_answer(
+        self, system: System, started: list[rr.ResourceRegistrar], tmp_path: Path
+    ) -> None:
+        # the provider restarted from its backup has heard of no run of the consumer (its ask
+        # to reconcile was lost): a late Reconcile of whichever run came "later than none"
+        unloads: list[str] = []
+        path = str(tmp_path / "provider.db")
+        config = rr.RegistrarConfig(
+            named("provider"), call_timeout=600.0, backup_path=path, save_on_modify=True
+        )
+        provider = rr.ResourceRegistrar.start(config, setup=leaf_setup(unloads), network=system)
+        consumer = rr.ResourceRegistrar.start(named("consumer"), network=system)
+        started.append(consumer)
+        query = consumer.call(provider.name, "leaf", "camera", timeout=BOUND)
+        asks: list[ReconcileAsk] = []
+
+        def dropped(message: ReconcileAsk) -> None:  # every ask is lost with the link
+            asks.append(message)
+            raise rr.RrError("lost with the link")
+
+        late = FutureReply()
+
+        def sent_before_it_died(_message: object) -> None:  # (an earlier run's, the lost one)
+            earlier = f"{os.getpid()}.1.0"
+            DIRECTORY.lookup(provider.name).tell(
+                Reconcile(consumer.name, (query.id,), late, earlier)
+            )
+
+        with intercept(consumer, "reconcile_ask", before=dropped):
+            with expect_restart(provider.name):
+                crash(provider)
+                assert provider.wait_ended(BOUND)
+            provider = rr.ResourceRegistrar.start(config, setup=leaf_setup(unloads), network=system)
+            started.insert(0, provider)
+            assert wait_for(lambda: bool(asks), BOUND)  # (the restart's, lost)
+            assert [query.id] == [q.id for q in provider.server_queries("leaf")]
+            with intercept(provider, "peer_lost", after=sent_before_it_died):
+                Served(provider).peer_lost(consumer.name)  # (the mark of one that yielded)
+                assert () == late.future.get(timeout=BOUND)  # (it held the id then)
+            assert wait_for(lambda: any(ask.round for ask in asks), BOUND)
+
+        _ask_due(provider, consumer.name, asks[-1].round)  # nobody answered it
+        assert [] == [q.id for q in provider.server_queries("leaf")]
+
+    # The answer to an ask is told by the round it echoes. In the four tests below the one
     # that serves answers on another path than the plain ask: its answer must clear the ask,
     # or the ask's timer (fired here right after the answer) releases the ids it just listed.
 
@@ -1449,6 +1493,48 @@ class TestProviderLost:
             assert answered.wait(BOUND)
 
         _ask_due(provider, name, asks[0].round)
+        assert [handles[0].id] == [q.id for q in provider.server_queries("leaf")]
+        assert [] == unloads
+
+    def test_an_ask_heard_during_setup_is_answered_by_a_newer_round_when_its_answer_fails(
+        self, system: System, started: list[rr.ResourceRegistrar]
+    ) -> None:
+        unloads: list[str] = []
+        provider = _asking(system, started, unloads)
+        name, handles, asks = named("consumer"), [], []
+        loaded, heard = threading.Event(), threading.Event()
+        answers: list[Reconcile] = []
+
+        def setup(registrar: rr.ResourceRegistrar) -> None:  # (it loads, then waits)
+            handles.append(registrar.call(provider.name, "leaf", "camera", timeout=BOUND))
+            intercept(registrar, "reconcile_ask", after=asks.append)
+            loaded.set()
+            heard.wait(BOUND)
+
+        def start() -> None:
+            handles.append(rr.ResourceRegistrar.start(name, setup=setup, network=system))
+
+        def fails_the_first(message: Reconcile) -> None:
+            answers.append(message)
+            if len(answers) == 1:
+                raise rr.RrError("the answer after setup fails")
+
+        starting = threading.Thread(target=start)
+        with intercept(provider, "reconcile", before=fails_the_first):
+            starting.start()
+            assert loaded.wait(BOUND)
+            Served(provider).peer_lost(name)  # (the mark of one that yielded)
+            assert wait_for(lambda: 1 == len(asks), BOUND)
+            heard.set()  # its setup ends: it answers the ask it heard
+            starting.join(BOUND)
+            started.append(handles[1])
+            assert wait_for(lambda: 1 <= len(answers), BOUND)  # (its retry may follow)
+            Served(handles[1]).peer_reachable(provider.name)  # a newer round of the consumer
+            # (or the failed one's retry; not a plain Reconcile, round 0, that may come too)
+            round_ = asks[0].round
+            assert wait_for(lambda: any(round_ == a.round for a in answers[1:]), BOUND)
+
+        _ask_due(provider, name, round_)
         assert [handles[0].id] == [q.id for q in provider.server_queries("leaf")]
         assert [] == unloads
 
