@@ -667,17 +667,13 @@ class Presence:
         if self.reconciling.holds_at(name):
             self.round_count += 1
             self.attempt(name, self.round_count, 0)
-        if self.registrar.catalog.consumers_from(name):
-            try:  # (with the round of an ask standing, `ask_consumer`: its answer clears it)
-                DIRECTORY.lookup(name).tell(self.unloading.ask(name))
-            except RrError as exc:
-                logger.debug(
-                    "registrar %s: %s not reachable yet: %s", self.registrar.name, name, exc
-                )
+        if self.registrar.catalog.consumers_from(name):  # (with the round of an ask standing,
+            self.unloading.ask_holder(name)  # `ask_consumer`: its answer clears it)
 
-    def on_reconcile_ask(self, message: ReconcileAsk, _reply: Reply) -> None:
+    def on_reconcile_ask(self, message: ReconcileAsk, reply: Reply) -> None:
         """Provider `serving_rr` asks for a `Reconcile` (rule 20): sent, and retried until it is
         answered (one sent once could be lost as its connection fails while it comes back)."""
+        reply.set_result(None)  # (heard: one that stopped first answers that, `ask_to_reconcile`)
         if self.reconciling.asked(message):
             self.round_count += 1
             self.attempt(message.serving_rr, self.round_count, 0, message.life, message.round)

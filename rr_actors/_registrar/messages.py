@@ -280,12 +280,14 @@ class Reconcile(WireMessage):
 class ReconcileAsk(WireMessage):
     """Provider -> consumer: `serving_rr` (re)started with ids of yours: send a `Reconcile`
     (`holds_yours=False`: only if you hold ids there). `life`: its run's token. `round`: an
-    ask after your name was heard lost (0: another); the answer echoes it."""
+    ask after your name was heard lost (0: another); the answer echoes it. Answer (`reply`
+    set, `Unloading.ask_holder`): `None` once heard; an error if you were stopped first."""
 
     serving_rr: str
     holds_yours: bool = True
     life: str = ""
     round: int = 0
+    reply: Reply | None = None
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1302,20 +1302,28 @@ class Unloading:
         registrar too (it may hold ids this one lost, rule 20). `swept`: holders in the backup."""
         origins = self.registrar.catalog.consumer_origins() | swept
         for origin in sorted(origins):
-            try:
-                DIRECTORY.lookup(origin).tell(self.ask(origin))
-            except RegistrarStoppedError:
-                self.release_stopped(origin)
-            except RrError:
-                pass
+            self.ask_holder(origin)
         if self.registrar.saver.store is not None:
             self.ask_everyone(set(origins))
 
-    def ask(self, origin: str) -> ReconcileAsk:
+    def ask_holder(self, origin: str) -> None:
+        """Ask consumer `origin` for a `Reconcile`, answered: stopped (also after the ask left:
+        its stop could not give back what it held here) it holds nothing here (rule 12)."""
+        held = frozenset(self.registrar.catalog.consumers_from(origin))
+
+        def answered(_: Any, error: BaseException | None) -> None:
+            if isinstance(error, RegistrarStoppedError):
+                self.release_stopped(origin, held)
+
+        self.registrar.send(origin, functools.partial(self.ask, origin), answered)
+
+    def ask(self, origin: str, reply: Reply | None = None) -> ReconcileAsk:
         """A `ReconcileAsk` for consumer `origin`, with the round of the ask standing for it
         (`Presence.ask_consumer`), so that its answer clears that ask too (`on_reconcile`)."""
         round_ = self.asked[origin][0] if origin in self.asked else 0
-        return ReconcileAsk(self.registrar.name, life=self.registrar.life, round=round_)
+        return ReconcileAsk(
+            self.registrar.name, life=self.registrar.life, round=round_, reply=reply
+        )
 
     def ask_everyone(self, asked: set[str]) -> None:
         """Tell every registrar not in `asked` that this one (re)started: holders reconcile."""
@@ -1325,12 +1333,16 @@ class Unloading:
                     ReconcileAsk(self.registrar.name, holds_yours=False, life=self.registrar.life)
                 )
 
-    def release_stopped(self, origin: str) -> None:
-        """Consumer `origin` was stopped for good while this one was down: release its ids."""
-        ids = self.registrar.catalog.consumers_from(origin)
+    def release_stopped(self, origin: str, only: frozenset[str] | None = None) -> None:
+        """Consumer `origin` was stopped for good while this one was down or cut off (before
+        it could give back `only`, the ids it held when asked): release its ids (rule 12)."""
+        ids = [
+            q for q in self.registrar.catalog.consumers_from(origin) if only is None or q in only
+        ]
         if ids:
             logger.warning(
-                "registrar %s: consumer %s was stopped while this registrar was down; "
+                "registrar %s: consumer %s was stopped while this registrar was down or cut "
+                "off; "
                 "releasing the %d ids it held here",
                 self.registrar.name,
                 origin,

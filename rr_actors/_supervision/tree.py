@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import itertools
 import logging
 import os
 import weakref
@@ -148,9 +149,10 @@ class Tree:
     ) -> None:
         self.spec = spec
         self.cond = runtime.Condition()  # published snapshots of the whole tree
-        # waiters woken at each change, in the order they came (a set's order would make a
-        # simulated seed's history depend on addresses)
-        self.watchers: dict[Callable[[], object], None] = {}
+        # waiters woken at each change, in the order they came (each its number: woken in
+        # another order, a simulated seed's history would change at each choice point between)
+        self.watchers: dict[Callable[[], object], int] = {}
+        self.watches = itertools.count()
         self._version = 0  # changes published so far (`wait_changed`)
         self.specs = {child.name: child for child, _ in walk(spec)}
         self.clock = clock
@@ -182,7 +184,7 @@ class Tree:
         """A supervisor published its children's snapshots: wake every waiter (lock held)."""
         self._version += 1
         self.cond.notify_all()
-        for wake in list(self.watchers):
+        for wake in sorted(self.watchers, key=self.watchers.__getitem__):
             wake()
 
     def version(self) -> int:
@@ -391,7 +393,7 @@ class RestartWait:
 
         with tree.cond:
             look()
-            tree.watchers[look] = None
+            tree.watchers[look] = next(tree.watches)
         try:
             if not (yield decided.future, deadline):
                 with tree.cond:
