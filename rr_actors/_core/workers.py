@@ -113,10 +113,6 @@ class Workers:
         """Tasks waiting for a worker (a cancelled one counts until it is skipped)."""
         return max(0, -self._idle)
 
-    def waiting(self, lane: str = "") -> int:
-        """Jobs queued in `lane` (one cancelled counts until it is skipped)."""
-        return len(self._lanes.get(lane, ()))
-
     @property
     def abandoned(self) -> int:
         """Jobs given up on while they ran (their threads run on until they return)."""

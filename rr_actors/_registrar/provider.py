@@ -1003,11 +1003,7 @@ class ServerActor(Actor):
     def _start_load(self, message: RunLoad) -> Job | None:
         """Start a load: its worker job while it waits for a place (withdrawable until one
         takes it), `None` if it failed. A coroutine's job holds its place while it runs."""
-        held, ahead = self.on_loop[0], self.workers.waiting(message.origin)
-        refused = self.shed(message, ahead) if ahead else None  # (as it would be, but sooner)
-        if refused is not None:
-            message.reply.set_error(refused)
-            return None
+        held = self.on_loop[0]
         try:
             return self.workers.submit(
                 (lambda: self._spawn(self._aload(message), self.workers.release))
@@ -1039,21 +1035,18 @@ class ServerActor(Actor):
 
         process_loop().call_soon_threadsafe(start)
 
-    def shed(self, message: RunLoad, ahead: int = 0) -> DeadlineExceededError | None:
-        """As its load would start (after `ahead` loads queued in its lane): the error that
-        sheds it, if its callers' deadline leaves less than `_SHED_HEADROOM` times what this
-        server's loads take (`load_s`). A stale average is probed (not refused ahead):
-        docs/explanation/inside.md, "The provider"."""
+    def shed(self, message: RunLoad) -> DeadlineExceededError | None:
+        """As its load would start: the error that sheds it, if its callers' deadline leaves
+        less than `_SHED_HEADROOM` times what this server's loads take (`load_s`). A stale
+        average is probed: docs/explanation/inside.md, "The provider"."""
         deadline = message.place.deadline
         if deadline is None:
             return None
         now, pace = runtime.monotonic(), self.pace
-        left = deadline - now - ahead * pace.load_s / self.workers.max_workers
-        if left > pace.load_s * _SHED_HEADROOM:
+        left, expected = deadline - now, pace.load_s * _SHED_HEADROOM
+        if left > expected:
             return None
         if now - pace.learned >= pace.load_s:  # stale
-            if ahead:
-                return None
             if left > _PROBE_LEFT:
                 pace.learned = now  # (workers race here: a probe more or less, no harm)
                 return None
@@ -1061,8 +1054,8 @@ class ServerActor(Actor):
         return DeadlineExceededError(
             f"the load of {describe(message.request)} at '{self.registrar}/{self.name}' was "
             f"shed before it started: {max(left, 0.0):.3f} s were left of its callers' "
-            f"timeout{f' after the {ahead} loads ahead' if ahead else ''}, and its loads "
-            f"take {pace.load_s:.3f} s lately (it needs {_SHED_HEADROOM:g} times that)"
+            f"timeout, and its loads take {pace.load_s:.3f} s lately (it needs "
+            f"{_SHED_HEADROOM:g} times that)"
         )
 
     def ran(self, took: float) -> None:

@@ -3173,53 +3173,6 @@ def test_callers_too_short_for_a_probe_let_a_stale_average_forget_until_a_load_r
     assert pace.load_s == pytest.approx(0.0112)  # (forgot once; the loads that fit run)
 
 
-def test_a_load_that_cannot_start_in_time_behind_its_lane_is_refused_as_it_arrives(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    """Issue 53's in-process overload (84-89% of capacity): each load queued then shed as
-    its turn came cost the worker 15-30 us, ten per load run. A load whose callers'
-    deadline leaves less than the shed needs once the loads queued ahead of it in its
-    lane have run (the learned average each, over `max_workers`) is refused as it arrives,
-    with the shed's error; one that can start in time is queued. A stale average refuses
-    nothing ahead (the shed as it starts probes it)."""
-    from rr_actors._core.workers import Workers  # noqa: PLC0415
-    from rr_actors._registrar import provider as module  # noqa: PLC0415
-    from rr_actors._registrar.messages import LoadPlace, RunLoad  # noqa: PLC0415
-    from rr_actors._registrar.state import Pace  # noqa: PLC0415
-
-    clock = _StillClock()
-    monkeypatch.setattr(module, "runtime", clock)
-    pace, workers, free, ran = Pace(), Workers("t", max_workers=1), threading.Event(), []
-    pace.load_s, pace.learned = 1.0, clock.now - 0.5  # (fresh: a load ended 0.5 s ago)
-    workers.submit(lambda: free.wait(30))  # the one worker is busy: the loads queue
-    server = module.ServerActor.start(
-        "rr", "s", lambda r: ran.append(r) or r, lambda r, s: None, workers, pace=pace
-    )
-
-    def load(request: str, left: float) -> Any:
-        reply = FutureReply()
-        place = LoadPlace(clock.now + left)
-        server.tell(RunLoad(request, request, (), reply, place, origin="c"))
-        return reply.future
-
-    try:
-        first = load("first", 100.0)  # nothing ahead in its lane
-        second = load("second", 2.6)  # 1 ahead: 1.6 s left as it starts, 1.5 needed
-        with pytest.raises(rr.DeadlineExceededError, match="after the 2 loads ahead"):
-            load("refused", 3.0).get(timeout=10)  # 2 ahead: 1.0 s left as it would start
-        assert 2 == workers.queued
-        pace.learned = clock.now - 5.0  # stale: queued all the same
-        stale = load("stale", 3.0)
-        assert wait_for(lambda: 3 == workers.queued, timeout=10)
-        assert clock.now - 5.0 == pace.learned  # (no probe taken as it arrived)
-        free.set()
-        assert ["first", "second", "stale"] == [f.get(timeout=10) for f in (first, second, stale)]
-    finally:
-        free.set()
-        server.stop()
-    assert ["first", "second", "stale"] == ran
-
-
 def test_a_freed_slot_goes_to_the_consumer_that_waits_not_to_one_that_asks_again_at_once() -> None:
     """Review of issue 53's shares: with a bound below the number of consumers each
     share rounds to 1, and the slot a flooding consumer's load freed went back to it (it
