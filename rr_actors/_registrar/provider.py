@@ -1301,12 +1301,17 @@ class Unloading:
 
     def ask_holder(self, origin: str) -> None:
         """Ask consumer `origin` for a `Reconcile`, answered: stopped (also after the ask left:
-        its stop could not give back what it held here) it holds nothing here (rule 12)."""
-        held = frozenset(self.registrar.catalog.consumers_from(origin))
+        its stop could not give back what it held here) it holds nothing here (rule 12), unless
+        a later run of it was heard of since (it reconciles for itself). Reads no row: a lazy
+        restore stays lazy."""
+        asked = self.provider.lives.newest(origin)
 
         def answered(_: Any, error: BaseException | None) -> None:
-            if isinstance(error, RegistrarStoppedError):
-                self.release_stopped(origin, held)
+            if (
+                isinstance(error, RegistrarStoppedError)
+                and self.provider.lives.newest(origin) == asked
+            ):
+                self.release_stopped(origin)
 
         self.registrar.send(origin, functools.partial(self.ask, origin), answered)
 
@@ -1326,17 +1331,14 @@ class Unloading:
                     ReconcileAsk(self.registrar.name, holds_yours=False, life=self.registrar.life)
                 )
 
-    def release_stopped(self, origin: str, only: frozenset[str] | None = None) -> None:
+    def release_stopped(self, origin: str) -> None:
         """Consumer `origin` was stopped for good while this one was down or cut off (before
-        it could give back `only`, the ids it held when asked): release its ids (rule 12)."""
-        ids = [
-            q for q in self.registrar.catalog.consumers_from(origin) if only is None or q in only
-        ]
+        it could give back what it held here): release its ids (rule 12)."""
+        ids = self.registrar.catalog.consumers_from(origin)
         if ids:
             logger.warning(
                 "registrar %s: consumer %s was stopped while this registrar was down or cut "
-                "off; "
-                "releasing the %d ids it held here",
+                "off; releasing the %d ids it held here",
                 self.registrar.name,
                 origin,
                 len(ids),
