@@ -173,7 +173,7 @@ class UnixCarrier:
             if name is None:
                 dials, self._dials = list(self._dials.values()), {}
             else:
-                dials = [dial for dial in [self._dials.pop(name, None)] if dial is not None]
+                dials = [self._dials.pop(name)] if name in self._dials else []
         for dial in dials:
             dial.close(error)
 
