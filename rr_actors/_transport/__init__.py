@@ -5,14 +5,12 @@
 """
 
 from rr_actors._transport.messenger import Address, Endpoint, Transport
-from rr_actors._transport.unix.link import RemotePeer
 from rr_actors._transport.unix.system import AttachedSystem, System, SystemAddress, attach
 
 __all__ = [
     "Address",
     "AttachedSystem",
     "Endpoint",
-    "RemotePeer",
     "System",
     "SystemAddress",
     "Transport",

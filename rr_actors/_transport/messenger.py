@@ -1,14 +1,25 @@
 """The messenger: what every carrier does with a name and a message, written once.
 
-A carrier moves frames and reports who comes and goes; the rest (naming, reply tokens,
-size limits, compensation, "send when served") is here, as xoscar's above its `Channel`.
+A carrier moves frames and reports who comes and goes; the rest (naming, the `Remote`
+peer, reply tokens, size limits, compensation, a served registrar's end and yield) is
+here, as xoscar's above its `Channel`. The one protocol a carrier keeps (`Carrier`):
+
+```
+ resolve(name) ─► carrier.knows(name) ─► a Remote(carrier, name)
+ Remote.tell ─► encode ─► carrier.route(name): a Route (limit, pending, again) ─► size
+   checked, reply expected ─► carrier.send(route, frame), or its error (again: once more)
+ serve(endpoint) ─► carrier.serve(endpoint): a Listening ─► its end: carrier.unserve
+ the carrier's thread ─► Messenger.message ─► StandIn ─► carrier.answer(process, frame)
+ the carrier's thread ─► route.pending.answered / fail; Messenger.lost / reachable
+ names() ─► carrier.names()        close() ─► carrier.leave()
+```
+
 Flow: docs/explanation/architecture.md ("The messenger and its links"); contract:
 docs/explanation/failure-semantics.md ("What every carrier keeps").
 """
 
 from __future__ import annotations
 
-import abc
 import contextlib
 import datetime
 import itertools
@@ -72,62 +83,55 @@ class Address(Protocol):
 
 
 class Carrier(Protocol):
-    """What the messenger asks of a carrier (the carrier reports back via `Messenger`)."""
+    """What a carrier does for its messenger: it moves frames and reports who comes and goes
+    (to `Messenger.message`, `Replies`, `lost`, `reachable`, `served_elsewhere`); the rest
+    is the messenger's. Eight members; only `knows`, `route` (off an actor's thread) and
+    `serve` may wait on the network, bounded."""
 
-    def peer(self, name: str) -> Remote | None:
-        """A peer of `name` served elsewhere, or once; `None` if unknown. Raises as `resolve`."""
+    def knows(self, name: str) -> bool:
+        """Whether `name` is served elsewhere, or was (any thread). Raises as `resolve`."""
 
-    def listen(self, endpoint: Endpoint) -> Listening:
-        """Take frames for `endpoint` from now on. Raises as `Messenger.serve`."""
+    def route(self, name: str) -> Route:
+        """The way to registrar `name` now (any thread; on an actor's, never waits on the
+        network). Raises why it cannot be reached (`RegistrarUnavailableError`, ...)."""
 
-    def answer_to(self, process: Any, data: bytes, on_lost: Lost | None) -> bool:
-        """Send an answer frame back to `process` (never blocks); False if it is gone."""
+    def send(self, route: Route, data: bytes) -> None:
+        """Send frame `data` over `route`, in order (never blocks). Raises why nothing of
+        it left (the route went: `RegistrarUnavailableError`, `RegistrarStoppedError`)."""
 
-    def names(self) -> list[str]: ...  # the registrars it can reach now
+    def answer(self, process: Any, data: bytes, on_lost: Lost | None) -> bool:
+        """Send an answer frame back to `process`, the sender `Messenger.message` was told
+        of (never blocks); False if it is gone. `on_lost()` if it goes before it leaves."""
+
+    def serve(self, endpoint: Endpoint) -> Listening:
+        """Take frames for `endpoint` (to `Messenger.message`), returning once other
+        processes can find it (caller's thread). Raises as `Messenger.serve`."""
+
+    def unserve(self, listening: Listening, *, stopped: bool) -> None:
+        """Stop taking frames for `listening` (once; any thread); `stopped`: cleanly, so
+        senders then get `RegistrarStoppedError`."""
+
+    def names(self) -> list[str]: ...  # the registrars it can reach now (any thread)
     def leave(self) -> None: ...  # fail what waits, end its threads, close what it opened
 
 
-class Route(Protocol):
-    """The way to one registrar's process now (a connection, a Zenoh key, a queue)."""
+class Route:
+    """The messenger's record of a way to one registrar, made by its carrier (`route`):
+    the registrar's `limit` (its max_message_bytes, both ways), the replies `pending`
+    over it, and whether a send that failed may be tried `again` over a fresh route."""
 
-    @property
-    def limit(self) -> int: ...  # the registrar's max_message_bytes, both ways
-    @property
-    def pending(self) -> Replies: ...  # the replies of messages sent over it
+    __slots__ = ("again", "limit", "pending")
 
-    def send(self, data: bytes) -> bool:
-        """Send a frame (in order; never blocks); False if nothing of it left."""
-
-    def broken(self) -> bool:
-        """A frame could not leave: close the route; whether `send` may try a fresh one."""
+    def __init__(self, limit: int, pending: Replies | None = None, *, again: bool = False) -> None:
+        self.limit = limit
+        self.pending = Replies() if pending is None else pending
+        self.again = again
 
 
-class Lane(Protocol):
-    """An ordered queue to one name whose thread may wait on the network."""
-
-    refusal: RrError | None  # why it was retired (`Lanes.retire`)
-
-    def run(self, task: Callable[[], None]) -> bool:
-        """Run `task` on the lane's thread, in order; False if closed (then `dropped()`)."""
-
-
-class Lanes(Protocol):
-    """What "send when served" asks of a carrier whose routes may ask the network."""
-
-    def unseen(self, name: str) -> bool: ...  # no server seen now, and none heard to stop
-    def lane(self, name: str) -> Lane | None: ...  # `None`: this process left the system
-
-    def found(self, name: str, lane: Lane) -> Route | RrError:
-        """On `lane`'s thread: the route to `name`'s server (bounded), or the error."""
-
-    def retire(self, lane: Lane, error: RrError) -> None:
-        """On `lane`'s thread: nobody's from now on; what waits fails with `error`."""
-
-    def unreached(self, name: str) -> RrError: ...  # nobody serves `name`
-
-
-class Listening(abc.ABC):
-    """A registrar here as its carrier serves it; stopped once (`stop`, holding `lock`)."""
+class Listening:
+    """A registrar here as its carrier serves it (`serve`); stopped once (`unserve`,
+    holding `lock`). `failing_since` (monotonic; set by the carrier): since when it has
+    been unable to take new connections, and why (`failure`)."""
 
     def __init__(self, endpoint: Endpoint) -> None:
         self.endpoint = endpoint
@@ -136,20 +140,8 @@ class Listening(abc.ABC):
         self.ended = False
         self.yielded = False
         self.yield_told = runtime.Event()  # its registrar was told to yield (`give_way`)
-
-    @abc.abstractmethod
-    def stop(self, *, stopped: bool) -> None:
-        """Stop taking frames; `stopped`: cleanly (others then get `RegistrarStoppedError`)."""
-
-    def settle(self) -> None:  # noqa: B027 - a hook: most carriers need nothing
-        """Listed as served: settle what was heard meanwhile; return once others find it."""
-
-    def trouble(self) -> tuple[float, str] | None:
-        """For how long (seconds) and why it has been unable to take new connections."""
-        return None
-
-    def forget_in_child(self) -> None:  # noqa: B027 - a hook: most carriers need nothing
-        """In a forked child: let go of the parent's listener without touching it."""
+        self.failing_since: float | None = None
+        self.failure = ""
 
 
 # -- rule 22: two servers of one name ---------------------------------------------------------
@@ -161,18 +153,14 @@ def when(stamp: int) -> str:
     return at.strftime("%Y-%m-%d %H:%M:%S.%f UTC")
 
 
-class Remote(abc.ABC):
-    """A registrar of another process as a `Peer`; a carrier gives `route()`, `gone()`."""
+class Remote:
+    """A registrar of another process as a `Peer`: told over its carrier's route."""
 
-    name: str
+    __slots__ = ("carrier", "name")
 
-    @abc.abstractmethod
-    def route(self) -> Route:
-        """The way to the registrar now. Raises as `tell`."""
-
-    @abc.abstractmethod
-    def gone(self) -> RrError:
-        """The error of a message whose frame could not leave (the route went)."""
+    def __init__(self, carrier: Carrier, name: str) -> None:
+        self.carrier = carrier
+        self.name = name
 
     def tell(self, message: Any) -> None:
         """Send `message` (any thread; in order; never blocks). Raises as `Peer.tell`."""
@@ -193,12 +181,6 @@ class Remote(abc.ABC):
         except RrError as exc:
             reply.set_error(exc)
         return reply
-
-    def close(self, error: RrError) -> None:  # noqa: B027 - a hook: most carriers need nothing
-        """Drop its route, if any; what waits on it fails with `error`."""
-
-    def forget_in_child(self) -> None:  # noqa: B027 - a hook: most carriers need nothing
-        """In a forked child: drop the parent's route without touching it."""
 
 
 def run_lost(callbacks: list[Lost]) -> None:
@@ -237,96 +219,45 @@ def encode(name: str, message: Any) -> Outgoing:
     return Outgoing(message, reply, token, data)
 
 
-def check_size(outgoing: Outgoing, name: str, limit: int) -> None:
-    """Raises `MessageTooLargeError` if `outgoing` is over registrar `name`'s `limit`."""
-    size = payload_size(outgoing.data)
-    if size > limit:
-        raise MessageTooLargeError(
-            f"the {what(outgoing.message, name)} is {size} bytes pickled, over registrar "
-            f"{name!r}'s max_message_bytes ({limit}); nothing was sent",
-            size,
-            limit,
-        )
+def too_large(message: Any, data: bytes, name: str, limit: int) -> MessageTooLargeError | None:
+    """The error if frame `data` of `message` is over registrar `name`'s `limit`."""
+    size = payload_size(data)
+    if size <= limit:
+        return None
+    return MessageTooLargeError(
+        f"the {what(message, name)} is {size} bytes pickled, over registrar "
+        f"{name!r}'s max_message_bytes ({limit}); nothing was sent",
+        size,
+        limit,
+    )
 
 
 def send(peer: Remote, message: Any) -> None:
-    """`Remote.tell`: retried once over a fresh route if `Route.broken` allows."""
-    outgoing = encode(peer.name, message)
+    """`Remote.tell`: retried once over a fresh route if the route says `again`."""
+    carrier, name = peer.carrier, peer.name
+    outgoing = encode(name, message)
     reply = outgoing.reply
     for _attempt in (1, 2):
-        route = peer.route()
-        check_size(outgoing, peer.name, route.limit)
+        route = carrier.route(name)
+        oversized = too_large(outgoing.message, outgoing.data, name, route.limit)
+        if oversized is not None:
+            raise oversized
         if reply is not None:
             route.pending.expect(outgoing, peer, route.limit)
-        if route.send(outgoing.data):
-            return
-        ours = reply is None or route.pending.forget(outgoing.token)
-        again = route.broken()
-        if not ours:  # the route's end failed the reply already
-            return
-        if not again:
-            break
-    raise peer.gone()
-
-
-def send_when_served(peer: Remote, lanes: Lanes, message: Any) -> None:
-    """Queue `message` for `peer.name` (not seen served) on its lane, without waiting.
-
-    Raises `ConfigError` (does not pickle) or `peer.gone()` (this process left).
-    """
-    outgoing = encode(peer.name, message)
-    for _attempt in (1, 2):  # (the second: its lane was just retired, nobody's)
-        lane = lanes.lane(peer.name)
-        if lane is None:
-            break
-        if lane.run(_WhenServed(peer, lanes, outgoing, lane)):
-            return
-    raise peer.gone()
-
-
-class _WhenServed:
-    """A message held on its name's lane until the network says who serves the name."""
-
-    __slots__ = ("lane", "lanes", "outgoing", "peer")
-
-    def __init__(self, peer: Remote, lanes: Lanes, outgoing: Outgoing, lane: Lane) -> None:
-        self.peer = peer
-        self.lanes = lanes
-        self.outgoing = outgoing
-        self.lane = lane
-
-    def __call__(self) -> None:  # (on the lane's thread)
-        peer, outgoing = self.peer, self.outgoing
-        route = self.lanes.found(peer.name, self.lane)
-        if isinstance(route, RrError):  # this one fails first, then what waits behind it:
-            _unsent(outgoing, route)  # refused in the order told, never a later one first
-            self.lanes.retire(self.lane, route)
-            return
         try:
-            check_size(outgoing, peer.name, route.limit)
+            carrier.send(route, outgoing.data)
         except RrError as exc:
-            _unsent(outgoing, exc)
+            error = exc
+        else:
             return
-        if outgoing.reply is not None:
-            route.pending.expect(outgoing, peer, route.limit)
-        if not route.send(outgoing.data) and (
-            outgoing.reply is None or route.pending.forget(outgoing.token)
-        ):  # (gone meanwhile: what ended it may have missed this reply)
-            _unsent(outgoing, peer.gone())
-
-    def dropped(self) -> None:
-        """The lane closed before it ran: its reply fails, as the one before it did."""
-        _unsent(self.outgoing, self.lane.refusal or self.lanes.unreached(self.peer.name))
+        if reply is not None and not route.pending.forget(outgoing.token):
+            return  # the route's end failed the reply already
+        if not route.again:
+            break
+    raise error
 
 
-def _unsent(outgoing: Outgoing, error: RrError) -> None:
-    if outgoing.reply is not None:
-        outgoing.reply.set_error(error)
-    else:
-        logger.debug("%s not sent: %s", type(outgoing.message).__name__, error)
-
-
-class Replies(dict[int, tuple[Reply, Any, "Remote", int]]):
+class Replies(dict[int, tuple[Reply, Any, Remote, int]]):
     """By token: `(reply, message, peer, limit)`; entries leave only by atomic dict ops."""
 
     __slots__ = ()
@@ -411,6 +342,8 @@ class Messenger:
         ConfigError: `resolve` is not a strategy (`Resolution`).
     """
 
+    leaves = True  # closing it closes its carrier (a simulated process's does not)
+
     def __init__(
         self, system: str, *, resolver: bool = True, resolve: object = "first_served"
     ) -> None:
@@ -456,11 +389,11 @@ class Messenger:
             return peer
         if self.closed or name in self._served:
             return None
-        made = self.link().peer(name)
-        if made is None:
+        carrier = self.link()
+        if not carrier.knows(name):
             return None
         with self._lock:
-            return self._peers.setdefault(name, made)
+            return self._peers.setdefault(name, Remote(carrier, name))
 
     def names(self) -> list[str]:
         """The registrars of the system the carrier can reach now (any host)."""
@@ -478,15 +411,13 @@ class Messenger:
             if self.closed:
                 raise RegistrarStoppedError(f"this process left system {self.system!r}")
             old = self._served.pop(name, None)
-            peer = self._peers.pop(name, None)
+            self._peers.pop(name, None)  # (its carrier's route to it goes: `serve`)
         if old is not None:
             self._unserve(old, stopped=False)
-        if peer is not None:
-            peer.close(RegistrarUnavailableError(f"registrar {name!r} moved into this process"))
         with self._lock:
             self._early[name] = []
         try:
-            listening = carrier.listen(endpoint)
+            listening = carrier.serve(endpoint)
         except BaseException:
             with self._lock:
                 self._early.pop(name, None)
@@ -494,7 +425,6 @@ class Messenger:
         with self._lock:
             self._served[name] = listening
             early = self._early.pop(name, [])
-        listening.settle()
         for rival in early:  # (told of before it was listed)
             self.served_elsewhere(name, rival)
         runtime.Thread(
@@ -523,9 +453,12 @@ class Messenger:
         return peer.run(fn, timeout=timeout)
 
     def serving_trouble(self, name: str) -> tuple[float, str] | None:
-        """`Listening.trouble` of `name` served here, or `None`."""
+        """For how long (seconds) and why `name` served here cannot take new connections."""
         listening = self._served.get(name)
-        return None if listening is None else listening.trouble()
+        since = None if listening is None else listening.failing_since
+        if listening is None or since is None:
+            return None
+        return runtime.monotonic() - since, listening.failure
 
     def supervised_by(self, pid: int | None) -> None:
         """Process `pid` speaks for registrars served from now on if this one dies (rule 19)."""
@@ -537,17 +470,14 @@ class Messenger:
             if self.closed:
                 return
             self.closed = True
-            served, peers = list(self._served.values()), list(self._peers.values())
+            served = list(self._served.values())
             self._served.clear()
             self._peers.clear()
         if self._resolver:
             DIRECTORY.remove_resolver(self.resolve)
         for listening in served:
             self._unserve(listening, stopped=listening.endpoint.stopped_cleanly())
-        left = RegistrarStoppedError(f"this process left system {self.system!r}")
-        for peer in peers:
-            peer.close(left)
-        if self._carrier is not None:
+        if self._carrier is not None and self.leaves:
             self._carrier.leave()
 
     # -- who serves what, for the carrier ------------------------------------------------
@@ -569,7 +499,7 @@ class Messenger:
             listening.ended = listening.yielded = True
             with self._lock:  # (before it stops: the one kept may be lost as it does)
                 self._yielding[listening.name] = listening
-            listening.stop(stopped=False)
+            self.link().unserve(listening, stopped=False)
         self._forget(listening)
         logger.error(
             "%s; this one stops serving: it unloads what it serves and stops, and its "
@@ -666,17 +596,14 @@ class Messenger:
         logger.info("registrar %s of system %s is reachable again", name, self.system)
         MEMBERSHIP.reachable(name, hearers=self._hearers())
 
-    def forget_in_child(self) -> None:
-        """In a forked child: drop the parent's listeners and peers untouched (no lock)."""
+    def forget_in_child(self) -> list[Listening]:
+        """In a forked child: drop the parent's listeners (returned) and peers (no lock)."""
         self._lock = runtime.Lock()
-        served, peers = list(self._served.values()), list(self._peers.values())
+        served = list(self._served.values())
         self._served.clear()
         self._peers.clear()
         self.supervisor = None
-        for listening in served:
-            listening.forget_in_child()
-        for peer in peers:
-            peer.forget_in_child()
+        return served
 
     def _hearers(self) -> tuple[Endpoint, ...]:
         return tuple(listening.endpoint for listening in list(self._served.values()))
@@ -698,7 +625,7 @@ class Messenger:
             if listening.ended:
                 return
             listening.ended = True
-            listening.stop(stopped=stopped)
+            self.link().unserve(listening, stopped=stopped)
         self._forget(listening)
 
     def _forget(self, listening: Listening) -> None:
@@ -773,7 +700,7 @@ class Messenger:
 
     def _error(self, process: Any, token: int, error: RrError) -> None:
         if token != NO_REPLY and self._carrier is not None:
-            self._carrier.answer_to(process, frame(token, (None, error)), None)
+            self._carrier.answer(process, frame(token, (None, error)), None)
 
 
 Transport = Messenger
@@ -836,7 +763,7 @@ class StandIn:
             data = frame(self._token, (None, too_large))
             error = too_large
         on_lost = self._compensate if error is None else None
-        if not self._carrier.answer_to(self._process, data, on_lost) and on_lost is not None:
+        if not self._carrier.answer(self._process, data, on_lost) and on_lost is not None:
             on_lost()
 
     def _compensate(self) -> None:  # (the answer did not reach its caller)

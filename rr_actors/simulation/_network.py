@@ -4,11 +4,11 @@ order per link, cuts and heals.
 ```
  process A: Remote.tell ─► messenger ─► hub.route(name) ─► A's link to name (one per
    sending process and served registrar; made at A's first send)
-   _Link.send(frame) ─► its wire to B: after a seeded delay, in order (FIFO per link),
+   hub.send(link, frame) ─► its wire to B: after a seeded delay, in order (FIFO per link),
    on a thread of B's (`_Wire`) ─► the messenger: unpickle, tell the registrar
- B's answer ─► answer_to(link) ─► the link's wire back, likewise ─► link.pending.answered
+ B's answer ─► hub.answer(link) ─► the link's wire back, likewise ─► link.pending.answered
  partition(pids) ─► links across fail what waits; sends across raise; the wire dropped
- listen(endpoint) ─► refused while another live process on its side serves the name
+ serve(endpoint) ─► refused while another live process on its side serves the name
  heal() ─► links work again; a name served on both sides: rule 22 keeps one (`kept`);
    every process hears the names across reachable again (rule 20)
  a process ends ─► what it served ends; a name gone unclean that nobody else serves:
@@ -36,7 +36,6 @@ from rr_actors._transport.messenger import (
     Endpoint,
     Lost,
     Messenger,
-    Replies,
     run_lost,
 )
 from rr_actors._transport.resolve import Resolution, Resolve, Sided
@@ -45,7 +44,7 @@ from rr_actors.simulation import _primitives as sim
 from rr_actors.simulation._processes import Process
 from rr_actors.simulation._run import running_scheduler
 from rr_actors.simulation._scheduler import Scheduler
-from rr_actors.testing.memory import MemoryNetwork, _Hub, _Served
+from rr_actors.testing.memory import MemoryNetwork, _Hub, _Route, _Served
 
 __all__ = ["SimulatedNetwork"]
 
@@ -200,29 +199,16 @@ class _Wire:
                 logger.exception("%s: a delivery failed", self._name)
 
 
-class _Link:
-    """The way from one simulated process to one served registrar (the messenger's
-    `Route`): a wire there, a wire back for the answers."""
+class _Link(_Route):
+    """The way from one simulated process to one served registrar: a wire there, a wire
+    back for the answers."""
 
-    __slots__ = (
-        "_back",
-        "_hub",
-        "_there",
-        "closed",
-        "limit",
-        "pending",
-        "sender",
-        "served",
-        "severed",
-        "twice",
-    )
+    __slots__ = ("_back", "_hub", "_there", "closed", "sender", "severed", "twice")
 
     def __init__(self, hub: _SimulatedHub, sender: Process, served: _Served) -> None:
+        super().__init__(served, hub.messenger)
         self._hub = hub
         self.sender = sender
-        self.served = served
-        self.limit = served.endpoint.max_message_bytes
-        self.pending = Replies()
         self.closed = False
         self.severed = False  # shut down by a cut: what is on its wires still arrives
         self.twice: list[int] | None = None  # its first frame twice, counted (`duplicate_first`)
@@ -231,7 +217,7 @@ class _Link:
         self._there = _Wire(hub, receiver, f"rr-link-{sender.pid}-to-{name}")
         self._back = _Wire(hub, sender, f"rr-link-{name}-to-{sender.pid}")
 
-    def send(self, data: bytes) -> bool:
+    def put(self, data: bytes) -> bool:
         served, hub = self.served, self._hub
         if self.closed or served.cut or served.gone or hub.apart(self):
             return False
@@ -279,12 +265,9 @@ class _Link:
         )
         self._back.put(lambda: self.pending.fail(None, error))
 
-    def broken(self) -> bool:
-        return False  # (its end fails what waits on it: `_SimulatedHub.end`)
-
 
 def served_by(served: _Served) -> Process:
-    process: Process = getattr(served, "process")  # noqa: B009 - set by `listen`
+    process: Process = getattr(served, "process")  # noqa: B009 - set by `serve`
     return process
 
 
@@ -358,7 +341,7 @@ class _SimulatedHub(_Hub):
         return self.sched.root if task is None else task.process
 
     def served(self, endpoint: Endpoint) -> _Server:
-        # its process set before `listen` publishes it: a thread that runs while it
+        # its process set before `serve` publishes it: a thread that runs while it
         # starts (a seam may switch) and routes to the name finds it whole
         process = self._sender()
         return _Server(self, endpoint, process, self._speaker(endpoint.name, process))
@@ -372,7 +355,7 @@ class _SimulatedHub(_Hub):
             return supervisor
         return process.pid if DIRECTORY.restart_expected(name) else None
 
-    def listen(self, endpoint: Endpoint) -> _Served:
+    def serve(self, endpoint: Endpoint) -> _Served:
         """Serve `endpoint` in its process (one its own process served is let go first).
 
         Raises:
@@ -459,7 +442,7 @@ class _SimulatedHub(_Hub):
             found = self._beyond_of[pid] = parent is not None and self._beyond(parent)
         return found
 
-    def route(self, name: str) -> _Link:  # type: ignore[override]
+    def route(self, name: str) -> _Link:
         """The link from this process to the server of `name` it reaches: the one on its
         side of a partition; of two it sees (after a heal), the one kept (rule 22)."""
         servers = [one for one in self._servers.get(name, []) if not (one.cut or one.gone)]
@@ -507,7 +490,7 @@ class _SimulatedHub(_Hub):
             return True
         return self._divided(link.sender.pid, served_by(link.served).pid)
 
-    def answer_to(self, process: Any, data: bytes, on_lost: Lost | None) -> bool:
+    def answer(self, process: Any, data: bytes, on_lost: Lost | None) -> bool:
         if self.closed:
             return False
         link: _Link = process
@@ -519,7 +502,7 @@ class _SimulatedHub(_Hub):
         name = served.name
         if isinstance(served, _Server):
             served.how = how  # (`_served_elsewhere` reads it)
-        # (first, and without a lock: no choice point lets a `listen` see it served)
+        # (first, and without a lock: no choice point lets a `serve` see it served)
         rest = [one for one in self._servers.pop(name, []) if one is not served]
         if rest:
             self._servers[name] = rest

@@ -8,9 +8,9 @@ messenger's (`rr_actors._transport.messenger`); this file is only the link:
 
 ```
  network.resolve(name).tell(m) ─► messenger: encode, check size, keep the reply ─►
-   _Route.send(frame) ─► the delivery thread of `name` (rr-mem-<name>) ─► its process's
+   hub.send(route, frame) ─► the delivery thread of `name` (rr-mem-<name>) ─► its process's
    messenger: unpickle, stand-in reply, tell the registrar ─► answer frame ─►
-   answer_to(route) ─► the answers thread (rr-mem-answers) ─► the route's `pending`
+   hub.answer(route) ─► the answers thread (rr-mem-answers) ─► the route's `pending`
 ```
 
 Registrars of one process find each other in its directory first: only what a test sends
@@ -34,8 +34,7 @@ from rr_actors._transport.messenger import (
     Listening,
     Lost,
     Messenger,
-    Remote,
-    Replies,
+    Route,
     Transport,
     run_lost,
 )
@@ -91,7 +90,7 @@ class MemoryAddress:
                 f"process's: an in-memory network cannot be joined from another process)"
             )
         member = _MEMBERS.by_system.get(self.system)
-        left = member is not None and member._carrier is None  # (`_Member.close`)
+        left = member is not None and member.closed
         if member is None or left or member.link() is not network.link():
             member = _Member(self.system, resolve=network.resolution.resolve)
             member.joined(network.link())
@@ -102,16 +101,13 @@ class MemoryAddress:
 class _Member(Messenger):
     """A simulated process's membership of a network another one made (`attach`): the
     directory of that process asks it for names. Leaving is its process's end (the
-    simulation cuts what it served); `close` would close the network."""
+    simulation cuts what it served); its `close` stops serving here, the network stays."""
+
+    leaves = False
 
     @property
     def address(self) -> MemoryAddress:
         return MemoryAddress(self.system)
-
-    def close(self) -> None:
-        """Leave the network (stop serving here): the network stays open."""
-        self._carrier = None  # (its leaving is not the network's: no `leave`)
-        super().close()
 
 
 class _Served(Listening):
@@ -126,46 +122,26 @@ class _Served(Listening):
         self.cut = False  # its process is gone
         self.gone = False  # no longer reached
 
-    def stop(self, *, stopped: bool) -> None:
-        self.hub.end(self, "stopped" if stopped else "unavailable")
 
+class _Route(Route):
+    """The way to one served registrar: its delivery thread; one per served registrar,
+    shared by every sender (their replies wait on it)."""
 
-class _Route:
-    """The way to one served registrar (the messenger's `Route`): its delivery thread;
-    one per served registrar, shared by every sender (their replies wait on it)."""
-
-    __slots__ = ("limit", "messenger", "pending", "served")
+    __slots__ = ("messenger", "served")
 
     def __init__(self, served: _Served, messenger: Messenger) -> None:
+        super().__init__(served.endpoint.max_message_bytes)
         self.served = served
         self.messenger = messenger
-        self.limit = served.endpoint.max_message_bytes
-        self.pending = Replies()
 
-    def send(self, data: bytes) -> bool:
+    def put(self, data: bytes) -> bool:
+        """`_Hub.send`; False if nothing of `data` left."""
         served = self.served
         if served.cut or served.gone:
             return False
         endpoint, messenger = served.endpoint, self.messenger
         token, payload = split_frame(data)
         return served.inbox.submit(lambda: messenger.message(endpoint, self, token, payload))
-
-    def broken(self) -> bool:
-        return False  # (its end fails what waits on it: `_Hub.end`)
-
-
-class _MemoryPeer(Remote):
-    """A registrar served on the network, as another "process" reaches it."""
-
-    def __init__(self, hub: _Hub, name: str) -> None:
-        self.name = name
-        self._hub = hub
-
-    def route(self) -> _Route:
-        return self._hub.route(self.name)
-
-    def gone(self) -> RrError:
-        return self._hub.gone_error(self.name)
 
 
 class _Hub:
@@ -186,11 +162,10 @@ class _Hub:
     def names(self) -> list[str]:
         return [name for name, served in list(self._served.items()) if not served.cut]
 
-    def peer(self, name: str) -> _MemoryPeer | None:
-        known = name in self._served or name in self._gone
-        return _MemoryPeer(self, name) if known else None
+    def knows(self, name: str) -> bool:
+        return name in self._served or name in self._gone
 
-    def listen(self, endpoint: Endpoint) -> _Served:
+    def serve(self, endpoint: Endpoint) -> _Served:
         """Serve `endpoint` in a "process" of its own (one name, one registrar).
 
         Raises:
@@ -218,7 +193,7 @@ class _Hub:
         return served
 
     def duplicate_error(self, name: str, by: str) -> DuplicateNameError:
-        """What `listen` raises for a name `by` serves (one name, one registrar)."""
+        """What `serve` raises for a name `by` serves (one name, one registrar)."""
         return DuplicateNameError(
             f"a registrar named {name!r} is already served on system {self.system!r} (by {by})"
         )
@@ -227,11 +202,20 @@ class _Hub:
         """A new `_Served` for `endpoint`, complete before anyone can route to it."""
         return _Served(self, endpoint, self.messenger)
 
+    def unserve(self, listening: Listening, *, stopped: bool) -> None:
+        assert isinstance(listening, _Served)
+        self.end(listening, "stopped" if stopped else "unavailable")
+
     def route(self, name: str) -> _Route:
         served = self._served.get(name)
         if served is None or served.cut or served.gone:
             raise self.gone_error(name)
         return served.route
+
+    def send(self, route: Route, data: bytes) -> None:
+        assert isinstance(route, _Route)
+        if not route.put(data):
+            raise self.gone_error(route.served.name)
 
     def gone_error(self, name: str) -> RrError:
         if self.closed:
@@ -240,7 +224,7 @@ class _Hub:
             return RegistrarStoppedError(f"registrar {name!r} was stopped")
         return RegistrarUnavailableError(f"registrar {name!r} cannot be reached (its process went)")
 
-    def answer_to(self, process: _Route, data: bytes, on_lost: Lost | None) -> bool:
+    def answer(self, process: _Route, data: bytes, on_lost: Lost | None) -> bool:
         """Send an answer back over the route its message came by (`process`): on the
         answers thread, to the route's waiting replies; False if the route went."""
         if process.served.cut or self.closed:

@@ -216,15 +216,62 @@ class TestStoppingAListener:
         assert not os.path.exists(listener.path)  # (the system's close removed the tombstone)
 
 
-def test_a_carrier_is_one_protocol_and_the_transport_is_the_messenger() -> None:
-    # Carriers only carry (issue 54): what a carrier gives the messenger is one protocol of
-    # at most eight members (open a route to a name, serve a name, answer, who can be
-    # reached, leave); the `Transport` the registrar sees is the messenger itself, and
-    # every carrier's membership is one.
+PROTOCOL = {"knows", "route", "send", "answer", "serve", "unserve", "names", "leave"}
+
+
+def _called_on_the_carrier() -> set[str]:
+    """Every member the messenger's code uses of a carrier: `carrier.x`, `self._carrier.x`,
+    `self.link().x`, `peer.carrier.x`, and the members asked by name (`getattr`)."""
+    import ast  # noqa: PLC0415
+    import inspect  # noqa: PLC0415
+
     from rr_actors._transport import messenger  # noqa: PLC0415
 
+    def is_carrier(node: ast.expr) -> bool:
+        return (
+            (isinstance(node, ast.Name) and node.id == "carrier")
+            or (isinstance(node, ast.Attribute) and node.attr in ("carrier", "_carrier"))
+            or (
+                isinstance(node, ast.Call)
+                and isinstance(node.func, ast.Attribute)
+                and node.func.attr == "link"
+            )
+        )
+
+    used = set()
+    for node in ast.walk(ast.parse(inspect.getsource(messenger))):
+        if isinstance(node, ast.Attribute) and is_carrier(node.value):
+            used.add(node.attr)
+        asked = isinstance(node, ast.Call) and getattr(node.func, "id", "") == "getattr"
+        if asked and is_carrier(node.args[0]) and isinstance(node.args[1], ast.Constant):
+            used.add(node.args[1].value)
+    return used
+
+
+def test_a_carrier_is_one_protocol_of_eight_members_that_every_carrier_keeps() -> None:
+    # Carriers only carry (issue 54): what a carrier gives the messenger is one protocol of
+    # at most eight members (know a name, open a route to it, send, answer, serve a name
+    # and stop serving it, who can be reached, leave). Every carrier implements them all;
+    # the peer, a route's record and a served registrar's bookkeeping are the messenger's
+    # own classes, which no carrier completes; the messenger asks a carrier nothing else
+    # (but rule 22's `tell_server`, which only a carrier that can see two servers of one
+    # name has); the `Transport` the registrar sees is the messenger itself.
+    from rr_actors._transport import messenger  # noqa: PLC0415
+    from rr_actors._transport.unix.system import UnixCarrier  # noqa: PLC0415
+    from rr_actors._transport.zenoh.carrier import ZenohCarrier  # noqa: PLC0415
+    from rr_actors.simulation._network import _SimulatedHub  # noqa: PLC0415
+    from rr_actors.testing.memory import _Hub  # noqa: PLC0415
+
     members = {name for name in vars(messenger.Carrier) if not name.startswith("_")}
-    assert {"peer", "listen", "answer_to", "names", "leave"} == members
+    assert PROTOCOL == members
+    assert len(members) <= 8
+    for carrier in (UnixCarrier, ZenohCarrier, _Hub, _SimulatedHub):
+        assert set() == members - set(dir(carrier)), carrier
+    assert PROTOCOL | {"tell_server"} == _called_on_the_carrier()
+    for own in (messenger.Remote, messenger.Route, messenger.Listening):
+        assert not getattr(own, "__abstractmethods__", None), own
+    for gone in ("Lanes", "Lane", "send_when_served"):
+        assert not hasattr(messenger, gone)
     assert messenger.Transport is messenger.Messenger
     assert issubclass(System, messenger.Transport)
     assert issubclass(MemoryNetwork, messenger.Transport)

@@ -29,8 +29,7 @@ from rr_actors._transport.messenger import (
     Listening,
     Lost,
     Messenger,
-    Remote,
-    Replies,
+    Route,
     run_lost,
 )
 from rr_actors.config import DEFAULT_MAX_MESSAGE_BYTES
@@ -409,34 +408,24 @@ def read_limit(path: str) -> int:
 # -- the outbound side: a channel to a registrar of another process ---------------------------
 
 
-class _Channel:
-    """One connection from this process to a remote registrar: the peer's `Route`."""
+class _Channel(Route):
+    """One connection from this process to a remote registrar (a fresh one may take a
+    frame this one could not: `again`)."""
 
-    __slots__ = ("limit", "peer", "pending", "reading", "writer")
+    __slots__ = ("dial", "reading", "writer")
 
     def __init__(
-        self,
-        writer: Writer,
-        limit: int = DEFAULT_MAX_MESSAGE_BYTES,
-        peer: RemotePeer | None = None,
+        self, writer: Writer, limit: int = DEFAULT_MAX_MESSAGE_BYTES, dial: Dial | None = None
     ) -> None:
+        super().__init__(limit, again=True)
         self.writer = writer
-        self.limit = limit
-        self.peer = peer
-        self.pending = Replies()
+        self.dial = dial
         self.reading: Connection | None = None  # the reader thread's (a duplicate descriptor)
 
-    def send(self, data: bytes) -> bool:
-        return self.writer.send(data)
 
-    def broken(self) -> bool:  # (a fresh channel may take the frame)
-        if self.peer is not None:
-            self.peer._lose(self, None)
-        return True
-
-
-class RemotePeer(Remote):
-    """A registrar of another process: its route is one connection, made lazily."""
+class Dial:
+    """This process's way to registrar `name` of another process: one connection, made
+    lazily, again once it went (`route`)."""
 
     def __init__(self, system: Rendezvous, name: str) -> None:
         self.name = name
@@ -448,21 +437,19 @@ class RemotePeer(Remote):
     def route(self) -> _Channel:
         channel = self._channel
         if channel is None or channel.writer.closed:
+            if channel is not None:  # (a frame could not leave it: what waits on it fails)
+                self._lose(channel, None)
             channel = self._open()
         return channel
 
-    def gone(self) -> RrError:
-        return self._gone("lost its connection")
+    def send(self, channel: _Channel, data: bytes) -> None:
+        if not channel.writer.send(data):
+            raise self._gone("lost its connection")
 
     def close(self, error: RrError) -> None:
         channel = self._channel
         if channel is not None:
             self._lose(channel, error)
-
-    def connect(self) -> None:
-        """Open a connection now if there is none (its end is then seen: rule 19)."""
-        with contextlib.suppress(RrError):
-            self._open()
 
     def forget_in_child(self) -> None:
         """In a forked child: drop the parent's connection and replies, never shut down."""
@@ -637,8 +624,6 @@ class Listener(Listening):
         self._connections: set[_Accepted] = set()
         self._closed = False
         self._wake = threading.Event()  # a connection ended, or the listener closes
-        self._failing_since: float | None = None  # monotonic time of the first failed accept
-        self._failure = ""
         self._lock_fd = _take_lock(system.address.lock_path(self.name), self.name)
         self.limit_path = system.address.limit_path(self.name)
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
@@ -658,19 +643,12 @@ class Listener(Listening):
             os.unlink(self.tombstone)
         threading.Thread(target=self._accept, name=f"rr-listen-{self.name}", daemon=True).start()
 
-    def trouble(self) -> tuple[float, str] | None:
-        """`Listening.trouble`; infinite seconds if its accept thread died."""
-        since = self._failing_since
-        if since is None:
-            return None
-        return time.monotonic() - since, self._failure
-
     def _accept(self) -> None:
         try:
             self._accept_until_closed()
         except BaseException as exc:  # a bug: say so, and let the heartbeat report it
-            self._failing_since = -math.inf
-            self._failure = f"its accept thread died: {exc!r}"
+            self.failing_since = -math.inf  # (in trouble for ever)
+            self.failure = f"its accept thread died: {exc!r}"
             logger.exception("registrar %s stopped accepting connections", self.name)
 
     def _accept_until_closed(self) -> None:
@@ -693,7 +671,7 @@ class Listener(Listening):
                 sock.close()
                 backoff = self._cannot_accept(exc, backoff)
                 continue
-            if self._failing_since is not None:
+            if self.failing_since is not None:
                 self._accepting_again()
             backoff = _BACKOFF_FIRST
             with self._lock:
@@ -714,9 +692,9 @@ class Listener(Listening):
 
     def _cannot_accept(self, exc: OSError, backoff: float) -> float:
         """Note a failed accept (log the first of a run), wait `backoff`; the next one."""
-        if self._failing_since is None:
-            self._failing_since = time.monotonic()
-            self._failure = f"{type(exc).__name__}: {exc}"
+        if self.failing_since is None:
+            self.failing_since = time.monotonic()
+            self.failure = f"{type(exc).__name__}: {exc}"
             with self._lock:
                 open_connections = len(self._connections)
             logger.warning(
@@ -732,11 +710,12 @@ class Listener(Listening):
         return min(2 * backoff, _BACKOFF_MAX)
 
     def _accepting_again(self) -> None:
-        trouble = self.trouble()
-        self._failing_since = None
-        if trouble is not None:
+        since, self.failing_since = self.failing_since, None
+        if since is not None:
             logger.info(
-                "registrar %s accepts connections again after %.3f s", self.name, trouble[0]
+                "registrar %s accepts connections again after %.3f s",
+                self.name,
+                time.monotonic() - since,
             )
 
     def forget(self, accepted: _Accepted) -> None:

@@ -17,9 +17,9 @@ import time
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._platform import PLATFORM, forkserver
-from rr_actors._transport.messenger import Endpoint, Lost, Messenger
-from rr_actors._transport.unix.link import Listener, RemotePeer, _Accepted, lock_held
-from rr_actors.errors import ConfigError
+from rr_actors._transport.messenger import Endpoint, Listening, Lost, Messenger, Route
+from rr_actors._transport.unix.link import Dial, Listener, _Accepted, _Channel, lock_held
+from rr_actors.errors import ConfigError, RegistrarStoppedError, RegistrarUnavailableError, RrError
 
 logger = logging.getLogger("rr_actors")
 
@@ -84,22 +84,36 @@ class UnixCarrier:
         self._awaited: set[str] = set()  # gone, their speaker alive
         self._lost: set[str] = set()  # reported lost (until served again)
         self._judge_thread: threading.Thread | None = None
+        self._dials: dict[str, Dial] = {}  # name -> its connection (`route`)
 
     @property
     def closed(self) -> bool:
         return self.messenger.closed
 
-    def peer(self, name: str) -> RemotePeer | None:
-        """A peer of registrar `name` if it listens in the directory, or was stopped."""
+    def knows(self, name: str) -> bool:
+        """Whether registrar `name` listens in the directory, or was stopped."""
         address = self.address
-        if os.path.exists(address.socket_path(name)) or os.path.exists(
+        return os.path.exists(address.socket_path(name)) or os.path.exists(
             address.tombstone_path(name)
-        ):
-            return RemotePeer(self, name)
-        return None
+        )
 
-    def listen(self, endpoint: Endpoint) -> Listener:
+    def route(self, name: str) -> _Channel:
+        """Its connection (made now, connected on its writer thread)."""
+        dial = self._dials.get(name)
+        if dial is None:
+            with self._presence:
+                dial = self._dials.setdefault(name, Dial(self, name))
+        return dial.route()
+
+    def send(self, route: Route, data: bytes) -> None:
+        assert isinstance(route, _Channel)
+        assert route.dial is not None
+        route.dial.send(route, data)
+
+    def serve(self, endpoint: Endpoint) -> Listener:
         """Listen on `<runtime_dir>/<name>.sock`, holding `<name>.lock`."""
+        name = endpoint.name
+        self._drop(name, RegistrarUnavailableError(f"registrar {name!r} moved into this process"))
         path = self.address.socket_path(endpoint.name)
         if len(os.fsencode(path)) > _MAX_SOCKET_PATH:
             raise ConfigError(
@@ -108,7 +122,11 @@ class UnixCarrier:
             )
         return Listener(self, endpoint)
 
-    def answer_to(self, process: _Accepted, data: bytes, on_lost: Lost | None) -> bool:
+    def unserve(self, listening: Listening, *, stopped: bool) -> None:
+        assert isinstance(listening, Listener)
+        listening.stop(stopped=stopped)
+
+    def answer(self, process: _Accepted, data: bytes, on_lost: Lost | None) -> bool:
         return process.send(data, on_lost)
 
     def names(self) -> list[str]:
@@ -119,6 +137,9 @@ class UnixCarrier:
         return [e.removesuffix(".sock") for e in entries if e.endswith(".sock")]
 
     def leave(self) -> None:
+        self._drop(
+            None, RegistrarStoppedError(f"this process left system {self.messenger.system!r}")
+        )
         with self._presence:
             self._presence.notify_all()  # the presence thread ends
         with _ATTACHED_LOCK:
@@ -146,7 +167,20 @@ class UnixCarrier:
                 self._judge_thread.start()
             self._presence.notify_all()
 
+    def _drop(self, name: str | None, error: RrError) -> None:
+        """Close the connection to `name` (`None`: every one); what waits fails with `error`."""
+        with self._presence:
+            if name is None:
+                dials, self._dials = list(self._dials.values()), {}
+            else:
+                dials = [self._dials.pop(name)] if name in self._dials else []
+        for dial in dials:
+            dial.close(error)
+
     def forget_in_child(self) -> None:
+        for dial in self._dials.values():
+            dial.forget_in_child()
+        self._dials = {}
         self._presence = threading.Condition()
         self._judging.clear()
         self._awaited.clear()
@@ -205,13 +239,13 @@ class UnixCarrier:
         if verdict == "served":
             self._lost.discard(name)
             MEMBERSHIP.back(name)  # served (again): no longer gone for good
-            peer = self.messenger.peer(name)
             if (
                 awaited
-                and isinstance(peer, RemotePeer)
+                and self.messenger.peer(name) is not None
                 and any(n != name for n in self.messenger.served())
             ):
-                peer.connect()  # restarted: connect now, so that its next end is seen too
+                with contextlib.suppress(RrError):  # restarted: connect now, so that
+                    self.route(name)  # its next end is seen too
         elif verdict == "awaited":
             with self._presence:
                 self._awaited.add(name)
@@ -281,10 +315,14 @@ class AttachedSystem(Messenger):
     def address(self) -> SystemAddress:
         return self._address
 
-    def forget_in_child(self) -> None:
+    def forget_in_child(self) -> list[Listening]:
         """In a forked child: drop the parent's listeners, connections, presence thread."""
-        super().forget_in_child()
+        served = super().forget_in_child()
+        for listening in served:
+            assert isinstance(listening, Listener)
+            listening.forget_in_child()
         self._unix.forget_in_child()
+        return served
 
     def __enter__(self) -> AttachedSystem:
         return self

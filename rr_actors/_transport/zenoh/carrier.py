@@ -10,6 +10,7 @@ import contextlib
 import functools
 import logging
 import struct
+import sys
 import threading
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
@@ -23,14 +24,11 @@ from rr_actors._transport.codec import NO_REPLY, Claim, frame
 from rr_actors._transport.messenger import (
     Carrier,
     Endpoint,
-    Lane,
-    Lanes,
     Listening,
     Lost,
     Messenger,
-    Remote,
-    send,
-    send_when_served,
+    Route,
+    too_large,
 )
 from rr_actors._transport.resolve import Sided
 from rr_actors._transport.zenoh import callbacks
@@ -60,59 +58,69 @@ from rr_actors.errors import (
 logger = logging.getLogger("rr_actors")
 
 
-class ZenohPeer(Remote):
-    """A registrar of another process over Zenoh; its lane is the key's outbox."""
+class _Route(Route):
+    """The server seen for `name` (its process `zid`); replies wait in the one table."""
 
-    def __init__(self, carrier: ZenohCarrier, name: str) -> None:
-        self.name = name
-        self._carrier = carrier
+    __slots__ = ("name", "zid")
 
-    def tell(self, message: Any) -> None:
-        """`Remote.tell`; on an actor's thread, to one not seen served: `send_when_served`."""
-        carrier = self._carrier
-        if on_actor_thread() and carrier.unseen(self.name):
-            send_when_served(self, carrier, message)
-        else:
-            send(self, message)
-
-    def route(self) -> _Route:
-        return self._carrier.route(self.name)
-
-    def gone(self) -> RrError:
-        return self._carrier.gone_error(self.name)
-
-
-class _Route:
-    """The server seen for `name` and its outbox (`now`: put at once, on its thread)."""
-
-    __slots__ = ("_carrier", "_now", "limit", "name", "pending", "zid")
-
-    def __init__(
-        self, carrier: ZenohCarrier, name: str, server: Server, now: Outbox | None = None
-    ) -> None:
-        self._carrier = carrier
-        self._now = now
+    def __init__(self, carrier: ZenohCarrier, name: str, server: Server) -> None:
+        super().__init__(server.limit, carrier.replies)  # (answers come on one key)
         self.name = name
         self.zid = server.zid
-        self.limit = server.limit
-        self.pending = carrier.replies  # (one table: answers come on one key)
 
-    def send(self, data: bytes) -> bool:
-        carrier = self._carrier
-        outbox = self._now
-        if outbox is not None:  # (on its thread: in order with what waits behind it)
-            if outbox.closed or carrier.presence.server(self.name) is None:
-                return False
-            return outbox.put(envelope(MESSAGE, carrier.zid, data, CLOCK.send()))
-        outbox = carrier.outbox(carrier.keys.registrar(self.name), self.zid)
-        return (  # (gone meanwhile: its presence may have missed this reply)
-            carrier.presence.server(self.name) is not None
-            and outbox is not None
-            and outbox.send(envelope(MESSAGE, carrier.zid, data, CLOCK.send()))
-        )
 
-    def broken(self) -> bool:
-        return False  # (the server went: its presence fails what waits on it)
+class _Held(Route):
+    """A message to `name`, not seen served, held on the name's lane (its outbox) until
+    the network says who serves it: its reply waits here until then (`_WhenServed`)."""
+
+    __slots__ = ("name",)
+
+    def __init__(self, name: str) -> None:
+        super().__init__(sys.maxsize)  # (checked once its server is known)
+        self.name = name
+
+
+class _WhenServed:
+    """The lane's task of a `_Held` message: found, checked, its reply moved, put."""
+
+    __slots__ = ("carrier", "data", "held", "lane")
+
+    def __init__(self, carrier: ZenohCarrier, held: _Held, data: bytes, lane: Outbox) -> None:
+        self.carrier = carrier
+        self.held = held
+        self.data = data
+        self.lane = lane
+
+    def __call__(self) -> None:  # (on the lane's thread)
+        carrier, held, name = self.carrier, self.held, self.held.name
+        route = carrier.found(name, self.lane)
+        if isinstance(route, RrError):  # this one fails first, then what waits behind it:
+            self.unsent(route)  # refused in the order told, never a later one first
+            carrier.retire(self.lane, route)
+            return
+        waiting = list(held.pending.items())  # (its reply, if any)
+        error = too_large(waiting[0][1][1] if waiting else None, self.data, name, route.limit)
+        if error is not None:
+            self.unsent(error)
+            return
+        held.pending.clear()
+        for token, (reply, message, peer, _limit) in waiting:
+            route.pending[token] = (reply, message, peer, route.limit)
+        if not carrier.put_now(self.lane, name, self.data) and (
+            not waiting or route.pending.forget(waiting[0][0])
+        ):  # (gone meanwhile: what ended it may have missed this reply)
+            held.pending.update(waiting)
+            self.unsent(carrier.gone_error(name))
+
+    def unsent(self, error: RrError) -> None:
+        if self.held.pending:
+            self.held.pending.fail(None, error)
+        else:
+            logger.debug("a message to %s was not sent: %s", self.held.name, error)
+
+    def dropped(self) -> None:
+        """The lane closed before it ran: its reply fails, as the one before it did."""
+        self.unsent(self.lane.refusal or self.carrier.unreached(self.held.name))
 
 
 class Local(Listening):
@@ -136,24 +144,6 @@ class Local(Listening):
     @property
     def rank(self) -> tuple[int, int]:
         return (self.stamp, int(self.carrier.zid, 16))
-
-    def settle(self) -> None:
-        """Settle a rival heard meanwhile (rule 22); return once the router saw its token."""
-        carrier = self.carrier
-        rival = carrier.presence.server(self.name)
-        if rival is not None:
-            carrier.served_elsewhere(self.name, rival)
-        carrier.barrier(self.token_key)
-
-    def stop(self, *, stopped: bool) -> None:
-        """Undeclare its subscriber and token on this thread (`callbacks`)."""
-        subscriber, token, self.subscriber, self.token = self.subscriber, self.token, None, None
-        first, then = (subscriber, token) if self.yielded else (token, subscriber)
-        if stopped and not self.yielded:
-            self.carrier.mark_stopped(self.name)
-        for declared in (first, then):
-            with contextlib.suppress(Exception):
-                declared.undeclare()
 
 
 def _pong(query: zenoh.Query) -> None:
@@ -222,12 +212,12 @@ class ZenohCarrier:
 
     # -- the Carrier -------------------------------------------------------------------
 
-    def peer(self, name: str) -> ZenohPeer | None:
-        """`Carrier.peer`; a name not heard of is asked of the network (not on an actor)."""
+    def knows(self, name: str) -> bool:
+        """`Carrier.knows`; a name not heard of is asked of the network (not on an actor)."""
         presence = self.presence
         known = presence.serves(name)  # (served elsewhere now: before a local record)
         if not known and not isinstance(DIRECTORY.gone_error(name), UnknownRegistrarError):
-            return None  # a registrar of this process that stopped or died
+            return False  # a registrar of this process that stopped or died
         known = known or presence.gone(name) is not None
         if not known and NAME.fullmatch(name):
             if on_actor_thread():
@@ -239,10 +229,12 @@ class ZenohCarrier:
                     raise self._untold(name, why)
         if not known:
             raise self._unknown_error(name)
-        return ZenohPeer(self, name)
+        return True
 
-    def listen(self, endpoint: Endpoint) -> Local:
-        """Claim the name, then declare subscriber and token. Raises as `wait_turn`."""
+    def serve(self, endpoint: Endpoint) -> Local:
+        """Claim the name, then declare subscriber and token; a rival heard meanwhile is
+        told to the messenger (rule 22); return once the router saw the token. Raises as
+        `wait_turn`."""
         name, keys, session = endpoint.name, self.keys, self.session
         mark = self._stop_marks.pop(name, None)
         if mark is not None:
@@ -278,7 +270,23 @@ class ZenohCarrier:
             raise
         finally:  # after the token: a rival sees this one serve before the claim goes
             claim.undeclare()  # type: ignore[no-untyped-call]
+        rival = self.presence.server(name)
+        if rival is not None:
+            self.served_elsewhere(name, rival)
+        self.barrier(local.token_key)
         return local
+
+    def unserve(self, listening: Listening, *, stopped: bool) -> None:
+        """Undeclare its subscriber and token on this thread (`callbacks`)."""
+        assert isinstance(listening, Local)
+        subscriber, token = listening.subscriber, listening.token
+        listening.subscriber = listening.token = None
+        first, then = (subscriber, token) if listening.yielded else (token, subscriber)
+        if stopped and not listening.yielded:
+            self.mark_stopped(listening.name)
+        for declared in (first, then):
+            with contextlib.suppress(Exception):
+                declared.undeclare()
 
     def _members(self) -> int:
         """The system's members as counted here (rule 22's `majority`; 0: unknown)."""
@@ -297,8 +305,8 @@ class ZenohCarrier:
             with contextlib.suppress(Exception):
                 old.undeclare()
 
-    def answer_to(self, process: str, data: bytes, on_lost: Lost | None) -> bool:
-        """`Carrier.answer_to` a Zenoh id (one whose token is not seen yet is not gone)."""
+    def answer(self, process: str, data: bytes, on_lost: Lost | None) -> bool:
+        """`Carrier.answer` to a Zenoh id (one whose token is not seen yet is not gone)."""
         if self.presence.unreachable(process):
             return False
         outbox = self.outbox(self.keys.answers(process), process)
@@ -420,8 +428,11 @@ class ZenohCarrier:
             return self.gone_error(name)
         return self._unknown_error(name)
 
-    def route(self, name: str) -> _Route:
-        """`ZenohPeer.route` (the network is asked, but not on an actor's thread)."""
+    def route(self, name: str) -> Route:
+        """The server seen for `name`, else the network is asked; on an actor's thread, to
+        a name not seen served: a `_Held` route, sent when served (`send`)."""
+        if on_actor_thread() and self.unseen(name):
+            return _Held(name)
         server = self.presence.server(name)
         if server is None and not self.closed and not on_actor_thread():
             self.presence.question_until_seen(name)  # maybe served again, not heard yet
@@ -430,7 +441,32 @@ class ZenohCarrier:
             raise self.gone_error(name)
         return _Route(self, name, server)
 
-    # -- sending when served (the messenger's `Lanes`) ---------------------------------------
+    def send(self, route: Route, data: bytes) -> None:
+        """Put `data` on the route's key, in order; a `_Held` one on its name's lane."""
+        if isinstance(route, _Held):
+            for _attempt in (1, 2):  # (the second: its lane was just retired, nobody's)
+                lane = self.outbox(self.keys.registrar(route.name), declared=False)
+                if lane is None:
+                    break
+                if lane.run(_WhenServed(self, route, data, lane)):
+                    return
+            raise self.gone_error(route.name)
+        assert isinstance(route, _Route)
+        outbox = self.outbox(self.keys.registrar(route.name), route.zid)
+        if (  # (gone meanwhile: its presence may have missed this reply)
+            self.presence.server(route.name) is None
+            or outbox is None
+            or not outbox.send(envelope(MESSAGE, self.zid, data, CLOCK.send()))
+        ):
+            raise self.gone_error(route.name)
+
+    def put_now(self, outbox: Outbox, name: str, data: bytes) -> bool:
+        """On `outbox`'s thread: put `data` now, in order with what waits behind it."""
+        if outbox.closed or self.presence.server(name) is None:
+            return False
+        return outbox.put(envelope(MESSAGE, self.zid, data, CLOCK.send()))
+
+    # -- sending when served ----------------------------------------------------------------
 
     def unseen(self, name: str) -> bool:
         presence = self.presence
@@ -438,20 +474,15 @@ class ZenohCarrier:
             not self.closed and presence.server(name) is None and presence.gone(name) != "stopped"
         )
 
-    def lane(self, name: str) -> Outbox | None:
-        """`name`'s outbox, declared on its thread after the network was asked."""
-        return self.outbox(self.keys.registrar(name), declared=False)
-
-    def found(self, name: str, lane: Lane) -> _Route | RrError:
-        """`Lanes.found`; a server just seen gets a ping first (a put before may be lost)."""
+    def found(self, name: str, outbox: Outbox) -> _Route | RrError:
+        """On `outbox`'s thread: the route to `name`'s server (the network asked, bounded),
+        or the error; a server just seen gets a ping first (a put before may be lost)."""
         presence = self.presence
         server = presence.server(name)
         why = None
         if server is None and not self.closed and presence.gone(name) != "stopped":
             why = presence.question_until_seen(name)  # (an empty answer, asked again)
             server = presence.server(name)
-        assert isinstance(lane, Outbox)
-        outbox = lane
         if server is None:
             if why is None or self.closed or presence.gone(name) is not None:
                 return self.unreached(name)
@@ -460,12 +491,12 @@ class ZenohCarrier:
         if outbox.pinged != server.zid:  # just seen: a put before its ping may be lost
             self._outboxes.until_answered(server.zid)
             outbox.pinged = server.zid
-        return _Route(self, name, server, now=outbox)
+        return _Route(self, name, server)
 
-    def retire(self, lane: Lane, error: RrError) -> None:
-        assert isinstance(lane, Outbox)
-        lane.refusal = error
-        self._outboxes.retire(lane)
+    def retire(self, outbox: Outbox, error: RrError) -> None:
+        """On `outbox`'s thread: nobody's from now on; what waits fails with `error`."""
+        outbox.refusal = error
+        self._outboxes.retire(outbox)
 
     def outbox(self, key: str, zid: str | None = None, *, declared: bool = True) -> Outbox | None:
         """`Outboxes.get`; `None` once this process left the system."""
@@ -500,4 +531,3 @@ class ZenohCarrier:
 
 if TYPE_CHECKING:  # mypy checks that the carrier is the messenger's
     _carrier: type[Carrier] = ZenohCarrier
-    _lanes: type[Lanes] = ZenohCarrier

@@ -76,7 +76,7 @@ class Outbox:
         return self._queue.submit(functools.partial(self.put, data, on_lost))
 
     def run(self, task: Callable[[], None]) -> bool:
-        """`Lane.run`: `task` may wait on the writer thread, and `put`."""
+        """Run `task` on the writer thread, in order (it may wait, and `put`); False if closed."""
         return self._queue.submit(task)
 
     def declare(self) -> None:

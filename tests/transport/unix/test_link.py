@@ -32,9 +32,11 @@ import rr_actors as rr
 import rr_actors._transport.unix.link as writer_module
 from rr_actors._registrar.life import Served
 from rr_actors._registrar.messages import Fetch, Load
-from rr_actors._transport import RemotePeer, System
+from rr_actors._transport import System
+from rr_actors._transport.messenger import Remote, Route
 from rr_actors._transport.unix.link import (
     HANDSHAKE_TIMEOUT,
+    Dial,
     Writer,
     _Channel,
     connect,
@@ -200,8 +202,7 @@ class _CountingReply:
 
 def _lose_while_reading(system: System, answers: int) -> list[int]:
     """Close a peer's channel while a thread pops its answers; tokens not answered once."""
-    peer = RemotePeer(system.link(), f"nobody-{uuid.uuid4().hex[:8]}")
-    assert isinstance(peer, RemotePeer)
+    peer = Dial(system._unix, f"nobody-{uuid.uuid4().hex[:8]}")
     channel = _Channel(Writer(None, lambda _exc: None))
     peer._channel = channel
     replies = {token: _CountingReply() for token in range(1, answers + 1)}
@@ -226,6 +227,21 @@ def _lose_while_reading(system: System, answers: int) -> list[int]:
 
 
 BOUND = 5.0  # seconds the peer may take to read the end (a loaded machine)
+
+
+class _OwnConnection:
+    """A carrier's routes to one name over a connection of its own (the system's carrier
+    keeps one per name)."""
+
+    def __init__(self, system: System, name: str) -> None:
+        self.dial = Dial(system._unix, name)
+
+    def route(self, _name: str) -> Route:
+        return self.dial.route()
+
+    def send(self, route: Route, data: bytes) -> None:
+        assert isinstance(route, _Channel)
+        self.dial.send(route, data)
 
 
 def test_a_client_with_the_wrong_authkey_is_refused_and_nothing_runs(
@@ -298,11 +314,11 @@ def test_a_listener_out_of_file_descriptors_accepts_again_once_some_are_free(
     finally:
         for sock in raw:
             sock.close()
-    newcomer = RemotePeer(system.link(), provider.name)  # a peer with a connection of its own
+    newcomer = _OwnConnection(system, provider.name)
     try:
-        assert 0 == newcomer.run(load_count, timeout=10)
+        assert 0 == Remote(newcomer, provider.name).run(load_count, timeout=10)
     finally:
-        newcomer.close(rr.RegistrarStoppedError("the test is over"))
+        newcomer.dial.close(rr.RegistrarStoppedError("the test is over"))
 
 
 def test_a_connect_to_a_full_backlog_waits_for_room_instead_of_failing(
@@ -346,12 +362,12 @@ def test_two_hundred_peers_connecting_at_once_to_a_busy_listener_all_get_through
 ) -> None:
     provider = start_provider()
     path = system.address.socket_path(provider.name)
-    peers = [RemotePeer(system.link(), provider.name) for _ in range(200)]
+    peers = [_OwnConnection(system, provider.name) for _ in range(200)]
     outcomes: list[Any] = []
 
-    def run(peer: RemotePeer) -> None:
+    def run(peer: _OwnConnection) -> None:
         try:
-            outcomes.append(peer.run(load_count, timeout=30))
+            outcomes.append(Remote(peer, provider.name).run(load_count, timeout=30))
         except Exception as exc:
             outcomes.append(exc)
 
@@ -367,7 +383,7 @@ def test_two_hundred_peers_connecting_at_once_to_a_busy_listener_all_get_through
     for thread in threads:
         thread.join(40)
     for peer in peers:
-        peer.close(rr.RegistrarStoppedError("the test is over"))
+        peer.dial.close(rr.RegistrarStoppedError("the test is over"))
 
     assert [0] * len(peers) == outcomes
 

@@ -29,7 +29,8 @@ import pytest
 import rr_actors as rr
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._registrar.life import Served
-from rr_actors._transport import RemotePeer, System, SystemAddress, attach
+from rr_actors._transport import System, SystemAddress, attach
+from rr_actors._transport.messenger import Remote
 from rr_actors.testing import expect_restart
 from tests.support.carriers import (
     ProviderFactory,
@@ -148,8 +149,8 @@ def kill(process: multiprocessing.process.BaseProcess) -> None:
 
 
 def _connected(system: System, name: str) -> bool:
-    peer = system._peers.get(name)
-    channel = None if peer is None else peer._channel
+    dial = system._unix._dials.get(name)
+    channel = None if dial is None else dial._channel
     return channel is not None and not channel.writer.closed
 
 
@@ -233,8 +234,8 @@ def test_a_remote_peer_is_what_the_directory_hands_out_for_another_process(
 ) -> None:
     provider = start_provider()
 
-    assert isinstance(DIRECTORY.lookup(provider.name), RemotePeer)
-    assert not isinstance(DIRECTORY.lookup(consumer.name), RemotePeer)
+    assert isinstance(DIRECTORY.lookup(provider.name), Remote)
+    assert not isinstance(DIRECTORY.lookup(consumer.name), Remote)
 
 
 def test_of_processes_racing_to_serve_one_name_exactly_one_serves_it(

@@ -699,19 +699,19 @@ def _deaf_main(
     presence.Presence._apply = deaf  # type: ignore[method-assign]
     if told_first:
         told = threading.Event()
-        served_elsewhere, listen = Messenger.served_elsewhere, ZenohCarrier.listen
+        served_elsewhere, serve = Messenger.served_elsewhere, ZenohCarrier.serve
 
         def heard(self: Messenger, named: str, rival: Any) -> None:
             served_elsewhere(self, named, rival)
             told.set()
 
-        def listen_until_told(self: ZenohCarrier, endpoint: Any) -> Any:
-            local = listen(self, endpoint)
+        def serve_until_told(self: ZenohCarrier, endpoint: Any) -> Any:
+            local = serve(self, endpoint)
             told.wait(10)
             return local
 
         Messenger.served_elsewhere = heard  # type: ignore[method-assign]
-        ZenohCarrier.listen = listen_until_told  # type: ignore[method-assign]
+        ZenohCarrier.serve = serve_until_told  # type: ignore[method-assign]
     network = rr.ZenohNetwork(system=system, connect=[connect], tls=None)
     registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
     try:
