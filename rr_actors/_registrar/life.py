@@ -338,9 +338,8 @@ class Lifecycle:
                     waiting.set_result(None)
                 else:
                     waiting.set_error(unsaved)
-            self.fail_waiting(
-                RegistrarStoppedError(f"registrar {self.registrar.name!r} was stopped")
-            )
+            name = self.registrar.name
+            self.fail_waiting(RegistrarStoppedError(f"registrar {name!r} was stopped", name))
             self.registrar.probe("stop_drained", None)
             self.registrar.phase = Phase.ENDED
             self.actor.end_now()  # at once: what arrives from now on goes to `on_late`

@@ -1576,6 +1576,34 @@ class TestProviderLost:
         assert [query.id] == [q.id for q in provider.server_queries("leaf")]
         assert [] == unloads
 
+    def test_a_provider_whose_process_leaves_the_system_with_its_ask_standing_releases_nothing(
+        self, system: System, started: list[rr.ResourceRegistrar]
+    ) -> None:
+        # issue 51's review: the ask of a healed link still in flight as the provider's own
+        # process leaves fails "this process left": taken for the consumer's "stopped", it
+        # released the ids of a consumer that runs on and holds them
+        unloads: list[str] = []
+        provider = rr.ResourceRegistrar.start(
+            named("provider"), setup=leaf_setup(unloads), network=system
+        )
+        started.append(provider)
+        consumer = RemoteRegistrar.start(named("consumer"), system)
+        query = consumer.call(provider.name, "leaf", "camera")
+        pid = consumer.pid
+        assert pid is not None
+        os.kill(pid, signal.SIGSTOP)  # (it answers no ask: the ask stands as the process leaves)
+        try:
+            Served(provider).peer_reachable(consumer.name)  # (its link healed: asked)
+            provider.client_queries()  # (a round trip: the ask left)
+            system.close()  # this process leaves; its registrar runs on
+            provider.client_queries()  # (the ask's failure, handled)
+            assert [query.id] == [q.id for q in provider.server_queries("leaf")]
+            assert [] == unloads
+        finally:
+            with expect_restart(consumer.name):
+                os.kill(pid, signal.SIGKILL)
+                os.kill(pid, signal.SIGCONT)
+
     def test_a_name_heard_lost_whose_server_does_not_answer_is_lost_after_all(
         self, system: System, started: list[rr.ResourceRegistrar]
     ) -> None:
