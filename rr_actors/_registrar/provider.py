@@ -1360,7 +1360,8 @@ class Unloading:
         held = set(message.held)
         asked = self.asked.get(message.origin_rr)
         if asked is not None and (  # (asked by `Presence.lose`: the answer, or a later run's;
-            message.round == asked[0]  # none heard of since this run began: only the answer)
+            # none heard of since this run began: only the answer, to this run's ask)
+            (message.round, message.ask_life) == (asked[0], self.registrar.life)
             or not message.life
             or (asked[2] != "" and life_order(message.life) > life_order(asked[2]))
         ):
