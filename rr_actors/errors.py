@@ -204,7 +204,16 @@ class RegistrarUnavailableError(RrError):
 
 
 class RegistrarStoppedError(RrError):
-    """The registrar was stopped by its owner (`stop()`), so it takes no more work."""
+    """The registrar was stopped by its owner (`stop()`), so it takes no more work.
+
+    Attributes:
+        registrar: the registrar its owner stopped, where that one's end says so; `None`:
+            this side's (its process left the system, or the network closed).
+    """
+
+    def __init__(self, message: str = "", registrar: str | None = None) -> None:
+        super().__init__(message)
+        self.registrar = registrar
 
 
 class CatalogCorruptError(RrError):

@@ -165,7 +165,7 @@ class Directory:
             return RegistrarUnavailableError(f"registrar {name!r} is being restarted")
         reason = self._gone.get(name)
         if reason == "stopped":
-            return RegistrarStoppedError(f"registrar {name!r} was stopped")
+            return RegistrarStoppedError(f"registrar {name!r} was stopped", name)
         if reason == "died":
             return RegistrarUnavailableError(f"registrar {name!r} died")
         return UnknownRegistrarError(

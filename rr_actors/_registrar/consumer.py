@@ -976,14 +976,15 @@ class Reconciling:
         self.releases = releases
         self.due = due
         self.redeliver = redeliver
-        self.asked_to_reconcile: dict[str, int] = {}  # provider -> the ask's round (0: none)
+        # provider -> the ask's round and life ((0, ""): none)
+        self.asked_to_reconcile: dict[str, tuple[int, str]] = {}
         self.everyone = False
 
     def expect_reconcile(self, providers: Iterable[str]) -> None:
         for provider in providers:
-            self.asked_to_reconcile.setdefault(provider, 0)
+            self.asked_to_reconcile.setdefault(provider, (0, ""))
 
-    def reconcile_all(self) -> dict[str, int]:
+    def reconcile_all(self) -> dict[str, tuple[int, str]]:
         """This registrar serves (again): reconcile with every provider it holds ids at, those
         that asked during setup, and (`everyone`) every registrar it can reach now; but those
         that asked with a round, returned (provider -> round) for `Presence.attempt` to answer:
@@ -993,7 +994,7 @@ class Reconciling:
         if self.everyone:
             providers |= DIRECTORY.names() - {self.registrar.name}
         asks, self.asked_to_reconcile = self.asked_to_reconcile, {}
-        rounds = {serving_rr: round_ for serving_rr, round_ in asks.items() if round_}
+        rounds = {serving_rr: ask for serving_rr, ask in asks.items() if ask[0]}
         for serving_rr in sorted(providers - rounds.keys()):
             self.reconcile(serving_rr)
         return rounds
@@ -1042,7 +1043,8 @@ class Reconciling:
             return False  # (told as every registrar of the system is: nothing to reconcile)
         if self.registrar.phase is Phase.SETTING_UP:  # its status callbacks are not attached yet
             asks = self.asked_to_reconcile
-            asks[message.serving_rr] = message.round or asks.get(message.serving_rr, 0)
+            ask = (message.round, message.life)
+            asks[message.serving_rr] = ask if ask[0] else asks.get(message.serving_rr, ask)
             return False
         return True
 
@@ -1058,17 +1060,17 @@ class Reconciling:
         serving_rr: str,
         then: Callable[[BaseException | None], None] | None = None,
         life: str = "",
-        ask: int = 0,
+        ask: tuple[int, str] = (0, ""),
     ) -> None:
         """Tell `serving_rr` the ids held there (`Reconcile`); `then(error)` here once handled.
         Why frozen and epoch-bound: docs/explanation/inside.md, "The consumer's reconcile".
-        `ask`: the `ReconcileAsk.round` it answers, echoed."""
+        `ask`: the `ReconcileAsk.round` it answers and that ask's `life`, echoed."""
         with self.due.frozen() as (due, withdrawn):
             listing = self.listing(serving_rr, due, withdrawn, life)
             self.registrar.send(
                 serving_rr,
                 lambda reply: Reconcile(
-                    self.registrar.name, listing.held, reply, self.registrar.life, ask
+                    self.registrar.name, listing.held, reply, self.registrar.life, *ask
                 ),
                 lambda unknown, error: self.reconciled(serving_rr, unknown, error, listing, then),
             )

@@ -338,9 +338,8 @@ class Lifecycle:
                     waiting.set_result(None)
                 else:
                     waiting.set_error(unsaved)
-            self.fail_waiting(
-                RegistrarStoppedError(f"registrar {self.registrar.name!r} was stopped")
-            )
+            name = self.registrar.name
+            self.fail_waiting(RegistrarStoppedError(f"registrar {name!r} was stopped", name))
             self.registrar.probe("stop_drained", None)
             self.registrar.phase = Phase.ENDED
             self.actor.end_now()  # at once: what arrives from now on goes to `on_late`
@@ -596,7 +595,7 @@ class Presence:
         # provider -> (its reconcile round, the attempt waited for), until answered
         self.rounds: dict[str, tuple[int, int]] = {}
         self.lives: dict[str, str] = {}  # provider -> the life that asked for its round
-        self.asks: dict[str, int] = {}  # provider -> the `ReconcileAsk.round` it answers
+        self.asks: dict[str, tuple[int, str]] = {}  # provider -> the ask it answers (`attempt`)
         self.timers: dict[str, runtime.Cancellable] = {}
         self.round_count = 0
         # names lost while a namesake served (rule 22): lost if the reconcile with it fails
@@ -676,7 +675,8 @@ class Presence:
         reply.set_result(None)  # (heard: one that stopped first answers that, `ask_to_reconcile`)
         if self.reconciling.asked(message):
             self.round_count += 1
-            self.attempt(message.serving_rr, self.round_count, 0, message.life, message.round)
+            ask = (message.round, message.life)
+            self.attempt(message.serving_rr, self.round_count, 0, message.life, ask)
 
     def ask_consumer(self, name: str) -> bool:
         """Ask consumer `name` for a `Reconcile`, with its `call_timeout` armed; whether it was
@@ -745,11 +745,13 @@ class Presence:
             return
         self.attempt(message.name, message.round, message.attempt, self.lives.get(message.name, ""))
 
-    def attempt(self, name: str, round_: int, attempt: int, life: str = "", ask: int = 0) -> None:
+    def attempt(
+        self, name: str, round_: int, attempt: int, life: str = "", ask: tuple[int, str] = (0, "")
+    ) -> None:
         """Send `Reconcile` attempt `attempt` of round `round_` to provider `name` (`life`: the
-        life that asked, "": not known; `ask`: its `ReconcileAsk.round`), retried unless
-        answered within `call_timeout`."""
-        ask = ask or self.asks.get(name, 0)  # (an ask not answered yet: a newer round answers it)
+        life that asked, "": not known; `ask`: its `ReconcileAsk.round` and `life`), retried
+        unless answered within `call_timeout`."""
+        ask = ask if ask[0] else self.asks.get(name, ask)  # (one standing: a newer round answers)
         self.stop_retrying(name)
         self.rounds[name] = (round_, attempt)
         self.lives[name], self.asks[name] = life, ask

@@ -267,13 +267,15 @@ class Reconcile(WireMessage):
     """Consumer -> provider: registrar `origin_rr` holds exactly `held` at you (rule 20).
     The provider releases the others of `origin_rr`'s ids, gives up its loads not listed,
     answers the listed ids it does not know, and refuses `Load`s of runs before `life`.
-    `round`: the `ReconcileAsk.round` it answers (0: none)."""
+    `round`, `ask_life`: the `ReconcileAsk.round` it answers (0: none) and that ask's `life`
+    (a round is counted afresh by each run of the provider)."""
 
     origin_rr: str
     held: tuple[str, ...]
     reply: Reply
     life: str = ""
     round: int = 0
+    ask_life: str = ""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1302,13 +1302,14 @@ class Unloading:
     def ask_holder(self, origin: str) -> None:
         """Ask consumer `origin` for a `Reconcile`, answered: stopped (also after the ask left:
         its stop could not give back what it held here) it holds nothing here (rule 12), unless
-        a later run of it was heard of since (it reconciles for itself). Reads no row: a lazy
-        restore stays lazy."""
+        a later run of it was heard of since (it reconciles for itself). Only its own stop says
+        so: not this process's leaving the system. Reads no row: a lazy restore stays lazy."""
         asked = self.provider.lives.newest(origin)
 
         def answered(_: Any, error: BaseException | None) -> None:
             if (
                 isinstance(error, RegistrarStoppedError)
+                and error.registrar == origin
                 and self.provider.lives.newest(origin) == asked
             ):
                 self.release_stopped(origin)
@@ -1359,7 +1360,8 @@ class Unloading:
         held = set(message.held)
         asked = self.asked.get(message.origin_rr)
         if asked is not None and (  # (asked by `Presence.lose`: the answer, or a later run's;
-            message.round == asked[0]  # none heard of since this run began: only the answer)
+            # none heard of since this run began: only the answer, to this run's ask)
+            (message.round, message.ask_life) == (asked[0], self.registrar.life)
             or not message.life
             or (asked[2] != "" and life_order(message.life) > life_order(asked[2]))
         ):

@@ -221,7 +221,7 @@ class _Hub:
         if self.closed:
             return RegistrarStoppedError(f"the in-memory network {self.system!r} was closed")
         if self._gone.get(name) == "stopped":
-            return RegistrarStoppedError(f"registrar {name!r} was stopped")
+            return RegistrarStoppedError(f"registrar {name!r} was stopped", name)
         return RegistrarUnavailableError(f"registrar {name!r} cannot be reached (its process went)")
 
     def answer(self, process: _Route, data: bytes, on_lost: Lost | None) -> bool:

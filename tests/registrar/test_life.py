@@ -13,6 +13,7 @@ restarted by a supervisor without a backup (`TestRestartedWithoutBackup`, rule 2
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import importlib.util
 import itertools
 import os
@@ -1441,6 +1442,51 @@ class TestProviderLost:
         _ask_due(provider, consumer.name, asks[-1].round)  # nobody answered it
         assert [] == [q.id for q in provider.server_queries("leaf")]
 
+    def test_a_reconcile_echoing_a_round_of_the_provider_s_earlier_run_does_not_clear_its_ask(
+        self, system: System, started: list[rr.ResourceRegistrar], tmp_path: Path
+    ) -> None:
+        # issue 51's leftover: each run of the provider counts its rounds from 1, so the
+        # answer to round 1 of its earlier run (late, or a retry) passed for the answer to
+        # round 1 of this one and cleared the ask: nobody answered it, the id stayed held
+        unloads: list[str] = []
+        path = str(tmp_path / "provider.db")
+        config = rr.RegistrarConfig(
+            named("provider"), call_timeout=600.0, backup_path=path, save_on_modify=True
+        )
+        provider = rr.ResourceRegistrar.start(config, setup=leaf_setup(unloads), network=system)
+        consumer = rr.ResourceRegistrar.start(named("consumer"), network=system)
+        started.append(consumer)
+        query = consumer.call(provider.name, "leaf", "camera", timeout=BOUND)
+        answers: list[Reconcile] = []
+        with intercept(provider, "reconcile", after=answers.append):
+            Served(provider).peer_lost(consumer.name)  # (the mark of one that yielded)
+            assert wait_for(lambda: any(answer.round for answer in answers), BOUND)
+        earlier = next(answer for answer in answers if answer.round)
+        asks: list[ReconcileAsk] = []
+
+        def dropped(message: ReconcileAsk) -> None:  # nobody answers this run's asks
+            asks.append(message)
+            raise rr.RrError("lost with the link")
+
+        with intercept(consumer, "reconcile_ask", before=dropped):
+            with expect_restart(provider.name):
+                crash(provider)
+                assert provider.wait_ended(BOUND)
+            provider = rr.ResourceRegistrar.start(config, setup=leaf_setup(unloads), network=system)
+            started.insert(0, provider)
+            Served(provider).peer_lost(consumer.name)
+            assert wait_for(lambda: any(ask.round for ask in asks), BOUND)
+            asked = next(ask for ask in asks if ask.round)
+            assert earlier.round == asked.round  # (the same count, of another run)
+            late = FutureReply()
+            DIRECTORY.lookup(provider.name).tell(dataclasses.replace(earlier, reply=late))
+            assert () == late.future.get(timeout=BOUND)  # (it held the id then)
+            assert [query.id] == [q.id for q in provider.server_queries("leaf")]
+
+        _ask_due(provider, consumer.name, asked.round)  # nobody answered it
+        assert [] == [q.id for q in provider.server_queries("leaf")]
+        assert wait_for(lambda: ["camera"] == unloads, BOUND)
+
     # The answer to an ask is told by the round it echoes. In the four tests below the one
     # that serves answers on another path than the plain ask: its answer must clear the ask,
     # or the ask's timer (fired here right after the answer) releases the ids it just listed.
@@ -1575,6 +1621,33 @@ class TestProviderLost:
         _ask_due(provider, consumer.name, asks[0].round)
         assert [query.id] == [q.id for q in provider.server_queries("leaf")]
         assert [] == unloads
+
+    def test_a_provider_whose_process_leaves_the_system_with_its_ask_standing_releases_nothing(
+        self, system: System, started: list[rr.ResourceRegistrar]
+    ) -> None:
+        # issue 51's review: the ask of a healed link still in flight as the provider's own
+        # process leaves fails "this process left": taken for the consumer's "stopped", it
+        # released the ids of a consumer that runs on and holds them
+        unloads: list[str] = []
+        provider = rr.ResourceRegistrar.start(
+            named("provider"), setup=leaf_setup(unloads), network=system
+        )
+        started.append(provider)
+        consumer = RemoteRegistrar.start(named("consumer"), system)
+        query = consumer.call(provider.name, "leaf", "camera")
+        pid = consumer.pid
+        assert pid is not None
+        os.kill(pid, signal.SIGSTOP)  # (it answers no ask: the ask stands as the process leaves)
+        try:
+            Served(provider).peer_reachable(consumer.name)  # (its link healed: asked)
+            provider.client_queries()  # (a round trip: the ask left)
+            system.close()  # this process leaves; its registrar runs on
+            provider.client_queries()  # (the ask's failure, handled)
+            assert [query.id] == [q.id for q in provider.server_queries("leaf")]
+            assert [] == unloads
+        finally:
+            with expect_restart(consumer.name):
+                consumer.kill()  # (a SIGKILL: stopped, it dies too)
 
     def test_a_name_heard_lost_whose_server_does_not_answer_is_lost_after_all(
         self, system: System, started: list[rr.ResourceRegistrar]

@@ -518,19 +518,20 @@ class Dial:
 
     def _gone(self, how: str, cause: BaseException | None = None) -> RrError:
         if os.path.exists(self._system.address.tombstone_path(self.name)):
-            return RegistrarStoppedError(f"registrar {self.name!r} was stopped")
+            return RegistrarStoppedError(f"registrar {self.name!r} was stopped", self.name)
         detail = f" ({type(cause).__name__}: {cause})" if cause is not None else ""
         return RegistrarUnavailableError(f"registrar {self.name!r} {how}{detail}")
 
     def _lose(self, channel: _Channel, error: RrError | None) -> None:
-        """Close `channel` and fail every reply still pending on it (any thread)."""
+        """Fail every reply still pending on `channel` and close it (any thread): first, so
+        that `error` (this process left, say) is what they hear, not its reader's end."""
+        channel.pending.fail(
+            None, error or (lambda: self._gone("died while answers were outstanding"))
+        )
         channel.writer.close()
         with self._lock:
             if self._channel is channel:
                 self._channel = None
-        channel.pending.fail(
-            None, error or (lambda: self._gone("died while answers were outstanding"))
-        )
 
     def _read(self, channel: _Channel, conn: Connection) -> None:
         """The reader thread of one connection: resolve answers until it ends."""

@@ -404,7 +404,7 @@ class ZenohCarrier:
         if self.closed:
             return RegistrarStoppedError("this process left the system")
         if self.presence.gone(name) == "stopped":
-            return RegistrarStoppedError(f"registrar {name!r} was stopped")
+            return RegistrarStoppedError(f"registrar {name!r} was stopped", name)
         return RegistrarUnavailableError(
             f"registrar {name!r} of system {self.system!r} cannot be reached (its process "
             f"died, or a link on the way to it is down: this host's own, or one beyond the "
