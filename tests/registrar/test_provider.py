@@ -35,6 +35,7 @@ import pytest
 import rr_actors as rr
 from rr_actors._core import runtime
 from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.loops import process_loop
 from rr_actors._core.replies import FutureReply
 from rr_actors._registrar.messages import Load, Reconcile
 from rr_actors._registrar.provider import Admission
@@ -1816,6 +1817,43 @@ class TestOverload:
     ):
         """The same with a coroutine `load` (before, each began at once on the loop)."""
         self.shed_before_it_runs(make_registrar, gates, shared, coroutine=True)
+
+    @pytest.mark.thread_only("stands a stopped or closed loop for this process's own")
+    @pytest.mark.parametrize("ended", ["stopped", "closed"])
+    def test_a_coroutine_load_a_dead_loop_cannot_start_fails_clearly_and_frees_its_place(
+        self, make_registrar, monkeypatch, ended
+    ):
+        """As a process ends its loop may be stopped or closed: a coroutine load that cannot
+        start there fails at once with `ResourceLoadError` naming the registrar and server,
+        and gives its worker's place back (before, with one place, the next load waited
+        for good). Once a loop runs again, the next load runs."""
+        from rr_actors._registrar import provider as module  # noqa: PLC0415
+
+        dead = asyncio.new_event_loop()
+        ran = threading.Thread(target=dead.run_forever, name="test-dead-loop")
+        ran.start()
+        dead.call_soon_threadsafe(dead.stop)
+        ran.join(timeout=10)
+        assert not ran.is_alive()
+        if ended == "closed":
+            dead.close()
+        loops = [dead]
+        monkeypatch.setattr(module, "process_loop", lambda: loops[0])
+        provider, consumer = make_registrar("provider", max_workers=1), make_registrar("consumer")
+        provider.register_server("leaf", load=as_coroutine(lambda request: request), unload=_adrop)
+
+        errors = []
+        for request in ["first", "second"]:  # (the second, before: a timeout, no place left)
+            with pytest.raises(rr.ResourceLoadError) as failed:
+                consumer.call(provider.name, "leaf", request, timeout=10)
+            errors.append(str(failed.value))
+        for error in errors:
+            assert f"(at {provider.name}/leaf)" in error
+            assert f"the process's event loop is {ended}" in error
+        loops[0] = process_loop()
+        assert "third" == consumer.call(provider.name, "leaf", "third", timeout=10).response
+        assert ["third"] == [r.request for r in catalog_snapshot(provider).resources]
+        dead.close()
 
     @staticmethod
     def shed_before_it_runs(make_registrar: Any, gates: Any, shared: Any, coroutine: bool) -> None:
