@@ -1821,12 +1821,12 @@ class TestOverload:
     @pytest.mark.thread_only("stands a stopped or closed loop for this process's own")
     @pytest.mark.parametrize("ended", ["stopped", "closed"])
     def test_a_coroutine_load_a_dead_loop_cannot_start_fails_clearly_and_frees_its_place(
-        self, make_registrar, monkeypatch, ended
+        self, make_registrar, monkeypatch, gates, shared, eventually, ended
     ):
         """As a process ends its loop may be stopped or closed: a coroutine load that cannot
-        start there fails at once with `ResourceLoadError` naming the registrar and server,
-        and gives its worker's place back (before, with one place, the next load waited
-        for good). Once a loop runs again, the next load runs."""
+        start there, queued for the one worker or not, fails at once with `ResourceLoadError`
+        naming the registrar and server, and gives its worker's place back (before, the
+        next load waited for good). Once a loop runs again, the next load runs."""
         from rr_actors._registrar import provider as module  # noqa: PLC0415
 
         dead = asyncio.new_event_loop()
@@ -1840,19 +1840,30 @@ class TestOverload:
         loops = [dead]
         monkeypatch.setattr(module, "process_loop", lambda: loops[0])
         provider, consumer = make_registrar("provider", max_workers=1), make_registrar("consumer")
-        provider.register_server("leaf", load=as_coroutine(lambda request: request), unload=_adrop)
+        gate, started = gates(), shared.list()
+        serve_held_leaf(provider, gate, started, wait=20)  # (a blocking `leaf`)
+        provider.register_server("aleaf", load=as_coroutine(lambda r: r), unload=_adrop)
 
         errors = []
-        for request in ["first", "second"]:  # (the second, before: a timeout, no place left)
+        with ThreadPoolExecutor(2) as pool:  # the first waits for the one worker
+            held = pool.submit(consumer.call, provider.name, "leaf", "held", timeout=20)
+            assert eventually(lambda: 1 == len(started))
+            first = pool.submit(consumer.call, provider.name, "aleaf", "first", timeout=10)
+            assert eventually(lambda: 1 == pending_work(provider).queued_callbacks)
+            gate.set()
+            assert "held" == held.result(timeout=20).response
             with pytest.raises(rr.ResourceLoadError) as failed:
-                consumer.call(provider.name, "leaf", request, timeout=10)
+                first.result(timeout=20)
             errors.append(str(failed.value))
+        with pytest.raises(rr.ResourceLoadError) as failed:  # (before: it timed out)
+            consumer.call(provider.name, "aleaf", "second", timeout=10)
+        errors.append(str(failed.value))
         for error in errors:
-            assert f"(at {provider.name}/leaf)" in error
+            assert f"(at {provider.name}/aleaf)" in error
             assert f"the process's event loop is {ended}" in error
         loops[0] = process_loop()
-        assert "third" == consumer.call(provider.name, "leaf", "third", timeout=10).response
-        assert ["third"] == [r.request for r in catalog_snapshot(provider).resources]
+        assert "third" == consumer.call(provider.name, "aleaf", "third", timeout=10).response
+        assert ["held", "third"] == [r.request for r in catalog_snapshot(provider).resources]
         dead.close()
 
     @staticmethod
