@@ -9,7 +9,8 @@ unloaded at once (with the same bound). Printed per `--window` seconds (10):
 
     acked/s     calls answered a second (goodput), beside the capacity
     wasted      loads that started after their caller had given up (timed out): work
-                nobody will use (counted from what each load writes down as it starts)
+                nobody will use (each load's first statement reads the monotonic clock
+                its call's deadline is on; a caller's giving up is read on it too)
     unl. t/o    unloads of answered ids that timed out
     RSS         of this process (the consumer) and of the provider's process
 
@@ -73,18 +74,18 @@ def rss_mib(pid: int | None = None) -> float:
 
 
 def server_setup(log: str, load_s: float, workers: int, kind: str) -> Callable[[Any], None]:
-    """A setup registering server "slow": each load writes `<time> <request>` to `log`
-    as it starts, then takes `load_s` seconds."""
+    """A setup registering server "slow": each load writes `<time> <monotonic> <request>`
+    to `log`, both read as its first statement, then takes `load_s` seconds."""
 
     def setup(registrar: Any) -> None:
-        def started(request: Any) -> None:
+        def started(request: Any, began: float, wall: float) -> None:
             with open(log, "a") as out:
-                out.write(f"{time.time()} {request}\n")
+                out.write(f"{wall} {began} {request}\n")
 
         if kind == "threads":
 
             def load(request: Any) -> Any:
-                started(request)
+                started(request, time.monotonic(), time.time())
                 time.sleep(load_s)
                 return request
 
@@ -93,10 +94,11 @@ def server_setup(log: str, load_s: float, workers: int, kind: str) -> Callable[[
         gate: list[asyncio.Semaphore] = []
 
         async def aload(request: Any) -> Any:
+            began, wall = time.monotonic(), time.time()
             if not gate:
                 gate.append(asyncio.Semaphore(workers))
             async with gate[0]:
-                started(request)
+                started(request, began, wall)
                 await asyncio.sleep(load_s)
             return request
 
@@ -109,25 +111,28 @@ def server_setup(log: str, load_s: float, workers: int, kind: str) -> Callable[[
 
 
 class GaveUp:
-    """The requests whose caller gave up, and when, kept in file `path` (one line each),
-    not in memory: a 10-minute offer gives up on some 200,000, which a dict here would
-    count as the consumer's RSS growth."""
+    """The requests whose caller gave up, when (`time.monotonic()`, the clock of a call's
+    deadline, as the caller heard of it) and its call's deadline at the latest (the
+    monotonic time before the call, plus its timeout), kept in file `path` (one line
+    each), not in memory: a 10-minute offer gives up on some 200,000, which a dict here
+    would count as the consumer's RSS growth."""
 
     def __init__(self, path: str) -> None:
         self.path, self.count = path, 0
         self._out = open(path, "a")  # noqa: SIM115 (closed by `read`)
         self._lock = threading.Lock()
 
-    def add(self, request: int) -> None:
+    def add(self, request: int, deadline: float) -> None:
+        at = time.monotonic()
         with self._lock:
-            self._out.write(f"{request} {time.time()}\n")
+            self._out.write(f"{request} {at} {deadline}\n")
             self.count += 1
 
-    def read(self) -> dict[int, float]:
-        """Request -> when its caller gave up (the file closed)."""
+    def read(self) -> dict[int, tuple[float, float]]:
+        """Request -> when its caller gave up, and its deadline (the file closed)."""
         self._out.close()
         with open(self.path) as lines:
-            return {int(n): float(at) for n, at in (line.split() for line in lines)}
+            return {int(n): (float(at), float(d)) for n, at, d in (line.split() for line in lines)}
 
 
 async def bystand(
@@ -161,10 +166,11 @@ async def offer(app: Any, provider: str, args: argparse.Namespace) -> dict[str, 
     errors: dict[str, int] = {}
 
     async def one(n: int) -> None:
+        deadline = time.monotonic() + args.timeout
         try:
             query = await app.acall(provider, "slow", n, timeout=args.timeout)
         except rr.CallTimeoutError:
-            gave_up.add(n)
+            gave_up.add(n, deadline)
             return
         except rr.RrError as exc:
             errors[type(exc).__name__] = errors.get(type(exc).__name__, 0) + 1
@@ -225,10 +231,11 @@ def offer_blocking(
             due = max(due + spacing, time.time())
             with lock:
                 n = next(numbers)
+            deadline = time.monotonic() + args.timeout
             try:
                 query = app.call(provider, "slow", n, timeout=args.timeout)
             except rr.CallTimeoutError:
-                gave_up.add(n)
+                gave_up.add(n, deadline)
                 continue
             except rr.RrError as exc:
                 with lock:
@@ -261,13 +268,17 @@ def offer_blocking(
 
 def report(result: dict[str, Any], log: str, args: argparse.Namespace, rss: list[str]) -> None:
     start, gave_up = result["start"], result["gave_up"].read()
-    runs = []
+    runs, began = [], {}
     with contextlib.suppress(FileNotFoundError), open(log) as lines:
         for line in lines:
-            at, request = line.split()
+            at, mono, request = line.split()
             runs.append((float(at), int(request)))
-    wasted = [at for at, n in runs if n in gave_up and at > gave_up[n]]
-    late = max((at - gave_up[n] for at, n in runs if n in gave_up and at > gave_up[n]), default=0)
+            began[int(request)] = float(mono)
+    after = {n: began[n] - gave_up[n][0] for n in began if n in gave_up}
+    wasted = [at for at, n in runs if after.get(n, 0) > 0]
+    late = max(after.values(), default=0)
+    past = sorted(began[n] - gave_up[n][1] for n in began if n in gave_up)
+    past = [d for d in past if d > 0]
     print(
         f"\n| window (s) | offered/s | acked/s (capacity {result['capacity']:.0f}) "
         "| loads run | wasted | unl. t/o | RSS consumer / provider (MiB) |"
@@ -294,7 +305,8 @@ def report(result: dict[str, Any], log: str, args: argparse.Namespace, rss: list
     print(
         f"\noffered {result['offered']}, acknowledged {len(result['acked'])}, gave up "
         f"{len(gave_up)}, loads run {len(runs)} ({len(wasted)} after their caller gave up, "
-        f"the latest {late * 1000:.1f} ms after), "
+        f"the latest {max(late, 0) * 1000:.1f} ms after; {len(past)} after their call's "
+        f"deadline, by {', '.join(f'{d * 1000:.1f}' for d in past[-5:]) or '-'} ms at most), "
         f"unloads timed out {len(result['unload_timeouts'])}, other errors {result['errors']}"
     )
 

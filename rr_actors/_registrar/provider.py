@@ -30,7 +30,7 @@ import contextlib
 import functools
 import inspect
 import logging
-from collections.abc import Awaitable, Callable, Coroutine
+from collections.abc import Awaitable, Callable
 from typing import Any, cast
 
 from rr_actors import events
@@ -978,7 +978,7 @@ class ServerActor(Actor):
         if isinstance(message, RunLoad):
             message.place.take(functools.partial(self._start_load, message))
         elif isinstance(message, RunUnload) and self.on_loop[1]:
-            self._spawn(self._aunload(message))
+            self._spawn(message)
         elif isinstance(message, RunUnload):
             timeout = message.timeout
 
@@ -1006,9 +1006,7 @@ class ServerActor(Actor):
         held = self.on_loop[0]
         try:
             return self.workers.submit(
-                (lambda: self._spawn(self._aload(message), self.workers.release))
-                if held
-                else lambda: self._load(message),
+                functools.partial(self._spawn if held else self._load, message),
                 lane=message.origin,
                 held=held,
             )
@@ -1025,15 +1023,30 @@ class ServerActor(Actor):
             except RuntimeError:  # (the loop is closed: nothing runs there any more)
                 return
 
-    def _spawn(self, coroutine: Coroutine[Any, Any, None], then: Any = None) -> None:
-        tasks = self.tasks
+    def _spawn(self, message: RunLoad | RunUnload) -> None:
+        """Run its coroutine callback on the process's loop; a load's worker place is released
+        as it ends. A loop closed or stopped (as the process ends) runs nothing: the place is
+        released at once and `message.reply` fails, a load's callers with `ResourceLoadError`
+        naming this registrar and server (an unload's with that `RuntimeError`)."""
+        tasks, load = self.tasks, isinstance(message, RunLoad)
+        coroutine = self._aload(message) if isinstance(message, RunLoad) else self._aunload(message)
 
         def start() -> None:
             task = asyncio.get_running_loop().create_task(coroutine)
             tasks[task] = None
-            task.add_done_callback(lambda done: (tasks.pop(done, None), then and then()))
+            task.add_done_callback(lambda done: (tasks.pop(done, None), load and release()))
 
-        process_loop().call_soon_threadsafe(start)
+        loop, release = process_loop(), self.workers.release
+        with contextlib.suppress(RuntimeError):  # (closed since)
+            if loop.is_running():  # (else what it is handed never runs)
+                loop.call_soon_threadsafe(start)
+                return
+        coroutine.close()
+        if load:
+            release()
+        state = "closed" if loop.is_closed() else "stopped"
+        error = RuntimeError(f"the process's event loop is {state}: no coroutine starts there")
+        message.reply.set_error(load_error(self.registrar, self.name, error) if load else error)
 
     def shed(self, message: RunLoad) -> DeadlineExceededError | None:
         """As its load would start: the error that sheds it, if its callers' deadline leaves

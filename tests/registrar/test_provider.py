@@ -35,6 +35,7 @@ import pytest
 import rr_actors as rr
 from rr_actors._core import runtime
 from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.loops import process_loop
 from rr_actors._core.replies import FutureReply
 from rr_actors._registrar.messages import Load, Reconcile
 from rr_actors._registrar.provider import Admission
@@ -1816,6 +1817,54 @@ class TestOverload:
     ):
         """The same with a coroutine `load` (before, each began at once on the loop)."""
         self.shed_before_it_runs(make_registrar, gates, shared, coroutine=True)
+
+    @pytest.mark.thread_only("stands a stopped or closed loop for this process's own")
+    @pytest.mark.parametrize("ended", ["stopped", "closed"])
+    def test_a_coroutine_load_a_dead_loop_cannot_start_fails_clearly_and_frees_its_place(
+        self, make_registrar, monkeypatch, gates, shared, eventually, ended
+    ):
+        """As a process ends its loop may be stopped or closed: a coroutine load that cannot
+        start there, queued for the one worker or not, fails at once with `ResourceLoadError`
+        naming the registrar and server, and gives its worker's place back (before, the
+        next load waited for good). Once a loop runs again, the next load runs."""
+        from rr_actors._registrar import provider as module  # noqa: PLC0415
+
+        dead = asyncio.new_event_loop()
+        ran = threading.Thread(target=dead.run_forever, name="test-dead-loop")
+        ran.start()
+        dead.call_soon_threadsafe(dead.stop)
+        ran.join(timeout=10)
+        assert not ran.is_alive()
+        if ended == "closed":
+            dead.close()
+        loops = [dead]
+        monkeypatch.setattr(module, "process_loop", lambda: loops[0])
+        provider, consumer = make_registrar("provider", max_workers=1), make_registrar("consumer")
+        gate, started = gates(), shared.list()
+        serve_held_leaf(provider, gate, started, wait=20)  # (a blocking `leaf`)
+        provider.register_server("aleaf", load=as_coroutine(lambda r: r), unload=_adrop)
+
+        errors = []
+        with ThreadPoolExecutor(2) as pool:  # the first waits for the one worker
+            held = pool.submit(consumer.call, provider.name, "leaf", "held", timeout=20)
+            assert eventually(lambda: 1 == len(started))
+            first = pool.submit(consumer.call, provider.name, "aleaf", "first", timeout=10)
+            assert eventually(lambda: 1 == pending_work(provider).queued_callbacks)
+            gate.set()
+            assert "held" == held.result(timeout=20).response
+            with pytest.raises(rr.ResourceLoadError) as failed:
+                first.result(timeout=20)
+            errors.append(str(failed.value))
+        with pytest.raises(rr.ResourceLoadError) as failed:  # (before: it timed out)
+            consumer.call(provider.name, "aleaf", "second", timeout=10)
+        errors.append(str(failed.value))
+        for error in errors:
+            assert f"(at {provider.name}/aleaf)" in error
+            assert f"the process's event loop is {ended}" in error
+        loops[0] = process_loop()
+        assert "third" == consumer.call(provider.name, "aleaf", "third", timeout=10).response
+        assert ["held", "third"] == [r.request for r in catalog_snapshot(provider).resources]
+        dead.close()
 
     @staticmethod
     def shed_before_it_runs(make_registrar: Any, gates: Any, shared: Any, coroutine: bool) -> None:
