@@ -354,23 +354,18 @@ class Catalog:
         `(id, server, state, digest or "", "failed" or "")` per resource, oldest first, and
         `(query id, resource id, consumer registrar)` per consumer id, by resource, in
         arrival order; `None` if either kind has more than `limit` rows."""
-        resources: list[tuple[float, tuple[str, ...]]] = []
-        consumers: list[tuple[float, tuple[str, ...]]] = []
+        resources: list[tuple[Any, ...]] = []  # (each row after its row key: `Listing`)
+        consumers: list[tuple[Any, ...]] = []
         for resource in self._in_order().values():
             order = _stored_order(resource)
             digest = resource.digest
             plain = digest is not None and digest != NO_DIGEST
-            row = (
-                resource.id,
-                resource.server,
-                resource.state.value,
-                str(digest) * plain,
-                "failed" * resource.failed,
+            rid = resource.id
+            failed = "failed" * resource.failed
+            resources.append(
+                (order, rid, resource.server, resource.state.value, str(digest) * plain, failed)
             )
-            resources.append((order, row))
-            consumers.extend(
-                (order, (qid, resource.id, o)) for qid, o in resource.consumers.items()
-            )
+            consumers.extend((order, qid, rid, o) for qid, o in resource.consumers.items())
             if len(resources) > limit or len(consumers) > limit:
                 return None
         if self._unread is not None:  # merged by row key, arrival order kept (stable)
@@ -384,7 +379,7 @@ class Catalog:
                 resources, consumers = unread
             if len(resources) > limit or len(consumers) > limit:
                 return None
-        return [row for _, row in resources], [row for _, row in consumers]
+        return [row[1:] for row in resources], [row[1:] for row in consumers]
 
     def counts(self) -> tuple[int, int]:
         """How many resources there are, and how many consumer ids (reading no row)."""
@@ -646,5 +641,5 @@ def _stored_order(resource: Resource) -> float:
     return order
 
 
-def _first(item: tuple[float, tuple[str, ...]]) -> float:
+def _first(item: tuple[Any, ...]) -> Any:
     return item[0]

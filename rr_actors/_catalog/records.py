@@ -143,8 +143,9 @@ class Changes:
         self.clients.update(later.clients)
 
 
-Listing = tuple[list[tuple[float, tuple[str, ...]]], list[tuple[float, tuple[str, ...]]]]
-"""Resource rows and consumer rows as strings, each after its resource's row key."""
+Listing = tuple[list[tuple[Any, ...]], list[tuple[Any, ...]]]
+"""Resource rows and consumer rows as strings, each after its resource's row key (as the
+backup's rows come: no pair built per row)."""
 
 
 class UnreadRows(Protocol):

@@ -254,7 +254,7 @@ class Unread:
             consumers = [row for row in consumers if row[0] not in read]
         if len(rows) > limit or len(consumers) > limit:
             return None
-        return [(row[0], row[1:]) for row in rows], [(row[0], row[1:]) for row in consumers]
+        return rows, consumers
 
     def counts(self) -> tuple[int, int]:
         """How many resources and consumer ids are unread (two counts of the file)."""
