@@ -618,3 +618,35 @@ def test_an_unload_cut_short_is_reported_in_doubt_and_dropped(
         (q.server, q.request, q.response) for q in registrar.in_doubt
     ]
     assert () == catalog_snapshot(registrar).resources
+
+
+def test_a_catalog_partly_read_in_lists_its_rows_as_a_full_read_of_its_backup(
+    tmp_path: Path,
+) -> None:
+    # `rows` merges those in memory (read in at a lookup) with those still in the backup,
+    # by row key: the order and values a cold read of the whole file gives (`read_backup`)
+    path = tmp_path / "p.db"
+    store = SqliteStore.open(path)
+    store.load()
+    catalog = Catalog()
+    for n in range(4):
+        catalog.begin_load(f"r{n}", "leaf", n)
+        catalog.finish_load(f"r{n}", n)
+        for tag in "ab":
+            catalog.add_consumer(f"r{n}", f"q{n}{tag}", "app")
+    store.write(catalog.drain_changes())
+    store.close(erase=False)
+    store = SqliteStore.open(path)
+    restored = store.restore()
+    assert restored is not None
+    restored_catalog = Catalog.restore(restored.resources, restored.clients, restored.unread)
+    restored_catalog.resource_of("q2b")  # r2 read in; r0, r1, r3 still in the backup
+
+    listed = restored_catalog.rows(100)
+    store.close(erase=False)
+
+    full = read_backup(path).resources
+    assert listed is not None
+    assert [(r.id, r.server, "loaded", str(r.digest), "") for r in full] == listed[0]
+    assert [(q, r.id, o) for r in full for q, o in r.consumers.items()] == listed[1]
+    assert ["r0", "r1", "r2", "r3"] == [row[0] for row in listed[0]]
