@@ -160,8 +160,9 @@ class CallTimeoutError(RrError, TimeoutError):
 
 
 class DeadlineExceededError(CallTimeoutError):
-    """A load was shed before it started: its caller's `timeout` left less than 1.5 times what
-    the server's loads take lately. Nothing was loaded; retry later or with a longer timeout."""
+    """A load was shed before it started: its caller's `timeout` left (or, as it arrived, would
+    leave once the server's loads queued ahead of it had started) less than 1.5 times what the
+    server's loads take lately. Nothing was loaded; retry later or with a longer timeout."""
 
 
 class OverloadedError(RrError):

@@ -45,7 +45,8 @@ class Job:
     """One task submitted to a `Workers` pool (see `Workers.submit`)."""
 
     __slots__ = (
-        "_deadline", "_held", "_on_overdue", "_pool", "_quiet", "_state", "_timeout", "task"
+        "_deadline", "_held", "_key", "_on_overdue", "_pool", "_quiet", "_state", "_timeout",
+        "task",
     )  # fmt: skip
 
     def __init__(
@@ -59,6 +60,7 @@ class Job:
     ) -> None:
         self._pool = pool
         self._held = held
+        self._key: object = None  # (counted in `Workers.waiting` while queued)
         self.task = task
         self._timeout = timeout
         self._on_overdue = on_overdue
@@ -103,6 +105,7 @@ class Workers:
         self._watched: dict[Job, float] = {}  # running jobs with a timeout -> deadline
         self._watching = runtime.Condition(self._lock)
         self._watchdog = False  # a watchdog thread runs
+        self._waiting: dict[object, int] = {}  # key -> its jobs queued, neither begun nor cancelled
 
     @property
     def max_workers(self) -> int:
@@ -112,6 +115,10 @@ class Workers:
     def queued(self) -> int:
         """Tasks waiting for a worker (a cancelled one counts until it is skipped)."""
         return max(0, -self._idle)
+
+    def waiting(self, key: object) -> int:
+        """Jobs submitted with `key` still queued: not begun, not cancelled (withdrawn)."""
+        return self._waiting.get(key, 0)
 
     @property
     def abandoned(self) -> int:
@@ -128,11 +135,13 @@ class Workers:
         urgent: bool = False,
         lane: str = "",
         held: bool = False,
+        key: object = None,
     ) -> Job:
         """Run `task` on a worker thread once one is free; what it raises is logged.
         `timeout`: seconds it may run, then it is abandoned, `on_overdue()` on the watchdog's
         thread (DEBUG if `quiet`). Queued: `urgent` first, the others by `lane` in turns.
-        `held`: its place stays taken once `task` returned, until `release()`.
+        `held`: its place stays taken once `task` returned, until `release()`. `key`: counted
+        in `waiting(key)` while it is queued.
         `RuntimeError`: no worker was free and the OS refused a thread."""
         job = Job(self, task, timeout, on_overdue, quiet, held)
         with self._lock:
@@ -145,6 +154,8 @@ class Workers:
                     self._urgent.append(job)
                 else:
                     self._queue(job, lane)
+                    if key is not None:
+                        job._key, self._waiting[key] = key, self._waiting.get(key, 0) + 1
                 self._jobs.put(None)
                 return job
             else:
@@ -222,6 +233,7 @@ class Workers:
         with self._lock:
             if job._state is not _State.QUEUED:
                 return False
+            self._unqueued(job)
             job._state = _State.RUNNING
             if job._timeout is None:
                 return True
@@ -263,10 +275,16 @@ class Workers:
             with self._lock:
                 self._live -= 1
 
+    def _unqueued(self, job: Job) -> None:
+        """`job` leaves the queue (hold the lock): it no longer counts in `waiting`."""
+        if job._key is not None and (left := self._waiting.pop(job._key, 0) - 1) > 0:
+            self._waiting[job._key] = left
+
     def _cancel(self, job: Job) -> bool:
         with self._lock:
             if job._state is not _State.QUEUED:
                 return False
+            self._unqueued(job)
             job._state = _State.CANCELLED  # the worker that takes it skips it
             job.task = _nothing  # (what it holds is freed now, not when it is skipped)
             job._on_overdue = None
@@ -279,6 +297,7 @@ class Workers:
                 return False
             self._watched.pop(job, None)
             if state is _State.QUEUED:
+                self._unqueued(job)
                 job._state = _State.CANCELLED  # the worker that takes it skips it
                 return True
             job._state = _State.ABANDONED

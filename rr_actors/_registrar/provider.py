@@ -1002,13 +1002,21 @@ class ServerActor(Actor):
 
     def _start_load(self, message: RunLoad) -> Job | None:
         """Start a load: its worker job while it waits for a place (withdrawable until one
-        takes it), `None` if it failed. A coroutine's job holds its place while it runs."""
-        held = self.on_loop[0]
+        takes it), `None` if it failed. A coroutine's job holds its place while it runs. One
+        that would be shed once its server's loads still queued ahead in its lane had run (a
+        round of `max_workers` each) fails so at once."""
+        held, key = self.on_loop[0], (message.origin, self.name)
+        rounds = self.workers.waiting(key) // self.workers.max_workers
+        refused = self.shed(message, rounds) if rounds else None
+        if refused is not None:
+            message.reply.set_error(refused)
+            return None
         try:
             return self.workers.submit(
                 functools.partial(self._spawn if held else self._load, message),
                 lane=message.origin,
                 held=held,
+                key=key,
             )
         except RuntimeError as exc:  # no thread could start: this load fails, no other
             message.reply.set_error(load_error(self.registrar, self.name, _no_thread(exc)))
@@ -1048,18 +1056,21 @@ class ServerActor(Actor):
         error = RuntimeError(f"the process's event loop is {state}: no coroutine starts there")
         message.reply.set_error(load_error(self.registrar, self.name, error) if load else error)
 
-    def shed(self, message: RunLoad) -> DeadlineExceededError | None:
-        """As its load would start: the error that sheds it, if its callers' deadline leaves
-        less than `_SHED_HEADROOM` times what this server's loads take (`load_s`). A stale
-        average is probed: docs/explanation/inside.md, "The provider"."""
+    def shed(self, message: RunLoad, rounds: int = 0) -> DeadlineExceededError | None:
+        """As its load would start (after `rounds` of this server's loads): the error that
+        sheds it, if its callers' deadline leaves less than `_SHED_HEADROOM` times what this
+        server's loads take (`load_s`). A stale average is probed (refuses no load ahead):
+        docs/explanation/inside.md, "The provider"."""
         deadline = message.place.deadline
         if deadline is None:
             return None
         now, pace = runtime.monotonic(), self.pace
-        left, expected = deadline - now, pace.load_s * _SHED_HEADROOM
+        left, expected = deadline - now - rounds * pace.load_s, pace.load_s * _SHED_HEADROOM
         if left > expected:
             return None
         if now - pace.learned >= pace.load_s:  # stale
+            if rounds:
+                return None
             if left > _PROBE_LEFT:
                 pace.learned = now  # (workers race here: a probe more or less, no harm)
                 return None
@@ -1067,8 +1078,9 @@ class ServerActor(Actor):
         return DeadlineExceededError(
             f"the load of {describe(message.request)} at '{self.registrar}/{self.name}' was "
             f"shed before it started: {max(left, 0.0):.3f} s were left of its callers' "
-            f"timeout, and its loads take {pace.load_s:.3f} s lately (it needs "
-            f"{_SHED_HEADROOM:g} times that)"
+            f"timeout{f' after {rounds} rounds of its loads queued ahead' if rounds else ''}, "
+            f"and its loads take {pace.load_s:.3f} s lately (it needs {_SHED_HEADROOM:g} "
+            "times that)"
         )
 
     def ran(self, took: float) -> None:

@@ -104,3 +104,32 @@ def test_a_held_job_keeps_its_place_until_released_and_held_jobs_take_turns_too(
         *("held", "release", "a 1", "release", "b 1"),
         *("release", "c 1", "a 2", "release", "a 3"),
     ] == log
+
+
+def test_waiting_counts_a_keys_jobs_still_queued_not_those_begun_cancelled_or_never_queued() -> (
+    None
+):
+    """A server's loads still queued ahead (issue 53's refusal as a load arrives): a job
+    given a worker at once never counts, a cancelled (withdrawn) one stops counting at
+    once, not when a worker skips it, and one counts until a worker begins it."""
+    pool = Workers("test-workers", max_workers=1, idle_timeout=1.0)
+    gate, started, ran = threading.Event(), threading.Event(), []
+
+    def hold() -> None:
+        started.set()
+        assert gate.wait(10)
+
+    pool.submit(hold, key="k")  # (a new worker takes it: never queued)
+    assert started.wait(10)
+    assert 0 == pool.waiting("k")
+    jobs = [pool.submit(lambda n=n: ran.append(n), lane="c", key="k") for n in range(3)]
+    pool.submit(lambda: ran.append("other"), lane="c", key="other")
+    assert (3, 1, 0) == (pool.waiting("k"), pool.waiting("other"), pool.waiting("x"))
+    assert jobs[1].cancel()
+    assert (2, 4) == (pool.waiting("k"), pool.queued)  # (skipped later, counted no more)
+    done = threading.Event()
+    pool.submit(done.set)
+    gate.set()
+    assert done.wait(10)
+    assert [0, 2, "other"] == ran
+    assert (0, 0) == (pool.waiting("k"), pool.waiting("other"))

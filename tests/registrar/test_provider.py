@@ -3222,6 +3222,141 @@ def test_callers_too_short_for_a_probe_let_a_stale_average_forget_until_a_load_r
     assert pace.load_s == pytest.approx(0.0112)  # (forgot once; the loads that fit run)
 
 
+class _Lane:
+    """Server actors `names` (`load_s` each) on one `Workers` of `max_workers`, all busy
+    (held by jobs that wait for `free`), in a still clock: loads queue in lane "c"."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch, max_workers: int, **paces: float) -> None:
+        from rr_actors._core.workers import Workers  # noqa: PLC0415
+        from rr_actors._registrar import provider as module  # noqa: PLC0415
+        from rr_actors._registrar.state import Pace  # noqa: PLC0415
+
+        self.clock = _StillClock()
+        monkeypatch.setattr(module, "runtime", self.clock)
+        self.workers, self.free, self.ran = (
+            Workers("t", max_workers=max_workers),
+            threading.Event(),
+            [],
+        )
+        for _ in range(max_workers):
+            self.workers.submit(lambda: self.free.wait(30))  # (no lane: not a load ahead)
+        self.servers = {}
+        for name, load_s in paces.items():
+            pace = Pace()
+            pace.load_s, pace.learned = load_s, self.clock.now  # (fresh: a load just ended)
+            self.servers[name] = module.ServerActor.start(
+                "rr",
+                name,
+                lambda r: self.ran.append(r) or r,
+                lambda r, s: None,
+                self.workers,
+                pace=pace,
+            )
+
+    def load(self, server: str, request: str, left: float) -> tuple[Any, Any]:
+        """Tell `server` to load `request`, `left` s before its deadline; its place and its
+        future, once the server actor took it (queued, or refused)."""
+        from rr_actors._registrar.messages import LoadPlace, RunLoad  # noqa: PLC0415
+
+        reply, place = FutureReply(), LoadPlace(self.clock.now + left)
+        self.servers[server].tell(RunLoad(request, request, (), reply, place, origin="c"))
+        self.servers[server].ask("in order", timeout=10)  # (its RunLoad was taken before)
+        return place, reply.future
+
+    def stop(self) -> None:
+        self.free.set()
+        for server in self.servers.values():
+            server.stop()
+
+
+def test_a_load_that_cannot_start_in_time_behind_its_servers_loads_is_refused_as_it_arrives(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Issue 53's in-process overload: a load queued then shed as its turn came cost a
+    worker's time between two loads, ten sheds per load run. A load that would be shed once
+    its server's loads queued ahead of it in its lane had started (rounds of `max_workers`,
+    each its server's average) is refused as it arrives with the shed's error, naming the
+    server and the bound; one that would start in time is queued."""
+    lane = _Lane(monkeypatch, 1, s=1.0)
+    try:
+        first = lane.load("s", "first", 100.0)[1]  # nothing ahead
+        second = lane.load("s", "second", 2.6)[1]  # 1 ahead: 1.6 s left as it starts
+        refused = lane.load("s", "refused", 3.4)[1]  # 2 ahead: 1.4 s left, 1.5 needed
+        with pytest.raises(rr.DeadlineExceededError, match=r"'rr/s'.* 2 rounds .*1\.5 times"):
+            refused.get(timeout=10)
+        assert 2 == lane.workers.queued
+        lane.free.set()
+        assert ["first", "second"] == [f.get(timeout=10) for f in (first, second)]
+    finally:
+        lane.stop()
+    assert ["first", "second"] == lane.ran
+
+
+def test_a_withdrawn_load_ahead_does_not_count_against_a_fresh_load(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Review of the first refusal at admission: it counted every job in the lane, and a
+    burst whose callers had given up (withdrawn: they never run) refused a fresh load that
+    would have started at once."""
+    lane = _Lane(monkeypatch, 1, s=1.0)
+    try:
+        gone = [lane.load("s", f"gone-{n}", 100.0)[0] for n in range(3)]
+        assert all(place.withdraw() for place in gone)  # (queued: their jobs cancelled)
+        fresh = lane.load("s", "fresh", 2.0)[1]  # 0.5 s to spare with nothing ahead
+        assert 4 == lane.workers.queued  # (queued: the cancelled ones count until skipped)
+        lane.free.set()
+        assert "fresh" == fresh.get(timeout=10)
+    finally:
+        lane.stop()
+    assert ["fresh"] == lane.ran
+
+
+def test_a_lane_shared_by_two_servers_prices_each_servers_loads_at_its_own_pace(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Review of the first refusal at admission: a consumer's lane holds the loads of
+    every server of the registrar, and they were all priced at the arriving load's
+    server's pace: twenty queued 1 ms loads of one server refused a load of another whose
+    average is 2 s. Each server counts only its own loads ahead, at its own pace."""
+    lane = _Lane(monkeypatch, 1, fast=0.001, slow=2.0)
+    try:
+        quick = [lane.load("fast", f"quick-{n}", 100.0)[1] for n in range(20)]
+        slow = lane.load("slow", "slow", 3.1)[1]  # 0.1 s to spare: none of its own ahead
+        after = lane.load("fast", "after", 0.1)[1]  # 20 ahead: 0.02 s, 0.0015 needed
+        behind = lane.load("slow", "behind", 6.9)[1]  # 1 slow ahead: 4.9 s left, 3 needed
+        refused = lane.load("slow", "refused", 4.9)[1]  # 2 slow ahead: 0.9 s left
+        with pytest.raises(rr.DeadlineExceededError, match="'rr/slow'"):
+            refused.get(timeout=10)
+        assert 23 == lane.workers.queued
+        lane.free.set()
+        assert [f"quick-{n}" for n in range(20)] == [f.get(timeout=10) for f in quick]
+        assert ["slow", "after", "behind"] == [f.get(timeout=10) for f in (slow, after, behind)]
+    finally:
+        lane.stop()
+
+
+@pytest.mark.parametrize("max_workers", [1, 2, 3])
+def test_a_load_that_can_make_its_deadline_is_never_refused_as_it_arrives(
+    monkeypatch: pytest.MonkeyPatch, max_workers: int
+) -> None:
+    """A load is refused as it arrives only if it would be shed even were every worker
+    free now and each load ahead took its server's average: with n of its server's loads
+    queued ahead it starts after n // max_workers of them at the soonest. One with just
+    more than the shed needs (1.5 times the average) left after that is queued, and runs."""
+    for ahead in range(2 * max_workers + 2):
+        lane = _Lane(monkeypatch, max_workers, s=1.0)
+        try:
+            queued = [lane.load("s", f"ahead-{n}", 100.0)[1] for n in range(ahead)]
+            soonest = ahead // max_workers * 1.0
+            fits = lane.load("s", "fits", soonest + 1.51)[1]
+            assert ahead + 1 == lane.workers.queued, ahead
+            lane.free.set()
+            assert "fits" == fits.get(timeout=10)
+            assert [f"ahead-{n}" for n in range(ahead)] == [f.get(timeout=10) for f in queued]
+        finally:
+            lane.stop()
+
+
 def test_a_freed_slot_goes_to_the_consumer_that_waits_not_to_one_that_asks_again_at_once() -> None:
     """Review of issue 53's shares: with a bound below the number of consumers each
     share rounds to 1, and the slot a flooding consumer's load freed went back to it (it
