@@ -137,18 +137,14 @@ class Listening:
         self.endpoint = endpoint
         self.name = endpoint.name
         self.lock = runtime.Lock()
-        self.ended = False
-        self.yielded = False
+        self.ended = self.yielded = False
         self.yield_told = runtime.Event()  # its registrar was told to yield (`give_way`)
         self.failing_since: float | None = None
         self.failure = ""
 
 
-# -- rule 22: two servers of one name ---------------------------------------------------------
-
-
 def when(stamp: int) -> str:
-    """A registration stamp as UTC, to the microsecond."""
+    """A registration stamp as UTC, to the microsecond (rule 22: two servers of one name)."""
     at = datetime.datetime.fromtimestamp(seconds(stamp), datetime.UTC)
     return at.strftime("%Y-%m-%d %H:%M:%S.%f UTC")
 
@@ -423,8 +419,12 @@ class Messenger:
                 self._early.pop(name, None)
             raise
         with self._lock:
-            self._served[name] = listening
-            early = self._early.pop(name, [])
+            early, left = self._early.pop(name, []), self.closed
+            if not left:  # (a `close` while the carrier served it did not see it)
+                self._served[name] = listening
+        if left:
+            self._unserve(listening, stopped=False)
+            raise RegistrarStoppedError(f"this process left system {self.system!r}")
         for rival in early:  # (told of before it was listed)
             self.served_elsewhere(name, rival)
         runtime.Thread(

@@ -1733,7 +1733,7 @@ class TestProviderLost:
 
         listed = DIRECTORY.names  # (lost: neither is served any more, as after a death;
         gone = {provider.name, middle.name}  # one served is reconciled with first)
-        monkeypatch.setattr(DIRECTORY, "names", lambda: listed() - gone)
+        monkeypatch.setattr(type(DIRECTORY), "names", lambda _self: listed() - gone)
         for _ in range(2):  # as a carrier and the death watch may both say it
             Served(middle).peer_lost(provider.name)  # middle: its provider is lost
             Served(provider).peer_lost(middle.name)  # provider: its consumer is lost

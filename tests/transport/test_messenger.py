@@ -216,6 +216,36 @@ class TestStoppingAListener:
         assert not os.path.exists(listener.path)  # (the system's close removed the tombstone)
 
 
+def test_a_serve_the_process_leaves_during_stops_serving_and_says_so(
+    system: System, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The system closes after its carrier served the name but before the messenger listed
+    # it (a close then does not see it): the serve stops serving it and raises, as a serve
+    # that began after the close does; nothing is left listening.
+    from rr_actors._transport.unix.system import UnixCarrier  # noqa: PLC0415
+
+    serve = UnixCarrier.serve
+
+    def closed_meanwhile(carrier: UnixCarrier, endpoint: Any) -> Listener:
+        listener = serve(carrier, endpoint)
+        closing = threading.Thread(target=system.close, name="test-close")
+        closing.start()
+        closing.join(30)
+        assert not closing.is_alive()
+        return listener
+
+    monkeypatch.setattr(UnixCarrier, "serve", closed_meanwhile)
+    registrar = rr.ResourceRegistrar.start(f"left-{uuid.uuid4().hex[:8]}")
+    try:
+        with pytest.raises(rr.RegistrarStoppedError, match="left system"):
+            system.serve(Served(registrar))
+    finally:
+        registrar.stop()
+
+    assert [] == system.served()
+    assert not os.path.exists(system.address.socket_path(registrar.name))
+
+
 PROTOCOL = {"knows", "route", "send", "answer", "serve", "unserve", "names", "leave"}
 
 

@@ -33,7 +33,7 @@ import rr_actors._transport.unix.link as writer_module
 from rr_actors._registrar.life import Served
 from rr_actors._registrar.messages import Fetch, Load
 from rr_actors._transport import System
-from rr_actors._transport.messenger import Remote, Route
+from rr_actors._transport.messenger import Remote, Replies, Route
 from rr_actors._transport.unix.link import (
     HANDSHAKE_TIMEOUT,
     Dial,
@@ -711,3 +711,56 @@ def test_a_connect_where_nothing_listens_nor_is_coming_fails_at_once(system: Sys
         connect(path, system.address.authkey, coming=lambda: bool(probes.append(1)))
 
     assert [1] == probes  # (asked once, then failed: no wait for a listener never coming)
+
+
+class _Failed:
+    """A reply that says when it fails."""
+
+    __slots__ = ("failed",)
+
+    def __init__(self) -> None:
+        self.failed = threading.Event()
+
+    def set_result(self, _value: Any) -> None:
+        pass
+
+    def set_error(self, _error: BaseException) -> None:
+        self.failed.set()
+
+
+def test_a_frame_refused_by_a_connection_that_closed_under_it_is_sent_again_on_the_next(
+    system: System, start_provider: ProviderFactory, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A sender takes the connection; it closes (its reader fails what waited on it); the
+    # sender then registers its reply, and another sender's send opens the next connection
+    # before the first one's frame is refused. That frame never left: it goes again over
+    # the next connection, and its reply is answered, not failed as "died while answers
+    # were outstanding" (the other sender's route must not fail a reply it never waited on).
+    provider = start_provider()
+    peer = system.resolve(provider.name)
+    assert isinstance(peer, Remote)
+    assert 0 == peer.run(load_count, timeout=10)  # (connected)
+    channel = system._unix._dials[provider.name]._channel
+    assert channel is not None
+    others: list[Any] = []
+    expect, armed = Replies.expect, [True]
+
+    def closed_then_expected(replies: Replies, outgoing: Any, to: Remote, limit: int) -> None:
+        if not armed:
+            expect(replies, outgoing, to, limit)
+            return
+        armed.clear()
+        assert replies is channel.pending
+        marker = _Failed()
+        replies[0] = (marker, None, to, limit)  # type: ignore[assignment]
+        channel.writer.close()  # (its reader reads the end and fails what waits)
+        assert marker.failed.wait(10), "the reader did not fail what waited"
+        expect(replies, outgoing, to, limit)
+        other = threading.Thread(target=lambda: others.append(peer.submit(load_count)))
+        other.start()
+        other.join(10)
+
+    monkeypatch.setattr(Replies, "expect", closed_then_expected)
+    assert 0 == peer.run(load_count, timeout=10)
+    assert 1 == len(others)
+    assert 0 == others[0].future.get(timeout=10)

@@ -1454,3 +1454,30 @@ class TestNeverWaitingOnAnActor:
                     process.kill()
                     process.join(5)
                 control.close()
+
+
+def test_a_name_whose_serve_the_process_leaves_during_is_not_left_served(
+    net: ZenohNetwork, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The network closes while a serve waits for the router to see its token (the last
+    # step of a serve): the name is not listed as served by the closed network afterwards,
+    # as it was not when the close came a step later.
+    name = f"left-{uuid.uuid4().hex[:6]}"
+    barrier, closing = ZenohCarrier.barrier, []
+
+    def closed_meanwhile(carrier: ZenohCarrier, key: str) -> None:
+        if not closing:
+            closing.append(threading.Thread(target=net.close, name="test-close"))
+            closing[0].start()
+            closing[0].join(30)
+            assert not closing[0].is_alive()
+        barrier(carrier, key)
+
+    monkeypatch.setattr(ZenohCarrier, "barrier", closed_meanwhile)
+    with contextlib.suppress(rr.RegistrarStoppedError):  # (either: it stopped serving)
+        net.serve(Recorder(name))
+
+    assert closing, "the serve did not wait for the router"
+    assert net.closed
+    assert [] == net.served()
+    assert net.serving(name) is None
