@@ -522,7 +522,10 @@ def test_a_message_sent_as_the_reader_ends_its_connection_is_answered_not_left_w
 
     channel.pending = SentMeanwhile(channel.pending)
     try:
+        waiting = remote.submit(load_count)  # (queued behind the long write)
         provider.kill()  # its reader's end
+        with pytest.raises(rr.RegistrarUnavailableError, match="died"):  # (its process did)
+            waiting.future.get(timeout=BOUND)
         assert wait_for(lambda: late, BOUND)
         with pytest.raises(rr.RegistrarUnavailableError):  # (answered: died, unreachable)
             late[0].future.get(timeout=BOUND)
