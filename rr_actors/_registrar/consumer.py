@@ -865,14 +865,14 @@ class Releases:
         keep it `unreleased` until the provider's next `Reconcile`, which leaves it out."""
         self.unreleased[query.id] = query.serving_rr
         self.holdings.forget(query.id, reason="unload unanswered", began=began)
-        kind = (
-            RegistrarStoppedError
-            if isinstance(error, RegistrarStoppedError)
-            else RegistrarUnavailableError
-        )
-        told = kind(
+        text = (
             f"{error}; query {query.id} is released: '{query.serving_rr}' releases it when "
             "it reconciles with this registrar after its restart (its unload runs once)"
+        )
+        told: RrError = (
+            RegistrarStoppedError(text, error.registrar)  # (who stopped, as `error` says)
+            if isinstance(error, RegistrarStoppedError)
+            else RegistrarUnavailableError(text)
         )
         told.__cause__ = error
         return told

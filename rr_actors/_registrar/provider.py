@@ -280,25 +280,24 @@ class Provider:
     # -- load -------------------------------------------------------------------------
 
     def refusal(self, message: Load) -> RrError | None:
-        server = self.registrar.servers.get(message.server)
+        name, servers = self.registrar.name, self.registrar.servers
+        server = servers.get(message.server)
         if server is None or server.closing:
             return UnknownServerError(
-                f"no resource server '{self.registrar.name}/{message.server}'"
-                + _known_names(
-                    message.server, (n for n, s in self.registrar.servers.items() if not s.closing)
-                )
+                f"no resource server '{name}/{message.server}'"
+                + _known_names(message.server, (n for n, s in servers.items() if not s.closing))
             )
-        if self.registrar.stopping:
-            return RegistrarStoppedError(f"registrar {self.registrar.name!r} is stopping")
+        if self.registrar.stopping:  # (its own end: named)
+            return RegistrarStoppedError(f"registrar {name!r} is stopping", name)
         if self.lives.fenced(message.origin_rr, message.life):
             return RegistrarUnavailableError(
                 f"registrar {message.origin_rr!r} restarted since it sent the load of "
-                f"{message.query_id!r} to '{self.registrar.name}/{message.server}', and "
+                f"{message.query_id!r} to '{name}/{message.server}', and "
                 "reconciled: that run holds nothing here"
             )
         if len(message.chain) >= MAX_DEPENDENCY_DEPTH:
             return DependencyCycleError(
-                f"load chain deeper than {MAX_DEPENDENCY_DEPTH} at '{self.registrar.name}/"
+                f"load chain deeper than {MAX_DEPENDENCY_DEPTH} at '{name}/"
                 f"{message.server}': runaway recursion"
             )
         return None

@@ -1342,6 +1342,23 @@ class TestReconcileDueCall:
 
 
 @pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+def test_an_unload_its_stopped_provider_did_not_answer_names_that_provider_as_stopped(
+    managers: Callable[..., RemoteRegistrar], tmp_path: Path
+) -> None:
+    # issue 51's review: the error told (`release_later`) was made anew, without the
+    # `.registrar` of the provider's "stopped", which then read as this side's own stop
+    provider = managers(named("provider", tmp_path), serve_leaf)
+    consumer = managers(named("consumer", tmp_path), None)
+    query = consumer.call(provider.name, "leaf", "camera", timeout=10)
+    provider.stop()
+
+    with pytest.raises(rr.RegistrarStoppedError) as info:  # (pickled back to this process)
+        consumer.unload(query.id, timeout=10)
+
+    assert provider.name == info.value.registrar
+    assert [] == consumer.client_queries()  # (released, as before)
+
+
 @pytest.mark.usefixtures("by_value")  # (tests/conftest.py)
 class TestReconcileEdges:
     """Reconciliation's edges (issue 21): real manager processes, real SIGKILLs, real backups.

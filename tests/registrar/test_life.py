@@ -1061,6 +1061,27 @@ class TestStopWaitsForUnloads:
         assert ["RegistrarStoppedError"] == ended  # its consumer gave the id up
         assert [rid] == restored_in_doubt(config)  # in doubt at the next start
 
+    def test_a_load_that_comes_as_it_waits_is_refused_naming_the_provider_stopped(
+        self,
+        gated: tuple[rr.ResourceRegistrar, rr.ResourceRegistrar, Gated],
+    ) -> None:
+        # issue 51's review: "is stopping" is the provider's own end, so its error names it
+        # (`.registrar` None reads as the caller's side having stopped)
+        provider, consumer, server = gated
+        _rid, releasing, _ended = unloading(provider, consumer, server)
+        stopping = threading.Event()
+        with intercept(provider, "stop", after=lambda _message: stopping.set()):
+            stopper = threading.Thread(target=provider.stop, kwargs={"timeout": 20})
+            stopper.start()
+            assert stopping.wait(10)  # (it waits for the unload: the gate is shut)
+            with pytest.raises(rr.RegistrarStoppedError, match="is stopping") as info:
+                consumer.call(provider.name, "leaf", "y", timeout=10)
+            server.gate.set()
+            stopper.join(20)
+        releasing.join(10)
+
+        assert provider.name == info.value.registrar
+
 
 class TestCrash:
     """A registrar that crashes fails the requests it had accepted at once (rule 17)."""

@@ -523,15 +523,15 @@ class Dial:
         return RegistrarUnavailableError(f"registrar {self.name!r} {how}{detail}")
 
     def _lose(self, channel: _Channel, error: RrError | None) -> None:
-        """Fail every reply still pending on `channel` and close it (any thread): first, so
-        that `error` (this process left, say) is what they hear, not its reader's end."""
-        channel.pending.fail(
-            None, error or (lambda: self._gone("died while answers were outstanding"))
-        )
+        """Fail the replies pending on `channel` (first: `error` is what they hear, not its
+        reader's end), close it, fail those sent meanwhile (any thread)."""
+        fail = error or (lambda: self._gone("died while answers were outstanding"))
+        channel.pending.fail(None, fail)
         channel.writer.close()
         with self._lock:
             if self._channel is channel:
                 self._channel = None
+        channel.pending.fail(None, fail)
 
     def _read(self, channel: _Channel, conn: Connection) -> None:
         """The reader thread of one connection: resolve answers until it ends."""

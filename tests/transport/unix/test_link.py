@@ -30,6 +30,7 @@ import pytest
 
 import rr_actors as rr
 import rr_actors._transport.unix.link as writer_module
+from rr_actors._core.replies import FutureReply
 from rr_actors._registrar.life import Served
 from rr_actors._registrar.messages import Fetch, Load
 from rr_actors._transport import System
@@ -50,6 +51,7 @@ from tests.support.carriers import (
     setup_servers,
     warnings_logged,
 )
+from tests.support.waiting import wait_for
 
 
 @pytest.fixture
@@ -494,6 +496,42 @@ def test_losing_a_connection_while_its_reader_resolves_answers_answers_each_repl
         sys.setswitchinterval(switch_interval)
 
     assert [[]] * 5 == trials
+
+
+def test_a_message_sent_as_the_reader_ends_its_connection_is_answered_not_left_waiting(
+    system: System, start_provider: ProviderFactory
+) -> None:
+    # issue 51's review: the reader's end fails the replies waiting, then closes the writer;
+    # a message sent in between (the writer open, busy with an earlier frame) was queued,
+    # dropped by the close, and its reply waited for ever (an ask: no release, rule 12)
+    provider = start_provider()
+    peer = _OwnConnection(system, provider.name)
+    remote = Remote(peer, provider.name)
+    assert 0 == remote.run(load_count, timeout=10)  # (connected: its reader runs)
+    channel = peer.dial.route()
+    busy, free = threading.Event(), threading.Event()
+    channel.writer._executor.submit(lambda: (busy.set(), free.wait(BOUND)))  # (a long write)
+    assert busy.wait(BOUND)
+    late: list[FutureReply] = []
+
+    class SentMeanwhile(Replies):  # a sender's message, just after the waiting ones failed
+        def fail(self, name: str | None, error: Any) -> None:
+            super().fail(name, error)
+            if not late:
+                late.append(remote.submit(load_count))
+
+    channel.pending = SentMeanwhile(channel.pending)
+    try:
+        waiting = remote.submit(load_count)  # (queued behind the long write)
+        provider.kill()  # its reader's end
+        with pytest.raises(rr.RegistrarUnavailableError, match="died"):  # (its process did)
+            waiting.future.get(timeout=BOUND)
+        assert wait_for(lambda: late, BOUND)
+        with pytest.raises(rr.RegistrarUnavailableError):  # (answered: died, unreachable)
+            late[0].future.get(timeout=BOUND)
+    finally:
+        free.set()
+        peer.dial.close(rr.RegistrarStoppedError("the test is over"))
 
 
 def test_a_writer_closed_while_a_sender_writes_closes_its_socket_after_that_write() -> None:
