@@ -987,8 +987,8 @@ class Reconciling:
     def reconcile_all(self) -> dict[str, tuple[int, str]]:
         """This registrar serves (again): reconcile with every provider it holds ids at, those
         that asked during setup, and (`everyone`) every registrar it can reach now; but those
-        that asked with a round, returned (provider -> round) for `Presence.attempt` to answer:
-        retried, and its newer rounds echo that round until one is answered."""
+        that asked with a round, returned (provider -> (round, life)) for `Presence.attempt`
+        to answer: retried, and its newer rounds echo that round until one is answered."""
         providers = self.registrar.catalog.providers()
         providers |= self.asked_to_reconcile.keys()
         if self.everyone:
