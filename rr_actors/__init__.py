@@ -53,13 +53,13 @@ if TYPE_CHECKING:  # at run time, `__getattr__` below imports each at its first 
     from rr_actors import events as events  # `rr.events.to_dict(...)`, as `rr.errors` is
     from rr_actors._core.bus import Subscription
     from rr_actors._registrar import Registrar, ResourceRegistrar, StatusWatch
+    from rr_actors._store.files import quarantine_backup as quarantine_backup
     from rr_actors._supervision import ChildCounts as ChildCounts
     from rr_actors._supervision import ChildInfo, Supervisor
     from rr_actors._supervision.watching import Observing
     from rr_actors._transport.resolve import Claimant
     from rr_actors._transport.zenoh.net import ZenohNetwork
     from rr_actors._transport.zenoh.ops.tls import ZenohTLS
-    from rr_actors.errors import quarantine_backup as quarantine_backup
 
 __all__ = [
     "Backoff",
@@ -102,7 +102,7 @@ _RUNTIME = {
     "Registrar": "rr_actors._registrar",
     "ResourceRegistrar": "rr_actors._registrar",
     "StatusWatch": "rr_actors._registrar",
-    "quarantine_backup": "rr_actors.errors",
+    "quarantine_backup": "rr_actors._store.files",
     "ChildCounts": "rr_actors._supervision",
     "ChildInfo": "rr_actors._supervision",
     "Supervisor": "rr_actors._supervision",
@@ -156,6 +156,22 @@ def __getattr__(name: str) -> object:
 
 def __dir__() -> list[str]:
     return sorted({*globals(), *_RUNTIME})
+
+
+def _errors_getattr(name: str) -> object:
+    """`rr_actors.errors.quarantine_backup`, beside the error it recovers from, imported at
+    its first use: it is the store's, and the store imports `errors`, so it is attached
+    from here, above both (PEP 562), never imported by `errors` itself.
+
+    Raises:
+        AttributeError: `name` is not one of `rr_actors.errors`'.
+    """
+    if name != "quarantine_backup":
+        raise AttributeError(f"module 'rr_actors.errors' has no attribute {name!r}")
+    return importlib.import_module("rr_actors._store.files").quarantine_backup
+
+
+vars(sys.modules["rr_actors.errors"])["__getattr__"] = _errors_getattr
 
 
 _LAB = ("experiments", "mission", "observe", "teach", "otel", "_cli", "_tools")

@@ -4,13 +4,13 @@ Every error derives from [`RrError`][rr_actors.errors.RrError]. "You stopped it"
 ([`RegistrarStoppedError`][rr_actors.errors.RegistrarStoppedError]) is kept apart from "it
 died" ([`RegistrarUnavailableError`][rr_actors.errors.RegistrarUnavailableError]); a timeout
 is also a built-in `TimeoutError`. All errors pickle with their attributes. Beside
-`CatalogCorruptError` is its recovery, `quarantine_backup` (the store's, imported at first use).
+`CatalogCorruptError` is its recovery, `quarantine_backup`: the store's, which imports this
+module, so the package attaches it here (`rr_actors/__init__.py`), imported at its first use.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import importlib
 from collections.abc import Iterable
 from typing import TYPE_CHECKING, Any
 
@@ -42,15 +42,11 @@ __all__ = [
     "UnknownQueryError",
     "UnknownRegistrarError",
     "UnknownServerError",
-    "quarantine_backup",  # noqa: F822 - given by `__getattr__`, at its first use
+    "quarantine_backup",  # (attached by the package, at its first use)
 ]
 
 
-def __getattr__(name: str) -> Callable[[str | PathLike[str]], Path]:
-    """`quarantine_backup`, at its first use: the store imports this module, never the reverse."""
-    if name != "quarantine_backup":
-        raise AttributeError(f"module 'rr_actors.errors' has no attribute {name!r}")
-    return importlib.import_module("rr_actors._store.files").quarantine_backup  # type: ignore[no-any-return]
+quarantine_backup: Callable[[str | PathLike[str]], Path]  # (attached by the package, above)
 
 
 class RrError(Exception):
