@@ -30,6 +30,7 @@ import contextlib
 import functools
 import inspect
 import logging
+import math
 from collections.abc import Awaitable, Callable
 from typing import Any, cast
 
@@ -973,6 +974,7 @@ class ServerActor(Actor):
         self.tasks: dict[asyncio.Task[None], None] = {}
         # what its loads take lately (`ran`), shared with the provider (`Server.pace`)
         self.pace = Pace() if pace is None else pace
+        self.latest: dict[str, float] = {}  # lane -> the latest deadline queued in it, at most
 
     def on_receive(self, message: Any) -> None:
         if isinstance(message, RunLoad):
@@ -1003,21 +1005,20 @@ class ServerActor(Actor):
     def _start_load(self, message: RunLoad) -> Job | None:
         """Start a load: its worker job while it waits for a place (withdrawable until one
         takes it), `None` if it failed. A coroutine's job holds its place while it runs. One
-        that would be shed once its server's loads still queued ahead in its lane had run (a
-        round of `max_workers` each) fails so at once."""
-        held, key = self.on_loop[0], (message.origin, self.name)
-        rounds = self.workers.waiting(key) // self.workers.max_workers
-        refused = self.shed(message, rounds) if rounds else None
-        if refused is not None:
+        that would be shed after its server's loads queued ahead in its lane (rounds of
+        `max_workers`, none past its deadline less the headroom) fails so at once."""
+        held, lane, load_s = self.on_loop[0], message.origin, self.pace.load_s
+        waiting = self.workers.waiting(key := (lane, self.name))
+        ahead = self.latest.get(lane, math.inf) if waiting else -math.inf  # (their deadline)
+        if (rounds := waiting // self.workers.max_workers) and ahead < math.inf and load_s > 0:
+            rounds = min(rounds, max(0, int((ahead - runtime.monotonic()) / load_s - 0.5)))
+        if (refused := self.shed(message, rounds) if rounds else None) is not None:
             message.reply.set_error(refused)
             return None
+        self.latest[lane] = max(ahead, message.place.deadline or math.inf)  # (monotonic: > 0)
         try:
-            return self.workers.submit(
-                functools.partial(self._spawn if held else self._load, message),
-                lane=message.origin,
-                held=held,
-                key=key,
-            )
+            task = functools.partial(self._spawn if held else self._load, message)
+            return self.workers.submit(task, lane=lane, held=held, key=key)
         except RuntimeError as exc:  # no thread could start: this load fails, no other
             message.reply.set_error(load_error(self.registrar, self.name, _no_thread(exc)))
             return None
