@@ -1025,12 +1025,9 @@ class ServerActor(Actor):
 
     def on_stop(self) -> None:
         if self.on_loop[0] or self.on_loop[1]:
-            loop = process_loop()
             tasks = self.tasks
-            try:
-                loop.call_soon_threadsafe(lambda: [task.cancel() for task in list(tasks)])
-            except RuntimeError:  # (the loop is closed: nothing runs there any more)
-                return
+            with contextlib.suppress(RuntimeError):  # (the loop is closed: nothing runs there)
+                process_loop().call_soon_threadsafe(lambda: [t.cancel() for t in list(tasks)])
 
     def _spawn(self, message: RunLoad | RunUnload) -> None:
         """Run its coroutine callback on the process's loop; a load's worker place is released
