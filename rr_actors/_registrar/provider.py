@@ -31,6 +31,7 @@ import functools
 import inspect
 import logging
 import math
+import weakref
 from collections.abc import Awaitable, Callable
 from typing import Any, cast
 
@@ -983,20 +984,11 @@ class ServerActor(Actor):
             self._spawn(message)
         elif isinstance(message, RunUnload):
             timeout = message.timeout
-
-            def overdue() -> None:
-                message.reply.set_error(
-                    CallTimeoutError(
-                        f"the unload callback of '{self.registrar}/{self.name}' did not "
-                        f"return within {timeout:g} s"
-                    )
-                )
-
             try:
                 self.workers.submit(  # (urgent: never behind loads queued before it)
                     lambda: self._unload(message),
                     timeout=timeout,
-                    on_overdue=None if timeout is None else overdue,
+                    on_overdue=None if timeout is None else functools.partial(self.late, message),
                     urgent=True,
                 )
             except RuntimeError as exc:
@@ -1032,27 +1024,33 @@ class ServerActor(Actor):
     def _spawn(self, message: RunLoad | RunUnload) -> None:
         """Run its coroutine callback on the process's loop; a load's worker place is released
         as it ends. A loop closed or stopped (as the process ends) runs nothing: the place is
-        released at once and `message.reply` fails, a load's callers with `ResourceLoadError`
-        naming this registrar and server (an unload's with that `RuntimeError`)."""
+        released at once (or as the loop drops the start it was handed) and `message.reply`
+        fails, a load's callers with `ResourceLoadError` naming this registrar and server (an
+        unload's with that `RuntimeError`)."""
         tasks, load = self.tasks, isinstance(message, RunLoad)
         coroutine = self._aload(message) if isinstance(message, RunLoad) else self._aunload(message)
 
         def start() -> None:
+            lost.detach()
             task = asyncio.get_running_loop().create_task(coroutine)
             tasks[task] = None
             task.add_done_callback(lambda done: (tasks.pop(done, None), load and release()))
 
+        def dead() -> None:
+            coroutine.close()
+            if load:
+                release()
+            state = "closed" if loop.is_closed() else "stopped"
+            error = RuntimeError(f"the process's event loop is {state}: no coroutine starts there")
+            message.reply.set_error(load_error(self.registrar, self.name, error) if load else error)
+
         loop, release = process_loop(), self.workers.release
+        lost = weakref.finalize(start, dead)  # (a start dropped unrun: stopped, then closed)
         with contextlib.suppress(RuntimeError):  # (closed since)
             if loop.is_running():  # (else what it is handed never runs)
                 loop.call_soon_threadsafe(start)
                 return
-        coroutine.close()
-        if load:
-            release()
-        state = "closed" if loop.is_closed() else "stopped"
-        error = RuntimeError(f"the process's event loop is {state}: no coroutine starts there")
-        message.reply.set_error(load_error(self.registrar, self.name, error) if load else error)
+        lost()
 
     def shed(self, message: RunLoad, rounds: int = 0) -> DeadlineExceededError | None:
         """As its load would start (after `rounds` of this server's loads): the error that
@@ -1109,12 +1107,16 @@ class ServerActor(Actor):
         else:
             message.reply.set_result(response)
 
+    def late(self, message: RunUnload) -> None:
+        """Its unload callback did not return within its `timeout`: its reply fails so."""
+        late = f"the unload callback of '{self.registrar}/{self.name}' did not return within"
+        message.reply.set_error(CallTimeoutError(f"{late} {message.timeout:g} s"))
+
     async def _aunload(self, message: RunUnload) -> None:
         """A coroutine `unload`, on the process's loop, cancelled past `timeout`, under its span."""
         if message.trace:
             traces.attach(message.trace)  # (the task's own context: nothing to detach)
-        timeout = message.timeout
-        bound = asyncio.timeout(timeout)
+        bound = asyncio.timeout(message.timeout)
         try:
             async with bound:
                 await cast("Awaitable[None]", self.unload(message.request, message.response))
@@ -1122,12 +1124,7 @@ class ServerActor(Actor):
             if not bound.expired():  # (the callback's own TimeoutError)
                 message.reply.set_error(exc)
                 return
-            message.reply.set_error(
-                CallTimeoutError(
-                    f"the unload callback of '{self.registrar}/{self.name}' did not "
-                    f"return within {timeout:g} s"
-                )
-            )
+            self.late(message)
         except BaseException as exc:  # noqa: BLE001 - logged by the registrar, never lost
             message.reply.set_error(exc)
         else:

@@ -3381,6 +3381,57 @@ def test_loads_ahead_that_will_be_shed_before_they_start_do_not_refuse_a_load_be
     assert ["last", "fresh"] == lane.ran  # (fresh starts 1 s on: 2.4 s left, 1.5 needed)
 
 
+def test_a_coroutine_load_handed_to_a_loop_stopped_before_it_starts_fails_as_it_closes(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Review of the dead-loop fix: the load's start is handed to the loop once it is seen
+    running, and a loop stopped right after that check (then closed, as a process ends)
+    never ran it: its caller waited for good, its worker's place stayed taken. Forced: the
+    loop stops as it is handed the start. As the loop drops it the load fails, naming the
+    registrar and the server, and its place is free for the next load."""
+    from rr_actors._core.workers import Workers  # noqa: PLC0415
+    from rr_actors._registrar import provider as module  # noqa: PLC0415
+    from rr_actors._registrar.messages import LoadPlace, RunLoad  # noqa: PLC0415
+
+    inside, handed = threading.Event(), threading.Event()
+
+    class Handing(asyncio.SelectorEventLoop):
+        def call_soon_threadsafe(self, *args: Any, **kwargs: Any) -> Any:
+            handle = super().call_soon_threadsafe(*args, **kwargs)
+            if inside.is_set():  # (the server actor's start, as the loop blocks below)
+                handed.set()
+            return handle
+
+    def block() -> None:  # (on the loop's thread, before the start it is handed)
+        inside.set()
+        assert handed.wait(10)
+        dead.stop()  # (the loop ends this turn: what it was handed in it never runs)
+
+    dead = Handing()
+    ran = threading.Thread(target=dead.run_forever, name="test-stopping-loop")
+    ran.start()
+    dead.call_soon_threadsafe(block)
+    assert inside.wait(10)
+    loops = [dead]
+    monkeypatch.setattr(module, "process_loop", lambda: loops[0])
+    server = module.ServerActor.start(
+        "rr", "s", as_coroutine(lambda r: r), _adrop, Workers("t", max_workers=1)
+    )
+    try:
+        first, second = FutureReply(), FutureReply()
+        server.tell(RunLoad("first", "first", (), first, LoadPlace(), origin="c"))
+        ran.join(timeout=10)
+        assert not ran.is_alive()
+        dead.close()  # (as a process ends: what it was handed is dropped)
+        with pytest.raises(rr.ResourceLoadError, match=r"loop is closed.*\(at rr/s\)"):
+            first.future.get(timeout=10)
+        loops[0] = process_loop()
+        server.tell(RunLoad("second", "second", (), second, LoadPlace(), origin="c"))
+        assert "second" == second.future.get(timeout=10)  # (the one place was given back)
+    finally:
+        server.stop()
+
+
 def test_a_freed_slot_goes_to_the_consumer_that_waits_not_to_one_that_asks_again_at_once() -> None:
     """Review of issue 53's shares: with a bound below the number of consumers each
     share rounds to 1, and the slot a flooding consumer's load freed went back to it (it
