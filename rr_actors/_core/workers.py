@@ -277,8 +277,10 @@ class Workers:
 
     def _unqueued(self, job: Job) -> None:
         """`job` leaves the queue (hold the lock): it no longer counts in `waiting`."""
-        if job._key is not None and (left := self._waiting.pop(job._key, 0) - 1) > 0:
-            self._waiting[job._key] = left
+        if (key := job._key) is not None and (left := self._waiting[key] - 1):
+            self._waiting[key] = left  # (a reader without the lock sees the old count or this)
+        elif key is not None:
+            del self._waiting[key]
 
     def _cancel(self, job: Job) -> bool:
         with self._lock:

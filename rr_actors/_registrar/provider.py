@@ -30,6 +30,8 @@ import contextlib
 import functools
 import inspect
 import logging
+import math
+import weakref
 from collections.abc import Awaitable, Callable
 from typing import Any, cast
 
@@ -972,6 +974,7 @@ class ServerActor(Actor):
         self.tasks: dict[asyncio.Task[None], None] = {}
         # what its loads take lately (`ran`), shared with the provider (`Server.pace`)
         self.pace = Pace() if pace is None else pace
+        self.latest: dict[str, float] = {}  # lane -> the latest deadline queued in it, at most
 
     def on_receive(self, message: Any) -> None:
         if isinstance(message, RunLoad):
@@ -980,20 +983,11 @@ class ServerActor(Actor):
             self._spawn(message)
         elif isinstance(message, RunUnload):
             timeout = message.timeout
-
-            def overdue() -> None:
-                message.reply.set_error(
-                    CallTimeoutError(
-                        f"the unload callback of '{self.registrar}/{self.name}' did not "
-                        f"return within {timeout:g} s"
-                    )
-                )
-
             try:
                 self.workers.submit(  # (urgent: never behind loads queued before it)
                     lambda: self._unload(message),
                     timeout=timeout,
-                    on_overdue=None if timeout is None else overdue,
+                    on_overdue=None if timeout is None else functools.partial(self.late, message),
                     urgent=True,
                 )
             except RuntimeError as exc:
@@ -1002,58 +996,60 @@ class ServerActor(Actor):
     def _start_load(self, message: RunLoad) -> Job | None:
         """Start a load: its worker job while it waits for a place (withdrawable until one
         takes it), `None` if it failed. A coroutine's job holds its place while it runs. One
-        that would be shed once its server's loads still queued ahead in its lane had run (a
-        round of `max_workers` each) fails so at once."""
-        held, key = self.on_loop[0], (message.origin, self.name)
-        rounds = self.workers.waiting(key) // self.workers.max_workers
-        refused = self.shed(message, rounds) if rounds else None
-        if refused is not None:
+        that would be shed after its server's loads queued ahead in its lane (rounds of
+        `max_workers`, none past its deadline less the headroom) fails so at once."""
+        held, lane, load_s = self.on_loop[0], message.origin, self.pace.load_s
+        waiting = self.workers.waiting(key := (lane, self.name))
+        ahead = self.latest.get(lane, math.inf) if waiting else -math.inf  # (their deadline)
+        if (rounds := waiting // self.workers.max_workers) and ahead < math.inf and load_s > 0:
+            rounds = min(rounds, max(0, int((ahead - runtime.monotonic()) / load_s - 0.5)))
+        if (refused := self.shed(message, rounds) if rounds else None) is not None:
             message.reply.set_error(refused)
             return None
+        self.latest[lane] = max(ahead, message.place.deadline or math.inf)  # (monotonic: > 0)
         try:
-            return self.workers.submit(
-                functools.partial(self._spawn if held else self._load, message),
-                lane=message.origin,
-                held=held,
-                key=key,
-            )
+            task = functools.partial(self._spawn if held else self._load, message)
+            return self.workers.submit(task, lane=lane, held=held, key=key)
         except RuntimeError as exc:  # no thread could start: this load fails, no other
             message.reply.set_error(load_error(self.registrar, self.name, _no_thread(exc)))
             return None
 
     def on_stop(self) -> None:
         if self.on_loop[0] or self.on_loop[1]:
-            loop = process_loop()
             tasks = self.tasks
-            try:
-                loop.call_soon_threadsafe(lambda: [task.cancel() for task in list(tasks)])
-            except RuntimeError:  # (the loop is closed: nothing runs there any more)
-                return
+            with contextlib.suppress(RuntimeError):  # (the loop is closed: nothing runs there)
+                process_loop().call_soon_threadsafe(lambda: [t.cancel() for t in list(tasks)])
 
     def _spawn(self, message: RunLoad | RunUnload) -> None:
         """Run its coroutine callback on the process's loop; a load's worker place is released
         as it ends. A loop closed or stopped (as the process ends) runs nothing: the place is
-        released at once and `message.reply` fails, a load's callers with `ResourceLoadError`
-        naming this registrar and server (an unload's with that `RuntimeError`)."""
+        released at once (or as the loop drops the start it was handed) and `message.reply`
+        fails, a load's callers with `ResourceLoadError` naming this registrar and server (an
+        unload's with that `RuntimeError`)."""
         tasks, load = self.tasks, isinstance(message, RunLoad)
         coroutine = self._aload(message) if isinstance(message, RunLoad) else self._aunload(message)
 
         def start() -> None:
+            lost.detach()
             task = asyncio.get_running_loop().create_task(coroutine)
             tasks[task] = None
             task.add_done_callback(lambda done: (tasks.pop(done, None), load and release()))
 
+        def dead() -> None:
+            coroutine.close()
+            if load:
+                release()
+            state = "closed" if loop.is_closed() else "stopped"
+            error = RuntimeError(f"the process's event loop is {state}: no coroutine starts there")
+            message.reply.set_error(load_error(self.registrar, self.name, error) if load else error)
+
         loop, release = process_loop(), self.workers.release
+        lost = weakref.finalize(start, dead)  # (a start dropped unrun: stopped, then closed)
         with contextlib.suppress(RuntimeError):  # (closed since)
             if loop.is_running():  # (else what it is handed never runs)
                 loop.call_soon_threadsafe(start)
                 return
-        coroutine.close()
-        if load:
-            release()
-        state = "closed" if loop.is_closed() else "stopped"
-        error = RuntimeError(f"the process's event loop is {state}: no coroutine starts there")
-        message.reply.set_error(load_error(self.registrar, self.name, error) if load else error)
+        lost()
 
     def shed(self, message: RunLoad, rounds: int = 0) -> DeadlineExceededError | None:
         """As its load would start (after `rounds` of this server's loads): the error that
@@ -1110,12 +1106,16 @@ class ServerActor(Actor):
         else:
             message.reply.set_result(response)
 
+    def late(self, message: RunUnload) -> None:
+        """Its unload callback did not return within its `timeout`: its reply fails so."""
+        late = f"the unload callback of '{self.registrar}/{self.name}' did not return within"
+        message.reply.set_error(CallTimeoutError(f"{late} {message.timeout:g} s"))
+
     async def _aunload(self, message: RunUnload) -> None:
         """A coroutine `unload`, on the process's loop, cancelled past `timeout`, under its span."""
         if message.trace:
             traces.attach(message.trace)  # (the task's own context: nothing to detach)
-        timeout = message.timeout
-        bound = asyncio.timeout(timeout)
+        bound = asyncio.timeout(message.timeout)
         try:
             async with bound:
                 await cast("Awaitable[None]", self.unload(message.request, message.response))
@@ -1123,12 +1123,7 @@ class ServerActor(Actor):
             if not bound.expired():  # (the callback's own TimeoutError)
                 message.reply.set_error(exc)
                 return
-            message.reply.set_error(
-                CallTimeoutError(
-                    f"the unload callback of '{self.registrar}/{self.name}' did not "
-                    f"return within {timeout:g} s"
-                )
-            )
+            self.late(message)
         except BaseException as exc:  # noqa: BLE001 - logged by the registrar, never lost
             message.reply.set_error(exc)
         else:

@@ -133,3 +133,39 @@ def test_waiting_counts_a_keys_jobs_still_queued_not_those_begun_cancelled_or_ne
     assert done.wait(10)
     assert [0, 2, "other"] == ran
     assert (0, 0) == (pool.waiting("k"), pool.waiting("other"))
+
+
+def test_waiting_read_without_the_lock_never_sees_a_key_emptied_while_a_job_leaves() -> None:
+    """Review: `waiting` is read on a server actor's thread without the pool's lock while
+    workers begin jobs; as one left the queue the key's count was popped then put back,
+    and a read between the two saw 0 with jobs still queued. Each read sees the old count
+    or the new one (forced: the read happens inside the update, where a thread could)."""
+    pool = Workers("test-workers", max_workers=1, idle_timeout=1.0)
+    gate, started, seen = threading.Event(), threading.Event(), []
+
+    class Watched(dict):  # type: ignore[type-arg]
+        def pop(self, *args: object) -> object:
+            value = super().pop(*args)
+            seen.append(pool.waiting("k"))  # (as a reader between pop and put back)
+            return value
+
+        def __setitem__(self, key: object, value: object) -> None:
+            super().__setitem__(key, value)
+            seen.append(pool.waiting("k"))
+
+        def __delitem__(self, key: object) -> None:
+            super().__delitem__(key)
+            seen.append(pool.waiting("k"))
+
+    def hold() -> None:
+        started.set()
+        assert gate.wait(10)
+
+    pool.submit(hold)
+    assert started.wait(10)
+    pool._waiting = Watched()
+    jobs = [pool.submit(lambda: None, lane="c", key="k") for _ in range(3)]
+    seen.clear()
+    assert jobs[0].cancel()
+    assert [2] == seen  # (before: [0, 2], a key emptied between its pop and its put back)
+    gate.set()

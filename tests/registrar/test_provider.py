@@ -3240,9 +3240,9 @@ class _Lane:
         )
         for _ in range(max_workers):
             self.workers.submit(lambda: self.free.wait(30))  # (no lane: not a load ahead)
-        self.servers = {}
+        self.servers, self.paces = {}, {}
         for name, load_s in paces.items():
-            pace = Pace()
+            pace = self.paces[name] = Pace()
             pace.load_s, pace.learned = load_s, self.clock.now  # (fresh: a load just ended)
             self.servers[name] = module.ServerActor.start(
                 "rr",
@@ -3355,6 +3355,81 @@ def test_a_load_that_can_make_its_deadline_is_never_refused_as_it_arrives(
             assert [f"ahead-{n}" for n in range(ahead)] == [f.get(timeout=10) for f in queued]
         finally:
             lane.stop()
+
+
+def test_loads_ahead_that_will_be_shed_before_they_start_do_not_refuse_a_load_behind_them(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Review of the refusal as a load arrives: it priced every load queued ahead at a full
+    round, also those whose deadline has come too near for them to start while the workers
+    were busy (each is shed as its turn comes, taking no worker's time), and refused a load
+    with time to spare behind them. A load ahead starts only before its deadline (less the
+    shed's headroom): those ahead delay a load no longer than that."""
+    lane = _Lane(monkeypatch, 1, s=1.0)
+    try:
+        doomed = lane.load("s", "doomed", 2.6)[1]  # nothing ahead: 1.1 s to spare
+        last = lane.load("s", "last", 3.6)[1]  # 1 ahead: 1.1 s to spare
+        lane.clock.now += 2.0  # (the one worker stays busy: 0.6 s and 1.6 s left)
+        lane.paces["s"].learned = lane.clock.now  # (kept fresh: as if a load just ended)
+        fresh = lane.load("s", "fresh", 3.4)[1]  # 2 ahead: refused before (1.4 s left)
+        lane.free.set()
+        with pytest.raises(rr.DeadlineExceededError, match="shed before it started"):
+            doomed.get(timeout=10)
+        assert ["last", "fresh"] == [f.get(timeout=10) for f in (last, fresh)]
+    finally:
+        lane.stop()
+    assert ["last", "fresh"] == lane.ran  # (fresh starts 1 s on: 2.4 s left, 1.5 needed)
+
+
+def test_a_coroutine_load_handed_to_a_loop_stopped_before_it_starts_fails_as_it_closes(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Review of the dead-loop fix: the load's start is handed to the loop once it is seen
+    running, and a loop stopped right after that check (then closed, as a process ends)
+    never ran it: its caller waited for good, its worker's place stayed taken. Forced: the
+    loop stops as it is handed the start. As the loop drops it the load fails, naming the
+    registrar and the server, and its place is free for the next load."""
+    from rr_actors._core.workers import Workers  # noqa: PLC0415
+    from rr_actors._registrar import provider as module  # noqa: PLC0415
+    from rr_actors._registrar.messages import LoadPlace, RunLoad  # noqa: PLC0415
+
+    inside, handed = threading.Event(), threading.Event()
+
+    class Handing(asyncio.SelectorEventLoop):
+        def call_soon_threadsafe(self, *args: Any, **kwargs: Any) -> Any:
+            handle = super().call_soon_threadsafe(*args, **kwargs)
+            if inside.is_set():  # (the server actor's start, as the loop blocks below)
+                handed.set()
+            return handle
+
+    def block() -> None:  # (on the loop's thread, before the start it is handed)
+        inside.set()
+        assert handed.wait(10)
+        dead.stop()  # (the loop ends this turn: what it was handed in it never runs)
+
+    dead = Handing()
+    ran = threading.Thread(target=dead.run_forever, name="test-stopping-loop")
+    ran.start()
+    dead.call_soon_threadsafe(block)
+    assert inside.wait(10)
+    loops = [dead]
+    monkeypatch.setattr(module, "process_loop", lambda: loops[0])
+    server = module.ServerActor.start(
+        "rr", "s", as_coroutine(lambda r: r), _adrop, Workers("t", max_workers=1)
+    )
+    try:
+        first, second = FutureReply(), FutureReply()
+        server.tell(RunLoad("first", "first", (), first, LoadPlace(), origin="c"))
+        ran.join(timeout=10)
+        assert not ran.is_alive()
+        dead.close()  # (as a process ends: what it was handed is dropped)
+        with pytest.raises(rr.ResourceLoadError, match=r"loop is closed.*\(at rr/s\)"):
+            first.future.get(timeout=10)
+        loops[0] = process_loop()
+        server.tell(RunLoad("second", "second", (), second, LoadPlace(), origin="c"))
+        assert "second" == second.future.get(timeout=10)  # (the one place was given back)
+    finally:
+        server.stop()
 
 
 def test_a_freed_slot_goes_to_the_consumer_that_waits_not_to_one_that_asks_again_at_once() -> None:
