@@ -11,6 +11,7 @@ here, as xoscar's above its `Channel`. The one protocol a carrier keeps (`Carrie
  serve(endpoint) ─► carrier.serve(endpoint): a Listening ─► its end: carrier.unserve
  the carrier's thread ─► Messenger.message ─► StandIn ─► carrier.answer(process, frame)
  the carrier's thread ─► route.pending.answered / fail; Messenger.lost / reachable
+ served_elsewhere, this one kept (rule 22) ─► carrier.send(carrier.route(name, rival), Claim)
  names() ─► carrier.names()        close() ─► carrier.leave()
 ```
 
@@ -91,9 +92,10 @@ class Carrier(Protocol):
     def knows(self, name: str) -> bool:
         """Whether `name` is served elsewhere, or was (any thread). Raises as `resolve`."""
 
-    def route(self, name: str) -> Route:
+    def route(self, name: str, server: Sided | None = None) -> Route:
         """The way to registrar `name` now (any thread; on an actor's, never waits on the
-        network). Raises why it cannot be reached (`RegistrarUnavailableError`, ...)."""
+        network), or to its server `server` (rule 22: one of two it sees; `_claim`).
+        Raises why it cannot be reached (`RegistrarUnavailableError`, ...)."""
 
     def send(self, route: Route, data: bytes) -> None:
         """Send frame `data` over `route`, in order (never blocks). Raises why nothing of
@@ -534,11 +536,9 @@ class Messenger:
         """Tell `rival`'s process that `local` is kept (it may not hear after a one-way heal)."""
         process = local.rank[1]
         claim = Claim(name, local.who, local.stamp, process, local.side, local.members)
-        tell = getattr(self.link(), "tell_server", None)  # (carriers that see two servers)
-        if tell is None:
-            return
-        try:
-            tell(name, rival, claim)
+        carrier = self.link()
+        try:  # (a carrier that sees one server a name raises: nothing sent)
+            carrier.send(carrier.route(name, rival), frame(NO_REPLY, claim))
         except Exception as exc:  # noqa: BLE001 - its own presence may tell it still
             logger.debug("could not tell process %s of %s's claim: %s", rival.who, name, exc)
 

@@ -26,6 +26,8 @@ from __future__ import annotations
 
 import functools
 import logging
+import pickle
+import sys
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -36,6 +38,7 @@ from rr_actors._transport.messenger import (
     Endpoint,
     Lost,
     Messenger,
+    Route,
     run_lost,
 )
 from rr_actors._transport.resolve import Resolution, Resolve, Sided
@@ -197,6 +200,17 @@ class _Wire:
                 deliver()
             except Exception:
                 logger.exception("%s: a delivery failed", self._name)
+
+
+class _Told(Route):
+    """Rule 22's way to the other server of `name`, in process `who` (`route(name,
+    server)`): the kept one's `Claim` sent on it goes as `_SimulatedHub.send` says."""
+
+    __slots__ = ("name", "who")
+
+    def __init__(self, name: str, who: str) -> None:
+        super().__init__(sys.maxsize)
+        self.name, self.who = name, who
 
 
 class _Link(_Route):
@@ -442,9 +456,12 @@ class _SimulatedHub(_Hub):
             found = self._beyond_of[pid] = parent is not None and self._beyond(parent)
         return found
 
-    def route(self, name: str) -> _Link:
+    def route(self, name: str, server: Sided | None = None) -> Route:
         """The link from this process to the server of `name` it reaches: the one on its
-        side of a partition; of two it sees (after a heal), the one kept (rule 22)."""
+        side of a partition; of two it sees (after a heal), the one kept (rule 22). To
+        `server` (the other one, `Messenger._claim`): a `_Told`, whatever is seen."""
+        if server is not None:
+            return _Told(name, server.who)
         servers = [one for one in self._servers.get(name, []) if not (one.cut or one.gone)]
         if not servers:
             raise self.gone_error(name)
@@ -728,14 +745,19 @@ class _SimulatedHub(_Hub):
             rivals = [other for other in servers if other is not server]
             self._on_thread(server.process, "rival", self._served_elsewhere, name, rivals)
 
-    def tell_server(self, name: str, server: Sided, claim: Claim) -> None:
-        """Rule 22: the kept server's process tells the other server of `name`'s process
-        (`server.who`, which may not hear it) with `claim`, as Zenoh's carrier puts it on
-        the name's key: on a thread of that process, unless the network between is cut."""
-        sender = self._sender()
+    def send(self, route: Route, data: bytes) -> None:
+        """A `_Told`'s `Claim` (rule 22): the kept server's process tells the other server
+        of the name's process (`route.who`, which may not hear it), as Zenoh's carrier puts
+        it on the name's key: on a thread of that process, unless the network between is
+        cut; sent nowhere else. Any other route: `_Hub.send`."""
+        if not isinstance(route, _Told):
+            super().send(route, data)
+            return
+        sender, name = self._sender(), route.name
         for one in self._servers.get(name, []):
             there = one.process
-            if one.who == server.who and there.alive and not self._divided(sender.pid, there.pid):
+            if one.who == route.who and there.alive and not self._divided(sender.pid, there.pid):
+                claim = pickle.loads(split_frame(data)[1])
                 self._on_thread(there, "claim", self._claimed, name, claim)
                 return
 

@@ -38,6 +38,7 @@ from rr_actors._transport.messenger import (
     Transport,
     run_lost,
 )
+from rr_actors._transport.resolve import Sided
 from rr_actors.config import check_seconds
 from rr_actors.errors import (
     ConfigError,
@@ -206,7 +207,10 @@ class _Hub:
         assert isinstance(listening, _Served)
         self.end(listening, "stopped" if stopped else "unavailable")
 
-    def route(self, name: str) -> _Route:
+    def route(self, name: str, server: Sided | None = None) -> Route:
+        """`name`'s one server: this network never sees two, so no other (`server`)."""
+        if server is not None:
+            raise RegistrarUnavailableError(f"no second server of {name!r} is seen here")
         served = self._served.get(name)
         if served is None or served.cut or served.gone:
             raise self.gone_error(name)

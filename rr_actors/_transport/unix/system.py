@@ -18,6 +18,7 @@ from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._platform import PLATFORM, forkserver
 from rr_actors._transport.messenger import Endpoint, Listening, Lost, Messenger, Route
+from rr_actors._transport.resolve import Sided
 from rr_actors._transport.unix.link import Dial, Listener, _Accepted, _Channel, lock_held
 from rr_actors.errors import ConfigError, RegistrarStoppedError, RegistrarUnavailableError, RrError
 
@@ -97,8 +98,11 @@ class UnixCarrier:
             address.tombstone_path(name)
         )
 
-    def route(self, name: str) -> _Channel:
-        """Its connection (made now, connected on its writer thread)."""
+    def route(self, name: str, server: Sided | None = None) -> _Channel:
+        """Its connection (made now, connected on its writer thread); a name's socket is
+        its one server, so none other (`server`, rule 22's) is reached."""
+        if server is not None:
+            raise RegistrarUnavailableError(f"no second server of {name!r} is seen here")
         dial = self._dials.get(name)
         if dial is None:
             with self._presence:

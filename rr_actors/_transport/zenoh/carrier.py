@@ -20,7 +20,6 @@ import zenoh
 from rr_actors._core.actor import on_actor_thread
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.hlc import CLOCK
-from rr_actors._transport.codec import NO_REPLY, Claim, frame
 from rr_actors._transport.messenger import (
     Carrier,
     Endpoint,
@@ -59,14 +58,14 @@ logger = logging.getLogger("rr_actors")
 
 
 class _Route(Route):
-    """The server seen for `name` (its process `zid`); replies wait in the one table."""
+    """The server seen for `name` (its process `zid`); replies wait in the one table. To
+    a server given (`told`, `route(name, server)`): sent to whether it is seen or not."""
 
-    __slots__ = ("name", "zid")
+    __slots__ = ("name", "told", "zid")
 
-    def __init__(self, carrier: ZenohCarrier, name: str, server: Server) -> None:
-        super().__init__(server.limit, carrier.replies)  # (answers come on one key)
-        self.name = name
-        self.zid = server.zid
+    def __init__(self, carrier: ZenohCarrier, name: str, zid: str, limit: int | None) -> None:
+        super().__init__(sys.maxsize if limit is None else limit, carrier.replies)
+        self.name, self.zid, self.told = name, zid, limit is None
 
 
 class _Held(Route):
@@ -389,12 +388,6 @@ class ZenohCarrier:
                 self.keys.stopped(NameAt(name, self.zid))
             )
 
-    def tell_server(self, name: str, server: Sided, claim: Claim) -> None:
-        """Rule 22: put `claim` on `name`'s key for its other server (`Messenger._claim`)."""
-        outbox = self.outbox(self.keys.registrar(name), server.who)
-        if outbox is not None:
-            outbox.send(envelope(MESSAGE, self.zid, frame(NO_REPLY, claim), CLOCK.send()))
-
     def served_elsewhere(self, name: str, server: Server) -> None:
         self.messenger.served_elsewhere(name, server)
 
@@ -428,18 +421,21 @@ class ZenohCarrier:
             return self.gone_error(name)
         return self._unknown_error(name)
 
-    def route(self, name: str) -> Route:
+    def route(self, name: str, server: Sided | None = None) -> Route:
         """The server seen for `name`, else the network is asked; on an actor's thread, to
-        a name not seen served: a `_Held` route, sent when served (`send`)."""
+        a name not seen served: a `_Held` route, sent when served (`send`). To `server`
+        (rule 22's other one, `Messenger._claim`): its process's, seen or not."""
+        if server is not None:
+            return _Route(self, name, server.who, None)
         if on_actor_thread() and self.unseen(name):
             return _Held(name)
-        server = self.presence.server(name)
-        if server is None and not self.closed and not on_actor_thread():
+        seen = self.presence.server(name)
+        if seen is None and not self.closed and not on_actor_thread():
             self.presence.question_until_seen(name)  # maybe served again, not heard yet
-            server = self.presence.server(name)
-        if server is None:
+            seen = self.presence.server(name)
+        if seen is None:
             raise self.gone_error(name)
-        return _Route(self, name, server)
+        return _Route(self, name, seen.zid, seen.limit)
 
     def send(self, route: Route, data: bytes) -> None:
         """Put `data` on the route's key, in order; a `_Held` one on its name's lane."""
@@ -454,7 +450,7 @@ class ZenohCarrier:
         assert isinstance(route, _Route)
         outbox = self.outbox(self.keys.registrar(route.name), route.zid)
         if (  # (gone meanwhile: its presence may have missed this reply)
-            self.presence.server(route.name) is None
+            (not route.told and self.presence.server(route.name) is None)
             or outbox is None
             or not outbox.send(envelope(MESSAGE, self.zid, data, CLOCK.send()))
         ):
@@ -491,7 +487,7 @@ class ZenohCarrier:
         if outbox.pinged != server.zid:  # just seen: a put before its ping may be lost
             self._outboxes.until_answered(server.zid)
             outbox.pinged = server.zid
-        return _Route(self, name, server)
+        return _Route(self, name, server.zid, server.limit)
 
     def retire(self, outbox: Outbox, error: RrError) -> None:
         """On `outbox`'s thread: nobody's from now on; what waits fails with `error`."""
