@@ -999,11 +999,14 @@ class ServerActor(Actor):
         that would be shed after its server's loads queued ahead in its lane (rounds of
         `max_workers`, none past its deadline less the headroom) fails so at once."""
         held, lane, load_s = self.on_loop[0], message.origin, self.pace.load_s
-        waiting = self.workers.waiting(key := (lane, self.name))
+        key = (lane, self.name)
+        waiting = self.workers.waiting(key)
+        rounds = waiting // self.workers.max_workers  # (one round: a load on every worker)
         ahead = self.latest.get(lane, math.inf) if waiting else -math.inf  # (their deadline)
-        if (rounds := waiting // self.workers.max_workers) and ahead < math.inf and load_s > 0:
+        if rounds and ahead < math.inf and load_s > 0:  # (none run past their own deadline)
             rounds = min(rounds, max(0, int((ahead - runtime.monotonic()) / load_s - 0.5)))
-        if (refused := self.shed(message, rounds) if rounds else None) is not None:
+        refused = self.shed(message, rounds) if rounds else None
+        if refused is not None:
             message.reply.set_error(refused)
             return None
         self.latest[lane] = max(ahead, message.place.deadline or math.inf)  # (monotonic: > 0)
