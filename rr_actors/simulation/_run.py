@@ -256,6 +256,8 @@ def _simulate_in(make: Callable[[], Scheduler], fn: Callable[[], Any], outcome: 
         for process in sched.processes:  # (a task that would not end keeps its frames)
             process.close_files()
         _loop.close_all(sched)
+        for undo in sched.at_end:
+            undo()
         sched.states.close()
         runtime.use(None)
 

@@ -328,6 +328,11 @@ class MemoryNetwork(Messenger):
     def close(self) -> None:
         """Stop serving; what waits fails with `RegistrarStoppedError` (idempotent)."""
         super().close()
+        self._forget()
+
+    def _forget(self) -> None:
+        """Free its name for the next network of this process (once it is closed, or a
+        simulated run that made it is over, however its cleanup went)."""
         if _NETWORKS.get(self.system) is self:
             del _NETWORKS[self.system]
         if _MEMBERS.by_system.get(self.system) is self:

@@ -3,11 +3,13 @@ fail what waits across them, and heals after which both sides carry on."""
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import os
 import shutil
 import signal
 import tempfile
+import threading
 from collections.abc import Callable
 from typing import Any, Literal
 
@@ -387,6 +389,55 @@ def test_a_network_closed_during_a_cut_ends_the_server_beyond_it_too() -> None:
     run = simulation.run(scenario, seed=1)
 
     assert ((["provider"], []), ()) == (run.value, tuple(run.errors))
+
+
+class _Interrupted(KeyboardInterrupt):
+    """What the test's SIGINT handler raises (pytest's own Ctrl-C left alone)."""
+
+
+@pytest.mark.parametrize("end", ["returns", "raises", "interrupted"])
+def test_a_run_over_frees_its_networks_name_however_its_cleanup_went(end: str) -> None:
+    """A run's network left open (its task returned or raised without closing it, or the
+    run was cancelled while a `finally` waited: a test's timeout in CI) no longer holds its
+    name once the run is over; before, every later run of the process failed
+    `ConfigError: ... 'simulated' is open already` (some 100 tests after one timeout)."""
+    began = threading.Event()
+
+    def main() -> None:
+        simulation.SimulatedNetwork()
+        if end == "raises":
+            raise KeyError("a failed run")
+        if end == "interrupted":
+            began.set()  # (a real event: the interrupting thread waits on it)
+            try:
+                while True:  # (for ever, in virtual time)
+                    runtime.sleep(0.001)  # allowed: virtual time
+            finally:
+                runtime.Event().wait()  # (a cleanup that waits: never reaches a close)
+
+    def interrupt() -> None:
+        assert began.wait(60)
+        signal.pthread_kill(threading.main_thread().ident or 0, signal.SIGINT)
+
+    def raise_interrupted(_signum: int, _frame: object) -> None:
+        raise _Interrupted
+
+    previous = signal.signal(signal.SIGINT, raise_interrupted)
+    sender = threading.Thread(target=interrupt, daemon=True)
+    try:
+        if end == "interrupted":
+            sender.start()
+        raised = pytest.raises((KeyError, _Interrupted))
+        with raised if end != "returns" else contextlib.nullcontext():
+            simulation.run(main, seed=1, until=1e9, max_steps=10**12)
+    finally:
+        if end == "interrupted":
+            sender.join(60)
+        signal.signal(signal.SIGINT, previous)
+
+    again = simulation.run(lambda: simulation.SimulatedNetwork().close(), seed=1)
+
+    assert () == tuple(again.errors)
 
 
 def test_the_files_of_the_processes_a_run_killed_are_closed_when_it_ends(
