@@ -142,7 +142,7 @@ def run(
         return made[0]
 
     outcome: list[Any] = []
-    ended = threading.Event()  # (not `join`: an interrupted join marks a running thread ended)
+    ended = _Ended()  # (not `join`: an interrupted join marks a running thread ended)
     thread = threading.Thread(
         target=_simulate,
         args=(make, fn, outcome, ended),
@@ -158,7 +158,7 @@ def run(
             made[0].cancel()
         _wait_ended(thread, ended, CANCEL_TIMEOUT)
         raise
-    if ended.is_set():
+    if ended.done:
         thread.join()  # (it only returns now)
     else:
         frame = sys._current_frames().get(thread.ident or 0)
@@ -182,19 +182,41 @@ CANCEL_TIMEOUT = 30.0
 `Scheduler.cancel`), its greenlets' `finally` blocks and the runtime's seams put back."""
 
 
-def _wait_ended(thread: threading.Thread, ended: threading.Event, timeout: float) -> None:
+def _wait_ended(thread: threading.Thread, ended: _Ended, timeout: float) -> None:
     """Wait up to `timeout` seconds for the run's `thread` to end (`ended`, then its
     return), through further interrupts (a second Ctrl-C must not leave the run going
     while its caller removes its folder)."""
     deadline = time.monotonic() + timeout
-    while not ended.is_set() and (left := deadline - time.monotonic()) > 0:
+    while not ended.done and (left := deadline - time.monotonic()) > 0:
         try:
             ended.wait(left)
         except BaseException:  # noqa: BLE001, S112 - the first interrupt is raised after
             continue
-    if ended.is_set():
+    if ended.done:
         with contextlib.suppress(BaseException):  # (it returns at once: `ended`)
             thread.join(max(0.0, deadline - time.monotonic()))
+
+
+class _Ended:
+    """Set once by the run's thread as it ends; waited for by the run's caller, through its
+    interrupts. A raw lock, not a `threading.Event`: a signal handler's exception (a Ctrl-C,
+    a test's timeout) raised inside `Event.wait` can cut `Condition.wait`'s own `finally`
+    in half, and the next wait on it hung (1 run in 4 of an interrupted run, under xdist)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._lock.acquire()  # (released by `set`)
+        self.done = False
+
+    def set(self) -> None:
+        self.done = True
+        self._lock.release()
+
+    def wait(self, timeout: float | None) -> bool:
+        """Whether the run's thread ended, within `timeout` seconds (`None`: no bound)."""
+        if not self.done and self._lock.acquire(timeout=-1 if timeout is None else timeout):
+            self._lock.release()  # (an interrupt between the two: `done` answers next time)
+        return self.done
 
 
 COLLECT_AFTER = 64
@@ -216,7 +238,7 @@ def _simulate(
     make: Callable[[], Scheduler],
     fn: Callable[[], Any],
     outcome: list[Any],
-    ended: threading.Event,
+    ended: _Ended,
 ) -> None:
     """The run's OS thread: seams and states in, the scheduler, then out; `outcome` gets
     `(True, Run)` or `(False, what to raise)` before the tasks left are dropped."""

@@ -328,9 +328,9 @@ class MemoryNetwork(Messenger):
     def close(self) -> None:
         """Stop serving; what waits fails with `RegistrarStoppedError` (idempotent)."""
         super().close()
-        self._forget()
+        self._free_name()
 
-    def _forget(self) -> None:
+    def _free_name(self) -> None:
         """Free its name for the next network of this process (once it is closed, or a
         simulated run that made it is over, however its cleanup went)."""
         if _NETWORKS.get(self.system) is self:
