@@ -7,8 +7,11 @@ import os
 import select
 import signal
 import time
+from collections.abc import Iterator
 from multiprocessing.connection import Connection
 from pathlib import Path
+
+import pytest
 
 from rr_actors._platform import linux_names
 from rr_actors._platform.linux import LinuxPlatform, PidfdExitWatch
@@ -67,7 +70,10 @@ def _watch_a_file_then_wait(path: str, ready: Connection) -> None:
     ready.recv()  # never answered: the test kills this process
 
 
-def test_the_exit_watch_holds_the_processes_inotify_watches_past_its_kill(tmp_path: Path) -> None:
+@pytest.fixture
+def watcher(tmp_path: Path) -> Iterator[int]:
+    """The pid of a spawned process whose inotify watch on a backup file is armed; killed
+    and reaped after the test."""
     watched = tmp_path / "backup.db"
     watched.touch()
     ours, theirs = multiprocessing.Pipe()
@@ -77,37 +83,31 @@ def test_the_exit_watch_holds_the_processes_inotify_watches_past_its_kill(tmp_pa
     process.start()
     try:
         assert ours.poll(60), "the process did not arm its watch"
-        pid = ours.recv()
-        watch = PidfdExitWatch.open(pid)
-        assert watch is not None
-        os.kill(pid, signal.SIGKILL)
-        assert select.select([watch], [], [], 30)[0], "its exit was not seen"
-        assert watch.exitcode() == -signal.SIGKILL  # (a zombie: seen before it is reaped)
-        # its watch outlived it in the copy held here: the kill did not destroy it
-        (held,) = watch.held
-        assert "inotify wd:" in Path(f"/proc/self/fdinfo/{held}").read_text()
-        watch.close()
-        assert not Path(f"/proc/self/fd/{held}").exists()
+        yield ours.recv()
     finally:
         process.kill()
         process.join(30)
 
 
-def test_a_child_forked_from_the_watcher_does_not_keep_the_watches_copies(tmp_path: Path) -> None:
+def test_the_exit_watch_holds_the_processes_inotify_watches_past_its_kill(watcher: int) -> None:
+    watch = PidfdExitWatch.open(watcher)
+    assert watch is not None
+    os.kill(watcher, signal.SIGKILL)
+    assert select.select([watch], [], [], 30)[0], "its exit was not seen"
+    assert watch.exitcode() == -signal.SIGKILL  # (a zombie: seen before it is reaped)
+    # its watch outlived it in the copy held here: the kill did not destroy it
+    (held,) = watch.held
+    assert "inotify wd:" in Path(f"/proc/self/fdinfo/{held}").read_text()
+    watch.close()
+    assert not Path(f"/proc/self/fd/{held}").exists()
+
+
+def test_a_child_forked_from_the_watcher_does_not_keep_the_watches_copies(watcher: int) -> None:
     # a copy kept in a fork of the supervisor's process would keep the manager's inotify
     # instance (one of 128 a user) alive as long as that child runs
-    watched = tmp_path / "backup.db"
-    watched.touch()
-    ours, theirs = multiprocessing.Pipe()
-    process = multiprocessing.get_context("spawn").Process(
-        target=_watch_a_file_then_wait, args=(str(watched), theirs), daemon=True
-    )
-    process.start()
-    watch = None
+    watch = PidfdExitWatch.open(watcher)
+    assert watch is not None
     try:
-        assert ours.poll(60), "the process did not arm its watch"
-        watch = PidfdExitWatch.open(ours.recv())
-        assert watch is not None
         (held,) = watch.held
         child = os.fork()
         if child == 0:  # (the child: exit 0 only if its copy of `held` was closed)
@@ -116,7 +116,4 @@ def test_a_child_forked_from_the_watcher_does_not_keep_the_watches_copies(tmp_pa
         assert os.waitstatus_to_exitcode(status) == 0, "the forked child kept the copy"
         assert Path(f"/proc/self/fd/{held}").exists()  # (the watcher's own is kept)
     finally:
-        if watch is not None:
-            watch.close()
-        process.kill()
-        process.join(30)
+        watch.close()

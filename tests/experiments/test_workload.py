@@ -78,9 +78,73 @@ shared = 1.0
 keys = 4
 """
 
+GATED = """\
+name = "awaited"
+duration = 3.0  # (room for the second batch, the first gated one, on a loaded machine)
+
+[tree]
+[[tree.children]]
+name = "api"
+setup = "gate:gated"
+isolation = "thread"  # (in the run's process: it hears its client's events)
+
+[workload]
+clients = 1
+rate = 5.0
+arrivals = "fixed"
+hold = 0.05
+awaited = 40
+cancel = 0.5
+cancel_within = 0.004
+
+[[workload.calls]]
+manager = "api"
+server = "resource"
+factory = "gate:request"
+shared = 1.0
+keys = 4
+"""
+
+GATE = """\
+import itertools
+import threading
+
+from rr_actors import events
+
+_made = itertools.count()
+
+
+def request(key, context):
+    # Gated from the second batch of 40 on: the first one's cancels may come while the
+    # client's actor starts (before its call is sent); later calls are sent at once.
+    return (key, next(_made) >= 40)
+
+
+def gated(registrar):
+    # A gated load answers only once a cancelled call was withdrawn: the calls of its
+    # batch are all in flight when cancelled, whatever the machine's load (rule 17 broken:
+    # its bound, longer than the calls' timeout).
+    withdrawn = threading.Event()
+
+    def heard(event):
+        if isinstance(event, events.CallWithdrawn) and event.reason == "interrupted":
+            withdrawn.set()
+
+    events.everything().subscribe(heard)
+
+    def load(request):
+        key, gate = request
+        if gate:
+            withdrawn.wait(10.0)
+        return key
+
+    registrar.register_server("resource", load=load, unload=lambda _request, _response: None)
+"""
+
 
 def test_awaited_calls_a_share_of_which_are_cancelled_leave_nothing_held(tmp_path: Path) -> None:
-    (tmp_path / "plan.toml").write_text(AWAITED)
+    (tmp_path / "gate.py").write_text(GATE)
+    (tmp_path / "plan.toml").write_text(GATED)
 
     results = run(load_plan(tmp_path / "plan.toml"), out=tmp_path / "out")
 
