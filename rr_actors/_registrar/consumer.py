@@ -150,7 +150,7 @@ class Flights:
         self.kept_in: dict[str, str] = {}
         # query id -> the resource whose load made it: a retry can only come from that load
         self.dependency_of: dict[str, str] = {}
-        self.doubted: dict[str, str] = {}  # a due id its provider's reconcile did not know
+        self.doubted: dict[str, str] = {}  # due id -> the provider whose reconcile did not know it
 
     # -- one call's record --------------------------------------------------------------
 
@@ -273,9 +273,9 @@ class Flights:
                 return True
         return False
 
-    def answered(self, query_id: str, attempt: CallAttempt) -> None:
-        if (doubted := self.doubted.pop(query_id, None)) is not None:  # its answer may be
-            self.redeliver(ReconcileAsk(doubted, holds_yours=False))  # of a run it outlived
+    def answered(self, query_id: str, attempt: CallAttempt, provider: str = "") -> None:
+        if self.doubted.pop(query_id, "") == provider != "":  # (its answer may be of the run
+            self.redeliver(ReconcileAsk(provider, holds_yours=False))  # a restart replaced)
         if not self.due.settle(query_id, attempt):
             return
         flight = self.in_flight.get(query_id)
@@ -433,7 +433,8 @@ class Answers:
         try:
             self.record_answer(message)
         finally:  # (also when recording failed: what waits for it must not wait for good)
-            self.flights.answered(message.record.query.id, message.attempt)
+            query = message.record.query
+            self.flights.answered(query.id, message.attempt, query.serving_rr)
 
     def record_answer(self, message: ClientLoaded) -> None:
         """Decide what `message`'s answer does, and do it. A durable answer is kept only while
