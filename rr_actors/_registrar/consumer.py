@@ -150,6 +150,7 @@ class Flights:
         self.kept_in: dict[str, str] = {}
         # query id -> the resource whose load made it: a retry can only come from that load
         self.dependency_of: dict[str, str] = {}
+        self.doubted: dict[str, str] = {}  # due id -> the provider whose reconcile did not know it
 
     # -- one call's record --------------------------------------------------------------
 
@@ -272,7 +273,9 @@ class Flights:
                 return True
         return False
 
-    def answered(self, query_id: str, attempt: CallAttempt) -> None:
+    def answered(self, query_id: str, attempt: CallAttempt, provider: str = "") -> None:
+        if self.doubted.pop(query_id, "") == provider != "":  # (its answer may be of the run
+            self.redeliver(ReconcileAsk(provider, holds_yours=False))  # a restart replaced)
         if not self.due.settle(query_id, attempt):
             return
         flight = self.in_flight.get(query_id)
@@ -430,7 +433,8 @@ class Answers:
         try:
             self.record_answer(message)
         finally:  # (also when recording failed: what waits for it must not wait for good)
-            self.flights.answered(message.record.query.id, message.attempt)
+            query = message.record.query
+            self.flights.answered(query.id, message.attempt, query.serving_rr)
 
     def record_answer(self, message: ClientLoaded) -> None:
         """Decide what `message`'s answer does, and do it. A durable answer is kept only while
@@ -1096,21 +1100,23 @@ class Reconciling:
 
     def settle_reconciled(self, serving_rr: str, unknown: Any, listing: Listing) -> None:
         """Report and forget the ids `serving_rr` no longer knows, of the records as `listing`
-        found them (one answered after it is held by its own answer)."""
+        found them; one answered since is reconciled again (its answer may be of the run the
+        restart replaced: rule 20), a due one once its answer is recorded (`Flights.doubted`)."""
         lost: dict[str, list[str]] = {}
+        again = False
         for query_id in unknown:
             record = self.registrar.catalog.client(query_id)
-            if (
-                record is None
-                or not record.loaded
-                or record.query.serving_rr != serving_rr
-                or query_id in listing.due
-                or query_id in self.due
-                or not self.holdings.answered_before(query_id, listing.epoch)
-                or self.releases.is_releasing(query_id)
-            ):
+            since = query_id in listing.due or not self.holdings.answered_before(
+                query_id, listing.epoch
+            )
+            if query_id in self.due:
+                self.flights.doubted[query_id] = serving_rr  # (again once it is recorded)
+            elif record is None or not record.loaded or record.query.serving_rr != serving_rr:
                 continue
-            lost.setdefault(record.query.server, []).append(query_id)
+            elif since:
+                again = True
+            elif not self.releases.is_releasing(query_id):
+                lost.setdefault(record.query.server, []).append(query_id)
         # listed and known: held there for a retry; left out: released
         self.settle_listed(serving_rr, listing, unknown)
         self.releases.reconciled(serving_rr, listing)
@@ -1125,6 +1131,8 @@ class Reconciling:
                 len(ids),
             )
             self.report_lost(f"{serving_rr}/{server}", tuple(ids), forgotten="unknown at reconcile")
+        if again:
+            self.redeliver(ReconcileAsk(serving_rr, holds_yours=False))
 
     def lose_provider(self, serving_rr: str) -> None:
         """Provider `serving_rr` is gone for good (rule 19): `FATAL` to its ids, then forget."""

@@ -18,6 +18,7 @@ Each rule's windows and what it excuses: docs/how-to/check-a-run.md.
 from __future__ import annotations
 
 import dataclasses
+import operator
 from collections import defaultdict
 from collections.abc import Callable
 from typing import Any
@@ -214,9 +215,10 @@ class Providers:
         released = self.release_stamps.get((name, qid))
         return released is not None and released[1] < ended
 
-    def died_before(self, consumer: str, stamp: int) -> bool:
-        """Whether `consumer`'s life at `stamp` ended (killed without a backup, as `kill_program`
-        does) before it: its last releases' events may be lost, and no `FATAL` is owed."""
+    def died_before(self, consumer: str, stamp: int, since: int) -> bool:
+        """Whether `consumer`'s life that held an id since `since` ended (killed without a backup,
+        as `kill_program` does, or a manager restarted empty) before `stamp`: its last releases'
+        events may be lost, and no `FATAL` is owed (its next life holds nothing of it)."""
         if consumer in self.with_backup:
             return False
         if self._by_name is None:
@@ -226,7 +228,10 @@ class Providers:
         begun = [life for life in self._by_name.get(consumer, ()) if life.start < stamp]
         if not begun:
             return False
-        last = max(begun, key=lambda life: life.start)
+        # (the life that held it: the first not ended when it was added)
+        holding = [life for life in begun if life.end is None or life.end >= since]
+        start = operator.attrgetter("start")
+        last = min(holding, key=start) if holding else max(begun, key=start)
         followed = any(life.start > last.start for life in self._by_name[consumer])
         return followed and last.last < stamp and last.end is not None
 
@@ -250,7 +255,7 @@ class Providers:
             # before its `ConsumerReleased` was published (the restore shows the commit)
             if self.forgot.get((name, qid), let_go_by) < let_go_by:
                 continue
-            if self.died_before(held.consumer, stamp):
+            if self.died_before(held.consumer, stamp, held.stamp):
                 continue
             told = self.fatal_at.get(qid)
             if told is None or told < held.stamp:

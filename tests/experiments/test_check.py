@@ -1017,6 +1017,44 @@ def test_a_restart_whose_exit_is_not_shown_is_reconciled_after_the_life_befores_
     assert {2, 4} == _found(crossing(1002, exited=False), "kept")
 
 
+def both_killed(*, held_by_restart: bool = False) -> list[events.Event]:
+    """Issue 51, a real `simnostate` run at load 23: cm (no backup) holds Q1 at erm (no
+    backup) and is killed; its restart (C + 1) holds Q2 there; erm is killed before cm's
+    restart reconciled with it (no release of Q1), and its restart (P + 1) forgets both. Q1's
+    holder died first: nobody is owed a `FATAL`; Q2's is told at its reconcile.
+    `held_by_restart`: Q1 is added for cm's restart instead, and never reported."""
+    q1 = [
+        events.ResourceLoaded("erm", "cam", RID, Q1, 0.01, 42, "cam 0", pid=P, seq=1),
+        events.ConsumerAdded("erm", RID, Q1, "cm", pid=P, seq=2),
+        events.CallAnswered("cm", Q1, "erm", "cam", pid=C + 1 if held_by_restart else C),
+    ]
+    killed = [events.ChildExited("sup", "cm", C, "killed by SIGKILL")]
+    return _stamped(
+        [
+            *([*killed, *q1] if held_by_restart else [*q1, *killed]),
+            events.ResourceLoaded("erm", "cam", RID2, Q2, 0.01, 7, "cam 1", pid=P, seq=3),
+            events.ConsumerAdded("erm", RID2, Q2, "cm", pid=P, seq=4),
+            events.CallAnswered("cm", Q2, "erm", "cam", pid=C + 1),
+            events.ChildExited("sup", "erm", P, "killed by SIGKILL"),
+            events.RegistrarStopped("erm", (), (), (), pid=P + 1, seq=1),
+            events.StatusDelivered("cm", Q2, rr.Status.FATAL, 1, 0.0, "s9", pid=C + 1),
+            events.QueryForgotten("cm", Q2, "erm", "unknown at reconcile", pid=C + 1),
+            events.RegistrarStopped("cm", (), (), (), pid=C + 1),
+        ]
+    )
+
+
+def test_an_id_whose_holder_died_before_its_provider_restarted_without_a_backup_holds() -> None:
+    # the checker looked at cm's life begun last before erm's restart (C + 1, alive then),
+    # not at the one that held Q1 (C, dead): "lost ..., neither released nor reported FATAL"
+    verdict = check.check(numbered(both_killed()))
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+
+
+def test_an_id_of_the_holder_s_restart_lost_with_its_provider_s_restart_is_found() -> None:
+    assert {3, 9} == _found(both_killed(held_by_restart=True), "kept")
+
+
 def retried_on_a_new_resource() -> list[events.Event]:
     """api (no backup) loads RID for cm's Q1, depending on db's D1; it is killed before
     its answer, and cm's retry of Q1 loads RID2 in api's restart (depending on D2); db

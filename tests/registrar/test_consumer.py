@@ -30,7 +30,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._core.directory import DIRECTORY
-from rr_actors._registrar import Served
+from rr_actors._registrar import Served, life
 from rr_actors._registrar.consumer import Action, InFlight, decide
 from rr_actors.testing import (
     RemoteRegistrar,
@@ -44,6 +44,7 @@ from tests.support.durable_pair import durable_config
 from tests.support.gating import GatedLoad
 from tests.support.supervising import ManualTimer, kill_and_wait_restarted, sigkill
 from tests.support.supervising import crash as kill_manager
+from tests.support.waiting import wait_for
 
 # -- for TestAnswerDecision ----------------------------------------------------------------
 
@@ -1314,6 +1315,60 @@ class TestReconcileDueCall:
         consumer.unload(qid)
         provider.server_queries("leaf")  # (its Unload was handled)
         assert ["fresh"] == unloads
+
+    def test_an_answer_of_a_provider_s_dead_run_recorded_after_the_reconcile_is_reported_lost(
+        self,
+        started: Callable[[str], rr.ResourceRegistrar],
+    ) -> None:
+        # issue 51, real `simnostate` runs under load: db answered api's call and was
+        # SIGKILLed; api's caller handed the answer over only after api had reconciled with
+        # db's restart (empty, no backup), which did not know the id. The answer decided,
+        # and api held an id db did not know: neither released nor reported FATAL.
+        provider, consumer = started("prov"), started("cons")
+        name = provider.name
+        provider.register_server("leaf", load=lambda r: r, unload=lambda _r, _s: None)
+        consumer.call(name, "leaf", "held")  # the consumer holds ids there: it reconciles
+        statuses: list[tuple[str, rr.Status]] = []
+        qid, gate, loop = str(uuid.uuid4()), threading.Event(), asyncio.new_event_loop()
+        hold = lambda load: loop.call_soon(gate.wait, 10) if load.query_id == qid else None  # noqa: E731
+        looping, back = threading.Thread(target=loop.run_forever, daemon=True), None
+        looping.start()
+        try:
+            with intercept(consumer, "send_load", before=hold):  # (the caller is the loop)
+                call = asyncio.run_coroutine_threadsafe(
+                    consumer.acall(
+                        name,
+                        "leaf",
+                        "late",
+                        query_id=qid,
+                        on_status=lambda q, u: statuses.append((q.id, u.status)),
+                        timeout=10,
+                    ),
+                    loop,
+                )
+                attempts = consumer._actor.calls.due._attempts
+                assert wait_for(lambda: qid in attempts and attempts[qid].state.name == "ANSWERED")
+            with expect_restart(name):  # its answer is in hand, not handed over: it dies
+                crash(provider)
+            back = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
+            back.register_server("leaf", load=lambda r: r, unload=lambda _r, _s: None)
+            reconciled = threading.Event()
+            with intercept(back, "reconcile", after=lambda _m: reconciled.set()):
+                life.lost_everything(name)  # (as its supervisor says: restarted empty)
+                assert reconciled.wait(10)
+                consumer.client_queries()  # (the Reconcile's answer was handled)
+            gate.set()  # the answer is handed over, after the reconcile that did not know it
+            assert qid == call.result(10).id
+            assert qid in [q.id for q in consumer.client_queries()]  # (its answer recorded)
+            assert wait_for(lambda: (qid, rr.Status.FATAL) in statuses)
+            assert [] == [q.id for q in back.server_queries("leaf") if q.id == qid]
+        finally:
+            gate.set()
+            if back is not None:
+                back.stop()
+            loop.call_soon_threadsafe(loop.stop)
+            looping.join(10)
+            loop.close()
 
     def test_a_call_refused_at_once_is_not_listed_when_the_consumer_reconciles(
         self,
