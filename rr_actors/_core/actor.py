@@ -88,11 +88,6 @@ SIGNAL_CHECK = 0.1
 """Seconds the main thread blocks at most in one go in a future's wait (so Ctrl-C is seen)."""
 
 
-def _within(seconds: float, most: float) -> float:
-    """`seconds` within 0 and `most` (not `min`, `max`: on CPython 3.11 each parses keywords)."""
-    return 0.0 if seconds < 0.0 else most if seconds > most else seconds
-
-
 class OneShotFuture(pykka.Future[T]):
     """A pykka future handed over by releasing one lock: `pykka.ThreadingFuture`'s interface,
     settling twice raises `queue.Full`, plus `add_done_callback` (how a loop awaits it)."""
@@ -118,17 +113,17 @@ class OneShotFuture(pykka.Future[T]):
         end: float | None = None  # (sliced: when the whole wait ends)
         if (timeout is None or timeout > SIGNAL_CHECK) and runtime.handles_signals():
             end = math.inf if timeout is None else runtime.monotonic() + timeout
-        elif timeout is not None:
-            timeout = _within(timeout, runtime.TIMEOUT_MAX)
         while True:
             if end is not None:
-                timeout = _within(end - runtime.monotonic(), SIGNAL_CHECK)
+                timeout = min(SIGNAL_CHECK, end - runtime.monotonic())
             acquired = False
             try:
                 if timeout is None:
                     acquired = self._ready.acquire()
                 else:
-                    acquired = self._ready.acquire(timeout=timeout)
+                    acquired = self._ready.acquire(
+                        timeout=min(max(timeout, 0.0), runtime.TIMEOUT_MAX)
+                    )
             finally:  # (also if the wait is interrupted: other waiters must get through)
                 if acquired:
                     self._ready.release()  # the next waiter, if any, gets through too

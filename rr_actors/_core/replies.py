@@ -69,10 +69,7 @@ every blocking call's steps yield one.
 
 def left(deadline: float | None) -> float | None:
     """Seconds left until `deadline` (never negative), `None` without one."""
-    if deadline is None:
-        return None
-    seconds = deadline - runtime.monotonic()
-    return seconds if seconds > 0.0 else 0.0  # (not `max`: see `_core/actor._within`)
+    return None if deadline is None else max(0.0, deadline - runtime.monotonic())
 
 
 Steps: TypeAlias = Generator[Wait, bool, T]
