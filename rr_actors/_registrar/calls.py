@@ -74,7 +74,8 @@ class AttemptState(enum.Enum):
 
 
 # (by these names: on CPython 3.11 a member read through its class costs ~1k instructions)
-SENDING, SENT, RECORDING, ANSWERED, FAILED, WITHDRAWN = AttemptState
+SENDING, SENT, RECORDING = AttemptState.SENDING, AttemptState.SENT, AttemptState.RECORDING
+ANSWERED, FAILED, WITHDRAWN = AttemptState.ANSWERED, AttemptState.FAILED, AttemptState.WITHDRAWN
 _OPEN = (SENDING, SENT)
 
 
