@@ -62,14 +62,13 @@ _ACTOR_THREAD = runtime.local()  # `active` on the thread of an `Actor`'s loop
 def on_actor_thread() -> bool:
     """Whether the calling thread runs an actor's loop or steps an awaited operation: such a thread
     must never wait on the network (a carrier answers there from what it knows)."""
-    return bool(
-        getattr(_ACTOR_THREAD, "active", False) or getattr(_ACTOR_THREAD, "awaiting", False)
-    )
+    flags = _ACTOR_THREAD.__dict__  # (this thread's: a `getattr` that misses raises inside)
+    return bool(flags.get("active", False) or flags.get("awaiting", False))
 
 
 def awaiting() -> bool:
     """Whether the calling thread steps an awaited operation now (`mark_awaiting`)."""
-    return bool(getattr(_ACTOR_THREAD, "awaiting", False))
+    return bool(_ACTOR_THREAD.__dict__.get("awaiting", False))
 
 
 def mark_awaiting(on: bool) -> None:

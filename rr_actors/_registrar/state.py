@@ -64,6 +64,9 @@ class Phase(enum.Enum):
     """Stopped or dead: what still arrives is refused (`on_late`)."""
 
 
+_OVER = (Phase.STOPPING, Phase.ENDED)  # (a member read through its class: see `calls.SENT`)
+
+
 class Pace:
     """What a server's loads take lately: `load_s`, the recent average (from 0); `learned`,
     when it last moved or a probe left (monotonic). Floats, read whole: no lock."""
@@ -242,7 +245,7 @@ class Shared:
 
     @property
     def stopping(self) -> bool:
-        return self.phase is Phase.STOPPING or self.phase is Phase.ENDED
+        return self.phase in _OVER
 
     # -- the turn: one transaction for the messages a turn handled ----------------------
 
