@@ -34,6 +34,7 @@ from rr_actors.simulation import _loop, _manager
 from rr_actors.simulation import _primitives as sim
 from rr_actors.simulation._processes import States
 from rr_actors.simulation._scheduler import Scheduler, SimulationError
+from rr_actors.testing import memory
 
 __all__ = [
     "Run",
@@ -253,6 +254,9 @@ def _simulate_in(make: Callable[[], Scheduler], fn: Callable[[], Any], outcome: 
     global _scheduler  # (the run in progress: `note`, `now`, `sleep`)
     result: list[Any] = []
     sched = make()
+    # a network the run made and left open (a cancelled run's `finally` that never got to
+    # its `close`) frees its name as the run ends; those open before are not the run's
+    open_before = dict(memory._NETWORKS)
 
     def main() -> None:
         try:
@@ -278,8 +282,8 @@ def _simulate_in(make: Callable[[], Scheduler], fn: Callable[[], Any], outcome: 
         for process in sched.processes:  # (a task that would not end keeps its frames)
             process.close_files()
         _loop.close_all(sched)
-        for undo in sched.at_end:
-            undo()
+        for network in [n for n in memory._NETWORKS.values() if open_before.get(n.system) is not n]:
+            network._free_name()  # (not closed: its tasks and threads are gone)
         sched.states.close()
         runtime.use(None)
 
