@@ -214,8 +214,9 @@ class _Ended:
         self._lock.release()
 
     def wait(self, timeout: float | None) -> bool:
-        """Whether the run's thread ended, within `timeout` seconds (`None`: no bound)."""
-        if not self.done and self._lock.acquire(timeout=-1 if timeout is None else timeout):
+        """Whether the run's thread ended, within `timeout` seconds (`None`: no bound; 0 or
+        less: now, as `Event.wait`; a lock's -1 is no bound, below it `ValueError`)."""
+        if not self.done and self._lock.acquire(timeout=-1 if timeout is None else max(0, timeout)):
             self._lock.release()  # (an interrupt between the two: `done` answers next time)
         return self.done
 
