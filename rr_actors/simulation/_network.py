@@ -96,7 +96,6 @@ class SimulatedNetwork(MemoryNetwork):
         resolution = Resolution(resolve)  # (checked before the network is made)
         super().__init__(system)
         self.resolution = resolution
-        running_scheduler().at_end.append(self._free_name)  # (a run cancelled mid-cleanup)
 
     def partition(self, side: Iterable[int], *, started_by: bool = False) -> None:
         """Cut the processes of pids `side` off the others (both ways) until `heal`.

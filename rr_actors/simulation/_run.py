@@ -34,6 +34,7 @@ from rr_actors.simulation import _loop, _manager
 from rr_actors.simulation import _primitives as sim
 from rr_actors.simulation._processes import States
 from rr_actors.simulation._scheduler import Scheduler, SimulationError
+from rr_actors.testing import memory
 
 __all__ = [
     "Run",
@@ -213,8 +214,9 @@ class _Ended:
         self._lock.release()
 
     def wait(self, timeout: float | None) -> bool:
-        """Whether the run's thread ended, within `timeout` seconds (`None`: no bound)."""
-        if not self.done and self._lock.acquire(timeout=-1 if timeout is None else timeout):
+        """Whether the run's thread ended, within `timeout` seconds (`None`: no bound; 0 or
+        less: now, as `Event.wait`; a lock's -1 is no bound, below it `ValueError`)."""
+        if not self.done and self._lock.acquire(timeout=-1 if timeout is None else max(0, timeout)):
             self._lock.release()  # (an interrupt between the two: `done` answers next time)
         return self.done
 
@@ -253,6 +255,9 @@ def _simulate_in(make: Callable[[], Scheduler], fn: Callable[[], Any], outcome: 
     global _scheduler  # (the run in progress: `note`, `now`, `sleep`)
     result: list[Any] = []
     sched = make()
+    # a network the run made and left open (a cancelled run's `finally` that never got to
+    # its `close`) frees its name as the run ends; those open before are not the run's
+    open_before = dict(memory._NETWORKS)
 
     def main() -> None:
         try:
@@ -278,8 +283,8 @@ def _simulate_in(make: Callable[[], Scheduler], fn: Callable[[], Any], outcome: 
         for process in sched.processes:  # (a task that would not end keeps its frames)
             process.close_files()
         _loop.close_all(sched)
-        for undo in sched.at_end:
-            undo()
+        for network in [n for n in memory._NETWORKS.values() if open_before.get(n.system) is not n]:
+            network._free_name()  # (not closed: its tasks and threads are gone)
         sched.states.close()
         runtime.use(None)
 

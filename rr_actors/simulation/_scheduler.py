@@ -210,8 +210,6 @@ class Scheduler:
         self._pids = itertools.count(1)
         self.processes: list[Process] = []  # the first: the run's main process (`root`)
         self.loops: list[Any] = []  # asyncio loops made (`_loop.py`): each task has its own
-        # what the run's end undoes whatever its tasks' `finally` blocks did (a network's name)
-        self.at_end: list[Callable[[], None]] = []
         self._in_locals: Task | None = None  # whose contents the `runtime.local()`s hold
         # the task switched to (`None` while the scheduler runs): what `current()` says
         # without asking greenlet, on the run's OS thread (`current_or_none` asks it)

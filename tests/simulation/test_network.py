@@ -21,6 +21,7 @@ from rr_actors._core import runtime
 from rr_actors.simulation import _run
 from rr_actors.simulation._network import DELAY, _SimulatedHub, _Wire
 from rr_actors.simulation._run import running_scheduler
+from rr_actors.testing.memory import MemoryNetwork
 from tests.support import simulated
 
 pytest.importorskip("greenlet")  # (the simulation extra)
@@ -396,15 +397,22 @@ class _Interrupted(KeyboardInterrupt):
 
 
 @pytest.mark.parametrize("end", ["returns", "raises", "interrupted"])
-def test_a_run_over_frees_its_networks_name_however_its_cleanup_went(end: str) -> None:
+@pytest.mark.parametrize("network", ["SimulatedNetwork", "MemoryNetwork"])
+def test_a_run_over_frees_its_networks_name_however_its_cleanup_went(
+    end: str, network: str
+) -> None:
     """A run's network left open (its task returned or raised without closing it, or the
     run was cancelled while a `finally` waited: a test's timeout in CI) no longer holds its
     name once the run is over; before, every later run of the process failed
-    `ConfigError: ... 'simulated' is open already` (some 100 tests after one timeout)."""
+    `ConfigError: ... 'simulated' is open already` (some 100 tests after one timeout).
+    A plain `MemoryNetwork` too (tests/simulation/test_manager.py runs one so named)."""
     began = threading.Event()
 
     def main() -> None:
-        simulation.SimulatedNetwork()
+        if network == "MemoryNetwork":
+            MemoryNetwork("simulated")
+        else:
+            simulation.SimulatedNetwork()
         if end == "raises":
             raise KeyError("a failed run")
         if end == "interrupted":

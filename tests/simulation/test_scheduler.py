@@ -18,6 +18,7 @@ from rr_actors._core import runtime
 from rr_actors._core.actor import Actor
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.serial import SerialExecutor
+from rr_actors.simulation import _run
 
 pytest.importorskip("greenlet")  # (the simulation extra)
 
@@ -410,6 +411,27 @@ def test_a_run_that_timers_keep_alive_past_its_limit_raises_a_limit_error() -> N
 
     with pytest.raises(simulation.LimitError, match="past its limit"):
         simulation.run(main, seed=1, until=60.0)
+
+
+@pytest.mark.parametrize("timeout", [0.0, -1.0, -2.0])
+def test_a_run_past_its_timeout_fails_at_once_with_simulation_error_even_a_negative_one(
+    timeout: float, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A `timeout` of 0 or less does not wait (as `threading.Event.wait`'s): before, the
+    run's lock took -1 for no bound (its caller hung), and below -1 raised `ValueError`,
+    taken for an interrupt (the run cancelled, its caller waiting `CANCEL_TIMEOUT`)."""
+    monkeypatch.setattr(_run, "CANCEL_TIMEOUT", 1.0)  # (not 30 s, without the fix)
+    release = threading.Event()  # (a real one: the run's OS thread blocks on it for real)
+    try:
+        with pytest.raises(simulation.SimulationError, match="did not end within"):
+            simulation.run(lambda: release.wait(60), seed=1, timeout=timeout)
+    finally:
+        release.set()
+        for thread in threading.enumerate():
+            if thread.name.startswith("rr-simulation-"):
+                thread.join(60)
+
+    assert not runtime.simulated()  # (the real seams back once its thread ended)
 
 
 class _Interrupted(KeyboardInterrupt):
