@@ -349,6 +349,7 @@ def test_a_seed_that_meets_a_failed_write_gives_one_history_whatever_its_run_fol
     assert str(tmp_path) not in runs[0].history + "".join(runs[0].findings + runs[0].errors)
 
 
+@SWEEP  # (8 runs of simretry: past 60 s in a CI at load 25)
 def test_a_seed_gives_the_same_history_alone_and_after_other_seeds_in_the_process() -> None:
     from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
 
