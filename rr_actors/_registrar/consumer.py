@@ -150,7 +150,7 @@ class Flights:
         self.kept_in: dict[str, str] = {}
         # query id -> the resource whose load made it: a retry can only come from that load
         self.dependency_of: dict[str, str] = {}
-        self.doubted: dict[str, str] = {}  # due id -> the provider whose reconcile did not know it
+        self.doubted: dict[str, set[str]] = {}  # due id -> providers whose reconcile knew not it
 
     # -- one call's record --------------------------------------------------------------
 
@@ -274,7 +274,7 @@ class Flights:
         return False
 
     def answered(self, query_id: str, attempt: CallAttempt, provider: str = "") -> None:
-        if self.doubted.pop(query_id, "") == provider != "":  # (its answer may be of the run
+        if provider in self.doubted.pop(query_id, ()):  # (its answer may be of the run
             self.redeliver(ReconcileAsk(provider, holds_yours=False))  # a restart replaced)
         if not self.due.settle(query_id, attempt):
             return
@@ -1110,7 +1110,7 @@ class Reconciling:
                 query_id, listing.epoch
             )
             if query_id in self.due:
-                self.flights.doubted[query_id] = serving_rr  # (again once it is recorded)
+                self.flights.doubted.setdefault(query_id, set()).add(serving_rr)  # (again then)
             elif record is None or not record.loaded or record.query.serving_rr != serving_rr:
                 continue
             elif since:
