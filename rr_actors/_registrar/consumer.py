@@ -274,9 +274,10 @@ class Flights:
         return False
 
     def answered(self, query_id: str, attempt: CallAttempt, provider: str = "") -> None:
+        settled = self.due.settle(query_id, attempt)  # (first: a reconcile lists it not due)
         if provider in self.doubted.pop(query_id, ()):  # (its answer may be of the run
             self.redeliver(ReconcileAsk(provider, holds_yours=False))  # a restart replaced)
-        if not self.due.settle(query_id, attempt):
+        if not settled:
             return
         flight = self.in_flight.get(query_id)
         if flight is None or not flight.parked:
@@ -1044,7 +1045,9 @@ class Reconciling:
     def asked(self, message: ReconcileAsk) -> bool:
         """Whether to send an asking provider a `Reconcile` now (setup: once done; none owed)."""
         if not message.holds_yours and not self.holds_at(message.serving_rr):
-            return False  # (told as every registrar of the system is: nothing to reconcile)
+            for query_id in self.due.ids():  # (told as every registrar of the system is: nothing
+                self.flights.doubted.setdefault(query_id, set()).add(message.serving_rr)
+            return False  # to reconcile, but a due answer may be of the run its restart replaced)
         if self.registrar.phase is Phase.SETTING_UP:  # its status callbacks are not attached yet
             asks = self.asked_to_reconcile
             ask = (message.round, message.life)

@@ -1316,7 +1316,7 @@ class TestReconcileDueCall:
         provider.server_queries("leaf")  # (its Unload was handled)
         assert ["fresh"] == unloads
 
-    @pytest.mark.parametrize("case", ["held", "another"])
+    @pytest.mark.parametrize("case", ["held", "only", "another"])
     def test_an_answer_of_a_provider_s_dead_run_recorded_after_the_reconcile_is_reported_lost(
         self,
         started: Callable[[str], rr.ResourceRegistrar],
@@ -1370,10 +1370,13 @@ class TestReconcileDueCall:
                     life.lost_everything(other.name)
                     assert reconciled.wait(10)
                     consumer.client_queries()
-            gate.set()  # the answer is handed over, after the reconcile that did not know it
-            assert qid == call.result(10).id
-            assert qid in [q.id for q in consumer.client_queries()]  # (its answer recorded)
-            assert wait_for(lambda: (qid, rr.Status.FATAL) in statuses)
+            again: list[str] = []  # (the consumer's reconciles with it, once the answer came)
+            with intercept(back, "reconcile", after=lambda m: again.append(m.origin_rr)):
+                gate.set()  # the answer is handed over, after the reconcile that did not know it
+                assert qid == call.result(10).id
+                assert qid in [q.id for q in consumer.client_queries()]  # (its answer recorded)
+                assert wait_for(lambda: (qid, rr.Status.FATAL) in statuses)
+            assert [consumer.name] == [n for n in again if n == consumer.name]  # (once: not due)
             assert [] == [q.id for q in back.server_queries("leaf") if q.id == qid]
             assert {} == consumer._actor.ref.proxy().flights.get().doubted  # (none left)
         finally:
