@@ -150,7 +150,7 @@ class Flights:
         self.kept_in: dict[str, str] = {}
         # query id -> the resource whose load made it: a retry can only come from that load
         self.dependency_of: dict[str, str] = {}
-        self.doubted: dict[str, str] = {}  # due id -> the provider whose reconcile did not know it
+        self.doubted: dict[str, set[str]] = {}  # due id -> providers whose reconcile knew not it
 
     # -- one call's record --------------------------------------------------------------
 
@@ -274,9 +274,10 @@ class Flights:
         return False
 
     def answered(self, query_id: str, attempt: CallAttempt, provider: str = "") -> None:
-        if self.doubted.pop(query_id, "") == provider != "":  # (its answer may be of the run
+        settled = self.due.settle(query_id, attempt)  # (first: a reconcile lists it not due)
+        if provider in self.doubted.pop(query_id, ()):  # (its answer may be of the run
             self.redeliver(ReconcileAsk(provider, holds_yours=False))  # a restart replaced)
-        if not self.due.settle(query_id, attempt):
+        if not settled:
             return
         flight = self.in_flight.get(query_id)
         if flight is None or not flight.parked:
@@ -1044,7 +1045,9 @@ class Reconciling:
     def asked(self, message: ReconcileAsk) -> bool:
         """Whether to send an asking provider a `Reconcile` now (setup: once done; none owed)."""
         if not message.holds_yours and not self.holds_at(message.serving_rr):
-            return False  # (told as every registrar of the system is: nothing to reconcile)
+            for query_id in self.due.ids():  # (told as every registrar of the system is: nothing
+                self.flights.doubted.setdefault(query_id, set()).add(message.serving_rr)
+            return False  # to reconcile, but a due answer may be of the run its restart replaced)
         if self.registrar.phase is Phase.SETTING_UP:  # its status callbacks are not attached yet
             asks = self.asked_to_reconcile
             ask = (message.round, message.life)
@@ -1110,7 +1113,7 @@ class Reconciling:
                 query_id, listing.epoch
             )
             if query_id in self.due:
-                self.flights.doubted[query_id] = serving_rr  # (again once it is recorded)
+                self.flights.doubted.setdefault(query_id, set()).add(serving_rr)  # (again then)
             elif record is None or not record.loaded or record.query.serving_rr != serving_rr:
                 continue
             elif since:

@@ -215,7 +215,7 @@ class Providers:
         released = self.release_stamps.get((name, qid))
         return released is not None and released[1] < ended
 
-    def died_before(self, consumer: str, stamp: int, since: int) -> bool:
+    def died_before(self, consumer: str, stamp: int, since: int, qid: str = "") -> bool:
         """Whether `consumer`'s life that held an id since `since` ended (killed without a backup,
         as `kill_program` does, or a manager restarted empty) before `stamp`: its last releases'
         events may be lost, and no `FATAL` is owed (its next life holds nothing of it)."""
@@ -230,6 +230,8 @@ class Providers:
             return False
         # (the life that held it: the first not ended when it was added)
         holding = [life for life in begun if life.end is None or life.end >= since]
+        if not holding and any(ok for at, ok in self.outcomes.get(qid, ()) if at > since):
+            return False  # (none: a dead life's call, unless a life shown later got its answer)
         start = operator.attrgetter("start")
         last = min(holding, key=start) if holding else max(begun, key=start)
         followed = any(life.start > last.start for life in self._by_name[consumer])
@@ -255,7 +257,7 @@ class Providers:
             # before its `ConsumerReleased` was published (the restore shows the commit)
             if self.forgot.get((name, qid), let_go_by) < let_go_by:
                 continue
-            if self.died_before(held.consumer, stamp, held.stamp):
+            if self.died_before(held.consumer, stamp, held.stamp, qid):
                 continue
             told = self.fatal_at.get(qid)
             if told is None or told < held.stamp:

@@ -1055,6 +1055,33 @@ def test_an_id_of_the_holder_s_restart_lost_with_its_provider_s_restart_is_found
     assert {3, 9} == _found(both_killed(held_by_restart=True), "kept")
 
 
+def answered_to_a_life_shown_late(*, answered: bool = True) -> list[events.Event]:
+    """cm (no backup) is killed; erm adds Q1 for cm's restart (C + 1), whose first event, its
+    answer, comes after erm (no backup) was killed and restarted: no life of cm shown then
+    held Q1, yet the restart did, and was told nothing. `answered=False`: no answer, as of a
+    `Load` the killed life sent, added after its death (nobody is owed a `FATAL`)."""
+    late = [events.CallAnswered("cm", Q1, "erm", "cam", pid=C + 1)] if answered else []
+    late.append(events.ServerQueriesListed("cm", "x", pid=C + 1))
+    return _stamped(
+        [
+            events.ServerQueriesListed("cm", "x", pid=C),
+            events.ChildExited("sup", "cm", C, "killed by SIGKILL"),
+            events.ResourceLoaded("erm", "cam", RID, Q1, 0.01, 42, "cam 0", pid=P, seq=1),
+            events.ConsumerAdded("erm", RID, Q1, "cm", pid=P, seq=2),
+            events.ChildExited("sup", "erm", P, "killed by SIGKILL"),
+            events.RegistrarStopped("erm", (), (), (), pid=P + 1, seq=1),
+            *late,
+        ]
+    )
+
+
+def test_an_id_answered_to_a_consumer_life_shown_after_its_provider_s_restart_is_found() -> None:
+    # the checker took the killed life C (the last begun) for Q1's holder and excused it
+    assert {4, 6} == _found(answered_to_a_life_shown_late(), "kept")
+    verdict = check.check(numbered(answered_to_a_life_shown_late(answered=False)))
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+
+
 def retried_on_a_new_resource() -> list[events.Event]:
     """api (no backup) loads RID for cm's Q1, depending on db's D1; it is killed before
     its answer, and cm's retry of Q1 loads RID2 in api's restart (depending on D2); db

@@ -1316,18 +1316,25 @@ class TestReconcileDueCall:
         provider.server_queries("leaf")  # (its Unload was handled)
         assert ["fresh"] == unloads
 
+    @pytest.mark.parametrize("case", ["held", "only", "another"])
     def test_an_answer_of_a_provider_s_dead_run_recorded_after_the_reconcile_is_reported_lost(
         self,
         started: Callable[[str], rr.ResourceRegistrar],
+        case: str,
     ) -> None:
         # issue 51, real `simnostate` runs under load: db answered api's call and was
         # SIGKILLed; api's caller handed the answer over only after api had reconciled with
         # db's restart (empty, no backup), which did not know the id. The answer decided,
         # and api held an id db did not know: neither released nor reported FATAL.
-        provider, consumer = started("prov"), started("cons")
+        # "only": api held nothing else at db, so it did not reconcile with it at all;
+        # "another": api then reconciled with another provider, which did not know it either
+        provider, consumer, other = started("prov"), started("cons"), started("other")
         name = provider.name
-        provider.register_server("leaf", load=lambda r: r, unload=lambda _r, _s: None)
-        consumer.call(name, "leaf", "held")  # the consumer holds ids there: it reconciles
+        for registrar in (provider, other):
+            registrar.register_server("leaf", load=lambda r: r, unload=lambda _r, _s: None)
+        if case != "only":
+            consumer.call(name, "leaf", "held")  # the consumer holds ids there: it reconciles
+        consumer.call(other.name, "leaf", "there")
         statuses: list[tuple[str, rr.Status]] = []
         qid, gate, loop = str(uuid.uuid4()), threading.Event(), asyncio.new_event_loop()
         hold = lambda load: loop.call_soon(gate.wait, 10) if load.query_id == qid else None  # noqa: E731
@@ -1355,13 +1362,23 @@ class TestReconcileDueCall:
             reconciled = threading.Event()
             with intercept(back, "reconcile", after=lambda _m: reconciled.set()):
                 life.lost_everything(name)  # (as its supervisor says: restarted empty)
-                assert reconciled.wait(10)
+                assert case == "only" or reconciled.wait(10)
                 consumer.client_queries()  # (the Reconcile's answer was handled)
-            gate.set()  # the answer is handed over, after the reconcile that did not know it
-            assert qid == call.result(10).id
-            assert qid in [q.id for q in consumer.client_queries()]  # (its answer recorded)
-            assert wait_for(lambda: (qid, rr.Status.FATAL) in statuses)
+            if case == "another":
+                reconciled.clear()
+                with intercept(other, "reconcile", after=lambda _m: reconciled.set()):
+                    life.lost_everything(other.name)
+                    assert reconciled.wait(10)
+                    consumer.client_queries()
+            again: list[str] = []  # (the consumer's reconciles with it, once the answer came)
+            with intercept(back, "reconcile", after=lambda m: again.append(m.origin_rr)):
+                gate.set()  # the answer is handed over, after the reconcile that did not know it
+                assert qid == call.result(10).id
+                assert qid in [q.id for q in consumer.client_queries()]  # (its answer recorded)
+                assert wait_for(lambda: (qid, rr.Status.FATAL) in statuses)
+            assert [consumer.name] == [n for n in again if n == consumer.name]  # (once: not due)
             assert [] == [q.id for q in back.server_queries("leaf") if q.id == qid]
+            assert {} == consumer._actor.ref.proxy().flights.get().doubted  # (none left)
         finally:
             gate.set()
             if back is not None:
