@@ -144,8 +144,10 @@ PLANTS = (
         "a retry answered and then reported FATAL: a Reconcile's 'unknown' settles a "
         "record answered after its list left (the reverse of 786b5f8, issue 29)",
         "_registrar/consumer.py",
-        "                or not self.holdings.answered_before(query_id, listing.epoch)\n",
-        "",
+        "            since = query_id in listing.due or not self.holdings.answered_before(\n"
+        "                query_id, listing.epoch\n"
+        "            )\n",
+        "            since = query_id in listing.due\n",
         "simretry",
         "reported-lost",
     ),
@@ -406,8 +408,8 @@ PLANTS = (
         "forgets it later, on its release, which left after that reconcile (issue 51's "
         "state = false: a release that crossed the restart is no such loss)",
         "_registrar/consumer.py",
-        "                or self.releases.is_releasing(query_id)\n",
-        "                or True  # PLANTED: self.releases.is_releasing(query_id)\n",
+        "            elif not self.releases.is_releasing(query_id):\n",
+        "            elif False:  # PLANTED: not self.releases.is_releasing(query_id)\n",
         "simnostate",
         "kept",
     ),
