@@ -273,6 +273,11 @@ class Flights:
                 return True
         return False
 
+    def doubt(self, query_ids: Iterable[str], provider: str) -> None:
+        """`provider`'s reconcile knew not these due ids: reconcile again as each is answered."""
+        for query_id in query_ids:
+            self.doubted.setdefault(query_id, set()).add(provider)
+
     def answered(self, query_id: str, attempt: CallAttempt, provider: str = "") -> None:
         settled = self.due.settle(query_id, attempt)  # (first: a reconcile lists it not due)
         if provider in self.doubted.pop(query_id, ()):  # (its answer may be of the run
@@ -1045,9 +1050,9 @@ class Reconciling:
     def asked(self, message: ReconcileAsk) -> bool:
         """Whether to send an asking provider a `Reconcile` now (setup: once done; none owed)."""
         if not message.holds_yours and not self.holds_at(message.serving_rr):
-            for query_id in self.due.ids():  # (told as every registrar of the system is: nothing
-                self.flights.doubted.setdefault(query_id, set()).add(message.serving_rr)
-            return False  # to reconcile, but a due answer may be of the run its restart replaced)
+            # (told as every registrar of the system is: nothing to reconcile, but a due
+            self.flights.doubt(self.due.ids(), message.serving_rr)  # answer may be of the
+            return False  # run its restart replaced)
         if self.registrar.phase is Phase.SETTING_UP:  # its status callbacks are not attached yet
             asks = self.asked_to_reconcile
             ask = (message.round, message.life)
@@ -1113,7 +1118,7 @@ class Reconciling:
                 query_id, listing.epoch
             )
             if query_id in self.due:
-                self.flights.doubted.setdefault(query_id, set()).add(serving_rr)  # (again then)
+                self.flights.doubt((query_id,), serving_rr)  # (again then)
             elif record is None or not record.loaded or record.query.serving_rr != serving_rr:
                 continue
             elif since:
