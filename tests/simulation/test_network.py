@@ -23,6 +23,7 @@ from rr_actors.simulation._network import DELAY, _SimulatedHub, _Wire
 from rr_actors.simulation._run import running_scheduler
 from rr_actors.testing.memory import MemoryNetwork
 from tests.support import simulated
+from tests.support.simulated import Interrupted, interrupted_when
 
 pytest.importorskip("greenlet")  # (the simulation extra)
 
@@ -392,10 +393,6 @@ def test_a_network_closed_during_a_cut_ends_the_server_beyond_it_too() -> None:
     assert ((["provider"], []), ()) == (run.value, tuple(run.errors))
 
 
-class _Interrupted(KeyboardInterrupt):
-    """What the test's SIGINT handler raises (pytest's own Ctrl-C left alone)."""
-
-
 @pytest.mark.parametrize("end", ["returns", "raises", "interrupted"])
 @pytest.mark.parametrize("network", ["SimulatedNetwork", "MemoryNetwork"])
 def test_a_run_over_frees_its_networks_name_however_its_cleanup_went(
@@ -423,25 +420,10 @@ def test_a_run_over_frees_its_networks_name_however_its_cleanup_went(
             finally:
                 runtime.Event().wait()  # (a cleanup that waits: never reaches a close)
 
-    def interrupt() -> None:
-        assert began.wait(60)
-        signal.pthread_kill(threading.main_thread().ident or 0, signal.SIGINT)
-
-    def raise_interrupted(_signum: int, _frame: object) -> None:
-        raise _Interrupted
-
-    previous = signal.signal(signal.SIGINT, raise_interrupted)
-    sender = threading.Thread(target=interrupt, daemon=True)
-    try:
-        if end == "interrupted":
-            sender.start()
-        raised = pytest.raises((KeyError, _Interrupted))
-        with raised if end != "returns" else contextlib.nullcontext():
-            simulation.run(main, seed=1, until=1e9, max_steps=10**12)
-    finally:
-        if end == "interrupted":
-            sender.join(60)
-        signal.signal(signal.SIGINT, previous)
+    interrupting = interrupted_when(began) if end == "interrupted" else contextlib.nullcontext()
+    raised = pytest.raises((KeyError, Interrupted))
+    with interrupting, raised if end != "returns" else contextlib.nullcontext():
+        simulation.run(main, seed=1, until=1e9, max_steps=10**12)
 
     again = simulation.run(lambda: simulation.SimulatedNetwork().close(), seed=1)
 

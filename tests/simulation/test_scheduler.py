@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import contextvars
 import gc
-import signal
 import threading
 import time
 import weakref
@@ -19,6 +18,7 @@ from rr_actors._core.actor import Actor
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.serial import SerialExecutor
 from rr_actors.simulation import _run
+from tests.support.simulated import Interrupted, interrupted_when
 
 pytest.importorskip("greenlet")  # (the simulation extra)
 
@@ -434,10 +434,6 @@ def test_a_run_past_its_timeout_fails_at_once_with_simulation_error_even_a_negat
     assert not runtime.simulated()  # (the real seams back once its thread ended)
 
 
-class _Interrupted(KeyboardInterrupt):
-    """What the test's SIGINT handler raises (pytest's own Ctrl-C left alone)."""
-
-
 def test_an_interrupted_caller_gets_its_interrupt_once_the_run_was_cancelled_and_ended() -> None:
     began, cleaned = threading.Event(), []
 
@@ -449,22 +445,8 @@ def test_an_interrupted_caller_gets_its_interrupt_once_the_run_was_cancelled_and
         finally:
             cleaned.append(runtime.simulated())  # (as the run is dropped: still simulated)
 
-    def interrupt() -> None:
-        assert began.wait(60)
-        signal.pthread_kill(threading.main_thread().ident or 0, signal.SIGINT)
-
-    def raise_interrupted(_signum: int, _frame: object) -> None:
-        raise _Interrupted
-
-    previous = signal.signal(signal.SIGINT, raise_interrupted)
-    sender = threading.Thread(target=interrupt)
-    try:
-        sender.start()
-        with pytest.raises(_Interrupted):
-            simulation.run(main, seed=1, until=1e9, max_steps=10**12)
-    finally:
-        sender.join(60)
-        signal.signal(signal.SIGINT, previous)
+    with interrupted_when(began), pytest.raises(Interrupted):
+        simulation.run(main, seed=1, until=1e9, max_steps=10**12)
 
     assert [True] == cleaned  # (its finally ran before the interrupt reached the caller)
     assert not runtime.simulated()  # (the real seams back)

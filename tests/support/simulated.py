@@ -11,7 +11,10 @@ nothing, and each seed is another interleaving (each one replays:
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+import contextlib
+import signal
+import threading
+from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 import pykka
@@ -19,7 +22,7 @@ import pykka
 import rr_actors as rr
 from rr_actors import simulation
 
-__all__ = ["PREEMPT", "SEEDS", "seeds_where", "stopped_clean"]
+__all__ = ["PREEMPT", "SEEDS", "Interrupted", "interrupted_when", "seeds_where", "stopped_clean"]
 
 SEEDS = range(100)
 """The seeds a moved test runs with."""
@@ -47,3 +50,33 @@ def stopped_clean(*registrars: rr.ResourceRegistrar) -> bool:
     for registrar in registrars:
         registrar.stop()
     return [] == pykka.ActorRegistry.get_all()
+
+
+class Interrupted(KeyboardInterrupt):
+    """What `interrupted_when`'s SIGINT handler raises (pytest's own Ctrl-C left alone)."""
+
+
+@contextlib.contextmanager
+def interrupted_when(began: threading.Event) -> Iterator[None]:
+    """Interrupt the main thread (a SIGINT, raised as `Interrupted`) once `began` is set: a
+    real event a simulated run sets, its caller then waiting on the run (as a Ctrl-C or a
+    test's timeout lands). The handler is put back after; no SIGINT once the block ended."""
+    over = threading.Event()
+
+    def interrupt() -> None:
+        if began.wait(60) and not over.is_set():
+            signal.pthread_kill(threading.main_thread().ident or 0, signal.SIGINT)
+
+    def raise_interrupted(_signum: int, _frame: object) -> None:
+        raise Interrupted
+
+    previous = signal.signal(signal.SIGINT, raise_interrupted)
+    sender = threading.Thread(target=interrupt, daemon=True)
+    sender.start()
+    try:
+        yield
+    finally:
+        over.set()
+        began.set()  # (the sender ends now, interrupting nothing)
+        sender.join(60)
+        signal.signal(signal.SIGINT, previous)
