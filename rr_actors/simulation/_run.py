@@ -257,7 +257,7 @@ def _simulate_in(make: Callable[[], Scheduler], fn: Callable[[], Any], outcome: 
     sched = make()
     # a network the run made and left open (a cancelled run's `finally` that never got to
     # its `close`) frees its name as the run ends; those open before are not the run's
-    open_before = dict(memory._NETWORKS)
+    open_before = memory.open_networks()
 
     def main() -> None:
         try:
@@ -283,8 +283,7 @@ def _simulate_in(make: Callable[[], Scheduler], fn: Callable[[], Any], outcome: 
         for process in sched.processes:  # (a task that would not end keeps its frames)
             process.close_files()
         _loop.close_all(sched)
-        for network in [n for n in memory._NETWORKS.values() if open_before.get(n.system) is not n]:
-            network._free_name()  # (not closed: its tasks and threads are gone)
+        memory.free_names(but=open_before)
         sched.states.close()
         runtime.use(None)
 

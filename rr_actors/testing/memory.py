@@ -272,6 +272,19 @@ class _Hub:
         self._answers.close(timeout=0)
 
 
+def open_networks() -> dict[str, MemoryNetwork]:
+    """This process's in-memory networks still open, by name (a copy)."""
+    return dict(_NETWORKS)
+
+
+def free_names(but: dict[str, MemoryNetwork]) -> None:
+    """Free the name of every open network that is not in `but` (`open_networks()` taken
+    before): as a simulated run that made them ends, however its cleanup went (their
+    tasks and threads are gone, so they are not closed)."""
+    for network in [n for n in _NETWORKS.values() if but.get(n.system) is not n]:
+        network._free_name()
+
+
 class MemoryNetwork(Messenger):
     """An in-memory system of registrars, each in a "process" of its own (see the module
     docstring): a `Transport` test double.
