@@ -850,6 +850,81 @@ def test_a_status_that_reached_nobody_is_lost_with_a_holder_killed_within_a_seco
     assert ([found] if found else []) == reached, verdict.findings
 
 
+def first_status_of_a_life(
+    killed_after_s: float, *, earlier: bool = False, beside: bool = False, again: bool = False
+) -> list[events.Event]:
+    """A real `simslow` run (CI, 2026-11-26, load 20): db, just restarted, adds the ids of
+    client-0 and client-1 (one process) and sends the first status of its life; client-1
+    gets it, client-0 never does; db goes on (adds another id) and is SIGKILLed
+    `killed_after_s` after the send. `earlier`: a status of that life reached client-0
+    first (its connection there was made); `beside`: this one reached client-0's other id;
+    `again`: db's next life sends client-0 a status that never reaches it either. client-0
+    then goes on (erm answers it a call)."""
+    from rr_actors._core import hlc  # noqa: PLC0415
+
+    warning = rr.Status.WARNING
+    h = [
+        events.ConsumerAdded("db", RID, Q1, "client-0", pid=P),
+        events.CallAnswered("client-0", Q1, "db", "resource", pid=C),
+        events.ConsumerAdded("db", RID, Q2, "client-1", pid=P),
+        events.CallAnswered("client-1", Q2, "db", "resource", pid=C),
+    ]
+    if beside:
+        h += [
+            events.ConsumerAdded("db", RID, "q3", "client-0", pid=P),
+            events.CallAnswered("client-0", "q3", "db", "resource", pid=C),
+        ]
+    if earlier:
+        h += [
+            events.StatusSent("db", Q1, warning, "hot", "s0", pid=P),
+            events.StatusDelivered("client-0", Q1, warning, 1, 0.0, "s0", pid=C),
+            events.StatusDelivered("client-1", Q2, warning, 1, 0.0, "s0", pid=C),
+        ]
+    h += [
+        events.StatusSent("db", Q1, warning, "hot", "s1", pid=P),
+        events.StatusDelivered("client-1", Q2, warning, 1, 0.0, "s1", pid=C),
+    ]
+    if beside:
+        h.append(events.StatusDelivered("client-0", "q3", warning, 1, 0.0, "s1", pid=C))
+    h.append(events.ConsumerAdded("db", RID, "q9", "client-2", pid=P))  # (it went on)
+    history = _stamped(h)
+    sent = next(e for e in history if type(e) is events.StatusSent and e.status_id == "s1")
+    at, _ = hlc.unpack(sent.hlc)
+    killed = at + int(killed_after_s * 1e6)
+    next_life = [
+        events.ConsumerAdded("db", RID2, "q6", "client-0", pid=P + 1),
+        events.CallAnswered("client-0", "q6", "db", "resource", pid=C),
+        events.StatusSent("db", "q6", warning, "hot", "s2", pid=P + 1),
+        events.ConsumerAdded("db", RID2, "q7", "client-2", pid=P + 1),
+    ]
+    later = [  # (client-0 goes on: a call to erm answered)
+        events.ChildExited("sup", "db", P, "killed by SIGKILL"),
+        *(next_life if again else ()),
+        events.ConsumerAdded("erm", RID2, "q5", "client-0", pid=A),
+        events.CallAnswered("client-0", "q5", "erm", "cam", pid=C),
+    ]
+    return [
+        *history,
+        *(dataclasses.replace(e, hlc=hlc.pack(killed + i, 0)) for i, e in enumerate(later)),
+    ]
+
+
+def test_a_status_lost_with_a_sender_killed_before_its_connection_to_the_holder_holds() -> None:
+    """Each process's connection to a registrar is made at its first send there, and what
+    is sent meanwhile waits in the sender: a life killed before it connected loses it all,
+    though it went on after the send (failure-semantics.md). One that lived on, or that
+    had reached that registrar before, or reached its other id with this status, or whose
+    next life reached it no better, was owed it."""
+    h = first_status_of_a_life(0.062)
+    verdict = check.check(numbered(h))
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    assert {5} == _found(first_status_of_a_life(2.0), "status-reached")
+    assert {8} == _found(first_status_of_a_life(0.062, earlier=True), "status-reached")
+    assert {7} == _found(first_status_of_a_life(0.062, beside=True), "status-reached")
+    # nothing of two lives reached client-0: no connection's delay, a way that is broken
+    assert {5} == _found(first_status_of_a_life(0.062, again=True), "status-reached")
+
+
 def sent_to_a_restarted_holder(served_first: bool) -> list[events.Event]:
     """cm, killed, is restored (holding Q1 at erm) in a new process; erm sends a status
     about Q1 before cm's supervisor says it serves again (`served_first`: after), and
@@ -2061,7 +2136,10 @@ def drop_delivery(h: History) -> History | None:
     event of its own life after it: killed right after, it may have died before the
     notice left, which no line tells from a lost one (`simdoubt` seed 15, and a real run
     of it in CI, 2026-11-25: api killed right after a WARNING reached it at hop 1, its
-    climb to client-0 already on its way).
+    climb to client-0 already on its way). Nor the only delivery of its sender's life to
+    its registrar: it may have waited in the sender for a connection never made (a real
+    `simslow` run in CI, 2026-11-26; `status-reached` excuses a sender life that ended
+    soon after).
     """
     left: set[str] = set()  # ids released at their provider or forgotten so far
     answered = {e.query_id: e.hlc for e in h if type(e) is events.CallAnswered}
@@ -2078,6 +2156,16 @@ def drop_delivery(h: History) -> History | None:
         lines = senders.get((e.status_id, e.hop), [])
         return all(last[h[j].registrar, h[j].pid] > j for j in lines)  # type: ignore[attr-defined]
 
+    def paths(e: events.StatusDelivered) -> set[tuple[str, int, str]]:
+        lines = senders.get((e.status_id, e.hop), [])
+        return {(h[j].registrar, h[j].pid, e.registrar) for j in lines}  # type: ignore[attr-defined]
+
+    reached: dict[tuple[str, int, str], int] = {}  # (sender, its pid, holder) -> deliveries
+    for e in h:
+        if type(e) is events.StatusDelivered and e.status_id:
+            for path in paths(e):
+                reached[path] = reached.get(path, 0) + 1
+
     found = []
     for i, e in enumerate(h):
         if type(e) is events.ConsumerReleased or type(e) is events.QueryForgotten:
@@ -2088,6 +2176,7 @@ def drop_delivery(h: History) -> History | None:
             and e.query_id not in left
             and answered.get(e.query_id, 0) < sent.get(e.status_id, 0)
             and went_on(e)
+            and all(reached[path] > 1 for path in paths(e))
         ):
             found.append(i)
     if not found:
