@@ -274,7 +274,7 @@ class Flights:
         return False
 
     def doubt(self, query_ids: Iterable[str], provider: str) -> None:
-        """`provider`'s reconcile knew not these due ids: reconcile again as each is answered."""
+        """`provider`'s reconcile knew not these due ids: reconcile again as each call ends."""
         for query_id in query_ids:
             self.doubted.setdefault(query_id, set()).add(provider)
 
@@ -594,7 +594,7 @@ class Answers:
             elif record is not None:
                 self.holdings.forget(message.query_id, reason="withdrawn")
         finally:
-            self.flights.answered(message.query_id, message.attempt)
+            self.flights.answered(message.query_id, message.attempt, message.provider)
 
 
 def retry_held_at(failed: CallFailed) -> str | None:
@@ -1109,7 +1109,7 @@ class Reconciling:
     def settle_reconciled(self, serving_rr: str, unknown: Any, listing: Listing) -> None:
         """Report and forget the ids `serving_rr` no longer knows, of the records as `listing`
         found them; one answered since is reconciled again (its answer may be of the run the
-        restart replaced: rule 20), a due one once its answer is recorded (`Flights.doubted`)."""
+        restart replaced: rule 20), a due one once its outcome is recorded (`Flights.doubted`)."""
         lost: dict[str, list[str]] = {}
         again = False
         for query_id in unknown:

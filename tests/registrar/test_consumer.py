@@ -1387,6 +1387,58 @@ class TestReconcileDueCall:
             looping.join(10)
             loop.close()
 
+    def test_a_failed_retry_of_a_held_id_its_provider_s_restart_knew_not_is_reported_lost(
+        self,
+        started: Callable[[str], rr.ResourceRegistrar],
+    ) -> None:
+        # issue 51: a retry of an id the consumer holds was due as the provider's restart
+        # (empty, no backup) reconciled, so the id was doubted; the retry then failed, and its
+        # failure dropped the doubt: the consumer kept an id its provider did not know, and no
+        # FATAL was told (its `unload` raised `UnknownQueryError` later)
+        provider, consumer = started("prov"), started("cons")
+        name = provider.name
+        provider.register_server("leaf", load=lambda r: r, unload=lambda _r, _s: None)
+        statuses: list[rr.Status] = []
+        qid = str(uuid.uuid4())
+        consumer.call(
+            name, "leaf", "held", query_id=qid, on_status=lambda _q, u: statuses.append(u.status)
+        )
+        due, restarted, reconciled = threading.Event(), threading.Event(), threading.Event()
+
+        def hold(load: Any) -> None:
+            if load.query_id == qid:  # due now; its Load leaves once the restart reconciled
+                due.set()
+                assert restarted.wait(10)
+
+        def refuse(_request: Any) -> Any:
+            raise RuntimeError("the device is gone")
+
+        back = None
+        try:
+            with intercept(consumer, "send_load", before=hold), ThreadPoolExecutor(1) as pool:
+                retry = pool.submit(consumer.call, name, "leaf", "held", query_id=qid, timeout=10)
+                assert due.wait(10)
+                with expect_restart(name):
+                    crash(provider)
+                back = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
+                back.register_server("leaf", load=refuse, unload=lambda _r, _s: None)
+                with intercept(back, "reconcile", after=lambda _m: reconciled.set()):
+                    life.lost_everything(name)  # (as its supervisor says: restarted empty)
+                    assert reconciled.wait(10)
+                    consumer.client_queries()  # (the Reconcile's answer was handled)
+                assert {qid: {name}} == consumer._actor.ref.proxy().flights.get().doubted
+                restarted.set()  # the retry leaves, to the restart, and fails there
+                with pytest.raises(rr.ResourceLoadError):
+                    retry.result(10)
+
+            assert wait_for(lambda: rr.Status.FATAL in statuses)
+            assert qid not in [q.id for q in consumer.client_queries()]
+            assert {} == consumer._actor.ref.proxy().flights.get().doubted
+        finally:
+            restarted.set()
+            if back is not None:
+                back.stop()
+
     def test_a_call_refused_at_once_is_not_listed_when_the_consumer_reconciles(
         self,
         started: Callable[[str], rr.ResourceRegistrar],
