@@ -13,10 +13,11 @@ server* of a name (only a cut lets one be, rule 22) is another process whose eve
 registrar begin while the one it would follow still serves: it is checked as a registrar
 `<name>@<pid>`, its life recording which one it served `beside`.
 
-Two clocks: within one registrar, the order of its lines (one process publishes in order);
-across registrars, the hybrid logical clock stamps (`hlc`), which order a cause before its
-effects across processes and hosts (the order of lines does not: each process forwards its
-events in batches).
+Two clocks: within one registrar, the order of its lines (one process publishes in order,
+but for events two of its threads built at once: one numbered below the last of a life that
+ended comes from that life); across registrars, the hybrid logical clock stamps (`hlc`),
+which order a cause before its effects across processes and hosts (the order of lines does
+not: each process forwards its events in batches).
 """
 
 from __future__ import annotations
@@ -139,6 +140,7 @@ class _Walk:
         self.current: dict[str, int] = {}  # registrar -> its life now
         self.now: dict[str, Life] = {}  # registrar -> that life's record
         self.over: set[str] = set()  # registrars whose life ended (the next event begins one)
+        self.top: dict[str, int] = {}  # registrar -> the greatest `seq` of its life now
         self.second: dict[tuple[str, int], str] = {}  # (name, pid) of a second server -> ...
         self.lives: dict[tuple[str, int], Life] = {}
         self.steps: list[Step] = []
@@ -167,15 +169,18 @@ class _Walk:
         if isinstance(event, _ENDING):
             self.ending(line, event, self.second.get((name, event.pid), name))
             return
+        seq = getattr(event, "seq", 0)
         if (
             self.pids.get(name) == event.pid
-            and name not in self.over
+            and (name not in self.over or 0 < seq < self.top.get(name, 0))
             and not (self.second and (name, event.pid) in self.second)
             and not isinstance(event, events.CatalogRestored)
-        ):  # (the life it is in goes on: most events; `server` would keep its name)
+        ):  # (the life it is in goes on: most events; one built before its end, sent
+            # after it by another thread; `server` would keep its name)
             going = self.now[name]
             going.last = max(going.last, event.hlc)
             going.last_line = line
+            self.top[name] = max(self.top.get(name, 0), seq)
             self.steps.append((name, line, event, False, self.current[name]))
             return
         name, beside = self.server(line, event, name)
@@ -195,6 +200,7 @@ class _Walk:
                 stamp, stamp, line, host=event.host, pid=event.pid, first_line=line, beside=beside
             )
             self.over.discard(name)
+            self.top[name] = 0
             new = True
         else:
             life = self.current[name]
@@ -203,6 +209,7 @@ class _Walk:
             record.last_line = line
             new = False
         self.pids[name] = event.pid
+        self.top[name] = max(self.top.get(name, 0), seq)
         self.steps.append((name, line, event, new, life))
 
     def ending(self, line: int, event: events.Event, name: str) -> None:
@@ -222,11 +229,14 @@ class _Walk:
                 stamp, stamp, line, host=event.host, pid=event.pid, first_line=line
             )
             self.over.discard(name)
+            self.top[name] = 0
             if new:
                 self.pids[name] = event.pid
         else:
             record.last = max(record.last, stamp)
             record.last_line = line
+        if event.pid == self.pids.get(name):
+            self.top[name] = max(self.top.get(name, 0), getattr(event, "seq", 0))
         if stopping:
             if record.end is None:
                 record.end = stamp

@@ -348,8 +348,8 @@ def _unconnected(
         if (want.status_id, want.query_id) in facts.delivered:
             reached.add(key)
     ways: dict[tuple[str, str], list[bool]] = defaultdict(list)  # (sender, holder) -> by life
-    for sender, life, holder in first:
-        ways[sender, holder].append((sender, life, holder) in reached)
+    for key in first:
+        ways[key[0], key[2]].append(key in reached)
     bound = LOST_WITH_SENDER_S * 1_000_000
     unconnected = set()
     for key, since in first.items():

@@ -114,6 +114,21 @@ def test_one_seeded_violation_of_each_rule_is_found_with_its_window(rule: str) -
     assert window == set(found[0].lines)
 
 
+def test_an_event_built_before_its_registrars_stop_and_sent_after_it_is_of_that_life() -> None:
+    """A real `simslow` run (2026-11-26, load 7): db's status thread built a
+    `ServerQueriesListed` (seq 108) as its actor stopped; the stop's `RegistrarStopped`
+    (seq 109) reached the file first. Numbered below the stop, the listing is of the life
+    that stopped, not a new one that served before restoring its backup; one numbered
+    after it (a manager restarted in the same process) begins one."""
+    h = clean()
+    stop = dataclasses.replace(h[-1], seq=14)
+    listed = events.ServerQueriesListed("erm", "cam", (), pid=P, seq=13)
+    verdict = check.check(numbered([*h[:-1], stop, listed]))
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    later = dataclasses.replace(listed, seq=14)
+    assert {len(h) + 1} == _found([*h, later], "restore-first")
+
+
 def _as_file(history: list[events.Event], path: Path) -> Path:
     """`history` as a simulated run writes it: one JSON line per event, run 1, seed 7."""
     lines = [json.dumps({**events.to_dict(e), "run": 1, "seed": 7}) for e in history]
