@@ -3,7 +3,8 @@ order per link, cuts and heals.
 
 ```
  process A: Remote.tell ─► messenger ─► hub.route(name) ─► A's link to name (one per
-   sending process and served registrar; made at A's first send)
+   sending process and served registrar; made at A's first send, dialed until its first
+   frame arrives: what A sent on it is lost if A dies before)
    hub.send(link, frame) ─► its wire to B: after a seeded delay, in order (FIFO per link),
    on a thread of B's (`_Wire`) ─► the messenger: unpickle, tell the registrar
  B's answer ─► hub.answer(link) ─► the link's wire back, likewise ─► link.pending.answered
@@ -19,7 +20,8 @@ order per link, cuts and heals.
 All of it: docs/explanation/simulation.md, "The simulated network". The faults a plan
 aims at it: `SimulatedNetwork`'s docstring. Naming, replies, stand-ins,
 sizes and compensation are the messenger's. A kill drops what is on the wire to the killed
-process; what it sent before it died still arrives, as a socket's buffered bytes do.
+process; what it sent on a link dialed before it died still arrives, as a socket's buffered
+bytes do; on a link still dialing, it dies with it, as frames queued behind a connect do.
 """
 
 from __future__ import annotations
@@ -177,7 +179,8 @@ class _Wire:
         self._last = 0.0  # (the last frame's arrival: none overtakes it)
         self._thread: sim.Thread | None = None
 
-    def put(self, deliver: Callable[[], object]) -> None:
+    def put(self, deliver: Callable[[], object]) -> float:
+        """Put `deliver` on the wire; when it arrives (virtual seconds)."""
         hub = self._hub
         sched = hub.sched
         least, most = hub.delay
@@ -189,6 +192,7 @@ class _Wire:
                 sched, target=self._run, name=self._name, daemon=True, process=self.process
             )
             self._thread.start()
+        return due
 
     def _run(self) -> None:
         sched = self._hub.sched
@@ -217,7 +221,7 @@ class _Link(_Route):
     """The way from one simulated process to one served registrar: a wire there, a wire
     back for the answers."""
 
-    __slots__ = ("_back", "_hub", "_there", "closed", "sender", "severed", "twice")
+    __slots__ = ("_back", "_hub", "_there", "closed", "dialed", "sender", "severed", "twice")
 
     def __init__(self, hub: _SimulatedHub, sender: Process, served: _Served) -> None:
         super().__init__(served, hub.messenger)
@@ -226,6 +230,9 @@ class _Link(_Route):
         self.closed = False
         self.severed = False  # shut down by a cut: what is on its wires still arrives
         self.twice: list[int] | None = None  # its first frame twice, counted (`duplicate_first`)
+        # when its dial ends: as its first frame arrives (that frame's delay stands for the
+        # connect); what its sender sent before is held in the sender until then
+        self.dialed = sys.float_info.max
         receiver = served_by(served)
         name = served.endpoint.name
         self._there = _Wire(hub, receiver, f"rr-link-{sender.pid}-to-{name}")
@@ -237,7 +244,8 @@ class _Link(_Route):
             return False
         endpoint, messenger = served.endpoint, hub.messenger
         token, payload = split_frame(data)
-        self._there.put(lambda: self._arrive(messenger, endpoint, token, payload))
+        due = self._there.put(lambda: self._arrive(messenger, endpoint, token, payload))
+        self.dialed = min(self.dialed, due)
         if self.twice is not None:
             self.twice[0] += 1
             self.twice = None
@@ -248,6 +256,9 @@ class _Link(_Route):
         if self._hub.apart(self):  # lost on the wire
             return
         if self.closed and not self.severed:  # (its process ended)
+            return
+        sender = self.sender
+        if not sender.alive and sender.ended_at < self.dialed:  # died dialing: lost with it
             return
         messenger.message(endpoint, self, token, payload)
 

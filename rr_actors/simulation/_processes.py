@@ -31,6 +31,7 @@ class Process:
 
     __slots__ = (
         "at_end",
+        "ended_at",
         "exitcode",
         "files",
         "name",
@@ -50,6 +51,7 @@ class Process:
         self.state = state  # its singletons' fields while another process's are in
         self.tasks: list[Any] = []  # its tasks (`Task`), ended or not
         self.exitcode: int | None = None  # set when it ended
+        self.ended_at = 0.0  # (virtual seconds) when it ended, once it did
         self.stopped = False  # SIGSTOP: not scheduled until `cont`
         self.stopped_at = 0.0  # (virtual seconds) when it was stopped last
         self.parked: list[Any] = []  # its tasks made ready while it was stopped

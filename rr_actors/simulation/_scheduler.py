@@ -514,6 +514,7 @@ class Scheduler:
         if not process.alive:
             return
         process.exitcode = exitcode
+        process.ended_at = self.now
         process.stopped = False
         process.parked.clear()
         me = self.current_or_none()

@@ -462,6 +462,62 @@ def test_the_files_of_the_processes_a_run_killed_are_closed_when_it_ends(
     assert ((), before) == (tuple(run.errors), after)
 
 
+# -- a new link's dial: what its sender sent meanwhile dies with it (issue 51) -------------
+
+TOLD: list[tuple[int, float]] = []  # (pid, virtual time) of each `told_here` that ran
+
+
+def told_here(_registrar: Any) -> None:
+    """Run in the receiving process (sent by reference: `TOLD` is this module's)."""
+    TOLD.append((simulation.pid(), simulation.now()))
+
+
+def sent_then_killed(connected: bool) -> Callable[[], Any]:
+    """A process tells registrar `target` of another process (over the link it made for a
+    call before if `connected`, else a new one), goes on, and is SIGKILLed right after:
+    whether the frame ran there, and whether the sender went on."""
+
+    def scenario() -> Any:
+        TOLD.clear()
+        network = simulation.SimulatedNetwork()
+        try:
+            simulation.start_process(serve_alone(network, "target"), name="target")
+            until_served(network, "target")
+            went_on: list[float] = []
+
+            def sender() -> None:
+                remote = network.address.attach().resolve("target")
+                assert remote is not None
+                if connected:  # (its first frame arrived: the link is dialed)
+                    remote.run(lambda _registrar: None, timeout=5.0)
+                remote.submit(told_here)
+                went_on.append(simulation.now())  # (it went on after its send)
+                simulation.kill(simulation.pid())  # (SIGKILL, before the frame arrived)
+
+            simulation.start_process(sender, name="sender")
+            simulation.sleep(1.0)
+            return len(went_on), len(TOLD)
+        finally:
+            network.close()
+
+    return scenario
+
+
+@pytest.mark.parametrize("connected", [False, True], ids=["new-link", "connected"])
+def test_a_frame_sent_on_a_link_still_dialing_dies_with_its_sender(connected: bool) -> None:
+    """A new link is dialed until its first frame arrives (that frame's drawn delay stands
+    for the connect and the handshake): what its sender sent before then is held in the
+    sender, lost if the sender is killed first, as frames queued behind an AF_UNIX connect
+    on its writer thread are (issue 51: a manager's first status of a new life to one
+    consumer registrar, sent on a new connection; the manager went on and was killed before
+    that connection connected). On a link dialed before, the frame is on the wire: it
+    arrives after its sender's death. The reference is
+    `tests/transport/unix/test_link.py::test_a_frame_sent_on_a_connection_still_connecting_dies_with_its_sender`."""
+    for seed in range(5):
+        run = simulation.run(sent_then_killed(connected), seed=seed, preempt=0.1)
+        assert ((1, 1 if connected else 0), ()) == (run.value, tuple(run.errors)), f"seed {seed}"
+
+
 # -- lost for good (rule 19) and a process that cannot hear its router --------------------
 
 

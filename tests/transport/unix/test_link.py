@@ -1,10 +1,11 @@
 """The AF_UNIX link (`rr_actors._transport.unix.link`): the authkey handshake, a
-listener under pressure, malformed frames, a connection's writer.
+listener under pressure, malformed frames, a connection's writer, a frame behind a connect.
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import multiprocessing
 import multiprocessing.connection
@@ -802,3 +803,89 @@ def test_a_frame_refused_by_a_connection_that_closed_under_it_is_sent_again_on_t
     assert 0 == peer.run(load_count, timeout=10)
     assert 1 == len(others)
     assert 0 == others[0].future.get(timeout=10)
+
+
+# -- a frame behind a connect: lost with its sender (issue 51) ---------------------------------
+
+
+def _touch(path: str, _registrar: Any) -> None:
+    Path(path).touch()
+
+
+def _teller_main(
+    address: Any,
+    name: str,
+    connected: bool,
+    marker: str,
+    went_on: str,
+    control: multiprocessing.connection.Connection,
+) -> None:
+    """Process A: tells registrar `name` to touch `marker` when the test says "go" (over
+    the connection it made before if `connected`, else a new one), writes `went_on`, and
+    waits to be killed."""
+    remote = address.attach().resolve(name)
+    if connected:
+        remote.run(load_count, timeout=10)  # (its connection is made and answered)
+    control.send("ready")
+    control.recv()
+    remote.submit(functools.partial(_touch, marker))  # (never blocks)
+    Path(went_on).write_text("went on\n")  # the sender goes on after its send
+    control.recv()
+
+
+@pytest.mark.parametrize("connected", [False, True], ids=["new-connection", "connected"])
+def test_a_frame_sent_on_a_connection_still_connecting_dies_with_its_sender(
+    system: System,
+    context: multiprocessing.context.ForkServerContext,
+    start_provider: ProviderFactory,
+    tmp_path: Path,
+    connected: bool,
+    eventually: Callable[..., bool],
+) -> None:
+    # issue 51: a manager's first status of a new life to each consumer registrar went
+    # on a connection made for it, queued behind the connect and the handshake on its
+    # writer thread; the manager went on (journaled) and was killed before one connected:
+    # that frame died with it. On a connection made before, the frame is in the socket's
+    # buffer at once and arrives after its sender's death.
+    provider = start_provider(record_warnings)  # (B)
+    path = system.address.socket_path(provider.name)
+    marker, went_on = tmp_path / "told", tmp_path / "went-on"
+    parent_end, child_end = context.Pipe()
+    teller = context.Process(
+        target=_teller_main,
+        args=(system.address, provider.name, connected, str(marker), str(went_on), child_end),
+        daemon=True,
+    )
+    teller.start()
+    child_end.close()
+    try:
+        assert parent_end.poll(30), "the teller did not get ready"
+        assert "ready" == parent_end.recv()
+        os.kill(provider.pid, signal.SIGSTOP)  # B accepts nobody, reads nothing
+        try:
+            assert eventually(lambda: _stopped(provider.pid))
+            parent_end.send("go")
+            assert eventually(went_on.exists, timeout=10), "the teller did not go on"
+            # A's new connection waits in B's backlog (its handshake cannot start)
+            assert eventually(lambda: _pending_connections(path) == (0 if connected else 1))
+            teller.kill()  # (SIGKILL)
+            teller.join(10)
+            assert not teller.is_alive()
+        finally:
+            os.kill(provider.pid, signal.SIGCONT)
+        if connected:
+            assert eventually(marker.exists, timeout=10), "the frame did not arrive"
+        else:  # B accepts the connection, its handshake meets the dead end, then it is over
+            assert eventually(
+                lambda: any(
+                    "refused a connection" in warning
+                    for warning in system.run(provider.name, warnings_logged, timeout=10)
+                ),
+                timeout=10,
+            ), "B did not end the connection"
+            assert not marker.exists(), "the frame arrived"
+    finally:
+        parent_end.close()
+        if teller.is_alive():
+            teller.kill()
+            teller.join(10)
