@@ -349,7 +349,7 @@ class TestInAClass:
         until the live page drew the status. The late page opens on a fresher catalog."""
         loading = GatedLoad(process_helpers.event(), process_helpers.event(), device, wait=60)
         sup = figure_27(supervisors, camera=loading).start()
-        page = open_a_page_late(sup, loading, tabs, monkeypatch, within_ms=5000)
+        page = open_a_page_late(sup, loading, tabs, monkeypatch, within_ms=30_000)
 
         assert 1 == page.late.locator("#timeline li[data-kind=status]").count()  # one row
         assert (
