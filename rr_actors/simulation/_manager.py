@@ -14,7 +14,8 @@
         a silence past the bound: Hang ─► kill
         ── Stop(timeout, restarting) ────────► registrar.stop(); exit STOPPED_EXIT (1)
         ◄── Events([event]) while Forward(on) ────────── its registrar's events
-        the end (`Scheduler.end`: a kill, an exit) ◄──── at_end: what it served is cut off
+        the end (`Scheduler.end`: a kill, an exit) ◄──── at_end: what it served is cut off,
+                                                          then at_reaped: `_Ended`
         ──► on_exit(ManagerExit) ─► the supervisor's mailbox (the real `_supervision`)
 ```
 
@@ -110,7 +111,8 @@ def start(
     parent.at_end.append(functools.partial(sched.end, process, KILLED))
     to_child: Any = runtime.SimpleQueue()
     from_child: Any = runtime.SimpleQueue()
-    process.at_end.append(lambda: from_child.put(_Ended(process.exitcode)))
+    # (heard once what it served is cut off: a restart finds its names free)
+    process.at_reaped.append(lambda: from_child.put(_Ended(process.exitcode)))
     sim.Thread(
         sched,
         target=_child,

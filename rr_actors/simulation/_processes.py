@@ -8,7 +8,8 @@
    ├─ its tasks are never switched to again: no `finally` block runs
    ├─ the simulated locks they held of shared (carrier) objects are let go
    ├─ the files P holds (`runtime.hold`) closed: an open transaction rolls back
-   └─ `P.at_end` run (the carrier closes P's links; its watcher hears)
+   ├─ `P.at_end` run (the kernel's part: the carrier closes P's links, ends what it served)
+   └─ then `P.at_reaped` run (its parent hears: the manager's watcher)
  Scheduler.stop(P) (SIGSTOP): its tasks stay off the ready list until `cont(P)` (SIGCONT)
 ```
 
@@ -31,6 +32,7 @@ class Process:
 
     __slots__ = (
         "at_end",
+        "at_reaped",
         "ended_at",
         "exitcode",
         "files",
@@ -56,6 +58,9 @@ class Process:
         self.stopped_at = 0.0  # (virtual seconds) when it was stopped last
         self.parked: list[Any] = []  # its tasks made ready while it was stopped
         self.at_end: list[Callable[[], object]] = []  # run once, when it ends
+        # run once, after every `at_end`: who waits on its end (a parent's sentinel,
+        # `waitpid`) hears of it once the kernel let go of what it held (its name locks)
+        self.at_reaped: list[Callable[[], object]] = []
         self.files: list[Any] = []  # what it holds open (`runtime.hold`), closed or not
 
     def close_files(self) -> None:

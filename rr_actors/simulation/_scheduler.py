@@ -510,7 +510,7 @@ class Scheduler:
     def end(self, process: Process, exitcode: int) -> None:
         """End `process` (a SIGKILL: `-9`; an exit: its code): its tasks never run again, the locks
         of other processes' objects they held are let go, its files closed, then its `at_end`
-        callbacks run. From one of its own tasks, never returns."""
+        callbacks run, then its `at_reaped` ones. From one of its own tasks, never returns."""
         if not process.alive:
             return
         process.exitcode = exitcode
@@ -531,8 +531,9 @@ class Scheduler:
         self._ready[:] = [task for task in self._ready if not task.killed]
         process.close_files()
         ends, process.at_end = process.at_end, []
-        for at_end in ends:
-            at_end()
+        reaped, process.at_reaped = process.at_reaped, []
+        for at_end in (*ends, *reaped):  # (each may yield: none tells the end before
+            at_end()  # what the process held is let go)
         if me is not None and me.killed:
             self._main.switch()  # (never switched back to)
             raise AssertionError("a killed task ran again")  # pragma: no cover
