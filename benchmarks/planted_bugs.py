@@ -85,6 +85,7 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGE = ROOT / "rr_actors"
+LAB = ROOT / "rr_actors_lab"
 PLANS = ROOT / "rr_actors_lab" / "experiments" / "plans"
 
 
@@ -414,6 +415,17 @@ PLANTS = (
         "kept",
     ),
     Plant(
+        "retry-doubt-dropped",
+        "a failed retry of a held id its provider's restart (no backup) knew not is kept, "
+        "never reported FATAL: the retry was due at the restart's reconcile (doubted), and "
+        "its failure ends the flight without its provider, which drops the doubt (issue 51)",
+        "_registrar/consumer.py",
+        "            self.flights.answered(message.query_id, message.attempt, message.provider)\n",
+        "            self.flights.answered(message.query_id, message.attempt)  # PLANTED\n",
+        "simnostate",
+        "kept",
+    ),
+    Plant(
         "program-restart",
         "a program killed and started again on its state_dir: its consumers (registrars of "
         "Supervisor.registrar, no backup) are not told they lost everything, so the ids "
@@ -460,9 +472,11 @@ def plant_text(plant: Plant, text: str) -> str:
 
 
 def scratch(folder: Path, plant: Plant | None) -> Path:
-    """A copy of the package under `folder` (`plant` applied); the PYTHONPATH to use."""
+    """A copy of the package under `folder` (`plant` applied), and of the lab beside it (this
+    checkout's plans and workload, not an installed one's); the PYTHONPATH to use."""
     target = folder / "rr_actors"
     shutil.copytree(PACKAGE, target, ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copytree(LAB, folder / "rr_actors_lab", ignore=shutil.ignore_patterns("__pycache__"))
     if plant is not None:
         path = target / plant.file
         path.write_text(plant_text(plant, path.read_text()))
@@ -541,9 +555,10 @@ def child_main(path: str, command: str, arguments: list[str]) -> None:
     import rr_actors  # noqa: PLC0415 - the copy's, from PYTHONPATH
     from rr_actors_lab.experiments import load_plan, simulate  # noqa: PLC0415
 
-    here = Path(rr_actors.__file__).resolve()
-    if not here.is_relative_to(Path(path).resolve()):
-        raise SystemExit(f"the child imported {here}, not the copy at {path}")
+    for module in (rr_actors, simulate):
+        here = Path(module.__file__ or "").resolve()
+        if not here.is_relative_to(Path(path).resolve()):
+            raise SystemExit(f"the child imported {here}, not the copy at {path}")
     logging.getLogger("rr_actors").setLevel(logging.ERROR)  # (a WARNING per kill)
     plan = load_plan(str(PLANS / f"{arguments[0]}.toml"))
     started = time.process_time()

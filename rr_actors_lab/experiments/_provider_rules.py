@@ -137,6 +137,7 @@ class Providers:
         self.parent = facts.parent
         self.watch = facts.lost | facts.fetched
         self.outcomes = facts.outcomes
+        self.held_on = facts.held_on
         self.catalogs: dict[str, _Catalog] = defaultdict(_Catalog)
         self._by_name: dict[str, list[Life]] | None = None  # each registrar's lives
         self.findings: list[Finding] = []
@@ -177,7 +178,9 @@ class Providers:
             unheld = {
                 q
                 for q, held in catalog.held.items()
-                if self.failed(q, held.stamp, event.hlc) or self.crossed(name, q, ended)
+                if self.failed(q, held.stamp, event.hlc)
+                or self.crossed(name, q, ended)
+                or self.added_again(name, q, life)
             }
             # (forgotten since the end of the life before, by no release that crossed the
             # restart: owed a FATAL; the restart's first event may come much later)
@@ -198,6 +201,17 @@ class Providers:
         if before:
             return not before[-1]
         return bool(outcomes) and not outcomes[0][1]
+
+    def added_again(self, name: str, qid: str, life: int) -> bool:
+        """Whether `name`'s restart, in its `life`, added `qid` again: its consumer's retry of
+        the id it held (the same id) was answered there, so its reconcile found it known (a
+        due id is reconciled again once its call ends, rule 20): no `FATAL` is owed."""
+        record = self.lives.get((name, life))
+        if record is None:
+            return False
+        end = record.last if record.end is None else record.end
+        added = self.held_on.get(qid, ())
+        return any(by == name and record.start <= at <= end for at, by, _rid, _line in added)
 
     def ended(self, name: str, life: int, restart: int) -> int:
         """The stamp before which no consumer can have reconciled with the restart after `life`: its

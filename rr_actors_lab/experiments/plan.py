@@ -181,6 +181,7 @@ class CallMix(_Table, frozen=True):
     weight: Annotated[float, Meta(gt=0, le=MAX_RATE)] = 1.0  # relative frequency
     shared: Annotated[float, Meta(ge=0, le=1)] = 0.5  # of calls for one of `keys` shared requests
     keys: Count = 4  # the rest ask for a request of their own
+    again: Annotated[float, Meta(ge=0, le=1)] = 0.0  # of answered calls, called again while held
     request: Any = "{key}"
     factory: str | None = None  # import path of `factory(key, context) -> request`
 

@@ -52,6 +52,8 @@ WHAT = {  # what a key must be, where its type alone words it badly (the last ke
     ' or "max"',
     "weight": f"a positive number (at most {schema.MAX_RATE:g})",
     "shared": "a fraction from 0 to 1",
+    "again": "a fraction from 0 to 1",
+    "cancel": "a fraction from 0 to 1",
     "jitter": "a fraction from 0 to 1",
     "factor": f"a number from 1 to {schema.MAX_SECONDS:g}",
 }  # any other number is seconds

@@ -5,14 +5,15 @@ Each client has a consumer registrar of its own (`Supervisor.registrar`) and one
     next call due? ──► pick a call of the mix (weighted), a shared or a unique key ──► call
                          (retried through restarts and cut connections, same query id)
     a resource's hold ran out? ──► unload it (retried likewise)
+    a call again due (`again`)? ──► call it again with its held id, as a user unsure of it
     a status came (its callback queues it) ──► FATAL: unload, load again (a recovery)
                                                UPDATE: the manager replaced it (a recovery)
 
 Calls come at `rate` per second per client on a schedule fixed in advance (an open-loop
 load: calls due while one waited out a restart follow it back to back). What came due
 while a call blocked is handled before the next call, statuses first (a `FATAL` about a
-resource still held is acted on). `awaited`, `cancel`, `fetch_every` and `status_wait`:
-docs/reference/plan.md. Every call is recorded (`CallRecord`), and so are `recoveries`.
+resource still held is acted on). `awaited`, `cancel`, `fetch_every`, `status_wait` and
+`again`: docs/reference/plan.md. Every call is recorded (`CallRecord`), and so are `recoveries`.
 A request the client cannot build is a mistake in the plan, not a failed call: the client
 stops, keeps it in `failure`, calls `on_failure`, and the run fails with it.
 """
@@ -234,6 +235,7 @@ class Client:
         self._held: list[_Held] = []
         self._given_up: list[tuple[CallMix, Any, str]] = []
         self._release_later: list[tuple[str, str]] = []  # (manager, query id)
+        self._again: list[tuple[float, int, _Held]] = []  # (when, seq, held): `again`
         self._by_id: dict[str, _Held] = {}
         self._seq = itertools.count()
         self._unique = itertools.count()
@@ -333,6 +335,8 @@ class Client:
             wake = next_call
             if self._held:
                 wake = min(wake, self._held[0].unload_at)
+            if self._again:
+                wake = min(wake, self._again[0][0])
             try:
                 note = self._notes.get(timeout=max(0.0, wake - runtime.monotonic()))
             except runtime.Empty:
@@ -359,6 +363,8 @@ class Client:
             self._pending.append(note)
         while self._pending:
             self._handle(self._pending.popleft())
+        while self._again and self._again[0][0] <= runtime.monotonic():
+            self._call_again(heapq.heappop(self._again)[2])
         now = runtime.monotonic()
         while self._held and self._held[0].unload_at <= now:
             self._unload(heapq.heappop(self._held), now + self.workload.timeout)
@@ -433,13 +439,31 @@ class Client:
             self.registrar.fetch_queries(mix.manager, mix.server, timeout=self.workload.timeout)
 
     def _hold(self, mix: CallMix, request: Any, query: rr.Query | None) -> None:
-        """Keep `query` (an answered call) for the workload's `hold`, then unload it."""
+        """Keep `query` (an answered call) for the workload's `hold`, then unload it; a share
+        `again` of them is called again a seeded while within the hold."""
         if query is not None:
             held = _Held(
                 runtime.monotonic() + self.workload.hold, next(self._seq), query, mix, request
             )
             heapq.heappush(self._held, held)
             self._by_id[query.id] = held
+            if mix.again > 0 and self.rng.random() < mix.again:  # (no draw without `again`)
+                at = runtime.monotonic() + self.rng.uniform(0.0, self.workload.hold)
+                heapq.heappush(self._again, (at, held.seq, held))
+
+    def _call_again(self, held: _Held) -> None:
+        """Call `held`'s call again with its id, if it is still held, as a user unsure of it
+        would; its hold starts over. Answered, the answer is the one held (the same resource,
+        or one a restart loaded anew); failed, the client keeps what it held (a failed retry
+        releases nothing; its consumer tells `FATAL` if the provider lost it meanwhile)."""
+        if self._by_id.get(held.query.id) is not held:
+            return  # (unloaded, or reloaded after a FATAL, meanwhile)
+        with self._step("call", held.mix):
+            query = self._call(held.mix, held.request, query_id=held.query.id)
+        if self._by_id.get(held.query.id) is held:
+            held.query = held.query if query is None else query
+            held.unload_at = runtime.monotonic() + self.workload.hold
+            heapq.heapify(self._held)
 
     def _await_calls(self) -> CallMix:
         """`awaited` calls at once on this client's loop, a share cancelled; the last one's kind.
@@ -503,8 +527,9 @@ class Client:
         self.calls.append(record)
         return query
 
-    def _call(self, mix: CallMix, request: Any) -> rr.Query | None:
-        """One call with retries; recorded; returns the query, or `None` if it failed."""
+    def _call(self, mix: CallMix, request: Any, query_id: str | None = None) -> rr.Query | None:
+        """One call with retries (a new id, or `query_id`: one held, `again`); recorded;
+        returns the query, or `None` if it failed."""
         start = self._now()
         retried = False
 
@@ -512,7 +537,8 @@ class Client:
             nonlocal retried
             retried = True
 
-        query_id = runtime.new_id()
+        held_id = query_id is not None
+        query_id = query_id or runtime.new_id()
         call = functools.partial(
             self.registrar.call,
             mix.manager,
@@ -543,7 +569,7 @@ class Client:
                     type(exc).__name__,
                 )
             )
-            if retried:  # its provider may have taken the id before it died
+            if retried and not held_id:  # its provider may have taken the id before it died
                 self._given_up.append((mix, request, query_id))
             return None
         self.calls.append(

@@ -1054,6 +1054,41 @@ def test_an_answered_id_a_restart_without_a_backup_lost_is_owed_a_fatal() -> Non
     assert {2, 6} == _found(_stamped(again), "kept")
 
 
+def retried_at_the_restart(*, answered: bool) -> list[events.Event]:
+    """cm holds Q1 and calls it again (the same id, a workload's `again`) as erm (no backup)
+    is killed; the retry reaches the restart, which loads Q1 anew (`answered`) or whose load
+    raises; cm releases Q1 later, unanswered by a `FATAL` (the restart's Q2 as before)."""
+    h = without_backup()
+    anew = [
+        events.ResourceLoaded("erm", "cam", RID, Q1, 0.01, 42, "cam 0", pid=P + 1, seq=1),
+        events.ConsumerAdded("erm", RID, Q1, "cm", pid=P + 1, seq=2),
+        dataclasses.replace(h[2], retry=True),
+    ]
+    if not answered:
+        anew = [
+            events.LoadFailed("erm", "cam", RID, Q1, "InjectedLoadError", "gone", pid=P + 1, seq=1),
+            events.CallFailed(
+                "cm", Q1, "erm", "cam", "ResourceLoadError", "gone", retry=True, pid=C
+            ),
+        ]
+    released = [
+        events.ConsumerReleased("erm", RID, Q1, "cm", pid=P + 1, seq=3),
+        events.ResourceUnloaded("erm", "cam", RID, pid=P + 1, seq=4),
+    ]
+    forgot = events.QueryForgotten("cm", Q1, "erm", "unload", 1020, 1004, pid=C)
+    tail = [*(released if answered else ()), forgot, *h[9:]]
+    return renumbered(_stamped([*h[:4], *anew, *h[4:7], *tail]))
+
+
+def test_a_held_id_whose_retry_the_restart_answered_is_owed_no_fatal_one_it_failed_is() -> None:
+    # issue 51: the restart (no backup) that answered cm's retry of Q1 holds Q1 again (cm's
+    # reconcile found it known: a due id is reconciled again once its call ends, rule 20);
+    # a retry the restart failed leaves Q1 lost there, its FATAL owed
+    verdict = check.check(numbered(retried_at_the_restart(answered=True)))
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    assert {2, 5} == _found(retried_at_the_restart(answered=False), "kept")
+
+
 # -- issue 51: a release that crossed a restart without a backup ----------------------------
 
 

@@ -105,6 +105,15 @@ def test_a_message_too_long_names_its_limit() -> None:
     assert error.problem.startswith("must be a string of length <= 10000, got 'xxx")
 
 
+def test_a_call_again_share_becomes_the_calls_value_and_one_above_1_is_refused() -> None:
+    plan = parse_plan(BASE + "again = 0.3\n")
+    error = plan_error(BASE + "again = 1.5\n")
+
+    assert (0.3, 0.0) == (plan.workload.calls[0].again, parse_plan(BASE).workload.calls[0].again)
+    assert (16, "workload.calls[0].again") == (error.line, error.key)
+    assert "must be a fraction from 0 to 1, got 1.5" == error.problem
+
+
 SERVICE = "rr_actors_lab.experiments.services:service"
 HUGE = "9" * 400
 

@@ -184,3 +184,31 @@ def test_a_workload_that_fetches_publishes_what_each_fetch_listed_and_holds(
     assert {q for f in fetched for q in f["query_ids"]} <= answered
     assert any(f["query_ids"] for f in fetched)
     assert (0, "held") == (row["calls_failed"], row["verdict"])
+
+
+AGAIN = AWAITED.replace(
+    "rate = 5.0\nhold = 0.05\nawaited = 40\ncancel = 0.5\ncancel_within = 0.004\n",
+    'rate = 10.0\narrivals = "fixed"\nhold = 0.2\n',
+).replace("keys = 4\n", "keys = 4\nagain = 1.0\n")
+
+
+def test_a_workload_that_calls_again_calls_each_held_id_again_and_holds(tmp_path: Path) -> None:
+    # `again = 1.0`: every answered call is called again with its id while it is held; the
+    # provider, which holds it, answers that retry as one (rule 2), and it is released once
+    (tmp_path / "plan.toml").write_text(AGAIN)
+
+    results = run(load_plan(tmp_path / "plan.toml"), out=tmp_path / "out")
+
+    [row] = results.rows()
+    lines = (tmp_path / "out" / "events.jsonl").read_text().splitlines()
+    answered = [json.loads(line) for line in lines if '"type": "CallAnswered"' in line]
+    first = {a["query_id"] for a in answered if not a["retry"]}
+    again = {a["query_id"] for a in answered if a["retry"]}
+    added = [line for line in lines if '"type": "ConsumerAdded"' in line]
+    assert "again = 1.0" in AGAIN
+    assert first
+    assert again <= first
+    assert len(first - again) <= 3  # (not the few due after the last call: hold / gap + 1)
+    assert len(first) == len(added)  # (a retry of a held id adds nothing)
+    assert (0, 0, "held") == (row["calls_failed"], row["catalog_entries_left"], row["verdict"])
+    assert len(first) + len(again) == row["calls_ok"]
