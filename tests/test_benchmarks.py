@@ -208,6 +208,14 @@ def _script(name: str) -> ModuleType:
     return module
 
 
+def test_status_hang_counts_the_ids_that_heard_a_number_after_a_higher_one() -> None:
+    hang = _script("bench_status_hang")
+    seen = {"a": [1, 2, 5, 9], "b": [5, 6, 11, 12, 6, 13], "c": [3, 3], "d": []}
+
+    assert (2, "6 11 12 6 13") == hang.out_of_order(seen)  # (b, and c: a repeat)
+    assert (0, "") == hang.out_of_order({"a": [1, 2], "b": [7]})
+
+
 def test_verdict_kinds_counts_the_rules_of_violations_and_compares_their_sets() -> None:
     kinds = _script("bench_verdict_kinds")
     seed = [
