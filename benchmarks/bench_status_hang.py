@@ -1,10 +1,12 @@
-"""Status fan-out to a hung consumer (issue 53): threads held, and what `send_status` does.
+"""Status fan-out to a hung consumer (issues 53, 51): threads held, what `send_status` does,
+and whether the healthy consumers hear their statuses in order.
 
 A provider serves one resource to `--consumers` consumer ids (200), spread over
 `--registrars` consumer registrars (4); the callback of one id (the first) never returns
 (it blocks on an event set at teardown), the others record and return. The provider
 sends `--statuses` statuses (2,000), each a `send_status(..., timeout=--timeout)`, from
-`--senders` threads (4). Printed per run:
+`--senders` threads (4): flaps, OK and ERROR in turn, the message its sequence number
+(then one last, numbered `--statuses`). Printed per run:
 
     threads     of the consumers' process before the first status and after the last
                 (`threading.active_count()` here; the manager's threads by psutil in the
@@ -14,6 +16,10 @@ sends `--statuses` statuses (2,000), each a `send_status(..., timeout=--timeout)
     gave up     sends whose result named a consumer given up on (when `send_status`
                 returns a `StatusDelivery`; "-" where it returns None)
     last heard  whether every healthy id heard the last status (its callback's record)
+    out of order  healthy ids whose callback saw the sequence numbers not increasing
+                (issue 51 finding 6: the docs promise arrival order for each id; a gap is
+                fine, statuses coalesce behind a running callback); "-" unless
+                `--senders 1` (with more, the send order is not defined)
     queued      calls waiting in the hung id's lane after the last send, and tasks on the
                 process's own loop (coroutine callbacks: each would run) (thread
                 placement: the process's status runner, read directly; "-" in a manager
@@ -31,6 +37,8 @@ Usage:
     python benchmarks/bench_status_hang.py [--placement thread process]
         [--consumers 200] [--registrars 4] [--statuses 2000] [--senders 4]
         [--timeout 0.5] [--callback plain|coroutine]
+
+The flap order (issue 51 finding 6): `--senders 1 --statuses 1000`, beside busy loops.
 """
 
 from __future__ import annotations
@@ -60,13 +68,16 @@ def consumer_setup(
 ) -> Callable[[rr.ResourceRegistrar], None]:
     """Consumer registrars (in the process of `host`), `consumers` ids of `provider`'s
     resource, the first id's callback hung if `hang`; server "probe" answers what the ids
-    heard last ("heard"), releases the hung callback and stops them ("stop")."""
+    heard last ("heard"), how many healthy ids heard theirs out of order ("order": the
+    count and one such sequence around its first step back), releases the hung callback
+    and stops them ("stop")."""
 
     def setup(host: rr.ResourceRegistrar) -> None:
         network = address.attach() if address is not None else None
         release = threading.Event()
         lock = threading.Lock()
         last: dict[str, str] = {}
+        seen: dict[str, list[int]] = {}  # id -> the sequence numbers its callback saw
         registrars_here: list[rr.ResourceRegistrar] = []
         hung: list[str] = []
 
@@ -76,6 +87,8 @@ def consumer_setup(
                 return
             with lock:
                 last[query.id] = update.message
+                if update.message.isdigit():
+                    seen.setdefault(query.id, []).append(int(update.message))
 
         async def record_awaited(query: rr.Query, update: rr.StatusUpdate) -> None:
             if hung and query.id == hung[0] and update.message != "warm-up":
@@ -83,6 +96,8 @@ def consumer_setup(
                 return
             with lock:
                 last[query.id] = update.message
+                if update.message.isdigit():
+                    seen.setdefault(query.id, []).append(int(update.message))
 
         callback = record_awaited if coroutine else record
         registrars_here.extend(
@@ -99,6 +114,9 @@ def consumer_setup(
             if request[0] == "heard":
                 with lock:
                     return dict(last)
+            if request[0] == "order":
+                with lock:
+                    return out_of_order(seen)
             release.set()
             for registrar in reversed(registrars_here):
                 registrar.stop()
@@ -107,6 +125,19 @@ def consumer_setup(
         host.register_server("probe", load=probe, unload=lambda _r, _s: None)
 
     return setup
+
+
+def out_of_order(seen: dict[str, list[int]]) -> tuple[int, str]:
+    """How many of `seen`'s sequences are not increasing, and one around its first step back."""
+    wrong = 0
+    example = ""
+    for numbers in seen.values():
+        back = next((i for i in range(1, len(numbers)) if numbers[i] <= numbers[i - 1]), None)
+        if back is None:
+            continue
+        wrong += 1
+        example = example or " ".join(map(str, numbers[max(0, back - 3) : back + 3]))
+    return wrong, example
 
 
 def threads_of(pid: int | None) -> int:
@@ -138,7 +169,7 @@ def heard_last(
     provider: Any, host: Any, query_id: str, hang: bool, args: argparse.Namespace
 ) -> int:
     """Send one last status; how many healthy ids heard it (a bounded poll)."""
-    last = str(args.statuses - 1)
+    last = str(args.statuses)
     with contextlib.suppress(rr.CallTimeoutError):  # (all heard it? the hung one not)
         provider.send_status(query_id, rr.Status.UPDATE, last, timeout=max(args.timeout, 5))
     healthy_last = 0
@@ -183,9 +214,8 @@ def run(placement: str, hang: bool, args: argparse.Namespace) -> dict[str, Any]:
     def send(number: int) -> None:
         nonlocal timed_out, gave_up
         try:
-            result = provider.send_status(
-                query_id, rr.Status.UPDATE, str(number), timeout=args.timeout
-            )
+            flap = rr.Status.ERROR if number % 2 else rr.Status.OK
+            result = provider.send_status(query_id, flap, str(number), timeout=args.timeout)
         except rr.CallTimeoutError:
             with lock:
                 timed_out += 1
@@ -202,6 +232,7 @@ def run(placement: str, hang: bool, args: argparse.Namespace) -> dict[str, Any]:
     after = threads_of(pid)
     queued = queued_here() if pid is None else None
     healthy_last = heard_last(provider, host, query_id, hang, args)
+    wrong, example = host.call(host.name, "probe", ("order", uuid.uuid4().hex), timeout=30).response
     host.call(host.name, "probe", ("stop", uuid.uuid4().hex), timeout=30)
     host.stop()
     provider.stop()
@@ -216,6 +247,8 @@ def run(placement: str, hang: bool, args: argparse.Namespace) -> dict[str, Any]:
         "gave_up": gave_up if returns_delivery else None,
         "heard": f"{healthy_last}/{args.consumers - (1 if hang else 0)}",
         "queued": queued,
+        "order": f"{wrong}/{args.consumers - (1 if hang else 0)}" if args.senders == 1 else "-",
+        "example": example,
     }
 
 
@@ -237,9 +270,14 @@ def main() -> None:
     )
     print(
         f"| {'placement':9} | {'hung':4} | {'threads':>15} | {'wall s':>7} "
-        f"| {'timed out':>9} | {'gave up':>7} | {'last heard':>10} | {'queued':>6} |"
+        f"| {'timed out':>9} | {'gave up':>7} | {'last heard':>10} | {'queued':>6} "
+        f"| {'out of order':>12} |"
     )
-    print(f"|{'-' * 11}|{'-' * 6}|{'-' * 17}|{'-' * 9}|{'-' * 11}|{'-' * 9}|{'-' * 12}|{'-' * 8}|")
+    print(
+        f"|{'-' * 11}|{'-' * 6}|{'-' * 17}|{'-' * 9}|{'-' * 11}|{'-' * 9}|{'-' * 12}|{'-' * 8}"
+        f"|{'-' * 14}|"
+    )
+    examples: list[str] = []
     for placement in args.placement:
         for hang in (True, False):
             row = run(placement, hang, args)
@@ -248,9 +286,14 @@ def main() -> None:
             print(
                 f"| {placement:9} | {'hung' if hang else 'none':4} | {threads:>15} "
                 f"| {row['wall']:7.2f} | {row['timed_out']:9d} | {gave:>7} "
-                f"| {row['heard']:>10} | {'-' if row['queued'] is None else row['queued']:>6} |",
+                f"| {row['heard']:>10} | {'-' if row['queued'] is None else row['queued']:>6} "
+                f"| {row['order']:>12} |",
                 flush=True,
             )
+            if row["example"] and args.senders == 1:
+                examples.append(f"{placement} {'hung' if hang else 'none'}: ... {row['example']}")
+    for example in examples:
+        print(f"out of order, {example} ...")
     print(f"load after: {os.getloadavg()[0]:.1f}")
 
 

@@ -66,7 +66,7 @@ SMALLEST = {
         "--statuses",
         "20",
         "--senders",
-        "2",
+        "1",  # (one sender: the out-of-order column counts)
         *("--callback", "coroutine"),
     ],
     "bench_outbox.py": ["--rounds", "1", "--loads", "5"],
@@ -206,6 +206,14 @@ def _script(name: str) -> ModuleType:
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def test_status_hang_counts_the_ids_that_heard_a_number_after_a_higher_one() -> None:
+    hang = _script("bench_status_hang")
+    seen = {"a": [1, 2, 5, 9], "b": [5, 6, 11, 12, 6, 13], "c": [3, 3], "d": []}
+
+    assert (2, "6 11 12 6 13") == hang.out_of_order(seen)  # (b, and c: a repeat)
+    assert (0, "") == hang.out_of_order({"a": [1, 2], "b": [7]})
 
 
 def test_verdict_kinds_counts_the_rules_of_violations_and_compares_their_sets() -> None:
