@@ -281,6 +281,7 @@ def test_a_mistyped_fault_is_answered_with_the_closest_one(
 
 @pytest.mark.usefixtures("process_helpers")  # the forkserver predates the leak check
 @pytest.mark.parametrize("manager", ["erm", "cm", "rm"])
+@pytest.mark.timeout(150)  # a whole mission and a restart: 29-42 s at load 17-19, as full runs
 def test_a_manager_killed_by_hand_mid_run_is_waited_for_and_shown_in_the_timeline(
     manager: str, tmp_path: Path
 ) -> None:
