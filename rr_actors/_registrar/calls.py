@@ -410,9 +410,9 @@ class Calls:
         what it failed with. `parent`: the resource it is a dependency of; `chain`:
         those loading further up; `limit`: the timeout in s; `begun`: the trace context;
         `wait_overloaded`: ask again after a refusal."""
-        pause = _FIRST_PAUSE
+        pause, slowest = _FIRST_PAUSE, 0.0  # (the slowest refusal: a last try's margin)
         while True:  # (again only after an `OverloadedError`: the provider holds nothing)
-            attempt = self.new_attempt(begun)
+            attempt, sent = self.new_attempt(begun), runtime.monotonic()
             trace = attempt.trace
             reply = ClientReply(
                 self, query_id, serving_rr, server, request, parent, on_status, attempt
@@ -470,8 +470,10 @@ class Calls:
             except OverloadedError as refused:  # holding nothing: wait, then ask again
                 pause = pause if refused.retry_after is None else refused.retry_after
                 # a caller that cannot wait, or no time for a pause and the answer after it
-                left = deadline - runtime.monotonic()
-                if not wait_overloaded or left <= pause + min(pause, _LAST_PAUSE):
+                now = runtime.monotonic()  # (an answer may take twice the slowest so far)
+                slowest = max(slowest, now - sent)
+                answer = max(min(pause, _LAST_PAUSE), 2 * slowest)
+                if not wait_overloaded or deadline - now <= pause + answer:
                     raise
             yield OneShotFuture(), runtime.monotonic() + pause  # (never settled: a pause)
             pause = min(2 * pause, _LAST_PAUSE)

@@ -51,6 +51,7 @@ from tests.support.demos import (
 )
 from tests.support.observing import request
 from tests.support.small_disk import mounted, remount_read_only
+from tests.support.waiting import wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 REPORT_KEYS = {"mission_time_s", "distance_m", "faults", "leaked_processes", "catalog_entries_left"}
@@ -281,6 +282,7 @@ def test_a_mistyped_fault_is_answered_with_the_closest_one(
 
 @pytest.mark.usefixtures("process_helpers")  # the forkserver predates the leak check
 @pytest.mark.parametrize("manager", ["erm", "cm", "rm"])
+@pytest.mark.timeout(150)  # a whole mission and a restart: 29-42 s at load 17-19, as full runs
 def test_a_manager_killed_by_hand_mid_run_is_waited_for_and_shown_in_the_timeline(
     manager: str, tmp_path: Path
 ) -> None:
@@ -290,11 +292,15 @@ def test_a_manager_killed_by_hand_mid_run_is_waited_for_and_shown_in_the_timelin
     def say(line: str) -> None:  # on the mission's thread, right after F1 was recovered
         if "LiDAR 2 loaded" in line and not killed:
             assert mission is not None
-            assert mission.supervisor is not None
-            pid = mission.supervisor.child(manager).pid
+            supervisor = mission.supervisor
+            assert supervisor is not None
+            pid = supervisor.child(manager).pid
             assert pid is not None
             os.kill(pid, signal.SIGKILL)
             killed.append(pid)
+            # the next fault waits for a manager the supervisor sees down (F2 injected
+            # before it saw the kill killed the driver while rm was down: never recovered)
+            assert wait_for(lambda: supervisor.child(manager).pid != pid, timeout=30)
 
     mission = Mission(MissionConfig.fast(), prepare_out(tmp_path), say=say)
     report = mission.run()

@@ -25,6 +25,7 @@ import pytest
 import rr_actors as rr
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._registrar.calls import BACKLOG
+from rr_actors._registrar.messages import Load
 from rr_actors.testing import (
     AttemptState,
     CallAttempt,
@@ -1201,19 +1202,25 @@ class TestRaces:
 class _RefusesEveryLoad:
     """A provider (a peer in this process's directory) that refuses every load for
     overload, telling when to ask again (`retry_after`; `None`: it does not say), and
-    notes when each try came (`tries`, monotonic seconds)."""
+    notes when each try came (`tries`, monotonic seconds); `answer_after`: seconds each
+    refusal takes to come back (a slow link, or a loaded machine)."""
 
-    def __init__(self, retry_after: float | None) -> None:
+    def __init__(self, retry_after: float | None, answer_after: float = 0.0) -> None:
         self.name = f"full-{uuid.uuid4().hex[:8]}"
-        self.retry_after = retry_after
+        self.retry_after, self.answer_after = retry_after, answer_after
         self.tries: list[float] = []
 
     def tell(self, message: Any) -> None:
+        if not isinstance(message, Load):  # (a withdrawal: nothing is held)
+            return
         self.tries.append(time.monotonic())
         refused = rr.errors.OverloadedError(
             "full", self.name, message.server, 1, retry_after=self.retry_after
         )
-        message.reply.set_error(refused)
+        if self.answer_after:
+            threading.Timer(self.answer_after, message.reply.set_error, [refused]).start()
+        else:
+            message.reply.set_error(refused)
 
     deliver = tell
 
@@ -1224,11 +1231,11 @@ class TestOverloadPause:
     told a pause past its timeout, it gives up at once."""
 
     @pytest.fixture
-    def refusing(self) -> Iterator[Callable[[float | None], _RefusesEveryLoad]]:
+    def refusing(self) -> Iterator[Callable[..., _RefusesEveryLoad]]:
         made: list[_RefusesEveryLoad] = []
 
-        def make(retry_after: float | None) -> _RefusesEveryLoad:
-            provider = _RefusesEveryLoad(retry_after)
+        def make(retry_after: float | None, answer_after: float = 0.0) -> _RefusesEveryLoad:
+            provider = _RefusesEveryLoad(retry_after, answer_after)
             DIRECTORY.register(provider)
             made.append(provider)
             return provider
@@ -1269,6 +1276,20 @@ class TestOverloadPause:
             consumer.call(provider.name, "leaf", "x", timeout=1.0)
 
         assert len(provider.tries) > 3, provider.tries  # (5, 10, 20, 40, 80, 100 ms...)
+
+    @pytest.mark.thread_only("its provider is a peer of this process's directory")
+    def test_a_call_whose_refusals_come_slowly_is_refused_not_timed_out(
+        self, make_registrar, refusing
+    ):
+        """Each refusal takes 0.6 s to come back (as under load): the call asks again only
+        while twice that is left, so it ends with the provider's `OverloadedError`. (It
+        kept 0.1 s for the last answer: its last try was cut off, a `CallTimeoutError`.)"""
+        provider, consumer = refusing(None, answer_after=0.6), make_registrar("consumer")
+
+        with pytest.raises(rr.errors.OverloadedError, match="full"):
+            consumer.call(provider.name, "leaf", "x", timeout=2.0)
+
+        assert 1 <= len(provider.tries) <= 2, provider.tries
 
     @pytest.mark.thread_only("its provider is a peer of this process's directory")
     def test_a_call_told_a_pause_past_its_timeout_gives_up_at_once(self, make_registrar, refusing):
