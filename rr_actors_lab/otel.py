@@ -4,10 +4,13 @@
                                              # through the application's TracerProvider
 
 Used as OpenTelemetry's instrumentation libraries are: it traces through the global
-`TracerProvider` the application installs (read at every event). With none installed, or
-without the `otel` extra (`opentelemetry-api`), an event costs one look-up and no span is
-made. Nothing is traced in a registrar's turn: spans are built afterwards, on the
-subscription's thread, from the events' `at` stamps (seconds, turned into ns).
+`TracerProvider` the application installs (read at every event). `trace` subscribes only
+while spans would be recorded: with none installed yet, once one is (a watcher thread
+looks); with a no-op provider, or without the `otel` extra (`opentelemetry-api`), never,
+so tracing off costs the tree nothing. Nothing is traced in a registrar's turn: spans are
+built afterwards, on the subscription's thread, from the events' `at` stamps (seconds,
+turned into ns). Attributes follow the current RPC semantic conventions (`rpc/dup` in
+`OTEL_SEMCONV_STABILITY_OPT_IN` adds the deprecated ones).
 
 What becomes a span (the table: `docs/how-to/trace.md`): a `call` or `unload` (a CLIENT
 span at the consumer, a SERVER span at the provider, its child, by the RPC semantic
@@ -32,6 +35,7 @@ import collections
 import contextlib
 import dataclasses
 import itertools
+import logging
 import os
 import threading
 import time
@@ -48,7 +52,9 @@ except ImportError:  # the otel extra is missing: every event is ignored
 
 __all__ = [
     "SCOPE",
+    "SEMCONV_OPT_IN",
     "SYSTEM",
+    "WATCH_EVERY",
     "Exporting",
     "Tracing",
     "provider_from_environment",
@@ -57,7 +63,13 @@ __all__ = [
 ]
 
 SYSTEM = "rr_actors"
-"""The `rpc.system` of every RPC span."""
+"""The `rpc.system.name` of every RPC span."""
+
+SEMCONV_OPT_IN = "OTEL_SEMCONV_STABILITY_OPT_IN"
+"""The variable whose `rpc/dup` adds the deprecated RPC attributes (read by each `Tracing`)."""
+
+WATCH_EVERY = 0.1
+"""Seconds between two looks for the global `TracerProvider`, while `trace` waits for one."""
 
 SCOPE = "rr_actors_lab.otel"
 """The instrumentation scope (the tracer's name)."""
@@ -70,6 +82,24 @@ _CALL_ENDS = (events.CallAnswered, events.CallFailed, events.CallWithdrawn)
 # `flush` may run in a thread with a span of its own current)
 _ROOT: Any = _api.set_span_in_context(_api.INVALID_SPAN) if _api is not None else None
 _UNLOADS = frozenset({"unload", "unload unanswered", "dependency", "stop"})
+
+logger = logging.getLogger("rr_actors")
+
+
+def _old_rpc_names() -> bool:
+    """Whether `OTEL_SEMCONV_STABILITY_OPT_IN` (comma-separated) asks for the deprecated RPC
+    attributes beside the current ones (`rpc/dup`; `rpc`, or nothing: the current ones only)."""
+    return "rpc/dup" in {v.strip() for v in os.environ.get(SEMCONV_OPT_IN, "").split(",")}
+
+
+def _silent(provider: Any, tracer: Any) -> bool:
+    """Whether `tracer` (of `provider`) records no span, ever: the API's no-op tracer (an SDK
+    disabled by `OTEL_SDK_DISABLED`), or an SDK provider whose sampler drops every span."""
+    if isinstance(tracer, _api.NoOpTracer):
+        return True
+    sampler = getattr(provider, "sampler", None)
+    describe = getattr(sampler, "get_description", None)
+    return callable(describe) and describe() == "AlwaysOffSampler"
 
 
 class _Chosen:
@@ -210,13 +240,19 @@ class _Sent:
 class Tracing:
     """The subscriber that makes spans of events: `callback(event)` of a subscription.
 
-    Attach it with `Supervisor.subscribe(tracing)` or `ResourceRegistrar.subscribe` (or let
-    [`trace`][rr_actors_lab.otel.trace] do it). Its calls run on the subscription's thread;
-    `flush` and `close` may be called from any thread.
+    Let [`trace`][rr_actors_lab.otel.trace] subscribe it (it does so only while a provider
+    records spans), or attach it yourself with `Supervisor.subscribe(tracing)` or
+    `ResourceRegistrar.subscribe` (then every event reaches it, provider or not). Its calls
+    run on the subscription's thread; `flush` and `close` may be called from any thread.
+
+    The RPC spans follow the current semantic conventions (`rpc.system.name`, `rpc.method` =
+    `<provider>/<server>`); `OTEL_SEMCONV_STABILITY_OPT_IN=rpc/dup` (read when it is made)
+    adds the deprecated `rpc.system`, `rpc.service` and `rr_actors.new_pid`.
 
     Args:
-        tracer_provider: the provider to trace through; `None` (the default): the global
-            one, `opentelemetry.trace.get_tracer_provider()`, read at each event.
+        tracer_provider: the provider to trace through; `None` (the default) or the API's
+            proxy: the global one, `opentelemetry.trace.get_tracer_provider()`, read at
+            each event.
         pair_within: seconds a side of a call (a restart, a status hop) waits for the rest
             before it is made a span alone.
         max_pending: sides waiting at most; past it, the oldest is made a span alone
@@ -245,7 +281,14 @@ class Tracing:
             raise ConfigError(f"pair_within must be seconds > 0, not {pair_within!r}")
         if isinstance(max_pending, bool) or not isinstance(max_pending, int) or max_pending < 1:
             raise ConfigError(f"max_pending must be an int > 0, not {max_pending!r}")
+        if _api is not None and isinstance(tracer_provider, _api.ProxyTracerProvider):
+            tracer_provider = None  # (the global one's stand-in: the global one)
         self._provider = tracer_provider
+        self._old_names = _old_rpc_names()
+        self._source: _Subscribable | None = None
+        self._closing = threading.Event()
+        self._watcher: threading.Thread | None = None
+        self._subscribing = threading.Lock()  # (the watcher's subscribe against close)
         self._pair_within = float(pair_within)
         self._max_pending = max_pending
         self._lock = threading.Lock()
@@ -282,23 +325,62 @@ class Tracing:
 
     # -- the subscriber -----------------------------------------------------------------
 
+    @property
+    def subscribed(self) -> bool:
+        """Whether `trace`'s subscription is open: made at once if a provider recorded spans
+        then, else once the global one is installed (within `WATCH_EVERY` seconds)."""
+        return self._subscription is not None
+
     def _current(self) -> Any:
-        """The tracer to make spans with, or `None`: no provider (or no extra)."""
+        """The tracer to make spans with, or `None`: no provider, one that records nothing
+        (`_silent`), or no extra."""
         if _api is None:
             return None
         provider = self._provider if self._provider is not None else _api.get_tracer_provider()
         if provider is self._tracer_of:  # (the one of the event before: no look)
             return self._tracer
-        if isinstance(provider, _api.ProxyTracerProvider | _api.NoOpTracerProvider):
-            return None
-        if provider is not self._tracer_of:
-            tracer: Any = provider.get_tracer(SCOPE)
-            inner = getattr(tracer, "id_generator", None)  # (the SDK's tracer: ids chosen)
-            if inner is not None and not isinstance(inner, _Chosen):
-                tracer.id_generator = _Chosen(inner)
-            self._tracer = tracer
-            self._tracer_of = provider
-        return self._tracer
+        tracer: Any = None
+        if not isinstance(provider, _api.ProxyTracerProvider | _api.NoOpTracerProvider):
+            tracer = provider.get_tracer(SCOPE)
+            if _silent(provider, tracer):
+                tracer = None
+            elif not isinstance(getattr(tracer, "id_generator", _Chosen), _Chosen):
+                tracer.id_generator = _Chosen(tracer.id_generator)  # (the SDK's: ids chosen)
+        self._tracer, self._tracer_of = tracer, provider
+        return tracer
+
+    def _waits(self) -> bool:
+        """Whether it traces through the global provider, not installed yet (the proxy)."""
+        return (
+            _api is not None
+            and self._provider is None
+            and isinstance(_api.get_tracer_provider(), _api.ProxyTracerProvider)
+        )
+
+    def _subscribe(self, source: _Subscribable) -> None:
+        """Subscribe to `source` now if spans would be recorded; if the global provider is
+        not installed yet, once it is (a thread looks every `WATCH_EVERY` s); else never:
+        with nothing to record, the tree forwards and queues no event for it."""
+        self._source = source
+        if self._current() is not None:
+            self._subscription = source.subscribe(self)
+        elif self._waits():
+            self._watcher = threading.Thread(target=self._watch, name="rr-otel-watch", daemon=True)
+            self._watcher.start()
+
+    def _watch(self) -> None:
+        """The watcher thread: subscribe once the global provider is installed."""
+        while not self._closing.wait(WATCH_EVERY):
+            if self._waits():
+                continue
+            with self._subscribing:
+                if self._closing.is_set() or self._current() is None or self._source is None:
+                    return
+                try:
+                    self._subscription = self._source.subscribe(self)
+                except Exception as exc:  # noqa: BLE001 - (a source stopped meanwhile) logged
+                    logger.warning("otel: could not subscribe to %r: %s", self._source, exc)
+            return
 
     def __call__(self, event: events.Event) -> None:
         """Take one event (on the subscription's thread); make the spans it completes."""
@@ -324,12 +406,16 @@ class Tracing:
             self._sweep(tracer, float("inf"))
 
     def close(self, *, timeout: float = 5.0) -> None:
-        """Close the subscription `trace` made (if any), then `flush`; `timeout`: seconds at most to
-        wait for the events already queued for this subscriber."""
-        if self._subscription is not None:
-            self._subscription.wait_delivered(timeout=timeout)
-            self._subscription.close()
-            self._subscription = None
+        """Close the subscription `trace` made (if any; it makes none later), then `flush`;
+        `timeout`: seconds at most to wait for the events already queued for this subscriber."""
+        self._closing.set()
+        with self._subscribing:
+            subscription, self._subscription = self._subscription, None
+        if self._watcher is not None and self._watcher is not threading.current_thread():
+            self._watcher.join(timeout)
+        if subscription is not None:
+            subscription.wait_delivered(timeout=timeout)
+            subscription.close()
         self.flush()
 
     def __enter__(self) -> Tracing:
@@ -410,14 +496,24 @@ class Tracing:
         if event.cause == "killed" and len(self._lost_of) < self._max_pending:
             self._lost_of[event.pid] = self._lost_of.get(event.pid, 0) + event.count
 
-    @staticmethod
-    def _rpc(service: str, method: str, query_id: str) -> dict[str, Any]:
-        return {
-            "rpc.system": SYSTEM,
-            "rpc.service": service,
-            "rpc.method": method,
+    def _rpc(self, service: str, method: str, query_id: str) -> dict[str, Any]:
+        """A side's RPC attributes: the current conventions (`rpc.system.name`, `rpc.method`
+        fully qualified, `<provider>/<server>`), with `rpc/dup` the deprecated ones too."""
+        attributes = {
+            "rpc.system.name": SYSTEM,
+            "rpc.method": f"{service}/{method}",
             "rr_actors.query_id": query_id,
         }
+        if self._old_names:
+            attributes["rpc.system"] = SYSTEM
+            attributes["rpc.service"] = service
+        return attributes
+
+    @staticmethod
+    def _named(half: _Half, method: str) -> None:
+        """Give `half` its server (`method`), learnt after it was made: its name, `rpc.method`."""
+        half.method = method
+        half.attributes["rpc.method"] = f"{half.service}/{method}"
 
     def _added(self, tracer: Any, event: events.ConsumerAdded) -> None:
         load = self._loads.pop((event.registrar, event.query_id), None)
@@ -518,7 +614,7 @@ class Tracing:
             return
         waiting = self._servers.get((query_id, "unload"))
         if waiting is not None:  # its release waits for its client: the callback goes under it
-            waiting.method = waiting.attributes["rpc.method"] = event.server
+            self._named(waiting, event.server)
             waiting.end = max(waiting.end, event.at)
             waiting.children.append(child)
         else:
@@ -690,6 +786,8 @@ class Tracing:
     # -- sides to spans -----------------------------------------------------------------
 
     def _server(self, tracer: Any, key: tuple[str, str], half: _Half) -> None:
+        if half.pid:  # (the provider's process; the subscriber's may be another)
+            half.attributes["process.pid"] = half.pid
         client = self._clients.pop(key, None)
         if client is None:
             self._servers[key] = half
@@ -758,8 +856,8 @@ class Tracing:
             parsed = _untraced(*key)
         if client is not None and server is not None:  # a side that did not know its server
             method = client.method or server.method
-            client.method = server.method = method
-            client.attributes["rpc.method"] = server.attributes["rpc.method"] = method
+            self._named(client, method)
+            self._named(server, method)
         if client is not None:
             start = min(client.start, server.start) if server is not None else client.start
             if client.started:  # (when the call began: known since event schema 7)
@@ -893,11 +991,13 @@ class Tracing:
             "rr_actors.supervisor": exited.supervisor,
             "rr_actors.child": exited.child,
             "rr_actors.reason": exited.reason,
+            "process.pid": restarted.pid,  # (the new incarnation's: the restart made it)
             "rr_actors.old_pid": exited.pid,
-            "rr_actors.new_pid": restarted.pid,
             "rr_actors.restart_s": restarted.restart_s,
             "rr_actors.in_doubt": [d.query_id for d in doubts],
         }
+        if self._old_names:
+            attributes["rr_actors.new_pid"] = restarted.pid
         lost_events = self._lost_of.pop(exited.pid, 0)
         if lost_events:  # the dead process built them, never forwarded: spans missing
             attributes["rr_actors.events_lost"] = lost_events
@@ -926,6 +1026,7 @@ class Tracing:
             attributes = self._rpc(load.registrar, load.server, load.query_id) | lost
             half = _Half(load.registrar, load.server, load.at - load.load_s, exited.at, attributes)
             half.links, half.lost, half.restart, half.trace = links, ended_by, opened, load.trace
+            half.pid = load.pid
             load_attributes = {"rr_actors.resource_id": load.resource_id}  # (it ended)
             half.children.append(
                 _Child(f"{load.server}.load", half.start, load.at, load_attributes)
@@ -949,6 +1050,7 @@ class Tracing:
             attributes["rr_actors.in_doubt"] = True
             half = _Half(doubt.registrar, doubt.server, exited.at, exited.at, attributes)
             half.links, half.lost, half.restart = links, ended_by, opened
+            half.pid = attributes["process.pid"] = exited.pid  # (cut in the old incarnation)
             half.root = len(calls) != 1  # (its call not found: a root, not a lost child)
             verb = doubt.cut or "load"
             callback = {"rr_actors.resource_id": doubt.query_id} | lost
@@ -1000,8 +1102,7 @@ class Tracing:
             half.attributes.update(lost)
             if doubt is not None:
                 half.attributes["rr_actors.in_doubt"] = True
-                half.method = half.method or doubt.server
-                half.attributes["rpc.method"] = half.method
+                self._named(half, half.method or doubt.server)
             half.links = [_api.Link(opened.span.get_span_context())]
             half.lost, half.restart, half.end = ended_by, opened, max(half.end, exited.at)
             callback = {"rr_actors.resource_id": resource[1]} | lost
@@ -1015,6 +1116,12 @@ class Tracing:
 def trace(source: _Subscribable, **options: Any) -> Tracing:
     """Trace what `source` does: subscribe a [`Tracing`][rr_actors_lab.otel.Tracing] to it.
 
+    It subscribes only while spans would be recorded: with no provider installed yet (the
+    API's proxy), once the application installs the global one (a thread looks every
+    `WATCH_EVERY` seconds; the events before are not heard); with a provider that records
+    nothing (the API's no-op one, an SDK disabled or sampling `always_off`), or without the
+    extra, never. Unsubscribed, it costs the tree nothing: no event is forwarded or queued.
+
     Args:
         source: a `Supervisor` (its whole tree, manager processes included) or a
             `ResourceRegistrar` (its own events): anything with `subscribe(callback)`.
@@ -1026,11 +1133,16 @@ def trace(source: _Subscribable, **options: Any) -> Tracing:
         unsubscribe and make spans of what still waits.
 
     Raises:
-        ConfigError: a bad option, or `source` cannot be subscribed to (a stopped
-            supervisor).
+        ConfigError: a bad option, `source` has no `subscribe`, or (subscribing at once)
+            `source` cannot be subscribed to (a stopped supervisor); a later subscription
+            that fails is logged (WARNING).
     """
+    from rr_actors.errors import ConfigError  # noqa: PLC0415
+
     tracing = Tracing(**options)
-    tracing._subscription = source.subscribe(tracing)
+    if not callable(getattr(source, "subscribe", None)):
+        raise ConfigError(f"cannot trace {source!r}: it has no subscribe(callback)")
+    tracing._subscribe(source)
     return tracing
 
 

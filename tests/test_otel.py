@@ -6,13 +6,15 @@ from __future__ import annotations
 import asyncio
 import itertools
 import json
+import re
 import subprocess
 import sys
 import textwrap
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -20,6 +22,7 @@ from opentelemetry import trace as api
 from opentelemetry.sdk.trace import ReadableSpan, TracerProvider
 from opentelemetry.sdk.trace.export import SimpleSpanProcessor
 from opentelemetry.sdk.trace.export.in_memory_span_exporter import InMemorySpanExporter
+from opentelemetry.sdk.trace.sampling import ALWAYS_OFF
 
 import rr_actors as rr
 from rr_actors import events, otel
@@ -29,13 +32,40 @@ from tests.support.supervising import sigkill
 pytestmark = pytest.mark.usefixtures("by_value")
 
 
+PAGE = Path(__file__).resolve().parent.parent / "docs" / "how-to" / "trace.md"
+ATTRIBUTE = re.compile(r"`([a-z_]+(?:\.[a-z_]+)+)`")
+
+
+def _documented() -> set[str]:
+    """The attribute names the page's table "What becomes a span" shows (backticked)."""
+    text = PAGE.read_text(encoding="utf-8").split("## What becomes a span", 1)[1]
+    rows = itertools.takewhile(lambda line: line.startswith("|"), text.strip().splitlines())
+    return {name for row in rows for name in ATTRIBUTE.findall(row)}
+
+
+def _attribute_names(spans: tuple[ReadableSpan, ...]) -> set[str]:
+    """Every attribute name on `spans` made by rr_actors (their links' and events' too)."""
+    names: set[str] = set()
+    for span in spans:
+        if span.instrumentation_scope is None or span.instrumentation_scope.name != otel.SCOPE:
+            continue  # (the application's own spans)
+        names.update(span.attributes or {})
+        for link in span.links:
+            names.update(link.attributes or {})
+        for event in span.events:
+            names.update(event.attributes or {})
+    return names
+
+
 @pytest.fixture
-def exported() -> tuple[TracerProvider, InMemorySpanExporter]:
-    """A provider of the test's own (the global one is set once per process) and its spans."""
+def exported() -> Iterator[tuple[TracerProvider, InMemorySpanExporter]]:
+    """A provider of the test's own (the global one is set once per process) and its spans;
+    after the test, every attribute name on them must be in the page's table."""
     exporter = InMemorySpanExporter()
     provider = TracerProvider()
     provider.add_span_processor(SimpleSpanProcessor(exporter))
-    return provider, exporter
+    yield provider, exporter
+    assert set() == _attribute_names(exporter.get_finished_spans()) - _documented()
 
 
 def _one(spans: tuple[ReadableSpan, ...], name: str, kind: api.SpanKind) -> ReadableSpan:
@@ -66,7 +96,7 @@ def test_a_call_is_a_client_span_over_its_server_span_over_its_load(
         assert tracing._subscription.wait_delivered(timeout=5)
     spans = exporter.get_finished_spans()
 
-    calls = [s for s in spans if s.name == f"{erm}/cam" and s.attributes["rpc.method"] == "cam"]
+    calls = [s for s in spans if s.name == f"{erm}/cam" == s.attributes["rpc.method"]]
     clients = [s for s in calls if s.attributes["rr_actors.outcome"] == "answered"]
     servers = [s for s in calls if s.attributes["rr_actors.outcome"] in ("loaded", "dedup")]
     assert 2 == len(clients) == len(servers)
@@ -78,12 +108,14 @@ def test_a_call_is_a_client_span_over_its_server_span_over_its_load(
         assert client.context.span_id == server.parent.span_id
         assert client.context.trace_id == server.context.trace_id
         assert client.start_time <= server.start_time <= server.end_time <= client.end_time
-        for span in (client, server):
-            assert ("rr_actors", erm, "cam") == (
-                span.attributes["rpc.system"],
-                span.attributes["rpc.service"],
+        for span in (client, server):  # the current RPC conventions, not the deprecated
+            assert ("rr_actors", f"{erm}/cam") == (
+                span.attributes["rpc.system.name"],
                 span.attributes["rpc.method"],
             )
+            assert not {"rpc.system", "rpc.service"} & set(span.attributes)
+        assert sup.child(erm).pid == server.attributes["process.pid"]  # the provider's
+        assert "process.pid" not in client.attributes
         assert "answered" == client.attributes["rr_actors.outcome"]
     loaded = next(s for s in servers if s.attributes["rr_actors.query_id"] == first.id)
     hit = next(s for s in servers if s.attributes["rr_actors.query_id"] == second.id)
@@ -186,6 +218,7 @@ def test_a_killed_load_is_ended_and_marked_by_the_restart_span(
 
     with otel.trace(sup, tracer_provider=provider, pair_within=60) as tracing:
         before = app.call(erm, "cam", 1, timeout=10)  # the old incarnation's last call
+        old_pid = sup.child(erm).pid
         caller = threading.Thread(target=call)
         caller.start()
         assert entered.wait(10)
@@ -193,6 +226,7 @@ def test_a_killed_load_is_ended_and_marked_by_the_restart_span(
         caller.join(10)
         sup.wait_restarted(erm, timeout=10)
         after = app.call(erm, "cam", 2, timeout=10)  # the new one's first
+        new_pid = sup.child(erm).pid
         app.client_queries(timeout=10)  # (a later turn: its CallAnswered is out)
         assert sup.flush_events(timeout=5)
         assert tracing._subscription.wait_delivered(timeout=5)
@@ -214,6 +248,18 @@ def test_a_killed_load_is_ended_and_marked_by_the_restart_span(
         ("new", served[after.id]),
     ] == [
         (link.attributes["rr_actors.incarnation"], link.context.span_id) for link in restart.links
+    ]
+    # the pids: the restart's new incarnation (`process.pid`) and old one; each SERVER span's
+    assert (new_pid, old_pid) == (
+        restart.attributes["process.pid"],
+        restart.attributes["rr_actors.old_pid"],
+    )
+    assert old_pid != new_pid
+    assert "rr_actors.new_pid" not in restart.attributes  # (deprecated: only with rpc/dup)
+    by_span = {s.context.span_id: s for s in spans}
+    assert [old_pid, old_pid, new_pid] == [
+        by_span[span_id].attributes["process.pid"]
+        for span_id in (served[before.id], server.context.span_id, served[after.id])
     ]
     load = _one(spans, "slow.load", api.SpanKind.INTERNAL)
     client = _one(spans, f"{erm}/slow", api.SpanKind.CLIENT)
@@ -281,7 +327,18 @@ def test_a_new_incarnations_first_span_after_pair_within_links_to_its_ended_rest
     ]
 
 
-def test_without_a_provider_no_span_is_made_and_nothing_fails(
+class _Counted:
+    """A source (`otel.trace`'s) that counts the subscriptions it was asked for."""
+
+    def __init__(self, inner: Any) -> None:
+        self.inner, self.subscribed = inner, 0
+
+    def subscribe(self, callback: Callable[[events.Event], object]) -> Any:
+        self.subscribed += 1
+        return self.inner.subscribe(callback)
+
+
+def test_without_a_provider_the_tree_is_not_subscribed_and_nothing_fails(
     started: list[rr.ResourceRegistrar], uid: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     made: list[str] = []
@@ -297,13 +354,37 @@ def test_without_a_provider_no_span_is_made_and_nothing_fails(
     erm = rr.ResourceRegistrar.start(f"erm-{uid}")
     started.append(erm)
     _serve(erm)
+    source = _Counted(erm)
     caller = TracerProvider().get_tracer("the application")  # (its own: not the global)
-    with otel.trace(erm) as tracing, caller.start_as_current_span("step"):
+    with otel.trace(source) as tracing, caller.start_as_current_span("step"):
         query = erm.call(erm.name, "cam", 1, timeout=10)  # (carries a trace context)
         erm.unload(query.id)
-        assert tracing._subscription.wait_delivered(timeout=5)
-    assert [] == made
+        assert not tracing.subscribed
+    assert (0, []) == (source.subscribed, made)  # no event forwarded to it: none to drop
     assert ({}, {}) == (tracing._clients, tracing._servers)  # nothing kept either
+    assert tracing._watcher is not None
+    assert not tracing._watcher.is_alive()  # (closed: it stopped looking for a provider)
+
+
+@pytest.mark.parametrize("recording", ["no-op", "sampled always_off", "OTEL_SDK_DISABLED"])
+def test_a_provider_that_records_nothing_is_never_subscribed_for(
+    started: list[rr.ResourceRegistrar], uid: str, monkeypatch: pytest.MonkeyPatch, recording: str
+) -> None:
+    if recording == "no-op":
+        provider: Any = api.NoOpTracerProvider()
+    elif recording == "sampled always_off":
+        provider = TracerProvider(sampler=ALWAYS_OFF)
+    else:
+        monkeypatch.setenv("OTEL_SDK_DISABLED", "true")
+        provider = TracerProvider()
+    erm = rr.ResourceRegistrar.start(f"erm-{uid}")
+    started.append(erm)
+    _serve(erm)
+    source = _Counted(erm)
+    with otel.trace(source, tracer_provider=provider) as tracing:
+        erm.unload(erm.call(erm.name, "cam", 1, timeout=10).id)
+        assert (False, None) == (tracing.subscribed, tracing._watcher)  # (nor looks)
+    assert 0 == source.subscribed
 
 
 def test_bad_options_are_refused() -> None:
@@ -343,13 +424,20 @@ def test_it_traces_through_the_global_provider_the_application_installs_later() 
         import rr_actors as rr
         from rr_actors_lab import otel
 
+        import threading, time
+
         erm = rr.ResourceRegistrar.start("erm")
         erm.register_server("cam", load=lambda r: r, unload=lambda q, r: None)
-        tracing = otel.trace(erm)  # subscribed before the application installs one
+        tracing = otel.trace(erm)  # traced before the application installs one
+        assert not tracing.subscribed  # (nothing to record yet: nothing forwarded)
         exporter = InMemorySpanExporter()
         provider = TracerProvider()
         provider.add_span_processor(SimpleSpanProcessor(exporter))
         trace.set_tracer_provider(provider)
+        deadline = time.monotonic() + 30
+        while not tracing.subscribed and time.monotonic() < deadline:
+            threading.Event().wait(otel.WATCH_EVERY / 4)  # (its watcher subscribes)
+        assert tracing.subscribed
         erm.call("erm", "cam", 1, timeout=10)
         erm.client_queries(timeout=10)  # a later turn: the call's CallAnswered is published
         tracing.close()
@@ -365,7 +453,7 @@ def test_it_traces_through_the_global_provider_the_application_installs_later() 
     assert repr(expected) == done.stdout.strip()
 
 
-def test_without_the_extra_tracing_takes_events_and_makes_nothing() -> None:
+def test_without_the_extra_nothing_is_subscribed_and_nothing_is_made() -> None:
     script = textwrap.dedent(
         """
         import sys
@@ -378,14 +466,14 @@ def test_without_the_extra_tracing_takes_events_and_makes_nothing() -> None:
         with otel.trace(erm) as tracing:
             erm.unload(erm.call("erm", "cam", 1, timeout=10).id)
         erm.stop()
-        print(otel._api, tracing._clients, tracing._servers)
+        print(otel._api, tracing.subscribed, tracing._watcher, tracing._clients, tracing._servers)
         """
     )
     done = subprocess.run(
         [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, check=False
     )
     assert 0 == done.returncode, done.stderr[-2000:]
-    assert "None {} {}" == done.stdout.strip()
+    assert "None False None {} {}" == done.stdout.strip()
 
 
 def _caller(provider: TracerProvider) -> api.Tracer:
@@ -1279,3 +1367,45 @@ def test_a_managers_calls_from_a_status_callback_are_a_trace_of_their_own(
         link.context.span_id,
     )
     assert run.start_time <= client.start_time <= run.end_time  # (begun in the run)
+
+
+@pytest.mark.parametrize(
+    ("opt_in", "old_names"),
+    [("", False), ("rpc", False), ("http,rpc/dup", True), ("rpc, rpc/dup", True)],
+)
+def test_the_deprecated_rpc_names_come_only_with_rpc_dup(
+    started: list[rr.ResourceRegistrar],
+    uid: str,
+    monkeypatch: pytest.MonkeyPatch,
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+    opt_in: str,
+    old_names: bool,
+) -> None:
+    provider, exporter = exported
+    monkeypatch.setenv(otel.SEMCONV_OPT_IN, opt_in)
+    erm = rr.ResourceRegistrar.start(f"erm-{uid}")
+    started.append(erm)
+    _serve(erm)
+    with otel.trace(erm, tracer_provider=provider, pair_within=60) as tracing:
+        erm.call(erm.name, "cam", 1, timeout=10)
+        erm.client_queries(timeout=10)  # (a later turn: its CallAnswered is out)
+        assert tracing._subscription.wait_delivered(timeout=5)
+    spans = exporter.get_finished_spans()
+
+    sides = [s for s in spans if s.kind in (api.SpanKind.CLIENT, api.SpanKind.SERVER)]
+    assert ["CLIENT", "SERVER"] == sorted(s.kind.name for s in sides)
+    for span in sides:
+        expected = {"rpc.system.name": "rr_actors", "rpc.method": f"{erm.name}/cam"}
+        if old_names:
+            expected |= {"rpc.system": "rr_actors", "rpc.service": erm.name}
+        rpc = {k: v for k, v in span.attributes.items() if k.startswith("rpc.")}
+        assert expected == rpc
+        assert span.name == span.attributes["rpc.method"]
+
+
+def test_every_attribute_the_module_names_is_in_the_pages_table() -> None:
+    # (the `exported` fixture checks the spans each test got; this, the paths no test takes)
+    source = Path(otel.__file__).read_text(encoding="utf-8")
+    named = set(re.findall(r'"((?:rpc|rr_actors|process|error|exception)\.[a-z_.]+)"', source))
+    assert {"rpc.system.name", "rpc.method", "process.pid", "rr_actors.supervisor"} <= named
+    assert set() == named - _documented()
