@@ -4,14 +4,18 @@ A consumer registrar in this process calls a resource a manager process already 
 (a dedup hit over AF_UNIX), `--batch` times per round; one `otel.trace(sup)` subscriber
 of the tree (this process's events and the manager's, forwarded) makes the spans. The
 table shows the median time per call over `--rounds` rounds, each row measured in every
-round (interleaved: other processes' noise spreads evenly), and its ratio to `tracing
-off`, measured in the same run (the issue's goal for `tracing on`: at most 1.10x).
+round (interleaved, each round starting one row later: other processes' noise, and what
+a row leaves running for the next, spread evenly), and its ratio to `untraced`, the same
+call with nobody subscribed, measured in the same run.
 
 Rows:
-    floor          nobody subscribed to the tree
-    tracing off    `otel.trace(sup)` with no `TracerProvider` (the API's no-op one): the
-                   subscription (the manager forwards its events) and one look-up an
-                   event, no span made
+    untraced       nobody subscribed to the tree, no tracing
+    tracing off    `otel.trace(sup)` with no `TracerProvider` (the API's proxy, none
+                   installed): what "tracing on, no provider" costs
+    subscribed, no provider
+                   `sup.subscribe(otel.Tracing())`, no provider: a subscriber of the
+                   tree that drops each event (the manager forwards its events; what
+                   `tracing off` cost before it stopped subscribing)
     spans only     `otel.trace(sup, tracer_provider=...)`: an SDK provider sampling
                    everything (ALWAYS_ON) with no span processor: the spans made, not
                    exported (what the subscriber and the SDK's spans cost)
@@ -144,7 +148,7 @@ class Bench:
         self.sup = rr.Supervisor([spec]).start()
         self.app = self.sup.registrar(f"app-{tag}")
         self.first = self.app.call(self.name, "res", "shared", timeout=60)
-        self.rows = ["floor", "tracing off", "spans only"]
+        self.rows = ["untraced", "tracing off", "subscribed, no provider", "spans only"]
         self.providers: dict[str, tuple[TracerProvider, BatchSpanProcessor, Counted]] = {}
         self.files: list[Any] = []
         for exporter in exporters:
@@ -185,10 +189,12 @@ class Bench:
 
     def round(self, row: str, batch: int) -> float:
         """Seconds per call of one batch of dedup hits in `row`'s setting."""
-        tracing = None
+        tracing, subscription = None, None
         exporting = self.providers.get(row)
         if row == "tracing off":
             tracing = otel.trace(self.sup, pair_within=60, max_pending=4 * batch + 100)
+        elif row == "subscribed, no provider":
+            subscription = self.sup.subscribe(otel.Tracing(pair_within=60))
         elif row == "spans only":
             tracing = otel.trace(
                 self.sup, tracer_provider=self.bare, pair_within=60, max_pending=4 * batch + 100
@@ -203,6 +209,8 @@ class Bench:
             if row.startswith("traced")
             else contextlib.nullcontext()
         )
+        if tracing is not None:
+            subscription = tracing._subscription  # (None: not subscribed, tracing off)
         pids = [os.getpid(), self.sup.child(self.name).pid or 0]
         with span:
             cpu = cpu_seconds(pids)
@@ -210,8 +218,8 @@ class Bench:
             held = [call(name, "res", "shared", timeout=60).id for _ in range(batch)]
             app.client_queries(timeout=60)  # (a later turn: the last CallAnswered is out)
             assert self.sup.flush_events(timeout=60)
-            if tracing is not None:
-                assert tracing._subscription.wait_delivered(timeout=60)
+            if subscription is not None:
+                assert subscription.wait_delivered(timeout=60)
             if exporting is not None:
                 exporting[1].force_flush(timeout_millis=60_000)
             took = time.perf_counter() - began
@@ -223,6 +231,9 @@ class Bench:
             assert self.sup.flush_events(timeout=60)
             tracing.close(timeout=60)
             assert tracing.dropped == 0
+        elif subscription is not None:
+            assert self.sup.flush_events(timeout=60)
+            subscription.close(timeout=60)
         written = 0
         if exporting is not None:
             exporting[1].force_flush(timeout_millis=60_000)
@@ -261,8 +272,8 @@ def main(argv: list[str] | None = None) -> int:
         try:
             for row in rows:  # warm-up, untimed
                 bench.round(row, max(1, args.batch // 10))
-            for _ in range(args.rounds):
-                for row in rows:
+            for turn in range(args.rounds):  # each round starts one row later: no row
+                for row in rows[turn % len(rows) :] + rows[: turn % len(rows)]:  # always first
                     times[row].append(bench.round(row, args.batch))
         finally:
             bench.stop()
@@ -273,19 +284,16 @@ def main(argv: list[str] | None = None) -> int:
         f"load {os.getloadavg()[0]:.2f}; {args.rounds} rounds x {args.batch} "
         "cross-process dedup hits"
     )
-    off = statistics.median(times["tracing off"])
-    floor = statistics.median(times["floor"])
-    cpu_off = statistics.median(bench.cpu["tracing off"][-args.rounds :])
-    print(
-        f"{'row':<22} {'us/call':>9} {'vs floor':>9} {'vs off':>8} {'cpu us':>8} {'vs off':>8}"
-        f" {'spans/op':>9}"
-    )
+    untraced = statistics.median(times["untraced"])
+    cpu_untraced = statistics.median(bench.cpu["untraced"][-args.rounds :])
+    print("| row | µs/call | vs untraced | CPU µs/call | vs untraced | spans/op |")
+    print("|---|---|---|---|---|---|")
     for row in rows:
         median = statistics.median(times[row])
         cpu = statistics.median(bench.cpu[row][-args.rounds :])  # (not the warm-up's)
         print(
-            f"{row:<22} {median * 1e6:>9.1f} {median / floor:>8.3f}x {median / off:>7.3f}x"
-            f" {cpu * 1e6:>8.1f} {cpu / cpu_off:>7.3f}x {bench.per_call[row]:>9.1f}"
+            f"| {row} | {median * 1e6:.1f} | {median / untraced:.3f}x | {cpu * 1e6:.1f}"
+            f" | {cpu / cpu_untraced:.3f}x | {bench.per_call[row]:.1f} |"
         )
     return 0
 
