@@ -82,6 +82,9 @@ _CALL_ENDS = (events.CallAnswered, events.CallFailed, events.CallWithdrawn)
 # `flush` may run in a thread with a span of its own current)
 _ROOT: Any = _api.set_span_in_context(_api.INVALID_SPAN) if _api is not None else None
 _UNLOADS = frozenset({"unload", "unload unanswered", "dependency", "stop"})
+# a call's failure that says its server is not one its provider has: `rpc.method` `_OTHER`
+_UNRECOGNIZED = frozenset({"UnknownServerError", "UnknownRegistrarError"})
+_OTHER = "_OTHER"
 
 logger = logging.getLogger("rr_actors")
 
@@ -513,7 +516,15 @@ class Tracing:
     def _named(half: _Half, method: str) -> None:
         """Give `half` its server (`method`), learnt after it was made: its name, `rpc.method`."""
         half.method = method
-        half.attributes["rpc.method"] = f"{half.service}/{method}"
+        if half.attributes.get("rpc.method") != _OTHER:
+            half.attributes["rpc.method"] = f"{half.service}/{method}"
+
+    @staticmethod
+    def _span_name(half: _Half) -> str:
+        """`rpc.method` (`<provider>/<server>`); `rpc.system.name` for a server not recognized."""
+        if half.attributes.get("rpc.method") == _OTHER:
+            return SYSTEM
+        return f"{half.service}/{half.method}"
 
     def _added(self, tracer: Any, event: events.ConsumerAdded) -> None:
         load = self._loads.pop((event.registrar, event.query_id), None)
@@ -565,6 +576,9 @@ class Tracing:
             attributes["rr_actors.outcome"] = "answered"
             attributes["rr_actors.retry"] = event.retry
         elif isinstance(event, events.CallFailed):
+            if event.error_type in _UNRECOGNIZED:  # (the conventions: a bounded cardinality)
+                attributes["rpc.method_original"] = attributes["rpc.method"]
+                attributes["rpc.method"] = _OTHER
             attributes["rr_actors.outcome"] = "failed"
             attributes["rr_actors.retry"] = event.retry
             attributes["rr_actors.may_have_executed"] = event.may_have_executed
@@ -862,7 +876,7 @@ class Tracing:
             start = min(client.start, server.start) if server is not None else client.start
             if client.started:  # (when the call began: known since event schema 7)
                 start = client.started
-            name = f"{client.service}/{client.method}"
+            name = self._span_name(client)
             # (a caller's span: the call carried its trace)
             parent = traces.caller_parent(carried, client.caller_span) if carried else None
             span = self._start(
@@ -880,7 +894,7 @@ class Tracing:
             self._end(span, client.error, max(client.end, start), client.lost)
             context = _api.set_span_in_context(span)
         if server is not None:
-            name = f"{server.service}/{server.method}"
+            name = self._span_name(server)
             ids = None
             if parsed is not None:  # its parent: the CLIENT span the call named
                 trace_id, client_span, flags = parsed

@@ -1409,3 +1409,28 @@ def test_every_attribute_the_module_names_is_in_the_pages_table() -> None:
     named = set(re.findall(r'"((?:rpc|rr_actors|process|error|exception)\.[a-z_.]+)"', source))
     assert {"rpc.system.name", "rpc.method", "process.pid", "rr_actors.supervisor"} <= named
     assert set() == named - _documented()
+
+
+def test_a_call_to_a_server_its_provider_does_not_have_is_rpc_method_other(
+    started: list[rr.ResourceRegistrar],
+    uid: str,
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> None:
+    provider, exporter = exported
+    erm = rr.ResourceRegistrar.start(f"erm-{uid}")
+    started.append(erm)
+    _serve(erm)
+    with otel.trace(erm, tracer_provider=provider, pair_within=60) as tracing:
+        with pytest.raises(rr.UnknownServerError):
+            erm.call(erm.name, f"nope-{uid}", 1, timeout=10)  # (any name: unbounded)
+        erm.client_queries(timeout=10)  # (a later turn: its CallFailed is out)
+        assert tracing._subscription.wait_delivered(timeout=5)
+    [client] = exporter.get_finished_spans()
+
+    # the conventions' bounded name for a method not recognized, the name asked for beside
+    assert ("rr_actors", api.SpanKind.CLIENT) == (client.name, client.kind)
+    assert ("_OTHER", f"{erm.name}/nope-{uid}", "UnknownServerError") == (
+        client.attributes["rpc.method"],
+        client.attributes["rpc.method_original"],
+        client.attributes["error.type"],
+    )
