@@ -16,8 +16,9 @@ Rows:
                             carries its traceparent (`Load.trace`)
     no-op subscriber        one subscriber (a no-op callback) of both registrars: what any
                             subscription costs (the floor of the next rows)
-    tracing off             `otel.Tracing()` subscribed to both, the extra installed but no
-                            `TracerProvider` (the API's no-op one): no span is made
+    tracing off             `otel.Tracing()` subscribed to both by hand, the extra installed
+                            but no `TracerProvider` (the API's no-op one): no span is made
+                            (`otel.trace` with no provider subscribes nothing: `without`)
     tracing on              `otel.Tracing(tracer_provider=...)`: an SDK provider sampling
                             everything (ALWAYS_ON) into an `InMemorySpanExporter` through a
                             `SimpleSpanProcessor` (2 spans per call and per unload: client, server)
