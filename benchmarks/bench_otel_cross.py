@@ -272,8 +272,10 @@ def main(argv: list[str] | None = None) -> int:
         try:
             for row in rows:  # warm-up, untimed
                 bench.round(row, max(1, args.batch // 10))
-            for turn in range(args.rounds):  # each round starts one row later: no row
-                for row in rows[turn % len(rows) :] + rows[: turn % len(rows)]:  # always first
+            # each round starts one row later: no row is always first (paying for what the
+            # last one left running)
+            for turn in range(args.rounds):
+                for row in rows[turn % len(rows) :] + rows[: turn % len(rows)]:
                     times[row].append(bench.round(row, args.batch))
         finally:
             bench.stop()
