@@ -375,7 +375,7 @@ def test_a_sweep_stopped_by_a_signal_removes_its_run_folder_and_exits_128_plus_i
     try:
         ready, _, _ = selecting.select([reader], [], [], 120)  # (a seed's run began)
         assert ready, "no seed began within 120 s"
-        assert [p.name for p in scratch.iterdir() if p.name.startswith("rr-sim-run-")]
+        assert list(scratch.rglob("rr-sim-run-*"))  # (a worker's: in its pool's folder)
 
         if "group" in os.environ.get("PYTEST_CURRENT_TEST", ""):
             os.killpg(sweep_process.pid, signum)  # (as a terminal's Ctrl-C)
@@ -392,7 +392,7 @@ def test_a_sweep_stopped_by_a_signal_removes_its_run_folder_and_exits_128_plus_i
         sweep_process.wait()
 
     assert 128 + signum == sweep_process.returncode, err
-    assert [] == [p.name for p in scratch.iterdir() if p.name.startswith("rr-sim-run-")]
+    assert [] == [p.name for p in scratch.rglob("rr-sim-*")]
     assert f"stopped by {signal.Signals(signum).name}" in err
     assert "Traceback" not in err
     assert [] == left, "a process of the sweep was left"
@@ -424,10 +424,14 @@ def test_a_ctrl_c_while_a_worker_still_starts_is_ignored_by_it_not_a_traceback(
     # before the pool's initializer ran), which died with a traceback. Forced here: the
     # SIGINT is sent as soon as the worker exists, long before its interpreter is up;
     # the same worker then runs a task (not one the pool started in its place).
-    with sweep._Workers(1) as workers:
-        (started,) = [process.pid for process in workers.pool._pool]
+    pool = sweep._Pool(1)
+    try:
+        future = pool.submit(os.getpid)  # (the worker starts here)
+        (started,) = pool.processes
         os.kill(started, signal.SIGINT)
-        assert started == workers.pool.apply(os.getpid)
+        assert started == future.result(timeout=60)
+    finally:
+        pool.end()
     assert "Traceback" not in capfd.readouterr().err
 
 
