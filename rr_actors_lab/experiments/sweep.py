@@ -5,10 +5,10 @@
    PYTHONHASHSEED is not 0? ─► the same command in a child process with it (`hash_fixed`)
    DIR/plan.toml (the plan's copy)
    simulate.run_seed per seed ─► a progress bar or lines; DIR/seeds.jsonl: a line per
-                                 seed; DIR/events-seed-S.jsonl: each seed that did not
-                                 hold; DIR/log.txt: the system's error lines, by seed
-   ◄── a summary, the violating seeds; exit 0 (1: a run failed; 2: bad input;
-       128 + the signal that stopped it)
+   (here, or in --jobs workers:  seed; DIR/events-seed-S.jsonl: each seed that did not
+   `_Workers`)                   hold; DIR/log.txt: the system's error lines, by seed
+   ◄── a summary, the violating seeds, the lost ones (their worker died or hung); exit 0
+       (1: a run failed, or a seed was lost; 2: bad input; 128 + the signal that stopped it)
 
  replay DIR --seed S
    DIR/plan.toml, DIR/seeds.jsonl's line of S ─► simulate.run_seed ─► its hash printed
@@ -346,7 +346,8 @@ def run_seeds(
             if isinstance(outcome, LostSeed):
                 lost.append(outcome)
                 lines.write(json.dumps(lost_line(outcome, plan)) + "\n")
-                display.say(f"seed {outcome.seed}: lost, worker {outcome.worker}")
+                if not display.quiet:
+                    display.say(f"seed {outcome.seed}: lost, worker {outcome.worker}")
                 seed = outcome.seed
             else:
                 run, errors = outcome
@@ -652,14 +653,15 @@ class _Pool:
 
     def kill_hung(self, flying: set[int], bound: float, now: float) -> None:
         """Kill each worker that has run one of the `flying` seeds for more than `bound`
-        seconds; and every worker if none runs one and none said a word for as long (one
-        stopped while idle holds the pool's queue)."""
+        seconds; and every worker if none runs one and none said a word for as long, and
+        `SEED_TIMEOUT` at least (one stopped while idle holds the pool's queue; a pool's
+        start under load is not a seed's time)."""
         running = {pid: seed for pid, seed in self.running.items() if seed in flying}
         for pid, seed in running.items():
             if now - self.started[seed] > bound and pid not in self.killed:
                 self.killed[pid] = f"hung: no answer in {bound:g} s, killed"
                 self.processes[pid].kill()
-        if flying and not running and now - self.heard > bound:
+        if flying and not running and now - self.heard > max(bound, SEED_TIMEOUT):
             for pid, process in self.processes.items():
                 self.killed.setdefault(pid, "")  # (stuck, no seed of its own: not lost)
                 process.kill()
