@@ -620,9 +620,12 @@ class _Pool:
         self.folder = tempfile.mkdtemp(prefix="rr-sim-workers-", dir=simulate.scratch_parent())
         # (a pipe, not a queue: a report is one write of a few bytes, atomic, with no lock
         # that a worker killed while it writes would keep)
-        self.reports, writer = context.Pipe(duplex=False)
+        self.reports, self.writer = context.Pipe(duplex=False)
         self.executor = ProcessPoolExecutor(
-            jobs, mp_context=context, initializer=_worker_started, initargs=(writer, self.folder)
+            jobs,
+            mp_context=context,
+            initializer=_worker_started,
+            initargs=(self.writer, self.folder),
         )
         self.processes: dict[int, BaseProcess] = {}
         self.running: dict[int, int] = {}  # (pid -> the seed it last said it runs)
@@ -687,6 +690,7 @@ class _Pool:
             self.processes[pid].kill()
         self.executor.shutdown(wait=True, cancel_futures=True)
         self.reports.close()
+        self.writer.close()
         shutil.rmtree(self.folder, ignore_errors=True)
         exits = {pid: process.exitcode for pid, process in self.processes.items()}
         return _died(exits, self.killed)
@@ -694,8 +698,9 @@ class _Pool:
 
 def _died(exits: dict[int, int | None], killed: dict[int, str]) -> dict[int, str]:
     """Of a pool's workers (`exits`: pid -> exit code), how each that died ended: `killed`'s
-    reason (a hung one), or its exit in words; not one the pool ended (SIGTERM), nor one
-    this process killed without a reason (stuck, or left after `STOP_SECONDS`)."""
+    reason (a hung one), or its exit in words; not one the pool ended (SIGTERM: `_Pool.end`,
+    and CPython's executor once a worker died, 3.8 to 3.14), nor one this process killed
+    without a reason (stuck, or left after `STOP_SECONDS`)."""
     stopped = {-signal.SIGTERM, 128 + signal.SIGTERM}
     died: dict[int, str] = {}
     for pid, code in exits.items():
