@@ -144,6 +144,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "at most one per seed); the same hashes, verdicts and seeds.jsonl as one process",
     )
     parser.add_argument(
+        "--seed-timeout",
+        type=_positive_float,
+        default=None,
+        metavar="S",
+        help="with --simulate: the wall seconds a worker process may run one seed before it "
+        f"is killed as hung and the seed named lost (default: {sweep.SEED_TIMEOUT:g}, or "
+        f"{sweep.SLOWEST_TIMES} times the slowest seed so far if longer; given, the seeds run "
+        "in worker processes even with --jobs 1)",
+    )
+    parser.add_argument(
         "--shrink",
         nargs="?",
         type=_positive_int,
@@ -405,8 +415,9 @@ def main(args: argparse.Namespace, stream: TextIO) -> int:
         stream: where progress and the summary go (errors go to standard error).
 
     Returns:
-        0 done; 1 a run failed (or `--out` could not be written); 2 bad input (nothing was
-        started); 130 interrupted (Ctrl-C); 143 stopped (SIGTERM); 129 hung up (SIGHUP).
+        0 done; 1 a run failed (a simulated seed lost, or `--out` could not be written); 2
+        bad input (nothing was started); 130 interrupted (Ctrl-C); 143 stopped (SIGTERM);
+        129 hung up (SIGHUP).
     """
     if args.list:
         return _list(stream)
@@ -416,9 +427,13 @@ def main(args: argparse.Namespace, stream: TextIO) -> int:
     if args.simulate:
         with _one_ctrl_c():
             return _simulated(args, stream)
-    needs = [name for name in ("seeds", "jobs", "shrink") if getattr(args, name) is not None]
+    needs = [
+        name
+        for name in ("seeds", "jobs", "seed_timeout", "shrink")
+        if getattr(args, name) is not None
+    ]
     if needs:
-        error(f"--{needs[0]} needs --simulate")
+        error(f"--{needs[0].replace('_', '-')} needs --simulate")
         return 2
     with _one_ctrl_c():
         return _run(args, stream)
@@ -499,6 +514,7 @@ def _simulated(args: argparse.Namespace, stream: TextIO) -> int:
     argv += [*(["--duration", str(args.duration)] if args.duration is not None else [])]
     argv += ["--quiet"] if args.quiet else []
     argv += ["--jobs", str(args.jobs)] if args.jobs is not None else []
+    argv += ["--seed-timeout", repr(args.seed_timeout)] if args.seed_timeout is not None else []
     argv += ["--shrink", str(args.shrink)] if args.shrink is not None else []
     code = sweep.hash_fixed(argv, stream)
     return code if code is not None else _sweep(plan, seeds, out, args, stream)
@@ -508,18 +524,22 @@ def _sweep(plan: Plan, seeds: range, out: Path, args: argparse.Namespace, stream
     """The seeds run (here: `PYTHONHASHSEED=0`), then the summary, then `--shrink`."""
     jobs = args.jobs if args.jobs is not None else sweep.default_jobs(seeds)
     runs: list[simulate.SimulatedRun] = []
+    lost: list[sweep.LostSeed] = []
     try:
         with sweep.stopping_on_signals(), Display(stream, quiet=args.quiet) as display:
-            sweep.run_seeds(plan, seeds, out, display, jobs=jobs, runs=runs)
+            sweep.run_seeds(
+                plan, seeds, out, display, jobs=jobs, seed_timeout=args.seed_timeout,
+                runs=runs, lost=lost,
+            )  # fmt: skip
     except RrError as exc:
         error(str(exc))
         return 1
     except KeyboardInterrupt as exc:  # (the seeds running removed their folders)
         error(f"{sweep.stopped_line(exc)}: the seeds that ran are in {out / sweep.SEEDS_FILE}")
-        if runs:
-            sweep.summary(display, runs, _shown(out))
+        if runs or lost:
+            sweep.summary(display, runs, _shown(out), lost)
         return sweep.stopped_code(exc)
-    sweep.summary(display, runs, _shown(out))
+    sweep.summary(display, runs, _shown(out), lost)
     if args.shrink is not None:
         try:
             with sweep.stopping_on_signals():
@@ -530,7 +550,7 @@ def _sweep(plan: Plan, seeds: range, out: Path, args: argparse.Namespace, stream
         except KeyboardInterrupt as exc:
             error(sweep.stopped_line(exc))
             return sweep.stopped_code(exc)
-    return 0
+    return 1 if lost else 0  # (a seed lost: a run failed)
 
 
 LIST_FOOTER = (

@@ -69,6 +69,7 @@ __all__ = [
     "check_simulable",
     "history_hash",
     "run_seed",
+    "scratch_parent",
     "simulate",
 ]
 
@@ -286,7 +287,7 @@ def _run_seed(plan: Plan, seed: int, started: float) -> SimulatedRun:
     from rr_actors import simulation  # noqa: PLC0415 - the simulation extra (greenlet)
 
     progress = _Progress()
-    folder = Path(tempfile.mkdtemp(prefix="rr-sim-run-", dir=_scratch_parent()))
+    folder = Path(tempfile.mkdtemp(prefix="rr-sim-run-", dir=scratch_parent()))
     try:  # (a Ctrl-C or a SIGTERM made one: the run is cancelled, then its folder goes)
         until = plan.duration + plan.recovery_timeout + 600.0
         ran = simulation.run(
@@ -378,7 +379,7 @@ def _crashed(
     )
 
 
-def _scratch_parent() -> str | None:
+def scratch_parent() -> str | None:
     """Where a run's folder is made: `RAM_DIR` unless `TMPDIR` chooses (or it is not a
     writable folder): then the OS's temporary folder (`None`)."""
     if os.environ.get("TMPDIR"):

@@ -5,10 +5,10 @@
    PYTHONHASHSEED is not 0? ─► the same command in a child process with it (`hash_fixed`)
    DIR/plan.toml (the plan's copy)
    simulate.run_seed per seed ─► a progress bar or lines; DIR/seeds.jsonl: a line per
-                                 seed; DIR/events-seed-S.jsonl: each seed that did not
-                                 hold; DIR/log.txt: the system's error lines, by seed
-   ◄── a summary, the violating seeds; exit 0 (1: a run failed; 2: bad input;
-       128 + the signal that stopped it)
+   (here, or in --jobs workers:  seed; DIR/events-seed-S.jsonl: each seed that did not
+   `_Workers`)                   hold; DIR/log.txt: the system's error lines, by seed
+   ◄── a summary, the violating seeds, the lost ones (their worker died or hung); exit 0
+       (1: a run failed, or a seed was lost; 2: bad input; 128 + the signal that stopped it)
 
  replay DIR --seed S
    DIR/plan.toml, DIR/seeds.jsonl's line of S ─► simulate.run_seed ─► its hash printed
@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
-import functools
 import json
 import logging
 import multiprocessing
@@ -33,9 +32,15 @@ import stat
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
-from collections.abc import Iterator
-from multiprocessing import resource_tracker
+from collections.abc import Callable, Iterator, Sequence
+from concurrent import futures
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from multiprocessing import connection, resource_tracker
+from multiprocessing.connection import Connection
+from multiprocessing.process import BaseProcess
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, BinaryIO, TextIO
 
@@ -51,8 +56,11 @@ __all__ = [
     "LOG_FILE",
     "OUTPUT_FILES",
     "SEEDS_FILE",
+    "SEED_TIMEOUT",
     "STOP_SIGNALS",
+    "LostSeed",
     "hash_fixed",
+    "lost_line",
     "parse_seeds",
     "prepare",
     "read_plan_text",
@@ -61,6 +69,7 @@ __all__ = [
     "run_replay",
     "run_seeds",
     "run_shrink",
+    "seed_bound",
     "seed_line",
     "shrink_arguments",
     "shrink_seed",
@@ -230,6 +239,19 @@ def seed_line(run: simulate.SimulatedRun, plan: Plan) -> dict[str, Any]:
     }
 
 
+def lost_line(lost: LostSeed, plan: Plan) -> dict[str, Any]:
+    """A lost seed's line of `seeds.jsonl`: its seed, `"verdict": "lost"`, no hash (`None`),
+    how its worker ended (`"worker"`), the plan's duration and file (as `seed_line`)."""
+    return {
+        "seed": lost.seed,
+        "verdict": "lost",
+        "hash": None,
+        "worker": lost.worker,
+        "duration": plan.duration,
+        "plan": None if plan.source is None else os.path.abspath(plan.source),
+    }
+
+
 def summary_rows(runs: list[simulate.SimulatedRun]) -> list[str]:
     """The summary's cells (`SUMMARY_HEADERS`): medians of events, faults, calls, time."""
     verdicts = [r.verdict for r in runs]
@@ -278,32 +300,40 @@ def run_seeds(
     display: Any,
     *,
     jobs: int = 1,
+    seed_timeout: float | None = None,
     runs: list[simulate.SimulatedRun] | None = None,
+    lost: list[LostSeed] | None = None,
 ) -> list[simulate.SimulatedRun]:
     """Run each seed: a line of `out/seeds.jsonl`, a step of `display`, the history of each that
     did not hold in `out/events-seed-S.jsonl`, the system's error lines in `out/log.txt`.
 
-    With `jobs` above 1 the seeds run in that many worker processes (`_Workers`); what is
-    written is the same, in seed order.
+    With `jobs` above 1 (or a `seed_timeout`) the seeds run in that many worker processes
+    (`_Workers`); what is written is the same, in seed order. A seed whose worker died or
+    hung is lost: its line says how (`lost_line`), the sweep goes on in new workers.
 
     Args:
         plan: the plan (`simulate.check_simulable` must accept it).
         seeds: the seeds, in order.
         out: the run directory (`prepare`d).
         display: the progress (`cli.Display`).
-        jobs: processes to run seeds in (1: this one).
+        jobs: processes to run seeds in (1: this one, unless `seed_timeout` is given).
+        seed_timeout: the wall seconds a worker may run one seed before it is killed as
+            hung (`None`: `seed_bound`'s default).
         runs: the list to append each finished run to (a stop leaves the seeds that ran);
             a new one if `None`.
+        lost: the list to append each lost seed to; a new one if `None`.
 
     Returns:
         `runs`; those that held without their history (`""`).
 
     Raises:
-        RrError: what `simulate.simulate` raises (with the seed in a note).
+        RrError: what `simulate.simulate` raises (with the seed in a note); the workers died
+            `BREAKS_IN_A_ROW` times before they finished a seed.
         KeyboardInterrupt: one of `STOP_SIGNALS`: the seeds running are cancelled and
             their folders removed, in every worker too.
     """
     runs = [] if runs is None else runs
+    lost = [] if lost is None else lost
     bar = display.bar
     task = None if bar is None else bar.add_task("seeds", total=len(seeds))
     simulate.check_simulable(plan)
@@ -312,26 +342,35 @@ def run_seeds(
         (out / SEEDS_FILE).open("w", encoding="utf-8") as lines,
         _SystemLog(out / LOG_FILE) as log,
     ):
-        for run, errors in _seed_runs(plan, seeds, jobs):
-            log.write(run.seed, errors)
-            runs.append(run)
-            lines.write(json.dumps(seed_line(run, plan)) + "\n")
-            lines.flush()
-            if run.verdict != "held":
-                name = f"events-seed-{run.seed}.jsonl"
-                (out / name).write_text(run.history, encoding="utf-8")
+        for outcome in _seed_runs(plan, seeds, jobs, seed_timeout):
+            if isinstance(outcome, LostSeed):
+                lost.append(outcome)
+                lines.write(json.dumps(lost_line(outcome, plan)) + "\n")
                 if not display.quiet:
-                    display.say(f"seed {run.seed}: {run.verdict} ({name})")
+                    display.say(f"seed {outcome.seed}: lost, worker {outcome.worker}")
+                seed = outcome.seed
+            else:
+                run, errors = outcome
+                log.write(run.seed, errors)
+                runs.append(run)
+                lines.write(json.dumps(seed_line(run, plan)) + "\n")
+                if run.verdict != "held":
+                    name = f"events-seed-{run.seed}.jsonl"
+                    (out / name).write_text(run.history, encoding="utf-8")
+                    if not display.quiet:
+                        display.say(f"seed {run.seed}: {run.verdict} ({name})")
+                seed = run.seed
+            lines.flush()
+            done = len(runs) + len(lost)
             if bar is not None and task is not None:
-                bar.update(task, completed=len(runs), description=f"seed {run.seed}")
+                bar.update(task, completed=done, description=f"seed {seed}")
             now = time.monotonic()
-            first = len(runs) == 1
-            if bar is None and not display.quiet and (first or now - said >= PROGRESS_SECONDS):
+            if bar is None and not display.quiet and (done == 1 or now - said >= PROGRESS_SECONDS):
                 said = now
                 failed = sum(r.verdict != "held" for r in runs)
                 display.say(
-                    f"seeds: {len(runs)}/{len(seeds)} run, {failed} did not hold "
-                    f"({now - started:.0f} s)"
+                    f"seeds: {done}/{len(seeds)} run, {failed} did not hold"
+                    f"{f', {len(lost)} lost' if lost else ''} ({now - started:.0f} s)"
                 )
     return runs
 
@@ -346,15 +385,23 @@ def default_jobs(seeds: range) -> int:
 
 
 def _seed_runs(
-    plan: Plan, seeds: range, jobs: int
-) -> Iterator[tuple[simulate.SimulatedRun, list[str]]]:
-    """Each seed's run and the error lines its system logged, in seed order."""
-    if jobs <= 1 or len(seeds) <= 1:
+    plan: Plan, seeds: range, jobs: int, seed_timeout: float | None
+) -> Iterator[_Result | LostSeed]:
+    """Each seed's run and the error lines its system logged, or that it was lost, in seed
+    order (in this process with one job and no `seed_timeout`: a timeout needs a worker).
+
+    Raises:
+        RrError: what a seed's run raised (at its turn), or `_Workers.run`'s.
+    """
+    if seed_timeout is None and (jobs <= 1 or len(seeds) <= 1):
         for seed in seeds:
             yield _run_one(plan, seed)
         return
-    with _Workers(min(jobs, len(seeds))) as workers:
-        yield from workers.run(plan, seeds)
+    with _Workers(min(jobs, len(seeds)), seed_timeout=seed_timeout) as workers:
+        for outcome in workers.run(plan, seeds):
+            if isinstance(outcome, BaseException):
+                raise outcome
+            yield outcome
 
 
 def _run_one(plan: Plan, seed: int) -> tuple[simulate.SimulatedRun, list[str]]:
@@ -391,8 +438,75 @@ class _Caught(logging.Handler):
         self.lines.append(self.format(record))
 
 
+@dataclasses.dataclass(frozen=True)
+class LostSeed:
+    """A seed without a result: the worker process running it died or hung (`--jobs`).
+
+    Attributes:
+        seed: the seed.
+        worker: how its worker ended, in words: `"killed by SIGKILL"`, `"exited with code
+            3"`, `"hung: no answer in 300 s, killed"`.
+    """
+
+    seed: int
+    worker: str
+
+
+SEED_TIMEOUT = 300.0
+"""`--seed-timeout`'s default floor: the wall seconds a worker may run one seed before it
+is killed as hung (`seed_bound`)."""
+
+SLOWEST_TIMES = 10
+"""`--seed-timeout`'s default is also at least this many times the slowest seed the sweep
+finished so far (a plan whose seeds take minutes)."""
+
+STOP_SECONDS = 60.0
+"""How long the workers of a pool that ends, is stopped or broke get after their SIGTERM
+(to cancel their seeds and remove their folders) before they are killed (a stopped one)."""
+
+BREAKS_IN_A_ROW = 3
+"""A sweep whose pool broke this many times with no seed finished or lost in between gives
+up (an `RrError`): its workers die before they run a seed, and a new pool's would too."""
+
+AHEAD = 4
+"""Seeds submitted per worker ahead of the one written next (a slow seed holds the ones
+after it back, in memory, until its turn)."""
+
+POLL_SECONDS = 1.0
+"""How often the sweep reads which worker runs which seed while it waits for results (a
+seed's bound is counted from then: at most this much late)."""
+
+
+def seed_bound(seed_timeout: float | None, slowest: float) -> float:
+    """The wall seconds a worker may run one seed: `seed_timeout` if given, otherwise
+    `SEED_TIMEOUT` or `SLOWEST_TIMES` times `slowest` (the slowest seed finished so far, in
+    seconds), whichever is longer."""
+    if seed_timeout is not None:
+        return seed_timeout
+    return max(SEED_TIMEOUT, SLOWEST_TIMES * slowest)
+
+
+_Result = tuple[simulate.SimulatedRun, list[str]]
+"""A seed's run and the error lines its system logged (`_run_one`)."""
+
+_Outcome = _Result | LostSeed | BaseException
+"""What became of a seed a worker ran: its result, lost, or what it raised."""
+
+
 class _Workers:
-    """`jobs` spawned worker processes running seeds (`--jobs`): a `multiprocessing` pool.
+    """`jobs` spawned worker processes running seeds (`--jobs`): a process pool
+    (`concurrent.futures.ProcessPoolExecutor`), replaced by a new one when a worker dies.
+
+    ```
+     run(plan, seeds): a future per seed, AHEAD * jobs ahead at most ─► _Pool
+        worker: (its pid, the seed) on the pool's report pipe, then _run_one ─► the future
+     ◄── each seed's outcome in seed order: its result, a LostSeed, or what it raised
+        a seed running past `seed_bound` ─► its worker killed (hung); no word from a pool
+            with seeds in flight and none running for as long ─► its workers killed
+        BrokenProcessPool ─► every worker ended (_Pool.end): the seed that a worker which
+            died reported and did not finish is lost (how the worker ended); the other
+            seeds in flight run again in a new pool
+    ```
 
     Spawned, not forked: a fork would copy this process's threads' locks and the simulation's
     patches. A worker ignores SIGINT (this process decides) and takes SIGTERM as a stop; it
@@ -400,30 +514,232 @@ class _Workers:
     (whose start unblocks them, CPython 3.11-3.13) is started before any worker.
     """
 
-    def __init__(self, jobs: int) -> None:
-        context = multiprocessing.get_context("spawn")
-        resource_tracker.ensure_running()
-        with _stop_signals_blocked():
-            self.pool = context.Pool(jobs, initializer=_worker_started)
+    def __init__(self, jobs: int, *, seed_timeout: float | None = None) -> None:
+        self.jobs = jobs
+        self.seed_timeout = seed_timeout
+        self.pool: _Pool | None = None
+        self.slowest = 0.0
+        self.finished = 0  # (seeds finished or lost: a break after none counts to the limit)
 
     def __enter__(self) -> _Workers:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        if exc[0] is None:
-            self.pool.close()
-        else:  # (stopped, or a seed failed: the seeds running are cancelled)
-            self.pool.terminate()
-        self.pool.join()
+        if self.pool is not None:  # (stopped, or a seed failed: the seeds running cancelled)
+            self.pool.end()
+            self.pool = None
 
-    def run(self, plan: Plan, seeds: range) -> Iterator[tuple[simulate.SimulatedRun, list[str]]]:
-        """The seeds' runs, in seed order, as the workers finish them."""
-        yield from self.pool.imap(functools.partial(_run_in_worker, plan), seeds, chunksize=1)
+    def run(self, plan: Plan, seeds: range) -> Iterator[_Outcome]:
+        """Each seed's outcome, in seed order, as the workers finish them.
+
+        Raises:
+            RrError: the pool broke `BREAKS_IN_A_ROW` times with no seed finished or lost.
+        """
+        fresh = iter(seeds)  # (not submitted yet)
+        again: list[int] = []  # (their pool broke: they run again, before the fresh ones)
+        kept: dict[int, _Outcome] = {}  # (finished, until their turn)
+        flights: dict[Future[_Result], int] = {}
+        breaks = 0
+        for seed in seeds:
+            while seed not in kept:
+                if self.pool is None:
+                    self.pool = _Pool(self.jobs)
+                while not flights or len(flights) + len(kept) < AHEAD * self.jobs:
+                    following = again.pop(0) if again else next(fresh, None)
+                    if following is None:
+                        break
+                    flights[self.pool.submit(_run_in_worker, plan, following)] = following
+                finished = self.finished
+                failed = self._wait(self.pool, flights, kept)
+                if failed is None:
+                    continue
+                again = sorted([*again, *self._broke(self.pool, failed, kept)])
+                breaks = 0 if self.finished > finished else breaks + 1
+                if breaks >= BREAKS_IN_A_ROW:
+                    raise RrError(
+                        f"--jobs: the pool of worker processes broke {breaks} times in a row "
+                        "with no seed finished (its workers die before they run one)"
+                    )
+            yield kept.pop(seed)
+
+    def _wait(
+        self, pool: _Pool, flights: dict[Future[_Result], int], kept: dict[int, _Outcome]
+    ) -> list[int] | None:
+        """Wait for a result (`POLL_SECONDS` at most), keep what finished, kill what hung;
+        the seeds that were in flight if the pool broke (`None`: it did not)."""
+        done, _ = futures.wait(flights, POLL_SECONDS, futures.FIRST_COMPLETED)
+        now = time.monotonic()
+        pool.read_reports(now)
+        broke = any(map(_broken, done))
+        if broke:
+            futures.wait(flights, STOP_SECONDS)  # (a broken pool fails them all at once)
+            done = set(flights)
+        failed = []
+        for future in done:
+            seed = flights.pop(future)
+            if not future.done() or _broken(future):
+                failed.append(seed)
+                continue
+            kept[seed] = future.exception() or future.result()
+            self.finished += 1
+            pool.heard = now
+            self.slowest = max(self.slowest, now - pool.started.get(seed, now))
+        if broke:
+            return failed
+        pool.kill_hung(set(flights.values()), seed_bound(self.seed_timeout, self.slowest), now)
+        return None
+
+    def _broke(self, pool: _Pool, failed: list[int], kept: dict[int, _Outcome]) -> list[int]:
+        """The pool broke: it ends; each of the `failed` seeds that a worker which died
+        reported is lost; the others, to run again."""
+        died = pool.end()
+        self.pool = None
+        lost = _lost(pool.running, died, failed)
+        for seed in lost:
+            kept[seed.seed] = seed
+            self.finished += 1
+        return [seed for seed in failed if seed not in kept]
 
 
-def _run_in_worker(plan: Plan, seed: int) -> tuple[simulate.SimulatedRun, list[str]]:
-    """`_run_one` in a worker: a stop cancels the seed (its folder removed), then the
-    worker exits quietly (a traceback of each worker would bury the summary)."""
+def _broken(future: Future[_Result]) -> bool:
+    """Whether `future` failed because its pool broke (a worker died, or was killed)."""
+    return future.done() and isinstance(future.exception(), BrokenProcessPool)
+
+
+class _Pool:
+    """One `ProcessPoolExecutor` of spawned workers, and what the sweep knows of it: each
+    worker's process, the seed each last said it runs and since when, whom it killed.
+
+    Its workers make their seeds' folders in one folder of the pool's own (their `TMPDIR`),
+    removed when the pool ended: a worker killed in a seed leaves nothing behind.
+    """
+
+    def __init__(self, jobs: int) -> None:
+        context = multiprocessing.get_context("spawn")
+        resource_tracker.ensure_running()
+        self.folder = tempfile.mkdtemp(prefix="rr-sim-workers-", dir=simulate.scratch_parent())
+        # (a pipe, not a queue: a report is one write of a few bytes, atomic, with no lock
+        # that a worker killed while it writes would keep)
+        self.reports, self.writer = context.Pipe(duplex=False)
+        self.executor = ProcessPoolExecutor(
+            jobs,
+            mp_context=context,
+            initializer=_worker_started,
+            initargs=(self.writer, self.folder),
+        )
+        self.processes: dict[int, BaseProcess] = {}
+        self.running: dict[int, int] = {}  # (pid -> the seed it last said it runs)
+        self.started: dict[int, float] = {}  # (seed -> when that was read, monotonic)
+        self.heard = time.monotonic()  # (a report or a result came)
+        self.killed: dict[int, str] = {}  # (pid -> why this process killed it)
+
+    def submit(self, fn: Callable[..., _Result], *args: object) -> Future[_Result]:
+        """`fn(*args)` in a worker (one started now if fewer than `jobs` run); a future
+        failed with `BrokenProcessPool` if the pool broke before."""
+        try:
+            with _stop_signals_blocked():  # (a worker started here begins with them blocked)
+                future = self.executor.submit(fn, *args)
+        except BrokenProcessPool as exc:
+            future = Future()
+            future.set_exception(exc)
+        # CPython's ProcessPoolExecutor keeps its workers in `_processes` (pid -> Process,
+        # 3.8 to 3.14; the one private name used here): how a worker ended is its exit code
+        self.processes.update(self.executor._processes or {})
+        return future
+
+    def read_reports(self, now: float) -> None:
+        """Read which worker runs which seed, since `now` (the reports that came)."""
+        while self.reports.poll():
+            pid, seed = self.reports.recv()
+            self.running[pid] = seed
+            self.started[seed] = self.heard = now
+
+    def kill_hung(self, flying: set[int], bound: float, now: float) -> None:
+        """Kill each worker that has run one of the `flying` seeds for more than `bound`
+        seconds; and every worker if none runs one and none said a word for as long, and
+        `SEED_TIMEOUT` at least (one stopped while idle holds the pool's queue; a pool's
+        start under load is not a seed's time)."""
+        running = {pid: seed for pid, seed in self.running.items() if seed in flying}
+        for pid, seed in running.items():
+            if now - self.started[seed] > bound and pid not in self.killed:
+                self.killed[pid] = f"hung: no answer in {bound:g} s, killed"
+                self.processes[pid].kill()
+        if flying and not running and now - self.heard > max(bound, SEED_TIMEOUT):
+            for pid, process in self.processes.items():
+                self.killed.setdefault(pid, "")  # (stuck, no seed of its own: not lost)
+                process.kill()
+
+    def end(self) -> dict[int, str]:
+        """End the pool: each worker told to stop (SIGTERM: the seed it runs is cancelled)
+        and given `STOP_SECONDS`, then killed; the pool's thread joined, its folder removed.
+
+        Returns:
+            How each worker that died (not one the pool or this process ended) ended, by pid.
+        """
+        # (an idle worker exits at once too: the executor's own shutdown would wait forever
+        # for one stopped by a SIGSTOP)
+        for process in self.processes.values():
+            process.terminate()
+        waiting = {process.sentinel: pid for pid, process in self.processes.items()}
+        deadline = time.monotonic() + STOP_SECONDS
+        while waiting and (left := deadline - time.monotonic()) > 0:
+            ended = connection.wait(list(waiting), left)
+            waiting = {sentinel: pid for sentinel, pid in waiting.items() if sentinel not in ended}
+        for pid in waiting.values():
+            self.killed.setdefault(pid, "")
+            self.processes[pid].kill()
+        self.executor.shutdown(wait=True, cancel_futures=True)
+        self.reports.close()
+        self.writer.close()
+        shutil.rmtree(self.folder, ignore_errors=True)
+        exits = {pid: process.exitcode for pid, process in self.processes.items()}
+        return _died(exits, self.killed)
+
+
+def _died(exits: dict[int, int | None], killed: dict[int, str]) -> dict[int, str]:
+    """Of a pool's workers (`exits`: pid -> exit code), how each that died ended: `killed`'s
+    reason (a hung one), or its exit in words; not one the pool ended (SIGTERM: `_Pool.end`,
+    and CPython's executor once a worker died, 3.8 to 3.14), nor one this process killed
+    without a reason (stuck, or left after `STOP_SECONDS`)."""
+    stopped = {-signal.SIGTERM, 128 + signal.SIGTERM}
+    died: dict[int, str] = {}
+    for pid, code in exits.items():
+        if killed.get(pid):
+            died[pid] = killed[pid]
+        elif pid not in killed and code is not None and code not in stopped:
+            died[pid] = _exit_words(code)
+    return died
+
+
+def _exit_words(code: int) -> str:
+    """A process's exit code in words: `"killed by SIGKILL"`, `"exited with code 3"`."""
+    if code < 0:
+        with contextlib.suppress(ValueError):
+            return f"killed by {signal.Signals(-code).name}"
+        return f"killed by signal {-code}"
+    return f"exited with code {code}"
+
+
+def _lost(running: dict[int, int], died: dict[int, str], failed: list[int]) -> list[LostSeed]:
+    """The seeds lost when a pool broke: each of the `failed` ones (in flight) that a worker
+    which `died` said it runs (`running`: pid -> seed). A worker that died before it said so
+    loses nothing: its seed runs again."""
+    return sorted(
+        (
+            LostSeed(seed, died[pid])
+            for pid, seed in running.items()
+            if pid in died and seed in failed
+        ),
+        key=lambda lost: lost.seed,
+    )
+
+
+def _run_in_worker(plan: Plan, seed: int) -> _Result:
+    """`_run_one` in a worker, said to the sweep first; a stop cancels the seed (its folder
+    removed), then the worker exits quietly (a traceback of each worker would bury the
+    summary)."""
+    assert _REPORTS is not None  # (`_worker_started` set it)
+    _REPORTS.send((os.getpid(), seed))
     try:
         return _run_one(plan, seed)
     except KeyboardInterrupt as exc:
@@ -433,6 +749,9 @@ def _run_in_worker(plan: Plan, seed: int) -> tuple[simulate.SimulatedRun, list[s
 _SEED_RUNNING = False
 """Whether a seed runs in this process now (a worker's stop cancels it; an idle worker
 just exits)."""
+
+_REPORTS: Connection | None = None
+"""A worker's end of its pool's report pipe (`_worker_started`)."""
 
 
 @contextlib.contextmanager
@@ -450,9 +769,14 @@ def _stop_signals_blocked() -> Iterator[None]:
         signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
-def _worker_started() -> None:
-    """A worker's start: SIGINT ignored, the other `STOP_SIGNALS` stop it; then they are
-    unblocked (`_Workers`: one that came while the worker started is taken now)."""
+def _worker_started(reports: Connection, folder: str) -> None:
+    """A worker's start: its report pipe kept, its seeds' folders in the pool's `folder`;
+    SIGINT ignored, the other `STOP_SIGNALS` stop it; then they are unblocked (`_Pool`:
+    one that came while the worker started is taken now)."""
+    global _REPORTS  # (a worker's one pipe)
+    _REPORTS = reports
+    os.environ["TMPDIR"] = folder
+    tempfile.tempdir = None  # (read again from TMPDIR)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     for number in STOP_SIGNALS:
         if number != signal.SIGINT:
@@ -512,8 +836,11 @@ class _SystemLog:
         self.lines += len(lines)
 
 
-def summary(display: Any, runs: list[simulate.SimulatedRun], out: Path) -> None:
-    """The sweep's summary: a table (rich) or lines, the seeds that did not hold."""
+def summary(
+    display: Any, runs: list[simulate.SimulatedRun], out: Path, lost: Sequence[LostSeed] = ()
+) -> None:
+    """The sweep's summary: a table (rich) or lines, the seeds that did not hold, a line per
+    lost seed (how its worker ended)."""
     if display.console is not None:
         display.say(_table(runs))
     else:
@@ -529,6 +856,8 @@ def summary(display: Any, runs: list[simulate.SimulatedRun], out: Path) -> None:
         display.say(f"crashed: seeds {', '.join(map(str, crashed))}")
     if unverifiable:
         display.say(f"unverifiable: seeds {', '.join(map(str, unverifiable))}")
+    for each in lost:
+        display.say(f"lost: seed {each.seed}, worker {each.worker}")
     if violated or crashed or unverifiable:
         seed = (violated or crashed or unverifiable)[0]
         display.say(f"replay one: rr-actors replay {out} --seed {seed}")
@@ -856,6 +1185,12 @@ def _recorded(run_dir: Path, seed: int) -> dict[str, Any]:
     run: list[int] = []
     for number, line in _seed_lines(run_dir):
         if line["seed"] == seed:
+            if line.get("verdict") == "lost":
+                raise ConfigError(
+                    f"{run_dir / SEEDS_FILE}:{number}: seed {seed} was lost (its worker "
+                    f"{_words(line.get('worker'))}): no history to replay; `rr-actors "
+                    f"experiment PLAN --simulate --seeds {seed}` runs it again"
+                )
             _check_fields(line, f"{run_dir / SEEDS_FILE}:{number}")
             return line
         run.append(line["seed"])
@@ -950,6 +1285,13 @@ def _check_fields(
         value = line[key]
         if not isinstance(value, types) or isinstance(value, bool):
             raise ConfigError(f"{where}: {key} must be {what}, got {_short(value)}")
+
+
+def _words(value: object) -> str:
+    """A line's text as it is if it is a short printable string, or `_short`'s words."""
+    if isinstance(value, str) and len(value) <= 80 and value.isprintable():
+        return value
+    return _short(value)
 
 
 def _short(value: object) -> str:

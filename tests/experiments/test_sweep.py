@@ -15,6 +15,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+import psutil
 import pytest
 
 from rr_actors.__main__ import main
@@ -195,8 +196,9 @@ def test_a_sweep_keeps_the_history_of_each_seed_that_did_not_hold_only(
         (["--simulate", "--seeds", "5-2"], "the last seed is below the first"),
         (["--simulate", "--seeds", "x"], "--seeds must be A-B or S"),
         (["--simulate", "--repeat", "2"], "not --repeat, --seed, --observe or --trace"),
+        (["--seed-timeout", "5"], "--seed-timeout needs --simulate"),
     ],
-    ids=["without --simulate", "backwards", "not numbers", "with --repeat"],
+    ids=["without --simulate", "backwards", "not numbers", "with --repeat", "a seed timeout"],
 )
 def test_bad_seeds_exit_2_before_anything_runs(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str], message: str
@@ -375,7 +377,7 @@ def test_a_sweep_stopped_by_a_signal_removes_its_run_folder_and_exits_128_plus_i
     try:
         ready, _, _ = selecting.select([reader], [], [], 120)  # (a seed's run began)
         assert ready, "no seed began within 120 s"
-        assert [p.name for p in scratch.iterdir() if p.name.startswith("rr-sim-run-")]
+        assert list(scratch.rglob("rr-sim-run-*"))  # (a worker's: in its pool's folder)
 
         if "group" in os.environ.get("PYTEST_CURRENT_TEST", ""):
             os.killpg(sweep_process.pid, signum)  # (as a terminal's Ctrl-C)
@@ -392,7 +394,7 @@ def test_a_sweep_stopped_by_a_signal_removes_its_run_folder_and_exits_128_plus_i
         sweep_process.wait()
 
     assert 128 + signum == sweep_process.returncode, err
-    assert [] == [p.name for p in scratch.iterdir() if p.name.startswith("rr-sim-run-")]
+    assert [] == [p.name for p in scratch.rglob("rr-sim-*")]
     assert f"stopped by {signal.Signals(signum).name}" in err
     assert "Traceback" not in err
     assert [] == left, "a process of the sweep was left"
@@ -424,10 +426,14 @@ def test_a_ctrl_c_while_a_worker_still_starts_is_ignored_by_it_not_a_traceback(
     # before the pool's initializer ran), which died with a traceback. Forced here: the
     # SIGINT is sent as soon as the worker exists, long before its interpreter is up;
     # the same worker then runs a task (not one the pool started in its place).
-    with sweep._Workers(1) as workers:
-        (started,) = [process.pid for process in workers.pool._pool]
+    pool = sweep._Pool(1)
+    try:
+        future = pool.submit(os.getpid)  # (the worker starts here)
+        (started,) = pool.processes
         os.kill(started, signal.SIGINT)
-        assert started == workers.pool.apply(os.getpid)
+        assert started == future.result(timeout=60)
+    finally:
+        pool.end()
     assert "Traceback" not in capfd.readouterr().err
 
 
@@ -461,6 +467,54 @@ def test_seeds_run_in_two_workers_give_what_one_process_gives_in_seed_order(
 def test_jobs_without_simulate_exit_2(tmp_path: Path) -> None:
     code, _ = command("experiment", "simchain", "--out", str(tmp_path), "--jobs", "2")
     assert 2 == code
+
+
+def test_a_seed_timeout_not_a_positive_number_of_seconds_exits_2_naming_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["experiment", "simchain", "--simulate", "--out", str(tmp_path / "out")]
+    with pytest.raises(SystemExit) as exited:
+        main([*argv, "--seed-timeout", "0"], io.StringIO())
+
+    assert 2 == exited.value.code
+    assert "--seed-timeout: must be a positive number of seconds, got 0" in capsys.readouterr().err
+
+
+STOPPER = """\
+\"\"\"db's setup that stops its own process (a SIGTERM: a worker takes it as a stop, not as
+its seed's death): in a worker, the pool breaks with no seed lost, each time.\"\"\"
+
+import os
+import signal
+
+
+def setup(registrar, **_options):
+    os.kill(os.getpid(), signal.SIGTERM)
+"""
+
+
+@SWEEP
+def test_a_sweep_whose_workers_die_before_any_seed_finishes_gives_up_after_three_pools(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "sweep_stopper.py").write_text(STOPPER)
+    plan = tmp_path / "plan.toml"
+    plan.write_text(
+        PLAN.replace(
+            'name = "db"\nsetup = "rr_actors_lab.experiments.services:service"',
+            'name = "db"\nsetup = "sweep_stopper:setup"',
+        )
+    )
+
+    code, printed = command(
+        "experiment", str(plan), "--simulate", "--seeds", "1-2", "--jobs", "2",
+        "--out", str(tmp_path / "out"),
+    )  # fmt: skip
+
+    assert 1 == code, printed
+    err = capfd.readouterr().err
+    assert "the pool of worker processes broke 3 times in a row with no seed finished" in err
+    assert "Traceback" not in err
 
 
 def test_the_default_jobs_are_the_cores_available_at_most_one_per_seed() -> None:
@@ -663,3 +717,200 @@ def test_seeds_are_a_range_or_one(text: str, seeds: range) -> None:
 def test_too_many_seeds_are_refused() -> None:
     with pytest.raises(ConfigError, match="more than"):
         sweep.parse_seeds(f"1-{sweep.MAX_SEEDS + 1}")
+
+
+HOLDER = """\
+\"\"\"db's setup: the first start after the test armed it (`armed` exists) claims the hold,
+says its process's pid through the FIFO and waits there for good (a seed that never ends,
+in a worker the test then kills or stops); every other start serves as usual.\"\"\"
+
+import contextlib
+import os
+
+from rr_actors_lab.experiments.services import service
+
+
+def setup(registrar, *, armed, claim, fifo, gate):
+    if os.path.exists(armed):
+        with contextlib.suppress(FileExistsError):
+            os.close(os.open(claim, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+            fd = os.open(fifo, os.O_WRONLY)
+            os.write(fd, f"{os.getpid()}\\n".encode())
+            os.close(fd)
+            os.open(gate, os.O_RDONLY)  # (a FIFO no one writes: blocks until killed)
+    service(registrar)
+"""
+
+
+def held_plan(folder: Path) -> Path:
+    """`PLAN` whose db's setup holds one seed for good once `folder/armed` exists."""
+    (folder / "sweep_holder.py").write_text(HOLDER)
+    for fifo in ("said", "gate"):
+        os.mkfifo(folder / fifo)
+    files = ", ".join(
+        f'{name} = "{folder / path}"'
+        for name, path in (
+            ("armed", "armed"),
+            ("claim", "claim"),
+            ("fifo", "said"),
+            ("gate", "gate"),
+        )
+    )
+    plan = folder / "plan.toml"
+    plan.write_text(
+        PLAN.replace(
+            'name = "db"\nsetup = "rr_actors_lab.experiments.services:service"',
+            f'name = "db"\nsetup = "sweep_holder:setup"\noptions = {{ {files} }}',
+        )
+    )
+    return plan
+
+
+def hashes(out: Path) -> dict[int, object]:
+    return {seed: line["hash"] for seed, line in recorded(out).items()}
+
+
+@pytest.mark.timeout(400)
+@pytest.mark.parametrize(
+    ("signum", "timeout", "how"),
+    [
+        (signal.SIGKILL, [], "killed by SIGKILL"),
+        (signal.SIGSTOP, ["--seed-timeout", "45"], "hung: no answer in 45 s, killed"),
+    ],
+    ids=["SIGKILL", "SIGSTOP"],
+)
+def test_a_sweep_whose_worker_is_killed_or_stopped_in_a_seed_ends_naming_that_seed_and_how(
+    tmp_path: Path, signum: int, timeout: list[str], how: str
+) -> None:
+    # Issue 68: a `--jobs 2` sweep with a worker SIGKILLed ran on for good, printing
+    # nothing. Now it ends (exit 1: a run failed), the seed that worker ran is named lost
+    # (its line in seeds.jsonl says how), and every other seed has a control sweep's hash.
+    # A worker stopped (SIGSTOP) is killed once its seed ran past --seed-timeout.
+    plan = held_plan(tmp_path)
+    argv = ["experiment", str(plan), "--simulate", "--seeds", "1-6", "--jobs", "2"]
+    code, printed = command(*argv, "--out", str(tmp_path / "control"))  # (nothing armed)
+    assert 0 == code, printed
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    env = {**os.environ, "PYTHONHASHSEED": sweep.HASH_SEED, "TMPDIR": str(scratch)}
+    said = os.open(tmp_path / "said", os.O_RDONLY | os.O_NONBLOCK)  # (before the setup's open)
+    out = tmp_path / "out"
+    with subprocess.Popen(
+        [sys.executable, "-m", "rr_actors", *argv, *timeout, "--out", str(out)],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # (its group: killed whole if the test fails)
+    ) as sweep_run:
+        try:
+            assert sweep_run.stdout is not None
+            assert "seeds: 1/6 run" in sweep_run.stdout.readline()  # (mid-sweep from here)
+            (tmp_path / "armed").touch()  # (the next db start in a worker holds its seed)
+            ready, _, _ = selecting.select([said], [], [], 120)
+            assert ready, "no seed was held within 120 s"
+            held = int(os.read(said, 64))
+            workers = psutil.Process(sweep_run.pid).children(recursive=True)
+            assert held in [w.pid for w in workers if "spawn_main" in " ".join(w.cmdline())]
+            psutil.Process(held).send_signal(signum)
+            rest, err = sweep_run.communicate(timeout=240)
+        finally:
+            os.close(said)
+            with contextlib.suppress(ProcessLookupError):  # (a process left: the test failed)
+                os.killpg(sweep_run.pid, signal.SIGKILL)
+
+    assert 1 == sweep_run.returncode, err
+    [lost] = [line for line in recorded(out).values() if line["verdict"] == "lost"]
+    seed = lost["seed"]
+    assert (None, how) == (lost["hash"], lost["worker"])
+    assert f"seed {seed}: lost, worker {how}" in rest
+    assert f"lost: seed {seed}, worker {how}" in rest
+    assert [1, 2, 3, 4, 5, 6] == list(recorded(out))  # (in seed order)
+    control = hashes(tmp_path / "control")
+    del control[seed]
+    assert control == {s: h for s, h in hashes(out).items() if s != seed}
+    assert [] == [p.name for p in scratch.rglob("rr-sim-*")]
+    assert "Traceback" not in err
+
+
+def test_a_replay_of_a_lost_seed_exits_2_saying_how_its_worker_ended(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "plan.toml").write_text(PLAN)
+    lost = sweep.lost_line(sweep.LostSeed(3, "killed by SIGKILL"), simkill())
+    (tmp_path / sweep.SEEDS_FILE).write_text(
+        json.dumps({**LINE, "seed": 2}) + "\n" + json.dumps(lost) + "\n"
+    )
+
+    assert 2 == main(["replay", str(tmp_path), "--seed", "3"], io.StringIO())
+
+    err = capsys.readouterr().err
+    assert 1 == len(err.splitlines()), err
+    assert f"{tmp_path / sweep.SEEDS_FILE}:2: seed 3 was lost (its worker killed by SIGKILL)" in err
+
+
+@pytest.mark.parametrize(
+    ("exits", "killed", "died"),
+    [
+        ({11: -9, 12: 143}, {}, {11: "killed by SIGKILL"}),
+        ({11: -15, 12: 143, 13: 3}, {}, {13: "exited with code 3"}),
+        (
+            {11: -9, 12: -9},
+            {11: "hung: no answer in 5 s, killed", 12: ""},
+            {11: "hung: no answer in 5 s, killed"},
+        ),
+        ({11: -11, 12: None}, {}, {11: "killed by SIGSEGV"}),
+    ],
+    ids=[
+        "one killed, one the pool stopped",
+        "SIGTERM is the pool's",
+        "one hung, one left",
+        "not reaped",
+    ],
+)
+def test_a_broken_pools_dead_workers_are_those_it_did_not_end_itself(
+    exits: dict[int, int | None], killed: dict[int, str], died: dict[int, str]
+) -> None:
+    assert died == sweep._died(exits, killed)
+
+
+@pytest.mark.parametrize(
+    ("running", "failed", "lost"),
+    [
+        ({11: 3, 12: 4}, [3, 4], [sweep.LostSeed(3, "killed by SIGKILL")]),
+        ({12: 4}, [3, 4], []),
+        ({11: 1, 12: 4}, [3, 4], []),
+    ],
+    ids=[
+        "the seed it said it runs",
+        "killed before it said its seed: that seed runs again",
+        "killed after its seed's result came: nothing lost",
+    ],
+)
+def test_a_seed_is_lost_only_if_the_worker_that_died_said_it_runs_it_and_it_did_not_finish(
+    running: dict[int, int], failed: list[int], lost: list[sweep.LostSeed]
+) -> None:
+    assert lost == sweep._lost(running, {11: "killed by SIGKILL"}, failed)
+
+
+def test_the_seed_bound_is_the_timeout_given_or_the_default_or_ten_times_the_slowest_seed() -> None:
+    assert 7.5 == sweep.seed_bound(7.5, 100.0)
+    assert sweep.SEED_TIMEOUT == sweep.seed_bound(None, 1.0)
+    assert 10 * 100.0 == sweep.seed_bound(None, 100.0)
+
+
+@pytest.mark.timeout(120)
+def test_a_silent_pool_with_seeds_in_flight_and_none_running_is_killed_whole() -> None:
+    # A worker stopped while idle holds the executor's queue: no seed runs, none is
+    # said, nothing comes. Its workers are killed and lose no seed (the seeds run again).
+    pool = sweep._Pool(1)
+    try:
+        (started,) = [pool.submit(os.getpid).result(timeout=60)]
+        pool.kill_hung({5}, 10.0, pool.heard + 10.5)  # (a pool's start may take longer)
+        assert {} == pool.killed
+        pool.kill_hung({5}, 10.0, pool.heard + sweep.SEED_TIMEOUT + 0.5)
+        assert {started: ""} == pool.killed
+    finally:
+        died = pool.end()
+    assert {} == died
+    assert -signal.SIGKILL == pool.processes[started].exitcode
