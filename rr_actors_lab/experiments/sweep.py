@@ -643,8 +643,10 @@ class _Pool:
             future = Future()
             future.set_exception(exc)
         # CPython's ProcessPoolExecutor keeps its workers in `_processes` (pid -> Process,
-        # 3.8 to 3.14; the one private name used here): how a worker ended is its exit code
-        self.processes.update(self.executor._processes or {})
+        # 3.8 to 3.14; the one private name used here): how a worker ended is its exit code.
+        # Without it (a later CPython) no worker is known: a broken pool's seeds run again in
+        # a new one, `BREAKS_IN_A_ROW` breaks end the sweep; a hung worker is not killed.
+        self.processes.update(getattr(self.executor, "_processes", None) or {})
         return future
 
     def read_reports(self, now: float) -> None:
