@@ -71,6 +71,15 @@ def check_name(field: str, value: object, what: str = "a name") -> str:
 
 
 Durability = Literal["process", "power"]
+DURABILITIES: tuple[Durability, ...] = ("process", "power")  # weakest first
+
+
+def at_least(config: RegistrarConfig, durability: Durability) -> RegistrarConfig:
+    """`config`, its `durability` raised to `durability` if weaker (a tree's level)."""
+    if DURABILITIES.index(config.durability) >= DURABILITIES.index(durability):
+        return config
+    return dataclasses.replace(config, durability=durability)
+
 
 DEFAULT_MAX_WORKERS = 64
 """Worker threads a registrar runs callbacks on at once, unless `max_workers` says otherwise."""
@@ -178,7 +187,7 @@ class RegistrarConfig:
         for flag in ("save_on_modify", "erase_on_destruct"):
             if not isinstance(getattr(self, flag), bool):
                 raise ConfigError(f"{flag} must be a bool, got {getattr(self, flag)!r}")
-        if self.durability not in ("process", "power"):
+        if self.durability not in DURABILITIES:
             raise ConfigError(f"durability must be 'process' or 'power', got {self.durability!r}")
         _check_count("max_workers", self.max_workers, 1)
         _check_count("max_pending", self.max_pending, 1)

@@ -253,9 +253,10 @@ def remove_files(path: Path, suffixes: tuple[str, ...] = ("", *SIDE_FILES)) -> N
             Path(f"{path}{suffix}").unlink()
 
 
-def create(path: Path) -> None:
+def create(path: Path, *, synced: bool = False) -> None:
     """Build an empty catalog under a temporary name, then link it into place (a file
-    another process created first wins); `ConfigError` if it cannot be created."""
+    another process created first wins); `ConfigError` if it cannot be created. `synced`
+    (`durability="power"`): the file, then its name, reach the disk before it returns."""
     tmp = temporary_path(path, "creating")
     try:
         _private_file(tmp)
@@ -268,8 +269,12 @@ def create(path: Path) -> None:
         schema.migrate(db, 0)
         db.execute("PRAGMA journal_mode = WAL")
         db.close()
+        if synced:
+            sync_file(tmp)
         with contextlib.suppress(FileExistsError):
             os.link(tmp, path)
+        if synced:
+            sync_directory(path)
     except (sqlite3.Error, OSError) as exc:
         raise ConfigError(f"backup_path {str(path)!r} cannot be created: {exc}") from exc
     finally:
@@ -295,12 +300,36 @@ def copy_aside(db: sqlite3.Connection, path: Path) -> Path:
     return tmp
 
 
-def put_in_place(tmp: Path, path: Path) -> None:
+def put_in_place(tmp: Path, path: Path, *, synced: bool = False) -> None:
     """Move the complete file `tmp` to `path`, its stale side files removed first (every
-    connection to the old file closed). `OSError`: `tmp` is kept, maybe the only copy."""
+    connection to the old file closed; `synced`: the file, then its new name, reach the
+    disk first). `OSError`: `tmp` is kept, maybe the only copy."""
+    if synced:
+        sync_file(tmp)
     remove_files(path, SIDE_FILES)
     os.replace(tmp, path)
+    if synced:
+        sync_directory(path)
     remove_files(tmp, SIDE_FILES)
+
+
+def sync_file(path: str | os.PathLike[str]) -> None:
+    """`fdatasync` the file at `path` (`OSError`)."""
+    fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+    try:
+        os.fdatasync(fd)
+    finally:
+        os.close(fd)
+
+
+def sync_directory(path: str | os.PathLike[str]) -> None:
+    """`fsync` the directory holding `path`, so that a name made or moved there survives
+    a power loss (`OSError`)."""
+    fd = os.open(os.path.dirname(os.path.abspath(path)), os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 @contextlib.contextmanager

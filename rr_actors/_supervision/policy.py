@@ -59,7 +59,14 @@ from rr_actors._supervision.tree import (
     lost_everything,
     ran_before,
 )
-from rr_actors.config import ManagerSpec, RegistrarConfig, Strategy, SupervisorSpec, managers
+from rr_actors.config import (
+    ManagerSpec,
+    RegistrarConfig,
+    Strategy,
+    SupervisorSpec,
+    at_least,
+    managers,
+)
 from rr_actors.errors import ConfigError, RrError, SupervisorGaveUpError
 
 logger = logging.getLogger("rr_actors")
@@ -480,15 +487,18 @@ class Starting:
             record.publish()
 
     def config(self, spec: ManagerSpec) -> RegistrarConfig:
-        """The registrar config of manager `spec`: its own, else one from the state dir."""
+        """The registrar config of manager `spec`: its own, else one from the state dir;
+        at the tree's durability at least (a tree chooses once, for every manager)."""
+        durability = self.record.tree.durability
         if spec.config is not None:
-            return spec.config
+            return at_least(spec.config, durability)
         if self.state_dir is None:
-            return RegistrarConfig(name=spec.name)
+            return RegistrarConfig(name=spec.name, durability=durability)
         return RegistrarConfig(
             name=spec.name,
             backup_path=os.path.join(os.fspath(self.state_dir), f"{spec.name}.db"),
             save_on_modify=True,
+            durability=durability,
         )
 
     def start_child(self, child: Child) -> None:

@@ -43,7 +43,7 @@ from rr_actors._supervision.children import (
     snapshot,
 )
 from rr_actors._supervision.watching import EventRelay
-from rr_actors.config import SupervisorSpec, managers, walk
+from rr_actors.config import Durability, SupervisorSpec, managers, walk
 from rr_actors.errors import (
     CallTimeoutError,
     ConfigError,
@@ -146,8 +146,10 @@ class Tree:
         timer: runtime.StartTimer = runtime.thread_timer,
         random: Callable[[], float] | None = None,
         network: Transport | None = None,
+        durability: Durability = "process",
     ) -> None:
         self.spec = spec
+        self.durability = durability  # the least every backup of the tree gets (rule 14)
         self.cond = runtime.Condition()  # published snapshots of the whole tree
         # waiters woken at each change, in the order they came (each its number: woken in
         # another order, a simulated seed's history would change at each choice point between)
