@@ -103,7 +103,7 @@ def test_an_unknown_strategy_is_a_config_error() -> None:
 
 
 def test_an_unknown_durability_is_a_config_error_naming_the_field() -> None:
-    with pytest.raises(rr.ConfigError, match="^durability must be one of 'process', 'power'"):
+    with pytest.raises(rr.ConfigError, match=r"^durability must be one of 'process', 'power'"):
         Supervisor([], durability="disk")  # type: ignore[arg-type]
 
 
