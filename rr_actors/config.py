@@ -149,8 +149,11 @@ class RegistrarConfig:
         save_on_modify: with a backup, every load and unload is durable before its answer.
         erase_on_destruct: remove the backup after a clean `stop()` (a crash keeps it).
         call_timeout: default `timeout` of every blocking call, in seconds.
-        durability: `"process"` survives a crash of the process (SQLite `synchronous=NORMAL`),
-            `"power"` also power loss (`synchronous=FULL`, slower).
+        durability: what an acknowledged change survives (rule 14). `"process"`: a kill of
+            the process (SQLite `synchronous=NORMAL`, nothing synced); `"power"`: also an
+            OS crash or power loss (everything a restore reads is synced before an
+            answer: `synchronous=FULL`, the commit count, new names; slower). Under a
+            supervisor, at least the tree's `durability`.
         max_workers: worker threads running its callbacks at once (a running coroutine
             `load` holds a place, not a thread); more wait, in order.
         compare_timeout: seconds user code matching a request without a digest may run (`__eq__`,
@@ -288,7 +291,8 @@ class ManagerSpec:
         isolation: `"thread"` (in the supervisor's process) or `"process"` (its own).
         restart: `"permanent"`, `"transient"` (only after an abnormal exit) or `"temporary"`.
         config: its registrar's configuration (same `name`). Default: `RegistrarConfig(name)`,
-            with a supervisor's `state_dir` a backup `<state_dir>/<name>.db`, `save_on_modify`.
+            with a supervisor's `state_dir` a backup `<state_dir>/<name>.db`, `save_on_modify`;
+            its `durability` at least the tree's (`Supervisor(durability=)`).
         shutdown: seconds a clean stop may take before the manager is killed (a thread's
             registrar is told to crash once its callback returns; a restart before then
             fails with `DuplicateNameError`, counted as a crash).
