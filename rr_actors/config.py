@@ -71,15 +71,6 @@ def check_name(field: str, value: object, what: str = "a name") -> str:
 
 
 Durability = Literal["process", "power"]
-DURABILITIES: tuple[Durability, ...] = ("process", "power")  # weakest first
-
-
-def at_least(config: RegistrarConfig, durability: Durability) -> RegistrarConfig:
-    """`config`, its `durability` raised to `durability` if weaker (a tree's level)."""
-    if DURABILITIES.index(config.durability) >= DURABILITIES.index(durability):
-        return config
-    return dataclasses.replace(config, durability=durability)
-
 
 DEFAULT_MAX_WORKERS = 64
 """Worker threads a registrar runs callbacks on at once, unless `max_workers` says otherwise."""
@@ -149,11 +140,9 @@ class RegistrarConfig:
         save_on_modify: with a backup, every load and unload is durable before its answer.
         erase_on_destruct: remove the backup after a clean `stop()` (a crash keeps it).
         call_timeout: default `timeout` of every blocking call, in seconds.
-        durability: what an acknowledged change survives (rule 14). `"process"`: a kill of
-            the process (SQLite `synchronous=NORMAL`, nothing synced); `"power"`: also an
-            OS crash or power loss (everything a restore reads is synced before an
-            answer: `synchronous=FULL`, the commit count, new names; slower). Under a
-            supervisor, at least the tree's `durability`.
+        durability: what an answered change survives (rule 14): `"process"` a kill of the
+            process (nothing synced), `"power"` also an OS crash or power loss (all a restore
+            reads synced before the answer; slower). Under a supervisor, at least the tree's.
         max_workers: worker threads running its callbacks at once (a running coroutine
             `load` holds a place, not a thread); more wait, in order.
         compare_timeout: seconds user code matching a request without a digest may run (`__eq__`,
@@ -190,7 +179,7 @@ class RegistrarConfig:
         for flag in ("save_on_modify", "erase_on_destruct"):
             if not isinstance(getattr(self, flag), bool):
                 raise ConfigError(f"{flag} must be a bool, got {getattr(self, flag)!r}")
-        if self.durability not in DURABILITIES:
+        if self.durability not in ("process", "power"):
             raise ConfigError(f"durability must be 'process' or 'power', got {self.durability!r}")
         _check_count("max_workers", self.max_workers, 1)
         _check_count("max_pending", self.max_pending, 1)
@@ -291,8 +280,7 @@ class ManagerSpec:
         isolation: `"thread"` (in the supervisor's process) or `"process"` (its own).
         restart: `"permanent"`, `"transient"` (only after an abnormal exit) or `"temporary"`.
         config: its registrar's configuration (same `name`). Default: `RegistrarConfig(name)`,
-            with a supervisor's `state_dir` a backup `<state_dir>/<name>.db`, `save_on_modify`;
-            its `durability` at least the tree's (`Supervisor(durability=)`).
+            with a supervisor's `state_dir` a backup `<state_dir>/<name>.db`, `save_on_modify`.
         shutdown: seconds a clean stop may take before the manager is killed (a thread's
             registrar is told to crash once its callback returns; a restart before then
             fails with `DuplicateNameError`, counted as a crash).

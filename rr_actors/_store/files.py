@@ -270,11 +270,11 @@ def create(path: Path, *, synced: bool = False) -> None:
         db.execute("PRAGMA journal_mode = WAL")
         db.close()
         if synced:
-            sync_file(tmp)
+            sync(tmp)
         with contextlib.suppress(FileExistsError):
             os.link(tmp, path)
         if synced:
-            sync_directory(path)
+            sync(path, directory=True)
     except (sqlite3.Error, OSError) as exc:
         raise ConfigError(f"backup_path {str(path)!r} cannot be created: {exc}") from exc
     finally:
@@ -305,29 +305,20 @@ def put_in_place(tmp: Path, path: Path, *, synced: bool = False) -> None:
     connection to the old file closed; `synced`: the file, then its new name, reach the
     disk first). `OSError`: `tmp` is kept, maybe the only copy."""
     if synced:
-        sync_file(tmp)
+        sync(tmp)
     remove_files(path, SIDE_FILES)
     os.replace(tmp, path)
     if synced:
-        sync_directory(path)
+        sync(path, directory=True)
     remove_files(tmp, SIDE_FILES)
 
 
-def sync_file(path: str | os.PathLike[str]) -> None:
-    """`fdatasync` the file at `path` (`OSError`)."""
-    fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+def sync(path: str | os.PathLike[str], *, directory: bool = False) -> None:
+    """`fdatasync` the file at `path`, or `fsync` its `directory` (`OSError`)."""
+    name = os.path.dirname(os.path.abspath(path)) if directory else path
+    fd = os.open(name, os.O_RDONLY | os.O_CLOEXEC)
     try:
-        os.fdatasync(fd)
-    finally:
-        os.close(fd)
-
-
-def sync_directory(path: str | os.PathLike[str]) -> None:
-    """`fsync` the directory holding `path`, so that a name made or moved there survives
-    a power loss (`OSError`)."""
-    fd = os.open(os.path.dirname(os.path.abspath(path)), os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        os.fsync(fd)
+        (os.fsync if directory else os.fdatasync)(fd)
     finally:
         os.close(fd)
 

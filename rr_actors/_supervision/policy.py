@@ -59,14 +59,7 @@ from rr_actors._supervision.tree import (
     lost_everything,
     ran_before,
 )
-from rr_actors.config import (
-    ManagerSpec,
-    RegistrarConfig,
-    Strategy,
-    SupervisorSpec,
-    at_least,
-    managers,
-)
+from rr_actors.config import ManagerSpec, RegistrarConfig, Strategy, SupervisorSpec, managers
 from rr_actors.errors import ConfigError, RrError, SupervisorGaveUpError
 
 logger = logging.getLogger("rr_actors")
@@ -487,11 +480,11 @@ class Starting:
             record.publish()
 
     def config(self, spec: ManagerSpec) -> RegistrarConfig:
-        """The registrar config of manager `spec`: its own, else one from the state dir;
-        at the tree's durability at least (a tree chooses once, for every manager)."""
+        """The registrar config of manager `spec`: its own, else one from the state dir
+        (at the tree's durability at least: `Tree.durable`)."""
         durability = self.record.tree.durability
         if spec.config is not None:
-            return at_least(spec.config, durability)
+            return self.record.tree.durable(spec.config)
         if self.state_dir is None:
             return RegistrarConfig(name=spec.name, durability=durability)
         return RegistrarConfig(

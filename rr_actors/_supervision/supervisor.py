@@ -64,14 +64,12 @@ from rr_actors._supervision.tree import (
 from rr_actors._supervision.watching import TreeWatch
 from rr_actors._types import Query, StatusCallback
 from rr_actors.config import (
-    DURABILITIES,
     Backoff,
     Durability,
     ManagerSpec,
     RegistrarConfig,
     Strategy,
     SupervisorSpec,
-    at_least,
     check_choice,
     check_seconds,
     walk,
@@ -133,12 +131,10 @@ class Supervisor(AsyncSupervision):
             (`<state_dir>/.lock`, the holder's pid) until `stop` or the process's death.
             It remembers the registrars started without a backup
             (`<state_dir>/.consumers/`), whose next start releases what their last run held.
-        durability: what every backup of the tree survives (rule 14), the managers' of
-            nested supervisors too: `"process"` (the default) a kill of its process,
-            `"power"` also an OS crash or power loss (everything a restore reads is
-            synced before a change is answered). It is the least each manager gets: a
-            spec's own `config` keeps `"power"`, and one with `"process"` (the field's
-            default) is raised to the tree's `"power"`, never lowered.
+        durability: what every backup of the tree, nested supervisors' too, survives
+            (rule 14): `"process"` a kill of its process, `"power"` also an OS crash or
+            power loss. The least each manager gets: a spec's own `config` with
+            `"process"` (the field's default) is raised to a `"power"` tree's.
         name: this supervisor's name (for logs and thread names).
         clock: monotonic clock in seconds for the intensity window (`None`:
             `time.monotonic`).
@@ -171,7 +167,7 @@ class Supervisor(AsyncSupervision):
         network: Transport | None = None,
     ) -> None:
         _check_network(network)
-        check_choice("durability", durability, DURABILITIES)
+        check_choice("durability", durability, ("process", "power"))
         if isinstance(children, ManagerSpec | SupervisorSpec):
             children = [children]  # one child: a list of one (it is not iterable)
         elif not isinstance(children, Sequence | tuple | list) or isinstance(children, str):
@@ -446,7 +442,7 @@ class Supervisor(AsyncSupervision):
                 "(inside `with sup:`, or between `sup.start()` and `sup.stop()`)"
             )
         if isinstance(config, RegistrarConfig):
-            config = at_least(config, self._tree.durability)
+            config = self._tree.durable(config)
         registrar = start_registrar(config, upstream=self._tree.events.publisher)
         system = self._tree.processes.system
         try:

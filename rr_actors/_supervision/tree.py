@@ -43,7 +43,7 @@ from rr_actors._supervision.children import (
     snapshot,
 )
 from rr_actors._supervision.watching import EventRelay
-from rr_actors.config import Durability, SupervisorSpec, managers, walk
+from rr_actors.config import Durability, RegistrarConfig, SupervisorSpec, managers, walk
 from rr_actors.errors import (
     CallTimeoutError,
     ConfigError,
@@ -171,6 +171,12 @@ class Tree:
         self.down_since: dict[str, float] = {}  # name -> when its last incarnation ended
         self.restart_due: dict[str, float] = {}  # name -> when its backoff ends (runtime.wall())
         self._mailboxes: weakref.WeakSet[SerialExecutor] = weakref.WeakSet()  # every Node's
+
+    def durable(self, config: RegistrarConfig) -> RegistrarConfig:
+        """`config` at the tree's durability at least (a tree chooses for every manager)."""
+        if self.durability == "power" and config.durability != "power":
+            return dataclasses.replace(config, durability="power")
+        return config
 
     def add_mailbox(self, mailbox: SerialExecutor) -> None:
         self._mailboxes.add(mailbox)
