@@ -846,9 +846,8 @@ def test_with_power_every_answer_leaves_after_the_fdatasync_of_the_log_and_count
 ) -> None:
     """Traced with strace (every process of the tree): each send of the manager process
     comes after the fdatasync of every write to its backup's file, -wal and -commits, and
-    after the fsync of the directory that a new -commits was made in. This machine has no
-    device-mapper (no dm-log-writes, no dm-flakey): the power cut itself is not replayed
-    here (docs/how-to/persistence.md)."""
+    after the fsync of the directory that a new -commits was made in (the power cut
+    itself: `test_with_power_every_answered_change_survives_a_power_cut_...` below)."""
     found = traced(tmp_path, "power", REPLIES)
 
     assert ([], True, True, 1) == (
