@@ -189,6 +189,15 @@ def run(*command: str) -> str:
     return subprocess.run(command, check=True, capture_output=True, text=True, timeout=120).stdout
 
 
+def unmount(where: Path) -> None:
+    """Unmount `where`; if it is busy, detach it lazily (never left mounted) and raise."""
+    try:
+        run("umount", str(where))
+    except subprocess.CalledProcessError:
+        run("umount", "--lazy", str(where))
+        raise
+
+
 class Disk:
     """A logged disk with ext4 on it, mounted at `mounted` (see `logged_disk`)."""
 
@@ -235,12 +244,12 @@ def logged_disk(work: Path, size: int = 32 * 1024 * 1024) -> Iterator[Disk]:
         try:
             yield Disk(daemon, mounted, size)
         finally:
-            run("umount", str(mounted))
+            unmount(mounted)
     finally:
         if loop is not None:
             run("losetup", "--detach", loop)
-        with contextlib.suppress(subprocess.CalledProcessError):
-            run("umount", str(fuse_dir))
+        with contextlib.suppress(subprocess.CalledProcessError):  # (not mounted: no daemon)
+            unmount(fuse_dir)
         for pipe in (daemon.stdin, daemon.stdout):
             if pipe is not None:
                 pipe.close()
@@ -282,7 +291,7 @@ def mounted_image(data: bytes) -> Iterator[Path]:
         try:
             yield mounted
         finally:
-            run("umount", str(mounted))
+            unmount(mounted)
     finally:
         run("losetup", "--detach", loop)
         shutil.rmtree(scratch)
