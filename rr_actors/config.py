@@ -140,8 +140,9 @@ class RegistrarConfig:
         save_on_modify: with a backup, every load and unload is durable before its answer.
         erase_on_destruct: remove the backup after a clean `stop()` (a crash keeps it).
         call_timeout: default `timeout` of every blocking call, in seconds.
-        durability: `"process"` survives a crash of the process (SQLite `synchronous=NORMAL`),
-            `"power"` also power loss (`synchronous=FULL`, slower).
+        durability: what an answered change survives (rule 14): `"process"` a kill of the
+            process (nothing synced), `"power"` also an OS crash or power loss (all a restore
+            reads synced before the answer; slower). Under a supervisor, at least the tree's.
         max_workers: worker threads running its callbacks at once (a running coroutine
             `load` holds a place, not a thread); more wait, in order.
         compare_timeout: seconds user code matching a request without a digest may run (`__eq__`,

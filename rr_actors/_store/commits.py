@@ -9,7 +9,8 @@
 ```
 
 Why ("A truncated WAL loses its newest commits"): docs/explanation/failure-semantics.md.
-The count (not fsynced: a count lost only hides a loss, never invents one) restarts with
+The count (synced after the log with `durability="power"`; else not: a count lost only
+hides a loss, never invents one) restarts with
 each generation of the log (new salts), read from the `-shm` SQLite maps (a memory read,
 else the log's header). The check reads frame headers only: it detects a log cut short,
 not one damaged in its middle; a database file written after the last count reports
@@ -26,6 +27,8 @@ import struct
 import weakref
 from pathlib import Path
 
+from rr_actors._store.files import sync
+
 logger = logging.getLogger("rr_actors")
 
 SUFFIX = "-commits"  # the count's file, beside the backup (`erm.db-commits`)
@@ -39,10 +42,12 @@ _SHM_SALTS = slice(32, 40)  # the salts in the shared memory's first header (`Wa
 
 class CommitCount:
     """Counts the commits of the current WAL generation of backup `file` (the writer's
-    thread; never raises; not `kept`: a simulation's, counts nothing)."""
+    thread; never raises; not `kept`: a simulation's, counts nothing; `synced`: on the
+    disk, with its name, when `committed` returns)."""
 
-    def __init__(self, file: Path, *, kept: bool = True) -> None:
+    def __init__(self, file: Path, *, kept: bool = True, synced: bool = False) -> None:
         self.kept = kept
+        self.synced = synced
         self.path = f"{file}{SUFFIX}"
         self._wal = f"{file}-wal"
         self._shm_name = f"{file}-shm"
@@ -61,6 +66,7 @@ class CommitCount:
             self._count += 1  # (most commits: the same generation of the log)
             try:
                 os.pwrite(count, self._count.to_bytes(8, "big"), 8)
+                self._sync(count)
             except OSError as exc:
                 logger.debug("the commit count %s cannot be kept: %s", self.path, exc)
             return
@@ -80,14 +86,22 @@ class CommitCount:
                     self._count += 1
                 else:  # the first commit of this store, or the log restarted: count them
                     self._salts, self._count = salts, _commit_frames(wal, header)
+            created = "count" not in self._fds
             count = self._fds.get("count")
             if count is None:
                 count = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
                 self._fds["count"] = count
                 os.fchmod(count, 0o600)  # (whatever the umask: like SQLite's side files)
             os.pwrite(count, _RECORD.pack(self._salts, self._count), 0)
+            self._sync(count, created=created)
         except OSError as exc:
             logger.debug("the commit count %s cannot be kept: %s", self.path, exc)
+
+    def _sync(self, count: int, *, created: bool = False) -> None:
+        if self.synced:  # (after SQLite's commit, which synced the log first)
+            os.fdatasync(count)
+            if created:
+                sync(self.path, directory=True)
 
     def _map_shm(self) -> mmap.mmap | None:
         self._shm_tried = True

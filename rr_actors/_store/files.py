@@ -253,9 +253,10 @@ def remove_files(path: Path, suffixes: tuple[str, ...] = ("", *SIDE_FILES)) -> N
             Path(f"{path}{suffix}").unlink()
 
 
-def create(path: Path) -> None:
+def create(path: Path, *, synced: bool = False) -> None:
     """Build an empty catalog under a temporary name, then link it into place (a file
-    another process created first wins); `ConfigError` if it cannot be created."""
+    another process created first wins); `ConfigError` if it cannot be created. `synced`
+    (`durability="power"`): the file, then its name, reach the disk before it returns."""
     tmp = temporary_path(path, "creating")
     try:
         _private_file(tmp)
@@ -268,8 +269,12 @@ def create(path: Path) -> None:
         schema.migrate(db, 0)
         db.execute("PRAGMA journal_mode = WAL")
         db.close()
+        if synced:
+            sync(tmp)
         with contextlib.suppress(FileExistsError):
             os.link(tmp, path)
+        if synced:
+            sync(path, directory=True)
     except (sqlite3.Error, OSError) as exc:
         raise ConfigError(f"backup_path {str(path)!r} cannot be created: {exc}") from exc
     finally:
@@ -295,12 +300,27 @@ def copy_aside(db: sqlite3.Connection, path: Path) -> Path:
     return tmp
 
 
-def put_in_place(tmp: Path, path: Path) -> None:
+def put_in_place(tmp: Path, path: Path, *, synced: bool = False) -> None:
     """Move the complete file `tmp` to `path`, its stale side files removed first (every
-    connection to the old file closed). `OSError`: `tmp` is kept, maybe the only copy."""
+    connection to the old file closed; `synced`: the file, then its new name, reach the
+    disk first). `OSError`: `tmp` is kept, maybe the only copy."""
+    if synced:
+        sync(tmp)
     remove_files(path, SIDE_FILES)
     os.replace(tmp, path)
+    if synced:
+        sync(path, directory=True)
     remove_files(tmp, SIDE_FILES)
+
+
+def sync(path: str | os.PathLike[str], *, directory: bool = False) -> None:
+    """`fdatasync` the file at `path`, or `fsync` its `directory` (`OSError`)."""
+    name = os.path.dirname(os.path.abspath(path)) if directory else path
+    fd = os.open(name, os.O_RDONLY | os.O_CLOEXEC)
+    try:
+        (os.fsync if directory else os.fdatasync)(fd)
+    finally:
+        os.close(fd)
 
 
 @contextlib.contextmanager

@@ -113,7 +113,8 @@ class SqliteStore:
         self._owed: set[str] = set()
         self.closed = False
         self._decode = functools.partial(codec.decode, self.path)
-        self._commits = CommitCount(self._file, kept=self._guarded)
+        self._synced = synchronous == SYNCHRONOUS["power"]  # (all a restore reads)
+        self._commits = CommitCount(self._file, kept=self._guarded, synced=self._synced)
         self.lost_commits = 0  # of the last run, that its WAL no longer held
         self.commits = 0  # write transactions since it opened
 
@@ -127,8 +128,10 @@ class SqliteStore:
     ) -> SqliteStore:
         """Open the backup at `path`, creating an empty one if there is no file.
 
-        `durability`: `"process"` (`synchronous=NORMAL`) or `"power"` (`FULL`, an fsync a
-        commit); `background_checkpoints`: copy the WAL on a thread (`Checkpointer`).
+        `durability`: `"process"` (`synchronous=NORMAL`, nothing synced) or `"power"`
+        (`FULL`: each commit's log, then its count, synced before it returns; a file
+        created or put in place synced with its name); `background_checkpoints`: copy the
+        WAL on a thread (`Checkpointer`).
 
         Raises:
             ConfigError: the path cannot hold a backup, the file belongs to another user,
@@ -156,7 +159,7 @@ class SqliteStore:
         created = False
         lost = None
         if not file.exists():
-            create(file)
+            create(file, synced=durability == "power")
             created = True
         if lock is not None:
             lock.hold_file()
@@ -462,7 +465,7 @@ class SqliteStore:
                 raise write_error(self.path, exc) from exc
             self._close_connections()
         try:  # no connection is open on the old file now: SQLite would remove the new -wal
-            put_in_place(self._aside, self._file)
+            put_in_place(self._aside, self._file, synced=self._synced)
             self._aside = None
             if self._lock is not None:  # (before SQLite locks the new file: see `lockfile`)
                 self._lock.file_replaced()

@@ -65,10 +65,12 @@ from rr_actors._supervision.watching import TreeWatch
 from rr_actors._types import Query, StatusCallback
 from rr_actors.config import (
     Backoff,
+    Durability,
     ManagerSpec,
     RegistrarConfig,
     Strategy,
     SupervisorSpec,
+    check_choice,
     check_seconds,
     walk,
 )
@@ -129,6 +131,10 @@ class Supervisor(AsyncSupervision):
             (`<state_dir>/.lock`, the holder's pid) until `stop` or the process's death.
             It remembers the registrars started without a backup
             (`<state_dir>/.consumers/`), whose next start releases what their last run held.
+        durability: what every backup of the tree, nested supervisors' too, survives
+            (rule 14): `"process"` a kill of its process, `"power"` also an OS crash or
+            power loss. The least each manager gets: a spec's own `config` with
+            `"process"` (the field's default) is raised to a `"power"` tree's.
         name: this supervisor's name (for logs and thread names).
         clock: monotonic clock in seconds for the intensity window (`None`:
             `time.monotonic`).
@@ -153,6 +159,7 @@ class Supervisor(AsyncSupervision):
         period: float = 5.0,
         backoff: Backoff | None = None,
         state_dir: str | os.PathLike[str] | None = None,
+        durability: Durability = "process",
         name: str | None = None,
         clock: Clock | None = None,
         timer: runtime.StartTimer = runtime.thread_timer,
@@ -160,6 +167,7 @@ class Supervisor(AsyncSupervision):
         network: Transport | None = None,
     ) -> None:
         _check_network(network)
+        check_choice("durability", durability, ("process", "power"))
         if isinstance(children, ManagerSpec | SupervisorSpec):
             children = [children]  # one child: a list of one (it is not iterable)
         elif not isinstance(children, Sequence | tuple | list) or isinstance(children, str):
@@ -182,6 +190,7 @@ class Supervisor(AsyncSupervision):
             timer=timer,
             random=random,
             network=network,
+            durability=durability,
         )
         self._node = Node(self._spec, self._tree)
         self._lock: StateDirLock | None = None
@@ -414,7 +423,7 @@ class Supervisor(AsyncSupervision):
         with every registrar, which releases the ids its last run held (rule 20).
 
         Args:
-            config: a `RegistrarConfig` or a name.
+            config: a `RegistrarConfig` (its `durability` raised to the tree's) or a name.
 
         Raises:
             DuplicateNameError: a registrar of that name runs in this process.
@@ -432,6 +441,8 @@ class Supervisor(AsyncSupervision):
                 f"supervisor {self.name!r} was stopped: call `registrar()` while it runs "
                 "(inside `with sup:`, or between `sup.start()` and `sup.stop()`)"
             )
+        if isinstance(config, RegistrarConfig):
+            config = self._tree.durable(config)
         registrar = start_registrar(config, upstream=self._tree.events.publisher)
         system = self._tree.processes.system
         try:

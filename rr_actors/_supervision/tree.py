@@ -43,7 +43,7 @@ from rr_actors._supervision.children import (
     snapshot,
 )
 from rr_actors._supervision.watching import EventRelay
-from rr_actors.config import SupervisorSpec, managers, walk
+from rr_actors.config import Durability, RegistrarConfig, SupervisorSpec, managers, walk
 from rr_actors.errors import (
     CallTimeoutError,
     ConfigError,
@@ -146,8 +146,10 @@ class Tree:
         timer: runtime.StartTimer = runtime.thread_timer,
         random: Callable[[], float] | None = None,
         network: Transport | None = None,
+        durability: Durability = "process",
     ) -> None:
         self.spec = spec
+        self.durability = durability  # the least every backup of the tree gets (rule 14)
         self.cond = runtime.Condition()  # published snapshots of the whole tree
         # waiters woken at each change, in the order they came (each its number: woken in
         # another order, a simulated seed's history would change at each choice point between)
@@ -169,6 +171,12 @@ class Tree:
         self.down_since: dict[str, float] = {}  # name -> when its last incarnation ended
         self.restart_due: dict[str, float] = {}  # name -> when its backoff ends (runtime.wall())
         self._mailboxes: weakref.WeakSet[SerialExecutor] = weakref.WeakSet()  # every Node's
+
+    def durable(self, config: RegistrarConfig) -> RegistrarConfig:
+        """`config` at the tree's durability at least (a tree chooses for every manager)."""
+        if self.durability == "power" and config.durability != "power":
+            return dataclasses.replace(config, durability="power")
+        return config
 
     def add_mailbox(self, mailbox: SerialExecutor) -> None:
         self._mailboxes.add(mailbox)

@@ -261,3 +261,35 @@ def test_the_count_follows_the_log_through_its_restarts_reading_its_salts_from_m
     assert 50 == len(ends)  # (the commits since the last restart)
     assert (salts, 50) == record
     assert len([offset for offset in reads if offset == 0]) == 6  # one a generation
+
+
+@pytest.mark.parametrize("synced", [False, True])
+def test_a_synced_count_is_on_the_disk_with_its_name_when_committed_returns(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, synced: bool
+) -> None:
+    """`durability="power"`: each count is `fdatasync`ed, and the directory is synced once
+    the count's file is made; without, nothing is synced."""
+    file = tmp_path / "b.db"
+    db = sqlite3.connect(file, isolation_level=None)
+    db.execute("PRAGMA journal_mode=WAL")
+    db.execute("CREATE TABLE t (x)")
+    count = CommitCount(file, synced=synced)
+    done = []
+    for call in ("fdatasync", "fsync"):
+        real = getattr(os, call)
+
+        def recorded(fd: int, real: Callable[[int], None] = real, call: str = call) -> None:
+            done.append((call, os.path.basename(os.readlink(f"/proc/self/fd/{fd}"))))
+            real(fd)
+
+        monkeypatch.setattr(os, call, recorded)
+    for n in range(3):
+        db.execute("INSERT INTO t VALUES (?)", (n,))
+        count.committed()
+    monkeypatch.undo()
+    count.close()
+    db.close()
+
+    made = [("fdatasync", "b.db-commits"), ("fsync", tmp_path.name)]
+    expected = [*made, ("fdatasync", "b.db-commits"), ("fdatasync", "b.db-commits")]
+    assert (expected if synced else []) == done

@@ -919,3 +919,67 @@ def test_another_name_of_a_backup_is_free_once_its_registrar_stopped(
 
     second = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=unique("b"), backup_path=other))
     second.stop()
+
+
+# -- durability="power": a file made or put in place is synced, then its name ---------------
+
+
+@pytest.fixture
+def file_syncs(monkeypatch: pytest.MonkeyPatch) -> list[tuple[str, str]]:
+    """Every `fdatasync`, `fsync` (the name of the file synced), `link` and `replace` (the
+    new name) Python makes during the test, in order (SQLite's own are not seen)."""
+    done: list[tuple[str, str]] = []
+    for call in ("fdatasync", "fsync"):
+        real = getattr(os, call)
+
+        def synced(fd: int, real: Callable[[int], None] = real, call: str = call) -> None:
+            done.append((call, os.readlink(f"/proc/self/fd/{fd}")))
+            real(fd)
+
+        monkeypatch.setattr(os, call, synced)
+    for call in ("link", "replace"):
+        real_move = getattr(os, call)
+
+        def moved(src: Any, dst: Any, real: Any = real_move, call: str = call) -> None:
+            real(src, dst)
+            done.append((call, os.fspath(dst)))
+
+        monkeypatch.setattr(os, call, moved)
+    return done
+
+
+@pytest.mark.parametrize("durability", ["process", "power"])
+def test_a_new_backup_is_synced_then_linked_then_its_directory_synced_only_with_power(
+    tmp_path: Path, file_syncs: list[tuple[str, str]], durability: Any
+) -> None:
+    path = tmp_path / "p.db"
+    SqliteStore.open(path, durability=durability).close(erase=False)
+
+    made = [(call, Path(name).name.split(".")[-1]) for call, name in file_syncs]
+    expected = [("fdatasync", "creating"), ("link", "db"), ("fsync", tmp_path.name)]
+    assert (expected if durability == "power" else [("link", "db")]) == made
+
+
+def test_a_backup_deleted_under_a_power_registrar_is_put_back_synced_then_named(
+    tmp_path: Path, file_syncs: list[tuple[str, str]]
+) -> None:
+    path = tmp_path / "p.db"
+    store = SqliteStore.open(path, durability="power")
+    catalog = Catalog()
+    try:
+        store.load()
+        for rid in ("r1", "r2"):
+            catalog.begin_load(rid, "leaf", {"k": rid})
+            if rid == "r2":  # (the file gone since the last commit)
+                path.unlink()
+                file_syncs.clear()
+            store.write(catalog.drain_changes())
+    finally:
+        store.close(erase=False)
+
+    at = [call for call, _ in file_syncs].index("replace")
+    assert (("fdatasync", "rewriting"), ("replace", str(path)), ("fsync", str(tmp_path))) == (
+        (file_syncs[at - 1][0], file_syncs[at - 1][1].split(".")[-1]),
+        file_syncs[at],
+        file_syncs[at + 1],
+    )

@@ -102,6 +102,66 @@ def test_an_unknown_strategy_is_a_config_error() -> None:
         Supervisor([], strategy="one_for_some")  # type: ignore[arg-type]
 
 
+def test_an_unknown_durability_is_a_config_error_naming_the_field() -> None:
+    with pytest.raises(rr.ConfigError, match=r"^durability must be one of 'process', 'power'"):
+        Supervisor([], durability="disk")  # type: ignore[arg-type]
+
+
+def durabilities(sup: Supervisor, names: list[str]) -> dict[str, tuple[str, bool]]:
+    """Each manager's durability, and whether it keeps a backup, asked where it runs."""
+    return {
+        name: sup.run_in(name, lambda r: (r.config.durability, r.config.backup_path is not None))
+        for name in names
+    }
+
+
+def test_the_trees_durability_reaches_thread_process_and_nested_managers(
+    supervisors: Callable[..., Supervisor], uid: str, tmp_path: Any
+) -> None:
+    names = [f"thread-{uid}", f"process-{uid}", f"nested-{uid}"]
+    inner = SupervisorSpec(f"inner-{uid}", (ManagerSpec(names[2], isolation="process"),))
+    sup = supervisors(
+        [ManagerSpec(names[0]), ManagerSpec(names[1], isolation="process"), inner],
+        state_dir=tmp_path,
+        durability="power",
+    )
+
+    with sup:
+        found = durabilities(sup, names)
+
+    assert dict.fromkeys(names, ("power", True)) == found
+
+
+def test_a_spec_with_its_own_config_gets_the_trees_durability_at_least(
+    supervisors: Callable[..., Supervisor], uid: str, tmp_path: Any
+) -> None:
+    # The tree's level is a floor: a config that set other fields (its durability left at
+    # the default "process") is raised to a "power" tree's; one that asked for "power" in
+    # a "process" tree keeps it.
+    names = [f"own-{uid}", f"strong-{uid}"]
+    own = rr.RegistrarConfig(name=names[0], backup_path=tmp_path / "own.db", call_timeout=3.0)
+    strong = rr.RegistrarConfig(name=names[1], backup_path=tmp_path / "s.db", durability="power")
+    power = supervisors([ManagerSpec(names[0], config=own)], durability="power")
+    default = supervisors([ManagerSpec(names[1], isolation="process", config=strong)])
+
+    with power, default:
+        found = {**durabilities(power, names[:1]), **durabilities(default, names[1:])}
+
+    assert {names[0]: ("power", True), names[1]: ("power", True)} == found
+
+
+def test_a_consumer_registrar_of_a_power_tree_gets_its_durability(
+    supervisors: Callable[..., Supervisor], uid: str, tmp_path: Any
+) -> None:
+    sup = supervisors([], durability="power")
+    config = rr.RegistrarConfig(name=f"app-{uid}", backup_path=tmp_path / "app.db")
+
+    with sup:
+        found = sup.registrar(config).config.durability
+
+    assert "power" == found
+
+
 # -- start, stop, introspection -------------------------------------------------------------
 
 
