@@ -138,12 +138,12 @@ def test_an_unknown_option_without_a_close_one_is_named_alone_and_a_stray_argume
     unknown = rr_actors_command("inspect", "x.db", "--zzzzzz")
     stray = rr_actors_command("inspect", "x.db", "y.db")
 
-    assert 2 == unknown.returncode
-    assert "rr-actors inspect: error: unknown option --zzzzzz" == unknown.stderr.splitlines()[-1]
-    assert 2 == stray.returncode
-    assert (
-        "rr-actors inspect: error: unrecognized arguments: y.db" == (stray.stderr.splitlines()[-1])
-    )
+    said = [result.stderr.splitlines()[-1] for result in (unknown, stray)]
+    assert (2, 2) == (unknown.returncode, stray.returncode)
+    assert [
+        "rr-actors inspect: error: unknown option --zzzzzz",
+        "rr-actors inspect: error: unrecognized arguments: y.db",
+    ] == said
 
 
 HEAVY = (
