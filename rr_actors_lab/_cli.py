@@ -1,7 +1,10 @@
 """The `rr-actors` command line.
 
 Each subcommand is one `Command`: a name, a one-line help, a function that adds its
-arguments, and a function that runs it. Add a subcommand by appending to `COMMANDS`.
+arguments, and a function that runs it. Add a subcommand by appending to `COMMANDS`. Both
+functions import what the subcommand needs: the arguments are added only when the
+subcommand is chosen, and this module imports only the standard library (`rr-actors
+--version` and `--help` take Python's start, not the tools').
 
     rr-actors demo                          # the thesis's robot mission (Linux)
     rr-actors inspect state/erm.db          # a catalog backup as a tree
@@ -24,7 +27,6 @@ import argparse
 import contextlib
 import dataclasses
 import functools
-import importlib.metadata
 import json
 import math
 import re
@@ -33,17 +35,12 @@ import sys
 import textwrap
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, NoReturn, TextIO
+from typing import TYPE_CHECKING, Any, NoReturn, TextIO
 
-import rr_actors
-from rr_actors import events
-from rr_actors._catalog import ClientRecord, Resource, ResourceState
-from rr_actors._core import hlc
-from rr_actors._extras import needs
-from rr_actors._log import terminal_width, wrap
-from rr_actors._store import Backup, Unreadable, read_backup
-from rr_actors.errors import CatalogCorruptError, ConfigError, MissingExtraError, _known_names
-from rr_actors_lab.observe import _commands as observe_commands
+if TYPE_CHECKING:  # (only these: a command imports the runtime's modules when it runs)
+    from rr_actors import events
+    from rr_actors._catalog import ClientRecord, Resource
+    from rr_actors._store import Backup
 
 __all__ = ["COMMANDS", "Command", "backup_to_dict", "main", "render_tree", "version"]
 
@@ -55,7 +52,8 @@ class Command:
     Attributes:
         name: the subcommand's name.
         help: one line for `rr-actors --help`.
-        add_arguments: adds the subcommand's arguments to its parser.
+        add_arguments: adds the subcommand's arguments to its parser (called only when
+            the command line names this subcommand).
         run: runs it with the parsed arguments and an output stream; returns the exit code.
     """
 
@@ -77,6 +75,8 @@ Node = tuple[str, list[Any]]
 
 
 def _short(value: Any, width: int = 60) -> str:
+    from rr_actors._store import Unreadable
+
     text = repr(value)
     if isinstance(value, Unreadable) or len(text) <= width:
         return text
@@ -84,6 +84,8 @@ def _short(value: Any, width: int = 60) -> str:
 
 
 def _in_doubt(resource: Resource) -> bool:
+    from rr_actors._catalog import ResourceState
+
     return resource.state is not ResourceState.LOADED
 
 
@@ -205,6 +207,8 @@ def _inspect_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _backups_in(folder: Path) -> list[Path]:
     """The catalog backups in `folder` and its subfolders, by path (a `ConfigError` if none)."""
+    from rr_actors.errors import ConfigError
+
     found = sorted(folder.rglob("*.db"))
     if not found:
         raise ConfigError(
@@ -215,6 +219,8 @@ def _backups_in(folder: Path) -> list[Path]:
 
 
 def _inspect(args: argparse.Namespace, out: TextIO) -> int:
+    from rr_actors._store import read_backup
+
     path = Path(args.path)
     paths = _backups_in(path) if path.is_dir() else [path]
     backups = [read_backup(p) for p in paths]
@@ -228,30 +234,32 @@ def _inspect(args: argparse.Namespace, out: TextIO) -> int:
 
 
 def _demo_arguments(parser: argparse.ArgumentParser) -> None:
-    from rr_actors_lab.mission import run  # noqa: PLC0415 - only the demo needs the mission
+    from rr_actors_lab.mission import run  # only the demo needs the mission
 
     run.add_arguments(parser)
 
 
 def _demo(args: argparse.Namespace, _out: TextIO) -> int:
-    from rr_actors_lab.mission import run  # noqa: PLC0415 - only the demo needs the mission
+    from rr_actors_lab.mission import run  # only the demo needs the mission
 
     return run.run(args)
 
 
 def _experiment_arguments(parser: argparse.ArgumentParser) -> None:
     try:
-        from rr_actors_lab.experiments import cli  # noqa: PLC0415 - only experiments need it
+        from rr_actors_lab.experiments import cli  # only experiments need it
     except ImportError:  # the experiments extra is missing: say so when it is used
         parser.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
-        parser.set_defaults(any_arguments=True)  # (--list too: `main` lets them through)
+        parser.set_defaults(any_arguments=True)  # (--list too: `_Parser` lets them through)
         return
     cli.add_arguments(parser)
 
 
 def _experiment(args: argparse.Namespace, out: TextIO) -> int:
+    from rr_actors._extras import needs
+
     with needs("experiments", THIS_COMMAND):
-        from rr_actors_lab.experiments import cli  # noqa: PLC0415 - only experiments need it
+        from rr_actors_lab.experiments import cli  # only experiments need it
     return cli.main(args, out)
 
 
@@ -267,7 +275,7 @@ def _sweep_arguments(command: str, parser: argparse.ArgumentParser) -> None:
     """The arguments of the simulation's `command` (`replay`, `shrink`): `sweep`'s
     `<command>_arguments`, or none if the experiments extra is missing (said when used)."""
     try:
-        from rr_actors_lab.experiments import sweep  # noqa: PLC0415 - only experiments need it
+        from rr_actors_lab.experiments import sweep  # only experiments need it
     except ImportError:  # the experiments extra is missing: say so when it is used
         parser.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
         parser.set_defaults(any_arguments=True)
@@ -277,9 +285,11 @@ def _sweep_arguments(command: str, parser: argparse.ArgumentParser) -> None:
 
 def _sweep_command(command: str, args: argparse.Namespace, out: TextIO) -> int:
     """Run the simulation's `command` (`sweep.run_<command>`), its extras checked first."""
+    from rr_actors._extras import needs
+
     with needs("experiments", THIS_COMMAND):
-        from rr_actors import simulation  # noqa: PLC0415 - its extra (greenlet): said at once
-        from rr_actors_lab.experiments import sweep  # noqa: PLC0415 - only experiments need it
+        from rr_actors import simulation  # its extra (greenlet): said at once
+        from rr_actors_lab.experiments import sweep  # only experiments need it
     del simulation
     code: int = getattr(sweep, f"run_{command}")(args, out)
     return code
@@ -301,13 +311,16 @@ def _check_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _check(args: argparse.Namespace, out: TextIO) -> int:
     """Print each run's verdict and findings; exit 1 if any run violated a rule."""
+    from rr_actors._extras import needs
+
     with needs("experiments", THIS_COMMAND):
-        from rr_actors_lab.experiments import check  # noqa: PLC0415 - only this command needs it
+        from rr_actors_lab.experiments import check  # only this command needs it
+    from rr_actors.errors import ConfigError
 
     path = Path(args.run_dir)
     try:
         verdicts = check.check_file(path)
-    except rr_actors.ConfigError as exc:
+    except ConfigError as exc:
         sys.stderr.write(f"rr-actors check: {exc}\n")
         return 2
     file = path / "events.jsonl" if path.is_dir() else path
@@ -334,6 +347,40 @@ def _check(args: argparse.Namespace, out: TextIO) -> int:
     return 1 if any(v.verdict == "violated" for v in verdicts.values()) else 0
 
 
+# -- observe, graph (rr_actors_lab.observe._commands) -------------------------------------
+
+_OBSERVE_HELP = (
+    "serve the observer's page for a state directory's backups (--state: read-only, no live "
+    "system), or of every host of a system across hosts (--system: as a member; needs the "
+    "zenoh extra); needs the observe extra"
+)
+_GRAPH_HELP = "print the dependency graph of a state directory's backups as Mermaid or DOT text"
+
+
+def _observe_arguments(parser: argparse.ArgumentParser) -> None:
+    from rr_actors_lab.observe import _commands  # only these need the observer
+
+    _commands.observe_arguments(parser)
+
+
+def _observe(args: argparse.Namespace, out: TextIO) -> int:
+    from rr_actors_lab.observe import _commands  # only these need the observer
+
+    return _commands.run_observe(args, out)
+
+
+def _graph_arguments(parser: argparse.ArgumentParser) -> None:
+    from rr_actors_lab.observe import _commands  # only these need the observer
+
+    _commands.graph_arguments(parser)
+
+
+def _graph(args: argparse.Namespace, out: TextIO) -> int:
+    from rr_actors_lab.observe import _commands  # only these need the observer
+
+    return _commands.run_graph(args, out)
+
+
 # -- events ----------------------------------------------------------------------------------
 
 _EVENTS_HELP = "print every host's events as JSON lines, ordered by their clock stamps (hlc)"
@@ -344,7 +391,7 @@ _TEACH_HELP = "a classroom kit: exercises checked by the verdict of simulated ru
 
 def _teach_arguments(parser: argparse.ArgumentParser) -> None:
     try:
-        from rr_actors_lab.teach import cli  # noqa: PLC0415 - only the kit needs it
+        from rr_actors_lab.teach import cli  # only the kit needs it
     except ImportError:  # the teach extra is missing: say so when it is used
         parser.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
         parser.set_defaults(any_arguments=True)
@@ -353,8 +400,10 @@ def _teach_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _teach(args: argparse.Namespace, out: TextIO) -> int:
+    from rr_actors._extras import needs
+
     with needs("teach", THIS_COMMAND):
-        from rr_actors_lab.teach import cli  # noqa: PLC0415 - only the kit needs it
+        from rr_actors_lab.teach import cli  # only the kit needs it
     return cli.main(args, out)
 
 
@@ -384,7 +433,7 @@ def _positive_seconds(text: str) -> float:
 
 
 def _events_arguments(parser: argparse.ArgumentParser) -> None:
-    from rr_actors_lab._tools.options import add_network_arguments  # noqa: PLC0415
+    from rr_actors_lab._tools.options import add_network_arguments
 
     parser.add_argument(
         "--merge",
@@ -410,10 +459,13 @@ def _events_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _events(args: argparse.Namespace, out: TextIO) -> int:
     """Print the system's events (`--network`) or merge files (`--merge`), one JSON line each."""
-    import threading  # noqa: PLC0415
+    import threading
 
-    from rr_actors.events.lines import json_lines  # noqa: PLC0415
-    from rr_actors_lab._tools.options import network_from  # noqa: PLC0415
+    from rr_actors import events
+    from rr_actors._extras import needs
+    from rr_actors.errors import ConfigError
+    from rr_actors.events.lines import json_lines
+    from rr_actors_lab._tools.options import network_from
 
     if args.merge:
         merged: list[tuple[int, str]] = []  # (stamp, line), in the files' order
@@ -470,6 +522,10 @@ def _merged_line(data: Any, previous: int) -> tuple[int, str]:
         ConfigError: not an event or fault line, a field of a wrong type, a fault's `at` not
             a number.
     """
+    from rr_actors import events
+    from rr_actors._core import hlc
+    from rr_actors.errors import ConfigError
+
     if isinstance(data, dict) and "schema" not in data and data.get("type") in FAULT_LINES:
         at = data.get("at")
         if at is None:
@@ -543,8 +599,10 @@ def _certs_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _certs(args: argparse.Namespace, out: TextIO) -> int:
+    from rr_actors._extras import needs
+
     with needs("zenoh", THIS_COMMAND):
-        from rr_actors_lab._tools import certs  # noqa: PLC0415 - needs cryptography
+        from rr_actors_lab._tools import certs  # needs cryptography
     if args.certs_command == "init":
         pem, key = certs.init_ca(args.dir, args.system, force=args.force)
         out.write(
@@ -589,18 +647,8 @@ COMMANDS: list[Command] = [
         _inspect_arguments,
         _inspect,
     ),
-    Command(
-        "observe",
-        observe_commands.OBSERVE_HELP,
-        observe_commands.observe_arguments,
-        observe_commands.run_observe,
-    ),
-    Command(
-        "graph",
-        observe_commands.GRAPH_HELP,
-        observe_commands.graph_arguments,
-        observe_commands.run_graph,
-    ),
+    Command("observe", _OBSERVE_HELP, _observe_arguments, _observe),
+    Command("graph", _GRAPH_HELP, _graph_arguments, _graph),
     Command("events", _EVENTS_HELP, _events_arguments, _events),
     Command(
         "experiment",
@@ -629,10 +677,31 @@ COMMANDS: list[Command] = [
 
 def version() -> str:
     """The installed distribution's version (the package's `__version__` if not installed)."""
+    import importlib.metadata  # (its import costs more than the rest of `--help`'s)
+
     try:
         return importlib.metadata.version("rr-actors")
     except importlib.metadata.PackageNotFoundError:
+        import rr_actors
+
         return rr_actors.__version__
+
+
+class _Version(argparse.Action):
+    """`--version`: print `rr-actors VERSION` and exit 0 (the version read when asked)."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str, help: str) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, help=help)
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> NoReturn:
+        sys.stdout.write(f"{parser.prog} {version()}\n")
+        parser.exit()
 
 
 _INVALID_CHOICE = re.compile(r"invalid choice: '(?P<name>[^']*)' \(choose from (?P<known>.*)\)$")
@@ -640,12 +709,68 @@ _INVALID_CHOICE = re.compile(r"invalid choice: '(?P<name>[^']*)' \(choose from (
 
 
 class _Parser(argparse.ArgumentParser):
-    """An argument parser whose "invalid choice" error says which choice was meant."""
+    """An argument parser that adds its arguments when it first parses, and whose errors
+    say what was meant.
+
+    A subcommand's parser gets its arguments (`Command.add_arguments`, which imports what
+    the subcommand needs) only when argparse chooses it: `rr-actors --version`, `--help`
+    and every other subcommand import none of it. A choice that is not one, or an option
+    the parser does not know, is an error of the parser that was given it (its usage, then
+    the closest name: `unknown option --fats; did you mean --fast?`), exit 2; argparse
+    itself reports a subcommand's unknown options with the top-level usage and no hint
+    (its `suggest_on_error` is 3.14's). A subcommand whose extra is missing takes any
+    arguments (`any_arguments` in its defaults): running it says what to install.
+    """
+
+    def __init__(
+        self,
+        *args: Any,
+        arguments: Callable[[argparse.ArgumentParser], None] | None = None,
+        **kwargs: Any,
+    ) -> None:
+        super().__init__(*args, **kwargs)
+        self._add_arguments = arguments
+
+    def parse_known_args(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
+    ) -> tuple[argparse.Namespace, list[str]]:
+        """Parse `args` as `parse_args` does (argparse calls this on a chosen subcommand's
+        parser); the unknown arguments are returned only when `any_arguments` is set."""
+        if self._add_arguments is not None:
+            add, self._add_arguments = self._add_arguments, None
+            add(self)
+        parsed, unknown = super().parse_known_args(args, namespace)
+        if unknown and not getattr(parsed, "any_arguments", False):
+            self.error(self._unknown(unknown))
+        return parsed, unknown
+
+    def _unknown(self, unknown: list[str]) -> str:
+        """What is wrong with `unknown` arguments: the first option argparse does not know,
+        with the closest one this parser has (what follows it may be its value: not named);
+        or, without an option, the arguments."""
+        options = [a for a in unknown if a[:1] == "-" and a[1:2] not in ("", *"0123456789.")]
+        if not options:
+            return f"unrecognized arguments: {' '.join(unknown)}"
+        import difflib  # an error's path only
+
+        wrong = options[0].split("=", 1)[0]
+        known = {  # (compared without their dashes: `--` alone would make --bogus --out)
+            o.lstrip("-"): o
+            for a in self._actions
+            if a.help != argparse.SUPPRESS
+            for o in a.option_strings
+        }
+        close = difflib.get_close_matches(wrong.lstrip("-"), known)
+        close.sort(key=lambda name: sorted(name) != sorted(wrong.lstrip("-")))  # (a swap first)
+        hint = f"; did you mean {known[close[0]]}?" if close else ""
+        return f"unknown option {wrong}{hint}"
 
     def error(self, message: str) -> NoReturn:
         """Print the usage and `message` (with the closest choice) on stderr; exit 2."""
         wrong = _INVALID_CHOICE.search(message)
         if wrong is not None:
+            from rr_actors.errors import _known_names  # an error's path only
+
             listed = wrong.group("known")  # `'a', 'b'` (or `a, b` on newer Pythons)
             known = re.findall(r"'([^']*)'", listed) or listed.split(", ")
             hint = _known_names(wrong.group("name"), known, shown=len(known))
@@ -654,15 +779,18 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The `rr-actors` argument parser, one subparser per entry of `COMMANDS`."""
+    """The `rr-actors` argument parser, one subparser per entry of `COMMANDS` (a
+    subcommand's arguments are added when it is chosen: `parse_args` adds them)."""
     parser = _Parser(prog="rr-actors", description="Tools for rr_actors resource registrars.")
-    parser.add_argument(
-        "--version", action="version", version=f"%(prog)s {version()}", help="print the version"
-    )
+    parser.add_argument("--version", action=_Version, help="print the version")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")  # none: the help
     for command in COMMANDS:
-        sub = subparsers.add_parser(command.name, help=command.help, description=command.help)
-        command.add_arguments(sub)
+        sub = subparsers.add_parser(
+            command.name,
+            help=command.help,
+            description=command.help,
+            arguments=command.add_arguments,
+        )
         sub.set_defaults(run=command.run)
     return parser
 
@@ -680,12 +808,12 @@ def main(argv: Sequence[str] | None = None, out: TextIO | None = None) -> int:
         extra (one line names it and how to install it), or no command (the help printed).
     """
     parser = build_parser()
-    args, unknown = parser.parse_known_args(argv)
-    if unknown and not getattr(args, "any_arguments", False):
-        parser.error(f"unrecognized arguments: {' '.join(unknown)}")  # (as parse_args says)
+    args, _ = parser.parse_known_args(argv)  # (the unknown: only where any are taken)
     if args.command is None:
         parser.print_help(out)
         return 2
+    from rr_actors.errors import CatalogCorruptError, ConfigError, MissingExtraError
+
     try:
         code: int = args.run(args, out if out is not None else sys.stdout)
     except MissingExtraError as exc:  # one line, and what to install: nothing was done
@@ -701,6 +829,8 @@ def main(argv: Sequence[str] | None = None, out: TextIO | None = None) -> int:
 def _error(line: str) -> None:
     """`line` on standard error: one line, wrapped at words on a terminal it does not fit
     (a file's name, its line and what is wrong with it can take more than 80 columns)."""
+    from rr_actors._log import terminal_width, wrap
+
     width = terminal_width(sys.stderr)
     print(line if width is None else wrap(line, width), file=sys.stderr)  # noqa: T201 - CLI output
 

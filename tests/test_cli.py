@@ -90,6 +90,125 @@ def test_a_misspelt_choice_exits_2_saying_which_was_meant(argv: list[str], meant
     assert f"invalid choice: {argv[-1]!r}; did you mean {meant}? (known: " in result.stderr
 
 
+OPTION_TYPOS = [  # (the command line, the subcommand, what was meant): every subcommand
+    (["--verison"], "", "--version"),
+    (["demo", "--fats"], "demo", "--fast"),
+    (["inspect", "x.db", "--jsno"], "inspect", "--json"),
+    (["observe", "--state", "s", "--prot", "3"], "observe", "--port"),
+    (["graph", "--state", "s", "--fromat", "dot"], "graph", "--format"),
+    (["events", "--merge", "a.jsonl", "--cuont", "3"], "events", "--count"),
+    (["experiment", "first", "--repaet", "1"], "experiment", "--repeat"),
+    (["check", "run", "--quite"], "check", "--quiet"),
+    (["replay", "run", "--stroy"], "replay", "--story"),
+    (["shrink", "run", "--seed", "1", "--tires", "3"], "shrink", "--tries"),
+    (["certs", "init", "ca", "--system", "lab", "--froce"], "certs init", "--force"),
+    (["certs", "issue", "ca", "robot", "--dyas", "3"], "certs issue", "--days"),
+    (["teach", "check", ".", "--sede", "1"], "teach check", "--seed"),
+    (["teach", "hint", ".", "--hepl"], "teach hint", "--help"),
+]
+
+
+@pytest.mark.parametrize(
+    ("argv", "command", "meant"), OPTION_TYPOS, ids=[" ".join(c[0]) for c in OPTION_TYPOS]
+)
+def test_a_misspelt_option_exits_2_with_its_commands_usage_saying_which_was_meant(
+    argv: list[str], command: str, meant: str, tmp_path: Path
+) -> None:
+    """Issue 70, item 9: argparse told a subcommand's unknown option with the top-level
+    usage and no hint (`rr-actors demo --fats`: `usage: rr-actors [-h] ...`)."""
+    result = subprocess.run(
+        [str(Path(sysconfig.get_path("scripts")) / "rr-actors"), *argv],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+        cwd=tmp_path,  # (nothing is read or written: the option is refused first)
+    )
+
+    prog = f"rr-actors {command}".strip()
+    (wrong,) = [a for a in argv if a.startswith("--") and sorted(a) == sorted(meant)]
+    lines = result.stderr.splitlines()
+    assert (2, "") == (result.returncode, result.stdout)
+    assert lines[0].startswith(f"usage: {prog} "), result.stderr
+    assert f"{prog}: error: unknown option {wrong}; did you mean {meant}?" == lines[-1]
+    assert [] == list(tmp_path.iterdir())
+
+
+def test_an_unknown_option_without_a_close_one_is_named_alone_and_a_stray_argument_too() -> None:
+    unknown = rr_actors_command("inspect", "x.db", "--zzzzzz")
+    stray = rr_actors_command("inspect", "x.db", "y.db")
+
+    said = [result.stderr.splitlines()[-1] for result in (unknown, stray)]
+    assert (2, 2) == (unknown.returncode, stray.returncode)
+    assert [
+        "rr-actors inspect: error: unknown option --zzzzzz",
+        "rr-actors inspect: error: unrecognized arguments: y.db",
+    ] == said
+
+
+HEAVY = (
+    "rr_actors_lab.observe",  # the observer (and its web server's starlette, uvicorn)
+    "rr_actors_lab.mission",
+    "rr_actors_lab.experiments",
+    "rr_actors_lab.otel",
+    "starlette",
+    "sse_starlette",
+    "uvicorn",
+    "matplotlib",
+    "rich",
+    "opentelemetry",
+    "zenoh",
+    "cryptography",
+)
+"""What a command that does not use them must not import (issue 70, item 9: `rr-actors
+--version` took about 1 s, importing the observer to build the parser)."""
+
+
+def imported(argv: list[str], *, cwd: Path) -> list[str]:
+    """The modules `python -X importtime argv...` imported, in order (its stderr's table)."""
+    result = subprocess.run(
+        [sys.executable, "-X", "importtime", *argv],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+        cwd=cwd,
+    )
+    assert 0 == result.returncode, result.stderr
+    rows = [line.split("|")[-1] for line in result.stderr.splitlines()]
+    return [row.strip() for row in rows if row.startswith(" ")]
+
+
+@pytest.mark.parametrize("argv", [["--version"], ["--help"], ["teach", "hint"]], ids=" ".join)
+def test_a_command_imports_no_tool_it_does_not_run(argv: list[str], tmp_path: Path) -> None:
+    started = subprocess.run(
+        [sys.executable, "-m", "rr_actors", "teach", "start", "camera", str(tmp_path / "ex")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert 0 == started.returncode, started.stderr
+
+    modules = imported(["-m", "rr_actors", *argv], cwd=tmp_path / "ex")
+
+    assert "rr_actors_lab._cli" in modules  # (the table was read)
+    assert [] == [m for m in modules if any(m == h or m.startswith(f"{h}.") for h in HEAVY)]
+
+
+@pytest.mark.parametrize("argv", [["--version"], ["--help"]], ids=" ".join)
+def test_the_console_script_prints_its_version_and_help_without_the_runtime(
+    argv: list[str], tmp_path: Path
+) -> None:
+    """`rr-actors --version` and `--help` need no module of rr_actors: Python's start."""
+    script = Path(sysconfig.get_path("scripts")) / "rr-actors"
+
+    modules = imported([str(script), *argv], cwd=tmp_path)
+
+    assert "rr_actors_lab._cli" in modules
+    assert [] == [m for m in modules if m == "rr_actors" or m.startswith("rr_actors.")]
+
+
 # -- 80 columns (issue 44, item 2) ----------------------------------------------------------
 
 TERMINAL_COMMANDS = {

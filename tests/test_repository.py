@@ -4,15 +4,18 @@ from __future__ import annotations
 
 import ast
 import functools
+import importlib.metadata
 import io
 import re
 import shutil
 import subprocess
+import sys
 import tokenize
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+import trove_classifiers
 
 ROOT = Path(__file__).resolve().parent.parent
 GIT = shutil.which("git")
@@ -546,3 +549,80 @@ def test_the_runtime_keeps_within_its_budget(budget: str) -> None:
 )
 def test_a_line_is_code_docstring_or_neither(text: str, expected: Lines) -> None:
     assert expected == lines_of(text)
+
+
+# -- what PyPI shows of the package (issue 70, item 10) ---------------------------------------
+
+
+@pytest.fixture(scope="module")
+def metadata(tmp_path_factory: pytest.TempPathFactory) -> importlib.metadata.PackageMetadata:
+    """The wheel's METADATA, as the build backend writes it from this checkout's
+    pyproject.toml (its PEP 517 hook, in a copy: nothing is written into the checkout)."""
+    source = tmp_path_factory.mktemp("source")
+    for name in ("pyproject.toml", "README.md", "LICENSE"):
+        shutil.copy(ROOT / name, source / name)
+    out = tmp_path_factory.mktemp("metadata")
+    hook = (
+        "import sys; from setuptools import build_meta; "
+        "print(build_meta.prepare_metadata_for_build_wheel(sys.argv[1]))"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", hook, str(out)],
+        cwd=source,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert 0 == result.returncode, result.stderr
+    dist_info = out / result.stdout.splitlines()[-1]
+    return importlib.metadata.PathDistribution(dist_info).metadata
+
+
+def test_every_classifier_of_the_package_is_one_pypi_accepts(
+    metadata: importlib.metadata.PackageMetadata,
+) -> None:
+    classifiers = metadata.get_all("Classifier") or []
+
+    assert len(classifiers) >= 10
+    assert [] == [c for c in classifiers if c not in trove_classifiers.classifiers]
+    assert [] == [c for c in classifiers if c in trove_classifiers.deprecated_classifiers]
+    assert sorted(set(classifiers)) == classifiers  # (once each, in order: a reader's list)
+
+
+def test_the_classifiers_say_the_licence_pythons_platform_and_typing_the_package_has(
+    metadata: importlib.metadata.PackageMetadata,
+) -> None:
+    classifiers = metadata.get_all("Classifier") or []
+    licence = (ROOT / "LICENSE").read_text(encoding="utf-8").splitlines()[0]  # "MIT License"
+    least = re.fullmatch(r">=3\.(\d+)", metadata["Requires-Python"])
+    assert least is not None
+    pythons = sorted(
+        int(c.rsplit(".", 1)[1]) for c in classifiers if re.fullmatch(r".*Python :: 3\.\d+", c)
+    )
+
+    assert [f"License :: OSI Approved :: {licence}"] == [
+        c for c in classifiers if c.startswith("License ::")
+    ]
+    assert int(least[1]) == pythons[0]  # from requires-python on, without a gap
+    assert list(range(pythons[0], pythons[-1] + 1)) == pythons
+    assert sys.version_info.minor in pythons  # (the one the tests run on)
+    assert "Programming Language :: Python :: 3 :: Only" in classifiers
+    assert "Operating System :: POSIX :: Linux" in classifiers  # the README's "Platform"
+    assert (ROOT / "rr_actors" / "py.typed").is_file()
+    assert "Typing :: Typed" in classifiers
+
+
+def test_the_package_names_its_authors_and_its_docs_changelog_source_and_issues(
+    metadata: importlib.metadata.PackageMetadata,
+) -> None:
+    urls = dict(u.split(", ", 1) for u in metadata.get_all("Project-URL") or [])
+    source = urls.get("Source", "")
+
+    assert metadata.get_all("Author") or metadata.get_all("Author-email")
+    assert {"Documentation", "Changelog", "Source", "Issues"} == set(urls)
+    assert [] == [url for url in urls.values() if not url.startswith("https://")]
+    assert urls["Changelog"].startswith(source)
+    assert urls["Changelog"].endswith("/CHANGELOG.md")
+    assert f"{source}/issues" == urls["Issues"]
+    assert metadata.get_all("Keywords")

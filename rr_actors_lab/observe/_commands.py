@@ -1,6 +1,7 @@
 """`rr-actors observe` and `rr-actors graph`: their arguments and what they run.
 
-`rr_actors_lab._cli` lists them in its `COMMANDS`; their code lives here.
+`rr_actors_lab._cli` lists them in its `COMMANDS` (with their help lines, so that
+`rr-actors --help` imports no observer); their code lives here.
 
     rr-actors observe --state state/            # the page of a state directory's backups
     rr-actors observe --system lab --certs certs/ --name viewer \
@@ -28,20 +29,11 @@ if TYPE_CHECKING:
     from rr_actors._transport.zenoh.net import ZenohNetwork
 
 __all__ = [
-    "GRAPH_HELP",
-    "OBSERVE_HELP",
     "graph_arguments",
     "observe_arguments",
     "run_graph",
     "run_observe",
 ]
-
-OBSERVE_HELP = (
-    "serve the observer's page for a state directory's backups (--state: read-only, no live "
-    "system), or of every host of a system across hosts (--system: as a member; needs the "
-    "zenoh extra); needs the observe extra"
-)
-GRAPH_HELP = "print the dependency graph of a state directory's backups as Mermaid or DOT text"
 
 
 def observe_arguments(parser: argparse.ArgumentParser) -> None:

@@ -205,7 +205,7 @@ def test_an_unknown_option_of_another_command_is_still_a_usage_error(
         main(["demo", "--bogus"])
 
     assert 2 == exited.value.code
-    assert "unrecognized arguments: --bogus" in capsys.readouterr().err
+    assert "rr-actors demo: error: unknown option --bogus\n" in capsys.readouterr().err
 
 
 def test_with_force_it_runs_into_a_used_directory_and_prints_a_summary(
