@@ -204,9 +204,12 @@ class StatusRelay:
         done = join.add()
         routes = self.routes
         unacked = self.unacked
+        parts = ((origin, query_ids),)
+        routes.going(origin, parts)
 
         def answered(value: Any, error: BaseException | None) -> None:
-            unacked.answered(((origin, query_ids),), batch.event)
+            routes.arrived(origin, parts)
+            unacked.answered(parts, batch.event)
             if error is None and isinstance(value, tuple):
                 join.gave_up.extend(value)
             elif error is not None:
@@ -244,8 +247,10 @@ class StatusRelay:
         done = join.add()
         routes = self.routes
         unacked = self.unacked
+        routes.going(relay, batch.parts)
 
         def answered(value: Any, error: BaseException | None) -> None:
+            routes.arrived(relay, batch.parts)  # (first: a part sent again takes its own way)
             if error is None:
                 unacked.answered(batch.parts, batch.event)
                 if isinstance(value, tuple):  # (homes, the ids given up on)
@@ -1066,33 +1071,62 @@ DESK = runtime.process_state(Desk(), Desk)
 
 class Routes:
     """Where a provider sends statuses for other processes: `homes` (consumer -> process),
-    `relays` (process -> its registrar taking batches, kept while it answers: order holds).
-    Hints: a wrong one costs a forward."""
+    `relays` (process -> its registrar taking batches, kept while it answers: order holds),
+    `ways` (consumer -> the registrars its statuses were sent to, unanswered there: how many).
+    Hints: a wrong one costs a forward. A consumer's statuses keep the way they went while
+    any sent that way is unanswered (rule 9: two ways are two connections and two mailboxes,
+    and the later could overtake); an answer says they reached its process's runner."""
 
     def __init__(self) -> None:
         self._lock = runtime.Lock()
         self.homes: dict[str, str] = {}
         self.relays: dict[str, str] = {}
+        self.ways: dict[str, dict[str, int]] = {}
 
     def plan(self, parts: Iterable[tuple[str, tuple[str, ...]]]) -> list[tuple[str, Parts, bool]]:
         """Group `parts` by process: (the relay, its parts, whether as a batch); a registrar of an
-        unknown process gets a batch of its own, one alone in its process a `StatusNotice`."""
+        unknown process gets a batch of its own, one alone in its process a `StatusNotice`, one
+        with statuses unanswered the way they went (to the registrar sent to last)."""
         groups: dict[str, list[tuple[str, tuple[str, ...]]]] = {}
-        planned: list[tuple[str, Parts, bool]] = []
+        planned: dict[str, tuple[list[tuple[str, tuple[str, ...]]], bool]] = {}
         with self._lock:
             for part in parts:
+                way = self.ways.get(part[0])
                 home = self.homes.get(part[0])
-                if home is None:
-                    planned.append((part[0], (part,), True))
+                if way:
+                    planned.setdefault(next(reversed(way)), ([], True))[0].append(part)
+                elif home is None:
+                    planned.setdefault(part[0], ([], True))[0].append(part)
                 else:
                     groups.setdefault(home, []).append(part)
             for home, members in groups.items():
                 if len(members) == 1:
-                    planned.append((members[0][0], (members[0],), False))
+                    target, batched = members[0][0], False
                 else:
-                    relay = self.relays.setdefault(home, members[0][0])
-                    planned.append((relay, tuple(members), True))
-        return planned
+                    target, batched = self.relays.setdefault(home, members[0][0]), True
+                # (a way some keep to the same registrar: one batch there)
+                planned.setdefault(target, ([], batched))[0].extend(members)
+        return [(target, tuple(members), batched) for target, (members, batched) in planned.items()]
+
+    def going(self, target: str, parts: Parts) -> None:
+        """`parts` leave for registrar `target` (any thread): their way until `arrived`."""
+        with self._lock:
+            for origin, _ids in parts:
+                way = self.ways.setdefault(origin, {})
+                way[target] = way.pop(target, 0) + 1  # (the last one sent to: last)
+
+    def arrived(self, target: str, parts: Parts) -> None:
+        """`parts` sent to `target` were answered, or failed (any thread)."""
+        with self._lock:
+            for origin, _ids in parts:
+                way = self.ways.get(origin)
+                if way is None or target not in way:
+                    continue
+                way[target] -= 1
+                if not way[target]:
+                    del way[target]
+                    if not way:
+                        del self.ways[origin]
 
     def learn(self, homes: dict[str, str]) -> None:
         with self._lock:
