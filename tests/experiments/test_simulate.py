@@ -851,6 +851,7 @@ def test_simways_consumers_hear_each_life_s_statuses_in_the_order_sent(
     assert violations
     assert all("[status-order]" in f and "which db sent after it" in f for f in violations)
 
+
 @SWEEP
 def test_the_simheal_plan_holds_for_seeds_1_to_20() -> None:
     from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
