@@ -458,8 +458,8 @@ PLANTS = (
         "switches a consumer registrar to the relay while statuses sent on its own "
         "connection are unanswered (the reverse of issue 68 item 1)",
         "_registrar/status.py",
-        "                if way:\n",
-        "                if way and False:  # PLANTED: no way kept\n",
+        "                if way or home is None:\n",
+        "                if home is None:  # PLANTED: no way kept\n",
         "simways",
         "status-order",
     ),

@@ -836,7 +836,7 @@ def test_simways_consumers_hear_each_life_s_statuses_in_the_order_sent(
 ) -> None:
     # issue 68 item 1: a life of db sends each client its first statuses on its own link,
     # then through a relay of their process; switched at once, the relay's overtook them
-    from rr_actors._registrar.status import Routes  # noqa: PLC0415
+    from rr_actors._registrar.status import Unacknowledged  # noqa: PLC0415
     from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
 
     plan = load_plan(PLANS / "simways.toml")
@@ -844,7 +844,7 @@ def test_simways_consumers_hear_each_life_s_statuses_in_the_order_sent(
     run = simulate.run_seed(plan, 1)
 
     held([run])
-    monkeypatch.setattr(Routes, "going", lambda _self, _target, _parts: None)  # (no way kept)
+    monkeypatch.setattr(Unacknowledged, "way", lambda _self, _ids: "")  # (no way kept)
     broken = simulate.run_seed(plan, 1)
     assert "violated" == broken.verdict
     violations = [f for f in broken.findings if f.lstrip().startswith("violation")]
