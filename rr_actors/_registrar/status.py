@@ -1133,7 +1133,7 @@ class Unacknowledged:
 
     def way(self, query_ids: Iterable[str]) -> str:  # ("": none unacknowledged)
         with self._lock:  # (the registrar the last status unacknowledged to one was sent to)
-            ways = [[*self._of[q].values()][-1][1] for q in query_ids if q in self._of]
+            ways = [next(reversed(self._of[q].values()))[1] for q in query_ids if q in self._of]
         return ways[0] if ways else ""
 
     def answered(self, parts: Parts, event: str) -> None:
