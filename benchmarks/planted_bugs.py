@@ -452,6 +452,17 @@ PLANTS = (
         "simslow",
         "status-order",
     ),
+    Plant(
+        "status-ways",
+        "a consumer's status overtaken on the way to its process's relay: the provider "
+        "switches a consumer registrar to the relay while statuses sent on its own "
+        "connection are unanswered (the reverse of issue 68 item 1)",
+        "_registrar/status.py",
+        "                if way or home is None:\n",
+        "                if home is None:  # PLANTED: no way kept\n",
+        "simways",
+        "status-order",
+    ),
 )
 """The planted bugs, one at a time (docs/performance.md lists them)."""
 

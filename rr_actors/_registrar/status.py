@@ -63,7 +63,7 @@ class StatusRelay:
         self.holdings = holdings
         self.unacked = unacked  # (an `Unload`'s answer carries those of its id: provider.py)
         self.seen_events: collections.OrderedDict[tuple[str, str], None] = collections.OrderedDict()
-        self.routes = Routes()
+        self.routes = Routes(unacked)
 
     def on_send_status(self, asked: SendStatus, reply: Reply) -> None:
         query_id, status, message = asked.query_id, asked.status, asked.message
@@ -186,7 +186,7 @@ class StatusRelay:
         if in_process:
             DESK.deliver(batch, join, None, (self.registrar.name, self.flights.redeliver))
         for relay, parts, batched in self.routes.plan(elsewhere):
-            self.unacked.leaving(parts, batch)
+            self.unacked.leaving(parts, batch, relay)
             if batched:
                 self.send_batch(relay, batch.part(parts, NO_REPLY), join, refused)
             else:
@@ -1067,23 +1067,24 @@ DESK = runtime.process_state(Desk(), Desk)
 class Routes:
     """Where a provider sends statuses for other processes: `homes` (consumer -> process),
     `relays` (process -> its registrar taking batches, kept while it answers: order holds).
-    Hints: a wrong one costs a forward."""
+    Hints: a wrong one costs a forward; an id with statuses unacknowledged keeps their way."""
 
-    def __init__(self) -> None:
+    def __init__(self, unacked: Unacknowledged) -> None:
+        self.unacked = unacked
         self._lock = runtime.Lock()
         self.homes: dict[str, str] = {}
         self.relays: dict[str, str] = {}
 
     def plan(self, parts: Iterable[tuple[str, tuple[str, ...]]]) -> list[tuple[str, Parts, bool]]:
-        """Group `parts` by process: (the relay, its parts, whether as a batch); a registrar of an
-        unknown process gets a batch of its own, one alone in its process a `StatusNotice`."""
+        """By process: (the relay, its parts, whether as a batch); a registrar of an unknown process
+        or with statuses unacknowledged, a batch (there: rule 9); one alone there, a notice."""
         groups: dict[str, list[tuple[str, tuple[str, ...]]]] = {}
         planned: list[tuple[str, Parts, bool]] = []
         with self._lock:
             for part in parts:
-                home = self.homes.get(part[0])
-                if home is None:
-                    planned.append((part[0], (part,), True))
+                home, way = self.homes.get(part[0]), self.unacked.way(part[1])
+                if way or home is None:
+                    planned.append((way or part[0], (part,), True))
                 else:
                     groups.setdefault(home, []).append(part)
             for home, members in groups.items():
@@ -1116,20 +1117,24 @@ class Routes:
 
 
 class Unacknowledged:
-    """Statuses sent on to consumer ids in other processes, by id, until answered; an id's
-    `Unload` answer carries its own (they may come after it, on another connection; rule 9).
-    Actor enters, answering threads clear."""
+    """Statuses sent on to consumer ids in other processes, by id, and where, until answered (an
+    id's `Unload` answer carries its own: rule 9; `way`). Actor enters, answering threads clear."""
 
     def __init__(self) -> None:
         self._lock = runtime.Lock()
-        self._of: dict[str, dict[str, StatusOnItsWay]] = {}  # id -> event -> status
+        self._of: dict[str, dict[str, tuple[StatusOnItsWay, str]]] = {}  # id -> event -> (it, to)
 
-    def leaving(self, parts: Parts, batch: StatusBatch) -> None:
+    def leaving(self, parts: Parts, batch: StatusBatch, to: str) -> None:
         status = batch.on_its_way()
         with self._lock:
             for _origin, ids in parts:
                 for query_id in ids:
-                    self._of.setdefault(query_id, {})[status.event] = status
+                    self._of.setdefault(query_id, {})[status.event] = (status, to)
+
+    def way(self, query_ids: Iterable[str]) -> str:  # ("": none unacknowledged)
+        with self._lock:  # (the registrar the last status unacknowledged to one was sent to)
+            ways = [next(reversed(self._of[q].values()))[1] for q in query_ids if q in self._of]
+        return ways[0] if ways else ""
 
     def answered(self, parts: Parts, event: str) -> None:
         with self._lock:
@@ -1144,7 +1149,7 @@ class Unacknowledged:
     def take(self, query_id: str) -> tuple[StatusOnItsWay, ...]:
         """The statuses still on their way to `query_id`, in the order they left (taken now)."""
         with self._lock:
-            return tuple(self._of.pop(query_id, {}).values())
+            return tuple(status for status, _to in self._of.pop(query_id, {}).values())
 
 
 forkserver.after_fork_in_child("the status desk", DESK.forget_in_child)

@@ -10,7 +10,8 @@
          delivery (not on the answer to an Unload its sender released it on after the
          send: that answer carried it), or the one to send it on died first (or
          before anything it sent that registrar arrived: no connection there yet)
- StatusHandled ──► status_order: each id's callbacks one at a time, in arrival order
+ StatusHandled ──► status_order: each id's callbacks one at a time, in arrival order;
+                   one sender's statuses (StatusSent) arrive in the order sent
 ```
 
 Each rule's windows and what it excuses: docs/how-to/check-a-run.md.
@@ -60,16 +61,23 @@ def status_once(history: Sequence[Line]) -> list[Finding]:
 
 
 def status_order(history: Sequence[Line]) -> list[Finding]:
-    """`status-order` (rule 9): each id's status callbacks run one at a time, in arrival order.
+    """`status-order` (rule 9): each id's status callbacks run one at a time, in arrival order,
+    and a provider's statuses arrive in the order it sent them.
 
     A callback may begin once every earlier-arrived one of its id returned, or `opened` (waited
-    for a registrar). A callback that never returned is not judged.
+    for a registrar). A callback that never returned is not judged. The statuses of one
+    sender (a registrar in one process: its `StatusSent`, in its actor's order) arrive at
+    each id in the order sent; a status coalesced away or given up on before it ran is not
+    judged, nor one whose send is not in the history.
     """
+    sent: dict[str, tuple[tuple[str, int, str], int, int]] = {}  # status id -> (sender, hlc, line)
     by_id: dict[tuple[str, int, str, str], list[tuple[int, events.StatusHandled]]]
     by_id = defaultdict(list)
     for line, event in history:
         if isinstance(event, events.StatusHandled):
             by_id[event.host, event.pid, event.registrar, event.query_id].append((line, event))
+        elif isinstance(event, events.StatusSent) and event.status_id:
+            sent[event.status_id] = ((event.host, event.pid, event.registrar), event.hlc, line)
     findings: list[Finding] = []
     for handled in by_id.values():
         handled.sort(key=lambda entry: entry[1].arrived)
@@ -80,6 +88,41 @@ def status_order(history: Sequence[Line]) -> list[Finding]:
             free = event.opened or event.hlc
             if free > limit:
                 limit, before = free, (line, event)
+        findings.extend(_overtaken(handled, sent))
+    return findings
+
+
+def _overtaken(
+    handled: Sequence[tuple[int, events.StatusHandled]],
+    sent: dict[str, tuple[tuple[str, int, str], int, int]],
+) -> list[Finding]:
+    """The callbacks of one id (in arrival order) whose status arrived after one its sender
+    sent later: `status-order`'s findings, with the two sends and the two callbacks."""
+    latest: dict[tuple[str, int, str], tuple[int, int, int, events.StatusHandled]] = {}
+    seen: set[str] = set()
+    findings: list[Finding] = []
+    for line, event in handled:
+        send = sent.get(event.status_id)
+        if send is None or event.status_id in seen:  # (one arrival a status: status-once's)
+            continue
+        seen.add(event.status_id)
+        sender, stamp, sent_line = send
+        last = latest.get(sender)
+        if last is None or stamp > last[0]:
+            latest[sender] = (stamp, sent_line, line, event)
+            continue
+        _stamp, later_sent, later_line, later = last
+        findings.append(
+            Finding(
+                "status-order",
+                "violation",
+                f"{event.registrar}: status {event.status_id[:8]} ({event.status.name}) "
+                f"reached query {event.query_id[:8]} after status {later.status_id[:8]} "
+                f"({later.status.name}), which {sender[2]} sent after it",
+                tuple(sorted({sent_line, later_sent, later_line, line})),
+                (event.registrar,),
+            )
+        )
     return findings
 
 

@@ -364,6 +364,15 @@ def test_every_callback_that_began_beside_a_hung_one_of_its_id_is_found() -> Non
     assert [{11, 12}, {11, 13}] == [set(f.lines) for f in _order_findings(h)]
 
 
+def test_a_status_that_reached_its_id_after_one_its_provider_sent_later_is_found() -> None:
+    h = _with_callbacks((Q1, "s2", 1, 10, 20, 0), (Q1, "s1", 2, 30, 40, 0))  # (one at a time)
+    found = _order_findings(h)
+    assert [{5, 8, 11, 12}] == [set(f.lines) for f in found]
+    assert "after status s2 (WARNING), which erm sent after it" in found[0].message
+    in_order = _with_callbacks((Q1, "s1", 1, 10, 20, 0), (Q1, "s2", 2, 30, 40, 0))
+    assert [] == _order_findings(in_order)
+
+
 def test_a_callback_that_waited_for_a_registrar_lets_its_id_s_next_begin() -> None:
     h = _with_callbacks((Q1, "s1", 1, 10, 200, 50), (Q1, "s2", 2, 60, 80, 0))
     assert [] == _order_findings(h)
@@ -2624,10 +2633,10 @@ ROOT_ONLY = {"leases", "simhosts"}
 network namespaces and minutes (tests/experiments/test_hosts.py runs a small plan of
 their shape; test_simulate.py runs `simhosts` on the simulation)."""
 
-SIMULATION_ONLY = {"simheal", "simrest", "simprogram"}
+SIMULATION_ONLY = {"simheal", "simrest", "simprogram", "simways"}
 """Shipped plans of a fault kind only the simulation injects (`split_brain`,
-`kill_in_setup`, `kill_program`): their histories are checked in
-tests/experiments/test_simulate.py."""
+`kill_in_setup`, `kill_program`), and `simways`, whose status every 1 ms is paced for the
+simulation's clock: their histories are checked in tests/experiments/test_simulate.py."""
 
 
 @pytest.fixture(scope="module")

@@ -40,6 +40,7 @@ SHIPPED = {
     "simrest",
     "simprogram",
     "simslow",
+    "simways",
 }
 """Every plan shipped in the package; the tutorial's `first` runs in the docs test."""
 

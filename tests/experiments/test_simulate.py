@@ -831,6 +831,28 @@ def test_simslow_s_hung_callback_holds_back_its_id_s_next_statuses(
 
 
 @SWEEP
+def test_simways_consumers_hear_each_life_s_statuses_in_the_order_sent(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # issue 68 item 1: a life of db sends each client its first statuses on its own link,
+    # then through a relay of their process; switched at once, the relay's overtook them
+    from rr_actors._registrar.status import Unacknowledged  # noqa: PLC0415
+    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
+
+    plan = load_plan(PLANS / "simways.toml")
+
+    run = simulate.run_seed(plan, 1)
+
+    held([run])
+    monkeypatch.setattr(Unacknowledged, "way", lambda _self, _ids: "")  # (no way kept)
+    broken = simulate.run_seed(plan, 1)
+    assert "violated" == broken.verdict
+    violations = [f for f in broken.findings if f.lstrip().startswith("violation")]
+    assert violations
+    assert all("[status-order]" in f and "which db sent after it" in f for f in violations)
+
+
+@SWEEP
 def test_the_simheal_plan_holds_for_seeds_1_to_20() -> None:
     from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
 
@@ -997,6 +1019,7 @@ SIMULATED = [
     "simrest",
     "simprogram",
     "simslow",
+    "simways",
 ]
 """The shipped plans run over two seeds here (killheavy below, for 2 s)."""
 

@@ -242,6 +242,71 @@ class Crossing:
         self.network.close()
 
 
+# -- for TestOneWay ------------------------------------------------------------------------
+
+
+class Ways:
+    """A provider in a manager process; here, a relay and a consumer registrar, both holding
+    resource `"r"` there (the relay's id first: it is the one the provider picks as this
+    process's relay). Nothing was sent yet: the provider does not know they share a process.
+    What each one's callbacks hear is recorded by request (`heard[name][request]`).
+    """
+
+    def __init__(self, placement: str) -> None:
+        self.network = placement_network(placement)
+        uid = uuid.uuid4().hex[:8]
+        config = rr.RegistrarConfig(name=f"prov-{uid}", call_timeout=20.0)
+        self.provider = RemoteRegistrar.start(config, self.network)
+        self.provider.register_server("leaf", load=_echo, unload=_no_unload)
+        self.relay = rr.ResourceRegistrar.start(f"relay-{uid}", network=self.network)
+        self.consumer = rr.ResourceRegistrar.start(f"cons-{uid}", network=self.network)
+        self.heard: dict[str, dict[str, list[str]]] = collections.defaultdict(
+            lambda: collections.defaultdict(list)
+        )
+        self.ids: dict[str, str] = {}  # request -> a consumer id of its resource
+        self.hold("relay", "r")
+        self.hold("consumer", "r")
+
+    def hold(self, who: str, request: str) -> None:
+        """Registrar `who` ("relay" or "consumer") calls for `request`, recording its statuses."""
+        registrar = self.relay if who == "relay" else self.consumer
+        said = self.heard[who][request]
+        query = registrar.call(
+            self.provider.name,
+            "leaf",
+            request,
+            on_status=lambda _q, update: said.append(update.message),
+            timeout=20,
+        )
+        self.ids.setdefault(request, query.id)
+
+    def send(self, request: str, message: str) -> None:
+        self.provider.send_status(self.ids[request], rr.Status.UPDATE, message, timeout=20)
+
+    def close(self) -> None:
+        for registrar in (self.consumer, self.relay, self.provider):
+            with contextlib.suppress(rr.RrError):
+                registrar.stop()
+        self.network.close()
+
+
+class Held:
+    """Hooks that hold a registrar's actor at the status messages named, each until let go."""
+
+    def __init__(self, *messages: str) -> None:
+        self.reached = {message: threading.Event() for message in messages}
+        self.go = {message: threading.Event() for message in messages}
+
+    def __call__(self, message: Any) -> None:  # (the registrar's actor thread)
+        if message.message in self.reached:
+            self.reached[message.message].set()
+            assert self.go[message.message].wait(20)
+
+    def release(self) -> None:
+        for go in self.go.values():
+            go.set()
+
+
 # -- for TestTooLarge ----------------------------------------------------------------------
 
 LIMIT = 100_000
@@ -1232,6 +1297,80 @@ class TestReleaseCrossing:
         assert ["warm-up", "unplugged"] == heard_when_released
         assert ["warm-up", "unplugged"] == heard
         assert [crossing.query.id] == [q.id for q in crossing.consumer.client_queries()]
+
+
+class TestOneWay:
+    """A consumer registrar's statuses keep one way until that way drained (rule 9: each
+    consumer hears them in the order sent; issue 68 item 1).
+
+    A provider sends the statuses of a consumer registrar in another process on its own
+    connection while it does not know that process, or while the registrar is the only
+    consumer there, and as a batch to a relay registrar of that process (another connection)
+    once it knows two there. A status held on the first way must not be overtaken by the
+    next on the second: a test holds it at the consumer's actor (`intercept`) while the next
+    one reaches the relay.
+    """
+
+    pytestmark = pytest.mark.usefixtures("by_value")
+
+    @pytest.fixture(params=["process", "zenoh"])
+    def ways(self, request: pytest.FixtureRequest) -> Iterator[Ways]:
+        made = Ways(request.param)
+        yield made
+        made.close()
+
+    def test_a_status_on_its_way_before_the_consumer_s_process_was_known_is_not_overtaken(
+        self, ways: Ways
+    ) -> None:
+        held = Held("s1", "s2")
+        try:
+            with (
+                intercept(ways.consumer, "status_batch", before=held),
+                ThreadPoolExecutor(3) as pool,
+            ):
+                first = pool.submit(ways.send, "r", "s1")  # (to each registrar: where is it?)
+                assert held.reached["s1"].wait(10)
+                second = pool.submit(ways.send, "r", "s2")  # (the consumer's: not known yet)
+                assert wait_for(lambda: ["s1", "s2"] == ways.heard["relay"]["r"], 10)
+                held.go["s1"].set()
+                first.result(20)  # (answered: the provider knows both share a process)
+                assert held.reached["s2"].wait(10)  # s2 on its way, held at the consumer
+
+                third = pool.submit(ways.send, "r", "s3")  # (both known: through the relay)
+                assert wait_for(lambda: ["s1", "s2", "s3"] == ways.heard["relay"]["r"], 10)
+                held.go["s2"].set()
+                second.result(20)
+                third.result(20)
+        finally:
+            held.release()
+
+        assert ["s1", "s2", "s3"] == ways.heard["consumer"]["r"]
+
+    def test_a_status_on_its_way_to_a_lone_consumer_is_not_overtaken_once_its_relay_joins(
+        self, ways: Ways
+    ) -> None:
+        ways.send("r", "warm-up")  # (the provider learns that both are in this process)
+        ways.send("r", "relay chosen")  # (this process's statuses go to the relay from now on)
+        ways.hold("consumer", "s")  # (alone there: its statuses about "s" go to it directly)
+        held = Held("one")
+        try:
+            with (
+                intercept(ways.consumer, "status_notice", before=held),
+                ThreadPoolExecutor(2) as pool,
+            ):
+                first = pool.submit(ways.send, "s", "one")
+                assert held.reached["one"].wait(10)  # on its way, held at the consumer
+                ways.hold("relay", "s")  # (two consumers of "s" there now: through the relay)
+
+                second = pool.submit(ways.send, "s", "two")
+                assert wait_for(lambda: ["two"] == ways.heard["relay"]["s"], 10)
+                held.go["one"].set()
+                first.result(20)
+                second.result(20)
+        finally:
+            held.release()
+
+        assert ["one", "two"] == ways.heard["consumer"]["s"]
 
 
 class TestTooLarge:
