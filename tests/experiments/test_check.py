@@ -940,6 +940,58 @@ def test_a_status_lost_with_a_sender_killed_before_its_connection_to_the_holder_
     assert {5} == _found(first_status_of_a_life(0.062, again=True), "status-reached")
 
 
+def first_status_to_a_restarted_holder(killed_after_s: float) -> list[events.Event]:
+    """`simdoubt` seed 58: a status of db's reached api's process; api, killed, is restored
+    in a new process, holding its id at db again; db's next status about that id is its
+    first to api's new process, and db is SIGKILLed `killed_after_s` after that send (it
+    went on: it added another id). api goes on (db answers it a call)."""
+    from rr_actors._core import hlc  # noqa: PLC0415
+
+    warning = rr.Status.WARNING
+    a1, a2 = A, A + 1  # (api's two processes)
+    restored = events.CatalogRestored("api", (), (), ((Q1, "db", "resource", ""),), pid=a2)
+    history = _stamped(
+        [
+            events.CatalogRestored("db", (), (), (), pid=P),
+            events.CatalogRestored("api", (), (), (), pid=a1),
+            events.ConsumerAdded("db", RID, Q1, "api", pid=P),
+            events.CallAnswered("api", Q1, "db", "resource", pid=a1),
+            events.StatusSent("db", Q1, warning, "hot", "s0", pid=P),
+            events.StatusDelivered("api", Q1, warning, 1, 0.0, "s0", pid=a1),
+            events.ChildExited("sup", "api", a1, "killed by SIGKILL"),
+            restored,
+            events.ChildRestarted("sup", "api", a2, 0.0),
+            events.StatusSent("db", Q1, warning, "hot", "s1", pid=P),
+            events.ConsumerAdded("db", RID, "q9", "client-2", pid=P),  # (it went on)
+        ]
+    )
+    at, _ = hlc.unpack(history[9].hlc)
+    rows = ((Q1, RID, "api"), ("q9", RID, "client-2"))
+    later = [
+        events.ChildExited("sup", "db", P, "killed by SIGKILL"),
+        events.CatalogRestored("db", ((RID, "resource", "loaded", "42", ""),), rows, (), pid=P + 1),
+        events.ConsumerAdded("db", RID2, "q5", "api", pid=P + 1),
+        events.CallAnswered("api", "q5", "db", "resource", pid=a2),
+    ]
+    killed = at + int(killed_after_s * 1e6)
+    return [
+        *history,
+        *(dataclasses.replace(e, hlc=hlc.pack(killed + i, 0)) for i, e in enumerate(later)),
+    ]
+
+
+def test_a_status_lost_with_a_sender_killed_before_it_connected_to_a_restarted_holder_holds() -> (
+    None
+):
+    """A holder restarted in a new process is connected to anew at the sender's first send
+    there: what reached its process before shows no connection to the new one. A sender
+    that lived on after that send was owed it."""
+    h = first_status_to_a_restarted_holder(0.0017)
+    verdict = check.check(numbered(h))
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    assert {10} == _found(first_status_to_a_restarted_holder(2.0), "status-reached")
+
+
 def sent_to_a_restarted_holder(served_first: bool) -> list[events.Event]:
     """cm, killed, is restored (holding Q1 at erm) in a new process; erm sends a status
     about Q1 before cm's supervisor says it serves again (`served_first`: after), and
@@ -2187,9 +2239,9 @@ def drop_delivery(h: History) -> History | None:
     notice left, which no line tells from a lost one (`simdoubt` seed 15, and a real run
     of it in CI, 2026-11-25: api killed right after a WARNING reached it at hop 1, its
     climb to client-0 already on its way). Nor the only delivery of its sender's life to
-    its registrar: it may have waited in the sender for a connection never made (a real
-    `simslow` run in CI, 2026-11-26; `status-reached` excuses a sender life that ended
-    soon after).
+    its registrar's process: it may have waited in the sender for a connection never made
+    (a real `simslow` run in CI, 2026-11-26; a restarted holder's new process, `simdoubt`
+    seed 58; `status-reached` excuses a sender life that ended soon after).
     """
     left: set[str] = set()  # ids released at their provider or forgotten so far
     answered = {e.query_id: e.hlc for e in h if type(e) is events.CallAnswered}
@@ -2206,11 +2258,11 @@ def drop_delivery(h: History) -> History | None:
         lines = senders.get((e.status_id, e.hop), [])
         return all(last[h[j].registrar, h[j].pid] > j for j in lines)  # type: ignore[attr-defined]
 
-    def paths(e: events.StatusDelivered) -> set[tuple[str, int, str]]:
+    def paths(e: events.StatusDelivered) -> set[tuple[str, int, str, int]]:
         lines = senders.get((e.status_id, e.hop), [])
-        return {(h[j].registrar, h[j].pid, e.registrar) for j in lines}  # type: ignore[attr-defined]
+        return {(h[j].registrar, h[j].pid, e.registrar, e.pid) for j in lines}  # type: ignore[attr-defined]
 
-    reached: dict[tuple[str, int, str], int] = {}  # (sender, its pid, holder) -> deliveries
+    reached: dict[tuple[str, int, str, int], int] = {}  # (sender, pid, holder, pid) -> count
     for e in h:
         if type(e) is events.StatusDelivered and e.status_id:
             for path in paths(e):

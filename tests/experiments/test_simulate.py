@@ -888,6 +888,31 @@ def test_the_simprogram_plan_holds_at_seed_1_its_killed_programs_client_ids_rele
 
 
 @SWEEP
+def test_simdoubt_seed_58_holds_a_status_lost_with_its_sender_before_it_reached_a_new_process() -> (
+    None
+):
+    # issue 68, finding 3: db's status reached api's process; api was killed and restored
+    # in a new one; db's next status to api, its first to that process, was sent 1.7 ms
+    # before db was SIGKILLed and never arrived (the connection is made at the first send).
+    # `status-reached` keyed the connection by the holder's name, not its process: violated.
+    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
+
+    run = simulate.run_seed(load_plan(PLANS / "simdoubt.toml"), 58)
+
+    held([run])
+    sent = {e["status_id"]: e for e in lines(run, "StatusSent") if e["registrar"] == "db"}
+    delivered = {e["status_id"] for e in lines(run, "StatusDelivered")}
+    exits = [e for e in lines(run, "ChildExited") if e["child"] == "db"]
+    lost = [
+        s
+        for s in sent.values()
+        if s["status_id"] not in delivered
+        and any(e["pid"] == s["pid"] and 0 < e["at"] - s["at"] < 0.01 for e in exits)
+    ]
+    assert lost, "seed 58 no longer loses a status of db killed right after it"
+
+
+@SWEEP
 def test_a_duplicate_delivery_at_a_reconnect_is_delivered_twice_and_holds() -> None:
     plan = with_faults('kind = "duplicate_delivery"\ntarget = ["api", "db"]\nevery = 0.3')
 
