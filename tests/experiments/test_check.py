@@ -235,6 +235,49 @@ def test_an_id_of_a_consumer_killed_before_a_restore_lost_it_holds() -> None:
     assert "kept" in [f.rule for f in check.check(numbered(_stamped(restored))).findings]
 
 
+def program_killed_while_releasing(
+    state: str = "unloading", *, seen_after: bool = False
+) -> list[events.Event]:
+    """`simprogram` seed 125: cm (a backup) loaded RID2 with a dependency Q1 at erm; app
+    released RID2, so cm began unloading it (committed: RID2 `unloading`), and its release
+    of Q1 reached erm, which committed it; then the program was SIGKILLed with both before
+    either published it. erm's restore lacks Q1; cm's lists RID2 as `state` and Q1 as its
+    dependency; cm's restart finishes the unload, which erm no longer knows (`dependency`).
+    `seen_after`: cm's life before showed an event after erm's restore."""
+    restored_erm = events.CatalogRestored("erm", (), (), (), pid=P + 1)
+    restored_cm = events.CatalogRestored(
+        "cm", ((RID2, "comp", state, "7", ""),), (), ((Q1, "erm", "leaf", RID2),), pid=C + 1
+    )
+    late = [events.StatusDelivered("cm", "q9", rr.Status.OK, 1, 0.0, "s9", pid=C)]
+    return _stamped(
+        [
+            events.CatalogRestored("erm", (), (), (), pid=P),
+            events.CatalogRestored("cm", (), (), (), pid=C),
+            events.ConsumerAdded("erm", RID, Q1, "cm", pid=P),
+            events.CallAnswered("cm", Q1, "erm", "leaf", RID2, pid=C),
+            events.ConsumerAdded("cm", RID2, Q2, "app", pid=C),
+            events.CallAnswered("app", Q2, "cm", "comp", pid=A),
+            events.QueryForgotten("app", Q2, "cm", "unload", pid=A),
+            events.ConsumerReleased("cm", RID2, Q2, "app", pid=C),
+            restored_erm,
+            *(late if seen_after else ()),
+            restored_cm,
+            events.QueryForgotten("cm", Q1, "erm", "dependency", pid=C + 1),
+            events.ResourceUnloaded("cm", "comp", RID2, pid=C + 1),
+        ]
+    )
+
+
+def test_a_release_its_consumer_committed_before_a_kill_of_both_lost_from_a_restore_holds() -> None:
+    # (issue 68, finding 1: the release reached erm, which committed it; its events and
+    # cm's answer died with the program; cm's restart released it again)
+    verdict = check.check(numbered(program_killed_while_releasing()))
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    # a consumer that was not releasing it, or lived on after the restore, was owed the id
+    assert {3, 9} == _found(program_killed_while_releasing("loaded"), "kept")
+    assert {3, 9} == _found(program_killed_while_releasing(seen_after=True), "kept")
+
+
 # -- the consumer's side and dependency paths ------------------------------------------------
 
 A = 300  # the top consumer's process
@@ -1703,7 +1746,16 @@ def restore_loses_id(h: History) -> History | None:
     made just before may be lost with it, and nobody holds the id any more, so `kept`
     excuses that row's loss (only the later release by its reconcile, of an id the
     provider no longer holds, shows the mutation: `unload-once` sees that, not `kept`;
-    `simprogram` seeds 6, 7, 9, 11 lost a client's row)."""
+    `simprogram` seeds 6, 7, 9, 11 lost a client's row). Nor an id its consumer's restore
+    lists as a dependency of a resource it was unloading: its release may have been
+    committed at the provider before the kill (`simprogram` seed 125)."""
+    releasing = {
+        (e.registrar, row[0])
+        for e in h
+        if type(e) is events.CatalogRestored
+        for row in e.clients
+        if row[3] in {r[0] for r in e.resources if r[2] == "unloading"}
+    }
     held: dict[str, set[str]] = {}
     for i, e in enumerate(h):
         if type(e) is events.ConsumerAdded:
@@ -1714,7 +1766,9 @@ def restore_loses_id(h: History) -> History | None:
             rows = [
                 row
                 for row in e.consumers
-                if row[0] in held.get(e.registrar, set()) and not _killed_before(h, i, row[2])
+                if row[0] in held.get(e.registrar, set())
+                and not _killed_before(h, i, row[2])
+                and (row[2], row[0]) not in releasing
             ]
             forgotten = {  # (before the restore: a release a kill cut off from its event)
                 x.query_id for x in h if type(x) is events.QueryForgotten and x.hlc < e.hlc

@@ -888,6 +888,31 @@ def test_the_simprogram_plan_holds_at_seed_1_its_killed_programs_client_ids_rele
 
 
 @SWEEP
+def test_simprogram_seed_125_holds_a_release_committed_before_the_program_was_killed() -> None:
+    # issue 68, finding 1: api was unloading a resource when the program was SIGKILLed; its
+    # release of the dependency at db had reached db, which committed it; both died before
+    # publishing it. db's restore lacks the id; api's lists it under a resource being
+    # unloaded, and api's restart releases it again (db no longer knows it). `kept` took
+    # it for a committed row lost across the kill.
+    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
+
+    run = simulate.run_seed(load_plan(PLANS / "simprogram.toml"), 125)
+
+    held([run])
+    restores = [e for e in lines(run, "CatalogRestored") if e["registrar"] == "api"]
+    releasing = {
+        row[0]
+        for e in restores
+        for row in e["clients"]
+        if row[3] in {r[0] for r in e["resources"] if r[2] == "unloading"}
+    }
+    db_rows = {row[0] for e in lines(run, "CatalogRestored") for row in e["consumers"]}
+    added = {e["query_id"] for e in lines(run, "ConsumerAdded") if e["registrar"] == "db"}
+    released = {e["query_id"] for e in lines(run, "ConsumerReleased") if e["registrar"] == "db"}
+    assert releasing & added - released - db_rows, "seed 125 no longer loses such a release"
+
+
+@SWEEP
 def test_simdoubt_seed_58_holds_a_status_lost_with_its_sender_before_it_reached_a_new_process() -> (
     None
 ):
