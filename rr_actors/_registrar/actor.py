@@ -261,7 +261,7 @@ class RegistrarActor(Actor):
         self.flights = Flights(self.shared, due, self.dispatch)
         targets = StatusTargets(config.name, published, due)  # what the status desk reads
         DESK.serve(peer, targets)
-        self.holdings = Holdings(self.shared, self.flights, clients, targets.entries)
+        self.holdings = Holdings(self.shared, self.flights, clients, targets.entries, self.dispatch)
         texts = ClientTexts(self.shared)  # made by the answers, read by a snapshot
         self.answers = Answers(self.shared, self.flights, self.holdings, texts)
         self.releases = Releases(

@@ -78,6 +78,7 @@ from rr_actors.errors import (
     ConfigError,
     RegistrarStoppedError,
     RegistrarUnavailableError,
+    ResourceLoadError,
     RrError,
     UnknownQueryError,
 )
@@ -586,15 +587,48 @@ class Answers:
             # (set if it may hold the id: a retry may follow; settled, or unsettled again)
             self.flights.reset(message.query_id, retry_held_at(message), message.parent)
         record = self.registrar.catalog.client(message.query_id)
+        stale = current is not None and current is not message.attempt
+        retried = not stale and record is not None and record.loaded and not message.withdrawn
         try:
-            if current is not None and current is not message.attempt:
+            if stale:
                 pass  # a stale failure of an earlier attempt: a retry's is due
-            elif record is not None and record.loaded and not message.withdrawn:
+            elif retried:
                 pass  # a failed retry of an id this registrar holds: it still holds it
             elif record is not None:
                 self.holdings.forget(message.query_id, reason="withdrawn")
         finally:
             self.flights.answered(message.query_id, message.attempt, message.provider)
+        record = self.registrar.catalog.client(message.query_id)  # (a notice parked for it
+        if retried and record is not None and record.loaded:  # may have ended it meanwhile)
+            self.retry_failed(message, record)  # (not due any more: its FATAL is not parked)
+
+    def retry_failed(self, message: CallFailed, record: ClientRecord) -> None:
+        """A failed retry of an id this registrar holds: it still holds it, unless its provider
+        ran a new load for it (`ResourceLoadError`), so it no longer knew it (its restart lost
+        it, rule 20): `FATAL` now, as its reconcile would tell, before its caller (who has
+        the failure) can release it, which would skip that `FATAL` (issue 68: the reconcile
+        again that a doubted id's failure sends is answered after that release left)."""
+        query = record.query
+        if (
+            isinstance(message.error, ResourceLoadError)
+            and message.serving_rr is None  # (it answered: not one that died with the call)
+            and message.provider == query.serving_rr
+        ):
+            logger.warning(
+                "registrar %s: a retry of %s ran a new load at %s/%s, which no longer knew it "
+                "(its restart lost it): FATAL, and it is forgotten",
+                self.registrar.name,
+                query.id,
+                query.serving_rr,
+                query.server,
+            )
+            self.holdings.report_lost(
+                f"{query.serving_rr}/{query.server}",
+                (query.id,),
+                "the provider no longer knows this query (a retry of it ran a new load there, "
+                "which failed: its restart lost it)",
+                forgotten="unknown at reconcile",
+            )
 
 
 def retry_held_at(failed: CallFailed) -> str | None:
@@ -615,9 +649,11 @@ class Holdings:
         flights: Flights,
         clients: Clients,
         targets: dict[str, tuple[Query, StatusCallback]],
+        redeliver: Callable[[Any], None],
     ) -> None:
         self.registrar = shared
         self.flights = flights
+        self.redeliver = redeliver  # handles a message as the actor does (its dispatch)
         self.clients = clients
         self.status_callbacks: dict[str, StatusCallback] = {}  # query id -> its callback
         self.targets = targets  # what the status desk of this process reads of it
@@ -659,6 +695,32 @@ class Holdings:
                 self.registrar.commit_then(ok=_nothing, undo=_ignored, refuse=_ignored)
             elif commit:  # after it waits for it)
                 self.registrar.commit()
+
+    def report_lost(
+        self,
+        source: str,
+        ids: tuple[str, ...],
+        why: str = (
+            "the provider no longer knows this query (it lost it in a restart, or it was "
+            "held at a registrar of its name that yielded it: rule 22)"
+        ),
+        *,
+        forgotten: str,
+    ) -> None:
+        """`FATAL` to the status callbacks of `ids` (and up their dependents), then forget them."""
+        notice = StatusNotice(
+            ids,
+            Status.FATAL,
+            why,
+            source,
+            runtime.new_id(),
+            FutureReply(),  # (nobody waits for the acknowledgements)
+            sent_at=runtime.wall(),
+        )
+        self.redeliver(notice)
+        for query_id in ids:
+            self.forget(query_id, commit=False, reason=forgotten)
+        self.registrar.commit()
 
     def callback_of(self, query_id: str) -> StatusCallback | None:
         return self.status_callbacks.get(query_id)
@@ -1138,7 +1200,9 @@ class Reconciling:
                 server,
                 len(ids),
             )
-            self.report_lost(f"{serving_rr}/{server}", tuple(ids), forgotten="unknown at reconcile")
+            self.holdings.report_lost(
+                f"{serving_rr}/{server}", tuple(ids), forgotten="unknown at reconcile"
+            )
         if again:
             self.redeliver(ReconcileAsk(serving_rr, holds_yours=False))
 
@@ -1159,38 +1223,12 @@ class Reconciling:
                 serving_rr,
                 server,
             )
-            self.report_lost(
+            self.holdings.report_lost(
                 f"{serving_rr}/{server}",
                 tuple(ids),
                 "the provider is gone and nobody will restart it",
                 forgotten="provider lost",
             )
-
-    def report_lost(
-        self,
-        source: str,
-        ids: tuple[str, ...],
-        why: str = (
-            "the provider no longer knows this query (it lost it in a restart, or it was "
-            "held at a registrar of its name that yielded it: rule 22)"
-        ),
-        *,
-        forgotten: str,
-    ) -> None:
-        """`FATAL` to the status callbacks of `ids` (and up their dependents), then forget them."""
-        notice = StatusNotice(
-            ids,
-            Status.FATAL,
-            why,
-            source,
-            runtime.new_id(),
-            FutureReply(),  # (nobody waits for the acknowledgements)
-            sent_at=runtime.wall(),
-        )
-        self.redeliver(notice)
-        for query_id in ids:
-            self.holdings.forget(query_id, commit=False, reason=forgotten)
-        self.registrar.commit()
 
 
 # -- client actors ---------------------------------------------------------------------

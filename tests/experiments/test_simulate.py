@@ -913,6 +913,31 @@ def test_simprogram_seed_125_holds_a_release_committed_before_the_program_was_ki
 
 
 @SWEEP
+def test_simnostate_seed_716_tells_fatal_for_a_held_id_whose_retry_failed_at_a_restart() -> None:
+    # issue 68, finding 2: a client's retry of an id it held at api failed at api's restart
+    # (no backup, its first loads raise); the client released the id at once, before the
+    # reconcile its failure sent again was answered, and was never told FATAL (`kept`).
+    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
+
+    run = simulate.run_seed(load_plan(PLANS / "simnostate.toml"), 716)
+
+    held([run])
+    retried = {
+        e["query_id"]
+        for e in lines(run, "CallFailed")
+        if e["retry"] and e["error_type"] == "ResourceLoadError"
+    }
+    told = {
+        e["query_id"]
+        for e in lines(run, "QueryForgotten")
+        if e["reason"] == "unknown at reconcile" and e["query_id"] in retried
+    }
+    fatal = {e["query_id"] for e in lines(run, "StatusDelivered") if e["status"] == "FATAL"}
+    assert told, "seed 716 no longer fails a retry of a held id at a restart"
+    assert told <= fatal
+
+
+@SWEEP
 def test_simdoubt_seed_58_holds_a_status_lost_with_its_sender_before_it_reached_a_new_process() -> (
     None
 ):
