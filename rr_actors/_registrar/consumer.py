@@ -27,6 +27,7 @@ reconcile".
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import enum
 import logging
@@ -55,6 +56,7 @@ from rr_actors._registrar.messages import (
     Abandon,
     Fetch,
     FetchVia,
+    KeptUnclaimed,
     ListClientQueries,
     LostEverything,
     OpenClient,
@@ -208,10 +210,12 @@ class Flights:
 
     def settle_listed(
         self, serving_rr: str, listing: Listing | None, unknown: Iterable[str] = ()
-    ) -> None:
+    ) -> list[str]:
         """`serving_rr` answered `listing`'s `Reconcile`: keep for a retry the failed calls it
-        holds, forget those it released; no listing (it is gone for good): all of them."""
+        holds, forget those it released; no listing (it is gone for good): all of them. The
+        ids kept for a retry from now on."""
         lost = set(unknown)
+        kept: list[str] = []
         for query_id, provider in list(self.kept_for_retry.items()):
             if provider != serving_rr:
                 continue
@@ -227,6 +231,8 @@ class Flights:
                 if listing is not None and query_id in listing.held and query_id not in lost:
                     self.kept_for_retry[query_id] = serving_rr
                     self.kept_in[query_id] = listing.life
+                    kept.append(query_id)
+        return kept
 
     def take_dependencies(self, rid: str) -> list[tuple[str, str]]:
         """Resource `rid`'s load ended: take (to give back) the ids its calls left unsettled or
@@ -1051,6 +1057,8 @@ class Reconciling:
         # provider -> the ask's round and life ((0, ""): none)
         self.asked_to_reconcile: dict[str, tuple[int, str]] = {}
         self.everyone = False
+        # (provider, ids it kept for a retry) -> the timer that gives back the unclaimed
+        self.kept_timers: dict[tuple[str, tuple[str, ...]], runtime.Cancellable] = {}
 
     def expect_reconcile(self, providers: Iterable[str]) -> None:
         for provider in providers:
@@ -1105,9 +1113,55 @@ class Reconciling:
     def settle_listed(
         self, serving_rr: str, listing: Listing | None = None, unknown: Iterable[str] = ()
     ) -> None:
-        """Settle the failed calls and releases `listing` listed or left out (none: all)."""
-        self.flights.settle_listed(serving_rr, listing, unknown)
+        """Settle the failed calls and releases `listing` listed or left out (none: all); the
+        calls its provider now keeps for a retry are given back unless one claims them within
+        `call_timeout` (`on_kept_unclaimed`)."""
+        kept = self.flights.settle_listed(serving_rr, listing, unknown)
         self.releases.settle_listed(serving_rr, listing)
+        if kept:
+            self.expire_kept(serving_rr, tuple(kept))
+
+    def expire_kept(self, serving_rr: str, query_ids: tuple[str, ...]) -> None:
+        """Tell this actor `KeptUnclaimed(serving_rr, query_ids)` after `call_timeout`."""
+        ref = self.registrar.ref
+
+        def fire() -> None:
+            with contextlib.suppress(pykka.ActorDeadError):
+                assert ref is not None
+                ref.tell(KeptUnclaimed(serving_rr, query_ids))
+
+        old = self.kept_timers.pop((serving_rr, query_ids), None)
+        if old is not None:
+            old.cancel()
+        self.kept_timers[serving_rr, query_ids] = runtime.thread_timer(
+            self.registrar.config.call_timeout, fire
+        )
+
+    def on_kept_unclaimed(self, message: KeptUnclaimed, _reply: Reply) -> None:
+        """Give back the ids `message.serving_rr` kept for a retry that none claimed in time: a
+        call that failed as its provider died is held there at most `call_timeout` after the
+        reconcile with its restart (issue 68: without a bound, until the provider's next
+        restart or this registrar's stop)."""
+        self.kept_timers.pop((message.serving_rr, message.query_ids), None)
+        flights = self.flights
+        for query_id in message.query_ids:
+            if query_id in self.due or flights.kept_for_retry.get(query_id) != message.serving_rr:
+                continue  # (claimed by a retry, answered or failed again, or given back)
+            flights.unkeep(query_id)
+            flights.dependency_of.pop(query_id, None)
+            logger.info(
+                "registrar %s: no retry claimed %s, kept at %s for it: given back",
+                self.registrar.name,
+                query_id,
+                message.serving_rr,
+            )
+            give_back(message.serving_rr, query_id, self.registrar.name)
+
+    def close(self) -> None:
+        """This registrar stops or died: no more timers (a stop gives the kept ids back)."""
+        for timer in self.kept_timers.values():
+            timer.cancel()
+        self.kept_timers.clear()
 
     def asked(self, message: ReconcileAsk) -> bool:
         """Whether to send an asking provider a `Reconcile` now (setup: once done; none owed)."""

@@ -555,6 +555,15 @@ class KeepName:
 
 
 @dataclasses.dataclass(frozen=True)
+class KeptUnclaimed:
+    """Reconciling's timer: the ids `serving_rr` kept for a retry at a reconcile `call_timeout`
+    ago; those no retry claimed since are given back (`Abandon`)."""
+
+    serving_rr: str
+    query_ids: tuple[str, ...]
+
+
+@dataclasses.dataclass(frozen=True)
 class ReconcileRetry:
     """Presence's timer: send `Reconcile` attempt `attempt` of `round` to `name`; with
     `asked`, the `Reconcile` asked of consumer `name` is due (release its ids if absent)."""
