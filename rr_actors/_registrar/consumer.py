@@ -234,6 +234,15 @@ class Flights:
                     kept.append(query_id)
         return kept
 
+    def take_unclaimed(self, query_id: str, serving_rr: str) -> bool:
+        """Take `query_id` (to give back) if `serving_rr` still keeps it for a retry that no
+        call claimed (none due)."""
+        if query_id in self.due or self.kept_for_retry.get(query_id) != serving_rr:
+            return False
+        self.unkeep(query_id)
+        self.dependency_of.pop(query_id, None)
+        return True
+
     def take_dependencies(self, rid: str) -> list[tuple[str, str]]:
         """Resource `rid`'s load ended: take (to give back) the ids its calls left unsettled or
         kept for a retry, with their providers; no retry can come from it now."""
@@ -1143,12 +1152,9 @@ class Reconciling:
         reconcile with its restart (issue 68: without a bound, until the provider's next
         restart or this registrar's stop)."""
         self.kept_timers.pop((message.serving_rr, message.query_ids), None)
-        flights = self.flights
         for query_id in message.query_ids:
-            if query_id in self.due or flights.kept_for_retry.get(query_id) != message.serving_rr:
+            if not self.flights.take_unclaimed(query_id, message.serving_rr):
                 continue  # (claimed by a retry, answered or failed again, or given back)
-            flights.unkeep(query_id)
-            flights.dependency_of.pop(query_id, None)
             logger.info(
                 "registrar %s: no retry claimed %s, kept at %s for it: given back",
                 self.registrar.name,
