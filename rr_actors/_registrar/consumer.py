@@ -235,8 +235,7 @@ class Flights:
         return kept
 
     def take_unclaimed(self, query_id: str, serving_rr: str) -> bool:
-        """Take `query_id` (to give back) if `serving_rr` still keeps it for a retry that no
-        call claimed (none due)."""
+        """Take `query_id` if `serving_rr` keeps it for a retry no call claimed (none due)."""
         if query_id in self.due or self.kept_for_retry.get(query_id) != serving_rr:
             return False
         self.unkeep(query_id)
@@ -613,37 +612,20 @@ class Answers:
                 self.holdings.forget(message.query_id, reason="withdrawn")
         finally:
             self.flights.answered(message.query_id, message.attempt, message.provider)
-        record = self.registrar.catalog.client(message.query_id)  # (a notice parked for it
-        if retried and record is not None and record.loaded:  # may have ended it meanwhile)
-            self.retry_failed(message, record)  # (not due any more: its FATAL is not parked)
+        record = self.registrar.catalog.client(message.query_id)  # (not due now: its FATAL
+        if retried and record is not None and record.loaded:  # is not parked)
+            self.retry_failed(message, record)
 
     def retry_failed(self, message: CallFailed, record: ClientRecord) -> None:
-        """A failed retry of an id this registrar holds: it still holds it, unless its provider
-        ran a new load for it (`ResourceLoadError`), so it no longer knew it (its restart lost
-        it, rule 20): `FATAL` now, as its reconcile would tell, before its caller (who has
-        the failure) can release it, which would skip that `FATAL` (issue 68: the reconcile
-        again that a doubted id's failure sends is answered after that release left)."""
+        """A held id's retry failed: it is still held, unless its provider ran a new load for it
+        (`ResourceLoadError`: it no longer knew it, rule 20): then `FATAL` now, before its caller
+        can release it and so skip the `FATAL` a reconcile would tell (issue 68)."""
         query = record.query
-        if (
-            isinstance(message.error, ResourceLoadError)
-            and message.serving_rr is None  # (it answered: not one that died with the call)
-            and message.provider == query.serving_rr
-        ):
-            logger.warning(
-                "registrar %s: a retry of %s ran a new load at %s/%s, which no longer knew it "
-                "(its restart lost it): FATAL, and it is forgotten",
-                self.registrar.name,
-                query.id,
-                query.serving_rr,
-                query.server,
-            )
-            self.holdings.report_lost(
-                f"{query.serving_rr}/{query.server}",
-                (query.id,),
-                "the provider no longer knows this query (a retry of it ran a new load there, "
-                "which failed: its restart lost it)",
-                forgotten="unknown at reconcile",
-            )
+        error, provider = message.error, message.provider
+        if isinstance(error, ResourceLoadError) and provider == query.serving_rr:
+            why = "the provider no longer knows this query (a retry of it ran a new load there)"
+            source = f"{query.serving_rr}/{query.server}"
+            self.holdings.report_lost(source, (query.id,), why, forgotten="unknown at reconcile")
 
 
 def retry_held_at(failed: CallFailed) -> str | None:
@@ -1066,8 +1048,7 @@ class Reconciling:
         # provider -> the ask's round and life ((0, ""): none)
         self.asked_to_reconcile: dict[str, tuple[int, str]] = {}
         self.everyone = False
-        # (provider, ids it kept for a retry) -> the timer that gives back the unclaimed
-        self.kept_timers: dict[tuple[str, tuple[str, ...]], runtime.Cancellable] = {}
+        self.kept_timers: dict[KeptUnclaimed, runtime.Cancellable] = {}  # (`expire_kept`)
 
     def expect_reconcile(self, providers: Iterable[str]) -> None:
         for provider in providers:
@@ -1122,9 +1103,8 @@ class Reconciling:
     def settle_listed(
         self, serving_rr: str, listing: Listing | None = None, unknown: Iterable[str] = ()
     ) -> None:
-        """Settle the failed calls and releases `listing` listed or left out (none: all); the
-        calls its provider now keeps for a retry are given back unless one claims them within
-        `call_timeout` (`on_kept_unclaimed`)."""
+        """Settle the failed calls and releases `listing` listed or left out (none: all); those
+        its provider keeps for a retry now, unclaimed, are given back later (`expire_kept`)."""
         kept = self.flights.settle_listed(serving_rr, listing, unknown)
         self.releases.settle_listed(serving_rr, listing)
         if kept:
@@ -1132,42 +1112,28 @@ class Reconciling:
 
     def expire_kept(self, serving_rr: str, query_ids: tuple[str, ...]) -> None:
         """Tell this actor `KeptUnclaimed(serving_rr, query_ids)` after `call_timeout`."""
-        ref = self.registrar.ref
+        ref, told = self.registrar.ref, KeptUnclaimed(serving_rr, query_ids)
+        assert ref is not None
 
-        def fire() -> None:
+        def tell() -> None:
             with contextlib.suppress(pykka.ActorDeadError):
-                assert ref is not None
-                ref.tell(KeptUnclaimed(serving_rr, query_ids))
+                ref.tell(told)
 
-        old = self.kept_timers.pop((serving_rr, query_ids), None)
-        if old is not None:
-            old.cancel()
-        self.kept_timers[serving_rr, query_ids] = runtime.thread_timer(
-            self.registrar.config.call_timeout, fire
-        )
+        self.kept_timers[told] = runtime.thread_timer(self.registrar.config.call_timeout, tell)
 
     def on_kept_unclaimed(self, message: KeptUnclaimed, _reply: Reply) -> None:
-        """Give back the ids `message.serving_rr` kept for a retry that none claimed in time: a
-        call that failed as its provider died is held there at most `call_timeout` after the
-        reconcile with its restart (issue 68: without a bound, until the provider's next
-        restart or this registrar's stop)."""
-        self.kept_timers.pop((message.serving_rr, message.query_ids), None)
+        """Give back the ids kept for a retry that none claimed: a call that failed as its
+        provider died is held there at most `call_timeout` after the reconcile with its
+        restart (issue 68: before, until the provider's next restart or this one's stop)."""
+        self.kept_timers.pop(message, None)
         for query_id in message.query_ids:
-            if not self.flights.take_unclaimed(query_id, message.serving_rr):
-                continue  # (claimed by a retry, answered or failed again, or given back)
-            logger.info(
-                "registrar %s: no retry claimed %s, kept at %s for it: given back",
-                self.registrar.name,
-                query_id,
-                message.serving_rr,
-            )
-            give_back(message.serving_rr, query_id, self.registrar.name)
+            if self.flights.take_unclaimed(query_id, message.serving_rr):
+                give_back(message.serving_rr, query_id, self.registrar.name)
 
     def close(self) -> None:
         """This registrar stops or died: no more timers (a stop gives the kept ids back)."""
         for timer in self.kept_timers.values():
             timer.cancel()
-        self.kept_timers.clear()
 
     def asked(self, message: ReconcileAsk) -> bool:
         """Whether to send an asking provider a `Reconcile` now (setup: once done; none owed)."""

@@ -556,8 +556,7 @@ class KeepName:
 
 @dataclasses.dataclass(frozen=True)
 class KeptUnclaimed:
-    """Reconciling's timer: the ids `serving_rr` kept for a retry at a reconcile `call_timeout`
-    ago; those no retry claimed since are given back (`Abandon`)."""
+    """Reconciling's timer: give back those of `query_ids` `serving_rr` keeps for no retry."""
 
     serving_rr: str
     query_ids: tuple[str, ...]
