@@ -332,8 +332,8 @@ registrar is made at the first send, and what is sent on it waits in the sender 
 connects (a real `simslow` run, CI load 20: db killed 62 ms after the first status of its
 life, which reached three registrars of a process, not the fourth, whose connection was
 still being made; a holder restarted in a new process is connected to anew: `simdoubt`
-seed 58, db killed 1.7 ms after its first status to api's restart, though one before had
-reached api's process before; docs/explanation/failure-semantics.md)."""
+seed 58, db killed 1.7 ms after its first status to api's restart, though an earlier one
+had reached api's old process; docs/explanation/failure-semantics.md)."""
 
 
 def _holder_pid(lives: dict[tuple[str, int], Life]) -> Callable[[str, int], int]:
