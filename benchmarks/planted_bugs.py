@@ -418,10 +418,13 @@ PLANTS = (
         "retry-doubt-dropped",
         "a failed retry of a held id its provider's restart (no backup) knew not is kept, "
         "never reported FATAL: the retry was due at the restart's reconcile (doubted), and "
-        "its failure ends the flight without its provider, which drops the doubt (issue 51)",
+        "its failure ends the flight without its provider, which drops the doubt (issue 51); "
+        "nor is its failure, a new load there, taken for the loss (issue 68)",
         "_registrar/consumer.py",
-        "            self.flights.answered(message.query_id, message.attempt, message.provider)\n",
-        "            self.flights.answered(message.query_id, message.attempt)  # PLANTED\n",
+        "            self.flights.answered(message.query_id, message.attempt, message.provider)\n"
+        "        record = self.registrar.catalog.client(message.query_id)",
+        "            self.flights.answered(message.query_id, message.attempt)  # PLANTED\n"
+        "        record = None  # PLANTED: self.registrar.catalog.client(message.query_id)",
         "simnostate",
         "kept",
     ),

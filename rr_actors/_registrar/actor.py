@@ -58,6 +58,7 @@ from rr_actors._registrar.messages import (
     Fetch,
     Flush,
     KeepName,
+    KeptUnclaimed,
     ListClientQueries,
     ListServerQueries,
     Load,
@@ -172,6 +173,7 @@ DISPATCH: dict[type, tuple[str, Binder]] = {
     PeerLost: ("peer_lost", lambda a: a.presence.on_peer_lost),  # gone, nobody restarts it
     PeerReachable: ("peer_reachable", lambda a: a.presence.on_peer_reachable),  # link healed
     ReconcileRetry: ("reconcile_retry", lambda a: a.presence.on_reconcile_retry),  # its timer
+    KeptUnclaimed: ("kept_unclaimed", lambda a: a.reconciling.on_kept_unclaimed),  # its timer
     YieldName: ("yield_name", lambda a: a.lifecycle.on_yield_name),  # rule 22: another kept
     KeepName: ("keep_name", lambda a: a.lifecycle.on_keep_name),  # the kept one went meanwhile
     StatusBatch: ("status_batch", lambda a: a.status.on_status_batch),  # at a relay
@@ -261,7 +263,7 @@ class RegistrarActor(Actor):
         self.flights = Flights(self.shared, due, self.dispatch)
         targets = StatusTargets(config.name, published, due)  # what the status desk reads
         DESK.serve(peer, targets)
-        self.holdings = Holdings(self.shared, self.flights, clients, targets.entries)
+        self.holdings = Holdings(self.shared, self.flights, clients, targets.entries, self.dispatch)
         texts = ClientTexts(self.shared)  # made by the answers, read by a snapshot
         self.answers = Answers(self.shared, self.flights, self.holdings, texts)
         self.releases = Releases(

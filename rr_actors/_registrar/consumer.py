@@ -27,6 +27,7 @@ reconcile".
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import enum
 import logging
@@ -55,6 +56,7 @@ from rr_actors._registrar.messages import (
     Abandon,
     Fetch,
     FetchVia,
+    KeptUnclaimed,
     ListClientQueries,
     LostEverything,
     OpenClient,
@@ -78,6 +80,7 @@ from rr_actors.errors import (
     ConfigError,
     RegistrarStoppedError,
     RegistrarUnavailableError,
+    ResourceLoadError,
     RrError,
     UnknownQueryError,
 )
@@ -207,10 +210,12 @@ class Flights:
 
     def settle_listed(
         self, serving_rr: str, listing: Listing | None, unknown: Iterable[str] = ()
-    ) -> None:
+    ) -> list[str]:
         """`serving_rr` answered `listing`'s `Reconcile`: keep for a retry the failed calls it
-        holds, forget those it released; no listing (it is gone for good): all of them."""
+        holds, forget those it released; no listing (it is gone for good): all of them. The
+        ids kept for a retry from now on."""
         lost = set(unknown)
+        kept: list[str] = []
         for query_id, provider in list(self.kept_for_retry.items()):
             if provider != serving_rr:
                 continue
@@ -226,6 +231,16 @@ class Flights:
                 if listing is not None and query_id in listing.held and query_id not in lost:
                     self.kept_for_retry[query_id] = serving_rr
                     self.kept_in[query_id] = listing.life
+                    kept.append(query_id)
+        return kept
+
+    def take_unclaimed(self, query_id: str, serving_rr: str) -> bool:
+        """Take `query_id` if `serving_rr` keeps it for a retry no call claimed (none due)."""
+        if query_id in self.due or self.kept_for_retry.get(query_id) != serving_rr:
+            return False
+        self.unkeep(query_id)
+        self.dependency_of.pop(query_id, None)
+        return True
 
     def take_dependencies(self, rid: str) -> list[tuple[str, str]]:
         """Resource `rid`'s load ended: take (to give back) the ids its calls left unsettled or
@@ -586,15 +601,31 @@ class Answers:
             # (set if it may hold the id: a retry may follow; settled, or unsettled again)
             self.flights.reset(message.query_id, retry_held_at(message), message.parent)
         record = self.registrar.catalog.client(message.query_id)
+        stale = current is not None and current is not message.attempt
+        retried = not stale and record is not None and record.loaded and not message.withdrawn
         try:
-            if current is not None and current is not message.attempt:
+            if stale:
                 pass  # a stale failure of an earlier attempt: a retry's is due
-            elif record is not None and record.loaded and not message.withdrawn:
+            elif retried:
                 pass  # a failed retry of an id this registrar holds: it still holds it
             elif record is not None:
                 self.holdings.forget(message.query_id, reason="withdrawn")
         finally:
             self.flights.answered(message.query_id, message.attempt, message.provider)
+        record = self.registrar.catalog.client(message.query_id)  # (not due now: its FATAL
+        if retried and record is not None and record.loaded:  # is not parked)
+            self.retry_failed(message, record)
+
+    def retry_failed(self, message: CallFailed, record: ClientRecord) -> None:
+        """A held id's retry failed: it is still held, unless its provider ran a new load for it
+        (`ResourceLoadError`: it no longer knew it, rule 20): then `FATAL` now, before its caller
+        can release it and so skip the `FATAL` a reconcile would tell (issue 68)."""
+        query = record.query
+        error, provider = message.error, message.provider
+        if isinstance(error, ResourceLoadError) and provider == query.serving_rr:
+            why = "the provider no longer knows this query (a retry of it ran a new load there)"
+            source = f"{query.serving_rr}/{query.server}"
+            self.holdings.report_lost(source, (query.id,), why, forgotten="unknown at reconcile")
 
 
 def retry_held_at(failed: CallFailed) -> str | None:
@@ -615,9 +646,11 @@ class Holdings:
         flights: Flights,
         clients: Clients,
         targets: dict[str, tuple[Query, StatusCallback]],
+        redeliver: Callable[[Any], None],
     ) -> None:
         self.registrar = shared
         self.flights = flights
+        self.redeliver = redeliver  # handles a message as the actor does (its dispatch)
         self.clients = clients
         self.status_callbacks: dict[str, StatusCallback] = {}  # query id -> its callback
         self.targets = targets  # what the status desk of this process reads of it
@@ -659,6 +692,32 @@ class Holdings:
                 self.registrar.commit_then(ok=_nothing, undo=_ignored, refuse=_ignored)
             elif commit:  # after it waits for it)
                 self.registrar.commit()
+
+    def report_lost(
+        self,
+        source: str,
+        ids: tuple[str, ...],
+        why: str = (
+            "the provider no longer knows this query (it lost it in a restart, or it was "
+            "held at a registrar of its name that yielded it: rule 22)"
+        ),
+        *,
+        forgotten: str,
+    ) -> None:
+        """`FATAL` to the status callbacks of `ids` (and up their dependents), then forget them."""
+        notice = StatusNotice(
+            ids,
+            Status.FATAL,
+            why,
+            source,
+            runtime.new_id(),
+            FutureReply(),  # (nobody waits for the acknowledgements)
+            sent_at=runtime.wall(),
+        )
+        self.redeliver(notice)
+        for query_id in ids:
+            self.forget(query_id, commit=False, reason=forgotten)
+        self.registrar.commit()
 
     def callback_of(self, query_id: str) -> StatusCallback | None:
         return self.status_callbacks.get(query_id)
@@ -989,6 +1048,7 @@ class Reconciling:
         # provider -> the ask's round and life ((0, ""): none)
         self.asked_to_reconcile: dict[str, tuple[int, str]] = {}
         self.everyone = False
+        self.kept_timers: dict[KeptUnclaimed, runtime.Cancellable] = {}  # (`expire_kept`)
 
     def expect_reconcile(self, providers: Iterable[str]) -> None:
         for provider in providers:
@@ -1043,9 +1103,37 @@ class Reconciling:
     def settle_listed(
         self, serving_rr: str, listing: Listing | None = None, unknown: Iterable[str] = ()
     ) -> None:
-        """Settle the failed calls and releases `listing` listed or left out (none: all)."""
-        self.flights.settle_listed(serving_rr, listing, unknown)
+        """Settle the failed calls and releases `listing` listed or left out (none: all); those
+        its provider keeps for a retry now, unclaimed, are given back later (`expire_kept`)."""
+        kept = self.flights.settle_listed(serving_rr, listing, unknown)
         self.releases.settle_listed(serving_rr, listing)
+        if kept:
+            self.expire_kept(serving_rr, tuple(kept))
+
+    def expire_kept(self, serving_rr: str, query_ids: tuple[str, ...]) -> None:
+        """Tell this actor `KeptUnclaimed(serving_rr, query_ids)` after `call_timeout`."""
+        ref, told = self.registrar.ref, KeptUnclaimed(serving_rr, query_ids)
+        assert ref is not None
+
+        def tell() -> None:
+            with contextlib.suppress(pykka.ActorDeadError):
+                ref.tell(told)
+
+        self.kept_timers[told] = runtime.thread_timer(self.registrar.config.call_timeout, tell)
+
+    def on_kept_unclaimed(self, message: KeptUnclaimed, _reply: Reply) -> None:
+        """Give back the ids kept for a retry that none claimed: a call that failed as its
+        provider died is held there at most `call_timeout` after the reconcile with its
+        restart (issue 68: before, until the provider's next restart or this one's stop)."""
+        self.kept_timers.pop(message, None)
+        for query_id in message.query_ids:
+            if self.flights.take_unclaimed(query_id, message.serving_rr):
+                give_back(message.serving_rr, query_id, self.registrar.name)
+
+    def close(self) -> None:
+        """This registrar stops or died: no more timers (a stop gives the kept ids back)."""
+        for timer in self.kept_timers.values():
+            timer.cancel()
 
     def asked(self, message: ReconcileAsk) -> bool:
         """Whether to send an asking provider a `Reconcile` now (setup: once done; none owed)."""
@@ -1138,7 +1226,9 @@ class Reconciling:
                 server,
                 len(ids),
             )
-            self.report_lost(f"{serving_rr}/{server}", tuple(ids), forgotten="unknown at reconcile")
+            self.holdings.report_lost(
+                f"{serving_rr}/{server}", tuple(ids), forgotten="unknown at reconcile"
+            )
         if again:
             self.redeliver(ReconcileAsk(serving_rr, holds_yours=False))
 
@@ -1159,38 +1249,12 @@ class Reconciling:
                 serving_rr,
                 server,
             )
-            self.report_lost(
+            self.holdings.report_lost(
                 f"{serving_rr}/{server}",
                 tuple(ids),
                 "the provider is gone and nobody will restart it",
                 forgotten="provider lost",
             )
-
-    def report_lost(
-        self,
-        source: str,
-        ids: tuple[str, ...],
-        why: str = (
-            "the provider no longer knows this query (it lost it in a restart, or it was "
-            "held at a registrar of its name that yielded it: rule 22)"
-        ),
-        *,
-        forgotten: str,
-    ) -> None:
-        """`FATAL` to the status callbacks of `ids` (and up their dependents), then forget them."""
-        notice = StatusNotice(
-            ids,
-            Status.FATAL,
-            why,
-            source,
-            runtime.new_id(),
-            FutureReply(),  # (nobody waits for the acknowledgements)
-            sent_at=runtime.wall(),
-        )
-        self.redeliver(notice)
-        for query_id in ids:
-            self.holdings.forget(query_id, commit=False, reason=forgotten)
-        self.registrar.commit()
 
 
 # -- client actors ---------------------------------------------------------------------

@@ -812,6 +812,7 @@ class Presence:
             self.stop_retrying(name)
         for name in list(self.asked_timers):
             self.stop_asking(name)
+        self.reconciling.close()
 
 
 # -- the outside's views of it: a carrier's, the membership's -------------------------

@@ -555,6 +555,14 @@ class KeepName:
 
 
 @dataclasses.dataclass(frozen=True)
+class KeptUnclaimed:
+    """Reconciling's timer: give back those of `query_ids` `serving_rr` keeps for no retry."""
+
+    serving_rr: str
+    query_ids: tuple[str, ...]
+
+
+@dataclasses.dataclass(frozen=True)
 class ReconcileRetry:
     """Presence's timer: send `Reconcile` attempt `attempt` of `round` to `name`; with
     `asked`, the `Reconcile` asked of consumer `name` is due (release its ids if absent)."""

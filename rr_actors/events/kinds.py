@@ -515,7 +515,8 @@ class QueryForgotten(_Numbered):
         query_id: the forgotten query id.
         reason: `"unload"`, `"unload unanswered"` (the provider releases it when it
             reconciles), `"dependency"`, `"stop"`, `"revoked"` (`FATAL`), `"provider lost"`
-            (rule 19, `FATAL`), `"unknown at reconcile"` (rule 20, `FATAL`), `"late
+            (rule 19, `FATAL`), `"unknown at reconcile"` (rule 20, `FATAL`; also when a
+            retry of it failed at a provider that ran a new load for it), `"late
             dependency"`, `"registrar stopped"`, `"withdrawn"` or `"in doubt"`.
         unload_sent: for a release, the `hlc` stamp its `Unload` left at; else 0.
         reconciled: with `unload_sent`, the stamp at which the last reconcile with its

@@ -294,6 +294,9 @@ class Facts:
         outcomes: query id -> `(stamp, answered)` of each `CallAnswered` / `CallFailed`.
         fetched: (provider, query id) whose holdings `fetch` needs (listed by a fetch or a
             `ServerQueriesListed`, or answered at a provider fetched from).
+        releasing: (consumer, query id) -> the stamp of the consumer's first restore that
+            listed it as a dependency of a resource it was unloading (its release was
+            committed before the kill, and may have reached its provider).
     """
 
     with_backup: set[str] = dataclasses.field(default_factory=set)
@@ -314,6 +317,7 @@ class Facts:
     told_self: list[tuple[int, str, str]] = dataclasses.field(default_factory=list)
     outcomes: dict[str, list[tuple[int, bool]]] = dataclasses.field(default_factory=dict)
     fetched: set[tuple[str, str]] = dataclasses.field(default_factory=set)
+    releasing: dict[tuple[str, str], int] = dataclasses.field(default_factory=dict)
 
 
 def holder_at(facts: Facts, qid: str, stamp: int) -> tuple[str, str, int] | None:
@@ -380,6 +384,10 @@ def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912, PLR0915 - a bran
         elif isinstance(event, events.CatalogRestored | events.RegistrarStopped):
             if isinstance(event, events.CatalogRestored):
                 facts.with_backup.add(event.registrar)
+                unloading = {row[0] for row in event.resources if row[2] == "unloading"}
+                for qid, _serving, _server, parent, *_ in event.clients:
+                    if parent in unloading:
+                        facts.releasing.setdefault((event.registrar, qid), event.hlc)
             for qid, rid, *_ in event.consumers:
                 facts.added.add(qid)
                 facts.held_at.setdefault(qid, (event.registrar, rid, line))

@@ -138,6 +138,7 @@ class Providers:
         self.watch = facts.lost | facts.fetched
         self.outcomes = facts.outcomes
         self.held_on = facts.held_on
+        self.releasing = facts.releasing
         self.catalogs: dict[str, _Catalog] = defaultdict(_Catalog)
         self._by_name: dict[str, list[Life]] | None = None  # each registrar's lives
         self.findings: list[Finding] = []
@@ -235,11 +236,7 @@ class Providers:
         events may be lost, and no `FATAL` is owed (its next life holds nothing of it)."""
         if consumer in self.with_backup:
             return False
-        if self._by_name is None:
-            self._by_name = defaultdict(list)
-            for (name, _number), record in sorted(self.lives.items()):
-                self._by_name[name].append(record)
-        begun = [life for life in self._by_name.get(consumer, ()) if life.start < stamp]
+        begun = [life for life in self.lives_of(consumer) if life.start < stamp]
         if not begun:
             return False
         # (the life that held it: the first not ended when it was added)
@@ -248,8 +245,30 @@ class Providers:
             return False  # (none: a dead life's call, unless a life shown later got its answer)
         start = operator.attrgetter("start")
         last = min(holding, key=start) if holding else max(begun, key=start)
-        followed = any(life.start > last.start for life in self._by_name[consumer])
+        followed = any(life.start > last.start for life in self.lives_of(consumer))
         return followed and last.last < stamp and last.end is not None
+
+    def released_before_kill(self, name: str, consumer: str, qid: str, stamp: int) -> bool:
+        """Whether `consumer` had committed `qid`'s release before a kill: its restore lists it
+        as a dependency of a resource it was unloading, its life before showed nothing after
+        `stamp` (`name`'s restore), and it forgot `qid` after. Its `Unload` may have left
+        before the kill and been committed by `name`, whose events of it died with it (a
+        program killed with its managers, `kill_program`: `simprogram` seed 125); its restart
+        finished the unload, which `name` no longer knew."""
+        at = self.releasing.get((consumer, qid))
+        if at is None or (name, qid) not in self.forgot:
+            return False
+        lives = self.lives_of(consumer)
+        after = next((i for i, life in enumerate(lives) if life.start == at), 0)
+        return after > 0 and lives[after - 1].last < stamp <= self.forgot[name, qid]
+
+    def lives_of(self, name: str) -> list[Life]:
+        """`name`'s lives, in order."""
+        if self._by_name is None:
+            self._by_name = defaultdict(list)
+            for (each, _number), record in sorted(self.lives.items()):
+                self._by_name[each].append(record)
+        return self._by_name.get(name, [])
 
     def lose(
         self,
@@ -272,6 +291,8 @@ class Providers:
             if self.forgot.get((name, qid), let_go_by) < let_go_by:
                 continue
             if self.died_before(held.consumer, stamp, held.stamp, qid):
+                continue
+            if self.released_before_kill(name, held.consumer, qid, stamp):
                 continue
             told = self.fatal_at.get(qid)
             if told is None or told < held.stamp:

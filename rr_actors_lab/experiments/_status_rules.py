@@ -9,7 +9,8 @@
  it) ──► status_reached: each got it, unless it let its id go before the status's last
          delivery (not on the answer to an Unload its sender released it on after the
          send: that answer carried it), or the one to send it on died first (or
-         before anything it sent that registrar arrived: no connection there yet)
+         before anything it sent that registrar's process arrived: no connection
+         there yet)
  StatusHandled ──► status_order: each id's callbacks one at a time, in arrival order;
                    one sender's statuses (StatusSent) arrive in the order sent
 ```
@@ -248,8 +249,8 @@ def status_reached(
     on after the send. Excused: a holder cut off its sender (rule 19: each let the id go); a
     holder killed within `LOST_WITH_HOLDER_S` of a send that reached nobody; a holder restarted
     but not serving yet (failure-semantics.md); a holder whose registrar nothing of the
-    sender's life reached, that life ending within `LOST_WITH_SENDER_S` of its first send
-    there (`_unconnected`).
+    sender's life reached in the holder's process of the send, that life ending within
+    `LOST_WITH_SENDER_S` of its first send there (`_unconnected`).
 
     Letting the id go early excuses no holder whose release crossed the status (rule 9): the
     answer to its `Unload` carried every status not yet acknowledged, delivered before it
@@ -257,6 +258,7 @@ def status_reached(
     """
     cut_off = _cut_off(history)
     unconnected = _unconnected(expected, facts, lives)
+    holder_pid = _holder_pid(lives)
     released = _released_on_unload(steps)
     restarts = _restarts(history)
     reasons = {line: e.reason for line, e in history if isinstance(e, events.QueryForgotten)}
@@ -282,7 +284,8 @@ def status_reached(
         if (
             sender is None
             or sender.last_line <= want.line
-            or (want.sender, want.life, want.holder) in unconnected
+            or (want.sender, want.life, want.holder, holder_pid(want.holder, want.since))
+            in unconnected
         ):
             continue  # it may have died before it sent it on (or its connection there was made)
         end = facts.last_delivery.get(want.status_id, want.since)
@@ -366,26 +369,48 @@ def _died_with_it(want: Expected, record: Life, facts: Facts) -> bool:
 
 
 LOST_WITH_SENDER_S = 0.5
-"""Seconds from a sender life's first send to a holder's registrar within which the life's
+"""Seconds from a sender life's first send to a holder's process within which the life's
 end may lose all it sent there (`status-reached`): the connection from its process to that
 registrar is made at the first send, and what is sent on it waits in the sender until it
 connects (a real `simslow` run, CI load 20: db killed 62 ms after the first status of its
 life, which reached three registrars of a process, not the fourth, whose connection was
-still being made; docs/explanation/failure-semantics.md)."""
+still being made; a holder restarted in a new process is connected to anew: `simdoubt`
+seed 58, db killed 1.7 ms after its first status to api's restart, though an earlier one
+had reached api's old process; docs/explanation/failure-semantics.md)."""
+
+
+def _holder_pid(lives: dict[tuple[str, int], Life]) -> Callable[[str, int], int]:
+    """The process of a registrar's life at a stamp (that of the last life begun before it;
+    0: none shows it)."""
+    starts: dict[str, list[tuple[int, int]]] = defaultdict(list)  # name -> (start, pid)
+    for (name, _number), life in lives.items():
+        starts[name].append((life.start, life.pid))
+    for each in starts.values():
+        each.sort()
+
+    def pid(name: str, stamp: int) -> int:
+        each = starts.get(name, [])
+        at = bisect.bisect_right(each, (stamp, float("inf"))) - 1
+        return each[at][1] if at >= 0 else 0
+
+    return pid
 
 
 def _unconnected(
     expected: Sequence[Expected], facts: Facts, lives: dict[tuple[str, int], Life]
-) -> set[tuple[str, int, str]]:
-    """(sender, its life, holder registrar) of which no send reached any id of the holder, the
-    sender's life ending within `LOST_WITH_SENDER_S` of the first: all of it may have waited
-    for a connection there. Not when that sender reached the holder in none of its lives that
-    sent it something (more than this one): the way itself is broken. One send that arrived
-    shows the connection was made (frames leave it in order): a later one lost is owed."""
-    first: dict[tuple[str, int, str], int] = {}
-    reached: set[tuple[str, int, str]] = set()
+) -> set[tuple[str, int, str, int]]:
+    """(sender, its life, holder registrar, the holder's process at the send) of which no send
+    reached any id of the holder's process, the sender's life ending within
+    `LOST_WITH_SENDER_S` of the first: all of it may have waited for a connection there (a
+    restarted holder's new process is connected to anew). Not when that sender reached the
+    holder in none of its lives that sent it something (more than this one): the way itself
+    is broken. One send that arrived shows the connection was made (frames leave it in
+    order): a later one lost is owed."""
+    holder_pid = _holder_pid(lives)
+    first: dict[tuple[str, int, str, int], int] = {}
+    reached: set[tuple[str, int, str, int]] = set()
     for want in expected:
-        key = (want.sender, want.life, want.holder)
+        key = (want.sender, want.life, want.holder, holder_pid(want.holder, want.since))
         if want.since < first.get(key, want.since + 1):
             first[key] = want.since
         if (want.status_id, want.query_id) in facts.delivered:

@@ -235,6 +235,49 @@ def test_an_id_of_a_consumer_killed_before_a_restore_lost_it_holds() -> None:
     assert "kept" in [f.rule for f in check.check(numbered(_stamped(restored))).findings]
 
 
+def program_killed_while_releasing(
+    state: str = "unloading", *, seen_after: bool = False
+) -> list[events.Event]:
+    """`simprogram` seed 125: cm (a backup) loaded RID2 with a dependency Q1 at erm; app
+    released RID2, so cm began unloading it (committed: RID2 `unloading`), and its release
+    of Q1 reached erm, which committed it; then the program was SIGKILLed with both before
+    either published it. erm's restore lacks Q1; cm's lists RID2 as `state` and Q1 as its
+    dependency; cm's restart finishes the unload, which erm no longer knows (`dependency`).
+    `seen_after`: cm's life before showed an event after erm's restore."""
+    restored_erm = events.CatalogRestored("erm", (), (), (), pid=P + 1)
+    restored_cm = events.CatalogRestored(
+        "cm", ((RID2, "comp", state, "7", ""),), (), ((Q1, "erm", "leaf", RID2),), pid=C + 1
+    )
+    late = [events.StatusDelivered("cm", "q9", rr.Status.OK, 1, 0.0, "s9", pid=C)]
+    return _stamped(
+        [
+            events.CatalogRestored("erm", (), (), (), pid=P),
+            events.CatalogRestored("cm", (), (), (), pid=C),
+            events.ConsumerAdded("erm", RID, Q1, "cm", pid=P),
+            events.CallAnswered("cm", Q1, "erm", "leaf", RID2, pid=C),
+            events.ConsumerAdded("cm", RID2, Q2, "app", pid=C),
+            events.CallAnswered("app", Q2, "cm", "comp", pid=A),
+            events.QueryForgotten("app", Q2, "cm", "unload", pid=A),
+            events.ConsumerReleased("cm", RID2, Q2, "app", pid=C),
+            restored_erm,
+            *(late if seen_after else ()),
+            restored_cm,
+            events.QueryForgotten("cm", Q1, "erm", "dependency", pid=C + 1),
+            events.ResourceUnloaded("cm", "comp", RID2, pid=C + 1),
+        ]
+    )
+
+
+def test_a_release_its_consumer_committed_before_a_kill_of_both_lost_from_a_restore_holds() -> None:
+    # (issue 68, finding 1: the release reached erm, which committed it; its events and
+    # cm's answer died with the program; cm's restart released it again)
+    verdict = check.check(numbered(program_killed_while_releasing()))
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    # a consumer that was not releasing it, or lived on after the restore, was owed the id
+    assert {3, 9} == _found(program_killed_while_releasing("loaded"), "kept")
+    assert {3, 9} == _found(program_killed_while_releasing(seen_after=True), "kept")
+
+
 # -- the consumer's side and dependency paths ------------------------------------------------
 
 A = 300  # the top consumer's process
@@ -949,6 +992,58 @@ def test_a_status_lost_with_a_sender_killed_before_its_connection_to_the_holder_
     assert {5} == _found(first_status_of_a_life(0.062, again=True), "status-reached")
 
 
+def first_status_to_a_restarted_holder(killed_after_s: float) -> list[events.Event]:
+    """`simdoubt` seed 58: a status of db's reached api's process; api, killed, is restored
+    in a new process, holding its id at db again; db's next status about that id is its
+    first to api's new process, and db is SIGKILLed `killed_after_s` after that send (it
+    went on: it added another id). api goes on (db answers it a call)."""
+    from rr_actors._core import hlc  # noqa: PLC0415
+
+    warning = rr.Status.WARNING
+    a1, a2 = A, A + 1  # (api's two processes)
+    restored = events.CatalogRestored("api", (), (), ((Q1, "db", "resource", ""),), pid=a2)
+    history = _stamped(
+        [
+            events.CatalogRestored("db", (), (), (), pid=P),
+            events.CatalogRestored("api", (), (), (), pid=a1),
+            events.ConsumerAdded("db", RID, Q1, "api", pid=P),
+            events.CallAnswered("api", Q1, "db", "resource", pid=a1),
+            events.StatusSent("db", Q1, warning, "hot", "s0", pid=P),
+            events.StatusDelivered("api", Q1, warning, 1, 0.0, "s0", pid=a1),
+            events.ChildExited("sup", "api", a1, "killed by SIGKILL"),
+            restored,
+            events.ChildRestarted("sup", "api", a2, 0.0),
+            events.StatusSent("db", Q1, warning, "hot", "s1", pid=P),
+            events.ConsumerAdded("db", RID, "q9", "client-2", pid=P),  # (it went on)
+        ]
+    )
+    at, _ = hlc.unpack(history[9].hlc)
+    rows = ((Q1, RID, "api"), ("q9", RID, "client-2"))
+    later = [
+        events.ChildExited("sup", "db", P, "killed by SIGKILL"),
+        events.CatalogRestored("db", ((RID, "resource", "loaded", "42", ""),), rows, (), pid=P + 1),
+        events.ConsumerAdded("db", RID2, "q5", "api", pid=P + 1),
+        events.CallAnswered("api", "q5", "db", "resource", pid=a2),
+    ]
+    killed = at + int(killed_after_s * 1e6)
+    return [
+        *history,
+        *(dataclasses.replace(e, hlc=hlc.pack(killed + i, 0)) for i, e in enumerate(later)),
+    ]
+
+
+def test_a_status_lost_with_a_sender_killed_before_it_connected_to_a_restarted_holder_holds() -> (
+    None
+):
+    """A holder restarted in a new process is connected to anew at the sender's first send
+    there: what reached its process before shows no connection to the new one. A sender
+    that lived on after that send was owed it."""
+    h = first_status_to_a_restarted_holder(0.0017)
+    verdict = check.check(numbered(h))
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    assert {10} == _found(first_status_to_a_restarted_holder(2.0), "status-reached")
+
+
 def sent_to_a_restarted_holder(served_first: bool) -> list[events.Event]:
     """cm, killed, is restored (holding Q1 at erm) in a new process; erm sends a status
     about Q1 before cm's supervisor says it serves again (`served_first`: after), and
@@ -1660,7 +1755,16 @@ def restore_loses_id(h: History) -> History | None:
     made just before may be lost with it, and nobody holds the id any more, so `kept`
     excuses that row's loss (only the later release by its reconcile, of an id the
     provider no longer holds, shows the mutation: `unload-once` sees that, not `kept`;
-    `simprogram` seeds 6, 7, 9, 11 lost a client's row)."""
+    `simprogram` seeds 6, 7, 9, 11 lost a client's row). Nor an id its consumer's restore
+    lists as a dependency of a resource it was unloading: its release may have been
+    committed at the provider before the kill (`simprogram` seed 125)."""
+    releasing = {
+        (e.registrar, row[0])
+        for e in h
+        if type(e) is events.CatalogRestored
+        for row in e.clients
+        if row[3] in {r[0] for r in e.resources if r[2] == "unloading"}
+    }
     held: dict[str, set[str]] = {}
     for i, e in enumerate(h):
         if type(e) is events.ConsumerAdded:
@@ -1671,7 +1775,9 @@ def restore_loses_id(h: History) -> History | None:
             rows = [
                 row
                 for row in e.consumers
-                if row[0] in held.get(e.registrar, set()) and not _killed_before(h, i, row[2])
+                if row[0] in held.get(e.registrar, set())
+                and not _killed_before(h, i, row[2])
+                and (row[2], row[0]) not in releasing
             ]
             forgotten = {  # (before the restore: a release a kill cut off from its event)
                 x.query_id for x in h if type(x) is events.QueryForgotten and x.hlc < e.hlc
@@ -2196,9 +2302,9 @@ def drop_delivery(h: History) -> History | None:
     notice left, which no line tells from a lost one (`simdoubt` seed 15, and a real run
     of it in CI, 2026-11-25: api killed right after a WARNING reached it at hop 1, its
     climb to client-0 already on its way). Nor the only delivery of its sender's life to
-    its registrar: it may have waited in the sender for a connection never made (a real
-    `simslow` run in CI, 2026-11-26; `status-reached` excuses a sender life that ended
-    soon after).
+    its registrar's process: it may have waited in the sender for a connection never made
+    (a real `simslow` run in CI, 2026-11-26; a restarted holder's new process, `simdoubt`
+    seed 58; `status-reached` excuses a sender life that ended soon after).
     """
     left: set[str] = set()  # ids released at their provider or forgotten so far
     answered = {e.query_id: e.hlc for e in h if type(e) is events.CallAnswered}
@@ -2215,11 +2321,11 @@ def drop_delivery(h: History) -> History | None:
         lines = senders.get((e.status_id, e.hop), [])
         return all(last[h[j].registrar, h[j].pid] > j for j in lines)  # type: ignore[attr-defined]
 
-    def paths(e: events.StatusDelivered) -> set[tuple[str, int, str]]:
+    def paths(e: events.StatusDelivered) -> set[tuple[str, int, str, int]]:
         lines = senders.get((e.status_id, e.hop), [])
-        return {(h[j].registrar, h[j].pid, e.registrar) for j in lines}  # type: ignore[attr-defined]
+        return {(h[j].registrar, h[j].pid, e.registrar, e.pid) for j in lines}  # type: ignore[attr-defined]
 
-    reached: dict[tuple[str, int, str], int] = {}  # (sender, its pid, holder) -> deliveries
+    reached: dict[tuple[str, int, str, int], int] = {}  # (sender, pid, holder, pid) -> count
     for e in h:
         if type(e) is events.StatusDelivered and e.status_id:
             for path in paths(e):

@@ -910,6 +910,81 @@ def test_the_simprogram_plan_holds_at_seed_1_its_killed_programs_client_ids_rele
 
 
 @SWEEP
+def test_simprogram_seed_125_holds_a_release_committed_before_the_program_was_killed() -> None:
+    # issue 68, finding 1: api was unloading a resource when the program was SIGKILLed; its
+    # release of the dependency at db had reached db, which committed it; both died before
+    # publishing it. db's restore lacks the id; api's lists it under a resource being
+    # unloaded, and api's restart releases it again (db no longer knows it). `kept` took
+    # it for a committed row lost across the kill.
+    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
+
+    run = simulate.run_seed(load_plan(PLANS / "simprogram.toml"), 125)
+
+    held([run])
+    restores = [e for e in lines(run, "CatalogRestored") if e["registrar"] == "api"]
+    releasing = {
+        row[0]
+        for e in restores
+        for row in e["clients"]
+        if row[3] in {r[0] for r in e["resources"] if r[2] == "unloading"}
+    }
+    db_rows = {row[0] for e in lines(run, "CatalogRestored") for row in e["consumers"]}
+    added = {e["query_id"] for e in lines(run, "ConsumerAdded") if e["registrar"] == "db"}
+    released = {e["query_id"] for e in lines(run, "ConsumerReleased") if e["registrar"] == "db"}
+    assert releasing & added - released - db_rows, "seed 125 no longer loses such a release"
+
+
+@SWEEP
+def test_simnostate_seed_716_tells_fatal_for_a_held_id_whose_retry_failed_at_a_restart() -> None:
+    # issue 68, finding 2: a client's retry of an id it held at api failed at api's restart
+    # (no backup, its first loads raise); the client released the id at once, before the
+    # reconcile its failure sent again was answered, and was never told FATAL (`kept`).
+    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
+
+    run = simulate.run_seed(load_plan(PLANS / "simnostate.toml"), 716)
+
+    held([run])
+    retried = {
+        e["query_id"]
+        for e in lines(run, "CallFailed")
+        if e["retry"] and e["error_type"] == "ResourceLoadError"
+    }
+    told = {
+        e["query_id"]
+        for e in lines(run, "QueryForgotten")
+        if e["reason"] == "unknown at reconcile" and e["query_id"] in retried
+    }
+    fatal = {e["query_id"] for e in lines(run, "StatusDelivered") if e["status"] == "FATAL"}
+    assert told, "seed 716 no longer fails a retry of a held id at a restart"
+    assert told <= fatal
+
+
+@SWEEP
+def test_simdoubt_seed_58_holds_a_status_lost_with_its_sender_before_it_reached_a_new_process() -> (
+    None
+):
+    # issue 68, finding 3: db's status reached api's process; api was killed and restored
+    # in a new one; db's next status to api, its first to that process, was sent 1.7 ms
+    # before db was SIGKILLed and never arrived (the connection is made at the first send).
+    # `status-reached` keyed the connection by the holder's name, not its process: violated.
+    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
+
+    run = simulate.run_seed(load_plan(PLANS / "simdoubt.toml"), 58)
+
+    held([run])
+    sent = {e["status_id"]: e for e in lines(run, "StatusSent") if e["registrar"] == "db"}
+    delivered = {e["status_id"] for e in lines(run, "StatusDelivered")}
+    exits = [e for e in lines(run, "ChildExited") if e["child"] == "db"]
+    lost = [
+        s
+        for s in sent.values()
+        if s["status_id"] not in delivered
+        and any(e["pid"] == s["pid"] and 0 < e["at"] - s["at"] < 0.01 for e in exits)
+    ]
+    assert lost, "seed 58 no longer loses a status of db killed right after it"
+
+
+@SWEEP
 def test_a_duplicate_delivery_at_a_reconnect_is_delivered_twice_and_holds() -> None:
     plan = with_faults('kind = "duplicate_delivery"\ntarget = ["api", "db"]\nevery = 0.3')
 

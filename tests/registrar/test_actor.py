@@ -14,7 +14,7 @@ from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.replies import FutureReply
 from rr_actors._registrar import Served, life
 from rr_actors._registrar.actor import DISPATCH, MESSAGE_STEPS
-from rr_actors._registrar.messages import Abandon, ConsumerDown, StatusBatch
+from rr_actors._registrar.messages import Abandon, ConsumerDown, KeptUnclaimed, StatusBatch
 from rr_actors._registrar.state import POINTS
 from rr_actors.testing import (
     STEPS,
@@ -271,6 +271,11 @@ def _reconcile_retry(p: Pair, hook: Hook) -> None:
     Served(p.consumer).peer_reachable(p.provider.name)  # it cannot answer: retried
 
 
+def _kept_unclaimed(p: Pair, hook: Hook) -> None:
+    intercept(p.consumer, "kept_unclaimed", before=hook)
+    DIRECTORY.lookup(p.consumer.name).tell(KeptUnclaimed(p.provider.name, ("no-such-id",)))
+
+
 def _yield_name(p: Pair, hook: Hook) -> None:
     intercept(p.provider, "yield_name", before=hook)
     Served(p.provider).yield_name("another registrar of its name is kept (a test)")
@@ -338,6 +343,7 @@ DRIVERS: dict[str, Callable[[Pair, Hook], None]] = {
     "peer_lost": _peer_lost,
     "peer_reachable": _peer_reachable,
     "reconcile_retry": _reconcile_retry,
+    "kept_unclaimed": _kept_unclaimed,
     "yield_name": _yield_name,
     "keep_name": _keep_name,
     "snapshot": _snapshot,

@@ -3640,3 +3640,61 @@ class TestLastUnloadCommit:
             assert ([], ["reconcile"], []) == (in_doubt, released, cut)
         else:
             assert ([rid], ["unload"], ["unload"]) == (in_doubt, released, cut)
+
+
+class TestKeptForRetry:
+    @pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+    @pytest.mark.usefixtures("by_value")  # (tests/conftest.py)
+    def test_an_id_kept_for_a_retry_that_never_comes_is_given_back_a_call_timeout_later(
+        self, supervisors: Callable[..., rr.Supervisor], tmp_path: Path
+    ) -> None:
+        # issue 68, item 5: a real SIGKILL of the provider's manager process just after it
+        # committed a call's id, before it answered: the call fails with
+        # RegistrarUnavailableError (it may have run), and the restart, restored from its
+        # backup, keeps the id for a retry. No retry comes. It stayed held, its resource
+        # loaded, until the provider's next restart or the consumer's stop: now it is given
+        # back `call_timeout` after the reconcile that kept it.
+        uid = uuid.uuid4().hex[:8]
+        p = f"p-{uid}"
+        spec = rr.ManagerSpec(p, _leaf_setup, isolation="process", heartbeat=None)
+        sup = supervisors([spec], state_dir=tmp_path / "state")
+        heard = _Heard()
+        subscription = sup.subscribe(heard)
+        sup.start()
+        app = sup.registrar(rr.RegistrarConfig(name=f"app-{uid}", call_timeout=1.0))
+
+        def arm(registrar: rr.ResourceRegistrar) -> None:
+            import signal  # noqa: PLC0415 - runs in the provider's first process
+
+            from rr_actors import events  # noqa: PLC0415
+            from rr_actors.testing import intercept  # noqa: PLC0415
+
+            def die_once_added(told: Any) -> None:
+                if any(isinstance(e, events.ConsumerAdded) for e in told):
+                    os.kill(os.getpid(), signal.SIGKILL)
+
+            intercept(registrar, "events_written", before=die_once_added)
+
+        sup.run_in(p, arm)
+        qid = str(uuid.uuid4())
+        with pytest.raises(rr.RegistrarUnavailableError):
+            app.call(p, "leaf", "x", query_id=qid, timeout=10)
+        sup.wait_restarted(p, timeout=20)
+
+        assert wait_for(lambda: not sup.run_in(p, lambda r: catalog_snapshot(r).resources), 20)
+        assert sup.flush_events(timeout=10)
+        assert subscription.wait_delivered(timeout=10)
+        subscription.close()
+        restored = [
+            row[0]
+            for e in heard.of(rr.events.CatalogRestored)
+            if e.registrar == p
+            for row in e.consumers
+        ]
+        released = [
+            e.reason
+            for e in heard.of(rr.events.ConsumerReleased)
+            if e.registrar == p and e.query_id == qid
+        ]
+        assert ([qid], ["abandoned"]) == (restored, released)
+        assert [] == app.client_queries()
