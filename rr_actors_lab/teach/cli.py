@@ -19,13 +19,12 @@ import argparse
 import contextlib
 import json
 import os
-import re
 import sys
 import threading
 import time
 import traceback
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TextIO
+from typing import TYPE_CHECKING, TextIO
 
 from rr_actors._extras import needs
 from rr_actors._log import terminal_width, wrap
@@ -36,8 +35,6 @@ if TYPE_CHECKING:
     from rich.progress import Progress as RichProgress
     from rich.progress import TaskID
 
-    from rr_actors_lab.experiments import simulate
-    from rr_actors_lab.experiments.plan import Plan
     from rr_actors_lab.teach import grade, replay
 
 __all__ = [
@@ -115,7 +112,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="an exercise's folder (default: .; none with --plan)",
     )
     replay.add_argument("--seed", type=int, default=1, help="the seed (default: 1)")
-    replay.add_argument("--plan", type=Path, help="this plan (a shrunk one, or any simulable plan)")
+    replay.add_argument(
+        "--plan",
+        type=Path,
+        help="this plan (a shrunk one: judged by its folder's exercise; or any simulable plan)",
+    )
     replay.add_argument("--port", type=int, default=0, help="the page's port (default: a free one)")
     replay.add_argument(
         "--for", dest="duration", type=float, metavar="SECONDS", help="serve this long (Ctrl-C)"
@@ -190,6 +191,8 @@ def _replay(args: argparse.Namespace, out: TextIO) -> int:
     folder: Path | None = args.folder
     if folder is None and args.plan is None:
         folder = Path()
+    elif folder is None and os.path.lexists(args.plan.parent / kit.STATE):
+        folder = args.plan.parent  # (a plan in an exercise's folder, shrunk.toml: its rules)
     if folder is not None:
         kit.folder_exercise(folder)  # (said before a child process starts)
     argv = ["teach", "replay", *([str(folder)] if folder is not None else [])]
@@ -201,7 +204,7 @@ def _replay(args: argparse.Namespace, out: TextIO) -> int:
         return code
     plan, run = grade.seed_run(folder, args.seed, args.plan)
     rerun = grade.rerun(folder, args.seed)
-    judge = None if folder is None else _judge(folder)
+    judge = None if folder is None else replay.exercise_verdict(folder)
     observer, shown = replay.open_replay(plan, run, port=args.port, rerun=rerun, judge=judge)
     with observer:
         out.write(
@@ -212,24 +215,6 @@ def _replay(args: argparse.Namespace, out: TextIO) -> int:
         with contextlib.suppress(KeyboardInterrupt):
             threading.Event().wait(args.duration)
     return 0
-
-
-def _judge(folder: Path) -> Any:
-    """The check's verdict of a run of a plan in `folder` (`replay.Verdict`), as `grade`
-    judges a seed: the exercise's rules besides the checker's."""
-    from rr_actors_lab.teach import grade, replay  # noqa: PLC0415 - imported by the replay
-
-    def judge(plan: Plan, run: simulate.SimulatedRun) -> replay.Verdict:
-        failure = grade.judge(folder, plan, run)
-        if failure is None:
-            return replay.Verdict(True, checker=run.verdict)
-        at = re.match(r"#(\d+):", failure.first_event or "")
-        line = int(at.group(1)) if at is not None else None  # (`Failure.first_event`'s form)
-        return replay.Verdict(
-            False, failure.rule, failure.words, failure.message, line, run.verdict
-        )
-
-    return judge
 
 
 def _verdict_words(shown: replay.Replay) -> str:
@@ -400,6 +385,8 @@ def _told(report: grade.Report) -> str:
             f"interleavings, {report.events} events checked, every rule held "
             f"({report.cpu_s:.1f} CPU s)\n"
         )
+    if report.outcome == "not-loaded":  # (exit NOT_LOADED: nothing was judged)
+        return f"{report.exercise}: NOT CHECKED: seed {failure.seed}: {failure.message}\n"
     lines = [
         f"{report.exercise}: FAILED on seed {failure.seed} ({report.seeds_run - 1} seeds "
         f"held before it)"

@@ -26,9 +26,11 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from rr_actors import events
@@ -39,6 +41,7 @@ from rr_actors_lab.observe._hub import Hub
 from rr_actors_lab.observe._observer import Observer, require_extra
 from rr_actors_lab.observe._sources import event_dict
 from rr_actors_lab.observe._view import dependency_graph, summarise_catalog
+from rr_actors_lab.teach import grade
 
 __all__ = [
     "BRANCHES",
@@ -87,19 +90,35 @@ def checker_verdict(plan: Plan, run: simulate.SimulatedRun) -> Verdict:
     """The verdict of the semantic rules' checker on `run` (a replay without an exercise):
     its first violation (by its last event), or the crash; an unverifiable run passes,
     as it does a check."""
+    words = "the semantic rules alone (no exercise's folder: its own rules are not checked)"
     if run.verdict == "crashed":
         said = run.findings[0] if run.findings else "the system raised"
-        return Verdict(False, "crashed", "", said, None, run.verdict)
+        return Verdict(False, "crashed", words, said, None, run.verdict)
     if run.verdict != "violated":
-        return Verdict(True, checker=run.verdict)
+        return Verdict(True, words=words, checker=run.verdict)
     numbered = check.read_runs(run.history.splitlines()).get(simulate.RUN, [])
     resolve = plan.hosts.resolve if plan.hosts is not None else "first_served"
     found = [f for f in check.check(numbered, resolve).findings if f.kind == "violation"]
     if not found:
-        return Verdict(True, checker=run.verdict)
+        return Verdict(True, words=words, checker=run.verdict)
     first = min(found, key=lambda f: max(f.lines, default=0))
     line = max(first.lines) if first.lines else None
-    return Verdict(False, first.rule, "", first.message, line, run.verdict)
+    return Verdict(False, first.rule, words, first.message, line, run.verdict)
+
+
+def exercise_verdict(folder: Path) -> Callable[[Plan, simulate.SimulatedRun], Verdict]:
+    """The verdict of `folder`'s check on a run of a plan (`grade.judge`: the exercise's
+    rules besides the checker's), for `Replay`'s `judge`."""
+
+    def judge(plan: Plan, run: simulate.SimulatedRun) -> Verdict:
+        failure = grade.judge(folder, plan, run)
+        if failure is None:
+            return Verdict(True, checker=run.verdict)
+        at = re.match(r"#(\d+):", failure.first_event or "")  # (`Failure.first_event`'s form)
+        line = int(at.group(1)) if at is not None else None
+        return Verdict(False, failure.rule, failure.words, failure.message, line, run.verdict)
+
+    return judge
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1077,11 +1077,12 @@
   function renderVerdict(check) {
     const box = $("replay-verdict");
     box.dataset.outcome = check.outcome;
-    $("replay-outcome").textContent = check.outcome === "passed" ? "passed: every rule held" : "FAILED";
+    const passed = check.outcome === "passed";
+    $("replay-outcome").textContent = passed ? "passed" : "FAILED";
     $("replay-rule").textContent = check.rule ? `[${check.rule}]` : "";
     $("replay-message").textContent = check.message
-      + (check.checker !== "held" || check.outcome === "passed" ? "" : " (the semantic rules' checker alone: held; the exercise's own rule broke)");
-    $("replay-words").textContent = check.words ? `the rule: ${check.words}` : "";
+      + (check.checker !== "held" || passed ? "" : " (the semantic rules' checker alone: held; the exercise's own rule broke)");
+    $("replay-words").textContent = passed ? check.words || "every rule held" : check.words ? `the rule: ${check.words}` : "";
     const button = $("replay-violation");
     button.hidden = check.step === null;
     button.dataset.step = check.step === null ? "" : check.step;
