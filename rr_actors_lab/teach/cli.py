@@ -265,8 +265,7 @@ def _check(args: argparse.Namespace, out: TextIO) -> int:
                 lines = grade.replay_story(folder, args.seed, args.plan)
                 out.write("".join(f"{line}\n" for line in lines))
                 return PASSED
-            seeds = [args.seed] if args.seed is not None else None
-            total = 1 if seeds else (args.seeds or chosen.seeds)
+            total = 1 if args.seed is not None else (args.seeds or chosen.seeds)
             with _Progress(sys.stderr, chosen.name, total, quiet=args.quiet) as progress:
                 report = grade.check_folder(
                     folder,
@@ -288,9 +287,12 @@ def _check(args: argparse.Namespace, out: TextIO) -> int:
             f"failed (exit {KIT_ERROR})"
         )
         return KIT_ERROR
-    if args.json is not None:
-        args.json.write_text(json.dumps(report.as_dict(), indent=2) + "\n", encoding="utf-8")
     out.write(_told(report))
+    if args.json is not None:
+        try:
+            args.json.write_text(json.dumps(report.as_dict(), indent=2) + "\n", encoding="utf-8")
+        except OSError as exc:
+            raise ConfigError(f"--json {args.json}: cannot be written ({exc.strerror})") from None
     return {"passed": PASSED, "failed": CHECK_FAILED}.get(report.outcome, NOT_LOADED)
 
 
@@ -304,7 +306,8 @@ class _Progress:
         self.done = 0
         self.started = time.monotonic()
         self.bar: RichProgress | None = None
-        self.task: TaskID | None = None
+        self.seeds_task: TaskID | None = None
+        self.shrink_task: TaskID | None = None
         if quiet or not stream.isatty():
             return
         try:
@@ -326,7 +329,7 @@ class _Progress:
             console=Console(file=stream),
             transient=True,
         )
-        self.task = self.bar.add_task(f"{name}: seeds", total=total)
+        self.seeds_task = self.bar.add_task(f"{name}: seeds", total=total)
 
     def __enter__(self) -> _Progress:
         if self.bar is not None:
@@ -340,9 +343,9 @@ class _Progress:
     def seed(self, number: int) -> None:
         """Seed `number` ran and was judged."""
         self.done += 1
-        if self.bar is not None and self.task is not None:
+        if self.bar is not None and self.seeds_task is not None:
             description = f"{self.name}: seed {number}"
-            self.bar.update(self.task, completed=self.done, description=description)
+            self.bar.update(self.seeds_task, completed=self.done, description=description)
         elif self._due(self.done, self.total):
             self._say(f"seeds: {self.done}/{self.total} run")
 
@@ -356,9 +359,9 @@ class _Progress:
                 f"(at most {SHRINK_BUDGET} runs)"
             )
             if self.bar is not None:
-                self.task = self.bar.add_task(f"{self.name}: shrink", total=SHRINK_BUDGET)
-        elif self.bar is not None and self.task is not None:
-            self.bar.update(self.task, completed=runs)
+                self.shrink_task = self.bar.add_task(f"{self.name}: shrink", total=SHRINK_BUDGET)
+        elif self.bar is not None and self.shrink_task is not None:
+            self.bar.update(self.shrink_task, completed=runs)
         elif runs % PROGRESS_EVERY == 0:
             self._say(f"shrink: {runs}/{SHRINK_BUDGET} runs")
 

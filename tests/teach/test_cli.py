@@ -284,7 +284,7 @@ OUTCOMES = {  # a folder as a student may leave it: the exit code, and what is s
     ),
     "not an exercise": (Path.mkdir, 2, "stderr", "is not an exercise's folder"),
     "step.py does not import": (broken_step, 3, "stderr", "step.py does not import: SyntaxError"),
-    "plan.toml not a plan": (bad_plan, 3, "stderr", "plan.toml:1: is not valid TOML"),
+    "plan.toml not a plan": (bad_plan, 3, "stderr", "plan.toml: is not valid TOML"),
     "the setup raises": (
         raising_setup,
         3,
