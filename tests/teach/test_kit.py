@@ -60,7 +60,7 @@ def test_start_writes_the_state_and_refuses_a_file(tmp_path: Path) -> None:
 def test_a_broken_state_file_is_said(tmp_path: Path) -> None:
     (tmp_path / kit.STATE).write_text("{not json")
 
-    with pytest.raises(ConfigError, match=r"is not an exercise's state file"):
+    with pytest.raises(ConfigError, match=r"not JSON .*: not an exercise's state file"):
         kit.folder_exercise(tmp_path)
 
 
