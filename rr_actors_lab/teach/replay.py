@@ -50,6 +50,7 @@ __all__ = [
     "Replay",
     "Verdict",
     "checker_verdict",
+    "exercise_verdict",
     "open_replay",
 ]
 

@@ -1,7 +1,9 @@
 """`rr-actors teach` (`rr_actors_lab.teach.cli`), run as a student runs it: a real
 `python -m rr_actors` process per command. Each exercise's starter fails its check and its
 solution passes (on a few seeds: the benchmark runs the exercises' 200); the JSON report;
-hints remembered in the folder; the solution behind `--teacher`; bad input said."""
+hints remembered in the folder; the solution behind `--teacher`; bad input said; an exit
+code per outcome and the progress a grading script sees (issue 70); a folder's files read
+within bounds (issue 68)."""
 
 from __future__ import annotations
 
