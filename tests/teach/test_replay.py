@@ -288,7 +288,9 @@ def test_a_live_replay_kills_and_cuts_after_the_step_shown(browser: Any, tmp_pat
     errors: list[str] = []
     page.on("pageerror", lambda exc: errors.append(str(exc)))
     page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-    observer, shown = replay.open_replay(plan, run, rerun=grade.rerun(folder, 1))
+    observer, shown = replay.open_replay(
+        plan, run, rerun=grade.rerun(folder, 1), judge=replay.exercise_verdict(folder)
+    )
     try:
         page.goto(observer.url)
         shows(page, 1)
@@ -316,6 +318,7 @@ def test_a_live_replay_kills_and_cuts_after_the_step_shown(browser: Any, tmp_pat
         assert "restarting" == page.locator('.node[data-child="camera"]').get_attribute(
             "data-state"
         )
+        assert "FAILED" == page.locator("#replay-outcome").inner_text()  # (the run made again)
         where = DOCS_IMG if os.environ.get("RR_DOCS_SCREENSHOTS") == "1" else tmp_path
         page.screenshot(path=str(where / "teach-replay.png"), full_page=True)
         # a cut, then: the same way, its connections closed in the run made again
