@@ -218,7 +218,9 @@ def next_hint(folder: Path) -> tuple[Exercise, int, str | None]:
         ConfigError: as `folder_exercise`.
     """
     chosen, state = folder_exercise(folder)
-    shown = int(state.get("hints_shown", 0))
+    shown = state.get("hints_shown", 0)
+    if isinstance(shown, bool) or not isinstance(shown, int) or shown < 0:
+        raise ConfigError(f"{folder / STATE}: hints_shown is not a count: {reprlib.repr(shown)}")
     if shown >= len(chosen.hints):
         return chosen, len(chosen.hints), None
     state["hints_shown"] = shown + 1
