@@ -25,7 +25,7 @@ EXTRAS = {
     "demo": "matplotlib, rich: the mission's plot, its live progress line and tables",
     "experiments": "msgspec, matplotlib, rich: plans checked against their schema, plots",
     "observe": "Starlette, sse-starlette, uvicorn: the observer's web page",
-    "teach": "greenlet, msgspec: the classroom kit's exercises, checked on the simulation",
+    "teach": "greenlet, msgspec, rich, the observe extra's: the classroom kit, its replay page",
     "title": "setproctitle: `ps` shows a manager process as `rr-actors: <name>`",
     "zenoh": "eclipse-zenoh, cryptography: registrars across hosts, mutual TLS, certs",
 }

@@ -175,6 +175,19 @@ def test_every_extra_a_user_installs_is_in_pyproject_and_said_what_it_brings() -
     assert {"demo", "experiments", "observe", "teach", "title", "zenoh"} == set(EXTRAS)
 
 
+def test_the_teach_extra_holds_what_the_replay_page_and_the_progress_bar_need() -> None:
+    """Issue 70 item 6: `pip install ".[teach]"` left `rr-actors teach replay` asking for
+    the `observe` extra."""
+    import tomllib  # noqa: PLC0415
+
+    declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"][
+        "optional-dependencies"
+    ]
+
+    assert set(declared["observe"]) <= set(declared["teach"])
+    assert {"greenlet>=3.0", "msgspec>=0.18", "rich>=13"} <= set(declared["teach"])
+
+
 def _closure(requirements: list[str]) -> set[str]:
     """The distributions `requirements` install, with theirs (normalized names)."""
     import importlib.metadata  # noqa: PLC0415

@@ -28,6 +28,7 @@ GIT = shutil.which("git")
         "rr-actors-demo/report.json",  # rr-actors demo
         "state/erm.db",  # the README's supervisor snippet
         "first-results/runs.csv",  # the README's experiment command
+        "rr-actors-teach/camera/plan.toml",  # the README's classroom command
         "results/runs.csv",  # the experiment tutorial's
     ],
 )

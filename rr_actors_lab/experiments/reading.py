@@ -35,11 +35,16 @@ from msgspec import UNSET
 
 from rr_actors._transport.resolve import RESOLVE_STRATEGIES
 from rr_actors.errors import ConfigError
+from rr_actors_lab._tools.files import RefusedFileError, read_text
 from rr_actors_lab.experiments import plan as schema
 from rr_actors_lab.experiments import plans as shipped_plans
 from rr_actors_lab.experiments.plan import Plan, PlanError
 
-__all__ = ["import_object", "load_plan", "parse_plan"]
+__all__ = ["PLAN_LIMIT", "import_object", "load_plan", "parse_plan"]
+
+PLAN_LIMIT = 4 * 1024 * 1024
+"""The most bytes of a plan file read (a plan is a page of TOML: a bigger file is not one;
+`load_plan`, and a run directory's copy that `replay` and `shrink` read)."""
 
 KeyPath = tuple[str | int, ...]  # a path into the data: table keys and array indices
 
@@ -121,20 +126,19 @@ def load_plan(path: str | os.PathLike[str]) -> Plan:
     """Read and validate the plan in the TOML file `path` (its `name` defaults to the stem).
 
     Raises:
-        PlanError: the file cannot be read, is not TOML, or is not a valid plan; the
+        PlanError: the file cannot be read, is not a regular file (a pipe, a device),
+            holds more than `PLAN_LIMIT` bytes, is not TOML, or is not a valid plan; the
             message names the file, the line and the key.
     """
     source = os.fspath(path)
     try:
-        text = Path(source).read_text(encoding="utf-8")
-    except OSError as exc:
-        problem = f"cannot be read ({exc.strerror or exc})"
-        if isinstance(exc, FileNotFoundError) and Path(source).parent == Path():
+        text = read_text(source, PLAN_LIMIT, "a plan")
+    except RefusedFileError as exc:
+        problem = exc.problem
+        if exc.missing and Path(source).parent == Path():
             hint = _did_you_mean(Path(source).stem, shipped_plans.shipped())
             problem += f"{hint} (a shipped plan: plans.find() finds it)" if hint else ""
         raise PlanError(source, 0, "", problem) from exc
-    except UnicodeDecodeError as exc:
-        raise PlanError(source, 0, "", f"is not UTF-8 text ({exc.reason})") from exc
     return parse_plan(text, source=source, name=Path(source).stem)
 
 

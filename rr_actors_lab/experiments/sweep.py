@@ -28,7 +28,6 @@ import os
 import re
 import shutil
 import signal
-import stat
 import statistics
 import subprocess
 import sys
@@ -42,12 +41,13 @@ from multiprocessing import connection, resource_tracker
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, BinaryIO, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 from rr_actors.errors import ConfigError, RrError
+from rr_actors_lab._tools.files import open_regular, read_text
 from rr_actors_lab.experiments import experiment, shrink, simulate, story
 from rr_actors_lab.experiments.plan import Plan
-from rr_actors_lab.experiments.reading import parse_plan
+from rr_actors_lab.experiments.reading import PLAN_LIMIT, parse_plan
 
 if TYPE_CHECKING:
     from rich.table import Table as RichTable
@@ -101,10 +101,6 @@ MAX_SEEDS = 10_000_000
 
 HASH_SEED = "0"
 """The `PYTHONHASHSEED` a sweep and a replay run with."""
-
-PLAN_LIMIT = 4 * 1024 * 1024
-"""The most bytes of a run directory's `plan.toml` that `replay` and `shrink` read (a
-plan is a page of TOML: a bigger file is not one)."""
 
 LINE_LIMIT = 64 * 1024 * 1024
 """The most bytes of one line of a run directory's `seeds.jsonl` (a seed's line is its
@@ -969,60 +965,13 @@ def read_plan_text(path: Path) -> str:
     Raises:
         ConfigError: it cannot be opened, is not a regular file, is too big or not UTF-8.
     """
-    with _open_regular(path) as file:
-        data = file.read(PLAN_LIMIT + 1)
-    if len(data) > PLAN_LIMIT:
-        raise ConfigError(f"{path}: bigger than {PLAN_LIMIT} bytes: not a plan")
-    try:
-        return data.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise ConfigError(f"{path}: is not UTF-8 text ({exc.reason})") from None
+    return read_text(path, PLAN_LIMIT, "a plan")
 
 
 def _read_from(plan: Plan, source: str) -> Plan:
     """`plan` (and each of its variants) as read from `source`."""
     variants = tuple((v, dataclasses.replace(p, source=source)) for v, p in plan.variants)
     return dataclasses.replace(plan, source=source, variants=variants)
-
-
-@contextlib.contextmanager
-def _open_regular(path: Path) -> Iterator[BinaryIO]:
-    """`path` opened in binary if it is a regular file: opened without blocking, checked on the fd.
-
-    Raises:
-        ConfigError: it cannot be opened or is not a regular file.
-    """
-    try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOCTTY | os.O_CLOEXEC)
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot be read ({exc.strerror or exc})") from None
-    try:
-        mode = os.fstat(fd).st_mode
-    except OSError as exc:
-        os.close(fd)
-        raise ConfigError(f"{path}: cannot be read ({exc.strerror or exc})") from None
-    if not stat.S_ISREG(mode):
-        os.close(fd)
-        raise ConfigError(f"{path}: not a regular file ({_file_kind(mode)}): refused")
-    with os.fdopen(fd, "rb") as file:
-        try:
-            yield file
-        except OSError as exc:
-            raise ConfigError(f"{path}: cannot be read ({exc.strerror or exc})") from None
-
-
-def _file_kind(mode: int) -> str:
-    """What a file that is not a regular one is, in words."""
-    for test, kind in (
-        (stat.S_ISDIR, "a directory"),
-        (stat.S_ISCHR, "a character device"),
-        (stat.S_ISBLK, "a block device"),
-        (stat.S_ISFIFO, "a pipe"),
-        (stat.S_ISSOCK, "a socket"),
-    ):
-        if test(mode):
-            return kind
-    return "not a file"
 
 
 def shrink_arguments(parser: argparse.ArgumentParser) -> None:
@@ -1241,7 +1190,7 @@ def _seed_lines(run_dir: Path) -> Iterator[tuple[int, dict[str, Any]]]:
         )
     if not path.exists():
         raise ConfigError(f"{run_dir}: no {SEEDS_FILE} (not an `experiment --simulate` output)")
-    with _open_regular(path) as lines:
+    with open_regular(path) as lines:
         number = 0
         while raw := lines.readline(LINE_LIMIT + 1):
             number += 1

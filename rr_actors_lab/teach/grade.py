@@ -35,7 +35,17 @@ from rr_actors_lab.teach import replaced_step
 from rr_actors_lab.teach.kit import Exercise, folder_exercise
 from rr_actors_lab.teach.rules import RULES
 
-__all__ = ["STORY", "Failure", "Report", "check_folder", "replay_story", "rerun", "seed_run"]
+__all__ = [
+    "STORY",
+    "Failure",
+    "Report",
+    "SubmissionError",
+    "check_folder",
+    "judge",
+    "replay_story",
+    "rerun",
+    "seed_run",
+]
 
 STORY = 20
 """The most steps of the story a failing check prints."""
@@ -50,6 +60,13 @@ a check: the shrunk story so far is told)."""
 
 SHRUNK = "shrunk.toml"
 """The shrunk plan a failing check writes into the folder (the replay command runs it)."""
+
+
+class SubmissionError(ConfigError):
+    """A folder's own files do not load, so no seed ran: its plan is missing, is not a
+    regular file, is too big or is not a plan the simulation runs (its setups do not
+    import, among others), or a protocol exercise's `step.py` is missing, does not import
+    or lacks its step's function. The message names the file and why."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -110,9 +127,17 @@ class Report:
     cpu_s: float
     failure: Failure | None
 
+    @property
+    def outcome(self) -> str:
+        """`"passed"`; `"failed"`: a seed broke a rule; `"not-loaded"`: the folder's code
+        did not start (its setup raised: rule `"setup"`)."""
+        if self.failure is None:
+            return "passed"
+        return "not-loaded" if self.failure.rule == "setup" else "failed"
+
     def as_dict(self) -> dict[str, Any]:
-        """The report as JSON data."""
-        return dataclasses.asdict(self)
+        """The report as JSON data (its fields and `outcome`)."""
+        return {**dataclasses.asdict(self), "outcome": self.outcome}
 
 
 def check_folder(
@@ -123,6 +148,7 @@ def check_folder(
     plan_file: Path | None = None,
     shrink_budget: int = SHRINK_BUDGET,
     on_seed: Callable[[int], None] | None = None,
+    on_shrink: Callable[[int], None] | None = None,
 ) -> Report:
     """Check a student's folder over its exercise's seeds (or `seed` alone, or 1..`seeds`).
 
@@ -133,12 +159,15 @@ def check_folder(
         plan_file: run this plan instead of `folder/plan.toml` (a shrunk one, `SHRUNK`),
             its setups imported from its own folder.
         shrink_budget: the most runs a failure's shrink makes (0: no shrink).
-        on_seed: called with each seed once it ran (progress).
+        on_seed: called with each seed once it ran and was judged (progress), on this
+            thread; a failing seed's shrink runs before.
+        on_shrink: called on this thread with the runs a failing seed's shrink made so far
+            (0 as it starts, then after each run).
 
     Raises:
-        ConfigError: `folder` is not an exercise's folder; its `plan.toml` is missing or
-            wrong (file, line, key); a protocol exercise's `step.py` is missing, does not
-            import or lacks its step's function.
+        ConfigError: `folder` is not an exercise's folder; `seeds` below 1.
+        SubmissionError: its `plan.toml` is missing or wrong (file, line, key); a protocol
+            exercise's `step.py` is missing, does not import or lacks its step's function.
     """
     chosen, _state = folder_exercise(folder)
     count = chosen.seeds if seeds is None else seeds
@@ -150,7 +179,9 @@ def check_folder(
     managers = {m.name for m in plan.managers()}
     resolve = plan.hosts.resolve if plan.hosts is not None else "first_served"
     started = time.process_time()
-    shrink_to = (plan, path, shrink_budget, started + CPU_S) if shrink_budget > 0 else None
+    shrink_to = (
+        (plan, path, shrink_budget, started + CPU_S, on_shrink) if shrink_budget > 0 else None
+    )
     hashes: set[str] = set()
     recorded = attempted = 0
     failure = _intensity(chosen, plan, chosen_seeds[0])
@@ -204,7 +235,8 @@ def seed_run(
     a protocol exercise's `step.py` in place; the plan and the run.
 
     Raises:
-        ConfigError: as `check_folder`; a setup that raised; neither a folder nor a plan.
+        ConfigError: as `check_folder`; neither a folder nor a plan.
+        SubmissionError: as `check_folder`; a setup that raised.
     """
     if folder is None and plan_file is None:
         raise ConfigError("a seed of what? give an exercise's folder or a plan (--plan)")
@@ -215,6 +247,21 @@ def seed_run(
         folder_exercise(folder)
         plan = _plan(folder / "plan.toml" if plan_file is None else plan_file)
     return plan, rerun(folder, seed)(plan)
+
+
+def judge(folder: Path, plan: Plan, run: simulate.SimulatedRun) -> Failure | None:
+    """What `folder`'s check says of `run`, a seed of `plan` run again (`seed_run`, `rerun`):
+    the first rule it broke, the checker's or the exercise's own, told on the run itself
+    (not shrunk); `None`: it held every rule (a replay's verdict).
+
+    Raises:
+        ConfigError: `folder` is not an exercise's folder.
+    """
+    chosen, _state = folder_exercise(folder)
+    managers = {m.name for m in plan.managers()}
+    resolve = plan.hosts.resolve if plan.hosts is not None else "first_served"
+    failure = _intensity(chosen, plan, run.seed)
+    return failure or _judge(chosen, folder, run, (managers, resolve), None)
 
 
 def rerun(folder: Path | None, seed: int) -> Callable[[Plan], simulate.SimulatedRun]:
@@ -236,15 +283,18 @@ def _seed(plan: Plan, seed: int) -> simulate.SimulatedRun:
     try:
         return simulate.run_seed(plan, seed)
     except RrError as exc:
-        raise ConfigError(f"seed {seed}: the tree did not start: {exc}") from None
+        raise SubmissionError(f"seed {seed}: the tree did not start: {exc}") from None
 
 
 def _plan(path: Path) -> Plan:
-    if not path.is_file():
-        raise ConfigError(f"{path} is missing: the exercise's plan (start it again?)")
+    if not path.exists():  # (a pipe or a device is there: refused as such, not missing)
+        raise SubmissionError(f"{path} is missing: the exercise's plan (start it again?)")
     _forget_modules(path.parent)
-    plan = load_plan(path)
-    simulate.check_simulable(plan)
+    try:
+        plan = load_plan(path)
+        simulate.check_simulable(plan)
+    except ConfigError as exc:
+        raise SubmissionError(str(exc)) from exc
     return plan
 
 
@@ -314,18 +364,18 @@ def _student_step(
         return
     path = folder / "step.py"
     if not path.is_file():
-        raise ConfigError(f"{folder} has no step.py: the step you fix (start it again?)")
+        raise SubmissionError(f"{folder} has no step.py: the step you fix (start it again?)")
     spec = importlib.util.spec_from_file_location(f"rr_teach_step_{chosen.name}", path)
     if spec is None or spec.loader is None:
-        raise ConfigError(f"{path} cannot be imported")
+        raise SubmissionError(f"{path} cannot be imported")
     module = importlib.util.module_from_spec(spec)
     try:
         spec.loader.exec_module(module)
     except Exception as exc:  # noqa: BLE001 - the student's code: said, not raised
-        raise ConfigError(f"{path} does not import: {type(exc).__name__}: {exc}") from None
+        raise SubmissionError(f"{path} does not import: {type(exc).__name__}: {exc}") from None
     step = getattr(module, chosen.step, None)
     if not callable(step):
-        raise ConfigError(f"{path} has no function {chosen.step!r}: the step you fix")
+        raise SubmissionError(f"{path} has no function {chosen.step!r}: the step you fix")
 
     returns = _RETURNS.get(chosen.step)
 
@@ -368,7 +418,7 @@ def _judge(
     folder: Path,
     run: simulate.SimulatedRun,
     known: tuple[set[str], str],
-    shrink_to: tuple[Plan, Path, int, float] | None,
+    shrink_to: tuple[Plan, Path, int, float, Callable[[int], None] | None] | None,
 ) -> Failure | None:
     """The first finding of `run` (the checker's, then the kit's), told on the run shrunk
     (`shrink_to`) if the shrink finds it again; `None`: held. `known`: the plan's managers and
@@ -450,17 +500,20 @@ def _findings(
 def _shrunk(
     run: simulate.SimulatedRun,
     folder: Path,
-    shrink_to: tuple[Plan, Path, int, float],
+    shrink_to: tuple[Plan, Path, int, float, Callable[[int], None] | None],
     judge: shrink.Judge,
 ) -> tuple[simulate.SimulatedRun, list[check.Line], check.Finding, int] | None:
     """`run` shrunk to a smaller plan showing its first violation again (its plan written to
     `folder / SHRUNK`): run, events, finding and seed; `None`: not found again."""
-    plan, path, budget, cpu_until = shrink_to
+    plan, path, budget, cpu_until, on_run = shrink_to
     text = path.read_text(encoding="utf-8")
+    if on_run is not None:
+        on_run(0)
     try:
         shrunk = shrink.shrink(
-            plan, run.seed, budget=budget, text=text, judge=judge, cpu_until=cpu_until
-        )
+            plan, run.seed, budget=budget, text=text, judge=judge, cpu_until=cpu_until,
+            on_run=on_run,
+        )  # fmt: skip
     except (ConfigError, RrError):
         return None
     numbered = check.read_runs(shrunk.run.history.splitlines()).get(simulate.RUN, [])

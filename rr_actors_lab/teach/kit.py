@@ -19,11 +19,13 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import json
+import reprlib
 import tomllib
 from pathlib import Path
 from typing import Any
 
 from rr_actors.errors import ConfigError
+from rr_actors_lab._tools.files import RefusedFileError, read_json
 
 __all__ = [
     "EXERCISES",
@@ -42,6 +44,9 @@ EXERCISES = Path(__file__).parent / "exercises"
 
 STATE = ".teach.json"
 """The file in a student's folder that names its exercise and counts the hints shown."""
+
+STATE_LIMIT = 64 * 1024
+"""The most bytes of a folder's `STATE` read (its name and a count: a few dozen bytes)."""
 
 KINDS = ("use", "protocol")
 """`use`: the student writes code or a plan as a user would; `protocol`: the student
@@ -182,20 +187,24 @@ def folder_exercise(folder: Path) -> tuple[Exercise, dict[str, Any]]:
 
     Raises:
         ConfigError: `folder` is not an exercise's folder (no `STATE` file, or one that
-            does not name a shipped exercise).
+            does not name a shipped exercise); its `STATE` is not a regular file, holds more
+            than `STATE_LIMIT` bytes, is not JSON or is nested too deeply (the message
+            names it; nothing more is read).
     """
     path = folder / STATE
     try:
-        state = json.loads(path.read_text(encoding="utf-8"))
-        name = state["exercise"]
-    except FileNotFoundError:
+        state = read_json(path, STATE_LIMIT, "an exercise's state file")
+    except RefusedFileError as exc:
+        if not exc.missing:
+            raise
         raise ConfigError(
             f"{folder} is not an exercise's folder (it has no {STATE}): start one with "
             "`rr-actors teach start NAME FOLDER`"
         ) from None
-    except (ValueError, KeyError, TypeError) as exc:
-        raise ConfigError(f"{path} is not an exercise's state file: {exc}") from None
-    return exercise(str(name)), state
+    if not isinstance(state, dict) or not isinstance(state.get("exercise"), str):
+        shown = reprlib.repr(state)
+        raise ConfigError(f"{path} is not an exercise's state file: no exercise's name in {shown}")
+    return exercise(state["exercise"]), state
 
 
 def next_hint(folder: Path) -> tuple[Exercise, int, str | None]:
@@ -209,7 +218,9 @@ def next_hint(folder: Path) -> tuple[Exercise, int, str | None]:
         ConfigError: as `folder_exercise`.
     """
     chosen, state = folder_exercise(folder)
-    shown = int(state.get("hints_shown", 0))
+    shown = state.get("hints_shown", 0)
+    if isinstance(shown, bool) or not isinstance(shown, int) or shown < 0:
+        raise ConfigError(f"{folder / STATE}: hints_shown is not a count: {reprlib.repr(shown)}")
     if shown >= len(chosen.hints):
         return chosen, len(chosen.hints), None
     state["hints_shown"] = shown + 1

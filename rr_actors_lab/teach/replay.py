@@ -6,8 +6,11 @@
    Replay: each step's event folded into a state (the tree, each registrar's catalog);
            a checkpoint every CHECKPOINT steps (JSON text): state_at(n) folds at most
            CHECKPOINT - 1 steps after the checkpoint before n
+   judge(plan, run) ─► the check's Verdict: passed, or the rule broken, in words, and the
+           step of its first violating event (default: the checker's rules alone)
    show(n) ─► the observer's hub: "tree", "catalog/<name>", "graph" (shown by the
-           observer's own page), "replay" (the step, the story around it, what is in flight)
+           observer's own page), "replay" (the step, the story around it, what is in flight,
+           the verdict)
  the page (the observer's, mode "replay"): first, back, play/pause, step, a slider, a
    click on a story line ── POST /api/control {"step": n} ─► show(n) ─► the stream
  live (`rerun`): a manager's kill or cut ── {"fault", "target"} ─► branch: the plan and
@@ -23,9 +26,11 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from rr_actors import events
@@ -36,8 +41,18 @@ from rr_actors_lab.observe._hub import Hub
 from rr_actors_lab.observe._observer import Observer, require_extra
 from rr_actors_lab.observe._sources import event_dict
 from rr_actors_lab.observe._view import dependency_graph, summarise_catalog
+from rr_actors_lab.teach import grade
 
-__all__ = ["BRANCHES", "CHECKPOINT", "WINDOW", "Replay", "open_replay"]
+__all__ = [
+    "BRANCHES",
+    "CHECKPOINT",
+    "WINDOW",
+    "Replay",
+    "Verdict",
+    "checker_verdict",
+    "exercise_verdict",
+    "open_replay",
+]
 
 CHECKPOINT = 32
 """Steps between two kept states: a step is at most this many folds away from one."""
@@ -47,6 +62,64 @@ BRANCHES: dict[str, FaultKind] = {"kill": "kill_manager", "cut": "cut_connection
 
 WINDOW = (12, 6)
 """Story lines the page shows before the step and after it."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Verdict:
+    """What a check says of a replayed run (the page shows it above the story).
+
+    Attributes:
+        passed: it held every rule.
+        rule: the first rule it broke, e.g. `"dependency"` (`""`: passed).
+        words: that rule in words (an exercise's rule; `""`: none to tell).
+        message: what broke it, in this run.
+        line: the history's line of its first violating event (`None`: passed, or no
+            event shows it: a setup that raised, a plan refused before any run).
+        checker: the checker's own verdict of the run (`"held"`, `"violated"`, ...), which
+            knows the semantic rules only, not an exercise's own.
+    """
+
+    passed: bool
+    rule: str = ""
+    words: str = ""
+    message: str = ""
+    line: int | None = None
+    checker: str = "held"
+
+
+def checker_verdict(plan: Plan, run: simulate.SimulatedRun) -> Verdict:
+    """The verdict of the semantic rules' checker on `run` (a replay without an exercise):
+    its first violation (by its last event), or the crash; an unverifiable run passes,
+    as it does a check."""
+    words = "the semantic rules alone (no exercise's folder: its own rules are not checked)"
+    if run.verdict == "crashed":
+        said = run.findings[0] if run.findings else "the system raised"
+        return Verdict(False, "crashed", words, said, None, run.verdict)
+    if run.verdict != "violated":
+        return Verdict(True, words=words, checker=run.verdict)
+    numbered = check.read_runs(run.history.splitlines()).get(simulate.RUN, [])
+    resolve = plan.hosts.resolve if plan.hosts is not None else "first_served"
+    found = [f for f in check.check(numbered, resolve).findings if f.kind == "violation"]
+    if not found:
+        return Verdict(True, words=words, checker=run.verdict)
+    first = min(found, key=lambda f: max(f.lines, default=0))
+    line = max(first.lines) if first.lines else None
+    return Verdict(False, first.rule, words, first.message, line, run.verdict)
+
+
+def exercise_verdict(folder: Path) -> Callable[[Plan, simulate.SimulatedRun], Verdict]:
+    """The verdict of `folder`'s check on a run of a plan (`grade.judge`: the exercise's
+    rules besides the checker's), for `Replay`'s `judge`."""
+
+    def judge(plan: Plan, run: simulate.SimulatedRun) -> Verdict:
+        failure = grade.judge(folder, plan, run)
+        if failure is None:
+            return Verdict(True, checker=run.verdict)
+        at = re.match(r"#(\d+):", failure.first_event or "")  # (`Failure.first_event`'s form)
+        line = int(at.group(1)) if at is not None else None
+        return Verdict(False, failure.rule, failure.words, failure.message, line, run.verdict)
+
+    return judge
 
 
 @dataclasses.dataclass(frozen=True)
@@ -63,6 +136,9 @@ class Replay:
         plan: the plan the run ran (its tree: the names, strategies and kinds).
         run: the run (its history).
         hub: where `show` puts the sections (`None`: a hub of its own).
+        rerun: runs the seed of a plan again (`branch`; `None`: the page cannot).
+        judge: the check's verdict of a run of a plan (`None`: `checker_verdict`), asked
+            for this run and each rerun, on the thread that makes it.
     """
 
     def __init__(
@@ -71,10 +147,12 @@ class Replay:
         run: simulate.SimulatedRun,
         hub: Hub | None = None,
         rerun: Callable[[Plan], simulate.SimulatedRun] | None = None,
+        judge: Callable[[Plan, simulate.SimulatedRun], Verdict] | None = None,
     ) -> None:
         self.hub = hub if hub is not None else Hub(convert=event_dict)
         self.shown = 0
         self.rerun = rerun
+        self.judge = judge if judge is not None else checker_verdict
         # the page's requests run on a server's threads: one at a time (a kill's rerun
         # replaces the steps while a scrub would read them; a double click reruns once)
         self._lock = threading.RLock()
@@ -89,6 +167,8 @@ class Replay:
         ats = [e.at for e in numbered.values()]
         start = min(ats, default=0.0)
         self.steps = [_Step(line, start + line.at_s, numbered.get(line.line)) for line in lines]
+        self.verdict = self.judge(plan, run)
+        self.violating = self._violating(self.verdict)
         self._managers = {m.name: m for m in plan.managers()}
         self._in_flight = self._flights()
         self._checkpoints: list[str] = []
@@ -97,6 +177,16 @@ class Replay:
             if index % CHECKPOINT == 0:
                 self._checkpoints.append(json.dumps(state))
             _fold(state, step.event)
+
+    def _violating(self, verdict: Verdict) -> int | None:
+        """The step (1..len) of `verdict`'s first violating event, or of the run's crash;
+        `None`: none."""
+        for index, step in enumerate(self.steps, 1):
+            if verdict.line is not None and step.line.line == verdict.line:
+                return index
+            if verdict.rule == "crashed" and step.line.who == "crashed":
+                return index
+        return None
 
     # -- the state at a step ------------------------------------------------------------
 
@@ -323,6 +413,7 @@ class Replay:
                     "pid": line.pid,
                     "text": line.text,
                     "marked": line.marked,
+                    "violating": index == self.violating,
                 }
             )
         flying = [
@@ -331,10 +422,19 @@ class Replay:
             if ended > n and (begun <= at if begun_step == 0 else begun_step <= n)
         ]
         current = self.steps[n - 1].line if n else None
+        verdict = self.verdict
         return {
             "plan": self.plan.name,
             "seed": self.run.seed,
             "verdict": self.run.verdict,
+            "check": {
+                "outcome": "passed" if verdict.passed else "FAILED",
+                "rule": verdict.rule,
+                "words": verdict.words,
+                "message": verdict.message,
+                "step": self.violating,
+                "checker": verdict.checker,
+            },
             "step": n,
             "steps": len(self.steps),
             "at_s": round(current.at_s, 6) if current is not None else 0.0,
@@ -459,10 +559,12 @@ def open_replay(
     host: str = "127.0.0.1",
     port: int = 0,
     rerun: Callable[[Plan], simulate.SimulatedRun] | None = None,
+    judge: Callable[[Plan, simulate.SimulatedRun], Verdict] | None = None,
 ) -> tuple[Observer, Replay]:
     """Open the observer's page on a replay of `run` (of `plan`), at its first step;
     with `rerun` (a plan's run of the same seed), the page's kill and cut buttons run it
-    again with that fault (`Replay.branch`).
+    again with that fault (`Replay.branch`). `judge` gives the check's verdict the page
+    shows (default: `checker_verdict`).
 
     Returns:
         The open observer (its `url`; `close()` it) and the replay it shows.
@@ -471,7 +573,7 @@ def open_replay(
         ConfigError: the `observe` extra is missing; the port is in use.
     """
     require_extra()
-    replay = Replay(plan, run, rerun=rerun)
+    replay = Replay(plan, run, rerun=rerun, judge=judge)
     hello = {
         "mode": "replay",
         "title": f"replay of {plan.name}, seed {run.seed}",

@@ -4,6 +4,7 @@ input as a PlanError with its line, and the line of a key in a TOML text."""
 from __future__ import annotations
 
 import io
+import os
 import pickle
 import textwrap
 from pathlib import Path
@@ -291,6 +292,22 @@ def test_text_that_is_not_toml_names_its_line() -> None:
 def test_a_plan_file_that_does_not_exist_is_a_plan_error(tmp_path: Path) -> None:
     with pytest.raises(PlanError, match="cannot be read"):
         load_plan(tmp_path / "missing.toml")
+
+
+def test_a_plan_file_that_is_a_pipe_or_too_big_is_refused_unread(tmp_path: Path) -> None:
+    """Issue 68 item 3: a FIFO was read until someone wrote to it, a 200 MB file parsed."""
+    fifo, big = tmp_path / "fifo.toml", tmp_path / "big.toml"
+    os.mkfifo(fifo)
+    with big.open("wb") as file:
+        file.truncate(200 * 1024 * 1024)  # (sparse)
+
+    with pytest.raises(PlanError) as pipe:
+        load_plan(fifo)
+    with pytest.raises(PlanError) as bigger:
+        load_plan(big)
+
+    assert f"{fifo}: not a regular file (a pipe): refused" == str(pipe.value)
+    assert f"{big}: bigger than {reading.PLAN_LIMIT} bytes: not a plan" == str(bigger.value)
 
 
 def test_a_plan_error_is_a_config_error_and_pickles() -> None:

@@ -60,7 +60,7 @@ def test_start_writes_the_state_and_refuses_a_file(tmp_path: Path) -> None:
 def test_a_broken_state_file_is_said(tmp_path: Path) -> None:
     (tmp_path / kit.STATE).write_text("{not json")
 
-    with pytest.raises(ConfigError, match=r"is not an exercise's state file"):
+    with pytest.raises(ConfigError, match=r"not JSON .*: not an exercise's state file"):
         kit.folder_exercise(tmp_path)
 
 
@@ -73,3 +73,10 @@ def test_the_hints_run_out_without_counting_further(tmp_path: Path) -> None:
     assert [n for n, _ in said] == [*range(1, count + 1), count, count]
     assert [t for _, t in said][-2:] == [None, None]
     assert json.loads((folder / kit.STATE).read_text())["hints_shown"] == count
+
+
+def test_a_state_file_whose_count_is_no_count_is_said(tmp_path: Path) -> None:
+    (tmp_path / kit.STATE).write_text('{"exercise": "camera", "hints_shown": "x"}')
+
+    with pytest.raises(ConfigError, match=r"hints_shown is not a count: 'x'"):
+        kit.next_hint(tmp_path)

@@ -288,7 +288,9 @@ def test_a_live_replay_kills_and_cuts_after_the_step_shown(browser: Any, tmp_pat
     errors: list[str] = []
     page.on("pageerror", lambda exc: errors.append(str(exc)))
     page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-    observer, shown = replay.open_replay(plan, run, rerun=grade.rerun(folder, 1))
+    observer, shown = replay.open_replay(
+        plan, run, rerun=grade.rerun(folder, 1), judge=replay.exercise_verdict(folder)
+    )
     try:
         page.goto(observer.url)
         shows(page, 1)
@@ -316,6 +318,7 @@ def test_a_live_replay_kills_and_cuts_after_the_step_shown(browser: Any, tmp_pat
         assert "restarting" == page.locator('.node[data-child="camera"]').get_attribute(
             "data-state"
         )
+        assert "FAILED" == page.locator("#replay-outcome").inner_text()  # (the run made again)
         where = DOCS_IMG if os.environ.get("RR_DOCS_SCREENSHOTS") == "1" else tmp_path
         page.screenshot(path=str(where / "teach-replay.png"), full_page=True)
         # a cut, then: the same way, its connections closed in the run made again
@@ -331,3 +334,71 @@ def test_a_live_replay_kills_and_cuts_after_the_step_shown(browser: Any, tmp_pat
         observer.close()
         page.close()
     assert [] == errors
+
+
+def test_a_failed_seeds_page_shows_failed_the_rule_and_its_first_violating_step(
+    browser: Any, tmp_path: Path
+) -> None:
+    """Issue 70 item 3: the page said "checker: held" on the seed the check failed (the
+    exercise's own rule, `[dependency]`, and FAILED appeared nowhere)."""
+    _chosen, folder = kit.start("camera", tmp_path / "cam")
+    plan, run = grade.seed_run(folder, 1)
+    failure = grade.check_folder(folder, seed=1, shrink_budget=0).failure
+    assert failure is not None
+    assert failure.first_event is not None
+    assert "held" == run.verdict  # (the checker alone finds nothing: the kit's rule broke)
+    line = int(failure.first_event.split(":")[0].lstrip("#"))
+    page = browser.new_page()
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    observer, shown = replay.open_replay(
+        plan, run, rerun=grade.rerun(folder, 1), judge=replay.exercise_verdict(folder)
+    )
+    try:
+        page.goto(observer.url)
+        shows(page, 1)
+        assert "FAILED" == page.locator("#replay-outcome").inner_text()
+        assert f"[{failure.rule}]" == page.locator("#replay-rule").inner_text()
+        assert failure.message in page.locator("#replay-message").inner_text()
+        assert f"the rule: {failure.words}" == page.locator("#replay-words").inner_text()
+        assert "checker: held" not in page.locator("#replay-panel").inner_text()
+        violating = next(n for n, s in enumerate(shown.steps, 1) if s.line.line == line)
+        button = page.locator("#replay-violation")
+        assert f"first violating step: {violating}" == button.inner_text()
+        button.click()
+        shows(page, violating)
+        current = page.locator("#replay-story li.current")
+        assert "violating" in (current.get_attribute("class") or "")
+        assert f"#{line} " in current.inner_text()
+        assert failure.first_event.split(": ", 1)[1] in current.inner_text()
+    finally:
+        observer.close()
+        page.close()
+    assert [] == errors
+
+
+def test_a_seed_that_holds_every_rule_shows_passed_and_no_violating_step(tmp_path: Path) -> None:
+    _chosen, folder = kit.start("camera", tmp_path / "cam")
+    for file, text in kit.solution_files(kit.exercise("camera")).items():
+        (folder / file).write_text(text, encoding="utf-8")
+    plan, run = grade.seed_run(folder, 1)
+
+    shown = replay.Replay(plan, run, judge=replay.exercise_verdict(folder))
+
+    check = shown.sections(1)["replay"]["check"]
+    assert ("passed", "", None) == (check["outcome"], check["rule"], check["step"])
+    assert not any(row["violating"] for row in shown.sections(1)["replay"]["story"])
+
+
+def test_without_an_exercise_the_page_shows_the_checkers_first_violation(tmp_path: Path) -> None:
+    _chosen, folder = kit.start("climb", tmp_path / "climb")
+    plan, run = grade.seed_run(folder, 1)  # (the starter's climb stops at FATAL: violated)
+    assert "violated" == run.verdict
+
+    shown = replay.Replay(plan, run)
+
+    check = shown.sections(1)["replay"]["check"]
+    assert ("FAILED", "status-reached") == (check["outcome"], check["rule"])
+    assert check["step"] is not None
+    assert shown.steps[check["step"] - 1].line.marked  # (a step the checker points at)

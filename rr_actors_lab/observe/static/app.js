@@ -1056,12 +1056,13 @@
     const scrub = $("replay-scrub");
     scrub.max = section.steps;
     if (document.activeElement !== scrub) scrub.value = section.step;
-    $("replay-where").textContent = `step ${section.step} of ${section.steps} · ${section.at_s.toFixed(3)} s · seed ${section.seed} · checker: ${section.verdict}`;
+    $("replay-where").textContent = `step ${section.step} of ${section.steps} · ${section.at_s.toFixed(3)} s · seed ${section.seed}`;
+    renderVerdict(section.check);
     $("replay-story").replaceChildren(...section.story.map((row) => {
       const where = row.step === section.step ? "current" : row.step > section.step ? "future" : "past";
       const stamp = row.who === "violation" ? "^" : `[${row.at_s.toFixed(3)} s] #${row.line}`;
       return el("li", {
-        class: `${where}${row.marked ? " marked" : ""}`, "data-step": row.step, "data-who": row.who,
+        class: `${where}${row.marked ? " marked" : ""}${row.violating ? " violating" : ""}`, "data-step": row.step, "data-who": row.who,
         onclick: () => { pause(); goTo(row.step); },
       }, `${row.step}. ${stamp} ${row.who === "violation" ? "" : row.who}  ${row.text}`);
     }));
@@ -1072,6 +1073,22 @@
     $("replay-flight").replaceChildren(...(flight.length ? flight : [el("li", { class: "muted", text: "nothing in flight" })]));
   }
 
+  // The check's verdict of the run: the exercise's rules too, not the checker's alone
+  function renderVerdict(check) {
+    const box = $("replay-verdict");
+    box.dataset.outcome = check.outcome;
+    const passed = check.outcome === "passed";
+    $("replay-outcome").textContent = passed ? "passed" : "FAILED";
+    $("replay-rule").textContent = check.rule ? `[${check.rule}]` : "";
+    $("replay-message").textContent = check.message
+      + (check.checker !== "held" || passed ? "" : " (the semantic rules' checker alone: held; the exercise's own rule broke)");
+    $("replay-words").textContent = passed ? check.words || "every rule held" : check.words ? `the rule: ${check.words}` : "";
+    const button = $("replay-violation");
+    button.hidden = check.step === null;
+    button.dataset.step = check.step === null ? "" : check.step;
+    button.textContent = check.step === null ? "" : `first violating step: ${check.step}`;
+  }
+  $("replay-violation").addEventListener("click", (e) => { pause(); goTo(Number(e.target.dataset.step)); });
   $("replay-first").addEventListener("click", () => { pause(); goTo(1); });
   $("replay-back").addEventListener("click", () => { pause(); goTo(shownStep() - 1); });
   $("replay-step").addEventListener("click", () => { pause(); goTo(shownStep() + 1); });
