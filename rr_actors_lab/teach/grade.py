@@ -399,7 +399,7 @@ class _Child:
             if self.process.stdin is not None:
                 self.process.stdin.close()
         try:
-            self.process.wait(timeout=0 if self.pending else 30)
+            self.process.wait(timeout=0 if self.pending else 5)
         except subprocess.TimeoutExpired:
             self.process.kill()
             self.process.wait()
