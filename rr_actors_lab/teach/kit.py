@@ -48,7 +48,7 @@ STATE = ".teach.json"
 
 KINDS = ("use", "protocol")
 """`use`: the student writes code or a plan as a user would; `protocol`: the student
-fixes one step of the registrar (`rr_actors_lab.teach.replaced_step`)."""
+fixes one step of the registrar (`rr_actors_lab.teach.STEPS`), in `step.py`."""
 
 
 PLAN = "plan.toml"
