@@ -37,6 +37,7 @@ import importlib.util
 import json
 import logging
 import os
+import signal
 import sys
 import time
 import traceback
@@ -225,6 +226,7 @@ def _names_kit(name: str, fromlist: Sequence[str] | None) -> bool:
 
 def main() -> int:
     """Serve one check's requests (stdin) with replies (stdout), one JSON object a line."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # (a Ctrl-C: the parent ends this process)
     replies = os.fdopen(os.dup(sys.stdout.fileno()), "w", encoding="utf-8")
     os.dup2(sys.stderr.fileno(), sys.stdout.fileno())  # (a student's print: not a reply)
     logging.getLogger("rr_actors").setLevel(logging.CRITICAL)  # (the story tells them)

@@ -252,7 +252,7 @@ def _run_seeds(
 class _Facts:
     """What this process reads of a plan's TOML (it never imports the plan's modules):
     its managers' names, its rule 22 policy, its supervisors' intensities (name, most
-    restarts, period in seconds), how many `[[faults]]` tables it has, the data itself."""
+    restarts, period in seconds), how many `[[faults]]` tables it has."""
 
     managers: tuple[str, ...]
     resolve: str
