@@ -85,6 +85,7 @@ def test_the_starter_fails_its_check_and_the_solution_passes(name: str, tmp_path
     assert (report["passed"], report["seeds_run"], report["failure"]) == (True, 3, None)
 
 
+@pytest.mark.timeout(180)  # (a check shrunk in its child, then a replay: 60 s at load 8, -n 2)
 def test_a_failures_replay_command_tells_that_seeds_whole_story(tmp_path: Path) -> None:
     folder = tmp_path / "climb"
     teach("start", "climb", folder)
