@@ -216,6 +216,8 @@ WHOLE_FEATURES = {
     "observe/test_page.py": "the observer's page: the HTML and JavaScript of observe/static/",
     "simulation/test_registrar.py": "the registrar's semantic rules on the simulation, many seeds",
     "simulation/test_supervision.py": "a supervised tree of simulated processes under kills",
+    "teach/test_shortcuts.py": "every shortcut past a classroom exercise, on every exercise: "
+    "the folder compared (kit.py), the check's child process (_seeds.py), the kit's rules",
 }
 """Test modules whose subject is a whole public feature rather than one runtime module (their
 paths under `tests/`), each with why."""

@@ -29,7 +29,7 @@ import logging
 import re
 import time
 import tomllib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Collection, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -264,6 +264,7 @@ def shrink(
     text: str | None = None,
     judge: Judge = violations,
     cpu_until: float | None = None,
+    keep: Collection[str] = (),
 ) -> Shrunk:
     """Shrink `plan` at `seed` (a violating run) to a small plan that violates the same way.
 
@@ -280,6 +281,10 @@ def shrink(
             `rr_actors_lab.teach.grade`): the first of the seed's run is the kind kept.
         cpu_until: a `time.process_time()` after which no run starts (the budget
             spent then, if not before: a check's bound of CPU seconds).
+        keep: parts of the plan left as written, dotted keys of its TOML (`"tree"`: its
+            supervisors, their settings, each child's place and restart type, not the
+            managers' options; `"hosts.resolve"`): a candidate that changes one is not
+            tried (a classroom check keeps the student's part, `rr_actors_lab.teach`).
 
     Returns:
         The smallest plan found, its seed and run.
@@ -301,6 +306,7 @@ def shrink(
         resolve = plan.hosts.resolve if plan.hosts is not None else "first_served"
         judge = functools.partial(violations, resolve=resolve)
     shrinker = _Shrinker(plan, seed, text, budget, tries, say, ran, judge, cpu_until)
+    shrinker.kept = {part: _part(shrinker.data, part) for part in keep}
     return shrinker.run()
 
 
@@ -339,6 +345,7 @@ class _Shrinker:
             self.data.pop(key, None)
         self.data["duration"] = plan.duration  # (a run directory's may differ from its file's)
         self.plan, self.seed, self.best = plan, seed, first
+        self.kept: dict[str, Any] = {}  # (dotted keys left as written: their values)
         self.say(f"shrinking seed {seed} ({first.events} events): {self.kind}")
 
     def run_one(self, plan: Plan, seed: int) -> simulate.SimulatedRun:
@@ -406,6 +413,8 @@ class _Shrinker:
     ) -> bool:
         """Run the candidate `data` (up to `width` seeds); keep it if it shows the kind and is
         `smaller`."""
+        if any(_part(data, part) != value for part, value in self.kept.items()):
+            return False  # (it changes what is kept as written: not a candidate)
         text = self.text(data)
         try:
             plan = parse_plan(text, source=self.source, name=self.plan.name)
@@ -923,6 +932,34 @@ def _at(data: dict[str, Any], where: tuple[Any, ...]) -> dict[str, Any]:
         node = node[step] if isinstance(step, int) else node.setdefault(step, {})
     found: dict[str, Any] = node
     return found
+
+
+_MISSING = object()
+"""What `_part` gives for a key the data does not have."""
+
+
+def _part(data: dict[str, Any], dotted: str) -> Any:
+    """The value at a dotted key of the plan's data (`_MISSING`: none); of `"tree"`, its
+    shape: the supervisors with their settings, each child's place, name and restart type
+    (a manager's options, `uses` among them, are the world's: they may shrink)."""
+    node: Any = data
+    for key in dotted.split("."):
+        if not isinstance(node, dict) or key not in node:
+            return _MISSING
+        node = node[key]
+    return _shape(node) if dotted == "tree" else copy.deepcopy(node)
+
+
+def _shape(node: Any) -> Any:
+    if not isinstance(node, dict):
+        return copy.deepcopy(node)
+    if "children" not in node:
+        return {"name": node.get("name"), "restart": node.get("restart")}
+    children = node["children"]
+    shaped = {k: copy.deepcopy(v) for k, v in node.items() if k != "children"}
+    return shaped | {
+        "children": [_shape(c) for c in children] if isinstance(children, list) else children
+    }
 
 
 def _managers(data: dict[str, Any]) -> list[dict[str, Any]]:

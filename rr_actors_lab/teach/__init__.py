@@ -11,9 +11,12 @@
 Two kinds of exercise: `use` (the student writes a manager's setup or a plan, as a user
 of the framework would) and `protocol` (the student gets one step of the registrar with
 a bug, in `step.py`, and fixes it: the check runs the simulation with their copy in the
-step's place, `replaced_step`). `kit.py` reads the exercises, `grade.py` checks a
-folder (with the kit's own rules besides the checker's, `rules.py`), `cli.py` the
-command; `STEPS` lists the protocol steps a student's copy can replace, with their shapes.
+step's place). `kit.py` reads the exercises (what is the student's, `[yours]`, and what a
+folder changed besides), `grade.py` checks a folder (with the kit's own rules besides the
+checker's, `rules.py`), running the student's code in a child process (`_seeds.py`) where
+this package cannot be imported, `cli.py` the command; `STEPS` lists the protocol steps a
+student's copy can replace, with their shapes (`shipped_step`: the registrar's own, for a
+teacher and a student's own tests, never reachable from a check).
 """
 
 from __future__ import annotations

@@ -60,9 +60,10 @@ BAD_INPUT = 2
 """Usage: bad arguments, a folder that is not an exercise's (no `.teach.json`, or one
 refused), an unknown exercise, a missing extra; nothing was checked."""
 NOT_LOADED = 3
-"""The folder's files do not load: its `plan.toml` is missing, refused (not a regular
-file, too big) or not a plan, its `step.py` does not import or lacks its function, or
-its setup raised (the tree did not start); no seed was judged."""
+"""The folder's files cannot be checked: its `plan.toml` is missing, refused (not a
+regular file, too big) or not a plan, its `step.py` does not import or lacks its
+function, a file that is not the student's changed, the student's code ended the check's
+process, or its setup raised (the tree did not start); no seed was judged."""
 KIT_ERROR = 4
 """The check itself raised (a traceback on standard error): neither passed nor failed."""
 
@@ -70,7 +71,7 @@ EXIT_CODES = {
     PASSED: "passed",
     CHECK_FAILED: "failed: a seed broke a rule",
     BAD_INPUT: "bad input: not an exercise's folder, bad arguments",
-    NOT_LOADED: "the folder's files do not load (plan.toml, step.py, the setup)",
+    NOT_LOADED: "the folder's files cannot be checked (do not load, or changed what is not yours)",
     KIT_ERROR: "the check itself raised (a traceback)",
     130: "stopped by Ctrl-C (128 + the signal: 143 SIGTERM, 129 SIGHUP)",
 }

@@ -1,39 +1,51 @@
 """Check a student's folder: its plan over the exercise's seeds on the simulation.
 
 ```
- check(folder) ─ the exercise (folder's .teach.json), its plan (folder/plan.toml, its
- │               setups imported fresh from the folder); a protocol exercise:
- │               folder/step.py's function in the registrar's place (`replaced_step`)
- ├─ seeds 1..N (or one: `seed`): simulate.run_seed ─► the checker's verdict + the kit's
- │  rules (`rules.py`); the first seed that breaks one ends it
- └─► Report: passed; seeds run; interleavings; CPU seconds; the first failure: the rule
-     in words, the finding, its first violating event, a story of at most `STORY` steps
-     of the run shrunk to a smaller plan breaking the same rule (`shrink.shrink`), the
-     command that replays it
+ check_folder(folder) ─ the exercise (folder's .teach.json); what is not the student's
+ │   compared with the shipped starter (`kit.changed`: a change is refused, one line);
+ │   the plan's TOML read here (its managers, policy, intensities), never imported here
+ ├─ one child process for the whole check (`_seeds.py`): the plan read and its setups
+ │  imported there, a protocol exercise's step.py in the registrar's slot there, the kit
+ │  hidden from the student's code; it runs seeds 1..N (or one: `seed`) and answers each
+ │  with the run's history (JSON lines: plain data)
+ ├─ here: each history judged, by the checker's rules and the kit's (`rules.judge`); the
+ │  first seed that breaks one ends it; its run shrunk in the child (the student's part
+ │  of the plan kept as written) and the shrunk history judged here again
+ └─► Report: passed; seeds run; interleavings; CPU seconds (both processes); the first
+     failure: the rule in words, the finding, its first violating event, a story of at
+     most `STORY` steps of the shrunk run, the command that replays it
 ```
+
+A replay (`seed_run`, `rerun`, `replay_story`) runs in this process: it is the student's
+own look at a seed, not a grade.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
-import importlib.util
+import json
 import logging
+import os
+import subprocess
 import sys
 import time
-import traceback
-from collections.abc import Callable, Collection, Iterator, Sequence
+import tomllib
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import msgspec
+
 from rr_actors.errors import ConfigError, RrError
 from rr_actors.events.text import describe
+from rr_actors_lab._tools import files
 from rr_actors_lab.experiments import check, shrink, simulate, story
-from rr_actors_lab.experiments.plan import Plan
+from rr_actors_lab.experiments.plan import Plan, SupervisorPlan
 from rr_actors_lab.experiments.reading import load_plan
-from rr_actors_lab.teach import replaced_step
-from rr_actors_lab.teach.kit import Exercise, folder_exercise
-from rr_actors_lab.teach.rules import RULES
+from rr_actors_lab.experiments.sweep import HASH_SEED
+from rr_actors_lab.teach import _seeds, rules
+from rr_actors_lab.teach.kit import Exercise, changed, folder_exercise
 
 __all__ = [
     "STORY",
@@ -61,12 +73,17 @@ a check: the shrunk story so far is told)."""
 SHRUNK = "shrunk.toml"
 """The shrunk plan a failing check writes into the folder (the replay command runs it)."""
 
+PLAN_BYTES = 4 * 1024 * 1024
+"""The most bytes of a plan this process reads (as `rr-actors replay` and the child do)."""
+
 
 class SubmissionError(ConfigError):
-    """A folder's own files do not load, so no seed ran: its plan is missing, is not a
-    regular file, is too big or is not a plan the simulation runs (its setups do not
-    import, among others), or a protocol exercise's `step.py` is missing, does not import
-    or lacks its step's function. The message names the file and why."""
+    """A folder's own files cannot be checked, so no seed was judged: its plan is missing,
+    is not a regular file, is too big or is not a plan the simulation runs (its setups do
+    not import, among others); a protocol exercise's `step.py` is missing, does not import
+    or lacks its step's function; it changed what is not the student's; or the process
+    that ran the student's code ended before it answered. The message names the file and
+    why."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -114,8 +131,11 @@ class Report:
         seeds_run: the seeds run (fewer than `seeds` when one failed).
         interleavings: distinct histories among them (different schedules and faults).
         events: events recorded over the seeds run.
-        cpu_s: CPU seconds the check took (this process).
+        cpu_s: CPU seconds the check took (this process and the child that ran the
+            student's code).
         failure: the first failure (`None`: passed).
+        plan: the plan run when not the folder's own (`--plan`: a replay of a shrunk
+            failure, not a grade); `None`: the folder's `plan.toml`.
     """
 
     exercise: str
@@ -126,6 +146,7 @@ class Report:
     events: int
     cpu_s: float
     failure: Failure | None
+    plan: str | None = None
 
     @property
     def outcome(self) -> str:
@@ -152,69 +173,301 @@ def check_folder(
 ) -> Report:
     """Check a student's folder over its exercise's seeds (or `seed` alone, or 1..`seeds`).
 
+    What is not the student's (`Exercise.yours`) must be as shipped; the student's code
+    runs in a child process (`_seeds.py`), which hands this one each seed's history, and
+    this one judges it.
+
     Args:
         folder: the folder `start` wrote, as the student changed it.
         seed: one seed to run (a replay).
         seeds: run seeds 1 to this instead of the exercise's (at least 1).
         plan_file: run this plan instead of `folder/plan.toml` (a shrunk one, `SHRUNK`),
-            its setups imported from its own folder.
+            its setups imported from its own folder: a replay of a failure, not a grade
+            (the report names it: `Report.plan`).
         shrink_budget: the most runs a failure's shrink makes (0: no shrink).
-        on_seed: called with each seed once it ran and was judged (progress), on this
-            thread; a failing seed's shrink runs before.
-        on_shrink: called on this thread with the runs a failing seed's shrink made so far
+        on_seed: called with each seed once it was judged (progress; in this thread); a
+            failing seed's shrink runs before.
+        on_shrink: called in this thread with the runs a failing seed's shrink made so far
             (0 as it starts, then after each run).
 
     Raises:
         ConfigError: `folder` is not an exercise's folder; `seeds` below 1.
-        SubmissionError: its `plan.toml` is missing or wrong (file, line, key); a protocol
-            exercise's `step.py` is missing, does not import or lacks its step's function.
+        SubmissionError: it changed what is not the student's (`kit.changed`: the message
+            names the change); its `plan.toml` is missing or wrong (file, line, key); a
+            protocol exercise's `step.py` is missing, does not import or lacks its step's
+            function; the child process ended before it answered (its exit code).
     """
     chosen, _state = folder_exercise(folder)
     count = chosen.seeds if seeds is None else seeds
     if count < 1:
         raise ConfigError(f"seeds must be at least 1, got {count}")
+    said = changed(chosen, folder)
+    if said is not None:
+        raise SubmissionError(f"{folder}: {said}")
     chosen_seeds = [seed] if seed is not None else list(range(1, count + 1))
     path = folder / "plan.toml" if plan_file is None else plan_file
-    plan = _plan(path)
-    managers = {m.name for m in plan.managers()}
-    resolve = plan.hosts.resolve if plan.hosts is not None else "first_served"
+    facts = _Facts.read(path)
     started = time.process_time()
-    shrink_to = (
-        (plan, path, shrink_budget, started + CPU_S, on_shrink) if shrink_budget > 0 else None
-    )
-    hashes: set[str] = set()
-    recorded = attempted = 0
-    failure = _intensity(chosen, plan, chosen_seeds[0])
-    raised: list[str] = []  # (what the student's step raised, said as it was)
-    with _quiet(), _student_step(chosen, folder, raised):
-        for number in chosen_seeds if failure is None else ():
-            attempted += 1
-            try:
-                run = simulate.run_seed(plan, number)
-            except RrError as exc:  # (the student's setup raised: the tree did not start)
-                failure = _setup_failure(chosen, folder, number, exc)
-                break
-            hashes.add(run.hash)
-            recorded += run.events
-            failure = _judge(chosen, folder, run, (managers, resolve), shrink_to)
-            if raised:  # (whatever the verdict: a step that raises is wrong)
-                failure = _raised(chosen, folder, number, raised[0], failure)
-            if on_seed is not None:
-                on_seed(number)
-            if failure is not None:
-                break
+    tally = _Tally(failure=_intensity(chosen, facts, chosen_seeds[0]))
+    if tally.failure is None:
+        with _Child(chosen, folder, path, facts, on_shrink) as child:
+            budget = (shrink_budget, started + CPU_S)
+            _run_seeds(chosen, folder, path, facts, child, chosen_seeds, budget, tally, on_seed)
+            tally.child_cpu_s = child.cpu_s
+    failure = tally.failure
     if failure is None and plan_file is None:  # (a shrunk plan of a failure fixed since)
         (folder / SHRUNK).unlink(missing_ok=True)
     return Report(
         exercise=chosen.name,
         passed=failure is None,
         seeds=len(chosen_seeds),
-        seeds_run=attempted,
-        interleavings=len(hashes),
-        events=recorded,
-        cpu_s=round(time.process_time() - started, 3),
+        seeds_run=tally.attempted,
+        interleavings=len(tally.hashes),
+        events=tally.recorded,
+        cpu_s=round(time.process_time() - started + tally.child_cpu_s, 3),
         failure=failure,
+        plan=None if plan_file is None else str(plan_file),
     )
+
+
+@dataclasses.dataclass
+class _Tally:
+    """A check's count so far: its first failure, seeds run, distinct histories, events,
+    the child's CPU seconds."""
+
+    failure: Failure | None = None
+    attempted: int = 0
+    hashes: set[str] = dataclasses.field(default_factory=set)
+    recorded: int = 0
+    child_cpu_s: float = 0.0
+
+
+def _run_seeds(
+    chosen: Exercise,
+    folder: Path,
+    path: Path,
+    facts: _Facts,
+    child: _Child,
+    seeds: list[int],
+    budget: tuple[int, float],
+    tally: _Tally,
+    on_seed: Callable[[int], None] | None,
+) -> None:
+    """Ask the child for each seed's run (one ahead: it runs while the last is judged) and
+    judge it here, until one fails; `budget`: a failure's shrink's most runs, and the
+    `time.process_time()` of this process (the child's CPU added) its runs stop at."""
+    ahead = iter(seeds)
+    child.ask({"seed": next(ahead)})
+    for number in seeds:
+        if (following := next(ahead, None)) is not None:
+            child.ask({"seed": following})
+        reply = child.answer()
+        tally.attempted += 1
+        if "setup" in reply:  # (the student's setup raised: the tree did not start)
+            tally.failure = _setup_failure(chosen, folder, number, reply["setup"])
+            return
+        run = _Run.of(reply)
+        tally.hashes.add(run.hash)
+        tally.recorded += run.events
+        left = (budget[0], budget[1] - time.process_time() - child.cpu_s)
+        failure = _judge(chosen, folder, run, facts, child, path, left)
+        if reply["replaced"]:  # (whatever the verdict: the check runs their step, no other)
+            said = reply["replaced"][0]
+            failure = _raised(chosen, folder, number, said, failure, "step-replaced")
+        elif reply["raised"]:  # (whatever the verdict: a step that raises is wrong)
+            failure = _raised(chosen, folder, number, reply["raised"][0], failure)
+        if on_seed is not None:
+            on_seed(number)
+        if failure is not None:
+            tally.failure = failure
+            return
+
+
+@dataclasses.dataclass(frozen=True)
+class _Facts:
+    """What this process reads of a plan's TOML (it never imports the plan's modules):
+    its managers' names, its rule 22 policy, its supervisors' intensities (name, most
+    restarts, period in seconds), how many `[[faults]]` tables it has."""
+
+    managers: tuple[str, ...]
+    resolve: str
+    supervisors: tuple[tuple[str, int, float], ...]
+    faults: int
+
+    @classmethod
+    def read(cls, path: Path) -> _Facts:
+        """Raises: SubmissionError: the file is missing, not a regular file, over
+        `PLAN_BYTES` or not TOML (the child says the rest)."""
+        if not path.exists():  # (a pipe or a device is there: refused as such, not missing)
+            raise SubmissionError(f"{path} is missing: the exercise's plan (start it again?)")
+        try:
+            data = tomllib.loads(files.read_text(path, PLAN_BYTES, "a plan"))
+        except files.RefusedFileError as exc:
+            raise SubmissionError(str(exc)) from None
+        except tomllib.TOMLDecodeError as exc:
+            raise SubmissionError(f"{path} cannot be read as TOML: {exc}") from None
+        defaults = {f.name: f.default for f in msgspec.structs.fields(SupervisorPlan)}
+        managers: list[str] = []
+        supervisors: list[tuple[str, int, float]] = []
+
+        def walk(node: Any, name: str) -> None:
+            if not isinstance(node, dict):
+                return
+            supervisors.append(
+                (
+                    str(node.get("name", name)),
+                    _number(node.get("max_restarts", defaults["max_restarts"])),
+                    _number(node.get("period", defaults["period"])),
+                )
+            )
+            for child in node.get("children", []):
+                if isinstance(child, dict) and "children" in child:
+                    walk(child, str(child.get("name")))
+                elif isinstance(child, dict):
+                    managers.append(str(child.get("name")))
+
+        walk(data.get("tree", {}), "root")
+        hosts = data.get("hosts")
+        resolve = hosts.get("resolve", "first_served") if isinstance(hosts, dict) else None
+        faults = data.get("faults", [])
+        return cls(
+            tuple(managers),
+            str(resolve or "first_served"),
+            tuple(supervisors),
+            len(faults) if isinstance(faults, list) else 0,
+        )
+
+
+def _facts_of(plan: Plan) -> _Facts:
+    """What `_Facts.read` reads of a plan's TOML, of a plan already read (a replay's)."""
+    return _Facts(
+        tuple(m.name for m in plan.managers()),
+        plan.hosts.resolve if plan.hosts is not None else "first_served",
+        tuple((s.name, s.max_restarts, s.period) for s in plan.tree.supervisors()),
+        len(plan.faults),
+    )
+
+
+def _number(value: Any) -> Any:
+    return value if isinstance(value, int | float) and not isinstance(value, bool) else 0
+
+
+@dataclasses.dataclass(frozen=True)
+class _Run:
+    """A seed's run as the child told it: plain data, judged here."""
+
+    seed: int
+    history: str
+    events: int
+    hash: str
+
+    @classmethod
+    def of(cls, reply: dict[str, Any]) -> _Run:
+        history = str(reply["history"])
+        return cls(
+            int(reply["seed"]), history, int(reply["events"]), simulate.history_hash(history)
+        )
+
+
+class _Child:
+    """The check's child process (`_seeds.py`): the student's code runs there; requests
+    and replies are JSON lines on its stdin and stdout (its prints go to stderr)."""
+
+    def __init__(
+        self,
+        chosen: Exercise,
+        folder: Path,
+        path: Path,
+        facts: _Facts,
+        on_shrink: Callable[[int], None] | None = None,
+    ) -> None:
+        env = {**os.environ, "PYTHONHASHSEED": HASH_SEED}  # (the same seed, the same history)
+        command = [sys.executable, "-m", "rr_actors_lab.teach._seeds"]
+        self.process = subprocess.Popen(  # noqa: S603 - ours
+            command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, text=True
+        )
+        self.pending = 0
+        self.cpu_s = 0.0
+        self.on_shrink = on_shrink
+        spec = {
+            "folder": str(folder),
+            "plan": str(path),
+            "step": chosen.step,
+            "keep": list(chosen.yours.plan),
+            "rules": list(chosen.rules),
+            "options": chosen.options,
+            "managers": list(facts.managers),
+            "resolve": facts.resolve,
+            "faults": facts.faults,
+        }
+        try:
+            self.ask(spec)
+            ready = self.answer()
+        except BaseException:
+            self.close()
+            raise
+        if "error" in ready:
+            self.close()
+            raise SubmissionError(str(ready["error"]))
+
+    def __enter__(self) -> _Child:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def ask(self, request: dict[str, Any]) -> None:
+        assert self.process.stdin is not None
+        try:
+            self.process.stdin.write(json.dumps(request) + "\n")
+            self.process.stdin.flush()
+        except BrokenPipeError:
+            self.ended()
+        self.pending += 1
+
+    def answer(self) -> dict[str, Any]:
+        """The next reply (its request's, in order)."""
+        assert self.process.stdout is not None
+        line = self.process.stdout.readline()
+        if not line:
+            self.ended()
+        self.pending -= 1
+        reply: dict[str, Any] = json.loads(line)
+        self.cpu_s = float(reply.get("cpu_s", self.cpu_s))
+        return reply
+
+    def shrunk(self, seed: int, budget: int, cpu_s: float) -> dict[str, Any]:
+        """The child's shrink of `seed` (the replies to seeds asked ahead dropped); each
+        run it made so far, as it tells, to `on_shrink`."""
+        while self.pending:
+            self.answer()
+        self.ask({"shrink": seed, "budget": budget, "cpu_s": cpu_s})
+        if self.on_shrink is not None:
+            self.on_shrink(0)
+        while "shrinking" in (reply := self.answer()):
+            self.pending += 1  # (a progress line: the shrink's own reply still to come)
+            if self.on_shrink is not None:
+                self.on_shrink(int(reply["shrinking"]))
+        return reply
+
+    def ended(self) -> None:
+        code = self.process.wait(timeout=30)
+        raise SubmissionError(
+            f"the check's process that runs your code ended (exit code {code}) before it "
+            "answered: did your code exit, or was it killed?"
+        )
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError):
+            if self.process.stdin is not None:
+                self.process.stdin.close()
+        try:
+            self.process.wait(timeout=0 if self.pending else 5)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
+        if self.process.stdout is not None:
+            self.process.stdout.close()
 
 
 def replay_story(folder: Path, seed: int, plan_file: Path | None = None) -> list[str]:
@@ -258,10 +511,11 @@ def judge(folder: Path, plan: Plan, run: simulate.SimulatedRun) -> Failure | Non
         ConfigError: `folder` is not an exercise's folder.
     """
     chosen, _state = folder_exercise(folder)
-    managers = {m.name for m in plan.managers()}
-    resolve = plan.hosts.resolve if plan.hosts is not None else "first_served"
-    failure = _intensity(chosen, plan, run.seed)
-    return failure or _judge(chosen, folder, run, (managers, resolve), None)
+    facts = _facts_of(plan)
+    seen = _Run(run.seed, run.history, run.events, run.hash)
+    return _intensity(chosen, facts, run.seed) or _judge(
+        chosen, folder, seen, facts, None, Path(), (0, 0.0)
+    )
 
 
 def rerun(folder: Path | None, seed: int) -> Callable[[Plan], simulate.SimulatedRun]:
@@ -273,7 +527,7 @@ def rerun(folder: Path | None, seed: int) -> Callable[[Plan], simulate.Simulated
             with _quiet():
                 return _seed(plan, seed)
         chosen, _state = folder_exercise(folder)
-        with _quiet(), _student_step(chosen, folder):
+        with _quiet(), _seeds.student_step(chosen.step, folder):
             return _seed(plan, seed)
 
     return run
@@ -309,97 +563,6 @@ def _forget_modules(folder: Path) -> None:
         sys.modules.pop(path.stem, None)
 
 
-_RETURNS: dict[str, tuple[Callable[[Any, tuple[Any, ...]], bool], str]] = {
-    "climb": (
-        lambda r, _args: (
-            isinstance(r, list | tuple | set | frozenset) and all(isinstance(i, str) for i in r)
-        ),
-        "a list of resource ids (str)",
-    ),
-    "shares": (lambda r, _args: isinstance(r, bool), "True or False"),
-    "unloads": (lambda r, _args: isinstance(r, bool), "True or False"),
-    "in_doubt": (lambda r, _args: isinstance(r, bool), "True or False"),
-    "recent": (
-        lambda r, _args: isinstance(r, int) and not isinstance(r, bool) and r >= 0,
-        "a count of restarts (an int >= 0)",
-    ),
-    "reconcile": (
-        lambda r, _args: (
-            isinstance(r, tuple)
-            and len(r) == 2
-            and all(
-                isinstance(part, list | tuple | set | frozenset)
-                and all(isinstance(i, str) for i in part)
-                for part in r
-            )
-        ),
-        "two sets of query ids (str): (release, unknown)",
-    ),
-    "release_order": (
-        lambda r, args: isinstance(r, list | tuple) and sorted(r) == sorted([*args[0], UNLOAD]),
-        'a list of every dependency id and "unload", each once',
-    ),
-    "group": (
-        lambda r, _args: (
-            isinstance(r, list | tuple | set | frozenset) and all(isinstance(i, str) for i in r)
-        ),
-        "a list of child names (str)",
-    ),
-}
-"""What each step must return, as a test (of the result and the step's arguments) and in
-words (a student's step is held to it)."""
-
-UNLOAD = "unload"
-"""In `release_order`'s answer: where the resource's own unload runs."""
-
-
-@contextlib.contextmanager
-def _student_step(
-    chosen: Exercise, folder: Path, raised: list[str] | None = None
-) -> Iterator[None]:
-    """A protocol exercise: `folder/step.py`'s function in the registrar's place; what
-    it raises is added to `raised` (`Type: message (step.py, line N)`), then raised on."""
-    if chosen.step is None:
-        yield
-        return
-    path = folder / "step.py"
-    if not path.is_file():
-        raise SubmissionError(f"{folder} has no step.py: the step you fix (start it again?)")
-    spec = importlib.util.spec_from_file_location(f"rr_teach_step_{chosen.name}", path)
-    if spec is None or spec.loader is None:
-        raise SubmissionError(f"{path} cannot be imported")
-    module = importlib.util.module_from_spec(spec)
-    try:
-        spec.loader.exec_module(module)
-    except Exception as exc:  # noqa: BLE001 - the student's code: said, not raised
-        raise SubmissionError(f"{path} does not import: {type(exc).__name__}: {exc}") from None
-    step = getattr(module, chosen.step, None)
-    if not callable(step):
-        raise SubmissionError(f"{path} has no function {chosen.step!r}: the step you fix")
-
-    returns = _RETURNS.get(chosen.step)
-
-    def watched(*args: Any) -> Any:
-        try:
-            result = step(*args)
-            if returns is not None and not returns[0](result, args):
-                raise TypeError(f"it must return {returns[1]}, not {result!r}")  # noqa: TRY301
-        except Exception as exc:
-            if raised is not None:
-                line = next(
-                    (f.lineno for f in reversed(traceback.extract_tb(exc.__traceback__))
-                     if Path(f.filename) == path),
-                    None,
-                )  # fmt: skip
-                where = f" (step.py, line {line})" if line is not None else ""
-                raised.append(f"{type(exc).__name__}: {exc}{where}")
-            raise
-        return result
-
-    with replaced_step(chosen.step, watched):
-        yield
-
-
 @contextlib.contextmanager
 def _quiet() -> Iterator[None]:
     """The framework's warnings (a child killed, restarted) kept out of a student's
@@ -416,18 +579,18 @@ def _quiet() -> Iterator[None]:
 def _judge(
     chosen: Exercise,
     folder: Path,
-    run: simulate.SimulatedRun,
-    known: tuple[set[str], str],
-    shrink_to: tuple[Plan, Path, int, float, Callable[[int], None] | None] | None,
+    run: _Run,
+    facts: _Facts,
+    child: _Child | None,
+    path: Path,
+    budget: tuple[int, float],
 ) -> Failure | None:
     """The first finding of `run` (the checker's, then the kit's), told on the run shrunk
-    (`shrink_to`) if the shrink finds it again; `None`: held. `known`: the plan's managers and
-    its rule 22 policy."""
-    kit_rules = [RULES[name] for name in chosen.rules]
-    if run.verdict == "held" and not kit_rules:
-        return None
-    numbered, findings = _findings(run, kit_rules, *known)
-    if not findings and run.verdict != "crashed":
+    (by the child, within `budget`: runs and CPU seconds) if the shrink finds it again;
+    `None`: held."""
+    numbered, findings = _findings(chosen, run.history, facts)
+    crashed = _crashed(run.history)
+    if not findings and crashed is None:
         return None
     replay = f"rr-actors teach check {folder} --seed {run.seed} --story"
     if not findings:  # crashed, and no rule says why before it
@@ -446,8 +609,8 @@ def _judge(
             replay,
         )
     first, told_run, shrunk_seed = findings[0], run, None
-    if shrink_to is not None:  # (judged by the same rules: the kit's too)
-        shrunk = _shrunk(run, folder, shrink_to, lambda r: _findings(r, kit_rules, *known)[1])
+    if budget[0] > 0 and child is not None:  # (judged by the same rules: the kit's too)
+        shrunk = _shrunk(chosen, run, folder, facts, child, path, budget)
         if shrunk is not None:
             told_run, numbered, first, shrunk_seed = shrunk
             replay = (
@@ -480,54 +643,51 @@ def _judge(
 
 
 def _findings(
-    run: simulate.SimulatedRun,
-    kit_rules: list[Callable[[Sequence[check.Line], Collection[str]], list[check.Finding]]],
-    managers: set[str],
-    resolve: str,
+    chosen: Exercise, history: str, facts: _Facts
 ) -> tuple[list[check.Line], list[check.Finding]]:
     """A run's numbered events and its violations (the checker's and the kit's), the
     first broken first."""
-    numbered = check.read_runs(run.history.splitlines()).get(simulate.RUN, [])
-    findings: list[check.Finding] = []
-    if run.verdict == "violated":
-        findings += [f for f in check.check(numbered, resolve).findings if f.kind == "violation"]
-    for rule in kit_rules:
-        findings += rule(numbered, managers)
-    findings.sort(key=lambda f: max(f.lines, default=0))  # (broken at its last event)
-    return numbered, findings
+    return rules.judge(
+        history, chosen.rules, chosen.options, facts.managers, facts.resolve, facts.faults
+    )
+
+
+def _crashed(history: str) -> str | None:
+    """A crashed run's last line (`simulate.CRASH_LINE`); `None`: it did not crash."""
+    last = history.rstrip("\n").rpartition("\n")[2]
+    return last if f'"type": "{simulate.CRASH_LINE}"' in last else None
 
 
 def _shrunk(
-    run: simulate.SimulatedRun,
+    chosen: Exercise,
+    run: _Run,
     folder: Path,
-    shrink_to: tuple[Plan, Path, int, float, Callable[[int], None] | None],
-    judge: shrink.Judge,
-) -> tuple[simulate.SimulatedRun, list[check.Line], check.Finding, int] | None:
-    """`run` shrunk to a smaller plan showing its first violation again (its plan written to
-    `folder / SHRUNK`): run, events, finding and seed; `None`: not found again."""
-    plan, path, budget, cpu_until, on_run = shrink_to
-    text = path.read_text(encoding="utf-8")
-    if on_run is not None:
-        on_run(0)
-    try:
-        shrunk = shrink.shrink(
-            plan, run.seed, budget=budget, text=text, judge=judge, cpu_until=cpu_until,
-            on_run=on_run,
-        )  # fmt: skip
-    except (ConfigError, RrError):
+    facts: _Facts,
+    child: _Child,
+    path: Path,
+    budget: tuple[int, float],
+) -> tuple[_Run, list[check.Line], check.Finding, int] | None:
+    """`run` shrunk by the child to a smaller plan showing its first violation again,
+    judged here again (its plan written to `folder / SHRUNK`): run, events, finding and
+    seed; `None`: not found again."""
+    runs, cpu_s = budget
+    reply = child.shrunk(run.seed, runs, max(cpu_s, 0.0))
+    if reply.get("shrunk", True) is None:
         return None
-    numbered = check.read_runs(shrunk.run.history.splitlines()).get(simulate.RUN, [])
-    same = [f for f in judge(shrunk.run) if shrink.violation_kind(f.rule, f.message) == shrunk.kind]
+    shrunk = _Run.of(reply)
+    numbered, findings = _findings(chosen, shrunk.history, facts)
+    kind = str(reply["kind"])
+    same = [f for f in findings if shrink.violation_kind(f.rule, f.message) == kind]
     if not same:
         return None
     header = (
         f"# {path.name}'s seed {run.seed} shrunk ({run.events} events to "
-        f"{shrunk.run.events}): it shows {shrunk.kind} at seed {shrunk.seed}.\n"
+        f"{shrunk.events}): it shows {kind} at seed {shrunk.seed}.\n"
         f"# rr-actors teach check {folder} --plan {folder / SHRUNK} --seed {shrunk.seed} "
         "--story\n\n"
     )
-    (folder / SHRUNK).write_text(header + shrunk.text, encoding="utf-8")
-    return shrunk.run, numbered, same[0], shrunk.seed
+    (folder / SHRUNK).write_text(header + str(reply["text"]), encoding="utf-8")
+    return shrunk, numbered, same[0], shrunk.seed
 
 
 def _who(event: Any) -> str:
@@ -545,18 +705,18 @@ def _cut(steps: list[story.StoryLine], index: int, who: set[str]) -> list[story.
     return [*kept[-(STORY - 1) :], dataclasses.replace(steps[index], marked=True)]
 
 
-def _intensity(chosen: Exercise, plan: Plan, seed: int) -> Failure | None:
-    """A supervisor of `plan` whose intensity is above the exercise's bound (before any
+def _intensity(chosen: Exercise, facts: _Facts, seed: int) -> Failure | None:
+    """A supervisor of the plan whose intensity is above the exercise's bound (before any
     run: no intensity that high stops a crash loop in time), told; `None`: none."""
     bound = chosen.most_restarts_per_s
     if bound is None:
         return None
-    for sup in plan.tree.supervisors():
-        per_s = sup.max_restarts / sup.period if sup.period > 0 else float("inf")
+    for name, most, period in facts.supervisors:
+        per_s = most / period if period > 0 else float("inf")
         if per_s > bound:
             message = (
-                f"supervisor {sup.name} allows {sup.max_restarts} restarts within "
-                f"{sup.period:g} s ({per_s:g} a second): above {bound:g} a second, a child "
+                f"supervisor {name} allows {most} restarts within "
+                f"{period:g} s ({per_s:g} a second): above {bound:g} a second, a child "
                 "that crashes at every start is restarted on and on instead of stopped"
             )
             return Failure(seed, "intensity-bound", chosen.rule, message, None, (), 0, 0, "")
@@ -564,20 +724,26 @@ def _intensity(chosen: Exercise, plan: Plan, seed: int) -> Failure | None:
 
 
 def _raised(
-    chosen: Exercise, folder: Path, seed: int, said: str, failure: Failure | None
+    chosen: Exercise,
+    folder: Path,
+    seed: int,
+    said: str,
+    failure: Failure | None,
+    rule: str = "step-raised",
 ) -> Failure:
-    """The failure of a seed in which the student's step raised: said first, with the
-    run's own failure's story if it has one."""
-    message = f"your {chosen.step} raised {said}"
+    """The failure of a seed in which the student's step raised (or was put out of its
+    place: `rule` "step-replaced", `said` says it whole): said first, with the run's own
+    failure's story if it has one."""
+    message = f"your {chosen.step} raised {said}" if rule == "step-raised" else said
     if failure is None:
         replay = f"rr-actors teach check {folder} --seed {seed} --story"
-        return Failure(seed, "step-raised", chosen.rule, message, None, (), 0, 0, replay)
+        return Failure(seed, rule, chosen.rule, message, None, (), 0, 0, replay)
     also = f"{message}; and then [{failure.rule}] {failure.message}"
-    return dataclasses.replace(failure, rule="step-raised", message=also)
+    return dataclasses.replace(failure, rule=rule, message=also)
 
 
-def _setup_failure(chosen: Exercise, folder: Path, seed: int, exc: RrError) -> Failure:
-    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+def _setup_failure(chosen: Exercise, folder: Path, seed: int, error: str) -> Failure:
+    lines = [line.strip() for line in error.splitlines() if line.strip()]
     text = lines[0] if len(lines) < 2 else f"{lines[0]} {lines[-1]}"  # (a traceback's end)
     return Failure(
         seed,

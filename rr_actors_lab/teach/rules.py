@@ -20,19 +20,30 @@ findings (`check.Finding`) in line order.
 - `loaded`: every load the run started succeeded (no `LoadFailed`).
 - `kept` (rule 22): at a heal, the registrar of a name that yields is not the one that
   served a majority of the hosts during the cut.
+- `holds` (rule 7; settings: a manager's name to another's, `[holds]` of the exercise):
+  every resource the first loads holds a resource of the second as a dependency (an
+  answer that skips the exercise by never calling it does not pass).
+- `warns` (rule 9; settings: a provider's name to a server of it, `[warns]`): each load of
+  that server while a resource of the provider's other servers is in use sends a status.
+
+And one of the run's fault lines, not of its events (`faults`, `FAULTS`): each
+`[[faults]]` table of the plan fired at least once in the run (the faults happen).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from collections import defaultdict
 from collections.abc import Callable, Collection, Sequence
+from typing import Any
 
 from rr_actors import events
+from rr_actors_lab.experiments import check, simulate
 from rr_actors_lab.experiments.check import Finding, Line
 
-__all__ = ["MARGIN_S", "ROUND_S", "RULES"]
+__all__ = ["FAULTS", "MARGIN_S", "ROUND_S", "RULES", "faults", "judge"]
 
 ROUND_S = 0.05
 """`warned`: statuses of one provider less than this many seconds apart are one round."""
@@ -377,7 +388,106 @@ def kept(history: Sequence[Line], managers: Collection[str]) -> list[Finding]:
     return found
 
 
-RULES: dict[str, Callable[[Sequence[Line], Collection[str]], list[Finding]]] = {
+def holds(history: Sequence[Line], managers: Collection[str], /, **held: str) -> list[Finding]:
+    """`holds`: every resource a manager of `held` loads holds, as a dependency, a resource
+    of the manager `held` names for it (a call of its load answered before it loaded)."""
+    del managers
+    answered: set[tuple[str, str]] = set()  # (registrar, parent resource) with a dependency
+    found = []
+    for line, e in history:
+        if isinstance(e, events.CallAnswered) and held.get(e.registrar) == e.serving_rr:
+            if e.parent is not None:
+                answered.add((e.registrar, e.parent))
+        elif (
+            isinstance(e, events.ResourceLoaded)
+            and e.registrar in held
+            and (e.registrar, e.resource_id) not in answered
+        ):
+            found.append(
+                Finding(
+                    "holds",
+                    "violation",
+                    f"{e.registrar}/{e.server} loaded resource {e.resource_id[:8]} "
+                    f"without holding anything of {held[e.registrar]}: its load made no "
+                    f"call to {held[e.registrar]}, so no dependency keeps what it needs",
+                    (line,),
+                    (e.registrar,),
+                )
+            )
+    return found
+
+
+def warns(history: Sequence[Line], managers: Collection[str], /, **servers: str) -> list[Finding]:
+    """`warns`: each load of a provider's warning server (`servers`: provider -> server)
+    while a resource of its other servers was in use throughout the `ROUND_S` before it
+    (and the provider did not exit meanwhile) comes after a status the provider sent in
+    that time."""
+    del managers
+    uses = _Uses().read(history)
+    sent: dict[str, list[float]] = defaultdict(list)
+    found = []
+    for line, e in history:
+        if isinstance(e, events.StatusSent):
+            sent[e.registrar].append(e.at)
+        elif isinstance(e, events.ResourceLoaded) and servers.get(e.registrar) == e.server:
+            since = e.at - ROUND_S
+            if any(since - MARGIN_S <= at <= e.at for at in uses.exits[e.registrar]):
+                continue  # (its provider restarted meanwhile: what it had in use is new)
+            in_use = [
+                r
+                for (who, r), spans in uses.spans.items()
+                if who == e.registrar
+                and uses.server.get((who, r)) != e.server
+                and any(a <= since - MARGIN_S and b >= e.at for a, b in spans)
+            ]
+            if in_use and not any(since <= at <= e.at for at in sent[e.registrar]):
+                found.append(
+                    Finding(
+                        "warns",
+                        "violation",
+                        f"{e.registrar}/{e.server} loaded {e.resource_id[:8]} while "
+                        f"{len(in_use)} resource(s) of its other servers were in use, and "
+                        "sent no status about any of them: their consumers never heard",
+                        (line,),
+                        (e.registrar,),
+                    )
+                )
+    return found
+
+
+FAULTS = "faults"
+"""The rule of the run's fault lines (`faults`): not in `RULES`, which read its events."""
+
+
+def faults(lines: Sequence[str], tables: int) -> list[Finding]:
+    """`faults`: each of the plan's `tables` `[[faults]]` tables fired at least once among a
+    run's history `lines` (a `FaultInjected` line of that `fault`)."""
+    fired: set[int] = set()
+    skipped: dict[int, str] = {}
+    for text in lines:
+        if '"Fault' not in text:
+            continue
+        line = json.loads(text)
+        if line.get("type") == "FaultInjected":
+            fired.add(int(line["fault"]))
+        elif line.get("type") == "FaultSkipped":
+            skipped.setdefault(int(line["fault"]), f"{line.get('kind')}: {line.get('detail')}")
+    return [
+        Finding(
+            FAULTS,
+            "violation",
+            f"the plan's fault #{index + 1} never happened in this run"
+            + (f" (skipped, {skipped[index]})" if index in skipped else "")
+            + ": the exercise is to hold out under its faults, not without them",
+            (),
+            (),
+        )
+        for index in range(tables)
+        if index not in fired
+    ]
+
+
+RULES: dict[str, Callable[..., list[Finding]]] = {
     "dependency": dependency,
     "survives": survives,
     "alone": alone,
@@ -386,5 +496,38 @@ RULES: dict[str, Callable[[Sequence[Line], Collection[str]], list[Finding]]] = {
     "warned": warned,
     "loaded": loaded,
     "kept": kept,
+    "holds": holds,
+    "warns": warns,
 }
-"""The kit's rules by name (what an exercise's `rules` lists)."""
+"""The kit's rules by name (what an exercise's `rules` lists, with `FAULTS`): each takes the
+run's numbered events and the plan's managers' names, and the exercise's settings of it
+(`[holds]`, `[warns]`) as keywords."""
+
+
+def judge(
+    history: str,
+    names: Sequence[str],
+    options: dict[str, dict[str, Any]],
+    managers: Collection[str],
+    resolve: str,
+    tables: int,
+) -> tuple[list[Line], list[Finding]]:
+    """A run's numbered events and its violations, the first broken first: the checker's
+    (by the plan's rule 22 policy `resolve`), then the kit's `names` (with their `options`,
+    `FAULTS` over the plan's `tables` of faults).
+
+    Raises:
+        ConfigError: a line of `history` is not an event's (`check.read_runs`).
+    """
+    lines = history.splitlines()
+    numbered = check.read_runs(lines).get(simulate.RUN, [])
+    verdict = check.check(numbered, resolve)
+    found = [f for f in verdict.findings if f.kind == "violation"]
+    for name in names:
+        if name == FAULTS:
+            found += faults(lines, tables)
+        else:
+            found += RULES[name](numbered, managers, **options.get(name, {}))
+    # (broken at its last event; a fault that never happened: at the run's end)
+    found.sort(key=lambda f: max(f.lines, default=len(numbered) + 1))
+    return numbered, found

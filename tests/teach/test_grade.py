@@ -80,6 +80,7 @@ def test_one_seed_replays_its_whole_story(tmp_path: Path) -> None:
     assert len(lines) > grade.STORY
 
 
+@pytest.mark.timeout(180)  # (a shrink of 200 runs in the check's child: 20 CPU s)
 def test_a_checkers_finding_is_told_on_the_run_shrunk_unless_asked_not_to(tmp_path: Path) -> None:
     _chosen, folder = kit.start("climb", tmp_path / "climb")
 
@@ -105,6 +106,7 @@ def test_a_checkers_finding_is_told_on_the_run_shrunk_unless_asked_not_to(tmp_pa
     assert not (folder / grade.SHRUNK).exists()  # (the fixed failure's plan: gone)
 
 
+@pytest.mark.timeout(180)  # (a shrink of 200 runs in the check's child: 20 CPU s)
 def test_a_kit_rules_finding_is_told_on_the_run_shrunk_which_breaks_it_again(
     tmp_path: Path,
 ) -> None:
@@ -133,6 +135,7 @@ def test_a_kit_rules_finding_is_told_on_the_run_shrunk_which_breaks_it_again(
     assert replayed.run_events == shrunk.shrunk_events
 
 
+@pytest.mark.timeout(180)  # (a shrink of 200 runs in the check's child: 20 CPU s)
 def test_a_survive_tree_that_never_restarts_a_killed_manager_fails_naming_back(
     tmp_path: Path,
 ) -> None:

@@ -1,6 +1,6 @@
 """The kit's own rules (`rr_actors_lab.teach.rules`): `dependency`, `survives`, `alone`,
-`back`, `once`, `warned`, `loaded` and `kept`, each on events built here, the line numbers as a
-history's."""
+`back`, `once`, `warned`, `loaded`, `kept`, `holds` and `warns`, each on events built here, the
+line numbers as a history's; and `faults`, on a history's fault lines."""
 
 from __future__ import annotations
 
@@ -12,11 +12,14 @@ from rr_actors_lab.teach.rules import (
     alone,
     back,
     dependency,
+    faults,
+    holds,
     kept,
     loaded,
     once,
     survives,
     warned,
+    warns,
 )
 
 
@@ -183,6 +186,8 @@ def test_the_rules_are_listed_by_name() -> None:
         "warned": warned,
         "loaded": loaded,
         "kept": kept,
+        "holds": holds,
+        "warns": warns,
     }
 
 
@@ -253,3 +258,54 @@ def test_a_manager_never_started_again_after_its_exit_breaks_back() -> None:
     assert [(f.rule, f.lines, f.registrars[:2]) for f in found] == [("back", (1,), ("root", "cm"))]
     assert "its restart type is 'temporary'" in found[0].message
     assert back(history[1:], ["erm", "cm", "rm"]) == []
+
+
+def test_a_resource_loaded_without_a_call_to_what_it_needs_breaks_holds() -> None:
+    history = [
+        (1, events.CallAnswered("actions", "q1", "camera", "resource", parent="r1")),
+        (2, events.ResourceLoaded("actions", "look", "r1", "c1", 0.01)),  # it holds camera
+        (3, events.CallAnswered("actions", "q2", "lidar", "resource", parent="r2")),
+        (4, events.ResourceLoaded("actions", "follow", "r2", "c2", 0.01)),  # not the camera
+        (5, events.ResourceLoaded("camera", "resource", "r3", "q1", 0.01)),  # not judged
+    ]
+
+    found = holds(history, {"actions", "camera"}, actions="camera")
+
+    assert [(f.rule, f.lines) for f in found] == [("holds", (4,))]
+    assert "actions/follow loaded resource r2 without holding anything of camera" in (
+        found[0].message
+    )
+
+
+def test_a_load_of_the_warning_server_with_streams_in_use_and_no_status_breaks_warns() -> None:
+    t = 100.0
+    history = [
+        (1, events.ResourceLoaded("camera", "stream", "s1", "q1", 0.0, at=t)),
+        (2, events.ConsumerAdded("camera", "s1", "q1", "client-0", at=t)),
+        (3, events.StatusSent("camera", "q1", Status.WARNING, "recalibrating", at=t + 0.5)),
+        (4, events.ResourceLoaded("camera", "recalibrate", "c1", "q2", 0.0, at=t + 0.51)),
+        (5, events.ResourceLoaded("camera", "recalibrate", "c2", "q3", 0.0, at=t + 0.9)),
+    ]
+
+    found = warns(history, {"camera"}, camera="recalibrate")
+
+    assert [(f.rule, f.lines) for f in found] == [("warns", (5,))]
+    assert warns(history[:2] + history[4:], {"camera"}, camera="other") == []
+
+
+def test_a_fault_table_that_never_fired_breaks_faults() -> None:
+    lines = [
+        '{"type": "ResourceLoaded"}',
+        '{"type": "FaultInjected", "fault": 0, "kind": "kill_manager"}',
+        '{"type": "FaultSkipped", "fault": 1, "kind": "kill_manager", "detail": "lidar was '
+        'not running (stopped)"}',
+    ]
+
+    found = faults(lines, 2)
+
+    assert [(f.rule, f.lines) for f in found] == [("faults", ())]
+    assert found[0].message.startswith(
+        "the plan's fault #2 never happened in this run (skipped, kill_manager: lidar was not "
+        "running (stopped))"
+    )
+    assert faults(lines[:2], 1) == []
