@@ -42,7 +42,7 @@ from rr_actors.events.text import describe
 from rr_actors_lab._tools import files
 from rr_actors_lab.experiments import check, shrink, simulate, story
 from rr_actors_lab.experiments.plan import Plan, SupervisorPlan
-from rr_actors_lab.experiments.reading import load_plan
+from rr_actors_lab.experiments.reading import PLAN_LIMIT, load_plan
 from rr_actors_lab.experiments.sweep import HASH_SEED
 from rr_actors_lab.teach import _seeds, rules
 from rr_actors_lab.teach.kit import Exercise, changed, folder_exercise
@@ -72,9 +72,6 @@ a check: the shrunk story so far is told)."""
 
 SHRUNK = "shrunk.toml"
 """The shrunk plan a failing check writes into the folder (the replay command runs it)."""
-
-PLAN_BYTES = 4 * 1024 * 1024
-"""The most bytes of a plan this process reads (as `rr-actors replay` and the child do)."""
 
 
 class SubmissionError(ConfigError):
@@ -201,7 +198,10 @@ def check_folder(
     count = chosen.seeds if seeds is None else seeds
     if count < 1:
         raise ConfigError(f"seeds must be at least 1, got {count}")
-    said = changed(chosen, folder)
+    try:
+        said = changed(chosen, folder)
+    except files.RefusedFileError as exc:
+        raise SubmissionError(str(exc)) from None
     if said is not None:
         raise SubmissionError(f"{folder}: {said}")
     chosen_seeds = [seed] if seed is not None else list(range(1, count + 1))
@@ -297,15 +297,15 @@ class _Facts:
     @classmethod
     def read(cls, path: Path) -> _Facts:
         """Raises: SubmissionError: the file is missing, not a regular file, over
-        `PLAN_BYTES` or not TOML (the child says the rest)."""
+        `PLAN_LIMIT` or not TOML (the child says the rest)."""
         if not path.exists():  # (a pipe or a device is there: refused as such, not missing)
             raise SubmissionError(f"{path} is missing: the exercise's plan (start it again?)")
         try:
-            data = tomllib.loads(files.read_text(path, PLAN_BYTES, "a plan"))
+            data = tomllib.loads(files.read_text(path, PLAN_LIMIT, "a plan"))
         except files.RefusedFileError as exc:
             raise SubmissionError(str(exc)) from None
         except tomllib.TOMLDecodeError as exc:
-            raise SubmissionError(f"{path} cannot be read as TOML: {exc}") from None
+            raise SubmissionError(f"{path}: is not valid TOML ({exc})") from None
         defaults = {f.name: f.default for f in msgspec.structs.fields(SupervisorPlan)}
         managers: list[str] = []
         supervisors: list[tuple[str, int, float]] = []

@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from rr_actors.errors import ConfigError
-from rr_actors_lab._tools.files import RefusedFileError, read_json
+from rr_actors_lab._tools.files import RefusedFileError, read_json, read_text
 
 __all__ = [
     "EXERCISES",
@@ -58,6 +58,10 @@ fixes one step of the registrar (`rr_actors_lab.teach.STEPS`), in `step.py`."""
 
 PLAN = "plan.toml"
 """The exercise's plan, in the starter and in a student's folder."""
+
+COMPARED_BYTES = 4 * 1024 * 1024
+"""The most bytes of a starter's file `changed` reads of a student's copy (a plan's bound,
+as `rr-actors replay` reads one)."""
 
 PLAN_PARTS = ("tree", "hosts.resolve")
 """The parts of a plan an exercise may give the student (`Yours.plan`)."""
@@ -200,7 +204,12 @@ def changed(chosen: Exercise, folder: Path) -> str | None:
     the student's part changed (files the starter does not have are the student's).
 
     The starter's other files are compared as text (line ends and trailing spaces aside);
-    `plan.toml` as TOML data (comments and layout aside), but for `Yours.plan`.
+    `plan.toml` as TOML data (comments and layout aside), but for `Yours.plan`. Each is
+    read within bounds (at most `COMPARED_BYTES`).
+
+    Raises:
+        RefusedFileError: one of them is not a regular file (a pipe, a device), is over
+            `COMPARED_BYTES` or is not UTF-8 (`"<path>: <problem>"`).
     """
     yours = chosen.yours
     only = f"only {yours.words()} {'is' if len(yours.files) + len(yours.plan) < 2 else 'are'}"
@@ -209,17 +218,15 @@ def changed(chosen: Exercise, folder: Path) -> str | None:
         if name in yours.files:
             continue
         path = folder / name
-        if not path.is_file():
+        if not path.exists():  # (a pipe or a device is there: refused as such, not missing)
             return f"{name} is missing: it is the shipped exercise's; {tail}"
-        try:
-            text = path.read_text(encoding="utf-8")
-        except (OSError, UnicodeDecodeError) as exc:
-            return f"{name} cannot be read ({exc}): it is the shipped exercise's; {tail}"
+        what = "a plan" if name == PLAN else f"{chosen.name}'s {name}"
+        text = read_text(path, COMPARED_BYTES, what)
         if name == PLAN:
             try:
                 mine = tomllib.loads(text)
-            except tomllib.TOMLDecodeError as exc:
-                return f"{name} is not TOML ({exc}); {tail}"
+            except tomllib.TOMLDecodeError:
+                continue  # (no plan at all: its reading says where, and nothing runs)
             where = _plan_change(tomllib.loads(shipped), mine, yours.plan)
             if where is not None:
                 return f"{name}: {where}; {tail}"
