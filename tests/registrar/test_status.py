@@ -193,6 +193,20 @@ def _no_unload(_request: object, _response: object) -> None:
     return None
 
 
+def _signalling(provider: rr.Registrar, signal: str) -> rr.StatusCallback:
+    """A server's `on_status` that tells registrar `signal` each status's message (its server
+    `seen` loads it), from the provider's process: the status was sent on by then."""
+
+    def on_status(_query: rr.Query, update: rr.StatusUpdate) -> None:
+        provider.call(signal, "seen", update.message, timeout=20)
+
+    return on_status
+
+
+def send(provider: rr.Registrar, query_id: str, message: str) -> None:
+    provider.send_status(query_id, rr.Status.UPDATE, message, timeout=20)
+
+
 def _hang(_request: object, _response: object) -> None:  # (past the provider's unload_timeout)
     threading.Event().wait(5)
 
@@ -1371,6 +1385,58 @@ class TestOneWay:
             held.release()
 
         assert ["one", "two"] == ways.heard["consumer"]["s"]
+
+    def test_a_status_a_relay_marked_reached_is_not_overtaken_by_the_next_one_an_unload_carries(
+        self, ways: Ways
+    ) -> None:
+        """The relay marks a status reached for the consumer's id and queues its callback in one
+        step: the next status, carried by the answer to the consumer's `Unload` (on the
+        consumer's thread), queues behind it. Held here: the relay, between the consumer's part
+        and its own id's notice to itself (an id without a callback: not delivered directly)."""
+        seen = {message: threading.Event() for message in ("s0", "s1", "s2")}
+        signal = rr.ResourceRegistrar.start(f"signal-{uuid.uuid4().hex[:8]}", network=ways.network)
+        try:
+            signal.register_server(
+                "seen", load=lambda message: seen[message].set(), unload=_no_unload
+            )
+            ways.provider.register_server(
+                "told",
+                load=_echo,
+                unload=_no_unload,
+                on_status=_signalling(ways.provider, signal.name),
+            )
+            ways.send("r", "warm-up")  # (the provider learns that both are in this process)
+            ways.send("r", "relay chosen")  # (this process's statuses go to the relay from now on)
+            heard: list[str] = []
+            held_id = ways.consumer.call(
+                ways.provider.name,
+                "told",
+                "s",
+                on_status=lambda _q, update: heard.append(update.message),
+                timeout=20,
+            ).id
+            ways.relay.call(ways.provider.name, "told", "s", timeout=20)  # (no callback)
+            send(ways.provider, held_id, "s0")  # (the consumer's answer was recorded: direct)
+            held = Held("s1")
+            try:
+                with (
+                    intercept(ways.relay, "status_notice", before=held),
+                    ThreadPoolExecutor(2) as pool,
+                ):
+                    first = pool.submit(send, ways.provider, held_id, "s1")
+                    assert held.reached["s1"].wait(10)  # marked for the consumer's id
+                    second = pool.submit(send, ways.provider, held_id, "s2")
+                    assert seen["s2"].wait(10)  # sent on, not acknowledged: carried
+                    ways.consumer.unload(held_id, timeout=20)
+                    held.go["s1"].set()
+                    first.result(20)
+                    second.result(20)
+            finally:
+                held.release()
+        finally:
+            signal.stop()
+
+        assert ["s0", "s1", "s2"] == heard
 
 
 class TestTooLarge:
