@@ -978,7 +978,7 @@ class Desk:
         publish = targets.events.active
         for query_id in ids:
             entry = entries.get(query_id)
-            if entry is None or query_id in due:
+            if entry is None or query_id in due or query_id in due.landing:
                 slow.append(query_id)
             else:
                 ready[query_id] = entry

@@ -24,8 +24,9 @@ import rr_actors as rr
 from rr_actors._core import runtime
 from rr_actors._core.replies import let_go
 from rr_actors._core.workers import Workers
+from rr_actors._registrar.calls import CallAttempt
 from rr_actors._registrar.status import Runner, _Call
-from rr_actors.testing import STEPS, RemoteRegistrar, catalog_snapshot, intercept
+from rr_actors.testing import STEPS, RemoteRegistrar, call_futures, catalog_snapshot, intercept
 from tests.registrar.conftest import placement_network
 from tests.support.waiting import wait_for
 
@@ -1437,6 +1438,68 @@ class TestOneWay:
             signal.stop()
 
         assert ["s0", "s1", "s2"] == heard
+
+    def test_statuses_that_overtook_an_answer_are_not_overtaken_by_the_next_one_once_it_lands(
+        self, ways: Ways
+    ) -> None:
+        """Statuses that reached a consumer before the answer to its call (parked) are
+        delivered as the answer is recorded; meanwhile the relay does not deliver that id's
+        next status directly, ahead of them. Held here: the caller, until the first status is
+        parked; then the consumer, as it delivers that one."""
+        answered, release = threading.Event(), threading.Event()
+
+        class HeldAfterItsAnswer(CallAttempt):
+            def wait(self, timeout: float | None = None) -> bool:
+                done = super().wait(timeout)
+                answered.set()
+                assert release.wait(20)
+                return done
+
+        ways.send("r", "warm-up")  # (the provider learns that both are in this process)
+        ways.send("r", "relay chosen")  # (this process's statuses go to the relay from now on)
+        ways.hold("relay", "s")  # (the relay's id first: the consumer's part is delivered after)
+        parked, landing, go, relayed = (threading.Event() for _ in range(4))
+        times: collections.Counter[str] = collections.Counter()
+
+        def at_consumer(message: Any) -> None:  # (the consumer's actor thread)
+            times[message.message] += 1
+            if message.message == "s1" and times["s1"] == 2:  # (delivered as it lands)
+                landing.set()
+                assert go.wait(20)
+
+        query_id = str(uuid.uuid4())
+        heard: list[str] = []
+        with (
+            intercept(ways.consumer, "status_notice", before=at_consumer),
+            intercept(ways.consumer, "status_notice", after=lambda m: parked.set()),
+            intercept(
+                ways.relay, "status_batch", after=lambda m: m.message == "s2" and relayed.set()
+            ),
+            ThreadPoolExecutor(3) as pool,
+        ):
+            with call_futures(ways.consumer, HeldAfterItsAnswer):
+                call = pool.submit(
+                    ways.consumer.call,
+                    ways.provider.name,
+                    "leaf",
+                    "s",
+                    query_id=query_id,
+                    on_status=lambda _q, update: heard.append(update.message),
+                    timeout=20,
+                )
+                assert answered.wait(10)
+            first = pool.submit(send, ways.provider, query_id, "s1")
+            assert parked.wait(10)  # (its answer not recorded yet: parked)
+            release.set()
+            assert landing.wait(10)
+            second = pool.submit(send, ways.provider, query_id, "s2")
+            assert relayed.wait(10)
+            go.set()
+            call.result(20)
+            first.result(20)
+            second.result(20)
+
+        assert ["s1", "s2"] == heard
 
 
 class TestTooLarge:
