@@ -253,7 +253,8 @@ def status_reached(
 
     Letting the id go early excuses no holder whose release crossed the status (rule 9): the
     answer to its `Unload` carried every status not yet acknowledged, delivered before it
-    forgets the id (`ANSWERED`).
+    forgets the id (`ANSWERED`). One forgotten as its `Unload` went unanswered, the life that
+    sent the status on having ended first, is not owed it (`_unanswered`).
     """
     cut_off = _cut_off(history)
     unconnected = _unconnected(expected, facts, lives)
@@ -294,7 +295,9 @@ def status_reached(
             if began >= want.since:
                 continue  # (held from before the send only)
             record = lives[want.holder, life]
-            if _not_serving_yet(want, record, life, restarts):
+            if _not_serving_yet(want, record, life, restarts) or _unanswered(
+                reasons.get(forgot_at), sender, until
+            ):
                 continue
             let_go = until if until is not None else record.last
             release = released.get((want.sender, want.query_id))
@@ -432,6 +435,19 @@ def _released_after(
         and release[0] == want.life
         and want.line < release[1] < sender.last_line
         and release[2] < forgot
+    )
+
+
+def _unanswered(reason: str | None, sender: Life, until: int | None) -> bool:
+    """Whether the holder forgot its id as its `Unload` went unanswered (`reason`, at stamp
+    `until`), the life that sent the status on having ended first: the answer that would
+    carry it died with that life, and what came after found the id forgotten
+    (failure-semantics.md, "Reconciling after a restart")."""
+    return (
+        reason == "unload unanswered"
+        and until is not None
+        and sender.end is not None
+        and sender.end <= until
     )
 
 
