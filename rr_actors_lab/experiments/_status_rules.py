@@ -261,6 +261,11 @@ def status_reached(
     released = _released_on_unload(steps)
     restarts = _restarts(history)
     reasons = {line: e.reason for line, e in history if isinstance(e, events.QueryForgotten)}
+    unanswered = {  # (line -> the stamp its Unload left at)
+        line: e.unload_sent
+        for line, e in history
+        if isinstance(e, events.QueryForgotten) and e.reason == "unload unanswered"
+    }
     findings: list[Finding] = []
     for line, holder, qid in facts.told_self:
         if facts.fatal.get(qid, line) >= line:
@@ -296,7 +301,7 @@ def status_reached(
                 continue  # (held from before the send only)
             record = lives[want.holder, life]
             if _not_serving_yet(want, record, life, restarts) or _unanswered(
-                reasons.get(forgot_at), sender, until
+                unanswered.get(forgot_at), sender
             ):
                 continue
             let_go = until if until is not None else record.last
@@ -438,17 +443,12 @@ def _released_after(
     )
 
 
-def _unanswered(reason: str | None, sender: Life, until: int | None) -> bool:
-    """Whether the holder forgot its id as its `Unload` went unanswered (`reason`, at stamp
-    `until`), the life that sent the status on having ended first: the answer that would
-    carry it died with that life, and what came after found the id forgotten
-    (failure-semantics.md, "Reconciling after a restart")."""
-    return (
-        reason == "unload unanswered"
-        and until is not None
-        and sender.end is not None
-        and sender.end <= until
-    )
+def _unanswered(unload_sent: int | None, sender: Life) -> bool:
+    """Whether the holder forgot its id as its `Unload`, sent at stamp `unload_sent` (`None`:
+    not forgotten so), went unanswered by the life that sent the status on, which ended: the
+    answer that would carry it died with that life, and what came after found the id
+    forgotten (failure-semantics.md, "Reconciling after a restart")."""
+    return unload_sent is not None and sender.end is not None and unload_sent <= sender.end
 
 
 _UNREACHED = ("unknown at reconcile", "unload unanswered")
