@@ -261,11 +261,6 @@ def status_reached(
     released = _released_on_unload(steps)
     restarts = _restarts(history)
     reasons = {line: e.reason for line, e in history if isinstance(e, events.QueryForgotten)}
-    unanswered = {  # (line -> the stamp its Unload left at)
-        line: e.unload_sent
-        for line, e in history
-        if isinstance(e, events.QueryForgotten) and e.reason == "unload unanswered"
-    }
     findings: list[Finding] = []
     for line, holder, qid in facts.told_self:
         if facts.fatal.get(qid, line) >= line:
@@ -301,7 +296,7 @@ def status_reached(
                 continue  # (held from before the send only)
             record = lives[want.holder, life]
             if _not_serving_yet(want, record, life, restarts) or _unanswered(
-                unanswered.get(forgot_at), sender
+                reasons.get(forgot_at), sender, until
             ):
                 continue
             let_go = until if until is not None else record.last
@@ -443,12 +438,16 @@ def _released_after(
     )
 
 
-def _unanswered(unload_sent: int | None, sender: Life) -> bool:
-    """Whether the holder forgot its id as its `Unload`, sent at stamp `unload_sent` (`None`:
-    not forgotten so), went unanswered by the life that sent the status on, which ended: the
-    answer that would carry it died with that life, and what came after found the id
-    forgotten (failure-semantics.md, "Reconciling after a restart")."""
-    return unload_sent is not None and sender.end is not None and unload_sent <= sender.end
+def _unanswered(reason: str | None, sender: Life, until: int | None) -> bool:
+    """Whether the holder forgot its id (at stamp `until`) as its `Unload` went unanswered,
+    the life that sent the status on having ended by then, or within `LOST_WITH_HOLDER_S`
+    after (its `ChildExited` is stamped as its supervisor hears of the kill, which may be
+    after the holder did): the answer that would carry it died with that life, and what came
+    after found the id forgotten (failure-semantics.md, "Reconciling after a restart"; real
+    `simways` runs, seeds 3 and 6)."""
+    if reason != "unload unanswered" or until is None or sender.end is None:
+        return False
+    return hlc.unpack(sender.end)[0] - hlc.unpack(until)[0] <= LOST_WITH_HOLDER_S * 1_000_000
 
 
 _UNREACHED = ("unknown at reconcile", "unload unanswered")
