@@ -280,10 +280,10 @@ class Flights:
 
     def answered(self, query_id: str, attempt: CallAttempt, provider: str = "") -> None:
         flight = self.in_flight.get(query_id)
-        parked = flight is not None and bool(flight.parked)  # (a desk's direct delivery to it
-        # waits while they are delivered: `landing`; rule 9)
-        settled = self.due.settle(query_id, attempt, landing=parked)  # (first: a reconcile
-        try:  # lists it not due)
+        parked = flight is not None and bool(flight.parked)  # (no direct delivery till done)
+        # settled first: a reconcile lists it not due; `landing` while its parked ones go
+        settled = self.due.settle(query_id, attempt, landing=parked)
+        try:
             if provider in self.doubted.pop(query_id, ()):  # (its answer may be of the run
                 self.redeliver(ReconcileAsk(provider, holds_yours=False))  # a restart replaced)
             if not settled or flight is None or not parked:

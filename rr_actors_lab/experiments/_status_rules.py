@@ -254,7 +254,7 @@ def status_reached(
     Letting the id go early excuses no holder whose release crossed the status (rule 9): the
     answer to its `Unload` carried every status not yet acknowledged, delivered before it
     forgets the id (`ANSWERED`). One forgotten as its `Unload` went unanswered, the life that
-    sent the status on having ended first, is not owed it (`_unanswered`).
+    sent the status on having ended by then (or just after), is not owed it (`_unanswered`).
     """
     cut_off = _cut_off(history)
     unconnected = _unconnected(expected, facts, lives)
