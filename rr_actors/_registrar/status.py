@@ -975,10 +975,12 @@ class Desk:
         slow: list[str] = []
         ready: dict[str, tuple[Query, StatusCallback]] = {}
         entries, due = targets.entries, targets.due
+        if any(q in due or q in due.landing for q in ids):  # (a notice of them may be parked
+            return ids  # behind a due one's answer: this one waits behind it, rule 9)
         publish = targets.events.active
         for query_id in ids:
             entry = entries.get(query_id)
-            if entry is None or query_id in due or query_id in due.landing:
+            if entry is None:
                 slow.append(query_id)
             else:
                 ready[query_id] = entry

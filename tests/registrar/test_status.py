@@ -1501,6 +1501,47 @@ class TestOneWay:
 
         assert ["s1", "s2"] == heard
 
+    def test_a_status_parked_with_a_due_id_is_not_overtaken_at_the_ids_held_beside_it(
+        self, ways: Ways
+    ) -> None:
+        """One notice names a consumer's ids of a resource; while the answer to one of them is
+        due it waits (parked), with the others' status: the next status, sent to the
+        consumer itself (the way of the first), waits behind it for those too."""
+        answered, release = threading.Event(), threading.Event()
+
+        class HeldAfterItsAnswer(CallAttempt):
+            def wait(self, timeout: float | None = None) -> bool:
+                done = super().wait(timeout)
+                answered.set()
+                assert release.wait(20)
+                return done
+
+        ways.hold("consumer", "t")  # (the consumer alone holds "t": its statuses go to it)
+        ways.send("t", "warm-up")  # (the provider learns the consumer's process)
+        parked, batched = threading.Event(), threading.Event()
+        with (
+            intercept(ways.consumer, "status_notice", after=lambda m: parked.set()),
+            intercept(
+                ways.consumer, "status_batch", after=lambda m: m.message == "s2" and batched.set()
+            ),
+            ThreadPoolExecutor(3) as pool,
+        ):
+            with call_futures(ways.consumer, HeldAfterItsAnswer):
+                call = pool.submit(
+                    ways.consumer.call, ways.provider.name, "leaf", "t", timeout=20
+                )  # (a second id of "t", due)
+                assert answered.wait(10)
+            first = pool.submit(ways.send, "t", "s1")  # (a notice naming both ids: parked)
+            assert parked.wait(10)
+            second = pool.submit(ways.send, "t", "s2")  # (a batch to the consumer)
+            assert batched.wait(10)
+            release.set()
+            call.result(20)
+            first.result(20)
+            second.result(20)
+
+        assert ["warm-up", "s1", "s2"] == ways.heard["consumer"]["t"]
+
 
 class TestTooLarge:
     """A status or a new response its consumer cannot take is a `MessageTooLargeError` for its
