@@ -33,7 +33,7 @@ from collections.abc import Callable, Iterable
 from typing import Any
 
 from rr_actors import events
-from rr_actors._catalog import Resource
+from rr_actors._catalog import ClientRecord, Resource
 from rr_actors._core import hlc, runtime, traces
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
@@ -321,10 +321,12 @@ class StatusRelay:
         gave_up: list[str] = []
         join = _Join(lambda: reply.set_result(tuple(gave_up)), gave_up)
         deadline = _deadline(message.patience)
-        for query_id in DESK.first_time(message.event, message.query_ids):
-            record = catalog.client(query_id)
+        records: dict[str, ClientRecord | None] = {}
+
+        def call_of(query_id: str) -> _Call | None:  # (under the desk's lock: `reach`)
+            record = records[query_id] = catalog.client(query_id)
             if record is None:
-                continue
+                return None
             update = StatusUpdate(query_id, message.status, message.message, message.source)
             active = self.registrar.events.active
             if active:
@@ -341,21 +343,18 @@ class StatusRelay:
                 )
             callback = self.holdings.callback_of(query_id)
             # (on the callback's thread or loop: the publisher itself, not the turn's)
-            told = self.registrar.published, self.registrar.name, message.event
-            if callback is not None:
-                call = _Call(
-                    callback,
-                    record.query,
-                    update,
-                    join.add(),
-                    told if active else None,
-                    deadline,
-                    gave_up,
-                )
-                if isinstance(callback, OnLoop):  # (each id's in order, on its loop)
-                    DESK.runner.on_loop(call)
-                else:  # (each id's in order with the desk's own)
-                    DESK.runner.run((call,))
+            told = (
+                (self.registrar.published, self.registrar.name, message.event) if active else None
+            )
+            if callback is None:
+                return None
+            return _Call(callback, record.query, update, join.add(), told, deadline, gave_up)
+
+        for query_id in DESK.reach(message.event, message.query_ids, call_of):
+            record = records[query_id]
+            if record is None:
+                continue
+            update = StatusUpdate(query_id, message.status, message.message, message.source)
             climb = runtime.steps.climb  # (a classroom's copy of this step, `rr_actors_lab.teach`)
             if climb is not None:
                 above = [
@@ -910,7 +909,7 @@ class Desk:
         self.targets: weakref.WeakKeyDictionary[LocalPeer, StatusTargets] = (
             weakref.WeakKeyDictionary()
         )
-        self._lock = runtime.Lock()
+        self._lock = runtime.RLock()  # (a callback's acknowledgement may reach it again)
         self._seen: collections.OrderedDict[tuple[str, str], None] = collections.OrderedDict()
         self.runner = Runner()
         self.key = runtime.urandom(16).hex()  # this process's (`process`)
@@ -929,7 +928,6 @@ class Desk:
         """Deliver `batch`'s parts (on an actor thread) as parts of `join` (given up: in
         `join.gave_up`); `homes` gets each reached registrar's process; `here`: the registrar
         running this and its `dispatch` (its own ids skip its mailbox)."""
-        calls: list[_Call] = []
         patience = batch.patience
         deadline = _deadline(patience)
         for origin, ids in batch.parts:
@@ -943,7 +941,7 @@ class Desk:
             if homes is not None:
                 homes[origin] = self.key
             targets = self.targets.get(peer)
-            slow = self.direct(targets, batch, ids, join, calls, deadline) if targets else ids
+            slow = self.direct(targets, batch, ids, join, deadline) if targets else ids
             if slow:
                 reply = CallbackReply(_counted(join, join.add()))
                 notice = StatusNotice(
@@ -964,8 +962,6 @@ class Desk:
                         peer.tell(notice)
                 except RrError as exc:
                     reply.set_error(exc)
-        if calls:
-            self.runner.run(calls)
 
     def direct(
         self,
@@ -973,24 +969,24 @@ class Desk:
         batch: StatusBatch,
         ids: tuple[str, ...],
         join: _Join,
-        calls: list[_Call],
         deadline: float | None = None,
     ) -> tuple[str, ...]:
         """Queue the callbacks of the ids `targets` has, not reached yet; return the others."""
         slow: list[str] = []
-        ready: list[tuple[str, tuple[Query, StatusCallback]]] = []
+        ready: dict[str, tuple[Query, StatusCallback]] = {}
         entries, due = targets.entries, targets.due
+        if any(q in due or q in due.landing for q in ids):  # (a notice of them may be parked
+            return ids  # behind a due one's answer: this one waits behind it, rule 9)
         publish = targets.events.active
         for query_id in ids:
             entry = entries.get(query_id)
-            if entry is None or query_id in due:
+            if entry is None:
                 slow.append(query_id)
             else:
-                ready.append((query_id, entry))
-        fresh = set(self.first_time(batch.event, tuple(q for q, _ in ready)))
-        for query_id, (query, callback) in ready:
-            if query_id not in fresh:
-                continue
+                ready[query_id] = entry
+
+        def call_of(query_id: str) -> _Call:  # (under the desk's lock: `reach`)
+            query, callback = ready[query_id]
             if publish:
                 targets.events.publish(
                     events.StatusDelivered(
@@ -1004,14 +1000,9 @@ class Desk:
                 )
             update = StatusUpdate(query_id, batch.status, batch.message, batch.source)
             told = (targets.events, targets.name, batch.event) if publish else None
-            if isinstance(callback, OnLoop):  # a coroutine: on its loop, no worker
-                self.runner.on_loop(
-                    _Call(callback, query, update, join.add(), told, deadline, join.gave_up)
-                )
-            else:
-                calls.append(
-                    _Call(callback, query, update, join.add(), told, deadline, join.gave_up)
-                )
+            return _Call(callback, query, update, join.add(), told, deadline, join.gave_up)
+
+        self.reach(batch.event, tuple(ready), call_of)
         return tuple(slow)
 
     def forward(
@@ -1037,8 +1028,12 @@ class Desk:
         except RrError as exc:
             reply.set_error(exc)
 
-    def first_time(self, event: str, ids: tuple[str, ...]) -> tuple[str, ...]:
-        """Those of `ids` that event `event` has not reached here yet (marked now)."""
+    def reach(
+        self, event: str, ids: tuple[str, ...], call_of: Callable[[str], _Call | None]
+    ) -> tuple[str, ...]:
+        """Those of `ids` that event `event` has not reached here yet, marked now and, in the
+        same step, the callback call `call_of(id)` makes for each queued: a later status to
+        one of them, marked on another thread (an `Unload`'s answer), queues behind it."""
         seen = self._seen
         fresh = []
         with self._lock:
@@ -1049,11 +1044,19 @@ class Desk:
                     fresh.append(query_id)
             while len(seen) > _SEEN:
                 seen.popitem(last=False)
+            threads = []
+            for call in filter(None, map(call_of, fresh)):
+                if isinstance(call.callback, OnLoop):  # a coroutine: on its loop, no worker
+                    self.runner.on_loop(call)
+                else:
+                    threads.append(call)
+            if threads:
+                self.runner.run(threads)
         return tuple(fresh)
 
     def forget_in_child(self) -> None:
         """In a forked child: the parent's registrars and threads are not here."""
-        self._lock = runtime.Lock()
+        self._lock = runtime.RLock()
         self.targets = weakref.WeakKeyDictionary()
         self._seen = collections.OrderedDict()
         self.runner = Runner()

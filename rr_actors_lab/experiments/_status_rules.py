@@ -254,7 +254,8 @@ def status_reached(
 
     Letting the id go early excuses no holder whose release crossed the status (rule 9): the
     answer to its `Unload` carried every status not yet acknowledged, delivered before it
-    forgets the id (`ANSWERED`).
+    forgets the id (`ANSWERED`). One forgotten as its `Unload` went unanswered, the life that
+    sent the status on having ended by then (or just after), is not owed it (`_unanswered`).
     """
     cut_off = _cut_off(history)
     unconnected = _unconnected(expected, facts, lives)
@@ -297,7 +298,9 @@ def status_reached(
             if began >= want.since:
                 continue  # (held from before the send only)
             record = lives[want.holder, life]
-            if _not_serving_yet(want, record, life, restarts):
+            if _not_serving_yet(want, record, life, restarts) or _unanswered(
+                reasons.get(forgot_at), sender, until
+            ):
                 continue
             let_go = until if until is not None else record.last
             release = released.get((want.sender, want.query_id))
@@ -458,6 +461,18 @@ def _released_after(
         and want.line < release[1] < sender.last_line
         and release[2] < forgot
     )
+
+
+def _unanswered(reason: str | None, sender: Life, until: int | None) -> bool:
+    """Whether the holder forgot its id (at stamp `until`) as its `Unload` went unanswered,
+    the life that sent the status on having ended by then, or within `LOST_WITH_HOLDER_S`
+    after (its `ChildExited` is stamped as its supervisor hears of the kill, which may be
+    after the holder did): the answer that would carry it died with that life, and what came
+    after found the id forgotten (failure-semantics.md, "Reconciling after a restart"; real
+    `simways` runs, seeds 3 and 6)."""
+    if reason != "unload unanswered" or until is None or sender.end is None:
+        return False
+    return hlc.unpack(sender.end)[0] - hlc.unpack(until)[0] <= LOST_WITH_HOLDER_S * 1_000_000
 
 
 _UNREACHED = ("unknown at reconcile", "unload unanswered")

@@ -876,6 +876,33 @@ def test_a_status_its_holders_release_crossed_reaches_it_on_the_answer() -> None
     assert ("held", ()) == (verdict.verdict, verdict.findings)
 
 
+def test_a_status_to_an_id_forgotten_as_its_unload_went_unanswered_by_its_dead_sender_holds() -> (
+    None
+):
+    """A real `simways` run (2026-11-26): db sent statuses on to an id and was killed with
+    that id's `Unload` on its way; its consumer forgot it as `unload unanswered` after
+    the statuses' last deliveries elsewhere. The answer that would carry them died with
+    db, and what came after found the id forgotten (failure-semantics.md): not owed."""
+    h = crossed()
+    fatal = rr.Status.FATAL
+    earlier = [  # (an earlier status reached app from cm's life: connected)
+        events.StatusSent("erm", Q1, fatal, "died", "s0", pid=P),
+        events.StatusDelivered("cm", Q1, fatal, 1, 0.0, "s0", pid=C),
+        events.StatusDelivered("app", Q2, fatal, 2, 0.0, "s0", pid=A),
+        events.StatusDelivered("app2", "q3", fatal, 2, 0.0, "s0", pid=A + 1),
+    ]
+    exited = events.ChildExited("sup", "cm", C, "killed by SIGKILL")
+    unanswered = dataclasses.replace(h[10], reason="unload unanswered")
+    # cm sends it on to app's Q2 and app2's q3, app2 gets it, cm goes on and is killed;
+    # app's Unload of Q2 goes unanswered
+    died = _stamped([*h[:6], *earlier, *h[6:8], h[11], h[12], h[13], exited, unanswered, *h[16:]])
+    verdict = check.check(numbered(died))
+    assert "status-reached" not in {f.rule for f in verdict.findings}, verdict.findings
+    # while cm lives on, app's Unload is answered: one forgotten unanswered then is owed it
+    alive = _stamped([*h[:6], *earlier, *h[6:8], h[11], h[12], h[13], unanswered, *h[14:]])
+    assert "status-reached" in {f.rule for f in check.check(numbered(alive)).findings}
+
+
 def test_a_status_whose_sender_died_before_it_sent_it_on_reaches_nobody() -> None:
     h = with_paths()
     # erm sends and dies at once (its journal kept the StatusSent): nobody gets it, and

@@ -24,8 +24,9 @@ import rr_actors as rr
 from rr_actors._core import runtime
 from rr_actors._core.replies import let_go
 from rr_actors._core.workers import Workers
+from rr_actors._registrar.calls import CallAttempt
 from rr_actors._registrar.status import Runner, _Call
-from rr_actors.testing import STEPS, RemoteRegistrar, catalog_snapshot, intercept
+from rr_actors.testing import STEPS, RemoteRegistrar, call_futures, catalog_snapshot, intercept
 from tests.registrar.conftest import placement_network
 from tests.support.waiting import wait_for
 
@@ -191,6 +192,20 @@ def _echo(request: object) -> object:
 
 def _no_unload(_request: object, _response: object) -> None:
     return None
+
+
+def _signalling(provider: rr.Registrar, signal: str) -> rr.StatusCallback:
+    """A server's `on_status` that tells registrar `signal` each status's message (its server
+    `seen` loads it), from the provider's process: the status was sent on by then."""
+
+    def on_status(_query: rr.Query, update: rr.StatusUpdate) -> None:
+        provider.call(signal, "seen", update.message, timeout=20)
+
+    return on_status
+
+
+def send(provider: rr.Registrar, query_id: str, message: str) -> None:
+    provider.send_status(query_id, rr.Status.UPDATE, message, timeout=20)
 
 
 def _hang(_request: object, _response: object) -> None:  # (past the provider's unload_timeout)
@@ -1371,6 +1386,161 @@ class TestOneWay:
             held.release()
 
         assert ["one", "two"] == ways.heard["consumer"]["s"]
+
+    def test_a_status_a_relay_marked_reached_is_not_overtaken_by_the_next_one_an_unload_carries(
+        self, ways: Ways
+    ) -> None:
+        """The relay marks a status reached for the consumer's id and queues its callback in one
+        step: the next status, carried by the answer to the consumer's `Unload` (on the
+        consumer's thread), queues behind it. Held here: the relay, between the consumer's part
+        and its own id's notice to itself (an id without a callback: not delivered directly)."""
+        seen = {message: threading.Event() for message in ("s0", "s1", "s2")}
+        signal = rr.ResourceRegistrar.start(f"signal-{uuid.uuid4().hex[:8]}", network=ways.network)
+        try:
+            signal.register_server(
+                "seen", load=lambda message: seen[message].set(), unload=_no_unload
+            )
+            ways.provider.register_server(
+                "told",
+                load=_echo,
+                unload=_no_unload,
+                on_status=_signalling(ways.provider, signal.name),
+            )
+            ways.send("r", "warm-up")  # (the provider learns that both are in this process)
+            ways.send("r", "relay chosen")  # (this process's statuses go to the relay from now on)
+            heard: list[str] = []
+            held_id = ways.consumer.call(
+                ways.provider.name,
+                "told",
+                "s",
+                on_status=lambda _q, update: heard.append(update.message),
+                timeout=20,
+            ).id
+            ways.relay.call(ways.provider.name, "told", "s", timeout=20)  # (no callback)
+            send(ways.provider, held_id, "s0")  # (the consumer's answer was recorded: direct)
+            held = Held("s1")
+            try:
+                with (
+                    intercept(ways.relay, "status_notice", before=held),
+                    ThreadPoolExecutor(2) as pool,
+                ):
+                    first = pool.submit(send, ways.provider, held_id, "s1")
+                    assert held.reached["s1"].wait(10)  # marked for the consumer's id
+                    second = pool.submit(send, ways.provider, held_id, "s2")
+                    assert seen["s2"].wait(10)  # sent on, not acknowledged: carried
+                    ways.consumer.unload(held_id, timeout=20)
+                    held.go["s1"].set()
+                    first.result(20)
+                    second.result(20)
+            finally:
+                held.release()
+        finally:
+            signal.stop()
+
+        assert ["s0", "s1", "s2"] == heard
+
+    def test_statuses_that_overtook_an_answer_are_not_overtaken_by_the_next_one_once_it_lands(
+        self, ways: Ways
+    ) -> None:
+        """Statuses that reached a consumer before the answer to its call (parked) are
+        delivered as the answer is recorded; meanwhile the relay does not deliver that id's
+        next status directly, ahead of them. Held here: the caller, until the first status is
+        parked; then the consumer, as it delivers that one."""
+        answered, release = threading.Event(), threading.Event()
+
+        class HeldAfterItsAnswer(CallAttempt):
+            def wait(self, timeout: float | None = None) -> bool:
+                done = super().wait(timeout)
+                answered.set()
+                assert release.wait(20)
+                return done
+
+        ways.send("r", "warm-up")  # (the provider learns that both are in this process)
+        ways.send("r", "relay chosen")  # (this process's statuses go to the relay from now on)
+        ways.hold("relay", "s")  # (the relay's id first: the consumer's part is delivered after)
+        parked, landing, go, relayed = (threading.Event() for _ in range(4))
+        times: collections.Counter[str] = collections.Counter()
+
+        def at_consumer(message: Any) -> None:  # (the consumer's actor thread)
+            times[message.message] += 1
+            if message.message == "s1" and times["s1"] == 2:  # (delivered as it lands)
+                landing.set()
+                assert go.wait(20)
+
+        query_id = str(uuid.uuid4())
+        heard: list[str] = []
+        with (
+            intercept(ways.consumer, "status_notice", before=at_consumer),
+            intercept(ways.consumer, "status_notice", after=lambda m: parked.set()),
+            intercept(
+                ways.relay, "status_batch", after=lambda m: m.message == "s2" and relayed.set()
+            ),
+            ThreadPoolExecutor(3) as pool,
+        ):
+            with call_futures(ways.consumer, HeldAfterItsAnswer):
+                call = pool.submit(
+                    ways.consumer.call,
+                    ways.provider.name,
+                    "leaf",
+                    "s",
+                    query_id=query_id,
+                    on_status=lambda _q, update: heard.append(update.message),
+                    timeout=20,
+                )
+                assert answered.wait(10)
+            first = pool.submit(send, ways.provider, query_id, "s1")
+            assert parked.wait(10)  # (its answer not recorded yet: parked)
+            release.set()
+            assert landing.wait(10)
+            second = pool.submit(send, ways.provider, query_id, "s2")
+            assert relayed.wait(10)
+            go.set()
+            call.result(20)
+            first.result(20)
+            second.result(20)
+
+        assert ["s1", "s2"] == heard
+
+    def test_a_status_parked_with_a_due_id_is_not_overtaken_at_the_ids_held_beside_it(
+        self, ways: Ways
+    ) -> None:
+        """One notice names a consumer's ids of a resource; while the answer to one of them is
+        due it waits (parked), with the others' status: the next status, sent to the
+        consumer itself (the way of the first), waits behind it for those too."""
+        answered, release = threading.Event(), threading.Event()
+
+        class HeldAfterItsAnswer(CallAttempt):
+            def wait(self, timeout: float | None = None) -> bool:
+                done = super().wait(timeout)
+                answered.set()
+                assert release.wait(20)
+                return done
+
+        ways.hold("consumer", "t")  # (the consumer alone holds "t": its statuses go to it)
+        ways.send("t", "warm-up")  # (the provider learns the consumer's process)
+        parked, batched = threading.Event(), threading.Event()
+        with (
+            intercept(ways.consumer, "status_notice", after=lambda m: parked.set()),
+            intercept(
+                ways.consumer, "status_batch", after=lambda m: m.message == "s2" and batched.set()
+            ),
+            ThreadPoolExecutor(3) as pool,
+        ):
+            with call_futures(ways.consumer, HeldAfterItsAnswer):
+                call = pool.submit(
+                    ways.consumer.call, ways.provider.name, "leaf", "t", timeout=20
+                )  # (a second id of "t", due)
+                assert answered.wait(10)
+            first = pool.submit(ways.send, "t", "s1")  # (a notice naming both ids: parked)
+            assert parked.wait(10)
+            second = pool.submit(ways.send, "t", "s2")  # (a batch to the consumer)
+            assert batched.wait(10)
+            release.set()
+            call.result(20)
+            first.result(20)
+            second.result(20)
+
+        assert ["warm-up", "s1", "s2"] == ways.heard["consumer"]["t"]
 
 
 class TestTooLarge:
