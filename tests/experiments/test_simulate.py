@@ -960,16 +960,17 @@ def test_simnostate_seed_716_tells_fatal_for_a_held_id_whose_retry_failed_at_a_r
 
 
 @SWEEP
-def test_simdoubt_seed_58_holds_a_status_lost_with_its_sender_before_it_reached_a_new_process() -> (
-    None
-):
+def test_simdoubt_seed_111_holds_a_status_lost_with_its_sender_killed_right_after_it() -> None:
     # issue 68, finding 3: db's status reached api's process; api was killed and restored
     # in a new one; db's next status to api, its first to that process, was sent 1.7 ms
     # before db was SIGKILLed and never arrived (the connection is made at the first send).
     # `status-reached` keyed the connection by the holder's name, not its process: violated.
+    # The status-order fixes of the same issue moved seed 58's history: no seed of 1-300
+    # reaches that exact shape now (the old rule holds them all), so the rule's own case is
+    # test_check.py's; seed 111 still loses a status of db killed right after it, and holds.
     from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
 
-    run = simulate.run_seed(load_plan(PLANS / "simdoubt.toml"), 58)
+    run = simulate.run_seed(load_plan(PLANS / "simdoubt.toml"), 111)
 
     held([run])
     sent = {e["status_id"]: e for e in lines(run, "StatusSent") if e["registrar"] == "db"}
@@ -981,7 +982,7 @@ def test_simdoubt_seed_58_holds_a_status_lost_with_its_sender_before_it_reached_
         if s["status_id"] not in delivered
         and any(e["pid"] == s["pid"] and 0 < e["at"] - s["at"] < 0.01 for e in exits)
     ]
-    assert lost, "seed 58 no longer loses a status of db killed right after it"
+    assert lost, "seed 111 no longer loses a status of db killed right after it"
 
 
 @SWEEP
