@@ -49,6 +49,7 @@ from rr_actors._process.control import (
     Failed,
     Forward,
     FromChild,
+    PeerStarted,
     Ping,
     Pong,
     Probe,
@@ -315,7 +316,7 @@ def _run_manager(
         if address is not None:
             attached = address.attach()
             attached.supervised_by(_supervisor_pid(conn))  # it restarts this one (rule 19)
-        registrar = start_registrar(config, upstream=line.hub, hold_in_doubt=True)
+        registrar = start_registrar(config, upstream=line.hub, hold_in_doubt=True, announced=True)
         setup_fn = cloudpickle.loads(setup)
         if setup_fn is not None:
             setup_fn(registrar)
@@ -408,6 +409,11 @@ class _ControlLoop:
     def forward(self, message: Forward) -> None:
         self.line.switch(on=message.on)
 
+    def peer_started(self, message: PeerStarted) -> None:
+        from rr_actors._registrar.life import heard_started  # noqa: PLC0415 - preloaded
+
+        heard_started(self.registrar.name, message.name)
+
     def sync_events(self, message: SyncEvents) -> None:
         threading.Thread(
             target=self.line.sync,
@@ -437,4 +443,5 @@ _HANDLERS: dict[type[Any], Callable[[_ControlLoop, Any], None]] = {
     Forward: _ControlLoop.forward,
     SyncEvents: _ControlLoop.sync_events,
     Stop: _ControlLoop.stop,
+    PeerStarted: _ControlLoop.peer_started,
 }

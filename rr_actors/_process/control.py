@@ -185,7 +185,16 @@ class EventsSynced:
     token: int
 
 
-FromParent = WarmUp | Start | Ping | Probe | Forward | SyncEvents | Stop
+@dataclasses.dataclass(frozen=True, slots=True)
+class PeerStarted:
+    """Registrar `name` of the tree (re)started: tell this manager's registrar, which
+    reconciles with it if they have business (rule 20). Its supervisor's one notice, on
+    this pipe, instead of a connection from `name` to every manager process."""
+
+    name: str
+
+
+FromParent = WarmUp | Start | Ping | Probe | Forward | SyncEvents | Stop | PeerStarted
 FromChild = Warm | Ready | Failed | Pong | Progress | Events | EventsSynced
 
 

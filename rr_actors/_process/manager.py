@@ -47,6 +47,7 @@ from rr_actors._process.control import (
     Failed,
     Forward,
     FromParent,
+    PeerStarted,
     Ping,
     Pong,
     Probe,
@@ -267,6 +268,11 @@ class ManagerProcess:
             except (OSError, ValueError):
                 return False
         return True
+
+    def tell_started(self, name: str) -> None:
+        """Tell the manager's registrar that registrar `name` (re)started (`PeerStarted`);
+        nothing if the process is gone (it hears nothing more)."""
+        self._send(PeerStarted(name))
 
     def forward_events(self, on: bool) -> None:
         self.forwarding = on  # (what the exit reads: nobody listens, nothing to count)

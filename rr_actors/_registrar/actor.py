@@ -253,11 +253,13 @@ class RegistrarActor(Actor):
         setting_up: bool = False,
         hold_in_doubt: bool = False,
         life: str = "",
+        announced: bool = False,
     ) -> None:
         super().__init__()
         self.shared = Shared(
             config, catalog, saver, peer, published, setting_up=setting_up, life=life
         )
+        self.shared.announced = announced
         # Each part is built after the parts it calls, and calls only those (one way):
         # life.py -> provider.py -> status.py -> consumer.py, each bottom first.
         self.flights = Flights(self.shared, due, self.dispatch)
@@ -426,12 +428,14 @@ def launch(
     setting_up: bool,
     upstream: Publisher[events.Event] | None,
     hold_in_doubt: bool = False,
+    announced: bool = False,
 ) -> Launched:
     """Restore the catalog and start the actor (on the calling thread).
 
     `setting_up`: a `setup` runs before it serves others; `upstream`: a publisher its
     events are relayed to as well; `hold_in_doubt`: keep in-doubt entries in the backup
-    until the manager settles them.
+    until the manager settles them; `announced`: its supervisor tells the system of its
+    (re)starts (`Shared.announced`).
 
     Raises:
         DuplicateNameError: a registrar with this name is already running here.
@@ -473,6 +477,7 @@ def launch(
             setting_up=setting_up,
             hold_in_doubt=hold_in_doubt,
             life=life,
+            announced=announced,
         )
     except BaseException:
         if saver is not None:

@@ -1153,8 +1153,9 @@ class Reconciling:
 
     def on_lost_everything(self, _message: LostEverything, _reply: Reply) -> None:
         """Restarted without a backup (`LostEverything`): reconcile with every registrar of the
-        system, now and after each restart, so each releases the ids the list does not name."""
-        self.everyone = True
+        system, now and after each restart, so each releases the ids the list does not name
+        (announced by its supervisor: each that holds ids of it asks it, `on_reconcile_ask`)."""
+        self.everyone = not self.registrar.announced
         if self.registrar.phase is Phase.SERVING:  # (during setup `on_ready` reconciles)
             self.reconcile_all()
 

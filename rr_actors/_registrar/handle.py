@@ -1032,14 +1032,18 @@ def start_registrar(
     setup: Callable[[ResourceRegistrar], object] | None = None,
     upstream: Publisher[events.Event] | None = None,
     hold_in_doubt: bool = False,
+    announced: bool = False,
 ) -> ResourceRegistrar:
     """`ResourceRegistrar.start`, its events relayed to `upstream`; `hold_in_doubt`: the
-    caller settles the in-doubt entries (a manager process runs its `setup` itself)."""
+    caller settles the in-doubt entries (a manager process runs its `setup` itself);
+    `announced`: its supervisor tells the system when it (re)starts (`announce_started`),
+    so it tells no registrar it has no business with."""
     launched = launch(
         config,
         setting_up=setup is not None,
         upstream=upstream,
         hold_in_doubt=hold_in_doubt or setup is not None,
+        announced=announced,
     )
     handle = ResourceRegistrar(launched)
     stop_at_exit(

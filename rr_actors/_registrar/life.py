@@ -147,8 +147,12 @@ class Lifecycle:
         # every provider the restored catalog knows, also those settle_in_doubt forgets
         providers = self.registrar.catalog.providers()
         self.reconciling.expect_reconcile(providers)
-        # what it released while a provider was down is in no row: reconcile with all (rule 20)
-        self.reconciling.everyone = self.registrar.saver.store is not None
+        # what it released while a provider was down is in no row: reconcile with all (rule 20),
+        # unless its supervisor announces its start: then each provider holding ids of its
+        # last run asks it (`on_reconcile_ask`), and it connects to nobody else
+        self.reconciling.everyone = (
+            self.registrar.saver.store is not None and not self.registrar.announced
+        )
         self.restoring.settle_in_doubt()
         self.restoring.unload_unheld()
         for name, stopped in sorted(gone.items()):  # as if it had heard each mark
@@ -673,10 +677,21 @@ class Presence:
         """Provider `serving_rr` asks for a `Reconcile` (rule 20): sent, and retried until it is
         answered (one sent once could be lost as its connection fails while it comes back)."""
         reply.set_result(None)  # (heard: one that stopped first answers that, `ask_to_reconcile`)
+        name = message.serving_rr
+        if not message.holds_yours and name != self.registrar.name and self.holds_of(name):
+            # it (re)started and may have lost ids it held here (a crash between its `Load`
+            # and its commit; a release while this one was down): it answers with a
+            # `Reconcile`, which releases them (rule 20); so no restart reconciles with
+            # every registrar of the system, only with those that hold its ids
+            self.unloading.ask_holder(name)
         if self.reconciling.asked(message):
             self.round_count += 1
             ask = (message.round, message.life)
             self.attempt(message.serving_rr, self.round_count, 0, message.life, ask)
+
+    def holds_of(self, name: str) -> bool:
+        """Whether this registrar holds ids of consumer `name`, or has its loads under way."""
+        return self.unloading.holds_of(name) or bool(self.unloading.provider.under_way_of(name))
 
     def ask_consumer(self, name: str) -> bool:
         """Ask consumer `name` for a `Reconcile`, with its `call_timeout` armed; whether it was
@@ -982,11 +997,27 @@ def tell_gone(target: str, name: str, *, stopped: bool = False) -> None:
     DIRECTORY.lookup(target).tell(_mark(name, stopped=stopped))
 
 
+def heard_started(target: str, name: str) -> None:
+    """Tell registrar `target` that registrar `name` (re)started and may have lost ids, or
+    forgotten ids it held: `target` reconciles with it if they have business (a
+    `ReconcileAsk` that does not say it holds ids of yours, rule 20); nothing if `target`
+    cannot be reached (it reconciles when it is back)."""
+    if target == name:
+        return
+    try:
+        DIRECTORY.lookup(target).tell(ReconcileAsk(name, holds_yours=False))
+    except RrError:
+        logger.debug("started: registrar %s unreachable (told of %s)", target, name)
+
+
 def lost_everything(name: str, *, also: Iterable[str] = (), handle: Servable | None = None) -> None:
     """Registrar `name` restarted without a backup: those here and in `also` holding ids
-    there reconcile with it, and it with everyone (`LostEverything`, rule 20). `handle`: its
-    `ResourceRegistrar`, through which it is told (it may not be in the directory yet)."""
-    DIRECTORY.broadcast(ReconcileAsk(name, holds_yours=False), also=also, skip=name)
+    there reconcile with it, and it with those holding its ids (`LostEverything`, rule 20).
+    `handle`: its `ResourceRegistrar`, through which it is told (it may not be in the
+    directory yet). A supervisor tells `also` itself (`also=()`): `announce_started`."""
+    targets = {peer.name for peer in DIRECTORY.local_peers()} | set(also)
+    for target in sorted(targets):
+        heard_started(target, name)
     if handle is not None:
         handle.tell(LostEverything())
         return

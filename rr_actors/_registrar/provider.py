@@ -1318,8 +1318,8 @@ class Unloading:
         origins = self.registrar.catalog.consumer_origins() | swept
         for origin in sorted(origins):
             self.ask_holder(origin)
-        if self.registrar.saver.store is not None:
-            self.ask_everyone(set(origins))
+        if self.registrar.saver.store is not None and not self.registrar.announced:
+            self.ask_everyone(set(origins))  # (announced: its supervisor tells everyone)
 
     def ask_holder(self, origin: str) -> None:
         """Ask consumer `origin` for a `Reconcile`, answered: stopped (also after the ask left:

@@ -150,7 +150,7 @@ class ThreadManager:
         self.spec = spec
         self.stopping = False
         upstream = relay.publisher if relay is not None else None
-        registrar = start_registrar(config, setup=spec.setup, upstream=upstream)
+        registrar = start_registrar(config, setup=spec.setup, upstream=upstream, announced=True)
         try:
             if attached is not None:
                 attached.serve(Served(registrar))
@@ -238,6 +238,10 @@ class ProcessManager:
         if relay is not None:
             relay.attach(handle, forwarding=forwarding)
         return cls(handle, spec.shutdown)
+
+    def tell_started(self, name: str) -> None:
+        """Tell its registrar that registrar `name` (re)started, on its control pipe."""
+        self.handle.tell_started(name)
 
     def stop(self, timeout: float | None, *, restarting: bool = False) -> ManagerExit:
         limit = self.handle_shutdown if timeout is None else timeout

@@ -53,6 +53,7 @@ from rr_actors._supervision.retry import give_back_abandoned
 from rr_actors._supervision.tree import (
     Clock,
     Tree,
+    announce_started,
     comes_back,
     consumer_down,
     death_watch_missed,
@@ -504,6 +505,7 @@ class Starting:
         record.publish()
         spec, tree = child.spec, record.tree
         post = self._watch(child)
+        restored = False  # whether it starts on a backup an earlier run left
         if isinstance(spec, SupervisorSpec):
             child.running = self._start_nested(spec, child.incarnation)
             child.gave_up = None
@@ -511,6 +513,7 @@ class Starting:
             if spec.restart != "temporary":
                 DIRECTORY.expect_restart(spec.name)  # death watch waits for us
             config = self.config(spec)
+            restored = config.backup_path is not None and os.path.exists(config.backup_path)
             if spec.isolation == "thread":
                 system = tree.processes.system
                 child.running = ThreadManager(spec, config, system, post, tree.events)
@@ -541,9 +544,20 @@ class Starting:
             return
         if restarted:
             death_watch_missed(child.name)
-        # (one with a backup reconciles with everyone itself when it is restored)
-        if self.config(spec).backup_path is None and (restarted or self.ran_before(spec.name)):
-            lost_everything(record.root(), child.name, tree.processes.system)
+        self.tell_started(spec, restarted=restarted, restored=restored)
+
+    def tell_started(self, spec: ManagerSpec, *, restarted: bool, restored: bool) -> None:
+        """Manager `spec` serves: after a restart, or on a backup an earlier run left, the
+        registrars that hold ids of it or at it reconcile with it (rule 20), told once
+        each by this supervisor (it connects to none of them). A first start on a fresh
+        catalog tells nobody: no earlier run of it had business with anyone."""
+        record = self.record
+        network = record.tree.processes.system
+        if self.config(spec).backup_path is None:
+            if restarted or self.ran_before(spec.name):
+                lost_everything(record.root(), spec.name, network)
+        elif restarted or restored:  # (what its backup lost; all of it if it is gone)
+            announce_started(record.root(), spec.name, network)
 
     def ran_before(self, name: str) -> bool:
         """`tree.ran_before` on this supervisor's state directory (a mark that cannot be

@@ -27,6 +27,7 @@ from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING, Any
 
 from rr_actors._core import runtime, wire
+from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.replies import FutureReply, Steps
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._platform import lockfile
@@ -66,6 +67,7 @@ __all__ = [
     "RestartWait",
     "StateDirLock",
     "Tree",
+    "announce_started",
     "comes_back",
     "consumer_down",
     "death_watch_missed",
@@ -292,14 +294,19 @@ def find_child(level: Level, name: str) -> Child | None:
 
 
 def _process_managers(level: Level) -> list[str]:
-    names: list[str] = []
+    return list(_process_handles(level))
+
+
+def _process_handles(level: Level) -> dict[str, ProcessManager]:
+    """The tree's living process managers below `level`, by name, in start order."""
+    found: dict[str, ProcessManager] = {}
     for child in list(level.children):
         running = child.running
         if isinstance(running, NestedSupervisor):
-            names.extend(_process_managers(running.node))
+            found.update(_process_handles(running.node))
         elif isinstance(running, ProcessManager):
-            names.append(child.name)
-    return names
+            found[child.name] = running
+    return found
 
 
 def consumer_down(
@@ -327,7 +334,25 @@ def lost_everything(
 ) -> None:
     """Registrar `name`, which keeps no backup, restarted empty: it and every registrar of
     the system reconcile (rule 20). `handle`: its `ResourceRegistrar`, if started here."""
-    life.lost_everything(name, also=_living(root, network), handle=handle)
+    announce_started(root, name, network)  # (this process's registrars included)
+    life.lost_everything(name, handle=handle)
+
+
+def announce_started(root: Level, name: str, network: Transport | None = None) -> None:
+    """Registrar `name` (re)started, and may have lost ids or forgotten ids it held: every
+    living registrar of the system hears so once, and reconciles with it if they have
+    business (rule 20; `life.heard_started`). The tree's process managers hear it on their
+    control pipes, so no manager connects to another it has no business with; this
+    process's registrars and the carrier's other hosts' through the directory."""
+    piped = _process_handles(root)
+    for other, manager in sorted(piped.items()):
+        if other != name:
+            manager.tell_started(name)
+    others = {peer.name for peer in DIRECTORY.local_peers()}
+    if network is not None and not network.closed:
+        others.update(network.names())
+    for other in sorted(others - piped.keys()):
+        life.heard_started(other, name)
 
 
 def death_watch_missed(name: str) -> None:

@@ -48,6 +48,7 @@ from rr_actors._process.control import (
     Failed,
     Forward,
     FromParent,
+    PeerStarted,
     Ping,
     Pong,
     Ready,
@@ -59,6 +60,7 @@ from rr_actors._process.heartbeat import Hang, Heartbeat
 from rr_actors._process.manager import ManagerExit, ManagerProcess, describe
 from rr_actors._process.tally import Received
 from rr_actors._registrar import Served, start_registrar
+from rr_actors._registrar.life import heard_started
 from rr_actors._transport.messenger import Address, Transport
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import (
@@ -361,7 +363,9 @@ class _Child:
             self.attached = address.attach()
             self.attached.supervised_by(parent)
             self.process.at_end.append(functools.partial(_links_closed, self.attached))
-        registrar = self.registrar = start_registrar(config, upstream=self.hub, hold_in_doubt=True)
+        registrar = self.registrar = start_registrar(
+            config, upstream=self.hub, hold_in_doubt=True, announced=True
+        )
         setup_fn = cloudpickle.loads(setup)
         if setup_fn is not None:
             setup_fn(registrar)
@@ -397,6 +401,9 @@ class _Child:
     def forward(self, message: Forward) -> None:
         self.switch(on=message.on)
 
+    def peer_started(self, message: PeerStarted) -> None:
+        heard_started(self.registrar.name, message.name)
+
     def stop(self, message: Stop) -> None:
         """Stop the registrar, exit (`STOPPED_EXIT`, or 1 if it did not stop)."""
         registrar = self.registrar
@@ -426,5 +433,6 @@ _HANDLERS: dict[type[Any], Callable[[_Child, Any], None]] = {
     SyncEvents: _Child.sync_events,
     Forward: _Child.forward,
     Stop: _Child.stop,
+    PeerStarted: _Child.peer_started,
 }
 """What the child does with each message of the parent's."""
