@@ -56,6 +56,7 @@ from rr_actors._supervision.tree import (
     RestartWait,
     StateDirLock,
     Tree,
+    announce_started,
     find_child,
     locate,
     lost_everything,
@@ -443,25 +444,32 @@ class Supervisor(AsyncSupervision):
             )
         if isinstance(config, RegistrarConfig):
             config = self._tree.durable(config)
-        registrar = start_registrar(config, upstream=self._tree.events.publisher)
+        backup = config.backup_path if isinstance(config, RegistrarConfig) else None
+        restored = backup is not None and os.path.exists(backup)
+        registrar = start_registrar(config, upstream=self._tree.events.publisher, announced=True)
         system = self._tree.processes.system
         try:
             if system is not None:
                 system.serve(Served(registrar))
-            self._reconcile_last_run(registrar)
+            self._reconcile_last_run(registrar, restored=restored)
         except BaseException:
             registrar.stop()
             raise
         self._registrars.append(registrar)
         return registrar
 
-    def _reconcile_last_run(self, registrar: ResourceRegistrar) -> None:
-        """If one of its name ran on this `state_dir` before, it lost everything (rule 20)."""
+    def _reconcile_last_run(self, registrar: ResourceRegistrar, *, restored: bool) -> None:
+        """If one of its name ran on this `state_dir` before, it lost everything (rule 20);
+        `restored` (from a backup an earlier run left): who has business with it is told."""
+        system = self._tree.processes.system
+        if registrar.config.backup_path is not None:
+            if restored:
+                announce_started(self._node, registrar.name, system)
+            return
         state_dir = self._spec.state_dir
-        if state_dir is None or registrar.config.backup_path is not None:
-            return  # (one with a backup reconciles with everyone itself when restored)
+        if state_dir is None:
+            return
         if ran_before(state_dir, registrar.name):
-            system = self._tree.processes.system
             lost_everything(self._node, registrar.name, system, handle=registrar)
 
     def run_in(
