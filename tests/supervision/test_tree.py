@@ -20,7 +20,14 @@ import rr_actors as rr
 from rr_actors.testing import RemoteRegistrar, SharedObjects, System
 from tests.support import selecting
 from tests.support.names import named
-from tests.support.supervising import echo_setup, kill_and_wait_restarted, process, wait_gone
+from tests.support.supervising import (
+    echo_setup,
+    kill_and_wait_restarted,
+    pid_of,
+    process,
+    sigkill,
+    wait_gone,
+)
 from tests.support.waiting import wait_for
 
 
@@ -489,3 +496,120 @@ class TestStateDir:
 
         assert state.is_dir()
         assert not (state / LOCK_NAME).exists()
+
+
+def _own_threads_and_sockets(pid: int) -> tuple[int, int]:
+    """Process `pid`'s threads (`/proc/<pid>/task`) and open sockets (`/proc/<pid>/fd`)."""
+    sockets = 0
+    for fd in os.listdir(f"/proc/{pid}/fd"):
+        with contextlib.suppress(OSError):  # (closed meanwhile)
+            sockets += os.readlink(f"/proc/{pid}/fd/{fd}").startswith("socket:")
+    return len(os.listdir(f"/proc/{pid}/task")), sockets
+
+
+def _most_per_manager(sup: rr.Supervisor) -> tuple[int, int]:
+    """The most threads and the most sockets any manager process of `sup` has."""
+    counts = [_own_threads_and_sockets(pid_of(sup, i.name)) for i in sup.which_children()]
+    return max(c[0] for c in counts), max(c[1] for c in counts)
+
+
+def _unsaved_config(tmp_path: Path, name: str) -> rr.RegistrarConfig:
+    """A backup that keeps nothing a test does after the start (flushed once an hour)."""
+    return rr.RegistrarConfig(
+        name=name, backup_path=str(tmp_path / f"{name}.db"), save_interval=3600.0
+    )
+
+
+class TestAnnounce:
+    """A tree's managers link to the registrars they have business with, never to every
+    one (issue 69, "No ceiling"): a (re)start with a backup is announced once by the
+    supervisor (`announce_started`, on each manager's control pipe), and only the
+    registrars that hold ids of it or at it reconcile with it (rule 20)."""
+
+    pytestmark = pytest.mark.usefixtures("by_value")  # (tests/conftest.py)
+
+    @pytest.mark.timeout(600)
+    @pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="reads /proc (Linux)")
+    def test_a_tree_of_200_process_managers_with_a_state_dir_starts_each_costing_as_at_10(
+        self, uid: str, tmp_path: Path, supervisors: Callable[..., rr.Supervisor]
+    ) -> None:
+        # (before: 200 failed to start, each manager linking to every other one; at 10,
+        # 21 threads and 22 sockets a manager, 1.5N and 2N)
+        costs = []
+        for size in (10, 200):
+            names = [f"m{i}-{size}-{uid}" for i in range(size)]
+            sup = supervisors(
+                [process(name, heartbeat=None) for name in names],
+                state_dir=tmp_path / str(size),
+            )
+            with sup:
+                app = sup.registrar(f"app-{size}-{uid}")
+                for name in names:  # every manager answers one call
+                    assert name == app.call(name, "echo", name, timeout=60).response
+                costs.append(_most_per_manager(sup))
+        (threads_10, sockets_10), (threads_200, sockets_200) = costs
+        assert threads_200 <= threads_10 + 2, costs
+        assert sockets_200 <= sockets_10 + 2, costs
+
+    def test_a_holder_hears_fatal_for_an_id_its_providers_restart_lost_from_its_backup(
+        self, uid: str, tmp_path: Path, supervisors: Callable[..., rr.Supervisor]
+    ) -> None:
+        provider, consumer = f"prov-{uid}", f"cons-{uid}"
+        sup = supervisors(
+            [
+                process(provider, config=_unsaved_config(tmp_path, provider)),
+                process(consumer),
+            ],
+            state_dir=tmp_path,
+        )
+        with sup:
+            held = sup.run_in(consumer, lambda r: r.call(provider, "echo", "camera").id)
+
+            kill_and_wait_restarted(sup, provider)  # restored without the id
+
+            assert wait_for(lambda: [] == sup.run_in(consumer, lambda r: r.client_queries()), 15), (
+                f"{held} is still held"
+            )
+            assert [] == sup.run_in(provider, lambda r: r.server_queries("echo"))
+
+    def test_a_provider_releases_an_id_its_holders_restart_lost_from_its_backup(
+        self, uid: str, tmp_path: Path, supervisors: Callable[..., rr.Supervisor]
+    ) -> None:
+        provider, consumer = f"prov-{uid}", f"cons-{uid}"
+        sup = supervisors(
+            [
+                process(provider),
+                process(consumer, config=_unsaved_config(tmp_path, consumer)),
+            ],
+            state_dir=tmp_path,
+        )
+        with sup:
+            sup.run_in(consumer, lambda r: r.call(provider, "echo", "camera").id)
+            assert 1 == len(sup.run_in(provider, lambda r: r.server_queries("echo")))
+
+            kill_and_wait_restarted(sup, consumer)  # restored without its record
+
+            assert wait_for(
+                lambda: [] == sup.run_in(provider, lambda r: r.server_queries("echo")), 15
+            )
+            assert [] == sup.run_in(consumer, lambda r: r.client_queries())
+
+    def test_a_holder_hears_fatal_for_its_ids_at_a_provider_restarted_without_its_backup(
+        self, uid: str, tmp_path: Path, supervisors: Callable[..., rr.Supervisor]
+    ) -> None:
+        provider, consumer = f"prov-{uid}", f"cons-{uid}"
+        sup = supervisors(
+            [process(provider), process(consumer)],
+            state_dir=tmp_path,
+            backoff=rr.Backoff(initial=2.0, max=2.0, jitter=0.0),
+        )
+        with sup:
+            sup.run_in(consumer, lambda r: r.call(provider, "echo", "camera").id)
+            pid = sigkill(sup, provider)
+            assert [] == wait_gone([pid], 10.0)
+            for leftover in tmp_path.glob(f"{provider}.db*"):  # its backup is gone
+                leftover.unlink()
+
+            sup.wait_restarted(provider, timeout=15)
+
+            assert wait_for(lambda: [] == sup.run_in(consumer, lambda r: r.client_queries()), 15)
