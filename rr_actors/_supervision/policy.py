@@ -40,6 +40,7 @@ from rr_actors._core import runtime
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._process.manager import ManagerExit
+from rr_actors._supervision.bounds import bound_reached, first_line
 from rr_actors._supervision.children import (
     Child,
     Level,
@@ -474,6 +475,13 @@ class Starting:
                 self.stopping.forget(child, dead=False)  # no restart is coming: no death-watch hold
                 for done in reversed(started):
                     self.stopping.stop_child(done, final=True)
+                bound = bound_reached(exc)
+                if bound is not None:  # (one line naming it, not where it was hit)
+                    raise SupervisorGaveUpError(
+                        f"supervisor {record.name!r}: child {child.name!r} failed to start: "
+                        f"this machine's limit of {bound} was reached ({first_line(exc)}); "
+                        f"{len(started)} children had started"
+                    ) from exc
                 raise SupervisorGaveUpError(
                     f"supervisor {record.name!r}: child {child.name!r} failed to start: {exc}"
                 ) from exc
