@@ -24,7 +24,6 @@ from rr_actors.errors import (
     DuplicateNameError,
     RegistrarStoppedError,
     RegistrarUnavailableError,
-    RrError,
     UnknownRegistrarError,
     _known_names,
 )
@@ -198,16 +197,6 @@ class Directory:
                 self._restarting.update(names)
             else:
                 self._restarting.difference_update(names)
-
-    def broadcast(self, message: object, *, also: Iterable[str] = (), skip: str = "") -> None:
-        """Tell `message` to every registrar here and in `also` but `skip` (best effort)."""
-        targets = {peer.name for peer in self.local_peers()} | set(also)
-        targets.discard(skip)
-        for target in sorted(targets):
-            try:
-                self.lookup(target).tell(message)
-            except RrError:
-                logger.debug("%s: registrar %s unreachable", type(message).__name__, target)
 
     def forget_in_child(self, parent: int) -> None:
         """In a child forked from `parent`: this process's registrars are the parent's."""

@@ -187,9 +187,8 @@ class EventsSynced:
 
 @dataclasses.dataclass(frozen=True, slots=True)
 class PeerStarted:
-    """Registrar `name` of the tree (re)started: tell this manager's registrar, which
-    reconciles with it if they have business (rule 20). Its supervisor's one notice, on
-    this pipe, instead of a connection from `name` to every manager process."""
+    """Registrar `name` (re)started: tell this manager's registrar (rule 20), on this pipe
+    rather than by a connection from `name` to every manager process."""
 
     name: str
 

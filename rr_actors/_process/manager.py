@@ -270,8 +270,7 @@ class ManagerProcess:
         return True
 
     def tell_started(self, name: str) -> None:
-        """Tell the manager's registrar that registrar `name` (re)started (`PeerStarted`);
-        nothing if the process is gone (it hears nothing more)."""
+        """Tell the manager's registrar that registrar `name` (re)started (`PeerStarted`)."""
         self._send(PeerStarted(name))
 
     def forward_events(self, on: bool) -> None:

@@ -147,11 +147,10 @@ class Lifecycle:
         # every provider the restored catalog knows, also those settle_in_doubt forgets
         providers = self.registrar.catalog.providers()
         self.reconciling.expect_reconcile(providers)
-        # what it released while a provider was down is in no row: reconcile with all (rule 20),
-        # unless its supervisor announces its start: then each provider holding ids of its
-        # last run asks it (`on_reconcile_ask`), and it connects to nobody else
+        # what it released while a provider was down is in no row: reconcile with all (rule 20;
+        # announced by its supervisor: each holding ids of it asks it, `on_reconcile_ask`)
         self.reconciling.everyone = (
-            self.registrar.saver.store is not None and not self.registrar.announced
+            not self.registrar.announced and self.registrar.saver.store is not None
         )
         self.restoring.settle_in_doubt()
         self.restoring.unload_unheld()
@@ -677,13 +676,9 @@ class Presence:
         """Provider `serving_rr` asks for a `Reconcile` (rule 20): sent, and retried until it is
         answered (one sent once could be lost as its connection fails while it comes back)."""
         reply.set_result(None)  # (heard: one that stopped first answers that, `ask_to_reconcile`)
-        name = message.serving_rr
+        name = message.serving_rr  # (re)started: it may have forgotten ids it holds here
         if not message.holds_yours and name != self.registrar.name and self.holds_of(name):
-            # it (re)started and may have lost ids it held here (a crash between its `Load`
-            # and its commit; a release while this one was down): it answers with a
-            # `Reconcile`, which releases them (rule 20); so no restart reconciles with
-            # every registrar of the system, only with those that hold its ids
-            self.unloading.ask_holder(name)
+            self.unloading.ask_holder(name)  # (its `Reconcile` releases them, rule 20)
         if self.reconciling.asked(message):
             self.round_count += 1
             ask = (message.round, message.life)
@@ -998,26 +993,17 @@ def tell_gone(target: str, name: str, *, stopped: bool = False) -> None:
 
 
 def heard_started(target: str, name: str) -> None:
-    """Tell registrar `target` that registrar `name` (re)started and may have lost ids, or
-    forgotten ids it held: `target` reconciles with it if they have business (a
-    `ReconcileAsk` that does not say it holds ids of yours, rule 20); nothing if `target`
-    cannot be reached (it reconciles when it is back)."""
-    if target == name:
-        return
-    try:
-        DIRECTORY.lookup(target).tell(ReconcileAsk(name, holds_yours=False))
-    except RrError:
-        logger.debug("started: registrar %s unreachable (told of %s)", target, name)
+    """Tell registrar `target` that `name` (re)started: it reconciles with it if they have
+    business (rule 20); nothing if it cannot be reached (it reconciles when it is back)."""
+    if target != name:
+        with contextlib.suppress(RrError):
+            DIRECTORY.lookup(target).tell(ReconcileAsk(name, holds_yours=False))
 
 
-def lost_everything(name: str, *, also: Iterable[str] = (), handle: Servable | None = None) -> None:
-    """Registrar `name` restarted without a backup: those here and in `also` holding ids
-    there reconcile with it, and it with those holding its ids (`LostEverything`, rule 20).
-    `handle`: its `ResourceRegistrar`, through which it is told (it may not be in the
-    directory yet). A supervisor tells `also` itself (`also=()`): `announce_started`."""
-    targets = {peer.name for peer in DIRECTORY.local_peers()} | set(also)
-    for target in sorted(targets):
-        heard_started(target, name)
+def lost_everything(name: str, *, handle: Servable | None = None) -> None:
+    """Registrar `name` restarted without a backup (its supervisor tells the others,
+    `announce_started`): tell it (`LostEverything`, rule 20). `handle`: its
+    `ResourceRegistrar`, through which it is told (it may not be in the directory yet)."""
     if handle is not None:
         handle.tell(LostEverything())
         return

@@ -242,10 +242,8 @@ class Shared:
         self.held_in_doubt: set[str] = set()
         # this run (`new_life`), in every `ReconcileAsk`, `Reconcile` and `Load` it sends
         self.life = life or new_life()
-        # its supervisor tells every registrar of the system that it (re)started (and they
-        # reconcile if they have business with it): it reconciles with its own catalog's
-        # registrars only, never with every one (`supervision.tree.announce_started`)
-        self.announced = False
+        # its supervisor tells the system it (re)started (`announce_started`): it never
+        self.announced = False  # reconciles with every registrar, only its own catalog's
 
     @property
     def stopping(self) -> bool:

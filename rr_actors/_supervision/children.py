@@ -239,10 +239,6 @@ class ProcessManager:
             relay.attach(handle, forwarding=forwarding)
         return cls(handle, spec.shutdown)
 
-    def tell_started(self, name: str) -> None:
-        """Tell its registrar that registrar `name` (re)started, on its control pipe."""
-        self.handle.tell_started(name)
-
     def stop(self, timeout: float | None, *, restarting: bool = False) -> ManagerExit:
         limit = self.handle_shutdown if timeout is None else timeout
         return self.handle.stop(limit, restarting=restarting)

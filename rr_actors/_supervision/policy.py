@@ -28,10 +28,12 @@ docs/explanation/architecture.md.
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import functools
 import logging
 import os
+import resource
 from collections.abc import Callable, Sequence
 from typing import Protocol, TypeVar
 
@@ -40,7 +42,6 @@ from rr_actors._core import runtime
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._process.manager import ManagerExit
-from rr_actors._supervision.bounds import bound_reached, first_line
 from rr_actors._supervision.children import (
     Child,
     Level,
@@ -433,6 +434,45 @@ Nest = Callable[[SupervisorSpec, Callable[[SupervisorGaveUpError], None]], Level
 """`nest(spec, on_gave_up)`: start a supervisor below this one (a `Node`)."""
 
 
+def _read(path: str) -> str:
+    try:
+        with open(path, encoding="ascii") as file:
+            return file.read().strip()
+    except OSError:
+        return "?"
+
+
+def bound_reached(error: BaseException | None) -> str | None:
+    """The machine's bound a failed start ran into, named with its value (`None`: none).
+    A manager that died while starting says nothing: then this process's open files and
+    the system's threads are compared with their bounds (at 90%)."""
+    nofile, nproc = (
+        resource.getrlimit(r)[0] for r in (resource.RLIMIT_NOFILE, resource.RLIMIT_NPROC)
+    )
+    kernel = "/proc/sys/kernel/"
+    files = f"open files per process (RLIMIT_NOFILE {nofile}: `ulimit -n`)"
+    threads = (
+        f"threads and processes (RLIMIT_NPROC {nproc}: `ulimit -u`; kernel.threads-max "
+        f"{_read(kernel + 'threads-max')}; kernel.pid_max {_read(kernel + 'pid_max')})"
+    )
+    for _ in range(8):  # (the error, what it was raised from; a relayed traceback's text)
+        text = f"{type(error).__name__}: {error}"
+        if "Too many open files" in text:
+            return files
+        if "can't start new thread" in text or "Resource temporarily unavailable" in text:
+            return threads
+        if "MemoryError" in text or "Cannot allocate memory" in text:
+            return "memory"
+        error = None if error is None else error.__cause__ or error.__context__
+    with contextlib.suppress(OSError, ValueError, IndexError):  # (no /proc: not known)
+        if nofile != resource.RLIM_INFINITY and len(os.listdir("/proc/self/fd")) > 0.9 * nofile:
+            return files
+        most = min(int(_read(kernel + "threads-max")), int(_read(kernel + "pid_max")))
+        if int(_read("/proc/loadavg").split()[3].split("/")[1]) > 0.9 * most:
+            return threads
+    return None
+
+
 class Starting:
     """Starts children, in order at the supervisor's start, or one at a restart.
 
@@ -479,8 +519,8 @@ class Starting:
                 if bound is not None:  # (one line naming it, not where it was hit)
                     raise SupervisorGaveUpError(
                         f"supervisor {record.name!r}: child {child.name!r} failed to start: "
-                        f"this machine's limit of {bound} was reached ({first_line(exc)}); "
-                        f"{len(started)} children had started"
+                        f"this machine's limit of {bound} was reached "
+                        f"({str(exc).splitlines()[0]}); {len(started)} children had started"
                     ) from exc
                 raise SupervisorGaveUpError(
                     f"supervisor {record.name!r}: child {child.name!r} failed to start: {exc}"
@@ -555,10 +595,8 @@ class Starting:
         self.tell_started(spec, restarted=restarted, restored=restored)
 
     def tell_started(self, spec: ManagerSpec, *, restarted: bool, restored: bool) -> None:
-        """Manager `spec` serves: after a restart, or on a backup an earlier run left, the
-        registrars that hold ids of it or at it reconcile with it (rule 20), told once
-        each by this supervisor (it connects to none of them). A first start on a fresh
-        catalog tells nobody: no earlier run of it had business with anyone."""
+        """Manager `spec` serves: restarted, or on a backup an earlier run left, every
+        registrar is told (rule 20); a first start on a fresh catalog tells nobody."""
         record = self.record
         network = record.tree.processes.system
         if self.config(spec).backup_path is None:

@@ -293,10 +293,6 @@ def find_child(level: Level, name: str) -> Child | None:
     return None
 
 
-def _process_managers(level: Level) -> list[str]:
-    return list(_process_handles(level))
-
-
 def _process_handles(level: Level) -> dict[str, ProcessManager]:
     """The tree's living process managers below `level`, by name, in start order."""
     found: dict[str, ProcessManager] = {}
@@ -319,7 +315,7 @@ def consumer_down(
 
 def _living(root: Level, network: Transport | None) -> list[str]:
     """The tree's living process managers, and the registrars of its carrier."""
-    living = _process_managers(root)
+    living = list(_process_handles(root))
     if network is not None and not network.closed:
         living.extend(network.names())
     return living
@@ -339,15 +335,13 @@ def lost_everything(
 
 
 def announce_started(root: Level, name: str, network: Transport | None = None) -> None:
-    """Registrar `name` (re)started, and may have lost ids or forgotten ids it held: every
-    living registrar of the system hears so once, and reconciles with it if they have
-    business (rule 20; `life.heard_started`). The tree's process managers hear it on their
-    control pipes, so no manager connects to another it has no business with; this
-    process's registrars and the carrier's other hosts' through the directory."""
+    """Registrar `name` (re)started: every living registrar of the system hears so once
+    (`life.heard_started`), the tree's process managers on their control pipes (no
+    manager connects to one it has no business with), the others through the directory."""
     piped = _process_handles(root)
     for other, manager in sorted(piped.items()):
         if other != name:
-            manager.tell_started(name)
+            manager.handle.tell_started(name)
     others = {peer.name for peer in DIRECTORY.local_peers()}
     if network is not None and not network.closed:
         others.update(network.names())
