@@ -264,9 +264,10 @@ def create(path: Path, *, synced: bool = False) -> None:
     except (sqlite3.Error, OSError) as exc:
         remove_files(tmp)
         raise ConfigError(f"backup_path {str(path)!r} cannot be created: {exc}") from exc
-    try:
-        db.execute(f"PRAGMA application_id = {schema.APPLICATION_ID}")
-        schema.migrate(db, 0)
+    try:  # (no one opens it before it is whole and named: nothing journaled nor synced)
+        db.execute("PRAGMA journal_mode = OFF")
+        db.execute("PRAGMA synchronous = OFF")
+        schema.create(db)
         db.execute("PRAGMA journal_mode = WAL")
         db.close()
         if synced:
