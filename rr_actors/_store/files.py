@@ -253,10 +253,12 @@ def remove_files(path: Path, suffixes: tuple[str, ...] = ("", *SIDE_FILES)) -> N
             Path(f"{path}{suffix}").unlink()
 
 
-def create(path: Path, *, synced: bool = False) -> None:
-    """Build an empty catalog under a temporary name, then link it into place (a file
-    another process created first wins); `ConfigError` if it cannot be created. `synced`
-    (`durability="power"`): the file, then its name, reach the disk before it returns."""
+def create(path: Path, *, synced: bool = False) -> bool:
+    """Build an empty catalog under a temporary name (one transaction, neither journaled
+    nor synced: no one opens it before it is whole), then link it into place (a file
+    another process created first wins); whether this one was linked. `ConfigError` if it
+    cannot be created. `synced` (`durability="power"`): the file, then its name, reach the
+    disk before it returns (two syncs; none without)."""
     tmp = temporary_path(path, "creating")
     try:
         _private_file(tmp)
@@ -272,8 +274,11 @@ def create(path: Path, *, synced: bool = False) -> None:
         db.close()
         if synced:
             sync(tmp)
-        with contextlib.suppress(FileExistsError):
+        try:
             os.link(tmp, path)
+            linked = True
+        except FileExistsError:
+            linked = False
         if synced:
             sync(path, directory=True)
     except (sqlite3.Error, OSError) as exc:
@@ -281,6 +286,7 @@ def create(path: Path, *, synced: bool = False) -> None:
     finally:
         db.close()
         remove_files(tmp)
+    return linked
 
 
 def copy_aside(db: sqlite3.Connection, path: Path) -> Path:
@@ -350,18 +356,26 @@ def validate(path: Path, *, tidy: bool) -> int:
         return schema.schema_version(db, name)
 
 
-def prepare(db: sqlite3.Connection, name: str, durability: str, version: int) -> None:
-    try:
-        db.execute("BEGIN IMMEDIATE")  # can we write here at all?
-        db.execute("ROLLBACK")
-    except sqlite3.OperationalError as exc:
-        raise ConfigError(f"backup_path {name!r} is not writable: {exc}") from exc
+def prepare(
+    db: sqlite3.Connection, name: str, durability: str, version: int, *, made: bool = False
+) -> None:
+    """Make `db` ready to write: WAL, the durability's `synchronous`, the schema and digests
+    brought up to date (`made`: a file `create` just made, written there already: only the
+    mode and the durability). `ConfigError`: not writable, or no WAL there."""
+    if not made:
+        try:
+            db.execute("BEGIN IMMEDIATE")  # can we write here at all?
+            db.execute("ROLLBACK")
+        except sqlite3.OperationalError as exc:
+            raise ConfigError(f"backup_path {name!r} is not writable: {exc}") from exc
     with as_corrupt(name):
         mode = db.execute("PRAGMA journal_mode = WAL").fetchone()[0]
     if mode != "wal":  # before anything is written: an older file stays as it was
         raise ConfigError(f"backup_path {name!r}: SQLite cannot use WAL mode there ({mode})")
     with as_corrupt(name):
         db.execute(f"PRAGMA synchronous = {SYNCHRONOUS[durability]}")
+        if made:
+            return
         schema.migrate(db, version)
     schema.refresh_digests(db, name)
 
