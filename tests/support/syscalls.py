@@ -3,8 +3,10 @@ acknowledge were synced.
 
 ```
  traced(state_dir, durability, replies) --strace -f -y--> a driver program: a Supervisor
-   (`durability`) with one process manager on `state_dir`, a consumer that loads and
-   unloads one after the other, a mark written to /dev/null before and after
+   (`durability`) with one process manager on a fresh `state_dir`, a consumer that loads
+   and unloads one after the other, a mark written to /dev/null before and after (after
+   one load and unload: the first commit begins the backup's log, SQLite syncing its
+   header and name, and makes its commit count; the start's traffic is over)
  unsynced_sends(trace, state_dir) --> every send on a socket between the marks taken
    while a write to the backup (file, -wal, -commits) or a name made in its directory was
    not synced yet
@@ -34,6 +36,8 @@ DRIVER = textwrap.dedent(
     mark = os.open(os.devnull, os.O_WRONLY)
     with rr.Supervisor([spec], state_dir=state, durability=durability) as sup:
         app = sup.registrar("app")
+        warm = app.call("erm", "res", -1, timeout=60.0)  # (a fresh backup's log begins)
+        app.unload(warm.id, timeout=60.0)
         os.write(mark, b"s" * 4001)  # (the marks: their sizes, to /dev/null)
         ids = [app.call("erm", "res", i, timeout=60.0).id for i in range(loads)]
         for query_id in ids:
@@ -58,6 +62,7 @@ class Traced:
 
     syncs: int  # fdatasync and fsync calls, every process
     syncs_of: dict[str, int]  # by the name synced
+    syncs_of_all: dict[str, int]  # by the name synced, the whole trace (marks or not)
     unsynced_sends: list[str]  # the trace lines of sends taken with something unsynced
     sends: int
 
@@ -129,7 +134,7 @@ class _Replay:
     dirty: dict[str, str] = dataclasses.field(default_factory=dict)  # name -> its line
     pending: dict[str, str] = dataclasses.field(default_factory=dict)  # thread -> name
     marked: bool = False
-    result: Traced = dataclasses.field(default_factory=lambda: Traced(0, {}, [], 0))
+    result: Traced = dataclasses.field(default_factory=lambda: Traced(0, {}, {}, [], 0))
 
     def synced(self, tid: str, call: str, rest: str, line: str) -> None:
         """A sync counts once it returned (`<... resumed>` of an unfinished one)."""
@@ -141,9 +146,10 @@ class _Replay:
             if "<unfinished" in line:
                 self.pending[tid] = name
                 return
+        short = os.path.basename(name) if name != self.folder else "(directory)"
+        self.result.syncs_of_all[short] = self.result.syncs_of_all.get(short, 0) + 1
         if self.marked:
             self.result.syncs += 1
-            short = os.path.basename(name) if name != self.folder else "(directory)"
             self.result.syncs_of[short] = self.result.syncs_of.get(short, 0) + 1
         self.dirty.pop(name, None)
 
