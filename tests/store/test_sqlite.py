@@ -57,7 +57,7 @@ from tests.support.persisting import (
     written_once,
 )
 from tests.support.powercut import flush_points, logged_disk, mounted_image
-from tests.support.syscalls import traced
+from tests.support.syscalls import started, traced
 
 
 @settings(max_examples=40, deadline=None)
@@ -869,6 +869,24 @@ def test_with_process_durability_nothing_is_synced_and_answers_leave_before_the_
     found = traced(tmp_path, "process", REPLIES)
 
     assert (0, True) == (found.syncs, len(found.unsynced_sends) >= 2 * REPLIES)
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("durability", ["process", "power"])
+def test_a_manager_started_on_a_fresh_state_dir_syncs_its_new_backup_and_name_with_power_only(
+    tmp_path: Path, durability: str
+) -> None:
+    """Traced with strace (every process of the tree), `start()` of one process manager on
+    a fresh `state_dir`: with power, the new file, then its directory (two); with process,
+    nothing (SQLite's own syncs come with the first commit, not with the file)."""
+    found = started(tmp_path, durability)
+
+    synced = sorted(
+        "(directory)" if name == "(directory)" else name.rsplit(".", 1)[-1]
+        for name, count in found.syncs_of.items()
+        for _ in range(count)
+    )
+    assert synced == (["(directory)", "creating"] if durability == "power" else [])
 
 
 CHANGES = [("load", i) for i in range(6)] + [("unload", i) for i in range(3)]

@@ -10,6 +10,8 @@ acknowledge were synced.
  unsynced_sends(trace, state_dir) --> every send on a socket between the marks taken
    while a write to the backup (file, -wal, -commits) or a name made in its directory was
    not synced yet
+ started(state_dir, durability) --strace--> `STARTING`: the same tree's `start()` alone,
+   on a fresh `state_dir` (its backup made): what it synced
 ```
 """
 
@@ -46,6 +48,27 @@ DRIVER = textwrap.dedent(
     """
 )
 
+STARTING = textwrap.dedent(
+    """
+    import os, sys
+    import rr_actors as rr
+
+    def setup(reg):
+        reg.register_server("res", load=lambda r: {"r": r}, unload=lambda r, s: None)
+
+    state, durability = sys.argv[1], sys.argv[2]
+    spec = rr.ManagerSpec("erm", setup=setup, isolation="process", heartbeat=None)
+    mark = os.open(os.devnull, os.O_WRONLY)
+    sup = rr.Supervisor([spec], state_dir=state, durability=durability)
+    os.write(mark, b"s" * 4001)
+    sup.start()
+    os.write(mark, b"e" * 4002)
+    sup.stop()
+    """
+)
+"""The driver of `started`: a tree of one process manager started on a fresh
+`state_dir`, marked before `start()` and after it returned."""
+
 TRACED = (
     "fdatasync,fsync,write,pwrite64,sendmsg,sendto,openat,link,linkat,rename,renameat2,"
     "clone,clone3,fork,vfork"
@@ -73,6 +96,17 @@ def traced(tmp_path: Path, durability: str, loads: int) -> Traced:
     trace = tmp_path / "trace.txt"
     command = ["strace", "-f", "-qq", "-y", "-s", "0", "-e", f"trace={TRACED}", "-o", str(trace)]
     command += [sys.executable, "-c", DRIVER, str(state), durability, str(loads)]
+    subprocess.run(command, check=True, timeout=300, env=os.environ.copy())
+    return unsynced_sends(trace.read_text().splitlines(), state)
+
+
+def started(tmp_path: Path, durability: str) -> Traced:
+    """Run `STARTING` under `strace`: what a manager's start on a fresh `state_dir` did
+    (its `syncs` and `syncs_of`: every process, between the marks)."""
+    state = tmp_path / "state"
+    trace = tmp_path / "trace.txt"
+    command = ["strace", "-f", "-qq", "-y", "-s", "0", "-e", f"trace={TRACED}", "-o", str(trace)]
+    command += [sys.executable, "-c", STARTING, str(state), durability]
     subprocess.run(command, check=True, timeout=300, env=os.environ.copy())
     return unsynced_sends(trace.read_text().splitlines(), state)
 
