@@ -1065,7 +1065,9 @@ def test_a_process_killed_at_any_point_of_making_a_backup_leaves_none_or_a_whole
         found[point] = (run.returncode, existed, rows)
 
     made = ("after link", "after sync")  # (the name made: the file is whole)
-    expected = {point: (-9, True, (0, 0)) if point in made else (-9, False, None) for point in points}
+    expected = {
+        point: (-9, True, (0, 0)) if point in made else (-9, False, None) for point in points
+    }
     assert (True, expected) == (statements >= 3, found)
 
 
