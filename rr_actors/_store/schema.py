@@ -6,9 +6,9 @@
 ```
 
 Each step is one transaction. A new file is made at once at `CREATED_VERSION` (`create`:
-`CREATE`, the same objects as the migrations make, in one transaction), then brought to
-`SCHEMA_VERSION` by the steps after it in that transaction. The layout, the digests and why a file is trusted only if
-its schema is exactly what these migrations create: "The backup's file",
+`CREATE`, the objects the migrations make, in one transaction with the steps after it, if
+any). The layout, the digests and why a file is trusted only if its schema is exactly
+what these migrations create: "The backup's file",
 docs/explanation/inside.md. `migrate` and `schema_version` read `SCHEMA_VERSION` and
 `MIGRATIONS` from this module when they run (tests replace them here).
 """

@@ -37,7 +37,6 @@ from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import RemoteRegistrar, System
 from tests.support import selecting
 from tests.support.durable_pair import noop_unload, start
-from tests.support.powercut import flush_points, logged_disk, mounted_image
 from tests.support.persisting import (
     consumer_ids,
     digest,
@@ -57,6 +56,7 @@ from tests.support.persisting import (
     write_valid_backup,
     written_once,
 )
+from tests.support.powercut import flush_points, logged_disk, mounted_image
 from tests.support.small_disk import fill, mounted, remount_read_only
 
 
