@@ -10,6 +10,12 @@ manager (PSS, from `/proc/<pid>/smaps_rollup`, Linux) beside a plain child's.
 
 Target (issue 34 item 1): 50 process managers start within 3x the time of the floor.
 
+Section "fresh": the same start, a tree of N process managers on a fresh `state_dir`
+(each makes its backup: issue 69 goal 2) beside the same tree without one, and the plain
+children, alternated round by round; per manager, ms to start and its `setup()`'s ms
+(timed inside it: one `register_server`). Target: with a fresh `state_dir` within 2x
+without, for the start and for `setup()`. `--durability power` makes them with "power".
+
 Section "serve": kill to serving with N catalog entries. A manager process whose backup
 holds N served resources (one consumer id each) is SIGKILLed; the time runs from the kill
 until a call answered by its new incarnation returned (`bench_supervisor.measure`:
@@ -32,7 +38,8 @@ actors (each answers at once), until the N answers are read.
 Targets (issue 34 item 2): to 100 consumers in other processes within 5x the Pipe
 burst; in one process within 1.5x the pykka fan-out.
 
-Run: `python benchmarks/bench_scale.py [--sections start serve status] [--counts 1 10 50]
+Run: `python benchmarks/bench_scale.py [--sections start fresh serve status] [--counts 1 10 50]
+[--durability process|power]
 [--sizes 1000 10000 100000] [--consumers 1 10 100] [--rounds 5] [--kills 5]
 [--sends 50] [--pin]`
 (`--pin`: under `taskset -c 0`, one CPU, as `benchmarks/alternate.py --pin` runs).
@@ -182,6 +189,75 @@ def section_start(counts: list[int], rounds: int) -> None:
             f"memory (PSS) of one process manager: {mine / 1024:.1f} MiB; "
             f"of one plain child: {theirs / 1024:.1f} MiB"
         )
+    print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+
+
+def timed_setup(log: str) -> Callable[[rr.ResourceRegistrar], None]:
+    """`setup`, its milliseconds appended to the file `log` (run in the manager's process)."""
+
+    def setup_timed(registrar: rr.ResourceRegistrar) -> None:
+        began = time.perf_counter()
+        setup(registrar)
+        with open(log, "a") as out:
+            out.write(f"{(time.perf_counter() - began) * 1000}\n")
+
+    return setup_timed
+
+
+def start_fresh(count: int, *, state: bool, durability: str) -> tuple[float, float]:
+    """Start (and stop) `count` process managers, on a fresh `state_dir` or none: ms per
+    manager to start, and the median ms of their `setup()`."""
+    with tempfile.TemporaryDirectory() as work:
+        log = os.path.join(work, "setup.log")
+        specs = [
+            rr.ManagerSpec(f"m{n}", timed_setup(log), isolation="process") for n in range(count)
+        ]
+        state_dir = os.path.join(work, "state") if state else None
+        if state_dir is not None:
+            os.mkdir(state_dir)
+        supervisor = rr.Supervisor(
+            specs,
+            name=f"fresh-{count}",
+            state_dir=state_dir,
+            durability=durability,  # type: ignore[arg-type]
+        )
+        began = time.perf_counter()
+        supervisor.start()
+        elapsed = (time.perf_counter() - began) * 1000
+        supervisor.stop()
+        setups = [float(line) for line in Path(log).read_text().split()]
+    return elapsed / count, statistics.median(setups)
+
+
+def section_fresh(counts: list[int], rounds: int, durability: str) -> None:
+    start_forkserver()
+    floor = Floor()
+    start_fresh(1, state=True, durability=durability)  # (warm: imports, first forks)
+    floor.start(1)
+    print(f"## fresh: N process managers on a fresh state_dir ({durability}) vs none (ms)")
+    print()
+    print(
+        "| N | start/manager, fresh state_dir | without | ratio | setup(), fresh state_dir "
+        "| without | ratio | floor/child |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    for count in counts:
+        fresh: list[tuple[float, float]] = []
+        bare: list[tuple[float, float]] = []
+        plain: list[float] = []
+        for _ in range(rounds):  # alternated: all three meet the same noise
+            fresh.append(start_fresh(count, state=True, durability=durability))
+            bare.append(start_fresh(count, state=False, durability=durability))
+            plain.append(floor.start(count)[0] / count)
+        starts = [statistics.median(x[0] for x in runs) for runs in (fresh, bare)]
+        setups = [statistics.median(x[1] for x in runs) for runs in (fresh, bare)]
+        print(
+            f"| {count} | {starts[0]:.0f} | {starts[1]:.0f} | {starts[0] / starts[1]:.2f}x "
+            f"| {setups[0]:.2f} | {setups[1]:.2f} | {setups[0] / setups[1]:.2f}x "
+            f"| {statistics.median(plain):.0f} |"
+        )
+    floor.close()
+    print()
     print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
 
 
@@ -482,7 +558,7 @@ def section_status(counts: list[int], rounds: int, sends: int) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument(
-        "--sections", nargs="+", choices=["start", "serve", "status"], default=["start"]
+        "--sections", nargs="+", choices=["start", "fresh", "serve", "status"], default=["start"]
     )
     parser.add_argument("--counts", type=int, nargs="+", default=[1, 10, 50])
     parser.add_argument("--sizes", type=int, nargs="+", default=[1_000, 10_000, 100_000])
@@ -492,6 +568,7 @@ def main() -> None:
     parser.add_argument("--listen", action="store_true", help="serve: subscribe to the tree")
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--pin", action="store_true", help="run under taskset -c 0")
+    parser.add_argument("--durability", choices=["process", "power"], default="process")
     args = parser.parse_args()
     if args.pin and not os.environ.get("RR_BENCH_PINNED"):
         command = ["taskset", "-c", "0", sys.executable, *sys.argv]
@@ -499,6 +576,8 @@ def main() -> None:
         raise SystemExit(subprocess.run(command, env=env, check=False).returncode)
     if "start" in args.sections:
         section_start(args.counts, args.rounds)
+    if "fresh" in args.sections:
+        section_fresh(args.counts, args.rounds, args.durability)
     if "serve" in args.sections:
         section_serve(args.sizes, args.rounds, args.kills, listen=args.listen)
     if "status" in args.sections:

@@ -56,6 +56,7 @@ from tests.support.persisting import (
     write_valid_backup,
     written_once,
 )
+from tests.support.powercut import flush_points, logged_disk, mounted_image
 from tests.support.small_disk import fill, mounted, remount_read_only
 
 
@@ -983,3 +984,133 @@ def test_a_backup_deleted_under_a_power_registrar_is_put_back_synced_then_named(
         file_syncs[at],
         file_syncs[at + 1],
     )
+
+
+# -- a fresh backup: made whole or not at all, at what SQLite costs ---------------------------
+
+KILLED_AT = textwrap.dedent(
+    """
+    import os, signal, sqlite3, sys
+    from pathlib import Path
+    from rr_actors._store import files
+    from rr_actors._store.sqlite import SqliteStore
+
+    path, durability, point = Path(sys.argv[1]), sys.argv[2], sys.argv[3]
+    kind, _, number = point.partition(":")
+
+    def die():
+        os.kill(os.getpid(), signal.SIGKILL)
+
+    class Killing(sqlite3.Connection):  # the creating connection: killed at its n-th statement
+        calls = 0
+
+        def execute(self, *args, **kwargs):
+            Killing.calls += 1
+            if kind == "statement" and Killing.calls == int(number):
+                die()
+            return super().execute(*args, **kwargs)
+
+    real_connect, real_link, real_sync = sqlite3.connect, os.link, files.sync
+    def connect(name, *args, **kwargs):
+        if ".creating" in str(name):
+            kwargs["factory"] = Killing
+        return real_connect(name, *args, **kwargs)
+
+    def link(source, target):
+        if kind == "before link":
+            die()
+        real_link(source, target)
+        if kind == "after link":
+            die()
+
+    def sync(name, directory=False):
+        real_sync(name, directory=directory)
+        if kind == "after sync" and directory:
+            die()
+
+    sqlite3.connect, os.link, files.sync = connect, link, sync
+    SqliteStore.open(path, durability=durability).close(erase=False)
+    print(Killing.calls)
+    """
+)
+
+
+@pytest.mark.timeout(600)
+@pytest.mark.parametrize("durability", ["process", "power"])
+def test_a_process_killed_at_any_point_of_making_a_backup_leaves_none_or_a_whole_empty_one(
+    tmp_path: Path, durability: str
+) -> None:
+    """SIGKILLed at each statement that builds the new file, before and after its name is
+    made, after its directory is synced: the path then holds no file, or a catalog that
+    opens empty, and the next start makes or opens it."""
+
+    def killed_at(path: Path, point: str) -> subprocess.CompletedProcess[str]:
+        command = [sys.executable, "-c", KILLED_AT, str(path), durability, point]
+        return subprocess.run(command, capture_output=True, text=True, timeout=120, check=False)
+
+    statements = int(killed_at(tmp_path / "whole.db", "none").stdout)
+    points = [f"statement:{n}" for n in range(1, statements + 1)]
+    points += ["before link", "after link"] + (["after sync"] if durability == "power" else [])
+    found = {}
+    for number, point in enumerate(points):
+        path = tmp_path / f"p{number}.db"
+        run = killed_at(path, point)
+        existed = path.exists()
+        store = SqliteStore.open(path, durability=durability)  # (raises if not whole)
+        try:
+            restored = store.restore()
+        finally:
+            store.close(erase=False)
+        rows = None if restored is None else (len(restored.resources), len(restored.clients))
+        found[point] = (run.returncode, existed, rows)
+
+    made = ("after link", "after sync")  # (the name made: the file is whole)
+    expected = {
+        point: (-9, True, (0, 0)) if point in made else (-9, False, None) for point in points
+    }
+    assert (True, expected) == (statements >= 3, found)
+
+
+needs_root = pytest.mark.skipif(
+    os.geteuid() != 0, reason="a power cut is replayed on a loop device and mounts (root)"
+)
+
+
+@needs_root
+@pytest.mark.timeout(600)
+@pytest.mark.parametrize("durability", ["process", "power"])
+def test_a_power_cut_while_a_backup_is_made_and_first_written_leaves_none_or_a_whole_one(
+    tmp_path: Path, durability: str
+) -> None:
+    """A backup made, written once (its log begins: SQLite syncs its header) and closed,
+    on ext4 over a logged disk; replayed to each flush from the start: the path holds no
+    file, or one that reads (never an empty or half-written one), and the last holds it."""
+    with logged_disk(tmp_path) as disk:
+        state = disk.mounted / "state"
+        state.mkdir()
+        disk.mark("start")
+        store = SqliteStore.open(state / "p.db", durability=durability)  # type: ignore[arg-type]
+        try:
+            store.restore()
+            catalog = Catalog()
+            catalog.begin_load("r1", "leaf", {"k": 1})
+            store.write(catalog.drain_changes())
+        finally:
+            store.close(erase=False)
+        os.sync()
+        log = disk.dump(tmp_path / "log.pickle")
+    states = []
+    for at, image, _ in flush_points(log, disk.size, "start"):
+        with mounted_image(image) as mounted:
+            backup = mounted / "state" / "p.db"
+            try:
+                states.append((at, "whole" if read_backup(backup) else "?"))
+            except rr.ConfigError:  # (no file there)
+                states.append((at, "none"))
+            except rr.CatalogCorruptError as exc:
+                states.append((at, exc.cause))
+
+    assert (True, "whole") == (
+        all(what in ("none", "whole") for _, what in states),
+        states[-1][1],
+    ), states

@@ -411,3 +411,30 @@ def test_a_migration_step_that_fails_leaves_the_file_at_its_old_version(
     finally:
         db.close()
     assert (schema.SCHEMA_VERSION, False) == (version, "note" in columns)
+
+
+def test_a_new_file_is_made_with_exactly_the_objects_the_migrations_make_and_needs_none(
+    tmp_path: Path,
+) -> None:
+    """`CREATE` (one transaction) and `MIGRATIONS` (one each) make the same schema: a file
+    made new passes the check every migrated file passes, and migrating it does nothing."""
+    made = sqlite3.connect(tmp_path / "made.db", isolation_level=None)
+    try:
+        schema.create(made)
+        objects = made.execute("SELECT type, name, tbl_name, sql FROM sqlite_master").fetchall()
+        version = schema.schema_version(made, "made.db")
+        scheme = made.execute("SELECT digest_scheme FROM rr_actors_schema").fetchone()[0]
+        changes = made.total_changes
+        schema.migrate(made, version)
+        schema.refresh_digests(made, "made.db")
+        unchanged = made.total_changes == changes
+    finally:
+        made.close()
+
+    found = frozenset((k, n, t, schema._normal(sql)) for k, n, t, sql in objects)
+    assert (schema.expected_objects(), schema.SCHEMA_VERSION, DIGEST_SCHEME, True) == (
+        found,
+        version,
+        scheme,
+        unchanged,
+    )

@@ -57,7 +57,7 @@ from tests.support.persisting import (
     written_once,
 )
 from tests.support.powercut import flush_points, logged_disk, mounted_image
-from tests.support.syscalls import traced
+from tests.support.syscalls import started, traced
 
 
 @settings(max_examples=40, deadline=None)
@@ -846,15 +846,16 @@ def test_with_power_every_answer_leaves_after_the_fdatasync_of_the_log_and_count
 ) -> None:
     """Traced with strace (every process of the tree): each send of the manager process
     comes after the fdatasync of every write to its backup's file, -wal and -commits, and
-    after the fsync of the directory that a new -commits was made in (the power cut
-    itself: `test_with_power_every_answered_change_survives_a_power_cut_...` below)."""
+    after the sync of the directory each of them was made in (the backup's, its log's
+    and its count's names: three, before the marks; the power cut itself:
+    `test_with_power_every_answered_change_survives_a_power_cut_...` below)."""
     found = traced(tmp_path, "power", REPLIES)
 
-    assert ([], True, True, 1) == (
+    assert ([], True, True, 3) == (
         found.unsynced_sends,
         found.syncs_of.get("erm.db-wal", 0) >= 2 * REPLIES,
         found.syncs_of.get("erm.db-commits", 0) >= 2 * REPLIES,
-        found.syncs_of.get("(directory)", 0),
+        found.syncs_of_all.get("(directory)", 0),
     )
 
 
@@ -868,6 +869,24 @@ def test_with_process_durability_nothing_is_synced_and_answers_leave_before_the_
     found = traced(tmp_path, "process", REPLIES)
 
     assert (0, True) == (found.syncs, len(found.unsynced_sends) >= 2 * REPLIES)
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("durability", ["process", "power"])
+def test_a_manager_started_on_a_fresh_state_dir_syncs_its_new_backup_and_name_with_power_only(
+    tmp_path: Path, durability: str
+) -> None:
+    """Traced with strace (every process of the tree), `start()` of one process manager on
+    a fresh `state_dir`: with power, the new file, then its directory (two); with process,
+    nothing (SQLite's own syncs come with the first commit, not with the file)."""
+    found = started(tmp_path, durability)
+
+    synced = sorted(
+        "(directory)" if name == "(directory)" else name.rsplit(".", 1)[-1]
+        for name, count in found.syncs_of.items()
+        for _ in range(count)
+    )
+    assert synced == (["(directory)", "creating"] if durability == "power" else [])
 
 
 CHANGES = [("load", i) for i in range(6)] + [("unload", i) for i in range(3)]

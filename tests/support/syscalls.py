@@ -3,11 +3,15 @@ acknowledge were synced.
 
 ```
  traced(state_dir, durability, replies) --strace -f -y--> a driver program: a Supervisor
-   (`durability`) with one process manager on `state_dir`, a consumer that loads and
-   unloads one after the other, a mark written to /dev/null before and after
+   (`durability`) with one process manager on a fresh `state_dir`, a consumer that loads
+   and unloads one after the other, a mark written to /dev/null before and after (after
+   one load and unload: the first commit begins the backup's log, SQLite syncing its
+   header and name, and makes its commit count; the start's traffic is over)
  unsynced_sends(trace, state_dir) --> every send on a socket between the marks taken
    while a write to the backup (file, -wal, -commits) or a name made in its directory was
    not synced yet
+ started(state_dir, durability) --strace--> `STARTING`: the same tree's `start()` alone,
+   on a fresh `state_dir` (its backup made): what it synced
 ```
 """
 
@@ -34,6 +38,8 @@ DRIVER = textwrap.dedent(
     mark = os.open(os.devnull, os.O_WRONLY)
     with rr.Supervisor([spec], state_dir=state, durability=durability) as sup:
         app = sup.registrar("app")
+        warm = app.call("erm", "res", -1, timeout=60.0)  # (a fresh backup's log begins)
+        app.unload(warm.id, timeout=60.0)
         os.write(mark, b"s" * 4001)  # (the marks: their sizes, to /dev/null)
         ids = [app.call("erm", "res", i, timeout=60.0).id for i in range(loads)]
         for query_id in ids:
@@ -41,6 +47,27 @@ DRIVER = textwrap.dedent(
         os.write(mark, b"e" * 4002)
     """
 )
+
+STARTING = textwrap.dedent(
+    """
+    import os, sys
+    import rr_actors as rr
+
+    def setup(reg):
+        reg.register_server("res", load=lambda r: {"r": r}, unload=lambda r, s: None)
+
+    state, durability = sys.argv[1], sys.argv[2]
+    spec = rr.ManagerSpec("erm", setup=setup, isolation="process", heartbeat=None)
+    mark = os.open(os.devnull, os.O_WRONLY)
+    sup = rr.Supervisor([spec], state_dir=state, durability=durability)
+    os.write(mark, b"s" * 4001)
+    sup.start()
+    os.write(mark, b"e" * 4002)
+    sup.stop()
+    """
+)
+"""The driver of `started`: a tree of one process manager started on a fresh
+`state_dir`, marked before `start()` and after it returned."""
 
 TRACED = (
     "fdatasync,fsync,write,pwrite64,sendmsg,sendto,openat,link,linkat,rename,renameat2,"
@@ -58,6 +85,7 @@ class Traced:
 
     syncs: int  # fdatasync and fsync calls, every process
     syncs_of: dict[str, int]  # by the name synced
+    syncs_of_all: dict[str, int]  # by the name synced, the whole trace (marks or not)
     unsynced_sends: list[str]  # the trace lines of sends taken with something unsynced
     sends: int
 
@@ -68,6 +96,17 @@ def traced(tmp_path: Path, durability: str, loads: int) -> Traced:
     trace = tmp_path / "trace.txt"
     command = ["strace", "-f", "-qq", "-y", "-s", "0", "-e", f"trace={TRACED}", "-o", str(trace)]
     command += [sys.executable, "-c", DRIVER, str(state), durability, str(loads)]
+    subprocess.run(command, check=True, timeout=300, env=os.environ.copy())
+    return unsynced_sends(trace.read_text().splitlines(), state)
+
+
+def started(tmp_path: Path, durability: str) -> Traced:
+    """Run `STARTING` under `strace`: what a manager's start on a fresh `state_dir` did
+    (its `syncs` and `syncs_of`: every process, between the marks)."""
+    state = tmp_path / "state"
+    trace = tmp_path / "trace.txt"
+    command = ["strace", "-f", "-qq", "-y", "-s", "0", "-e", f"trace={TRACED}", "-o", str(trace)]
+    command += [sys.executable, "-c", STARTING, str(state), durability]
     subprocess.run(command, check=True, timeout=300, env=os.environ.copy())
     return unsynced_sends(trace.read_text().splitlines(), state)
 
@@ -129,7 +168,7 @@ class _Replay:
     dirty: dict[str, str] = dataclasses.field(default_factory=dict)  # name -> its line
     pending: dict[str, str] = dataclasses.field(default_factory=dict)  # thread -> name
     marked: bool = False
-    result: Traced = dataclasses.field(default_factory=lambda: Traced(0, {}, [], 0))
+    result: Traced = dataclasses.field(default_factory=lambda: Traced(0, {}, {}, [], 0))
 
     def synced(self, tid: str, call: str, rest: str, line: str) -> None:
         """A sync counts once it returned (`<... resumed>` of an unfinished one)."""
@@ -141,9 +180,10 @@ class _Replay:
             if "<unfinished" in line:
                 self.pending[tid] = name
                 return
+        short = os.path.basename(name) if name != self.folder else "(directory)"
+        self.result.syncs_of_all[short] = self.result.syncs_of_all.get(short, 0) + 1
         if self.marked:
             self.result.syncs += 1
-            short = os.path.basename(name) if name != self.folder else "(directory)"
             self.result.syncs_of[short] = self.result.syncs_of.get(short, 0) + 1
         self.dirty.pop(name, None)
 
