@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import itertools
 import logging
 import multiprocessing.connection
 import multiprocessing.context
@@ -824,7 +825,7 @@ def test_each_process_manager_serves_before_the_next_one_starts(
     # it, which fails unless that one is serving by then.
     names = [f"m{n}-{uid}" for n in range(4)]
     specs = [process(names[0], serving_after(None))]
-    specs += [process(name, serving_after(before)) for before, name in zip(names, names[1:])]
+    specs += [process(name, serving_after(before)) for before, name in itertools.pairwise(names)]
     sup = supervisors(specs, name=f"ordered-{uid}")
 
     sup.start()
