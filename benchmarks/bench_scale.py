@@ -154,7 +154,10 @@ def start_managers(
         pid = supervisor.child(f"m{count - 1}").pid
         memory = pss_kib(pid) if pid is not None else None
         began = time.perf_counter()
-        supervisor.stop(parallel=parallel)
+        if parallel:
+            supervisor.stop(parallel=True)
+        else:
+            supervisor.stop()
         stopped = (time.perf_counter() - began) * 1000
     return elapsed, memory, stopped
 
@@ -171,7 +174,9 @@ def row(name: str, ours: list[float], plain: list[float]) -> str:
     )
 
 
-def section_start(counts: list[int], rounds: int, *, isolation: str, state_dir: bool) -> None:
+def section_start(
+    counts: list[int], rounds: int, *, isolation: str, state_dir: bool, parallel: bool = True
+) -> None:
     start_forkserver()  # rr_actors' forkserver (preloaded), before the clocks run
     floor = Floor()
     start_managers(1, isolation=isolation)  # warm both sides (imports, first forks)
@@ -192,17 +197,19 @@ def section_start(counts: list[int], rounds: int, *, isolation: str, state_dir: 
             )
             figures["start"].append(began)
             figures["stop"].append(stopped)
-            began, _, stopped = start_managers(
-                count, isolation=isolation, state_dir=state_dir, parallel=True
-            )
-            figures["start"].append(began)
-            figures["stop parallel"].append(stopped)
+            if parallel:
+                began, _, stopped = start_managers(
+                    count, isolation=isolation, state_dir=state_dir, parallel=True
+                )
+                figures["start"].append(began)
+                figures["stop parallel"].append(stopped)
             began, memory["plain"], stopped = floor.start(count)
             figures["floor"].append(began)
             figures["floor stop"].append(stopped)
         print(row(f"start {count}", figures["start"], figures["floor"]))
         print(row(f"stop {count}", figures["stop"], figures["floor stop"]))
-        print(row(f"stop {count} parallel", figures["stop parallel"], figures["floor stop"]))
+        if parallel:
+            print(row(f"stop {count} parallel", figures["stop parallel"], figures["floor stop"]))
     floor.close()
     print()
     mine, theirs = memory.get("rr_actors"), memory.get("plain")
@@ -390,7 +397,7 @@ class Tree:
     def close(self) -> None:
         self.running = False
         self.caller.join(60)
-        self.supervisor.stop(parallel=True)
+        self.supervisor.stop()
 
 
 def runtime_thread(target: Callable[[], None]) -> Any:
@@ -617,6 +624,9 @@ def main() -> None:
     )
     parser.add_argument("--isolation", choices=["process", "thread"], default="process")
     parser.add_argument("--state-dir", action="store_true", help="start: catalogs kept")
+    parser.add_argument(
+        "--ordered-only", action="store_true", help="start: no stop(parallel=True) rows"
+    )
     parser.add_argument("--counts", type=int, nargs="+", default=[1, 10, 50])
     parser.add_argument("--sizes", type=int, nargs="+", default=[1_000, 10_000, 100_000])
     parser.add_argument("--consumers", type=int, nargs="+", default=[1, 10, 100])
@@ -631,7 +641,13 @@ def main() -> None:
         env = {**os.environ, "RR_BENCH_PINNED": "1"}
         raise SystemExit(subprocess.run(command, env=env, check=False).returncode)
     if "start" in args.sections:
-        section_start(args.counts, args.rounds, isolation=args.isolation, state_dir=args.state_dir)
+        section_start(
+            args.counts,
+            args.rounds,
+            isolation=args.isolation,
+            state_dir=args.state_dir,
+            parallel=not args.ordered_only,
+        )
     if "restart" in args.sections:
         section_restart(args.counts, args.rounds, args.kills)
     if "serve" in args.sections:
