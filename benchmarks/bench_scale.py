@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import inspect
 import multiprocessing
 import multiprocessing.connection
 import os
@@ -624,9 +625,6 @@ def main() -> None:
     )
     parser.add_argument("--isolation", choices=["process", "thread"], default="process")
     parser.add_argument("--state-dir", action="store_true", help="start: catalogs kept")
-    parser.add_argument(
-        "--ordered-only", action="store_true", help="start: no stop(parallel=True) rows"
-    )
     parser.add_argument("--counts", type=int, nargs="+", default=[1, 10, 50])
     parser.add_argument("--sizes", type=int, nargs="+", default=[1_000, 10_000, 100_000])
     parser.add_argument("--consumers", type=int, nargs="+", default=[1, 10, 100])
@@ -646,7 +644,7 @@ def main() -> None:
             args.rounds,
             isolation=args.isolation,
             state_dir=args.state_dir,
-            parallel=not args.ordered_only,
+            parallel="parallel" in inspect.signature(rr.Supervisor.stop).parameters,
         )
     if "restart" in args.sections:
         section_restart(args.counts, args.rounds, args.kills)
