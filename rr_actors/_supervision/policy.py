@@ -732,15 +732,16 @@ class Stopping:
             for j in providers:
                 waiting[j] += 1
         done: queue.SimpleQueue[tuple[int, int, ManagerExit]] = queue.SimpleQueue()
+        ready = sorted((i for i, n in waiting.items() if n == 0), reverse=True)
         under_way = 0
         while waiting or under_way:
-            ready = sorted((i for i, n in waiting.items() if n == 0), reverse=True)
             if not ready and not under_way:  # a cycle: break it in reverse start order
                 ready = [max(waiting)]
             begun = []
             for i in ready:  # all marked stopping first, then all stopped at once
                 del waiting[i]
                 begun.append((i, *self._begin_stop(children[i], deadline)))
+            ready = []
             for i, running, limit, pid in begun:
                 pool.submit(_stop_one, running, limit, i, pid, done, restarting=restarting)
                 under_way += 1
@@ -749,9 +750,11 @@ class Stopping:
             i, pid, result = done.get()
             under_way -= 1
             self._end_stop(children[i], pid, result, final=True)
-            for j in needs[i]:
+            for j in sorted(needs[i], reverse=True):
                 if j in waiting:
                     waiting[j] -= 1
+                    if waiting[j] == 0:
+                        ready.append(j)
 
     def stop_child(
         self,
@@ -873,7 +876,7 @@ def _providers(
         if isinstance(running, ProcessManager) and system is not None:
             names: set[str] = system.run(name, provider_names, timeout=timeout)
             return names
-    except RrError as exc:
+    except Exception as exc:  # noqa: BLE001 - unknown: it keeps OTP's order instead
         logger.info("parallel stop: the queries of %s are unknown (%s)", name, exc)
     return None
 

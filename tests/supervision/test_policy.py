@@ -833,7 +833,7 @@ def test_each_process_manager_serves_before_the_next_one_starts(
     assert [(name, "running") for name in names] == [
         (i.name, i.state) for i in sup.which_children()
     ]
-    assert {names[2]} == {q.serving_rr for q in sup.run_in(names[3], _client_queries)}
+    assert {names[2]} == {q.serving_rr for q in sup.run_in(names[3], _client_queries, timeout=60.0)}
 
 
 def serving_after(before: str | None) -> Callable[[rr.ResourceRegistrar], None]:
@@ -848,7 +848,7 @@ def serving_after(before: str | None) -> Callable[[rr.ResourceRegistrar], None]:
 
 
 def _client_queries(registrar: rr.ResourceRegistrar) -> list[rr.Query]:
-    return registrar.client_queries(timeout=10.0)
+    return registrar.client_queries(timeout=60.0)
 
 
 def test_a_childs_snapshot_is_kept_while_a_sibling_restarts(
