@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import inspect
 import multiprocessing
 import multiprocessing.connection
 import os
@@ -95,16 +96,19 @@ for line in sys.stdin:
         children.append((process, ours))
     elapsed = (time.perf_counter() - began) * 1000
     pss = open(f"/proc/{children[-1][0].pid}/smaps_rollup").read().split("Pss:")[1].split()[0]
-    for process, ours in children:
+    began = time.perf_counter()
+    for process, ours in reversed(children):
         ours.close()
-    for process, _ in children:
         process.join(10)
-    print(elapsed, pss, flush=True)
+    stopped = (time.perf_counter() - began) * 1000
+    print(elapsed, pss, stopped, flush=True)
 """
 """The floor, run by a Python of its own (`python -c`): its children have no main module
 to re-import and import nothing of rr_actors or of this script. Each line it reads is a
 count N; it starts N children in order (each runs `exec` of a few lines: say "ready",
-then wait for EOF), and prints the milliseconds and the last child's PSS (KiB)."""
+then wait for EOF), stops them in reverse order (each told by EOF and its exit waited on
+before the next), and prints the milliseconds to start, the last child's PSS (KiB) and the
+milliseconds to stop."""
 
 
 class Floor:
@@ -115,13 +119,14 @@ class Floor:
             [sys.executable, "-c", FLOOR], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
         )
 
-    def start(self, count: int) -> tuple[float, int | None]:
+    def start(self, count: int) -> tuple[float, int | None, float]:
+        """ms to start `count` children in order, a child's PSS, ms to stop them."""
         assert self.process.stdin is not None
         assert self.process.stdout is not None
         self.process.stdin.write(f"{count}\n")
         self.process.stdin.flush()
-        elapsed, pss = self.process.stdout.readline().split()
-        return float(elapsed), int(pss)
+        elapsed, pss, stopped = self.process.stdout.readline().split()
+        return float(elapsed), int(pss), float(stopped)
 
     def close(self) -> None:
         assert self.process.stdin is not None
@@ -141,46 +146,78 @@ def pss_kib(pid: int) -> int | None:
     return None
 
 
-def start_managers(count: int) -> tuple[float, int | None]:
-    """Start (and stop) a supervisor of `count` process managers; ms to start, a PSS."""
-    specs = [rr.ManagerSpec(f"m{n}", setup, isolation="process") for n in range(count)]
-    supervisor = rr.Supervisor(specs, name=f"scale-{count}")
-    began = time.perf_counter()
-    supervisor.start()
-    elapsed = (time.perf_counter() - began) * 1000
-    pid = supervisor.child(f"m{count - 1}").pid
-    memory = pss_kib(pid) if pid is not None else None
-    supervisor.stop()
-    return elapsed, memory
+def start_managers(
+    count: int, *, isolation: str = "process", state_dir: bool = False, parallel: bool = False
+) -> tuple[float, int | None, float]:
+    """Start and stop a supervisor of `count` managers; ms to start, a PSS, ms to stop
+    (`parallel`: `stop(parallel=True)`; `state_dir`: the catalogs kept in a fresh one)."""
+    specs = [rr.ManagerSpec(f"m{n}", setup, isolation=isolation) for n in range(count)]  # type: ignore[arg-type]
+    with tempfile.TemporaryDirectory() as folder:
+        supervisor = rr.Supervisor(
+            specs, name=f"scale-{count}", state_dir=folder if state_dir else None
+        )
+        began = time.perf_counter()
+        supervisor.start()
+        elapsed = (time.perf_counter() - began) * 1000
+        pid = supervisor.child(f"m{count - 1}").pid
+        memory = pss_kib(pid) if pid is not None else None
+        began = time.perf_counter()
+        if parallel:
+            supervisor.stop(parallel=True)
+        else:
+            supervisor.stop()
+        stopped = (time.perf_counter() - began) * 1000
+    return elapsed, memory, stopped
 
 
 def spread(values: list[float]) -> str:
     return f"{min(values):.0f}-{max(values):.0f}"
 
 
-def section_start(counts: list[int], rounds: int) -> None:
+def row(name: str, ours: list[float], plain: list[float]) -> str:
+    ratio = statistics.median(ours) / statistics.median(plain)
+    return (
+        f"| {name} | {statistics.median(ours):.0f} | {spread(ours)} "
+        f"| {statistics.median(plain):.0f} | {spread(plain)} | {ratio:.1f}x |"
+    )
+
+
+def section_start(
+    counts: list[int], rounds: int, *, isolation: str, state_dir: bool, parallel: bool = True
+) -> None:
     start_forkserver()  # rr_actors' forkserver (preloaded), before the clocks run
     floor = Floor()
-    start_managers(1)  # warm both sides (imports, the forkservers' first forks)
+    start_managers(1, isolation=isolation)  # warm both sides (imports, first forks)
     floor.start(1)
-    print("## start: N process managers vs N plain multiprocessing children (ms)")
+    kept = " (catalogs in a state_dir)" if state_dir else ""
+    print(f"## start, stop: N {isolation} managers{kept} vs N plain forkserver children (ms)")
     print()
     print("| N | rr_actors med | rr_actors min-max | floor med | floor min-max | ratio |")
     print("|---|---|---|---|---|---|")
     memory: dict[str, int | None] = {}
     for count in counts:
-        ours: list[float] = []
-        plain: list[float] = []
-        for _ in range(rounds):  # alternated: both meet the same noise
-            elapsed, memory["rr_actors"] = start_managers(count)
-            ours.append(elapsed)
-            elapsed, memory["plain"] = floor.start(count)
-            plain.append(elapsed)
-        ratio = statistics.median(ours) / statistics.median(plain)
-        print(
-            f"| start {count} | {statistics.median(ours):.0f} | {spread(ours)} "
-            f"| {statistics.median(plain):.0f} | {spread(plain)} | {ratio:.1f}x |"
-        )
+        figures: dict[str, list[float]] = {
+            k: [] for k in ("start", "stop", "stop parallel", "floor", "floor stop")
+        }
+        for _ in range(rounds):  # alternated: all meet the same noise
+            began, memory["rr_actors"], stopped = start_managers(
+                count, isolation=isolation, state_dir=state_dir
+            )
+            figures["start"].append(began)
+            figures["stop"].append(stopped)
+            if parallel:
+                began, _, stopped = start_managers(
+                    count, isolation=isolation, state_dir=state_dir, parallel=True
+                )
+                figures["start"].append(began)
+                figures["stop parallel"].append(stopped)
+            began, memory["plain"], stopped = floor.start(count)
+            figures["floor"].append(began)
+            figures["floor stop"].append(stopped)
+        print(row(f"start {count}", figures["start"], figures["floor"]))
+        print(row(f"stop {count}", figures["stop"], figures["floor stop"]))
+        if parallel:
+            print(row(f"stop {count} parallel", figures["stop parallel"], figures["floor stop"]))
     floor.close()
     print()
     mine, theirs = memory.get("rr_actors"), memory.get("plain")
@@ -390,6 +427,105 @@ def section_serve(sizes: list[int], rounds: int, kills: int, *, listen: bool) ->
     print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
 
 
+class Tree:
+    """A supervisor of `count` process managers and a registrar calling them: one of
+    them is SIGKILLed at will while a thread calls the others, one after the other."""
+
+    def __init__(self, count: int) -> None:
+        specs = [rr.ManagerSpec(f"t{n}", setup, isolation="process") for n in range(count)]
+        self.supervisor = rr.Supervisor(specs, max_restarts=10_000, period=3600.0)
+        self.supervisor.start()
+        self.app = self.supervisor.registrar(f"app-{uuid.uuid4().hex[:6]}")
+        self.victim = f"t{count // 2}"
+        self.others = [spec.name for spec in specs if spec.name != self.victim]
+        for name in [self.victim, *self.others]:  # every link warm
+            self.app.call(name, "res", "warm-up", timeout=60.0)
+        self.calls: list[tuple[float, float]] = []  # (began, ms) of each call to the others
+        self.running = True
+        self.caller = runtime_thread(self._call_others)
+        self.kills = 0
+
+    def _call_others(self) -> None:
+        n = 0
+        while self.running:
+            name = self.others[n % len(self.others)]
+            n += 1
+            began = time.perf_counter()
+            self.app.call(name, "res", "warm-up", timeout=60.0)
+            self.calls.append((began, (time.perf_counter() - began) * 1000))
+
+    def kill(self) -> tuple[float, list[float]]:
+        """SIGKILL the victim; ms until a call its next incarnation answered returned, and
+        the ms of the calls to the others that overlapped."""
+        time.sleep(0.2)  # the last restart settled (its spare process warmed up)
+        pid = self.supervisor.child(self.victim).pid
+        assert pid is not None
+        first = len(self.calls)
+        killed = time.perf_counter()
+        os.kill(pid, signal.SIGKILL)
+        self.supervisor.wait_restarted(self.victim, timeout=120.0)
+        self.kills += 1
+        self.app.call(self.victim, "res", f"after-{self.kills}", timeout=120.0)
+        served = time.perf_counter()
+        time.sleep(0.01)  # the call under way when it served ends
+        during = [ms for began, ms in self.calls[max(first - 1, 0) :] if began < served]
+        return (served - killed) * 1000, during
+
+    def close(self) -> None:
+        self.running = False
+        self.caller.join(60)
+        self.supervisor.stop()
+
+
+def runtime_thread(target: Callable[[], None]) -> Any:
+    import threading  # noqa: PLC0415
+
+    thread = threading.Thread(target=target, daemon=True)
+    thread.start()
+    return thread
+
+
+def p99(values: list[float]) -> float:
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, int(len(ordered) * 0.99))]
+
+
+def section_restart(counts: list[int], rounds: int, kills: int) -> None:
+    start_forkserver()
+    floor = Respawn()
+    floor.kill(1)  # warm its forkserver's first fork
+    trees = {count: Tree(count) for count in counts}
+    print("## restart: kill one of N process managers to serving (ms), calls to the others")
+    print()
+    print(
+        "| N | kill to serving med | min-max | respawn floor med | ratio "
+        "| other calls p99 during | p99 at rest | calls during |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    serving: dict[int, list[float]] = {count: [] for count in counts}
+    during: dict[int, list[float]] = {count: [] for count in counts}
+    plain: list[float] = []
+    for _ in range(rounds):  # alternated: every size and the floor meet the same noise
+        for count, tree in trees.items():
+            for _ in range(kills):
+                ms, calls = tree.kill()
+                serving[count].append(ms)
+                during[count].extend(calls)
+            plain.extend(floor.kill(kills))
+    for count, tree in trees.items():
+        at_rest = [ms for _, ms in tree.calls[-200:]]
+        tree.close()
+        median = statistics.median(serving[count])
+        print(
+            f"| {count} | {median:.1f} | {spread(serving[count])} "
+            f"| {statistics.median(plain):.1f} | {median / statistics.median(plain):.1f}x "
+            f"| {p99(during[count]):.1f} | {p99(at_rest):.1f} | {len(during[count])} |"
+        )
+    floor.close()
+    print()
+    print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+
+
 NOTICE = ("0f3b7b2c-1111-2222-3333-444455556666", 2, "tick")
 """What the Pipe burst sends per consumer: about what a status notice says."""
 
@@ -558,8 +694,13 @@ def section_status(counts: list[int], rounds: int, sends: int) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument(
-        "--sections", nargs="+", choices=["start", "fresh", "serve", "status"], default=["start"]
+        "--sections",
+        nargs="+",
+        choices=["start", "fresh", "restart", "serve", "status"],
+        default=["start"],
     )
+    parser.add_argument("--isolation", choices=["process", "thread"], default="process")
+    parser.add_argument("--state-dir", action="store_true", help="start: catalogs kept")
     parser.add_argument("--counts", type=int, nargs="+", default=[1, 10, 50])
     parser.add_argument("--sizes", type=int, nargs="+", default=[1_000, 10_000, 100_000])
     parser.add_argument("--consumers", type=int, nargs="+", default=[1, 10, 100])
@@ -575,9 +716,17 @@ def main() -> None:
         env = {**os.environ, "RR_BENCH_PINNED": "1"}
         raise SystemExit(subprocess.run(command, env=env, check=False).returncode)
     if "start" in args.sections:
-        section_start(args.counts, args.rounds)
+        section_start(
+            args.counts,
+            args.rounds,
+            isolation=args.isolation,
+            state_dir=args.state_dir,
+            parallel="parallel" in inspect.signature(rr.Supervisor.stop).parameters,
+        )
     if "fresh" in args.sections:
         section_fresh(args.counts, args.rounds, args.durability)
+    if "restart" in args.sections:
+        section_restart(args.counts, args.rounds, args.kills)
     if "serve" in args.sections:
         section_serve(args.sizes, args.rounds, args.kills, listen=args.listen)
     if "status" in args.sections:

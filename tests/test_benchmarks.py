@@ -85,7 +85,8 @@ SMALLEST = {
         *("--only", "tests", "--python", sys.executable, "--select", "tests/test_docs_index.py"),
     ],
     "bench_scale.py": [
-        *("--sections", "start", "fresh", "serve", "status", "--counts", "2", "--rounds", "1"),
+        *("--sections", "start", "fresh", "restart", "serve", "status"),
+        *("--counts", "2", "--rounds", "1"),
         *("--sizes", "10", "20", "--kills", "1", "--listen", "--consumers", "1", "3"),
         *(
             "--sends",

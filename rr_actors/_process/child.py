@@ -78,6 +78,12 @@ START_HOLD = 1.0
 """Seconds at most the events of a start are held back so that `Ready` goes first."""
 
 
+def provider_names(registrar: ResourceRegistrar) -> set[str]:
+    """The registrars `registrar` holds a query at (a parallel stop's dependencies, asked
+    by `Supervisor.run`: defined here, where a manager process has it imported)."""
+    return {query.serving_rr for query in registrar.client_queries(timeout=5.0)}
+
+
 def set_title(name: str) -> None:
     """Name this process after its manager for `ps` and `top` (the kernel's 15-byte name
     is the name itself; with `setproctitle`, the command line `rr-actors: <name>`)."""

@@ -43,7 +43,7 @@ class AsyncSupervision:
 
         def start(self) -> Any: ...
 
-        def stop(self, *, timeout: float | None = None) -> None: ...
+        def stop(self, *, timeout: float | None = None, parallel: bool = False) -> None: ...
 
         def registrar(self, config: RegistrarConfig | str) -> ResourceRegistrar: ...
 
@@ -86,12 +86,14 @@ class AsyncSupervision:
             raise
         return self
 
-    async def astop(self, *, timeout: float | None = None) -> None:
+    async def astop(self, *, timeout: float | None = None, parallel: bool = False) -> None:
         """As `stop`, awaitable."""
         if timeout is not None:
             check_seconds("timeout", timeout)
         await run_steps_async(
-            on_own_thread(lambda: self.stop(timeout=timeout), f"rr-stop-{self.name}")
+            on_own_thread(
+                lambda: self.stop(timeout=timeout, parallel=parallel), f"rr-stop-{self.name}"
+            )
         )
 
     async def aregistrar(self, config: RegistrarConfig | str) -> ResourceRegistrar:

@@ -256,7 +256,9 @@ class Level(Protocol):
     @property
     def giving_up(self) -> bool: ...
 
-    def stop(self, timeout: float | None = None, *, restarting: bool = False) -> None: ...
+    def stop(
+        self, timeout: float | None = None, *, restarting: bool = False, parallel: bool = False
+    ) -> None: ...
 
 
 class NestedSupervisor:
@@ -267,18 +269,28 @@ class NestedSupervisor:
     def __init__(self, node: Level) -> None:
         self.node = node
 
-    def stop(self, timeout: float | None, *, restarting: bool = False) -> ManagerExit:
-        self.node.stop(timeout=timeout, restarting=restarting)
+    def stop(
+        self, timeout: float | None, *, restarting: bool = False, parallel: bool = False
+    ) -> ManagerExit:
+        self.node.stop(timeout=timeout, restarting=restarting, parallel=parallel)
         return ManagerExit("shutdown", normal=True)
 
 
 # -- the record of one child ---------------------------------------------------------------
 
 
-@dataclasses.dataclass
+_SHOWN = frozenset({"state", "running", "last_exit"})  # what a child's snapshot shows
+
+
+@dataclasses.dataclass(eq=False)
 class Child:
     """What a supervisor knows of one child (mutated on the supervisor's thread only;
-    `published`: the snapshot waiters read, replaced under the tree's lock)."""
+    `published`: the snapshot waiters read, replaced under the tree's lock).
+
+    A change of what its snapshot shows calls `on_change(child)` (its supervisor notes
+    it, and publishes only the children that changed: a publish costs what changed, not
+    the number of children).
+    """
 
     spec: ManagerSpec | SupervisorSpec
     state: ChildState = "stopped"
@@ -288,6 +300,14 @@ class Child:
     gave_up: SupervisorGaveUpError | None = None  # why it is down for good (a give-up)
     published: ChildInfo = dataclasses.field(init=False)
     subtree: frozenset[str] = dataclasses.field(init=False)  # names below a supervisor
+    on_change: Callable[[Child], None] | None = dataclasses.field(default=None, repr=False)
+
+    def __setattr__(self, name: str, value: object) -> None:
+        object.__setattr__(self, name, value)
+        if name in _SHOWN:
+            on_change = self.__dict__.get("on_change")
+            if on_change is not None:
+                on_change(self)
 
     def __post_init__(self) -> None:
         self.published = self.info(0)

@@ -267,7 +267,7 @@ class Supervisor(AsyncSupervision):
         )
         return self
 
-    def stop(self, *, timeout: float | None = None) -> None:
+    def stop(self, *, timeout: float | None = None, parallel: bool = False) -> None:
         """Stop the registrars from `registrar()`, then every child in reverse start order.
 
         Each child gets its spec's `shutdown` seconds to stop cleanly before it is killed
@@ -278,6 +278,14 @@ class Supervisor(AsyncSupervision):
                 `shutdown`): a child still running when it ran out gets what is left (at
                 least 1 ms), then is killed. It starts once the supervisor's thread takes
                 up the stop (after a child start under way).
+            parallel: stop the children at once where no dependency orders them, in
+                every supervisor of the tree, instead of one after the other (OTP's
+                order). A dependency is live: a manager whose registrar holds a query at
+                another manager's depends on it, and it stops (its stop has ended)
+                before that provider's stop begins; a manager that cannot be asked is
+                taken to depend on every child started before it, and a cycle is
+                broken in reverse start order. Each stop runs on a worker thread of the
+                supervisor's (at most 16 at once).
 
         Raises:
             ConfigError: `timeout` is not a positive number of seconds, or it was called
@@ -303,7 +311,7 @@ class Supervisor(AsyncSupervision):
         self._registrars.clear()
         self._tree.processes.close_spares()  # no new spare while the children stop
         self._watch.last_look()  # a page kept after the stop shows the catalogs as they end
-        self._node.stop(deadline=deadline)
+        self._node.stop(deadline=deadline, parallel=parallel)
         self._stopped = True
         self._release()
 

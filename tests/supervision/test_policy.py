@@ -38,6 +38,7 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import errno
+import itertools
 import logging
 import multiprocessing.connection
 import multiprocessing.context
@@ -818,6 +819,168 @@ def test_a_failed_start_stops_the_children_already_started_in_reverse_order(
     with pytest.raises(rr.SupervisorGaveUpError, match="no camera"):
         sup.start()
     assert [f"start {a}", f"start {b}", f"unload {b}", f"unload {a}"] == events
+
+
+def test_each_process_manager_serves_before_the_next_one_starts(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    # OTP's ordered start, kept by default: each setup calls the manager started before
+    # it, which fails unless that one is serving by then.
+    names = [f"m{n}-{uid}" for n in range(4)]
+    specs = [process(names[0], serving_after(None))]
+    specs += [process(name, serving_after(before)) for before, name in itertools.pairwise(names)]
+    sup = supervisors(specs, name=f"ordered-{uid}")
+
+    sup.start()
+
+    assert [(name, "running") for name in names] == [
+        (i.name, i.state) for i in sup.which_children()
+    ]
+    assert {names[2]} == {q.serving_rr for q in sup.run_in(names[3], _client_queries, timeout=60.0)}
+
+
+def serving_after(before: str | None) -> Callable[[rr.ResourceRegistrar], None]:
+    """A setup that calls manager `before` (which must serve by then), then serves "res"."""
+
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        if before is not None:
+            registrar.call(before, "res", "camera", timeout=10.0)
+        registrar.register_server("res", load=lambda r: r, unload=lambda r, s: None)
+
+    return setup
+
+
+def _client_queries(registrar: rr.ResourceRegistrar) -> list[rr.Query]:
+    return registrar.client_queries(timeout=60.0)
+
+
+def test_a_childs_snapshot_is_kept_while_a_sibling_restarts(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    # A publish rebuilds the snapshots of the children that changed, not every child's:
+    # its cost is what changed, whatever the number of children.
+    a, b = f"a-{uid}", f"b-{uid}"
+    sup = supervisors([rr.ManagerSpec(a), rr.ManagerSpec(b)], clock=FakeClock()).start()
+    before = sup.which_children()
+
+    crash(sup, b)
+    sup.wait_restarted(b, timeout=10.0)
+
+    after = sup.which_children()
+    assert after[0] is before[0]
+    assert (1, "running") == (after[1].restarts, after[1].state)
+
+
+# -- a parallel stop: at once where no dependency orders them, dependents first -------------------
+
+
+def test_a_parallel_stop_stops_a_dependent_before_a_provider_started_after_it(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    # c started first, p after it: the reverse start order would stop p first. c holds a
+    # query at p (called after the start), so in parallel c stops first: its clean stop
+    # releases its query at p while p is still running, not yet stopping.
+    c, p, x = f"c-{uid}", f"p-{uid}", f"x-{uid}"
+    seen: list[tuple[str, str]] = []
+    sup: rr.Supervisor
+
+    def provider(registrar: rr.ResourceRegistrar) -> None:
+        def unload(resource: str, _: object) -> None:
+            seen.append((resource, sup.child(p).state))
+
+        registrar.register_server("res", load=lambda r: r, unload=unload)
+
+    sup = supervisors([rr.ManagerSpec(c), rr.ManagerSpec(p, provider), rr.ManagerSpec(x)])
+    sup.start()
+    sup.run_in(c, lambda r: r.call(p, "res", "camera", timeout=10.0))
+
+    sup.stop(parallel=True)
+
+    assert [("camera", "running")] == seen
+    assert ["stopped"] * 3 == [i.state for i in sup.which_children()]
+
+
+def test_a_parallel_stop_stops_independent_children_at_once(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    # Each manager holds one of its own resources: its stop unloads it, and the unload
+    # (inside that stop) sees whether the other manager's stop has begun too.
+    a, b = f"a-{uid}", f"b-{uid}"
+    seen: dict[str, str] = {}
+    sup: rr.Supervisor
+
+    def holding_its_own(other: str) -> Callable[[rr.ResourceRegistrar], None]:
+        def setup(registrar: rr.ResourceRegistrar) -> None:
+            def unload(_resource: str, _served: object) -> None:
+                seen[registrar.name] = sup.child(other).state
+
+            registrar.register_server("res", load=lambda r: r, unload=unload)
+            registrar.call(registrar.name, "res", "own", timeout=10.0)
+
+        return setup
+
+    sup = supervisors(
+        [rr.ManagerSpec(a, holding_its_own(b)), rr.ManagerSpec(b, holding_its_own(a))]
+    )
+    sup.start()
+
+    sup.stop(parallel=True)
+
+    assert {a: "stopping", b: "stopping"} == seen
+
+
+def test_a_parallel_stop_of_process_managers_stops_each_dependent_before_its_provider(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    # Each consumer process was started before its provider (reverse order: providers
+    # first); their queries, asked of each process, order the parallel stop.
+    c1, c2, p1, p2 = (f"{n}-{uid}" for n in ("c1", "c2", "p1", "p2"))
+    ended: list[str] = []
+    sup = supervisors([process(c1), process(c2), process(p1), process(p2)])
+    watching = sup.subscribe(
+        lambda e: ended.append(e.child) if isinstance(e, rr.events.ChildExited) else None
+    )
+    sup.start()
+    for consumer, provider in ((c1, p1), (c2, p2)):
+        sup.run_in(consumer, calling(provider), timeout=10.0)
+
+    sup.stop(parallel=True)
+    assert watching.wait_delivered(timeout=10.0)
+    watching.close()
+
+    assert sorted(ended) == sorted([c1, c2, p1, p2])
+    assert ended.index(c1) < ended.index(p1)
+    assert ended.index(c2) < ended.index(p2)
+
+
+def calling(provider: str) -> Callable[[rr.ResourceRegistrar], None]:
+    def call(registrar: rr.ResourceRegistrar) -> None:
+        registrar.call(provider, "echo", "camera", timeout=10.0)
+
+    return call
+
+
+def test_a_parallel_stop_orders_a_dependent_in_a_nested_supervisor_before_its_provider(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    c, p = f"c-{uid}", f"p-{uid}"
+    seen: list[tuple[str, str]] = []
+    sup: rr.Supervisor
+
+    def provider(registrar: rr.ResourceRegistrar) -> None:
+        def unload(resource: str, _: object) -> None:
+            seen.append((resource, sup.child(p).state))
+
+        registrar.register_server("res", load=lambda r: r, unload=unload)
+
+    inner = rr.SupervisorSpec(f"inner-{uid}", (rr.ManagerSpec(c),))
+    sup = supervisors([inner, rr.ManagerSpec(p, provider)])
+    sup.start()
+    sup.run_in(c, lambda r: r.call(p, "res", "camera", timeout=10.0))
+
+    sup.stop(parallel=True)
+
+    assert [("camera", "running")] == seen
 
 
 # == stopping: shutdown then kill, the death watch, stopped for good ==============================
