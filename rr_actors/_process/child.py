@@ -77,6 +77,19 @@ START_HOLD = 1.0
 """Seconds at most the events of a start are held back so that `Ready` goes first."""
 
 
+class Hooks:
+    """What a pool's `setup` (a supervisor in this manager process,
+    `rr_actors._supervision.pool`) hooks into: this process's event hub (set before
+    `setup` runs) and a step run before its registrar stops, with the `Stop`'s timeout
+    (seconds) and whether it will be restarted."""
+
+    hub: Publisher[events.Event] | None = None
+    before_stop: Callable[[float, bool], None] | None = None
+
+
+HOOKS = Hooks()
+
+
 def set_title(name: str) -> None:
     """Name this process after its manager for `ps` and `top` (the kernel's 15-byte name
     is the name itself; with `setproctitle`, the command line `rr-actors: <name>`)."""
@@ -316,6 +329,7 @@ def _run_manager(
             attached = address.attach()
             attached.supervised_by(_supervisor_pid(conn))  # it restarts this one (rule 19)
         registrar = start_registrar(config, upstream=line.hub, hold_in_doubt=True)
+        HOOKS.hub = line.hub
         setup_fn = cloudpickle.loads(setup)
         if setup_fn is not None:
             setup_fn(registrar)
@@ -422,6 +436,13 @@ class _ControlLoop:
         if message.restarting:  # stopped to be restarted with its group:
             DIRECTORY.mark_restarting([registrar.name])  # no tombstone: "unavailable"
         code = STOPPED_EXIT
+        before_stop = HOOKS.before_stop
+        if before_stop is not None:  # a pool: its supervisor stops its managers first
+            try:
+                before_stop(message.timeout, message.restarting)
+            except Exception:
+                logger.exception("manager %s: stopping its pool failed", registrar.name)
+                code = 1
         try:
             registrar.stop(timeout=message.timeout)
         except RrError:

@@ -40,6 +40,7 @@ from rr_actors._platform import PLATFORM
 from rr_actors._process.child import main
 from rr_actors._process.control import (
     ACTOR_DIED_EXIT,
+    POOL_GAVE_UP_EXIT,
     PROCESS_PREFIX,
     STOPPED_EXIT,
     Events,
@@ -107,6 +108,7 @@ _EXITS: dict[int, tuple[str, bool]] = {
     STOPPED_EXIT: ("normal", True),  # its registrar stopped cleanly: the one normal exit
     0: ("exited with code 0 without stopping its registrar", False),  # nothing let go
     ACTOR_DIED_EXIT: ("registrar actor died", False),
+    POOL_GAVE_UP_EXIT: ("its supervisor gave up", False),  # a pool's (escalation)
 }
 
 

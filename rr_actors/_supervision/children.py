@@ -48,12 +48,14 @@ class ChildInfo:
     Attributes:
         name: the child's name.
         kind: `"manager"` or `"supervisor"`.
-        isolation: `"thread"` or `"process"` for a manager, `None` for a supervisor.
+        isolation: `"thread"` or `"process"` for a manager; for a supervisor
+            `"process"` when it is a pool (in an OS process of its own), else `None`.
         restart: its restart type.
         state: `"starting"`, `"running"`, `"restarting"` (down, restart pending),
             `"stopping"`, `"stopped"` (by the supervisor) or `"exited"` (down on its own
             and not restarted; a transient one comes back with its group, as in OTP).
-        pid: the process id of a running process manager, else `None`.
+        pid: the process id of a running process manager, a running pool, or (for a
+            child of a running pool) its pool's; else `None`.
         restarts: how many times it was restarted so far (with its nested supervisor
             too).
         last_exit: why its last incarnation ended (`None` before the first exit).
@@ -96,13 +98,17 @@ def snapshot(
     return ChildInfo(
         name=spec.name,
         kind="supervisor" if isinstance(spec, SupervisorSpec) else "manager",
-        isolation=spec.isolation if isinstance(spec, ManagerSpec) else None,
+        isolation=spec.isolation if isinstance(spec, ManagerSpec) else _pooled(spec),
         restart=spec.restart,
         state=state,
         pid=pid,
         restarts=restarts,
         last_exit=last_exit,
     )
+
+
+def _pooled(spec: SupervisorSpec) -> Isolation | None:
+    return "process" if spec.isolation == "process" else None
 
 
 # -- restart types: whether a child comes back (OTP) -------------------------------------

@@ -49,6 +49,7 @@ from rr_actors._supervision.children import (
     restarts_after,
     restarts_with_group,
 )
+from rr_actors._supervision.pool import is_pool, pool_manager, pool_setup
 from rr_actors._supervision.retry import give_back_abandoned
 from rr_actors._supervision.tree import (
     Clock,
@@ -357,6 +358,8 @@ class Restarts:
             f"within {spec.period:g} s (last: {crashed.name!r} {crashed.last_exit})"
         )
         logger.error("%s", error)
+        if record.parent is None and record.tree.escalate is not None:
+            record.tree.escalate(error)  # a pool's: its process ends, its parent decides
         self.giving_up = True
         self.cancel()
         for child in reversed(record.children):
@@ -504,7 +507,11 @@ class Starting:
         record.publish()
         spec, tree = child.spec, record.tree
         post = self._watch(child)
-        if isinstance(spec, SupervisorSpec):
+        if is_pool(spec):
+            assert isinstance(spec, SupervisorSpec)
+            child.running = self._start_pool(spec, post)
+            child.gave_up = None
+        elif isinstance(spec, SupervisorSpec):
             child.running = self._start_nested(spec, child.incarnation)
             child.gave_up = None
         else:
@@ -537,6 +544,9 @@ class Starting:
         tree.count_start(child.name)
         self._published_start(child, restarted=restarted)
         give_back_abandoned(tree, child.name)
+        if is_pool(spec):
+            assert isinstance(spec, SupervisorSpec)
+            self._pool_started(spec, restarted=restarted)
         if not isinstance(spec, ManagerSpec):
             return
         if restarted:
@@ -576,6 +586,48 @@ class Starting:
             return
         restart_s = 0.0 if down_since is None else runtime.monotonic() - down_since
         publisher.publish(events.ChildRestarted(record.name, child.name, pid, restart_s))
+
+    def _start_pool(
+        self, spec: SupervisorSpec, post: Callable[[ManagerExit], None]
+    ) -> ProcessManager:
+        """Start pool `spec`'s process (`pool.py`); return once its managers serve."""
+        record = self.record
+        tree, processes = record.tree, record.tree.processes
+        for name in registrar_names(spec):
+            comes_back(name)  # no longer gone for good
+        address = processes.system.address if processes.system is not None else None
+        setup = pool_setup(spec, address, tree.durability, self.state_dir)
+        config = RegistrarConfig(name=spec.name, durability=tree.durability)
+        try:
+            return ProcessManager.start(
+                pool_manager(spec),
+                setup,
+                config,
+                address,
+                post,
+                processes.spares,
+                tree.events,
+                supervisor=record.name,
+            )
+        finally:
+            if processes.spares is not None:
+                record.cast(processes.spares.refill)
+
+    def _pool_started(self, spec: SupervisorSpec, *, restarted: bool) -> None:
+        """Pool `spec` serves: count its managers' starts, and what a manager started does
+        here (abandoned ids; after a restart, the death watch; without a backup,
+        reconcile)."""
+        tree = self.record.tree
+        own = spec.state_dir if spec.state_dir is not None else self.state_dir
+        for manager in managers(spec):
+            tree.count_start(manager.name)
+            give_back_abandoned(tree, manager.name)
+            if not restarted:
+                continue
+            death_watch_missed(manager.name)
+            backup = manager.config.backup_path if manager.config is not None else own
+            if backup is None:
+                lost_everything(self.record.root(), manager.name, tree.processes.system)
 
     def _start_nested(self, spec: SupervisorSpec, incarnation: int) -> NestedSupervisor:
         post = self.record.post
@@ -705,6 +757,9 @@ class Stopping:
             elif not self.to_restart:  # stopped, and nobody starts it again
                 record = self.record
                 consumer_down(record.root(), child.name, record.tree.processes.system, stopped=True)
+        elif is_pool(child.spec) and dead:  # its process died, and nobody restarts it
+            for name in registrar_names(child.spec):
+                self.lose(name)
         elif child.gave_up is not None:  # a nested supervisor gave up, and stays down:
             for name in registrar_names(child.spec):  # nobody restarts its managers
                 self.lose(name)

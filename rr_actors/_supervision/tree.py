@@ -72,6 +72,7 @@ __all__ = [
     "find_child",
     "locate",
     "lost_everything",
+    "pool_of",
     "ran_before",
 ]
 
@@ -102,6 +103,14 @@ class Processes:
                     raise ConfigError(
                         f"setup of manager {manager.name!r} is not picklable: {exc}"
                     ) from exc
+        for pool, _ in walk(self.spec):  # a pool's setups go to its process at each start
+            if isinstance(pool, SupervisorSpec) and pool.isolation == "process":
+                try:
+                    wire.dumps(pool)
+                except Exception as exc:
+                    raise ConfigError(
+                        f"a setup in pool {pool.name!r} is not picklable: {exc}"
+                    ) from exc
         if self.network is not None:
             if self.network.closed:
                 raise ConfigError(
@@ -119,7 +128,7 @@ class Processes:
     def start_ahead(self, on: bool) -> None:
         """While `on` (the supervisor's start), fork process managers' processes ahead."""
         if self.spares is not None:
-            starts = sum(1 for m in managers(self.spec) if m.isolation == "process")
+            starts = sum(1 for c, _ in walk(self.spec) if c.isolation == "process")
             self.spares.ahead(starts if on else 0)
 
     def close_spares(self) -> None:
@@ -171,6 +180,8 @@ class Tree:
         self.down_since: dict[str, float] = {}  # name -> when its last incarnation ended
         self.restart_due: dict[str, float] = {}  # name -> when its backoff ends (runtime.wall())
         self._mailboxes: weakref.WeakSet[SerialExecutor] = weakref.WeakSet()  # every Node's
+        # a pool's tree (`pool.py`): its root's give-up ends the process (never returns)
+        self.escalate: Callable[[SupervisorGaveUpError], None] | None = None
 
     def durable(self, config: RegistrarConfig) -> RegistrarConfig:
         """`config` at the tree's durability at least (a tree chooses for every manager)."""
@@ -217,11 +228,12 @@ class Tree:
             self.restarts[name] = self.restarts.get(name, 0) + 1
         self.started.add(name)
 
-    def spec_info(self, name: str, state: ChildState) -> ChildInfo:
-        """The snapshot of a child whose supervisor is down: `state`, no pid."""
+    def spec_info(self, name: str, state: ChildState, pid: int | None = None) -> ChildInfo:
+        """The snapshot of a child whose supervisor is down (`state`, no pid), or in a
+        pool's process (`pid`)."""
         last = self.latest.get(name)
         last_exit = last.last_exit if last is not None else None
-        return snapshot(self.specs[name], state, None, self.restarts.get(name, 0), last_exit)
+        return snapshot(self.specs[name], state, pid, self.restarts.get(name, 0), last_exit)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -273,6 +285,8 @@ def _locate_below(child: Child, tree: Tree, name: str, state: ChildState) -> Fou
             found = locate(nested, tree, name)
             return None if found is None else Found(found.info, nested.gave_up)
         state = "restarting"  # its parent will restart it (or give up itself)
+    elif state == "running" and isinstance(running, ProcessManager):  # a pool: its children
+        return Found(tree.spec_info(name, "running", running.pid), None)  # run as it does
     elif state == "running":
         state = "starting"
     final = child.gave_up if state in ("exited", "stopped") else None
@@ -291,6 +305,19 @@ def find_child(level: Level, name: str) -> Child | None:
     return None
 
 
+def pool_of(level: Level, name: str) -> Child | None:
+    """The running pool (a supervisor in its own process) that holds child `name`."""
+    for child in list(level.children):
+        running = child.running
+        if name not in child.subtree:
+            continue
+        if isinstance(running, ProcessManager):
+            return child
+        if isinstance(running, NestedSupervisor):
+            return pool_of(running.node, name)
+    return None
+
+
 def _process_managers(level: Level) -> list[str]:
     names: list[str] = []
     for child in list(level.children):
@@ -299,6 +326,8 @@ def _process_managers(level: Level) -> list[str]:
             names.extend(_process_managers(running.node))
         elif isinstance(running, ProcessManager):
             names.append(child.name)
+            if isinstance(child.spec, SupervisorSpec):  # a pool: its managers too
+                names.extend(m.name for m in managers(child.spec))
     return names
 
 
