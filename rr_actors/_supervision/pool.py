@@ -115,9 +115,7 @@ class PoolSetup:
         from rr_actors._supervision.tree import Tree  # noqa: PLC0415
 
         network = self.address.attach() if self.address is not None else None
-        tree = Tree(
-            self.spec, clock=runtime.monotonic, network=network, durability=self.durability
-        )
+        tree = Tree(self.spec, clock=runtime.monotonic, network=network, durability=self.durability)
         tree.escalate = _gave_up
         tree.processes.open(0, 0.0)  # (the system given: no spares, all threads)
         if HOOKS.hub is not None:

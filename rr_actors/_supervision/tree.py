@@ -30,6 +30,7 @@ from rr_actors._core import runtime, wire
 from rr_actors._core.replies import FutureReply, Steps
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._platform import lockfile
+from rr_actors._process.control import preload
 from rr_actors._process.spare import SparePool
 from rr_actors._registrar import life
 from rr_actors._supervision.children import (
@@ -78,6 +79,9 @@ __all__ = [
 
 logger = logging.getLogger("rr_actors")
 
+POOL_MODULES = ("rr_actors._supervision.policy",)
+"""What a pool's process runs (`pool.py`), imported by the forkserver ahead."""
+
 Clock = Callable[[], float]
 """A monotonic clock in seconds (a tree's, injectable: `Supervisor(clock=)`)."""
 
@@ -105,6 +109,7 @@ class Processes:
                     ) from exc
         for pool, _ in walk(self.spec):  # a pool's setups go to its process at each start
             if isinstance(pool, SupervisorSpec) and pool.isolation == "process":
+                preload(POOL_MODULES)  # (once: a pool's restart does not import them)
                 try:
                     wire.dumps(pool)
                 except Exception as exc:
