@@ -108,13 +108,14 @@ _EXITS: dict[int, tuple[str, bool]] = {
     STOPPED_EXIT: ("normal", True),  # its registrar stopped cleanly: the one normal exit
     0: ("exited with code 0 without stopping its registrar", False),  # nothing let go
     ACTOR_DIED_EXIT: ("registrar actor died", False),
-    POOL_GAVE_UP_EXIT: ("its supervisor gave up", False),  # a pool's (escalation)
 }
 
 
 def describe(exitcode: int | None) -> ManagerExit:
     if exitcode is None:
         return ManagerExit("unknown exit", normal=False)
+    if exitcode == POOL_GAVE_UP_EXIT:  # a pool's: OTP's `shutdown`, but nothing let go
+        return ManagerExit("its supervisor gave up", normal=True, clean=False)
     known = _EXITS.get(exitcode)
     if known is not None:
         reason, normal = known

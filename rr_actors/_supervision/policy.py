@@ -507,12 +507,12 @@ class Starting:
         record.publish()
         spec, tree = child.spec, record.tree
         post = self._watch(child)
-        if is_pool(spec):
-            assert isinstance(spec, SupervisorSpec)
-            child.running = self._start_pool(spec, post)
-            child.gave_up = None
-        elif isinstance(spec, SupervisorSpec):
-            child.running = self._start_nested(spec, child.incarnation)
+        if isinstance(spec, SupervisorSpec):
+            child.running = (
+                self._start_pool(spec, post)  # (in a process of its own: `pool.py`)
+                if is_pool(spec)
+                else self._start_nested(spec, child.incarnation)
+            )
             child.gave_up = None
         else:
             if spec.restart != "temporary":
@@ -544,9 +544,6 @@ class Starting:
         tree.count_start(child.name)
         self._published_start(child, restarted=restarted)
         give_back_abandoned(tree, child.name)
-        if is_pool(spec):
-            assert isinstance(spec, SupervisorSpec)
-            self._pool_started(spec, restarted=restarted)
         if not isinstance(spec, ManagerSpec):
             return
         if restarted:
@@ -599,7 +596,7 @@ class Starting:
         setup = pool_setup(spec, address, tree.durability, self.state_dir)
         config = RegistrarConfig(name=spec.name, durability=tree.durability)
         try:
-            return ProcessManager.start(
+            started = ProcessManager.start(
                 pool_manager(spec),
                 setup,
                 config,
@@ -612,6 +609,8 @@ class Starting:
         finally:
             if processes.spares is not None:
                 record.cast(processes.spares.refill)
+        self._pool_started(spec, restarted=spec.name in tree.started)
+        return started
 
     def _pool_started(self, spec: SupervisorSpec, *, restarted: bool) -> None:
         """Pool `spec` serves: count its managers' starts, and what a manager started does

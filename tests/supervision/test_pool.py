@@ -97,7 +97,8 @@ def test_a_pool_is_one_supervisor_child_in_its_own_process_and_its_managers_shar
     sup, _, uid = tree
     a, b = sup.which_children()
     assert ("supervisor", "process", "running") == (a.kind, a.isolation, a.state)
-    assert a.pid is not None and b.pid is not None
+    assert a.pid is not None
+    assert b.pid is not None
     assert len({os.getpid(), a.pid, b.pid}) == 3
     assert [a.pid, a.pid, b.pid] == [
         sup.child(n).pid for n in (f"a{uid}-m0", f"a{uid}-m1", f"b{uid}-m0")
