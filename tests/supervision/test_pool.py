@@ -229,3 +229,45 @@ def test_a_process_child_inside_a_pool_is_refused_in_one_line(inside: str) -> No
 def test_a_pool_s_isolation_must_be_thread_or_process() -> None:
     with pytest.raises(rr.ConfigError, match="isolation must be one of"):
         rr.SupervisorSpec("p", (), isolation="silo")  # type: ignore[arg-type]
+
+
+def test_a_transient_pool_that_gives_up_stays_down_as_otp_s_shutdown(
+    supervisors: Callable[..., rr.Supervisor], state: str, uid: str
+) -> None:
+    sup = supervisors([pool(f"t{uid}", 2, max_restarts=0, restart="transient")], state_dir=state)
+    seen = Seen()
+    with sup.subscribe(seen):
+        sup.start()
+        with contextlib.suppress(rr.RegistrarUnavailableError):  # (the process may end first)
+            sup.run_in(f"t{uid}-m1", testing.crash, timeout=BOUND)
+
+        assert seen.wait(lambda e: isinstance(e, events.ChildExited) and e.child == f"t{uid}")
+    with pytest.raises(rr.RegistrarUnavailableError, match="will not be restarted"):
+        sup.wait_restarted(f"t{uid}", timeout=BOUND)  # (returns once it is settled)
+    info = sup.child(f"t{uid}")
+    assert ("exited", "its supervisor gave up", None) == (info.state, info.last_exit, info.pid)
+    assert "exited" == sup.child(f"t{uid}-m0").state
+
+
+def test_a_pool_restarted_with_its_group_stops_its_managers_and_restores_their_catalogs(
+    supervisors: Callable[..., rr.Supervisor], state: str, uid: str
+) -> None:
+    solo = rr.ManagerSpec(f"s{uid}", echo_setup, isolation="process")
+    sup = supervisors([pool(f"a{uid}", 2), solo], state_dir=state, strategy="one_for_all")
+    seen = Seen()
+    with sup.subscribe(seen):
+        sup.start()
+        app = sup.registrar(f"app{uid}")
+        held = app.call(f"a{uid}-m1", "echo", "kept")
+        first = sup.child(f"a{uid}").pid
+
+        os.kill(sup.child(f"s{uid}").pid or 0, signal.SIGKILL)  # its sibling
+
+        info = sup.wait_restarted(f"a{uid}-m1", timeout=BOUND)
+        assert info.pid not in (None, first)
+        assert [held.id] == served_ids(sup, f"a{uid}-m1")
+        (stopped,) = seen.of(events.ChildExited, f"a{uid}")
+        assert (True, "shutdown") == (stopped.stopped, stopped.reason)
+        assert seen.wait(  # the pool stopped its managers itself, in order, not killed
+            lambda e: isinstance(e, events.ChildExited) and e.child == f"a{uid}-m0"
+        )
