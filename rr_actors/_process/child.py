@@ -78,10 +78,9 @@ START_HOLD = 1.0
 
 
 class Hooks:
-    """What a pool's `setup` (a supervisor in this manager process,
-    `rr_actors._supervision.pool`) hooks into: this process's event hub (set before
-    `setup` runs) and a step run before its registrar stops, with the `Stop`'s timeout
-    (seconds) and whether it will be restarted."""
+    """What a pool's `setup` (`_supervision/children.py`, `PoolSetup`) hooks into: this
+    process's event hub, and a step run before its registrar stops (the `Stop`'s timeout
+    in seconds; whether it will be restarted)."""
 
     hub: Publisher[events.Event] | None = None
     before_stop: Callable[[float, bool], None] | None = None

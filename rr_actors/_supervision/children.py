@@ -2,10 +2,11 @@
 meaning, and the running adapters.
 
 Every running child offers `pid` and `stop(timeout) -> ManagerExit`: a `ThreadManager`
-(a registrar in this process), a `ProcessManager` (`_process/manager.py`) or a
-`NestedSupervisor`; each tells its end through `on_exit(ManagerExit)`, run on its watcher
-thread. A restart type says whether a child comes back (OTP's): after an exit of its own
-(`restarts_after`) and with its group (`restarts_with_group`).
+(a registrar in this process), a `ProcessManager` (`_process/manager.py`; a pool's
+process too: `PoolSetup`) or a `NestedSupervisor`; each tells its end through
+`on_exit(ManagerExit)`, run on its watcher thread. A restart type says whether a child
+comes back (OTP's): after an exit of its own (`restarts_after`) and with its group
+(`restarts_with_group`).
 """
 
 from __future__ import annotations
@@ -14,24 +15,31 @@ import contextlib
 import dataclasses
 import functools
 import logging
+import os
+import sys
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Literal, Protocol
 
-from rr_actors._core import runtime
+from rr_actors._core import runtime, wire
+from rr_actors._process.child import HOOKS
+from rr_actors._process.control import POOL_GAVE_UP_EXIT
 from rr_actors._process.manager import ManagerExit, ManagerProcess, stopped_cleanly
 from rr_actors._registrar import Served, start_registrar
 from rr_actors.config import (
+    Durability,
     Isolation,
     ManagerSpec,
     RegistrarConfig,
     RestartType,
     SupervisorSpec,
+    managers,
     tree_names,
 )
-from rr_actors.errors import RrError, SupervisorGaveUpError
+from rr_actors.errors import ConfigError, RrError, SupervisorGaveUpError
 
 if TYPE_CHECKING:
     from rr_actors._process.spare import SparePool
+    from rr_actors._registrar import ResourceRegistrar
     from rr_actors._supervision.watching import EventRelay
     from rr_actors._transport.messenger import Address, Transport
 
@@ -276,6 +284,80 @@ class NestedSupervisor:
     def stop(self, timeout: float | None, *, restarting: bool = False) -> ManagerExit:
         self.node.stop(timeout=timeout, restarting=restarting)
         return ManagerExit("shutdown", normal=True)
+
+
+# -- a pool: a nested supervisor in an OS process of its own ------------------------------
+
+POOL_HEARTBEAT = 1.0  # seconds: a pool's one registrar shares its interpreter with its managers
+
+
+def is_pool(spec: ManagerSpec | SupervisorSpec) -> bool:
+    return isinstance(spec, SupervisorSpec) and spec.isolation == "process"
+
+
+def pool_manager(spec: SupervisorSpec) -> ManagerSpec:
+    """How its parent starts and watches pool `spec`'s process: as a process manager named
+    after it (its managers' `shutdown`s summed, plus 5 s; their `start_timeout`s summed)."""
+    members = managers(spec)
+    return ManagerSpec(
+        spec.name,
+        isolation="process",
+        restart=spec.restart,
+        shutdown=sum(m.shutdown for m in members) + 5.0,
+        heartbeat=POOL_HEARTBEAT,
+        start_timeout=sum(m.start_timeout for m in members) or 30.0,
+    )
+
+
+def pool_setup(
+    spec: SupervisorSpec,
+    address: Address | None,
+    durability: Durability,
+    state_dir: str | os.PathLike[str] | None,
+) -> bytes:
+    """The pickled `setup` of pool `spec`'s registrar (`ConfigError`: one cannot pickle)."""
+    own = spec.state_dir if spec.state_dir is not None else state_dir
+    inner = dataclasses.replace(spec, isolation="thread", state_dir=own)
+    try:
+        return wire.dumps(PoolSetup(inner, address, durability))
+    except Exception as exc:
+        raise ConfigError(f"a setup in pool {spec.name!r} is not picklable: {exc}") from exc
+
+
+class PoolSetup:
+    """`setup` of a pool's own registrar (Orleans' silo, in OTP's words), run in its process
+    before it is ready: a supervisor of its thread managers, served on the parent's system,
+    their events relayed to the process's hub. A `Stop` stops them first
+    (`HOOKS.before_stop`); a give-up ends the process (`POOL_GAVE_UP_EXIT`): its parent
+    decides (OTP's escalation). The heartbeat watches the pool's registrar, not each one."""
+
+    def __init__(
+        self, spec: SupervisorSpec, address: Address | None, durability: Durability
+    ) -> None:
+        self.spec, self.address, self.durability = spec, address, durability
+
+    def __call__(self, registrar: ResourceRegistrar) -> None:
+        from rr_actors._supervision.policy import Node  # noqa: PLC0415 - they import this
+        from rr_actors._supervision.tree import Tree  # noqa: PLC0415
+
+        network = self.address.attach() if self.address is not None else None
+        tree = Tree(self.spec, clock=runtime.monotonic, network=network, durability=self.durability)
+        tree.escalate = _pool_gave_up
+        tree.processes.open(0, 0.0)  # (the system given: no spares, all threads)
+        if HOOKS.hub is not None:
+            tree.events.publisher.relay_to(HOOKS.hub)  # forwarded while the parent listens
+        node = Node(self.spec, tree)
+        node.start()
+        HOOKS.before_stop = lambda timeout, restarting: node.stop(
+            timeout=0.8 * timeout,
+            restarting=restarting,  # (the rest: its registrar's stop)
+        )
+
+
+def _pool_gave_up(error: SupervisorGaveUpError) -> None:
+    logger.error("%s: its process exits, its parent decides", error)
+    sys.stderr.flush()  # (what its managers committed stays, as after a SIGKILL)
+    os._exit(POOL_GAVE_UP_EXIT)
 
 
 # -- the record of one child ---------------------------------------------------------------

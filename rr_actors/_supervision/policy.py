@@ -46,10 +46,12 @@ from rr_actors._supervision.children import (
     NestedSupervisor,
     ProcessManager,
     ThreadManager,
+    is_pool,
+    pool_manager,
+    pool_setup,
     restarts_after,
     restarts_with_group,
 )
-from rr_actors._supervision.pool import is_pool, pool_manager, pool_setup
 from rr_actors._supervision.retry import give_back_abandoned
 from rr_actors._supervision.tree import (
     Clock,
@@ -509,7 +511,7 @@ class Starting:
         post = self._watch(child)
         if isinstance(spec, SupervisorSpec):
             child.running = (
-                self._start_pool(spec, post)  # (in a process of its own: `pool.py`)
+                self._start_pool(spec, post)  # (in a process of its own: `PoolSetup`)
                 if is_pool(spec)
                 else self._start_nested(spec, child.incarnation)
             )
@@ -587,7 +589,7 @@ class Starting:
     def _start_pool(
         self, spec: SupervisorSpec, post: Callable[[ManagerExit], None]
     ) -> ProcessManager:
-        """Start pool `spec`'s process (`pool.py`); return once its managers serve."""
+        """Start pool `spec`'s process (`PoolSetup`); return once its managers serve."""
         record = self.record
         tree, processes = record.tree, record.tree.processes
         for name in registrar_names(spec):

@@ -40,6 +40,8 @@ from rr_actors._supervision.children import (
     Level,
     NestedSupervisor,
     ProcessManager,
+    is_pool,
+    pool_setup,
     restarts_after,
     snapshot,
 )
@@ -79,8 +81,7 @@ __all__ = [
 
 logger = logging.getLogger("rr_actors")
 
-POOL_MODULES = ("rr_actors._supervision.policy",)
-"""What a pool's process runs (`pool.py`), imported by the forkserver ahead."""
+POOL_MODULES = ("rr_actors._supervision.policy",)  # a pool's process runs it: preloaded
 
 Clock = Callable[[], float]
 """A monotonic clock in seconds (a tree's, injectable: `Supervisor(clock=)`)."""
@@ -107,15 +108,10 @@ class Processes:
                     raise ConfigError(
                         f"setup of manager {manager.name!r} is not picklable: {exc}"
                     ) from exc
-        for pool, _ in walk(self.spec):  # a pool's setups go to its process at each start
-            if isinstance(pool, SupervisorSpec) and pool.isolation == "process":
+        for pool, _ in walk(self.spec):  # (a pool's setups are pickled at each of its starts)
+            if isinstance(pool, SupervisorSpec) and is_pool(pool):
                 preload(POOL_MODULES)  # (once: a pool's restart does not import them)
-                try:
-                    wire.dumps(pool)
-                except Exception as exc:
-                    raise ConfigError(
-                        f"a setup in pool {pool.name!r} is not picklable: {exc}"
-                    ) from exc
+                pool_setup(pool, None, "process", None)
         if self.network is not None:
             if self.network.closed:
                 raise ConfigError(
@@ -185,7 +181,7 @@ class Tree:
         self.down_since: dict[str, float] = {}  # name -> when its last incarnation ended
         self.restart_due: dict[str, float] = {}  # name -> when its backoff ends (runtime.wall())
         self._mailboxes: weakref.WeakSet[SerialExecutor] = weakref.WeakSet()  # every Node's
-        # a pool's tree (`pool.py`): its root's give-up ends the process (never returns)
+        # a pool's tree (`PoolSetup`): its root's give-up ends the process (never returns)
         self.escalate: Callable[[SupervisorGaveUpError], None] | None = None
 
     def durable(self, config: RegistrarConfig) -> RegistrarConfig:
