@@ -136,7 +136,8 @@ def main() -> None:
                 f"forkserver {server / 1024:.0f} MiB; in all {all_kib / 1024:.0f} MiB = "
                 f"{all_kib / 1024 / total:.2f} MiB per manager"
             )
-            kills(sup, app, pools, args.kills)
+            if args.kills:
+                kills(sup, app, pools, args.kills)
     print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
 
 
