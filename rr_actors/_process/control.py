@@ -201,7 +201,7 @@ exit (an exit 0 let nothing go: a crash)."""
 
 POOL_GAVE_UP_EXIT = 73
 """The exit code of a pool's process (`SupervisorSpec(isolation="process")`) whose
-supervisor gave up: a crash of the pool, its parent decides (OTP's escalation)."""
+supervisor gave up: OTP's `shutdown` of a nested supervisor, its parent decides."""
 
 PROCESS_PREFIX = "rr-manager-"  # every manager process's `multiprocessing` name
 TITLE_PREFIX = "rr-actors: "  # and its process title (`ps`), before the manager's name

@@ -21,6 +21,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Literal, Protocol
 
 from rr_actors._core import runtime, wire
+from rr_actors._core.directory import DIRECTORY
 from rr_actors._process.child import HOOKS
 from rr_actors._process.control import POOL_GAVE_UP_EXIT
 from rr_actors._process.manager import ManagerExit, ManagerProcess, stopped_cleanly
@@ -348,10 +349,14 @@ class PoolSetup:
             tree.events.publisher.relay_to(HOOKS.hub)  # forwarded while the parent listens
         node = Node(self.spec, tree)
         node.start()
-        HOOKS.before_stop = lambda timeout, restarting: node.stop(
-            timeout=0.8 * timeout,
-            restarting=restarting,  # (the rest: its registrar's stop)
-        )
+        names = [manager.name for manager in managers(self.spec)]
+
+        def stop(timeout: float, restarting: bool) -> None:
+            if restarting:  # with its group: no tombstones, its callers see "unavailable"
+                DIRECTORY.mark_restarting(names)
+            node.stop(timeout=0.8 * timeout, restarting=restarting)  # (the rest: its own)
+
+        HOOKS.before_stop = stop
 
 
 def _pool_gave_up(error: SupervisorGaveUpError) -> None:
