@@ -78,7 +78,7 @@ START_HOLD = 1.0
 
 
 class Hooks:
-    """What a pool's `setup` (`_supervision/children.py`, `PoolSetup`) hooks into: this
+    """What a pool's `setup` (`_supervision/policy.py`, `PoolSetup`) hooks into: this
     process's event hub, and a step run before its registrar stops (the `Stop`'s timeout
     in seconds; whether it will be restarted)."""
 

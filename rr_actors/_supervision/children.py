@@ -3,7 +3,7 @@ meaning, and the running adapters.
 
 Every running child offers `pid` and `stop(timeout) -> ManagerExit`: a `ThreadManager`
 (a registrar in this process), a `ProcessManager` (`_process/manager.py`; a pool's
-process too: `PoolSetup`) or a `NestedSupervisor`; each tells its end through
+process too: `policy.PoolSetup`) or a `NestedSupervisor`; each tells its end through
 `on_exit(ManagerExit)`, run on its watcher thread. A restart type says whether a child
 comes back (OTP's): after an exit of its own (`restarts_after`) and with its group
 (`restarts_with_group`).
@@ -15,19 +15,13 @@ import contextlib
 import dataclasses
 import functools
 import logging
-import os
-import sys
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Literal, Protocol
 
-from rr_actors._core import runtime, wire
-from rr_actors._core.directory import DIRECTORY
-from rr_actors._process.child import HOOKS
-from rr_actors._process.control import POOL_GAVE_UP_EXIT
+from rr_actors._core import runtime
 from rr_actors._process.manager import ManagerExit, ManagerProcess, stopped_cleanly
 from rr_actors._registrar import Served, start_registrar
 from rr_actors.config import (
-    Durability,
     Isolation,
     ManagerSpec,
     RegistrarConfig,
@@ -36,11 +30,10 @@ from rr_actors.config import (
     managers,
     tree_names,
 )
-from rr_actors.errors import ConfigError, RrError, SupervisorGaveUpError
+from rr_actors.errors import RrError, SupervisorGaveUpError
 
 if TYPE_CHECKING:
     from rr_actors._process.spare import SparePool
-    from rr_actors._registrar import ResourceRegistrar
     from rr_actors._supervision.watching import EventRelay
     from rr_actors._transport.messenger import Address, Transport
 
@@ -308,61 +301,6 @@ def pool_manager(spec: SupervisorSpec) -> ManagerSpec:
         heartbeat=POOL_HEARTBEAT,
         start_timeout=sum(m.start_timeout for m in members) or 30.0,
     )
-
-
-def pool_setup(
-    spec: SupervisorSpec,
-    address: Address | None,
-    durability: Durability,
-    state_dir: str | os.PathLike[str] | None,
-) -> bytes:
-    """The pickled `setup` of pool `spec`'s registrar (`ConfigError`: one cannot pickle)."""
-    own = spec.state_dir if spec.state_dir is not None else state_dir
-    inner = dataclasses.replace(spec, isolation="thread", state_dir=own)
-    try:
-        return wire.dumps(PoolSetup(inner, address, durability))
-    except Exception as exc:
-        raise ConfigError(f"a setup in pool {spec.name!r} is not picklable: {exc}") from exc
-
-
-class PoolSetup:
-    """`setup` of a pool's own registrar (Orleans' silo, in OTP's words), run in its process
-    before it is ready: a supervisor of its thread managers, served on the parent's system,
-    their events relayed to the process's hub. A `Stop` stops them first
-    (`HOOKS.before_stop`); a give-up ends the process (`POOL_GAVE_UP_EXIT`): its parent
-    decides (OTP's escalation). The heartbeat watches the pool's registrar, not each one."""
-
-    def __init__(
-        self, spec: SupervisorSpec, address: Address | None, durability: Durability
-    ) -> None:
-        self.spec, self.address, self.durability = spec, address, durability
-
-    def __call__(self, registrar: ResourceRegistrar) -> None:
-        from rr_actors._supervision.policy import Node  # noqa: PLC0415 - they import this
-        from rr_actors._supervision.tree import Tree  # noqa: PLC0415
-
-        network = self.address.attach() if self.address is not None else None
-        tree = Tree(self.spec, clock=runtime.monotonic, network=network, durability=self.durability)
-        tree.escalate = _pool_gave_up
-        tree.processes.open(0, 0.0)  # (the system given: no spares, all threads)
-        if HOOKS.hub is not None:
-            tree.events.publisher.relay_to(HOOKS.hub)  # forwarded while the parent listens
-        node = Node(self.spec, tree)
-        node.start()
-        names = [manager.name for manager in managers(self.spec)]
-
-        def stop(timeout: float, restarting: bool) -> None:
-            if restarting:  # with its group: no tombstones, its callers see "unavailable"
-                DIRECTORY.mark_restarting(names)
-            node.stop(timeout=0.8 * timeout, restarting=restarting)  # (the rest: its own)
-
-        HOOKS.before_stop = stop
-
-
-def _pool_gave_up(error: SupervisorGaveUpError) -> None:
-    logger.error("%s: its process exits, its parent decides", error)
-    sys.stderr.flush()  # (what its managers committed stays, as after a SIGKILL)
-    os._exit(POOL_GAVE_UP_EXIT)
 
 
 # -- the record of one child ---------------------------------------------------------------

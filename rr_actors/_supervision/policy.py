@@ -32,13 +32,16 @@ import dataclasses
 import functools
 import logging
 import os
+import sys
 from collections.abc import Callable, Sequence
-from typing import Protocol, TypeVar
+from typing import TYPE_CHECKING, Protocol, TypeVar
 
 from rr_actors import events
-from rr_actors._core import runtime
+from rr_actors._core import runtime, wire
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.serial import SerialExecutor
+from rr_actors._process.child import HOOKS
+from rr_actors._process.control import POOL_GAVE_UP_EXIT
 from rr_actors._process.manager import ManagerExit
 from rr_actors._supervision.children import (
     Child,
@@ -48,7 +51,6 @@ from rr_actors._supervision.children import (
     ThreadManager,
     is_pool,
     pool_manager,
-    pool_setup,
     restarts_after,
     restarts_with_group,
 )
@@ -62,8 +64,19 @@ from rr_actors._supervision.tree import (
     lost_everything,
     ran_before,
 )
-from rr_actors.config import ManagerSpec, RegistrarConfig, Strategy, SupervisorSpec, managers
+from rr_actors.config import (
+    Durability,
+    ManagerSpec,
+    RegistrarConfig,
+    Strategy,
+    SupervisorSpec,
+    managers,
+)
 from rr_actors.errors import ConfigError, RrError, SupervisorGaveUpError
+
+if TYPE_CHECKING:
+    from rr_actors._registrar import ResourceRegistrar
+    from rr_actors._transport.messenger import Address
 
 logger = logging.getLogger("rr_actors")
 
@@ -639,6 +652,58 @@ class Starting:
             post(Exited(spec.name, incarnation, gave_up))
 
         return NestedSupervisor(self.nest(spec, escalate))
+
+
+def pool_setup(
+    spec: SupervisorSpec,
+    address: Address | None,
+    durability: Durability,
+    state_dir: str | os.PathLike[str] | None,
+) -> bytes:
+    """The pickled `setup` of pool `spec`'s registrar (`ConfigError`: one cannot pickle)."""
+    own = spec.state_dir if spec.state_dir is not None else state_dir
+    inner = dataclasses.replace(spec, isolation="thread", state_dir=own)
+    try:
+        return wire.dumps(PoolSetup(inner, address, durability))
+    except Exception as exc:
+        raise ConfigError(f"a setup in pool {spec.name!r} is not picklable: {exc}") from exc
+
+
+class PoolSetup:
+    """`setup` of a pool's own registrar (Orleans' silo, in OTP's words), run in its process
+    before it is ready: a supervisor of its thread managers, served on the parent's system,
+    their events relayed to the process's hub. A `Stop` stops them first
+    (`HOOKS.before_stop`); a give-up ends the process (`POOL_GAVE_UP_EXIT`): its parent
+    decides (OTP's escalation). The heartbeat watches the pool's registrar, not each one."""
+
+    def __init__(
+        self, spec: SupervisorSpec, address: Address | None, durability: Durability
+    ) -> None:
+        self.spec, self.address, self.durability = spec, address, durability
+
+    def __call__(self, registrar: ResourceRegistrar) -> None:
+        network = self.address.attach() if self.address is not None else None
+        tree = Tree(self.spec, clock=runtime.monotonic, network=network, durability=self.durability)
+        tree.escalate = _pool_gave_up
+        tree.processes.open(0, 0.0)  # (the system given: no spares, all threads)
+        if HOOKS.hub is not None:
+            tree.events.publisher.relay_to(HOOKS.hub)  # forwarded while the parent listens
+        node = Node(self.spec, tree)
+        node.start()
+        names = [manager.name for manager in managers(self.spec)]
+
+        def stop(timeout: float, restarting: bool) -> None:
+            if restarting:  # with its group: no tombstones, its callers see "unavailable"
+                DIRECTORY.mark_restarting(names)
+            node.stop(timeout=0.8 * timeout, restarting=restarting)  # (the rest: its own)
+
+        HOOKS.before_stop = stop
+
+
+def _pool_gave_up(error: SupervisorGaveUpError) -> None:
+    logger.error("%s: its process exits, its parent decides", error)
+    sys.stderr.flush()  # (what its managers committed stays, as after a SIGKILL)
+    os._exit(POOL_GAVE_UP_EXIT)
 
 
 # -- stopping: in reverse order, and the death watch (OTP's terminate_children) ------------

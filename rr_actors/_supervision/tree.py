@@ -41,7 +41,6 @@ from rr_actors._supervision.children import (
     NestedSupervisor,
     ProcessManager,
     is_pool,
-    pool_setup,
     restarts_after,
     snapshot,
 )
@@ -111,7 +110,12 @@ class Processes:
         for pool, _ in walk(self.spec):  # (a pool's setups are pickled at each of its starts)
             if isinstance(pool, SupervisorSpec) and is_pool(pool):
                 preload(POOL_MODULES)  # (once: a pool's restart does not import them)
-                pool_setup(pool, None, "process", None)
+                try:
+                    wire.dumps(pool)
+                except Exception as exc:
+                    raise ConfigError(
+                        f"a setup in pool {pool.name!r} is not picklable: {exc}"
+                    ) from exc
         if self.network is not None:
             if self.network.closed:
                 raise ConfigError(
