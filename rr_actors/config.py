@@ -342,12 +342,22 @@ class SupervisorSpec:
     When it gives up, its parent sees OTP's `shutdown`: a `permanent` one is restarted under
     the parent's strategy and intensity (escalation, as in OTP); others stay down.
 
+    With `isolation="process"` it is a *pool*: it runs in an OS process of its own with
+    its thread managers (an Orleans silo hosting grains; in OTP terms a supervisor whose
+    children share its node). It restarts each of them alone, by its own strategy and
+    intensity; a SIGKILL of its process (or its give-up, or a hang of its process) is one
+    crash of this child in its parent, which starts the process again, its managers
+    restoring their catalogs before they serve (docs: "Big trees").
+
     Attributes:
         name: the child's name in its parent (unique in the tree).
         children: its children, started in this order.
         strategy, max_restarts, period, backoff: as for `Supervisor`.
         restart: its restart type in the parent.
         state_dir: where its managers keep their catalogs (default: the parent's).
+        isolation: `"thread"` (default: it runs in its parent's process) or `"process"`
+            (a pool in its own OS process; its children must all be thread managers and
+            in-process supervisors, their setups picklable).
     """
 
     name: str
@@ -358,9 +368,11 @@ class SupervisorSpec:
     backoff: Backoff = Backoff()
     restart: RestartType = "permanent"
     state_dir: str | os.PathLike[str] | None = None
+    isolation: Isolation = "thread"
 
     def __post_init__(self) -> None:
         check_name("name", self.name, "a supervisor name")
+        check_choice("isolation", self.isolation, ("thread", "process"))
         object.__setattr__(self, "children", tuple(self.children))
         check_choice("strategy", self.strategy, ("one_for_one", "one_for_all", "rest_for_one"))
         check_choice("restart", self.restart, ("permanent", "transient", "temporary"))
@@ -378,9 +390,23 @@ class SupervisorSpec:
             if name in seen:
                 raise ConfigError(f"children: the name {name!r} is used twice in the tree")
             seen.add(name)
+        if self.isolation == "process":
+            _check_pool(self)
 
     def has_processes(self) -> bool:
-        return any(isinstance(c, ManagerSpec) and c.isolation == "process" for c, _ in walk(self))
+        return any(c.isolation == "process" for c, _ in walk(self))
+
+
+def _check_pool(pool: SupervisorSpec) -> None:
+    """`ConfigError` unless everything below pool `pool` runs in its process (threads)."""
+    for child, _ in walk(pool):
+        if child.isolation == "process":
+            kind = "manager" if isinstance(child, ManagerSpec) else "supervisor"
+            raise ConfigError(
+                f"children: {kind} {child.name!r} has isolation='process' inside supervisor "
+                f"{pool.name!r}, which runs in a process of its own (isolation='process'): "
+                "a pool holds thread managers only; make it a sibling of the pool instead"
+            )
 
 
 def walk(

@@ -84,6 +84,7 @@ SMALLEST = {
     "bench_setup.py": [  # (the tests of one file, in this interpreter: no venv, no install)
         *("--only", "tests", "--python", sys.executable, "--select", "tests/test_docs_index.py"),
     ],
+    "bench_pools.py": ["--pools", "2", "--size", "2", "--kills", "1", "--compare", "2"],
     "bench_scale.py": [
         *("--sections", "start", "fresh", "restart", "serve", "status"),
         *("--counts", "2", "--rounds", "1"),

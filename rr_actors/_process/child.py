@@ -84,6 +84,18 @@ def provider_names(registrar: ResourceRegistrar) -> set[str]:
     return {query.serving_rr for query in registrar.client_queries(timeout=5.0)}
 
 
+class Hooks:
+    """What a pool's `setup` (`_supervision/policy.py`, `PoolSetup`) hooks into: this
+    process's event hub, and a step run before its registrar stops (the `Stop`'s timeout
+    in seconds; whether it will be restarted)."""
+
+    hub: Publisher[events.Event] | None = None
+    before_stop: Callable[[float, bool], None] | None = None
+
+
+HOOKS = Hooks()
+
+
 def set_title(name: str) -> None:
     """Name this process after its manager for `ps` and `top` (the kernel's 15-byte name
     is the name itself; with `setproctitle`, the command line `rr-actors: <name>`)."""
@@ -323,6 +335,7 @@ def _run_manager(
             attached = address.attach()
             attached.supervised_by(_supervisor_pid(conn))  # it restarts this one (rule 19)
         registrar = start_registrar(config, upstream=line.hub, hold_in_doubt=True, announced=True)
+        HOOKS.hub = line.hub
         setup_fn = cloudpickle.loads(setup)
         if setup_fn is not None:
             setup_fn(registrar)
@@ -416,9 +429,11 @@ class _ControlLoop:
         self.line.switch(on=message.on)
 
     def peer_started(self, message: PeerStarted) -> None:
+        """Every registrar of this process hears it (a pool's managers too)."""
         from rr_actors._registrar.life import heard_started  # noqa: PLC0415 - preloaded
 
-        heard_started(self.registrar.name, message.name)
+        for peer in DIRECTORY.local_peers():
+            heard_started(peer.name, message.name)
 
     def sync_events(self, message: SyncEvents) -> None:
         threading.Thread(
@@ -434,6 +449,13 @@ class _ControlLoop:
         if message.restarting:  # stopped to be restarted with its group:
             DIRECTORY.mark_restarting([registrar.name])  # no tombstone: "unavailable"
         code = STOPPED_EXIT
+        before_stop = HOOKS.before_stop
+        if before_stop is not None:  # a pool: its supervisor stops its managers first
+            try:
+                before_stop(message.timeout, message.restarting)
+            except Exception:
+                logger.exception("manager %s: stopping its pool failed", registrar.name)
+                code = 1
         try:
             registrar.stop(timeout=message.timeout)
         except RrError:

@@ -43,6 +43,7 @@ from rr_actors.errors import CatalogCorruptError, RegistrarStoppedError
 __all__ = [
     "ACTOR_DIED_EXIT",
     "PARENT_GONE_EXIT",
+    "POOL_GAVE_UP_EXIT",
     "PROCESS_PREFIX",
     "STOPPED_EXIT",
     "TITLE_PREFIX",
@@ -205,6 +206,10 @@ ACTOR_DIED_EXIT = 71
 STOPPED_EXIT = 72
 """The exit code of a manager process whose registrar stopped cleanly: its one normal
 exit (an exit 0 let nothing go: a crash)."""
+
+POOL_GAVE_UP_EXIT = 73
+"""The exit code of a pool's process (`SupervisorSpec(isolation="process")`) whose
+supervisor gave up: OTP's `shutdown` of a nested supervisor, its parent decides."""
 
 PROCESS_PREFIX = "rr-manager-"  # every manager process's `multiprocessing` name
 TITLE_PREFIX = "rr-actors: "  # and its process title (`ps`), before the manager's name

@@ -40,6 +40,7 @@ from rr_actors._platform import PLATFORM
 from rr_actors._process.child import main
 from rr_actors._process.control import (
     ACTOR_DIED_EXIT,
+    POOL_GAVE_UP_EXIT,
     PROCESS_PREFIX,
     STOPPED_EXIT,
     Events,
@@ -114,6 +115,8 @@ _EXITS: dict[int, tuple[str, bool]] = {
 def describe(exitcode: int | None) -> ManagerExit:
     if exitcode is None:
         return ManagerExit("unknown exit", normal=False)
+    if exitcode == POOL_GAVE_UP_EXIT:  # a pool's: OTP's `shutdown`, but nothing let go
+        return ManagerExit("its supervisor gave up", normal=True, clean=False)
     known = _EXITS.get(exitcode)
     if known is not None:
         reason, normal = known

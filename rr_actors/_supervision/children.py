@@ -2,10 +2,11 @@
 meaning, and the running adapters.
 
 Every running child offers `pid` and `stop(timeout) -> ManagerExit`: a `ThreadManager`
-(a registrar in this process), a `ProcessManager` (`_process/manager.py`) or a
-`NestedSupervisor`; each tells its end through `on_exit(ManagerExit)`, run on its watcher
-thread. A restart type says whether a child comes back (OTP's): after an exit of its own
-(`restarts_after`) and with its group (`restarts_with_group`).
+(a registrar in this process), a `ProcessManager` (`_process/manager.py`; a pool's
+process too: `policy.PoolSetup`) or a `NestedSupervisor`; each tells its end through
+`on_exit(ManagerExit)`, run on its watcher thread. A restart type says whether a child
+comes back (OTP's): after an exit of its own (`restarts_after`) and with its group
+(`restarts_with_group`).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from rr_actors.config import (
     RegistrarConfig,
     RestartType,
     SupervisorSpec,
+    managers,
     tree_names,
 )
 from rr_actors.errors import RrError, SupervisorGaveUpError
@@ -48,12 +50,14 @@ class ChildInfo:
     Attributes:
         name: the child's name.
         kind: `"manager"` or `"supervisor"`.
-        isolation: `"thread"` or `"process"` for a manager, `None` for a supervisor.
+        isolation: `"thread"` or `"process"` for a manager; for a supervisor
+            `"process"` when it is a pool (in an OS process of its own), else `None`.
         restart: its restart type.
         state: `"starting"`, `"running"`, `"restarting"` (down, restart pending),
             `"stopping"`, `"stopped"` (by the supervisor) or `"exited"` (down on its own
             and not restarted; a transient one comes back with its group, as in OTP).
-        pid: the process id of a running process manager, else `None`.
+        pid: the process id of a running process manager, a running pool, or (for a
+            child of a running pool) its pool's; else `None`.
         restarts: how many times it was restarted so far (with its nested supervisor
             too).
         last_exit: why its last incarnation ended (`None` before the first exit).
@@ -96,13 +100,17 @@ def snapshot(
     return ChildInfo(
         name=spec.name,
         kind="supervisor" if isinstance(spec, SupervisorSpec) else "manager",
-        isolation=spec.isolation if isinstance(spec, ManagerSpec) else None,
+        isolation=spec.isolation if isinstance(spec, ManagerSpec) else _pooled(spec),
         restart=spec.restart,
         state=state,
         pid=pid,
         restarts=restarts,
         last_exit=last_exit,
     )
+
+
+def _pooled(spec: SupervisorSpec) -> Isolation | None:
+    return "process" if spec.isolation == "process" else None
 
 
 # -- restart types: whether a child comes back (OTP) -------------------------------------
@@ -274,6 +282,29 @@ class NestedSupervisor:
     ) -> ManagerExit:
         self.node.stop(timeout=timeout, restarting=restarting, parallel=parallel)
         return ManagerExit("shutdown", normal=True)
+
+
+# -- a pool: a nested supervisor in an OS process of its own ------------------------------
+
+POOL_HEARTBEAT = 1.0  # seconds: a pool's one registrar shares its interpreter with its managers
+
+
+def is_pool(spec: ManagerSpec | SupervisorSpec) -> bool:
+    return isinstance(spec, SupervisorSpec) and spec.isolation == "process"
+
+
+def pool_manager(spec: SupervisorSpec) -> ManagerSpec:
+    """How its parent starts and watches pool `spec`'s process: as a process manager named
+    after it (its managers' `shutdown`s summed, plus 5 s; their `start_timeout`s summed)."""
+    members = managers(spec)
+    return ManagerSpec(
+        spec.name,
+        isolation="process",
+        restart=spec.restart,
+        shutdown=sum(m.shutdown for m in members) + 5.0,
+        heartbeat=POOL_HEARTBEAT,
+        start_timeout=sum(m.start_timeout for m in members) or 30.0,
+    )
 
 
 # -- the record of one child ---------------------------------------------------------------

@@ -36,14 +36,16 @@ import logging
 import os
 import queue
 import resource
+import sys
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Protocol, TypeVar
 
 from rr_actors import events
-from rr_actors._core import runtime
+from rr_actors._core import runtime, wire
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.serial import SerialExecutor
-from rr_actors._process.child import provider_names
+from rr_actors._process.child import HOOKS, provider_names
+from rr_actors._process.control import POOL_GAVE_UP_EXIT
 from rr_actors._process.manager import ManagerExit
 from rr_actors._supervision.children import (
     Child,
@@ -52,6 +54,8 @@ from rr_actors._supervision.children import (
     ProcessManager,
     Running,
     ThreadManager,
+    is_pool,
+    pool_manager,
     restarts_after,
     restarts_with_group,
 )
@@ -66,11 +70,19 @@ from rr_actors._supervision.tree import (
     lost_everything,
     ran_before,
 )
-from rr_actors.config import ManagerSpec, RegistrarConfig, Strategy, SupervisorSpec, managers
+from rr_actors.config import (
+    Durability,
+    ManagerSpec,
+    RegistrarConfig,
+    Strategy,
+    SupervisorSpec,
+    managers,
+)
 from rr_actors.errors import ConfigError, RrError, SupervisorGaveUpError
 
 if TYPE_CHECKING:
-    from rr_actors._transport.messenger import Transport
+    from rr_actors._registrar import ResourceRegistrar
+    from rr_actors._transport.messenger import Address, Transport
 
 logger = logging.getLogger("rr_actors")
 
@@ -380,6 +392,8 @@ class Restarts:
             f"within {spec.period:g} s (last: {crashed.name!r} {crashed.last_exit})"
         )
         logger.error("%s", error)
+        if record.parent is None and record.tree.escalate is not None:
+            record.tree.escalate(error)  # a pool's: its process ends, its parent decides
         self.giving_up = True
         self.cancel()
         for child in reversed(record.children):
@@ -575,7 +589,11 @@ class Starting:
         post = self._watch(child)
         restored = False  # whether it starts on a backup an earlier run left
         if isinstance(spec, SupervisorSpec):
-            child.running = self._start_nested(spec, child.incarnation)
+            child.running = (
+                self._start_pool(spec, post)  # (in a process of its own: `PoolSetup`)
+                if is_pool(spec)
+                else self._start_nested(spec, child.incarnation)
+            )
             child.gave_up = None
         else:
             if spec.restart != "temporary":
@@ -657,6 +675,50 @@ class Starting:
         restart_s = 0.0 if down_since is None else runtime.monotonic() - down_since
         publisher.publish(events.ChildRestarted(record.name, child.name, pid, restart_s))
 
+    def _start_pool(
+        self, spec: SupervisorSpec, post: Callable[[ManagerExit], None]
+    ) -> ProcessManager:
+        """Start pool `spec`'s process (`PoolSetup`); return once its managers serve."""
+        record = self.record
+        tree, processes = record.tree, record.tree.processes
+        for name in registrar_names(spec):
+            comes_back(name)  # no longer gone for good
+        address = processes.system.address if processes.system is not None else None
+        setup = pool_setup(spec, address, tree.durability, self.state_dir)
+        config = RegistrarConfig(name=spec.name, durability=tree.durability)
+        try:
+            started = ProcessManager.start(
+                pool_manager(spec),
+                setup,
+                config,
+                address,
+                post,
+                processes.spares,
+                tree.events,
+                supervisor=record.name,
+            )
+        finally:
+            if processes.spares is not None:
+                record.cast(processes.spares.refill)
+        self._pool_started(spec, restarted=spec.name in tree.started)
+        return started
+
+    def _pool_started(self, spec: SupervisorSpec, *, restarted: bool) -> None:
+        """Pool `spec` serves: count its managers' starts, and what a manager started does
+        here (abandoned ids; after a restart, the death watch; without a backup,
+        reconcile)."""
+        tree = self.record.tree
+        own = spec.state_dir if spec.state_dir is not None else self.state_dir
+        for manager in managers(spec):
+            tree.count_start(manager.name)
+            give_back_abandoned(tree, manager.name)
+            if not restarted:
+                continue
+            death_watch_missed(manager.name)
+            backup = manager.config.backup_path if manager.config is not None else own
+            if backup is None:
+                lost_everything(self.record.root(), manager.name, tree.processes.system)
+
     def _start_nested(self, spec: SupervisorSpec, incarnation: int) -> NestedSupervisor:
         post = self.record.post
 
@@ -666,6 +728,58 @@ class Starting:
             post(Exited(spec.name, incarnation, gave_up))
 
         return NestedSupervisor(self.nest(spec, escalate))
+
+
+def pool_setup(
+    spec: SupervisorSpec,
+    address: Address | None,
+    durability: Durability,
+    state_dir: str | os.PathLike[str] | None,
+) -> bytes:
+    """The pickled `setup` of pool `spec`'s registrar (`ConfigError`: one cannot pickle)."""
+    own = spec.state_dir if spec.state_dir is not None else state_dir
+    inner = dataclasses.replace(spec, isolation="thread", state_dir=own)
+    try:
+        return wire.dumps(PoolSetup(inner, address, durability))
+    except Exception as exc:
+        raise ConfigError(f"a setup in pool {spec.name!r} is not picklable: {exc}") from exc
+
+
+class PoolSetup:
+    """`setup` of a pool's own registrar (Orleans' silo, in OTP's words), run in its process
+    before it is ready: a supervisor of its thread managers, served on the parent's system,
+    their events relayed to the process's hub. A `Stop` stops them first
+    (`HOOKS.before_stop`); a give-up ends the process (`POOL_GAVE_UP_EXIT`): its parent
+    decides (OTP's escalation). The heartbeat watches the pool's registrar, not each one."""
+
+    def __init__(
+        self, spec: SupervisorSpec, address: Address | None, durability: Durability
+    ) -> None:
+        self.spec, self.address, self.durability = spec, address, durability
+
+    def __call__(self, registrar: ResourceRegistrar) -> None:
+        network = self.address.attach() if self.address is not None else None
+        tree = Tree(self.spec, clock=runtime.monotonic, network=network, durability=self.durability)
+        tree.escalate = _pool_gave_up
+        tree.processes.open(0, 0.0)  # (the system given: no spares, all threads)
+        if HOOKS.hub is not None:
+            tree.events.publisher.relay_to(HOOKS.hub)  # forwarded while the parent listens
+        node = Node(self.spec, tree)
+        node.start()
+        names = [manager.name for manager in managers(self.spec)]
+
+        def stop(timeout: float, restarting: bool) -> None:
+            if restarting:  # with its group: no tombstones, its callers see "unavailable"
+                DIRECTORY.mark_restarting(names)
+            node.stop(timeout=0.8 * timeout, restarting=restarting)  # (the rest: its own)
+
+        HOOKS.before_stop = stop
+
+
+def _pool_gave_up(error: SupervisorGaveUpError) -> None:
+    logger.error("%s: its process exits, its parent decides", error)
+    sys.stderr.flush()  # (what its managers committed stays, as after a SIGKILL)
+    os._exit(POOL_GAVE_UP_EXIT)
 
 
 # -- stopping: in reverse order, and the death watch (OTP's terminate_children) ------------
@@ -897,6 +1011,9 @@ class Stopping:
             elif not self.to_restart:  # stopped, and nobody starts it again
                 record = self.record
                 consumer_down(record.root(), child.name, record.tree.processes.system, stopped=True)
+        elif is_pool(child.spec) and dead:  # its process died, and nobody restarts it
+            for name in registrar_names(child.spec):
+                self.lose(name)
         elif child.gave_up is not None:  # a nested supervisor gave up, and stays down:
             for name in registrar_names(child.spec):  # nobody restarts its managers
                 self.lose(name)

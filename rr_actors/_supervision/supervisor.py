@@ -60,6 +60,7 @@ from rr_actors._supervision.tree import (
     find_child,
     locate,
     lost_everything,
+    pool_of,
     ran_before,
 )
 from rr_actors._supervision.watching import TreeWatch
@@ -485,8 +486,9 @@ class Supervisor(AsyncSupervision):
     ) -> Any:
         """Run `fn(registrar)` against manager `name`'s registrar, where it lives.
 
-        For a process manager `fn` is cloudpickled and runs on a fresh thread of that
-        process (its result must pickle); for a thread manager, on the calling thread.
+        For a process manager, or a manager of a pool (`SupervisorSpec(isolation=
+        "process")`), `fn` is cloudpickled and runs on a fresh thread of that process (its
+        result must pickle); for a thread manager, on the calling thread.
 
         Args:
             name: the manager's name (anywhere in the tree).
@@ -527,7 +529,8 @@ class Supervisor(AsyncSupervision):
         if isinstance(running, ThreadManager):
             return fn(running.registrar)
         system = self._tree.processes.system
-        if isinstance(running, ProcessManager) and system is not None:
+        in_pool = child is None and pool_of(self._node, name) is not None
+        if (in_pool or isinstance(running, ProcessManager)) and system is not None:
             return system.run(name, fn, timeout=timeout)
         raise RegistrarUnavailableError(f"manager {name!r} is not running")
 

@@ -31,6 +31,7 @@ from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.replies import FutureReply, Steps
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._platform import lockfile
+from rr_actors._process.control import preload
 from rr_actors._process.spare import SparePool
 from rr_actors._registrar import life
 from rr_actors._supervision.children import (
@@ -40,6 +41,7 @@ from rr_actors._supervision.children import (
     Level,
     NestedSupervisor,
     ProcessManager,
+    is_pool,
     restarts_after,
     snapshot,
 )
@@ -74,10 +76,13 @@ __all__ = [
     "find_child",
     "locate",
     "lost_everything",
+    "pool_of",
     "ran_before",
 ]
 
 logger = logging.getLogger("rr_actors")
+
+POOL_MODULES = ("rr_actors._supervision.policy",)  # a pool's process runs it: preloaded
 
 Clock = Callable[[], float]
 """A monotonic clock in seconds (a tree's, injectable: `Supervisor(clock=)`)."""
@@ -104,6 +109,15 @@ class Processes:
                     raise ConfigError(
                         f"setup of manager {manager.name!r} is not picklable: {exc}"
                     ) from exc
+        for pool, _ in walk(self.spec):  # (a pool's setups are pickled at each of its starts)
+            if isinstance(pool, SupervisorSpec) and is_pool(pool):
+                preload(POOL_MODULES)  # (once: a pool's restart does not import them)
+                try:
+                    wire.dumps(pool)
+                except Exception as exc:
+                    raise ConfigError(
+                        f"a setup in pool {pool.name!r} is not picklable: {exc}"
+                    ) from exc
         if self.network is not None:
             if self.network.closed:
                 raise ConfigError(
@@ -121,7 +135,7 @@ class Processes:
     def start_ahead(self, on: bool) -> None:
         """While `on` (the supervisor's start), fork process managers' processes ahead."""
         if self.spares is not None:
-            starts = sum(1 for m in managers(self.spec) if m.isolation == "process")
+            starts = sum(1 for c, _ in walk(self.spec) if c.isolation == "process")
             self.spares.ahead(starts if on else 0)
 
     def close_spares(self) -> None:
@@ -173,6 +187,8 @@ class Tree:
         self.down_since: dict[str, float] = {}  # name -> when its last incarnation ended
         self.restart_due: dict[str, float] = {}  # name -> when its backoff ends (runtime.wall())
         self._mailboxes: weakref.WeakSet[SerialExecutor] = weakref.WeakSet()  # every Node's
+        # a pool's tree (`PoolSetup`): its root's give-up ends the process (never returns)
+        self.escalate: Callable[[SupervisorGaveUpError], None] | None = None
 
     def durable(self, config: RegistrarConfig) -> RegistrarConfig:
         """`config` at the tree's durability at least (a tree chooses for every manager)."""
@@ -219,11 +235,12 @@ class Tree:
             self.restarts[name] = self.restarts.get(name, 0) + 1
         self.started.add(name)
 
-    def spec_info(self, name: str, state: ChildState) -> ChildInfo:
-        """The snapshot of a child whose supervisor is down: `state`, no pid."""
+    def spec_info(self, name: str, state: ChildState, pid: int | None = None) -> ChildInfo:
+        """The snapshot of a child whose supervisor is down (`state`, no pid), or in a
+        pool's process (`pid`)."""
         last = self.latest.get(name)
         last_exit = last.last_exit if last is not None else None
-        return snapshot(self.specs[name], state, None, self.restarts.get(name, 0), last_exit)
+        return snapshot(self.specs[name], state, pid, self.restarts.get(name, 0), last_exit)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -275,6 +292,8 @@ def _locate_below(child: Child, tree: Tree, name: str, state: ChildState) -> Fou
             found = locate(nested, tree, name)
             return None if found is None else Found(found.info, nested.gave_up)
         state = "restarting"  # its parent will restart it (or give up itself)
+    elif state == "running" and isinstance(running, ProcessManager):  # a pool: its children
+        return Found(tree.spec_info(name, "running", running.pid), None)  # run as it does
     elif state == "running":
         state = "starting"
     final = child.gave_up if state in ("exited", "stopped") else None
@@ -293,8 +312,22 @@ def find_child(level: Level, name: str) -> Child | None:
     return None
 
 
+def pool_of(level: Level, name: str) -> Child | None:
+    """The running pool (a supervisor in its own process) that holds child `name`."""
+    for child in list(level.children):
+        running = child.running
+        if name not in child.subtree:
+            continue
+        if isinstance(running, ProcessManager):
+            return child
+        if isinstance(running, NestedSupervisor):
+            return pool_of(running.node, name)
+    return None
+
+
 def _process_handles(level: Level) -> dict[str, ProcessManager]:
-    """The tree's living process managers below `level`, by name, in start order."""
+    """The tree's living manager processes below `level`, by child name (a pool's by the
+    pool's), in start order."""
     found: dict[str, ProcessManager] = {}
     for child in list(level.children):
         running = child.running
