@@ -36,9 +36,12 @@ are the manager's, read with psutil).
 Usage:
     python benchmarks/bench_status_hang.py [--placement thread process]
         [--consumers 200] [--registrars 4] [--statuses 2000] [--senders 4]
-        [--timeout 0.5] [--callback plain|coroutine]
+        [--timeout 0.5] [--callback plain|coroutine] [--cold]
 
 The flap order (issue 51 finding 6): `--senders 1 --statuses 1000`, beside busy loops.
+`--cold`: no warm-up status, so the provider learns where the consumers live from the
+answers to the first numbered ones and switches its way to them as they go (issue 68
+item 1: `--placement process --senders 1 --cold`, beside three busy loops).
 """
 
 from __future__ import annotations
@@ -205,7 +208,8 @@ def run(placement: str, hang: bool, args: argparse.Namespace) -> dict[str, Any]:
         host = RemoteRegistrar.start(config, system, setup=setup)
         pid = host.pid
     query_id = provider.server_queries("leaf")[0].id
-    provider.send_status(query_id, rr.Status.UPDATE, "warm-up", timeout=30)  # (routes)
+    if not args.cold:
+        provider.send_status(query_id, rr.Status.UPDATE, "warm-up", timeout=30)  # (routes)
     before = threads_of(pid)
     timed_out = gave_up = 0
     results: list[Any] = []
@@ -261,11 +265,12 @@ def main() -> None:
     parser.add_argument("--senders", type=int, default=4)
     parser.add_argument("--timeout", type=float, default=0.5)
     parser.add_argument("--callback", choices=["plain", "coroutine"], default="plain")
+    parser.add_argument("--cold", action="store_true", help="no warm-up status first")
     args = parser.parse_args()
     print(
         f"{args.consumers} consumer ids on {args.registrars} registrars, {args.statuses} "
         f"statuses from {args.senders} threads, timeout {args.timeout} s, "
-        f"{args.callback} callbacks; "
+        f"{args.callback} callbacks{', no warm-up' if args.cold else ''}; "
         f"load {os.getloadavg()[0]:.1f}"
     )
     print(

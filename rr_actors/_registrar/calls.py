@@ -221,17 +221,15 @@ class DueAnswers:
     """The query ids whose answer a consumer has not recorded yet, with their attempt.
     Callers add an id before its `Load` leaves, the actor removes it once it handled the
     outcome; a notice that overtook its answer waits until its id is no longer due.
-    `outcomes`: plain calls' outcomes in hand-over order; after the actor ended, to `late`.
-    `landing`: ids settled whose overtaking notices the actor delivers now (not direct yet)."""
+    `outcomes`: plain calls' outcomes in hand-over order; after the actor ended, to `late`."""
 
-    __slots__ = ("_attempts", "_durable", "_lock", "landing", "outcomes")
+    __slots__ = ("_attempts", "_durable", "_lock", "outcomes")
 
     def __init__(self) -> None:
         self._attempts: dict[str, CallAttempt] = {}
         self._durable: dict[str, ClientReply] = {}  # of the durable calls among them
         self._lock = runtime.Lock()
         self.outcomes = LateQueue()
-        self.landing: set[str] = set()
 
     def __contains__(self, query_id: str) -> bool:
         return query_id in self._attempts
@@ -276,13 +274,10 @@ class DueAnswers:
         attempt.mark_awaited()
         return True
 
-    def settle(self, query_id: str, attempt: CallAttempt, *, landing: bool = False) -> bool:
-        """`attempt`'s answer or failure was handled; whether it was the one due (`landing`:
-        its id stays `landing` until the actor discards it there)."""
+    def settle(self, query_id: str, attempt: CallAttempt) -> bool:
+        """`attempt`'s answer or failure was handled; whether it was the one due."""
         with self._lock:
             if self._attempts.get(query_id) is attempt:
-                if landing:
-                    self.landing.add(query_id)
                 del self._attempts[query_id]
                 self._durable.pop(query_id, None)
                 return True

@@ -294,26 +294,23 @@ class Flights:
             self.doubted.setdefault(query_id, set()).add(provider)
 
     def answered(self, query_id: str, attempt: CallAttempt, provider: str = "") -> None:
+        # settled first: a reconcile lists it not due (its parked notices are still on their
+        # way for the status desk: `StatusTargets.on_way`, no direct delivery till they went)
+        settled = self.due.settle(query_id, attempt)
+        if provider in self.doubted.pop(query_id, ()):  # (its answer may be of the run
+            self.redeliver(ReconcileAsk(provider, holds_yours=False))  # a restart replaced)
         flight = self.in_flight.get(query_id)
-        parked = flight is not None and bool(flight.parked)  # (no direct delivery till done)
-        # settled first: a reconcile lists it not due; `landing` while its parked ones go
-        settled = self.due.settle(query_id, attempt, landing=parked)
-        try:
-            if provider in self.doubted.pop(query_id, ()):  # (its answer may be of the run
-                self.redeliver(ReconcileAsk(provider, holds_yours=False))  # a restart replaced)
-            if not settled or flight is None or not parked:
-                return
-            waiting, flight.parked = flight.parked, []
-            self.landed(query_id)
-            while waiting:
-                notice = waiting.pop(0)
-                try:
-                    self.redeliver(notice)
-                except BaseException:  # the actor dies: `fail_waiting` answers the rest
-                    self.flight(query_id).parked[:0] = waiting
-                    raise
-        finally:
-            self.due.landing.discard(query_id)
+        if not settled or flight is None or not flight.parked:
+            return
+        waiting, flight.parked = flight.parked, []
+        self.landed(query_id)
+        while waiting:
+            notice = waiting.pop(0)
+            try:
+                self.redeliver(notice)
+            except BaseException:  # the actor dies: `fail_waiting` answers the rest
+                self.flight(query_id).parked[:0] = waiting
+                raise
 
     def parked_ids(self) -> frozenset[str]:
         return frozenset(q for q, f in self.in_flight.items() if f.parked)

@@ -350,7 +350,9 @@ class StatusRelay:
                 return None
             return _Call(callback, record.query, update, join.add(), told, deadline, gave_up)
 
-        for query_id in DESK.reach(message.event, message.query_ids, call_of):
+        reached = DESK.reach(message.event, message.query_ids, call_of)
+        DESK.arrived(self.registrar.peer, message)  # (after: its callbacks are queued)
+        for query_id in reached:
             record = records[query_id]
             if record is None:
                 continue
@@ -409,15 +411,34 @@ Parts = tuple[tuple[str, tuple[str, ...]], ...]
 
 class StatusTargets:
     """What the desk reads of one registrar: the ids a status reaches without its mailbox
-    (`entries`: id -> its query and callback, written by its `Holdings` only)."""
+    (`entries`: id -> its query and callback, written by its `Holdings` only), and, per id,
+    the notices a desk sent to its mailbox that have not reached it yet (`on_way`: in its
+    mailbox or parked behind an answer; while any, that id's next status follows them)."""
 
-    __slots__ = ("__weakref__", "due", "entries", "events", "name")
+    __slots__ = ("__weakref__", "_sent", "due", "entries", "events", "name", "on_way")
 
     def __init__(self, name: str, published: Publisher[events.Event], due: DueAnswers) -> None:
         self.name = name
         self.events = published
         self.due = due
         self.entries: dict[str, tuple[Query, StatusCallback]] = {}
+        self.on_way: dict[str, int] = {}  # (the desk's lock)
+        self._sent: dict[int, StatusNotice] = {}  # id(notice) -> those notices
+
+    def sending(self, notice: StatusNotice) -> None:
+        """(Holding the desk's lock.) `notice` goes to this registrar's mailbox now."""
+        self._sent[id(notice)] = notice
+        for query_id in notice.query_ids:
+            self.on_way[query_id] = self.on_way.get(query_id, 0) + 1
+
+    def arrived(self, notice: StatusNotice) -> None:
+        """(Holding the desk's lock.) `notice` reached its ids (its callbacks are queued)."""
+        if self._sent.pop(id(notice), None) is not notice:  # (not one a desk sent)
+            return
+        for query_id in notice.query_ids:
+            left = self.on_way.pop(query_id, 1) - 1
+            if left:
+                self.on_way[query_id] = left
 
 
 class _Join(SharedJoin):
@@ -941,8 +962,10 @@ class Desk:
             if homes is not None:
                 homes[origin] = self.key
             targets = self.targets.get(peer)
-            slow = self.direct(targets, batch, ids, join, deadline) if targets else ids
-            if slow:
+            with self._lock:  # (what goes direct, what to its mailbox: one step, rule 9)
+                slow = self.direct(targets, batch, ids, join, deadline) if targets else ids
+                if not slow:
+                    continue
                 reply = CallbackReply(_counted(join, join.add()))
                 notice = StatusNotice(
                     slow,
@@ -955,13 +978,17 @@ class Desk:
                     batch.sent_at,
                     patience,
                 )
+                if targets is not None:
+                    targets.sending(notice)
                 try:
-                    if origin == here[0]:
-                        here[1](notice)
-                    else:
+                    if origin != here[0]:
                         peer.tell(notice)
                 except RrError as exc:
+                    self.arrived(peer, notice)
                     reply.set_error(exc)
+                    continue
+            if origin == here[0]:  # (its own: handled now, on this thread)
+                here[1](notice)
 
     def direct(
         self,
@@ -971,12 +998,13 @@ class Desk:
         join: _Join,
         deadline: float | None = None,
     ) -> tuple[str, ...]:
-        """Queue the callbacks of the ids `targets` has, not reached yet; return the others."""
+        """(Holding the lock.) Queue the callbacks of the ids `targets` has, not reached yet;
+        return the others."""
         slow: list[str] = []
         ready: dict[str, tuple[Query, StatusCallback]] = {}
-        entries, due = targets.entries, targets.due
-        if any(q in due or q in due.landing for q in ids):  # (a notice of them may be parked
-            return ids  # behind a due one's answer: this one waits behind it, rule 9)
+        entries, due, on_way = targets.entries, targets.due, targets.on_way
+        if any(q in due or q in on_way for q in ids):  # (an earlier notice of them may wait
+            return ids  # in its mailbox, or parked behind a due answer: this one follows)
         publish = targets.events.active
         for query_id in ids:
             entry = entries.get(query_id)
@@ -1053,6 +1081,14 @@ class Desk:
             if threads:
                 self.runner.run(threads)
         return tuple(fresh)
+
+    def arrived(self, peer: LocalPeer, notice: StatusNotice) -> None:
+        """`notice`, handled by registrar `peer` (not parked), reached its ids: their next
+        statuses may go direct again (`StatusTargets.on_way`)."""
+        with self._lock:
+            targets = self.targets.get(peer)
+            if targets is not None:
+                targets.arrived(notice)
 
     def forget_in_child(self) -> None:
         """In a forked child: the parent's registrars and threads are not here."""

@@ -22,9 +22,11 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._core import runtime
-from rr_actors._core.replies import let_go
+from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.replies import FutureReply, let_go
 from rr_actors._core.workers import Workers
 from rr_actors._registrar.calls import CallAttempt
+from rr_actors._registrar.messages import Ping
 from rr_actors._registrar.status import Runner, _Call
 from rr_actors.testing import STEPS, RemoteRegistrar, call_futures, catalog_snapshot, intercept
 from tests.registrar.conftest import placement_network
@@ -1541,6 +1543,64 @@ class TestOneWay:
             second.result(20)
 
         assert ["warm-up", "s1", "s2"] == ways.heard["consumer"]["t"]
+
+    def test_a_status_left_in_the_mailbox_for_a_due_id_is_not_overtaken_once_its_answer_is_recorded(
+        self, ways: Ways
+    ) -> None:
+        """The relay sends a status for an id whose answer is due to the consumer's mailbox
+        (a notice); the consumer records the answer as it takes another message, ahead of that
+        notice: the next status, at the relay, waits behind the notice, not delivered
+        directly. Held here: the consumer's actor at two pings told to it, the second queued
+        ahead of the notice (the answer is recorded as the actor takes it)."""
+        pings: list[threading.Event] = [threading.Event(), threading.Event()]
+        reached: list[threading.Event] = [threading.Event(), threading.Event()]
+        relayed = {message: threading.Event() for message in ("s1", "s2")}
+
+        def at_ping(_message: Any) -> None:  # (the consumer's actor thread)
+            turn = sum(event.is_set() for event in reached)
+            if turn < len(reached):
+                reached[turn].set()
+                assert pings[turn].wait(20)
+
+        def at_relay(message: Any) -> None:  # (the consumer's part handled: after)
+            if message.message in relayed and ways.consumer.name in dict(message.parts):
+                relayed[message.message].set()
+
+        ways.send("r", "warm-up")  # (the provider learns that both are in this process)
+        ways.send("r", "relay chosen")  # (this process's statuses go to the relay from now on)
+        ways.hold("relay", "s")  # (the relay's id first: the consumer's part is delivered after)
+        consumer = DIRECTORY.lookup(ways.consumer.name)
+        heard: list[str] = []
+        try:
+            with (
+                intercept(ways.consumer, "ping", before=at_ping),
+                intercept(ways.relay, "status_batch", after=at_relay),
+                ThreadPoolExecutor(2) as pool,
+            ):
+                consumer.tell(Ping(FutureReply()))
+                assert reached[0].wait(10)  # the consumer's actor held
+                query_id = ways.consumer.call(
+                    ways.provider.name,
+                    "leaf",
+                    "s",
+                    on_status=lambda _q, update: heard.append(update.message),
+                    timeout=20,
+                ).id  # (answered; its record waits for the actor: the id is still due)
+                consumer.tell(Ping(FutureReply()))  # (ahead of the notice)
+                first = pool.submit(send, ways.provider, query_id, "s1")
+                assert relayed["s1"].wait(10)  # a notice, the id due: behind the second ping
+                pings[0].set()
+                assert reached[1].wait(10)  # the answer recorded as the actor took this ping
+                second = pool.submit(send, ways.provider, query_id, "s2")
+                assert relayed["s2"].wait(10)
+                pings[1].set()
+                first.result(20)
+                second.result(20)
+        finally:
+            for ping in pings:
+                ping.set()
+
+        assert ["s1", "s2"] == heard
 
 
 class TestTooLarge:
