@@ -249,10 +249,13 @@ PLANTS = (
         "issue 68 item 7: `simretry` missed it in 100 seeds)",
         "_registrar/provider.py",
         "        if resource is None:\n"
-        "            self.start_load(self.registrar.servers[message.server], message, waiter, key)\n"
-        "        elif resource.state is ResourceState.UNLOADING:  # load it afresh once it is gone\n",
+        "            self.start_load(self.registrar.servers[message.server], message, waiter,"
+        " key)\n"
+        "        elif resource.state is ResourceState.UNLOADING:  # load it afresh once it is"
+        " gone\n",
         "        if resource is None or resource.state is ResourceState.UNLOADING:  # PLANTED\n"
-        "            self.start_load(self.registrar.servers[message.server], message, waiter, key)\n"
+        "            self.start_load(self.registrar.servers[message.server], message, waiter,"
+        " key)\n"
         "        elif False:  # PLANTED: loaded afresh once it is gone\n",
         "simretry",
         "dedup",
