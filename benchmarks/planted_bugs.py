@@ -232,6 +232,55 @@ PLANTS = (
         "crashloop",
         "intensity",
     ),
+    Plant(
+        "intensity-rest",
+        "the plant `intensity` (one restart early) under rest_for_one: `simrest` gave "
+        "`max_restarts` 1000 until issue 68 item 7, so it never reached the bug",
+        "_supervision/policy.py",
+        "        return len(self._times) <= self.max_restarts\n",
+        "        return len(self._times) < self.max_restarts  # PLANTED: one restart early\n",
+        "simrest",
+        "intensity",
+    ),
+    Plant(
+        "dedup-order",
+        "an equal request loaded before its unloading resource is gone: a load that comes "
+        "while its resource unloads starts at once, not after the unload (rule 1's order; "
+        "issue 68 item 7: `simretry` missed it in 100 seeds)",
+        "_registrar/provider.py",
+        "        if resource is None:\n"
+        "            self.start_load(self.registrar.servers[message.server], message, waiter,"
+        " key)\n"
+        "        elif resource.state is ResourceState.UNLOADING:  # load it afresh once it is"
+        " gone\n",
+        "        if resource is None or resource.state is ResourceState.UNLOADING:  # PLANTED\n"
+        "            self.start_load(self.registrar.servers[message.server], message, waiter,"
+        " key)\n"
+        "        elif False:  # PLANTED: loaded afresh once it is gone\n",
+        "simretry",
+        "dedup",
+    ),
+    Plant(
+        "doubt-unloading-unseen",
+        "an unload a kill cut short dropped unseen at the restart: the row goes without its "
+        "unload, and neither the manager nor the events are told it was in doubt (rule 16; "
+        "issue 68 item 7: `left` and `no-leak` excuse a row restored unloading)",
+        "_registrar/life.py",
+        "        self.in_doubt_ids = frozenset(r.id for r in doubtful)\n"
+        "        if self.hold_in_doubt:\n"
+        "            self.registrar.held_in_doubt.update(self.in_doubt_ids)\n"
+        "        for resource in doubtful:\n"
+        "            if self.registrar.events.active:\n",
+        "        self.in_doubt_ids = frozenset(  # PLANTED: the unloads cut short left out\n"
+        "            r.id for r in doubtful if r.state is ResourceState.LOADING\n"
+        "        )\n"
+        "        if self.hold_in_doubt:\n"
+        "            self.registrar.held_in_doubt.update(self.in_doubt_ids)\n"
+        "        for resource in doubtful:\n"
+        "            if self.registrar.events.active and resource.id in self.in_doubt_ids:\n",
+        "simdoubt",
+        "doubt-reported",
+    ),
     # -- issue 51 section 2: a reviewer's plants, one or more per area ---------------
     Plant(
         "status-seen-server",

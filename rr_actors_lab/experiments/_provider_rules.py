@@ -1,6 +1,6 @@
 """The provider's side of a run: one pass over each provider's catalog as its events tell it
 (`kept`, `unload-once`, `no-leak`, `one-resource`, `release-match`, `in-doubt`, `dedup`,
-`restore-first`), `unload-order` and `dependency-held`.
+`restore-first`), `unload-order`, `dependency-held` and `doubt-reported`.
 
 ```
  steps (_history.walk) ──► Providers.run: per registrar a Catalog, a handler per event kind
@@ -9,6 +9,7 @@
                               └─► expected: who a status should reach (`status-reached`)
  steps ──► unload_order: each resource's dependencies forgotten before its ResourceUnloaded
  steps ──► dependency_held: those dependencies kept while their resource has a consumer
+ steps ──► doubt_reported: each row restored loading or unloading reported or unloaded
 ```
 
 Every lookup is a dict's: a run of a million events is checked in one linear pass.
@@ -27,7 +28,15 @@ from rr_actors import events
 from rr_actors._types import Status
 from rr_actors_lab.experiments._history import Facts, Finding, Life, Step
 
-__all__ = ["PROVIDER_ENDED", "Expected", "Holding", "Providers", "dependency_held", "unload_order"]
+__all__ = [
+    "PROVIDER_ENDED",
+    "Expected",
+    "Holding",
+    "Providers",
+    "dependency_held",
+    "doubt_reported",
+    "unload_order",
+]
 
 
 @dataclasses.dataclass(slots=True)
@@ -662,4 +671,57 @@ def dependency_held(steps: list[Step]) -> list[Finding]:
                     (name,),
                 )
             )
+    return findings
+
+
+def doubt_reported(steps: list[Step]) -> list[Finding]:
+    """`doubt-reported` (rule 16): a resource a restore lists as `loading` or `unloading` (a
+    crash cut its load or its unload short) is, in the life that restored it, reported
+    `InDoubt` or unloaded (`ResourceUnloaded`): never dropped unseen.
+
+    Not judged: a life with no event after its `CatalogRestored` (killed before its start
+    turn ended: its report may have died with it, and its next restore lists the row
+    again), a restore that is not `complete` (its rows are not listed).
+    """
+    findings: list[Finding] = []
+    owed: dict[str, dict[str, tuple[int, str]]] = {}  # name -> rid -> (restore's line, state)
+    went_on: dict[str, bool] = {}  # name -> its life showed an event after its restore
+
+    def judge(name: str) -> None:
+        if not went_on.pop(name, False):
+            owed.pop(name, None)
+            return
+        for rid, (at, state) in owed.pop(name, {}).items():
+            findings.append(
+                Finding(
+                    "doubt-reported",
+                    "violation",
+                    f"{name}: {rid[:8]}, restored {state} (a crash cut it short), was neither "
+                    f"reported in doubt nor unloaded by the life that restored it (rule 16)",
+                    (at,),
+                    (name,),
+                )
+            )
+
+    for name, line, event, new, _life in steps:
+        if new:
+            judge(name)
+        if isinstance(event, events.CatalogRestored):
+            judge(name)
+            if event.complete:
+                owed[name] = {
+                    row[0]: (line, row[2])
+                    for row in event.resources
+                    if row[2] in ("loading", "unloading")
+                }
+                went_on[name] = False
+            continue
+        if name in went_on:
+            went_on[name] = True
+        if isinstance(event, events.InDoubt):
+            owed.get(name, {}).pop(event.query_id, None)
+        elif isinstance(event, events.ResourceUnloaded):
+            owed.get(name, {}).pop(event.resource_id, None)
+    for name in list(owed):
+        judge(name)
     return findings

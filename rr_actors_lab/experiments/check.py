@@ -35,7 +35,12 @@ from rr_actors.errors import ConfigError
 from rr_actors.events.lines import json_lines, parse_json
 from rr_actors_lab.experiments import _consumer_rules, _status_rules, _supervision_rules
 from rr_actors_lab.experiments._history import Finding, Life, Line, gather, registrar_of, walk
-from rr_actors_lab.experiments._provider_rules import Providers, dependency_held, unload_order
+from rr_actors_lab.experiments._provider_rules import (
+    Providers,
+    dependency_held,
+    doubt_reported,
+    unload_order,
+)
 
 __all__ = [
     "RULES",
@@ -70,6 +75,7 @@ RULES = (
     "left",
     "unload-order",
     "dependency-held",
+    "doubt-reported",
     "intensity",
     "strategy",
     "escalation",
@@ -248,6 +254,7 @@ def check(history: Sequence[Line], resolve: str = "first_served") -> Verdict:
         *_consumer_rules.fetch(steps, providers.holdings, lives),
         *unload_order(steps),
         *dependency_held(steps),
+        *doubt_reported(steps),
         *_supervision_rules.intensity(history),
         *strategy,
         *escalation,
