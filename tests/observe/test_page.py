@@ -660,6 +660,17 @@ def test_a_restart_in_the_big_tree_changes_its_rows_and_redraws_no_other(
     page.evaluate(  # (a mark on every row drawn: a row drawn again has none)
         "document.querySelectorAll('#tree .node').forEach(r => { r.rrProbe = true; })"
     )
+    page.evaluate(  # (the rows written to: a text, a class or a data attribute set)
+        """() => {
+          window.rrTouched = new Set();
+          new MutationObserver((records) => records.forEach((r) => {
+            const at = r.target.nodeType === 1 ? r.target : r.target.parentElement;
+            const node = at.closest(".node");
+            if (node) window.rrTouched.add(node.dataset.child);
+          })).observe(document.getElementById("tree"),
+            { subtree: true, childList: true, attributes: true, characterData: true });
+        }"""
+    )
 
     hub.put("tree", big_tree(restarted=frozenset({"t7-m042", "t2-m005"})))
     page.wait_for_selector('.node[data-child="t7-m042"][data-restarts="1"]')
@@ -674,3 +685,5 @@ def test_a_restart_in_the_big_tree_changes_its_rows_and_redraws_no_other(
         "[...document.querySelectorAll('#tree .node')].filter(r => !r.rrProbe).length"
     )
     assert 0 == redrawn
+    touched = page.evaluate("[...window.rrTouched].sort()")
+    assert ["big", "t7-m042", "team2", "team7"] == touched  # the rows on the two paths only
