@@ -41,6 +41,7 @@ SHIPPED = {
     "simprogram",
     "simslow",
     "simways",
+    "bigtree",
 }
 """Every plan shipped in the package; the tutorial's `first` runs in the docs test."""
 
@@ -123,6 +124,22 @@ def test_the_kill_heavy_plan_breaks_no_rule_and_leaves_nothing() -> None:
     # (a consumer killed after a release failed, its provider being down, reconciles
     # with every registrar when it is restored: the provider releases the id)
     assert 0 == result.catalog_entries_left, result.findings
+    assert 0 == result.leaked_processes
+
+
+@pytest.mark.timeout(600)  # (its 200 managers start one by one, each with its backup)
+def test_the_big_tree_plan_runs_200_managers_through_kills_and_failed_loads_and_holds() -> None:
+    plan = load_plan(plans.find("bigtree"))
+    isolations = [m.isolation for m in plan.tree.managers()]
+
+    (result,) = run(plan, repeat=1).runs
+
+    assert (200, 10) == (len(isolations), isolations.count("process"))
+    assert ("held", []) == (result.verdict, list(result.findings))
+    kinds = {f.kind for f in result.faults if f.injected_s is not None}
+    assert {"kill_manager", "load_error"} == kinds
+    assert result.restarts >= 1  # (a kill every 0.3-0.6 s of a thread or process manager)
+    assert result.calls_ok > 0
     assert 0 == result.leaked_processes
 
 

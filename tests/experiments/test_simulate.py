@@ -1097,7 +1097,7 @@ SIMULATED = [
     "simslow",
     "simways",
 ]
-"""The shipped plans run over two seeds here (killheavy below, for 2 s)."""
+"""The shipped plans run over two seeds here (killheavy below, for 2 s; bigtree below, one seed)."""
 
 REFUSED = ["resource", "strategies", "leases"]
 """The shipped plans the simulation does not model (the last test says why each)."""
@@ -1106,7 +1106,7 @@ REFUSED = ["resource", "strategies", "leases"]
 def test_every_shipped_plan_is_simulated_or_refused_here() -> None:
     shipped = {path.stem for path in PLANS.glob("*.toml")}
 
-    assert shipped == {*SIMULATED, "killheavy", *REFUSED}
+    assert shipped == {*SIMULATED, "killheavy", "bigtree", *REFUSED}
 
 
 @SWEEP
@@ -1131,6 +1131,22 @@ def test_killheavy_runs_its_kills_and_cuts_on_the_simulation() -> None:
     run = simulate.run_seed(plan, 1)
 
     assert {"kill_manager", "cut_connections"} == {f["kind"] for f in fired(run)}
+    assert run.calls_ok > 0
+    held([run])
+
+
+@SWEEP
+def test_the_big_tree_of_200_managers_holds_on_the_simulation() -> None:
+    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
+
+    plan = load_plan(PLANS / "bigtree.toml")
+
+    run = simulate.run_seed(plan, 1)
+
+    assert {"kill_manager", "load_error"} == {f["kind"] for f in fired(run)}
+    assert 200 == len(
+        {e["child"] for e in lines(run, "ChildStarted")} - {f"team{t}" for t in range(10)}
+    )
     assert run.calls_ok > 0
     held([run])
 

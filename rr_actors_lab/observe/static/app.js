@@ -18,7 +18,11 @@
 // Everything from the server is shown through textContent (never parsed as HTML). The page
 // keeps bounded state: at most MAX_EVENTS events, MAX_ROWS timeline rows, MAX_LOG log lines;
 // a catalog shows PAGE resources per server at a time, and a graph of more than GRAPH_MAX
-// resources is drawn as registrars only (the arrows between them counted).
+// resources is drawn as registrars only (the arrows between them counted). A tree of more
+// than FOLD_OVER managers is drawn with its supervisors folded (each with its counts; a
+// click opens it), CHILDREN_PAGE children and CARDS_PAGE catalogs at a time: what is drawn,
+// and what a change redraws, does not grow with the tree (a patch keeps every unchanged
+// node's object, so a change walks only the path to what changed).
 "use strict";
 
 (() => {
@@ -29,6 +33,10 @@
   const ORPHAN_S = 2; // a delivery whose send has not arrived this long after it (browser time) is shown alone
   const PAGE = 50; // resources of a server shown at a time
   const GRAPH_MAX = 200; // resources drawn one by one in the graph
+  const FOLD_OVER = 50; // a tree of more managers is drawn with its supervisors folded
+  const CHILDREN_PAGE = 100; // children of a supervisor drawn at a time
+  const CARDS_PAGE = 50; // catalogs drawn at a time
+  const GRAPH_REGISTRARS = 100; // more registrars: only those with resources or arrows drawn
 
   const state = {
     hello: null,
@@ -44,6 +52,9 @@
     orphans: [], // deliveries whose send has not arrived yet: {event, arrived}
     log: [],
     shown: {}, // "registrar/server" -> resources shown (paging)
+    open: new Map(), // rowKey of a supervisor -> opened (true) or folded (false) by a click
+    children: {}, // rowKey of a supervisor -> children shown (paging)
+    cards: CARDS_PAGE, // catalogs shown
   };
   const token = (/(?:^|[?#&])token=([^&#]+)/.exec(location.search + location.hash) || [])[1] || "";
 
@@ -184,6 +195,8 @@
     state.log = [];
     state.restarts = {};
     treeRows.clear();
+    drawn.clear();
+    cardCache.clear();
     $("tree").replaceChildren();
   }
 
@@ -304,11 +317,73 @@
   }
 
   // -- the supervision tree ------------------------------------------------------------
-  const treeRows = new Map(); // child name -> {row, fields}
+  const treeRows = new Map(); // rowKey -> {row, fields, node}: the rows drawn
+  const drawn = new Map(); // rowKey of a supervisor drawn open -> its children's list
   let treeShape = "";
+  let treeBig = false; // more than FOLD_OVER managers: supervisors start folded
+  let painted = false;
 
+  // Memoised by node object: a patch keeps the objects of unchanged nodes (applyPatch), so
+  // a change costs the path to it, not the tree.
+  const shapes = new WeakMap();
   function shapeOf(node) {
-    return `${node.name}(${node.children.map((c) => (c.kind === "supervisor" ? shapeOf(c) : c.name)).join(",")})`;
+    let shape = shapes.get(node);
+    if (shape === undefined) {
+      shape = `${node.name}(${node.children.map((c) => (c.kind === "supervisor" ? shapeOf(c) : c.name)).join(",")})`;
+      shapes.set(node, shape);
+    }
+    return shape;
+  }
+  const tallies = new WeakMap();
+  function countsOf(node) {
+    let counts = tallies.get(node);
+    if (counts === undefined) {
+      counts = { managers: 0, running: 0, down: 0, restarts: 0 };
+      for (const child of node.children) {
+        if (child.kind === "supervisor") {
+          const sub = countsOf(child);
+          counts.managers += sub.managers;
+          counts.running += sub.running;
+          counts.down += sub.down;
+          counts.restarts += sub.restarts + (child.restarts || 0);
+        } else {
+          counts.managers += 1;
+          if (child.state === "running") counts.running += 1;
+          else counts.down += 1;
+          counts.restarts += child.restarts || 0;
+        }
+      }
+      tallies.set(node, counts);
+    }
+    return counts;
+  }
+  function summaryOf(node) {
+    const c = countsOf(node);
+    const down = c.managers - c.running;
+    return `${plural(c.managers, "manager")} · ${c.running} running${down ? ` · ${down} not running` : ""} · ${plural(c.restarts, "restart")} below`;
+  }
+  function isOpen(node, root, member) {
+    if (root) return true;
+    const asked = state.open.get(rowKey(member, node.name));
+    return asked === undefined ? !treeBig : asked;
+  }
+  function managersIn(node) {
+    return countsOf(node).managers;
+  }
+  // The first time the tree (or the backups' list) is on the page: marks for the browser
+  // tests and tools (performance.getEntriesByName("rr-tree-painted"): after the frame that
+  // drew it); then the graph's library (its 400 kB, fetched early, run only now).
+  function markPainted() {
+    if (painted) return;
+    painted = true;
+    performance.mark("rr-tree-drawn");
+    requestAnimationFrame(() => setTimeout(() => {
+      performance.mark("rr-tree-painted");
+      document.body.dataset.treePainted = "yes";
+      const script = el("script", { src: "/static/vendor/cytoscape.min.js" });
+      script.addEventListener("load", () => schedule("graph"));
+      document.head.append(script);
+    }, 0));
   }
 
   function renderTree() {
@@ -319,10 +394,13 @@
     const shape = `${shapeOf(tree)}${state.sections.ended ? ":ended" : ""}`;
     if (shape !== treeShape) {
       treeShape = shape;
+      treeBig = managersIn(tree) > FOLD_OVER;
       treeRows.clear();
+      drawn.clear();
       $("tree").replaceChildren(el("ul", { class: "tree" }, buildNode(tree, true, null)));
     }
     updateNode(tree, true, null);
+    markPainted();
   }
 
   // -- across hosts: one group per host (its member name), and the links between them ----
@@ -340,11 +418,17 @@
       treeShape = shape;
       treeRows.clear();
       hostGroups.clear();
+      treeBig = hosts.reduce((sum, h) => {
+        const tree = state.sections[`host/${h.member}/tree`];
+        return sum + (tree ? managersIn(tree) : 0);
+      }, 0) > FOLD_OVER;
+      drawn.clear();
       const groups = hosts.map((h) => buildHost(h));
       $("tree").replaceChildren(
         el("div", { class: "links-box" }, el("h3", { text: "Links between hosts" }), el("ul", { id: "links" })),
         ...(groups.length ? groups : [el("p", { class: "muted", text: "Waiting for the hosts…" })]),
       );
+      markPainted();
     }
     for (const h of hosts) {
       const entry = hostGroups.get(h.member);
@@ -403,9 +487,25 @@
     const what = isManager
       ? `${node.isolation} manager · ${node.restart}`
       : `supervisor · ${node.strategy} · at most ${node.max_restarts} restarts in ${node.period} s`;
+    const key = rowKey(member, root ? "\u0000root" : node.name);
+    const open = !isManager && isOpen(node, root, member);
+    if (!isManager) fields.summary = el("span", { class: "summary", "data-field": "summary" });
+    const toggle = isManager || root ? null : el("button", {
+      class: "fold",
+      "data-fold": node.name,
+      "aria-expanded": open ? "true" : "false",
+      title: open ? "fold: hide its children" : "open: show its children",
+      text: open ? "\u25BE" : "\u25B8",
+      onclick: () => {
+        state.open.set(rowKey(member, node.name), !isOpen(node, false, member));
+        treeShape = ""; // (drawn again, with the rows it now shows)
+        schedule("tree");
+      },
+    });
     const row = el(
       "div",
-      { class: "node", "data-child": node.name, "data-kind": node.kind },
+      { class: "node", "data-child": node.name, "data-kind": node.kind, "data-open": isManager ? undefined : open ? "yes" : "no" },
+      toggle,
       el("span", { class: "name", text: node.name }),
       el("span", { class: "what", text: what }),
       fields.state,
@@ -413,12 +513,32 @@
       root ? null : fields.restarts,
       fields.countdown,
       isManager && node.isolation === "process" && canFault(member) ? faultButtons(node.name, member) : null,
+      fields.summary,
       fields.exit,
     );
-    treeRows.set(rowKey(member, root ? "\u0000root" : node.name), { row, fields });
+    treeRows.set(key, { row, fields, node: null });
     const item = el("li", {}, row);
-    if (!isManager) item.append(el("ul", {}, ...node.children.map((c) => buildNode(c, false, member))));
+    if (open) item.append(childrenList(node, member, key));
     return item;
+  }
+
+  // An open supervisor's children: CHILDREN_PAGE at a time, then a button for more.
+  function childrenList(node, member, key) {
+    const shown = Math.min(node.children.length, state.children[key] || CHILDREN_PAGE);
+    const list = el("ul", {}, ...node.children.slice(0, shown).map((c) => buildNode(c, false, member)));
+    if (shown < node.children.length)
+      list.append(el("li", {}, el("button", {
+        class: "more",
+        "data-more-children": node.name,
+        text: `show ${Math.min(CHILDREN_PAGE, node.children.length - shown)} more (${shown} of ${node.children.length} shown)`,
+        onclick: () => {
+          state.children[key] = shown + CHILDREN_PAGE;
+          treeShape = "";
+          schedule("tree");
+        },
+      })));
+    drawn.set(key, shown);
+    return list;
   }
 
   function faultButtons(name, member) {
@@ -460,9 +580,13 @@
     );
   }
 
+  // Only the rows drawn, and only where the node's object changed (a patch keeps the others).
   function updateNode(node, root, member) {
-    const entry = treeRows.get(rowKey(member, root ? "\u0000root" : node.name));
-    if (entry) {
+    const key = rowKey(member, root ? "\u0000root" : node.name);
+    const entry = treeRows.get(key);
+    if (!entry || entry.node === node) return;
+    entry.node = node;
+    {
       const { row, fields } = entry;
       const stateClass = `state-${slug(node.state)}`;
       row.className = `node ${stateClass}${row.classList.contains("flash") ? " flash" : ""}`;
@@ -478,8 +602,18 @@
       const before = state.restarts[rowKey(member, node.name)];
       if (!root && before !== undefined && (node.restarts || 0) > before) flash(row);
       if (!root) state.restarts[rowKey(member, node.name)] = node.restarts || 0;
+      if (fields.summary) {
+        const below = countsOf(node).restarts;
+        const seen = state.restarts[`${key}\u0000below`];
+        fields.summary.textContent = summaryOf(node);
+        row.dataset.below = below;
+        if (!root && seen !== undefined && below > seen && row.dataset.open === "no") flash(row);
+        state.restarts[`${key}\u0000below`] = below;
+      }
     }
-    for (const child of node.children || []) updateNode(child, false, member);
+    const shown = drawn.get(key);
+    if (shown === undefined) return;
+    for (const child of node.children.slice(0, shown)) updateNode(child, false, member);
   }
 
   function flash(row) {
@@ -511,6 +645,7 @@
         el("td", { text: f.error ? f.error : `${plural(f.resources, "resource")}, ${plural(f.clients, "client record")}` }),
       ),
     );
+    markPainted();
     $("tree").replaceChildren(
       el("p", { class: "muted", text: `The catalog backups in ${files.state_dir}, read-only, re-read when they change.` }),
       el("table", { class: "files" }, el("tr", {}, el("th", { text: "registrar" }), el("th", { text: "file" }), el("th", { text: "" }), el("th", { text: "" })), ...rows),
@@ -518,29 +653,67 @@
   }
 
   // -- catalogs ------------------------------------------------------------------------
+  // The managers' names in the tree's start order (name -> index), kept per tree object.
+  const startOrders = new WeakMap();
+  function startOrder(tree) {
+    if (!tree) return new Map();
+    let order = startOrders.get(tree);
+    if (order === undefined) {
+      order = new Map();
+      const walk = (node) => {
+        for (const child of node.children || []) {
+          if (child.kind === "manager") order.set(child.name, order.size);
+          else walk(child);
+        }
+      };
+      walk(tree);
+      startOrders.set(tree, order);
+    }
+    return order;
+  }
+  function sortByTree(names, tree) {
+    const order = startOrder(tree);
+    const at = (name) => (order.has(name) ? order.get(name) : 1e9);
+    return names.sort((a, b) => at(a) - at(b) || a.localeCompare(b));
+  }
   function catalogOrder() {
     const names = Object.keys(state.sections)
       .filter((k) => k.startsWith("catalog/"))
       .map((k) => k.slice(8));
-    const order = [];
-    const walk = (node) => {
-      for (const child of node.children || []) {
-        if (child.kind === "manager") order.push(child.name);
-        else walk(child);
-      }
-    };
-    if (state.sections.tree) walk(state.sections.tree);
-    return names.sort((a, b) => {
-      const ia = order.indexOf(a);
-      const ib = order.indexOf(b);
-      return (ia < 0 ? 1e9 : ia) - (ib < 0 ? 1e9 : ib) || a.localeCompare(b);
+    return sortByTree(names, state.sections.tree);
+  }
+
+  // A card is made again only when its section changed (or what it shows beside: buttons,
+  // pages); the first `state.cards` are drawn, then a button for more.
+  const cardCache = new Map(); // registrar -> {section, context, card}
+  let cardsContext = 0; // bumped when every card must be made again (a page of resources)
+  function cachedCard(section, member) {
+    const key = `${member || ""}\u0000${section.registrar}`;
+    const context = `${cardsContext}:${canFault(member)}:${state.hello.mode}:${member ? (hostOf(member) || {}).state : ""}`;
+    const cached = cardCache.get(key);
+    if (cached && cached.section === section && cached.context === context) return cached.card;
+    const card = catalogCard(section, member);
+    cardCache.set(key, { section, context, card });
+    return card;
+  }
+  function moreCards(total) {
+    if (total <= state.cards) return null;
+    return el("button", {
+      class: "more",
+      "data-more-cards": "yes",
+      text: `show ${Math.min(CARDS_PAGE, total - state.cards)} more catalogs (${state.cards} of ${total} shown)`,
+      onclick: () => {
+        state.cards += CARDS_PAGE;
+        schedule("catalogs");
+      },
     });
   }
 
   function renderCatalogs() {
     if (system()) return renderHostCatalogs();
-    const cards = catalogOrder().map((name) => catalogCard(state.sections[`catalog/${name}`], null));
-    if (cards.length) $("catalogs").replaceChildren(...cards);
+    const names = catalogOrder();
+    const cards = names.slice(0, state.cards).map((name) => cachedCard(state.sections[`catalog/${name}`], null));
+    if (cards.length) $("catalogs").replaceChildren(...cards, ...[moreCards(names.length)].filter(Boolean));
     else renderPlaceholders();
   }
 
@@ -549,21 +722,8 @@
     for (const h of hostsList()) {
       const prefix = `host/${h.member}/catalog/`;
       const tree = state.sections[`host/${h.member}/tree`];
-      const order = [];
-      const walk = (node) => {
-        for (const child of node.children || []) {
-          if (child.kind === "manager") order.push(child.name);
-          else walk(child);
-        }
-      };
-      if (tree) walk(tree);
-      const names = Object.keys(state.sections).filter((k) => k.startsWith(prefix)).map((k) => k.slice(prefix.length));
-      names.sort((a, b) => {
-        const ia = order.indexOf(a);
-        const ib = order.indexOf(b);
-        return (ia < 0 ? 1e9 : ia) - (ib < 0 ? 1e9 : ib) || a.localeCompare(b);
-      });
-      const cards = names.map((name) => catalogCard(state.sections[prefix + name], h.member));
+      const names = sortByTree(Object.keys(state.sections).filter((k) => k.startsWith(prefix)).map((k) => k.slice(prefix.length)), tree);
+      const cards = names.map((name) => cachedCard(state.sections[prefix + name], h.member));
       parts.push(el("div", { class: "host-catalogs", "data-member": h.member, "data-state": h.state },
         el("h3", { class: "host-heading" }, el("span", { class: "member", text: h.member }), " ",
           el("small", { text: h.state === "live" ? plural(cards.length, "registrar") : `${h.state}: last known` })),
@@ -612,6 +772,7 @@
               text: `show ${Math.min(PAGE, resources.length - shown)} more (${shown} of ${resources.length} shown)`,
               onclick: () => {
                 state.shown[pageKey] = shown + PAGE;
+                cardsContext += 1;
                 schedule("catalogs");
               },
             })
@@ -751,8 +912,21 @@
     if (key === graphKey) return;
     graphKey = key;
     const many = graph.nodes.length - graph.nodes.filter((n) => n.kind === "registrar").length;
-    $("graph-note").textContent = many > GRAPH_MAX ? `${many} resources: registrars only, arrows counted (the catalogs list them)` : "";
+    let note = many > GRAPH_MAX ? `${many} resources: registrars only, arrows counted (the catalogs list them)` : "";
     if (many > GRAPH_MAX) graph = summarised(graph);
+    const registrars = graph.nodes.filter((n) => n.kind === "registrar");
+    if (registrars.length > GRAPH_REGISTRARS) {
+      // (a row of a thousand idle registrars says nothing: those that hold or serve are drawn)
+      const owner = {};
+      const used = new Set();
+      for (const n of graph.nodes) owner[n.id] = n.parent || n.id;
+      for (const n of graph.nodes) if (n.parent) used.add(n.parent);
+      for (const e of graph.edges) used.add(owner[e.source]).add(owner[e.target]);
+      const idle = registrars.filter((n) => !used.has(n.id)).length;
+      graph = { ...graph, nodes: graph.nodes.filter((n) => n.kind !== "registrar" || used.has(n.id)) };
+      note = `${note}${note ? "; " : ""}${plural(idle, "registrar")} without resources or queries not drawn`;
+    }
+    $("graph-note").textContent = note;
     const elements = [
       ...graph.nodes.map((n) => ({
         data: {
