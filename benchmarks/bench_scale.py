@@ -88,22 +88,25 @@ for line in sys.stdin:
         children.append((process, ours))
     elapsed = (time.perf_counter() - began) * 1000
     pss = open(f"/proc/{children[-1][0].pid}/smaps_rollup").read().split("Pss:")[1].split()[0]
+    began = time.perf_counter()
     for process, ours in children:
         ours.close()
     for process, _ in children:
         process.join(10)
-    print(elapsed, pss, flush=True)
+    print(elapsed, pss, (time.perf_counter() - began) * 1000, flush=True)
 """
 """The floor, run by a Python of its own (`python -c`): its children have no main module
 to re-import and import nothing of rr_actors or of this script. Each line it reads is a
 count N; it starts N children in order (each runs `exec` of a few lines: say "ready",
-then wait for EOF), and prints the milliseconds and the last child's PSS (KiB)."""
+then wait for EOF), and prints the milliseconds, the last child's PSS (KiB) and the
+milliseconds to stop them (each pipe closed, each child joined, in order)."""
 
 
 class Floor:
     """The floor's process: `start(n)` times n plain children there."""
 
     def __init__(self) -> None:
+        self.stop_ms = 0.0
         self.process = subprocess.Popen(
             [sys.executable, "-c", FLOOR], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
         )
@@ -113,7 +116,8 @@ class Floor:
         assert self.process.stdout is not None
         self.process.stdin.write(f"{count}\n")
         self.process.stdin.flush()
-        elapsed, pss = self.process.stdout.readline().split()
+        elapsed, pss, stopped = self.process.stdout.readline().split()
+        self.stop_ms = float(stopped)  # (the stop of those children, after the start)
         return float(elapsed), int(pss)
 
     def close(self) -> None:

@@ -93,6 +93,7 @@ SMALLEST = {
         ),
     ],
     "bench_simulation.py": ["--seeds", "1", "--no-real"],
+    "bench_trees.py": ["--counts", "2", "--kills", "1"],
     "bench_simulation_fidelity.py": ["--seeds", "1", "--runs", "2", "--duration", "0.5"],
     "bench_teach.py": ["--seeds", "1", "--only", "camera"],
     "bench_teach_replay.py": [
@@ -197,6 +198,29 @@ def test_bench_supervisor_compares_kill_to_serving_with_and_without_a_subscriber
     assert 0 == done.returncode, done.stderr[-3000:]
     assert "subscriber / none" in done.stdout
     assert "fork floor" in done.stdout
+
+
+@pytest.mark.timeout(CEILING + 10)
+def test_bench_trees_reports_a_tree_that_outran_its_bound_as_such_and_still_plots(
+    tmp_path: Path,
+) -> None:
+    plot = tmp_path / "trees.png"
+    done = subprocess.run(
+        [
+            sys.executable, str(ROOT / "benchmarks" / "bench_trees.py"),
+            *("--counts", "1", "2", "--kinds", "process", "--state", "none", "--kills", "1"),
+            *("--bound", "0.5", "--bound-per-manager", "0", "--plot", str(plot)),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=CEILING,
+        check=False,
+    )  # fmt: skip
+
+    assert 0 == done.returncode, done.stderr[-3000:]
+    assert "| start 2 process none | timeout in " in done.stdout
+    assert plot.read_bytes().startswith(b"\x89PNG")
 
 
 def _script(name: str) -> ModuleType:
