@@ -3,9 +3,11 @@
 For each N (default 10, 50, 200, 1,000), each kind of manager (`process`, `thread`) and
 with and without a fresh `state_dir` ("fresh": an empty directory of its own), a tree of
 N managers (each with one server, as `bench_scale.py`'s) is measured in a Python of its
-own, bounded by `--bound` seconds (plus `--bound-per-manager` per manager); a tree that
-does not finish within it is killed (its process group) and its row says which step it
-had not finished (`timeout in stop`), whatever it measured before that is kept.
+own, bounded by `--bound` seconds (plus `--bound-per-manager` per manager) and by
+`--max-threads` threads in all (its processes' threads count against the machine's
+`pid_max`, which other programs share); a tree past either is killed (its session) and
+its row says which step it had not finished (`timeout (70 s) in stop`); whatever it
+measured before is kept.
 
 * start: `Supervisor.start()` (ordered start, every manager serving), then one call to
   each manager from one registrar of the tree (`start+calls`, from `start()` to the
@@ -197,8 +199,28 @@ def one_tree(count: int, kind: str, state: Path | None, kills: int, bound: float
     emit(stop_ms=(time.perf_counter() - began) * 1000, step="done")
 
 
-def run_tree(count: int, kind: str, state: str, kills: int, bound: float) -> dict[str, Any]:
-    """One tree's run in a Python of its own, killed (with its process group) after `bound` s."""
+WATCH = 0.5
+"""Seconds between two looks at a tree's run (its threads, its time)."""
+
+
+def session_threads(session: int) -> int:
+    """Threads of every process of session `session` (a tree's run and its managers)."""
+    total = 0
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            with contextlib.suppress(OSError, IndexError, ValueError):
+                fields = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()
+                if int(fields[3]) == session:
+                    total += int(fields[17])
+    return total
+
+
+def run_tree(
+    count: int, kind: str, state: str, kills: int, bound: float, max_threads: int
+) -> dict[str, Any]:
+    """One tree's run in a Python of its own (a session of its own), killed with its
+    managers after `bound` s or once they have more than `max_threads` threads in all
+    (threads count against the machine's `pid_max`)."""
     scratch = tempfile.TemporaryDirectory()  # (here: a killed run's state_dir is removed too)
     where = str(Path(scratch.name) / "state") if state == "fresh" else "none"
     command = [sys.executable, str(HERE), "--one", str(count), kind, where, "--kills", str(kills)]
@@ -206,21 +228,32 @@ def run_tree(count: int, kind: str, state: str, kills: int, bound: float) -> dic
     child = subprocess.Popen(
         command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
     )
-    timed_out = False
-    try:
-        out, err = child.communicate(timeout=bound)
-    except subprocess.TimeoutExpired:
-        timed_out = True
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(child.pid, signal.SIGKILL)
-        out, err = child.communicate()
+    deadline = time.monotonic() + bound
+    peak, stopped = 0, ""
+    while True:
+        try:
+            out, err = child.communicate(timeout=WATCH)
+            break
+        except subprocess.TimeoutExpired:
+            threads = session_threads(child.pid)
+            peak = max(peak, threads)
+            if threads > max_threads:
+                stopped = f"stopped at {threads:,} threads (over {max_threads:,})"
+            elif time.monotonic() > deadline:
+                stopped = f"timeout ({bound:g} s)"
+            if stopped:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(child.pid, signal.SIGKILL)
+                out, err = child.communicate()
+                break
     scratch.cleanup()
     figures: dict[str, Any] = {}
     for line in out.splitlines():
         with contextlib.suppress(ValueError):
             figures.update(json.loads(line))
-    if timed_out:
-        figures["outcome"] = f"timeout in {figures.get('step', 'start')} ({bound:g} s)"
+    figures["peak_threads"] = peak
+    if stopped:
+        figures["outcome"] = f"{stopped} in {figures.get('step', 'start')}"
     elif child.returncode != 0 or figures.get("step") != "done":
         last = (err.strip().splitlines() or ["?"])[-1][:80]
         figures["outcome"] = f"failed in {figures.get('step', 'start')}: {last}"
@@ -277,7 +310,8 @@ def measure(
             for count in args.counts:
                 for kind in args.kinds:
                     for state in args.state:
-                        figures = run_tree(count, kind, state, args.kills, bound_of(count, args))
+                        bound = bound_of(count, args)
+                        figures = run_tree(count, kind, state, args.kills, bound, args.max_threads)
                         trees.setdefault((count, kind, state), []).append(figures)
                         print(f"# {count} {kind} {state}: {figures}", file=sys.stderr, flush=True)
                         if kind == "process":
@@ -358,16 +392,17 @@ def report(
     print()
     print(
         "| tree | threads per manager | sockets per manager | PSS per manager (MiB) "
-        "| plain child's PSS (MiB) |"
+        "| plain child's PSS (MiB) | threads of the tree, peak |"
     )
-    print("|---|---:|---:|---:|---:|")
+    print("|---|---:|---:|---:|---:|---:|")
     for (count, kind, state), runs in trees.items():
         pss, plain = median_of(runs, "pss_kib"), median_of(floors[(count, kind)], "pss_kib")
         print(
             f"| cost {count} {kind} {state} | {show(median_of(runs, 'threads'), 1)} "
             f"| {show(median_of(runs, 'sockets'), 1)} "
             f"| {show(None if pss is None else pss / 1024, 2)} "
-            f"| {show(None if plain is None else plain / 1024, 2)} |"
+            f"| {show(None if plain is None else plain / 1024, 2)} "
+            f"| {show(max(r['peak_threads'] for r in runs))} |"
         )
     print()
     print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
@@ -437,6 +472,12 @@ def main() -> None:
     parser.add_argument("--bound", type=float, default=60.0, help="seconds a tree's run may take")
     parser.add_argument(
         "--bound-per-manager", type=float, default=0.3, help="... plus this per manager"
+    )
+    parser.add_argument(
+        "--max-threads",
+        type=int,
+        default=8000,
+        help="a tree whose processes have more threads in all is stopped (pid_max is shared)",
     )
     parser.add_argument("--plot", type=Path, help="write the curves to this PNG")
     parser.add_argument("--one", nargs=3, metavar=("N", "KIND", "STATE"), help=argparse.SUPPRESS)

@@ -219,8 +219,28 @@ def test_bench_trees_reports_a_tree_that_outran_its_bound_as_such_and_still_plot
     )  # fmt: skip
 
     assert 0 == done.returncode, done.stderr[-3000:]
-    assert "| start 2 process none | timeout in " in done.stdout
+    assert "| start 2 process none | timeout (0.5 s) in " in done.stdout
     assert plot.read_bytes().startswith(b"\x89PNG")
+
+
+@pytest.mark.timeout(CEILING + 10)
+def test_bench_trees_stops_a_tree_whose_threads_outgrow_the_cap_and_says_so() -> None:
+    done = subprocess.run(
+        [
+            sys.executable, str(ROOT / "benchmarks" / "bench_trees.py"),
+            *("--counts", "3", "--kinds", "thread", "--state", "none", "--kills", "1"),
+            *("--max-threads", "2"),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=CEILING,
+        check=False,
+    )  # fmt: skip
+
+    assert 0 == done.returncode, done.stderr[-3000:]
+    assert "| start 3 thread none | stopped at " in done.stdout
+    assert "threads (over 2) in " in done.stdout
 
 
 def _script(name: str) -> ModuleType:
