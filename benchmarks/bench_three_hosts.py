@@ -179,6 +179,14 @@ ZENOH_TROUBLE = re.compile(r"time(d)? ?out|refus|max_sessions|too many|closing s
 """What a line of Zenoh's own log (`RUST_LOG=warn`) says when a session or an accept failed."""
 
 
+def kind_of(line: str) -> str:
+    """A log line without its colours, time, thread, ids and numbers: what kind it is."""
+    plain = re.sub(r"\x1b\[[0-9;]*m", "", line)
+    plain = re.sub(r"^\S+Z\s+", "", plain)  # (the time)
+    plain = re.sub(r"ThreadId\(\d+\)", "", plain)
+    return re.sub(r"[0-9a-f]{6,}(:\d+)*|\d+", "#", plain).strip()[:160]
+
+
 def zenoh_trouble(net: hosts.ThreeHosts) -> tuple[dict[str, list[str]], int]:
     """Per host, the lines of its workers' output that `ZENOH_TROUBLE` matches; how many
     lines they wrote in all."""
@@ -235,9 +243,9 @@ def many(managers: int, kind: str, bound: float) -> None:
         f"Zenoh log lines of timeouts, refusals or closed sessions: {counts} "
         f"(of {written} lines the workers wrote)"
     )
-    for h, lines in trouble.items():
-        for shown in lines[:3]:
-            print(f"  {h}: {shown[:200]}")
+    kinds = Counter(kind_of(line) for lines in trouble.values() for line in lines)
+    for what, seen in kinds.most_common(5):
+        print(f"  {seen} x {what}")
     print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
 
 
