@@ -252,6 +252,7 @@ def run_tree(
         with contextlib.suppress(ValueError):
             figures.update(json.loads(line))
     figures["peak_threads"] = peak
+    figures["bound_s"] = bound
     if stopped:
         figures["outcome"] = f"{stopped} in {figures.get('step', 'start')}"
     elif child.returncode != 0 or figures.get("step") != "done":
@@ -424,7 +425,7 @@ def plot(
     configs = sorted({(kind, state) for _, kind, state in trees})
     for axis, (title, key) in zip(axes, steps, strict=True):
         for kind, state in configs:
-            counts, values = [], []
+            counts, values, unfinished = [], [], []
             for (count, k, s), runs in sorted(trees.items()):
                 if (k, s) != (kind, state):
                     continue
@@ -436,7 +437,18 @@ def plot(
                 if value is not None:
                     counts.append(count)
                     values.append(value)
-            axis.plot(counts, values, marker="o", label=f"{kind}, state_dir {state}")
+                elif runs and "bound_s" in runs[0]:  # (it did not get there: at its bound)
+                    unfinished.append((count, runs[0]["bound_s"] * 1000))
+            (line,) = axis.plot(counts, values, marker="o", label=f"{kind}, state_dir {state}")
+            if unfinished:
+                axis.plot(
+                    [c for c, _ in unfinished],
+                    [b for _, b in unfinished],
+                    linestyle="none",
+                    marker="^",
+                    markerfacecolor="none",
+                    color=line.get_color(),
+                )
         for kind in sorted({kind for _, kind in floors}):
             points = sorted(
                 (c, median_of(runs, key)) for (c, k), runs in floors.items() if k == kind
@@ -450,11 +462,14 @@ def plot(
             )
         axis.set_xscale("log")
         axis.set_yscale("log")
+        axis.set_xticks(sorted({count for count, _, _ in trees}))
+        axis.set_xticklabels([f"{count:,}" for count in sorted({count for count, _, _ in trees})])
+        axis.minorticks_off()
         axis.set_xlabel("managers (N)")
         axis.set_ylabel("ms (median)")
         axis.set_title(title)
         axis.grid(True, which="both", alpha=0.3)
-    axes[0].legend(fontsize=7)
+    axes[0].legend(fontsize=7, title="(open triangle: not done within its bound)", title_fontsize=7)
     figure.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(path, dpi=90)
@@ -479,6 +494,10 @@ def main() -> None:
         default=8000,
         help="a tree whose processes have more threads in all is stopped (pid_max is shared)",
     )
+    parser.add_argument("--save", type=Path, help="also write the figures to this JSON file")
+    parser.add_argument(
+        "--load", type=Path, nargs="+", help="measure nothing: report (and plot) saved figures"
+    )
     parser.add_argument("--plot", type=Path, help="write the curves to this PNG")
     parser.add_argument("--one", nargs=3, metavar=("N", "KIND", "STATE"), help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -486,8 +505,26 @@ def main() -> None:
         state = None if args.one[2] == "none" else Path(args.one[2])
         one_tree(int(args.one[0]), args.one[1], state, args.kills, args.bound)
         return
-    trees, floors = measure(args)
-    report(trees, floors)
+    if args.load:
+        trees, floors = {}, {}
+        for path in args.load:
+            saved = json.loads(path.read_text())
+            trees.update({(t["count"], t["kind"], t["state"]): t["runs"] for t in saved["trees"]})
+            floors.update({(f["count"], f["kind"]): f["runs"] for f in saved["floors"]})
+            print(f"(from {path}: {saved['load']})")
+    else:
+        trees, floors = measure(args)
+    if args.save:
+        load = f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}"
+        saved = {
+            "trees": [
+                {"count": c, "kind": k, "state": s, "runs": r} for (c, k, s), r in trees.items()
+            ],
+            "floors": [{"count": c, "kind": k, "runs": r} for (c, k), r in floors.items()],
+            "load": f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {load}",
+        }
+        args.save.write_text(json.dumps(saved, indent=1))
+    report(dict(sorted(trees.items())), floors)
     if args.plot:
         plot(trees, floors, args.plot)
         print(f"plot: {args.plot}")
