@@ -358,6 +358,9 @@ def report(
 ) -> None:
     print("## Trees of N managers vs their floors (medians in ms; alternated)")
     print()
+    print("state_dir none / fresh (the floor in brackets):")
+    print()
+    compact(trees, floors)
     print("| tree | runs | start+calls | floor | ratio |")
     print("|---|---|---:|---:|---:|")
     for (count, kind, state), runs in trees.items():
@@ -407,6 +410,47 @@ def report(
         )
     print()
     print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+
+
+def cell(runs: list[dict[str, Any]] | None, key: str, scale: float = 1.0, digits: int = 0) -> str:
+    """One tree's figure for the compact table: its median, or why there is none."""
+    if not runs:
+        return "-"
+    if key == "start_ms":
+        done = [r["start_ms"] + r["calls_ms"] for r in runs if "calls_ms" in r]
+        value = statistics.median(done) if done else None
+    else:
+        value = median_of(runs, key)
+    if value is not None:
+        return show(value * scale, digits)
+    why = runs[0]["outcome"]
+    if why.startswith("timeout"):
+        return f"> {runs[0].get('bound_s', 0):g} s"
+    return "thread cap" if why.startswith("stopped") else "failed"
+
+
+def compact(
+    trees: dict[tuple[int, str, str], list[dict[str, Any]]],
+    floors: dict[tuple[int, str], list[dict[str, float]]],
+) -> None:
+    """The same figures, one row per N and kind: state_dir none / fresh (floor)."""
+    print("| N, kind | start + a call each (ms) | stop (ms) | kill to serving (ms) ", end="")
+    print("| p99 of the others' calls, restarting (ms) | threads per manager ", end="")
+    print("| PSS per manager (MiB) |")
+    print("|---|---:|---:|---:|---:|---:|---:|")
+    for count, kind in sorted({(c, k) for c, k, _ in trees}):
+        none, fresh = trees.get((count, kind, "none")), trees.get((count, kind, "fresh"))
+        plain = floors[(count, kind)]
+        row = [f"{count:,}, {kind}"]
+        row += [
+            f"{cell(none, key)} / {cell(fresh, key)} ({show(median_of(plain, key))})"
+            for key in ("start_ms", "stop_ms", "restart_ms")
+        ]
+        row.append(f"{cell(none, 'p99_during_ms')} / {cell(fresh, 'p99_during_ms')}")
+        row.append(f"{cell(none, 'threads', digits=1)} / {cell(fresh, 'threads', digits=1)}")
+        row.append(f"{cell(none, 'pss_kib', 1 / 1024, 2)} / {cell(fresh, 'pss_kib', 1 / 1024, 2)}")
+        print("| " + " | ".join(row) + " |")
+    print()
 
 
 def plot(
