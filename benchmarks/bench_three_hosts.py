@@ -214,9 +214,15 @@ def many(managers: int, kind: str, bound: float) -> None:
                 h: host.worker.submit(start_many, h, managers, kind, bound)
                 for h, host in where.items()
             }
-            started = {h: future.result(bound + 60) - began for h, future in starting.items()}
+            started = {}
+            for h, future in starting.items():
+                started[h] = future.result(bound + 60) - began
+                print(f"# {h}: start() returned after {started[h]:.1f} s", file=sys.stderr)
             seeing = {h: host.worker.submit(all_served, names, bound) for h, host in where.items()}
             served = {h: future.result(bound + 60) for h, future in seeing.items()}
+            print(
+                f"# every host sees every name: {time.monotonic() - began:.1f} s", file=sys.stderr
+            )
             answered, failed = a.call(
                 hosts.rr_run, "app", call_each, names, bound, timeout=bound + 60
             )

@@ -14,6 +14,7 @@ two busy loops and other test runs); the former 110 s was exceeded there by two 
 from __future__ import annotations
 
 import importlib.util
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -241,6 +242,29 @@ def test_bench_trees_stops_a_tree_whose_threads_outgrow_the_cap_and_says_so() ->
     assert 0 == done.returncode, done.stderr[-3000:]
     assert "| start 3 thread none | stopped at " in done.stdout
     assert "threads (over 2) in " in done.stdout
+
+
+@pytest.mark.timeout(CEILING + 10)
+def test_bench_three_hosts_starts_managers_on_each_host_and_calls_every_one_from_a() -> None:
+    if os.geteuid() != 0:
+        pytest.skip("three hosts are network namespaces: root only")
+    done = subprocess.run(
+        [
+            sys.executable, str(ROOT / "benchmarks" / "bench_three_hosts.py"),
+            *("--managers", "4", "--bound", "120"),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=CEILING,
+        check=False,
+    )  # fmt: skip
+
+    assert 0 == done.returncode, done.stderr[-3000:]
+    assert "## 12 managers on three hosts (4 thread managers each; b routes)" in done.stdout
+    assert "all 12 calls from a answered: " in done.stdout
+    rows = [line for line in done.stdout.splitlines() if line.startswith(("| a |", "| c |"))]
+    assert 2 == len(rows)
 
 
 def _script(name: str) -> ModuleType:
