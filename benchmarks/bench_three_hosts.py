@@ -129,6 +129,14 @@ def start_many(prefix: str, count: int, kind: str, bound: float) -> float:
     return time.monotonic()
 
 
+def running_many() -> int:
+    """How many of this worker's managers run now (its supervisor may still be starting)."""
+    supervisor = hosts.KEPT.get("many")
+    if supervisor is None:
+        return 0
+    return sum(child.state == "running" for child in supervisor.which_children())
+
+
 def stop_many() -> None:
     supervisor = hosts.KEPT.pop("many", None)
     if supervisor is not None:
@@ -215,8 +223,15 @@ def many(managers: int, kind: str, bound: float) -> None:
                 for h, host in where.items()
             }
             started = {}
+            while not all(future.done() for future in starting.values()):
+                with suppress(TimeoutError):  # (a look every 30 s, to stderr)
+                    starting[next(h for h in where if not starting[h].done())].result(30)
+                running = {h: host.call(running_many, timeout=60) for h, host in where.items()}
+                print(f"# {time.monotonic() - began:.0f} s: running {running}", file=sys.stderr)
+                if time.monotonic() - began > bound:
+                    raise TimeoutError(f"not every tree started within {bound:g} s: {running}")
             for h, future in starting.items():
-                started[h] = future.result(bound + 60) - began
+                started[h] = future.result() - began
                 print(f"# {h}: start() returned after {started[h]:.1f} s", file=sys.stderr)
             seeing = {h: host.worker.submit(all_served, names, bound) for h, host in where.items()}
             served = {h: future.result(bound + 60) for h, future in seeing.items()}
@@ -227,9 +242,9 @@ def many(managers: int, kind: str, bound: float) -> None:
                 hosts.rr_run, "app", call_each, names, bound, timeout=bound + 60
             )
         finally:
-            for host in where.values():
+            for host in where.values():  # (one that does not stop in 2 min is killed)
                 with suppress(Exception):
-                    host.call(stop_many, timeout=bound + 60)
+                    host.call(stop_many, timeout=120)
         trouble, written = zenoh_trouble(net)
     print(f"## {len(names)} managers on three hosts ({managers} {kind} managers each; b routes)")
     print()

@@ -138,8 +138,8 @@ ROUTER_SESSIONS = 10_000
 """Sessions a host's router takes at most (Zenoh's own default, 1,000, refuses a tree of a
 thousand process managers: each joins through it with a session of its own)."""
 ROUTER_PENDING = 1_024
-"""Sessions a host's router lets open at once (Zenoh's default, 100, refused a fifth of
-600 manager processes joining together); strangers' handshakes are the gate's to limit."""
+"""Sessions a host's router lets open at once (Zenoh's default, 100, refused 120-200 of
+600 sessions opened together); strangers' handshakes are the gate's to limit."""
 
 
 def session_config(
