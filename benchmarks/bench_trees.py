@@ -253,7 +253,9 @@ def run_tree(
             figures.update(json.loads(line))
     figures["peak_threads"] = peak
     figures["bound_s"] = bound
-    if stopped:
+    if stopped and figures.get("step") == "done":
+        figures["outcome"] = f"done ({stopped} in its exit)"
+    elif stopped:
         figures["outcome"] = f"{stopped} in {figures.get('step', 'start')}"
     elif child.returncode != 0 or figures.get("step") != "done":
         last = (err.strip().splitlines() or ["?"])[-1][:80]
@@ -348,7 +350,7 @@ def ratio(ours: float | None, floor: float | None) -> str:
 
 
 def outcome(runs: list[dict[str, Any]]) -> str:
-    bad = [r["outcome"] for r in runs if r["outcome"] != "done"]
+    bad = [r["outcome"] for r in runs if not r["outcome"].startswith("done")]
     return "; ".join(sorted(set(bad))) if bad else f"{len(runs)} done"
 
 
@@ -468,7 +470,7 @@ def plot(
     steps = [("start+calls", "start_ms"), ("stop", "stop_ms"), ("kill to serving", "restart_ms")]
     configs = sorted({(kind, state) for _, kind, state in trees})
     for axis, (title, key) in zip(axes, steps, strict=True):
-        for kind, state in configs:
+        for number, (kind, state) in enumerate(configs):
             counts, values, unfinished = [], [], []
             for (count, k, s), runs in sorted(trees.items()):
                 if (k, s) != (kind, state):
@@ -485,8 +487,8 @@ def plot(
                     unfinished.append((count, runs[0]["bound_s"] * 1000))
             (line,) = axis.plot(counts, values, marker="o", label=f"{kind}, state_dir {state}")
             if unfinished:
-                axis.plot(
-                    [c for c, _ in unfinished],
+                axis.plot(  # (side by side: several stop at the same bound)
+                    [c * (1 + 0.06 * number) for c, _ in unfinished],
                     [b for _, b in unfinished],
                     linestyle="none",
                     marker="^",
