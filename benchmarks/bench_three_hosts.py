@@ -11,6 +11,17 @@ addresses, `a` and `c` dial only `b`. Measured, with the default lease (1 s):
   (`RegistrarUnavailableError`), and from the veth up again to `a`'s first call to `c`
   answered; the same for a cut of the veth a-b (`a`'s own link), for comparison.
 
+`--managers N` (issue 69, goal 6) measures instead a system of 3 x N managers: the same
+three hosts (`b` the one router `a` and `c` dial), each starting a `Supervisor` of N
+managers (`--kind thread`, or `process`: each manager process then joins through its
+host's router, a Zenoh session of its own) at the same time. Measured from that moment:
+each host's `start()` returning; every host seeing all 3 x N names served
+(`ZenohNetwork.wait_for`); and `a` answered by one call to each of the 3 x N managers (N
+on `a`, N on `b` over one link, N on `c` through `b`'s router). Counted: `wait_for`s and
+calls that failed (each retried until `--bound`), and the lines of Zenoh's own log
+(`RUST_LOG=warn`, in every worker's output) that speak of a timeout or of a refused or
+closed session.
+
 Every time is taken with `time.monotonic` or `time.perf_counter`, one clock for every
 namespace of the machine. Without root nothing is measured (one line says why).
 """
@@ -18,10 +29,13 @@ namespace of the machine. Without root nothing is measured (one line says why).
 from __future__ import annotations
 
 import argparse
+import os
+import re
 import statistics
 import sys
 import threading
 import time
+from collections import Counter
 from collections.abc import Iterator
 from contextlib import contextmanager, suppress
 from pathlib import Path
@@ -95,6 +109,167 @@ def call_in_flight(consumer: str, provider: str) -> float:
     raise RuntimeError("the call in flight did not fail")
 
 
+def setup_echo(registrar: Any) -> None:
+    """Each of the many managers: one server, `echo`."""
+    registrar.register_server("echo", load=lambda request: request, unload=lambda _q, _r: None)
+
+
+def start_many(prefix: str, count: int, kind: str, bound: float) -> float:
+    """A `Supervisor` of `count` managers `<prefix>0`... on this worker's network; when its
+    `start()` returned (`time.monotonic`)."""
+    import rr_actors as rr  # noqa: PLC0415
+
+    specs = [
+        rr.ManagerSpec(f"{prefix}{n}", setup_echo, isolation=kind, start_timeout=bound)
+        for n in range(count)
+    ]
+    supervisor = rr.Supervisor(specs, network=hosts.KEPT["network"], name=f"many-{prefix}")
+    hosts.KEPT["many"] = supervisor
+    supervisor.start()
+    return time.monotonic()
+
+
+def running_many() -> int:
+    """How many of this worker's managers run now (its supervisor may still be starting)."""
+    supervisor = hosts.KEPT.get("many")
+    if supervisor is None:
+        return 0
+    return sum(child.state == "running" for child in supervisor.which_children())
+
+
+def stop_many() -> None:
+    supervisor = hosts.KEPT.pop("many", None)
+    if supervisor is not None:
+        supervisor.stop()
+
+
+def all_served(names: list[str], bound: float) -> tuple[float, int]:
+    """Wait until this host sees each of `names` served; when the last was
+    (`time.monotonic`) and how many waits (10 s each at most) ran out first."""
+    import rr_actors as rr  # noqa: PLC0415
+
+    network = hosts.KEPT["network"]
+    deadline = time.monotonic() + bound
+    ran_out = 0
+    for name in names:
+        while True:
+            try:
+                network.wait_for(name, timeout=max(0.1, min(10.0, deadline - time.monotonic())))
+                break
+            except rr.RegistrarUnavailableError:
+                ran_out += 1
+                if time.monotonic() > deadline:
+                    raise
+    return time.monotonic(), ran_out
+
+
+def call_each(registrar: Any, names: list[str], bound: float) -> tuple[float, dict[str, int]]:
+    """One call answered by each of `names` (each unloaded after); when the last was
+    (`time.monotonic`) and the failed attempts by error (each retried until `bound`)."""
+    import rr_actors as rr  # noqa: PLC0415
+
+    deadline = time.monotonic() + bound
+    failed: Counter[str] = Counter()
+    for name in names:
+        while True:
+            try:
+                query = registrar.call(name, "echo", name, timeout=10.0)
+                registrar.unload(query.id)
+                break
+            except rr.RrError as exc:
+                failed[type(exc).__name__] += 1
+                if time.monotonic() > deadline:
+                    raise
+    return time.monotonic(), dict(failed)
+
+
+ZENOH_TROUBLE = re.compile(r"time(d)? ?out|refus|max_sessions|too many|closing session", re.I)
+"""What a line of Zenoh's own log (`RUST_LOG=warn`) says when a session or an accept failed."""
+
+
+def kind_of(line: str) -> str:
+    """A log line without its colours, time, thread, ids and numbers: what kind it is."""
+    plain = re.sub(r"\x1b\[[0-9;]*m", "", line)
+    plain = re.sub(r"^\S+Z\s+", "", plain)  # (the time)
+    plain = re.sub(r"ThreadId\(\d+\)", "", plain)
+    return re.sub(r"[0-9a-f]{6,}(:\d+)*|\d+", "#", plain).strip()[:160]
+
+
+def zenoh_trouble(net: hosts.ThreeHosts) -> tuple[dict[str, list[str]], int]:
+    """Per host, the lines of its workers' output that `ZENOH_TROUBLE` matches; how many
+    lines they wrote in all."""
+    found: dict[str, list[str]] = {}
+    written = 0
+    for name in "abc":
+        lines = []
+        for log in sorted(net.directory.glob(f"{name}-*.log")):
+            text = log.read_text(errors="replace").splitlines()
+            written += len(text)
+            lines += [line for line in text if ZENOH_TROUBLE.search(line)]
+        found[name] = lines
+    return found, written
+
+
+def many(managers: int, kind: str, bound: float) -> None:
+    """Three hosts of `managers` managers each: until served and answered (goal 6)."""
+    os.environ.setdefault("RUST_LOG", "warn")  # (the workers inherit it: Zenoh's own log)
+    with line() as (net, a):
+        where = {"a": net.a, "b": net.b, "c": net.c}
+        names = [f"{h}{n}" for h in where for n in range(managers)]
+        try:
+            began = time.monotonic()
+            starting = {
+                h: host.worker.submit(start_many, h, managers, kind, bound)
+                for h, host in where.items()
+            }
+            started = {}
+            while not all(future.done() for future in starting.values()):
+                with suppress(TimeoutError):  # (a look every 30 s, to stderr)
+                    starting[next(h for h in where if not starting[h].done())].result(30)
+                running = {h: host.call(running_many, timeout=60) for h, host in where.items()}
+                print(f"# {time.monotonic() - began:.0f} s: running {running}", file=sys.stderr)
+                if time.monotonic() - began > bound:
+                    raise TimeoutError(f"not every tree started within {bound:g} s: {running}")
+            for h, future in starting.items():
+                started[h] = future.result() - began
+                print(f"# {h}: start() returned after {started[h]:.1f} s", file=sys.stderr)
+            seeing = {h: host.worker.submit(all_served, names, bound) for h, host in where.items()}
+            served = {h: future.result(bound + 60) for h, future in seeing.items()}
+            print(
+                f"# every host sees every name: {time.monotonic() - began:.1f} s", file=sys.stderr
+            )
+            answered, failed = a.call(
+                hosts.rr_run, "app", call_each, names, bound, timeout=bound + 60
+            )
+        finally:
+            for host in where.values():  # (one that does not stop in 2 min is killed)
+                with suppress(Exception):
+                    host.call(stop_many, timeout=120)
+        trouble, written = zenoh_trouble(net)
+    print(f"## {len(names)} managers on three hosts ({managers} {kind} managers each; b routes)")
+    print()
+    print("| host | start() returned (s) | all names served here (s) | waits that ran out |")
+    print("|---|---:|---:|---:|")
+    for h in where:
+        at, ran_out = served[h]
+        print(f"| {h} | {started[h]:.1f} | {at - began:.1f} | {ran_out} |")
+    print()
+    print(
+        f"all {len(names)} calls from a answered: {answered - began:.1f} s after the start "
+        f"({answered - max(at for at, _ in served.values()):.1f} s after the last host saw "
+        f"every name); failed attempts: {sum(failed.values())} {failed or ''}"
+    )
+    counts = ", ".join(f"{h} {len(lines)}" for h, lines in trouble.items())
+    print(
+        f"Zenoh log lines of timeouts, refusals or closed sessions: {counts} "
+        f"(of {written} lines the workers wrote)"
+    )
+    kinds = Counter(kind_of(line) for lines in trouble.values() for line in lines)
+    for what, seen in kinds.most_common(5):
+        print(f"  {seen} x {what}")
+    print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+
+
 # -- the test process's side -------------------------------------------------------------------
 
 
@@ -165,10 +340,16 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=1000, help="timed calls per row")
     parser.add_argument("--cuts", type=int, default=5, help="cuts per link")
+    parser.add_argument("--managers", type=int, help="instead: managers per host (goal 6)")
+    parser.add_argument("--kind", choices=["thread", "process"], default="thread")
+    parser.add_argument("--bound", type=float, default=600.0, help="seconds each step may take")
     args = parser.parse_args()
     why_not = hosts.require_root()
     if why_not is not None:
         print(f"nothing measured: {why_not}")
+        return
+    if args.managers:
+        many(args.managers, args.kind, args.bound)
         return
     with line() as (net, a):
         direct = a.call(dedup_hits, "app", "hub", args.rounds, timeout=600)

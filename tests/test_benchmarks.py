@@ -14,6 +14,7 @@ two busy loops and other test runs); the former 110 s was exceeded there by two 
 from __future__ import annotations
 
 import importlib.util
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -95,6 +96,7 @@ SMALLEST = {
         ),
     ],
     "bench_simulation.py": ["--seeds", "1", "--no-real"],
+    "bench_trees.py": ["--counts", "2", "--kills", "1"],
     "bench_simulation_fidelity.py": ["--seeds", "1", "--runs", "2", "--duration", "0.5"],
     "bench_teach.py": ["--seeds", "1", "--only", "camera"],
     "bench_teach_replay.py": [
@@ -200,6 +202,72 @@ def test_bench_supervisor_compares_kill_to_serving_with_and_without_a_subscriber
     assert 0 == done.returncode, done.stderr[-3000:]
     assert "subscriber / none" in done.stdout
     assert "fork floor" in done.stdout
+
+
+@pytest.mark.timeout(CEILING + 10)
+def test_bench_trees_reports_a_tree_that_outran_its_bound_as_such_and_still_plots(
+    tmp_path: Path,
+) -> None:
+    plot = tmp_path / "trees.png"
+    done = subprocess.run(
+        [
+            sys.executable, str(ROOT / "benchmarks" / "bench_trees.py"),
+            *("--counts", "1", "2", "--kinds", "process", "--state", "none", "--kills", "1"),
+            *("--bound", "0.5", "--bound-per-manager", "0", "--plot", str(plot)),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=CEILING,
+        check=False,
+    )  # fmt: skip
+
+    assert 0 == done.returncode, done.stderr[-3000:]
+    assert "| start 2 process none | timeout (0.5 s) in " in done.stdout
+    assert plot.read_bytes().startswith(b"\x89PNG")
+
+
+@pytest.mark.timeout(CEILING + 10)
+def test_bench_trees_stops_a_tree_whose_threads_outgrow_the_cap_and_says_so() -> None:
+    done = subprocess.run(
+        [
+            sys.executable, str(ROOT / "benchmarks" / "bench_trees.py"),
+            *("--counts", "3", "--kinds", "thread", "--state", "none", "--kills", "1"),
+            *("--max-threads", "2"),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=CEILING,
+        check=False,
+    )  # fmt: skip
+
+    assert 0 == done.returncode, done.stderr[-3000:]
+    assert "| start 3 thread none | stopped at " in done.stdout
+    assert "threads (over 2) in " in done.stdout
+
+
+@pytest.mark.timeout(CEILING + 10)
+def test_bench_three_hosts_starts_managers_on_each_host_and_calls_every_one_from_a() -> None:
+    if os.geteuid() != 0:
+        pytest.skip("three hosts are network namespaces: root only")
+    done = subprocess.run(
+        [
+            sys.executable, str(ROOT / "benchmarks" / "bench_three_hosts.py"),
+            *("--managers", "4", "--bound", "120"),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=CEILING,
+        check=False,
+    )  # fmt: skip
+
+    assert 0 == done.returncode, done.stderr[-3000:]
+    assert "## 12 managers on three hosts (4 thread managers each; b routes)" in done.stdout
+    assert "all 12 calls from a answered: " in done.stdout
+    rows = [line for line in done.stdout.splitlines() if line.startswith(("| a |", "| c |"))]
+    assert 2 == len(rows)
 
 
 def _script(name: str) -> ModuleType:

@@ -134,6 +134,14 @@ def _access_control(system: str, members: Iterable[str]) -> dict[str, Any]:
     }
 
 
+ROUTER_SESSIONS = 10_000
+"""Sessions a host's router takes at most (Zenoh's own default, 1,000, refuses a tree of a
+thousand process managers: each joins through it with a session of its own)."""
+ROUTER_PENDING = 1_024
+"""Sessions a host's router lets open at once (Zenoh's default, 100, refused 120-200 of
+600 sessions opened together); strangers' handshakes are the gate's to limit."""
+
+
 def session_config(
     mode: str,
     listen: list[str],
@@ -174,6 +182,9 @@ def session_config(
         # no shared memory: a session keeps each peer's segment file open for good
         "transport": {"link": link, "shared_memory": {"enabled": False}},
     }
+    if mode == "router":  # (its host's manager processes, one session each: inside.md)
+        unicast = {"max_sessions": ROUTER_SESSIONS, "accept_pending": ROUTER_PENDING}
+        settings["transport"]["unicast"] = unicast
     if tls is not None:
         settings["access_control"] = _access_control(system, tls.members)
     return zenoh.Config.from_json5(json.dumps(settings))

@@ -10,6 +10,7 @@ import json
 import logging
 import os
 import queue
+import resource
 import shutil
 import subprocess
 import sys
@@ -18,6 +19,7 @@ import threading
 import types
 import uuid
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -326,6 +328,66 @@ def test_a_tls_routers_manager_processes_join_over_its_unix_socket_and_are_admit
             link.dst.startswith("unixsock-stream/") for link in net.link().session.info.links()
         )
     finally:
+        net.close()
+
+
+MANY_AT_ONCE = 600
+"""Sessions opened together through a router (Zenoh's default let in some 400-480 of them)."""
+MANY = 1_100
+"""Sessions opened through a router in all (Zenoh's default stopped at 1,000)."""
+
+
+def _open_sessions(endpoint: str, count: int) -> list[zenoh.Session | Exception]:
+    """`count` client sessions (a manager process's config) opened at once, by as many
+    threads released together."""
+    go = threading.Barrier(count)
+
+    def one() -> zenoh.Session | Exception:
+        go.wait()
+        try:
+            return zenoh.open(session_config("client", [], [endpoint], 1.0))
+        except Exception as exc:  # (counted: Zenoh raises its own ZError)
+            return exc
+
+    with ThreadPoolExecutor(count) as pool:
+        return [f.result() for f in [pool.submit(one) for _ in range(count)]]
+
+
+@pytest.fixture
+def files_for_many() -> Iterator[None]:
+    """This process may open the files of `MANY` sessions on both of their ends."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if hard != resource.RLIM_INFINITY and hard < 4 * MANY:
+        pytest.skip(f"the open files' hard limit ({hard}) is below {4 * MANY}")
+    resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
+    yield
+    resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.usefixtures("files_for_many")
+def test_a_hosts_router_takes_600_manager_sessions_opening_at_once_and_over_a_thousand_in_all() -> (
+    None
+):
+    """Each manager process of a host joins through its router with a session of its own:
+    a tree of a thousand process managers, or 600 of them restarted together, must not be
+    refused by the router's session limits (issue 69)."""
+    net = rr.ZenohNetwork(system=f"t-{uuid.uuid4().hex[:8]}", listen=[], tls=None)
+    opened: list[zenoh.Session] = []
+    try:
+        endpoint = f"unixsock-stream/{net.address.socket_path}"
+        together = _open_sessions(endpoint, MANY_AT_ONCE)
+        opened += [s for s in together if isinstance(s, zenoh.Session)]
+        refused = [s for s in together if not isinstance(s, zenoh.Session)]
+        assert (MANY_AT_ONCE, []) == (len(opened), refused[:1])
+        for _ in range(MANY - MANY_AT_ONCE):
+            opened.append(zenoh.open(session_config("client", [], [endpoint], 1.0)))
+
+        assert MANY == len(opened)
+        assert all(session.info.routers_zid() for session in opened[-3:])
+    finally:
+        for session in opened:
+            session.close()  # type: ignore[no-untyped-call]
         net.close()
 
 
