@@ -28,17 +28,15 @@ docs/explanation/architecture.md.
 from __future__ import annotations
 
 import collections
-import concurrent.futures
 import contextlib
 import dataclasses
 import functools
 import logging
 import os
-import queue
 import resource
 import sys
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Protocol, TypeVar
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 from rr_actors import events
 from rr_actors._core import runtime, wire
@@ -837,98 +835,63 @@ class Stopping:
             self.stop_child(child, final=True, deadline=deadline, restarting=restarting)
 
     def stop_in_parallel(self, deadline: float | None, *, restarting: bool) -> None:
-        """Stop the children at once where no dependency orders them, dependents first.
-
-        A child depends on another when one of its registrars holds a query at one of the
-        other's (`client_queries`, asked of each running manager first): it stops, and its
-        dependents' stops end, before the other's stop begins. A child whose queries could
-        not be read depends on every child started before it (OTP's order); a cycle is
-        broken in reverse start order. Each stop runs on a worker thread (at most
-        `STOP_WORKERS`), its bookkeeping on this supervisor's thread.
-        """
+        """Stop the children at once, each once those that depend on it stopped: a child
+        depends on another when one of its registrars holds a query at one of the other's
+        (asked of each running manager; unknown: on every child started before it, OTP's
+        order); a cycle is broken in reverse start order. The stops run on at most
+        `STOP_WORKERS` threads, their bookkeeping on this supervisor's thread."""
         children = self.record.children
         for child in children:
             if child.running is None:
                 self.stop_child(child, final=True, deadline=deadline, restarting=restarting)
         up = [i for i, child in enumerate(children) if child.running is not None]
-        if not up:
-            return
-        workers = min(STOP_WORKERS, len(up))
-        pool = concurrent.futures.ThreadPoolExecutor(workers, f"rr-stop-{self.record.name}")
-        try:
-            needs = self._needs(up, deadline, pool)
-            self._stop_in_order_of(needs, deadline, pool, restarting=restarting)
-        finally:
-            pool.shutdown(wait=True)
-
-    def _needs(
-        self, up: list[int], deadline: float | None, pool: concurrent.futures.Executor
-    ) -> dict[int, set[int]]:
-        """For each running child (its index), the running children it depends on."""
-        children = self.record.children
-        system = self.record.tree.processes.system
-        limit = min(left(deadline) or _ASK_PROVIDERS, _ASK_PROVIDERS)
-        owner = {name: i for i in up for name, _ in _managers_running(children[i])}
-        asked = {
-            i: [
-                pool.submit(_providers, name, running, system, limit)
-                for name, running in _managers_running(children[i])
-            ]
-            for i in up
-        }
-        needs: dict[int, set[int]] = {}
+        out: runtime.SimpleQueue[tuple[Any, Any]] = runtime.SimpleQueue()
+        needs = self._needs(up, deadline, out)
+        waiting = dict.fromkeys(up, 0)  # a child's dependents not stopped yet
         for i in up:
-            providers: set[str] | None = set()
-            for future in asked[i]:
-                names = future.result()
-                if names is None or providers is None:
-                    providers = None
-                else:
-                    providers |= names
-            if providers is None:  # unknown: OTP's order, every child started before it
-                needs[i] = {j for j in up if j < i}
-            else:
-                needs[i] = {owner[n] for n in providers if n in owner and owner[n] != i}
-        return needs
-
-    def _stop_in_order_of(
-        self,
-        needs: dict[int, set[int]],
-        deadline: float | None,
-        pool: concurrent.futures.Executor,
-        *,
-        restarting: bool,
-    ) -> None:
-        """Stop each child once every child that needs it stopped (Kahn's order)."""
-        children = self.record.children
-        waiting = dict.fromkeys(needs, 0)  # a child's dependents not stopped yet
-        for providers in needs.values():
-            for j in providers:
+            for j in needs[i]:
                 waiting[j] += 1
-        done: queue.SimpleQueue[tuple[int, int, ManagerExit]] = queue.SimpleQueue()
-        ready = sorted((i for i, n in waiting.items() if n == 0), reverse=True)
-        under_way = 0
+        ready, under_way = [i for i in reversed(up) if waiting[i] == 0], 0
         while waiting or under_way:
-            if not ready and not under_way:  # a cycle: break it in reverse start order
+            if not ready and not under_way:  # a cycle
                 ready = [max(waiting)]
-            begun = []
-            for i in ready:  # all marked stopping first, then all stopped at once
+            start, ready = ready[: STOP_WORKERS - under_way], ready[STOP_WORKERS - under_way :]
+            begun = [(i, *self._begin_stop(children[i], deadline)) for i in start]
+            for i, running, limit, pid in begun:  # (all marked stopping, then stopped)
                 del waiting[i]
-                begun.append((i, *self._begin_stop(children[i], deadline)))
-            ready = []
-            for i, running, limit, pid in begun:
-                pool.submit(_stop_one, running, limit, i, pid, done, restarting=restarting)
+                _spawn(out, (i, pid), _stop, running, limit, restarting)
                 under_way += 1
-            if not under_way:
-                continue
-            i, pid, result = done.get()
+            (i, pid), result = out.get()
             under_way -= 1
+            if not isinstance(result, ManagerExit):
+                result = ManagerExit(f"stop failed: {result}", normal=False)
             self._end_stop(children[i], pid, result, final=True)
             for j in sorted(needs[i], reverse=True):
-                if j in waiting:
-                    waiting[j] -= 1
-                    if waiting[j] == 0:
-                        ready.append(j)
+                waiting[j] -= 1
+                if waiting[j] == 0:
+                    ready.append(j)
+
+    def _needs(
+        self, up: list[int], deadline: float | None, out: runtime.SimpleQueue[tuple[Any, Any]]
+    ) -> dict[int, set[int]]:
+        """The running children (indices) each running child depends on."""
+        children = self.record.children
+        needs: dict[int, set[int]] = {i: set() for i in up}
+        system, ask = self.record.tree.processes.system, min(left(deadline) or 5.0, 5.0)
+        owner = {name: i for i in up for name, _ in _managers(children[i])}
+        jobs = [(i, _providers, n, r, system, ask) for i in up for n, r in _managers(children[i])]
+        held = []
+        for n, job in enumerate(jobs):
+            if n >= STOP_WORKERS:  # (at most that many asked at once)
+                held.append(out.get())
+            _spawn(out, *job)
+        held += [out.get() for _ in range(len(jobs) - len(held))]
+        for i, providers in held:
+            if not isinstance(providers, set):  # unknown: OTP's order
+                needs[i] |= {j for j in up if j < i}
+            else:
+                needs[i] |= {owner[n] for n in providers if owner.get(n, i) != i}
+        return needs
 
     def stop_child(
         self,
@@ -1027,56 +990,47 @@ class Stopping:
 
 
 STOP_WORKERS = 16
-"""Threads a parallel stop (`Supervisor.stop(parallel=True)`) stops children on, at most."""
-
-_ASK_PROVIDERS = 5.0  # seconds a parallel stop waits for a manager's queries, at most
+"""Threads a parallel stop (`Supervisor.stop(parallel=True)`) runs at once, at most."""
 
 
-def _managers_running(child: Child) -> list[tuple[str, Running]]:
+def _managers(child: Child) -> list[tuple[str, Running]]:
     """The running managers of `child` (itself, or those below a nested supervisor)."""
     running = child.running
-    if running is None:
-        return []
     if isinstance(running, NestedSupervisor):
-        node = running.node
-        return [found for below in list(node.children) for found in _managers_running(below)]
-    return [(child.name, running)]
+        return [found for below in list(running.node.children) for found in _managers(below)]
+    return [] if running is None else [(child.name, running)]
 
 
-def _providers(
-    name: str, running: Running, system: Transport | None, timeout: float
-) -> set[str] | None:
+def _providers(name: str, running: Running, system: Transport | None, timeout: float) -> Any:
     """The registrars manager `name` holds a query at (`None`: it could not be asked)."""
     try:
         if isinstance(running, ThreadManager):
             return provider_names(running.registrar)
         if isinstance(running, ProcessManager) and system is not None:
-            names: set[str] = system.run(name, provider_names, timeout=timeout)
-            return names
+            return system.run(name, provider_names, timeout=timeout)
     except Exception as exc:  # noqa: BLE001 - unknown: it keeps OTP's order instead
         logger.info("parallel stop: the queries of %s are unknown (%s)", name, exc)
     return None
 
 
-def _stop_one(
-    running: Running,
-    limit: float | None,
-    index: int,
-    pid: int,
-    done: queue.SimpleQueue[tuple[int, int, ManagerExit]],
-    *,
-    restarting: bool,
-) -> None:
-    """Stop one child on a worker thread of a parallel stop; tell `done` how it ended."""
-    try:
-        if isinstance(running, NestedSupervisor):
-            result = running.stop(limit, restarting=restarting, parallel=True)
-        else:
-            result = running.stop(limit, restarting=restarting)
-    except BaseException as exc:  # (told, never lost: the supervisor thread waits for it)
-        logger.exception("parallel stop: a child's stop failed")
-        result = ManagerExit(f"stop failed: {exc}", normal=False)
-    done.put((index, pid, result))
+def _spawn(out: runtime.SimpleQueue[tuple[Any, Any]], key: Any, fn: Any, *args: Any) -> None:
+    """Run `fn(*args)` on a thread of its own, then put `(key, what it returned or raised)`."""
+
+    def run() -> None:
+        try:
+            result = fn(*args)
+        except BaseException as exc:  # (told, never lost: the supervisor waits for it)
+            logger.exception("parallel stop: %s failed", getattr(fn, "__name__", fn))
+            result = exc
+        out.put((key, result))
+
+    runtime.Thread(target=run, name="rr-stop", daemon=True).start()
+
+
+def _stop(running: Running, limit: float | None, again: bool) -> ManagerExit:
+    if isinstance(running, NestedSupervisor):
+        return running.stop(limit, restarting=again, parallel=True)
+    return running.stop(limit, restarting=again)
 
 
 # -- what the roles share: the mailbox's two messages, the record --------------------------
