@@ -175,16 +175,18 @@ def main(
     parent: int | None = None,
     forward: bool = False,
     tally: str | None = None,
+    announced: bool = False,
 ) -> None:
     """Run one manager: restore, set up, serve, then answer control requests until stopped.
 
     `setup`: cloudpickled (or of `None`); `address`: `None` runs unattached; `parent`: the
-    forking process's pid; `tally`: the journal's file (`tally.py`), or `None`.
+    forking process's pid; `tally`: the journal's file (`tally.py`), or `None`;
+    `announced`: its supervisor announces its starts (`start_registrar`).
     """
     _let_ctrl_c_pass()  # first: a Ctrl-C from here on is the supervisor's
     PLATFORM.die_with_parent(parent)
     set_title(config.name)
-    _run_manager(setup, config, address, conn, forward, tally)
+    _run_manager(setup, config, address, conn, forward, tally, announced)
 
 
 def _let_ctrl_c_pass() -> None:
@@ -226,7 +228,9 @@ def standby(conn: Connection, parent: int | None = None, warm: bool = True) -> N
     if not isinstance(start, Start):
         os._exit(0)
     set_title(start.config.name)
-    _run_manager(start.setup, start.config, start.address, conn, start.forward, start.tally)
+    _run_manager(
+        start.setup, start.config, start.address, conn, start.forward, start.tally, start.announced
+    )
 
 
 class _Pickled:
@@ -324,6 +328,7 @@ def _run_manager(
     conn: Connection,
     forward: bool,
     tally: str | None = None,
+    announced: bool = False,
 ) -> None:
     from rr_actors._registrar import Served, start_registrar  # noqa: PLC0415 - preloaded
 
@@ -334,7 +339,9 @@ def _run_manager(
         if address is not None:
             attached = address.attach()
             attached.supervised_by(_supervisor_pid(conn))  # it restarts this one (rule 19)
-        registrar = start_registrar(config, upstream=line.hub, hold_in_doubt=True, announced=True)
+        registrar = start_registrar(
+            config, upstream=line.hub, hold_in_doubt=True, announced=announced
+        )
         HOOKS.hub = line.hub
         setup_fn = cloudpickle.loads(setup)
         if setup_fn is not None:

@@ -84,6 +84,7 @@ class Start:
     address: Address | None
     forward: bool = False
     tally: str | None = None
+    announced: bool = False  # (its supervisor announces its starts: `start_registrar`)
 
 
 @dataclasses.dataclass(frozen=True, slots=True)

@@ -198,8 +198,10 @@ class ManagerProcess:
         forward_events: bool = False,
         on_events: Callable[[list[Any]], None] | None = None,
         on_overloaded: Callable[[int, Late], None] | None = None,
+        announced: bool = False,
     ) -> ManagerProcess:
-        """Start a manager process and wait until it serves (its catalog restored).
+        """Start a manager process and wait until it serves (its catalog restored);
+        `announced`: its supervisor announces its starts (`start_registrar`).
 
         Seconds: `start_timeout`, `heartbeat` (`None`: none), `heartbeat_timeout` (`None`:
         three periods). `on_exit`, `on_events` (each forwarded batch) and `on_overloaded`
@@ -224,6 +226,7 @@ class ManagerProcess:
                 on_exit=on_exit,
                 forward_events=forward_events,
                 on_events=on_events,
+                announced=announced,
             )
             return started
         tally = Tally.create() if on_events is not None else None
@@ -232,7 +235,7 @@ class ManagerProcess:
         deadline = runtime.monotonic() + start_timeout
         try:
             process, parent_conn = _launch(
-                name, setup, config, address, spare, forward_events, tally, start_timeout
+                name, setup, config, address, spare, forward_events, tally, start_timeout, announced
             )
         except BaseException as e:
             if tally is not None:
@@ -476,15 +479,18 @@ def _launch(
     forward: bool,
     tally: Tally | None,
     start_timeout: float,
+    announced: bool = False,
 ) -> tuple[Any, Connection]:
     """Hand the manager to `spare`, or start a new process for it (`TimeoutError`: the
     fork took longer than `start_timeout`)."""
     path = None if tally is None else tally.path
-    if spare is not None and spare.take(name, setup, config, address, forward=forward, tally=path):
+    if spare is not None and spare.take(
+        name, setup, config, address, forward=forward, tally=path, announced=announced
+    ):
         return spare.process, spare.conn
     return fork(
         main,
-        lambda conn, forker: (setup, config, address, conn, forker, forward, path),
+        lambda conn, forker: (setup, config, address, conn, forker, forward, path, announced),
         f"{PROCESS_PREFIX}{name}",
         start_timeout,
     )

@@ -84,13 +84,14 @@ class Spare:
         *,
         forward: bool = False,
         tally: str | None = None,
+        announced: bool = False,
     ) -> bool:
         """Hand manager `name`'s arguments to the spare; `False` if it is not usable."""
         if not self.process.is_alive():
             self.close()
             return False
         try:
-            self.conn.send(Start(setup, config, address, forward, tally))
+            self.conn.send(Start(setup, config, address, forward, tally, announced))
         except (OSError, ValueError):
             self.close()
             return False

@@ -1000,10 +1000,12 @@ def heard_started(target: str, name: str) -> None:
             DIRECTORY.lookup(target).tell(ReconcileAsk(name, holds_yours=False))
 
 
-def lost_everything(name: str, *, handle: Servable | None = None) -> None:
-    """Registrar `name` restarted without a backup (its supervisor tells the others,
-    `announce_started`): tell it (`LostEverything`, rule 20). `handle`: its
+def lost_everything(name: str, *, also: Iterable[str] = (), handle: Servable | None = None) -> None:
+    """Registrar `name` restarted without a backup: those here and in `also` are told it
+    started (`heard_started`), and it `LostEverything` (rule 20). `handle`: its
     `ResourceRegistrar`, through which it is told (it may not be in the directory yet)."""
+    for target in sorted({peer.name for peer in DIRECTORY.local_peers()} | set(also)):
+        heard_started(target, name)
     if handle is not None:
         handle.tell(LostEverything())
         return

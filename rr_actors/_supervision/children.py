@@ -242,6 +242,7 @@ class ProcessManager:
             on_overloaded=None
             if relay is None
             else functools.partial(relay.overloaded, supervisor, spec.name),
+            announced=True,
         )
         if relay is not None:
             relay.attach(handle, forwarding=forwarding)

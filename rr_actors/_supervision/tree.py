@@ -363,11 +363,13 @@ def lost_everything(
 ) -> None:
     """Registrar `name`, which keeps no backup, restarted empty: it and every registrar of
     the system reconcile (rule 20). `handle`: its `ResourceRegistrar`, if started here."""
-    announce_started(root, name, network)  # (this process's registrars included)
-    life.lost_everything(name, handle=handle)
+    announce_started(root, name, network, here=False)
+    life.lost_everything(name, handle=handle)  # (and this process's registrars)
 
 
-def announce_started(root: Level, name: str, network: Transport | None = None) -> None:
+def announce_started(
+    root: Level, name: str, network: Transport | None = None, *, here: bool = True
+) -> None:
     """Registrar `name` (re)started: every living registrar of the system hears so once
     (`life.heard_started`), the tree's process managers on their control pipes (no
     manager connects to one it has no business with), the others through the directory."""
@@ -375,7 +377,7 @@ def announce_started(root: Level, name: str, network: Transport | None = None) -
     for other, manager in sorted(piped.items()):
         if other != name:
             manager.handle.tell_started(name)
-    others = {peer.name for peer in DIRECTORY.local_peers()}
+    others = {peer.name for peer in DIRECTORY.local_peers()} if here else set()
     if network is not None and not network.closed:
         others.update(network.names())
     for other in sorted(others - piped.keys()):

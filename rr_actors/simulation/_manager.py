@@ -103,6 +103,7 @@ def start(
     on_exit: Callable[[ManagerExit], None],
     forward_events: bool = False,
     on_events: Callable[[list[Any]], None] | None = None,
+    announced: bool = False,
 ) -> SimulatedManager:
     """`ManagerProcess.start` in a simulation: a new simulated process runs the manager;
     returns once it serves (see `ManagerProcess.start` for the arguments and errors)."""
@@ -128,6 +129,7 @@ def start(
             forward_events,
             to_child,
             from_child,
+            announced,
         ),
         name=f"{name}-main",
         daemon=True,
@@ -320,11 +322,12 @@ def _child(
     forward: bool,
     to_child: Any,
     from_child: Any,
+    announced: bool = False,
 ) -> None:
     """The manager process's main task: restore, set up, serve; then the control loop."""
     child = _Child(sched, process, from_child, forward=forward)
     try:
-        registrar = child.start(setup, config, address, parent)
+        registrar = child.start(setup, config, address, parent, announced=announced)
     except BaseException as exc:  # noqa: BLE001 - reported to the parent, then exit 1
         corrupt = exc if isinstance(exc, CatalogCorruptError) else None
         from_child.put(Failed("".join(traceback.format_exception(exc)), corrupt))
@@ -356,7 +359,13 @@ class _Child:
         self.stopping = runtime.Event()
 
     def start(
-        self, setup: bytes, config: RegistrarConfig, address: Address | None, parent: int
+        self,
+        setup: bytes,
+        config: RegistrarConfig,
+        address: Address | None,
+        parent: int,
+        *,
+        announced: bool = False,
     ) -> Any:
         """Attach, restore the registrar from its backup, set it up, serve it."""
         if address is not None:
@@ -364,7 +373,7 @@ class _Child:
             self.attached.supervised_by(parent)
             self.process.at_end.append(functools.partial(_links_closed, self.attached))
         registrar = self.registrar = start_registrar(
-            config, upstream=self.hub, hold_in_doubt=True, announced=True
+            config, upstream=self.hub, hold_in_doubt=True, announced=announced
         )
         setup_fn = cloudpickle.loads(setup)
         if setup_fn is not None:
