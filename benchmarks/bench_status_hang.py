@@ -205,7 +205,7 @@ def run(placement: str, hang: bool, args: argparse.Namespace) -> dict[str, Any]:
         pid = None
     else:
         config = rr.RegistrarConfig(name=f"host-{uid}", call_timeout=30.0)
-        host = RemoteRegistrar.start(config, system, setup=setup)
+        host = RemoteRegistrar.start(config, system, setup=setup, start_timeout=120)  # (loaded)
         pid = host.pid
     query_id = provider.server_queries("leaf")[0].id
     if not args.cold:
