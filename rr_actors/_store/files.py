@@ -256,9 +256,8 @@ def remove_files(path: Path, suffixes: tuple[str, ...] = ("", *SIDE_FILES)) -> N
 def create(path: Path, *, synced: bool = False) -> bool:
     """Build an empty catalog under a temporary name (one transaction, neither journaled
     nor synced: no one opens it before it is whole), then link it into place (a file
-    another process created first wins); whether this one was linked. `ConfigError` if it
-    cannot be created. `synced` (`durability="power"`): the file, then its name, reach the
-    disk before it returns (two syncs; none without)."""
+    another process created first wins); whether this one was. `ConfigError` if it cannot
+    be. `synced` (`durability="power"`): the file, then its name, on the disk (two syncs)."""
     tmp = temporary_path(path, "creating")
     try:
         _private_file(tmp)
@@ -266,7 +265,8 @@ def create(path: Path, *, synced: bool = False) -> bool:
     except (sqlite3.Error, OSError) as exc:
         remove_files(tmp)
         raise ConfigError(f"backup_path {str(path)!r} cannot be created: {exc}") from exc
-    try:  # (no one opens it before it is whole and named: nothing journaled nor synced)
+    linked = False
+    try:
         db.execute("PRAGMA journal_mode = OFF")
         db.execute("PRAGMA synchronous = OFF")
         schema.create(db)
@@ -276,11 +276,9 @@ def create(path: Path, *, synced: bool = False) -> bool:
             sync(tmp)
         else:
             write_back(tmp)
-        try:
+        with contextlib.suppress(FileExistsError):
             os.link(tmp, path)
             linked = True
-        except FileExistsError:
-            linked = False
         if synced:
             sync(path, directory=True)
     except (sqlite3.Error, OSError) as exc:
@@ -333,22 +331,15 @@ def sync(path: str | os.PathLike[str], *, directory: bool = False) -> None:
 
 
 def write_back(path: Path) -> None:
-    """Hand the file's dirty pages to the disk now, without waiting for them nor syncing
-    (`posix_fadvise(DONTNEED)`: Linux starts their writeback, so ext4 allocates their
-    blocks, and its ordered journal writes them before it commits a name given to the file
-    later: a power cut then leaves no name or the whole file, never an empty one). No-op
-    where the call does not exist; never raises."""
-    advise = getattr(os, "posix_fadvise", None)
-    if advise is None:
-        return
-    try:
+    """Start writing the file's pages out, not waiting nor syncing (Linux: ext4 then writes
+    them before it commits a name given to the file later, so a power cut leaves no name
+    or the whole file, never an empty one); never raises."""
+    with contextlib.suppress(OSError, AttributeError):  # (no `posix_fadvise`: macOS)
         fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
         try:
-            advise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
+            os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
         finally:
             os.close(fd)
-    except OSError:
-        pass
 
 
 @contextlib.contextmanager
@@ -377,26 +368,18 @@ def validate(path: Path, *, tidy: bool) -> int:
         return schema.schema_version(db, name)
 
 
-def prepare(
-    db: sqlite3.Connection, name: str, durability: str, version: int, *, made: bool = False
-) -> None:
-    """Make `db` ready to write: WAL, the durability's `synchronous`, the schema and digests
-    brought up to date (`made`: a file `create` just made, written there already: only the
-    mode and the durability). `ConfigError`: not writable, or no WAL there."""
-    if not made:
-        try:
-            db.execute("BEGIN IMMEDIATE")  # can we write here at all?
-            db.execute("ROLLBACK")
-        except sqlite3.OperationalError as exc:
-            raise ConfigError(f"backup_path {name!r} is not writable: {exc}") from exc
+def prepare(db: sqlite3.Connection, name: str, durability: str, version: int) -> None:
+    try:
+        db.execute("BEGIN IMMEDIATE")  # can we write here at all?
+        db.execute("ROLLBACK")
+    except sqlite3.OperationalError as exc:
+        raise ConfigError(f"backup_path {name!r} is not writable: {exc}") from exc
     with as_corrupt(name):
         mode = db.execute("PRAGMA journal_mode = WAL").fetchone()[0]
     if mode != "wal":  # before anything is written: an older file stays as it was
         raise ConfigError(f"backup_path {name!r}: SQLite cannot use WAL mode there ({mode})")
     with as_corrupt(name):
         db.execute(f"PRAGMA synchronous = {SYNCHRONOUS[durability]}")
-        if made:
-            return
         schema.migrate(db, version)
     schema.refresh_digests(db, name)
 

@@ -5,10 +5,9 @@
    --MIGRATIONS[4]--> v5 --MIGRATIONS[5]--> v6 --MIGRATIONS[6]--> v7 (SCHEMA_VERSION)
 ```
 
-Each step is one transaction. A new file is made at once at `CREATED_VERSION` (`create`:
-`CREATE`, the objects the migrations make, in one transaction with the steps after it, if
-any). The layout, the digests and why a file is trusted only if its schema is exactly
-what these migrations create: "The backup's file",
+Each step is one transaction; a new file is made at once (`create`). The layout, the
+digests and why a file is trusted only if its schema is exactly what these migrations
+create: "The backup's file",
 docs/explanation/inside.md. `migrate` and `schema_version` read `SCHEMA_VERSION` and
 `MIGRATIONS` from this module when they run (tests replace them here).
 """
@@ -31,28 +30,22 @@ APPLICATION_ID = 0x72724163  # "rrAc": `PRAGMA application_id` of every catalog 
 SCHEMA_VERSION = 7
 """The schema version this code writes; older files are migrated, newer ones refused."""
 
-CREATED_VERSION = 7
-"""The version `CREATE` makes (the migrations after it, if any, run after it in `create`)."""
-
+CREATED_VERSION = 7  # what `CREATE` makes: the objects of `MIGRATIONS[:7]` (a test checks)
 CREATE = (
-    "CREATE TABLE rr_actors_schema (version INTEGER NOT NULL, digest_scheme TEXT)",
-    "CREATE TABLE clients (seq INTEGER PRIMARY KEY, query_id TEXT NOT NULL, server TEXT "
-    "NOT NULL, serving_rr TEXT NOT NULL, origin_rr TEXT NOT NULL, request BLOB, response "
-    "BLOB, parent TEXT, loaded INTEGER NOT NULL, request_text TEXT)",
-    "CREATE TABLE resources (seq INTEGER PRIMARY KEY, id TEXT NOT NULL, server TEXT NOT "
-    "NULL, state INTEGER NOT NULL, digest INTEGER, request BLOB, response BLOB, request_text "
-    "TEXT, response_text TEXT, label TEXT, failed INTEGER NOT NULL DEFAULT 0)",
-    "CREATE TABLE consumers (resource INTEGER NOT NULL, seq INTEGER NOT NULL, query_id TEXT "
-    "NOT NULL, origin_rr TEXT NOT NULL, PRIMARY KEY (resource, seq)) WITHOUT ROWID",
-    "CREATE UNIQUE INDEX resources_by_id ON resources (id)",
-    "CREATE INDEX resources_by_request ON resources (server, digest)",
-    "CREATE INDEX resources_unsettled ON resources (seq) WHERE state != 1 OR digest IS NULL",
-    "CREATE UNIQUE INDEX consumers_by_query ON consumers (query_id)",
-    "CREATE TABLE outbox (slot INTEGER PRIMARY KEY, pid INTEGER NOT NULL, seq INTEGER NOT "
-    "NULL, event TEXT NOT NULL)",
+    "CREATE TABLE rr_actors_schema (version INTEGER NOT NULL, digest_scheme TEXT);"
+    "CREATE TABLE clients (seq INTEGER PRIMARY KEY, query_id TEXT NOT NULL, server TEXT NOT "
+    "NULL, serving_rr TEXT NOT NULL, origin_rr TEXT NOT NULL, request BLOB, response BLOB, "
+    "parent TEXT, loaded INTEGER NOT NULL, request_text TEXT);CREATE TABLE resources (seq "
+    "INTEGER PRIMARY KEY, id TEXT NOT NULL, server TEXT NOT NULL, state INTEGER NOT NULL, "
+    "digest INTEGER, request BLOB, response BLOB, request_text TEXT, response_text TEXT, "
+    "label TEXT, failed INTEGER NOT NULL DEFAULT 0);CREATE TABLE consumers (resource INTEGER "
+    "NOT NULL, seq INTEGER NOT NULL, query_id TEXT NOT NULL, origin_rr TEXT NOT NULL, "
+    "PRIMARY KEY (resource, seq)) WITHOUT ROWID;CREATE UNIQUE INDEX resources_by_id ON "
+    "resources (id);CREATE INDEX resources_by_request ON resources (server, digest);CREATE "
+    "INDEX resources_unsettled ON resources (seq) WHERE state != 1 OR digest IS NULL;CREATE "
+    "UNIQUE INDEX consumers_by_query ON consumers (query_id);CREATE TABLE outbox (slot "
+    "INTEGER PRIMARY KEY, pid INTEGER NOT NULL, seq INTEGER NOT NULL, event TEXT NOT NULL)"
 )
-"""A new file's schema at `CREATED_VERSION`: exactly the objects `MIGRATIONS[:7]` make
-(`check_objects` compares their SQL texts; a test compares the two)."""
 
 
 def _create_v1(db: sqlite3.Connection) -> None:
@@ -272,23 +265,15 @@ def migrate(db: sqlite3.Connection, version: int) -> None:
 
 
 def create(db: sqlite3.Connection) -> None:
-    """Make an empty catalog of `SCHEMA_VERSION` in the empty database `db`, in one
-    transaction (the digests' scheme recorded: nothing for `refresh_digests` to do)."""
-    db.execute("BEGIN IMMEDIATE")
-    try:
-        db.execute(f"PRAGMA application_id = {APPLICATION_ID}")
-        for statement in CREATE:
-            db.execute(statement)
-        db.execute(
-            "INSERT INTO rr_actors_schema (version, digest_scheme) VALUES (?, ?)",
-            (CREATED_VERSION, DIGEST_SCHEME),
-        )
-        for step in range(CREATED_VERSION, SCHEMA_VERSION):  # (tests add steps)
-            MIGRATIONS[step](db)
-            db.execute("UPDATE rr_actors_schema SET version = ?", (step + 1,))
-    except BaseException:
-        rollback(db)
-        raise
+    """Make a catalog of `SCHEMA_VERSION` in the new, empty `db` in one transaction."""
+    db.execute("BEGIN IMMEDIATE")  # (a failure: the file is not used)
+    db.execute(f"PRAGMA application_id = {APPLICATION_ID}")
+    for statement in CREATE.split(";"):
+        db.execute(statement)
+    db.execute("INSERT INTO rr_actors_schema VALUES (?, ?)", (CREATED_VERSION, DIGEST_SCHEME))
+    for step in range(CREATED_VERSION, SCHEMA_VERSION):  # (tests add steps)
+        MIGRATIONS[step](db)
+        db.execute("UPDATE rr_actors_schema SET version = ?", (step + 1,))
     db.execute("COMMIT")
 
 

@@ -105,7 +105,6 @@ class SqliteStore:
         self._checked = created or not self._guarded
         self._damaged: str | None = None
         self._loaded = False
-        self._empty = False  # made by `open`: nothing to read
         self._resources: dict[str, Mirror] = {}
         # query id -> (row key, response_version, request_text)
         self._clients: dict[str, tuple[int, int, str | None]] = {}
@@ -171,8 +170,7 @@ class SqliteStore:
             )
         if not created:
             lost = lost_commits(file)  # before SQLite replays (and may remove) the log
-        # (a file this call made is known: empty, of this schema, writable)
-        version = schema.SCHEMA_VERSION if made else validate(file, tidy=True)
+        version = schema.SCHEMA_VERSION if made else validate(file, tidy=True)  # (known)
         name = str(file)
         try:
             db = connect(file, read_only=False)
@@ -183,8 +181,10 @@ class SqliteStore:
             if not checked and _open_writes(db, name, version):
                 check_pages(db, name)  # (before anything is written to it: rule 15)
                 checked = True
-            prepare(db, name, durability, version, made=made)
-            if not made:
+            if made:  # (empty, current, WAL, written there already)
+                db.execute(f"PRAGMA synchronous = {SYNCHRONOUS[durability]}")
+            else:
+                prepare(db, name, durability, version)
                 with as_corrupt(name):  # (read at the last run's exit, if anyone listened)
                     outbox.clear(db)
         except BaseException:
@@ -199,7 +199,6 @@ class SqliteStore:
             background_checkpoints=background_checkpoints,
         )
         store._checked = checked
-        store._empty = made
         if lost is not None:
             store.lost_commits, why = lost
             logger.warning(
@@ -245,9 +244,6 @@ class SqliteStore:
     def restore(self) -> Restored | None:
         """Read what a registrar needs to serve again (`restore.py`); `None` if `open`
         created the file (`CatalogCorruptError`)."""
-        if self._empty and not self._loaded:
-            self._loaded = True
-            return None
         try:
             with as_corrupt(self.path), gc_paused():
                 self._db.execute("BEGIN")
