@@ -216,6 +216,8 @@ WHOLE_FEATURES = {
     "observe/test_page.py": "the observer's page: the HTML and JavaScript of observe/static/",
     "simulation/test_registrar.py": "the registrar's semantic rules on the simulation, many seeds",
     "simulation/test_supervision.py": "a supervised tree of simulated processes under kills",
+    "supervision/test_pool.py": "a pool, a supervisor in a process of its own: its start and "
+    "exits (policy.py), its process (children.py, the manager process's child.py)",
     "teach/test_shortcuts.py": "every shortcut past a classroom exercise, on every exercise: "
     "the folder compared (kit.py), the check's child process (_seeds.py), the kit's rules",
 }
@@ -381,7 +383,7 @@ RUNTIME_SEAMS = ("rr_actors/testing/", "rr_actors/simulation/")
 # +100 for a start announced by the supervisor and a machine's bound named, +125 for the
 # parallel stop and a publish of what changed, +230 for pools, a supervisor in a process
 # of its own; issue 71 is where the runtime gets lighter again)
-RUNTIME_LINES = 32_700
+RUNTIME_LINES = 32_850
 RUNTIME_FILES = 95
 TRANSPORT_LINES = 6_000
 SMALL = 60
