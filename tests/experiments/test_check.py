@@ -2766,12 +2766,10 @@ ROOT_ONLY = {"leases", "simhosts"}
 network namespaces and minutes (tests/experiments/test_hosts.py runs a small plan of
 their shape; test_simulate.py runs `simhosts` on the simulation)."""
 
-SIMULATION_ONLY = {"simheal", "simrest", "simprogram", "simways"}
+SIMULATION_ONLY = {"simheal", "simrest", "simprogram"}
 """Shipped plans of a fault kind only the simulation injects (`split_brain`,
-`kill_in_setup`, `kill_program`), and `simways`, whose status every 1 ms is paced for the
-simulation's clock (its real runs' last status-order race, a notice for a due id left in
-a consumer's mailbox, is fixed; 13 real seeds held after it, fewer than the 15 asked for
-before it moves out): their histories are checked in tests/experiments/test_simulate.py."""
+`kill_in_setup`, `kill_program`): their histories are checked in
+tests/experiments/test_simulate.py."""
 
 
 @pytest.fixture(scope="module")
@@ -2920,7 +2918,7 @@ def test_each_mutation_of_the_shipped_plans_real_runs_is_caught_by_its_rule(
 SWEEP = pytest.mark.timeout(300)
 """A few seeds take a few CPU seconds; under load several times that."""
 
-MUTATED_ON_THE_SIMULATION = {"simheal", "simhosts", "simprogram", "simrest", "simways"}
+MUTATED_ON_THE_SIMULATION = {"simheal", "simhosts", "simprogram", "simrest"}
 """The shipped plans the real runs above leave out that the simulation runs (not `leases`:
 it freezes a host's router, which the simulated hosts have none of)."""
 
