@@ -2827,12 +2827,10 @@ ROOT_ONLY = {"leases", "simhosts"}
 network namespaces and minutes (tests/experiments/test_hosts.py runs a small plan of
 their shape; test_simulate.py runs `simhosts` on the simulation)."""
 
-SIMULATION_ONLY = {"simheal", "simrest", "simprogram", "simways"}
+SIMULATION_ONLY = {"simheal", "simrest", "simprogram"}
 """Shipped plans of a fault kind only the simulation injects (`split_brain`,
-`kill_in_setup`, `kill_program`), and `simways`, whose status every 1 ms is paced for the
-simulation's clock (and whose real runs still find one status-order race, 1 run in 15: a
-notice for a due id left in a consumer's mailbox, overtaken; issue 68 item 1 is open on
-it): their histories are checked in tests/experiments/test_simulate.py."""
+`kill_in_setup`, `kill_program`): their histories are checked in
+tests/experiments/test_simulate.py."""
 
 
 @pytest.fixture(scope="module")
@@ -2981,7 +2979,7 @@ def test_each_mutation_of_the_shipped_plans_real_runs_is_caught_by_its_rule(
 SWEEP = pytest.mark.timeout(300)
 """A few seeds take a few CPU seconds; under load several times that."""
 
-MUTATED_ON_THE_SIMULATION = {"simheal", "simhosts", "simprogram", "simrest", "simways"}
+MUTATED_ON_THE_SIMULATION = {"simheal", "simhosts", "simprogram", "simrest"}
 """The shipped plans the real runs above leave out that the simulation runs (not `leases`:
 it freezes a host's router, which the simulated hosts have none of)."""
 
