@@ -632,7 +632,9 @@ class Starting:
 
     def tell_started(self, spec: ManagerSpec, *, restarted: bool, restored: bool) -> None:
         """Manager `spec` serves: restarted, or on a backup an earlier run left, every
-        registrar is told (rule 20); a first start on a fresh catalog tells nobody."""
+        registrar is told (rule 20); a first start on a fresh catalog tells only the
+        registrars of the network beyond this tree (its name may have been served on
+        another host, rule 22: their ids there are unknown to it)."""
         record = self.record
         network = record.tree.processes.system
         if self.config(spec).backup_path is None:
@@ -640,6 +642,8 @@ class Starting:
                 lost_everything(record.root(), spec.name, network)
         elif restarted or restored:  # (what its backup lost; all of it if it is gone)
             announce_started(record.root(), spec.name, network)
+        elif network is not None:
+            announce_started(record.root(), spec.name, network, here=False, piped=False)
 
     def ran_before(self, name: str) -> bool:
         """`tree.ran_before` on this supervisor's state directory (a mark that cannot be

@@ -368,20 +368,39 @@ def lost_everything(
 
 
 def announce_started(
-    root: Level, name: str, network: Transport | None = None, *, here: bool = True
+    root: Level,
+    name: str,
+    network: Transport | None = None,
+    *,
+    here: bool = True,
+    piped: bool = True,
 ) -> None:
     """Registrar `name` (re)started: every living registrar of the system hears so once
     (`life.heard_started`), the tree's process managers on their control pipes (no
-    manager connects to one it has no business with), the others through the directory."""
-    piped = _process_handles(root)
-    for other, manager in sorted(piped.items()):
+    manager connects to one it has no business with), the others through the directory.
+    `here`, `piped`: the tree's registrars told too (neither: only those beyond the tree,
+    here and on the network)."""
+    handles = _process_handles(root)
+    for other, manager in sorted(handles.items()) if piped else ():
         if other != name:
             manager.handle.tell_started(name)
-    others = {peer.name for peer in DIRECTORY.local_peers()} if here else set()
+    beyond = not (here or piped)  # (a first start: those beyond the tree, here too)
+    others = {peer.name for peer in DIRECTORY.local_peers()} if here or beyond else set()
     if network is not None and not network.closed:
         others.update(network.names())
-    for other in sorted(others - piped.keys()):
+    if beyond:
+        others -= _names_below(root)
+    for other in sorted(others - handles.keys()):
         life.heard_started(other, name)
+
+
+def _names_below(level: Level) -> set[str]:
+    """Every child name of the tree below `level` (a pool's managers too)."""
+    names: set[str] = set()
+    for child in list(level.children):
+        names.add(child.name)
+        names |= child.subtree
+    return names
 
 
 def death_watch_missed(name: str) -> None:
