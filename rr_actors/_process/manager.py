@@ -43,6 +43,7 @@ from rr_actors._process.control import (
     POOL_GAVE_UP_EXIT,
     PROCESS_PREFIX,
     STOPPED_EXIT,
+    Announce,
     Events,
     EventsSynced,
     Failed,
@@ -148,8 +149,10 @@ class ManagerProcess:
         on_events: Callable[[list[Any]], None] | None = None,
         received: Received | None = None,
         on_overloaded: Callable[[int, Late], None] | None = None,
+        on_announce: Callable[[str], None] | None = None,
     ) -> None:
         self.name = name
+        self._on_announce = on_announce
         self.process = process
         assert process.pid is not None  # (started)
         self.pid: int = process.pid
@@ -198,12 +201,14 @@ class ManagerProcess:
         forward_events: bool = False,
         on_events: Callable[[list[Any]], None] | None = None,
         on_overloaded: Callable[[int, Late], None] | None = None,
+        on_announce: Callable[[str], None] | None = None,
     ) -> ManagerProcess:
         """Start a manager process and wait until it serves (its catalog restored).
 
         Seconds: `start_timeout`, `heartbeat` (`None`: none), `heartbeat_timeout` (`None`:
-        three periods). `on_exit`, `on_events` (each forwarded batch) and `on_overloaded`
-        (a late answer excused) run on the watcher thread.
+        three periods). `on_exit`, `on_events` (each forwarded batch), `on_overloaded`
+        (a late answer excused) and `on_announce` (a pool's registrar's name, `Announce`)
+        run on the watcher thread.
 
         Raises:
             CatalogCorruptError: its backup cannot be read (with its `path`; a note holds
@@ -257,6 +262,7 @@ class ManagerProcess:
             on_events=on_events,
             received=received,
             on_overloaded=on_overloaded,
+            on_announce=on_announce,
         )
         handle.forwarding = forward_events
         runtime.Thread(target=handle._watch, name=f"rr-watch-{name}", daemon=True).start()
@@ -384,6 +390,13 @@ class ManagerProcess:
     def _events(self, message: Events, _now: float) -> None:
         self._received.deliver(self.name, message.batch)
 
+    def _announce(self, message: Announce, _now: float) -> None:
+        if self._on_announce is not None:
+            try:
+                self._on_announce(message.name)
+            except Exception:
+                logger.exception("announcing %s (from %s) failed", message.name, self.name)
+
     def _synced(self, message: EventsSynced, _now: float) -> None:
         waiting = self._syncs.get(message.token)
         if waiting is not None:
@@ -455,6 +468,7 @@ class ManagerProcess:
 _HANDLERS: dict[type[Any], Callable[[ManagerProcess, Any, float], tuple[float, str] | None]] = {
     Events: ManagerProcess._events,
     EventsSynced: ManagerProcess._synced,
+    Announce: ManagerProcess._announce,
     Pong: ManagerProcess._pong,
     Progress: ManagerProcess._progress,
 }

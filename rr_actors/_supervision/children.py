@@ -218,8 +218,10 @@ class ProcessManager:
         spares: SparePool | None,
         relay: EventRelay | None = None,
         supervisor: str = "",
+        on_announce: Callable[[str], None] | None = None,
     ) -> ProcessManager:
-        """Start the manager (in a spare if there is one) and wait until it serves.
+        """Start the manager (in a spare if there is one) and wait until it serves
+        (`on_announce`: a pool's, `ManagerProcess.start`).
 
         Raises:
             CatalogCorruptError: its backup cannot be read (with its `path`).
@@ -242,6 +244,7 @@ class ProcessManager:
             on_overloaded=None
             if relay is None
             else functools.partial(relay.overloaded, supervisor, spec.name),
+            on_announce=on_announce,
         )
         if relay is not None:
             relay.attach(handle, forwarding=forwarding)
