@@ -345,3 +345,44 @@ def test_a_pool_s_manager_hears_a_process_manager_restart_without_its_ids(
 
         assert sup.wait_restarted(provider, timeout=BOUND).pid not in (None, killed)
         assert none_held(sup, holder)
+
+
+def sockets_of(pid: int) -> int:
+    """The sockets process `pid` has open (`/proc/<pid>/fd`)."""
+    count = 0
+    for fd in os.listdir(f"/proc/{pid}/fd"):
+        with contextlib.suppress(OSError):  # (closed meanwhile)
+            count += os.readlink(f"/proc/{pid}/fd/{fd}").startswith("socket:")
+    return count
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="reads /proc (Linux)")
+def test_a_pool_s_manager_restart_links_its_process_to_no_registrar_it_has_no_business_with(
+    supervisors: Callable[..., rr.Supervisor], state: str, uid: str, tmp_path: Path
+) -> None:
+    # (its pool's process told every registrar of the system itself, one link each:
+    # the holder, named last, is told last)
+    provider, holder = f"p{uid}-m0", f"z{uid}"
+    inner = rr.ManagerSpec(provider, echo_setup, config=unsaved(tmp_path, provider))
+    bystanders = [
+        rr.ManagerSpec(f"b{uid}-{i}", echo_setup, isolation="process", heartbeat=None)
+        for i in range(6)
+    ]
+    sup = supervisors(
+        [
+            rr.SupervisorSpec(f"p{uid}", (inner,), isolation="process"),
+            *bystanders,
+            rr.ManagerSpec(holder, echo_setup, isolation="process"),
+        ],
+        state_dir=state,
+    )
+    with sup:
+        sup.run_in(holder, lambda r: r.call(provider, "echo", "camera").id, timeout=BOUND)
+        pool_pid = sup.child(f"p{uid}").pid or 0
+        before = sockets_of(pool_pid)
+
+        with contextlib.suppress(rr.RegistrarUnavailableError):
+            sup.run_in(provider, testing.crash, timeout=BOUND)  # restored without the id
+
+        assert none_held(sup, holder)
+        assert sockets_of(pool_pid) < before + len(bystanders), before
