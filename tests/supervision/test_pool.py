@@ -386,3 +386,23 @@ def test_a_pool_s_manager_restart_links_its_process_to_no_registrar_it_has_no_bu
 
         assert none_held(sup, holder)
         assert sockets_of(pool_pid) < before + len(bystanders), before
+
+
+def test_a_pool_s_manager_hears_the_death_watch_of_a_provider_gone_for_good(
+    supervisors: Callable[..., rr.Supervisor], state: str, uid: str
+) -> None:
+    provider, holder = f"gone{uid}", f"w{uid}-m0"
+    sup = supervisors(
+        [
+            rr.ManagerSpec(provider, echo_setup, isolation="process", restart="temporary"),
+            pool(f"w{uid}", 1),
+        ],
+        state_dir=state,
+    )
+    with sup:
+        sup.run_in(holder, lambda r: r.call(provider, "echo", "camera").id, timeout=BOUND)
+        assert 1 == len(held_at(sup, holder))
+
+        os.kill(sup.child(provider).pid or 0, signal.SIGKILL)  # nobody restarts it
+
+        assert none_held(sup, holder)
