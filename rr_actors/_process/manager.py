@@ -248,7 +248,15 @@ class ManagerProcess:
                 ) from e
             raise
         try:
-            _await_ready(name, process, parent_conn, start_timeout, received, deadline=deadline)
+            _await_ready(
+                name,
+                process,
+                parent_conn,
+                start_timeout,
+                received,
+                deadline=deadline,
+                on_announce=on_announce,
+            )
         except BaseException:
             received.close()  # (a Ctrl-C while waiting; after a failure it is closed)
             raise
@@ -512,9 +520,11 @@ def _await_ready(
     received: Received,
     *,
     deadline: float | None = None,
+    on_announce: Callable[[str], None] | None = None,
 ) -> None:
     """Wait for the manager's `Ready`; raise if it never comes (events before it go to
-    `received`; `deadline`: when `start_timeout` ends, default from now)."""
+    `received`, a pool's `Announce` of a manager it started to `on_announce`;
+    `deadline`: when `start_timeout` ends, default from now)."""
     if deadline is None:
         deadline = runtime.monotonic() + start_timeout
     pid = process.pid
@@ -531,11 +541,10 @@ def _await_ready(
                 ended = True
                 woke = [process.sentinel]
             else:
-                if isinstance(message, Events):  # (its restore's in-doubt events, say)
-                    received.deliver(name, message.batch)
-                elif isinstance(message, Ready | Failed):
+                if isinstance(message, Ready | Failed):
                     ready = message
-                # else: Warm, from a spare that warmed up after it was taken
+                else:
+                    _before_ready(name, message, received, on_announce)
         ended_first = ready is None and left > 0 and not ended and process.sentinel in woke
         if ended_first and _readable(conn):  # what it sent before it ended comes first
             continue  # (its Failed, behind events it forwarded)
@@ -549,6 +558,18 @@ def _await_ready(
     if isinstance(ready, Failed):
         _reap(name, process, conn, received)
         raise _start_failed(name, pid, ready)
+
+
+def _before_ready(
+    name: str, message: object, received: Received, on_announce: Callable[[str], None] | None
+) -> None:
+    """A message that came before the manager's `Ready`: its restore's in-doubt events, say,
+    or a pool's `Announce` of a manager it started on an earlier run's catalog (a `Warm`,
+    from a spare that warmed up after it was taken, is dropped)."""
+    if isinstance(message, Events):
+        received.deliver(name, message.batch)
+    elif isinstance(message, Announce) and on_announce is not None:
+        on_announce(message.name)
 
 
 def _reap(name: str, process: BaseProcess, conn: Connection, received: Received) -> str:
