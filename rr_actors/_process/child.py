@@ -86,11 +86,13 @@ def provider_names(registrar: ResourceRegistrar) -> set[str]:
 
 class Hooks:
     """What a pool's `setup` (`_supervision/policy.py`, `PoolSetup`) hooks into: this
-    process's event hub, and a step run before its registrar stops (the `Stop`'s timeout
-    in seconds; whether it will be restarted)."""
+    process's event hub, a step run before its registrar stops (the `Stop`'s timeout
+    in seconds; whether it will be restarted), and the control pipe to its parent
+    (`to_parent`: any thread; nothing if the parent is gone)."""
 
     hub: Publisher[events.Event] | None = None
     before_stop: Callable[[float, bool], None] | None = None
+    to_parent: Callable[[FromChild], None] | None = None
 
 
 HOOKS = Hooks()
@@ -343,6 +345,7 @@ def _run_manager(
             config, upstream=line.hub, hold_in_doubt=True, announced=announced
         )
         HOOKS.hub = line.hub
+        HOOKS.to_parent = control.send
         setup_fn = cloudpickle.loads(setup)
         if setup_fn is not None:
             setup_fn(registrar)

@@ -16,6 +16,9 @@
    SyncEvents(token, timeout) ──────────────────────────────────►  send what is buffered
                                           ◄──────── EventsSynced(token)
    Stop(timeout, restarting) ───────────────────────────────────►  registrar.stop(); exit
+   PeerStarted(name) ───────────────────────────────────────────►  its registrars hear it
+                                          ◄──────── Announce(name)  (a pool: one of its
+                                                     managers restarted, tell the others)
    (EOF: the parent is gone) ───────────────────────────────────►  exit PARENT_GONE_EXIT
 ```
 
@@ -47,12 +50,14 @@ __all__ = [
     "PROCESS_PREFIX",
     "STOPPED_EXIT",
     "TITLE_PREFIX",
+    "Announce",
     "Events",
     "EventsSynced",
     "Failed",
     "Forward",
     "FromChild",
     "FromParent",
+    "PeerStarted",
     "Ping",
     "Pong",
     "Probe",
@@ -195,8 +200,17 @@ class PeerStarted:
     name: str
 
 
+@dataclasses.dataclass(frozen=True, slots=True)
+class Announce:
+    """From a pool's process: its registrar `name` (re)started, and this process heard
+    it; the parent tells the rest of the system (its `announce_started`), so that the
+    pool's process links to no registrar it has no business with."""
+
+    name: str
+
+
 FromParent = WarmUp | Start | Ping | Probe | Forward | SyncEvents | Stop | PeerStarted
-FromChild = Warm | Ready | Failed | Pong | Progress | Events | EventsSynced
+FromChild = Warm | Ready | Failed | Pong | Progress | Events | EventsSynced | Announce
 
 
 # -- how manager processes start ---------------------------------------------------------------

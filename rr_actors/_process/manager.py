@@ -43,6 +43,7 @@ from rr_actors._process.control import (
     POOL_GAVE_UP_EXIT,
     PROCESS_PREFIX,
     STOPPED_EXIT,
+    Announce,
     Events,
     EventsSynced,
     Failed,
@@ -148,8 +149,10 @@ class ManagerProcess:
         on_events: Callable[[list[Any]], None] | None = None,
         received: Received | None = None,
         on_overloaded: Callable[[int, Late], None] | None = None,
+        on_announce: Callable[[str], None] | None = None,
     ) -> None:
         self.name = name
+        self._on_announce = on_announce
         self.process = process
         assert process.pid is not None  # (started)
         self.pid: int = process.pid
@@ -199,13 +202,15 @@ class ManagerProcess:
         on_events: Callable[[list[Any]], None] | None = None,
         on_overloaded: Callable[[int, Late], None] | None = None,
         announced: bool = False,
+        on_announce: Callable[[str], None] | None = None,
     ) -> ManagerProcess:
         """Start a manager process and wait until it serves (its catalog restored);
         `announced`: its supervisor announces its starts (`start_registrar`).
 
         Seconds: `start_timeout`, `heartbeat` (`None`: none), `heartbeat_timeout` (`None`:
-        three periods). `on_exit`, `on_events` (each forwarded batch) and `on_overloaded`
-        (a late answer excused) run on the watcher thread.
+        three periods). `on_exit`, `on_events` (each forwarded batch), `on_overloaded`
+        (a late answer excused) and `on_announce` (a pool's registrar's name, `Announce`)
+        run on the watcher thread.
 
         Raises:
             CatalogCorruptError: its backup cannot be read (with its `path`; a note holds
@@ -246,7 +251,15 @@ class ManagerProcess:
                 ) from e
             raise
         try:
-            _await_ready(name, process, parent_conn, start_timeout, received, deadline=deadline)
+            _await_ready(
+                name,
+                process,
+                parent_conn,
+                start_timeout,
+                received,
+                deadline=deadline,
+                on_announce=on_announce,
+            )
         except BaseException:
             received.close()  # (a Ctrl-C while waiting; after a failure it is closed)
             raise
@@ -260,6 +273,7 @@ class ManagerProcess:
             on_events=on_events,
             received=received,
             on_overloaded=on_overloaded,
+            on_announce=on_announce,
         )
         handle.forwarding = forward_events
         runtime.Thread(target=handle._watch, name=f"rr-watch-{name}", daemon=True).start()
@@ -387,6 +401,13 @@ class ManagerProcess:
     def _events(self, message: Events, _now: float) -> None:
         self._received.deliver(self.name, message.batch)
 
+    def _announce(self, message: Announce, _now: float) -> None:
+        if self._on_announce is not None:
+            try:
+                self._on_announce(message.name)
+            except Exception:
+                logger.exception("announcing %s (from %s) failed", message.name, self.name)
+
     def _synced(self, message: EventsSynced, _now: float) -> None:
         waiting = self._syncs.get(message.token)
         if waiting is not None:
@@ -458,6 +479,7 @@ class ManagerProcess:
 _HANDLERS: dict[type[Any], Callable[[ManagerProcess, Any, float], tuple[float, str] | None]] = {
     Events: ManagerProcess._events,
     EventsSynced: ManagerProcess._synced,
+    Announce: ManagerProcess._announce,
     Pong: ManagerProcess._pong,
     Progress: ManagerProcess._progress,
 }
@@ -504,9 +526,11 @@ def _await_ready(
     received: Received,
     *,
     deadline: float | None = None,
+    on_announce: Callable[[str], None] | None = None,
 ) -> None:
     """Wait for the manager's `Ready`; raise if it never comes (events before it go to
-    `received`; `deadline`: when `start_timeout` ends, default from now)."""
+    `received`, a pool's `Announce` of a manager it started to `on_announce`;
+    `deadline`: when `start_timeout` ends, default from now)."""
     if deadline is None:
         deadline = runtime.monotonic() + start_timeout
     pid = process.pid
@@ -523,11 +547,10 @@ def _await_ready(
                 ended = True
                 woke = [process.sentinel]
             else:
-                if isinstance(message, Events):  # (its restore's in-doubt events, say)
-                    received.deliver(name, message.batch)
-                elif isinstance(message, Ready | Failed):
+                if isinstance(message, Ready | Failed):
                     ready = message
-                # else: Warm, from a spare that warmed up after it was taken
+                else:
+                    _before_ready(name, message, received, on_announce)
         ended_first = ready is None and left > 0 and not ended and process.sentinel in woke
         if ended_first and _readable(conn):  # what it sent before it ended comes first
             continue  # (its Failed, behind events it forwarded)
@@ -541,6 +564,18 @@ def _await_ready(
     if isinstance(ready, Failed):
         _reap(name, process, conn, received)
         raise _start_failed(name, pid, ready)
+
+
+def _before_ready(
+    name: str, message: object, received: Received, on_announce: Callable[[str], None] | None
+) -> None:
+    """A message that came before the manager's `Ready`: its restore's in-doubt events, say,
+    or a pool's `Announce` of a manager it started on an earlier run's catalog (a `Warm`,
+    from a spare that warmed up after it was taken, is dropped)."""
+    if isinstance(message, Events):
+        received.deliver(name, message.batch)
+    elif isinstance(message, Announce) and on_announce is not None:
+        on_announce(message.name)
 
 
 def _reap(name: str, process: BaseProcess, conn: Connection, received: Received) -> str:

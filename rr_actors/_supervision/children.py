@@ -218,8 +218,10 @@ class ProcessManager:
         spares: SparePool | None,
         relay: EventRelay | None = None,
         supervisor: str = "",
+        on_announce: Callable[[str], None] | None = None,
     ) -> ProcessManager:
-        """Start the manager (in a spare if there is one) and wait until it serves.
+        """Start the manager (in a spare if there is one) and wait until it serves
+        (`on_announce`: a pool's, `ManagerProcess.start`).
 
         Raises:
             CatalogCorruptError: its backup cannot be read (with its `path`).
@@ -243,6 +245,7 @@ class ProcessManager:
             if relay is None
             else functools.partial(relay.overloaded, supervisor, spec.name),
             announced=True,
+            on_announce=on_announce,
         )
         if relay is not None:
             relay.attach(handle, forwarding=forwarding)

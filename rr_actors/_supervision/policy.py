@@ -43,7 +43,7 @@ from rr_actors._core import runtime, wire
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._process.child import HOOKS, provider_names
-from rr_actors._process.control import POOL_GAVE_UP_EXIT
+from rr_actors._process.control import POOL_GAVE_UP_EXIT, Announce
 from rr_actors._process.manager import ManagerExit
 from rr_actors._supervision.children import (
     Child,
@@ -636,14 +636,14 @@ class Starting:
         registrars of the network beyond this tree (its name may have been served on
         another host, rule 22: their ids there are unknown to it)."""
         record = self.record
-        network = record.tree.processes.system
+        network, upward = record.tree.processes.system, record.tree.upward
         if self.config(spec).backup_path is None:
             if restarted or self.ran_before(spec.name):
-                lost_everything(record.root(), spec.name, network)
+                lost_everything(record.root(), spec.name, network, upward=upward)
         elif restarted or restored:  # (what its backup lost; all of it if it is gone)
-            announce_started(record.root(), spec.name, network)
-        elif network is not None:
-            announce_started(record.root(), spec.name, network, here=False, piped=False)
+            announce_started(record.root(), spec.name, network, upward=upward)
+        elif network is not None and upward is None:
+            announce_started(record.root(), spec.name, network, beyond=True)
 
     def ran_before(self, name: str) -> bool:
         """`tree.ran_before` on this supervisor's state directory (a mark that cannot be
@@ -698,12 +698,25 @@ class Starting:
                 processes.spares,
                 tree.events,
                 supervisor=record.name,
+                on_announce=functools.partial(self._pool_announced, spec.name),
             )
         finally:
             if processes.spares is not None:
                 record.cast(processes.spares.refill)
         self._pool_started(spec, restarted=spec.name in tree.started)
         return started
+
+    def _pool_announced(self, pool: str, name: str) -> None:
+        """Pool `pool`'s manager `name` (re)started (`Announce`, on the pool's watcher
+        thread): the rest of the system hears it, from this supervisor's thread."""
+        record = self.record
+
+        def announce() -> None:
+            tree = record.tree
+            root = record.root()
+            announce_started(root, name, tree.processes.system, origin=pool, upward=tree.upward)
+
+        record.cast(announce)
 
     def _pool_started(self, spec: SupervisorSpec, *, restarted: bool) -> None:
         """Pool `spec` serves: count its managers' starts, and what a manager started does
@@ -763,6 +776,7 @@ class PoolSetup:
         network = self.address.attach() if self.address is not None else None
         tree = Tree(self.spec, clock=runtime.monotonic, network=network, durability=self.durability)
         tree.escalate = _pool_gave_up
+        tree.upward = _tell_parent
         tree.processes.open(0, 0.0)  # (the system given: no spares, all threads)
         if HOOKS.hub is not None:
             tree.events.publisher.relay_to(HOOKS.hub)  # forwarded while the parent listens
@@ -776,6 +790,12 @@ class PoolSetup:
             node.stop(timeout=0.8 * timeout, restarting=restarting)  # (the rest: its own)
 
         HOOKS.before_stop = stop
+
+
+def _tell_parent(name: str) -> None:
+    """A pool's manager `name` (re)started: its parent tells the rest of the system."""
+    if HOOKS.to_parent is not None:
+        HOOKS.to_parent(Announce(name))
 
 
 def _pool_gave_up(error: SupervisorGaveUpError) -> None:

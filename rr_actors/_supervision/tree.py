@@ -189,6 +189,8 @@ class Tree:
         self._mailboxes: weakref.WeakSet[SerialExecutor] = weakref.WeakSet()  # every Node's
         # a pool's tree (`PoolSetup`): its root's give-up ends the process (never returns)
         self.escalate: Callable[[SupervisorGaveUpError], None] | None = None
+        # and its parent, told of each manager's (re)start (`announce_started`)
+        self.upward: Callable[[str], None] | None = None
 
     def durable(self, config: RegistrarConfig) -> RegistrarConfig:
         """`config` at the tree's durability at least (a tree chooses for every manager)."""
@@ -325,6 +327,20 @@ def pool_of(level: Level, name: str) -> Child | None:
     return None
 
 
+def _piped(level: Level) -> set[str]:
+    """The registrars the tree's control pipes reach below `level`: its process managers,
+    its pools and their managers."""
+    reached: set[str] = set()
+    for child in list(level.children):
+        running = child.running
+        if isinstance(running, NestedSupervisor):
+            reached.update(_piped(running.node))
+        elif isinstance(running, ProcessManager):
+            reached.add(child.name)
+            reached.update(child.subtree)
+    return reached
+
+
 def _process_handles(level: Level) -> dict[str, ProcessManager]:
     """The tree's living manager processes below `level`, by child name (a pool's by the
     pool's), in start order."""
@@ -359,11 +375,17 @@ def comes_back(name: str) -> None:
 
 
 def lost_everything(
-    root: Level, name: str, network: Transport | None = None, handle: Any = None
+    root: Level,
+    name: str,
+    network: Transport | None = None,
+    handle: Any = None,
+    *,
+    upward: Callable[[str], None] | None = None,
 ) -> None:
     """Registrar `name`, which keeps no backup, restarted empty: it and every registrar of
-    the system reconcile (rule 20). `handle`: its `ResourceRegistrar`, if started here."""
-    announce_started(root, name, network, here=False)
+    the system reconcile (rule 20). `handle`: its `ResourceRegistrar`, if started here;
+    `upward`: as `announce_started`."""
+    announce_started(root, name, network, here=False, upward=upward)
     life.lost_everything(name, handle=handle)  # (and this process's registrars)
 
 
@@ -373,24 +395,30 @@ def announce_started(
     network: Transport | None = None,
     *,
     here: bool = True,
-    piped: bool = True,
+    beyond: bool = False,
+    origin: str | None = None,
+    upward: Callable[[str], None] | None = None,
 ) -> None:
     """Registrar `name` (re)started: every living registrar of the system hears so once
-    (`life.heard_started`), the tree's process managers on their control pipes (no
-    manager connects to one it has no business with), the others through the directory.
-    `here`, `piped`: the tree's registrars told too (neither: only those beyond the tree,
-    here and on the network)."""
-    handles = _process_handles(root)
-    for other, manager in sorted(handles.items()) if piped else ():
-        if other != name:
+    (`life.heard_started`), the tree's process managers and pools on their control pipes
+    (no manager connects to one it has no business with), the others through the directory.
+
+    `here`: this process's registrars told too. `beyond`: a first start, only registrars
+    beyond the tree are told (here and on the network). In a pool's process (`upward`:
+    `Tree.upward`, its control pipe) only this process's registrars are told here, and its
+    parent tells the rest; `origin`: the pool the announcement came from (told already)."""
+    piped = _process_handles(root)
+    for other, manager in () if beyond else sorted(piped.items()):
+        if other not in (name, origin):
             manager.handle.tell_started(name)
-    beyond = not (here or piped)  # (a first start: those beyond the tree, here too)
     others = {peer.name for peer in DIRECTORY.local_peers()} if here or beyond else set()
-    if network is not None and not network.closed:
+    if upward is not None:
+        upward(name)
+    elif network is not None and not network.closed:
         others.update(network.names())
     if beyond:
         others -= _names_below(root)
-    for other in sorted(others - handles.keys()):
+    for other in sorted(others - _piped(root)):
         life.heard_started(other, name)
 
 

@@ -21,6 +21,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import events, testing
+from tests.support.waiting import wait_for
 
 BOUND = 30.0  # seconds: generous, the machine is loaded
 
@@ -272,3 +273,136 @@ def test_a_pool_restarted_with_its_group_stops_its_managers_and_restores_their_c
         assert seen.wait(  # the pool stopped its managers itself, in order, not killed
             lambda e: isinstance(e, events.ChildExited) and e.child == f"a{uid}-m0"
         )
+
+
+def unsaved(tmp_path: Path, name: str) -> rr.RegistrarConfig:
+    """A backup that keeps nothing done after the start (flushed once an hour)."""
+    return rr.RegistrarConfig(
+        name=name, backup_path=str(tmp_path / f"{name}.db"), save_interval=3600.0
+    )
+
+
+def held_at(sup: rr.Supervisor, holder: str) -> list[str]:
+    """The query ids registrar `holder` holds, asked where it runs."""
+    ids: list[str] = sup.run_in(
+        holder, lambda r: sorted(q.id for q in r.client_queries()), timeout=BOUND
+    )
+    return ids
+
+
+def none_held(sup: rr.Supervisor, holder: str) -> bool:
+    """Whether `holder` comes to hold no id within the bound."""
+    return wait_for(lambda: [] == held_at(sup, holder), BOUND)
+
+
+def test_a_holder_in_another_process_hears_a_pool_s_manager_restart_without_its_ids(
+    supervisors: Callable[..., rr.Supervisor], state: str, uid: str, tmp_path: Path
+) -> None:
+    # (a pool's supervisor restarts its manager inside the pool's process: its
+    # announcement went to that process only, and the holder kept the id for good)
+    provider, holder = f"p{uid}-m0", f"h{uid}"
+    inner = rr.ManagerSpec(provider, echo_setup, config=unsaved(tmp_path, provider))
+    sup = supervisors(
+        [
+            rr.SupervisorSpec(f"p{uid}", (inner,), isolation="process"),
+            rr.ManagerSpec(holder, echo_setup, isolation="process"),
+        ],
+        state_dir=state,
+    )
+    seen = Seen()
+    with sup.subscribe(seen):
+        sup.start()
+        sup.run_in(holder, lambda r: r.call(provider, "echo", "camera").id, timeout=BOUND)
+        assert 1 == len(held_at(sup, holder))
+
+        with contextlib.suppress(rr.RegistrarUnavailableError):
+            sup.run_in(provider, testing.crash, timeout=BOUND)  # restored without the id
+        assert seen.wait(lambda e: isinstance(e, events.ChildRestarted) and e.child == provider)
+
+        assert none_held(sup, holder)
+        assert [] == served_ids(sup, provider)
+
+
+def test_a_pool_s_manager_hears_a_process_manager_restart_without_its_ids(
+    supervisors: Callable[..., rr.Supervisor], state: str, uid: str, tmp_path: Path
+) -> None:
+    provider, holder = f"prov{uid}", f"q{uid}-m0"
+    sup = supervisors(
+        [
+            rr.ManagerSpec(
+                provider, echo_setup, isolation="process", config=unsaved(tmp_path, provider)
+            ),
+            pool(f"q{uid}", 1),
+        ],
+        state_dir=state,
+    )
+    with sup:
+        sup.run_in(holder, lambda r: r.call(provider, "echo", "camera").id, timeout=BOUND)
+        assert 1 == len(held_at(sup, holder))
+        killed = sup.child(provider).pid
+
+        os.kill(killed or 0, signal.SIGKILL)  # restored without the id
+
+        assert sup.wait_restarted(provider, timeout=BOUND).pid not in (None, killed)
+        assert none_held(sup, holder)
+
+
+def sockets_of(pid: int) -> int:
+    """The sockets process `pid` has open (`/proc/<pid>/fd`)."""
+    count = 0
+    for fd in os.listdir(f"/proc/{pid}/fd"):
+        with contextlib.suppress(OSError):  # (closed meanwhile)
+            count += os.readlink(f"/proc/{pid}/fd/{fd}").startswith("socket:")
+    return count
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="reads /proc (Linux)")
+def test_a_pool_s_manager_restart_links_its_process_to_no_registrar_it_has_no_business_with(
+    supervisors: Callable[..., rr.Supervisor], state: str, uid: str, tmp_path: Path
+) -> None:
+    # (its pool's process told every registrar of the system itself, one link each:
+    # the holder, named last, is told last)
+    provider, holder = f"p{uid}-m0", f"z{uid}"
+    inner = rr.ManagerSpec(provider, echo_setup, config=unsaved(tmp_path, provider))
+    bystanders = [
+        rr.ManagerSpec(f"b{uid}-{i}", echo_setup, isolation="process", heartbeat=None)
+        for i in range(6)
+    ]
+    sup = supervisors(
+        [
+            rr.SupervisorSpec(f"p{uid}", (inner,), isolation="process"),
+            *bystanders,
+            rr.ManagerSpec(holder, echo_setup, isolation="process"),
+        ],
+        state_dir=state,
+    )
+    with sup:
+        sup.run_in(holder, lambda r: r.call(provider, "echo", "camera").id, timeout=BOUND)
+        pool_pid = sup.child(f"p{uid}").pid or 0
+        before = sockets_of(pool_pid)
+
+        with contextlib.suppress(rr.RegistrarUnavailableError):
+            sup.run_in(provider, testing.crash, timeout=BOUND)  # restored without the id
+
+        assert none_held(sup, holder)
+        assert sockets_of(pool_pid) < before + len(bystanders), before
+
+
+def test_a_pool_s_manager_hears_the_death_watch_of_a_provider_gone_for_good(
+    supervisors: Callable[..., rr.Supervisor], state: str, uid: str
+) -> None:
+    provider, holder = f"gone{uid}", f"w{uid}-m0"
+    sup = supervisors(
+        [
+            rr.ManagerSpec(provider, echo_setup, isolation="process", restart="temporary"),
+            pool(f"w{uid}", 1),
+        ],
+        state_dir=state,
+    )
+    with sup:
+        sup.run_in(holder, lambda r: r.call(provider, "echo", "camera").id, timeout=BOUND)
+        assert 1 == len(held_at(sup, holder))
+
+        os.kill(sup.child(provider).pid or 0, signal.SIGKILL)  # nobody restarts it
+
+        assert none_held(sup, holder)
