@@ -262,7 +262,7 @@ class Providers:
         as a dependency of a resource it was unloading, its life before showed nothing after
         `stamp` (`name`'s restore), and it forgot `qid` after. Its `Unload` may have left
         before the kill and been committed by `name`, whose events of it died with it (a
-        program killed with its managers, `kill_program`: `simprogram` seed 125); its restart
+        program killed with its managers, `kill_program`: `simprogram` seed 215); its restart
         finished the unload, which `name` no longer knew."""
         at = self.releasing.get((consumer, qid))
         if at is None or (name, qid) not in self.forgot:

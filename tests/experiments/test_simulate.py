@@ -910,15 +910,17 @@ def test_the_simprogram_plan_holds_at_seed_1_its_killed_programs_client_ids_rele
 
 
 @SWEEP
-def test_simprogram_seed_125_holds_a_release_committed_before_the_program_was_killed() -> None:
+def test_simprogram_seed_215_holds_a_release_committed_before_the_program_was_killed() -> None:
     # issue 68, finding 1: api was unloading a resource when the program was SIGKILLed; its
     # release of the dependency at db had reached db, which committed it; both died before
     # publishing it. db's restore lacks the id; api's lists it under a resource being
     # unloaded, and api's restart releases it again (db no longer knows it). `kept` took
-    # it for a committed row lost across the kill.
+    # it for a committed row lost across the kill. (Seed 125 until a restart was announced
+    # by its supervisor, issue 69, which moved its history; 215 is the first of 1-239 with
+    # such a release since.)
     from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
 
-    run = simulate.run_seed(load_plan(PLANS / "simprogram.toml"), 125)
+    run = simulate.run_seed(load_plan(PLANS / "simprogram.toml"), 215)
 
     held([run])
     restores = [e for e in lines(run, "CatalogRestored") if e["registrar"] == "api"]
@@ -931,7 +933,7 @@ def test_simprogram_seed_125_holds_a_release_committed_before_the_program_was_ki
     db_rows = {row[0] for e in lines(run, "CatalogRestored") for row in e["consumers"]}
     added = {e["query_id"] for e in lines(run, "ConsumerAdded") if e["registrar"] == "db"}
     released = {e["query_id"] for e in lines(run, "ConsumerReleased") if e["registrar"] == "db"}
-    assert releasing & added - released - db_rows, "seed 125 no longer loses such a release"
+    assert releasing & added - released - db_rows, "seed 215 no longer loses such a release"
 
 
 @SWEEP
