@@ -602,22 +602,8 @@ class Starting:
                 system = tree.processes.system
                 child.running = ThreadManager(spec, config, system, post, tree.events)
             else:
-                processes = tree.processes
-                address = processes.system.address if processes.system is not None else None
-                try:
-                    child.running = ProcessManager.start(
-                        spec,
-                        processes.setups[spec.name],
-                        config,
-                        address,
-                        post,
-                        processes.spares,
-                        tree.events,
-                        supervisor=record.name,
-                    )
-                finally:
-                    if processes.spares is not None:  # after this start was published
-                        record.cast(processes.spares.refill)
+                setup = tree.processes.setups[spec.name]
+                child.running = self._start_process(spec, setup, config, post)
         child.state = "running"
         unmark(child)  # it serves again
         restarted = child.name in tree.started
@@ -688,23 +674,39 @@ class Starting:
         address = processes.system.address if processes.system is not None else None
         setup = pool_setup(spec, address, tree.durability, self.state_dir)
         config = RegistrarConfig(name=spec.name, durability=tree.durability)
+        announced = functools.partial(self._pool_announced, spec.name)
+        started = self._start_process(pool_manager(spec), setup, config, post, announced)
+        self._pool_started(spec, restarted=spec.name in tree.started)
+        return started
+
+    def _start_process(
+        self,
+        spec: ManagerSpec,
+        setup: Any,
+        config: RegistrarConfig,
+        post: Callable[[ManagerExit], None],
+        on_announce: Callable[[str], None] | None = None,
+    ) -> ProcessManager:
+        """Start manager (or pool) `spec`'s process from a spare; the spares are refilled
+        after this start, however it went (on the supervisor's thread, once it is published)."""
+        record = self.record
+        processes = record.tree.processes
+        address = processes.system.address if processes.system is not None else None
         try:
-            started = ProcessManager.start(
-                pool_manager(spec),
+            return ProcessManager.start(
+                spec,
                 setup,
                 config,
                 address,
                 post,
                 processes.spares,
-                tree.events,
+                record.tree.events,
                 supervisor=record.name,
-                on_announce=functools.partial(self._pool_announced, spec.name),
+                on_announce=on_announce,
             )
         finally:
             if processes.spares is not None:
                 record.cast(processes.spares.refill)
-        self._pool_started(spec, restarted=spec.name in tree.started)
-        return started
 
     def _pool_announced(self, pool: str, name: str) -> None:
         """Pool `pool`'s manager `name` (re)started (`Announce`, on the pool's watcher
