@@ -255,7 +255,8 @@ def status_reached(
     Letting the id go early excuses no holder whose release crossed the status (rule 9): the
     answer to its `Unload` carried every status not yet acknowledged, delivered before it
     forgets the id (`ANSWERED`). One forgotten as its `Unload` went unanswered, the life that
-    sent the status on having ended by then (or just after), is not owed it (`_unanswered`).
+    sent the status on having ended by then (or just after), is not owed it (`_unanswered`),
+    unless the status reached another id of its registrar at that hop while it held this one.
     """
     cut_off = _cut_off(history)
     unconnected = _unconnected(expected, facts, lives)
@@ -290,16 +291,18 @@ def status_reached(
         ):
             continue  # it may have died before it sent it on (or its connection there was made)
         end = facts.last_delivery.get(want.status_id, want.since)
+        beside = None
         if (want.holder, want.query_id) not in facts.parent:
-            beside = facts.first_delivery.get((want.status_id, want.holder, want.hop), end)
-            end = min(end, beside)
+            beside = facts.first_delivery.get((want.status_id, want.holder, want.hop))
+            end = min(end, end if beside is None else beside)
         end = max(end, want.since)
         for life, began, until, forgot_at in spans.get((want.holder, want.query_id), ()):
             if began >= want.since:
                 continue  # (held from before the send only)
             record = lives[want.holder, life]
-            if _not_serving_yet(want, record, life, restarts) or _unanswered(
-                reasons.get(forgot_at), sender, until
+            arrived = beside is not None and began < beside < (until or record.last + 1)
+            if _not_serving_yet(want, record, life, restarts) or (
+                not arrived and _unanswered(reasons.get(forgot_at), sender, until)
             ):
                 continue
             let_go = until if until is not None else record.last

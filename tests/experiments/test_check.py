@@ -942,6 +942,35 @@ def test_a_status_to_an_id_forgotten_as_its_unload_went_unanswered_by_its_dead_s
     assert "status-reached" in {f.rule for f in check.check(numbered(alive)).findings}
 
 
+@pytest.mark.parametrize("reached_beside", [False, True])
+def test_a_status_that_reached_another_id_of_its_holder_is_owed_to_one_forgotten_unanswered(
+    reached_beside: bool,
+) -> None:
+    """A real `simways` run (CI, 2026-11-27): db sent a status that reached one of
+    client-3's two ids at hop 1 and not the other, then was killed; the other was later
+    forgotten as `unload unanswered`. A status desk delivers to all of a registrar's ids at
+    a hop in one pass: the status arrived, so the id held throughout is owed it, dead
+    sender or not. Without a delivery beside it, it may have died on its way: excused."""
+    fatal = rr.Status.FATAL
+    h = _stamped(
+        [
+            events.ConsumerAdded("erm", RID, Q1, "cm", pid=P),
+            events.CallAnswered("cm", Q1, "erm", "cam", pid=C),
+            events.ConsumerAdded("erm", RID, Q2, "cm", pid=P),
+            events.CallAnswered("cm", Q2, "erm", "cam", pid=C),
+            events.StatusSent("erm", Q1, fatal, "died", "s1", pid=P),
+            *([events.StatusDelivered("cm", Q2, fatal, 1, 0.0, "s1", pid=C)] * reached_beside),
+            events.ConsumerReleased("erm", RID, Q2, "cm", "unload", pid=P),
+            events.QueryForgotten("cm", Q2, "erm", "unload", pid=C),
+            events.ChildExited("sup", "erm", P, "killed by SIGKILL"),
+            events.QueryForgotten("cm", Q1, "erm", "unload unanswered", pid=C),
+            events.RegistrarStopped("cm", (), (), (), pid=C),
+        ]
+    )
+    found = [f for f in check.check(numbered(h)).findings if f.rule == "status-reached"]
+    assert reached_beside == bool(found), found
+
+
 def test_a_status_whose_sender_died_before_it_sent_it_on_reaches_nobody() -> None:
     h = with_paths()
     # erm sends and dies at once (its journal kept the StatusSent): nobody gets it, and
