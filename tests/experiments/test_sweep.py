@@ -820,7 +820,9 @@ def test_a_sweep_whose_worker_is_killed_or_stopped_in_a_seed_ends_naming_that_se
                 os.killpg(sweep_run.pid, signal.SIGKILL)
 
     assert 1 == sweep_run.returncode, err
-    [lost] = [line for line in recorded(out).values() if line["verdict"] == "lost"]
+    losses = [line for line in recorded(out).values() if line["verdict"] == "lost"]
+    assert 1 == len(losses), (losses, rest, err)  # (the lines say how each was lost)
+    [lost] = losses
     seed = lost["seed"]
     assert (None, how) == (lost["hash"], lost["worker"])
     assert f"seed {seed}: lost, worker {how}" in rest
