@@ -124,14 +124,19 @@ class Caller:
         self.thread.join(self.timeout + 5)
 
 
-def one_tree(count: int, kind: str, state: Path | None, kills: int, bound: float) -> None:
+def one_tree(
+    count: int, kind: str, state: Path | None, kills: int, bound: float, heartbeat: float | None
+) -> None:
     """Measure one tree (run in a Python of its own); print each step's figures as JSON."""
     start_forkserver()
     me = os.getpid()
     threads_before, sockets_before = threads_sockets(me)
     pss_before = pss_kib(me) or 0
     names = [f"m{n}" for n in range(count)]
-    specs = [rr.ManagerSpec(n, setup, isolation=kind, start_timeout=bound) for n in names]
+    specs = [
+        rr.ManagerSpec(n, setup, isolation=kind, start_timeout=bound, heartbeat=heartbeat)  # type: ignore[arg-type]
+        for n in names
+    ]
     sup = rr.Supervisor(
         specs, name=f"trees-{count}", max_restarts=1000, period=3600.0, state_dir=state
     )
@@ -217,7 +222,7 @@ def session_threads(session: int) -> int:
 
 
 def run_tree(
-    count: int, kind: str, state: str, kills: int, bound: float, max_threads: int
+    count: int, kind: str, state: str, kills: int, bound: float, max_threads: int, heartbeat: str
 ) -> dict[str, Any]:
     """One tree's run in a Python of its own (a session of its own), killed with its
     managers after `bound` s or once they have more than `max_threads` threads in all
@@ -225,7 +230,7 @@ def run_tree(
     scratch = tempfile.TemporaryDirectory()  # (here: a killed run's state_dir is removed too)
     where = str(Path(scratch.name) / "state") if state == "fresh" else "none"
     command = [sys.executable, str(HERE), "--one", str(count), kind, where, "--kills", str(kills)]
-    command += ["--bound", str(bound)]
+    command += ["--bound", str(bound), "--heartbeat", heartbeat]
     child = subprocess.Popen(
         command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
     )
@@ -315,7 +320,9 @@ def measure(
                 for kind in args.kinds:
                     for state in args.state:
                         bound = bound_of(count, args)
-                        figures = run_tree(count, kind, state, args.kills, bound, args.max_threads)
+                        figures = run_tree(
+                            count, kind, state, args.kills, bound, args.max_threads, args.heartbeat
+                        )
                         trees.setdefault((count, kind, state), []).append(figures)
                         print(f"# {count} {kind} {state}: {figures}", file=sys.stderr, flush=True)
                         if kind == "process":
@@ -551,6 +558,11 @@ def main() -> None:
         default=8000,
         help="a tree whose processes have more threads in all is stopped (pid_max is shared)",
     )
+    parser.add_argument(
+        "--heartbeat",
+        default="0.25",
+        help="seconds between a process manager's pings (ManagerSpec.heartbeat; 'off': None)",
+    )
     parser.add_argument("--save", type=Path, help="also write the figures to this JSON file")
     parser.add_argument(
         "--load", type=Path, nargs="+", help="measure nothing: report (and plot) saved figures"
@@ -560,7 +572,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.one:
         state = None if args.one[2] == "none" else Path(args.one[2])
-        one_tree(int(args.one[0]), args.one[1], state, args.kills, args.bound)
+        heartbeat = None if args.heartbeat == "off" else float(args.heartbeat)
+        one_tree(int(args.one[0]), args.one[1], state, args.kills, args.bound, heartbeat)
         return
     if args.load:
         trees, floors = {}, {}
