@@ -377,18 +377,22 @@ Cell = Callable[[list[dict[str, Any]]], str]
 def versus_floor(
     trees: dict[tuple[int, str, str], list[dict[str, Any]]],
     floors: dict[tuple[int, str], list[dict[str, float]]],
-    step: str,
+    step: tuple[str, str],
     key: str,
     digits: int = 0,
     extra: Sequence[tuple[str, Cell]] = (),
 ) -> None:
-    """One step's table: each tree's median of `key` beside its floor's and their ratio,
-    with the `extra` columns ((heading, cell)) before the ratio."""
-    print(f"| tree | runs | {step} | floor | " + "".join(f"{h} | " for h, _ in extra) + "ratio |")
+    """One step's table (`step`: its rows' name, its figure's heading): each tree's median
+    of `key` beside its floor's and their ratio, the `extra` columns ((heading, cell)) before
+    the ratio."""
+    name, heading = step
+    print(
+        f"| tree | runs | {heading} | floor | " + "".join(f"{h} | " for h, _ in extra) + "ratio |"
+    )
     print("|---|---|---:|---:|" + "---:|" * (len(extra) + 1))
     for (count, kind, state), runs in trees.items():
         ours, plain = median_of(runs, key), median_of(floors[(count, kind)], key)
-        cells = [f"{step} {count} {kind} {state}", outcome(runs), show(ours, digits)]
+        cells = [f"{name} {count} {kind} {state}", outcome(runs), show(ours, digits)]
         cells += [show(plain, digits), *(column(runs) for _, column in extra)]
         print("| " + " | ".join([*cells, ratio(ours, plain)]) + " |")
     print()
@@ -409,12 +413,12 @@ def report(
     print("state_dir none / fresh (the floor in brackets):")
     print()
     compact(trees, floors)
-    versus_floor(trees, floors, "start+calls", "start_ms")
-    versus_floor(trees, floors, "stop", "stop_ms")
+    versus_floor(trees, floors, ("start", "start+calls"), "start_ms")
+    versus_floor(trees, floors, ("stop", "stop"), "stop_ms")
     versus_floor(
         trees,
         floors,
-        "kill to serving",
+        ("restart", "kill to serving"),
         "restart_ms",
         1,
         [
