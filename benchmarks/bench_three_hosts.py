@@ -183,7 +183,9 @@ def call_each(registrar: Any, names: list[str], bound: float) -> tuple[float, di
     return time.monotonic(), dict(failed)
 
 
-ZENOH_TROUBLE = re.compile(r"time(d)? ?out|refus|max_sessions|too many|closing session", re.I)
+ZENOH_TROUBLE = re.compile(
+    r"time(d)? ?out|refus|max_sessions|too many|closing session|is closed|close message", re.I
+)
 """What a line of Zenoh's own log (`RUST_LOG=warn`) says when a session or an accept failed."""
 
 
