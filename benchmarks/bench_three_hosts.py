@@ -183,7 +183,9 @@ def call_each(registrar: Any, names: list[str], bound: float) -> tuple[float, di
     return time.monotonic(), dict(failed)
 
 
-ZENOH_TROUBLE = re.compile(r"time(d)? ?out|refus|max_sessions|too many|closing session", re.I)
+ZENOH_TROUBLE = re.compile(
+    r"time(d)? ?out|refus|max_sessions|too many|closing session|is closed|close message", re.I
+)
 """What a line of Zenoh's own log (`RUST_LOG=warn`) says when a session or an accept failed."""
 
 
@@ -210,6 +212,17 @@ def zenoh_trouble(net: hosts.ThreeHosts) -> tuple[dict[str, list[str]], int]:
     return found, written
 
 
+def rss_mib(where: dict[str, hosts.Host]) -> dict[str, str]:
+    """Each host's worker's resident memory (MiB; Linux `/proc`), and its pid."""
+    found = {}
+    for h, host in where.items():
+        pid = host.worker.pid
+        status = Path(f"/proc/{pid}/status").read_text()
+        kib = int(re.search(r"VmRSS:\s+(\d+)", status)[1])  # type: ignore[index]
+        found[h] = f"{kib // 1024} (pid {pid})"
+    return found
+
+
 def many(managers: int, kind: str, bound: float) -> None:
     """Three hosts of `managers` managers each: until served and answered (goal 6)."""
     os.environ.setdefault("RUST_LOG", "warn")  # (the workers inherit it: Zenoh's own log)
@@ -227,7 +240,12 @@ def many(managers: int, kind: str, bound: float) -> None:
                 with suppress(TimeoutError):  # (a look every 30 s, to stderr)
                     starting[next(h for h in where if not starting[h].done())].result(30)
                 running = {h: host.call(running_many, timeout=60) for h, host in where.items()}
-                print(f"# {time.monotonic() - began:.0f} s: running {running}", file=sys.stderr)
+                print(
+                    f"# {time.monotonic() - began:.0f} s: running {running}; "
+                    f"worker RSS (MiB) {rss_mib(where)}; Zenoh trouble lines so far "
+                    f"{ {h: len(lines) for h, lines in zenoh_trouble(net)[0].items()} }",
+                    file=sys.stderr,
+                )
                 if time.monotonic() - began > bound:
                     raise TimeoutError(f"not every tree started within {bound:g} s: {running}")
             for h, future in starting.items():

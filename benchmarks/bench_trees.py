@@ -47,6 +47,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -123,14 +124,19 @@ class Caller:
         self.thread.join(self.timeout + 5)
 
 
-def one_tree(count: int, kind: str, state: Path | None, kills: int, bound: float) -> None:
+def one_tree(
+    count: int, kind: str, state: Path | None, kills: int, bound: float, heartbeat: float | None
+) -> None:
     """Measure one tree (run in a Python of its own); print each step's figures as JSON."""
     start_forkserver()
     me = os.getpid()
     threads_before, sockets_before = threads_sockets(me)
     pss_before = pss_kib(me) or 0
     names = [f"m{n}" for n in range(count)]
-    specs = [rr.ManagerSpec(n, setup, isolation=kind, start_timeout=bound) for n in names]
+    specs = [
+        rr.ManagerSpec(n, setup, isolation=kind, start_timeout=bound, heartbeat=heartbeat)  # type: ignore[arg-type]
+        for n in names
+    ]
     sup = rr.Supervisor(
         specs, name=f"trees-{count}", max_restarts=1000, period=3600.0, state_dir=state
     )
@@ -216,7 +222,7 @@ def session_threads(session: int) -> int:
 
 
 def run_tree(
-    count: int, kind: str, state: str, kills: int, bound: float, max_threads: int
+    count: int, kind: str, state: str, kills: int, bound: float, max_threads: int, heartbeat: str
 ) -> dict[str, Any]:
     """One tree's run in a Python of its own (a session of its own), killed with its
     managers after `bound` s or once they have more than `max_threads` threads in all
@@ -224,7 +230,7 @@ def run_tree(
     scratch = tempfile.TemporaryDirectory()  # (here: a killed run's state_dir is removed too)
     where = str(Path(scratch.name) / "state") if state == "fresh" else "none"
     command = [sys.executable, str(HERE), "--one", str(count), kind, where, "--kills", str(kills)]
-    command += ["--bound", str(bound)]
+    command += ["--bound", str(bound), "--heartbeat", heartbeat]
     child = subprocess.Popen(
         command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
     )
@@ -314,7 +320,9 @@ def measure(
                 for kind in args.kinds:
                     for state in args.state:
                         bound = bound_of(count, args)
-                        figures = run_tree(count, kind, state, args.kills, bound, args.max_threads)
+                        figures = run_tree(
+                            count, kind, state, args.kills, bound, args.max_threads, args.heartbeat
+                        )
                         trees.setdefault((count, kind, state), []).append(figures)
                         print(f"# {count} {kind} {state}: {figures}", file=sys.stderr, flush=True)
                         if kind == "process":
@@ -336,8 +344,16 @@ def measure(
     return trees, floors
 
 
+def figure(run: dict[str, Any], key: str) -> float | None:
+    """A run's `key`; a tree's "start_ms" is its start and the calls after it (if it got
+    that far), a floor's only its start."""
+    if key == "start_ms" and "outcome" in run:
+        return run["start_ms"] + run["calls_ms"] if "calls_ms" in run else None
+    return run.get(key)
+
+
 def median_of(runs: list[dict[str, Any]], key: str) -> float | None:
-    values = [r[key] for r in runs if r.get(key) is not None]
+    values = [value for value in (figure(r, key) for r in runs) if value is not None]
     return statistics.median(values) if values else None
 
 
@@ -354,6 +370,40 @@ def outcome(runs: list[dict[str, Any]]) -> str:
     return "; ".join(sorted(set(bad))) if bad else f"{len(runs)} done"
 
 
+Cell = Callable[[list[dict[str, Any]]], str]
+"""A column of a step's table: a tree's runs -> its cell."""
+
+
+def versus_floor(
+    trees: dict[tuple[int, str, str], list[dict[str, Any]]],
+    floors: dict[tuple[int, str], list[dict[str, float]]],
+    step: tuple[str, str],
+    key: str,
+    digits: int = 0,
+    extra: Sequence[tuple[str, Cell]] = (),
+) -> None:
+    """One step's table (`step`: its rows' name, its figure's heading): each tree's median
+    of `key` beside its floor's and their ratio, the `extra` columns ((heading, cell)) before
+    the ratio."""
+    name, heading = step
+    print(
+        f"| tree | runs | {heading} | floor | " + "".join(f"{h} | " for h, _ in extra) + "ratio |"
+    )
+    print("|---|---|---:|---:|" + "---:|" * (len(extra) + 1))
+    for (count, kind, state), runs in trees.items():
+        ours, plain = median_of(runs, key), median_of(floors[(count, kind)], key)
+        cells = [f"{name} {count} {kind} {state}", outcome(runs), show(ours, digits)]
+        cells += [show(plain, digits), *(column(runs) for _, column in extra)]
+        print("| " + " | ".join([*cells, ratio(ours, plain)]) + " |")
+    print()
+
+
+def restarting(runs: list[dict[str, Any]]) -> str:
+    """The p99 of the other managers' calls while one restarts / before it was killed."""
+    during, quiet = median_of(runs, "p99_during_ms"), median_of(runs, "p99_quiet_ms")
+    return f"{show(during, 1)} / {show(quiet, 1)}"
+
+
 def report(
     trees: dict[tuple[int, str, str], list[dict[str, Any]]],
     floors: dict[tuple[int, str], list[dict[str, float]]],
@@ -363,39 +413,19 @@ def report(
     print("state_dir none / fresh (the floor in brackets):")
     print()
     compact(trees, floors)
-    print("| tree | runs | start+calls | floor | ratio |")
-    print("|---|---|---:|---:|---:|")
-    for (count, kind, state), runs in trees.items():
-        plain = median_of(floors[(count, kind)], "start_ms")
-        starts = [r["start_ms"] + r["calls_ms"] for r in runs if "calls_ms" in r]
-        ours = statistics.median(starts) if starts else None
-        print(
-            f"| start {count} {kind} {state} | {outcome(runs)} | {show(ours)} | {show(plain)} "
-            f"| {ratio(ours, plain)} |"
-        )
-    print()
-    print("| tree | stop | floor | ratio |")
-    print("|---|---:|---:|---:|")
-    for (count, kind, state), runs in trees.items():
-        ours, plain = median_of(runs, "stop_ms"), median_of(floors[(count, kind)], "stop_ms")
-        print(
-            f"| stop {count} {kind} {state} | {show(ours)} | {show(plain)} | {ratio(ours, plain)} |"
-        )
-    print()
-    print(
-        "| tree | kill to serving | floor | p99 of other calls: restarting / quiet "
-        "| failed | ratio |"
+    versus_floor(trees, floors, ("start", "start+calls"), "start_ms")
+    versus_floor(trees, floors, ("stop", "stop"), "stop_ms")
+    versus_floor(
+        trees,
+        floors,
+        ("restart", "kill to serving"),
+        "restart_ms",
+        1,
+        [
+            ("p99 of other calls: restarting / quiet", restarting),
+            ("failed", lambda runs: str(sum(r.get("failed_calls", 0) for r in runs))),
+        ],
     )
-    print("|---|---:|---:|---:|---:|---:|")
-    for (count, kind, state), runs in trees.items():
-        ours, plain = median_of(runs, "restart_ms"), median_of(floors[(count, kind)], "restart_ms")
-        during, quiet = median_of(runs, "p99_during_ms"), median_of(runs, "p99_quiet_ms")
-        failed = sum(r.get("failed_calls", 0) for r in runs)
-        print(
-            f"| restart {count} {kind} {state} | {show(ours, 1)} | {show(plain, 1)} "
-            f"| {show(during, 1)} / {show(quiet, 1)} | {failed} | {ratio(ours, plain)} |"
-        )
-    print()
     print(
         "| tree | threads per manager | sockets per manager | PSS per manager (MiB) "
         "| plain child's PSS (MiB) | threads of the tree, peak |"
@@ -418,11 +448,7 @@ def cell(runs: list[dict[str, Any]] | None, key: str, scale: float = 1.0, digits
     """One tree's figure for the compact table: its median, or why there is none."""
     if not runs:
         return "-"
-    if key == "start_ms":
-        done = [r["start_ms"] + r["calls_ms"] for r in runs if "calls_ms" in r]
-        value = statistics.median(done) if done else None
-    else:
-        value = median_of(runs, key)
+    value = median_of(runs, key)
     if value is not None:
         return show(value * scale, digits)
     why = runs[0]["outcome"]
@@ -475,11 +501,7 @@ def plot(
             for (count, k, s), runs in sorted(trees.items()):
                 if (k, s) != (kind, state):
                     continue
-                if key == "start_ms":
-                    done = [r["start_ms"] + r["calls_ms"] for r in runs if "calls_ms" in r]
-                    value = statistics.median(done) if done else None
-                else:
-                    value = median_of(runs, key)
+                value = median_of(runs, key)
                 if value is not None:
                     counts.append(count)
                     values.append(value)
@@ -540,6 +562,11 @@ def main() -> None:
         default=8000,
         help="a tree whose processes have more threads in all is stopped (pid_max is shared)",
     )
+    parser.add_argument(
+        "--heartbeat",
+        default="0.25",
+        help="seconds between a process manager's pings (ManagerSpec.heartbeat; 'off': None)",
+    )
     parser.add_argument("--save", type=Path, help="also write the figures to this JSON file")
     parser.add_argument(
         "--load", type=Path, nargs="+", help="measure nothing: report (and plot) saved figures"
@@ -549,7 +576,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.one:
         state = None if args.one[2] == "none" else Path(args.one[2])
-        one_tree(int(args.one[0]), args.one[1], state, args.kills, args.bound)
+        heartbeat = None if args.heartbeat == "off" else float(args.heartbeat)
+        one_tree(int(args.one[0]), args.one[1], state, args.kills, args.bound, heartbeat)
         return
     if args.load:
         trees, floors = {}, {}

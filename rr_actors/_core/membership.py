@@ -94,8 +94,12 @@ class Membership:
 
     def stopped(self, name: str, *, by: str) -> None:
         """Registrar `name` was stopped for good: record it (a record that it was lost stays), then
-        every joined hearer hears it."""
+        every joined hearer hears it, unless its stop is recorded already: each hearer heard
+        that one, or hears it as it joins (each registrar here that gets the mark from
+        another process reports it, so N registrars told would be N x N tells)."""
         with self._lock:
+            if self._gone.get(name) is True:
+                return
             self._gone.setdefault(name, True)
             targets = list(self._hearers.values())
         logger.debug("membership: %s was stopped for good (%s)", name, by)

@@ -1,0 +1,65 @@
+"""The membership of a process: who is gone for good, told to each registrar of it once."""
+
+from __future__ import annotations
+
+from rr_actors._core.membership import Membership
+
+
+class Hearer:
+    """A joined hearer that writes down what it hears."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.heard: list[tuple[str, str]] = []
+
+    def peer_lost(self, name: str) -> None:
+        self.heard.append(("lost", name))
+
+    def peer_reachable(self, name: str) -> None:
+        self.heard.append(("reachable", name))
+
+    def peer_stopped(self, name: str) -> None:
+        self.heard.append(("stopped", name))
+
+
+def test_a_stop_reported_by_each_registrar_of_the_process_is_told_to_each_once() -> None:
+    # Each registrar here that another process tells of a stop reports it to the membership
+    # (a death-watch mark to each): 3 reports must not be 3 x 3 tells (a tree of 300 on a
+    # network stopped in hours: N x N tells per stopped registrar).
+    membership = Membership()
+    hearers = [Hearer(f"r{n}") for n in range(3)]
+    for hearer in hearers:
+        membership.join(hearer)
+    for _ in hearers:
+        membership.stopped("x", by="a death-watch mark")
+    assert [hearer.heard for hearer in hearers] == [[("stopped", "x")]] * 3
+    assert membership.gone() == {"x": True}
+
+
+def test_a_registrar_stopped_again_after_it_came_back_is_told_again() -> None:
+    membership = Membership()
+    hearer = Hearer("r")
+    membership.join(hearer)
+    membership.stopped("x", by="its supervisor")
+    membership.back("x")
+    membership.stopped("x", by="its supervisor")
+    assert hearer.heard == [("stopped", "x"), ("stopped", "x")]
+
+
+def test_a_hearer_that_joins_after_a_stop_gets_it_at_join_and_is_not_told_again() -> None:
+    membership = Membership()
+    membership.stopped("x", by="its supervisor")
+    late = Hearer("late")
+    assert membership.join(late) == {"x": True}
+    membership.stopped("x", by="a death-watch mark")
+    assert late.heard == []
+
+
+def test_a_stop_after_a_loss_is_still_told_and_the_loss_stays_recorded() -> None:
+    membership = Membership()
+    hearer = Hearer("r")
+    membership.join(hearer)
+    membership.lost("x", by="the death watch")
+    membership.stopped("x", by="a death-watch mark")
+    assert hearer.heard == [("lost", "x"), ("stopped", "x")]
+    assert membership.gone() == {"x": False}
