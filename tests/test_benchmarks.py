@@ -41,7 +41,7 @@ SMALLEST = {
         *("--missions", "1", "--soak", "1", "--sample", "0.5"),
         *("--resources", "10", "--changes", "2"),
     ],
-    "bench_events.py": ["--rounds", "1", "--batch", "50", "--dedup-batch", "5"],
+    "bench_events.py": ["--quick"],
     "bench_events_flood.py": ["--batches", "2", "--mib", "1", "--settle", "0"],
     "bench_group_commit.py": [
         *("--rounds", "1", "--seconds", "0.3", "--warm", "0.1", "--callers", "2"),
