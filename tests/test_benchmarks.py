@@ -70,7 +70,7 @@ SMALLEST = {
         "1",  # (one sender: the out-of-order column counts)
         *("--callback", "coroutine"),
     ],
-    "bench_outbox.py": ["--rounds", "1", "--loads", "5"],
+    "bench_outbox.py": ["--quick"],
     "bench_overload.py": [
         *("--seconds", "1", "--factor", "2", "--timeout", "0.5", "--window", "1", "--drain", "0.2"),
         *("--max-pending", "20", "--bystander"),
@@ -79,7 +79,7 @@ SMALLEST = {
     "bench_otel_acall.py": ["--count", "20", "--batch", "5"],
     "bench_otel_cross.py": ["--quick"],
     "bench_otel_mission.py": ["--rounds", "1", "--faults", "F4", "--distance", "2"],
-    "bench_import.py": ["--rounds", "1"],
+    "bench_import.py": ["--quick"],
     "bench_jobs.py": ["--plan", "simchain", "--seeds", "1-2"],
     "experiment_phases.py": ["first", "--repeat", "1", "--duration", "1.2"],
     "bench_setup.py": [  # (the tests of one file, in this interpreter: no venv, no install)
@@ -109,7 +109,7 @@ SMALLEST = {
     "bench_verdict_kinds.py": [
         *("--plans", "simretry,leases", "--runs", "1", "--seeds", "1", "--duration", "1"),
     ],
-    "bench_xoscar.py": ["--rounds", "1", "--batch", "5", "--no-load"],
+    "bench_xoscar.py": ["--quick", "--no-load"],
     "bench_zenoh.py": ["--rounds", "20", "--kills", "1", "--cuts", "1"],
     "bench_zenoh_tls.py": [
         *("--rounds", "20", "--handshakes", "20", "--clients", "4"),
