@@ -129,3 +129,8 @@ def table(columns: Sequence[str], rows: Iterable[Sequence[object]], *, right: in
     ]
     lines += ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]
     return "\n".join(lines)
+
+
+def print_table(title: str, columns: Sequence[str], rows: Iterable[Sequence[object]]) -> None:
+    """Print `title` after a blank line, then `table(columns, rows)`."""
+    print(f"\n{title}\n{table(columns, rows)}")
