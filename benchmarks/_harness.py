@@ -1,16 +1,11 @@
-"""What every benchmark here shares: its options, alternated rounds, the statistics, the table.
+"""What every benchmark here shares: options, alternated rounds, statistics, the table.
 
-A figure is only meaningful as a ratio to a floor measured in the same run, so a script
-names its rows (the floor among them) and `alternate` measures them round by round: round
-1 of every row, then round 2, ... (`rotate`: each round starting one row later), so that
-other programs' noise, and whatever a row leaves running for the next, spreads over all
-rows. A row is a function that measures once and returns a number (seconds per operation,
-usually from `per_op` or `each`). `table` prints the Markdown table `alternate.py` reads
-(its last column, the ratio, is what it sums up), under `header`'s line: the machine, the
-CPUs the run may use (`taskset -c 0` pins it) and the load average.
-
-`options` gives every script `--rounds`, `--batch` and `--quick` (the smallest run, for
-`tests/test_benchmarks.py`: its figures mean nothing).
+A figure means something only as a ratio to a floor measured in the same run, so a script
+names its rows (the floor among them) and `alternate` measures them round by round (round
+1 of every row, then round 2, ...), spreading other programs' noise over all rows. `table`
+prints the Markdown table whose last column (the ratio) `alternate.py` sums up, under
+`header`'s line (the CPUs this run may use: `taskset -c 0` pins it, and the load average).
+`--quick` is the smallest run (`tests/test_benchmarks.py`): its figures mean nothing.
 """
 
 from __future__ import annotations
@@ -31,18 +26,10 @@ def options(doc: str | None, *, rounds: int, batch: int | None = None) -> argpar
     """A parser with `--rounds` (default `rounds`), `--batch` (when `batch` is given) and
     `--quick`; `parse` applies `--quick`. The description is `doc`'s first line."""
     parser = argparse.ArgumentParser(description=(doc or "").splitlines()[0])
-    parser.add_argument(
-        "--rounds", type=int, default=rounds, help=f"alternated rounds (default {rounds})"
-    )
+    parser.add_argument("--rounds", type=int, default=rounds, help="alternated rounds")
     if batch is not None:
-        parser.add_argument(
-            "--batch", type=int, default=batch, help=f"operations per row a round ({batch})"
-        )
-    parser.add_argument(
-        "--quick",
-        action="store_true",
-        help=f"the smallest run: {QUICK_ROUNDS} round of {QUICK_BATCH} (figures mean nothing)",
-    )
+        parser.add_argument("--batch", type=int, default=batch, help="operations a round")
+    parser.add_argument("--quick", action="store_true", help="the smallest run")
     return parser
 
 
