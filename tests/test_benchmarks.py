@@ -58,7 +58,7 @@ SMALLEST = {
         *("--runs", "1", "--managers", "3", "--hogs", "1", "--hold", "0.3", "--stops", "1"),
     ],
     "bench_persistence.py": ["--quick"],
-    "bench_store_write.py": ["--holders", "1,10", "--rounds", "1", "--batch", "5"],
+    "bench_store_write.py": ["--quick"],
     "bench_status_hang.py": [
         "--consumers",
         "4",
