@@ -39,6 +39,7 @@ import time
 import uuid
 from typing import Any
 
+import _harness
 import pykka
 
 import rr_actors as rr
@@ -66,13 +67,6 @@ def rss_mib() -> float:
             if line.startswith("VmRSS:"):
                 return int(line.split()[1]) / 1024
     return float("nan")
-
-
-def percentile(values: list[float], fraction: float) -> float:
-    """The `fraction` quantile of `values` (nearest rank)."""
-    ordered = sorted(values)
-    index = min(len(ordered) - 1, max(0, round(fraction * len(ordered)) - 1))
-    return ordered[index]
 
 
 async def _noop_unload(_request: Any, _response: Any) -> None:
@@ -186,7 +180,7 @@ async def dedup(rounds: int, batch: int) -> dict[str, tuple[float, float]]:
         provider.stop()
         echo.stop()
     return {
-        name: (statistics.median(s) / 1000, percentile(s, 0.9) / 1000)
+        name: (statistics.median(s) / 1000, _harness.percentile(s, 0.9) / 1000)
         for name, s in samples.items()
     }
 
@@ -262,7 +256,7 @@ async def lag(awaited: bool, rate: float, seconds: float, slow: float) -> dict[s
     return {
         "calls/s": done / elapsed,
         "p50": statistics.median(late) * 1000,
-        "p99": percentile(late, 0.99) * 1000,
+        "p99": _harness.percentile(late, 0.99) * 1000,
         "max": max(late) * 1000,
     }
 

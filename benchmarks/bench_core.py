@@ -26,19 +26,16 @@ Operations:
 
 from __future__ import annotations
 
-import argparse
 import cProfile
 import importlib.metadata
 import itertools
-import platform
-import statistics
 import sys
 import tempfile
-import time
 import uuid
 from collections.abc import Callable
 from typing import Any
 
+import _harness
 import pykka
 
 import rr_actors as rr
@@ -131,22 +128,6 @@ def _noop(*_: object) -> None:
     return None
 
 
-def measure(op: Callable[[], None], batch: int, samples: list[int]) -> None:
-    """Run `op` `batch` times, appending each duration (ns) to `samples`."""
-    clock = time.perf_counter_ns
-    for _ in range(batch):
-        start = clock()
-        op()
-        samples.append(clock() - start)
-
-
-def percentile(values: list[int], fraction: float) -> float:
-    """The `fraction` quantile of `values` (nearest rank)."""
-    ordered = sorted(values)
-    index = min(len(ordered) - 1, max(0, round(fraction * len(ordered)) - 1))
-    return float(ordered[index])
-
-
 def run(rounds: int, batch: int, *, durable: bool = False) -> list[tuple[str, float, float]]:
     """Measure every operation; return (name, median us, p90 us) rows."""
     bench = Bench(durable=durable)
@@ -161,14 +142,11 @@ def run(rounds: int, batch: int, *, durable: bool = False) -> list[tuple[str, fl
             "unique load+unload": bench.unique_load_unload,
             "status delivery": bench.status_delivery,
         }
-        samples: dict[str, list[int]] = {name: [] for name in ops}
-        for op in ops.values():  # warm-up: threads, caches, clients
-            measure(op, batch, [])
-        for _ in range(rounds):
-            for name, op in ops.items():
-                measure(op, batch, samples[name])
+        samples = _harness.alternate(
+            {name: (lambda op=op: _harness.each(op, batch)) for name, op in ops.items()}, rounds
+        )
         return [
-            (name, statistics.median(s) / 1000, percentile(s, 0.9) / 1000)
+            (name, _harness.median(s) * 1e6, _harness.percentile(s, 0.9) * 1e6)
             for name, s in samples.items()
         ]
     finally:
@@ -177,12 +155,10 @@ def run(rounds: int, batch: int, *, durable: bool = False) -> list[tuple[str, fl
 
 def main(argv: list[str] | None = None) -> int:
     """Parse arguments, run, print the table."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--rounds", type=int, default=20, help="interleaved rounds (default 20)")
-    parser.add_argument("--batch", type=int, default=200, help="operations per round and row")
+    parser = _harness.options(__doc__, rounds=20, batch=200)
     parser.add_argument("--profile", metavar="FILE", help="write cProfile stats of the run here")
     parser.add_argument("--durable", action="store_true", help="registrars with backups")
-    args = parser.parse_args(argv)
+    args = _harness.parse(parser, argv)
 
     profiler = cProfile.Profile() if args.profile else None
     if profiler is not None:
@@ -194,15 +170,19 @@ def main(argv: list[str] | None = None) -> int:
 
     base = rows[0][1]
     print(
-        f"python {platform.python_version()}, pykka {importlib.metadata.version('pykka')}, "
-        f"{args.rounds} rounds x {args.batch} operations per row, {sys.platform}"
-        f"{', durable registrars' if args.durable else ''}"
+        _harness.header(
+            f"pykka {importlib.metadata.version('pykka')}, "
+            f"{args.rounds} rounds x {args.batch} operations per row"
+            f"{', durable registrars' if args.durable else ''}"
+        )
     )
     print()
-    print("| operation | median (us) | p90 (us) | median / pykka ask |")
-    print("|---|---:|---:|---:|")
-    for name, median, p90 in rows:
-        print(f"| {name} | {median:.1f} | {p90:.1f} | {median / base:.1f}x |")
+    print(
+        _harness.table(
+            ["operation", "median (us)", "p90 (us)", "median / pykka ask"],
+            [(n, f"{m:.1f}", f"{p:.1f}", f"{m / base:.1f}x") for n, m, p in rows],
+        )
+    )
     return 0
 
 

@@ -44,15 +44,14 @@ shares the GIL anyway):
 
 from __future__ import annotations
 
-import argparse
 import logging
-import platform
-import statistics
 import sys
 import time
 import uuid
 from collections.abc import Callable
 from typing import Any
+
+import _harness
 
 import rr_actors as rr
 from rr_actors import events
@@ -231,13 +230,6 @@ def unload_noop(*_: object) -> None:
     return None
 
 
-def timed(row: Row, n: int) -> float:
-    """ns per iteration of `row` run `n` times."""
-    start = time.perf_counter_ns()
-    row(n)
-    return (time.perf_counter_ns() - start) / n
-
-
 def run(rounds: int, batch: int, dedup_batch: int) -> tuple[list[tuple[str, float]], int]:
     """Median ns per operation of every row (empty loop subtracted), and events dropped."""
     bench = Bench(batch)
@@ -262,44 +254,53 @@ def run(rounds: int, batch: int, dedup_batch: int) -> tuple[list[tuple[str, floa
             "message: parse + receive, stamped": (bench.received, batch),
             "dedup-hit call": (bench.dedup_hit, dedup_batch),
         }
-        samples: dict[str, list[float]] = {name: [] for name in rows}
         for row, n in rows.values():  # warm-up
             row(min(n, 1000))
             bench.settle()
-        for _ in range(rounds):
-            for name, (row, n) in rows.items():
-                loop = timed(bench.empty, n)
-                samples[name].append(timed(row, n) - loop)
-                bench.settle()
+
+        def sample(row: Row, n: int) -> float:  # ns per iteration, less an empty loop's
+            loop = _harness.per_op(lambda: bench.empty(n), 1)
+            took = _harness.per_op(lambda: row(n), 1)
+            bench.settle()
+            return 1e9 * (took - loop) / n
+
+        samples = _harness.alternate(
+            {name: (lambda r=row, n=n: sample(r, n)) for name, (row, n) in rows.items()},
+            rounds,
+            warm_up=False,
+        )
         dropped = bench.subscription.dropped + bench.forwarder.dropped
-        return [(name, statistics.median(s)) for name, s in samples.items()], dropped
+        return [(name, _harness.median(s)) for name, s in samples.items()], dropped
     finally:
         bench.stop()
 
 
 def main(argv: list[str] | None = None) -> int:
     """Parse arguments, run, print the table."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--rounds", type=int, default=20, help="interleaved rounds (default 20)")
-    parser.add_argument("--batch", type=int, default=10_000, help="publishes per round and row")
+    parser = _harness.options(__doc__, rounds=20, batch=10_000)
     parser.add_argument(
         "--dedup-batch", type=int, default=200, help="dedup-hit calls per round (default 200)"
     )
-    args = parser.parse_args(argv)
+    args = _harness.parse(parser, argv)
+    if args.quick:
+        args.dedup_batch = _harness.QUICK_BATCH
 
     rows, dropped = run(args.rounds, args.batch, args.dedup_batch)
     base = rows[0][1]
     dedup = rows[-1][1]
     print(
-        f"python {platform.python_version()}, {sys.platform}, {args.rounds} rounds x "
-        f"{args.batch} publishes per row (dedup hits: {args.dedup_batch}); "
-        f"events dropped: {dropped}"
+        _harness.header(
+            f"{args.rounds} rounds x {args.batch} publishes per row (dedup hits: "
+            f"{args.dedup_batch}); events dropped: {dropped}"
+        )
     )
     print()
-    print("| operation | ns per event | / bare call | % of a dedup hit |")
-    print("|---|---:|---:|---:|")
-    for name, ns in rows:
-        print(f"| {name} | {ns:.0f} | {ns / base:.1f}x | {100 * ns / dedup:.2f}% |")
+    print(
+        _harness.table(
+            ["operation", "ns per event", "/ bare call", "% of a dedup hit"],
+            [(n, f"{ns:.0f}", f"{ns / base:.1f}x", f"{100 * ns / dedup:.2f}%") for n, ns in rows],
+        )
+    )
     return 0
 
 

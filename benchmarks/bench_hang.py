@@ -36,7 +36,8 @@ import subprocess
 import sys
 import threading
 import time
-from typing import Any
+
+import _harness
 
 import rr_actors as rr
 from rr_actors._process.manager import start_forkserver
@@ -73,19 +74,7 @@ class Lines(logging.Handler):
             self.spared += 1
 
 
-def table(title: str, header: tuple[str, ...], rows: list[tuple[Any, ...]]) -> None:
-    cells = [tuple(str(c) for c in header), *(tuple(str(c) for c in r) for r in rows)]
-    widths = [max(len(r[i]) for r in cells) for i in range(len(header))]
-    print(f"\n{title}")
-    for index, row in enumerate(cells):
-        print(
-            "  ".join(
-                c.rjust(w) if i else c.ljust(w)
-                for i, (c, w) in enumerate(zip(row, widths, strict=True))
-            )
-        )
-        if index == 0:
-            print("  ".join("-" * w for w in widths))
+table = _harness.print_table
 
 
 def hogs(count: int) -> list[subprocess.Popen[bytes]]:

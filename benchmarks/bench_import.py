@@ -20,12 +20,12 @@ its names (PEP 562), which `tests/test_init.py` holds without timing anything.
 
 from __future__ import annotations
 
-import argparse
 import os
-import statistics
 import subprocess
 import sys
 from pathlib import Path
+
+import _harness
 
 ROOT = Path(__file__).resolve().parent.parent
 COMMANDS = {"python -c pass": "pass", "import pykka": "import pykka"}
@@ -43,28 +43,25 @@ def cpu_seconds(code: str) -> float:
 
 def spread(values: list[float], unit: str = "") -> str:
     """`median (min-max)` of `values`."""
-    return f"{statistics.median(values):.3f}{unit} ({min(values):.3f}-{max(values):.3f}{unit})"
+    return f"{_harness.median(values):.3f}{unit} ({min(values):.3f}-{max(values):.3f}{unit})"
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--rounds", type=int, default=21, help="rounds of the three runs")
-    args = parser.parse_args()
-    times: dict[str, list[float]] = {name: [] for name in COMMANDS}
-    for _ in range(args.rounds):
-        for name, code in COMMANDS.items():
-            times[name].append(cpu_seconds(code))
+def main(argv: list[str] | None = None) -> None:
+    args = _harness.parse(_harness.options(__doc__, rounds=21), argv)
+    times = _harness.alternate(
+        {name: (lambda code=code: cpu_seconds(code)) for name, code in COMMANDS.items()},
+        args.rounds,
+        warm_up=False,
+    )
     bare, pykka, ours = times.values()
     whole = [r / p for r, p in zip(ours, pykka, strict=True)]
     above = [(r - b) / (p - b) for r, p, b in zip(ours, pykka, bare, strict=True) if p > b]
-    print(f"rounds: {args.rounds}; load average: {os.getloadavg()[0]:.1f}")
-    print("| what | CPU s, median (min-max) |")
-    print("|---|---:|")
-    for name, values in times.items():
-        print(f"| `{name}` | {spread(values)} |")
-    print(f"| `import rr_actors` / `import pykka`, whole process | {spread(whole, 'x')} |")
+    print(_harness.header(f"rounds: {args.rounds}"))
+    rows = [(f"`{name}`", spread(values)) for name, values in times.items()]
+    rows.append(("`import rr_actors` / `import pykka`, whole process", spread(whole, "x")))
     if above:
-        print(f"| the same above `python -c pass` | {spread(above, 'x')} |")
+        rows.append(("the same above `python -c pass`", spread(above, "x")))
+    print(_harness.table(["what", "CPU s, median (min-max)"], rows))
 
 
 if __name__ == "__main__":

@@ -41,6 +41,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import _harness
 import psutil
 from playwright.sync_api import sync_playwright
 
@@ -58,24 +59,7 @@ def erm_setup(registrar: rr.ResourceRegistrar) -> None:
     registrar.register_server("camera", load=lambda r: {"device": r}, unload=lambda q, r: None)
 
 
-def pct(values: list[float], q: float) -> float:
-    ordered = sorted(values)
-    return ordered[min(len(ordered) - 1, round(q * (len(ordered) - 1)))]
-
-
-def table(title: str, header: tuple[str, ...], rows: list[tuple[Any, ...]]) -> None:
-    cells = [tuple(str(c) for c in header), *(tuple(str(c) for c in r) for r in rows)]
-    widths = [max(len(r[i]) for r in cells) for i in range(len(header))]
-    print(f"\n{title}")
-    for index, row in enumerate(cells):
-        print(
-            "  ".join(
-                c.rjust(w) if i else c.ljust(w)
-                for i, (c, w) in enumerate(zip(row, widths, strict=True))
-            )
-        )
-        if index == 0:
-            print("  ".join("-" * w for w in widths))
+table = _harness.print_table
 
 
 @contextlib.contextmanager
@@ -167,7 +151,7 @@ def bench_restart(kills: int, settle: float) -> None:
 def summary(values: list[float]) -> tuple[str, str, str]:
     if not values:
         return ("-", "-", "-")
-    return ms(statistics.median(values)), ms(pct(values, 0.9)), ms(max(values))
+    return ms(statistics.median(values)), ms(_harness.percentile(values, 0.9)), ms(max(values))
 
 
 # -- overhead -----------------------------------------------------------------------------

@@ -38,17 +38,14 @@ The ratios of the rows to `no extra` are printed beside those to `without`.
 
 from __future__ import annotations
 
-import argparse
 import contextlib
-import os
-import platform
-import statistics
 import sys
 import time
 import uuid
 from collections.abc import Callable
 from typing import Any
 
+import _harness
 from opentelemetry.sdk.trace import TracerProvider
 from opentelemetry.sdk.trace.export import SimpleSpanProcessor
 from opentelemetry.sdk.trace.export.in_memory_span_exporter import InMemorySpanExporter
@@ -135,37 +132,35 @@ class Bench:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--rounds", type=int, default=15)
-    parser.add_argument("--batch", type=int, default=2000)
-    args = parser.parse_args(argv)
+    args = _harness.parse(_harness.options(__doc__, rounds=15, batch=2000), argv)
 
     bench = Bench()
-    rows = list(bench.subscribers)
-    times: dict[str, list[float]] = {row: [] for row in rows}
     try:
-        for row in rows:  # warm-up, untimed
-            bench.round(row, max(1, args.batch // 10))
-        for _ in range(args.rounds):
-            for row in rows:
-                times[row].append(bench.round(row, args.batch))
+        times = _harness.alternate(
+            {row: (lambda row=row: bench.round(row, args.batch)) for row in bench.subscribers},
+            args.rounds,
+        )
     finally:
         bench.stop()
 
-    cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else "?"
+    print(_harness.header(f"{args.rounds} rounds x {args.batch} dedup hits"))
+    floor = _harness.median(times["without"])
+    bare = _harness.median(times["no extra"])
     print(
-        f"python {platform.python_version()} on {platform.machine()}, CPUs {cpus}, "
-        f"load {os.getloadavg()[0]:.2f}; {args.rounds} rounds x {args.batch} dedup hits"
-    )
-    floor = statistics.median(times["without"])
-    bare = statistics.median(times["no extra"])
-    print(f"{'row':<18} {'us/call':>9} {'vs no extra':>12} {'vs without':>11} {'spans/op':>9}")
-    for row in rows:
-        median = statistics.median(times[row])
-        print(
-            f"{row:<18} {median * 1e6:>9.1f} {median / bare:>11.3f}x {median / floor:>10.3f}x"
-            f" {bench.spans[row]:>9.1f}"
+        _harness.table(
+            ["row", "us/call", "vs no extra", "vs without", "spans/op"],
+            [
+                (
+                    row,
+                    f"{_harness.median(t) * 1e6:.1f}",
+                    f"{_harness.median(t) / bare:.3f}x",
+                    f"{_harness.median(t) / floor:.3f}x",
+                    f"{bench.spans[row]:.1f}",
+                )
+                for row, t in times.items()
+            ],
         )
+    )
     return 0
 
 

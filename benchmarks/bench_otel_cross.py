@@ -48,11 +48,8 @@ loaded machine the wall-clock medians swing with the load, the CPU a call costs 
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import os
-import platform
-import statistics
 import sys
 import tempfile
 import time
@@ -60,6 +57,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
+import _harness
 from opentelemetry.sdk.trace import TracerProvider
 from opentelemetry.sdk.trace.export import (
     BatchSpanProcessor,
@@ -245,15 +243,13 @@ class Bench:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--rounds", type=int, default=15)
-    parser.add_argument("--batch", type=int, default=1000)
+    parser = _harness.options(__doc__, rounds=15, batch=1000)
     parser.add_argument(
         "--exporter",
         default=",".join(e for e in EXPORTERS if installed(e)),
         help=f"comma-separated, of {', '.join(EXPORTERS)} (default: those installed)",
     )
-    args = parser.parse_args(argv)
+    args = _harness.parse(parser, argv)
     exporters = [e.strip() for e in args.exporter.split(",") if e.strip()]
     for exporter in exporters:
         if exporter not in EXPORTERS:
@@ -268,35 +264,37 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as folder:
         bench = Bench(Path(folder), exporters)
         rows = bench.rows
-        times: dict[str, list[float]] = {row: [] for row in rows}
-        try:
-            for row in rows:  # warm-up, untimed
-                bench.round(row, max(1, args.batch // 10))
-            # each round starts one row later: no row is always first (paying for what the
-            # last one left running)
-            for turn in range(args.rounds):
-                for row in rows[turn % len(rows) :] + rows[: turn % len(rows)]:
-                    times[row].append(bench.round(row, args.batch))
+        try:  # (each round starts one row later: none always pays for what the last left)
+            times = _harness.alternate(
+                {row: (lambda row=row: bench.round(row, args.batch)) for row in rows},
+                args.rounds,
+                rotate=True,
+            )
         finally:
             bench.stop()
 
-    cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else "?"
-    print(
-        f"python {platform.python_version()} on {platform.machine()}, CPUs {cpus}, "
-        f"load {os.getloadavg()[0]:.2f}; {args.rounds} rounds x {args.batch} "
-        "cross-process dedup hits"
-    )
-    untraced = statistics.median(times["untraced"])
-    cpu_untraced = statistics.median(bench.cpu["untraced"][-args.rounds :])
-    print("| row | µs/call | vs untraced | CPU µs/call | vs untraced | spans/op |")
-    print("|---|---|---|---|---|---|")
+    print(_harness.header(f"{args.rounds} rounds x {args.batch} cross-process dedup hits"))
+    untraced = _harness.median(times["untraced"])
+    cpu_untraced = _harness.median(bench.cpu["untraced"][-args.rounds :])
+    table = []
     for row in rows:
-        median = statistics.median(times[row])
-        cpu = statistics.median(bench.cpu[row][-args.rounds :])  # (not the warm-up's)
-        print(
-            f"| {row} | {median * 1e6:.1f} | {median / untraced:.3f}x | {cpu * 1e6:.1f}"
-            f" | {cpu / cpu_untraced:.3f}x | {bench.per_call[row]:.1f} |"
+        median = _harness.median(times[row])
+        cpu = _harness.median(bench.cpu[row][-args.rounds :])  # (not the warm-up's)
+        table.append(
+            (
+                row,
+                f"{median * 1e6:.1f}",
+                f"{median / untraced:.3f}x",
+                f"{cpu * 1e6:.1f}",
+                f"{cpu / cpu_untraced:.3f}x",
+                f"{bench.per_call[row]:.1f}",
+            )
         )
+    print(
+        _harness.table(
+            ["row", "µs/call", "vs untraced", "CPU µs/call", "vs untraced", "spans/op"], table
+        )
+    )
     return 0
 
 

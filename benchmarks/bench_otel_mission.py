@@ -21,16 +21,15 @@ stopped, the spans exported).
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
-import platform
-import statistics
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+import _harness
 
 ROWS = {
     "untraced": ([], {}),
@@ -62,39 +61,43 @@ def run(row: str, folder: Path, extra: list[str]) -> tuple[float, float, int]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--rounds", type=int, default=5)
+    parser = _harness.options(__doc__, rounds=5)
     parser.add_argument("--faults", default="", help="--faults of demo (default: all five)")
     parser.add_argument("--distance", default="", help="--distance of demo (default: fast's)")
-    args = parser.parse_args(argv)
+    args = _harness.parse(parser, argv)
     extra = ["--faults", args.faults] if args.faults else []
     extra += ["--distance", args.distance] if args.distance else []
 
-    mission: dict[str, list[float]] = {row: [] for row in ROWS}
-    wall: dict[str, list[float]] = {row: [] for row in ROWS}
-    spans: dict[str, int] = {}
+    runs: dict[str, list[tuple[float, float, int]]] = {row: [] for row in ROWS}
     with tempfile.TemporaryDirectory() as folder:
-        for _ in range(args.rounds):
-            for row in ROWS:
-                took, whole, spans[row] = run(row, Path(folder), extra)
-                mission[row].append(took)
-                wall[row].append(whole)
 
-    cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else "?"
-    print(
-        f"python {platform.python_version()} on {platform.machine()}, CPUs {cpus}, "
-        f"load {os.getloadavg()[0]:.2f}; {args.rounds} rounds of `demo --fast "
-        f"{' '.join(extra)}`"
-    )
-    floor_mission = statistics.median(mission["untraced"])
-    floor_wall = statistics.median(wall["untraced"])
-    print(f"{'row':<12} {'mission s':>10} {'ratio':>7} {'wall s':>8} {'ratio':>7} {'spans':>6}")
-    for row in ROWS:
-        took, whole = statistics.median(mission[row]), statistics.median(wall[row])
-        print(
-            f"{row:<12} {took:>10.3f} {took / floor_mission:>6.3f}x {whole:>8.2f}"
-            f" {whole / floor_wall:>6.3f}x {spans[row]:>6}"
+        def once(row: str) -> float:
+            runs[row].append(run(row, Path(folder), extra))
+            return runs[row][-1][1]
+
+        _harness.alternate(
+            {row: (lambda row=row: once(row)) for row in ROWS}, args.rounds, warm_up=False
         )
+
+    print(_harness.header(f"{args.rounds} rounds of `demo --fast {' '.join(extra)}`"))
+    mission = {row: [r[0] for r in rs] for row, rs in runs.items()}
+    wall = {row: [r[1] for r in rs] for row, rs in runs.items()}
+    floor_mission = _harness.median(mission["untraced"])
+    floor_wall = _harness.median(wall["untraced"])
+    rows = []
+    for row in ROWS:
+        took, whole = _harness.median(mission[row]), _harness.median(wall[row])
+        rows.append(
+            (
+                row,
+                f"{took:.3f}",
+                f"{took / floor_mission:.3f}x",
+                f"{whole:.2f}",
+                f"{whole / floor_wall:.3f}x",
+                runs[row][-1][2],
+            )
+        )
+    print(_harness.table(["row", "mission s", "ratio", "wall s", "ratio", "spans"], rows))
     return 0
 
 

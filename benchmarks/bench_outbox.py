@@ -22,16 +22,15 @@ script in that tree's `benchmarks/`).
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import itertools
-import platform
 import sqlite3
-import statistics
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
+
+import _harness
 
 import rr_actors as rr
 
@@ -60,13 +59,15 @@ def measured(app: rr.ResourceRegistrar, pid: int, n: int, requests: Any) -> tupl
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--rounds", type=int, default=7)
+    parser = _harness.options(__doc__, rounds=7)
     parser.add_argument("--loads", type=int, default=300, help="loads per round and setting")
-    args = parser.parse_args(argv)
+    args = _harness.parse(parser, argv)
+    if args.quick:
+        args.loads = _harness.QUICK_BATCH
     print(
-        f"python {platform.python_version()}, SQLite {sqlite3.sqlite_version}, "
-        f"{platform.machine()}, rr_actors from {Path(rr.__file__).parent}"
+        _harness.header(
+            f"SQLite {sqlite3.sqlite_version}, rr_actors from {Path(rr.__file__).parent}"
+        )
     )
     heard = itertools.count()
     requests = itertools.count()
@@ -90,19 +91,17 @@ def main(argv: list[str] | None = None) -> None:
                     subscription.wait_delivered(timeout=30)
                 rows["nobody listens"].append(measured(app, pid, args.loads, requests))
     listened, floor = rows.values()
-    cpu_ratio = statistics.median(a[1] / b[1] for a, b in zip(listened, floor, strict=True))
-    print(
-        "\n| durable manager process, call+unload of a new resource | loads/s "
-        "| manager CPU us/load | CPU vs nobody listens |"
-    )
-    print("|---|---|---|---|")
+    cpu_ratio = _harness.median(a[1] / b[1] for a, b in zip(listened, floor, strict=True))
+    table = []
     for label, values, ratio in (
         ("listened (events, outbox)", listened, cpu_ratio),
         ("nobody listens (the floor)", floor, 1.0),
     ):
-        rate = statistics.median(v[0] for v in values)
-        cpu = statistics.median(v[1] for v in values)
-        print(f"| {label} | {rate:.0f} | {cpu:.0f} | {ratio:.3f}x |")
+        rate = _harness.median(v[0] for v in values)
+        cpu = _harness.median(v[1] for v in values)
+        table.append((label, f"{rate:.0f}", f"{cpu:.0f}", f"{ratio:.3f}x"))
+    columns = ["durable manager process, call+unload of a new resource", "loads/s"]
+    print("\n" + _harness.table([*columns, "manager CPU us/load", "CPU vs nobody listens"], table))
     print(f"\n(the ratio: median of the rounds' ratios; {next(heard)} events heard)")
 
 

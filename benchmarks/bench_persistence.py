@@ -24,12 +24,9 @@ show medians in microseconds. Usage:
 
 from __future__ import annotations
 
-import argparse
 import gc
 import os
-import platform
 import sqlite3
-import statistics
 import sys
 import tempfile
 import time
@@ -37,6 +34,8 @@ import uuid
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+
+import _harness
 
 import rr_actors as rr
 from rr_actors import events
@@ -62,14 +61,6 @@ def build_backup(path: Path, size: int) -> list[str]:
         store.write(catalog.drain_changes())
     store.close(erase=False)
     return [str(n) for n in range(0, size, max(1, size // 50))]
-
-
-def timed(sample: Sample, batch: int) -> float:
-    """Microseconds per call of `sample`, over `batch` calls."""
-    start = time.perf_counter_ns()
-    for _ in range(batch):
-        sample()
-    return (time.perf_counter_ns() - start) / batch / 1000
 
 
 def opened(path: Path, durability: Any, *, background: bool) -> tuple[SqliteStore, Catalog]:
@@ -258,28 +249,24 @@ def restore_rows(path: Path, rounds: int) -> dict[str, float]:
         "store load (every row) + restore": store_load,
         "ResourceRegistrar.start+stop": registrar_start,
     }
-    results: dict[str, list[float]] = {label: [] for label in runs}
-    for _ in range(rounds):
-        for label, run in runs.items():
-            gc.collect()
-            start = time.perf_counter()
-            run()
-            results[label].append((time.perf_counter() - start) * 1000)
-    return {label: statistics.median(values) for label, values in results.items()}
+
+    def once(run: Callable[[], None]) -> float:
+        gc.collect()
+        return _harness.per_op(run, 1) * 1000
+
+    results = _harness.alternate(
+        {label: (lambda run=run: once(run)) for label, run in runs.items()}, rounds, warm_up=False
+    )
+    return {label: _harness.median(values) for label, values in results.items()}
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = _harness.options(__doc__, rounds=15, batch=100)
     parser.add_argument("--sizes", default="100,10000,100000")
-    parser.add_argument("--rounds", type=int, default=15)
-    parser.add_argument("--batch", type=int, default=100)
     parser.add_argument("--durability", default="process", choices=["process", "power"])
-    args = parser.parse_args()
-    sizes = [int(s) for s in args.sizes.split(",")]
-    print(
-        f"python {platform.python_version()}, SQLite {sqlite3.sqlite_version}, "
-        f"{platform.machine()}, durability={args.durability}"
-    )
+    args = _harness.parse(parser, None)
+    sizes = [100] if args.quick else [int(s) for s in args.sizes.split(",")]
+    print(_harness.header(f"SQLite {sqlite3.sqlite_version}, durability={args.durability}"))
     change_table: dict[str, dict[int, float]] = {}
     restore_table: dict[str, dict[int, float]] = {}
     with tempfile.TemporaryDirectory() as directory:
@@ -298,18 +285,24 @@ def main() -> None:
             os.sync()  # the copies just written must not be written back while we measure
             gc.collect()
             gc.freeze()  # the catalogs built for the run are not rescanned by every collection
-            measured: dict[str, list[float]] = {label: [] for label in samples}
+
+            def row(sample: Sample, settle: Sample = settle) -> float:  # us per call
+                took = _harness.per_op(sample, args.batch) * 1e6
+                settle()  # a row's background work must not slow the next row
+                return took
+
             try:
-                for _ in range(args.rounds):
-                    for label, sample in samples.items():
-                        measured[label].append(timed(sample, args.batch))
-                        settle()  # a row's background work must not slow the next row
+                measured = _harness.alternate(
+                    {label: (lambda s=s: row(s)) for label, s in samples.items()},
+                    args.rounds,
+                    warm_up=False,
+                )
             finally:
                 for registrar in registrars:
                     registrar.stop()
                 close()
             for label, values in measured.items():
-                change_table.setdefault(label, {})[size] = statistics.median(values)
+                change_table.setdefault(label, {})[size] = _harness.median(values)
             for label, ms in restore_rows(path, max(3, args.rounds // 5)).items():
                 restore_table.setdefault(label, {})[size] = ms
 

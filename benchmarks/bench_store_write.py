@@ -30,18 +30,17 @@ the system's temporary directory). Usage:
 
 from __future__ import annotations
 
-import argparse
 import gc
 import os
-import platform
 import shutil
 import sqlite3
-import statistics
 import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+
+import _harness
 
 from rr_actors._catalog import Catalog
 from rr_actors._store import SqliteStore
@@ -134,37 +133,28 @@ def samples(directory: Path, holders: int, durability: Any) -> tuple[dict[str, S
 
 
 def measure(made: dict[str, Sample], rounds: int, batch: int) -> dict[str, tuple[float, float]]:
-    """Each sample's (CPU, wall) microseconds a write, medians of `rounds` interleaved
+    """Each sample's (CPU, wall) microseconds a write, medians of `rounds` alternated
     batches of `batch` samples (two writes each)."""
-    cpu: dict[str, list[float]] = {label: [] for label in made}
-    wall: dict[str, list[float]] = {label: [] for label in made}
-    n = 0
-    for _ in range(rounds):
-        for label, sample in made.items():
-            cpu_start, wall_start = time.thread_time_ns(), time.perf_counter_ns()
-            for _ in range(batch):
-                n += 1
-                sample(n)
-            wall[label].append((time.perf_counter_ns() - wall_start) / batch / 2 / 1000)
-            cpu[label].append((time.thread_time_ns() - cpu_start) / batch / 2 / 1000)
-    return {
-        label: (statistics.median(cpu[label]), statistics.median(wall[label])) for label in made
-    }
+    n = iter(range(1, 1 << 62))
+
+    def row(sample: Sample) -> list[float]:
+        cpu = time.thread_time()
+        wall = _harness.per_op(lambda: sample(next(n)), batch) / 2 * 1e6
+        return [(time.thread_time() - cpu) / batch / 2 * 1e6, wall]
+
+    got = _harness.alternate(
+        {k: (lambda s=s: row(s)) for k, s in made.items()}, rounds, warm_up=False
+    )
+    return {k: (_harness.median(v[0::2]), _harness.median(v[1::2])) for k, v in got.items()}
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = _harness.options(__doc__, rounds=15, batch=500)
     parser.add_argument("--holders", default="1,100,1000")
-    parser.add_argument("--rounds", type=int, default=15)
-    parser.add_argument("--batch", type=int, default=500)
     parser.add_argument("--durability", default="process", choices=["process", "power"])
-    args = parser.parse_args()
-    counts = [int(h) for h in args.holders.split(",")]
-    print(
-        f"python {platform.python_version()}, SQLite {sqlite3.sqlite_version}, "
-        f"{platform.machine()}, durability={args.durability}, "
-        f"load {os.getloadavg()[0]:.1f}, CPUs {sorted(os.sched_getaffinity(0))}"
-    )
+    args = _harness.parse(parser, None)
+    counts = [1, 10] if args.quick else [int(h) for h in args.holders.split(",")]
+    print(_harness.header(f"SQLite {sqlite3.sqlite_version}, durability={args.durability}"))
     table: dict[str, dict[int, tuple[float, float]]] = {}
     with tempfile.TemporaryDirectory(dir=os.environ.get("BENCH_DIR")) as name:
         for holders in counts:

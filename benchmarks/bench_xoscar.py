@@ -17,13 +17,11 @@ Needs `pip install xoscar` (the `dev` extra has it).
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import contextlib
 import importlib.metadata
 import multiprocessing
 import os
-import statistics
 import subprocess
 import sys
 import time
@@ -31,6 +29,7 @@ import uuid
 from collections.abc import Callable, Iterator
 from typing import Any
 
+import _harness
 import xoscar as xo
 from bench_transport import registrar_process, setup_echo
 
@@ -58,14 +57,6 @@ def busy_loop(cpu: int) -> Iterator[None]:
         spinner.wait(10)
 
 
-def batch_times(once: Callable[[], Any], batch: int, into: list[float]) -> None:
-    clock = time.perf_counter
-    for _ in range(batch):
-        start = clock()
-        once()
-        into.append(clock() - start)
-
-
 async def run_xoscar(rounds: int, batch: int, ours: Callable[[], Any]) -> dict[str, list[float]]:
     """Alternate a batch of xoscar calls with a batch of `ours` (run in a thread)."""
     pool = await xo.create_actor_pool("127.0.0.1", n_process=1)
@@ -81,24 +72,24 @@ async def run_xoscar(rounds: int, batch: int, ours: Callable[[], Any]) -> dict[s
         for _ in range(batch):  # warm-up
             await ref.echo({"cam": 1})
         loop = asyncio.get_running_loop()
-        await loop.run_in_executor(None, lambda: batch_times(ours, batch, []))
+        await loop.run_in_executor(None, lambda: _harness.each(ours, batch))
         for _ in range(rounds):
             for _ in range(batch):
                 start = clock()
                 await ref.echo({"cam": 1})
                 samples["xoscar"].append(clock() - start)
-            await loop.run_in_executor(None, lambda: batch_times(ours, batch, samples["rr_actors"]))
+            samples["rr_actors"] += await loop.run_in_executor(
+                None, lambda: _harness.each(ours, batch)
+            )
     finally:
         await pool.stop()
     return samples
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--rounds", type=int, default=5, help="alternating batches (default 5)")
-    parser.add_argument("--batch", type=int, default=200, help="calls per batch (default 200)")
+def main(argv: list[str] | None = None) -> int:
+    parser = _harness.options(__doc__, rounds=5, batch=200)
     parser.add_argument("--no-load", action="store_true", help="without the busy loop")
-    args = parser.parse_args()
+    args = _harness.parse(parser, argv)
     os.sched_setaffinity(0, {0})
     ctx = multiprocessing.get_context("forkserver")
     suffix = uuid.uuid4().hex[:6]
@@ -124,18 +115,26 @@ def main() -> int:
     finally:
         system.close()
     print(
-        f"xoscar {importlib.metadata.version('xoscar')}, one CPU"
-        f"{'' if args.no_load else ' shared with a busy loop'}, {args.rounds} rounds x "
-        f"{args.batch} calls per row"
+        _harness.header(
+            f"xoscar {importlib.metadata.version('xoscar')}, one CPU"
+            f"{'' if args.no_load else ' shared with a busy loop'}, {args.rounds} rounds x "
+            f"{args.batch} calls per row"
+        )
     )
     print()
-    print("| cross-process call | median (us) | p90 (us) | median / xoscar |")
-    print("|---|---:|---:|---:|")
-    base = statistics.median(samples["xoscar"])
-    for name, values in samples.items():
-        median = statistics.median(values)
-        p90 = statistics.quantiles(values, n=10)[-1]
-        print(f"| {name} | {median * 1e6:.1f} | {p90 * 1e6:.1f} | {median / base:.2f}x |")
+    base = _harness.median(samples["xoscar"])
+    rows = [
+        (
+            name,
+            f"{_harness.median(v) * 1e6:.1f}",
+            f"{_harness.percentile(v, 0.9) * 1e6:.1f}",
+            f"{_harness.median(v) / base:.2f}x",
+        )
+        for name, v in samples.items()
+    ]
+    print(
+        _harness.table(["cross-process call", "median (us)", "p90 (us)", "median / xoscar"], rows)
+    )
     return 0
 
 

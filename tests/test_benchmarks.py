@@ -32,7 +32,7 @@ SMALLEST = {
         *("--rate", "100", "--seconds", "0.2", "--slow", "0.005"),
     ],
     "bench_check.py": ["--sizes", "2000", "--live", "20", "--restart-every", "500"],
-    "bench_core.py": ["--rounds", "1", "--batch", "5"],
+    "bench_core.py": ["--quick"],
     "bench_observer_hosts.py": [
         *("--resources", "20", "--window", "0.5", "--kills", "1", "--cuts", "1"),
     ],
@@ -41,7 +41,7 @@ SMALLEST = {
         *("--missions", "1", "--soak", "1", "--sample", "0.5"),
         *("--resources", "10", "--changes", "2"),
     ],
-    "bench_events.py": ["--rounds", "1", "--batch", "50", "--dedup-batch", "5"],
+    "bench_events.py": ["--quick"],
     "bench_events_flood.py": ["--batches", "2", "--mib", "1", "--settle", "0"],
     "bench_group_commit.py": [
         *("--rounds", "1", "--seconds", "0.3", "--warm", "0.1", "--callers", "2"),
@@ -57,8 +57,8 @@ SMALLEST = {
     "bench_hang.py": [
         *("--runs", "1", "--managers", "3", "--hogs", "1", "--hold", "0.3", "--stops", "1"),
     ],
-    "bench_persistence.py": ["--sizes", "100", "--rounds", "1", "--batch", "5"],
-    "bench_store_write.py": ["--holders", "1,10", "--rounds", "1", "--batch", "5"],
+    "bench_persistence.py": ["--quick"],
+    "bench_store_write.py": ["--quick"],
     "bench_status_hang.py": [
         "--consumers",
         "4",
@@ -70,16 +70,16 @@ SMALLEST = {
         "1",  # (one sender: the out-of-order column counts)
         *("--callback", "coroutine"),
     ],
-    "bench_outbox.py": ["--rounds", "1", "--loads", "5"],
+    "bench_outbox.py": ["--quick"],
     "bench_overload.py": [
         *("--seconds", "1", "--factor", "2", "--timeout", "0.5", "--window", "1", "--drain", "0.2"),
         *("--max-pending", "20", "--bystander"),
     ],
-    "bench_otel.py": ["--rounds", "1", "--batch", "5"],
+    "bench_otel.py": ["--quick"],
     "bench_otel_acall.py": ["--count", "20", "--batch", "5"],
-    "bench_otel_cross.py": ["--rounds", "1", "--batch", "5"],
+    "bench_otel_cross.py": ["--quick"],
     "bench_otel_mission.py": ["--rounds", "1", "--faults", "F4", "--distance", "2"],
-    "bench_import.py": ["--rounds", "1"],
+    "bench_import.py": ["--quick"],
     "bench_jobs.py": ["--plan", "simchain", "--seeds", "1-2"],
     "experiment_phases.py": ["first", "--repeat", "1", "--duration", "1.2"],
     "bench_setup.py": [  # (the tests of one file, in this interpreter: no venv, no install)
@@ -109,7 +109,7 @@ SMALLEST = {
     "bench_verdict_kinds.py": [
         *("--plans", "simretry,leases", "--runs", "1", "--seeds", "1", "--duration", "1"),
     ],
-    "bench_xoscar.py": ["--rounds", "1", "--batch", "5", "--no-load"],
+    "bench_xoscar.py": ["--quick", "--no-load"],
     "bench_zenoh.py": ["--rounds", "20", "--kills", "1", "--cuts", "1"],
     "bench_zenoh_tls.py": [
         *("--rounds", "20", "--handshakes", "20", "--clients", "4"),
@@ -131,8 +131,23 @@ CEILING = 480.0
 """Seconds a script may run before it counts as hung (twice the slowest seen, loaded)."""
 
 
+def run(script: str, words: str, *args: str) -> subprocess.CompletedProcess[str]:
+    """`benchmarks/SCRIPT WORDS ARGS` (WORDS split at spaces) run to its end, at most
+    `CEILING` s; it must exit 0."""
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / script), *words.split(), *args],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=CEILING,
+        check=False,
+    )
+    assert 0 == done.returncode, done.stderr[-3000:]
+    return done
+
+
 def test_every_benchmark_script_is_smoke_tested() -> None:
-    scripts = {p.name for p in (ROOT / "benchmarks").glob("*.py")} - {"alternate.py"}
+    scripts = {p.name for p in (ROOT / "benchmarks").glob("[!_]*.py")} - {"alternate.py"}
 
     assert sorted(scripts) == sorted(SMALLEST)
 
@@ -140,42 +155,25 @@ def test_every_benchmark_script_is_smoke_tested() -> None:
 @pytest.mark.timeout(CEILING + 10)
 @pytest.mark.parametrize("script", sorted(SMALLEST))
 def test_the_benchmark_runs_and_prints_a_table(script: str) -> None:
-    done = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / script), *SMALLEST[script]],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=CEILING,
-        check=False,
-    )
+    done = run(script, "", *SMALLEST[script])
 
-    assert 0 == done.returncode, done.stderr[-3000:]
     assert done.stdout.strip(), f"{script} printed nothing"
 
 
 @pytest.mark.timeout(CEILING + 10)
 def test_alternate_runs_a_benchmark_against_two_trees_and_sums_up_the_ratios() -> None:
-    done = subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "benchmarks" / "alternate.py"),
-            "--before",
-            str(ROOT),
-            sys.executable,
-            "--pairs",
-            "1",
-            "--",
-            "bench_core.py",
-            *SMALLEST["bench_core.py"],
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=CEILING,
-        check=False,
+    done = run(
+        "alternate.py",
+        "--before",
+        str(ROOT),
+        sys.executable,
+        "--pairs",
+        "1",
+        "--",
+        "bench_core.py",
+        *SMALLEST["bench_core.py"],
     )
 
-    assert 0 == done.returncode, done.stderr[-3000:]
     assert "dedup-hit call: " in done.stdout.split("== last column per run")[-1]
 
 
@@ -186,20 +184,8 @@ def test_alternate_runs_a_benchmark_against_two_trees_and_sums_up_the_ratios() -
 def test_bench_supervisor_compares_kill_to_serving_with_and_without_a_subscriber(
     mode: list[str],
 ) -> None:
-    done = subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "benchmarks" / "bench_supervisor.py"),
-            *("--sizes", "10", "--crashes", "1", "--gap", "0.05", "--subscriber", *mode),
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=CEILING,
-        check=False,
-    )
+    done = run("bench_supervisor.py", "--sizes 10 --crashes 1 --gap 0.05 --subscriber", *mode)
 
-    assert 0 == done.returncode, done.stderr[-3000:]
     assert "subscriber / none" in done.stdout
     assert "fork floor" in done.stdout
 
@@ -209,40 +195,24 @@ def test_bench_trees_reports_a_tree_that_outran_its_bound_as_such_and_still_plot
     tmp_path: Path,
 ) -> None:
     plot = tmp_path / "trees.png"
-    done = subprocess.run(
-        [
-            sys.executable, str(ROOT / "benchmarks" / "bench_trees.py"),
-            *("--counts", "1", "2", "--kinds", "process", "--state", "none", "--kills", "1"),
-            *("--bound", "0.5", "--bound-per-manager", "0", "--plot", str(plot)),
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=CEILING,
-        check=False,
-    )  # fmt: skip
+    done = run(
+        "bench_trees.py",
+        "--counts 1 2 --kinds process --state none --kills 1"
+        " --bound 0.5 --bound-per-manager 0 --plot",
+        str(plot),
+    )
 
-    assert 0 == done.returncode, done.stderr[-3000:]
     assert "| start 2 process none | timeout (0.5 s) in " in done.stdout
     assert plot.read_bytes().startswith(b"\x89PNG")
 
 
 @pytest.mark.timeout(CEILING + 10)
 def test_bench_trees_stops_a_tree_whose_threads_outgrow_the_cap_and_says_so() -> None:
-    done = subprocess.run(
-        [
-            sys.executable, str(ROOT / "benchmarks" / "bench_trees.py"),
-            *("--counts", "3", "--kinds", "thread", "--state", "none", "--kills", "1"),
-            *("--max-threads", "2"),
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=CEILING,
-        check=False,
-    )  # fmt: skip
+    done = run(
+        "bench_trees.py",
+        "--counts 3 --kinds thread --state none --kills 1 --max-threads 2",
+    )
 
-    assert 0 == done.returncode, done.stderr[-3000:]
     assert "| start 3 thread none | stopped at " in done.stdout
     assert "threads (over 2) in " in done.stdout
 
@@ -251,19 +221,8 @@ def test_bench_trees_stops_a_tree_whose_threads_outgrow_the_cap_and_says_so() ->
 def test_bench_three_hosts_starts_managers_on_each_host_and_calls_every_one_from_a() -> None:
     if os.geteuid() != 0:
         pytest.skip("three hosts are network namespaces: root only")
-    done = subprocess.run(
-        [
-            sys.executable, str(ROOT / "benchmarks" / "bench_three_hosts.py"),
-            *("--managers", "4", "--bound", "120"),
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=CEILING,
-        check=False,
-    )  # fmt: skip
+    done = run("bench_three_hosts.py", "--managers 4 --bound 120")
 
-    assert 0 == done.returncode, done.stderr[-3000:]
     assert "## 12 managers on three hosts (4 thread managers each; b routes)" in done.stdout
     assert "all 12 calls from a answered: " in done.stdout
     rows = [line for line in done.stdout.splitlines() if line.startswith(("| a |", "| c |"))]
@@ -332,20 +291,12 @@ def test_verdict_kinds_runs_a_compared_plan_at_its_first_value(tmp_path: Path) -
 def test_planted_bugs_writes_each_shrunk_run_under_out_with_the_steps_on_stderr(
     tmp_path: Path,
 ) -> None:
-    done = subprocess.run(
-        [
-            sys.executable, str(ROOT / "benchmarks" / "planted_bugs.py"),
-            *("--only", "dedup", "--seeds", "3", "--shrink", "--budget", "3"),
-            *("--out", str(tmp_path)),
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=CEILING,
-        check=False,
-    )  # fmt: skip
+    done = run(
+        "planted_bugs.py",
+        "--only dedup --seeds 3 --shrink --budget 3 --out",
+        str(tmp_path),
+    )
 
-    assert 0 == done.returncode, done.stderr[-3000:]
     assert (tmp_path / "dedup" / "plan.toml").read_text().startswith("# Shrunk from")
     assert list((tmp_path / "dedup").glob("events-seed-*.jsonl"))
     assert "shrink: done after 3 runs" in done.stderr

@@ -284,7 +284,7 @@ BUDGETS = {
     "docs/explanation/architecture.md": 600,  # explanation; the module map is generated
 }
 """Pages a user reads, each with the most lines it may have: what grows past it belongs
-elsewhere (the history of figures in benchmarks/NOTES.md, contributor notes in
+elsewhere (how to reproduce a figure in benchmarks/NOTES.md, contributor notes in
 CONTRIBUTING.md, every module on docs/reference/modules.md)."""
 
 UNRELEASED_LINES = 150

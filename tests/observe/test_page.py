@@ -591,6 +591,14 @@ def big_page() -> Iterator[tuple[Any, Any]]:
         yield fed
 
 
+def unfolded(page: Any, url: str, supervisor: str, child: str) -> None:
+    """The page at `url`, its tree drawn, `supervisor`'s row unfolded until `child` shows."""
+    page.goto(url)
+    page.wait_for_selector('body[data-tree-painted="yes"]')
+    row(page, supervisor).locator("button[data-fold]").click()
+    page.wait_for_selector(f'.node[data-child="{child}"]')
+
+
 def painted_ms(page: Any, url: str) -> float:
     """Milliseconds from a navigation to `url` to the frame that drew its tree."""
     page.goto(url)
@@ -637,11 +645,7 @@ def test_opening_a_folded_supervisor_of_the_big_tree_shows_its_children(
     big_page: tuple[Any, Any], page: Any
 ) -> None:
     observer, _ = big_page
-    page.goto(observer.url)
-    page.wait_for_selector('body[data-tree-painted="yes"]')
-
-    row(page, "team3").locator("button[data-fold]").click()
-    page.wait_for_selector('.node[data-child="t3-m099"]')
+    unfolded(page, observer.url, "team3", "t3-m099")
 
     assert "yes" == row(page, "team3").get_attribute("data-open")
     assert 1 + TEAMS + PER_TEAM == page.locator("#tree .node").count()
@@ -655,10 +659,7 @@ def test_a_restart_in_the_big_tree_changes_its_rows_and_redraws_no_other(
     big_page: tuple[Any, Any], page: Any
 ) -> None:
     observer, hub = big_page
-    page.goto(observer.url)
-    page.wait_for_selector('body[data-tree-painted="yes"]')
-    row(page, "team7").locator("button[data-fold]").click()
-    page.wait_for_selector('.node[data-child="t7-m042"]')
+    unfolded(page, observer.url, "team7", "t7-m042")
     page.evaluate(  # (a mark on every row drawn: a row drawn again has none)
         "document.querySelectorAll('#tree .node').forEach(r => { r.rrProbe = true; })"
     )

@@ -757,6 +757,39 @@ class TestReleasedWhileDown:
 
 @pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 @pytest.mark.usefixtures("by_value")  # (tests/conftest.py)
+def failed_as_committed(
+    tmp_path: Path,
+    started: list[rr.ResourceRegistrar],
+    unload: Callable[[str, object], None] = lambda _r, _s: None,
+) -> tuple[
+    rr.RegistrarConfig, rr.ResourceRegistrar, str, Callable[[rr.ResourceRegistrar], None], list[str]
+]:
+    """Rule 17 case 3 set up: a durable provider (stopped, crashed) committed a consumer's id
+    and died before its answer left, so the call failed with `RegistrarUnavailableError`.
+    Returns the provider's config, the consumer (in `started`), the call's id, the setup that
+    serves `leaf` again (the given `unload`) and the requests its `load` was given."""
+    load = GatedLoad(threading.Event(), threading.Event(), lambda request: {"for": request})
+
+    def serve(registrar: rr.ResourceRegistrar) -> None:
+        registrar.register_server("leaf", load=load, unload=unload)
+
+    config = durable_config("provider", tmp_path)
+    provider = rr.ResourceRegistrar.start(config, setup=serve)
+    consumer = rr.ResourceRegistrar.start(f"consumer-{uuid.uuid4().hex[:8]}")
+    started.append(consumer)
+    qid = str(uuid.uuid4())
+    with ThreadPoolExecutor(1) as pool:
+        call = pool.submit(consumer.call, config.name, "leaf", "camera", query_id=qid, timeout=10)
+        assert load.started.wait(10)
+        with expect_restart(config.name):  # as its supervisor would: no death watch
+            crash(provider)
+        with pytest.raises(rr.RegistrarUnavailableError):
+            call.result(timeout=10)
+    load.gate.set()
+    commit_as_answered(Path(config.backup_path), qid, consumer.name)  # type: ignore[arg-type]
+    return config, consumer, qid, serve, load.requests
+
+
 class TestReconcile:
     """Provider and consumers reconcile their catalogs after a restart (issue 16).
 
@@ -854,28 +887,7 @@ class TestReconcile:
         # Rule 17, case 3: the provider committed the consumer id and died before its answer
         # left; the call failed with RegistrarUnavailableError. The restarted provider
         # reconciles with the consumer before the retry comes: the id must stay held there.
-        load = GatedLoad(threading.Event(), threading.Event(), lambda request: {"for": request})
-        loads, gate, entered = load.requests, load.gate, load.started
-
-        def serve(registrar: rr.ResourceRegistrar) -> None:
-            registrar.register_server("leaf", load=load, unload=lambda _r, _s: None)
-
-        config = durable_config("provider", tmp_path)
-        provider = rr.ResourceRegistrar.start(config, setup=serve)
-        consumer = rr.ResourceRegistrar.start(f"consumer-{uuid.uuid4().hex[:8]}")
-        started.append(consumer)
-        qid = str(uuid.uuid4())
-        with ThreadPoolExecutor(1) as pool:
-            call = pool.submit(
-                consumer.call, config.name, "leaf", "camera", query_id=qid, timeout=10
-            )
-            assert entered.wait(10)
-            with expect_restart(config.name):  # as its supervisor would: no death watch
-                crash(provider)
-            with pytest.raises(rr.RegistrarUnavailableError):
-                call.result(timeout=10)
-        gate.set()
-        commit_as_answered(Path(config.backup_path), qid, consumer.name)  # type: ignore[arg-type]
+        config, consumer, qid, serve, loads = failed_as_committed(tmp_path, started)
         reconciled = threading.Event()
 
         def setup(registrar: rr.ResourceRegistrar) -> None:
@@ -901,28 +913,7 @@ class TestReconcile:
         # of every Reconcile after the first, so the provider released the id and a retry
         # loaded it twice (a full CI run: `..._released_the_failed_call_it_kept`, [] held).
         # The forced interleaving: the first ask delivered again, as the second one is.
-        load = GatedLoad(threading.Event(), threading.Event(), lambda request: {"for": request})
-        loads, gate, entered = load.requests, load.gate, load.started
-
-        def serve(registrar: rr.ResourceRegistrar) -> None:
-            registrar.register_server("leaf", load=load, unload=lambda _r, _s: None)
-
-        config = durable_config("provider", tmp_path)
-        provider = rr.ResourceRegistrar.start(config, setup=serve)
-        consumer = rr.ResourceRegistrar.start(f"consumer-{uuid.uuid4().hex[:8]}")
-        started.append(consumer)
-        qid = str(uuid.uuid4())
-        with ThreadPoolExecutor(1) as pool:
-            call = pool.submit(
-                consumer.call, config.name, "leaf", "camera", query_id=qid, timeout=10
-            )
-            assert entered.wait(10)
-            with expect_restart(config.name):  # as its supervisor would: no death watch
-                crash(provider)
-            with pytest.raises(rr.RegistrarUnavailableError):
-                call.result(timeout=10)
-        gate.set()
-        commit_as_answered(Path(config.backup_path), qid, consumer.name)  # type: ignore[arg-type]
+        config, consumer, qid, serve, loads = failed_as_committed(tmp_path, started)
         reconciles: list[Any] = []
         reconciled = threading.Event()
         asks: list[Any] = []
@@ -978,29 +969,10 @@ class TestReconcile:
         # call (a retry may come), so the provider keeps the id. No retry comes, and the
         # consumer stops: its stop gives the id back. (A kill-heavy experiment's check found
         # a stopped consumer's id held at its provider to the end: the `end` rule.)
-        load = GatedLoad(threading.Event(), threading.Event(), lambda request: {"for": request})
-        gate, entered = load.gate, load.started
         unloaded = threading.Event()
-
-        def serve(registrar: rr.ResourceRegistrar) -> None:
-            registrar.register_server("leaf", load=load, unload=lambda _r, _s: unloaded.set())
-
-        config = durable_config("provider", tmp_path)
-        provider = rr.ResourceRegistrar.start(config, setup=serve)
-        consumer = rr.ResourceRegistrar.start(f"consumer-{uuid.uuid4().hex[:8]}")
-        started.append(consumer)
-        qid = str(uuid.uuid4())
-        with ThreadPoolExecutor(1) as pool:
-            call = pool.submit(
-                consumer.call, config.name, "leaf", "camera", query_id=qid, timeout=10
-            )
-            assert entered.wait(10)
-            with expect_restart(config.name):  # as its supervisor would: no death watch
-                crash(provider)
-            with pytest.raises(rr.RegistrarUnavailableError):
-                call.result(timeout=10)
-        gate.set()
-        commit_as_answered(Path(config.backup_path), qid, consumer.name)  # type: ignore[arg-type]
+        config, consumer, qid, serve, _ = failed_as_committed(
+            tmp_path, started, unload=lambda _r, _s: unloaded.set()
+        )
         reconciled = threading.Event()
 
         def setup(registrar: rr.ResourceRegistrar) -> None:

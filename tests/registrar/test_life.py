@@ -1269,56 +1269,38 @@ class TestProviderLost:
         finally:
             consumer.stop()
 
+    @pytest.mark.parametrize("lost", ["provider", "consumer"])
     def test_a_name_heard_lost_while_a_registrar_of_it_serves_keeps_the_ids_held_there(
-        self, system: System, started: list[rr.ResourceRegistrar]
+        self, system: System, started: list[rr.ResourceRegistrar], lost: str
     ) -> None:
         # issue 51 (rule 22): the death watch of a registrar that yielded its name at a heal,
-        # given up on by its supervisor, reaches a consumer of the one kept: that one holds
-        # its ids, so they stay held (they were FATAL and forgotten, held to the end there)
+        # given up on by its supervisor, reaches the other side of the one kept, which holds
+        # the ids: they stay held. A consumer that hears its provider lost used to report
+        # them FATAL and forget them; a provider that hears its consumer lost, to release
+        # them at once (their unload run under the consumer that still held them).
         unloads: list[str] = []
         provider = rr.ResourceRegistrar.start(
             named("provider"), setup=leaf_setup(unloads), network=system
         )
         consumer = rr.ResourceRegistrar.start(named("consumer"), network=system)
         started.extend([consumer, provider])
+        hearer, gone = (consumer, provider) if lost == "provider" else (provider, consumer)
         heard: list[Any] = []
         told, reconciled = threading.Event(), threading.Event()
-        intercept(consumer, "peer_lost", after=lambda _m: told.set())
+        intercept(hearer, "peer_lost", after=lambda _m: told.set())
         intercept(provider, "reconcile", after=lambda _m: reconciled.set())
         query = consumer.call(provider.name, "leaf", "camera", on_status=StatusHeard(heard))
 
-        Served(consumer).peer_lost(provider.name)  # (the mark of the one that yielded)
+        def held() -> list[str]:
+            if lost == "provider":
+                return [q.id for q in consumer.client_queries()]
+            return [q.id for q in provider.server_queries("leaf")]
+
+        Served(hearer).peer_lost(gone.name)  # (the mark of the one that yielded)
         assert told.wait(BOUND)
-        assert [query.id] == [q.id for q in consumer.client_queries()]  # not forgotten
+        assert [query.id] == held()  # not forgotten, not released
         assert reconciled.wait(BOUND)  # with the one that serves: it holds the id
-
-        consumer.unload(query.id, timeout=BOUND)
-        assert ["camera"] == unloads
-        assert [] == heard
-
-    def test_a_consumer_heard_lost_while_a_registrar_of_it_serves_keeps_the_ids_it_holds_here(
-        self, system: System, started: list[rr.ResourceRegistrar]
-    ) -> None:
-        # issue 51, the provider half: the death watch of a consumer that yielded its name
-        # reaches a provider of the one kept: the ids that one holds here stay held (they
-        # were released at once, their unload run under the consumer that still held them)
-        unloads: list[str] = []
-        provider = rr.ResourceRegistrar.start(
-            named("provider"), setup=leaf_setup(unloads), network=system
-        )
-        consumer = rr.ResourceRegistrar.start(named("consumer"), network=system)
-        started.extend([consumer, provider])
-        heard: list[Any] = []
-        told, reconciled = threading.Event(), threading.Event()
-        intercept(provider, "peer_lost", after=lambda _m: told.set())
-        intercept(provider, "reconcile", after=lambda _m: reconciled.set())
-        query = consumer.call(provider.name, "leaf", "camera", on_status=StatusHeard(heard))
-
-        Served(provider).peer_lost(consumer.name)  # (the mark of the one that yielded)
-        assert told.wait(BOUND)
-        assert [query.id] == [q.id for q in provider.server_queries("leaf")]  # not released
-        assert reconciled.wait(BOUND)  # asked of the one that serves: it holds the id
-        assert [query.id] == [q.id for q in provider.server_queries("leaf")]
+        assert [query.id] == held()
 
         consumer.unload(query.id, timeout=BOUND)
         assert ["camera"] == unloads

@@ -209,6 +209,21 @@ def test_a_restored_managers_in_doubt_loads_reach_a_subscriber_of_the_restart(
     assert in_doubt.pid == restarted.pid
 
 
+def heard_across_a_kill(
+    sup: rr.Supervisor, erm: str, die: Callable[[rr.ResourceRegistrar], None]
+) -> Heard:
+    """The tree's events while `die` runs in manager `erm` (it must kill its process) and
+    until `erm` was restarted and every event was delivered."""
+    heard = Heard()
+    with sup.subscribe(heard) as subscription:
+        with pytest.raises(rr.RrError):
+            sup.run_in(erm, die)
+        sup.wait_restarted(erm, timeout=10)
+        assert sup.flush_events(timeout=5)
+        assert subscription.wait_delivered(timeout=5)
+    return heard
+
+
 @pytest.mark.usefixtures("process_helpers")
 def test_events_a_killed_manager_built_but_never_published_are_not_counted_as_lost(
     supervisors: Callable[..., rr.Supervisor], uid: str
@@ -225,13 +240,7 @@ def test_events_a_killed_manager_built_but_never_published_are_not_counted_as_lo
         assert all(e.seq for e in made)  # numbered all the same
         os.kill(os.getpid(), signal.SIGKILL)
 
-    heard = Heard()
-    with sup.subscribe(heard) as subscription:
-        with pytest.raises(rr.RrError):
-            sup.run_in(erm, build_five_then_die)
-        sup.wait_restarted(erm, timeout=10)
-        assert sup.flush_events(timeout=5)
-        assert subscription.wait_delivered(timeout=5)
+    heard = heard_across_a_kill(sup, erm, build_five_then_die)
 
     assert [] == heard.of(events.EventsDropped)
     assert [] == heard.of(events.LoadFailed, registrar=erm)
@@ -259,13 +268,7 @@ def test_events_a_killed_manager_published_but_could_not_keep_are_counted(
             line.hub.publish(events.LoadFailed(erm, "cam", f"r{i}", f"q{i}", "E", "-"))
         os.kill(os.getpid(), signal.SIGKILL)
 
-    heard = Heard()
-    with sup.subscribe(heard) as subscription:
-        with pytest.raises(rr.RrError):
-            sup.run_in(erm, publish_five_uncut_then_die)
-        sup.wait_restarted(erm, timeout=10)
-        assert sup.flush_events(timeout=5)
-        assert subscription.wait_delivered(timeout=5)
+    heard = heard_across_a_kill(sup, erm, publish_five_uncut_then_die)
 
     [lost] = heard.of(events.EventsDropped, cause="killed")
     assert (5, first_pid) == (lost.count, lost.pid)
@@ -291,13 +294,7 @@ def test_the_events_a_killed_manager_published_but_never_sent_arrive_after_its_e
             line.hub.publish(events.LoadFailed(erm, "cam", f"r{i}", f"q{i}", "E", "-"))
         os.kill(os.getpid(), signal.SIGKILL)
 
-    heard = Heard()
-    with sup.subscribe(heard) as subscription:
-        with pytest.raises(rr.RrError):
-            sup.run_in(erm, publish_twenty_then_die)
-        sup.wait_restarted(erm, timeout=10)
-        assert sup.flush_events(timeout=5)
-        assert subscription.wait_delivered(timeout=5)
+    heard = heard_across_a_kill(sup, erm, publish_twenty_then_die)
 
     kept = heard.of(events.LoadFailed, registrar=erm)
     assert [f"q{i}" for i in range(20)] == [e.query_id for e in kept]

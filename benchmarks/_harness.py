@@ -1,0 +1,123 @@
+"""What every benchmark here shares: options, alternated rounds, statistics, the table.
+
+A figure means something only as a ratio to a floor measured in the same run, so a script
+names its rows (the floor among them) and `alternate` measures them round by round (round
+1 of every row, then round 2, ...), spreading other programs' noise over all rows. `table`
+prints the Markdown table whose last column (the ratio) `alternate.py` sums up, under
+`header`'s line (the CPUs this run may use: `taskset -c 0` pins it, and the load average).
+`--quick` is the smallest run (`tests/test_benchmarks.py`): its figures mean nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import sys
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+
+QUICK_ROUNDS = 1
+QUICK_BATCH = 5
+
+
+def options(doc: str | None, *, rounds: int, batch: int | None = None) -> argparse.ArgumentParser:
+    """A parser with `--rounds` (default `rounds`), `--batch` (when `batch` is given) and
+    `--quick`; `parse` applies `--quick`. The description is `doc`'s first line."""
+    parser = argparse.ArgumentParser(description=(doc or "").splitlines()[0])
+    parser.add_argument("--rounds", type=int, default=rounds, help="alternated rounds")
+    if batch is not None:
+        parser.add_argument("--batch", type=int, default=batch, help="operations a round")
+    parser.add_argument("--quick", action="store_true", help="the smallest run")
+    return parser
+
+
+def parse(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> argparse.Namespace:
+    """`parser.parse_args(argv)`, with `--quick` setting the rounds and the batch."""
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.rounds = QUICK_ROUNDS
+        if hasattr(args, "batch"):
+            args.batch = QUICK_BATCH
+    return args
+
+
+def per_op(op: Callable[[], object], batch: int) -> float:
+    """Seconds per call of `op`, called `batch` times back to back."""
+    began = time.perf_counter()
+    for _ in range(batch):
+        op()
+    return (time.perf_counter() - began) / batch
+
+
+def each(op: Callable[[], object], batch: int) -> list[float]:
+    """Seconds of each of `batch` calls of `op`, timed one by one."""
+    clock = time.perf_counter_ns
+    took: list[float] = []
+    for _ in range(batch):
+        began = clock()
+        op()
+        took.append((clock() - began) / 1e9)
+    return took
+
+
+def alternate(
+    rows: Mapping[str, Callable[[], float | list[float]]],
+    rounds: int,
+    *,
+    warm_up: bool = True,
+    rotate: bool = False,
+) -> dict[str, list[float]]:
+    """Every row's samples over `rounds` alternated rounds (a row returns one sample or a
+    list of them). `warm_up` runs each row once first, untimed; `rotate` starts round k
+    at row k (modulo the rows)."""
+    names = list(rows)
+    if warm_up:
+        for name in names:
+            rows[name]()
+    samples: dict[str, list[float]] = {name: [] for name in names}
+    for k in range(rounds):
+        start = k % len(names) if rotate else 0
+        for name in names[start:] + names[:start]:
+            got = rows[name]()
+            samples[name].extend(got if isinstance(got, list) else [got])
+    return samples
+
+
+def percentile(values: Sequence[float], fraction: float) -> float:
+    """The `fraction` quantile of `values` (nearest rank)."""
+    ordered = sorted(values)
+    index = min(len(ordered) - 1, max(0, round(fraction * len(ordered)) - 1))
+    return float(ordered[index])
+
+
+def median(values: Iterable[float]) -> float:
+    """The median (`statistics.median`) as a float."""
+    return float(statistics.median(values))
+
+
+def header(what: str) -> str:
+    """One line: Python, machine, the CPUs this run may use, the load average, `what`."""
+    cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else "?"
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    return (
+        f"python {platform.python_version()} on {platform.machine()} ({sys.platform}), "
+        f"CPUs {cpus}, load {load:.2f}; {what}"
+    )
+
+
+def table(columns: Sequence[str], rows: Iterable[Sequence[object]], *, right: int = 1) -> str:
+    """A Markdown table: `columns`, then one line per row (each cell `str()`ed); the
+    columns from index `right` on are right-aligned (numbers)."""
+    lines = [
+        "| " + " | ".join(columns) + " |",
+        "|" + "|".join("---" if i < right else "---:" for i in range(len(columns))) + "|",
+    ]
+    lines += ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def print_table(title: str, columns: Sequence[str], rows: Iterable[Sequence[object]]) -> None:
+    """Print `title` after a blank line, then `table(columns, rows)`."""
+    print(f"\n{title}\n{table(columns, rows)}")
