@@ -133,7 +133,11 @@ def enumerate_mutants(modules: tuple[str, ...] = MODULES) -> list[Mutant]:
     ops = operators()
     found: list[Mutant] = []
     paths = sorted(
-        {p for m in modules for p in ((PACKAGE / m).rglob("*.py") if (PACKAGE / m).is_dir() else [PACKAGE / m])}
+        {
+            p
+            for m in modules
+            for p in ((PACKAGE / m).rglob("*.py") if (PACKAGE / m).is_dir() else [PACKAGE / m])
+        }
     )
     for path in paths:
         file = str(path.relative_to(PACKAGE))
@@ -267,9 +271,7 @@ def judge(mutant: Mutant, options: argparse.Namespace, clean: Clean) -> dict[str
             if last is not None and last["verdict"] == "violated":
                 new = sorted(set(last["rules"]) - clean.violated(last["plan"], last["seed"]))
                 if new:
-                    result.update(
-                        status="killed", rules=new, plan=last["plan"], seed=last["seed"]
-                    )
+                    result.update(status="killed", rules=new, plan=last["plan"], seed=last["seed"])
                     break
                 turn = last["turn"] + 1  # (the unedited code violates it too: go on)
                 continue
@@ -309,7 +311,10 @@ def child_main(path: str, plans: str, start: int, count: int) -> None:
         if not here.is_relative_to(Path(path).resolve()):
             raise SystemExit(f"the child imported {here}, not the copy at {path}")
     names = plans.split(",")
-    loaded = {name: load_plan(str(Path(path) / PLANS.relative_to(ROOT) / f"{name}.toml")) for name in names}
+    loaded = {
+        name: load_plan(str(Path(path) / PLANS.relative_to(ROOT) / f"{name}.toml"))
+        for name in names
+    }
     for turn in range(start, start + count):
         name = names[(turn - 1) % len(names)]
         seed = (turn - 1) // len(names) + 1
