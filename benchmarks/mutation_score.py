@@ -32,7 +32,8 @@ each one is a rule or plan missing, or an equivalent mutant to add to `EQUIVALEN
 
     python benchmarks/mutation_score.py --sample 100 --seeds 200 --jobs 2   # the figure
     python benchmarks/mutation_score.py --sample 3 --seeds 2                # a quick look
-    python benchmarks/mutation_score.py --only _registrar/provider.py:120:ReplaceComparisonOperator_Is_IsNot
+    python benchmarks/mutation_score.py --plans crashloop \
+        --only _supervision/policy.py:445:ReplaceComparisonOperator_LtE_Lt  # one mutant
     python benchmarks/mutation_score.py --list | wc -l                      # all mutants
 
 `--json OUT` writes every mutant's result. Figures in benchmarks/NOTES.md ("Mutation score").
@@ -222,7 +223,7 @@ def run_child(
         if cpu is not None:
             resource.setrlimit(resource.RLIMIT_CPU, (int(cpu) + 1, int(cpu) + 2))
 
-    with subprocess.Popen(  # noqa: S603 - this script, this interpreter
+    with subprocess.Popen(
         [*command, str(seeds)],
         env=env,
         stdout=subprocess.PIPE,
@@ -322,7 +323,7 @@ def child_main(path: str, plans: str, start: int, count: int) -> None:
         line: dict[str, Any] = {"turn": turn, "plan": name, "seed": seed, "rules": []}
         try:
             run = simulate.run_seed(loaded[name], seed)
-        except Exception as exc:  # noqa: BLE001 - the mutant's: a crash, reported
+        except Exception as exc:  # (the mutant's: a crash, reported)
             line.update(verdict="raised", error=f"{type(exc).__name__}: {str(exc)[:120]}")
         else:
             rules = {
@@ -345,7 +346,7 @@ def child_main(path: str, plans: str, start: int, count: int) -> None:
 
 def report(results: list[dict[str, Any]], options: argparse.Namespace) -> None:
     """The score, the counts by class and by rule, then each survivor and timeout."""
-    counts = {s: 0 for s in ("killed", "crashed", "timeout", "survived", "equivalent")}
+    counts = dict.fromkeys(("killed", "crashed", "timeout", "survived", "equivalent"), 0)
     for r in results:
         counts[r["status"]] += 1
     judged = len(results) - counts["equivalent"]
@@ -418,7 +419,9 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--only: no mutant {', '.join(unknown)} (see --list)")
         chosen = [by_id[w] for w in wanted]
     else:
-        chosen = random.Random(options.seed).sample(every, min(options.sample, len(every)))
+        chosen = random.Random(options.seed).sample(  # noqa: S311 - a sample, not a secret
+            every, min(options.sample, len(every))
+        )
     print(f"{len(every)} mutants in {', '.join(modules)}; {len(chosen)} searched", file=sys.stderr)
     results: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="rr-mutant-clean-") as folder:
