@@ -46,6 +46,8 @@ import ast
 import builtins
 import concurrent.futures
 import dataclasses
+import hashlib
+import importlib.metadata
 import json
 import os
 import random
@@ -72,6 +74,8 @@ ORDER = (
 )  # fmt: skip
 """The shipped plans the simulation runs, cheapest seed first (CPU s of seed 1, 2026-11-27:
 0.3 for the first four, 0.5-0.9 to simdoubt, 1.2-3.7 after; killheavy 4.8)."""
+
+COSMIC_RAY = importlib.metadata.version("cosmic-ray")
 
 LEFT_OUT = ("core/VariableInserter", "core/VariableReplacer")  # (random: not reproducible)
 
@@ -143,6 +147,12 @@ def enumerate_mutants(modules: tuple[str, ...] = MODULES) -> list[Mutant]:
     for path in paths:
         file = str(path.relative_to(PACKAGE))
         text = path.read_text(encoding="utf-8")
+        digest = hashlib.sha256(f"{COSMIC_RAY}\n{file}\n{text}".encode()).hexdigest()[:16]
+        cached = Path(tempfile.gettempdir()) / f"rr-mutants-{digest}.json"  # (20 CPU s for all)
+        if cached.is_file():
+            found += [Mutant(**m) for m in json.loads(cached.read_text(encoding="utf-8"))]
+            continue
+        mine: list[Mutant] = []
         spans = annotations(text)
         positions: dict[str, list[tuple[int, bool]]] = {name: [] for name, _ in ops}
         for node in ast_nodes(get_ast(text)):
@@ -156,7 +166,9 @@ def enumerate_mutants(modules: tuple[str, ...] = MODULES) -> list[Mutant]:
                 nth = seen.get(line, 0)
                 seen[line] = nth + 1
                 if not typed:
-                    found.append(Mutant(file, name, occurrence, line, nth))
+                    mine.append(Mutant(file, name, occurrence, line, nth))
+        cached.write_text(json.dumps([dataclasses.asdict(m) for m in mine]), encoding="utf-8")
+        found += mine
     return found
 
 
@@ -250,10 +262,12 @@ def _lines(out: str) -> list[dict[str, Any]]:
     return [json.loads(line) for line in out.splitlines() if line.startswith("{")]
 
 
-def judge(mutant: Mutant, options: argparse.Namespace, clean: Clean) -> dict[str, Any]:
-    """One mutant's search and its class."""
+def judge(mutant: Mutant, options: argparse.Namespace, clean: Clean) -> dict[str, Any] | None:
+    """One mutant's search and its class (None: `--budget` was spent before it started)."""
     plans: list[str] = options.plans
     started = time.monotonic()
+    if started > options.deadline:
+        return None
     result: dict[str, Any] = {"id": mutant.id, "operator": mutant.operator, "runs": 0}
     with tempfile.TemporaryDirectory(prefix="rr-mutant-") as folder:
         path, result["edit"] = scratch(Path(folder), mutant)
@@ -378,6 +392,30 @@ def report(results: list[dict[str, Any]], options: argparse.Namespace) -> None:
             print(f"  {r['id']}  [{','.join(r['rules'])}] {r['plan']} seed {r['seed']}")
 
 
+def search_all(chosen: list[Mutant], options: argparse.Namespace) -> list[dict[str, Any]]:
+    """Each mutant's result, `--jobs` at once, in sample order (a line each on stderr)."""
+    results: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory(prefix="rr-mutant-clean-") as folder:
+        clean = Clean(Path(folder))
+        with concurrent.futures.ThreadPoolExecutor(options.jobs) as pool:
+            futures = [pool.submit(judge, m, options, clean) for m in chosen]
+            for i, future in enumerate(futures, 1):
+                r = future.result()
+                if r is None:
+                    continue
+                results.append(r)
+                if options.json is not None:  # (after each: a run cut short keeps what it did)
+                    options.json.write_text(json.dumps(results, indent=1) + "\n", "utf-8")
+                found = ",".join(r.get("rules", [])) or r.get("why", "")
+                print(
+                    f"  [{i}/{len(chosen)}] {r['status']:<8} {r['id']}  {found} "
+                    f"({r['runs']} runs, {r['wall_s']} s)",
+                    file=sys.stderr,
+                    flush=True,
+                )
+    return results
+
+
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else argv
     if args[:1] == ["--child"]:
@@ -388,6 +426,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=68, help="the sample's seed")
     parser.add_argument("--seeds", type=int, default=200, help="most seeds run per mutant")
     parser.add_argument("--cpu", type=float, default=120.0, help="most CPU s per mutant")
+    parser.add_argument(
+        "--budget", type=float, help="wall seconds: no mutant starts after them (a smaller sample)"
+    )
     parser.add_argument("--jobs", type=int, default=1, help="mutants searched at once")
     parser.add_argument("--plans", default=",".join(ORDER), help="plans, in turn order")
     parser.add_argument(
@@ -398,6 +439,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, help="write every mutant's result here")
     options = parser.parse_args(args)
     options.plans = options.plans.split(",")
+    options.deadline = time.monotonic() + (options.budget or float("inf"))
     if missing := [p for p in options.plans if not (PLANS / f"{p}.toml").is_file()]:
         parser.error(f"--plans: no shipped plan {', '.join(missing)}")
     if options.seeds < 1 or options.jobs < 1 or options.sample < 1:
@@ -423,23 +465,9 @@ def main(argv: list[str] | None = None) -> int:
             every, min(options.sample, len(every))
         )
     print(f"{len(every)} mutants in {', '.join(modules)}; {len(chosen)} searched", file=sys.stderr)
-    results: list[dict[str, Any]] = []
-    with tempfile.TemporaryDirectory(prefix="rr-mutant-clean-") as folder:
-        clean = Clean(Path(folder))
-        with concurrent.futures.ThreadPoolExecutor(options.jobs) as pool:
-            futures = [pool.submit(judge, m, options, clean) for m in chosen]
-            for i, future in enumerate(futures, 1):
-                r = future.result()
-                results.append(r)
-                found = ",".join(r.get("rules", [])) or r.get("why", "")
-                print(
-                    f"  [{i}/{len(chosen)}] {r['status']:<8} {r['id']}  {found} "
-                    f"({r['runs']} runs, {r['wall_s']} s)",
-                    file=sys.stderr,
-                    flush=True,
-                )
-    if options.json is not None:
-        options.json.write_text(json.dumps(results, indent=1) + "\n", encoding="utf-8")
+    results = search_all(chosen, options)
+    if len(results) < len(chosen):
+        print(f"--budget spent: {len(results)} of the {len(chosen)} mutants searched")
     report(results, options)
     return 0
 
