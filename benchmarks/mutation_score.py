@@ -193,6 +193,23 @@ def mutated(mutant: Mutant) -> tuple[str, str]:
     return new, edit
 
 
+def sample(every: list[Mutant], size: int, seed: int) -> list[Mutant]:
+    """`size` mutants drawn from `every` (seeded), those that do not compile skipped (a
+    stillborn mutant, as the field counts them: cosmic-ray turns the `*` of `def f(a, *, b)`
+    into `%`)."""
+    drawn = random.Random(seed).sample(every, len(every))  # noqa: S311 - a sample, not a secret
+    chosen: list[Mutant] = []
+    for mutant in drawn:
+        if len(chosen) == size:
+            break
+        try:
+            compile(mutated(mutant)[0], mutant.file, "exec")
+        except SyntaxError:
+            continue
+        chosen.append(mutant)
+    return chosen
+
+
 def scratch(folder: Path, mutant: Mutant | None) -> tuple[Path, str]:
     """A copy of the package and lab under `folder` (`mutant` applied); its edit in a line."""
     shutil.copytree(PACKAGE, folder / "rr_actors", ignore=shutil.ignore_patterns("__pycache__"))
@@ -461,9 +478,7 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--only: no mutant {', '.join(unknown)} (see --list)")
         chosen = [by_id[w] for w in wanted]
     else:
-        chosen = random.Random(options.seed).sample(  # noqa: S311 - a sample, not a secret
-            every, min(options.sample, len(every))
-        )
+        chosen = sample(every, options.sample, options.seed)
     print(f"{len(every)} mutants in {', '.join(modules)}; {len(chosen)} searched", file=sys.stderr)
     results = search_all(chosen, options)
     if len(results) < len(chosen):
