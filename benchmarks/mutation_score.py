@@ -36,7 +36,7 @@ each one is a rule or plan missing, or an equivalent mutant to add to `EQUIVALEN
         --only _supervision/policy.py:445:ReplaceComparisonOperator_LtE_Lt  # one mutant
     python benchmarks/mutation_score.py --list | wc -l                      # all mutants
 
-`--json OUT` writes every mutant's result. Figures in benchmarks/NOTES.md ("Mutation score").
+`--json OUT` writes every mutant's result. Figures: benchmarks/NOTES.md, "mutation score".
 """
 
 from __future__ import annotations
