@@ -14,6 +14,7 @@ two busy loops and other test runs); the former 110 s was exceeded there by two 
 from __future__ import annotations
 
 import importlib.util
+import json
 import os
 import subprocess
 import sys
@@ -122,6 +123,10 @@ SMALLEST = {
     "count_restart.py": ["--rounds", "1"],
     "minimal_hit.py": ["--rounds", "1"],
     "planted_bugs.py": ["--only", "dedup", "--seeds", "3"],
+    "mutation_score.py": [
+        *("--modules", "_store/checkpoints.py", "--sample", "2", "--seeds", "2"),
+        *("--plans", "crashloop", "--cpu", "60"),
+    ],
     "stress_cancel.py": ["--runs", "1", "--calls", "200"],
     "stress_crash.py": ["--kills", "4", "--round", "2"],
 }
@@ -322,3 +327,54 @@ def test_every_planted_bug_applies_once_to_the_source_and_names_a_shipped_plan_a
         assert plant.plan in shipped, plant.name
         assert plant.rule in check.RULES, plant.name
     assert len(planted.PLANTS) == len({p.name for p in planted.PLANTS})
+
+
+@pytest.mark.timeout(CEILING + 10)
+def test_mutation_score_names_the_rule_that_killed_a_mutant_and_prints_the_score(
+    tmp_path: Path,
+) -> None:
+    policy = ROOT / "rr_actors" / "_supervision" / "policy.py"
+    lines = policy.read_text().splitlines()
+    early = lines.index("        return len(self._times) <= self.max_restarts") + 1
+    mutant = f"_supervision/policy.py:{early}:ReplaceComparisonOperator_LtE_Lt"  # (a restart early)
+    done = subprocess.run(
+        [
+            sys.executable, str(ROOT / "benchmarks" / "mutation_score.py"),
+            *("--only", mutant, "--plans", "crashloop", "--seeds", "3", "--cpu", "60"),
+            *("--json", str(tmp_path / "results.json")),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=CEILING,
+        check=False,
+    )  # fmt: skip
+
+    assert 0 == done.returncode, done.stderr[-3000:]
+    [result] = json.loads((tmp_path / "results.json").read_text())
+    assert ("killed", ["intensity"], "crashloop") == (
+        result["status"],
+        result["rules"],
+        result["plan"],
+    ), result
+    assert "<= self.max_restarts  ->  return len(self._times) < self.max_restarts" in result["edit"]
+    assert done.stdout.startswith("mutation score: 1/1 = 100.0% killed by a rule")
+    assert f"  {mutant}  [intensity] crashloop seed {result['seed']}" in done.stdout
+
+
+def test_every_mutant_shown_equivalent_is_still_a_mutant_of_the_source(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    spec = importlib.util.spec_from_file_location(
+        "mutation_score", ROOT / "benchmarks" / "mutation_score.py"
+    )
+    assert spec is not None
+    assert spec.loader is not None
+    score = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "mutation_score", score)  # (its dataclass looks it up)
+    spec.loader.exec_module(score)
+    files = tuple(sorted({i.split(":", 1)[0] for i in score.EQUIVALENT}))
+
+    ids = {m.id for m in score.enumerate_mutants(files)}
+
+    assert set(score.EQUIVALENT) <= ids, set(score.EQUIVALENT) - ids  # (the line moved)

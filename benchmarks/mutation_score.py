@@ -1,0 +1,497 @@
+"""The verdict's strength as a number: mutants of the protocol modules, searched by the plans.
+
+Issue 68 item 8. Mutation testing as the field does it, with cosmic-ray's operators
+(`pip install cosmic-ray`, in the `dev` extra), driven one mutant at a time through its
+API (`cosmic_ray.mutating.mutate_code`) rather than its own runner, which runs a test
+command, not a search of seeded simulations:
+
+    every mutation cosmic-ray's core operators can make in rr_actors/_registrar/, _store/,
+      _catalog/, _supervision/ (its two random operators, VariableInserter and
+      VariableReplacer, left out: a mutant must be the same on every run)
+    a sample of `--sample` of them (`--seed`: the same sample for the same source)
+    each mutant in a copy of the package in a temporary folder (the worktree is never edited)
+    a child process with PYTHONPATH at the copy (PYTHONHASHSEED=0, as a sweep has) runs the
+      shipped simulated plans' seeds (`rr_actors_lab.experiments.simulate.run_seed`) in
+      turns, one seed of each plan, cheapest plans first, then the second seed of each, ...,
+      until a seed's verdict is `violated` or `--seeds` runs, within `--cpu` CPU seconds
+      (RLIMIT_CPU) and ten times that of wall time
+    a violation counts only if the unedited copy does not violate the same rule on that
+      plan and seed (then the search goes on from the next seed)
+
+Each mutant is then one of:
+
+    killed    a rule's violation (the rule, the plan and seed that found it)
+    crashed   only crashes: the copy did not import, the tree did not start, or each run
+              raised (a run that crashed does not end the search: the next seed runs)
+    timeout   the CPU or wall bound ended the search first
+    survived  every seed held (or was unverifiable): a survivor
+    equivalent  a survivor listed in `EQUIVALENT`, with the line that shows it
+
+Score = killed / (all - equivalent). The survivors are printed with their place and edit:
+each one is a rule or plan missing, or an equivalent mutant to add to `EQUIVALENT`.
+
+    python benchmarks/mutation_score.py --sample 100 --seeds 200 --jobs 2   # the figure
+    python benchmarks/mutation_score.py --sample 3 --seeds 2                # a quick look
+    python benchmarks/mutation_score.py --plans crashloop \
+        --only _supervision/policy.py:445:ReplaceComparisonOperator_LtE_Lt  # one mutant
+    python benchmarks/mutation_score.py --list | wc -l                      # all mutants
+
+`--json OUT` writes every mutant's result. Figures: benchmarks/NOTES.md, "mutation score".
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import builtins
+import concurrent.futures
+import dataclasses
+import hashlib
+import importlib.metadata
+import json
+import os
+import random
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGE = ROOT / "rr_actors"
+LAB = ROOT / "rr_actors_lab"
+PLANS = LAB / "experiments" / "plans"
+MODULES = ("_registrar", "_store", "_catalog", "_supervision")
+
+ORDER = (
+    "crashloop", "first", "hang", "simnostate", "simheal", "simhosts", "simshare", "simslow",
+    "simrest", "simchain", "simdoubt", "simprogram", "simcancel", "simretry", "simways",
+    "bigtree", "killheavy",
+)  # fmt: skip
+"""The shipped plans the simulation runs, cheapest seed first (CPU s of seed 1, 2026-11-27:
+0.3 for the first four, 0.5-0.9 to simdoubt, 1.2-3.7 after; killheavy 4.8)."""
+
+COSMIC_RAY = importlib.metadata.version("cosmic-ray")
+
+LEFT_OUT = ("core/VariableInserter", "core/VariableReplacer")  # (random: not reproducible)
+
+EQUIVALENT: dict[str, str] = {
+    "_registrar/consumer.py:742:NumberReplacer:1": "an id never answered: 0 < epoch and "
+    "-1 < epoch alike, every epoch asked being new_epoch()'s, at least 1",
+    "_supervision/policy.py:257:ReplaceComparisonOperator_NotEq_IsNot": "incarnations are "
+    "ints from 0 up by 1: `is not` is `!=` in CPython up to 256 (its small ints), so for "
+    "every run with fewer than 257 restarts of one child",
+}
+"""Survivors shown equivalent: mutant id (`FILE:LINE:OPERATOR[:N]`) -> the line that shows it."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Mutant:
+    """One mutation: a file under rr_actors/, cosmic-ray's operator and occurrence in it."""
+
+    file: str
+    operator: str  # e.g. core/ReplaceComparisonOperator_Is_IsNot
+    occurrence: int  # of the operator in the file, in cosmic-ray's walk order
+    line: int
+    nth: int  # 0 for the operator's first mutation on that line, then 1, ...
+
+    @property
+    def id(self) -> str:
+        """`FILE:LINE:OPERATOR` (and `:N` when the operator mutates that line more than once)."""
+        name = self.operator.split("/", 1)[1]
+        return f"{self.file}:{self.line}:{name}" + (f":{self.nth}" if self.nth else "")
+
+
+# -- the mutants ----------------------------------------------------------------------
+
+
+def operators() -> list[tuple[str, Any]]:
+    """cosmic-ray's operators (name, instance), the random ones left out."""
+    from cosmic_ray.plugins import get_operator, operator_names  # noqa: PLC0415
+
+    return [(n, get_operator(n)()) for n in operator_names() if n not in LEFT_OUT]
+
+
+def annotations(text: str) -> list[tuple[tuple[int, int], tuple[int, int]]]:
+    """The spans ((line, column), (end line, end column)) of `text`'s annotations: never
+    evaluated under `from __future__ import annotations`, so a mutant there is equivalent."""
+    spans = []
+    for node in ast.walk(ast.parse(text)):
+        found: list[ast.expr | None] = []
+        if isinstance(node, ast.arg):
+            found.append(node.annotation)
+        elif isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+            found.append(node.returns)
+        elif isinstance(node, ast.AnnAssign):
+            found.append(node.annotation)
+        spans += [
+            ((a.lineno, a.col_offset), (a.end_lineno or a.lineno, a.end_col_offset or 0))
+            for a in found
+            if a is not None
+        ]
+    return spans
+
+
+def enumerate_mutants(modules: tuple[str, ...] = MODULES) -> list[Mutant]:
+    """Every mutant of `modules` (folders or files under rr_actors/), in a stable order
+    (file, operator, occurrence); those inside annotations left out."""
+    from cosmic_ray.ast import ast_nodes, get_ast  # noqa: PLC0415
+
+    ops = operators()
+    found: list[Mutant] = []
+    paths = sorted(
+        {
+            p
+            for m in modules
+            for p in ((PACKAGE / m).rglob("*.py") if (PACKAGE / m).is_dir() else [PACKAGE / m])
+        }
+    )
+    for path in paths:
+        file = str(path.relative_to(PACKAGE))
+        text = path.read_text(encoding="utf-8")
+        digest = hashlib.sha256(f"{COSMIC_RAY}\n{file}\n{text}".encode()).hexdigest()[:16]
+        cached = Path(tempfile.gettempdir()) / f"rr-mutants-{digest}.json"  # (20 CPU s for all)
+        if cached.is_file():
+            found += [Mutant(**m) for m in json.loads(cached.read_text(encoding="utf-8"))]
+            continue
+        mine: list[Mutant] = []
+        spans = annotations(text)
+        positions: dict[str, list[tuple[int, bool]]] = {name: [] for name, _ in ops}
+        for node in ast_nodes(get_ast(text)):
+            for name, op in ops:
+                for start, _end in op.mutation_positions(node):
+                    typed = any(a <= tuple(start) < b for a, b in spans)
+                    positions[name].append((start[0], typed))
+        for name, _ in ops:
+            seen: dict[int, int] = {}
+            for occurrence, (line, typed) in enumerate(positions[name]):
+                nth = seen.get(line, 0)
+                seen[line] = nth + 1
+                if not typed:
+                    mine.append(Mutant(file, name, occurrence, line, nth))
+        cached.write_text(json.dumps([dataclasses.asdict(m) for m in mine]), encoding="utf-8")
+        found += mine
+    return found
+
+
+def mutated(mutant: Mutant) -> tuple[str, str]:
+    """The mutant's file text, and its edit in a line (`old -> new`, stripped)."""
+    from cosmic_ray.mutating import mutate_code  # noqa: PLC0415
+    from cosmic_ray.plugins import get_operator  # noqa: PLC0415
+
+    text = (PACKAGE / mutant.file).read_text(encoding="utf-8")
+    new = mutate_code(text, get_operator(mutant.operator)(), mutant.occurrence)
+    if new is None:
+        raise SystemExit(f"{mutant.id}: cosmic-ray made no mutation (the source moved)")
+    old_lines, new_lines = text.splitlines(), new.splitlines()
+    edit = next(
+        (
+            f"{a.strip()}  ->  {b.strip()}"
+            for a, b in zip(old_lines, new_lines, strict=False)
+            if a != b
+        ),
+        "(no line changed)",
+    )
+    return new, edit
+
+
+def sample(every: list[Mutant], size: int, seed: int) -> list[Mutant]:
+    """`size` mutants drawn from `every` (seeded), those that do not compile skipped (a
+    stillborn mutant, as the field counts them: cosmic-ray turns the `*` of `def f(a, *, b)`
+    into `%`)."""
+    drawn = random.Random(seed).sample(every, len(every))  # noqa: S311 - a sample, not a secret
+    chosen: list[Mutant] = []
+    for mutant in drawn:
+        if len(chosen) == size:
+            break
+        try:
+            compile(mutated(mutant)[0], mutant.file, "exec")
+        except SyntaxError:
+            continue
+        chosen.append(mutant)
+    return chosen
+
+
+def scratch(folder: Path, mutant: Mutant | None) -> tuple[Path, str]:
+    """A copy of the package and lab under `folder` (`mutant` applied); its edit in a line."""
+    shutil.copytree(PACKAGE, folder / "rr_actors", ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copytree(LAB, folder / "rr_actors_lab", ignore=shutil.ignore_patterns("__pycache__"))
+    if mutant is None:
+        return folder, ""
+    text, edit = mutated(mutant)
+    (folder / "rr_actors" / mutant.file).write_text(text, encoding="utf-8")
+    return folder, edit
+
+
+# -- the parent: one child per mutant, a clean child per violation ----------------------
+
+
+class Clean:
+    """The unedited copy's violated rules per (plan, seed), run once each, on demand."""
+
+    def __init__(self, folder: Path) -> None:
+        self.path, _ = scratch(folder, None)
+        self.rules: dict[tuple[str, int], set[str]] = {}
+        self.lock = threading.Lock()
+
+    def violated(self, plan: str, seed: int) -> set[str]:
+        with self.lock:
+            if (plan, seed) not in self.rules:
+                lines = run_child(self.path, [plan], seed, 1, None)[0]
+                self.rules[(plan, seed)] = set(lines[-1]["rules"]) if lines else set()
+            return self.rules[(plan, seed)]
+
+
+def run_child(
+    path: Path, plans: list[str], start: int, seeds: int, cpu: float | None
+) -> tuple[list[dict[str, Any]], str | None]:
+    """Runs `seeds` turns from turn `start` (1-based) on the copy at `path`: the child's
+    lines (one per seed run) and why it ended early (None when it ended by itself)."""
+    env = {**os.environ, "PYTHONPATH": str(path), "PYTHONHASHSEED": "0"}
+    command = [sys.executable, __file__, "--child", str(path), ",".join(plans), str(start)]
+
+    def bound() -> None:  # (in the child, before exec)
+        if cpu is not None:
+            resource.setrlimit(resource.RLIMIT_CPU, (int(cpu) + 1, int(cpu) + 2))
+
+    with subprocess.Popen(
+        [*command, str(seeds)],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=bound,  # noqa: PLW1509 - no threads touch the fork's memory before exec
+    ) as child:
+        try:
+            out, err = child.communicate(timeout=None if cpu is None else cpu * 10 + 60)
+        except subprocess.TimeoutExpired:
+            child.kill()
+            out, err = child.communicate()
+            return _lines(out), "timeout (wall)"
+    lines = _lines(out)
+    if child.returncode == -24:  # SIGXCPU: RLIMIT_CPU
+        return lines, "timeout (CPU)"
+    if child.returncode != 0:
+        tail = err.strip().splitlines()[-1:] or [f"exit status {child.returncode}"]
+        return lines, f"child failed: {tail[0][:160]}"
+    return lines, None
+
+
+def _lines(out: str) -> list[dict[str, Any]]:
+    return [json.loads(line) for line in out.splitlines() if line.startswith("{")]
+
+
+def judge(mutant: Mutant, options: argparse.Namespace, clean: Clean) -> dict[str, Any] | None:
+    """One mutant's search and its class (None: `--budget` was spent before it started)."""
+    plans: list[str] = options.plans
+    started = time.monotonic()
+    if started > options.deadline:
+        return None
+    result: dict[str, Any] = {"id": mutant.id, "operator": mutant.operator, "runs": 0}
+    with tempfile.TemporaryDirectory(prefix="rr-mutant-") as folder:
+        path, result["edit"] = scratch(Path(folder), mutant)
+        crash: str | None = None
+        verdicts: list[str] = []
+        turn, cpu = 1, float(options.cpu)
+        while turn <= options.seeds:
+            lines, ended = run_child(path, plans, turn, options.seeds - turn + 1, cpu)
+            result["runs"] += len(lines)
+            verdicts += [line["verdict"] for line in lines]
+            cpu -= sum(line["cpu_s"] for line in lines)
+            for line in lines:
+                if line["verdict"] in ("crashed", "raised") and crash is None:
+                    crash = f"{line['plan']} seed {line['seed']}: {line['error']}"
+            last = lines[-1] if lines else None
+            if last is not None and last["verdict"] == "violated":
+                new = sorted(set(last["rules"]) - clean.violated(last["plan"], last["seed"]))
+                if new:
+                    result.update(status="killed", rules=new, plan=last["plan"], seed=last["seed"])
+                    break
+                turn = last["turn"] + 1  # (the unedited code violates it too: go on)
+                continue
+            if ended is not None and ended.startswith("timeout"):
+                result.update(status="timeout", why=ended)
+            elif ended is not None:
+                result.update(status="crashed", why=crash or ended)
+            elif verdicts and all(v in ("crashed", "raised") for v in verdicts):
+                result.update(status="crashed", why=crash)
+            else:
+                result.update(status="survived")
+            break
+        else:
+            result.update(status="survived")
+    if result["status"] == "survived" and mutant.id in EQUIVALENT:
+        result.update(status="equivalent", why=EQUIVALENT[mutant.id])
+    result["wall_s"] = round(time.monotonic() - started, 1)
+    return result
+
+
+# -- the child: turns of seeds on the copy PYTHONPATH names --------------------------------
+
+
+def child_main(path: str, plans: str, start: int, count: int) -> None:
+    """Runs turns `start`.. of the plans' seeds until a violation; a JSON line per run."""
+    import logging  # noqa: PLC0415
+
+    builtins.CosmicRayTestingException = type(  # type: ignore[attr-defined]
+        "CosmicRayTestingException", (Exception,), {}
+    )  # (cosmic-ray's ExceptionReplacer names it in an `except`)
+    logging.disable(logging.CRITICAL)  # (a mutant's tracebacks: the verdict is what counts)
+    import rr_actors  # noqa: PLC0415 - the copy's, from PYTHONPATH
+    from rr_actors_lab.experiments import load_plan, simulate  # noqa: PLC0415
+
+    for module in (rr_actors, simulate):
+        here = Path(module.__file__ or "").resolve()
+        if not here.is_relative_to(Path(path).resolve()):
+            raise SystemExit(f"the child imported {here}, not the copy at {path}")
+    names = plans.split(",")
+    loaded = {
+        name: load_plan(str(Path(path) / PLANS.relative_to(ROOT) / f"{name}.toml"))
+        for name in names
+    }
+    for turn in range(start, start + count):
+        name = names[(turn - 1) % len(names)]
+        seed = (turn - 1) // len(names) + 1
+        began = time.process_time()
+        line: dict[str, Any] = {"turn": turn, "plan": name, "seed": seed, "rules": []}
+        try:
+            run = simulate.run_seed(loaded[name], seed)
+        except Exception as exc:  # (the mutant's: a crash, reported)
+            line.update(verdict="raised", error=f"{type(exc).__name__}: {str(exc)[:120]}")
+        else:
+            rules = {
+                f.split("[", 1)[1].split("]", 1)[0]
+                for f in run.findings
+                if f.lstrip().startswith("violation")
+            }
+            line.update(verdict=run.verdict, rules=sorted(rules))
+            if run.verdict == "crashed":
+                crashed = [f.strip() for f in run.findings if "crashed" in f]
+                line["error"] = (crashed or ["crashed"])[0][:160]
+        line["cpu_s"] = round(time.process_time() - began, 3)
+        print(json.dumps(line), flush=True)
+        if line["verdict"] == "violated":
+            return
+
+
+# -- the table ------------------------------------------------------------------------
+
+
+def report(results: list[dict[str, Any]], options: argparse.Namespace) -> None:
+    """The score, the counts by class and by rule, then each survivor and timeout."""
+    counts = dict.fromkeys(("killed", "crashed", "timeout", "survived", "equivalent"), 0)
+    for r in results:
+        counts[r["status"]] += 1
+    judged = len(results) - counts["equivalent"]
+    score = counts["killed"] / judged if judged else 0.0
+    print(
+        f"mutation score: {counts['killed']}/{judged} = {score:.1%} killed by a rule "
+        f"({len(results)} mutants, sample seed {options.seed}, at most {options.seeds} seeds "
+        f"and {options.cpu:g} CPU s each, plans {','.join(options.plans)})"
+    )
+    print("  " + ", ".join(f"{k} {v}" for k, v in counts.items()))
+    rules: dict[str, int] = {}
+    for r in results:
+        for rule in r.get("rules", [])[:1]:
+            rules[rule] = rules.get(rule, 0) + 1
+    if rules:
+        by = ", ".join(f"{k} {v}" for k, v in sorted(rules.items(), key=lambda kv: -kv[1]))
+        print(f"  killed by (first rule): {by}")
+    for status in ("survived", "timeout", "crashed", "equivalent"):
+        chosen = [r for r in results if r["status"] == status]
+        if chosen:
+            print(f"{status}:")
+        for r in chosen:
+            why = f"  ({r['why']})" if r.get("why") else ""
+            print(f"  {r['id']}  {r['edit']}  [{r['runs']} runs]{why}")
+    if counts["killed"]:
+        print("killed:")
+    for r in results:
+        if r["status"] == "killed":
+            print(f"  {r['id']}  [{','.join(r['rules'])}] {r['plan']} seed {r['seed']}")
+
+
+def search_all(chosen: list[Mutant], options: argparse.Namespace) -> list[dict[str, Any]]:
+    """Each mutant's result, `--jobs` at once, in sample order (a line each on stderr)."""
+    results: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory(prefix="rr-mutant-clean-") as folder:
+        clean = Clean(Path(folder))
+        with concurrent.futures.ThreadPoolExecutor(options.jobs) as pool:
+            futures = [pool.submit(judge, m, options, clean) for m in chosen]
+            for i, future in enumerate(futures, 1):
+                r = future.result()
+                if r is None:
+                    continue
+                results.append(r)
+                if options.json is not None:  # (after each: a run cut short keeps what it did)
+                    options.json.write_text(json.dumps(results, indent=1) + "\n", "utf-8")
+                found = ",".join(r.get("rules", [])) or r.get("why", "")
+                print(
+                    f"  [{i}/{len(chosen)}] {r['status']:<8} {r['id']}  {found} "
+                    f"({r['runs']} runs, {r['wall_s']} s)",
+                    file=sys.stderr,
+                    flush=True,
+                )
+    return results
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = sys.argv[1:] if argv is None else argv
+    if args[:1] == ["--child"]:
+        child_main(args[1], args[2], int(args[3]), int(args[4]))
+        return 0
+    parser = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
+    parser.add_argument("--sample", type=int, default=100, help="mutants drawn (default 100)")
+    parser.add_argument("--seed", type=int, default=68, help="the sample's seed")
+    parser.add_argument("--seeds", type=int, default=200, help="most seeds run per mutant")
+    parser.add_argument("--cpu", type=float, default=120.0, help="most CPU s per mutant")
+    parser.add_argument(
+        "--budget", type=float, help="wall seconds: no mutant starts after them (a smaller sample)"
+    )
+    parser.add_argument("--jobs", type=int, default=1, help="mutants searched at once")
+    parser.add_argument("--plans", default=",".join(ORDER), help="plans, in turn order")
+    parser.add_argument(
+        "--modules", default=",".join(MODULES), help="folders or files under rr_actors/ to mutate"
+    )
+    parser.add_argument("--only", help="mutant ids (FILE:LINE:OPERATOR[:N]), comma-separated")
+    parser.add_argument("--list", action="store_true", help="print every mutant's id, then stop")
+    parser.add_argument("--json", type=Path, help="write every mutant's result here")
+    options = parser.parse_args(args)
+    options.plans = options.plans.split(",")
+    options.deadline = time.monotonic() + (options.budget or float("inf"))
+    if missing := [p for p in options.plans if not (PLANS / f"{p}.toml").is_file()]:
+        parser.error(f"--plans: no shipped plan {', '.join(missing)}")
+    if options.seeds < 1 or options.jobs < 1 or options.sample < 1:
+        parser.error("--seeds, --jobs and --sample must be at least 1")
+    if options.only:
+        options.modules = ",".join(sorted({w.split(":", 1)[0] for w in options.only.split(",")}))
+    modules = tuple(options.modules.split(","))
+    if missing := [m for m in modules if not (PACKAGE / m).exists()]:
+        parser.error(f"--modules: no {', '.join(missing)} under rr_actors/")
+    every = enumerate_mutants(modules)
+    if options.list:
+        for mutant in every:
+            print(mutant.id)
+        return 0
+    if options.only:
+        by_id = {m.id: m for m in every}
+        wanted = options.only.split(",")
+        if unknown := [w for w in wanted if w not in by_id]:
+            parser.error(f"--only: no mutant {', '.join(unknown)} (see --list)")
+        chosen = [by_id[w] for w in wanted]
+    else:
+        chosen = sample(every, options.sample, options.seed)
+    print(f"{len(every)} mutants in {', '.join(modules)}; {len(chosen)} searched", file=sys.stderr)
+    results = search_all(chosen, options)
+    if len(results) < len(chosen):
+        print(f"--budget spent: {len(results)} of the {len(chosen)} mutants searched")
+    report(results, options)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
