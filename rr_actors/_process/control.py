@@ -17,6 +17,7 @@
                                           ◄──────── EventsSynced(token)
    Stop(timeout, restarting) ───────────────────────────────────►  registrar.stop(); exit
    PeerStarted(name) ───────────────────────────────────────────►  its registrars hear it
+   PeersStopped(names)  (a whole tree's stop, before Stop) ─────►  its registrars hear them
                                           ◄──────── Announce(name)  (a pool: one of its
                                                      managers restarted, tell the others)
    (EOF: the parent is gone) ───────────────────────────────────►  exit PARENT_GONE_EXIT
@@ -58,6 +59,7 @@ __all__ = [
     "FromChild",
     "FromParent",
     "PeerStarted",
+    "PeersStopped",
     "Ping",
     "Pong",
     "Probe",
@@ -201,6 +203,16 @@ class PeerStarted:
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
+class PeersStopped:
+    """Registrars `names` were stopped for good by the tree's stop (rule 12): this
+    manager's registrars hear it just before its own `Stop`, on this pipe, rather than
+    each stop telling every manager left (the death watch's notices of a whole tree's
+    stop: one message per manager, not one per pair)."""
+
+    names: tuple[str, ...]
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
 class Announce:
     """From a pool's process: its registrar `name` (re)started, and this process heard
     it; the parent tells the rest of the system (its `announce_started`), so that the
@@ -209,7 +221,9 @@ class Announce:
     name: str
 
 
-FromParent = WarmUp | Start | Ping | Probe | Forward | SyncEvents | Stop | PeerStarted
+FromParent = (
+    WarmUp | Start | Ping | Probe | Forward | SyncEvents | Stop | PeerStarted | PeersStopped
+)
 FromChild = Warm | Ready | Failed | Pong | Progress | Events | EventsSynced | Announce
 
 

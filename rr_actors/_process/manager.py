@@ -50,6 +50,7 @@ from rr_actors._process.control import (
     Forward,
     FromParent,
     PeerStarted,
+    PeersStopped,
     Ping,
     Pong,
     Probe,
@@ -292,6 +293,11 @@ class ManagerProcess:
     def tell_started(self, name: str) -> None:
         """Tell the manager's registrar that registrar `name` (re)started (`PeerStarted`)."""
         self._send(PeerStarted(name))
+
+    def tell_stopped(self, names: tuple[str, ...]) -> None:
+        """Tell the manager's registrars that registrars `names` were stopped for good
+        (`PeersStopped`; sent before its `Stop`, which the pipe keeps behind it)."""
+        self._send(PeersStopped(names))
 
     def forward_events(self, on: bool) -> None:
         self.forwarding = on  # (what the exit reads: nobody listens, nothing to count)

@@ -947,6 +947,9 @@ class Stopping:
         """Mark a running child stopping; it, its stop's bound in seconds, its pid."""
         running = child.running
         assert running is not None
+        ending = self.record.tree.ending
+        if ending and isinstance(running, ProcessManager):  # the tree's stop (`consumer_down`)
+            running.handle.tell_stopped(tuple(ending))
         child.state = "stopping"
         child.incarnation += 1  # its watcher's exit event is now stale
         self.record.publish()
@@ -999,7 +1002,14 @@ class Stopping:
                 self.lose(child.name)
             elif not self.to_restart:  # stopped, and nobody starts it again
                 record = self.record
-                consumer_down(record.root(), child.name, record.tree.processes.system, stopped=True)
+                tree = record.tree
+                consumer_down(
+                    record.root(),
+                    child.name,
+                    tree.processes.system,
+                    stopped=True,
+                    ending=tree.ending,
+                )
         elif is_pool(child.spec) and dead:  # its process died, and nobody restarts it
             for name in registrar_names(child.spec):
                 self.lose(name)
