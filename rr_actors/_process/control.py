@@ -18,8 +18,9 @@
    Stop(timeout, restarting) ───────────────────────────────────►  registrar.stop(); exit
    PeerStarted(name) ───────────────────────────────────────────►  its registrars hear it
    PeersStopped(names)  (a whole tree's stop, before Stop) ─────►  its registrars hear them
-                                          ◄──────── Announce(name)  (a pool: one of its
-                                                     managers restarted, tell the others)
+                                          ◄──────── Announce(name, restarted)  (a pool:
+                                                     one of its managers (re)started,
+                                                     tell the others, count a restart)
    (EOF: the parent is gone) ───────────────────────────────────►  exit PARENT_GONE_EXIT
 ```
 
@@ -216,9 +217,11 @@ class PeersStopped:
 class Announce:
     """From a pool's process: its registrar `name` (re)started, and this process heard
     it; the parent tells the rest of the system (its `announce_started`), so that the
-    pool's process links to no registrar it has no business with."""
+    pool's process links to no registrar it has no business with. `restarted`: the pool's
+    own supervisor restarted it (the parent counts it in the child's `restarts`)."""
 
     name: str
+    restarted: bool = False
 
 
 FromParent = (

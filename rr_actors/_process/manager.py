@@ -150,7 +150,7 @@ class ManagerProcess:
         on_events: Callable[[list[Any]], None] | None = None,
         received: Received | None = None,
         on_overloaded: Callable[[int, Late], None] | None = None,
-        on_announce: Callable[[str], None] | None = None,
+        on_announce: Callable[[str, bool], None] | None = None,
     ) -> None:
         self.name = name
         self._on_announce = on_announce
@@ -203,7 +203,7 @@ class ManagerProcess:
         on_events: Callable[[list[Any]], None] | None = None,
         on_overloaded: Callable[[int, Late], None] | None = None,
         announced: bool = False,
-        on_announce: Callable[[str], None] | None = None,
+        on_announce: Callable[[str, bool], None] | None = None,
     ) -> ManagerProcess:
         """Start a manager process and wait until it serves (its catalog restored);
         `announced`: its supervisor announces its starts (`start_registrar`).
@@ -410,7 +410,7 @@ class ManagerProcess:
     def _announce(self, message: Announce, _now: float) -> None:
         if self._on_announce is not None:
             try:
-                self._on_announce(message.name)
+                self._on_announce(message.name, message.restarted)
             except Exception:
                 logger.exception("announcing %s (from %s) failed", message.name, self.name)
 
@@ -532,7 +532,7 @@ def _await_ready(
     received: Received,
     *,
     deadline: float | None = None,
-    on_announce: Callable[[str], None] | None = None,
+    on_announce: Callable[[str, bool], None] | None = None,
 ) -> None:
     """Wait for the manager's `Ready`; raise if it never comes (events before it go to
     `received`, a pool's `Announce` of a manager it started to `on_announce`;
@@ -573,7 +573,7 @@ def _await_ready(
 
 
 def _before_ready(
-    name: str, message: object, received: Received, on_announce: Callable[[str], None] | None
+    name: str, message: object, received: Received, on_announce: Callable[[str, bool], None] | None
 ) -> None:
     """A message that came before the manager's `Ready`: its restore's in-doubt events, say,
     or a pool's `Announce` of a manager it started on an earlier run's catalog (a `Warm`,
@@ -581,7 +581,7 @@ def _before_ready(
     if isinstance(message, Events):
         received.deliver(name, message.batch)
     elif isinstance(message, Announce) and on_announce is not None:
-        on_announce(message.name)
+        on_announce(message.name, message.restarted)
 
 
 def _reap(name: str, process: BaseProcess, conn: Connection, received: Received) -> str:

@@ -685,7 +685,7 @@ class Starting:
         setup: Any,
         config: RegistrarConfig,
         post: Callable[[ManagerExit], None],
-        on_announce: Callable[[str], None] | None = None,
+        on_announce: Callable[[str, bool], None] | None = None,
     ) -> ProcessManager:
         """Start manager (or pool) `spec`'s process from a spare; the spares are refilled
         after this start, however it went (on the supervisor's thread, once it is published)."""
@@ -708,14 +708,19 @@ class Starting:
             if processes.spares is not None:
                 record.cast(processes.spares.refill)
 
-    def _pool_announced(self, pool: str, name: str) -> None:
+    def _pool_announced(self, pool: str, name: str, restarted: bool = False) -> None:
         """Pool `pool`'s manager `name` (re)started (`Announce`, on the pool's watcher
-        thread): the rest of the system hears it, from this supervisor's thread."""
+        thread): the rest of the system hears it, from this supervisor's thread; a restart
+        by the pool's own supervisor (`restarted`) counts in the child's `restarts` here."""
         record = self.record
 
         def announce() -> None:
             tree = record.tree
             root = record.root()
+            if restarted:
+                with tree.cond:
+                    tree.restarts[name] = tree.restarts.get(name, 0) + 1
+                record.publish()  # (its snapshot reads the count: `wait_restarted` wakes)
             announce_started(root, name, tree.processes.system, origin=pool, upward=tree.upward)
 
         record.cast(announce)
@@ -778,7 +783,7 @@ class PoolSetup:
         network = self.address.attach() if self.address is not None else None
         tree = Tree(self.spec, clock=runtime.monotonic, network=network, durability=self.durability)
         tree.escalate = _pool_gave_up
-        tree.upward = _tell_parent
+        tree.upward = functools.partial(_tell_parent, tree)
         tree.processes.open(0, 0.0)  # (the system given: no spares, all threads)
         if HOOKS.hub is not None:
             tree.events.publisher.relay_to(HOOKS.hub)  # forwarded while the parent listens
@@ -794,10 +799,13 @@ class PoolSetup:
         HOOKS.before_stop = stop
 
 
-def _tell_parent(name: str) -> None:
-    """A pool's manager `name` (re)started: its parent tells the rest of the system."""
+def _tell_parent(tree: Tree, name: str) -> None:
+    """A pool's manager `name` (re)started: its parent tells the rest of the system, and
+    counts a restart by the pool's supervisor (`Tree.restarted_here`)."""
+    restarted = name in tree.restarted_here
+    tree.restarted_here.discard(name)
     if HOOKS.to_parent is not None:
-        HOOKS.to_parent(Announce(name))
+        HOOKS.to_parent(Announce(name, restarted))
 
 
 def _pool_gave_up(error: SupervisorGaveUpError) -> None:

@@ -194,6 +194,8 @@ class Tree:
         # during the whole tree's stop: the managers stopped for good so far, told to each
         # process child just before its own stop (`consumer_down`), not to all at each stop
         self.ending: list[str] | None = None
+        # a pool's tree: its managers restarted here, not yet told to the parent (`upward`)
+        self.restarted_here: set[str] = set()
 
     def durable(self, config: RegistrarConfig) -> RegistrarConfig:
         """`config` at the tree's durability at least (a tree chooses for every manager)."""
@@ -238,6 +240,8 @@ class Tree:
         """Note that child `name` started (a restart if it had started before)."""
         if name in self.started:  # a restart: by its supervisor, or of its parent
             self.restarts[name] = self.restarts.get(name, 0) + 1
+            if self.upward is not None:  # a pool's: its parent counts it too
+                self.restarted_here.add(name)
         self.started.add(name)
 
     def spec_info(self, name: str, state: ChildState, pid: int | None = None) -> ChildInfo:

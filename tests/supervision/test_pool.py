@@ -141,6 +141,23 @@ def test_a_crash_of_one_manager_in_a_pool_restarts_only_that_one_with_its_catalo
     assert "kept" == app.call(name, "echo", "kept").response
 
 
+def test_a_restart_inside_a_pool_counts_in_the_parent_s_restarts_of_that_manager_only(
+    tree: tuple[rr.Supervisor, Seen, str],
+) -> None:
+    sup, _, uid = tree
+    name, sibling = f"a{uid}-m1", f"a{uid}-m0"
+    pool_pid = sup.child(f"a{uid}").pid
+
+    for restarts in (1, 2):
+        with contextlib.suppress(rr.RegistrarUnavailableError):  # (the answer may go with it)
+            sup.run_in(name, testing.crash, timeout=BOUND)
+        info = sup.wait_restarted(name, timeout=BOUND, restarts=restarts)
+        assert ("running", restarts, pool_pid) == (info.state, info.restarts, info.pid)
+
+    assert 2 == sup.child(name).restarts
+    assert (0, 0) == (sup.child(sibling).restarts, sup.child(f"a{uid}").restarts)
+
+
 def test_a_sigkill_of_a_pool_restarts_only_its_managers_each_restoring_its_catalog(
     tree: tuple[rr.Supervisor, Seen, str],
 ) -> None:
