@@ -49,6 +49,7 @@ __all__ = [
     "ACTOR_DIED_EXIT",
     "PARENT_GONE_EXIT",
     "POOL_GAVE_UP_EXIT",
+    "POOL_HUNG_EXIT",
     "PROCESS_PREFIX",
     "STOPPED_EXIT",
     "TITLE_PREFIX",
@@ -242,6 +243,10 @@ exit (an exit 0 let nothing go: a crash)."""
 POOL_GAVE_UP_EXIT = 73
 """The exit code of a pool's process (`SupervisorSpec(isolation="process")`) whose
 supervisor gave up: OTP's `shutdown` of a nested supervisor, its parent decides."""
+
+POOL_HUNG_EXIT = 74
+"""The exit code of a pool's process one of whose thread managers was hung (its pool's
+hang watch, `_supervision/poolwatch.py`): a thread cannot be killed, the pool can."""
 
 PROCESS_PREFIX = "rr-manager-"  # every manager process's `multiprocessing` name
 TITLE_PREFIX = "rr-actors: "  # and its process title (`ps`), before the manager's name

@@ -41,6 +41,7 @@ from rr_actors._process.child import main
 from rr_actors._process.control import (
     ACTOR_DIED_EXIT,
     POOL_GAVE_UP_EXIT,
+    POOL_HUNG_EXIT,
     PROCESS_PREFIX,
     STOPPED_EXIT,
     Announce,
@@ -111,6 +112,7 @@ _EXITS: dict[int, tuple[str, bool]] = {
     STOPPED_EXIT: ("normal", True),  # its registrar stopped cleanly: the one normal exit
     0: ("exited with code 0 without stopping its registrar", False),  # nothing let go
     ACTOR_DIED_EXIT: ("registrar actor died", False),
+    POOL_HUNG_EXIT: ("hung: one of its thread managers did not answer its heartbeat", False),
 }
 
 

@@ -43,7 +43,8 @@ from rr_actors._core import runtime, wire
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._process.child import HOOKS, provider_names
-from rr_actors._process.control import POOL_GAVE_UP_EXIT, Announce
+from rr_actors._process.control import POOL_GAVE_UP_EXIT, POOL_HUNG_EXIT, Announce
+from rr_actors._process.heartbeat import Hang
 from rr_actors._process.manager import ManagerExit
 from rr_actors._supervision.children import (
     Child,
@@ -57,6 +58,7 @@ from rr_actors._supervision.children import (
     restarts_after,
     restarts_with_group,
 )
+from rr_actors._supervision.poolwatch import PoolWatch
 from rr_actors._supervision.retry import give_back_abandoned
 from rr_actors._supervision.tree import (
     Clock,
@@ -772,7 +774,10 @@ class PoolSetup:
     before it is ready: a supervisor of its thread managers, served on the parent's system,
     their events relayed to the process's hub. A `Stop` stops them first
     (`HOOKS.before_stop`); a give-up ends the process (`POOL_GAVE_UP_EXIT`): its parent
-    decides (OTP's escalation). The heartbeat watches the pool's registrar, not each one."""
+    decides (OTP's escalation). The parent's heartbeat watches the pool's registrar; the
+    pool's hang watch (`PoolWatch`) each of its thread managers, and a hung one ends the
+    process (`POOL_HUNG_EXIT`): a thread cannot be killed, so its parent restarts the
+    pool, each manager restoring its catalog."""
 
     def __init__(
         self, spec: SupervisorSpec, address: Address | None, durability: Durability
@@ -790,8 +795,10 @@ class PoolSetup:
         node = Node(self.spec, tree)
         node.start()
         names = [manager.name for manager in managers(self.spec)]
+        watch = PoolWatch(node, functools.partial(_pool_hung, self.spec.name)).start()
 
         def stop(timeout: float, restarting: bool) -> None:
+            watch.close()  # (a manager that stops is not hung)
             if restarting:  # with its group: no tombstones, its callers see "unavailable"
                 DIRECTORY.mark_restarting(names)
             node.stop(timeout=0.8 * timeout, restarting=restarting)  # (the rest: its own)
@@ -806,6 +813,18 @@ def _tell_parent(tree: Tree, name: str) -> None:
     tree.restarted_here.discard(name)
     if HOOKS.to_parent is not None:
         HOOKS.to_parent(Announce(name, restarted))
+
+
+def _pool_hung(pool: str, name: str, hang: Hang) -> None:
+    logger.error(
+        "pool %s: its manager %s is hung: %s; a thread cannot be killed, so the pool's "
+        "process exits and its parent restarts the pool",
+        pool,
+        name,
+        hang.reason(),
+    )
+    sys.stderr.flush()  # (what its managers committed stays, as after a SIGKILL)
+    os._exit(POOL_HUNG_EXIT)
 
 
 def _pool_gave_up(error: SupervisorGaveUpError) -> None:
