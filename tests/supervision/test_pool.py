@@ -169,8 +169,7 @@ def test_a_hung_thread_manager_in_a_pool_is_detected_and_its_pool_restarted_with
     # thread cannot be killed: the pool's process ends and its parent restarts the pool.
     name, sibling = f"h{uid}-m1", f"h{uid}-m0"
     managers = tuple(
-        rr.ManagerSpec(n, echo_setup, heartbeat=0.1, heartbeat_timeout=1.0)
-        for n in (sibling, name)
+        rr.ManagerSpec(n, echo_setup, heartbeat=0.1, heartbeat_timeout=1.0) for n in (sibling, name)
     )
     sup = supervisors(
         [rr.SupervisorSpec(f"h{uid}", managers, isolation="process")], state_dir=state
