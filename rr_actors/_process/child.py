@@ -448,8 +448,7 @@ class _ControlLoop:
             heard_started(peer.name, message.name)
 
     def peers_stopped(self, message: PeersStopped) -> None:
-        """The tree's stop stopped these for good: into this process's membership, which
-        tells every registrar here (`PeerLost`, ahead of the `Stop` that follows)."""
+        """Into this process's membership (every registrar here hears it before `Stop`)."""
         for name in message.names:
             MEMBERSHIP.stopped(name, by="its supervisor (the tree's stop)")
 

@@ -17,10 +17,8 @@
                                           ◄──────── EventsSynced(token)
    Stop(timeout, restarting) ───────────────────────────────────►  registrar.stop(); exit
    PeerStarted(name) ───────────────────────────────────────────►  its registrars hear it
-   PeersStopped(names)  (a whole tree's stop, before Stop) ─────►  its registrars hear them
-                                          ◄──────── Announce(name, restarted)  (a pool:
-                                                     one of its managers (re)started,
-                                                     tell the others, count a restart)
+                                          ◄──────── Announce(name)  (a pool: one of its
+                                                     managers restarted, tell the others)
    (EOF: the parent is gone) ───────────────────────────────────►  exit PARENT_GONE_EXIT
 ```
 
@@ -206,10 +204,8 @@ class PeerStarted:
 
 @dataclasses.dataclass(frozen=True, slots=True)
 class PeersStopped:
-    """Registrars `names` were stopped for good by the tree's stop (rule 12): this
-    manager's registrars hear it just before its own `Stop`, on this pipe, rather than
-    each stop telling every manager left (the death watch's notices of a whole tree's
-    stop: one message per manager, not one per pair)."""
+    """Registrars `names` were stopped for good by the tree's stop (rule 12), told just
+    before this manager's own `Stop`: one notice per manager, not one per pair."""
 
     names: tuple[str, ...]
 
@@ -245,8 +241,7 @@ POOL_GAVE_UP_EXIT = 73
 supervisor gave up: OTP's `shutdown` of a nested supervisor, its parent decides."""
 
 POOL_HUNG_EXIT = 74
-"""The exit code of a pool's process one of whose thread managers was hung (its pool's
-hang watch, `_supervision/poolwatch.py`): a thread cannot be killed, the pool can."""
+"""The exit code of a pool's process with a hung thread manager (`PoolWatch`)."""
 
 PROCESS_PREFIX = "rr-manager-"  # every manager process's `multiprocessing` name
 TITLE_PREFIX = "rr-actors: "  # and its process title (`ps`), before the manager's name

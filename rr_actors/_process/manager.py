@@ -297,8 +297,7 @@ class ManagerProcess:
         self._send(PeerStarted(name))
 
     def tell_stopped(self, names: tuple[str, ...]) -> None:
-        """Tell the manager's registrars that registrars `names` were stopped for good
-        (`PeersStopped`; sent before its `Stop`, which the pipe keeps behind it)."""
+        """Registrars `names` were stopped for good (`PeersStopped`, before its `Stop`)."""
         self._send(PeersStopped(names))
 
     def forward_events(self, on: bool) -> None:

@@ -191,11 +191,9 @@ class Tree:
         self.escalate: Callable[[SupervisorGaveUpError], None] | None = None
         # and its parent, told of each manager's (re)start (`announce_started`)
         self.upward: Callable[[str], None] | None = None
-        # during the whole tree's stop: the managers stopped for good so far, told to each
-        # process child just before its own stop (`consumer_down`), not to all at each stop
+        # the whole tree's stop: its managers stopped so far (`consumer_down`)
         self.ending: list[str] | None = None
-        # a pool's tree: its managers restarted here, not yet told to the parent (`upward`)
-        self.restarted_here: set[str] = set()
+        self.restarted_here: set[str] = set()  # a pool's, not yet told upward
 
     def durable(self, config: RegistrarConfig) -> RegistrarConfig:
         """`config` at the tree's durability at least (a tree chooses for every manager)."""
@@ -370,13 +368,9 @@ def consumer_down(
     ending: list[str] | None = None,
 ) -> None:
     """Death watch (rule 19): registrar `name` is gone for good; every living registrar is
-    told (`stopped`: it stopped cleanly, what it holds is stale, rule 12).
-
-    `ending`: the whole tree stops (`Tree.ending`): a stopped `name` is told at once to
-    this process and the carrier's registrars, and added to `ending`, which each of the
-    tree's manager processes hears just before its own stop (dependents stop before
-    their providers, so a provider hears of each of its consumers before it stops): one
-    notice per manager process instead of one per pair."""
+    told (`stopped`: it stopped cleanly, what it holds is stale, rule 12). `ending`
+    (`Tree.ending`): the tree's manager processes hear a stopped one only before their own
+    stop (dependents stop first), one notice each, not one per pair."""
     if stopped and ending is not None:
         beyond = set(_living(root, network)) - _piped(root)  # (the tree's hear it by pipe)
         life.gone_for_good(name, also=beyond, stopped=True)
