@@ -38,6 +38,7 @@ from rr_actors import events
 from rr_actors._core.actor import Inbox
 from rr_actors._core.bus import Forwarder, Publisher
 from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._platform import PLATFORM
 from rr_actors._process.control import (
     ACTOR_DIED_EXIT,
@@ -49,6 +50,7 @@ from rr_actors._process.control import (
     Failed,
     Forward,
     FromChild,
+    PeersStopped,
     PeerStarted,
     Ping,
     Pong,
@@ -445,6 +447,11 @@ class _ControlLoop:
         for peer in DIRECTORY.local_peers():
             heard_started(peer.name, message.name)
 
+    def peers_stopped(self, message: PeersStopped) -> None:
+        """Into this process's membership (every registrar here hears it before `Stop`)."""
+        for name in message.names:
+            MEMBERSHIP.stopped(name, by="its supervisor (the tree's stop)")
+
     def sync_events(self, message: SyncEvents) -> None:
         threading.Thread(
             target=self.line.sync,
@@ -482,4 +489,5 @@ _HANDLERS: dict[type[Any], Callable[[_ControlLoop, Any], None]] = {
     SyncEvents: _ControlLoop.sync_events,
     Stop: _ControlLoop.stop,
     PeerStarted: _ControlLoop.peer_started,
+    PeersStopped: _ControlLoop.peers_stopped,
 }

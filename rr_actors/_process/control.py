@@ -47,6 +47,7 @@ __all__ = [
     "ACTOR_DIED_EXIT",
     "PARENT_GONE_EXIT",
     "POOL_GAVE_UP_EXIT",
+    "POOL_HUNG_EXIT",
     "PROCESS_PREFIX",
     "STOPPED_EXIT",
     "TITLE_PREFIX",
@@ -58,6 +59,7 @@ __all__ = [
     "FromChild",
     "FromParent",
     "PeerStarted",
+    "PeersStopped",
     "Ping",
     "Pong",
     "Probe",
@@ -201,15 +203,27 @@ class PeerStarted:
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
+class PeersStopped:
+    """Registrars `names` were stopped for good by the tree's stop (rule 12), told just
+    before this manager's own `Stop`: one notice per manager, not one per pair."""
+
+    names: tuple[str, ...]
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
 class Announce:
     """From a pool's process: its registrar `name` (re)started, and this process heard
     it; the parent tells the rest of the system (its `announce_started`), so that the
-    pool's process links to no registrar it has no business with."""
+    pool's process links to no registrar it has no business with. `restarted`: the pool's
+    own supervisor restarted it (the parent counts it in the child's `restarts`)."""
 
     name: str
+    restarted: bool = False
 
 
-FromParent = WarmUp | Start | Ping | Probe | Forward | SyncEvents | Stop | PeerStarted
+FromParent = (
+    WarmUp | Start | Ping | Probe | Forward | SyncEvents | Stop | PeerStarted | PeersStopped
+)
 FromChild = Warm | Ready | Failed | Pong | Progress | Events | EventsSynced | Announce
 
 
@@ -225,6 +239,9 @@ exit (an exit 0 let nothing go: a crash)."""
 POOL_GAVE_UP_EXIT = 73
 """The exit code of a pool's process (`SupervisorSpec(isolation="process")`) whose
 supervisor gave up: OTP's `shutdown` of a nested supervisor, its parent decides."""
+
+POOL_HUNG_EXIT = 74
+"""The exit code of a pool's process with a hung thread manager (`PoolWatch`)."""
 
 PROCESS_PREFIX = "rr-manager-"  # every manager process's `multiprocessing` name
 TITLE_PREFIX = "rr-actors: "  # and its process title (`ps`), before the manager's name

@@ -41,6 +41,7 @@ from rr_actors._process.child import main
 from rr_actors._process.control import (
     ACTOR_DIED_EXIT,
     POOL_GAVE_UP_EXIT,
+    POOL_HUNG_EXIT,
     PROCESS_PREFIX,
     STOPPED_EXIT,
     Announce,
@@ -49,6 +50,7 @@ from rr_actors._process.control import (
     Failed,
     Forward,
     FromParent,
+    PeersStopped,
     PeerStarted,
     Ping,
     Pong,
@@ -110,6 +112,7 @@ _EXITS: dict[int, tuple[str, bool]] = {
     STOPPED_EXIT: ("normal", True),  # its registrar stopped cleanly: the one normal exit
     0: ("exited with code 0 without stopping its registrar", False),  # nothing let go
     ACTOR_DIED_EXIT: ("registrar actor died", False),
+    POOL_HUNG_EXIT: ("hung: one of its thread managers did not answer its heartbeat", False),
 }
 
 
@@ -149,7 +152,7 @@ class ManagerProcess:
         on_events: Callable[[list[Any]], None] | None = None,
         received: Received | None = None,
         on_overloaded: Callable[[int, Late], None] | None = None,
-        on_announce: Callable[[str], None] | None = None,
+        on_announce: Callable[[str, bool], None] | None = None,
     ) -> None:
         self.name = name
         self._on_announce = on_announce
@@ -202,7 +205,7 @@ class ManagerProcess:
         on_events: Callable[[list[Any]], None] | None = None,
         on_overloaded: Callable[[int, Late], None] | None = None,
         announced: bool = False,
-        on_announce: Callable[[str], None] | None = None,
+        on_announce: Callable[[str, bool], None] | None = None,
     ) -> ManagerProcess:
         """Start a manager process and wait until it serves (its catalog restored);
         `announced`: its supervisor announces its starts (`start_registrar`).
@@ -292,6 +295,10 @@ class ManagerProcess:
     def tell_started(self, name: str) -> None:
         """Tell the manager's registrar that registrar `name` (re)started (`PeerStarted`)."""
         self._send(PeerStarted(name))
+
+    def tell_stopped(self, names: tuple[str, ...]) -> None:
+        """Registrars `names` were stopped for good (`PeersStopped`, before its `Stop`)."""
+        self._send(PeersStopped(names))
 
     def forward_events(self, on: bool) -> None:
         self.forwarding = on  # (what the exit reads: nobody listens, nothing to count)
@@ -404,7 +411,7 @@ class ManagerProcess:
     def _announce(self, message: Announce, _now: float) -> None:
         if self._on_announce is not None:
             try:
-                self._on_announce(message.name)
+                self._on_announce(message.name, message.restarted)
             except Exception:
                 logger.exception("announcing %s (from %s) failed", message.name, self.name)
 
@@ -526,7 +533,7 @@ def _await_ready(
     received: Received,
     *,
     deadline: float | None = None,
-    on_announce: Callable[[str], None] | None = None,
+    on_announce: Callable[[str, bool], None] | None = None,
 ) -> None:
     """Wait for the manager's `Ready`; raise if it never comes (events before it go to
     `received`, a pool's `Announce` of a manager it started to `on_announce`;
@@ -567,7 +574,7 @@ def _await_ready(
 
 
 def _before_ready(
-    name: str, message: object, received: Received, on_announce: Callable[[str], None] | None
+    name: str, message: object, received: Received, on_announce: Callable[[str, bool], None] | None
 ) -> None:
     """A message that came before the manager's `Ready`: its restore's in-doubt events, say,
     or a pool's `Announce` of a manager it started on an earlier run's catalog (a `Warm`,
@@ -575,7 +582,7 @@ def _before_ready(
     if isinstance(message, Events):
         received.deliver(name, message.batch)
     elif isinstance(message, Announce) and on_announce is not None:
-        on_announce(message.name)
+        on_announce(message.name, message.restarted)
 
 
 def _reap(name: str, process: BaseProcess, conn: Connection, received: Received) -> str:

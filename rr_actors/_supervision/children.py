@@ -218,7 +218,7 @@ class ProcessManager:
         spares: SparePool | None,
         relay: EventRelay | None = None,
         supervisor: str = "",
-        on_announce: Callable[[str], None] | None = None,
+        on_announce: Callable[[str, bool], None] | None = None,
     ) -> ProcessManager:
         """Start the manager (in a spare if there is one) and wait until it serves
         (`on_announce`: a pool's, `ManagerProcess.start`).

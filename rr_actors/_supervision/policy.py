@@ -35,7 +35,7 @@ import logging
 import os
 import resource
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 from rr_actors import events
@@ -43,7 +43,8 @@ from rr_actors._core import runtime, wire
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._process.child import HOOKS, provider_names
-from rr_actors._process.control import POOL_GAVE_UP_EXIT, Announce
+from rr_actors._process.control import POOL_GAVE_UP_EXIT, POOL_HUNG_EXIT, Announce
+from rr_actors._process.heartbeat import Hang, Heartbeat, Look
 from rr_actors._process.manager import ManagerExit
 from rr_actors._supervision.children import (
     Child,
@@ -685,7 +686,7 @@ class Starting:
         setup: Any,
         config: RegistrarConfig,
         post: Callable[[ManagerExit], None],
-        on_announce: Callable[[str], None] | None = None,
+        on_announce: Callable[[str, bool], None] | None = None,
     ) -> ProcessManager:
         """Start manager (or pool) `spec`'s process from a spare; the spares are refilled
         after this start, however it went (on the supervisor's thread, once it is published)."""
@@ -708,14 +709,19 @@ class Starting:
             if processes.spares is not None:
                 record.cast(processes.spares.refill)
 
-    def _pool_announced(self, pool: str, name: str) -> None:
+    def _pool_announced(self, pool: str, name: str, restarted: bool = False) -> None:
         """Pool `pool`'s manager `name` (re)started (`Announce`, on the pool's watcher
-        thread): the rest of the system hears it, from this supervisor's thread."""
+        thread): the rest of the system hears it, from this supervisor's thread; a restart
+        inside the pool (`restarted`) counts in its `restarts` here."""
         record = self.record
 
         def announce() -> None:
             tree = record.tree
             root = record.root()
+            if restarted:
+                with tree.cond:
+                    tree.restarts[name] = tree.restarts.get(name, 0) + 1
+                record.publish()  # (its snapshot reads the count: `wait_restarted` wakes)
             announce_started(root, name, tree.processes.system, origin=pool, upward=tree.upward)
 
         record.cast(announce)
@@ -767,7 +773,8 @@ class PoolSetup:
     before it is ready: a supervisor of its thread managers, served on the parent's system,
     their events relayed to the process's hub. A `Stop` stops them first
     (`HOOKS.before_stop`); a give-up ends the process (`POOL_GAVE_UP_EXIT`): its parent
-    decides (OTP's escalation). The heartbeat watches the pool's registrar, not each one."""
+    decides (OTP's escalation). The parent's heartbeat watches the pool's registrar; the
+    pool's `PoolWatch` each of its thread managers."""
 
     def __init__(
         self, spec: SupervisorSpec, address: Address | None, durability: Durability
@@ -778,15 +785,18 @@ class PoolSetup:
         network = self.address.attach() if self.address is not None else None
         tree = Tree(self.spec, clock=runtime.monotonic, network=network, durability=self.durability)
         tree.escalate = _pool_gave_up
-        tree.upward = _tell_parent
+        tree.upward = functools.partial(_tell_parent, tree)
         tree.processes.open(0, 0.0)  # (the system given: no spares, all threads)
         if HOOKS.hub is not None:
             tree.events.publisher.relay_to(HOOKS.hub)  # forwarded while the parent listens
         node = Node(self.spec, tree)
         node.start()
         names = [manager.name for manager in managers(self.spec)]
+        watch = PoolWatch(node, self.spec.name)
 
         def stop(timeout: float, restarting: bool) -> None:
+            with watch.lock:  # (a manager that stops is not hung)
+                watch.closed.set()
             if restarting:  # with its group: no tombstones, its callers see "unavailable"
                 DIRECTORY.mark_restarting(names)
             node.stop(timeout=0.8 * timeout, restarting=restarting)  # (the rest: its own)
@@ -794,10 +804,77 @@ class PoolSetup:
         HOOKS.before_stop = stop
 
 
-def _tell_parent(name: str) -> None:
-    """A pool's manager `name` (re)started: its parent tells the rest of the system."""
+def _tell_parent(tree: Tree, name: str) -> None:
+    """A pool's manager `name` (re)started: its parent tells the rest of the system (and
+    counts a restart inside the pool: `Tree.restarted_here`)."""
     if HOOKS.to_parent is not None:
-        HOOKS.to_parent(Announce(name))
+        HOOKS.to_parent(Announce(name, name in tree.restarted_here))
+    tree.restarted_here.discard(name)
+
+
+class PoolWatch:
+    """A pool's heartbeat of each running thread manager below `level`, judged as a process
+    manager's (`Heartbeat`: its spec's `heartbeat`, `hang_after`; busy is not hung); on a
+    thread of its own, logs the first hung and ends the pool's process (`POOL_HUNG_EXIT`)."""
+
+    def __init__(self, level: Level, pool: str) -> None:
+        self.level, self.pool, self.lock = level, pool, runtime.Lock()
+        self.watched: dict[str, list[Any]] = {}  # name -> [registrar, beat, inbox, pinged]
+        self.closed = runtime.Event()
+        runtime.Thread(target=self._run, name="rr-pool-watch", daemon=True).start()
+
+    def _run(self) -> None:
+        while not self.closed.wait(min((w[1].step for w in self.watched.values()), default=0.05)):
+            with self.lock:
+                hung = None if self.closed.is_set() else self._tick(runtime.monotonic())
+            if hung is not None:
+                logger.error("pool %s: its manager %s is hung (%s): the pool exits", *hung)
+                sys.stderr.flush()  # (what its managers committed stays, as after a SIGKILL)
+                os._exit(POOL_HUNG_EXIT)  # (a thread cannot be killed: its parent restarts it)
+
+    def _tick(self, now: float) -> tuple[str, str, str] | None:
+        running = {name: m for name, m in _running(self.level) if m.spec.hang_after is not None}
+        self.watched = {name: w for name, w in self.watched.items() if name in running}
+        for name, manager in running.items():
+            spec, registrar, watched = manager.spec, manager.registrar, self.watched.get(name)
+            if watched is None or watched[0] is not registrar:  # (a new incarnation)
+                period, bound = spec.heartbeat or 0.0, spec.hang_after or 0.0
+                beat = Heartbeat(name, period, bound, None, now, probes=True)
+                inbox = registrar._actor.ref.actor_inbox  # (its `handled` count: busy)
+                watched = self.watched[name] = [registrar, beat, inbox, 0]
+            if not registrar._actor.ref.is_alive():
+                continue  # it died: its supervisor restarts it
+            verdict, inbox = watched[1].tick(now), watched[2]
+            if isinstance(verdict, Hang):
+                return self.pool, name, verdict.reason()
+            if isinstance(verdict, Look):
+                watched[1].progress(verdict.number, watched[3], inbox.handled, inbox.qsize(), now)
+            elif verdict is not None:
+                watched[3] = inbox.handled
+                registrar._actor.ping(_Answer(self.lock, watched[1], verdict))
+                watched[1].sent(now)
+        return None
+
+
+class _Answer:
+    """A ping's reply: its beat hears it (under the watch's lock; none if the actor died)."""
+
+    def __init__(self, lock: Any, beat: Heartbeat, number: int) -> None:
+        self.lock, self.beat, self.number = lock, beat, number
+
+    def set_error(self, _: BaseException) -> None: ...
+
+    def set_result(self, _: Any) -> None:
+        with self.lock:
+            self.beat.answered(self.number, runtime.monotonic())
+
+
+def _running(level: Level) -> Iterator[tuple[str, ThreadManager]]:
+    for child in list(level.children):
+        if isinstance(child.running, ThreadManager) and child.state == "running":
+            yield child.name, child.running
+        elif isinstance(child.running, NestedSupervisor):
+            yield from _running(child.running.node)
 
 
 def _pool_gave_up(error: SupervisorGaveUpError) -> None:
@@ -947,6 +1024,9 @@ class Stopping:
         """Mark a running child stopping; it, its stop's bound in seconds, its pid."""
         running = child.running
         assert running is not None
+        ending = self.record.tree.ending
+        if ending and isinstance(running, ProcessManager):  # the tree's stop (`consumer_down`)
+            running.handle.tell_stopped(tuple(ending))
         child.state = "stopping"
         child.incarnation += 1  # its watcher's exit event is now stale
         self.record.publish()
@@ -999,7 +1079,8 @@ class Stopping:
                 self.lose(child.name)
             elif not self.to_restart:  # stopped, and nobody starts it again
                 record = self.record
-                consumer_down(record.root(), child.name, record.tree.processes.system, stopped=True)
+                system, ending = record.tree.processes.system, record.tree.ending
+                consumer_down(record.root(), child.name, system, stopped=True, ending=ending)
         elif is_pool(child.spec) and dead:  # its process died, and nobody restarts it
             for name in registrar_names(child.spec):
                 self.lose(name)

@@ -312,6 +312,7 @@ class Supervisor(AsyncSupervision):
         self._registrars.clear()
         self._tree.processes.close_spares()  # no new spare while the children stop
         self._watch.last_look()  # a page kept after the stop shows the catalogs as they end
+        self._tree.ending = []  # its stops' notices go to each manager before its stop
         self._node.stop(deadline=deadline, parallel=parallel)
         self._stopped = True
         self._release()

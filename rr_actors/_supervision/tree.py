@@ -191,6 +191,9 @@ class Tree:
         self.escalate: Callable[[SupervisorGaveUpError], None] | None = None
         # and its parent, told of each manager's (re)start (`announce_started`)
         self.upward: Callable[[str], None] | None = None
+        # the whole tree's stop: its managers stopped so far (`consumer_down`)
+        self.ending: list[str] | None = None
+        self.restarted_here: set[str] = set()  # a pool's, not yet told upward
 
     def durable(self, config: RegistrarConfig) -> RegistrarConfig:
         """`config` at the tree's durability at least (a tree chooses for every manager)."""
@@ -235,6 +238,8 @@ class Tree:
         """Note that child `name` started (a restart if it had started before)."""
         if name in self.started:  # a restart: by its supervisor, or of its parent
             self.restarts[name] = self.restarts.get(name, 0) + 1
+            if self.upward is not None:  # a pool's: its parent counts it too
+                self.restarted_here.add(name)
         self.started.add(name)
 
     def spec_info(self, name: str, state: ChildState, pid: int | None = None) -> ChildInfo:
@@ -355,10 +360,22 @@ def _process_handles(level: Level) -> dict[str, ProcessManager]:
 
 
 def consumer_down(
-    root: Level, name: str, network: Transport | None = None, *, stopped: bool = False
+    root: Level,
+    name: str,
+    network: Transport | None = None,
+    *,
+    stopped: bool = False,
+    ending: list[str] | None = None,
 ) -> None:
     """Death watch (rule 19): registrar `name` is gone for good; every living registrar is
-    told (`stopped`: it stopped cleanly, what it holds is stale, rule 12)."""
+    told (`stopped`: it stopped cleanly, what it holds is stale, rule 12). `ending`
+    (`Tree.ending`): the tree's manager processes hear a stopped one only before their own
+    stop (dependents stop first), one notice each, not one per pair."""
+    if stopped and ending is not None:
+        beyond = set(_living(root, network)) - _piped(root)  # (the tree's hear it by pipe)
+        life.gone_for_good(name, also=beyond, stopped=True)
+        ending.append(name)
+        return
     life.gone_for_good(name, also=_living(root, network), stopped=stopped)
 
 

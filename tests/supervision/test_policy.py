@@ -1185,6 +1185,75 @@ class TestStoppedForGood:
         assert ["x"] == unloads  # released when the consumer stopped for good, unloaded once
 
 
+class TestAWholeTreesStop:
+    """A whole tree's stop tells each manager process of the managers stopped before it
+    once, just before its own stop, on its control pipe (issue 69, goal 3): not, at each
+    stop, every manager left (N²/2 death-watch notices for a tree of N). Dependents stop
+    before their providers, so a provider still hears each consumer stopped for good
+    before it stops (rule 12), as `TestStoppedForGood` checks for thread managers."""
+
+    def test_a_tree_of_process_managers_stops_with_no_death_watch_notice_sent_per_pair(
+        self, monkeypatch: pytest.MonkeyPatch, uid: str
+    ) -> None:
+        from rr_actors._process.manager import ManagerProcess  # noqa: PLC0415
+        from rr_actors._registrar import life  # noqa: PLC0415
+
+        names = [f"m{n}-{uid}" for n in range(4)]
+        marks: list[str] = []
+        told: list[tuple[str, tuple[str, ...]]] = []
+        mark, tell_stopped = life._mark, ManagerProcess.tell_stopped
+
+        def counted_mark(name: str, *, stopped: bool = False) -> Any:
+            marks.append(name)
+            return mark(name, stopped=stopped)
+
+        def counted_tell(self: ManagerProcess, stopped: tuple[str, ...]) -> None:
+            told.append((self.name, stopped))
+            tell_stopped(self, stopped)
+
+        monkeypatch.setattr(life, "_mark", counted_mark)
+        monkeypatch.setattr(ManagerProcess, "tell_stopped", counted_tell)
+        sup = rr.Supervisor([process(n) for n in names])
+        sup.start()
+        sup.stop()
+
+        assert [] == marks  # before: 3 + 2 + 1 notices, one per pair
+        assert [(names[2], (names[3],)), (names[1], (names[3], names[2]))] == told[:2]
+        assert (names[0], (names[3], names[2], names[1])) == told[2]
+        assert 3 == len(told)  # one message to each manager stopped after another
+
+    def test_a_provider_process_releases_a_stale_id_of_its_consumer_stopped_before_it(
+        self, tmp_path: Path, uid: str
+    ) -> None:
+        provider, consumer = f"api-{uid}", f"edge-{uid}"
+        unloads = tmp_path / "unloads"
+        unloads.mkdir()
+
+        def setup(registrar: rr.ResourceRegistrar) -> None:
+            def unload(request: Any, _response: Any) -> None:
+                (unloads / str(request)).write_text("unloaded")
+
+            registrar.register_server("leaf", load=lambda r: r, unload=unload)
+
+        sup = rr.Supervisor(
+            [
+                rr.ManagerSpec(provider, setup, isolation="process"),
+                rr.ManagerSpec(consumer, None, isolation="process"),
+            ]
+        )
+        with sup:
+            stale = FutureReply()
+            DIRECTORY.lookup(provider).tell(
+                Load(str(uuid.uuid4()), "leaf", "x", consumer, (), stale)
+            )
+            assert "x" == wait(stale.future, 10, "the load in the consumer's name")
+            assert [] == sup.run_in(consumer, lambda r: r.client_queries(), timeout=10.0)
+            # the tree stops: the consumer first, for good; then the provider, which hears
+            # of it just before its own stop
+
+        assert ["x"] == sorted(path.name for path in unloads.iterdir())
+
+
 class TestShutdownThenKill:
     """A child's `shutdown`: the time its own stop gets, then it is killed (a process) or
     told to crash (a thread)."""

@@ -141,6 +141,73 @@ def test_a_crash_of_one_manager_in_a_pool_restarts_only_that_one_with_its_catalo
     assert "kept" == app.call(name, "echo", "kept").response
 
 
+def test_a_restart_inside_a_pool_counts_in_the_parent_s_restarts_of_that_manager_only(
+    tree: tuple[rr.Supervisor, Seen, str],
+) -> None:
+    sup, _, uid = tree
+    name, sibling = f"a{uid}-m1", f"a{uid}-m0"
+    pool_pid = sup.child(f"a{uid}").pid
+
+    for restarts in (1, 2):
+        with contextlib.suppress(rr.RegistrarUnavailableError):  # (the answer may go with it)
+            sup.run_in(name, testing.crash, timeout=BOUND)
+        info = sup.wait_restarted(name, timeout=BOUND, restarts=restarts)
+        assert ("running", restarts, pool_pid) == (info.state, info.restarts, info.pid)
+
+    assert 2 == sup.child(name).restarts
+    assert (0, 0) == (sup.child(sibling).restarts, sup.child(f"a{uid}").restarts)
+
+
+def test_a_hung_thread_manager_in_a_pool_is_detected_and_its_pool_restarted_with_catalogs(
+    supervisors: Callable[..., rr.Supervisor],
+    state: str,
+    uid: str,
+    process_helpers: testing.SharedObjects,
+) -> None:
+    # Its registrar actor blocks (a stuck callback on the actor): the pool's process lives
+    # and answers its own heartbeat, so only the pool's watch of each manager sees it. A
+    # thread cannot be killed: the pool's process ends and its parent restarts the pool.
+    name, sibling = f"h{uid}-m1", f"h{uid}-m0"
+    managers = tuple(
+        rr.ManagerSpec(n, echo_setup, heartbeat=0.1, heartbeat_timeout=1.0) for n in (sibling, name)
+    )
+    sup = supervisors(
+        [rr.SupervisorSpec(f"h{uid}", managers, isolation="process")], state_dir=state
+    )
+    seen = Seen()
+    gate = process_helpers.event()
+    with sup.subscribe(seen):
+        sup.start()
+        app = sup.registrar(f"app{uid}")
+        held = app.call(name, "echo", "kept")
+        pool_pid = sup.child(f"h{uid}").pid
+
+        sup.run_in(name, _block_actor(gate), timeout=BOUND)
+        try:
+            info = sup.wait_restarted(name, timeout=BOUND)
+        finally:
+            gate.set()
+
+        assert ("running", 1) == (info.state, info.restarts)
+        assert info.pid not in (None, pool_pid)
+        (exited,) = seen.of(events.ChildExited, f"h{uid}")
+        assert exited.reason.startswith("hung"), exited.reason
+        assert [held.id] == served_ids(sup, name)  # its catalog, restored
+        assert "again" == app.call(name, "echo", "again").response
+        assert "also" == app.call(sibling, "echo", "also").response
+
+
+def _block_actor(gate: Any) -> Callable[[rr.ResourceRegistrar], None]:
+    """Run in a manager: its registrar actor's thread blocks on `gate` (a stuck registrar)."""
+
+    def block(registrar: rr.ResourceRegistrar) -> None:
+        from rr_actors.testing import run_on_actor  # noqa: PLC0415 - runs in the pool
+
+        run_on_actor(registrar, lambda: gate.wait(60))
+
+    return block
+
+
 def test_a_sigkill_of_a_pool_restarts_only_its_managers_each_restoring_its_catalog(
     tree: tuple[rr.Supervisor, Seen, str],
 ) -> None:
