@@ -39,11 +39,11 @@ import os
 import sqlite3
 import struct
 import weakref
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from rr_actors._core import runtime
-from rr_actors._platform import lockfile
+from rr_actors._platform import PLATFORM, lockfile
 from rr_actors._store import schema
 from rr_actors._store.schema import as_corrupt
 from rr_actors.errors import CatalogCorruptError, CatalogWriteError, ConfigError
@@ -494,6 +494,189 @@ def write_error(path: str, exc: BaseException) -> CatalogWriteError:
             )
         return CatalogWriteError(path, f"{exc} ({code})")
     return CatalogWriteError(path, f"{type(exc).__name__}: {exc}")
+
+
+# -- the file a store writes ---------------------------------------------------------------------
+
+
+def open_backup(path: Path, durability: str) -> tuple[BackupFile, sqlite3.Connection, bool, bool]:
+    """Claim, create if missing, validate and prepare the backup at `path` for writing
+    (`SqliteStore.open`): the file, its writable connection, whether it was created, and
+    whether its pages were checked. A commit count the log no longer holds is logged
+    (WARNING) and kept in `BackupFile.lost_commits`.
+
+    Raises:
+        ConfigError: the path cannot hold a backup, the file belongs to another user,
+            or another registrar has it open.
+        CatalogCorruptError: the file is not a usable rr_actors catalog.
+    """
+    check_location(path)
+    lock = claim(path)  # before anything reads it: one registrar a file
+    try:
+        return _open(path, lock, durability)
+    except BaseException:
+        if lock is not None:
+            lock.release()
+        raise
+
+
+def _open(
+    file: Path, lock: BackupLock | None, durability: str
+) -> tuple[BackupFile, sqlite3.Connection, bool, bool]:
+    created = made = False
+    lost = None
+    if not file.exists():
+        made = create(file, synced=durability == "power")
+        created = True
+    if lock is not None:
+        lock.hold_file()
+    foreign = foreign_owner(file)
+    if foreign is not None:
+        raise ConfigError(
+            f"backup_path {foreign}: restoring it would run code from it (unpickling)"
+        )
+    if not created:
+        lost = lost_commits(file)  # before SQLite replays (and may remove) the log
+    version = schema.SCHEMA_VERSION if made else validate(file, tidy=True)  # (known)
+    name = str(file)
+    try:
+        db = connect(file, read_only=False)
+    except sqlite3.Error as exc:
+        raise ConfigError(f"backup_path {name!r} cannot be opened: {exc}") from exc
+    checked = created or not runtime.guards_files()
+    try:
+        if not checked and _open_writes(db, name, version):
+            check_pages(db, name)  # (before anything is written to it: rule 15)
+            checked = True
+        if made:  # (empty, current, WAL, written there already)
+            db.execute(f"PRAGMA synchronous = {SYNCHRONOUS[durability]}")
+        else:
+            prepare(db, name, durability, version)
+            with as_corrupt(name):  # the outbox: read at the last run's exit, if anyone listened
+                if db.execute("SELECT EXISTS (SELECT 1 FROM outbox)").fetchone()[0]:
+                    db.execute("DELETE FROM outbox")
+    except BaseException:
+        db.close()
+        raise
+    backup = BackupFile(file, lock, durability)
+    if lost is not None:
+        backup.lost_commits, why = lost
+        logger.warning(
+            "catalog backup %s: %s: %d acknowledged commits are lost (their loads, "
+            "releases and unloads are not restored; consumers holding ids it lost are "
+            "told FATAL when they reconcile)",
+            name,
+            why,
+            backup.lost_commits,
+        )
+        backup.commits.close()  # reported once: the next commit counts the log afresh
+    return backup, db, created, checked
+
+
+def _open_writes(db: sqlite3.Connection, name: str, version: int) -> bool:
+    """Whether opening the file writes to it (a migration, or last run's outbox to clear)."""
+    if version != schema.SCHEMA_VERSION:
+        return True
+    with as_corrupt(name):
+        return bool(db.execute("SELECT EXISTS (SELECT 1 FROM outbox)").fetchone()[0])
+
+
+class BackupFile:
+    """The file a store writes, kept at its path: the lock that makes its store the one
+    registrar of it, whether the path still names it (`keep_in_place`), and the count of
+    its commits (`CommitCount`). The writer's thread; in a simulation (`guarded` false) its
+    files are its own: nothing is watched nor counted."""
+
+    def __init__(self, path: Path, lock: BackupLock | None, durability: str) -> None:
+        self.path = str(path)  # as given: what messages name
+        self.file = path.absolute()  # the same file after a chdir
+        self._name = str(self.file)
+        self._names = (self._name, f"{self._name}-wal")
+        self._lock = lock
+        self.synchronous = SYNCHRONOUS[durability]
+        self.synced = durability == "power"
+        self.guarded = runtime.guards_files()
+        self._ids = file_ids(self._name) if self.guarded else (None, None)
+        self._watch = PLATFORM.watch_names() if self.guarded else None
+        self.aside: Path | None = None  # a whole copy not moved into place yet
+        self.commits = CommitCount(self.file, kept=self.guarded, synced=self.synced)
+        self.lost_commits = 0  # of the last run, that its WAL no longer held
+
+    def quiet(self) -> bool:
+        """Whether the path surely still names the file: the platform's watch saw no change
+        of its names, and no copy waits to be put in place."""
+        watch = self._watch
+        return watch is not None and self.aside is None and watch.quiet()
+
+    def keep_in_place(
+        self, db: sqlite3.Connection, close: Callable[[], None]
+    ) -> sqlite3.Connection | None:
+        """Write the whole catalog `db` has open to a new file if the path lost this one
+        ("A deleted backup", failure-semantics.md): two `stat`s, only once the platform's
+        watch (`Platform.watch_names`) told of a change. `close` closes every connection to
+        the old file before the copy is put in place. Returns the new file's connection,
+        or `None` if the path still names the file.
+
+        Raises:
+            CatalogWriteError: the copy failed (kept in `aside`, retried next time).
+        """
+        if not self.guarded:
+            return None
+        if self.aside is None:
+            watch = self._watch
+            if watch is not None and watch.quiet():  # nothing happened to the names
+                return None
+            if self._ids[1] is None:  # the -wal appears with the first transaction
+                self._ids = (self._ids[0], file_ids(self._name)[1])
+            if watch is not None and self._ids[1] is not None:
+                watch.arm(self._names)  # (first: a change made during the check is told)
+            why = moved(self._name, self._ids)
+            if why is None:
+                return None
+            logger.warning(
+                "catalog backup %s: %s while its registrar runs; writing the whole catalog "
+                "to a new file there",
+                self.path,
+                why,
+            )
+            try:
+                self.aside = copy_aside(db, self.file)
+            except (sqlite3.Error, OSError) as exc:
+                raise write_error(self.path, exc) from exc
+            close()
+        try:  # no connection is open on the old file now: SQLite would remove the new -wal
+            put_in_place(self.aside, self.file, synced=self.synced)
+            self.aside = None
+            if self._lock is not None:  # (before SQLite locks the new file: see `lockfile`)
+                self._lock.file_replaced()
+            db = connect(self.file, read_only=False)
+            db.execute(f"PRAGMA synchronous = {self.synchronous}")
+        except (sqlite3.Error, OSError) as exc:
+            raise write_error(self.path, exc) from exc
+        if self._watch is not None:
+            self._watch.close()  # (armed at the next commit, once the new -wal exists)
+        self._ids = file_ids(self.file)
+        self.commits.reopen()
+        return db
+
+    def closing(self) -> None:
+        """Stop counting and watching, before the connections close (SQLite removes the
+        log as it closes)."""
+        self.commits.close()
+        if self._watch is not None:
+            self._watch.close()
+
+    def erase(self) -> None:
+        """Delete the file, its companions and any copy set aside."""
+        remove_files(self.file)
+        if self.aside is not None:
+            remove_files(self.aside)
+
+    def release(self) -> None:
+        """Give the file up: another registrar may open it now (never raises)."""
+        lock, self._lock = self._lock, None
+        if lock is not None:
+            lock.release()
 
 
 # -- the commits counted beside the WAL --------------------------------------------------

@@ -29,38 +29,11 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, Protocol
 
-from rr_actors._catalog import NO_DIGEST, ClientRecord, Listing, Resource, ResourceState
+from rr_actors._catalog import NO_DIGEST, ClientRecord, Listing, Resource
 from rr_actors._store import files, schema
+from rr_actors._store.schema import Mirror
 from rr_actors._types import Query
 from rr_actors.errors import CatalogCorruptError, ConfigError, RegistrarStoppedError
-
-
-class Mirror:
-    """What the store last wrote for one resource (to write only the difference)."""
-
-    __slots__ = ("consumers", "failed", "response_version", "seq", "state", "texts")
-
-    def __init__(
-        self,
-        seq: int,
-        state: ResourceState,
-        response_version: int,
-        consumers: dict[str, int],
-        texts: Texts = (None, None, None),
-        failed: bool = False,
-    ) -> None:
-        self.seq = seq  # the row's key
-        self.state = state
-        # The catalog bumps `Resource.response_version` on every response it sets (also
-        # the same object again, mutated); decoding a restored one does not.
-        self.response_version = response_version
-        self.consumers = consumers  # consumer query id -> its row's key
-        self.texts = texts  # (request_text, response_text, label) as written
-        self.failed = failed  # the `failed` mark as written
-
-
-Texts = tuple[str | None, str | None, str | None]
-"""A resource row's `(request_text, response_text, label)`."""
 
 RESOURCE_COLUMNS = (
     "seq, id, server, state, digest, request, response, request_text, response_text, label, failed"
@@ -71,9 +44,6 @@ CLIENT_COLUMNS = (
     "seq, query_id, server, serving_rr, origin_rr, request, response, parent, loaded, request_text"
 )
 """The columns of a client row, in the order every reader reads them."""
-
-
-_Op = tuple[str, tuple[Any, ...]]
 
 
 def client_records(
@@ -326,10 +296,13 @@ class Restored:
     unread: Unread
 
 
-def read_at_once(db: sqlite3.Connection) -> tuple[int, list[Any], list[Any], bool]:
+def read_at_once(
+    db: sqlite3.Connection, decode: Callable[[str, str, bytes | None], Any]
+) -> tuple[int, list[tuple[Any, list[Any]]], list[ClientRecord], dict[str, int], bool]:
     """What a restore reads before it serves, in one read transaction: the last resource
-    row key, the resource rows read at once (`RESOURCES_AT_ONCE`) and every client row,
-    both checked (`ValueError`), and whether any other resource row is left unread."""
+    row key; the resource rows read at once (`RESOURCES_AT_ONCE`), checked (`ValueError`),
+    each with its consumer rows; every client record (`client_records`); and whether any
+    other resource row is left unread."""
     db.execute("BEGIN")
     try:
         (last,) = db.execute("SELECT ifnull(max(seq), 0) FROM resources").fetchone()
@@ -338,13 +311,16 @@ def read_at_once(db: sqlite3.Connection) -> tuple[int, list[Any], list[Any], boo
         more = db.execute(  # (at most len(rows) + 1 keys)
             "SELECT seq FROM resources ORDER BY seq LIMIT ?", (len(rows) + 1,)
         ).fetchall()
+        for row in rows:
+            schema.check_row(row)
+        schema.check_keys([], [], client_rows)
+        with_consumers = [(row, db.execute(CONSUMERS_OF, (row[0],)).fetchall()) for row in rows]
     finally:
         db.execute("COMMIT")
-    for row in rows:
-        schema.check_row(row)
-    schema.check_keys([], [], client_rows)
+    clients, client_seqs = client_records(client_rows, decode)
     at_once = {row[0] for row in rows}
-    return last, rows, client_rows, any(seq not in at_once for (seq,) in more)
+    remaining = any(seq not in at_once for (seq,) in more)
+    return last, with_consumers, clients, client_seqs, remaining
 
 
 # -- every row at once (`SqliteStore.load`, `read_backup`) -------------------------------------

@@ -1,25 +1,24 @@
 """The catalog backup's writer: an embedded SQLite database (semantics rules 13-16,
-docs/explanation/semantics.md), what a write changes, and its checkpoints.
+docs/explanation/semantics.md) and its background checkpoints.
 
 ```
  registrar --Changes, told events--> Saver --write(changes, told)--> SqliteStore
-   --plan_resource / plan_client: only what differs from its mirror (of consumers, only
-   the ids added or released), values pickled here; the told events in the outbox
-   (`outbox`)--> is the path still our file? (asked only once the kernel told that a
-   name changed; else copy it whole into place, `files`)
+   --`schema.plan_resource` / `plan_client`: only what differs from its mirror, values
+   pickled before anything is written; the told events in the outbox (`outbox`)-->
+   is the path still our file? (`BackupFile.keep_in_place`, asked only once the kernel
+   told that a name changed; else the whole catalog copied into place)
    --> one transaction (WAL) --> file, its commit counted (`files.CommitCount`)
    --every CHECKPOINT_EVERY pages: wake()--> Checkpointer thread: its own connection,
    wal_checkpoint(PASSIVE), RESTART past WAL_LIMIT frames --> database file
- SqliteStore.open: `files` checks, creates, validates and prepares the file (rows: `schema`)
- SqliteStore.restore / load: `restore` reads it back
+ SqliteStore.open: `files.open_backup` checks, claims, creates, validates, prepares
+ SqliteStore.restore / load: `restore` reads it back, the store mirrors what it read
 ```
 
 One file per registrar, in WAL mode; every `write` is one transaction, touching only the
-rows that differ from the store's mirror of what it wrote (addressed by row key), so its
-cost does not grow with the catalog nor with how widely a resource is shared. A write that
-fails changes neither file nor mirror. Background checkpoints serve a store opened with
-`background_checkpoints` (a registrar without `save_on_modify`); the others keep SQLite's
-own. What each failure costs: "What the backup survives",
+rows that differ from the store's mirror of what it wrote, so its cost does not grow with
+the catalog. A write that fails changes neither file nor mirror. Background checkpoints
+serve a store opened with `background_checkpoints` (a registrar without `save_on_modify`);
+the others keep SQLite's own. What each failure costs: "What the backup survives",
 docs/explanation/failure-semantics.md.
 """
 
@@ -35,23 +34,12 @@ from pathlib import Path
 from typing import Any, Literal
 
 from rr_actors import events
-from rr_actors._catalog import NO_DIGEST, Changes, ClientRecord, Resource, request_digest
+from rr_actors._catalog import NO_DIGEST, Changes, ClientRecord, Resource
 from rr_actors._core import runtime
-from rr_actors._platform import PLATFORM
-from rr_actors._store import files, outbox, schema
-from rr_actors._store.restore import (
-    CONSUMERS_OF,
-    Mirror,
-    Restored,
-    Texts,
-    Unread,
-    client_records,
-    gc_paused,
-    read_at_once,
-    read_rows,
-)
-from rr_actors._store.schema import as_corrupt
-from rr_actors.errors import CatalogCorruptError, CatalogWriteError, ConfigError
+from rr_actors._store import outbox, schema
+from rr_actors._store.files import BackupFile, check_pages, open_backup, write_error
+from rr_actors._store.restore import Restored, Unread, gc_paused, read_at_once, read_rows
+from rr_actors.errors import CatalogCorruptError, CatalogWriteError
 
 logger = logging.getLogger("rr_actors")
 
@@ -61,35 +49,26 @@ class SqliteStore:
 
     def __init__(
         self,
-        path: Path,
+        backup: BackupFile,
         db: sqlite3.Connection,
         *,
         created: bool,
-        lock: files.BackupLock | None = None,
-        synchronous: str = "NORMAL",
+        checked: bool,
         background_checkpoints: bool = False,
     ) -> None:
-        self.path = str(path)
-        self._file = path.absolute()  # the same file after a chdir
-        self._name = str(self._file)
-        self._names = (self._name, f"{self._name}-wal")
+        self.path = backup.path
+        self._file = backup
         self._db = db
-        self._lock = lock
-        self._synchronous = synchronous
-        self._guarded = runtime.guards_files()  # (not in a simulation: its files are its own)
-        self._ids = files.file_ids(self._name) if self._guarded else (None, None)
-        self._watch = PLATFORM.watch_names() if self._guarded else None
-        self._aside: Path | None = None  # a whole copy not moved into place yet
         self._checkpointer: Checkpointer | None = None
         if background_checkpoints:
             self._hand_checkpoints_to_a_thread()
         self._unchecked = 0  # pages (about) written since the checkpointer was last woken
         self.checkpoint_every = CHECKPOINT_EVERY
         self._created = created
-        self._checked = created or not self._guarded
+        self._checked = checked
         self._damaged: str | None = None
         self._loaded = False
-        self._resources: dict[str, Mirror] = {}
+        self._resources: dict[str, schema.Mirror] = {}
         # query id -> (row key, response_version, request_text)
         self._clients: dict[str, tuple[int, int, str | None]] = {}
         self._seq = 0
@@ -97,9 +76,8 @@ class SqliteStore:
         self._owed: set[str] = set()
         self.closed = False
         self._decode = functools.partial(schema.decode, self.path)
-        self._synced = synchronous == files.SYNCHRONOUS["power"]  # (all a restore reads)
-        self._commits = files.CommitCount(self._file, kept=self._guarded, synced=self._synced)
-        self.lost_commits = 0  # of the last run, that its WAL no longer held
+        self._commits = backup.commits
+        self.lost_commits = backup.lost_commits  # of the last run, that its WAL no longer held
         self.commits = 0  # write transactions since it opened
 
     @classmethod
@@ -122,84 +100,23 @@ class SqliteStore:
                 or another registrar has it open.
             CatalogCorruptError: the file is not a usable rr_actors catalog.
         """
-        file = Path(os.fspath(path))
-        files.check_location(file)
-        lock = files.claim(file)  # before anything reads it: one registrar a file
+        backup, db, created, checked = open_backup(Path(os.fspath(path)), durability)
         try:
-            return cls._open(file, lock, durability, background_checkpoints)
-        except BaseException:
-            if lock is not None:
-                lock.release()
-            raise
-
-    @classmethod
-    def _open(
-        cls,
-        file: Path,
-        lock: files.BackupLock | None,
-        durability: Literal["process", "power"],
-        background_checkpoints: bool,
-    ) -> SqliteStore:
-        created = made = False
-        lost = None
-        if not file.exists():
-            made = files.create(file, synced=durability == "power")
-            created = True
-        if lock is not None:
-            lock.hold_file()
-        foreign = files.foreign_owner(file)
-        if foreign is not None:
-            raise ConfigError(
-                f"backup_path {foreign}: restoring it would run code from it (unpickling)"
+            return cls(
+                backup,
+                db,
+                created=created,
+                checked=checked,
+                background_checkpoints=background_checkpoints,
             )
-        if not created:
-            lost = files.lost_commits(file)  # before SQLite replays (and may remove) the log
-        version = schema.SCHEMA_VERSION if made else files.validate(file, tidy=True)  # (known)
-        name = str(file)
-        try:
-            db = files.connect(file, read_only=False)
-        except sqlite3.Error as exc:
-            raise ConfigError(f"backup_path {name!r} cannot be opened: {exc}") from exc
-        checked = created or not runtime.guards_files()
-        try:
-            if not checked and _open_writes(db, name, version):
-                files.check_pages(db, name)  # (before anything is written to it: rule 15)
-                checked = True
-            if made:  # (empty, current, WAL, written there already)
-                db.execute(f"PRAGMA synchronous = {files.SYNCHRONOUS[durability]}")
-            else:
-                files.prepare(db, name, durability, version)
-                with as_corrupt(name):  # (read at the last run's exit, if anyone listened)
-                    outbox.clear(db)
         except BaseException:
-            db.close()
+            backup.release()
             raise
-        store = cls(
-            file,
-            db,
-            created=created,
-            lock=lock,
-            synchronous=files.SYNCHRONOUS[durability],
-            background_checkpoints=background_checkpoints,
-        )
-        store._checked = checked
-        if lost is not None:
-            store.lost_commits, why = lost
-            logger.warning(
-                "catalog backup %s: %s: %d acknowledged commits are lost (their loads, "
-                "releases and unloads are not restored; consumers holding ids it lost are "
-                "told FATAL when they reconcile)",
-                name,
-                why,
-                store.lost_commits,
-            )
-            store._commits.close()  # reported once: the next commit counts the log afresh
-        return store
 
     def _hand_checkpoints_to_a_thread(self) -> None:
         self._db.execute("PRAGMA wal_autocheckpoint = 0")  # the checkpointer's thread does it
         self._db.execute(f"PRAGMA journal_size_limit = {WAL_KEPT}")
-        self._checkpointer = Checkpointer(self._file, self._synchronous)
+        self._checkpointer = Checkpointer(self._file.file, self._file.synchronous)
 
     @property
     def connection(self) -> sqlite3.Connection:
@@ -209,7 +126,7 @@ class SqliteStore:
         """Every stored row, oldest first; `None` if `open` created the file
         (`CatalogCorruptError`)."""
         try:
-            with as_corrupt(self.path), gc_paused():
+            with schema.as_corrupt(self.path), gc_paused():
                 rows = read_rows(self._db, self._decode, lenient=False)
         except CatalogCorruptError:
             self.close(erase=False)  # unusable; closing also removes its -wal and -shm
@@ -229,19 +146,15 @@ class SqliteStore:
         """Read what a registrar needs to serve again (`restore.py`); `None` if `open`
         created the file (`CatalogCorruptError`)."""
         try:
-            with as_corrupt(self.path), gc_paused():
-                last, rows, client_rows, remaining = read_at_once(self._db)
+            with schema.as_corrupt(self.path), gc_paused():
+                last, rows, clients, client_seqs, remaining = read_at_once(self._db, self._decode)
                 self._resources = {}
                 self._seq = last
-                resources = [
-                    self.adopt(row, self._db.execute(CONSUMERS_OF, (row[0],)).fetchall())
-                    for row in rows
-                ]
+                resources = [self.adopt(row, consumers) for row, consumers in rows]
                 for resource in resources:
                     if resource.digest == NO_DIGEST:
                         resource.digest = None  # indexed from its (decoded) request
                         _ = resource.request
-                clients, client_seqs = client_records(client_rows, self._decode)
                 texts = {c.query.id: c.request_text for c in clients}
                 self._clients = {qid: (seq, 0, texts[qid]) for qid, seq in client_seqs.items()}
         except CatalogCorruptError:
@@ -252,7 +165,7 @@ class SqliteStore:
         self._loaded = True
         if self._created and not last and not clients:
             return None
-        unread = Unread(self, last, {row[0] for row in rows}, remaining=remaining)
+        unread = Unread(self, last, {row[0] for row, _ in rows}, remaining=remaining)
         return Restored(resources, clients, unread)
 
     def adopt(self, row: Any, consumer_rows: list[Any]) -> Resource:
@@ -274,7 +187,7 @@ class SqliteStore:
             resource.consumers[query_id] = origin
             keys[query_id] = key
             self._seq = max(self._seq, key)  # its next consumer's key comes after these
-        self._resources[rid] = Mirror(
+        self._resources[rid] = schema.Mirror(
             seq, resource.state, 0, keys, (texts[0], texts[1], texts[2]), resource.failed
         )
         return resource
@@ -304,15 +217,15 @@ class SqliteStore:
         try:
             if not self._loaded:
                 self.load()
-            ops: list[Op] = []
-            mirrors: list[tuple[dict[str, Any], str, Any]] = []  # (table, key, value | GONE)
+            ops: list[schema.Op] = []
+            mirrors: list[tuple[dict[str, Any], str, Any]] = []  # (table, key, value | schema.GONE)
             seq = self._seq
             touched, written = changes.consumers, self._resources
             for rid, resource in changes.resources.items():
                 ids = None if rid in owed else touched.get(rid)
-                seq = plan_resource(written, ops, mirrors, rid, resource, seq, ids)
+                seq = schema.plan_resource(written, ops, mirrors, rid, resource, seq, ids)
             for qid, record in changes.clients.items():
-                seq = plan_client(self._clients, ops, mirrors, qid, record, seq)
+                seq = schema.plan_client(self._clients, ops, mirrors, qid, record, seq)
             if told:
                 outbox.plan_told(told, ops)
             if ops:
@@ -324,7 +237,7 @@ class SqliteStore:
             owed.difference_update(changes.resources)
         self._seq = seq
         for table, key, value in mirrors:
-            if value is GONE:
+            if value is schema.GONE:
                 table.pop(key, None)
             else:
                 table[key] = value
@@ -351,7 +264,7 @@ class SqliteStore:
         if not self._checked and self._damaged is None:
             self._checked = True
             try:
-                files.check_pages(self._db, self.path)
+                check_pages(self._db, self.path)
             except CatalogCorruptError as exc:
                 self.found_damaged(exc.cause)
         if self._damaged is None:
@@ -363,11 +276,10 @@ class SqliteStore:
             "stays as it was: keep it for analysis (quarantine_backup) and restart",
         ) from corrupt
 
-    def _commit(self, ops: list[Op]) -> None:
+    def _commit(self, ops: list[schema.Op]) -> None:
         if not self._checked or self._damaged is not None:
             self._refuse_if_damaged()
-        watch = self._watch  # (`_keep_in_place`'s first step, spared a call)
-        if watch is None or self._aside is not None or not watch.quiet():
+        if not self._file.quiet():
             self._keep_in_place()
         try:
             self._run(ops)
@@ -375,9 +287,9 @@ class SqliteStore:
             if schema.damaged_file(exc):
                 self.found_damaged(f"{type(exc).__name__}: {exc}")
                 self._refuse_if_damaged()
-            raise files.write_error(self.path, exc) from exc
+            raise write_error(self.path, exc) from exc
 
-    def _run(self, ops: list[Op]) -> None:
+    def _run(self, ops: list[schema.Op]) -> None:
         db = self._db
         if len(ops) == 1 and not db.in_transaction:  # one statement: its own transaction
             sql, params = ops[0]
@@ -408,47 +320,11 @@ class SqliteStore:
 
     def _keep_in_place(self) -> None:
         """Write the whole catalog to a new file if the path lost the one being written
-        ("A deleted backup", failure-semantics.md); two `stat`s, only once the platform's
-        watch (`Platform.watch_names`) told of a change. `CatalogWriteError`: the copy
-        failed (retried next time)."""
-        if not self._guarded:
+        (`BackupFile.keep_in_place`; `CatalogWriteError`: retried next time)."""
+        db = self._file.keep_in_place(self._db, self._close_connections)
+        if db is None:
             return
-        if self._aside is None:
-            watch = self._watch
-            if watch is not None and watch.quiet():  # nothing happened to the names
-                return
-            if self._ids[1] is None:  # the -wal appears with the first transaction
-                self._ids = (self._ids[0], files.file_ids(self._name)[1])
-            if watch is not None and self._ids[1] is not None:
-                watch.arm(self._names)  # (first: a change made during the check is told)
-            why = files.moved(self._name, self._ids)
-            if why is None:
-                return
-            logger.warning(
-                "catalog backup %s: %s while its registrar runs; writing the whole catalog "
-                "to a new file there",
-                self.path,
-                why,
-            )
-            try:
-                self._aside = files.copy_aside(self._db, self._file)
-            except (sqlite3.Error, OSError) as exc:
-                raise files.write_error(self.path, exc) from exc
-            self._close_connections()
-        try:  # no connection is open on the old file now: SQLite would remove the new -wal
-            files.put_in_place(self._aside, self._file, synced=self._synced)
-            self._aside = None
-            if self._lock is not None:  # (before SQLite locks the new file: see `lockfile`)
-                self._lock.file_replaced()
-            db = files.connect(self._file, read_only=False)
-            db.execute(f"PRAGMA synchronous = {self._synchronous}")
-        except (sqlite3.Error, OSError) as exc:
-            raise files.write_error(self.path, exc) from exc
         self._db = db
-        if self._watch is not None:
-            self._watch.close()  # (armed at the next commit, once the new -wal exists)
-        self._ids = files.file_ids(self._file)
-        self._commits.reopen()
         if self._checkpointer is not None:
             self._hand_checkpoints_to_a_thread()
 
@@ -467,202 +343,17 @@ class SqliteStore:
                     try:
                         self._keep_in_place()
                     except CatalogWriteError as exc:  # logged: a stop or a crash goes on
-                        kept = f"a whole copy is at {self._aside}" if self._aside else "it is lost"
+                        aside = self._file.aside
+                        kept = f"a whole copy is at {aside}" if aside else "it is lost"
                         logger.error("%s; %s", exc, kept)  # noqa: TRY400 - the cause says it all
                 self.closed = True
-                self._commits.close()  # (first: SQLite removes the log as it closes)
-                if self._watch is not None:
-                    self._watch.close()
-                if self._aside is None:
+                self._file.closing()
+                if self._file.aside is None:
                     self._close_connections()
             if erase:
-                files.remove_files(self._file)
-            if self._aside is not None and erase:
-                files.remove_files(self._aside)
+                self._file.erase()
         finally:  # (whatever happened: the file is no longer this store's)
-            lock, self._lock = self._lock, None
-            if lock is not None:
-                lock.release()
-
-
-def _open_writes(db: sqlite3.Connection, name: str, version: int) -> bool:
-    """Whether opening the file writes to it (a migration, or last run's outbox to clear)."""
-    if version != schema.SCHEMA_VERSION:
-        return True
-    with as_corrupt(name):
-        return bool(db.execute("SELECT EXISTS (SELECT 1 FROM outbox)").fetchone()[0])
-
-
-# -- what a write changes --------------------------------------------------------------------
-
-Op = tuple[str, tuple[Any, ...]]  # one planned SQL statement and its parameters
-GONE = object()  # a mirror entry to delete once a write committed
-
-
-def plan_resource(
-    written: dict[str, Mirror],
-    ops: list[Op],
-    mirrors: list[tuple[dict[str, Any], str, Any]],
-    rid: str,
-    resource: Resource | None,
-    seq: int,
-    touched: dict[str, None] | None = None,
-) -> int:
-    """Append to `ops` the statements for resource `rid` (`None`: removed), and to `mirrors`
-    the `(table, key, value)` entries to set once they committed; the last row key.
-    `touched`: the consumer ids to look at (`None`: every one)."""
-    old = written.get(rid)
-    if resource is None:
-        if old is not None:
-            ops.append(("DELETE FROM resources WHERE seq = ?", (old.seq,)))
-            ops.append(("DELETE FROM consumers WHERE resource = ?", (old.seq,)))
-            mirrors.append((written, rid, GONE))
-        return seq
-    texts = (resource.request_text, resource.response_text, resource.label)
-    if old is None:
-        seq += 1
-        digest = resource.digest
-        if digest is None:
-            digest = request_digest(resource.request)
-        ops.append(
-            (
-                "INSERT INTO resources (seq, id, server, state, digest, request, response, "
-                "request_text, response_text, label, failed) "
-                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (
-                    seq,
-                    rid,
-                    resource.server,
-                    schema.STATE_CODES[resource.state],
-                    None if digest == NO_DIGEST else digest,
-                    schema.dumps(resource.request),
-                    schema.dumps(resource.response),
-                    *texts,
-                    int(resource.failed),
-                ),
-            )
-        )
-        keys: dict[str, int] = {}
-        row = seq
-        touched = None
-        update: Op | None = None
-    else:
-        update = None
-        if (
-            old.response_version != resource.response_version
-            or old.state is not resource.state
-            or old.texts != texts
-            or old.failed != resource.failed
-        ):
-            update = _resource_update(old, resource, texts)
-            ops.append(update)
-        keys = old.consumers
-        row = old.seq
-    now = resource.consumers
-    if touched is None:  # every consumer, against the mirror
-        touched = {**dict.fromkeys(now), **dict.fromkeys(keys)}
-    for query_id in touched:  # one INSERT or DELETE each whose row differs from `now`
-        key = keys.get(query_id)
-        if query_id in now:
-            if key is None:
-                seq += 1
-                ops.append(
-                    (
-                        "INSERT INTO consumers (resource, seq, query_id, origin_rr) "
-                        "VALUES (?, ?, ?, ?)",
-                        (row, seq, query_id, now[query_id]),
-                    )
-                )
-                mirrors.append((keys, query_id, seq))
-        elif key is not None:
-            ops.append(("DELETE FROM consumers WHERE resource = ? AND seq = ?", (row, key)))
-            mirrors.append((keys, query_id, GONE))
-    if old is None or update is not None:
-        # (the consumer keys stay in `keys`, the one dict: changed in place once committed)
-        mirror = Mirror(
-            row, resource.state, resource.response_version, keys, texts, resource.failed
-        )
-        mirrors.append((written, rid, mirror))
-    return seq
-
-
-def _resource_update(old: Mirror, resource: Resource, texts: Texts) -> Op:
-    """The one `UPDATE` that brings a written resource row up to date."""
-    columns: list[str] = []
-    values: list[Any] = []
-    if old.response_version != resource.response_version:
-        columns += ["state", "response"]
-        values += [schema.STATE_CODES[resource.state], schema.dumps(resource.response)]
-    elif old.state is not resource.state:
-        columns.append("state")
-        values.append(schema.STATE_CODES[resource.state])
-    if old.texts != texts:
-        columns += ["request_text", "response_text", "label"]
-        values += texts
-    if old.failed != resource.failed:
-        columns.append("failed")
-        values.append(int(resource.failed))
-    assignments = ", ".join(f"{column} = ?" for column in columns)
-    sql = f"UPDATE resources SET {assignments} WHERE seq = ?"  # noqa: S608 - our column names
-    return (sql, (*values, old.seq))
-
-
-def plan_client(
-    written: dict[str, tuple[int, int, str | None]],
-    ops: list[Op],
-    mirrors: list[tuple[dict[str, Any], str, Any]],
-    qid: str,
-    record: ClientRecord | None,
-    seq: int,
-) -> int:
-    """Plan the statements for client record `qid` (`None`: removed), as `plan_resource`
-    (`written`: query id -> `(row key, response_version, request_text)`)."""
-    old = written.get(qid)
-    if record is None:
-        if old is not None:
-            ops.append(("DELETE FROM clients WHERE seq = ?", (old[0],)))
-            mirrors.append((written, qid, GONE))
-        return seq
-    query = record.query
-    if old is None:
-        seq += 1
-        row = seq
-        ops.append(
-            (
-                "INSERT INTO clients (seq, query_id, server, serving_rr, origin_rr, request, "
-                "response, parent, loaded, request_text) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (
-                    seq,
-                    qid,
-                    query.server,
-                    query.serving_rr,
-                    query.origin_rr,
-                    schema.dumps(query.request),
-                    schema.dumps(query.response),
-                    record.parent,
-                    int(record.loaded),
-                    record.request_text,
-                ),
-            )
-        )
-    elif old[1] == record.response_version:
-        row = old[0]
-        ops.append(
-            (
-                "UPDATE clients SET loaded = ?, request_text = ? WHERE seq = ?",
-                (int(record.loaded), record.request_text, row),
-            )
-        )
-    else:
-        row = old[0]
-        ops.append(
-            (
-                "UPDATE clients SET response = ?, loaded = ?, request_text = ? WHERE seq = ?",
-                (schema.dumps(query.response), int(record.loaded), record.request_text, row),
-            )
-        )
-    mirrors.append((written, qid, (row, record.response_version, record.request_text)))
-    return seq
+            self._file.release()
 
 
 # -- the background checkpointer --------------------------------------------------------------

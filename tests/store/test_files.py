@@ -1121,8 +1121,8 @@ def test_a_power_cut_while_a_backup_is_made_and_first_written_leaves_none_or_a_w
 
 
 # -- the commits counted beside the WAL ------------------------------------------------------------
-# Commits counted outside the WAL (`files.CommitCount`, `files.lost_commits`): a WAL cut short loses its
-# newest commits, and the restore says so (issue 21).
+# Commits counted outside the WAL (`CommitCount`, `lost_commits`): a WAL cut short loses
+# its newest commits, and the restore says so (issue 21).
 #
 # Real manager processes killed with SIGKILL, their real `-wal` files cut at a frame
 # boundary right after a commit (the cut SQLite cannot see: it replays what is left and
