@@ -41,7 +41,7 @@ import rr_actors as rr
 from rr_actors import events
 from rr_actors._catalog import Catalog
 from rr_actors._store import SqliteStore, gc_paused
-from rr_actors._store.files import read_backup
+from rr_actors._store.restore import read_backup
 
 Sample = Callable[[], None]
 BATCHED = 100  # changes per sample in the batched (save_interval) rows

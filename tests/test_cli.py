@@ -26,8 +26,8 @@ from rr_actors import events
 from rr_actors.__main__ import main
 from rr_actors._catalog import Catalog, request_digest
 from rr_actors._core import hlc
-from rr_actors._store import codec, files, schema
-from rr_actors._store.files import read_backup
+from rr_actors._store import files, schema
+from rr_actors._store.restore import read_backup
 from rr_actors._store.schema import SCHEMA_VERSION
 from rr_actors._store.sqlite import SqliteStore
 from rr_actors.events import lines
@@ -287,7 +287,7 @@ def write_v1_backup(path: Path) -> None:
     db.execute("PRAGMA journal_mode = WAL")
     db.execute(
         "INSERT INTO resources VALUES (1, 'r1', 'leaf', 'loaded', ?, ?)",
-        (codec.dumps({"cam": 1}), codec.dumps({"pid": 42})),
+        (schema.dumps({"cam": 1}), schema.dumps({"pid": 42})),
     )
     db.execute("INSERT INTO consumers VALUES (2, 'q1', 'r1', 'C')")
     db.close()
@@ -322,7 +322,7 @@ class WriterBetweenReads:
             writer.execute(
                 "INSERT INTO resources (seq, id, server, state, digest, request, response) "
                 "VALUES (50, 'r-new', 'leaf', 1, ?, ?, NULL)",
-                (request_digest(2), codec.dumps(2)),
+                (request_digest(2), schema.dumps(2)),
             )
             writer.execute("INSERT INTO consumers VALUES (50, 51, 'q-new', 'C')")
             writer.execute("COMMIT")

@@ -1,15 +1,14 @@
 """The catalog's backup: the save policy (`saver`) over an embedded SQLite file.
 
-The store knows the catalog's rows and nothing of actors. Modules, lowest first: `codec`,
-`schema`, `restore`, `files`, `plan`, `checkpoints`, `commits`, `outbox`, `sqlite`
-(`SqliteStore`), `saver`.
+The store knows the catalog's rows and nothing of actors. Modules, lowest first: `schema`
+(the SQL: the schema, a row's values, a write's statements), `files` (the path, the lock,
+the file and its checks), `restore` (reading it back), `outbox` (the events written with a
+change), `sqlite` (`SqliteStore`: the writer), `saver` (when changes are written).
 """
 
-from rr_actors._store.codec import Unreadable
-from rr_actors._store.files import Backup, gc_paused, read_backup
-from rr_actors._store.restore import Restored
+from rr_actors._store.restore import Backup, Restored, gc_paused, read_backup
 from rr_actors._store.saver import CatalogStore, Saver, open_catalog, open_store
-from rr_actors._store.schema import APPLICATION_ID, SCHEMA_VERSION
+from rr_actors._store.schema import APPLICATION_ID, SCHEMA_VERSION, Unreadable
 from rr_actors._store.sqlite import SqliteStore
 
 __all__ = [

@@ -1,4 +1,5 @@
-"""Where a backup lives: the path's checks, creating, validating and opening the file.
+"""Where a backup lives: the path's checks, the lock, creating, validating, opening and
+replacing the file, and the count of its commits kept beside it.
 
 ```
  backup_path --check_location--> --claim: <real path>.lock and the file, one registrar a file-->
@@ -7,45 +8,47 @@
    a writable connection (`SqliteStore`)
  file deleted or replaced under the store (`moved`) --copy_aside, then put_in_place-->
    a new file at the path, the whole catalog in it
- read_backup: validate, then read every row through a read-only connection (inspection):
-   read_rows, one snapshot (also `SqliteStore.load`), with the collector paused (gc_paused)
  quarantine_backup: claim, then rename the file and its companions aside (the one way
    to give one up; refused while a registrar has it open)
+ each commit --> the log's salts, as SQLite's shared memory (`-shm`) holds them, mapped
+   --> `<file>-commits` := (salts, commits of that generation)        (`CommitCount`)
+ open after a crash --> count the -wal's complete commit frames of those salts: fewer?
+   --> WARNING naming the file and how many commits are gone           (`lost_commits`)
 ```
 
 A new file is linked into place complete; an existing one is validated read-only before
 anything writes to it; every file is its owner's only (`FILE_MODE`). Why: "What the backup
 survives" and "Who may see a backup", docs/explanation/failure-semantics.md, and
 docs/how-to/persistence.md.
+
+The commit count (synced after the log with `durability="power"`; else not: a count lost
+only hides a loss, never invents one) restarts with each generation of the log (new
+salts). The check reads frame headers only: it detects a log cut short ("A truncated WAL
+loses its newest commits", failure-semantics.md), not one damaged in its middle; a
+database file written after the last count reports nothing.
 """
 
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import datetime
 import errno as errno_names
-import gc
+import logging
+import mmap
 import os
 import sqlite3
+import struct
+import weakref
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
 
-from rr_actors._catalog import NO_DIGEST, ClientRecord, Resource
 from rr_actors._core import runtime
-from rr_actors._platform import lockfile
+from rr_actors._platform import PLATFORM, lockfile
 from rr_actors._store import schema
-from rr_actors._store.codec import (
-    STATES_BY_CODE,
-    as_corrupt,
-    check_keys,
-    check_values,
-    lenient_decode,
-    not_unpickled,
-)
-from rr_actors._store.restore import CLIENTS, RESOURCES, Mirror, client_records
+from rr_actors._store.schema import as_corrupt
 from rr_actors.errors import CatalogCorruptError, CatalogWriteError, ConfigError
+
+logger = logging.getLogger("rr_actors")
 
 _HEADER = b"SQLite format 3\x00"
 
@@ -384,24 +387,7 @@ def prepare(db: sqlite3.Connection, name: str, durability: str, version: int) ->
     schema.refresh_digests(db, name)
 
 
-@dataclasses.dataclass(frozen=True)
-class Backup:
-    """The content of a catalog backup, as `read_backup` returns it.
-
-    Attributes:
-        path: the file.
-        schema_version: its schema version.
-        resources: served resources, oldest first (consumers in arrival order).
-        clients: client records, oldest first.
-    """
-
-    path: str
-    schema_version: int
-    resources: list[Resource]
-    clients: list[ClientRecord]
-
-
-def _is_file(path: Path) -> bool:
+def is_file(path: Path) -> bool:
     try:
         return path.is_file()
     except OSError:
@@ -431,160 +417,6 @@ def check_pages(db: sqlite3.Connection, name: str) -> None:
         raise CatalogCorruptError(name, f"damaged pages: {listed}")
 
 
-def read_backup(path: str | os.PathLike[str], *, unpickle: bool = True) -> Backup:
-    """Read a catalog backup without changing it (it may belong to a running registrar).
-
-    An older schema is migrated in memory, never in the file. Values whose classes are
-    not importable here come back as `Unreadable`; without `unpickle`, every value is a
-    `NotUnpickled` (only the stored display texts show them) and any owner's file is read.
-
-    Args:
-        path: the backup file.
-        unpickle: decode the stored requests and responses.
-
-    Returns:
-        Its rows and schema version.
-
-    Raises:
-        ConfigError: `path` does not exist or is not a file; with `unpickle`, it belongs
-            to another user.
-        CatalogCorruptError: the file is not a readable rr_actors catalog.
-    """
-    file = Path(os.fspath(path))
-    if not _is_file(file):
-        raise ConfigError(f"no catalog backup at {str(file)!r}")
-    if unpickle:
-        foreign = foreign_owner(file)
-        if foreign is not None:
-            raise ConfigError(
-                f"catalog backup {foreign}: reading its values would run code from it "
-                "(unpickling); `rr-actors observe --state` and `graph --state` show it "
-                "without unpickling anything"
-            )
-    version = validate(file, tidy=True)
-    name = str(file)
-    with as_corrupt(name), read_only(file, tidy=True) as db:
-        check_pages(db, name)
-        with _migrated_copy(db, version) as current, gc_paused():
-            rows = read_rows(current, lenient_decode if unpickle else not_unpickled, lenient=True)
-    return Backup(name, version, rows.resources, rows.clients)
-
-
-# -- reading every row at once (`read_backup`, `SqliteStore.load`) ----------------------------
-
-
-@contextlib.contextmanager
-def gc_paused() -> Iterator[None]:
-    """Pause the cyclic garbage collector while a catalog is built (many containers, no
-    cycles: each burst would rescan every object built so far)."""
-    was_enabled = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if was_enabled:
-            gc.enable()
-
-
-@dataclasses.dataclass
-class Rows:
-    """Rows read from a backup, with the row keys the store needs to update them."""
-
-    resources: list[Resource]
-    clients: list[ClientRecord]
-    mirror: dict[str, Mirror]
-    client_seqs: dict[str, int]
-    max_seq: int
-
-
-def read_rows(
-    db: sqlite3.Connection, decode: Callable[[str, str, bytes | None], Any], *, lenient: bool
-) -> Rows:
-    """Read every row in one read transaction (a snapshot, also of a live file). Values stay
-    encoded until first used, but requests without a digest; `lenient` (inspection)
-    decodes every value at once."""
-    db.execute("BEGIN")
-    try:
-        rows = db.execute(RESOURCES).fetchall()
-        consumer_rows = db.execute(
-            "SELECT seq, query_id, resource, origin_rr FROM consumers ORDER BY seq"
-        ).fetchall()
-        client_rows = db.execute(CLIENTS).fetchall()
-    finally:
-        db.execute("COMMIT")
-    if not lenient:
-        for row in rows:
-            check_values(row)
-    check_keys(rows, consumer_rows, client_rows)
-    encoded = Resource.encoded
-    states = STATES_BY_CODE
-    resources = [
-        encoded(
-            rid,
-            server,
-            states[state],
-            NO_DIGEST if digest is None else digest,
-            (request, response),
-            decode,
-            0,
-            (request_text, response_text, label),
-            failed=bool(failed),
-        )
-        for (
-            _,
-            rid,
-            server,
-            state,
-            digest,
-            request,
-            response,
-            request_text,
-            response_text,
-            label,
-            failed,
-        ) in rows
-    ]
-    for resource in resources:
-        if lenient:
-            _ = resource.request, resource.response
-        if resource.digest == NO_DIGEST:
-            resource.digest = None  # the catalog indexes it from its (decoded) request
-            _ = resource.request
-    mirrors = [
-        Mirror(row[0], r.state, r.response_version, {}, (row[7], row[8], row[9]), r.failed)
-        for row, r in zip(rows, resources, strict=True)
-    ]
-    by_seq = {row[0]: (r, m) for row, r, m in zip(rows, resources, mirrors, strict=True)}
-    max_seq = rows[-1][0] if rows else 0
-    for seq, query_id, resource_seq, origin in consumer_rows:
-        owner = by_seq.get(resource_seq)
-        if owner is None:
-            raise ValueError(f"consumer {query_id} belongs to a missing resource")
-        owner[0].consumers[query_id] = origin
-        owner[1].consumers[query_id] = seq
-    if consumer_rows:
-        max_seq = max(max_seq, consumer_rows[-1][0])
-    clients, client_seqs = client_records(client_rows, decode)
-    max_seq = max([max_seq, *client_seqs.values()])
-    mirror = {r.id: m for r, m in zip(resources, mirrors, strict=True)}
-    return Rows(resources, clients, mirror, client_seqs, max_seq)
-
-
-@contextlib.contextmanager
-def _migrated_copy(db: sqlite3.Connection, version: int) -> Iterator[sqlite3.Connection]:
-    """`db` itself if it has the current schema, else a migrated copy in memory."""
-    if version == schema.SCHEMA_VERSION:
-        yield db
-        return
-    copy = sqlite3.connect(":memory:", isolation_level=None)
-    try:
-        db.backup(copy)
-        schema.migrate(copy, version)
-        yield copy
-    finally:
-        copy.close()
-
-
 def quarantine_backup(path: str | os.PathLike[str]) -> Path:
     """Move a catalog backup that cannot be used out of the way, keeping it for analysis.
 
@@ -603,7 +435,7 @@ def quarantine_backup(path: str | os.PathLike[str]) -> Path:
             pid).
     """
     file = Path(os.fspath(path))
-    if not _is_file(file):
+    if not is_file(file):
         raise ConfigError(f"no catalog backup to quarantine at {str(file)!r}")
     stamp = datetime.datetime.fromtimestamp(runtime.wall(), datetime.UTC).strftime(
         "%Y%m%dT%H%M%S.%fZ"
@@ -662,3 +494,349 @@ def write_error(path: str, exc: BaseException) -> CatalogWriteError:
             )
         return CatalogWriteError(path, f"{exc} ({code})")
     return CatalogWriteError(path, f"{type(exc).__name__}: {exc}")
+
+
+# -- the file a store writes ---------------------------------------------------------------------
+
+
+def open_backup(path: Path, durability: str) -> tuple[BackupFile, sqlite3.Connection, bool, bool]:
+    """Claim, create if missing, validate and prepare the backup at `path` for writing
+    (`SqliteStore.open`): the file, its writable connection, whether it was created, and
+    whether its pages were checked. A commit count the log no longer holds is logged
+    (WARNING) and kept in `BackupFile.lost_commits`.
+
+    Raises:
+        ConfigError: the path cannot hold a backup, the file belongs to another user,
+            or another registrar has it open.
+        CatalogCorruptError: the file is not a usable rr_actors catalog.
+    """
+    check_location(path)
+    lock = claim(path)  # before anything reads it: one registrar a file
+    try:
+        return _open(path, lock, durability)
+    except BaseException:
+        if lock is not None:
+            lock.release()
+        raise
+
+
+def _open(
+    file: Path, lock: BackupLock | None, durability: str
+) -> tuple[BackupFile, sqlite3.Connection, bool, bool]:
+    created = made = False
+    lost = None
+    if not file.exists():
+        made = create(file, synced=durability == "power")
+        created = True
+    if lock is not None:
+        lock.hold_file()
+    foreign = foreign_owner(file)
+    if foreign is not None:
+        raise ConfigError(
+            f"backup_path {foreign}: restoring it would run code from it (unpickling)"
+        )
+    if not created:
+        lost = lost_commits(file)  # before SQLite replays (and may remove) the log
+    version = schema.SCHEMA_VERSION if made else validate(file, tidy=True)  # (known)
+    name = str(file)
+    try:
+        db = connect(file, read_only=False)
+    except sqlite3.Error as exc:
+        raise ConfigError(f"backup_path {name!r} cannot be opened: {exc}") from exc
+    checked = created or not runtime.guards_files()
+    try:
+        if not checked and _open_writes(db, name, version):
+            check_pages(db, name)  # (before anything is written to it: rule 15)
+            checked = True
+        if made:  # (empty, current, WAL, written there already)
+            db.execute(f"PRAGMA synchronous = {SYNCHRONOUS[durability]}")
+        else:
+            prepare(db, name, durability, version)
+            with as_corrupt(name):  # the outbox: read at the last run's exit, if anyone listened
+                if db.execute("SELECT EXISTS (SELECT 1 FROM outbox)").fetchone()[0]:
+                    db.execute("DELETE FROM outbox")
+    except BaseException:
+        db.close()
+        raise
+    backup = BackupFile(file, lock, durability)
+    if lost is not None:
+        backup.lost_commits, why = lost
+        logger.warning(
+            "catalog backup %s: %s: %d acknowledged commits are lost (their loads, "
+            "releases and unloads are not restored; consumers holding ids it lost are "
+            "told FATAL when they reconcile)",
+            name,
+            why,
+            backup.lost_commits,
+        )
+        backup.commits.close()  # reported once: the next commit counts the log afresh
+    return backup, db, created, checked
+
+
+def _open_writes(db: sqlite3.Connection, name: str, version: int) -> bool:
+    """Whether opening the file writes to it (a migration, or last run's outbox to clear)."""
+    if version != schema.SCHEMA_VERSION:
+        return True
+    with as_corrupt(name):
+        return bool(db.execute("SELECT EXISTS (SELECT 1 FROM outbox)").fetchone()[0])
+
+
+class BackupFile:
+    """The file a store writes, kept at its path: the lock that makes its store the one
+    registrar of it, whether the path still names it (`keep_in_place`), and the count of
+    its commits (`CommitCount`). The writer's thread; in a simulation (`guarded` false) its
+    files are its own: nothing is watched nor counted."""
+
+    def __init__(self, path: Path, lock: BackupLock | None, durability: str) -> None:
+        self.path = str(path)  # as given: what messages name
+        self.file = path.absolute()  # the same file after a chdir
+        self._name = str(self.file)
+        self._names = (self._name, f"{self._name}-wal")
+        self._lock = lock
+        self.synchronous = SYNCHRONOUS[durability]
+        self.synced = durability == "power"
+        self.guarded = runtime.guards_files()
+        self._ids = file_ids(self._name) if self.guarded else (None, None)
+        self._watch = PLATFORM.watch_names() if self.guarded else None
+        self.aside: Path | None = None  # a whole copy not moved into place yet
+        self.commits = CommitCount(self.file, kept=self.guarded, synced=self.synced)
+        self.lost_commits = 0  # of the last run, that its WAL no longer held
+
+    def quiet(self) -> bool:
+        """Whether the path surely still names the file: the platform's watch saw no change
+        of its names, and no copy waits to be put in place."""
+        watch = self._watch
+        return watch is not None and self.aside is None and watch.quiet()
+
+    def keep_in_place(
+        self, db: sqlite3.Connection, close: Callable[[], None]
+    ) -> sqlite3.Connection | None:
+        """Write the whole catalog `db` has open to a new file if the path lost this one
+        ("A deleted backup", failure-semantics.md): two `stat`s, only once the platform's
+        watch (`Platform.watch_names`) told of a change. `close` closes every connection to
+        the old file before the copy is put in place. Returns the new file's connection,
+        or `None` if the path still names the file.
+
+        Raises:
+            CatalogWriteError: the copy failed (kept in `aside`, retried next time).
+        """
+        if not self.guarded:
+            return None
+        if self.aside is None:
+            watch = self._watch
+            if watch is not None and watch.quiet():  # nothing happened to the names
+                return None
+            if self._ids[1] is None:  # the -wal appears with the first transaction
+                self._ids = (self._ids[0], file_ids(self._name)[1])
+            if watch is not None and self._ids[1] is not None:
+                watch.arm(self._names)  # (first: a change made during the check is told)
+            why = moved(self._name, self._ids)
+            if why is None:
+                return None
+            logger.warning(
+                "catalog backup %s: %s while its registrar runs; writing the whole catalog "
+                "to a new file there",
+                self.path,
+                why,
+            )
+            try:
+                self.aside = copy_aside(db, self.file)
+            except (sqlite3.Error, OSError) as exc:
+                raise write_error(self.path, exc) from exc
+            close()
+        try:  # no connection is open on the old file now: SQLite would remove the new -wal
+            put_in_place(self.aside, self.file, synced=self.synced)
+            self.aside = None
+            if self._lock is not None:  # (before SQLite locks the new file: see `lockfile`)
+                self._lock.file_replaced()
+            db = connect(self.file, read_only=False)
+            db.execute(f"PRAGMA synchronous = {self.synchronous}")
+        except (sqlite3.Error, OSError) as exc:
+            raise write_error(self.path, exc) from exc
+        if self._watch is not None:
+            self._watch.close()  # (armed at the next commit, once the new -wal exists)
+        self._ids = file_ids(self.file)
+        self.commits.reopen()
+        return db
+
+    def closing(self) -> None:
+        """Stop counting and watching, before the connections close (SQLite removes the
+        log as it closes)."""
+        self.commits.close()
+        if self._watch is not None:
+            self._watch.close()
+
+    def erase(self) -> None:
+        """Delete the file, its companions and any copy set aside."""
+        remove_files(self.file)
+        if self.aside is not None:
+            remove_files(self.aside)
+
+    def release(self) -> None:
+        """Give the file up: another registrar may open it now (never raises)."""
+        lock, self._lock = self._lock, None
+        if lock is not None:
+            lock.release()
+
+
+# -- the commits counted beside the WAL --------------------------------------------------
+
+COUNT_SUFFIX = "-commits"  # the count's file, beside the backup (`erm.db-commits`)
+
+_RECORD = struct.Struct(">8sQ")  # the log's salts, the commits of that generation
+_WAL_HEADER = 32
+_FRAME_HEADER = 24
+_SHM_MAPPED = 4096  # (SQLite makes its -shm 32 KiB at least)
+_SHM_SALTS = slice(32, 40)  # the salts in the shared memory's first header (`WalIndexHdr`)
+
+
+class CommitCount:
+    """Counts the commits of the current WAL generation of backup `file` (the writer's
+    thread; never raises; not `kept`: a simulation's, counts nothing; `synced`: on the
+    disk, with its name, when `committed` returns)."""
+
+    def __init__(self, file: Path, *, kept: bool = True, synced: bool = False) -> None:
+        self.kept = kept
+        self.synced = synced
+        self.path = f"{file}{COUNT_SUFFIX}"
+        self._wal = f"{file}-wal"
+        self._shm_name = f"{file}-shm"
+        self._salts = b""
+        self._count = 0
+        self._fds: dict[str, int] = {}  # "count", "wal": the files it keeps open
+        self._shm: mmap.mmap | None = None  # the -shm's first page, read-only
+        self._shm_tried = False
+        weakref.finalize(self, _close_fds, self._fds)
+
+    def committed(self) -> None:
+        if not self.kept:
+            return
+        shm, count = self._shm, self._fds.get("count")
+        if shm is not None and count is not None and shm[_SHM_SALTS] == self._salts:
+            self._count += 1  # (most commits: the same generation of the log)
+            try:
+                os.pwrite(count, self._count.to_bytes(8, "big"), 8)
+                self._sync(count)
+            except OSError as exc:
+                logger.debug("the commit count %s cannot be kept: %s", self.path, exc)
+            return
+        try:
+            shm = shm if self._shm_tried else self._map_shm()
+            if shm is not None and shm[_SHM_SALTS] == self._salts:
+                self._count += 1
+            else:
+                wal = self._fds.get("wal")
+                if wal is None:
+                    wal = self._fds["wal"] = os.open(self._wal, os.O_RDONLY | os.O_CLOEXEC)
+                header = os.pread(wal, _WAL_HEADER, 0)
+                if len(header) < _WAL_HEADER:
+                    return
+                salts = header[16:24]
+                if salts == self._salts:
+                    self._count += 1
+                else:  # the first commit of this store, or the log restarted: count them
+                    self._salts, self._count = salts, _commit_frames(wal, header)
+            created = "count" not in self._fds
+            count = self._fds.get("count")
+            if count is None:
+                count = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
+                self._fds["count"] = count
+                os.fchmod(count, 0o600)  # (whatever the umask: like SQLite's side files)
+            os.pwrite(count, _RECORD.pack(self._salts, self._count), 0)
+            self._sync(count, created=created)
+        except OSError as exc:
+            logger.debug("the commit count %s cannot be kept: %s", self.path, exc)
+
+    def _sync(self, count: int, *, created: bool = False) -> None:
+        if self.synced:  # (after SQLite's commit, which synced the log first)
+            os.fdatasync(count)
+            if created:
+                sync(self.path, directory=True)
+
+    def _map_shm(self) -> mmap.mmap | None:
+        self._shm_tried = True
+        try:
+            fd = os.open(self._shm_name, os.O_RDONLY | os.O_CLOEXEC)
+        except OSError:
+            return None
+        try:
+            if os.fstat(fd).st_size >= _SHM_MAPPED:  # (a page past its end: SIGBUS)
+                self._shm = mmap.mmap(fd, _SHM_MAPPED, mmap.MAP_SHARED, mmap.PROT_READ)
+        except (OSError, ValueError):
+            self._shm = None
+        finally:
+            os.close(fd)  # (the mapping stays)
+        return self._shm
+
+    def _unmap_shm(self) -> None:
+        shm, self._shm, self._shm_tried = self._shm, None, False
+        if shm is not None:
+            shm.close()
+
+    def reopen(self) -> None:
+        _close_fds(self._fds)
+        self._unmap_shm()
+        self._salts, self._count = b"", 0
+
+    def close(self) -> None:
+        _close_fds(self._fds)
+        self._unmap_shm()
+        with contextlib.suppress(OSError):
+            os.unlink(self.path)
+
+
+def _close_fds(fds: dict[str, int]) -> None:
+    while fds:
+        with contextlib.suppress(OSError):
+            os.close(fds.popitem()[1])
+
+
+def lost_commits(file: Path) -> tuple[int, str] | None:
+    """How many counted commits the WAL of `file` no longer holds, and why; else `None`
+    (before anything opens the file)."""
+    try:
+        record = Path(f"{file}{COUNT_SUFFIX}").read_bytes()[: _RECORD.size]
+        checkpointed = os.stat(file).st_mtime_ns > os.stat(f"{file}{COUNT_SUFFIX}").st_mtime_ns
+    except OSError:
+        return None
+    # (a checkpoint that wrote the file after the last count left it holding them)
+    salts, counted = _RECORD.unpack(record) if len(record) == _RECORD.size else (b"", 0)
+    if checkpointed or counted == 0:
+        return None
+    try:
+        with open(f"{file}-wal", "rb") as wal:
+            return _compare(wal.fileno(), salts, counted)
+    except FileNotFoundError:
+        return counted, f"its -wal file is missing; it held the last {counted} commits"
+    except OSError as exc:
+        logger.debug("the WAL of %s cannot be read: %s", file, exc)
+        return None
+
+
+def _compare(fd: int, salts: bytes, counted: int) -> tuple[int, str] | None:
+    header = os.pread(fd, _WAL_HEADER, 0)
+    if len(header) < _WAL_HEADER:
+        return counted, f"its -wal file is cut short ({len(header)} bytes)"
+    if header[16:24] != salts:
+        return None  # another generation of the log than the one counted: cannot tell
+    found = _commit_frames(fd, header, counted)
+    if found >= counted:
+        return None
+    return counted - found, f"its -wal file holds {found} of the last {counted} commits"
+
+
+def _commit_frames(fd: int, header: bytes, limit: int | None = None) -> int:
+    salts = header[16:24]
+    page_size = struct.unpack(">I", header[8:12])[0]
+    size = os.fstat(fd).st_size
+    frame = _FRAME_HEADER + page_size
+    found = 0
+    offset = _WAL_HEADER
+    while offset + frame <= size and (limit is None or found < limit):
+        head = os.pread(fd, _FRAME_HEADER, offset)
+        if head[8:16] != salts:  # a frame of an earlier generation: the log ends here
+            break
+        if struct.unpack(">I", head[4:8])[0] != 0:  # a commit frame
+            found += 1
+        offset += frame
+    return found

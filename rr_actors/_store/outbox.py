@@ -9,7 +9,7 @@
  event shows a gap ──► after the exit, the supervisor's side (`_process/tally.py`, `Received`):
    read_told(backup, pid) ──► the dead process's events it never received, delivered
    before its `ChildExited`
- the registrar's next start (`SqliteStore.open`) ──► `clear`: the outbox emptied
+ the registrar's next start (`files.open_backup`) ──► the outbox emptied
 ```
 
 The transactional outbox pattern (C. Richardson, "Pattern: Transactional outbox",
@@ -109,12 +109,6 @@ def plan_told(told: Iterable[events.Event], ops: list[tuple[str, tuple[Any, ...]
         if seq:
             line = _row(event)
             ops.append((_INSERT, (seq % SLOTS, event.pid, seq, line)))
-
-
-def clear(db: sqlite3.Connection) -> None:
-    """Empty the outbox (its last run's rows were read at its exit)."""
-    if db.execute("SELECT EXISTS (SELECT 1 FROM outbox)").fetchone()[0]:
-        db.execute("DELETE FROM outbox")
 
 
 def read_told(path: str | Path, pid: int) -> list[events.Event]:

@@ -1,13 +1,16 @@
-"""Reading a backup back lazily (`Unread`); every row at once is `files.read_rows`.
+"""Reading a backup back: lazily for a registrar (`Unread`), or every row at once
+(`read_rows`: `SqliteStore.load`, and `read_backup` for inspection).
 
 ```
- SqliteStore.restore --one read transaction--> resources in doubt, without a digest or
-                   with a dependency, and every client record (as rows): nothing more
-                   --> Restored(resources, clients, unread)
+ SqliteStore.restore --read_at_once, one read transaction--> resources in doubt, without
+                   a digest or with a dependency, and every client record (as rows):
+                   nothing more --> Restored(resources, clients, unread)
  Catalog lookup (digest, consumer id, server, origin) --Unread--> rows read, checked, adopted:
                    the store mirrors them (`SqliteStore.adopt`), memory is the truth from then on
  after it serves: the registrar sweeps the rest in slices (`Unread.sweep`): unheld
                    resources and consumers' registrars, between calls
+ read_backup: validate, then read every row through a read-only connection (inspection):
+                   read_rows, one snapshot (also `SqliteStore.load`), the collector paused
 ```
 
 So what a restart reads before it serves does not grow with the catalog: each other row
@@ -19,42 +22,18 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import gc
+import os
 import sqlite3
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any, Protocol
 
-from rr_actors._catalog import ClientRecord, Listing, Resource, ResourceState
-from rr_actors._store.codec import STATES_BY_CODE, as_corrupt, check_row
+from rr_actors._catalog import NO_DIGEST, ClientRecord, Listing, Resource
+from rr_actors._store import files, schema
+from rr_actors._store.schema import Mirror
 from rr_actors._types import Query
-from rr_actors.errors import CatalogCorruptError, RegistrarStoppedError
-
-
-class Mirror:
-    """What the store last wrote for one resource (to write only the difference)."""
-
-    __slots__ = ("consumers", "failed", "response_version", "seq", "state", "texts")
-
-    def __init__(
-        self,
-        seq: int,
-        state: ResourceState,
-        response_version: int,
-        consumers: dict[str, int],
-        texts: Texts = (None, None, None),
-        failed: bool = False,
-    ) -> None:
-        self.seq = seq  # the row's key
-        self.state = state
-        # The catalog bumps `Resource.response_version` on every response it sets (also
-        # the same object again, mutated); decoding a restored one does not.
-        self.response_version = response_version
-        self.consumers = consumers  # consumer query id -> its row's key
-        self.texts = texts  # (request_text, response_text, label) as written
-        self.failed = failed  # the `failed` mark as written
-
-
-Texts = tuple[str | None, str | None, str | None]
-"""A resource row's `(request_text, response_text, label)`."""
+from rr_actors.errors import CatalogCorruptError, ConfigError, RegistrarStoppedError
 
 RESOURCE_COLUMNS = (
     "seq, id, server, state, digest, request, response, request_text, response_text, label, failed"
@@ -65,9 +44,6 @@ CLIENT_COLUMNS = (
     "seq, query_id, server, serving_rr, origin_rr, request, response, parent, loaded, request_text"
 )
 """The columns of a client row, in the order every reader reads them."""
-
-
-_Op = tuple[str, tuple[Any, ...]]
 
 
 def client_records(
@@ -93,7 +69,9 @@ def client_records(
 
 _LISTED_RESOURCES = (  # a resource as `Catalog.rows` lists it: (id, server, state, digest, failed)
     "SELECT seq, id, server, CASE state "  # noqa: S608
-    + " ".join(f"WHEN {code} THEN '{state.value}'" for code, state in enumerate(STATES_BY_CODE))
+    + " ".join(
+        f"WHEN {code} THEN '{state.value}'" for code, state in enumerate(schema.STATES_BY_CODE)
+    )
     + " ELSE CAST(state AS TEXT) END, coalesce(CAST(digest AS TEXT), ''), "
     "CASE WHEN failed THEN 'failed' ELSE '' END FROM resources WHERE seq <= ? ORDER BY seq LIMIT ?"
 )  # (unread rows are loaded, with a digest: the `ELSE` is never taken)
@@ -292,15 +270,15 @@ class Unread:
                 row = db.execute(_RESOURCE_BY_SEQ, (seq,)).fetchone()
                 if row is None:
                     continue
-                check_row(row)
+                schema.check_row(row)
                 read.append((row, db.execute(CONSUMERS_OF, (seq,)).fetchall()))
         resources = [store.adopt(row, consumers) for row, consumers in read]
         self._read.update(row[0] for row, _ in read)
         return resources
 
     def _reading(self) -> contextlib.AbstractContextManager[None]:
-        """`as_corrupt`; damage SQLite reports turns the store read-only."""
-        return as_corrupt(self._store.path, self._store.found_damaged)
+        """`schema.as_corrupt`; damage SQLite reports turns the store read-only."""
+        return schema.as_corrupt(self._store.path, self._store.found_damaged)
 
     def _check_open(self) -> None:
         if self._store.closed:
@@ -316,3 +294,203 @@ class Restored:
     resources: list[Resource]
     clients: list[ClientRecord]
     unread: Unread
+
+
+def read_at_once(
+    db: sqlite3.Connection, decode: Callable[[str, str, bytes | None], Any]
+) -> tuple[int, list[tuple[Any, list[Any]]], list[ClientRecord], dict[str, int], bool]:
+    """What a restore reads before it serves, in one read transaction: the last resource
+    row key; the resource rows read at once (`RESOURCES_AT_ONCE`), checked (`ValueError`),
+    each with its consumer rows; every client record (`client_records`); and whether any
+    other resource row is left unread."""
+    db.execute("BEGIN")
+    try:
+        (last,) = db.execute("SELECT ifnull(max(seq), 0) FROM resources").fetchone()
+        rows = db.execute(RESOURCES_AT_ONCE).fetchall()
+        client_rows = db.execute(CLIENTS).fetchall()
+        more = db.execute(  # (at most len(rows) + 1 keys)
+            "SELECT seq FROM resources ORDER BY seq LIMIT ?", (len(rows) + 1,)
+        ).fetchall()
+        for row in rows:
+            schema.check_row(row)
+        schema.check_keys([], [], client_rows)
+        with_consumers = [(row, db.execute(CONSUMERS_OF, (row[0],)).fetchall()) for row in rows]
+    finally:
+        db.execute("COMMIT")
+    clients, client_seqs = client_records(client_rows, decode)
+    at_once = {row[0] for row in rows}
+    remaining = any(seq not in at_once for (seq,) in more)
+    return last, with_consumers, clients, client_seqs, remaining
+
+
+# -- every row at once (`SqliteStore.load`, `read_backup`) -------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Backup:
+    """The content of a catalog backup, as `read_backup` returns it.
+
+    Attributes:
+        path: the file.
+        schema_version: its schema version.
+        resources: served resources, oldest first (consumers in arrival order).
+        clients: client records, oldest first.
+    """
+
+    path: str
+    schema_version: int
+    resources: list[Resource]
+    clients: list[ClientRecord]
+
+
+def read_backup(path: str | os.PathLike[str], *, unpickle: bool = True) -> Backup:
+    """Read a catalog backup without changing it (it may belong to a running registrar).
+
+    An older schema is migrated in memory, never in the file. Values whose classes are
+    not importable here come back as `Unreadable`; without `unpickle`, every value is a
+    `NotUnpickled` (only the stored display texts show them) and any owner's file is read.
+
+    Args:
+        path: the backup file.
+        unpickle: decode the stored requests and responses.
+
+    Returns:
+        Its rows and schema version.
+
+    Raises:
+        ConfigError: `path` does not exist or is not a file; with `unpickle`, it belongs
+            to another user.
+        CatalogCorruptError: the file is not a readable rr_actors catalog.
+    """
+    file = Path(os.fspath(path))
+    if not files.is_file(file):
+        raise ConfigError(f"no catalog backup at {str(file)!r}")
+    if unpickle:
+        foreign = files.foreign_owner(file)
+        if foreign is not None:
+            raise ConfigError(
+                f"catalog backup {foreign}: reading its values would run code from it "
+                "(unpickling); `rr-actors observe --state` and `graph --state` show it "
+                "without unpickling anything"
+            )
+    version = files.validate(file, tidy=True)
+    name = str(file)
+    with schema.as_corrupt(name), files.read_only(file, tidy=True) as db:
+        files.check_pages(db, name)
+        with _migrated_copy(db, version) as current, gc_paused():
+            rows = read_rows(
+                current, schema.lenient_decode if unpickle else schema.not_unpickled, lenient=True
+            )
+    return Backup(name, version, rows.resources, rows.clients)
+
+
+@contextlib.contextmanager
+def gc_paused() -> Iterator[None]:
+    """Pause the cyclic garbage collector while a catalog is built (many containers, no
+    cycles: each burst would rescan every object built so far)."""
+    was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was_enabled:
+            gc.enable()
+
+
+@dataclasses.dataclass
+class Rows:
+    """Rows read from a backup, with the row keys the store needs to update them."""
+
+    resources: list[Resource]
+    clients: list[ClientRecord]
+    mirror: dict[str, Mirror]
+    client_seqs: dict[str, int]
+    max_seq: int
+
+
+def read_rows(
+    db: sqlite3.Connection, decode: Callable[[str, str, bytes | None], Any], *, lenient: bool
+) -> Rows:
+    """Read every row in one read transaction (a snapshot, also of a live file). Values stay
+    encoded until first used, but requests without a digest; `lenient` (inspection)
+    decodes every value at once."""
+    db.execute("BEGIN")
+    try:
+        rows = db.execute(RESOURCES).fetchall()
+        consumer_rows = db.execute(
+            "SELECT seq, query_id, resource, origin_rr FROM consumers ORDER BY seq"
+        ).fetchall()
+        client_rows = db.execute(CLIENTS).fetchall()
+    finally:
+        db.execute("COMMIT")
+    if not lenient:
+        for row in rows:
+            schema.check_values(row)
+    schema.check_keys(rows, consumer_rows, client_rows)
+    encoded = Resource.encoded
+    states = schema.STATES_BY_CODE
+    resources = [
+        encoded(
+            rid,
+            server,
+            states[state],
+            NO_DIGEST if digest is None else digest,
+            (request, response),
+            decode,
+            0,
+            (request_text, response_text, label),
+            failed=bool(failed),
+        )
+        for (
+            _,
+            rid,
+            server,
+            state,
+            digest,
+            request,
+            response,
+            request_text,
+            response_text,
+            label,
+            failed,
+        ) in rows
+    ]
+    for resource in resources:
+        if lenient:
+            _ = resource.request, resource.response
+        if resource.digest == NO_DIGEST:
+            resource.digest = None  # the catalog indexes it from its (decoded) request
+            _ = resource.request
+    mirrors = [
+        Mirror(row[0], r.state, r.response_version, {}, (row[7], row[8], row[9]), r.failed)
+        for row, r in zip(rows, resources, strict=True)
+    ]
+    by_seq = {row[0]: (r, m) for row, r, m in zip(rows, resources, mirrors, strict=True)}
+    max_seq = rows[-1][0] if rows else 0
+    for seq, query_id, resource_seq, origin in consumer_rows:
+        owner = by_seq.get(resource_seq)
+        if owner is None:
+            raise ValueError(f"consumer {query_id} belongs to a missing resource")
+        owner[0].consumers[query_id] = origin
+        owner[1].consumers[query_id] = seq
+    if consumer_rows:
+        max_seq = max(max_seq, consumer_rows[-1][0])
+    clients, client_seqs = client_records(client_rows, decode)
+    max_seq = max([max_seq, *client_seqs.values()])
+    mirror = {r.id: m for r, m in zip(resources, mirrors, strict=True)}
+    return Rows(resources, clients, mirror, client_seqs, max_seq)
+
+
+@contextlib.contextmanager
+def _migrated_copy(db: sqlite3.Connection, version: int) -> Iterator[sqlite3.Connection]:
+    """`db` itself if it has the current schema, else a migrated copy in memory."""
+    if version == schema.SCHEMA_VERSION:
+        yield db
+        return
+    copy = sqlite3.connect(":memory:", isolation_level=None)
+    try:
+        db.backup(copy)
+        schema.migrate(copy, version)
+        yield copy
+    finally:
+        copy.close()

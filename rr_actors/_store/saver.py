@@ -194,7 +194,7 @@ def open_catalog(config: RegistrarConfig) -> tuple[Saver, Catalog, bool]:
     catalog, and whether it was restored (`ConfigError`, `CatalogCorruptError`)."""
     store = open_store(config)
     try:
-        from rr_actors._store.files import gc_paused  # noqa: PLC0415 - only with a backup
+        from rr_actors._store.restore import gc_paused  # noqa: PLC0415 - only with a backup
 
         restored = None
         catalog = Catalog(track_changes=store is not None)

@@ -1,28 +1,49 @@
-"""The backup's schema: its version, how a file is created and migrated, how it is checked.
+"""The backup's rows: their SQL schema, how a file is created, migrated and checked, how a
+row's values are encoded, decoded and cheaply checked, and the statements a write plans.
 
 ```
  empty file --MIGRATIONS[0]--> v1 --MIGRATIONS[1]--> v2 --MIGRATIONS[2]--> v3 --MIGRATIONS[3]--> v4
    --MIGRATIONS[4]--> v5 --MIGRATIONS[5]--> v6 --MIGRATIONS[6]--> v7 (SCHEMA_VERSION)
+ request / response --dumps--> cloudpickle bytes (NULL for None) --> resources / clients row
+ row --check_row / check_keys (no unpickling)--> Resource.encoded --decode, on first use--> value
+ Changes (rid -> Resource | None, qid -> ClientRecord | None, rid -> the consumer ids added
+   or released since the last write) --plan_resource / plan_client, against the mirror of
+   what the store last wrote--> [(sql, params), ...] and the mirror entries to set once
+   they committed (`GONE`: remove)
 ```
 
 Each step is one transaction; a new file is made at once (`create`). The layout, the
 digests and why a file is trusted only if its schema is exactly what these migrations
-create: "The backup's file",
-docs/explanation/inside.md. `migrate` and `schema_version` read `SCHEMA_VERSION` and
-`MIGRATIONS` from this module when they run (tests replace them here).
+create: "The backup's file", docs/explanation/inside.md. `migrate` and `schema_version`
+read `SCHEMA_VERSION` and `MIGRATIONS` from this module when they run (tests replace them
+here). Values are stored as they cross between processes (`wire.dumps`; `NULL` for
+`None`). Reading validates cheaply what it does not decode (a whole pickle, a known state,
+no id twice), so a damaged row left on disk raises `CatalogCorruptError` when first used.
+Only what differs from the mirror reaches the file, addressed by row key (`seq`), and of a
+resource's consumers only the ids `Changes.consumers` names: a change costs the same
+however large the catalog or widely shared the resource.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
+import pickle
 import sqlite3
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
-from rr_actors._catalog import DIGEST_SCHEME, request_digest
+from rr_actors._catalog import (
+    DIGEST_SCHEME,
+    NO_DIGEST,
+    ClientRecord,
+    Resource,
+    ResourceState,
+    request_digest,
+)
 from rr_actors._catalog.texts import NOT_SHOWN_OLD
-from rr_actors._store.codec import as_corrupt, loads
+from rr_actors._core import wire
 from rr_actors.errors import CatalogCorruptError
 
 APPLICATION_ID = 0x72724163  # "rrAc": `PRAGMA application_id` of every catalog file
@@ -299,3 +320,357 @@ def refresh_digests(db: sqlite3.Connection, name: str) -> None:
             rollback(db)
             raise
         db.execute("COMMIT")
+
+
+# -- a row's values ---------------------------------------------------------------------------
+
+STATE_CODES = {ResourceState.LOADING: 0, ResourceState.LOADED: 1, ResourceState.UNLOADING: 2}
+STATES_BY_CODE = tuple(STATE_CODES)
+
+
+def dumps(value: Any) -> bytes | None:
+    """Encode a request or response for a row (`None` is stored as `NULL`)."""
+    return None if value is None else wire.dumps(value)
+
+
+def loads(blob: bytes | None) -> Any:
+    return None if blob is None else pickle.loads(blob)
+
+
+def decode(path: str, rid: str, field: str, blob: bytes | None) -> Any:
+    """Decode a restored resource's stored value on first use (`CatalogCorruptError`)."""
+    try:
+        return loads(blob)
+    except Exception as exc:
+        raise CatalogCorruptError(
+            path,
+            f"the stored {field} of resource {rid} cannot be read: {type(exc).__name__}: {exc}",
+        ) from exc
+
+
+def _not_a_pickle(blob: bytes | None) -> bool:
+    """Whether a stored value cannot be a whole binary pickle (protocol header ... STOP)."""
+    return blob is not None and (
+        type(blob) is not bytes or blob[:1] != b"\x80" or blob[-1:] != b"."
+    )
+
+
+def check_values(row: Any) -> None:
+    """Raise `ValueError` if a resource row's request or response cannot be a pickle (a cheap
+    check of what a restore leaves encoded)."""
+    if _not_a_pickle(row[5]) or _not_a_pickle(row[6]):
+        raise ValueError(f"the stored request or response of resource {row[1]} is not a pickle")
+
+
+def _check_state(row: Any) -> None:
+    state = row[3]
+    if type(state) is not int or not 0 <= state < len(STATES_BY_CODE):
+        raise ValueError(f"resource {row[1]} has an unknown state {state!r}")
+
+
+def check_row(row: Any) -> None:
+    """Raise `ValueError` if a resource row has an unknown state or a value is no pickle."""
+    _check_state(row)
+    check_values(row)
+
+
+def check_keys(rows: list[Any], consumer_rows: list[Any], client_rows: list[Any]) -> None:
+    """Raise `ValueError` for a duplicate id (it would replace the first silently) or an
+    unknown state code."""
+    for row in rows:
+        _check_state(row)
+    for what, ids in (
+        ("resource id", [row[1] for row in rows]),
+        ("consumer query id", [row[1] for row in consumer_rows]),
+        ("client query id", [row[1] for row in client_rows]),
+    ):
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"{what} {first_duplicate(ids)} is stored twice")
+
+
+def first_duplicate(values: list[Any]) -> Any:
+    seen: set[Any] = set()
+    for value in values:
+        if value in seen:
+            return value
+        seen.add(value)
+    return None
+
+
+@dataclasses.dataclass(frozen=True)
+class Unreadable:
+    """Stands for a stored request or response that cannot be unpickled here (inspection).
+
+    Attributes:
+        error: why, e.g. `"ModuleNotFoundError: No module named 'drivers'"`.
+        size: length of the pickle, in bytes.
+    """
+
+    error: str
+    size: int
+
+    def __repr__(self) -> str:
+        return f"<unreadable, {self.size} bytes: {self.error}>"
+
+
+@dataclasses.dataclass(frozen=True)
+class NotUnpickled:
+    """Stands for a stored request or response that was not unpickled (`size`: of the
+    pickle, in bytes)."""
+
+    size: int
+
+    def __repr__(self) -> str:
+        return f"<not unpickled, {self.size} bytes>"
+
+
+def not_unpickled(_rid: str, _field: str, blob: bytes | None) -> Any:
+    return None if blob is None else NotUnpickled(len(blob) if type(blob) is bytes else 0)
+
+
+def lenient_decode(_rid: str, _field: str, blob: bytes | None) -> Any:
+    """Decode a stored value, or stand for it with an `Unreadable` (inspection)."""
+    try:
+        return loads(blob)
+    except Exception as exc:  # noqa: BLE001 - any unpickling failure is shown, not raised
+        return Unreadable(f"{type(exc).__name__}: {exc}", len(blob or b""))
+
+
+_DAMAGE_CODES = frozenset({"SQLITE_CORRUPT", "SQLITE_NOTADB"})  # pages not as written
+
+
+def damaged_file(exc: BaseException) -> bool:
+    """Whether SQLite raised `exc` because the file's pages are damaged (not a row)."""
+    if not isinstance(exc, sqlite3.DatabaseError):
+        return False
+    code = getattr(exc, "sqlite_errorname", None)
+    if code is not None:
+        return any(code == c or code.startswith(f"{c}_") for c in _DAMAGE_CODES)
+    return "malformed" in str(exc) or "not a database" in str(exc)
+
+
+@contextlib.contextmanager
+def as_corrupt(path: str, on_damage: Callable[[str], None] | None = None) -> Iterator[None]:
+    """Raise `CatalogCorruptError`, naming `path`, for what SQLite, unpickling or a row
+    check raises (`on_damage` told first when the pages are damaged)."""
+    try:
+        yield
+    except sqlite3.DatabaseError as exc:
+        why = f"{type(exc).__name__}: {exc}"
+        if on_damage is not None and damaged_file(exc):
+            on_damage(why)
+        raise CatalogCorruptError(path, why) from exc
+    except (
+        pickle.UnpicklingError,
+        EOFError,
+        AttributeError,
+        ImportError,
+        ValueError,
+        TypeError,
+        KeyError,
+        IndexError,
+    ) as exc:
+        raise CatalogCorruptError(
+            path, f"a stored row cannot be read: {type(exc).__name__}: {exc}"
+        ) from exc
+
+
+# -- what a write changes: the statements from the mirror to the catalog's rows --------------
+
+
+class Mirror:
+    """What the store last wrote for one resource (to write only the difference)."""
+
+    __slots__ = ("consumers", "failed", "response_version", "seq", "state", "texts")
+
+    def __init__(
+        self,
+        seq: int,
+        state: ResourceState,
+        response_version: int,
+        consumers: dict[str, int],
+        texts: Texts = (None, None, None),
+        failed: bool = False,
+    ) -> None:
+        self.seq = seq  # the row's key
+        self.state = state
+        # The catalog bumps `Resource.response_version` on every response it sets (also
+        # the same object again, mutated); decoding a restored one does not.
+        self.response_version = response_version
+        self.consumers = consumers  # consumer query id -> its row's key
+        self.texts = texts  # (request_text, response_text, label) as written
+        self.failed = failed  # the `failed` mark as written
+
+
+Texts = tuple[str | None, str | None, str | None]
+"""A resource row's `(request_text, response_text, label)`."""
+
+
+Op = tuple[str, tuple[Any, ...]]  # one planned SQL statement and its parameters
+GONE = object()  # a mirror entry to delete once a write committed
+
+
+def plan_resource(
+    written: dict[str, Mirror],
+    ops: list[Op],
+    mirrors: list[tuple[dict[str, Any], str, Any]],
+    rid: str,
+    resource: Resource | None,
+    seq: int,
+    touched: dict[str, None] | None = None,
+) -> int:
+    """Append to `ops` the statements for resource `rid` (`None`: removed), and to `mirrors`
+    the `(table, key, value)` entries to set once they committed; the last row key.
+    `touched`: the consumer ids to look at (`None`: every one)."""
+    old = written.get(rid)
+    if resource is None:
+        if old is not None:
+            ops.append(("DELETE FROM resources WHERE seq = ?", (old.seq,)))
+            ops.append(("DELETE FROM consumers WHERE resource = ?", (old.seq,)))
+            mirrors.append((written, rid, GONE))
+        return seq
+    texts = (resource.request_text, resource.response_text, resource.label)
+    if old is None:
+        seq += 1
+        digest = resource.digest
+        if digest is None:
+            digest = request_digest(resource.request)
+        ops.append(
+            (
+                "INSERT INTO resources (seq, id, server, state, digest, request, response, "
+                "request_text, response_text, label, failed) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (
+                    seq,
+                    rid,
+                    resource.server,
+                    STATE_CODES[resource.state],
+                    None if digest == NO_DIGEST else digest,
+                    dumps(resource.request),
+                    dumps(resource.response),
+                    *texts,
+                    int(resource.failed),
+                ),
+            )
+        )
+        keys: dict[str, int] = {}
+        row = seq
+        touched = None
+        update: Op | None = None
+    else:
+        update = None
+        if (
+            old.response_version != resource.response_version
+            or old.state is not resource.state
+            or old.texts != texts
+            or old.failed != resource.failed
+        ):
+            update = _resource_update(old, resource, texts)
+            ops.append(update)
+        keys = old.consumers
+        row = old.seq
+    now = resource.consumers
+    if touched is None:  # every consumer, against the mirror
+        touched = {**dict.fromkeys(now), **dict.fromkeys(keys)}
+    for query_id in touched:  # one INSERT or DELETE each whose row differs from `now`
+        key = keys.get(query_id)
+        if query_id in now:
+            if key is None:
+                seq += 1
+                ops.append(
+                    (
+                        "INSERT INTO consumers (resource, seq, query_id, origin_rr) "
+                        "VALUES (?, ?, ?, ?)",
+                        (row, seq, query_id, now[query_id]),
+                    )
+                )
+                mirrors.append((keys, query_id, seq))
+        elif key is not None:
+            ops.append(("DELETE FROM consumers WHERE resource = ? AND seq = ?", (row, key)))
+            mirrors.append((keys, query_id, GONE))
+    if old is None or update is not None:
+        # (the consumer keys stay in `keys`, the one dict: changed in place once committed)
+        mirror = Mirror(
+            row, resource.state, resource.response_version, keys, texts, resource.failed
+        )
+        mirrors.append((written, rid, mirror))
+    return seq
+
+
+def _resource_update(old: Mirror, resource: Resource, texts: Texts) -> Op:
+    """The one `UPDATE` that brings a written resource row up to date."""
+    columns: list[str] = []
+    values: list[Any] = []
+    if old.response_version != resource.response_version:
+        columns += ["state", "response"]
+        values += [STATE_CODES[resource.state], dumps(resource.response)]
+    elif old.state is not resource.state:
+        columns.append("state")
+        values.append(STATE_CODES[resource.state])
+    if old.texts != texts:
+        columns += ["request_text", "response_text", "label"]
+        values += texts
+    if old.failed != resource.failed:
+        columns.append("failed")
+        values.append(int(resource.failed))
+    assignments = ", ".join(f"{column} = ?" for column in columns)
+    sql = f"UPDATE resources SET {assignments} WHERE seq = ?"  # noqa: S608 - our column names
+    return (sql, (*values, old.seq))
+
+
+def plan_client(
+    written: dict[str, tuple[int, int, str | None]],
+    ops: list[Op],
+    mirrors: list[tuple[dict[str, Any], str, Any]],
+    qid: str,
+    record: ClientRecord | None,
+    seq: int,
+) -> int:
+    """Plan the statements for client record `qid` (`None`: removed), as `plan_resource`
+    (`written`: query id -> `(row key, response_version, request_text)`)."""
+    old = written.get(qid)
+    if record is None:
+        if old is not None:
+            ops.append(("DELETE FROM clients WHERE seq = ?", (old[0],)))
+            mirrors.append((written, qid, GONE))
+        return seq
+    query = record.query
+    if old is None:
+        seq += 1
+        row = seq
+        ops.append(
+            (
+                "INSERT INTO clients (seq, query_id, server, serving_rr, origin_rr, request, "
+                "response, parent, loaded, request_text) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (
+                    seq,
+                    qid,
+                    query.server,
+                    query.serving_rr,
+                    query.origin_rr,
+                    dumps(query.request),
+                    dumps(query.response),
+                    record.parent,
+                    int(record.loaded),
+                    record.request_text,
+                ),
+            )
+        )
+    elif old[1] == record.response_version:
+        row = old[0]
+        ops.append(
+            (
+                "UPDATE clients SET loaded = ?, request_text = ? WHERE seq = ?",
+                (int(record.loaded), record.request_text, row),
+            )
+        )
+    else:
+        row = old[0]
+        ops.append(
+            (
+                "UPDATE clients SET response = ?, loaded = ?, request_text = ? WHERE seq = ?",
+                (dumps(query.response), int(record.loaded), record.request_text, row),
+            )
+        )
+    mirrors.append((written, qid, (row, record.response_version, record.request_text)))
+    return seq

@@ -1,20 +1,25 @@
-"""The catalog backup: an embedded SQLite database (semantics rules 13-16,
-docs/explanation/semantics.md).
+"""The catalog backup's writer: an embedded SQLite database (semantics rules 13-16,
+docs/explanation/semantics.md) and its background checkpoints.
 
 ```
- registrar --Changes, told events--> Saver --write(changes, told)--> SqliteStore --`plan`:
-   only what differs from its mirror (of consumers, only the ids added or released), the
-   told events in the outbox (`outbox`)--> is the path still our file? (asked only once
-   the kernel told that a name changed; else copy it whole into place, `files`)
-   --> one transaction (WAL) --> file          (schema: `schema`, values: `codec`)
- SqliteStore.open: `files` checks, creates, validates and prepares the file
- SqliteStore.restore / load: `restore` reads it back; `checkpoints` copies the WAL off-thread
+ registrar --Changes, told events--> Saver --write(changes, told)--> SqliteStore
+   --`schema.plan_resource` / `plan_client`: only what differs from its mirror, values
+   pickled before anything is written; the told events in the outbox (`outbox`)-->
+   is the path still our file? (`BackupFile.keep_in_place`, asked only once the kernel
+   told that a name changed; else the whole catalog copied into place)
+   --> one transaction (WAL) --> file, its commit counted (`files.CommitCount`)
+   --every CHECKPOINT_EVERY pages: wake()--> Checkpointer thread: its own connection,
+   wal_checkpoint(PASSIVE), RESTART past WAL_LIMIT frames --> database file
+ SqliteStore.open: `files.open_backup` checks, claims, creates, validates, prepares
+ SqliteStore.restore / load: `restore` reads it back, the store mirrors what it read
 ```
 
 One file per registrar, in WAL mode; every `write` is one transaction, touching only the
-rows that differ from the store's mirror of what it wrote, so its cost does not grow
-with the catalog. A write that fails changes neither file nor mirror. What each failure
-costs: "What the backup survives", docs/explanation/failure-semantics.md.
+rows that differ from the store's mirror of what it wrote, so its cost does not grow with
+the catalog. A write that fails changes neither file nor mirror. Background checkpoints
+serve a store opened with `background_checkpoints` (a registrar without `save_on_modify`);
+the others keep SQLite's own. What each failure costs: "What the backup survives",
+docs/explanation/failure-semantics.md.
 """
 
 from __future__ import annotations
@@ -31,43 +36,10 @@ from typing import Any, Literal
 from rr_actors import events
 from rr_actors._catalog import NO_DIGEST, Changes, ClientRecord, Resource
 from rr_actors._core import runtime
-from rr_actors._platform import PLATFORM
-from rr_actors._store import checkpoints, codec, outbox, schema
-from rr_actors._store.checkpoints import Checkpointer
-from rr_actors._store.codec import STATES_BY_CODE, as_corrupt, check_keys, check_row, damaged_file
-from rr_actors._store.commits import CommitCount, lost_commits
-from rr_actors._store.files import (
-    SYNCHRONOUS,
-    BackupLock,
-    check_location,
-    check_pages,
-    claim,
-    connect,
-    copy_aside,
-    create,
-    file_ids,
-    foreign_owner,
-    gc_paused,
-    moved,
-    prepare,
-    put_in_place,
-    read_rows,
-    remove_files,
-    validate,
-    write_error,
-)
-from rr_actors._store.plan import GONE, Op, plan_client, plan_resource
-from rr_actors._store.restore import (
-    CLIENTS,
-    CONSUMERS_OF,
-    RESOURCES_AT_ONCE,
-    Mirror,
-    Restored,
-    Unread,
-    client_records,
-)
-from rr_actors._store.schema import rollback
-from rr_actors.errors import CatalogCorruptError, CatalogWriteError, ConfigError
+from rr_actors._store import outbox, schema
+from rr_actors._store.files import BackupFile, check_pages, open_backup, write_error
+from rr_actors._store.restore import Restored, Unread, gc_paused, read_at_once, read_rows
+from rr_actors.errors import CatalogCorruptError, CatalogWriteError
 
 logger = logging.getLogger("rr_actors")
 
@@ -77,45 +49,35 @@ class SqliteStore:
 
     def __init__(
         self,
-        path: Path,
+        backup: BackupFile,
         db: sqlite3.Connection,
         *,
         created: bool,
-        lock: BackupLock | None = None,
-        synchronous: str = "NORMAL",
+        checked: bool,
         background_checkpoints: bool = False,
     ) -> None:
-        self.path = str(path)
-        self._file = path.absolute()  # the same file after a chdir
-        self._name = str(self._file)
-        self._names = (self._name, f"{self._name}-wal")
+        self.path = backup.path
+        self._file = backup
         self._db = db
-        self._lock = lock
-        self._synchronous = synchronous
-        self._guarded = runtime.guards_files()  # (not in a simulation: its files are its own)
-        self._ids = file_ids(self._name) if self._guarded else (None, None)
-        self._watch = PLATFORM.watch_names() if self._guarded else None
-        self._aside: Path | None = None  # a whole copy not moved into place yet
         self._checkpointer: Checkpointer | None = None
         if background_checkpoints:
             self._hand_checkpoints_to_a_thread()
         self._unchecked = 0  # pages (about) written since the checkpointer was last woken
-        self.checkpoint_every = checkpoints.CHECKPOINT_EVERY
+        self.checkpoint_every = CHECKPOINT_EVERY
         self._created = created
-        self._checked = created or not self._guarded
+        self._checked = checked
         self._damaged: str | None = None
         self._loaded = False
-        self._resources: dict[str, Mirror] = {}
+        self._resources: dict[str, schema.Mirror] = {}
         # query id -> (row key, response_version, request_text)
         self._clients: dict[str, tuple[int, int, str | None]] = {}
         self._seq = 0
         # resources a failed write changed: their next write compares every consumer
         self._owed: set[str] = set()
         self.closed = False
-        self._decode = functools.partial(codec.decode, self.path)
-        self._synced = synchronous == SYNCHRONOUS["power"]  # (all a restore reads)
-        self._commits = CommitCount(self._file, kept=self._guarded, synced=self._synced)
-        self.lost_commits = 0  # of the last run, that its WAL no longer held
+        self._decode = functools.partial(schema.decode, self.path)
+        self._commits = backup.commits
+        self.lost_commits = backup.lost_commits  # of the last run, that its WAL no longer held
         self.commits = 0  # write transactions since it opened
 
     @classmethod
@@ -138,84 +100,23 @@ class SqliteStore:
                 or another registrar has it open.
             CatalogCorruptError: the file is not a usable rr_actors catalog.
         """
-        file = Path(os.fspath(path))
-        check_location(file)
-        lock = claim(file)  # before anything reads it: one registrar a file
+        backup, db, created, checked = open_backup(Path(os.fspath(path)), durability)
         try:
-            return cls._open(file, lock, durability, background_checkpoints)
-        except BaseException:
-            if lock is not None:
-                lock.release()
-            raise
-
-    @classmethod
-    def _open(
-        cls,
-        file: Path,
-        lock: BackupLock | None,
-        durability: Literal["process", "power"],
-        background_checkpoints: bool,
-    ) -> SqliteStore:
-        created = made = False
-        lost = None
-        if not file.exists():
-            made = create(file, synced=durability == "power")
-            created = True
-        if lock is not None:
-            lock.hold_file()
-        foreign = foreign_owner(file)
-        if foreign is not None:
-            raise ConfigError(
-                f"backup_path {foreign}: restoring it would run code from it (unpickling)"
+            return cls(
+                backup,
+                db,
+                created=created,
+                checked=checked,
+                background_checkpoints=background_checkpoints,
             )
-        if not created:
-            lost = lost_commits(file)  # before SQLite replays (and may remove) the log
-        version = schema.SCHEMA_VERSION if made else validate(file, tidy=True)  # (known)
-        name = str(file)
-        try:
-            db = connect(file, read_only=False)
-        except sqlite3.Error as exc:
-            raise ConfigError(f"backup_path {name!r} cannot be opened: {exc}") from exc
-        checked = created or not runtime.guards_files()
-        try:
-            if not checked and _open_writes(db, name, version):
-                check_pages(db, name)  # (before anything is written to it: rule 15)
-                checked = True
-            if made:  # (empty, current, WAL, written there already)
-                db.execute(f"PRAGMA synchronous = {SYNCHRONOUS[durability]}")
-            else:
-                prepare(db, name, durability, version)
-                with as_corrupt(name):  # (read at the last run's exit, if anyone listened)
-                    outbox.clear(db)
         except BaseException:
-            db.close()
+            backup.release()
             raise
-        store = cls(
-            file,
-            db,
-            created=created,
-            lock=lock,
-            synchronous=SYNCHRONOUS[durability],
-            background_checkpoints=background_checkpoints,
-        )
-        store._checked = checked
-        if lost is not None:
-            store.lost_commits, why = lost
-            logger.warning(
-                "catalog backup %s: %s: %d acknowledged commits are lost (their loads, "
-                "releases and unloads are not restored; consumers holding ids it lost are "
-                "told FATAL when they reconcile)",
-                name,
-                why,
-                store.lost_commits,
-            )
-            store._commits.close()  # reported once: the next commit counts the log afresh
-        return store
 
     def _hand_checkpoints_to_a_thread(self) -> None:
         self._db.execute("PRAGMA wal_autocheckpoint = 0")  # the checkpointer's thread does it
-        self._db.execute(f"PRAGMA journal_size_limit = {checkpoints.WAL_KEPT}")
-        self._checkpointer = Checkpointer(self._file, self._synchronous)
+        self._db.execute(f"PRAGMA journal_size_limit = {WAL_KEPT}")
+        self._checkpointer = Checkpointer(self._file.file, self._file.synchronous)
 
     @property
     def connection(self) -> sqlite3.Connection:
@@ -225,7 +126,7 @@ class SqliteStore:
         """Every stored row, oldest first; `None` if `open` created the file
         (`CatalogCorruptError`)."""
         try:
-            with as_corrupt(self.path), gc_paused():
+            with schema.as_corrupt(self.path), gc_paused():
                 rows = read_rows(self._db, self._decode, lenient=False)
         except CatalogCorruptError:
             self.close(erase=False)  # unusable; closing also removes its -wal and -shm
@@ -245,34 +146,15 @@ class SqliteStore:
         """Read what a registrar needs to serve again (`restore.py`); `None` if `open`
         created the file (`CatalogCorruptError`)."""
         try:
-            with as_corrupt(self.path), gc_paused():
-                self._db.execute("BEGIN")
-                try:
-                    (last,) = self._db.execute(
-                        "SELECT ifnull(max(seq), 0) FROM resources"
-                    ).fetchone()
-                    rows = self._db.execute(RESOURCES_AT_ONCE).fetchall()
-                    client_rows = self._db.execute(CLIENTS).fetchall()
-                    at_once = {row[0] for row in rows}
-                    more = self._db.execute(  # (at most len(rows) + 1 keys)
-                        "SELECT seq FROM resources ORDER BY seq LIMIT ?", (len(rows) + 1,)
-                    ).fetchall()
-                finally:
-                    self._db.execute("COMMIT")
-                for row in rows:
-                    check_row(row)
-                check_keys([], [], client_rows)
+            with schema.as_corrupt(self.path), gc_paused():
+                last, rows, clients, client_seqs, remaining = read_at_once(self._db, self._decode)
                 self._resources = {}
                 self._seq = last
-                resources = [
-                    self.adopt(row, self._db.execute(CONSUMERS_OF, (row[0],)).fetchall())
-                    for row in rows
-                ]
+                resources = [self.adopt(row, consumers) for row, consumers in rows]
                 for resource in resources:
                     if resource.digest == NO_DIGEST:
                         resource.digest = None  # indexed from its (decoded) request
                         _ = resource.request
-                clients, client_seqs = client_records(client_rows, self._decode)
                 texts = {c.query.id: c.request_text for c in clients}
                 self._clients = {qid: (seq, 0, texts[qid]) for qid, seq in client_seqs.items()}
         except CatalogCorruptError:
@@ -283,8 +165,7 @@ class SqliteStore:
         self._loaded = True
         if self._created and not last and not clients:
             return None
-        remaining = any(seq not in at_once for (seq,) in more)
-        unread = Unread(self, last, at_once, remaining=remaining)
+        unread = Unread(self, last, {row[0] for row, _ in rows}, remaining=remaining)
         return Restored(resources, clients, unread)
 
     def adopt(self, row: Any, consumer_rows: list[Any]) -> Resource:
@@ -293,7 +174,7 @@ class SqliteStore:
         resource = Resource.encoded(
             rid,
             server,
-            STATES_BY_CODE[state],
+            schema.STATES_BY_CODE[state],
             NO_DIGEST if digest is None else digest,
             (request, response),
             self._decode,
@@ -306,7 +187,7 @@ class SqliteStore:
             resource.consumers[query_id] = origin
             keys[query_id] = key
             self._seq = max(self._seq, key)  # its next consumer's key comes after these
-        self._resources[rid] = Mirror(
+        self._resources[rid] = schema.Mirror(
             seq, resource.state, 0, keys, (texts[0], texts[1], texts[2]), resource.failed
         )
         return resource
@@ -336,15 +217,15 @@ class SqliteStore:
         try:
             if not self._loaded:
                 self.load()
-            ops: list[Op] = []
-            mirrors: list[tuple[dict[str, Any], str, Any]] = []  # (table, key, value | GONE)
+            ops: list[schema.Op] = []
+            mirrors: list[tuple[dict[str, Any], str, Any]] = []  # (table, key, value | schema.GONE)
             seq = self._seq
             touched, written = changes.consumers, self._resources
             for rid, resource in changes.resources.items():
                 ids = None if rid in owed else touched.get(rid)
-                seq = plan_resource(written, ops, mirrors, rid, resource, seq, ids)
+                seq = schema.plan_resource(written, ops, mirrors, rid, resource, seq, ids)
             for qid, record in changes.clients.items():
-                seq = plan_client(self._clients, ops, mirrors, qid, record, seq)
+                seq = schema.plan_client(self._clients, ops, mirrors, qid, record, seq)
             if told:
                 outbox.plan_told(told, ops)
             if ops:
@@ -356,7 +237,7 @@ class SqliteStore:
             owed.difference_update(changes.resources)
         self._seq = seq
         for table, key, value in mirrors:
-            if value is GONE:
+            if value is schema.GONE:
                 table.pop(key, None)
             else:
                 table[key] = value
@@ -395,21 +276,20 @@ class SqliteStore:
             "stays as it was: keep it for analysis (quarantine_backup) and restart",
         ) from corrupt
 
-    def _commit(self, ops: list[Op]) -> None:
+    def _commit(self, ops: list[schema.Op]) -> None:
         if not self._checked or self._damaged is not None:
             self._refuse_if_damaged()
-        watch = self._watch  # (`_keep_in_place`'s first step, spared a call)
-        if watch is None or self._aside is not None or not watch.quiet():
+        if not self._file.quiet():
             self._keep_in_place()
         try:
             self._run(ops)
         except sqlite3.Error as exc:
-            if damaged_file(exc):
+            if schema.damaged_file(exc):
                 self.found_damaged(f"{type(exc).__name__}: {exc}")
                 self._refuse_if_damaged()
             raise write_error(self.path, exc) from exc
 
-    def _run(self, ops: list[Op]) -> None:
+    def _run(self, ops: list[schema.Op]) -> None:
         db = self._db
         if len(ops) == 1 and not db.in_transaction:  # one statement: its own transaction
             sql, params = ops[0]
@@ -421,7 +301,7 @@ class SqliteStore:
                     db.execute(sql, params)
                 db.execute("COMMIT")
             except BaseException:
-                rollback(db)
+                schema.rollback(db)
                 raise
         self.commits += 1
         self._commits.committed()
@@ -430,8 +310,8 @@ class SqliteStore:
         self._unchecked += len(ops)
         for _, params in ops:  # a large request or response fills many pages
             for value in params:
-                if type(value) is bytes and len(value) > checkpoints.PAGE:
-                    self._unchecked += len(value) // checkpoints.PAGE
+                if type(value) is bytes and len(value) > PAGE:
+                    self._unchecked += len(value) // PAGE
         if self._unchecked >= self.checkpoint_every:
             self._unchecked = 0
             if not self._checkpointer.wake():  # no thread: SQLite's own, from now on
@@ -440,47 +320,11 @@ class SqliteStore:
 
     def _keep_in_place(self) -> None:
         """Write the whole catalog to a new file if the path lost the one being written
-        ("A deleted backup", failure-semantics.md); two `stat`s, only once the platform's
-        watch (`Platform.watch_names`) told of a change. `CatalogWriteError`: the copy
-        failed (retried next time)."""
-        if not self._guarded:
+        (`BackupFile.keep_in_place`; `CatalogWriteError`: retried next time)."""
+        db = self._file.keep_in_place(self._db, self._close_connections)
+        if db is None:
             return
-        if self._aside is None:
-            watch = self._watch
-            if watch is not None and watch.quiet():  # nothing happened to the names
-                return
-            if self._ids[1] is None:  # the -wal appears with the first transaction
-                self._ids = (self._ids[0], file_ids(self._name)[1])
-            if watch is not None and self._ids[1] is not None:
-                watch.arm(self._names)  # (first: a change made during the check is told)
-            why = moved(self._name, self._ids)
-            if why is None:
-                return
-            logger.warning(
-                "catalog backup %s: %s while its registrar runs; writing the whole catalog "
-                "to a new file there",
-                self.path,
-                why,
-            )
-            try:
-                self._aside = copy_aside(self._db, self._file)
-            except (sqlite3.Error, OSError) as exc:
-                raise write_error(self.path, exc) from exc
-            self._close_connections()
-        try:  # no connection is open on the old file now: SQLite would remove the new -wal
-            put_in_place(self._aside, self._file, synced=self._synced)
-            self._aside = None
-            if self._lock is not None:  # (before SQLite locks the new file: see `lockfile`)
-                self._lock.file_replaced()
-            db = connect(self._file, read_only=False)
-            db.execute(f"PRAGMA synchronous = {self._synchronous}")
-        except (sqlite3.Error, OSError) as exc:
-            raise write_error(self.path, exc) from exc
         self._db = db
-        if self._watch is not None:
-            self._watch.close()  # (armed at the next commit, once the new -wal exists)
-        self._ids = file_ids(self._file)
-        self._commits.reopen()
         if self._checkpointer is not None:
             self._hand_checkpoints_to_a_thread()
 
@@ -499,27 +343,127 @@ class SqliteStore:
                     try:
                         self._keep_in_place()
                     except CatalogWriteError as exc:  # logged: a stop or a crash goes on
-                        kept = f"a whole copy is at {self._aside}" if self._aside else "it is lost"
+                        aside = self._file.aside
+                        kept = f"a whole copy is at {aside}" if aside else "it is lost"
                         logger.error("%s; %s", exc, kept)  # noqa: TRY400 - the cause says it all
                 self.closed = True
-                self._commits.close()  # (first: SQLite removes the log as it closes)
-                if self._watch is not None:
-                    self._watch.close()
-                if self._aside is None:
+                self._file.closing()
+                if self._file.aside is None:
                     self._close_connections()
             if erase:
-                remove_files(self._file)
-            if self._aside is not None and erase:
-                remove_files(self._aside)
+                self._file.erase()
         finally:  # (whatever happened: the file is no longer this store's)
-            lock, self._lock = self._lock, None
-            if lock is not None:
-                lock.release()
+            self._file.release()
 
 
-def _open_writes(db: sqlite3.Connection, name: str, version: int) -> bool:
-    """Whether opening the file writes to it (a migration, or last run's outbox to clear)."""
-    if version != schema.SCHEMA_VERSION:
+# -- the background checkpointer --------------------------------------------------------------
+
+CHECKPOINT_EVERY = 256  # WAL pages, about, between two background checkpoints
+PAGE = 4096  # bytes in a WAL page (SQLite's default)
+CHECKPOINT_BUSY_TIMEOUT = 0.1  # seconds a `RESTART` checkpoint waits for readers
+WAL_LIMIT = 16_384  # WAL frames past which a checkpoint makes the writer wait for it
+WAL_KEPT = 8 * 1024 * 1024  # bytes of WAL kept when the log restarts (`journal_size_limit`)
+
+
+class Checkpointer:
+    """Copies committed WAL pages into the database file, on its own thread, started at the
+    first wake-up (why and how: "The backup's file", docs/explanation/inside.md)."""
+
+    def __init__(self, path: Path, synchronous: str) -> None:
+        self._path = path.resolve()  # the thread connects later: a chdir must not matter
+        self._synchronous = synchronous
+        self._wake = runtime.Event()
+        self._closing = False
+        self._thread: runtime.Thread | None = None
+        self._db: sqlite3.Connection | None = None  # the thread's connection, once open
+        self.done = runtime.Condition()  # notified after each checkpoint
+        self._running = False
+        self.checkpoints = 0
+        self.last: tuple[int, int, int] | None = None  # (busy, frames in the log, copied)
+
+    def wake(self) -> bool:
+        """Ask for a checkpoint soon; `False` if no thread can do it."""
+        if self._closing:
+            return True
+        if self._thread is not None and not self._thread.is_alive():
+            return False
+        if self._thread is None:
+            thread = runtime.Thread(
+                target=self._run, name=f"rr-actors-checkpoint:{self._path.name}", daemon=True
+            )
+            try:
+                thread.start()
+            except RuntimeError:  # out of threads
+                return False
+            self._thread = thread
+        self._wake.set()
         return True
-    with as_corrupt(name):
-        return bool(db.execute("SELECT EXISTS (SELECT 1 FROM outbox)").fetchone()[0])
+
+    def wait_idle(self, timeout: float) -> bool:
+        """Wait until no checkpoint is asked for or running; False after `timeout` seconds."""
+        with self.done:
+            return self.done.wait_for(
+                lambda: not self._running and not self._wake.is_set(), timeout
+            )
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Stop the thread, interrupting the checkpoint in progress (safe: the next one, or
+        the next open, finishes the copy); wait `timeout` seconds."""
+        self._closing = True
+        self._wake.set()
+        db = self._db
+        if db is not None:
+            with contextlib.suppress(sqlite3.Error):
+                db.interrupt()
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    def _run(self) -> None:
+        try:
+            # by URI in `rw` mode: it never creates a file where the backup was
+            db = runtime.hold(
+                sqlite3.connect(
+                    f"{self._path.as_uri()}?mode=rw",
+                    uri=True,
+                    isolation_level=None,
+                    timeout=CHECKPOINT_BUSY_TIMEOUT,
+                )
+            )
+            db.execute(f"PRAGMA synchronous = {self._synchronous}")
+        except sqlite3.Error as exc:
+            logger.warning("catalog %s: no checkpoint connection: %s", self._path, exc)
+            return  # `wake` sees the thread gone: the store checkpoints as SQLite does
+        self._db = db
+        try:
+            while True:
+                self._wake.wait()
+                if self._closing:
+                    return
+                with self.done:
+                    self._wake.clear()
+                    self._running = True
+                self._checkpoint(db)
+        finally:
+            self._db = None
+            db.close()
+            with self.done:
+                self._running = False
+                self.done.notify_all()
+
+    def _checkpoint(self, db: sqlite3.Connection) -> None:
+        try:
+            busy, log, copied = db.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()
+            if log > WAL_LIMIT and copied < log:
+                busy, log, copied = db.execute("PRAGMA wal_checkpoint(RESTART)").fetchone()
+        except sqlite3.Error as exc:  # the WAL keeps every commit; retried at the next wake
+            if not self._closing:  # (closing interrupts it)
+                logger.warning("catalog %s: checkpoint failed: %s", self._path, exc)
+            with self.done:
+                self._running = False
+                self.done.notify_all()
+            return
+        with self.done:
+            self.last = (busy, log, copied)
+            self.checkpoints += 1
+            self._running = False
+            self.done.notify_all()

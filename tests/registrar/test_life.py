@@ -44,7 +44,7 @@ from rr_actors._registrar.life import RETRY_FIRST, RETRY_MAX, retry_delay
 from rr_actors._registrar.messages import Reconcile, ReconcileAsk, ReconcileRetry
 from rr_actors._registrar.state import OpenReply
 from rr_actors._store import restore
-from rr_actors._store.files import read_backup
+from rr_actors._store.restore import read_backup
 from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import (
     RemoteRegistrar,

@@ -19,7 +19,7 @@ from rr_actors import simulation
 from rr_actors._catalog import Catalog
 from rr_actors._core import runtime
 from rr_actors._process.manager import ManagerProcess
-from rr_actors._store.files import read_backup
+from rr_actors._store.restore import read_backup
 from rr_actors._store.sqlite import SqliteStore
 from rr_actors.config import RegistrarConfig
 from rr_actors.testing import MemoryNetwork

@@ -20,9 +20,8 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._catalog import Catalog, request_digest
-from rr_actors._store import codec
-from rr_actors._store.files import read_backup
-from rr_actors._store.restore import SWEEP_ROWS
+from rr_actors._store import schema
+from rr_actors._store.restore import SWEEP_ROWS, read_backup
 from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import catalog_snapshot
 from tests.support.durable_pair import (
@@ -220,7 +219,7 @@ def write_v2_backup(path: Path) -> None:
     loading (in doubt), r2 loaded; the consumer seqs are not in resource order.
     """
     db = schema_2_database(path)
-    dumps = codec.dumps
+    dumps = schema.dumps
     for seq, rid, state, request in ((1, "r0", 1, {"n": 0}), (2, "r1", 0, "x"), (5, "r2", 1, 2)):
         db.execute(
             "INSERT INTO resources VALUES (?, ?, 'leaf', ?, ?, ?, ?)",

@@ -18,7 +18,7 @@ from rr_actors._catalog import Catalog
 from rr_actors._core import runtime
 from rr_actors._store import saver as _persistence
 from rr_actors._store import schema
-from rr_actors._store.files import read_backup
+from rr_actors._store.restore import read_backup
 from rr_actors._store.saver import open_store
 from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import catalog_snapshot, crash

@@ -27,8 +27,8 @@ from rr_actors._catalog import (
     ClientRecord,
     ResourceState,
 )
-from rr_actors._store import codec, schema
-from rr_actors._store.files import read_backup
+from rr_actors._store import schema
+from rr_actors._store.restore import read_backup
 from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import catalog_snapshot
 from tests.support.durable_pair import noop_unload, start_consumer, start_pair, start_provider
@@ -368,12 +368,12 @@ def write_v1_backup(path: Path) -> None:
     for seq, rid, server, state, request, response in rows:
         db.execute(
             "INSERT INTO resources VALUES (?, ?, ?, ?, ?, ?)",
-            (seq, rid, server, state, codec.dumps(request), codec.dumps(response)),
+            (seq, rid, server, state, schema.dumps(request), schema.dumps(response)),
         )
     db.execute("INSERT INTO consumers VALUES (3, 'q0', 'r0', 'C')")
     db.execute(
         "INSERT INTO clients VALUES (4, 'd0', 'leaf', 'P', 'me', ?, NULL, 'r0', 1)",
-        (codec.dumps(5),),
+        (schema.dumps(5),),
     )
     db.close()
 
