@@ -281,6 +281,17 @@ PLANTS = (
         "simdoubt",
         "doubt-reported",
     ),
+    Plant(
+        "reconcile-due",
+        "a due call's id left out of its consumer's Reconcile: the provider releases an id "
+        "whose answer is on its way, and the consumer then records it (issue 68 item 7: "
+        "every verdict said `held`)",
+        "_registrar/consumer.py",
+        "        held |= due\n        held -= withdrawn\n",
+        "        held -= withdrawn  # PLANTED: held |= due\n",
+        "simretry",
+        "answer-released",
+    ),
     # -- issue 51 section 2: a reviewer's plants, one or more per area ---------------
     Plant(
         "status-seen-server",

@@ -1,8 +1,9 @@
-"""The consumer's side of a run (rules `answered`, `reported-lost`, `end`, `withdrawn`,
-`retry-kept`, `left`, `fetch`).
+"""The consumer's side of a run (rules `answered`, `answer-released`, `reported-lost`, `end`,
+`withdrawn`, `retry-kept`, `left`, `fetch`).
 
 ```
  steps ──► answered: each consumer's answered calls against what its providers added
+ history ──► answer_released: answers recorded after their provider's reconcile released them
  QueryForgotten + the provider pass's holdings ──► reported_lost
  steps (+ the history's exits) ──► end: what providers still hold for stopped consumers
  steps ──► withdrawn: what providers still hold of withdrawn calls
@@ -26,6 +27,7 @@ from rr_actors_lab.experiments._status_rules import Span
 
 __all__ = [
     "WITHDRAWN_BOUND_S",
+    "answer_released",
     "answered",
     "end",
     "fetch",
@@ -115,6 +117,47 @@ def answered(  # noqa: PLR0912 - one branch per event kind
             held[name].clear()
             restored[name].clear()
     return findings, spans
+
+
+def answer_released(history: Sequence[Line]) -> list[Finding]:
+    """`answer-released`: no consumer records an answer (`CallAnswered`) of an id its
+    provider's reconcile had released (`ConsumerReleased` of reason `"reconcile"`, stamped
+    before the answer) unless that provider added it again since (a retry that loaded
+    afresh, its `ConsumerAdded` between the two stamps). A `Reconcile` lists every call whose
+    answer is on its way (rule 20), so its provider never gives back an id its consumer is
+    about to hold: the consumer would hold an id nobody serves (issue 68 item 7)."""
+    # (consumer, query id, provider) -> the stamps and lines of its releases; its adds' stamps
+    released: dict[tuple[str, str, str], list[tuple[int, int]]] = defaultdict(list)
+    added: dict[tuple[str, str, str], list[int]] = defaultdict(list)
+    answers: list[tuple[int, events.CallAnswered]] = []
+    for line, event in history:
+        if isinstance(event, events.ConsumerReleased) and event.reason == "reconcile":
+            released[event.consumer, event.query_id, event.registrar].append((event.hlc, line))
+        elif isinstance(event, events.ConsumerAdded):
+            added[event.consumer, event.query_id, event.registrar].append(event.hlc)
+        elif isinstance(event, events.CallAnswered):
+            answers.append((line, event))
+    findings = []
+    for line, answer in answers:
+        key = (answer.registrar, answer.query_id, answer.serving_rr)
+        before = [(s, at) for s, at in released.get(key, ()) if 0 < s < answer.hlc]
+        if not before:
+            continue
+        stamp, at = max(before)  # (the last release before it: added again since?)
+        if any(stamp < again < answer.hlc for again in added.get(key, ())):
+            continue
+        findings.append(
+            Finding(
+                "answer-released",
+                "violation",
+                f"{answer.registrar}: call {answer.query_id[:8]} answered after "
+                f"{answer.serving_rr}'s reconcile released it (its Reconcile left out a call "
+                f"whose answer was on its way): it holds an id nobody serves (rule 20)",
+                (at, line),
+                (answer.registrar, answer.serving_rr),
+            )
+        )
+    return findings
 
 
 def reported_lost(
