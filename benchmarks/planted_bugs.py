@@ -292,6 +292,18 @@ PLANTS = (
         "simretry",
         "answer-released",
     ),
+    Plant(
+        "record-lost",
+        "a consumer's record write lost: a new client row's INSERT is dropped, so the "
+        "restore after a kill lacks an id its consumer had recorded, and it is handed "
+        "back quietly (its provider releases it at the reconcile; issue 68 item 7)",
+        "_store/plan.py",
+        "        ops.append(\n            (\n                \"INSERT INTO clients",
+        "        [].append(  # PLANTED: ops.append\n            (\n"
+        "                \"INSERT INTO clients",
+        "simchain",
+        "record-kept",
+    ),
     # -- issue 51 section 2: a reviewer's plants, one or more per area ---------------
     Plant(
         "status-seen-server",

@@ -1,9 +1,10 @@
-"""The consumer's side of a run (rules `answered`, `answer-released`, `reported-lost`, `end`,
-`withdrawn`, `retry-kept`, `left`, `fetch`).
+"""The consumer's side of a run (rules `answered`, `answer-released`, `record-kept`,
+`reported-lost`, `end`, `withdrawn`, `retry-kept`, `left`, `fetch`).
 
 ```
  steps ──► answered: each consumer's answered calls against what its providers added
  history ──► answer_released: answers recorded after their provider's reconcile released them
+ steps ──► record_kept: what a consumer recorded against what its next restore lists
  QueryForgotten + the provider pass's holdings ──► reported_lost
  steps (+ the history's exits) ──► end: what providers still hold for stopped consumers
  steps ──► withdrawn: what providers still hold of withdrawn calls
@@ -30,6 +31,7 @@ __all__ = [
     "answer_released",
     "answered",
     "end",
+    "record_kept",
     "fetch",
     "left",
     "reported_lost",
@@ -158,6 +160,63 @@ def answer_released(history: Sequence[Line]) -> list[Finding]:
             )
         )
     return findings
+
+
+def record_kept(steps: Sequence[Step], history: Sequence[Line]) -> list[Finding]:
+    """`record-kept` (rule 14, the consumer's side): a consumer with a backup keeps what it
+    recorded. Its restore (a `CatalogRestored` that lists its rows) lists every id whose
+    answer its life before recorded (`CallAnswered`, published once the record is committed)
+    and had not forgotten (`QueryForgotten`); nor does that life hand back `in doubt` such
+    an id of a top-level call (restored without a parent: `in doubt` is for a pending record
+    of an older backup, or an orphaned dependency, not judged). Excused: an id its provider released before the restore (`ConsumerReleased`
+    stamped before it: a release whose forget was committed just before the kill)."""
+    released: dict[tuple[str, str], int] = {}  # (consumer, query id) -> first release stamp
+    for _, event in history:
+        if isinstance(event, events.ConsumerReleased):
+            key = (event.consumer, event.query_id)
+            released[key] = min(released.get(key, event.hlc), event.hlc)
+    held: dict[str, dict[str, int]] = defaultdict(dict)  # consumer -> recorded id -> line
+    kept: dict[str, dict[str, tuple[int, int]]] = defaultdict(dict)  # restored: -> (at, line)
+    findings: list[Finding] = []
+
+    def lost(name: str, qid: str, at: int, line: int, how: str) -> None:
+        findings.append(
+            Finding(
+                "record-kept",
+                "violation",
+                f"{name}: call {qid[:8]} recorded, {how} (its record's write was lost: "
+                f"rule 14)",
+                (at, line),
+                (name,),
+            )
+        )
+
+    for name, line, event, _new, _life in steps:
+        if isinstance(event, events.CatalogRestored):
+            kept[name] = {}
+            if event.complete:
+                listed = {row[0]: row for row in event.clients}
+                for qid, at in held[name].items():
+                    gone = released.get((base(name), qid))
+                    if qid not in listed and not (gone and 0 < gone < event.hlc):
+                        lost(name, qid, at, line, "not forgotten, but its next restore lacks it")
+                    elif qid in listed and not listed[qid][3]:  # (a top-level call's)
+                        kept[name][qid] = (at, line)
+            held[name] = {}
+        elif isinstance(event, events.CallAnswered):
+            held[name].setdefault(event.query_id, line)
+            kept[name].pop(event.query_id, None)
+        elif isinstance(event, events.QueryForgotten):
+            held[name].pop(event.query_id, None)
+            restored = kept[name].pop(event.query_id, None)
+            if event.reason == "in doubt" and restored is not None:
+                lost(name, event.query_id, restored[0], line, "restored, then handed back in doubt")
+    return findings
+
+
+def base(name: str) -> str:
+    """A registrar's name without a second server's `@pid` (its events' own name)."""
+    return name.partition("@")[0]
 
 
 def reported_lost(

@@ -4,7 +4,10 @@ found, with the lines that show it; mutations of a real history are found too.""
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import json
+import textwrap
+from collections import defaultdict
 from collections.abc import Callable
 from pathlib import Path
 
@@ -815,13 +818,55 @@ def test_an_answer_recorded_before_its_providers_reconcile_released_it_is_not_th
     assert [] == [f for f in findings if f.rule == "answer-released"]
 
 
+def _recorded_then_restored(*rows: tuple[str, ...], after: tuple[events.Event, ...] = ()) -> (
+    list[events.Event]
+):
+    """erm adds Q1 for cm, cm records its answer (a top-level call); cm is killed and
+    restores `rows` (its client records), then `after`."""
+    h = clean()
+    restored = events.CatalogRestored("cm", (), (), rows, (0, 0, len(rows)), pid=C + 1)
+    answer = events.CallAnswered("cm", Q1, "erm", "cam", pid=C)
+    return _stamped(renumbered([*h[:3], answer, restored, *after]))
+
+
+def test_an_answer_its_consumer_recorded_that_its_next_restore_lacks_is_found() -> None:
+    """Issue 68 item 7: the plant `record-lost` (a client row's INSERT dropped) makes
+    `simchain`'s api restore without the dependencies it recorded; their provider
+    releases them at the reconcile, quietly, and every other rule holds."""
+    assert {4, 5} == _found(_recorded_then_restored(), "record-kept")
+
+
+def test_an_answer_its_next_restore_lists_or_its_provider_released_first_holds() -> None:
+    listed = _recorded_then_restored((Q1, "erm", "cam", ""))
+    released = events.ConsumerReleased("erm", RID, Q1, "cm", pid=P, seq=4)
+    h = clean()
+    gone = _stamped(
+        renumbered(
+            [
+                *h[:3],
+                events.CallAnswered("cm", Q1, "erm", "cam", pid=C),
+                released,  # (cm's forget committed, then killed before its event left)
+                events.CatalogRestored("cm", (), (), (), (0, 0, 0), pid=C + 1),
+            ]
+        )
+    )
+    for history in (listed, gone):
+        findings = check.check(numbered(history)).findings
+        assert [] == [f for f in findings if f.rule == "record-kept"]
+
+
+def test_a_recorded_top_level_call_restored_then_handed_back_in_doubt_is_found() -> None:
+    doubt = events.QueryForgotten("cm", Q1, "erm", "in doubt", pid=C + 1)
+    history = _recorded_then_restored((Q1, "erm", "cam", ""), after=(doubt,))
+    assert {4, 6} == _found(history, "record-kept")
+    dependency = _recorded_then_restored((Q1, "erm", "cam", RID2), after=(doubt,))
+    findings = check.check(numbered(dependency)).findings  # (an orphan: not judged)
+    assert [] == [f for f in findings if f.rule == "record-kept"]
+
+
 def _plant(monkeypatch: pytest.MonkeyPatch, owner: type, name: str, old: str, new: str) -> None:
     """`owner.name` replaced, for this test, by its source with `old` (found once) made `new`:
     the same edit as a plant of benchmarks/planted_bugs.py, in this process."""
-    import inspect  # noqa: PLC0415
-    import sys  # noqa: PLC0415
-    import textwrap  # noqa: PLC0415
-
     source = textwrap.dedent(inspect.getsource(getattr(owner, name)))
     assert 1 == source.count(old), f"{owner.__name__}.{name} moved: write the plant again"
     module = sys.modules[owner.__module__]
@@ -832,6 +877,27 @@ def _plant(monkeypatch: pytest.MonkeyPatch, owner: type, name: str, old: str, ne
 
 PLANTED_SEEDS = pytest.mark.timeout(600)
 """A planted plan's seed takes a few CPU seconds; under load several times that."""
+
+
+@PLANTED_SEEDS
+def test_the_plant_record_lost_is_caught_by_record_kept_at_simchain_seed_1(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from rr_actors._store import plan as store_plan  # noqa: PLC0415
+    from rr_actors._store import sqlite  # noqa: PLC0415
+
+    plan = load_plan(plans.find("simchain"))
+    assert "held" == simulate.run_seed(plan, 1).verdict
+    source = inspect.getsource(store_plan.plan_client)
+    old = 'ops.append(\n            (\n                "INSERT INTO clients'
+    assert 1 == source.count(old), "plan_client moved: write the plant again"
+    made: dict[str, object] = {}
+    planted = source.replace(old, '[].append(\n            (\n                "INSERT INTO clients')
+    exec(compile(planted, store_plan.__file__, "exec"), vars(store_plan), made)  # noqa: S102
+    for module in (store_plan, sqlite):  # (sqlite imported it by name)
+        monkeypatch.setattr(module, "plan_client", made["plan_client"])
+    found = simulate.run_seed(plan, 1).findings
+    assert any("[record-kept]" in line for line in found), found
 
 
 @PLANTED_SEEDS
@@ -2755,6 +2821,25 @@ def release_before_answer(h: History) -> History | None:
     return None
 
 
+def restore_loses_record(h: History) -> History | None:
+    """A consumer's restore lacks a client record its life before recorded (its
+    `CallAnswered`) and did not forget, nor had its provider released it."""
+    held: dict[str, set[str]] = defaultdict(set)
+    released = {(e.consumer, e.query_id) for e in h if type(e) is events.ConsumerReleased}
+    for i, e in enumerate(h):
+        if type(e) is events.CallAnswered:
+            held[e.registrar].add(e.query_id)
+        elif type(e) is events.QueryForgotten:
+            held[e.registrar].discard(e.query_id)
+        elif type(e) is events.CatalogRestored:
+            for row in e.clients:
+                if row[0] in held[e.registrar] and (e.registrar, row[0]) not in released:
+                    rows = tuple(r for r in e.clients if r is not row)
+                    return [*h[:i], dataclasses.replace(e, clients=rows), *h[i + 1 :]]
+            held[e.registrar] = {row[0] for row in e.clients}
+    return None
+
+
 def drop_give_up(h: History) -> History | None:
     """A supervisor's give-up at an exit past its intensity is not published."""
     i = _index(h, events.SupervisorGaveUp)
@@ -2884,6 +2969,7 @@ MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     "drop-add": (drop_add, "answered"),
     "drop-forget": (drop_forget, "answered"),
     "release-before-answer": (release_before_answer, "answer-released"),
+    "restore-loses-record": (restore_loses_record, "record-kept"),
     "unknown-at-reconcile-while-held": (
         told_lost_while_held("unknown at reconcile"),
         "reported-lost",
