@@ -304,6 +304,17 @@ PLANTS = (
         "simchain",
         "record-kept",
     ),
+    Plant(
+        "shed-ms",
+        "a load's run time learned in milliseconds: its server's pace is a thousand times "
+        "what its loads take, so loads that had time to start are shed as they come "
+        "(`DeadlineExceededError`; issue 68 item 7: no rule judged a refusal needed)",
+        "_registrar/provider.py",
+        "        pace.load_s += _LOAD_S_WEIGHT * (took - pace.load_s)\n",
+        "        pace.load_s += _LOAD_S_WEIGHT * (took * 1000 - pace.load_s)  # PLANTED: ms\n",
+        "simdoubt",
+        "shed-needed",
+    ),
     # -- issue 51 section 2: a reviewer's plants, one or more per area ---------------
     Plant(
         "status-seen-server",

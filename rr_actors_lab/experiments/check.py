@@ -39,6 +39,7 @@ from rr_actors_lab.experiments._provider_rules import (
     Providers,
     dependency_held,
     doubt_reported,
+    shed_needed,
     unload_order,
 )
 
@@ -78,6 +79,7 @@ RULES = (
     "unload-order",
     "dependency-held",
     "doubt-reported",
+    "shed-needed",
     "intensity",
     "strategy",
     "escalation",
@@ -259,6 +261,7 @@ def check(history: Sequence[Line], resolve: str = "first_served") -> Verdict:
         *unload_order(steps),
         *dependency_held(steps),
         *doubt_reported(steps),
+        *shed_needed(history),
         *_supervision_rules.intensity(history),
         *strategy,
         *escalation,

@@ -864,6 +864,42 @@ def test_a_recorded_top_level_call_restored_then_handed_back_in_doubt_is_found()
     assert [] == [f for f in findings if f.rule == "record-kept"]
 
 
+def _shed(left: float, rounds: int = 0, *, pid: int = P) -> events.LoadFailed:
+    """erm's load for Q2 shed with `left` seconds of its callers' timeout (as the provider
+    words it), `rounds` of loads queued ahead."""
+    ahead = f" after {rounds} rounds of its loads queued ahead" if rounds else ""
+    return events.LoadFailed(
+        "erm", "cam", RID2, Q2, "DeadlineExceededError",
+        f"the load of 'x' at 'erm/cam' was shed before it started: {left:.3f} s were left of "
+        f"its callers' timeout{ahead}, and its loads take 2.000 s lately (it needs 1.5 times "
+        "that)",
+        pid=pid,
+    )  # fmt: skip
+
+
+def test_a_load_shed_with_time_left_for_its_servers_longest_load_is_found() -> None:
+    """Issue 68 item 7: the plant `shed-ms` (a load's time learned in milliseconds) sheds
+    every load of `simdoubt`'s api with 3 s left where its loads take 0.05 s; the run held."""
+    h = clean()  # (erm's load of RID took 0.01 s)
+    assert {4} == _found(renumbered([*h[:3], _shed(1.0)]), "shed-needed")
+
+
+@pytest.mark.parametrize(
+    "shed",
+    [
+        pytest.param(_shed(0.012), id="too-little-left"),
+        pytest.param(_shed(1.0, rounds=2), id="behind-queued-loads"),
+        pytest.param(_shed(1.0, pid=P + 1), id="before-any-load-of-its-process"),
+    ],
+)
+def test_a_load_shed_that_could_not_start_in_time_or_is_not_judged_holds(
+    shed: events.LoadFailed,
+) -> None:
+    h = clean()
+    findings = check.check(numbered(renumbered([*h[:3], shed]))).findings
+    assert [] == [f for f in findings if f.rule == "shed-needed"]
+
+
 def _plant(monkeypatch: pytest.MonkeyPatch, owner: type, name: str, old: str, new: str) -> None:
     """`owner.name` replaced, for this test, by its source with `old` (found once) made `new`:
     the same edit as a plant of benchmarks/planted_bugs.py, in this process."""
@@ -898,6 +934,19 @@ def test_the_plant_record_lost_is_caught_by_record_kept_at_simchain_seed_1(
         monkeypatch.setattr(module, "plan_client", made["plan_client"])
     found = simulate.run_seed(plan, 1).findings
     assert any("[record-kept]" in line for line in found), found
+
+
+@PLANTED_SEEDS
+def test_the_plant_shed_ms_is_caught_by_shed_needed_at_simdoubt_seed_1(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from rr_actors._registrar.provider import ServerActor  # noqa: PLC0415
+
+    plan = load_plan(plans.find("simdoubt"))
+    assert "held" == simulate.run_seed(plan, 1).verdict
+    _plant(monkeypatch, ServerActor, "ran", "(took - pace.load_s)", "(took * 1000 - pace.load_s)")
+    found = simulate.run_seed(plan, 1).findings
+    assert any("[shed-needed]" in line for line in found), found
 
 
 @PLANTED_SEEDS
@@ -2840,6 +2889,21 @@ def restore_loses_record(h: History) -> History | None:
     return None
 
 
+def shed_with_time_left(h: History) -> History | None:
+    """A load shed with nothing queued ahead and 3 s left of its callers' timeout, right
+    after a load of its server that took under a second (a `LoadFailed` of a new id)."""
+    for i, e in enumerate(h):
+        if type(e) is events.ResourceLoaded and e.load_s < 1.0:
+            shed = events.LoadFailed(
+                e.registrar, e.server, "f1111111-0000", "f2222222-0000", "DeadlineExceededError",
+                f"the load of 'x' at '{e.registrar}/{e.server}' was shed before it started: "
+                "3.000 s were left of its callers' timeout, and its loads take 9.000 s lately",
+                pid=e.pid, seq=e.seq, at=e.at, hlc=e.hlc, host=e.host,
+            )  # fmt: skip
+            return [*h[: i + 1], shed, *h[i + 1 :]]
+    return None
+
+
 def drop_give_up(h: History) -> History | None:
     """A supervisor's give-up at an exit past its intensity is not published."""
     i = _index(h, events.SupervisorGaveUp)
@@ -2970,6 +3034,7 @@ MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     "drop-forget": (drop_forget, "answered"),
     "release-before-answer": (release_before_answer, "answer-released"),
     "restore-loses-record": (restore_loses_record, "record-kept"),
+    "shed-with-time-left": (shed_with_time_left, "shed-needed"),
     "unknown-at-reconcile-while-held": (
         told_lost_while_held("unknown at reconcile"),
         "reported-lost",
