@@ -298,9 +298,9 @@ PLANTS = (
         "restore after a kill lacks an id its consumer had recorded, and it is handed "
         "back quietly (its provider releases it at the reconcile; issue 68 item 7)",
         "_store/plan.py",
-        "        ops.append(\n            (\n                \"INSERT INTO clients",
+        '        ops.append(\n            (\n                "INSERT INTO clients',
         "        [].append(  # PLANTED: ops.append\n            (\n"
-        "                \"INSERT INTO clients",
+        '                "INSERT INTO clients',
         "simchain",
         "record-kept",
     ),

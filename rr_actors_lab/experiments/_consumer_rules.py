@@ -31,9 +31,9 @@ __all__ = [
     "answer_released",
     "answered",
     "end",
-    "record_kept",
     "fetch",
     "left",
+    "record_kept",
     "reported_lost",
     "retry_kept",
     "withdrawn",
@@ -168,8 +168,9 @@ def record_kept(steps: Sequence[Step], history: Sequence[Line]) -> list[Finding]
     answer its life before recorded (`CallAnswered`, published once the record is committed)
     and had not forgotten (`QueryForgotten`); nor does that life hand back `in doubt` such
     an id of a top-level call (restored without a parent: `in doubt` is for a pending record
-    of an older backup, or an orphaned dependency, not judged). Excused: an id its provider released before the restore (`ConsumerReleased`
-    stamped before it: a release whose forget was committed just before the kill)."""
+    of an older backup, or an orphaned dependency, not judged). Excused: an id its provider
+    released before the restore (`ConsumerReleased` stamped before it: a release whose
+    forget was committed just before the kill)."""
     released: dict[tuple[str, str], int] = {}  # (consumer, query id) -> first release stamp
     for _, event in history:
         if isinstance(event, events.ConsumerReleased):
@@ -184,8 +185,7 @@ def record_kept(steps: Sequence[Step], history: Sequence[Line]) -> list[Finding]
             Finding(
                 "record-kept",
                 "violation",
-                f"{name}: call {qid[:8]} recorded, {how} (its record's write was lost: "
-                f"rule 14)",
+                f"{name}: call {qid[:8]} recorded, {how} (its record's write was lost: rule 14)",
                 (at, line),
                 (name,),
             )

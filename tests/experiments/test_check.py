@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import json
+import sys
 import textwrap
 from collections import defaultdict
 from collections.abc import Callable
@@ -818,9 +819,9 @@ def test_an_answer_recorded_before_its_providers_reconcile_released_it_is_not_th
     assert [] == [f for f in findings if f.rule == "answer-released"]
 
 
-def _recorded_then_restored(*rows: tuple[str, ...], after: tuple[events.Event, ...] = ()) -> (
-    list[events.Event]
-):
+def _recorded_then_restored(
+    *rows: tuple[str, ...], after: tuple[events.Event, ...] = ()
+) -> list[events.Event]:
     """erm adds Q1 for cm, cm records its answer (a top-level call); cm is killed and
     restores `rows` (its client records), then `after`."""
     h = clean()
