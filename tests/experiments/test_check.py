@@ -2875,15 +2875,15 @@ def restore_loses_record(h: History) -> History | None:
     """A consumer's restore lacks a client record its life before recorded (its
     `CallAnswered`) and did not forget, nor had its provider released it. A run with no
     such restore (the real runs of 2 s) gets one: a restart right after a consumer's first
-    answer (a new process of it) restores no client row."""
+    answer restores no client row."""
     return _restore_drops_a_row(h) or _restart_after_an_answer(h)
 
 
 def _restart_after_an_answer(h: History) -> History | None:
     for i, e in enumerate(h):
         if type(e) is events.CallAnswered and not e.retry:
-            restored = events.CatalogRestored(
-                e.registrar, (), (), (), pid=e.pid + 100_000, at=e.at, hlc=e.hlc + 1, host=e.host
+            restored = events.CatalogRestored(  # (its process: a new one is a second server)
+                e.registrar, (), (), (), pid=e.pid, at=e.at, hlc=e.hlc + 1, host=e.host
             )
             return [*h[: i + 1], restored, *h[i + 1 :]]
     return None
