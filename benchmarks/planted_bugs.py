@@ -281,6 +281,40 @@ PLANTS = (
         "simdoubt",
         "doubt-reported",
     ),
+    Plant(
+        "reconcile-due",
+        "a due call's id left out of its consumer's Reconcile: the provider releases an id "
+        "whose answer is on its way, and the consumer then records it (issue 68 item 7: "
+        "every verdict said `held`)",
+        "_registrar/consumer.py",
+        "        held |= due\n        held -= withdrawn\n",
+        "        held -= withdrawn  # PLANTED: held |= due\n",
+        "simretry",
+        "answer-released",
+    ),
+    Plant(
+        "record-lost",
+        "a consumer's record write lost: a new client row's INSERT is dropped, so the "
+        "restore after a kill lacks an id its consumer had recorded, and it is handed "
+        "back quietly (its provider releases it at the reconcile; issue 68 item 7)",
+        "_store/plan.py",
+        '        ops.append(\n            (\n                "INSERT INTO clients',
+        "        [].append(  # PLANTED: ops.append\n            (\n"
+        '                "INSERT INTO clients',
+        "simchain",
+        "record-kept",
+    ),
+    Plant(
+        "shed-ms",
+        "a load's run time learned in milliseconds: its server's pace is a thousand times "
+        "what its loads take, so loads that had time to start are shed as they come "
+        "(`DeadlineExceededError`; issue 68 item 7: no rule judged a refusal needed)",
+        "_registrar/provider.py",
+        "        pace.load_s += _LOAD_S_WEIGHT * (took - pace.load_s)\n",
+        "        pace.load_s += _LOAD_S_WEIGHT * (took * 1000 - pace.load_s)  # PLANTED: ms\n",
+        "simdoubt",
+        "shed-needed",
+    ),
     # -- issue 51 section 2: a reviewer's plants, one or more per area ---------------
     Plant(
         "status-seen-server",

@@ -1,8 +1,10 @@
-"""The consumer's side of a run (rules `answered`, `reported-lost`, `end`, `withdrawn`,
-`retry-kept`, `left`, `fetch`).
+"""The consumer's side of a run (rules `answered`, `answer-released`, `record-kept`,
+`reported-lost`, `end`, `withdrawn`, `retry-kept`, `left`, `fetch`).
 
 ```
  steps ──► answered: each consumer's answered calls against what its providers added
+ history ──► answer_released: answers recorded after their provider's reconcile released them
+ steps ──► record_kept: what a consumer recorded against what its next restore lists
  QueryForgotten + the provider pass's holdings ──► reported_lost
  steps (+ the history's exits) ──► end: what providers still hold for stopped consumers
  steps ──► withdrawn: what providers still hold of withdrawn calls
@@ -26,10 +28,12 @@ from rr_actors_lab.experiments._status_rules import Span
 
 __all__ = [
     "WITHDRAWN_BOUND_S",
+    "answer_released",
     "answered",
     "end",
     "fetch",
     "left",
+    "record_kept",
     "reported_lost",
     "retry_kept",
     "withdrawn",
@@ -115,6 +119,104 @@ def answered(  # noqa: PLR0912 - one branch per event kind
             held[name].clear()
             restored[name].clear()
     return findings, spans
+
+
+def answer_released(history: Sequence[Line]) -> list[Finding]:
+    """`answer-released`: no consumer records an answer (`CallAnswered`) of an id its
+    provider's reconcile had released (`ConsumerReleased` of reason `"reconcile"`, stamped
+    before the answer) unless that provider added it again since (a retry that loaded
+    afresh, its `ConsumerAdded` between the two stamps). A `Reconcile` lists every call whose
+    answer is on its way (rule 20), so its provider never gives back an id its consumer is
+    about to hold: the consumer would hold an id nobody serves (issue 68 item 7)."""
+    # (consumer, query id, provider) -> the stamps and lines of its releases; its adds' stamps
+    released: dict[tuple[str, str, str], list[tuple[int, int]]] = defaultdict(list)
+    added: dict[tuple[str, str, str], list[int]] = defaultdict(list)
+    answers: list[tuple[int, events.CallAnswered]] = []
+    for line, event in history:
+        if isinstance(event, events.ConsumerReleased) and event.reason == "reconcile":
+            released[event.consumer, event.query_id, event.registrar].append((event.hlc, line))
+        elif isinstance(event, events.ConsumerAdded):
+            added[event.consumer, event.query_id, event.registrar].append(event.hlc)
+        elif isinstance(event, events.CallAnswered):
+            answers.append((line, event))
+    findings = []
+    for line, answer in answers:
+        key = (answer.registrar, answer.query_id, answer.serving_rr)
+        before = [(s, at) for s, at in released.get(key, ()) if 0 < s < answer.hlc]
+        if not before:
+            continue
+        stamp, at = max(before)  # (the last release before it: added again since?)
+        if any(stamp < again < answer.hlc for again in added.get(key, ())):
+            continue
+        findings.append(
+            Finding(
+                "answer-released",
+                "violation",
+                f"{answer.registrar}: call {answer.query_id[:8]} answered after "
+                f"{answer.serving_rr}'s reconcile released it (its Reconcile left out a call "
+                f"whose answer was on its way): it holds an id nobody serves (rule 20)",
+                (at, line),
+                (answer.registrar, answer.serving_rr),
+            )
+        )
+    return findings
+
+
+def record_kept(steps: Sequence[Step], history: Sequence[Line]) -> list[Finding]:
+    """`record-kept` (rule 14, the consumer's side): a consumer with a backup keeps what it
+    recorded. Its restore (a `CatalogRestored` that lists its rows) lists every id whose
+    answer its life before recorded (`CallAnswered`, published once the record is committed)
+    and had not forgotten (`QueryForgotten`); nor does that life hand back `in doubt` such
+    an id of a top-level call (restored without a parent: `in doubt` is for a pending record
+    of an older backup, or an orphaned dependency, not judged). Excused: an id its provider
+    released before the restore (`ConsumerReleased` stamped before it: a release whose
+    forget was committed just before the kill)."""
+    released: dict[tuple[str, str], int] = {}  # (consumer, query id) -> first release stamp
+    for _, event in history:
+        if isinstance(event, events.ConsumerReleased):
+            key = (event.consumer, event.query_id)
+            released[key] = min(released.get(key, event.hlc), event.hlc)
+    held: dict[str, dict[str, int]] = defaultdict(dict)  # consumer -> recorded id -> line
+    kept: dict[str, dict[str, tuple[int, int]]] = defaultdict(dict)  # restored: -> (at, line)
+    findings: list[Finding] = []
+
+    def lost(name: str, qid: str, at: int, line: int, how: str) -> None:
+        findings.append(
+            Finding(
+                "record-kept",
+                "violation",
+                f"{name}: call {qid[:8]} recorded, {how} (its record's write was lost: rule 14)",
+                (at, line),
+                (name,),
+            )
+        )
+
+    for name, line, event, _new, _life in steps:
+        if isinstance(event, events.CatalogRestored):
+            kept[name] = {}
+            if event.complete:
+                listed = {row[0]: row for row in event.clients}
+                for qid, at in held[name].items():
+                    gone = released.get((base(name), qid))
+                    if qid not in listed and not (gone and 0 < gone < event.hlc):
+                        lost(name, qid, at, line, "not forgotten, but its next restore lacks it")
+                    elif qid in listed and not listed[qid][3]:  # (a top-level call's)
+                        kept[name][qid] = (at, line)
+            held[name] = {}
+        elif isinstance(event, events.CallAnswered):
+            held[name].setdefault(event.query_id, line)
+            kept[name].pop(event.query_id, None)
+        elif isinstance(event, events.QueryForgotten):
+            held[name].pop(event.query_id, None)
+            restored = kept[name].pop(event.query_id, None)
+            if event.reason == "in doubt" and restored is not None:
+                lost(name, event.query_id, restored[0], line, "restored, then handed back in doubt")
+    return findings
+
+
+def base(name: str) -> str:
+    """A registrar's name without a second server's `@pid` (its events' own name)."""
+    return name.partition("@")[0]
 
 
 def reported_lost(

@@ -1,6 +1,6 @@
 """The provider's side of a run: one pass over each provider's catalog as its events tell it
 (`kept`, `unload-once`, `no-leak`, `one-resource`, `release-match`, `in-doubt`, `dedup`,
-`restore-first`), `unload-order`, `dependency-held` and `doubt-reported`.
+`restore-first`), `unload-order`, `dependency-held`, `doubt-reported` and `shed-needed`.
 
 ```
  steps (_history.walk) ──► Providers.run: per registrar a Catalog, a handler per event kind
@@ -10,6 +10,7 @@
  steps ──► unload_order: each resource's dependencies forgotten before its ResourceUnloaded
  steps ──► dependency_held: those dependencies kept while their resource has a consumer
  steps ──► doubt_reported: each row restored loading or unloading reported or unloaded
+ history ──► shed_needed: each load shed with nothing ahead against its server's load times
 ```
 
 Every lookup is a dict's: a run of a million events is checked in one linear pass.
@@ -20,13 +21,14 @@ from __future__ import annotations
 
 import dataclasses
 import operator
+import re
 from collections import defaultdict
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from rr_actors import events
 from rr_actors._types import Status
-from rr_actors_lab.experiments._history import Facts, Finding, Life, Step
+from rr_actors_lab.experiments._history import Facts, Finding, Life, Line, Step
 
 __all__ = [
     "PROVIDER_ENDED",
@@ -35,6 +37,7 @@ __all__ = [
     "Providers",
     "dependency_held",
     "doubt_reported",
+    "shed_needed",
     "unload_order",
 ]
 
@@ -724,4 +727,56 @@ def doubt_reported(steps: list[Step]) -> list[Finding]:
             owed.get(name, {}).pop(event.resource_id, None)
     for name in list(owed):
         judge(name)
+    return findings
+
+
+SHED_HEADROOM = 1.5
+"""A load with nothing queued ahead is shed only if its callers' time left is at most this
+times what its server's loads take (the provider's `_SHED_HEADROOM`)."""
+
+SHED_SLACK = (1.25, 0.005)
+"""How far above `SHED_HEADROOM` times the longest load a shed's time left may be and not be
+judged needless: a factor and seconds (two clocks read a moment apart)."""
+
+_SHED = re.compile(r"was shed before it started: ([0-9.]+) s were left of its callers' timeout,")
+"""A shed load's `LoadFailed` message with nothing queued ahead (no `after N rounds`)."""
+
+
+def shed_needed(history: Sequence[Line]) -> list[Finding]:
+    """`shed-needed`: a load refused under overload could not have started in time. A load
+    shed as it would start with nothing queued ahead (`LoadFailed`, `DeadlineExceededError`,
+    its message's time left) had at most `SHED_HEADROOM` times the longest load its server
+    ran in that process before it (`ResourceLoaded.load_s`) left of its callers' timeout.
+    Not judged: a shed before any load of its server there ended, or after one failed (its
+    time is not in the events), a shed behind queued loads (its time left is net of them)."""
+    longest: dict[tuple[str, str, int], float] = {}  # (registrar, server, pid) -> seconds
+    unknown: set[tuple[str, str, int]] = set()  # a load failed there: its time not shown
+    findings = []
+    for line, event in history:
+        if isinstance(event, events.ResourceLoaded):
+            key = (event.registrar, event.server, event.pid)
+            longest[key] = max(longest.get(key, 0.0), event.load_s)
+        elif isinstance(event, events.LoadFailed):
+            key = (event.registrar, event.server, event.pid)
+            shed = _SHED.search(event.message)
+            if event.error_type != "DeadlineExceededError" or shed is None:
+                unknown.add(key)
+                continue
+            if key in unknown or key not in longest:
+                continue
+            left, most = float(shed.group(1)), longest[key]
+            factor, seconds = SHED_SLACK
+            if left > SHED_HEADROOM * most * factor + seconds:
+                findings.append(
+                    Finding(
+                        "shed-needed",
+                        "violation",
+                        f"{event.registrar}/{event.server}: a load shed with {left:.3f} s left "
+                        f"of its callers' timeout and nothing queued ahead, where its loads "
+                        f"took at most {most:.3f} s: it could have started in time (query "
+                        f"{event.query_id[:8]})",
+                        (line,),
+                        (event.registrar,),
+                    )
+                )
     return findings
