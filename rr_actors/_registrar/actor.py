@@ -14,7 +14,10 @@
               └────────────────────────────────────────────────────────────────────────────┘
 ```
 
-The parts call only the modules below them (a layers contract in `pyproject.toml`).
+The actor fills one record (`life.RegistrarRecord`: `Shared` widened by each side's
+parts) and builds each part from it alone; a part reaches another through the record,
+and only the parts of its own module and the modules below (a layers contract in
+`pyproject.toml`).
 The actor never blocks: what it needs from another actor arrives later as a message
 (`Shared.send`, `Join`), and user callbacks run on worker threads. Every clause of
 `DISPATCH` is `on_<step>(message, reply)`; the step names are what
@@ -93,7 +96,7 @@ from rr_actors._registrar.messages import (
     misfit,
     text_fields,
 )
-from rr_actors._registrar.provider import Provider, Servers, Teardown, Unloading
+from rr_actors._registrar.provider import Lives, Provider, Servers, Teardown, Unloading
 from rr_actors._registrar.state import NO_REPLY, POINTS, OpenReply, new_life
 from rr_actors._registrar.status import DESK, StatusRelay, StatusTargets, Unacknowledged
 from rr_actors._store import Saver, open_catalog
@@ -127,7 +130,7 @@ def asked(bind: Binder) -> Binder:
 
     def bound(record: RegistrarRecord) -> Handler:
         handle = bind(record)
-        open_requests, shared = record.lifecycle.open_requests, record
+        open_requests, shared = record.open_requests, record
 
         def handle_asked(message: Any, reply: Reply) -> None:
             opened = OpenReply(reply, open_requests, shared)
@@ -249,6 +252,7 @@ class RegistrarActor(Actor):
             config, catalog, saver, peer, published, setting_up=setting_up, life=life
         )
         record.announced, record.actor, record.redeliver = announced, self, self.dispatch
+        record.open_requests, record.lives = {}, Lives()
         record.died, record.ended, record.due, record.clients = died, ended, due, clients
         targets = StatusTargets(config.name, published, due)  # what the status desk reads
         DESK.serve(peer, targets)

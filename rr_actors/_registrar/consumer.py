@@ -313,9 +313,8 @@ class Flights:
         # way for the status desk: `StatusTargets.on_way`, no direct delivery till they went)
         settled = self.registrar.due.settle(query_id, attempt)
         if provider in self.doubted.pop(query_id, ()):  # (its answer may be of the run
-            self.registrar.redeliver(
-                ReconcileAsk(provider, holds_yours=False)
-            )  # a restart replaced)
+            # a restart replaced)
+            self.registrar.redeliver(ReconcileAsk(provider, holds_yours=False))
         flight = self.in_flight.get(query_id)
         if not settled or flight is None or not flight.parked:
             return
@@ -1033,7 +1032,8 @@ class Reconciling:
         self.everyone = False
         self.kept_timers: dict[KeptUnclaimed, runtime.Cancellable] = {}  # (`expire_kept`)
 
-    def expect_reconcile(self, providers: Iterable[str]) -> None:
+    def expect_reconcile(self, providers: Iterable[str], *, everyone: bool) -> None:
+        self.everyone = everyone
         for provider in providers:
             self.asked_to_reconcile.setdefault(provider, (0, ""))
 
@@ -1126,10 +1126,9 @@ class Reconciling:
         """Whether to send an asking provider a `Reconcile` now (setup: once done; none owed)."""
         if not message.holds_yours and not self.holds_at(message.serving_rr):
             # (told as every registrar of the system is: nothing to reconcile, but a due
-            self.registrar.flights.doubt(
-                self.registrar.due.ids(), message.serving_rr
-            )  # answer may be of the
-            return False  # run its restart replaced)
+            # answer may be of the run its restart replaced)
+            self.registrar.flights.doubt(self.registrar.due.ids(), message.serving_rr)
+            return False
         if self.registrar.phase is Phase.SETTING_UP:  # its status callbacks are not attached yet
             asks = self.asked_to_reconcile
             ask = (message.round, message.life)

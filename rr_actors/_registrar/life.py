@@ -100,6 +100,9 @@ class RegistrarRecord(ProviderRecord):
     """The registrar's whole record (`Shared`, then each side's parts: `ConsumerRecord`,
     `StatusRecord`, `ProviderRecord`), as its lifecycle and the actor see it."""
 
+    # the handle's requests not answered yet (`OpenReply`: any thread); a dict: a death
+    # fails them oldest first (a set's address order no replay repeats)
+    open_requests: dict[OpenReply, None]
     lifecycle: Lifecycle
     restoring: Restoring
     presence: Presence
@@ -111,8 +114,6 @@ class RegistrarRecord(ProviderRecord):
 class Lifecycle:
     def __init__(self, registrar: RegistrarRecord) -> None:
         self.registrar = registrar
-        # a dict: a death fails them oldest first (a set's address order no replay repeats)
-        self.open_requests: dict[OpenReply, None] = {}
         self.stop_waiters: list[Reply] | None = None  # while a stop is under way
         self.flush_timer: runtime.Cancellable | None = None
         # while it yields its name (rule 22): where `KeepName`'s answer goes, else `None`
@@ -126,13 +127,11 @@ class Lifecycle:
         # who was lost before it started it hears now: a mark is never missed
         gone = MEMBERSHIP.join(self.hearer)
         # every provider the restored catalog knows, also those settle_in_doubt forgets
-        providers = self.registrar.catalog.providers()
-        self.registrar.reconciling.expect_reconcile(providers)
         # what it released while a provider was down is in no row: reconcile with all (rule 20;
         # announced by its supervisor: each holding ids of it asks it, `on_reconcile_ask`)
-        self.registrar.reconciling.everyone = (
-            not self.registrar.announced and self.registrar.saver.store is not None
-        )
+        registrar = self.registrar
+        everyone = not registrar.announced and registrar.saver.store is not None
+        registrar.reconciling.expect_reconcile(registrar.catalog.providers(), everyone=everyone)
         self.registrar.restoring.settle_in_doubt()
         self.registrar.restoring.unload_unheld()
         for name, stopped in sorted(gone.items()):  # as if it had heard each mark
@@ -148,13 +147,8 @@ class Lifecycle:
         """It serves: as a provider ask its consumers for their ids (`ReconcileAsk`, after the
         sweep, which names them), as a consumer tell its providers which it holds (`Reconcile`)."""
         self.registrar.restoring.ask_consumers()
-        for serving_rr, ask in sorted(
-            self.registrar.reconciling.reconcile_all().items()
-        ):  # (setup's)
-            self.registrar.presence.round_count += 1
-            self.registrar.presence.attempt(
-                serving_rr, self.registrar.presence.round_count, 0, ask=ask
-            )
+        for serving_rr, ask in sorted(self.registrar.reconciling.reconcile_all().items()):
+            self.registrar.presence.begin(serving_rr, ask=ask)  # (setup's)
 
     def on_reachable(self, _message: Reachable, reply: Reply) -> None:
         if self.registrar.phase is Phase.SERVING:  # (during setup, `on_ready` reconciles)
@@ -347,7 +341,7 @@ class Lifecycle:
             done = True
             if timer is not None:
                 timer.cancel()
-            for resource in self.registrar.teardown.under_way.values() if cut_short else ():
+            for resource in self.registrar.teardown.busy() if cut_short else ():
                 logger.warning(
                     "registrar %s: stopped while the unload of %s (%s) was under way; "
                     "it is in doubt at the next start",
@@ -361,7 +355,7 @@ class Lifecycle:
                     )
             then()
 
-        if until is not None and self.registrar.teardown.under_way:
+        if until is not None and self.registrar.teardown.busy():
             late = self.registrar.come_back(lambda _value, _error: go(cut_short=True))
             timer = runtime.thread_timer(
                 max(0.0, until - runtime.monotonic()), lambda: late.set_result(None)
@@ -404,7 +398,7 @@ class Lifecycle:
         """Answer everyone still waiting on this actor with `error` (handle requests first)."""
         self.registrar.provider.fail_waiting(error)
         self.registrar.flights.fail_waiting(error)
-        for request in list(self.open_requests):
+        for request in list(self.registrar.open_requests):
             request.set_error(error)
         inbox = self.registrar.actor.actor_inbox
         while not inbox.empty():
@@ -618,8 +612,7 @@ class Presence:
                 name,
             )
             self.served_on.add(name)
-            self.round_count += 1
-            self.attempt(name, self.round_count, 0)
+            self.begin(name)
             return
         self.served_on.discard(name)
         self.stop_retrying(name)
@@ -633,8 +626,7 @@ class Presence:
             return  # (during setup `on_ready` reconciles with everyone; stopping: nothing)
         self.served_on.discard(name)  # (a healed link: the reconcile decides)
         if self.registrar.reconciling.holds_at(name):
-            self.round_count += 1
-            self.attempt(name, self.round_count, 0)
+            self.begin(name)
         if self.registrar.catalog.consumers_from(name):  # (with the round of an ask standing,
             self.registrar.unloading.ask_holder(name)  # `ask_consumer`: its answer clears it)
 
@@ -646,9 +638,7 @@ class Presence:
         if not message.holds_yours and name != self.registrar.name and self.holds_of(name):
             self.registrar.unloading.ask_holder(name)  # (its `Reconcile` releases them, rule 20)
         if self.registrar.reconciling.asked(message):
-            self.round_count += 1
-            ask = (message.round, message.life)
-            self.attempt(message.serving_rr, self.round_count, 0, message.life, ask)
+            self.begin(message.serving_rr, message.life, (message.round, message.life))
 
     def holds_of(self, name: str) -> bool:
         """Whether this registrar holds ids of consumer `name`, or has its loads under way."""
@@ -661,9 +651,8 @@ class Presence:
         asked (nothing of it held here, or it cannot be told: not)."""
         if not self.registrar.unloading.holds_of(name):
             return False
-        self.registrar.unloading.give_up_loads_of(
-            name
-        )  # (a call given up fails: nothing held anywhere)
+        # (a call given up fails: nothing held anywhere)
+        self.registrar.unloading.give_up_loads_of(name)
         self.round_count += 1
         round_, ref = self.round_count, self.registrar.ref
         try:
@@ -675,12 +664,7 @@ class Presence:
             return False
         self.stop_asking(name)
         held = frozenset(self.registrar.catalog.consumers_from(name))
-        # (cleared by its answer, or a later run's `Reconcile`: not by one its lost run sent)
-        self.registrar.unloading.asked[name] = (
-            round_,
-            held,
-            self.registrar.provider.lives.newest(name),
-        )
+        self.registrar.unloading.expect(name, round_, held)
 
         def due() -> None:
             with contextlib.suppress(pykka.ActorDeadError):
@@ -701,7 +685,7 @@ class Presence:
     def unanswered(self, name: str, round_: int) -> None:
         """The `Reconcile` asked of consumer `name` by round `round_` did not come in time: it is
         lost as a consumer (every id it held here when asked released)."""
-        asked = self.registrar.unloading.asked.get(name)
+        asked = self.registrar.unloading.expected(name)
         if asked is None or asked[0] != round_:
             return  # it came (or a newer ask waits)
         self.stop_asking(name)
@@ -713,7 +697,7 @@ class Presence:
         self.registrar.unloading.release_all_of(name, only=asked[1])  # (not those loaded since)
 
     def stop_asking(self, name: str) -> None:
-        self.registrar.unloading.asked.pop(name, None)
+        self.registrar.unloading.not_expected(name)
         timer = self.asked_timers.pop(name, None)
         if timer is not None:
             timer.cancel()
@@ -730,6 +714,11 @@ class Presence:
         if self.lost_after_all(message.name):
             return
         self.attempt(message.name, message.round, message.attempt, self.lives.get(message.name, ""))
+
+    def begin(self, name: str, life: str = "", ask: tuple[int, str] = (0, "")) -> None:
+        """Start a new round of `Reconcile` with provider `name` (`attempt` 0)."""
+        self.round_count += 1
+        self.attempt(name, self.round_count, 0, life, ask)
 
     def attempt(
         self, name: str, round_: int, attempt: int, life: str = "", ask: tuple[int, str] = (0, "")

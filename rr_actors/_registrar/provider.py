@@ -20,6 +20,13 @@
 A resource belongs to its server; its consumers are query ids (one per call, rule 2).
 Why the actor never waits for user code, how coroutine callbacks run, and who decides
 under overload: docs/explanation/inside.md, "The provider".
+
+Why one module past the 1,200 lines of code a module keeps to: its parts are one story
+(a load, its sharing, its release, its unload), the layers above and below tell none of
+it, and the runtime's file budget (`RUNTIME_FILES` in tests/test_repository.py) has no
+file to spare. Where it splits by collaborator, when one is freed: `ServerActor`,
+`Teardown` and `Servers` (a server's actor, its registration, a resource's unload through
+it; none calls `Provider` or `Unloading`) as a module below this one.
 """
 
 from __future__ import annotations
@@ -262,6 +269,7 @@ class ProviderRecord(StatusRecord):
     """The registrar's record as its provider side and the parts above see it."""
 
     provider: Provider
+    lives: Lives  # the consumers' runs that reconciled: earlier ones fenced
     unloading: Unloading
     teardown: Teardown
     registry: Servers
@@ -283,7 +291,6 @@ class Provider:
         # load still runs)
         self.labelling: dict[str, Callable[[], None] | None] = {}
         self.matching = Matching(registrar, self.serve)
-        self.lives = Lives()  # the consumers' runs that reconciled: earlier ones fenced
 
     # -- load -------------------------------------------------------------------------
 
@@ -297,7 +304,7 @@ class Provider:
             )
         if self.registrar.stopping:  # (its own end: named)
             return RegistrarStoppedError(f"registrar {name!r} is stopping", name)
-        if self.lives.fenced(message.origin_rr, message.life):
+        if self.registrar.lives.fenced(message.origin_rr, message.life):
             return RegistrarUnavailableError(
                 f"registrar {message.origin_rr!r} restarted since it sent the load of "
                 f"{message.query_id!r} to '{name}/{message.server}', and "
@@ -329,7 +336,7 @@ class Provider:
         if refusal is not None:
             message.reply.set_error(refusal)
             return
-        self.lives.heard(message.origin_rr, message.life)
+        self.registrar.lives.heard(message.origin_rr, message.life)
         self.abandoned.discard(message.query_id)  # a retry: its caller is back
         digest = request_digest(message.request)
         if digest is not None:  # a plain value: decided on this thread
@@ -1198,6 +1205,17 @@ class Unloading:
         # it held here then and its latest run heard of here then, until it came
         self.asked: dict[str, tuple[int, frozenset[str], str]] = {}
 
+    def expect(self, origin: str, round_: int, held: frozenset[str]) -> None:
+        """Consumer `origin` was asked for a `Reconcile` by round `round_` (`Presence`), holding
+        `held` here: kept until it comes (or a later run's; not one its lost run sent)."""
+        self.asked[origin] = (round_, held, self.registrar.lives.newest(origin))
+
+    def expected(self, origin: str) -> tuple[int, frozenset[str], str] | None:
+        return self.asked.get(origin)
+
+    def not_expected(self, origin: str) -> None:
+        self.asked.pop(origin, None)
+
     def on_unload(self, message: Unload, reply: Reply) -> None:
         """Release the id; the answer carries the statuses still on their way to it (rule 9:
         they travel on another connection and may come after it), also with an `UnloadOverran`."""
@@ -1265,9 +1283,7 @@ class Unloading:
         if unwritable is not None:
             reply.set_error(unwritable)  # type: ignore[union-attr]
             return
-        if self.registrar.provider.give_up(
-            query_id
-        ):  # its load had not finished: it never holds it
+        if self.registrar.provider.give_up(query_id):  # its load had not finished: not held
             if reply is not None:
                 reply.set_result(None)
             return
@@ -1331,13 +1347,13 @@ class Unloading:
         its stop could not give back what it held here) it holds nothing here (rule 12), unless
         a later run of it was heard of since (it reconciles for itself). Only its own stop says
         so: not this process's leaving the system. Reads no row: a lazy restore stays lazy."""
-        asked = self.registrar.provider.lives.newest(origin)
+        asked = self.registrar.lives.newest(origin)
 
         def answered(_: Any, error: BaseException | None) -> None:
             if (
                 isinstance(error, RegistrarStoppedError)
                 and error.registrar == origin
-                and self.registrar.provider.lives.newest(origin) == asked
+                and self.registrar.lives.newest(origin) == asked
             ):
                 self.release_stopped(origin)
 
@@ -1393,7 +1409,7 @@ class Unloading:
             or (asked[2] != "" and life_order(message.life) > life_order(asked[2]))
         ):
             del self.asked[message.origin_rr]
-        self.registrar.provider.lives.reconciled(message.origin_rr, message.life)
+        self.registrar.lives.reconciled(message.origin_rr, message.life)
         for query_id in self.registrar.provider.under_way_of(message.origin_rr):
             if query_id not in held:
                 self.registrar.provider.give_up(query_id)
@@ -1546,6 +1562,10 @@ class Teardown:
         if failed is not None:  # (a give-up's events published all the same)
             shared.publish(*told)
         return True
+
+    def busy(self) -> list[Resource]:
+        """The resources whose unload is under way (not those parked)."""
+        return list(self.under_way.values())
 
     def when_idle(self, then: Callable[[], None]) -> None:
         self.idle.append(then)

@@ -273,7 +273,7 @@ def _pending_work(actor: RegistrarActor, reply: Reply) -> None:
             held_loads=tuple(load.query_id for load in provider.held_loads),
             answers_due=record.due.ids(),
             parked_notices=flights.parked_ids(),
-            open_requests=len(record.lifecycle.open_requests) - 1,  # (not this one)
+            open_requests=len(record.open_requests) - 1,  # (not this one)
             queued_callbacks=record.workers.queued,
         )
     )
