@@ -14,7 +14,10 @@
               └────────────────────────────────────────────────────────────────────────────┘
 ```
 
-The parts call only the modules below them (a layers contract in `pyproject.toml`).
+The actor fills one record (`life.RegistrarRecord`: `Shared` widened by each side's
+parts) and builds each part from it alone; a part reaches another through the record,
+and only the parts of its own module and the modules below (a layers contract in
+`pyproject.toml`).
 The actor never blocks: what it needs from another actor arrives later as a message
 (`Shared.send`, `Join`), and user callbacks run on worker threads. Every clause of
 `DISPATCH` is `on_<step>(message, reply)`; the step names are what
@@ -50,7 +53,7 @@ from rr_actors._registrar.calls import (
 )
 from rr_actors._registrar.consumer import Answers, Clients, Flights, Holdings, Reconciling, Releases
 from rr_actors._registrar.display import ClientTexts
-from rr_actors._registrar.life import Lifecycle, Presence, Restoring, cut_short
+from rr_actors._registrar.life import Lifecycle, Presence, RegistrarRecord, Restoring, cut_short
 from rr_actors._registrar.messages import (
     Abandon,
     ConsumerDown,
@@ -93,8 +96,8 @@ from rr_actors._registrar.messages import (
     misfit,
     text_fields,
 )
-from rr_actors._registrar.provider import Provider, Servers, Teardown, Unloading
-from rr_actors._registrar.state import NO_REPLY, POINTS, OpenReply, Shared, new_life
+from rr_actors._registrar.provider import Lives, Provider, Servers, Teardown, Unloading
+from rr_actors._registrar.state import NO_REPLY, POINTS, OpenReply, new_life
 from rr_actors._registrar.status import DESK, StatusRelay, StatusTargets, Unacknowledged
 from rr_actors._store import Saver, open_catalog
 from rr_actors._types import Query
@@ -116,18 +119,18 @@ Handler = Callable[[Any, Reply], None]
 """`handle(message, reply)`, run on the actor's thread: `reply` is the message's own (held
 open for a message from the handle, `asked`), or `NO_REPLY`."""
 
-Binder = Callable[["RegistrarActor"], Handler]
-"""What makes a `Handler` of one actor (run once, when it is built): a role's `on_<step>`."""
+Binder = Callable[[RegistrarRecord], Handler]
+"""What makes a `Handler` of one actor from its record (run once, when it is built): a
+part's `on_<step>`."""
 
 
 def asked(bind: Binder) -> Binder:
     """A clause for a message from the handle, with an open reply (a death fails it); an
     `RrError` the handler raises is its caller's answer."""
 
-    def bound(actor: RegistrarActor) -> Handler:
-        handle = bind(actor)
-        open_requests = actor.lifecycle.open_requests
-        shared = actor.shared
+    def bound(record: RegistrarRecord) -> Handler:
+        handle = bind(record)
+        open_requests, shared = record.open_requests, record
 
         def handle_asked(message: Any, reply: Reply) -> None:
             opened = OpenReply(reply, open_requests, shared)
@@ -153,8 +156,8 @@ def _answer_now(_message: Ping, reply: Reply) -> None:
     reply.set_result(None)
 
 
-def _run_on_actor(actor: RegistrarActor) -> Handler:
-    return lambda message, reply: message.op(actor, reply)
+def _run_on_actor(record: RegistrarRecord) -> Handler:
+    return lambda message, reply: message.op(record.actor, reply)
 
 
 DISPATCH: dict[type, tuple[str, Binder]] = {
@@ -164,7 +167,7 @@ DISPATCH: dict[type, tuple[str, Binder]] = {
     Load: ("load", lambda a: a.provider.on_load),  # at the provider
     Unload: ("unload", lambda a: a.unloading.on_unload),  # at the provider
     Abandon: ("abandon", lambda a: a.unloading.on_abandon),  # at the provider
-    Fetch: ("fetch", lambda a: a.servers.on_fetch),  # at the provider
+    Fetch: ("fetch", lambda a: a.registry.on_fetch),  # at the provider
     ConsumerDown: ("consumer_down", lambda a: a.presence.on_consumer_down),  # death watch
     Reconcile: ("reconcile", lambda a: a.unloading.on_reconcile),  # a consumer lists its ids
     ReconcileAsk: ("reconcile_ask", lambda a: a.presence.on_reconcile_ask),  # provider restarted
@@ -184,21 +187,21 @@ DISPATCH: dict[type, tuple[str, Binder]] = {
     ClientLoaded: ("client_loaded", lambda a: a.answers.on_client_loaded),  # an answer to record
     CallFailed: ("call_failed", lambda a: a.answers.on_call_failed),  # failed or withdrawn
     TakeOutcomes: ("take_outcomes", lambda _a: _taken),  # (taken before each message)
-    Answer: ("answer", lambda a: _answering(a.shared.tokens)),  # to one of its own questions
+    Answer: ("answer", lambda a: _answering(a.tokens)),  # to one of its own questions
     Flush: ("flush", lambda a: a.lifecycle.on_flush),  # the save-interval timer fired
     Crash: ("crash", lambda a: a.lifecycle.on_crash),  # `rr_actors.testing.crash`
     # -- from the handle (`handle.py`), each answered through its reply --
-    RegisterServer: ("register_server", asked(lambda a: a.servers.on_register_server)),
-    UnregisterServer: ("unregister_server", asked(lambda a: a.servers.on_unregister_server)),
+    RegisterServer: ("register_server", asked(lambda a: a.registry.on_register_server)),
+    UnregisterServer: ("unregister_server", asked(lambda a: a.registry.on_unregister_server)),
     Release: ("release", asked(lambda a: a.releases.on_release)),
     SendStatus: ("send_status", asked(lambda a: a.status.on_send_status)),
-    ListServerQueries: ("server_queries", asked(lambda a: a.servers.on_list_server_queries)),
+    ListServerQueries: ("server_queries", asked(lambda a: a.registry.on_list_server_queries)),
     ListClientQueries: ("client_queries", asked(lambda a: a.holdings.on_list_client_queries)),
     SetStatusCallback: (
         "set_status_callback",
         asked(lambda a: a.holdings.on_set_status_callback),
     ),
-    UpdateResponse: ("update_response", asked(lambda a: a.servers.on_update_response)),
+    UpdateResponse: ("update_response", asked(lambda a: a.registry.on_update_response)),
     Save: ("save", asked(lambda a: a.lifecycle.on_save)),
     Stop: ("stop", asked(lambda a: a.lifecycle.on_stop)),
     Ready: ("ready", asked(lambda a: a.lifecycle.on_ready)),  # setup is done
@@ -223,20 +226,9 @@ class RegistrarActor(Actor):
     """What a carrier's receiving thread handles in the registrar's turn when it is idle
     (`_core.actor.deliver`): short steps that run user code only on workers."""
 
-    shared: Shared
-    provider: Provider
-    teardown: Teardown
-    reconciling: Reconciling
-    unloading: Unloading
-    servers: Servers
-    releases: Releases
-    answers: Answers
-    holdings: Holdings
-    flights: Flights
-    status: StatusRelay
-    restoring: Restoring
-    lifecycle: Lifecycle
-    presence: Presence
+    shared: RegistrarRecord
+    """The registrar's record: each part holds it, owns its own piece of it and reaches
+    another part through it (as trio's `Runner` holds its collaborators)."""
 
     def __init__(
         self,
@@ -256,60 +248,33 @@ class RegistrarActor(Actor):
         announced: bool = False,
     ) -> None:
         super().__init__()
-        self.shared = Shared(
+        record = self.shared = RegistrarRecord(
             config, catalog, saver, peer, published, setting_up=setting_up, life=life
         )
-        self.shared.announced = announced
-        # Each part is built after the parts it calls, and calls only those (one way):
-        # life.py -> provider.py -> status.py -> consumer.py, each bottom first.
-        self.flights = Flights(self.shared, due, self.dispatch)
+        record.announced, record.actor, record.redeliver = announced, self, self.dispatch
+        record.open_requests, record.lives = {}, Lives()
+        record.died, record.ended, record.due, record.clients = died, ended, due, clients
         targets = StatusTargets(config.name, published, due)  # what the status desk reads
         DESK.serve(peer, targets)
-        self.holdings = Holdings(self.shared, self.flights, clients, targets.entries, self.dispatch)
-        texts = ClientTexts(self.shared)  # made by the answers, read by a snapshot
-        self.answers = Answers(self.shared, self.flights, self.holdings, texts)
-        self.releases = Releases(
-            self.shared, self.flights, self.holdings, self.answers, self.dispatch
-        )
-        self.reconciling = Reconciling(
-            self.shared, self.flights, self.holdings, self.releases, due, self.dispatch
-        )
-        unacked = Unacknowledged()  # statuses on their way, an Unload's answer carries
-        self.status = StatusRelay(self.shared, self.flights, self.holdings, unacked)
-        self.teardown = Teardown(self.shared, self.releases)
-        self.provider = Provider(self.shared, self.releases, self.teardown)
-        self.unloading = Unloading(self.shared, self.provider, self.teardown, unacked)
-        self.servers = Servers(self.shared, self.teardown, self.status)
-        self.presence = Presence(self.shared, self.unloading, self.reconciling)
-        self.restoring = Restoring(
-            self.shared,
-            self.unloading,
-            self.teardown,
-            self.releases,
-            self.holdings,
-            hold_in_doubt=hold_in_doubt,
-        )
-        self.lifecycle = Lifecycle(
-            self.shared,
-            self.provider,
-            self.teardown,
-            self.restoring,
-            self.flights,
-            self.releases,
-            self.reconciling,
-            self.presence,
-            self.servers,
-            clients,
-            texts,
-            self,
-            died,
-            ended,
-        )
+        record.targets = targets.entries
+        record.texts = ClientTexts(record)  # made by the answers, read by a snapshot
+        record.unacked = Unacknowledged()  # statuses on their way, an Unload's answer carries
+        # each part built from the record alone; it calls the parts of its own module and
+        # of the modules below (life.py -> provider.py -> status.py -> consumer.py)
+        record.flights, record.holdings = Flights(record), Holdings(record)
+        record.answers, record.releases = Answers(record), Releases(record)
+        record.reconciling, record.status = Reconciling(record), StatusRelay(record)
+        record.teardown, record.provider = Teardown(record), Provider(record)
+        record.unloading, record.registry = Unloading(record), Servers(record)
+        record.presence = Presence(record)
+        record.restoring = Restoring(record, hold_in_doubt=hold_in_doubt)
+        record.lifecycle = Lifecycle(record)
         if saver.durable:  # the messages waiting commit together (`Shared.end_turn`)
             self.drain, self.drain_seconds, self.ends_turns = DRAIN, DRAIN_SECONDS, True
         self.unknown = LogThrottle(logger)  # messages of no known type (a buggy peer's)
         self.handlers: dict[type, tuple[str, Handler, TextFields]] = {
-            kind: (step, bind(self), text_fields(kind)) for kind, (step, bind) in DISPATCH.items()
+            kind: (step, bind(self.shared), text_fields(kind))
+            for kind, (step, bind) in DISPATCH.items()
         }
 
     @property
@@ -319,13 +284,13 @@ class RegistrarActor(Actor):
     def on_start(self) -> None:
         self.shared.ref = self.actor_ref
         self.shared.peer.ref = self.actor_ref
-        self.lifecycle.on_start()
+        self.shared.lifecycle.on_start()
         # every step from now on runs in a turn whose end commits it (`on_turn_end`)
         self.shared.in_turn = self.ends_turns
 
     def on_receive(self, message: Any) -> None:
-        if not self.flights.due.outcomes.empty():  # call outcomes handed over before
-            self.flights.take_outcomes()  # this message: recorded first (`calls.py`)
+        if not self.shared.due.outcomes.empty():  # call outcomes handed over before
+            self.shared.flights.take_outcomes()  # this message: recorded first (`calls.py`)
         self.dispatch(message)
 
     def dispatch(self, message: Any) -> None:
@@ -385,15 +350,15 @@ class RegistrarActor(Actor):
 
     def on_failure(self, *_: object) -> None:
         self.shared.in_turn = False  # (nothing is staged any more: what is, is refused)
-        self.lifecycle.die()
+        self.shared.lifecycle.die()
 
     def on_ended(self) -> None:
         error = DIRECTORY.gone_error(self.name)  # outcomes left, or handed over later:
-        self.flights.due.outcomes.close(lambda m: self.lifecycle.refuse_message(m, error))
-        self.lifecycle.ended.set(None)
+        self.shared.due.outcomes.close(lambda m: self.shared.lifecycle.refuse_message(m, error))
+        self.shared.ended.set(None)
 
     def on_late(self, envelope: Any) -> None:
-        self.lifecycle.refuse(envelope, DIRECTORY.gone_error(self.name))
+        self.shared.lifecycle.refuse(envelope, DIRECTORY.gone_error(self.name))
 
 
 # -- starting --------------------------------------------------------------------------

@@ -142,11 +142,26 @@ Notice = StatusNotice | Revoke | ResponseUpdated
 """What a provider tells a consumer about queries it holds."""
 
 
+class ConsumerRecord(Shared):
+    """The registrar's record (`Shared`) as its consumer side sees it: its parts, each the
+    owner of its fields (another changes them through its methods), and what they read.
+    The actor fills it (`actor.py`); a part holds the record, never another part."""
+
+    due: DueAnswers  # the ids whose answers are on their way (callers' threads too)
+    redeliver: Callable[[Any], None]  # handles a message as the actor does (its dispatch)
+    clients: Clients
+    targets: dict[str, tuple[Query, StatusCallback]]  # what the status desk here reads
+    texts: ClientTexts  # its client records' texts, made before a snapshot reads them
+    flights: Flights
+    holdings: Holdings
+    answers: Answers
+    releases: Releases
+    reconciling: Reconciling
+
+
 class Flights:
-    def __init__(self, shared: Shared, due: DueAnswers, redeliver: Callable[[Any], None]) -> None:
-        self.registrar = shared
-        self.due = due  # the ids whose answers are on their way (callers' threads too)
-        self.redeliver = redeliver  # handles a message as the actor does (its dispatch)
+    def __init__(self, registrar: ConsumerRecord) -> None:
+        self.registrar = registrar
         self.in_flight: dict[str, InFlight] = {}
         self.kept_for_retry: dict[str, str] = {}  # query id -> the provider that kept it
         # query id -> the provider's life that kept it ("": not known)
@@ -236,7 +251,7 @@ class Flights:
 
     def take_unclaimed(self, query_id: str, serving_rr: str) -> bool:
         """Take `query_id` if `serving_rr` keeps it for a retry no call claimed (none due)."""
-        if query_id in self.due or self.kept_for_retry.get(query_id) != serving_rr:
+        if query_id in self.registrar.due or self.kept_for_retry.get(query_id) != serving_rr:
             return False
         self.unkeep(query_id)
         self.dependency_of.pop(query_id, None)
@@ -274,16 +289,16 @@ class Flights:
 
     def take_outcomes(self) -> None:
         """Record the call outcomes handed over so far, in order (`calls.py`)."""
-        outcomes = self.due.outcomes
+        outcomes = self.registrar.due.outcomes
         while not outcomes.empty():
-            self.redeliver(outcomes.get())
+            self.registrar.redeliver(outcomes.get())
 
     def parked(self, notice: Notice) -> bool:
         """Hold `notice` while the answer to one of its queries is on its way (`answered`)."""
         for query_id in notice.query_ids:
-            if self.due.awaited(query_id):
+            if self.registrar.due.awaited(query_id):
                 self.take_outcomes()  # (handed over before the mark was read?)
-            if query_id in self.due:
+            if query_id in self.registrar.due:
                 self.flight(query_id).parked.append(notice)
                 return True
         return False
@@ -296,9 +311,10 @@ class Flights:
     def answered(self, query_id: str, attempt: CallAttempt, provider: str = "") -> None:
         # settled first: a reconcile lists it not due (its parked notices are still on their
         # way for the status desk: `StatusTargets.on_way`, no direct delivery till they went)
-        settled = self.due.settle(query_id, attempt)
+        settled = self.registrar.due.settle(query_id, attempt)
         if provider in self.doubted.pop(query_id, ()):  # (its answer may be of the run
-            self.redeliver(ReconcileAsk(provider, holds_yours=False))  # a restart replaced)
+            # a restart replaced)
+            self.registrar.redeliver(ReconcileAsk(provider, holds_yours=False))
         flight = self.in_flight.get(query_id)
         if not settled or flight is None or not flight.parked:
             return
@@ -307,7 +323,7 @@ class Flights:
         while waiting:
             notice = waiting.pop(0)
             try:
-                self.redeliver(notice)
+                self.registrar.redeliver(notice)
             except BaseException:  # the actor dies: `fail_waiting` answers the rest
                 self.flight(query_id).parked[:0] = waiting
                 raise
@@ -316,7 +332,7 @@ class Flights:
         return frozenset(q for q, f in self.in_flight.items() if f.parked)
 
     def fail_waiting(self, error: RrError) -> None:
-        for call in self.due.durable_calls():
+        for call in self.registrar.due.durable_calls():
             call.attempt.fail(error)
         for flight in self.in_flight.values():
             for notice in flight.parked:
@@ -442,29 +458,24 @@ def _ignored(_error: BaseException) -> None:
 
 
 class Answers:
-    def __init__(
-        self, shared: Shared, flights: Flights, holdings: Holdings, texts: ClientTexts
-    ) -> None:
-        self.registrar = shared
-        self.flights = flights
-        self.holdings = holdings
-        self.texts = texts
+    def __init__(self, registrar: ConsumerRecord) -> None:
+        self.registrar = registrar
 
     def on_client_loaded(self, message: ClientLoaded, _reply: Reply) -> None:
         try:
             self.record_answer(message)
         finally:  # (also when recording failed: what waits for it must not wait for good)
             query = message.record.query
-            self.flights.answered(query.id, message.attempt, query.serving_rr)
+            self.registrar.flights.answered(query.id, message.attempt, query.serving_rr)
 
     def record_answer(self, message: ClientLoaded) -> None:
         """Decide what `message`'s answer does, and do it. A durable answer is kept only while
         its caller still waits: the actor takes the attempt before it commits."""
         query = message.record.query
         held = self.registrar.catalog.client(query.id)
-        retry = self.flights.was_unsettled(query.id) or (held is not None and held.loaded)
+        retry = self.registrar.flights.was_unsettled(query.id) or (held is not None and held.loaded)
         # (a retry of a call that failed as it died, or that its provider kept)
-        self.flights.reset(query.id, None)
+        self.registrar.flights.reset(query.id, None)
         durable = isinstance(message, DurableLoaded)
         withdrawn = durable and message.attempt.take() is not AttemptState.RECORDING
         try:
@@ -519,23 +530,23 @@ class Answers:
             catalog.client_loaded(query.id, query.response)  # pending, an older backup)
         else:
             catalog.add_client(message.record)
-            self.texts.added(message.record)
+            self.registrar.texts.added(message.record)
         told = answer_event(self.registrar, message.record, message.attempt, retry=retry)
         if durable:
             self.keep_durable(message, told)
             return
         if self.registrar.commit(*told) is not None:  # (written with its record)
             self.registrar.publish(*told)  # kept in memory: written with the next write
-        self.holdings.held(query.id, message.on_status)
+        self.registrar.holdings.held(query.id, message.on_status)
 
     def keep_durable(self, message: ClientLoaded, told: tuple[events.Event, ...]) -> None:
         """Commit a durable answer, then answer its caller; not written: give the id back."""
         query = message.record.query
-        self.holdings.held(query.id, message.on_status)  # (a notice may come next)
+        self.registrar.holdings.held(query.id, message.on_status)  # (a notice may come next)
 
         def undo(failed: CatalogWriteError) -> None:  # not kept
             give_back(query.serving_rr, query.id, self.registrar.name)
-            self.holdings.forget(query.id, commit=False, reason=None)
+            self.registrar.holdings.forget(query.id, commit=False, reason=None)
             publish_refused(self.registrar, query, failed, message.attempt)
             message.attempt.settle(error=failed)
 
@@ -593,13 +604,13 @@ class Answers:
         publish_failed(
             self.registrar,
             message,
-            retry=self.flights.was_unsettled(message.query_id)
+            retry=self.registrar.flights.was_unsettled(message.query_id)
             or (known is not None and known.loaded),
         )
-        current = self.flights.due.durable_attempt(message.query_id)
+        current = self.registrar.due.durable_attempt(message.query_id)
         if current is None or current is message.attempt:
             # (set if it may hold the id: a retry may follow; settled, or unsettled again)
-            self.flights.reset(message.query_id, retry_held_at(message), message.parent)
+            self.registrar.flights.reset(message.query_id, retry_held_at(message), message.parent)
         record = self.registrar.catalog.client(message.query_id)
         stale = current is not None and current is not message.attempt
         retried = not stale and record is not None and record.loaded and not message.withdrawn
@@ -609,9 +620,9 @@ class Answers:
             elif retried:
                 pass  # a failed retry of an id this registrar holds: it still holds it
             elif record is not None:
-                self.holdings.forget(message.query_id, reason="withdrawn")
+                self.registrar.holdings.forget(message.query_id, reason="withdrawn")
         finally:
-            self.flights.answered(message.query_id, message.attempt, message.provider)
+            self.registrar.flights.answered(message.query_id, message.attempt, message.provider)
         record = self.registrar.catalog.client(message.query_id)  # (not due now: its FATAL
         if retried and record is not None and record.loaded:  # is not parked)
             self.retry_failed(message, record)
@@ -625,7 +636,9 @@ class Answers:
         if isinstance(error, ResourceLoadError) and provider == query.serving_rr:
             why = "the provider no longer knows this query (a retry of it ran a new load there)"
             source = f"{query.serving_rr}/{query.server}"
-            self.holdings.report_lost(source, (query.id,), why, forgotten="unknown at reconcile")
+            self.registrar.holdings.report_lost(
+                source, (query.id,), why, forgotten="unknown at reconcile"
+            )
 
 
 def retry_held_at(failed: CallFailed) -> str | None:
@@ -640,24 +653,13 @@ def retry_held_at(failed: CallFailed) -> str | None:
 
 
 class Holdings:
-    def __init__(
-        self,
-        shared: Shared,
-        flights: Flights,
-        clients: Clients,
-        targets: dict[str, tuple[Query, StatusCallback]],
-        redeliver: Callable[[Any], None],
-    ) -> None:
-        self.registrar = shared
-        self.flights = flights
-        self.redeliver = redeliver  # handles a message as the actor does (its dispatch)
-        self.clients = clients
+    def __init__(self, registrar: ConsumerRecord) -> None:
+        self.registrar = registrar
         self.status_callbacks: dict[str, StatusCallback] = {}  # query id -> its callback
-        self.targets = targets  # what the status desk of this process reads of it
         self.epoch = 0  # how many `Reconcile` lists it built (`new_epoch`)
         self.answered_in: dict[str, int] = {}  # query id -> its answer's epoch (none: 0)
         # the ids its `CatalogRestored` listed
-        self.restored = {r.query.id for r in shared.catalog.client_records()}
+        self.restored = {r.query.id for r in registrar.catalog.client_records()}
 
     # -- holding and forgetting queries -------------------------------------------------
 
@@ -686,7 +688,7 @@ class Holdings:
                 publish_forgotten(self.registrar, record.query, reason, began)
             self.registrar.catalog.remove_client(query_id)
             self.status_callbacks.pop(query_id, None)
-            self.targets.pop(query_id, None)
+            self.registrar.targets.pop(query_id, None)
             self.answered_in.pop(query_id, None)
             if commit and self.registrar.in_turn:  # (with the rest of the turn: an answer
                 self.registrar.commit_then(ok=_nothing, undo=_ignored, refuse=_ignored)
@@ -714,7 +716,7 @@ class Holdings:
             FutureReply(),  # (nobody waits for the acknowledgements)
             sent_at=runtime.wall(),
         )
-        self.redeliver(notice)
+        self.registrar.redeliver(notice)
         for query_id in ids:
             self.forget(query_id, commit=False, reason=forgotten)
         self.registrar.commit()
@@ -727,9 +729,9 @@ class Holdings:
         record = self.registrar.catalog.client(query_id)
         callback = self.status_callbacks.get(query_id)
         if record is None or callback is None or record.parent is not None or not record.loaded:
-            self.targets.pop(query_id, None)
+            self.registrar.targets.pop(query_id, None)
         else:
-            self.targets[query_id] = (record.query, callback)
+            self.registrar.targets[query_id] = (record.query, callback)
 
     # -- the epochs of `Reconcile` lists (`Reconciling`) --------------------------------
 
@@ -744,20 +746,20 @@ class Holdings:
     # -- notices from its providers -----------------------------------------------------
 
     def on_revoke(self, message: Revoke, _reply: Reply) -> None:
-        if self.flights.parked(message):
+        if self.registrar.flights.parked(message):
             return
         for query_id in message.query_ids:
             self.forget(query_id, commit=False, reason="revoked")
         self.registrar.commit()
 
     def on_response_updated(self, message: ResponseUpdated, reply: Reply) -> None:
-        if self.flights.parked(message):
+        if self.registrar.flights.parked(message):
             return
         if self.registrar.saver.store is not None:  # refused, as an answer it cannot store is
             check_picklable(message.response, "the new response")  # (a ConfigError answer)
         for query_id in message.query_ids:
             self.registrar.catalog.client_loaded(query_id, message.response)
-            if query_id in self.targets:  # (its query says the new response)
+            if query_id in self.registrar.targets:  # (its query says the new response)
                 self.publish_target(query_id)
         self.registrar.commit()
         reply.set_result(None)
@@ -778,7 +780,9 @@ class Holdings:
         """The client actor for `target_rr/server`, started on first use (thesis 4.3.3)."""
         ref = self.registrar.ref
         assert ref is not None
-        client = self.clients.start(ref, self.registrar.name, message.target_rr, message.server)
+        client = self.registrar.clients.start(
+            ref, self.registrar.name, message.target_rr, message.server
+        )
         reply.set_result(client)
 
 
@@ -790,19 +794,8 @@ GONE = (RegistrarUnavailableError, RegistrarStoppedError)
 
 
 class Releases:
-    def __init__(
-        self,
-        shared: Shared,
-        flights: Flights,
-        holdings: Holdings,
-        answers: Answers,
-        redeliver: Callable[[Any], None],
-    ) -> None:
-        self.registrar = shared
-        self.flights = flights
-        self.holdings = holdings
-        self.answers = answers
-        self.redeliver = redeliver  # handles a message as the actor does (its dispatch)
+    def __init__(self, registrar: ConsumerRecord) -> None:
+        self.registrar = registrar
         # ids whose `Unload` is on its way -> (the stamp it left at, `reconciled` then)
         self.releasing: dict[str, Began] = {}
         # provider -> the stamp of the last `Reconcile` with it answered (its list left)
@@ -825,7 +818,7 @@ class Releases:
         for record in self.registrar.catalog.dependencies(rid):
             if only is None or record.query.id in only:
                 self.release_client(record, join.add(), traces.under(trace) if trace else None)
-        for query_id, serving_rr in self.flights.take_dependencies(rid):
+        for query_id, serving_rr in self.registrar.flights.take_dependencies(rid):
             give_back(serving_rr, query_id, self.registrar.name)
         join.seal()
 
@@ -847,7 +840,7 @@ class Releases:
                 self.unreleased[query.id] = query.serving_rr
             join = Join(then)
             self.deliver_on_its_way(query.id, on_its_way, join)
-            self.holdings.forget(
+            self.registrar.holdings.forget(
                 query.id, reason="stop" if record.parent is None else "dependency", began=began
             )
             join.seal()
@@ -890,7 +883,7 @@ class Releases:
 
             join = Join(answer)
             self.deliver_on_its_way(query_id, on_its_way, join)
-            self.holdings.forget(query_id, began=began)
+            self.registrar.holdings.forget(query_id, began=began)
             join.seal()
 
         self.send_unload(query, answered, message.begun)
@@ -925,7 +918,9 @@ class Releases:
         """Deliver the statuses the answer to `query_id`'s `Unload` carried, before the id is
         forgotten (they may come after the answer on another connection); each a part of `join`."""
         for status in on_its_way or ():
-            self.redeliver(status.notice((query_id,), self.registrar.come_back(join.add())))
+            self.registrar.redeliver(
+                status.notice((query_id,), self.registrar.come_back(join.add()))
+            )
 
     def release_later(
         self, query: Query, error: BaseException, began: Began = NOT_BEGUN
@@ -933,7 +928,7 @@ class Releases:
         """The `Unload` of `query` failed as its provider died or stopped: forget the id now and
         keep it `unreleased` until the provider's next `Reconcile`, which leaves it out."""
         self.unreleased[query.id] = query.serving_rr
-        self.holdings.forget(query.id, reason="unload unanswered", began=began)
+        self.registrar.holdings.forget(query.id, reason="unload unanswered", began=began)
         text = (
             f"{error}; query {query.id} is released: '{query.serving_rr}' releases it when "
             "it reconciles with this registrar after its restart (its unload runs once)"
@@ -971,11 +966,11 @@ class Releases:
     def withdraw_pending(self, error: RrError, given_back: Join) -> None:
         """This registrar stops: give up its durable top-level calls not answered yet (their
         callers get `error`); each provider's answer is a part of `given_back`."""
-        for call in self.flights.due.durable_calls():
+        for call in self.registrar.due.durable_calls():
             if call.parent is not None or not call.attempt.fail_open(error):
                 continue  # (a dependency: its load's end settles it; or its outcome comes)
             self.give_back_before_stop(call.serving_rr, call.query_id, given_back)
-            self.answers.on_call_failed(
+            self.registrar.answers.on_call_failed(
                 CallFailed(
                     call.query_id,
                     call.attempt,
@@ -989,7 +984,7 @@ class Releases:
 
     def give_back_unsettled(self, given_back: Join) -> None:
         """On stop: give back unsettled and kept calls' ids and failed releases (`given_back`)."""
-        for query_id, serving_rr in self.flights.take_unsettled():
+        for query_id, serving_rr in self.registrar.flights.take_unsettled():
             self.give_back_before_stop(serving_rr, query_id, given_back)
         for query_id, serving_rr in self.unreleased.items():
             self.give_back_before_stop(serving_rr, query_id, given_back)
@@ -1030,27 +1025,15 @@ class Reconciling:
     """Reconciles what this registrar holds at providers with what they hold for it
     (`everyone`: with every registrar of the system, after a restore or `LostEverything`)."""
 
-    def __init__(
-        self,
-        shared: Shared,
-        flights: Flights,
-        holdings: Holdings,
-        releases: Releases,
-        due: DueAnswers,
-        redeliver: Callable[[Any], None],
-    ) -> None:
-        self.registrar = shared
-        self.flights = flights
-        self.holdings = holdings
-        self.releases = releases
-        self.due = due
-        self.redeliver = redeliver
+    def __init__(self, registrar: ConsumerRecord) -> None:
+        self.registrar = registrar
         # provider -> the ask's round and life ((0, ""): none)
         self.asked_to_reconcile: dict[str, tuple[int, str]] = {}
         self.everyone = False
         self.kept_timers: dict[KeptUnclaimed, runtime.Cancellable] = {}  # (`expire_kept`)
 
-    def expect_reconcile(self, providers: Iterable[str]) -> None:
+    def expect_reconcile(self, providers: Iterable[str], *, everyone: bool) -> None:
+        self.everyone = everyone
         for provider in providers:
             self.asked_to_reconcile.setdefault(provider, (0, ""))
 
@@ -1073,8 +1056,8 @@ class Reconciling:
 
     def holds_at(self, serving_rr: str) -> bool:
         return (
-            self.flights.held_at(serving_rr)
-            or bool(self.releases.unreleased_at(serving_rr))
+            self.registrar.flights.held_at(serving_rr)
+            or bool(self.registrar.releases.unreleased_at(serving_rr))
             or serving_rr in self.registrar.catalog.providers()
         )
 
@@ -1092,12 +1075,16 @@ class Reconciling:
             for record in self.registrar.catalog.client_records()
             if record.query.serving_rr == serving_rr
         }
-        held |= {q for q, provider in self.flights.unsettled().items() if provider == serving_rr}
-        held |= self.flights.kept_at(serving_rr, life)
+        held |= {
+            q
+            for q, provider in self.registrar.flights.unsettled().items()
+            if provider == serving_rr
+        }
+        held |= self.registrar.flights.kept_at(serving_rr, life)
         held |= due
         held -= withdrawn
-        left_out = self.releases.unreleased_at(serving_rr)
-        epoch = self.holdings.new_epoch()
+        left_out = self.registrar.releases.unreleased_at(serving_rr)
+        epoch = self.registrar.holdings.new_epoch()
         return Listing(tuple(sorted(held - left_out)), due, left_out, epoch, life, _hlc.CLOCK.now())
 
     def settle_listed(
@@ -1105,8 +1092,8 @@ class Reconciling:
     ) -> None:
         """Settle the failed calls and releases `listing` listed or left out (none: all); those
         its provider keeps for a retry now, unclaimed, are given back later (`expire_kept`)."""
-        kept = self.flights.settle_listed(serving_rr, listing, unknown)
-        self.releases.settle_listed(serving_rr, listing)
+        kept = self.registrar.flights.settle_listed(serving_rr, listing, unknown)
+        self.registrar.releases.settle_listed(serving_rr, listing)
         if kept:
             self.expire_kept(serving_rr, tuple(kept))
 
@@ -1127,7 +1114,7 @@ class Reconciling:
         restart (issue 68: before, until the provider's next restart or this one's stop)."""
         self.kept_timers.pop(message, None)
         for query_id in message.query_ids:
-            if self.flights.take_unclaimed(query_id, message.serving_rr):
+            if self.registrar.flights.take_unclaimed(query_id, message.serving_rr):
                 give_back(message.serving_rr, query_id, self.registrar.name)
 
     def close(self) -> None:
@@ -1139,8 +1126,9 @@ class Reconciling:
         """Whether to send an asking provider a `Reconcile` now (setup: once done; none owed)."""
         if not message.holds_yours and not self.holds_at(message.serving_rr):
             # (told as every registrar of the system is: nothing to reconcile, but a due
-            self.flights.doubt(self.due.ids(), message.serving_rr)  # answer may be of the
-            return False  # run its restart replaced)
+            # answer may be of the run its restart replaced)
+            self.registrar.flights.doubt(self.registrar.due.ids(), message.serving_rr)
+            return False
         if self.registrar.phase is Phase.SETTING_UP:  # its status callbacks are not attached yet
             asks = self.asked_to_reconcile
             ask = (message.round, message.life)
@@ -1166,7 +1154,7 @@ class Reconciling:
         """Tell `serving_rr` the ids held there (`Reconcile`); `then(error)` here once handled.
         Why frozen and epoch-bound: docs/explanation/inside.md, "The consumer's reconcile".
         `ask`: the `ReconcileAsk.round` it answers and that ask's `life`, echoed."""
-        with self.due.frozen() as (due, withdrawn):
+        with self.registrar.due.frozen() as (due, withdrawn):
             listing = self.listing(serving_rr, due, withdrawn, life)
             self.registrar.send(
                 serving_rr,
@@ -1203,20 +1191,20 @@ class Reconciling:
         again = False
         for query_id in unknown:
             record = self.registrar.catalog.client(query_id)
-            since = query_id in listing.due or not self.holdings.answered_before(
+            since = query_id in listing.due or not self.registrar.holdings.answered_before(
                 query_id, listing.epoch
             )
-            if query_id in self.due:
-                self.flights.doubt((query_id,), serving_rr)  # (again then)
+            if query_id in self.registrar.due:
+                self.registrar.flights.doubt((query_id,), serving_rr)  # (again then)
             elif record is None or not record.loaded or record.query.serving_rr != serving_rr:
                 continue
             elif since:
                 again = True
-            elif not self.releases.is_releasing(query_id):
+            elif not self.registrar.releases.is_releasing(query_id):
                 lost.setdefault(record.query.server, []).append(query_id)
         # listed and known: held there for a retry; left out: released
         self.settle_listed(serving_rr, listing, unknown)
-        self.releases.reconciled(serving_rr, listing)
+        self.registrar.releases.reconciled(serving_rr, listing)
         for server, ids in lost.items():
             logger.warning(
                 "registrar %s: %s/%s no longer knows %d of the queries held there "
@@ -1227,11 +1215,11 @@ class Reconciling:
                 server,
                 len(ids),
             )
-            self.holdings.report_lost(
+            self.registrar.holdings.report_lost(
                 f"{serving_rr}/{server}", tuple(ids), forgotten="unknown at reconcile"
             )
         if again:
-            self.redeliver(ReconcileAsk(serving_rr, holds_yours=False))
+            self.registrar.redeliver(ReconcileAsk(serving_rr, holds_yours=False))
 
     def lose_provider(self, serving_rr: str) -> None:
         """Provider `serving_rr` is gone for good (rule 19): `FATAL` to its ids, then forget."""
@@ -1250,7 +1238,7 @@ class Reconciling:
                 serving_rr,
                 server,
             )
-            self.holdings.report_lost(
+            self.registrar.holdings.report_lost(
                 f"{serving_rr}/{server}",
                 tuple(ids),
                 "the provider is gone and nobody will restart it",

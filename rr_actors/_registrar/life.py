@@ -43,8 +43,6 @@ from rr_actors._core.directory import DIRECTORY, LocalPeer, Reply
 from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.replies import FutureReply, Join
 from rr_actors._registrar.calls import ClientLoaded
-from rr_actors._registrar.consumer import Clients, Flights, Holdings, Reconciling, Releases
-from rr_actors._registrar.display import ClientTexts
 from rr_actors._registrar.messages import (
     ConsumerDown,
     Crash,
@@ -64,7 +62,7 @@ from rr_actors._registrar.messages import (
     YieldName,
     give_back,
 )
-from rr_actors._registrar.provider import Provider, Servers, Teardown, Unloading
+from rr_actors._registrar.provider import ProviderRecord
 from rr_actors._registrar.state import NO_REPLY, OpenReply, Phase, Server, Shared
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import (
@@ -98,45 +96,29 @@ class CatalogView:
     in_doubt: tuple[tuple[str, str | None], ...] = ()
 
 
+class RegistrarRecord(ProviderRecord):
+    """The registrar's whole record (`Shared`, then each side's parts: `ConsumerRecord`,
+    `StatusRecord`, `ProviderRecord`), as its lifecycle and the actor see it."""
+
+    # the handle's requests not answered yet (`OpenReply`: any thread); a dict: a death
+    # fails them oldest first (a set's address order no replay repeats)
+    open_requests: dict[OpenReply, None]
+    lifecycle: Lifecycle
+    restoring: Restoring
+    presence: Presence
+    actor: Actor  # (the actor machinery only: its mailbox, `end_now`, its dispatch)
+    died: runtime.Event  # set once a crash was fully handled (death watch included)
+    ended: OneShotFuture[None]  # set once the actor's thread handed on its last message
+
+
 class Lifecycle:
-    def __init__(
-        self,
-        shared: Shared,
-        provider: Provider,
-        teardown: Teardown,
-        restoring: Restoring,
-        flights: Flights,
-        releases: Releases,
-        reconciling: Reconciling,
-        presence: Presence,
-        servers: Servers,
-        clients: Clients,
-        texts: ClientTexts,
-        actor: Actor,
-        died: runtime.Event,
-        ended: OneShotFuture[None],
-    ) -> None:
-        self.registrar = shared
-        self.servers = servers
-        self.provider = provider
-        self.teardown = teardown
-        self.restoring = restoring
-        self.flights = flights
-        self.releases = releases
-        self.reconciling = reconciling
-        self.presence = presence
-        self.clients = clients  # its client actors, stopped with it
-        self.texts = texts  # its client records' texts, made before a snapshot reads them
-        self.actor = actor  # (the actor machinery only: its mailbox, `end_now`)
-        self.died = died  # set once a crash was fully handled (death watch included)
-        self.ended = ended  # set once the actor's thread handed on its last message
-        # a dict: a death fails them oldest first (a set's address order no replay repeats)
-        self.open_requests: dict[OpenReply, None] = {}
+    def __init__(self, registrar: RegistrarRecord) -> None:
+        self.registrar = registrar
         self.stop_waiters: list[Reply] | None = None  # while a stop is under way
         self.flush_timer: runtime.Cancellable | None = None
         # while it yields its name (rule 22): where `KeepName`'s answer goes, else `None`
         self.keepers: list[Reply] | None = None
-        self.hearer = Hearing(shared.peer)  # what this process's membership tells it
+        self.hearer = Hearing(registrar.peer)  # what this process's membership tells it
 
     # -- start ------------------------------------------------------------------------
 
@@ -145,20 +127,18 @@ class Lifecycle:
         # who was lost before it started it hears now: a mark is never missed
         gone = MEMBERSHIP.join(self.hearer)
         # every provider the restored catalog knows, also those settle_in_doubt forgets
-        providers = self.registrar.catalog.providers()
-        self.reconciling.expect_reconcile(providers)
         # what it released while a provider was down is in no row: reconcile with all (rule 20;
         # announced by its supervisor: each holding ids of it asks it, `on_reconcile_ask`)
-        self.reconciling.everyone = (
-            not self.registrar.announced and self.registrar.saver.store is not None
-        )
-        self.restoring.settle_in_doubt()
-        self.restoring.unload_unheld()
+        registrar = self.registrar
+        everyone = not registrar.announced and registrar.saver.store is not None
+        registrar.reconciling.expect_reconcile(registrar.catalog.providers(), everyone=everyone)
+        self.registrar.restoring.settle_in_doubt()
+        self.registrar.restoring.unload_unheld()
         for name, stopped in sorted(gone.items()):  # as if it had heard each mark
             if stopped:  # (`Presence`)
-                self.presence.stopped(name)
+                self.registrar.presence.stopped(name)
             else:
-                self.presence.lose(name)
+                self.registrar.presence.lose(name)
         self.arm_flush_timer()
         if self.registrar.phase is Phase.SERVING:  # (else once setup is done: `on_ready`)
             self.reconcile()
@@ -166,10 +146,9 @@ class Lifecycle:
     def reconcile(self) -> None:
         """It serves: as a provider ask its consumers for their ids (`ReconcileAsk`, after the
         sweep, which names them), as a consumer tell its providers which it holds (`Reconcile`)."""
-        self.restoring.ask_consumers()
-        for serving_rr, ask in sorted(self.reconciling.reconcile_all().items()):  # (setup's)
-            self.presence.round_count += 1
-            self.presence.attempt(serving_rr, self.presence.round_count, 0, ask=ask)
+        self.registrar.restoring.ask_consumers()
+        for serving_rr, ask in sorted(self.registrar.reconciling.reconcile_all().items()):
+            self.registrar.presence.begin(serving_rr, ask=ask)  # (setup's)
 
     def on_reachable(self, _message: Reachable, reply: Reply) -> None:
         if self.registrar.phase is Phase.SERVING:  # (during setup, `on_ready` reconciles)
@@ -180,7 +159,7 @@ class Lifecycle:
         """Setup is done: serve what waited for it (unknown servers now fail)."""
         self.registrar.phase = Phase.SERVING
         self.registrar.servers_settled = True
-        self.provider.serve_held()
+        self.registrar.provider.serve_held()
         self.reconcile()
         reply.set_result(None)
 
@@ -219,7 +198,7 @@ class Lifecycle:
         try:
             if message.check:
                 self.registrar.catalog.check_invariants()
-            self.texts.fill()
+            self.registrar.texts.fill()
             view = CatalogView(
                 resources=tuple(
                     dataclasses.replace(r, consumers=dict(r.consumers))
@@ -267,7 +246,7 @@ class Lifecycle:
         timer = runtime.thread_timer(
             max(0.0, until - runtime.monotonic()), lambda: late.set_result(None)
         )
-        self.servers.give_up_all(stop)
+        self.registrar.registry.give_up_all(stop)
 
     def on_keep_name(self, message: KeepName, _reply: Reply) -> None:
         """The one kept in this one's place went for good while this one yields (rule 22): serve
@@ -300,11 +279,11 @@ class Lifecycle:
         self.stop_waiters = []
         unloads_until = message.unloads_until
         self.registrar.phase = Phase.STOPPING
-        self.presence.close()  # no more reconcile retries
+        self.registrar.presence.close()  # no more reconcile retries
         stopped = RegistrarStoppedError(
             f"registrar {self.registrar.name!r} stopped during the call"
         )
-        releases = self.releases
+        releases = self.registrar.releases
         # the ids given back are released at their providers before the stop goes on
         given_back = Join(lambda: self.wait_for_unloads(unloads_until, finish))
         releases.withdraw_pending(stopped, given_back)
@@ -345,7 +324,7 @@ class Lifecycle:
             self.fail_waiting(RegistrarStoppedError(f"registrar {name!r} was stopped", name))
             self.registrar.probe("stop_drained", None)
             self.registrar.phase = Phase.ENDED
-            self.actor.end_now()  # at once: what arrives from now on goes to `on_late`
+            self.registrar.actor.end_now()  # at once: what arrives from now on goes to `on_late`
 
         next_one()
 
@@ -362,7 +341,7 @@ class Lifecycle:
             done = True
             if timer is not None:
                 timer.cancel()
-            for resource in self.teardown.under_way.values() if cut_short else ():
+            for resource in self.registrar.teardown.busy() if cut_short else ():
                 logger.warning(
                     "registrar %s: stopped while the unload of %s (%s) was under way; "
                     "it is in doubt at the next start",
@@ -376,19 +355,19 @@ class Lifecycle:
                     )
             then()
 
-        if until is not None and self.teardown.under_way:
+        if until is not None and self.registrar.teardown.busy():
             late = self.registrar.come_back(lambda _value, _error: go(cut_short=True))
             timer = runtime.thread_timer(
                 max(0.0, until - runtime.monotonic()), lambda: late.set_result(None)
             )
-        self.teardown.when_idle(lambda: go(cut_short=False))
+        self.registrar.teardown.when_idle(lambda: go(cut_short=False))
         if not done and until is None:
             go(cut_short=True)
 
     def stop_children(self) -> None:
         for server in self.registrar.servers.values():
             server.ref.stop(block=True, timeout=5.0)
-        self.clients.stop_all()
+        self.registrar.clients.stop_all()
 
     # -- death --------------------------------------------------------------------------
 
@@ -399,7 +378,7 @@ class Lifecycle:
 
     def die(self) -> None:
         self.registrar.phase = Phase.ENDED
-        self.presence.close()
+        self.registrar.presence.close()
         MEMBERSHIP.leave(self.hearer)
         DIRECTORY.unregister(self.registrar.peer, "died")
         died = RegistrarUnavailableError(f"registrar {self.registrar.name!r} died")
@@ -411,20 +390,20 @@ class Lifecycle:
         self.registrar.saver.close(erase=False, flush=False)  # a crash writes nothing more
         if not DIRECTORY.restart_expected(self.registrar.name):  # gone for good (rule 19):
             gone_for_good(self.registrar.name, also=DIRECTORY.names())  # other processes too
-        self.died.set()
+        self.registrar.died.set()
 
     # -- whoever still waits ----------------------------------------------------------
 
     def fail_waiting(self, error: RrError) -> None:
         """Answer everyone still waiting on this actor with `error` (handle requests first)."""
-        self.provider.fail_waiting(error)
-        self.flights.fail_waiting(error)
-        for request in list(self.open_requests):
+        self.registrar.provider.fail_waiting(error)
+        self.registrar.flights.fail_waiting(error)
+        for request in list(self.registrar.open_requests):
             request.set_error(error)
-        inbox = self.actor.actor_inbox
+        inbox = self.registrar.actor.actor_inbox
         while not inbox.empty():
             self.refuse(inbox.get(), error)
-        outcomes = self.flights.due.outcomes
+        outcomes = self.registrar.due.outcomes
         while not outcomes.empty():
             self.refuse_message(outcomes.get(), error)
 
@@ -455,21 +434,8 @@ def cut_short(catalog: Catalog) -> list[Resource]:
 
 
 class Restoring:
-    def __init__(
-        self,
-        shared: Shared,
-        unloading: Unloading,
-        teardown: Teardown,
-        releases: Releases,
-        holdings: Holdings,
-        *,
-        hold_in_doubt: bool = False,
-    ) -> None:
-        self.registrar = shared
-        self.unloading = unloading
-        self.teardown = teardown
-        self.releases = releases
-        self.holdings = holdings
+    def __init__(self, registrar: ProviderRecord, *, hold_in_doubt: bool = False) -> None:
+        self.registrar = registrar
         self.hold_in_doubt = hold_in_doubt  # their settling waits for the manager (`setup`)
         self.in_doubt_ids: frozenset[str] = frozenset()  # found in doubt at the restore
         self.sweeping = False  # slices of the restored catalog are still to be swept
@@ -496,22 +462,22 @@ class Restoring:
                     )
                 )
             catalog.begin_unload(resource.id)
-            self.releases.release_dependencies(
-                resource.id, functools.partial(self.teardown.remove_resource, resource)
+            self.registrar.releases.release_dependencies(
+                resource.id, functools.partial(self.registrar.teardown.remove_resource, resource)
             )
         for record in list(catalog.client_records()):
             orphan = record.parent is not None and record.parent not in catalog.resources
             if orphan or (record.parent is None and not record.loaded):
                 query = record.query
                 give_back(query.serving_rr, query.id, self.registrar.name)
-                self.holdings.forget(query.id, commit=False, reason="in doubt")
+                self.registrar.holdings.forget(query.id, commit=False, reason="in doubt")
         self.registrar.commit()
 
     def unload_unheld(self) -> None:
         """Unload restored resources that no consumer holds (rule 7): a crash came between their
         last release and their unload; they run once setup registered their server."""
         for resource in self.registrar.catalog.unheld():
-            self.teardown.unload_resource(resource, None)
+            self.registrar.teardown.unload_resource(resource, None)
         self.sweep(0)
 
     def sweep(self, after: int) -> None:
@@ -523,7 +489,7 @@ class Restoring:
             unheld, origins, next_slice = self.registrar.catalog.sweep(after)
             self.swept_origins |= origins
             for resource in unheld:
-                self.teardown.unload_resource(resource, None)
+                self.registrar.teardown.unload_resource(resource, None)
             if next_slice is not None:
                 self.sweeping = True
                 self.registrar.come_back(lambda _v, _e: self.sweep(next_slice)).set_result(None)
@@ -537,14 +503,14 @@ class Restoring:
         self.sweeping = False
         if self.reconcile_owed:
             self.reconcile_owed = False
-            self.unloading.ask_to_reconcile(self.swept_origins)
+            self.registrar.unloading.ask_to_reconcile(self.swept_origins)
 
     def ask_consumers(self) -> None:
         """It serves: ask every consumer holding ids here to reconcile (once the sweep is done)."""
         if self.sweeping:
             self.reconcile_owed = True
         else:
-            self.unloading.ask_to_reconcile(self.swept_origins)
+            self.registrar.unloading.ask_to_reconcile(self.swept_origins)
 
     def on_settle_in_doubt(self, message: SettleInDoubt, reply: Reply) -> None:
         """The manager handled in-doubt entry `query_id` (`None`: every one): its row leaves the
@@ -585,15 +551,9 @@ def retry_delay(attempt: int) -> float:
 
 class Presence:
     def __init__(
-        self,
-        registrar: Shared,
-        unloading: Unloading,
-        reconciling: Reconciling,
-        timer: runtime.StartTimer = runtime.thread_timer,
+        self, registrar: ProviderRecord, timer: runtime.StartTimer = runtime.thread_timer
     ) -> None:
         self.registrar = registrar
-        self.unloading = unloading
-        self.reconciling = reconciling
         self.timer = timer  # `timer(delay, fn)` for the retries (injectable for tests)
         # provider -> (its reconcile round, the attempt waited for), until answered
         self.rounds: dict[str, tuple[int, int]] = {}
@@ -628,7 +588,7 @@ class Presence:
         still here is released; what this one holds there is left as a stop leaves it."""
         if name == self.registrar.name:
             return
-        self.unloading.release_stopped(name)
+        self.registrar.unloading.release_stopped(name)
 
     def lose(self, name: str, *, defer: bool = True) -> None:
         """Registrar `name` is gone and nobody will restart it: release what it held here, report
@@ -643,8 +603,8 @@ class Presence:
         serving = self.registrar.phase is Phase.SERVING and name in DIRECTORY.names()
         if not (defer and serving and self.ask_consumer(name)):
             self.stop_asking(name)
-            self.unloading.release_all_of(name)
-        if defer and serving and self.reconciling.holds_at(name):
+            self.registrar.unloading.release_all_of(name)
+        if defer and serving and self.registrar.reconciling.holds_at(name):
             logger.info(
                 "registrar %s: %s is lost for good, and a registrar named so serves: "
                 "it reconciles with that one first (rule 22)",
@@ -652,12 +612,11 @@ class Presence:
                 name,
             )
             self.served_on.add(name)
-            self.round_count += 1
-            self.attempt(name, self.round_count, 0)
+            self.begin(name)
             return
         self.served_on.discard(name)
         self.stop_retrying(name)
-        self.reconciling.lose_provider(name)
+        self.registrar.reconciling.lose_provider(name)
 
     # -- reachable again (rule 20) ------------------------------------------------------
 
@@ -666,11 +625,10 @@ class Presence:
         if name == self.registrar.name or self.registrar.phase is not Phase.SERVING:
             return  # (during setup `on_ready` reconciles with everyone; stopping: nothing)
         self.served_on.discard(name)  # (a healed link: the reconcile decides)
-        if self.reconciling.holds_at(name):
-            self.round_count += 1
-            self.attempt(name, self.round_count, 0)
+        if self.registrar.reconciling.holds_at(name):
+            self.begin(name)
         if self.registrar.catalog.consumers_from(name):  # (with the round of an ask standing,
-            self.unloading.ask_holder(name)  # `ask_consumer`: its answer clears it)
+            self.registrar.unloading.ask_holder(name)  # `ask_consumer`: its answer clears it)
 
     def on_reconcile_ask(self, message: ReconcileAsk, reply: Reply) -> None:
         """Provider `serving_rr` asks for a `Reconcile` (rule 20): sent, and retried until it is
@@ -678,22 +636,23 @@ class Presence:
         reply.set_result(None)  # (heard: one that stopped first answers that, `ask_to_reconcile`)
         name = message.serving_rr  # (re)started: it may have forgotten ids it holds here
         if not message.holds_yours and name != self.registrar.name and self.holds_of(name):
-            self.unloading.ask_holder(name)  # (its `Reconcile` releases them, rule 20)
-        if self.reconciling.asked(message):
-            self.round_count += 1
-            ask = (message.round, message.life)
-            self.attempt(message.serving_rr, self.round_count, 0, message.life, ask)
+            self.registrar.unloading.ask_holder(name)  # (its `Reconcile` releases them, rule 20)
+        if self.registrar.reconciling.asked(message):
+            self.begin(message.serving_rr, message.life, (message.round, message.life))
 
     def holds_of(self, name: str) -> bool:
         """Whether this registrar holds ids of consumer `name`, or has its loads under way."""
-        return self.unloading.holds_of(name) or bool(self.unloading.provider.under_way_of(name))
+        return self.registrar.unloading.holds_of(name) or bool(
+            self.registrar.provider.under_way_of(name)
+        )
 
     def ask_consumer(self, name: str) -> bool:
         """Ask consumer `name` for a `Reconcile`, with its `call_timeout` armed; whether it was
         asked (nothing of it held here, or it cannot be told: not)."""
-        if not self.unloading.holds_of(name):
+        if not self.registrar.unloading.holds_of(name):
             return False
-        self.unloading.give_up_loads_of(name)  # (a call given up fails: nothing held anywhere)
+        # (a call given up fails: nothing held anywhere)
+        self.registrar.unloading.give_up_loads_of(name)
         self.round_count += 1
         round_, ref = self.round_count, self.registrar.ref
         try:
@@ -705,8 +664,7 @@ class Presence:
             return False
         self.stop_asking(name)
         held = frozenset(self.registrar.catalog.consumers_from(name))
-        # (cleared by its answer, or a later run's `Reconcile`: not by one its lost run sent)
-        self.unloading.asked[name] = (round_, held, self.unloading.provider.lives.newest(name))
+        self.registrar.unloading.expect(name, round_, held)
 
         def due() -> None:
             with contextlib.suppress(pykka.ActorDeadError):
@@ -715,7 +673,9 @@ class Presence:
 
         self.asked_timers[name] = self.timer(self.registrar.config.call_timeout, due)
         # then a reconcile of this one's ids there: one that cannot answer fails it at once
-        self.reconciling.reconcile(name, then=functools.partial(self.probed, name, round_))
+        self.registrar.reconciling.reconcile(
+            name, then=functools.partial(self.probed, name, round_)
+        )
         return True
 
     def probed(self, name: str, round_: int, error: BaseException | None) -> None:
@@ -725,7 +685,7 @@ class Presence:
     def unanswered(self, name: str, round_: int) -> None:
         """The `Reconcile` asked of consumer `name` by round `round_` did not come in time: it is
         lost as a consumer (every id it held here when asked released)."""
-        asked = self.unloading.asked.get(name)
+        asked = self.registrar.unloading.expected(name)
         if asked is None or asked[0] != round_:
             return  # it came (or a newer ask waits)
         self.stop_asking(name)
@@ -734,10 +694,10 @@ class Presence:
             self.registrar.name,
             name,
         )
-        self.unloading.release_all_of(name, only=asked[1])  # (not those loaded since)
+        self.registrar.unloading.release_all_of(name, only=asked[1])  # (not those loaded since)
 
     def stop_asking(self, name: str) -> None:
-        self.unloading.asked.pop(name, None)
+        self.registrar.unloading.not_expected(name)
         timer = self.asked_timers.pop(name, None)
         if timer is not None:
             timer.cancel()
@@ -755,6 +715,11 @@ class Presence:
             return
         self.attempt(message.name, message.round, message.attempt, self.lives.get(message.name, ""))
 
+    def begin(self, name: str, life: str = "", ask: tuple[int, str] = (0, "")) -> None:
+        """Start a new round of `Reconcile` with provider `name` (`attempt` 0)."""
+        self.round_count += 1
+        self.attempt(name, self.round_count, 0, life, ask)
+
     def attempt(
         self, name: str, round_: int, attempt: int, life: str = "", ask: tuple[int, str] = (0, "")
     ) -> None:
@@ -766,7 +731,7 @@ class Presence:
         self.rounds[name] = (round_, attempt)
         self.lives[name], self.asks[name] = life, ask
         self.arm(name, round_, attempt + 1, self.registrar.config.call_timeout)
-        self.reconciling.reconcile(
+        self.registrar.reconciling.reconcile(
             name, then=lambda error: self.answered(name, round_, attempt, error), life=life, ask=ask
         )
 
@@ -822,7 +787,7 @@ class Presence:
             self.stop_retrying(name)
         for name in list(self.asked_timers):
             self.stop_asking(name)
-        self.reconciling.close()
+        self.registrar.reconciling.close()
 
 
 # -- the outside's views of it: a carrier's, the membership's -------------------------

@@ -20,6 +20,13 @@
 A resource belongs to its server; its consumers are query ids (one per call, rule 2).
 Why the actor never waits for user code, how coroutine callbacks run, and who decides
 under overload: docs/explanation/inside.md, "The provider".
+
+Why one module past the 1,200 lines of code a module keeps to: its parts are one story
+(a load, its sharing, its release, its unload), the layers above and below tell none of
+it, and the runtime's file budget (`RUNTIME_FILES` in tests/test_repository.py) has no
+file to spare. Where it splits by collaborator, when one is freed: `ServerActor`,
+`Teardown` and `Servers` (a server's actor, its registration, a resource's unload through
+it; none calls `Provider` or `Unloading`) as a module below this one.
 """
 
 from __future__ import annotations
@@ -51,7 +58,6 @@ from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.loops import is_coroutine_function, process_loop
 from rr_actors._core.replies import CallbackReply, Join
 from rr_actors._core.workers import Job, Workers
-from rr_actors._registrar.consumer import Releases
 from rr_actors._registrar.display import show_request, show_response
 from rr_actors._registrar.messages import (
     LOADING,
@@ -85,7 +91,7 @@ from rr_actors._registrar.state import (
     consumers_by_origin,
     life_order,
 )
-from rr_actors._registrar.status import StatusRelay, Unacknowledged
+from rr_actors._registrar.status import StatusRecord
 from rr_actors._types import LoadCallback, Status, StatusUpdate, UnloadCallback
 from rr_actors.config import MAX_DEPENDENCY_DEPTH
 from rr_actors.errors import (
@@ -259,11 +265,19 @@ class Admission:
                 del self.of[server]
 
 
+class ProviderRecord(StatusRecord):
+    """The registrar's record as its provider side and the parts above see it."""
+
+    provider: Provider
+    lives: Lives  # the consumers' runs that reconciled: earlier ones fenced
+    unloading: Unloading
+    teardown: Teardown
+    registry: Servers
+
+
 class Provider:
-    def __init__(self, shared: Shared, releases: Releases, teardown: Teardown) -> None:
-        self.registrar = shared
-        self.releases = releases
-        self.teardown = teardown
+    def __init__(self, registrar: ProviderRecord) -> None:
+        self.registrar = registrar
         self.loads: dict[str, list[Waiter]] = {}  # resource id -> the callers waiting for it
         self.admission = Admission()  # each server's loads queued or running, by consumer
         self.loading_ids: dict[str, str] = {}  # a waiting caller's query id -> its resource
@@ -276,8 +290,7 @@ class Provider:
         # resource id -> its load's end, waiting for the label a worker makes (`None`: the
         # load still runs)
         self.labelling: dict[str, Callable[[], None] | None] = {}
-        self.matching = Matching(shared, self.serve)
-        self.lives = Lives()  # the consumers' runs that reconciled: earlier ones fenced
+        self.matching = Matching(registrar, self.serve)
 
     # -- load -------------------------------------------------------------------------
 
@@ -291,7 +304,7 @@ class Provider:
             )
         if self.registrar.stopping:  # (its own end: named)
             return RegistrarStoppedError(f"registrar {name!r} is stopping", name)
-        if self.lives.fenced(message.origin_rr, message.life):
+        if self.registrar.lives.fenced(message.origin_rr, message.life):
             return RegistrarUnavailableError(
                 f"registrar {message.origin_rr!r} restarted since it sent the load of "
                 f"{message.query_id!r} to '{name}/{message.server}', and "
@@ -323,7 +336,7 @@ class Provider:
         if refusal is not None:
             message.reply.set_error(refusal)
             return
-        self.lives.heard(message.origin_rr, message.life)
+        self.registrar.lives.heard(message.origin_rr, message.life)
         self.abandoned.discard(message.query_id)  # a retry: its caller is back
         digest = request_digest(message.request)
         if digest is not None:  # a plain value: decided on this thread
@@ -449,7 +462,7 @@ class Provider:
             self.start_load(self.registrar.servers[message.server], message, waiter, key)
         elif resource.state is ResourceState.UNLOADING:  # load it afresh once it is gone
             if resource.id not in self.after_unload:  # the first parked behind it
-                self.teardown.when_gone(
+                self.registrar.teardown.when_gone(
                     resource.id, functools.partial(self.serve_parked, resource.id)
                 )
             self.after_unload.setdefault(resource.id, []).append(message)
@@ -599,12 +612,12 @@ class Provider:
             self.registrar.commit()
 
             def failed() -> None:
-                self.teardown.remove_resource(resource)
+                self.registrar.teardown.remove_resource(resource)
                 for waiter in waiters:
                     self.abandoned.discard(waiter.query_id)
                     waiter.reply.set_error(error)
 
-            self.releases.release_dependencies(rid, failed)
+            self.registrar.releases.release_dependencies(rid, failed)
             return
         show_response(self.registrar, catalog.finish_load(rid, response))
         live = self._add_consumers(rid, waiters)
@@ -636,7 +649,7 @@ class Provider:
         for waiter in live:
             waiter.reply.set_result(response)
         if not resource.consumers:  # every caller gave up (or the server closed)
-            self.teardown.unload_resource(resource, None)
+            self.registrar.teardown.unload_resource(resource, None)
 
     def _add_consumers(self, rid: str, waiters: list[Waiter]) -> list[Waiter]:
         """Make the waiters of a finished load its consumers (one that gave up holds nothing)."""
@@ -658,7 +671,7 @@ class Provider:
         held, self.held_loads = self.held_loads, []
         for load in held:
             self.on_load(load, load.reply)
-        self.teardown.settle_parked()
+        self.registrar.teardown.settle_parked()
 
     def serve_parked(self, rid: str) -> None:
         for load in self.after_unload.pop(rid, ()):
@@ -717,12 +730,12 @@ class Provider:
         self.registrar.commit()
 
         def gone() -> None:
-            self.teardown.remove_resource(resource)
+            self.registrar.teardown.remove_resource(resource)
             for waiter in waiters:
                 self.abandoned.discard(waiter.query_id)
                 waiter.reply.set_error(CallTimeoutError(f"call {waiter.query_id} was given up"))
 
-        self.releases.release_dependencies(rid, gone)
+        self.registrar.releases.release_dependencies(rid, gone)
 
     def origin_under_way(self, query_id: str) -> str | None:
         rid = self.loading_ids.get(query_id)
@@ -759,7 +772,7 @@ class Provider:
             for load in loads:
                 load.reply.set_error(error)
         self.matching.fail_waiting(error)
-        self.teardown.fail_waiting(error)
+        self.registrar.teardown.fail_waiting(error)
 
 
 def published_load(
@@ -1186,21 +1199,27 @@ def _refuse_awaitable(response: Any) -> None:
 
 
 class Unloading:
-    def __init__(
-        self, shared: Shared, provider: Provider, teardown: Teardown, unacked: Unacknowledged
-    ) -> None:
-        self.registrar = shared
-        self.provider = provider
-        self.teardown = teardown
-        self.unacked = unacked  # (`status.py`: the statuses on their way, by consumer id)
+    def __init__(self, registrar: ProviderRecord) -> None:
+        self.registrar = registrar
         # consumer -> the round of the `Reconcile` asked of it (`Presence.lose`), the ids
         # it held here then and its latest run heard of here then, until it came
         self.asked: dict[str, tuple[int, frozenset[str], str]] = {}
 
+    def expect(self, origin: str, round_: int, held: frozenset[str]) -> None:
+        """Consumer `origin` was asked for a `Reconcile` by round `round_` (`Presence`), holding
+        `held` here: kept until it comes (or a later run's; not one its lost run sent)."""
+        self.asked[origin] = (round_, held, self.registrar.lives.newest(origin))
+
+    def expected(self, origin: str) -> tuple[int, frozenset[str], str] | None:
+        return self.asked.get(origin)
+
+    def not_expected(self, origin: str) -> None:
+        self.asked.pop(origin, None)
+
     def on_unload(self, message: Unload, reply: Reply) -> None:
         """Release the id; the answer carries the statuses still on their way to it (rule 9:
         they travel on another connection and may come after it), also with an `UnloadOverran`."""
-        query_id, unacked = message.query_id, self.unacked
+        query_id, unacked = message.query_id, self.registrar.unacked
 
         def answered(_value: Any, error: BaseException | None) -> None:
             if isinstance(error, CallTimeoutError):
@@ -1228,7 +1247,7 @@ class Unloading:
     def held_by_another(self, query_id: str, origin_rr: str) -> bool:
         """Whether `query_id` is held (or loading) here for a registrar other than `origin_rr`:
         only its caller gives an id back (rule 2)."""
-        holder = self.provider.origin_under_way(query_id)
+        holder = self.registrar.provider.origin_under_way(query_id)
         catalog = self.registrar.catalog
         if holder is None and catalog.has_consumer(query_id):
             holder = catalog.resource_of(query_id).consumers[query_id]
@@ -1239,8 +1258,8 @@ class Unloading:
 
     def give_up_loads_of(self, origin_rr: str) -> None:
         """Give up the loads of consumer `origin_rr` under way here (each answered or unloaded)."""
-        for query_id in self.provider.under_way_of(origin_rr):
-            self.provider.give_up(query_id)
+        for query_id in self.registrar.provider.under_way_of(origin_rr):
+            self.registrar.provider.give_up(query_id)
 
     def release_all_of(self, origin_rr: str, only: frozenset[str] | None = None) -> None:
         """Consumer `origin_rr` is gone for good: release every id it held here (or `only`
@@ -1264,7 +1283,7 @@ class Unloading:
         if unwritable is not None:
             reply.set_error(unwritable)  # type: ignore[union-attr]
             return
-        if self.provider.give_up(query_id):  # its load had not finished: it never holds it
+        if self.registrar.provider.give_up(query_id):  # its load had not finished: not held
             if reply is not None:
                 reply.set_result(None)
             return
@@ -1298,7 +1317,9 @@ class Unloading:
             )
             return
         if last and resource.state is ResourceState.LOADED:  # one commit with its unload mark
-            self.teardown.unload_resource(resource, reply, trace, released=(query_id, origin, told))
+            self.registrar.teardown.unload_resource(
+                resource, reply, trace, released=(query_id, origin, told)
+            )
             return
         failed = shared.commit(*told)  # (written with it)
         if failed is not None and reply is not None:  # not durable: nothing changes
@@ -1326,13 +1347,13 @@ class Unloading:
         its stop could not give back what it held here) it holds nothing here (rule 12), unless
         a later run of it was heard of since (it reconciles for itself). Only its own stop says
         so: not this process's leaving the system. Reads no row: a lazy restore stays lazy."""
-        asked = self.provider.lives.newest(origin)
+        asked = self.registrar.lives.newest(origin)
 
         def answered(_: Any, error: BaseException | None) -> None:
             if (
                 isinstance(error, RegistrarStoppedError)
                 and error.registrar == origin
-                and self.provider.lives.newest(origin) == asked
+                and self.registrar.lives.newest(origin) == asked
             ):
                 self.release_stopped(origin)
 
@@ -1388,17 +1409,19 @@ class Unloading:
             or (asked[2] != "" and life_order(message.life) > life_order(asked[2]))
         ):
             del self.asked[message.origin_rr]
-        self.provider.lives.reconciled(message.origin_rr, message.life)
-        for query_id in self.provider.under_way_of(message.origin_rr):
+        self.registrar.lives.reconciled(message.origin_rr, message.life)
+        for query_id in self.registrar.provider.under_way_of(message.origin_rr):
             if query_id not in held:
-                self.provider.give_up(query_id)
+                self.registrar.provider.give_up(query_id)
         mine = catalog.consumer_ids_from(message.origin_rr)
         step = runtime.steps.reconcile  # (a classroom's copy of this step, `rr_actors_lab.teach`)
         told: tuple[str, ...] | None = None
         if step is None:
             stale = sorted(mine - held)
         else:
-            gone, unknown_ids = step(frozenset(mine), frozenset(held), self.provider.under_way())
+            gone, unknown_ids = step(
+                frozenset(mine), frozenset(held), self.registrar.provider.under_way()
+            )
             stale, told = sorted(set(gone) & mine), tuple(sorted(unknown_ids))
         if stale:
             logger.warning(
@@ -1414,7 +1437,7 @@ class Unloading:
         if told is not None:  # (a classroom's copy's answer)
             reply.set_result(told)
             return
-        under_way = self.provider.under_way()
+        under_way = self.registrar.provider.under_way()
         unknown = tuple(q for q in message.held if q not in mine and q not in under_way)
         reply.set_result(unknown)
 
@@ -1426,9 +1449,8 @@ UNLOAD = "unload"
 
 
 class Teardown:
-    def __init__(self, shared: Shared, releases: Releases) -> None:
-        self.registrar = shared
-        self.releases = releases
+    def __init__(self, registrar: ProviderRecord) -> None:
+        self.registrar = registrar
         self.unload_waiters: dict[str, list[Reply]] = {}  # resource id -> who waits for it
         # server name -> unloads of restored resources waiting for it to be registered
         self.parked_unloads: dict[str, list[Callable[[], None]]] = {}
@@ -1491,7 +1513,9 @@ class Teardown:
                 )
             self.remove_resource(resource, unloaded=True)
             for ids in later:  # (a classroom's copy of `release_order`: after the unload)
-                self.releases.release_dependencies(resource.id, lambda: None, only=ids, trace=trace)
+                self.registrar.releases.release_dependencies(
+                    resource.id, lambda: None, only=ids, trace=trace
+                )
             for waiting in self.unload_waiters.pop(resource.id):
                 if overdue:
                     waiting.set_error(error)  # type: ignore[arg-type]
@@ -1505,13 +1529,13 @@ class Teardown:
             runtime.steps.release_order
         )  # (a classroom's copy of this step, `rr_actors_lab.teach`)
         if step is None:
-            self.releases.release_dependencies(resource.id, run_unload, trace=trace)
+            self.registrar.releases.release_dependencies(resource.id, run_unload, trace=trace)
             return
         held = [r.query.id for r in self.registrar.catalog.dependencies(resource.id)]
         order = list(step(tuple(held)))
         cut = order.index(UNLOAD)
         later.append(set(order[cut + 1 :]) & set(held))
-        self.releases.release_dependencies(
+        self.registrar.releases.release_dependencies(
             resource.id, run_unload, only=set(order[:cut]), trace=trace
         )
 
@@ -1538,6 +1562,10 @@ class Teardown:
         if failed is not None:  # (a give-up's events published all the same)
             shared.publish(*told)
         return True
+
+    def busy(self) -> list[Resource]:
+        """The resources whose unload is under way (not those parked)."""
+        return list(self.under_way.values())
 
     def when_idle(self, then: Callable[[], None]) -> None:
         self.idle.append(then)
@@ -1626,10 +1654,8 @@ def _log_failure(
 
 
 class Servers:
-    def __init__(self, shared: Shared, teardown: Teardown, status: StatusRelay) -> None:
-        self.registrar = shared
-        self.teardown = teardown
-        self.status = status
+    def __init__(self, registrar: ProviderRecord) -> None:
+        self.registrar = registrar
 
     def on_fetch(self, message: Fetch, reply: Reply) -> None:
         if message.server not in self.registrar.servers:
@@ -1689,7 +1715,7 @@ class Servers:
             max_pending=message.max_pending,
             pace=pace,
         )
-        self.teardown.run_parked(name)
+        self.registrar.teardown.run_parked(name)
         reply.set_result(None)
 
     def on_unregister_server(self, message: UnregisterServer, reply: Reply) -> None:
@@ -1721,9 +1747,11 @@ class Servers:
                 if resource.state is ResourceState.LOADED:
                     self.give_up(resource, join.add())
                 elif resource.state is ResourceState.UNLOADING:
-                    self.teardown.wait_for_unload(resource, self.registrar.come_back(join.add()))
+                    self.registrar.teardown.wait_for_unload(
+                        resource, self.registrar.come_back(join.add())
+                    )
                 else:  # loading: refused when it finishes, then unloaded
-                    self.teardown.when_gone(resource.id, join.add())
+                    self.registrar.teardown.when_gone(resource.id, join.add())
         join.seal()
 
     def give_up(self, resource: Resource, then: Callable[[], None]) -> None:
@@ -1737,7 +1765,9 @@ class Servers:
                         self.registrar.name, resource.id, query_id, origin, "name yielded"
                     )
                 )
-        self.teardown.unload_resource(resource, self.registrar.come_back(lambda *_: then()))
+        self.registrar.teardown.unload_resource(
+            resource, self.registrar.come_back(lambda *_: then())
+        )
 
     def close_resource(self, resource: Resource, then: Callable[[], None]) -> None:
         self.registrar.probe("close_resource", resource)
@@ -1752,7 +1782,7 @@ class Servers:
         def revoke_and_unload() -> None:
             done = self.registrar.come_back(lambda *_: then())
             if resource.state is not ResourceState.LOADED:  # its consumers left meanwhile
-                self.teardown.wait_for_unload(resource, done)
+                self.registrar.teardown.wait_for_unload(resource, done)
                 return
             for origin, ids in consumers_by_origin(resource).items():
                 with contextlib.suppress(RrError):
@@ -1767,7 +1797,7 @@ class Servers:
                             self.registrar.name, resource.id, qid, origin, "server unregistered"
                         )
                     )
-            self.teardown.unload_resource(resource, done)
+            self.registrar.teardown.unload_resource(resource, done)
 
         event = runtime.new_id()
         if self.registrar.events.active:
@@ -1778,7 +1808,9 @@ class Servers:
             )
         # the FATAL's acknowledgements may complete on any thread: come back to this one
         back = self.registrar.come_back(lambda *_: revoke_and_unload())
-        self.status.notify(resource, update, event, query_id, lambda: back.set_result(None))
+        self.registrar.status.notify(
+            resource, update, event, query_id, lambda: back.set_result(None)
+        )
 
     def on_update_response(self, message: UpdateResponse, reply: Reply) -> None:
         query_id, response = message.query_id, message.response

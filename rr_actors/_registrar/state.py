@@ -2,7 +2,8 @@
 
 ```
  Shared: the registrar's record, held by each part as `self.registrar` (the actor's
- thread only, but `probes`)
+ thread only, but `probes`); each side's module widens it by its parts (`ConsumerRecord`,
+ `StatusRecord`, `ProviderRecord`, `RegistrarRecord`), which the actor puts in it
    catalog            what it serves and holds (`_catalog`): the actor its one writer
    saver              the save policy over its backup (or over nothing)
      commit(*told)    changes and the events telling of them, one transaction, then

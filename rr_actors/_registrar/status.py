@@ -42,9 +42,9 @@ from rr_actors._core.replies import CallbackReply, SharedJoin, waited, when_wait
 from rr_actors._core.workers import Job, Workers
 from rr_actors._platform import forkserver
 from rr_actors._registrar.calls import DueAnswers
-from rr_actors._registrar.consumer import Flights, Holdings
+from rr_actors._registrar.consumer import ConsumerRecord
 from rr_actors._registrar.messages import SendStatus, StatusBatch, StatusNotice, StatusOnItsWay
-from rr_actors._registrar.state import NO_REPLY, Shared, consumers_by_origin
+from rr_actors._registrar.state import NO_REPLY, consumers_by_origin
 from rr_actors._types import Query, Status, StatusCallback, StatusDelivery, StatusUpdate
 from rr_actors.errors import ConfigError, RrError, UnknownQueryError
 
@@ -54,16 +54,18 @@ logger = logging.getLogger("rr_actors")
 _SEEN_EVENTS = 4096  # (event, resource) pairs remembered to run each callback once
 
 
+class StatusRecord(ConsumerRecord):
+    """The registrar's record as its status relay and the parts above see it."""
+
+    unacked: Unacknowledged  # (an `Unload`'s answer carries those of its id: provider.py)
+    status: StatusRelay
+
+
 class StatusRelay:
-    def __init__(
-        self, shared: Shared, flights: Flights, holdings: Holdings, unacked: Unacknowledged
-    ) -> None:
-        self.registrar = shared
-        self.flights = flights
-        self.holdings = holdings
-        self.unacked = unacked  # (an `Unload`'s answer carries those of its id: provider.py)
+    def __init__(self, registrar: StatusRecord) -> None:
+        self.registrar = registrar
         self.seen_events: collections.OrderedDict[tuple[str, str], None] = collections.OrderedDict()
-        self.routes = Routes(unacked)
+        self.routes = Routes(registrar.unacked)
 
     def on_send_status(self, asked: SendStatus, reply: Reply) -> None:
         query_id, status, message = asked.query_id, asked.status, asked.message
@@ -184,9 +186,9 @@ class StatusRelay:
             None if deadline is None else max(0.0, deadline - runtime.monotonic()),
         )  # (each part sent gets its own reply)
         if in_process:
-            DESK.deliver(batch, join, None, (self.registrar.name, self.flights.redeliver))
+            DESK.deliver(batch, join, None, (self.registrar.name, self.registrar.redeliver))
         for relay, parts, batched in self.routes.plan(elsewhere):
-            self.unacked.leaving(parts, batch, relay)
+            self.registrar.unacked.leaving(parts, batch, relay)
             if batched:
                 self.send_batch(relay, batch.part(parts, NO_REPLY), join, refused)
             else:
@@ -203,7 +205,7 @@ class StatusRelay:
     ) -> None:
         done = join.add()
         routes = self.routes
-        unacked = self.unacked
+        unacked = self.registrar.unacked
 
         def answered(value: Any, error: BaseException | None) -> None:
             unacked.answered(((origin, query_ids),), batch.event)
@@ -243,7 +245,7 @@ class StatusRelay:
         relay that fails: each part goes again to its own registrar."""
         done = join.add()
         routes = self.routes
-        unacked = self.unacked
+        unacked = self.registrar.unacked
 
         def answered(value: Any, error: BaseException | None) -> None:
             if error is None:
@@ -310,12 +312,12 @@ class StatusRelay:
         homes: dict[str, str] = {self.registrar.name: process()}
         gave_up: list[str] = []
         join = _Join(lambda: reply.set_result((homes, tuple(gave_up))), gave_up)
-        DESK.deliver(batch, join, homes, (self.registrar.name, self.flights.redeliver))
+        DESK.deliver(batch, join, homes, (self.registrar.name, self.registrar.redeliver))
         join.seal()
 
     def on_status_notice(self, message: StatusNotice, reply: Reply) -> None:
         """Consumer side: run the client callbacks (each id once a status), climb up."""
-        if self.flights.parked(message):
+        if self.registrar.flights.parked(message):
             return
         catalog = self.registrar.catalog
         gave_up: list[str] = []
@@ -341,7 +343,7 @@ class StatusRelay:
                         message.event,
                     )
                 )
-            callback = self.holdings.callback_of(query_id)
+            callback = self.registrar.holdings.callback_of(query_id)
             # (on the callback's thread or loop: the publisher itself, not the turn's)
             told = (
                 (self.registrar.published, self.registrar.name, message.event) if active else None

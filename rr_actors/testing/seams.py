@@ -262,7 +262,8 @@ class PendingWork:
 
 
 def _pending_work(actor: RegistrarActor, reply: Reply) -> None:
-    provider, flights = actor.provider, actor.flights
+    record = actor.shared
+    provider, flights = record.provider, record.flights
     ids = [w.query_id for waiters in provider.loads.values() for w in waiters]
     ids += [load.query_id for loads in provider.after_unload.values() for load in loads]
     ids += [load.query_id for load in provider.matching.waiting()]
@@ -270,10 +271,10 @@ def _pending_work(actor: RegistrarActor, reply: Reply) -> None:
         PendingWork(
             waiting_loads=collections.Counter(ids),
             held_loads=tuple(load.query_id for load in provider.held_loads),
-            answers_due=flights.due.ids(),
+            answers_due=record.due.ids(),
             parked_notices=flights.parked_ids(),
-            open_requests=len(actor.lifecycle.open_requests) - 1,  # (not this one)
-            queued_callbacks=actor.shared.workers.queued,
+            open_requests=len(record.open_requests) - 1,  # (not this one)
+            queued_callbacks=record.workers.queued,
         )
     )
 

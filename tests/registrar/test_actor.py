@@ -6,6 +6,7 @@ import threading
 import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -14,7 +15,13 @@ from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.replies import FutureReply
 from rr_actors._registrar import Served, life
 from rr_actors._registrar.actor import DISPATCH, MESSAGE_STEPS
-from rr_actors._registrar.messages import Abandon, ConsumerDown, KeptUnclaimed, StatusBatch
+from rr_actors._registrar.messages import (
+    Abandon,
+    ConsumerDown,
+    KeptUnclaimed,
+    RunOnActor,
+    StatusBatch,
+)
 from rr_actors._registrar.state import POINTS
 from rr_actors.testing import (
     STEPS,
@@ -408,3 +415,35 @@ class TestMessages:
 
         assert 1 == len(opened)
         assert actor_ref(pair.consumer, client=(pair.provider.name, "leaf")).is_alive()
+
+
+# -- the record -----------------------------------------------------------------------------
+
+
+def _parts(actor: Any, reply: Any) -> None:
+    """Each part in the actor's record, with the other parts it holds itself (none: it
+    reaches them through the record), and whether the record is what it holds."""
+    record = actor.shared
+    parts = {name: part for name, part in vars(record).items() if hasattr(part, "registrar")}
+    names = {id(part): name for name, part in parts.items()}
+    reply.set_result(
+        {
+            name: (
+                part.registrar is record,
+                sorted(names[id(v)] for v in vars(part).values() if id(v) in names),
+            )
+            for name, part in parts.items()
+        }
+    )
+
+
+def test_each_part_of_a_registrar_holds_its_record_and_no_other_part() -> None:
+    registrar = rr.ResourceRegistrar.start(f"record-{uuid.uuid4().hex[:8]}")
+    try:
+        reply = FutureReply()
+        actor_ref(registrar).tell(RunOnActor(_parts, reply))
+        held: dict[str, tuple[bool, list[str]]] = reply.future.get(timeout=5)
+    finally:
+        registrar.stop()
+    assert len(held) >= 13  # (the actor built each from the record, and put it there)
+    assert {name: (True, []) for name in held} == held

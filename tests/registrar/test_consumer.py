@@ -1352,7 +1352,7 @@ class TestReconcileDueCall:
                 assert wait_for(lambda: (qid, rr.Status.FATAL) in statuses)
             assert [consumer.name] == [n for n in again if n == consumer.name]  # (once: not due)
             assert [] == [q.id for q in back.server_queries("leaf") if q.id == qid]
-            assert {} == consumer._actor.ref.proxy().flights.get().doubted  # (none left)
+            assert {} == consumer._actor.ref.proxy().shared.get().flights.doubted  # (none left)
         finally:
             gate.set()
             if back is not None:
@@ -1400,14 +1400,14 @@ class TestReconcileDueCall:
                     life.lost_everything(name)  # (as its supervisor says: restarted empty)
                     assert reconciled.wait(10)
                     consumer.client_queries()  # (the Reconcile's answer was handled)
-                assert {qid: {name}} == consumer._actor.ref.proxy().flights.get().doubted
+                assert {qid: {name}} == consumer._actor.ref.proxy().shared.get().flights.doubted
                 restarted.set()  # the retry leaves, to the restart, and fails there
                 with pytest.raises(rr.ResourceLoadError):
                     retry.result(10)
 
             assert wait_for(lambda: rr.Status.FATAL in statuses)
             assert qid not in [q.id for q in consumer.client_queries()]
-            assert {} == consumer._actor.ref.proxy().flights.get().doubted
+            assert {} == consumer._actor.ref.proxy().shared.get().flights.doubted
         finally:
             restarted.set()
             if back is not None:
@@ -1456,7 +1456,7 @@ class TestReconcileDueCall:
                     life.lost_everything(name)  # (as its supervisor says: restarted empty)
                     assert reconciled.wait(10)
                     consumer.client_queries()  # (the Reconcile's answer was handled)
-                assert {qid: {name}} == consumer._actor.ref.proxy().flights.get().doubted
+                assert {qid: {name}} == consumer._actor.ref.proxy().shared.get().flights.doubted
                 with (
                     intercept(back, "reconcile", before=hold_again),
                     intercept(consumer, "release", after=lambda _m: released.set()),

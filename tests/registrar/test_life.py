@@ -1126,7 +1126,7 @@ class TestCrash:
 
         def accept(actor: RegistrarActor, reply: Reply) -> None:  # 40 requests stay open
             for number in range(40):
-                OpenReply(_Noted(number, failed), actor.lifecycle.open_requests)
+                OpenReply(_Noted(number, failed), actor.shared.open_requests)
             reply.set_result(None)
 
         _ask_actor(registrar._actor.ref, accept).future.get(timeout=10)
