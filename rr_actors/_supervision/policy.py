@@ -295,7 +295,9 @@ class Restarts:
         self.stopping = stopping
         self.on_gave_up = on_gave_up
         spec = record.spec
-        self.intensity = RestartIntensity(spec.max_restarts, spec.period, record.tree.clock)
+        self.intensity = RestartIntensity(
+            spec.max_restarts, spec.period, record.tree.clock, recent=record.tree.steps.recent
+        )
         self.gave_up: SupervisorGaveUpError | None = None
         self.giving_up = False
         self._generation = 0
@@ -347,7 +349,7 @@ class Restarts:
         the names to restart."""
         children = self.record.children
         strategy, order = self.record.spec.strategy, [c.name for c in children]
-        step = runtime.steps.group  # (a classroom's copy of this step, `rr_actors_lab.teach`)
+        step = self.record.tree.steps.group  # (a copy passed in: `Supervisor(steps=)`)
         if step is None:
             names = affected(strategy, order, crashed.name)
         else:
@@ -427,17 +429,25 @@ class RestartIntensity:
     Pure logic over an injectable clock (no threads).
     """
 
-    def __init__(self, max_restarts: int, period: float, clock: Clock | None = None) -> None:
+    def __init__(
+        self,
+        max_restarts: int,
+        period: float,
+        clock: Clock | None = None,
+        *,
+        recent: Callable[[tuple[float, ...], float, float], int] | None = None,
+    ) -> None:
         self.max_restarts = max_restarts
         self.period = period
         self.clock = runtime.monotonic if clock is None else clock
+        self.step = recent  # (a copy of the count passed in: `Supervisor(steps=)`)
         self._times: collections.deque[float] = collections.deque()
 
     def add(self) -> bool:
         """Count one restart now; return `False` if that exceeds the intensity (give up)."""
         now = self.clock()
         self._times.append(now)
-        step = runtime.steps.recent  # (a classroom's copy of this step, `rr_actors_lab.teach`)
+        step = self.step
         if step is not None:  # (it sees every restart: it chooses those that count)
             return step(tuple(self._times), now, self.period) <= self.max_restarts
         while self._times and now - self._times[0] >= self.period:

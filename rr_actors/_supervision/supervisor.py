@@ -76,6 +76,7 @@ from rr_actors.config import (
     check_seconds,
     walk,
 )
+from rr_actors.config import Steps as ProtocolSteps
 from rr_actors.errors import (
     ConfigError,
     RegistrarUnavailableError,
@@ -147,6 +148,9 @@ class Supervisor(AsyncSupervision):
             tree's managers and `registrar()`s are served on; its owner closes it after
             `stop`. Default: a private AF_UNIX system, made at `start` when the tree has
             process managers, closed at `stop`.
+        steps: the protocol steps the tree's supervisors, and the managers and
+            `registrar()`s they start whose config names none, run instead of their own
+            (`rr_actors.config.Steps`; default: none replaced).
 
     Raises:
         ConfigError: an argument is invalid; the message names it.
@@ -167,8 +171,11 @@ class Supervisor(AsyncSupervision):
         timer: runtime.StartTimer = runtime.thread_timer,
         random: Callable[[], float] | None = None,
         network: Transport | None = None,
+        steps: ProtocolSteps | None = None,
     ) -> None:
         _check_network(network)
+        if steps is not None and not isinstance(steps, ProtocolSteps):
+            raise ConfigError(f"steps must be an rr_actors.config.Steps, got {steps!r}")
         check_choice("durability", durability, ("process", "power"))
         if isinstance(children, ManagerSpec | SupervisorSpec):
             children = [children]  # one child: a list of one (it is not iterable)
@@ -193,6 +200,7 @@ class Supervisor(AsyncSupervision):
             random=random,
             network=network,
             durability=durability,
+            steps=steps,
         )
         self._node = Node(self._spec, self._tree)
         self._lock: StateDirLock | None = None
