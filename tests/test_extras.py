@@ -82,7 +82,7 @@ def test_a_command_without_its_extra_says_which_and_how_to_install_it_in_one_lin
     out = tmp_path / "out"
     filled = [a.format(out=out, state=state) for a in argv]
 
-    result = run(bare, ["-m", "rr_actors", *filled])
+    result = run(bare, ["-m", "rr_actors_lab", *filled])
 
     [line] = result.stderr.splitlines()
     wheel = line.replace(command(extra), f'pip install "{DISTRIBUTION}[{extra}]"')
@@ -129,7 +129,7 @@ def test_the_demo_without_its_extra_runs_and_says_what_installs_the_plot(
 ) -> None:
     out = tmp_path / "demo"
 
-    result = run(bare, ["-m", "rr_actors", "demo", "--fast", "--out", str(out)])
+    result = run(bare, ["-m", "rr_actors_lab", "demo", "--fast", "--out", str(out)])
 
     assert (0, "") == (result.returncode, result.stderr)
     assert f"plot:   not drawn: mission.png needs an extra: {command('demo')}" in (

@@ -572,17 +572,19 @@ class Starting:
 
     def config(self, spec: ManagerSpec) -> RegistrarConfig:
         """The registrar config of manager `spec`: its own, else one from the state dir
-        (at the tree's durability at least: `Tree.durable`)."""
+        (at the tree's durability at least, with its steps: `Tree.durable`)."""
         durability = self.record.tree.durability
         if spec.config is not None:
             return self.record.tree.durable(spec.config)
         if self.state_dir is None:
-            return RegistrarConfig(name=spec.name, durability=durability)
-        return RegistrarConfig(
-            name=spec.name,
-            backup_path=os.path.join(os.fspath(self.state_dir), f"{spec.name}.db"),
-            save_on_modify=True,
-            durability=durability,
+            return self.record.tree.durable(RegistrarConfig(name=spec.name, durability=durability))
+        return self.record.tree.durable(
+            RegistrarConfig(
+                name=spec.name,
+                backup_path=os.path.join(os.fspath(self.state_dir), f"{spec.name}.db"),
+                save_on_modify=True,
+                durability=durability,
+            )
         )
 
     def start_child(self, child: Child) -> None:

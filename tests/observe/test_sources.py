@@ -22,12 +22,12 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import events
-from rr_actors.__main__ import main
 from rr_actors._catalog import Catalog
 from rr_actors._catalog.texts import NOT_SHOWN_OLD
 from rr_actors._store import SqliteStore, read_backup, schema
 from rr_actors._store.codec import dumps
 from rr_actors.config import SupervisorSpec
+from rr_actors_lab.__main__ import main
 from rr_actors_lab.observe._hub import Hub
 from rr_actors_lab.observe._sources import LiveSource, TreeAccess, event_dict, read_catalogs
 
