@@ -13,5 +13,5 @@ if __name__ == "__main__":  # `python -m rr_actors.mission`: the demo, from its 
 
     from rr_actors._moved import warn
 
-    warn("python -m rr_actors.mission", "python -m rr_actors_lab.mission", stacklevel=1)
+    warn("python -m rr_actors.mission", "python -m rr_actors_lab.mission", stacklevel=2)
     runpy.run_module("rr_actors_lab.mission", run_name="__main__", alter_sys=True)
