@@ -211,9 +211,7 @@ def test_a_former_lab_name_runs_with_dash_m_with_a_warning_and_the_runtime_names
     )
 
 
-def test_the_runtime_and_its_public_names_work_with_the_lab_hidden_and_observe_names_its_extra() -> (
-    None
-):
+def test_the_runtime_works_with_the_lab_hidden_and_observe_names_its_extra() -> None:
     """The runtime installed alone (issue 71 item 1): `import rr_actors`, every public name,
     a supervisor's life and its errors, with no module of `rr_actors_lab` importable; the
     deprecated `sup.observe()` and `sup.graph()` raise `MissingExtraError` naming the

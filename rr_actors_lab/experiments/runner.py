@@ -461,7 +461,9 @@ def _drive(
     home = plan.hosts.home if plan.hosts is not None else None
     managers = [m.name for m in plan.managers() if plan.host_of(m.name) == home]
     if spec.observe:
-        observer = sup.observe(host="127.0.0.1", port=0)
+        from rr_actors_lab.observe import observe  # noqa: PLC0415 - its extra's
+
+        observer = observe(sup, host="127.0.0.1", port=0)
         print(json.dumps({"observe": observer.url}), flush=True)  # noqa: T201 - to the experiment
     drive.clients = [
         Client(
