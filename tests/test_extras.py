@@ -97,7 +97,8 @@ API_CASES = [
     ("zenoh", "import rr_actors as rr\nrr.ZenohTLS", "rr.ZenohTLS"),
     (
         "observe",
-        "import rr_actors as rr\nwith rr.Supervisor([]) as sup:\n    sup.observe()",
+        "import rr_actors as rr\nfrom rr_actors_lab.observe import observe\n"
+        "with rr.Supervisor([]) as sup:\n    observe(sup)",
         "the observer",
     ),
     ("experiments", "import rr_actors_lab.experiments", "rr_actors_lab.experiments"),
