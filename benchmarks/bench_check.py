@@ -41,10 +41,10 @@ from pathlib import Path
 from typing import TypeVar
 
 from rr_actors import events
-from rr_actors.__main__ import main
 from rr_actors._core import hlc
 from rr_actors._types import Status
 from rr_actors.events.lines import json_lines
+from rr_actors_lab.__main__ import main
 from rr_actors_lab.experiments import check
 
 CHAIN = ("edge", "api", "db")

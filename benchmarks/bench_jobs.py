@@ -30,7 +30,7 @@ from pathlib import Path
 def sweep(plan: str, seeds: str, jobs: int, out: Path) -> float:
     """Wall seconds of one sweep of `plan` over `seeds` with `jobs` workers."""
     env = {**os.environ, "PYTHONHASHSEED": "0"}
-    command = [sys.executable, "-m", "rr_actors", "experiment", plan, "--simulate"]
+    command = [sys.executable, "-m", "rr_actors_lab", "experiment", plan, "--simulate"]
     command += ["--seeds", seeds, "--jobs", str(jobs), "--out", str(out), "--quiet"]
     started = time.perf_counter()
     subprocess.run(command, env=env, check=True, stdout=subprocess.DEVNULL)

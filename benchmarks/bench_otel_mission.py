@@ -43,7 +43,7 @@ def run(row: str, folder: Path, extra: list[str]) -> tuple[float, float, int]:
     flags, env = ROWS[row]
     out = folder / row.replace(" ", "-")
     spans = folder / "spans.txt"
-    command = [sys.executable, "-m", "rr_actors", "demo", "--fast", "--quiet", *extra, *flags]
+    command = [sys.executable, "-m", "rr_actors_lab", "demo", "--fast", "--quiet", *extra, *flags]
     began = time.perf_counter()
     with spans.open("w", encoding="utf-8") as written:
         subprocess.run(

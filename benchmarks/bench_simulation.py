@@ -352,7 +352,7 @@ def real_run(plan_path: Path) -> tuple[float, float, float]:
     runs.csv), and the CPU s of all its processes (those reaped: every one of a run)."""
     with tempfile.TemporaryDirectory(prefix="rr-bench-sim-") as tmp:
         out = Path(tmp) / "out"
-        command = [sys.executable, "-m", "rr_actors", "experiment", str(plan_path)]
+        command = [sys.executable, "-m", "rr_actors_lab", "experiment", str(plan_path)]
         command += ["--repeat", "1", "--out", str(out), "--quiet"]
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
         start = time.perf_counter()

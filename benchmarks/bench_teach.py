@@ -1,5 +1,5 @@
 """The classroom kit's exercises (`rr-actors teach`): each one's check of its starter and
-of its solution, as a student runs it (`python -m rr_actors teach check DIR --json`, a
+of its solution, as a student runs it (`python -m rr_actors_lab teach check DIR --json`, a
 process of its own), CPU seconds of that process and its children (the check's budget:
 60 s over at least 200 seeds), and the story a failing check prints: its steps, and the
 events of the run it tells (shrunk, for a violation of the checker's rules).
@@ -28,12 +28,12 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def run(*argv: str) -> tuple[float, subprocess.CompletedProcess[str]]:
-    """`python -m rr_actors ARGV` with `PYTHONHASHSEED=0`: its CPU seconds (user + system,
+    """`python -m rr_actors_lab ARGV` with `PYTHONHASHSEED=0`: its CPU seconds (user + system,
     with its children) and its result."""
     env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONHASHSEED": "0"}
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     done = subprocess.run(
-        [sys.executable, "-m", "rr_actors", *argv],
+        [sys.executable, "-m", "rr_actors_lab", *argv],
         capture_output=True,
         text=True,
         env=env,

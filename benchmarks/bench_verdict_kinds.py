@@ -129,7 +129,7 @@ def first_value_only(source: Path, folder: Path) -> Path:
 def command(*args: str) -> None:
     """Run `rr-actors ARGS` in a process of its own; stop (exit 1) if it failed."""
     done = subprocess.run(
-        [sys.executable, "-m", "rr_actors", *args],
+        [sys.executable, "-m", "rr_actors_lab", *args],
         capture_output=True,
         text=True,
         timeout=TIMEOUT,

@@ -13,10 +13,11 @@ import math
 import os
 import random as _random
 import re
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterable, Iterator, Sequence
+from collections.abc import Set as AbstractSet
 from typing import Any, Literal
 
-from rr_actors._types import Setup
+from rr_actors._types import Setup, Status
 from rr_actors.errors import ConfigError, _known_names
 
 __all__ = [
@@ -32,6 +33,7 @@ __all__ = [
     "RegistrarConfig",
     "RestartType",
     "Setup",
+    "Steps",
     "Strategy",
     "SupervisorSpec",
     "check_choice",
@@ -129,6 +131,59 @@ def is_loopback(host: str) -> bool:
 
 
 @dataclasses.dataclass(frozen=True)
+class Steps:
+    """The protocol's replaceable steps: a value passed in, `None` in a field meaning the
+    registrar's (or the supervisor's) own code, anything else a copy of it that runs instead.
+
+    Given through `RegistrarConfig(steps=)` (that registrar only) or `Supervisor(steps=)`
+    (the tree's supervisors and the managers and `registrar()`s they start whose config
+    names no steps of its own). The classroom kit (`rr_actors_lab.teach`) hands a student's
+    copy in this way; its `STEPS` gives the registrar's own code of each. A step runs on the
+    registrar's actor thread (or the supervisor's): it must return at once and must not call
+    a registrar. It reaches a process manager only if it pickles (a module-level function).
+
+    Attributes:
+        climb: `climb(parent, resources, status) -> ids`: the resources a status delivered
+            to a consumer id climbs to.
+        shares: `shares(stored, request, loading, failed) -> bool`: the catalog's dedup test
+            of a plain request.
+        group: `group(strategy, names, crashed) -> names`: the children a crash restarts.
+        unloads: `unloads(left) -> bool`: whether a release unloads (`left`: ids still on it).
+        in_doubt: `in_doubt(state) -> bool`: whether a restored row was cut short by a crash.
+        reconcile: `reconcile(mine, held, under_way) -> (release, unknown)`: a provider's
+            reconcile with one consumer.
+        release_order: `release_order(dependencies) -> order`: a teardown's order, `"unload"`
+            among the dependencies' query ids.
+        recent: `recent(times, now, period) -> int`: the restarts that count toward intensity
+            (monotonic seconds).
+
+    Raises:
+        ConfigError: a field is neither `None` nor callable.
+    """
+
+    climb: Callable[[str | None, Collection[str], Status], Iterable[str]] | None = None
+    shares: Callable[[Any, Any, bool, bool], bool] | None = None
+    group: Callable[[str, Sequence[str], str], Iterable[str]] | None = None
+    unloads: Callable[[Collection[str]], bool] | None = None
+    in_doubt: Callable[[str], bool] | None = None
+    reconcile: (
+        Callable[
+            [AbstractSet[str], AbstractSet[str], AbstractSet[str]],
+            tuple[Iterable[str], Iterable[str]],
+        ]
+        | None
+    ) = None
+    release_order: Callable[[tuple[str, ...]], Iterable[str]] | None = None
+    recent: Callable[[tuple[float, ...], float, float], int] | None = None
+
+    def __post_init__(self) -> None:
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            if value is not None and not callable(value):
+                raise ConfigError(f"steps.{field.name} must be a function or None, got {value!r}")
+
+
+@dataclasses.dataclass(frozen=True)
 class RegistrarConfig:
     """How a [`ResourceRegistrar`][rr_actors.ResourceRegistrar] behaves (TeMoto's `Configuration`).
 
@@ -155,6 +210,8 @@ class RegistrarConfig:
         max_pending: new loads each server may have queued or running (default 1000; a server's own
             `register_server(..., max_pending=)` wins; several consumers each get a share). Past it
             a call waits and asks again within its `timeout`, then raises `OverloadedError`.
+        steps: the protocol steps this registrar runs instead of its own (`Steps`; default:
+            none replaced). Not in `to_dict`.
     """
 
     name: str = "untitled"
@@ -169,9 +226,12 @@ class RegistrarConfig:
     unload_timeout: float | None = 60.0
     max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
     max_pending: int = DEFAULT_MAX_PENDING
+    steps: Steps = Steps()
 
     def __post_init__(self) -> None:
         check_name("name", self.name, "a registrar name")
+        if not isinstance(self.steps, Steps):
+            raise ConfigError(f"steps must be an rr_actors.config.Steps, got {self.steps!r}")
         if self.backup_path is not None and not isinstance(self.backup_path, str | os.PathLike):
             raise ConfigError(f"backup_path must be a path or None, got {self.backup_path!r}")
         check_seconds("save_interval", self.save_interval, allow_none=True)
@@ -189,7 +249,8 @@ class RegistrarConfig:
 
     def to_dict(self) -> dict[str, Any]:
         """Return the configuration as plain JSON-able data (with a schema version)."""
-        data = dataclasses.asdict(self)
+        data = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        del data["steps"]  # (functions: not data)
         data["backup_path"] = None if self.backup_path is None else os.fspath(self.backup_path)
         data["schema"] = 1
         return data
@@ -203,7 +264,7 @@ class RegistrarConfig:
         """
         if data.get("schema") != 1:
             raise ConfigError(f"unsupported RegistrarConfig schema {data.get('schema')!r}")
-        fields = {f.name for f in dataclasses.fields(cls)}
+        fields = {f.name for f in dataclasses.fields(cls)} - {"steps"}
         unknown = set(data) - fields - {"schema"}
         if unknown:
             named = sorted(unknown)

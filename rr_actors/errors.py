@@ -5,7 +5,7 @@ Every error derives from [`RrError`][rr_actors.errors.RrError]. "You stopped it"
 died" ([`RegistrarUnavailableError`][rr_actors.errors.RegistrarUnavailableError]); a timeout
 is also a built-in `TimeoutError`. All errors pickle with their attributes. Beside
 `CatalogCorruptError` is its recovery, `quarantine_backup`: the store's, which imports this
-module, so the package attaches it here (`rr_actors/__init__.py`), imported at its first use.
+module, so this module's `__getattr__` imports it at its first use (PEP 562).
 """
 
 from __future__ import annotations
@@ -42,11 +42,26 @@ __all__ = [
     "UnknownQueryError",
     "UnknownRegistrarError",
     "UnknownServerError",
-    "quarantine_backup",  # (attached by the package, at its first use)
+    "quarantine_backup",  # (the store's, imported at its first use: `__getattr__`)
 ]
 
 
-quarantine_backup: Callable[[str | PathLike[str]], Path]  # (attached by the package, above)
+quarantine_backup: Callable[[str | PathLike[str]], Path]  # (`__getattr__`, below)
+
+
+def __getattr__(name: str) -> object:
+    """`rr_actors.errors.quarantine_backup`, beside the error it recovers from, imported at
+    its first use: the store imports this module, so this one imports the store's function
+    only when asked (PEP 562).
+
+    Raises:
+        AttributeError: `name` is not one of this module's.
+    """
+    if name != "quarantine_backup":
+        raise AttributeError(f"module 'rr_actors.errors' has no attribute {name!r}")
+    import importlib  # noqa: PLC0415 - (by name: the store is above this module)
+
+    return importlib.import_module("rr_actors._store.files").quarantine_backup
 
 
 class RrError(Exception):

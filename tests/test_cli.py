@@ -23,7 +23,6 @@ import pytest
 import rr_actors
 import rr_actors as rr
 from rr_actors import events
-from rr_actors.__main__ import main
 from rr_actors._catalog import Catalog, request_digest
 from rr_actors._core import hlc
 from rr_actors._store import files, schema
@@ -31,6 +30,7 @@ from rr_actors._store.restore import read_backup
 from rr_actors._store.schema import SCHEMA_VERSION
 from rr_actors._store.sqlite import SqliteStore
 from rr_actors.events import lines
+from rr_actors_lab.__main__ import main
 from tests.support.persisting import write_unloading
 from tests.support.terminal import drawn, on_a_terminal
 
@@ -58,7 +58,7 @@ def test_the_package_version_is_the_distribution_version() -> None:
 
 def test_help_lists_every_subcommand_and_the_version_option() -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "rr_actors", "--help"],
+        [sys.executable, "-m", "rr_actors_lab", "--help"],
         capture_output=True,
         text=True,
         timeout=30,
@@ -182,7 +182,7 @@ def imported(argv: list[str], *, cwd: Path) -> list[str]:
 @pytest.mark.parametrize("argv", [["--version"], ["--help"], ["teach", "hint"]], ids=" ".join)
 def test_a_command_imports_no_tool_it_does_not_run(argv: list[str], tmp_path: Path) -> None:
     started = subprocess.run(
-        [sys.executable, "-m", "rr_actors", "teach", "start", "camera", str(tmp_path / "ex")],
+        [sys.executable, "-m", "rr_actors_lab", "teach", "start", "camera", str(tmp_path / "ex")],
         capture_output=True,
         text=True,
         timeout=60,
@@ -190,7 +190,7 @@ def test_a_command_imports_no_tool_it_does_not_run(argv: list[str], tmp_path: Pa
     )
     assert 0 == started.returncode, started.stderr
 
-    modules = imported(["-m", "rr_actors", *argv], cwd=tmp_path / "ex")
+    modules = imported(["-m", "rr_actors_lab", *argv], cwd=tmp_path / "ex")
 
     assert "rr_actors_lab._cli" in modules  # (the table was read)
     assert [] == [m for m in modules if any(m == h or m.startswith(f"{h}.") for h in HEAVY)]
@@ -231,7 +231,7 @@ def test_on_an_80_column_terminal_every_line_fits_and_no_name_is_cut(
     argv = [a.format(out=tmp_path / "out") for a in TERMINAL_COMMANDS[name]]
 
     code, text = on_a_terminal(
-        [sys.executable, "-m", "rr_actors", *argv], columns=80, timeout=120, cwd=tmp_path
+        [sys.executable, "-m", "rr_actors_lab", *argv], columns=80, timeout=120, cwd=tmp_path
     )
 
     pieces = drawn(text)
@@ -261,7 +261,7 @@ def test_on_an_80_column_terminal_the_certs_lines_fit_and_the_next_command_is_wh
         ["certs", "issue", "certs", "robot", "--address", "10.0.0.2", "--address", "robot.local"],
     ):
         code, text = on_a_terminal(
-            [sys.executable, "-m", "rr_actors", *argv], columns=80, timeout=120, cwd=tmp_path
+            [sys.executable, "-m", "rr_actors_lab", *argv], columns=80, timeout=120, cwd=tmp_path
         )
         assert 0 == code, text
         said.append(text)
@@ -494,7 +494,7 @@ class TestInspect:
         _, path, ids = live
 
         done = subprocess.run(
-            [sys.executable, "-m", "rr_actors", "inspect", str(path), "--json"],
+            [sys.executable, "-m", "rr_actors_lab", "inspect", str(path), "--json"],
             capture_output=True,
             text=True,
             timeout=30,
@@ -664,7 +664,7 @@ at = [0.5]
 
 def _rr_actors(*argv: str, cwd: Path) -> subprocess.CompletedProcess[str]:
     return subprocess.run(  # noqa: PLW1510 - the exit code is what is checked
-        [sys.executable, "-m", "rr_actors", *argv],
+        [sys.executable, "-m", "rr_actors_lab", *argv],
         cwd=cwd,
         capture_output=True,
         text=True,
@@ -707,7 +707,7 @@ class TestEvents:
     """`rr-actors events`: every host's events as JSON lines (`--network`), or files merged
     (`--merge`).
 
-    The live stream runs in a child process (`python -m rr_actors events ...`) against a
+    The live stream runs in a child process (`python -m rr_actors_lab events ...`) against a
     `ZenohNetwork` of this process on loopback (plain TCP, `--plain`): it prints what this
     process's registrar does, one `events.to_dict` line per event, and ends after `--count`.
     """
@@ -771,7 +771,7 @@ class TestEvents:
         net = rr.ZenohNetwork(system=system, listen=[f"tcp/127.0.0.1:{port}"], tls=None)
         erm = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="erm"), network=net)
         erm.register_server("camera", load=lambda request: request, unload=lambda *_: None)
-        command = [sys.executable, "-m", "rr_actors", "events", "--network"]
+        command = [sys.executable, "-m", "rr_actors_lab", "events", "--network"]
         command += [f"tcp/127.0.0.1:{port}", "--system", system, "--plain", "--count", "3"]
         child = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
@@ -839,7 +839,7 @@ class TestEvents:
 
         piped = _rr_actors(*argv, cwd=tmp_path)
         code, shown = on_a_terminal(
-            [sys.executable, "-m", "rr_actors", *argv], columns=80, timeout=60, cwd=tmp_path
+            [sys.executable, "-m", "rr_actors_lab", *argv], columns=80, timeout=60, cwd=tmp_path
         )
 
         assert (1, 1) == (piped.returncode, code)

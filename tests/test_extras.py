@@ -82,7 +82,7 @@ def test_a_command_without_its_extra_says_which_and_how_to_install_it_in_one_lin
     out = tmp_path / "out"
     filled = [a.format(out=out, state=state) for a in argv]
 
-    result = run(bare, ["-m", "rr_actors", *filled])
+    result = run(bare, ["-m", "rr_actors_lab", *filled])
 
     [line] = result.stderr.splitlines()
     wheel = line.replace(command(extra), f'pip install "{DISTRIBUTION}[{extra}]"')
@@ -97,7 +97,8 @@ API_CASES = [
     ("zenoh", "import rr_actors as rr\nrr.ZenohTLS", "rr.ZenohTLS"),
     (
         "observe",
-        "import rr_actors as rr\nwith rr.Supervisor([]) as sup:\n    sup.observe()",
+        "import rr_actors as rr\nfrom rr_actors_lab.observe import observe\n"
+        "with rr.Supervisor([]) as sup:\n    observe(sup)",
         "the observer",
     ),
     ("experiments", "import rr_actors_lab.experiments", "rr_actors_lab.experiments"),
@@ -129,7 +130,7 @@ def test_the_demo_without_its_extra_runs_and_says_what_installs_the_plot(
 ) -> None:
     out = tmp_path / "demo"
 
-    result = run(bare, ["-m", "rr_actors", "demo", "--fast", "--out", str(out)])
+    result = run(bare, ["-m", "rr_actors_lab", "demo", "--fast", "--out", str(out)])
 
     assert (0, "") == (result.returncode, result.stderr)
     assert f"plot:   not drawn: mission.png needs an extra: {command('demo')}" in (

@@ -125,37 +125,56 @@ def test_importing_the_package_leaves_the_runtime_and_the_events_to_their_first_
     assert "[]\nTrue True\n" == run.stdout
 
 
-LAB_MODULES = ["experiments", "mission", "observe", "teach", "otel", "_cli", "_tools"]
+LAB_MODULES = ["experiments", "mission", "observe", "teach", "otel"]
 """The lab's modules that lived under `rr_actors` before they moved to `rr_actors_lab`."""
 
+HIDE_THE_LAB = (
+    "import importlib.abc, sys\n"
+    "class _NoLab(importlib.abc.MetaPathFinder):\n"
+    "    def find_spec(self, name, path=None, target=None):\n"
+    "        if name == 'rr_actors_lab' or name.startswith('rr_actors_lab.'):\n"
+    "            raise ModuleNotFoundError(f'No module named {name!r}', name=name)\n"
+    "sys.meta_path.insert(0, _NoLab())\n"
+)
+"""The runtime installed alone: no module of `rr_actors_lab` imports."""
 
-def test_the_lab_imports_under_its_former_names_as_the_same_modules() -> None:
-    """The lab moved beside the runtime (issue 54 part 1); a program written before imports
-    it as it did: `rr_actors.experiments` (and its submodules) is `rr_actors_lab.experiments`,
-    one module, so one class whichever name imported it. Both orders, in a fresh process."""
+
+def test_the_lab_imports_under_its_former_names_with_a_warning_naming_the_new_one() -> None:
+    """The lab moved beside the runtime (issue 54 part 1); a program written before runs on
+    for one release: each name of `rr_actors.experiments` is `rr_actors_lab.experiments`'s,
+    with a `DeprecationWarning` naming the new spelling (small alias modules, no import
+    hook: issue 71), and a submodule imports from its one home (no second copy)."""
     code = (
-        "import importlib, sys\n"
-        "import rr_actors\n"
-        "from rr_actors.experiments.plan import PlanError as old\n"
+        "import importlib, sys, warnings\n"
         "from rr_actors_lab.experiments.plan import PlanError as new\n"
         "import rr_actors_lab.mission.config as new_config\n"
-        "import rr_actors.mission.config as old_config\n"
-        "from rr_actors import otel\n"
-        f"for name in {LAB_MODULES!r}:\n"
-        "    old_m = importlib.import_module('rr_actors.' + name)\n"
-        "    new_m = importlib.import_module('rr_actors_lab.' + name)\n"
-        "    print(name, old_m is new_m, sys.modules['rr_actors.' + name] is new_m)\n"
-        "print(old is new, old_config is new_config, otel is sys.modules['rr_actors_lab.otel'])\n"
-        "twins = [m for m in list(sys.modules) if m.startswith('rr_actors.experiments')]\n"
-        "print(old.__module__, all(sys.modules[m] is sys.modules['rr_actors_lab' + m[9:]]\n"
-        "                          for m in twins))\n"
+        "with warnings.catch_warnings(record=True) as seen:\n"
+        "    warnings.simplefilter('always')\n"
+        "    from rr_actors.experiments import plan\n"
+        "    from rr_actors.mission import config as old_config\n"
+        "    import rr_actors.experiments as old\n"
+        "    print(plan.PlanError is new, old_config is new_config, old.run is\n"
+        "          importlib.import_module('rr_actors_lab.experiments').run)\n"
+        f"    for name in {LAB_MODULES!r}:\n"
+        "        importlib.import_module('rr_actors.' + name).__doc__\n"
+        "print(sorted({str(w.message).split(' is ')[0] for w in seen}))\n"
+        "print(all(w.category is DeprecationWarning for w in seen),\n"
+        "      'use rr_actors_lab.experiments.run' in str(seen[-1].message))\n"
+        "try:\n"
+        "    import rr_actors.experiments.plan\n"
+        "except ModuleNotFoundError as exc:\n"
+        "    print(exc)\n"
+        "print(sorted(m for m in sys.modules if m.startswith('rr_actors.experiments.')))\n"
     )
     run = python("-c", code)
 
     assert (run.returncode, run.stderr) == (0, "")
-    assert [f"{name} True True" for name in LAB_MODULES] + [
+    assert [
         "True True True",
-        "rr_actors_lab.experiments.plan True",
+        "['rr_actors.experiments.plan', 'rr_actors.experiments.run', 'rr_actors.mission.config']",
+        "True True",
+        "No module named 'rr_actors.experiments.plan'; 'rr_actors.experiments' is not a package",
+        "[]",
     ] == run.stdout.splitlines()
 
 
@@ -174,12 +193,81 @@ def test_the_runtime_runs_without_importing_the_lab() -> None:
     assert "[]\n" == run.stdout
 
 
-def test_a_former_lab_name_runs_with_dash_m_and_a_missing_one_is_named_as_asked() -> None:
-    """`python -m rr_actors.mission` ran the demo before the move and still does; a module
-    that does not exist is not found under the name the program asked for."""
+def test_a_former_lab_name_runs_with_dash_m_with_a_warning_and_the_runtime_names_the_lab() -> None:
+    """`python -m rr_actors.mission` ran the demo before the move and still does, warning
+    of its new name; `python -m rr_actors` is the runtime, which never runs the lab: one
+    line naming the module to run, exit 2 (a usage error)."""
     run = python("-m", "rr_actors.mission", "--help")
-    missing = python("-c", "import rr_actors.experiments.no_such_module")
+    runtime = python("-m", "rr_actors", "inspect", "x.db")
 
-    assert (0, "") == (run.returncode, run.stderr)
+    assert run.returncode == 0
     assert run.stdout.startswith("usage: rr-actors demo")
-    assert "No module named 'rr_actors.experiments.no_such_module'" in missing.stderr
+    assert "DeprecationWarning: python -m rr_actors.mission is deprecated" in run.stderr
+    assert "use python -m rr_actors_lab.mission" in run.stderr
+    assert (runtime.returncode, runtime.stdout) == (2, "")
+    assert runtime.stderr == (
+        "rr_actors is the runtime; the rr-actors command line is the lab's: "
+        "run `rr-actors ...` or `python -m rr_actors_lab ...`\n"
+    )
+
+
+def test_the_runtime_works_with_the_lab_hidden_and_observe_names_its_extra() -> None:
+    """The runtime installed alone (issue 71 item 1): `import rr_actors`, every public name,
+    a supervisor's life and its errors, with no module of `rr_actors_lab` importable; the
+    deprecated `sup.observe()` and `sup.graph()` raise `MissingExtraError` naming the
+    extra, not a bare `ModuleNotFoundError`; nothing of the lab was imported."""
+    code = HIDE_THE_LAB + (
+        "import warnings\n"
+        "warnings.simplefilter('ignore', DeprecationWarning)\n"
+        "import rr_actors as rr, rr_actors.errors, rr_actors.config, rr_actors.testing\n"
+        "for name in rr.__all__:\n"
+        "    getattr(rr, name)\n"
+        "rr.errors.quarantine_backup, rr.events.ChildRestarted\n"
+        "with rr.Supervisor(rr.ManagerSpec('m')) as sup:\n"
+        "    for call in (sup.observe, sup.graph):\n"
+        "        try:\n"
+        "            call()\n"
+        "        except rr.MissingExtraError as exc:\n"
+        "            print(type(exc).__name__, exc.extra, str(exc).splitlines()[0])\n"
+        "print(sorted(m for m in sys.modules if m.startswith('rr_actors_lab')))\n"
+    )
+    run = python("-c", code)
+
+    assert (run.returncode, run.stderr) == (0, "")
+    lines = run.stdout.splitlines()
+    assert lines[0].startswith("MissingExtraError observe sup.observe() needs an extra")
+    assert lines[1].startswith("MissingExtraError observe sup.graph() needs an extra")
+    assert lines[2:] == ["[]"]
+
+
+def test_the_spellings_that_moved_to_the_lab_warn_naming_the_new_one() -> None:
+    """`sup.observe()`, `sup.graph()` and `rr_actors.__main__.main` work for one release,
+    each with a `DeprecationWarning` that names its spelling in the lab."""
+    code = (
+        "import warnings, rr_actors as rr\n"
+        "with warnings.catch_warnings(record=True) as seen:\n"
+        "    warnings.simplefilter('always')\n"
+        "    with rr.Supervisor(rr.ManagerSpec('m')) as sup:\n"
+        "        text = sup.graph()\n"
+        "        with sup.observe() as page:\n"
+        "            print(page.url.startswith('http://127.0.0.1:'))\n"
+        "    from rr_actors.__main__ import main\n"
+        "    from rr_actors_lab.__main__ import main as new_main\n"
+        "import rr_actors_lab.observe as lab\n"
+        "print(main is new_main, 'flowchart' in text)\n"
+        "for w in seen:\n"
+        "    print(w.category.__name__, w.message)\n"
+    )
+    run = python("-c", code)
+
+    assert (run.returncode, run.stderr) == (0, "")
+    assert [
+        "True",
+        "True True",
+        "DeprecationWarning sup.graph() is deprecated and goes in the next release: "
+        "use rr_actors_lab.observe.graph(sup)",
+        "DeprecationWarning sup.observe() is deprecated and goes in the next release: "
+        "use rr_actors_lab.observe.observe(sup)",
+        "DeprecationWarning rr_actors.__main__.main is deprecated and goes in the next "
+        "release: use rr_actors_lab.__main__.main",
+    ] == run.stdout.splitlines()

@@ -28,7 +28,7 @@ restored catalog reads rows through its `UnreadRows` and decodes values on first
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Iterator, Sequence, ValuesView
+from collections.abc import Callable, Iterable, Iterator, Sequence, ValuesView
 from typing import Any
 
 from rr_actors._catalog.digest import (
@@ -48,7 +48,6 @@ from rr_actors._catalog.records import (
     ResourceState,
     UnreadRows,
 )
-from rr_actors._core import runtime
 from rr_actors._types import Query
 from rr_actors.errors import UnknownQueryError
 
@@ -71,6 +70,10 @@ class Catalog:
     """The bookkeeping of one registrar (thesis 4.3.2), without the locks; lookups see the
     resources still in the backup too (they read them in). `resources`: those in memory
     (read-back ones in stored order only once an ordered listing asks)."""
+
+    shares: Callable[[Any, Any, bool, bool], bool] | None = None
+    """A copy of the dedup step of plain requests, or `None` for this module's own
+    (`RegistrarConfig.steps.shares`, set by the registrar that opens the catalog)."""
 
     def __init__(self, *, track_changes: bool = True) -> None:
         self.track_changes = track_changes
@@ -133,9 +136,7 @@ class Catalog:
         resources = self.resources
         index = self._index
         if digest is not None:
-            shares = (
-                runtime.steps.shares
-            )  # (a classroom's copy of this step, `rr_actors_lab.teach`)
+            shares = self.shares  # (a copy passed in: `RegistrarConfig.steps`)
             for rid in index.with_digest(server, digest):
                 resource = resources[rid]
                 if shares is not None:

@@ -1,5 +1,4 @@
-"""The world the protocol runs in: real threads and clocks, or a simulation of them; and the
-protocol's own steps, or a classroom's copies of them.
+"""The world the protocol runs in: real threads and clocks, or a simulation of them.
 
 The protocol code (`_core`, `_catalog`, `_store`, `_supervision`, the registrar and the messenger)
 never uses `threading`, `time`, `uuid`, `random` or `queue` itself: it asks this module, the only
@@ -16,9 +15,8 @@ one that knows whether a simulation runs.
 Each name is read where it is used (`runtime.Lock()`), never imported by value
 (`tests/test_repository.py` refuses it): in a real run `runtime.Lock` *is* `threading.Lock`, at the
 cost of one attribute read. Per-process state is registered with `process_state`, per-thread state
-made with `local()`: a simulation gives each simulated process and thread its own. `steps` holds the
-protocol steps an exercise of `rr_actors_lab.teach` may replace, read the same way where
-each step runs.
+made with `local()`: a simulation gives each simulated process and thread its own. (The protocol
+steps a classroom exercise replaces are a value passed in: `rr_actors.config.Steps`.)
 """
 
 from __future__ import annotations
@@ -29,10 +27,8 @@ import queue
 import random as _random
 import threading
 import time
-from collections.abc import Callable, Collection, Iterable, Mapping, Sequence, Set
+from collections.abc import Callable, Mapping
 from typing import Any, Protocol, TypeVar
-
-from rr_actors._types import Status
 
 T = TypeVar("T")
 Q = TypeVar("Q", bound=queue.SimpleQueue[Any])
@@ -198,37 +194,3 @@ def process_state(obj: T, fresh: Callable[[], object]) -> T:
 
 def process_states() -> tuple[tuple[object, Callable[[], object]], ...]:
     return tuple(_states)
-
-
-# -- the protocol's steps: its own, until a classroom exercise replaces one ---------------
-
-Reconcile = Callable[[Set[str], Set[str], Set[str]], tuple[Iterable[str], Iterable[str]]]
-"""`reconcile(mine, held, under_way) -> (ids to release, ids unknown)`."""
-
-
-class Steps:
-    """One slot per step of the protocol, `None` unless `rr_actors_lab.teach.replaced_step` put a
-    student's copy there (seen by this OS process's registrars only: a simulated run's). Each slot's
-    shape is in `rr_actors_lab.teach.STEPS`; `None` means the module named runs its own."""
-
-    climb: Callable[[str | None, Collection[str], Status], Iterable[str]] | None = None
-    """The status climb (`_registrar/status.py`, `on_status_notice`)."""
-    shares: Callable[[Any, Any, bool, bool], bool] | None = None
-    """The dedup test of plain requests (`_catalog/catalog.py`, `_match`)."""
-    group: Callable[[str, Sequence[str], str], Iterable[str]] | None = None
-    """The restart group of a crash (`_supervision/policy.py`, `affected`)."""
-    unloads: Callable[[Collection[str]], bool] | None = None
-    """The last-release test: no id left (`_registrar/provider.py`, `release`)."""
-    in_doubt: Callable[[str], bool] | None = None
-    """The in-doubt test of a restored row's state (`_registrar/life.py`, `cut_short`)."""
-    reconcile: Reconcile | None = None
-    """The reconcile (`_registrar/provider.py`, `on_reconcile`)."""
-    release_order: Callable[[tuple[str, ...]], Iterable[str]] | None = None
-    """The teardown order, `"unload"` among the ids (`_registrar/provider.py`,
-    `unload_resource`)."""
-    recent: Callable[[tuple[float, ...], float, float], int] | None = None
-    """The count of restarts within the period (`_supervision/policy.py`,
-    `RestartIntensity.add`)."""
-
-
-steps = Steps()

@@ -419,7 +419,8 @@ def launch(
     saver: Saver | None = None
     try:
         saver, catalog, restored = open_catalog(config)
-        doubtful = cut_short(catalog)
+        catalog.shares = config.steps.shares  # (the catalog's step: `Catalog.shares`)
+        doubtful = cut_short(catalog, config.steps)
         in_doubt = tuple(
             Query(r.id, r.server, config.name, config.name, r.request, r.response) for r in doubtful
         )

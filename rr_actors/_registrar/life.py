@@ -64,7 +64,7 @@ from rr_actors._registrar.messages import (
 )
 from rr_actors._registrar.provider import ProviderRecord
 from rr_actors._registrar.state import NO_REPLY, OpenReply, Phase, Server, Shared
-from rr_actors.config import RegistrarConfig
+from rr_actors.config import RegistrarConfig, Steps
 from rr_actors.errors import (
     CatalogWriteError,
     ConfigError,
@@ -425,9 +425,9 @@ class Lifecycle:
 # -- restoring -------------------------------------------------------------------------
 
 
-def cut_short(catalog: Catalog) -> list[Resource]:
+def cut_short(catalog: Catalog, steps: Steps) -> list[Resource]:
     """The restored resources a crash cut short: neither loaded nor unloaded (rule 16)."""
-    step = runtime.steps.in_doubt  # (a classroom's copy of this step, `rr_actors_lab.teach`)
+    step = steps.in_doubt  # (a copy of this step passed in: `RegistrarConfig.steps`)
     if step is not None:
         return [r for r in catalog.resources.values() if step(r.state.value)]
     return [r for r in catalog.resources.values() if r.state is not ResourceState.LOADED]
@@ -447,7 +447,7 @@ class Restoring:
         their dependencies and giving up calls in flight; with `hold_in_doubt` their rows stay in
         the backup until the manager settles them."""
         catalog = self.registrar.catalog
-        doubtful = cut_short(catalog)
+        doubtful = cut_short(catalog, self.registrar.config.steps)
         self.in_doubt_ids = frozenset(r.id for r in doubtful)
         if self.hold_in_doubt:
             self.registrar.held_in_doubt.update(self.in_doubt_ids)

@@ -1302,7 +1302,7 @@ class Unloading:
             if shared.events.active
             else ()
         )
-        step = runtime.steps.unloads  # (a classroom's copy of this step, `rr_actors_lab.teach`)
+        step = shared.config.steps.unloads  # (a copy passed in: `RegistrarConfig.steps`)
         last = not resource.consumers if step is None else step(frozenset(resource.consumers))
         if reply is not None and not last and resource.state is ResourceState.LOADED:
             answer = reply  # (not the last: answered once written, with the rest of the turn)
@@ -1414,7 +1414,7 @@ class Unloading:
             if query_id not in held:
                 self.registrar.provider.give_up(query_id)
         mine = catalog.consumer_ids_from(message.origin_rr)
-        step = runtime.steps.reconcile  # (a classroom's copy of this step, `rr_actors_lab.teach`)
+        step = self.registrar.config.steps.reconcile  # (a copy passed in: `config.steps`)
         told: tuple[str, ...] | None = None
         if step is None:
             stale = sorted(mine - held)
@@ -1525,9 +1525,7 @@ class Teardown:
             self.check_idle()
 
         later: list[set[str]] = []  # the dependencies to release after the unload
-        step = (
-            runtime.steps.release_order
-        )  # (a classroom's copy of this step, `rr_actors_lab.teach`)
+        step = self.registrar.config.steps.release_order  # (a copy passed in: `config.steps`)
         if step is None:
             self.registrar.releases.release_dependencies(resource.id, run_unload, trace=trace)
             return
@@ -1579,7 +1577,7 @@ class Teardown:
         """Forget a resource that is gone; serve the loads parked behind its unload. An unload
         is written at once (a restore would run it again), with its `ResourceUnloaded`."""
         shared = self.registrar
-        if resource.consumers and runtime.steps.unloads is not None:  # a classroom's copy unloaded
+        if resource.consumers and shared.config.steps.unloads is not None:  # a copy unloaded
             for query_id in list(resource.consumers):  # it under them: they lose it
                 shared.catalog.release(query_id)
         shared.catalog.remove_resource(resource.id)

@@ -359,7 +359,7 @@ class StatusRelay:
             if record is None:
                 continue
             update = StatusUpdate(query_id, message.status, message.message, message.source)
-            climb = runtime.steps.climb  # (a classroom's copy of this step, `rr_actors_lab.teach`)
+            climb = self.registrar.config.steps.climb  # (a copy passed in: `config.steps`)
             if climb is not None:
                 above = [
                     catalog.resources[r]

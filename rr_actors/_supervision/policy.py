@@ -296,7 +296,9 @@ class Restarts:
         self.stopping = stopping
         self.on_gave_up = on_gave_up
         spec = record.spec
-        self.intensity = RestartIntensity(spec.max_restarts, spec.period, record.tree.clock)
+        self.intensity = RestartIntensity(
+            spec.max_restarts, spec.period, record.tree.clock, recent=record.tree.steps.recent
+        )
         self.gave_up: SupervisorGaveUpError | None = None
         self.giving_up = False
         self._generation = 0
@@ -348,7 +350,7 @@ class Restarts:
         the names to restart."""
         children = self.record.children
         strategy, order = self.record.spec.strategy, [c.name for c in children]
-        step = runtime.steps.group  # (a classroom's copy of this step, `rr_actors_lab.teach`)
+        step = self.record.tree.steps.group  # (a copy passed in: `Supervisor(steps=)`)
         if step is None:
             names = affected(strategy, order, crashed.name)
         else:
@@ -428,17 +430,25 @@ class RestartIntensity:
     Pure logic over an injectable clock (no threads).
     """
 
-    def __init__(self, max_restarts: int, period: float, clock: Clock | None = None) -> None:
+    def __init__(
+        self,
+        max_restarts: int,
+        period: float,
+        clock: Clock | None = None,
+        *,
+        recent: Callable[[tuple[float, ...], float, float], int] | None = None,
+    ) -> None:
         self.max_restarts = max_restarts
         self.period = period
         self.clock = runtime.monotonic if clock is None else clock
+        self.step = recent  # (a copy of the count passed in: `Supervisor(steps=)`)
         self._times: collections.deque[float] = collections.deque()
 
     def add(self) -> bool:
         """Count one restart now; return `False` if that exceeds the intensity (give up)."""
         now = self.clock()
         self._times.append(now)
-        step = runtime.steps.recent  # (a classroom's copy of this step, `rr_actors_lab.teach`)
+        step = self.step
         if step is not None:  # (it sees every restart: it chooses those that count)
             return step(tuple(self._times), now, self.period) <= self.max_restarts
         while self._times and now - self._times[0] >= self.period:
@@ -563,17 +573,19 @@ class Starting:
 
     def config(self, spec: ManagerSpec) -> RegistrarConfig:
         """The registrar config of manager `spec`: its own, else one from the state dir
-        (at the tree's durability at least: `Tree.durable`)."""
+        (at the tree's durability at least, with its steps: `Tree.durable`)."""
         durability = self.record.tree.durability
         if spec.config is not None:
             return self.record.tree.durable(spec.config)
         if self.state_dir is None:
-            return RegistrarConfig(name=spec.name, durability=durability)
-        return RegistrarConfig(
-            name=spec.name,
-            backup_path=os.path.join(os.fspath(self.state_dir), f"{spec.name}.db"),
-            save_on_modify=True,
-            durability=durability,
+            return self.record.tree.durable(RegistrarConfig(name=spec.name, durability=durability))
+        return self.record.tree.durable(
+            RegistrarConfig(
+                name=spec.name,
+                backup_path=os.path.join(os.fspath(self.state_dir), f"{spec.name}.db"),
+                save_on_modify=True,
+                durability=durability,
+            )
         )
 
     def start_child(self, child: Child) -> None:

@@ -34,7 +34,7 @@ import os
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
-from rr_actors import events
+from rr_actors import _moved, events
 from rr_actors._core import runtime
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Subscription
 from rr_actors._core.exit import SUPERVISORS, stop_at_exit
@@ -76,6 +76,7 @@ from rr_actors.config import (
     check_seconds,
     walk,
 )
+from rr_actors.config import Steps as ProtocolSteps
 from rr_actors.errors import (
     ConfigError,
     RegistrarUnavailableError,
@@ -147,6 +148,9 @@ class Supervisor(AsyncSupervision):
             tree's managers and `registrar()`s are served on; its owner closes it after
             `stop`. Default: a private AF_UNIX system, made at `start` when the tree has
             process managers, closed at `stop`.
+        steps: the protocol steps the tree's supervisors, and the managers and
+            `registrar()`s they start whose config names none, run instead of their own
+            (`rr_actors.config.Steps`; default: none replaced).
 
     Raises:
         ConfigError: an argument is invalid; the message names it.
@@ -167,8 +171,11 @@ class Supervisor(AsyncSupervision):
         timer: runtime.StartTimer = runtime.thread_timer,
         random: Callable[[], float] | None = None,
         network: Transport | None = None,
+        steps: ProtocolSteps | None = None,
     ) -> None:
         _check_network(network)
+        if steps is not None and not isinstance(steps, ProtocolSteps):
+            raise ConfigError(f"steps must be an rr_actors.config.Steps, got {steps!r}")
         check_choice("durability", durability, ("process", "power"))
         if isinstance(children, ManagerSpec | SupervisorSpec):
             children = [children]  # one child: a list of one (it is not iterable)
@@ -193,6 +200,7 @@ class Supervisor(AsyncSupervision):
             random=random,
             network=network,
             durability=durability,
+            steps=steps,
         )
         self._node = Node(self._spec, self._tree)
         self._lock: StateDirLock | None = None
@@ -452,7 +460,9 @@ class Supervisor(AsyncSupervision):
                 f"supervisor {self.name!r} was stopped: call `registrar()` while it runs "
                 "(inside `with sup:`, or between `sup.start()` and `sup.stop()`)"
             )
-        if isinstance(config, RegistrarConfig):
+        if isinstance(config, str):
+            config = RegistrarConfig(name=config)
+        if isinstance(config, RegistrarConfig):  # (with the tree's durability and steps)
             config = self._tree.durable(config)
         backup = config.backup_path if isinstance(config, RegistrarConfig) else None
         restored = backup is not None and os.path.exists(backup)
@@ -667,42 +677,17 @@ class Supervisor(AsyncSupervision):
         across_hosts: bool | None = None,
         sock: socket.socket | None = None,
     ) -> Page:
-        """Serve a live web page of this tree at the returned observer's `url`.
+        """Deprecated (goes in the next release): `rr_actors_lab.observe.observe(sup, ...)`.
 
-        The tree, each registrar's catalog, the dependency graph (the TeMoto thesis's
-        figure 2.7, live) and a timeline of status notifications. The server runs on a
-        thread of its own (uvicorn); the observer closes with the supervisor unless
-        `keep_serving`. Every request must carry the `url`'s token (`?token=...`); at
-        most 32 pages are open at once. The observer's reference page says more.
-
-        Args:
-            host: the address to listen on. A loopback address (the default) keeps the
-                page on this machine; any other needs `allow_remote=True`.
-            port: the port (0: a free one; the `url` says which).
-            allow_faults: teaching mode: buttons that SIGKILL or SIGSTOP a process
-                manager and send FATAL on a resource (whoever has the URL may use them).
-            allow_remote: allow a `host` that other machines can reach (they see every
-                catalog; nothing from the browser is ever unpickled).
-            keep_serving: after the supervisor stops, keep serving its final state
-                until the observer's `close()`.
-            across_hosts: share this host's tree with the system's other hosts and show
-                theirs (`None`: when `network` is a
-                [`ZenohNetwork`][rr_actors._transport.zenoh.net.ZenohNetwork]).
-            sock: a listening TCP socket to serve on instead of binding `host:port`;
-                the observer closes it when it closes, or fails to open.
-
-        Returns:
-            The open [`Observer`][rr_actors_lab.observe.Observer] (`url`, `close()`).
+        Warns with a `DeprecationWarning`, then opens the observer's page as the lab's
+        `observe(self, host, port, ...)` does (same arguments, returns and errors).
 
         Raises:
-            ConfigError: the `observe` extra is not installed, the port is in use,
-                `host` (or `sock`) is not on a loopback address without `allow_remote`,
-                the supervisor was stopped, `across_hosts=True` without a
-                `ZenohNetwork`, or `sock` is not a listening TCP socket.
+            MissingExtraError: the lab (its `observe` extra) is not installed.
         """
-        if self._stopped:
-            raise ConfigError(f"supervisor {self.name!r} was stopped: nothing to observe")
-        return self._watch.observe(
+        _moved.warn("sup.observe()", "rr_actors_lab.observe.observe(sup)")
+        page: Page = _moved.lab("observe", "sup.observe()", "observe").observe(
+            self,
             host,
             port,
             allow_faults=allow_faults,
@@ -711,24 +696,31 @@ class Supervisor(AsyncSupervision):
             across_hosts=across_hosts,
             sock=sock,
         )
+        return page
 
     def graph(self, format: str = "mermaid") -> str:
-        """The tree and the dependency graph across its registrars, as text, now.
+        """Deprecated (goes in the next release): `rr_actors_lab.observe.graph(sup, format)`.
 
-        Supervisors are hexagons, a registrar a box holding its resources, each query a
-        dashed arrow to the provider's resource (the TeMoto thesis's figure 2.7); a
-        manager that is down is drawn without its resources.
-
-        Args:
-            format: `"mermaid"` (a flowchart, for Markdown) or `"dot"` (Graphviz).
-
-        Returns:
-            The text, ending with a newline.
+        Warns with a `DeprecationWarning`, then draws as the lab's `graph` does.
 
         Raises:
-            ConfigError: `format` is neither.
+            MissingExtraError: the lab is not installed.
+            ConfigError: `format` is neither `"mermaid"` nor `"dot"`.
         """
-        return self._watch.graph(format)
+        _moved.warn("sup.graph()", "rr_actors_lab.observe.graph(sup)")
+        text: str = _moved.lab("observe", "sup.graph()", "observe").graph(self, format)
+        return text
+
+
+def tree_watch(sup: Supervisor, *, observing: bool = False) -> TreeWatch:
+    """The event stream and observers of `sup`'s tree (what the lab's observer reads).
+
+    Raises:
+        ConfigError: `observing` and `sup` was stopped (nothing to observe).
+    """
+    if observing and sup._stopped:
+        raise ConfigError(f"supervisor {sup.name!r} was stopped: nothing to observe")
+    return sup._watch
 
 
 def _check_child_name(name: object) -> None:

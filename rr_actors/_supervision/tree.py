@@ -47,6 +47,7 @@ from rr_actors._supervision.children import (
 )
 from rr_actors._supervision.watching import EventRelay
 from rr_actors.config import Durability, RegistrarConfig, SupervisorSpec, managers, walk
+from rr_actors.config import Steps as ProtocolSteps
 from rr_actors.errors import (
     CallTimeoutError,
     ConfigError,
@@ -163,9 +164,11 @@ class Tree:
         random: Callable[[], float] | None = None,
         network: Transport | None = None,
         durability: Durability = "process",
+        steps: ProtocolSteps | None = None,
     ) -> None:
         self.spec = spec
         self.durability = durability  # the least every backup of the tree gets (rule 14)
+        self.steps = ProtocolSteps() if steps is None else steps  # (`Supervisor(steps=)`)
         self.cond = runtime.Condition()  # published snapshots of the whole tree
         # waiters woken at each change, in the order they came (each its number: woken in
         # another order, a simulated seed's history would change at each choice point between)
@@ -196,7 +199,10 @@ class Tree:
         self.restarted_here: set[str] = set()  # a pool's, not yet told upward
 
     def durable(self, config: RegistrarConfig) -> RegistrarConfig:
-        """`config` at the tree's durability at least (a tree chooses for every manager)."""
+        """`config` at the tree's durability at least (a tree chooses for every manager),
+        with the tree's steps unless it names steps of its own (`Supervisor(steps=)`)."""
+        if self.steps != ProtocolSteps() and config.steps == ProtocolSteps():
+            config = dataclasses.replace(config, steps=self.steps)
         if self.durability == "power" and config.durability != "power":
             return dataclasses.replace(config, durability="power")
         return config

@@ -1,7 +1,8 @@
 """What a supervisor shows of its tree: its event stream and the observer's page.
 
-`TreeWatch` is the part of [`Supervisor`][rr_actors.Supervisor] behind `subscribe`,
-`flush_events`, `observe` and `graph` (the supervisor's methods document them). How the
+`TreeWatch` is the part of [`Supervisor`][rr_actors.Supervisor] behind `subscribe` and
+`flush_events` (the supervisor's methods document them), and what the lab's observer
+(`rr_actors_lab.observe.observe(sup)`, `graph(sup)`) reads of a tree (`access`, `opened`). How the
 tree's events reach its subscribers, in the supervisor's process:
 
 ```
@@ -16,8 +17,8 @@ tree's events reach its subscribers, in the supervisor's process:
 Manager processes forward their events only while the tree has a listener (a tree
 nobody watches builds none); the switch reaches each process asynchronously, so a
 forwarded event older than the last switch on (by its `at`, on `hlc.CLOCK`) is dropped.
-The observer is the lab's, which the runtime never imports: a supervisor finds it through
-`Observing`, in the slot `attach_observer` fills.
+The observer is the lab's, which the runtime never imports: the lab's entry points take
+the supervisor, and find its `TreeWatch` (`Supervisor`'s `tree_watch`).
 """
 
 from __future__ import annotations
@@ -33,11 +34,8 @@ from rr_actors._process.heartbeat import Late
 from rr_actors._process.manager import ManagerProcess
 from rr_actors._registrar.actor import EVENT_LOG
 from rr_actors.config import SupervisorSpec, check_seconds
-from rr_actors.errors import ConfigError
 
 if TYPE_CHECKING:
-    import socket
-
     from rr_actors._registrar import ResourceRegistrar
 
 SWITCH_TIMEOUT = 2.0
@@ -191,44 +189,6 @@ class _Named(Protocol):
     def name(self) -> str: ...
 
 
-class Observing(Protocol):
-    """The observer as supervisors find it (`attach_observer`)."""
-
-    def observe(
-        self,
-        sup: Any,
-        access: TreeAccess,
-        *,
-        host: str,
-        port: int,
-        allow_faults: bool,
-        allow_remote: bool,
-        keep_serving: bool,
-        across_hosts: bool | None,
-        sock: socket.socket | None,
-    ) -> Page: ...
-
-    def graph(self, sup: Any, access: TreeAccess, format: str) -> str: ...
-
-
-_FOUND: list[Callable[[], Observing]] = []  # where this process's observer is (one slot)
-
-
-def attach_observer(find: Callable[[], Observing]) -> None:
-    """Tell every supervisor of this process where its observer is (`find()`, called at
-    each `observe` and `graph`, may import it). The last call wins."""
-    _FOUND[:] = [find]
-
-
-def _observer() -> Observing:
-    if not _FOUND:
-        raise ConfigError(
-            "no observer is attached in this process: import rr_actors_lab.observe (a "
-            "supervisor made as rr.Supervisor finds it by itself)"
-        )
-    return _FOUND[0]()
-
-
 class TreeWatch:
     """The event stream and the observers of one supervision tree."""
 
@@ -257,33 +217,10 @@ class TreeWatch:
         check_seconds("timeout", timeout)
         return self.tree.events.sync(timeout)
 
-    def observe(
-        self,
-        host: str,
-        port: int,
-        *,
-        allow_faults: bool,
-        allow_remote: bool,
-        keep_serving: bool,
-        across_hosts: bool | None,
-        sock: socket.socket | None = None,
-    ) -> Page:
-        observer = _observer().observe(
-            self.sup,
-            self.access(),
-            host=host,
-            port=port,
-            allow_faults=allow_faults,
-            allow_remote=allow_remote,
-            keep_serving=keep_serving,
-            across_hosts=across_hosts,
-            sock=sock,
-        )
-        self.observers.append(observer)
-        return observer
-
-    def graph(self, format: str) -> str:
-        return _observer().graph(self.sup, self.access(), format)
+    def opened(self, page: Page) -> Page:
+        """`page`, an observer's page of this tree (the lab's `observe(sup)`), closes with it."""
+        self.observers.append(page)
+        return page
 
     def last_look(self) -> None:
         """Observers that outlive the tree read its catalogs once more."""

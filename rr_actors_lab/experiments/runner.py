@@ -38,6 +38,7 @@ import rr_actors as rr
 from rr_actors import events
 from rr_actors._core import runtime
 from rr_actors._process import control as process_control
+from rr_actors.config import Steps
 from rr_actors.events.lines import to_lines
 from rr_actors.testing import catalog_snapshot
 from rr_actors_lab.experiments import _hosts, _procs, check, metrics
@@ -112,6 +113,7 @@ def build_tree(
     seed: int = 0,
     host: str | None = None,
     network: Any = None,
+    steps: Steps | None = None,
 ) -> rr.Supervisor:
     """The plan's supervision tree as an (unstarted) `Supervisor`, every setup instrumented.
 
@@ -121,6 +123,8 @@ def build_tree(
         seed: the run's seed (the tree's backoff jitter draws from it).
         host: with `[hosts]`, the host whose part of the tree this is; `None`: the run's own.
         network: the carrier the tree is served on (`None`: this machine's AF_UNIX one).
+        steps: the protocol steps its registrars and supervisors run instead of their own
+            (`Supervisor(steps=)`; `None`: their own).
 
     Raises:
         ConfigError: the tree is not a valid supervision tree (only for a plan built by hand).
@@ -141,6 +145,7 @@ def build_tree(
         name=top.name if host is None or plan.hosts is None else f"{top.name}-{host}",
         random=jitter.random,
         network=network,
+        steps=steps,
     )
 
 
@@ -456,7 +461,9 @@ def _drive(
     home = plan.hosts.home if plan.hosts is not None else None
     managers = [m.name for m in plan.managers() if plan.host_of(m.name) == home]
     if spec.observe:
-        observer = sup.observe(host="127.0.0.1", port=0)
+        from rr_actors_lab.observe import observe  # noqa: PLC0415 - its extra's
+
+        observer = observe(sup, host="127.0.0.1", port=0)
         print(json.dumps({"observe": observer.url}), flush=True)  # noqa: T201 - to the experiment
     drive.clients = [
         Client(

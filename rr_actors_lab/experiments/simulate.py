@@ -24,6 +24,7 @@ with a `PlanError` (`check_simulable`), never skipped silently.
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import dataclasses
 import functools
 import gc
@@ -42,6 +43,7 @@ import rr_actors as rr
 from rr_actors import events
 from rr_actors._core import runtime
 from rr_actors._transport.resolve import RESOLVE_STRATEGIES
+from rr_actors.config import Steps
 from rr_actors.events.kinds import set_host
 from rr_actors.events.lines import to_lines
 from rr_actors_lab.experiments import check
@@ -250,12 +252,37 @@ def simulate(
     return runs
 
 
-def run_seed(plan: Plan, seed: int) -> SimulatedRun:
-    """Run `plan` on the simulation with `seed` (see `simulate`, whose errors it raises)."""
+_STEPS: contextvars.ContextVar[Steps] = contextvars.ContextVar("rr_actors_lab.steps")
+"""The steps `steps_in_place` put in place for this thread's runs (`run_seed`)."""
+
+
+@contextlib.contextmanager
+def steps_in_place(steps: Steps) -> Iterator[Steps]:
+    """Inside the block, this thread's `run_seed` runs that name no `steps` run with `steps`
+    (`rr_actors_lab.teach.replaced_step`'s block); the steps."""
+    token = _STEPS.set(steps)
+    try:
+        yield steps
+    finally:
+        _STEPS.reset(token)
+
+
+def steps_now() -> Steps:
+    """The steps a `run_seed` that names none runs with here (`steps_in_place`)."""
+    return _STEPS.get(Steps())
+
+
+def run_seed(plan: Plan, seed: int, *, steps: Steps | None = None) -> SimulatedRun:
+    """Run `plan` on the simulation with `seed` (see `simulate`, whose errors it raises).
+
+    `steps`: the protocol steps the run's registrars and supervisors run instead of their
+    own (`rr_actors.config.Steps`, handed to its `Supervisor`s; `None`: those
+    `steps_in_place` put in place here, else their own).
+    """
     check_simulable(plan)
     started = time.process_time()
     with _own_garbage():
-        run = _run_seed(plan, seed, started)
+        run = _run_seed(plan, seed, started, steps_now() if steps is None else steps)
     return dataclasses.replace(run, cpu_s=time.process_time() - started)
 
 
@@ -282,11 +309,11 @@ def _own_garbage() -> Iterator[None]:
             gc.enable()
 
 
-def _run_seed(plan: Plan, seed: int, started: float) -> SimulatedRun:
+def _run_seed(plan: Plan, seed: int, started: float, steps: Steps) -> SimulatedRun:
     """`run_seed`'s work (what it made is garbage once it returned)."""
     from rr_actors import simulation  # noqa: PLC0415 - the simulation extra (greenlet)
 
-    progress = _Progress()
+    progress = _Progress(steps=steps)
     folder = Path(tempfile.mkdtemp(prefix="rr-sim-run-", dir=scratch_parent()))
     try:  # (a Ctrl-C or a SIGTERM made one: the run is cancelled, then its folder goes)
         until = plan.duration + plan.recovery_timeout + 600.0
@@ -410,6 +437,7 @@ class _Progress:
     faults: SimulatedFaults | None = None
     wall_t0: float = 0.0
     clients: list[Client] = dataclasses.field(default_factory=list)
+    steps: Steps = dataclasses.field(default_factory=Steps)  # (the run's: `run_seed(steps=)`)
 
 
 def _close_injector(injector: SimulatedFaults, progress: _Progress) -> None:
@@ -462,7 +490,8 @@ def _world(
     network = _network_of(plan)
     work = folder / "work"
     work.mkdir()
-    sup = build_tree(plan, folder / "state" if plan.state else None, seed=seed, network=network)
+    state = folder / "state" if plan.state else None
+    sup = build_tree(plan, state, seed=seed, network=network, steps=progress.steps)
     hosts: list[_SimulatedHost] = []  # the other hosts (with `[hosts]`), once started
     log = progress.log = _EventLog()
     injector: list[SimulatedFaults] = []  # (set once the workload starts)
@@ -476,7 +505,7 @@ def _world(
     records: list[FaultRecord] = []
     try:
         sup.start()
-        _start_hosts(plan, folder, seed, network, seen, hosts)
+        _start_hosts(plan, folder, seed, network, seen, hosts, progress.steps)
         clients = [Client(i, sup, plan, seed, run_dir=work) for i in range(plan.workload.clients)]
         progress.serving, progress.clients = True, clients
         faults, t0 = _injector(
@@ -542,7 +571,7 @@ def _program_world(
             faults.on_event(event)
 
     program = _SimulatedProgram(
-        plan, folder / "state" if plan.state else None, seed, network, seen, work
+        plan, folder / "state" if plan.state else None, seed, network, seen, work, progress.steps
     )
     records: list[FaultRecord] = []
     try:
@@ -587,8 +616,10 @@ class _SimulatedProgram:
         network: object,
         on_event: Callable[[events.Event], None],
         work: Path,
+        steps: Steps,
     ) -> None:
         self.plan = plan
+        self._steps = steps
         self._state_dir = state_dir
         self._seed = seed
         self._network = network
@@ -662,7 +693,9 @@ class _SimulatedProgram:
         plan = self.plan
         subscription: rr.Subscription[events.Event] | None = None
         try:
-            sup = build_tree(plan, self._state_dir, seed=self._seed, network=self._network)
+            sup = build_tree(
+                plan, self._state_dir, seed=self._seed, network=self._network, steps=self._steps
+            )
             subscription = sup.subscribe(self._on_event, maxsize=EVENT_QUEUE)
             sup.start()
             clients = [
@@ -775,12 +808,13 @@ def _start_hosts(
     network: object,
     on_event: Callable[[events.Event], None],
     hosts: list[_SimulatedHost],
+    steps: Steps,
 ) -> None:
     """With `[hosts]`: start each other host (in `hosts` as it starts, so that the run's
     cleanup stops it) and wait until its tree serves, one after another."""
     for name in plan.hosts.names[1:] if plan.hosts is not None else ():
         state = folder / f"state-{name}" if plan.state else None
-        hosts.append(_SimulatedHost(plan, name, state, seed, network, on_event))
+        hosts.append(_SimulatedHost(plan, name, state, seed, network, on_event, steps))
         hosts[-1].ask("start")
 
 
@@ -796,11 +830,13 @@ class _SimulatedHost:
         seed: int,
         network: object,
         on_event: Callable[[events.Event], None],
+        steps: Steps,
     ) -> None:
         from rr_actors import simulation  # noqa: PLC0415 - the simulation extra (greenlet)
 
         self.plan = plan
         self.name = name
+        self._steps = steps
         self._state_dir = state_dir
         self._seed = seed
         self._network = network
@@ -837,7 +873,12 @@ class _SimulatedHost:
         subscription: rr.Subscription[events.Event] | None = None
         try:
             sup = build_tree(
-                plan, self._state_dir, seed=self._seed, host=name, network=self._network
+                plan,
+                self._state_dir,
+                seed=self._seed,
+                host=name,
+                network=self._network,
+                steps=self._steps,
             )
             subscription = sup.subscribe(self._on_event, maxsize=EVENT_QUEUE)
             sup.start()

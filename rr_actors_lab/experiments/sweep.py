@@ -164,7 +164,7 @@ def hash_fixed(argv: list[str], stream: TextIO) -> int | None:
     if os.environ.get("PYTHONHASHSEED") == HASH_SEED:
         return None
     env = {**os.environ, "PYTHONHASHSEED": HASH_SEED}
-    command = [sys.executable, "-m", "rr_actors", *argv]
+    command = [sys.executable, "-m", "rr_actors_lab", *argv]
     pipe = None if stream is sys.stdout else subprocess.PIPE
     child = subprocess.Popen(command, env=env, stdout=pipe, text=True)  # noqa: S603 - ours
     with _passed_on(child):

@@ -726,7 +726,10 @@ def main(fd: int) -> None:
                 exporting.trace(sup)
                 stack.callback(exporting.close)
             if settings.observer is not None:  # (before the start: the page sees it start)
-                observer = sup.observe(
+                from rr_actors_lab.observe import observe  # noqa: PLC0415 - its extra's
+
+                observer = observe(
+                    sup,
                     allow_faults=settings.observer.allow_faults,
                     across_hosts=True,
                     keep_serving=True,  # (its final state is shared as it stops)

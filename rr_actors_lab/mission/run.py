@@ -59,7 +59,7 @@ from rr_actors_lab.mission.output import MissionOutput, Progress, make_output, s
 from rr_actors_lab.mission.report import MissionReport
 
 if TYPE_CHECKING:
-    from rr_actors._supervision.watching import Page as Observer  # (`sup.observe()`'s)
+    from rr_actors._supervision.watching import Page as Observer  # (`observe(sup)`'s)
     from rr_actors_lab import otel
 
 CLOCK_SLACK = 0.05
@@ -153,7 +153,7 @@ def run_mission(
         say: receives each line of the story (from the mission's and other threads).
         progress: receives where the mission is, about 50 times a second while it drives.
         on_supervisor: receives the managers' supervisor before it starts (to open its
-            observer: `sup.observe()`).
+            observer: `rr_actors_lab.observe.observe(sup)`).
         before_fault: called on the mission's thread before each fault with the fault and
             the processes it involves (one line each), while the robot waits; the fault is
             injected when it returns (`rr-actors demo --step`).
@@ -630,8 +630,14 @@ def _hooks(
         inherited = None  # (--hosts 2: bound on the machine's loopback by the first process)
         if args.observe_fd is not None:
             inherited = socket.socket(fileno=args.observe_fd)
-        observer = sup.observe(  # serving after the mission while it lingers; then closed
-            port=args.port, allow_faults=args.allow_faults, keep_serving=True, sock=inherited
+        from rr_actors_lab.observe import observe  # noqa: PLC0415 - its extra's
+
+        observer = observe(
+            sup,  # serving after the mission while it lingers; then closed
+            port=args.port,
+            allow_faults=args.allow_faults,
+            keep_serving=True,
+            sock=inherited,
         )
         observer.set_clock(time.time(), CLOCK_LABEL)  # (made exact by the first progress)
         observers.append(observer)

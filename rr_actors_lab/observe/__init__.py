@@ -1,9 +1,9 @@
 """The observer: a live web page of a supervision tree, and its text drawings.
 
-Open one with [`Supervisor.observe`][rr_actors.Supervisor.observe] (or `rr-actors demo
---observe`); `rr-actors observe --state DIR` shows a state directory's backups the same
-way, and [`Supervisor.graph`][rr_actors.Supervisor.graph] / `rr-actors graph` draw the
-tree and the dependency graph as Mermaid or DOT text.
+Open one with `observe(sup)` (or `rr-actors demo --observe`); `rr-actors observe --state
+DIR` shows a state directory's backups the same way, and `graph(sup)` / `rr-actors graph`
+draw the tree and the dependency graph as Mermaid or DOT text. (`sup.observe()` and
+`sup.graph()`, their former spellings, warn and call these for one release.)
 
 ```
  Supervisor ── events (subscribe) ──────────► LiveSource ─┐
@@ -21,10 +21,20 @@ dependencies are the `observe` extra, imported only when an observer opens.
 
 from rr_actors_lab.observe._observer import (
     Observer,
+    graph,
+    observe,
     observe_backups,
     observe_system,
     require_extra,
 )
 from rr_actors_lab.observe._text import FORMATS
 
-__all__ = ["FORMATS", "Observer", "observe_backups", "observe_system", "require_extra"]
+__all__ = [
+    "FORMATS",
+    "Observer",
+    "graph",
+    "observe",
+    "observe_backups",
+    "observe_system",
+    "require_extra",
+]

@@ -27,7 +27,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, Protocol
 
 from rr_actors._extras import needs
-from rr_actors._supervision.watching import attach_observer
+from rr_actors._supervision.supervisor import Supervisor, tree_watch
 from rr_actors.config import NAME, is_loopback
 from rr_actors.errors import ConfigError
 from rr_actors_lab.observe._faults import Faults
@@ -48,9 +48,10 @@ if TYPE_CHECKING:
 
 __all__ = [
     "START_TIMEOUT",
-    "SUPERVISORS",
     "Observer",
+    "graph",
     "graph_of",
+    "observe",
     "observe_backups",
     "observe_supervisor",
     "observe_system",
@@ -443,18 +444,84 @@ def graph_of(sup: Observable, access: TreeAccess, format: str) -> str:
     return render(graph, tree, format)
 
 
-class _Supervisors:
-    """The observer as supervisors find it (`rr_actors._supervision.watching.Observing`)."""
+def observe(
+    sup: Supervisor,
+    host: str = "127.0.0.1",
+    port: int = 0,
+    *,
+    allow_faults: bool = False,
+    allow_remote: bool = False,
+    keep_serving: bool = False,
+    across_hosts: bool | None = None,
+    sock: socket.socket | None = None,
+) -> Observer:
+    """Serve a live web page of supervisor `sup`'s tree at the returned observer's `url`.
 
-    observe = staticmethod(observe_supervisor)
-    graph = staticmethod(graph_of)
+    The tree, each registrar's catalog, the dependency graph (the TeMoto thesis's
+    figure 2.7, live) and a timeline of status notifications. The server runs on a
+    thread of its own (uvicorn); the observer closes with the supervisor unless
+    `keep_serving`. Every request must carry the `url`'s token (`?token=...`); at
+    most 32 pages are open at once. The observer's reference page says more.
+
+    Args:
+        sup: the `rr_actors.Supervisor` (started or not; not stopped).
+        host: the address to listen on. A loopback address (the default) keeps the
+            page on this machine; any other needs `allow_remote=True`.
+        port: the port (0: a free one; the `url` says which).
+        allow_faults: teaching mode: buttons that SIGKILL or SIGSTOP a process
+            manager and send FATAL on a resource (whoever has the URL may use them).
+        allow_remote: allow a `host` that other machines can reach (they see every
+            catalog; nothing from the browser is ever unpickled).
+        keep_serving: after the supervisor stops, keep serving its final state
+            until the observer's `close()`.
+        across_hosts: share this host's tree with the system's other hosts and show
+            theirs (`None`: when its `network` is a `ZenohNetwork`).
+        sock: a listening TCP socket to serve on instead of binding `host:port`;
+            the observer closes it when it closes, or fails to open.
+
+    Returns:
+        The open `Observer` (`url`, `close()`).
+
+    Raises:
+        ConfigError: the `observe` extra is not installed, the port is in use,
+            `host` (or `sock`) is not on a loopback address without `allow_remote`,
+            the supervisor was stopped, `across_hosts=True` without a
+            `ZenohNetwork`, or `sock` is not a listening TCP socket.
+    """
+    watch = tree_watch(sup, observing=True)
+    page = observe_supervisor(
+        sup,
+        watch.access(),
+        host=host,
+        port=port,
+        allow_faults=allow_faults,
+        allow_remote=allow_remote,
+        keep_serving=keep_serving,
+        across_hosts=across_hosts,
+        sock=sock,
+    )
+    watch.opened(page)
+    return page
 
 
-SUPERVISORS = _Supervisors()
-"""What this module attaches to this process's supervisors when imported (and `rr_actors`
-attaches, importing it at a supervisor's first `observe` or `graph`)."""
+def graph(sup: Supervisor, format: str = "mermaid") -> str:
+    """Supervisor `sup`'s tree and the dependency graph across its registrars, as text, now.
 
-attach_observer(lambda: SUPERVISORS)
+    Supervisors are hexagons, a registrar a box holding its resources, each query a
+    dashed arrow to the provider's resource (the TeMoto thesis's figure 2.7); a
+    manager that is down is drawn without its resources.
+
+    Args:
+        sup: the `rr_actors.Supervisor`.
+        format: `"mermaid"` (a flowchart, for Markdown) or `"dot"` (Graphviz).
+
+    Returns:
+        The text, ending with a newline.
+
+    Raises:
+        ConfigError: `format` is neither.
+    """
+    return graph_of(sup, tree_watch(sup).access(), format)
 
 
 def observe_system(

@@ -22,12 +22,13 @@ teacher and a student's own tests, never reachable from a check).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 from collections.abc import Callable, Collection, Iterable, Iterator, Sequence
 from collections.abc import Set as AbstractSet
 from typing import Any
 
-from rr_actors._core import runtime as _runtime
 from rr_actors._types import Status
+from rr_actors.config import Steps
 from rr_actors.errors import ConfigError, _known_names
 
 __all__ = ["STEPS", "replaced_step", "shipped_step"]
@@ -145,24 +146,31 @@ def shipped_step(name: str) -> Callable[..., Any]:
 
 
 @contextlib.contextmanager
-def replaced_step(name: str, step: Callable[..., Any]) -> Iterator[None]:
-    """Inside the block, the registrars of this OS process run `step` as their step `name`.
+def replaced_step(name: str, step: Callable[..., Any]) -> Iterator[Steps]:
+    """A `Steps` record with `step` as step `name` (and the steps of an enclosing block),
+    to hand in as `RegistrarConfig(steps=)` or `Supervisor(steps=)`; inside the block, this
+    thread's simulated runs (`rr_actors_lab.experiments.simulate.run_seed`) run with it.
 
-    Only this process's registrars see it (a simulated run's, never a real manager
-    process's). It runs on the registrar's actor thread: it must return at once and must not
-    call a registrar. The registrar's own code is back when the block ends, even on an error.
+    A registrar runs the steps its config hands it, no other: one made without them runs its
+    own code, inside the block or not. A step runs on the registrar's actor thread: it must
+    return at once and must not call a registrar. Simulated runs are back to the registrar's
+    own code when the block ends, even on an error.
+
+        with replaced_step("climb", my_climb) as steps:
+            run = simulate.run_seed(plan, 3)                 # (or run_seed(plan, 3, steps=steps))
+            reg = rr.ResourceRegistrar(rr.RegistrarConfig(name="mine", steps=steps))
 
     Raises:
         ConfigError: `name` is not one of `STEPS`, `step` is not callable, or another copy
             of the step is in place (blocks of one step do not nest).
     """
+    from rr_actors_lab.experiments import simulate as _simulate  # noqa: PLC0415 - its extra's
+
     shipped_step(name)
     if not callable(step):
         raise ConfigError(f"the step {name!r} must be a function, got {step!r}")
-    if getattr(_runtime.steps, name) is not None:
+    outer = _simulate.steps_now()
+    if getattr(outer, name) is not None:
         raise ConfigError(f"the step {name!r} is replaced already (one copy at a time)")
-    setattr(_runtime.steps, name, step)
-    try:
-        yield
-    finally:
-        setattr(_runtime.steps, name, None)
+    with _simulate.steps_in_place(dataclasses.replace(outer, **{name: step})) as steps:
+        yield steps

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import builtins
 import contextlib
+import dataclasses
 import importlib.abc
 import importlib.util
 import json
@@ -47,7 +48,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any, TextIO
 
-from rr_actors._core import runtime as _runtime
+from rr_actors.config import Steps
 from rr_actors.errors import ConfigError, RrError
 
 __all__ = ["KIT", "RETURNS", "UNLOAD", "hide_kit", "main", "student_step"]
@@ -153,17 +154,17 @@ def student_step(
     Raises:
         ConfigError: as `load_step`; the slot is taken already.
     """
+    from rr_actors_lab.experiments import simulate  # noqa: PLC0415 - the simulation extra's
+
     if step is None:
         yield None
         return
     watched = load_step(folder, step, raised)
-    if getattr(_runtime.steps, step) is not None:
+    outer = simulate.steps_now()
+    if getattr(outer, step) is not None:
         raise ConfigError(f"the step {step!r} is replaced already (one copy at a time)")
-    setattr(_runtime.steps, step, watched)
-    try:
+    with simulate.steps_in_place(dataclasses.replace(outer, **{step: watched})):
         yield watched
-    finally:
-        setattr(_runtime.steps, step, None)
 
 
 class _KitFinder(importlib.abc.MetaPathFinder):
@@ -284,22 +285,14 @@ class _Check:
 
     @contextlib.contextmanager
     def in_place(self) -> Iterator[list[str]]:
-        """The student's step in its slot for one run; what else is there after it."""
-        replaced: list[str] = []
+        """The student's step handed to one run (its supervisors' and registrars' config:
+        `run_seed`'s steps, a value no code of theirs can swap); what else replaced it: none
+        can (the reply's `replaced`, kept for the parent's protocol)."""
         if self.step is None:
-            yield replaced
+            yield []
             return
-        setattr(_runtime.steps, self.step, self.watched)
-        try:
-            yield replaced
-        finally:
-            found = getattr(_runtime.steps, self.step)
-            if found is not self.watched:
-                replaced.append(
-                    f"your step.py put {found!r} in the registrar's place of {self.step}, "
-                    "instead of your function: the check runs your step, no other"
-                )
-            setattr(_runtime.steps, self.step, None)
+        with self.simulate.steps_in_place(Steps(**{self.step: self.watched})):
+            yield []
 
     def seed(self, seed: int) -> dict[str, Any]:
         del self.raised[:]

@@ -16,7 +16,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import events
-from rr_actors.__main__ import main
+from rr_actors_lab.__main__ import main
 from rr_actors_lab.experiments import (
     PlanError,
     _supervision_rules,

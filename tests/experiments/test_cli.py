@@ -27,7 +27,7 @@ import pytest
 
 import rr_actors as rr
 import rr_actors_lab.observe
-from rr_actors.__main__ import main
+from rr_actors_lab.__main__ import main
 from rr_actors_lab.experiments import Progress, RunResult, parse_plan
 from rr_actors_lab.experiments.cli import Display, fault_line, summary_lines
 from rr_actors_lab.experiments.results import FaultRecord, Results
@@ -174,7 +174,7 @@ def test_trace_with_an_exporter_not_installed_exits_2_before_any_run(
 
 WITHOUT_MSGSPEC = (
     "import sys; sys.modules['msgspec'] = None; "  # as with only the demo extra installed
-    "from rr_actors.__main__ import main; sys.exit(main(sys.argv[1:]))"
+    "from rr_actors_lab.__main__ import main; sys.exit(main(sys.argv[1:]))"
 )
 
 
@@ -482,7 +482,7 @@ target = "db"
 at = 0.5
 """
 
-CODE = "import sys; from rr_actors.__main__ import main; sys.exit(main(sys.argv[1:]))"
+CODE = "import sys; from rr_actors_lab.__main__ import main; sys.exit(main(sys.argv[1:]))"
 
 
 def start(tmp_path: Path, out: Path, *extra: str) -> tuple[subprocess.Popen[str], Path]:
@@ -766,7 +766,7 @@ class TestOnAn80ColumnTerminal:
     ) -> None:
         plan = tmp_path / "plan.toml"
         plan.write_text(WIDE_PLAN)
-        code = "import sys; from rr_actors.__main__ import main; sys.exit(main(sys.argv[1:]))"
+        code = "import sys; from rr_actors_lab.__main__ import main; sys.exit(main(sys.argv[1:]))"
         out = tmp_path / "out"
 
         status, text = on_a_terminal(

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from rr_actors.__main__ import main
+from rr_actors_lab.__main__ import main
 from rr_actors_lab.experiments import PlanError, parse_plan
 
 BASE = """\
@@ -231,7 +231,7 @@ class TestHugeNumbers:
     ) -> None:
         plan = tmp_path / "plan.toml"
         plan.write_text(HUGE_BASE.replace("clients = 1", "clients = 100000000"))
-        code = "import sys; from rr_actors.__main__ import main; sys.exit(main(sys.argv[1:]))"
+        code = "import sys; from rr_actors_lab.__main__ import main; sys.exit(main(sys.argv[1:]))"
 
         done = subprocess.run(
             [sys.executable, "-c", code, "experiment", str(plan), "--out", str(tmp_path / "out")],

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 import rr_actors as rr
-from rr_actors.__main__ import main
+from rr_actors_lab.__main__ import main
 from rr_actors_lab.experiments import PlanError, load_plan, parse_plan, reading
 from rr_actors_lab.experiments.reading import key_lines
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from rr_actors.__main__ import main
+from rr_actors_lab.__main__ import main
 from rr_actors_lab.experiments import load_plan, plans, shrink, simulate, story, sweep
 from rr_actors_lab.experiments.check import Finding
 from rr_actors_lab.experiments.plan import Plan

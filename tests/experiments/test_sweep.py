@@ -18,8 +18,8 @@ from pathlib import Path
 import psutil
 import pytest
 
-from rr_actors.__main__ import main
 from rr_actors.errors import ConfigError
+from rr_actors_lab.__main__ import main
 from rr_actors_lab.experiments import simulate, sweep
 from rr_actors_lab.experiments.cli import Display
 from rr_actors_lab.experiments.plan import Plan
@@ -233,7 +233,7 @@ def test_a_sweep_through_a_pipe_says_how_far_it_is_while_it_runs(tmp_path: Path)
     plan.write_text(PLAN)
     argv = ["experiment", str(plan), "--simulate", "--seeds", "1-12", "--jobs", "1"]
     with subprocess.Popen(
-        [sys.executable, "-m", "rr_actors", *argv, "--out", str(tmp_path / "out")],
+        [sys.executable, "-m", "rr_actors_lab", *argv, "--out", str(tmp_path / "out")],
         stdout=subprocess.PIPE,
         text=True,
     ) as sweep_run:
@@ -367,7 +367,7 @@ def test_a_sweep_stopped_by_a_signal_removes_its_run_folder_and_exits_128_plus_i
     env |= {"TMPDIR": str(scratch)} | ({"PYTHONHASHSEED": hash_seed} if hash_seed else {})
     command = ["experiment", str(plan), "--simulate", "--seeds", "1-100000", "--jobs", jobs]
     sweep_process = subprocess.Popen(
-        [sys.executable, "-m", "rr_actors", *command, "--out", str(tmp_path / "out")],
+        [sys.executable, "-m", "rr_actors_lab", *command, "--out", str(tmp_path / "out")],
         env=env,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
@@ -796,7 +796,7 @@ def test_a_sweep_whose_worker_is_killed_or_stopped_in_a_seed_ends_naming_that_se
     said = os.open(tmp_path / "said", os.O_RDONLY | os.O_NONBLOCK)  # (before the setup's open)
     out = tmp_path / "out"
     with subprocess.Popen(
-        [sys.executable, "-m", "rr_actors", *argv, *timeout, "--out", str(out)],
+        [sys.executable, "-m", "rr_actors_lab", *argv, *timeout, "--out", str(out)],
         env=env,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,

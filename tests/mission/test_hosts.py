@@ -65,7 +65,7 @@ needs_root = pytest.mark.skipif(
 def demo(*options: str, cwd: Path, timeout: float = 150) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     return subprocess.run(
-        [sys.executable, "-m", "rr_actors", "demo", *options],
+        [sys.executable, "-m", "rr_actors_lab", "demo", *options],
         cwd=cwd,
         capture_output=True,
         text=True,
@@ -237,7 +237,7 @@ class Demo:
     def __init__(self, cwd: Path, *options: str) -> None:
         env = {**os.environ, "PYTHONPATH": str(ROOT)}
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "rr_actors", "demo", *options],
+            [sys.executable, "-m", "rr_actors_lab", "demo", *options],
             cwd=cwd,
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,

@@ -44,7 +44,7 @@ def test_rms_driver_restart_is_in_the_trace_of_the_status_callbacks_run(tmp_path
     env = {**os.environ, "OTEL_TRACES_EXPORTER": "console"}
     argv = ["--fast", "--faults", "F2", "--distance", "2", "--quiet", "--trace"]
     done = subprocess.run(
-        [sys.executable, "-m", "rr_actors", "demo", *argv, "--out", str(tmp_path)],
+        [sys.executable, "-m", "rr_actors_lab", "demo", *argv, "--out", str(tmp_path)],
         capture_output=True,
         text=True,
         timeout=300,

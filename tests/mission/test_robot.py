@@ -193,7 +193,7 @@ def test_step_in_a_real_80_column_terminal_waits_for_each_enter(tmp_path: Path) 
     fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 80, 0, 0))
     env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES", "NO_COLOR")}
     demo = subprocess.Popen(
-        [sys.executable, "-m", "rr_actors", "demo", "--fast", "--step"],
+        [sys.executable, "-m", "rr_actors_lab", "demo", "--fast", "--step"],
         cwd=tmp_path,
         stdin=slave,
         stdout=slave,

@@ -206,7 +206,7 @@ def test_trace_exports_one_trace_per_mission_step_where_the_otel_variables_say(
     env = {**os.environ, "OTEL_TRACES_EXPORTER": "console", "OTEL_SERVICE_NAME": "the robot"}
     argv = ["--fast", "--faults", "F4", "--distance", "2", "--quiet", "--trace"]
     done = subprocess.run(
-        [sys.executable, "-m", "rr_actors", "demo", *argv, "--out", str(tmp_path)],
+        [sys.executable, "-m", "rr_actors_lab", "demo", *argv, "--out", str(tmp_path)],
         capture_output=True,
         text=True,
         timeout=300,
@@ -353,7 +353,7 @@ def test_quiet_help_says_it_prints_only_the_timeline() -> None:
 def demo(*argv: str) -> subprocess.CompletedProcess[str]:
     """`rr-actors demo ARGV` as a separate program (60 s at most)."""
     return subprocess.run(
-        [sys.executable, "-m", "rr_actors", "demo", *argv],
+        [sys.executable, "-m", "rr_actors_lab", "demo", *argv],
         capture_output=True,
         text=True,
         timeout=60,
@@ -559,7 +559,7 @@ class TestOutAndPort:
 def demo_process(out: Path) -> subprocess.Popen[str]:
     """`rr-actors demo --fast --out OUT` as a separate program, its output in pipes."""
     return subprocess.Popen(
-        [sys.executable, "-m", "rr_actors", "demo", "--fast", "--out", str(out)],
+        [sys.executable, "-m", "rr_actors_lab", "demo", "--fast", "--out", str(out)],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -582,7 +582,7 @@ class TestOneDemoPerOut:
             assert "starting the managers" in first.stdout.readline()
 
             second = subprocess.run(
-                [sys.executable, "-m", "rr_actors", "demo", "--fast", "--out", str(out)],
+                [sys.executable, "-m", "rr_actors_lab", "demo", "--fast", "--out", str(out)],
                 capture_output=True,
                 text=True,
                 timeout=60,
@@ -615,7 +615,7 @@ def test_demo_observe_serves_the_final_state_until_ctrl_c_and_says_so(
 ) -> None:
     command = ["demo", "--fast", "--observe", "--quiet", "--out", str(tmp_path)]
     with subprocess.Popen(
-        [sys.executable, "-m", "rr_actors", *command],
+        [sys.executable, "-m", "rr_actors_lab", *command],
         stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL,
         text=True,

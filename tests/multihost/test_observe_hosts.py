@@ -320,7 +320,7 @@ def view_system(argv: list[str], bound: float) -> dict[str, Any]:
     import threading  # noqa: PLC0415
     import urllib.request  # noqa: PLC0415
 
-    from rr_actors.__main__ import build_parser  # noqa: PLC0415
+    from rr_actors_lab.__main__ import build_parser  # noqa: PLC0415
     from rr_actors_lab.observe._commands import run_observe  # noqa: PLC0415
 
     printed = threading.Event()

@@ -14,7 +14,7 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
-from rr_actors.__main__ import main
+from rr_actors_lab.__main__ import main
 from rr_actors_lab.observe import observe_backups
 from tests.support.observed_tree import REQUEST, figure_27
 from tests.support.observing import get_json, request, wait_state
@@ -192,7 +192,7 @@ def test_observe_on_a_non_loopback_host_needs_allow_remote(
 
 def test_the_command_runs_as_a_console_script(state: Path) -> None:
     done = subprocess.run(
-        [sys.executable, "-m", "rr_actors", "graph", "--state", str(state), "--format", "dot"],
+        [sys.executable, "-m", "rr_actors_lab", "graph", "--state", str(state), "--format", "dot"],
         capture_output=True,
         text=True,
         timeout=60,
@@ -205,7 +205,7 @@ def test_the_command_runs_as_a_console_script(state: Path) -> None:
 
 def test_help_lists_observe_and_graph() -> None:
     done = subprocess.run(
-        [sys.executable, "-m", "rr_actors", "--help"],
+        [sys.executable, "-m", "rr_actors_lab", "--help"],
         capture_output=True,
         text=True,
         timeout=30,

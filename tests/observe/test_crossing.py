@@ -27,6 +27,7 @@ import pytest
 import zenoh
 
 import rr_actors as rr
+import rr_actors_lab.observe as _lab_observe
 from rr_actors import events
 from rr_actors._transport.zenoh.wire import ObserverKey
 from rr_actors_lab.observe._crossing import (
@@ -299,7 +300,7 @@ class TestHostileJson:
         pytest.importorskip("uvicorn")
         name = f"erm-{uuid.uuid4().hex[:8]}"
         with rr.Supervisor([rr.ManagerSpec(name, echo_setup)]) as sup:
-            observer = sup.observe(allow_faults=True)
+            observer = _lab_observe.observe(sup, allow_faults=True)
             headers = {"Content-Type": "application/json"}
             body = b"[" * 2000 + b"]" * 2000  # (under the 4 KiB a request may have)
 
@@ -333,7 +334,7 @@ class TestHostileJson:
             json.dumps(events.to_dict(good[1])),
         ]
         with net, rr.Supervisor([rr.ManagerSpec("erm", echo_setup)], network=net) as sup:
-            observer = sup.observe()
+            observer = _lab_observe.observe(sup)
             page.goto(observer.url)
             page.wait_for_selector('.node[data-child="erm"][data-state="running"]')
             raw = zenoh.open(

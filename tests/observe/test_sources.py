@@ -21,13 +21,14 @@ import cloudpickle
 import pytest
 
 import rr_actors as rr
+import rr_actors_lab.observe as _lab_observe
 from rr_actors import events
-from rr_actors.__main__ import main
 from rr_actors._catalog import Catalog
 from rr_actors._catalog.texts import NOT_SHOWN_OLD
 from rr_actors._store import SqliteStore, read_backup, schema
 from rr_actors._store.schema import dumps
 from rr_actors.config import SupervisorSpec
+from rr_actors_lab.__main__ import main
 from rr_actors_lab.observe._hub import Hub
 from rr_actors_lab.observe._sources import LiveSource, TreeAccess, event_dict, read_catalogs
 
@@ -308,19 +309,19 @@ def test_a_hanging_or_exiting_repr_shows_failed_and_the_graph_keeps_updating_wit
             )
         ]
     ).start()
-    observer = sup.observe()
+    observer = _lab_observe.observe(sup)
     try:
         app = sup.registrar(rr.RegistrarConfig("action", compare_timeout=0.5))
         app.call("erm", "leaf", HangsWhenShown(gate), timeout=5)
         app.call("erm", "leaf", ExitsWhenShown(), timeout=5)
         before = threading.active_count()
-        drawn = [sup.graph()]
+        drawn = [_lab_observe.graph(sup)]
         deadline = time.monotonic() + 10
         while "repr failed: TimeoutError" not in drawn[-1] and time.monotonic() < deadline:
-            drawn.append(sup.graph())  # (the text is made once compare_timeout is over)
-        drawn += [sup.graph() for _ in range(10)]
+            drawn.append(_lab_observe.graph(sup))  # (the text is made once compare_timeout is over)
+        drawn += [_lab_observe.graph(sup) for _ in range(10)]
         app.call("erm", "leaf", "after", timeout=5)
-        last = sup.graph()
+        last = _lab_observe.graph(sup)
         after = threading.active_count()
     finally:
         gate.set()
@@ -381,13 +382,13 @@ def test_a_hanging_repr_in_a_process_manager_costs_one_thread_once_not_one_per_r
     ).start()
     app = sup.registrar(rr.RegistrarConfig("action", compare_timeout=0.5))
     app.call("erm", "leaf", HangsForGood(), timeout=30)  # (a bound that holds under load)
-    drawn = [sup.graph()]
+    drawn = [_lab_observe.graph(sup)]
     deadline = time.monotonic() + 10
     while "repr failed: TimeoutError" not in drawn[-1] and time.monotonic() < deadline:
-        drawn.append(sup.graph())
+        drawn.append(_lab_observe.graph(sup))
 
     hung = hung_in_repr(sup, "erm")
-    drawn += [sup.graph() for _ in range(20)]  # each reads erm's catalog in its process
+    drawn += [_lab_observe.graph(sup) for _ in range(20)]  # each reads erm's catalog in its process
     hung_after = hung_in_repr(sup, "erm")
 
     assert "repr failed: TimeoutError" in drawn[-1]

@@ -25,6 +25,7 @@ import pytest
 import zenoh
 
 import rr_actors as rr
+import rr_actors_lab.observe as _lab_observe
 from rr_actors import events
 from rr_actors.events import kinds
 from rr_actors_lab.observe._hub import Hub
@@ -165,7 +166,9 @@ def test_a_page_opened_after_a_status_draws_it_as_a_page_open_during_it_did(
     robot: tuple[rr.Supervisor, GatedLoad], tabs: Any, monkeypatch: Any
 ) -> None:
     sup, loading = robot
-    assert "robot" == get_json(sup.observe().url, "/api/state")["hello"]["member"]  # (every host's)
+    assert (
+        "robot" == get_json(_lab_observe.observe(sup).url, "/api/state")["hello"]["member"]
+    )  # (every host's)
     page = open_a_page_late(sup, loading, tabs, monkeypatch, within_ms=30_000)  # (held 0.5 s)
 
     assert 1 == page.late.locator("#timeline li[data-kind=status]").count()  # one row, not three

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import rr_actors_lab.observe as _lab_observe
 from rr_actors._catalog import Resource, ResourceState
 from rr_actors_lab.observe._text import render
 from rr_actors_lab.observe._view import (
@@ -138,8 +139,8 @@ def test_graph_text_reads_each_resource_by_its_label_and_draws_no_query_ids(
         for name in ("jackal-driver", "jackal-navigation")
     ]
 
-    text = sup.graph()
-    dot = sup.graph(format="dot")
+    text = _lab_observe.graph(sup)
+    dot = _lab_observe.graph(sup, format="dot")
 
     assert '["jackal-driver"]' in text
     assert '["jackal-navigation"]' in text

@@ -32,6 +32,7 @@ import cloudpickle
 import pytest
 
 import rr_actors as rr
+import rr_actors_lab.observe as _lab_observe
 from rr_actors import testing
 from rr_actors._process.control import Events, Failed, forker_pid, mp_context, start_forkserver
 from rr_actors._process.manager import ManagerExit, ManagerProcess, _await_ready
@@ -864,7 +865,7 @@ class TestDescriptorLeaks:
         sup.run_in(name, lambda r: None)  # the tree's one connection to the manager is made
         gc.collect()  # (pipes of earlier tests' processes that only the collector closes)
         before = open_descriptors()
-        observer = sup.observe(allow_faults=True)
+        observer = _lab_observe.observe(sup, allow_faults=True)
         during: list[int] = []
         for _ in range(5):  # (a descriptor kept per hang shows in `during` from the third one)
             pid = sup.child(name).pid

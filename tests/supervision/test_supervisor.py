@@ -19,6 +19,7 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
+import rr_actors_lab.observe as _lab_observe
 from rr_actors import Supervisor, testing
 from rr_actors._supervision.retry import abandon_after_restart
 from rr_actors.config import Backoff, ManagerSpec, SupervisorSpec
@@ -1027,7 +1028,7 @@ class TestBadArguments:
     ) -> None:
         pytest.importorskip("uvicorn")
         with pytest.raises(rr.ConfigError, match="sock"):
-            sup.observe(sock="127.0.0.1:8080")  # type: ignore[arg-type]
+            _lab_observe.observe(sup, sock="127.0.0.1:8080")  # type: ignore[arg-type]
 
     def test_subscribe_after_stop_is_a_config_error_not_a_subscription_that_never_hears(
         self,

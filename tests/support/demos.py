@@ -48,7 +48,7 @@ def interrupt_demo(tmp_path: Path, when: bytes, *options: str) -> tuple[int, str
     master, slave = os.openpty()
     env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES", "NO_COLOR")}
     demo = subprocess.Popen(
-        [sys.executable, "-m", "rr_actors", "demo", "--fast", *options],
+        [sys.executable, "-m", "rr_actors_lab", "demo", "--fast", *options],
         cwd=tmp_path,
         stdin=slave,
         stdout=slave,

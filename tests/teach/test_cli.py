@@ -1,5 +1,5 @@
 """`rr-actors teach` (`rr_actors_lab.teach.cli`), run as a student runs it: a real
-`python -m rr_actors` process per command. Each exercise's starter fails its check and its
+`python -m rr_actors_lab` process per command. Each exercise's starter fails its check and its
 solution passes (on a few seeds: the benchmark runs the exercises' 200); the JSON report;
 hints remembered in the folder; the solution behind `--teacher`; bad input said; an exit
 code per outcome and the progress a grading script sees (issue 70); a folder's files read
@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[2]
 def teach(*argv: str | Path, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     return subprocess.run(
-        [sys.executable, "-m", "rr_actors", "teach", *map(str, argv)],
+        [sys.executable, "-m", "rr_actors_lab", "teach", *map(str, argv)],
         capture_output=True,
         text=True,
         env=env,
@@ -211,7 +211,16 @@ def test_replay_serves_the_seed_at_its_first_step_until_ctrl_c(
     _chosen, folder = kit.start("camera", tmp_path / "cam")
     argv = ["--plan", folder / "plan.toml"] if by_plan else [folder]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    command = [sys.executable, "-m", "rr_actors", "teach", "replay", *map(str, argv), "--seed", "2"]
+    command = [
+        sys.executable,
+        "-m",
+        "rr_actors_lab",
+        "teach",
+        "replay",
+        *map(str, argv),
+        "--seed",
+        "2",
+    ]
     with subprocess.Popen(command, stdout=subprocess.PIPE, text=True, env=env) as child:
         assert child.stdout is not None
         line = child.stdout.readline()  # (the run, then the page: its URL)
@@ -333,7 +342,7 @@ def test_a_check_that_raises_exits_4_with_its_traceback_never_0_or_1(tmp_path: P
         "def broken(*args, **kwargs):\n"
         "    raise RuntimeError('a bug of the kit')\n"
         "grade.check_folder = broken\n"
-        "from rr_actors.__main__ import main\n"
+        "from rr_actors_lab.__main__ import main\n"
         "sys.exit(main(sys.argv[1:]))\n"
     )
     env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONHASHSEED": "0"}
@@ -357,7 +366,7 @@ def test_a_check_that_raises_exits_4_with_its_traceback_never_0_or_1(tmp_path: P
 def test_a_check_stopped_by_ctrl_c_exits_130_and_says_so(tmp_path: Path) -> None:
     folder = solved("camera", tmp_path / "cam")
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    command = [sys.executable, "-m", "rr_actors", "teach", "check", str(folder)]
+    command = [sys.executable, "-m", "rr_actors_lab", "teach", "check", str(folder)]
     with subprocess.Popen(
         command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
     ) as child:
@@ -416,7 +425,7 @@ def test_a_failing_checks_shrink_shows_its_progress_on_a_pipe(tmp_path: Path) ->
 def test_progress_on_a_terminal_is_a_bar_and_the_report_stays_on_stdout(tmp_path: Path) -> None:
     folder = solved("camera", tmp_path / "cam")
     env = {**os.environ, "PYTHONPATH": str(ROOT), "TERM": "xterm", "COLUMNS": "100"}
-    command = [sys.executable, "-m", "rr_actors", "teach", "check", str(folder), "--seeds", "3"]
+    command = [sys.executable, "-m", "rr_actors_lab", "teach", "check", str(folder), "--seeds", "3"]
     terminal, its_end = pty.openpty()
     with subprocess.Popen(command, stdout=subprocess.PIPE, stderr=its_end, env=env) as child:
         os.close(its_end)
@@ -483,7 +492,7 @@ def bounded(*argv: str | Path) -> tuple[subprocess.CompletedProcess[str], int]:
     )
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     done = subprocess.run(
-        [sys.executable, "-c", measure, sys.executable, "-m", "rr_actors", *map(str, argv)],
+        [sys.executable, "-c", measure, sys.executable, "-m", "rr_actors_lab", *map(str, argv)],
         capture_output=True,
         text=True,
         env=env,

@@ -6,6 +6,7 @@ from __future__ import annotations
 import pytest
 
 from rr_actors import ConfigError, Status
+from rr_actors.config import Steps
 from rr_actors_lab.teach import STEPS, replaced_step, shipped_step
 
 
@@ -80,20 +81,22 @@ def test_the_shipped_recent_counts_the_restarts_within_the_period_this_one_inclu
     assert recent((0.0, 0.5), 0.5, 0.5) == 1  # (0.5 s old: out of a 0.5 s period)
 
 
-def test_a_replaced_step_is_in_place_inside_its_block_only() -> None:
-    from rr_actors._core import runtime  # noqa: PLC0415 - where the registrar reads its steps
+def test_a_replaced_step_is_a_record_handed_to_the_simulated_runs_of_its_block_only() -> None:
+    from rr_actors_lab.experiments.simulate import steps_now  # noqa: PLC0415 - what runs read
 
     def mine(parent: str | None, resources: object, status: Status) -> list[str]:
         return []
 
-    with replaced_step("climb", mine):
-        assert runtime.steps.climb is mine
+    with replaced_step("climb", mine) as steps:
+        assert (steps.climb, steps_now()) == (mine, steps)
         with pytest.raises(ConfigError, match="is replaced already"), replaced_step("climb", mine):
             pass
-    assert runtime.steps.climb is None
+        with replaced_step("unloads", lambda left: not left) as both:
+            assert (both.climb, both.unloads is not None) == (mine, True)
+    assert steps_now() == Steps()
     with pytest.raises(RuntimeError), replaced_step("shares", lambda *a: True):
         raise RuntimeError
-    assert runtime.steps.shares is None
+    assert steps_now() == Steps()
 
 
 def test_bad_steps_are_refused() -> None:

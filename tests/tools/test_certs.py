@@ -28,8 +28,8 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 import rr_actors as rr
-from rr_actors.__main__ import main
 from rr_actors.errors import ConfigError
+from rr_actors_lab.__main__ import main
 from rr_actors_lab._tools.certs import issue_cert
 from tests.support.pki import make_ca
 from tests.support.tls_lab import free_port, router
@@ -474,7 +474,7 @@ def test_a_client_of_another_ca_is_refused_by_the_listener(ca_dir: Path, tmp_pat
 
 def test_certs_help_lists_init_and_issue() -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "rr_actors", "certs", "--help"],
+        [sys.executable, "-m", "rr_actors_lab", "certs", "--help"],
         capture_output=True,
         text=True,
         timeout=30,
@@ -490,7 +490,7 @@ def test_without_cryptography_certs_says_which_extra_to_install(tmp_path: Path) 
     code = (
         "import sys\n"
         "sys.modules['cryptography'] = None  # as if not installed: importing it fails\n"
-        "from rr_actors.__main__ import main\n"
+        "from rr_actors_lab.__main__ import main\n"
         "sys.exit(main(['certs', 'init', 'certs', '--system', 'lab']))\n"
     )
     result = subprocess.run(

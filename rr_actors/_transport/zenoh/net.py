@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 import zenoh
 
-from rr_actors import events
+from rr_actors import _moved, events
 from rr_actors._core import wire
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Subscription
 from rr_actors._core.exit import NETWORKS, stop_at_exit
@@ -418,7 +418,7 @@ class ZenohNetwork(Messenger):
             raise ConfigError(
                 f"ZenohNetwork {self.system!r} cannot listen on {list(self.listen)!r}: {exc}"
             ) from exc
-        make = _BESIDE[0] if _BESIDE else None
+        make = _BESIDE[0] if _BESIDE else _moved.beside(_BESIDE)
         try:
             if self.tls is None:
                 warn_unreachable(self.system, self.connect)
