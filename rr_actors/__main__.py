@@ -1,11 +1,11 @@
-"""`python -m rr_actors`: one line saying where the command line is, exit status 2.
+"""Deprecated: `python -m rr_actors` runs the lab's command line for one release, warning.
 
 The `rr-actors` command line is the lab's (`rr_actors_lab`, docs/reference/cli.md): the
-console script `rr-actors` runs it, and so does `python -m rr_actors_lab`. The runtime does
-not run it for you: that would make the runtime's package import the lab, which it never
-does (the import contract in pyproject.toml); a one-line message naming the module to run
-costs a user one edit, once. `from rr_actors.__main__ import main` (and `build_parser`)
-still give the lab's, with a `DeprecationWarning`, for one release.
+console script `rr-actors` runs it, and so does `python -m rr_actors_lab`. For one release
+`python -m rr_actors` still does, with a `DeprecationWarning` naming the new spelling (as
+`python -m rr_actors.mission` does), importing the lab by name (`_moved`: the runtime imports
+nothing of the lab); without the lab it says the one line `MESSAGE` and exits 2.
+`from rr_actors.__main__ import main` (and `build_parser`) still give the lab's, warning.
 """
 
 from __future__ import annotations
@@ -34,5 +34,11 @@ def __getattr__(name: str) -> object:
 
 
 if __name__ == "__main__":
-    sys.stderr.write(MESSAGE + "\n")
-    raise SystemExit(2)
+    import importlib.util
+    import runpy
+
+    if importlib.util.find_spec(_moved.LAB) is None:
+        sys.stderr.write(MESSAGE + "\n")
+        raise SystemExit(2)
+    _moved.warn("python -m rr_actors", "python -m rr_actors_lab", stacklevel=2)
+    runpy.run_module(_moved.LAB, run_name="__main__", alter_sys=True)

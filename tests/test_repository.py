@@ -375,7 +375,7 @@ GOING = {f"rr_actors/{name}.py" for name in MOVED[:-1]}
 LAB = ("rr_actors_lab/", *(f"rr_actors/{name}.py" for name in MOVED))
 """The tools beside the runtime (issue 54 part 1): rr_actors_lab (experiments, mission,
 observer, teaching kit, certificates tooling, command line, tracing export); and counted
-with them, the runtime's face toward them: `python -m rr_actors` (one line naming the lab's)
+with them, the runtime's face toward them: `python -m rr_actors` (the lab's, deprecated)
 and the one-release aliases of the spellings that moved (issue 71), which import the lab
 by name only. The runtime never imports the lab (the import-linter contract)."""
 
