@@ -2311,6 +2311,8 @@ def test_a_restart_due_that_a_backoff_delays_or_a_shutdown_cuts_within_its_bound
     _holds([*crashed, *_later("api restart", at=due - 0.5), *late])  # (a backoff)
     _holds([*crashed, *_later("web stop", "db stop", at=due - 0.5), *late])  # a shutdown
     _holds([*_tree("one_for_one", "api crash", "web stop", "db stop"), *late])  # (right after)
+    waited = check.check(numbered([*crashed, *late]), backoff_s=1.5)  # (the plan's backoff)
+    assert ("held", ()) == (waited.verdict, waited.findings)
     pool = _tree("one_for_all", "worker crash", "cache stop",
                  children=("worker", "cache"), supervisor="pool")  # fmt: skip
     stopped = _pool_exit(due - 0.5, stopped=True)  # (its parent stops it: the tree's shutdown)
