@@ -5,7 +5,8 @@
    than `max_restarts` counted exits within `period` s ──► findings
  ChildStarted / ChildExited / ChildRestarted / SupervisorGaveUp ──► Strategies: each
    decision against OTP's strategy and restart types (siblings stopped in reverse start
-   order, the group restarted in start order) ──► `strategy`
+   order, the group restarted in start order; a group due that never comes back within
+   `DUE_S`, its supervisor neither giving up nor shutting down) ──► `strategy`
    + a nested supervisor's give-up ──► its parent's next exit of it (`escalation`)
 ```
 
@@ -338,7 +339,7 @@ class Strategies:
                 f"supervisor {key[1]} {what} at {crashed}'s exit and stopped "
                 f"{_listed(shown) or 'none'}, not {_listed(expected) or 'none'} "
                 f"({whose}, in reverse start order)",
-                (decision.line, *(at for at, _, _ in stops)),
+                (decision.line, *(stop_line for stop_line, _, _ in stops)),
             )
         if gave_up:
             return
