@@ -5,7 +5,8 @@
    than `max_restarts` counted exits within `period` s ──► findings
  ChildStarted / ChildExited / ChildRestarted / SupervisorGaveUp ──► Strategies: each
    decision against OTP's strategy and restart types (siblings stopped in reverse start
-   order, the group restarted in start order) ──► `strategy`
+   order, the group restarted in start order; a group due that never comes back within
+   `DUE_S`, its supervisor neither giving up nor shutting down) ──► `strategy`
    + a nested supervisor's give-up ──► its parent's next exit of it (`escalation`)
 ```
 
@@ -24,7 +25,16 @@ from collections.abc import Sequence
 from rr_actors import events
 from rr_actors_lab.experiments._history import Finding, Line
 
-__all__ = ["ESCALATED_S", "SLACK_S", "Strategies", "counted", "group", "intensity", "strategy"]
+__all__ = [
+    "DUE_S",
+    "ESCALATED_S",
+    "SLACK_S",
+    "Strategies",
+    "counted",
+    "group",
+    "intensity",
+    "strategy",
+]
 
 SLACK_S = 0.01
 """Seconds an exit may lie either side of a window's edge and not be judged: the
@@ -109,6 +119,11 @@ def intensity(history: Sequence[Line]) -> list[Finding]:
 ESCALATED_S = 1.0
 """Seconds after a nested give-up within which its parent may stop it instead (a shutdown)."""
 
+DUE_S = 2.0
+"""Seconds of events after an exit that restarts its group within which the group's restart
+must begin (`ChildRestarted`), unless its supervisor gives up, is stopped or stops a child
+(a shutdown): a plan's `backoff` delay is added (the events do not carry it)."""
+
 
 def group(strategy: str, children: Sequence[str], crashed: str) -> tuple[str, ...]:
     """The children OTP's `strategy` restarts with `crashed`, in start order (itself too).
@@ -136,6 +151,7 @@ class _Group:
     """The children one decision restarts, in start order."""
 
     line: int  # of the exit that decided it
+    at: float  # that exit's
     crashed: str
     strategy: str
     members: tuple[str, ...]
@@ -149,7 +165,7 @@ class _Decision:
     line: int
     event: events.ChildExited
     running: frozenset[str]  # the children running as it was decided (not the crashed one)
-    stops: list[tuple[int, str]] = dataclasses.field(default_factory=list)
+    stops: list[tuple[int, str, float]] = dataclasses.field(default_factory=list)  # line, at
 
 
 @dataclasses.dataclass(slots=True)
@@ -161,6 +177,7 @@ class _Supervisor:
     exits: dict[str, tuple[int, events.ChildExited]] = dataclasses.field(default_factory=dict)
     pending: dict[str, _Group] = dataclasses.field(default_factory=dict)  # due to restart
     deciding: _Decision | None = None
+    stopped_at: float | None = None  # a child stopped outside any decision (a shutdown)
     batch: tuple[_Group, int] | None = None  # a group being restarted, its latest line
     owed: dict[str, tuple[_Group, int, tuple[str, ...]]] = dataclasses.field(
         default_factory=dict
@@ -173,7 +190,8 @@ class Strategies:
     `findings` holds the `strategy` and `escalation` violations found.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, due_s: float = DUE_S) -> None:
+        self.due_s = due_s
         self.supervisors: dict[tuple[str, str], _Supervisor] = {}
         self.parents: dict[tuple[str, str], str] = {}  # (host, child) -> its supervisor
         self.gave_up: dict[tuple[str, str], tuple[int, float, str]] = {}  # line, at, parent
@@ -205,6 +223,7 @@ class Strategies:
             parent = self.parents.get(key)
             if parent is not None:
                 self.gave_up[key] = (line, event.at, parent)
+            self._never_restarted(key, s, event.at)
             self.supervisors[key] = _Supervisor()  # (it starts afresh, if restarted)
             return
         self.parents[event.host, event.child] = event.supervisor
@@ -224,6 +243,7 @@ class Strategies:
                 self._decided(key, s, gave_up=False, ended=True)
             if s.batch is not None:
                 self._batch_ended(s)
+            self._never_restarted(key, s, self.last_at)
             for first, (g, line, left) in s.owed.items():
                 self._found(
                     "strategy",
@@ -263,6 +283,7 @@ class Strategies:
             inner = self.supervisors[nested]
             if inner.deciding is not None:
                 self._decided(nested, inner, gave_up=False, ended=True)
+            self._never_restarted(nested, inner, event.at)
             self.supervisors[nested] = _Supervisor()
         gave_up = self.gave_up.pop(nested, None)
         if gave_up is not None and event.stopped and event.at - gave_up[1] > ESCALATED_S:
@@ -281,7 +302,9 @@ class Strategies:
         s.exits[child] = (line, event)
         if event.stopped:
             if s.deciding is not None:
-                s.deciding.stops.append((line, child))
+                s.deciding.stops.append((line, child, event.at))
+            elif s.stopped_at is None:
+                s.stopped_at = event.at  # (a shutdown: the restarts due may be cancelled)
             return
         s.owed.pop(child, None)  # (its start failed: this exit decides again)
         if _restarts_after(event):
@@ -300,7 +323,7 @@ class Strategies:
         members = children if gave_up else group(event.strategy, children, crashed)
         expected = [c for c in reversed(members) if c != crashed and c in decision.running]
         stops = decision.stops
-        shown = [c for _, c in stops]
+        shown = [c for _, c, _ in stops]
         fine = shown == expected
         if ended and not fine:  # (the history ended, or a stop of them all came after)
             rest = [c for c in reversed(children) if c in decision.running and c not in expected]
@@ -316,10 +339,13 @@ class Strategies:
                 f"supervisor {key[1]} {what} at {crashed}'s exit and stopped "
                 f"{_listed(shown) or 'none'}, not {_listed(expected) or 'none'} "
                 f"({whose}, in reverse start order)",
-                (decision.line, *(at for at, _ in stops)),
+                (decision.line, *(stop_line for stop_line, _, _ in stops)),
             )
         if gave_up:
             return
+        shutdown = [at for _, c, at in stops if c not in expected]
+        if shutdown and s.stopped_at is None:
+            s.stopped_at = shutdown[0]  # (a stop of no group after it: a shutdown)
         back = tuple(
             m
             for m in members
@@ -333,7 +359,7 @@ class Strategies:
                 )
             )
         )
-        restarted = _Group(decision.line, crashed, event.strategy, back)
+        restarted = _Group(decision.line, event.at, crashed, event.strategy, back)
         s.pending.update(dict.fromkeys(back, restarted))
 
     def _restarted(
@@ -341,6 +367,7 @@ class Strategies:
     ) -> None:
         child = event.child
         s.running.add(child)
+        s.stopped_at = None
         exit_ = s.exits.get(child)
         restarted = s.pending.pop(child, None)
         if exit_ is None:
@@ -372,6 +399,25 @@ class Strategies:
                 s.pending.pop(m, None)
         s.batch = (restarted, line)
 
+    def _never_restarted(self, key: tuple[str, str], s: _Supervisor, until: float) -> None:
+        """`s` ends (gives up, is stopped, or the history ends `until`): a group due to
+        restart none of which came back within `due_s` of its exit (OTP restarts it at once,
+        after the backoff), nor did `s` shut down (stop a child of no group) by then."""
+        until = until if s.stopped_at is None else min(until, s.stopped_at)
+        seen: set[int] = set()
+        for g in s.pending.values():
+            if id(g) in seen or any(s.pending.get(m) is not g for m in g.members):
+                continue  # (reported once; a group whose restart began is `owed`'s)
+            seen.add(id(g))
+            if until - g.at > self.due_s:
+                self._found(
+                    "strategy",
+                    f"supervisor {key[1]} ({g.strategy}) never restarted "
+                    f"{_listed(g.members)} after {g.crashed}'s exit, nor gave up or shut "
+                    f"down, within {until - g.at:.3f} s",
+                    (g.line,),
+                )
+
     def _batch_ended(self, s: _Supervisor) -> None:
         """A group's restart ended: every member it left must have failed to start."""
         assert s.batch is not None
@@ -393,13 +439,19 @@ def _names(members: Sequence[str], left: Sequence[str]) -> str:
     return _listed([m for m in members if m not in left]) or "none"
 
 
-def strategy(history: Sequence[Line]) -> tuple[list[Finding], list[Finding]]:
+def strategy(history: Sequence[Line], due_s: float = DUE_S) -> tuple[list[Finding], list[Finding]]:
     """`strategy` and `escalation` as OTP defines them (`Strategies`); the two lists of findings.
 
-    Not judged: schema 5 or older, a restart still due at the end, a give-up less than
+    Args:
+        history: the run's numbered events.
+        due_s: seconds after an exit within which its group's restart must begin (`DUE_S`
+            plus the plan's longest backoff).
+
+    Not judged: schema 5 or older, a restart due less than `due_s` before the last event
+    or after a child stopped outside any decision (a shutdown), a give-up less than
     `ESCALATED_S` before the last event.
     """
-    judge = Strategies()
+    judge = Strategies(due_s)
     for line, event in history:
         judge.see(line, event)
     judge.end()

@@ -219,7 +219,9 @@ def _one_name_rule(
     return findings
 
 
-def check(history: Sequence[Line], resolve: str = "first_served") -> Verdict:
+def check(
+    history: Sequence[Line], resolve: str = "first_served", backoff_s: float = 0.0
+) -> Verdict:
     """Check one run's events against every rule of `RULES`.
 
     Args:
@@ -227,6 +229,9 @@ def check(history: Sequence[Line], resolve: str = "first_served") -> Verdict:
             number (`read_runs` gives them).
         resolve: the run's rule 22 policy (its plan's `[hosts]` `resolve`), as
             `one-name` says which registrar of a name yields at a heal.
+        backoff_s: the longest delay before a restart the run's plan allows (its
+            supervisors' `backoff` `max`, 0 without a backoff), in seconds: `strategy`
+            waits that much longer for a restart due.
 
     Returns:
         The verdict and every finding. A violation about a registrar whose process lost
@@ -242,7 +247,8 @@ def check(history: Sequence[Line], resolve: str = "first_served") -> Verdict:
     providers.run(steps)
     wanted = {(want.holder, want.query_id) for want in providers.expected}
     answered, spans = _consumer_rules.answered(steps, facts, wanted)
-    strategy, escalation = _supervision_rules.strategy(history)
+    due_s = _supervision_rules.DUE_S + backoff_s
+    strategy, escalation = _supervision_rules.strategy(history, due_s)
     found = [
         *providers.findings,
         *_status_rules.status_once(history),
@@ -391,8 +397,8 @@ def check_file(path: Path) -> dict[int, Verdict]:
             )
         raise ConfigError(f"no events.jsonl at {path}")
     runs = _runs(json_lines(file), f"{file} line")
-    resolve = _resolve_beside(file)
-    return {run: check(history, resolve) for run, history in sorted(runs.items())}
+    resolve, backoff_s = _resolve_beside(file), _backoff_beside(file)
+    return {run: check(history, resolve, backoff_s) for run, history in sorted(runs.items())}
 
 
 def _resolve_beside(file: Path) -> str:
@@ -404,6 +410,33 @@ def _resolve_beside(file: Path) -> str:
         return "first_served"
     resolve = hosts.get("resolve") if isinstance(hosts, dict) else None
     return resolve if isinstance(resolve, str) and resolve else "first_served"
+
+
+def _backoff_of(tree: object) -> float:
+    """The longest restart backoff (`max`, seconds) of a plan's `tree` table and every
+    supervisor nested in it, as TOML data; 0.0 where none waits (`initial` 0, the default)."""
+    if not isinstance(tree, dict):
+        return 0.0
+    backoff = tree.get("backoff")
+    longest = 0.0
+    if isinstance(backoff, dict) and _number(backoff.get("initial", 0.0)) > 0:
+        longest = _number(backoff.get("max", 30.0))
+    children = tree.get("children", [])
+    nested = (_backoff_of(c) for c in children) if isinstance(children, list) else ()
+    return max(longest, *nested, 0.0)
+
+
+def _number(value: object) -> float:
+    return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else 0.0
+
+
+def _backoff_beside(file: Path) -> float:
+    """`_backoff_of` the plan copied beside `file`; 0.0 without one."""
+    try:
+        plan = tomllib.loads((file.parent / "plan.toml").read_text())
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return 0.0
+    return _backoff_of(plan.get("tree"))
 
 
 def format_verdict(

@@ -330,7 +330,10 @@ def _run_seed(plan: Plan, seed: int, started: float, steps: Steps) -> SimulatedR
     unplaced = _unplaced(folder)
     history = unplaced(_history(seen, records, seed, wall_t0))
     resolve = plan.hosts.resolve if plan.hosts is not None else "first_served"
-    verdict = check.check(check.numbered(seen), resolve)
+    backoff_s = max(
+        (s.backoff.max for s in plan.tree.supervisors() if s.backoff.initial > 0), default=0.0
+    )
+    verdict = check.check(check.numbered(seen), resolve, backoff_s)
     return SimulatedRun(
         seed=seed,
         hash=history_hash(history),

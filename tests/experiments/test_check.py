@@ -2500,6 +2500,39 @@ def test_a_decision_against_its_strategy_or_restart_types_is_found(
     assert lines == _found(_tree(strategy, *steps, types=types), "strategy")
 
 
+def _later(*steps: str, at: float) -> list[events.Event]:
+    """root's `steps` (as `_tree`'s) from `at` seconds on, its children already started."""
+    return _tree("one_for_one", *steps, at=at - 0.1)[3:]
+
+
+def test_a_group_never_restarted_nor_given_up_nor_shut_down_is_found() -> None:
+    """The mutant `policy.py:325` (`!=` -> `is`: no restart ever runs) held on `simchain`
+    and `crashloop`: a killed permanent child stayed down to the end of the run."""
+    due = _supervision_rules.DUE_S
+    crashed = _tree("one_for_one", "api crash")  # (api's exit: line 4)
+    assert {4} == _found([*crashed, *_later("db crash", "db restart", at=due + 1.0)], "strategy")
+    group = _tree("one_for_all", "api crash", "web stop", "db stop")
+    late = [events.ChildStarted("other", "x", 99, at=due + 1.0)]  # (the history goes on)
+    assert {4} == _found([*group, *late], "strategy")
+    escalated = _escalated(_pool_exit(0.5, stopped=False))  # root never restarts the pool
+    assert {8} == _found([*escalated, *_later("db crash", "db restart", at=due + 1.0)], "strategy")
+
+
+def test_a_restart_due_that_a_backoff_delays_or_a_shutdown_cuts_within_its_bound_holds() -> None:
+    due = _supervision_rules.DUE_S
+    crashed = _tree("one_for_one", "api crash")
+    late = [events.ChildStarted("other", "x", 99, at=due + 1.0)]  # (the history goes on)
+    _holds([*crashed, *_later("api restart", at=due - 0.5), *late])  # (a backoff)
+    _holds([*crashed, *_later("web stop", "db stop", at=due - 0.5), *late])  # a shutdown
+    _holds([*_tree("one_for_one", "api crash", "web stop", "db stop"), *late])  # (right after)
+    waited = check.check(numbered([*crashed, *late]), backoff_s=1.5)  # (the plan's backoff)
+    assert ("held", ()) == (waited.verdict, waited.findings)
+    pool = _tree("one_for_all", "worker crash", "cache stop",
+                 children=("worker", "cache"), supervisor="pool")  # fmt: skip
+    stopped = _pool_exit(due - 0.5, stopped=True)  # (its parent stops it: the tree's shutdown)
+    _holds([*pool, stopped, *late])
+
+
 def test_a_decision_written_before_schema_6_is_not_judged() -> None:
     old = [
         dataclasses.replace(e, strategy="", children=())
