@@ -145,7 +145,8 @@ PLANTS = (
         "a retry answered and then reported FATAL: a Reconcile's 'unknown' settles a "
         "record answered after its list left (the reverse of 786b5f8, issue 29)",
         "_registrar/consumer.py",
-        "            since = query_id in listing.due or not self.holdings.answered_before(\n"
+        "            since = query_id in listing.due or not"
+        " self.registrar.holdings.answered_before(\n"
         "                query_id, listing.epoch\n"
         "            )\n",
         "            since = query_id in listing.due\n",
@@ -217,7 +218,7 @@ PLANTS = (
         "that kept it (a life asks as it starts and once served): the retry loads afresh "
         "(the reverse of bf53b40, issue 51: a full CI run's failure)",
         "_registrar/consumer.py",
-        "        held |= self.flights.kept_at(serving_rr, life)\n",
+        "        held |= self.registrar.flights.kept_at(serving_rr, life)\n",
         "        # PLANTED: kept for a retry, listed in its first Reconcile only\n",
         "simretry",
         "retry-kept",
@@ -297,7 +298,7 @@ PLANTS = (
         "a consumer's record write lost: a new client row's INSERT is dropped, so the "
         "restore after a kill lacks an id its consumer had recorded, and it is handed "
         "back quietly (its provider releases it at the reconcile; issue 68 item 7)",
-        "_store/plan.py",
+        "_store/schema.py",
         '        ops.append(\n            (\n                "INSERT INTO clients',
         "        [].append(  # PLANTED: ops.append\n            (\n"
         '                "INSERT INTO clients',
@@ -385,10 +386,10 @@ PLANTS = (
         "a supervisor's intensity built with its two numbers swapped: `period` restarts "
         "within `max_restarts` seconds (a positional mix-up)",
         "_supervision/policy.py",
-        "        self.intensity = RestartIntensity(spec.max_restarts, spec.period, "
-        "record.tree.clock)\n",
-        "        self.intensity = RestartIntensity(spec.period, spec.max_restarts, "
-        "record.tree.clock)  # PLANTED\n",
+        "            spec.max_restarts, spec.period, record.tree.clock, "
+        "recent=record.tree.steps.recent\n",
+        "            spec.period, spec.max_restarts, record.tree.clock, "
+        "recent=record.tree.steps.recent  # PLANTED\n",
         "crashloop",
         "intensity",
     ),
@@ -399,8 +400,9 @@ PLANTS = (
         "the answer carried, finds no record (rule 9 across a release)",
         "_registrar/consumer.py",
         "            self.deliver_on_its_way(query_id, on_its_way, join)\n"
-        "            self.holdings.forget(query_id, began=began)\n",
-        "            self.holdings.forget(query_id, began=began)  # PLANTED: before the statuses\n"
+        "            self.registrar.holdings.forget(query_id, began=began)\n",
+        "            self.registrar.holdings.forget(query_id, began=began)  # PLANTED:"
+        " before the statuses\n"
         "            self.deliver_on_its_way(query_id, on_its_way, join)\n",
         "simshare",
         "status-reached",
@@ -423,9 +425,11 @@ PLANTS = (
         "a resource unloaded before its dependencies are released: its unload runs at "
         "once, its dependencies released beside it (rule 7's order)",
         "_registrar/provider.py",
-        "            self.releases.release_dependencies(resource.id, run_unload, trace=trace)\n",
+        "            self.registrar.releases.release_dependencies(resource.id,"
+        " run_unload, trace=trace)\n",
         "            run_unload()  # PLANTED: release_dependencies(resource.id, run_unload)\n"
-        "            self.releases.release_dependencies(resource.id, lambda: None, trace=trace)\n",
+        "            self.registrar.releases.release_dependencies(resource.id, lambda:"
+        " None, trace=trace)\n",
         "simdoubt",
         "unload-order",
     ),
@@ -492,8 +496,8 @@ PLANTS = (
         "forgets it later, on its release, which left after that reconcile (issue 51's "
         "state = false: a release that crossed the restart is no such loss)",
         "_registrar/consumer.py",
-        "            elif not self.releases.is_releasing(query_id):\n",
-        "            elif False:  # PLANTED: not self.releases.is_releasing(query_id)\n",
+        "            elif not self.registrar.releases.is_releasing(query_id):\n",
+        "            elif False:  # PLANTED: not self.registrar.releases.is_releasing(query_id)\n",
         "simnostate",
         "kept",
     ),
@@ -504,9 +508,11 @@ PLANTS = (
         "its failure ends the flight without its provider, which drops the doubt (issue 51); "
         "nor is its failure, a new load there, taken for the loss (issue 68)",
         "_registrar/consumer.py",
-        "            self.flights.answered(message.query_id, message.attempt, message.provider)\n"
+        "            self.registrar.flights.answered(message.query_id, message.attempt,"
+        " message.provider)\n"
         "        record = self.registrar.catalog.client(message.query_id)",
-        "            self.flights.answered(message.query_id, message.attempt)  # PLANTED\n"
+        "            self.registrar.flights.answered(message.query_id, message.attempt) "
+        " # PLANTED\n"
         "        record = None  # PLANTED: self.registrar.catalog.client(message.query_id)",
         "simnostate",
         "kept",

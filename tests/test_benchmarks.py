@@ -124,7 +124,7 @@ SMALLEST = {
     "minimal_hit.py": ["--rounds", "1"],
     "planted_bugs.py": ["--only", "dedup", "--seeds", "3"],
     "mutation_score.py": [
-        *("--modules", "_store/checkpoints.py", "--sample", "2", "--seeds", "2"),
+        *("--modules", "_store/outbox.py", "--sample", "2", "--seeds", "2"),
         *("--plans", "crashloop", "--cpu", "60"),
     ],
     "stress_cancel.py": ["--runs", "1", "--calls", "200"],

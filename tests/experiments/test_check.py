@@ -921,7 +921,7 @@ PLANTED_SEEDS = pytest.mark.timeout(600)
 def test_the_plant_record_lost_is_caught_by_record_kept_at_simchain_seed_1(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    from rr_actors._store import plan as store_plan  # noqa: PLC0415
+    from rr_actors._store import schema as store_plan  # noqa: PLC0415
     from rr_actors._store import sqlite  # noqa: PLC0415
 
     plan = load_plan(plans.find("simchain"))
@@ -2506,7 +2506,7 @@ def _later(*steps: str, at: float) -> list[events.Event]:
 
 
 def test_a_group_never_restarted_nor_given_up_nor_shut_down_is_found() -> None:
-    """The mutant `policy.py:325` (`!=` -> `is`: no restart ever runs) held on `simchain`
+    """The mutant `policy.py:328` (`!=` -> `is`: no restart ever runs) held on `simchain`
     and `crashloop`: a killed permanent child stayed down to the end of the run."""
     due = _supervision_rules.DUE_S
     crashed = _tree("one_for_one", "api crash")  # (api's exit: line 4)
