@@ -33,7 +33,7 @@ each one is a rule or plan missing, or an equivalent mutant to add to `EQUIVALEN
     python benchmarks/mutation_score.py --sample 100 --seeds 200 --jobs 2   # the figure
     python benchmarks/mutation_score.py --sample 3 --seeds 2                # a quick look
     python benchmarks/mutation_score.py --plans crashloop \
-        --only _supervision/policy.py:456:ReplaceComparisonOperator_LtE_Lt  # one mutant
+        --only _supervision/policy.py:457:ReplaceComparisonOperator_LtE_Lt  # one mutant
     python benchmarks/mutation_score.py --list | wc -l                      # all mutants
 
 `--json OUT` writes every mutant's result. Figures: benchmarks/NOTES.md, "mutation score".
@@ -82,7 +82,7 @@ LEFT_OUT = ("core/VariableInserter", "core/VariableReplacer")  # (random: not re
 EQUIVALENT: dict[str, str] = {
     "_registrar/consumer.py:744:NumberReplacer:1": "an id never answered: 0 < epoch and "
     "-1 < epoch alike, every epoch asked being new_epoch()'s, at least 1",
-    "_supervision/policy.py:258:ReplaceComparisonOperator_NotEq_IsNot": "incarnations are "
+    "_supervision/policy.py:257:ReplaceComparisonOperator_NotEq_IsNot": "incarnations are "
     "ints from 0 up by 1: `is not` is `!=` in CPython up to 256 (its small ints), so for "
     "every run with fewer than 257 restarts of one child",
 }

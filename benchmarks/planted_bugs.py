@@ -473,7 +473,7 @@ PLANTS = (
         "rest-for-one-before",
         "rest_for_one takes down the children started before the crashed one (itself "
         "included), not those after it: the ones that depend on it run on",
-        "_supervision/policy.py",
+        "_supervision/children.py",
         "    return tuple(names[names.index(crashed) :])\n",
         "    return tuple(names[: names.index(crashed) + 1])  # PLANTED: names[index:]\n",
         "simrest",

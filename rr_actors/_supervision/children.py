@@ -4,9 +4,8 @@ meaning, and the running adapters.
 Every running child offers `pid` and `stop(timeout) -> ManagerExit`: a `ThreadManager`
 (a registrar in this process), a `ProcessManager` (`_process/manager.py`; a pool's
 process too: `policy.PoolSetup`) or a `NestedSupervisor`; each tells its end through
-`on_exit(ManagerExit)`, run on its watcher thread. A restart type says whether a child
-comes back (OTP's): after an exit of its own (`restarts_after`) and with its group
-(`restarts_with_group`).
+`on_exit(ManagerExit)`, run on its watcher thread. What happens when a child exits on its
+own, OTP's restart types and strategies, is decided in one place (`decide`).
 """
 
 from __future__ import annotations
@@ -15,7 +14,7 @@ import contextlib
 import dataclasses
 import functools
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Sequence
 from typing import TYPE_CHECKING, Literal, Protocol
 
 from rr_actors._core import runtime
@@ -26,6 +25,7 @@ from rr_actors.config import (
     ManagerSpec,
     RegistrarConfig,
     RestartType,
+    Strategy,
     SupervisorSpec,
     managers,
     tree_names,
@@ -113,19 +113,79 @@ def _pooled(spec: SupervisorSpec) -> Isolation | None:
     return "process" if spec.isolation == "process" else None
 
 
-# -- restart types: whether a child comes back (OTP) -------------------------------------
+# -- what happens when a child exits on its own: OTP's restart types and strategies -------
+
+Group = Callable[[str, Sequence[str], str], Iterable[str]]
+"""`group(strategy, names, crashed)`: a classroom's copy of `affected` (`Steps.group`)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Decision:
+    """What a supervisor does when a child exits on its own (`decide`).
+
+    Attributes:
+        group: the children its exit takes down and restarts, itself included, in start
+            order; empty: it stays down and nothing else is touched.
+        back: the names of `group` that come back (the others are stopped for good).
+    """
+
+    group: tuple[str, ...]
+    back: frozenset[str]
+
+
+def decide(
+    strategy: Strategy,
+    children: Sequence[tuple[str, RestartType]],
+    crashed: str,
+    *,
+    normal: bool,
+    group: Group | None = None,
+) -> Decision:
+    """What happens when child `crashed` exits on its own (`normal`: a normal exit), in a
+    supervisor of `strategy` whose `children` are `(name, restart type)` in start order:
+    OTP's `supervisor.erl` clauses, one screen.
+
+    | `crashed`'s restart type | its exit | decision |
+    |---|---|---|
+    | `permanent` | any | its group goes down and comes back |
+    | `transient` | abnormal | its group goes down and comes back |
+    | `transient` | normal | it stays down, nothing else is touched |
+    | `temporary` | any | it stays down, nothing else is touched |
+
+    Its group is the strategy's (`affected`, or a classroom's copy `group`): `one_for_one`
+    itself, `one_for_all` every child, `rest_for_one` itself and those started after it.
+    Of the group every sibling comes back but a `temporary` one, stopped for good (a
+    `transient` one that had exited normally too). The restart intensity is counted
+    after this (`policy.Restarts`): past it, the supervisor gives up instead.
+    """
+    restart = dict(children)
+    if not restarts_after(restart[crashed], normal=normal):
+        return Decision((), frozenset())
+    names = tuple(name for name, _ in children)
+    taken = (
+        affected(strategy, names, crashed)
+        if group is None
+        else tuple(group(strategy, names, crashed))
+    )
+    down = tuple(name for name in names if name in taken)
+    back = frozenset(n for n in down if n == crashed or restart[n] != "temporary")
+    return Decision(down, back)
 
 
 def restarts_after(restart: RestartType, *, normal: bool) -> bool:
-    """Whether a child that exited on its own is restarted (OTP: `permanent` always,
-    `transient` after an abnormal exit, `temporary` never)."""
+    """Whether a child that exited on its own is restarted (`decide`'s table: `permanent`
+    always, `transient` after an abnormal exit, `temporary` never)."""
     return restart == "permanent" or (restart == "transient" and not normal)
 
 
-def restarts_with_group(restart: RestartType) -> bool:
-    """Whether a sibling comes back when a crash restarts its group: as in OTP, every
-    child but a `temporary` one (a `transient` one that exited normally too)."""
-    return restart != "temporary"
+def affected(strategy: Strategy, names: Sequence[str], crashed: str) -> tuple[str, ...]:
+    """The children a crash of `crashed` takes down with it (OTP's strategies), in start
+    order (`names`), itself included."""
+    if strategy == "one_for_one":
+        return (crashed,)
+    if strategy == "one_for_all":
+        return tuple(names)
+    return tuple(names[names.index(crashed) :])
 
 
 # -- running children --------------------------------------------------------------------

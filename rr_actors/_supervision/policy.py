@@ -19,7 +19,7 @@ time, and every step ends by publishing the children's snapshots to the tree's w
 ```
 
 It reads top down, each role calling only the roles below it and owning its own state:
-`Node`; restarting (`Exits`, `Restarts`, `RestartIntensity`, `affected`); `Starting`;
+`Node`; restarting (`Exits`, `Restarts` on `children.decide`, `RestartIntensity`); `Starting`;
 `Stopping`; what they share (`Exited`, `Restart`, `Record`). A nested supervisor is a
 `Node` too. How a restart runs through the layers: "How a restart flows" in
 docs/explanation/architecture.md.
@@ -35,7 +35,7 @@ import logging
 import os
 import resource
 import sys
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 from rr_actors import events
@@ -48,15 +48,15 @@ from rr_actors._process.heartbeat import Hang, Heartbeat, Look
 from rr_actors._process.manager import ManagerExit
 from rr_actors._supervision.children import (
     Child,
+    Decision,
     Level,
     NestedSupervisor,
     ProcessManager,
     Running,
     ThreadManager,
+    decide,
     is_pool,
     pool_manager,
-    restarts_after,
-    restarts_with_group,
 )
 from rr_actors._supervision.retry import give_back_abandoned
 from rr_actors._supervision.tree import (
@@ -73,7 +73,6 @@ from rr_actors.config import (
     Durability,
     ManagerSpec,
     RegistrarConfig,
-    Strategy,
     SupervisorSpec,
     managers,
 )
@@ -274,13 +273,13 @@ class Exits:
 class Restarts:
     """Decides whether and how a crashed child comes back, and gives up past the intensity.
 
-    `after_exit`: the restart type (`restarts_after`), then `RestartIntensity.add` (past it:
-    `give_up`), then the strategy's group taken down and a `Restart` scheduled after the
-    backoff; `on_restart` starts each child whose latest `Restart` it is (a failed start
-    posts `Exited`, a crash). An exit is stale (dropped by `Exits`) when its incarnation is
-    older, as after `Stopping.stop_child`, or this supervisor gave up; `cancel` makes every
-    pending `Restart` stale (a new generation). The flow: "How a restart flows",
-    docs/explanation/architecture.md.
+    `after_exit`: what the exit decides (`children.decide`: restart types and strategies),
+    then `RestartIntensity.add` (past it: `give_up`), then the group taken down and a
+    `Restart` scheduled after the backoff; `on_restart` starts each child whose latest
+    `Restart` it is (a failed start posts `Exited`, a crash). An exit is stale (dropped by
+    `Exits`) when its incarnation is older, as after `Stopping.stop_child`, or this
+    supervisor gave up; `cancel` makes every pending `Restart` stale (a new generation).
+    The flow: "How a restart flows", docs/explanation/architecture.md.
     """
 
     def __init__(
@@ -306,18 +305,27 @@ class Restarts:
         self._due: dict[str, Restart] = {}  # each child's latest scheduled Restart
 
     def after_exit(self, child: Child, exit: ManagerExit) -> None:
-        """`child` ended on its own (`exit`): leave it down, restart it, or give up."""
-        if not restarts_after(child.spec.restart, normal=exit.normal):
+        """`child` ended on its own (`exit`): leave it down, restart it with its group, or
+        give up."""
+        record = self.record
+        decision = decide(
+            record.spec.strategy,
+            [(c.name, c.spec.restart) for c in record.children],
+            child.name,
+            normal=exit.normal,
+            group=record.tree.steps.group,  # (a copy passed in: `Supervisor(steps=)`)
+        )
+        if not decision.group:
             child.state = "exited"
             self.stopping.forget(child, dead=not exit.clean)
             return
         child.state = "restarting"
         mark(child)
-        self.record.publish()
+        record.publish()
         if not self.intensity.add():
             self.give_up(child)
             return
-        self._schedule(self._take_down_with(child))
+        self._schedule(self._take_down(child, decision))
 
     def on_restart(self, event: Restart) -> None:
         record = self.record
@@ -345,21 +353,14 @@ class Restarts:
         self._timers.clear()
         self._due.clear()
 
-    def _take_down_with(self, crashed: Child) -> tuple[str, ...]:
-        """Stop the siblings the strategy restarts with `crashed` (reverse start order);
+    def _take_down(self, crashed: Child, decision: Decision) -> tuple[str, ...]:
+        """Stop the siblings `decision` takes down with `crashed` (reverse start order);
         the names to restart."""
-        children = self.record.children
-        strategy, order = self.record.spec.strategy, [c.name for c in children]
-        step = self.record.tree.steps.group  # (a copy passed in: `Supervisor(steps=)`)
-        if step is None:
-            names = affected(strategy, order, crashed.name)
-        else:
-            names = tuple(step(strategy, tuple(order), crashed.name))
-        group = [c for c in children if c.name in names]
+        group = [c for c in self.record.children if c.name in decision.group]
         for other in reversed(group):
             if other is crashed:
                 continue
-            comes_back = restarts_with_group(other.spec.restart)
+            comes_back = other.name in decision.back
             if comes_back:  # down for a moment, not stopped: callers may retry
                 mark(other)
             if other.running is not None:
@@ -459,16 +460,6 @@ class RestartIntensity:
     def recent(self) -> int:
         """Restarts counted within the current window (this one included, after `add`)."""
         return len(self._times)
-
-
-def affected(strategy: Strategy, names: Sequence[str], crashed: str) -> tuple[str, ...]:
-    """The children a crash of `crashed` takes down with it (OTP's strategies), in start
-    order (`names`), itself included."""
-    if strategy == "one_for_one":
-        return (crashed,)
-    if strategy == "one_for_all":
-        return tuple(names)
-    return tuple(names[names.index(crashed) :])
 
 
 # -- starting: in start order, or one again (OTP's start_children, do_restart) -------------

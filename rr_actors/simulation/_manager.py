@@ -40,6 +40,7 @@ from rr_actors import events
 from rr_actors._core import runtime
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._process.control import (
     ACTOR_DIED_EXIT,
     STOPPED_EXIT,
@@ -48,6 +49,7 @@ from rr_actors._process.control import (
     Failed,
     Forward,
     FromParent,
+    PeersStopped,
     PeerStarted,
     Ping,
     Pong,
@@ -413,6 +415,11 @@ class _Child:
     def peer_started(self, message: PeerStarted) -> None:
         heard_started(self.registrar.name, message.name)
 
+    def peers_stopped(self, message: PeersStopped) -> None:
+        """Into this process's membership: its registrar hears them before its `Stop`."""
+        for name in message.names:
+            MEMBERSHIP.stopped(name, by="its supervisor (the tree's stop)")
+
     def stop(self, message: Stop) -> None:
         """Stop the registrar, exit (`STOPPED_EXIT`, or 1 if it did not stop)."""
         registrar = self.registrar
@@ -443,5 +450,6 @@ _HANDLERS: dict[type[Any], Callable[[_Child, Any], None]] = {
     Forward: _Child.forward,
     Stop: _Child.stop,
     PeerStarted: _Child.peer_started,
+    PeersStopped: _Child.peers_stopped,
 }
 """What the child does with each message of the parent's."""

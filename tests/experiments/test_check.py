@@ -2506,7 +2506,7 @@ def _later(*steps: str, at: float) -> list[events.Event]:
 
 
 def test_a_group_never_restarted_nor_given_up_nor_shut_down_is_found() -> None:
-    """The mutant `policy.py:328` (`!=` -> `is`: no restart ever runs) held on `simchain`
+    """The mutant `policy.py:336` (`!=` -> `is`: no restart ever runs) held on `simchain`
     and `crashloop`: a killed permanent child stayed down to the end of the run."""
     due = _supervision_rules.DUE_S
     crashed = _tree("one_for_one", "api crash")  # (api's exit: line 4)
@@ -2638,7 +2638,11 @@ def drop_delivery(h: History) -> History | None:
     climb to client-0 already on its way). Nor the only delivery of its sender's life to
     its registrar's process: it may have waited in the sender for a connection never made
     (a real `simslow` run in CI, 2026-11-26; a restarted holder's new process, `simdoubt`
-    seed 58; `status-reached` excuses a sender life that ended soon after).
+    seed 58; `status-reached` excuses a sender life that ended soon after). Nor one to an
+    id its holder later forgot as `unload unanswered`, when the status reached no other id
+    of that registrar at that hop: its sender died with the batch maybe unsent (real
+    `simways` runs, 2026-11-27: another process's registrars had it, this one not);
+    one that reached another id of it arrived, and is owed (`status-reached`).
     """
     left: set[str] = set()  # ids released at their provider or forgotten so far
     answered = {e.query_id: e.hlc for e in h if type(e) is events.CallAnswered}
@@ -2665,6 +2669,19 @@ def drop_delivery(h: History) -> History | None:
             for path in paths(e):
                 reached[path] = reached.get(path, 0) + 1
 
+    unanswered = {
+        e.query_id
+        for e in h
+        if type(e) is events.QueryForgotten and e.reason == "unload unanswered"
+    }
+    at_hop: dict[tuple[str, str, int], set[str]] = {}  # (status, holder, hop) -> its ids
+    for e in h:
+        if type(e) is events.StatusDelivered and e.status_id:
+            at_hop.setdefault((e.status_id, e.registrar, e.hop), set()).add(e.query_id)
+
+    def alone(e: events.StatusDelivered) -> bool:
+        return at_hop[e.status_id, e.registrar, e.hop] == {e.query_id}
+
     found = []
     for i, e in enumerate(h):
         if type(e) is events.ConsumerReleased or type(e) is events.QueryForgotten:
@@ -2676,6 +2693,7 @@ def drop_delivery(h: History) -> History | None:
             and answered.get(e.query_id, 0) < sent.get(e.status_id, 0)
             and went_on(e)
             and all(reached[path] > 1 for path in paths(e))
+            and not (e.query_id in unanswered and alone(e))
         ):
             found.append(i)
     if not found:

@@ -29,7 +29,7 @@ def test_the_shipped_share_test_matches_equal_live_requests_loading_or_not() -> 
 
 
 def test_the_shipped_group_is_the_supervisors_own_for_every_strategy() -> None:
-    from rr_actors._supervision.policy import affected  # noqa: PLC0415 - the supervisor's
+    from rr_actors._supervision.children import affected  # noqa: PLC0415 - the supervisor's
 
     group = shipped_step("group")
     names = ("a", "b", "c")

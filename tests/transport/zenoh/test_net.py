@@ -36,6 +36,7 @@ from tests.support import pki, selecting
 from tests.support.supervising import wait_gone
 from tests.support.tls_lab import free_port, member_tls, router
 from tests.support.waiting import wait_for
+from tests.test_init import HIDE_THE_LAB
 
 
 def _attached_max_offset(address: Any) -> float:
@@ -408,11 +409,10 @@ def test_import_rr_actors_does_not_import_zenoh() -> None:
 
 
 def test_a_network_of_the_runtime_alone_runs_nothing_beside_its_session() -> None:
-    """The runtime reads alone (issue 54): a `ZenohNetwork` made from its module, in a
-    process that never imported the lab, opens and serves without it (no event feed, no
-    link watch: `Beside`), imports nothing of `rr_actors_lab.observe`, and its
-    `subscribe_events` names the import that attaches the feed."""
-    code = textwrap.dedent(
+    """The runtime reads alone (issues 54, 71): a `ZenohNetwork` made from its module, with
+    the lab not installed, opens and serves without it (no event feed, no link watch:
+    `Beside`), and its `subscribe_events` names the import that attaches the feed."""
+    code = HIDE_THE_LAB + textwrap.dedent(
         """
         import sys
         from rr_actors._transport.zenoh.net import ZenohNetwork
