@@ -25,8 +25,9 @@ from opentelemetry.sdk.trace.export.in_memory_span_exporter import InMemorySpanE
 from opentelemetry.sdk.trace.sampling import ALWAYS_OFF
 
 import rr_actors as rr
-from rr_actors import events, otel
+from rr_actors import events
 from rr_actors.testing import SharedObjects
+from rr_actors_lab import otel
 from tests.support.supervising import sigkill
 
 pytestmark = pytest.mark.usefixtures("by_value")

@@ -27,7 +27,6 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, Protocol
 
 from rr_actors._extras import needs
-from rr_actors._supervision.supervisor import Supervisor, tree_watch
 from rr_actors.config import NAME, is_loopback
 from rr_actors.errors import ConfigError
 from rr_actors_lab.observe._faults import Faults
@@ -41,6 +40,7 @@ from rr_actors_lab.observe._sources import (
 )
 
 if TYPE_CHECKING:
+    from rr_actors._supervision.supervisor import Supervisor
     from rr_actors._transport.zenoh.net import Services
     from rr_actors_lab.observe._server import Server
     from rr_actors_lab.observe._share import Share
@@ -488,6 +488,8 @@ def observe(
             the supervisor was stopped, `across_hosts=True` without a
             `ZenohNetwork`, or `sock` is not a listening TCP socket.
     """
+    from rr_actors._supervision.supervisor import tree_watch  # noqa: PLC0415 - the feed imports none
+
     watch = tree_watch(sup, observing=True)
     page = observe_supervisor(
         sup,
@@ -521,6 +523,8 @@ def graph(sup: Supervisor, format: str = "mermaid") -> str:
     Raises:
         ConfigError: `format` is neither.
     """
+    from rr_actors._supervision.supervisor import tree_watch  # noqa: PLC0415 - as in observe
+
     return graph_of(sup, tree_watch(sup).access(), format)
 
 

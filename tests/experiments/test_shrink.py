@@ -770,7 +770,9 @@ def swapped(monkeypatch: pytest.MonkeyPatch) -> None:
 
     intensity = policy.RestartIntensity
     monkeypatch.setattr(
-        policy, "RestartIntensity", lambda most, period, clock: intensity(period, most, clock)
+        policy,
+        "RestartIntensity",
+        lambda most, period, clock, **steps: intensity(period, most, clock, **steps),
     )
     kinds = shrink.violation_kinds
     monkeypatch.setattr(

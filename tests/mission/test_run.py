@@ -452,11 +452,11 @@ class ObservedSupervisor:
     def __init__(self, observer: ClockedObserver) -> None:
         self.observer = observer
 
-    def observe(self, **_: object) -> ClockedObserver:
-        return self.observer
 
-
-def test_the_page_calls_its_clock_the_mission_clock_and_only_the_total_is_mission_time() -> None:
+def test_the_page_calls_its_clock_the_mission_clock_and_only_the_total_is_mission_time(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr("rr_actors_lab.observe.observe", lambda sup, **_: sup.observer)
     observer = ClockedObserver()
     observers: list[object] = []
     args = parser().parse_args(["--observe"])

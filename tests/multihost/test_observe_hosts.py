@@ -3,7 +3,7 @@
 `hosts.TwoHosts`: host `a` (member `alpha`) and host `b` (`bravo`), one `ZenohNetwork`
 each with mutual TLS (certificates from `tests/pki.py`); `b` dials `a`. Each runs a
 supervisor with one process manager (`station` on `a`, `cam` on `b`) and opens its
-observer (`sup.observe()`: across hosts, since the network is a `ZenohNetwork`); `a`'s
+observer (`observe(sup)`: across hosts, since the network is a `ZenohNetwork`); `a`'s
 consumer registrar `app` holds a camera at `cam` (a dependency edge across hosts).
 
 The browser (Debian's chromium, driven by Playwright from the test process) runs inside
@@ -46,6 +46,7 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
+from rr_actors_lab.observe import observe
 from tests.support import hosts, pki
 from tests.support.observing import CHROMIUM_ARGS, chromium
 
@@ -91,7 +92,7 @@ def open_observer(allow_faults: bool) -> str:
     old = hosts.KEPT.pop("observer", None)
     if old is not None:
         old.close()
-    observer = hosts.KEPT["sup"].observe(allow_faults=allow_faults)
+    observer = observe(hosts.KEPT["sup"], allow_faults=allow_faults)
     hosts.KEPT["observer"] = observer
     return str(observer.url)
 

@@ -8,6 +8,7 @@ import pickle
 from typing import Any
 
 import rr_actors as rr
+from rr_actors_lab.observe import observe
 from tests.support.observed_tree import REQUEST, erm_setup, figure_27
 from tests.support.observing import (
     child,
@@ -23,7 +24,7 @@ from tests.support.observing import (
 
 
 def test_fault_buttons_are_refused_without_teaching_mode(tree: rr.Supervisor) -> None:
-    observer = tree.observe()
+    observer = observe(tree)
     pid = tree.child("erm").pid
 
     status, answer = post_fault(observer.url, "kill", {"child": "erm", "pid": pid})
@@ -33,7 +34,7 @@ def test_fault_buttons_are_refused_without_teaching_mode(tree: rr.Supervisor) ->
 
 
 def test_a_fault_without_the_token_is_refused(tree: rr.Supervisor) -> None:
-    observer = tree.observe(allow_faults=True)
+    observer = observe(tree, allow_faults=True)
     pid = tree.child("erm").pid
 
     status, answer = post_fault(
@@ -46,7 +47,7 @@ def test_a_fault_without_the_token_is_refused(tree: rr.Supervisor) -> None:
 
 
 def test_a_fault_request_is_json_and_nothing_else_is_read(tree: rr.Supervisor) -> None:
-    observer = tree.observe(allow_faults=True)
+    observer = observe(tree, allow_faults=True)
     pid = tree.child("erm").pid
     headers: dict[str, str] = {}
     pickled = pickle.dumps({"child": "erm", "pid": pid})
@@ -64,7 +65,7 @@ def test_a_fault_request_is_json_and_nothing_else_is_read(tree: rr.Supervisor) -
 
 
 def test_a_kill_of_another_pid_than_the_managers_is_refused(tree: rr.Supervisor) -> None:
-    observer = tree.observe(allow_faults=True)
+    observer = observe(tree, allow_faults=True)
     pid = tree.child("erm").pid
     assert pid is not None
 
@@ -76,7 +77,7 @@ def test_a_kill_of_another_pid_than_the_managers_is_refused(tree: rr.Supervisor)
 
 
 def test_the_kill_endpoint_kills_the_named_managers_process(tree: rr.Supervisor) -> None:
-    observer = tree.observe(allow_faults=True)
+    observer = observe(tree, allow_faults=True)
     pid = tree.child("cm").pid
     assert pid is not None
 
@@ -92,7 +93,7 @@ def test_the_kill_endpoint_kills_the_named_managers_process(tree: rr.Supervisor)
 def test_the_hang_endpoint_stops_the_process_and_its_heartbeat_gets_it_restarted(
     tree: rr.Supervisor, eventually: Any
 ) -> None:
-    observer = tree.observe(allow_faults=True)
+    observer = observe(tree, allow_faults=True)
     pid = tree.child("erm").pid
     assert pid is not None
 
@@ -110,7 +111,7 @@ def test_the_resume_endpoint_lets_a_hung_manager_go_on(
 ) -> None:
     sup = supervisors([rr.ManagerSpec("erm", erm_setup, isolation="process", heartbeat=None)])
     sup.start()
-    observer = sup.observe(allow_faults=True)
+    observer = observe(sup, allow_faults=True)
     pid = sup.child("erm").pid
     assert pid is not None
 
@@ -125,7 +126,7 @@ def test_the_resume_endpoint_lets_a_hung_manager_go_on(
 
 
 def test_the_fatal_endpoint_reaches_every_consumer_up_the_chain(tree: rr.Supervisor) -> None:
-    observer = tree.observe(allow_faults=True)
+    observer = observe(tree, allow_faults=True)
     heard: list[rr.StatusUpdate] = []
     app = tree.registrar("action")
     query = app.call("cm", "filtered_camera", REQUEST, on_status=lambda q, u: heard.append(u))
@@ -146,7 +147,7 @@ def test_the_fatal_endpoint_reaches_every_consumer_up_the_chain(tree: rr.Supervi
 
 
 def test_a_fatal_on_an_unknown_resource_is_refused(tree: rr.Supervisor) -> None:
-    observer = tree.observe(allow_faults=True)
+    observer = observe(tree, allow_faults=True)
 
     status, answer = post_fault(observer.url, "fatal", {"registrar": "erm", "resource_id": "nope"})
 
@@ -155,7 +156,7 @@ def test_a_fatal_on_an_unknown_resource_is_refused(tree: rr.Supervisor) -> None:
 
 def test_a_thread_manager_has_no_process_to_kill(supervisors: Any) -> None:
     sup = figure_27(supervisors, isolation="thread").start()
-    observer = sup.observe(allow_faults=True)
+    observer = observe(sup, allow_faults=True)
 
     status, answer = post_fault(observer.url, "kill", {"child": "erm", "pid": os.getpid()})
 
@@ -164,7 +165,7 @@ def test_a_thread_manager_has_no_process_to_kill(supervisors: Any) -> None:
 
 
 def test_a_fault_of_the_page_is_in_the_stream_as_an_event(tree: rr.Supervisor) -> None:
-    observer = tree.observe(allow_faults=True)
+    observer = observe(tree, allow_faults=True)
     pid = tree.child("cm").pid
 
     with stream(observer.url) as events:

@@ -1,5 +1,5 @@
 """The `Observer` handle (`rr_actors_lab.observe._observer`): a context manager that needs
-the extra, and `Supervisor.observe(sock=...)`: the page served on a listening socket made by
+the extra, and `observe(sup, sock=...)`: the page served on a listening socket made by
 the caller; one across hosts left open as its program ends.
 
 (`rr-actors demo --hosts 2 --observe` binds one in the machine's network namespace and
@@ -23,7 +23,7 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
-from rr_actors_lab.observe import Observer
+from rr_actors_lab.observe import Observer, observe
 from tests.support.observed_tree import figure_27
 from tests.support.observing import (
     base,
@@ -42,7 +42,7 @@ def test_the_page_is_served_on_the_socket_given_and_closed_with_the_observer(
     listening = socket.create_server(("127.0.0.1", 0))
     port = listening.getsockname()[1]
 
-    observer = tree.observe(sock=listening, port=1)  # (port and host are not used)
+    observer = observe(tree, sock=listening, port=1)  # (port and host are not used)
 
     assert f"http://127.0.0.1:{port}/" == base(observer.url)
     assert (observer.host, observer.port) == ("127.0.0.1", port)
@@ -58,7 +58,7 @@ def test_a_socket_that_does_not_listen_is_a_config_error(tree: rr.Supervisor) ->
     bound.bind(("127.0.0.1", 0))
 
     with pytest.raises(rr.ConfigError, match=r"sock must be a listening TCP socket"):
-        tree.observe(sock=bound)
+        observe(tree, sock=bound)
 
     assert -1 == bound.fileno()
 
@@ -69,7 +69,7 @@ def test_a_socket_on_another_address_than_loopback_needs_allow_remote(
     listening = socket.create_server(("0.0.0.0", 0))  # noqa: S104 - the case under test
 
     with pytest.raises(rr.ConfigError, match=r"sock listens on '0\.0\.0\.0', not a loopback"):
-        tree.observe(sock=listening)
+        observe(tree, sock=listening)
 
     assert -1 == listening.fileno()
 
@@ -85,11 +85,11 @@ def test_the_observer_needs_the_observe_extra_to_serve(
     monkeypatch.delattr(rr_actors_lab.observe, "_server", raising=False)
 
     with pytest.raises(rr.MissingExtraError, match=r"needs an extra: pip install .*\[observe\]"):
-        tree.observe()
+        observe(tree)
 
 
 def test_observer_is_a_context_manager(tree: rr.Supervisor) -> None:
-    with tree.observe() as observer:
+    with observe(tree) as observer:
         assert isinstance(observer, Observer)
         assert "live" == get_json(observer.url, "/api/state")["hello"]["mode"]
 
@@ -107,7 +107,7 @@ LEFT_OPEN = textwrap.dedent(
     net = rr.ZenohNetwork(system=system, listen=[], connect=[], tls=None)
     spec = rr.ManagerSpec("erm", setup=lambda r: None, isolation="thread")
     sup = rr.Supervisor([spec], network=net).start()
-    observer = sup.observe(across_hosts=True, keep_serving=True)
+    observer = observe(sup, across_hosts=True, keep_serving=True)
     session, key = net.services().session, f"rr/{system}/obs/test/delta"
     inside = threading.Event()
 

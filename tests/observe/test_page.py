@@ -277,7 +277,7 @@ _FORCED = {"erm": "q-erm-0000", "cm": "q-cm-00000", "action": "q-act-0000"}
 
 def _forced_page(supervisors: Any, tabs: Any) -> tuple[Any, Any]:
     """Figure 27's tree (thread managers) and a live page on its observer, cm running."""
-    observer = figure_27(supervisors, isolation="thread").start().observe()
+    observer = _lab_observe.observe(figure_27(supervisors, isolation="thread").start())
     live = tabs()
     live.goto(observer.url)
     live.wait_for_selector('.node[data-child="cm"][data-state="running"]')

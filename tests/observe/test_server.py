@@ -19,7 +19,7 @@ import psutil
 import pytest
 
 import rr_actors as rr
-from rr_actors_lab.observe import _hub, _server
+from rr_actors_lab.observe import _hub, _server, observe
 from tests.support import selecting
 from tests.support.observed_tree import REQUEST, figure_27
 from tests.support.observing import (
@@ -39,7 +39,7 @@ from tests.support.observing import (
 def test_the_page_and_its_scripts_come_from_the_package_with_a_strict_policy(
     tree: rr.Supervisor,
 ) -> None:
-    observer = tree.observe()
+    observer = observe(tree)
 
     page = request(observer.url, "/")
     script = request(observer.url, "/static/app.js")
@@ -53,7 +53,7 @@ def test_the_page_and_its_scripts_come_from_the_package_with_a_strict_policy(
 
 
 def test_the_observer_listens_on_loopback_at_a_free_port_by_default(tree: rr.Supervisor) -> None:
-    observer = tree.observe()
+    observer = observe(tree)
 
     assert "127.0.0.1" == observer.host
     assert observer.url.startswith(f"http://127.0.0.1:{observer.port}/?token=")
@@ -63,7 +63,7 @@ def test_the_observer_listens_on_loopback_at_a_free_port_by_default(tree: rr.Sup
 def test_the_state_shows_the_tree_the_catalogs_and_the_dependency_graph(
     tree: rr.Supervisor,
 ) -> None:
-    observer = tree.observe()
+    observer = observe(tree)
     app = tree.registrar("action")
     query = app.call("cm", "filtered_camera", REQUEST)
 
@@ -89,7 +89,7 @@ def test_the_state_shows_the_tree_the_catalogs_and_the_dependency_graph(
 def test_the_stream_says_hello_then_sends_the_sections_then_the_events(
     tree: rr.Supervisor,
 ) -> None:
-    observer = tree.observe()
+    observer = observe(tree)
     app = tree.registrar("action")
 
     with stream(observer.url) as events:
@@ -110,7 +110,7 @@ def test_the_stream_says_hello_then_sends_the_sections_then_the_events(
 
 
 def test_a_sigkill_of_a_manager_reaches_the_stream_as_a_restart(tree: rr.Supervisor) -> None:
-    observer = tree.observe()
+    observer = observe(tree)
     pid = tree.child("erm").pid
     assert pid is not None
 
@@ -128,7 +128,7 @@ def test_a_sigkill_of_a_manager_reaches_the_stream_as_a_restart(tree: rr.Supervi
 
 def test_a_backoff_shows_when_the_restart_is_due(supervisors: Any, process_helpers: Any) -> None:
     sup = figure_27(supervisors, backoff=rr.Backoff(initial=1.0, max=1.0, jitter=0.0)).start()
-    observer = sup.observe()
+    observer = observe(sup)
     pid = sup.child("cm").pid
     assert pid is not None
 
@@ -149,7 +149,7 @@ def test_a_backoff_shows_when_the_restart_is_due(supervisors: Any, process_helpe
 
 
 def test_a_status_reaches_the_stream_with_each_hop_and_its_latency(tree: rr.Supervisor) -> None:
-    observer = tree.observe()
+    observer = observe(tree)
     app = tree.registrar("action")
     query = app.call("cm", "filtered_camera", REQUEST)
 
@@ -177,7 +177,7 @@ def test_a_status_reaches_the_stream_with_each_hop_and_its_latency(tree: rr.Supe
 
 
 def test_a_stream_ends_when_the_supervisor_stops(tree: rr.Supervisor) -> None:
-    observer = tree.observe()
+    observer = observe(tree)
 
     with stream(observer.url) as events:
         events.until(lambda s: "tree" in s.sections, timeout=10)
@@ -194,7 +194,7 @@ def test_a_stream_ends_when_the_supervisor_stops(tree: rr.Supervisor) -> None:
 
 
 def test_another_host_header_is_refused(tree: rr.Supervisor) -> None:
-    observer = tree.observe()  # a page of another site resolving its name to 127.0.0.1 ...
+    observer = observe(tree)  # a page of another site resolving its name to 127.0.0.1 ...
 
     status, _, _ = request(observer.url, "/api/state", headers={"Host": "evil.example:80"})
 
@@ -202,7 +202,7 @@ def test_another_host_header_is_refused(tree: rr.Supervisor) -> None:
 
 
 def test_a_page_that_replays_nothing_has_no_step_control(tree: rr.Supervisor) -> None:
-    observer = tree.observe()  # (a replay's page has one: rr_actors_lab.teach.replay)
+    observer = observe(tree)  # (a replay's page has one: rr_actors_lab.teach.replay)
     json_body = {"Content-Type": "application/json"}
 
     status, _, body = request(
@@ -218,11 +218,11 @@ def test_a_page_that_replays_nothing_has_no_step_control(tree: rr.Supervisor) ->
 
 def test_a_host_other_machines_reach_needs_allow_remote(tree: rr.Supervisor) -> None:
     with pytest.raises(rr.ConfigError, match="allow_remote"):
-        tree.observe(host="0.0.0.0")  # noqa: S104 - what the test refuses
+        observe(tree, host="0.0.0.0")  # noqa: S104 - what the test refuses
 
 
 def test_allow_remote_binds_another_address_on_purpose(tree: rr.Supervisor) -> None:
-    observer = tree.observe(host="0.0.0.0", allow_remote=True)  # noqa: S104 - on purpose
+    observer = observe(tree, host="0.0.0.0", allow_remote=True)  # noqa: S104 - on purpose
 
     status, _, _ = request(
         f"http://127.0.0.1:{observer.port}/",
@@ -239,7 +239,7 @@ def test_a_port_in_use_is_a_clear_error(tree: rr.Supervisor) -> None:
     taken.listen()
     try:
         with pytest.raises(rr.ConfigError, match=f"port {taken.getsockname()[1]} .* in use"):
-            tree.observe(port=taken.getsockname()[1])
+            observe(tree, port=taken.getsockname()[1])
     finally:
         taken.close()
 
@@ -247,21 +247,21 @@ def test_a_port_in_use_is_a_clear_error(tree: rr.Supervisor) -> None:
 @pytest.mark.parametrize("port", [-1, 70000, "80", True])
 def test_a_bad_port_is_a_config_error(tree: rr.Supervisor, port: Any) -> None:
     with pytest.raises(rr.ConfigError, match="port"):
-        tree.observe(port=port)
+        observe(tree, port=port)
 
 
 def test_a_stopped_supervisor_cannot_be_observed(tree: rr.Supervisor) -> None:
     tree.stop()
 
     with pytest.raises(rr.ConfigError, match="stopped"):
-        tree.observe()
+        observe(tree)
 
 
 def test_an_observer_opened_before_the_start_sees_the_children_start(
     supervisors: Any, process_helpers: Any
 ) -> None:
     sup = figure_27(supervisors)
-    observer = sup.observe()
+    observer = observe(sup)
 
     with stream(observer.url) as events:
         events.until(lambda s: "tree" in s.sections, timeout=10)
@@ -276,7 +276,7 @@ def test_an_observer_of_a_supervisor_that_never_started_closes_with_its_stop(
     supervisors: Any,
 ) -> None:
     sup = figure_27(supervisors, isolation="thread")
-    observer = sup.observe()
+    observer = observe(sup)
 
     sup.stop()
 
@@ -411,7 +411,7 @@ class TestAccess:
     def test_every_route_without_the_token_is_401(
         self, tree: rr.Supervisor, method: str, path: str
     ) -> None:
-        observer = tree.observe(allow_faults=True)
+        observer = observe(tree, allow_faults=True)
 
         status, _, body = request(observer.url, path, method=method, with_token=False)
 
@@ -422,7 +422,7 @@ class TestAccess:
     def test_every_route_with_a_wrong_token_is_403(
         self, tree: rr.Supervisor, method: str, path: str
     ) -> None:
-        observer = tree.observe(allow_faults=True)
+        observer = observe(tree, allow_faults=True)
 
         status, _, _ = request(
             observer.url, path, method=method, with_token=False, headers={"X-RR-Token": "guess"}
@@ -435,7 +435,7 @@ class TestAccess:
         self,
         tree: rr.Supervisor,
     ) -> None:
-        observer = tree.observe()
+        observer = observe(tree)
         path = "/?" + urllib.parse.urlsplit(observer.url).query
 
         status, headers, _ = request(observer.url, path, with_token=False)
@@ -457,7 +457,7 @@ class TestAccess:
         self,
         tree: rr.Supervisor,
     ) -> None:
-        observer = tree.observe(allow_faults=True)
+        observer = observe(tree, allow_faults=True)
         cookie = f"rr-observer-{observer.port}={token(observer.url)}"
 
         status, _, body = request(
@@ -478,7 +478,7 @@ class TestAccess:
         self,
         tree: rr.Supervisor,
     ) -> None:
-        observer = tree.observe(host="0.0.0.0", allow_remote=True)  # noqa: S104 - on purpose
+        observer = observe(tree, host="0.0.0.0", allow_remote=True)  # noqa: S104 - on purpose
         url = f"http://127.0.0.1:{observer.port}/?token={token(observer.url)}"
 
         rebound = request(url, "/api/state", headers={"Host": f"evil.example:{observer.port}"})
@@ -490,7 +490,7 @@ class TestAccess:
     # -- what a page costs ------------------------------------------------------------------------
 
     def test_one_stream_over_the_cap_is_refused_with_503(self, tree: rr.Supervisor) -> None:
-        observer = tree.observe()
+        observer = observe(tree)
         with contextlib.ExitStack() as streams:
             for _ in range(_hub.MAX_STREAMS):
                 streams.enter_context(stream(observer.url)).next()  # (each says hello)
@@ -506,7 +506,7 @@ class TestAccess:
         self,
         tree: rr.Supervisor,
     ) -> None:
-        observer = tree.observe()
+        observer = observe(tree)
         app = tree.registrar("action")
         queries = [app.call("erm", "camera", item) for item in _items(200)]
         wait_state(observer.url, lambda s: _resources(s, "erm") == 200)
@@ -531,7 +531,7 @@ class TestAccess:
     ) -> None:
         monkeypatch.setattr(_server, "SEND_TIMEOUT", 1.0)
         monkeypatch.setattr(_server, "ABORT_AFTER", 1.0)
-        observer = tree.observe()
+        observer = observe(tree)
         app = tree.registrar("action")
         queries = [app.call("erm", "camera", item) for item in _items(2000)]
         wait_state(observer.url, lambda s: _resources(s, "erm") == 2000, timeout=30)
@@ -568,7 +568,7 @@ class TestAccess:
         nothing allocates enough to start one, so what only a collection frees stays; the
         observer must not rely on one happening.
         """
-        observer = tree.observe()
+        observer = observe(tree)
         app = tree.registrar("action")
         queries = [app.call("erm", "camera", item) for item in _items(5000)]
         wait_state(observer.url, lambda s: _resources(s, "erm") == 5000, timeout=60)
@@ -601,7 +601,7 @@ class TestAccess:
         self,
         tree: rr.Supervisor,
     ) -> None:
-        observer = tree.observe(keep_serving=True)
+        observer = observe(tree, keep_serving=True)
         app = tree.registrar("action")
         app.call("cm", "filtered_camera", REQUEST)
         wait_state(observer.url, lambda s: _resources(s, "cm") == 1)

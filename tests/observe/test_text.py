@@ -6,6 +6,7 @@ from __future__ import annotations
 import pytest
 
 import rr_actors as rr
+from rr_actors_lab.observe import graph
 from rr_actors_lab.observe._text import render
 from rr_actors_lab.observe._view import dependency_graph, summarise_catalog
 from tests.support.observed_tree import REQUEST
@@ -16,7 +17,7 @@ def test_graph_draws_the_tree_and_figure_27_as_mermaid(tree: rr.Supervisor) -> N
     app = tree.registrar("action")
     query = app.call("cm", "filtered_camera", REQUEST)
 
-    text = tree.graph()
+    text = graph(tree)
 
     assert text.startswith("flowchart TB\n")
     assert f'subgraph r1["erm · process manager · running · pid {tree.child("erm").pid}"]' in text
@@ -28,7 +29,7 @@ def test_graph_draws_the_tree_and_figure_27_as_mermaid(tree: rr.Supervisor) -> N
 
 
 def test_graph_draws_dot_with_clusters(tree: rr.Supervisor) -> None:
-    text = tree.graph(format="dot")
+    text = graph(tree, format="dot")
 
     assert text.startswith("digraph rr_actors {\n")
     assert "subgraph" not in text  # nothing loaded: registrars without resources are nodes
@@ -38,7 +39,7 @@ def test_graph_draws_dot_with_clusters(tree: rr.Supervisor) -> None:
 
 def test_graph_refuses_an_unknown_format(tree: rr.Supervisor) -> None:
     with pytest.raises(rr.ConfigError, match="mermaid, dot"):
-        tree.graph(format="svg")
+        graph(tree, format="svg")
 
 
 def test_mermaid_labels_cannot_break_out_of_their_quotes() -> None:

@@ -27,6 +27,7 @@ import rr_actors as rr
 from rr_actors._catalog import ClientRecord, Resource, ResourceState
 from rr_actors._transport.zenoh.net import Services
 from rr_actors._transport.zenoh.wire import Keys
+from rr_actors_lab.observe import observe
 from rr_actors_lab.observe._delta import apply
 from rr_actors_lab.observe._view import short, summarise_catalog
 from tests.support.observed_tree import REQUEST
@@ -257,8 +258,8 @@ def mission_held_before(fault: str, out: Path) -> Iterator[HeldMission]:
     urls: list[str] = []
     opened, held, go_on = threading.Event(), threading.Event(), threading.Event()
 
-    def observe(sup: Any) -> None:
-        urls.append(sup.observe().url)
+    def observed(sup: Any) -> None:
+        urls.append(observe(sup).url)
         opened.set()
 
     def before_fault(name: str, _pids: list[str]) -> None:  # on the mission's thread
@@ -269,7 +270,9 @@ def mission_held_before(fault: str, out: Path) -> Iterator[HeldMission]:
     result: list[Any] = []
     thread = threading.Thread(
         target=lambda: result.append(
-            run_mission(MissionConfig.fast(), out, on_supervisor=observe, before_fault=before_fault)
+            run_mission(
+                MissionConfig.fast(), out, on_supervisor=observed, before_fault=before_fault
+            )
         ),
         daemon=True,
     )
@@ -323,7 +326,7 @@ def open_a_page_late(
     until the live page drew the status. `loading`: the camera's `GatedLoad`; `within_ms`:
     how long each page may take to draw the status. The call is unloaded before it returns.
     """
-    observer = sup.observe()
+    observer = observe(sup)
     source = observer._source
     read_catalogs = source._refresh  # (the test reads them with it itself)
     parked, reads = threading.Event(), threading.Event()

@@ -200,6 +200,7 @@ def test_a_protocol_step_cannot_import_the_kit_when_called_either(
     )
 
 
+@pytest.mark.timeout(300)  # (refcount, reconcile: about a minute alone at load 7)
 @pytest.mark.parametrize("name", PROTOCOL)
 def test_a_protocol_step_that_reaches_for_a_global_slot_finds_none_and_fails(
     name: str, tmp_path: Path
