@@ -1482,6 +1482,7 @@ def test_a_simulated_host_whose_tree_fails_to_start_closes_its_subscription(
     made = object.__new__(simulate._SimulatedHost)
     made.plan, made.name = parse_plan(PLAN), "h1"
     made._state_dir, made._seed, made._network, made._on_event = None, 1, None, print
+    made._steps = None  # (the run's classroom steps: none)
     made._commands, made._replies = runtime.SimpleQueue(), runtime.SimpleQueue()
     made._serving = False
     before = this_host()

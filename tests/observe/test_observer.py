@@ -102,6 +102,7 @@ LEFT_OPEN = textwrap.dedent(
     """
     import sys, threading, time
     import rr_actors as rr
+    from rr_actors_lab.observe import observe
 
     system, thread, ending, busy = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4])
     net = rr.ZenohNetwork(system=system, listen=[], connect=[], tls=None)

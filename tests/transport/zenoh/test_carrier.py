@@ -858,6 +858,7 @@ def test_a_call_in_flight_to_a_killed_remote_router_fails_at_once_as_unavailable
     consumer = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"c-{uuid.uuid4().hex[:6]}"))
     try:
         net.serve(Served(consumer))
+        net.wait_for(provider, timeout=30)  # (served there is not yet heard of here)
         done, outcome = in_thread(lambda: consumer.call(provider, "slow", "r", timeout=30))
         assert net.run(provider, wait_load_started, timeout=10)
         killed_at = time.monotonic()
