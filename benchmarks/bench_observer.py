@@ -48,6 +48,7 @@ from playwright.sync_api import sync_playwright
 import rr_actors as rr
 from rr_actors_lab.mission.config import MissionConfig
 from rr_actors_lab.mission.run import run_mission
+from rr_actors_lab.observe import observe
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # the repository: tests.support
 from tests.support.observing import CHROMIUM_ARGS, chromium, stream
@@ -106,7 +107,7 @@ def bench_restart(kills: int, settle: float) -> None:
             done.set()
 
     with sup, sup.subscribe(on_event), browser() as (context, _):
-        observer = sup.observe()
+        observer = observe(sup)
         page = context.new_page()
         page.goto(observer.url)
         page.wait_for_selector('.node[data-child="erm"][data-state="running"]')
@@ -178,7 +179,7 @@ def bench_overhead(calls: int, rounds: int, missions: int) -> None:
             samples["no observer"].append(dedup_calls(app, calls))
             with sup.subscribe(lambda _: None):
                 samples["a no-op subscriber"].append(dedup_calls(app, calls))
-            with sup.observe() as observer:
+            with observe(sup) as observer:
                 samples["observer open"].append(dedup_calls(app, calls))
                 page = context.new_page()
                 page.goto(observer.url)
@@ -246,7 +247,7 @@ def mission_with(label: str, context: Any) -> Any:
     opened = threading.Event()
 
     def observe(sup: rr.Supervisor) -> None:
-        urls.append(sup.observe().url)
+        urls.append(observe(sup).url)
         opened.set()
 
     with tempfile.TemporaryDirectory() as out:
@@ -300,7 +301,7 @@ def bench_memory(soak: float, sample: float) -> None:
     urls: list[str] = []
 
     def observe(sup: rr.Supervisor) -> None:
-        urls.append(sup.observe().url)
+        urls.append(observe(sup).url)
         opened.append(sup)
 
     stop_statuses = threading.Event()
@@ -373,7 +374,7 @@ def bench_page(sizes: list[int], changes: int) -> None:
         for n in sizes:
             sup = rr.Supervisor([rr.ManagerSpec("erm", erm_setup, isolation="thread")])
             with sup:
-                observer = sup.observe()
+                observer = observe(sup)
                 app = sup.registrar("bench")
                 held = [app.call("erm", "camera", f"/dev/video{i}") for i in range(n)]
 

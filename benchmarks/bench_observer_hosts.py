@@ -8,8 +8,8 @@ mutual TLS (lease 1 s; `bravo` dials `alpha`) and a supervisor in a worker proce
 * cost: `bravo` runs a thread manager `slots` serving `--resources` resources (loaded by
   a consumer registrar of its supervisor). Measured over `--window` seconds, idle and
   then with one load and one unload every 0.5 s (two catalog changes a second), with
-  (i) no observer, (ii) `sup.observe(across_hosts=False)` (this host only, for
-  comparison) and (iii) `sup.observe()` across hosts while `alpha`'s observer follows it
+  (i) no observer, (ii) `observe(sup, across_hosts=False)` (this host only, for
+  comparison) and (iii) `observe(sup)` across hosts while `alpha`'s observer follows it
   (its `SystemView`): the CPU time of `bravo`'s process (the supervisor, the router and
   the manager: one process) and of `alpha`'s, from `/proc/<pid>/stat`, and the bytes
   `bravo`'s share published (`Share.sent_bytes`: deltas and state answers). No page is
@@ -92,7 +92,9 @@ def observe(across: bool | None) -> str:
         old.close()
     if across is None:
         return ""
-    observer = hosts.KEPT["sup"].observe(across_hosts=across)
+    from rr_actors_lab.observe import observe as opened  # noqa: PLC0415 - in the namespace
+
+    observer = opened(hosts.KEPT["sup"], across_hosts=across)
     hosts.KEPT["observer"] = observer
     return str(observer.url)
 
