@@ -922,7 +922,6 @@ def test_the_plant_record_lost_is_caught_by_record_kept_at_simchain_seed_1(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     from rr_actors._store import schema as store_plan  # noqa: PLC0415
-    from rr_actors._store import sqlite  # noqa: PLC0415
 
     plan = load_plan(plans.find("simchain"))
     assert "held" == simulate.run_seed(plan, 1).verdict
@@ -932,8 +931,7 @@ def test_the_plant_record_lost_is_caught_by_record_kept_at_simchain_seed_1(
     made: dict[str, object] = {}
     planted = source.replace(old, '[].append(\n            (\n                "INSERT INTO clients')
     exec(compile(planted, store_plan.__file__, "exec"), vars(store_plan), made)  # noqa: S102
-    for module in (store_plan, sqlite):  # (sqlite imported it by name)
-        monkeypatch.setattr(module, "plan_client", made["plan_client"])
+    monkeypatch.setattr(store_plan, "plan_client", made["plan_client"])  # (sqlite: schema.x)
     found = simulate.run_seed(plan, 1).findings
     assert any("[record-kept]" in line for line in found), found
 
