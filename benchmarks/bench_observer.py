@@ -246,13 +246,13 @@ def mission_with(label: str, context: Any) -> Any:
     urls: list[str] = []
     opened = threading.Event()
 
-    def observe(sup: rr.Supervisor) -> None:
+    def observed(sup: rr.Supervisor) -> None:
         urls.append(observe(sup).url)
         opened.set()
 
     with tempfile.TemporaryDirectory() as out:
         result: list[Any] = []
-        hook = None if label == "no observer" else observe
+        hook = None if label == "no observer" else observed
         runner = threading.Thread(
             target=lambda: result.append(run_mission(MissionConfig.fast(), out, on_supervisor=hook))
         )
@@ -300,7 +300,7 @@ def bench_memory(soak: float, sample: float) -> None:
     opened: list[rr.Supervisor] = []
     urls: list[str] = []
 
-    def observe(sup: rr.Supervisor) -> None:
+    def observed(sup: rr.Supervisor) -> None:
         urls.append(observe(sup).url)
         opened.append(sup)
 
@@ -319,7 +319,7 @@ def bench_memory(soak: float, sample: float) -> None:
     with browser() as (context, profile), tempfile.TemporaryDirectory() as out:
         result: list[Any] = []
         runner = threading.Thread(
-            target=lambda: result.append(run_mission(config, out, on_supervisor=observe))
+            target=lambda: result.append(run_mission(config, out, on_supervisor=observed))
         )
         runner.start()
         page = context.new_page()
