@@ -4,7 +4,8 @@ The registrar tests' placements (threads, manager processes over AF_UNIX or Zeno
 async API) and recording servers are `tests/registrar/conftest.py`'s.
 
 The autouse `no_leftovers` fixture fails any test that leaves pykka actors or child
-processes running (in either placement).
+processes running (in either placement), or a simulation run going: that one also ends
+its process (a pytest-xdist worker is replaced), since no later test could run in it.
 """
 
 from __future__ import annotations
@@ -15,7 +16,9 @@ import multiprocessing
 import os
 import signal
 import sys
+import threading
 import time
+import traceback
 import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -27,6 +30,7 @@ import pykka
 import pytest
 
 import rr_actors as rr
+from rr_actors._core import runtime
 from rr_actors.testing import (
     RemoteRegistrar,
     SharedObjects,
@@ -39,6 +43,16 @@ pytest_plugins = ["tests.support.carriers"]  # the transport tests' fixtures
 
 LEAK_GRACE = 5.0
 """Seconds a test's actors and child processes get to finish stopping after it ended."""
+
+SIMULATION_GRACE = 120.0
+"""Seconds a simulation run's thread gets to end after its test did: a run cancelled by
+the test's timeout unwinds its greenlets after `simulation.run` stopped waiting for it
+(`CANCEL_TIMEOUT`), slowly on a loaded machine, and the process stays simulated until
+it has."""
+
+_poisoned: list[str] = []
+"""Why this process can run no further test (a simulation that never ended): the worker
+ends after the test's report, and pytest-xdist starts a fresh one for the tests left."""
 
 _HELPER_PIDS: set[int] = set()
 """Session-long helper processes (the `SharedObjects` manager), not leaks of a test."""
@@ -169,6 +183,7 @@ def no_leftovers() -> Iterator[None]:
     """Fail the test if pykka actors or child processes outlive it (after a bounded wait)."""
     children_before = set(_os_children())
     yield
+    _no_simulation_left()
     deadline = time.monotonic() + LEAK_GRACE
     for ref in pykka.ActorRegistry.get_all():
         ref.actor_stopped.wait(max(0.0, deadline - time.monotonic()))
@@ -198,6 +213,44 @@ def no_leftovers() -> Iterator[None]:
         )
     if problems:
         pytest.fail("; ".join(problems))
+
+
+def _no_simulation_left() -> None:
+    """Wait (up to `SIMULATION_GRACE` seconds) for a simulation run the test left going to
+    end; fail the test, and end this process after its report, if it does not. A process
+    whose runtime stays simulated fails every later test that starts a process or a
+    simulation (stop 74: one run that outlived its test's timeout failed 85 more)."""
+    if not runtime.simulated():
+        return
+    deadline = time.monotonic() + SIMULATION_GRACE
+    runs = [t for t in threading.enumerate() if t.name.startswith("rr-simulation-")]
+    for thread in runs:
+        thread.join(max(0.0, deadline - time.monotonic()))
+    if not runtime.simulated():
+        return
+    frames = sys._current_frames()
+    stacks = "".join(
+        f"{thread.name}:\n" + "".join(traceback.format_stack(frames[thread.ident]))
+        for thread in runs
+        if thread.ident in frames
+    )
+    _poisoned.append(f"a simulation run outlived its test by {SIMULATION_GRACE:g} s")
+    pytest.fail(
+        f"a simulation run did not end within {SIMULATION_GRACE:g} s of its test's end; "
+        f"this process stays simulated and ends after this test:\n{stacks}"
+    )
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_runtest_logfinish(nodeid: str) -> None:
+    """End a process no test can run in any more (`_poisoned`), once `nodeid`'s reports
+    are out: under pytest-xdist a fresh worker takes the tests left; alone, the session
+    ends here with the reason."""
+    if not _poisoned:
+        return
+    sys.stderr.write(f"\nthe process ends after {nodeid}: {_poisoned[0]}\n")
+    sys.stderr.flush()
+    os._exit(3)
 
 
 @pytest.fixture(scope="module")

@@ -11,6 +11,7 @@ And the order files go out in: the slowest first (`FIRST`), as conftest lists th
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 import types
@@ -81,3 +82,54 @@ def test_the_slowest_files_go_out_first_in_conftests_order_not_re_sorted_by_xdis
 
     assert options.loadscopereorder is False
     assert [] == [name for name in conftest.FIRST if not (ROOT / "tests" / name).is_file()]
+
+
+LEAVES_A_RUN = """
+import threading
+
+import pytest
+
+from rr_actors import simulation
+from tests import conftest
+
+conftest.SIMULATION_GRACE = 1.0  # (the suite's is minutes)
+
+
+def test_leaves_a_simulation_going():
+    real = threading.Event()  # (never set: the run's thread blocks for real, for ever)
+    with pytest.raises(simulation.SimulationError, match="did not end"):
+        simulation.run(real.wait, seed=1, timeout=0.5)
+
+
+def test_runs_a_simulation_after_it():
+    assert 7 == simulation.run(lambda: 7, seed=1).value
+"""
+
+
+@pytest.mark.timeout(180)  # (two workers to start, then seconds)
+def test_a_simulation_that_outlives_its_test_fails_it_and_the_next_test_gets_a_fresh_worker(
+    tmp_path: Path,
+) -> None:
+    """Stop 74: a simulation run cancelled by its test's timeout did not end, its process
+    stayed simulated, and the 85 tests its worker ran next failed ("a simulation already
+    runs", a manager process that did not start). The test that left it fails; the worker
+    ends after it, and the next test runs on a fresh one."""
+    (tmp_path / "test_left.py").write_text(LEAVES_A_RUN)
+    done = subprocess.run(
+        [
+            *(sys.executable, "-m", "pytest", "-q", "-n", "1", "-p", "no:cacheprovider"),
+            *("-p", "tests.conftest", "--rootdir", str(tmp_path), "-c", "/dev/null"),
+            str(tmp_path / "test_left.py"),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=150,
+        check=False,
+    )
+    out = done.stdout + done.stderr
+
+    # (xdist runs the crashed test again on the fresh worker: it passes there too)
+    assert re.search(r"\b1 failed, 2 passed, 1 error\b", out), out
+    assert "did not end within 1 s of its test's end" in out, out
+    assert "a simulation already runs" not in out, out

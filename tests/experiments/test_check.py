@@ -3210,6 +3210,7 @@ def test_a_status_whose_send_died_with_its_killed_provider_is_on_its_path() -> N
     assert ["status-path", "status-path"] == [f.rule for f in found if f.rule == "status-path"]
 
 
+@pytest.mark.timeout(300)  # (a whole simdoubt run: 3 s alone, over 60 s at a load of 75)
 def test_drop_delivery_leaves_a_status_whose_sender_was_killed_right_after_it_sent_it_on() -> None:
     """`simdoubt` seed 13 (15 until announced restarts moved its history): a registrar is
     killed right after a status reaches it at hop 1 (its last line), its climb already on
