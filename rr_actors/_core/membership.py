@@ -18,14 +18,15 @@ it, and one that starts later hears it when it joins, until a later incarnation 
  X served again (a registrar named X starts here, a supervisor restarts it, a carrier
    sees it served) ─► back(X)
  a supervisor stopped X for good ─► stopped(X) ─► record, peer_stopped(X) (what X still
-   holds here is stale: a stopped registrar holds nothing, rule 12)
+   holds here is stale: a stopped registrar holds nothing, rule 12); in the tree's stop,
+   not to its managers still running here: each hears them all before its own stop
 ```
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable
+from collections.abc import Container, Iterable
 from typing import Protocol
 
 from rr_actors._core import runtime
@@ -92,16 +93,18 @@ class Membership:
         logger.debug("membership: %s is gone for good (%s)", name, by)
         _tell(targets.values(), "peer_lost", name)
 
-    def stopped(self, name: str, *, by: str) -> None:
+    def stopped(self, name: str, *, by: str, later: Container[str] = frozenset()) -> None:
         """Registrar `name` was stopped for good: record it (a record that it was lost stays), then
         every joined hearer hears it, unless its stop is recorded already: each hearer heard
         that one, or hears it as it joins (each registrar here that gets the mark from
-        another process reports it, so N registrars told would be N x N tells)."""
+        another process reports it, so N registrars told would be N x N tells). Hearers
+        named in `later` are not told: their supervisor tells each of them once, before its
+        own stop, every stop of the tree's stop so far (N x N tells again, otherwise)."""
         with self._lock:
             if self._gone.get(name) is True:
                 return
             self._gone.setdefault(name, True)
-            targets = list(self._hearers.values())
+            targets = [h for n, h in self._hearers.items() if n not in later]
         logger.debug("membership: %s was stopped for good (%s)", name, by)
         _tell(targets, "peer_stopped", name)
 

@@ -69,6 +69,7 @@ from rr_actors._registrar.messages import (
     OpenClient,
     PeerLost,
     PeerReachable,
+    PeersStopped,
     Ping,
     Reachable,
     Ready,
@@ -174,6 +175,7 @@ DISPATCH: dict[type, tuple[str, Binder]] = {
     LostEverything: ("lost_everything", lambda a: a.reconciling.on_lost_everything),  # no backup
     # -- from a carrier's presence callbacks (`Served`) --
     PeerLost: ("peer_lost", lambda a: a.presence.on_peer_lost),  # gone, nobody restarts it
+    PeersStopped: ("peers_stopped", lambda a: a.presence.on_peers_stopped),  # the tree's stop
     PeerReachable: ("peer_reachable", lambda a: a.presence.on_peer_reachable),  # link healed
     ReconcileRetry: ("reconcile_retry", lambda a: a.presence.on_reconcile_retry),  # its timer
     KeptUnclaimed: ("kept_unclaimed", lambda a: a.reconciling.on_kept_unclaimed),  # its timer

@@ -30,7 +30,7 @@ import dataclasses
 import functools
 import hashlib
 import logging
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Container, Iterable
 from typing import Any, Protocol
 
 import pykka
@@ -51,6 +51,7 @@ from rr_actors._registrar.messages import (
     LostEverything,
     PeerLost,
     PeerReachable,
+    PeersStopped,
     Reachable,
     Ready,
     ReconcileAsk,
@@ -574,6 +575,10 @@ class Presence:
         else:
             self.lose(message.name)
 
+    def on_peers_stopped(self, message: PeersStopped, _reply: Reply) -> None:
+        for name in message.names:
+            self.stopped(name)
+
     def on_consumer_down(self, message: ConsumerDown, _reply: Reply) -> None:
         """Another process's death watch mark: into this process's membership, which tells every
         registrar here (`PeerLost`)."""
@@ -926,12 +931,19 @@ def _mark(name: str, *, stopped: bool = False) -> ConsumerDown:
     return ConsumerDown(name, stopped)
 
 
-def gone_for_good(name: str, *, also: Iterable[str] = (), stopped: bool = False) -> None:
+def gone_for_good(
+    name: str,
+    *,
+    also: Iterable[str] = (),
+    stopped: bool = False,
+    later: Container[str] = frozenset(),
+) -> None:
     """Registrar `name` is gone and nobody will restart it: this process's membership
     records it, and each of `also` of another process gets the mark (skipped if unreachable).
-    `stopped`: stopped cleanly, so it holds nothing (rule 12) and what it held is released."""
+    `stopped`: stopped cleanly, so it holds nothing (rule 12) and what it held is released;
+    `later`: registrars here that hear that stop later (`PeersStopped`, the tree's stop)."""
     if stopped:
-        MEMBERSHIP.stopped(name, by="its supervisor")
+        MEMBERSHIP.stopped(name, by="its supervisor", later=later)
     else:
         MEMBERSHIP.lost(name, by="the death watch")
     here = {peer.name for peer in DIRECTORY.local_peers()}

@@ -533,6 +533,15 @@ class PeerLost:
 
 
 @dataclasses.dataclass(frozen=True)
+class PeersStopped:
+    """Its supervisor, as the tree's stop reaches it: registrars `names` of the tree were
+    stopped for good before it (rule 12), told once here rather than each as it stopped
+    (`PeerLost` to every registrar still running: N x N messages in a tree of N)."""
+
+    names: tuple[str, ...]
+
+
+@dataclasses.dataclass(frozen=True)
 class PeerReachable:
     """A carrier: registrar `name` of another process can be reached again (a healed link)."""
 

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Literal, Protocol
 from rr_actors._core import runtime
 from rr_actors._process.manager import ManagerExit, ManagerProcess, stopped_cleanly
 from rr_actors._registrar import Served, start_registrar
+from rr_actors._registrar.messages import PeersStopped
 from rr_actors.config import (
     Isolation,
     ManagerSpec,
@@ -239,6 +240,11 @@ class ThreadManager:
 
         runtime.Thread(target=watch, name=f"rr-watch-{spec.name}", daemon=True).start()
 
+    def tell_stopped(self, names: tuple[str, ...]) -> None:
+        """Registrars `names` were stopped for good (before its own stop, the tree's)."""
+        with contextlib.suppress(RrError):  # (it ended meanwhile: its stop says so)
+            self.registrar.tell(PeersStopped(names))
+
     def stop(self, timeout: float | None, *, restarting: bool = False) -> ManagerExit:
         """Stop the registrar cleanly; tell its actor to crash if that takes too long."""
         timeout = self.spec.shutdown if timeout is None else timeout
@@ -310,6 +316,10 @@ class ProcessManager:
         if relay is not None:
             relay.attach(handle, forwarding=forwarding)
         return cls(handle, spec.shutdown)
+
+    def tell_stopped(self, names: tuple[str, ...]) -> None:
+        """Registrars `names` were stopped for good (before its own stop, the tree's)."""
+        self.handle.tell_stopped(names)
 
     def stop(self, timeout: float | None, *, restarting: bool = False) -> ManagerExit:
         limit = self.handle_shutdown if timeout is None else timeout

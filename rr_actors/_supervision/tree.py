@@ -41,6 +41,7 @@ from rr_actors._supervision.children import (
     Level,
     NestedSupervisor,
     ProcessManager,
+    ThreadManager,
     is_pool,
     restarts_after,
     snapshot,
@@ -365,6 +366,18 @@ def _process_handles(level: Level) -> dict[str, ProcessManager]:
     return found
 
 
+def _threaded(level: Level) -> set[str]:
+    """The tree's living thread managers below `level`."""
+    found: set[str] = set()
+    for child in list(level.children):
+        running = child.running
+        if isinstance(running, NestedSupervisor):
+            found.update(_threaded(running.node))
+        elif isinstance(running, ThreadManager):
+            found.add(child.name)
+    return found
+
+
 def consumer_down(
     root: Level,
     name: str,
@@ -375,11 +388,11 @@ def consumer_down(
 ) -> None:
     """Death watch (rule 19): registrar `name` is gone for good; every living registrar is
     told (`stopped`: it stopped cleanly, what it holds is stale, rule 12). `ending`
-    (`Tree.ending`): the tree's manager processes hear a stopped one only before their own
-    stop (dependents stop first), one notice each, not one per pair."""
+    (`Tree.ending`): the tree's managers hear a stopped one only before their own stop
+    (dependents stop first), one notice each, not one per pair."""
     if stopped and ending is not None:
         beyond = set(_living(root, network)) - _piped(root)  # (the tree's hear it by pipe)
-        life.gone_for_good(name, also=beyond, stopped=True)
+        life.gone_for_good(name, also=beyond, stopped=True, later=_threaded(root))
         ending.append(name)
         return
     life.gone_for_good(name, also=_living(root, network), stopped=stopped)
