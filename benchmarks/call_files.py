@@ -89,7 +89,7 @@ def pykka_floor(rounds: int) -> list[set[str]]:
         for _ in range(rounds):
             seen.clear()
             ref.ask("counted", timeout=BOUND)
-            counts.append({name for name in seen if "/pykka/" in name})
+            counts.append({name for name in seen.copy() if "/pykka/" in name})
         return counts
     finally:
         ref.stop()

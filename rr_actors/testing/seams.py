@@ -111,7 +111,7 @@ def actor_ref(
     local = _local(registrar, "actor_ref")
     if client is None:
         return local._actor.ref
-    ref = local._actor.clients.get(*client)
+    ref = local._actor.clients.get(client)
     if ref is None:
         raise ConfigError(f"registrar {local.name!r} has no client for {client!r}")
     return ref
