@@ -13,9 +13,12 @@ and writes the files it ran after the window):
 
 The heartbeat is off (its pings run whether or not a call does), as in `count_restart.py`.
 Each call is a dedup hit (its request loaded in the warm-up), after a warm-up call, so
-neither the first client nor a `load` is counted. Counted: the distinct files under
-`rr_actors/` and `rr_actors_lab/` run by any thread of any process of the tree in the
-window; `--list` prints them. Run it from the root of the tree to count (the managers'
+neither the first client nor a `load` is counted; the tree has a `state_dir`, so both
+registrars are durable, as a supervisor's managers are (a hit commits a consumer id).
+Counted: the distinct files under `rr_actors/` and `rr_actors_lab/` run by any thread of
+any process of the tree in the window; `--list` prints them. Read the rounds after the
+first: the first window also counts the spare manager process the supervisor forks and
+warms in the background. Run it from the root of the tree to count (the managers'
 forkservers put the working folder first on `sys.path`).
 
 pykka's own `ask` (an actor answering a message in this process), counted the same way
@@ -34,7 +37,7 @@ import sys
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from count_restart import BOUND, HOOK, ours, provider_setup, run, signal_all
 
@@ -52,11 +55,13 @@ def counted_files(folder: str, action: Callable[[], object]) -> set[str]:
     return found
 
 
-def call_rounds(folder: str, work: str, isolation: str, rounds: int) -> list[set[str]]:
+def call_rounds(
+    folder: str, work: str, isolation: Literal["thread", "process"], rounds: int
+) -> list[set[str]]:
     """`rounds` dedup-hit calls to a manager of `isolation`, each counted."""
     import rr_actors as rr  # noqa: PLC0415 - after the tracer is installed
 
-    spec = rr.ManagerSpec("provider", provider_setup, isolation=isolation, heartbeat=None)  # type: ignore[arg-type]
+    spec = rr.ManagerSpec("provider", provider_setup, isolation=isolation, heartbeat=None)
     with rr.Supervisor([spec], state_dir=Path(work, f"state-{isolation}")) as sup:
         caller = sup.registrar(f"caller-{isolation}")
         try:
@@ -89,7 +94,9 @@ def pykka_floor(rounds: int) -> list[set[str]]:
         for _ in range(rounds):
             seen.clear()
             ref.ask("counted", timeout=BOUND)
-            counts.append({name for name in seen.copy() if "/pykka/" in name})
+            counts.append(
+                {name[name.rindex("/pykka/") + 1 :] for name in seen.copy() if "/pykka/" in name}
+            )
         return counts
     finally:
         ref.stop()
@@ -119,7 +126,10 @@ def main() -> int:
                 restarts = run(args.rounds, False, str(folder), work, kill=True)
                 found[case] = [set().union(*each.values()) for each in restarts]
             else:
-                found[case] = call_rounds(str(folder), work, case, args.rounds)
+                isolation: Literal["thread", "process"] = (
+                    "thread" if case == "thread" else "process"
+                )
+                found[case] = call_rounds(str(folder), work, isolation, args.rounds)
     print("distinct rr_actors/ and rr_actors_lab/ files run in the window, every process")
     print("| case | " + " | ".join(f"round {n}" for n in range(1, args.rounds + 1)) + " |")
     print("|---|" + "---:|" * args.rounds)
