@@ -24,7 +24,10 @@ forkservers put the working folder first on `sys.path`).
 pykka's own `ask` (an actor answering a message in this process), counted the same way
 over pykka's files, is printed as the floor.
 
+`--fresh`: each counted call asks for a new request (a load, not a hit).
+
 Usage: python benchmarks/call_files.py [--rounds 3] [--list] [--only thread|process|restart]
+       [--fresh]
 """
 
 from __future__ import annotations
@@ -56,9 +59,10 @@ def counted_files(folder: str, action: Callable[[], object]) -> set[str]:
 
 
 def call_rounds(
-    folder: str, work: str, isolation: Literal["thread", "process"], rounds: int
+    folder: str, work: str, isolation: Literal["thread", "process"], rounds: int, *, fresh: bool
 ) -> list[set[str]]:
-    """`rounds` dedup-hit calls to a manager of `isolation`, each counted."""
+    """`rounds` dedup-hit calls to a manager of `isolation`, each counted (`fresh`: each
+    call a new request, so a load)."""
     import rr_actors as rr  # noqa: PLC0415 - after the tracer is installed
 
     spec = rr.ManagerSpec("provider", provider_setup, isolation=isolation, heartbeat=None)
@@ -69,9 +73,12 @@ def call_rounds(
                 caller.call("provider", "res", "warm-up", timeout=BOUND)
             return [
                 counted_files(
-                    folder, lambda: caller.call("provider", "res", "warm-up", timeout=BOUND)
+                    folder,
+                    lambda n=n: caller.call(
+                        "provider", "res", f"fresh-{n}" if fresh else "warm-up", timeout=BOUND
+                    ),
                 )
-                for _ in range(rounds)
+                for n in range(rounds)
             ]
         finally:
             caller.stop()
@@ -107,6 +114,7 @@ def main() -> int:
     parser.add_argument("--rounds", type=int, default=3, help="windows counted per case")
     parser.add_argument("--list", action="store_true", help="the files of each case's last round")
     parser.add_argument("--only", choices=CASES, help="one case")
+    parser.add_argument("--fresh", action="store_true", help="calls that load (thread, process)")
     args = parser.parse_args()
     cases = (args.only,) if args.only else CASES
     with tempfile.TemporaryDirectory() as work:
@@ -129,7 +137,9 @@ def main() -> int:
                 isolation: Literal["thread", "process"] = (
                     "thread" if case == "thread" else "process"
                 )
-                found[case] = call_rounds(str(folder), work, isolation, args.rounds)
+                found[case] = call_rounds(
+                    str(folder), work, isolation, args.rounds, fresh=args.fresh
+                )
     print("distinct rr_actors/ and rr_actors_lab/ files run in the window, every process")
     print("| case | " + " | ".join(f"round {n}" for n in range(1, args.rounds + 1)) + " |")
     print("|---|" + "---:|" * args.rounds)
