@@ -33,6 +33,7 @@ Usage: python benchmarks/call_files.py [--rounds 3] [--list] [--only thread|proc
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib
 import os
 import signal
@@ -74,8 +75,12 @@ def call_rounds(
             return [
                 counted_files(
                     folder,
-                    lambda n=n: caller.call(
-                        "provider", "res", f"fresh-{n}" if fresh else "warm-up", timeout=BOUND
+                    functools.partial(
+                        caller.call,
+                        "provider",
+                        "res",
+                        f"fresh-{n}" if fresh else "warm-up",
+                        timeout=BOUND,
                     ),
                 )
                 for n in range(rounds)
