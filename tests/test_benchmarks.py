@@ -117,6 +117,7 @@ SMALLEST = {
         *("--joins", "1", "--quiet", "1", "--cuts", "1", "--flood", "0.5"),
         *("--sources", "4", "--spoofed", "5"),
     ],
+    "call_files.py": ["--rounds", "1"],
     "count_cross.py": ["--calls", "5", "--profile", "--durable"],
     "count_dedup.py": ["--calls", "5", "--profile"],
     "count_links.py": ["--counts", "3", "--restarts", "1"],

@@ -1282,27 +1282,25 @@ class ClientActor(Actor):
                 message.reply.set_error(exc)
 
 
-class Clients:
-    """A registrar's client actors by `(target registrar, server)`, looked up from any thread."""
+class Clients(dict[tuple[str, str], "pykka.ActorRef[ClientActor]"]):
+    """A registrar's client actors by `(target registrar, server)`, looked up from any thread.
 
-    __slots__ = ("_refs",)
+    A dict, so that a call looks its client up with the dict's own `get` (no frame of this
+    module on a call's path); `start` and `stop_all` are the only writers.
+    """
 
-    def __init__(self) -> None:
-        self._refs: dict[tuple[str, str], pykka.ActorRef[ClientActor]] = {}
-
-    def get(self, target_rr: str, server: str) -> pykka.ActorRef[ClientActor] | None:
-        return self._refs.get((target_rr, server))
+    __slots__ = ()
 
     def start(
         self, registrar_ref: pykka.ActorRef[Any], origin_rr: str, target_rr: str, server: str
     ) -> pykka.ActorRef[ClientActor]:
         key = (target_rr, server)
-        client = self._refs.get(key)
+        client = self.get(key)
         if client is None:
             client = ClientActor.start(registrar_ref, origin_rr, target_rr, server)
-            self._refs[key] = client
+            self[key] = client
         return client
 
     def stop_all(self) -> None:
-        for client in list(self._refs.values()):
+        for client in list(self.values()):
             client.stop(block=True, timeout=5.0)

@@ -712,7 +712,7 @@ class Here:
             traces.begin(),  # (in the caller's thread or task: its OpenTelemetry context)
             wait_overloaded=if_overloaded == "wait",
         )
-        client = self.clients.get(target_rr, server)
+        client = self.clients.get((target_rr, server))
         if client is None or not client.is_alive():  # (it exists from the first call)
             return _after(self.client(target_rr, server, limit), steps)
         return steps
@@ -852,7 +852,7 @@ class Here:
         self, target_rr: str, server: str, timeout: float
     ) -> Steps[pykka.ActorRef[ClientActor]]:
         """The client actor for `target_rr/server` (the actor starts it on first use)."""
-        client = self.clients.get(target_rr, server)
+        client = self.clients.get((target_rr, server))
         if client is None or not client.is_alive():
             started: pykka.ActorRef[ClientActor] = yield from self.asking(
                 OpenClient(target_rr, server, FutureReply()), timeout, "starting a client"

@@ -879,19 +879,15 @@ def serve_on(network: Network, registrar: Servable) -> None:
 class Served:
     """A registrar of this process as a carrier serves it (`_transport.messenger.Endpoint`)."""
 
-    __slots__ = ("registrar",)
+    __slots__ = ("max_message_bytes", "name", "registrar")
 
     def __init__(self, registrar: Servable) -> None:
         self.registrar = registrar
-
-    @property
-    def name(self) -> str:
-        return self.registrar.name
-
-    @property
-    def max_message_bytes(self) -> int:
-        """Its config's `max_message_bytes`: the carrier bounds its connections by it."""
-        return self.registrar.config.max_message_bytes
+        # Read once (a registrar's config is frozen): the carrier reads both for every
+        # message it delivers (it bounds its connections by `max_message_bytes`), so no
+        # frame of this module runs on a call's path.
+        self.name: str = registrar.name
+        self.max_message_bytes: int = registrar.config.max_message_bytes
 
     def run(self, fn: Callable[[Any], Any]) -> Any:
         return fn(self.registrar)

@@ -111,7 +111,8 @@ def actor_ref(
     local = _local(registrar, "actor_ref")
     if client is None:
         return local._actor.ref
-    ref = local._actor.clients.get(*client)
+    target_rr, server = client  # (a list of the two too)
+    ref = local._actor.clients.get((target_rr, server))
     if ref is None:
         raise ConfigError(f"registrar {local.name!r} has no client for {client!r}")
     return ref
