@@ -605,7 +605,14 @@ class Presence:
         """
         if name == self.registrar.name:
             return
-        serving = self.registrar.phase is Phase.SERVING and name in DIRECTORY.names()
+        registrar = self.registrar
+        serving = (
+            registrar.phase is Phase.SERVING
+            # (business first: the directory's names are every registrar of the system,
+            # read at each loss by each registrar here, N x N in a tree's stop)
+            and (registrar.unloading.holds_of(name) or registrar.reconciling.holds_at(name))
+            and name in DIRECTORY.names()
+        )
         if not (defer and serving and self.ask_consumer(name)):
             self.stop_asking(name)
             self.registrar.unloading.release_all_of(name)

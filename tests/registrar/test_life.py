@@ -57,7 +57,7 @@ from rr_actors.testing import (
     intercept,
     pending_work,
 )
-from rr_actors.testing.seams import _ask_actor
+from rr_actors.testing.seams import _ask_actor, run_on_actor
 from tests.support.names import named
 from tests.support.supervising import kill_and_wait_restarted, process, sigkill
 from tests.support.waiting import wait_for
@@ -1203,6 +1203,41 @@ class TestMembership:
                 raise AssertionError("a query held at a lost provider was still held")
         finally:
             back.stop()
+
+    def test_a_registrar_with_no_business_with_a_lost_one_does_not_list_the_system(
+        self, uid: str, monkeypatch: pytest.MonkeyPatch
+    ) -> None:
+        """Each registrar that hears a loss asked whether a namesake serves now (rule 22)
+        by listing every registrar of the system: in a tree's stop over Zenoh, every
+        registrar at every loss (3 x 300 managers took minutes). Only one that holds ids
+        there or of it asks."""
+        listed: list[str] = []
+        names = DIRECTORY.names
+
+        def counted() -> set[str]:
+            listed.append(threading.current_thread().name)
+            return names()
+
+        bystanders = [rr.ResourceRegistrar.start(f"by{n}-{uid}") for n in range(3)]
+        holder = rr.ResourceRegistrar.start(f"holder-{uid}")
+        provider = rr.ResourceRegistrar.start(f"prov-{uid}")
+        try:
+            threads = {
+                run_on_actor(r, lambda: threading.current_thread().name).get(timeout=10): r.name
+                for r in [*bystanders, holder]
+            }
+            provider.register_server("leaf", load=lambda r: r, unload=lambda _r, _s: None)
+            holder.call(provider.name, "leaf", "x", timeout=10)
+            monkeypatch.setattr(DIRECTORY, "names", counted)
+            crash(provider)  # gone for good: each registrar here hears it
+            for registrar in [*bystanders, holder]:
+                registrar.client_queries()  # (after the mark, in its mailbox)
+        finally:
+            for registrar in [*bystanders, holder]:
+                registrar.stop()
+
+        # (before: each of them, the three bystanders too)
+        assert [holder.name] == [threads[t] for t in listed if t in threads]
 
 
 @pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
