@@ -76,6 +76,7 @@ from rr_actors.config import (
     SupervisorSpec,
     managers,
 )
+from rr_actors.config import Steps as ProtocolSteps
 from rr_actors.errors import ConfigError, RrError, SupervisorGaveUpError
 
 if TYPE_CHECKING:
@@ -676,8 +677,8 @@ class Starting:
         for name in registrar_names(spec):
             comes_back(name)  # no longer gone for good
         address = processes.system.address if processes.system is not None else None
-        setup = pool_setup(spec, address, tree.durability, self.state_dir)
-        config = RegistrarConfig(name=spec.name, durability=tree.durability)
+        setup = pool_setup(spec, address, tree.durability, self.state_dir, tree.steps)
+        config = tree.durable(RegistrarConfig(name=spec.name, durability=tree.durability))
         announced = functools.partial(self._pool_announced, spec.name)
         started = self._start_process(pool_manager(spec), setup, config, post, announced)
         self._pool_started(spec, restarted=spec.name in tree.started)
@@ -761,12 +762,14 @@ def pool_setup(
     address: Address | None,
     durability: Durability,
     state_dir: str | os.PathLike[str] | None,
+    steps: ProtocolSteps,
 ) -> bytes:
-    """The pickled `setup` of pool `spec`'s registrar (`ConfigError`: one cannot pickle)."""
+    """The pickled `setup` of pool `spec`'s registrar, with the tree's `steps`
+    (`ConfigError`: one cannot pickle)."""
     own = spec.state_dir if spec.state_dir is not None else state_dir
     inner = dataclasses.replace(spec, isolation="thread", state_dir=own)
     try:
-        return wire.dumps(PoolSetup(inner, address, durability))
+        return wire.dumps(PoolSetup(inner, address, durability, steps))
     except Exception as exc:
         raise ConfigError(f"a setup in pool {spec.name!r} is not picklable: {exc}") from exc
 
@@ -780,13 +783,23 @@ class PoolSetup:
     pool's `PoolWatch` each of its thread managers."""
 
     def __init__(
-        self, spec: SupervisorSpec, address: Address | None, durability: Durability
+        self,
+        spec: SupervisorSpec,
+        address: Address | None,
+        durability: Durability,
+        steps: ProtocolSteps,
     ) -> None:
-        self.spec, self.address, self.durability = spec, address, durability
+        self.spec, self.address, self.durability, self.steps = spec, address, durability, steps
 
     def __call__(self, registrar: ResourceRegistrar) -> None:
         network = self.address.attach() if self.address is not None else None
-        tree = Tree(self.spec, clock=runtime.monotonic, network=network, durability=self.durability)
+        tree = Tree(
+            self.spec,
+            clock=runtime.monotonic,
+            network=network,
+            durability=self.durability,
+            steps=self.steps,  # (`Supervisor(steps=)`: the pool's supervisor and managers too)
+        )
         tree.escalate = _pool_gave_up
         tree.upward = functools.partial(_tell_parent, tree)
         tree.processes.open(0, 0.0)  # (the system given: no spares, all threads)

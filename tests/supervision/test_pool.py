@@ -13,6 +13,7 @@ import os
 import select
 import signal
 import threading
+import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -21,6 +22,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import events, testing
+from rr_actors.config import Steps
 from tests.support.waiting import wait_for
 
 BOUND = 30.0  # seconds: generous, the machine is loaded
@@ -39,6 +41,15 @@ def fifo_setup(registrar: rr.ResourceRegistrar) -> None:
         threading.Event().wait()
 
     registrar.register_server("hang", load=load, unload=lambda r, s: None)
+
+
+def unique_setup(registrar: rr.ResourceRegistrar) -> None:
+    """A server whose every load answers a value of its own (equal requests shared: one)."""
+    registrar.register_server("echo", load=lambda r: uuid.uuid4().hex, unload=lambda r, s: None)
+
+
+def never_shared(_stored: Any, _request: Any, _loading: Any, _failed: Any) -> bool:
+    return False
 
 
 def pool(name: str, size: int, setup: Any = echo_setup, **kwargs: Any) -> rr.SupervisorSpec:
@@ -118,6 +129,22 @@ def test_a_pool_s_managers_serve_calls_from_this_process_and_from_another_pool(
         f"b{uid}-m1", lambda r: r.call(target, "echo", 2).response, timeout=BOUND
     )
     assert 2 == answer
+
+
+def test_a_supervisors_steps_reach_the_managers_of_its_pools(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    """`Supervisor(steps=)` is the tree's: a pool's managers, in a process of their own,
+    run them too (they ran their own: the pool's supervisor was made without them)."""
+    name = f"s{uid}-m0"
+    sup = supervisors([pool(f"s{uid}", 1, unique_setup)], steps=Steps(shares=never_shared))
+    sup.start()
+    app = sup.registrar(f"app-{uid}")
+
+    first = app.call(name, "echo", "x", timeout=BOUND).response
+    second = app.call(name, "echo", "x", timeout=BOUND).response
+
+    assert first != second  # an equal request loaded again: the tree's `shares` said so
 
 
 def test_a_crash_of_one_manager_in_a_pool_restarts_only_that_one_with_its_catalog(
