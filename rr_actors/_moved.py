@@ -20,11 +20,10 @@ import importlib
 import warnings
 from collections.abc import Callable
 from types import ModuleType
-from typing import Any
 
 from rr_actors import _extras
 
-__all__ = ["alias", "beside", "lab", "warn"]
+__all__ = ["alias", "lab", "warn"]
 
 LAB = "rr_actors_lab"
 
@@ -76,18 +75,3 @@ def alias(name: str) -> Callable[[str], object]:
                 ) from None
 
     return __getattr__
-
-
-def beside(found: list[Callable[[Any], Any]]) -> Callable[[Any], Any] | None:
-    """What runs beside a Zenoh session when nothing attached it (`found` empty): the lab's
-    event feed across hosts, if the lab is installed (importing it attaches it to `found`);
-    `None` with the runtime alone (`ZenohNetwork.subscribe_events` then says so).
-
-    Not deprecated: the one reach of the lab left (issue 71 item 1), until the feed is
-    the carrier's own.
-    """
-    try:
-        importlib.import_module(f"{LAB}.observe._feed")
-    except ImportError:
-        return None
-    return found[0] if found else None

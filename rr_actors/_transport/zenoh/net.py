@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import importlib.metadata
 import logging
 import math
 import os
@@ -21,7 +22,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 import zenoh
 
-from rr_actors import _moved, events
+from rr_actors import events
 from rr_actors._core import wire
 from rr_actors._core.bus import DEFAULT_MAXSIZE, Subscription
 from rr_actors._core.exit import NETWORKS, stop_at_exit
@@ -92,8 +93,8 @@ class Opened:
 
 
 class Beside(Protocol):
-    """What runs beside a process's Zenoh session (`rr_actors_lab.observe._feed`, attached
-    from above by `attach_beside`): made as the session opens, closed before."""
+    """What runs beside a process's Zenoh session (an installed package's, `BESIDE_GROUP`,
+    attached from above by `attach_beside`): made as the session opens, closed before."""
 
     def subscribe_events(
         self, callback: Callable[[events.Event], object], window: float, maxsize: int
@@ -109,6 +110,24 @@ _BESIDE: list[Callable[[Opened], Beside]] = []  # the maker of what runs beside 
 def attach_beside(make: Callable[[Opened], Beside]) -> None:
     """Run `make(opened)` beside every session opened from now on (the last call wins)."""
     _BESIDE[:] = [make]
+
+
+BESIDE_GROUP = "rr_actors.zenoh"
+"""The entry-point group of what runs beside a session: an installed package offers one by
+naming a module there that attaches it as it is imported (`attach_beside`; the lab's
+event feed across hosts, in this project's pyproject.toml). The runtime names no tool."""
+
+
+def _beside() -> Callable[[Opened], Beside] | None:
+    """What runs beside a session opened now: the one attached, else the one an installed
+    package offers (`BESIDE_GROUP`; one whose imports are missing offers none), else `None`."""
+    if not _BESIDE:
+        for point in importlib.metadata.entry_points(group=BESIDE_GROUP):
+            try:
+                point.load()
+            except ImportError as exc:  # (an extra not installed)
+                logger.debug("%s %s offers nothing beside a session: %s", BESIDE_GROUP, point, exc)
+    return _BESIDE[0] if _BESIDE else None
 
 
 def _check_window(window: object) -> float:
@@ -418,7 +437,7 @@ class ZenohNetwork(Messenger):
             raise ConfigError(
                 f"ZenohNetwork {self.system!r} cannot listen on {list(self.listen)!r}: {exc}"
             ) from exc
-        make = _BESIDE[0] if _BESIDE else _moved.beside(_BESIDE)
+        make = _beside()
         try:
             if self.tls is None:
                 warn_unreachable(self.system, self.connect)
