@@ -457,30 +457,8 @@ def test_a_run_that_fails_exits_1_quoting_its_error(
     assert "the driver is missing" in err
 
 
-STOPPED_PLAN = f"""\
-name = "tiny"
-duration = {{duration}}
-
-[tree]
-max_restarts = 20
-
-[[tree.children]]
-name = "db"
-setup = "{SERVICE}"
-
-[workload]
-clients = 2
-rate = 20.0
-
-[[workload.calls]]
-manager = "db"
-server = "resource"
-
-[[faults]]
-kind = "kill_manager"
-target = "db"
-at = 0.5
-"""
+STOPPED_PLAN = PLAN.replace("clients = 1\nrate = 10.0", "clients = 2\nrate = 20.0")
+"""`PLAN` with twice the calls: a stop finds some in flight."""
 
 CODE = "import sys; from rr_actors_lab.__main__ import main; sys.exit(main(sys.argv[1:]))"
 
@@ -787,29 +765,16 @@ class TestOnAn80ColumnTerminal:
 
     def test_the_plain_summary_fits_80_columns_and_shows_the_retried_calls(self) -> None:
         plan = parse_plan(WIDE_PLAN)
-        run = RunResult(
-            plan="tiny",
+        run = dataclasses.replace(
+            finished_run(),
             setting=plan.setting_label(),
             value=0.25,
-            run=1,
-            repeat=1,
             seed=0,
             version="0",
-            started_at=0.0,
-            duration_s=1.0,
             calls_ok=9999,
             calls_failed=1234,
             calls_retried=4321,
             unavailable_s={"a": 1234.5},
-            restarts=3,
-            gave_up=False,
-            recovery_median_s=0.125,
-            recovery_p90_s=0.25,
-            unrecovered=0,
-            leaked_processes=0,
-            catalog_entries_left=0,
-            events=10,
-            events_dropped=0,
         )
 
         lines = summary_lines(Results(plan=plan, runs=(run,), out=None))
