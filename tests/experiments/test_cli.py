@@ -10,7 +10,6 @@ import dataclasses
 import io
 import json
 import os
-import pty
 import re
 import shutil
 import signal
@@ -18,7 +17,6 @@ import subprocess
 import sys
 import sysconfig
 import tempfile
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -31,8 +29,8 @@ from rr_actors_lab.__main__ import main
 from rr_actors_lab.experiments import Progress, RunResult, parse_plan
 from rr_actors_lab.experiments.cli import Display, fault_line, summary_lines
 from rr_actors_lab.experiments.results import FaultRecord, Results
-from tests.support import selecting
 from tests.support.small_disk import fill, mounted
+from tests.support.terminal import on_a_terminal
 
 SERVICE = "rr_actors_lab.experiments.services:service"
 
@@ -669,8 +667,6 @@ class TestStopped:
         assert [] == list(temp.glob("rr-experiment-*"))
 
 
-ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]|\x1b\][^\x07]*\x07")
-
 WIDE_PLAN = f"""\
 name = "tiny"
 duration = 1.0
@@ -699,36 +695,6 @@ at = 0.5
 setting = "tree.children.a_manager_with_a_rather_long_name.heartbeat"
 values = [0.25, 0.5]
 """
-
-
-def on_a_terminal(argv: list[str], *, columns: int, timeout: float) -> tuple[int, str]:
-    """Run `argv` with a pseudo-terminal as its standard output; its exit code and text."""
-    parent, child = pty.openpty()
-    env = {**os.environ, "COLUMNS": str(columns), "TERM": "xterm-256color"}
-    env.pop("NO_COLOR", None)
-    process = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=child, stderr=child, env=env)
-    os.close(child)
-    chunks: list[bytes] = []
-    deadline = time.monotonic() + timeout
-    try:
-        while time.monotonic() < deadline:
-            ready, _, _ = selecting.select([parent], [], [], 1.0)
-            if not ready:
-                continue
-            try:
-                chunk = os.read(parent, 65536)
-            except OSError:  # EIO: the program closed the terminal
-                break
-            if not chunk:
-                break
-            chunks.append(chunk)
-        code = process.wait(timeout=max(1.0, deadline - time.monotonic()))
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait()
-        os.close(parent)
-    return code, ANSI.sub("", b"".join(chunks).decode(errors="replace"))
 
 
 class TestOnAn80ColumnTerminal:
