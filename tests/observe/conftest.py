@@ -36,6 +36,25 @@ def page(browser: Any) -> Iterator[Any]:
 
 
 @pytest.fixture
+def tabs(browser: Any) -> Iterator[Any]:
+    """`tabs()` opens a new tab; every tab is closed at the end, and none may log an error."""
+    opened: list[Any] = []
+    errors: list[str] = []
+
+    def new() -> Any:
+        tab = browser.new_page()
+        tab.on("pageerror", lambda exc: errors.append(str(exc)))
+        tab.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+        opened.append(tab)
+        return tab
+
+    yield new
+    for tab in opened:
+        tab.close()
+    assert [] == errors
+
+
+@pytest.fixture
 def tree(supervisors: Any, process_helpers: Any) -> rr.Supervisor:
     """Figure 2.7's managers in processes, started; stopped at teardown."""
     return figure_27(supervisors).start()
