@@ -49,25 +49,13 @@ from pathlib import Path
 from typing import Any
 
 import _harness
+from bench_simulation import killheavy_without_cut
 
-import rr_actors_lab
-
-PLANS = Path(rr_actors_lab.__file__).parent / "experiments" / "plans"
 HASH_SEED = "0"
 """The `PYTHONHASHSEED` of a sweep (`rr-actors experiment --simulate`)."""
 
 GC_THRESHOLDS = (None, 100)
 """Each process's gc threshold of the youngest generation (`None`: CPython's 700)."""
-
-
-def killheavy_without_cut(folder: Path) -> Path:
-    """The shipped killheavy plan without its `cut_connections` fault, written to `folder`."""
-    text = (PLANS / "killheavy.toml").read_text(encoding="utf-8")
-    head, *faults = text.split("[[faults]]")
-    kept = [f for f in faults if 'kind = "cut_connections"' not in f]
-    path = folder / "killheavy-nocut.toml"
-    path.write_text(head + "".join("[[faults]]" + f for f in kept), encoding="utf-8")
-    return path
 
 
 def parse_seeds(text: str) -> list[int]:
