@@ -31,6 +31,7 @@ from rr_actors.config import SupervisorSpec
 from rr_actors_lab.__main__ import main
 from rr_actors_lab.observe._hub import Hub
 from rr_actors_lab.observe._sources import LiveSource, TreeAccess, event_dict, read_catalogs
+from tests.support.hostile import ExitsWhenShown, HangsWhenShown
 
 
 def run(*argv: str) -> tuple[int, str]:
@@ -263,32 +264,6 @@ def test_a_status_sent_is_named_once_from_what_the_observer_saw_before_it() -> N
 
 # -- a live registrar's catalog read for the observer (`catalog_of`) ---------------------------
 # -- bug 6: a hostile __repr__ stops nothing -----------------------------------------------------
-
-
-class HangsWhenShown:
-    def __init__(self, gate: threading.Event) -> None:
-        self.gate = gate
-
-    def __eq__(self, other: object) -> bool:
-        return isinstance(other, HangsWhenShown)
-
-    def __hash__(self) -> int:
-        return 1
-
-    def __repr__(self) -> str:
-        self.gate.wait(30)
-        return "HangsWhenShown()"
-
-
-class ExitsWhenShown:
-    def __eq__(self, other: object) -> bool:
-        return isinstance(other, ExitsWhenShown)
-
-    def __hash__(self) -> int:
-        return 2
-
-    def __repr__(self) -> str:
-        raise SystemExit("shown")
 
 
 def hostile_setup(registrar: rr.ResourceRegistrar) -> None:
