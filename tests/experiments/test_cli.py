@@ -305,30 +305,6 @@ def test_without_faults_there_is_no_fault_line() -> None:
     assert fault_line(results_with(())) is None
 
 
-def _alive_with_prefix(prefix: str) -> list[int]:
-    wanted = f"RR_ACTORS_EXPERIMENT={prefix}".encode()
-    alive = []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            environ = (entry / "environ").read_bytes().split(b"\0")
-            state = (entry / "stat").read_text().rsplit(")", 1)[1].split()[0]
-        except (OSError, IndexError):
-            continue
-        if state != "Z" and any(item.startswith(wanted) for item in environ):
-            alive.append(int(entry.name))
-    return alive
-
-
-def _rows(path: Path) -> int:
-    try:
-        with path.open(newline="") as file:
-            return len(list(csv.DictReader(file)))
-    except FileNotFoundError:
-        return 0
-
-
 def test_ctrl_c_stops_every_process_and_keeps_the_runs_finished_so_far(
     tmp_path: Path, eventually: Callable[..., bool]
 ) -> None:
@@ -343,8 +319,8 @@ def test_ctrl_c_stops_every_process_and_keeps_the_runs_finished_so_far(
         env={**os.environ, "PYTHONUNBUFFERED": "1"},
     )
     try:
-        assert eventually(lambda: _rows(out / "runs.csv") >= 1, timeout=40)
-        assert eventually(lambda: len(_alive_with_prefix(f"{cli.pid}-")) > 0, timeout=20)
+        assert eventually(lambda: len(rows(out / "runs.csv")) >= 1, timeout=40)
+        assert eventually(lambda: len(alive(f"{cli.pid}-")) > 0, timeout=20)
 
         cli.send_signal(signal.SIGINT)  # what Ctrl-C in a terminal sends
         stdout, stderr = cli.communicate(timeout=40)
@@ -354,8 +330,8 @@ def test_ctrl_c_stops_every_process_and_keeps_the_runs_finished_so_far(
             cli.communicate()
 
     assert 130 == cli.returncode, stderr
-    assert 1 <= _rows(out / "runs.csv") < 5
-    assert [] == _alive_with_prefix(f"{cli.pid}-")
+    assert 1 <= len(rows(out / "runs.csv")) < 5
+    assert [] == alive(f"{cli.pid}-")
     assert "interrupted: " in stdout
     assert (out / "recovery.png").exists()
     assert "Traceback" not in stderr
