@@ -50,8 +50,8 @@ from tests.support.demos import (
     one_line_after_the_story,
     ours,
 )
+from tests.support.hosts import free_port
 from tests.support.observing import get_json, headless_chromium
-from tests.support.tls_lab import free_port
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -36,6 +36,7 @@ import rr_actors as rr
 from rr_actors import events
 from rr_actors_lab.observe import _feed as zenoh_events
 from tests.support import pki
+from tests.support.hosts import free_port
 from tests.support.waiting import wait_for
 
 zenoh = pytest.importorskip("zenoh")
@@ -53,17 +54,10 @@ class CreatesAFile:
         return (open, (self.path, "w"))
 
 
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
-
-
 @pytest.fixture
 def net() -> Iterator[rr.ZenohNetwork]:
     network = rr.ZenohNetwork(
-        system=f"ev-{uuid.uuid4().hex[:8]}", listen=[f"tcp/127.0.0.1:{_free_port()}"], tls=None
+        system=f"ev-{uuid.uuid4().hex[:8]}", listen=[f"tcp/127.0.0.1:{free_port()}"], tls=None
     )
     yield network
     network.close()

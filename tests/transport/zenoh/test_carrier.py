@@ -13,7 +13,6 @@ import multiprocessing.context
 import os
 import pickle
 import signal
-import socket
 import struct
 import subprocess
 import sys
@@ -42,18 +41,12 @@ from rr_actors._transport.zenoh.net import ZenohNetwork
 from rr_actors._transport.zenoh.wire import MESSAGE, PYTHON, VERSION, parse, payload_of
 from rr_actors.testing import run_on_actor
 from tests.support.carriers import in_thread, setup_servers, wait_load_started
+from tests.support.hosts import free_port
 from tests.support.waiting import wait_for
 
 
 def _system() -> str:
     return f"test-{uuid.uuid4().hex[:8]}"
-
-
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port: int = probe.getsockname()[1]
-        return port
 
 
 class Recorder:
@@ -94,7 +87,7 @@ class Recorder:
 @pytest.fixture
 def net() -> Iterator[ZenohNetwork]:
     """A fresh system whose router is the test process, listening on loopback TCP."""
-    network = rr.ZenohNetwork(system=_system(), listen=[f"tcp/127.0.0.1:{_free_port()}"], tls=None)
+    network = rr.ZenohNetwork(system=_system(), listen=[f"tcp/127.0.0.1:{free_port()}"], tls=None)
     yield network
     network.close()
 
