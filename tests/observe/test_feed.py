@@ -36,22 +36,13 @@ import rr_actors as rr
 from rr_actors import events
 from rr_actors_lab.observe import _feed as zenoh_events
 from tests.support import pki
+from tests.support.hostile import CreatesAFile
 from tests.support.hosts import free_port
 from tests.support.waiting import wait_for
 
 zenoh = pytest.importorskip("zenoh")
 
 BOUND = 10.0
-
-
-class CreatesAFile:
-    """Unpickling it would create a file (it must never be unpickled)."""
-
-    def __init__(self, path: str) -> None:
-        self.path = path
-
-    def __reduce__(self) -> tuple[Any, ...]:
-        return (open, (self.path, "w"))
 
 
 @pytest.fixture

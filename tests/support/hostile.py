@@ -37,3 +37,14 @@ class ExitsWhenShown:
 
     def __repr__(self) -> str:
         raise SystemExit("shown")
+
+
+class CreatesAFile:
+    """Unpickling it would create the file `path` (a str): what a hostile message or backup
+    would run; it must never be unpickled."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (open, (self.path, "w"))
