@@ -30,7 +30,7 @@ from rr_actors_lab.experiments import Progress, RunResult, parse_plan
 from rr_actors_lab.experiments.cli import Display, fault_line, summary_lines
 from rr_actors_lab.experiments.results import FaultRecord, Results
 from tests.support.small_disk import fill, mounted
-from tests.support.terminal import on_a_terminal
+from tests.support.terminal import FakeTerminal, on_a_terminal
 
 SERVICE = "rr_actors_lab.experiments.services:service"
 
@@ -335,13 +335,6 @@ def test_ctrl_c_stops_every_process_and_keeps_the_runs_finished_so_far(
     assert "interrupted: " in stdout
     assert (out / "recovery.png").exists()
     assert "Traceback" not in stderr
-
-
-class FakeTerminal(io.StringIO):
-    """A stream that says it is a terminal (as the command on a real one sees it)."""
-
-    def isatty(self) -> bool:
-        return True
 
 
 def finished_run() -> RunResult:
