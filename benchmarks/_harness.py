@@ -11,13 +11,18 @@ prints the Markdown table whose last column (the ratio) `alternate.py` sums up, 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import platform
+import shutil
 import statistics
+import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from pathlib import Path
 
+ROOT = Path(__file__).resolve().parent.parent
 QUICK_ROUNDS = 1
 QUICK_BATCH = 5
 
@@ -121,3 +126,31 @@ def table(columns: Sequence[str], rows: Iterable[Sequence[object]], *, right: in
 def print_table(title: str, columns: Sequence[str], rows: Iterable[Sequence[object]]) -> None:
     """Print `title` after a blank line, then `table(columns, rows)`."""
     print(f"\n{title}\n{table(columns, rows)}")
+
+
+@contextlib.contextmanager
+def busy(count: int) -> Iterator[None]:
+    """`count` processes that only spin (each keeps a CPU busy), for as long as the block runs."""
+    spinning = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(count)]
+    try:
+        yield
+    finally:
+        for process in spinning:
+            process.kill()
+        for process in spinning:
+            process.wait(10)
+
+
+def commit() -> str:
+    """The checkout's commit (`git describe --always --dirty`: `-dirty` with changes not
+    committed), or "?" without git or a checkout."""
+    git = shutil.which("git")
+    if git is None:
+        return "?"
+    done = subprocess.run(
+        [git, "-C", str(ROOT), "describe", "--always", "--dirty"],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    return done.stdout.strip() or "?"

@@ -32,7 +32,6 @@ import logging
 import os
 import signal
 import statistics
-import subprocess
 import sys
 import threading
 import time
@@ -77,18 +76,6 @@ class Lines(logging.Handler):
 table = _harness.print_table
 
 
-def hogs(count: int) -> list[subprocess.Popen[bytes]]:
-    """`count` processes that each keep one CPU busy (a Python busy loop)."""
-    return [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(count)]
-
-
-def stop_hogs(running: list[subprocess.Popen[bytes]]) -> None:
-    for hog in running:
-        hog.kill()
-    for hog in running:
-        hog.wait(10)
-
-
 def load_run(
     managers: int, hog_count: int, hold: float, *, busy: bool
 ) -> tuple[float, float, list[str], int]:
@@ -109,16 +96,14 @@ def load_run(
     lines = Lines()
     log = logging.getLogger("rr_actors")
     log.addHandler(lines)
-    running = hogs(hog_count)
     try:
-        with sup.subscribe(seen):
+        with _harness.busy(hog_count), sup.subscribe(seen):
             started = time.monotonic()
             with sup:
                 start_s = time.monotonic() - started
                 time.sleep(hold)  # the heartbeat goes on under load (a benchmark, not a test)
             load = os.getloadavg()[0]
     finally:
-        stop_hogs(running)
         log.removeHandler(lines)
     return start_s, load, hung, lines.spared
 
@@ -131,15 +116,12 @@ def stop_run(hog_count: int) -> tuple[float, float]:
         app = sup.registrar("app")
         pid = sup.child("stopped").pid
         assert pid is not None
-        running = hogs(hog_count)
-        try:
+        with _harness.busy(hog_count):
             stopped = time.monotonic()
             os.kill(pid, signal.SIGSTOP)
             info = sup.wait_restarted("stopped", timeout=60.0)
             app.call("stopped", "res", 1, timeout=30.0)
             took = time.monotonic() - stopped
-        finally:
-            stop_hogs(running)
         assert info.last_exit is not None
         assert info.last_exit.startswith("hung"), info
     assert spec.hang_after is not None

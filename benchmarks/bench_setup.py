@@ -27,17 +27,17 @@ existing interpreter instead of a fresh venv (and `--select` runs only some test
 from __future__ import annotations
 
 import argparse
-import contextlib
 import datetime
 import os
 import re
-import shutil
 import subprocess
 import sys
 import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
+
+import _harness
 
 ROOT = Path(__file__).resolve().parent.parent
 INSTALL = ["-m", "pip", "install", "--quiet", "-e", ".[dev,bench]"]
@@ -50,7 +50,6 @@ def _minutes(seconds: float) -> str:
     return f"{minutes} min {rest} s" if minutes else f"{seconds:.1f} s"
 
 
-@contextlib.contextmanager
 def _busy(count: int) -> Iterator[None]:
     """`count` processes that only spin, for as long as the block runs."""
     spinning = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(count)]
@@ -83,20 +82,6 @@ def _outcome(log: Path) -> str:
     return ", ".join(f"{int(n):,} {what}" for n, what in counts) or summary[0]
 
 
-def _commit() -> str:
-    """The checkout's commit (`-dirty`: with changes not committed)."""
-    git = shutil.which("git")
-    if git is None:
-        return "(no git)"
-    done = subprocess.run(
-        [git, "-C", str(ROOT), "describe", "--always", "--dirty"],
-        capture_output=True,
-        text=True,
-        check=False,
-    )
-    return done.stdout.strip() or "(not a git checkout)"
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
     parser.add_argument("--busy", type=int, default=0, help="CPU-bound processes beside it (0)")
@@ -108,7 +93,7 @@ def main() -> int:
 
     rows: list[tuple[str, str, str]] = []
     before = os.getloadavg()[0]
-    with tempfile.TemporaryDirectory(prefix="bench-setup-") as tmp, _busy(args.busy):
+    with tempfile.TemporaryDirectory(prefix="bench-setup-") as tmp, _harness.busy(args.busy):
         work = Path(tmp)
         python = args.python
         if python is None:  # a fresh venv, the install timed (untimed with --only tests)
@@ -129,7 +114,7 @@ def main() -> int:
     after = os.getloadavg()[0]
 
     now = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
-    print(f"the README's second command, timed at {_commit()}, {now}")
+    print(f"the README's second command, timed at {_harness.commit()}, {now}")
     print(
         f"{os.cpu_count()} cores; {args.busy} CPU-bound process(es) beside it; "
         f"load average {before:.1f} before, {after:.1f} after"

@@ -35,41 +35,27 @@ from __future__ import annotations
 
 import argparse
 import collections
-import contextlib
 import datetime
 import gc
 import json
 import logging
 import os
 import random
-import shutil
 import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import rr_actors_lab
+import _harness
+from bench_simulation import killheavy_without_cut
 
-ROOT = Path(__file__).resolve().parent.parent
-PLANS = Path(rr_actors_lab.__file__).parent / "experiments" / "plans"
 HASH_SEED = "0"
 """The `PYTHONHASHSEED` of a sweep (`rr-actors experiment --simulate`)."""
 
 GC_THRESHOLDS = (None, 100)
 """Each process's gc threshold of the youngest generation (`None`: CPython's 700)."""
-
-
-def killheavy_without_cut(folder: Path) -> Path:
-    """The shipped killheavy plan without its `cut_connections` fault, written to `folder`."""
-    text = (PLANS / "killheavy.toml").read_text(encoding="utf-8")
-    head, *faults = text.split("[[faults]]")
-    kept = [f for f in faults if 'kind = "cut_connections"' not in f]
-    path = folder / "killheavy-nocut.toml"
-    path.write_text(head + "".join("[[faults]]" + f for f in kept), encoding="utf-8")
-    return path
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -124,18 +110,6 @@ def worker(args: argparse.Namespace) -> None:
             print(json.dumps(line), flush=True)
 
 
-@contextlib.contextmanager
-def busy(count: int) -> Iterator[None]:
-    """`count` processes that only spin, for as long as the block runs."""
-    spinning = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(count)]
-    try:
-        yield
-    finally:
-        for process in spinning:
-            process.kill()
-            process.wait(10)
-
-
 def recorded(path: str | None) -> dict[int, str]:
     """Seed -> hash of a sweep's `seeds.jsonl` (empty without one)."""
     if path is None:
@@ -143,19 +117,6 @@ def recorded(path: str | None) -> dict[int, str]:
     lines = Path(path).read_text(encoding="utf-8").splitlines()
     rows = map(json.loads, filter(str.strip, lines))
     return {int(row["seed"]): row["hash"] for row in rows}
-
-
-def commit() -> str:
-    git = shutil.which("git")
-    if git is None:
-        return "?"
-    done = subprocess.run(
-        [git, "-C", str(ROOT), "log", "-1", "--format=%h"],
-        capture_output=True,
-        text=True,
-        check=False,
-    )
-    return done.stdout.strip() or "?"
 
 
 def main() -> None:
@@ -182,7 +143,7 @@ def main() -> None:
         Path(keep).mkdir(parents=True, exist_ok=True)
         load_before = os.getloadavg()[0]
         started = time.monotonic()
-        with busy(args.busy):
+        with _harness.busy(args.busy):
             outputs = run_workers(args, plan, keep)
         wall = time.monotonic() - started
         load_after = os.getloadavg()[0]
@@ -190,7 +151,7 @@ def main() -> None:
     print(
         f"\n{args.processes} processes x {args.runs} runs of each seed, "
         f"{'heap shaken, ' if args.shake else ''}beside {args.busy} busy loop(s); "
-        f"commit {commit()}, {datetime.datetime.now(datetime.UTC):%Y-%m-%d %H:%M} UTC, "
+        f"commit {_harness.commit()}, {datetime.datetime.now(datetime.UTC):%Y-%m-%d %H:%M} UTC, "
         f"{os.cpu_count()} cores, load average {load_before:.1f} before, {load_after:.1f} "
         f"after; {wall:.0f} s of wall time"
     )

@@ -235,11 +235,15 @@ def test_bench_three_hosts_starts_managers_on_each_host_and_calls_every_one_from
     assert 2 == len(rows)
 
 
-def _script(name: str) -> ModuleType:
+def _script(name: str, monkeypatch: pytest.MonkeyPatch | None = None) -> ModuleType:
+    """benchmarks/`name`.py imported; with `monkeypatch`, in `sys.modules` for the test (a
+    dataclass of the script looks its module up there)."""
     spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
     assert spec is not None
     assert spec.loader is not None
     module = importlib.util.module_from_spec(spec)
+    if monkeypatch is not None:
+        monkeypatch.setitem(sys.modules, name, module)
     spec.loader.exec_module(module)
     return module
 
@@ -312,14 +316,7 @@ def test_planted_bugs_writes_each_shrunk_run_under_out_with_the_steps_on_stderr(
 def test_every_planted_bug_applies_once_to_the_source_and_names_a_shipped_plan_and_rule(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    spec = importlib.util.spec_from_file_location(
-        "planted_bugs", ROOT / "benchmarks" / "planted_bugs.py"
-    )
-    assert spec is not None
-    assert spec.loader is not None
-    planted = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, "planted_bugs", planted)  # (its dataclass looks it up)
-    spec.loader.exec_module(planted)
+    planted = _script("planted_bugs", monkeypatch)
     shipped = {p.stem for p in planted.PLANS.glob("*.toml")}
 
     for plant in planted.PLANTS:  # (SystemExit, naming it, if its old text moved)
@@ -366,14 +363,7 @@ def test_mutation_score_names_the_rule_that_killed_a_mutant_and_prints_the_score
 def test_every_mutant_shown_equivalent_is_still_a_mutant_of_the_source(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    spec = importlib.util.spec_from_file_location(
-        "mutation_score", ROOT / "benchmarks" / "mutation_score.py"
-    )
-    assert spec is not None
-    assert spec.loader is not None
-    score = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, "mutation_score", score)  # (its dataclass looks it up)
-    spec.loader.exec_module(score)
+    score = _script("mutation_score", monkeypatch)
     files = tuple(sorted({i.split(":", 1)[0] for i in score.EQUIVALENT}))
 
     ids = {m.id for m in score.enumerate_mutants(files)}

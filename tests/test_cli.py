@@ -8,7 +8,6 @@ import importlib.metadata
 import io
 import json
 import re
-import socket
 import sqlite3
 import subprocess
 import sys
@@ -31,6 +30,7 @@ from rr_actors._store.schema import SCHEMA_VERSION
 from rr_actors._store.sqlite import SqliteStore
 from rr_actors.events import lines
 from rr_actors_lab.__main__ import main
+from tests.support.hosts import free_port
 from tests.support.persisting import write_unloading
 from tests.support.terminal import drawn, on_a_terminal
 
@@ -624,13 +624,6 @@ class TestInspect:
 BOUND = 30.0
 
 
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
-
-
 # -- an experiment's events.jsonl, and what --merge refuses (issue 44) ------------------------
 
 PLAN = """\
@@ -766,7 +759,7 @@ class TestEvents:
         assert named in capsys.readouterr().err
 
     def test_the_live_stream_prints_what_a_registrar_of_the_system_does(self) -> None:
-        port = _free_port()
+        port = free_port()
         system = f"cli-{uuid.uuid4().hex[:8]}"
         net = rr.ZenohNetwork(system=system, listen=[f"tcp/127.0.0.1:{port}"], tls=None)
         erm = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="erm"), network=net)

@@ -17,6 +17,13 @@ def python(*argv: str) -> subprocess.CompletedProcess[str]:
     )
 
 
+def printed(code: str) -> str:
+    """What `python -c code` printed, once it exited 0 with nothing on stderr."""
+    run = python("-c", code)
+    assert (run.returncode, run.stderr) == (0, "")
+    return run.stdout
+
+
 BEFORE_ISSUE_54 = [
     "MAX_DEPENDENCY_DEPTH",
     "Backoff",
@@ -74,9 +81,7 @@ def test_every_name_the_package_offered_before_still_imports() -> None:
         f"try:\n    from rr_actors import {name}\nexcept ImportError as e:\n    print(e)"
         for name in BEFORE_ISSUE_54
     )
-    run = python("-c", code)
-
-    assert (run.returncode, run.stdout, run.stderr) == (0, "", "")
+    assert "" == printed(code)
 
 
 def test_every_error_is_in_the_errors_module_and_the_same_class_at_the_top() -> None:
@@ -100,9 +105,7 @@ def test_quarantine_backup_is_beside_the_error_it_recovers_from_imported_at_firs
         "print(quarantine_backup is the_stores is rr.quarantine_backup,\n"
         "      'quarantine_backup' in errors.__all__, hasattr(errors, 'restore_backup'))"
     )
-    run = python("-c", code)
-
-    assert (run.returncode, run.stderr, run.stdout) == (0, "", "False False\nTrue True False\n")
+    assert "False False\nTrue True False\n" == printed(code)
 
 
 def test_importing_the_package_leaves_the_runtime_and_the_events_to_their_first_use() -> None:
@@ -119,10 +122,7 @@ def test_importing_the_package_leaves_the_runtime_and_the_events_to_their_first_
         "rr_actors.events.ChildRestarted, rr_actors.Supervisor\n"
         "print('rr_actors.events.kinds' in sys.modules, 'rr_actors._supervision' in sys.modules)"
     )
-    run = python("-c", code)
-
-    assert (run.returncode, run.stderr) == (0, "")
-    assert "[]\nTrue True\n" == run.stdout
+    assert "[]\nTrue True\n" == printed(code)
 
 
 LAB_MODULES = ["experiments", "mission", "observe", "teach", "otel"]
@@ -166,16 +166,13 @@ def test_the_lab_imports_under_its_former_names_with_a_warning_naming_the_new_on
         "    print(exc)\n"
         "print(sorted(m for m in sys.modules if m.startswith('rr_actors.experiments.')))\n"
     )
-    run = python("-c", code)
-
-    assert (run.returncode, run.stderr) == (0, "")
     assert [
         "True True True",
         "['rr_actors.experiments.plan', 'rr_actors.experiments.run', 'rr_actors.mission.config']",
         "True True",
         "No module named 'rr_actors.experiments.plan'; 'rr_actors.experiments' is not a package",
         "[]",
-    ] == run.stdout.splitlines()
+    ] == printed(code).splitlines()
 
 
 def test_the_runtime_runs_without_importing_the_lab() -> None:
@@ -187,10 +184,7 @@ def test_the_runtime_runs_without_importing_the_lab() -> None:
         "import rr_actors.testing\n"
         "print(sorted(m for m in sys.modules if m.startswith('rr_actors_lab')))\n"
     )
-    run = python("-c", code)
-
-    assert (run.returncode, run.stderr) == (0, "")
-    assert "[]\n" == run.stdout
+    assert "[]\n" == printed(code)
 
 
 def test_a_former_lab_name_runs_with_dash_m_with_a_warning_naming_the_new_one() -> None:
@@ -229,10 +223,7 @@ def test_the_runtime_works_with_the_lab_hidden_and_observe_names_its_extra() -> 
         "            print(type(exc).__name__, exc.extra, str(exc).splitlines()[0])\n"
         "print(sorted(m for m in sys.modules if m.startswith('rr_actors_lab')))\n"
     )
-    run = python("-c", code)
-
-    assert (run.returncode, run.stderr) == (0, "")
-    lines = run.stdout.splitlines()
+    lines = printed(code).splitlines()
     assert lines[0].startswith("MissingExtraError observe sup.observe() needs an extra")
     assert lines[1].startswith("MissingExtraError observe sup.graph() needs an extra")
     assert lines[2:] == ["[]"]
@@ -256,9 +247,6 @@ def test_the_spellings_that_moved_to_the_lab_warn_naming_the_new_one() -> None:
         "for w in seen:\n"
         "    print(w.category.__name__, w.message)\n"
     )
-    run = python("-c", code)
-
-    assert (run.returncode, run.stderr) == (0, "")
     assert [
         "True",
         "True True",
@@ -268,4 +256,4 @@ def test_the_spellings_that_moved_to_the_lab_warn_naming_the_new_one() -> None:
         "use rr_actors_lab.observe.observe(sup)",
         "DeprecationWarning rr_actors.__main__.main is deprecated and goes in the next "
         "release: use rr_actors_lab.__main__.main",
-    ] == run.stdout.splitlines()
+    ] == printed(code).splitlines()

@@ -10,7 +10,6 @@ import dataclasses
 import io
 import json
 import os
-import pty
 import re
 import shutil
 import signal
@@ -18,7 +17,6 @@ import subprocess
 import sys
 import sysconfig
 import tempfile
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -31,8 +29,8 @@ from rr_actors_lab.__main__ import main
 from rr_actors_lab.experiments import Progress, RunResult, parse_plan
 from rr_actors_lab.experiments.cli import Display, fault_line, summary_lines
 from rr_actors_lab.experiments.results import FaultRecord, Results
-from tests.support import selecting
 from tests.support.small_disk import fill, mounted
+from tests.support.terminal import FakeTerminal, on_a_terminal
 
 SERVICE = "rr_actors_lab.experiments.services:service"
 
@@ -307,30 +305,6 @@ def test_without_faults_there_is_no_fault_line() -> None:
     assert fault_line(results_with(())) is None
 
 
-def _alive_with_prefix(prefix: str) -> list[int]:
-    wanted = f"RR_ACTORS_EXPERIMENT={prefix}".encode()
-    alive = []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            environ = (entry / "environ").read_bytes().split(b"\0")
-            state = (entry / "stat").read_text().rsplit(")", 1)[1].split()[0]
-        except (OSError, IndexError):
-            continue
-        if state != "Z" and any(item.startswith(wanted) for item in environ):
-            alive.append(int(entry.name))
-    return alive
-
-
-def _rows(path: Path) -> int:
-    try:
-        with path.open(newline="") as file:
-            return len(list(csv.DictReader(file)))
-    except FileNotFoundError:
-        return 0
-
-
 def test_ctrl_c_stops_every_process_and_keeps_the_runs_finished_so_far(
     tmp_path: Path, eventually: Callable[..., bool]
 ) -> None:
@@ -345,8 +319,8 @@ def test_ctrl_c_stops_every_process_and_keeps_the_runs_finished_so_far(
         env={**os.environ, "PYTHONUNBUFFERED": "1"},
     )
     try:
-        assert eventually(lambda: _rows(out / "runs.csv") >= 1, timeout=40)
-        assert eventually(lambda: len(_alive_with_prefix(f"{cli.pid}-")) > 0, timeout=20)
+        assert eventually(lambda: len(rows(out / "runs.csv")) >= 1, timeout=40)
+        assert eventually(lambda: len(alive(f"{cli.pid}-")) > 0, timeout=20)
 
         cli.send_signal(signal.SIGINT)  # what Ctrl-C in a terminal sends
         stdout, stderr = cli.communicate(timeout=40)
@@ -356,18 +330,11 @@ def test_ctrl_c_stops_every_process_and_keeps_the_runs_finished_so_far(
             cli.communicate()
 
     assert 130 == cli.returncode, stderr
-    assert 1 <= _rows(out / "runs.csv") < 5
-    assert [] == _alive_with_prefix(f"{cli.pid}-")
+    assert 1 <= len(rows(out / "runs.csv")) < 5
+    assert [] == alive(f"{cli.pid}-")
     assert "interrupted: " in stdout
     assert (out / "recovery.png").exists()
     assert "Traceback" not in stderr
-
-
-class FakeTerminal(io.StringIO):
-    """A stream that says it is a terminal (as the command on a real one sees it)."""
-
-    def isatty(self) -> bool:
-        return True
 
 
 def finished_run() -> RunResult:
@@ -457,30 +424,8 @@ def test_a_run_that_fails_exits_1_quoting_its_error(
     assert "the driver is missing" in err
 
 
-STOPPED_PLAN = f"""\
-name = "tiny"
-duration = {{duration}}
-
-[tree]
-max_restarts = 20
-
-[[tree.children]]
-name = "db"
-setup = "{SERVICE}"
-
-[workload]
-clients = 2
-rate = 20.0
-
-[[workload.calls]]
-manager = "db"
-server = "resource"
-
-[[faults]]
-kind = "kill_manager"
-target = "db"
-at = 0.5
-"""
+STOPPED_PLAN = PLAN.replace("clients = 1\nrate = 10.0", "clients = 2\nrate = 20.0")
+"""`PLAN` with twice the calls: a stop finds some in flight."""
 
 CODE = "import sys; from rr_actors_lab.__main__ import main; sys.exit(main(sys.argv[1:]))"
 
@@ -691,8 +636,6 @@ class TestStopped:
         assert [] == list(temp.glob("rr-experiment-*"))
 
 
-ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]|\x1b\][^\x07]*\x07")
-
 WIDE_PLAN = f"""\
 name = "tiny"
 duration = 1.0
@@ -721,36 +664,6 @@ at = 0.5
 setting = "tree.children.a_manager_with_a_rather_long_name.heartbeat"
 values = [0.25, 0.5]
 """
-
-
-def on_a_terminal(argv: list[str], *, columns: int, timeout: float) -> tuple[int, str]:
-    """Run `argv` with a pseudo-terminal as its standard output; its exit code and text."""
-    parent, child = pty.openpty()
-    env = {**os.environ, "COLUMNS": str(columns), "TERM": "xterm-256color"}
-    env.pop("NO_COLOR", None)
-    process = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=child, stderr=child, env=env)
-    os.close(child)
-    chunks: list[bytes] = []
-    deadline = time.monotonic() + timeout
-    try:
-        while time.monotonic() < deadline:
-            ready, _, _ = selecting.select([parent], [], [], 1.0)
-            if not ready:
-                continue
-            try:
-                chunk = os.read(parent, 65536)
-            except OSError:  # EIO: the program closed the terminal
-                break
-            if not chunk:
-                break
-            chunks.append(chunk)
-        code = process.wait(timeout=max(1.0, deadline - time.monotonic()))
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait()
-        os.close(parent)
-    return code, ANSI.sub("", b"".join(chunks).decode(errors="replace"))
 
 
 class TestOnAn80ColumnTerminal:
@@ -787,29 +700,16 @@ class TestOnAn80ColumnTerminal:
 
     def test_the_plain_summary_fits_80_columns_and_shows_the_retried_calls(self) -> None:
         plan = parse_plan(WIDE_PLAN)
-        run = RunResult(
-            plan="tiny",
+        run = dataclasses.replace(
+            finished_run(),
             setting=plan.setting_label(),
             value=0.25,
-            run=1,
-            repeat=1,
             seed=0,
             version="0",
-            started_at=0.0,
-            duration_s=1.0,
             calls_ok=9999,
             calls_failed=1234,
             calls_retried=4321,
             unavailable_s={"a": 1234.5},
-            restarts=3,
-            gave_up=False,
-            recovery_median_s=0.125,
-            recovery_p90_s=0.25,
-            unrecovered=0,
-            leaked_processes=0,
-            catalog_entries_left=0,
-            events=10,
-            events_dropped=0,
         )
 
         lines = summary_lines(Results(plan=plan, runs=(run,), out=None))

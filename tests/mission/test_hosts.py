@@ -18,7 +18,6 @@ import signal
 import socket
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 import urllib.parse
@@ -51,8 +50,8 @@ from tests.support.demos import (
     one_line_after_the_story,
     ours,
 )
-from tests.support.observing import CHROMIUM_ARGS, chromium, get_json
-from tests.support.tls_lab import free_port
+from tests.support.hosts import free_port
+from tests.support.observing import get_json, headless_chromium
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -365,24 +364,8 @@ class TestWithThePage:
     @pytest.fixture
     def browser(self) -> Iterator[Any]:
         """A headless chromium in this (the machine's) network namespace, a fresh profile."""
-        import playwright.sync_api as playwright_api  # noqa: PLC0415 - the dev extra
-
-        path = chromium()
-        if path is None:
-            pytest.fail("no chromium to drive (apt-get install -y chromium; .ci/run does)")
-        with (
-            playwright_api.sync_playwright() as playwright,
-            tempfile.TemporaryDirectory() as profile,
-        ):
-            context = playwright.chromium.launch_persistent_context(
-                profile,
-                executable_path=path,
-                headless=True,
-                args=CHROMIUM_ARGS,
-                viewport={"width": 1500, "height": 1100},
-            )
+        with headless_chromium(1500, 1100) as context:
             yield context
-            context.close()
 
     @needs_root
     @pytest.mark.timeout(300)

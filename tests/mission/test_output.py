@@ -21,17 +21,11 @@ from rr_actors_lab.mission.output import (
 )
 from rr_actors_lab.mission.run import parser, run
 from tests.support.demos import ANSI, report_with_everything
+from tests.support.terminal import FakeTerminal
 
 
 def widest(text: str) -> int:
     return max(len(line) for line in ANSI.sub("", text).splitlines())
-
-
-class FakeTerminal(io.StringIO):
-    """A stream that says it is a terminal (as `rr-actors demo` on a real one sees it)."""
-
-    def isatty(self) -> bool:
-        return True
 
 
 # -- fitting 80 columns --------------------------------------------------------------------

@@ -25,17 +25,11 @@ from rr_actors_lab.mission.report import MissionClock
 from rr_actors_lab.mission.robot import PAUSE_SETTLE, Robot, Step
 from rr_actors_lab.mission.run import parser, run
 from tests.support import selecting
+from tests.support.terminal import FakeTerminal
 
 ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
 PAUSE = 1.5
 """Seconds the class takes before each Enter."""
-
-
-class FakeTerminal(io.StringIO):
-    """A stream that says it is a terminal (as `rr-actors demo` on a real one sees it)."""
-
-    def isatty(self) -> bool:
-        return True
 
 
 class SlowClass(io.StringIO):

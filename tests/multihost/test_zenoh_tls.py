@@ -83,6 +83,7 @@ import pytest
 
 import rr_actors as rr
 from tests.support import hosts, pki, spoof
+from tests.support.hostile import CreatesAFile
 from tests.support.waiting import wait_for
 
 SYSTEM = "lab"
@@ -102,16 +103,6 @@ pytestmark = pytest.mark.timeout(150)
 
 
 # -- what runs in the workers (sent by value with the functions that use them) -----------------
-
-
-class CreatesAFile:
-    """Unpickling it would create a file (it must never be unpickled)."""
-
-    def __init__(self, path: str) -> None:
-        self.path = path
-
-    def __reduce__(self) -> tuple[Any, ...]:
-        return (open, (self.path, "w"))
 
 
 def framed_pickle(path: Path, sender: str = "intruder") -> bytes:

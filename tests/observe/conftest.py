@@ -3,36 +3,23 @@ chromium per module, a tab each."""
 
 from __future__ import annotations
 
-import tempfile
 from collections.abc import Iterator
 from typing import Any
 
-import playwright.sync_api as playwright_api  # (the dev extra; a missing one fails, never skips)
 import pytest
 import zenoh
 
 import rr_actors as rr
 from tests.support import hosts
 from tests.support.observed_tree import figure_27
-from tests.support.observing import CHROMIUM_ARGS, chromium
+from tests.support.observing import headless_chromium
 
 
 @pytest.fixture(scope="module")
 def browser() -> Iterator[Any]:
     """A headless chromium for the module's tests (its own fresh profile)."""
-    path = chromium()
-    if path is None:
-        pytest.fail("no chromium to drive (apt-get install -y chromium; .ci/run does)")
-    with playwright_api.sync_playwright() as playwright, tempfile.TemporaryDirectory() as profile:
-        context = playwright.chromium.launch_persistent_context(
-            profile,
-            executable_path=path,
-            headless=True,
-            args=CHROMIUM_ARGS,
-            viewport={"width": 1400, "height": 1000},
-        )
+    with headless_chromium() as context:
         yield context
-        context.close()
 
 
 @pytest.fixture
@@ -44,6 +31,25 @@ def page(browser: Any) -> Iterator[Any]:
     tab.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
     yield tab
     if not tab.is_closed():
+        tab.close()
+    assert [] == errors
+
+
+@pytest.fixture
+def tabs(browser: Any) -> Iterator[Any]:
+    """`tabs()` opens a new tab; every tab is closed at the end, and none may log an error."""
+    opened: list[Any] = []
+    errors: list[str] = []
+
+    def new() -> Any:
+        tab = browser.new_page()
+        tab.on("pageerror", lambda exc: errors.append(str(exc)))
+        tab.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+        opened.append(tab)
+        return tab
+
+    yield new
+    for tab in opened:
         tab.close()
     assert [] == errors
 

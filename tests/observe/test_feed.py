@@ -36,6 +36,8 @@ import rr_actors as rr
 from rr_actors import events
 from rr_actors_lab.observe import _feed as zenoh_events
 from tests.support import pki
+from tests.support.hostile import CreatesAFile
+from tests.support.hosts import free_port
 from tests.support.waiting import wait_for
 
 zenoh = pytest.importorskip("zenoh")
@@ -43,27 +45,10 @@ zenoh = pytest.importorskip("zenoh")
 BOUND = 10.0
 
 
-class CreatesAFile:
-    """Unpickling it would create a file (it must never be unpickled)."""
-
-    def __init__(self, path: str) -> None:
-        self.path = path
-
-    def __reduce__(self) -> tuple[Any, ...]:
-        return (open, (self.path, "w"))
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
-
-
 @pytest.fixture
 def net() -> Iterator[rr.ZenohNetwork]:
     network = rr.ZenohNetwork(
-        system=f"ev-{uuid.uuid4().hex[:8]}", listen=[f"tcp/127.0.0.1:{_free_port()}"], tls=None
+        system=f"ev-{uuid.uuid4().hex[:8]}", listen=[f"tcp/127.0.0.1:{free_port()}"], tls=None
     )
     yield network
     network.close()

@@ -323,24 +323,6 @@ class TestInAClass:
 
     pytestmark = pytest.mark.timeout(180)
 
-    @pytest.fixture
-    def tabs(self, browser: Any) -> Iterator[Any]:
-        """`tabs()` opens a new tab; every tab is closed at the end, and none may log an error."""
-        opened: list[Any] = []
-        errors: list[str] = []
-
-        def new() -> Any:
-            tab = browser.new_page()
-            tab.on("pageerror", lambda exc: errors.append(str(exc)))
-            tab.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-            opened.append(tab)
-            return tab
-
-        yield new
-        for tab in opened:
-            tab.close()
-        assert [] == errors
-
     # -- the timeline of a page opened late --------------------------------------------------------
 
     def test_a_page_opened_after_a_status_draws_it_as_a_page_open_during_it_did(

@@ -31,22 +31,13 @@ from rr_actors.config import SupervisorSpec
 from rr_actors_lab.__main__ import main
 from rr_actors_lab.observe._hub import Hub
 from rr_actors_lab.observe._sources import LiveSource, TreeAccess, event_dict, read_catalogs
+from tests.support.hostile import CreatesAFile, ExitsWhenShown, HangsWhenShown
 
 
 def run(*argv: str) -> tuple[int, str]:
     out = io.StringIO()
     code = main(list(argv), out)
     return code, out.getvalue()
-
-
-class Planted:
-    """Unpickling it creates the file `path`: what a hostile backup would run."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-
-    def __reduce__(self) -> Any:
-        return (open, (str(self.path), "w"))
 
 
 def stored_backup(path: Path) -> None:
@@ -65,7 +56,9 @@ def stored_backup(path: Path) -> None:
 def plant(path: Path, marker: Path) -> None:
     """Replace the stored request with a pickle that creates `marker` when unpickled."""
     db = sqlite3.connect(path)
-    db.execute("UPDATE resources SET request = ?", (pickle.dumps(Planted(marker), protocol=5),))
+    db.execute(
+        "UPDATE resources SET request = ?", (pickle.dumps(CreatesAFile(str(marker)), protocol=5),)
+    )
     db.commit()
     db.close()
 
@@ -263,32 +256,6 @@ def test_a_status_sent_is_named_once_from_what_the_observer_saw_before_it() -> N
 
 # -- a live registrar's catalog read for the observer (`catalog_of`) ---------------------------
 # -- bug 6: a hostile __repr__ stops nothing -----------------------------------------------------
-
-
-class HangsWhenShown:
-    def __init__(self, gate: threading.Event) -> None:
-        self.gate = gate
-
-    def __eq__(self, other: object) -> bool:
-        return isinstance(other, HangsWhenShown)
-
-    def __hash__(self) -> int:
-        return 1
-
-    def __repr__(self) -> str:
-        self.gate.wait(30)
-        return "HangsWhenShown()"
-
-
-class ExitsWhenShown:
-    def __eq__(self, other: object) -> bool:
-        return isinstance(other, ExitsWhenShown)
-
-    def __hash__(self) -> int:
-        return 2
-
-    def __repr__(self) -> str:
-        raise SystemExit("shown")
 
 
 def hostile_setup(registrar: rr.ResourceRegistrar) -> None:

@@ -124,25 +124,6 @@ def test_a_status_on_the_systems_stream_is_named_once_from_its_hosts_events_befo
 
 
 @pytest.fixture
-def tabs(browser: Any) -> Iterator[Any]:
-    """`tabs()` opens a new tab; every tab is closed at the end, and none may log an error."""
-    opened: list[Any] = []
-    errors: list[str] = []
-
-    def new() -> Any:
-        tab = browser.new_page()
-        tab.on("pageerror", lambda exc: errors.append(str(exc)))
-        tab.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-        opened.append(tab)
-        return tab
-
-    yield new
-    for tab in opened:
-        tab.close()
-    assert [] == errors
-
-
-@pytest.fixture
 def robot(
     process_helpers: Any, monkeypatch: Any, tmp_path: Path
 ) -> Iterator[tuple[rr.Supervisor, GatedLoad]]:

@@ -13,38 +13,9 @@ import pytest
 
 import rr_actors as rr
 from rr_actors.testing import catalog_snapshot
+from tests.support.hostile import ExitsWhenShown, HangsWhenShown
 
 # -- for TestDisplay -----------------------------------------------------------------------
-
-
-class HangsWhenShown:
-    """A request whose `repr` blocks until `gate` is set (at the test's teardown)."""
-
-    def __init__(self, gate: Any, shown: Any) -> None:
-        self.gate = gate
-        self.shown = shown
-
-    def __eq__(self, other: object) -> bool:
-        return isinstance(other, HangsWhenShown)
-
-    def __hash__(self) -> int:
-        return 1
-
-    def __repr__(self) -> str:
-        self.shown.append(1)
-        self.gate.wait(20)
-        return "HangsWhenShown()"
-
-
-class ExitsWhenShown:
-    def __eq__(self, other: object) -> bool:
-        return isinstance(other, ExitsWhenShown)
-
-    def __hash__(self) -> int:
-        return 2
-
-    def __repr__(self) -> str:
-        raise SystemExit("shown")
 
 
 def texts(registrar: Any) -> dict[str, tuple[Any, Any, Any]]:

@@ -58,6 +58,7 @@ from rr_actors.testing import (
     pending_work,
 )
 from rr_actors.testing.seams import _ask_actor, run_on_actor
+from tests.support.heard import Heard
 from tests.support.names import named
 from tests.support.supervising import kill_and_wait_restarted, process, sigkill
 from tests.support.waiting import wait_for
@@ -170,22 +171,6 @@ def _started(prefix: str) -> rr.ResourceRegistrar:
 
 
 # -- for TestStopWaitsForUnloads -----------------------------------------------------------
-
-
-class EventsHeard:
-    """The events a subscription delivers, in order."""
-
-    def __init__(self) -> None:
-        self.events: list[events.Event] = []
-        self.lock = threading.Lock()
-
-    def __call__(self, event: events.Event) -> None:
-        with self.lock:
-            self.events.append(event)
-
-    def kinds(self) -> list[str]:
-        with self.lock:
-            return [type(e).__name__ for e in self.events]
 
 
 class Gated:
@@ -1016,7 +1001,7 @@ class TestStopWaitsForUnloads:
         provider, consumer, server = gated
         config = provider.config
         _rid, releasing, ended = unloading(provider, consumer, server)
-        heard = EventsHeard()
+        heard = Heard()
         subscription = provider.subscribe(heard)
         # The unload returns once the stop has begun (its message was handled): the stop
         # has released what it held and waits for the unload.
@@ -1039,7 +1024,7 @@ class TestStopWaitsForUnloads:
         provider, consumer, server = gated
         config = provider.config
         rid, releasing, ended = unloading(provider, consumer, server)
-        heard = EventsHeard()
+        heard = Heard()
         subscription = provider.subscribe(heard)
         timeout = 2.0
         started = time.monotonic()

@@ -53,6 +53,7 @@ from rr_actors.testing import (
 from tests.support import simulated
 from tests.support.durable_pair import durable_config
 from tests.support.gating import GatedLoad
+from tests.support.heard import Heard
 from tests.support.waiting import wait_for
 
 # -- for TestLoad --------------------------------------------------------------------------
@@ -3508,22 +3509,6 @@ def _leaf_setup(registrar: rr.ResourceRegistrar) -> None:
     registrar.register_server("leaf", load=lambda r: f"loaded {r}", unload=lambda _q, _r: None)
 
 
-class _Heard:
-    """Collects the events a subscription delivers."""
-
-    def __init__(self) -> None:
-        self.events: list[Any] = []
-        self.lock = threading.Lock()
-
-    def __call__(self, event: Any) -> None:
-        with self.lock:
-            self.events.append(event)
-
-    def of(self, kind: type[Any]) -> list[Any]:
-        with self.lock:
-            return [e for e in self.events if isinstance(e, kind)]
-
-
 class TestLastUnloadCommit:
     """A durable provider writes a last unload's release with its resource's `UNLOADING`
     mark in one transaction (issue 52): the id held and the resource loaded, or both
@@ -3594,7 +3579,7 @@ class TestLastUnloadCommit:
         p = f"p-{uid}"
         spec = rr.ManagerSpec(p, _leaf_setup, isolation="process", heartbeat=None)
         sup = supervisors([spec], state_dir=tmp_path / "state")
-        heard = _Heard()
+        heard = Heard()
         subscription = sup.subscribe(heard)
         sup.start()
         app = sup.registrar(f"app-{uid}")
@@ -3658,7 +3643,7 @@ class TestKeptForRetry:
         p = f"p-{uid}"
         spec = rr.ManagerSpec(p, _leaf_setup, isolation="process", heartbeat=None)
         sup = supervisors([spec], state_dir=tmp_path / "state")
-        heard = _Heard()
+        heard = Heard()
         subscription = sup.subscribe(heard)
         sup.start()
         app = sup.registrar(rr.RegistrarConfig(name=f"app-{uid}", call_timeout=1.0))

@@ -39,30 +39,11 @@ from rr_actors.testing import (
     run_on_actor,
 )
 from tests.support.gating import GatedLoad
+from tests.support.heard import Heard
 from tests.support.small_disk import fill, mounted
 from tests.support.waiting import wait_for
 
 # -- for TestEvents ------------------------------------------------------------------------
-
-
-class Heard:
-    """Collects the events a subscription delivers."""
-
-    def __init__(self) -> None:
-        self.events: list[events.Event] = []
-        self.lock = threading.Lock()
-
-    def __call__(self, event: events.Event) -> None:
-        with self.lock:
-            self.events.append(event)
-
-    def kinds(self) -> list[str]:
-        with self.lock:
-            return [type(e).__name__ for e in self.events]
-
-    def of(self, kind: type[Any]) -> list[Any]:
-        with self.lock:
-            return [e for e in self.events if isinstance(e, kind)]
 
 
 def _answered_then_forgotten(heard: Heard, query_id: str) -> list[str]:

@@ -17,6 +17,7 @@ import sqlite3
 import tempfile
 import threading
 import uuid
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -998,6 +999,20 @@ def reader_on_old_snapshot(path: Path) -> sqlite3.Connection:
     return reader
 
 
+@pytest.fixture
+def held_back(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> Iterator[tuple[SqliteStore, Catalog, sqlite3.Connection]]:
+    """A store at tmp_path/c.db whose log limit is 4 pages, and a reader on an old snapshot
+    of it (`rr-actors inspect` on the live file, say); both closed after the test."""
+    monkeypatch.setattr(sqlite, "WAL_LIMIT", 4)
+    store, catalog = opened(tmp_path / "c.db")
+    reader = reader_on_old_snapshot(tmp_path / "c.db")
+    yield store, catalog, reader
+    reader.close()
+    store.close(erase=False)
+
+
 def wait_checkpoints(store: SqliteStore, count: int, within: float = WAIT) -> tuple[int, int, int]:
     assert store._checkpointer is not None
     done = store._checkpointer.done
@@ -1041,13 +1056,10 @@ def test_a_store_that_writes_little_has_no_checkpointer_thread(tmp_path: Path) -
 
 
 def test_a_log_held_back_by_a_reader_is_restarted_once_it_passes_the_limit(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, held_back: tuple[SqliteStore, Catalog, sqlite3.Connection]
 ) -> None:
-    monkeypatch.setattr(sqlite, "WAL_LIMIT", 4)
-    path = tmp_path / "c.db"
-    store, catalog = opened(path)
-    reader = reader_on_old_snapshot(path)
-    checkpoint = sqlite3.connect(path, isolation_level=None, timeout=0.05)
+    store, catalog, reader = held_back
+    checkpoint = sqlite3.connect(tmp_path / "c.db", isolation_level=None, timeout=0.05)
     try:
         write_changes(store, catalog, 20)
         store._checkpointer._checkpoint(checkpoint)
@@ -1064,8 +1076,6 @@ def test_a_log_held_back_by_a_reader_is_restarted_once_it_passes_the_limit(
         assert store._db.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()[1] <= 2
     finally:
         checkpoint.close()
-        reader.close()
-        store.close(erase=False)
 
 
 def test_without_a_thread_the_writer_falls_back_to_sqlites_own_checkpoints(
@@ -1151,24 +1161,17 @@ def test_a_relative_backup_path_is_checkpointed_after_a_chdir(
 
 
 def test_a_reader_that_lingers_past_the_limit_never_locks_the_writer_out(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    held_back: tuple[SqliteStore, Catalog, sqlite3.Connection],
 ) -> None:
     # RESTART holds new writes back while it waits for readers: it must give up long
     # before the writer's own busy timeout (5 s), or the writer fails "database is locked"
-    monkeypatch.setattr(sqlite, "WAL_LIMIT", 4)
-    path = tmp_path / "c.db"
-    store, catalog = opened(path)
-    reader = reader_on_old_snapshot(path)  # `rr-actors inspect` on the live file, say
-    try:
-        store.checkpoint_every = 8
-        store._unchecked = 0
-        write_changes(store, catalog, 8)
-        busy, log, copied = wait_checkpoints(store, 1, within=2.5)  # gave up on the reader
-        assert (busy, copied < log) == (1, True)
-        write_changes(store, catalog, 3)  # and the writer goes on
-    finally:
-        reader.close()
-        store.close(erase=False)
+    store, catalog, _ = held_back
+    store.checkpoint_every = 8
+    store._unchecked = 0
+    write_changes(store, catalog, 8)
+    busy, log, copied = wait_checkpoints(store, 1, within=2.5)  # gave up on the reader
+    assert (busy, copied < log) == (1, True)
+    write_changes(store, catalog, 3)  # and the writer goes on
 
 
 def test_a_large_response_counts_for_the_pages_it_fills(tmp_path: Path) -> None:
@@ -1192,14 +1195,10 @@ def test_below_the_limit_a_checkpoint_is_passive_and_does_not_wait_for_a_reader(
 ) -> None:
     path = tmp_path / "c.db"
     store, catalog = opened(path)
-    reader = sqlite3.connect(path, isolation_level=None)
-    reader.execute("BEGIN")
-    reader.execute("SELECT count(*) FROM consumers").fetchone()  # an old snapshot
+    reader = reader_on_old_snapshot(path)
     checkpoint = sqlite3.connect(path, isolation_level=None, timeout=0.05)
     try:
-        for _ in range(20):
-            catalog.add_consumer("r1", str(uuid.uuid4()), "C")
-            store.write(catalog.drain_changes())
+        write_changes(store, catalog, 20)
         assert store._checkpointer is not None
         store._checkpointer._checkpoint(checkpoint)
         last = store._checkpointer.last

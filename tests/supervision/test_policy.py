@@ -44,7 +44,6 @@ import multiprocessing.connection
 import multiprocessing.context
 import os
 import signal
-import socket
 import sqlite3
 import subprocess
 import sys
@@ -77,6 +76,7 @@ from rr_actors.testing import (
 )
 from tests.support.carriers import own_provider_main, setup_servers
 from tests.support.gating import GatedLoad
+from tests.support.hosts import free_port
 from tests.support.supervising import (
     FakeClock,
     ManualTimer,
@@ -974,13 +974,6 @@ LOST = "is gone and nobody will restart it"
 """What the consumer's WARNING says of a provider lost for good (rule 19)."""
 
 
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port: int = probe.getsockname()[1]
-        return port
-
-
 def host_main(
     system: str,
     listen: str,
@@ -1012,7 +1005,7 @@ class Station:
     def __init__(self, context: multiprocessing.context.ForkServerContext) -> None:
         self.context = context
         self.system = f"quietend-{uuid.uuid4().hex[:8]}"
-        self.endpoint = f"tcp/127.0.0.1:{_free_port()}"
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.network = rr.ZenohNetwork(system=self.system, listen=[self.endpoint], tls=None)
         self.heard: list[tuple[str, rr.Status, str]] = []
         self.changed = threading.Condition()
@@ -1047,7 +1040,7 @@ class Station:
     def host(self) -> tuple[str, multiprocessing.process.BaseProcess, Any]:
         """Start the robot's host; once the provider is served there and seen here."""
         provider = f"erm-{uuid.uuid4().hex[:8]}"
-        listen = f"tcp/127.0.0.1:{_free_port()}"
+        listen = f"tcp/127.0.0.1:{free_port()}"
         process, control = self.start(
             host_main, self.system, listen, self.endpoint, provider, daemon=False
         )  # (not daemonic: it starts manager processes)

@@ -23,6 +23,7 @@ import pytest
 import rr_actors as rr
 from rr_actors import events, testing
 from rr_actors.config import Steps
+from tests.support.heard import Heard
 from tests.support.waiting import wait_for
 
 BOUND = 30.0  # seconds: generous, the machine is loaded
@@ -65,27 +66,6 @@ def served_ids(sup: rr.Supervisor, name: str) -> list[str]:
     return ids
 
 
-class Seen:
-    """A tree's events, and a wait for one that matches."""
-
-    def __init__(self) -> None:
-        self.cond = threading.Condition()
-        self.events: list[events.Event] = []
-
-    def __call__(self, event: events.Event) -> None:
-        with self.cond:
-            self.events.append(event)
-            self.cond.notify_all()
-
-    def wait(self, match: Callable[[events.Event], bool], timeout: float = BOUND) -> bool:
-        with self.cond:
-            return self.cond.wait_for(lambda: any(map(match, self.events)), timeout)
-
-    def of(self, kind: type[Any], child: str) -> list[Any]:
-        with self.cond:
-            return [e for e in self.events if isinstance(e, kind) and e.child == child]
-
-
 @pytest.fixture
 def state(tmp_path: Path) -> str:
     return str(tmp_path / "state")
@@ -94,17 +74,17 @@ def state(tmp_path: Path) -> str:
 @pytest.fixture
 def tree(
     supervisors: Callable[..., rr.Supervisor], state: str, uid: str
-) -> Iterator[tuple[rr.Supervisor, Seen, str]]:
+) -> Iterator[tuple[rr.Supervisor, Heard, str]]:
     """Two pools `a<uid>` and `b<uid>` of two echo managers each, started, watched."""
     sup = supervisors([pool(f"a{uid}", 2), pool(f"b{uid}", 2)], state_dir=state)
-    seen = Seen()
+    seen = Heard()
     with sup.subscribe(seen):
         sup.start()
         yield sup, seen, uid
 
 
 def test_a_pool_is_one_supervisor_child_in_its_own_process_and_its_managers_share_its_pid(
-    tree: tuple[rr.Supervisor, Seen, str],
+    tree: tuple[rr.Supervisor, Heard, str],
 ) -> None:
     sup, _, uid = tree
     a, b = sup.which_children()
@@ -119,7 +99,7 @@ def test_a_pool_is_one_supervisor_child_in_its_own_process_and_its_managers_shar
 
 
 def test_a_pool_s_managers_serve_calls_from_this_process_and_from_another_pool(
-    tree: tuple[rr.Supervisor, Seen, str],
+    tree: tuple[rr.Supervisor, Heard, str],
 ) -> None:
     sup, _, uid = tree
     app = sup.registrar(f"app{uid}")
@@ -148,7 +128,7 @@ def test_a_supervisors_steps_reach_the_managers_of_its_pools(
 
 
 def test_a_crash_of_one_manager_in_a_pool_restarts_only_that_one_with_its_catalog(
-    tree: tuple[rr.Supervisor, Seen, str],
+    tree: tuple[rr.Supervisor, Heard, str],
 ) -> None:
     sup, seen, uid = tree
     name, sibling = f"a{uid}-m1", f"a{uid}-m0"
@@ -160,16 +140,17 @@ def test_a_crash_of_one_manager_in_a_pool_restarts_only_that_one_with_its_catalo
         sup.run_in(name, testing.crash, timeout=BOUND)  # its registrar actor dies, in the pool
 
     assert seen.wait(lambda e: isinstance(e, events.ChildRestarted) and e.child == name)
-    (restarted,) = seen.of(events.ChildRestarted, name)
+    (restarted,) = seen.of(events.ChildRestarted, child=name)
     assert (f"a{uid}", pool_pid) == (restarted.supervisor, restarted.pid)
     assert [held.id] == served_ids(sup, name)  # its catalog, restored
     assert pool_pid == sup.child(f"a{uid}").pid  # the pool's process lives on
-    assert [] == seen.of(events.ChildExited, sibling) + seen.of(events.ChildExited, f"a{uid}")
+    assert [] == seen.of(events.ChildExited, child=sibling)
+    assert [] == seen.of(events.ChildExited, child=f"a{uid}")
     assert "kept" == app.call(name, "echo", "kept").response
 
 
 def test_a_restart_inside_a_pool_counts_in_the_parent_s_restarts_of_that_manager_only(
-    tree: tuple[rr.Supervisor, Seen, str],
+    tree: tuple[rr.Supervisor, Heard, str],
 ) -> None:
     sup, _, uid = tree
     name, sibling = f"a{uid}-m1", f"a{uid}-m0"
@@ -201,7 +182,7 @@ def test_a_hung_thread_manager_in_a_pool_is_detected_and_its_pool_restarted_with
     sup = supervisors(
         [rr.SupervisorSpec(f"h{uid}", managers, isolation="process")], state_dir=state
     )
-    seen = Seen()
+    seen = Heard()
     gate = process_helpers.event()
     with sup.subscribe(seen):
         sup.start()
@@ -217,7 +198,7 @@ def test_a_hung_thread_manager_in_a_pool_is_detected_and_its_pool_restarted_with
 
         assert ("running", 1) == (info.state, info.restarts)
         assert info.pid not in (None, pool_pid)
-        (exited,) = seen.of(events.ChildExited, f"h{uid}")
+        (exited,) = seen.of(events.ChildExited, child=f"h{uid}")
         assert exited.reason.startswith("hung"), exited.reason
         assert [held.id] == served_ids(sup, name)  # its catalog, restored
         assert "again" == app.call(name, "echo", "again").response
@@ -236,7 +217,7 @@ def _block_actor(gate: Any) -> Callable[[rr.ResourceRegistrar], None]:
 
 
 def test_a_sigkill_of_a_pool_restarts_only_its_managers_each_restoring_its_catalog(
-    tree: tuple[rr.Supervisor, Seen, str],
+    tree: tuple[rr.Supervisor, Heard, str],
 ) -> None:
     sup, seen, uid = tree
     app = sup.registrar(f"app{uid}")
@@ -255,8 +236,8 @@ def test_a_sigkill_of_a_pool_restarts_only_its_managers_each_restoring_its_catal
         assert [held[name]] == served_ids(sup, name)
     assert (other.pid, 0) == (sup.child(f"b{uid}").pid, sup.child(f"b{uid}").restarts)
     assert 0 == sup.child(f"b{uid}-m0").restarts
-    assert [] == seen.of(events.ChildExited, f"b{uid}")
-    (exited,) = seen.of(events.ChildExited, f"a{uid}")
+    assert [] == seen.of(events.ChildExited, child=f"b{uid}")
+    (exited,) = seen.of(events.ChildExited, child=f"a{uid}")
     assert "killed by SIGKILL" == exited.reason
 
 
@@ -331,7 +312,7 @@ def test_a_transient_pool_that_gives_up_stays_down_as_otp_s_shutdown(
     supervisors: Callable[..., rr.Supervisor], state: str, uid: str
 ) -> None:
     sup = supervisors([pool(f"t{uid}", 2, max_restarts=0, restart="transient")], state_dir=state)
-    seen = Seen()
+    seen = Heard()
     with sup.subscribe(seen):
         sup.start()
         with contextlib.suppress(rr.RegistrarUnavailableError):  # (the process may end first)
@@ -350,7 +331,7 @@ def test_a_pool_restarted_with_its_group_stops_its_managers_and_restores_their_c
 ) -> None:
     solo = rr.ManagerSpec(f"s{uid}", echo_setup, isolation="process")
     sup = supervisors([pool(f"a{uid}", 2), solo], state_dir=state, strategy="one_for_all")
-    seen = Seen()
+    seen = Heard()
     with sup.subscribe(seen):
         sup.start()
         app = sup.registrar(f"app{uid}")
@@ -362,7 +343,7 @@ def test_a_pool_restarted_with_its_group_stops_its_managers_and_restores_their_c
         info = sup.wait_restarted(f"a{uid}-m1", timeout=BOUND)
         assert info.pid not in (None, first)
         assert [held.id] == served_ids(sup, f"a{uid}-m1")
-        (stopped,) = seen.of(events.ChildExited, f"a{uid}")
+        (stopped,) = seen.of(events.ChildExited, child=f"a{uid}")
         assert (True, "shutdown") == (stopped.stopped, stopped.reason)
         assert seen.wait(  # the pool stopped its managers itself, in order, not killed
             lambda e: isinstance(e, events.ChildExited) and e.child == f"a{uid}-m0"
@@ -403,7 +384,7 @@ def test_a_holder_in_another_process_hears_a_pool_s_manager_restart_without_its_
         ],
         state_dir=state,
     )
-    seen = Seen()
+    seen = Heard()
     with sup.subscribe(seen):
         sup.start()
         sup.run_in(holder, lambda r: r.call(provider, "echo", "camera").id, timeout=BOUND)

@@ -25,27 +25,8 @@ from rr_actors._core import hlc
 from rr_actors._supervision.supervisor import tree_watch
 from rr_actors._supervision.watching import EventRelay
 from rr_actors.testing import SharedObjects
+from tests.support.heard import Heard
 from tests.support.supervising import echo_setup, kill_and_wait_restarted, pid_of, sigkill
-
-
-class Heard:
-    """Collects the events a subscription delivers."""
-
-    def __init__(self) -> None:
-        self.events: list[events.Event] = []
-        self.lock = threading.Lock()
-
-    def __call__(self, event: events.Event) -> None:
-        with self.lock:
-            self.events.append(event)
-
-    def of(self, kind: type[Any], **fields: Any) -> list[Any]:
-        with self.lock:
-            return [
-                e
-                for e in self.events
-                if isinstance(e, kind) and all(getattr(e, k) == v for k, v in fields.items())
-            ]
 
 
 def _serve(registrar: rr.ResourceRegistrar) -> None:

@@ -874,14 +874,6 @@ def zenoh_round_trips(key: str, rounds: int, warmup: int = 100) -> list[float]:
     return samples
 
 
-def zenoh_close() -> None:
-    """Close this worker's Zenoh session (its tokens go with it)."""
-    session = KEPT.pop("session", None)
-    KEPT.clear()
-    if session is not None:
-        session.close()
-
-
 # -- rr_actors in a worker (issue 22's API: `rr.ZenohNetwork`, `start(..., network=)`) ---------
 #
 # One `ZenohNetwork` per worker (a process belongs to one system), kept in its `KEPT` with the

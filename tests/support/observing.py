@@ -14,6 +14,7 @@ import json
 import os
 import shutil
 import signal
+import tempfile
 import threading
 import time
 import urllib.parse
@@ -235,6 +236,27 @@ def chromium() -> str | None:
     if os.path.isfile(CHROMIUM) and os.access(CHROMIUM, os.X_OK):
         return CHROMIUM
     return shutil.which("chromium")
+
+
+@contextlib.contextmanager
+def headless_chromium(width: int = 1400, height: int = 1000) -> Iterator[Any]:
+    """A headless chromium with a fresh profile (its Playwright browser context), its window
+    `width` x `height` pixels; fails the test where there is no chromium (or Playwright)."""
+    import playwright.sync_api as playwright_api  # noqa: PLC0415 - the dev extra
+
+    path = chromium()
+    if path is None:
+        pytest.fail("no chromium to drive (apt-get install -y chromium; .ci/run does)")
+    with playwright_api.sync_playwright() as playwright, tempfile.TemporaryDirectory() as profile:
+        context = playwright.chromium.launch_persistent_context(
+            profile,
+            executable_path=path,
+            headless=True,
+            args=CHROMIUM_ARGS,
+            viewport={"width": width, "height": height},
+        )
+        yield context
+        context.close()
 
 
 @dataclasses.dataclass

@@ -9,6 +9,7 @@ would start a line again (`\\n` and `\\r`).
 from __future__ import annotations
 
 import fcntl
+import io
 import os
 import pty
 import re
@@ -57,6 +58,13 @@ def on_a_terminal(
             process.wait()
         os.close(parent)
     return code, ANSI.sub("", b"".join(chunks).decode(errors="replace"))
+
+
+class FakeTerminal(io.StringIO):
+    """A stream that says it is a terminal (as a command on a real one sees it)."""
+
+    def isatty(self) -> bool:
+        return True
 
 
 def drawn(text: str) -> list[str]:

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import socket
 import threading
 import uuid
 from collections.abc import Iterable, Iterator
@@ -23,14 +22,6 @@ from rr_actors._transport.zenoh.ops.config import session_config
 from tests.support import pki
 
 MEMBERS = ("robot", "operator")
-
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that nobody listened on a moment ago."""
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port: int = probe.getsockname()[1]
-        return port
 
 
 def member_tls(

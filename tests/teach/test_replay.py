@@ -14,13 +14,12 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import playwright.sync_api as playwright_api  # (the dev extra; a missing one fails)
 import pytest
 
 from rr_actors import events
 from rr_actors.errors import ConfigError
 from rr_actors_lab.teach import grade, kit, replay
-from tests.support.observing import CHROMIUM_ARGS, chromium, request
+from tests.support.observing import headless_chromium, request
 
 DOCS_IMG = Path(__file__).resolve().parents[2] / "docs" / "img"
 
@@ -130,19 +129,8 @@ def test_a_step_outside_the_run_is_clamped_and_a_bad_one_refused(camera: replay.
 @pytest.fixture(scope="module")
 def browser() -> Iterator[Any]:
     """A headless chromium for this module's tests (its own fresh profile)."""
-    path = chromium()
-    if path is None:
-        pytest.fail("no chromium to drive (apt-get install -y chromium; .ci/run does)")
-    with playwright_api.sync_playwright() as playwright, tempfile.TemporaryDirectory() as profile:
-        context = playwright.chromium.launch_persistent_context(
-            profile,
-            executable_path=path,
-            headless=True,
-            args=CHROMIUM_ARGS,
-            viewport={"width": 1400, "height": 1000},
-        )
+    with headless_chromium() as context:
         yield context
-        context.close()
 
 
 def shows(page: Any, step: int) -> None:

@@ -31,8 +31,9 @@ import rr_actors as rr
 from rr_actors.errors import ConfigError
 from rr_actors_lab.__main__ import main
 from rr_actors_lab._tools.certs import issue_cert
+from tests.support.hosts import free_port
 from tests.support.pki import make_ca
-from tests.support.tls_lab import free_port, router
+from tests.support.tls_lab import router
 
 
 def certs(*argv: str) -> tuple[int, str]:

@@ -19,7 +19,6 @@ import multiprocessing.context
 import os
 import pickle
 import signal
-import socket
 import sys
 import threading
 import time
@@ -58,6 +57,7 @@ from tests.support.carriers import (
     unloads,
     wait_load_started,
 )
+from tests.support.hosts import free_port
 from tests.support.waiting import wait_for
 
 __all__ = ["context", "start_provider"]
@@ -313,13 +313,6 @@ LOST_WITHIN = 1.0
 
 
 # -- per carrier ----------------------------------------------------------------------------------
-
-
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port: int = probe.getsockname()[1]
-        return port
 
 
 @dataclasses.dataclass
@@ -1021,7 +1014,7 @@ class TestLostForGood:
             system = CARRIERS["unix"]()
             join: tuple[Any, ...] = ("attach", system.address)
         elif carrier == "zenoh":
-            endpoint = f"tcp/127.0.0.1:{_free_port()}"
+            endpoint = f"tcp/127.0.0.1:{free_port()}"
             name = f"lost-{uuid.uuid4().hex[:8]}"
             system = rr.ZenohNetwork(system=name, listen=[endpoint], tls=None)
             join = ("router", name, endpoint)

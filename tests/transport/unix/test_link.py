@@ -52,6 +52,7 @@ from tests.support.carriers import (
     setup_servers,
     warnings_logged,
 )
+from tests.support.hostile import CreatesAFile
 from tests.support.waiting import wait_for
 
 
@@ -66,16 +67,6 @@ def system() -> Iterator[System]:  # type: ignore[no-redef]
 # -- authentication --------------------------------------------------------------------------------
 
 
-class _Marker:
-    """A payload whose unpickling would create a file (to show nothing was unpickled)."""
-
-    def __init__(self, path: str) -> None:
-        self.path = path
-
-    def __reduce__(self) -> tuple[Any, ...]:
-        return (Path.touch, (Path(self.path),))
-
-
 def _drain_until_closed(conn: multiprocessing.connection.Connection) -> bool:
     """Read until the other side closes the connection; False if it stays open for 10 s."""
     while True:
@@ -88,7 +79,7 @@ def _drain_until_closed(conn: multiprocessing.connection.Connection) -> bool:
 
 
 def _evil_load(name: str, marker: str) -> bytes:
-    message = Load("q-1", "echo", _Marker(marker), "intruder", (), None)  # type: ignore[arg-type]
+    message = Load("q-1", "echo", CreatesAFile(marker), "intruder", (), None)  # type: ignore[arg-type]
     payload: bytes = cloudpickle.dumps(message)
     return b"\x00" * 8 + payload
 

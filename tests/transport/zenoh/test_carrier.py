@@ -13,7 +13,6 @@ import multiprocessing.context
 import os
 import pickle
 import signal
-import socket
 import struct
 import subprocess
 import sys
@@ -42,18 +41,13 @@ from rr_actors._transport.zenoh.net import ZenohNetwork
 from rr_actors._transport.zenoh.wire import MESSAGE, PYTHON, VERSION, parse, payload_of
 from rr_actors.testing import run_on_actor
 from tests.support.carriers import in_thread, setup_servers, wait_load_started
+from tests.support.hostile import CreatesAFile
+from tests.support.hosts import free_port
 from tests.support.waiting import wait_for
 
 
 def _system() -> str:
     return f"test-{uuid.uuid4().hex[:8]}"
-
-
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port: int = probe.getsockname()[1]
-        return port
 
 
 class Recorder:
@@ -94,7 +88,7 @@ class Recorder:
 @pytest.fixture
 def net() -> Iterator[ZenohNetwork]:
     """A fresh system whose router is the test process, listening on loopback TCP."""
-    network = rr.ZenohNetwork(system=_system(), listen=[f"tcp/127.0.0.1:{_free_port()}"], tls=None)
+    network = rr.ZenohNetwork(system=_system(), listen=[f"tcp/127.0.0.1:{free_port()}"], tls=None)
     yield network
     network.close()
 
@@ -195,16 +189,6 @@ def _tcp(network: ZenohNetwork) -> str:
 
 
 # -- versions -------------------------------------------------------------------------------------
-
-
-class _CreatesAFile:
-    """Unpickling it would create a file (it must never be unpickled)."""
-
-    def __init__(self, path: str) -> None:
-        self.path = path
-
-    def __reduce__(self) -> tuple[Any, ...]:
-        return (open, (self.path, "w"))
 
 
 def _raw_session(network: ZenohNetwork) -> zenoh.Session:
@@ -474,7 +458,7 @@ def test_a_message_of_another_version_is_refused_unread_naming_both_versions(
         with caplog.at_level(logging.WARNING, logger="rr_actors"):
             raw.put(
                 f"rr/{net.system}/reg/{target.name}",
-                _header(MESSAGE, sender, wire, python) + frame(7, _CreatesAFile(str(evil))),
+                _header(MESSAGE, sender, wire, python) + frame(7, CreatesAFile(str(evil))),
             )
             assert answered.wait(10)
         subscriber.undeclare()
@@ -935,7 +919,7 @@ def test_a_message_over_the_registrars_limit_is_answered_unread(
             # and 2 MiB is 32 batches for a queue of 2: on a loaded machine it was dropped)
             f"rr/{net.system}/reg/{target.name}",
             _header(MESSAGE, sender, WIRE_VERSION)
-            + frame(9, (_CreatesAFile(str(evil)), b"x" * (2 * target.max_message_bytes))),
+            + frame(9, (CreatesAFile(str(evil)), b"x" * (2 * target.max_message_bytes))),
             congestion_control=zenoh.CongestionControl.BLOCK,
         )
         assert answered.wait(10)

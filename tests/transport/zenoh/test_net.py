@@ -14,7 +14,6 @@ import pwd
 import re
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import textwrap
@@ -33,8 +32,9 @@ from rr_actors._core.hlc import CLOCK, MAX_OFFSET
 from rr_actors._transport.zenoh.net import ZenohNetwork
 from rr_actors._transport.zenoh.ops.config import session_config
 from tests.support import pki, selecting
+from tests.support.hosts import free_port
 from tests.support.supervising import wait_gone
-from tests.support.tls_lab import free_port, member_tls, router
+from tests.support.tls_lab import member_tls, router
 from tests.support.waiting import wait_for
 from tests.test_init import HIDE_THE_LAB
 
@@ -58,29 +58,15 @@ def _system() -> str:
     return f"test-{uuid.uuid4().hex[:8]}"
 
 
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port: int = probe.getsockname()[1]
-        return port
-
-
 @pytest.fixture
 def net() -> Iterator[ZenohNetwork]:
     """A fresh system whose router is the test process, listening on loopback TCP."""
-    network = rr.ZenohNetwork(system=_system(), listen=[f"tcp/127.0.0.1:{_free_port()}"], tls=None)
+    network = rr.ZenohNetwork(system=_system(), listen=[f"tcp/127.0.0.1:{free_port()}"], tls=None)
     yield network
     network.close()
 
 
 pytest.importorskip("zenoh")
-
-
-def _open_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port: int = probe.getsockname()[1]
-        return port
 
 
 PROVIDER = textwrap.dedent(
@@ -389,7 +375,7 @@ def test_a_network_only_on_its_unix_socket_logs_no_warning(
 def test_an_unreachable_connect_endpoint_is_a_warning_not_an_error(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
-    port = _free_port()
+    port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     net = rr.ZenohNetwork(system=_system(), connect=[endpoint], tls=None)
     try:
@@ -545,7 +531,7 @@ class TestOpen:
         )
 
     def test_a_router_with_a_connect_endpoint_is_linked_when_its_open_returns(self):
-        endpoint = f"tcp/127.0.0.1:{_free_port()}"
+        endpoint = f"tcp/127.0.0.1:{free_port()}"
         listening = zenoh.open(session_config("router", [endpoint], [], 1.0))
         try:
             connecting = zenoh.open(session_config("router", [], [endpoint], 1.0))

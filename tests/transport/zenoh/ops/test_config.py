@@ -33,8 +33,9 @@ from rr_actors.testing import RemoteRegistrar, start_forkserver
 from rr_actors_lab._tools import certs as certs_tool
 from rr_actors_lab.observe._links import LinkWatch, handshake_trouble
 from tests.support import pki
+from tests.support.hosts import free_port
 from tests.support.supervising import process
-from tests.support.tls_lab import MEMBERS, Lab, Logged, caught_log, free_port, listener, open_router
+from tests.support.tls_lab import MEMBERS, Lab, Logged, caught_log, listener, open_router
 from tests.support.waiting import wait_for
 
 

@@ -23,8 +23,9 @@ from rr_actors._transport.zenoh.ops.gate import (
 )
 from rr_actors._transport.zenoh.wire import Keys
 from tests.support import pki
+from tests.support.hosts import free_port
 from tests.support.supervising import FakeClock, linux_trick
-from tests.support.tls_lab import free_port, member_tls, router
+from tests.support.tls_lab import member_tls, router
 from tests.support.waiting import wait_for
 
 

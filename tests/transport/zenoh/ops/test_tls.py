@@ -11,7 +11,6 @@ import logging
 import os
 import re
 import shutil
-import socket
 import subprocess
 import sys
 import threading
@@ -25,6 +24,7 @@ from rr_actors._transport.zenoh.ops.tls import member_addresses
 from rr_actors.errors import ConfigError
 from rr_actors_lab._tools import certs as certs_tool
 from tests.support import pki
+from tests.support.hosts import free_port
 from tests.support.pki import DAY, issue, make_ca, make_intermediate
 from tests.test_docs import ROOT, blocks, commands
 
@@ -68,13 +68,6 @@ def config(directory: Path, me: str, listen: list[str], connect: list[str]) -> o
             }
         )
     )
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port: int = probe.getsockname()[1]
-        return port
 
 
 def a_put_crosses(directory: Path) -> bool:
