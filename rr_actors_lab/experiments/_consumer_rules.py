@@ -681,7 +681,8 @@ def outcome(steps: Sequence[Step], lives: dict[tuple[str, int], Life]) -> list[F
     (`CallWithdrawn`) of its id, or its caller's life ended otherwise than by its own stop
     (a kill, a crash: the call died with it).
 
-    Judged: the caller's life at the add (its latest begun by the add's stamp) ended in
+    Judged: the caller's life at the add (its latest begun by the add's stamp, else its
+    first: a caller's first event may be the call's answer) ended in
     its `RegistrarStopped` (a stop answers or withdraws what is in flight), and began
     `CALL_BOUND_S` before the add or is the caller's first (else a call of the life before
     may be the one added). Not judged: a caller with no event in the run, a run with no
@@ -705,9 +706,7 @@ def outcome(steps: Sequence[Step], lives: dict[tuple[str, int], Life]) -> list[F
         if (caller, qid) in outcomes or not of.get(caller):
             continue
         begun = [item for item in of[caller] if item[0] <= stamp]
-        if not begun:
-            continue
-        start, life, record = begun[-1]
+        start, life, record = begun[-1] if begun else of[caller][0]  # (none yet: its first)
         stop = stops.get((caller, life))
         if stop is None or (record.end is not None and record.end < stamp):
             continue  # (its life ended by a kill, or before the add: the call died with it)

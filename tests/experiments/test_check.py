@@ -3208,6 +3208,40 @@ def listing_lists_an_unknown_id(h: History) -> History | None:
     return None
 
 
+def drop_outcome(h: History) -> History | None:
+    """A call its provider added (`ConsumerAdded`) whose caller, one process that stops
+    cleanly after it and never exits, publishes no answer, error or withdrawal of it."""
+    pids: dict[str, set[int]] = defaultdict(set)
+    for e in h:
+        if (name := getattr(e, "registrar", None)) is not None:
+            pids[name].add(e.pid)
+    exited = {e.child for e in h if type(e) is events.ChildExited}
+    outcomes = (events.CallAnswered, events.CallFailed, events.CallWithdrawn)
+    for i, e in enumerate(h):
+        if type(e) is not events.ConsumerAdded or len(pids.get(e.consumer, ())) != 1:
+            continue
+        caller, qid = e.consumer, e.query_id
+        stops = [x for x in h[i + 1 :] if type(x) is events.RegistrarStopped]
+        if caller in exited or not any(x.registrar == caller for x in stops):
+            continue
+        dropped = [
+            j
+            for j, x in enumerate(h)
+            if type(x) in outcomes and (x.registrar, x.query_id) == (caller, qid)
+        ]
+        if dropped:
+            return _without(h, *dropped)
+    return None
+
+
+def end_by_itself(h: History) -> History | None:
+    """A child's exit by a kill (the plan's fault) told as its registrar's own crash."""
+    for i, e in enumerate(h):
+        if type(e) is events.ChildExited and not e.stopped and e.reason.startswith("killed by"):
+            return [*h[:i], dataclasses.replace(e, reason="registrar actor died"), *h[i + 1 :]]
+    return None
+
+
 MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     # name: (the mutation, the rule that must catch it)
     "duplicate-unload": (duplicate(events.ResourceUnloaded), "unload-once"),
@@ -3255,6 +3289,8 @@ MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     "fetch-lists-an-unknown-id": (fetch_lists_an_unknown_id, "fetch"),
     "listing-leaves-out-a-held-id": (listing_leaves_out_a_held_id, "fetch"),
     "listing-lists-an-unknown-id": (listing_lists_an_unknown_id, "fetch"),
+    "drop-outcome": (drop_outcome, "outcome"),
+    "end-by-itself": (end_by_itself, "life-end"),
 }
 
 
