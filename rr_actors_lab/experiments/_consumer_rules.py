@@ -1,5 +1,5 @@
 """The consumer's side of a run (rules `answered`, `answer-released`, `record-kept`,
-`reported-lost`, `end`, `withdrawn`, `retry-kept`, `left`, `fetch`).
+`reported-lost`, `end`, `withdrawn`, `retry-kept`, `left`, `fetch`, `outcome`).
 
 ```
  steps ──► answered: each consumer's answered calls against what its providers added
@@ -11,6 +11,7 @@
  steps ──► retry-kept: a failed call's id released while its consumer could retry it
  steps (+ the give-ups) ──► left: a last stop's rows no running consumer holds
  steps + holdings ──► fetch: QueriesFetched, ServerQueriesListed against what was held
+ steps + lives ──► outcome: each call a provider added against its caller's outcomes and end
 ```
 
 Each rule's windows and what it excuses: docs/how-to/check-a-run.md.
@@ -22,17 +23,20 @@ from collections import defaultdict
 from collections.abc import Collection, Sequence
 
 from rr_actors import events
+from rr_actors._core import hlc
 from rr_actors_lab.experiments._history import REPORTED, Facts, Finding, Life, Line, Step
 from rr_actors_lab.experiments._provider_rules import Holding
 from rr_actors_lab.experiments._status_rules import Span
 
 __all__ = [
+    "CALL_BOUND_S",
     "WITHDRAWN_BOUND_S",
     "answer_released",
     "answered",
     "end",
     "fetch",
     "left",
+    "outcome",
     "record_kept",
     "reported_lost",
     "retry_kept",
@@ -661,3 +665,72 @@ def _fetched(
                 )
             )
     return findings
+
+
+CALL_BOUND_S = 60.0
+"""Seconds a call may take from its caller's send to its provider's `ConsumerAdded` (more
+than any call timeout of the shipped plans): an add within that long of the start of its
+caller's life may be of a call the life before made, and is not judged (`outcome`)."""
+
+_OUTCOMES = (events.CallAnswered, events.CallFailed, events.CallWithdrawn)
+
+
+def outcome(steps: Sequence[Step], lives: dict[tuple[str, int], Life]) -> list[Finding]:
+    """`outcome`: every call has an outcome. A call its provider took (`ConsumerAdded`)
+    has at its caller an answer (`CallAnswered`), an error (`CallFailed`) or a withdrawal
+    (`CallWithdrawn`) of its id, or its caller's life ended otherwise than by its own stop
+    (a kill, a crash: the call died with it).
+
+    Judged: the caller's life at the add (its latest begun by the add's stamp, else its
+    first: a caller's first event may be the call's answer) ended in
+    its `RegistrarStopped` (a stop answers or withdraws what is in flight), and began
+    `CALL_BOUND_S` before the add or is the caller's first (else a call of the life before
+    may be the one added). Not judged: a caller with no event in the run, a run with no
+    outcome at all (written before the consumer's side was published, schema 2).
+    """
+    outcomes: set[tuple[str, str]] = set()  # (caller, id)
+    adds: list[tuple[str, str, int, int, str]] = []  # (caller, id, line, stamp, provider)
+    stops: dict[tuple[str, int], int] = {}  # (registrar, life) -> line of its stop
+    for name, line, event, _new, life in steps:
+        if isinstance(event, _OUTCOMES):
+            outcomes.add((base(name), event.query_id))
+        elif isinstance(event, events.ConsumerAdded):
+            adds.append((event.consumer, event.query_id, line, event.hlc, name))
+        elif isinstance(event, events.RegistrarStopped):
+            stops.setdefault((name, life), line)
+    of = _lives_of(lives)
+    findings: list[Finding] = []
+    if not outcomes:
+        return findings
+    for caller, qid, line, stamp, provider in adds:
+        if (caller, qid) in outcomes or not of.get(caller):
+            continue
+        begun = [item for item in of[caller] if item[0] <= stamp]
+        start, life, record = begun[-1] if begun else of[caller][0]  # (none yet: its first)
+        stop = stops.get((caller, life))
+        if stop is None or (record.end is not None and record.end < stamp):
+            continue  # (its life ended by a kill, or before the add: the call died with it)
+        if len(begun) > 1 and hlc.seconds(stamp) - hlc.seconds(start) < CALL_BOUND_S:
+            continue
+        findings.append(
+            Finding(
+                "outcome",
+                "violation",
+                f"{provider} added query {qid[:8]} of {caller}, whose life went on to its "
+                f"stop with no answer, error or withdrawal of that call",
+                (line, stop),
+                (provider, caller),
+            )
+        )
+    return findings
+
+
+def _lives_of(lives: dict[tuple[str, int], Life]) -> dict[str, list[tuple[int, int, Life]]]:
+    """Each registrar's lives `(start, life, record)` by start (second servers left out)."""
+    of: dict[str, list[tuple[int, int, Life]]] = defaultdict(list)
+    for (name, life), record in lives.items():
+        if record.beside is None:
+            of[name].append((record.start, life, record))
+    for found in of.values():
+        found.sort(key=lambda item: item[0])
+    return of

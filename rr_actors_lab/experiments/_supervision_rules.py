@@ -1,4 +1,4 @@
-"""The supervisors' side of a run (rules `intensity`, `strategy`, `escalation`).
+"""The supervisors' side of a run (rules `intensity`, `strategy`, `escalation`, `life-end`).
 
 ```
  ChildExited (counted) + SupervisorGaveUp ──► per supervisor ──► OTP's intensity: more
@@ -8,6 +8,7 @@
    order, the group restarted in start order; a group due that never comes back within
    `DUE_S`, its supervisor neither giving up nor shutting down) ──► `strategy`
    + a nested supervisor's give-up ──► its parent's next exit of it (`escalation`)
+ ChildExited's reason ──► a fault, a stop or its supervisor ended it, else `life-end`
 ```
 
 A supervisor's events come from its own thread in the order it decided: a group's stops
@@ -27,18 +28,75 @@ from rr_actors_lab.experiments._history import Finding, Line
 
 __all__ = [
     "DUE_S",
+    "ENDED_BY",
     "ESCALATED_S",
+    "FAILED_BY",
     "SLACK_S",
     "Strategies",
     "counted",
     "group",
     "intensity",
+    "life_end",
     "strategy",
 ]
 
 SLACK_S = 0.01
 """Seconds an exit may lie either side of a window's edge and not be judged: the
 supervisor reads its own clock a moment after it stamps `ChildExited.at`."""
+
+
+ENDED_BY = (
+    (
+        "killed",
+        "a fault (a signal from outside: the plan's kill), or its supervisor (no "
+        "clean stop within its timeout)",
+    ),
+    ("hung: ", "its supervisor: killed as hung (the plan's hang)"),
+    ("shutdown", "a stop: its supervisor's shutdown"),
+    ("normal", "a stop: its code stopped its registrar"),
+    ("its supervisor gave up", "its supervisor's give-up"),
+    ("gave up", "a nested supervisor's own give-up"),
+    (
+        "crashed (registrar actor died)",
+        "a thread manager's: the plan's kill of it crashes its "
+        "actor (`rr_actors.testing.crash`), not told apart from a crash of its own",
+    ),
+)
+"""The `ChildExited` reasons (their beginnings) of a life ended by a fault, a stop or its
+supervisor, with what ended it; `life-end` judges every other one a crash. A start that
+failed (`failed to start: `) is one when its error is in `FAILED_BY`."""
+
+FAILED_BY = ("DuplicateNameError", "RegistrarUnavailableError", "killed")
+"""Errors of a start that failed by a fault or by rule 22 (a restart into a name another
+serves, a kill or a cut during its setup), not by a crash of its own."""
+
+
+def life_end(history: Sequence[Line]) -> list[Finding]:
+    """`life-end`: a life ends only by a fault, a stop or its supervisor. A child's exit
+    (`ChildExited`) that its supervisor did not cause (not `stopped`) gives a reason
+    `ENDED_BY` names; any other (`crashed (registrar actor died)`, `exit code N`, a start
+    that failed by an error of its own) is a registrar that ended itself."""
+    findings = []
+    for line, event in history:
+        if not isinstance(event, events.ChildExited) or event.stopped:
+            continue
+        reason = event.reason
+        if any(reason.startswith(begins) for begins, _ in ENDED_BY):
+            continue
+        failed = reason.removeprefix("failed to start: ")
+        if failed != reason and any(name in failed for name in FAILED_BY):
+            continue
+        findings.append(
+            Finding(
+                "life-end",
+                "violation",
+                f"{event.child} (pid {event.pid}) ended by itself, neither by a fault, a "
+                f"stop nor its supervisor: {reason[:200]}",
+                (line,),
+                (event.child,),
+            )
+        )
+    return findings
 
 
 def counted(event: events.ChildExited) -> bool:

@@ -7,8 +7,8 @@
  check(history) ──────────────────────┴─► _history: each registrar's lives, the run's facts
      ├─► _provider_rules: one pass over each provider's catalog
      ├─► _status_rules: each status's deliveries, against who should have got it
-     ├─► _consumer_rules: each consumer's calls, lost ids, rows left, fetches
-     ├─► _supervision_rules: give-ups, strategies, escalations
+     ├─► _consumer_rules: each consumer's calls, lost ids, rows left, fetches, outcomes
+     ├─► _supervision_rules: give-ups, strategies, escalations, how lives end
      └─► events lost ──► findings (violation / unverifiable, each with the line
                          numbers of the events that show it) ──► Verdict
 ```
@@ -85,6 +85,8 @@ RULES = (
     "escalation",
     "one-name",
     "fetch",
+    "outcome",
+    "life-end",
     "events",
 )
 """The rules `check` checks, by name (`docs/how-to/check-a-run.md` says what each means)."""
@@ -264,6 +266,7 @@ def check(
         *_consumer_rules.retry_kept(steps),
         *_consumer_rules.left(steps, history, lives),
         *_consumer_rules.fetch(steps, providers.holdings, lives),
+        *_consumer_rules.outcome(steps, lives),
         *unload_order(steps),
         *dependency_held(steps),
         *doubt_reported(steps),
@@ -271,6 +274,7 @@ def check(
         *_supervision_rules.intensity(history),
         *strategy,
         *escalation,
+        *_supervision_rules.life_end(history),
         *_one_name_rule(history, lives, resolve),
     ]
     findings = [

@@ -453,6 +453,74 @@ def test_an_id_forgotten_that_was_not_held_is_found() -> None:
     assert {9} == _found([*h[:8], again, *h[8:]], "answered")
 
 
+Q3 = "q3333333-0000"
+
+
+def _asked_again(*then: events.Event) -> list[events.Event]:
+    """`with_paths()` with a second call of app that cm added (Q3, line 5), then `then`
+    before app's stop."""
+    h = with_paths()
+    added = events.ConsumerAdded(
+        "cm", RID2, Q3, "app", pid=C, hlc=h[3].hlc + 1
+    )  # (before the stop)
+    return [*h[:4], added, *h[4:-1], *then, h[-1]]
+
+
+def test_a_call_its_provider_added_with_no_outcome_before_its_callers_stop_is_found() -> None:
+    assert {5, 13} == _found(_asked_again(), "outcome")
+
+
+@pytest.mark.parametrize(
+    "outcome",
+    [
+        events.CallWithdrawn("app", Q3, "cm", "comp", pid=A),
+        events.CallFailed("app", Q3, "cm", "comp", "RegistrarUnavailableError", "gone", pid=A),
+    ],
+)
+def test_a_call_withdrawn_or_failed_at_its_caller_has_an_outcome(outcome: events.Event) -> None:
+    findings = check.check(numbered(_asked_again(outcome))).findings
+    assert [] == [f for f in findings if f.rule == "outcome"]
+
+
+def test_a_call_whose_caller_was_killed_before_its_stop_is_not_owed_an_outcome() -> None:
+    h = _asked_again()
+    killed = [*h[:-1], events.ChildExited("sup", "app", A, "killed by SIGKILL")]
+    findings = check.check(numbered(killed)).findings
+    assert [] == [f for f in findings if f.rule == "outcome"]
+
+
+@pytest.mark.parametrize(
+    "reason",
+    [
+        "registrar actor died",
+        "exit code 1",
+        "exited with code 0 without stopping its registrar",
+        "failed to start: ValueError: setup raised",
+    ],
+)
+def test_a_life_that_ended_by_itself_is_found(reason: str) -> None:
+    h = clean()
+    assert {len(h) + 1} == _found([*h, events.ChildExited("sup", "erm", P, reason)], "life-end")
+
+
+@pytest.mark.parametrize(
+    ("reason", "stopped"),
+    [
+        ("killed by SIGKILL", False),
+        ("hung: no heartbeat within 1 s (killed)", False),
+        ("killed: no clean stop within 5 s", False),
+        ("shutdown", False),
+        ("failed to start: DuplicateNameError: 'erm' is served elsewhere", False),
+        ("gave up: more than 2 restarts within 5 s", False),
+        ("registrar actor died", True),  # (its supervisor stopped it: a stop)
+    ],
+)
+def test_a_life_ended_by_a_fault_a_stop_or_its_supervisor_holds(reason: str, stopped: bool) -> None:
+    exited = events.ChildExited("sup", "erm", P, reason, stopped=stopped)
+    findings = check.check(numbered([*clean(), exited])).findings
+    assert [] == [f for f in findings if f.rule == "life-end"]
+
+
 # -- a real history, and rr-actors check -------------------------------------------------------
 
 
@@ -942,6 +1010,40 @@ def test_a_planted_bug_is_caught_by_its_rule_at_a_seed_its_plan_holds_at_unplant
     _plant(monkeypatch, where, old, new)
     found = simulate.run_seed(plan, 1).findings
     assert any(f"[{rule}]" in line for line in found), found
+
+
+@PLANTED_SEEDS
+def test_the_plant_load_raises_is_caught_by_life_end_at_simdoubt_seed_1(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from rr_actors._registrar.provider import Provider  # noqa: PLC0415
+
+    plan = load_plan(plans.find("simdoubt"))
+    assert "held" == simulate.run_seed(plan, 1).verdict
+    # (the registrar raises on every load: each of its managers' actors dies at its first)
+    old = "    refusal = self.refusal(message)\n"
+    _plant(monkeypatch, Provider, "serve", old, "    raise RuntimeError('planted')\n")
+    found = simulate.run_seed(plan, 1).findings
+    assert any("[life-end]" in line for line in found), found
+
+
+@PLANTED_SEEDS
+def test_the_plant_withdrawal_unpublished_is_caught_by_outcome_at_simcancel_seed_1(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from rr_actors._registrar import consumer  # noqa: PLC0415
+
+    plan = load_plan(plans.find("simcancel"))
+    assert "held" == simulate.run_seed(plan, 1).verdict
+    source = textwrap.dedent(inspect.getsource(consumer.publish_failed))
+    old = "    if message.withdrawn:\n        shared.events.publish("
+    assert 1 == source.count(old), "publish_failed moved: write the plant again"
+    made: dict[str, object] = {}
+    planted = source.replace(old, "    if message.withdrawn:\n        (lambda _event: None)(")
+    exec(compile(planted, consumer.__file__, "exec"), vars(consumer), made)  # noqa: S102
+    monkeypatch.setattr(consumer, "publish_failed", made["publish_failed"])
+    found = simulate.run_seed(plan, 1).findings
+    assert any("[outcome]" in line for line in found), found
 
 
 def renumbered(history: list[events.Event]) -> list[events.Event]:
@@ -2349,7 +2451,7 @@ def _tree(
                 supervisor,
                 child,
                 10,
-                what,
+                "killed by SIGKILL" if what == "crash" else what,  # (a fault: `life-end` holds)
                 kinds.get(child, "permanent"),
                 what == "normal",
                 what == "stop",
@@ -3088,6 +3190,40 @@ def listing_lists_an_unknown_id(h: History) -> History | None:
     return None
 
 
+def drop_outcome(h: History) -> History | None:
+    """A call its provider added (`ConsumerAdded`) whose caller, one process that stops
+    cleanly after it and never exits, publishes no answer, error or withdrawal of it."""
+    pids: dict[str, set[int]] = defaultdict(set)
+    for e in h:
+        if (name := getattr(e, "registrar", None)) is not None:
+            pids[name].add(e.pid)
+    exited = {e.child for e in h if type(e) is events.ChildExited}
+    outcomes = (events.CallAnswered, events.CallFailed, events.CallWithdrawn)
+    for i, e in enumerate(h):
+        if type(e) is not events.ConsumerAdded or len(pids.get(e.consumer, ())) != 1:
+            continue
+        caller, qid = e.consumer, e.query_id
+        stops = [x for x in h[i + 1 :] if type(x) is events.RegistrarStopped]
+        if caller in exited or not any(x.registrar == caller for x in stops):
+            continue
+        dropped = [
+            j
+            for j, x in enumerate(h)
+            if type(x) in outcomes and (x.registrar, x.query_id) == (caller, qid)
+        ]
+        if dropped:
+            return _without(h, *dropped)
+    return None
+
+
+def end_by_itself(h: History) -> History | None:
+    """A child's exit by a kill (the plan's fault) told as its registrar's own crash."""
+    for i, e in enumerate(h):
+        if type(e) is events.ChildExited and not e.stopped and e.reason.startswith("killed by"):
+            return [*h[:i], dataclasses.replace(e, reason="registrar actor died"), *h[i + 1 :]]
+    return None
+
+
 MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     # name: (the mutation, the rule that must catch it)
     "duplicate-unload": (duplicate(events.ResourceUnloaded), "unload-once"),
@@ -3135,6 +3271,8 @@ MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     "fetch-lists-an-unknown-id": (fetch_lists_an_unknown_id, "fetch"),
     "listing-leaves-out-a-held-id": (listing_leaves_out_a_held_id, "fetch"),
     "listing-lists-an-unknown-id": (listing_lists_an_unknown_id, "fetch"),
+    "drop-outcome": (drop_outcome, "outcome"),
+    "end-by-itself": (end_by_itself, "life-end"),
 }
 
 
