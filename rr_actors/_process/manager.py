@@ -1,11 +1,13 @@
 """The parent's handle on one manager process, and how a child ended.
 
 ```
- supervisor's thread           watcher thread (one per process)           manager process
+ supervisor's thread           the watcher thread (`watcher.py`, one       manager process
+                               for every manager process of this one)
    ManagerProcess.start ──────────────────────────────────────────────►  child.main / standby
         ◄── Ready(pid) ──────────────────────────────────────────────────
                                waits on: process sentinel, control pipe,
                                the platform's exit watch (a pidfd on Linux)
+                               and `wake_at`; then this handle's `turn`:
                                ── Ping(n) every `heartbeat` s ─────────►  registrar mailbox
                                ◄── Pong(n, trouble) ────────────────────
                                a late answer: Heartbeat judges the silence
@@ -13,7 +15,8 @@
                                ◄── Progress(n, ...) (its mailbox's) ────
                                (hung: SIGKILL ─────────────────────────►)
                                (late, excused: on_overloaded(pid, Late))
-                               exit seen ──► on_exit(ManagerExit) ──► the supervisor's mailbox
+                               exit seen ──► `finish` (a thread of its own)
+                                             on_exit(ManagerExit) ──► the supervisor's mailbox
 ```
 
 A manager is killed and reported like a crash when it is *hung* (`heartbeat.py`) or
@@ -66,6 +69,7 @@ from rr_actors._process.control import (
 )
 from rr_actors._process.heartbeat import Hang, Heartbeat, Late, Look
 from rr_actors._process.tally import Received, Tally
+from rr_actors._process.watcher import WATCHER
 from rr_actors._transport.messenger import Address
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import CallTimeoutError, RegistrarUnavailableError, RrError
@@ -138,7 +142,8 @@ def describe(exitcode: int | None) -> ManagerExit:
 
 class ManagerProcess:
     """The parent's handle on one running manager process (one incarnation); `on_exit`
-    runs once on the watcher thread when the process ends, whatever the cause."""
+    runs once, on a thread of its own (`rr-exit-<name>`), when the process ends, whatever
+    the cause. The watcher thread (`watcher.py`) takes its `turn`s."""
 
     def __init__(
         self,
@@ -187,6 +192,11 @@ class ManagerProcess:
         self.exit: ManagerExit | None = None
         self._exit_watch = PLATFORM.watch_exit(self.pid)
         self.forwarding = False  # as last told (`forward_events`); `start` sets it
+        self._beating = self._beat is not None  # pinged and judged (not once killed)
+        self._broken: str | None = None  # why it was killed: its watch raised
+        self.waitables: list[Any] = [process.sentinel, conn]  # what the watcher waits on
+        if self._exit_watch is not None:
+            self.waitables.append(self._exit_watch)
 
     @classmethod
     def start(
@@ -211,9 +221,10 @@ class ManagerProcess:
         `announced`: its supervisor announces its starts (`start_registrar`).
 
         Seconds: `start_timeout`, `heartbeat` (`None`: none), `heartbeat_timeout` (`None`:
-        three periods). `on_exit`, `on_events` (each forwarded batch), `on_overloaded`
-        (a late answer excused) and `on_announce` (a pool's registrar's name, `Announce`)
-        run on the watcher thread.
+        three periods). `on_events` (each forwarded batch), `on_overloaded` (a late answer
+        excused) and `on_announce` (a pool's registrar's name, `Announce`) run on the
+        watcher thread, which every manager process of this process shares (they are to
+        be short); `on_exit` on a thread of its own.
 
         Raises:
             CatalogCorruptError: its backup cannot be read (with its `path`; a note holds
@@ -279,7 +290,7 @@ class ManagerProcess:
             on_announce=on_announce,
         )
         handle.forwarding = forward_events
-        runtime.Thread(target=handle._watch, name=f"rr-watch-{name}", daemon=True).start()
+        WATCHER.watch(handle)
         return handle
 
     # -- requests ---------------------------------------------------------------------
@@ -333,40 +344,51 @@ class ManagerProcess:
         with contextlib.suppress(OSError, ValueError):
             self.process.kill()
 
-    # -- the watcher thread -----------------------------------------------------------
+    # -- the watch (`watcher.py` waits; these steps judge) ----------------------------
 
-    def _watch(self) -> None:
-        waitables: list[Any] = [self.process.sentinel, self.conn]
-        if self._exit_watch is not None:
-            waitables.append(self._exit_watch)
+    def wake_at(self) -> float | None:
+        """When the watcher is to take this manager's turn even if nothing woke it
+        (monotonic seconds; `None`: only when its sentinel, pipe or exit watch wakes it)."""
+        if not self._beating or self._stopping:
+            return None  # stopping: no pings; only its exit (or the pipe) wakes it
+        assert self._beat is not None  # (beating)
+        return self._beat.wake_at
+
+    def turn(self, woke: list[Any]) -> tuple[bool, int | None]:
+        """One turn of the watch, once `woke` (which of `waitables` are ready) or
+        `wake_at` came: read the pipe, then judge its silence. Whether it ended, and
+        its exit code if the exit watch read it (`None`: the sentinel's word)."""
+        waitables = self.waitables
+        ended, exitcode = self._ended(woke, waitables)
+        if ended:
+            return True, exitcode
+        now = runtime.monotonic()  # what came before now is read before a judgement
+        health = self._read_available(waitables, now)
         beat = self._beat
-        while True:
-            if beat is None or self._stopping:
-                timeout = None  # stopping: no pings; block until it exits (or the pipe says)
-            else:
-                timeout = max(0.0, beat.wake_at - runtime.monotonic())
-            woke = multiprocessing.connection.wait(waitables, timeout)
-            ended, exitcode = self._ended(woke, waitables)
-            if ended:
-                break
-            now = runtime.monotonic()  # what came before now is read before a judgement
-            health = self._read_available(waitables, now)
-            if beat is None or self._stopping:
-                continue
-            if health is not None and health[0] > beat.bound:
-                self._kill_unhealthy(*health)
-                beat = None
-                continue
-            verdict = beat.tick(now)
-            if isinstance(verdict, Hang):
-                self._hang(verdict)
-                beat = None
-            elif isinstance(verdict, Look):
-                self._send(Probe(verdict.number))
-            elif verdict is not None:
-                self._send(Ping(verdict))
-                beat.sent(runtime.monotonic())
-        self._finish(exitcode)
+        if beat is None or not self._beating or self._stopping:
+            return False, None
+        if health is not None and health[0] > beat.bound:
+            self._kill_unhealthy(*health)
+            self._beating = False
+            return False, None
+        verdict = beat.tick(now)
+        if isinstance(verdict, Hang):
+            self._hang(verdict)
+            self._beating = False
+        elif isinstance(verdict, Look):
+            self._send(Probe(verdict.number))
+        elif verdict is not None:
+            self._send(Ping(verdict))
+            beat.sent(runtime.monotonic())
+        return False, None
+
+    def watch_failed(self, error: BaseException) -> None:
+        """Its turn raised `error` (logged by the watcher): it is killed and reported as
+        failed; from now on only its exit is watched."""
+        self._broken = f"its watch failed ({type(error).__name__}: {error}) (killed)"
+        self._beating = False
+        self.waitables[:] = [self.process.sentinel]  # (what raised is read no more)
+        self.kill()
 
     def _ended(self, woke: list[Any], waitables: list[Any]) -> tuple[bool, int | None]:
         if self.process.sentinel in woke:
@@ -452,18 +474,23 @@ class ManagerProcess:
         logger.error("manager %s is %s", self.name, self._unhealthy)
         self.kill()
 
-    def _finish(self, exitcode: int | None) -> None:
+    def finish(self, exitcode: int | None) -> None:
         if exitcode is None:
             self.process.join(5.0)
             exitcode = self.process.exitcode
-        self._received.drain(self.name, self.conn)  # what it sent before it died, then
-        self._received.count_lost(self.name, self.pid, listened=self.forwarding)  # (unsent)
+        try:
+            self._received.drain(self.name, self.conn)  # what it sent before it died, then
+            self._received.count_lost(self.name, self.pid, listened=self.forwarding)  # (unsent)
+        except Exception:  # (its exit is told all the same)
+            logger.exception("reading what manager %s sent before it ended failed", self.name)
         with self._send_lock, contextlib.suppress(OSError):  # (never under a request
             self.conn.close()  # being written: that would write to no descriptor)
         if self._hung is not None:
             result = ManagerExit(f"hung: {self._hung.reason()} (killed)", normal=False)
         elif self._unhealthy is not None:
             result = ManagerExit(self._unhealthy, normal=False)
+        elif self._broken is not None:
+            result = ManagerExit(self._broken, normal=False)
         else:
             result = describe(exitcode)
         self.exit = result
