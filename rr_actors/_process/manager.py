@@ -1,13 +1,11 @@
 """The parent's handle on one manager process, and how a child ended.
 
 ```
- supervisor's thread           the watcher thread (`watcher.py`, one       manager process
-                               for every manager process of this one)
+ supervisor's thread           the watcher (watcher.py: one thread)       manager process
    ManagerProcess.start ──────────────────────────────────────────────►  child.main / standby
         ◄── Ready(pid) ──────────────────────────────────────────────────
                                waits on: process sentinel, control pipe,
                                the platform's exit watch (a pidfd on Linux)
-                               and `wake_at`; then this handle's `turn`:
                                ── Ping(n) every `heartbeat` s ─────────►  registrar mailbox
                                ◄── Pong(n, trouble) ────────────────────
                                a late answer: Heartbeat judges the silence
@@ -15,8 +13,7 @@
                                ◄── Progress(n, ...) (its mailbox's) ────
                                (hung: SIGKILL ─────────────────────────►)
                                (late, excused: on_overloaded(pid, Late))
-                               exit seen ──► `finish` (a thread of its own)
-                                             on_exit(ManagerExit) ──► the supervisor's mailbox
+                               exit seen ──► finish: on_exit(ManagerExit) ──► the supervisor
 ```
 
 A manager is killed and reported like a crash when it is *hung* (`heartbeat.py`) or
@@ -142,8 +139,7 @@ def describe(exitcode: int | None) -> ManagerExit:
 
 class ManagerProcess:
     """The parent's handle on one running manager process (one incarnation); `on_exit`
-    runs once, on a thread of its own (`rr-exit-<name>`), when the process ends, whatever
-    the cause. The watcher thread (`watcher.py`) takes its `turn`s."""
+    runs once, on a thread of its own, when the process ends, whatever the cause."""
 
     def __init__(
         self,
@@ -193,7 +189,6 @@ class ManagerProcess:
         self._exit_watch = PLATFORM.watch_exit(self.pid)
         self.forwarding = False  # as last told (`forward_events`); `start` sets it
         self._beating = self._beat is not None  # pinged and judged (not once killed)
-        self._broken: str | None = None  # why it was killed: its watch raised
         self.waitables: list[Any] = [process.sentinel, conn]  # what the watcher waits on
         if self._exit_watch is not None:
             self.waitables.append(self._exit_watch)
@@ -223,8 +218,7 @@ class ManagerProcess:
         Seconds: `start_timeout`, `heartbeat` (`None`: none), `heartbeat_timeout` (`None`:
         three periods). `on_events` (each forwarded batch), `on_overloaded` (a late answer
         excused) and `on_announce` (a pool's registrar's name, `Announce`) run on the
-        watcher thread, which every manager process of this process shares (they are to
-        be short); `on_exit` on a thread of its own.
+        watcher thread that all manager processes share; `on_exit` on one of its own.
 
         Raises:
             CatalogCorruptError: its backup cannot be read (with its `path`; a note holds
@@ -347,17 +341,15 @@ class ManagerProcess:
     # -- the watch (`watcher.py` waits; these steps judge) ----------------------------
 
     def wake_at(self) -> float | None:
-        """When the watcher is to take this manager's turn even if nothing woke it
-        (monotonic seconds; `None`: only when its sentinel, pipe or exit watch wakes it)."""
+        """When its next `turn` is due unwoken (monotonic seconds; `None`: when woken)."""
         if not self._beating or self._stopping:
             return None  # stopping: no pings; only its exit (or the pipe) wakes it
         assert self._beat is not None  # (beating)
         return self._beat.wake_at
 
     def turn(self, woke: list[Any]) -> tuple[bool, int | None]:
-        """One turn of the watch, once `woke` (which of `waitables` are ready) or
-        `wake_at` came: read the pipe, then judge its silence. Whether it ended, and
-        its exit code if the exit watch read it (`None`: the sentinel's word)."""
+        """`woke` (its ready `waitables`) or `wake_at` came: read the pipe, then judge its
+        silence. Whether it ended, and its exit code if the exit watch read it."""
         waitables = self.waitables
         ended, exitcode = self._ended(woke, waitables)
         if ended:
@@ -383,9 +375,8 @@ class ManagerProcess:
         return False, None
 
     def watch_failed(self, error: BaseException) -> None:
-        """Its turn raised `error` (logged by the watcher): it is killed and reported as
-        failed; from now on only its exit is watched."""
-        self._broken = f"its watch failed ({type(error).__name__}: {error}) (killed)"
+        """Its turn raised `error` (logged): kill it; from now on only its exit is watched."""
+        self._unhealthy = f"its watch failed ({type(error).__name__}: {error}) (killed)"
         self._beating = False
         self.waitables[:] = [self.process.sentinel]  # (what raised is read no more)
         self.kill()
@@ -478,19 +469,14 @@ class ManagerProcess:
         if exitcode is None:
             self.process.join(5.0)
             exitcode = self.process.exitcode
-        try:
-            self._received.drain(self.name, self.conn)  # what it sent before it died, then
-            self._received.count_lost(self.name, self.pid, listened=self.forwarding)  # (unsent)
-        except Exception:  # (its exit is told all the same)
-            logger.exception("reading what manager %s sent before it ended failed", self.name)
+        self._received.drain(self.name, self.conn)  # what it sent before it died, then
+        self._received.count_lost(self.name, self.pid, listened=self.forwarding)  # (unsent)
         with self._send_lock, contextlib.suppress(OSError):  # (never under a request
             self.conn.close()  # being written: that would write to no descriptor)
         if self._hung is not None:
             result = ManagerExit(f"hung: {self._hung.reason()} (killed)", normal=False)
         elif self._unhealthy is not None:
             result = ManagerExit(self._unhealthy, normal=False)
-        elif self._broken is not None:
-            result = ManagerExit(self._broken, normal=False)
         else:
             result = describe(exitcode)
         self.exit = result
