@@ -35,7 +35,7 @@ class Watcher:
         self._due: dict[ManagerProcess, float] = {}  # handle -> its `wake_at` in the heap
         self._heap: list[tuple[float, int, ManagerProcess]] = []
         self._order = itertools.count()  # (heap ties: no handle is compared)
-        self._selector = selectors.DefaultSelector()
+        self._selector: selectors.BaseSelector  # (made with the thread)
 
     def watch(self, handle: ManagerProcess) -> None:
         with self._lock:
@@ -115,3 +115,4 @@ class Watcher:
 
 WATCHER = Watcher()
 """This process's watcher (`ManagerProcess.start` hands it each manager)."""
+os.register_at_fork(after_in_child=lambda: Watcher.__init__(WATCHER))  # (a child: no thread)
