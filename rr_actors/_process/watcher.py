@@ -14,14 +14,23 @@ import itertools
 import logging
 import os
 import selectors
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 from rr_actors._core import runtime
 
-if TYPE_CHECKING:
-    from rr_actors._process.manager import ManagerProcess
-
 logger = logging.getLogger("rr_actors")
+
+
+class Watched(Protocol):
+    """A manager process's handle (`ManagerProcess`), as the watcher takes its turns."""
+
+    name: str
+    waitables: list[Any]
+
+    def wake_at(self) -> float | None: ...
+    def turn(self, woke: list[Any]) -> tuple[bool, int | None]: ...
+    def watch_failed(self, error: BaseException) -> None: ...
+    def finish(self, exitcode: int | None) -> None: ...
 
 
 class Watcher:
@@ -29,15 +38,15 @@ class Watcher:
 
     def __init__(self) -> None:
         self._lock = runtime.Lock()
-        self._added: list[ManagerProcess] | None = None  # (`None`: no thread runs)
+        self._added: list[Watched] | None = None  # (`None`: no thread runs)
         self._wake = (-1, -1)  # the thread's wake-up pipe
-        self._watched: dict[ManagerProcess, list[Any]] = {}  # handle -> what is registered
-        self._due: dict[ManagerProcess, float] = {}  # handle -> its `wake_at` in the heap
-        self._heap: list[tuple[float, int, ManagerProcess]] = []
+        self._watched: dict[Watched, list[Any]] = {}  # handle -> what is registered
+        self._due: dict[Watched, float] = {}  # handle -> its `wake_at` in the heap
+        self._heap: list[tuple[float, int, Watched]] = []
         self._order = itertools.count()  # (heap ties: no handle is compared)
         self._selector: selectors.BaseSelector  # (made with the thread)
 
-    def watch(self, handle: ManagerProcess) -> None:
+    def watch(self, handle: Watched) -> None:
         with self._lock:
             if self._added is None:
                 self._added, self._wake = [], os.pipe()
@@ -68,7 +77,7 @@ class Watcher:
             for handle, ready in self._wait({handle: [] for handle in added}).items():
                 self._turn(handle, ready)
 
-    def _wait(self, woke: dict[ManagerProcess, list[Any]]) -> dict[ManagerProcess, list[Any]]:
+    def _wait(self, woke: dict[Watched, list[Any]]) -> dict[Watched, list[Any]]:
         """Add to `woke` (each an empty list: turns due now) each handle whose waitables
         are ready (with them) or whose `wake_at` is due, once one is."""
         heap, due = self._heap, self._due
@@ -88,7 +97,7 @@ class Watcher:
                 woke.setdefault(handle, [])
         return woke
 
-    def _turn(self, handle: ManagerProcess, ready: list[Any]) -> None:
+    def _turn(self, handle: Watched, ready: list[Any]) -> None:
         try:
             ended, exitcode = handle.turn(ready)
         except Exception as exc:
