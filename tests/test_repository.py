@@ -92,6 +92,7 @@ SEAMED = (
     "_transport/messenger.py",
     "_transport/codec.py",
     "_process/manager.py",
+    "_process/watcher.py",
     "testing/memory.py",
 )
 """The packages (and modules) whose threads, locks, events, queues, clocks, ids and

@@ -1,7 +1,7 @@
 """The parent's side of a manager's heartbeat: when to ping, and when a silence is a hang.
 
 ```
- watcher thread (ManagerProcess._watch)      Heartbeat                   the kernel (Linux)
+ the watcher (ManagerProcess.turn)          Heartbeat                   the kernel (Linux)
    woke at `wake_at`, pipe read ──► tick(now)
                                       no ping in flight, due ──► Ping(n) ──► control pipe
                                       ping n unanswered ──► judge(now) ──► CpuWatch.sample()

@@ -1,7 +1,7 @@
 """The parent's handle on one manager process, and how a child ended.
 
 ```
- supervisor's thread           watcher thread (one per process)           manager process
+ supervisor's thread           the watcher (watcher.py: one thread)       manager process
    ManagerProcess.start ──────────────────────────────────────────────►  child.main / standby
         ◄── Ready(pid) ──────────────────────────────────────────────────
                                waits on: process sentinel, control pipe,
@@ -13,7 +13,7 @@
                                ◄── Progress(n, ...) (its mailbox's) ────
                                (hung: SIGKILL ─────────────────────────►)
                                (late, excused: on_overloaded(pid, Late))
-                               exit seen ──► on_exit(ManagerExit) ──► the supervisor's mailbox
+                               exit seen ──► finish: on_exit(ManagerExit) ──► the supervisor
 ```
 
 A manager is killed and reported like a crash when it is *hung* (`heartbeat.py`) or
@@ -66,6 +66,7 @@ from rr_actors._process.control import (
 )
 from rr_actors._process.heartbeat import Hang, Heartbeat, Late, Look
 from rr_actors._process.tally import Received, Tally
+from rr_actors._process.watcher import WATCHER
 from rr_actors._transport.messenger import Address
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import CallTimeoutError, RegistrarUnavailableError, RrError
@@ -138,7 +139,7 @@ def describe(exitcode: int | None) -> ManagerExit:
 
 class ManagerProcess:
     """The parent's handle on one running manager process (one incarnation); `on_exit`
-    runs once on the watcher thread when the process ends, whatever the cause."""
+    runs once, on a thread of its own, when the process ends, whatever the cause."""
 
     def __init__(
         self,
@@ -187,6 +188,10 @@ class ManagerProcess:
         self.exit: ManagerExit | None = None
         self._exit_watch = PLATFORM.watch_exit(self.pid)
         self.forwarding = False  # as last told (`forward_events`); `start` sets it
+        self._beating = self._beat is not None  # pinged and judged (not once killed)
+        self.waitables: list[Any] = [process.sentinel, conn]  # what the watcher waits on
+        if self._exit_watch is not None:
+            self.waitables.append(self._exit_watch)
 
     @classmethod
     def start(
@@ -211,9 +216,9 @@ class ManagerProcess:
         `announced`: its supervisor announces its starts (`start_registrar`).
 
         Seconds: `start_timeout`, `heartbeat` (`None`: none), `heartbeat_timeout` (`None`:
-        three periods). `on_exit`, `on_events` (each forwarded batch), `on_overloaded`
-        (a late answer excused) and `on_announce` (a pool's registrar's name, `Announce`)
-        run on the watcher thread.
+        three periods). `on_events` (each forwarded batch), `on_overloaded` (a late answer
+        excused) and `on_announce` (a pool's registrar's name, `Announce`) run on the
+        watcher thread that all manager processes share; `on_exit` on one of its own.
 
         Raises:
             CatalogCorruptError: its backup cannot be read (with its `path`; a note holds
@@ -279,7 +284,7 @@ class ManagerProcess:
             on_announce=on_announce,
         )
         handle.forwarding = forward_events
-        runtime.Thread(target=handle._watch, name=f"rr-watch-{name}", daemon=True).start()
+        WATCHER.watch(handle)
         return handle
 
     # -- requests ---------------------------------------------------------------------
@@ -333,40 +338,48 @@ class ManagerProcess:
         with contextlib.suppress(OSError, ValueError):
             self.process.kill()
 
-    # -- the watcher thread -----------------------------------------------------------
+    # -- the watch (`watcher.py` waits; these steps judge) ----------------------------
 
-    def _watch(self) -> None:
-        waitables: list[Any] = [self.process.sentinel, self.conn]
-        if self._exit_watch is not None:
-            waitables.append(self._exit_watch)
+    def wake_at(self) -> float | None:
+        """When its next `turn` is due unwoken (monotonic seconds; `None`: when woken)."""
+        if not self._beating or self._stopping:
+            return None  # stopping: no pings; only its exit (or the pipe) wakes it
+        assert self._beat is not None  # (beating)
+        return self._beat.wake_at
+
+    def turn(self, woke: list[Any]) -> tuple[bool, int | None]:
+        """`woke` (its ready `waitables`) or `wake_at` came: read the pipe, then judge its
+        silence. Whether it ended, and its exit code if the exit watch read it."""
+        waitables = self.waitables
+        ended, exitcode = self._ended(woke, waitables)
+        if ended:
+            return True, exitcode
+        now = runtime.monotonic()  # what came before now is read before a judgement
+        health = self._read_available(waitables, now)
         beat = self._beat
-        while True:
-            if beat is None or self._stopping:
-                timeout = None  # stopping: no pings; block until it exits (or the pipe says)
-            else:
-                timeout = max(0.0, beat.wake_at - runtime.monotonic())
-            woke = multiprocessing.connection.wait(waitables, timeout)
-            ended, exitcode = self._ended(woke, waitables)
-            if ended:
-                break
-            now = runtime.monotonic()  # what came before now is read before a judgement
-            health = self._read_available(waitables, now)
-            if beat is None or self._stopping:
-                continue
-            if health is not None and health[0] > beat.bound:
-                self._kill_unhealthy(*health)
-                beat = None
-                continue
-            verdict = beat.tick(now)
-            if isinstance(verdict, Hang):
-                self._hang(verdict)
-                beat = None
-            elif isinstance(verdict, Look):
-                self._send(Probe(verdict.number))
-            elif verdict is not None:
-                self._send(Ping(verdict))
-                beat.sent(runtime.monotonic())
-        self._finish(exitcode)
+        if beat is None or not self._beating or self._stopping:
+            return False, None
+        if health is not None and health[0] > beat.bound:
+            self._kill_unhealthy(*health)
+            self._beating = False
+            return False, None
+        verdict = beat.tick(now)
+        if isinstance(verdict, Hang):
+            self._hang(verdict)
+            self._beating = False
+        elif isinstance(verdict, Look):
+            self._send(Probe(verdict.number))
+        elif verdict is not None:
+            self._send(Ping(verdict))
+            beat.sent(runtime.monotonic())
+        return False, None
+
+    def watch_failed(self, error: BaseException) -> None:
+        """Its turn raised `error` (logged): kill it; from now on only its exit is watched."""
+        self._unhealthy = f"its watch failed ({type(error).__name__}: {error}) (killed)"
+        self._beating = False
+        self.waitables[:] = [self.process.sentinel]  # (what raised is read no more)
+        self.kill()
 
     def _ended(self, woke: list[Any], waitables: list[Any]) -> tuple[bool, int | None]:
         if self.process.sentinel in woke:
@@ -452,7 +465,7 @@ class ManagerProcess:
         logger.error("manager %s is %s", self.name, self._unhealthy)
         self.kill()
 
-    def _finish(self, exitcode: int | None) -> None:
+    def finish(self, exitcode: int | None) -> None:
         if exitcode is None:
             self.process.join(5.0)
             exitcode = self.process.exitcode

@@ -1,0 +1,166 @@
+"""The one thread that watches every manager process of a process
+(`rr_actors._process.watcher`): real processes, real SIGSTOP and SIGKILL, bounded waits.
+
+A thread per manager held the interpreter lock with a thousand of them (issue 69); these
+tests hold the watcher to what those threads did, among many managers at once.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import threading
+from collections.abc import Callable
+from multiprocessing.connection import Connection
+from typing import Any
+
+import cloudpickle
+import pytest
+
+import rr_actors as rr
+from rr_actors._process.control import Ping, Pong, Ready, Stop, mp_context, start_forkserver
+from rr_actors._process.manager import ManagerExit, ManagerProcess
+from tests.support.supervising import pid_of, process
+
+pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def forkserver() -> None:
+    """Start the forkserver before the leak check counts this process's children."""
+    start_forkserver()
+
+
+def watcher_threads() -> int:
+    return sum(1 for t in threading.enumerate() if t.name.startswith("rr-watch"))
+
+
+def names(uid: str, count: int) -> list[str]:
+    return [f"m{i}-{uid}" for i in range(count)]
+
+
+@pytest.mark.timeout(240)  # (forty manager processes start, on a loaded machine too)
+def test_a_supervisor_of_thirty_process_managers_has_as_many_watcher_threads_as_one_of_ten(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    counted = []
+    for count in (10, 30):
+        specs = [process(name, heartbeat=0.25) for name in names(f"{count}-{uid}", count)]
+        sup = supervisors(specs).start()
+        try:
+            counted.append(watcher_threads())
+        finally:
+            sup.stop()
+
+    assert [1, 1] == counted
+
+
+def test_a_hung_manager_among_many_healthy_ones_is_killed_as_hung_and_restarted_alone(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    many = names(uid, 20)
+    sup = supervisors([process(n, heartbeat=0.2, heartbeat_timeout=1.5) for n in many]).start()
+    before = {name: pid_of(sup, name) for name in many}
+    hung = many[7]
+    os.kill(before[hung], signal.SIGSTOP)
+    info = sup.wait_restarted(hung, timeout=30.0)
+    after = {name: pid_of(sup, name) for name in many}
+
+    assert info.last_exit is not None
+    assert (True, True) == (info.last_exit.startswith("hung"), after[hung] != before[hung])
+    assert {n: p for n, p in before.items() if n != hung} == {
+        n: p for n, p in after.items() if n != hung
+    }
+
+
+def test_a_manager_sigkilled_among_many_is_seen_dead_and_restarted_alone(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    many = names(uid, 20)
+    sup = supervisors([process(n, heartbeat=0.25) for n in many]).start()
+    before = {name: pid_of(sup, name) for name in many}
+    killed = many[12]
+    os.kill(before[killed], signal.SIGKILL)
+    info = sup.wait_restarted(killed, timeout=30.0)
+    after = {name: pid_of(sup, name) for name in many}
+
+    assert ("killed by SIGKILL", True) == (info.last_exit, after[killed] != before[killed])
+    assert {n: p for n, p in before.items() if n != killed} == {
+        n: p for n, p in after.items() if n != killed
+    }
+
+
+# -- a handle whose turn raises ------------------------------------------------------------------
+
+
+def double(conn: Connection, garbage: bool) -> None:
+    """A manager process's double: ready, then (`garbage`) bytes that are no message, then
+    it answers every ping until told to stop."""
+    conn.send(Ready(os.getpid()))
+    if garbage:
+        conn.send_bytes(b"not a control message")
+    while True:
+        try:
+            message = conn.recv()
+        except (EOFError, OSError):
+            os._exit(0)
+        if isinstance(message, Stop):
+            os._exit(0)
+        if isinstance(message, Ping):
+            conn.send(Pong(message.number))
+
+
+class _Double:
+    """What `ManagerProcess.start` takes a spare for: a running `double` and its pipe."""
+
+    def __init__(self, *, garbage: bool) -> None:
+        ctx = mp_context()
+        self.conn, child = ctx.Pipe(duplex=True)
+        self.process = ctx.Process(target=double, args=(child, garbage), daemon=True)  # type: ignore[attr-defined]
+        self.process.start()
+        child.close()
+
+    def take(self, *_args: Any, **_kwargs: Any) -> bool:
+        return True
+
+
+def start_double(name: str, exits: dict[str, Any], *, garbage: bool) -> ManagerProcess:
+    ended = exits[name] = [threading.Event(), None]
+
+    def on_exit(how: ManagerExit) -> None:
+        ended[1] = how
+        ended[0].set()
+
+    return ManagerProcess.start(
+        name,
+        cloudpickle.dumps(None),
+        rr.RegistrarConfig(name=name),
+        None,
+        start_timeout=30.0,
+        heartbeat=0.1,
+        heartbeat_timeout=2.0,
+        on_exit=on_exit,
+        spare=_Double(garbage=garbage),  # type: ignore[arg-type]
+    )
+
+
+def test_a_manager_whose_watch_raises_is_killed_and_reported_while_the_others_are_still_watched(
+    uid: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    exits: dict[str, Any] = {}
+    good = start_double(f"good-{uid}", exits, garbage=False)
+    try:
+        bad = start_double(f"bad-{uid}", exits, garbage=True)
+        assert exits[bad.name][0].wait(20.0)
+        os.kill(good.pid, signal.SIGKILL)  # what the watch sees now: the others' still goes on
+        assert exits[good.name][0].wait(20.0)
+    finally:
+        good.stop(5.0)
+
+    assert (False, True) == (
+        exits[bad.name][1].normal,
+        "its watch failed" in exits[bad.name][1].reason,
+    )
+    assert "killed by SIGKILL" == exits[good.name][1].reason
+    assert any(f"watching manager {bad.name} failed" in r.getMessage() for r in caplog.records)
