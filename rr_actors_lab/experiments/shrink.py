@@ -6,8 +6,9 @@
  ├─ the plan as TOML data; its timed faults made explicit (one atom per injection)
  ├─ greedy passes, biggest cuts first, until the budget of runs is spent or a round at
  │  the widest search keeps nothing: supervisors, duration, shift, faults (delta
- │  debugging), pinned, triggers, idle, unpinned, tree, workload, options, knobs, seeds,
- │  round (each pass: docs/how-to/simulate.md, "Shrink it")
+ │  debugging), made (the clients' calls, `workload.only`: delta debugging), pinned,
+ │  triggers, idle, unpinned, tree, workload, options, knobs, seeds, round (each pass:
+ │  docs/how-to/simulate.md, "Shrink it")
  │  a candidate = its TOML text, validated (`parse_plan`) and run whole on the simulation
  │  with the current seed, then seeds 1, 2, ... (`tries`; the width grows 4 times at each
  │  fixpoint, up to `MOST_TRIES`); kept if one run shows the same kind and is smaller:
