@@ -6,8 +6,8 @@
  ├─ the plan as TOML data; its timed faults made explicit (one atom per injection)
  ├─ greedy passes, biggest cuts first, until the budget of runs is spent or a round at
  │  the widest search keeps nothing: supervisors, duration, shift, faults (delta
- │  debugging), made (the clients' calls, `workload.only`: delta debugging), pinned,
- │  triggers, idle, unpinned, tree, workload, options, knobs, seeds, round (each pass:
+ │  debugging), pinned, triggers, idle, unpinned, tree, workload, options, knobs, made
+ │  (the clients' calls, `workload.only`: delta debugging), seeds, round (each pass:
  │  docs/how-to/simulate.md, "Shrink it")
  │  a candidate = its TOML text, validated (`parse_plan`) and run whole on the simulation
  │  with the current seed, then seeds 1, 2, ... (`tries`; the width grows 4 times at each
@@ -370,7 +370,6 @@ class _Shrinker:
             self.durations,
             self.shift,
             self.faults,
-            self.made,
             self.pinned,
             self.triggers,
             self.idle,
@@ -379,6 +378,7 @@ class _Shrinker:
             self.workload,
             self.options,
             self.knobs,
+            self.made,
             self.seeds,
             self.rounded,
         )
@@ -519,6 +519,7 @@ class _Shrinker:
             lambda data: data["workload"]["only"],
             lambda data, kept: {**data, "workload": {**data["workload"], "only": kept}},
             "calls",
+            self.shuffled(),  # (fewer calls: every choice of the scheduler another)
         )
 
     def chunks(
@@ -526,16 +527,19 @@ class _Shrinker:
         items: Callable[[dict[str, Any]], list[Any]],
         put: Callable[[dict[str, Any], list[Any]], dict[str, Any]],
         what: str,
+        width: int | None = None,
     ) -> None:
         """Delete `items` of the plan (delta debugging): chunks of halves, then quarters, ...
-        then single ones; `put` gives the data with the items kept."""
+        then single ones; `put` gives the data with the items kept (each candidate run with
+        `width` seeds, default the search's)."""
         size = len(items(self.data)) // 2
         while size >= 1 and self.runs < self.budget:
             start = 0
             while start < len(atoms := items(self.data)) and self.runs < self.budget:
                 kept = atoms[:start] + atoms[start + size :]
                 gone = len(atoms) - len(kept)
-                if not self.attempt(f"{gone} of {len(atoms)} {what} deleted", put(self.data, kept)):
+                said = f"{gone} of {len(atoms)} {what} deleted"
+                if not self.attempt(said, put(self.data, kept), width=width):
                     start += size
             size //= 2
 
