@@ -24,8 +24,13 @@ ROOT = Path(__file__).resolve().parent.parent.parent
 STORY = 30
 """The most events a shrunk story may have: what a reader follows line by line."""
 
-OVER: dict[str, int] = {}
-"""The plants whose shrunk run is still longer (their events when last shrunk)."""
+OVER = {"intensity-stale-exit": 65, "status-seen-server": 37}
+"""The plants whose kept shrunk run is still longer: its events (issue 68 item 9, open).
+
+Two floors keep them there: the run's stop (each resource a client still holds is
+released and unloaded, every registrar stops: 5 events a resource, 2 a manager), and
+the scheduler's one seeded stream of choices, which any cut of a call or a manager
+redraws, so the race the violation needs is lost with it."""
 
 
 def _planted() -> ModuleType:
