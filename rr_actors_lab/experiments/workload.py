@@ -338,6 +338,8 @@ class Client:
                 next_call += self._gap()
                 if self.workload.rate is None:
                     next_call = runtime.monotonic()
+                if self._only is not None and self._due >= max(self._only, default=0):
+                    next_call = max(next_call, self.deadline)  # (none left: the end, not a spin)
                 continue
             wake = next_call
             if self._held:
