@@ -857,7 +857,7 @@ def test_the_clients_calls_are_made_explicit_and_those_the_violation_needs_kept(
     plan = load_plan(buggy)
     original = simulate.run_seed(plan, 1)
 
-    shrunk = shrink.shrink(plan, 1, budget=BUDGET)
+    shrunk = shrink.shrink(plan, 1, budget=200)  # (the calls' pass comes late: at about 130)
 
     assert any(step.startswith("the calls made explicit") for step in shrunk.steps)
     assert any(step.endswith("calls deleted") for step in shrunk.steps)
