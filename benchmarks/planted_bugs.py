@@ -624,7 +624,7 @@ def search(plant: Plant, seeds: int, budget: int) -> dict[str, Any]:
 
 KEPT = ROOT / "benchmarks" / "shrunk"
 """Each plant's shrunk plan (`--keep`): `PLANT.toml`, its top-level `seed` the seed it
-violates with (tests/experiments/test_shrink_planted.py runs each on its plant)."""
+violates with (tests/test_benchmarks.py runs each on its plant)."""
 
 
 def kept_text(plant: Plant, text: str, seed: int, events: int, runs: int) -> str:
