@@ -26,6 +26,7 @@ the docs' figures:
     taskset -c 0 python benchmarks/planted_bugs.py --shrink           # every plant
     python benchmarks/planted_bugs.py --only dedup,retry-fatal --seeds 200  # a quick look
     python benchmarks/planted_bugs.py --check                         # edits apply?
+    python benchmarks/planted_bugs.py --only dedup --shrink --keep    # into shrunk/dedup.toml
     python benchmarks/planted_bugs.py --baseline --seeds 100          # unplanted code
 
 `--baseline` runs the plans on the unedited copy instead and prints every violated rule
@@ -621,6 +622,32 @@ def search(plant: Plant, seeds: int, budget: int) -> dict[str, Any]:
     return row
 
 
+KEPT = ROOT / "benchmarks" / "shrunk"
+"""Each plant's shrunk plan (`--keep`): `PLANT.toml`, its top-level `seed` the seed it
+violates with (tests/test_benchmarks.py runs each on its plant)."""
+
+
+def kept_text(plant: Plant, text: str, seed: int, events: int, runs: int) -> str:
+    """A shrunk plan's text as `--keep` writes it: a header, then its seed, then the plan."""
+    header = (
+        f"# The plant {plant.name!r} (benchmarks/planted_bugs.py) shrunk: seed {seed} of this "
+        f"plan violates [{plant.rule}]\n# in {events} events on the planted code "
+        f"({runs} simulated runs of the shrink; `--shrink --keep` writes it again).\n"
+    )
+    return f"{header}seed = {seed}\n{text}"
+
+
+def run_kept(plant: Plant, path: Path) -> dict[str, Any]:
+    """The kept shrunk plan at `path` run at its seed on a copy with `plant` applied: its
+    verdict, its violations of the plant's rule and its events."""
+    import tomllib  # noqa: PLC0415
+
+    seed = tomllib.loads(path.read_text(encoding="utf-8"))["seed"]
+    with tempfile.TemporaryDirectory(prefix=f"rr-planted-{plant.name}-") as folder:
+        planted = scratch(Path(folder), plant)
+        return child(planted, "shrunk", plant.plan, str(path), str(seed), plant.rule)
+
+
 def baseline(plans: list[str], seeds: int) -> list[dict[str, Any]]:
     """Each plan's seeds on an unedited copy: the rules violated, and on which seeds."""
     with tempfile.TemporaryDirectory(prefix="rr-planted-baseline-") as folder:
@@ -670,9 +697,8 @@ def child_main(path: str, command: str, arguments: list[str]) -> None:
 
         text = Path(arguments[1]).read_text(encoding="utf-8")
         run = simulate.run_seed(parse_plan(text, source=plan.source), int(arguments[2]))
-        print(
-            json.dumps({"verdict": run.verdict, "violations": violated(run.findings, arguments[3])})
-        )
+        found = violated(run.findings, arguments[3])
+        print(json.dumps({"verdict": run.verdict, "violations": found, "events": run.events}))
         return
     if command == "baseline":
         rules: dict[str, list[int]] = {}
@@ -807,6 +833,9 @@ def main(argv: list[str] | None = None) -> int:
         "--out", type=Path, help="write each shrunk run to OUT/PLANT (`rr-actors replay`)"
     )
     parser.add_argument("--baseline", action="store_true", help="run the unedited code")
+    parser.add_argument(
+        "--keep", action="store_true", help="with --shrink: write each shrunk plan to shrunk/"
+    )
     options = parser.parse_args(args)
     chosen = [p for p in PLANTS if options.only is None or p.name in options.only.split(",")]
     if not chosen:
@@ -836,6 +865,11 @@ def main(argv: list[str] | None = None) -> int:
         if options.out is not None:
             os.environ["RR_PLANTED_OUT"] = str((options.out / plant.name).resolve())
         rows.append((plant, search(plant, options.seeds, budget)))
+        small = rows[-1][1].get("shrunk")
+        if options.keep and small and small.get("text"):
+            KEPT.mkdir(exist_ok=True)
+            text = kept_text(plant, small["text"], small["seed"], small["events"], small["runs"])
+            (KEPT / f"{plant.name}.toml").write_text(text, encoding="utf-8")
     table(rows, options.seeds, options.shrink)
     return 0
 

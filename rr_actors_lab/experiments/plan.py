@@ -201,6 +201,14 @@ class Workload(_Table, frozen=True):
     status_wait: SecondsOrZero = 0.0  # >0: each status callback of `slow_clients` waits so long
     slow_clients: Annotated[int, Meta(ge=0, le=MAX_CLIENTS)] = 1  # the first N clients
     calls: tuple[CallMix, ...] = ()
+    # the calls made, `[client, n]` pairs (the client's n-th call due, from 1; its draws are
+    # made either way, so the calls made are as they were): None, every one (`shrink`)
+    only: tuple[tuple[Annotated[int, Meta(ge=0, le=MAX_CLIENTS)], Count], ...] | None = None
+
+    def callers(self) -> list[int]:
+        """The clients started, by index: every one, but one `only` gives no call."""
+        named = None if self.only is None else {client for client, _ in self.only}
+        return [i for i in range(self.clients) if named is None or i in named]
 
 
 class Trigger(_Table, frozen=True):

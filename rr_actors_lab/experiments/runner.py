@@ -469,7 +469,7 @@ def _drive(
         Client(
             i, sup, plan, spec.seed, run_dir=work, on_failure=stop.set, step_span=drive.step_span
         )
-        for i in range(plan.workload.clients)
+        for i in plan.workload.callers()
     ]
     t0, drive.wall_t0 = time.monotonic(), time.time()
     injector = drive.injector = Injector(

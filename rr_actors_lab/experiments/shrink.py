@@ -6,8 +6,9 @@
  ├─ the plan as TOML data; its timed faults made explicit (one atom per injection)
  ├─ greedy passes, biggest cuts first, until the budget of runs is spent or a round at
  │  the widest search keeps nothing: supervisors, duration, shift, faults (delta
- │  debugging), pinned, triggers, idle, unpinned, tree, workload, options, knobs, seeds,
- │  round (each pass: docs/how-to/simulate.md, "Shrink it")
+ │  debugging), pinned, triggers, idle, unpinned, tree, workload, options, knobs, made
+ │  (the clients' calls, `workload.only`: delta debugging), seeds, round (each pass:
+ │  docs/how-to/simulate.md, "Shrink it")
  │  a candidate = its TOML text, validated (`parse_plan`) and run whole on the simulation
  │  with the current seed, then seeds 1, 2, ... (`tries`; the width grows 4 times at each
  │  fixpoint, up to `MOST_TRIES`); kept if one run shows the same kind and is smaller:
@@ -377,6 +378,7 @@ class _Shrinker:
             self.workload,
             self.options,
             self.knobs,
+            self.made,
             self.seeds,
             self.rounded,
         )
@@ -491,14 +493,53 @@ class _Shrinker:
 
     def faults(self) -> None:
         """Delete injections: chunks of halves, then quarters, ... then single ones."""
-        size = len(self.data.get("faults", [])) // 2
+        self.chunks(
+            lambda data: data.get("faults", []),
+            lambda data, kept: {**data, "faults": kept},
+            "injections",
+        )
+
+    def made(self) -> None:
+        """The clients' calls made explicit (`workload.only`: each client's calls due, by
+        number), then deleted as the injections are: a call left out still makes its draws,
+        so the calls kept come when and as they came."""
+        workload = self.data.get("workload")
+        if not workload or not workload.get("calls"):
+            return
+        clients = workload.get("clients", _DEFAULTS["clients"])
+        if "only" not in workload:
+            if not clients:
+                return
+            counts = _calls_made(self.best.history, workload.get("awaited", 0))
+            only = [[c, n] for c in range(clients) for n in range(1, counts.get(c, 0) + 2)]
+            data = {**self.data, "workload": {**workload, "only": only}}
+            if not self.attempt(f"the calls made explicit ({len(only)} calls)", data, same=True):
+                return
+        self.chunks(
+            lambda data: data["workload"]["only"],
+            lambda data, kept: {**data, "workload": {**data["workload"], "only": kept}},
+            "calls",
+            self.shuffled(),  # (fewer calls: every choice of the scheduler another)
+        )
+
+    def chunks(
+        self,
+        items: Callable[[dict[str, Any]], list[Any]],
+        put: Callable[[dict[str, Any], list[Any]], dict[str, Any]],
+        what: str,
+        width: int | None = None,
+    ) -> None:
+        """Delete `items` of the plan (delta debugging): chunks of halves, then quarters, ...
+        then single ones; `put` gives the data with the items kept (each candidate run with
+        `width` seeds, default the search's)."""
+        size = len(items(self.data)) // 2
         while size >= 1 and self.runs < self.budget:
             start = 0
-            while start < len(atoms := self.data["faults"]) and self.runs < self.budget:
+            while start < len(atoms := items(self.data)) and self.runs < self.budget:
                 kept = atoms[:start] + atoms[start + size :]
                 gone = len(atoms) - len(kept)
-                what = f"{gone} of {len(atoms)} injections deleted"
-                if not self.attempt(what, {**self.data, "faults": kept}):
+                said = f"{gone} of {len(atoms)} {what} deleted"
+                if not self.attempt(said, put(self.data, kept), width=width):
                     start += size
             size //= 2
 
@@ -1018,6 +1059,19 @@ def _busy(history: str) -> set[str]:
             continue
         names |= {v for k in _NAME_FIELDS if isinstance(v := line.get(k), str)}
     return names
+
+
+def _calls_made(history: str, awaited: int) -> dict[int, int]:
+    """How many calls each client (by index) made in a history: its calls' ids (answered,
+    failed or withdrawn, not a dependency's), per batch of `awaited` calls."""
+    ids: dict[int, set[str]] = {}
+    for line in map(json.loads, history.splitlines()):
+        name = line.get("registrar")
+        if line.get("type") not in ("CallAnswered", "CallFailed", "CallWithdrawn"):
+            continue
+        if isinstance(name, str) and (found := re.fullmatch(r"client-([0-9]+)", name)):
+            ids.setdefault(int(found[1]), set()).add(line["query_id"])
+    return {c: -(-len(made) // max(1, awaited)) for c, made in ids.items()}
 
 
 def _restarts(history: str) -> dict[str, float]:

@@ -509,7 +509,7 @@ def _world(
     try:
         sup.start()
         _start_hosts(plan, folder, seed, network, seen, hosts, progress.steps)
-        clients = [Client(i, sup, plan, seed, run_dir=work) for i in range(plan.workload.clients)]
+        clients = [Client(i, sup, plan, seed, run_dir=work) for i in plan.workload.callers()]
         progress.serving, progress.clients = True, clients
         faults, t0 = _injector(
             sup,
@@ -703,7 +703,7 @@ class _SimulatedProgram:
             sup.start()
             clients = [
                 Client(i, sup, plan, self._seed, run_dir=self._work)
-                for i in range(plan.workload.clients)
+                for i in plan.workload.callers()
             ]
         except Exception as exc:  # noqa: BLE001 - the thread that started it raises it
             if subscription is not None:

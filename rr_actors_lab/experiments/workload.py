@@ -240,6 +240,9 @@ class Client:
         self._seq = itertools.count()
         self._unique = itertools.count()
         self._since_fetch = 0  # calls since the last fetch (`fetch_every`)
+        self._due = 0  # the calls that came due (`only` numbers them from 1)
+        only = self.workload.only
+        self._only = None if only is None else frozenset(n for c, n in only if c == index)
         self._slow = self.workload.status_wait > 0 and index < self.workload.slow_clients
         self._stopping = runtime.Event()
         self._loop: asyncio.AbstractEventLoop | None = None  # (made at the first awaited calls)
@@ -327,10 +330,16 @@ class Client:
             if now >= next_call:
                 if now >= self.deadline:
                     break
-                self._call_one()
+                self._due += 1
+                if self._only is None or self._due in self._only:
+                    self._call_one()
+                else:
+                    self._draw_one()
                 next_call += self._gap()
                 if self.workload.rate is None:
                     next_call = runtime.monotonic()
+                if self._only is not None and self._due >= max(self._only, default=0):
+                    next_call = max(next_call, self.deadline)  # (none left: the end, not a spin)
                 continue
             wake = next_call
             if self._held:
@@ -431,6 +440,13 @@ class Client:
         if every and self._since_fetch >= every:
             self._since_fetch = 0
             self._fetch(mix)
+
+    def _draw_one(self) -> None:
+        """The draws of a call not made (`only`): the calls made after it are as they were."""
+        for _ in range(self.workload.awaited or 1):
+            self._request(self._choose())
+            if self.workload.awaited and self.rng.random() < self.workload.cancel:
+                self.rng.uniform(0.0, self.workload.cancel_within)
 
     def _fetch(self, mix: CallMix) -> None:
         """Ask `mix`'s provider for the ids this client holds there (only its `QueriesFetched`

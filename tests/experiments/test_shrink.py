@@ -848,3 +848,22 @@ def test_a_shrink_words_its_one_name_kind_by_the_plans_resolve(
     assert shrunk.kind.startswith("[one-name]"), shrunk.kind
     assert "minority side" in shrunk.kind, shrunk.kind
     assert any("the one begun on a minority side yields" in f for f in shrunk.run.findings)
+
+
+@SHRINK
+def test_the_clients_calls_are_made_explicit_and_those_the_violation_needs_kept(
+    buggy: Path,
+) -> None:
+    plan = load_plan(buggy)
+    original = simulate.run_seed(plan, 1)
+
+    shrunk = shrink.shrink(plan, 1, budget=200)  # (the calls' pass comes late: at about 130)
+
+    assert any(step.startswith("the calls made explicit") for step in shrunk.steps)
+    assert any(step.endswith("calls deleted") for step in shrunk.steps)
+    only = tomllib.loads(shrunk.text)["workload"]["only"]
+    lines = map(json.loads, original.history.splitlines())
+    made = sum(e["type"] == "CallAnswered" and e["registrar"].startswith("client-") for e in lines)
+    assert 1 <= len(only) < made
+    assert shrunk.kind in shrink.violation_kinds(shrunk.run)
+    assert shrunk.run.hash == simulate.run_seed(shrunk.plan, shrunk.seed).hash

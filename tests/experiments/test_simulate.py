@@ -1494,3 +1494,27 @@ def test_a_simulated_host_whose_tree_fails_to_start_closes_its_subscription(
     with pytest.raises(RuntimeError, match="did not start"):
         made.ask("start")
     assert ["closed"] == closed
+
+
+def _calls_by_client(history: str) -> dict[str, list[str]]:
+    """Each client's calls in a history, in order: the label of the resource each got."""
+    lines = [json.loads(line) for line in history.splitlines()]
+    labels = {e["resource_id"]: e["label"] for e in lines if e["type"] == "ResourceLoaded"}
+    calls: dict[str, list[str]] = {}
+    for event in lines:
+        if event["type"] == "ConsumerAdded" and event["consumer"].startswith("client-"):
+            calls.setdefault(event["consumer"], []).append(labels[event["resource_id"]])
+    return calls
+
+
+@SWEEP
+def test_a_workload_with_only_makes_the_calls_it_names_each_with_the_request_it_had() -> None:
+    whole = _calls_by_client(simulate.run_seed(parse_plan(BASE), 1).history)
+    only = BASE.replace("timeout = 3.0", "timeout = 3.0\nonly = [[1, 2], [1, 5]]")
+
+    run = simulate.run_seed(parse_plan(only), 1)
+
+    assert {"client-1": [whole["client-1"][1], whole["client-1"][4]]} == _calls_by_client(
+        run.history
+    )
+    assert "client-0" not in run.history  # (a client given no call is not started)
