@@ -470,15 +470,18 @@ def test_a_call_its_provider_added_with_no_outcome_before_its_callers_stop_is_fo
     assert {5, 13} == _found(_asked_again(), "outcome")
 
 
-@pytest.mark.parametrize(
-    "outcome",
+@pytest.mark.parametrize(  # (built in the test, not at import: the manager process of `real`
+    "outcome",  # imports this module for `_serve`, and an event built there takes a number)
     [
-        events.CallWithdrawn("app", Q3, "cm", "comp", pid=A),
-        events.CallFailed("app", Q3, "cm", "comp", "RegistrarUnavailableError", "gone", pid=A),
+        lambda: events.CallWithdrawn("app", Q3, "cm", "comp", pid=A),
+        lambda: events.CallFailed("app", Q3, "cm", "comp", "RegistrarUnavailableError", "x", pid=A),
     ],
+    ids=["withdrawn", "failed"],
 )
-def test_a_call_withdrawn_or_failed_at_its_caller_has_an_outcome(outcome: events.Event) -> None:
-    findings = check.check(numbered(_asked_again(outcome))).findings
+def test_a_call_withdrawn_or_failed_at_its_caller_has_an_outcome(
+    outcome: Callable[[], events.Event],
+) -> None:
+    findings = check.check(numbered(_asked_again(outcome()))).findings
     assert [] == [f for f in findings if f.rule == "outcome"]
 
 
