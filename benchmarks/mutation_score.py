@@ -82,13 +82,13 @@ LEFT_OUT = ("core/VariableInserter", "core/VariableReplacer")  # (random: not re
 EQUIVALENT: dict[str, str] = {
     "_registrar/consumer.py:744:NumberReplacer:1": "an id never answered: 0 < epoch and "
     "-1 < epoch alike, every epoch asked being new_epoch()'s, at least 1",
-    "_supervision/policy.py:257:ReplaceComparisonOperator_NotEq_IsNot": "incarnations are "
+    "_supervision/policy.py:258:ReplaceComparisonOperator_NotEq_IsNot": "incarnations are "
     "ints from 0 up by 1: `is not` is `!=` in CPython up to 256 (its small ints), so for "
     "every run with fewer than 257 restarts of one child",
-    "_supervision/policy.py:371:ReplaceComparisonOperator_Eq_Is": "`Child.state` is only "
+    "_supervision/policy.py:372:ReplaceComparisonOperator_Eq_Is": "`Child.state` is only "
     "ever set to string literals (`ChildState`), which CPython interns (identifier-like): "
     "`is 'restarting'` is `== 'restarting'`",
-    "_supervision/children.py:332:ReplaceFalseWithTrue": "a default of `Level.stop`, a "
+    "_supervision/children.py:342:ReplaceFalseWithTrue": "a default of `Level.stop`, a "
     "`Protocol` stub no class inherits: a call runs its implementation's own signature",
 }
 """Survivors shown equivalent: mutant id (`FILE:LINE:OPERATOR[:N]`) -> the line that shows it."""
