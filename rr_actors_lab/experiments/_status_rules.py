@@ -233,6 +233,26 @@ def _off_path(
     return None
 
 
+def _passes(history: Sequence[Line]) -> dict[tuple[str, str], list[int]]:
+    """The lines of each registrar's events of each status (`StatusSent`, `StatusDelivered`),
+    by `(registrar, status id)`, in order."""
+    found: dict[tuple[str, str], list[int]] = defaultdict(list)
+    for line, e in history:
+        if isinstance(e, (events.StatusSent, events.StatusDelivered)):
+            found[e.registrar, e.status_id].append(line)
+    return found
+
+
+def _pass_end(passes: dict[tuple[str, str], list[int]], want: Expected, last: int) -> int:
+    """The last line of the sender's events of `want`'s status in the life that ends at
+    `last`, from `want.line` on: a sender whose life wrote nothing after them (killed as it
+    climbed: a real `simshare` run, 2026-11-27, api SIGKILLed after 11 deliveries at hop 1
+    and one climb sent) may have lost the climb with it."""
+    lines = passes.get((want.sender, want.status_id), [])
+    at = bisect.bisect_right(lines, last)
+    return max(want.line, lines[at - 1]) if at else want.line
+
+
 def status_reached(
     expected: Sequence[Expected],
     facts: Facts,
@@ -246,7 +266,8 @@ def status_reached(
     Throughout: from before it was sent on to it (`Expected.since`) until after its last
     delivery, in one life; for an id not a dependency, until it reached another id of its
     registrar at that hop (a status desk delivers those in one pass). The sender must have gone
-    on after the send. Excused: a holder cut off its sender (rule 19: each let the id go); a
+    on after the send, and after its other events of that status (`_pass_end`).
+    Excused: a holder cut off its sender (rule 19: each let the id go); a
     holder killed within `LOST_WITH_HOLDER_S` of a send that reached nobody; a holder restarted
     but not serving yet (failure-semantics.md); a holder whose registrar nothing of the
     sender's life reached in the holder's process of the send, that life ending within
@@ -264,6 +285,7 @@ def status_reached(
     released = _released_on_unload(steps)
     restarts = _restarts(history)
     reasons = {line: e.reason for line, e in history if isinstance(e, events.QueryForgotten)}
+    passes = _passes(history)
     findings: list[Finding] = []
     for line, holder, qid in facts.told_self:
         if facts.fatal.get(qid, line) >= line:
@@ -285,7 +307,7 @@ def status_reached(
         sender = lives.get((want.sender, want.life))
         if (
             sender is None
-            or sender.last_line <= want.line
+            or sender.last_line <= _pass_end(passes, want, sender.last_line)
             or (want.sender, want.life, want.holder, holder_pid(want.holder, want.since))
             in unconnected
         ):

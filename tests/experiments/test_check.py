@@ -3176,13 +3176,16 @@ def listing_lists_an_unknown_id(h: History) -> History | None:
 
 
 def drop_outcome(h: History) -> History | None:
-    """A call its provider added (`ConsumerAdded`) whose caller, one process that stops
-    cleanly after it and never exits, publishes no answer, error or withdrawal of it."""
+    """A call its provider added (`ConsumerAdded`) whose caller, one process and one life
+    that stops cleanly after it and never exits, publishes no answer, error or withdrawal
+    of it (a caller restarted within `CALL_BOUND_S` the rule leaves unjudged)."""
     pids: dict[str, set[int]] = defaultdict(set)
     for e in h:
         if (name := getattr(e, "registrar", None)) is not None:
             pids[name].add(e.pid)
     exited = {e.child for e in h if type(e) is events.ChildExited}
+    _steps, lives = check.walk(numbered(h))
+    exited |= {name for name, life in lives if life >= 1}  # (restarted: a life after its first)
     outcomes = (events.CallAnswered, events.CallFailed, events.CallWithdrawn)
     for i, e in enumerate(h):
         if type(e) is not events.ConsumerAdded or len(pids.get(e.consumer, ())) != 1:
