@@ -3178,14 +3178,12 @@ def listing_lists_an_unknown_id(h: History) -> History | None:
 def drop_outcome(h: History) -> History | None:
     """A call its provider added (`ConsumerAdded`) whose caller, one process and one life
     that stops cleanly after it and never exits, publishes no answer, error or withdrawal
-    of it (a caller restarted within `CALL_BOUND_S` the rule leaves unjudged)."""
+    of it (a caller the checker reads as restarted within `CALL_BOUND_S` is unjudged)."""
     pids: dict[str, set[int]] = defaultdict(set)
     for e in h:
         if (name := getattr(e, "registrar", None)) is not None:
             pids[name].add(e.pid)
     exited = {e.child for e in h if type(e) is events.ChildExited}
-    _steps, lives = check.walk(numbered(h))
-    exited |= {name for name, life in lives if life >= 1}  # (restarted: a life after its first)
     outcomes = (events.CallAnswered, events.CallFailed, events.CallWithdrawn)
     for i, e in enumerate(h):
         if type(e) is not events.ConsumerAdded or len(pids.get(e.consumer, ())) != 1:
@@ -3199,8 +3197,12 @@ def drop_outcome(h: History) -> History | None:
             for j, x in enumerate(h)
             if type(x) in outcomes and (x.registrar, x.query_id) == (caller, qid)
         ]
-        if dropped:
-            return _without(h, *dropped)
+        if not dropped:
+            continue
+        mutated = _without(h, *dropped)
+        _steps, lives = check.walk(numbered(mutated))
+        if (caller, 1) not in lives:  # (one life, as the checker reads it without the outcome)
+            return mutated
     return None
 
 
