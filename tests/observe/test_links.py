@@ -23,11 +23,11 @@ from rr_actors.testing import start_forkserver
 from rr_actors_lab.observe import _links as zenoh_watch
 from rr_actors_lab.observe._links import GRACE, TICK, LinkWatch, handshake_trouble
 from tests.support import pki
+from tests.support.hosts import free_port
 from tests.support.tls_lab import (
     Lab,
     Logged,
     caught_log,
-    free_port,
     listener,
     member_tls,
     open_router,
