@@ -19,6 +19,7 @@ from rr_actors._registrar.messages import (
     Abandon,
     ConsumerDown,
     KeptUnclaimed,
+    PeersStopped,
     RunOnActor,
     StatusBatch,
 )
@@ -265,6 +266,11 @@ def _peer_lost(p: Pair, hook: Hook) -> None:
     Served(p.provider).peer_lost(p.consumer.name)
 
 
+def _peers_stopped(p: Pair, hook: Hook) -> None:
+    intercept(p.provider, "peers_stopped", before=hook)
+    p.provider.tell(PeersStopped((p.consumer.name,)))  # (as its supervisor, the tree's stop)
+
+
 def _peer_reachable(p: Pair, hook: Hook) -> None:
     intercept(p.provider, "peer_reachable", before=hook)
     Served(p.provider).peer_reachable(p.consumer.name)
@@ -349,6 +355,7 @@ DRIVERS: dict[str, Callable[[Pair, Hook], None]] = {
     "reachable": _reachable,
     "peer_lost": _peer_lost,
     "peer_reachable": _peer_reachable,
+    "peers_stopped": _peers_stopped,
     "reconcile_retry": _reconcile_retry,
     "kept_unclaimed": _kept_unclaimed,
     "yield_name": _yield_name,
