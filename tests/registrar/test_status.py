@@ -857,6 +857,7 @@ class TestHungConsumer:
 
     STATUSES = 2_000
 
+    @pytest.mark.timeout(240)  # (2,000 statuses to a manager process: 45 s at a load of 8)
     @pytest.mark.parametrize("hang", [Said, AwaitedSaid], ids=["plain", "coroutine"])
     def test_a_hung_callback_costs_a_bounded_number_of_threads_and_is_named_as_given_up(
         self, make_registrar, serve, gates, shared, registrar_placement, hang
