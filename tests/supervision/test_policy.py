@@ -1226,17 +1226,17 @@ class TestAWholeTreesStop:
         names = [f"t{n}-{uid}" for n in range(4)]
         heard: list[tuple[str, str]] = []
         told: list[tuple[str, tuple[str, ...]]] = []
-        peers_stopped, tell_stopped = life.Hearing.peers_stopped, ThreadManager.tell_stopped
+        peer_stopped, tell_stopped = life.Hearing.peer_stopped, ThreadManager.tell_stopped
 
-        def counted_peers_stopped(self: life.Hearing, stopped: tuple[str, ...]) -> None:
-            heard.extend((self.name, name) for name in stopped)
-            peers_stopped(self, stopped)
+        def counted_peer_stopped(self: life.Hearing, name: str) -> None:
+            heard.append((self.name, name))
+            peer_stopped(self, name)
 
         def counted_tell(self: ThreadManager, stopped: tuple[str, ...]) -> None:
             told.append((self.spec.name, stopped))
             tell_stopped(self, stopped)
 
-        monkeypatch.setattr(life.Hearing, "peers_stopped", counted_peers_stopped)
+        monkeypatch.setattr(life.Hearing, "peer_stopped", counted_peer_stopped)
         monkeypatch.setattr(ThreadManager, "tell_stopped", counted_tell)
         sup = rr.Supervisor([rr.ManagerSpec(n, None, isolation="thread") for n in names])
         sup.start()
