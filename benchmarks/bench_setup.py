@@ -34,7 +34,6 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import _harness
@@ -48,17 +47,6 @@ TESTS = ["-m", "pytest", "-q", "-n", "5", "--dist", "loadfile"]
 def _minutes(seconds: float) -> str:
     minutes, rest = divmod(round(seconds), 60)
     return f"{minutes} min {rest} s" if minutes else f"{seconds:.1f} s"
-
-
-def _busy(count: int) -> Iterator[None]:
-    """`count` processes that only spin, for as long as the block runs."""
-    spinning = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(count)]
-    try:
-        yield
-    finally:
-        for process in spinning:
-            process.kill()
-            process.wait(10)
 
 
 def _venv(where: Path) -> Path:
