@@ -23,7 +23,7 @@ import itertools
 import logging
 import os
 import weakref
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from typing import TYPE_CHECKING, Any
 
 from rr_actors._core import runtime, wire
@@ -339,15 +339,23 @@ def pool_of(level: Level, name: str) -> Child | None:
     return None
 
 
+def _leaves(level: Level) -> Iterator[Child]:
+    """The tree's children below `level` that are not supervisors run here, in start order
+    (a nested supervisor's, in its place)."""
+    for child in list(level.children):
+        running = child.running
+        if isinstance(running, NestedSupervisor):
+            yield from _leaves(running.node)
+        else:
+            yield child
+
+
 def _piped(level: Level) -> set[str]:
     """The registrars the tree's control pipes reach below `level`: its process managers,
     its pools and their managers."""
     reached: set[str] = set()
-    for child in list(level.children):
-        running = child.running
-        if isinstance(running, NestedSupervisor):
-            reached.update(_piped(running.node))
-        elif isinstance(running, ProcessManager):
+    for child in _leaves(level):
+        if isinstance(child.running, ProcessManager):
             reached.add(child.name)
             reached.update(child.subtree)
     return reached
@@ -356,26 +364,12 @@ def _piped(level: Level) -> set[str]:
 def _process_handles(level: Level) -> dict[str, ProcessManager]:
     """The tree's living manager processes below `level`, by child name (a pool's by the
     pool's), in start order."""
-    found: dict[str, ProcessManager] = {}
-    for child in list(level.children):
-        running = child.running
-        if isinstance(running, NestedSupervisor):
-            found.update(_process_handles(running.node))
-        elif isinstance(running, ProcessManager):
-            found[child.name] = running
-    return found
+    return {c.name: c.running for c in _leaves(level) if isinstance(c.running, ProcessManager)}
 
 
 def _threaded(level: Level) -> set[str]:
     """The tree's living thread managers below `level`."""
-    found: set[str] = set()
-    for child in list(level.children):
-        running = child.running
-        if isinstance(running, NestedSupervisor):
-            found.update(_threaded(running.node))
-        elif isinstance(running, ThreadManager):
-            found.add(child.name)
-    return found
+    return {c.name for c in _leaves(level) if isinstance(c.running, ThreadManager)}
 
 
 def consumer_down(
