@@ -34,16 +34,13 @@ from __future__ import annotations
 
 import argparse
 import functools
-import importlib
-import os
 import signal
 import sys
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Literal
 
-from count_restart import BOUND, HOOK, ours, provider_setup, run, signal_all
+from count_restart import BOUND, ours, provider_setup, run, signal_all, traced_work
 
 CASES = ("thread", "process", "restart")
 
@@ -122,29 +119,17 @@ def main() -> int:
     parser.add_argument("--fresh", action="store_true", help="calls that load (thread, process)")
     args = parser.parse_args()
     cases = (args.only,) if args.only else CASES
-    with tempfile.TemporaryDirectory() as work:
-        folder, hooks = Path(work, "marks"), Path(work, "hooks")
-        folder.mkdir()
-        hooks.mkdir()
-        (hooks / "sitecustomize.py").write_text(HOOK)
-        os.environ["RR_COUNT_FILES"] = str(folder)
-        os.environ["PYTHONPATH"] = os.pathsep.join(
-            [str(hooks), *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))]
-        )
-        sys.path.insert(0, str(hooks))
-        importlib.import_module("sitecustomize")  # (this process's tracer)
+    with traced_work() as (work, folder):
         found: dict[str, list[set[str]]] = {"pykka ask (floor)": pykka_floor(args.rounds)}
         for case in cases:
             if case == "restart":
-                restarts = run(args.rounds, False, str(folder), work, kill=True)
+                restarts = run(args.rounds, False, folder, work, kill=True)
                 found[case] = [set().union(*each.values()) for each in restarts]
             else:
                 isolation: Literal["thread", "process"] = (
                     "thread" if case == "thread" else "process"
                 )
-                found[case] = call_rounds(
-                    str(folder), work, isolation, args.rounds, fresh=args.fresh
-                )
+                found[case] = call_rounds(folder, work, isolation, args.rounds, fresh=args.fresh)
     print("distinct rr_actors/ and rr_actors_lab/ files run in the window, every process")
     print("| case | " + " | ".join(f"round {n}" for n in range(1, args.rounds + 1)) + " |")
     print("|---|" + "---:|" * args.rounds)

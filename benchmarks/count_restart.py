@@ -39,6 +39,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -188,13 +189,10 @@ def restart_round(sup: Any, folder: str, path: str, n: int, kill: bool) -> dict[
     return counted
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--rounds", type=int, default=3, help="restarts counted (default 3)")
-    parser.add_argument("--heartbeat", action="store_true", help="the managers' heartbeat on")
-    parser.add_argument("--list", action="store_true", help="the files of the last round")
-    parser.add_argument("--hit", action="store_true", help="no kill: a dedup hit's files")
-    args = parser.parse_args()
+@contextlib.contextmanager
+def traced_work() -> Iterator[tuple[str, str]]:
+    """A work folder and its marks folder, with `HOOK` installed as `sitecustomize` in
+    this process and every process started from it (through `PYTHONPATH`)."""
     with tempfile.TemporaryDirectory() as work:
         folder, hooks = Path(work, "marks"), Path(work, "hooks")
         folder.mkdir()
@@ -206,7 +204,18 @@ def main() -> int:
         )
         sys.path.insert(0, str(hooks))
         importlib.import_module("sitecustomize")  # (this process's tracer)
-        rounds = run(args.rounds, args.heartbeat, str(folder), work, kill=not args.hit)
+        yield work, str(folder)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rounds", type=int, default=3, help="restarts counted (default 3)")
+    parser.add_argument("--heartbeat", action="store_true", help="the managers' heartbeat on")
+    parser.add_argument("--list", action="store_true", help="the files of the last round")
+    parser.add_argument("--hit", action="store_true", help="no kill: a dedup hit's files")
+    args = parser.parse_args()
+    with traced_work() as (work, folder):
+        rounds = run(args.rounds, args.heartbeat, folder, work, kill=not args.hit)
     report(rounds, args.list, "a dedup hit" if args.hit else "SIGKILL to the first call answered")
     return 0
 
