@@ -25,6 +25,10 @@ from typing import Any
 
 from rr_actors._core import runtime
 
+API = "opentelemetry.context"
+"""The module of OpenTelemetry's API whose import makes a span possible: until it is in
+`sys.modules`, `begin` returns `None` (a caller may skip it)."""
+
 # OpenTelemetry's API, once bound (`_bind`): looked up in `sys.modules`, not imported.
 _context: Any = None
 _trace: Any = None
@@ -41,7 +45,7 @@ def _bind(*, load: bool = False) -> bool:
             import opentelemetry.trace  # noqa: F401, PLC0415
         except ImportError:  # the otel extra is missing: nothing is carried
             return False
-    context = sys.modules.get("opentelemetry.context")
+    context = sys.modules.get(API)
     trace = sys.modules.get("opentelemetry.trace")
     if context is None or trace is None:
         return False

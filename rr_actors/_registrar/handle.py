@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import math
+import sys
 from collections.abc import Callable
 from typing import Any, Concatenate, ParamSpec, Protocol, Self, TypeVar
 
@@ -89,6 +91,8 @@ P = ParamSpec("P")
 STOP_WAITS_FOR_UNLOADS = 0.5
 """The share of `stop()`'s timeout it waits for the unloads under way (the rest: to write
 the backup and stop the servers)."""
+
+_SECONDS = (float, int)  # a timeout's types checked without `check_seconds` (not bool)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -709,7 +713,7 @@ class Here:
             on_status,
             limit,
             deadline,
-            traces.begin(),  # (in the caller's thread or task: its OpenTelemetry context)
+            _trace_context(),  # (in the caller's thread or task: its OpenTelemetry context)
             wait_overloaded=if_overloaded == "wait",
         )
         client = self.clients.get((target_rr, server))
@@ -718,7 +722,7 @@ class Here:
         return steps
 
     def unload(self, timeout: float | None, query_id: str) -> Steps[None]:
-        release = Release(query_id, FutureReply(), traces.begin())
+        release = Release(query_id, FutureReply(), _trace_context())
         return self.asking(release, timeout, f"unload({query_id!r})")
 
     def send_status(
@@ -818,7 +822,9 @@ class Here:
     def limit(self, timeout: float | None) -> float:
         if timeout is None:
             return self.config.call_timeout
-        check_seconds("timeout", timeout)
+        if type(timeout) in _SECONDS and 0 < timeout < math.inf:  # (most calls: no look-up)
+            return float(timeout)
+        check_seconds("timeout", timeout)  # (the error that names it)
         return float(timeout)
 
     def tell(self, message: Any) -> bool:
@@ -1103,7 +1109,8 @@ def _after(first: Steps[Any], then: Steps[T]) -> Steps[T]:
 
 def blocking(steps: Steps[T]) -> T:
     """Run `steps` on the calling thread; `ConfigError` on the process's event loop."""
-    if on_process_loop():
+    # (a thread that runs no event loop is not the process's loop: nothing to look up)
+    if asyncio._get_running_loop() is not None and on_process_loop():
         steps.close()
         raise ConfigError(
             "a blocking registrar method was called on rr_actors' event loop (from a "
@@ -1111,6 +1118,12 @@ def blocking(steps: Steps[T]) -> T:
             "(acall, aunload, asend_status, ..., Supervisor.acall_with_retry)"
         )
     return run_steps(steps)
+
+
+def _trace_context() -> tuple[str, str] | None:
+    """The trace context a call made now carries (`traces.begin`): none until the
+    application imported OpenTelemetry, as no span can be current before (one look-up)."""
+    return traces.begin() if traces.API in sys.modules else None
 
 
 def _check_names(**names: object) -> None:

@@ -1166,7 +1166,8 @@ class ServerActor(Actor):
         else:
             message.reply.set_result(response)
         finally:
-            traces.detach(traced)
+            if traced is not None:
+                traces.detach(traced)
             LOADING.reset(token)
 
     def _unload(self, message: RunUnload) -> None:
@@ -1178,7 +1179,8 @@ class ServerActor(Actor):
         else:
             message.reply.set_result(None)
         finally:
-            traces.detach(traced)
+            if traced is not None:
+                traces.detach(traced)
 
 
 def _refuse_awaitable(response: Any) -> None:

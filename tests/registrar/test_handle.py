@@ -14,15 +14,18 @@ import asyncio
 import concurrent.futures
 import itertools
 import os
+import sys
 import threading
 import uuid
 from collections.abc import Callable
 from pathlib import Path
+from types import FrameType
 from typing import Any
 
 import pytest
 
 import rr_actors as rr
+from rr_actors._core import traces
 from rr_actors.testing import RemoteRegistrar, SharedObjects, catalog_snapshot, crash, intercept
 from tests.registrar.conftest import MakeRegistrar, Shared
 from tests.support.awaited import LOOP_THREAD, awaited
@@ -45,6 +48,43 @@ def test_both_kinds_of_handle_are_the_one_registrar_class_and_repeat_none_of_its
     for kind in (rr.ResourceRegistrar, RemoteRegistrar):
         assert issubclass(kind, rr.Registrar)
         assert set() == surface & set(vars(kind))  # its own: start, subscribe, kill, ...
+
+
+def test_an_untraced_call_with_a_valid_timeout_skips_the_checks_it_needs_only_otherwise(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # (issue 71 item 5: what runs per call and need not; the error paths are tested apart)
+    monkeypatch.delitem(sys.modules, traces.API, raising=False)  # OpenTelemetry not imported
+    package = Path(rr.__file__).parent
+    ran: set[str] = set()
+    counting = [False]
+
+    def profile(frame: FrameType, event: str, _arg: object) -> None:
+        if counting[0] and event == "call":
+            ran.add(frame.f_code.co_filename)
+
+    threading.setprofile(profile)  # (the registrar's threads, started from here on)
+    registrar = rr.ResourceRegistrar.start(f"skips-{uuid.uuid4().hex[:8]}")
+    try:
+        registrar.register_server("res", load=lambda request: request, unload=_drop)
+        registrar.call(registrar.name, "res", "warm-up", timeout=20)
+        counting[0] = True
+        sys.setprofile(profile)
+        try:
+            registrar.call(registrar.name, "res", "fresh", timeout=20.0)  # a load
+            registrar.call(registrar.name, "res", "fresh", timeout=20)  # a dedup hit
+        finally:
+            sys.setprofile(None)
+            counting[0] = False
+    finally:
+        threading.setprofile(None)
+        registrar.stop()
+
+    files = {
+        Path(name).relative_to(package).as_posix() for name in ran if package in Path(name).parents
+    }
+    assert "_registrar/handle.py" in files  # (the profile saw the call)
+    assert set() == files & {"config.py", "_core/traces.py", "_core/loops.py"}
 
 
 def test_tell_hands_a_message_to_the_actor_and_wait_ended_says_whether_it_ended() -> None:
