@@ -1109,7 +1109,8 @@ def _after(first: Steps[Any], then: Steps[T]) -> Steps[T]:
 
 def blocking(steps: Steps[T]) -> T:
     """Run `steps` on the calling thread; `ConfigError` on the process's event loop."""
-    # (a thread that runs no event loop is not the process's loop: nothing to look up)
+    # (a thread that runs no event loop is not the process's loop: nothing to look up;
+    # `_get_running_loop` is asyncio's public low-level read, in `asyncio.events.__all__`)
     if asyncio._get_running_loop() is not None and on_process_loop():
         steps.close()
         raise ConfigError(
