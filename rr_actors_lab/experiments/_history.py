@@ -172,7 +172,11 @@ class _Walk:
         seq = getattr(event, "seq", 0)
         if (
             self.pids.get(name) == event.pid
-            and (name not in self.over or 0 < seq < self.top.get(name, 0))
+            and (
+                name not in self.over
+                or 0 < seq < self.top.get(name, 0)
+                or self.listed_before_end(event, self.now[name])
+            )
             and not (self.second and (name, event.pid) in self.second)
             and not isinstance(event, events.CatalogRestored)
         ):  # (the life it is in goes on: most events; one built before its end, sent
@@ -211,6 +215,15 @@ class _Walk:
         self.pids[name] = event.pid
         self.top[name] = max(self.top.get(name, 0), seq)
         self.steps.append((name, line, event, new, life))
+
+    @staticmethod
+    def listed_before_end(event: events.Event, life: Life) -> bool:
+        """Whether `event` is a listing begun before `life` ended: its caller's thread
+        publishes it when the answer is back, which may be after the registrar's stop (a real
+        `simways` run, load 15: db's status thread listed its queries, and the
+        `ServerQueriesListed`, begun 1.6 ms before its `RegistrarStopped`, came after it)."""
+        started = getattr(event, "started", 0) if isinstance(event, _LISTINGS) else 0
+        return life.end is not None and 0 < started <= life.end
 
     def ending(self, line: int, event: events.Event, name: str) -> None:
         """A `StatusDelivered` or `StatusHandled` (in its life) or a `RegistrarStopped`
@@ -263,6 +276,9 @@ class _Walk:
 
 _DESK = (events.StatusDelivered, events.StatusHandled)
 """Events a process's status desk publishes for a registrar, from any thread."""
+
+_LISTINGS = (events.ServerQueriesListed, events.QueriesFetched)
+"""Events a registrar's caller publishes when the answer is back (each `started` before it)."""
 
 _ENDING = (events.StatusDelivered, events.StatusHandled, events.RegistrarStopped)
 """The events `_Walk.ending` takes: two that are in a life, and one that ends it."""

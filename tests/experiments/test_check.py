@@ -1651,6 +1651,22 @@ def answered_to_a_life_shown_late(*, answered: bool = True) -> list[events.Event
     )
 
 
+@pytest.mark.parametrize(("begun", "found"), [(-1, set()), (1, {17})], ids=["before", "after"])
+def test_a_listing_begun_before_its_registrar_stopped_and_published_after_is_of_that_life(
+    begun: int, found: set[int]
+) -> None:
+    """A real `simways` run (load 15): db's status thread listed its queries; the answer
+    came before db's stop, the `ServerQueriesListed` (its caller's thread) after its
+    `RegistrarStopped`, numbered after it. Read as a new life of db, it was found
+    `restore-first`. One begun after the stop is one."""
+    h = _stamped(clean())
+    stop = h[-1].hlc
+    listed = events.ServerQueriesListed("erm", "cam", (), stop + begun, pid=P, seq=14)
+    history = [*h, dataclasses.replace(listed, hlc=stop + 2, host="h")]
+    findings = check.check(numbered(history)).findings
+    assert found == {line for f in findings if f.rule == "restore-first" for line in f.lines}
+
+
 def test_an_id_answered_to_a_consumer_life_shown_after_its_provider_s_restart_is_found() -> None:
     # the checker took the killed life C (the last begun) for Q1's holder and excused it
     assert {4, 6} == _found(answered_to_a_life_shown_late(), "kept")
