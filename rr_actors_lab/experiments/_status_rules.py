@@ -21,6 +21,7 @@ Each rule's windows and what it excuses: docs/how-to/check-a-run.md.
 from __future__ import annotations
 
 import bisect
+import dataclasses
 from collections import defaultdict
 from collections.abc import Callable, Sequence
 
@@ -280,7 +281,8 @@ def status_reached(
     unless the status reached another id of its registrar at that hop while it held this one.
     """
     cut_off = _cut_off(history)
-    unconnected = _unconnected(expected, facts, lives)
+    way = _on_its_way(history)
+    unconnected = _unconnected(expected, way, lives)
     holder_pid = _holder_pid(lives)
     released = _released_on_unload(steps)
     restarts = _restarts(history)
@@ -315,7 +317,7 @@ def status_reached(
         end = facts.last_delivery.get(want.status_id, want.since)
         beside = None
         if (want.holder, want.query_id) not in facts.parent:
-            beside = facts.first_delivery.get((want.status_id, want.holder, want.hop))
+            beside = way.first.get((want.status_id, want.holder, want.hop))
             end = min(end, end if beside is None else beside)
         end = max(end, want.since)
         for life, began, until, forgot_at in spans.get((want.holder, want.query_id), ()):
@@ -425,7 +427,7 @@ def _holder_pid(lives: dict[tuple[str, int], Life]) -> Callable[[str, int], int]
 
 
 def _unconnected(
-    expected: Sequence[Expected], facts: Facts, lives: dict[tuple[str, int], Life]
+    expected: Sequence[Expected], way: Ways, lives: dict[tuple[str, int], Life]
 ) -> set[tuple[str, int, str, int]]:
     """(sender, its life, holder registrar, the holder's process at the send) of which no send
     reached any id of the holder's process, the sender's life ending within
@@ -433,7 +435,8 @@ def _unconnected(
     restarted holder's new process is connected to anew). Not when that sender reached the
     holder in none of its lives that sent it something (more than this one): the way itself
     is broken. One send that arrived shows the connection was made (frames leave it in
-    order): a later one lost is owed."""
+    order): a later one lost is owed. One an `Unload`'s answer may have carried shows no
+    such thing (`Ways`)."""
     holder_pid = _holder_pid(lives)
     first: dict[tuple[str, int, str, int], int] = {}
     reached: set[tuple[str, int, str, int]] = set()
@@ -441,7 +444,7 @@ def _unconnected(
         key = (want.sender, want.life, want.holder, holder_pid(want.holder, want.since))
         if want.since < first.get(key, want.since + 1):
             first[key] = want.since
-        if (want.status_id, want.query_id) in facts.delivered:
+        if (want.status_id, want.query_id) in way.delivered:
             reached.add(key)
     ways: dict[tuple[str, str], list[bool]] = defaultdict(list)  # (sender, holder) -> by life
     for key in first:
@@ -458,6 +461,43 @@ def _unconnected(
         if hlc.unpack(life.end)[0] - hlc.unpack(since)[0] <= bound:
             unconnected.add(key)
     return unconnected
+
+
+@dataclasses.dataclass(slots=True)
+class Ways:
+    """The deliveries that came the status's own way (`_on_its_way`).
+
+    Attributes:
+        delivered: (status id, query id) of each.
+        first: (status id, registrar, hop) -> the least stamp of those.
+    """
+
+    delivered: set[tuple[str, str]] = dataclasses.field(default_factory=set)
+    first: dict[tuple[str, str, int], int] = dataclasses.field(default_factory=dict)
+
+
+def _on_its_way(history: Sequence[Line]) -> Ways:
+    """The deliveries no `Unload`'s answer carried: none after its provider released its id
+    on an `Unload` (the answer leaves after the release, on the consumer's connection to
+    the provider, and carries the statuses on their way to that id alone, `ANSWERED`). Such
+    a delivery shows neither that the provider's own way to that registrar was made nor that
+    a status desk's pass reached its other ids (a real `simways` run, load 27: db's statuses
+    to client-1 waited for a connection 134 ms until db was killed; the first two reached
+    one of its three ids on its `Unload`'s answer)."""
+    released: dict[str, int] = {}  # query id -> the stamp of its first release on an Unload
+    for _, event in history:
+        if isinstance(event, events.ConsumerReleased) and event.reason == "unload":
+            released[event.query_id] = min(released.get(event.query_id, event.hlc), event.hlc)
+    way = Ways()
+    for _, event in history:
+        if not isinstance(event, events.StatusDelivered) or not event.status_id:
+            continue
+        if released.get(event.query_id, event.hlc + 1) < event.hlc:
+            continue  # (it may have come on the answer)
+        way.delivered.add((event.status_id, event.query_id))
+        key = (event.status_id, event.registrar, event.hop)
+        way.first[key] = min(way.first.get(key, event.hlc), event.hlc)
+    return way
 
 
 ANSWERED = ("unload", "dependency", "stop")
