@@ -270,9 +270,9 @@ def status_reached(
     on after the send, and after its other events of that status (`_pass_end`).
     Excused: a holder cut off its sender (rule 19: each let the id go); a
     holder killed within `LOST_WITH_HOLDER_S` of a send that reached nobody; a holder restarted
-    but not serving yet (failure-semantics.md); a holder whose registrar nothing of the
-    sender's life reached in the holder's process of the send, that life ending within
-    `LOST_WITH_SENDER_S` of its first send there (`_unconnected`).
+    but not serving yet (failure-semantics.md); a holder whose registrar nothing the
+    sender's life sent at or after it reached in the holder's process of the send, that
+    life ending within `LOST_WITH_SENDER_S` of the send (`_queued`).
 
     Letting the id go early excuses no holder whose release crossed the status (rule 9): the
     answer to its `Unload` carried every status not yet acknowledged, delivered before it
@@ -282,8 +282,7 @@ def status_reached(
     """
     cut_off = _cut_off(history)
     way = _on_its_way(history)
-    unconnected = _unconnected(expected, way, lives)
-    holder_pid = _holder_pid(lives)
+    queued = _queued(expected, way, lives)
     released = _released_on_unload(steps)
     restarts = _restarts(history)
     reasons = {line: e.reason for line, e in history if isinstance(e, events.QueryForgotten)}
@@ -310,10 +309,9 @@ def status_reached(
         if (
             sender is None
             or sender.last_line <= _pass_end(passes, want, sender.last_line)
-            or (want.sender, want.life, want.holder, holder_pid(want.holder, want.since))
-            in unconnected
+            or queued(want)
         ):
-            continue  # it may have died before it sent it on (or its connection there was made)
+            continue  # it may have died before it sent it on (or before it left its process)
         end = facts.last_delivery.get(want.status_id, want.since)
         beside = None
         if (want.holder, want.query_id) not in facts.parent:
@@ -399,14 +397,16 @@ def _died_with_it(want: Expected, record: Life, facts: Facts) -> bool:
 
 
 LOST_WITH_SENDER_S = 0.5
-"""Seconds from a sender life's first send to a holder's process within which the life's
-end may lose all it sent there (`status-reached`): the connection from its process to that
-registrar is made at the first send, and what is sent on it waits in the sender until it
-connects (a real `simslow` run, CI load 20: db killed 62 ms after the first status of its
-life, which reached three registrars of a process, not the fourth, whose connection was
-still being made; a holder restarted in a new process is connected to anew: `simdoubt`
-seed 58, db killed 1.7 ms after its first status to api's restart, though an earlier one
-had reached api's old process; docs/explanation/failure-semantics.md)."""
+"""Seconds from a send to a holder's registrar within which the sender life's end may lose
+it (`status-reached`, `_queued`): what a connection cannot take yet waits in the sender and
+dies with it, and a connection to a registrar is made at the first send there (a real
+`simslow` run, CI load 20: db killed 62 ms after the first status of its life, which
+reached three registrars of a process, not the fourth, whose connection was still being
+made; a holder restarted in a new process is connected to anew: `simdoubt` seed 58, db
+killed 1.7 ms after its first status to api's restart; a real `simways` run, load 18:
+db's statuses took 165 ms to arrive, and the 13 it sent in the 43 ms before its SIGKILL
+reached nobody, or only the registrar whose connection was ahead;
+docs/explanation/failure-semantics.md)."""
 
 
 def _holder_pid(lives: dict[tuple[str, int], Life]) -> Callable[[str, int], int]:
@@ -426,41 +426,46 @@ def _holder_pid(lives: dict[tuple[str, int], Life]) -> Callable[[str, int], int]
     return pid
 
 
-def _unconnected(
+def _queued(
     expected: Sequence[Expected], way: Ways, lives: dict[tuple[str, int], Life]
-) -> set[tuple[str, int, str, int]]:
-    """(sender, its life, holder registrar, the holder's process at the send) of which no send
-    reached any id of the holder's process, the sender's life ending within
-    `LOST_WITH_SENDER_S` of the first: all of it may have waited for a connection there (a
+) -> Callable[[Expected], bool]:
+    """Whether an expected status may have waited in its sender when the sender's life ended:
+    nothing that life sent its holder registrar's process at or after it reached that
+    registrar, and the life ended within `LOST_WITH_SENDER_S` of its send (what a connection
+    cannot take yet, or is still being made for, waits in the sender and dies with it; a
     restarted holder's new process is connected to anew). Not when that sender reached the
     holder in none of its lives that sent it something (more than this one): the way itself
-    is broken. One send that arrived shows the connection was made (frames leave it in
-    order): a later one lost is owed. One an `Unload`'s answer may have carried shows no
-    such thing (`Ways`)."""
+    is broken. A later send that arrived shows this one left (one way at a time, frames in
+    order: rule 9): it is owed. One an `Unload`'s answer may have carried shows no such
+    thing (`Ways`)."""
     holder_pid = _holder_pid(lives)
-    first: dict[tuple[str, int, str, int], int] = {}
-    reached: set[tuple[str, int, str, int]] = set()
+
+    def key_of(want: Expected) -> tuple[str, int, str, int]:
+        return (want.sender, want.life, want.holder, holder_pid(want.holder, want.since))
+
+    latest: dict[tuple[str, int, str, int], int] = {}  # key -> its last send that arrived
+    sent: set[tuple[str, int, str, int]] = set()
     for want in expected:
-        key = (want.sender, want.life, want.holder, holder_pid(want.holder, want.since))
-        if want.since < first.get(key, want.since + 1):
-            first[key] = want.since
+        key = key_of(want)
+        sent.add(key)
         if (want.status_id, want.query_id) in way.delivered:
-            reached.add(key)
+            latest[key] = max(latest.get(key, want.since), want.since)
     ways: dict[tuple[str, str], list[bool]] = defaultdict(list)  # (sender, holder) -> by life
-    for key in first:
-        ways[key[0], key[2]].append(key in reached)
+    for key in sent:
+        ways[key[0], key[2]].append(key in latest)
     bound = LOST_WITH_SENDER_S * 1_000_000
-    unconnected = set()
-    for key, since in first.items():
+
+    def queued(want: Expected) -> bool:
+        key = key_of(want)
         life = lives.get(key[:2])
-        if key in reached or life is None or life.end is None:
-            continue
-        way = ways[key[0], key[2]]
-        if len(way) > 1 and not any(way):
-            continue
-        if hlc.unpack(life.end)[0] - hlc.unpack(since)[0] <= bound:
-            unconnected.add(key)
-    return unconnected
+        if life is None or life.end is None or latest.get(key, -1) >= want.since:
+            return False
+        each = ways[key[0], key[2]]
+        if len(each) > 1 and not any(each):
+            return False
+        return hlc.unpack(life.end)[0] - hlc.unpack(want.since)[0] <= bound
+
+    return queued
 
 
 @dataclasses.dataclass(slots=True)
