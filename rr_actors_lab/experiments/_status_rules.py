@@ -9,8 +9,8 @@
  it) ──► status_reached: each got it, unless it let its id go before the status's last
          delivery (not on the answer to an Unload its sender released it on after the
          send: that answer carried it), or the one to send it on died first (or
-         before anything it sent that registrar's process arrived: no connection
-         there yet)
+         soon after, before anything it sent that registrar later arrived: it may
+         have waited in the sender)
  StatusHandled ──► status_order: each id's callbacks one at a time, in arrival order;
                    one sender's statuses (StatusSent) arrive in the order sent
 ```
