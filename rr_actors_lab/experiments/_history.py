@@ -304,7 +304,6 @@ class Facts:
         reported: (consumer, query id) told `FATAL` by its consumer itself (`REPORTED`).
         delivered: (status id, query id) of every `StatusDelivered`.
         last_delivery: status id -> the greatest stamp of its deliveries.
-        first_delivery: (status id, registrar, hop) -> the least stamp of those deliveries.
         lost: (provider, query id) its consumer reported lost itself (`REPORTED`).
         told_self: (line, consumer, query id) of each `QueryForgotten` of `REPORTED`.
         outcomes: query id -> `(stamp, answered)` of each `CallAnswered` / `CallFailed`.
@@ -328,7 +327,6 @@ class Facts:
     reported: set[tuple[str, str]] = dataclasses.field(default_factory=set)
     delivered: set[tuple[str, str]] = dataclasses.field(default_factory=set)
     last_delivery: dict[str, int] = dataclasses.field(default_factory=dict)
-    first_delivery: dict[tuple[str, str, int], int] = dataclasses.field(default_factory=dict)
     lost: set[tuple[str, str]] = dataclasses.field(default_factory=set)
     told_self: list[tuple[int, str, str]] = dataclasses.field(default_factory=list)
     outcomes: dict[str, list[tuple[int, bool]]] = dataclasses.field(default_factory=dict)
@@ -369,8 +367,6 @@ def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912, PLR0915 - a bran
                 facts.delivered.add((event.status_id, event.query_id))
                 last = facts.last_delivery.get(event.status_id, event.hlc)
                 facts.last_delivery[event.status_id] = max(last, event.hlc)
-                key = (event.status_id, event.registrar, event.hop)
-                facts.first_delivery[key] = min(facts.first_delivery.get(key, event.hlc), event.hlc)
         elif isinstance(event, events.CallAnswered):
             if event.parent is not None:
                 facts.parent[event.registrar, event.query_id] = event.parent
