@@ -172,7 +172,11 @@ class _Walk:
         seq = getattr(event, "seq", 0)
         if (
             self.pids.get(name) == event.pid
-            and (name not in self.over or 0 < seq < self.top.get(name, 0))
+            and (
+                name not in self.over
+                or 0 < seq < self.top.get(name, 0)
+                or self.listed_before_end(event, self.now[name])
+            )
             and not (self.second and (name, event.pid) in self.second)
             and not isinstance(event, events.CatalogRestored)
         ):  # (the life it is in goes on: most events; one built before its end, sent
@@ -211,6 +215,15 @@ class _Walk:
         self.pids[name] = event.pid
         self.top[name] = max(self.top.get(name, 0), seq)
         self.steps.append((name, line, event, new, life))
+
+    @staticmethod
+    def listed_before_end(event: events.Event, life: Life) -> bool:
+        """Whether `event` is a listing begun before `life` ended: its caller's thread
+        publishes it when the answer is back, which may be after the registrar's stop (a real
+        `simways` run, load 15: db's status thread listed its queries, and the
+        `ServerQueriesListed`, begun 1.6 ms before its `RegistrarStopped`, came after it)."""
+        started = getattr(event, "started", 0) if isinstance(event, _LISTINGS) else 0
+        return life.end is not None and 0 < started <= life.end
 
     def ending(self, line: int, event: events.Event, name: str) -> None:
         """A `StatusDelivered` or `StatusHandled` (in its life) or a `RegistrarStopped`
@@ -264,6 +277,9 @@ class _Walk:
 _DESK = (events.StatusDelivered, events.StatusHandled)
 """Events a process's status desk publishes for a registrar, from any thread."""
 
+_LISTINGS = (events.ServerQueriesListed, events.QueriesFetched)
+"""Events a registrar's caller publishes when the answer is back (each `started` before it)."""
+
 _ENDING = (events.StatusDelivered, events.StatusHandled, events.RegistrarStopped)
 """The events `_Walk.ending` takes: two that are in a life, and one that ends it."""
 
@@ -288,7 +304,6 @@ class Facts:
         reported: (consumer, query id) told `FATAL` by its consumer itself (`REPORTED`).
         delivered: (status id, query id) of every `StatusDelivered`.
         last_delivery: status id -> the greatest stamp of its deliveries.
-        first_delivery: (status id, registrar, hop) -> the least stamp of those deliveries.
         lost: (provider, query id) its consumer reported lost itself (`REPORTED`).
         told_self: (line, consumer, query id) of each `QueryForgotten` of `REPORTED`.
         outcomes: query id -> `(stamp, answered)` of each `CallAnswered` / `CallFailed`.
@@ -312,7 +327,6 @@ class Facts:
     reported: set[tuple[str, str]] = dataclasses.field(default_factory=set)
     delivered: set[tuple[str, str]] = dataclasses.field(default_factory=set)
     last_delivery: dict[str, int] = dataclasses.field(default_factory=dict)
-    first_delivery: dict[tuple[str, str, int], int] = dataclasses.field(default_factory=dict)
     lost: set[tuple[str, str]] = dataclasses.field(default_factory=set)
     told_self: list[tuple[int, str, str]] = dataclasses.field(default_factory=list)
     outcomes: dict[str, list[tuple[int, bool]]] = dataclasses.field(default_factory=dict)
@@ -353,8 +367,6 @@ def gather(history: Sequence[Line]) -> Facts:  # noqa: PLR0912, PLR0915 - a bran
                 facts.delivered.add((event.status_id, event.query_id))
                 last = facts.last_delivery.get(event.status_id, event.hlc)
                 facts.last_delivery[event.status_id] = max(last, event.hlc)
-                key = (event.status_id, event.registrar, event.hop)
-                facts.first_delivery[key] = min(facts.first_delivery.get(key, event.hlc), event.hlc)
         elif isinstance(event, events.CallAnswered):
             if event.parent is not None:
                 facts.parent[event.registrar, event.query_id] = event.parent

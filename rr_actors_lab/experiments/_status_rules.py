@@ -9,8 +9,8 @@
  it) ──► status_reached: each got it, unless it let its id go before the status's last
          delivery (not on the answer to an Unload its sender released it on after the
          send: that answer carried it), or the one to send it on died first (or
-         before anything it sent that registrar's process arrived: no connection
-         there yet)
+         soon after, before anything it sent that registrar later arrived: it may
+         have waited in the sender)
  StatusHandled ──► status_order: each id's callbacks one at a time, in arrival order;
                    one sender's statuses (StatusSent) arrive in the order sent
 ```
@@ -21,6 +21,7 @@ Each rule's windows and what it excuses: docs/how-to/check-a-run.md.
 from __future__ import annotations
 
 import bisect
+import dataclasses
 from collections import defaultdict
 from collections.abc import Callable, Sequence
 
@@ -269,9 +270,9 @@ def status_reached(
     on after the send, and after its other events of that status (`_pass_end`).
     Excused: a holder cut off its sender (rule 19: each let the id go); a
     holder killed within `LOST_WITH_HOLDER_S` of a send that reached nobody; a holder restarted
-    but not serving yet (failure-semantics.md); a holder whose registrar nothing of the
-    sender's life reached in the holder's process of the send, that life ending within
-    `LOST_WITH_SENDER_S` of its first send there (`_unconnected`).
+    but not serving yet (failure-semantics.md); a holder whose registrar nothing the
+    sender's life sent at or after it reached in the holder's process of the send, that
+    life ending within `LOST_WITH_SENDER_S` of the send (`_queued`).
 
     Letting the id go early excuses no holder whose release crossed the status (rule 9): the
     answer to its `Unload` carried every status not yet acknowledged, delivered before it
@@ -280,8 +281,8 @@ def status_reached(
     unless the status reached another id of its registrar at that hop while it held this one.
     """
     cut_off = _cut_off(history)
-    unconnected = _unconnected(expected, facts, lives)
-    holder_pid = _holder_pid(lives)
+    way = _on_its_way(history)
+    queued = _queued(expected, way, lives)
     released = _released_on_unload(steps)
     restarts = _restarts(history)
     reasons = {line: e.reason for line, e in history if isinstance(e, events.QueryForgotten)}
@@ -308,14 +309,13 @@ def status_reached(
         if (
             sender is None
             or sender.last_line <= _pass_end(passes, want, sender.last_line)
-            or (want.sender, want.life, want.holder, holder_pid(want.holder, want.since))
-            in unconnected
+            or queued(want)
         ):
-            continue  # it may have died before it sent it on (or its connection there was made)
+            continue  # it may have died before it sent it on (or before it left its process)
         end = facts.last_delivery.get(want.status_id, want.since)
         beside = None
         if (want.holder, want.query_id) not in facts.parent:
-            beside = facts.first_delivery.get((want.status_id, want.holder, want.hop))
+            beside = way.first.get((want.status_id, want.holder, want.hop))
             end = min(end, end if beside is None else beside)
         end = max(end, want.since)
         for life, began, until, forgot_at in spans.get((want.holder, want.query_id), ()):
@@ -397,14 +397,16 @@ def _died_with_it(want: Expected, record: Life, facts: Facts) -> bool:
 
 
 LOST_WITH_SENDER_S = 0.5
-"""Seconds from a sender life's first send to a holder's process within which the life's
-end may lose all it sent there (`status-reached`): the connection from its process to that
-registrar is made at the first send, and what is sent on it waits in the sender until it
-connects (a real `simslow` run, CI load 20: db killed 62 ms after the first status of its
-life, which reached three registrars of a process, not the fourth, whose connection was
-still being made; a holder restarted in a new process is connected to anew: `simdoubt`
-seed 58, db killed 1.7 ms after its first status to api's restart, though an earlier one
-had reached api's old process; docs/explanation/failure-semantics.md)."""
+"""Seconds from a send to a holder's registrar within which the sender life's end may lose
+it (`status-reached`, `_queued`): what a connection cannot take yet waits in the sender and
+dies with it, and a connection to a registrar is made at the first send there (a real
+`simslow` run, CI load 20: db killed 62 ms after the first status of its life, which
+reached three registrars of a process, not the fourth, whose connection was still being
+made; a holder restarted in a new process is connected to anew: `simdoubt` seed 58, db
+killed 1.7 ms after its first status to api's restart; a real `simways` run, load 18:
+db's statuses took 165 ms to arrive, and the 13 it sent in the 43 ms before its SIGKILL
+reached nobody, or only the registrar whose connection was ahead;
+docs/explanation/failure-semantics.md)."""
 
 
 def _holder_pid(lives: dict[tuple[str, int], Life]) -> Callable[[str, int], int]:
@@ -424,40 +426,83 @@ def _holder_pid(lives: dict[tuple[str, int], Life]) -> Callable[[str, int], int]
     return pid
 
 
-def _unconnected(
-    expected: Sequence[Expected], facts: Facts, lives: dict[tuple[str, int], Life]
-) -> set[tuple[str, int, str, int]]:
-    """(sender, its life, holder registrar, the holder's process at the send) of which no send
-    reached any id of the holder's process, the sender's life ending within
-    `LOST_WITH_SENDER_S` of the first: all of it may have waited for a connection there (a
+def _queued(
+    expected: Sequence[Expected], way: Ways, lives: dict[tuple[str, int], Life]
+) -> Callable[[Expected], bool]:
+    """Whether an expected status may have waited in its sender when the sender's life ended:
+    nothing that life sent its holder registrar's process at or after it reached that
+    registrar, and the life ended within `LOST_WITH_SENDER_S` of its send (what a connection
+    cannot take yet, or is still being made for, waits in the sender and dies with it; a
     restarted holder's new process is connected to anew). Not when that sender reached the
     holder in none of its lives that sent it something (more than this one): the way itself
-    is broken. One send that arrived shows the connection was made (frames leave it in
-    order): a later one lost is owed."""
+    is broken. A later send that arrived shows this one left (one way at a time, frames in
+    order: rule 9): it is owed. One an `Unload`'s answer may have carried shows no such
+    thing (`Ways`)."""
     holder_pid = _holder_pid(lives)
-    first: dict[tuple[str, int, str, int], int] = {}
-    reached: set[tuple[str, int, str, int]] = set()
+
+    def key_of(want: Expected) -> tuple[str, int, str, int]:
+        return (want.sender, want.life, want.holder, holder_pid(want.holder, want.since))
+
+    latest: dict[tuple[str, int, str, int], int] = {}  # key -> its last send that arrived
+    sent: set[tuple[str, int, str, int]] = set()
     for want in expected:
-        key = (want.sender, want.life, want.holder, holder_pid(want.holder, want.since))
-        if want.since < first.get(key, want.since + 1):
-            first[key] = want.since
-        if (want.status_id, want.query_id) in facts.delivered:
-            reached.add(key)
+        key = key_of(want)
+        sent.add(key)
+        if (want.status_id, want.query_id) in way.delivered:
+            latest[key] = max(latest.get(key, want.since), want.since)
     ways: dict[tuple[str, str], list[bool]] = defaultdict(list)  # (sender, holder) -> by life
-    for key in first:
-        ways[key[0], key[2]].append(key in reached)
+    for key in sent:
+        ways[key[0], key[2]].append(key in latest)
     bound = LOST_WITH_SENDER_S * 1_000_000
-    unconnected = set()
-    for key, since in first.items():
+
+    def queued(want: Expected) -> bool:
+        key = key_of(want)
         life = lives.get(key[:2])
-        if key in reached or life is None or life.end is None:
+        if life is None or life.end is None or latest.get(key, -1) >= want.since:
+            return False
+        each = ways[key[0], key[2]]
+        if len(each) > 1 and not any(each):
+            return False
+        return hlc.unpack(life.end)[0] - hlc.unpack(want.since)[0] <= bound
+
+    return queued
+
+
+@dataclasses.dataclass(slots=True)
+class Ways:
+    """The deliveries that came the status's own way (`_on_its_way`).
+
+    Attributes:
+        delivered: (status id, query id) of each.
+        first: (status id, registrar, hop) -> the least stamp of those.
+    """
+
+    delivered: set[tuple[str, str]] = dataclasses.field(default_factory=set)
+    first: dict[tuple[str, str, int], int] = dataclasses.field(default_factory=dict)
+
+
+def _on_its_way(history: Sequence[Line]) -> Ways:
+    """The deliveries no `Unload`'s answer carried: none after its provider released its id
+    on an `Unload` (the answer leaves after the release, on the consumer's connection to
+    the provider, and carries the statuses on their way to that id alone, `ANSWERED`). Such
+    a delivery shows neither that the provider's own way to that registrar was made nor that
+    a status desk's pass reached its other ids (a real `simways` run, load 27: db's statuses
+    to client-1 waited for a connection 134 ms until db was killed; the first two reached
+    one of its three ids on its `Unload`'s answer)."""
+    released: dict[str, int] = {}  # query id -> the stamp of its first release on an Unload
+    for _, event in history:
+        if isinstance(event, events.ConsumerReleased) and event.reason == "unload":
+            released[event.query_id] = min(released.get(event.query_id, event.hlc), event.hlc)
+    way = Ways()
+    for _, event in history:
+        if not isinstance(event, events.StatusDelivered) or not event.status_id:
             continue
-        way = ways[key[0], key[2]]
-        if len(way) > 1 and not any(way):
-            continue
-        if hlc.unpack(life.end)[0] - hlc.unpack(since)[0] <= bound:
-            unconnected.add(key)
-    return unconnected
+        if released.get(event.query_id, event.hlc + 1) < event.hlc:
+            continue  # (it may have come on the answer)
+        way.delivered.add((event.status_id, event.query_id))
+        key = (event.status_id, event.registrar, event.hop)
+        way.first[key] = min(way.first.get(key, event.hlc), event.hlc)
+    return way
 
 
 ANSWERED = ("unload", "dependency", "stop")
