@@ -420,9 +420,12 @@ def report(results: list[dict[str, Any]], options: argparse.Namespace) -> None:
             print(f"  {r['id']}  [{','.join(r['rules'])}] {r['plan']} seed {r['seed']}")
 
 
-def search_all(chosen: list[Mutant], options: argparse.Namespace) -> list[dict[str, Any]]:
-    """Each mutant's result, `--jobs` at once, in sample order (a line each on stderr)."""
-    results: list[dict[str, Any]] = []
+def search_all(
+    chosen: list[Mutant], options: argparse.Namespace, results: list[dict[str, Any]]
+) -> list[dict[str, Any]]:
+    """Each mutant's result after `results` (an earlier run's), `--jobs` at once, in sample
+    order (a line each on stderr)."""
+    results = list(results)
     with tempfile.TemporaryDirectory(prefix="rr-mutant-clean-") as folder:
         clean = Clean(Path(folder))
         with concurrent.futures.ThreadPoolExecutor(options.jobs) as pool:
@@ -441,6 +444,14 @@ def search_all(chosen: list[Mutant], options: argparse.Namespace) -> list[dict[s
                     file=sys.stderr,
                     flush=True,
                 )
+    return results
+
+
+def earlier_results(options: argparse.Namespace) -> list[dict[str, Any]]:
+    """With `--resume`, the results an earlier chunk wrote to `--json` (none before the first)."""
+    if not options.resume or options.json is None or not options.json.is_file():
+        return []
+    results: list[dict[str, Any]] = json.loads(options.json.read_text(encoding="utf-8"))
     return results
 
 
@@ -465,6 +476,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--only", help="mutant ids (FILE:LINE:OPERATOR[:N]), comma-separated")
     parser.add_argument("--list", action="store_true", help="print every mutant's id, then stop")
     parser.add_argument("--json", type=Path, help="write every mutant's result here")
+    parser.add_argument(
+        "--resume",
+        action="store_true",
+        help="keep the results already in --json and search only the sample's others "
+        "(a search in chunks: each chunk under its own --budget)",
+    )
     options = parser.parse_args(args)
     options.plans = options.plans.split(",")
     options.deadline = time.monotonic() + (options.budget or float("inf"))
@@ -490,8 +507,16 @@ def main(argv: list[str] | None = None) -> int:
         chosen = [by_id[w] for w in wanted]
     else:
         chosen = sample(every, options.sample, options.seed)
-    print(f"{len(every)} mutants in {', '.join(modules)}; {len(chosen)} searched", file=sys.stderr)
-    results = search_all(chosen, options)
+    if options.resume and options.json is None:
+        parser.error("--resume needs --json (the file the earlier chunks wrote)")
+    earlier = earlier_results(options)
+    done = {r["id"] for r in earlier}
+    print(
+        f"{len(every)} mutants in {', '.join(modules)}; {len(chosen)} drawn, "
+        f"{len(done)} searched before",
+        file=sys.stderr,
+    )
+    results = search_all([m for m in chosen if m.id not in done], options, earlier)
     if len(results) < len(chosen):
         print(f"--budget spent: {len(results)} of the {len(chosen)} mutants searched")
     report(results, options)
