@@ -69,7 +69,7 @@ MODULES = ("_registrar", "_store", "_catalog", "_supervision")
 
 ORDER = (
     "crashloop", "first", "hang", "simnostate", "simheal", "simhosts", "simshare", "simslow",
-    "simrest", "simchain", "simdoubt", "simprogram", "simcancel", "simretry", "simways",
+    "simrest", "simchain", "simdoubt", "simprogram", "simcancel", "simshed", "simretry", "simways",
     "bigtree", "killheavy",
 )  # fmt: skip
 """The shipped plans the simulation runs, cheapest seed first (CPU s of seed 1, 2026-11-27:

@@ -1019,6 +1019,14 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "outcome",
             id="the plant withdrawal-unpublished is caught by outcome at simcancel seed 1",
         ),
+        pytest.param(  # (a load's time learned as ~1 s: loads with 0.5 s left shed at once)
+            "simshed",
+            "rr_actors._registrar.provider:ServerActor._load",
+            "self.ran(runtime.monotonic() - began)",
+            "self.ran(runtime.monotonic() // began)",
+            "shed-needed",
+            id="the plant load-time-divided is caught by shed-needed at simshed seed 1",
+        ),
     ],
 )
 def test_a_planted_bug_is_caught_by_its_rule_at_a_seed_its_plan_holds_at_unplanted(
