@@ -90,6 +90,12 @@ EQUIVALENT: dict[str, str] = {
     "`is 'restarting'` is `== 'restarting'`",
     "_supervision/children.py:342:ReplaceFalseWithTrue": "a default of `Level.stop`, a "
     "`Protocol` stub no class inherits: a call runs its implementation's own signature",
+    "_registrar/state.py:496:ZeroIterationForLoop": "`Probes.around`'s after hooks: only "
+    "`rr_actors.testing.intercept(after=...)` installs one, which no plan, runtime path or "
+    "lab tool calls (equivalent for every program but a test's: tests/registrar/test_calls.py)",
+    "_registrar/state.py:501:ZeroIterationForLoop": "`Probes.fire`'s hooks: only "
+    "`rr_actors.testing.intercept` installs one, which no plan, runtime path or lab tool "
+    "calls (equivalent for every program but a test's)",
 }
 """Survivors shown equivalent: mutant id (`FILE:LINE:OPERATOR[:N]`) -> the line that shows it."""
 
