@@ -506,6 +506,19 @@ def test_a_life_that_ended_by_itself_is_found(reason: str) -> None:
     assert {len(h) + 1} == _found([*h, events.ChildExited("sup", "erm", P, reason)], "life-end")
 
 
+def test_a_clean_stop_its_supervisor_reported_as_failed_is_found() -> None:
+    """Issue 68 item 8: a mutant that reported every stop of `stop(parallel=True)` as
+    failed (`stop failed: ManagerExit('shutdown', ...)`) survived every plan: no plan
+    stopped so, and `life-end` judged no stopped child."""
+    h = clean()  # (erm's registrar stopped cleanly: RegistrarStopped at pid P)
+    failed = "stop failed: ManagerExit('shutdown', normal=True, clean=True)"
+    exited = events.ChildExited("sup", "erm", P, failed, stopped=True)
+    assert {len(h) + 1} == _found([*h, exited], "life-end")
+    elsewhere = events.ChildExited("sup", "erm", P + 1, failed, stopped=True)  # (not clean)
+    findings = check.check(numbered([*h, elsewhere])).findings
+    assert [] == [f for f in findings if f.rule == "life-end"]
+
+
 @pytest.mark.parametrize(
     ("reason", "stopped"),
     [
@@ -1026,6 +1039,14 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "self.ran(runtime.monotonic() // began)",
             "shed-needed",
             id="the plant load-time-divided is caught by shed-needed at simshed seed 1",
+        ),
+        pytest.param(  # (simshed's end stops its tree with `stop(parallel=True)`)
+            "simshed",
+            "rr_actors._supervision.policy:Stopping.stop_in_parallel",
+            "if not isinstance(result, ManagerExit):",
+            "if isinstance(result, ManagerExit):",
+            "life-end",
+            id="the plant parallel-stop-failed is caught by life-end at simshed seed 1",
         ),
     ],
 )
