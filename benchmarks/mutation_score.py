@@ -35,6 +35,10 @@ each one is a rule or plan missing, or an equivalent mutant to add to `EQUIVALEN
     python benchmarks/mutation_score.py --plans crashloop \
         --only _supervision/policy.py:457:ReplaceComparisonOperator_LtE_Lt  # one mutant
     python benchmarks/mutation_score.py --list | wc -l                      # all mutants
+    python benchmarks/mutation_score.py --budget 900 --json r.json --resume  # in chunks
+
+A mutant's id names its line: an edit above it moves it, and redraws the sample (its
+size changes); `EQUIVALENT` is kept for the source it names.
 
 `--json OUT` writes every mutant's result. Figures: benchmarks/NOTES.md, "mutation score".
 """
