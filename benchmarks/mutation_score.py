@@ -94,6 +94,9 @@ EQUIVALENT: dict[str, str] = {
     "`is 'restarting'` is `== 'restarting'`",
     "_supervision/children.py:342:ReplaceFalseWithTrue": "a default of `Level.stop`, a "
     "`Protocol` stub no class inherits: a call runs its implementation's own signature",
+    "_supervision/watching.py:52:NumberReplacer": "`_since` before any switch on: events "
+    "are kept from `at >= since`, a wall clock's seconds (the simulation's from 2026), so "
+    "0.0 and 1.0 drop the same events (none) on any clock past 1970-01-01 00:00:01",
     "_registrar/state.py:496:ZeroIterationForLoop": "`Probes.around`'s after hooks: only "
     "`rr_actors.testing.intercept(after=...)` installs one, which no plan, runtime path or "
     "lab tool calls (equivalent for every program but a test's: tests/registrar/test_calls.py)",
