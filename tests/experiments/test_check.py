@@ -1948,14 +1948,19 @@ def drop_unload(h: History) -> History | None:
     that history reads as an equal request loaded twice, which `dedup` reports, not
     `no-leak` (a real run under load reloads now and then: in `strategies`' run 3, in a
     run of the suite beside two busy loops, only `dedup` saw it; the shape is the test
-    below)."""
+    below). Nor one of a resource no consumer held (its callers gave up before its load
+    ended, as most of `simshed`'s loads): `no-leak` judges a resource whose last consumer
+    was released."""
     digests = {
         (e.registrar, e.resource_id): (e.server, e.digest)
         for e in h
         if type(e) is events.ResourceLoaded
     }
+    held = {(e.registrar, e.resource_id) for e in h if type(e) is events.ConsumerReleased}
     for i, e in enumerate(h):
         if type(e) is not events.ResourceUnloaded or not _stops_later(h, i):
+            continue
+        if (e.registrar, e.resource_id) not in held:
             continue
         equal = digests.get((e.registrar, e.resource_id))
         if (
