@@ -35,6 +35,10 @@ each one is a rule or plan missing, or an equivalent mutant to add to `EQUIVALEN
     python benchmarks/mutation_score.py --plans crashloop \
         --only _supervision/policy.py:457:ReplaceComparisonOperator_LtE_Lt  # one mutant
     python benchmarks/mutation_score.py --list | wc -l                      # all mutants
+    python benchmarks/mutation_score.py --budget 900 --json r.json --resume  # in chunks
+
+A mutant's id names its line: an edit above it moves it, and redraws the sample (its
+size changes); `EQUIVALENT` is kept for the source it names.
 
 `--json OUT` writes every mutant's result. Figures: benchmarks/NOTES.md, "mutation score".
 """
@@ -69,7 +73,7 @@ MODULES = ("_registrar", "_store", "_catalog", "_supervision")
 
 ORDER = (
     "crashloop", "first", "hang", "simnostate", "simheal", "simhosts", "simshare", "simslow",
-    "simrest", "simchain", "simdoubt", "simprogram", "simcancel", "simretry", "simways",
+    "simrest", "simchain", "simdoubt", "simprogram", "simcancel", "simshed", "simretry", "simways",
     "bigtree", "killheavy",
 )  # fmt: skip
 """The shipped plans the simulation runs, cheapest seed first (CPU s of seed 1, 2026-11-27:
@@ -90,6 +94,15 @@ EQUIVALENT: dict[str, str] = {
     "`is 'restarting'` is `== 'restarting'`",
     "_supervision/children.py:342:ReplaceFalseWithTrue": "a default of `Level.stop`, a "
     "`Protocol` stub no class inherits: a call runs its implementation's own signature",
+    "_supervision/watching.py:52:NumberReplacer": "`_since` before any switch on: events "
+    "are kept from `at >= since`, a wall clock's seconds (the simulation's from 2026), so "
+    "0.0 and 1.0 drop the same events (none) on any clock past 1970-01-01 00:00:01",
+    "_registrar/state.py:496:ZeroIterationForLoop": "`Probes.around`'s after hooks: only "
+    "`rr_actors.testing.intercept(after=...)` installs one, which no plan, runtime path or "
+    "lab tool calls (equivalent for every program but a test's: tests/registrar/test_calls.py)",
+    "_registrar/state.py:501:ZeroIterationForLoop": "`Probes.fire`'s hooks: only "
+    "`rr_actors.testing.intercept` installs one, which no plan, runtime path or lab tool "
+    "calls (equivalent for every program but a test's)",
 }
 """Survivors shown equivalent: mutant id (`FILE:LINE:OPERATOR[:N]`) -> the line that shows it."""
 
@@ -420,9 +433,12 @@ def report(results: list[dict[str, Any]], options: argparse.Namespace) -> None:
             print(f"  {r['id']}  [{','.join(r['rules'])}] {r['plan']} seed {r['seed']}")
 
 
-def search_all(chosen: list[Mutant], options: argparse.Namespace) -> list[dict[str, Any]]:
-    """Each mutant's result, `--jobs` at once, in sample order (a line each on stderr)."""
-    results: list[dict[str, Any]] = []
+def search_all(
+    chosen: list[Mutant], options: argparse.Namespace, results: list[dict[str, Any]]
+) -> list[dict[str, Any]]:
+    """Each mutant's result after `results` (an earlier run's), `--jobs` at once, in sample
+    order (a line each on stderr)."""
+    results = list(results)
     with tempfile.TemporaryDirectory(prefix="rr-mutant-clean-") as folder:
         clean = Clean(Path(folder))
         with concurrent.futures.ThreadPoolExecutor(options.jobs) as pool:
@@ -441,6 +457,14 @@ def search_all(chosen: list[Mutant], options: argparse.Namespace) -> list[dict[s
                     file=sys.stderr,
                     flush=True,
                 )
+    return results
+
+
+def earlier_results(options: argparse.Namespace) -> list[dict[str, Any]]:
+    """With `--resume`, the results an earlier chunk wrote to `--json` (none before the first)."""
+    if not options.resume or options.json is None or not options.json.is_file():
+        return []
+    results: list[dict[str, Any]] = json.loads(options.json.read_text(encoding="utf-8"))
     return results
 
 
@@ -465,6 +489,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--only", help="mutant ids (FILE:LINE:OPERATOR[:N]), comma-separated")
     parser.add_argument("--list", action="store_true", help="print every mutant's id, then stop")
     parser.add_argument("--json", type=Path, help="write every mutant's result here")
+    parser.add_argument(
+        "--resume",
+        action="store_true",
+        help="keep the results already in --json and search only the sample's others "
+        "(a search in chunks: each chunk under its own --budget)",
+    )
     options = parser.parse_args(args)
     options.plans = options.plans.split(",")
     options.deadline = time.monotonic() + (options.budget or float("inf"))
@@ -490,8 +520,16 @@ def main(argv: list[str] | None = None) -> int:
         chosen = [by_id[w] for w in wanted]
     else:
         chosen = sample(every, options.sample, options.seed)
-    print(f"{len(every)} mutants in {', '.join(modules)}; {len(chosen)} searched", file=sys.stderr)
-    results = search_all(chosen, options)
+    if options.resume and options.json is None:
+        parser.error("--resume needs --json (the file the earlier chunks wrote)")
+    earlier = earlier_results(options)
+    done = {r["id"] for r in earlier}
+    print(
+        f"{len(every)} mutants in {', '.join(modules)}; {len(chosen)} drawn, "
+        f"{len(done)} searched before",
+        file=sys.stderr,
+    )
+    results = search_all([m for m in chosen if m.id not in done], options, earlier)
     if len(results) < len(chosen):
         print(f"--budget spent: {len(results)} of the {len(chosen)} mutants searched")
     report(results, options)

@@ -71,14 +71,36 @@ FAILED_BY = ("DuplicateNameError", "RegistrarUnavailableError", "killed")
 serves, a kill or a cut during its setup), not by a crash of its own."""
 
 
+STOP_FAILED = "stop failed: "
+"""The `ChildExited` reason of a child whose stop raised in its supervisor (`ManagerExit`)."""
+
+
 def life_end(history: Sequence[Line]) -> list[Finding]:
     """`life-end`: a life ends only by a fault, a stop or its supervisor. A child's exit
     (`ChildExited`) that its supervisor did not cause (not `stopped`) gives a reason
     `ENDED_BY` names; any other (`crashed (registrar actor died)`, `exit code N`, a start
-    that failed by an error of its own) is a registrar that ended itself."""
+    that failed by an error of its own) is a registrar that ended itself. A life its
+    supervisor stopped whose registrar stopped cleanly (`RegistrarStopped`, same pid) ended
+    by that stop: its `ChildExited` does not say the stop failed (`STOP_FAILED`)."""
     findings = []
+    clean: set[tuple[str, int]] = set()  # (registrar, pid) that published RegistrarStopped
     for line, event in history:
-        if not isinstance(event, events.ChildExited) or event.stopped:
+        if isinstance(event, events.RegistrarStopped):
+            clean.add((event.registrar, event.pid))
+        if not isinstance(event, events.ChildExited):
+            continue
+        if event.stopped:
+            if (event.child, event.pid) in clean and event.reason.startswith(STOP_FAILED):
+                findings.append(
+                    Finding(
+                        "life-end",
+                        "violation",
+                        f"{event.child} (pid {event.pid}) stopped cleanly, yet its "
+                        f"supervisor reported its stop as: {event.reason[:200]}",
+                        (line,),
+                        (event.child,),
+                    )
+                )
             continue
         reason = event.reason
         if any(reason.startswith(begins) for begins, _ in ENDED_BY):

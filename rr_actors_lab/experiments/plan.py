@@ -318,6 +318,7 @@ class Plan:
     seed: Seed = 0  # of the first run (run `i` of a value uses `seed + i`)
     recovery_timeout: Seconds = 10.0  # at the end, to wait for every manager to serve
     state: bool = True  # whether managers keep durable catalogs (a state directory per run)
+    stop: Literal["reverse", "parallel"] = "reverse"  # how a run's end stops the tree
     workload: Workload = Workload(clients=0)  # noqa: RUF009 - frozen, so shared safely
     faults: tuple[FaultPlan, ...] = ()
     hosts: HostsPlan | None = None

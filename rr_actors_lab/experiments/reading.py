@@ -74,7 +74,7 @@ PURPOSE = {  # what a missing key is for
 }
 TYPES = {"float": "a number", "int": "an integer", "str": "a string", "bool": "true or false"}
 TYPES |= {"array": "an array", "object": "a table"}
-NOT_KEYS = ("state", "variants", "source", "base_dir")  # `Plan` fields no top key gives
+NOT_KEYS = ("state", "stop", "variants", "source", "base_dir")  # `Plan` fields no top key gives
 NOT_COMPARED = {  # top-level keys `[compare]` refuses, and why
     "name": "every run of an experiment belongs to one plan",
     "description": "it changes nothing in a run",
@@ -320,11 +320,19 @@ class _Reader:
         for key in (k for k in data if k not in KEYS):
             raise self.error((key,), _unknown_key(key, KEYS))
         data = copy.deepcopy(data)
-        if isinstance(tree := data.get("tree"), dict):  # the top supervisor: `state`, no `restart`
+        if isinstance(tree := data.get("tree"), dict):  # the top: `state`, `stop`, no `restart`
             known = {f.encode_name for f in msgspec.structs.fields(schema.SupervisorPlan)}
-            top = f"unknown key; known here: {', '.join(sorted(known - {'restart'} | {'state'}))}"
+            keys = sorted(known - {"restart"} | {"state", "stop"})
+            top = f"unknown key; known here: {', '.join(keys)}"
             self.refuse("restart" in tree, ("tree", "restart"), top)
             data["state"] = self.check(tree.pop("state", True), bool, ("tree", "state"))
+            stop = tree.pop("stop", "reverse")
+            self.refuse(
+                stop not in ("reverse", "parallel"),
+                ("tree", "stop"),
+                f'must be "reverse" or "parallel", got {stop!r}',
+            )
+            data["stop"] = stop
             data["tree"] = self.node({"name": "root", **tree}, ("tree",))
         if isinstance(workload := data.get("workload"), dict) and workload.get("rate") == "max":
             workload["rate"] = None

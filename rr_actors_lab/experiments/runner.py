@@ -351,7 +351,7 @@ def execute(spec: RunSpec, run_dir: Path, *, stop: threading.Event | None = None
             finally:
                 if drive.injector is not None:
                     drive.injector.stop()
-                sup.stop()
+                sup.stop(parallel=plan.stop == "parallel")
                 for host in drive.hosts:
                     host.stop(timeout=LEAK_GRACE + 5.0)
             if subscription is not None:

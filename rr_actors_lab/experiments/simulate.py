@@ -549,7 +549,7 @@ def _world(
             cleanup.callback(subscription.wait_delivered)
             for opened in injector:  # (second servers' supervisors: to the end of the run)
                 cleanup.callback(_close_injector, opened, progress)
-            cleanup.callback(sup.stop)
+            cleanup.callback(functools.partial(sup.stop, parallel=plan.stop == "parallel"))
             cleanup.callback(_stop_each, hosts)  # (before the run's own host's tree, as for real)
     calls = [c for client in clients for c in client.calls]
     ok = sum(1 for c in calls if c.ok)

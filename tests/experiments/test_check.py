@@ -506,6 +506,19 @@ def test_a_life_that_ended_by_itself_is_found(reason: str) -> None:
     assert {len(h) + 1} == _found([*h, events.ChildExited("sup", "erm", P, reason)], "life-end")
 
 
+def test_a_clean_stop_its_supervisor_reported_as_failed_is_found() -> None:
+    """Issue 68 item 8: a mutant that reported every stop of `stop(parallel=True)` as
+    failed (`stop failed: ManagerExit('shutdown', ...)`) survived every plan: no plan
+    stopped so, and `life-end` judged no stopped child."""
+    h = clean()  # (erm's registrar stopped cleanly: RegistrarStopped at pid P)
+    failed = "stop failed: ManagerExit('shutdown', normal=True, clean=True)"
+    exited = events.ChildExited("sup", "erm", P, failed, stopped=True)
+    assert {len(h) + 1} == _found([*h, exited], "life-end")
+    elsewhere = events.ChildExited("sup", "erm", P + 1, failed, stopped=True)  # (not clean)
+    findings = check.check(numbered([*h, elsewhere])).findings
+    assert [] == [f for f in findings if f.rule == "life-end"]
+
+
 @pytest.mark.parametrize(
     ("reason", "stopped"),
     [
@@ -1018,6 +1031,22 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "    if message.withdrawn:\n        (lambda _event: None)(",
             "outcome",
             id="the plant withdrawal-unpublished is caught by outcome at simcancel seed 1",
+        ),
+        pytest.param(  # (a load's time learned as ~1 s: loads with 0.5 s left shed at once)
+            "simshed",
+            "rr_actors._registrar.provider:ServerActor._load",
+            "self.ran(runtime.monotonic() - began)",
+            "self.ran(runtime.monotonic() // began)",
+            "shed-needed",
+            id="the plant load-time-divided is caught by shed-needed at simshed seed 1",
+        ),
+        pytest.param(  # (simshed's end stops its tree with `stop(parallel=True)`)
+            "simshed",
+            "rr_actors._supervision.policy:Stopping.stop_in_parallel",
+            "if not isinstance(result, ManagerExit):",
+            "if isinstance(result, ManagerExit):",
+            "life-end",
+            id="the plant parallel-stop-failed is caught by life-end at simshed seed 1",
         ),
     ],
 )
@@ -1979,14 +2008,19 @@ def drop_unload(h: History) -> History | None:
     that history reads as an equal request loaded twice, which `dedup` reports, not
     `no-leak` (a real run under load reloads now and then: in `strategies`' run 3, in a
     run of the suite beside two busy loops, only `dedup` saw it; the shape is the test
-    below)."""
+    below). Nor one of a resource no consumer held (its callers gave up before its load
+    ended, as most of `simshed`'s loads): `no-leak` judges a resource whose last consumer
+    was released."""
     digests = {
         (e.registrar, e.resource_id): (e.server, e.digest)
         for e in h
         if type(e) is events.ResourceLoaded
     }
+    held = {(e.registrar, e.resource_id) for e in h if type(e) is events.ConsumerReleased}
     for i, e in enumerate(h):
         if type(e) is not events.ResourceUnloaded or not _stops_later(h, i):
+            continue
+        if (e.registrar, e.resource_id) not in held:
             continue
         equal = digests.get((e.registrar, e.resource_id))
         if (

@@ -41,6 +41,7 @@ SHIPPED = {
     "simprogram",
     "simslow",
     "simways",
+    "simshed",
     "bigtree",
 }
 """Every plan shipped in the package; the tutorial's `first` runs in the docs test."""

@@ -64,6 +64,17 @@ def test_a_valid_plan_becomes_its_tree_workload_and_faults() -> None:
     assert ((None, plan),) == plan.variants
 
 
+def test_a_tree_stopped_in_parallel_is_read_and_any_other_stop_is_refused_in_a_line() -> None:
+    parallel = BASE.replace(
+        'strategy = "one_for_one"', 'strategy = "one_for_one"\nstop = "parallel"'
+    )
+    assert ("reverse", "parallel") == (parse_plan(BASE).stop, parse_plan(parallel).stop)
+    error = plan_error(parallel.replace('"parallel"', '"sideways"'))
+    assert "tree.stop" in str(error)
+    assert 'must be "reverse" or "parallel"' in str(error)
+    assert 1 == len(str(error).splitlines())
+
+
 def test_every_shipped_plan_is_valid() -> None:
     plans = sorted(EXAMPLES.glob("*.toml"))
 

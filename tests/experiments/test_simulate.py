@@ -1098,6 +1098,7 @@ SIMULATED = [
     "simprogram",
     "simslow",
     "simways",
+    "simshed",
 ]
 """The shipped plans run over two seeds here (killheavy below, for 2 s; bigtree below, one seed)."""
 

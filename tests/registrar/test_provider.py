@@ -38,7 +38,7 @@ from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.loops import process_loop
 from rr_actors._core.replies import FutureReply
 from rr_actors._registrar.messages import Load, Reconcile
-from rr_actors._registrar.provider import Admission
+from rr_actors._registrar.provider import Admission, Lives
 from rr_actors._registrar.state import new_life
 from rr_actors._store import SCHEMA_VERSION
 from rr_actors.testing import (
@@ -3463,6 +3463,29 @@ def test_a_freed_slot_goes_to_the_consumer_that_waits_not_to_one_that_asks_again
     spare.admit("b4", "s", "B")
     assert spare.refusal("s", "B", 10) is not None  # (B past its share of 5)
     assert spare.refusal("s", "A", 10) is None  # (a slot kept for nobody ahead of A)
+
+
+@pytest.mark.parametrize(
+    ("stale", "reconciled"),
+    [
+        pytest.param("9.1000.0", "10.2000.0", id="a-pid-one-digit-longer"),
+        pytest.param("32000.1000.0", "300.2000.0", id="pids-wrapped"),
+        pytest.param("300.1000.0", "300.2000.1", id="the-same-process"),
+    ],
+)
+def test_a_load_of_a_life_before_the_one_that_reconciled_is_fenced_whatever_its_pid(
+    stale: str, reconciled: str
+) -> None:
+    """Issue 68 item 8: a life token begins with its pid, so as text an earlier life may
+    sort after a later one (the pid grew a digit, or pids wrapped at `pid_max`); the fence
+    orders lives by their wall clock and count (`life_order`), never as text (a mutant
+    that compared the tokens as text survived every plan: a fence at such a pid is rare)."""
+    lives = Lives()
+    lives.reconciled("api", reconciled)
+    assert lives.fenced("api", stale)
+    assert not lives.fenced("api", reconciled)
+    assert not lives.fenced("api", "")  # (no life: not fenced)
+    assert not lives.fenced("db", stale)  # (db never reconciled here)
 
 
 def test_a_consumer_told_to_come_back_later_than_wanting_still_wants_until_it_does(
