@@ -125,8 +125,10 @@ class Lifecycle:
 
     def on_start(self) -> None:
         publish_restored(self.registrar)  # before anything is served
-        # who was lost before it started it hears now: a mark is never missed
-        gone = MEMBERSHIP.join(self.hearer)
+        # who was lost before it started it hears now: a mark is never missed; and it
+        # monitors those its restored rows name (it hears their restarts, rule 20)
+        catalog = self.registrar.catalog
+        gone = MEMBERSHIP.join(self.hearer, catalog.providers() | catalog.consumer_origins())
         # every provider the restored catalog knows, also those settle_in_doubt forgets
         # what it released while a provider was down is in no row: reconcile with all (rule 20;
         # announced by its supervisor: each holding ids of it asks it, `on_reconcile_ask`)
@@ -830,6 +832,10 @@ class Hearing:
         with contextlib.suppress(RrError):
             self.peer.tell(PeerReachable(name))
 
+    def peer_started(self, name: str) -> None:
+        with contextlib.suppress(RrError):
+            self.peer.tell(ReconcileAsk(name, holds_yours=False))
+
 
 class Network(Protocol):
     """What `ResourceRegistrar.start(network=)` needs of a carrier (every `Transport` is one):
@@ -980,11 +986,28 @@ def heard_started(target: str, name: str) -> None:
             DIRECTORY.lookup(target).tell(ReconcileAsk(name, holds_yours=False))
 
 
+def started_here(name: str, *, skip: Container[str] = frozenset()) -> None:
+    """Registrar `name` (re)started: each registrar of this process that has business with
+    it (monitors it: it holds ids or calls there, or it holds theirs; not those in `skip`)
+    reconciles with it if they still have business (rule 20). One with none is not told:
+    nothing it holds is of that run, and a call it makes later reaches the new one."""
+    MEMBERSHIP.started(name, skip=skip)
+
+
+def monitor(watcher: str, target: str) -> None:
+    """Registrar `watcher` of this process has business with registrar `target` from now on:
+    it hears `target`'s restarts (`started_here`) until it ends."""
+    MEMBERSHIP.monitor(watcher, target)
+
+
 def lost_everything(name: str, *, also: Iterable[str] = (), handle: Servable | None = None) -> None:
-    """Registrar `name` restarted without a backup: those here and in `also` are told it
-    started (`heard_started`), and it `LostEverything` (rule 20). `handle`: its
+    """Registrar `name` restarted without a backup: those here with business with it
+    (`Membership.started`) and those in `also` are told it started (`heard_started`), and
+    it `LostEverything` (rule 20). `handle`: its
     `ResourceRegistrar`, through which it is told (it may not be in the directory yet)."""
-    for target in sorted({peer.name for peer in DIRECTORY.local_peers()} | set(also)):
+    started_here(name)
+    here = {peer.name for peer in DIRECTORY.local_peers()}
+    for target in sorted(set(also) - here):
         heard_started(target, name)
     if handle is not None:
         handle.tell(LostEverything())

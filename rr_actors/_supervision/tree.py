@@ -429,9 +429,11 @@ def announce_started(
     origin: str | None = None,
     upward: Callable[[str], None] | None = None,
 ) -> None:
-    """Registrar `name` (re)started: every living registrar of the system hears so once
-    (`life.heard_started`), the tree's process managers and pools on their control pipes
-    (no manager connects to one it has no business with), the others through the directory.
+    """Registrar `name` (re)started: every living registrar of the system with business
+    with it hears so once (`life.heard_started`), the tree's process managers and pools on
+    their control pipes (no manager connects to one it has no business with; each process
+    tells only its registrars that monitor `name`, `life.started_here`), the others
+    through the directory.
 
     `here`: this process's registrars told too. `beyond`: a first start, only registrars
     beyond the tree are told (here and on the network). In a pool's process (`upward`:
@@ -441,14 +443,16 @@ def announce_started(
     for other, manager in () if beyond else sorted(piped.items()):
         if other not in (name, origin):
             manager.handle.tell_started(name)
-    others = {peer.name for peer in DIRECTORY.local_peers()} if here or beyond else set()
+    reached, below = _piped(root), _names_below(root) if beyond else set()
+    if here or beyond:  # (only those here with business with it: `life.started_here`)
+        life.started_here(name, skip=reached | below)
+    others: set[str] = set()
     if upward is not None:
         upward(name)
     elif network is not None and not network.closed:
         others.update(network.names())
-    if beyond:
-        others -= _names_below(root)
-    for other in sorted(others - _piped(root)):
+    others -= {peer.name for peer in DIRECTORY.local_peers()}
+    for other in sorted(others - below - reached):
         life.heard_started(other, name)
 
 
