@@ -21,7 +21,8 @@ it, and one that starts later hears it when it joins, until a later incarnation 
    holds here is stale: a stopped registrar holds nothing, rule 12); in the tree's stop,
    not to its managers still running here: each hears them all before its own stop
  a registrar here has business with X (a call to X, a load from X, a restored row
-   naming X) ─► monitor(it, X)
+   naming X) ─► monitor(it, X); until its restored rows are all looked at, every X
+   (monitor_all)
  X (re)started (its supervisor says so) ─► started(X) ─► peer_started(X), only to the
    hearers that monitor X (Erlang's monitors: a restart is not felt by the whole tree)
 ```
@@ -79,17 +80,22 @@ class Membership:
         # the monitors: name -> the hearers' names that have business with it, and back
         self._watchers: dict[str, set[str]] = {}
         self._watching: dict[str, set[str]] = {}
+        self._everything: set[str] = set()  # hearers that hear every start (`monitor_all`)
 
-    def join(self, hearer: Joined, watching: Iterable[str] = ()) -> dict[str, bool]:
+    def join(
+        self, hearer: Joined, watching: Iterable[str] = (), *, everything: bool = False
+    ) -> dict[str, bool]:
         """Let `hearer` hear every event from now on, and the starts of `watching` (the names
-        its restored catalog has business with, `monitor`); return the names gone for good
-        now (`True`: stopped rather than lost). Atomic with `lost` and `stopped`; its own
-        name is back."""
+        its restored catalog has business with, `monitor`; `everything`: of every registrar,
+        `monitor_all`); return the names gone for good now (`True`: stopped rather than
+        lost). Atomic with `lost` and `stopped`; its own name is back."""
         with self._lock:
             self._hearers[hearer.name] = hearer
             self._gone.pop(hearer.name, None)
             for target in watching:
                 self._monitor(hearer.name, target)
+            if everything:
+                self._everything.add(hearer.name)
             return dict(self._gone)
 
     def leave(self, hearer: Joined) -> None:
@@ -98,6 +104,7 @@ class Membership:
         with self._lock:
             if self._hearers.get(hearer.name) is hearer:
                 del self._hearers[hearer.name]
+                self._everything.discard(hearer.name)
                 for target in self._watching.pop(hearer.name, ()):
                     watchers = self._watchers.get(target)
                     if watchers is not None:
@@ -115,6 +122,15 @@ class Membership:
         with self._lock:
             self._monitor(watcher, target)
 
+    def monitor_all(self, watcher: str, *, on: bool) -> None:
+        """Registrar `watcher` hears every registrar's (re)start (`on`), or only those of the
+        ones it monitors again (while it does not know yet whom its catalog names)."""
+        with self._lock:
+            if on:
+                self._everything.add(watcher)
+            else:
+                self._everything.discard(watcher)
+
     def _monitor(self, watcher: str, target: str) -> None:
         if watcher != target:
             self._watchers.setdefault(target, set()).add(watcher)
@@ -125,7 +141,7 @@ class Membership:
         told already) hears it, in name order; one with no business with it, nothing: it
         has nothing of that run to reconcile, and a call it makes later reaches the new one."""
         with self._lock:
-            watchers = sorted(self._watchers.get(name, ()))
+            watchers = sorted(self._watchers.get(name, set()) | self._everything)
             targets = [
                 self._hearers[watcher]
                 for watcher in watchers
@@ -187,6 +203,7 @@ class Membership:
         self._gone.clear()
         self._watchers.clear()
         self._watching.clear()
+        self._everything.clear()
 
 
 def _tell(hearers: Iterable[Hearer], what: str, name: str) -> None:

@@ -126,9 +126,12 @@ class Lifecycle:
     def on_start(self) -> None:
         publish_restored(self.registrar)  # before anything is served
         # who was lost before it started it hears now: a mark is never missed; and it
-        # monitors those its restored rows name (it hears their restarts, rule 20)
+        # monitors those its restored rows name (it hears their restarts, rule 20): every
+        # registrar until the sweep looked at the rows still in its backup
         catalog = self.registrar.catalog
-        gone = MEMBERSHIP.join(self.hearer, catalog.providers() | catalog.consumer_origins())
+        gone = MEMBERSHIP.join(
+            self.hearer, catalog.providers() | catalog.consumer_origins(), everything=True
+        )
         # every provider the restored catalog knows, also those settle_in_doubt forgets
         # what it released while a provider was down is in no row: reconcile with all (rule 20;
         # announced by its supervisor: each holding ids of it asks it, `on_reconcile_ask`)
@@ -491,12 +494,16 @@ class Restoring:
         try:
             unheld, origins, next_slice = self.registrar.catalog.sweep(after)
             self.swept_origins |= origins
+            for origin in origins:  # (it hears their restarts)
+                MEMBERSHIP.monitor(self.registrar.name, origin)
             for resource in unheld:
                 self.registrar.teardown.unload_resource(resource, None)
             if next_slice is not None:
                 self.sweeping = True
                 self.registrar.come_back(lambda _v, _e: self.sweep(next_slice)).set_result(None)
                 return
+            # each holder of its rows is monitored: only their restarts are heard now
+            MEMBERSHIP.monitor_all(self.registrar.name, on=False)
         except RrError as exc:  # a damaged row: a lookup that needs it fails then
             logger.error(  # noqa: TRY400 - the cause says it all
                 "registrar %s: the sweep of its restored catalog stopped: %s",
