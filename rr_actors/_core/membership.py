@@ -20,11 +20,6 @@ it, and one that starts later hears it when it joins, until a later incarnation 
  a supervisor stopped X for good ─► stopped(X) ─► record, peer_stopped(X) (what X still
    holds here is stale: a stopped registrar holds nothing, rule 12); in the tree's stop,
    not to its managers still running here: each hears them all before its own stop
- a registrar here has business with X (a call to X, a load from X, a restored row
-   naming X) ─► monitor(it, X); until its restored rows are all looked at, every X
-   (monitor_all)
- X (re)started (its supervisor says so) ─► started(X) ─► peer_started(X), only to the
-   hearers that monitor X (Erlang's monitors: a restart is not felt by the whole tree)
 ```
 """
 
@@ -65,8 +60,7 @@ class Joined(Hearer, Protocol):
         """Registrar `name` was stopped for good: what it holds here is stale (rule 12)."""
         ...
 
-    def peer_started(self, name: str) -> None:
-        """Registrar `name`, which this one monitors, (re)started: reconcile (rule 20)."""
+    def peer_started(self, name: str) -> None:  # (one it monitors, rule 20)
         ...
 
 
@@ -77,82 +71,38 @@ class Membership:
         self._lock = runtime.Lock()
         self._gone: dict[str, bool] = {}  # name -> stopped (not lost)
         self._hearers: dict[str, Joined] = {}
-        # the monitors: name -> the hearers' names that have business with it, and back
-        self._watchers: dict[str, set[str]] = {}
-        self._watching: dict[str, set[str]] = {}
-        self._everything: set[str] = set()  # hearers that hear every start (`monitor_all`)
+        self._watchers: dict[str, set[str]] = {}  # name -> who monitors it (by name)
+        self._everything: set[str] = set()  # who hears every start (`monitor_all`)
 
-    def join(
-        self, hearer: Joined, watching: Iterable[str] = (), *, everything: bool = False
-    ) -> dict[str, bool]:
-        """Let `hearer` hear every event from now on, and the starts of `watching` (the names
-        its restored catalog has business with, `monitor`; `everything`: of every registrar,
-        `monitor_all`); return the names gone for good now (`True`: stopped rather than
-        lost). Atomic with `lost` and `stopped`; its own name is back."""
+    def join(self, hearer: Joined, watching: Iterable[str] = ()) -> dict[str, bool]:
+        """Let `hearer` hear every event and the starts of `watching` from now on; return the
+        names gone for good now. Atomic with `lost`, `stopped`; its own name is back."""
         with self._lock:
             self._hearers[hearer.name] = hearer
             self._gone.pop(hearer.name, None)
-            for target in watching:
-                self._monitor(hearer.name, target)
-            if everything:
-                self._everything.add(hearer.name)
+            self.monitor(hearer.name, *watching)
             return dict(self._gone)
 
     def leave(self, hearer: Joined) -> None:
-        """`hearer` hears nothing more (its registrar ended), and its monitors go; no-op if
-        it was replaced."""
+        """`hearer` hears nothing more (its registrar ended); no-op if it was replaced."""
         with self._lock:
             if self._hearers.get(hearer.name) is hearer:
                 del self._hearers[hearer.name]
-                self._everything.discard(hearer.name)
-                for target in self._watching.pop(hearer.name, ()):
-                    watchers = self._watchers.get(target)
-                    if watchers is not None:
-                        watchers.discard(hearer.name)
-                        if not watchers:
-                            del self._watchers[target]
 
-    def monitor(self, watcher: str, target: str) -> None:
-        """Registrar `watcher` (of this process) has business with registrar `target` from
-        now on: it hears `target`'s (re)starts (`started`) until it leaves. Cheap when it
-        monitors it already (each call to `target` says so)."""
-        watchers = self._watchers.get(target)  # (a read the lock need not guard: a miss
-        if watchers is not None and watcher in watchers:  # only takes it)
-            return
-        with self._lock:
-            self._monitor(watcher, target)
+    def monitor(self, watcher: str, *targets: str) -> None:
+        """Registrar `watcher` has business with `targets`: it hears their (re)starts."""
+        for target in targets:
+            if watcher != target and watcher not in self._watchers.get(target, ()):
+                self._watchers.setdefault(target, set()).add(watcher)  # (a GIL-atomic step)
 
     def monitor_all(self, watcher: str, *, on: bool) -> None:
-        """Registrar `watcher` hears every registrar's (re)start (`on`), or only those of the
-        ones it monitors again (while it does not know yet whom its catalog names)."""
-        with self._lock:
-            if on:
-                self._everything.add(watcher)
-            else:
-                self._everything.discard(watcher)
-
-    def _monitor(self, watcher: str, target: str) -> None:
-        if watcher != target:
-            self._watchers.setdefault(target, set()).add(watcher)
-            self._watching.setdefault(watcher, set()).add(target)
+        (self._everything.add if on else self._everything.discard)(watcher)
 
     def started(self, name: str, *, skip: Container[str] = frozenset()) -> None:
-        """Registrar `name` (re)started: each joined hearer that monitors it (not in `skip`,
-        told already) hears it, in name order; one with no business with it, nothing: it
-        has nothing of that run to reconcile, and a call it makes later reaches the new one."""
-        with self._lock:
-            watchers = sorted(self._watchers.get(name, set()) | self._everything)
-            targets = [
-                self._hearers[watcher]
-                for watcher in watchers
-                if watcher in self._hearers and watcher not in skip
-            ]
+        """Registrar `name` (re)started: each joined hearer that monitors it (not `skip`) hears."""
+        watchers = sorted(self._watchers.get(name, set()) | self._everything)
+        targets = [h for w in watchers if w not in skip and (h := self._hearers.get(w)) is not None]
         _tell(targets, "peer_started", name)
-
-    def watchers(self, name: str) -> frozenset[str]:
-        """The names of the registrars here that monitor registrar `name` (a snapshot)."""
-        with self._lock:
-            return frozenset(self._watchers.get(name, ()))
 
     def lost(self, name: str, *, by: str, hearers: tuple[Hearer, ...] = ()) -> None:
         """Registrar `name` is gone for good (`by` says who says so): record it, then every hearer
@@ -202,7 +152,6 @@ class Membership:
         self._hearers.clear()
         self._gone.clear()
         self._watchers.clear()
-        self._watching.clear()
         self._everything.clear()
 
 

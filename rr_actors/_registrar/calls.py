@@ -421,9 +421,6 @@ class Calls:
             answered: Query | None = None
             withdrawn = False
             try:
-                # it hears the provider's restarts from now on (its answer may be of the run
-                # the restart replaced: rule 20, `Flights.doubt`), and a provider of this
-                # process its restarts before the `Load` is in its mailbox (`on_load`)
                 MEMBERSHIP.monitor(self.name, serving_rr)
                 MEMBERSHIP.monitor(serving_rr, self.name)
                 # a notice that overtakes the answer waits; a durable call's is the actor's

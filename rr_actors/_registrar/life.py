@@ -125,13 +125,9 @@ class Lifecycle:
 
     def on_start(self) -> None:
         publish_restored(self.registrar)  # before anything is served
-        # who was lost before it started it hears now: a mark is never missed; and it
-        # monitors those its restored rows name (it hears their restarts, rule 20): every
-        # registrar until the sweep looked at the rows still in its backup
-        catalog = self.registrar.catalog
-        gone = MEMBERSHIP.join(
-            self.hearer, catalog.providers() | catalog.consumer_origins(), everything=True
-        )
+        MEMBERSHIP.monitor_all(self.registrar.name, on=True)  # (restarts: all till `sweep`)
+        rows = self.registrar.catalog.providers() | self.registrar.catalog.consumer_origins()
+        gone = MEMBERSHIP.join(self.hearer, rows)  # (a mark is never missed)
         # every provider the restored catalog knows, also those settle_in_doubt forgets
         # what it released while a provider was down is in no row: reconcile with all (rule 20;
         # announced by its supervisor: each holding ids of it asks it, `on_reconcile_ask`)
@@ -494,16 +490,14 @@ class Restoring:
         try:
             unheld, origins, next_slice = self.registrar.catalog.sweep(after)
             self.swept_origins |= origins
-            for origin in origins:  # (it hears their restarts)
-                MEMBERSHIP.monitor(self.registrar.name, origin)
+            MEMBERSHIP.monitor(self.registrar.name, *origins)
             for resource in unheld:
                 self.registrar.teardown.unload_resource(resource, None)
             if next_slice is not None:
                 self.sweeping = True
                 self.registrar.come_back(lambda _v, _e: self.sweep(next_slice)).set_result(None)
                 return
-            # each holder of its rows is monitored: only their restarts are heard now
-            MEMBERSHIP.monitor_all(self.registrar.name, on=False)
+            MEMBERSHIP.monitor_all(self.registrar.name, on=False)  # (each holder is monitored)
         except RrError as exc:  # a damaged row: a lookup that needs it fails then
             logger.error(  # noqa: TRY400 - the cause says it all
                 "registrar %s: the sweep of its restored catalog stopped: %s",
@@ -993,28 +987,12 @@ def heard_started(target: str, name: str) -> None:
             DIRECTORY.lookup(target).tell(ReconcileAsk(name, holds_yours=False))
 
 
-def started_here(name: str, *, skip: Container[str] = frozenset()) -> None:
-    """Registrar `name` (re)started: each registrar of this process that has business with
-    it (monitors it: it holds ids or calls there, or it holds theirs; not those in `skip`)
-    reconciles with it if they still have business (rule 20). One with none is not told:
-    nothing it holds is of that run, and a call it makes later reaches the new one."""
-    MEMBERSHIP.started(name, skip=skip)
-
-
-def monitor(watcher: str, target: str) -> None:
-    """Registrar `watcher` of this process has business with registrar `target` from now on:
-    it hears `target`'s restarts (`started_here`) until it ends."""
-    MEMBERSHIP.monitor(watcher, target)
-
-
 def lost_everything(name: str, *, also: Iterable[str] = (), handle: Servable | None = None) -> None:
-    """Registrar `name` restarted without a backup: those here with business with it
-    (`Membership.started`) and those in `also` are told it started (`heard_started`), and
-    it `LostEverything` (rule 20). `handle`: its
+    """Registrar `name` restarted without a backup: those here (`Membership.started`) and in `also`
+    are told it started (`heard_started`), and it `LostEverything` (rule 20). `handle`: its
     `ResourceRegistrar`, through which it is told (it may not be in the directory yet)."""
-    started_here(name)
-    here = {peer.name for peer in DIRECTORY.local_peers()}
-    for target in sorted(set(also) - here):
+    MEMBERSHIP.started(name)
+    for target in sorted(set(also) - {peer.name for peer in DIRECTORY.local_peers()}):
         heard_started(target, name)
     if handle is not None:
         handle.tell(LostEverything())

@@ -319,9 +319,7 @@ class Provider:
         return None
 
     def on_load(self, message: Load, _reply: Reply) -> None:
-        # it hears the consumer's restarts from now on (what it holds of it here: rule 20;
-        # a consumer of this process said so before it sent it)
-        MEMBERSHIP.monitor(self.registrar.name, message.origin_rr)
+        MEMBERSHIP.monitor(self.registrar.name, message.origin_rr)  # (its restarts: rule 20)
         if (  # (the phase last: read through its enum class, a member costs ~1k instructions)
             message.server not in self.registrar.servers
             and self.registrar.phase is Phase.SETTING_UP

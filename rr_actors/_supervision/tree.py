@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Any
 
 from rr_actors._core import runtime, wire
 from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.replies import FutureReply, Steps
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._platform import lockfile
@@ -429,11 +430,9 @@ def announce_started(
     origin: str | None = None,
     upward: Callable[[str], None] | None = None,
 ) -> None:
-    """Registrar `name` (re)started: every living registrar of the system with business
-    with it hears so once (`life.heard_started`), the tree's process managers and pools on
-    their control pipes (no manager connects to one it has no business with; each process
-    tells only its registrars that monitor `name`, `life.started_here`), the others
-    through the directory.
+    """Registrar `name` (re)started: each living registrar of the system that monitors it hears
+    so once (`Membership.started`), the tree's process managers and pools on their control pipes
+    (no manager connects to one it has no business with), the others through the directory.
 
     `here`: this process's registrars told too. `beyond`: a first start, only registrars
     beyond the tree are told (here and on the network). In a pool's process (`upward`:
@@ -444,14 +443,13 @@ def announce_started(
         if other not in (name, origin):
             manager.handle.tell_started(name)
     reached, below = _piped(root), _names_below(root) if beyond else set()
-    if here or beyond:  # (only those here with business with it: `life.started_here`)
-        life.started_here(name, skip=reached | below)
+    if here or beyond:
+        MEMBERSHIP.started(name, skip=reached | below)
     others: set[str] = set()
     if upward is not None:
         upward(name)
     elif network is not None and not network.closed:
-        others.update(network.names())
-    others -= {peer.name for peer in DIRECTORY.local_peers()}
+        others = set(network.names()) - {peer.name for peer in DIRECTORY.local_peers()}
     for other in sorted(others - below - reached):
         life.heard_started(other, name)
 
