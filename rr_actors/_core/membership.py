@@ -60,6 +60,9 @@ class Joined(Hearer, Protocol):
         """Registrar `name` was stopped for good: what it holds here is stale (rule 12)."""
         ...
 
+    def peer_started(self, name: str) -> None:  # (one it monitors, rule 20)
+        ...
+
 
 class Membership:
     """Who is gone for good, as this process knows it; the one sender of `peer_lost`."""
@@ -68,13 +71,16 @@ class Membership:
         self._lock = runtime.Lock()
         self._gone: dict[str, bool] = {}  # name -> stopped (not lost)
         self._hearers: dict[str, Joined] = {}
+        self._watchers: dict[str, set[str]] = {}  # name -> who monitors it (by name)
+        self._everything: set[str] = set()  # who hears every start (`monitor_all`)
 
-    def join(self, hearer: Joined) -> dict[str, bool]:
-        """Let `hearer` hear every event from now on; return the names gone for good now (`True`:
-        stopped rather than lost). Atomic with `lost` and `stopped`; its own name is back."""
+    def join(self, hearer: Joined, watching: Iterable[str] = ()) -> dict[str, bool]:
+        """Let `hearer` hear every event and the starts of `watching` from now on; return the
+        names gone for good now. Atomic with `lost`, `stopped`; its own name is back."""
         with self._lock:
             self._hearers[hearer.name] = hearer
             self._gone.pop(hearer.name, None)
+            self.monitor(hearer.name, *watching)
             return dict(self._gone)
 
     def leave(self, hearer: Joined) -> None:
@@ -82,6 +88,21 @@ class Membership:
         with self._lock:
             if self._hearers.get(hearer.name) is hearer:
                 del self._hearers[hearer.name]
+
+    def monitor(self, watcher: str, *targets: str) -> None:
+        """Registrar `watcher` has business with `targets`: it hears their (re)starts."""
+        for target in targets:
+            if watcher != target and watcher not in self._watchers.get(target, ()):
+                self._watchers.setdefault(target, set()).add(watcher)  # (a GIL-atomic step)
+
+    def monitor_all(self, watcher: str, *, on: bool) -> None:
+        (self._everything.add if on else self._everything.discard)(watcher)
+
+    def started(self, name: str, *, skip: Container[str] = frozenset()) -> None:
+        """Registrar `name` (re)started: each joined hearer that monitors it (not `skip`) hears."""
+        watchers = sorted(self._watchers.get(name, set()) | self._everything)
+        targets = [h for w in watchers if w not in skip and (h := self._hearers.get(w)) is not None]
+        _tell(targets, "peer_started", name)
 
     def lost(self, name: str, *, by: str, hearers: tuple[Hearer, ...] = ()) -> None:
         """Registrar `name` is gone for good (`by` says who says so): record it, then every hearer
@@ -130,6 +151,8 @@ class Membership:
         self._lock = runtime.Lock()
         self._hearers.clear()
         self._gone.clear()
+        self._watchers.clear()
+        self._everything.clear()
 
 
 def _tell(hearers: Iterable[Hearer], what: str, name: str) -> None:

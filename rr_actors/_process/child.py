@@ -441,11 +441,8 @@ class _ControlLoop:
         self.line.switch(on=message.on)
 
     def peer_started(self, message: PeerStarted) -> None:
-        """Every registrar of this process hears it (a pool's managers too)."""
-        from rr_actors._registrar.life import heard_started  # noqa: PLC0415 - preloaded
-
-        for peer in DIRECTORY.local_peers():
-            heard_started(peer.name, message.name)
+        """Every registrar of this process that monitors it hears it (a pool's managers too)."""
+        MEMBERSHIP.started(message.name)
 
     def peers_stopped(self, message: PeersStopped) -> None:
         """Into this process's membership (every registrar here hears it before `Stop`)."""

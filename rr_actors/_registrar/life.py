@@ -125,8 +125,9 @@ class Lifecycle:
 
     def on_start(self) -> None:
         publish_restored(self.registrar)  # before anything is served
-        # who was lost before it started it hears now: a mark is never missed
-        gone = MEMBERSHIP.join(self.hearer)
+        MEMBERSHIP.monitor_all(self.registrar.name, on=True)  # (restarts: all till `sweep`)
+        rows = self.registrar.catalog.providers() | self.registrar.catalog.consumer_origins()
+        gone = MEMBERSHIP.join(self.hearer, rows)  # (a mark is never missed)
         # every provider the restored catalog knows, also those settle_in_doubt forgets
         # what it released while a provider was down is in no row: reconcile with all (rule 20;
         # announced by its supervisor: each holding ids of it asks it, `on_reconcile_ask`)
@@ -489,12 +490,14 @@ class Restoring:
         try:
             unheld, origins, next_slice = self.registrar.catalog.sweep(after)
             self.swept_origins |= origins
+            MEMBERSHIP.monitor(self.registrar.name, *origins)
             for resource in unheld:
                 self.registrar.teardown.unload_resource(resource, None)
             if next_slice is not None:
                 self.sweeping = True
                 self.registrar.come_back(lambda _v, _e: self.sweep(next_slice)).set_result(None)
                 return
+            MEMBERSHIP.monitor_all(self.registrar.name, on=False)  # (each holder is monitored)
         except RrError as exc:  # a damaged row: a lookup that needs it fails then
             logger.error(  # noqa: TRY400 - the cause says it all
                 "registrar %s: the sweep of its restored catalog stopped: %s",
@@ -830,6 +833,10 @@ class Hearing:
         with contextlib.suppress(RrError):
             self.peer.tell(PeerReachable(name))
 
+    def peer_started(self, name: str) -> None:
+        with contextlib.suppress(RrError):
+            self.peer.tell(ReconcileAsk(name, holds_yours=False))
+
 
 class Network(Protocol):
     """What `ResourceRegistrar.start(network=)` needs of a carrier (every `Transport` is one):
@@ -981,10 +988,11 @@ def heard_started(target: str, name: str) -> None:
 
 
 def lost_everything(name: str, *, also: Iterable[str] = (), handle: Servable | None = None) -> None:
-    """Registrar `name` restarted without a backup: those here and in `also` are told it
-    started (`heard_started`), and it `LostEverything` (rule 20). `handle`: its
+    """Registrar `name` restarted without a backup: those here (`Membership.started`) and in `also`
+    are told it started (`heard_started`), and it `LostEverything` (rule 20). `handle`: its
     `ResourceRegistrar`, through which it is told (it may not be in the directory yet)."""
-    for target in sorted({peer.name for peer in DIRECTORY.local_peers()} | set(also)):
+    MEMBERSHIP.started(name)
+    for target in sorted(set(also) - {peer.name for peer in DIRECTORY.local_peers()}):
         heard_started(target, name)
     if handle is not None:
         handle.tell(LostEverything())

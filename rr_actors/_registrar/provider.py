@@ -56,6 +56,7 @@ from rr_actors._core import runtime, traces
 from rr_actors._core.actor import Actor
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.loops import is_coroutine_function, process_loop
+from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.replies import CallbackReply, Join
 from rr_actors._core.workers import Job, Workers
 from rr_actors._registrar.display import show_request, show_response
@@ -318,6 +319,7 @@ class Provider:
         return None
 
     def on_load(self, message: Load, _reply: Reply) -> None:
+        MEMBERSHIP.monitor(self.registrar.name, message.origin_rr)  # (its restarts: rule 20)
         if (  # (the phase last: read through its enum class, a member costs ~1k instructions)
             message.server not in self.registrar.servers
             and self.registrar.phase is Phase.SETTING_UP

@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Any
 
 from rr_actors._core import runtime, wire
 from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.replies import FutureReply, Steps
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._platform import lockfile
@@ -429,8 +430,8 @@ def announce_started(
     origin: str | None = None,
     upward: Callable[[str], None] | None = None,
 ) -> None:
-    """Registrar `name` (re)started: every living registrar of the system hears so once
-    (`life.heard_started`), the tree's process managers and pools on their control pipes
+    """Registrar `name` (re)started: each living registrar of the system that monitors it hears
+    so once (`Membership.started`), the tree's process managers and pools on their control pipes
     (no manager connects to one it has no business with), the others through the directory.
 
     `here`: this process's registrars told too. `beyond`: a first start, only registrars
@@ -441,14 +442,15 @@ def announce_started(
     for other, manager in () if beyond else sorted(piped.items()):
         if other not in (name, origin):
             manager.handle.tell_started(name)
-    others = {peer.name for peer in DIRECTORY.local_peers()} if here or beyond else set()
+    reached, below = _piped(root), _names_below(root) if beyond else set()
+    if here or beyond:
+        MEMBERSHIP.started(name, skip=reached | below)
+    others: set[str] = set()
     if upward is not None:
         upward(name)
     elif network is not None and not network.closed:
-        others.update(network.names())
-    if beyond:
-        others -= _names_below(root)
-    for other in sorted(others - _piped(root)):
+        others = set(network.names()) - {peer.name for peer in DIRECTORY.local_peers()}
+    for other in sorted(others - below - reached):
         life.heard_started(other, name)
 
 

@@ -62,7 +62,6 @@ from rr_actors._process.heartbeat import Hang, Heartbeat
 from rr_actors._process.manager import ManagerExit, ManagerProcess, describe
 from rr_actors._process.tally import Received
 from rr_actors._registrar import Served, start_registrar
-from rr_actors._registrar.life import heard_started
 from rr_actors._transport.messenger import Address, Transport
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import (
@@ -413,7 +412,7 @@ class _Child:
         self.switch(on=message.on)
 
     def peer_started(self, message: PeerStarted) -> None:
-        heard_started(self.registrar.name, message.name)
+        MEMBERSHIP.started(message.name)  # (if its registrar has business with it)
 
     def peers_stopped(self, message: PeersStopped) -> None:
         """Into this process's membership: its registrar hears them before its `Stop`."""

@@ -21,6 +21,9 @@ class Hearer:
     def peer_stopped(self, name: str) -> None:
         self.heard.append(("stopped", name))
 
+    def peer_started(self, name: str) -> None:
+        self.heard.append(("started", name))
+
 
 def test_a_stop_reported_by_each_registrar_of_the_process_is_told_to_each_once() -> None:
     # Each registrar here that another process tells of a stop reports it to the membership
@@ -63,3 +66,31 @@ def test_a_stop_after_a_loss_is_still_told_and_the_loss_stays_recorded() -> None
     membership.stopped("x", by="a death-watch mark")
     assert hearer.heard == [("lost", "x"), ("stopped", "x")]
     assert membership.gone() == {"x": False}
+
+
+def test_a_start_is_told_only_to_the_hearers_that_monitor_it() -> None:
+    # issue 69: a restart told to every registrar of a process took a turn of each (N)
+    membership = Membership()
+    caller, holder, bystander = Hearer("caller"), Hearer("holder"), Hearer("bystander")
+    membership.join(caller)
+    membership.join(holder, ["x"])  # (its restored rows name x)
+    membership.join(bystander)
+    membership.monitor("caller", "x")  # (a call to x)
+    membership.started("x")
+    assert [[("started", "x")], [("started", "x")], []] == [
+        caller.heard,
+        holder.heard,
+        bystander.heard,
+    ]
+
+
+def test_a_hearer_monitoring_all_hears_every_start_until_it_stops() -> None:
+    membership = Membership()
+    restoring = Hearer("restoring")
+    membership.monitor_all("restoring", on=True)  # (rows still unread)
+    membership.join(restoring, ["x"])
+    membership.started("y")
+    membership.monitor_all("restoring", on=False)  # (each row swept)
+    membership.started("z")
+    membership.started("x")
+    assert [("started", "y"), ("started", "x")] == restoring.heard
