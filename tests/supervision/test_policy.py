@@ -1215,6 +1215,40 @@ class TestAWholeTreesStop:
         assert (names[0], (names[3], names[2], names[1])) == told[2]
         assert 3 == len(told)  # one message to each manager stopped after another
 
+    def test_one_stop_of_a_tree_lists_no_carrier_and_walks_no_tree_whatever_its_size(
+        self, monkeypatch: pytest.MonkeyPatch, uid: str
+    ) -> None:
+        """Each stop of a tree's stop listed the carrier's registrars (a directory listing of
+        the whole system) and walked the tree three times, to find who hears of it: work
+        that grew with the tree at each of its N stops (issue 69, goal 3). Now the tree's
+        stop reads them once, as it begins: the same count for 2 managers as for 5."""
+        from rr_actors._supervision import tree  # noqa: PLC0415
+        from rr_actors._transport.unix.system import UnixCarrier  # noqa: PLC0415
+
+        counts = {"listings": 0, "walks": 0}
+        names, leaves = UnixCarrier.names, tree._leaves
+
+        def counted_names(self: UnixCarrier) -> list[str]:
+            counts["listings"] += 1
+            return names(self)
+
+        def counted_leaves(level: Any) -> Any:
+            counts["walks"] += 1
+            return leaves(level)
+
+        monkeypatch.setattr(UnixCarrier, "names", counted_names)
+        monkeypatch.setattr(tree, "_leaves", counted_leaves)
+        seen = []
+        for size in (2, 5):
+            sup = rr.Supervisor([process(f"m{n}-{size}-{uid}") for n in range(size)])
+            sup.start()
+            counts.update(listings=0, walks=0)
+            sup.stop()
+            seen.append(dict(counts))
+
+        assert seen[0] == seen[1]  # before: 2 listings and 6 walks, then 5 and 15
+        assert seen[1]["listings"] <= 1
+
     def test_a_tree_of_thread_managers_stops_with_no_peer_lost_sent_per_pair(
         self, monkeypatch: pytest.MonkeyPatch, uid: str
     ) -> None:
