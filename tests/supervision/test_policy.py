@@ -1249,6 +1249,39 @@ class TestAWholeTreesStop:
         assert seen[0] == seen[1]  # before: 2 listings and 6 walks, then 5 and 15
         assert seen[1]["listings"] <= 1
 
+    def test_a_manager_process_hears_the_stops_before_its_own_in_one_message_to_its_registrar(
+        self, tmp_path: Path, uid: str
+    ) -> None:
+        """The manager stopped last heard the 3 stops before its own as 3 messages to its
+        registrar, one a name: in a tree of N, N²/2 messages in all (each a turn of a
+        registrar's mailbox), the last manager's stop N of them (issue 69, goal 3)."""
+        names = [f"m{n}-{uid}" for n in range(4)]
+        told = tmp_path / "told"
+
+        def setup(registrar: rr.ResourceRegistrar) -> None:
+            from rr_actors._core.directory import LocalPeer  # noqa: PLC0415
+            from rr_actors._registrar.messages import PeerLost, PeersStopped  # noqa: PLC0415
+
+            echo_setup(registrar)
+            tell = LocalPeer.tell
+
+            def counted_tell(self: LocalPeer, message: Any) -> None:
+                if isinstance(message, PeersStopped):
+                    with told.open("a") as out:
+                        out.write(" ".join(message.names) + "\n")
+                elif isinstance(message, PeerLost) and getattr(message, "stopped", False):
+                    with told.open("a") as out:
+                        out.write(message.name + "\n")
+                tell(self, message)
+
+            LocalPeer.tell = counted_tell  # type: ignore[method-assign]
+
+        sup = rr.Supervisor([process(names[0], setup), *(process(n) for n in names[1:])])
+        sup.start()
+        sup.stop()
+
+        assert [" ".join(reversed(names[1:]))] == told.read_text().splitlines()
+
     def test_a_tree_of_thread_managers_stops_with_no_peer_lost_sent_per_pair(
         self, monkeypatch: pytest.MonkeyPatch, uid: str
     ) -> None:
@@ -1260,17 +1293,17 @@ class TestAWholeTreesStop:
         names = [f"t{n}-{uid}" for n in range(4)]
         heard: list[tuple[str, str]] = []
         told: list[tuple[str, tuple[str, ...]]] = []
-        peer_stopped, tell_stopped = life.Hearing.peer_stopped, ThreadManager.tell_stopped
+        peers_stopped, tell_stopped = life.Hearing.peers_stopped, ThreadManager.tell_stopped
 
-        def counted_peer_stopped(self: life.Hearing, name: str) -> None:
-            heard.append((self.name, name))
-            peer_stopped(self, name)
+        def counted_peers_stopped(self: life.Hearing, stopped: tuple[str, ...]) -> None:
+            heard.extend((self.name, name) for name in stopped)
+            peers_stopped(self, stopped)
 
         def counted_tell(self: ThreadManager, stopped: tuple[str, ...]) -> None:
             told.append((self.spec.name, stopped))
             tell_stopped(self, stopped)
 
-        monkeypatch.setattr(life.Hearing, "peer_stopped", counted_peer_stopped)
+        monkeypatch.setattr(life.Hearing, "peers_stopped", counted_peers_stopped)
         monkeypatch.setattr(ThreadManager, "tell_stopped", counted_tell)
         sup = rr.Supervisor([rr.ManagerSpec(n, None, isolation="thread") for n in names])
         sup.start()
