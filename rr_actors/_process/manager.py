@@ -321,6 +321,13 @@ class ManagerProcess:
         finally:
             self._syncs.pop(token, None)
 
+    def quiet(self) -> None:
+        """Ping it no more (its tree's stop began): from now on its stop's bound
+        (`ManagerSpec.shutdown`) is what catches a hang, as OTP's shutdown does. The pings of
+        a tree's managers waiting for their stop grew with the tree, on the watcher's thread
+        (one for all) and on the cores its stops share."""
+        self._stopping = True  # (as `stop`: no more pings, no more judgements)
+
     def stop(self, timeout: float, *, restarting: bool = False) -> ManagerExit:
         """Ask the manager to stop its registrar and exit; kill it after `timeout` seconds
         (`restarting`: its peers see it unavailable for now, not stopped for good)."""

@@ -62,6 +62,7 @@ from rr_actors._supervision.tree import (
     locate,
     lost_everything,
     pool_of,
+    quiet,
     ran_before,
 )
 from rr_actors._supervision.watching import TreeWatch
@@ -323,6 +324,7 @@ class Supervisor(AsyncSupervision):
         self._watch.last_look()  # a page kept after the stop shows the catalogs as they end
         self._tree.ending = Ending.of(self._node, self._tree.processes.system)  # its stops'
         # notices go to each manager before its own stop
+        quiet(self._node)
         self._node.stop(deadline=deadline, parallel=parallel)
         self._stopped = True
         self._release()

@@ -391,6 +391,13 @@ class Ending:
         return cls(frozenset(names - _names_below(root)), frozenset(_threaded(root)))
 
 
+def quiet(root: Level) -> None:
+    """The whole tree's stop began: its manager processes are pinged no more (each stop's
+    bound catches a hang now, `ManagerProcess.quiet`)."""
+    for manager in _process_handles(root).values():
+        manager.handle.quiet()
+
+
 def consumer_down(
     root: Level,
     name: str,

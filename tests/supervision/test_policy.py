@@ -1282,6 +1282,41 @@ class TestAWholeTreesStop:
 
         assert [" ".join(reversed(names[1:]))] == told.read_text().splitlines()
 
+    def test_the_managers_waiting_for_their_stop_in_a_trees_stop_are_pinged_no_more(
+        self, monkeypatch: pytest.MonkeyPatch, uid: str
+    ) -> None:
+        """Each manager waiting for its turn was still pinged at its `heartbeat`: in a tree
+        of 1,000, 4,000 pings a second through the one watcher thread (and the cores the
+        stops share) all through the tree's stop (issue 69, goal 3). A hang now is caught
+        by its stop's bound (`shutdown`), as OTP's shutdown does."""
+        from rr_actors._process.control import Ping  # noqa: PLC0415
+        from rr_actors._process.manager import ManagerProcess  # noqa: PLC0415
+
+        provider, consumer = f"slow-{uid}", f"edge-{uid}"
+        pinged: list[str] = []
+        stopping = threading.Event()
+        send = ManagerProcess._send
+
+        def counted_send(self: ManagerProcess, message: Any) -> bool:
+            if stopping.is_set() and isinstance(message, Ping):
+                pinged.append(self.name)
+            return send(self, message)
+
+        def slow(registrar: rr.ResourceRegistrar) -> None:  # an unload of 0.5 s (workload)
+            registrar.register_server("r", load=lambda r: r, unload=lambda r, s: time.sleep(0.5))
+
+        def holds(registrar: rr.ResourceRegistrar) -> None:  # released at its stop (rule 12)
+            registrar.call(provider, "r", "x", timeout=30.0)
+
+        monkeypatch.setattr(ManagerProcess, "_send", counted_send)
+        beat = {"heartbeat": 0.05, "heartbeat_timeout": 60.0}
+        sup = rr.Supervisor([process(provider, slow, **beat), process(consumer, holds, **beat)])
+        sup.start()
+        stopping.set()
+        sup.stop()
+
+        assert [] == pinged  # before: the provider, every 0.05 s while its consumer stopped
+
     def test_a_tree_of_thread_managers_stops_with_no_peer_lost_sent_per_pair(
         self, monkeypatch: pytest.MonkeyPatch, uid: str
     ) -> None:
