@@ -323,9 +323,9 @@ class ManagerProcess:
 
     def quiet(self) -> None:
         """Ping it no more (its tree's stop began): from now on its stop's bound
-        (`ManagerSpec.shutdown`) is what catches a hang, as OTP's shutdown does. The pings of
-        a tree's managers waiting for their stop grew with the tree, on the watcher's thread
-        (one for all) and on the cores its stops share."""
+        (`ManagerSpec.shutdown`) is what catches a hang, as OTP's shutdown does: the pings
+        of the managers waiting for their turn would take the watcher's thread (one for
+        all) and the cores from the stops, more the bigger the tree."""
         self._stopping = True  # (as `stop`: no more pings, no more judgements)
 
     def stop(self, timeout: float, *, restarting: bool = False) -> ManagerExit:

@@ -377,8 +377,7 @@ class Ending:
     is told them just before its own stop, `consumer_down`), and who else hears of each
     stop, read once as the stop began, when no manager of the tree starts any more: the
     registrars of the carrier beyond the tree, and the tree's thread managers. So one stop
-    walks no tree and lists no carrier (a walk and a listing each stop grew with the
-    tree: most of a 1,000-manager tree's stop on the supervisor's side)."""
+    walks no tree and lists no carrier: no work of one stop grows with the tree."""
 
     beyond: frozenset[str]
     threaded: frozenset[str]
