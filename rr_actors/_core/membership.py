@@ -57,8 +57,7 @@ class Joined(Hearer, Protocol):
     """A hearer that joined (a registrar of this process): it hears stops for good too."""
 
     def peers_stopped(self, names: tuple[str, ...]) -> None:
-        """Registrars `names` (not its own) were stopped for good: what they hold here is
-        stale (rule 12)."""
+        """Registrars `names` were stopped for good: what they hold here is stale (rule 12)."""
         ...
 
 
@@ -106,12 +105,10 @@ class Membership:
     def stopped_all(
         self, names: Iterable[str], *, by: str, later: Container[str] = frozenset()
     ) -> None:
-        """`stopped` of each of `names`, each hearer told once of those not recorded yet (a
-        tree's stop told to a manager process: one message to its registrar, not one a name)."""
+        """`stopped` of each of `names`: each hearer told those not recorded yet at once."""
         with self._lock:
             new = tuple(dict.fromkeys(n for n in names if self._gone.get(n) is not True))
-            for name in new:
-                self._gone.setdefault(name, True)
+            self._gone.update({name: self._gone.get(name, True) for name in new})
             targets = [h for n, h in self._hearers.items() if n not in later]
         if not new:
             return

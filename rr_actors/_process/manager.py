@@ -322,10 +322,8 @@ class ManagerProcess:
             self._syncs.pop(token, None)
 
     def quiet(self) -> None:
-        """Ping it no more (its tree's stop began): from now on its stop's bound
-        (`ManagerSpec.shutdown`) is what catches a hang, as OTP's shutdown does: the pings
-        of the managers waiting for their turn would take the watcher's thread (one for
-        all) and the cores from the stops, more the bigger the tree."""
+        """Ping it no more (its tree's stop began): its stop's `shutdown` catches a hang,
+        as OTP's shutdown does, and a big tree's pings leave the watcher to the stops."""
         self._stopping = True  # (as `stop`: no more pings, no more judgements)
 
     def stop(self, timeout: float, *, restarting: bool = False) -> ManagerExit:

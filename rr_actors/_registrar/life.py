@@ -946,10 +946,8 @@ def gone_for_good(
         MEMBERSHIP.stopped(name, by="its supervisor", later=later)
     else:
         MEMBERSHIP.lost(name, by="the death watch")
-    targets = set(also) - {name}
-    if targets:  # (none, in a tree's stop that no registrar beyond the tree hears)
-        targets -= {peer.name for peer in DIRECTORY.local_peers()}
-    for target in sorted(targets):
+    here = {peer.name for peer in DIRECTORY.local_peers()}
+    for target in sorted(set(also) - here - {name}):
         try:
             DIRECTORY.lookup(target).tell(_mark(name, stopped=stopped))
         except RrError:

@@ -373,11 +373,9 @@ def _threaded(level: Level) -> set[str]:
 
 @dataclasses.dataclass
 class Ending:
-    """The whole tree's stop (`Supervisor.stop`): its managers stopped so far (each manager
-    is told them just before its own stop, `consumer_down`), and who else hears of each
-    stop, read once as the stop began, when no manager of the tree starts any more: the
-    registrars of the carrier beyond the tree, and the tree's thread managers. So one stop
-    walks no tree and lists no carrier: no work of one stop grows with the tree."""
+    """The whole tree's stop: its managers stopped so far (each told them before its own
+    stop, `consumer_down`), and who else hears of a stop, read once as it began (the
+    carrier's registrars beyond the tree, its thread managers): one stop walks no tree."""
 
     beyond: frozenset[str]
     threaded: frozenset[str]
@@ -385,14 +383,12 @@ class Ending:
 
     @classmethod
     def of(cls, root: Level, network: Transport | None) -> Ending:
-        """The tree below `root` as its stop begins (`network`: its carrier, if any)."""
         names = set() if network is None or network.closed else set(network.names())
         return cls(frozenset(names - _names_below(root)), frozenset(_threaded(root)))
 
 
 def quiet(root: Level) -> None:
-    """The whole tree's stop began: its manager processes are pinged no more (each stop's
-    bound catches a hang now, `ManagerProcess.quiet`)."""
+    """The whole tree's stop began: its manager processes are pinged no more."""
     for manager in _process_handles(root).values():
         manager.handle.quiet()
 
