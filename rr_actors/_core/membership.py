@@ -17,7 +17,7 @@ it, and one that starts later hears it when it joins, until a later incarnation 
  a carrier: reachable again (Messenger.reachable) ─► reachable(X) ─► forget X, peer_reachable(X)
  X served again (a registrar named X starts here, a supervisor restarts it, a carrier
    sees it served) ─► back(X)
- a supervisor stopped X for good ─► stopped(X) ─► record, peer_stopped(X) (what X still
+ a supervisor stopped X for good ─► stopped(X) ─► record, peers_stopped((X,)) (what X still
    holds here is stale: a stopped registrar holds nothing, rule 12); in the tree's stop,
    not to its managers still running here: each hears them all before its own stop
 ```
@@ -56,8 +56,8 @@ class Hearer(Protocol):
 class Joined(Hearer, Protocol):
     """A hearer that joined (a registrar of this process): it hears stops for good too."""
 
-    def peer_stopped(self, name: str) -> None:
-        """Registrar `name` was stopped for good: what it holds here is stale (rule 12)."""
+    def peers_stopped(self, names: tuple[str, ...]) -> None:
+        """Registrars `names` were stopped for good: what they hold here is stale (rule 12)."""
         ...
 
     def peer_started(self, name: str) -> None:  # (one it monitors, rule 20)
@@ -121,13 +121,26 @@ class Membership:
         another process reports it, so N registrars told would be N x N tells). Hearers
         named in `later` are not told: their supervisor tells each of them once, before its
         own stop, every stop of the tree's stop so far (N x N tells again, otherwise)."""
+        self.stopped_all((name,), by=by, later=later)
+
+    def stopped_all(
+        self, names: Iterable[str], *, by: str, later: Container[str] = frozenset()
+    ) -> None:
+        """`stopped` of each of `names`: each hearer told those not recorded yet at once."""
         with self._lock:
-            if self._gone.get(name) is True:
-                return
-            self._gone.setdefault(name, True)
+            new = tuple(dict.fromkeys(n for n in names if self._gone.get(n) is not True))
+            self._gone.update({name: self._gone.get(name, True) for name in new})
             targets = [h for n, h in self._hearers.items() if n not in later]
-        logger.debug("membership: %s was stopped for good (%s)", name, by)
-        _tell(targets, "peer_stopped", name)
+        if not new:
+            return
+        logger.debug("membership: %s stopped for good (%s)", ", ".join(new), by)
+        for hearer in targets:
+            told = tuple(n for n in new if n != hearer.name)
+            if told:
+                try:
+                    hearer.peers_stopped(told)
+                except Exception:
+                    logger.exception("registrar %s: peers_stopped%s failed", hearer.name, told)
 
     def reachable(self, name: str, *, hearers: tuple[Hearer, ...] = ()) -> None:
         """Registrar `name` can be reached again: forget its record, then every hearer hears it."""

@@ -446,8 +446,7 @@ class _ControlLoop:
 
     def peers_stopped(self, message: PeersStopped) -> None:
         """Into this process's membership (every registrar here hears it before `Stop`)."""
-        for name in message.names:
-            MEMBERSHIP.stopped(name, by="its supervisor (the tree's stop)")
+        MEMBERSHIP.stopped_all(message.names, by="its supervisor (the tree's stop)")
 
     def sync_events(self, message: SyncEvents) -> None:
         threading.Thread(

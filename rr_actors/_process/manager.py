@@ -321,6 +321,11 @@ class ManagerProcess:
         finally:
             self._syncs.pop(token, None)
 
+    def quiet(self) -> None:
+        """Ping it no more (its tree's stop began): its stop's `shutdown` catches a hang,
+        as OTP's shutdown does, and a big tree's pings leave the watcher to the stops."""
+        self._stopping = True  # (as `stop`: no more pings, no more judgements)
+
     def stop(self, timeout: float, *, restarting: bool = False) -> ManagerExit:
         """Ask the manager to stop its registrar and exit; kill it after `timeout` seconds
         (`restarting`: its peers see it unavailable for now, not stopped for good)."""

@@ -573,10 +573,7 @@ class Presence:
     # -- lost for good (rule 19) --------------------------------------------------------
 
     def on_peer_lost(self, message: PeerLost, _reply: Reply) -> None:
-        if message.stopped:
-            self.stopped(message.name)
-        else:
-            self.lose(message.name)
+        self.lose(message.name)
 
     def on_peers_stopped(self, message: PeersStopped, _reply: Reply) -> None:
         for name in message.names:
@@ -825,9 +822,9 @@ class Hearing:
         with contextlib.suppress(RrError):
             self.peer.tell(PeerLost(name))
 
-    def peer_stopped(self, name: str) -> None:
+    def peers_stopped(self, names: tuple[str, ...]) -> None:
         with contextlib.suppress(RrError):
-            self.peer.tell(PeerLost(name, stopped=True))
+            self.peer.tell(PeersStopped(names))
 
     def peer_reachable(self, name: str) -> None:
         with contextlib.suppress(RrError):

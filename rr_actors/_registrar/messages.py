@@ -525,18 +525,17 @@ class Reachable:
 
 @dataclasses.dataclass(frozen=True)
 class PeerLost:
-    """Membership: registrar `name` is gone for good (rule 19), or with `stopped`, stopped
-    for good (rule 12). The one local message for "lost" (`life.Presence`)."""
+    """Membership: registrar `name` is gone for good (rule 19). The one local message for
+    "lost" (`life.Presence`)."""
 
     name: str
-    stopped: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
 class PeersStopped:
-    """Its supervisor, as the tree's stop reaches it: registrars `names` of the tree were
-    stopped for good before it (rule 12), told once here rather than each as it stopped
-    (`PeerLost` to every registrar still running: N x N messages in a tree of N)."""
+    """Membership, or its supervisor as the tree's stop reaches it: registrars `names` were
+    stopped for good (rule 12), a batch told at once (a tree's stop told a message a name to
+    every registrar still running: N x N messages in a tree of N)."""
 
     names: tuple[str, ...]
 

@@ -1041,8 +1041,8 @@ class Stopping:
         running = child.running
         assert running is not None
         ending = self.record.tree.ending
-        if ending and isinstance(running, (ProcessManager, ThreadManager)):  # the tree's stop
-            running.tell_stopped(tuple(ending))  # (`consumer_down`)
+        if ending and ending.stopped and isinstance(running, (ProcessManager, ThreadManager)):
+            running.tell_stopped(tuple(ending.stopped))  # (the tree's stop: `consumer_down`)
         child.state = "stopping"
         child.incarnation += 1  # its watcher's exit event is now stale
         self.record.publish()

@@ -53,6 +53,7 @@ from rr_actors._supervision.children import (
 from rr_actors._supervision.policy import Node, RestartIntensity, left, registrar_names
 from rr_actors._supervision.tree import (
     Clock,
+    Ending,
     RestartWait,
     StateDirLock,
     Tree,
@@ -61,6 +62,7 @@ from rr_actors._supervision.tree import (
     locate,
     lost_everything,
     pool_of,
+    quiet,
     ran_before,
 )
 from rr_actors._supervision.watching import TreeWatch
@@ -320,7 +322,8 @@ class Supervisor(AsyncSupervision):
         self._registrars.clear()
         self._tree.processes.close_spares()  # no new spare while the children stop
         self._watch.last_look()  # a page kept after the stop shows the catalogs as they end
-        self._tree.ending = []  # its stops' notices go to each manager before its stop
+        self._tree.ending = Ending.of(self._node, self._tree.processes.system)
+        quiet(self._node)  # (each manager hears the stops before its own, unpinged)
         self._node.stop(deadline=deadline, parallel=parallel)
         self._stopped = True
         self._release()

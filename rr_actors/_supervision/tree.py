@@ -196,8 +196,7 @@ class Tree:
         self.escalate: Callable[[SupervisorGaveUpError], None] | None = None
         # and its parent, told of each manager's (re)start (`announce_started`)
         self.upward: Callable[[str], None] | None = None
-        # the whole tree's stop: its managers stopped so far (`consumer_down`)
-        self.ending: list[str] | None = None
+        self.ending: Ending | None = None  # the whole tree's stop, while it runs
         self.restarted_here: set[str] = set()  # a pool's, not yet told upward
 
     def durable(self, config: RegistrarConfig) -> RegistrarConfig:
@@ -373,22 +372,43 @@ def _threaded(level: Level) -> set[str]:
     return {c.name for c in _leaves(level) if isinstance(c.running, ThreadManager)}
 
 
+@dataclasses.dataclass
+class Ending:
+    """The whole tree's stop: its managers stopped so far (each told them before its own
+    stop, `consumer_down`), and who else hears of a stop, read once as it began (the
+    carrier's registrars beyond the tree, its thread managers): one stop walks no tree."""
+
+    beyond: frozenset[str]
+    threaded: frozenset[str]
+    stopped: list[str] = dataclasses.field(default_factory=list)
+
+    @classmethod
+    def of(cls, root: Level, network: Transport | None) -> Ending:
+        names = set() if network is None or network.closed else set(network.names())
+        return cls(frozenset(names - _names_below(root)), frozenset(_threaded(root)))
+
+
+def quiet(root: Level) -> None:
+    """The whole tree's stop began: its manager processes are pinged no more."""
+    for manager in _process_handles(root).values():
+        manager.handle.quiet()
+
+
 def consumer_down(
     root: Level,
     name: str,
     network: Transport | None = None,
     *,
     stopped: bool = False,
-    ending: list[str] | None = None,
+    ending: Ending | None = None,
 ) -> None:
     """Death watch (rule 19): registrar `name` is gone for good; every living registrar is
     told (`stopped`: it stopped cleanly, what it holds is stale, rule 12). `ending`
     (`Tree.ending`): the tree's managers hear a stopped one only before their own stop
     (dependents stop first), one notice each, not one per pair."""
     if stopped and ending is not None:
-        beyond = set(_living(root, network)) - _piped(root)  # (the tree's hear it by pipe)
-        life.gone_for_good(name, also=beyond, stopped=True, later=_threaded(root))
-        ending.append(name)
+        life.gone_for_good(name, also=ending.beyond, stopped=True, later=ending.threaded)
+        ending.stopped.append(name)
         return
     life.gone_for_good(name, also=_living(root, network), stopped=stopped)
 

@@ -11,6 +11,7 @@ class Hearer:
     def __init__(self, name: str) -> None:
         self.name = name
         self.heard: list[tuple[str, str]] = []
+        self.batches: list[tuple[str, ...]] = []
 
     def peer_lost(self, name: str) -> None:
         self.heard.append(("lost", name))
@@ -18,8 +19,9 @@ class Hearer:
     def peer_reachable(self, name: str) -> None:
         self.heard.append(("reachable", name))
 
-    def peer_stopped(self, name: str) -> None:
-        self.heard.append(("stopped", name))
+    def peers_stopped(self, names: tuple[str, ...]) -> None:
+        self.heard.extend(("stopped", name) for name in names)
+        self.batches.append(names)
 
     def peer_started(self, name: str) -> None:
         self.heard.append(("started", name))
@@ -94,3 +96,16 @@ def test_a_hearer_monitoring_all_hears_every_start_until_it_stops() -> None:
     membership.started("z")
     membership.started("x")
     assert [("started", "y"), ("started", "x")] == restoring.heard
+
+
+def test_a_tree_stop_told_at_once_is_one_batch_to_each_hearer_less_its_own_name() -> None:
+    # A manager process told of the tree's stops so far (its supervisor's `PeersStopped`)
+    # told its registrar a message a name: N x N messages in a tree of N process managers.
+    membership = Membership()
+    hearers = [Hearer("a"), Hearer("b")]
+    for hearer in hearers:
+        membership.join(hearer)
+    membership.stopped("x", by="its supervisor")
+    membership.stopped_all(["x", "y", "a", "z"], by="its supervisor (the tree's stop)")
+    assert [h.batches for h in hearers] == [[("x",), ("y", "z")], [("x",), ("y", "a", "z")]]
+    assert membership.gone() == {"x": True, "y": True, "a": True, "z": True}

@@ -1215,6 +1215,108 @@ class TestAWholeTreesStop:
         assert (names[0], (names[3], names[2], names[1])) == told[2]
         assert 3 == len(told)  # one message to each manager stopped after another
 
+    def test_one_stop_of_a_tree_lists_no_carrier_and_walks_no_tree_whatever_its_size(
+        self, monkeypatch: pytest.MonkeyPatch, uid: str
+    ) -> None:
+        """Each stop of a tree's stop listed the carrier's registrars (a directory listing of
+        the whole system) and walked the tree three times, to find who hears of it: work
+        that grew with the tree at each of its N stops (issue 69, goal 3). Now the tree's
+        stop reads them once, as it begins: the same count for 2 managers as for 5."""
+        from rr_actors._supervision import tree  # noqa: PLC0415
+        from rr_actors._transport.unix.system import UnixCarrier  # noqa: PLC0415
+
+        counts = {"listings": 0, "walks": 0}
+        names, leaves = UnixCarrier.names, tree._leaves
+
+        def counted_names(self: UnixCarrier) -> list[str]:
+            counts["listings"] += 1
+            return names(self)
+
+        def counted_leaves(level: Any) -> Any:
+            counts["walks"] += 1
+            return leaves(level)
+
+        monkeypatch.setattr(UnixCarrier, "names", counted_names)
+        monkeypatch.setattr(tree, "_leaves", counted_leaves)
+        seen = []
+        for size in (2, 5):
+            sup = rr.Supervisor([process(f"m{n}-{size}-{uid}") for n in range(size)])
+            sup.start()
+            counts.update(listings=0, walks=0)
+            sup.stop()
+            seen.append(dict(counts))
+
+        assert seen[0] == seen[1]  # before: 2 listings and 6 walks, then 5 and 15
+        assert seen[1]["listings"] <= 1
+
+    def test_a_manager_process_hears_the_stops_before_its_own_in_one_message_to_its_registrar(
+        self, tmp_path: Path, uid: str
+    ) -> None:
+        """The manager stopped last heard the 3 stops before its own as 3 messages to its
+        registrar, one a name: in a tree of N, N²/2 messages in all (each a turn of a
+        registrar's mailbox), the last manager's stop N of them (issue 69, goal 3)."""
+        names = [f"m{n}-{uid}" for n in range(4)]
+        told = tmp_path / "told"
+
+        def setup(registrar: rr.ResourceRegistrar) -> None:
+            from rr_actors._core.directory import LocalPeer  # noqa: PLC0415
+            from rr_actors._registrar.messages import PeerLost, PeersStopped  # noqa: PLC0415
+
+            echo_setup(registrar)
+            tell = LocalPeer.tell
+
+            def counted_tell(self: LocalPeer, message: Any) -> None:
+                if isinstance(message, PeersStopped):
+                    with told.open("a") as out:
+                        out.write(" ".join(message.names) + "\n")
+                elif isinstance(message, PeerLost) and getattr(message, "stopped", False):
+                    with told.open("a") as out:
+                        out.write(message.name + "\n")
+                tell(self, message)
+
+            LocalPeer.tell = counted_tell  # type: ignore[method-assign]
+
+        sup = rr.Supervisor([process(names[0], setup), *(process(n) for n in names[1:])])
+        sup.start()
+        sup.stop()
+
+        assert [" ".join(reversed(names[1:]))] == told.read_text().splitlines()
+
+    def test_the_managers_waiting_for_their_stop_in_a_trees_stop_are_pinged_no_more(
+        self, monkeypatch: pytest.MonkeyPatch, uid: str
+    ) -> None:
+        """Each manager waiting for its turn was still pinged at its `heartbeat`: in a tree
+        of 1,000, 4,000 pings a second through the one watcher thread (and the cores the
+        stops share) all through the tree's stop (issue 69, goal 3). A hang now is caught
+        by its stop's bound (`shutdown`), as OTP's shutdown does."""
+        from rr_actors._process.control import Ping  # noqa: PLC0415
+        from rr_actors._process.manager import ManagerProcess  # noqa: PLC0415
+
+        provider, consumer = f"slow-{uid}", f"edge-{uid}"
+        pinged: list[str] = []
+        stopping = threading.Event()
+        send = ManagerProcess._send
+
+        def counted_send(self: ManagerProcess, message: Any) -> bool:
+            if stopping.is_set() and isinstance(message, Ping):
+                pinged.append(self.name)
+            return send(self, message)
+
+        def slow(registrar: rr.ResourceRegistrar) -> None:  # an unload of 0.5 s (workload)
+            registrar.register_server("r", load=lambda r: r, unload=lambda r, s: time.sleep(0.5))
+
+        def holds(registrar: rr.ResourceRegistrar) -> None:  # released at its stop (rule 12)
+            registrar.call(provider, "r", "x", timeout=30.0)
+
+        monkeypatch.setattr(ManagerProcess, "_send", counted_send)
+        beat = {"heartbeat": 0.05, "heartbeat_timeout": 60.0}
+        sup = rr.Supervisor([process(provider, slow, **beat), process(consumer, holds, **beat)])
+        sup.start()
+        stopping.set()
+        sup.stop()
+
+        assert [] == pinged  # before: the provider, every 0.05 s while its consumer stopped
+
     def test_a_tree_of_thread_managers_stops_with_no_peer_lost_sent_per_pair(
         self, monkeypatch: pytest.MonkeyPatch, uid: str
     ) -> None:
@@ -1226,17 +1328,17 @@ class TestAWholeTreesStop:
         names = [f"t{n}-{uid}" for n in range(4)]
         heard: list[tuple[str, str]] = []
         told: list[tuple[str, tuple[str, ...]]] = []
-        peer_stopped, tell_stopped = life.Hearing.peer_stopped, ThreadManager.tell_stopped
+        peers_stopped, tell_stopped = life.Hearing.peers_stopped, ThreadManager.tell_stopped
 
-        def counted_peer_stopped(self: life.Hearing, name: str) -> None:
-            heard.append((self.name, name))
-            peer_stopped(self, name)
+        def counted_peers_stopped(self: life.Hearing, stopped: tuple[str, ...]) -> None:
+            heard.extend((self.name, name) for name in stopped)
+            peers_stopped(self, stopped)
 
         def counted_tell(self: ThreadManager, stopped: tuple[str, ...]) -> None:
             told.append((self.spec.name, stopped))
             tell_stopped(self, stopped)
 
-        monkeypatch.setattr(life.Hearing, "peer_stopped", counted_peer_stopped)
+        monkeypatch.setattr(life.Hearing, "peers_stopped", counted_peers_stopped)
         monkeypatch.setattr(ThreadManager, "tell_stopped", counted_tell)
         sup = rr.Supervisor([rr.ManagerSpec(n, None, isolation="thread") for n in names])
         sup.start()
