@@ -1757,6 +1757,13 @@ class Servers:
         join.seal()
 
     def give_up(self, resource: Resource, then: Callable[[], None]) -> None:
+        self.release_all(resource, "name yielded")
+        self.registrar.teardown.unload_resource(
+            resource, self.registrar.come_back(lambda *_: then())
+        )
+
+    def release_all(self, resource: Resource, reason: str) -> None:
+        """Release every consumer of `resource` here, each published with `reason`."""
         released = list(resource.consumers.items())
         for query_id, _ in released:
             self.registrar.catalog.release(query_id)
@@ -1764,12 +1771,9 @@ class Servers:
             for query_id, origin in released:
                 self.registrar.events.publish(
                     events.ConsumerReleased(
-                        self.registrar.name, resource.id, query_id, origin, "name yielded"
+                        self.registrar.name, resource.id, query_id, origin, reason
                     )
                 )
-        self.registrar.teardown.unload_resource(
-            resource, self.registrar.come_back(lambda *_: then())
-        )
 
     def close_resource(self, resource: Resource, then: Callable[[], None]) -> None:
         self.registrar.probe("close_resource", resource)
@@ -1789,16 +1793,7 @@ class Servers:
             for origin, ids in consumers_by_origin(resource).items():
                 with contextlib.suppress(RrError):
                     DIRECTORY.lookup(origin).tell(Revoke(ids))
-            revoked = list(resource.consumers.items())
-            for qid, _ in revoked:
-                self.registrar.catalog.release(qid)
-            if self.registrar.events.active:
-                for qid, origin in revoked:
-                    self.registrar.events.publish(
-                        events.ConsumerReleased(
-                            self.registrar.name, resource.id, qid, origin, "server unregistered"
-                        )
-                    )
+            self.release_all(resource, "server unregistered")
             self.registrar.teardown.unload_resource(resource, done)
 
         event = runtime.new_id()
