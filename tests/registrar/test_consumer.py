@@ -953,8 +953,9 @@ class TestReconcile:
         # answered that Reconcile (it lists the failed call), and the consumer stamped the
         # id kept by A's life; B's own ask then left it out (`Flights.kept_at`: an earlier
         # life's kept ids are not listed), so B released the id while the call's retry was
-        # still to come, and the retry loaded it again. The forced interleaving: the retry
-        # attempt with A's life runs on the consumer's actor just before B's ask.
+        # still to come, and the retry loaded it again. Now a retried attempt is listed as
+        # to no known life. The forced interleaving: the retry attempt with A's life runs
+        # on the consumer's actor just before B's ask, which B then sends again.
         config, consumer, qid, serve, loads = failed_as_committed(tmp_path, started)
         dead_life = new_life()  # (A's: earlier than B's)
         shared = consumer._actor.ref.proxy().shared.get()
