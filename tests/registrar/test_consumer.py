@@ -979,14 +979,11 @@ class TestReconcile:
                 shared.presence.attempt(config.name, round_, 1, dead_life)
 
         asks: list[Any] = []
-        with (
-            intercept(consumer, "reconcile_ask", before=stale_retry_first, after=asks.append),
-        ):
+        with intercept(consumer, "reconcile_ask", before=stale_retry_first, after=asks.append):
             restarted = rr.ResourceRegistrar.start(config, setup=setup)
             started.append(restarted)
             assert reconciled.wait(10)
             run_on_actor(consumer, lambda: None).get(timeout=10)  # it handled the answers
-            reconciled.clear()
             count = len(reconciles)
             DIRECTORY.lookup(consumer.name).tell(asks[0])  # B asks again (once served)
             assert wait_for(lambda: len(reconciles) > count, 10)
