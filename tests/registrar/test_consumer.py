@@ -32,6 +32,7 @@ import rr_actors as rr
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._registrar import Served, life
 from rr_actors._registrar.consumer import Action, InFlight, decide
+from rr_actors._registrar.state import new_life
 from rr_actors.testing import (
     RemoteRegistrar,
     SharedObjects,
@@ -938,6 +939,57 @@ class TestReconcile:
             assert reconciled.wait(10)
             run_on_actor(consumer, lambda: None).get(timeout=10)
 
+        assert all(qid in held for held in reconciles), reconciles
+        assert [qid] == [q.id for q in restarted.server_queries("leaf")]  # still kept
+        retry = consumer.call(config.name, "leaf", "camera", query_id=qid, timeout=10)
+        assert ({"for": "camera"}, ["camera"]) == (retry.response, loads)
+
+    def test_a_failed_call_stays_kept_when_a_retried_reconcile_of_the_dead_run_reaches_its_restart(
+        self, tmp_path: Path, started: list[rr.ResourceRegistrar]
+    ) -> None:
+        # Rule 17 case 3 (`simways`, load 18: a `retry-kept` violation). The consumer's
+        # reconcile with the provider's run A failed as A died; its retry timer, armed with
+        # A's life, fired once the restart B listened and before B's ask was handled. B
+        # answered that Reconcile (it lists the failed call), and the consumer stamped the
+        # id kept by A's life; B's own ask then left it out (`Flights.kept_at`: an earlier
+        # life's kept ids are not listed), so B released the id while the call's retry was
+        # still to come, and the retry loaded it again. Now a retried attempt is listed as
+        # to no known life. The forced interleaving: the retry attempt with A's life runs
+        # on the consumer's actor just before B's ask, which B then sends again.
+        config, consumer, qid, serve, loads = failed_as_committed(tmp_path, started)
+        dead_life = new_life()  # (A's: earlier than B's)
+        shared = consumer._actor.ref.proxy().shared.get()
+        reconciles: list[Any] = []
+        reconciled = threading.Event()
+
+        def setup(registrar: rr.ResourceRegistrar) -> None:
+            serve(registrar)
+
+            def heard(message: Any) -> None:
+                reconciles.append(message.held)
+                if len(reconciles) >= 2:
+                    reconciled.set()
+
+            intercept(registrar, "reconcile", after=heard)
+
+        def stale_retry_first(message: Any) -> None:
+            if message.serving_rr == config.name and not reconciles:
+                round_ = shared.presence.round_count + 1
+                shared.presence.round_count = round_
+                shared.presence.attempt(config.name, round_, 1, dead_life)
+
+        asks: list[Any] = []
+        with intercept(consumer, "reconcile_ask", before=stale_retry_first, after=asks.append):
+            restarted = rr.ResourceRegistrar.start(config, setup=setup)
+            started.append(restarted)
+            assert reconciled.wait(10)
+            run_on_actor(consumer, lambda: None).get(timeout=10)  # it handled the answers
+            count = len(reconciles)
+            DIRECTORY.lookup(consumer.name).tell(asks[0])  # B asks again (once served)
+            assert wait_for(lambda: len(reconciles) > count, 10)
+            run_on_actor(consumer, lambda: None).get(timeout=10)
+
+        assert len(reconciles) >= 3
         assert all(qid in held for held in reconciles), reconciles
         assert [qid] == [q.id for q in restarted.server_queries("leaf")]  # still kept
         retry = consumer.call(config.name, "leaf", "camera", query_id=qid, timeout=10)
