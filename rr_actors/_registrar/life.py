@@ -743,14 +743,11 @@ class Presence:
         self.rounds[name] = (round_, attempt)
         self.lives[name], self.asks[name] = life, ask
         self.arm(name, round_, attempt + 1, self.registrar.config.call_timeout)
-        # a retried attempt may reach a later run than the one that asked (it died, its
-        # restart listens): listed as to no known life, or that run's answer would stamp
-        # the ids it keeps as an earlier run's, and its own ask release them (rule 17)
+        # a retry may reach a later run than the one that asked: to no known life, or the
+        # ids it keeps are stamped as an earlier run's, and its own ask releases them (rule 17)
+        life = life if attempt == 0 else ""
         self.registrar.reconciling.reconcile(
-            name,
-            then=lambda error: self.answered(name, round_, attempt, error),
-            life=life if attempt == 0 else "",
-            ask=ask,
+            name, then=lambda error: self.answered(name, round_, attempt, error), life=life, ask=ask
         )
 
     def answered(self, name: str, round_: int, attempt: int, error: BaseException | None) -> None:
