@@ -1288,19 +1288,25 @@ class TestAWholeTreesStop:
         """Each manager waiting for its turn was still pinged at its `heartbeat`: in a tree
         of 1,000, 4,000 pings a second through the one watcher thread (and the cores the
         stops share) all through the tree's stop (issue 69, goal 3). A hang now is caught
-        by its stop's bound (`shutdown`), as OTP's shutdown does."""
+        by its stop's bound (`shutdown`), as OTP's shutdown does. A turn of the watcher
+        that began before the stop may still send its one ping (CI, load 6: one, of the
+        provider): at most one each; before, about ten of the provider's."""
         from rr_actors._process.control import Ping  # noqa: PLC0415
         from rr_actors._process.manager import ManagerProcess  # noqa: PLC0415
 
         provider, consumer = f"slow-{uid}", f"edge-{uid}"
         pinged: list[str] = []
-        stopping = threading.Event()
-        send = ManagerProcess._send
+        quieted: set[str] = set()
+        send, quiet = ManagerProcess._send, ManagerProcess.quiet
 
         def counted_send(self: ManagerProcess, message: Any) -> bool:
-            if stopping.is_set() and isinstance(message, Ping):
+            if self.name in quieted and isinstance(message, Ping):
                 pinged.append(self.name)
             return send(self, message)
+
+        def counted_quiet(self: ManagerProcess) -> None:
+            quieted.add(self.name)
+            quiet(self)
 
         def slow(registrar: rr.ResourceRegistrar) -> None:  # an unload of 0.5 s (workload)
             registrar.register_server("r", load=lambda r: r, unload=lambda r, s: time.sleep(0.5))
@@ -1309,13 +1315,15 @@ class TestAWholeTreesStop:
             registrar.call(provider, "r", "x", timeout=30.0)
 
         monkeypatch.setattr(ManagerProcess, "_send", counted_send)
+        monkeypatch.setattr(ManagerProcess, "quiet", counted_quiet)
         beat = {"heartbeat": 0.05, "heartbeat_timeout": 60.0}
         sup = rr.Supervisor([process(provider, slow, **beat), process(consumer, holds, **beat)])
         sup.start()
-        stopping.set()
         sup.stop()
 
-        assert [] == pinged  # before: the provider, every 0.05 s while its consumer stopped
+        assert {provider, consumer} == quieted
+        # before: the provider's, every 0.05 s while its consumer stopped
+        assert all(pinged.count(name) <= 1 for name in quieted), pinged
 
     def test_a_tree_of_thread_managers_stops_with_no_peer_lost_sent_per_pair(
         self, monkeypatch: pytest.MonkeyPatch, uid: str
