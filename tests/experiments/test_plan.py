@@ -82,7 +82,7 @@ def test_a_top_supervisor_with_a_restart_type_is_refused() -> None:
     assert (5, "tree.restart") == (error.line, error.key)
     assert (
         "unknown key; known here: backoff, children, max_restarts, name, period, state, "
-        + ("strategy")
+        + ("stop, strategy")
         == error.problem
     )
 
