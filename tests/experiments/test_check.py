@@ -2777,6 +2777,26 @@ def _delivered(h: History) -> list[int]:
     return [i for i, e in enumerate(h) if type(e) is events.StatusDelivered and e.status_id]
 
 
+def _its_own_way(
+    h: History, paths: Callable[[events.StatusDelivered], set[tuple[str, int, str, int]]]
+) -> dict[tuple[str, int, str, int, int], list[events.StatusDelivered]]:
+    """(sender, pid, holder, pid, hop) -> the deliveries on that path no `Unload`'s answer
+    may have carried: none after its id's first release on an `Unload` (as
+    `status-reached` reads them)."""
+    on_unload: dict[str, int] = {}
+    for e in h:
+        if type(e) is events.ConsumerReleased and e.reason == "unload":
+            on_unload[e.query_id] = min(on_unload.get(e.query_id, e.hlc), e.hlc)
+    ways: dict[tuple[str, int, str, int, int], list[events.StatusDelivered]] = {}
+    for e in h:
+        if type(e) is not events.StatusDelivered or not e.status_id:
+            continue
+        if on_unload.get(e.query_id, e.hlc + 1) >= e.hlc:
+            for path in paths(e):
+                ways.setdefault((*path, e.hop), []).append(e)
+    return ways
+
+
 def drop_delivery(h: History) -> History | None:
     """The last hop of a status a provider sent (or a consumer told itself) is lost.
 
@@ -2803,7 +2823,10 @@ def drop_delivery(h: History) -> History | None:
     id its holder later forgot as `unload unanswered`, when the status reached no other id
     of that registrar at that hop: its sender died with the batch maybe unsent (real
     `simways` runs, 2026-11-27: another process's registrars had it, this one not);
-    one that reached another id of it arrived, and is owed (`status-reached`).
+    one that reached another id of it arrived, and is owed (`status-reached`). Only one
+    whose sender's way to that registrar took the same status to another id, or a later
+    status, that no `Unload`'s answer carried: else it may have waited in a sender killed
+    soon after (a real `simways` run in CI, 2026-11-27; `status-reached`'s `_queued`).
     """
     left: set[str] = set()  # ids released at their provider or forgotten so far
     answered = {e.query_id: e.hlc for e in h if type(e) is events.CallAnswered}
@@ -2843,6 +2866,18 @@ def drop_delivery(h: History) -> History | None:
     def alone(e: events.StatusDelivered) -> bool:
         return at_hop[e.status_id, e.registrar, e.hop] == {e.query_id}
 
+    ways = _its_own_way(h, paths)
+
+    def owed(e: events.StatusDelivered) -> bool:
+        """Something its sender sent the holder's registrar with it or after it came its own
+        way (`status-reached` owes it then: a sender killed right after may have held it)."""
+        return any(
+            (d.status_id == e.status_id and d.query_id != e.query_id)
+            or (e.hop == 1 and sent.get(d.status_id, 0) > sent.get(e.status_id, 0))
+            for path in paths(e)
+            for d in ways.get((*path, e.hop), ())
+        )
+
     found = []
     for i, e in enumerate(h):
         if type(e) is events.ConsumerReleased or type(e) is events.QueryForgotten:
@@ -2855,6 +2890,7 @@ def drop_delivery(h: History) -> History | None:
             and went_on(e)
             and all(reached[path] > 1 for path in paths(e))
             and not (e.query_id in unanswered and alone(e))
+            and owed(e)
         ):
             found.append(i)
     if not found:
