@@ -1325,12 +1325,16 @@ def first_status_of_a_life(
             events.ConsumerAdded("db", RID, "q3", "client-0", pid=P),
             events.CallAnswered("client-0", "q3", "db", "resource", pid=C),
         ]
-    if earlier:
-        h += [
-            events.StatusSent("db", Q1, warning, "hot", "s0", pid=P),
-            events.StatusDelivered("client-0", Q1, warning, 1, 0.0, "s0", pid=C),
-            events.StatusDelivered("client-1", Q2, warning, 1, 0.0, "s0", pid=C),
+
+    def to_both(status_id: str) -> list[events.Event]:
+        return [
+            events.StatusSent("db", Q1, warning, "hot", status_id, pid=P),
+            events.StatusDelivered("client-0", Q1, warning, 1, 0.0, status_id, pid=C),
+            events.StatusDelivered("client-1", Q2, warning, 1, 0.0, status_id, pid=C),
         ]
+
+    if earlier:
+        h += to_both("s0")
     h += [
         events.StatusSent("db", Q1, warning, "hot", "s1", pid=P),
         events.StatusDelivered("client-1", Q2, warning, 1, 0.0, "s1", pid=C),
@@ -1344,11 +1348,7 @@ def first_status_of_a_life(
             events.QueryForgotten("client-0", "q3", "db", "unload", pid=C),
         ]
     if later:
-        h += [
-            events.StatusSent("db", Q1, warning, "hot", "s3", pid=P),
-            events.StatusDelivered("client-0", Q1, warning, 1, 0.0, "s3", pid=C),
-            events.StatusDelivered("client-1", Q2, warning, 1, 0.0, "s3", pid=C),
-        ]
+        h += to_both("s3")
     h.append(events.ConsumerAdded("db", RID, "q9", "client-2", pid=P))  # (it went on)
     history = _stamped(h)
     sent = next(e for e in history if type(e) is events.StatusSent and e.status_id == "s1")
