@@ -27,9 +27,12 @@ QUICK_ROUNDS = 1
 QUICK_BATCH = 5
 
 
-def options(doc: str | None, *, rounds: int, batch: int | None = None) -> argparse.ArgumentParser:
-    """A parser with `--rounds` (default `rounds`), `--batch` (when `batch` is given) and
-    `--quick`; `parse` applies `--quick`. The description is `doc`'s first line."""
+def options(
+    doc: str | None, *, rounds: int | None, batch: int | None = None
+) -> argparse.ArgumentParser:
+    """A parser with `--rounds` (default `rounds`; `None`: the script chooses), `--batch`
+    (when `batch` is given) and `--quick`; `parse` applies `--quick`. The description is
+    `doc`'s first line."""
     parser = argparse.ArgumentParser(description=(doc or "").splitlines()[0])
     parser.add_argument("--rounds", type=int, default=rounds, help="alternated rounds")
     if batch is not None:

@@ -77,9 +77,6 @@ SMALLEST = {
         *("--max-pending", "20", "--bystander"),
     ],
     "bench_otel.py": ["--quick"],
-    "bench_otel_acall.py": ["--count", "20", "--batch", "5"],
-    "bench_otel_cross.py": ["--quick"],
-    "bench_otel_mission.py": ["--rounds", "1", "--faults", "F4", "--distance", "2"],
     "bench_import.py": ["--quick"],
     "bench_jobs.py": ["--plan", "simchain", "--seeds", "1-2"],
     "experiment_phases.py": ["first", "--repeat", "1", "--duration", "1.2"],
@@ -133,6 +130,12 @@ SMALLEST = {
 }
 """The quickest arguments of each benchmark script (every script must be listed here)."""
 
+ALSO = {
+    "bench_otel.py --where cross": ["--quick"],
+    "bench_otel.py --where mission": ["--rounds", "1", "--faults", "F4", "--distance", "2"],
+}
+"""The other modes of a script that measures one thing several ways: their quickest arguments."""
+
 CEILING = 480.0
 """Seconds a script may run before it counts as hung (twice the slowest seen, loaded)."""
 
@@ -164,6 +167,16 @@ def test_the_benchmark_runs_and_prints_a_table(script: str) -> None:
     done = run(script, "", *SMALLEST[script])
 
     assert done.stdout.strip(), f"{script} printed nothing"
+
+
+@pytest.mark.timeout(CEILING + 10)
+@pytest.mark.parametrize("mode", sorted(ALSO))
+def test_the_benchmark_runs_and_prints_a_table_in_each_of_its_other_modes(mode: str) -> None:
+    script, _, words = mode.partition(" ")
+
+    done = run(script, words, *ALSO[mode])
+
+    assert done.stdout.strip(), f"{mode} printed nothing"
 
 
 @pytest.mark.timeout(CEILING + 10)
