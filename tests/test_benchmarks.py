@@ -118,7 +118,6 @@ SMALLEST = {
     "count_cross.py": ["--calls", "5", "--profile", "--durable"],
     "count_dedup.py": ["--calls", "5", "--profile"],
     "count_links.py": ["--counts", "3", "--restarts", "1"],
-    "count_restart.py": ["--rounds", "1"],
     "minimal_hit.py": ["--rounds", "1"],
     "planted_bugs.py": ["--only", "dedup", "--seeds", "3"],
     "mutation_score.py": [
