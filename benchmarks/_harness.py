@@ -28,13 +28,14 @@ QUICK_BATCH = 5
 
 
 def options(
-    doc: str | None, *, rounds: int | None, batch: int | None = None
+    doc: str | None, *, rounds: int | None = None, batch: int | None = None
 ) -> argparse.ArgumentParser:
-    """A parser with `--rounds` (default `rounds`; `None`: the script chooses), `--batch`
-    (when `batch` is given) and `--quick`; `parse` applies `--quick`. The description is
+    """A parser with `--quick`, `--rounds` (when `rounds` is given; 0: the script chooses)
+    and `--batch` (when `batch` is given); `parse` applies `--quick`. The description is
     `doc`'s first line."""
     parser = argparse.ArgumentParser(description=(doc or "").splitlines()[0])
-    parser.add_argument("--rounds", type=int, default=rounds, help="alternated rounds")
+    if rounds is not None:
+        parser.add_argument("--rounds", type=int, default=rounds, help="alternated rounds")
     if batch is not None:
         parser.add_argument("--batch", type=int, default=batch, help="operations a round")
     parser.add_argument("--quick", action="store_true", help="the smallest run")
@@ -45,7 +46,8 @@ def parse(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> argpar
     """`parser.parse_args(argv)`, with `--quick` setting the rounds and the batch."""
     args = parser.parse_args(argv)
     if args.quick:
-        args.rounds = QUICK_ROUNDS
+        if hasattr(args, "rounds"):
+            args.rounds = QUICK_ROUNDS
         if hasattr(args, "batch"):
             args.batch = QUICK_BATCH
     return args
@@ -157,3 +159,26 @@ def commit() -> str:
         check=False,
     )
     return done.stdout.strip() or "?"
+
+
+def cpu_seconds(pids: Iterable[int]) -> float:
+    """CPU seconds so far of every live thread of the processes `pids` (Linux schedstat;
+    a thread or process that ended meanwhile is missed)."""
+    total = 0
+    for pid in pids:
+        with contextlib.suppress(OSError):
+            for task in os.listdir(f"/proc/{pid}/task"):
+                with contextlib.suppress(OSError), open(f"/proc/{pid}/task/{task}/schedstat") as s:
+                    total += int(s.read().split()[0])
+    return total / 1e9
+
+
+def memory_kib(pid: int | None = None, field: str = "VmRSS") -> int | None:
+    """Process `pid`'s (this one's if `None`) `VmRSS` (from `status`) or `Pss` (from
+    `smaps_rollup`) in KiB; `None` where it cannot be read (Linux only)."""
+    where = f"/proc/{pid or 'self'}/{'status' if field == 'VmRSS' else 'smaps_rollup'}"
+    with contextlib.suppress(OSError), open(where) as lines:
+        for line in lines:
+            if line.startswith(f"{field}:"):
+                return int(line.split()[1])
+    return None

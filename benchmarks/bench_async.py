@@ -60,15 +60,6 @@ class Echo(pykka.ThreadingActor):
         return message
 
 
-def rss_mib() -> float:
-    """This process's resident set now, in MiB (Linux: /proc/self/status)."""
-    with open("/proc/self/status") as status:
-        for line in status:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    return float("nan")
-
-
 async def _noop_unload(_request: Any, _response: Any) -> None:
     return None
 
@@ -102,7 +93,7 @@ async def in_flight(calls: int) -> dict[str, Any]:
 
     try:
         await provider.aregister_server("slow", load=load, unload=_noop_unload)
-        rss_before = rss_mib()
+        rss_before = (_harness.memory_kib() or 0) / 1024
         begun = time.perf_counter()
         tasks = [
             asyncio.ensure_future(consumer.acall(provider.name, "slow", n)) for n in range(calls)
@@ -110,7 +101,7 @@ async def in_flight(calls: int) -> dict[str, Any]:
         await asyncio.wait_for(asyncio.wrap_future(all_started), 120.0)
         waiting = time.perf_counter() - begun
         threads = threading.active_count()
-        rss = rss_mib()
+        rss = (_harness.memory_kib() or 0) / 1024
         gate.set_result(None)
         queries = await asyncio.gather(*tasks)
         answered = sum(1 for q in queries if q.response == q.request)

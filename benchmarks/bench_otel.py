@@ -135,18 +135,6 @@ class InProcess:
         return took / batch
 
 
-def cpu_seconds(pids: list[int]) -> float:
-    """CPU seconds so far of the live threads of `pids` (0.0 where /proc has none)."""
-    total = 0
-    for pid in pids:
-        with contextlib.suppress(OSError):
-            for task in os.listdir(f"/proc/{pid}/task"):
-                path = f"/proc/{pid}/task/{task}/schedstat"
-                with contextlib.suppress(OSError), open(path) as stat:  # (one ended)
-                    total += int(stat.read().split()[0])
-    return total / 1e9
-
-
 def serve(registrar: rr.ResourceRegistrar) -> None:
     registrar.register_server("res", load=lambda r: r, unload=lambda _q, _r: None)
 
@@ -273,7 +261,7 @@ class Cross:
             subscription = tracing._subscription  # (None: not subscribed, tracing off)
         pids = [os.getpid(), self.sup.child(self.name).pid or 0]
         with span:
-            cpu = cpu_seconds(pids)
+            cpu = _harness.cpu_seconds(pids)
             began = time.perf_counter()
             held = [call(name, "res", "shared", timeout=60).id for _ in range(batch)]
             app.client_queries(timeout=60)  # (a later turn: the last CallAnswered is out)
@@ -283,7 +271,7 @@ class Cross:
             if exporting is not None:
                 exporting[1].force_flush(timeout_millis=60_000)
             took = time.perf_counter() - began
-            self.cpu[row].append((cpu_seconds(pids) - cpu) / batch)
+            self.cpu[row].append((_harness.cpu_seconds(pids) - cpu) / batch)
         for query_id in held:
             app.unload(query_id, timeout=60)
         app.client_queries(timeout=60)
@@ -401,7 +389,7 @@ def mission(args: Any) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = _harness.options(__doc__, rounds=None, batch=0)
+    parser = _harness.options(__doc__, rounds=0, batch=0)
     parser.add_argument("--where", choices=list(DEFAULTS), default="call", help="what is traced")
     parser.add_argument(
         "--exporter",

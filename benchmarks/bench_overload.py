@@ -58,19 +58,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import _harness
+
 import rr_actors as rr
 
 
 def rss_mib(pid: int | None = None) -> float:
-    """The resident set of process `pid` (this one if `None`) now, in MiB (Linux)."""
-    try:
-        with open(f"/proc/{pid or 'self'}/status") as status:
-            for line in status:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) / 1024
-    except OSError:
-        pass
-    return float("nan")
+    return (_harness.memory_kib(pid) or 0) / 1024
 
 
 def server_setup(log: str, load_s: float, workers: int, kind: str) -> Callable[[Any], None]:

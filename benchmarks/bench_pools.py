@@ -30,7 +30,8 @@ import signal
 import statistics
 import tempfile
 import time
-from pathlib import Path
+
+import _harness
 
 import rr_actors as rr
 from rr_actors._process.control import forker_pid
@@ -43,15 +44,7 @@ def setup(registrar: rr.ResourceRegistrar) -> None:
 
 
 def pss_kib(pid: int) -> int:
-    """The proportional set size of process `pid` in KiB (0 where it cannot be read)."""
-    try:
-        text = Path(f"/proc/{pid}/smaps_rollup").read_text()
-    except OSError:
-        return 0
-    for line in text.splitlines():
-        if line.startswith("Pss:"):
-            return int(line.split()[1])
-    return 0
+    return _harness.memory_kib(pid, "Pss") or 0
 
 
 def forkserver_pid() -> int:

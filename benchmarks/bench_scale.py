@@ -64,6 +64,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import _harness
 import pykka
 
 import rr_actors as rr
@@ -135,15 +136,7 @@ class Floor:
 
 
 def pss_kib(pid: int) -> int | None:
-    """The proportional set size of process `pid` in KiB (`None` where it cannot be read)."""
-    try:
-        text = Path(f"/proc/{pid}/smaps_rollup").read_text()
-    except OSError:
-        return None
-    for line in text.splitlines():
-        if line.startswith("Pss:"):
-            return int(line.split()[1])
-    return None
+    return _harness.memory_kib(pid, "Pss")
 
 
 def start_managers(

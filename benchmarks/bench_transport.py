@@ -34,6 +34,7 @@ import uuid
 from collections.abc import Callable, Iterator
 from typing import Any
 
+import _harness
 import cloudpickle
 
 import rr_actors as rr
@@ -127,20 +128,6 @@ def registrar_child(
 # -- measurements -------------------------------------------------------------------------------
 
 
-def cpu_seconds(pids: list[int]) -> float | None:
-    """Seconds on a CPU so far of every thread of processes `pids` (`None` off Linux)."""
-    total = 0
-    try:
-        for pid in pids:
-            for task in os.listdir(f"/proc/{pid}/task"):
-                path = f"/proc/{pid}/task/{task}/schedstat"
-                with contextlib.suppress(FileNotFoundError), open(path) as stat:  # (one ended)
-                    total += int(stat.read().split()[0])
-    except OSError:
-        return None
-    return total / 1e9
-
-
 CPU: dict[str, float] = {}
 """CPU seconds per timed round of a row (`timed(..., cpu=(row, pids))`), both processes."""
 
@@ -153,14 +140,13 @@ def timed(
     for _ in range(warmup):
         fn()
     samples = []
-    before = None if cpu is None else cpu_seconds(cpu[1])
+    before = 0.0 if cpu is None else _harness.cpu_seconds(cpu[1])
     for _ in range(rounds):
         start = time.perf_counter()
         fn()
         samples.append(time.perf_counter() - start)
-    after = None if cpu is None else cpu_seconds(cpu[1])
-    if cpu is not None and before is not None and after is not None:
-        CPU[cpu[0]] = (after - before) / rounds
+    if cpu is not None:
+        CPU[cpu[0]] = (_harness.cpu_seconds(cpu[1]) - before) / rounds
     return samples
 
 

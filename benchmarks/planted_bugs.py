@@ -32,42 +32,9 @@ the docs' figures:
 `--baseline` runs the plans on the unedited copy instead and prints every violated rule
 it met (what the search finds in today's code).
 
-Why these plans: no shipped plan simulated as shipped (each has a `[compare]` or a fault
-kind the simulation did not inject yet), so two were added to
-`rr_actors_lab/experiments/plans/` for this: `simchain` (a chain `api -> db` under kills,
-restored from backups: restores, lazy reads, reconciles, consumers restarted; and a
-temporary manager lost for good: a `FATAL` climbing a dependency path) and `simretry`
-(one manager killed every 0.1-0.3 s while four clients call it back to back: retries
-through restarts, racing the clients' reconciles). The retry plant was not found in 300
-seeds of `simchain`: its window needs a `Load` on its way when the provider dies and
-its retry answered before the client's actor handles the reconcile's answer. A third,
-`simheal`, serves `db` on both sides of a cut (the sim-only fault `split_brain`) for
-the plant `heal-no-yield` (rule 22: the one served later never gives way).
-
-Issue 51 section 2 (a reviewer's hidden plants, in eight areas) added the plants from
-`status-seen-server` on, written as that reviewer would (benchmarks/NOTES.md has their
-table and those tried and dropped). Two needed more than the shipped plans and rules:
-`restore-no-parents` broke no rule until the checker gained `dependency-held`, and
-`status-seen-server` and `forget-before-carried` need `simshare` (one dependency shared
-by many resources of one server, a status about it climbing to all of them).
-
-Issue 51 section 2's `strategy` and `escalation` rules have four plants: three on
-`crashloop` (its `pool` is one_for_all, a nested supervisor that gives up) and
-`rest-for-one-before` on `simrest`, added for it (no simulated plan had a rest_for_one
-tree: `first` and `strategies` compare one, and the simulation runs a plan's first value).
-
-Issue 51's withdrawn ids are the plant `withdrawn` (`retry_held_at` undone). The other
-half of that fix, `DueAnswers.frozen` handing a `Reconcile` the withdrawn calls whose
-`CallFailed` the actor has not handled yet, is not a plant: undone alone, 300 seeds
-of `simcancel` held (164 CPU s), so a full run would spend its 10,000 seeds on it.
-
-Issue 51's "program restarted" (a registrar without a backup, started again on a
-`state_dir`, is told it lost everything: `tree.ran_before`) is the plant
-`program-restart`, on `simprogram`: its fault `kill_program` (simulation only) SIGKILLs
-the run's program (its tree and its clients, a simulated process of their own) and
-starts it again on the same `state_dir`. That plan also found the fix racy: told
-through the directory, a consumer just started was "still starting" and the message
-was dropped (55 of seeds 1-60 violated `left`); it is told through its handle now.
+The plans a plant names are shipped ones (`simchain`, `simretry`, `simheal`, `simshare`,
+`simrest`, `simprogram`, ... were added for plants no other plan reached); why each plant
+and plan was chosen, and those tried and dropped, is in git (`git log -- benchmarks/`).
 """
 
 from __future__ import annotations

@@ -97,10 +97,6 @@ SMALLEST = {
     "bench_trees.py": ["--counts", "2", "--kills", "1"],
     "bench_simulation_fidelity.py": ["--seeds", "1", "--runs", "2", "--duration", "0.5"],
     "bench_teach.py": ["--seeds", "1", "--only", "camera"],
-    "bench_teach_replay.py": [
-        *("--exercises", "camera", "--seeds", "1", "--jumps", "5", "--clicks", "2"),
-        *("--branches", "1", "--duration", "0.5"),
-    ],
     "bench_supervisor.py": ["--sizes", "10", "--crashes", "1", "--forkserver-first"],
     "bench_three_hosts.py": ["--rounds", "20", "--cuts", "1"],
     "bench_transport.py": ["--rounds", "20", "--paired-rounds", "2"],
@@ -131,6 +127,10 @@ SMALLEST = {
 
 ALSO = {
     "bench_otel.py --where cross": ["--quick"],
+    "bench_teach.py --what replay": [
+        *("--exercises", "camera", "--seeds", "1", "--jumps", "5", "--clicks", "2"),
+        *("--branches", "1", "--duration", "0.5"),
+    ],
     "bench_otel.py --where mission": ["--rounds", "1", "--faults", "F4", "--distance", "2"],
 }
 """The other modes of a script that measures one thing several ways: their quickest arguments."""
