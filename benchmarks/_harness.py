@@ -182,3 +182,11 @@ def memory_kib(pid: int | None = None, field: str = "VmRSS") -> int | None:
             if line.startswith(f"{field}:"):
                 return int(line.split()[1])
     return None
+
+
+def head(title: str | None, columns: Sequence[str], *, right: int = 1) -> None:
+    """Print `title` (unless `None`), then the first two lines of `table(columns, ...)`:
+    for a script that prints its rows (`| a | b |`) as it measures them."""
+    if title is not None:
+        print(title)
+    print(table(columns, [], right=right))

@@ -66,7 +66,7 @@ def _registrar_main(
 ) -> None:
     """Serve one registrar on the system until the control pipe says stop (or closes).
 
-    Anything else on the control pipe is answered with `answer(it)` (`count_cross.py`'s
+    Anything else on the control pipe is answered with `answer(it)` (`count_dedup.py --cross`'s
     marks).
     """
     attached = attach(address)
@@ -379,8 +379,7 @@ def paired_rows(
         f"turn; ratio = the median of the rounds' ratios (lowest-highest round)"
     )
     print()
-    print("| measurement | median us | ratio to bytes | ratio to objects |")
-    print("|---|---:|---:|---:|")
+    _harness.head(None, ["measurement", "median us", "ratio to bytes", "ratio to objects"])
     names = {
         "bytes": "raw Pipe round trip, send_bytes, paired (floor)",
         "objects": "raw Pipe round trip, send/recv objects, paired",
@@ -403,8 +402,7 @@ def print_rows(rounds: int, rows: list[tuple[str, list[float]]]) -> None:
     floor = statistics.median(rows[0][1])
     print(f"rounds per row: {rounds}; times in microseconds; ratio = median / raw bytes median")
     print()
-    print("| measurement | median us | p90 us | ratio |")
-    print("|---|---:|---:|---:|")
+    _harness.head(None, ["measurement", "median us", "p90 us", "ratio"])
     for name, samples in rows:
         if samples:  # (`--only` skips some)
             print(row(name, samples, floor))
@@ -489,8 +487,7 @@ def print_cpu() -> None:
     print()
     print("CPU time per round trip, every thread of both processes (us; ratio to the floor's)")
     print()
-    print("| measurement | CPU us | ratio |")
-    print("|---|---:|---:|")
+    _harness.head(None, ["measurement", "CPU us", "ratio"])
     for name, seconds in CPU.items():
         print(f"| {name} | {seconds * 1e6:9.1f} | {seconds / floor:6.2f}x |")
 

@@ -44,17 +44,27 @@ gives both registrars a backup with `save_on_modify` (a temporary folder). `--us
 makes the request an instance of a user class (its `repr`, `==` and `hash` are user
 code, run off the actor thread).
 
+`--cross`: the consumer in this process calls a provider in a process of its own (the
+AF_UNIX carrier, as `bench_transport.py` sets it up); rows `hit` and `unload`, counted in
+each process: `cpu`, the CPU of every thread of both processes and their voluntary
+context switches (thread wake-ups, from `/proc`); `callgrind`, followed into the
+provider's process (it calls `getsid` at each mark when the control pipe asks it);
+`bytecodes` (`--profile`), each process's.
+
 Usage:
     python benchmarks/count_dedup.py [--calls 1000]
         [--count cpu|callgrind|bytecodes|protocol|commits] [--rounds 5] [--user] [--profile]
-        [--durable] [--durability process|power]
+        [--durable] [--durability process|power] [--cross]
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
+import glob
 import itertools
+import multiprocessing
+import multiprocessing.connection
 import os
 import re
 import resource
@@ -63,15 +73,20 @@ import subprocess
 import sys
 import tempfile
 import threading
+import uuid
 from collections.abc import Callable
 from pathlib import Path
 from types import CodeType, FrameType
 from typing import Any
 
+import _harness
 import pykka
+from bench_transport import _registrar_main, registrar_child, setup_echo
 
 import rr_actors as rr
 from rr_actors._core.actor import Actor
+from rr_actors._registrar import Served
+from rr_actors._transport.unix.system import System, SystemAddress
 
 PACKAGE = Path(rr.__file__).resolve().parent
 OPERATIONS = ("hit", "unload", "pykka", "actor")
@@ -109,7 +124,7 @@ def _noop(*_: object) -> None:
     return None
 
 
-# -- counting, shared with count_cross.py --------------------------------------------------------
+# -- counting, in one process and across (`--cross`) ------------------------------------------
 
 
 def where(code: CodeType) -> str:
@@ -341,9 +356,10 @@ def cpu(bench: Bench, calls: int, rounds: int) -> None:
             switches = after.ru_nvcsw + after.ru_nivcsw - before.ru_nvcsw - before.ru_nivcsw
             samples[name].append((seconds / calls * 1e6, switches / calls))
     floor = statistics.median(s[0] for s in samples["pykka"])
-    print(f"{rounds} rounds x {calls} of each operation, CPU of every thread, medians")
-    print("| operation | CPU per op (us) | context switches per op | / pykka ask |")
-    print("|---|---:|---:|---:|")
+    _harness.head(
+        f"{rounds} rounds x {calls} of each operation, CPU of every thread, medians",
+        ["operation", "CPU per op (us)", "context switches per op", "/ pykka ask"],
+    )
     for name, rows in samples.items():
         us = statistics.median(s[0] for s in rows)
         switches = statistics.median(s[1] for s in rows)
@@ -373,9 +389,10 @@ def commits(calls: int, durability: str) -> None:
     tables = {"durable": side_commits(calls, durability, made, durable_consumer=True)}
     tables["plain"] = side_commits(calls, durability, made, durable_consumer=False)
     SqliteStore._run = run  # type: ignore[method-assign]
-    print(f"SQLite commits per operation, one caller, durability={durability} ({calls} each)")
-    print("| operation | commits | provider | consumer | plain consumer: commits (its side) |")
-    print("|---|---:|---:|---:|---:|")
+    _harness.head(
+        f"SQLite commits per operation, one caller, durability={durability} ({calls} each)",
+        ["operation", "commits", "provider", "consumer", "plain consumer: commits (its side)"],
+    )
     for name, (provider, consumer) in tables["durable"].items():
         plain_p, plain_c = tables["plain"][name]
         print(
@@ -449,9 +466,10 @@ def counted(args: argparse.Namespace) -> None:
     if bytecodes is None:
         return
     n = len(OPERATIONS)
-    print(f"Python bytecodes per operation, every thread ({args.calls} and {3 * args.calls})")
-    print("| operation | bytecodes | function calls | distinct functions |")
-    print("|---|---:|---:|---:|")
+    _harness.head(
+        f"Python bytecodes per operation, every thread ({args.calls} and {3 * args.calls})",
+        ["operation", "bytecodes", "function calls", "distinct functions"],
+    )
     for name, first, second in zip(OPERATIONS, marks[:n], marks[n:], strict=True):
         ops, made, distinct = bytecode_row(first, second, args.calls)
         print(f"| {name} | {ops:.0f} | {made:.1f} | {distinct} |")
@@ -478,9 +496,10 @@ def callgrind(args: argparse.Namespace) -> None:
         name: per_operation(first, second, args.calls)
         for name, first, second in zip(OPERATIONS, totals[:n], totals[n:], strict=True)
     }
-    print(f"instructions per operation, every thread ({args.calls} and {3 * args.calls})")
-    print("| operation | instructions | / pykka ask |")
-    print("|---|---:|---:|")
+    _harness.head(
+        f"instructions per operation, every thread ({args.calls} and {3 * args.calls})",
+        ["operation", "instructions", "/ pykka ask"],
+    )
     for name, count in per.items():
         print(f"| {name} | {count / 1e3:.1f}k | {count / per['pykka']:.2f}x |")
 
@@ -563,6 +582,199 @@ def protocol(calls: int) -> None:
             RegistrarActor.on_start = start  # type: ignore[method-assign]
 
 
+# -- across processes (`--cross`) ---------------------------------------------------------
+
+
+CROSS_OPERATIONS = ("hit", "unload")
+
+
+def _threads(pid: int) -> tuple[float, int]:
+    """CPU seconds and voluntary context switches so far of every thread of `pid`."""
+    cpu, switches = 0.0, 0
+    for task in glob.glob(f"/proc/{pid}/task/*"):
+        try:
+            with open(f"{task}/schedstat") as stat:
+                cpu += int(stat.read().split()[0]) / 1e9
+            with open(f"{task}/status") as status:
+                for line in status:
+                    if line.startswith("voluntary_ctxt_switches"):
+                        switches += int(line.split()[1])
+        except OSError:  # (a thread that ended meanwhile)
+            continue
+    return cpu, switches
+
+
+class CrossCPU:
+    """Marks for `--count cpu`: every thread's CPU and wake-ups so far, of both processes."""
+
+    def __init__(self, pids: tuple[int, int]) -> None:
+        self.pids = pids
+
+    def mark(self) -> list[tuple[float, int]]:
+        return [_threads(pid) for pid in self.pids]
+
+
+def _cross_provider(
+    address: SystemAddress,
+    name: str,
+    setup: bytes,
+    control: multiprocessing.connection.Connection,
+    count: str,
+) -> None:
+    """The provider's process: its counter started first, each mark answered with it."""
+    marker: Bytecodes | Callgrind | None = None
+    if count == "bytecodes":
+        marker = Bytecodes()
+        marker.start()
+    elif count == "inside-callgrind":
+        marker = Callgrind()
+    _registrar_main(address, name, setup, control, lambda _: marker and marker.mark())
+
+
+def _cross_config(name: str, folder: str | None) -> rr.RegistrarConfig:
+    """`name`'s configuration: with a `folder` (`--durable`), a backup there with
+    `save_on_modify`."""
+    if folder is None:
+        return rr.RegistrarConfig(name=name)
+    backup = Path(folder, f"{name}.db")
+    return rr.RegistrarConfig(name=name, backup_path=backup, save_on_modify=True)
+
+
+def cross_run(calls: int, count: str, durable: bool = False) -> list[Any]:
+    """Each operation `calls` times, then `3 * calls` times: the marks of both processes."""
+    with tempfile.TemporaryDirectory() as folder:
+        return _cross_run(calls, count, folder if durable else None)
+
+
+def _cross_run(calls: int, count: str, folder: str | None) -> list[Any]:
+    ctx = multiprocessing.get_context("forkserver")
+    own: Bytecodes | Callgrind | CrossCPU | None = None
+    if count == "bytecodes":
+        own = Bytecodes()
+        own.start()  # (before any thread starts)
+    system = System.create()
+    marks: list[Any] = []
+    try:
+        consumer = rr.ResourceRegistrar.start(
+            _cross_config(f"count-{uuid.uuid4().hex[:6]}", folder)
+        )
+        consumer.register_server("idle", load=lambda request: request, unload=lambda *_: None)
+        system.serve(Served(consumer))
+        provider = f"provider-{uuid.uuid4().hex[:6]}"
+        try:
+            with registrar_child(
+                ctx,
+                system.address,
+                _cross_config(provider, folder),
+                setup_echo,
+                target=_Target(count),
+                started=900,  # (under valgrind on a loaded machine, minutes)
+            ) as (process, control):
+                assert process.pid is not None
+                ids = [consumer.call(provider, "echo", {"cam": 1}).id for _ in range(200)]
+                for query_id in ids[100:]:
+                    consumer.unload(query_id)
+                print(f"PIDS {os.getpid()} {process.pid}", flush=True)
+                if count == "cpu":
+                    own = CrossCPU((os.getpid(), process.pid))
+                elif count == "inside-callgrind":
+                    own = Callgrind()
+
+                def mark() -> None:
+                    consumer.server_queries("idle")  # (the consumer's actor caught up)
+                    control.send("mark")
+                    theirs = control.recv()
+                    marks.append((own.mark() if own else None, theirs))
+
+                mark()
+                for size in (calls, 3 * calls):
+                    made = [consumer.call(provider, "echo", {"cam": 1}).id for _ in range(size)]
+                    mark()
+                    for query_id in made:
+                        consumer.unload(query_id)
+                    mark()
+                for query_id in ids[:100]:
+                    consumer.unload(query_id)
+        finally:
+            consumer.stop()
+    finally:
+        if count == "bytecodes":
+            sys.settrace(None)
+        system.close()
+    return marks
+
+
+class _Target:
+    """The provider process's target, with the count it runs under (picklable)."""
+
+    def __init__(self, count: str) -> None:
+        self.count = count
+
+    def __call__(self, *args: Any) -> None:
+        _cross_provider(*args, count=self.count)
+
+
+def cross_cpu(calls: int, durable: bool) -> None:
+    marks = cross_run(calls, "cpu", durable)
+    print(
+        f"CPU per operation, every thread of both processes ({calls} and {3 * calls})"
+        + (", durable" if durable else "")
+    )
+    _harness.head(None, ["operation", "CPU (us)", "wake-ups"])
+    totals = [(sum(p[0] for p in own), sum(p[1] for p in own)) for own, _ in marks]
+    phases = [
+        (b[0] - a[0], b[1] - a[1]) for a, b in itertools.pairwise(totals)
+    ]  # (cpu, wake-ups) of each phase: hit, unload, hit, unload
+    for index, name in enumerate(CROSS_OPERATIONS):
+        first, second = phases[index], phases[index + 2]
+        us = per_operation(first[0], second[0], calls) * 1e6
+        wakes = per_operation(first[1], second[1], calls)
+        print(f"| {name} | {us:.1f} | {wakes:.2f} |")
+
+
+def cross_bytecodes(calls: int, profile: bool, durable: bool) -> None:
+    marks = cross_run(calls, "bytecodes", durable)[1:]  # (the first: the warm-up's)
+    _harness.head(
+        f"Python bytecodes per operation, every thread ({calls} and {3 * calls})",
+        ["operation", "process", "bytecodes", "function calls", "distinct functions"],
+        right=2,
+    )
+    for index, name in enumerate(CROSS_OPERATIONS):
+        (own_1, theirs_1), (own_3, theirs_3) = marks[index], marks[index + 2]
+        rows = [bytecode_row(own_1, own_3, calls), bytecode_row(theirs_1, theirs_3, calls)]
+        for process, row in zip(("caller's", "provider's"), rows, strict=True):
+            print(f"| {name} | {process} | {row[0]:.0f} | {row[1]:.1f} | {row[2]} |")
+        both = [sum(column) for column in zip(*rows, strict=True)]
+        print(f"| {name} | both | {both[0]:.0f} | {both[1]:.1f} | {both[2]} |")
+    if profile:
+        for index, name in enumerate(CROSS_OPERATIONS):
+            (own_1, theirs_1), (own_3, theirs_3) = marks[index], marks[index + 2]
+            print_profile(f"{name}, caller's process", own_1, own_3, calls)
+            print_profile(f"{name}, provider's process", theirs_1, theirs_3, calls)
+
+
+def cross_callgrind(calls: int, durable: bool) -> None:
+    """Run `run` under callgrind; print the instructions per operation of each process."""
+    command = [sys.executable, str(Path(__file__).resolve()), "--calls", str(calls)]
+    command += ["--durable"] if durable else []
+    with tempfile.TemporaryDirectory() as work:
+        stdout = callgrind_run([*command, "--cross", "--count", "inside-callgrind"], work)
+        found = re.search(r"^PIDS (\d+) (\d+)$", stdout, re.MULTILINE)
+        if found is None:
+            raise RuntimeError(f"no pids in the output:\n{stdout}")
+        phases = [phase_instructions(work, int(pid))[1:] for pid in found.groups()]
+    if any(len(each) != 4 for each in phases):  # (after the start, to the warm-up's mark)
+        raise RuntimeError(f"phases counted: {[len(each) for each in phases]}, not 4 each")
+    durably = ", durable" if durable else ""
+    _harness.head(
+        f"instructions per operation ({calls} and {3 * calls} operations{durably})",
+        ["operation", "caller's process", "provider's process", "both"],
+    )
+    for index, name in enumerate(CROSS_OPERATIONS):
+        per = [per_operation(each[index], each[index + 2], calls) for each in phases]
+        print(f"| {name} | {per[0] / 1e3:.1f}k | {per[1] / 1e3:.1f}k | {sum(per) / 1e3:.1f}k |")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--calls", type=int, default=1000, help="operations (default 1000)")
@@ -578,10 +790,19 @@ def main() -> int:
     parser.add_argument(
         "--durable", action="store_true", help="registrars with backups (save_on_modify)"
     )
+    parser.add_argument("--cross", action="store_true", help="the provider in a process of its own")
     args = parser.parse_args()
     if args.profile:
         args.count = "bytecodes"
-    if args.count == "commits":
+    if args.cross and args.count == "callgrind":
+        cross_callgrind(args.calls, args.durable)
+    elif args.cross and args.count == "cpu":
+        cross_cpu(args.calls, args.durable)
+    elif args.cross and args.count == "bytecodes":
+        cross_bytecodes(args.calls, args.profile, args.durable)
+    elif args.cross:
+        cross_run(args.calls, args.count, args.durable)
+    elif args.count == "commits":
         commits(args.calls, args.durability)
     elif args.count == "callgrind":
         callgrind(args)

@@ -111,7 +111,6 @@ SMALLEST = {
         *("--sources", "4", "--spoofed", "5"),
     ],
     "call_files.py": ["--rounds", "1"],
-    "count_cross.py": ["--calls", "5", "--profile", "--durable"],
     "count_dedup.py": ["--calls", "5", "--profile"],
     "count_links.py": ["--counts", "3", "--restarts", "1"],
     "minimal_hit.py": ["--rounds", "1"],
@@ -126,6 +125,7 @@ SMALLEST = {
 """The quickest arguments of each benchmark script (every script must be listed here)."""
 
 ALSO = {
+    "count_dedup.py --cross": ["--calls", "5", "--profile", "--durable"],
     "bench_otel.py --where cross": ["--quick"],
     "bench_teach.py --what replay": [
         *("--exercises", "camera", "--seeds", "1", "--jumps", "5", "--clicks", "2"),
