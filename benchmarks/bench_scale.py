@@ -420,105 +420,6 @@ def section_serve(sizes: list[int], rounds: int, kills: int, *, listen: bool) ->
     print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
 
 
-class Tree:
-    """A supervisor of `count` process managers and a registrar calling them: one of
-    them is SIGKILLed at will while a thread calls the others, one after the other."""
-
-    def __init__(self, count: int) -> None:
-        specs = [rr.ManagerSpec(f"t{n}", setup, isolation="process") for n in range(count)]
-        self.supervisor = rr.Supervisor(specs, max_restarts=10_000, period=3600.0)
-        self.supervisor.start()
-        self.app = self.supervisor.registrar(f"app-{uuid.uuid4().hex[:6]}")
-        self.victim = f"t{count // 2}"
-        self.others = [spec.name for spec in specs if spec.name != self.victim]
-        for name in [self.victim, *self.others]:  # every link warm
-            self.app.call(name, "res", "warm-up", timeout=60.0)
-        self.calls: list[tuple[float, float]] = []  # (began, ms) of each call to the others
-        self.running = True
-        self.caller = runtime_thread(self._call_others)
-        self.kills = 0
-
-    def _call_others(self) -> None:
-        n = 0
-        while self.running:
-            name = self.others[n % len(self.others)]
-            n += 1
-            began = time.perf_counter()
-            self.app.call(name, "res", "warm-up", timeout=60.0)
-            self.calls.append((began, (time.perf_counter() - began) * 1000))
-
-    def kill(self) -> tuple[float, list[float]]:
-        """SIGKILL the victim; ms until a call its next incarnation answered returned, and
-        the ms of the calls to the others that overlapped."""
-        time.sleep(0.2)  # the last restart settled (its spare process warmed up)
-        pid = self.supervisor.child(self.victim).pid
-        assert pid is not None
-        first = len(self.calls)
-        killed = time.perf_counter()
-        os.kill(pid, signal.SIGKILL)
-        self.supervisor.wait_restarted(self.victim, timeout=120.0)
-        self.kills += 1
-        self.app.call(self.victim, "res", f"after-{self.kills}", timeout=120.0)
-        served = time.perf_counter()
-        time.sleep(0.01)  # the call under way when it served ends
-        during = [ms for began, ms in self.calls[max(first - 1, 0) :] if began < served]
-        return (served - killed) * 1000, during
-
-    def close(self) -> None:
-        self.running = False
-        self.caller.join(60)
-        self.supervisor.stop()
-
-
-def runtime_thread(target: Callable[[], None]) -> Any:
-    import threading  # noqa: PLC0415
-
-    thread = threading.Thread(target=target, daemon=True)
-    thread.start()
-    return thread
-
-
-def p99(values: list[float]) -> float:
-    ordered = sorted(values)
-    return ordered[min(len(ordered) - 1, int(len(ordered) * 0.99))]
-
-
-def section_restart(counts: list[int], rounds: int, kills: int) -> None:
-    start_forkserver()
-    floor = Respawn()
-    floor.kill(1)  # warm its forkserver's first fork
-    trees = {count: Tree(count) for count in counts}
-    print("## restart: kill one of N process managers to serving (ms), calls to the others")
-    print()
-    print(
-        "| N | kill to serving med | min-max | respawn floor med | ratio "
-        "| other calls p99 during | p99 at rest | calls during |"
-    )
-    print("|---|---|---|---|---|---|---|---|")
-    serving: dict[int, list[float]] = {count: [] for count in counts}
-    during: dict[int, list[float]] = {count: [] for count in counts}
-    plain: list[float] = []
-    for _ in range(rounds):  # alternated: every size and the floor meet the same noise
-        for count, tree in trees.items():
-            for _ in range(kills):
-                ms, calls = tree.kill()
-                serving[count].append(ms)
-                during[count].extend(calls)
-            plain.extend(floor.kill(kills))
-    for count, tree in trees.items():
-        at_rest = [ms for _, ms in tree.calls[-200:]]
-        tree.close()
-        median = statistics.median(serving[count])
-        print(
-            f"| {count} | {median:.1f} | {spread(serving[count])} "
-            f"| {statistics.median(plain):.1f} | {median / statistics.median(plain):.1f}x "
-            f"| {p99(during[count]):.1f} | {p99(at_rest):.1f} | {len(during[count])} |"
-        )
-    floor.close()
-    print()
-    print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
-
-
 NOTICE = ("0f3b7b2c-1111-2222-3333-444455556666", 2, "tick")
 """What the Pipe burst sends per consumer: about what a status notice says."""
 
@@ -689,7 +590,7 @@ def main() -> None:
     parser.add_argument(
         "--sections",
         nargs="+",
-        choices=["start", "fresh", "restart", "serve", "status"],
+        choices=["start", "fresh", "serve", "status"],
         default=["start"],
     )
     parser.add_argument("--isolation", choices=["process", "thread"], default="process")
@@ -718,8 +619,6 @@ def main() -> None:
         )
     if "fresh" in args.sections:
         section_fresh(args.counts, args.rounds, args.durability)
-    if "restart" in args.sections:
-        section_restart(args.counts, args.rounds, args.kills)
     if "serve" in args.sections:
         section_serve(args.sizes, args.rounds, args.kills, listen=args.listen)
     if "status" in args.sections:

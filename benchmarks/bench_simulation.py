@@ -30,6 +30,7 @@ that CPU then too):
     taskset -c 0 python benchmarks/bench_simulation.py --seeds 1-20
     python benchmarks/bench_simulation.py --seeds 1-3 --no-real --profile /tmp/sim.prof
     python benchmarks/bench_simulation.py --seeds 1-3 --no-real --sample /tmp/sim.folded
+    python benchmarks/bench_simulation.py --jobs --plan killheavy --seeds 1-40   # every core
 
 `--sample` records where the seeds' CPU time goes (the simulation, its history and its
 verdict), one sample a tick of the process's CPU time (`SIGPROF`; 1-4 ms), so the waits
@@ -48,6 +49,7 @@ import contextlib
 import cProfile
 import csv
 import functools
+import json
 import logging
 import os
 import platform
@@ -66,6 +68,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
+import _harness
 import greenlet
 import pykka
 
@@ -410,6 +413,61 @@ def report(
     return runs_per_minute
 
 
+def sweep(plan: str, seeds: str, jobs: int, out: Path) -> float:
+    """Wall seconds of one sweep of `plan` over `seeds` with `jobs` workers."""
+    env = {**os.environ, "PYTHONHASHSEED": "0"}
+    command = [sys.executable, "-m", "rr_actors_lab", "experiment", plan, "--simulate"]
+    command += ["--seeds", seeds, "--jobs", str(jobs), "--out", str(out), "--quiet"]
+    started = time.perf_counter()
+    subprocess.run(command, env=env, check=True, stdout=subprocess.DEVNULL)
+    return time.perf_counter() - started
+
+
+def lines(out: Path) -> list[dict[str, object]]:
+    """The seeds' lines without their CPU seconds (the one field that is not the run's)."""
+    text = (out / "seeds.jsonl").read_text().splitlines()
+    return [{k: v for k, v in json.loads(line).items() if k != "cpu_s"} for line in text]
+
+
+def on_every_core(plan: str, seeds: str) -> None:
+    """`--jobs`: `rr-actors experiment PLAN --simulate --seeds A-B --jobs N` for N = 1 to
+    the cores: wall s, seeds per wall-minute, speed-up, whether `seeds.jsonl` is the
+    serial one's; then a bound for 10,000 seeds on 16 cores (from this run's CPU a seed).
+    Run it on an idle machine, unpinned (a process beside it takes a core from N = 2)."""
+    first, _, last = seeds.partition("-")
+    count = int(last or first) - int(first) + 1
+    cores = len(os.sched_getaffinity(0))
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="bench-jobs-") as folder:
+        serial: list[dict[str, object]] = []
+        cpu = 0.0
+        for jobs in range(1, cores + 1):
+            out = Path(folder) / f"jobs-{jobs}"
+            wall = sweep(plan, seeds, jobs, out)
+            if jobs == 1:
+                serial = lines(out)
+                text = (out / "seeds.jsonl").read_text().splitlines()
+                cpu = sum(float(json.loads(line)["cpu_s"]) for line in text)
+            rows.append((jobs, wall, lines(out) == serial))
+    base = rows[0][1]
+    print(_harness.header(f"{plan}, seeds {seeds} ({count}), on 1 to {cores} cores"))
+    columns = ["jobs", "wall s", "seeds/wall-min", "speed-up", "same as --jobs 1"]
+    print(
+        _harness.table(
+            columns,
+            [
+                (n, f"{w:.1f}", f"{60 * count / w:.1f}", f"{base / w:.2f}x", same)
+                for n, w, same in rows
+            ],
+        )
+    )
+    per_seed = cpu / count
+    print(
+        f"CPU per seed (--jobs 1): {per_seed:.2f} s; 10,000 seeds on 16 such cores: "
+        f"about {10_000 * per_seed / 16 / 60:.0f} min (at best)"
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seeds", default="1-10", help="the seeds to run, A-B (default 1-10)")
@@ -421,7 +479,12 @@ def main() -> None:
     parser.add_argument(
         "--min-runs", type=float, default=0.0, help="exit 1 below this many runs per CPU-minute"
     )
+    parser.add_argument("--jobs", action="store_true", help="--plan's seeds on 1 to all cores")
+    parser.add_argument("--plan", default="killheavy", help="--jobs: the plan (default killheavy)")
     args = parser.parse_args()
+    if args.jobs:
+        on_every_core(args.plan, args.seeds)
+        return
     if os.environ.get("PYTHONHASHSEED") != "0":  # (a sweep's hashes: start again under it)
         env = {**os.environ, "PYTHONHASHSEED": "0"}
         os.execve(sys.executable, [sys.executable, *sys.argv], env)  # noqa: S606

@@ -78,14 +78,13 @@ SMALLEST = {
     ],
     "bench_otel.py": ["--quick"],
     "bench_import.py": ["--quick"],
-    "bench_jobs.py": ["--plan", "simchain", "--seeds", "1-2"],
     "experiment_phases.py": ["first", "--repeat", "1", "--duration", "1.2"],
     "bench_setup.py": [  # (the tests of one file, in this interpreter: no venv, no install)
         *("--only", "tests", "--python", sys.executable, "--select", "tests/test_docs_index.py"),
     ],
     "bench_pools.py": ["--pools", "2", "--size", "2", "--kills", "1", "--compare", "2"],
     "bench_scale.py": [
-        *("--sections", "start", "fresh", "restart", "serve", "status"),
+        *("--sections", "start", "fresh", "serve", "status"),
         *("--counts", "2", "--rounds", "1"),
         *("--sizes", "10", "20", "--kills", "1", "--listen", "--consumers", "1", "3"),
         *(
@@ -125,6 +124,7 @@ SMALLEST = {
 """The quickest arguments of each benchmark script (every script must be listed here)."""
 
 ALSO = {
+    "bench_simulation.py --jobs": ["--plan", "simchain", "--seeds", "1-2"],
     "count_dedup.py --cross": ["--calls", "5", "--profile", "--durable"],
     "bench_otel.py --where cross": ["--quick"],
     "bench_teach.py --what replay": [
