@@ -15,17 +15,26 @@ For each catalog size N (resources, one consumer each) a backup is built, then:
 * restore: `SqliteStore.open` + `load` + `Catalog.restore`, and `ResourceRegistrar.start`
   end to end, next to a raw `SELECT` of every row of the three tables.
 
+`--holders 1,100,1000` measures instead a store write as a resource's holders grow: one
+consumer id added to a resource of H holders and released, each change its own
+`SqliteStore.write`, beside a raw one-row commit (autocommit, and `BEGIN IMMEDIATE`), the
+store's own `INSERT` and `DELETE` run on a bare connection to a copy of the backup, and
+the same catalog changes with no store (subtracted from the store's row); by this
+thread's CPU clock (what a shared machine does not inflate) and by the wall clock.
+`BENCH_DIR` names the directory to write in (default: the system's temporary one).
+
 Per-change rows are measured in interleaved rounds (so noise spreads evenly); the tables
 show medians in microseconds. Usage:
 
     python benchmarks/bench_persistence.py [--sizes 100,10000,100000] [--rounds 15]
-        [--batch 100] [--durability process|power]
+        [--batch 100] [--durability process|power] [--holders 1,100,1000]
 """
 
 from __future__ import annotations
 
 import gc
 import os
+import shutil
 import sqlite3
 import sys
 import tempfile
@@ -44,6 +53,8 @@ from rr_actors._store import SqliteStore, gc_paused
 from rr_actors._store.restore import read_backup
 
 Sample = Callable[[], None]
+Write = Callable[[int], None]  # the n-th sample of `--holders`: two writes (or two commits)
+SYNCHRONOUS = {"process": "NORMAL", "power": "FULL"}
 BATCHED = 100  # changes per sample in the batched (save_interval) rows
 
 
@@ -79,9 +90,7 @@ def read_whole(path: Path) -> Catalog:
 
 def raw_rows(path: Path, durability: Any) -> tuple[sqlite3.Connection, Sample]:
     """The floor: a bare SQLite commit to a one-row table (same pragmas), and its connection."""
-    raw = sqlite3.connect(path, isolation_level=None)
-    raw.execute("PRAGMA journal_mode = WAL")
-    raw.execute(f"PRAGMA synchronous = {'FULL' if durability == 'power' else 'NORMAL'}")
+    raw = raw_connection(path, durability)
     raw.execute("CREATE TABLE IF NOT EXISTS t (seq INTEGER PRIMARY KEY, query_id TEXT)")
 
     def raw_commit() -> None:
@@ -260,11 +269,147 @@ def restore_rows(path: Path, rounds: int) -> dict[str, float]:
     return {label: _harness.median(values) for label, values in results.items()}
 
 
-def main() -> None:
-    parser = _harness.options(__doc__, rounds=15, batch=100)
-    parser.add_argument("--sizes", default="100,10000,100000")
-    parser.add_argument("--durability", default="process", choices=["process", "power"])
-    args = _harness.parse(parser, None)
+# -- by holders (`--holders`) --------------------------------------------------------------
+
+
+def raw_connection(path: Path, durability: str) -> sqlite3.Connection:
+    db = sqlite3.connect(path, isolation_level=None)
+    db.execute("PRAGMA journal_mode = WAL")
+    db.execute(f"PRAGMA synchronous = {SYNCHRONOUS[durability]}")
+    return db
+
+
+def holder_samples(directory: Path, holders: int, durability: Any) -> tuple[dict[str, Write], Any]:
+    """The samples at `holders`, and a function that closes what they opened."""
+    path = directory / f"store-{holders}.db"
+    store = SqliteStore.open(path, durability=durability)
+    store.load()
+    catalog = Catalog()
+    catalog.begin_load("r", "leaf", {"cmd": ["driver", "--id", "1"]})
+    catalog.finish_load("r", {"pid": 1000})
+    for n in range(holders):
+        catalog.add_consumer("r", f"holder-{n}", "app")
+    store.write(catalog.drain_changes())
+    (row,) = store._db.execute("SELECT seq FROM resources WHERE id = 'r'").fetchone()
+    plain = Catalog()  # the same catalog changes, written nowhere (subtracted)
+    plain.begin_load("r", "leaf", {"cmd": ["driver", "--id", "1"]})
+    plain.finish_load("r", {"pid": 1000})
+    for n in range(holders):
+        plain.add_consumer("r", f"holder-{n}", "app")
+
+    def store_write(n: int) -> None:
+        qid = f"q{n}"
+        catalog.add_consumer("r", qid, "app")
+        store.write(catalog.drain_changes())
+        catalog.release(qid)
+        store.write(catalog.drain_changes())
+
+    def no_store(n: int) -> None:
+        qid = f"q{n}"
+        plain.add_consumer("r", qid, "app")
+        plain.drain_changes()
+        plain.release(qid)
+        plain.drain_changes()
+
+    raw = raw_connection(directory / f"raw-{holders}.db", durability)
+    raw.execute("CREATE TABLE t (seq INTEGER PRIMARY KEY, query_id TEXT)")
+
+    def raw_commit(n: int) -> None:
+        cursor = raw.execute("INSERT INTO t (query_id) VALUES (?)", (f"q{n}",))
+        raw.execute("DELETE FROM t WHERE seq = ?", (cursor.lastrowid,))
+
+    def raw_begin_commit(n: int) -> None:
+        raw.execute("BEGIN IMMEDIATE")
+        cursor = raw.execute("INSERT INTO t (query_id) VALUES (?)", (f"q{n}",))
+        raw.execute("COMMIT")
+        raw.execute("BEGIN IMMEDIATE")
+        raw.execute("DELETE FROM t WHERE seq = ?", (cursor.lastrowid,))
+        raw.execute("COMMIT")
+
+    copy = directory / f"copy-{holders}.db"
+    shutil.copyfile(path, copy)
+    same = raw_connection(copy, durability)
+
+    def store_statements(n: int) -> None:
+        key = 10**9 + n
+        same.execute(
+            "INSERT INTO consumers (resource, seq, query_id, origin_rr) VALUES (?, ?, ?, ?)",
+            (row, key, f"q{n}", "app"),
+        )
+        same.execute("DELETE FROM consumers WHERE resource = ? AND seq = ?", (row, key))
+
+    def close() -> None:
+        store.close(erase=True)
+        raw.close()
+        same.close()
+
+    return (
+        {
+            "store write": store_write,
+            "no store (the catalog changes alone)": no_store,
+            "raw one-row commit": raw_commit,
+            "raw one-row commit, BEGIN/COMMIT": raw_begin_commit,
+            "the store's statements, raw": store_statements,
+        },
+        close,
+    )
+
+
+def holder_measure(
+    made: dict[str, Write], rounds: int, batch: int
+) -> dict[str, tuple[float, float]]:
+    """Each sample's (CPU, wall) microseconds a write, medians of `rounds` alternated
+    batches of `batch` samples (two writes each)."""
+    n = iter(range(1, 1 << 62))
+
+    def row(sample: Write) -> list[float]:
+        cpu = time.thread_time()
+        wall = _harness.per_op(lambda: sample(next(n)), batch) / 2 * 1e6
+        return [(time.thread_time() - cpu) / batch / 2 * 1e6, wall]
+
+    got = _harness.alternate(
+        {k: (lambda s=s: row(s)) for k, s in made.items()}, rounds, warm_up=False
+    )
+    return {k: (_harness.median(v[0::2]), _harness.median(v[1::2])) for k, v in got.items()}
+
+
+def by_holders(args: Any) -> None:
+    """`--holders`: the store write by holder count, against a raw one-row commit."""
+    counts = [1, 10] if args.quick else [int(h) for h in args.holders.split(",")]
+    print(_harness.header(f"SQLite {sqlite3.sqlite_version}, durability={args.durability}"))
+    table: dict[str, dict[int, tuple[float, float]]] = {}
+    with tempfile.TemporaryDirectory(dir=os.environ.get("BENCH_DIR")) as name:
+        for holders in counts:
+            made, close = holder_samples(Path(name), holders, args.durability)
+            gc.collect()
+            try:
+                for label, figures in holder_measure(made, args.rounds, args.batch).items():
+                    table.setdefault(label, {})[holders] = figures
+            finally:
+                close()
+    catalog_only = table.pop("no store (the catalog changes alone)")
+    table["store write"] = {
+        h: (cpu - catalog_only[h][0], wall - catalog_only[h][1])
+        for h, (cpu, wall) in table["store write"].items()
+    }
+    floor = table["raw one-row commit"]
+    for kind, at in (("CPU", 0), ("wall", 1)):
+        head = "".join(f" {f'H={h}':>6} |" for h in counts)
+        print(f"\n| per write, {kind} us (median) |{head}{head.replace('H=', 'x H=')}")
+        print(f"|---|{'---:|' * (2 * len(counts))}")
+        for label, row in table.items():
+            cells = "".join(f" {row[h][at]:6.1f} |" for h in counts)
+            against = "".join(f" {row[h][at] / floor[h][at]:5.2f}x |" for h in counts)
+            print(f"| {label} |{cells}{against}")
+    print(
+        "\n(store write: less the catalog changes alone, "
+        f"{', '.join(f'{catalog_only[h][0]:.1f}' for h in counts)} us CPU; "
+        f"load {os.getloadavg()[0]:.1f} at the end)"
+    )
+
+
+def by_sizes(args: Any) -> None:
+    """Per change and restore by catalog size (the default)."""
     sizes = [100] if args.quick else [int(s) for s in args.sizes.split(",")]
     print(_harness.header(f"SQLite {sqlite3.sqlite_version}, durability={args.durability}"))
     change_table: dict[str, dict[int, float]] = {}
@@ -346,6 +491,18 @@ def main() -> None:
     print(f"\nrestore, median ms{'':<34}{head}")
     for label, row in restore_table.items():
         print(f"{label:<52}{''.join(f'{row[s]:12.1f}' for s in sizes)}")
+
+
+def main() -> None:
+    parser = _harness.options(__doc__, rounds=15, batch=100)
+    parser.add_argument("--sizes", default="100,10000,100000")
+    parser.add_argument("--durability", default="process", choices=["process", "power"])
+    parser.add_argument("--holders", help="H,...: a store write by holders instead")
+    args = _harness.parse(parser, None)
+    if args.holders:
+        by_holders(args)
+    else:
+        by_sizes(args)
 
 
 if __name__ == "__main__":

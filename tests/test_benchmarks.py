@@ -59,7 +59,6 @@ SMALLEST = {
         *("--runs", "1", "--managers", "3", "--hogs", "1", "--hold", "0.3", "--stops", "1"),
     ],
     "bench_persistence.py": ["--quick"],
-    "bench_store_write.py": ["--quick"],
     "bench_status_hang.py": [
         "--consumers",
         "4",
@@ -124,6 +123,7 @@ SMALLEST = {
 """The quickest arguments of each benchmark script (every script must be listed here)."""
 
 ALSO = {
+    "bench_persistence.py --holders": ["1,10", "--quick"],
     "bench_simulation.py --jobs": ["--plan", "simchain", "--seeds", "1-2"],
     "count_dedup.py --cross": ["--calls", "5", "--profile", "--durable"],
     "bench_otel.py --where cross": ["--quick"],
