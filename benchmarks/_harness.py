@@ -6,6 +6,7 @@ names its rows (the floor among them) and `alternate` measures them round by rou
 prints the Markdown table whose last column (the ratio) `alternate.py` sums up, under
 `header`'s line (the CPUs this run may use: `taskset -c 0` pins it, and the load average).
 `--quick` is the smallest run (`tests/test_benchmarks.py`): its figures mean nothing.
+`cpu_seconds` and `memory_kib` read a process's CPU time and memory from /proc (Linux).
 """
 
 from __future__ import annotations
