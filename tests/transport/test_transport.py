@@ -578,25 +578,17 @@ def test_a_call_in_flight_to_a_killed_process_fails_at_once_as_unavailable(
     assert outcome["time"] - killed_at < 2.0  # far below the 30 s call timeout
 
 
-def test_a_call_to_a_killed_process_fails_as_unavailable(
-    consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+@pytest.mark.parametrize(
+    ("end", "error"), [("kill", rr.RegistrarUnavailableError), ("stop", rr.RegistrarStoppedError)]
+)
+def test_a_call_to_a_killed_process_fails_as_unavailable_to_a_cleanly_stopped_one_as_stopped(
+    consumer: rr.ResourceRegistrar, start_provider: ProviderFactory, end: str, error: type
 ) -> None:
     provider = start_provider()
     consumer.call(provider.name, "echo", "warm up the connection")
-    provider.kill()
+    getattr(provider, end)()
 
-    with pytest.raises(rr.RegistrarUnavailableError):
-        consumer.call(provider.name, "echo", "r", timeout=10)
-
-
-def test_a_call_to_a_cleanly_stopped_process_fails_as_stopped(
-    consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
-) -> None:
-    provider = start_provider()
-    consumer.call(provider.name, "echo", "warm up the connection")
-    provider.stop()
-
-    with pytest.raises(rr.RegistrarStoppedError):
+    with pytest.raises(error):
         consumer.call(provider.name, "echo", "r", timeout=10)
 
 
