@@ -710,39 +710,24 @@ def _deaf_main(
         network.close()
 
 
+@pytest.mark.parametrize("early", [False, True], ids=["told-once-served", "told-before-listed"])
 def test_a_process_that_does_not_hear_the_kept_server_is_told_by_its_process_and_yields(
-    net: ZenohNetwork, children: Started
+    net: ZenohNetwork, children: Started, early: bool
 ) -> None:
     """Rule 22 through a link that healed one way: the second server of a name does not
     hear the first's token (forced: its presence drops it), the first's process hears
     the second's, keeps its own (served first) and puts a claim on the name's key for
-    the other's process, which yields though it never heard the kept one."""
+    the other's process, which yields though it never heard the kept one. With `early`,
+    the claim is forced into the moment between the other process's carrier serving the
+    name (its token out) and its messenger listing it as served: the claim is settled
+    once it is listed (before, it was dropped, and both served on: once in 4 full runs
+    of the suite)."""
     name = f"cm-{uuid.uuid4().hex[:6]}"
     kept = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
     try:
         net.serve(Served(kept))
         zid = net.link().zid  # type: ignore[attr-defined]
-        _, control = children.start(_deaf_main, net.system, _tcp(net), name, zid, False)
-        assert control.poll(20)
-        assert "yielded" == control.recv()
-        assert kept.is_alive()
-    finally:
-        kept.stop()
-
-
-def test_a_process_told_of_the_kept_server_before_it_lists_its_own_yields_once_it_does(
-    net: ZenohNetwork, children: Started
-) -> None:
-    """As above, the kept server's claim forced into the moment between the other
-    process's carrier serving the name (its token out) and its messenger listing it as
-    served: the claim is settled once it is listed (before, it was dropped, and both
-    served on: once in 4 full runs of the suite)."""
-    name = f"cm-{uuid.uuid4().hex[:6]}"
-    kept = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
-    try:
-        net.serve(Served(kept))
-        zid = net.link().zid  # type: ignore[attr-defined]
-        _, control = children.start(_deaf_main, net.system, _tcp(net), name, zid, True)
+        _, control = children.start(_deaf_main, net.system, _tcp(net), name, zid, early)
         assert control.poll(30)
         assert "yielded" == control.recv()
         assert kept.is_alive()
@@ -770,16 +755,22 @@ def test_a_killed_unsupervised_provider_is_lost_on_every_endpoint_within_a_secon
         endpoint.end()
 
 
-def test_a_killed_supervised_manager_is_not_lost_until_its_supervisor_goes_too(
-    net: ZenohNetwork, children: Started, eventually: Callable[..., bool]
-) -> None:
+def _router_and_its_manager(net: ZenohNetwork, children: Started) -> tuple[Any, Any]:
+    """A process `router-…` that serves a router and supervises a manager process
+    `manager-…` attached through it: each's name and process."""
     router = f"router-{uuid.uuid4().hex[:6]}"
     parent_end, child_end = children.context.Pipe()
     router_process, _ = children.start(remote_main, net.system, _tcp(net), router, child_end)
     assert parent_end.poll(30)
-    address = parent_end.recv()
     manager = f"manager-{uuid.uuid4().hex[:6]}"
-    manager_process, _ = children.start(_supervised_manager, address, manager)
+    manager_process, _ = children.start(_supervised_manager, parent_end.recv(), manager)
+    return (router, router_process), (manager, manager_process)
+
+
+def test_a_killed_supervised_manager_is_not_lost_until_its_supervisor_goes_too(
+    net: ZenohNetwork, children: Started, eventually: Callable[..., bool]
+) -> None:
+    (router, router_process), (manager, manager_process) = _router_and_its_manager(net, children)
     watcher = Recorder(f"w-{uuid.uuid4().hex[:6]}")
     net.serve(watcher)
     assert eventually(lambda: {router, manager} <= set(net.names()), timeout=10)
@@ -800,13 +791,7 @@ def test_a_name_whose_supervisor_may_restart_it_is_not_served_elsewhere_until_it
     # Rule 22: its manager was killed, its supervisor lives (it may restart it): the name
     # is not lost, so another process does not take it (it used to, at once); once its
     # supervisor is gone too, it is lost (rule 19) and may be served elsewhere.
-    router = f"router-{uuid.uuid4().hex[:6]}"
-    parent_end, child_end = children.context.Pipe()
-    router_process, _ = children.start(remote_main, net.system, _tcp(net), router, child_end)
-    assert parent_end.poll(30)
-    address = parent_end.recv()
-    manager = f"manager-{uuid.uuid4().hex[:6]}"
-    manager_process, _ = children.start(_supervised_manager, address, manager)
+    (router, router_process), (manager, manager_process) = _router_and_its_manager(net, children)
     assert eventually(lambda: {router, manager} <= set(net.names()), timeout=10)
     os.kill(manager_process.pid, signal.SIGKILL)
     assert eventually(lambda: manager not in net.names(), timeout=5)
