@@ -22,14 +22,14 @@ import pytest
 import rr_actors
 import rr_actors as rr
 from rr_actors import events
-from rr_actors._catalog import Catalog, request_digest
+from rr_actors._catalog import request_digest
 from rr_actors._core import hlc
 from rr_actors._store import files, schema
 from rr_actors._store.restore import read_backup
 from rr_actors._store.schema import SCHEMA_VERSION
-from rr_actors._store.sqlite import SqliteStore
 from rr_actors.events import lines
 from rr_actors_lab.__main__ import main
+from tests.support.durable_pair import new_store
 from tests.support.hosts import free_port
 from tests.support.persisting import write_unloading
 from tests.support.terminal import drawn, on_a_terminal
@@ -419,9 +419,7 @@ class TestInspect:
         assert later.id in run("inspect", str(path))[1]
 
     def test_inspect_marks_in_doubt_resources(self, tmp_path: Path) -> None:
-        store = SqliteStore.open(tmp_path / "p.db")
-        store.load()
-        catalog = Catalog()
+        store, catalog = new_store(tmp_path / "p.db")
         catalog.begin_load("r-loading", "start_process", {"cmd": "sleep"})
         store.write(catalog.drain_changes())
         store.close(erase=False)
@@ -432,9 +430,7 @@ class TestInspect:
         assert (0, True, True) == (code, "[IN DOUBT: loading]" in line, "1 in doubt" in out)
 
     def test_inspect_marks_a_resource_its_provider_reported_fatal(self, tmp_path: Path) -> None:
-        store = SqliteStore.open(tmp_path / "p.db")
-        store.load()
-        catalog = Catalog()
+        store, catalog = new_store(tmp_path / "p.db")
         for rid in ("r-dead", "r-new"):
             catalog.begin_load(rid, "leaf", "lidar")
             catalog.finish_load(rid, {"pid": rid})
@@ -456,9 +452,7 @@ class TestInspect:
     def test_inspect_shows_a_value_it_cannot_unpickle_instead_of_failing(
         self, tmp_path: Path
     ) -> None:
-        store = SqliteStore.open(tmp_path / "p.db")
-        store.load()
-        catalog = Catalog()
+        store, catalog = new_store(tmp_path / "p.db")
         catalog.begin_load("r1", "leaf", "placeholder")
         store.write(catalog.drain_changes())
         store.close(erase=False)
@@ -573,9 +567,7 @@ class TestInspect:
 
     def test_inspect_json_marks_a_half_loaded_resource_in_doubt(self, tmp_path: Path) -> None:
         path = tmp_path / "p.db"
-        store = SqliteStore.open(path)
-        store.load()
-        catalog = Catalog()
+        store, catalog = new_store(path)
         catalog.begin_load("r-loading", "start_process", {"cmd": "sleep"})
         catalog.begin_load("r-fine", "start_process", {"cmd": "true"})
         catalog.finish_load("r-fine", {"pid": 1})
@@ -591,9 +583,7 @@ class TestInspect:
         self, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     ) -> None:
         path = tmp_path / "p.db"
-        store = SqliteStore.open(path)
-        store.load()
-        catalog = Catalog()
+        store, catalog = new_store(path)
         catalog.begin_load("r1", "leaf", 1)
         catalog.finish_load("r1", 1)
         catalog.add_consumer("r1", "q1", "C")
