@@ -40,7 +40,7 @@ from rr_actors._transport.zenoh.carrier import ZenohCarrier
 from rr_actors._transport.zenoh.net import ZenohNetwork
 from rr_actors._transport.zenoh.wire import MESSAGE, PYTHON, VERSION, parse, payload_of
 from rr_actors.testing import run_on_actor
-from tests.support.carriers import in_thread, setup_servers, wait_load_started
+from tests.support.carriers import Children, Recorder, in_thread, setup_servers, wait_load_started
 from tests.support.hostile import CreatesAFile
 from tests.support.hosts import free_port
 from tests.support.waiting import wait_for
@@ -48,41 +48,6 @@ from tests.support.waiting import wait_for
 
 def _system() -> str:
     return f"test-{uuid.uuid4().hex[:8]}"
-
-
-class Recorder:
-    """An `Endpoint` that records the presence callbacks it gets (no registrar behind it)."""
-
-    def __init__(self, name: str) -> None:
-        self.name = name
-        self.max_message_bytes = 1024 * 1024
-        self.lost: list[tuple[str, float]] = []
-        self.reachable: list[tuple[str, float]] = []
-        self.heard = threading.Event()
-        self._ended = threading.Event()
-
-    def run(self, fn: Callable[[Any], Any]) -> Any:
-        return fn(None)
-
-    def wait_ended(self, timeout: float | None = None) -> bool:
-        return self._ended.wait(timeout)
-
-    def stopped_cleanly(self) -> bool:
-        return self._ended.is_set()
-
-    def listening(self) -> None:
-        pass
-
-    def peer_lost(self, name: str) -> None:
-        self.lost.append((name, time.monotonic()))
-        self.heard.set()
-
-    def peer_reachable(self, name: str) -> None:
-        self.reachable.append((name, time.monotonic()))
-        self.heard.set()
-
-    def end(self) -> None:
-        self._ended.set()
 
 
 @pytest.fixture
@@ -145,43 +110,6 @@ def manager_main(
     finally:
         registrar.stop()
         member.close()
-
-
-class Started:
-    """Child processes of a test; all are stopped and reaped at its end."""
-
-    def __init__(self, context: multiprocessing.context.ForkServerContext) -> None:
-        self.context = context
-        self.children: list[tuple[multiprocessing.process.BaseProcess, Any]] = []
-
-    def start(self, target: Callable[..., None], *args: Any, ready: bool = True) -> Any:
-        parent_end, child_end = self.context.Pipe()
-        process = self.context.Process(target=target, args=(*args, child_end), daemon=True)
-        process.start()
-        child_end.close()
-        self.children.append((process, parent_end))
-        if ready:
-            assert parent_end.poll(30), "the child did not get ready"
-            assert "ready" == parent_end.recv()
-        return process, parent_end
-
-    def close(self) -> None:
-        for _, control in self.children:
-            with contextlib.suppress(OSError):
-                control.send("stop")
-        for process, control in self.children:
-            process.join(10)
-            if process.is_alive():
-                process.kill()
-                process.join(5)
-            control.close()
-
-
-@pytest.fixture
-def children(context: multiprocessing.context.ForkServerContext) -> Iterator[Started]:
-    started = Started(context)
-    yield started
-    started.close()
 
 
 def _tcp(network: ZenohNetwork) -> str:
@@ -247,7 +175,7 @@ def _reporting_caller(
         member.close()
 
 
-def _quiet_router(net: ZenohNetwork, children: Started) -> tuple[Any, Any]:
+def _quiet_router(net: ZenohNetwork, children: Children) -> tuple[Any, Any]:
     """A router process of `net`'s system (`_quiet_router_main`): it, and its address."""
     parent_end, child_end = children.context.Pipe()
     router, _ = children.start(_quiet_router_main, net.system, _tcp(net), child_end)
@@ -522,7 +450,7 @@ def test_a_call_to_a_registrar_of_another_version_fails_naming_both_versions(
 
 
 def test_a_name_served_by_another_process_is_a_duplicate_and_leaves_nothing_behind(
-    net: ZenohNetwork, children: Started
+    net: ZenohNetwork, children: Children
 ) -> None:
     name = f"dup-{uuid.uuid4().hex[:6]}"
     children.start(manager_main, net.address, name)
@@ -544,7 +472,7 @@ def test_a_name_served_by_another_process_is_a_duplicate_and_leaves_nothing_behi
 
 
 def test_a_call_carries_its_callers_trace_context_to_a_provider_of_another_process(
-    net: ZenohNetwork, children: Started
+    net: ZenohNetwork, children: Children
 ) -> None:
     from opentelemetry.sdk.trace import TracerProvider  # noqa: PLC0415 - the otel extra
 
@@ -569,7 +497,7 @@ def test_a_call_carries_its_callers_trace_context_to_a_provider_of_another_proce
 
 
 def test_of_two_processes_serving_one_name_at_once_exactly_one_does(
-    net: ZenohNetwork, children: Started
+    net: ZenohNetwork, children: Children
 ) -> None:
     for _round in range(5):
         name = f"race-{uuid.uuid4().hex[:6]}"
@@ -588,7 +516,7 @@ def test_of_two_processes_serving_one_name_at_once_exactly_one_does(
 
 
 def test_two_processes_whose_network_does_not_answer_do_not_both_serve_a_name(
-    net: ZenohNetwork, children: Started
+    net: ZenohNetwork, children: Children
 ) -> None:
     # Their router (a process of its own, with a long lease: its links stay up) is frozen
     # as they claim one name: each asks who serves it and the question times out. An
@@ -614,7 +542,7 @@ def test_two_processes_whose_network_does_not_answer_do_not_both_serve_a_name(
 
 
 def test_a_name_asked_of_a_network_that_does_not_answer_is_unavailable_not_unknown(
-    net: ZenohNetwork, children: Started
+    net: ZenohNetwork, children: Children
 ) -> None:
     router, address = _quiet_router(net, children)
     go = children.context.Event()
@@ -637,7 +565,7 @@ def test_a_name_asked_of_a_network_that_does_not_answer_is_unavailable_not_unkno
 
 
 def test_a_name_of_another_system_is_unknown_at_once_naming_this_system(
-    net: ZenohNetwork, children: Started
+    net: ZenohNetwork, children: Children
 ) -> None:
     elsewhere = f"elsewhere-{uuid.uuid4().hex[:6]}"
     children.start(remote_main, _system(), _tcp(net), elsewhere)
@@ -712,7 +640,7 @@ def _deaf_main(
 
 @pytest.mark.parametrize("early", [False, True], ids=["told-once-served", "told-before-listed"])
 def test_a_process_that_does_not_hear_the_kept_server_is_told_by_its_process_and_yields(
-    net: ZenohNetwork, children: Started, early: bool
+    net: ZenohNetwork, children: Children, early: bool
 ) -> None:
     """Rule 22 through a link that healed one way: the second server of a name does not
     hear the first's token (forced: its presence drops it), the first's process hears
@@ -736,7 +664,7 @@ def test_a_process_that_does_not_hear_the_kept_server_is_told_by_its_process_and
 
 
 def test_a_killed_unsupervised_provider_is_lost_on_every_endpoint_within_a_second(
-    net: ZenohNetwork, children: Started, eventually: Callable[..., bool]
+    net: ZenohNetwork, children: Children, eventually: Callable[..., bool]
 ) -> None:
     provider = f"remote-{uuid.uuid4().hex[:6]}"
     process, _ = children.start(remote_main, net.system, _tcp(net), provider)
@@ -755,7 +683,7 @@ def test_a_killed_unsupervised_provider_is_lost_on_every_endpoint_within_a_secon
         endpoint.end()
 
 
-def _router_and_its_manager(net: ZenohNetwork, children: Started) -> tuple[Any, Any]:
+def _router_and_its_manager(net: ZenohNetwork, children: Children) -> tuple[Any, Any]:
     """A process `router-…` that serves a router and supervises a manager process
     `manager-…` attached through it: each's name and process."""
     router = f"router-{uuid.uuid4().hex[:6]}"
@@ -768,7 +696,7 @@ def _router_and_its_manager(net: ZenohNetwork, children: Started) -> tuple[Any, 
 
 
 def test_a_killed_supervised_manager_is_not_lost_until_its_supervisor_goes_too(
-    net: ZenohNetwork, children: Started, eventually: Callable[..., bool]
+    net: ZenohNetwork, children: Children, eventually: Callable[..., bool]
 ) -> None:
     (router, router_process), (manager, manager_process) = _router_and_its_manager(net, children)
     watcher = Recorder(f"w-{uuid.uuid4().hex[:6]}")
@@ -786,7 +714,7 @@ def test_a_killed_supervised_manager_is_not_lost_until_its_supervisor_goes_too(
 
 
 def test_a_name_whose_supervisor_may_restart_it_is_not_served_elsewhere_until_it_is_lost(
-    net: ZenohNetwork, children: Started, eventually: Callable[..., bool]
+    net: ZenohNetwork, children: Children, eventually: Callable[..., bool]
 ) -> None:
     # Rule 22: its manager was killed, its supervisor lives (it may restart it): the name
     # is not lost, so another process does not take it (it used to, at once); once its
@@ -820,7 +748,7 @@ def test_a_name_whose_supervisor_may_restart_it_is_not_served_elsewhere_until_it
 
 
 def test_a_call_in_flight_to_a_killed_remote_router_fails_at_once_as_unavailable(
-    net: ZenohNetwork, children: Started, eventually: Callable[..., bool]
+    net: ZenohNetwork, children: Children, eventually: Callable[..., bool]
 ) -> None:
     provider = f"remote-{uuid.uuid4().hex[:6]}"
     process, _ = children.start(remote_main, net.system, _tcp(net), provider)
@@ -843,7 +771,7 @@ def test_a_call_in_flight_to_a_killed_remote_router_fails_at_once_as_unavailable
 
 
 def test_a_frozen_remote_router_is_lost_then_reachable_again_with_the_same_process(
-    net: ZenohNetwork, children: Started, eventually: Callable[..., bool]
+    net: ZenohNetwork, children: Children, eventually: Callable[..., bool]
 ) -> None:
     provider = f"remote-{uuid.uuid4().hex[:6]}"
     process, _ = children.start(remote_main, net.system, _tcp(net), provider)
@@ -862,7 +790,7 @@ def test_a_frozen_remote_router_is_lost_then_reachable_again_with_the_same_proce
 
 
 def test_messages_from_one_process_to_one_registrar_arrive_in_the_order_told(
-    net: ZenohNetwork, children: Started
+    net: ZenohNetwork, children: Children
 ) -> None:
     count = 2000
     inbox = Inbox(f"inbox-{uuid.uuid4().hex[:6]}", count)
@@ -1306,7 +1234,7 @@ class TestNeverWaitingOnAnActor:
     def test_a_message_to_a_registrar_heard_to_die_fails_on_the_networks_first_answer(
         self,
         frozen_router: tuple[Any, int],
-        context: multiprocessing.context.ForkServerContext,
+        children: Children,
         monkeypatch: pytest.MonkeyPatch,
         eventually: Callable[..., bool],
     ) -> None:
@@ -1325,15 +1253,10 @@ class TestNeverWaitingOnAnActor:
 
         member = address.attach()
         registrar = rr.ResourceRegistrar.start(f"here-{uuid.uuid4().hex[:6]}")
-        parent_end, child_end = context.Pipe()
-        process = context.Process(target=_nowait_manager_main, args=(address, name, child_end))
         fetched = FutureReply()
         try:
             member.serve(Served(registrar))
-            process.start()
-            child_end.close()
-            assert parent_end.poll(30), "the manager did not get ready"
-            assert "ready" == parent_end.recv()
+            process, _ = children.start(_nowait_manager_main, address, name)
             assert eventually(lambda: name in member.names(), timeout=10)
             os.kill(process.pid or 0, signal.SIGKILL)
             assert eventually(lambda: name not in member.names(), timeout=10)  # heard to die
@@ -1349,13 +1272,11 @@ class TestNeverWaitingOnAnActor:
         finally:
             registrar.stop()
             member.close()
-            process.join(10)
-            parent_end.close()
 
     def test_an_actor_answers_while_its_message_to_a_registrar_heard_to_die_waits_for_the_network(
         self,
         frozen_router: tuple[Any, int],
-        context: multiprocessing.context.ForkServerContext,
+        children: Children,
         monkeypatch: pytest.MonkeyPatch,
         eventually: Callable[..., bool],
     ) -> None:
@@ -1376,27 +1297,18 @@ class TestNeverWaitingOnAnActor:
         monkeypatch.setattr(presence.Presence, "_on_live", late)
         member = address.attach()
         registrar = rr.ResourceRegistrar.start(f"here-{uuid.uuid4().hex[:6]}")
-        managers: list[tuple[Any, Any]] = []
-
-        def manager() -> Any:
-            parent_end, child_end = context.Pipe()
-            process = context.Process(target=_nowait_manager_main, args=(address, name, child_end))
-            process.start()
-            child_end.close()
-            managers.append((process, parent_end))
-            assert parent_end.poll(30), "the manager did not get ready"
-            assert "ready" == parent_end.recv()
-            return process
 
         fetched = FutureReply()
         try:
             member.serve(Served(registrar))
-            first = manager()
+            first, _ = children.start(_nowait_manager_main, address, name)
             assert eventually(lambda: name in member.names(), timeout=10)
             os.kill(first.pid, signal.SIGKILL)
             assert eventually(lambda: name not in member.names(), timeout=10)  # heard to die
             hidden.set()
-            manager()  # the restart: this process's presence does not hear of it
+            children.start(
+                _nowait_manager_main, address, name
+            )  # the restart: this process's presence does not hear of it
             os.kill(router_pid, signal.SIGSTOP)
             try:
                 run_on_actor(
@@ -1416,14 +1328,6 @@ class TestNeverWaitingOnAnActor:
         finally:
             registrar.stop()
             member.close()
-            for process, control in managers:
-                with contextlib.suppress(OSError):
-                    control.send("stop")
-                process.join(10)
-                if process.is_alive():
-                    process.kill()
-                    process.join(5)
-                control.close()
 
 
 def test_a_name_whose_serve_the_process_leaves_during_is_not_left_served(
