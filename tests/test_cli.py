@@ -32,6 +32,7 @@ from rr_actors_lab.__main__ import main
 from tests.support.durable_pair import new_store
 from tests.support.hosts import free_port
 from tests.support.persisting import write_unloading
+from tests.support.python import python
 from tests.support.terminal import drawn, on_a_terminal
 
 PACKAGE = Path(rr_actors.__file__).resolve().parent
@@ -57,13 +58,7 @@ def test_the_package_version_is_the_distribution_version() -> None:
 
 
 def test_help_lists_every_subcommand_and_the_version_option() -> None:
-    result = subprocess.run(
-        [sys.executable, "-m", "rr_actors_lab", "--help"],
-        capture_output=True,
-        text=True,
-        timeout=30,
-        check=False,
-    )
+    result = python("-m", "rr_actors_lab", "--help", timeout=30)
 
     assert 0 == result.returncode
     for word in ("demo", "inspect", "--version"):
@@ -166,14 +161,7 @@ HEAVY = (
 
 def imported(argv: list[str], *, cwd: Path) -> list[str]:
     """The modules `python -X importtime argv...` imported, in order (its stderr's table)."""
-    result = subprocess.run(
-        [sys.executable, "-X", "importtime", *argv],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-        cwd=cwd,
-    )
+    result = python("-X", "importtime", *argv, timeout=60, cwd=cwd)
     assert 0 == result.returncode, result.stderr
     rows = [line.split("|")[-1] for line in result.stderr.splitlines()]
     return [row.strip() for row in rows if row.startswith(" ")]
@@ -181,12 +169,8 @@ def imported(argv: list[str], *, cwd: Path) -> list[str]:
 
 @pytest.mark.parametrize("argv", [["--version"], ["--help"], ["teach", "hint"]], ids=" ".join)
 def test_a_command_imports_no_tool_it_does_not_run(argv: list[str], tmp_path: Path) -> None:
-    started = subprocess.run(
-        [sys.executable, "-m", "rr_actors_lab", "teach", "start", "camera", str(tmp_path / "ex")],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
+    started = python(
+        "-m", "rr_actors_lab", "teach", "start", "camera", str(tmp_path / "ex"), timeout=60
     )
     assert 0 == started.returncode, started.stderr
 
@@ -487,13 +471,7 @@ class TestInspect:
     ) -> None:
         _, path, ids = live
 
-        done = subprocess.run(
-            [sys.executable, "-m", "rr_actors_lab", "inspect", str(path), "--json"],
-            capture_output=True,
-            text=True,
-            timeout=30,
-            check=False,
-        )
+        done = python("-m", "rr_actors_lab", "inspect", str(path), "--json", timeout=30)
 
         assert (0, ids["first"]) == (
             done.returncode,

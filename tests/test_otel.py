@@ -7,8 +7,6 @@ import asyncio
 import itertools
 import json
 import re
-import subprocess
-import sys
 import textwrap
 import threading
 import time
@@ -28,6 +26,7 @@ import rr_actors as rr
 from rr_actors import events
 from rr_actors.testing import SharedObjects
 from rr_actors_lab import otel
+from tests.support.python import python
 from tests.support.supervising import sigkill
 
 pytestmark = pytest.mark.usefixtures("by_value")
@@ -445,9 +444,7 @@ def test_it_traces_through_the_global_provider_the_application_installs_later() 
         print(sorted((s.kind.name, s.name) for s in exporter.get_finished_spans()))
         """
     )
-    done = subprocess.run(
-        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, check=False
-    )
+    done = python("-c", script, timeout=60)
     assert 0 == done.returncode, done.stderr[-2000:]
     expected = [("CLIENT", "erm/cam"), ("INTERNAL", "cam.load"), ("SERVER", "erm/cam")]
     assert repr(expected) == done.stdout.strip()
@@ -469,9 +466,7 @@ def test_without_the_extra_nothing_is_subscribed_and_nothing_is_made() -> None:
         print(otel._api, tracing.subscribed, tracing._watcher, tracing._clients, tracing._servers)
         """
     )
-    done = subprocess.run(
-        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, check=False
-    )
+    done = python("-c", script, timeout=60)
     assert 0 == done.returncode, done.stderr[-2000:]
     assert "None False None {} {}" == done.stdout.strip()
 
