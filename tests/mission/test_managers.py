@@ -15,8 +15,7 @@ from tests.support.python import python
 
 
 def test_the_erm_does_not_adopt_a_process_whose_pid_was_reused(tmp_path: Path) -> None:
-    registrar = rr.ResourceRegistrar.start(f"erm-{uuid.uuid4().hex[:8]}")
-    try:
+    with rr.ResourceRegistrar.start(f"erm-{uuid.uuid4().hex[:8]}") as registrar:
         table = ProcessTable(registrar)
         me = os.getpid()
         created = start_time(me)
@@ -31,8 +30,6 @@ def test_the_erm_does_not_adopt_a_process_whose_pid_was_reused(tmp_path: Path) -
         )
 
         dead = table.adopt([impostor])
-    finally:
-        registrar.stop()
 
     assert [impostor] == dead
 

@@ -275,11 +275,8 @@ class Provided:
 def _serve_as(system: Transport, name: str) -> None:
     """Start a registrar named `name` in this process and serve it on `system` (stopped
     after, served or not)."""
-    registrar = rr.ResourceRegistrar.start(name)
-    try:
+    with rr.ResourceRegistrar.start(name) as registrar:
         system.serve(Served(registrar))
-    finally:
-        registrar.stop()
 
 
 def _load(server: str, request: Any) -> tuple[Load, FutureReply]:

@@ -64,8 +64,7 @@ def contender_main(
     attached = attach(address)
     try:
         for name in names:
-            registrar = rr.ResourceRegistrar.start(name)
-            try:
+            with rr.ResourceRegistrar.start(name) as registrar:
                 outcome = "served"
                 barrier.wait(30)
                 try:
@@ -75,8 +74,6 @@ def contender_main(
                 control.send(outcome)
                 if control.recv() != "next":
                     return
-            finally:
-                registrar.stop()
     except (EOFError, OSError, threading.BrokenBarrierError):
         return
     finally:
@@ -247,12 +244,11 @@ def test_a_refused_duplicate_does_not_make_the_owner_log_a_warning(
 ) -> None:
     provider = start_provider()
     system.run(provider.name, record_warnings, timeout=10)
-    duplicate = rr.ResourceRegistrar.start(provider.name)
-    try:
-        with pytest.raises(rr.DuplicateNameError):
-            system.serve(Served(duplicate))
-    finally:
-        duplicate.stop()
+    with (
+        rr.ResourceRegistrar.start(provider.name) as duplicate,
+        pytest.raises(rr.DuplicateNameError),
+    ):
+        system.serve(Served(duplicate))
 
     assert [] == system.run(provider.name, warnings_logged, timeout=10)
 
@@ -357,8 +353,7 @@ class TestLostForGood:
 
     def test_a_listener_waits_out_a_probe_of_its_lock_but_not_an_owner(self, unix: System) -> None:
         name = named("probed")
-        registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
-        try:
+        with rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name)) as registrar:
             owner = os.open(unix.address.lock_path(name), os.O_RDONLY | os.O_CREAT, 0o600)
             fcntl.flock(owner, fcntl.LOCK_SH | fcntl.LOCK_NB)  # held for good
             try:
@@ -373,8 +368,6 @@ class TestLostForGood:
             unix.serve(Served(registrar))
 
             assert name in unix.served()
-        finally:
-            registrar.stop()
 
     @pytest.mark.usefixtures("process_helpers")  # the forkserver, before the leak check counts
     def test_a_manager_process_is_spoken_for_by_its_supervisors_process(self, unix: System) -> None:

@@ -454,18 +454,16 @@ def test_a_name_served_by_another_process_is_a_duplicate_and_leaves_nothing_behi
 ) -> None:
     name = f"dup-{uuid.uuid4().hex[:6]}"
     children.start(manager_main, net.address, name)
-    local = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
-    try:
-        with pytest.raises(rr.DuplicateNameError, match=name):
-            net.serve(Served(local))
-    finally:
-        local.stop()
-    consumer = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"c-{uuid.uuid4().hex[:6]}"))
-    try:
+    with (
+        rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name)) as local,
+        pytest.raises(rr.DuplicateNameError, match=name),
+    ):
+        net.serve(Served(local))
+    with rr.ResourceRegistrar.start(
+        rr.RegistrarConfig(name=f"c-{uuid.uuid4().hex[:6]}")
+    ) as consumer:
         net.serve(Served(consumer))
         query = consumer.call(name, "echo", "r", timeout=10)  # the remote one still answers
-    finally:
-        consumer.stop()
 
     assert {"resource": "r"} == query.response
     assert [name] == [n for n in net.names() if n == name]
@@ -569,15 +567,14 @@ def test_a_name_of_another_system_is_unknown_at_once_naming_this_system(
 ) -> None:
     elsewhere = f"elsewhere-{uuid.uuid4().hex[:6]}"
     children.start(remote_main, _system(), _tcp(net), elsewhere)
-    consumer = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"c-{uuid.uuid4().hex[:6]}"))
-    try:
+    with rr.ResourceRegistrar.start(
+        rr.RegistrarConfig(name=f"c-{uuid.uuid4().hex[:6]}")
+    ) as consumer:
         net.serve(Served(consumer))
         started = time.monotonic()
         with pytest.raises(rr.UnknownRegistrarError, match=f"system {net.system!r}"):
             consumer.call(elsewhere, "echo", "r", timeout=30)
         took = time.monotonic() - started
-    finally:
-        consumer.stop()
 
     assert took < 2.0
 
@@ -651,16 +648,13 @@ def test_a_process_that_does_not_hear_the_kept_server_is_told_by_its_process_and
     once it is listed (before, it was dropped, and both served on: once in 4 full runs
     of the suite)."""
     name = f"cm-{uuid.uuid4().hex[:6]}"
-    kept = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
-    try:
+    with rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name)) as kept:
         net.serve(Served(kept))
         zid = net.link().zid  # type: ignore[attr-defined]
         _, control = children.start(_deaf_main, net.system, _tcp(net), name, zid, early)
         assert control.poll(30)
         assert "yielded" == control.recv()
         assert kept.is_alive()
-    finally:
-        kept.stop()
 
 
 def test_a_killed_unsupervised_provider_is_lost_on_every_endpoint_within_a_second(
@@ -724,8 +718,7 @@ def test_a_name_whose_supervisor_may_restart_it_is_not_served_elsewhere_until_it
     os.kill(manager_process.pid, signal.SIGKILL)
     assert eventually(lambda: manager not in net.names(), timeout=5)
 
-    here = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=manager))
-    try:
+    with rr.ResourceRegistrar.start(rr.RegistrarConfig(name=manager)) as here:
         with pytest.raises(rr.RegistrarUnavailableError, match="may restart it") as refused:
             net.serve(Served(here))
         os.kill(router_process.pid, signal.SIGKILL)  # now nobody restarts it: lost
@@ -738,8 +731,6 @@ def test_a_name_whose_supervisor_may_restart_it_is_not_served_elsewhere_until_it
             return True
 
         assert eventually(served, timeout=10)
-    finally:
-        here.stop()
 
     assert f"registrar {manager!r} of system {net.system!r} was served by process" in str(
         refused.value
@@ -752,8 +743,9 @@ def test_a_call_in_flight_to_a_killed_remote_router_fails_at_once_as_unavailable
 ) -> None:
     provider = f"remote-{uuid.uuid4().hex[:6]}"
     process, _ = children.start(remote_main, net.system, _tcp(net), provider)
-    consumer = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"c-{uuid.uuid4().hex[:6]}"))
-    try:
+    with rr.ResourceRegistrar.start(
+        rr.RegistrarConfig(name=f"c-{uuid.uuid4().hex[:6]}")
+    ) as consumer:
         net.serve(Served(consumer))
         net.wait_for(provider, timeout=30)  # (served there is not yet heard of here)
         done, outcome = in_thread(lambda: consumer.call(provider, "slow", "r", timeout=30))
@@ -763,8 +755,6 @@ def test_a_call_in_flight_to_a_killed_remote_router_fails_at_once_as_unavailable
         assert done.wait(10)
         with pytest.raises(rr.RegistrarUnavailableError):
             consumer.call(provider, "echo", "later", timeout=10)
-    finally:
-        consumer.stop()
 
     assert isinstance(outcome.get("error"), rr.RegistrarUnavailableError)
     assert outcome["time"] - killed_at < 1.0
