@@ -22,16 +22,17 @@ import pytest
 import rr_actors
 import rr_actors as rr
 from rr_actors import events
-from rr_actors._catalog import Catalog, request_digest
+from rr_actors._catalog import request_digest
 from rr_actors._core import hlc
 from rr_actors._store import files, schema
 from rr_actors._store.restore import read_backup
 from rr_actors._store.schema import SCHEMA_VERSION
-from rr_actors._store.sqlite import SqliteStore
 from rr_actors.events import lines
 from rr_actors_lab.__main__ import main
+from tests.support.durable_pair import new_store
 from tests.support.hosts import free_port
 from tests.support.persisting import write_unloading
+from tests.support.python import python
 from tests.support.terminal import drawn, on_a_terminal
 
 PACKAGE = Path(rr_actors.__file__).resolve().parent
@@ -57,13 +58,7 @@ def test_the_package_version_is_the_distribution_version() -> None:
 
 
 def test_help_lists_every_subcommand_and_the_version_option() -> None:
-    result = subprocess.run(
-        [sys.executable, "-m", "rr_actors_lab", "--help"],
-        capture_output=True,
-        text=True,
-        timeout=30,
-        check=False,
-    )
+    result = python("-m", "rr_actors_lab", "--help", timeout=30)
 
     assert 0 == result.returncode
     for word in ("demo", "inspect", "--version"):
@@ -166,14 +161,7 @@ HEAVY = (
 
 def imported(argv: list[str], *, cwd: Path) -> list[str]:
     """The modules `python -X importtime argv...` imported, in order (its stderr's table)."""
-    result = subprocess.run(
-        [sys.executable, "-X", "importtime", *argv],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-        cwd=cwd,
-    )
+    result = python("-X", "importtime", *argv, timeout=60, cwd=cwd)
     assert 0 == result.returncode, result.stderr
     rows = [line.split("|")[-1] for line in result.stderr.splitlines()]
     return [row.strip() for row in rows if row.startswith(" ")]
@@ -181,12 +169,8 @@ def imported(argv: list[str], *, cwd: Path) -> list[str]:
 
 @pytest.mark.parametrize("argv", [["--version"], ["--help"], ["teach", "hint"]], ids=" ".join)
 def test_a_command_imports_no_tool_it_does_not_run(argv: list[str], tmp_path: Path) -> None:
-    started = subprocess.run(
-        [sys.executable, "-m", "rr_actors_lab", "teach", "start", "camera", str(tmp_path / "ex")],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
+    started = python(
+        "-m", "rr_actors_lab", "teach", "start", "camera", str(tmp_path / "ex"), timeout=60
     )
     assert 0 == started.returncode, started.stderr
 
@@ -419,9 +403,7 @@ class TestInspect:
         assert later.id in run("inspect", str(path))[1]
 
     def test_inspect_marks_in_doubt_resources(self, tmp_path: Path) -> None:
-        store = SqliteStore.open(tmp_path / "p.db")
-        store.load()
-        catalog = Catalog()
+        store, catalog = new_store(tmp_path / "p.db")
         catalog.begin_load("r-loading", "start_process", {"cmd": "sleep"})
         store.write(catalog.drain_changes())
         store.close(erase=False)
@@ -432,9 +414,7 @@ class TestInspect:
         assert (0, True, True) == (code, "[IN DOUBT: loading]" in line, "1 in doubt" in out)
 
     def test_inspect_marks_a_resource_its_provider_reported_fatal(self, tmp_path: Path) -> None:
-        store = SqliteStore.open(tmp_path / "p.db")
-        store.load()
-        catalog = Catalog()
+        store, catalog = new_store(tmp_path / "p.db")
         for rid in ("r-dead", "r-new"):
             catalog.begin_load(rid, "leaf", "lidar")
             catalog.finish_load(rid, {"pid": rid})
@@ -456,9 +436,7 @@ class TestInspect:
     def test_inspect_shows_a_value_it_cannot_unpickle_instead_of_failing(
         self, tmp_path: Path
     ) -> None:
-        store = SqliteStore.open(tmp_path / "p.db")
-        store.load()
-        catalog = Catalog()
+        store, catalog = new_store(tmp_path / "p.db")
         catalog.begin_load("r1", "leaf", "placeholder")
         store.write(catalog.drain_changes())
         store.close(erase=False)
@@ -493,13 +471,7 @@ class TestInspect:
     ) -> None:
         _, path, ids = live
 
-        done = subprocess.run(
-            [sys.executable, "-m", "rr_actors_lab", "inspect", str(path), "--json"],
-            capture_output=True,
-            text=True,
-            timeout=30,
-            check=False,
-        )
+        done = python("-m", "rr_actors_lab", "inspect", str(path), "--json", timeout=30)
 
         assert (0, ids["first"]) == (
             done.returncode,
@@ -573,9 +545,7 @@ class TestInspect:
 
     def test_inspect_json_marks_a_half_loaded_resource_in_doubt(self, tmp_path: Path) -> None:
         path = tmp_path / "p.db"
-        store = SqliteStore.open(path)
-        store.load()
-        catalog = Catalog()
+        store, catalog = new_store(path)
         catalog.begin_load("r-loading", "start_process", {"cmd": "sleep"})
         catalog.begin_load("r-fine", "start_process", {"cmd": "true"})
         catalog.finish_load("r-fine", {"pid": 1})
@@ -591,9 +561,7 @@ class TestInspect:
         self, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     ) -> None:
         path = tmp_path / "p.db"
-        store = SqliteStore.open(path)
-        store.load()
-        catalog = Catalog()
+        store, catalog = new_store(path)
         catalog.begin_load("r1", "leaf", 1)
         catalog.finish_load("r1", 1)
         catalog.add_consumer("r1", "q1", "C")

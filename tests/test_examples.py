@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.support.python import python
+
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 EXTRAS = tomllib.loads((EXAMPLES.parent / "pyproject.toml").read_text())["project"][
     "optional-dependencies"
@@ -21,13 +23,7 @@ EXTRAS = tomllib.loads((EXAMPLES.parent / "pyproject.toml").read_text())["projec
 
 def run_example(name: str) -> subprocess.CompletedProcess[str]:
     """Run `examples/<name>` with this interpreter; fail the test after 45 s."""
-    return subprocess.run(
-        [sys.executable, str(EXAMPLES / name)],
-        capture_output=True,
-        text=True,
-        timeout=45,
-        check=False,
-    )
+    return python(str(EXAMPLES / name), timeout=45)
 
 
 def test_quickstart_loads_hears_a_status_unloads_and_exits_cleanly() -> None:

@@ -3,23 +3,14 @@ name it offered before still importable (issue 54 part 5)."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import rr_actors
 from rr_actors import config, errors
-
-
-def python(*argv: str) -> subprocess.CompletedProcess[str]:
-    """`python *argv` in a fresh interpreter, its output captured (a minute at most)."""
-    return subprocess.run(
-        [sys.executable, *argv], check=False, capture_output=True, text=True, timeout=60
-    )
+from tests.support.python import python
 
 
 def printed(code: str) -> str:
     """What `python -c code` printed, once it exited 0 with nothing on stderr."""
-    run = python("-c", code)
+    run = python("-c", code, timeout=60)
     assert (run.returncode, run.stderr) == (0, "")
     return run.stdout
 
@@ -190,8 +181,8 @@ def test_the_runtime_runs_without_importing_the_lab() -> None:
 def test_a_former_lab_name_runs_with_dash_m_with_a_warning_naming_the_new_one() -> None:
     """`python -m rr_actors.mission` ran the demo before the move and `python -m rr_actors`
     the command line: both still do for one release, each warning of its new name."""
-    run = python("-m", "rr_actors.mission", "--help")
-    runtime = python("-m", "rr_actors", "--help")
+    run = python("-m", "rr_actors.mission", "--help", timeout=60)
+    runtime = python("-m", "rr_actors", "--help", timeout=60)
 
     assert run.returncode == 0
     assert run.stdout.startswith("usage: rr-actors demo")

@@ -7,8 +7,6 @@ import asyncio
 import itertools
 import json
 import re
-import subprocess
-import sys
 import textwrap
 import threading
 import time
@@ -28,6 +26,7 @@ import rr_actors as rr
 from rr_actors import events
 from rr_actors.testing import SharedObjects
 from rr_actors_lab import otel
+from tests.support.python import python
 from tests.support.supervising import sigkill
 
 pytestmark = pytest.mark.usefixtures("by_value")
@@ -74,6 +73,12 @@ def _one(spans: tuple[ReadableSpan, ...], name: str, kind: api.SpanKind) -> Read
     return span
 
 
+def _parent_of(span: ReadableSpan) -> int:
+    """The span id of `span`'s parent (a span with none fails the test)."""
+    assert span.parent is not None, span.name
+    return span.parent.span_id
+
+
 def _serve(registrar: rr.ResourceRegistrar) -> None:
     registrar.register_server("cam", load=lambda r: f"cam {r}", unload=lambda _q, _r: None)
 
@@ -105,8 +110,7 @@ def test_a_call_is_a_client_span_over_its_server_span_over_its_load(
     assert {first.id, second.id} == set(by_query)
     for server in servers:
         client = by_query[server.attributes["rr_actors.query_id"]]
-        assert server.parent is not None
-        assert client.context.span_id == server.parent.span_id
+        assert _parent_of(server) == client.context.span_id
         assert client.context.trace_id == server.context.trace_id
         assert client.start_time <= server.start_time <= server.end_time <= client.end_time
         for span in (client, server):  # the current RPC conventions, not the deprecated
@@ -126,8 +130,7 @@ def test_a_call_is_a_client_span_over_its_server_span_over_its_load(
     )
     assert isinstance(loaded.attributes["rr_actors.digest"], int)
     load = _one(spans, "cam.load", api.SpanKind.INTERNAL)
-    assert load.parent is not None
-    assert loaded.context.span_id == load.parent.span_id
+    assert _parent_of(load) == loaded.context.span_id
     assert loaded.start_time == load.start_time < load.end_time <= loaded.end_time
     unload_client = [
         s
@@ -142,8 +145,7 @@ def test_a_call_is_a_client_span_over_its_server_span_over_its_load(
         assert f"{erm}/cam" == server.name == client.name
     last = next(s for s in unload_servers if s.attributes["rr_actors.query_id"] == first.id)
     unload = _one(spans, "cam.unload", api.SpanKind.INTERNAL)
-    assert unload.parent is not None
-    assert last.context.span_id == unload.parent.span_id
+    assert _parent_of(unload) == last.context.span_id
     assert last.start_time <= unload.start_time <= unload.end_time <= last.end_time
 
 
@@ -173,8 +175,7 @@ def test_a_failed_load_is_an_error_span_with_its_exception(
     server = _one(spans, f"{erm.name}/cam", api.SpanKind.SERVER)
     client = _one(spans, f"{erm.name}/cam", api.SpanKind.CLIENT)
     load = _one(spans, "cam.load", api.SpanKind.INTERNAL)
-    assert server.parent is not None
-    assert client.context.span_id == server.parent.span_id
+    assert _parent_of(server) == client.context.span_id
     for span in (server, client, load):
         assert api.StatusCode.ERROR == span.status.status_code
     assert "ValueError" == server.attributes["error.type"]
@@ -182,8 +183,7 @@ def test_a_failed_load_is_an_error_span_with_its_exception(
         (e.name, e.attributes["exception.type"], e.attributes["exception.message"])
         for e in load.events
     ]
-    assert load.parent is not None
-    assert server.context.span_id == load.parent.span_id
+    assert _parent_of(load) == server.context.span_id
 
 
 @pytest.mark.usefixtures("process_helpers")
@@ -267,10 +267,8 @@ def test_a_killed_load_is_ended_and_marked_by_the_restart_span(
     assert resource_id == server.attributes["rr_actors.resource_id"]
     assert client.attributes["rr_actors.query_id"] == server.attributes["rr_actors.query_id"]
     assert "failed" == client.attributes["rr_actors.outcome"]
-    assert server.parent is not None
-    assert client.context.span_id == server.parent.span_id
-    assert load.parent is not None
-    assert server.context.span_id == load.parent.span_id
+    assert _parent_of(server) == client.context.span_id
+    assert _parent_of(load) == server.context.span_id
     for span in (server, load):
         assert span.attributes["rr_actors.end_lost"] is True
         assert api.StatusCode.ERROR == span.status.status_code
@@ -446,9 +444,7 @@ def test_it_traces_through_the_global_provider_the_application_installs_later() 
         print(sorted((s.kind.name, s.name) for s in exporter.get_finished_spans()))
         """
     )
-    done = subprocess.run(
-        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, check=False
-    )
+    done = python("-c", script, timeout=60)
     assert 0 == done.returncode, done.stderr[-2000:]
     expected = [("CLIENT", "erm/cam"), ("INTERNAL", "cam.load"), ("SERVER", "erm/cam")]
     assert repr(expected) == done.stdout.strip()
@@ -470,9 +466,7 @@ def test_without_the_extra_nothing_is_subscribed_and_nothing_is_made() -> None:
         print(otel._api, tracing.subscribed, tracing._watcher, tracing._clients, tracing._servers)
         """
     )
-    done = subprocess.run(
-        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, check=False
-    )
+    done = python("-c", script, timeout=60)
     assert 0 == done.returncode, done.stderr[-2000:]
     assert "None False None {} {}" == done.stdout.strip()
 
@@ -509,8 +503,7 @@ def test_the_callers_trace_continues_through_the_call_and_its_unload(
     assert ["answered", "unload"] == sorted(s.attributes["rr_actors.outcome"] for s in clients)
     assert ["loaded", "released"] == sorted(s.attributes["rr_actors.outcome"] for s in servers)
     for client in clients:  # the caller's span is each CLIENT span's parent
-        assert client.parent is not None
-        assert root.context.span_id == client.parent.span_id
+        assert _parent_of(client) == root.context.span_id
         assert root.context.trace_id == client.context.trace_id
         assert root.start_time <= client.start_time <= client.end_time <= root.end_time
     call = next(s for s in clients if s.attributes["rr_actors.outcome"] == "answered")
@@ -527,8 +520,7 @@ def test_the_callers_trace_continues_through_the_call_and_its_unload(
     assert call.start_time <= loaded.start_time <= loaded.end_time <= call.end_time
     assert call.end_time <= unload.start_time  # (the unload was made after the call)
     load = _one(spans, "cam.load", api.SpanKind.INTERNAL)
-    assert load.parent is not None
-    assert loaded.context.span_id == load.parent.span_id
+    assert _parent_of(load) == loaded.context.span_id
     assert {root.context.trace_id} == {s.context.trace_id for s in spans}
 
 
@@ -987,8 +979,7 @@ def test_a_load_cut_before_its_consumer_was_added_stays_in_its_calls_trace(
     assert (int(trace_id, 16), int(client, 16)) == (server.context.trace_id, server.parent.span_id)
     assert server.attributes["rr_actors.end_lost"] is True
     assert api.StatusCode.ERROR == server.status.status_code
-    assert load.parent is not None
-    assert server.context.span_id == load.parent.span_id
+    assert _parent_of(load) == server.context.span_id
     assert 101_000_000_000 == server.end_time  # ended at the kill; its load had ended
     assert 100_000_000_000 == load.end_time
 
@@ -1095,8 +1086,7 @@ def test_the_restart_links_the_old_incarnations_last_span_even_while_it_waits_fo
     assert {waiting, paired, first} == set(servers) == set(clients)
     for query_id, server in servers.items():  # (the late caller's side still its parent)
         assert "rm/map" == server.name == clients[query_id].name
-        assert server.parent is not None
-        assert clients[query_id].context.span_id == server.parent.span_id
+        assert _parent_of(server) == clients[query_id].context.span_id
     assert [] == _orphans(spans)
 
 
@@ -1155,8 +1145,7 @@ def test_an_unload_cut_by_a_kill_ends_under_its_release_or_as_a_root_never_an_or
             server.attributes["rr_actors.query_id"],
         )
         [client] = [s for s in spans if s.attributes.get("rr_actors.outcome") == "dependency"]
-        assert server.parent is not None
-        assert client.context.span_id == server.parent.span_id
+        assert _parent_of(server) == client.context.span_id
         assert server.start_time == 101_000_000_000
     else:  # its release not known: a root of its own
         assert server.parent is None
@@ -1206,8 +1195,7 @@ def test_a_hop_whose_send_is_never_heard_goes_under_a_stand_in_marked_incomplete
     stand_in = _one(spans, "status OK", api.SpanKind.PRODUCER)
     hop = _one(spans, "status OK hop 1", api.SpanKind.CONSUMER)
     assert stand_in.attributes["rr_actors.incomplete"] is True
-    assert hop.parent is not None
-    assert stand_in.context.span_id == hop.parent.span_id  # (no orphan)
+    assert _parent_of(hop) == stand_in.context.span_id  # (no orphan)
     assert 10_000_000_000 == stand_in.start_time  # (its hop's delivery less its latency)
 
 

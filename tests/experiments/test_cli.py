@@ -29,6 +29,7 @@ from rr_actors_lab.__main__ import main
 from rr_actors_lab.experiments import Progress, RunResult, parse_plan
 from rr_actors_lab.experiments.cli import Display, fault_line, summary_lines
 from rr_actors_lab.experiments.results import FaultRecord, Results
+from tests.support.python import python
 from tests.support.small_disk import fill, mounted
 from tests.support.terminal import FakeTerminal, on_a_terminal
 
@@ -180,14 +181,7 @@ WITHOUT_MSGSPEC = (
 def test_without_the_experiments_extra_every_use_names_it_with_exit_code_2(
     argv: list[str], tmp_path: Path
 ) -> None:
-    result = subprocess.run(
-        [sys.executable, "-c", WITHOUT_MSGSPEC, "experiment", *argv],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
+    result = python("-c", WITHOUT_MSGSPEC, "experiment", *argv, cwd=tmp_path, timeout=60)
 
     assert (2, "") == (result.returncode, result.stdout)
     assert result.stderr.startswith("rr-actors experiment needs an extra: pip install")

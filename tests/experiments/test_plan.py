@@ -3,8 +3,6 @@ with msgspec), worded with the key, line, value, choices, and the limits they ca
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import tracemalloc
 from pathlib import Path
 
@@ -12,6 +10,7 @@ import pytest
 
 from rr_actors_lab.__main__ import main
 from rr_actors_lab.experiments import PlanError, parse_plan
+from tests.support.python import python
 
 BASE = """\
 name = "t"
@@ -233,12 +232,8 @@ class TestHugeNumbers:
         plan.write_text(HUGE_BASE.replace("clients = 1", "clients = 100000000"))
         code = "import sys; from rr_actors_lab.__main__ import main; sys.exit(main(sys.argv[1:]))"
 
-        done = subprocess.run(
-            [sys.executable, "-c", code, "experiment", str(plan), "--out", str(tmp_path / "out")],
-            capture_output=True,
-            text=True,
-            timeout=30,
-            check=False,
+        done = python(
+            "-c", code, "experiment", str(plan), "--out", str(tmp_path / "out"), timeout=30
         )
 
         assert 2 == done.returncode, done.stderr  # not 1 with a MemoryError

@@ -5,12 +5,11 @@ console exporter as `OTEL_TRACES_EXPORTER=console` says."""
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 import textwrap
 from pathlib import Path
 
 from tests.support.demos import console_spans
+from tests.support.python import python
 
 PLAN = """\
 duration = 3.0
@@ -55,14 +54,7 @@ RUN = textwrap.dedent(
 
 def test_a_traced_run_exports_one_trace_per_step_its_calls_under_it(tmp_path: Path) -> None:
     env = {**os.environ, "OTEL_TRACES_EXPORTER": "console", "OTEL_SERVICE_NAME": "the run"}
-    done = subprocess.run(
-        [sys.executable, "-c", RUN, PLAN, str(tmp_path / "run")],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        env=env,
-        check=False,
-    )
+    done = python("-c", RUN, PLAN, str(tmp_path / "run"), timeout=300, env=env)
 
     assert 0 == done.returncode, done.stderr[-3000:]
     spans = console_spans(done.stdout)

@@ -83,11 +83,8 @@ def test_a_service_with_list_every_lists_its_server_and_its_registrar_publishes_
 
 
 def test_a_service_refuses_a_negative_list_every() -> None:
-    provider = rr.ResourceRegistrar.start(f"svc-{uuid.uuid4().hex[:8]}")
-    try:
+    with rr.ResourceRegistrar.start(f"svc-{uuid.uuid4().hex[:8]}") as provider:
         with pytest.raises(rr.ConfigError, match="list_every"):
             service(provider, list_every=-1.0)
         with pytest.raises(rr.ConfigError, match="status_every"):
             service(provider, status_every="0.2")  # type: ignore[arg-type]
-    finally:
-        provider.stop()

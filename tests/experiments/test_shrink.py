@@ -445,19 +445,26 @@ def test_a_shrink_makes_no_run_after_its_cpu_time(monkeypatch: pytest.MonkeyPatc
 
 
 @SHRINK
-def test_a_client_awaiting_many_calls_at_once_is_shrunk_to_await_one(
-    monkeypatch: pytest.MonkeyPatch,
+@pytest.mark.parametrize(
+    ("kind", "key"),
+    [("CallAnswered", "awaited"), ("QueriesFetched", "fetch_every")],
+    ids=["awaiting 40 calls at once", "fetching after every 40 calls"],
+)
+def test_a_client_awaiting_or_fetching_after_many_calls_is_shrunk_to_do_so_for_one(
+    monkeypatch: pytest.MonkeyPatch, kind: str, key: str
 ) -> None:
     # 40 calls awaited at once, all answered within a millisecond: the run cut just after
-    # the first answer still holds the others; only fewer awaited calls drop them.
-    probe(monkeypatch, "CallAnswered")
-    text = ONE.replace("hold = 0\n", "hold = 0\nawaited = 40\n")
+    # the first answer still holds the others; only fewer awaited calls drop them. The
+    # client asks api for the ids it holds after every 40 calls: the first fetch comes
+    # after 40 answered calls, unless it comes after each.
+    probe(monkeypatch, kind)
+    text = ONE.replace("hold = 0\n", f"hold = 0\n{key} = 40\n")
 
     shrunk = shrink.shrink(parse_plan(text), 1, budget=BUDGET, text=text)
 
     assert shrunk.original_events > 100
     assert shrunk.run.events <= 12
-    assert "workload.awaited = 1" in shrunk.steps
+    assert f"workload.{key} = 1" in shrunk.steps
 
 
 @SHRINK
@@ -479,22 +486,6 @@ def test_calls_cancelled_late_are_shrunk_to_calls_cancelled_at_once(
     assert shrunk.original_events > 30
     assert shrunk.run.events <= 10
     assert "workload.cancel_within = 0" in shrunk.steps
-
-
-@SHRINK
-def test_a_client_fetching_after_many_calls_is_shrunk_to_fetch_after_one(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    # The client asks api for the ids it holds after every 40 calls: the first fetch comes
-    # after 40 answered calls, unless it comes after each.
-    probe(monkeypatch, "QueriesFetched")
-    text = ONE.replace("hold = 0\n", "hold = 0\nfetch_every = 40\n")
-
-    shrunk = shrink.shrink(parse_plan(text), 1, budget=BUDGET, text=text)
-
-    assert shrunk.original_events > 100
-    assert shrunk.run.events <= 12
-    assert "workload.fetch_every = 1" in shrunk.steps
 
 
 def test_fewer_awaited_calls_are_tried_first_with_the_triggers_nth_scaled_alike(

@@ -52,6 +52,7 @@ from tests.support.demos import (
 )
 from tests.support.hosts import free_port
 from tests.support.observing import get_json, headless_chromium
+from tests.support.python import python
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -63,15 +64,7 @@ needs_root = pytest.mark.skipif(
 
 def demo(*options: str, cwd: Path, timeout: float = 150) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.run(
-        [sys.executable, "-m", "rr_actors_lab", "demo", *options],
-        cwd=cwd,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        env=env,
-        check=False,
-    )
+    return python("-m", "rr_actors_lab", "demo", *options, cwd=cwd, timeout=timeout, env=env)
 
 
 @needs_root

@@ -4,8 +4,6 @@ restart."""
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 import uuid
 from pathlib import Path
 
@@ -13,11 +11,11 @@ import rr_actors as rr
 from rr_actors_lab.mission.managers import ProcessTable
 from rr_actors_lab.mission.programs import start_time
 from tests.support.demos import console_spans
+from tests.support.python import python
 
 
 def test_the_erm_does_not_adopt_a_process_whose_pid_was_reused(tmp_path: Path) -> None:
-    registrar = rr.ResourceRegistrar.start(f"erm-{uuid.uuid4().hex[:8]}")
-    try:
+    with rr.ResourceRegistrar.start(f"erm-{uuid.uuid4().hex[:8]}") as registrar:
         table = ProcessTable(registrar)
         me = os.getpid()
         created = start_time(me)
@@ -32,8 +30,6 @@ def test_the_erm_does_not_adopt_a_process_whose_pid_was_reused(tmp_path: Path) -
         )
 
         dead = table.adopt([impostor])
-    finally:
-        registrar.stop()
 
     assert [impostor] == dead
 
@@ -43,13 +39,8 @@ def test_rms_driver_restart_is_in_the_trace_of_the_status_callbacks_run(tmp_path
     # its own, whose calls (release the dead driver, load a new one) are in the callback's trace
     env = {**os.environ, "OTEL_TRACES_EXPORTER": "console"}
     argv = ["--fast", "--faults", "F2", "--distance", "2", "--quiet", "--trace"]
-    done = subprocess.run(
-        [sys.executable, "-m", "rr_actors_lab", "demo", *argv, "--out", str(tmp_path)],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        env=env,
-        check=False,
+    done = python(
+        "-m", "rr_actors_lab", "demo", *argv, "--out", str(tmp_path), timeout=300, env=env
     )
 
     assert 0 == done.returncode, done.stderr[-2000:]

@@ -50,6 +50,7 @@ from tests.support.demos import (
     report_with_everything,
 )
 from tests.support.observing import request
+from tests.support.python import python
 from tests.support.small_disk import mounted, remount_read_only
 from tests.support.waiting import wait_for
 
@@ -205,13 +206,8 @@ def test_trace_exports_one_trace_per_mission_step_where_the_otel_variables_say(
 ) -> None:
     env = {**os.environ, "OTEL_TRACES_EXPORTER": "console", "OTEL_SERVICE_NAME": "the robot"}
     argv = ["--fast", "--faults", "F4", "--distance", "2", "--quiet", "--trace"]
-    done = subprocess.run(
-        [sys.executable, "-m", "rr_actors_lab", "demo", *argv, "--out", str(tmp_path)],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        env=env,
-        check=False,
+    done = python(
+        "-m", "rr_actors_lab", "demo", *argv, "--out", str(tmp_path), timeout=300, env=env
     )
 
     assert 0 == done.returncode, done.stderr[-2000:]
@@ -231,22 +227,16 @@ def test_trace_with_an_exporter_not_installed_exits_2(
 
 
 def test_the_example_script_runs_the_mission(tmp_path: Path) -> None:
-    result = subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "examples" / "jackal_mission.py"),
-            "--fast",
-            "--faults",
-            "F1",
-            "--distance",
-            "3",
-            "--out",
-            str(tmp_path),
-        ],
-        capture_output=True,
-        text=True,
+    result = python(
+        str(ROOT / "examples" / "jackal_mission.py"),
+        "--fast",
+        "--faults",
+        "F1",
+        "--distance",
+        "3",
+        "--out",
+        str(tmp_path),
         timeout=50,
-        check=False,
     )
 
     assert (0, "") == (result.returncode, result.stderr)
@@ -352,13 +342,7 @@ def test_quiet_help_says_it_prints_only_the_timeline() -> None:
 
 def demo(*argv: str) -> subprocess.CompletedProcess[str]:
     """`rr-actors demo ARGV` as a separate program (60 s at most)."""
-    return subprocess.run(
-        [sys.executable, "-m", "rr_actors_lab", "demo", *argv],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
+    return python("-m", "rr_actors_lab", "demo", *argv, timeout=60)
 
 
 @pytest.mark.parametrize(
@@ -581,13 +565,7 @@ class TestOneDemoPerOut:
             # Its first line of story comes after it took the lock and emptied state/ and bus/.
             assert "starting the managers" in first.stdout.readline()
 
-            second = subprocess.run(
-                [sys.executable, "-m", "rr_actors_lab", "demo", "--fast", "--out", str(out)],
-                capture_output=True,
-                text=True,
-                timeout=60,
-                check=False,
-            )
+            second = python("-m", "rr_actors_lab", "demo", "--fast", "--out", str(out), timeout=60)
             rest, errors = first.communicate(timeout=90)
         finally:
             if first.poll() is None:

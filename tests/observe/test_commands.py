@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import hashlib
 import io
-import subprocess
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -18,6 +16,7 @@ from rr_actors_lab.__main__ import main
 from rr_actors_lab.observe import observe_backups
 from tests.support.observed_tree import REQUEST, figure_27
 from tests.support.observing import get_json, request, wait_state
+from tests.support.python import python
 
 
 @pytest.fixture
@@ -191,12 +190,8 @@ def test_observe_on_a_non_loopback_host_needs_allow_remote(
 
 
 def test_the_command_runs_as_a_console_script(state: Path) -> None:
-    done = subprocess.run(
-        [sys.executable, "-m", "rr_actors_lab", "graph", "--state", str(state), "--format", "dot"],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
+    done = python(
+        "-m", "rr_actors_lab", "graph", "--state", str(state), "--format", "dot", timeout=60
     )
 
     assert (0, "") == (done.returncode, done.stderr)
@@ -204,13 +199,7 @@ def test_the_command_runs_as_a_console_script(state: Path) -> None:
 
 
 def test_help_lists_observe_and_graph() -> None:
-    done = subprocess.run(
-        [sys.executable, "-m", "rr_actors_lab", "--help"],
-        capture_output=True,
-        text=True,
-        timeout=30,
-        check=False,
-    )
+    done = python("-m", "rr_actors_lab", "--help", timeout=30)
 
     assert 0 == done.returncode
     assert "observe" in done.stdout

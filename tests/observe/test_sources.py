@@ -23,7 +23,6 @@ import pytest
 import rr_actors as rr
 import rr_actors_lab.observe as _lab_observe
 from rr_actors import events
-from rr_actors._catalog import Catalog
 from rr_actors._catalog.texts import NOT_SHOWN_OLD
 from rr_actors._store import SqliteStore, read_backup, schema
 from rr_actors._store.schema import dumps
@@ -31,6 +30,7 @@ from rr_actors.config import SupervisorSpec
 from rr_actors_lab.__main__ import main
 from rr_actors_lab.observe._hub import Hub
 from rr_actors_lab.observe._sources import LiveSource, TreeAccess, event_dict, read_catalogs
+from tests.support.durable_pair import new_store
 from tests.support.hostile import CreatesAFile, ExitsWhenShown, HangsWhenShown
 
 
@@ -42,9 +42,7 @@ def run(*argv: str) -> tuple[int, str]:
 
 def stored_backup(path: Path) -> None:
     """A backup as a registrar writes it: one resource with its display texts."""
-    store = SqliteStore.open(path)
-    store.load()
-    catalog = Catalog()
+    store, catalog = new_store(path)
     resource = catalog.begin_load("r0", "lidar", {"name": "lidar2"})
     resource.request_text = "{'name': 'lidar2'}"
     catalog.finish_load("r0", "ok").response_text = "'ok'"

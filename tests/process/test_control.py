@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import multiprocessing
 import pickle
-import subprocess
-import sys
 import textwrap
 import typing
 
@@ -14,6 +12,7 @@ import pytest
 
 from rr_actors._process import child, control, manager
 from rr_actors.config import RegistrarConfig
+from tests.support.python import python
 from tests.support.supervising import linux_trick
 
 EXAMPLES = [
@@ -77,13 +76,7 @@ SCRIPT = textwrap.dedent(
 def test_a_start_method_set_by_the_program_does_not_change_how_managers_start(
     method: str,
 ) -> None:
-    result = subprocess.run(
-        [sys.executable, "-c", SCRIPT.format(method=method)],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
+    result = python("-c", SCRIPT.format(method=method), timeout=60)
 
     assert (0, "forked elsewhere\n") == (result.returncode, result.stdout), result.stderr
 
@@ -130,13 +123,7 @@ FORKSERVER_FIRST = textwrap.dedent(
 def test_managers_are_forked_preloaded_when_the_program_started_its_forkserver_first() -> None:
     """Issue 34 item 6: the program's forkserver, started first, never got rr_actors'
     preload, and managers were forked from it: each (re)start imported rr_actors."""
-    result = subprocess.run(
-        [sys.executable, "-c", FORKSERVER_FIRST],
-        capture_output=True,
-        text=True,
-        timeout=90,
-        check=False,
-    )
+    result = python("-c", FORKSERVER_FIRST, timeout=90)
 
     assert (0, result.stdout.splitlines()) == (
         result.returncode,

@@ -11,9 +11,8 @@ from typing import Any
 import pytest
 
 from rr_actors import events
-from rr_actors._catalog import Catalog
 from rr_actors._process.tally import Journal, Received, Tally
-from rr_actors._store.sqlite import SqliteStore
+from tests.support.durable_pair import new_store
 
 
 class Counted:
@@ -98,9 +97,7 @@ def added(seq: int) -> events.ConsumerAdded:
 
 def committed(path: Path, told: list[events.Event]) -> None:
     """Write one change per event, each with its event in the backup's outbox."""
-    store = SqliteStore.open(path)
-    store.load()
-    catalog = Catalog()
+    store, catalog = new_store(path)
     catalog.begin_load("r1", "leaf", 1)
     catalog.finish_load("r1", 1)
     for event in told:

@@ -16,13 +16,12 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import simulation
-from rr_actors._catalog import Catalog
 from rr_actors._core import runtime
 from rr_actors._process.manager import ManagerProcess
 from rr_actors._store.restore import read_backup
-from rr_actors._store.sqlite import SqliteStore
 from rr_actors.config import RegistrarConfig
 from rr_actors.testing import MemoryNetwork
+from tests.support.durable_pair import new_store
 
 pytest.importorskip("greenlet")  # (the simulation extra)
 
@@ -264,9 +263,7 @@ def test_a_manager_s_events_reach_the_supervisor_s_subscribers_while_they_listen
 def commit_one(path: Path) -> list[str]:
     """Commit a resource with a consumer to a new backup at `path`; the files beside it
     just after the commit (the store is closed then)."""
-    store = SqliteStore.open(path)
-    store.load()
-    catalog = Catalog()
+    store, catalog = new_store(path)
     catalog.begin_load("r1", "leaf", {"rid": "r1"})
     catalog.finish_load("r1", {"pid": 1})
     catalog.add_consumer("r1", "q1", "C")

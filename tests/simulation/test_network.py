@@ -10,7 +10,7 @@ import shutil
 import signal
 import tempfile
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any, Literal
 
 import pytest
@@ -562,15 +562,35 @@ def start_tree(
     return simulation.start_process(tree, name="tree"), children
 
 
+@contextlib.contextmanager
+def app_on(
+    folder: str | None = None, heal: bool = False, **network: Any
+) -> Iterator[tuple[simulation.SimulatedNetwork, rr.ResourceRegistrar]]:
+    """A simulated network (of these options) and a consumer `app` on it; at the end the
+    network is healed (with `heal`), `app` stopped, the network closed and `folder` (if
+    given) removed."""
+    on = simulation.SimulatedNetwork(**network)
+    app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=on)
+    try:
+        yield on, app
+    finally:
+        try:
+            if heal:
+                on.heal()
+            app.stop()
+        finally:
+            on.close()
+        if folder is not None:
+            shutil.rmtree(folder, ignore_errors=True)
+
+
 def lost_provider(how: str) -> Callable[[], Any]:
     """A consumer `app` holds an id at `provider`, served by a process nobody restarts;
     that process is killed (`kill`) or stopped past its lease (`stop`): the carrier says
     it is lost (rule 19): `app` hears FATAL for the id once and forgets it."""
 
     def scenario() -> Any:
-        network = simulation.SimulatedNetwork(lease=1.0)
-        app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=network)
-        try:
+        with app_on(lease=1.0) as (network, app):
             pid = simulation.start_process(serve_alone(network, "provider"), name="provider")
             until_served(network, "provider")
             heard: list[tuple[str, Any]] = []
@@ -592,11 +612,6 @@ def lost_provider(how: str) -> Callable[[], Any]:
             if how == "stop":
                 simulation.kill(pid, signal.SIGCONT)
             return outcome
-        finally:
-            try:
-                app.stop()
-            finally:
-                network.close()
 
     return scenario
 
@@ -623,9 +638,7 @@ def test_a_provider_whose_supervisor_lives_is_awaited_not_lost_and_lost_once_tha
 
     def scenario() -> Any:
         folder = tempfile.mkdtemp(prefix="rr-sim-awaited-")
-        network = simulation.SimulatedNetwork()
-        app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=network)
-        try:
+        with app_on(folder=folder) as (network, app):
             tree_pid, children = start_tree(network, folder, restart="temporary")
             until_served(network, "provider")
             held = app.call("provider", "leaf", "x")
@@ -635,12 +648,6 @@ def test_a_provider_whose_supervisor_lives_is_awaited_not_lost_and_lost_once_tha
             simulation.kill(tree_pid)  # (its speaker goes too: nobody will say more)
             simulation.sleep(2.0)
             return held.id in awaited, [q.id for q in app.client_queries()]
-        finally:
-            try:
-                app.stop()
-            finally:
-                network.close()
-            shutil.rmtree(folder, ignore_errors=True)
 
     for seed in range(5):
         run = simulation.run(scenario, seed=seed, preempt=0.1)
@@ -923,9 +930,7 @@ def cut_past_the_lease(cut_for: float) -> Callable[[], Any]:
     then healed; then `app` calls it again."""
 
     def scenario() -> Any:
-        network = simulation.SimulatedNetwork(lease=1.0)
-        app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=network)
-        try:
+        with app_on(lease=1.0) as (network, app):
             pid = simulation.start_process(serve_alone(network, "provider"), name="provider")
             until_served(network, "provider")
             heard: list[tuple[str, Any]] = []
@@ -942,11 +947,6 @@ def cut_past_the_lease(cut_for: float) -> Callable[[], Any]:
             simulation.sleep(1.0)  # (the heal's reconciliation)
             after = app.call("provider", "leaf", "y", timeout=5.0).response
             return during == ([], [held.id]), during == ([rr.Status.FATAL], []), after
-        finally:
-            try:
-                app.stop()
-            finally:
-                network.close()
 
     return scenario
 
@@ -996,9 +996,7 @@ def test_a_process_restarted_beyond_a_cut_stays_beyond_it() -> None:
 
     def scenario() -> Any:
         folder = tempfile.mkdtemp(prefix="rr-sim-beyond-")
-        network = simulation.SimulatedNetwork()
-        app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=network)
-        try:
+        with app_on(folder=folder) as (network, app):
             tree_pid, children = start_tree(network, folder)
             until_served(network, "provider")
             app.call("provider", "leaf", "x")
@@ -1015,12 +1013,6 @@ def test_a_process_restarted_beyond_a_cut_stays_beyond_it() -> None:
             network.heal()
             simulation.sleep(1.0)
             return during, app.call("provider", "leaf", "z", timeout=5.0).response
-        finally:
-            try:
-                app.stop()
-            finally:
-                network.close()
-            shutil.rmtree(folder, ignore_errors=True)
 
     for seed in range(5):
         run = simulation.run(scenario, seed=seed, preempt=0.1)
@@ -1035,9 +1027,7 @@ def test_a_name_awaited_across_a_cut_is_lost_once_its_supervisor_goes() -> None:
 
     def scenario() -> Any:
         folder = tempfile.mkdtemp(prefix="rr-sim-across-")
-        network = simulation.SimulatedNetwork(lease=1.0)
-        app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=network)
-        try:
+        with app_on(lease=1.0, folder=folder, heal=True) as (network, app):
             tree_pid, children = start_tree(network, folder)
             until_served(network, "provider")
             held = app.call("provider", "leaf", "x")
@@ -1047,13 +1037,6 @@ def test_a_name_awaited_across_a_cut_is_lost_once_its_supervisor_goes() -> None:
             simulation.kill(tree_pid)
             simulation.sleep(1.0)
             return awaited == [held.id], [q.id for q in app.client_queries()]
-        finally:
-            try:
-                network.heal()
-                app.stop()
-            finally:
-                network.close()
-            shutil.rmtree(folder, ignore_errors=True)
 
     for seed in range(5):
         run = simulation.run(scenario, seed=seed, preempt=0.1)
@@ -1069,9 +1052,7 @@ def test_a_name_served_again_on_its_side_during_a_cut_is_no_longer_awaited_acros
 
     def scenario() -> Any:
         folder = tempfile.mkdtemp(prefix="rr-sim-again-")
-        network = simulation.SimulatedNetwork(lease=1.0)
-        app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=network)
-        try:
+        with app_on(lease=1.0, folder=folder, heal=True) as (network, app):
             tree_pid, children = start_tree(network, folder)
             until_served(network, "provider")
             app.call("provider", "leaf", "x")
@@ -1086,13 +1067,6 @@ def test_a_name_served_again_on_its_side_during_a_cut_is_no_longer_awaited_acros
             kept = [q.id for q in app.client_queries()]
             simulation.kill(tree_pid, signal.SIGCONT)
             return held.id in kept
-        finally:
-            try:
-                network.heal()
-                app.stop()
-            finally:
-                network.close()
-            shutil.rmtree(folder, ignore_errors=True)
 
     for seed in range(3):
         run = simulation.run(scenario, seed=seed, preempt=0.1)
@@ -1159,15 +1133,13 @@ def one_way_heal() -> Any:
     at the heal the second one's process does not hear the first's server (`unheard`),
     the first's does. What is left: whether the second registrar still runs, what a new
     call answers, whether `app` still holds its id from the second."""
-    network = simulation.SimulatedNetwork()
-    app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=network)
     second: list[rr.ResourceRegistrar] = []
 
     def setup(registrar: rr.ResourceRegistrar) -> None:
         leaf_setup(registrar)
         second.append(registrar)
 
-    try:
+    with app_on() as (network, app):
         first = simulation.start_process(serve_alone(network, "provider"), name="kept")
         until_served(network, "provider")
         network.partition([first])
@@ -1179,11 +1151,6 @@ def one_way_heal() -> Any:
         answer = app.call("provider", "leaf", "z", timeout=5.0).response
         ids = [q.id for q in app.client_queries()]
         return second[0].is_alive(), answer, held.id in ids
-    finally:
-        try:
-            app.stop()
-        finally:
-            network.close()
 
 
 def test_a_newcomer_that_does_not_hear_the_kept_server_after_a_heal_is_told_and_yields() -> None:

@@ -875,8 +875,9 @@ def test_a_registrar_on_another_name_of_a_running_registrars_backup_is_refused(
     """In one process: the second registrar is refused (`ConfigError` naming the name it was
     given, the file that is, and this pid) and the first goes on writing its own rows."""
     path, other = tmp_path / "p.db", tmp_path / "other.db"
-    first = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=unique("first"), backup_path=path))
-    try:
+    with rr.ResourceRegistrar.start(
+        rr.RegistrarConfig(name=unique("first"), backup_path=path)
+    ) as first:
         first.register_server("leaf", load=lambda r: r, unload=noop_unload)
         held = first.call(first.name, "leaf", "before")
         names_it = make_name(path, other)
@@ -885,8 +886,6 @@ def test_a_registrar_on_another_name_of_a_running_registrars_backup_is_refused(
 
         first.unload(held.id)
         first.call(first.name, "leaf", "after")  # (its file is still its alone)
-    finally:
-        first.stop()
 
     assert (True, True, True) == (
         repr(str(other)) in message,

@@ -17,6 +17,7 @@ from rr_actors._store import outbox, schema
 from rr_actors._store.outbox import SLOTS, read_told
 from rr_actors._store.sqlite import SqliteStore
 from tests.events.test_events import EXAMPLES
+from tests.support.durable_pair import new_store
 from tests.support.persisting import CommitFails, reopen
 
 SCHEMA_6_BACKUP = Path(__file__).parent / "data" / "schema-6-loaded.db"
@@ -40,9 +41,7 @@ def added(seq: int, pid: int = 4242, query_id: str = "q1") -> events.ConsumerAdd
 
 
 def opened(path: Path) -> tuple[SqliteStore, Catalog]:
-    store = SqliteStore.open(path)
-    store.load()
-    catalog = Catalog()
+    store, catalog = new_store(path)
     catalog.begin_load("r1", "leaf", 1)
     catalog.finish_load("r1", 1)
     store.write(catalog.drain_changes())

@@ -26,6 +26,7 @@ from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import catalog_snapshot
 from tests.support.durable_pair import (
     leaf_load,
+    new_store,
     noop_unload,
     pair_backups,
     schema_2_database,
@@ -184,9 +185,7 @@ def test_a_resource_nobody_held_before_a_kill_is_unloaded_after_the_restart(
 
 def write_catalog(path: Path, rows: list[tuple[str, str, Any, str]]) -> None:
     """A backup whose resources (id, server, request, consumer id) are loaded, in order."""
-    store = SqliteStore.open(path)
-    store.load()
-    catalog = Catalog()
+    store, catalog = new_store(path)
     for rid, server, request, query_id in rows:
         catalog.begin_load(rid, server, request)
         catalog.finish_load(rid, {"of": rid})
@@ -368,9 +367,7 @@ class TestLazyRestore:
         """A failed ROLLBACK may leave a transaction open: a one-statement write must not then
         run inside it (it would never be committed) but fail, and stay pending."""
         path = tmp_path / "p.db"
-        store = SqliteStore.open(path)
-        store.load()
-        catalog = Catalog()
+        store, catalog = new_store(path)
         catalog.begin_load("r1", "leaf", 1)
         catalog.finish_load("r1", 1)
         store.write(catalog.drain_changes())
@@ -487,9 +484,7 @@ def fill(path: Path) -> tuple[dict[int, str], str]:
     `{"stored": n}`): one consumer id each, of registrar `gone` (never running), but
     none for `UNHELD` and one of `app` for `FORGOTTEN`. Returns their resource ids and
     the consumer id of `FORGOTTEN`."""
-    store = SqliteStore.open(path)
-    store.load()
-    catalog = Catalog()
+    store, catalog = new_store(path)
     ids = {}
     forgotten = str(uuid.uuid4())
     for n in range(ENTRIES):
@@ -625,9 +620,7 @@ def test_a_catalog_partly_read_in_lists_its_rows_as_a_full_read_of_its_backup(
     # `rows` merges those in memory (read in at a lookup) with those still in the backup,
     # by row key: the order and values a cold read of the whole file gives (`read_backup`)
     path = tmp_path / "p.db"
-    store = SqliteStore.open(path)
-    store.load()
-    catalog = Catalog()
+    store, catalog = new_store(path)
     for n in range(4):
         catalog.begin_load(f"r{n}", "leaf", n)
         catalog.finish_load(f"r{n}", n)

@@ -28,7 +28,7 @@ from rr_actors._store import schema
 from rr_actors._store.restore import read_backup
 from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import crash
-from tests.support.durable_pair import noop_unload, schema_2_database, start
+from tests.support.durable_pair import new_store, noop_unload, schema_2_database, start
 from tests.support.persisting import (
     catalog_with_a_gone_class,
     consumer_ids,
@@ -68,9 +68,7 @@ def test_a_restore_reads_a_served_resource_only_when_a_lookup_needs_it(tmp_path:
 def test_a_consumer_id_holding_the_column_separator_is_restored_all_the_same(
     tmp_path: Path,
 ) -> None:
-    store = SqliteStore.open(tmp_path / "p.db")
-    store.load()
-    catalog = Catalog()
+    store, catalog = new_store(tmp_path / "p.db")
     for n, query_id in enumerate(["plain", "with\x1funit separator", "with,comma"]):
         catalog.begin_load(f"r{n}", "leaf", n)
         catalog.finish_load(f"r{n}", n)
@@ -118,9 +116,7 @@ def test_memory_wins_over_rows_not_written_yet_for_a_lazily_restored_catalog(
 def test_consumers_from_an_origin_include_those_of_resources_still_on_disk(
     tmp_path: Path,
 ) -> None:
-    store = SqliteStore.open(tmp_path / "p.db")
-    store.load()
-    catalog = Catalog()
+    store, catalog = new_store(tmp_path / "p.db")
     for n in range(6):
         catalog.begin_load(f"r{n}", "leaf", n)
         catalog.finish_load(f"r{n}", n)

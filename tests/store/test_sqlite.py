@@ -41,6 +41,7 @@ from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import catalog_snapshot
 from tests.support.durable_pair import (
     leaf_load,
+    new_store,
     noop_unload,
     opened,
     pair_backups,
@@ -99,9 +100,7 @@ def test_a_write_that_adds_or_releases_one_consumer_is_one_statement_whatever_th
     tmp_path: Path, holders: int
 ) -> None:
     path = tmp_path / "p.db"
-    store = SqliteStore.open(path)
-    store.load()
-    catalog = Catalog()
+    store, catalog = new_store(path)
     catalog.begin_load("r1", "leaf", 1)
     catalog.finish_load("r1", "loaded")
     for n in range(holders):
@@ -137,9 +136,7 @@ def test_a_write_after_changes_were_dropped_writes_every_consumer_difference(
     changed once settled (`mark_changed`): that write compares every consumer, so those
     added and released meanwhile reach the file too."""
     path = tmp_path / "p.db"
-    store = SqliteStore.open(path)
-    store.load()
-    catalog = Catalog()
+    store, catalog = new_store(path)
     catalog.begin_load("r1", "leaf", 1)
     catalog.finish_load("r1", "loaded")
     for query_id in ("a", "b"):
@@ -157,9 +154,7 @@ def test_a_write_after_changes_were_dropped_writes_every_consumer_difference(
 
 
 def test_a_write_that_fails_leaves_the_file_and_the_next_write_intact(tmp_path: Path) -> None:
-    store = SqliteStore.open(tmp_path / "p.db")
-    store.load()
-    catalog = Catalog()
+    store, catalog = new_store(tmp_path / "p.db")
     catalog.begin_load("r1", "leaf", 1)
     store.write(catalog.drain_changes())
     catalog.finish_load("r1", threading.Lock())  # cannot be pickled
@@ -214,9 +209,7 @@ def test_setting_a_restored_never_decoded_response_to_none_is_written(tmp_path: 
 
 
 def test_a_response_mutated_in_place_and_set_again_is_written(tmp_path: Path) -> None:
-    store = SqliteStore.open(tmp_path / "p.db")
-    store.load()
-    catalog = Catalog()
+    store, catalog = new_store(tmp_path / "p.db")
     response = {"status": "starting"}
     catalog.begin_load("r1", "leaf", "req")
     catalog.finish_load("r1", response)
@@ -230,9 +223,7 @@ def test_a_response_mutated_in_place_and_set_again_is_written(tmp_path: Path) ->
 
 
 def test_a_client_response_mutated_in_place_and_loaded_again_is_written(tmp_path: Path) -> None:
-    store = SqliteStore.open(tmp_path / "p.db")
-    store.load()
-    catalog = Catalog()
+    store, catalog = new_store(tmp_path / "p.db")
     response = {"status": "starting"}
     catalog.add_client(ClientRecord(make_query("d1", 1)))
     catalog.client_loaded("d1", response)
@@ -314,9 +305,7 @@ def test_a_second_registrar_on_a_backup_in_use_is_refused_and_the_first_keeps_it
 
 
 def test_a_failed_commit_raises_its_own_error_not_one_from_the_rollback(tmp_path: Path) -> None:
-    store = SqliteStore.open(tmp_path / "p.db")
-    store.load()
-    catalog = Catalog()
+    store, catalog = new_store(tmp_path / "p.db")
     catalog.begin_load("r1", "leaf", 1)
     catalog.add_consumer("r1", "q1", "C")  # two statements: one transaction with a COMMIT
     store._db = CommitFails(store._db)  # type: ignore[assignment]
@@ -332,9 +321,7 @@ def test_a_failed_commit_raises_its_own_error_not_one_from_the_rollback(tmp_path
 def test_a_one_statement_write_that_failed_is_written_again_with_the_next_change(
     tmp_path: Path,
 ) -> None:
-    store = SqliteStore.open(tmp_path / "p.db")
-    store.load()
-    catalog = Catalog()
+    store, catalog = new_store(tmp_path / "p.db")
     catalog.begin_load("r1", "leaf", 1)
     catalog.finish_load("r1", 1)
     store.write(catalog.drain_changes())
@@ -639,9 +626,7 @@ def test_a_write_that_fails_half_way_leaves_none_of_its_statements_in_the_file(
     tmp_path: Path,
 ) -> None:
     path = tmp_path / "p.db"
-    store = SqliteStore.open(path)
-    store.load()
-    catalog = Catalog()
+    store, catalog = new_store(path)
     catalog.begin_load("r1", "leaf", {"n": 1})
     catalog.finish_load("r1", {"pid": 1})
     catalog.add_consumer("r1", "q1", "C")
@@ -662,9 +647,7 @@ def test_a_write_that_fails_half_way_leaves_none_of_its_statements_in_the_file(
 def write_entries(path: Path, count: int) -> None:
     """A closed backup of `count` loaded resources of server `leaf`, each held by one id of
     registrar `C` (`{"n": i}`, about 300 bytes a row: a page holds about a dozen)."""
-    store = SqliteStore.open(path)
-    store.load()
-    catalog = Catalog()
+    store, catalog = new_store(path)
     for i in range(count):
         catalog.begin_load(f"r{i}", "leaf", {"n": i})
         catalog.finish_load(f"r{i}", {"of": i, "pad": "x" * 200})

@@ -239,12 +239,15 @@ def provider_main(
 
 
 class Recorder:
-    """An `Endpoint` that records the `peer_lost` calls it gets (no registrar behind it)."""
+    """An `Endpoint` that records the presence callbacks it gets (no registrar behind it):
+    `lost` and `reachable`, each `(name, monotonic time)`; `heard` is set by either."""
 
-    def __init__(self) -> None:
-        self.name = f"recorder-{uuid.uuid4().hex[:8]}"
+    def __init__(self, name: str | None = None) -> None:
+        self.name = name or f"recorder-{uuid.uuid4().hex[:8]}"
         self.max_message_bytes = 1024 * 1024
         self.lost: list[tuple[str, float]] = []
+        self.reachable: list[tuple[str, float]] = []
+        self.heard = threading.Event()
         self.changed = threading.Condition()
         self._ended = threading.Event()
 
@@ -263,10 +266,12 @@ class Recorder:
     def peer_lost(self, name: str) -> None:
         with self.changed:
             self.lost.append((name, time.monotonic()))
+            self.heard.set()
             self.changed.notify_all()
 
     def peer_reachable(self, name: str) -> None:
-        pass
+        self.reachable.append((name, time.monotonic()))
+        self.heard.set()
 
     def lost_names(self) -> list[str]:
         with self.changed:
@@ -315,6 +320,50 @@ def context() -> multiprocessing.context.ForkServerContext:
     ctx.set_forkserver_preload(["rr_actors", "rr_actors._transport", "cloudpickle"])
     multiprocessing.forkserver.ensure_running()
     return ctx
+
+
+class Children:
+    """Child processes of a test, each given a control pipe as its last argument; at the
+    test's end each is told to stop on it and reaped (killed after 10 s)."""
+
+    def __init__(self, context: multiprocessing.context.ForkServerContext) -> None:
+        self.context = context
+        self.started: list[tuple[multiprocessing.process.BaseProcess, Any]] = []
+
+    def start(
+        self, target: Callable[..., None], *args: Any, ready: bool = True, daemon: bool = True
+    ) -> tuple[multiprocessing.process.BaseProcess, Any]:
+        """Start `target(*args, control)` (once it says "ready", with `ready`): the process
+        and this end of its control pipe."""
+        parent_end, child_end = self.context.Pipe()
+        process = self.context.Process(target=target, args=(*args, child_end), daemon=daemon)
+        process.start()
+        child_end.close()
+        self.started.append((process, parent_end))
+        if ready:
+            assert parent_end.poll(30), "the child did not get ready"
+            assert "ready" == parent_end.recv()
+        return process, parent_end
+
+    def close(self) -> None:
+        for _, control in self.started:
+            with contextlib.suppress(OSError):
+                control.send("stop")
+        for process, control in self.started:
+            process.join(10)
+            if process.is_alive():
+                process.kill()
+                process.join(5)
+            control.close()
+            with contextlib.suppress(ValueError):  # its sentinel now, not at a later GC
+                process.close()
+
+
+@pytest.fixture
+def children(context: multiprocessing.context.ForkServerContext) -> Iterator[Children]:
+    started = Children(context)
+    yield started
+    started.close()
 
 
 def _zenoh_network() -> Transport:

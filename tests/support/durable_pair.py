@@ -20,11 +20,16 @@ from rr_actors._store import schema
 from rr_actors._store.sqlite import SqliteStore
 
 
+def new_store(path: Path, **options: Any) -> tuple[SqliteStore, Catalog]:
+    """A store opened on `path` (with these options), its backup read, and an empty catalog."""
+    store = SqliteStore.open(path, **options)
+    store.load()
+    return store, Catalog()
+
+
 def opened(path: Path) -> tuple[SqliteStore, Catalog]:
     """A store with background checkpoints on `path` that holds loaded resource `r1`."""
-    store = SqliteStore.open(path, background_checkpoints=True)
-    store.load()
-    catalog = Catalog()
+    store, catalog = new_store(path, background_checkpoints=True)
     catalog.begin_load("r1", "leaf", {"n": 1})
     catalog.finish_load("r1", {"pid": 1})
     store.write(catalog.drain_changes())

@@ -31,7 +31,13 @@ from rr_actors._store import schema
 from rr_actors._store.restore import read_backup
 from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import catalog_snapshot
-from tests.support.durable_pair import noop_unload, start_consumer, start_pair, start_provider
+from tests.support.durable_pair import (
+    new_store,
+    noop_unload,
+    start_consumer,
+    start_pair,
+    start_provider,
+)
 
 
 def child_hold(names: tuple[str, str], paths: tuple[str, str], conn: Any) -> None:
@@ -274,9 +280,7 @@ def random_program(rng: random.Random, catalog: Catalog, steps: int) -> Iterator
 
 
 def write_valid_backup(path: Path) -> None:
-    store = SqliteStore.open(path)
-    store.load()
-    catalog = Catalog()
+    store, catalog = new_store(path)
     for n in range(300):
         catalog.begin_load(f"r{n}", "leaf", {"n": n, "pad": "x" * 200})
         catalog.finish_load(f"r{n}", n)
@@ -323,9 +327,7 @@ def make_bad_row(path: Path) -> None:
 
 
 def stored_catalog(path: Path, requests: list[Any]) -> Catalog:
-    store = SqliteStore.open(path)
-    store.load()
-    catalog = Catalog()
+    store, catalog = new_store(path)
     for n, request in enumerate(requests):
         catalog.begin_load(f"r{n}", "leaf", request)
         catalog.finish_load(f"r{n}", {"pid": n})
@@ -380,9 +382,7 @@ def write_v1_backup(path: Path) -> None:
 
 def written_once(path: Path) -> Catalog:
     """A backup holding resource r1 (consumer q1, response {"status": "starting"}) and client d1."""
-    store = SqliteStore.open(path)
-    store.load()
-    catalog = Catalog()
+    store, catalog = new_store(path)
     catalog.begin_load("r1", "leaf", {"k": 1})
     catalog.add_consumer("r1", "q1", "C")
     catalog.finish_load("r1", {"status": "starting"})
@@ -498,9 +498,7 @@ class FlakyStore:
 
 def write_unloading(path: Path) -> None:
     """A backup whose resource r-stop was being unloaded when the process died."""
-    store = SqliteStore.open(path)
-    store.load()
-    catalog = Catalog()
+    store, catalog = new_store(path)
     catalog.begin_load("r-stop", "start_process", {"cmd": "sleep"})
     catalog.finish_load("r-stop", {"pid": 42})
     catalog.begin_unload("r-stop")

@@ -24,21 +24,14 @@ import pytest
 
 from rr_actors_lab.teach import cli, grade, kit
 from tests.support.observing import request
+from tests.support.python import python
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
 def teach(*argv: str | Path, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.run(
-        [sys.executable, "-m", "rr_actors_lab", "teach", *map(str, argv)],
-        capture_output=True,
-        text=True,
-        env=env,
-        cwd=cwd,
-        timeout=300,
-        check=False,
-    )
+    return python("-m", "rr_actors_lab", "teach", *map(str, argv), env=env, cwd=cwd, timeout=300)
 
 
 NAMES = [e.name for e in kit.exercises()]
@@ -347,13 +340,8 @@ def test_a_check_that_raises_exits_4_with_its_traceback_never_0_or_1(tmp_path: P
     )
     env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONHASHSEED": "0"}
 
-    done = subprocess.run(
-        [sys.executable, "-c", raising, "teach", "check", str(folder), "--seeds", "1"],
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=120,
-        check=False,
+    done = python(
+        "-c", raising, "teach", "check", str(folder), "--seeds", "1", env=env, timeout=120
     )
 
     assert 4 == done.returncode, done.stderr
@@ -491,13 +479,8 @@ def bounded(*argv: str | Path) -> tuple[subprocess.CompletedProcess[str], int]:
         "sys.exit(done.returncode)\n"
     )
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    done = subprocess.run(
-        [sys.executable, "-c", measure, sys.executable, "-m", "rr_actors_lab", *map(str, argv)],
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=90,
-        check=False,
+    done = python(
+        "-c", measure, sys.executable, "-m", "rr_actors_lab", *map(str, argv), env=env, timeout=90
     )
     return done, int(done.stdout.split()[-1])
 

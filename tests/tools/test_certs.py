@@ -16,7 +16,6 @@ import socket
 import ssl
 import stat
 import subprocess
-import sys
 import sysconfig
 import threading
 from pathlib import Path
@@ -33,6 +32,7 @@ from rr_actors_lab.__main__ import main
 from rr_actors_lab._tools.certs import issue_cert
 from tests.support.hosts import free_port
 from tests.support.pki import make_ca
+from tests.support.python import python
 from tests.support.tls_lab import router
 
 
@@ -474,13 +474,7 @@ def test_a_client_of_another_ca_is_refused_by_the_listener(ca_dir: Path, tmp_pat
 
 
 def test_certs_help_lists_init_and_issue() -> None:
-    result = subprocess.run(
-        [sys.executable, "-m", "rr_actors_lab", "certs", "--help"],
-        capture_output=True,
-        text=True,
-        timeout=30,
-        check=False,
-    )
+    result = python("-m", "rr_actors_lab", "certs", "--help", timeout=30)
 
     assert 0 == result.returncode
     assert "init" in result.stdout
@@ -494,14 +488,7 @@ def test_without_cryptography_certs_says_which_extra_to_install(tmp_path: Path) 
         "from rr_actors_lab.__main__ import main\n"
         "sys.exit(main(['certs', 'init', 'certs', '--system', 'lab']))\n"
     )
-    result = subprocess.run(
-        [sys.executable, "-c", code],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-        cwd=tmp_path,
-    )
+    result = python("-c", code, timeout=60, cwd=tmp_path)
 
     assert 2 == result.returncode
     assert result.stderr.startswith("rr-actors certs needs an extra: pip")

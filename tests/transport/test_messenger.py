@@ -235,12 +235,11 @@ def test_a_serve_the_process_leaves_during_stops_serving_and_says_so(
         return listener
 
     monkeypatch.setattr(UnixCarrier, "serve", closed_meanwhile)
-    registrar = rr.ResourceRegistrar.start(f"left-{uuid.uuid4().hex[:8]}")
-    try:
-        with pytest.raises(rr.RegistrarStoppedError, match="left system"):
-            system.serve(Served(registrar))
-    finally:
-        registrar.stop()
+    with (
+        rr.ResourceRegistrar.start(f"left-{uuid.uuid4().hex[:8]}") as registrar,
+        pytest.raises(rr.RegistrarStoppedError, match="left system"),
+    ):
+        system.serve(Served(registrar))
 
     assert [] == system.served()
     assert not os.path.exists(system.address.socket_path(registrar.name))

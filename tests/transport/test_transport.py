@@ -9,7 +9,6 @@ freezes or answers what cannot be read. Each test runs once per carrier (`CARRIE
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import functools
 import logging
@@ -40,6 +39,7 @@ from tests.support.carriers import (
     BIG,
     CARRIERS,
     GATE,
+    Children,
     ChildState,
     Provider,
     ProviderFactory,
@@ -275,11 +275,8 @@ class Provided:
 def _serve_as(system: Transport, name: str) -> None:
     """Start a registrar named `name` in this process and serve it on `system` (stopped
     after, served or not)."""
-    registrar = rr.ResourceRegistrar.start(name)
-    try:
+    with rr.ResourceRegistrar.start(name) as registrar:
         system.serve(Served(registrar))
-    finally:
-        registrar.stop()
 
 
 def _load(server: str, request: Any) -> tuple[Load, FutureReply]:
@@ -322,24 +319,13 @@ class Lab:
     carrier: str
     system: Transport
     join: tuple[Any, ...]
-    context: multiprocessing.context.ForkServerContext
-    started: list[tuple[multiprocessing.process.BaseProcess, Any]] = dataclasses.field(
-        default_factory=list
-    )
+    children: Children
     endpoints: list[Recorder] = dataclasses.field(default_factory=list)
 
     def provider(self) -> tuple[str, multiprocessing.process.BaseProcess, Any]:
         """Start an unsupervised provider process; once other processes see it."""
         name = f"provider-{uuid.uuid4().hex[:8]}"
-        parent_end, child_end = self.context.Pipe()
-        process = self.context.Process(
-            target=own_provider_main, args=(self.join, name, child_end), daemon=True
-        )
-        process.start()
-        child_end.close()
-        self.started.append((process, parent_end))
-        assert parent_end.poll(30), "the provider process did not get ready"
-        assert "ready" == parent_end.recv()
+        process, parent_end = self.children.start(own_provider_main, self.join, name)
         assert wait_for(lambda: name in self.system.names(), 10.0), f"{name} not seen"
         self.connect(name)
         return name, process, parent_end
@@ -356,17 +342,7 @@ class Lab:
         return recorder
 
     def close(self) -> None:
-        for _, control in self.started:
-            with contextlib.suppress(OSError):
-                control.send("stop")
-        for process, control in self.started:
-            process.join(10)
-            if process.is_alive():
-                process.kill()
-                process.join(5)
-            control.close()
-            with contextlib.suppress(ValueError):  # its sentinel now, not at a later GC
-                process.close()
+        self.children.close()
         for recorder in self.endpoints:
             recorder.end()
         self.system.close()
@@ -578,25 +554,17 @@ def test_a_call_in_flight_to_a_killed_process_fails_at_once_as_unavailable(
     assert outcome["time"] - killed_at < 2.0  # far below the 30 s call timeout
 
 
-def test_a_call_to_a_killed_process_fails_as_unavailable(
-    consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+@pytest.mark.parametrize(
+    ("end", "error"), [("kill", rr.RegistrarUnavailableError), ("stop", rr.RegistrarStoppedError)]
+)
+def test_a_call_to_a_killed_process_fails_as_unavailable_to_a_cleanly_stopped_one_as_stopped(
+    consumer: rr.ResourceRegistrar, start_provider: ProviderFactory, end: str, error: type
 ) -> None:
     provider = start_provider()
     consumer.call(provider.name, "echo", "warm up the connection")
-    provider.kill()
+    getattr(provider, end)()
 
-    with pytest.raises(rr.RegistrarUnavailableError):
-        consumer.call(provider.name, "echo", "r", timeout=10)
-
-
-def test_a_call_to_a_cleanly_stopped_process_fails_as_stopped(
-    consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
-) -> None:
-    provider = start_provider()
-    consumer.call(provider.name, "echo", "warm up the connection")
-    provider.stop()
-
-    with pytest.raises(rr.RegistrarStoppedError):
+    with pytest.raises(error):
         consumer.call(provider.name, "echo", "r", timeout=10)
 
 
@@ -1023,7 +991,7 @@ class TestLostForGood:
             join = ("attach", system.address)
         else:
             raise AssertionError(f"no unsupervised provider for carrier {carrier!r} yet")
-        made = Lab(carrier, system, join, context)
+        made = Lab(carrier, system, join, Children(context))
         yield made
         made.close()
 

@@ -33,6 +33,7 @@ from rr_actors._transport import System, SystemAddress, attach
 from rr_actors._transport.messenger import Remote
 from rr_actors.testing import expect_restart
 from tests.support.carriers import (
+    Children,
     ProviderFactory,
     Recorder,
     record_warnings,
@@ -63,8 +64,7 @@ def contender_main(
     attached = attach(address)
     try:
         for name in names:
-            registrar = rr.ResourceRegistrar.start(name)
-            try:
+            with rr.ResourceRegistrar.start(name) as registrar:
                 outcome = "served"
                 barrier.wait(30)
                 try:
@@ -74,8 +74,6 @@ def contender_main(
                 control.send(outcome)
                 if control.recv() != "next":
                     return
-            finally:
-                registrar.stop()
     except (EOFError, OSError, threading.BrokenBarrierError):
         return
     finally:
@@ -107,39 +105,6 @@ def provider_main(
     finally:
         registrar.stop()
         attached.close()
-
-
-class Processes:
-    """Child processes of a test; all are stopped and reaped at its end."""
-
-    def __init__(self, context: multiprocessing.context.ForkServerContext) -> None:
-        self.context = context
-        self.started: list[tuple[multiprocessing.process.BaseProcess, Any]] = []
-
-    def start(
-        self, target: Any, *args: Any, daemon: bool = True
-    ) -> multiprocessing.process.BaseProcess:
-        parent_end, child_end = self.context.Pipe()
-        process = self.context.Process(target=target, args=(*args, child_end), daemon=daemon)
-        process.start()
-        child_end.close()
-        self.started.append((process, parent_end))
-        assert parent_end.poll(30), "the child did not get ready"
-        assert "ready" == parent_end.recv()
-        return process
-
-    def close(self) -> None:
-        for _, control in self.started:
-            with contextlib.suppress(OSError):
-                control.send("stop")
-        for process, control in self.started:
-            process.join(10)
-            if process.is_alive():
-                process.kill()
-                process.join(5)
-            control.close()
-            with contextlib.suppress(ValueError):  # its sentinel now, not at a later GC
-                process.close()
 
 
 def kill(process: multiprocessing.process.BaseProcess) -> None:
@@ -279,12 +244,11 @@ def test_a_refused_duplicate_does_not_make_the_owner_log_a_warning(
 ) -> None:
     provider = start_provider()
     system.run(provider.name, record_warnings, timeout=10)
-    duplicate = rr.ResourceRegistrar.start(provider.name)
-    try:
-        with pytest.raises(rr.DuplicateNameError):
-            system.serve(Served(duplicate))
-    finally:
-        duplicate.stop()
+    with (
+        rr.ResourceRegistrar.start(provider.name) as duplicate,
+        pytest.raises(rr.DuplicateNameError),
+    ):
+        system.serve(Served(duplicate))
 
     assert [] == system.run(provider.name, warnings_logged, timeout=10)
 
@@ -301,12 +265,6 @@ class TestLostForGood:
     pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 
     @pytest.fixture
-    def processes(self, context: multiprocessing.context.ForkServerContext) -> Iterator[Processes]:
-        started = Processes(context)
-        yield started
-        started.close()
-
-    @pytest.fixture
     def unix(self) -> Iterator[System]:
         made = System.create()
         yield made
@@ -320,12 +278,12 @@ class TestLostForGood:
         made.end()
 
     def test_the_restart_file_names_the_speaker_or_nobody(
-        self, unix: System, processes: Processes, recorder: Recorder
+        self, unix: System, children: Children, recorder: Recorder
     ) -> None:
-        speaker = processes.start(speaker_main)
+        speaker, _ = children.start(speaker_main)
         spoken_for, alone = named("spoken"), named("alone")
-        processes.start(provider_main, unix.address, spoken_for, speaker.pid)
-        processes.start(provider_main, unix.address, alone, None)
+        children.start(provider_main, unix.address, spoken_for, speaker.pid)
+        children.start(provider_main, unix.address, alone, None)
 
         def published(name: str) -> str:
             with open(unix.address.restart_path(name), encoding="ascii") as restart:
@@ -344,12 +302,12 @@ class TestLostForGood:
             restarted.end()
 
     def test_a_killed_provider_is_awaited_while_its_speaker_lives_and_lost_once_it_is_gone(
-        self, unix: System, processes: Processes, recorder: Recorder
+        self, unix: System, children: Children, recorder: Recorder
     ) -> None:
-        speaker = processes.start(speaker_main)
+        speaker, _ = children.start(speaker_main)
         spoken_for, alone = named("spoken"), named("alone")
-        spoken_process = processes.start(provider_main, unix.address, spoken_for, speaker.pid)
-        alone_process = processes.start(provider_main, unix.address, alone, None)
+        spoken_process, _ = children.start(provider_main, unix.address, spoken_for, speaker.pid)
+        alone_process, _ = children.start(provider_main, unix.address, alone, None)
         for name in (spoken_for, alone):
             unix.run(name, id, timeout=10)  # connected
 
@@ -364,14 +322,14 @@ class TestLostForGood:
         assert [alone, spoken_for] == recorder.lost_names()
 
     def test_a_registrar_served_again_is_connected_at_once_so_its_next_death_is_heard(
-        self, unix: System, processes: Processes, recorder: Recorder
+        self, unix: System, children: Children, recorder: Recorder
     ) -> None:
-        speaker = processes.start(speaker_main)
+        speaker, _ = children.start(speaker_main)
         name = named("restarted")
-        first = processes.start(provider_main, unix.address, name, speaker.pid)
+        first, _ = children.start(provider_main, unix.address, name, speaker.pid)
         unix.run(name, id, timeout=10)
         kill(first)
-        second = processes.start(provider_main, unix.address, name, None)  # "restarted"
+        second, _ = children.start(provider_main, unix.address, name, None)  # "restarted"
         # awaited, then served again: this process connects to it by itself
         assert wait_for(lambda: _connected(unix, name), 5.0)
 
@@ -381,10 +339,10 @@ class TestLostForGood:
         assert [name] == recorder.lost_names()
 
     def test_a_process_not_connected_when_the_provider_died_hears_at_its_next_connect(
-        self, unix: System, processes: Processes, recorder: Recorder
+        self, unix: System, children: Children, recorder: Recorder
     ) -> None:
         name = named("unconnected")
-        kill(processes.start(provider_main, unix.address, name, None))
+        kill(children.start(provider_main, unix.address, name, None)[0])
         assert [] == recorder.lost_names()  # (it never had a connection to see end)
 
         with pytest.raises(rr.RegistrarUnavailableError):
@@ -395,8 +353,7 @@ class TestLostForGood:
 
     def test_a_listener_waits_out_a_probe_of_its_lock_but_not_an_owner(self, unix: System) -> None:
         name = named("probed")
-        registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
-        try:
+        with rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name)) as registrar:
             owner = os.open(unix.address.lock_path(name), os.O_RDONLY | os.O_CREAT, 0o600)
             fcntl.flock(owner, fcntl.LOCK_SH | fcntl.LOCK_NB)  # held for good
             try:
@@ -411,8 +368,6 @@ class TestLostForGood:
             unix.serve(Served(registrar))
 
             assert name in unix.served()
-        finally:
-            registrar.stop()
 
     @pytest.mark.usefixtures("process_helpers")  # the forkserver, before the leak check counts
     def test_a_manager_process_is_spoken_for_by_its_supervisors_process(self, unix: System) -> None:
@@ -426,10 +381,10 @@ class TestLostForGood:
             sup.stop()
 
     def test_a_manager_whose_supervisors_process_is_killed_is_lost(
-        self, unix: System, processes: Processes, recorder: Recorder
+        self, unix: System, children: Children, recorder: Recorder
     ) -> None:
         manager = named("manager")
-        supervisor = processes.start(supervisor_main, unix.address, manager, daemon=False)
+        supervisor, _ = children.start(supervisor_main, unix.address, manager, daemon=False)
         assert wait_for(lambda: manager in unix.names(), 10.0)
         unix.run(manager, id, timeout=10)  # connected
         assert str(supervisor.pid) == _published(unix, manager).split()[0]

@@ -40,7 +40,7 @@ from rr_actors._transport.zenoh.carrier import ZenohCarrier
 from rr_actors._transport.zenoh.net import ZenohNetwork
 from rr_actors._transport.zenoh.wire import MESSAGE, PYTHON, VERSION, parse, payload_of
 from rr_actors.testing import run_on_actor
-from tests.support.carriers import in_thread, setup_servers, wait_load_started
+from tests.support.carriers import Children, Recorder, in_thread, setup_servers, wait_load_started
 from tests.support.hostile import CreatesAFile
 from tests.support.hosts import free_port
 from tests.support.waiting import wait_for
@@ -48,41 +48,6 @@ from tests.support.waiting import wait_for
 
 def _system() -> str:
     return f"test-{uuid.uuid4().hex[:8]}"
-
-
-class Recorder:
-    """An `Endpoint` that records the presence callbacks it gets (no registrar behind it)."""
-
-    def __init__(self, name: str) -> None:
-        self.name = name
-        self.max_message_bytes = 1024 * 1024
-        self.lost: list[tuple[str, float]] = []
-        self.reachable: list[tuple[str, float]] = []
-        self.heard = threading.Event()
-        self._ended = threading.Event()
-
-    def run(self, fn: Callable[[Any], Any]) -> Any:
-        return fn(None)
-
-    def wait_ended(self, timeout: float | None = None) -> bool:
-        return self._ended.wait(timeout)
-
-    def stopped_cleanly(self) -> bool:
-        return self._ended.is_set()
-
-    def listening(self) -> None:
-        pass
-
-    def peer_lost(self, name: str) -> None:
-        self.lost.append((name, time.monotonic()))
-        self.heard.set()
-
-    def peer_reachable(self, name: str) -> None:
-        self.reachable.append((name, time.monotonic()))
-        self.heard.set()
-
-    def end(self) -> None:
-        self._ended.set()
 
 
 @pytest.fixture
@@ -145,43 +110,6 @@ def manager_main(
     finally:
         registrar.stop()
         member.close()
-
-
-class Started:
-    """Child processes of a test; all are stopped and reaped at its end."""
-
-    def __init__(self, context: multiprocessing.context.ForkServerContext) -> None:
-        self.context = context
-        self.children: list[tuple[multiprocessing.process.BaseProcess, Any]] = []
-
-    def start(self, target: Callable[..., None], *args: Any, ready: bool = True) -> Any:
-        parent_end, child_end = self.context.Pipe()
-        process = self.context.Process(target=target, args=(*args, child_end), daemon=True)
-        process.start()
-        child_end.close()
-        self.children.append((process, parent_end))
-        if ready:
-            assert parent_end.poll(30), "the child did not get ready"
-            assert "ready" == parent_end.recv()
-        return process, parent_end
-
-    def close(self) -> None:
-        for _, control in self.children:
-            with contextlib.suppress(OSError):
-                control.send("stop")
-        for process, control in self.children:
-            process.join(10)
-            if process.is_alive():
-                process.kill()
-                process.join(5)
-            control.close()
-
-
-@pytest.fixture
-def children(context: multiprocessing.context.ForkServerContext) -> Iterator[Started]:
-    started = Started(context)
-    yield started
-    started.close()
 
 
 def _tcp(network: ZenohNetwork) -> str:
@@ -247,7 +175,7 @@ def _reporting_caller(
         member.close()
 
 
-def _quiet_router(net: ZenohNetwork, children: Started) -> tuple[Any, Any]:
+def _quiet_router(net: ZenohNetwork, children: Children) -> tuple[Any, Any]:
     """A router process of `net`'s system (`_quiet_router_main`): it, and its address."""
     parent_end, child_end = children.context.Pipe()
     router, _ = children.start(_quiet_router_main, net.system, _tcp(net), child_end)
@@ -522,29 +450,27 @@ def test_a_call_to_a_registrar_of_another_version_fails_naming_both_versions(
 
 
 def test_a_name_served_by_another_process_is_a_duplicate_and_leaves_nothing_behind(
-    net: ZenohNetwork, children: Started
+    net: ZenohNetwork, children: Children
 ) -> None:
     name = f"dup-{uuid.uuid4().hex[:6]}"
     children.start(manager_main, net.address, name)
-    local = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
-    try:
-        with pytest.raises(rr.DuplicateNameError, match=name):
-            net.serve(Served(local))
-    finally:
-        local.stop()
-    consumer = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"c-{uuid.uuid4().hex[:6]}"))
-    try:
+    with (
+        rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name)) as local,
+        pytest.raises(rr.DuplicateNameError, match=name),
+    ):
+        net.serve(Served(local))
+    with rr.ResourceRegistrar.start(
+        rr.RegistrarConfig(name=f"c-{uuid.uuid4().hex[:6]}")
+    ) as consumer:
         net.serve(Served(consumer))
         query = consumer.call(name, "echo", "r", timeout=10)  # the remote one still answers
-    finally:
-        consumer.stop()
 
     assert {"resource": "r"} == query.response
     assert [name] == [n for n in net.names() if n == name]
 
 
 def test_a_call_carries_its_callers_trace_context_to_a_provider_of_another_process(
-    net: ZenohNetwork, children: Started
+    net: ZenohNetwork, children: Children
 ) -> None:
     from opentelemetry.sdk.trace import TracerProvider  # noqa: PLC0415 - the otel extra
 
@@ -569,7 +495,7 @@ def test_a_call_carries_its_callers_trace_context_to_a_provider_of_another_proce
 
 
 def test_of_two_processes_serving_one_name_at_once_exactly_one_does(
-    net: ZenohNetwork, children: Started
+    net: ZenohNetwork, children: Children
 ) -> None:
     for _round in range(5):
         name = f"race-{uuid.uuid4().hex[:6]}"
@@ -588,7 +514,7 @@ def test_of_two_processes_serving_one_name_at_once_exactly_one_does(
 
 
 def test_two_processes_whose_network_does_not_answer_do_not_both_serve_a_name(
-    net: ZenohNetwork, children: Started
+    net: ZenohNetwork, children: Children
 ) -> None:
     # Their router (a process of its own, with a long lease: its links stay up) is frozen
     # as they claim one name: each asks who serves it and the question times out. An
@@ -614,7 +540,7 @@ def test_two_processes_whose_network_does_not_answer_do_not_both_serve_a_name(
 
 
 def test_a_name_asked_of_a_network_that_does_not_answer_is_unavailable_not_unknown(
-    net: ZenohNetwork, children: Started
+    net: ZenohNetwork, children: Children
 ) -> None:
     router, address = _quiet_router(net, children)
     go = children.context.Event()
@@ -637,19 +563,18 @@ def test_a_name_asked_of_a_network_that_does_not_answer_is_unavailable_not_unkno
 
 
 def test_a_name_of_another_system_is_unknown_at_once_naming_this_system(
-    net: ZenohNetwork, children: Started
+    net: ZenohNetwork, children: Children
 ) -> None:
     elsewhere = f"elsewhere-{uuid.uuid4().hex[:6]}"
     children.start(remote_main, _system(), _tcp(net), elsewhere)
-    consumer = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"c-{uuid.uuid4().hex[:6]}"))
-    try:
+    with rr.ResourceRegistrar.start(
+        rr.RegistrarConfig(name=f"c-{uuid.uuid4().hex[:6]}")
+    ) as consumer:
         net.serve(Served(consumer))
         started = time.monotonic()
         with pytest.raises(rr.UnknownRegistrarError, match=f"system {net.system!r}"):
             consumer.call(elsewhere, "echo", "r", timeout=30)
         took = time.monotonic() - started
-    finally:
-        consumer.stop()
 
     assert took < 2.0
 
@@ -710,48 +635,30 @@ def _deaf_main(
         network.close()
 
 
+@pytest.mark.parametrize("early", [False, True], ids=["told-once-served", "told-before-listed"])
 def test_a_process_that_does_not_hear_the_kept_server_is_told_by_its_process_and_yields(
-    net: ZenohNetwork, children: Started
+    net: ZenohNetwork, children: Children, early: bool
 ) -> None:
     """Rule 22 through a link that healed one way: the second server of a name does not
     hear the first's token (forced: its presence drops it), the first's process hears
     the second's, keeps its own (served first) and puts a claim on the name's key for
-    the other's process, which yields though it never heard the kept one."""
+    the other's process, which yields though it never heard the kept one. With `early`,
+    the claim is forced into the moment between the other process's carrier serving the
+    name (its token out) and its messenger listing it as served: the claim is settled
+    once it is listed (before, it was dropped, and both served on: once in 4 full runs
+    of the suite)."""
     name = f"cm-{uuid.uuid4().hex[:6]}"
-    kept = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
-    try:
+    with rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name)) as kept:
         net.serve(Served(kept))
         zid = net.link().zid  # type: ignore[attr-defined]
-        _, control = children.start(_deaf_main, net.system, _tcp(net), name, zid, False)
-        assert control.poll(20)
-        assert "yielded" == control.recv()
-        assert kept.is_alive()
-    finally:
-        kept.stop()
-
-
-def test_a_process_told_of_the_kept_server_before_it_lists_its_own_yields_once_it_does(
-    net: ZenohNetwork, children: Started
-) -> None:
-    """As above, the kept server's claim forced into the moment between the other
-    process's carrier serving the name (its token out) and its messenger listing it as
-    served: the claim is settled once it is listed (before, it was dropped, and both
-    served on: once in 4 full runs of the suite)."""
-    name = f"cm-{uuid.uuid4().hex[:6]}"
-    kept = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
-    try:
-        net.serve(Served(kept))
-        zid = net.link().zid  # type: ignore[attr-defined]
-        _, control = children.start(_deaf_main, net.system, _tcp(net), name, zid, True)
+        _, control = children.start(_deaf_main, net.system, _tcp(net), name, zid, early)
         assert control.poll(30)
         assert "yielded" == control.recv()
         assert kept.is_alive()
-    finally:
-        kept.stop()
 
 
 def test_a_killed_unsupervised_provider_is_lost_on_every_endpoint_within_a_second(
-    net: ZenohNetwork, children: Started, eventually: Callable[..., bool]
+    net: ZenohNetwork, children: Children, eventually: Callable[..., bool]
 ) -> None:
     provider = f"remote-{uuid.uuid4().hex[:6]}"
     process, _ = children.start(remote_main, net.system, _tcp(net), provider)
@@ -770,16 +677,22 @@ def test_a_killed_unsupervised_provider_is_lost_on_every_endpoint_within_a_secon
         endpoint.end()
 
 
-def test_a_killed_supervised_manager_is_not_lost_until_its_supervisor_goes_too(
-    net: ZenohNetwork, children: Started, eventually: Callable[..., bool]
-) -> None:
+def _router_and_its_manager(net: ZenohNetwork, children: Children) -> tuple[Any, Any]:
+    """A process `router-…` that serves a router and supervises a manager process
+    `manager-…` attached through it: each's name and process."""
     router = f"router-{uuid.uuid4().hex[:6]}"
     parent_end, child_end = children.context.Pipe()
     router_process, _ = children.start(remote_main, net.system, _tcp(net), router, child_end)
     assert parent_end.poll(30)
-    address = parent_end.recv()
     manager = f"manager-{uuid.uuid4().hex[:6]}"
-    manager_process, _ = children.start(_supervised_manager, address, manager)
+    manager_process, _ = children.start(_supervised_manager, parent_end.recv(), manager)
+    return (router, router_process), (manager, manager_process)
+
+
+def test_a_killed_supervised_manager_is_not_lost_until_its_supervisor_goes_too(
+    net: ZenohNetwork, children: Children, eventually: Callable[..., bool]
+) -> None:
+    (router, router_process), (manager, manager_process) = _router_and_its_manager(net, children)
     watcher = Recorder(f"w-{uuid.uuid4().hex[:6]}")
     net.serve(watcher)
     assert eventually(lambda: {router, manager} <= set(net.names()), timeout=10)
@@ -795,24 +708,17 @@ def test_a_killed_supervised_manager_is_not_lost_until_its_supervisor_goes_too(
 
 
 def test_a_name_whose_supervisor_may_restart_it_is_not_served_elsewhere_until_it_is_lost(
-    net: ZenohNetwork, children: Started, eventually: Callable[..., bool]
+    net: ZenohNetwork, children: Children, eventually: Callable[..., bool]
 ) -> None:
     # Rule 22: its manager was killed, its supervisor lives (it may restart it): the name
     # is not lost, so another process does not take it (it used to, at once); once its
     # supervisor is gone too, it is lost (rule 19) and may be served elsewhere.
-    router = f"router-{uuid.uuid4().hex[:6]}"
-    parent_end, child_end = children.context.Pipe()
-    router_process, _ = children.start(remote_main, net.system, _tcp(net), router, child_end)
-    assert parent_end.poll(30)
-    address = parent_end.recv()
-    manager = f"manager-{uuid.uuid4().hex[:6]}"
-    manager_process, _ = children.start(_supervised_manager, address, manager)
+    (router, router_process), (manager, manager_process) = _router_and_its_manager(net, children)
     assert eventually(lambda: {router, manager} <= set(net.names()), timeout=10)
     os.kill(manager_process.pid, signal.SIGKILL)
     assert eventually(lambda: manager not in net.names(), timeout=5)
 
-    here = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=manager))
-    try:
+    with rr.ResourceRegistrar.start(rr.RegistrarConfig(name=manager)) as here:
         with pytest.raises(rr.RegistrarUnavailableError, match="may restart it") as refused:
             net.serve(Served(here))
         os.kill(router_process.pid, signal.SIGKILL)  # now nobody restarts it: lost
@@ -825,8 +731,6 @@ def test_a_name_whose_supervisor_may_restart_it_is_not_served_elsewhere_until_it
             return True
 
         assert eventually(served, timeout=10)
-    finally:
-        here.stop()
 
     assert f"registrar {manager!r} of system {net.system!r} was served by process" in str(
         refused.value
@@ -835,12 +739,13 @@ def test_a_name_whose_supervisor_may_restart_it_is_not_served_elsewhere_until_it
 
 
 def test_a_call_in_flight_to_a_killed_remote_router_fails_at_once_as_unavailable(
-    net: ZenohNetwork, children: Started, eventually: Callable[..., bool]
+    net: ZenohNetwork, children: Children, eventually: Callable[..., bool]
 ) -> None:
     provider = f"remote-{uuid.uuid4().hex[:6]}"
     process, _ = children.start(remote_main, net.system, _tcp(net), provider)
-    consumer = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"c-{uuid.uuid4().hex[:6]}"))
-    try:
+    with rr.ResourceRegistrar.start(
+        rr.RegistrarConfig(name=f"c-{uuid.uuid4().hex[:6]}")
+    ) as consumer:
         net.serve(Served(consumer))
         net.wait_for(provider, timeout=30)  # (served there is not yet heard of here)
         done, outcome = in_thread(lambda: consumer.call(provider, "slow", "r", timeout=30))
@@ -850,15 +755,13 @@ def test_a_call_in_flight_to_a_killed_remote_router_fails_at_once_as_unavailable
         assert done.wait(10)
         with pytest.raises(rr.RegistrarUnavailableError):
             consumer.call(provider, "echo", "later", timeout=10)
-    finally:
-        consumer.stop()
 
     assert isinstance(outcome.get("error"), rr.RegistrarUnavailableError)
     assert outcome["time"] - killed_at < 1.0
 
 
 def test_a_frozen_remote_router_is_lost_then_reachable_again_with_the_same_process(
-    net: ZenohNetwork, children: Started, eventually: Callable[..., bool]
+    net: ZenohNetwork, children: Children, eventually: Callable[..., bool]
 ) -> None:
     provider = f"remote-{uuid.uuid4().hex[:6]}"
     process, _ = children.start(remote_main, net.system, _tcp(net), provider)
@@ -877,7 +780,7 @@ def test_a_frozen_remote_router_is_lost_then_reachable_again_with_the_same_proce
 
 
 def test_messages_from_one_process_to_one_registrar_arrive_in_the_order_told(
-    net: ZenohNetwork, children: Started
+    net: ZenohNetwork, children: Children
 ) -> None:
     count = 2000
     inbox = Inbox(f"inbox-{uuid.uuid4().hex[:6]}", count)
@@ -1321,7 +1224,7 @@ class TestNeverWaitingOnAnActor:
     def test_a_message_to_a_registrar_heard_to_die_fails_on_the_networks_first_answer(
         self,
         frozen_router: tuple[Any, int],
-        context: multiprocessing.context.ForkServerContext,
+        children: Children,
         monkeypatch: pytest.MonkeyPatch,
         eventually: Callable[..., bool],
     ) -> None:
@@ -1340,15 +1243,10 @@ class TestNeverWaitingOnAnActor:
 
         member = address.attach()
         registrar = rr.ResourceRegistrar.start(f"here-{uuid.uuid4().hex[:6]}")
-        parent_end, child_end = context.Pipe()
-        process = context.Process(target=_nowait_manager_main, args=(address, name, child_end))
         fetched = FutureReply()
         try:
             member.serve(Served(registrar))
-            process.start()
-            child_end.close()
-            assert parent_end.poll(30), "the manager did not get ready"
-            assert "ready" == parent_end.recv()
+            process, _ = children.start(_nowait_manager_main, address, name)
             assert eventually(lambda: name in member.names(), timeout=10)
             os.kill(process.pid or 0, signal.SIGKILL)
             assert eventually(lambda: name not in member.names(), timeout=10)  # heard to die
@@ -1364,13 +1262,11 @@ class TestNeverWaitingOnAnActor:
         finally:
             registrar.stop()
             member.close()
-            process.join(10)
-            parent_end.close()
 
     def test_an_actor_answers_while_its_message_to_a_registrar_heard_to_die_waits_for_the_network(
         self,
         frozen_router: tuple[Any, int],
-        context: multiprocessing.context.ForkServerContext,
+        children: Children,
         monkeypatch: pytest.MonkeyPatch,
         eventually: Callable[..., bool],
     ) -> None:
@@ -1391,27 +1287,18 @@ class TestNeverWaitingOnAnActor:
         monkeypatch.setattr(presence.Presence, "_on_live", late)
         member = address.attach()
         registrar = rr.ResourceRegistrar.start(f"here-{uuid.uuid4().hex[:6]}")
-        managers: list[tuple[Any, Any]] = []
-
-        def manager() -> Any:
-            parent_end, child_end = context.Pipe()
-            process = context.Process(target=_nowait_manager_main, args=(address, name, child_end))
-            process.start()
-            child_end.close()
-            managers.append((process, parent_end))
-            assert parent_end.poll(30), "the manager did not get ready"
-            assert "ready" == parent_end.recv()
-            return process
 
         fetched = FutureReply()
         try:
             member.serve(Served(registrar))
-            first = manager()
+            first, _ = children.start(_nowait_manager_main, address, name)
             assert eventually(lambda: name in member.names(), timeout=10)
             os.kill(first.pid, signal.SIGKILL)
             assert eventually(lambda: name not in member.names(), timeout=10)  # heard to die
             hidden.set()
-            manager()  # the restart: this process's presence does not hear of it
+            children.start(
+                _nowait_manager_main, address, name
+            )  # the restart: this process's presence does not hear of it
             os.kill(router_pid, signal.SIGSTOP)
             try:
                 run_on_actor(
@@ -1431,14 +1318,6 @@ class TestNeverWaitingOnAnActor:
         finally:
             registrar.stop()
             member.close()
-            for process, control in managers:
-                with contextlib.suppress(OSError):
-                    control.send("stop")
-                process.join(10)
-                if process.is_alive():
-                    process.kill()
-                    process.join(5)
-                control.close()
 
 
 def test_a_name_whose_serve_the_process_leaves_during_is_not_left_served(

@@ -480,15 +480,15 @@ class TestABuggyMember:
         self, net: ZenohNetwork, caplog: pytest.LogCaptureFixture, eventually: Callable[..., bool]
     ) -> None:
         name = f"n-{uuid.uuid4().hex[:6]}"
-        registrar = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
-        try:
-            with buggy_member(net) as raw, caplog.at_level(logging.WARNING, logger="rr_actors"):
-                bad = f"rr/{net.system}/live/claim/{name}/not-hex"
-                claim = raw.liveliness().declare_token(bad)
-                net.serve(Served(registrar))  # asks for the claims of `name`: sees it
-                claim.undeclare()
-        finally:
-            registrar.stop()
+        with (
+            rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name)) as registrar,
+            buggy_member(net) as raw,
+            caplog.at_level(logging.WARNING, logger="rr_actors"),
+        ):
+            bad = f"rr/{net.system}/live/claim/{name}/not-hex"
+            claim = raw.liveliness().declare_token(bad)
+            net.serve(Served(registrar))  # asks for the claims of `name`: sees it
+            claim.undeclare()
 
         # (the presence thread logs it as the token's event comes: perhaps after `serve`)
         assert eventually(lambda: _warnings(caplog, "malformed liveliness token"), timeout=WAIT)

@@ -606,12 +606,11 @@ class TestWaitFor:
 
     def test_wait_for_a_registrar_served_in_this_process_returns_at_once(self) -> None:
         name = f"erm-{uuid.uuid4().hex[:8]}"
-        with rr.ZenohNetwork(system=f"wait-{uuid.uuid4().hex[:8]}", tls=None) as net:
-            erm = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name), network=net)
-            try:
-                net.wait_for(name, timeout=0)
-            finally:
-                erm.stop()
+        with (
+            rr.ZenohNetwork(system=f"wait-{uuid.uuid4().hex[:8]}", tls=None) as net,
+            rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name), network=net),
+        ):
+            net.wait_for(name, timeout=0)
 
     def test_wait_for_with_no_connect_endpoint_times_out_unavailable(self) -> None:
         with rr.ZenohNetwork(system=f"wait-{uuid.uuid4().hex[:8]}", tls=None) as net:

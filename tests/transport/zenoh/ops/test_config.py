@@ -317,14 +317,13 @@ def test_a_tls_routers_manager_processes_join_over_its_unix_socket_and_are_admit
         tls=lab.tls("robot"),
     )
     try:
-        with supervisors([process("erm")], network=net):
-            app = rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=net)
-            try:
-                query = app.call("erm", "echo", "over the unix socket", timeout=10)
-                assert query.response == "over the unix socket"
-                app.unload(query.id, timeout=10)
-            finally:
-                app.stop()
+        with (
+            supervisors([process("erm")], network=net),
+            rr.ResourceRegistrar.start(rr.RegistrarConfig(name="app"), network=net) as app,
+        ):
+            query = app.call("erm", "echo", "over the unix socket", timeout=10)
+            assert query.response == "over the unix socket"
+            app.unload(query.id, timeout=10)
         assert all(
             link.dst.startswith("unixsock-stream/") for link in net.link().session.info.links()
         )

@@ -12,7 +12,6 @@ import os
 import re
 import shutil
 import subprocess
-import sys
 import threading
 from pathlib import Path
 
@@ -26,6 +25,7 @@ from rr_actors_lab._tools import certs as certs_tool
 from tests.support import pki
 from tests.support.hosts import free_port
 from tests.support.pki import DAY, issue, make_ca, make_intermediate
+from tests.support.python import python
 from tests.test_docs import ROOT, blocks, commands
 
 NOW = datetime.datetime.now(datetime.UTC)
@@ -475,9 +475,7 @@ def test_importing_rr_actors_imports_neither_cryptography_nor_zenoh() -> None:
         "rr_actors.ZenohTLS\n"
         "assert 'cryptography' in sys.modules and 'zenoh' not in sys.modules\n"
     )
-    result = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=False
-    )
+    result = python("-c", code, timeout=60)
 
     assert (0, "") == (result.returncode, result.stderr)
 
@@ -492,9 +490,7 @@ def test_without_cryptography_rr_zenoh_tls_says_which_extra_to_install() -> None
         "except ImportError as exc:\n"
         "    print(exc)\n"
     )
-    result = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=False
-    )
+    result = python("-c", code, timeout=60)
 
     assert (0, "") == (result.returncode, result.stderr)
     assert result.stdout.startswith("rr.ZenohTLS needs an extra: pip install")
