@@ -32,6 +32,7 @@ import rr_actors as rr
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._registrar import Served, life
 from rr_actors._registrar.consumer import Action, InFlight, decide
+from rr_actors._registrar.messages import Reconciled
 from rr_actors._registrar.state import new_life
 from rr_actors.testing import (
     RemoteRegistrar,
@@ -323,7 +324,7 @@ class Heard:
 
     `notices`: the status notices it handles (a `FATAL` for a lost id is one, handled
     while the `Reconcile`'s answer is); `reconciled`: set once it handled the answer to
-    a `Reconcile` (a tuple of the ids the provider does not know).
+    a `Reconcile` (`Reconciled`: the ids the provider does not know, and its run).
     """
 
     def __init__(self) -> None:
@@ -334,7 +335,7 @@ class Heard:
         self.notices.append((tuple(message.query_ids), message.status))
 
     def answer(self, message: Any) -> None:
-        if message.error is None and isinstance(message.value, tuple):
+        if message.error is None and isinstance(message.value, Reconciled):
             self.reconciled.set()
 
 
@@ -1075,10 +1076,11 @@ class TestReconcile:
         taken, ended_first = process_helpers.event(), process_helpers.event()
 
         def arm_consumer(registrar: rr.ResourceRegistrar) -> None:
-            from rr_actors.testing import intercept  # noqa: PLC0415 - runs in the consumer
+            from rr_actors._registrar.messages import Reconciled  # noqa: PLC0415 - runs in the
+            from rr_actors.testing import intercept  # noqa: PLC0415 - consumer
 
             def answer(message: Any) -> None:
-                if message.error is None and isinstance(message.value, tuple):
+                if message.error is None and isinstance(message.value, Reconciled):
                     reconciled.set()  # (the answer to a Reconcile: the ids p does not know)
 
             def drained(_subject: Any) -> None:
