@@ -1259,7 +1259,7 @@ class Reconciling:
             elif not self.registrar.releases.is_releasing(query_id):
                 lost.setdefault(record.query.server, []).append(query_id)
         # listed and known: held there for a retry; left out: released
-        self.settle_listed(serving_rr, listing, unknown, life or listing.life)
+        self.settle_listed(serving_rr, listing, unknown, listing.life or life)
         self.registrar.releases.reconciled(serving_rr, listing)
         for server, ids in lost.items():
             logger.warning(

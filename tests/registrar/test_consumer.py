@@ -32,7 +32,7 @@ import rr_actors as rr
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._registrar import Served, life
 from rr_actors._registrar.consumer import Action, InFlight, decide
-from rr_actors._registrar.messages import Reconciled
+from rr_actors._registrar.messages import ReconcileAsk, Reconciled
 from rr_actors._registrar.state import new_life
 from rr_actors.testing import (
     RemoteRegistrar,
@@ -792,6 +792,50 @@ def failed_as_committed(
     return config, consumer, qid, serve, load.requests
 
 
+def retried_reconcile_reaches_its_restart(
+    tmp_path: Path,
+    started: list[rr.ResourceRegistrar],
+    unload: Callable[[str, object], None] = lambda _r, _s: None,
+) -> tuple[rr.ResourceRegistrar, str, rr.ResourceRegistrar, list[tuple[str, ...]], list[str]]:
+    """Rule 17 case 3 with a retried reconcile of the dead run A reaching its restart B
+    first: the consumer's retry attempt naming A's life runs on its actor just before B's
+    ask is handled, and B then sends its ask again. Returns the consumer, the failed call's
+    id, B (in `started`), the lists B was sent (held ids) and the requests loads were given."""
+    config, consumer, qid, serve, loads = failed_as_committed(tmp_path, started, unload)
+    dead_life = new_life()  # (A's: earlier than B's)
+    shared = consumer._actor.ref.proxy().shared.get()
+    reconciles: list[tuple[str, ...]] = []
+    reconciled = threading.Event()
+
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        serve(registrar)
+
+        def heard(message: Any) -> None:
+            reconciles.append(message.held)
+            if len(reconciles) >= 2:
+                reconciled.set()
+
+        intercept(registrar, "reconcile", after=heard)
+
+    def stale_retry_first(message: Any) -> None:
+        if message.serving_rr == config.name and not reconciles:
+            round_ = shared.presence.round_count + 1
+            shared.presence.round_count = round_
+            shared.presence.attempt(config.name, round_, 1, dead_life)
+
+    asks: list[Any] = []
+    with intercept(consumer, "reconcile_ask", before=stale_retry_first, after=asks.append):
+        restarted = rr.ResourceRegistrar.start(config, setup=setup)
+        started.append(restarted)
+        assert reconciled.wait(10)
+        run_on_actor(consumer, lambda: None).get(timeout=10)  # it handled the answers
+        count = len(reconciles)
+        DIRECTORY.lookup(consumer.name).tell(asks[0])  # B asks again (once served)
+        assert wait_for(lambda: len(reconciles) > count, 10)
+        run_on_actor(consumer, lambda: None).get(timeout=10)
+    return consumer, qid, restarted, reconciles, loads
+
+
 class TestReconcile:
     """Provider and consumers reconcile their catalogs after a restart (issue 16).
 
@@ -949,52 +993,90 @@ class TestReconcile:
         self, tmp_path: Path, started: list[rr.ResourceRegistrar]
     ) -> None:
         # Rule 17 case 3 (`simways`, load 18: a `retry-kept` violation). The consumer's
-        # reconcile with the provider's run A failed as A died; its retry timer, armed with
-        # A's life, fired once the restart B listened and before B's ask was handled. B
-        # answered that Reconcile (it lists the failed call), and the consumer stamped the
-        # id kept by A's life; B's own ask then left it out (`Flights.kept_at`: an earlier
-        # life's kept ids are not listed), so B released the id while the call's retry was
-        # still to come, and the retry loaded it again. Now a retried attempt is listed as
-        # to no known life. The forced interleaving: the retry attempt with A's life runs
-        # on the consumer's actor just before B's ask, which B then sends again.
-        config, consumer, qid, serve, loads = failed_as_committed(tmp_path, started)
-        dead_life = new_life()  # (A's: earlier than B's)
-        shared = consumer._actor.ref.proxy().shared.get()
-        reconciles: list[Any] = []
-        reconciled = threading.Event()
-
-        def setup(registrar: rr.ResourceRegistrar) -> None:
-            serve(registrar)
-
-            def heard(message: Any) -> None:
-                reconciles.append(message.held)
-                if len(reconciles) >= 2:
-                    reconciled.set()
-
-            intercept(registrar, "reconcile", after=heard)
-
-        def stale_retry_first(message: Any) -> None:
-            if message.serving_rr == config.name and not reconciles:
-                round_ = shared.presence.round_count + 1
-                shared.presence.round_count = round_
-                shared.presence.attempt(config.name, round_, 1, dead_life)
-
-        asks: list[Any] = []
-        with intercept(consumer, "reconcile_ask", before=stale_retry_first, after=asks.append):
-            restarted = rr.ResourceRegistrar.start(config, setup=setup)
-            started.append(restarted)
-            assert reconciled.wait(10)
-            run_on_actor(consumer, lambda: None).get(timeout=10)  # it handled the answers
-            count = len(reconciles)
-            DIRECTORY.lookup(consumer.name).tell(asks[0])  # B asks again (once served)
-            assert wait_for(lambda: len(reconciles) > count, 10)
-            run_on_actor(consumer, lambda: None).get(timeout=10)
+        # reconcile with the provider's run A failed as A died; its retry, naming A's life,
+        # reached the restart B before B's ask was handled. B answered (it keeps the failed
+        # call), and the consumer stamped the id kept by A's life; B's own ask then left it
+        # out (`Flights.kept_at`: an earlier life's kept ids are not listed), so B released
+        # the id while the call's retry was still to come. Now an answer of another run
+        # than the list was made for is dropped and the list sent again to the run that
+        # answered. The forced interleaving: `retried_reconcile_reaches_its_restart`.
+        consumer, qid, restarted, reconciles, loads = retried_reconcile_reaches_its_restart(
+            tmp_path, started
+        )
 
         assert len(reconciles) >= 3
         assert all(qid in held for held in reconciles), reconciles
         assert [qid] == [q.id for q in restarted.server_queries("leaf")]  # still kept
-        retry = consumer.call(config.name, "leaf", "camera", query_id=qid, timeout=10)
+        retry = consumer.call(restarted.name, "leaf", "camera", query_id=qid, timeout=10)
         assert ({"for": "camera"}, ["camera"]) == (retry.response, loads)
+
+    def test_a_failed_call_stays_kept_when_the_dead_runs_answer_to_its_ask_comes_after_the_failure(
+        self, tmp_path: Path, started: list[rr.ResourceRegistrar]
+    ) -> None:
+        # Rule 17 case 3, the other path of the `simways` `retry-kept` run. The provider's run
+        # A asked the consumer to reconcile while a call was under way there; A answered (the
+        # call's load under way: known), committed the call's id and died before the call's
+        # answer left. The consumer recorded the call's failure, then A's answer: it stamped
+        # the failed call's id as kept by A, so the restart B's ask left it out and B released
+        # it while the caller's retry was still to come. Now an answer of a run whose death
+        # failed a call after the list left is dropped, and the list sent again (to B). The
+        # forced interleaving: the consumer records the failure (its outcome, handed over
+        # already) on its actor just before it handles A's answer.
+        load = GatedLoad(threading.Event(), threading.Event(), lambda request: {"for": request})
+
+        def serve(registrar: rr.ResourceRegistrar) -> None:
+            registrar.register_server("leaf", load=load, unload=lambda _r, _s: None)
+
+        config = durable_config("provider", tmp_path)
+        provider = rr.ResourceRegistrar.start(config, setup=serve)
+        dead_life = provider._actor.ref.proxy().shared.get().life  # A's
+        consumer = rr.ResourceRegistrar.start(f"consumer-{uuid.uuid4().hex[:8]}")
+        started.append(consumer)
+        shared = consumer._actor.ref.proxy().shared.get()
+        qid = str(uuid.uuid4())
+        failed: list[BaseException | None] = []
+
+        with ThreadPoolExecutor(1) as pool:
+            call = pool.submit(
+                consumer.call, config.name, "leaf", "camera", query_id=qid, timeout=10
+            )
+
+            def failure_first(message: Any) -> None:
+                if isinstance(message.value, Reconciled) and not failed:
+                    with expect_restart(config.name):  # as its supervisor would
+                        crash(provider)
+                    failed.append(call.exception(timeout=10))
+                    shared.flights.take_outcomes()  # (the failure, handed over: recorded)
+
+            assert load.started.wait(10)  # its Load is under way at A
+            with intercept(consumer, "answer", before=failure_first):
+                DIRECTORY.lookup(consumer.name).tell(ReconcileAsk(config.name, life=dead_life))
+                assert wait_for(lambda: bool(failed), 10)
+                run_on_actor(consumer, lambda: None).get(timeout=10)  # it handled A's answer
+        assert [rr.RegistrarUnavailableError] == [type(error) for error in failed]
+        load.gate.set()
+        commit_as_answered(Path(config.backup_path), qid, consumer.name)  # type: ignore[arg-type]
+        lists: list[Any] = []
+
+        def restart_setup(registrar: rr.ResourceRegistrar) -> None:
+            serve(registrar)
+            intercept(registrar, "reconcile", after=lists.append)
+
+        asks: list[Any] = []
+        with intercept(consumer, "reconcile_ask", after=asks.append):
+            restarted = rr.ResourceRegistrar.start(config, setup=restart_setup)
+            started.append(restarted)
+            own_life = restarted._actor.ref.proxy().shared.get().life  # B's
+            assert wait_for(lambda: any(ask.life == own_life for ask in asks), 10)  # B's ask
+            # (its reconcile answered: no round with the provider left)
+            assert wait_for(lambda: config.name not in shared.presence.rounds, 10), lists
+            run_on_actor(consumer, lambda: None).get(timeout=10)
+
+        assert lists
+        assert all(qid in message.held for message in lists), lists
+        assert [qid] == [q.id for q in restarted.server_queries("leaf")]  # still kept
+        retry = consumer.call(config.name, "leaf", "camera", query_id=qid, timeout=10)
+        assert ({"for": "camera"}, ["camera"]) == (retry.response, load.requests)
 
     @pytest.mark.timeout(300)
     @pytest.mark.parametrize("seed", [36, 40])
