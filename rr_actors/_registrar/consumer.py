@@ -18,8 +18,7 @@
    ▼
  Reconciling  Reconcile(ids held there, epoch, life) ─► the provider releases the
           others and names those it no longer knows ─► FATAL, forgotten (rules 19, 20);
-          an answer of another run than the one it reconciles with, or of one whose
-          death failed a call since the list left, is dropped and the list sent again
+          an answer of a run that is not the one it reconciles with: the list sent again
 ```
 
 Each part owns its state and changes another's through its methods only, all on the
@@ -1203,7 +1202,7 @@ class Reconciling:
             self.reconcile(serving_rr, then, again, ask)
             return
         self.heard(serving_rr, answer.life)
-        self.settle_reconciled(serving_rr, answer.unknown, listing, answer.life)
+        self.settle_reconciled(serving_rr, answer.unknown, listing, listing.life or answer.life)
         if then is not None:
             then(None)
 
@@ -1215,19 +1214,15 @@ class Reconciling:
             self.lives[serving_rr] = life
 
     def died(self, serving_rr: str) -> None:
-        """A call to `serving_rr` failed as it died or stopped: the run it was (the latest
-        heard of, "": none) answers no list sent before now that this one applies."""
+        """A call to `serving_rr` failed as it died or stopped (`not_applied`)."""
         self.deaths[serving_rr] = (self.registrar.holdings.epoch, self.lives.get(serving_rr, ""))
 
     def not_applied(self, serving_rr: str, life: str, listing: Listing) -> str | None:
-        """Whether run `life`'s answer to `listing` is dropped: the life to send the list to
-        again, or `None` to apply it. Dropped: the list was made for another run (a retry
-        of a dead run's ask reached its restart: what it keeps is the restart's, not the
-        dead run's), or a call failed as `serving_rr` died after the list left and the
-        answer is of no run known to be later (it may be the dead run's, from before the
-        failed call's commit). Applied, either would stamp a failed call's id as kept by
-        the wrong run, or forget it, and the serving run's ask would release it before its
-        caller's retry (rule 17)."""
+        """The life to send `listing` to again, dropping run `life`'s answer (`None`: apply
+        it): one to a list made for another run (a dead run's retried ask reached its
+        restart), or handled after a call failed as `serving_rr` died, of no run known to be
+        later (the dead one's, perhaps). Applied, it would stamp a failed call's id as kept
+        by the wrong run, or forget it: the serving run would release it (rule 17)."""
         if listing.life and life != listing.life:
             return life
         death = self.deaths.get(serving_rr)
@@ -1258,8 +1253,8 @@ class Reconciling:
                 again = True
             elif not self.registrar.releases.is_releasing(query_id):
                 lost.setdefault(record.query.server, []).append(query_id)
-        # listed and known: held there for a retry; left out: released
-        self.settle_listed(serving_rr, listing, unknown, listing.life or life)
+        # listed and known: held there for a retry (by run `life`); left out: released
+        self.settle_listed(serving_rr, listing, unknown, life)
         self.registrar.releases.reconciled(serving_rr, listing)
         for server, ids in lost.items():
             logger.warning(
