@@ -792,50 +792,6 @@ def failed_as_committed(
     return config, consumer, qid, serve, load.requests
 
 
-def retried_reconcile_reaches_its_restart(
-    tmp_path: Path,
-    started: list[rr.ResourceRegistrar],
-    unload: Callable[[str, object], None] = lambda _r, _s: None,
-) -> tuple[rr.ResourceRegistrar, str, rr.ResourceRegistrar, list[tuple[str, ...]], list[str]]:
-    """Rule 17 case 3 with a retried reconcile of the dead run A reaching its restart B
-    first: the consumer's retry attempt naming A's life runs on its actor just before B's
-    ask is handled, and B then sends its ask again. Returns the consumer, the failed call's
-    id, B (in `started`), the lists B was sent (held ids) and the requests loads were given."""
-    config, consumer, qid, serve, loads = failed_as_committed(tmp_path, started, unload)
-    dead_life = new_life()  # (A's: earlier than B's)
-    shared = consumer._actor.ref.proxy().shared.get()
-    reconciles: list[tuple[str, ...]] = []
-    reconciled = threading.Event()
-
-    def setup(registrar: rr.ResourceRegistrar) -> None:
-        serve(registrar)
-
-        def heard(message: Any) -> None:
-            reconciles.append(message.held)
-            if len(reconciles) >= 2:
-                reconciled.set()
-
-        intercept(registrar, "reconcile", after=heard)
-
-    def stale_retry_first(message: Any) -> None:
-        if message.serving_rr == config.name and not reconciles:
-            round_ = shared.presence.round_count + 1
-            shared.presence.round_count = round_
-            shared.presence.attempt(config.name, round_, 1, dead_life)
-
-    asks: list[Any] = []
-    with intercept(consumer, "reconcile_ask", before=stale_retry_first, after=asks.append):
-        restarted = rr.ResourceRegistrar.start(config, setup=setup)
-        started.append(restarted)
-        assert reconciled.wait(10)
-        run_on_actor(consumer, lambda: None).get(timeout=10)  # it handled the answers
-        count = len(reconciles)
-        DIRECTORY.lookup(consumer.name).tell(asks[0])  # B asks again (once served)
-        assert wait_for(lambda: len(reconciles) > count, 10)
-        run_on_actor(consumer, lambda: None).get(timeout=10)
-    return consumer, qid, restarted, reconciles, loads
-
-
 class TestReconcile:
     """Provider and consumers reconcile their catalogs after a restart (issue 16).
 
@@ -999,15 +955,45 @@ class TestReconcile:
         # out (`Flights.kept_at`: an earlier life's kept ids are not listed), so B released
         # the id while the call's retry was still to come. Now an answer of another run
         # than the list was made for is dropped and the list sent again to the run that
-        # answered. The forced interleaving: `retried_reconcile_reaches_its_restart`.
-        consumer, qid, restarted, reconciles, loads = retried_reconcile_reaches_its_restart(
-            tmp_path, started
-        )
+        # answered. The forced interleaving: the retry attempt with A's life runs on the
+        # consumer's actor just before B's ask, which B then sends again.
+        config, consumer, qid, serve, loads = failed_as_committed(tmp_path, started)
+        dead_life = new_life()  # (A's: earlier than B's)
+        shared = consumer._actor.ref.proxy().shared.get()
+        reconciles: list[Any] = []
+        reconciled = threading.Event()
+
+        def setup(registrar: rr.ResourceRegistrar) -> None:
+            serve(registrar)
+
+            def heard(message: Any) -> None:
+                reconciles.append(message.held)
+                if len(reconciles) >= 2:
+                    reconciled.set()
+
+            intercept(registrar, "reconcile", after=heard)
+
+        def stale_retry_first(message: Any) -> None:
+            if message.serving_rr == config.name and not reconciles:
+                round_ = shared.presence.round_count + 1
+                shared.presence.round_count = round_
+                shared.presence.attempt(config.name, round_, 1, dead_life)
+
+        asks: list[Any] = []
+        with intercept(consumer, "reconcile_ask", before=stale_retry_first, after=asks.append):
+            restarted = rr.ResourceRegistrar.start(config, setup=setup)
+            started.append(restarted)
+            assert reconciled.wait(10)
+            run_on_actor(consumer, lambda: None).get(timeout=10)  # it handled the answers
+            count = len(reconciles)
+            DIRECTORY.lookup(consumer.name).tell(asks[0])  # B asks again (once served)
+            assert wait_for(lambda: len(reconciles) > count, 10)
+            run_on_actor(consumer, lambda: None).get(timeout=10)
 
         assert len(reconciles) >= 3
         assert all(qid in held for held in reconciles), reconciles
         assert [qid] == [q.id for q in restarted.server_queries("leaf")]  # still kept
-        retry = consumer.call(restarted.name, "leaf", "camera", query_id=qid, timeout=10)
+        retry = consumer.call(config.name, "leaf", "camera", query_id=qid, timeout=10)
         assert ({"for": "camera"}, ["camera"]) == (retry.response, loads)
 
     def test_a_failed_call_stays_kept_when_the_dead_runs_answer_to_its_ask_comes_after_the_failure(
