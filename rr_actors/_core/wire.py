@@ -43,12 +43,13 @@ from rr_actors.errors import (
     UnknownServerError,
 )
 
-WIRE_VERSION = 12
+WIRE_VERSION = 13
 """The version of what crosses between processes: a carrier that can meet another version
 (the Zenoh one) refuses its messages unread. Raise it when a `WireMessage` changes
 incompatibly (10: an `OverloadedError` carries `retry_after`; 11: a `Reconcile` echoes the
 `ReconcileAsk.round` it answers, which a consumer of version 10 does not; 12: and that
-ask's `life`, without which a round of an earlier run of the provider passes for its own).
+ask's `life`, without which a round of an earlier run of the provider passes for its own;
+13: its answer names the provider's run, `Reconciled`).
 """
 
 WIRE_TYPES: set[type] = set()

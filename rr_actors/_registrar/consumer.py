@@ -17,7 +17,8 @@
    │       this registrar stops ─► ids given back (Abandon), answered before it ends
    ▼
  Reconciling  Reconcile(ids held there, epoch, life) ─► the provider releases the
-          others and names those it no longer knows ─► FATAL, forgotten (rules 19, 20)
+          others and names those it no longer knows ─► FATAL, forgotten (rules 19, 20);
+          an answer of a run that is not the one it reconciles with: the list sent again
 ```
 
 Each part owns its state and changes another's through its methods only, all on the
@@ -62,6 +63,7 @@ from rr_actors._registrar.messages import (
     OpenClient,
     Reconcile,
     ReconcileAsk,
+    Reconciled,
     Release,
     ResponseUpdated,
     Revoke,
@@ -72,7 +74,7 @@ from rr_actors._registrar.messages import (
     check_picklable,
     give_back,
 )
-from rr_actors._registrar.state import NO_REPLY, Phase, Shared
+from rr_actors._registrar.state import NO_REPLY, Phase, Shared, life_order
 from rr_actors._types import Query, Status, StatusCallback
 from rr_actors.errors import (
     CallTimeoutError,
@@ -224,11 +226,11 @@ class Flights:
         return serving_rr in self.unsettled().values() or serving_rr in self.kept_for_retry.values()
 
     def settle_listed(
-        self, serving_rr: str, listing: Listing | None, unknown: Iterable[str] = ()
+        self, serving_rr: str, listing: Listing | None, unknown: Iterable[str] = (), life: str = ""
     ) -> list[str]:
-        """`serving_rr` answered `listing`'s `Reconcile`: keep for a retry the failed calls it
-        holds, forget those it released; no listing (it is gone for good): all of them. The
-        ids kept for a retry from now on."""
+        """`serving_rr`'s run `life` answered `listing`'s `Reconcile`: keep for a retry (in that
+        run) the failed calls it holds, forget those it released; no listing (it is gone for
+        good): all of them. The ids kept for a retry from now on."""
         lost = set(unknown)
         kept: list[str] = []
         for query_id, provider in list(self.kept_for_retry.items()):
@@ -236,8 +238,8 @@ class Flights:
                 continue
             if listing is None or query_id not in listing.held or query_id in lost:
                 self.unkeep(query_id)
-            elif listing.life and not self.kept_in.get(query_id):
-                self.kept_in[query_id] = listing.life  # (the life that keeps it, now known)
+            elif life and not self.kept_in.get(query_id):
+                self.kept_in[query_id] = life  # (the life that keeps it, now known)
         for query_id, provider in self.unsettled().items():
             if provider == serving_rr and (
                 listing is None or query_id in listing.held or query_id in listing.left_out
@@ -245,7 +247,7 @@ class Flights:
                 self.settle(query_id, None)
                 if listing is not None and query_id in listing.held and query_id not in lost:
                     self.kept_for_retry[query_id] = serving_rr
-                    self.kept_in[query_id] = listing.life
+                    self.kept_in[query_id] = life
                     kept.append(query_id)
         return kept
 
@@ -600,6 +602,8 @@ class Answers:
             message.attempt.settle(query.response)
 
     def on_call_failed(self, message: CallFailed, _reply: Reply) -> None:
+        if message.serving_rr is not None:  # (it died or stopped: answers of lists sent
+            self.registrar.reconciling.died(message.serving_rr)  # before may be its run's)
         known = self.registrar.catalog.client(message.query_id)
         publish_failed(
             self.registrar,
@@ -1031,6 +1035,10 @@ class Reconciling:
         self.asked_to_reconcile: dict[str, tuple[int, str]] = {}
         self.everyone = False
         self.kept_timers: dict[KeptUnclaimed, runtime.Cancellable] = {}  # (`expire_kept`)
+        self.lives: dict[str, str] = {}  # provider -> its latest run heard of ("": none)
+        # provider -> the last list's epoch when a call failed as it died, and its latest
+        # run heard of then: the answers to the lists up to it may be of that (dead) run
+        self.deaths: dict[str, tuple[int, str]] = {}
 
     def expect_reconcile(self, providers: Iterable[str], *, everyone: bool) -> None:
         self.everyone = everyone
@@ -1088,11 +1096,16 @@ class Reconciling:
         return Listing(tuple(sorted(held - left_out)), due, left_out, epoch, life, _hlc.CLOCK.now())
 
     def settle_listed(
-        self, serving_rr: str, listing: Listing | None = None, unknown: Iterable[str] = ()
+        self,
+        serving_rr: str,
+        listing: Listing | None = None,
+        unknown: Iterable[str] = (),
+        life: str = "",
     ) -> None:
         """Settle the failed calls and releases `listing` listed or left out (none: all); those
-        its provider keeps for a retry now, unclaimed, are given back later (`expire_kept`)."""
-        kept = self.registrar.flights.settle_listed(serving_rr, listing, unknown)
+        its provider's run `life` keeps for a retry now, unclaimed, are given back later
+        (`expire_kept`)."""
+        kept = self.registrar.flights.settle_listed(serving_rr, listing, unknown, life)
         self.registrar.releases.settle_listed(serving_rr, listing)
         if kept:
             self.expire_kept(serving_rr, tuple(kept))
@@ -1124,6 +1137,7 @@ class Reconciling:
 
     def asked(self, message: ReconcileAsk) -> bool:
         """Whether to send an asking provider a `Reconcile` now (setup: once done; none owed)."""
+        self.heard(message.serving_rr, message.life)
         if not message.holds_yours and not self.holds_at(message.serving_rr):
             # (told as every registrar of the system is: nothing to reconcile, but a due
             # answer may be of the run its restart replaced)
@@ -1161,16 +1175,19 @@ class Reconciling:
                 lambda reply: Reconcile(
                     self.registrar.name, listing.held, reply, self.registrar.life, *ask
                 ),
-                lambda unknown, error: self.reconciled(serving_rr, unknown, error, listing, then),
+                lambda answer, error: self.reconciled(
+                    serving_rr, answer, error, listing, then, ask
+                ),
             )
 
     def reconciled(
         self,
         serving_rr: str,
-        unknown: Any,
+        answer: Reconciled | None,
         error: BaseException | None,
         listing: Listing,
         then: Callable[[BaseException | None], None] | None = None,
+        ask: tuple[int, str] = (0, ""),
     ) -> None:
         if error is not None:  # not reachable: it asks for a Reconcile when it is back
             logger.debug(
@@ -1179,11 +1196,45 @@ class Reconciling:
             if then is not None:
                 then(error)
             return
-        self.settle_reconciled(serving_rr, unknown, listing)
+        assert answer is not None
+        again = self.not_applied(serving_rr, answer.life, listing)
+        if again is not None:  # (its list again, to the run that serves: rule 17)
+            self.reconcile(serving_rr, then, again, ask)
+            return
+        self.heard(serving_rr, answer.life)
+        self.settle_reconciled(serving_rr, answer.unknown, listing, listing.life or answer.life)
         if then is not None:
             then(None)
 
-    def settle_reconciled(self, serving_rr: str, unknown: Any, listing: Listing) -> None:
+    # -- which run of a provider it reconciles with (rule 17) ---------------------------
+
+    def heard(self, serving_rr: str, life: str) -> None:
+        """A `ReconcileAsk` or an answer of `serving_rr`'s run `life` came."""
+        if life and life_order(life) >= life_order(self.lives.get(serving_rr, "")):
+            self.lives[serving_rr] = life
+
+    def died(self, serving_rr: str) -> None:
+        """A call to `serving_rr` failed as it died or stopped (`not_applied`)."""
+        self.deaths[serving_rr] = (self.registrar.holdings.epoch, self.lives.get(serving_rr, ""))
+
+    def not_applied(self, serving_rr: str, life: str, listing: Listing) -> str | None:
+        """The life to send `listing` to again, dropping run `life`'s answer (`None`: apply
+        it): one to a list made for another run (a dead run's retried ask reached its
+        restart), or handled after a call failed as `serving_rr` died, of no run known to be
+        later (the dead one's, perhaps). Applied, it would stamp a failed call's id as kept
+        by the wrong run, or forget it: the serving run would release it (rule 17)."""
+        if listing.life and life != listing.life:
+            return life
+        death = self.deaths.get(serving_rr)
+        if death is None or listing.epoch > death[0]:
+            return None
+        if death[1] and life_order(life) > life_order(death[1]):
+            return None  # (a later run than the one that died answered)
+        return ""
+
+    def settle_reconciled(
+        self, serving_rr: str, unknown: tuple[str, ...], listing: Listing, life: str = ""
+    ) -> None:
         """Report and forget the ids `serving_rr` no longer knows, of the records as `listing`
         found them; one answered since is reconciled again (its answer may be of the run the
         restart replaced: rule 20), a due one once its outcome is recorded (`Flights.doubted`)."""
@@ -1202,8 +1253,8 @@ class Reconciling:
                 again = True
             elif not self.registrar.releases.is_releasing(query_id):
                 lost.setdefault(record.query.server, []).append(query_id)
-        # listed and known: held there for a retry; left out: released
-        self.settle_listed(serving_rr, listing, unknown)
+        # listed and known: held there for a retry (by run `life`); left out: released
+        self.settle_listed(serving_rr, listing, unknown, life)
         self.registrar.releases.reconciled(serving_rr, listing)
         for server, ids in lost.items():
             logger.warning(

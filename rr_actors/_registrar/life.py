@@ -743,9 +743,6 @@ class Presence:
         self.rounds[name] = (round_, attempt)
         self.lives[name], self.asks[name] = life, ask
         self.arm(name, round_, attempt + 1, self.registrar.config.call_timeout)
-        # a retry may reach a later run than the one that asked: to no known life, or the
-        # ids it keeps are stamped as an earlier run's, and its own ask releases them (rule 17)
-        life = life if attempt == 0 else ""
         self.registrar.reconciling.reconcile(
             name, then=lambda error: self.answered(name, round_, attempt, error), life=life, ask=ask
         )

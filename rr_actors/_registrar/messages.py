@@ -266,9 +266,9 @@ class ResponseUpdated(WireMessage):
 class Reconcile(WireMessage):
     """Consumer -> provider: registrar `origin_rr` holds exactly `held` at you (rule 20).
     The provider releases the others of `origin_rr`'s ids, gives up its loads not listed,
-    answers the listed ids it does not know, and refuses `Load`s of runs before `life`.
-    `round`, `ask_life`: the `ReconcileAsk.round` it answers (0: none) and that ask's `life`
-    (a round is counted afresh by each run of the provider)."""
+    answers `Reconciled` (the listed ids it does not know), and refuses `Load`s of runs
+    before `life`. `round`, `ask_life`: the `ReconcileAsk.round` it answers (0: none) and
+    that ask's `life` (a round is counted afresh by each run of the provider)."""
 
     origin_rr: str
     held: tuple[str, ...]
@@ -276,6 +276,16 @@ class Reconcile(WireMessage):
     life: str = ""
     round: int = 0
     ask_life: str = ""
+
+
+@dataclasses.dataclass(frozen=True)
+class Reconciled:
+    """Provider -> consumer, the answer to a `Reconcile`: the listed ids it does not know
+    (nor loads), and `life`, the run that answered. The consumer applies it only if that
+    run is the one it reconciles with, alive when the list left (rule 17)."""
+
+    unknown: tuple[str, ...]
+    life: str
 
 
 @dataclasses.dataclass(frozen=True)

@@ -70,6 +70,7 @@ from rr_actors._registrar.messages import (
     LoadPlace,
     Reconcile,
     ReconcileAsk,
+    Reconciled,
     RegisterServer,
     ResponseUpdated,
     Revoke,
@@ -1438,12 +1439,10 @@ class Unloading:
         for query_id in stale:
             if catalog.has_consumer(query_id):  # (still: a release above may have cascaded)
                 self.release(query_id, None, "reconcile")
-        if told is not None:  # (a classroom's copy's answer)
-            reply.set_result(told)
-            return
-        under_way = self.registrar.provider.under_way()
-        unknown = tuple(q for q in message.held if q not in mine and q not in under_way)
-        reply.set_result(unknown)
+        if told is None:  # (else a classroom's copy's answer)
+            under_way = self.registrar.provider.under_way()
+            told = tuple(q for q in message.held if q not in mine and q not in under_way)
+        reply.set_result(Reconciled(told, self.registrar.life))  # (which run answered)
 
 
 # -- teardown --------------------------------------------------------------------------

@@ -32,6 +32,7 @@ import rr_actors as rr
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._registrar import Served, life
 from rr_actors._registrar.consumer import Action, InFlight, decide
+from rr_actors._registrar.messages import ReconcileAsk, Reconciled
 from rr_actors._registrar.state import new_life
 from rr_actors.testing import (
     RemoteRegistrar,
@@ -323,7 +324,7 @@ class Heard:
 
     `notices`: the status notices it handles (a `FATAL` for a lost id is one, handled
     while the `Reconcile`'s answer is); `reconciled`: set once it handled the answer to
-    a `Reconcile` (a tuple of the ids the provider does not know).
+    a `Reconcile` (`Reconciled`: the ids the provider does not know, and its run).
     """
 
     def __init__(self) -> None:
@@ -334,7 +335,7 @@ class Heard:
         self.notices.append((tuple(message.query_ids), message.status))
 
     def answer(self, message: Any) -> None:
-        if message.error is None and isinstance(message.value, tuple):
+        if message.error is None and isinstance(message.value, Reconciled):
             self.reconciled.set()
 
 
@@ -948,14 +949,14 @@ class TestReconcile:
         self, tmp_path: Path, started: list[rr.ResourceRegistrar]
     ) -> None:
         # Rule 17 case 3 (`simways`, load 18: a `retry-kept` violation). The consumer's
-        # reconcile with the provider's run A failed as A died; its retry timer, armed with
-        # A's life, fired once the restart B listened and before B's ask was handled. B
-        # answered that Reconcile (it lists the failed call), and the consumer stamped the
-        # id kept by A's life; B's own ask then left it out (`Flights.kept_at`: an earlier
-        # life's kept ids are not listed), so B released the id while the call's retry was
-        # still to come, and the retry loaded it again. Now a retried attempt is listed as
-        # to no known life. The forced interleaving: the retry attempt with A's life runs
-        # on the consumer's actor just before B's ask, which B then sends again.
+        # reconcile with the provider's run A failed as A died; its retry, naming A's life,
+        # reached the restart B before B's ask was handled. B answered (it keeps the failed
+        # call), and the consumer stamped the id kept by A's life; B's own ask then left it
+        # out (`Flights.kept_at`: an earlier life's kept ids are not listed), so B released
+        # the id while the call's retry was still to come. Now an answer of another run
+        # than the list was made for is dropped and the list sent again to the run that
+        # answered. The forced interleaving: the retry attempt with A's life runs on the
+        # consumer's actor just before B's ask, which B then sends again.
         config, consumer, qid, serve, loads = failed_as_committed(tmp_path, started)
         dead_life = new_life()  # (A's: earlier than B's)
         shared = consumer._actor.ref.proxy().shared.get()
@@ -994,6 +995,74 @@ class TestReconcile:
         assert [qid] == [q.id for q in restarted.server_queries("leaf")]  # still kept
         retry = consumer.call(config.name, "leaf", "camera", query_id=qid, timeout=10)
         assert ({"for": "camera"}, ["camera"]) == (retry.response, loads)
+
+    def test_a_failed_call_stays_kept_when_the_dead_runs_answer_to_its_ask_comes_after_the_failure(
+        self, tmp_path: Path, started: list[rr.ResourceRegistrar]
+    ) -> None:
+        # Rule 17 case 3, the other path of the `simways` `retry-kept` run. The provider's run
+        # A asked the consumer to reconcile while a call was under way there; A answered (the
+        # call's load under way: known), committed the call's id and died before the call's
+        # answer left. The consumer recorded the call's failure, then A's answer: it stamped
+        # the failed call's id as kept by A, so the restart B's ask left it out and B released
+        # it while the caller's retry was still to come. Now an answer of a run whose death
+        # failed a call after the list left is dropped, and the list sent again (to B). The
+        # forced interleaving: the consumer records the failure (its outcome, handed over
+        # already) on its actor just before it handles A's answer.
+        load = GatedLoad(threading.Event(), threading.Event(), lambda request: {"for": request})
+
+        def serve(registrar: rr.ResourceRegistrar) -> None:
+            registrar.register_server("leaf", load=load, unload=lambda _r, _s: None)
+
+        config = durable_config("provider", tmp_path)
+        provider = rr.ResourceRegistrar.start(config, setup=serve)
+        dead_life = provider._actor.ref.proxy().shared.get().life  # A's
+        consumer = rr.ResourceRegistrar.start(f"consumer-{uuid.uuid4().hex[:8]}")
+        started.append(consumer)
+        shared = consumer._actor.ref.proxy().shared.get()
+        qid = str(uuid.uuid4())
+        failed: list[BaseException | None] = []
+
+        with ThreadPoolExecutor(1) as pool:
+            call = pool.submit(
+                consumer.call, config.name, "leaf", "camera", query_id=qid, timeout=10
+            )
+
+            def failure_first(message: Any) -> None:
+                if isinstance(message.value, Reconciled) and not failed:
+                    with expect_restart(config.name):  # as its supervisor would
+                        crash(provider)
+                    failed.append(call.exception(timeout=10))
+                    shared.flights.take_outcomes()  # (the failure, handed over: recorded)
+
+            assert load.started.wait(10)  # its Load is under way at A
+            with intercept(consumer, "answer", before=failure_first):
+                DIRECTORY.lookup(consumer.name).tell(ReconcileAsk(config.name, life=dead_life))
+                assert wait_for(lambda: bool(failed), 10)
+                run_on_actor(consumer, lambda: None).get(timeout=10)  # it handled A's answer
+        assert [rr.RegistrarUnavailableError] == [type(error) for error in failed]
+        load.gate.set()
+        commit_as_answered(Path(config.backup_path), qid, consumer.name)  # type: ignore[arg-type]
+        lists: list[Any] = []
+
+        def restart_setup(registrar: rr.ResourceRegistrar) -> None:
+            serve(registrar)
+            intercept(registrar, "reconcile", after=lists.append)
+
+        asks: list[Any] = []
+        with intercept(consumer, "reconcile_ask", after=asks.append):
+            restarted = rr.ResourceRegistrar.start(config, setup=restart_setup)
+            started.append(restarted)
+            own_life = restarted._actor.ref.proxy().shared.get().life  # B's
+            assert wait_for(lambda: any(ask.life == own_life for ask in asks), 10)  # B's ask
+            # (its reconcile answered: no round with the provider left)
+            assert wait_for(lambda: config.name not in shared.presence.rounds, 10), lists
+            run_on_actor(consumer, lambda: None).get(timeout=10)
+
+        assert lists
+        assert all(qid in message.held for message in lists), lists
+        assert [qid] == [q.id for q in restarted.server_queries("leaf")]  # still kept
+        retry = consumer.call(config.name, "leaf", "camera", query_id=qid, timeout=10)
+        assert ({"for": "camera"}, ["camera"]) == (retry.response, load.requests)
 
     @pytest.mark.timeout(300)
     @pytest.mark.parametrize("seed", [36, 40])
@@ -1075,10 +1144,11 @@ class TestReconcile:
         taken, ended_first = process_helpers.event(), process_helpers.event()
 
         def arm_consumer(registrar: rr.ResourceRegistrar) -> None:
-            from rr_actors.testing import intercept  # noqa: PLC0415 - runs in the consumer
+            from rr_actors._registrar.messages import Reconciled  # noqa: PLC0415 - runs in the
+            from rr_actors.testing import intercept  # noqa: PLC0415 - consumer
 
             def answer(message: Any) -> None:
-                if message.error is None and isinstance(message.value, tuple):
+                if message.error is None and isinstance(message.value, Reconciled):
                     reconciled.set()  # (the answer to a Reconcile: the ids p does not know)
 
             def drained(_subject: Any) -> None:
