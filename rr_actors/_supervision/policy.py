@@ -708,6 +708,7 @@ class Starting:
                 record.tree.events,
                 supervisor=record.name,
                 on_announce=on_announce,
+                held=processes.held,
             )
         finally:
             if processes.spares is not None:
