@@ -213,11 +213,11 @@ class ManagerProcess:
         on_overloaded: Callable[[int, Late], None] | None = None,
         announced: bool = False,
         on_announce: Callable[[str, bool], None] | None = None,
-        held: list[ManagerProcess] | None = None,
+        hold: Callable[[ManagerProcess], None] | None = None,
     ) -> ManagerProcess:
         """Start a manager process and wait until it serves (its catalog restored);
-        `announced`: its supervisor announces its starts (`start_registrar`); `held`: its
-        pings wait for `beat_from` (appended to `held`: a tree's ordered start, OTP's
+        `announced`: its supervisor announces its starts (`start_registrar`); `hold`: its
+        pings wait for `beat_from` (`hold(handle)` is told: a tree's ordered start, OTP's
         supervisor hears its children only after it).
 
         Seconds: `start_timeout`, `heartbeat` (`None`: none), `heartbeat_timeout` (`None`:
@@ -289,9 +289,9 @@ class ManagerProcess:
             on_announce=on_announce,
         )
         handle.forwarding = forward_events
-        if held is not None and handle._beat is not None:
+        if hold is not None and handle._beat is not None:
             handle._held = True
-            held.append(handle)
+            hold(handle)
         WATCHER.watch(handle)
         return handle
 

@@ -107,6 +107,7 @@ class Processes:
         self.system: Transport | None = None
         self.spares: SparePool | None = None
         self.held: list[ManagerProcess] | None = None  # pinged once the ordered start ends
+        self._held_lock = runtime.Lock()
 
     def open(self, spares: int, spare_delay: float) -> None:
         """Raises `ConfigError`: a setup cannot be pickled, or the given carrier was closed."""
@@ -149,10 +150,20 @@ class Processes:
         if self.spares is not None:
             starts = sum(1 for c, _ in walk(self.spec) if c.isolation == "process")
             self.spares.ahead(starts if on else 0)
-        held, self.held = self.held, [] if on else None
+        with self._held_lock:
+            held, self.held = self.held or [], [] if on else None
         now = runtime.monotonic()
-        for number, handle in enumerate(held or ()):
-            handle.beat_from(now + HEARTBEAT_SPREAD * number / len(held or ()))
+        for number, handle in enumerate(held):
+            handle.beat_from(now + HEARTBEAT_SPREAD * number / len(held))
+
+    def hold(self, handle: ManagerProcess) -> None:
+        """Ping `handle` (held) once the ordered start has ended: at once if it has (a
+        start that began before its end, a restart, finished after it)."""
+        with self._held_lock:
+            if self.held is not None:
+                self.held.append(handle)
+                return
+        handle.beat_from(runtime.monotonic())
 
     def close_spares(self) -> None:
         if self.spares is not None:

@@ -696,3 +696,24 @@ class TestOrderedStart:
                 assert pinged.setdefault(name, threading.Event()).wait(30), name
 
         assert [] == during
+
+    def test_a_manager_held_after_the_start_ended_is_pinged_at_once_and_none_before_it_ends(
+        self,
+    ) -> None:
+        # (a restart begun in the start and ending after it was held for ever before)
+        class Handle:
+            def __init__(self) -> None:
+                self.beats: list[float] = []
+
+            def beat_from(self, when: float) -> None:
+                self.beats.append(when)
+
+        processes = tree.Processes(rr.SupervisorSpec("held", []))
+        during, late = Handle(), Handle()
+        processes.start_ahead(True)
+        processes.hold(during)  # type: ignore[arg-type]
+        held = list(during.beats)
+        processes.start_ahead(False)
+        processes.hold(late)  # type: ignore[arg-type]
+
+        assert ([], 1, 1) == (held, len(during.beats), len(late.beats))
