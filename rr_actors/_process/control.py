@@ -29,6 +29,7 @@ on the multiprocessing context (the platform's: a forkserver, preloaded with the
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import multiprocessing.context
 from collections.abc import Callable, Sequence
@@ -295,14 +296,38 @@ def fork(
     return process, parent_conn
 
 
+READY_TIMEOUT = 120.0
+"""Seconds `start_forkserver` waits for the forkserver's preload (a loaded machine's imports)."""
+
+_ready_server: int | None = None  # the forkserver `start_forkserver` saw fork, by pid
+
+
+def _nothing() -> None:
+    """What the process `start_forkserver` forks runs: nothing."""
+
+
 def start_forkserver() -> None:
-    """Start the forkserver now (if manager processes use one), not at the first manager
-    (tests that count child processes start it before counting)."""
+    """Start the forkserver now (if manager processes use one), not at the first manager,
+    and return once it forks: its preload imported (tests that count child processes start
+    it before counting; a benchmark before its clock runs). Cheap once it has forked."""
+    global _ready_server  # (one per process, like the server)
     ctx = mp_context()
-    if ctx.get_start_method() == "forkserver" and forker_pid(ctx) is None:
+    if ctx.get_start_method() != "forkserver":
+        return
+    pid = forker_pid(ctx)
+    if pid is None:
         from multiprocessing import forkserver  # noqa: PLC0415
 
         forkserver.ensure_running()  # CPython's: the platform keeps none of its own
+    elif pid != _ready_server:  # (a server imports its preload before its first fork)
+        process, conn = fork(
+            _nothing, lambda conn, forker: (), f"{PROCESS_PREFIX}ready", READY_TIMEOUT
+        )
+        conn.close()
+        process.join(READY_TIMEOUT)
+        with contextlib.suppress(ValueError):
+            process.close()
+        _ready_server = pid
 
 
 def forker_pid(ctx: multiprocessing.context.BaseContext) -> int | None:

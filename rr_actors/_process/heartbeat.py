@@ -162,6 +162,10 @@ class Heartbeat:
         self._starved = LogThrottle(logger)  # waited for a CPU
         self._busy = LogThrottle(logger)  # its registrar was busy
 
+    def restart(self, now: float) -> None:
+        """Its first ping at `now` (it was held: nothing in flight, nothing judged)."""
+        self.wake_at = self._next_ping = now
+
     def tick(self, now: float) -> int | Look | Hang | None:
         """The watcher's turn at `now`: the number of a ping to send (then call `sent`), a
         `Look`, a `Hang`, or `None`; `wake_at` says when to call again."""

@@ -189,6 +189,8 @@ class ManagerProcess:
         self._exit_watch = PLATFORM.watch_exit(self.pid)
         self.forwarding = False  # as last told (`forward_events`); `start` sets it
         self._beating = self._beat is not None  # pinged and judged (not once killed)
+        self._held = False  # its pings wait for `beat_from` (a tree's ordered start)
+        self._beat_from: float | None = None  # (set by `beat_from`, read by the watcher)
         self.waitables: list[Any] = [process.sentinel, conn]  # what the watcher waits on
         if self._exit_watch is not None:
             self.waitables.append(self._exit_watch)
@@ -211,9 +213,12 @@ class ManagerProcess:
         on_overloaded: Callable[[int, Late], None] | None = None,
         announced: bool = False,
         on_announce: Callable[[str, bool], None] | None = None,
+        hold: Callable[[ManagerProcess], None] | None = None,
     ) -> ManagerProcess:
         """Start a manager process and wait until it serves (its catalog restored);
-        `announced`: its supervisor announces its starts (`start_registrar`).
+        `announced`: its supervisor announces its starts (`start_registrar`); `hold`: its
+        pings wait for `beat_from` (`hold(handle)` is told: a tree's ordered start, OTP's
+        supervisor hears its children only after it).
 
         Seconds: `start_timeout`, `heartbeat` (`None`: none), `heartbeat_timeout` (`None`:
         three periods). `on_events` (each forwarded batch), `on_overloaded` (a late answer
@@ -284,6 +289,9 @@ class ManagerProcess:
             on_announce=on_announce,
         )
         handle.forwarding = forward_events
+        if hold is not None and handle._beat is not None:
+            handle._held = True
+            hold(handle)
         WATCHER.watch(handle)
         return handle
 
@@ -321,6 +329,11 @@ class ManagerProcess:
         finally:
             self._syncs.pop(token, None)
 
+    def beat_from(self, when: float) -> None:
+        """Ping it from `when` on (monotonic seconds), held until now (any thread)."""
+        self._beat_from = when
+        WATCHER.nudge(self)  # (its turn, on the watcher's thread, starts the pings)
+
     def quiet(self) -> None:
         """Ping it no more (its tree's stop began): its stop's `shutdown` catches a hang,
         as OTP's shutdown does, and a big tree's pings leave the watcher to the stops."""
@@ -347,7 +360,7 @@ class ManagerProcess:
 
     def wake_at(self) -> float | None:
         """When its next `turn` is due unwoken (monotonic seconds; `None`: when woken)."""
-        if not self._beating or self._stopping:
+        if not self._beating or self._stopping or self._held:
             return None  # stopping: no pings; only its exit (or the pipe) wakes it
         assert self._beat is not None  # (beating)
         return self._beat.wake_at
@@ -362,7 +375,10 @@ class ManagerProcess:
         now = runtime.monotonic()  # what came before now is read before a judgement
         health = self._read_available(waitables, now)
         beat = self._beat
-        if beat is None or not self._beating or self._stopping:
+        if self._held and self._beat_from is not None and beat is not None:
+            beat.restart(self._beat_from)
+            self._held = False
+        if beat is None or not self._beating or self._stopping or self._held:
             return False, None
         if health is not None and health[0] > beat.bound:
             self._kill_unhealthy(*health)

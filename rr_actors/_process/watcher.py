@@ -39,6 +39,7 @@ class Watcher:
     def __init__(self) -> None:
         self._lock = runtime.Lock()
         self._added: list[Watched] | None = None  # (`None`: no thread runs)
+        self._nudged: list[Watched] = []  # watched ones whose turn is due now (`nudge`)
         self._wake = (-1, -1)  # the thread's wake-up pipe
         self._watched: dict[Watched, list[Any]] = {}  # handle -> what is registered
         self._due: dict[Watched, float] = {}  # handle -> its `wake_at` in the heap
@@ -58,10 +59,20 @@ class Watcher:
             with contextlib.suppress(BlockingIOError):  # (full: it wakes all the same)
                 os.write(self._wake[1], b"\0")
 
+    def nudge(self, handle: Watched) -> None:
+        """Have `handle` take a turn now (its `wake_at` changed); nothing once it ended."""
+        with self._lock:
+            if self._added is None:
+                return  # (no thread: it watches none)
+            self._nudged.append(handle)
+            with contextlib.suppress(BlockingIOError):
+                os.write(self._wake[1], b"\0")
+
     def _run(self) -> None:
         while True:
             with self._lock:
                 added, self._added = self._added or [], []
+                nudged, self._nudged = self._nudged, []
                 if not added and not self._watched:
                     self._added = None
                     self._selector.close()
@@ -74,7 +85,9 @@ class Watcher:
                     with contextlib.suppress(OSError, ValueError):  # (closed: it ended)
                         self._selector.register(waitable, selectors.EVENT_READ, handle)
                         self._watched[handle].append(waitable)
-            for handle, ready in self._wait({handle: [] for handle in added}).items():
+            woke: dict[Watched, list[Any]] = {handle: [] for handle in added}
+            woke.update((handle, []) for handle in nudged if handle in self._watched)
+            for handle, ready in self._wait(woke).items():
                 self._turn(handle, ready)
 
     def _wait(self, woke: dict[Watched, list[Any]]) -> dict[Watched, list[Any]]:

@@ -216,6 +216,10 @@ DISPATCH: dict[type, tuple[str, Binder]] = {
 }
 """The one dispatch table: which part handles each message, under which step name."""
 
+TEXT_FIELDS: dict[type, TextFields] = {kind: text_fields(kind) for kind in DISPATCH}
+"""Each message's text fields, made at import: in a forkserver's preload once, not at
+each manager process's start (42 dataclass walks a registrar)."""
+
 MESSAGE_STEPS: frozenset[str] = frozenset(step for step, _ in DISPATCH.values())
 """Steps that handle one message on the actor's thread (`before`/`after` it)."""
 
@@ -275,7 +279,7 @@ class RegistrarActor(Actor):
             self.drain, self.drain_seconds, self.ends_turns = DRAIN, DRAIN_SECONDS, True
         self.unknown = LogThrottle(logger)  # messages of no known type (a buggy peer's)
         self.handlers: dict[type, tuple[str, Handler, TextFields]] = {
-            kind: (step, bind(self.shared), text_fields(kind))
+            kind: (step, bind(self.shared), TEXT_FIELDS[kind])
             for kind, (step, bind) in DISPATCH.items()
         }
 

@@ -285,9 +285,10 @@ class ProcessManager:
         relay: EventRelay | None = None,
         supervisor: str = "",
         on_announce: Callable[[str, bool], None] | None = None,
+        hold: Callable[[ManagerProcess], None] | None = None,
     ) -> ProcessManager:
         """Start the manager (in a spare if there is one) and wait until it serves
-        (`on_announce`: a pool's, `ManagerProcess.start`).
+        (`on_announce`: a pool's; `hold`: its pings wait, `ManagerProcess.start`).
 
         Raises:
             CatalogCorruptError: its backup cannot be read (with its `path`).
@@ -312,6 +313,7 @@ class ProcessManager:
             else functools.partial(relay.overloaded, supervisor, spec.name),
             announced=True,
             on_announce=on_announce,
+            hold=hold,
         )
         if relay is not None:
             relay.attach(handle, forwarding=forwarding)

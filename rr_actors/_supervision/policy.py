@@ -708,6 +708,7 @@ class Starting:
                 record.tree.events,
                 supervisor=record.name,
                 on_announce=on_announce,
+                hold=processes.hold if processes.held is not None else None,
             )
         finally:
             if processes.spares is not None:

@@ -61,6 +61,7 @@ from rr_actors.errors import (
 )
 
 if TYPE_CHECKING:
+    from rr_actors._process.manager import ManagerProcess
     from rr_actors._transport.messenger import Transport
 
 __all__ = [
@@ -87,6 +88,10 @@ logger = logging.getLogger("rr_actors")
 
 POOL_MODULES = ("rr_actors._supervision.policy",)  # a pool's process runs it: preloaded
 
+HEARTBEAT_SPREAD = 0.25
+"""Seconds over which the pings of the managers of a tree's ordered start begin (the
+default `ManagerSpec.heartbeat`: not all at once)."""
+
 Clock = Callable[[], float]
 """A monotonic clock in seconds (a tree's, injectable: `Supervisor(clock=)`)."""
 
@@ -101,6 +106,8 @@ class Processes:
         self.setups: dict[str, bytes] = {}
         self.system: Transport | None = None
         self.spares: SparePool | None = None
+        self.held: list[ManagerProcess] | None = None  # pinged once the ordered start ends
+        self._held_lock = runtime.Lock()
 
     def open(self, spares: int, spare_delay: float) -> None:
         """Raises `ConfigError`: a setup cannot be pickled, or the given carrier was closed."""
@@ -136,10 +143,27 @@ class Processes:
             self.spares = SparePool(spares, self.spec.name, delay=spare_delay)
 
     def start_ahead(self, on: bool) -> None:
-        """While `on` (the supervisor's start), fork process managers' processes ahead."""
+        """While `on` (the supervisor's start), fork process managers' processes ahead, and
+        ping none of those started: their pings begin as it ends, spread over a period (as
+        OTP's supervisor hears its children only once `start_children` returns; pinging
+        the k started while the next starts made the start's work grow as N²)."""
         if self.spares is not None:
             starts = sum(1 for c, _ in walk(self.spec) if c.isolation == "process")
             self.spares.ahead(starts if on else 0)
+        with self._held_lock:
+            held, self.held = self.held or [], [] if on else None
+        now = runtime.monotonic()
+        for number, handle in enumerate(held):
+            handle.beat_from(now + HEARTBEAT_SPREAD * number / len(held))
+
+    def hold(self, handle: ManagerProcess) -> None:
+        """Ping `handle` (held) once the ordered start has ended: at once if it has (a
+        start that began before its end, a restart, finished after it)."""
+        with self._held_lock:
+            if self.held is not None:
+                self.held.append(handle)
+                return
+        handle.beat_from(runtime.monotonic())
 
     def close_spares(self) -> None:
         if self.spares is not None:

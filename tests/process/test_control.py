@@ -4,6 +4,8 @@ how manager processes start (rr_actors chooses; `set_start_method` does not chan
 from __future__ import annotations
 
 import multiprocessing
+import os
+import pathlib
 import pickle
 import textwrap
 import typing
@@ -133,3 +135,41 @@ def test_managers_are_forked_preloaded_when_the_program_started_its_forkserver_f
             "the program's forkserver still forks: True",
         ],
     ), result.stderr
+
+
+READY_FIRST = textwrap.dedent(
+    """
+    import os
+    from rr_actors._process import control
+    from rr_actors.testing import start_forkserver
+
+    control.preload(["imported_last"])  # (after rr_actors' own preload, in the server)
+    start_forkserver()
+    print("imported" if os.path.exists({marker!r}) else "not yet")
+    """
+)
+
+
+@pytest.mark.skipif(
+    "forkserver" not in multiprocessing.get_all_start_methods(), reason="needs a forkserver"
+)
+def test_start_forkserver_returns_once_the_server_has_imported_its_preload(
+    tmp_path: pathlib.Path,
+) -> None:
+    """Issue 69 goal 3: it returned once the server was spawned, so the first manager
+    (a benchmark's clock) still waited for the server's imports."""
+    marker = tmp_path / "imported"
+    (tmp_path / "imported_last.py").write_text(f"open({str(marker)!r}, 'w').close()\n")
+    script = READY_FIRST.format(marker=str(marker))
+    path = os.pathsep.join([str(tmp_path), *sys.path])  # (the server's imports: its env's)
+
+    result = subprocess.run(
+        [sys.executable, "-c", script],
+        capture_output=True,
+        text=True,
+        timeout=180,
+        check=False,
+        env={**os.environ, "PYTHONPATH": path},
+    )
+
+    assert (0, "imported\n") == (result.returncode, result.stdout), result.stderr

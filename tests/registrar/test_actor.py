@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+import textwrap
 import threading
 import uuid
 from collections.abc import Callable, Iterator
@@ -454,3 +457,32 @@ def test_each_part_of_a_registrar_holds_its_record_and_no_other_part() -> None:
         registrar.stop()
     assert len(held) >= 13  # (the actor built each from the record, and put it there)
     assert {name: (True, []) for name in held} == held
+
+
+FIRST_START = textwrap.dedent(
+    """
+    import rr_actors._registrar  # (what a forkserver preloads)
+    from rr_actors._registrar import start_registrar
+    from rr_actors._registrar.messages import text_fields
+    from rr_actors.config import RegistrarConfig
+
+    before = text_fields.cache_info().misses
+    registrar = start_registrar(RegistrarConfig(name="first"))
+    registrar.stop(timeout=10)
+    print(text_fields.cache_info().misses - before)
+    """
+)
+
+
+def test_the_first_registrar_of_a_process_walks_no_message_fields_its_imports_did() -> None:
+    # issue 69 goal 3: each manager process's registrar walked the fields of its 42
+    # message kinds (a forked process's cache starts as its forkserver's, empty)
+    result = subprocess.run(
+        [sys.executable, "-c", FIRST_START],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+
+    assert (0, "0\n") == (result.returncode, result.stdout), result.stderr

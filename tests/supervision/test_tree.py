@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -18,6 +19,8 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import testing
+from rr_actors._process import control, manager
+from rr_actors._supervision import tree
 from rr_actors.testing import RemoteRegistrar, SharedObjects, System
 from tests.support import selecting
 from tests.support.names import named
@@ -652,3 +655,65 @@ class TestAnnounce:
             sup.wait_restarted(provider, timeout=15)
 
             assert wait_for(lambda: [] == sup.run_in(consumer, lambda r: r.client_queries()), 15)
+
+
+class TestOrderedStart:
+    """A tree's ordered start (OTP's `start_children`): what it does per manager does not
+    grow with the managers started before it (issue 69 goal 3)."""
+
+    pytestmark = pytest.mark.usefixtures("by_value")  # (tests/conftest.py)
+
+    def test_the_managers_of_a_trees_start_are_pinged_only_once_it_has_ended(
+        self, uid: str, monkeypatch: pytest.MonkeyPatch, supervisors: Callable[..., rr.Supervisor]
+    ) -> None:
+        # before: each manager was pinged from its own start on, so the k started were
+        # pinged while the next one started (N² pings over a start of N; 1.4 of 2.0 CPU-s
+        # at 90 managers)
+        ended = False  # the start's end (its `start_ahead(False)`), before any release
+        during: list[str] = []
+        pinged: dict[str, threading.Event] = {}
+        send, start_ahead = manager.ManagerProcess._send, tree.Processes.start_ahead
+
+        def counted_send(handle: manager.ManagerProcess, message: Any) -> bool:
+            if isinstance(message, control.Ping):
+                if not ended:
+                    during.append(handle.name)
+                pinged.setdefault(handle.name, threading.Event()).set()
+            return send(handle, message)
+
+        def noted(processes: tree.Processes, on: bool) -> None:
+            nonlocal ended
+            ended = ended or not on
+            start_ahead(processes, on)
+
+        monkeypatch.setattr(manager.ManagerProcess, "_send", counted_send)
+        monkeypatch.setattr(tree.Processes, "start_ahead", noted)
+        names = [f"m{i}-{uid}" for i in range(6)]
+        sup = supervisors([process(name, heartbeat=0.02, heartbeat_timeout=60.0) for name in names])
+
+        with sup:
+            for name in names:  # (pinged from the start's end on, each of them)
+                assert pinged.setdefault(name, threading.Event()).wait(30), name
+
+        assert [] == during
+
+    def test_a_manager_held_after_the_start_ended_is_pinged_at_once_and_none_before_it_ends(
+        self,
+    ) -> None:
+        # (a restart begun in the start and ending after it was held for ever before)
+        class Handle:
+            def __init__(self) -> None:
+                self.beats: list[float] = []
+
+            def beat_from(self, when: float) -> None:
+                self.beats.append(when)
+
+        processes = tree.Processes(rr.SupervisorSpec("held", []))
+        during, late = Handle(), Handle()
+        processes.start_ahead(True)
+        processes.hold(during)  # type: ignore[arg-type]
+        held = list(during.beats)
+        processes.start_ahead(False)
+        processes.hold(late)  # type: ignore[arg-type]
+
+        assert ([], 1, 1) == (held, len(during.beats), len(late.beats))
