@@ -989,8 +989,10 @@ def lost_everything(name: str, *, also: Iterable[str] = (), handle: Servable | N
     are told it started (`heard_started`), and it `LostEverything` (rule 20). `handle`: its
     `ResourceRegistrar`, through which it is told (it may not be in the directory yet)."""
     MEMBERSHIP.started(name)
-    for target in sorted(set(also) - {peer.name for peer in DIRECTORY.local_peers()}):
-        heard_started(target, name)
+    also = set(also)
+    if also:  # (this process's registrars are not listed for nobody: a tree of 1,000's)
+        for target in sorted(also - {peer.name for peer in DIRECTORY.local_peers()}):
+            heard_started(target, name)
     if handle is not None:
         handle.tell(LostEverything())
         return

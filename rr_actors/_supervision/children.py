@@ -14,7 +14,7 @@ import contextlib
 import dataclasses
 import functools
 import logging
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import TYPE_CHECKING, Literal, Protocol
 
 from rr_actors._core import runtime
@@ -136,15 +136,15 @@ class Decision:
 
 def decide(
     strategy: Strategy,
-    children: Sequence[tuple[str, RestartType]],
+    children: Sequence[tuple[str, RestartType]] | Mapping[str, RestartType],
     crashed: str,
     *,
     normal: bool,
     group: Group | None = None,
 ) -> Decision:
     """What happens when child `crashed` exits on its own (`normal`: a normal exit), in a
-    supervisor of `strategy` whose `children` are `(name, restart type)` in start order:
-    OTP's `supervisor.erl` clauses, one screen.
+    supervisor of `strategy` whose `children` are `(name, restart type)` (or a mapping of
+    them) in start order: OTP's `supervisor.erl` clauses, one screen.
 
     | `crashed`'s restart type | its exit | decision |
     |---|---|---|
@@ -159,10 +159,12 @@ def decide(
     `transient` one that had exited normally too). The restart intensity is counted
     after this (`policy.Restarts`): past it, the supervisor gives up instead.
     """
-    restart = dict(children)
+    restart = children if isinstance(children, Mapping) else dict(children)
     if not restarts_after(restart[crashed], normal=normal):
         return Decision((), frozenset())
-    names = tuple(name for name, _ in children)
+    if strategy == "one_for_one" and group is None:  # (its siblings are not read)
+        return Decision((crashed,), frozenset((crashed,)))
+    names = tuple(restart)
     taken = (
         affected(strategy, names, crashed)
         if group is None
@@ -333,6 +335,9 @@ class Level(Protocol):
 
     spec: SupervisorSpec
     children: list[Child]
+    by_name: dict[str, Child]  # its children by name (a lookup walks no list)
+    nested: list[Child]  # its children that are supervisors, in start order
+    has_pipes: bool  # whether a process manager or a pool is below it (control pipes)
 
     @property
     def gave_up(self) -> SupervisorGaveUpError | None: ...

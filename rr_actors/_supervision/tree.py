@@ -299,18 +299,20 @@ def locate(level: Level, tree: Tree, name: str, down: ChildState | None = None) 
     """Find `name` below `level`, whether its supervisor runs or not (the tree's lock held;
     `down`: the state of a supervisor above that is down)."""
     settling = level.giving_up and level.gave_up is None
-    for child in level.children:
+    child = level.by_name.get(name)  # (names are unique in a tree: looked up, not walked)
+    if child is not None:
         info = child.published
-        if child.name == name:
-            if down is not None:
-                return Found(tree.spec_info(name, down), None)
-            final = child.gave_up if info.state in ("exited", "stopped") else None
-            revivable = (
-                info.state == "exited"
-                and child.spec.restart == "transient"
-                and level.spec.strategy != "one_for_one"
-            )
-            return Found(info, final, settling, revivable)
+        if down is not None:
+            return Found(tree.spec_info(name, down), None)
+        final = child.gave_up if info.state in ("exited", "stopped") else None
+        revivable = (
+            info.state == "exited"
+            and child.spec.restart == "transient"
+            and level.spec.strategy != "one_for_one"
+        )
+        return Found(info, final, settling, revivable)
+    for child in level.nested:
+        info = child.published
         if name in child.subtree:
             found = _locate_below(child, tree, name, down if down is not None else info.state)
             if found is not None and settling:
@@ -339,9 +341,10 @@ def _locate_below(child: Child, tree: Tree, name: str, state: ChildState) -> Fou
 
 
 def find_child(level: Level, name: str) -> Child | None:
-    for child in list(level.children):
-        if child.name == name:
-            return child
+    child = level.by_name.get(name)
+    if child is not None:
+        return child
+    for child in list(level.nested):
         running = child.running
         if isinstance(running, NestedSupervisor):
             found = find_child(running.node, name)
@@ -352,7 +355,7 @@ def find_child(level: Level, name: str) -> Child | None:
 
 def pool_of(level: Level, name: str) -> Child | None:
     """The running pool (a supervisor in its own process) that holds child `name`."""
-    for child in list(level.children):
+    for child in list(level.nested):
         running = child.running
         if name not in child.subtree:
             continue
@@ -482,11 +485,12 @@ def announce_started(
     beyond the tree are told (here and on the network). In a pool's process (`upward`:
     `Tree.upward`, its control pipe) only this process's registrars are told here, and its
     parent tells the rest; `origin`: the pool the announcement came from (told already)."""
-    piped = _process_handles(root)
+    piped = _process_handles(root) if root.has_pipes else {}  # (a tree of threads: no walk)
     for other, manager in () if beyond else sorted(piped.items()):
         if other not in (name, origin):
             manager.handle.tell_started(name)
-    reached, below = _piped(root), _names_below(root) if beyond else set()
+    reached = _piped(root) if root.has_pipes else set()
+    below = _names_below(root) if beyond else set()
     if here or beyond:
         MEMBERSHIP.started(name, skip=reached | below)
     others: set[str] = set()

@@ -2102,3 +2102,29 @@ class TestRestartedWithoutBackup:
 
             assert ["alone"] == list(unloads)
             assert [("shared", app.name, kept.id)] == [(q.request, q.origin_rr, q.id) for q in held]
+
+
+def test_a_registrar_that_lost_everything_lists_no_registrar_of_its_process_when_none_is_to_hear(
+    monkeypatch: pytest.MonkeyPatch, uid: str
+) -> None:
+    """Each restart of a manager without a backup listed every registrar of this process
+    (to leave them out of nobody), work that grew with a tree of thread managers at each
+    restart (issue 69, goal 4). Now only when others are to hear it; it still hears."""
+    listed = []
+    local_peers = type(DIRECTORY).local_peers
+
+    def counted(self: Any) -> Any:
+        listed.append(1)
+        return local_peers(self)
+
+    registrar = start_registrar(f"lost-{uid}")
+    try:
+        heard = []
+        monkeypatch.setattr(type(DIRECTORY), "local_peers", counted)
+        monkeypatch.setattr(registrar, "tell", heard.append)
+        life.lost_everything(registrar.name, handle=registrar)
+
+        assert ([], ["LostEverything"]) == (listed, [type(m).__name__ for m in heard])
+    finally:
+        monkeypatch.undo()
+        registrar.stop()

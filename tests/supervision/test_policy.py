@@ -1388,6 +1388,57 @@ class TestAWholeTreesStop:
         assert ["x"] == sorted(path.name for path in unloads.iterdir())
 
 
+class _Walked(list[Any]):
+    """A supervisor's children that count each walk over them (`for`, `list()`, `reversed`)."""
+
+    walks = 0
+
+    def __iter__(self) -> Iterator[Any]:
+        _Walked.walks += 1
+        return super().__iter__()
+
+    def __reversed__(self) -> Iterator[Any]:
+        _Walked.walks += 1
+        return super().__reversed__()
+
+
+class TestARestartDoesNotFeelTheTree:
+    """Issue 69, goal 4: a restart's work does not grow with the number of its siblings."""
+
+    def test_a_thread_managers_crash_and_restart_walk_none_of_its_siblings_whatever_the_trees_size(
+        self, monkeypatch: pytest.MonkeyPatch, uid: str
+    ) -> None:
+        """A crash and its restart walked the supervisor's children nine times or more
+        (to find the crashed child, to decide, to take its group down, to start it, to
+        find who hears of it on a control pipe, and at each look of `wait_restarted` and
+        `run_in`): work that grew with the tree at each restart (issue 69, goal 4). Now
+        each looks its child up by name: no walk, in a tree of 2 as in a tree of 6."""
+        from rr_actors._supervision import tree  # noqa: PLC0415
+
+        counts: dict[int, tuple[int, int]] = {}
+        leaves = tree._leaves
+        walked_leaves = [0]
+
+        def counted_leaves(level: Any) -> Any:
+            walked_leaves[0] += 1
+            return leaves(level)
+
+        monkeypatch.setattr(tree, "_leaves", counted_leaves)
+        for size in (2, 6):
+            names = [f"w{n}-{size}-{uid}" for n in range(size)]
+            sup = rr.Supervisor([rr.ManagerSpec(n, echo_setup, isolation="thread") for n in names])
+            with sup:
+                node = sup._node
+                node.children = _Walked(node.children)
+                _Walked.walks, walked_leaves[0] = 0, 0
+                crash(sup, names[size // 2])
+                sup.wait_restarted(names[size // 2], timeout=10.0)
+                counts[size] = (_Walked.walks, walked_leaves[0])
+                node.children = list(node.children)
+
+        assert {2: (0, 0), 6: (0, 0)} == counts  # before: 9-12 walks and 2 of the leaves
+
+
 class TestShutdownThenKill:
     """A child's `shutdown`: the time its own stop gets, then it is killed (a process) or
     told to crash (a thread)."""
