@@ -1099,6 +1099,7 @@ SIMULATED = [
     "simslow",
     "simways",
     "simshed",
+    "simkept",
 ]
 """The shipped plans run over two seeds here (killheavy below, for 2 s; bigtree below, one seed)."""
 
