@@ -467,10 +467,14 @@ def search_all(
 
 
 def earlier_results(options: argparse.Namespace) -> list[dict[str, Any]]:
-    """With `--resume`, the results an earlier chunk wrote to `--json` (none before the first)."""
+    """With `--resume`, the results an earlier chunk wrote to `--json` (none before the first;
+    a survivor since listed in `EQUIVALENT` is equivalent)."""
     if not options.resume or options.json is None or not options.json.is_file():
         return []
     results: list[dict[str, Any]] = json.loads(options.json.read_text(encoding="utf-8"))
+    for r in results:
+        if r["status"] == "survived" and r["id"] in EQUIVALENT:
+            r.update(status="equivalent", why=EQUIVALENT[r["id"]])
     return results
 
 

@@ -3723,8 +3723,12 @@ def test_each_mutation_of_a_simulated_plan_left_out_of_the_real_runs_is_caught_b
 
 
 def test_every_rule_but_the_events_rule_has_a_mutation() -> None:
-    # (`events`, a loss, is not a broken rule: the mutations renumber to show none)
-    assert set(check.RULES) - {"events"} == {rule for _, rule in MUTATIONS.values()}
+    # (`events`, a loss, is not a broken rule: the mutations renumber to show none;
+    # `kept-unclaimed` needs its consumers' `call_timeout`, which no event carries: judged
+    # on the simulation only, its planted history is test_an_id_kept_for_a_retry_that_...)
+    assert set(check.RULES) - {"events", "kept-unclaimed"} == {
+        rule for _, rule in MUTATIONS.values()
+    }
 
 
 def test_check_of_a_simulations_output_points_to_its_seeds_and_replay(
