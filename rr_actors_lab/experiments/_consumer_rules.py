@@ -450,7 +450,7 @@ def kept_unclaimed(  # noqa: PLR0912 - one branch per event kind
     reconcile: violated when that life still holds it `call_timeout + KEPT_SLACK_S` after its
     restore, both lives going on, and the consumer never names the id again (no retry's
     answer, failure or withdrawal, no forgetting). Judged for the consumers of `timeouts`
-    (name -> `call_timeout`: the plan's clients'; no event carries it).
+    (name -> `call_timeout`: the plan's clients' and managers'; no event carries it).
     """
     failed: dict[tuple[str, str], tuple[int, str, int]] = {}  # -> (line, provider, its life)
     # (consumer, id) -> (failure's line, restore's line, provider, its life, consumer's

@@ -238,7 +238,7 @@ def check(
         backoff_s: the longest delay before a restart the run's plan allows (its
             supervisors' `backoff` `max`, 0 without a backoff), in seconds: `strategy`
             waits that much longer for a restart due.
-        timeouts: the `call_timeout` of consumers by name (its plan's clients'), in
+        timeouts: the `call_timeout` of consumers by name (its plan's clients' and managers'), in
             seconds: how long a restored id kept for a retry of theirs waits for it
             (`kept-unclaimed` judges those consumers only; no event carries it).
 
