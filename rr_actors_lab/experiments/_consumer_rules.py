@@ -1,5 +1,5 @@
 """The consumer's side of a run (rules `answered`, `answer-released`, `record-kept`,
-`reported-lost`, `end`, `withdrawn`, `retry-kept`, `left`, `fetch`, `outcome`).
+`reported-lost`, `end`, `withdrawn`, `retry-kept`, `kept-unclaimed`, `left`, `fetch`, `outcome`).
 
 ```
  steps ──► answered: each consumer's answered calls against what its providers added
@@ -9,6 +9,7 @@
  steps (+ the history's exits) ──► end: what providers still hold for stopped consumers
  steps ──► withdrawn: what providers still hold of withdrawn calls
  steps ──► retry-kept: a failed call's id released while its consumer could retry it
+ steps + lives ──► kept-unclaimed: a failed call's id kept past its consumer's call_timeout
  steps (+ the give-ups) ──► left: a last stop's rows no running consumer holds
  steps + holdings ──► fetch: QueriesFetched, ServerQueriesListed against what was held
  steps + lives ──► outcome: each call a provider added against its caller's outcomes and end
@@ -20,7 +21,7 @@ Each rule's windows and what it excuses: docs/how-to/check-a-run.md.
 from __future__ import annotations
 
 from collections import defaultdict
-from collections.abc import Collection, Sequence
+from collections.abc import Collection, Mapping, Sequence
 
 from rr_actors import events
 from rr_actors._core import hlc
@@ -35,6 +36,7 @@ __all__ = [
     "answered",
     "end",
     "fetch",
+    "kept_unclaimed",
     "left",
     "outcome",
     "record_kept",
@@ -430,6 +432,77 @@ def retry_kept(steps: Sequence[Step]) -> list[Finding]:
                 )
             )
     return findings
+
+
+KEPT_SLACK_S = 1.0
+"""Seconds past its consumer's `call_timeout` by which a restored id kept for a retry is given
+back, counted from the restore (the reconcile that starts the consumer's wait follows it)."""
+
+_NAMING = (events.CallAnswered, events.CallFailed, events.CallWithdrawn, events.QueryForgotten)
+
+
+def kept_unclaimed(  # noqa: PLR0912 - one branch per event kind
+    steps: Sequence[Step], lives: dict[tuple[str, int], Life], timeouts: Mapping[str, float]
+) -> list[Finding]:
+    """`kept-unclaimed` (rule 17 case 3, issue 68 item 5): an id kept for a retry that never
+    comes is given back. The life that restores the id of a call that failed as its provider
+    died keeps it for the consumer's retry, at most the consumer's `call_timeout` after their
+    reconcile: violated when that life still holds it `call_timeout + KEPT_SLACK_S` after its
+    restore, both lives going on, and the consumer never names the id again (no retry's
+    answer, failure or withdrawal, no forgetting). Judged for the consumers of `timeouts`
+    (name -> `call_timeout`: the plan's clients' and managers'; no event carries it).
+    """
+    failed: dict[tuple[str, str], tuple[int, str, int]] = {}  # -> (line, provider, its life)
+    # (consumer, id) -> (failure's line, restore's line, provider, its life, consumer's
+    # life, the stamp by which it is given back)
+    held: dict[tuple[str, str], tuple[int, int, str, int, int, int]] = {}
+    late: dict[tuple[str, str], tuple[tuple[int, ...], str]] = {}  # -> (lines, provider)
+
+    def alive(name: str, life: int, stamp: int) -> bool:
+        record = lives.get((name, life))
+        return record is None or not record.ended_before(stamp)
+
+    for name, line, event, new, life in steps:
+        for key, (at, restored, provider, plife, clife, due) in list(held.items()):
+            if event.hlc > due:
+                del held[key]
+                if alive(provider, plife, due) and alive(key[0], clife, due):
+                    late[key] = ((at, restored, line), provider)
+        if new or isinstance(event, events.RegistrarStopped):  # (that life ended)
+            for gone in [k for k, v in held.items() if name in (k[0], v[2])]:
+                del held[gone]
+            for gone in [k for k in failed if k[0] == name]:
+                del failed[gone]
+        key = (name, getattr(event, "query_id", ""))
+        if isinstance(event, _NAMING):  # (a retry's outcome, a withdrawal: it was claimed)
+            failed.pop(key, None)
+            held.pop(key, None)
+            late.pop(key, None)
+            if isinstance(event, events.CallFailed) and event.may_have_executed:
+                failed[key] = (line, event.serving_rr, life)
+        elif isinstance(event, events.CatalogRestored):
+            for qid, _rid, consumer, *_ in event.consumers:
+                found = failed.get((consumer, qid))
+                if found is not None and found[1] == name and consumer in timeouts:
+                    del failed[consumer, qid]
+                    bound = timeouts[consumer] + KEPT_SLACK_S
+                    due = hlc.from_seconds(hlc.seconds(event.hlc) + bound)
+                    held[consumer, qid] = (found[0], line, name, life, found[2], due)
+        elif isinstance(event, events.ConsumerReleased):
+            held.pop((event.consumer, event.query_id), None)
+    return [
+        Finding(
+            "kept-unclaimed",
+            "violation",
+            f"{provider} still held query {qid[:8]} of {consumer} "
+            f"{timeouts[consumer] + KEPT_SLACK_S:g} s after its restore, kept for a retry of "
+            f"a call that failed as it died, which {consumer} never made (rule 17: given "
+            "back after call_timeout)",
+            lines,
+            (provider, consumer),
+        )
+        for (consumer, qid), (lines, provider) in late.items()
+    ]
 
 
 def _held_on(

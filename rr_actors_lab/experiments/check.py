@@ -26,7 +26,7 @@ import itertools
 import reprlib
 import tomllib
 from collections import defaultdict
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -75,6 +75,7 @@ RULES = (
     "end",
     "withdrawn",
     "retry-kept",
+    "kept-unclaimed",
     "left",
     "unload-order",
     "dependency-held",
@@ -222,7 +223,10 @@ def _one_name_rule(
 
 
 def check(
-    history: Sequence[Line], resolve: str = "first_served", backoff_s: float = 0.0
+    history: Sequence[Line],
+    resolve: str = "first_served",
+    backoff_s: float = 0.0,
+    timeouts: Mapping[str, float] | None = None,
 ) -> Verdict:
     """Check one run's events against every rule of `RULES`.
 
@@ -234,6 +238,9 @@ def check(
         backoff_s: the longest delay before a restart the run's plan allows (its
             supervisors' `backoff` `max`, 0 without a backoff), in seconds: `strategy`
             waits that much longer for a restart due.
+        timeouts: the `call_timeout` of consumers by name (its plan's clients' and managers'), in
+            seconds: how long a restored id kept for a retry of theirs waits for it
+            (`kept-unclaimed` judges those consumers only; no event carries it).
 
     Returns:
         The verdict and every finding. A violation about a registrar whose process lost
@@ -264,6 +271,7 @@ def check(
         *_consumer_rules.end(steps, history),
         *_consumer_rules.withdrawn(steps),
         *_consumer_rules.retry_kept(steps),
+        *_consumer_rules.kept_unclaimed(steps, lives, timeouts or {}),
         *_consumer_rules.left(steps, history, lives),
         *_consumer_rules.fetch(steps, providers.holdings, lives),
         *_consumer_rules.outcome(steps, lives),

@@ -194,6 +194,7 @@ class Workload(_Table, frozen=True):
     arrivals: Literal["poisson", "fixed"] = "poisson"  # seeded gaps of mean 1/rate, or fixed
     hold: SecondsOrZero = 0.5  # a client keeps each resource this long, then unloads it
     timeout: Seconds = 5.0  # a call may take this long, retries through restarts included
+    retry: bool = True  # false: a call is made once, never retried (a careless caller)
     awaited: Annotated[int, Meta(ge=0, le=MAX_AWAITED)] = 0  # >0: calls awaited at once, each slot
     cancel: Annotated[float, Meta(ge=0, le=1)] = 0.0  # of the awaited calls, the share cancelled
     cancel_within: SecondsOrZero = 0.05  # each cancelled 0 to this many seconds after it starts

@@ -333,7 +333,10 @@ def _run_seed(plan: Plan, seed: int, started: float, steps: Steps) -> SimulatedR
     backoff_s = max(
         (s.backoff.max for s in plan.tree.supervisors() if s.backoff.initial > 0), default=0.0
     )
-    verdict = check.check(check.numbered(seen), resolve, backoff_s)
+    default = rr.RegistrarConfig("a").call_timeout  # (the runner gives managers no config)
+    timeouts = {m.name: default for m in plan.tree.managers()}
+    timeouts.update({f"client-{i}": plan.workload.timeout for i in plan.workload.callers()})
+    verdict = check.check(check.numbered(seen), resolve, backoff_s, timeouts)
     return SimulatedRun(
         seed=seed,
         hash=history_hash(history),

@@ -565,13 +565,16 @@ class Client:
         )
         deadline = runtime.monotonic() + self.workload.timeout
         try:
-            query = retrying(
-                self.sup,
-                mix.manager,
-                lambda: call(timeout=max(1e-3, deadline - runtime.monotonic())),
-                deadline=deadline,
-                retried=again,
-            )
+            if not self.workload.retry:  # (once: a failed id is kept for a retry never made)
+                query = call(timeout=self.workload.timeout)
+            else:
+                query = retrying(
+                    self.sup,
+                    mix.manager,
+                    lambda: call(timeout=max(1e-3, deadline - runtime.monotonic())),
+                    deadline=deadline,
+                    retried=again,
+                )
         except rr.RrError as exc:
             self.calls.append(
                 CallRecord(

@@ -1918,6 +1918,66 @@ def test_a_failed_calls_id_released_when_no_retry_can_come_is_no_retry_kept_viol
     assert [] == [f for f in verdict.findings if f.rule == "retry-kept"]
 
 
+def kept_then_given_back(after: float, *, claimed: bool = False) -> list[events.Event]:
+    """Rule 17 case 3 with no retry: erm died with cm's Q1 committed, its next life
+    restores Q1 at 10 s and keeps it for cm's retry, which never comes (`claimed`: a retry
+    is answered at 10.5 s, unloaded later); erm gives it back `after` s after the restore;
+    both stop at 14 s. Stamped by time (cm's `call_timeout`: 1 s, the bound 2 s)."""
+    from rr_actors._core import hlc  # noqa: PLC0415
+
+    history: list[tuple[float, events.Event]] = [
+        (9.0, events.CatalogRestored("erm", (), (), (), pid=P, seq=1)),
+        (9.1, events.ResourceLoaded("erm", "cam", RID, Q1, 0.01, 42, "cam 0", pid=P, seq=2)),
+        (9.1, events.ConsumerAdded("erm", RID, Q1, "cm", pid=P, seq=3)),
+        (9.2, events.ChildExited("sup", "erm", P, "killed by SIGKILL")),
+        (9.2, _failed()),
+        (
+            10.0,
+            events.CatalogRestored(
+                "erm", ((RID, "cam", "loaded", "42"),), ((Q1, RID, "cm"),), (), pid=P + 1, seq=1
+            ),
+        ),
+        (
+            10.0 + after,
+            events.ConsumerReleased("erm", RID, Q1, "cm", "abandoned", pid=P + 1, seq=2),
+        ),
+        (10.0 + after, events.ResourceUnloaded("erm", "cam", RID, pid=P + 1, seq=3)),
+        (14.0, events.RegistrarStopped("cm", (), (), (), pid=C)),
+        (14.0, events.RegistrarStopped("erm", (), (), (), pid=P + 1, seq=4)),
+    ]
+    if claimed:  # (then released by its unload)
+        history.append((10.5, events.CallAnswered("cm", Q1, "erm", "cam", None, True, pid=C)))
+        history.append((10.0 + after, events.QueryForgotten("cm", Q1, "erm", "unload", pid=C)))
+    history.sort(key=lambda pair: pair[0])  # (stable: the order above at equal times)
+    return [
+        dataclasses.replace(e, hlc=hlc.from_seconds(1e9 + at) + i, host="h")
+        for i, (at, e) in enumerate(history)
+    ]
+
+
+def test_an_id_kept_for_a_retry_that_never_comes_held_past_call_timeout_is_kept_unclaimed() -> None:
+    verdict = check.check(numbered(kept_then_given_back(after=3.5)), timeouts={"cm": 1.0})
+
+    found = [f for f in verdict.findings if f.rule == "kept-unclaimed"]
+    assert ("violated", [(5, 6, 7)]) == (verdict.verdict, [f.lines for f in found])
+    assert "erm still held query q1111111 of cm 2 s after its restore" in found[0].message
+
+
+@pytest.mark.parametrize(
+    ("after", "claimed", "timeouts"),
+    [(1.5, False, {"cm": 1.0}), (3.5, True, {"cm": 1.0}), (3.5, False, {})],
+    ids=["given back in time", "claimed by a retry", "call_timeout not known"],
+)
+def test_an_id_kept_for_a_retry_given_back_in_time_or_claimed_is_no_kept_unclaimed_violation(
+    after: float, claimed: bool, timeouts: dict[str, float]
+) -> None:
+    history = kept_then_given_back(after=after, claimed=claimed)
+
+    verdict = check.check(numbered(history), timeouts=timeouts)
+
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+
+
 def test_a_restart_with_a_restore_holds_what_the_restore_lists() -> None:
     h = without_backup()
     # erm has a backup: its restart lists Q1 again, and nobody releases it
@@ -3663,8 +3723,12 @@ def test_each_mutation_of_a_simulated_plan_left_out_of_the_real_runs_is_caught_b
 
 
 def test_every_rule_but_the_events_rule_has_a_mutation() -> None:
-    # (`events`, a loss, is not a broken rule: the mutations renumber to show none)
-    assert set(check.RULES) - {"events"} == {rule for _, rule in MUTATIONS.values()}
+    # (`events`, a loss, is not a broken rule: the mutations renumber to show none;
+    # `kept-unclaimed` needs its consumers' `call_timeout`, which no event carries: judged
+    # on the simulation only, its planted history is test_an_id_kept_for_a_retry_that_...)
+    assert set(check.RULES) - {"events", "kept-unclaimed"} == {
+        rule for _, rule in MUTATIONS.values()
+    }
 
 
 def test_check_of_a_simulations_output_points_to_its_seeds_and_replay(

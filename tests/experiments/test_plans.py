@@ -42,6 +42,7 @@ SHIPPED = {
     "simslow",
     "simways",
     "simshed",
+    "simkept",
     "bigtree",
 }
 """Every plan shipped in the package; the tutorial's `first` runs in the docs test."""

@@ -1099,8 +1099,39 @@ SIMULATED = [
     "simslow",
     "simways",
     "simshed",
+    "simkept",
 ]
 """The shipped plans run over two seeds here (killheavy below, for 2 s; bigtree below, one seed)."""
+
+
+@SWEEP
+def test_simkept_clients_never_retry_and_an_id_kept_for_them_goes_back_after_call_timeout() -> None:
+    """`retry = false`: a call in flight at api's kill fails once, `may_have_executed`; the
+    restart restores its id and keeps it for a retry none makes, then gives it back (its
+    `Abandon`) after the client's `call_timeout` (1 s) counted from their reconcile."""
+    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
+
+    run = simulate.run_seed(load_plan(PLANS / "simkept.toml"), 1)
+
+    h = [json.loads(line) for line in run.history.splitlines() if line.startswith('{"')]
+    assert not any(e["type"] == "CallAnswered" and e.get("retry") for e in h)
+    failed = {e["query_id"] for e in h if e["type"] == "CallFailed" and e["may_have_executed"]}
+    restored = [
+        (e["at"], qid)
+        for e in h
+        if e["type"] == "CatalogRestored"
+        for qid, *_ in e["consumers"]
+        if qid in failed
+    ]
+    assert restored
+    given_back = {
+        e["query_id"]: e["at"]
+        for e in h
+        if e["type"] == "ConsumerReleased" and e["reason"] == "abandoned"
+    }
+    assert [1.0 < given_back[qid] - at < 2.0 for at, qid in restored] == [True] * len(restored)
+    assert "held" == run.verdict
+
 
 REFUSED = ["resource", "strategies", "leases"]
 """The shipped plans the simulation does not model (the last test says why each)."""
