@@ -33,6 +33,7 @@ __all__ = [
     "ConsumerReleased",
     "Event",
     "EventsDropped",
+    "EventsUnpublished",
     "InDoubt",
     "LoadFailed",
     "ManagerOverloaded",
@@ -663,6 +664,23 @@ class EventsDropped(_Numbered):
     cause: str = "full"
 
 
+@_kind
+class EventsUnpublished(_Numbered):
+    """A killed manager process had numbered these events and died before publishing them.
+
+    Its supervisor's process says so after the exit, when neither the process's journal nor
+    its backup's outbox holds them: a kill before an event (a change's events waiting for a
+    commit the kill prevented, an event built on one thread while another published a later
+    one). No event is lost, and these numbers are no gap in the process's stream.
+
+    Attributes:
+        seqs: the numbers never used, ascending.
+        pid: the process that numbered them.
+    """
+
+    seqs: tuple[int, ...]
+
+
 # -- what a catalog holds -------------------------------------------------------------------
 
 Rows: TypeAlias = tuple[tuple[str, ...], ...]
@@ -738,5 +756,6 @@ Event: TypeAlias = (
     | UnloadCutShort
     | ServerOverloaded
     | EventsDropped
+    | EventsUnpublished
 )
 """Any event of this module (what a subscriber's callback receives)."""

@@ -233,11 +233,15 @@ def test_events_a_killed_manager_published_but_could_not_keep_are_counted(
     first_pid = pid_of(sup, erm)
 
     def publish_five_uncut_then_die(_registrar: rr.ResourceRegistrar) -> None:
+        import errno  # noqa: PLC0415
         import gc  # noqa: PLC0415 - runs in the manager process
         import signal  # noqa: PLC0415
 
+        def full(_fd: int, _data: bytes) -> int:
+            raise OSError(errno.ENOSPC, "No space left on device")
+
         [line] = [o for o in gc.get_objects() if type(o).__name__ == "_EventLine"]
-        line.journal._write = lambda _fd, data: len(data)  # as if cut: counted, not kept
+        line.journal._write = full  # a full disk: counted, not kept
         # the forwarder's thread may take the GIL between two publishes: with the control
         # pipe's lock held it cannot send any of the five before the kill
         line.control.lock.acquire()
