@@ -17,13 +17,11 @@ received of them and lost.
 ```
 
 Why: "What a SIGKILL can and cannot lose of the event stream", failure-semantics.md. The
-journal's write is where an event is published for good: a kill before it (a change's
-events waiting for their commit, an event built on one thread while another publishes a
-later one) is a kill before the event, whose number no event will use. Past
-`JOURNAL_BYTES` the journal is cut back after a sent batch; the doubt mark then rises to
-the last number written (an event published meanwhile and never sent counts lost), as it
-does for an event that could not be written. Layout: an 8-byte doubt mark, then per event
-a `_RECORD` head (seq, pickle length) and the pickle, skipped unread once it arrived.
+journal's write publishes an event for good: a kill before it is a kill before the event,
+whose number no event takes. Past `JOURNAL_BYTES` the journal is cut back after a sent
+batch; the doubt mark rises to the last number written then (an event published meanwhile
+and never sent counts lost), as for an event not written. Layout: the 8-byte doubt mark,
+then per event a `_RECORD` head (seq, pickle length) and the pickle.
 """
 
 from __future__ import annotations
@@ -66,8 +64,8 @@ class Tally:
 
     @classmethod
     def create(cls) -> Tally | None:
-        """A new journal, its doubt mark at 0 (supervisor's side); `None` if no file could
-        be made (a loss at a kill is then not counted)."""
+        """A new journal (supervisor's side); `None` if no file could be made (a loss at a
+        kill is then not counted)."""
         try:
             fd, path = tempfile.mkstemp(prefix="rr-events-")
         except OSError:
@@ -129,15 +127,11 @@ class Tally:
 
 
 class Journal:
-    """The child's side: each event published, appended; the doubt mark raised for one
-    it could not keep, and at a cut."""
+    """The child's side: each event published, appended."""
 
     def __init__(self, path: str, doubt: Callable[[int], object], fd: int) -> None:
-        self.path = path
-        self._doubt = doubt
-        self._last = 0  # the highest number written (what a cut may take)
-        self._doubted = 0
-        self._fd = fd
+        self.path, self._fd, self._doubt = path, fd, doubt
+        self._last = self._doubted = 0  # the highest number written; the doubt mark
         self._lock = runtime.Lock()  # a write and its number, or a cut: one at a time
         self._dumps = functools.partial(pickle.dumps, protocol=pickle.HIGHEST_PROTOCOL)
         self._write = os.write
@@ -158,25 +152,18 @@ class Journal:
         return cls(path, functools.partial(view.__setitem__, 0), fd)
 
     def __call__(self, event: Any) -> bytes | None:
-        """Append `event` (the publishing thread); its pickle, or `None` if not kept."""
+        """Append `event` (the publishing thread); its pickle, or `None` if not kept (then
+        lost if it is never sent: the doubt mark rises to its number)."""
         seq = getattr(event, "seq", 0)
-        data: bytes | None = None
-        record: bytes | None = None
         try:  # per event: a try costs nothing, `suppress` a context manager
-            data = pickled = self._dumps(event)
-            record = _RECORD.pack(seq, len(pickled)) + pickled
-        except (pickle.PicklingError, TypeError, AttributeError, struct.error):
-            data = None
-        with self._lock:  # (a cut between the write and `_last` would go uncounted)
-            if record is not None:
-                try:
-                    self._write(self._fd, record)  # one write: one record
-                except OSError:
-                    data = None
-            if data is None:  # published, not kept: lost if it is never sent
+            data: bytes = self._dumps(event)
+            with self._lock:  # (a cut between the write and `_last` would go uncounted)
+                self._write(self._fd, _RECORD.pack(seq, len(data)) + data)  # one record
+                self._last = max(self._last, seq)  # (two threads' events: out of order)
+        except (OSError, pickle.PicklingError, TypeError, AttributeError, struct.error):
+            with self._lock:
                 self._doubt_up_to(seq)
-            elif seq > self._last:  # (events built on two threads may come out of order)
-                self._last = seq
+            return None
         return data
 
     def _doubt_up_to(self, seq: int) -> None:
@@ -256,11 +243,9 @@ class Received:
             tally.close()
 
     def count_lost(self, name: str, pid: int, *, listened: bool = True) -> None:
-        """After the exit: deliver what its journal and outbox kept but it never sent; then
-        an `EventsDropped` for the numbers of events published and lost, an
-        `EventsUnpublished` for those of events never published (before a restart empties
-        the outbox); nothing is read if nobody `listened` (a later subscriber hears nothing
-        older than itself)."""
+        """After the exit: deliver what its journal and outbox kept but it never sent, then
+        tell the numbers still missing (before a restart empties the outbox); nothing is
+        read if nobody `listened` (a later subscriber hears nothing older than itself)."""
         tally = self.tally
         if tally is None or self.on_events is None or not listened:
             self.close()

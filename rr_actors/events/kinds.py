@@ -666,15 +666,11 @@ class EventsDropped(_Numbered):
 
 @_kind
 class EventsUnpublished(_Numbered):
-    """A killed manager process had numbered these events and died before publishing them.
-
-    Its supervisor's process says so after the exit, when neither the process's journal nor
-    its backup's outbox holds them: a kill before an event (a change's events waiting for a
-    commit the kill prevented, an event built on one thread while another published a later
-    one). No event is lost, and these numbers are no gap in the process's stream.
+    """A killed manager process numbered these events and died before publishing them (in
+    neither its journal nor its backup's outbox): no event is lost, the numbers are no gap.
 
     Attributes:
-        seqs: the numbers never used, ascending.
+        seqs: the numbers no event took, ascending.
         pid: the process that numbered them.
     """
 
