@@ -4,21 +4,24 @@ received of them and lost.
 ```
  supervisor's process                         manager process
    Tally.create() ── a file ──────────────►   Journal(path): each event published
-                                              appended (pickled), then its seq stored
-                                              as the last one kept
+                                              appended (pickled, one write); one it could
+                                              not keep raises the doubt mark
    Received.deliver ◄── Events(batch) over the control pipe
    ... the process exits (or is killed) ...
    Received.drain: what is still in the pipe
-   Received.count_lost: tally.after(last seq received), then the backup's outbox
-     (`_store/outbox.py`: events committed, then killed before their publishing);
-     what is still missing ──► one EventsDropped(cause="killed")
+   Received.count_lost: the journal's records not received (above the last number
+     received, or a hole below it), then the backup's outbox (`_store/outbox.py`: events
+     committed, then killed before their publishing); of the numbers still missing,
+     those at or below the doubt mark ──► one EventsDropped(cause="killed"),
+     the others (never published) ──► one EventsUnpublished(seqs)
 ```
 
-Why: "What a SIGKILL can and cannot lose of the event stream", failure-semantics.md. An
-event's number goes into the memory map after its `write`: a kill between the two is a kill
-just before the event. Past `JOURNAL_BYTES` the journal is cut back after a sent batch (an
-event published meanwhile and never sent counts lost). Layout: an 8-byte counter, then per
-event a `_RECORD` head (seq, pickle length) and the pickle, skipped unread once it arrived.
+Why: "What a SIGKILL can and cannot lose of the event stream", failure-semantics.md. The
+journal's write publishes an event for good: a kill before it is a kill before the event,
+whose number no event takes. Past `JOURNAL_BYTES` the journal is cut back after a sent
+batch; the doubt mark rises to the last number written then (an event published meanwhile
+and never sent counts lost), as for an event not written. Layout: the 8-byte doubt mark,
+then per event a `_RECORD` head (seq, pickle length) and the pickle.
 """
 
 from __future__ import annotations
@@ -35,13 +38,14 @@ from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
 
+from rr_actors._core import runtime
 from rr_actors._process.control import Events
 from rr_actors._store.outbox import read_told
-from rr_actors.events import EventsDropped
+from rr_actors.events import EventsDropped, EventsUnpublished
 
 logger = logging.getLogger("rr_actors")
 
-_SIZE = 8  # one unsigned 64-bit counter, in the machine's byte order
+_SIZE = 8  # the doubt mark: one unsigned 64-bit number, in the machine's byte order
 
 _RECORD = struct.Struct("=QI")  # a record's head: the event's seq, its pickle's length
 
@@ -50,7 +54,7 @@ JOURNAL_BYTES = 1 << 20
 
 
 class Tally:
-    """The shared counter of one manager process's events (one incarnation each)."""
+    """The journal of one manager process's events (one incarnation each), read back."""
 
     def __init__(self, path: str, fd: int, mapped: mmap.mmap) -> None:
         self.path = path
@@ -60,8 +64,8 @@ class Tally:
 
     @classmethod
     def create(cls) -> Tally | None:
-        """A new counter at 0 (supervisor's side); `None` if no file could be made (a loss
-        at a kill is then not counted)."""
+        """A new journal (supervisor's side); `None` if no file could be made (a loss at a
+        kill is then not counted)."""
         try:
             fd, path = tempfile.mkstemp(prefix="rr-events-")
         except OSError:
@@ -76,15 +80,16 @@ class Tally:
             return None
         return cls(path, fd, mapped)
 
-    def built(self) -> int:
-        """The number of the last event the child kept (0: none, or not read)."""
+    def doubted(self) -> int:
+        """The highest number of an event the journal may lack though it was published (cut
+        from it, or not written); 0: none, or not read."""
         if self._map is None:
             return 0
         return int(self._view[0])
 
-    def after(self, seq: int) -> list[Any]:
-        """The journal's events numbered above `seq`, in order (a record cut short, or one
-        that does not unpickle, ends the reading)."""
+    def kept(self, arrived: int, holes: set[int] | frozenset[int] = frozenset()) -> list[Any]:
+        """The journal's events numbered above `arrived` or in `holes`, in order (a record
+        cut short, or one that does not unpickle, ends the reading)."""
         if self._map is None:
             return []
         found: list[Any] = []
@@ -100,13 +105,13 @@ class Tally:
             at += _RECORD.size
             if at + length > end:
                 break  # cut short by the kill
-            if number > seq:
+            if number > arrived or number in holes:
                 try:
                     found.append(pickle.loads(memoryview(data)[at : at + length]))
                 except Exception:  # noqa: BLE001 - not ours to judge: the reading ends
                     break
             at += length
-        found.sort(key=lambda e: e.seq)
+        found.sort(key=_seq)
         return found
 
     def close(self) -> None:
@@ -122,13 +127,12 @@ class Tally:
 
 
 class Journal:
-    """The child's side: events kept as published, the number of the last one kept."""
+    """The child's side: each event published, appended."""
 
-    def __init__(self, path: str, mark: Callable[[int], object], fd: int) -> None:
-        self.path = path
-        self._mark = mark
-        self._last = 0
-        self._fd = fd
+    def __init__(self, path: str, doubt: Callable[[int], object], fd: int) -> None:
+        self.path, self._fd, self._doubt = path, fd, doubt
+        self._last = self._doubted = 0  # the highest number written; the doubt mark
+        self._lock = runtime.Lock()  # a write and its number, or a cut: one at a time
         self._dumps = functools.partial(pickle.dumps, protocol=pickle.HIGHEST_PROTOCOL)
         self._write = os.write
 
@@ -145,25 +149,36 @@ class Journal:
             os.close(fd)
             return None
         view = memoryview(mapped).cast("Q")
-        return cls(path, functools.partial(view.__setitem__, 0), fd)  # one C call per event
+        return cls(path, functools.partial(view.__setitem__, 0), fd)
 
     def __call__(self, event: Any) -> bytes | None:
-        """Append `event` (the publishing thread); its pickle, or `None` if not kept."""
+        """Append `event` (the publishing thread); its pickle, or `None` if not kept (then
+        lost if it is never sent: the doubt mark rises to its number)."""
         seq = getattr(event, "seq", 0)
-        data: bytes | None = None
         try:  # per event: a try costs nothing, `suppress` a context manager
-            data = self._dumps(event)
-            self._write(self._fd, _RECORD.pack(seq, len(data)) + data)  # one write: one record
+            data: bytes = self._dumps(event)
+            with self._lock:  # (a cut between the write and `_last` would go uncounted)
+                self._write(self._fd, _RECORD.pack(seq, len(data)) + data)  # one record
+                self._last = max(self._last, seq)  # (two threads' events: out of order)
         except (OSError, pickle.PicklingError, TypeError, AttributeError, struct.error):
-            data = None  # not kept: if the process dies before it sends it, it is counted lost
-        if seq > self._last:  # (events built on two threads may come out of order)
-            self._last = seq
-            self._mark(seq)
+            with self._lock:
+                self._doubt_up_to(seq)
+            return None
         return data
 
+    def _doubt_up_to(self, seq: int) -> None:
+        if seq > self._doubted:
+            self._doubted = seq
+            self._doubt(seq)
+
     def sent(self) -> None:
+        """A batch was sent (the forwarder's thread): past `JOURNAL_BYTES`, cut the journal
+        back; what it held and was not sent yet is then in doubt."""
         try:
-            if os.fstat(self._fd).st_size > JOURNAL_BYTES:
+            if os.fstat(self._fd).st_size <= JOURNAL_BYTES:
+                return
+            with self._lock:
+                self._doubt_up_to(self._last)  # (before the cut: a kill between is counted)
                 os.ftruncate(self._fd, _SIZE)
         except OSError:
             pass
@@ -229,35 +244,39 @@ class Received:
 
     def count_lost(self, name: str, pid: int, *, listened: bool = True) -> None:
         """After the exit: deliver what its journal and outbox kept but it never sent, then
-        an `EventsDropped` for the rest (before a restart empties the outbox); neither is
+        tell the numbers still missing (before a restart empties the outbox); nothing is
         read if nobody `listened` (a later subscriber hears nothing older than itself)."""
         tally = self.tally
         if tally is None or self.on_events is None or not listened:
             self.close()
             return
         self.tally = None
+        arrived, holes = self.last_seq, self.holes
         try:
-            arrived = self.last_seq
-            kept = tally.after(arrived)
-            # (a record written just before the kill may be newer than the number stored)
-            last = max([tally.built(), *(_seq(e) for e in kept)])
+            kept = tally.kept(arrived, holes)
+            doubt = tally.doubted()
         finally:
             tally.close()
         seen = {_seq(e) for e in kept}
         told = [
             event
             for event in (read_told(self.backup, pid) if self.backup is not None else ())
-            if (_seq(event) > arrived or _seq(event) in self.holes) and _seq(event) not in seen
+            if (_seq(event) > arrived or _seq(event) in holes) and _seq(event) not in seen
         ]
         if told:  # committed, then killed before their publishing: the journal lacks them
-            last = max(last, *(_seq(e) for e in told))
             kept = sorted([*kept, *told], key=_seq)
+            seen.update(_seq(e) for e in told)
         if kept:
             self.deliver(name, kept)
-        lost = last - arrived - sum(1 for e in kept if _seq(e) > arrived)
-        if lost > 0:
+        top = max(arrived, doubt, *seen)
+        missing = {*range(arrived + 1, top + 1), *holes} - seen
+        lost = sum(1 for seq in missing if seq <= doubt)
+        if lost:
             logger.warning("manager %s (pid %d) died with %d events unsent", name, pid, lost)
             self.deliver(name, [EventsDropped(lost, pid=pid, cause="killed")])
+        if len(missing) > lost:  # (numbers taken by events a kill came before)
+            unused = tuple(sorted(seq for seq in missing if seq > doubt))
+            self.deliver(name, [EventsUnpublished(unused, pid=pid)])
 
 
 def _seq(event: Any) -> int:

@@ -33,6 +33,7 @@ __all__ = [
     "ConsumerReleased",
     "Event",
     "EventsDropped",
+    "EventsUnpublished",
     "InDoubt",
     "LoadFailed",
     "ManagerOverloaded",
@@ -663,6 +664,19 @@ class EventsDropped(_Numbered):
     cause: str = "full"
 
 
+@_kind
+class EventsUnpublished(_Numbered):
+    """A killed manager process numbered these events and died before publishing them (in
+    neither its journal nor its backup's outbox): no event is lost, the numbers are no gap.
+
+    Attributes:
+        seqs: the numbers no event took, ascending.
+        pid: the process that numbered them.
+    """
+
+    seqs: tuple[int, ...]
+
+
 # -- what a catalog holds -------------------------------------------------------------------
 
 Rows: TypeAlias = tuple[tuple[str, ...], ...]
@@ -738,5 +752,6 @@ Event: TypeAlias = (
     | UnloadCutShort
     | ServerOverloaded
     | EventsDropped
+    | EventsUnpublished
 )
 """Any event of this module (what a subscriber's callback receives)."""

@@ -142,6 +142,11 @@ def describe(event: kinds.Event) -> str:  # noqa: PLR0911, PLR0912 - one case pe
             return f"{event.count} events refused: no member's certificate sealed them"
         case kinds.EventsDropped():
             return f"{event.count} events dropped (a subscriber or forwarder fell behind)"
+        case kinds.EventsUnpublished():
+            return (
+                f"{len(event.seqs)} numbers of process {event.pid} never used: it was killed "
+                f"before it published those events (none lost)"
+            )
     typing.assert_never(event)
 
 

@@ -120,12 +120,16 @@ class Verdict:
 
 
 def _loss_rule(history: Sequence[Line]) -> tuple[list[Finding], set[int]]:
-    """`events`: every lost event (a notice, a gap in a process's numbers); the pids."""
+    """`events`: every lost event (a notice, a gap in a process's numbers no
+    `EventsUnpublished` fills); the pids."""
     findings: list[Finding] = []
     lossy: set[int] = set()
     numbers: dict[int, list[tuple[int, int]]] = defaultdict(list)
     dropped: list[int] = []  # lines of the notices, in order
+    unused: dict[int, set[int]] = defaultdict(set)  # numbers no event took, by pid
     for line, event in history:
+        if isinstance(event, events.EventsUnpublished):
+            unused[event.pid].update(event.seqs)
         if isinstance(event, events.EventsDropped):
             dropped.append(line)
             lossy.add(event.pid)
@@ -144,8 +148,8 @@ def _loss_rule(history: Sequence[Line]) -> tuple[list[Finding], set[int]]:
     for pid, seen in numbers.items():
         seen.sort()
         for (a, la), (b, lb) in itertools.pairwise(seen):
-            if b - a <= 1:
-                continue
+            if b - a <= 1 or unused[pid].issuperset(range(a + 1, b)):
+                continue  # (a number a killed process took for an event it never published)
             low, high = min(la, lb), max(la, lb)
             first = bisect.bisect_left(dropped, low)
             if first < len(dropped) and dropped[first] <= high:

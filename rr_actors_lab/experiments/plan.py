@@ -86,7 +86,9 @@ MAX_RATE = 1e6  # the most calls per second per client (and the largest `weight`
 PLACEHOLDERS = frozenset({"key", "client", "run_dir", "pid"})  # of request templates: `{key}`
 
 EVENT_TYPES: dict[str, type[Any]] = {  # the events an `after` trigger may name
-    cls.__name__: cls for cls in typing.get_args(events.Event) if cls is not events.EventsDropped
+    cls.__name__: cls
+    for cls in typing.get_args(events.Event)
+    if cls not in (events.EventsDropped, events.EventsUnpublished)
 }
 
 # The types of plan values, with their limits (msgspec checks them; `reading` words the errors).

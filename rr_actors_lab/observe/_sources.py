@@ -152,6 +152,7 @@ def _touched(event: events.Event) -> tuple[str, ...] | None:
             | events.ServerOverloaded()
             | events.QueriesFetched()
             | events.ServerQueriesListed()
+            | events.EventsUnpublished()
         ):
             return ()
         case events.SupervisorGaveUp() | events.EventsDropped():

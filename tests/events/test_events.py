@@ -58,6 +58,7 @@ EXAMPLES: list[events.Event] = [
     events.UnloadCutShort("erm", "start_process", RID),
     events.ServerOverloaded("erm", "start_process", 1000, 1000, 17),
     events.EventsDropped(17),
+    events.EventsUnpublished((4, 5), pid=42),
 ]
 
 KINDS = typing.get_args(events.Event)
@@ -450,6 +451,11 @@ def test_from_dict_names_what_is_wrong(data: Any, named: str) -> None:
             "cm: the callback of FATAL for query 5e6f7a8b returned",
         ),
         (events.EventsDropped(17), "17 events dropped (a subscriber or forwarder fell behind)"),
+        (
+            events.EventsUnpublished((4, 5), pid=42),
+            "2 numbers of process 42 never used: it was killed before it published those "
+            "events (none lost)",
+        ),
     ],
     ids=lambda value: kind(value) if not isinstance(value, str) else "",
 )

@@ -233,11 +233,15 @@ def test_events_a_killed_manager_published_but_could_not_keep_are_counted(
     first_pid = pid_of(sup, erm)
 
     def publish_five_uncut_then_die(_registrar: rr.ResourceRegistrar) -> None:
+        import errno  # noqa: PLC0415
         import gc  # noqa: PLC0415 - runs in the manager process
         import signal  # noqa: PLC0415
 
+        def full(_fd: int, _data: bytes) -> int:
+            raise OSError(errno.ENOSPC, "No space left on device")
+
         [line] = [o for o in gc.get_objects() if type(o).__name__ == "_EventLine"]
-        line.journal._write = lambda _fd, data: len(data)  # as if cut: counted, not kept
+        line.journal._write = full  # a full disk: counted, not kept
         # the forwarder's thread may take the GIL between two publishes: with the control
         # pipe's lock held it cannot send any of the five before the kill
         line.control.lock.acquire()
@@ -275,6 +279,94 @@ def test_the_events_a_killed_manager_published_but_never_sent_arrive_after_its_e
 
     kept = heard.of(events.LoadFailed, registrar=erm)
     assert [f"q{i}" for i in range(20)] == [e.query_id for e in kept]
+    assert {first_pid} == {e.pid for e in kept}
+    assert not heard.of(events.EventsDropped)
+    [exited] = heard.of(events.ChildExited, child=erm)
+    assert heard.events.index(kept[-1]) < heard.events.index(exited)
+
+
+@pytest.mark.usefixtures("process_helpers")
+def test_a_changes_events_a_kill_cut_off_from_their_commit_leave_no_gap_and_no_loss(
+    supervisors: Callable[..., rr.Supervisor], uid: str, tmp_path: Path
+) -> None:
+    # Issue 68 (4 of 129 real `simways` runs unverifiable): a change's events are numbered
+    # when built and wait for their turn's commit; another thread publishes a later one;
+    # the SIGKILL comes before the commit. The change never happened, nor did its events:
+    # their numbers are told unused, not lost, and the history stays verifiable.
+    from rr_actors_lab.experiments import check  # noqa: PLC0415 - the lab reads histories
+
+    sup = _durable(uid, supervisors, tmp_path / "state").start()
+    erm, app = f"erm-{uid}", sup.registrar(f"app-{uid}")
+    first_pid = pid_of(sup, erm)
+
+    def arm(_registrar: rr.ResourceRegistrar) -> None:
+        import gc  # noqa: PLC0415 - runs in the manager process
+        import signal  # noqa: PLC0415
+        import threading  # noqa: PLC0415
+
+        from rr_actors.testing import intercept  # noqa: PLC0415
+
+        [line] = [o for o in gc.get_objects() if type(o).__name__ == "_EventLine"]
+
+        def later() -> None:  # another thread's event, numbered after the held ones
+            line.hub.publish(events.LoadFailed(erm, "cam", "r-later", "q-later", "E", "-"))
+
+        def kill(staged: Any) -> None:  # the turn's events held, its commit not begun
+            if not staged:
+                return
+            line.control.lock.acquire()  # nothing more is sent: the journal keeps it
+            other = threading.Thread(target=later)
+            other.start()
+            other.join(10)  # (a sentinel: its event is in the journal)
+            os.kill(os.getpid(), signal.SIGKILL)
+
+        intercept(_registrar, "turn_commit", before=kill)
+
+    heard = Heard()
+    with sup.subscribe(heard) as subscription:
+        held = app.call(erm, "cam", 1)
+        sup.run_in(erm, arm)
+        with pytest.raises(rr.RegistrarUnavailableError):
+            app.call(erm, "cam", 1)  # a hit: its ConsumerAdded waits for the turn's commit
+        _after_restart(sup, erm, heard, subscription)
+
+    [later] = heard.of(events.LoadFailed, registrar=erm, query_id="q-later")
+    assert first_pid == later.pid
+    assert [] == heard.of(events.EventsDropped)
+    [unused] = heard.of(events.EventsUnpublished, pid=first_pid)
+    assert unused.seqs  # (a gap below the later event)
+    assert max(unused.seqs) < later.seq
+    added = heard.of(events.ConsumerAdded, registrar=erm)
+    assert [held.id] == [e.query_id for e in added]  # the hit's never committed
+    history = list(enumerate(heard.events, 1))
+    assert [] == [f for f in check.check(history).findings if f.rule == "events"]
+
+
+@pytest.mark.usefixtures("process_helpers")
+def test_an_event_published_after_a_later_one_was_sent_arrives_though_it_never_was(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    erm = f"erm-{uid}"
+    sup = supervisors([rr.ManagerSpec(erm, _serve, isolation="process")]).start()
+    first_pid = pid_of(sup, erm)
+
+    def publish_out_of_order_then_die(_registrar: rr.ResourceRegistrar) -> None:
+        import gc  # noqa: PLC0415 - runs in the manager process
+        import signal  # noqa: PLC0415
+
+        [line] = [o for o in gc.get_objects() if type(o).__name__ == "_EventLine"]
+        first = events.LoadFailed(erm, "cam", "r1", "q-first", "E", "-")  # (numbered)
+        second = events.LoadFailed(erm, "cam", "r2", "q-second", "E", "-")
+        line.hub.publish(second)  # (another thread's, published first)
+        assert line.forwarder.wait_sent(timeout=10)  # sent: the parent has its number
+        line.control.lock.acquire()  # nothing more is sent
+        line.hub.publish(first)  # kept in the journal, never sent
+        os.kill(os.getpid(), signal.SIGKILL)
+
+    heard = heard_across_a_kill(sup, erm, publish_out_of_order_then_die)
+
+    kept = heard.of(events.LoadFailed, registrar=erm)
+    assert ["q-second", "q-first"] == [e.query_id for e in kept]
     assert {first_pid} == {e.pid for e in kept}
     assert not heard.of(events.EventsDropped)
     [exited] = heard.of(events.ChildExited, child=erm)
