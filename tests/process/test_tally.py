@@ -12,7 +12,6 @@ from typing import Any
 import pytest
 
 from rr_actors import events
-from rr_actors._catalog import Catalog
 from rr_actors._process import tally as tally_module
 from rr_actors._process.tally import Journal, Received, Tally
 from tests.support.durable_pair import new_store
