@@ -13,6 +13,9 @@
                                ◄── Progress(n, ...) (its mailbox's) ────
                                (hung: SIGKILL ─────────────────────────►)
                                (late, excused: on_overloaded(pid, Late))
+   stop ── Stop(timeout) ──────────────────────────────────────────────►  registrar.stop()
+        ◄── (wait_exit=False) once read ◄── Stopped(code) ───────────────  then its exit
+   reap: its exit seen, or a kill once the stop's `timeout` ran out
                                exit seen ──► finish: on_exit(ManagerExit) ──► the supervisor
 ```
 
