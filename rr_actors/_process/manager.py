@@ -14,8 +14,7 @@
                                (hung: SIGKILL ─────────────────────────►)
                                (late, excused: on_overloaded(pid, Late))
    stop ── Stop(timeout) ──────────────────────────────────────────────►  registrar.stop()
-        ◄── (wait_exit=False) once read ◄── Stopped(code) ───────────────  then its exit
-   reap: its exit seen, or a kill once the stop's `timeout` ran out
+        ◄── (wait_exit=False; then `reap`) ◄── Stopped(code) ────────────  then its exit
                                exit seen ──► finish: on_exit(ManagerExit) ──► the supervisor
 ```
 
@@ -190,9 +189,9 @@ class ManagerProcess:
         self._stopping = False
         self.exited = runtime.Event()
         self.exit: ManagerExit | None = None
-        self.reported = runtime.Event()  # its `Stopped` came, or its exit
-        self._reported: ManagerExit | None = None  # what its `Stopped` said
-        self._exit_by = 0.0  # (monotonic) the kill after a stop that did not wait for the exit
+        self.reported = runtime.Event()  # its `Stopped` came (`_reported` says it), or its exit
+        self._reported: ManagerExit | None = None
+        self._exit_by = 0.0  # (monotonic) `reap` kills it then
         self._exit_watch = PLATFORM.watch_exit(self.pid)
         self.forwarding = False  # as last told (`forward_events`); `start` sets it
         self._beating = self._beat is not None  # pinged and judged (not once killed)
@@ -337,11 +336,8 @@ class ManagerProcess:
         self, timeout: float, *, restarting: bool = False, wait_exit: bool = True
     ) -> ManagerExit:
         """Ask the manager to stop its registrar and exit; kill it after `timeout` seconds
-        (`restarting`: its peers see it unavailable for now, not stopped for good).
-
-        `wait_exit=False`: return once it reports its registrar stopped (`Stopped`), before its
-        process has exited; `reap` then waits for that exit, within the same `timeout`.
-        """
+        (`restarting`: its peers see it unavailable for now, not stopped for good;
+        `wait_exit=False`: once it reports its registrar stopped, its exit left to `reap`)."""
         self._stopping = True
         self._exit_by = runtime.monotonic() + timeout
         self._send(Stop(timeout, restarting))
@@ -356,9 +352,8 @@ class ManagerProcess:
         return ManagerExit(f"killed: no clean stop within {timeout:g} s", normal=False)
 
     def reap(self) -> str | None:
-        """Wait for the exit of a manager stopped with `wait_exit=False`, until its stop's
-        `timeout` ran out since it began, then kill it (OTP's `brutal_kill` after the
-        shutdown). Why it was killed (`None`: it exited)."""
+        """Wait for its exit after `stop(wait_exit=False)` until that stop's `timeout` ran out,
+        then kill it (OTP's `brutal_kill`); why it was killed (`None`: it exited)."""
         if self.exited.wait(max(self._exit_by - runtime.monotonic(), 0.0)):
             return None
         logger.error("manager %s stopped its registrar but did not exit: killing it", self.name)
@@ -517,7 +512,7 @@ class ManagerProcess:
             result = describe(exitcode)
         self.exit = result
         self.exited.set()
-        self.reported.set()  # (its exit says it all, `Stopped` or not)
+        self.reported.set()
         for waiting in list(self._syncs.values()):  # nothing more will come
             waiting.set()
         try:

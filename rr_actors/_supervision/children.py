@@ -324,14 +324,8 @@ class ProcessManager:
     def stop(
         self, timeout: float | None, *, restarting: bool = False, wait_exit: bool = True
     ) -> ManagerExit:
-        """`wait_exit=False`: return once its registrar reports stopped; `reap` its exit."""
         limit = self.handle_shutdown if timeout is None else timeout
         return self.handle.stop(limit, restarting=restarting, wait_exit=wait_exit)
-
-    def reap(self) -> str | None:
-        """Wait for its exit after `stop(wait_exit=False)`, within its stop's bound; why it
-        was killed then (`None`: it exited)."""
-        return self.handle.reap()
 
 
 class Level(Protocol):
