@@ -354,7 +354,7 @@ class ManagerProcess:
     def reap(self) -> str | None:
         """Wait for its exit after `stop(wait_exit=False)` until that stop's `timeout` ran out,
         then kill it (OTP's `brutal_kill`); why it was killed (`None`: it exited)."""
-        if self.exited.wait(max(self._exit_by - runtime.monotonic(), 0.0)):
+        if self.exited.is_set() or self.exited.wait(max(self._exit_by - runtime.monotonic(), 0)):
             return None
         logger.error("manager %s stopped its registrar but did not exit: killing it", self.name)
         self.kill()
