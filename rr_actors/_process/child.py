@@ -7,8 +7,9 @@ for it if it dies: rule 19), starts the registrar (which restores its catalog), 
 `setup(registrar)`, settles the in-doubt entries it was offered, serves, reports `Ready`
 and answers control requests. It exits at EOF on the control pipe (the supervisor's
 process is gone: `PARENT_GONE_EXIT`), with `STOPPED_EXIT` when its registrar was stopped
-cleanly (by `Stop`, or by code in the manager: a `transient` manager is then not
-restarted), with `ACTOR_DIED_EXIT` when the registrar actor died.
+cleanly (by `Stop`, reported first with `Stopped`; or by code in the manager: a
+`transient` manager is then not restarted), with `ACTOR_DIED_EXIT` when the registrar
+actor died.
 
 The requests and answers, drawn: `control.py`; the control loop dispatches on their type
 (`_HANDLERS`). `Supervisor.run_in` goes over the system's transport, not this pipe.
@@ -59,6 +60,7 @@ from rr_actors._process.control import (
     Ready,
     Start,
     Stop,
+    Stopped,
     SyncEvents,
     Warm,
     WarmUp,
@@ -475,6 +477,7 @@ class _ControlLoop:
             logger.exception("manager %s did not stop cleanly", registrar.name)
             code = 1
         self.line.flush(timeout=1.0)  # its last events (the unloads of its stop) go too
+        self.control.send(Stopped(code))  # (its supervisor may go on: only the exit is left)
         _exit(code, self.attached)
 
 

@@ -15,7 +15,8 @@
                                           ◄──────── Events(batch)   (while on)
    SyncEvents(token, timeout) ──────────────────────────────────►  send what is buffered
                                           ◄──────── EventsSynced(token)
-   Stop(timeout, restarting) ───────────────────────────────────►  registrar.stop(); exit
+   Stop(timeout, restarting) ───────────────────────────────────►  registrar.stop()
+                                          ◄──────── Stopped(code)   then it exits (code)
    PeerStarted(name) ───────────────────────────────────────────►  its registrars hear it
                                           ◄──────── Announce(name)  (a pool: one of its
                                                      managers restarted, tell the others)
@@ -68,6 +69,7 @@ __all__ = [
     "Ready",
     "Start",
     "Stop",
+    "Stopped",
     "SyncEvents",
     "Warm",
     "WarmUp",
@@ -212,6 +214,14 @@ class PeersStopped:
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
+class Stopped:
+    """Its registrar stopped (`Stop`): its catalog saved, its stop's events sent; what
+    its dependents and providers need is done, and it exits with `code` next."""
+
+    code: int
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
 class Announce:
     """From a pool's process: its registrar `name` (re)started, and this process heard
     it; the parent tells the rest of the system (its `announce_started`), so that the
@@ -225,7 +235,7 @@ class Announce:
 FromParent = (
     WarmUp | Start | Ping | Probe | Forward | SyncEvents | Stop | PeerStarted | PeersStopped
 )
-FromChild = Warm | Ready | Failed | Pong | Progress | Events | EventsSynced | Announce
+FromChild = Warm | Ready | Failed | Pong | Progress | Events | EventsSynced | Announce | Stopped
 
 
 # -- how manager processes start ---------------------------------------------------------------

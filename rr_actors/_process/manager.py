@@ -13,6 +13,8 @@
                                ◄── Progress(n, ...) (its mailbox's) ────
                                (hung: SIGKILL ─────────────────────────►)
                                (late, excused: on_overloaded(pid, Late))
+   stop ── Stop(timeout) ──────────────────────────────────────────────►  registrar.stop()
+        ◄── (wait_exit=False; then `reap`) ◄── Stopped(code) ────────────  then its exit
                                exit seen ──► finish: on_exit(ManagerExit) ──► the supervisor
 ```
 
@@ -58,6 +60,7 @@ from rr_actors._process.control import (
     Progress,
     Ready,
     Stop,
+    Stopped,
     SyncEvents,
     fork,
     mp_context,
@@ -186,6 +189,9 @@ class ManagerProcess:
         self._stopping = False
         self.exited = runtime.Event()
         self.exit: ManagerExit | None = None
+        self.reported = runtime.Event()  # its `Stopped` came (`_reported` says it), or its exit
+        self._reported: ManagerExit | None = None
+        self._exit_by = 0.0  # (monotonic) `reap` kills it then
         self._exit_watch = PLATFORM.watch_exit(self.pid)
         self.forwarding = False  # as last told (`forward_events`); `start` sets it
         self._beating = self._beat is not None  # pinged and judged (not once killed)
@@ -339,18 +345,34 @@ class ManagerProcess:
         as OTP's shutdown does, and a big tree's pings leave the watcher to the stops."""
         self._stopping = True  # (as `stop`: no more pings, no more judgements)
 
-    def stop(self, timeout: float, *, restarting: bool = False) -> ManagerExit:
+    def stop(
+        self, timeout: float, *, restarting: bool = False, wait_exit: bool = True
+    ) -> ManagerExit:
         """Ask the manager to stop its registrar and exit; kill it after `timeout` seconds
-        (`restarting`: its peers see it unavailable for now, not stopped for good)."""
+        (`restarting`: its peers see it unavailable for now, not stopped for good;
+        `wait_exit=False`: once it reports its registrar stopped, its exit left to `reap`)."""
         self._stopping = True
+        self._exit_by = runtime.monotonic() + timeout
         self._send(Stop(timeout, restarting))
-        if self.exited.wait(timeout) and self.exit is not None:
-            if self.exit.normal:
-                return ManagerExit("shutdown", normal=True, clean=self.exit.clean)
-            return self.exit
+        if (self.exited if wait_exit else self.reported).wait(timeout):
+            ended = self.exit if self.exited.is_set() else self._reported
+            if ended is not None:
+                if ended.normal:
+                    return ManagerExit("shutdown", normal=True, clean=ended.clean)
+                return ended
         self.kill()
         self.exited.wait(10.0)
         return ManagerExit(f"killed: no clean stop within {timeout:g} s", normal=False)
+
+    def reap(self) -> str | None:
+        """Wait for its exit after `stop(wait_exit=False)` until that stop's `timeout` ran out,
+        then kill it (OTP's `brutal_kill`); why it was killed (`None`: it exited)."""
+        if self.exited.is_set() or self.exited.wait(max(self._exit_by - runtime.monotonic(), 0)):
+            return None
+        logger.error("manager %s stopped its registrar but did not exit: killing it", self.name)
+        self.kill()
+        self.exited.wait(10.0)
+        return "killed: its registrar stopped, but its process did not exit within its shutdown"
 
     def kill(self) -> None:
         with contextlib.suppress(OSError, ValueError):
@@ -454,6 +476,10 @@ class ManagerProcess:
         if waiting is not None:
             waiting.set()
 
+    def _stopped(self, message: Stopped, _now: float) -> None:
+        self._reported = describe(message.code)
+        self.reported.set()
+
     def _pong(self, message: Pong, now: float) -> tuple[float, str] | None:
         if self._beat is None or not self._beat.answered(message.number, now):
             return None
@@ -502,6 +528,7 @@ class ManagerProcess:
             result = describe(exitcode)
         self.exit = result
         self.exited.set()
+        self.reported.set()
         for waiting in list(self._syncs.values()):  # nothing more will come
             waiting.set()
         try:
@@ -523,6 +550,7 @@ _HANDLERS: dict[type[Any], Callable[[ManagerProcess, Any, float], tuple[float, s
     Announce: ManagerProcess._announce,
     Pong: ManagerProcess._pong,
     Progress: ManagerProcess._progress,
+    Stopped: ManagerProcess._stopped,
 }
 
 

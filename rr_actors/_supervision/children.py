@@ -325,9 +325,11 @@ class ProcessManager:
         """Registrars `names` were stopped for good (before its own stop, the tree's)."""
         self.handle.tell_stopped(names)
 
-    def stop(self, timeout: float | None, *, restarting: bool = False) -> ManagerExit:
+    def stop(
+        self, timeout: float | None, *, restarting: bool = False, wait_exit: bool = True
+    ) -> ManagerExit:
         limit = self.handle_shutdown if timeout is None else timeout
-        return self.handle.stop(limit, restarting=restarting)
+        return self.handle.stop(limit, restarting=restarting, wait_exit=wait_exit)
 
 
 class Level(Protocol):

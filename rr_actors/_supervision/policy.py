@@ -947,18 +947,28 @@ class Stopping:
     def __init__(self, record: Record) -> None:
         self.record = record
         self.to_restart = False  # the parent stops this tree to start it again
+        self.exiting: list[tuple[Child, Running]] | None = None  # the tree's stop: to reap
 
     def stop_all(
         self, deadline: float | None = None, *, restarting: bool = False, parallel: bool = False
     ) -> None:
         """Stop every child: in reverse start order, or (`parallel`) each once the children
-        that depend on it stopped (`stop_in_parallel`)."""
-        self.to_restart = restarting
-        if parallel:
-            self.stop_in_parallel(deadline, restarting=restarting)
-            return
-        for child in reversed(self.record.children):
-            self.stop_child(child, final=True, deadline=deadline, restarting=restarting)
+        that depend on it stopped (`stop_in_parallel`). A process manager's stop ends when
+        its registrar reports stopped (what the next stop needs); its exit overlaps the
+        next stops, and is reaped at the end."""
+        self.to_restart, self.exiting = restarting, []
+        try:
+            if parallel:
+                self.stop_in_parallel(deadline, restarting=restarting)
+                return
+            for child in reversed(self.record.children):
+                self.stop_child(child, final=True, deadline=deadline, restarting=restarting)
+        finally:
+            exiting, self.exiting = self.exiting, None
+            for child, running in exiting:  # each exit, or a kill at its stop's bound
+                killed = running.handle.reap() if isinstance(running, ProcessManager) else None
+                if killed is not None:
+                    child.last_exit = killed
 
     def stop_in_parallel(self, deadline: float | None, *, restarting: bool) -> None:
         """Stop the children at once, each once those that depend on it stopped: a child
@@ -966,7 +976,8 @@ class Stopping:
         (asked of each running manager; unknown: on every child started before it, OTP's
         order); a cycle is broken in reverse start order. The stops run on at most
         `STOP_WORKERS` threads, their bookkeeping on this supervisor's thread."""
-        children = self.record.children
+        children, exiting = self.record.children, self.exiting
+        assert exiting is not None  # (its exits are reaped by `stop_all`)
         for child in children:
             if child.running is None:
                 self.stop_child(child, final=True, deadline=deadline, restarting=restarting)
@@ -985,13 +996,14 @@ class Stopping:
             begun = [(i, *self._begin_stop(children[i], deadline)) for i in start]
             for i, running, limit, pid in begun:  # (all marked stopping, then stopped)
                 del waiting[i]
-                _spawn(out, (i, pid), _stop, running, limit, restarting)
+                _spawn(out, (i, pid, running), _stop, running, limit, restarting, True)
                 under_way += 1
-            (i, pid), result = out.get()
+            (i, pid, running), result = out.get()
             under_way -= 1
             if not isinstance(result, ManagerExit):
                 result = ManagerExit(f"stop failed: {result}", normal=False)
             self._end_stop(children[i], pid, result, final=True)
+            exiting.append((children[i], running))
             for j in sorted(needs[i], reverse=True):
                 waiting[j] -= 1
                 if waiting[j] == 0:
@@ -1027,7 +1039,11 @@ class Stopping:
         deadline: float | None = None,
         restarting: bool = False,
     ) -> None:
-        """Stop a running child (`final`: not started again; `restarting`: it will be)."""
+        """Stop a running child (`final`: not started again; `restarting`: it will be).
+
+        In the whole tree's stop its exit is reaped at the end (`stop_all`). A child
+        stopped alone (a restart's group, a give-up, a rollback) waits for its exit: a
+        new incarnation must not overlap the old process, which holds its backup."""
         running = child.running
         if running is None:
             if final:
@@ -1038,8 +1054,11 @@ class Stopping:
                 self.forget(child, dead=dead)
             return
         running, limit, pid = self._begin_stop(child, deadline)
-        result = running.stop(limit, restarting=restarting)
+        exiting = self.exiting
+        result = _stop(running, limit, restarting, False, exiting is not None)
         self._end_stop(child, pid, result, final=final)
+        if exiting is not None:
+            exiting.append((child, running))
 
     def _begin_stop(
         self, child: Child, deadline: float | None
@@ -1157,9 +1176,14 @@ def _spawn(out: runtime.SimpleQueue[tuple[Any, Any]], key: Any, fn: Any, *args: 
     runtime.Thread(target=run, name="rr-stop", daemon=True).start()
 
 
-def _stop(running: Running, limit: float | None, again: bool) -> ManagerExit:
+def _stop(
+    running: Running, limit: float | None, again: bool, parallel: bool, whole: bool = True
+) -> ManagerExit:
+    """`whole` (the tree's stop): a process manager's until its registrar reports stopped."""
     if isinstance(running, NestedSupervisor):
-        return running.stop(limit, restarting=again, parallel=True)
+        return running.stop(limit, restarting=again, parallel=parallel)
+    if isinstance(running, ProcessManager) and whole:
+        return running.stop(limit, restarting=again, wait_exit=False)
     return running.stop(limit, restarting=again)
 
 

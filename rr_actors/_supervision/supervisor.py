@@ -282,7 +282,11 @@ class Supervisor(AsyncSupervision):
         """Stop the registrars from `registrar()`, then every child in reverse start order.
 
         Each child gets its spec's `shutdown` seconds to stop cleanly before it is killed
-        (`ManagerSpec.shutdown`). Idempotent.
+        (`ManagerSpec.shutdown`). A process manager's stop is done once its registrar
+        reports stopped (its catalog saved, what it held released): the next child's
+        stop begins then, while its process exits; every exit is awaited before `stop()`
+        returns, and a process not gone within its `shutdown` (counted from its stop's
+        start) is killed, as OTP's `brutal_kill` after the shutdown. Idempotent.
 
         Args:
             timeout: an overall bound in seconds (`None`: every child gets its full

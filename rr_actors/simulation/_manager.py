@@ -206,6 +206,9 @@ class SimulatedManager(ManagerProcess):
         self._stopping = False
         self.exited = runtime.Event()
         self.exit: ManagerExit | None = None
+        self.reported = runtime.Event()  # (its exit: a simulated child sends no `Stopped`)
+        self._reported = None
+        self._exit_by = 0.0
 
     def _send(self, message: FromParent) -> bool:
         if not self._process.alive:
@@ -278,6 +281,7 @@ class SimulatedManager(ManagerProcess):
             result = describe(exitcode)
         self.exit = result
         self.exited.set()
+        self.reported.set()
         for waiting in list(self._syncs.values()):
             waiting.set()
         try:

@@ -43,6 +43,7 @@ import logging
 import multiprocessing.connection
 import multiprocessing.context
 import os
+import select
 import signal
 import sqlite3
 import subprocess
@@ -1437,6 +1438,128 @@ class TestARestartDoesNotFeelTheTree:
                 node.children = list(node.children)
 
         assert {2: (0, 0), 6: (0, 0)} == counts  # before: 9-12 walks and 2 of the leaves
+
+
+class _SlowExitStdout:
+    """A manager process's stdout whose flush at its exit is slow, as a pipe nobody reads
+    would be: once `pid_file` holds a pid (the test wrote it, just before the stop), the
+    flush waits up to `wait` seconds for that process to exit and logs whether it had
+    (`gone` or `alive`) to `log`; `hang`: it blocks for good instead."""
+
+    def __init__(self, pid_file: Path, log: Path, *, wait: float = 0.0, hang: bool = False):
+        self.pid_file, self.log, self.wait, self.hang = pid_file, log, wait, hang
+
+    def write(self, text: str) -> int:
+        return len(text)
+
+    def flush(self) -> None:
+        if not self.pid_file.exists():
+            return  # not the stop yet
+        if self.hang:
+            threading.Event().wait()
+        try:
+            fd = os.pidfd_open(int(self.pid_file.read_text()))
+        except ProcessLookupError:
+            gone = True  # (reaped already)
+        else:
+            gone = bool(select.select([fd], [], [], self.wait)[0])
+        with self.log.open("a") as out:
+            out.write("gone\n" if gone else "alive\n")
+
+
+def _exited(fd: int) -> bool:
+    return bool(select.select([fd], [], [], 0)[0])
+
+
+@pytest.mark.skipif(not hasattr(os, "pidfd_open"), reason="Linux pidfds")
+class TestATreesStopReapsTheExitsAtItsEnd:
+    """A tree's stop goes on to the next child once a manager process reports its registrar
+    stopped (its catalog saved, its consumers released), not once its process has exited
+    (threads and memory torn down: about 8 ms a manager, issue 69 goal 3); the exits are
+    reaped at the end, each within its `shutdown`, as OTP's `brutal_kill` after it.
+    Dependents still stop before their providers."""
+
+    @pytest.mark.parametrize("parallel", [False, True], ids=["in-order", "parallel"])
+    def test_the_stop_goes_on_before_a_child_exited_and_no_child_outlives_it(
+        self, tmp_path: Path, uid: str, parallel: bool
+    ) -> None:
+        """The consumer's exit waits for its provider's (forced: its stdout's flush); its
+        stop released what it held at the provider first, and the provider's stop began
+        after. Before, the tree waited for that exit, which never came: it killed the
+        consumer after its `shutdown`."""
+        provider, consumer = f"api-{uid}", f"edge-{uid}"
+        armed, log = tmp_path / "provider.pid", tmp_path / "log"
+
+        def provider_setup(registrar: rr.ResourceRegistrar) -> None:
+            def unload(_request: Any, _response: Any) -> None:
+                with log.open("a") as out:
+                    out.write("released\n")
+
+            registrar.register_server("leaf", load=lambda r: r, unload=unload)
+
+        def consumer_setup(registrar: rr.ResourceRegistrar) -> None:
+            registrar.call(provider, "leaf", "x", timeout=30.0)  # released at its stop
+            sys.stdout = _SlowExitStdout(armed, log, wait=60.0)
+
+        sup = rr.Supervisor(
+            [
+                process(provider, provider_setup),
+                process(consumer, consumer_setup, shutdown=5.0),
+            ]
+        )
+        sup.start()
+        try:
+            fds = {name: os.pidfd_open(pid_of(sup, name)) for name in (provider, consumer)}
+            armed.write_text(str(pid_of(sup, provider)))
+        finally:
+            sup.stop(parallel=parallel)
+
+        assert [] == [name for name, fd in fds.items() if not _exited(fd)]
+        assert ["released", "gone"] == log.read_text().splitlines()
+        assert "shutdown" == sup.child(consumer).last_exit  # before: "killed: ..."
+        for fd in fds.values():
+            os.close(fd)
+
+    def test_a_child_that_reports_stopped_then_hangs_in_its_exit_is_killed_after_its_shutdown(
+        self, tmp_path: Path, uid: str
+    ) -> None:
+        """The consumer hangs in its exit for good; the provider's stop goes on meanwhile
+        (it sees the consumer still alive as it exits), and the consumer is killed once
+        its `shutdown` ran out, before `stop()` returns. Before, the tree killed it
+        first, then stopped the provider."""
+        provider, consumer = f"api-{uid}", f"edge-{uid}"
+        armed, log = tmp_path / "consumer.pid", tmp_path / "log"
+
+        def provider_setup(registrar: rr.ResourceRegistrar) -> None:
+            echo_setup(registrar)
+            sys.stdout = _SlowExitStdout(armed, log)  # logs whether the consumer lives
+
+        def consumer_setup(registrar: rr.ResourceRegistrar) -> None:
+            registrar.call(provider, "echo", "x", timeout=30.0)
+            sys.stdout = _SlowExitStdout(armed, log, hang=True)
+
+        shutdown = 3.0
+        sup = rr.Supervisor(
+            [
+                process(provider, provider_setup),
+                process(consumer, consumer_setup, shutdown=shutdown),
+            ]
+        )
+        sup.start()
+        try:
+            fds = {name: os.pidfd_open(pid_of(sup, name)) for name in (provider, consumer)}
+            armed.write_text(str(pid_of(sup, consumer)))
+            started = time.monotonic()
+        finally:
+            sup.stop()
+        took = time.monotonic() - started
+
+        assert [] == [name for name, fd in fds.items() if not _exited(fd)]
+        assert ["alive"] == log.read_text().splitlines()  # before: "gone"
+        assert (sup.child(consumer).last_exit or "").startswith("killed"), sup.child(consumer)
+        assert shutdown - 0.5 < took < shutdown + 30.0
+        for fd in fds.values():
+            os.close(fd)
 
 
 class TestShutdownThenKill:
