@@ -7,6 +7,7 @@ import multiprocessing
 import os
 import pathlib
 import pickle
+import sys
 import textwrap
 import typing
 
@@ -163,13 +164,6 @@ def test_start_forkserver_returns_once_the_server_has_imported_its_preload(
     script = READY_FIRST.format(marker=str(marker))
     path = os.pathsep.join([str(tmp_path), *sys.path])  # (the server's imports: its env's)
 
-    result = subprocess.run(
-        [sys.executable, "-c", script],
-        capture_output=True,
-        text=True,
-        timeout=180,
-        check=False,
-        env={**os.environ, "PYTHONPATH": path},
-    )
+    result = python("-c", script, timeout=180, env={**os.environ, "PYTHONPATH": path})
 
     assert (0, "imported\n") == (result.returncode, result.stdout), result.stderr
