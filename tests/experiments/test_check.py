@@ -127,8 +127,7 @@ def test_an_event_built_before_its_registrars_stop_and_sent_after_it_is_of_that_
     h = clean()
     stop = dataclasses.replace(h[-1], seq=14)
     listed = events.ServerQueriesListed("erm", "cam", (), pid=P, seq=13)
-    verdict = check.check(numbered([*h[:-1], stop, listed]))
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    _holds([*h[:-1], stop, listed])
     later = dataclasses.replace(listed, seq=14)
     assert {len(h) + 1} == _found([*h, later], "restore-first")
 
@@ -286,8 +285,7 @@ def program_killed_while_releasing(
 def test_a_release_its_consumer_committed_before_a_kill_of_both_lost_from_a_restore_holds() -> None:
     # (issue 68, finding 1: the release reached erm, which committed it; its events and
     # cm's answer died with the program; cm's restart released it again)
-    verdict = check.check(numbered(program_killed_while_releasing()))
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    _holds(program_killed_while_releasing())
     # a consumer that was not releasing it, or lived on after the restore, was owed the id
     assert {3, 9} == _found(program_killed_while_releasing("loaded"), "kept")
     assert {3, 9} == _found(program_killed_while_releasing(seen_after=True), "kept")
@@ -318,8 +316,7 @@ def with_paths() -> list[events.Event]:
 
 
 def test_a_history_with_the_consumer_side_and_a_dependency_path_holds() -> None:
-    verdict = check.check(numbered(with_paths()))
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    _holds(with_paths())
 
 
 def _found(history: list[events.Event], rule: str) -> set[int]:
@@ -328,6 +325,16 @@ def _found(history: list[events.Event], rule: str) -> set[int]:
     found = [f for f in verdict.findings if f.rule == rule and f.kind == "violation"]
     assert found, verdict.findings
     return set(found[0].lines)
+
+
+def _holds(history: list[events.Event]) -> None:
+    verdict = check.check(numbered(history))
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+
+
+def _of_rule(history: list[events.Event], rule: str) -> list[check.Finding]:
+    """The findings of `rule` in the verdict on `history`."""
+    return [f for f in check.check(numbered(history)).findings if f.rule == rule]
 
 
 def test_a_status_that_skips_a_hop_of_its_path_is_found() -> None:
@@ -382,10 +389,6 @@ def _with_callbacks(*calls: tuple[str, str, int, int, int, int]) -> list[events.
     ]
 
 
-def _order_findings(history: list[events.Event]) -> list[check.Finding]:
-    return [f for f in check.check(numbered(history)).findings if f.rule == "status-order"]
-
-
 def test_each_id_s_callbacks_one_at_a_time_in_arrival_order_hold() -> None:
     one_at_a_time = _with_callbacks(
         (Q1, "s1", 1, 10, 20, 0),
@@ -393,13 +396,12 @@ def test_each_id_s_callbacks_one_at_a_time_in_arrival_order_hold() -> None:
         (Q1, "s2", 3, 21, 30, 0),
         (Q2, "s2", 4, 61, 70, 0),
     )
-    verdict = check.check(numbered(one_at_a_time))
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    _holds(one_at_a_time)
 
 
 def test_a_callback_that_began_while_an_earlier_one_of_its_id_ran_is_found() -> None:
     h = _with_callbacks((Q1, "s1", 1, 10, 200, 0), (Q1, "s2", 2, 60, 80, 0))
-    found = _order_findings(h)
+    found = _of_rule(h, "status-order")
     assert [{11, 12}] == [set(f.lines) for f in found]
     assert "began while it ran" in found[0].message
     assert "violated" == check.check(numbered(h)).verdict
@@ -407,7 +409,7 @@ def test_a_callback_that_began_while_an_earlier_one_of_its_id_ran_is_found() -> 
 
 def test_a_callback_that_began_before_one_of_its_id_that_arrived_first_is_found() -> None:
     h = _with_callbacks((Q1, "s2", 2, 10, 20, 0), (Q1, "s1", 1, 30, 40, 0))
-    found = _order_findings(h)
+    found = _of_rule(h, "status-order")
     assert [{11, 12}] == [set(f.lines) for f in found]
     assert "began before it began" in found[0].message
 
@@ -419,23 +421,23 @@ def test_every_callback_that_began_beside_a_hung_one_of_its_id_is_found() -> Non
         (Q1, "s1", 3, 81, 90, 0),  # (after the one before it, but beside the hung one)
         (Q1, "s2", 4, 901, 910, 0),
     )
-    assert [{11, 12}, {11, 13}] == [set(f.lines) for f in _order_findings(h)]
+    assert [{11, 12}, {11, 13}] == [set(f.lines) for f in _of_rule(h, "status-order")]
 
 
 def test_a_status_that_reached_its_id_after_one_its_provider_sent_later_is_found() -> None:
     h = _with_callbacks((Q1, "s2", 1, 10, 20, 0), (Q1, "s1", 2, 30, 40, 0))  # (one at a time)
-    found = _order_findings(h)
+    found = _of_rule(h, "status-order")
     assert [{5, 8, 11, 12}] == [set(f.lines) for f in found]
     assert "after status s2 (WARNING), which erm sent after it" in found[0].message
     in_order = _with_callbacks((Q1, "s1", 1, 10, 20, 0), (Q1, "s2", 2, 30, 40, 0))
-    assert [] == _order_findings(in_order)
+    assert [] == _of_rule(in_order, "status-order")
 
 
 def test_a_callback_that_waited_for_a_registrar_lets_its_id_s_next_begin() -> None:
     h = _with_callbacks((Q1, "s1", 1, 10, 200, 50), (Q1, "s2", 2, 60, 80, 0))
-    assert [] == _order_findings(h)
+    assert [] == _of_rule(h, "status-order")
     early = _with_callbacks((Q1, "s1", 1, 10, 200, 50), (Q1, "s2", 2, 40, 80, 0))
-    assert [{11, 12}] == [set(f.lines) for f in _order_findings(early)]
+    assert [{11, 12}] == [set(f.lines) for f in _of_rule(early, "status-order")]
 
 
 def test_a_call_answered_twice_is_found_unless_it_was_a_retry() -> None:
@@ -492,15 +494,13 @@ def test_a_call_its_provider_added_with_no_outcome_before_its_callers_stop_is_fo
 def test_a_call_withdrawn_or_failed_at_its_caller_has_an_outcome(
     outcome: Callable[[], events.Event],
 ) -> None:
-    findings = check.check(numbered(_asked_again(outcome()))).findings
-    assert [] == [f for f in findings if f.rule == "outcome"]
+    assert [] == _of_rule(_asked_again(outcome()), "outcome")
 
 
 def test_a_call_whose_caller_was_killed_before_its_stop_is_not_owed_an_outcome() -> None:
     h = _asked_again()
     killed = [*h[:-1], events.ChildExited("sup", "app", A, "killed by SIGKILL")]
-    findings = check.check(numbered(killed)).findings
-    assert [] == [f for f in findings if f.rule == "outcome"]
+    assert [] == _of_rule(killed, "outcome")
 
 
 @pytest.mark.parametrize(
@@ -526,8 +526,7 @@ def test_a_clean_stop_its_supervisor_reported_as_failed_is_found() -> None:
     exited = events.ChildExited("sup", "erm", P, failed, stopped=True)
     assert {len(h) + 1} == _found([*h, exited], "life-end")
     elsewhere = events.ChildExited("sup", "erm", P + 1, failed, stopped=True)  # (not clean)
-    findings = check.check(numbered([*h, elsewhere])).findings
-    assert [] == [f for f in findings if f.rule == "life-end"]
+    assert [] == _of_rule([*h, elsewhere], "life-end")
 
 
 @pytest.mark.parametrize(
@@ -544,8 +543,7 @@ def test_a_clean_stop_its_supervisor_reported_as_failed_is_found() -> None:
 )
 def test_a_life_ended_by_a_fault_a_stop_or_its_supervisor_holds(reason: str, stopped: bool) -> None:
     exited = events.ChildExited("sup", "erm", P, reason, stopped=stopped)
-    findings = check.check(numbered([*clean(), exited])).findings
-    assert [] == [f for f in findings if f.rule == "life-end"]
+    assert [] == _of_rule([*clean(), exited], "life-end")
 
 
 # -- a real history, and rr-actors check -------------------------------------------------------
@@ -775,7 +773,7 @@ def test_a_listing_that_leaves_out_an_id_its_restore_listed_is_a_fetch_violation
     ]
     h = [dataclasses.replace(e, hlc=1_000 + 10 * i, host="h") for i, e in enumerate(h)]
 
-    found = [f for f in check.check(numbered(h)).findings if f.rule == "fetch"]
+    found = _of_rule(h, "fetch")
 
     assert [(1, 2)] == [f.lines for f in found]
     assert "did not list query q1111111" in found[0].message
@@ -861,7 +859,7 @@ def test_a_row_restored_in_doubt_by_a_life_killed_before_it_went_on_is_not_judge
         "erm", ((RID, "cam", "unloading", "42", ""),), (), (), pid=P + 2
     )
     history = _restored_in_doubt("unloading", killed)
-    assert [] == [f for f in check.check(numbered(history)).findings if f.rule == "doubt-reported"]
+    assert [] == _of_rule(history, "doubt-reported")
 
 
 def _released_then_answered(*between: events.Event) -> list[events.Event]:
@@ -884,8 +882,7 @@ def test_an_answer_its_consumer_records_after_its_providers_reconcile_released_i
 
 def test_an_answer_after_a_reconcile_released_its_id_and_a_retry_added_it_again_holds() -> None:
     again = events.ConsumerAdded("erm", RID, Q1, "cm", pid=P, seq=5)
-    findings = check.check(numbered(_released_then_answered(again))).findings
-    assert [] == [f for f in findings if f.rule == "answer-released"]
+    assert [] == _of_rule(_released_then_answered(again), "answer-released")
 
 
 def test_an_answer_recorded_before_its_providers_reconcile_released_it_is_not_this_rule() -> None:
@@ -896,8 +893,7 @@ def test_an_answer_recorded_before_its_providers_reconcile_released_it_is_not_th
         dataclasses.replace(history[3], hlc=history[4].hlc + 1),
         dataclasses.replace(history[4], hlc=history[3].hlc),
     )
-    findings = check.check(numbered(history)).findings
-    assert [] == [f for f in findings if f.rule == "answer-released"]
+    assert [] == _of_rule(history, "answer-released")
 
 
 def _recorded_then_restored(
@@ -933,8 +929,7 @@ def test_an_answer_its_next_restore_lists_or_its_provider_released_first_holds()
         )
     )
     for history in (listed, gone):
-        findings = check.check(numbered(history)).findings
-        assert [] == [f for f in findings if f.rule == "record-kept"]
+        assert [] == _of_rule(history, "record-kept")
 
 
 def test_a_recorded_top_level_call_restored_then_handed_back_in_doubt_is_found() -> None:
@@ -979,8 +974,7 @@ def test_a_load_shed_that_could_not_start_in_time_or_is_not_judged_holds(
 ) -> None:
     h = clean()
     shed = _shed(left, rounds, pid=pid)
-    findings = check.check(numbered(renumbered([*h[:3], shed]))).findings
-    assert [] == [f for f in findings if f.rule == "shed-needed"]
+    assert [] == _of_rule(renumbered([*h[:3], shed]), "shed-needed")
 
 
 def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> None:
@@ -1203,8 +1197,7 @@ def test_a_status_its_holders_release_crossed_reaches_it_on_the_answer() -> None
     assert "status-reached" not in {f.rule for f in verdict.findings}, verdict.findings
     # released before cm sent it on: not a holder then, not expected
     before = [*h[:7], h[8], h[7], *h[10:]]
-    verdict = check.check(numbered(_stamped(before)))
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    _holds(_stamped(before))
 
 
 def test_a_status_to_an_id_forgotten_as_its_unload_went_unanswered_by_its_dead_sender_holds() -> (
@@ -1259,7 +1252,7 @@ def test_a_status_that_reached_another_id_of_its_holder_is_owed_to_one_forgotten
             events.RegistrarStopped("cm", (), (), (), pid=C),
         ]
     )
-    found = [f for f in check.check(numbered(h)).findings if f.rule == "status-reached"]
+    found = _of_rule(h, "status-reached")
     assert reached_beside == bool(found), found
 
 
@@ -1390,8 +1383,7 @@ def test_a_status_lost_with_a_sender_killed_before_its_connection_to_the_holder_
     sent that registrar a later status that arrived, or reached its other id with this
     status, or whose next life reached it no better, was owed it."""
     h = first_status_of_a_life(0.062)
-    verdict = check.check(numbered(h))
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    _holds(h)
     assert {5} == _found(first_status_of_a_life(2.0), "status-reached")
     assert {5} == _found(first_status_of_a_life(0.062, later=True), "status-reached")
     assert {7} == _found(first_status_of_a_life(0.062, beside=True), "status-reached")
@@ -1405,8 +1397,7 @@ def test_a_status_queued_behind_earlier_ones_in_a_sender_killed_just_after_is_no
     earlier ones had reached every client and db wrote events after them: what a
     connection cannot take yet waits in the sender and dies with it (failure-semantics.md).
     A later status of that life that arrived shows this one left: owed."""
-    verdict = check.check(numbered(first_status_of_a_life(0.062, earlier=True)))
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    _holds(first_status_of_a_life(0.062, earlier=True))
     h = first_status_of_a_life(0.062, earlier=True, later=True)
     assert {8} == _found(h, "status-reached")
 
@@ -1418,8 +1409,7 @@ def test_a_status_an_unload_s_answer_carried_to_a_holder_s_other_id_shows_no_con
     ids on the answer to that id's `Unload`, over client-1's connection to db. That
     delivery was read as db's connection to client-1 made, and the other two ids as owed
     them (as twice in CI, client-3's). One that came before the release came its way."""
-    verdict = check.check(numbered(first_status_of_a_life(0.062, carried=True)))
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    _holds(first_status_of_a_life(0.062, carried=True))
     assert {7} == _found(first_status_of_a_life(0.062, beside=True), "status-reached")
 
 
@@ -1470,8 +1460,7 @@ def test_a_status_lost_with_a_sender_killed_before_it_connected_to_a_restarted_h
     there: what reached its process before shows no connection to the new one. A sender
     that lived on after that send was owed it."""
     h = first_status_to_a_restarted_holder(0.0017)
-    verdict = check.check(numbered(h))
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    _holds(h)
     assert {10} == _found(first_status_to_a_restarted_holder(2.0), "status-reached")
 
 
@@ -1500,8 +1489,7 @@ def sent_to_a_restarted_holder(served_first: bool) -> list[events.Event]:
 def test_a_status_sent_before_its_restarted_holder_serves_again_is_not_owed_to_it() -> None:
     # nobody can reach a restarted consumer before it serves again: the status is lost
     # to it (failure-semantics.md); one sent once it serves is owed (rule 9)
-    verdict = check.check(numbered(sent_to_a_restarted_holder(served_first=False)))
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    _holds(sent_to_a_restarted_holder(served_first=False))
     assert {7, 9} == _found(sent_to_a_restarted_holder(served_first=True), "status-reached")
 
 
@@ -1535,8 +1523,7 @@ def without_backup(pid: int = P + 1) -> list[events.Event]:
 def test_a_restart_without_a_backup_forgets_what_its_last_life_held(pid: int) -> None:
     # a new process (a process manager), or the same one after its ChildExited (a thread
     # manager): either way a new life with an empty catalog, not still holding Q1
-    verdict = check.check(numbered(without_backup(pid)))
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    _holds(without_backup(pid))
 
 
 def test_an_id_the_new_life_holds_after_a_restart_without_a_backup_is_still_an_end() -> None:
@@ -1552,8 +1539,7 @@ def test_a_restart_without_a_backup_that_publishes_only_its_stop_holds_nothing()
     # RegistrarStopped begins that life and lists nothing; cm was told Q1 is lost
     h = without_backup()
     late = [*h[:4], h[7], h[8], h[12], h[13]]
-    verdict = check.check(numbered(_stamped(late)))
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    _holds(_stamped(late))
     # cm never told: the restart lost Q1, found at the stop that shows the restart
     assert {2, 6} == _found(_stamped([*h[:4], h[12], h[13]]), "kept")
 
@@ -1575,8 +1561,7 @@ def test_a_restart_without_a_backup_may_lose_an_id_whose_call_failed_for_its_cal
     gone = [*h[:2], h[3], _failed(), *h[4:7], *h[9:]]
     if seen == "after":
         gone = [*h[:2], h[3], h[4], _failed(), *h[5:7], *h[9:]]
-    verdict = check.check(numbered(_stamped(gone)))
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    _holds(_stamped(gone))
 
 
 def test_an_answered_id_a_restart_without_a_backup_lost_is_owed_a_fatal() -> None:
@@ -1619,8 +1604,7 @@ def test_a_held_id_whose_retry_the_restart_answered_is_owed_no_fatal_one_it_fail
     # issue 51: the restart (no backup) that answered cm's retry of Q1 holds Q1 again (cm's
     # reconcile found it known: a due id is reconciled again once its call ends, rule 20);
     # a retry the restart failed leaves Q1 lost there, its FATAL owed
-    verdict = check.check(numbered(retried_at_the_restart(answered=True)))
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    _holds(retried_at_the_restart(answered=True))
     assert {2, 5} == _found(retried_at_the_restart(answered=False), "kept")
 
 
@@ -1707,8 +1691,7 @@ def both_killed(*, held_by_restart: bool = False) -> list[events.Event]:
 def test_an_id_whose_holder_died_before_its_provider_restarted_without_a_backup_holds() -> None:
     # the checker looked at cm's life begun last before erm's restart (C + 1, alive then),
     # not at the one that held Q1 (C, dead): "lost ..., neither released nor reported FATAL"
-    verdict = check.check(numbered(both_killed()))
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    _holds(both_killed())
 
 
 def test_an_id_of_the_holder_s_restart_lost_with_its_provider_s_restart_is_found() -> None:
@@ -1754,8 +1737,7 @@ def test_a_listing_begun_before_its_registrar_stopped_and_published_after_is_of_
 def test_an_id_answered_to_a_consumer_life_shown_after_its_provider_s_restart_is_found() -> None:
     # the checker took the killed life C (the last begun) for Q1's holder and excused it
     assert {4, 6} == _found(answered_to_a_life_shown_late(), "kept")
-    verdict = check.check(numbered(answered_to_a_life_shown_late(answered=False)))
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    _holds(answered_to_a_life_shown_late(answered=False))
 
 
 def retried_on_a_new_resource() -> list[events.Event]:
@@ -2444,8 +2426,7 @@ def test_rows_a_running_consumer_holds_at_a_providers_last_stop_are_not_left() -
     held = events.RegistrarStopped(  # erm stops first: cm still runs and holds both ids
         "erm", ((RID, "cam", "loaded", "42", ""),), ((Q1, RID, "cm"), (Q2, RID, "cm")), (), pid=P
     )
-    verdict = check.check(numbered([*h[:4], held, h[14]]))
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    _holds([*h[:4], held, h[14]])
 
 
 @pytest.mark.parametrize("published", ["before", "after"])
@@ -2547,16 +2528,14 @@ def test_a_supervisor_that_gives_up_exactly_past_its_intensity_holds() -> None:
         _exits(0.0, 1.0, 2.0, stopped=True),  # its supervisor stopped it: not counted
         [*_exits(0.0, 1.0)[:2], *_gives_up(_exits(1.0, 2.0))],  # (an exit's restart failed)
     ):
-        verdict = check.check(numbered(history))
-        assert ("held", ()) == (verdict.verdict, verdict.findings)
+        _holds(history)
 
 
 def test_a_supervisor_started_again_counts_its_exits_afresh() -> None:
     # (its program killed and started again: kill_program) a second ChildStarted of db
     first = [events.ChildStarted("root", "db", 9, at=0.0)]
     again = [events.ChildStarted("root", "db", 20, at=2.5)]
-    verdict = check.check(numbered([*first, *_exits(0.5, 1.0), *again, *_exits(3.0)]))
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    _holds([*first, *_exits(0.5, 1.0), *again, *_exits(3.0)])
     # (without the second start, the third exit within 5 s is one past its intensity)
     assert {2, 4, 6} == _found([*first, *_exits(0.5, 1.0), *_exits(3.0)], "intensity")
 
@@ -2564,8 +2543,7 @@ def test_a_supervisor_started_again_counts_its_exits_afresh() -> None:
 def test_an_exit_at_the_edge_of_the_intensity_window_is_not_judged() -> None:
     slack = _supervision_rules.SLACK_S / 2
     for history in (_exits(0.0, 1.0, 5.0 - slack), _gives_up(_exits(0.0, 1.0, 5.0 + slack))):
-        verdict = check.check(numbered(history))
-        assert ("held", ()) == (verdict.verdict, verdict.findings)
+        _holds(history)
 
 
 # -- the supervisor's strategy and restart types, escalation (OTP, issue 51) ---------------
@@ -2613,11 +2591,6 @@ def _tree(
             )
         )
     return out
-
-
-def _holds(history: list[events.Event]) -> None:
-    verdict = check.check(numbered(history))
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
 
 
 @pytest.mark.parametrize(
