@@ -701,9 +701,7 @@ def asked(how: str, *ids: str, at: int) -> list[events.Event]:
 def test_a_fetch_or_a_listing_of_what_its_provider_held_holds(
     how: str, ids: tuple[str, ...], at: int
 ) -> None:
-    verdict = check.check(numbered(asked(how, *ids, at=at)))
-
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    _holds(asked(how, *ids, at=at))
 
 
 @pytest.mark.parametrize("how", ["fetch", "listing"])
@@ -718,10 +716,13 @@ def test_a_fetch_or_a_listing_that_leaves_out_an_id_held_throughout_is_a_fetch_v
     assert "did not list query q1111111" in found[0].message
 
 
-def test_a_fetch_that_lists_an_id_its_provider_did_not_hold_is_a_fetch_violation() -> None:
+@pytest.mark.parametrize("how", ["fetch", "listing"])
+def test_a_fetch_or_a_listing_of_an_id_its_provider_did_not_hold_is_a_fetch_violation(
+    how: str,
+) -> None:
     never = "q3333333-0000"
-    # Q1 released before the fetch began; a third id never held at all
-    verdict = check.check(numbered(fetched(Q1, Q2, never, at=7)))
+    # Q1 released before it was asked; a third id never held at all
+    verdict = check.check(numbered(asked(how, Q1, Q2, never, at=7)))
 
     found = sorted(f.message for f in verdict.findings if f.rule == "fetch")
     assert "violated" == verdict.verdict
@@ -738,9 +739,7 @@ def test_a_fetch_whose_window_a_restart_of_its_provider_falls_in_is_not_judged()
     )  # fmt: skip
     later = [dataclasses.replace(e, pid=P + 1) if e.pid == P else e for e in h[7:]]
 
-    verdict = check.check(numbered(renumbered([*h[:6], restart, h[6], *later])))
-
-    assert [] == [f for f in verdict.findings if f.rule == "fetch"]
+    assert [] == _of_rule(renumbered([*h[:6], restart, h[6], *later]), "fetch")
 
 
 def listed(*ids: str, at: int = 5, server: str = "cam") -> list[events.Event]:
@@ -755,9 +754,7 @@ def listed(*ids: str, at: int = 5, server: str = "cam") -> list[events.Event]:
 
 
 def test_a_listing_of_another_server_need_not_list_the_ids_of_this_one() -> None:
-    verdict = check.check(numbered(renumbered(listed(at=5, server="other"))))
-
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    _holds(renumbered(listed(at=5, server="other")))
 
 
 def test_a_listing_that_leaves_out_an_id_its_restore_listed_is_a_fetch_violation() -> None:
@@ -777,18 +774,6 @@ def test_a_listing_that_leaves_out_an_id_its_restore_listed_is_a_fetch_violation
 
     assert [(1, 2)] == [f.lines for f in found]
     assert "did not list query q1111111" in found[0].message
-
-
-def test_a_listing_of_an_id_its_provider_did_not_hold_is_a_fetch_violation() -> None:
-    never = "q3333333-0000"
-    # Q1 released before the listing began; a third id never held at all
-    verdict = check.check(numbered(renumbered(listed(Q1, Q2, never, at=7))))
-
-    found = sorted(f.message for f in verdict.findings if f.rule == "fetch")
-    assert "violated" == verdict.verdict
-    assert 2 == len(found), found
-    assert "listed query q1111111, which erm did not hold while asked" in found[0]
-    assert "listed query q3333333" in found[1]
 
 
 # -- the rules of issue 40: seeded violations, and the windows the docs admit --------------
@@ -837,8 +822,7 @@ def test_a_row_restored_in_doubt_and_reported_or_unloaded_by_its_life_holds(stat
     unloaded = events.ResourceUnloaded("erm", "cam", RID, pid=P + 1)
     again = events.ResourceLoaded("erm", "cam", RID2, Q2, 0.01, 7, "cam 1", pid=P + 1)
     for told in (doubt, unloaded):
-        verdict = check.check(numbered(_restored_in_doubt(state, told, again)))
-        assert [] == [f for f in verdict.findings if f.rule == "doubt-reported"]
+        assert [] == _of_rule(_restored_in_doubt(state, told, again), "doubt-reported")
 
 
 @pytest.mark.parametrize("state", ["unloading", "loading"])
@@ -937,8 +921,7 @@ def test_a_recorded_top_level_call_restored_then_handed_back_in_doubt_is_found()
     history = _recorded_then_restored((Q1, "erm", "cam", ""), after=(doubt,))
     assert {4, 6} == _found(history, "record-kept")
     dependency = _recorded_then_restored((Q1, "erm", "cam", RID2), after=(doubt,))
-    findings = check.check(numbered(dependency)).findings  # (an orphan: not judged)
-    assert [] == [f for f in findings if f.rule == "record-kept"]
+    assert [] == _of_rule(dependency, "record-kept")  # (an orphan: not judged)
 
 
 def _shed(left: float, rounds: int = 0, *, pid: int = P) -> events.LoadFailed:
@@ -1628,9 +1611,7 @@ def crossing(reconciled: int, reason: str = "unload", *, exited: bool = True) ->
 def test_a_release_that_crossed_a_restart_without_a_backup_holds(
     reconciled: int, reason: str
 ) -> None:
-    verdict = check.check(numbered(crossing(reconciled, reason)))
-
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    _holds(crossing(reconciled, reason))
 
 
 def test_a_release_sent_after_its_consumer_reconciled_with_the_restart_is_a_lost_id() -> None:
@@ -1774,9 +1755,7 @@ def _failed_at(provider: str) -> events.CallFailed:
 
 
 def test_a_status_climbing_to_an_id_retried_on_a_new_resource_is_on_its_path() -> None:
-    verdict = check.check(numbered(retried_on_a_new_resource()))
-
-    assert [] == [f for f in verdict.findings if f.rule == "status-path"]
+    assert [] == _of_rule(retried_on_a_new_resource(), "status-path")
 
 
 def test_a_status_climbing_to_an_id_from_the_resource_it_left_is_off_its_path() -> None:
@@ -1830,18 +1809,14 @@ def test_a_withdrawn_id_its_restarted_provider_holds_on_is_a_withdrawn_violation
 
 
 def test_a_withdrawn_id_its_restarted_provider_releases_at_the_reconcile_holds() -> None:
-    verdict = check.check(numbered(withdrawn_then_restored(released_after=0.01)))
-
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    _holds(withdrawn_then_restored(released_after=0.01))
 
 
 def test_a_withdrawn_id_answered_again_by_a_retry_is_no_withdrawn_violation() -> None:
     history = withdrawn_then_restored(released_after=2.0)
     retry = events.CallAnswered("cm", Q1, "erm", "cam", None, True, pid=C, at=20.001)
 
-    verdict = check.check(numbered([*history[:5], retry, *history[5:]]))
-
-    assert [] == [f for f in verdict.findings if f.rule == "withdrawn"]
+    assert [] == _of_rule([*history[:5], retry, *history[5:]], "withdrawn")
 
 
 def failed_then_released(lives: int, *, then: events.Event | None = None) -> list[events.Event]:
@@ -1906,9 +1881,7 @@ def test_a_failed_calls_id_released_when_no_retry_can_come_is_no_retry_kept_viol
     event = None if then is None else then()
     history = failed_then_released(lives=2 if event is None else 1, then=event)
 
-    verdict = check.check(numbered(history))
-
-    assert [] == [f for f in verdict.findings if f.rule == "retry-kept"]
+    assert [] == _of_rule(history, "retry-kept")
 
 
 def kept_then_given_back(after: float, *, claimed: bool = False) -> list[events.Event]:
@@ -2315,9 +2288,7 @@ def two_servers(second_exit: str) -> list[events.Event]:
 
 
 def test_a_second_server_of_a_name_that_yields_holds() -> None:
-    verdict = check.check(numbered(two_servers("normal")))
-
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    _holds(two_servers("normal"))
 
 
 def test_two_servers_of_a_name_to_the_end_of_the_run_are_a_one_name_violation() -> None:
@@ -2457,16 +2428,14 @@ def test_a_dependency_forgotten_while_its_resource_is_held_is_found() -> None:
 
 
 def test_a_dependency_forgotten_once_its_resource_has_no_consumer_holds() -> None:
-    verdict = check.check(numbered(with_paths()))  # (forgotten after RID2's last release)
-    assert [] == [f for f in verdict.findings if f.rule == "dependency-held"]
+    assert [] == _of_rule(with_paths(), "dependency-held")  # (forgotten after RID2's last release)
 
 
 def test_a_dependency_its_provider_ended_may_be_forgotten_while_its_resource_is_held() -> None:
     h = with_paths()
     for reason in ("unknown at reconcile", "provider lost", "revoked"):
         lost = events.QueryForgotten("cm", Q1, "erm", reason, pid=C)
-        verdict = check.check(numbered([*h[:7], lost, *h[7:9], *h[10:]]))
-        assert [] == [f for f in verdict.findings if f.rule == "dependency-held"]
+        assert [] == _of_rule([*h[:7], lost, *h[7:9], *h[10:]], "dependency-held")
 
 
 def test_a_restore_that_gives_back_a_held_resources_dependency_is_found() -> None:
@@ -2482,16 +2451,14 @@ def test_a_restore_that_gives_back_a_held_resources_dependency_is_found() -> Non
     doubt = events.QueryForgotten("cm", Q1, "erm", "in doubt", pid=C + 1)
     assert {1, 2} == _found([restored, doubt], "dependency-held")
     unlisted = dataclasses.replace(restored, resources=(), consumers=(), clients=(), complete=False)
-    verdict = check.check(numbered([unlisted, doubt]))  # (rows not listed: not judged)
-    assert [] == [f for f in verdict.findings if f.rule == "dependency-held"]
+    assert [] == _of_rule([unlisted, doubt], "dependency-held")  # (rows not listed: not judged)
 
 
 def test_a_resource_unloaded_before_its_dependency_was_released_is_found() -> None:
     h = with_paths()
     unloaded = events.ResourceUnloaded("cm", "comp", RID2, pid=C)
     assert {2, 10} == _found([*h[:9], unloaded, *h[9:]], "unload-order")
-    verdict = check.check(numbered([*h[:10], unloaded, *h[10:]]))  # its dependency first
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    _holds([*h[:10], unloaded, *h[10:]])  # its dependency first
 
 
 def _exits(*times: float, restart: str = "permanent", stopped: bool = False) -> list[events.Event]:
