@@ -327,8 +327,12 @@ def _found(history: list[events.Event], rule: str) -> set[int]:
     return set(found[0].lines)
 
 
-def _holds(history: list[events.Event]) -> None:
-    verdict = check.check(numbered(history))
+def _holds(
+    history: list[events.Event],
+    resolve: str = "first_served",
+    timeouts: dict[str, float] | None = None,
+) -> None:
+    verdict = check.check(numbered(history), resolve, timeouts=timeouts)
     assert ("held", ()) == (verdict.verdict, verdict.findings)
 
 
@@ -1930,11 +1934,7 @@ def test_an_id_kept_for_a_retry_that_never_comes_held_past_call_timeout_is_kept_
 def test_an_id_kept_for_a_retry_given_back_in_time_or_claimed_is_no_kept_unclaimed_violation(
     after: float, claimed: bool, timeouts: dict[str, float]
 ) -> None:
-    history = kept_then_given_back(after=after, claimed=claimed)
-
-    verdict = check.check(numbered(history), timeouts=timeouts)
-
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    _holds(kept_then_given_back(after=after, claimed=claimed), timeouts=timeouts)
 
 
 def test_a_restart_with_a_restore_holds_what_the_restore_lists() -> None:
@@ -2343,9 +2343,7 @@ POLICIES = ("first_served", "majority", "policy:keep")
 def test_a_yielded_registrars_restart_refused_its_name_does_not_serve(resolve: str) -> None:
     """Issue 56: a `permanent` registrar that yields at a heal is restarted into
     `DuplicateNameError` (OTP's `already_started`): the one kept serves alone."""
-    verdict = check.check(numbered(first_yields(REFUSED)), resolve)
-
-    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    _holds(first_yields(REFUSED), resolve=resolve)
 
 
 @pytest.mark.parametrize("resolve", POLICIES)
