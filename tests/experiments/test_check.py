@@ -3251,22 +3251,30 @@ def give_up_unescalated(h: History) -> History | None:
     return None
 
 
-def fetch_leaves_out_a_held_id(h: History) -> History | None:
-    """A fetch's answer without an id its consumer had answered before the fetch began
-    and its provider held (no release, no restart of the provider) until after it."""
-    answered = {(e.registrar, e.query_id): e.hlc for e in h if type(e) is events.CallAnswered}
-    for i, e in enumerate(h):
-        if type(e) is not events.QueriesFetched:
-            continue
-        for qid in e.query_ids:
-            stamp = answered.get((e.registrar, qid))
-            if stamp is None or stamp >= e.started:
+def leaves_out_a_held_id(
+    kind: type, since: type, provider: str
+) -> Callable[[History], History | None]:
+    """A fetch's answer (`QueriesFetched`: ids its consumer had answered, `CallAnswered`;
+    its provider `serving_rr`) or a provider's listing of its server (`ServerQueriesListed`:
+    ids that server had added, `ConsumerAdded`; its provider `registrar`) without an id held
+    from before it began until after it (no release, no restart of the provider)."""
+
+    def mutate(h: History) -> History | None:
+        stamps = {(e.registrar, e.query_id): e.hlc for e in h if type(e) is since}
+        for i, e in enumerate(h):
+            if type(e) is not kind:
                 continue
-            if any(_touches(e.serving_rr, qid, other, stamp, e.hlc) for other in h):
-                continue
-            kept = tuple(q for q in e.query_ids if q != qid)
-            return [*h[:i], dataclasses.replace(e, query_ids=kept), *h[i + 1 :]]
-    return None
+            for qid in e.query_ids:
+                stamp = stamps.get((e.registrar, qid))
+                if stamp is None or stamp >= e.started:
+                    continue
+                if any(_touches(getattr(e, provider), qid, o, stamp, e.hlc) for o in h):
+                    continue
+                kept = tuple(q for q in e.query_ids if q != qid)
+                return [*h[:i], dataclasses.replace(e, query_ids=kept), *h[i + 1 :]]
+        return None
+
+    return mutate
 
 
 def _touches(provider: str, qid: str, event: events.Event, after: int, before: int) -> bool:
@@ -3281,40 +3289,18 @@ def _touches(provider: str, qid: str, event: events.Event, after: int, before: i
     return type(event) is events.ChildExited and event.child == provider
 
 
-def fetch_lists_an_unknown_id(h: History) -> History | None:
-    """A fetch's answer listing an id nobody ever called."""
-    for i, e in enumerate(h):
-        if type(e) is events.QueriesFetched:
-            listed = (*e.query_ids, "f0000000-0000-4000-8000-000000000000")
-            return [*h[:i], dataclasses.replace(e, query_ids=listed), *h[i + 1 :]]
-    return None
+def lists_an_unknown_id(kind: type) -> Callable[[History], History | None]:
+    """A fetch's answer (`QueriesFetched`) or a provider's listing of its server
+    (`ServerQueriesListed`) listing an id nobody ever called."""
 
+    def mutate(h: History) -> History | None:
+        for i, e in enumerate(h):
+            if type(e) is kind:
+                ids = (*e.query_ids, "f0000000-0000-4000-8000-000000000000")
+                return [*h[:i], dataclasses.replace(e, query_ids=ids), *h[i + 1 :]]
+        return None
 
-def listing_leaves_out_a_held_id(h: History) -> History | None:
-    """A provider's listing of its server without an id that server held from before the
-    listing began until after it (no release, no restart of the provider)."""
-    added = {(e.registrar, e.query_id): e.hlc for e in h if type(e) is events.ConsumerAdded}
-    for i, e in enumerate(h):
-        if type(e) is not events.ServerQueriesListed:
-            continue
-        for qid in e.query_ids:
-            stamp = added.get((e.registrar, qid))
-            if stamp is None or stamp >= e.started:
-                continue
-            if any(_touches(e.registrar, qid, other, stamp, e.hlc) for other in h):
-                continue
-            kept = tuple(q for q in e.query_ids if q != qid)
-            return [*h[:i], dataclasses.replace(e, query_ids=kept), *h[i + 1 :]]
-    return None
-
-
-def listing_lists_an_unknown_id(h: History) -> History | None:
-    """A provider's listing of its server with an id nobody ever called."""
-    for i, e in enumerate(h):
-        if type(e) is events.ServerQueriesListed:
-            ids = (*e.query_ids, "f0000000-0000-4000-8000-000000000000")
-            return [*h[:i], dataclasses.replace(e, query_ids=ids), *h[i + 1 :]]
-    return None
+    return mutate
 
 
 def drop_outcome(h: History) -> History | None:
@@ -3399,10 +3385,16 @@ MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     "drop-give-up": (drop_give_up, "intensity"),
     "restart-group-out-of-order": (restart_group_out_of_order, "strategy"),
     "give-up-unescalated": (give_up_unescalated, "escalation"),
-    "fetch-leaves-out-a-held-id": (fetch_leaves_out_a_held_id, "fetch"),
-    "fetch-lists-an-unknown-id": (fetch_lists_an_unknown_id, "fetch"),
-    "listing-leaves-out-a-held-id": (listing_leaves_out_a_held_id, "fetch"),
-    "listing-lists-an-unknown-id": (listing_lists_an_unknown_id, "fetch"),
+    "fetch-leaves-out-a-held-id": (
+        leaves_out_a_held_id(events.QueriesFetched, events.CallAnswered, "serving_rr"),
+        "fetch",
+    ),
+    "fetch-lists-an-unknown-id": (lists_an_unknown_id(events.QueriesFetched), "fetch"),
+    "listing-leaves-out-a-held-id": (
+        leaves_out_a_held_id(events.ServerQueriesListed, events.ConsumerAdded, "registrar"),
+        "fetch",
+    ),
+    "listing-lists-an-unknown-id": (lists_an_unknown_id(events.ServerQueriesListed), "fetch"),
     "drop-outcome": (drop_outcome, "outcome"),
     "end-by-itself": (end_by_itself, "life-end"),
 }
