@@ -176,13 +176,16 @@ def record_kept(steps: Sequence[Step], history: Sequence[Line]) -> list[Finding]
     an id of a top-level call (restored without a parent: `in doubt` is for a pending record
     of an older backup, or an orphaned dependency, not judged). Excused: an id its provider
     released before the restore (`ConsumerReleased` stamped before it: a release whose
-    forget was committed just before the kill)."""
+    forget was committed just before the kill), and a dependency whose parent the restore
+    lists `unloading` (rule 12: its release, under way, may have been committed and its
+    events killed with the program before they left)."""
     released: dict[tuple[str, str], int] = {}  # (consumer, query id) -> first release stamp
     for _, event in history:
         if isinstance(event, events.ConsumerReleased):
             key = (event.consumer, event.query_id)
             released[key] = min(released.get(key, event.hlc), event.hlc)
     held: dict[str, dict[str, int]] = defaultdict(dict)  # consumer -> recorded id -> line
+    parents: dict[tuple[str, str], str] = {}  # (consumer, recorded id) -> its parent resource
     kept: dict[str, dict[str, tuple[int, int]]] = defaultdict(dict)  # restored: -> (at, line)
     findings: list[Finding] = []
 
@@ -202,9 +205,12 @@ def record_kept(steps: Sequence[Step], history: Sequence[Line]) -> list[Finding]
             kept[name] = {}
             if event.complete:
                 listed = {row[0]: row for row in event.clients}
+                unloading = {row[0] for row in event.resources if row[2] == "unloading"}
                 for qid, at in held[name].items():
                     gone = released.get((base(name), qid))
-                    if qid not in listed and not (gone and 0 < gone < event.hlc):
+                    parent = parents.get((name, qid))  # (its unload releases it: rule 12)
+                    excused = bool(gone and 0 < gone < event.hlc) or parent in unloading
+                    if qid not in listed and not excused:
                         lost(name, qid, at, line, "not forgotten, but its next restore lacks it")
                     elif qid in listed and not listed[qid][3]:  # (a top-level call's)
                         kept[name][qid] = (at, line)
@@ -212,6 +218,7 @@ def record_kept(steps: Sequence[Step], history: Sequence[Line]) -> list[Finding]
         elif isinstance(event, events.CallAnswered):
             held[name].setdefault(event.query_id, line)
             kept[name].pop(event.query_id, None)
+            parents[name, event.query_id] = event.parent or ""
         elif isinstance(event, events.QueryForgotten):
             held[name].pop(event.query_id, None)
             restored = kept[name].pop(event.query_id, None)

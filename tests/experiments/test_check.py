@@ -920,6 +920,24 @@ def test_an_answer_its_next_restore_lists_or_its_provider_released_first_holds()
         assert [] == _of_rule(history, "record-kept")
 
 
+def test_a_dependency_its_restore_lacks_under_a_parent_restored_unloading_holds() -> None:
+    """`simprogram` seed 215 (since an ordered start pings none of its managers): cm's
+    resource began its unload, whose release of the dependency Q1 was committed, and the
+    whole program was killed before that release's events left. The restore lists the
+    parent `unloading` and lacks Q1: rule 12's release under way, not a lost record. Under
+    a parent restored `loaded` the missing record is still found."""
+
+    def restored_with_parent(state: str) -> list[events.Event]:
+        h = clean()
+        answer = events.CallAnswered("cm", Q1, "erm", "cam", parent=RID2, pid=C)
+        parent = ((RID2, "srv", state, "0", ""),)
+        restored = events.CatalogRestored("cm", parent, (), (), (1, 0, 0), pid=C + 1)
+        return _stamped(renumbered([*h[:3], answer, restored]))
+
+    assert [] == _of_rule(restored_with_parent("unloading"), "record-kept")
+    assert {4, 5} == _found(restored_with_parent("loaded"), "record-kept")
+
+
 def test_a_recorded_top_level_call_restored_then_handed_back_in_doubt_is_found() -> None:
     doubt = events.QueryForgotten("cm", Q1, "erm", "in doubt", pid=C + 1)
     history = _recorded_then_restored((Q1, "erm", "cam", ""), after=(doubt,))
