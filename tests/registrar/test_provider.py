@@ -832,34 +832,25 @@ class TestDependencies:
             c.query.request: owner_of[c.parent] for c in snapshot.clients
         }
 
-    def test_dependencies_belong_to_the_resource_not_to_the_first_consumer(
-        self, make_registrar, serve
+    @pytest.mark.parametrize("released_first", ["first", "second"])
+    def test_dependencies_belong_to_the_resource_not_to_the_consumer_that_releases_first(
+        self, make_registrar, serve, released_first
     ):
         provider, first, second = (make_registrar(n) for n in ("provider", "first", "second"))
         leaf = serve(provider, "leaf")
         serve(provider, "composite", lambda r: provider.call(provider.name, "leaf", r).response)
         q1 = first.call(provider.name, "composite", "x")
         q2 = second.call(provider.name, "composite", "x")
+        (early, early_query), (last, last_query) = (
+            [(first, q1), (second, q2)]
+            if released_first == "first"
+            else [(second, q2), (first, q1)]
+        )
 
-        first.unload(q1.id)
+        early.unload(early_query.id)
 
-        assert [] == leaf.unloads, "the first consumer took the shared resource's dependency away"
-        second.unload(q2.id)
-        assert ["x"] == [request for request, _ in leaf.unloads]
-
-    def test_a_resource_keeps_its_dependencies_when_the_last_consumer_was_the_first(
-        self, make_registrar, serve
-    ):
-        provider, first, second = (make_registrar(n) for n in ("provider", "first", "second"))
-        leaf = serve(provider, "leaf")
-        serve(provider, "composite", lambda r: provider.call(provider.name, "leaf", r).response)
-        q1 = first.call(provider.name, "composite", "x")
-        q2 = second.call(provider.name, "composite", "x")
-
-        second.unload(q2.id)
-
-        assert [] == leaf.unloads
-        first.unload(q1.id)
+        assert [] == leaf.unloads, "the consumer released first took the dependency away"
+        last.unload(last_query.id)
         assert ["x"] == [request for request, _ in leaf.unloads]
 
     def test_a_load_that_calls_its_own_server_with_an_equal_request_raises_a_cycle_error(
