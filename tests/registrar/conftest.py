@@ -69,7 +69,7 @@ import sys
 import threading
 import uuid
 from collections.abc import Callable, Iterator
-from typing import Any
+from typing import Any, NamedTuple
 
 import cloudpickle
 import pytest
@@ -304,6 +304,22 @@ def serve(journal: Any, shared: Shared) -> Callable[..., ServerLog]:
         return log
 
     return register
+
+
+class ServedPair(NamedTuple):
+    """A provider and a consumer, the provider serving a recording server "leaf"."""
+
+    provider: Registrar
+    consumer: Registrar
+    leaf: ServerLog
+
+
+@pytest.fixture
+def served_pair(make_registrar: MakeRegistrar, serve: Callable[..., ServerLog]) -> ServedPair:
+    """`provider, consumer, leaf = served_pair`: registrars "provider" then "consumer" (so
+    stopped in the other order), and `serve(provider, "leaf")`'s log."""
+    provider, consumer = make_registrar("provider"), make_registrar("consumer")
+    return ServedPair(provider, consumer, serve(provider, "leaf"))
 
 
 class StatusInbox:

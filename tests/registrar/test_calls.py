@@ -640,11 +640,8 @@ class TestTimeouts:
         assert [QUERY_ID] == [q.id for q in provider.server_queries("leaf")]
         assert 1 == len(leaf.loads)
 
-    def test_a_huge_finite_timeout_waits_and_a_non_finite_one_is_refused(
-        self, make_registrar, serve
-    ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+    def test_a_huge_finite_timeout_waits_and_a_non_finite_one_is_refused(self, served_pair):
+        provider, consumer, _leaf = served_pair
 
         query = consumer.call(provider.name, "leaf", "x", timeout=1e300)  # beyond a lock's wait
         consumer.unload(query.id, timeout=1e300)
@@ -654,11 +651,8 @@ class TestTimeouts:
         assert [] == consumer.client_queries()
 
     @pytest.mark.thread_only("replaces the caller's future class in this process")
-    def test_an_answer_that_lands_as_the_wait_times_out_is_taken_not_lost(
-        self, make_registrar, serve
-    ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+    def test_an_answer_that_lands_as_the_wait_times_out_is_taken_not_lost(self, served_pair):
+        provider, consumer, _leaf = served_pair
 
         with call_futures(consumer, _AnswerThenTimeout):
             query = consumer.call(provider.name, "leaf", "x", timeout=1.0)

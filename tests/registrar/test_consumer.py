@@ -2030,10 +2030,9 @@ class TestReleaseRefused:
     """`unload` of an id this registrar does not hold says what the id is."""
 
     def test_unloading_a_consumer_id_at_its_provider_names_the_consumer_that_holds_it(
-        self, make_registrar, serve
+        self, served_pair
     ) -> None:
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+        provider, consumer, _leaf = served_pair
         query = consumer.call(provider.name, "leaf", "x")
 
         with pytest.raises(rr.UnknownQueryError) as raised:

@@ -546,9 +546,8 @@ class TestBadInput:
 
         assert () == catalog_snapshot(consumer).clients
 
-    def test_calling_an_unknown_server_raises_unknown_server_error(self, make_registrar, serve):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+    def test_calling_an_unknown_server_raises_unknown_server_error(self, served_pair):
+        provider, consumer, _leaf = served_pair
 
         with pytest.raises(rr.UnknownServerError):
             consumer.call(provider.name, "nope", "x")
@@ -570,10 +569,9 @@ class TestBadInput:
             provider.server_queries("leaf")
 
     def test_a_non_callable_status_callback_on_call_is_refused_before_anything_loads(
-        self, make_registrar, serve
+        self, served_pair
     ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        leaf = serve(provider, "leaf")
+        provider, consumer, leaf = served_pair
 
         with pytest.raises(rr.ConfigError):
             consumer.call(provider.name, "leaf", "x", on_status=42)  # type: ignore[arg-type]

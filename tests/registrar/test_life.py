@@ -584,9 +584,8 @@ class TestCleanup:
 
     pytestmark = pytest.mark.both_apis  # the rules, against the async API too (conftest)
 
-    def test_stop_unloads_everything_the_registrar_holds_as_a_consumer(self, make_registrar, serve):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        leaf = serve(provider, "leaf")
+    def test_stop_unloads_everything_the_registrar_holds_as_a_consumer(self, served_pair):
+        provider, consumer, leaf = served_pair
         consumer.call(provider.name, "leaf", "a")
         consumer.call(provider.name, "leaf", "a")
         consumer.call(provider.name, "leaf", "b")
@@ -596,9 +595,8 @@ class TestCleanup:
         assert {"a", "b"} == {request for request, _ in leaf.unloads}
         assert [] == provider.server_queries("leaf")
 
-    def test_stop_unloads_newest_first(self, make_registrar, serve):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        leaf = serve(provider, "leaf")
+    def test_stop_unloads_newest_first(self, served_pair):
+        provider, consumer, leaf = served_pair
         for request in ("first", "second", "third"):
             consumer.call(provider.name, "leaf", request)
 
@@ -621,22 +619,16 @@ class TestCleanup:
             (f"{owner.name}/composite", "unload", "x"),
         ] == [entry for entry in journal if entry[1] == "unload"]
 
-    def test_stop_keeps_what_the_registrar_s_own_servers_serve_to_others(
-        self, make_registrar, serve
-    ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        leaf = serve(provider, "leaf")
+    def test_stop_keeps_what_the_registrar_s_own_servers_serve_to_others(self, served_pair):
+        provider, consumer, leaf = served_pair
         consumer.call(provider.name, "leaf", "x")
 
         provider.stop()
 
         assert [] == leaf.unloads
 
-    def test_a_stopped_registrar_refuses_work_with_registrar_stopped_error(
-        self, make_registrar, serve
-    ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+    def test_a_stopped_registrar_refuses_work_with_registrar_stopped_error(self, served_pair):
+        provider, consumer, _leaf = served_pair
         provider.stop()
 
         with pytest.raises(rr.RegistrarStoppedError):
@@ -667,9 +659,8 @@ class TestCleanup:
         assert [[(q1.id, rr.Status.FATAL)], [(q2.id, rr.Status.FATAL)]] == got
         assert 1 == len(leaf.statuses)
 
-    def test_unregister_server_unloads_everything_it_serves_once(self, make_registrar, serve):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        leaf = serve(provider, "leaf")
+    def test_unregister_server_unloads_everything_it_serves_once(self, served_pair):
+        provider, consumer, leaf = served_pair
         consumer.call(provider.name, "leaf", "a")
         consumer.call(provider.name, "leaf", "a")
         consumer.call(provider.name, "leaf", "b")
@@ -714,11 +705,8 @@ class TestCleanup:
             consumer.stop()
             provider.stop()
 
-    def test_after_unregister_server_calls_and_unloads_there_fail_clearly(
-        self, make_registrar, serve
-    ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+    def test_after_unregister_server_calls_and_unloads_there_fail_clearly(self, served_pair):
+        provider, consumer, _leaf = served_pair
         query = consumer.call(provider.name, "leaf", "x")
         provider.unregister_server("leaf")
 
@@ -727,11 +715,8 @@ class TestCleanup:
         with pytest.raises(rr.UnknownQueryError):
             consumer.unload(query.id)
 
-    def test_unregister_server_releases_the_dependencies_of_its_resources(
-        self, make_registrar, serve
-    ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        leaf = serve(provider, "leaf")
+    def test_unregister_server_releases_the_dependencies_of_its_resources(self, served_pair, serve):
+        provider, consumer, leaf = served_pair
         serve(provider, "composite", lambda r: provider.call(provider.name, "leaf", r).response)
         consumer.call(provider.name, "composite", "x")
 
@@ -743,9 +728,8 @@ class TestCleanup:
             catalog_snapshot(provider).clients,
         )
 
-    def test_a_server_name_can_be_registered_again_after_unregister(self, make_registrar, serve):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+    def test_a_server_name_can_be_registered_again_after_unregister(self, served_pair, serve):
+        provider, consumer, _leaf = served_pair
         provider.unregister_server("leaf")
         again = serve(provider, "leaf")
 
@@ -818,8 +802,9 @@ class TestCleanup:
 
         assert path.exists()
 
-    def test_consumer_records_are_cleared_when_a_consumer_stops_while_a_load_runs(
-        self, make_registrar, serve, gated_load
+    @pytest.mark.parametrize("ends", ["stops", "crashes"])
+    def test_a_consumer_that_stops_or_crashes_while_its_call_loads_is_released_when_the_load_ends(
+        self, make_registrar, serve, gated_load, ends
     ):
         provider, consumer = make_registrar("provider"), make_registrar("consumer")
         slow = gated_load()
@@ -828,24 +813,10 @@ class TestCleanup:
         caller.start()
         assert slow.started.wait(5)
 
-        consumer.stop()
-        slow.gate.set()
-        caller.join(10)
-
-        assert leaf.unloaded.wait(5)
-        assert [] == provider.server_queries("slow")
-
-    def test_a_consumer_that_crashes_while_its_call_loads_is_released_when_the_load_ends(
-        self, make_registrar, serve, gated_load
-    ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        slow = gated_load()
-        leaf = serve(provider, "slow", slow)
-        caller = threading.Thread(target=_call_ignoring_errors, args=(consumer, provider.name))
-        caller.start()
-        assert slow.started.wait(5)
-
-        crash(consumer)
+        if ends == "stops":
+            consumer.stop()
+        else:
+            crash(consumer)  # (a real SIGKILL of its manager process where it has one)
         slow.gate.set()
         caller.join(10)
 

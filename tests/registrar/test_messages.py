@@ -45,10 +45,9 @@ class TestBadNames:
         ids=["target_rr-int", "server-None", "server-int", "query_id-list", "query_id-empty"],
     )
     def test_a_call_with_a_name_or_id_that_is_not_a_str_is_a_config_error_naming_it(
-        self, make_registrar, serve, arguments, named
+        self, served_pair, serve, arguments, named
     ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        leaf = serve(provider, "leaf")
+        provider, consumer, leaf = served_pair
         call: dict[str, Any] = {"target_rr": provider.name, "server": "leaf", **arguments}
 
         with pytest.raises(rr.ConfigError, match=named):

@@ -243,11 +243,8 @@ class TestLoad:
 
     pytestmark = pytest.mark.both_apis  # the rules, against the async API too (conftest)
 
-    def test_an_equal_request_is_served_from_the_catalog_without_loading_again(
-        self, make_registrar, serve
-    ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        leaf = serve(provider, "leaf")
+    def test_an_equal_request_is_served_from_the_catalog_without_loading_again(self, served_pair):
+        provider, consumer, leaf = served_pair
 
         first = consumer.call(provider.name, "leaf", "camera")
         second = consumer.call(provider.name, "leaf", "camera")
@@ -255,11 +252,8 @@ class TestLoad:
         assert ["camera"] == leaf.loads
         assert first.response == second.response
 
-    def test_dicts_with_the_same_items_in_another_order_are_one_resource(
-        self, make_registrar, serve
-    ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        leaf = serve(provider, "leaf")
+    def test_dicts_with_the_same_items_in_another_order_are_one_resource(self, served_pair):
+        provider, consumer, leaf = served_pair
 
         consumer.call(provider.name, "leaf", {"cmd": "sleep", "args": ["60"]})
         consumer.call(provider.name, "leaf", {"args": ["60"], "cmd": "sleep"})
@@ -275,11 +269,8 @@ class TestLoad:
             [{"x": 1}, {"y": [2]}],
         ],
     )
-    def test_unhashable_requests_are_deduplicated_by_equality(
-        self, make_registrar, serve, request_value
-    ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        leaf = serve(provider, "leaf")
+    def test_unhashable_requests_are_deduplicated_by_equality(self, served_pair, request_value):
+        provider, consumer, leaf = served_pair
         equal_copy = eval(repr(request_value))  # noqa: S307 - a fresh, equal, unshared value
 
         consumer.call(provider.name, "leaf", request_value)
@@ -287,18 +278,16 @@ class TestLoad:
 
         assert 1 == len(leaf.loads)
 
-    def test_unequal_requests_that_share_a_hash_are_separate_resources(self, make_registrar, serve):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        leaf = serve(provider, "leaf")
+    def test_unequal_requests_that_share_a_hash_are_separate_resources(self, served_pair):
+        provider, consumer, leaf = served_pair
 
         consumer.call(provider.name, "leaf", -1)
         consumer.call(provider.name, "leaf", -2)  # hash(-1) == hash(-2) in CPython
 
         assert [-1, -2] == leaf.loads
 
-    def test_different_requests_load_different_resources(self, make_registrar, serve):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        leaf = serve(provider, "leaf")
+    def test_different_requests_load_different_resources(self, served_pair):
+        provider, consumer, leaf = served_pair
 
         a = consumer.call(provider.name, "leaf", {"id": 1})
         b = consumer.call(provider.name, "leaf", {"id": 2})
@@ -318,18 +307,16 @@ class TestLoad:
 
         assert (["x"], ["x"]) == (one.loads, two.loads)
 
-    def test_every_call_gets_its_own_uuid4_query_id(self, make_registrar, serve):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+    def test_every_call_gets_its_own_uuid4_query_id(self, served_pair):
+        provider, consumer, _leaf = served_pair
 
         ids = [consumer.call(provider.name, "leaf", "same").id for _ in range(3)]
 
         assert 3 == len(set(ids))
         assert all(4 == uuid.UUID(qid).version for qid in ids)
 
-    def test_the_returned_query_carries_its_metadata(self, make_registrar, serve):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+    def test_the_returned_query_carries_its_metadata(self, served_pair):
+        provider, consumer, _leaf = served_pair
 
         query = consumer.call(provider.name, "leaf", [1, 2])
 
@@ -338,9 +325,8 @@ class TestLoad:
         )
         assert expected == query
 
-    def test_a_duplicate_counts_as_one_more_consumer_under_its_own_id(self, make_registrar, serve):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+    def test_a_duplicate_counts_as_one_more_consumer_under_its_own_id(self, served_pair):
+        provider, consumer, _leaf = served_pair
 
         first = consumer.call(provider.name, "leaf", "camera")
         second = consumer.call(provider.name, "leaf", "camera")
@@ -349,9 +335,8 @@ class TestLoad:
         (resource,) = catalog_snapshot(provider).resources
         assert {first.id: consumer.name, second.id: consumer.name} == resource.consumers
 
-    def test_the_caller_may_choose_the_query_id(self, make_registrar, serve):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+    def test_the_caller_may_choose_the_query_id(self, served_pair):
+        provider, consumer, _leaf = served_pair
         chosen = str(uuid.uuid4())
 
         query = consumer.call(provider.name, "leaf", "camera", query_id=chosen)
@@ -511,11 +496,8 @@ class TestUnload:
 
     pytestmark = pytest.mark.both_apis  # the rules, against the async API too (conftest)
 
-    def test_the_unload_callback_runs_only_when_the_last_consumer_id_is_released(
-        self, make_registrar, serve
-    ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        leaf = serve(provider, "leaf")
+    def test_the_unload_callback_runs_only_when_the_last_consumer_id_is_released(self, served_pair):
+        provider, consumer, leaf = served_pair
         first = consumer.call(provider.name, "leaf", "camera")
         second = consumer.call(provider.name, "leaf", "camera")
 
@@ -525,9 +507,8 @@ class TestUnload:
 
         assert [("camera", {"resource": "camera"})] == leaf.unloads
 
-    def test_unload_returns_after_the_unload_callback_ran(self, make_registrar, serve):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        leaf = serve(provider, "leaf")
+    def test_unload_returns_after_the_unload_callback_ran(self, served_pair):
+        provider, consumer, leaf = served_pair
         query = consumer.call(provider.name, "leaf", "camera")
 
         consumer.unload(query.id)
@@ -549,9 +530,8 @@ class TestUnload:
         unloads = [server for server, what, _ in journal if what == "unload"]
         assert [f"{producer.name}/leaf", f"{agent.name}/composite"] == unloads
 
-    def test_unloading_an_unknown_id_raises_and_changes_nothing(self, make_registrar, serve):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+    def test_unloading_an_unknown_id_raises_and_changes_nothing(self, served_pair):
+        provider, consumer, _leaf = served_pair
         consumer.call(provider.name, "leaf", "camera")
         before = (catalog_snapshot(provider), catalog_snapshot(consumer))
 
@@ -560,11 +540,8 @@ class TestUnload:
 
         assert before == (catalog_snapshot(provider), catalog_snapshot(consumer))
 
-    def test_unloading_an_already_released_id_raises_and_changes_nothing(
-        self, make_registrar, serve
-    ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        leaf = serve(provider, "leaf")
+    def test_unloading_an_already_released_id_raises_and_changes_nothing(self, served_pair):
+        provider, consumer, leaf = served_pair
         kept = consumer.call(provider.name, "leaf", "camera")
         released = consumer.call(provider.name, "leaf", "camera")
         consumer.unload(released.id)
@@ -585,9 +562,8 @@ class TestUnload:
 
         assert [query.id] == [q.id for q in provider.server_queries("leaf")]
 
-    def test_a_dependency_id_cannot_be_unloaded_directly(self, make_registrar, serve, shared):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+    def test_a_dependency_id_cannot_be_unloaded_directly(self, served_pair, serve, shared):
+        provider, consumer, _leaf = served_pair
         sub_ids = shared.list()
         serve(
             provider,
@@ -620,9 +596,8 @@ class TestUnload:
         consumer.call(provider.name, "leaf", "camera")
         assert ["camera", "camera"] == loads
 
-    def test_a_resource_loads_again_after_it_was_unloaded(self, make_registrar, serve):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        leaf = serve(provider, "leaf")
+    def test_a_resource_loads_again_after_it_was_unloaded(self, served_pair):
+        provider, consumer, leaf = served_pair
         consumer.unload(consumer.call(provider.name, "leaf", "camera").id)
 
         consumer.call(provider.name, "leaf", "camera")
@@ -786,10 +761,9 @@ class TestDependencies:
         assert {sub_ids[0]: resource_id(agent, "composite")} == parents(agent)
 
     def test_a_call_to_a_server_of_the_same_registrar_is_a_dependency(
-        self, make_registrar, serve, shared
+        self, served_pair, serve, shared
     ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+        provider, consumer, _leaf = served_pair
         sub_ids = shared.list()
         serve(
             provider,
@@ -801,19 +775,17 @@ class TestDependencies:
 
         assert {sub_ids[0]: resource_id(provider, "composite")} == parents(provider)
 
-    def test_a_call_outside_any_load_is_a_top_level_query(self, make_registrar, serve):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+    def test_a_call_outside_any_load_is_a_top_level_query(self, served_pair):
+        provider, consumer, _leaf = served_pair
 
         query = consumer.call(provider.name, "leaf", "x")
 
         assert {query.id: None} == parents(consumer)
 
     def test_a_call_from_a_thread_that_runs_in_the_loads_context_is_a_dependency(
-        self, make_registrar, serve
+        self, served_pair, serve
     ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+        provider, consumer, _leaf = served_pair
 
         def composite(request):
             context = contextvars.copy_context()
@@ -841,10 +813,9 @@ class TestDependencies:
         assert {} == parents(provider)
 
     def test_concurrent_loads_record_their_dependencies_on_their_own_resources(
-        self, make_registrar, serve, shared
+        self, served_pair, serve, shared
     ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+        provider, consumer, _leaf = served_pair
         both_started = shared.barrier(2, timeout=5)
 
         def composite(request):
@@ -861,34 +832,25 @@ class TestDependencies:
             c.query.request: owner_of[c.parent] for c in snapshot.clients
         }
 
-    def test_dependencies_belong_to_the_resource_not_to_the_first_consumer(
-        self, make_registrar, serve
+    @pytest.mark.parametrize("released_first", ["first", "second"])
+    def test_dependencies_belong_to_the_resource_not_to_the_consumer_that_releases_first(
+        self, make_registrar, serve, released_first
     ):
         provider, first, second = (make_registrar(n) for n in ("provider", "first", "second"))
         leaf = serve(provider, "leaf")
         serve(provider, "composite", lambda r: provider.call(provider.name, "leaf", r).response)
         q1 = first.call(provider.name, "composite", "x")
         q2 = second.call(provider.name, "composite", "x")
+        (early, early_query), (last, last_query) = (
+            [(first, q1), (second, q2)]
+            if released_first == "first"
+            else [(second, q2), (first, q1)]
+        )
 
-        first.unload(q1.id)
+        early.unload(early_query.id)
 
-        assert [] == leaf.unloads, "the first consumer took the shared resource's dependency away"
-        second.unload(q2.id)
-        assert ["x"] == [request for request, _ in leaf.unloads]
-
-    def test_a_resource_keeps_its_dependencies_when_the_last_consumer_was_the_first(
-        self, make_registrar, serve
-    ):
-        provider, first, second = (make_registrar(n) for n in ("provider", "first", "second"))
-        leaf = serve(provider, "leaf")
-        serve(provider, "composite", lambda r: provider.call(provider.name, "leaf", r).response)
-        q1 = first.call(provider.name, "composite", "x")
-        q2 = second.call(provider.name, "composite", "x")
-
-        second.unload(q2.id)
-
-        assert [] == leaf.unloads
-        first.unload(q1.id)
+        assert [] == leaf.unloads, "the consumer released first took the dependency away"
+        last.unload(last_query.id)
         assert ["x"] == [request for request, _ in leaf.unloads]
 
     def test_a_load_that_calls_its_own_server_with_an_equal_request_raises_a_cycle_error(
@@ -1038,10 +1000,9 @@ class TestLoadErrors:
         assert (info.value.stack, str(info.value)) == (copy.stack, str(copy))
 
     def test_sub_resources_are_unloaded_when_the_load_callback_itself_raises(
-        self, make_registrar, serve
+        self, served_pair, serve
     ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        leaf = serve(provider, "leaf")
+        provider, consumer, leaf = served_pair
 
         def composite(request):
             provider.call(provider.name, "leaf", "part-1")
@@ -1157,10 +1118,9 @@ class TestLoadErrors:
         assert () == catalog_snapshot(agent).clients
 
     def test_a_sub_resource_shared_with_another_consumer_survives_the_rollback(
-        self, make_registrar, serve
+        self, served_pair, serve
     ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        leaf = serve(provider, "leaf")
+        provider, consumer, leaf = served_pair
         kept = consumer.call(provider.name, "leaf", "shared")
 
         def composite(request):
@@ -1609,10 +1569,9 @@ class TestUserCode:
 
     @pytest.mark.thread_only("makes thread starts fail in this process")
     def test_a_load_that_gets_no_worker_thread_fails_alone_and_the_registrar_serves_on(
-        self, make_registrar, serve, monkeypatch: pytest.MonkeyPatch
+        self, served_pair, monkeypatch: pytest.MonkeyPatch
     ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        leaf = serve(provider, "leaf")
+        provider, consumer, leaf = served_pair
         start = threading.Thread.start
 
         def refused(thread: threading.Thread) -> None:
@@ -2403,11 +2362,8 @@ class TestServers:
 
         assert sorted(made, key=lambda q: q.id) == sorted(listed, key=lambda q: q.id)
 
-    def test_server_queries_does_not_list_other_servers_or_released_ids(
-        self, make_registrar, serve
-    ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+    def test_server_queries_does_not_list_other_servers_or_released_ids(self, served_pair, serve):
+        provider, consumer, _leaf = served_pair
         serve(provider, "other")
         kept = consumer.call(provider.name, "leaf", "x")
         consumer.unload(consumer.call(provider.name, "leaf", "x").id)
@@ -2445,25 +2401,22 @@ class TestServers:
 
         assert (query.response, "x", agent.name) == (fetched.id, fetched.request, fetched.origin_rr)
 
-    def test_fetch_queries_is_empty_after_everything_was_unloaded(self, make_registrar, serve):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+    def test_fetch_queries_is_empty_after_everything_was_unloaded(self, served_pair):
+        provider, consumer, _leaf = served_pair
         consumer.unload(consumer.call(provider.name, "leaf", "x").id)
 
         assert [] == consumer.fetch_queries(provider.name, "leaf")
 
-    def test_fetch_queries_from_an_unknown_registrar_or_server_raises(self, make_registrar, serve):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+    def test_fetch_queries_from_an_unknown_registrar_or_server_raises(self, served_pair):
+        provider, consumer, _leaf = served_pair
 
         with pytest.raises(rr.UnknownServerError):
             consumer.fetch_queries(f"nobody-{uuid.uuid4().hex[:8]}", "leaf")
         with pytest.raises(rr.UnknownServerError):
             consumer.fetch_queries(provider.name, "nope")
 
-    def test_client_queries_lists_the_loaded_queries_a_registrar_holds(self, make_registrar, serve):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+    def test_client_queries_lists_the_loaded_queries_a_registrar_holds(self, served_pair):
+        provider, consumer, _leaf = served_pair
         first = consumer.call(provider.name, "leaf", "a")
         second = consumer.call(provider.name, "leaf", "b")
 
@@ -2484,9 +2437,8 @@ class TestServers:
         assert [q1.id] == [q.id for q in one.client_queries() if q.response == {"port": 4242}]
         assert [q2.id] == [q.id for q in two.client_queries() if q.response == {"port": 4242}]
 
-    def test_a_duplicate_after_update_response_gets_the_new_response(self, make_registrar, serve):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        leaf = serve(provider, "leaf")
+    def test_a_duplicate_after_update_response_gets_the_new_response(self, served_pair):
+        provider, consumer, leaf = served_pair
         query = consumer.call(provider.name, "leaf", "x")
         provider.update_response(query.id, "ready")
 
@@ -2494,9 +2446,8 @@ class TestServers:
 
         assert ("ready", 1) == (duplicate.response, len(leaf.loads))
 
-    def test_the_unload_callback_gets_the_updated_response(self, make_registrar, serve):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        leaf = serve(provider, "leaf")
+    def test_the_unload_callback_gets_the_updated_response(self, served_pair):
+        provider, consumer, leaf = served_pair
         query = consumer.call(provider.name, "leaf", "x")
         provider.update_response(query.id, "ready")
 
@@ -2504,9 +2455,8 @@ class TestServers:
 
         assert [("x", "ready")] == leaf.unloads
 
-    def test_update_response_for_an_unknown_id_raises(self, make_registrar, serve):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+    def test_update_response_for_an_unknown_id_raises(self, served_pair):
+        provider, consumer, _leaf = served_pair
         query = consumer.call(provider.name, "leaf", "x")
 
         with pytest.raises(rr.UnknownQueryError):
@@ -2517,10 +2467,9 @@ class TestServers:
         assert [{"resource": "x"}] == [q.response for q in provider.server_queries("leaf")]
 
     def test_set_status_callback_attaches_a_callback_to_a_query_made_without_one(
-        self, make_registrar, serve, inbox
+        self, served_pair, inbox
     ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+        provider, consumer, _leaf = served_pair
         query = consumer.call(provider.name, "leaf", "x")
         box = inbox()
 
@@ -2529,9 +2478,8 @@ class TestServers:
 
         assert [query.id] == [update.query_id for _, update in box.updates]
 
-    def test_set_status_callback_replaces_the_previous_callback(self, make_registrar, serve, inbox):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+    def test_set_status_callback_replaces_the_previous_callback(self, served_pair, inbox):
+        provider, consumer, _leaf = served_pair
         old, new = inbox(), inbox()
         query = consumer.call(provider.name, "leaf", "x", on_status=old)
 
@@ -2546,9 +2494,8 @@ class TestServers:
         with pytest.raises(rr.UnknownQueryError):
             consumer.set_status_callback(str(uuid.uuid4()), lambda q, u: None)
 
-    def test_set_status_callback_rejects_a_non_callable(self, make_registrar, serve):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+    def test_set_status_callback_rejects_a_non_callable(self, served_pair):
+        provider, consumer, _leaf = served_pair
         query = consumer.call(provider.name, "leaf", "x")
 
         with pytest.raises(rr.ConfigError):
@@ -2907,10 +2854,9 @@ class TestTemotoFaults:
         assert 1 == len(leaf.loads)
 
     def test_fault_an_exception_from_the_load_callback_itself_leaked_sub_resources(
-        self, make_registrar, serve
+        self, served_pair, serve
     ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        leaf = serve(provider, "leaf")
+        provider, consumer, leaf = served_pair
 
         def composite(request):
             provider.call(provider.name, "leaf", request)
@@ -2954,9 +2900,8 @@ class TestTemotoFaults:
         with pytest.raises(rr.DependencyCycleError):
             consumer.call(a.name, "x", "ping", timeout=20)
 
-    def test_fault_a_self_call_lost_dependency_tracking(self, make_registrar, serve):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        leaf = serve(provider, "leaf")
+    def test_fault_a_self_call_lost_dependency_tracking(self, served_pair, serve):
+        provider, consumer, leaf = served_pair
         serve(provider, "composite", lambda r: provider.call(provider.name, "leaf", r).response)
         query = consumer.call(provider.name, "composite", "x")
 
@@ -2966,9 +2911,8 @@ class TestTemotoFaults:
         assert record.parent is not None
         assert 1 == len(leaf.unloads)
 
-    def test_fault_consumer_records_were_never_cleared(self, make_registrar, serve):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+    def test_fault_consumer_records_were_never_cleared(self, served_pair):
+        provider, consumer, _leaf = served_pair
         consumer.call(provider.name, "leaf", "x")
         consumer.unload(consumer.call(provider.name, "leaf", "y").id)
 

@@ -360,11 +360,8 @@ class TestStatus:
             update.source,
         )
 
-    def test_send_status_works_with_any_consumer_id_of_the_resource(
-        self, make_registrar, serve, inbox
-    ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+    def test_send_status_works_with_any_consumer_id_of_the_resource(self, served_pair, inbox):
+        provider, consumer, _leaf = served_pair
         first, second = inbox(), inbox()
         consumer.call(provider.name, "leaf", "cam", on_status=first)
         q2 = consumer.call(provider.name, "leaf", "cam", on_status=second)
@@ -476,14 +473,11 @@ class TestStatus:
 
         assert ran.is_set()
 
-    def test_send_status_gives_up_on_a_hung_callback_and_names_it(
-        self, make_registrar, serve, gates, inbox
-    ):
+    def test_send_status_gives_up_on_a_hung_callback_and_names_it(self, served_pair, gates, inbox):
         """Issue 53: a hung callback is given up on within the timeout, and named; the
         others were reached. Mutation caught: `send_status` waits for every callback
         (it raised `CallTimeoutError` for all of them)."""
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+        provider, consumer, _leaf = served_pair
         gate = gates()
         box = inbox()
         hung = consumer.call(provider.name, "leaf", "x", on_status=lambda q, u: gate.wait(30))
@@ -535,11 +529,8 @@ class TestStatus:
         assert ((), 1) == (delivery.reached, len(delivery.gave_up))
         assert isinstance(error, rr.CallTimeoutError)
 
-    def test_a_status_callback_that_raises_does_not_stop_delivery(
-        self, make_registrar, serve, inbox
-    ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+    def test_a_status_callback_that_raises_does_not_stop_delivery(self, served_pair, inbox):
+        provider, consumer, _leaf = served_pair
 
         def broken(query, update):
             raise RuntimeError("callback bug")
@@ -552,9 +543,8 @@ class TestStatus:
 
         assert 1 == len(box.updates)
 
-    def test_a_released_consumer_no_longer_hears_status(self, make_registrar, serve, inbox):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+    def test_a_released_consumer_no_longer_hears_status(self, served_pair, inbox):
+        provider, consumer, _leaf = served_pair
         gone, kept = inbox(), inbox()
         released = consumer.call(provider.name, "leaf", "x", on_status=gone)
         still = consumer.call(provider.name, "leaf", "x", on_status=kept)
@@ -565,10 +555,9 @@ class TestStatus:
         assert ([], 1) == (gone.updates, len(kept.updates))
 
     def test_a_status_callback_may_call_unload_and_send_status_on_the_sender(
-        self, make_registrar, serve, shared
+        self, served_pair, serve, shared
     ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+        provider, consumer, _leaf = served_pair
         serve(provider, "spare")
         done = shared.list()
 
@@ -607,9 +596,8 @@ class TestStatus:
 
         assert [query.id] == done
 
-    def test_a_status_callback_may_unload_the_resource_it_hears_about(self, make_registrar, serve):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        leaf = serve(provider, "leaf")
+    def test_a_status_callback_may_unload_the_resource_it_hears_about(self, served_pair):
+        provider, consumer, leaf = served_pair
 
         def give_up(query, update):
             consumer.unload(query.id, timeout=5)
@@ -631,19 +619,15 @@ class TestStatus:
         with pytest.raises(rr.UnknownQueryError):
             provider.send_status(str(uuid.uuid4()), rr.Status.OK, "")
 
-    def test_only_the_provider_can_send_status_about_a_resource(self, make_registrar, serve):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+    def test_only_the_provider_can_send_status_about_a_resource(self, served_pair):
+        provider, consumer, _leaf = served_pair
         query = consumer.call(provider.name, "leaf", "x")
 
         with pytest.raises(rr.UnknownQueryError):
             consumer.send_status(query.id, rr.Status.OK, "")
 
-    def test_a_consumer_sending_status_with_its_own_id_is_told_who_sends_it(
-        self, make_registrar, serve
-    ):
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+    def test_a_consumer_sending_status_with_its_own_id_is_told_who_sends_it(self, served_pair):
+        provider, consumer, _leaf = served_pair
         query = consumer.call(provider.name, "leaf", "x")
 
         with pytest.raises(rr.UnknownQueryError) as raised:
@@ -697,7 +681,7 @@ class TestStatus:
         assert rr.StatusDelivery((), (query.id,)) == delivery
 
     def test_a_status_callback_may_send_a_status_that_reaches_its_own_client(
-        self, make_registrar, serve, inbox, shared
+        self, served_pair, inbox, shared
     ):
         """Rule 9: a status callback may call `send_status` on the sender without deadlock.
 
@@ -706,8 +690,7 @@ class TestStatus:
         any one thread per client, instead of on workers: the nested delivery then waits
         behind the running callback (a deadlock, cut by the nested call's timeout).
         """
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+        provider, consumer, _leaf = served_pair
         box = inbox()
         outcome = shared.list()
         other = consumer.call(provider.name, "leaf", "b", on_status=box)
@@ -727,15 +710,12 @@ class TestStatus:
         assert ["delivered"] == outcome
         assert [(other.id, "nested")] == [(u.query_id, u.message) for _, u in box.updates]
 
-    def test_a_status_callback_may_send_a_status_that_reaches_its_own_id(
-        self, make_registrar, serve, shared
-    ):
+    def test_a_status_callback_may_send_a_status_that_reaches_its_own_id(self, served_pair, shared):
         """Rule 9: a callback that sends a status about the resource it hears of waits for
         its own id's next callback. Each id hears its statuses one at a time, but a
         callback that waits for a registrar lets its id's next status start: that one
         runs beside it (issue 51 finding 6), not after the nested send timed out."""
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+        provider, consumer, _leaf = served_pair
         heard, outcome = shared.list(), shared.list()
 
         def reentrant(query, update):
@@ -860,15 +840,14 @@ class TestHungConsumer:
     @pytest.mark.timeout(240)  # (2,000 statuses to a manager process: 45 s at a load of 8)
     @pytest.mark.parametrize("hang", [Said, AwaitedSaid], ids=["plain", "coroutine"])
     def test_a_hung_callback_costs_a_bounded_number_of_threads_and_is_named_as_given_up(
-        self, make_registrar, serve, gates, shared, registrar_placement, hang
+        self, served_pair, gates, shared, registrar_placement, hang
     ):
         """Plain or coroutine alike. Mutation caught: `send_status` waits for every
         callback (it raised `CallTimeoutError` at the first status, and each of the 2,000
         waited its timeout); a status queued behind a busy callback starts a thread;
         coalescing undone (the hung id hears every status once its callback returns; a
         coroutine one's were each a task queued on its loop)."""
-        provider, consumer = make_registrar("provider"), make_registrar("consumer")
-        serve(provider, "leaf")
+        provider, consumer, _leaf = served_pair
         gate = gates()
         hung_said, said = shared.list(), shared.list()
         hung = consumer.call(provider.name, "leaf", "x", on_status=hang(hung_said, gate))
