@@ -917,7 +917,7 @@ def test_simprogram_seed_215_holds_a_release_committed_before_the_program_was_ki
     # restore lacked the id, api's listed it under the resource being unloaded, and `kept`
     # took it for a committed row lost (that shape is held by test_check's
     # `test_a_release_its_consumer_committed_before_a_kill_of_both_lost_from_a_restore_holds`;
-    # seeds 1-20 and 150-170 of today's runtime do not reach it). Since, api's own commit of
+    # seeds 1-76 and 150-225 of this runtime do not reach it). Since, api's own commit of
     # the release is what the kill cut off: its restore lists the parent `unloading` and
     # lacks the dependency, which `record-kept` took for a lost record (rule 12's release
     # under way). (Seed 125 until a restart was announced by its supervisor.)
