@@ -417,9 +417,9 @@ PLANTS = (
         "a group restarted in the order it was stopped in: one_for_all's siblings come "
         "back in reverse start order (OTP starts them in start order; issue 51)",
         "_supervision/policy.py",
-        "        for child in record.children:\n"
+        "        for child in map(record.by_name.__getitem__, event.names):  # (in start order)\n"
         '            if child.state != "restarting" or self._due.get(child.name) is not event:\n',
-        "        for child in reversed(record.children):  # PLANTED: record.children\n"
+        "        for child in reversed([*map(record.by_name.get, event.names)]):  # PLANTED\n"
         '            if child.state != "restarting" or self._due.get(child.name) is not event:\n',
         "crashloop",
         "strategy",
