@@ -87,13 +87,13 @@ LEFT_OUT = ("core/VariableInserter", "core/VariableReplacer")  # (random: not re
 EQUIVALENT: dict[str, str] = {
     "_registrar/consumer.py:744:NumberReplacer:1": "an id never answered: 0 < epoch and "
     "-1 < epoch alike, every epoch asked being new_epoch()'s, at least 1",
-    "_supervision/policy.py:258:ReplaceComparisonOperator_NotEq_IsNot": "incarnations are "
+    "_supervision/policy.py:264:ReplaceComparisonOperator_NotEq_IsNot": "incarnations are "
     "ints from 0 up by 1: `is not` is `!=` in CPython up to 256 (its small ints), so for "
     "every run with fewer than 257 restarts of one child",
-    "_supervision/policy.py:372:ReplaceComparisonOperator_Eq_Is": "`Child.state` is only "
+    "_supervision/policy.py:378:ReplaceComparisonOperator_Eq_Is": "`Child.state` is only "
     "ever set to string literals (`ChildState`), which CPython interns (identifier-like): "
     "`is 'restarting'` is `== 'restarting'`",
-    "_supervision/children.py:342:ReplaceFalseWithTrue": "a default of `Level.stop`, a "
+    "_supervision/children.py:351:ReplaceFalseWithTrue": "a default of `Level.stop`, a "
     "`Protocol` stub no class inherits: a call runs its implementation's own signature",
     "_supervision/watching.py:52:NumberReplacer": "`_since` before any switch on: events "
     "are kept from `at >= since`, a wall clock's seconds (the simulation's from 2026), so "
