@@ -182,17 +182,26 @@ def test_nothing_is_read_back_at_an_exit_nobody_listens_to(tally: Tally, tmp_pat
 # -- numbers no event took, and the journal's cut (issue 68: a killed process's last events)
 
 
+def _kept(
+    tally: Tally, tmp_path: Path, seqs: tuple[int, ...]
+) -> tuple[Journal, list[Any], Received]:
+    """A journal that kept events `seqs`, and a receiver (no backup) handing what it gets
+    to the list."""
+    journal = Journal.open(tally.path)
+    assert journal is not None
+    got: list[Any] = []
+    received = Received(got.extend, tally, str(tmp_path / "none.db"))
+    for seq in seqs:
+        journal(added(seq))
+    return journal, got, received
+
+
 def test_numbers_of_events_a_kill_came_before_are_told_unused_not_lost(
     tally: Tally, tmp_path: Path
 ) -> None:
     # 3 was built on the actor's thread and waited for its commit; 4, built after it on
     # another thread, was published and kept; the kill came before 3's commit
-    journal = Journal.open(tally.path)
-    assert journal is not None
-    got: list[Any] = []
-    received = Received(got.extend, tally, str(tmp_path / "none.db"))
-    for seq in (1, 2, 4):
-        journal(added(seq))
+    _journal, got, received = _kept(tally, tmp_path, (1, 2, 4))
     received.deliver("erm", [added(1), added(2)])
 
     received.count_lost("erm", PID)
@@ -206,12 +215,7 @@ def test_an_event_kept_out_of_order_and_never_sent_is_given_back(
 ) -> None:
     # 4 arrived; 3, built before it on another thread, was published (kept) after it had
     # been sent: a hole below the last number received, read back from the journal
-    journal = Journal.open(tally.path)
-    assert journal is not None
-    got: list[Any] = []
-    received = Received(got.extend, tally, str(tmp_path / "none.db"))
-    for seq in (1, 2, 4):
-        journal(added(seq))
+    journal, got, received = _kept(tally, tmp_path, (1, 2, 4))
     received.deliver("erm", [added(1), added(2), added(4)])
     journal(added(3))
 
@@ -221,12 +225,7 @@ def test_an_event_kept_out_of_order_and_never_sent_is_given_back(
 
 
 def test_a_record_torn_by_the_kill_is_a_kill_before_its_event(tally: Tally, tmp_path: Path) -> None:
-    journal = Journal.open(tally.path)
-    assert journal is not None
-    got: list[Any] = []
-    received = Received(got.extend, tally, str(tmp_path / "none.db"))
-    for seq in (1, 2, 4):
-        journal(added(seq))
+    journal, got, received = _kept(tally, tmp_path, (1, 2, 4))
     journal(added(3))
     os.truncate(tally.path, os.path.getsize(tally.path) - 5)  # the kill within 3's write
     received.deliver("erm", [added(1), added(2)])
@@ -241,12 +240,7 @@ def test_events_kept_then_cut_from_the_journal_unsent_are_counted_lost(
     tally: Tally, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.setattr(tally_module, "JOURNAL_BYTES", 1)
-    journal = Journal.open(tally.path)
-    assert journal is not None
-    got: list[Any] = []
-    received = Received(got.extend, tally, str(tmp_path / "none.db"))
-    for seq in (1, 2, 3):
-        journal(added(seq))
+    journal, got, received = _kept(tally, tmp_path, (1, 2, 3))
     received.deliver("erm", [added(1)])
     journal.sent()  # the batch of 1 went; 2 and 3, kept, are cut before they are sent
     journal(added(4))
