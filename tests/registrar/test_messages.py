@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
-from rr_actors._core import runtime
+from rr_actors._core import runtime, wire
 from rr_actors._core.replies import FutureReply, wait
 from rr_actors._registrar import messages
 from rr_actors._registrar.messages import Load
@@ -307,3 +307,10 @@ def _hold_the_reader(provider: str, holding: Any, release: Any) -> Any:
     holding.set()
     release.wait(30)
     return "holder"
+
+
+def test_a_reconciles_answer_crosses_as_a_wire_type_by_the_c_pickler() -> None:
+    answer = messages.Reconciled(("q-1", "q-2"), "life-1")
+
+    assert wire.plain(answer)  # (so no cloudpickle pass, as every message)
+    assert answer == pickle.loads(wire.dumps(answer))
