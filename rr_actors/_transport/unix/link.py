@@ -231,7 +231,10 @@ class Writer:
         self._sock = sock
         self._closed = False
         self._on_failure = on_failure
-        self._executor = SerialExecutor(name, on_drop=_lost, on_end=self._close_socket)
+        # (transient: no thread while idle, as a sender writes inline what the socket takes)
+        self._executor = SerialExecutor(
+            name, on_drop=_lost, on_end=self._close_socket, transient=True
+        )
 
     @property
     def closed(self) -> bool:

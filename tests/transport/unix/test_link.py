@@ -796,6 +796,40 @@ def test_a_frame_refused_by_a_connection_that_closed_under_it_is_sent_again_on_t
     assert 0 == others[0].future.get(timeout=10)
 
 
+# -- threads per connection (issue 69) ----------------------------------------------------------
+
+
+def test_an_idle_connection_to_a_registrar_of_another_process_holds_only_its_reader_here(
+    system: System, start_provider: ProviderFactory
+) -> None:
+    # A process that called a thousand managers held three threads for each: its client,
+    # the connection's reader and its writer, the writer waiting for ever once it had
+    # connected. A sender writes inline while the socket takes the frame, so the writer's
+    # thread ends once its queue ran empty, and the next frame that must wait starts one.
+    provider = start_provider()
+    peer = system.resolve(provider.name)
+    assert isinstance(peer, Remote)
+    assert 0 == peer.run(load_count, timeout=10)  # (connected on the writer's thread)
+
+    def alive(role: str) -> list[threading.Thread]:
+        return [t for t in threading.enumerate() if t.name == f"rr-{role}-{provider.name}"]
+
+    writers = alive("write")
+    for writer in writers:
+        writer.join(10)
+    assert [] == alive("write")
+    assert 1 == len(alive("read"))
+    assert 0 == peer.run(load_count, timeout=10)  # (the next frames go out inline)
+    assert [] == alive("write")
+    big = b"x" * (8 << 20)  # (more than the socket takes at once: a writer thread sends the rest)
+    assert len(big) == peer.run(functools.partial(_size_of, big), timeout=30)
+    assert 1 == len(alive("read"))
+
+
+def _size_of(data: bytes, _registrar: Any) -> int:
+    return len(data)
+
+
 # -- a frame behind a connect: lost with its sender (issue 51) ---------------------------------
 
 
