@@ -123,7 +123,8 @@ class SerialExecutor:
     def submit(self, task: Task, *, inline: Callable[[], Task | None] | None = None) -> bool:
         """Run `task` after every task submitted before; `False` if closed. When idle, `inline()`
         runs instead, on this thread under the lock (no blocking, no submit), returning `None` or
-        the task to run next; what it raises is raised here."""
+        the task to run next; what it raises is raised here, as is `RuntimeError` when no thread
+        can be started for it (the task is then not taken)."""
         with self._lock:  # (the plain lock under `_cond`: no Python-level `__enter__`)
             if self._closing:
                 return False
@@ -136,7 +137,12 @@ class SerialExecutor:
             if self._sleeping:
                 self._cond.notify()
             elif self._thread is None and not self._busy:
-                self._start()
+                try:
+                    self._start()
+                except RuntimeError:  # no thread (a machine's bound): not taken, said so
+                    self._tasks.pop()
+                    self._thread = None
+                    raise
             return True
 
     def call(self, fn: Callable[[], T]) -> T:
