@@ -201,8 +201,12 @@ def one_tree(
         failed_calls=caller.failed,
         step="stop",
     )
-    # the app's stop first, timed apart: its releases (rule 12: one at a time, newest
-    # first) are the app's, not the tree's; `sup.stop()` would do them first otherwise
+    stop_tree(sup, app, bound)
+
+
+def stop_tree(sup: rr.Supervisor, app: rr.ResourceRegistrar, bound: float) -> None:
+    """The app's stop first, timed apart: its releases (rule 12: one at a time, newest
+    first) are the app's, not the tree's (`sup.stop()` would do them first otherwise)."""
     held = len(app.client_queries(timeout=bound))
     began = time.perf_counter()
     app.stop(timeout=bound)
