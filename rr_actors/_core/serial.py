@@ -51,12 +51,21 @@ class _Mark:
             self.reached.set()
 
 
+def _parked() -> None:
+    """`_next`'s answer to a transient executor's thread when its queue ran empty: end."""
+
+
+_PARKED: Task = _parked
+
+
 class SerialExecutor:
     """One daemon thread (`name`, started at the first task that waits) running its tasks one at
     a time, in order; what one raises is logged. `linger`: seconds the thread waits once the
     queue ran empty (a burst does not wake it); `every`: `(seconds, task)` also run between
     tasks; `on_idle` when the queue ran empty; `on_drop` with each task `close` drops; `on_end`
-    once, last (on its thread if it has one, else the closing thread)."""
+    once, last (on its thread if it has one, else the closing thread). `transient`: the thread
+    ends once the queue ran empty, and the next task that waits starts another (a connection's
+    writer: a thread per blocked burst, none while idle)."""
 
     def __init__(
         self,
@@ -67,8 +76,10 @@ class SerialExecutor:
         on_idle: Task | None = None,
         on_drop: Callable[[Task], object] | None = None,
         on_end: Task | None = None,
+        transient: bool = False,
     ) -> None:
         self.name = name
+        self._transient = transient and every is None
         self._linger = linger
         self._every = every
         self._on_idle = on_idle
@@ -112,7 +123,8 @@ class SerialExecutor:
     def submit(self, task: Task, *, inline: Callable[[], Task | None] | None = None) -> bool:
         """Run `task` after every task submitted before; `False` if closed. When idle, `inline()`
         runs instead, on this thread under the lock (no blocking, no submit), returning `None` or
-        the task to run next; what it raises is raised here."""
+        the task to run next; what it raises is raised here, as is `RuntimeError` when no thread
+        can be started for it (the task is then not taken)."""
         with self._lock:  # (the plain lock under `_cond`: no Python-level `__enter__`)
             if self._closing:
                 return False
@@ -125,7 +137,12 @@ class SerialExecutor:
             if self._sleeping:
                 self._cond.notify()
             elif self._thread is None and not self._busy:
-                self._start()
+                try:
+                    self._start()
+                except RuntimeError:  # no thread (a machine's bound): not taken, said so
+                    self._tasks.pop()
+                    self._thread = None
+                    raise
             return True
 
     def call(self, fn: Callable[[], T]) -> T:
@@ -254,6 +271,9 @@ class SerialExecutor:
             if self._closing and not self._tasks and not self._busy:
                 self._ended = self._busy = True
                 return None
+            if self._transient and not self._busy:  # idle: this thread ends, a submit starts one
+                self._thread = None
+                return _PARKED
             self._sleeping = True
             try:
                 if self._every is None:
@@ -267,6 +287,8 @@ class SerialExecutor:
         with self._cond:
             task = self._next()
         while task is not None:
+            if task is _PARKED:
+                return
             self._run_one(task)
             with self._cond:
                 self._busy = False

@@ -28,12 +28,10 @@ docs/explanation/architecture.md.
 from __future__ import annotations
 
 import collections
-import contextlib
 import dataclasses
 import functools
 import logging
 import os
-import resource
 import sys
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any, Protocol, TypeVar
@@ -42,6 +40,7 @@ from rr_actors import events
 from rr_actors._core import runtime, wire
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.serial import SerialExecutor
+from rr_actors._platform.base import bound_reached
 from rr_actors._process.child import HOOKS, provider_names
 from rr_actors._process.control import POOL_GAVE_UP_EXIT, POOL_HUNG_EXIT, Announce
 from rr_actors._process.heartbeat import Hang, Heartbeat, Look
@@ -473,45 +472,6 @@ class RestartIntensity:
 
 Nest = Callable[[SupervisorSpec, Callable[[SupervisorGaveUpError], None]], Level]
 """`nest(spec, on_gave_up)`: start a supervisor below this one (a `Node`)."""
-
-
-def _read(path: str) -> str:
-    try:
-        with open(path, encoding="ascii") as file:
-            return file.read().strip()
-    except OSError:
-        return "?"
-
-
-def bound_reached(error: BaseException | None) -> str | None:
-    """The machine's bound a failed start ran into, named with its value (`None`: none).
-    A manager that died while starting says nothing: then this process's open files and
-    the system's threads are compared with their bounds (at 90%)."""
-    nofile, nproc = (
-        resource.getrlimit(r)[0] for r in (resource.RLIMIT_NOFILE, resource.RLIMIT_NPROC)
-    )
-    kernel = "/proc/sys/kernel/"
-    files = f"open files per process (RLIMIT_NOFILE {nofile}: `ulimit -n`)"
-    threads = (
-        f"threads and processes (RLIMIT_NPROC {nproc}: `ulimit -u`; kernel.threads-max "
-        f"{_read(kernel + 'threads-max')}; kernel.pid_max {_read(kernel + 'pid_max')})"
-    )
-    for _ in range(8):  # (the error, what it was raised from; a relayed traceback's text)
-        text = f"{type(error).__name__}: {error}"
-        if "Too many open files" in text:
-            return files
-        if "can't start new thread" in text or "Resource temporarily unavailable" in text:
-            return threads
-        if "MemoryError" in text or "Cannot allocate memory" in text:
-            return "memory"
-        error = None if error is None else error.__cause__ or error.__context__
-    with contextlib.suppress(OSError, ValueError, IndexError):  # (no /proc: not known)
-        if nofile != resource.RLIM_INFINITY and len(os.listdir("/proc/self/fd")) > 0.9 * nofile:
-            return files
-        most = min(int(_read(kernel + "threads-max")), int(_read(kernel + "pid_max")))
-        if int(_read("/proc/loadavg").split()[3].split("/")[1]) > 0.9 * most:
-            return threads
-    return None
 
 
 class Starting:

@@ -211,6 +211,40 @@ def test_an_executor_that_never_ran_a_task_ends_on_the_closing_thread(executors)
     assert [threading.current_thread().name] == where
 
 
+def test_a_transient_executors_thread_ends_once_idle_and_the_next_task_starts_another(
+    executors,
+) -> None:
+    ended: list[str] = []
+    executor = executors(
+        "rr-test-transient",
+        transient=True,
+        on_end=lambda: ended.append(threading.current_thread().name),
+    )
+    threads: list[threading.Thread] = []
+    seen: list[int] = []
+    started, release = threading.Event(), threading.Event()
+    for burst in range(3):
+        started.clear()
+        release.clear()
+        executor.submit(hang(started, release))
+        for i in range(50):  # (queued behind the hung task: run in order on its thread)
+            executor.submit(lambda i=i: seen.append(i))
+        assert started.wait(10)
+        threads.append(_executor_thread(executor))
+        release.set()
+        threads[-1].join(10)
+        assert not threads[-1].is_alive(), f"burst {burst}: the thread outlived its queue"
+        assert list(range(50)) * (burst + 1) == seen
+    assert 3 == len({id(t) for t in threads})
+    assert executor.close(timeout=5)
+    assert [threading.current_thread().name] == ended  # (no thread left: the closing one)
+
+
+def _executor_thread(executor: SerialExecutor) -> threading.Thread:
+    (thread,) = [t for t in threading.enumerate() if t.name == executor.name]
+    return thread
+
+
 def test_on_idle_runs_when_a_burst_was_handled(executors) -> None:
     batches: list[list[int]] = []
     batch: list[int] = []

@@ -23,6 +23,7 @@ from multiprocessing.connection import Connection, answer_challenge, deliver_cha
 from typing import Protocol
 
 from rr_actors._core.serial import SerialExecutor, Task
+from rr_actors._platform.base import bound_reached
 from rr_actors._transport.codec import Oversized, frames, unframe
 from rr_actors._transport.messenger import (
     Endpoint,
@@ -231,7 +232,10 @@ class Writer:
         self._sock = sock
         self._closed = False
         self._on_failure = on_failure
-        self._executor = SerialExecutor(name, on_drop=_lost, on_end=self._close_socket)
+        # (transient: no thread while idle, as a sender writes inline what the socket takes)
+        self._executor = SerialExecutor(
+            name, on_drop=_lost, on_end=self._close_socket, transient=True
+        )
 
     @property
     def closed(self) -> bool:
@@ -247,6 +251,9 @@ class Writer:
         except OSError as exc:
             logger.debug("a send failed, the connection is closed: %s", exc)
             self.close()  # the caller cleans up: it knows what it was sending
+            return False
+        except RuntimeError as exc:  # no thread for what the socket did not take
+            self.fail(exc)
             return False
 
     def connect_with(self, connect: Callable[[], object]) -> None:
@@ -478,7 +485,11 @@ class Dial:
             limit = read_limit(self._system.address.limit_path(self.name))
             writer = Writer(None, lambda exc: self._failed(fresh, exc), f"rr-write-{self.name}")
             fresh = _Channel(writer, limit, self)
-            writer.connect_with(functools.partial(self._connect, fresh))  # (its first task)
+            try:
+                writer.connect_with(functools.partial(self._connect, fresh))  # (its first task)
+            except RuntimeError as exc:  # no thread to connect on: the machine's bound, named
+                writer.close()
+                raise self._no_thread(exc) from exc
             self._channel = channel = fresh
         return channel
 
@@ -504,11 +515,26 @@ class Dial:
             sock.close()
             return
         channel.reading = conn
-        threading.Thread(
-            target=self._read, args=(channel, conn), name=f"rr-read-{self.name}", daemon=True
-        ).start()
+        try:
+            threading.Thread(
+                target=self._read, args=(channel, conn), name=f"rr-read-{self.name}", daemon=True
+            ).start()
+        except RuntimeError as exc:  # no reader: what waits on it fails, naming the bound
+            channel.reading = None
+            conn.close()
+            channel.writer.fail(self._no_thread(exc))
+
+    def _no_thread(self, exc: RuntimeError) -> RrError:
+        """The error of a connection that got no thread: the machine's bound, with its value."""
+        bound = bound_reached(exc) or f"threads ({exc})"
+        return RegistrarUnavailableError(
+            f"registrar {self.name!r} cannot be reached: this machine's limit of {bound} "
+            "was reached (no thread for its connection)"
+        )
 
     def _failed(self, channel: _Channel, exc: BaseException) -> None:
+        if isinstance(exc, RuntimeError):
+            exc = self._no_thread(exc)
         if isinstance(exc, RrError):
             self._lose(channel, exc)
         else:
@@ -520,6 +546,9 @@ class Dial:
         if os.path.exists(self._system.address.tombstone_path(self.name)):
             return RegistrarStoppedError(f"registrar {self.name!r} was stopped", self.name)
         detail = f" ({type(cause).__name__}: {cause})" if cause is not None else ""
+        bound = None if cause is None else bound_reached(cause)  # (here, or the other side's)
+        if bound is not None:
+            detail += f": this machine's limit of {bound} was reached"
         return RegistrarUnavailableError(f"registrar {self.name!r} {how}{detail}")
 
     def _lose(self, channel: _Channel, error: RrError | None) -> None:

@@ -165,10 +165,11 @@ class UnixCarrier:
                 return
             self._judging.setdefault(name, time.monotonic() + ENDING_GRACE)
             if self._judge_thread is None:
-                self._judge_thread = threading.Thread(
+                judge = threading.Thread(
                     target=self._judge_loop, name="rr-unix-presence", daemon=True
                 )
-                self._judge_thread.start()
+                judge.start()  # (RuntimeError, no thread: the next end tries again)
+                self._judge_thread = judge
             self._presence.notify_all()
 
     def _drop(self, name: str | None, error: RrError) -> None:

@@ -15,9 +15,11 @@ import multiprocessing.synchronize
 import os
 import pickle
 import resource
+import shutil
 import signal
 import socket
 import struct
+import subprocess
 import sys
 import threading
 import time
@@ -794,6 +796,106 @@ def test_a_frame_refused_by_a_connection_that_closed_under_it_is_sent_again_on_t
     assert 0 == peer.run(load_count, timeout=10)
     assert 1 == len(others)
     assert 0 == others[0].future.get(timeout=10)
+
+
+# -- threads per connection (issue 69) ----------------------------------------------------------
+
+
+def test_an_idle_connection_to_a_registrar_of_another_process_holds_only_its_reader_here(
+    system: System, start_provider: ProviderFactory
+) -> None:
+    # A process that called a thousand managers held three threads for each: its client,
+    # the connection's reader and its writer, the writer waiting for ever once it had
+    # connected. A sender writes inline while the socket takes the frame, so the writer's
+    # thread ends once its queue ran empty, and the next frame that must wait starts one.
+    provider = start_provider()
+    peer = system.resolve(provider.name)
+    assert isinstance(peer, Remote)
+    assert 0 == peer.run(load_count, timeout=10)  # (connected on the writer's thread)
+
+    def alive(role: str) -> list[threading.Thread]:
+        return [t for t in threading.enumerate() if t.name == f"rr-{role}-{provider.name}"]
+
+    writers = alive("write")
+    for writer in writers:
+        writer.join(10)
+    assert [] == alive("write")
+    assert 1 == len(alive("read"))
+    assert 0 == peer.run(load_count, timeout=10)  # (the next frames go out inline)
+    assert [] == alive("write")
+    big = b"x" * (8 << 20)  # (more than the socket takes at once: a writer thread sends the rest)
+    assert len(big) == peer.run(functools.partial(_size_of, big), timeout=30)
+    assert 1 == len(alive("read"))
+
+
+def _size_of(data: bytes, _registrar: Any) -> int:
+    return len(data)
+
+
+CALLS_PAST_THE_BOUND = """
+import sys
+import rr_actors as rr
+
+def setup(registrar):
+    registrar.register_server("echo", load=lambda r: r, unload=lambda r, s: None)
+
+if __name__ == "__main__":
+    names = [f"m{i}" for i in range(50)]
+    sup = rr.Supervisor([rr.ManagerSpec(n, setup, isolation="process") for n in names])
+    sup.start()
+    app = sup.registrar("app")
+    try:
+        for name in names:
+            app.call(name, "echo", name, timeout=30)
+        print("answered", flush=True)
+    except Exception as exc:
+        print(f"{type(exc).__name__}: {exc}", flush=True)
+    sup.stop()
+    print("stopped", flush=True)
+"""
+"""A tree of 50 process managers (about 6 threads each) that fits in 420 pids, and an app
+that calls each of them (about 4 threads more each: its client and reader, the manager's
+connection and worker), so that it runs out of threads about halfway."""
+
+PID_MAX = 420
+
+
+def _in_own_pid_namespace(*command: str, timeout: float) -> subprocess.CompletedProcess[str]:
+    """Run `command` in a new PID namespace whose `kernel.pid_max` is `PID_MAX`."""
+    unshare = shutil.which("unshare") or "unshare"
+    setting = f'echo {PID_MAX} > /proc/sys/kernel/pid_max && exec "$@"'
+    return subprocess.run(
+        [unshare, "--pid", "--fork", "--mount-proc", "sh", "-c", setting, "sh", *command],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        check=False,
+    )
+
+
+def _own_pid_max() -> bool:
+    """Whether this machine gives a new PID namespace a `kernel.pid_max` of its own (Linux
+    6.14+, as root): a bound on threads that no other program shares."""
+    try:
+        return 0 == _in_own_pid_namespace("true", timeout=30).returncode
+    except (OSError, subprocess.TimeoutExpired):
+        return False
+
+
+@pytest.mark.skipif(not _own_pid_max(), reason="needs a PID namespace with its own pid_max")
+@pytest.mark.timeout(240)
+def test_a_call_past_the_machines_bound_on_threads_fails_in_one_line_naming_it() -> None:
+    # The app's 27th or so connection gets no thread, here (its writer or reader) or in the
+    # manager (its connection's): "can't start new thread" came out of `call`, or a refused
+    # handshake that did not say why. Now one line names the bound, with its value.
+    done = _in_own_pid_namespace(sys.executable, "-c", CALLS_PAST_THE_BOUND, timeout=200)
+
+    said = done.stdout.strip().splitlines()
+    assert 2 == len(said), done.stdout + done.stderr[-3000:]
+    assert said[0].startswith("RegistrarUnavailableError: registrar 'm"), said
+    assert "limit of threads and processes" in said[0], said
+    assert f"kernel.pid_max {PID_MAX})" in said[0], said
+    assert "stopped" == said[1]
 
 
 # -- a frame behind a connect: lost with its sender (issue 51) ---------------------------------
