@@ -44,6 +44,7 @@ from rr_actors._core import runtime, traces
 from rr_actors._core.actor import Actor, refuse
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.replies import FutureReply, Join
+from rr_actors._platform.base import bound_reached
 from rr_actors._registrar.calls import (
     AttemptState,
     CallAttempt,
@@ -784,9 +785,19 @@ class Holdings:
         """The client actor for `target_rr/server`, started on first use (thesis 4.3.3)."""
         ref = self.registrar.ref
         assert ref is not None
-        client = self.registrar.clients.start(
-            ref, self.registrar.name, message.target_rr, message.server
-        )
+        try:
+            client = self.registrar.clients.start(
+                ref, self.registrar.name, message.target_rr, message.server
+            )
+        except RuntimeError as exc:  # no thread for its actor: that call fails, naming the bound
+            bound = bound_reached(exc) or f"threads ({exc})"
+            error = RegistrarUnavailableError(
+                f"registrar {message.target_rr!r} cannot be reached: this machine's limit of "
+                f"{bound} was reached (no thread for its client)"
+            )
+            error.__cause__ = exc
+            reply.set_error(error)
+            return
         reply.set_result(client)
 
 

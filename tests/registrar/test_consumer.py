@@ -31,6 +31,7 @@ import pytest
 import rr_actors as rr
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._registrar import Served, life
+from rr_actors._registrar import consumer as consumer_module
 from rr_actors._registrar.consumer import Action, InFlight, decide
 from rr_actors._registrar.messages import ReconcileAsk, Reconciled
 from rr_actors._registrar.state import new_life
@@ -2053,3 +2054,27 @@ class TestReleaseRefused:
             provider.unload(unknown)
 
         assert f"unknown or released query id {unknown!r}" == str(raised.value)
+
+
+# -- a client actor with no thread: the machine's bound (issue 69) ----------------------------
+
+
+@pytest.mark.thread_only("the consumer's client actor is started in this process, patched here")
+def test_a_call_whose_client_gets_no_thread_fails_naming_the_bound_and_its_registrar_serves_on(
+    served_pair, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The 27th manager an app called under a low `pid_max`: its client actor's thread could
+    # not start, the registrar died of the `RuntimeError` in its open_client step, and every
+    # later call and the tree's stop with it.
+    provider, consumer, _ = served_pair
+    start = consumer_module.ClientActor.start
+
+    def no_thread(*args: Any, **kwargs: Any) -> Any:
+        raise RuntimeError("can't start new thread")
+
+    monkeypatch.setattr(consumer_module.ClientActor, "start", no_thread)
+    with pytest.raises(rr.RegistrarUnavailableError, match="limit of threads and processes"):
+        consumer.call(provider.name, "leaf", "x", timeout=10)
+
+    monkeypatch.setattr(consumer_module.ClientActor, "start", start)
+    assert "x" == consumer.call(provider.name, "leaf", "x", timeout=10).request
