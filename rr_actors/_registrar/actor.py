@@ -221,8 +221,7 @@ each manager process's start (42 dataclass walks a registrar)."""
 
 
 def _misfit(message: object, names: TextFields) -> ConfigError | None:
-    """A `ConfigError` naming the field of `message` among `names` that is not a str (`None`
-    if none): a registrar refuses a bad message rather than die of a `TypeError`."""
+    """A `ConfigError` naming a field of `names` not a str in `message` (refused, not fatal)."""
     for name, optional in names:
         value = getattr(message, name)
         if (

@@ -1041,11 +1041,10 @@ def start_registrar(
     announced: bool = False,
     at_exit: bool = True,
 ) -> ResourceRegistrar:
-    """`ResourceRegistrar.start`, its events relayed to `upstream`; `hold_in_doubt`: the
-    caller settles the in-doubt entries (a manager process runs its `setup` itself);
-    `announced`: its supervisor tells the system when it (re)starts (`announce_started`),
-    so it tells no registrar it has no business with; `at_exit`: stopped when the main
-    thread ends (a manager process's main thread never ends: it exits through `os._exit`)."""
+    """`ResourceRegistrar.start`, its events relayed to `upstream`; `hold_in_doubt`: the caller
+    settles the in-doubt entries (a manager process runs its `setup` itself); `announced`: its
+    supervisor tells the system when it (re)starts (`announce_started`), so it tells no registrar
+    it has no business with; `at_exit`: stopped as the main thread ends (a manager: `os._exit`)."""
     launched = launch(
         config,
         setting_up=setup is not None,

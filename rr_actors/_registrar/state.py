@@ -405,13 +405,11 @@ class Shared:
         for event in told:
             self.events.publish(event)
 
-    def _drain(self) -> Changes | None:
-        """The catalog's changes since the last drain, `None` if none (a held in-doubt
-        resource's are written once settled: `settle_held`)."""
+    def _drain(self) -> Changes | None:  # (`None`: nothing changed)
         if not self.catalog.changed():
             return None
         changes = self.catalog.drain_changes()
-        if self.held_in_doubt:
+        if self.held_in_doubt:  # written once settled (`settle_held`)
             for rid in self.held_in_doubt.intersection(changes.resources):
                 del changes.resources[rid]
             return changes if changes else None

@@ -33,7 +33,6 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger("rr_actors")
 
-
 timer_factory: runtime.StartTimer = runtime.thread_timer  # (tests replace it)
 
 

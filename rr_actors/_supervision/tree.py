@@ -224,8 +224,7 @@ class Tree:
         self.restarted_here: set[str] = set()  # a pool's, not yet told upward
 
     def abandon(self, root: Level, name: str, query_id: str, origin: str) -> None:
-        """Abandon `query_id` at provider `name` (`call_with_retry` gave up): now if it runs,
-        else when it is back (`give_back_abandoned`, under the same lock: never left behind)."""
+        """Abandon `query_id` at provider `name`: now if it runs, else at its next start."""
         with self.abandon_lock:
             child = find_child(root, name)
             if child is None or child.state != "running" or child.running is None:
