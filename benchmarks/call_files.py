@@ -13,7 +13,8 @@ How: every process of the tree is traced from its start, all threads (`sys.setpr
 and `threading.setprofile`), by a `sitecustomize` on `PYTHONPATH` (so in the forkservers
 and every process forked from them). At the mark each process forgets what it recorded
 (SIGUSR1, acknowledged); after the window each writes the files it ran (SIGUSR2).
-Counted: the distinct files under `rr_actors/` and `rr_actors_lab/`; `--list` prints them.
+Counted: the distinct files under `rr_actors/` and `rr_actors_lab/`; `--list` prints them,
+`--why` also each file's entries (its function, the caller, the thread).
 The heartbeat is off (its pings run whether or not a call does); the tree has a
 `state_dir` (a hit commits a consumer id). Read the rounds after the first: the first
 window also counts the spare manager process the supervisor forks in the background. Run
@@ -22,8 +23,8 @@ it from the root of the tree to count (the forkservers put the working folder fi
 
 `--fresh`: each counted call asks for a new request (a load, not a hit).
 
-Usage: python benchmarks/call_files.py [--rounds 3] [--list] [--only thread|process|restart]
-       [--fresh]
+Usage: python benchmarks/call_files.py [--rounds 3] [--list | --why]
+       [--only thread|process|restart] [--fresh]
 """
 
 from __future__ import annotations
@@ -46,13 +47,28 @@ import _harness
 
 HOOK = """
 import os, signal, sys, threading
-FOLDER = os.environ.get("RR_COUNT_FILES")
+FOLDER, WHY = os.environ.get("RR_COUNT_FILES"), os.environ.get("RR_COUNT_WHY")
 if FOLDER:
     SEEN = set()
 
     def _profile(frame, event, arg):
         if event == "call":
             SEEN.add(frame.f_code.co_filename)
+
+    def _why(frame, event, arg):  # (each entry into a file from another: who, on which thread)
+        if event == "call":
+            code, back = frame.f_code, frame.f_back
+            SEEN.add(code.co_filename)
+            if back is None or back.f_code.co_filename != code.co_filename:
+                caller = "-" if back is None else f"{back.f_code.co_filename}:{back.f_code.co_name}"
+                try:
+                    name = threading.current_thread().name
+                except Exception:  # (at the interpreter's exit)
+                    name = "?"
+                SEEN.add(f"{code.co_filename}\t{code.co_name} <- {caller} [{name}]")
+
+    if WHY:
+        _profile = _why
 
     def _write(name, text):
         path = os.path.join(FOLDER, name)
@@ -153,16 +169,36 @@ def signal_all(folder: str, signum: int, suffix: str) -> dict[int, Path]:
     raise RuntimeError(f"not every process answered signal {signum} within {BOUND:g} s")
 
 
-def ours(paths: list[str]) -> set[str]:
-    """The files of `paths` in the packages, from the package's folder on (whichever copy
-    a process imported: the forkservers' `-c` puts their working folder first)."""
+def short(path: str) -> str | None:
+    """`path` from the package's folder on (whichever copy a process imported: the
+    forkservers' `-c` puts their working folder first), `None` outside the packages."""
+    parts = Path(path).parts
+    for at in range(len(parts) - 1, -1, -1):
+        if parts[at] in PACKAGES:
+            return "/".join(parts[at:])
+    return None
+
+
+REASONS: dict[str, set[str]] = {}
+"""With `--why`: the last window's entries into each counted file."""
+
+
+def ours(lines: list[str]) -> set[str]:
+    """The files in the packages of a process's written `lines` (with `--why`, their
+    entries go into `REASONS`)."""
     found = set()
-    for path in paths:
-        parts = Path(path).parts
-        for at in range(len(parts) - 1, -1, -1):
-            if parts[at] in PACKAGES:
-                found.add("/".join(parts[at:]))
-                break
+    for line in lines:
+        path, _, entry = line.partition("\t")
+        name = short(path)
+        if name is not None:
+            found.add(name)
+            if entry:
+                callee, _, rest = entry.partition(" <- ")
+                caller, _, thread = rest.rpartition(" [")
+                caller_path, _, function = caller.rpartition(":")
+                where = short(caller_path) or "/".join(Path(caller_path).parts[-2:]) or "-"
+                thread = thread.rstrip("]").rstrip("0123456789-")  # (numbered threads: one)
+                REASONS.setdefault(name, set()).add(f"{callee} <- {where}:{function} [{thread}]")
     return found
 
 
@@ -190,6 +226,7 @@ CASES = ("thread", "process", "restart")
 def counted_files(folder: str, action: Callable[[], object]) -> set[str]:
     """The package files every process ran while `action` ran."""
     signal_all(folder, signal.SIGUSR1, ".marked")
+    REASONS.clear()
     action()
     files = signal_all(folder, signal.SIGUSR2, ".files")
     found: set[str] = set()
@@ -246,7 +283,11 @@ def pykka_floor(rounds: int) -> list[set[str]]:
             seen.clear()
             ref.ask("counted", timeout=BOUND)
             counts.append(
-                {name[name.rindex("/pykka/") + 1 :] for name in seen.copy() if "/pykka/" in name}
+                {
+                    path[path.rindex("/pykka/") + 1 :]
+                    for path in (line.partition("\t")[0] for line in seen.copy())
+                    if "/pykka/" in path
+                }
             )
         return counts
     finally:
@@ -280,7 +321,13 @@ def main() -> int:
     parser.add_argument("--list", action="store_true", help="the files of each case's last round")
     parser.add_argument("--only", choices=CASES, help="one case")
     parser.add_argument("--fresh", action="store_true", help="calls that load (thread, process)")
+    parser.add_argument(
+        "--why", action="store_true", help="each file's entries, of each case's last round"
+    )
     args = _harness.parse(parser, None)
+    if args.why:
+        os.environ["RR_COUNT_WHY"] = "1"
+    why: dict[str, dict[str, set[str]]] = {}
     with traced_work() as (work, folder):
         found: dict[str, list[set[str]]] = {"pykka ask (floor)": pykka_floor(args.rounds)}
         for case in (args.only,) if args.only else CASES:
@@ -289,16 +336,20 @@ def main() -> int:
             else:
                 kind: Literal["thread", "process"] = "thread" if case == "thread" else "process"
                 found[case] = call_rounds(folder, work, kind, args.rounds, fresh=args.fresh)
+            why[case] = dict(REASONS)
     rounds = [f"round {n}" for n in range(1, args.rounds + 1)]
     _harness.print_table(
         "distinct rr_actors/ and rr_actors_lab/ files run in the window, every process",
         ["case", *rounds],
         [(case, *(len(files) for files in each)) for case, each in found.items()],
     )
-    if args.list:
+    if args.list or args.why:
         for case, each in found.items():
             print(f"\n{case} ({len(each[-1])}):")
-            print("\n".join(f"  {name}" for name in sorted(each[-1])))
+            for name in sorted(each[-1]):
+                print(f"  {name}")
+                for entry in sorted(why.get(case, {}).get(name, ())):
+                    print(f"      {entry}")
     return 0
 
 

@@ -493,6 +493,10 @@ class Catalog:
         if self.track_changes:
             self._whole.add(rid)
 
+    def changed(self) -> bool:
+        """Whether a row changed since the last drain (never without `track_changes`)."""
+        return bool(self._dirty_resources or self._dirty_clients)
+
     def drain_changes(self) -> Changes:
         """Return and forget the rows changed since the last drain, in the order they first
         changed (always empty without `track_changes`)."""

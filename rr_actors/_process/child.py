@@ -345,8 +345,8 @@ def _run_manager(
         if address is not None:
             attached = address.attach()
             attached.supervised_by(_supervisor_pid(conn))  # it restarts this one (rule 19)
-        registrar = start_registrar(
-            config, upstream=line.hub, hold_in_doubt=True, announced=announced
+        registrar = start_registrar(  # (it ends by `_exit`: no hook at the main thread's end)
+            config, upstream=line.hub, hold_in_doubt=True, announced=announced, at_exit=False
         )
         HOOKS.hub = line.hub
         HOOKS.to_parent = control.send

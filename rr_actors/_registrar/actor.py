@@ -94,7 +94,6 @@ from rr_actors._registrar.messages import (
     UnregisterServer,
     UpdateResponse,
     YieldName,
-    misfit,
     text_fields,
 )
 from rr_actors._registrar.provider import Lives, Provider, Servers, Teardown, Unloading
@@ -220,6 +219,23 @@ TEXT_FIELDS: dict[type, TextFields] = {kind: text_fields(kind) for kind in DISPA
 """Each message's text fields, made at import: in a forkserver's preload once, not at
 each manager process's start (42 dataclass walks a registrar)."""
 
+
+def _misfit(message: object, names: TextFields) -> ConfigError | None:
+    """A `ConfigError` naming a field of `names` not a str in `message` (refused, not fatal)."""
+    for name, optional in names:
+        value = getattr(message, name)
+        if (
+            type(value) is not str
+            and not isinstance(value, str)
+            and not (optional and value is None)
+        ):
+            return ConfigError(
+                f"{name} must be a str{' or None' * optional}, not "
+                f"{type(value).__qualname__[:80]} ({type(message).__name__} refused)"
+            )
+    return None
+
+
 MESSAGE_STEPS: frozenset[str] = frozenset(step for step, _ in DISPATCH.values())
 """Steps that handle one message on the actor's thread (`before`/`after` it)."""
 
@@ -310,7 +326,7 @@ class RegistrarActor(Actor):
         if to is None:
             to = NO_REPLY
         # e.g. `unload(["id"])`: refused, not fatal (a message with no text field: no check)
-        if texts and (wrong := misfit(message, texts)) is not None:
+        if texts and (wrong := _misfit(message, texts)) is not None:
             if to is NO_REPLY:
                 self.unknown.warning("registrar %s ignored a message: %s", self.name, wrong)
             else:

@@ -1039,11 +1039,12 @@ def start_registrar(
     upstream: Publisher[events.Event] | None = None,
     hold_in_doubt: bool = False,
     announced: bool = False,
+    at_exit: bool = True,
 ) -> ResourceRegistrar:
-    """`ResourceRegistrar.start`, its events relayed to `upstream`; `hold_in_doubt`: the
-    caller settles the in-doubt entries (a manager process runs its `setup` itself);
-    `announced`: its supervisor tells the system when it (re)starts (`announce_started`),
-    so it tells no registrar it has no business with."""
+    """`ResourceRegistrar.start`, its events relayed to `upstream`; `hold_in_doubt`: the caller
+    settles the in-doubt entries (a manager process runs its `setup` itself); `announced`: its
+    supervisor tells the system when it (re)starts (`announce_started`), so it tells no registrar
+    it has no business with; `at_exit`: stopped as the main thread ends (a manager: `os._exit`)."""
     launched = launch(
         config,
         setting_up=setup is not None,
@@ -1052,14 +1053,15 @@ def start_registrar(
         announced=announced,
     )
     handle = ResourceRegistrar(launched)
-    stop_at_exit(
-        REGISTRARS,
-        f"registrar {handle.name!r}",
-        handle.is_alive,
-        lambda timeout: handle.stop(timeout=timeout),
-        provides=(handle.name,),
-        holds=lambda timeout: {q.serving_rr for q in handle.client_queries(timeout=timeout)},
-    )
+    if at_exit:
+        stop_at_exit(
+            REGISTRARS,
+            f"registrar {handle.name!r}",
+            handle.is_alive,
+            lambda timeout: handle.stop(timeout=timeout),
+            provides=(handle.name,),
+            holds=lambda timeout: {q.serving_rr for q in handle.client_queries(timeout=timeout)},
+        )
     if setup is not None:
         try:
             setup(handle)

@@ -635,23 +635,6 @@ def text_fields(kind: type) -> TextFields:
     )
 
 
-def misfit(message: object, names: TextFields) -> ConfigError | None:
-    """A `ConfigError` naming the field of `message` among `names` that is not a str (`None`
-    if none): a registrar refuses a bad message rather than die of a `TypeError`."""
-    for name, optional in names:
-        value = getattr(message, name)
-        if (
-            type(value) is not str
-            and not isinstance(value, str)
-            and not (optional and value is None)
-        ):
-            return ConfigError(
-                f"{name} must be a str{' or None' * optional}, not "
-                f"{type(value).__qualname__[:80]} ({type(message).__name__} refused)"
-            )
-    return None
-
-
 # -- what a load callback runs inside --------------------------------------------------
 
 

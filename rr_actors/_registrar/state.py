@@ -272,7 +272,7 @@ class Shared:
                 self.commit()
             return
         changes = self._drain()
-        if changes:
+        if changes is not None:
             self.saver.stage(changes)
             if not self.dirty:
                 self.dirty, self.turn_thread = True, runtime.get_ident()
@@ -375,7 +375,7 @@ class Shared:
             self.publish(*told)
             return None
         changes = self._drain()
-        if not changes and not (now and self.saver.pending):
+        if changes is None and not (now and self.saver.pending):
             self.publish(*told)
             return None
         healthy = self.saver.failure is None
@@ -394,7 +394,7 @@ class Shared:
         """`commit` in a turn that staged changes: in the turn's transaction (a staged row is
         written as it then is, with this change: its events go with it). The error, or `None`."""
         changes = self._drain()
-        if changes:
+        if changes is not None:
             self.saver.stage(changes)
         self.held.extend((event, True) for event in told)
         failed = self._write_turn()
@@ -405,11 +405,14 @@ class Shared:
         for event in told:
             self.events.publish(event)
 
-    def _drain(self) -> Changes:
+    def _drain(self) -> Changes | None:  # (`None`: nothing changed)
+        if not self.catalog.changed():
+            return None
         changes = self.catalog.drain_changes()
         if self.held_in_doubt:  # written once settled (`settle_held`)
             for rid in self.held_in_doubt.intersection(changes.resources):
                 del changes.resources[rid]
+            return changes if changes else None
         return changes
 
     def settle_held(self, rids: set[str]) -> CatalogWriteError | None:

@@ -33,9 +33,6 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger("rr_actors")
 
-_NOTHING = Changes({}, {})  # (what is pending when nothing is: never changed in place)
-
-
 timer_factory: runtime.StartTimer = runtime.thread_timer  # (tests replace it)
 
 
@@ -81,7 +78,7 @@ class Saver:
         self.flush_interval = (
             config.save_interval if store is not None and not config.save_on_modify else None
         )
-        self._pending = _NOTHING  # (never changed in place: `_take` replaces it)
+        self._pending: Changes | None = None  # (none: nothing is)
         self._failure: CatalogWriteError | None = None
 
     @property
@@ -95,7 +92,7 @@ class Saver:
 
     @property
     def pending(self) -> bool:
-        return bool(self._pending)
+        return self._pending is not None
 
     def schedule(self, tick: Callable[[], None]) -> runtime.Cancellable | None:
         """Start the save-interval timer (`tick` runs once, on the timer's thread); `None`
@@ -105,45 +102,46 @@ class Saver:
         return timer_factory(self.flush_interval, tick)
 
     def changed(
-        self, changes: Changes, told: Sequence[events.Event] = (), *, now: bool = False
+        self, changes: Changes | None, told: Sequence[events.Event] = (), *, now: bool = False
     ) -> bool:
-        """Take changes just made to the catalog; with `save_on_modify` (or `now`), write
-        them now with `told`; whether they were written now (`CatalogWriteError`: they
-        stay pending)."""
+        """Take changes just made to the catalog (`None`: none); with `save_on_modify` (or
+        `now`), write what is pending now with `told`; whether it was written now
+        (`CatalogWriteError`: it stays pending)."""
         if self.store is None:
             return False
-        self._take(changes)
+        if changes is not None:
+            self._take(changes)
         if not (self.on_modify or now):
             return False
         self.write(told)
         return True
 
     def stage(self, changes: Changes) -> None:
-        """Take changes to write with the next `write` (a registrar's turn), whatever the
-        policy."""
+        """Take changes (not empty: `Catalog.changed` said so) to write with the next
+        `write` (a registrar's turn), whatever the policy."""
         if self.store is None:
             return
         self._take(changes)
 
     def _take(self, changes: Changes) -> None:
         pending = self._pending
-        if pending:
-            pending.update(changes)
-        else:  # (most writes: nothing else waits)
+        if pending is None:  # (most writes: nothing else waits)
             self._pending = changes
+        else:
+            pending.update(changes)
 
     def write(self, told: Sequence[events.Event] = ()) -> None:
         """Write what is pending now with `told`, one transaction (the end of a registrar's
         turn). `CatalogWriteError`: the changes stay pending, `told` is dropped."""
         store, pending = self.store, self._pending
-        if store is None or not pending:
+        if store is None or pending is None:
             return
         try:
             store.write(pending, told)
         except CatalogWriteError as exc:
             self._failure = exc
             raise
-        self._pending = _NOTHING
+        self._pending = None
         self._failure = None
 
     def flush(self) -> None:
@@ -166,7 +164,7 @@ class Saver:
         if self.store is None:
             return
         damaged = self.store.damaged
-        if damaged is not None and self._pending and flush and not erase:
+        if damaged is not None and self._pending is not None and flush and not erase:
             logger.error(
                 "catalog backup %s is damaged (%s): the changes made since were not "
                 "written to it, and are lost with this stop",

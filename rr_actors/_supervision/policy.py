@@ -57,7 +57,6 @@ from rr_actors._supervision.children import (
     is_pool,
     pool_manager,
 )
-from rr_actors._supervision.retry import give_back_abandoned
 from rr_actors._supervision.tree import (
     Clock,
     Tree,
@@ -580,7 +579,7 @@ class Starting:
         restarted = child.name in tree.started
         tree.count_start(child.name)
         self._published_start(child, restarted=restarted)
-        give_back_abandoned(tree, child.name)
+        tree.give_back_abandoned(child.name)
         if not isinstance(spec, ManagerSpec):
             return
         if restarted:
@@ -705,7 +704,7 @@ class Starting:
         own = spec.state_dir if spec.state_dir is not None else self.state_dir
         for manager in managers(spec):
             tree.count_start(manager.name)
-            give_back_abandoned(tree, manager.name)
+            tree.give_back_abandoned(manager.name)
             if not restarted:
                 continue
             death_watch_missed(manager.name)

@@ -1,4 +1,4 @@
-"""Calls that wait out a provider's restart, and ids abandoned while it was down.
+"""Calls that wait out a provider's restart.
 
 ```
  call_with_retry ── the consumer's call ──► provider ── answer ────────────────► Query
@@ -9,8 +9,8 @@
      killed since the try began, once per restart count (restart_after_failure)
         │ timed out, or interrupted (a cancelled task)
         ▼
-   abandon_after_restart ── running? ── Abandon(id) to the provider now
-                            down?    ── kept in the tree; sent by its next start
+   abandon (`Tree.abandon`) ── running? ── Abandon(id) to the provider now
+                               down?    ── kept in the tree; sent by its next start
 ```
 
 Written once, as steps (`replies.Steps`): `call_with_retry` runs them blocking,
@@ -24,10 +24,9 @@ from typing import Any, Protocol
 
 from rr_actors._core import runtime
 from rr_actors._core.replies import Steps
-from rr_actors._registrar import Registrar, give_back
+from rr_actors._registrar import Registrar
 from rr_actors._registrar.handle import call_steps
 from rr_actors._supervision.children import ChildInfo
-from rr_actors._supervision.tree import Level, Tree, find_child
 from rr_actors._types import Query, StatusCallback
 from rr_actors.config import check_seconds
 from rr_actors.errors import (
@@ -172,22 +171,3 @@ def _check(
         raise ConfigError(
             f"query_id must be a non-empty str (or None: a fresh id), got {query_id!r}"
         )
-
-
-def abandon_after_restart(tree: Tree, root: Level, name: str, query_id: str, origin: str) -> None:
-    """Abandon `query_id` at provider `name`: now if it runs, else when it is back (under
-    the lock `give_back_abandoned` takes: never left behind)."""
-    with tree.abandon_lock:
-        child = find_child(root, name)
-        if child is None or child.state != "running" or child.running is None:
-            tree.abandon_later.setdefault(name, []).append((query_id, origin))
-            return
-    give_back(name, query_id, origin)
-
-
-def give_back_abandoned(tree: Tree, name: str) -> None:
-    """Send provider `name`, just started, the ids abandoned while it was down."""
-    with tree.abandon_lock:  # see abandon_after_restart
-        abandoned = tree.abandon_later.pop(name, [])
-    for query_id, origin in abandoned:
-        give_back(name, query_id, origin)

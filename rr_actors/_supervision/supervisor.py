@@ -17,7 +17,7 @@ sees a child that exited with OTP's `shutdown`); plus what OTP lacks, an exponen
         ├─ children.py: Child records, restart types; ThreadManager / ProcessManager /
         │    NestedSupervisor
         └─ tree.py: what the tree shares; lookups and the restart wait; death watch
-   retry.py: call_with_retry's steps (run here, awaited by aio.py) and abandoned ids
+   retry.py: call_with_retry's steps (run here, awaited by aio.py)
    aio.py: the awaitable twins (AsyncSupervision, this class's base)
 ```
 
@@ -611,7 +611,7 @@ class Supervisor(AsyncSupervision):
         timeout: float | None,
         query_id: str | None,
     ) -> Steps[Query]:
-        abandon = functools.partial(retry.abandon_after_restart, self._tree, self._node)
+        abandon = functools.partial(self._tree.abandon, self._node)
         return retry.call_with_retry(
             self,
             abandon,

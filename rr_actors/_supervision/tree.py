@@ -4,7 +4,7 @@
  Supervisor (public handle) ── owns ──► Tree ◄── shared by ── Node (root) ─► Node (nested) ─► ...
                                          │                      each: children (Child records),
    which_children / child / wait ──► published snapshots        gave_up, giving_up
-   (any thread, under tree.cond)         restart counts by name
+   (any thread, under tree.cond)         restart counts by name, ids abandoned while down
    a wait (RestartWait) ◄── watchers: each publish looks, a decided wait's future settles
 ```
 
@@ -34,7 +34,7 @@ from rr_actors._core.serial import SerialExecutor
 from rr_actors._platform import lockfile
 from rr_actors._process.control import preload
 from rr_actors._process.spare import SparePool
-from rr_actors._registrar import life
+from rr_actors._registrar import give_back, life
 from rr_actors._supervision.children import (
     Child,
     ChildInfo,
@@ -222,6 +222,22 @@ class Tree:
         self.upward: Callable[[str], None] | None = None
         self.ending: Ending | None = None  # the whole tree's stop, while it runs
         self.restarted_here: set[str] = set()  # a pool's, not yet told upward
+
+    def abandon(self, root: Level, name: str, query_id: str, origin: str) -> None:
+        """Abandon `query_id` at provider `name`: now if it runs, else at its next start."""
+        with self.abandon_lock:
+            child = find_child(root, name)
+            if child is None or child.state != "running" or child.running is None:
+                self.abandon_later.setdefault(name, []).append((query_id, origin))
+                return
+        give_back(name, query_id, origin)
+
+    def give_back_abandoned(self, name: str) -> None:
+        """Send provider `name`, just started, the ids abandoned while it was down."""
+        with self.abandon_lock:
+            abandoned = self.abandon_later.pop(name, [])
+        for query_id, origin in abandoned:
+            give_back(name, query_id, origin)
 
     def durable(self, config: RegistrarConfig) -> RegistrarConfig:
         """`config` at the tree's durability at least (a tree chooses for every manager),

@@ -9,6 +9,7 @@ import threading
 import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from types import FrameType
 from typing import Any
 
 import pytest
@@ -486,3 +487,54 @@ def test_the_first_registrar_of_a_process_walks_no_message_fields_its_imports_di
     )
 
     assert (0, "0\n") == (result.returncode, result.stdout), result.stderr
+
+
+# -- what one call runs (issue 71 item 5: `benchmarks/call_files.py`) -----------------------
+
+
+def _files_of_a_dedup_hit(tmp_path: Path) -> set[str]:
+    """The source files every thread ran during one dedup-hit call from a registrar of this
+    process to a durable one (the registrars' threads traced from their start)."""
+    seen: set[str] = set()
+
+    def profile(frame: FrameType, event: str, _arg: object) -> None:
+        if event == "call":
+            seen.add(frame.f_code.co_filename)
+
+    tag = uuid.uuid4().hex[:8]
+    threading.setprofile(profile)  # (the threads started from now on)
+    sys.setprofile(profile)
+    try:
+        provider = rr.ResourceRegistrar.start(
+            rr.RegistrarConfig(
+                name=f"hit-p-{tag}", backup_path=tmp_path / "p.db", save_on_modify=True
+            )
+        )
+        consumer = rr.ResourceRegistrar.start(f"hit-c-{tag}")
+        try:
+            provider.register_server("res", load=lambda r: r, unload=lambda r, s: None)
+            for _ in range(2):  # (the load, then a first hit)
+                consumer.call(provider.name, "res", "x", timeout=10)
+            seen.clear()
+            consumer.call(provider.name, "res", "x", timeout=10)
+            return set(seen)
+        finally:
+            consumer.stop(timeout=10)
+            provider.stop(timeout=10)
+    finally:
+        sys.setprofile(None)
+        threading.setprofile(None)
+
+
+@pytest.mark.parametrize(
+    "module",
+    [
+        "rr_actors/_registrar/messages.py",  # (the text-field check is the dispatch's own)
+        "rr_actors/_catalog/records.py",  # (a turn's changes are `None` or not empty)
+    ],
+)
+def test_a_dedup_hit_to_a_durable_registrar_of_this_process_runs_no_code_of(
+    module: str, tmp_path: Path
+) -> None:
+    ran = _files_of_a_dedup_hit(tmp_path)
+    assert [] == sorted(path for path in ran if Path(path).as_posix().endswith(module))

@@ -1,5 +1,5 @@
 """Tests of `rr_actors/_registrar/messages.py`: a message whose text field holds something else is
-refused, not fatal (`misfit`).
+refused, not fatal (the registrar actor's `_misfit`).
 """
 
 from __future__ import annotations

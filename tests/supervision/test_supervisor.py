@@ -21,7 +21,6 @@ import pytest
 import rr_actors as rr
 import rr_actors_lab.observe as _lab_observe
 from rr_actors import Supervisor, testing
-from rr_actors._supervision.retry import abandon_after_restart
 from rr_actors.config import Backoff, ManagerSpec, SupervisorSpec
 from tests.supervision.conftest import CallWithRetry
 from tests.support.supervising import (
@@ -81,7 +80,7 @@ def recording_provider(
 
 def abandon(sup: Supervisor, name: str, query_id: str, origin: str) -> None:
     """What `call_with_retry` does with an id when its wait for a restart ran out."""
-    abandon_after_restart(sup._tree, sup._node, name, query_id, origin)
+    sup._tree.abandon(sup._node, name, query_id, origin)
 
 
 def restarts(sup: Supervisor) -> dict[str, int]:
