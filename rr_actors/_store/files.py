@@ -263,30 +263,23 @@ def create(path: Path, *, synced: bool = False) -> bool:
     the file, then its name, on the disk (two syncs); else its pages are written back, not
     synced, before it is named (`write_back`)."""
     tmp = temporary_path(path, "creating")
-    cannot = f"backup_path {str(path)!r} cannot be created"
-    try:
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, FILE_MODE)
-    except OSError as exc:
-        raise ConfigError(f"{cannot}: {exc}") from exc
     linked = False
     try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, FILE_MODE)
         with open(fd, "wb") as file:
             os.fchmod(fd, FILE_MODE)  # (whatever the umask)
             file.write(schema.empty_image())
             file.flush()
-            if synced:
-                os.fdatasync(fd)
-            else:
-                write_back(fd)
+            os.fdatasync(fd) if synced else write_back(fd)
         with contextlib.suppress(FileExistsError):
             os.link(tmp, path)
             linked = True
         if synced:
             sync(path, directory=True)
     except OSError as exc:
-        raise ConfigError(f"{cannot}: {exc}") from exc
+        raise ConfigError(f"backup_path {str(path)!r} cannot be created: {exc}") from exc
     finally:
-        with contextlib.suppress(FileNotFoundError):
+        with contextlib.suppress(FileNotFoundError):  # (a random name: not another's)
             tmp.unlink()
     return linked
 

@@ -306,17 +306,14 @@ def empty_image() -> bytes:
     memory once a process (the forkserver's preload: once for every manager process), that
     `files.create` writes as a new backup: no connection, no statement, per file."""
     key = (SCHEMA_VERSION, MIGRATIONS)
-    image = _IMAGES.get(key)
-    if image is None:
+    if key not in _IMAGES:
         db = sqlite3.connect(":memory:", isolation_level=None)
-        try:
-            create(db)
-            made = bytearray(db.serialize())
-        finally:
-            db.close()
-        made[18:20] = b"\x02\x02"  # the header's file format versions: 2, WAL (SQLite's format)
-        image = _IMAGES[key] = bytes(made)
-    return image
+        create(db)
+        image = bytearray(db.serialize())
+        db.close()
+        image[18:20] = b"\x02\x02"  # the header's file format versions: 2, WAL (SQLite's format)
+        _IMAGES[key] = bytes(image)
+    return _IMAGES[key]
 
 
 def refresh_digests(db: sqlite3.Connection, name: str) -> None:
