@@ -67,7 +67,7 @@ from rr_actors._process.control import (
     stopped_cleanly,
 )
 from rr_actors._process.tally import Journal
-from rr_actors._store.schema import expected_objects
+from rr_actors._store.schema import empty_image, expected_objects
 from rr_actors._transport.messenger import Address, Transport
 from rr_actors.config import RegistrarConfig
 from rr_actors.errors import CatalogCorruptError, RrError
@@ -77,6 +77,8 @@ if TYPE_CHECKING:
     from rr_actors._registrar import ResourceRegistrar
 
 logger = logging.getLogger("rr_actors")
+
+empty_image()  # in the forkserver's preload: a fresh backup is written, not built, in each child
 
 START_HOLD = 1.0
 """Seconds at most the events of a start are held back so that `Ready` goes first."""

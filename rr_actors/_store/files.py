@@ -257,38 +257,30 @@ def remove_files(path: Path, suffixes: tuple[str, ...] = ("", *SIDE_FILES)) -> N
 
 
 def create(path: Path, *, synced: bool = False) -> bool:
-    """Build an empty catalog under a temporary name (one transaction, neither journaled
-    nor synced: no one opens it before it is whole), then link it into place (a file
-    another process created first wins); whether this one was. `ConfigError` if it cannot
-    be. `synced` (`durability="power"`): the file, then its name, on the disk (two syncs)."""
+    """Write an empty catalog (`schema.empty_image`: no SQLite connection) under a
+    temporary name, then link it into place (a file another process created first wins);
+    whether this one was. `ConfigError` if it cannot be. `synced` (`durability="power"`):
+    the file, then its name, on the disk (two syncs); else its pages are written back, not
+    synced, before it is named (`write_back`)."""
     tmp = temporary_path(path, "creating")
-    try:
-        _private_file(tmp)
-        db = sqlite3.connect(tmp, isolation_level=None)
-    except (sqlite3.Error, OSError) as exc:
-        remove_files(tmp)
-        raise ConfigError(f"backup_path {str(path)!r} cannot be created: {exc}") from exc
     linked = False
     try:
-        db.execute("PRAGMA journal_mode = OFF")
-        db.execute("PRAGMA synchronous = OFF")
-        schema.create(db)
-        db.execute("PRAGMA journal_mode = WAL")
-        db.close()
-        if synced:
-            sync(tmp)
-        else:
-            write_back(tmp)
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, FILE_MODE)
+        with open(fd, "wb") as file:
+            os.fchmod(fd, FILE_MODE)  # (whatever the umask)
+            file.write(schema.empty_image())
+            file.flush()
+            os.fdatasync(fd) if synced else write_back(fd)
         with contextlib.suppress(FileExistsError):
             os.link(tmp, path)
             linked = True
         if synced:
             sync(path, directory=True)
-    except (sqlite3.Error, OSError) as exc:
+    except OSError as exc:
         raise ConfigError(f"backup_path {str(path)!r} cannot be created: {exc}") from exc
     finally:
-        db.close()
-        remove_files(tmp)
+        with contextlib.suppress(FileNotFoundError):  # (a random name: not another's)
+            tmp.unlink()
     return linked
 
 
@@ -333,16 +325,12 @@ def sync(path: str | os.PathLike[str], *, directory: bool = False) -> None:
         os.close(fd)
 
 
-def write_back(path: Path) -> None:
-    """Start writing the file's pages out, not waiting nor syncing (Linux: ext4 then writes
-    them before it commits a name given to the file later, so a power cut leaves no name
-    or the whole file, never an empty one); never raises."""
+def write_back(fd: int) -> None:
+    """Start writing the open file's pages out, not waiting nor syncing (Linux: ext4 then
+    writes them before it commits a name given to the file later, so a power cut leaves no
+    name or the whole file, never an empty one); never raises."""
     with contextlib.suppress(OSError, AttributeError):  # (no `posix_fadvise`: macOS)
-        fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
-        try:
-            os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
-        finally:
-            os.close(fd)
+        os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
 
 
 @contextlib.contextmanager

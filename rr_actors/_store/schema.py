@@ -298,6 +298,24 @@ def create(db: sqlite3.Connection) -> None:
     db.execute("COMMIT")
 
 
+_IMAGES: dict[tuple[int, tuple[Callable[[sqlite3.Connection], None], ...]], bytes] = {}
+
+
+def empty_image() -> bytes:
+    """The bytes of an empty catalog file of `SCHEMA_VERSION` in WAL mode, made by SQLite in
+    memory once a process (the forkserver's preload: once for every manager process), that
+    `files.create` writes as a new backup: no connection, no statement, per file."""
+    key = (SCHEMA_VERSION, MIGRATIONS)
+    if key not in _IMAGES:
+        db = sqlite3.connect(":memory:", isolation_level=None)
+        create(db)
+        image = bytearray(db.serialize())
+        db.close()
+        image[18:20] = b"\x02\x02"  # the header's file format versions: 2, WAL (SQLite's format)
+        _IMAGES[key] = bytes(image)
+    return _IMAGES[key]
+
+
 def refresh_digests(db: sqlite3.Connection, name: str) -> None:
     """Recompute every stored digest if they were written under another `DIGEST_SCHEME`
     (one transaction; a request that cannot be decoded keeps `NULL`)."""

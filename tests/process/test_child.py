@@ -448,3 +448,25 @@ def test_an_event_forwarded_as_its_journal_pickle_arrives_as_the_event(
     finally:
         line.flush(timeout=5.0)
         tally.close()
+
+
+def needs_the_empty_image_made(registrar: rr.ResourceRegistrar) -> None:
+    """A manager's setup, run with no backup: it fails unless its process was forked with
+    the empty catalog's image made (`schema.empty_image`, in the forkserver's preload)."""
+    from rr_actors._store import schema  # noqa: PLC0415 - in the manager's process
+
+    if not schema._IMAGES:
+        raise RuntimeError("this manager process would build the empty catalog itself")
+
+
+def test_a_manager_process_is_forked_with_the_empty_catalog_image_already_made() -> None:
+    """The image a fresh backup is written from is made once, in the forkserver, not in
+    each manager process that creates its backup (a manager without one shows it)."""
+    name = f"img-{os.getpid()}"
+    sup = rr.Supervisor([process(name, needs_the_empty_image_made, restart="temporary")])
+    try:
+        sup.start()
+        started = sup.which_children()
+    finally:
+        sup.stop()
+    assert [name] == [child.name for child in started]

@@ -34,7 +34,7 @@ import pytest
 import rr_actors as rr
 from rr_actors._catalog import Catalog, Changes
 from rr_actors._platform import PLATFORM
-from rr_actors._store import Saver
+from rr_actors._store import Saver, schema
 from rr_actors._store.files import CommitCount, quarantine_backup
 from rr_actors._store.restore import read_backup
 from rr_actors._store.sqlite import SqliteStore
@@ -991,49 +991,74 @@ def test_a_backup_deleted_under_a_power_registrar_is_put_back_synced_then_named(
 
 # -- a fresh backup: made whole or not at all, at what SQLite costs ---------------------------
 
+
+def test_a_new_backup_is_the_empty_image_written_with_no_sqlite_connection_of_its_own(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A fresh backup's file is `schema.empty_image()` written once under its temporary
+    name (SQLite builds nothing per file): opening it makes one connection, the store's."""
+    opened: list[str] = []
+    real = sqlite3.connect
+
+    def connect(name: Any, *args: Any, **kwargs: Any) -> sqlite3.Connection:
+        opened.append(Path(name).name)
+        return real(name, *args, **kwargs)
+
+    monkeypatch.setattr(sqlite3, "connect", connect)
+    path = tmp_path / "p.db"
+    store = SqliteStore.open(path)
+    try:
+        written = path.read_bytes()
+    finally:
+        store.close(erase=False)
+    assert (["p.db"], True) == (opened, written == schema.empty_image())
+
+
 KILLED_AT = textwrap.dedent(
     """
-    import os, signal, sqlite3, sys
+    import os, signal, sys
     from pathlib import Path
     from rr_actors._store import files
     from rr_actors._store.sqlite import SqliteStore
 
     path, durability, point = Path(sys.argv[1]), sys.argv[2], sys.argv[3]
-    kind, _, number = point.partition(":")
 
     def die():
         os.kill(os.getpid(), signal.SIGKILL)
 
-    class Killing(sqlite3.Connection):  # the creating connection: killed at its n-th statement
-        calls = 0
+    class HalfWritten:  # the new file, killed half way through its one write
+        def __init__(self, fd, mode):
+            self.fd = fd
+        def __enter__(self):
+            return self
+        def __exit__(self, *exc):
+            os.close(self.fd)
+        def write(self, data):
+            os.write(self.fd, data[: len(data) // 2])
+            die()
 
-        def execute(self, *args, **kwargs):
-            Killing.calls += 1
-            if kind == "statement" and Killing.calls == int(number):
-                die()
-            return super().execute(*args, **kwargs)
-
-    real_connect, real_link, real_sync = sqlite3.connect, os.link, files.sync
-    def connect(name, *args, **kwargs):
-        if ".creating" in str(name):
-            kwargs["factory"] = Killing
-        return real_connect(name, *args, **kwargs)
+    real_fchmod, real_link, real_sync = os.fchmod, os.link, files.sync
+    def fchmod(fd, mode):
+        real_fchmod(fd, mode)
+        if point == "created":
+            die()
 
     def link(source, target):
-        if kind == "before link":
+        if point == "before link":
             die()
         real_link(source, target)
-        if kind == "after link":
+        if point == "after link":
             die()
 
     def sync(name, directory=False):
         real_sync(name, directory=directory)
-        if kind == "after sync" and directory:
+        if point == "after sync" and directory:
             die()
 
-    sqlite3.connect, os.link, files.sync = connect, link, sync
+    os.fchmod, os.link, files.sync = fchmod, link, sync
+    if point == "half written":
+        files.open = HalfWritten
     SqliteStore.open(path, durability=durability).close(erase=False)
-    print(Killing.calls)
     """
 )
 
@@ -1043,17 +1068,16 @@ KILLED_AT = textwrap.dedent(
 def test_a_process_killed_at_any_point_of_making_a_backup_leaves_none_or_a_whole_empty_one(
     tmp_path: Path, durability: str
 ) -> None:
-    """SIGKILLed at each statement that builds the new file, before and after its name is
-    made, after its directory is synced: the path then holds no file, or a catalog that
-    opens empty, and the next start makes or opens it."""
+    """SIGKILLed once the new file exists, half way through writing it, before and after
+    its name is made, after its directory is synced: the path then holds no file, or a
+    catalog that opens empty, and the next start makes or opens it."""
 
     def killed_at(path: Path, point: str) -> subprocess.CompletedProcess[str]:
         command = [sys.executable, "-c", KILLED_AT, str(path), durability, point]
         return subprocess.run(command, capture_output=True, text=True, timeout=120, check=False)
 
-    statements = int(killed_at(tmp_path / "whole.db", "none").stdout)
-    points = [f"statement:{n}" for n in range(1, statements + 1)]
-    points += ["before link", "after link"] + (["after sync"] if durability == "power" else [])
+    points = ["created", "half written", "before link", "after link"]
+    points += ["after sync"] if durability == "power" else []
     found = {}
     for number, point in enumerate(points):
         path = tmp_path / f"p{number}.db"
@@ -1071,7 +1095,7 @@ def test_a_process_killed_at_any_point_of_making_a_backup_leaves_none_or_a_whole
     expected = {
         point: (-9, True, (0, 0)) if point in made else (-9, False, None) for point in points
     }
-    assert (True, expected) == (statements >= 3, found)
+    assert expected == found
 
 
 needs_root = pytest.mark.skipif(

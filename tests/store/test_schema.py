@@ -445,6 +445,62 @@ def test_a_new_file_is_made_with_exactly_the_objects_the_migrations_make_and_nee
     )
 
 
+def test_the_empty_image_a_new_backup_is_written_from_is_the_file_sqlite_makes_in_wal_mode(
+    tmp_path: Path,
+) -> None:
+    """`empty_image()` (made in memory, its header set to WAL) written to a file reads as
+    the file SQLite builds with `create` and `PRAGMA journal_mode = WAL`: the same objects,
+    version, digest scheme, application id and page size, WAL, whole; and it takes a commit."""
+
+    def read(path: Path) -> tuple[Any, ...]:
+        db = sqlite3.connect(path, isolation_level=None)
+        try:
+            pragmas = [
+                db.execute(f"PRAGMA {name}").fetchone()[0]
+                for name in ("journal_mode", "integrity_check", "application_id", "page_size")
+            ]
+            objects = db.execute("SELECT type, name, tbl_name, sql FROM sqlite_master").fetchall()
+            row = db.execute("SELECT * FROM rr_actors_schema").fetchall()
+            db.execute("INSERT INTO outbox (pid, seq, event) VALUES (1, 1, 'e')")
+            return (*pragmas, sorted(objects), row)
+        finally:
+            db.close()
+
+    built = sqlite3.connect(tmp_path / "built.db", isolation_level=None)
+    try:
+        schema.create(built)
+        built.execute("PRAGMA journal_mode = WAL")
+    finally:
+        built.close()
+    (tmp_path / "image.db").write_bytes(schema.empty_image())
+
+    made = read(tmp_path / "image.db")
+    assert (read(tmp_path / "built.db"), "wal") == (made, made[0])
+
+
+def test_the_empty_image_follows_the_schema_version_a_new_migration_brings(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """One image a schema version: a migration step added (as a release adds one) makes a
+    new image, of that version, not the one made before it."""
+    before = schema.empty_image()
+
+    def add_note(db: sqlite3.Connection) -> None:
+        db.execute("ALTER TABLE resources ADD COLUMN note TEXT")
+
+    monkeypatch.setattr(schema, "MIGRATIONS", (*schema.MIGRATIONS, add_note))
+    monkeypatch.setattr(schema, "SCHEMA_VERSION", schema.SCHEMA_VERSION + 1)
+    after = schema.empty_image()
+    (tmp_path / "after.db").write_bytes(after)
+    db = sqlite3.connect(tmp_path / "after.db")
+    try:
+        version = db.execute("SELECT version FROM rr_actors_schema").fetchone()[0]
+        columns = [row[1] for row in db.execute("PRAGMA table_info(resources)")]
+    finally:
+        db.close()
+    assert (False, schema.SCHEMA_VERSION, True) == (before == after, version, "note" in columns)
+
+
 # -- a row's values (encoded, decoded) -------------------------------------------------------------
 # How stored values are encoded and decoded (`dumps`, `decode`): a request stored
 # with cloudpickle comes back (its code with its file's name), and one without a digest is
