@@ -399,8 +399,10 @@ RUNTIME_SEAMS = ("rr_actors/testing/", "rr_actors/simulation/")
 # no longer grows with the children started before it; +20 for a supervisor's children by
 # name, so that a restart walks none of its siblings; +40 for a killed process's numbers no
 # event took, told as such, and its journal's doubt mark; +65 for a tree's stop that goes on
-# at each registrar's `Stopped` and reaps the exits at its end)
-RUNTIME_LINES = 33_530
+# at each registrar's `Stopped` and reaps the exits at its end; +240 for a restart told
+# only to the manager processes that monitor it: their monitors reported up the control
+# pipe and the parent's index of them, `_process/hearers.py`, where every process was woken)
+RUNTIME_LINES = 33_770
 RUNTIME_FILES = 95
 TRANSPORT_LINES = 6_000
 SMALL = 60
