@@ -227,7 +227,7 @@ def sample(every: list[Mutant], size: int, seed: int) -> list[Mutant]:
     """`size` mutants drawn from `every` (seeded), those that do not compile skipped (a
     stillborn mutant, as the field counts them: cosmic-ray turns the `*` of `def f(a, *, b)`
     into `%`), and those cosmic-ray fails to make (its `ExceptionReplacer` raises
-    `AttributeError` on a dotted name in an `except (a.B, C)` tuple, cosmic-ray 8.4)."""
+    `AttributeError` on a dotted name in an `except (a.B, C)` tuple, cosmic-ray 8.7)."""
     drawn = random.Random(seed).sample(every, len(every))  # noqa: S311 - a sample, not a secret
     chosen: list[Mutant] = []
     for mutant in drawn:
