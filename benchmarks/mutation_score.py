@@ -109,6 +109,20 @@ EQUIVALENT: dict[str, str] = {
     "tests add steps)",
     "_store/outbox.py:82:ReplaceBinaryOperator_Sub_Mul": "the text of a `ValueError` that "
     "`read_told` catches, logs at DEBUG and skips the row for (`continue` either way)",
+    "_store/sqlite.py:365:ReplaceBinaryOperator_Mul_LShift:1": "`journal_size_limit` "
+    "(SQLite clamps `8 * 1024 << 1024` to 2**63 - 1): only how much of an emptied WAL file "
+    "stays on disk after a checkpoint; every row, restore and event is the same",
+    "_store/schema.py:604:ReplaceComparisonOperator_NotEq_IsNot": "`response_version`s are "
+    "ints: `is not` is true wherever `!=` is, and where only it is (equal versions past 256, "
+    "two objects) the UPDATE writes the response the row already holds: the same row",
+    "_registrar/consumer.py:586:ReplaceComparisonOperator_Is_Eq": "`ResourceState` is a "
+    "plain `enum.Enum`, whose `==` is identity: `== UNLOADING` is `is UNLOADING`",
+    "_supervision/children.py:412:NumberReplacer:1": "incarnations are only bumped by 1 and "
+    "compared with `!=` to the one a watcher posted (no event or page shows one): starting "
+    "at -1 shifts every one alike",
+    "_registrar/consumer.py:744:NumberReplacer": "epochs are only compared with each other "
+    "and with 0 (an id answered before any list), in one process: counting by 2 keeps every "
+    "order",
 }
 """Survivors shown equivalent: mutant id (`FILE:LINE:OPERATOR[:N]`) -> the line that shows it."""
 
