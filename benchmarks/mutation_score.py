@@ -123,6 +123,9 @@ EQUIVALENT: dict[str, str] = {
     "_registrar/consumer.py:744:NumberReplacer": "epochs are only compared with each other "
     "and with 0 (an id answered before any list), in one process: counting by 2 keeps every "
     "order",
+    "_supervision/children.py:189:ReplaceComparisonOperator_Eq_LtE": "past `one_for_one` "
+    "(returned above) a strategy is `one_for_all` or `rest_for_one` (`SupervisorSpec` checks "
+    "it): only the first is `<= 'one_for_all'`, as only it is `==`",
 }
 """Survivors shown equivalent: mutant id (`FILE:LINE:OPERATOR[:N]`) -> the line that shows it."""
 
