@@ -74,11 +74,11 @@ MODULES = ("_registrar", "_store", "_catalog", "_supervision")
 ORDER = (
     "crashloop", "first", "hang", "simnostate", "simheal", "simhosts", "simshare", "simslow",
     "simrest", "simchain", "simdoubt", "simprogram", "simcancel", "simshed", "simretry", "simways",
-    "simkept", "bigtree", "killheavy",
+    "simkept", "simoverload", "bigtree", "killheavy",
 )  # fmt: skip
 """The shipped plans the simulation runs, cheapest seed first (CPU s of seed 1, 2026-11-27:
 0.3 for the first four, 0.5-0.9 to simdoubt, 1.2-3.7 after; killheavy 4.8; simkept, added
-later, 3.3)."""
+later, 3.3; simoverload 1.6)."""
 
 COSMIC_RAY = importlib.metadata.version("cosmic-ray")
 
@@ -109,6 +109,23 @@ EQUIVALENT: dict[str, str] = {
     "tests add steps)",
     "_store/outbox.py:82:ReplaceBinaryOperator_Sub_Mul": "the text of a `ValueError` that "
     "`read_told` catches, logs at DEBUG and skips the row for (`continue` either way)",
+    "_store/sqlite.py:365:ReplaceBinaryOperator_Mul_LShift:1": "`journal_size_limit` "
+    "(SQLite clamps `8 * 1024 << 1024` to 2**63 - 1): only how much of an emptied WAL file "
+    "stays on disk after a checkpoint; every row, restore and event is the same",
+    "_store/schema.py:604:ReplaceComparisonOperator_NotEq_IsNot": "`response_version`s are "
+    "ints: `is not` is true wherever `!=` is, and where only it is (equal versions past 256, "
+    "two objects) the UPDATE writes the response the row already holds: the same row",
+    "_registrar/consumer.py:586:ReplaceComparisonOperator_Is_Eq": "`ResourceState` is a "
+    "plain `enum.Enum`, whose `==` is identity: `== UNLOADING` is `is UNLOADING`",
+    "_supervision/children.py:412:NumberReplacer:1": "incarnations are only bumped by 1 and "
+    "compared with `!=` to the one a watcher posted (no event or page shows one): starting "
+    "at -1 shifts every one alike",
+    "_registrar/consumer.py:744:NumberReplacer": "epochs are only compared with each other "
+    "and with 0 (an id answered before any list), in one process: counting by 2 keeps every "
+    "order",
+    "_supervision/children.py:189:ReplaceComparisonOperator_Eq_LtE": "past `one_for_one` "
+    "(returned above) a strategy is `one_for_all` or `rest_for_one` (`SupervisorSpec` checks "
+    "it): only the first is `<= 'one_for_all'`, as only it is `==`",
 }
 """Survivors shown equivalent: mutant id (`FILE:LINE:OPERATOR[:N]`) -> the line that shows it."""
 
@@ -226,7 +243,8 @@ def mutated(mutant: Mutant) -> tuple[str, str]:
 def sample(every: list[Mutant], size: int, seed: int) -> list[Mutant]:
     """`size` mutants drawn from `every` (seeded), those that do not compile skipped (a
     stillborn mutant, as the field counts them: cosmic-ray turns the `*` of `def f(a, *, b)`
-    into `%`)."""
+    into `%`), and those cosmic-ray fails to make (its `ExceptionReplacer` raises
+    `AttributeError` on a dotted name in an `except (a.B, C)` tuple, cosmic-ray 8.7)."""
     drawn = random.Random(seed).sample(every, len(every))  # noqa: S311 - a sample, not a secret
     chosen: list[Mutant] = []
     for mutant in drawn:
@@ -234,7 +252,7 @@ def sample(every: list[Mutant], size: int, seed: int) -> list[Mutant]:
             break
         try:
             compile(mutated(mutant)[0], mutant.file, "exec")
-        except SyntaxError:
+        except (SyntaxError, AttributeError):
             continue
         chosen.append(mutant)
     return chosen

@@ -372,6 +372,27 @@ def test_mutation_score_names_the_rule_that_killed_a_mutant_and_prints_the_score
     assert f"  {mutant}  [intensity] crashloop seed {result['seed']}" in done.stdout
 
 
+def test_a_mutant_cosmic_ray_fails_to_make_is_left_out_of_the_sample_as_a_stillborn_one(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """cosmic-ray's `ExceptionReplacer` raises `AttributeError` on `except (sqlite3.Error,
+    OSError)` (a dotted name in a tuple): the draw of seed 68 stopped with its traceback."""
+    score = _script("mutation_score", monkeypatch)
+    every = [
+        score.Mutant("_store/files.py", "core/ExceptionReplacer", 12, 287, 0),
+        score.Mutant("_store/files.py", "core/AddNot", 0, 1, 0),
+    ]
+
+    def mutated(mutant: object) -> tuple[str, str]:
+        if mutant == every[0]:
+            raise AttributeError("'PythonNode' object has no attribute 'value'")
+        return "x = 1\n", "x = 0  ->  x = 1"
+
+    monkeypatch.setattr(score, "mutated", mutated)
+
+    assert [every[1]] == score.sample(every, 2, 68)
+
+
 def test_every_mutant_shown_equivalent_is_still_a_mutant_of_the_source(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

@@ -1,6 +1,7 @@
 """The provider's side of a run: one pass over each provider's catalog as its events tell it
 (`kept`, `unload-once`, `no-leak`, `one-resource`, `release-match`, `in-doubt`, `dedup`,
-`restore-first`), `unload-order`, `dependency-held`, `doubt-reported` and `shed-needed`.
+`restore-first`), `unload-order`, `dependency-held`, `doubt-reported`, `shed-needed` and
+`overload-paced`.
 
 ```
  steps (_history.walk) ──► Providers.run: per registrar a Catalog, a handler per event kind
@@ -11,6 +12,7 @@
  steps ──► dependency_held: those dependencies kept while their resource has a consumer
  steps ──► doubt_reported: each row restored loading or unloading reported or unloaded
  history ──► shed_needed: each load shed with nothing ahead against its server's load times
+ steps ──► overload_paced: each server's ServerOverloaded at its bound, a second apart a life
 ```
 
 Every lookup is a dict's: a run of a million events is checked in one linear pass.
@@ -37,6 +39,7 @@ __all__ = [
     "Providers",
     "dependency_held",
     "doubt_reported",
+    "overload_paced",
     "shed_needed",
     "unload_order",
 ]
@@ -779,4 +782,57 @@ def shed_needed(history: Sequence[Line]) -> list[Finding]:
                         (event.registrar,),
                     )
                 )
+    return findings
+
+
+OVERLOAD_EVERY_S = 1.0
+"""The provider's least time between two `ServerOverloaded` of one server, in seconds (the
+refusals between are counted in the next)."""
+
+OVERLOAD_SLACK_S = 0.05
+"""What `overload-paced` allows under `OVERLOAD_EVERY_S`: the provider paces by its monotonic
+clock, the events carry the wall clock's `at`."""
+
+
+def overload_paced(steps: list[Step]) -> list[Finding]:
+    """`overload-paced`: a server tells its overload at its bound, at most once a second. Each
+    `ServerOverloaded` counts at least its own refusal (`refused` >= 1) at the server's bound
+    (`pending` >= `bound`), and comes at least `OVERLOAD_EVERY_S` (less `OVERLOAD_SLACK_S`)
+    after the previous one of its server in that registrar's life (by `at`: a new life, as a
+    new process, counts afresh)."""
+    findings: list[Finding] = []
+    last: dict[tuple[str, str], tuple[float, int]] = {}  # (registrar, server) -> (at, line)
+    for name, line, event, new, _life in steps:
+        if new:
+            for key in [k for k in last if k[0] == name]:
+                del last[key]
+        if not isinstance(event, events.ServerOverloaded):
+            continue
+        key = (name, event.server)
+        if event.refused < 1 or event.pending < event.bound:
+            findings.append(
+                Finding(
+                    "overload-paced",
+                    "violation",
+                    f"{name}/{event.server}: told overloaded with {event.pending} loads of its "
+                    f"bound {event.bound} under way and {event.refused} refused: a server is "
+                    f"overloaded at its bound, and tells it at a refusal",
+                    (line,),
+                    (name,),
+                )
+            )
+        before = last.get(key)
+        if before is not None and event.at - before[0] < OVERLOAD_EVERY_S - OVERLOAD_SLACK_S:
+            findings.append(
+                Finding(
+                    "overload-paced",
+                    "violation",
+                    f"{name}/{event.server}: told overloaded {event.at - before[0]:.3f} s after "
+                    f"it was told before: at most once every {OVERLOAD_EVERY_S:g} s (the "
+                    f"refusals between counted in the next)",
+                    (before[1], line),
+                    (name,),
+                )
+            )
+        last[key] = (event.at, line)
     return findings

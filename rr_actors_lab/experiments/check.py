@@ -39,6 +39,7 @@ from rr_actors_lab.experiments._provider_rules import (
     Providers,
     dependency_held,
     doubt_reported,
+    overload_paced,
     shed_needed,
     unload_order,
 )
@@ -81,6 +82,7 @@ RULES = (
     "dependency-held",
     "doubt-reported",
     "shed-needed",
+    "overload-paced",
     "intensity",
     "strategy",
     "escalation",
@@ -283,6 +285,7 @@ def check(
         *dependency_held(steps),
         *doubt_reported(steps),
         *shed_needed(history),
+        *overload_paced(steps),
         *_supervision_rules.intensity(history),
         *strategy,
         *escalation,

@@ -39,6 +39,7 @@ def service(
     uses_request: Any = None,
     status_every: float = 0.0,
     list_every: float = 0.0,
+    max_pending: int | None = None,
 ) -> None:
     """Register one resource server whose loads take `load_s` and load what it `uses`.
 
@@ -60,9 +61,12 @@ def service(
             own): every resource then depends on one shared resource there.
         status_every: seconds between two statuses the server sends (0: none).
         list_every: seconds between two listings of the server's queries (0: none).
+        max_pending: the server's own `max_pending` (loads queued or running at once;
+            `None`: its registrar's): past it, loads are refused (`ServerOverloaded`).
 
     Raises:
-        ConfigError: `status_every` or `list_every` is negative or not finite.
+        ConfigError: `status_every` or `list_every` is negative or not finite, or
+            `max_pending` is not an int >= 1 (nor `None`).
     """
     for field, value in (("status_every", status_every), ("list_every", list_every)):
         number = isinstance(value, int | float) and not isinstance(value, bool)
@@ -82,7 +86,7 @@ def service(
         if unload_s > 0:
             runtime.sleep(unload_s)
 
-    registrar.register_server(server, load=load, unload=unload)
+    registrar.register_server(server, load=load, unload=unload, max_pending=max_pending)
     if status_every > 0:
         runtime.Thread(
             target=_send_statuses,

@@ -982,6 +982,48 @@ def test_a_load_shed_that_could_not_start_in_time_or_is_not_judged_holds(
     assert [] == _of_rule(renumbered([*h[:3], shed]), "shed-needed")
 
 
+def _overloaded(
+    at: float, refused: int = 1, pending: int = 8, *, pid: int = P
+) -> events.ServerOverloaded:
+    """erm's server `cam` told overloaded at `at` (its bound 8), `refused` calls counted."""
+    return events.ServerOverloaded("erm", "cam", pending, 8, refused, at=at, pid=pid)
+
+
+def test_a_server_told_overloaded_again_within_a_second_is_found() -> None:
+    """Issue 68 item 8: the mutant `provider.py:518` (`<` made `is`) publishes a
+    `ServerOverloaded` at every refusal, hundreds a second, where one a second is the bound;
+    every seed of every plan held."""
+    h = clean()
+    told = [_overloaded(5.0), _overloaded(5.3)]
+    assert {4, 5} == _found(renumbered([*h[:3], *told]), "overload-paced")
+
+
+@pytest.mark.parametrize(
+    ("refused", "pending"),
+    [pytest.param(0, 8, id="no-refusal-counted"), pytest.param(3, 7, id="below-its-bound")],
+)
+def test_a_server_told_overloaded_without_a_refusal_at_its_bound_is_found(
+    refused: int, pending: int
+) -> None:
+    h = clean()
+    assert {4} == _found(renumbered([*h[:3], _overloaded(5.0, refused, pending)]), "overload-paced")
+
+
+@pytest.mark.parametrize(
+    ("after", "pid"),
+    [  # (built in the test: an event made at import takes a number of this process's own)
+        pytest.param(0.97, P, id="a-second-apart-within-slack"),
+        pytest.param(0.3, P + 1, id="in-a-new-process"),
+    ],
+)
+def test_a_server_told_overloaded_once_a_second_or_afresh_in_a_new_life_holds(
+    after: float, pid: int
+) -> None:
+    h = clean()
+    told = [_overloaded(5.0), _overloaded(5.0 + after, 600, pid=pid)]
+    assert [] == _of_rule(renumbered([*h[:3], *told]), "overload-paced")
+
+
 def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> None:
     """The function at `where` ("module:name" or "module:Class.name") replaced, for this
     test, by its source with `old` (found once) made `new`: the same edit as a plant of
@@ -1049,6 +1091,14 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "self.ran(runtime.monotonic() // began)",
             "shed-needed",
             id="the plant load-time-divided is caught by shed-needed at simshed seed 1",
+        ),
+        pytest.param(  # (a ServerOverloaded at every refusal, hundreds a second)
+            "simoverload",
+            "rr_actors._registrar.provider:Provider.refused",
+            "if now - last < _REFUSALS_EVERY:",
+            "if now - last is _REFUSALS_EVERY:",
+            "overload-paced",
+            id="the mutant provider.py:518 is caught by overload-paced at simoverload seed 1",
         ),
         pytest.param(  # (simshed's end stops its tree with `stop(parallel=True)`)
             "simshed",
@@ -3363,6 +3413,7 @@ def end_by_itself(h: History) -> History | None:
 MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     # name: (the mutation, the rule that must catch it)
     "duplicate-unload": (duplicate(events.ResourceUnloaded), "unload-once"),
+    "overloaded-told-twice": (duplicate(events.ServerOverloaded), "overload-paced"),
     "unload-before-release": (unload_before_release, "unload-once"),
     "drop-last-release": (drop_last_release, "unload-once"),
     "duplicate-release": (duplicate(events.ConsumerReleased), "unload-once"),

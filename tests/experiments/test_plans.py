@@ -43,6 +43,7 @@ SHIPPED = {
     "simways",
     "simshed",
     "simkept",
+    "simoverload",
     "bigtree",
 }
 """Every plan shipped in the package; the tutorial's `first` runs in the docs test."""

@@ -1106,6 +1106,7 @@ SIMULATED = [
     "simways",
     "simshed",
     "simkept",
+    "simoverload",
 ]
 """The shipped plans run over two seeds here (killheavy below, for 2 s; bigtree below, one seed)."""
 
