@@ -85,12 +85,12 @@ COSMIC_RAY = importlib.metadata.version("cosmic-ray")
 LEFT_OUT = ("core/VariableInserter", "core/VariableReplacer")  # (random: not reproducible)
 
 EQUIVALENT: dict[str, str] = {
-    "_registrar/consumer.py:744:NumberReplacer:1": "an id never answered: 0 < epoch and "
+    "_registrar/consumer.py:745:NumberReplacer:1": "an id never answered: 0 < epoch and "
     "-1 < epoch alike, every epoch asked being new_epoch()'s, at least 1",
-    "_supervision/policy.py:264:ReplaceComparisonOperator_NotEq_IsNot": "incarnations are "
+    "_supervision/policy.py:262:ReplaceComparisonOperator_NotEq_IsNot": "incarnations are "
     "ints from 0 up by 1: `is not` is `!=` in CPython up to 256 (its small ints), so for "
     "every run with fewer than 257 restarts of one child",
-    "_supervision/policy.py:378:ReplaceComparisonOperator_Eq_Is": "`Child.state` is only "
+    "_supervision/policy.py:376:ReplaceComparisonOperator_Eq_Is": "`Child.state` is only "
     "ever set to string literals (`ChildState`), which CPython interns (identifier-like): "
     "`is 'restarting'` is `== 'restarting'`",
     "_supervision/children.py:351:ReplaceFalseWithTrue": "a default of `Level.stop`, a "
@@ -101,7 +101,7 @@ EQUIVALENT: dict[str, str] = {
     "_registrar/state.py:496:ZeroIterationForLoop": "`Probes.around`'s after hooks: only "
     "`rr_actors.testing.intercept(after=...)` installs one, which no plan, runtime path or "
     "lab tool calls (equivalent for every program but a test's: tests/registrar/test_calls.py)",
-    "_registrar/state.py:501:ZeroIterationForLoop": "`Probes.fire`'s hooks: only "
+    "_registrar/state.py:504:ZeroIterationForLoop": "`Probes.fire`'s hooks: only "
     "`rr_actors.testing.intercept` installs one, which no plan, runtime path or lab tool "
     "calls (equivalent for every program but a test's)",
     "_store/schema.py:297:ReplaceBinaryOperator_Add_Pow": "`create`'s migration loop is "
@@ -112,15 +112,15 @@ EQUIVALENT: dict[str, str] = {
     "_store/sqlite.py:365:ReplaceBinaryOperator_Mul_LShift:1": "`journal_size_limit` "
     "(SQLite clamps `8 * 1024 << 1024` to 2**63 - 1): only how much of an emptied WAL file "
     "stays on disk after a checkpoint; every row, restore and event is the same",
-    "_store/schema.py:604:ReplaceComparisonOperator_NotEq_IsNot": "`response_version`s are "
+    "_store/schema.py:622:ReplaceComparisonOperator_NotEq_IsNot": "`response_version`s are "
     "ints: `is not` is true wherever `!=` is, and where only it is (equal versions past 256, "
     "two objects) the UPDATE writes the response the row already holds: the same row",
-    "_registrar/consumer.py:586:ReplaceComparisonOperator_Is_Eq": "`ResourceState` is a "
+    "_registrar/consumer.py:587:ReplaceComparisonOperator_Is_Eq": "`ResourceState` is a "
     "plain `enum.Enum`, whose `==` is identity: `== UNLOADING` is `is UNLOADING`",
     "_supervision/children.py:412:NumberReplacer:1": "incarnations are only bumped by 1 and "
     "compared with `!=` to the one a watcher posted (no event or page shows one): starting "
     "at -1 shifts every one alike",
-    "_registrar/consumer.py:744:NumberReplacer": "epochs are only compared with each other "
+    "_registrar/consumer.py:745:NumberReplacer": "epochs are only compared with each other "
     "and with 0 (an id answered before any list), in one process: counting by 2 keeps every "
     "order",
     "_supervision/children.py:189:ReplaceComparisonOperator_Eq_LtE": "past `one_for_one` "
