@@ -390,7 +390,7 @@ STORY = 30
 follows line by line. `planted_bugs.py --shrink --keep` keeps each plant's shrunk plan, its
 seed in it, in `benchmarks/shrunk/`; each runs at its seed on a copy with its plant."""
 
-OVER = {"intensity-stale-exit": 41, "status-seen-server": 47, "unload-held": 177}
+OVER = {"status-seen-server": 43, "unload-held": 161}
 """The plants whose kept shrunk run is still longer: its events (issue 68 item 9, open).
 
 Two floors keep them there: the run's stop (each resource a client still holds is
