@@ -411,13 +411,15 @@ STORY = 30
 follows line by line. `planted_bugs.py --shrink --keep` keeps each plant's shrunk plan, its
 seed in it, in `benchmarks/shrunk/`; each runs at its seed on a copy with its plant."""
 
-OVER = {"intensity-stale-exit": 65, "status-seen-server": 37, "unload-held": 175}
+OVER = {"status-seen-server": 43, "unload-held": 78}
 """The plants whose kept shrunk run is still longer: its events (issue 68 item 9, open).
 
 Two floors keep them there: the run's stop (each resource a client still holds is
 released and unloaded, every registrar stops: 5 events a resource, 2 a manager), and
 the scheduler's one seeded stream of choices, which any cut of a call or a manager
-redraws, so the race the violation needs is lost with it."""
+redraws, so the race the violation needs is lost with it. unload-held's was cut by hand
+from 161 (its header says how): the calls pass deletes aligned chunks at 12 seeds, and the
+cut that mattered (one client's calls, found again at seed 20) is neither."""
 
 
 def _planted_bugs() -> ModuleType:
@@ -442,20 +444,17 @@ def test_every_kept_shrunk_plan_names_a_planted_bug() -> None:
 
 @pytest.mark.timeout(120)  # (a scratch copy and one small run in a child; slower loaded)
 @pytest.mark.skipif(importlib.util.find_spec("greenlet") is None, reason="the simulation extra")
-@pytest.mark.parametrize(
-    "name",
-    [
-        pytest.param(name, marks=pytest.mark.xfail(reason=f"{OVER[name]} events"))
-        if name in OVER
-        else name
-        for name in KEPT
-    ],
-)
+@pytest.mark.parametrize("name", KEPT)
 def test_a_planted_bugs_shrunk_run_shows_its_finding_in_at_most_30_events(name: str) -> None:
     plant = next(p for p in PLANTED.PLANTS if p.name == name)
 
     answer = PLANTED.run_kept(plant, PLANTED.KEPT / f"{name}.toml")
 
-    assert "violated" == answer["verdict"]
-    assert answer["violations"], f"no [{plant.rule}] violation"
+    # The violation is required of every kept plan: a plant whose kept run no longer
+    # violates its rule is a bug the verdict stopped catching, never an expected failure.
+    assert "violated" == answer["verdict"], f"{name}: {answer['verdict']} at its kept seed"
+    assert answer["violations"], f"{name}: no [{plant.rule}] violation at its kept seed"
+    if name in OVER:
+        assert answer["events"] > STORY, f"{answer['events']} events: drop {name} from OVER"
+        pytest.xfail(f"{answer['events']} events, over {STORY} (issue 68 item 9)")
     assert answer["events"] <= STORY
