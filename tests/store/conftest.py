@@ -20,10 +20,16 @@ from tests.support.persisting import ManualTimers, RunAndKill
 
 @pytest.fixture(scope="session")
 def context() -> multiprocessing.context.ForkServerContext:
-    """The forkserver context, its server started before any leak check."""
+    """The forkserver context, its server started before any leak check.
+
+    The server preloads what every child imports (the registrar, and the crash-consistency
+    worker's module with pytest), so a child starts by a fork: imported in each child, they
+    took 2-3 s of CPU apiece, and fifty kills took over the test's 300 s ceiling at load 14.
+    """
     ctx = multiprocessing.get_context("forkserver")
     assert isinstance(ctx, multiprocessing.context.ForkServerContext)
-    ctx.set_forkserver_preload(["rr_actors", "rr_actors._store.sqlite", "cloudpickle"])
+    preload = ["rr_actors", "rr_actors._registrar", "rr_actors._store.sqlite", "cloudpickle"]
+    ctx.set_forkserver_preload([*preload, "tests.store.test_sqlite"])
     multiprocessing.forkserver.ensure_running()
     return ctx
 

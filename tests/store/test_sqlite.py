@@ -570,9 +570,10 @@ class TestCrashConsistency:
     `run_kills` is shared with `benchmarks/stress_crash.py`, which runs 1,000 kills.
     """
 
-    @pytest.mark.timeout(
-        300
-    )  # (a hang ceiling: 4-5 s quiet; once over the suite's 60 s at load 20+)
+    # a hang ceiling: a child starts by a fork of the preloading server (`context`), ~0.5 s
+    # a kill at load 16; it took ~5 s when each child imported the registrar, and 50 kills
+    # went over this ceiling at load 14
+    @pytest.mark.timeout(300)
     def test_fifty_random_kills_never_tear_a_catalog_nor_lose_an_acknowledged_operation(
         self, tmp_path: Path, context: multiprocessing.context.ForkServerContext
     ) -> None:
