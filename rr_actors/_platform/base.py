@@ -19,6 +19,7 @@ from collections.abc import Callable, Collection, Sequence
 from typing import Protocol
 
 from rr_actors._platform import forkserver
+from rr_actors.errors import RegistrarUnavailableError
 
 GATE_SOURCES = 256
 """Source addresses a `ListenerGate` drops (or admits) at most (more is a firewall's job)."""
@@ -281,3 +282,14 @@ def bound_reached(error: BaseException | None) -> str | None:
         if int(_read("/proc/loadavg").split()[3].split("/")[1]) > 0.9 * most:
             return threads
     return None
+
+
+def no_thread(target: str, exc: RuntimeError, what: str) -> RegistrarUnavailableError:
+    """The error of a call to registrar `target` that got no thread for `what` (its
+    connection, its client actor): the machine's bound, named with its value."""
+    error = RegistrarUnavailableError(
+        f"registrar {target!r} cannot be reached: this machine's limit of "
+        f"{bound_reached(exc) or f'threads ({exc})'} was reached (no thread for {what})"
+    )
+    error.__cause__ = exc
+    return error

@@ -44,7 +44,7 @@ from rr_actors._core import runtime, traces
 from rr_actors._core.actor import Actor, refuse
 from rr_actors._core.directory import DIRECTORY, Reply
 from rr_actors._core.replies import FutureReply, Join
-from rr_actors._platform.base import bound_reached
+from rr_actors._platform.base import no_thread
 from rr_actors._registrar.calls import (
     AttemptState,
     CallAttempt,
@@ -790,13 +790,7 @@ class Holdings:
                 ref, self.registrar.name, message.target_rr, message.server
             )
         except RuntimeError as exc:  # no thread for its actor: that call fails, naming the bound
-            bound = bound_reached(exc) or f"threads ({exc})"
-            error = RegistrarUnavailableError(
-                f"registrar {message.target_rr!r} cannot be reached: this machine's limit of "
-                f"{bound} was reached (no thread for its client)"
-            )
-            error.__cause__ = exc
-            reply.set_error(error)
+            reply.set_error(no_thread(message.target_rr, exc, "its client"))
             return
         reply.set_result(client)
 

@@ -23,7 +23,7 @@ from multiprocessing.connection import Connection, answer_challenge, deliver_cha
 from typing import Protocol
 
 from rr_actors._core.serial import SerialExecutor, Task
-from rr_actors._platform.base import bound_reached
+from rr_actors._platform.base import bound_reached, no_thread
 from rr_actors._transport.codec import Oversized, frames, unframe
 from rr_actors._transport.messenger import (
     Endpoint,
@@ -489,7 +489,7 @@ class Dial:
                 writer.connect_with(functools.partial(self._connect, fresh))  # (its first task)
             except RuntimeError as exc:  # no thread to connect on: the machine's bound, named
                 writer.close()
-                raise self._no_thread(exc) from exc
+                raise no_thread(self.name, exc, "its connection") from exc
             self._channel = channel = fresh
         return channel
 
@@ -522,19 +522,11 @@ class Dial:
         except RuntimeError as exc:  # no reader: what waits on it fails, naming the bound
             channel.reading = None
             conn.close()
-            channel.writer.fail(self._no_thread(exc))
-
-    def _no_thread(self, exc: RuntimeError) -> RrError:
-        """The error of a connection that got no thread: the machine's bound, with its value."""
-        bound = bound_reached(exc) or f"threads ({exc})"
-        return RegistrarUnavailableError(
-            f"registrar {self.name!r} cannot be reached: this machine's limit of {bound} "
-            "was reached (no thread for its connection)"
-        )
+            channel.writer.fail(no_thread(self.name, exc, "its connection"))
 
     def _failed(self, channel: _Channel, exc: BaseException) -> None:
         if isinstance(exc, RuntimeError):
-            exc = self._no_thread(exc)
+            exc = no_thread(self.name, exc, "its connection")
         if isinstance(exc, RrError):
             self._lose(channel, exc)
         else:
