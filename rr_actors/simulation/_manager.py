@@ -58,6 +58,7 @@ from rr_actors._process.control import (
     SyncEvents,
     stopped_cleanly,
 )
+from rr_actors._process.hearers import HEARERS
 from rr_actors._process.heartbeat import Hang, Heartbeat
 from rr_actors._process.manager import ManagerExit, ManagerProcess, describe
 from rr_actors._process.tally import Received
@@ -209,6 +210,7 @@ class SimulatedManager(ManagerProcess):
         self.reported = runtime.Event()  # (its exit: a simulated child sends no `Stopped`)
         self._reported = None
         self._exit_by = 0.0
+        HEARERS.hears_all(self, on=True)  # (it reports no monitors: told every start)
 
     def _send(self, message: FromParent) -> bool:
         if not self._process.alive:
@@ -281,6 +283,7 @@ class SimulatedManager(ManagerProcess):
             result = describe(exitcode)
         self.exit = result
         self.exited.set()
+        HEARERS.forget(self)
         self.reported.set()
         for waiting in list(self._syncs.values()):
             waiting.set()
