@@ -121,6 +121,9 @@ class Membership:
     def monitor_all(self, watcher: str, *, on: bool) -> None:
         """Registrar `watcher` hears every start (`on`) or only those it monitors; whether
         any registrar here hears every start is reported when that changes."""
+        if self.report is None:  # (nothing to report: nothing to order, a GIL-atomic step)
+            (self._everything.add if on else self._everything.discard)(watcher)
+            return
         with self._lock:
             before, at = bool(self._everything), runtime.monotonic()
             (self._everything.add if on else self._everything.discard)(watcher)

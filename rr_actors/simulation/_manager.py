@@ -210,7 +210,9 @@ class SimulatedManager(ManagerProcess):
         self.reported = runtime.Event()  # (its exit: a simulated child sends no `Stopped`)
         self._reported = None
         self._exit_by = 0.0
-        HEARERS.hears_all(self, on=True)  # (it reports no monitors: told every start)
+        # It reports no monitors: told every start from now on (registered before its child
+        # runs: none is missed), not again those announced before it was made.
+        HEARERS.hears_all(self, on=True, at=float("inf"))
 
     def _send(self, message: FromParent) -> bool:
         if not self._process.alive:
