@@ -921,7 +921,8 @@ def test_an_answer_its_next_restore_lists_or_its_provider_released_first_holds()
 
 
 def test_a_dependency_its_restore_lacks_under_a_parent_restored_unloading_holds() -> None:
-    """`simprogram` seed 215 (since a tree's ordered start changed, issue 69): cm's
+    """`simprogram` seed 67 (215 before a restart was told only to the manager processes
+    that monitor it; since a tree's ordered start changed, issue 69): cm's
     resource began its unload, whose release of the dependency Q1 was committed, and the
     whole program was killed before that release's events left. The restore lists the
     parent `unloading` and lacks Q1: rule 12's release under way, not a lost record. Under
