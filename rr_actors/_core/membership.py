@@ -17,6 +17,8 @@ it, and one that starts later hears it when it joins, until a later incarnation 
  a carrier: reachable again (Messenger.reachable) ─► reachable(X) ─► forget X, peer_reachable(X)
  X served again (a registrar named X starts here, a supervisor restarts it, a carrier
    sees it served) ─► back(X)
+ a registrar here monitors X (`monitor`, `monitor_all`) ─► recorded; X new to this process:
+   reported (`report`: a manager process's supervisor tells it only starts it monitors)
  a supervisor stopped X for good ─► stopped(X) ─► record, peers_stopped((X,)) (what X still
    holds here is stale: a stopped registrar holds nothing, rule 12); in the tree's stop,
    not to its managers still running here: each hears them all before its own stop
@@ -64,8 +66,20 @@ class Joined(Hearer, Protocol):
         ...
 
 
+class Report(Protocol):
+    """Where this process reports whose starts its registrars hear (a manager process's
+    control pipe to its supervisor, which tells it only those: `_process/hearers.py`).
+    `at`: monotonic seconds, read before the change was recorded. Any thread."""
+
+    def monitoring(self, names: tuple[str, ...], at: float) -> None: ...
+
+    def hears_all(self, on: bool, at: float) -> None: ...
+
+
 class Membership:
     """Who is gone for good, as this process knows it; the one sender of `peer_lost`."""
+
+    report: Report | None = None  # (set in a manager process: `child.py`)
 
     def __init__(self) -> None:
         self._lock = runtime.Lock()
@@ -90,13 +104,32 @@ class Membership:
                 del self._hearers[hearer.name]
 
     def monitor(self, watcher: str, *targets: str) -> None:
-        """Registrar `watcher` has business with `targets`: it hears their (re)starts."""
+        """Registrar `watcher` has business with `targets`: it hears their (re)starts.
+        A target new to this process is reported (`report`), stamped before it is recorded."""
+        new: list[str] = []
+        at: float | None = None
         for target in targets:
             if watcher != target and watcher not in self._watchers.get(target, ()):
+                if self.report is not None and target not in self._watchers:
+                    at = runtime.monotonic() if at is None else at  # (before it is recorded)
+                    new.append(target)
                 self._watchers.setdefault(target, set()).add(watcher)  # (a GIL-atomic step)
+        report = self.report
+        if new and report is not None and at is not None:
+            report.monitoring(tuple(new), at)
 
     def monitor_all(self, watcher: str, *, on: bool) -> None:
-        (self._everything.add if on else self._everything.discard)(watcher)
+        """Registrar `watcher` hears every start (`on`) or only those it monitors; whether
+        any registrar here hears every start is reported when that changes."""
+        if self.report is None:  # (nothing to report: nothing to order, a GIL-atomic step)
+            (self._everything.add if on else self._everything.discard)(watcher)
+            return
+        with self._lock:
+            before, at = bool(self._everything), runtime.monotonic()
+            (self._everything.add if on else self._everything.discard)(watcher)
+            report = self.report
+            if report is not None and before != bool(self._everything):
+                report.hears_all(not before, at)  # (under the lock: reports in order)
 
     def started(self, name: str, *, skip: Container[str] = frozenset()) -> None:
         """Registrar `name` (re)started: each joined hearer that monitors it (not `skip`) hears."""
@@ -166,6 +199,7 @@ class Membership:
         self._gone.clear()
         self._watchers.clear()
         self._everything.clear()
+        self.report = None  # (the pipe is its parent's)
 
 
 def _tell(hearers: Iterable[Hearer], what: str, name: str) -> None:

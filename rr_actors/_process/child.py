@@ -51,6 +51,8 @@ from rr_actors._process.control import (
     Failed,
     Forward,
     FromChild,
+    HearsAll,
+    Monitoring,
     PeersStopped,
     PeerStarted,
     Ping,
@@ -127,6 +129,37 @@ class _Control:
         # OSError: the parent is gone; the control loop sees EOF and exits
         with self.lock, contextlib.suppress(OSError):
             self.conn.send(message)
+
+
+class _Report:
+    """This process's monitors, reported on the control pipe (`Membership.report`): held
+    until `Ready` has gone (its supervisor reads what follows `Ready` on its handle), then
+    sent as they come. Any thread."""
+
+    def __init__(self, control: _Control) -> None:
+        self.control = control
+        self.lock = threading.Lock()
+        self.held: list[FromChild] | None = []
+
+    def monitoring(self, names: tuple[str, ...], at: float) -> None:
+        self._send(Monitoring(names, at))
+
+    def hears_all(self, on: bool, at: float) -> None:
+        self._send(HearsAll(on, at))
+
+    def _send(self, message: FromChild) -> None:
+        with self.lock:
+            if self.held is not None:
+                self.held.append(message)
+                return
+        self.control.send(message)
+
+    def ready(self) -> None:
+        """`Ready` has gone: send what was held, in order, and from now on at once."""
+        with self.lock:
+            held, self.held = self.held or [], None
+            for message in held:  # (under the lock: nothing overtakes them)
+                self.control.send(message)
 
 
 class _Pong:
@@ -342,6 +375,7 @@ def _run_manager(
 
     control = _Control(conn)
     line = _EventLine(control, config.name, on=forward, tally=tally)
+    report = MEMBERSHIP.report = _Report(control)  # (before its restore monitors anything)
     attached: Transport | None = None
     try:
         if address is not None:
@@ -375,6 +409,7 @@ def _run_manager(
         _exit(ACTOR_DIED_EXIT, attached)
 
     control.send(Ready(os.getpid()))
+    report.ready()
     line.started()  # the events of its start follow `Ready`, in their order
     # after `Ready`: a death before it started is seen at once (`wait_ended` returns)
     threading.Thread(target=watch_actor, name="rr-manager-actor-watch", daemon=True).start()
@@ -445,7 +480,8 @@ class _ControlLoop:
         self.line.switch(on=message.on)
 
     def peer_started(self, message: PeerStarted) -> None:
-        """Every registrar of this process that monitors it hears it (a pool's managers too)."""
+        """Every registrar of this process that monitors it hears it (a pool's managers too;
+        its supervisor tells only what this process reported it monitors, `_Report`)."""
         MEMBERSHIP.started(message.name)
 
     def peers_stopped(self, message: PeersStopped) -> None:

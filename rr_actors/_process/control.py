@@ -20,6 +20,9 @@
    PeerStarted(name) ───────────────────────────────────────────►  its registrars hear it
                                           ◄──────── Announce(name)  (a pool: one of its
                                                      managers restarted, tell the others)
+                                          ◄──────── Monitoring(names, at) | HearsAll(on, at)
+                                                    (whose starts its registrars hear:
+                                                     only those are told, `hearers.py`)
    (EOF: the parent is gone) ───────────────────────────────────►  exit PARENT_GONE_EXIT
 ```
 
@@ -60,6 +63,8 @@ __all__ = [
     "Forward",
     "FromChild",
     "FromParent",
+    "HearsAll",
+    "Monitoring",
     "PeerStarted",
     "PeersStopped",
     "Ping",
@@ -232,10 +237,41 @@ class Announce:
     restarted: bool = False
 
 
+@dataclasses.dataclass(frozen=True, slots=True)
+class Monitoring:
+    """A registrar of this process has business with registrars `names` now (Erlang's
+    monitor): tell it their (re)starts, and those announced since `at` (monotonic
+    seconds, read before it recorded them: a report that arrives late misses none)."""
+
+    names: tuple[str, ...]
+    at: float
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class HearsAll:
+    """A registrar of this process hears every (re)start (`on`: a restored one until its
+    sweep has read every row), or none does any more; `at` as in `Monitoring`."""
+
+    on: bool
+    at: float
+
+
 FromParent = (
     WarmUp | Start | Ping | Probe | Forward | SyncEvents | Stop | PeerStarted | PeersStopped
 )
-FromChild = Warm | Ready | Failed | Pong | Progress | Events | EventsSynced | Announce | Stopped
+FromChild = (
+    Warm
+    | Ready
+    | Failed
+    | Pong
+    | Progress
+    | Events
+    | EventsSynced
+    | Announce
+    | Monitoring
+    | HearsAll
+    | Stopped
+)
 
 
 # -- how manager processes start ---------------------------------------------------------------

@@ -52,6 +52,8 @@ from rr_actors._process.control import (
     Failed,
     Forward,
     FromParent,
+    HearsAll,
+    Monitoring,
     PeersStopped,
     PeerStarted,
     Ping,
@@ -67,6 +69,7 @@ from rr_actors._process.control import (
     start_forkserver,
     stopped_cleanly,
 )
+from rr_actors._process.hearers import HEARERS
 from rr_actors._process.heartbeat import Hang, Heartbeat, Late, Look
 from rr_actors._process.tally import Received, Tally
 from rr_actors._process.watcher import WATCHER
@@ -312,7 +315,8 @@ class ManagerProcess:
         return True
 
     def tell_started(self, name: str) -> None:
-        """Tell the manager's registrar that registrar `name` (re)started (`PeerStarted`)."""
+        """Tell the manager's registrars that registrar `name` (re)started (`PeerStarted`;
+        `HEARERS` says whom to tell). Any thread; nothing once its pipe is closed."""
         self._send(PeerStarted(name))
 
     def tell_stopped(self, names: tuple[str, ...]) -> None:
@@ -471,6 +475,12 @@ class ManagerProcess:
             except Exception:
                 logger.exception("announcing %s (from %s) failed", message.name, self.name)
 
+    def _monitoring(self, message: Monitoring, _now: float) -> None:
+        HEARERS.monitoring(self, message.names, message.at)
+
+    def _hears_all(self, message: HearsAll, _now: float) -> None:
+        HEARERS.hears_all(self, on=message.on, at=message.at)
+
     def _synced(self, message: EventsSynced, _now: float) -> None:
         waiting = self._syncs.get(message.token)
         if waiting is not None:
@@ -528,6 +538,7 @@ class ManagerProcess:
             result = describe(exitcode)
         self.exit = result
         self.exited.set()
+        HEARERS.forget(self)  # (after `exited`: a report read later is not kept)
         self.reported.set()
         for waiting in list(self._syncs.values()):  # nothing more will come
             waiting.set()
@@ -548,6 +559,8 @@ _HANDLERS: dict[type[Any], Callable[[ManagerProcess, Any, float], tuple[float, s
     Events: ManagerProcess._events,
     EventsSynced: ManagerProcess._synced,
     Announce: ManagerProcess._announce,
+    Monitoring: ManagerProcess._monitoring,
+    HearsAll: ManagerProcess._hears_all,
     Pong: ManagerProcess._pong,
     Progress: ManagerProcess._progress,
     Stopped: ManagerProcess._stopped,

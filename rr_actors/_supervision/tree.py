@@ -33,6 +33,7 @@ from rr_actors._core.replies import FutureReply, Steps
 from rr_actors._core.serial import SerialExecutor
 from rr_actors._platform import lockfile
 from rr_actors._process.control import preload
+from rr_actors._process.hearers import HEARERS
 from rr_actors._process.spare import SparePool
 from rr_actors._registrar import give_back, life
 from rr_actors._supervision.children import (
@@ -494,17 +495,17 @@ def announce_started(
     upward: Callable[[str], None] | None = None,
 ) -> None:
     """Registrar `name` (re)started: each living registrar of the system that monitors it hears
-    so once (`Membership.started`), the tree's process managers and pools on their control pipes
-    (no manager connects to one it has no business with), the others through the directory.
+    so once (`Membership.started`), the manager processes and pools that monitor it on their
+    control pipes (`HEARERS`: no other process is woken, none connects to one it has no
+    business with), the registrars beyond the tree through the directory.
 
     `here`: this process's registrars told too. `beyond`: a first start, only registrars
     beyond the tree are told (here and on the network). In a pool's process (`upward`:
     `Tree.upward`, its control pipe) only this process's registrars are told here, and its
     parent tells the rest; `origin`: the pool the announcement came from (told already)."""
-    piped = _process_handles(root) if root.has_pipes else {}  # (a tree of threads: no walk)
-    for other, manager in () if beyond else sorted(piped.items()):
-        if other not in (name, origin):
-            manager.handle.tell_started(name)
+    for hearer in () if beyond or not root.has_pipes else HEARERS.announce(name):
+        if hearer.name not in (name, origin):  # (the processes that monitor it: issue 69)
+            hearer.tell_started(name)
     reached = _piped(root) if root.has_pipes else set()
     below = _names_below(root) if beyond else set()
     if here or beyond:

@@ -58,6 +58,7 @@ from rr_actors._process.control import (
     SyncEvents,
     stopped_cleanly,
 )
+from rr_actors._process.hearers import HEARERS
 from rr_actors._process.heartbeat import Hang, Heartbeat
 from rr_actors._process.manager import ManagerExit, ManagerProcess, describe
 from rr_actors._process.tally import Received
@@ -209,6 +210,9 @@ class SimulatedManager(ManagerProcess):
         self.reported = runtime.Event()  # (its exit: a simulated child sends no `Stopped`)
         self._reported = None
         self._exit_by = 0.0
+        # It reports no monitors: told every start from now on (registered before its child
+        # runs: none is missed), not again those announced before it was made.
+        HEARERS.hears_all(self, on=True, at=float("inf"))
 
     def _send(self, message: FromParent) -> bool:
         if not self._process.alive:
@@ -281,6 +285,7 @@ class SimulatedManager(ManagerProcess):
             result = describe(exitcode)
         self.exit = result
         self.exited.set()
+        HEARERS.forget(self)
         self.reported.set()
         for waiting in list(self._syncs.values()):
             waiting.set()

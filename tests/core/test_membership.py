@@ -109,3 +109,45 @@ def test_a_tree_stop_told_at_once_is_one_batch_to_each_hearer_less_its_own_name(
     membership.stopped_all(["x", "y", "a", "z"], by="its supervisor (the tree's stop)")
     assert [h.batches for h in hearers] == [[("x",), ("y", "z")], [("x",), ("y", "a", "z")]]
     assert membership.gone() == {"x": True, "y": True, "a": True, "z": True}
+
+
+class Reported:
+    """A `Membership.report` that writes down what it is told."""
+
+    def __init__(self) -> None:
+        self.reports: list[tuple[str, object]] = []
+
+    def monitoring(self, names: tuple[str, ...], at: float) -> None:
+        self.reports.append(("monitoring", names))
+
+    def hears_all(self, on: bool, at: float) -> None:
+        self.reports.append(("hears_all", on))
+
+
+def test_a_name_first_monitored_in_the_process_is_reported_once_and_after_it_is_recorded() -> None:
+    # a manager process's supervisor tells it only the starts it reported (issue 69): each
+    # name once, whichever of its registrars monitors it first
+    membership = Membership()
+    membership.report = report = Reported()
+    membership.monitor("a", "x", "y")
+    membership.monitor("b", "x")
+    membership.monitor("a", "x", "a")
+    assert [("monitoring", ("x", "y"))] == report.reports
+
+
+def test_whether_any_registrar_hears_every_start_is_reported_only_when_it_changes() -> None:
+    membership = Membership()
+    membership.report = report = Reported()
+    membership.monitor_all("a", on=True)
+    membership.monitor_all("b", on=True)
+    membership.monitor_all("a", on=False)
+    membership.monitor_all("b", on=False)
+    assert [("hears_all", True), ("hears_all", False)] == report.reports
+
+
+def test_a_forked_child_reports_nothing_on_its_parents_pipe() -> None:
+    membership = Membership()
+    membership.report = report = Reported()
+    membership.forget_in_child()
+    membership.monitor("a", "x")
+    assert [] == report.reports

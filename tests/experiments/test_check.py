@@ -921,7 +921,8 @@ def test_an_answer_its_next_restore_lists_or_its_provider_released_first_holds()
 
 
 def test_a_dependency_its_restore_lacks_under_a_parent_restored_unloading_holds() -> None:
-    """`simprogram` seed 215 (since a tree's ordered start changed, issue 69): cm's
+    """`simprogram` seed 67 (215 before a restart was told only to the manager processes
+    that monitor it; since a tree's ordered start changed, issue 69): cm's
     resource began its unload, whose release of the dependency Q1 was committed, and the
     whole program was killed before that release's events left. The restore lists the
     parent `unloading` and lacks Q1: rule 12's release under way, not a lost record. Under
@@ -3538,12 +3539,12 @@ def test_a_status_whose_send_died_with_its_killed_provider_is_on_its_path() -> N
 
 @pytest.mark.timeout(300)  # (a whole simdoubt run: 3 s alone, over 60 s at a load of 75)
 def test_drop_delivery_leaves_a_status_whose_sender_was_killed_right_after_it_sent_it_on() -> None:
-    """`simdoubt` seed 13 (9 from restarts told only to their monitors until this stop's
-    runtime moved its history back, 15 until announced restarts did): a registrar is
+    """`simdoubt` seed 27 (13 before a restart was told only to the manager processes
+    that monitor it, 15 before announced restarts): a registrar (api) is
     killed right after a status reaches it at hop 1 (its last line), its climb already on
     its way. That delivery lost reads as one it never sent (`status-reached` excuses it):
     `drop_delivery` takes another."""
-    run = simulate.run_seed(load_plan(plans.find("simdoubt")), 13)
+    run = simulate.run_seed(load_plan(plans.find("simdoubt")), 27)
     (history,) = check.read_runs(run.history.splitlines()).values()
     h = [event for _, event in history]
     last = {(e.registrar, e.pid): i for i, e in enumerate(h) if hasattr(e, "registrar")}
@@ -3552,7 +3553,7 @@ def test_drop_delivery_leaves_a_status_whose_sender_was_killed_right_after_it_se
         for i, e in enumerate(h)
         if type(e) is events.StatusDelivered and e.hop == 1 and last[e.registrar, e.pid] == i
     ]
-    assert climbs, "seed 13 no longer kills a registrar right after a status reached it"
+    assert climbs, "seed 27 no longer kills a registrar right after a status reached it"
     mutated = drop_delivery(h)
     assert mutated is not None
     verdict = check.check(numbered(renumbered(mutated)))

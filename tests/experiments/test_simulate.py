@@ -910,20 +910,22 @@ def test_the_simprogram_plan_holds_at_seed_1_its_killed_programs_client_ids_rele
 
 
 @SWEEP
-def test_simprogram_seed_215_holds_a_release_committed_before_the_program_was_killed() -> None:
+def test_simprogram_seed_67_holds_a_release_committed_before_the_program_was_killed() -> None:
     # issue 68, finding 1: api was unloading a resource when the program was SIGKILLed, and
     # its release of the dependency was committed before the kill took its events. Until a
     # tree's ordered start changed (issue 69 goal 3), db had committed it too: db's
     # restore lacked the id, api's listed it under the resource being unloaded, and `kept`
     # took it for a committed row lost (that shape is held by test_check's
     # `test_a_release_its_consumer_committed_before_a_kill_of_both_lost_from_a_restore_holds`;
-    # seeds 1-76 and 150-225 of this runtime do not reach it). Since, api's own commit of
+    # seeds 1-76 and 150-225 of issue 69's runtime did not reach it). Since, api's own commit of
     # the release is what the kill cut off: its restore lists the parent `unloading` and
     # lacks the dependency, which `record-kept` took for a lost record (rule 12's release
-    # under way). (Seed 125 until a restart was announced by its supervisor.)
+    # under way; db released the dependency only at its reconcile, after api's restore).
+    # (Seed 215 until a restart was told only to the manager processes that monitor it;
+    # 125 before a restart was announced by its supervisor.)
     from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
 
-    run = simulate.run_seed(load_plan(PLANS / "simprogram.toml"), 215)
+    run = simulate.run_seed(load_plan(PLANS / "simprogram.toml"), 67)
 
     held([run])
     parent_of = {
@@ -939,7 +941,7 @@ def test_simprogram_seed_215_holds_a_release_committed_before_the_program_was_ki
         and qid not in {row[0] for row in e["clients"]}
         and qid not in forgotten
     }
-    assert released_with_parent, "seed 215 no longer cuts off such a release's events"
+    assert released_with_parent, "seed 67 no longer cuts off such a release's events"
 
 
 @SWEEP

@@ -19,7 +19,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import testing
-from rr_actors._process import control, manager
+from rr_actors._process import control, hearers, manager
 from rr_actors._supervision import tree
 from rr_actors.testing import RemoteRegistrar, SharedObjects, System
 from tests.support import selecting
@@ -37,6 +37,35 @@ from tests.support.waiting import wait_for
 
 def thread(name: str, setup: Any = echo_setup) -> rr.ManagerSpec:
     return rr.ManagerSpec(name, setup, isolation="thread")
+
+
+def _counting_setup(registrar: rr.ResourceRegistrar) -> None:
+    """`echo_setup`, and this manager process keeps the name of each (re)start it is told
+    (`MEMBERSHIP.started`, run for each `PeerStarted` read on its control pipe)."""
+    from rr_actors._core.membership import MEMBERSHIP  # noqa: PLC0415 - in its process
+
+    heard: list[str] = []
+    started = MEMBERSHIP.started
+
+    def counted(name: str, **kwargs: Any) -> None:
+        heard.append(name)
+        started(name, **kwargs)
+
+    counted.heard = heard  # type: ignore[attr-defined]
+    MEMBERSHIP.started = counted  # type: ignore[method-assign]
+    echo_setup(registrar)
+
+
+def _heard(sup: rr.Supervisor, name: str) -> list[str]:
+    """The (re)starts manager process `name` was told of (`_counting_setup`)."""
+
+    def read(_registrar: rr.ResourceRegistrar) -> list[str]:
+        from rr_actors._core.membership import MEMBERSHIP  # noqa: PLC0415 - in its process
+
+        return list(MEMBERSHIP.started.heard)  # type: ignore[attr-defined]
+
+    heard: list[str] = sup.run_in(name, read)
+    return heard
 
 
 STOP_ROUNDS = 30
@@ -592,6 +621,72 @@ class TestAnnounce:
             for registrar in others:  # each handled what it was told before this
                 registrar.server_queries("echo")
             assert sorted({app.name, caller}) == sorted(set(heard))
+
+    @pytest.mark.parametrize("state", ["backup", "none"])
+    def test_a_restart_wakes_only_the_manager_processes_that_monitor_it(
+        self, uid: str, tmp_path: Path, supervisors: Callable[..., rr.Supervisor], state: str
+    ) -> None:
+        # issue 69, "A restart does not feel the tree": the supervisor told every manager
+        # process of a restart on its control pipe (`PeerStarted`), 0.14 ms of CPU each,
+        # 140 ms a restart at 1,000; each process's monitors (`Membership.report`) now
+        # say which processes hear it
+        names = [f"m{i}-{uid}" for i in range(12)]
+        victim, caller = names[5], names[7]
+        sup = supervisors(
+            [process(name, _counting_setup, heartbeat=None) for name in names],
+            state_dir=tmp_path if state == "backup" else None,
+        )
+        with sup:
+            sup.registrar(f"app-{uid}").call(victim, "echo", "held")
+            sup.run_in(caller, lambda r: r.call(victim, "echo", "held too").id)
+
+            kill_and_wait_restarted(sup, victim)
+
+            assert wait_for(lambda: 1 <= _heard(sup, caller).count(victim), 15)
+            heard = {name: _heard(sup, name).count(victim) for name in names if name != victim}
+            assert {caller: 1} == {name: count for name, count in heard.items() if count}
+
+    def test_a_monitor_reported_after_a_restart_was_announced_is_told_of_it(
+        self,
+        uid: str,
+        tmp_path: Path,
+        supervisors: Callable[..., rr.Supervisor],
+        monkeypatch: pytest.MonkeyPatch,
+    ) -> None:
+        # the forced interleaving: the caller's report that it monitors the victim, stamped
+        # before its call, is read by the supervisor only after the victim's restart was
+        # announced (to nobody): it is told of that restart as its report is read
+        victim, caller = f"victim-{uid}", f"caller-{uid}"
+        monitoring = hearers.Hearers.monitoring
+        held: list[tuple[Any, tuple[str, ...], float]] = []
+        reported = threading.Event()
+
+        def late(index: hearers.Hearers, hearer: Any, names: Any, at: float) -> None:
+            if hearer.name == caller and victim in names:
+                held.append((hearer, tuple(names), at))
+                reported.set()
+                return
+            monitoring(index, hearer, names, at)
+
+        monkeypatch.setattr(hearers.Hearers, "monitoring", late)
+        sup = supervisors(
+            [
+                process(victim, _counting_setup, heartbeat=None),
+                process(caller, _counting_setup, heartbeat=None),
+            ],
+            state_dir=tmp_path,
+        )
+        with sup:
+            sup.run_in(caller, lambda r: r.call(victim, "echo", "held").id)
+            assert reported.wait(15)
+
+            kill_and_wait_restarted(sup, victim)
+            assert [] == _heard(sup, caller)  # announced to nobody: its report is held
+
+            for hearer, names, at in held:  # read now, late
+                monitoring(hearers.HEARERS, hearer, names, at)
+
+            assert wait_for(lambda: [victim] == _heard(sup, caller), 15), _heard(sup, caller)
 
     def test_a_holder_hears_fatal_for_an_id_its_providers_restart_lost_from_its_backup(
         self, uid: str, tmp_path: Path, supervisors: Callable[..., rr.Supervisor]
