@@ -1092,6 +1092,7 @@ SIMULATED = [
     "first",
     "crashloop",
     "hang",
+    "nobackup",
     "simchain",
     "simretry",
     "simheal",
