@@ -3489,7 +3489,11 @@ def shipped_files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """Real runs of every shipped plan (one repeat, shortened): each one's `events.jsonl`
     (kept in pytest's base temporary folder, the last three sessions' kept). Each plan runs
     once: a killed process's numbers that no event took are told (`EventsUnpublished`),
-    not lost (4 of 129 real `simways` runs at load 6-30 were `unverifiable` before)."""
+    not lost (4 of 129 real `simways` runs at load 6-30 were `unverifiable` before).
+    A mutation needs its shape in some run: `nobackup` gives the give-up (`drop-give-up`,
+    `give-up-unescalated`) and the id a restart without a backup lost
+    (`release-after-reconcile`) in every run; `crashloop` and `simnostate`, timed kills
+    under load, had none in some real runs (CI at 82548e2b, load 40-70 here)."""
     files = {}
     for name in sorted(set(plans.shipped()) - ROOT_ONLY - SIMULATION_ONLY):
         out = tmp_path_factory.mktemp(name)

@@ -29,6 +29,7 @@ SHIPPED = {
     "first",
     "killheavy",
     "leases",
+    "nobackup",
     "simchain",
     "simretry",
     "simheal",

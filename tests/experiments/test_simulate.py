@@ -1094,6 +1094,7 @@ SIMULATED = [
     "first",
     "crashloop",
     "hang",
+    "nobackup",
     "simchain",
     "simretry",
     "simheal",
