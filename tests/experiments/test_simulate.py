@@ -1107,6 +1107,7 @@ SIMULATED = [
     "simshed",
     "simkept",
     "simoverload",
+    "simcommit",
 ]
 """The shipped plans run over two seeds here (killheavy below, for 2 s; bigtree below, one seed)."""
 
