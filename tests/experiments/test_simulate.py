@@ -623,7 +623,7 @@ def test_a_provider_killed_between_a_commit_and_its_answer_releases_the_id() -> 
 def test_a_kill_at_a_commit_loses_the_turns_changes_and_its_answers_together_and_holds() -> None:
     # (issue 68 item 8: between a turn's answers and its commit; a registrar that
     # releases them first is caught: test_check.py's planted `state.py:279`)
-    plan = with_faults('kind = "kill_before_commit"\ntarget = "db"\nat = [0.5, 1.5]')
+    plan = with_faults('kind = "kill_before_commit"\ntarget = "api"\nat = [0.5, 1.5]')
 
     runs = simulate.simulate(plan, range(1, 4))
 
