@@ -73,13 +73,12 @@ MODULES = ("_registrar", "_store", "_catalog", "_supervision")
 
 ORDER = (
     "crashloop", "first", "hang", "simnostate", "simheal", "simhosts", "simshare", "simslow",
-    "simrest", "simchain", "simdoubt", "simprogram", "simcancel", "simshed", "simretry", "simways",
-    "simkept", "simoverload", "simcommit", "bigtree", "killheavy",
+    "simrest", "simchain", "simdoubt", "simcommit", "simprogram", "simcancel", "simshed",
+    "simretry", "simways", "simkept", "simoverload", "bigtree", "killheavy",
 )  # fmt: skip
 """The shipped plans the simulation runs, cheapest seed first (CPU s of seed 1, 2026-11-27:
 0.3 for the first four, 0.5-0.9 to simdoubt, 1.2-3.7 after; killheavy 4.8; simkept, added
-later, 3.3; simoverload 1.6; simcommit, a kill between a turn's answers and its commit,
-about 1)."""
+later, 3.3; simoverload 1.6; simcommit, added later, about 1: after simdoubt)."""
 
 COSMIC_RAY = importlib.metadata.version("cosmic-ray")
 
