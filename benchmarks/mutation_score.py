@@ -73,12 +73,12 @@ MODULES = ("_registrar", "_store", "_catalog", "_supervision")
 
 ORDER = (
     "crashloop", "first", "hang", "simnostate", "simheal", "simhosts", "simshare", "simslow",
-    "simrest", "simchain", "simdoubt", "simprogram", "simcancel", "simshed", "simretry", "simways",
-    "simkept", "simoverload", "bigtree", "killheavy",
+    "simrest", "simchain", "simdoubt", "simcommit", "simprogram", "simcancel", "simshed",
+    "simretry", "simways", "simkept", "simoverload", "bigtree", "killheavy",
 )  # fmt: skip
 """The shipped plans the simulation runs, cheapest seed first (CPU s of seed 1, 2026-11-27:
 0.3 for the first four, 0.5-0.9 to simdoubt, 1.2-3.7 after; killheavy 4.8; simkept, added
-later, 3.3; simoverload 1.6)."""
+later, 3.3; simoverload 1.6; simcommit, added later, about 1: after simdoubt)."""
 
 COSMIC_RAY = importlib.metadata.version("cosmic-ray")
 
@@ -100,10 +100,12 @@ EQUIVALENT: dict[str, str] = {
     "0.0 and 1.0 drop the same events (none) on any clock past 1970-01-01 00:00:01",
     "_registrar/state.py:496:ZeroIterationForLoop": "`Probes.around`'s after hooks: only "
     "`rr_actors.testing.intercept(after=...)` installs one, which no plan, runtime path or "
-    "lab tool calls (equivalent for every program but a test's: tests/registrar/test_calls.py)",
+    "lab tool calls (the `kill_before_commit` fault installs a `before` hook of a point) "
+    "(equivalent for every program but a test's: tests/registrar/test_calls.py)",
     "_registrar/state.py:504:ZeroIterationForLoop": "`Probes.fire`'s hooks: only "
-    "`rr_actors.testing.intercept` installs one, which no plan, runtime path or lab tool "
-    "calls (equivalent for every program but a test's)",
+    "`rr_actors.testing.intercept` installs one, which no runtime path calls: a test's, "
+    "or the simulated fault `kill_before_commit`'s (simcommit), whose kill then never "
+    "comes (recorded as skipped): the registrar's steps are the same",
     "_store/schema.py:297:ReplaceBinaryOperator_Add_Pow": "`create`'s migration loop is "
     "`range(CREATED_VERSION, SCHEMA_VERSION)`, `range(7, 7)`: its body never runs (only "
     "tests add steps)",

@@ -9,7 +9,9 @@ instrumented_setup, path, options)`: the real setup runs with a registrar whose
                                                               else ──► the setup's own load
 
 On the simulation the switch is per simulated process (virtual clock), and `kill_in_setup`
-arms `SETUP_FAULTS[name]`, run after the next setup returned, before the manager serves.
+arms `SETUP_FAULTS[name]`, run after the next setup returned, before the manager serves;
+`kill_before_commit` arms `COMMIT_FAULTS[pid]`, run at the registrar's next turn commit
+(`arm_commit_fault`, through `run_in`: the probe `turn_commit`).
 `cut_connections` (a SIGUSR2 handler on the manager's main thread, fired at an exact time)
 shuts down every AF_UNIX connection of the registrar: calls in flight fail with
 `RegistrarUnavailableError` and the next message connects again.
@@ -26,15 +28,20 @@ import socket
 import stat
 import threading
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rr_actors._core import runtime
 from rr_actors._core.loops import is_coroutine_function
 
+if TYPE_CHECKING:
+    from rr_actors import ResourceRegistrar
+
 __all__ = [
+    "COMMIT_FAULTS",
     "CUT_SIGNAL",
     "SETUP_FAULTS",
     "InjectedLoadError",
+    "arm_commit_fault",
     "arm_load_error",
     "catches_cut_signal",
     "cut_connections",
@@ -70,6 +77,30 @@ _LOCK = threading.Lock()  # (never held across a wait: the simulation's one thre
 SETUP_FAULTS: dict[str, Callable[[], object]] = {}
 """Manager name -> what its next setup runs once the plan's setup returned (popped then):
 armed by the simulation's `kill_in_setup` fault only."""
+
+COMMIT_FAULTS: dict[int, Callable[[], object]] = {}
+"""Simulated pid -> what its registrar runs at its next turn's commit, before the write
+(popped then): armed by the simulation's `kill_before_commit` fault only."""
+
+
+def arm_commit_fault(registrar: ResourceRegistrar) -> None:
+    """Make the registrar's next turn commit run `COMMIT_FAULTS[its process]` before its
+    write (the probe `turn_commit`, `rr_actors.testing.intercept`): the changes of that turn
+    staged, the answers it held not released. Run it in the manager with
+    `Supervisor.run_in(manager, arm_commit_fault)`; installed once a registrar (its hook
+    does nothing for a pid `COMMIT_FAULTS` does not name)."""
+    from rr_actors.testing import intercept  # noqa: PLC0415 - only for this fault
+
+    intercept(registrar, "turn_commit", before=_at_commit)
+
+
+def _at_commit(staged: object) -> None:
+    """The probe `turn_commit` (the registrar's actor thread): what is armed for this
+    process, once."""
+    del staged
+    fire = COMMIT_FAULTS.pop(runtime.getpid(), None)
+    if fire is not None:
+        fire()
 
 
 def arm_load_error(

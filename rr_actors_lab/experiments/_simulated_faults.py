@@ -13,6 +13,9 @@
                         healed; one at a time
    duplicate_delivery ► SimulatedNetwork.duplicate_first      (plan.SIMULATION_KINDS)
    kill_before_answer ► SimulatedNetwork.kill_at_answer
+   kill_before_commit ► run_in(arm_commit_fault): at its registrar's next turn commit,
+                        before the write (COMMIT_FAULTS), the longest frame delay, then
+                        SIGKILL (what it sent before arrives, as a socket's buffer)
    kill_in_setup ─────► SIGKILL now and inside its restart's setup (SETUP_FAULTS)
    partition_serving ─► SIGKILL; its restart cut off as it serves (on_serve), healed
    split_brain ───────► its process cut off; a second server of its name beyond the cut
@@ -46,7 +49,12 @@ import rr_actors as rr
 from rr_actors import events, simulation
 from rr_actors._core import runtime
 from rr_actors_lab.experiments._agenda import FaultLog, Triggered
-from rr_actors_lab.experiments._instrument import SETUP_FAULTS, arm_load_error
+from rr_actors_lab.experiments._instrument import (
+    COMMIT_FAULTS,
+    SETUP_FAULTS,
+    arm_commit_fault,
+    arm_load_error,
+)
 from rr_actors_lab.experiments.plan import Plan
 from rr_actors_lab.experiments.results import FaultRecord
 from rr_actors_lab.experiments.runner import EVENT_QUEUE, _child_spec
@@ -145,6 +153,7 @@ class SimulatedFaults:
                 self._agenda.append((self.t0 + fault.at, n, action))
         heapq.heapify(self._agenda)
         SETUP_FAULTS.clear()  # (the simulation's alone: nothing arms it in a real run)
+        COMMIT_FAULTS.clear()
         self._thread = runtime.Thread(target=self._run, name="rr-simulated-faults", daemon=True)
 
     @property
@@ -182,6 +191,7 @@ class SimulatedFaults:
         self._deaf.clear()
         for fault, _ in self._armed.values():
             SETUP_FAULTS.pop(fault.target or "", None)
+        COMMIT_FAULTS.clear()  # (one run at a time: only its own are armed)
         for fault in self._triggered.take():
             self.log.record(
                 fault, None, None, "its trigger did not happen in the run", skipped=True
@@ -258,6 +268,7 @@ class SimulatedFaults:
         helper = {
             "load_error": (self._load_error, "rr-simulated-load"),
             "split_brain": (self._split_brain, "rr-simulated-split"),
+            "kill_before_commit": (self._kill_before_commit, "rr-simulated-commit"),
         }.get(fault.kind)
         if helper is not None:  # (it takes virtual time: a thread of its own)
             target, name = helper
@@ -388,6 +399,7 @@ class SimulatedFaults:
     def _aim(self, fault: ScheduledFault) -> str:
         return {
             "kill_before_answer": f"an answer of {fault.target}",
+            "kill_before_commit": f"a commit of {fault.target}",
             "kill_in_setup": f"a restart of {fault.target}",
             "partition_serving": f"{fault.target} serving again",
         }[fault.kind]
@@ -401,6 +413,38 @@ class SimulatedFaults:
             return
         detail = detail or f"SIGKILL pid {pid} at its answer (after the commit)"
         self.log.record(fault, at, self._now(), detail)
+
+    def _kill_before_commit(self, fault: ScheduledFault, at: float) -> None:
+        """Arm a SIGKILL at the target's registrar's next turn commit (a thread of its own:
+        arming asks the manager, `run_in`, which takes virtual time)."""
+        assert fault.target is not None
+        tree = self._tree(fault.target)
+        info = tree.child(fault.target)
+        if info.state != "running" or info.pid is None:
+            detail = f"{fault.target} was not running ({info.state})"
+            self.log.record(fault, at, None, detail, skipped=True)
+            return
+        pid = info.pid
+        self._arm(fault, at)
+        COMMIT_FAULTS[pid] = functools.partial(self._kill_at_commit, fault, at, pid)
+        try:
+            tree.run_in(fault.target, arm_commit_fault, timeout=RUN_IN_TIMEOUT)
+        except rr.RrError as exc:  # (it died meanwhile, of this fault or another)
+            COMMIT_FAULTS.pop(pid, None)
+            if self._armed.pop((fault.fault, fault.n), None) is not None:
+                self.log.record(fault, at, None, f"{fault.target}: {exc}", skipped=True)
+
+    def _kill_at_commit(self, fault: ScheduledFault, at: float, pid: int) -> None:
+        """At a turn's commit, before its write (the registrar's actor thread): the frames
+        the process sent before reach their receivers (the longest delay of a frame, as a
+        killed process's socket buffers are still read), then SIGKILL it there."""
+        detail = (
+            f"SIGKILL pid {pid} at a commit of its registrar's turn, before the write "
+            f"(what it had sent arrived first)"
+        )
+        self._fired(fault, at, pid, detail)
+        simulation.sleep(self.network.delay[1])
+        simulation.kill(pid, signal.SIGKILL)  # (never returns)
 
     def _kill_in_setup(self, fault: ScheduledFault, at: float, killed: int) -> None:
         """In the restarted manager's setup (its own thread): SIGKILL it there."""

@@ -55,6 +55,7 @@ FaultKind = Literal[
     "split_brain",
     "deaf_manager",
     "kill_program",
+    "kill_before_commit",
 ]
 
 FAULT_KINDS: tuple[FaultKind, ...] = typing.get_args(FaultKind)  # every kind a plan may name
@@ -68,6 +69,7 @@ SIMULATION_KINDS = frozenset(  # aimed where only a simulation can stop or reach
         "split_brain",
         "deaf_manager",
         "kill_program",
+        "kill_before_commit",
     }
 )
 NEEDS_PROCESS = frozenset({"kill_resource", "hang_manager", "cut_connections"} | SIMULATION_KINDS)

@@ -1109,6 +1109,14 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "life-end",
             id="the plant parallel-stop-failed is caught by life-end at simshed seed 1",
         ),
+        pytest.param(  # (a turn's answers released before its commit: a kill between loses
+            "simcommit",  # the change the caller was told of)
+            "rr_actors._registrar.state:Shared.commit_then",
+            "if not self.dirty:  # nothing of it",
+            "if self.dirty:  # nothing of it",
+            "answered",
+            id="the mutant state.py:279 is caught by answered at simcommit seed 1",
+        ),
     ],
 )
 def test_a_planted_bug_is_caught_by_its_rule_at_a_seed_its_plan_holds_at_unplanted(
@@ -3478,9 +3486,9 @@ ROOT_ONLY = {"leases", "simhosts"}
 network namespaces and minutes (tests/experiments/test_hosts.py runs a small plan of
 their shape; test_simulate.py runs `simhosts` on the simulation)."""
 
-SIMULATION_ONLY = {"simheal", "simrest", "simprogram"}
+SIMULATION_ONLY = {"simheal", "simrest", "simprogram", "simcommit"}
 """Shipped plans of a fault kind only the simulation injects (`split_brain`,
-`kill_in_setup`, `kill_program`): their histories are checked in
+`kill_in_setup`, `kill_program`, `kill_before_commit`): their histories are checked in
 tests/experiments/test_simulate.py."""
 
 
@@ -3669,7 +3677,7 @@ def test_each_mutation_of_the_shipped_plans_real_runs_is_caught_by_its_rule(
 SWEEP = pytest.mark.timeout(300)
 """A few seeds take a few CPU seconds; under load several times that."""
 
-MUTATED_ON_THE_SIMULATION = {"simheal", "simhosts", "simprogram", "simrest"}
+MUTATED_ON_THE_SIMULATION = {"simcommit", "simheal", "simhosts", "simprogram", "simrest"}
 """The shipped plans the real runs above leave out that the simulation runs (not `leases`:
 it freezes a host's router, which the simulated hosts have none of)."""
 

@@ -45,6 +45,7 @@ SHIPPED = {
     "simshed",
     "simkept",
     "simoverload",
+    "simcommit",
     "bigtree",
 }
 """Every plan shipped in the package; the tutorial's `first` runs in the docs test."""
