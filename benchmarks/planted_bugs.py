@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import os
 import shutil
@@ -594,19 +595,28 @@ KEPT = ROOT / "benchmarks" / "shrunk"
 violates with (tests/test_benchmarks.py runs each on its plant)."""
 
 
-def kept_text(plant: Plant, text: str, seed: int, events: int, runs: int) -> str:
+def kept_text(
+    plant: Plant, text: str, seed: int, events: int, runs: int, story: int | None = None
+) -> str:
     """A shrunk plan's text as `--keep` writes it: a header, then its seed, then the plan."""
+    told = (
+        f"# Its story is its first {story} events: the checker finds the same violation "
+        f"without the {events - story} after its finding.\n"
+        if story is not None and story < events
+        else ""
+    )
     header = (
         f"# The plant {plant.name!r} (benchmarks/planted_bugs.py) shrunk: seed {seed} of this "
         f"plan violates [{plant.rule}]\n# in {events} events on the planted code "
-        f"({runs} simulated runs of the shrink; `--shrink --keep` writes it again).\n"
+        f"({runs} simulated runs of the shrink; `--shrink --keep` writes it again).\n{told}"
     )
     return f"{header}seed = {seed}\n{text}"
 
 
 def run_kept(plant: Plant, path: Path) -> dict[str, Any]:
     """The kept shrunk plan at `path` run at its seed on a copy with `plant` applied: its
-    verdict, its violations of the plant's rule and its events."""
+    verdict, its violations of the plant's rule, its events and its story's
+    (`rr_actors_lab.experiments.shrink.story_events`)."""
     import tomllib  # noqa: PLC0415
 
     seed = tomllib.loads(path.read_text(encoding="utf-8"))["seed"]
@@ -660,12 +670,17 @@ def child_main(path: str, command: str, arguments: list[str]) -> None:
     plan = load_plan(str(PLANS / f"{arguments[0]}.toml"))
     started = time.process_time()
     if command == "shrunk":  # (the shrunk plan's text in a file, its seed, the rule)
+        from rr_actors_lab.experiments import shrink  # noqa: PLC0415
         from rr_actors_lab.experiments.reading import parse_plan  # noqa: PLC0415
 
         text = Path(arguments[1]).read_text(encoding="utf-8")
         run = simulate.run_seed(parse_plan(text, source=plan.source), int(arguments[2]))
         found = violated(run.findings, arguments[3])
-        print(json.dumps({"verdict": run.verdict, "violations": found, "events": run.events}))
+        judge = functools.partial(rule_first, rule=arguments[3])
+        kinds = shrink.violation_kinds(run, judge)
+        story = shrink.story_events(run, kinds[0], judge) if found else run.events
+        answer = {"verdict": run.verdict, "violations": found, "events": run.events}
+        print(json.dumps(answer | {"story": story}))
         return
     if command == "baseline":
         rules: dict[str, list[int]] = {}
@@ -708,6 +723,14 @@ def say(line: str) -> None:
     print(f"  shrink: {line}", file=sys.stderr, flush=True)
 
 
+def rule_first(run: Any, rule: str) -> list[Any]:
+    """The checker's violations of `run`, those of `rule` first (the shrinker keeps a run's
+    first kind)."""
+    from rr_actors_lab.experiments import shrink  # noqa: PLC0415 - the copy's
+
+    return sorted(shrink.violations(run), key=lambda finding: finding.rule != rule)
+
+
 def shrunk(plan: Any, seed: int, rule: str, budget: int) -> dict[str, Any]:
     """`seed`'s run shrunk (`rr_actors_lab.experiments.shrink`) keeping a violation of `rule`:
     the events of the shrunk run, the violation kind it kept, the runs it made and their
@@ -715,12 +738,10 @@ def shrunk(plan: Any, seed: int, rule: str, budget: int) -> dict[str, Any]:
     from rr_actors.errors import ConfigError  # noqa: PLC0415 - the copy's
     from rr_actors_lab.experiments import shrink  # noqa: PLC0415
 
-    def rule_first(run: Any) -> list[Any]:  # (the shrinker keeps a run's first kind)
-        return sorted(shrink.violations(run), key=lambda finding: finding.rule != rule)
-
+    judge = functools.partial(rule_first, rule=rule)
     started = time.process_time()
     try:
-        result = shrink.shrink(plan, seed, budget=budget, on_step=say, judge=rule_first)
+        result = shrink.shrink(plan, seed, budget=budget, on_step=say, judge=judge)
     except ConfigError as exc:  # (its run again did not violate: not replayed)
         return {"events": None, "kind": f"not shrunk: {exc}", "runs": 1, "cpu_s": 0.0}
     if out := os.environ.get("RR_PLANTED_OUT"):  # (`--out`: the shrunk run to read)
@@ -734,6 +755,7 @@ def shrunk(plan: Any, seed: int, rule: str, budget: int) -> dict[str, Any]:
         "cpu_s": time.process_time() - started,
         "text": result.text,
         "seed": result.seed,
+        "story": result.story,
     }
 
 
@@ -763,6 +785,8 @@ def table(rows: list[tuple[Plant, dict[str, Any]]], seeds: int, shrink: bool) ->
         if shrink:
             small = row.get("shrunk")
             events = "-" if small is None or small["events"] is None else str(small["events"])
+            if small is not None and small.get("story") not in (None, small["events"]):
+                events += f" (story {small['story']})"
             spent = "" if small is None else f" ({small['runs']} runs, {small['cpu_s']:.0f} CPU s)"
             if small is not None and small.get("unplanted"):
                 spent += " (also unplanted)"
@@ -835,7 +859,9 @@ def main(argv: list[str] | None = None) -> int:
         small = rows[-1][1].get("shrunk")
         if options.keep and small and small.get("text"):
             KEPT.mkdir(exist_ok=True)
-            text = kept_text(plant, small["text"], small["seed"], small["events"], small["runs"])
+            text = kept_text(
+                plant, small["text"], small["seed"], small["events"], small["runs"], small["story"]
+            )
             (KEPT / f"{plant.name}.toml").write_text(text, encoding="utf-8")
     table(rows, options.seeds, options.shrink)
     return 0
