@@ -27,6 +27,7 @@ the docs' figures:
     python benchmarks/planted_bugs.py --only dedup,retry-fatal --seeds 200  # a quick look
     python benchmarks/planted_bugs.py --check                         # edits apply?
     python benchmarks/planted_bugs.py --only dedup --shrink --keep    # into shrunk/dedup.toml
+    python benchmarks/planted_bugs.py --only unload-held --first 17 --shrink --keep  # its seed
     python benchmarks/planted_bugs.py --baseline --seeds 100          # unplanted code
 
 `--baseline` runs the plans on the unedited copy instead and prints every violated rule
@@ -571,11 +572,13 @@ def child(path: Path, *arguments: str) -> dict[str, Any]:
     return answer
 
 
-def search(plant: Plant, seeds: int, budget: int) -> dict[str, Any]:
-    """`plant`'s row: the first seed violating its rule, then that seed unplanted."""
+def search(plant: Plant, seeds: int, budget: int, first: int = 1) -> dict[str, Any]:
+    """`plant`'s row: the first seed from `first` on violating its rule, then that seed
+    unplanted."""
     with tempfile.TemporaryDirectory(prefix=f"rr-planted-{plant.name}-") as folder:
         planted = scratch(Path(folder) / "planted", plant)
-        row = child(planted, "search", plant.plan, plant.rule, str(seeds), str(budget))
+        arguments = (plant.plan, plant.rule, str(seeds), str(budget), str(first))
+        row = child(planted, "search", *arguments)
         row["also_unplanted"] = None
         if row["seed"] is not None:
             clean = scratch(Path(folder) / "clean", None)
@@ -817,6 +820,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
     parser.add_argument("--seeds", type=int, default=10_000, help="most seeds per plant")
     parser.add_argument("--only", help="plants to run, by name, comma-separated")
+    parser.add_argument(
+        "--first", type=int, default=1, help="the first seed searched (a seed known to violate)"
+    )
     parser.add_argument("--shrink", action="store_true", help="shrink each found seed")
     parser.add_argument("--budget", type=int, default=2500, help="most runs of one shrink")
     parser.add_argument("--check", action="store_true", help="only check the edits apply and parse")
@@ -855,7 +861,7 @@ def main(argv: list[str] | None = None) -> int:
     for plant in chosen:
         if options.out is not None:
             os.environ["RR_PLANTED_OUT"] = str((options.out / plant.name).resolve())
-        rows.append((plant, search(plant, options.seeds, budget)))
+        rows.append((plant, search(plant, options.seeds, budget, options.first)))
         small = rows[-1][1].get("shrunk")
         if options.keep and small and small.get("text"):
             KEPT.mkdir(exist_ok=True)
