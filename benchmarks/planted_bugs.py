@@ -28,6 +28,7 @@ the docs' figures:
     python benchmarks/planted_bugs.py --check                         # edits apply?
     python benchmarks/planted_bugs.py --only dedup --shrink --keep    # into shrunk/dedup.toml
     python benchmarks/planted_bugs.py --only unload-held --first 17 --shrink --keep  # its seed
+    python benchmarks/planted_bugs.py --only unload-held --shrink --keep --from-kept  # again
     python benchmarks/planted_bugs.py --baseline --seeds 100          # unplanted code
 
 `--baseline` runs the plans on the unedited copy instead and prints every violated rule
@@ -50,6 +51,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -572,15 +574,21 @@ def child(path: Path, *arguments: str) -> dict[str, Any]:
     return answer
 
 
-def search(plant: Plant, seeds: int, budget: int, first: int = 1) -> dict[str, Any]:
+def search(
+    plant: Plant, seeds: int, budget: int, first: int = 1, *, kept: bool = False
+) -> dict[str, Any]:
     """`plant`'s row: the first seed from `first` on violating its rule, then that seed
-    unplanted."""
+    unplanted; `kept`: its kept shrunk plan at its seed instead (shrunk again)."""
     with tempfile.TemporaryDirectory(prefix=f"rr-planted-{plant.name}-") as folder:
         planted = scratch(Path(folder) / "planted", plant)
-        arguments = (plant.plan, plant.rule, str(seeds), str(budget), str(first))
-        row = child(planted, "search", *arguments)
+        if kept:
+            path = str(KEPT / f"{plant.name}.toml")
+            row = child(planted, "kept", plant.plan, path, plant.rule, str(budget))
+        else:
+            arguments = (plant.plan, plant.rule, str(seeds), str(budget), str(first))
+            row = child(planted, "search", *arguments)
         row["also_unplanted"] = None
-        if row["seed"] is not None:
+        if row["seed"] is not None and not kept:
             clean = scratch(Path(folder) / "clean", None)
             seed = str(row["seed"])
             again = child(clean, "search", plant.plan, plant.rule, seed, "0", seed)
@@ -590,6 +598,12 @@ def search(plant: Plant, seeds: int, budget: int, first: int = 1) -> dict[str, A
                 text.write_text(small["text"], encoding="utf-8")
                 arguments = (plant.plan, str(text), str(small["seed"]), plant.rule)
                 small["unplanted"] = child(clean, "shrunk", *arguments)["violations"]
+        if kept and (small := row.get("shrunk")) and small.get("text"):
+            clean = scratch(Path(folder) / "clean", None)
+            text = Path(folder) / "shrunk.toml"
+            text.write_text(small["text"], encoding="utf-8")
+            arguments = (plant.plan, str(text), str(small["seed"]), plant.rule)
+            small["unplanted"] = child(clean, "shrunk", *arguments)["violations"]
     return row
 
 
@@ -599,7 +613,13 @@ violates with (tests/test_benchmarks.py runs each on its plant)."""
 
 
 def kept_text(
-    plant: Plant, text: str, seed: int, events: int, runs: int, story: int | None = None
+    plant: Plant,
+    text: str,
+    seed: int,
+    events: int,
+    runs: int,
+    story: int | None = None,
+    again: str = "",
 ) -> str:
     """A shrunk plan's text as `--keep` writes it: a header, then its seed, then the plan."""
     told = (
@@ -611,7 +631,8 @@ def kept_text(
     header = (
         f"# The plant {plant.name!r} (benchmarks/planted_bugs.py) shrunk: seed {seed} of this "
         f"plan violates [{plant.rule}]\n# in {events} events on the planted code "
-        f"({runs} simulated runs of the shrink; `--shrink --keep` writes it again).\n{told}"
+        f"({runs} simulated runs of the shrink{again}; `--shrink --keep` writes it again).\n"
+        f"{told}"
     )
     return f"{header}seed = {seed}\n{text}"
 
@@ -620,8 +641,6 @@ def run_kept(plant: Plant, path: Path) -> dict[str, Any]:
     """The kept shrunk plan at `path` run at its seed on a copy with `plant` applied: its
     verdict, its violations of the plant's rule, its events and its story's
     (`rr_actors_lab.experiments.shrink.story_events`)."""
-    import tomllib  # noqa: PLC0415
-
     seed = tomllib.loads(path.read_text(encoding="utf-8"))["seed"]
     with tempfile.TemporaryDirectory(prefix=f"rr-planted-{plant.name}-") as folder:
         planted = scratch(Path(folder), plant)
@@ -685,6 +704,9 @@ def child_main(path: str, command: str, arguments: list[str]) -> None:
         answer = {"verdict": run.verdict, "violations": found, "events": run.events}
         print(json.dumps(answer | {"story": story}))
         return
+    if command == "kept":  # (the kept shrunk plan's file, the rule, the budget)
+        print(json.dumps(kept_row(plan, arguments[1], arguments[2], int(arguments[3]))))
+        return
     if command == "baseline":
         rules: dict[str, list[int]] = {}
         seeds = int(arguments[1])
@@ -721,6 +743,24 @@ def child_main(path: str, command: str, arguments: list[str]) -> None:
     print(json.dumps(answer))
 
 
+def kept_row(plan: Any, path: str, rule: str, budget: int) -> dict[str, Any]:
+    """The child's row of a kept shrunk plan (at `path`): its seed's run, then that seed
+    shrunk again (`budget` runs), its text the start."""
+    from rr_actors_lab.experiments import simulate  # noqa: PLC0415 - the copy's
+    from rr_actors_lab.experiments.reading import parse_plan  # noqa: PLC0415
+
+    started = time.process_time()
+    text = Path(path).read_text(encoding="utf-8")
+    kept, seed = parse_plan(text, source=plan.source), tomllib.loads(text)["seed"]
+    run = simulate.run_seed(kept, seed)
+    found = violated(run.findings, rule)
+    row: dict[str, Any] = {"plan": plan.name, "rule": rule, "seeds": 1}
+    row |= {"seed": seed if found else None, "violation": found[0] if found else None}
+    row |= {"events": run.events, "cpu_s": time.process_time() - started}
+    small = shrunk(kept, seed, rule, budget, text) if found and budget else None
+    return row | {"shrunk": small}
+
+
 def say(line: str) -> None:
     """A shrink's step on stderr (the answer is on stdout)."""
     print(f"  shrink: {line}", file=sys.stderr, flush=True)
@@ -734,7 +774,7 @@ def rule_first(run: Any, rule: str) -> list[Any]:
     return sorted(shrink.violations(run), key=lambda finding: finding.rule != rule)
 
 
-def shrunk(plan: Any, seed: int, rule: str, budget: int) -> dict[str, Any]:
+def shrunk(plan: Any, seed: int, rule: str, budget: int, text: str | None = None) -> dict[str, Any]:
     """`seed`'s run shrunk (`rr_actors_lab.experiments.shrink`) keeping a violation of `rule`:
     the events of the shrunk run, the violation kind it kept, the runs it made and their
     CPU seconds."""
@@ -744,7 +784,7 @@ def shrunk(plan: Any, seed: int, rule: str, budget: int) -> dict[str, Any]:
     judge = functools.partial(rule_first, rule=rule)
     started = time.process_time()
     try:
-        result = shrink.shrink(plan, seed, budget=budget, on_step=say, judge=judge)
+        result = shrink.shrink(plan, seed, budget=budget, on_step=say, judge=judge, text=text)
     except ConfigError as exc:  # (its run again did not violate: not replayed)
         return {"events": None, "kind": f"not shrunk: {exc}", "runs": 1, "cpu_s": 0.0}
     if out := os.environ.get("RR_PLANTED_OUT"):  # (`--out`: the shrunk run to read)
@@ -831,6 +871,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--baseline", action="store_true", help="run the unedited code")
     parser.add_argument(
+        "--from-kept",
+        action="store_true",
+        help="with --shrink: shrink each plant's kept plan again, not a seed of its plan",
+    )
+    parser.add_argument(
         "--keep", action="store_true", help="with --shrink: write each shrunk plan to shrunk/"
     )
     options = parser.parse_args(args)
@@ -861,12 +906,20 @@ def main(argv: list[str] | None = None) -> int:
     for plant in chosen:
         if options.out is not None:
             os.environ["RR_PLANTED_OUT"] = str((options.out / plant.name).resolve())
-        rows.append((plant, search(plant, options.seeds, budget, options.first)))
+        found = search(plant, options.seeds, budget, options.first, kept=options.from_kept)
+        rows.append((plant, found))
         small = rows[-1][1].get("shrunk")
         if options.keep and small and small.get("text"):
             KEPT.mkdir(exist_ok=True)
+            again = f", from the kept plan's {found['events']} events" if options.from_kept else ""
             text = kept_text(
-                plant, small["text"], small["seed"], small["events"], small["runs"], small["story"]
+                plant,
+                small["text"],
+                small["seed"],
+                small["events"],
+                small["runs"],
+                small["story"],
+                again,
             )
             (KEPT / f"{plant.name}.toml").write_text(text, encoding="utf-8")
     table(rows, options.seeds, options.shrink)
