@@ -27,6 +27,8 @@ the docs' figures:
     python benchmarks/planted_bugs.py --only dedup,retry-fatal --seeds 200  # a quick look
     python benchmarks/planted_bugs.py --check                         # edits apply?
     python benchmarks/planted_bugs.py --only dedup --shrink --keep    # into shrunk/dedup.toml
+    python benchmarks/planted_bugs.py --only unload-held --first 17 --shrink --keep  # its seed
+    python benchmarks/planted_bugs.py --only unload-held --shrink --keep --from-kept  # again
     python benchmarks/planted_bugs.py --baseline --seeds 100          # unplanted code
 
 `--baseline` runs the plans on the unedited copy instead and prints every violated rule
@@ -41,6 +43,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import os
 import shutil
@@ -48,6 +51,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -570,13 +574,21 @@ def child(path: Path, *arguments: str) -> dict[str, Any]:
     return answer
 
 
-def search(plant: Plant, seeds: int, budget: int) -> dict[str, Any]:
-    """`plant`'s row: the first seed violating its rule, then that seed unplanted."""
+def search(
+    plant: Plant, seeds: int, budget: int, first: int = 1, *, kept: bool = False
+) -> dict[str, Any]:
+    """`plant`'s row: the first seed from `first` on violating its rule, then that seed
+    unplanted; `kept`: its kept shrunk plan at its seed instead (shrunk again)."""
     with tempfile.TemporaryDirectory(prefix=f"rr-planted-{plant.name}-") as folder:
         planted = scratch(Path(folder) / "planted", plant)
-        row = child(planted, "search", plant.plan, plant.rule, str(seeds), str(budget))
+        if kept:
+            path = str(KEPT / f"{plant.name}.toml")
+            row = child(planted, "kept", plant.plan, path, plant.rule, str(budget))
+        else:
+            arguments = (plant.plan, plant.rule, str(seeds), str(budget), str(first))
+            row = child(planted, "search", *arguments)
         row["also_unplanted"] = None
-        if row["seed"] is not None:
+        if row["seed"] is not None and not kept:
             clean = scratch(Path(folder) / "clean", None)
             seed = str(row["seed"])
             again = child(clean, "search", plant.plan, plant.rule, seed, "0", seed)
@@ -586,6 +598,12 @@ def search(plant: Plant, seeds: int, budget: int) -> dict[str, Any]:
                 text.write_text(small["text"], encoding="utf-8")
                 arguments = (plant.plan, str(text), str(small["seed"]), plant.rule)
                 small["unplanted"] = child(clean, "shrunk", *arguments)["violations"]
+        if kept and (small := row.get("shrunk")) and small.get("text"):
+            clean = scratch(Path(folder) / "clean", None)
+            text = Path(folder) / "shrunk.toml"
+            text.write_text(small["text"], encoding="utf-8")
+            arguments = (plant.plan, str(text), str(small["seed"]), plant.rule)
+            small["unplanted"] = child(clean, "shrunk", *arguments)["violations"]
     return row
 
 
@@ -594,21 +612,35 @@ KEPT = ROOT / "benchmarks" / "shrunk"
 violates with (tests/test_benchmarks.py runs each on its plant)."""
 
 
-def kept_text(plant: Plant, text: str, seed: int, events: int, runs: int) -> str:
+def kept_text(
+    plant: Plant,
+    text: str,
+    seed: int,
+    events: int,
+    runs: int,
+    story: int | None = None,
+    again: str = "",
+) -> str:
     """A shrunk plan's text as `--keep` writes it: a header, then its seed, then the plan."""
+    told = (
+        f"# Its story is its first {story} events: the checker finds the same violation "
+        f"without the {events - story} after its finding.\n"
+        if story is not None and story < events
+        else ""
+    )
     header = (
         f"# The plant {plant.name!r} (benchmarks/planted_bugs.py) shrunk: seed {seed} of this "
         f"plan violates [{plant.rule}]\n# in {events} events on the planted code "
-        f"({runs} simulated runs of the shrink; `--shrink --keep` writes it again).\n"
+        f"({runs} simulated runs of the shrink{again}; `--shrink --keep` writes it again).\n"
+        f"{told}"
     )
     return f"{header}seed = {seed}\n{text}"
 
 
 def run_kept(plant: Plant, path: Path) -> dict[str, Any]:
     """The kept shrunk plan at `path` run at its seed on a copy with `plant` applied: its
-    verdict, its violations of the plant's rule and its events."""
-    import tomllib  # noqa: PLC0415
-
+    verdict, its violations of the plant's rule, its events and its story's
+    (`rr_actors_lab.experiments.shrink.story_events`)."""
     seed = tomllib.loads(path.read_text(encoding="utf-8"))["seed"]
     with tempfile.TemporaryDirectory(prefix=f"rr-planted-{plant.name}-") as folder:
         planted = scratch(Path(folder), plant)
@@ -660,12 +692,20 @@ def child_main(path: str, command: str, arguments: list[str]) -> None:
     plan = load_plan(str(PLANS / f"{arguments[0]}.toml"))
     started = time.process_time()
     if command == "shrunk":  # (the shrunk plan's text in a file, its seed, the rule)
+        from rr_actors_lab.experiments import shrink  # noqa: PLC0415
         from rr_actors_lab.experiments.reading import parse_plan  # noqa: PLC0415
 
         text = Path(arguments[1]).read_text(encoding="utf-8")
         run = simulate.run_seed(parse_plan(text, source=plan.source), int(arguments[2]))
         found = violated(run.findings, arguments[3])
-        print(json.dumps({"verdict": run.verdict, "violations": found, "events": run.events}))
+        judge = functools.partial(rule_first, rule=arguments[3])
+        kinds = shrink.violation_kinds(run, judge)
+        story = shrink.story_events(run, kinds[0], judge) if found else run.events
+        answer = {"verdict": run.verdict, "violations": found, "events": run.events}
+        print(json.dumps(answer | {"story": story}))
+        return
+    if command == "kept":  # (the kept shrunk plan's file, the rule, the budget)
+        print(json.dumps(kept_row(plan, arguments[1], arguments[2], int(arguments[3]))))
         return
     if command == "baseline":
         rules: dict[str, list[int]] = {}
@@ -703,24 +743,48 @@ def child_main(path: str, command: str, arguments: list[str]) -> None:
     print(json.dumps(answer))
 
 
+def kept_row(plan: Any, path: str, rule: str, budget: int) -> dict[str, Any]:
+    """The child's row of a kept shrunk plan (at `path`): its seed's run, then that seed
+    shrunk again (`budget` runs), its text the start."""
+    from rr_actors_lab.experiments import simulate  # noqa: PLC0415 - the copy's
+    from rr_actors_lab.experiments.reading import parse_plan  # noqa: PLC0415
+
+    started = time.process_time()
+    text = Path(path).read_text(encoding="utf-8")
+    kept, seed = parse_plan(text, source=plan.source), tomllib.loads(text)["seed"]
+    run = simulate.run_seed(kept, seed)
+    found = violated(run.findings, rule)
+    row: dict[str, Any] = {"plan": plan.name, "rule": rule, "seeds": 1}
+    row |= {"seed": seed if found else None, "violation": found[0] if found else None}
+    row |= {"events": run.events, "cpu_s": time.process_time() - started}
+    small = shrunk(kept, seed, rule, budget, text) if found and budget else None
+    return row | {"shrunk": small}
+
+
 def say(line: str) -> None:
     """A shrink's step on stderr (the answer is on stdout)."""
     print(f"  shrink: {line}", file=sys.stderr, flush=True)
 
 
-def shrunk(plan: Any, seed: int, rule: str, budget: int) -> dict[str, Any]:
+def rule_first(run: Any, rule: str) -> list[Any]:
+    """The checker's violations of `run`, those of `rule` first (the shrinker keeps a run's
+    first kind)."""
+    from rr_actors_lab.experiments import shrink  # noqa: PLC0415 - the copy's
+
+    return sorted(shrink.violations(run), key=lambda finding: finding.rule != rule)
+
+
+def shrunk(plan: Any, seed: int, rule: str, budget: int, text: str | None = None) -> dict[str, Any]:
     """`seed`'s run shrunk (`rr_actors_lab.experiments.shrink`) keeping a violation of `rule`:
     the events of the shrunk run, the violation kind it kept, the runs it made and their
     CPU seconds."""
     from rr_actors.errors import ConfigError  # noqa: PLC0415 - the copy's
     from rr_actors_lab.experiments import shrink  # noqa: PLC0415
 
-    def rule_first(run: Any) -> list[Any]:  # (the shrinker keeps a run's first kind)
-        return sorted(shrink.violations(run), key=lambda finding: finding.rule != rule)
-
+    judge = functools.partial(rule_first, rule=rule)
     started = time.process_time()
     try:
-        result = shrink.shrink(plan, seed, budget=budget, on_step=say, judge=rule_first)
+        result = shrink.shrink(plan, seed, budget=budget, on_step=say, judge=judge, text=text)
     except ConfigError as exc:  # (its run again did not violate: not replayed)
         return {"events": None, "kind": f"not shrunk: {exc}", "runs": 1, "cpu_s": 0.0}
     if out := os.environ.get("RR_PLANTED_OUT"):  # (`--out`: the shrunk run to read)
@@ -734,6 +798,7 @@ def shrunk(plan: Any, seed: int, rule: str, budget: int) -> dict[str, Any]:
         "cpu_s": time.process_time() - started,
         "text": result.text,
         "seed": result.seed,
+        "story": result.story,
     }
 
 
@@ -763,6 +828,8 @@ def table(rows: list[tuple[Plant, dict[str, Any]]], seeds: int, shrink: bool) ->
         if shrink:
             small = row.get("shrunk")
             events = "-" if small is None or small["events"] is None else str(small["events"])
+            if small is not None and small.get("story") not in (None, small["events"]):
+                events += f" (story {small['story']})"
             spent = "" if small is None else f" ({small['runs']} runs, {small['cpu_s']:.0f} CPU s)"
             if small is not None and small.get("unplanted"):
                 spent += " (also unplanted)"
@@ -793,6 +860,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
     parser.add_argument("--seeds", type=int, default=10_000, help="most seeds per plant")
     parser.add_argument("--only", help="plants to run, by name, comma-separated")
+    parser.add_argument(
+        "--first", type=int, default=1, help="the first seed searched (a seed known to violate)"
+    )
     parser.add_argument("--shrink", action="store_true", help="shrink each found seed")
     parser.add_argument("--budget", type=int, default=2500, help="most runs of one shrink")
     parser.add_argument("--check", action="store_true", help="only check the edits apply and parse")
@@ -800,6 +870,11 @@ def main(argv: list[str] | None = None) -> int:
         "--out", type=Path, help="write each shrunk run to OUT/PLANT (`rr-actors replay`)"
     )
     parser.add_argument("--baseline", action="store_true", help="run the unedited code")
+    parser.add_argument(
+        "--from-kept",
+        action="store_true",
+        help="with --shrink: shrink each plant's kept plan again, not a seed of its plan",
+    )
     parser.add_argument(
         "--keep", action="store_true", help="with --shrink: write each shrunk plan to shrunk/"
     )
@@ -831,11 +906,21 @@ def main(argv: list[str] | None = None) -> int:
     for plant in chosen:
         if options.out is not None:
             os.environ["RR_PLANTED_OUT"] = str((options.out / plant.name).resolve())
-        rows.append((plant, search(plant, options.seeds, budget)))
+        found = search(plant, options.seeds, budget, options.first, kept=options.from_kept)
+        rows.append((plant, found))
         small = rows[-1][1].get("shrunk")
         if options.keep and small and small.get("text"):
             KEPT.mkdir(exist_ok=True)
-            text = kept_text(plant, small["text"], small["seed"], small["events"], small["runs"])
+            again = f", from the kept plan's {found['events']} events" if options.from_kept else ""
+            text = kept_text(
+                plant,
+                small["text"],
+                small["seed"],
+                small["events"],
+                small["runs"],
+                small["story"],
+                again,
+            )
             (KEPT / f"{plant.name}.toml").write_text(text, encoding="utf-8")
     table(rows, options.seeds, options.shrink)
     return 0

@@ -7,12 +7,14 @@
  ├─ greedy passes, biggest cuts first, until the budget of runs is spent or a round at
  │  the widest search keeps nothing: supervisors, duration, shift, faults (delta
  │  debugging), pinned, triggers, idle, unpinned, tree, workload, options, knobs, made
- │  (the clients' calls, `workload.only`: delta debugging), seeds, round (each pass:
- │  docs/how-to/simulate.md, "Shrink it")
+ │  (the clients' calls, `workload.only`: a client's all, then delta debugging), seeds,
+ │  round (each pass: docs/how-to/simulate.md, "Shrink it")
  │  a candidate = its TOML text, validated (`parse_plan`) and run whole on the simulation
  │  with the current seed, then seeds 1, 2, ... (`tries`; the width grows 4 times at each
  │  fixpoint, up to `MOST_TRIES`); kept if one run shows the same kind and is smaller:
- │  fewer events, or as many and a shorter text (shortlex, so the passes end)
+ │  a shorter story (`story_events`: the events up to its finding, when the checker finds
+ │  the same violation without the rest), then fewer events, then a shorter text
+ │  (shortlex, so the passes end)
  ◄── Shrunk: the plan's text, its seed, its run (history, hash, events), the kind
  write(shrunk, out): out/plan.toml (a header says what it shows), out/seeds.jsonl,
                      out/events-seed-S.jsonl: a run directory `rr-actors replay` reads
@@ -47,6 +49,8 @@ __all__ = [
     "Shrunk",
     "dump_plan",
     "shrink",
+    "story",
+    "story_events",
     "violation_kind",
     "violation_kinds",
     "violations",
@@ -71,6 +75,11 @@ is lost under the seed alone and found again under a few (a few hundred for a ra
 
 SHUFFLED = 12
 """The fewest seeds a candidate that drops a process or changes a client's draws runs with."""
+
+CLIENT_TRIES = 24
+"""The fewest seeds a candidate that drops a client (all its calls) runs with: a client
+fewer is a big cut, worth a wider search than a number's (unload-held's was found again
+at seed 20 only)."""
 
 SEEDS = 20
 """The seeds the seed pass runs the current plan with: 1 to this (or the width)."""
@@ -125,6 +134,8 @@ class Shrunk:
         original_events: the events of the original run.
         runs: the simulated runs the shrink made.
         steps: what each kept candidate changed, in order.
+        story: the events of `run` its story shows (`story_events`: those up to its
+            finding, when the checker finds the same violation without the rest).
     """
 
     text: str
@@ -136,6 +147,7 @@ class Shrunk:
     original_events: int
     runs: int
     steps: tuple[str, ...]
+    story: int = 0
 
 
 def violation_kind(rule: str, message: str) -> str:
@@ -167,6 +179,55 @@ def violation_kinds(run: simulate.SimulatedRun, judge: Judge = violations) -> li
         crash = json.loads(run.history.splitlines()[-1])
         return [violation_kind("crashed", f"{crash['error_type']}: {crash['message']}")]
     return list(dict.fromkeys(violation_kind(f.rule, f.message) for f in judge(run)))
+
+
+def story_events(run: simulate.SimulatedRun, kind: str, judge: Judge = violations) -> int:
+    """How many of a run's events its story shows: those up to the last line of `kind`'s
+    first finding, if the checker finds `kind` in that cut history and no violation the
+    whole run does not have; else every one (a crashed run's, a run without `kind`).
+
+    What comes after a finding at its instant is the run going on to its end (restarts
+    failing again on the same bug, the supervisor giving up, the tree stopping, what the
+    clients held released), which a cut of the duration cannot drop. The finding does not
+    need it when the checker, judging the cut history as a whole run, gives the same
+    violation. A rule judged at the run's end names a line there, so nothing of it is
+    cut; a cut that makes another violation (an id left held where the history stops)
+    tells another story, and the whole run is kept.
+    """
+    if run.verdict == "crashed":
+        return run.events
+    finding = next((f for f in judge(run) if violation_kind(f.rule, f.message) == kind), None)
+    if finding is None:
+        return run.events
+    last = max((n for n in finding.lines if 0 < n <= run.events), default=run.events)
+    if last >= run.events:
+        return run.events
+    cut = dataclasses.replace(run, history=_cut(run, last), events=last)
+    kinds = violation_kinds(cut, judge)
+    if kind not in kinds or not set(kinds) <= set(violation_kinds(run, judge)):
+        return run.events
+    return last
+
+
+def story(run: simulate.SimulatedRun, kind: str, judge: Judge = violations) -> str:
+    """A run's history as its story shows it: its first `story_events` events, then the
+    lines of the faults injected by the last of them."""
+    return _cut(run, story_events(run, kind, judge))
+
+
+def _cut(run: simulate.SimulatedRun, events: int) -> str:
+    """The run's first `events` events' lines, then those of its faults injected by then."""
+    lines = run.history.splitlines(keepends=True)
+    if events >= run.events:
+        return run.history
+    kept = lines[:events]
+    until = json.loads(kept[-1])["at"] if kept else float("-inf")
+    faults = [
+        line
+        for line in lines[run.events :]
+        if (at := json.loads(line).get("at")) is not None and at <= until
+    ]
+    return "".join(kept + faults)
 
 
 # -- the plan as TOML data, and back ----------------------------------------------------------
@@ -346,6 +407,7 @@ class _Shrinker:
             self.data.pop(key, None)
         self.data["duration"] = plan.duration  # (a run directory's may differ from its file's)
         self.plan, self.seed, self.best = plan, seed, first
+        self.best_size = self.size(first)
         self.kept: dict[str, Any] = {}  # (dotted keys left as written: their values)
         self.say(f"shrinking seed {seed} ({first.events} events): {self.kind}")
 
@@ -394,7 +456,10 @@ class _Shrinker:
             self.say(f"run {self.runs}: a fixpoint: {self.width} seeds a candidate from here")
         spent = self.runs >= self.budget
         left = f"the budget ({self.budget} runs) spent" if spent else "a fixpoint"
-        self.say(f"done after {self.runs} runs ({left}): {self.best.events} events")
+        self.say(
+            f"done after {self.runs} runs ({left}): {self.best.events} events, "
+            f"its story {self.best_size[0]}"
+        )
         return Shrunk(
             text=self.text(self.data),
             plan=self.plan,
@@ -405,6 +470,7 @@ class _Shrinker:
             original_events=self.original_events,
             runs=self.runs,
             steps=tuple(self.steps),
+            story=self.best_size[0],
         )
 
     def text(self, data: dict[str, Any]) -> str:
@@ -429,24 +495,37 @@ class _Shrinker:
                 continue
             self.tried.add((text, seed))
             run = self.run_one(plan, seed)
-            smaller = run.events <= self.best.events if same else self.smaller(run, text)
-            if smaller and self.kind in violation_kinds(run, self.judge):
+            if self.kind not in violation_kinds(run, self.judge):
+                continue
+            size = self.size(run)
+            if (size <= self.best_size) if same else self.smaller(size, text):
                 self.data, self.plan, self.seed, self.best = data, plan, seed, run
+                self.best_size = size
                 self.steps.append(what)
-                self.say(f"run {self.runs}: {what}: {run.events} events (seed {seed})")
+                self.say(f"run {self.runs}: {what}: {self.shown(size)} (seed {seed})")
                 return True
         return False
+
+    def size(self, run: simulate.SimulatedRun) -> tuple[int, int]:
+        """What a shrink makes smaller: the events of a run's story (`story_events`), then
+        all its events."""
+        return story_events(run, self.kind, self.judge), run.events
+
+    def shown(self, size: tuple[int, int]) -> str:
+        story, events = size
+        return f"{events} events" + (f" (its story {story})" if story < events else "")
 
     def candidate_seeds(self, width: int) -> Iterator[int]:
         """The current seed, then 1, 2, ...: `width` seeds in all."""
         yield self.seed
         yield from itertools.islice((s for s in itertools.count(1) if s != self.seed), width - 1)
 
-    def smaller(self, run: simulate.SimulatedRun, text: str) -> bool:
-        """Fewer events; as many and a shorter text, or one as long that sorts first (the
-        shortlex order: every kept candidate is smaller, so the passes end)."""
+    def smaller(self, size: tuple[int, int], text: str) -> bool:
+        """A shorter story (`size`); as long and fewer events; as many and a shorter text,
+        or one as long that sorts first (the shortlex order: every kept candidate is
+        smaller, so the passes end)."""
         best = self.text(self.data)
-        return (run.events, len(text), text) < (self.best.events, len(best), best)
+        return (*size, len(text), text) < (*self.best_size, len(best), best)
 
     def shuffled(self) -> int:
         """The seeds a candidate with fewer processes or other draws runs with: at least
@@ -515,12 +594,38 @@ class _Shrinker:
             data = {**self.data, "workload": {**workload, "only": only}}
             if not self.attempt(f"the calls made explicit ({len(only)} calls)", data, same=True):
                 return
+        self.repeat(self.fewer_clients, max(self.width, CLIENT_TRIES))
         self.chunks(
             lambda data: data["workload"]["only"],
             lambda data, kept: {**data, "workload": {**data["workload"], "only": kept}},
             "calls",
             self.shuffled(),  # (fewer calls: every choice of the scheduler another)
         )
+
+    def fewer_clients(self) -> Iterator[tuple[str, dict[str, Any]]]:
+        """One client's calls deleted (all of them: it is not started), each client in turn,
+        the one with the most calls first; then the clients numbered again from 0, as many
+        as make calls (the plan reads `clients = 2`, not 3 with client 0 making none).
+
+        The calls pass deletes evenly split blocks; a client's calls are not one, and its
+        loss changes every choice of the scheduler: `CLIENT_TRIES` seeds each at least."""
+        workload = self.data["workload"]
+        only = [list(pair) for pair in workload["only"]]
+        calls: dict[int, int] = {}
+        for client, _ in only:
+            calls[client] = calls.get(client, 0) + 1
+        for client in sorted(calls, key=lambda c: (-calls[c], c)) if len(calls) > 1 else []:
+            kept = [pair for pair in only if pair[0] != client]
+            data = {**self.data, "workload": {**workload, "only": kept}}
+            yield f"client {client}'s calls deleted ({calls[client]} calls)", data
+        number = {client: index for index, client in enumerate(sorted(calls))}
+        if len(number) < workload.get("clients", _DEFAULTS["clients"]):
+            renumbered = [[number[client], n] for client, n in only]
+            data = {
+                **self.data,
+                "workload": {**workload, "clients": len(number), "only": renumbered},
+            }
+            yield f"workload.clients = {len(number)} (the clients making calls, from 0)", data
 
     def chunks(
         self,
@@ -602,10 +707,12 @@ class _Shrinker:
                 continue
             self.tried.add((text, seed))
             run = self.run_one(self.plan, seed)
-            if run.events < self.best.events and self.kind in violation_kinds(run, self.judge):
-                self.seed, self.best = seed, run
+            if self.kind not in violation_kinds(run, self.judge):
+                continue
+            if (size := self.size(run)) < self.best_size:
+                self.seed, self.best, self.best_size = seed, run, size
                 self.steps.append(f"seed {seed}")
-                self.say(f"run {self.runs}: seed {seed}: {run.events} events")
+                self.say(f"run {self.runs}: seed {seed}: {self.shown(size)}")
 
     def supervisors(self) -> None:
         """Fewer restarts before a supervisor gives up (a crash loop ends sooner)."""
@@ -1181,6 +1288,14 @@ def write(shrunk: Shrunk, out: Path, line: dict[str, Any]) -> None:
         f"({shrunk.original_events} events), in {shrunk.runs} simulated runs.",
         f"# Seed {shrunk.seed} of this plan violates with {run.events} events:",
         *(f"# {f.strip()}" for f in run.findings if "violation" in f or "crashed:" in f),
+        *(
+            [
+                f"# Its story is its first {shrunk.story} events: the checker finds the same "
+                f"violation without the {run.events - shrunk.story} after its finding."
+            ]
+            if 0 < shrunk.story < run.events
+            else []
+        ),
         f"#   rr-actors replay {out} --story",
         f"#   rr-actors experiment plan.toml --simulate --seeds {shrunk.seed} --out DIR",
     ]

@@ -1084,9 +1084,10 @@ def shrink_seed(
         bar.remove_task(task)
     shrink.write(shrunk, out, seed_line(shrunk.run, shrunk.plan))
     run = shrunk.run
+    told = f" (its story {shrunk.story})" if 0 < shrunk.story < run.events else ""
     display.say(
         f"shrunk seed {seed} ({shrunk.original_events} events) to seed {shrunk.seed}: "
-        f"{run.events} events, {run.faults} faults, {shrunk.plan.workload.clients} "
+        f"{run.events} events{told}, {run.faults} faults, {shrunk.plan.workload.clients} "
         f"clients, {shrunk.plan.duration:g} s ({shrunk.runs} runs)"
     )
     display.say(f"  {shrunk.kind}")
