@@ -68,6 +68,23 @@ def exported() -> Iterator[tuple[TracerProvider, InMemorySpanExporter]]:
     assert set() == _attribute_names(exporter.get_finished_spans()) - _documented()
 
 
+@pytest.fixture
+def traced(
+    exported: tuple[TracerProvider, InMemorySpanExporter],
+) -> tuple[otel.Tracing, InMemorySpanExporter]:
+    """A subscriber on `exported`'s provider (sides paired within 60 s) and its spans."""
+    provider, exporter = exported
+    return otel.Tracing(tracer_provider=provider, pair_within=60), exporter
+
+
+def _killed(tracing: otel.Tracing, parent: str, name: str, *, exited_at: float = 101.0) -> None:
+    """Tell `tracing` that `name` (pid 11), a child of `parent`, was killed at `exited_at` and
+    restarted (pid 12, at 102.0) on a restored catalog that is empty."""
+    tracing(events.ChildExited(parent, name, 11, "killed", at=exited_at))
+    tracing(events.ChildRestarted(parent, name, 12, 0.5, at=102.0))
+    tracing(events.CatalogRestored(name, (), (), (), at=101.5, pid=12))
+
+
 def _one(spans: tuple[ReadableSpan, ...], name: str, kind: api.SpanKind) -> ReadableSpan:
     [span] = [s for s in spans if s.name == name and s.kind == kind]
     return span
@@ -81,6 +98,15 @@ def _parent_of(span: ReadableSpan) -> int:
 
 def _serve(registrar: rr.ResourceRegistrar) -> None:
     registrar.register_server("cam", load=lambda r: f"cam {r}", unload=lambda _q, _r: None)
+
+
+@pytest.fixture
+def erm(started: list[rr.ResourceRegistrar], uid: str) -> rr.ResourceRegistrar:
+    """A registrar of this process that serves `cam`, stopped after the test."""
+    registrar = rr.ResourceRegistrar.start(f"erm-{uid}")
+    started.append(registrar)
+    _serve(registrar)
+    return registrar
 
 
 @pytest.mark.usefixtures("process_helpers")
@@ -153,9 +179,9 @@ def test_a_failed_load_is_an_error_span_with_its_exception(
     started: list[rr.ResourceRegistrar],
     eventually: Callable[..., bool],
     uid: str,
-    exported: tuple[TracerProvider, InMemorySpanExporter],
+    traced: tuple[otel.Tracing, InMemorySpanExporter],
 ) -> None:
-    provider, exporter = exported
+    tracing, exporter = traced
 
     def broken(_request: Any) -> Any:
         raise ValueError("no camera")
@@ -165,7 +191,6 @@ def test_a_failed_load_is_an_error_span_with_its_exception(
     erm.register_server("cam", load=broken, unload=lambda _q, _r: None)
     app = rr.ResourceRegistrar.start(f"app-{uid}")
     started.append(app)
-    tracing = otel.Tracing(tracer_provider=provider, pair_within=60)
     with erm.subscribe(tracing), app.subscribe(tracing):  # one subscriber of both
         with pytest.raises(rr.ResourceLoadError):
             app.call(erm.name, "cam", 1, timeout=10)
@@ -338,7 +363,10 @@ class _Counted:
 
 
 def test_without_a_provider_the_tree_is_not_subscribed_and_nothing_fails(
-    started: list[rr.ResourceRegistrar], uid: str, monkeypatch: pytest.MonkeyPatch
+    erm: rr.ResourceRegistrar,
+    started: list[rr.ResourceRegistrar],
+    uid: str,
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     made: list[str] = []
     for tracer in (api.ProxyTracer, api.NoOpTracer):
@@ -350,9 +378,6 @@ def test_without_a_provider_the_tree_is_not_subscribed_and_nothing_fails(
 
         monkeypatch.setattr(tracer, "start_span", counted)
     assert isinstance(api.get_tracer_provider(), api.ProxyTracerProvider)  # none installed
-    erm = rr.ResourceRegistrar.start(f"erm-{uid}")
-    started.append(erm)
-    _serve(erm)
     source = _Counted(erm)
     caller = TracerProvider().get_tracer("the application")  # (its own: not the global)
     with otel.trace(source) as tracing, caller.start_as_current_span("step"):
@@ -367,7 +392,11 @@ def test_without_a_provider_the_tree_is_not_subscribed_and_nothing_fails(
 
 @pytest.mark.parametrize("recording", ["no-op", "sampled always_off", "OTEL_SDK_DISABLED"])
 def test_a_provider_that_records_nothing_is_never_subscribed_for(
-    started: list[rr.ResourceRegistrar], uid: str, monkeypatch: pytest.MonkeyPatch, recording: str
+    erm: rr.ResourceRegistrar,
+    started: list[rr.ResourceRegistrar],
+    uid: str,
+    monkeypatch: pytest.MonkeyPatch,
+    recording: str,
 ) -> None:
     if recording == "no-op":
         provider: Any = api.NoOpTracerProvider()
@@ -376,9 +405,6 @@ def test_a_provider_that_records_nothing_is_never_subscribed_for(
     else:
         monkeypatch.setenv("OTEL_SDK_DISABLED", "true")
         provider = TracerProvider()
-    erm = rr.ResourceRegistrar.start(f"erm-{uid}")
-    started.append(erm)
-    _serve(erm)
     source = _Counted(erm)
     with otel.trace(source, tracer_provider=provider) as tracing:
         erm.unload(erm.call(erm.name, "cam", 1, timeout=10).id)
@@ -394,10 +420,9 @@ def test_bad_options_are_refused() -> None:
 
 
 def test_a_side_alone_is_made_a_span_once_it_waited_pair_within(
-    exported: tuple[TracerProvider, InMemorySpanExporter],
+    traced: tuple[otel.Tracing, InMemorySpanExporter],
 ) -> None:
-    provider, exporter = exported
-    tracing = otel.Tracing(tracer_provider=provider, pair_within=60)
+    tracing, exporter = traced
     query_id = str(uuid.uuid4())
     tracing(events.CallAnswered("app", query_id, "erm", "cam", at=100.0))
     assert () == exporter.get_finished_spans()  # it waits for its server side
@@ -525,6 +550,7 @@ def test_the_callers_trace_continues_through_the_call_and_its_unload(
 
 
 def test_each_side_made_by_a_subscriber_of_its_own_still_meets_the_other(
+    erm: rr.ResourceRegistrar,
     started: list[rr.ResourceRegistrar],
     eventually: Callable[..., bool],
     uid: str,
@@ -532,9 +558,6 @@ def test_each_side_made_by_a_subscriber_of_its_own_still_meets_the_other(
 ) -> None:
     # as a provider's spans made in its own process: no subscriber hears both sides
     provider, exporter = exported
-    erm = rr.ResourceRegistrar.start(f"erm-{uid}")
-    started.append(erm)
-    _serve(erm)
     app = rr.ResourceRegistrar.start(f"app-{uid}")
     started.append(app)
     at_provider = otel.Tracing(tracer_provider=provider, pair_within=60)
@@ -621,11 +644,8 @@ def test_a_coroutine_load_runs_under_its_server_span_and_acall_keeps_the_callers
 
 
 def test_an_untraced_call_carries_no_trace_context(
-    started: list[rr.ResourceRegistrar], uid: str
+    erm: rr.ResourceRegistrar, started: list[rr.ResourceRegistrar], uid: str
 ) -> None:
-    erm = rr.ResourceRegistrar.start(f"erm-{uid}")
-    started.append(erm)
-    _serve(erm)
     seen: list[events.Event] = []
     with erm.subscribe(seen.append) as subscription:
         query = erm.call(erm.name, "cam", 1, timeout=10)
@@ -793,11 +813,11 @@ def test_an_unloads_dependency_releases_are_client_spans_under_its_server_span(
 def test_each_status_hop_is_a_span_linked_to_the_spans_of_the_call_it_reached(
     started: list[rr.ResourceRegistrar],
     uid: str,
-    exported: tuple[TracerProvider, InMemorySpanExporter],
+    traced: tuple[otel.Tracing, InMemorySpanExporter],
 ) -> None:
     # leaf serves cam; mid's map depends on it (one query, mid's); two apps hold mid's
     # map (the second a dedup hit): leaf's status reaches mid (hop 1), then both apps (2)
-    provider, exporter = exported
+    tracing, exporter = traced
     leaf, mid, one, two = (
         rr.ResourceRegistrar.start(f"{n}-{uid}") for n in ("leaf", "mid", "one", "two")
     )
@@ -808,7 +828,6 @@ def test_each_status_hop_is_a_span_linked_to_the_spans_of_the_call_it_reached(
         return mid.call(leaf.name, "cam", request, timeout=10).response
 
     mid.register_server("map", load=through, unload=lambda _q, _r: None)
-    tracing = otel.Tracing(tracer_provider=provider, pair_within=60)
     subscriptions = [r.subscribe(tracing) for r in (leaf, mid, one, two)]
     first = one.call(mid.name, "map", 1, timeout=10)
     second = two.call(mid.name, "map", 1, timeout=10)
@@ -927,14 +946,10 @@ def _check_status_spans(
 
 
 def test_a_load_is_published_with_its_calls_trace_context(
-    started: list[rr.ResourceRegistrar],
-    uid: str,
+    erm: rr.ResourceRegistrar,
     exported: tuple[TracerProvider, InMemorySpanExporter],
 ) -> None:
     provider, _exporter = exported
-    erm = rr.ResourceRegistrar.start(f"erm-{uid}")
-    started.append(erm)
-    _serve(erm)
     seen: list[events.Event] = []
     with erm.subscribe(seen.append) as subscription:
         with _caller(provider).start_as_current_span("step"):
@@ -947,12 +962,11 @@ def test_a_load_is_published_with_its_calls_trace_context(
 
 
 def test_a_load_cut_before_its_consumer_was_added_stays_in_its_calls_trace(
-    exported: tuple[TracerProvider, InMemorySpanExporter],
+    traced: tuple[otel.Tracing, InMemorySpanExporter],
 ) -> None:
     # the kill came between the load's ResourceLoaded and its ConsumerAdded: the SERVER
     # span is made of the ResourceLoaded alone, ended by the restart, in the call's trace
-    provider, exporter = exported
-    tracing = otel.Tracing(tracer_provider=provider, pair_within=60)
+    tracing, exporter = traced
     trace_id, client = "a" * 32, "b" * 16
     query_id, resource_id = str(uuid.uuid4()), str(uuid.uuid4())
     tracing(
@@ -967,9 +981,7 @@ def test_a_load_cut_before_its_consumer_was_added_stays_in_its_calls_trace(
             pid=11,
         )
     )
-    tracing(events.ChildExited("root", "erm", 11, "killed", at=101.0))
-    tracing(events.ChildRestarted("root", "erm", 12, 0.5, at=102.0))
-    tracing(events.CatalogRestored("erm", (), (), (), at=101.5, pid=12))
+    _killed(tracing, "root", "erm")
     tracing.flush()
     spans = exporter.get_finished_spans()
 
@@ -985,19 +997,16 @@ def test_a_load_cut_before_its_consumer_was_added_stays_in_its_calls_trace(
 
 
 def test_lost_events_are_counted_and_the_spans_they_may_have_cut_marked_incomplete(
-    exported: tuple[TracerProvider, InMemorySpanExporter],
+    traced: tuple[otel.Tracing, InMemorySpanExporter],
 ) -> None:
-    provider, exporter = exported
-    tracing = otel.Tracing(tracer_provider=provider, pair_within=60)
+    tracing, exporter = traced
     before, near = str(uuid.uuid4()), str(uuid.uuid4())
     tracing(events.CallAnswered("app", before, "erm", "cam", at=99.0))
     tracing.flush()  # made alone before any loss: complete as far as anyone knows
     tracing(events.CallAnswered("app", near, "erm", "cam", at=100.0))
     tracing(events.EventsDropped(3, pid=7))  # (a full queue: its ConsumerAdded among them?)
     tracing(events.EventsDropped(2, "killed", pid=11))  # a manager's tail, never forwarded
-    tracing(events.ChildExited("root", "erm", 11, "killed", at=101.0))
-    tracing(events.ChildRestarted("root", "erm", 12, 0.5, at=102.0))
-    tracing(events.CatalogRestored("erm", (), (), (), at=101.5, pid=12))
+    _killed(tracing, "root", "erm")
     tracing.flush()
     spans = exporter.get_finished_spans()
 
@@ -1015,15 +1024,12 @@ def test_lost_events_are_counted_and_the_spans_they_may_have_cut_marked_incomple
 
 
 def test_an_in_doubt_load_whose_call_is_not_known_is_a_root_not_an_orphan(
-    exported: tuple[TracerProvider, InMemorySpanExporter],
+    traced: tuple[otel.Tracing, InMemorySpanExporter],
 ) -> None:
     # no failed call to match it with (its consumer not heard): nobody makes a CLIENT span
-    provider, exporter = exported
-    tracing = otel.Tracing(tracer_provider=provider, pair_within=60)
+    tracing, exporter = traced
     resource_id = str(uuid.uuid4())
-    tracing(events.ChildExited("root", "erm", 11, "killed", at=101.0))
-    tracing(events.ChildRestarted("root", "erm", 12, 0.5, at=102.0))
-    tracing(events.CatalogRestored("erm", (), (), (), at=101.5, pid=12))
+    _killed(tracing, "root", "erm")
     tracing(events.InDoubt("erm", resource_id, "cam", "load", at=101.6, pid=12))
     tracing.flush()
     spans = exporter.get_finished_spans()
@@ -1042,13 +1048,12 @@ def _orphans(spans: tuple[ReadableSpan, ...]) -> list[str]:
 
 @pytest.mark.parametrize("last", ["still waiting", "paired"])
 def test_the_restart_links_the_old_incarnations_last_span_even_while_it_waits_for_its_caller(
-    exported: tuple[TracerProvider, InMemorySpanExporter], last: str
+    traced: tuple[otel.Tracing, InMemorySpanExporter], last: str
 ) -> None:
     # two hosts: the provider's sides are heard here, its callers' (the other host's) late
     # or never; the last call of the killed incarnation still waits for its caller's side
     # when the restart span is made (`demo --hosts 2`), and its caller's comes after it
-    provider, exporter = exported
-    tracing = otel.Tracing(tracer_provider=provider, pair_within=60)
+    tracing, exporter = traced
     waiting, paired, first = (str(uuid.uuid4()) for _ in range(3))
     waiting_at, paired_at = (100.0, 99.0) if last == "still waiting" else (99.0, 100.0)
     for query_id, at in sorted([(waiting, waiting_at), (paired, paired_at)], key=lambda q: q[1]):
@@ -1057,9 +1062,7 @@ def test_the_restart_links_the_old_incarnations_last_span_even_while_it_waits_fo
         tracing(events.ConsumerAdded("rm", rid, query_id, "station", at=at, pid=11))
         if query_id == paired:  # (its caller's side heard at once: made a span then)
             tracing(events.CallAnswered("station", query_id, "rm", "map", at=at + 0.01))
-    tracing(events.ChildExited("robot", "rm", 11, "killed", at=101.0))
-    tracing(events.ChildRestarted("robot", "rm", 12, 0.5, at=102.0))
-    tracing(events.CatalogRestored("rm", (), (), (), at=101.5, pid=12))
+    _killed(tracing, "robot", "rm")
     rid = str(uuid.uuid4())
     tracing(events.ResourceLoaded("rm", "map", rid, first, 0.1, at=103.0, pid=12))  # restart made
     assert [] == [s.name for s in exporter.get_finished_spans() if s.name == "restart rm"]
@@ -1111,9 +1114,7 @@ def test_an_unload_cut_by_a_kill_ends_under_its_release_or_as_a_root_never_an_or
         "api", loading, "db", "resource", "RegistrarUnavailableError", "gone", True, at=101.3
     )
     tracing(failed)
-    tracing(events.ChildExited("root", "db", 11, "killed", at=101.1))
-    tracing(events.ChildRestarted("root", "db", 12, 0.5, at=102.0))
-    tracing(events.CatalogRestored("db", (), (), (), at=101.5, pid=12))
+    _killed(tracing, "root", "db", exited_at=101.1)
     tracing(events.InDoubt("db", rid, "resource", "unload", at=101.6, pid=12))
     with _caller(provider).start_as_current_span("the application's"):  # (not a parent)
         tracing.flush()
@@ -1152,10 +1153,9 @@ def test_an_unload_cut_by_a_kill_ends_under_its_release_or_as_a_root_never_an_or
 
 
 def test_a_hop_heard_before_the_hop_below_it_and_the_send_waits_for_them(
-    exported: tuple[TracerProvider, InMemorySpanExporter],
+    traced: tuple[otel.Tracing, InMemorySpanExporter],
 ) -> None:
-    provider, exporter = exported
-    tracing = otel.Tracing(tracer_provider=provider, pair_within=60)
+    tracing, exporter = traced
     below, above, status_id = str(uuid.uuid4()), str(uuid.uuid4()), str(uuid.uuid4())
     tracing(events.CallAnswered("mid", below, "leaf", "cam", at=1.0))
     tracing(events.CallAnswered("app", above, "mid", "map", at=2.0))
@@ -1182,10 +1182,9 @@ def test_a_hop_heard_before_the_hop_below_it_and_the_send_waits_for_them(
 
 
 def test_a_hop_whose_send_is_never_heard_goes_under_a_stand_in_marked_incomplete(
-    exported: tuple[TracerProvider, InMemorySpanExporter],
+    traced: tuple[otel.Tracing, InMemorySpanExporter],
 ) -> None:
-    provider, exporter = exported
-    tracing = otel.Tracing(tracer_provider=provider, pair_within=60)
+    tracing, exporter = traced
     query_id, status_id = str(uuid.uuid4()), str(uuid.uuid4())
     tracing(events.CallAnswered("mid", query_id, "leaf", "cam", at=1.0))
     tracing(events.StatusDelivered("mid", query_id, rr.Status.OK, 1, 0.1, status_id, at=10.1))
@@ -1363,8 +1362,7 @@ def test_a_managers_calls_from_a_status_callback_are_a_trace_of_their_own(
     [("", False), ("rpc", False), ("http,rpc/dup", True), ("rpc, rpc/dup", True)],
 )
 def test_the_deprecated_rpc_names_come_only_with_rpc_dup(
-    started: list[rr.ResourceRegistrar],
-    uid: str,
+    erm: rr.ResourceRegistrar,
     monkeypatch: pytest.MonkeyPatch,
     exported: tuple[TracerProvider, InMemorySpanExporter],
     opt_in: str,
@@ -1372,9 +1370,6 @@ def test_the_deprecated_rpc_names_come_only_with_rpc_dup(
 ) -> None:
     provider, exporter = exported
     monkeypatch.setenv(otel.SEMCONV_OPT_IN, opt_in)
-    erm = rr.ResourceRegistrar.start(f"erm-{uid}")
-    started.append(erm)
-    _serve(erm)
     with otel.trace(erm, tracer_provider=provider, pair_within=60) as tracing:
         erm.call(erm.name, "cam", 1, timeout=10)
         erm.client_queries(timeout=10)  # (a later turn: its CallAnswered is out)
@@ -1401,14 +1396,11 @@ def test_every_attribute_the_module_names_is_in_the_pages_table() -> None:
 
 
 def test_a_call_to_a_server_its_provider_does_not_have_is_rpc_method_other(
-    started: list[rr.ResourceRegistrar],
+    erm: rr.ResourceRegistrar,
     uid: str,
     exported: tuple[TracerProvider, InMemorySpanExporter],
 ) -> None:
     provider, exporter = exported
-    erm = rr.ResourceRegistrar.start(f"erm-{uid}")
-    started.append(erm)
-    _serve(erm)
     with otel.trace(erm, tracer_provider=provider, pair_within=60) as tracing:
         with pytest.raises(rr.UnknownServerError):
             erm.call(erm.name, f"nope-{uid}", 1, timeout=10)  # (any name: unbounded)

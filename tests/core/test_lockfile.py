@@ -92,23 +92,6 @@ def _holder(path: Path, *, fork: bool = False, claim: str = "claim") -> subproce
     return child
 
 
-def test_a_claim_held_by_another_process_is_refused_and_free_once_it_was_killed(
-    tmp_path: Path,
-) -> None:
-    path = tmp_path / "x.lock"
-    child = _holder(path)
-    try:
-        with pytest.raises(lockfile.HeldError) as held:
-            lockfile.claim(path)
-        assert str(child.pid) == held.value.holder
-    finally:
-        child.send_signal(signal.SIGKILL)
-        child.communicate(timeout=10)  # (reaped, its pipes closed)
-
-    assert path.exists()  # (left by the dead: not a lock)
-    lockfile.release(lockfile.claim(path))
-
-
 def test_a_child_forked_from_the_owner_does_not_keep_the_lock_after_the_owner_died(
     tmp_path: Path,
 ) -> None:
@@ -149,22 +132,25 @@ def test_a_file_claimed_by_one_name_is_refused_by_a_hard_link_naming_this_pid(
     assert (str(os.getpid()), True) == (held.value.holder, path.exists())
 
 
-@file_locks
-def test_a_file_claimed_by_another_process_is_refused_naming_it_and_free_once_it_was_killed(
-    tmp_path: Path,
+@pytest.mark.parametrize("claim", ["claim", pytest.param("claim_file", marks=file_locks)])
+def test_a_claim_held_by_another_process_is_refused_naming_it_and_free_once_it_was_killed(
+    tmp_path: Path, claim: str
 ) -> None:
+    # `claim` names the lock file; `claim_file` is asked by another name of the file
     path, link = tmp_path / "x.db", tmp_path / "y.db"
     path.write_bytes(b"")
     os.link(path, link)
-    child = _holder(path, claim="claim_file")
+    asked = path if claim == "claim" else link
+    child = _holder(path, claim=claim)
     try:
         with pytest.raises(lockfile.HeldError) as held:
-            lockfile.claim_file(link)
+            getattr(lockfile, claim)(asked)
         assert str(child.pid) == held.value.holder
     finally:
         child.send_signal(signal.SIGKILL)
-        child.communicate(timeout=10)
+        child.communicate(timeout=10)  # (reaped, its pipes closed)
 
-    fd = lockfile.claim_file(link)
+    assert path.exists()  # (left by the dead: not a lock)
+    fd = getattr(lockfile, claim)(asked)
     assert fd is not None
-    lockfile.release_file(fd)
+    (lockfile.release if claim == "claim" else lockfile.release_file)(fd)

@@ -65,10 +65,12 @@ Why these choices:
 from __future__ import annotations
 
 import collections
+import dataclasses
 import sys
 import threading
 import uuid
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any, NamedTuple
 
 import cloudpickle
@@ -79,6 +81,7 @@ from rr_actors.testing import RemoteRegistrar, SharedObjects, System, pending_wo
 from tests.support import awaited as awaited_handles
 from tests.support import gating
 from tests.support.gating import GatedLoad, same
+from tests.support.heard import Heard
 from tests.support.waiting import wait_for
 
 PLACEMENTS = ("thread", "process", "zenoh")
@@ -401,3 +404,48 @@ def system() -> Iterator[System]:
     made = System.create()
     yield made
     made.close()
+
+
+def leaf_setup(registrar: rr.ResourceRegistrar) -> None:
+    """A manager's setup: it serves `leaf`, whose load answers `loaded <request>`."""
+    registrar.register_server("leaf", load=lambda r: f"loaded {r}", unload=lambda _q, _r: None)
+
+
+@dataclasses.dataclass
+class ManagerProvider:
+    """A durable provider `name` serving `leaf` in a manager process of `sup` (no heartbeat:
+    a test may hold it), `app`, a registrar of this process, and `heard`, the tree's events."""
+
+    name: str
+    sup: rr.Supervisor
+    app: rr.ResourceRegistrar
+    heard: Heard
+    subscription: Any
+
+    def events(self) -> Heard:
+        """Every event of the tree so far (its managers' flushed), then no more heard."""
+        assert self.sup.flush_events(timeout=10)
+        assert self.subscription.wait_delivered(timeout=10)
+        self.subscription.close()
+        return self.heard
+
+
+@pytest.fixture
+def manager_provider(
+    supervisors: Callable[..., rr.Supervisor], tmp_path: Path
+) -> Callable[..., ManagerProvider]:
+    """`manager_provider(**app_config)`: a started `ManagerProvider` (the test's SIGKILLs are
+    real; its backup is under `tmp_path`), `app` configured with `app_config`."""
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])  # (`leaf_setup`)
+
+    def make(**app_config: Any) -> ManagerProvider:
+        uid = uuid.uuid4().hex[:8]
+        spec = rr.ManagerSpec(f"p-{uid}", leaf_setup, isolation="process", heartbeat=None)
+        sup = supervisors([spec], state_dir=tmp_path / "state")
+        heard = Heard()
+        subscription = sup.subscribe(heard)
+        sup.start()
+        app = sup.registrar(rr.RegistrarConfig(name=f"app-{uid}", **app_config))
+        return ManagerProvider(spec.name, sup, app, heard, subscription)
+
+    return make

@@ -50,10 +50,10 @@ from rr_actors.testing import (
     intercept,
     pending_work,
 )
+from tests.registrar.conftest import ManagerProvider
 from tests.support import simulated
 from tests.support.durable_pair import durable_config
 from tests.support.gating import GatedLoad
-from tests.support.heard import Heard
 from tests.support.waiting import wait_for
 
 # -- for TestLoad --------------------------------------------------------------------------
@@ -3472,10 +3472,6 @@ def test_callers_that_wait_are_told_one_slot_after_another_and_those_that_do_not
 # -- a last unload's one commit (issue 52) -----------------------------------------------------
 
 
-def _leaf_setup(registrar: rr.ResourceRegistrar) -> None:
-    registrar.register_server("leaf", load=lambda r: f"loaded {r}", unload=lambda _q, _r: None)
-
-
 class TestLastUnloadCommit:
     """A durable provider writes a last unload's release with its resource's `UNLOADING`
     mark in one transaction (issue 52): the id held and the resource loaded, or both
@@ -3532,7 +3528,7 @@ class TestLastUnloadCommit:
     @pytest.mark.usefixtures("by_value")  # (tests/conftest.py)
     @pytest.mark.parametrize("kill", ["before", "after"])
     def test_a_kill_at_a_last_unloads_commit_leaves_the_id_held_or_the_unload_in_doubt(
-        self, supervisors: Callable[..., rr.Supervisor], tmp_path: Path, kill: str
+        self, manager_provider: Callable[..., ManagerProvider], kill: str
     ) -> None:
         # A real SIGKILL of the provider's manager process just before the commit (the
         # `unload_resource` point: the release staged, not written) or just after it
@@ -3542,14 +3538,8 @@ class TestLastUnloadCommit:
         # After: the id is gone and the resource was unloading: in doubt (cut "unload").
         # (Written apart, as before, a kill between them restored a resource nobody
         # held, its release "unload" read from the outbox, and nothing in doubt.)
-        uid = uuid.uuid4().hex[:8]
-        p = f"p-{uid}"
-        spec = rr.ManagerSpec(p, _leaf_setup, isolation="process", heartbeat=None)
-        sup = supervisors([spec], state_dir=tmp_path / "state")
-        heard = Heard()
-        subscription = sup.subscribe(heard)
-        sup.start()
-        app = sup.registrar(f"app-{uid}")
+        provider = manager_provider()
+        p, sup, app = provider.name, provider.sup, provider.app
         query = app.call(p, "leaf", "x", timeout=10)  # its only consumer
         rid = sup.run_in(p, lambda r: [r_.id for r_ in catalog_snapshot(r).resources])[0]
 
@@ -3577,9 +3567,7 @@ class TestLastUnloadCommit:
         sup.wait_restarted(p, timeout=20)
         in_doubt = sup.run_in(p, lambda r: [q.id for q in r.in_doubt])
         assert wait_for(lambda: not sup.run_in(p, lambda r: catalog_snapshot(r).resources), 20)
-        assert sup.flush_events(timeout=10)
-        assert subscription.wait_delivered(timeout=10)
-        subscription.close()
+        heard = provider.events()
         app.stop()
 
         released = [
@@ -3598,7 +3586,7 @@ class TestKeptForRetry:
     @pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
     @pytest.mark.usefixtures("by_value")  # (tests/conftest.py)
     def test_an_id_kept_for_a_retry_that_never_comes_is_given_back_a_call_timeout_later(
-        self, supervisors: Callable[..., rr.Supervisor], tmp_path: Path
+        self, manager_provider: Callable[..., ManagerProvider]
     ) -> None:
         # issue 68, item 5: a real SIGKILL of the provider's manager process just after it
         # committed a call's id, before it answered: the call fails with
@@ -3606,14 +3594,8 @@ class TestKeptForRetry:
         # backup, keeps the id for a retry. No retry comes. It stayed held, its resource
         # loaded, until the provider's next restart or the consumer's stop: now it is given
         # back `call_timeout` after the reconcile that kept it.
-        uid = uuid.uuid4().hex[:8]
-        p = f"p-{uid}"
-        spec = rr.ManagerSpec(p, _leaf_setup, isolation="process", heartbeat=None)
-        sup = supervisors([spec], state_dir=tmp_path / "state")
-        heard = Heard()
-        subscription = sup.subscribe(heard)
-        sup.start()
-        app = sup.registrar(rr.RegistrarConfig(name=f"app-{uid}", call_timeout=1.0))
+        provider = manager_provider(call_timeout=1.0)
+        p, sup, app = provider.name, provider.sup, provider.app
 
         def arm(registrar: rr.ResourceRegistrar) -> None:
             import signal  # noqa: PLC0415 - runs in the provider's first process
@@ -3634,9 +3616,7 @@ class TestKeptForRetry:
         sup.wait_restarted(p, timeout=20)
 
         assert wait_for(lambda: not sup.run_in(p, lambda r: catalog_snapshot(r).resources), 20)
-        assert sup.flush_events(timeout=10)
-        assert subscription.wait_delivered(timeout=10)
-        subscription.close()
+        heard = provider.events()
         restored = [
             row[0]
             for e in heard.of(rr.events.CatalogRestored)

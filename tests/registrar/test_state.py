@@ -38,6 +38,7 @@ from rr_actors.testing import (
     intercept,
     run_on_actor,
 )
+from tests.registrar.conftest import ManagerProvider
 from tests.support.gating import GatedLoad
 from tests.support.heard import Heard
 from tests.support.small_disk import fill, mounted
@@ -950,10 +951,6 @@ def _waiting_loads(tmp_path: Path, waiting: int) -> tuple[list[str], int, list[A
         provider.stop()
 
 
-def _leaf_setup(registrar: rr.ResourceRegistrar) -> None:
-    registrar.register_server("leaf", load=lambda r: f"loaded {r}", unload=lambda _q, _r: None)
-
-
 class TestTurn:
     """A durable registrar's turn: the changes of the messages it handled commit in one
     transaction at its end, and their answers go only after it (issue 52 parts 2, 4)."""
@@ -1018,19 +1015,14 @@ class TestTurn:
     @pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
     @pytest.mark.usefixtures("by_value")  # (tests/conftest.py)
     def test_a_kill_at_the_turns_commit_acknowledged_nothing_staged_and_lost_nothing_acknowledged(
-        self, supervisors: Callable[..., rr.Supervisor], tmp_path: Path
+        self, manager_provider: Callable[..., ManagerProvider]
     ) -> None:
         # A real SIGKILL of the provider's manager process at the boundary: its turn's
         # changes are staged (a consumer id added), the transaction not begun. The call
         # whose id was staged fails; the ids acknowledged before (a miss, then a hit
         # committed at its turn's end) are in the backup the restarted provider serves.
-        uid = uuid.uuid4().hex[:8]
-        p = f"p-{uid}"
-        sup = supervisors(
-            [rr.ManagerSpec(p, _leaf_setup, isolation="process")], state_dir=tmp_path / "state"
-        )
-        sup.start()
-        app = sup.registrar(f"app-{uid}")
+        provider = manager_provider()
+        p, sup, app = provider.name, provider.sup, provider.app
         acknowledged = [app.call(p, "leaf", "x", timeout=10).id for _ in range(2)]
 
         def kill_at_commit(registrar: rr.ResourceRegistrar) -> None:
@@ -1059,8 +1051,7 @@ class TestTurn:
     @pytest.mark.usefixtures("by_value")  # (tests/conftest.py)
     def test_a_hit_abandoned_in_its_own_turn_is_committed_with_its_release_or_kept(
         self,
-        supervisors: Callable[..., rr.Supervisor],
-        tmp_path: Path,
+        manager_provider: Callable[..., ManagerProvider],
         process_helpers: SharedObjects,
     ) -> None:
         # Issue 51 (the simcancel plan's real runs): a dedup hit is staged, and its
@@ -1070,14 +1061,8 @@ class TestTurn:
         # SIGKILL of the provider's process right after the first commit that tells of
         # the add (its events in the backup's outbox, read after the exit). Every id whose
         # ConsumerAdded came and whose ConsumerReleased did not is held by the restart.
-        uid = uuid.uuid4().hex[:8]
-        p = f"p-{uid}"
-        spec = rr.ManagerSpec(p, _leaf_setup, isolation="process", heartbeat=None)  # (held)
-        sup = supervisors([spec], state_dir=tmp_path / "state")
-        heard = Heard()
-        subscription = sup.subscribe(heard)
-        sup.start()
-        app = sup.registrar(f"app-{uid}")
+        provider = manager_provider()  # (no heartbeat: held)
+        p, sup, app = provider.name, provider.sup, provider.app
         held = app.call(p, "leaf", "x", timeout=10).id  # loaded: the next call is a hit
         withdrawn, abandoned = process_helpers.event(), process_helpers.event()
 
@@ -1111,9 +1096,7 @@ class TestTurn:
             app.call(p, "leaf", "x", timeout=1.0)
         sup.wait_restarted(p, timeout=20)
         restored = set(sup.run_in(p, lambda r: [q.id for q in r.server_queries("leaf")]))
-        assert sup.flush_events(timeout=10)
-        assert subscription.wait_delivered(timeout=10)
-        subscription.close()
+        heard = provider.events()
         app.stop()
 
         added = {e.query_id for e in heard.of(events.ConsumerAdded) if e.registrar == p}

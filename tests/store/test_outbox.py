@@ -17,7 +17,7 @@ from rr_actors._store import outbox, schema
 from rr_actors._store.outbox import SLOTS, read_told
 from rr_actors._store.sqlite import SqliteStore
 from tests.events.test_events import EXAMPLES
-from tests.support.durable_pair import new_store
+from tests.support.durable_pair import new_store, written_schema
 from tests.support.persisting import CommitFails, reopen
 
 SCHEMA_6_BACKUP = Path(__file__).parent / "data" / "schema-6-loaded.db"
@@ -198,12 +198,7 @@ def test_a_schema_6_backup_is_migrated_with_an_empty_outbox(tmp_path: Path) -> N
 
     catalog = reopen(path)
 
-    db = sqlite3.connect(path)
-    try:
-        version = db.execute("SELECT version FROM rr_actors_schema").fetchone()[0]
-    finally:
-        db.close()
-    assert (schema.SCHEMA_VERSION, []) == (version, outbox_rows(path))
+    assert (schema.SCHEMA_VERSION, []) == (written_schema(path)[0], outbox_rows(path))
     [resource] = catalog.resources.values()
     assert (["00000000-0000-4000-8000-000000000006"], {"for": "lidar"}) == (
         list(resource.consumers),

@@ -31,6 +31,7 @@ from tests.support.durable_pair import (
     pair_backups,
     schema_2_database,
     start,
+    written_schema,
 )
 from tests.support.persisting import (
     Recorder,
@@ -462,9 +463,7 @@ class TestLazyRestore:
         with pytest.raises(rr.CatalogCorruptError) as raised:
             SqliteStore.open(path)
 
-        db = sqlite3.connect(path)
-        version = db.execute("SELECT version FROM rr_actors_schema").fetchone()[0]
-        db.close()
+        version, _ = written_schema(path)
         assert (str(path), True, 4) == (raised.value.path, "UNIQUE" in raised.value.cause, version)
 
 

@@ -28,7 +28,13 @@ from rr_actors._store import schema
 from rr_actors._store.restore import read_backup
 from rr_actors._store.sqlite import SqliteStore
 from rr_actors.testing import crash
-from tests.support.durable_pair import new_store, noop_unload, schema_2_database, start
+from tests.support.durable_pair import (
+    new_store,
+    noop_unload,
+    schema_2_database,
+    start,
+    written_schema,
+)
 from tests.support.persisting import (
     catalog_with_a_gone_class,
     consumer_ids,
@@ -409,12 +415,7 @@ def test_a_migration_step_that_fails_leaves_the_file_at_its_old_version(
         SqliteStore.open(path)
     monkeypatch.undo()
 
-    db = sqlite3.connect(path)
-    try:
-        version = db.execute("SELECT version FROM rr_actors_schema").fetchone()[0]
-        columns = [row[1] for row in db.execute("PRAGMA table_info(resources)")]
-    finally:
-        db.close()
+    version, columns = written_schema(path)
     assert (schema.SCHEMA_VERSION, False) == (version, "note" in columns)
 
 
@@ -492,12 +493,7 @@ def test_the_empty_image_follows_the_schema_version_a_new_migration_brings(
     monkeypatch.setattr(schema, "SCHEMA_VERSION", schema.SCHEMA_VERSION + 1)
     after = schema.empty_image()
     (tmp_path / "after.db").write_bytes(after)
-    db = sqlite3.connect(tmp_path / "after.db")
-    try:
-        version = db.execute("SELECT version FROM rr_actors_schema").fetchone()[0]
-        columns = [row[1] for row in db.execute("PRAGMA table_info(resources)")]
-    finally:
-        db.close()
+    version, columns = written_schema(tmp_path / "after.db")
     assert (False, schema.SCHEMA_VERSION, True) == (before == after, version, "note" in columns)
 
 

@@ -47,6 +47,7 @@ from tests.support.durable_pair import (
     pair_backups,
     start_pair,
     start_provider,
+    written_schema,
 )
 from tests.support.persisting import (
     CommitFails,
@@ -186,12 +187,7 @@ def test_an_older_schema_is_migrated_by_an_explicit_step(
     monkeypatch.setattr(schema, "SCHEMA_VERSION", next_version)
     SqliteStore.open(tmp_path / "p.db").close(erase=False)
 
-    db = sqlite3.connect(tmp_path / "p.db")
-    try:
-        version = db.execute("SELECT version FROM rr_actors_schema").fetchone()[0]
-        columns = [row[1] for row in db.execute("PRAGMA table_info(resources)")]
-    finally:
-        db.close()
+    version, columns = written_schema(tmp_path / "p.db")
     assert (next_version, "note") == (version, columns[-1])
 
 

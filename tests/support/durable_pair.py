@@ -8,6 +8,7 @@ for a registrar a test stops at teardown, and stores and schema-2 files to start
 
 from __future__ import annotations
 
+import contextlib
 import sqlite3
 import uuid
 from collections.abc import Callable
@@ -34,6 +35,13 @@ def opened(path: Path) -> tuple[SqliteStore, Catalog]:
     catalog.finish_load("r1", {"pid": 1})
     store.write(catalog.drain_changes())
     return store, catalog
+
+
+def written_schema(path: Path) -> tuple[int, list[str]]:
+    """The schema version written in the backup at `path`, and its `resources` columns."""
+    with contextlib.closing(sqlite3.connect(path)) as db:
+        version = db.execute("SELECT version FROM rr_actors_schema").fetchone()[0]
+        return version, [row[1] for row in db.execute("PRAGMA table_info(resources)")]
 
 
 def schema_2_database(path: Path) -> sqlite3.Connection:
