@@ -23,7 +23,7 @@ import itertools
 import logging
 import os
 import weakref
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Container, Iterable, Iterator
 from typing import TYPE_CHECKING, Any
 
 from rr_actors._core import runtime, wire
@@ -73,6 +73,7 @@ __all__ = [
     "RestartWait",
     "StateDirLock",
     "Tree",
+    "announce_first_start",
     "announce_started",
     "comes_back",
     "consumer_down",
@@ -489,7 +490,6 @@ def announce_started(
     network: Transport | None = None,
     *,
     here: bool = True,
-    beyond: bool = False,
     origin: str | None = None,
     upward: Callable[[str], None] | None = None,
 ) -> None:
@@ -497,24 +497,36 @@ def announce_started(
     so once (`Membership.started`), the tree's process managers and pools on their control pipes
     (no manager connects to one it has no business with), the others through the directory.
 
-    `here`: this process's registrars told too. `beyond`: a first start, only registrars
-    beyond the tree are told (here and on the network). In a pool's process (`upward`:
+    `here`: this process's registrars told too. In a pool's process (`upward`:
     `Tree.upward`, its control pipe) only this process's registrars are told here, and its
     parent tells the rest; `origin`: the pool the announcement came from (told already)."""
     piped = _process_handles(root) if root.has_pipes else {}  # (a tree of threads: no walk)
-    for other, manager in () if beyond else sorted(piped.items()):
+    for other, manager in sorted(piped.items()):
         if other not in (name, origin):
             manager.handle.tell_started(name)
     reached = _piped(root) if root.has_pipes else set()
-    below = _names_below(root) if beyond else set()
-    if here or beyond:
-        MEMBERSHIP.started(name, skip=reached | below)
+    if here:
+        MEMBERSHIP.started(name, skip=reached)
     others: set[str] = set()
     if upward is not None:
         upward(name)
     elif network is not None and not network.closed:
         others = set(network.names()) - {peer.name for peer in DIRECTORY.local_peers()}
-    for other in sorted(others - below - reached):
+    for other in sorted(others - reached):
+        life.heard_started(other, name)
+
+
+def announce_first_start(name: str, network: Transport, tree_names: Container[str]) -> None:
+    """Manager `name` started for the first time on a fresh catalog: only the registrars
+    beyond the tree hear so (here and on the network: its name may have been served
+    elsewhere, rule 22), those not in `tree_names` (`Tree.specs`, every name of the tree,
+    kept as it is built: no walk of the tree at each of its N starts; one listing of the
+    carrier)."""
+    MEMBERSHIP.started(name, skip=tree_names)
+    if network.closed:
+        return
+    here = {peer.name for peer in DIRECTORY.local_peers()}
+    for other in sorted(n for n in network.names() if n not in tree_names and n not in here):
         life.heard_started(other, name)
 
 
