@@ -60,7 +60,6 @@ from rr_actors._supervision.children import (
 from rr_actors._supervision.tree import (
     Clock,
     Tree,
-    announce_first_start,
     announce_started,
     comes_back,
     consumer_down,
@@ -600,7 +599,7 @@ class Starting:
         elif restarted or restored:  # (what its backup lost; all of it if it is gone)
             announce_started(record.root(), spec.name, network, upward=upward)
         elif network is not None and upward is None:
-            announce_first_start(spec.name, network, record.tree.specs)
+            announce_started(record.root(), spec.name, network, beyond=record.tree.specs)
 
     def ran_before(self, name: str) -> bool:
         """`tree.ran_before` on this supervisor's state directory (a mark that cannot be

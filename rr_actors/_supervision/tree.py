@@ -73,7 +73,6 @@ __all__ = [
     "RestartWait",
     "StateDirLock",
     "Tree",
-    "announce_first_start",
     "announce_started",
     "comes_back",
     "consumer_down",
@@ -490,6 +489,7 @@ def announce_started(
     network: Transport | None = None,
     *,
     here: bool = True,
+    beyond: Container[str] | None = None,
     origin: str | None = None,
     upward: Callable[[str], None] | None = None,
 ) -> None:
@@ -497,36 +497,24 @@ def announce_started(
     so once (`Membership.started`), the tree's process managers and pools on their control pipes
     (no manager connects to one it has no business with), the others through the directory.
 
-    `here`: this process's registrars told too. In a pool's process (`upward`:
+    `here`: this process's registrars told too. `beyond`: a first start, only registrars
+    not in it are told, here and on the network (every name of the tree, `Tree.specs`:
+    no walk of the tree at each of its N starts). In a pool's process (`upward`:
     `Tree.upward`, its control pipe) only this process's registrars are told here, and its
     parent tells the rest; `origin`: the pool the announcement came from (told already)."""
-    piped = _process_handles(root) if root.has_pipes else {}  # (a tree of threads: no walk)
-    for other, manager in sorted(piped.items()):
+    walk = root.has_pipes and beyond is None  # (a tree of threads, a first start: no walk)
+    for other, manager in sorted(_process_handles(root).items()) if walk else ():
         if other not in (name, origin):
             manager.handle.tell_started(name)
-    reached = _piped(root) if root.has_pipes else set()
-    if here:
+    reached = beyond if beyond is not None else _piped(root) if walk else set()
+    if here or beyond is not None:
         MEMBERSHIP.started(name, skip=reached)
     others: set[str] = set()
     if upward is not None:
         upward(name)
     elif network is not None and not network.closed:
         others = set(network.names()) - {peer.name for peer in DIRECTORY.local_peers()}
-    for other in sorted(others - reached):
-        life.heard_started(other, name)
-
-
-def announce_first_start(name: str, network: Transport, tree_names: Container[str]) -> None:
-    """Manager `name` started for the first time on a fresh catalog: only the registrars
-    beyond the tree hear so (here and on the network: its name may have been served
-    elsewhere, rule 22), those not in `tree_names` (`Tree.specs`, every name of the tree,
-    kept as it is built: no walk of the tree at each of its N starts; one listing of the
-    carrier)."""
-    MEMBERSHIP.started(name, skip=tree_names)
-    if network.closed:
-        return
-    here = {peer.name for peer in DIRECTORY.local_peers()}
-    for other in sorted(n for n in network.names() if n not in tree_names and n not in here):
+    for other in sorted(other for other in others if other not in reached):
         life.heard_started(other, name)
 
 
