@@ -1449,8 +1449,8 @@ class TestAFreshStartDoesNotFeelTheTree:
         self, monkeypatch: pytest.MonkeyPatch, tmp_path: Path, uid: str
     ) -> None:
         """A manager's first start on a fresh catalog, announced to the registrars beyond
-        the tree (rule 22), walked the whole tree twice to learn which are not beyond (its
-        names, its control pipes): 2 walks at each of a tree's N starts, N² in all,
+        the tree (rule 22), walked the whole tree three times to learn which are not beyond
+        (its process handles, its control pipes, its names): at each of N starts, N² in all,
         which a tree without a `state_dir` does not do (issue 69). Now the tree's names
         are read where they are kept: no walk at a manager's start, in a tree of 2 as in a
         tree of 5 (the ordered start's own walk of its children stays), and the carrier
