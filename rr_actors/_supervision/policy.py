@@ -599,7 +599,7 @@ class Starting:
         elif restarted or restored:  # (what its backup lost; all of it if it is gone)
             announce_started(record.root(), spec.name, network, upward=upward)
         elif network is not None and upward is None:
-            announce_started(record.root(), spec.name, network, beyond=True)
+            announce_started(record.root(), spec.name, network, beyond=record.tree.specs)
 
     def ran_before(self, name: str) -> bool:
         """`tree.ran_before` on this supervisor's state directory (a mark that cannot be

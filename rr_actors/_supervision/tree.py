@@ -23,7 +23,7 @@ import itertools
 import logging
 import os
 import weakref
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Container, Iterable, Iterator
 from typing import TYPE_CHECKING, Any
 
 from rr_actors._core import runtime, wire
@@ -490,7 +490,7 @@ def announce_started(
     network: Transport | None = None,
     *,
     here: bool = True,
-    beyond: bool = False,
+    beyond: Container[str] | None = None,
     origin: str | None = None,
     upward: Callable[[str], None] | None = None,
 ) -> None:
@@ -500,22 +500,23 @@ def announce_started(
     business with), the registrars beyond the tree through the directory.
 
     `here`: this process's registrars told too. `beyond`: a first start, only registrars
-    beyond the tree are told (here and on the network). In a pool's process (`upward`:
+    not in it are told, here and on the network (every name of the tree, `Tree.specs`:
+    no walk of the tree at each of its N starts). In a pool's process (`upward`:
     `Tree.upward`, its control pipe) only this process's registrars are told here, and its
     parent tells the rest; `origin`: the pool the announcement came from (told already)."""
-    for hearer in () if beyond or not root.has_pipes else HEARERS.announce(name):
+    walk = root.has_pipes and beyond is None  # (a tree of threads, a first start: no walk)
+    for hearer in HEARERS.announce(name) if walk else ():
         if hearer.name not in (name, origin):  # (the processes that monitor it: issue 69)
             hearer.tell_started(name)
-    reached = _piped(root) if root.has_pipes else set()
-    below = _names_below(root) if beyond else set()
-    if here or beyond:
-        MEMBERSHIP.started(name, skip=reached | below)
+    reached = beyond if beyond is not None else _piped(root) if walk else set()
+    if here or beyond is not None:
+        MEMBERSHIP.started(name, skip=reached)
     others: set[str] = set()
     if upward is not None:
         upward(name)
     elif network is not None and not network.closed:
         others = set(network.names()) - {peer.name for peer in DIRECTORY.local_peers()}
-    for other in sorted(others - below - reached):
+    for other in sorted(other for other in others if other not in reached):
         life.heard_started(other, name)
 
 

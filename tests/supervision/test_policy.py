@@ -1441,6 +1441,52 @@ class TestARestartDoesNotFeelTheTree:
         assert {2: (0, 0), 6: (0, 0)} == counts  # before: 9-12 walks and 2 of the leaves
 
 
+class TestAFreshStartDoesNotFeelTheTree:
+    """Issue 69, goals 1 and 3: with a `state_dir`, a manager's first start does not grow
+    with the tree."""
+
+    def test_a_first_start_on_a_fresh_state_dir_walks_no_tree_whatever_its_size(
+        self, monkeypatch: pytest.MonkeyPatch, tmp_path: Path, uid: str
+    ) -> None:
+        """A manager's first start on a fresh catalog, announced to the registrars beyond
+        the tree (rule 22), walked the whole tree three times to learn which are not beyond
+        (its process handles, its control pipes, its names): at each of N starts, N² in all,
+        which a tree without a `state_dir` does not do (issue 69). Now the tree's names
+        are read where they are kept: no walk at a manager's start, in a tree of 2 as in a
+        tree of 5 (the ordered start's own walk of its children stays), and the carrier
+        listed once a start, as before."""
+        from rr_actors._supervision import tree  # noqa: PLC0415
+        from rr_actors._transport.unix.system import UnixCarrier  # noqa: PLC0415
+
+        counts: dict[int, tuple[int, int, int]] = {}
+        leaves, names = tree._leaves, UnixCarrier.names
+        walked_leaves, listings = [0], [0]
+
+        def counted_leaves(level: Any) -> Any:
+            walked_leaves[0] += 1
+            return leaves(level)
+
+        def counted_names(self: UnixCarrier) -> list[str]:
+            listings[0] += 1
+            return names(self)
+
+        monkeypatch.setattr(tree, "_leaves", counted_leaves)
+        monkeypatch.setattr(UnixCarrier, "names", counted_names)
+        for size in (2, 5):
+            specs = [process(f"f{n}-{size}-{uid}") for n in range(size)]
+            sup = rr.Supervisor(specs, state_dir=tmp_path / f"state-{size}")
+            node = sup._node
+            node.children = _Walked(node.children)
+            _Walked.walks, walked_leaves[0], listings[0] = 0, 0, 0
+            sup.start()
+            counts[size] = (_Walked.walks, walked_leaves[0], listings[0])
+            node.children = list(node.children)
+            sup.stop()
+
+        # (walks of the children, of its leaves, listings): before (7, 4, 2) and (16, 10, 5)
+        assert {2: (1, 0, 2), 5: (1, 0, 5)} == counts  # the one walk: the ordered start's
+
+
 class _SlowExitStdout:
     """A manager process's stdout whose flush at its exit is slow, as a pipe nobody reads
     would be: once `pid_file` holds a pid (the test wrote it, just before the stop), the
