@@ -106,6 +106,7 @@ _context: Any = None  # the one context (and server) of this process, made at fi
 _bound = threading.local()  # `deadline`: this thread's fork's (monotonic), set by `start_within`
 
 try:
+    from multiprocessing import connection as _connection
     from multiprocessing import context as _mp_context
     from multiprocessing import forkserver as _forkserver
     from multiprocessing import popen_forkserver as _popen_forkserver
@@ -117,7 +118,35 @@ except ImportError:  # no forkserver here (it needs fds passed over AF_UNIX)
 else:
 
     class _OwnPopen(_popen_forkserver.Popen):
-        """CPython's forkserver `Popen`, asking rr_actors' server to fork."""
+        """CPython's forkserver `Popen`, asking rr_actors' server to fork; its exit code read
+        by one thread only (`poll`)."""
+
+        def __init__(self, process_obj: Any) -> None:
+            self._reading = threading.Lock()  # (held while a thread reads the exit code)
+            super().__init__(process_obj)
+
+        def poll(self, flag: int = os.WNOHANG) -> int | None:
+            # CPython 3.11-3.13's `Popen.poll`, its read of the sentinel under a lock. The
+            # server writes a child's exit code once; without it, two threads polling at
+            # once (a `join`, and `multiprocessing`'s `_cleanup` at any other process's
+            # start) both find the sentinel readable, one reads the code, and the other's
+            # EOF is taken for a dead server: exit code 255 (CI, a SIGKILLed `simways`
+            # manager). A poll that must not block leaves it to the reader under way.
+            if self.returncode is None:
+                timeout = 0 if flag == os.WNOHANG else None
+                if not _connection.wait([self.sentinel], timeout):
+                    return None
+                if not self._reading.acquire(blocking=timeout is None):
+                    return None  # (another thread reads it now: not known here yet)
+                try:
+                    if self.returncode is None:
+                        try:
+                            self.returncode = _forkserver.read_signed(self.sentinel)
+                        except (OSError, EOFError):  # CPython's: the server itself died
+                            self.returncode = 255
+                finally:
+                    self._reading.release()
+            return self.returncode
 
         def _launch(self, process_obj: Any) -> None:
             # CPython 3.11-3.13's `Popen._launch`: this server, within `start_within`'s bound
