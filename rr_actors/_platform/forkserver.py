@@ -106,7 +106,6 @@ _context: Any = None  # the one context (and server) of this process, made at fi
 _bound = threading.local()  # `deadline`: this thread's fork's (monotonic), set by `start_within`
 
 try:
-    from multiprocessing import connection as _connection
     from multiprocessing import context as _mp_context
     from multiprocessing import forkserver as _forkserver
     from multiprocessing import popen_forkserver as _popen_forkserver
@@ -118,38 +117,19 @@ except ImportError:  # no forkserver here (it needs fds passed over AF_UNIX)
 else:
 
     class _OwnPopen(_popen_forkserver.Popen):
-        """CPython's forkserver `Popen`, asking rr_actors' server to fork; its exit code read
-        by one thread only (`poll`)."""
-
-        def __init__(self, process_obj: Any) -> None:
-            self._reading = threading.Lock()  # (held while a thread reads the exit code)
-            super().__init__(process_obj)
+        """CPython's forkserver `Popen`, asking rr_actors' server to fork."""
 
         def poll(self, flag: int = os.WNOHANG) -> int | None:
-            # CPython 3.11-3.13's `Popen.poll`, its read of the sentinel under a lock. The
-            # server writes a child's exit code once; without it, two threads polling at
-            # once (a `join`, and `multiprocessing`'s `_cleanup` at any other process's
-            # start) both find the sentinel readable, one reads the code, and the other's
-            # EOF is taken for a dead server: exit code 255 (CI, a SIGKILLed `simways`
-            # manager). A poll that must not block leaves it to the reader under way.
-            if self.returncode is None:
-                timeout = 0 if flag == os.WNOHANG else None
-                if not _connection.wait([self.sentinel], timeout):
-                    return None
-                if not self._reading.acquire(blocking=timeout is None):
-                    return None  # (another thread reads it now: not known here yet)
-                try:
-                    if self.returncode is None:
-                        try:
-                            self.returncode = _forkserver.read_signed(self.sentinel)
-                        except (OSError, EOFError):  # CPython's: the server itself died
-                            self.returncode = 255
+            if self.returncode is None and self._reading.acquire(blocking=flag != os.WNOHANG):
+                try:  # one reader (a join, `_cleanup` at a start): a second's EOF read 255
+                    return super().poll(flag)
                 finally:
                     self._reading.release()
             return self.returncode
 
         def _launch(self, process_obj: Any) -> None:
             # CPython 3.11-3.13's `Popen._launch`: this server, within `start_within`'s bound
+            self._reading = threading.Lock()  # (held by the thread that reads its exit)
             prep_data = _spawn.get_preparation_data(process_obj._name)
             buf = io.BytesIO()
             _mp_context.set_spawning_popen(self)
@@ -160,11 +140,7 @@ else:
                 _mp_context.set_spawning_popen(None)
             self.sentinel, w = _context.server.connect_to_new_process(self._fds)  # type: ignore[attr-defined]
             parent_w = os.dup(w)
-            self.finalizer = _util.Finalize(
-                self,
-                _util.close_fds,  # type: ignore[attr-defined]
-                (parent_w, self.sentinel),
-            )
+            self.finalizer = _util.Finalize(self, _util.close_fds, (parent_w, self.sentinel))  # type: ignore[attr-defined]
             deadline: float | None = getattr(_bound, "deadline", None)
             if deadline is None:  # CPython's order, no bound
                 with open(w, "wb", closefd=True) as f:
