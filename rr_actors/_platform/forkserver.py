@@ -119,8 +119,17 @@ else:
     class _OwnPopen(_popen_forkserver.Popen):
         """CPython's forkserver `Popen`, asking rr_actors' server to fork."""
 
+        def poll(self, flag: int = os.WNOHANG) -> int | None:
+            if self.returncode is None and self._reading.acquire(blocking=flag != os.WNOHANG):
+                try:  # one reader (a join, `_cleanup` at a start): a second's EOF read 255
+                    return super().poll(flag)
+                finally:
+                    self._reading.release()
+            return self.returncode
+
         def _launch(self, process_obj: Any) -> None:
             # CPython 3.11-3.13's `Popen._launch`: this server, within `start_within`'s bound
+            self._reading = threading.Lock()  # (held by the thread that reads its exit)
             prep_data = _spawn.get_preparation_data(process_obj._name)
             buf = io.BytesIO()
             _mp_context.set_spawning_popen(self)
@@ -131,11 +140,7 @@ else:
                 _mp_context.set_spawning_popen(None)
             self.sentinel, w = _context.server.connect_to_new_process(self._fds)  # type: ignore[attr-defined]
             parent_w = os.dup(w)
-            self.finalizer = _util.Finalize(
-                self,
-                _util.close_fds,  # type: ignore[attr-defined]
-                (parent_w, self.sentinel),
-            )
+            self.finalizer = _util.Finalize(self, _util.close_fds, (parent_w, self.sentinel))  # type: ignore[attr-defined]
             deadline: float | None = getattr(_bound, "deadline", None)
             if deadline is None:  # CPython's order, no bound
                 with open(w, "wb", closefd=True) as f:

@@ -9,9 +9,12 @@ trick does are marked `linux_trick` (see `supervising.py`) and skipped there.
 
 from __future__ import annotations
 
+import multiprocessing.connection
+import multiprocessing.forkserver
 import os
 import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -56,3 +59,41 @@ def test_a_start_through_a_stopped_forkserver_gives_up_within_its_bound(tmp_path
         then.exitcode,
         (tmp_path / "late").exists(),
     ), took
+
+
+@pytest.mark.skipif(not forkserver.SUPPORTED, reason="rr_actors' forkserver: CPython 3.11-3.13")
+def test_a_killed_process_whose_exit_two_threads_poll_at_once_was_killed_not_exit_255(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """CI of main 82548e2b, a real `simways` run: db, SIGKILLed, "ended by itself: exit
+    code 255". The forkserver writes a child's exit code once, on its sentinel. Forced
+    here: a join found the sentinel readable and, before it read, another thread polled
+    the process (as `multiprocessing` does at every process start, the spare filler's)
+    and read the code; the join then read EOF, which CPython takes for a dead server
+    (255). One thread reads it: the join gets the signal."""
+    ctx = forkserver.context(())
+    process = ctx.Process(target=signal.pause, daemon=True)
+    forkserver.start_within(process, 30.0)
+    os.kill(process.pid, signal.SIGKILL)
+    assert multiprocessing.connection.wait([process.sentinel], 30.0)  # (reaped, code written)
+    read_signed = multiprocessing.forkserver.read_signed
+    joining = threading.current_thread()
+
+    def polled_meanwhile(fd: int) -> int:
+        if threading.current_thread() is joining:  # the join is about to read: a poll first
+            poller = threading.Thread(target=process.is_alive, name="test-poller")
+            poller.start()
+            poller.join(30.0)
+            assert not poller.is_alive()
+        return read_signed(fd)
+
+    monkeypatch.setattr(multiprocessing.forkserver, "read_signed", polled_meanwhile)
+    try:
+        process.join(30.0)
+        exitcode = process.exitcode
+    finally:
+        monkeypatch.undo()
+        process.join(30.0)
+        process.close()
+
+    assert -signal.SIGKILL == exitcode
