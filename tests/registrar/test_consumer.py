@@ -1599,6 +1599,74 @@ class TestReconcileDueCall:
             if back is not None:
                 back.stop()
 
+    def test_a_held_id_lost_at_reconcile_is_told_fatal_though_its_retry_started_meanwhile(
+        self,
+        started: Callable[[str], rr.ResourceRegistrar],
+        monkeypatch: pytest.MonkeyPatch,
+    ) -> None:
+        # real `simnostate` run (client-0 forgot 9 ids "unknown at reconcile", no FATAL to
+        # them): a caller's retry of one lost id became due after the reconcile's answer was
+        # read and before its FATAL was told; the FATAL of all 9 was parked behind that
+        # retry's answer, the ids were forgotten at once, and when the retry failed the
+        # parked notice found no record: no callback ran (rules 19, 20)
+        provider, consumer = started("prov"), started("cons")
+        name = provider.name
+        provider.register_server("leaf", load=lambda r: r, unload=lambda _r, _s: None)
+        heard: list[tuple[str, rr.Status]] = []
+        note = lambda q, u: heard.append((q.id, u.status))  # noqa: E731
+        qid, other = str(uuid.uuid4()), str(uuid.uuid4())
+        for query_id in (qid, other):
+            consumer.call(name, "leaf", "held", query_id=query_id, on_status=note)
+        due, restarted = threading.Event(), threading.Event()
+        retries: list[Any] = []
+
+        def hold(load: Any) -> None:
+            if load.query_id == qid:  # due now; its Load leaves once the restart reconciled
+                due.set()
+                assert restarted.wait(10)
+
+        def refuse(_request: Any) -> Any:
+            raise RuntimeError("the device is gone")
+
+        reconciled_there = consumer_module.Releases.reconciled
+
+        def retry_meanwhile(releases: Any, serving_rr: str, listing: Any) -> None:
+            # (on the consumer's actor, between the reconcile's look at what is due and its
+            # report of the lost ids: the caller's retry of qid starts, its id due)
+            reconciled_there(releases, serving_rr, listing)
+            if releases.registrar.name == consumer.name and serving_rr == name and not retries:
+                retries.append(pool.submit(consumer.call, name, "leaf", "held", query_id=qid))
+                assert due.wait(10)
+
+        back = None
+        try:
+            with intercept(consumer, "send_load", before=hold), ThreadPoolExecutor(1) as pool:
+                with expect_restart(name):
+                    crash(provider)
+                back = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
+                back.register_server("leaf", load=refuse, unload=lambda _r, _s: None)
+                reconciled = threading.Event()
+                monkeypatch.setattr(consumer_module.Releases, "reconciled", retry_meanwhile)
+                with intercept(back, "reconcile", after=lambda _m: reconciled.set()):
+                    life.lost_everything(name)  # (as its supervisor says: restarted empty)
+                    assert reconciled.wait(10)
+                    consumer.client_queries()  # (the Reconcile's answer was handled)
+                monkeypatch.undo()
+                assert due.is_set()  # (the retry was due as the lost ids were reported)
+                lost = [q.id for q in consumer.client_queries() if q.id in (qid, other)]
+                restarted.set()  # the retry leaves, to the restart, and fails there
+                with pytest.raises(rr.RrError):
+                    retries[0].result(10)
+
+            assert [] == lost  # forgotten as lost
+            assert wait_for(lambda: len(heard) >= 2)
+            assert sorted([(qid, rr.Status.FATAL), (other, rr.Status.FATAL)]) == sorted(heard)
+            assert [] == [q.id for q in consumer.client_queries() if q.id in (qid, other)]
+        finally:
+            restarted.set()
+            if back is not None:
+                back.stop()
+
     def test_a_call_refused_at_once_is_not_listed_when_the_consumer_reconciles(
         self,
         started: Callable[[str], rr.ResourceRegistrar],
