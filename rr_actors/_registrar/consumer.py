@@ -172,7 +172,7 @@ class Flights:
         # query id -> the resource whose load made it: a retry can only come from that load
         self.dependency_of: dict[str, str] = {}
         self.doubted: dict[str, set[str]] = {}  # due id -> providers whose reconcile knew not it
-        self.forgetting: Notice | None = None  # a FATAL of ids forgotten next: never parked
+        self.forgetting: Notice | None = None  # FATAL of ids forgotten next: never parked
 
     # -- one call's record --------------------------------------------------------------
 
@@ -298,11 +298,8 @@ class Flights:
             self.registrar.redeliver(outcomes.get())
 
     def parked(self, notice: Notice) -> bool:
-        """Hold `notice` while the answer to one of its queries is on its way (`answered`),
-        unless it tells `FATAL` of ids forgotten right after (`Holdings.report_lost`)."""
-        if notice is self.forgetting:
-            return False
-        for query_id in notice.query_ids:
+        """Hold `notice` while the answer to one of its queries is on its way (`answered`)."""
+        for query_id in () if notice is self.forgetting else notice.query_ids:
             if self.registrar.due.awaited(query_id):
                 self.take_outcomes()  # (handed over before the mark was read?)
             if query_id in self.registrar.due:
@@ -716,22 +713,10 @@ class Holdings:
         forgotten: str,
     ) -> None:
         """`FATAL` to the status callbacks of `ids` (and up their dependents), then forget them."""
-        notice = StatusNotice(
-            ids,
-            Status.FATAL,
-            why,
-            source,
-            runtime.new_id(),
-            FutureReply(),  # (nobody waits for the acknowledgements)
-            sent_at=runtime.wall(),
-        )
-        # told now, not parked behind the answer of a retry of one of them (that answer would
-        # find them forgotten: no callback would run; rules 19, 20)
-        self.registrar.flights.forgetting = notice
-        try:
-            self.registrar.redeliver(notice)
-        finally:
-            self.registrar.flights.forgetting = None
+        event, wall = runtime.new_id(), runtime.wall()  # (nobody waits for the acknowledgements)
+        notice = StatusNotice(ids, Status.FATAL, why, source, event, FutureReply(), sent_at=wall)
+        self.registrar.flights.forgetting = notice  # (told now: a retry's answer would come
+        self.registrar.redeliver(notice)  # after they are forgotten, and run no callback)
         for query_id in ids:
             self.forget(query_id, commit=False, reason=forgotten)
         self.registrar.commit()
