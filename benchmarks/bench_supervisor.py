@@ -56,7 +56,6 @@ import multiprocessing.connection
 import os
 import queue
 import signal
-import statistics
 import tempfile
 import time
 import uuid
@@ -64,11 +63,14 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
+import _harness
+
 import rr_actors as rr
 from rr_actors._catalog import Changes, Resource, ResourceState
 from rr_actors._process.manager import start_forkserver
 from rr_actors._store.sqlite import SqliteStore
 
+median = _harness.median
 TARGET_DETECT_MS = 5.0
 TARGET_SERVE_MS = {1_000: 30.0, 100_000: 250.0}
 
@@ -241,48 +243,25 @@ def fork_floor(kills: int, gap: float) -> list[float]:
 
 def compare_subscriber(entries: int, crashes: int, gap: float, rounds: int) -> None:
     """Round robin: fork floor, serving without a subscriber, serving with one."""
-    floor: list[float] = []
-    without: list[float] = []
-    with_sub: list[float] = []
+    samples: dict[str, list[float]] = {row: [] for row in ROWS}
     for n in range(rounds):
-        floor += fork_floor(crashes, gap)
-        without += measure_serving(entries, crashes, gap, subscribed=False)
-        with_sub += measure_serving(entries, crashes, gap, subscribed=True)
-        print(
-            f"round {n + 1}: floor {statistics.median(floor):.1f} ms, without "
-            f"{statistics.median(without):.1f} ms, with {statistics.median(with_sub):.1f} ms"
-            " (medians so far)",
-            flush=True,
-        )
-    f_med, w_med, s_med = (statistics.median(x) for x in (floor, without, with_sub))
-    f_low, w_low, s_low = (p10(x) for x in (floor, without, with_sub))
-    print(f"kill to serving at {entries} entries, {rounds} rounds of {crashes} kills, ms")
-    print(f"{'':>18} | {'median':>7} | {'p10':>7} | {'p90':>7}")
-    for label, values in (
-        ("fork floor", floor),
-        ("no subscriber", without),
-        ("subscriber", with_sub),
-    ):
-        print(
-            f"{label:>18} | {statistics.median(values):>7.1f} | {p10(values):>7.1f} | "
-            f"{p90(values):>7.1f}"
-        )
-    print(
-        f"medians: subscriber / none: {s_med / w_med:.2f}x (target <= 1.3x); subscriber / fork "
-        f"floor: {s_med / f_med:.2f}x (target <= 2x); none / fork floor: {w_med / f_med:.2f}x"
-    )
+        samples["fork floor"] += fork_floor(crashes, gap)
+        samples["no subscriber"] += measure_serving(entries, crashes, gap, subscribed=False)
+        samples["subscriber"] += measure_serving(entries, crashes, gap, subscribed=True)
+        so_far = ", ".join(f"{row} {median(v):.1f}" for row, v in samples.items())
+        print(f"round {n + 1}: medians so far (ms): {so_far}", flush=True)
+    summary(f"at {entries} entries, {rounds} rounds of {crashes} kills", samples)
+    floor, without, heard = (samples[row] for row in ROWS)
     print(  # (under load the lower tail is the nearer to a quiet machine's figure)
-        f"p10s: subscriber / none: {s_low / w_low:.2f}x; subscriber / fork floor: "
-        f"{s_low / f_low:.2f}x; none / fork floor: {w_low / f_low:.2f}x"
+        f"p10s: subscriber / none: {p10(heard) / p10(without):.2f}x; subscriber / fork floor: "
+        f"{p10(heard) / p10(floor):.2f}x; none / fork floor: {p10(without) / p10(floor):.2f}x"
     )
 
 
 def compare_interleaved(entries: int, crashes: int, gap: float) -> None:
     """Both trees run at once, killed in turn (fork floor, no subscriber, subscriber), so
     that a load that comes and goes meets the three alike; the ratios of each triple."""
-    floor: list[float] = []
-    without: list[float] = []
-    with_sub: list[float] = []
+    samples: dict[str, list[float]] = {row: [] for row in ROWS}
     pid, read_end = _forked()
     with (
         Restarting(entries, crashes, subscribed=False) as plain,
@@ -295,32 +274,41 @@ def compare_interleaved(entries: int, crashes: int, gap: float) -> None:
             os.waitpid(pid, 0)
             os.close(read_end)
             pid, read_end = _forked()
-            floor.append((time.perf_counter() - killed) * 1000)
+            samples["fork floor"].append((time.perf_counter() - killed) * 1000)
             time.sleep(gap)
-            without.append(plain.kill_to_serving())
+            samples["no subscriber"].append(plain.kill_to_serving())
             time.sleep(gap)
-            with_sub.append(heard.kill_to_serving())
+            samples["subscriber"].append(heard.kill_to_serving())
     os.kill(pid, signal.SIGKILL)
     os.waitpid(pid, 0)
     os.close(read_end)
-    by_none = [s / w for s, w in zip(with_sub, without, strict=True)]
-    by_floor = [s / f for s, f in zip(with_sub, floor, strict=True)]
-    none_by_floor = [w / f for w, f in zip(without, floor, strict=True)]
-    print(f"kill to serving at {entries} entries, {crashes} interleaved triples, ms")
-    print(f"{'':>18} | {'median':>7} | {'p10':>7} | {'p90':>7}")
-    for label, values in (
-        ("fork floor", floor),
-        ("no subscriber", without),
-        ("subscriber", with_sub),
-    ):
-        print(
-            f"{label:>18} | {statistics.median(values):>7.1f} | {p10(values):>7.1f} | "
-            f"{p90(values):>7.1f}"
+    summary(f"at {entries} entries, {crashes} interleaved triples", samples, paired=True)
+
+
+ROWS = ("fork floor", "no subscriber", "subscriber")
+
+
+def summary(what: str, samples: dict[str, list[float]], *, paired: bool = False) -> None:
+    """The three rows' median, p10 and p90, then the ratios against the targets: of the
+    medians, or (`paired`: the samples are triples taken in turn) the median of each
+    triple's ratios."""
+    _harness.print_table(
+        f"kill to serving {what}, ms",
+        ("", "median", "p10", "p90"),
+        [(row, *(f"{f(v):.1f}" for f in (median, p10, p90))) for row, v in samples.items()],
+    )
+    floor, without, heard = (samples[row] for row in ROWS)
+
+    def ratio(a: list[float], b: list[float]) -> float:
+        return (
+            median([x / y for x, y in zip(a, b, strict=True)]) if paired else median(a) / median(b)
         )
+
+    said = "median of the triples' ratios" if paired else "medians"
     print(
-        f"median of the triples' ratios: subscriber / none {statistics.median(by_none):.2f}x "
-        f"(target <= 1.3x), subscriber / fork floor {statistics.median(by_floor):.2f}x "
-        f"(target <= 2x), none / fork floor {statistics.median(none_by_floor):.2f}x"
+        f"{said}: subscriber / none {ratio(heard, without):.2f}x (target <= 1.3x), "
+        f"subscriber / fork floor {ratio(heard, floor):.2f}x (target <= 2x), "
+        f"none / fork floor {ratio(without, floor):.2f}x"
     )
 
 
@@ -362,13 +350,11 @@ def use_forkserver_first() -> None:
 
 
 def p90(values: list[float]) -> float:
-    ordered = sorted(values)
-    return ordered[min(len(ordered) - 1, int(0.9 * len(ordered)))]
+    return _harness.percentile(values, 0.9)
 
 
 def p10(values: list[float]) -> float:
-    ordered = sorted(values)
-    return ordered[int(0.1 * len(ordered))]
+    return _harness.percentile(values, 0.1)
 
 
 def main() -> None:
@@ -395,6 +381,7 @@ def main() -> None:
         help="with --subscriber: both trees at once, killed in turn with the floor",
     )
     args = parser.parse_args()
+    print(_harness.header(f"{_harness.commit()}; kill to serving"))
     if args.forkserver_first:
         use_forkserver_first()
     start_forkserver()
@@ -404,7 +391,6 @@ def main() -> None:
                 compare_interleaved(entries, args.crashes, args.gap)
             else:
                 compare_subscriber(entries, args.crashes, args.gap, args.rounds)
-        print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
         return
     rows: list[tuple[Any, ...]] = []
     served: dict[int, list[float]] = {}
@@ -416,26 +402,19 @@ def main() -> None:
         rows.append(
             (
                 entries,
-                statistics.median(detect),
-                p90(detect),
-                statistics.median(floor),
-                statistics.median(restart),
-                statistics.median(serve),
-                p90(serve),
+                *(f"{x:.2f}" for x in (median(detect), p90(detect), median(floor))),
+                *(f"{x:.1f}" for x in (median(restart), median(serve), p90(serve))),
                 "-" if target is None else f"<= {target:g}",
             )
         )
-    print(f"SIGKILL -> detected -> respawned, restored and serving ({args.crashes} crashes each)")
-    print(
-        f"{'entries':>8} | {'detect med':>10} | {'detect p90':>10} | {'floor med':>10} | "
-        f"{'restart med':>11} | {'serve med':>9} | {'serve p90':>9} | serve target (ms)"
-    )
-    print("-" * 107)
-    for entries, d_med, d_p90, f_med, r_med, s_med, s_p90, target in rows:
-        print(
-            f"{entries:>8} | {d_med:>8.2f}ms | {d_p90:>8.2f}ms | {f_med:>8.2f}ms | "
-            f"{r_med:>9.1f}ms | {s_med:>7.1f}ms | {s_p90:>7.1f}ms | {target}"
-        )
+    _harness.print_table(
+        f"SIGKILL -> detected -> respawned, restored and serving ({args.crashes} crashes each), ms",
+        (
+            "entries", "detect med", "detect p90", "floor med", "restart med",
+            "serve med", "serve p90", "serve target",
+        ),
+        rows,
+    )  # fmt: skip
     print("floor: SIGKILL -> sentinel of a bare process holding as many dict entries")
     print("detect: from the kill to the ChildExited event; restart: ChildRestarted.restart_s")
     print(f"detect target: <= {TARGET_DETECT_MS:g} ms")
@@ -443,7 +422,6 @@ def main() -> None:
     for entries, serve in served.items():
         each = ", ".join(f"{ms:.1f}" for ms in serve)
         print(f"serving at {entries} (forkserver: {first}), each kill in ms: {each}")
-    print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
 
 
 if __name__ == "__main__":
