@@ -26,9 +26,10 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import statistics
 import sys
 from typing import Any
+
+import _harness
 
 import rr_actors as rr
 from rr_actors_lab.experiments import Plan, RunResult, parse_plan, run
@@ -140,14 +141,16 @@ def timing(runs: int, duration: float, *, realtime: bool) -> None:
         f"{len(every)} faults injected"
     )
     print(f"({skipped} skipped: their manager was being restarted when they were due)\n")
-    print("| fault kind | injected | median (ms) | p90 (ms) | p99 (ms) | max (ms) |")
-    print("|---|---:|---:|---:|---:|---:|")
-    for kind, values in [*sorted(late.items()), ("all", every)]:
-        print(
-            f"| {kind} | {len(values)} | {ms(percentile(values, 50))} | "
-            f"{ms(percentile(values, 90))} | {ms(percentile(values, 99))} | "
-            f"{ms(max(values) if values else None)} |"
+    print(
+        _harness.table(
+            ("fault kind", "injected", "median (ms)", "p90 (ms)", "p99 (ms)", "max (ms)"),
+            [
+                (kind, len(values), *(ms(percentile(values, q)) for q in (50, 90, 99)),
+                 ms(max(values) if values else None))
+                for kind, values in [*sorted(late.items()), ("all", every)]
+            ],
         )
+    )  # fmt: skip
     calls = sum(r.calls_ok for r in results.runs) / (runs * duration)
     print(f"\nload meanwhile: {calls:.0f} calls/s answered (all clients)")
 
@@ -162,21 +165,22 @@ def throughput(rounds: int, duration: float, rate: str) -> None:
             (pair[record],) = run(plan, record_events=record).runs
         rows.append((number, pair))
     print(f"\n## Cost of recording events, rate = {rate}: {rounds} round(s) of {duration:g} s\n")
-    print(
-        "| round | calls/s, not recorded | calls/s, recorded | overhead | "
-        "latency p50 / p99 (ms), not recorded | recorded | events |"
-    )
-    print("|---:|---:|---:|---:|---:|---:|---:|")
-    overheads = []
+    overheads, table = [], []
     for number, pair in rows:
         off, on = (calls_per_s(pair[r]) for r in (False, True))
-        overhead = 1.0 - on / off
-        overheads.append(overhead)
-        print(
-            f"| {number} | {off:.0f} | {on:.0f} | {overhead:+.1%} | {latency(pair[False])} | "
-            f"{latency(pair[True])} | {pair[True].events} |"
-        )
-    print(f"\nmedian overhead: {statistics.median(overheads):+.1%}")
+        overheads.append(1.0 - on / off)
+        table.append(
+            (
+                number, f"{off:.0f}", f"{on:.0f}", f"{overheads[-1]:+.1%}",
+                latency(pair[False]), latency(pair[True]), pair[True].events,
+            )
+        )  # fmt: skip
+    columns = (
+        "round", "calls/s, not recorded", "calls/s, recorded", "overhead",
+        "latency p50 / p99 (ms), not recorded", "recorded", "events",
+    )  # fmt: skip
+    print(_harness.table(columns, table, right=0))
+    print(f"\nmedian overhead: {_harness.median(overheads):+.1%}")
 
 
 def calls_per_s(result: RunResult) -> float:

@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -30,6 +29,8 @@ import threading
 import time
 from pathlib import Path
 from typing import Any
+
+import _harness
 
 
 def worker(args: argparse.Namespace) -> None:
@@ -108,17 +109,20 @@ def drive(args: argparse.Namespace) -> None:
             out = subprocess.run(command, env=env, capture_output=True, text=True, check=True)
             results[tree].append(json.loads(out.stdout.strip().splitlines()[-1]))
     consumer = "durable" if args.durable_consumer else "no backup"
-    print(
+    _harness.print_table(
         f"{args.callers} callers, durability={args.durability}, consumer {consumer}, "
-        f"{args.rounds} rounds of {args.seconds} s{' (taskset -c 0)' if args.pin else ''}"
+        f"{args.rounds} rounds of {args.seconds} s{' (taskset -c 0)' if args.pin else ''}",
+        ("tree", "ops/s (median)", "commits per op (median)", "ops/s of each round"),
+        [
+            (
+                tree,
+                f"{_harness.median(r['ops_per_s'] for r in rows):,.0f}",
+                f"{_harness.median(r['commits_per_op'] for r in rows):.3f}",
+                ", ".join(f"{r['ops_per_s']:.0f}" for r in rows),
+            )
+            for tree, rows in results.items()
+        ],
     )
-    print("| tree | ops/s (median) | commits per op (median) | ops/s of each round |")
-    print("|---|---:|---:|---|")
-    for tree, rows in results.items():
-        rate = statistics.median(r["ops_per_s"] for r in rows)
-        per = statistics.median(r["commits_per_op"] for r in rows)
-        each = ", ".join(f"{r['ops_per_s']:.0f}" for r in rows)
-        print(f"| {tree} | {rate:,.0f} | {per:.3f} | {each} |")
 
 
 def main() -> int:

@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import os
 import re
-import statistics
 import sys
 import threading
 import time
@@ -40,6 +39,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
+
+import _harness
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))  # the repository: tests.support
@@ -264,13 +265,11 @@ def many(managers: int, kind: str, bound: float) -> None:
                 with suppress(Exception):
                     host.call(stop_many, timeout=120)
         trouble, written = zenoh_trouble(net)
-    print(f"## {len(names)} managers on three hosts ({managers} {kind} managers each; b routes)")
-    print()
-    print("| host | start() returned (s) | all names served here (s) | waits that ran out |")
-    print("|---|---:|---:|---:|")
-    for h in where:
-        at, ran_out = served[h]
-        print(f"| {h} | {started[h]:.1f} | {at - began:.1f} | {ran_out} |")
+    _harness.print_table(
+        f"## {len(names)} managers on three hosts ({managers} {kind} managers each; b routes)",
+        ("host", "start() returned (s)", "all names served here (s)", "waits that ran out"),
+        [(h, f"{started[h]:.1f}", f"{served[h][0] - began:.1f}", served[h][1]) for h in where],
+    )
     print()
     print(
         f"all {len(names)} calls from a answered: {answered - began:.1f} s after the start "
@@ -285,7 +284,7 @@ def many(managers: int, kind: str, bound: float) -> None:
     kinds = Counter(kind_of(line) for lines in trouble.values() for line in lines)
     for what, seen in kinds.most_common(5):
         print(f"  {seen} x {what}")
-    print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    print(_harness.header("the end"))
 
 
 # -- the test process's side -------------------------------------------------------------------
@@ -349,9 +348,8 @@ def cut_and_heal(
 
 
 def stats(samples: list[float]) -> tuple[float, float, float]:
-    """Median, p90 (the largest sample when there are too few) and the largest."""
-    p90 = statistics.quantiles(samples, n=10)[-1] if len(samples) >= 10 else max(samples)
-    return statistics.median(samples), p90, max(samples)
+    """Median, p90 (nearest rank) and the largest."""
+    return _harness.median(samples), _harness.percentile(samples, 0.9), max(samples)
 
 
 def main() -> None:
@@ -373,24 +371,29 @@ def main() -> None:
         direct = a.call(dedup_hits, "app", "hub", args.rounds, timeout=600)
         routed = a.call(dedup_hits, "app", "erm", args.rounds, timeout=600)
         ends = {pair: cut_and_heal(net, pair, args.cuts) for pair in (("b", "c"), ("a", "b"))}
-    print(f"rounds per row: {args.rounds}; lease 1 s; mutual TLS")
-    print()
-    print("| dedup-hit call from a | median us | p90 us | max us |")
-    print("|---|---:|---:|---:|")
-    for name, samples in (("to b (one link)", direct), ("to c, through b's router", routed)):
-        median, p90, worst = stats(samples)
-        print(f"| {name} | {median * 1e6:.1f} | {p90 * 1e6:.1f} | {worst * 1e6:.1f} |")
-    print()
-    print(f"cuts per link: {args.cuts}")
-    print()
-    print("| event -> seen at a | median ms | max ms |")
-    print("|---|---:|---:|")
+    _harness.print_table(
+        f"rounds per row: {args.rounds}; lease 1 s; mutual TLS",
+        ("dedup-hit call from a", "median us", "p90 us", "max us"),
+        [
+            (name, *(f"{x * 1e6:.1f}" for x in stats(samples)))
+            for name, samples in (("to b (one link)", direct), ("to c, through b's router", routed))
+        ],
+    )
+    rows = []
     for (left, right), (failed, healed) in ends.items():
         for what, samples in (("cut", failed), ("up again", healed)):
             median, _, worst = stats(samples)
             seen = "call in flight to c fails" if what == "cut" else "a call to c answered"
-            row = f"veth {left}-{right} {what} -> {seen}"
-            print(f"| {row} | {median * 1e3:.1f} | {worst * 1e3:.1f} |")
+            rows.append(
+                (
+                    f"veth {left}-{right} {what} -> {seen}",
+                    f"{median * 1e3:.1f}",
+                    f"{worst * 1e3:.1f}",
+                )
+            )
+    _harness.print_table(
+        f"cuts per link: {args.cuts}", ("event -> seen at a", "median ms", "max ms"), rows
+    )
 
 
 if __name__ == "__main__":

@@ -33,7 +33,6 @@ import contextlib
 import itertools
 import os
 import signal
-import statistics
 import sys
 import threading
 import time
@@ -41,6 +40,8 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
+
+import _harness
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))  # the repository: tests.support
@@ -534,10 +535,8 @@ def unix_dedup(rounds: int) -> list[float]:
 
 
 def stats(samples: list[float]) -> tuple[float, float]:
-    """Median and p90 (the largest sample when there are too few for deciles)."""
-    median = statistics.median(samples)
-    p90 = statistics.quantiles(samples, n=10)[-1] if len(samples) >= 10 else max(samples)
-    return median, p90
+    """Median and p90 (nearest rank: the largest sample when there are few)."""
+    return _harness.median(samples), _harness.percentile(samples, 0.9)
 
 
 Trips = list[tuple[str, list[float], list[float]]]
@@ -597,28 +596,26 @@ def measure_hosts(rounds: int, kills: int, cuts: int, *, with_rr: bool) -> tuple
 
 
 def report(rounds: int, trips: Trips, ends: Ends) -> None:
-    print(f"rounds per row: {rounds}; times in microseconds; ratio = median / the floor's median")
-    print()
-    print("| measurement | median us | p90 us | ratio |")
-    print("|---|---:|---:|---:|")
+    rows = []
     for name, samples, floor in trips:
         median, p90 = stats(samples)
-        ratio = median / statistics.median(floor)
-        print(f"| {name} | {median * 1e6:9.1f} | {p90 * 1e6:9.1f} | {ratio:6.2f}x |")
-    if ends:
-        print()
-        print(f"failure detection, lease {LEASE:g} s; times in milliseconds")
-        print()
-        print("| event -> seen | runs | median ms | max ms | target |")
-        print("|---|---:|---:|---:|---|")
-        for name, samples, target in ends:
-            if not samples:  # (`--kills 0`, `--cuts 0`)
-                continue
-            median, _ = stats(samples)
-            worst = max(samples)
-            print(
-                f"| {name} | {len(samples)} | {median * 1e3:8.1f} | {worst * 1e3:8.1f} | {target} |"
-            )
+        ratio = median / _harness.median(floor)
+        rows.append((name, f"{median * 1e6:.1f}", f"{p90 * 1e6:.1f}", f"{ratio:.2f}x"))
+    _harness.print_table(
+        f"rounds per row: {rounds}; times in microseconds; ratio = median / the floor's median",
+        ("measurement", "median us", "p90 us", "ratio"),
+        rows,
+    )
+    if ends:  # (`--kills 0`, `--cuts 0`: a row without samples is left out)
+        _harness.print_table(
+            f"failure detection, lease {LEASE:g} s; times in milliseconds",
+            ("event -> seen", "runs", "median ms", "max ms", "target"),
+            [
+                (name, len(v), f"{stats(v)[0] * 1e3:.1f}", f"{max(v) * 1e3:.1f}", target)
+                for name, v, target in ends
+                if v
+            ],
+        )
 
 
 def main() -> None:

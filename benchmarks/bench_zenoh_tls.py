@@ -50,7 +50,6 @@ import argparse
 import contextlib
 import itertools
 import json
-import statistics
 import sys
 import tempfile
 import threading
@@ -59,6 +58,8 @@ from collections.abc import Iterator
 from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
+
+import _harness
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))  # the repository: tests.support
@@ -567,27 +568,28 @@ def spoof_run(
 
 
 def quantile(samples: list[float], q: int) -> float:
-    """The `q`th percentile (interpolated; the sample itself when there is one)."""
-    if len(samples) < 2:
-        return max(samples)
-    return statistics.quantiles(samples, n=100, method="inclusive")[q - 1]
+    """The `q`th percentile (nearest rank; the sample itself when there is one)."""
+    return _harness.percentile(samples, q / 100)
 
 
 def report_trips(rounds: int, rows: dict[str, list[float]]) -> None:
-    median = {name: statistics.median(samples) for name, samples in rows.items()}
-    print(f"round trips across the veth, {rounds} per row; times in microseconds")
-    print()
-    print("| measurement | median us | p90 us | TLS / TCP | rr / raw get |")
-    print("|---|---:|---:|---:|---:|")
+    median = {name: _harness.median(samples) for name, samples in rows.items()}
+    table = []
     for name, samples in rows.items():
         kind, protocol = name.rsplit(", ", 1)
         tcp = median[f"{kind}, plain TCP"]
         raw = median[f"raw Zenoh get, {protocol}"]
-        p90 = bench_zenoh.stats(samples)[1]
-        print(
-            f"| {name} | {median[name] * 1e6:9.1f} | {p90 * 1e6:9.1f} "
-            f"| {median[name] / tcp:5.2f}x | {median[name] / raw:5.2f}x |"
-        )
+        table.append(
+            (
+                name, f"{median[name] * 1e6:.1f}", f"{quantile(samples, 90) * 1e6:.1f}",
+                f"{median[name] / tcp:.2f}x", f"{median[name] / raw:.2f}x",
+            )
+        )  # fmt: skip
+    _harness.print_table(
+        f"round trips across the veth, {rounds} per row; times in microseconds",
+        ("measurement", "median us", "p90 us", "TLS / TCP", "rr / raw get"),
+        table,
+    )
 
 
 def report_burst(
@@ -597,48 +599,47 @@ def report_burst(
     joins: dict[str, list[tuple[float, float]]],
 ) -> None:
     took = result["ended"] - result["began"]
-    print(
-        f"{args.handshakes} TLS handshakes with another CA's certificate from {args.clients} "
-        f"clients at once (host b -> host a's tls/ listener): {result['refused']} refused, "
-        f"{result['other']} not refused, in {took:.1f} s ({took / args.handshakes * 1e3:.0f} ms "
-        f"each); a member's dedup-hit call every {args.interval * 1e3:g} ms, times in ms"
-    )
-    print()
-    print("| member's calls | calls | failed | p50 ms | p99 ms | max ms | target |")
-    print("|---|---:|---:|---:|---:|---:|---|")
+    calls_table = []
     for phase, calls in phases.items():
         times = [seconds for _, seconds, error in calls if error is None]
         failed = sum(1 for *_, error in calls if error is not None)
         target = f"all succeed, p99 < {TARGET_P99 * 1e3:g} ms" if phase == "during" else ""
-        if not times:
-            print(f"| {phase} the burst | {len(calls)} | {failed} | - | - | - | {target} |")
-            continue
-        p50 = statistics.median(times)
-        print(
-            f"| {phase} the burst | {len(calls)} | {failed} | {p50 * 1e3:6.2f} "
-            f"| {quantile(times, 99) * 1e3:6.2f} | {max(times) * 1e3:6.2f} | {target} |"
-        )
-    print()
-    print(
-        "| a member joins (to its first successful call) | runs | median s | max s "
-        "| of which its session's open, median s | target |"
+        shown = [_harness.median(times), quantile(times, 99), max(times)] if times else []
+        cells = [f"{x * 1e3:.2f}" for x in shown] or ["-"] * 3
+        calls_table.append((f"{phase} the burst", len(calls), failed, *cells, target))
+    _harness.print_table(
+        f"{args.handshakes} TLS handshakes with another CA's certificate from {args.clients} "
+        f"clients at once (host b -> host a's tls/ listener): {result['refused']} refused, "
+        f"{result['other']} not refused, in {took:.1f} s ({took / args.handshakes * 1e3:.0f} ms "
+        f"each); a member's dedup-hit call every {args.interval * 1e3:g} ms, times in ms",
+        ("member's calls", "calls", "failed", "p50 ms", "p99 ms", "max ms", "target"),
+        calls_table,
     )
-    print("|---|---:|---:|---:|---:|---|")
     labels = {
         "quiet": "quiet (no burst)",
         "during": "during the burst",
         "ended": "began during the burst, in after it ended",
     }
+    joins_table = []
     for when, spans in joins.items():
         if not spans:
             continue
-        target = f"< {TARGET_JOIN:g} s" if when == "during" else ""
         total = [span for span, _ in spans]
-        opening = statistics.median(opened for _, opened in spans)
-        print(
-            f"| {labels[when]} | {len(spans)} | {statistics.median(total):6.2f} "
-            f"| {max(total):6.2f} | {opening:6.2f} | {target} |"
-        )
+        opening = _harness.median(opened for _, opened in spans)
+        joins_table.append(
+            (
+                labels[when], len(spans), f"{_harness.median(total):.2f}", f"{max(total):.2f}",
+                f"{opening:.2f}", f"< {TARGET_JOIN:g} s" if when == "during" else "",
+            )
+        )  # fmt: skip
+    _harness.print_table(
+        "",
+        (
+            "a member joins (to its first successful call)", "runs", "median s", "max s",
+            "of which its session's open, median s", "target",
+        ),
+        joins_table,
+    )  # fmt: skip
 
 
 def spans(seconds: list[float | None], give_up: float) -> str:
@@ -650,45 +651,45 @@ def spans(seconds: list[float | None], give_up: float) -> str:
 
 
 def report_flood(args: argparse.Namespace, runs: dict[str, dict[str, Any]]) -> None:
-    print(
-        f"host c floods host a's tls/ port ({args.threads} threads of connect-send-close, no "
-        f"certificate; from one address, or from {args.sources} in turn) for {args.flood:g} "
-        f"s, then member b's link to a is cut (ip link down until b has lost a) and brought "
-        f"back, during the flood and after it stopped; re-join: seconds from the link's "
-        f"return to b's first answered call (> {args.give_up:g}: none by then)"
-    )
-    print()
-    print(
-        "| a's listener | c's addresses | re-joins during the flood, median / max s | after "
-        "it stopped, median / max s | b's calls on its link in the flood's first "
-        f"{args.flood:g} s: calls, failed, p99 ms | c's connections made / attempts |"
-    )
-    print("|---|---:|---:|---:|---:|---:|")
+    rows = []
     for name, run in runs.items():
         mode, _, addresses = name.partition("@")
         times = [seconds for _, seconds, error in run["calls"] if error is None]
         failed = sum(1 for *_, error in run["calls"] if error is not None)
         p99 = f"{quantile(times, 99) * 1e3:.1f}" if times else "-"
         counts = run["counts"]
-        print(
-            f"| {MODES[mode]} | {addresses} | {spans(run['during'], args.give_up)} "
-            f"| {spans(run['after'], args.give_up)} "
-            f"| {len(run['calls'])}, {failed}, {p99} "
-            f"| {counts['connected']} / {counts['attempts']} |"
-        )
+        rows.append(
+            (
+                MODES[mode], addresses, spans(run["during"], args.give_up),
+                spans(run["after"], args.give_up), f"{len(run['calls'])}, {failed}, {p99}",
+                f"{counts['connected']} / {counts['attempts']}",
+            )
+        )  # fmt: skip
+    _harness.print_table(
+        f"host c floods host a's tls/ port ({args.threads} threads of connect-send-close, no "
+        f"certificate; from one address, or from {args.sources} in turn) for {args.flood:g} "
+        f"s, then member b's link to a is cut (ip link down until b has lost a) and brought "
+        f"back, during the flood and after it stopped; re-join: seconds from the link's "
+        f"return to b's first answered call (> {args.give_up:g}: none by then)",
+        (
+            "a's listener", "c's addresses", "re-joins during the flood, median / max s",
+            "after it stopped, median / max s",
+            f"b's calls on its link in the flood's first {args.flood:g} s: calls, failed, p99 ms",
+            "c's connections made / attempts",
+        ),
+        rows,
+    )  # fmt: skip
 
 
 def report_spoof(args: argparse.Namespace, run: dict[str, Any]) -> None:
-    print(
+    _harness.print_table(
         f"member b out of reach (its end of the veth down until it has lost a); host c "
         f"sends {args.spoof_rate:g} SYNs a second whose source is b's address to a's tls/ "
         f"port ({args.spoofed} more each time b is out); b's end comes back: seconds to its "
-        f"first answered call (> {args.give_up:g}: none by then)"
+        f"first answered call (> {args.give_up:g}: none by then)",
+        ("re-join, the forging going on", "re-join, the forging stopped before the return"),
+        [(spans(run["during"], args.give_up), spans(run["after"], args.give_up))],
     )
-    print()
-    print("| re-join, the forging going on | re-join, the forging stopped before the return |")
-    print("|---:|---:|")
-    print(f"| {spans(run['during'], args.give_up)} | {spans(run['after'], args.give_up)} |")
 
 
 def main() -> None:
