@@ -121,17 +121,20 @@ def header(what: str) -> str:
 def table(columns: Sequence[str], rows: Iterable[Sequence[object]], *, right: int = 1) -> str:
     """A Markdown table: `columns`, then one line per row (each cell `str()`ed); the
     columns from index `right` on are right-aligned (numbers)."""
-    lines = [
-        "| " + " | ".join(columns) + " |",
-        "|" + "|".join("---" if i < right else "---:" for i in range(len(columns))) + "|",
-    ]
-    lines += ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]
-    return "\n".join(lines)
+    rule = "|" + "|".join("---" if i < right else "---:" for i in range(len(columns))) + "|"
+    return "\n".join([line(columns), rule, *(line(row) for row in rows)])
 
 
-def print_table(title: str, columns: Sequence[str], rows: Iterable[Sequence[object]]) -> None:
-    """Print `title` after a blank line, then `table(columns, rows)`."""
-    print(f"\n{title}\n{table(columns, rows)}")
+def line(cells: Sequence[object]) -> str:
+    """One row of a Markdown table (each cell `str()`ed): for a row printed as measured."""
+    return "| " + " | ".join(str(cell) for cell in cells) + " |"
+
+
+def print_table(
+    title: str, columns: Sequence[str], rows: Iterable[Sequence[object]], *, right: int = 1
+) -> None:
+    """Print `title` after a blank line, then `table(columns, rows, right=right)`."""
+    print(f"\n{title}\n{table(columns, rows, right=right)}")
 
 
 @contextlib.contextmanager

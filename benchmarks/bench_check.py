@@ -28,8 +28,6 @@ import contextlib
 import cProfile
 import io
 import json
-import os
-import platform
 import random
 import resource
 import sys
@@ -39,6 +37,8 @@ import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TypeVar
+
+import _harness
 
 from rr_actors import events
 from rr_actors._core import hlc
@@ -282,18 +282,17 @@ def main_bench() -> None:
     parser.add_argument("--dir", help="where to write the histories (default: a temp dir)")
     args = parser.parse_args()
     sizes = [int(s) for s in args.sizes.split(",")]
-    pinned = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else "?"
-    print(
-        f"# rr-actors check: Python {platform.python_version()}, {pinned} CPU(s) usable, "
-        f"load average {os.getloadavg()[0]:.1f}; {args.live} ids held at once, a status "
-        f"every {args.status_every} events, a restart every {args.restart_every}"
-    )
-    print()
-    print(
-        "| events | MB | json.loads (floor) s | read s | rules s | rr-actors check -q s "
-        "| its CPU s | events/s | events/s of CPU | / floor |"
-    )
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    _harness.head(
+        _harness.header(
+            f"rr-actors check; {args.live} ids held at once, a status every "
+            f"{args.status_every} events, a restart every {args.restart_every}\n"
+        ),
+        (
+            "events", "MB", "json.loads (floor) s", "read s", "rules s", "rr-actors check -q s",
+            "its CPU s", "events/s", "events/s of CPU", "/ floor",
+        ),
+        right=0,
+    )  # fmt: skip
     slow = []
     with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
         for size in sizes:

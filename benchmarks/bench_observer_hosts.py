@@ -31,7 +31,6 @@ import argparse
 import contextlib
 import os
 import signal
-import statistics
 import sys
 import tempfile
 import threading
@@ -39,6 +38,8 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
+
+import _harness
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))  # the repository: tests.support
@@ -240,20 +241,21 @@ def cost(resources: int, window: float) -> None:
                 rows.append((label, load, cpu_b, cpu_a, rate))
                 print(f"  {label:28} {load:12} bravo CPU {100 * cpu_b:5.1f}%  alpha CPU "
                       f"{100 * cpu_a:5.1f}%  bravo sent {rate / 1024:7.2f} KiB/s")  # fmt: skip
-        print()
-        print("| observer | load | bravo CPU (%) | alpha CPU (%) | bravo sends (KiB/s) |")
-        print("|---|---|---:|---:|---:|")
-        for label, load, cpu_b, cpu_a, rate in rows:
-            print(
-                f"| {label} | {load} | {100 * cpu_b:.1f} | {100 * cpu_a:.1f} | {rate / 1024:.2f} |"
-            )
+        _harness.print_table(
+            "",
+            ("observer", "load", "bravo CPU (%)", "alpha CPU (%)", "bravo sends (KiB/s)"),
+            [
+                (label, load, f"{100 * cpu_b:.1f}", f"{100 * cpu_a:.1f}", f"{rate / 1024:.2f}")
+                for label, load, cpu_b, cpu_a, rate in rows
+            ],
+            right=2,
+        )
 
 
 def quantiles(samples: list[float]) -> str:
-    ordered = sorted(samples)
-    p90 = ordered[min(len(ordered) - 1, int(0.9 * len(ordered)))]
-    return (f"median {1000 * statistics.median(ordered):.0f} ms, p90 {1000 * p90:.0f} ms, "
-            f"max {1000 * ordered[-1]:.0f} ms (n={len(ordered)})")  # fmt: skip
+    p90 = _harness.percentile(samples, 0.9)
+    return (f"median {1000 * _harness.median(samples):.0f} ms, p90 {1000 * p90:.0f} ms, "
+            f"max {1000 * max(samples):.0f} ms (n={len(samples)})")  # fmt: skip
 
 
 WATCH = """(marks) => {
@@ -379,12 +381,12 @@ def main() -> None:
     if reason is not None:
         print(f"nothing measured: {reason}")
         return
-    print(f"load average {os.getloadavg()[0]:.1f} at the start")
+    print(_harness.header("the start"))
     if args.only in (None, "cost"):
         cost(args.resources, args.window)
     if args.only in (None, "latency"):
         latency(args.kills, args.cuts)
-    print(f"load average {os.getloadavg()[0]:.1f} at the end")
+    print(_harness.header("the end"))
 
 
 if __name__ == "__main__":

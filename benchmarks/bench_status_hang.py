@@ -49,13 +49,14 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
-import os
 import threading
 import time
 import uuid
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
+
+import _harness
 
 import rr_actors as rr
 from rr_actors.testing import RemoteRegistrar, System
@@ -267,39 +268,33 @@ def main() -> None:
     parser.add_argument("--callback", choices=["plain", "coroutine"], default="plain")
     parser.add_argument("--cold", action="store_true", help="no warm-up status first")
     args = parser.parse_args()
-    print(
-        f"{args.consumers} consumer ids on {args.registrars} registrars, {args.statuses} "
-        f"statuses from {args.senders} threads, timeout {args.timeout} s, "
-        f"{args.callback} callbacks{', no warm-up' if args.cold else ''}; "
-        f"load {os.getloadavg()[0]:.1f}"
-    )
-    print(
-        f"| {'placement':9} | {'hung':4} | {'threads':>15} | {'wall s':>7} "
-        f"| {'timed out':>9} | {'gave up':>7} | {'last heard':>10} | {'queued':>6} "
-        f"| {'out of order':>12} |"
-    )
-    print(
-        f"|{'-' * 11}|{'-' * 6}|{'-' * 17}|{'-' * 9}|{'-' * 11}|{'-' * 9}|{'-' * 12}|{'-' * 8}"
-        f"|{'-' * 14}|"
-    )
+    _harness.head(
+        _harness.header(
+            f"{args.consumers} consumer ids on {args.registrars} registrars, {args.statuses} "
+            f"statuses from {args.senders} threads, timeout {args.timeout} s, "
+            f"{args.callback} callbacks{', no warm-up' if args.cold else ''}"
+        ),
+        (
+            "placement", "hung", "threads", "wall s", "timed out", "gave up", "last heard",
+            "queued", "out of order",
+        ),
+        right=2,
+    )  # fmt: skip
     examples: list[str] = []
     for placement in args.placement:
         for hang in (True, False):
             row = run(placement, hang, args)
             threads = f"{row['before']} -> {row['after']} ({row['after'] - row['before']:+d})"
             gave = "-" if row["gave_up"] is None else str(row["gave_up"])
-            print(
-                f"| {placement:9} | {'hung' if hang else 'none':4} | {threads:>15} "
-                f"| {row['wall']:7.2f} | {row['timed_out']:9d} | {gave:>7} "
-                f"| {row['heard']:>10} | {'-' if row['queued'] is None else row['queued']:>6} "
-                f"| {row['order']:>12} |",
-                flush=True,
-            )
+            queued = "-" if row["queued"] is None else row["queued"]
+            cells = (placement, "hung" if hang else "none", threads, f"{row['wall']:.2f}")
+            cells += (row["timed_out"], gave, row["heard"], queued, row["order"])
+            print(_harness.line(cells), flush=True)
             if row["example"] and args.senders == 1:
                 examples.append(f"{placement} {'hung' if hang else 'none'}: ... {row['example']}")
     for example in examples:
         print(f"out of order, {example} ...")
-    print(f"load after: {os.getloadavg()[0]:.1f}")
+    print(_harness.header("the end"))
 
 
 if __name__ == "__main__":

@@ -47,6 +47,8 @@ import tomllib
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
+import _harness
+
 import rr_actors_lab
 from rr_actors_lab.experiments import check, load_plan
 from rr_actors_lab.experiments.plan import PlanError
@@ -200,16 +202,22 @@ def main() -> None:
             print(f"{name}: {' | '.join(cells)} ({time.monotonic() - began:.0f} s)", flush=True)
         wall = time.monotonic() - started
         load_after = os.getloadavg()[0]
-    print()
-    print(
-        "| plan | real runs | kinds in real runs | seeds | kinds in simulated runs | same kinds |"
+    _harness.print_table(
+        "",
+        (
+            "plan",
+            "real runs",
+            "kinds in real runs",
+            "seeds",
+            "kinds in simulated runs",
+            "same kinds",
+        ),
+        [
+            (name, cells, "", "", "", "") if isinstance(cells, str) else (name, *cells)
+            for name, cells in rows
+        ],
+        right=6,
     )
-    print("|---|---|---|---|---|---|")
-    for name, cells in rows:
-        if isinstance(cells, str):
-            print(f"| {name} | {cells} | | | | |")
-        else:
-            print(f"| {name} | {' | '.join(cells)} |")
     print(
         f"\n{args.runs} real run(s) and seeds {args.seeds} a plan; "
         f"{datetime.datetime.now(datetime.UTC):%Y-%m-%d %H:%M} UTC, {os.cpu_count()} cores, "

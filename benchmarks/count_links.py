@@ -16,9 +16,10 @@ from __future__ import annotations
 import argparse
 import os
 import signal
-import statistics
 import tempfile
 import time
+
+import _harness
 
 import rr_actors as rr
 
@@ -43,8 +44,8 @@ def spread(sup: rr.Supervisor) -> str:
     found = [counts(info.pid) for info in sup.which_children() if info.pid]
     threads, sockets = [c[0] for c in found], [c[1] for c in found]
     return (
-        f"{min(threads)}/{statistics.median(threads):g}/{max(threads)} | "
-        f"{min(sockets)}/{statistics.median(sockets):g}/{max(sockets)}"
+        f"{min(threads)}/{_harness.median(threads):g}/{max(threads)} | "
+        f"{min(sockets)}/{_harness.median(sockets):g}/{max(sockets)}"
     )
 
 
@@ -77,11 +78,14 @@ def main() -> None:
     parser.add_argument("--restarts", type=int, default=3)
     parser.add_argument("--no-state", action="store_true", help="no state_dir (no catalogs)")
     args = parser.parse_args()
-    print(
-        "| managers | state_dir | start (s) | threads min/med/max \\| sockets min/med/max "
-        "| the same after the restarts | load |"
-    )
-    print("|---|---|---|---|---|---|")
+    _harness.head(
+        _harness.header("threads and sockets per manager process"),
+        (
+            "managers", "state_dir", "start (s)", "threads min/med/max \\| sockets min/med/max",
+            "the same after the restarts", "load",
+        ),
+        right=6,
+    )  # fmt: skip
     for size in args.counts:
         run(size, args.restarts, not args.no_state)
 
