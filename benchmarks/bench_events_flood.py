@@ -39,6 +39,8 @@ import time
 import uuid
 from typing import Any
 
+import _harness
+
 MIB = 1024 * 1024
 
 ROWS = {"floor": "Zenoh alone (floor)", "subscriber": "subscribe_events"}
@@ -176,24 +178,25 @@ def main() -> None:
         results.append(json.loads(done.stdout.strip().splitlines()[-1]))
     floor = results[0]["peak"] - results[0]["before"]
     first = results[0]
-    print(
-        f"{args.batches} batches of {first['batch']:.1f} MiB ({args.kind} events, "
-        f"{first['sent']} in all) from one member, then a sentinel; RSS in MiB"
-    )
-    print(
-        f"{'row':<22}{'before':>8}{'peak':>8}{'after':>8}{'later':>8}{'handled':>10}"
-        f"{'dropped':>10}{'s':>7}{'over floor':>12}"
-    )
+    rows = []
     for result in results:
-        rise = result["peak"] - result["before"]
-        handled = "-" if result["row"] == "floor" else str(result["events"])
-        dropped = "-" if result["row"] == "floor" else str(result["dropped"])
-        print(
-            f"{ROWS[result['row']]:<22}{result['before']:>8.0f}{result['peak']:>8.0f}"
-            f"{result['after']:>8.0f}{result['later']:>8.0f}{handled:>10}{dropped:>10}"
-            f"{result['seconds']:>7.1f}{rise - floor:>+12.0f}"
-            + ("" if result["finished"] else "  (sentinel never came)")
-        )
+        floor_row = result["row"] == "floor"
+        rows.append(
+            (
+                ROWS[result["row"]],
+                *(f"{result[k]:.0f}" for k in ("before", "peak", "after", "later")),
+                "-" if floor_row else result["events"], "-" if floor_row else result["dropped"],
+                f"{result['seconds']:.1f}",
+                f"{result['peak'] - result['before'] - floor:+.0f}"
+                + ("" if result["finished"] else " (sentinel never came)"),
+            )
+        )  # fmt: skip
+    _harness.print_table(
+        f"{args.batches} batches of {first['batch']:.1f} MiB ({args.kind} events, "
+        f"{first['sent']} in all) from one member, then a sentinel; RSS in MiB",
+        ("row", "before", "peak", "after", "later", "handled", "dropped", "s", "over floor"),
+        rows,
+    )
 
 
 if __name__ == "__main__":

@@ -23,12 +23,13 @@ import collections
 import functools
 import json
 import os
-import statistics
 import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
+
+import _harness
 
 _TRACE = "RR_PHASES_TRACE"
 _T_MAIN = time.time()  # this file's first line: the interpreter is up, nothing imported
@@ -268,13 +269,12 @@ def report(trace: Path, events_path: Path) -> None:
         e - s for s, e in zip(t0s, ends, strict=False)
     ]
     total = sums.pop("experiment: all", [0.0])[0]
-    print(f"{'phase':60} {'sum s':>8} {'n':>4} {'median ms':>10}")
-    for what in sorted(sums):
-        values = sums[what]
-        print(
-            f"{what:60} {sum(values):8.2f} {len(values):4d} {statistics.median(values) * 1e3:10.1f}"
-        )
-    print(f"{'experiment: all':60} {total:8.2f}")
+    rows = [
+        (what, f"{sum(v):.2f}", len(v), f"{_harness.median(v) * 1e3:.1f}")
+        for what, v in sorted(sums.items())
+    ]
+    rows.append(("experiment: all", f"{total:.2f}", "", ""))
+    print(_harness.table(("phase", "sum s", "n", "median ms"), rows))
     rows = _restarts(events_path)
     if not rows:
         return
@@ -284,13 +284,13 @@ def report(trace: Path, events_path: Path) -> None:
         values = [r[key] for r in rows if r[key] is not None]
         if values:
             print(
-                f"  {key:40} median {statistics.median(values) * 1e3:8.1f} ms, "
+                f"  {key:40} median {_harness.median(values) * 1e3:8.1f} ms, "
                 f"sum {sum(values):6.2f} s (n {len(values)})"
             )
     for what in sorted({n["what"] for n in managers}):
         values = [n["end"] - n["start"] for n in managers if n["what"] == what]
         print(
-            f"  {what:40} median {statistics.median(values) * 1e3:8.1f} ms, "
+            f"  {what:40} median {_harness.median(values) * 1e3:8.1f} ms, "
             f"sum {sum(values):6.2f} s (n {len(values)}, starts included)"
         )
 
