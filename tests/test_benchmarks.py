@@ -248,15 +248,20 @@ def test_bench_three_hosts_starts_managers_on_each_host_and_calls_every_one_from
 
 
 def _script(name: str, monkeypatch: pytest.MonkeyPatch | None = None) -> ModuleType:
-    """benchmarks/`name`.py imported; with `monkeypatch`, in `sys.modules` for the test (a
-    dataclass of the script looks its module up there)."""
+    """benchmarks/`name`.py imported as its folder's scripts are run (`_harness` found
+    beside it); with `monkeypatch`, in `sys.modules` for the test (a dataclass of the script
+    looks its module up there)."""
     spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
     assert spec is not None
     assert spec.loader is not None
     module = importlib.util.module_from_spec(spec)
     if monkeypatch is not None:
         monkeypatch.setitem(sys.modules, name, module)
-    spec.loader.exec_module(module)
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
     return module
 
 
