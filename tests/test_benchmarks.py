@@ -421,18 +421,15 @@ cut history, finds the same violation and no other (`shrink.story_events`): what
 at the finding's instant (restarts failing on the planted bug, the supervisor giving up,
 the tree stopping) is the run's end, not the bug's story."""
 
-OVER = {"unload-held": 45}
-"""The plants whose kept shrunk run's story is still longer: its events (issue 68 item 9, open).
+OVER: dict[str, int] = {}
+"""The plants whose kept shrunk run's story is still longer: its events (none now).
 
-Two floors keep them there: the run's stop (each resource a client still holds is
-released and unloaded, every registrar stops: 5 events a resource, 2 a manager), which
-the story now leaves out when the finding does not need it (78 events of unload-held,
-45 its story), and the scheduler's one seeded stream of choices, which any cut of a call
-or a manager redraws, so the race the violation needs is lost with it. unload-held's was
-cut by hand from 161 (its header says how): the calls pass then deleted evenly split
-blocks only; it now deletes one client's calls whole. `--from-kept --budget 1500` had
-its story at 32 events after 751 runs (seed 20) when it was stopped at this session's
-end; status-seen-server's re-keep made 29 (51 events) and left."""
+Two floors kept unload-held there (45 events, issue 68 item 9): the run's stop, which the
+story leaves out when the finding does not need it, and the scheduler's one seeded stream
+of choices, which any cut of a call or a manager redraws, so the race the violation needs
+is lost with it. Its re-keep (`--from-kept`, with the calls pass's cut of the calls about
+none of the finding's ids) told it in 19 events; before that pass the same shrink got
+there too, some 300 runs later (the earlier session stopped it at 751 runs, at 32)."""
 
 
 def _planted_bugs() -> ModuleType:

@@ -7,8 +7,9 @@
  ├─ greedy passes, biggest cuts first, until the budget of runs is spent or a round at
  │  the widest search keeps nothing: supervisors, duration, shift, faults (delta
  │  debugging), pinned, triggers, idle, unpinned, tree, workload, options, knobs, made
- │  (the clients' calls, `workload.only`: a client's all, then delta debugging), seeds,
- │  round (each pass: docs/how-to/simulate.md, "Shrink it")
+ │  (the clients' calls, `workload.only`: a client's all, those about none of the
+ │  finding's ids, then delta debugging), seeds, round (each pass: docs/how-to/simulate.md,
+ │  "Shrink it")
  │  a candidate = its TOML text, validated (`parse_plan`) and run whole on the simulation
  │  with the current seed, then seeds 1, 2, ... (`tries`; the width grows 4 times at each
  │  fixpoint, up to `MOST_TRIES`); kept if one run shows the same kind and is smaller:
@@ -580,8 +581,9 @@ class _Shrinker:
 
     def made(self) -> None:
         """The clients' calls made explicit (`workload.only`: each client's calls due, by
-        number), then deleted as the injections are: a call left out still makes its draws,
-        so the calls kept come when and as they came."""
+        number), then deleted: a client's all, those about none of the finding's ids, then
+        as the injections are; a call left out still makes its draws, so the calls kept
+        come when and as they came."""
         workload = self.data.get("workload")
         if not workload or not workload.get("calls"):
             return
@@ -595,6 +597,7 @@ class _Shrinker:
             if not self.attempt(f"the calls made explicit ({len(only)} calls)", data, same=True):
                 return
         self.repeat(self.fewer_clients, max(self.width, CLIENT_TRIES))
+        self.repeat(self.unrelated_calls, max(self.width, CLIENT_TRIES))
         self.chunks(
             lambda data: data["workload"]["only"],
             lambda data, kept: {**data, "workload": {**data["workload"], "only": kept}},
@@ -626,6 +629,30 @@ class _Shrinker:
                 "workload": {**workload, "clients": len(number), "only": renumbered},
             }
             yield f"workload.clients = {len(number)} (the clients making calls, from 0)", data
+
+    def unrelated_calls(self) -> Iterator[tuple[str, dict[str, Any]]]:
+        """The calls about none of the finding's ids deleted: all of them, then those about one
+        resource (the most first), each group a cut the calls pass's even blocks miss.
+
+        A call is about the ids its events name (its query's, the resource it loaded or
+        shared); the finding's are those its lines name, with the resources of its queries.
+        One may still be needed (the call to db a kill waits for): the run decides."""
+        workload = self.data["workload"]
+        finding = next(
+            (f for f in self.judge(self.best) if violation_kind(f.rule, f.message) == self.kind),
+            None,
+        )
+        if finding is None:
+            return
+        only = [list(pair) for pair in workload["only"]]
+        groups = _unrelated(self.best.history, finding.lines, only, workload.get("awaited", 0))
+        every = [pair for group in groups for pair in group]
+        cuts = ([every] if len(groups) > 1 else []) + groups
+        for cut in cuts:
+            kept = [pair for pair in only if pair not in cut]
+            data = {**self.data, "workload": {**workload, "only": kept}}
+            calls = f"{len(cut)} calls" if len(cut) > 1 else "a call"
+            yield f"{calls} about none of the finding's ids deleted", data
 
     def chunks(
         self,
@@ -1179,6 +1206,45 @@ def _calls_made(history: str, awaited: int) -> dict[int, int]:
         if isinstance(name, str) and (found := re.fullmatch(r"client-([0-9]+)", name)):
             ids.setdefault(int(found[1]), set()).add(line["query_id"])
     return {c: -(-len(made) // max(1, awaited)) for c, made in ids.items()}
+
+
+def _unrelated(
+    history: str, finding: tuple[int, ...], only: list[list[int]], awaited: int
+) -> list[list[list[int]]]:
+    """The calls of `only` (`[client, n]` pairs) whose events name none of the ids of the
+    history's lines `finding` (numbered from 1), grouped by the resource they are about,
+    the biggest group first. A client's made calls are its kept numbers in order (its
+    calls' ids by when they started, per batch of `awaited`); a number not made is left."""
+    lines = [json.loads(line) for line in history.splitlines()]
+    named = {
+        v for n in finding if 0 < n <= len(lines) for k in _ID_FIELDS if (v := lines[n - 1].get(k))
+    }
+    about: dict[str, set[str]] = {}  # a query's ids: its own, its resources'
+    started: dict[int, dict[str, float]] = {}
+    for line in lines:
+        if isinstance(query := line.get("query_id"), str):
+            about.setdefault(query, {query}).update(
+                v for k in _ID_FIELDS if isinstance(v := line.get(k), str)
+            )
+        name = line.get("registrar")
+        if line.get("type") not in ("CallAnswered", "CallFailed", "CallWithdrawn"):
+            continue
+        if isinstance(name, str) and (found := re.fullmatch(r"client-([0-9]+)", name)):
+            calls = started.setdefault(int(found[1]), {})
+            calls.setdefault(line["query_id"], line.get("started", line["at"]))
+    resources = named | {r for q in named for r in about.get(q, ())}
+    groups: dict[str, list[list[int]]] = {}
+    for client, calls in started.items():
+        ids = sorted(calls, key=calls.__getitem__)
+        numbers = sorted(n for c, n in only if c == client)
+        size = max(1, awaited)
+        for index, number in enumerate(numbers[: -(-len(ids) // size)]):
+            batch = ids[index * size : (index + 1) * size]
+            if any(about.get(q, {q}) & resources for q in batch):
+                continue
+            key = min(sorted(about.get(batch[0], {batch[0]}) - {batch[0]}) or [batch[0]])
+            groups.setdefault(key, []).append([client, number])
+    return sorted(groups.values(), key=lambda group: (-len(group), group))
 
 
 def _restarts(history: str) -> dict[str, float]:

@@ -3111,8 +3111,16 @@ def release_withdrawn_late(h: History) -> History | None:
     life of the provider began to hold the id, which under load (a slow restart that
     restores it, an `Add` queued past its call's timeout) can be more than 4 s after the
     withdrawal, and a release 5 s after the withdrawal but just after that is the prompt
-    one `withdrawn` excuses (`simslow` under load; `withdrawn_then_restored`)."""
-    withdrawn = {(e.registrar, e.query_id): e.at for e in h if type(e) is events.CallWithdrawn}
+    one `withdrawn` excuses (`simslow` under load; `withdrawn_then_restored`). Not an id
+    answered after its last withdrawal: `acall_with_retry`'s next attempt at it was, and
+    its release is that answer's, which `withdrawn` rightly does not judge (`killheavy`
+    under load)."""
+    withdrawn: dict[tuple[str, str], float] = {}  # (consumer, id) -> `at`, if not answered since
+    for e in h:
+        if type(e) is events.CallWithdrawn:
+            withdrawn[e.registrar, e.query_id] = e.at
+        elif type(e) is events.CallAnswered:
+            withdrawn.pop((e.registrar, e.query_id), None)
     for i, e in enumerate(h):
         if type(e) is events.ConsumerReleased and (e.consumer, e.query_id) in withdrawn:
             late = dataclasses.replace(e, at=max(e.at, withdrawn[e.consumer, e.query_id]) + 5.0)
@@ -3600,6 +3608,39 @@ def test_release_withdrawn_late_is_late_after_the_life_that_restored_the_id_bega
     mutate, rule = MUTATIONS["release-withdrawn-late"]
     mutated = mutate(history)
     assert mutated is not None
+    verdict = check.check(numbered(renumbered(mutated)))
+    assert rule in {f.rule for f in verdict.findings if f.kind == "violation"}
+
+
+def test_release_withdrawn_late_takes_no_id_a_retry_answered_again() -> None:
+    """A real `killheavy` run (2026-11-28, load 16): client-1's attempt at its id timed out
+    (`CallWithdrawn`) while edge restarted, before edge held it; `acall_with_retry`'s next
+    attempt at that id was answered, and edge released it at client-1's unload. Answered
+    again, the id is held by that answer (`withdrawn` rightly does not judge its release):
+    the mutation takes Q2's release, withdrawn and never answered, not Q1's, before it."""
+    history = [
+        events.CatalogRestored("erm", (), (), (), pid=P, seq=1, at=10.0),
+        events.CallWithdrawn("cm", Q1, "erm", "cam", "timeout", pid=C, at=10.1),
+        events.ResourceLoaded("erm", "cam", RID, Q1, 0.01, 42, "cam 0", pid=P, seq=2, at=12.0),
+        events.ConsumerAdded("erm", RID, Q1, "cm", pid=P, seq=3, at=12.0),
+        events.CallAnswered("cm", Q1, "erm", "cam", pid=C, at=12.01),
+        events.ConsumerReleased("erm", RID, Q1, "cm", pid=P, seq=4, at=12.2),
+        events.ResourceUnloaded("erm", "cam", RID, pid=P, seq=5, at=12.2),
+        events.QueryForgotten("cm", Q1, "erm", "unload", pid=C, at=12.21),
+        events.ResourceLoaded("erm", "cam", RID2, Q2, 0.01, 42, "cam 0", pid=P, seq=6, at=13.0),
+        events.ConsumerAdded("erm", RID2, Q2, "cm", pid=P, seq=7, at=13.0),
+        events.CallWithdrawn("cm", Q2, "erm", "cam", "interrupted", pid=C, at=13.001),
+        events.ConsumerReleased("erm", RID2, Q2, "cm", "abandoned", pid=P, seq=8, at=13.01),
+        events.ResourceUnloaded("erm", "cam", RID2, pid=P, seq=9, at=13.01),
+        events.RegistrarStopped("cm", (), (), (), pid=C, at=14.0),
+        events.RegistrarStopped("erm", (), (), (), pid=P, seq=10, at=14.0),
+    ]
+    assert "held" == check.check(numbered(history)).verdict
+    mutate, rule = MUTATIONS["release-withdrawn-late"]
+    mutated = mutate(history)
+    assert mutated is not None
+    (late,) = (e for e, was in zip(mutated, history, strict=True) if e != was)
+    assert (Q2, pytest.approx(18.01)) == (late.query_id, late.at)  # type: ignore[attr-defined]
     verdict = check.check(numbered(renumbered(mutated)))
     assert rule in {f.rule for f in verdict.findings if f.kind == "violation"}
 

@@ -972,3 +972,30 @@ def test_a_client_whose_calls_are_deleted_is_searched_with_24_seeds(
     assert any(step.startswith("client 0's calls deleted") for step in shrinker.steps)
     assert 20 == shrinker.seed
     assert all(pair[0] == 1 for pair in shrinker.data["workload"]["only"])
+
+
+@SHRINK
+def test_the_calls_about_none_of_the_findings_ids_are_deleted_at_once() -> None:
+    # The "finding" names the first resource loaded (its line): the calls sharing another
+    # key's resource are no part of its story, and the calls pass's even blocks mix them
+    # with the finding's (unload-held kept a resource of 3 calls nobody needed: 9 events).
+    def first_load(run: simulate.SimulatedRun) -> list[Finding]:
+        lines = [json.loads(line) for line in run.history.splitlines()]
+        loaded = [n for n, e in enumerate(lines, 1) if e["type"] == "ResourceLoaded"]
+        return [Finding("probe", "violation", "a resource loaded", (loaded[0],))] if loaded else []
+
+    text = ONE.replace("keys = 1", "keys = 2").replace("hold = 0", "hold = 1.0")
+    text = text.replace("duration = 3.0", "duration = 0.4")  # (8 calls, two resources held)
+    shrinker = shrink._Shrinker(
+        parse_plan(text), 1, text, 200, 1, lambda _line: None, lambda _runs: None, first_load
+    )
+
+    shrinker.made()
+
+    (step, *_) = [s for s in shrinker.steps if "about none of the finding's ids" in s]
+    assert step == shrinker.steps[1]  # (after the calls made explicit, before any block)
+    lines = [json.loads(line) for line in shrinker.best.history.splitlines()]
+    (finding,) = first_load(shrinker.best)
+    resource = lines[finding.lines[0] - 1]["resource_id"]
+    about = {e["resource_id"] for e in lines if e["type"] == "ConsumerAdded"}
+    assert {resource} == about
