@@ -137,7 +137,9 @@ def _spawn_through(fifo: str, said: Connection) -> None:
 
 def _states(pid: int) -> list[str]:
     task = Path(f"/proc/{pid}/task")
-    return [(task / tid / "stat").read_text().rsplit(")", 1)[1].split()[0] for tid in os.listdir(task)]
+    return [
+        (task / tid / "stat").read_text().rsplit(")", 1)[1].split()[0] for tid in os.listdir(task)
+    ]
 
 
 def test_the_time_a_thread_waits_in_state_d_counts_as_waited_and_stays_counted(
@@ -165,13 +167,16 @@ def test_the_time_a_thread_waits_in_state_d_counts_as_waited_and_stays_counted(
         first = watch.sample()
         between = time.monotonic()
         second = watch.sample()
-        assert first is not None and second is not None
+        assert first is not None
+        assert second is not None
         assert second.waited - first.waited >= time.monotonic() - between > 0.0
 
         os.close(os.open(fifo, os.O_WRONLY))  # the child's open returns: the spawn ends
-        assert ours.poll(30) and ours.recv() == "spawned"
+        assert ours.poll(30)
+        assert ours.recv() == "spawned"
         after = watch.sample()
-        assert after is not None and after.waited >= second.waited  # (kept once it ran)
+        assert after is not None
+        assert after.waited >= second.waited  # (kept once it ran)
         watch.close()
     finally:
         process.kill()
