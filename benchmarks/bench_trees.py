@@ -481,6 +481,8 @@ def cell(runs: list[dict[str, Any]] | None, key: str, scale: float = 1.0, digits
     if value is not None:
         return show(value * scale, digits)
     why = runs[0]["outcome"]
+    if why.startswith("done"):  # (a figure it had no step for: `--kills 0`)
+        return "-"
     if why.startswith("timeout"):
         return f"> {runs[0].get('bound_s', 0):g} s"
     return "thread cap" if why.startswith("stopped") else "failed"
