@@ -86,6 +86,11 @@ def threads_sockets(pid: int) -> tuple[int, int]:
     return threads, sockets
 
 
+def median_or_none(values: list[float]) -> float | None:
+    """The median of `values`; `None` if there are none (`--kills 0`)."""
+    return statistics.median(values) if values else None
+
+
 def p99(values: list[float]) -> float | None:
     if not values:
         return None
@@ -195,7 +200,7 @@ def one_tree(
         during.extend(caller.between(killed, answered))
     caller.close()
     emit(
-        restart_ms=statistics.median(restarts),
+        restart_ms=median_or_none(restarts),
         p99_during_ms=p99(during),
         p99_quiet_ms=p99(quiet),
         failed_calls=caller.failed,
@@ -275,10 +280,12 @@ def run_tree(
     elif stopped:
         figures["outcome"] = f"{stopped} in {figures.get('step', 'start')}"
     elif child.returncode != 0 or figures.get("step") != "done":
-        last = (err.strip().splitlines() or ["?"])[-1][:80]
+        last = figures.get("error") or (err.strip().splitlines() or ["?"])[-1][:80]
         figures["outcome"] = f"failed in {figures.get('step', 'start')}: {last}"
     else:
         figures["outcome"] = "done"
+    if figures["outcome"] != "done":  # (why: the run's own words, its last 200 lines)
+        print("\n".join(err.splitlines()[-200:]), file=sys.stderr, flush=True)
     return figures
 
 
@@ -343,11 +350,11 @@ def measure(
                                 "stop_ms": floor_stop_ms,
                                 "pss_kib": float(pss or 0),
                             }
-                            plain["restart_ms"] = statistics.median(respawn.kill(args.kills))
+                            plain["restart_ms"] = median_or_none(respawn.kill(args.kills))
                         else:
                             start_ms, stop_ms = threads.start_stop(count)
                             plain = {"start_ms": start_ms, "stop_ms": stop_ms}
-                            plain["restart_ms"] = statistics.median(threads.restart(args.kills))
+                            plain["restart_ms"] = median_or_none(threads.restart(args.kills))
                         floors.setdefault((count, kind), []).append(plain)
     finally:
         floor.close()
@@ -474,6 +481,8 @@ def cell(runs: list[dict[str, Any]] | None, key: str, scale: float = 1.0, digits
     if value is not None:
         return show(value * scale, digits)
     why = runs[0]["outcome"]
+    if why.startswith("done"):  # (a figure it had no step for: `--kills 0`)
+        return "-"
     if why.startswith("timeout"):
         return f"> {runs[0].get('bound_s', 0):g} s"
     return "thread cap" if why.startswith("stopped") else "failed"
@@ -599,7 +608,11 @@ def main() -> None:
     if args.one:
         state = None if args.one[2] == "none" else Path(args.one[2])
         heartbeat = None if args.heartbeat == "off" else float(args.heartbeat)
-        one_tree(int(args.one[0]), args.one[1], state, args.kills, args.bound, heartbeat)
+        try:
+            one_tree(int(args.one[0]), args.one[1], state, args.kills, args.bound, heartbeat)
+        except BaseException as exc:  # (its line, not the last one the exit's stop logs)
+            emit(error=f"{type(exc).__name__}: {exc}".splitlines()[0][:200])
+            raise
         return
     if args.load:
         trees, floors = {}, {}

@@ -42,7 +42,7 @@ class ExitWatch(Protocol):
 @dataclasses.dataclass(frozen=True, slots=True)
 class CpuSample:
     """One process's use of the CPUs: `stopped` (it cannot run at all), and `waited`, seconds its
-    threads spent runnable but waiting for a CPU since the watch began.
+    threads spent waiting for a CPU (or, on Linux, for the disk: state D) since the watch began.
     """
 
     stopped: bool

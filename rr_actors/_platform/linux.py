@@ -181,15 +181,18 @@ class _Thread(NamedTuple):
     ran: int  # time on a CPU
     delay: int  # run-queue delay of the waits that ended (it got a CPU after them)
     arrivals: int  # how many times it got a CPU
-    runnable: bool  # its state was R (running or waiting for a CPU)
+    state: str  # R (running or waiting for a CPU), D (waiting for the disk), S, ...
     pending: float  # seconds of the wait under way, as far as seen (not in `delay` yet)
+    blocked: float  # seconds seen in D (a disk's flush, a page fault): what the kernel omits
 
 
 class ProcCpuWatch:
     """A process's run-queue delay and stopped state, from `/proc/<pid>` (opened while it ran). What
-    it buys: the heartbeat tells a manager starved of CPU from a hung one. The kernel counts per
-    thread its delay (`schedstat`) only when a wait ends: one under way is estimated (runnable at
-    two samples without a CPU between). Read only while late."""
+    it buys: the heartbeat tells a manager starved of CPU (or of the disk) from a hung one. The
+    kernel counts per thread its delay (`schedstat`) only when a wait ends: one under way is
+    estimated (runnable at two samples without a CPU between); a wait for the disk (state D at
+    two samples without a CPU between: an `fdatasync`, issue 69) counts as one. Read only while
+    late."""
 
     __slots__ = ("at", "gone", "proc", "threads")
 
@@ -236,26 +239,25 @@ class ProcCpuWatch:
         for tid, before in self.threads.items():
             after = threads.get(tid)
             if after is None or after.arrivals < before.arrivals:  # ended (or tid reused)
-                self.gone += before.delay / 1e9 + before.pending
+                self.gone += before.delay / 1e9 + before.pending + before.blocked
         self.threads, self.at = threads, now
-        waited = self.gone + sum(t.delay / 1e9 + t.pending for t in threads.values())
+        waited = self.gone + sum(t.delay / 1e9 + t.pending + t.blocked for t in threads.values())
         return CpuSample(stopped=_state(stat) in ("T", "t"), waited=waited)
 
     def _thread(self, tid: str, before: _Thread | None, since: float) -> _Thread | None:
         try:
             ran, delay, arrivals = map(int, _read_at(self.proc, f"task/{tid}/schedstat").split())
-            runnable = _state(_read_at(self.proc, f"task/{tid}/stat")) == "R"
+            state = _state(_read_at(self.proc, f"task/{tid}/stat"))
         except (OSError, ValueError):
             return None
-        pending = 0.0
-        if (
-            before is not None
-            and runnable
-            and before.runnable
-            and arrivals == before.arrivals  # no CPU since: the same wait (or run) goes on
-        ):
-            pending = before.pending + max(0.0, since - (ran - before.ran) / 1e9)
-        return _Thread(ran, delay, arrivals, runnable, pending)
+        pending, blocked = 0.0, 0.0 if before is None else before.blocked
+        # no CPU since: the same wait (or run) goes on
+        if before is not None and state == before.state and arrivals == before.arrivals:
+            if state == "R":
+                pending = before.pending + max(0.0, since - (ran - before.ran) / 1e9)
+            elif state == "D":
+                blocked += since
+        return _Thread(ran, delay, arrivals, state, pending, blocked)
 
     def close(self) -> None:
         with contextlib.suppress(OSError):

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from rr_actors._platform import linux_names
-from rr_actors._platform.linux import LinuxPlatform, PidfdExitWatch
+from rr_actors._platform.linux import LinuxPlatform, PidfdExitWatch, ProcCpuWatch
 
 # -- freed memory goes back to the system (the observer's server uses it) -------------------
 
@@ -117,3 +117,67 @@ def test_a_child_forked_from_the_watcher_does_not_keep_the_watches_copies(watche
         assert Path(f"/proc/self/fd/{held}").exists()  # (the watcher's own is kept)
     finally:
         watch.close()
+
+
+# -- a manager waiting for the disk is not hung (issue 69: a fresh catalog's fdatasync) ----
+
+
+def _spawn_through(fifo: str, said: Connection) -> None:
+    """A process whose one thread waits in the kernel, state D, as in a disk's flush:
+    `posix_spawn` (a vfork) waits for its child, whose file action opens `fifo` for reading
+    and blocks there until a writer opens it; it says when the spawn returned."""
+    said.send(os.getpid())
+    child = os.posix_spawn(
+        "/bin/true", ["true"], {}, file_actions=[(os.POSIX_SPAWN_OPEN, 3, fifo, os.O_RDONLY, 0)]
+    )
+    os.waitpid(child, 0)
+    said.send("spawned")
+    said.recv()  # (never answered: the test kills this process)
+
+
+def _states(pid: int) -> list[str]:
+    task = Path(f"/proc/{pid}/task")
+    return [
+        (task / tid / "stat").read_text().rsplit(")", 1)[1].split()[0] for tid in os.listdir(task)
+    ]
+
+
+def test_the_time_a_thread_waits_in_state_d_counts_as_waited_and_stays_counted(
+    tmp_path: Path,
+) -> None:
+    # a fresh catalog's first commit syncs its log (SQLite's WAL header): at 600 managers
+    # on a busy disk that took 0.94 s, "0.001 s of it waiting for a CPU", and the heartbeat
+    # killed the manager as hung in the middle of a call
+    fifo = str(tmp_path / "fifo")
+    os.mkfifo(fifo)
+    ours, theirs = multiprocessing.Pipe()
+    process = multiprocessing.get_context("spawn").Process(
+        target=_spawn_through, args=(fifo, theirs), daemon=True
+    )
+    process.start()
+    try:
+        assert ours.poll(60), "the process did not start"
+        pid = ours.recv()
+        watch = ProcCpuWatch.open(pid)
+        assert watch is not None
+        deadline = time.monotonic() + 30
+        while "D" not in _states(pid):  # (bounded: the vfork's wait begins soon)
+            assert time.monotonic() < deadline, f"never in state D: {_states(pid)}"
+            select.select([], [], [], 0.01)
+        first = watch.sample()
+        between = time.monotonic()
+        second = watch.sample()
+        assert first is not None
+        assert second is not None
+        assert second.waited - first.waited >= time.monotonic() - between > 0.0
+
+        os.close(os.open(fifo, os.O_WRONLY))  # the child's open returns: the spawn ends
+        assert ours.poll(30)
+        assert ours.recv() == "spawned"
+        after = watch.sample()
+        assert after is not None
+        assert after.waited >= second.waited  # (kept once it ran)
+        watch.close()
+    finally:
+        process.kill()
+        process.join(30)
