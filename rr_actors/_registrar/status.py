@@ -107,6 +107,10 @@ class StatusRelay:
                 lost = dict.fromkeys(gave_up)  # (in order, each once; a set's lookups)
                 reached = tuple(q for q in direct if q not in lost)  # (not given up on)
                 reply.set_result(StatusDelivery(reached, tuple(lost)))
+                if shared.events.active:  # (stamped on its actor: its process, while it lives)
+                    told = (shared.name, query_id, event, reached, tuple(lost))
+                    back = shared.come_back(lambda *_: shared.publish(events.StatusAnswered(*told)))
+                    back.set_result(None)
 
         self.notify(
             resource,

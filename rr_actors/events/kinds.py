@@ -45,6 +45,7 @@ __all__ = [
     "Rows",
     "ServerOverloaded",
     "ServerQueriesListed",
+    "StatusAnswered",
     "StatusDelivered",
     "StatusHandled",
     "StatusSent",
@@ -601,6 +602,23 @@ class StatusHandled(_Numbered):
 
 
 @_kind
+class StatusAnswered(_Numbered):
+    """A provider's `send_status` was answered (`StatusDelivery`), on the last answer's thread.
+
+    Attributes:
+        status_id: its `StatusSent.status_id`.
+        reached: its consumer ids not given up on: a callback of each ran and returned first.
+        gave_up: the consumer ids, at any hop, whose callback it gave up on (its patience).
+    """
+
+    registrar: str
+    query_id: str
+    status_id: str
+    reached: tuple[str, ...] = ()
+    gave_up: tuple[str, ...] = ()
+
+
+@_kind
 class UnloadCutShort(_Numbered):
     """A clean `stop()` gave up waiting (half its timeout) for an unload under way: the callback
     runs on, and the next start reports it `InDoubt` (`cut="unload"`, rule 16)."""
@@ -746,6 +764,7 @@ Event: TypeAlias = (
     | StatusSent
     | StatusDelivered
     | StatusHandled
+    | StatusAnswered
     | InDoubt
     | CatalogRestored
     | RegistrarStopped

@@ -115,6 +115,12 @@ def describe(event: kinds.Event) -> str:  # noqa: PLR0911, PLR0912 - one case pe
                 f"{event.registrar}: the callback of {event.status.name} for query "
                 f"{_id(event.query_id)} returned{waited}"
             )
+        case kinds.StatusAnswered():
+            return (
+                f"{event.registrar}: the send of {_id(event.status_id)} for query "
+                f"{_id(event.query_id)} was answered ({len(event.reached)} reached, "
+                f"{len(event.gave_up)} given up on)"
+            )
         case kinds.InDoubt():
             cut = event.cut or "load"
             return (

@@ -13,6 +13,7 @@
          have waited in the sender)
  StatusHandled ──► status_order: each id's callbacks one at a time, in arrival order;
                    one sender's statuses (StatusSent) arrive in the order sent
+ StatusAnswered ──► status_answered: a send answered after the callbacks it reached returned
 ```
 
 Each rule's windows and what it excuses: docs/how-to/check-a-run.md.
@@ -91,6 +92,46 @@ def status_order(history: Sequence[Line]) -> list[Finding]:
             if free > limit:
                 limit, before = free, (line, event)
         findings.extend(_overtaken(handled, sent))
+    return findings
+
+
+def status_answered(history: Sequence[Line]) -> list[Finding]:
+    """`status-answered` (rule 9): a `send_status` is answered once the callbacks it reached
+    returned. A `StatusHandled` of a consumer id its `StatusAnswered` lists as reached, stamped
+    after that answer (its acknowledgement came back first), is a finding (one given up on is
+    listed in `gave_up`); not one whose id its provider released on an `Unload` before (the
+    status may have come on the answer, after the send's own notice found it seen)."""
+    answered: dict[str, tuple[int, events.StatusAnswered]] = {}  # status id -> (line, answer)
+    handled: list[tuple[int, events.StatusHandled]] = []
+    released: dict[str, int] = {}  # query id -> the stamp of its first release on an Unload
+    for line, event in history:
+        if isinstance(event, events.StatusAnswered):
+            answered.setdefault(event.status_id, (line, event))
+        elif isinstance(event, events.StatusHandled):
+            handled.append((line, event))
+        elif isinstance(event, events.ConsumerReleased) and event.reason == "unload":
+            released.setdefault(event.query_id, event.hlc)
+    findings: list[Finding] = []
+    for line, event in handled:
+        at, answer = answered.get(event.status_id, (0, None))
+        if (
+            answer is None
+            or event.query_id not in answer.reached
+            or event.hlc <= answer.hlc
+            or released.get(event.query_id, event.hlc) < event.hlc
+        ):
+            continue
+        findings.append(
+            Finding(
+                "status-answered",
+                "violation",
+                f"{answer.registrar}'s send of status {event.status_id[:8]} "
+                f"({event.status.name}) was answered with query {event.query_id[:8]} of "
+                f"{event.registrar} reached before its callback returned (rule 9)",
+                (at, line),
+                (answer.registrar, event.registrar),
+            )
+        )
     return findings
 
 

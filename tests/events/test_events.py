@@ -50,6 +50,7 @@ EXAMPLES: list[events.Event] = [
     events.StatusSent("erm", QID, rr.Status.FATAL, "process died"),
     events.StatusDelivered("cm", QID, rr.Status.FATAL, 2, 0.0012),
     events.StatusHandled("cm", QID, rr.Status.FATAL, "s1", 3, 7354725256007057408),
+    events.StatusAnswered("erm", QID, "s1", (QID,), ()),
     events.InDoubt("erm", QID, "start_process", "unload"),
     events.CatalogRestored(
         "erm", ((RID, "start_process", "loaded"),), ((QID, RID, "cm"),), (), (1, 1, 0)

@@ -444,6 +444,29 @@ def test_a_callback_that_waited_for_a_registrar_lets_its_id_s_next_begin() -> No
     assert [{11, 12}] == [set(f.lines) for f in _of_rule(early, "status-order")]
 
 
+def _answered(at: int, gave_up: tuple[str, ...] = ()) -> list[events.Event]:
+    """`_with_callbacks` in one process (Q1's s2 callback returned at 20, Q2's at 60), with
+    erm's answer to its send of s2 stamped `at` (10,000 plus it) listing the ids not in
+    `gave_up` as reached: line 13."""
+    h = _with_callbacks((Q1, "s2", 1, 10, 20, 0), (Q2, "s2", 2, 15, 60, 0))
+    h = [dataclasses.replace(e, pid=P) for e in h]
+    reached = tuple(q for q in (Q1, Q2) if q not in gave_up)
+    answer = events.StatusAnswered("erm", Q1, "s2", reached, gave_up, pid=P, host="h")
+    return [*h[:12], dataclasses.replace(answer, hlc=10_000 + at), *h[12:]]
+
+
+def test_a_send_answered_after_the_callbacks_it_reached_returned_holds() -> None:
+    _holds(_answered(70))
+    _holds(_answered(40, gave_up=(Q2,)))  # (Q2's given up on: its patience ran out)
+
+
+def test_a_send_answered_before_a_callback_it_reached_returned_is_found() -> None:
+    found = _of_rule(_answered(40), "status-answered")  # (Q2's returned at 60)
+    assert [{12, 13}] == [set(f.lines) for f in found]
+    assert "q2222222 of cm reached before its callback returned" in found[0].message
+    assert "violated" == check.check(numbered(_answered(40))).verdict
+
+
 def test_a_call_answered_twice_is_found_unless_it_was_a_retry() -> None:
     h = with_paths()
     assert {2, 3} == _found([*h[:2], h[1], *h[2:]], "answered")
@@ -1116,6 +1139,14 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "if self.dirty:  # nothing of it",
             "answered",
             id="the mutant state.py:279 is caught by answered at simcommit seed 1",
+        ),
+        pytest.param(  # (a relay's own notice told to its own mailbox too: that copy finds
+            "simanswer",  # its ids seen and answers their part while client-0's callback runs)
+            "rr_actors._registrar.status:Desk.deliver",
+            "if origin != here[0]:",
+            "if origin != here[1]:",
+            "status-answered",
+            id="the mutant status.py:990 is caught by status-answered at simanswer seed 1",
         ),
     ],
 )
@@ -3004,6 +3035,19 @@ def drop_status_sent(h: History) -> History | None:
     return None
 
 
+def answer_early(h: History) -> History | None:
+    """A send answered (`StatusAnswered`) before a callback of an id it reached returned."""
+    handled = {(e.status_id, e.query_id): e.hlc for e in h if type(e) is events.StatusHandled}
+    for i, e in enumerate(h):
+        if type(e) is not events.StatusAnswered:
+            continue
+        for query_id in e.reached:
+            at = handled.get((e.status_id, query_id))
+            if at is not None:
+                return [*h[:i], dataclasses.replace(e, hlc=at - 1), *h[i + 1 :]]
+    return None
+
+
 def begin_beside(h: History) -> History | None:
     """An id's status callback began as the one that arrived before it began."""
     first: dict[tuple[int, str, str], int] = {}
@@ -3447,6 +3491,7 @@ MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     "deliver-at-wrong-hop": (deliver_at_wrong_hop, "status-path"),
     "drop-status-sent": (drop_status_sent, "status-path"),
     "begin-beside": (begin_beside, "status-order"),
+    "answer-early": (answer_early, "status-answered"),
     "answer-twice": (answer_twice, "answered"),
     "drop-add": (drop_add, "answered"),
     "drop-forget": (drop_forget, "answered"),
@@ -3494,10 +3539,11 @@ ROOT_ONLY = {"leases", "simhosts"}
 network namespaces and minutes (tests/experiments/test_hosts.py runs a small plan of
 their shape; test_simulate.py runs `simhosts` on the simulation)."""
 
-SIMULATION_ONLY = {"simheal", "simrest", "simprogram", "simcommit"}
+SIMULATION_ONLY = {"simheal", "simrest", "simprogram", "simcommit", "simanswer"}
 """Shipped plans of a fault kind only the simulation injects (`split_brain`,
-`kill_in_setup`, `kill_program`, `kill_before_commit`): their histories are checked in
-tests/experiments/test_simulate.py."""
+`kill_in_setup`, `kill_program`, `kill_before_commit`), and `simanswer`, timed for it (a
+20 ms callback within a 30 ms patience; `status-answered` is judged in the real runs of
+the others): their histories are checked in tests/experiments/test_simulate.py."""
 
 
 @pytest.fixture(scope="module")
@@ -3718,7 +3764,9 @@ def test_each_mutation_of_the_shipped_plans_real_runs_is_caught_by_its_rule(
 SWEEP = pytest.mark.timeout(300)
 """A few seeds take a few CPU seconds; under load several times that."""
 
-MUTATED_ON_THE_SIMULATION = {"simcommit", "simheal", "simhosts", "simprogram", "simrest"}
+MUTATED_ON_THE_SIMULATION = {
+    "simanswer", "simcommit", "simheal", "simhosts", "simprogram", "simrest",
+}  # fmt: skip
 """The shipped plans the real runs above leave out that the simulation runs (not `leases`:
 it freezes a host's router, which the simulated hosts have none of)."""
 

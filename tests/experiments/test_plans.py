@@ -46,6 +46,7 @@ SHIPPED = {
     "simkept",
     "simoverload",
     "simcommit",
+    "simanswer",
     "bigtree",
 }
 """Every plan shipped in the package; the tutorial's `first` runs in the docs test."""
