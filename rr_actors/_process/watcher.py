@@ -1,7 +1,8 @@
 """One thread, "rr-watch", waits for every manager process of this process (issue 69: a
 thread each held the interpreter lock with a thousand of them), in one epoll set of their
-`waitables` (sentinel, control pipe, exit watch) and a heap of their `wake_at()`s; each
-one ready or due takes its `turn` (manager.py: read the pipe, judge the silence). An ended
+`waitables` (sentinel, control pipe, exit watch) and a heap of their `wake_at()`s; in
+each round every one ready and up to `ROUND` due take their `turn` (manager.py: read the
+pipe, judge the silence): behind its pings, it still sees an exit within a round. An ended
 one's `finish` runs on a thread of its own: reaping may wait for the forkserver. A turn
 that raises is logged and its manager killed (`watch_failed`); the others' watch goes on.
 """
@@ -102,11 +103,12 @@ class Watcher:
                 os.read(self._wake[0], 4096)
             else:
                 woke[key.data] = [*woke.get(key.data, []), key.fileobj]
-        now = runtime.monotonic()
-        while heap and heap[0][0] <= now:
+        now, taken = runtime.monotonic(), 0
+        while heap and heap[0][0] <= now and taken < ROUND:  # (the rest: the next round)
             wake_at, _, handle = heapq.heappop(heap)
             if due.get(handle) == wake_at:
                 del due[handle]
+                taken += handle not in woke
                 woke.setdefault(handle, [])
         return woke
 
@@ -135,6 +137,7 @@ class Watcher:
             runtime.Thread(target=handle.finish, args=(exitcode,), name=name, daemon=True).start()
 
 
+ROUND = 32  # turns due by the clock taken in a round at most (see the module docstring)
 WATCHER = Watcher()
 """This process's watcher (`ManagerProcess.start` hands it each manager)."""
 os.register_at_fork(after_in_child=lambda: Watcher.__init__(WATCHER))  # (a child: no thread)

@@ -21,6 +21,7 @@ import pytest
 import rr_actors as rr
 from rr_actors._process.control import Ping, Pong, Ready, Stop, mp_context, start_forkserver
 from rr_actors._process.manager import ManagerExit, ManagerProcess
+from rr_actors._process.watcher import ROUND, Watcher
 from tests.support.supervising import pid_of, process
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
@@ -164,3 +165,67 @@ def test_a_manager_whose_watch_raises_is_killed_and_reported_while_the_others_ar
     )
     assert "killed by SIGKILL" == exits[good.name][1].reason
     assert any(f"watching manager {bad.name} failed" in r.getMessage() for r in caplog.records)
+
+
+class _Watched:
+    """A watched handle without a process: `turns` gets its name at each turn. `due`: its
+    first turn says it is due again at once (a ping due), its second ends it; else it ends
+    at a turn woken by its `waitables`. `hold` (an event): its first turn waits for it;
+    `at_turn`: called at each turn."""
+
+    def __init__(self, name: str, turns: list[str], *, due: bool = False, **kw: Any) -> None:
+        self.name, self.turns, self.due, self.taken = name, turns, due, 0
+        self.waitables: list[Any] = kw.get("waitables", [])
+        self.hold: threading.Event | None = kw.get("hold")
+        self.at_turn: Callable[[], None] = kw.get("at_turn", lambda: None)
+        self.ended = threading.Event()
+
+    def wake_at(self) -> float | None:
+        return 0.0 if self.due and self.taken == 1 else None
+
+    def turn(self, woke: list[Any]) -> tuple[bool, int | None]:
+        if self.hold is not None:
+            assert self.hold.wait(20.0)
+            self.hold = None
+        self.taken += 1
+        self.turns.append(self.name if woke or self.taken > 1 else f"({self.name} added)")
+        self.at_turn()
+        return (self.taken == 2 if self.due else bool(woke)), None
+
+    def watch_failed(self, error: BaseException) -> None:
+        raise AssertionError(error)
+
+    def finish(self, exitcode: int | None) -> None:
+        self.ended.set()
+
+
+def test_an_exit_is_seen_within_a_round_of_due_turns_however_many_are_due() -> None:
+    # A thousand managers on a busy machine: the watcher was behind its pings and took every
+    # one due before its next look at what was ready, an exit seen a period late (issue 69).
+    turns: list[str] = []
+    read, write = os.pipe()
+    go = threading.Event()
+    watcher = Watcher()
+    blocker = _Watched("blocker", turns, due=True, hold=go)
+    exiting = _Watched("exit", turns, waitables=[read])
+    fired: list[int] = []
+
+    def exit_now() -> None:  # (at the first ping due: the exit happens then)
+        if not fired:
+            fired.append(len(turns))
+            os.write(write, b"x")
+
+    due = [_Watched(f"due{i}", turns, due=True) for i in range(3 * ROUND)]
+    for handle in due:  # (its second turn: its ping due)
+        handle.at_turn = lambda h=handle: exit_now() if h.taken == 2 else None
+    try:
+        watcher.watch(blocker)
+        for handle in [exiting, *due]:
+            watcher.watch(handle)  # (one round adds them all: the blocker holds the thread)
+        go.set()
+        assert all(h.ended.wait(20.0) for h in [blocker, exiting, *due])
+    finally:
+        os.close(read)
+        os.close(write)
+
+    assert turns.index("exit") - fired[0] <= ROUND, turns
