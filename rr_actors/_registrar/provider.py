@@ -59,6 +59,7 @@ from rr_actors._core.loops import is_coroutine_function, process_loop
 from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.replies import CallbackReply, Join
 from rr_actors._core.workers import Job, Workers
+from rr_actors._platform.base import bound_reached
 from rr_actors._registrar.display import show_request, show_response
 from rr_actors._registrar.messages import (
     LOADING,
@@ -957,7 +958,10 @@ class Matching:
 
 
 def _no_thread(exc: RuntimeError) -> RuntimeError:
-    error = RuntimeError(f"no worker thread could be started for the callback: {exc}")
+    bound = bound_reached(exc) or f"threads ({exc})"  # (the machine's, named with its value)
+    error = RuntimeError(
+        f"no worker thread for the callback: this machine's limit of {bound} was reached"
+    )
     error.__cause__ = exc
     return error
 

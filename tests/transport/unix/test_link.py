@@ -894,7 +894,10 @@ def test_a_call_past_the_machines_bound_on_threads_fails_in_one_line_naming_it()
 
     said = done.stdout.strip().splitlines()
     assert 2 == len(said), done.stdout + done.stderr[-3000:]
-    assert said[0].startswith("RegistrarUnavailableError: registrar 'm"), said
+    # (which thread is refused first, the app's or the provider's worker, is the scheduler's)
+    assert said[0].startswith(("RegistrarUnavailableError: registrar 'm", "ResourceLoadError")), (
+        said
+    )
     assert "limit of threads and processes" in said[0], said
     assert f"kernel.pid_max {PID_MAX})" in said[0], said
     assert "stopped" == said[1]
