@@ -40,7 +40,7 @@ import uuid
 from typing import Any
 
 import _harness
-import pykka
+from bench_core import Echo
 
 import rr_actors as rr
 
@@ -51,13 +51,6 @@ THREADS_FLOOR = 16
 RSS_FLOOR_MIB = 200.0
 DEDUP_FLOOR = 1.5
 LAG_FLOOR_MS = 5.0
-
-
-class Echo(pykka.ThreadingActor):
-    """The baseline: the cheapest useful pykka round trip."""
-
-    def on_receive(self, message: Any) -> Any:
-        return message
 
 
 async def _noop_unload(_request: Any, _response: Any) -> None:

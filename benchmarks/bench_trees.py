@@ -42,7 +42,6 @@ import contextlib
 import json
 import os
 import signal
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -52,6 +51,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+import _harness
 from bench_scale import Floor, PykkaFanOut, Respawn, pss_kib
 
 import rr_actors as rr
@@ -88,14 +88,12 @@ def threads_sockets(pid: int) -> tuple[int, int]:
 
 def median_or_none(values: list[float]) -> float | None:
     """The median of `values`; `None` if there are none (`--kills 0`)."""
-    return statistics.median(values) if values else None
+    return _harness.median(values) if values else None
 
 
 def p99(values: list[float]) -> float | None:
-    if not values:
-        return None
-    ordered = sorted(values)
-    return ordered[min(len(ordered) - 1, int(len(ordered) * 0.99))]
+    """The 0.99 quantile of `values` (the harness's nearest rank); `None` if there are none."""
+    return _harness.percentile(values, 0.99) if values else None
 
 
 class Caller:
@@ -163,9 +161,9 @@ def one_tree(
         pairs = [threads_sockets(pid) for pid in pids if pid is not None]
         memory = [pss_kib(pid) for pid in pids if pid is not None]
         emit(
-            threads=statistics.median(t for t, _ in pairs),
-            sockets=statistics.median(s for _, s in pairs),
-            pss_kib=statistics.median(m for m in memory if m is not None),
+            threads=_harness.median(t for t, _ in pairs),
+            sockets=_harness.median(s for _, s in pairs),
+            pss_kib=_harness.median(m for m in memory if m is not None),
             step="restart",
         )
     else:
@@ -371,8 +369,7 @@ def figure(run: dict[str, Any], key: str) -> float | None:
 
 
 def median_of(runs: list[dict[str, Any]], key: str) -> float | None:
-    values = [value for value in (figure(r, key) for r in runs) if value is not None]
-    return statistics.median(values) if values else None
+    return median_or_none([value for value in (figure(r, key) for r in runs) if value is not None])
 
 
 def show(value: float | None, digits: int = 0) -> str:
@@ -404,16 +401,14 @@ def versus_floor(
     of `key` beside its floor's and their ratio, the `extra` columns ((heading, cell)) before
     the ratio."""
     name, heading = step
-    print(
-        f"| tree | runs | {heading} | floor | " + "".join(f"{h} | " for h, _ in extra) + "ratio |"
-    )
-    print("|---|---|---:|---:|" + "---:|" * (len(extra) + 1))
+    rows = []
     for (count, kind, state), runs in trees.items():
         ours, plain = median_of(runs, key), median_of(floors[(count, kind)], key)
         cells = [f"{name} {count} {kind} {state}", outcome(runs), show(ours, digits)]
         cells += [show(plain, digits), *(column(runs) for _, column in extra)]
-        print("| " + " | ".join([*cells, ratio(ours, plain)]) + " |")
-    print()
+        rows.append([*cells, ratio(ours, plain)])
+    columns = ["tree", "runs", heading, "floor", *(h for h, _ in extra), "ratio"]
+    _harness.print_table(f"{name} (ms, medians):", columns, rows, right=2)
 
 
 def apps_stop(runs: list[dict[str, Any]]) -> str:
@@ -432,9 +427,6 @@ def report(
     floors: dict[tuple[int, str], list[dict[str, float]]],
 ) -> None:
     print("## Trees of N managers vs their floors (medians in ms; alternated)")
-    print()
-    print("state_dir none / fresh (the floor in brackets):")
-    print()
     compact(trees, floors)
     versus_floor(trees, floors, ("start", "start+calls"), "start_ms")
     versus_floor(
@@ -455,22 +447,32 @@ def report(
             ("failed", lambda runs: str(sum(r.get("failed_calls", 0) for r in runs))),
         ],
     )
-    print(
-        "| tree | threads per manager | sockets per manager | PSS per manager (MiB) "
-        "| plain child's PSS (MiB) | threads of the tree, peak |"
-    )
-    print("|---|---:|---:|---:|---:|---:|")
+    rows = []
     for (count, kind, state), runs in trees.items():
         pss, plain = median_of(runs, "pss_kib"), median_of(floors[(count, kind)], "pss_kib")
-        print(
-            f"| cost {count} {kind} {state} | {show(median_of(runs, 'threads'), 1)} "
-            f"| {show(median_of(runs, 'sockets'), 1)} "
-            f"| {show(None if pss is None else pss / 1024, 2)} "
-            f"| {show(None if plain is None else plain / 1024, 2)} "
-            f"| {show(max(r['peak_threads'] for r in runs))} |"
+        rows.append(
+            (
+                f"cost {count} {kind} {state}",
+                show(median_of(runs, "threads"), 1),
+                show(median_of(runs, "sockets"), 1),
+                show(None if pss is None else pss / 1024, 2),
+                show(None if plain is None else plain / 1024, 2),
+                show(max(r["peak_threads"] for r in runs)),
+            )
         )
-    print()
-    print(f"load average: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    _harness.print_table(
+        "cost per manager (medians):",
+        [
+            "tree",
+            "threads per manager",
+            "sockets per manager",
+            "PSS per manager (MiB)",
+            "plain child's PSS (MiB)",
+            "threads of the tree, peak",
+        ],
+        rows,
+    )
+    print(f"\n{_harness.header('at the end')}")
 
 
 def cell(runs: list[dict[str, Any]] | None, key: str, scale: float = 1.0, digits: int = 0) -> str:
@@ -493,10 +495,7 @@ def compact(
     floors: dict[tuple[int, str], list[dict[str, float]]],
 ) -> None:
     """The same figures, one row per N and kind: state_dir none / fresh (floor)."""
-    print("| N, kind | start + a call each (ms) | stop (ms) | kill to serving (ms) ", end="")
-    print("| p99 of the others' calls, restarting (ms) | threads per manager ", end="")
-    print("| PSS per manager (MiB) |")
-    print("|---|---:|---:|---:|---:|---:|---:|")
+    rows = []
     for count, kind in sorted({(c, k) for c, k, _ in trees}):
         none, fresh = trees.get((count, kind, "none")), trees.get((count, kind, "fresh"))
         plain = floors[(count, kind)]
@@ -508,8 +507,20 @@ def compact(
         row.append(f"{cell(none, 'p99_during_ms')} / {cell(fresh, 'p99_during_ms')}")
         row.append(f"{cell(none, 'threads', digits=1)} / {cell(fresh, 'threads', digits=1)}")
         row.append(f"{cell(none, 'pss_kib', 1 / 1024, 2)} / {cell(fresh, 'pss_kib', 1 / 1024, 2)}")
-        print("| " + " | ".join(row) + " |")
-    print()
+        rows.append(row)
+    _harness.print_table(
+        _harness.header("state_dir none / fresh (the floor in brackets)"),
+        [
+            "N, kind",
+            "start + a call each (ms)",
+            "stop (ms)",
+            "kill to serving (ms)",
+            "p99 of the others' calls, restarting (ms)",
+            "threads per manager",
+            "PSS per manager (MiB)",
+        ],
+        rows,
+    )
 
 
 def plot(
@@ -575,13 +586,12 @@ def plot(
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
+    parser = _harness.options(__doc__, rounds=1)
     parser.add_argument("--counts", type=int, nargs="+", default=[10, 50, 200, 1000])
     parser.add_argument(
         "--kinds", nargs="+", choices=["process", "thread"], default=["process", "thread"]
     )
     parser.add_argument("--state", nargs="+", choices=["none", "fresh"], default=["none", "fresh"])
-    parser.add_argument("--rounds", type=int, default=1)
     parser.add_argument("--kills", type=int, default=3, help="kills per tree (restart)")
     parser.add_argument("--bound", type=float, default=60.0, help="seconds a tree's run may take")
     parser.add_argument(
@@ -604,7 +614,7 @@ def main() -> None:
     )
     parser.add_argument("--plot", type=Path, help="write the curves to this PNG")
     parser.add_argument("--one", nargs=3, metavar=("N", "KIND", "STATE"), help=argparse.SUPPRESS)
-    args = parser.parse_args()
+    args = _harness.parse(parser, None)
     if args.one:
         state = None if args.one[2] == "none" else Path(args.one[2])
         heartbeat = None if args.heartbeat == "off" else float(args.heartbeat)
@@ -624,13 +634,13 @@ def main() -> None:
     else:
         trees, floors = measure(args)
     if args.save:
-        load = f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}"
         saved = {
             "trees": [
                 {"count": c, "kind": k, "state": s, "runs": r} for (c, k, s), r in trees.items()
             ],
             "floors": [{"count": c, "kind": k, "runs": r} for (c, k), r in floors.items()],
-            "load": f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {load}",
+            "load": f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, "
+            f"{_harness.header(_harness.commit())}",
         }
         args.save.write_text(json.dumps(saved, indent=1))
     report(dict(sorted(trees.items())), floors)

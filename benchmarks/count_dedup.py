@@ -80,28 +80,15 @@ from types import CodeType, FrameType
 from typing import Any
 
 import _harness
-import pykka
+from bench_core import ActorEcho, Echo
 from bench_transport import _registrar_main, registrar_child, setup_echo
 
 import rr_actors as rr
-from rr_actors._core.actor import Actor
 from rr_actors._registrar import Served
 from rr_actors._transport.unix.system import System, SystemAddress
 
 PACKAGE = Path(rr.__file__).resolve().parent
 OPERATIONS = ("hit", "unload", "pykka", "actor")
-
-
-class Echo(pykka.ThreadingActor):
-    def on_receive(self, message: Any) -> Any:
-        return message
-
-
-class ActorEcho(Actor):
-    """The same echo on rr_actors' own actor type (the registrars are built on it)."""
-
-    def on_receive(self, message: Any) -> Any:
-        return message
 
 
 class Camera:

@@ -268,6 +268,13 @@ def by_value(request: pytest.FixtureRequest) -> Iterator[None]:
 
 
 @pytest.fixture(scope="session")
+def forkserver() -> None:
+    """The forkserver alone, started before a test's leak check counts this process's
+    children (managers start from it: a process with a Zenoh session must not fork)."""
+    start_forkserver()
+
+
+@pytest.fixture(scope="session")
 def process_helpers() -> Iterator[SharedObjects]:
     """The forkserver, the resource tracker and the `SharedObjects` helper, for the session.
 
@@ -335,6 +342,20 @@ def supervisors() -> Iterator[Callable[..., rr.Supervisor]]:
     yield make
     for sup in reversed(made):
         sup.stop()
+
+
+@pytest.fixture
+def drawn(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[Any]]:
+    """The matplotlib figures a test's plots draw, kept open (not closed after saving) to be
+    read back; closed at teardown."""
+    import matplotlib.pyplot as plt  # noqa: PLC0415 - the plot tests' (an extra)
+
+    figures: list[Any] = []
+    close = plt.close
+    monkeypatch.setattr(plt, "close", figures.append)
+    yield figures
+    for figure in figures:
+        close(figure)
 
 
 @pytest.fixture

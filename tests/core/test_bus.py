@@ -46,20 +46,6 @@ def no_bus_threads() -> Iterator[None]:
 
 
 @pytest.fixture
-def gates() -> Iterator[Callable[[], threading.Event]]:
-    """Make events that block callbacks; all are set at teardown so no thread stays stuck."""
-    made: list[threading.Event] = []
-
-    def make() -> threading.Event:
-        made.append(threading.Event())
-        return made[-1]
-
-    yield make
-    for gate in made:
-        gate.set()
-
-
-@pytest.fixture
 def publisher() -> Publisher[Any]:
     return Publisher(logger=logging.getLogger(LOGGER), notice=notice)
 

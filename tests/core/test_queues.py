@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 import threading
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any
 
 import pytest
@@ -21,19 +21,6 @@ import rr_actors as rr
 from rr_actors._core.bus import Publisher
 
 WAIT = 10.0
-
-
-@pytest.fixture
-def gates() -> Iterator[Callable[[], threading.Event]]:
-    made: list[threading.Event] = []
-
-    def make() -> threading.Event:
-        made.append(threading.Event())
-        return made[-1]
-
-    yield make
-    for gate in made:
-        gate.set()
 
 
 def test_a_callback_raising_on_every_event_logs_one_traceback_then_a_count(

@@ -5,7 +5,6 @@ read back from the figures."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -13,7 +12,6 @@ import pytest
 
 pytest.importorskip("matplotlib")
 
-import matplotlib.pyplot as plt
 from matplotlib.figure import Figure
 
 from rr_actors_lab.experiments import parse_plan
@@ -148,17 +146,6 @@ def across(lease: float, *, cut_failed: bool) -> RunResult:
     )
     freeze = FaultRecord(2, 0, "freeze", "b", 4.5, 4.5, "SIGSTOP", recovery_s=0.6, heal_s=0.1)
     return run_result(lease, (kill_api(), cut, freeze), hosts=True)
-
-
-@pytest.fixture
-def drawn(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[Figure]]:
-    """The figures the plot functions draw, kept open (not closed after saving) to be read."""
-    figures: list[Figure] = []
-    close = plt.close
-    monkeypatch.setattr(plt, "close", figures.append)
-    yield figures
-    for figure in figures:
-        close(figure)
 
 
 def legend_labels(figure: Figure) -> list[str]:

@@ -1043,29 +1043,26 @@ def test_every_simulated_kind_in_one_plan_gives_the_same_history_for_the_same_se
     assert {f["kind"] for f in fired(first)} >= {"hang_manager", "kill_in_setup"}
 
 
-def test_a_kind_only_a_simulation_aims_is_refused_by_a_real_run() -> None:
+@pytest.mark.parametrize(
+    ("fault", "says"),
+    [
+        ('kind = "kill_in_setup"\ntarget = "db"\nat = 0.5', "only on the simulation"),
+        ('kind = "kill_program"\nat = 0.5', "the run process itself"),
+    ],
+    ids=[
+        "a_kind_only_a_simulation_aims",
+        "kill_program_saying_the_run_process_is_the_program",
+    ],
+)
+def test_a_kind_only_a_simulation_aims_is_refused_by_a_real_run(fault: str, says: str) -> None:
     from rr_actors_lab.experiments import run  # noqa: PLC0415
 
-    plan = with_faults('kind = "kill_in_setup"\ntarget = "db"\nat = 0.5')
-
     with pytest.raises(PlanError) as raised:
-        run(plan)
+        run(with_faults(fault))
 
     assert "faults[0].kind" == raised.value.key
     assert "only on the simulation" in str(raised.value)
-
-
-def test_kill_program_is_refused_by_a_real_run_saying_the_run_process_is_the_program() -> None:
-    from rr_actors_lab.experiments import run  # noqa: PLC0415
-
-    plan = with_faults('kind = "kill_program"\nat = 0.5')
-
-    with pytest.raises(PlanError) as raised:
-        run(plan)
-
-    assert "faults[0].kind" == raised.value.key
-    assert "only on the simulation" in str(raised.value)
-    assert "the run process itself" in str(raised.value)
+    assert says in str(raised.value)
 
 
 @pytest.mark.parametrize(

@@ -13,7 +13,6 @@ import itertools
 import json
 import os
 import shutil
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -21,7 +20,6 @@ import pytest
 pytest.importorskip("matplotlib")
 
 
-import matplotlib.pyplot as plt
 from matplotlib.figure import Figure
 from matplotlib.image import imread
 
@@ -66,17 +64,6 @@ def on_two_hosts(report: MissionReport) -> MissionReport:
         "station": {"managers": ["cm"], "faults": ["F4", "F6"]},
     }
     return dataclasses.replace(report, faults=faults, hosts=hosts)
-
-
-@pytest.fixture
-def drawn(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[Figure]]:
-    """The figures `plot` draws, kept open (not closed after saving) to be read back."""
-    figures: list[Figure] = []
-    close = plt.close
-    monkeypatch.setattr(plt, "close", figures.append)
-    yield figures
-    for figure in figures:
-        close(figure)
 
 
 def texts(figure: Figure) -> list[str]:

@@ -110,12 +110,6 @@ def hold_camera() -> str:
                 raise
 
 
-def manager_pid(name: str) -> int:
-    pid = hosts.KEPT["sup"].child(name).pid
-    assert pid is not None
-    return int(pid)
-
-
 def stop_tree() -> None:
     observer = hosts.KEPT.pop("observer", None)
     if observer is not None:
@@ -273,7 +267,7 @@ def test_the_page_on_a_shows_both_hosts_and_bs_restart_after_a_sigkill(
     screenshot(page, "observer-hosts.png", tmp_path)
 
     killed = time.monotonic()
-    os.kill(lab.b.call(manager_pid, "cam", timeout=10), signal.SIGKILL)
+    os.kill(lab.b.call(hosts.manager_pid, "cam", timeout=10), signal.SIGKILL)
     cam(page).and_(page.locator(f'[data-restarts="{before + 1}"]')).wait_for(timeout=BOUND * 1000)
     took = time.monotonic() - killed
 
@@ -289,13 +283,13 @@ def test_a_fault_button_on_a_for_bs_manager_works_only_when_b_allowed_faults(
     assert "no faults" == bravo.locator(".host-faults").inner_text()
     assert 0 == bravo.locator("[data-fault]").count()
     assert 1 <= group(page, "alpha").locator("[data-fault]").count()  # a allowed its own
-    pid = lab.b.call(manager_pid, "cam", timeout=10)
+    pid = lab.b.call(hosts.manager_pid, "cam", timeout=10)
 
     status, answer = post_fault(page, "kill", {"child": "cam", "pid": pid, "host": "bravo"})
 
     assert 403 == status
     assert "bravo refused: bravo does not allow faults" in answer["message"]
-    assert pid == lab.b.call(manager_pid, "cam", timeout=10)  # nothing was sent
+    assert pid == lab.b.call(hosts.manager_pid, "cam", timeout=10)  # nothing was sent
 
     lab.b.call(open_observer, True, timeout=30)
     button = bravo.locator('[data-fault="kill"]')
@@ -310,7 +304,7 @@ def test_a_fault_button_on_a_for_bs_manager_works_only_when_b_allowed_faults(
     assert "from alpha's page" in json.dumps(
         [e for e in state(page)["events"] if e["type"] == "ObserverFault"]
     )
-    assert pid != lab.b.call(manager_pid, "cam", timeout=10)
+    assert pid != lab.b.call(hosts.manager_pid, "cam", timeout=10)
 
 
 def view_system(argv: list[str], bound: float) -> dict[str, Any]:
@@ -383,7 +377,7 @@ def test_a_cut_link_greys_bs_tree_then_it_is_live_after_the_heal(
 ) -> None:
     cam(page).and_(page.locator('[data-state="running"]')).wait_for(timeout=30_000)
     group(page, "bravo").and_(page.locator('[data-state="live"]')).wait_for(timeout=30_000)
-    pid = lab.b.call(manager_pid, "cam", timeout=10)
+    pid = lab.b.call(hosts.manager_pid, "cam", timeout=10)
 
     cut = time.monotonic()
     lab.net.link_down()

@@ -67,16 +67,9 @@ def provider_setup(registrar: rr.ResourceRegistrar) -> None:
     registrar.register_server("probe", load=lambda request: request, unload=lambda _q, _r: None)
 
 
-def record_status(query: rr.Query, update: rr.StatusUpdate) -> None:
-    """A consumer's status callback: (query id, status name, source, when) into `KEPT`."""
-    hosts.KEPT.setdefault("heard", queue.Queue()).put(
-        (query.id, update.status.name, update.source, time.monotonic())
-    )
-
-
 def call_camera(registrar: rr.ResourceRegistrar, device: int, timeout: float = 10.0) -> str:
     query = registrar.call(
-        "erm", "camera", {"device": device}, on_status=record_status, timeout=timeout
+        "erm", "camera", {"device": device}, on_status=hosts.record_status, timeout=timeout
     )
     return query.id
 
@@ -91,16 +84,6 @@ def unload(registrar: rr.ResourceRegistrar, query_id: str) -> None:
 
 def held(registrar: rr.ResourceRegistrar) -> list[str]:
     return [query.id for query in registrar.client_queries()]
-
-
-def send_warning(registrar: rr.ResourceRegistrar, device: int) -> float:
-    """A WARNING on the camera resource of `device`; when it was sent."""
-    query_id = next(
-        q.id for q in registrar.server_queries("camera") if q.request == {"device": device}
-    )
-    sent = time.monotonic()
-    registrar.send_status(query_id, rr.Status.WARNING, "hot", timeout=5)
-    return sent
 
 
 def loads_of(device: int) -> int:
@@ -144,7 +127,7 @@ def cm_setup(registrar: rr.ResourceRegistrar) -> None:
 
 def call_filtered(registrar: rr.ResourceRegistrar, device: int) -> str:
     return registrar.call(
-        "cm", "filtered", {"device": device}, on_status=record_status, timeout=10
+        "cm", "filtered", {"device": device}, on_status=hosts.record_status, timeout=10
     ).id
 
 
@@ -270,7 +253,7 @@ def test_a_status_sent_on_host_a_reaches_every_callback_on_both_hosts_once(share
     direct = shared.b.call(hosts.rr_run, "app-b", call_camera, 2, timeout=15)
     assert 1 == shared.a.call(loads_of, 2, timeout=5)
 
-    sent = shared.a.call(hosts.rr_run, "erm", send_warning, 2, timeout=10)
+    sent = shared.a.call(hosts.rr_run, "erm", hosts.send_warning, 2, timeout=10)
 
     query_b, status_b, source_b, at_b = shared.b.call(hosts.next_status, 5.0, timeout=10)
     status_cm, source_cm, at_cm = shared.b.call(server_heard, 5.0, timeout=10)
@@ -559,12 +542,6 @@ def start_tree(
         hosts.KEPT["registrars"][consumer] = sup.registrar(consumer)
 
 
-def manager_pid(name: str) -> int:
-    pid = hosts.KEPT["sup"].child(name).pid
-    assert pid is not None
-    return int(pid)
-
-
 def wait_restarted(name: str, timeout: float) -> float:
     hosts.KEPT["sup"].wait_restarted(name, timeout=timeout)
     return time.monotonic()
@@ -572,12 +549,6 @@ def wait_restarted(name: str, timeout: float) -> float:
 
 def run_in(name: str, fn: Any, *args: Any) -> Any:
     return hosts.KEPT["sup"].run_in(name, lambda registrar: fn(registrar, *args), timeout=15)
-
-
-def stop_tree() -> None:
-    sup = hosts.KEPT.pop("sup", None)
-    if sup is not None:
-        sup.stop()
 
 
 def in_manager(_registrar: rr.ResourceRegistrar, fn: Any, *args: Any) -> Any:
@@ -614,7 +585,7 @@ def test_a_supervised_manager_killed_on_one_host_comes_back_without_fatal_for_th
     try:
         before, _ = b.call(hosts.rr_run, "app-b", until_filtered, 9, 15.0, timeout=30)
 
-        os.kill(a.call(manager_pid, "erm", timeout=10), signal.SIGKILL)
+        os.kill(a.call(hosts.manager_pid, "erm", timeout=10), signal.SIGKILL)
         restarted = a.call(wait_restarted, "erm", 10.0, timeout=15)
         _, answered = b.call(hosts.rr_run, "app-b", until_filtered, 10, 10.0, timeout=15)
 
@@ -624,8 +595,8 @@ def test_a_supervised_manager_killed_on_one_host_comes_back_without_fatal_for_th
         b.call(hosts.rr_run, "app-b", unload, before, timeout=10)
         a.call(run_in, "erm", in_manager, unloaded, {"device": 9}, 10.0, timeout=20)
     finally:
-        b.call(stop_tree, timeout=60)
-        a.call(stop_tree, timeout=60)
+        b.call(hosts.stop_tree, timeout=60)
+        a.call(hosts.stop_tree, timeout=60)
 
 
 @pytest.mark.timeout(120)
@@ -649,14 +620,14 @@ def test_a_consumer_on_host_b_that_dies_for_good_has_its_ids_released_on_host_a(
         assert 1 == shared.a.call(loads_of, 20, timeout=5)
 
         killed = time.monotonic()
-        os.kill(tree.call(manager_pid, "app-t", timeout=10), signal.SIGKILL)
+        os.kill(tree.call(hosts.manager_pid, "app-t", timeout=10), signal.SIGKILL)
         released = shared.a.call(unloaded, {"device": 20}, 10.0, timeout=15)
 
         assert released - killed < 5.0
         assert 1 == shared.a.call(unloads_of, 20, timeout=5)
     finally:
         with contextlib.suppress(Exception):
-            tree.call(stop_tree, timeout=60)
+            tree.call(hosts.stop_tree, timeout=60)
         with contextlib.suppress(Exception):
             tree.call(hosts.rr_stop, timeout=30)
         tree.stop()

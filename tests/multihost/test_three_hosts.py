@@ -102,16 +102,9 @@ def hub_setup(registrar: rr.ResourceRegistrar) -> None:
     registrar.register_server("probe", load=lambda request: request, unload=lambda _q, _r: None)
 
 
-def record_status(query: rr.Query, update: rr.StatusUpdate) -> None:
-    """A consumer's status callback: (query id, status name, source, when) into `KEPT`."""
-    hosts.KEPT.setdefault("heard", queue.Queue()).put(
-        (query.id, update.status.name, update.source, time.monotonic())
-    )
-
-
 def call_camera(registrar: rr.ResourceRegistrar, device: int) -> str:
     return registrar.call(
-        "erm", "camera", {"device": device}, on_status=record_status, timeout=BOUND
+        "erm", "camera", {"device": device}, on_status=hosts.record_status, timeout=BOUND
     ).id
 
 
@@ -141,13 +134,6 @@ def unload(registrar: rr.ResourceRegistrar, query_id: str) -> None:
 
 def held(registrar: rr.ResourceRegistrar) -> list[str]:
     return [query.id for query in registrar.client_queries()]
-
-
-def send_warning(registrar: rr.ResourceRegistrar, device: int) -> None:
-    query_id = next(
-        q.id for q in registrar.server_queries("camera") if q.request == {"device": device}
-    )
-    registrar.send_status(query_id, rr.Status.WARNING, "hot", timeout=5)
 
 
 def unloaded(request: Any, timeout: float) -> float:
@@ -295,7 +281,7 @@ def test_a_calls_a_registrar_on_c_through_b_with_mutual_tls(lab: Lab) -> None:
 
     a.call(wait_for_name, "erm", BOUND, timeout=30)
     query_id = a.call(hosts.rr_run, "app", call_camera, 1, timeout=30)
-    c.call(hosts.rr_run, "erm", send_warning, 1, timeout=30)
+    c.call(hosts.rr_run, "erm", hosts.send_warning, 1, timeout=30)
     heard_id, status, source, _ = a.call(hosts.next_status, BOUND, timeout=30)
     a.call(hosts.rr_run, "app", unload, query_id, timeout=30)
     c.call(unloaded, {"device": 1}, BOUND, timeout=30)
@@ -303,14 +289,6 @@ def test_a_calls_a_registrar_on_c_through_b_with_mutual_tls(lab: Lab) -> None:
     assert (query_id, "WARNING", "erm/camera") == (heard_id, status, source)
     assert (1, 1) == c.call(counts, 1, timeout=10)
     assert {"a": [], "b": [], "c": []} == warnings(lab)
-
-
-def names_within(name: str, timeout: float) -> bool:
-    """Whether this worker's network sees registrar `name` within `timeout` seconds."""
-    from tests.support.waiting import wait_for  # noqa: PLC0415
-
-    network = hosts.KEPT["network"]
-    return bool(wait_for(lambda: name in network.names(), timeout))
 
 
 def warned_of(name: str, timeout: float) -> str:
@@ -341,7 +319,7 @@ def test_a_non_member_linked_to_b_reaches_nothing_on_c(lab: Lab) -> None:
     stranger.call(hosts.rr_start, "mallory", timeout=30)
 
     assert "not in members" in lab.b.call(warned_of, "stranger", BOUND, timeout=30)
-    seen_at_c = lab.c.submit(names_within, "mallory", QUIET)
+    seen_at_c = lab.c.submit(hosts.names_within, "mallory", QUIET)
     kind, message, _ = stranger.call(hosts.rr_run, "mallory", failing_call, "erm", 1, timeout=30)
     assert "UnknownRegistrarError" == kind, message
     assert not seen_at_c.result(timeout=30)
@@ -428,12 +406,6 @@ def start_tree(state_dir: str) -> None:
     hosts.KEPT["sup"] = sup
 
 
-def manager_pid(name: str) -> int:
-    pid = hosts.KEPT["sup"].child(name).pid
-    assert pid is not None
-    return int(pid)
-
-
 def wait_restarted(name: str, timeout: float) -> None:
     hosts.KEPT["sup"].wait_restarted(name, timeout=timeout)
 
@@ -443,15 +415,9 @@ def in_manager(name: str, fn: Any, *args: Any) -> Any:
     return hosts.KEPT["sup"].run_in(name, lambda _registrar: fn(*args), timeout=BOUND)
 
 
-def stop_tree() -> None:
-    sup = hosts.KEPT.pop("sup", None)
-    if sup is not None:
-        sup.stop()
-
-
 def call_cam(registrar: rr.ResourceRegistrar, device: int) -> str:
     return registrar.call(
-        "cam", "camera", {"device": device}, on_status=record_status, timeout=BOUND
+        "cam", "camera", {"device": device}, on_status=hosts.record_status, timeout=BOUND
     ).id
 
 
@@ -474,7 +440,7 @@ def test_a_supervised_manager_killed_on_c_comes_back_without_fatal_for_a(lab: La
     try:
         before = a.call(hosts.rr_run, "app", until_cam, 9, BOUND, timeout=30)
 
-        os.kill(c.call(manager_pid, "cam", timeout=10), signal.SIGKILL)
+        os.kill(c.call(hosts.manager_pid, "cam", timeout=10), signal.SIGKILL)
         c.call(wait_restarted, "cam", BOUND, timeout=30)
         after = a.call(hosts.rr_run, "app", until_cam, 10, BOUND, timeout=30)
 
@@ -485,7 +451,7 @@ def test_a_supervised_manager_killed_on_c_comes_back_without_fatal_for_a(lab: La
         c.call(in_manager, "cam", unloaded, {"device": 9}, BOUND, timeout=30)
         a.call(hosts.rr_run, "app", unload, after, timeout=30)
     finally:
-        c.call(stop_tree, timeout=60)
+        c.call(hosts.stop_tree, timeout=60)
 
 
 # -- rule 22's resolve strategy: a lone host against the majority (issue 51, finding 9) --------

@@ -143,13 +143,6 @@ def call_with_status(registrar: rr.ResourceRegistrar, device: int) -> str:
     ).id
 
 
-def send_warning(registrar: rr.ResourceRegistrar, device: int) -> None:
-    query_id = next(
-        q.id for q in registrar.server_queries("camera") if q.request == {"device": device}
-    )
-    registrar.send_status(query_id, rr.Status.WARNING, "hot", timeout=5)
-
-
 def unload(registrar: rr.ResourceRegistrar, query_id: str) -> None:
     registrar.unload(query_id)
 
@@ -173,14 +166,6 @@ def logged(level: str, parts: list[str], timeout: float) -> str:
     if not wait_for(lambda: bool(found()), timeout):
         raise TimeoutError(f"no {level} with {parts} within {timeout:g} s: {hosts.rr_logs()}")
     return found()[0]
-
-
-def names_within(name: str, timeout: float) -> bool:
-    """Whether this worker's network sees registrar `name` within `timeout` seconds."""
-    from tests.support.waiting import wait_for  # noqa: PLC0415
-
-    network = hosts.KEPT["network"]
-    return bool(wait_for(lambda: name in network.names(), timeout))
 
 
 def call_fails(registrar: rr.ResourceRegistrar) -> str:
@@ -433,7 +418,7 @@ def test_members_call_each_other_and_each_side_names_the_other(
     member_calls(b, 3)
     assert {"device": 3} == a.call(next_from, "unloads", BOUND, timeout=30)
     query_id = b.call(hosts.rr_run, "app", call_with_status, 4, timeout=30)
-    a.call(hosts.rr_run, "erm", send_warning, 4, timeout=30)
+    a.call(hosts.rr_run, "erm", hosts.send_warning, 4, timeout=30)
     assert (query_id, "WARNING", "erm/camera", "hot") == b.call(
         next_from, "heard", BOUND, timeout=30
     )
@@ -542,7 +527,7 @@ def test_a_plain_zenoh_peer_at_the_tls_port_gets_no_link(
     intruder = b.spawn()
     intruder.call(raw_open, [a.endpoint(PORT, "tcp")], None, 0.0, timeout=30)
     intruder.call(raw_intrude, "intruder", created, timeout=30)
-    seen = a.worker.submit(names_within, "intruder", QUIET)
+    seen = a.worker.submit(hosts.names_within, "intruder", QUIET)
     member_calls(b, 1)
     never_appear(created)
     assert not seen.result(timeout=30)
@@ -638,7 +623,7 @@ def test_an_rr_actors_host_so_refused_is_warned_with_the_reason_and_is_not_in(
     assert "UnknownRegistrarError" == refused.call(hosts.rr_run, "mallory", call_fails, timeout=30)
     created = tmp_path / "created"
     refused.call(put_through_router, f"rr/{SYSTEM}/reg/erm", created, timeout=30)
-    seen = a.worker.submit(names_within, "mallory", QUIET)
+    seen = a.worker.submit(hosts.names_within, "mallory", QUIET)
     member_calls(b, 1)
     never_appear(created)
     assert not seen.result(timeout=30)
@@ -677,11 +662,11 @@ def test_a_ca_signed_non_member_links_but_every_message_is_dropped(
         name for name, _ in raw.call(raw_open, [endpoint], stranger_tls, timeout=30)
     ]
     raw.call(raw_intrude, "intruder", created, timeout=30)
-    seen = a.worker.submit(names_within, "intruder", QUIET)
+    seen = a.worker.submit(hosts.names_within, "intruder", QUIET)
     member_calls(b, 1)
     never_appear(created)
     assert not seen.result(timeout=30)
-    assert not a.call(names_within, "mallory", 0.0, timeout=30)
+    assert not a.call(hosts.names_within, "mallory", 0.0, timeout=30)
     raw.call(raw_close, timeout=30)
     a.call(logged, "INFO", [f"link to 'stranger' at {b.address} closed"], BOUND, timeout=30)
     assert 1 == len([m for m in a.call(hosts.rr_logs, "WARNING", timeout=30) if "stranger" in m])
@@ -740,7 +725,7 @@ def test_a_member_refuses_a_listener_impostor(
     assert reason in warning
     created = tmp_path / "created"
     fake.call(put_through_router, f"rr/{SYSTEM}/reg/dialer", created, timeout=30)
-    seen = dialer.submit(names_within, "fake", QUIET)
+    seen = dialer.submit(hosts.names_within, "fake", QUIET)
     member_calls(b, 1)
     never_appear(created)
     assert not seen.result(timeout=30)

@@ -66,22 +66,26 @@ def test_graph_prints_dot(state: Path) -> None:
     assert 3 == text.count("style=dashed")
 
 
-def test_graph_of_a_missing_directory_is_a_clear_error(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+@pytest.mark.parametrize(
+    ("command", "where", "error"),
+    [
+        (["graph"], "nope", "does not exist"),
+        (["graph"], "", "holds no catalog backup"),
+        (["observe", "--for", "0.1"], "nope", "does not exist"),
+    ],
+    ids=[
+        "graph_of_a_missing_directory",
+        "graph_of_a_directory_without_backups",
+        "observe_of_a_missing_directory",
+    ],
+)
+def test_a_state_directory_missing_or_without_backups_is_a_clear_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], command: list[str], where: str, error: str
 ) -> None:
-    code, _ = run("graph", "--state", str(tmp_path / "nope"))
+    code, _ = run(*command, "--state", str(tmp_path / where))
 
     assert 1 == code
-    assert "does not exist" in capsys.readouterr().err
-
-
-def test_graph_of_a_directory_without_backups_is_a_clear_error(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
-    code, _ = run("graph", "--state", str(tmp_path))
-
-    assert 1 == code
-    assert "holds no catalog backup" in capsys.readouterr().err
+    assert error in capsys.readouterr().err
 
 
 def test_a_corrupt_backup_is_named_and_left_as_it_was(
@@ -169,15 +173,6 @@ def test_observe_for_what_is_not_a_positive_number_of_seconds_is_a_clear_error(
         code = exc.code  # type: ignore[assignment]
 
     assert (True, True) == (code not in (0, None), "--for" in capsys.readouterr().err)
-
-
-def test_observe_of_a_missing_directory_is_a_clear_error(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
-    code, _ = run("observe", "--state", str(tmp_path / "nope"), "--for", "0.1")
-
-    assert 1 == code
-    assert "does not exist" in capsys.readouterr().err
 
 
 def test_observe_on_a_non_loopback_host_needs_allow_remote(

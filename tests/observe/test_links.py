@@ -19,7 +19,6 @@ from typing import Any
 import pytest
 
 import rr_actors as rr
-from rr_actors.testing import start_forkserver
 from rr_actors_lab.observe import _links as zenoh_watch
 from rr_actors_lab.observe._links import GRACE, TICK, LinkWatch, handshake_trouble
 from tests.support import pki
@@ -121,11 +120,7 @@ def silent_listener(tmp_path: Path) -> Iterator[tuple[Any, str]]:
 DAY = datetime.timedelta(days=1)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def forkserver() -> None:
-    """Manager processes start from the forkserver: a process with a Zenoh session must not
-    fork (started before any test, as the leftover check expects)."""
-    start_forkserver()
+pytestmark = pytest.mark.usefixtures("forkserver")
 
 
 # -- the watch ---------------------------------------------------------------------------------

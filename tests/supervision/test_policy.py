@@ -74,7 +74,6 @@ from rr_actors.testing import (
     actor_ref,
     catalog_snapshot,
     expect_restart,
-    start_forkserver,
 )
 from tests.support.carriers import own_provider_main, setup_servers
 from tests.support.gating import GatedLoad
@@ -92,13 +91,10 @@ from tests.support.supervising import (
 )
 from tests.support.waiting import wait_for
 
-pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
-
-
-@pytest.fixture(scope="module", autouse=True)
-def forkserver() -> None:
-    """Start the forkserver before the leak check counts this process's children."""
-    start_forkserver()
+pytestmark = [
+    pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals"),
+    pytest.mark.usefixtures("forkserver"),
+]
 
 
 # == restarting: a child's end and what comes of it ===============================================

@@ -33,11 +33,6 @@ def _serve(registrar: rr.ResourceRegistrar) -> None:
     registrar.register_server("cam", load=lambda r: f"cam {r}", unload=lambda _q, _r: None)
 
 
-@pytest.fixture
-def uid() -> str:
-    return uuid.uuid4().hex[:8]
-
-
 @pytest.mark.usefixtures("process_helpers")
 def test_children_start_exit_and_restart_in_order_with_their_pids(
     supervisors: Callable[..., rr.Supervisor], uid: str

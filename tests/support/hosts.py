@@ -58,6 +58,7 @@ import subprocess
 import sys
 import tempfile
 import threading
+import time
 import traceback
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
@@ -914,6 +915,39 @@ def next_status(timeout: float) -> tuple[str, str, str, float]:
         raise TimeoutError(f"no status within {timeout:g} s") from None
 
 
+def record_status(query: Any, update: Any) -> None:
+    """A consumer's status callback: (query id, status name, source, when) into `KEPT`."""
+    KEPT.setdefault("heard", queue.Queue()).put(
+        (query.id, update.status.name, update.source, time.monotonic())
+    )
+
+
+def send_warning(registrar: Any, device: int) -> float:
+    """A WARNING on the camera resource of `device`; when it was sent."""
+    import rr_actors as rr  # noqa: PLC0415
+
+    query_id = next(
+        q.id for q in registrar.server_queries("camera") if q.request == {"device": device}
+    )
+    sent = time.monotonic()
+    registrar.send_status(query_id, rr.Status.WARNING, "hot", timeout=5)
+    return sent
+
+
+def manager_pid(name: str) -> int:
+    """The pid of manager `name` of this worker's supervisor (`KEPT["sup"]`)."""
+    pid = KEPT["sup"].child(name).pid
+    assert pid is not None
+    return int(pid)
+
+
+def stop_tree() -> None:
+    """Stop this worker's supervisor (`KEPT["sup"]`), if it has one."""
+    sup = KEPT.pop("sup", None)
+    if sup is not None:
+        sup.stop()
+
+
 def more_statuses() -> int:
     """How many recorded statuses wait in `KEPT["heard"]`."""
     return int(KEPT.setdefault("heard", queue.Queue()).qsize())
@@ -1003,6 +1037,14 @@ def rr_unlinked_within(name: str, timeout: float) -> bool:
 
     network = KEPT["network"]
     return bool(wait_for(lambda: name not in network.names(), timeout))
+
+
+def names_within(name: str, timeout: float) -> bool:
+    """Whether this worker's network sees registrar `name` within `timeout` seconds."""
+    from tests.support.waiting import wait_for  # noqa: PLC0415
+
+    network = KEPT["network"]
+    return bool(wait_for(lambda: name in network.names(), timeout))
 
 
 def rr_stop() -> None:

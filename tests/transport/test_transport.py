@@ -635,20 +635,27 @@ def test_an_unpicklable_request_is_a_config_error_at_the_caller_and_nothing_load
     assert [] == consumer.client_queries()
 
 
-def test_an_unpicklable_response_fails_the_call_and_releases_its_consumer_id(
+@pytest.mark.parametrize(
+    ("server", "error"),
+    [("lock", "not picklable"), ("opaque", None)],
+    ids=["an_unpicklable_response", "an_answer_that_cannot_be_unpickled_here"],
+)
+def test_a_response_not_picklable_there_or_not_unpicklable_here_releases_its_consumer_id(
     system: System,
     consumer: rr.ResourceRegistrar,
     start_provider: ProviderFactory,
     eventually: Callable[..., bool],
+    server: str,
+    error: str | None,
 ) -> None:
-    provider = start_provider()
-
-    with pytest.raises(rr.ResourceLoadError, match="not picklable"):
-        consumer.call(provider.name, "lock", "r", timeout=10)
+    provider = start_provider(setup_big)  # (`lock`: an unpicklable response; `opaque`: an
+    # answer whose class this process cannot unpickle)
+    with pytest.raises(rr.ResourceLoadError, match=error):
+        consumer.call(provider.name, server, "r", timeout=10)
 
     assert eventually(lambda: ["r"] == system.run(provider.name, unloads, timeout=10))
     assert [] == system.run(
-        provider.name, lambda registrar: registrar.server_queries("lock"), timeout=10
+        provider.name, lambda registrar: registrar.server_queries(server), timeout=10
     )
     assert [] == consumer.client_queries()
 
@@ -716,33 +723,19 @@ def test_no_raw_low_level_error_reaches_a_caller(
     assert [] == [e for e in errors if isinstance(e, raw) or not isinstance(e, rr.RrError)]
 
 
+@pytest.mark.parametrize("first", [False, True], ids=["a_call", "a_first_call"])
 def test_a_call_to_a_frozen_process_fails_within_its_timeout(
-    system: System, consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
+    system: System, consumer: rr.ResourceRegistrar, start_provider: ProviderFactory, first: bool
 ) -> None:
     timeout, expected = frozen_call(system)
     provider = start_provider(setup_big)
-    consumer.call(provider.name, "echo", "warm up the connection")
+    if not first:  # (a connection, then a request too big for the socket's buffers)
+        consumer.call(provider.name, "echo", "warm up the connection")
+    request = "r" if first else b"x" * BIG
     os.kill(provider.pid, signal.SIGSTOP)
     try:
         done, outcome = in_thread(
-            lambda: consumer.call(provider.name, "echo", b"x" * BIG, timeout=timeout)
-        )
-        assert done.wait(10), "the call outlived its timeout"
-    finally:
-        provider.kill()
-
-    assert isinstance(outcome.get("error"), expected)
-
-
-def test_a_first_call_to_a_frozen_process_fails_within_its_timeout(
-    system: System, consumer: rr.ResourceRegistrar, start_provider: ProviderFactory
-) -> None:
-    timeout, expected = frozen_call(system)
-    provider = start_provider(setup_big)
-    os.kill(provider.pid, signal.SIGSTOP)
-    try:
-        done, outcome = in_thread(
-            lambda: consumer.call(provider.name, "echo", "r", timeout=timeout)
+            lambda: consumer.call(provider.name, "echo", request, timeout=timeout)
         )
         assert done.wait(10), "the call outlived its timeout"
     finally:
@@ -783,23 +776,6 @@ def test_an_answer_that_cannot_be_unpickled_here_fails_the_call_as_a_load_error(
     assert [(provider.name, "opaque", "RuntimeError")] == [
         (frame.registrar, frame.server, frame.exc_type) for frame in caught.value.stack
     ]
-
-
-def test_an_answer_that_cannot_be_unpickled_here_releases_its_consumer_id(
-    system: System,
-    consumer: rr.ResourceRegistrar,
-    start_provider: ProviderFactory,
-    eventually: Callable[..., bool],
-) -> None:
-    provider = start_provider(setup_big)
-    with pytest.raises(rr.ResourceLoadError):
-        consumer.call(provider.name, "opaque", "r", timeout=10)
-
-    assert eventually(lambda: ["r"] == system.run(provider.name, unloads, timeout=10))
-    assert [] == system.run(
-        provider.name, lambda registrar: registrar.server_queries("opaque"), timeout=10
-    )
-    assert [] == consumer.client_queries()
 
 
 class TestAtTheCarrier:

@@ -29,7 +29,7 @@ import zenoh
 import rr_actors as rr
 from rr_actors._transport.codec import frame
 from rr_actors._transport.zenoh.ops.config import session_config
-from rr_actors.testing import RemoteRegistrar, start_forkserver
+from rr_actors.testing import RemoteRegistrar
 from rr_actors_lab._tools import certs as certs_tool
 from rr_actors_lab.observe._links import LinkWatch, handshake_trouble
 from tests.support import pki
@@ -38,12 +38,7 @@ from tests.support.supervising import process
 from tests.support.tls_lab import MEMBERS, Lab, Logged, caught_log, listener, open_router
 from tests.support.waiting import wait_for
 
-
-@pytest.fixture(scope="module", autouse=True)
-def forkserver() -> None:
-    """Manager processes start from the forkserver: a process with a Zenoh session must not
-    fork (started before any test, as the leftover check expects)."""
-    start_forkserver()
+pytestmark = pytest.mark.usefixtures("forkserver")
 
 
 @pytest.fixture

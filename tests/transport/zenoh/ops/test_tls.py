@@ -195,36 +195,25 @@ def test_a_ca_file_may_hold_several_cas(tmp_path: Path, ca: tuple[Path, Path]) -
 
 
 @pytest.mark.parametrize("which", ["ca", "cert", "key"])
-def test_a_missing_file_is_a_config_error_naming_it(
-    tmp_path: Path, ca: tuple[Path, Path], robot: tuple[Path, Path], which: str
+@pytest.mark.parametrize(
+    "fault",
+    ["missing", "a directory", "not PEM"],
+    ids=["a_missing_file", "a_file_that_cannot_be_read", "a_file_that_is_not_pem"],
+)
+def test_a_file_missing_unreadable_or_not_pem_is_a_config_error_naming_it(
+    tmp_path: Path, ca: tuple[Path, Path], robot: tuple[Path, Path], which: str, fault: str
 ) -> None:
     paths = {"ca": ca[0], "cert": robot[0], "key": robot[1]}
-    paths[which] = tmp_path / "nowhere.pem"
+    bad, error = {  # (a directory: open() fails as for a file root cannot read)
+        "missing": (tmp_path / "nowhere.pem", "does not exist$"),
+        "a directory": (tmp_path, "cannot be read: Is a directory"),
+        "not PEM": (tmp_path / "binary.der", "is not PEM"),
+    }[fault]
+    if fault == "not PEM":
+        bad.write_bytes(b"\x30\x82\x01\x0a not pem")
+    paths[which] = bad
 
-    with pytest.raises(ConfigError, match=rf"^{which} {tmp_path}/nowhere.pem does not exist$"):
-        rr.ZenohTLS(**paths, members=["robot"])
-
-
-@pytest.mark.parametrize("which", ["ca", "cert", "key"])
-def test_a_file_that_cannot_be_read_is_a_config_error_naming_it(
-    tmp_path: Path, ca: tuple[Path, Path], robot: tuple[Path, Path], which: str
-) -> None:
-    paths = {"ca": ca[0], "cert": robot[0], "key": robot[1]}
-    paths[which] = tmp_path  # a directory: open() fails as for a file root cannot read
-
-    with pytest.raises(ConfigError, match=rf"^{which} {tmp_path} cannot be read: Is a directory"):
-        rr.ZenohTLS(**paths, members=["robot"])
-
-
-@pytest.mark.parametrize("which", ["ca", "cert", "key"])
-def test_a_file_that_is_not_pem_is_a_config_error_naming_it(
-    tmp_path: Path, ca: tuple[Path, Path], robot: tuple[Path, Path], which: str
-) -> None:
-    paths = {"ca": ca[0], "cert": robot[0], "key": robot[1]}
-    paths[which] = tmp_path / "binary.der"
-    paths[which].write_bytes(b"\x30\x82\x01\x0a not pem")
-
-    with pytest.raises(ConfigError, match=rf"^{which} {tmp_path}/binary.der is not PEM"):
+    with pytest.raises(ConfigError, match=rf"^{which} {bad} {error}"):
         rr.ZenohTLS(**paths, members=["robot"])
 
 
