@@ -9,12 +9,14 @@
 - A child forked from the process: a watch of the parent is never quiet there.
 - inotify instances (128 a user, shared by all its programs): a process of one store (a
   process manager's) makes none, its store stats; a tree of process managers with a
-  `state_dir` holds one only in its processes of several stores, whatever its size.
+  `state_dir` holds one only in its processes of several stores, whatever its size, and
+  leaves the user's other programs theirs (a user namespace's lowered limit).
 """
 
 from __future__ import annotations
 
 import os
+import shutil
 import sqlite3
 import subprocess
 import sys
@@ -283,3 +285,50 @@ def test_a_tree_holds_an_instance_per_process_of_several_stores_not_per_manager(
         held = {name: _instances(sup.child(name).pid) for name in ("m0", "m1", "m2", "m3")}
 
         assert ({f"m{i}": 0 for i in range(4)}, 1) == (held, _instances(sup.child("pool").pid))
+
+
+STARVED = textwrap.dedent(
+    """
+    import ctypes, os, sys
+    import rr_actors as rr
+
+    def echo(registrar):
+        registrar.register_server("echo", load=lambda r: r, unload=lambda r, s: None)
+
+    with open("/proc/sys/user/max_inotify_instances", "w") as limit:  # (this namespace's)
+        limit.write("3")
+    specs = [rr.ManagerSpec(f"m{i}", echo, isolation="process") for i in range(4)]
+    with rr.Supervisor(specs, state_dir=sys.argv[1]) as sup:
+        app = sup.registrar("app")
+        for i in range(4):  # (each commits to its backup)
+            app.call(f"m{i}", "echo", "r")
+        fd = ctypes.CDLL(None, use_errno=True).inotify_init1(os.O_CLOEXEC)
+        print("another program gets an instance:", fd >= 0)
+    """
+)
+
+
+def _user_namespace() -> list[str]:
+    """A command prefix running as root of a new user namespace (its own inotify limits)."""
+    prefix = [shutil.which("unshare") or "unshare", "--user", "--map-root-user"]
+    try:
+        subprocess.run([*prefix, "true"], check=True, capture_output=True, timeout=30)
+    except (OSError, subprocess.SubprocessError):
+        pytest.skip("no user namespace here (unshare)")
+    return prefix
+
+
+def test_a_tree_of_more_managers_than_the_users_instances_leaves_its_programs_one(
+    tmp_path: Path,
+) -> None:
+    """4 process managers with a `state_dir` under a limit of 3 instances (one each would
+    take them all, and the user's editor or file watcher would get none)."""
+    done = subprocess.run(
+        [*_user_namespace(), sys.executable, "-c", STARVED, str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    )
+
+    assert "another program gets an instance: True" == done.stdout.strip()
