@@ -283,8 +283,9 @@ def test_a_tree_holds_an_instance_per_process_of_several_stores_not_per_manager(
         for name in ("m0", "m1", "m2", "m3", "p0", "p1"):  # (each commits to its backup)
             app.call(name, "echo", "r")
         held = {name: _instances(sup.child(name).pid) for name in ("m0", "m1", "m2", "m3")}
+        in_pool = _instances(sup.child("pool").pid)
 
-        assert ({f"m{i}": 0 for i in range(4)}, 1) == (held, _instances(sup.child("pool").pid))
+    assert ({f"m{i}": 0 for i in range(4)}, 1) == (held, in_pool)
 
 
 STARVED = textwrap.dedent(
