@@ -105,9 +105,9 @@ class PidfdExitWatch:
     buys: a crash seen as soon as the process exited, even while the forkserver (its parent, which
     reaps it) is stopped or busy. Until it is reaped, `/proc/<pid>/stat` (field 52) holds its exit
     status, read through a descriptor opened while it ran (a recycled pid cannot be read instead).
-    Linux 5.3 and later. It holds copies of the process's inotify descriptors (`pidfd_getfd`, 5.6):
-    a killed process's exit (its pidfd readable, its zombie) waits for the kernel to destroy the
-    watches of the last copy (an SRCU grace period); `close` pays that instead, once it was seen."""
+    Linux 5.3 and later. It holds copies of a pool's inotify descriptor (`pidfd_getfd`, 5.6): its
+    killed process's exit (pidfd readable, zombie) waits for the kernel to destroy the watches of
+    the last copy (an SRCU grace period); `close` pays that, once seen (a process manager: none)."""
 
     __slots__ = ("held", "pidfd", "proc")
 

@@ -16,8 +16,10 @@ only after something happened.
 It says only that something may have changed (a `chmod` too): the caller `stat`s and arms
 again before it checks. It is exact for what it watches (the kernel queues an event before
 the causing call returns); a mount over a directory of the path is not watched. One
-inotify instance serves the process (a user has 128), its watches refcounted per inode; a
-forked child makes its own, and a parent's watch is never quiet there.
+inotify instance serves the process, its watches refcounted per inode, made with its second
+watch: a user has 128 (`fs.inotify.max_user_instances`, for all its programs), so a process
+of one store (a process manager's) stats, and a tree holds one per process of several stores
+(the supervisor's, a pool's). A forked child makes its own; a parent's watch is never quiet there.
 """
 
 from __future__ import annotations
@@ -72,8 +74,7 @@ class _Instance:
         self.lock = threading.Lock()
         self.watches: dict[int, set[InotifyNameWatch]] = {}  # wd -> the watches it serves
         self.forked = False  # (set in a forked child: this instance is the parent's)
-        # while a thread reads and hands out events (`quiet` then waits for it)
-        self.reading = False
+        self.reading = False  # while a thread reads and hands events out (`quiet` waits then)
 
     def add(self, watch: InotifyNameWatch, path: bytes, mask: int) -> int | None:
         """Watch `path` for `watch` (under `lock`); `None` if it cannot be watched."""
@@ -133,26 +134,13 @@ class _Instance:
 
 _instance: _Instance | None = None
 _instance_lock = threading.Lock()
-
-
-def _shared() -> _Instance | None:
-    """The process's inotify instance, made at first use (`None`: inotify missing or refused)."""
-    global _instance
-    with _instance_lock:
-        if _instance is None:
-            libc = _libc()
-            if libc is None:
-                return None
-            fd = libc.inotify_init1(_IN_NONBLOCK | _IN_CLOEXEC)
-            if fd < 0:
-                return None
-            _instance = _Instance(libc, fd)
-        return _instance
+_made = 0  # watches made in this process: its instance waits for the second
 
 
 def _forget_in_child() -> None:
-    global _instance, _instance_lock
+    global _instance, _instance_lock, _made
     _instance_lock = threading.Lock()  # (a thread of the parent may have held it)
+    _made = 0
     if _instance is not None:
         _instance.forked = True
         with contextlib.suppress(OSError):
@@ -166,11 +154,10 @@ forkserver.after_fork_in_child("the inotify instance", _forget_in_child)
 class InotifyNameWatch:
     """Tells whether the names it was armed with may have changed (one thread at a time)."""
 
-    def __init__(self, instance: _Instance) -> None:
-        self._instance = instance
+    def __init__(self) -> None:
+        self._instance: _Instance | None = None  # (the process's, at the first `arm` after)
         # its own: one poll object polled by two threads at once raises RuntimeError
         self._poll = select.poll()
-        self._poll.register(instance.fd, select.POLLIN)
         self._wds: list[int] = []
         self.changed = True  # (not armed yet)
 
@@ -178,9 +165,14 @@ class InotifyNameWatch:
         """Watch `paths` (absolute paths of existing files) instead of what was watched before;
         whether every one is watched (if not, it is never quiet until an `arm` that succeeds).
         """
+        if self._instance is None and _instance is not None:
+            self._instance = _instance
+            self._poll.register(_instance.fd, select.POLLIN)
         instance = self._instance
+        if instance is None:  # (the process's one watch: the caller stats)
+            return False
         with instance.lock:
-            self._forget()
+            self._forget(instance)
             if instance.forked:
                 return False
             targets, watched = _targets(paths)
@@ -196,7 +188,7 @@ class InotifyNameWatch:
     def quiet(self) -> bool:
         """Whether nothing happened to the names armed since `arm`."""
         instance = self._instance
-        if instance.forked:  # (its descriptor is closed here, its number maybe reused)
+        if instance is None or instance.forked:  # (forked: its descriptor is closed here)
             return False
         # nothing queued and no thread handing events out (`reading`): none concerns this one
         if self._poll.poll(0) or instance.reading:
@@ -205,15 +197,15 @@ class InotifyNameWatch:
         return not self.changed
 
     def close(self) -> None:
-        instance = self._instance
-        with instance.lock:
-            self._forget()
-            self.changed = True
+        if self._instance is not None:
+            with self._instance.lock:
+                self._forget(self._instance)
+        self.changed = True
 
-    def _forget(self) -> None:
-        if not self._instance.forked:
+    def _forget(self, instance: _Instance) -> None:
+        if not instance.forked:
             for wd in self._wds:
-                self._instance.remove(self, wd)
+                instance.remove(self, wd)
         self._wds = []
 
 
@@ -241,6 +233,14 @@ def _targets(paths: Sequence[str]) -> tuple[list[tuple[bytes, int]], bool]:
 
 
 def watch_names() -> InotifyNameWatch | None:
-    """A new watch, not armed yet; `None` where inotify cannot be used."""
-    instance = _shared()
-    return None if instance is None else InotifyNameWatch(instance)
+    """A new watch, not armed yet (nor armable while it is the process's one: the caller
+    stats); `None` where inotify is missing. The second makes the process's instance."""
+    global _instance, _made
+    if _libc() is None:
+        return None
+    with _instance_lock:
+        _made += 1
+        if _instance is None and _made > 1:  # (refused: the next watch asks again)
+            fd = _libc().inotify_init1(_IN_NONBLOCK | _IN_CLOEXEC)
+            _instance = _Instance(_libc(), fd) if fd >= 0 else None
+    return InotifyNameWatch()

@@ -62,8 +62,8 @@ def test_another_process_of_this_host_names_the_same_monotonic_clock_and_reads_i
 
 def _watch_a_file_then_wait(path: str, ready: Connection) -> None:
     """A process with an inotify watch armed on `path` (as a catalog backup's store arms
-    one); it says so, then waits to be killed."""
-    watch = linux_names.watch_names()
+    one in a pool's process: one of two stores); it says so, then waits to be killed."""
+    watch, _ = linux_names.watch_names(), linux_names.watch_names()
     assert watch is not None
     watch.arm([path])
     ready.send(os.getpid())

@@ -7,11 +7,16 @@
 - Two watches that share a directory each keep its watch until both let go; two threads
   asking theirs at once (two stores' registrars) both get answers.
 - A child forked from the process: a watch of the parent is never quiet there.
+- inotify instances (128 a user, shared by all its programs): a process of one store (a
+  process manager's) makes none, its store stats; a tree of process managers with a
+  `state_dir` holds one only in its processes of several stores, whatever its size, and
+  leaves the user's other programs theirs (a user namespace's lowered limit).
 """
 
 from __future__ import annotations
 
 import os
+import shutil
 import sqlite3
 import subprocess
 import sys
@@ -22,9 +27,17 @@ from pathlib import Path
 
 import pytest
 
+import rr_actors as rr
+from rr_actors._platform.linux import _HELD
 from rr_actors._platform.linux_names import InotifyNameWatch, watch_names
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="inotify")
+
+
+@pytest.fixture(autouse=True)
+def two_stores() -> None:
+    """This process makes its instance, as one of several stores does (the supervisor's)."""
+    watch_names()
 
 
 @pytest.fixture
@@ -177,12 +190,12 @@ FORKED = textwrap.dedent(
     import os, sys
     from rr_actors._platform.linux_names import watch_names
 
-    watch = watch_names()
+    watch, _ = watch_names(), watch_names()  # (two stores: the process's instance is made)
     watch.arm([sys.argv[1]])
     read, write = os.pipe()
     pid = os.fork()
     if pid == 0:
-        child = watch_names()
+        child, _ = watch_names(), watch_names()
         armed = child.arm([sys.argv[1]])
         os.write(write, f"{watch.quiet()} {armed} {child.quiet()}".encode())
         os._exit(0)
@@ -207,3 +220,116 @@ def test_a_watch_of_the_parent_is_never_quiet_in_a_forked_child(tmp_path: Path) 
     )
 
     assert "False True True True" == done.stdout.strip()
+
+
+# -- inotify instances: one per process of several stores, none per process manager -------
+
+ONE_STORE = textwrap.dedent(
+    """
+    import os, sys
+    from rr_actors._platform.linux_names import watch_names
+
+    def instances():
+        fds = [f"/proc/self/fd/{fd}" for fd in os.listdir("/proc/self/fd")]
+        links = [os.readlink(fd) for fd in fds if os.path.lexists(fd)]  # (not the listing's)
+        return links.count("anon_inode:inotify")
+
+    first = watch_names()
+    alone = (first.arm([sys.argv[1]]), first.quiet(), instances())
+    second = watch_names()
+    print(alone, (first.arm([sys.argv[1]]), second.arm([sys.argv[1]]), instances()))
+    """
+)
+
+
+def test_a_process_of_one_store_makes_no_instance_until_a_second_watch(tmp_path: Path) -> None:
+    """A process manager's one store stats (never quiet, no instance); a second watch makes
+    the instance, which the first joins at its next `arm`."""
+    path = tmp_path / "p"
+    path.touch()
+
+    done = subprocess.run(
+        [sys.executable, "-c", ONE_STORE, str(path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=True,
+    )
+
+    assert "(False, False, 0) (True, True, 1)" == done.stdout.strip()
+
+
+def _instances(pid: int) -> int:
+    """Process `pid`'s own inotify instances: its descriptors of one, less the copies an
+    exit watch holds (`PidfdExitWatch.held`: the same instances as its managers')."""
+    fds = Path(f"/proc/{pid}/fd")
+    inotify = {fd.name for fd in fds.iterdir() if os.readlink(fd) == "anon_inode:inotify"}
+    return len(inotify - {str(fd) for fd in (_HELD if pid == os.getpid() else ())})
+
+
+def _echo(registrar: rr.ResourceRegistrar) -> None:
+    registrar.register_server("echo", load=lambda r: r, unload=lambda r, s: None)
+
+
+def test_a_tree_holds_an_instance_per_process_of_several_stores_not_per_manager(
+    tmp_path: Path,
+) -> None:
+    managers = [rr.ManagerSpec(f"m{i}", _echo, isolation="process") for i in range(4)]
+    pool = rr.SupervisorSpec(
+        "pool", tuple(rr.ManagerSpec(f"p{i}", _echo) for i in range(2)), isolation="process"
+    )
+    with rr.Supervisor([*managers, pool], state_dir=str(tmp_path)) as sup:
+        app = sup.registrar("app")
+        for name in ("m0", "m1", "m2", "m3", "p0", "p1"):  # (each commits to its backup)
+            app.call(name, "echo", "r")
+        held = {name: _instances(sup.child(name).pid) for name in ("m0", "m1", "m2", "m3")}
+        in_pool = _instances(sup.child("pool").pid)
+
+    assert ({f"m{i}": 0 for i in range(4)}, 1) == (held, in_pool)
+
+
+STARVED = textwrap.dedent(
+    """
+    import ctypes, os, sys
+    import rr_actors as rr
+
+    def echo(registrar):
+        registrar.register_server("echo", load=lambda r: r, unload=lambda r, s: None)
+
+    with open("/proc/sys/user/max_inotify_instances", "w") as limit:  # (this namespace's)
+        limit.write("3")
+    specs = [rr.ManagerSpec(f"m{i}", echo, isolation="process") for i in range(4)]
+    with rr.Supervisor(specs, state_dir=sys.argv[1]) as sup:
+        app = sup.registrar("app")
+        for i in range(4):  # (each commits to its backup)
+            app.call(f"m{i}", "echo", "r")
+        fd = ctypes.CDLL(None, use_errno=True).inotify_init1(os.O_CLOEXEC)
+        print("another program gets an instance:", fd >= 0)
+    """
+)
+
+
+def _user_namespace() -> list[str]:
+    """A command prefix running as root of a new user namespace (its own inotify limits)."""
+    prefix = [shutil.which("unshare") or "unshare", "--user", "--map-root-user"]
+    try:
+        subprocess.run([*prefix, "true"], check=True, capture_output=True, timeout=30)
+    except (OSError, subprocess.SubprocessError):
+        pytest.skip("no user namespace here (unshare)")
+    return prefix
+
+
+def test_a_tree_of_more_managers_than_the_users_instances_leaves_its_programs_one(
+    tmp_path: Path,
+) -> None:
+    """4 process managers with a `state_dir` under a limit of 3 instances (one each would
+    take them all, and the user's editor or file watcher would get none)."""
+    done = subprocess.run(
+        [*_user_namespace(), sys.executable, "-c", STARVED, str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    )
+
+    assert "another program gets an instance: True" == done.stdout.strip()

@@ -667,8 +667,10 @@ def test_a_store_whose_names_did_not_change_stats_nothing_before_its_commits(
     tmp_path: Path, store_at: Callable[..., SqliteStore], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The check that the path still names the file costs a `poll` a commit, not two
-    `stat` calls (the kernel tells when a name changes); the tests above show it told."""
+    `stat` calls (the kernel tells when a name changes); the tests above show it told. In
+    a process of several stores (the supervisor's, a pool's): a process manager's one stats."""
     path = tmp_path / "p.db"
+    store_at(tmp_path / "another.db")
     store = store_at(path)
     catalog = Catalog()
     store.write(loaded(catalog, "r1", "q1"))  # (the first write checks, and arms the watch)
