@@ -314,8 +314,8 @@ def _user_namespace() -> list[str]:
     prefix = [shutil.which("unshare") or "unshare", "--user", "--map-root-user"]
     try:
         subprocess.run([*prefix, "true"], check=True, capture_output=True, timeout=30)
-    except (OSError, subprocess.SubprocessError):
-        pytest.skip("no user namespace here (unshare)")
+    except (OSError, subprocess.SubprocessError) as exc:  # (CI has them: fail, not skip)
+        pytest.fail(f"no user namespace here (unshare --user --map-root-user): {exc}")
     return prefix
 
 
