@@ -418,13 +418,15 @@ def _threaded(level: Level) -> set[str]:
 
 @dataclasses.dataclass
 class Ending:
-    """The whole tree's stop: its managers stopped so far (each told them before its own
-    stop, `consumer_down`), and who else hears of a stop, read once as it began (the
-    carrier's registrars beyond the tree, its thread managers): one stop walks no tree."""
+    """The whole tree's stop: its managers stopped so far and those that died in it (a stop
+    past its bound is a kill; each process told them before its own stop, `consumer_down`),
+    and who else hears of a stop, read once as it began (the carrier's registrars beyond
+    the tree, its thread managers): one stop walks no tree."""
 
     beyond: frozenset[str]
     threaded: frozenset[str]
     stopped: list[str] = dataclasses.field(default_factory=list)
+    lost: list[str] = dataclasses.field(default_factory=list)
 
     @classmethod
     def of(cls, root: Level, network: Transport | None) -> Ending:
@@ -448,11 +450,12 @@ def consumer_down(
 ) -> None:
     """Death watch (rule 19): registrar `name` is gone for good; every living registrar is
     told (`stopped`: it stopped cleanly, what it holds is stale, rule 12). `ending`
-    (`Tree.ending`): the tree's managers hear a stopped one only before their own stop
-    (dependents stop first), one notice each, not one per pair."""
-    if stopped and ending is not None:
-        life.gone_for_good(name, also=ending.beyond, stopped=True, later=ending.threaded)
-        ending.stopped.append(name)
+    (`Tree.ending`): the tree's manager processes hear one stopped or lost (killed at its
+    stop's bound) only before their own stop (dependents stop first), one notice each,
+    not one per pair (at a main thread's end past its bound: N² connections, issue 69)."""
+    if ending is not None:
+        life.gone_for_good(name, also=ending.beyond, stopped=stopped, later=ending.threaded)
+        (ending.stopped if stopped else ending.lost).append(name)
         return
     life.gone_for_good(name, also=_living(root, network), stopped=stopped)
 
