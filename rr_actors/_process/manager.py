@@ -320,8 +320,7 @@ class ManagerProcess:
         self._send(PeerStarted(name))
 
     def tell_stopped(self, names: tuple[str, ...], lost: tuple[str, ...] = ()) -> None:
-        """Registrars `names` were stopped for good, `lost` died (`PeersStopped`, before its
-        `Stop`)."""
+        """Registrars `names` stopped for good, `lost` died (`PeersStopped`, before `Stop`)."""
         self._send(PeersStopped(names, lost))
 
     def forward_events(self, on: bool) -> None:

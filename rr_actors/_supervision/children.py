@@ -243,8 +243,7 @@ class ThreadManager:
         runtime.Thread(target=watch, name=f"rr-watch-{spec.name}", daemon=True).start()
 
     def tell_stopped(self, names: tuple[str, ...], _lost: tuple[str, ...] = ()) -> None:
-        """Registrars `names` were stopped for good (before its own stop, the tree's; those
-        lost, this process's membership told already)."""
+        """Registrars `names` stopped for good (before its own stop, the tree's; lost: told)."""
         with contextlib.suppress(RrError):  # (it ended meanwhile: its stop says so)
             self.registrar.tell(PeersStopped(names))
 
