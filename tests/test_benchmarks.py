@@ -111,6 +111,7 @@ SMALLEST = {
     "call_files.py": ["--rounds", "1"],
     "count_dedup.py": ["--calls", "5", "--profile"],
     "count_links.py": ["--counts", "3", "--restarts", "1"],
+    "exit_notices.py": ["--counts", "3", "--unload", "0.2", "--exit-timeout", "0.3"],
     "minimal_hit.py": ["--rounds", "1"],
     "planted_bugs.py": ["--only", "dedup", "--seeds", "3"],
     "mutation_score.py": [

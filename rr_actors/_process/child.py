@@ -487,6 +487,8 @@ class _ControlLoop:
     def peers_stopped(self, message: PeersStopped) -> None:
         """Into this process's membership (every registrar here hears it before `Stop`)."""
         MEMBERSHIP.stopped_all(message.names, by="its supervisor (the tree's stop)")
+        for name in message.lost:
+            MEMBERSHIP.lost(name, by="its supervisor (the tree's stop)")
 
     def sync_events(self, message: SyncEvents) -> None:
         threading.Thread(

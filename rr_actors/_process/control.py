@@ -212,10 +212,11 @@ class PeerStarted:
 
 @dataclasses.dataclass(frozen=True, slots=True)
 class PeersStopped:
-    """Registrars `names` were stopped for good by the tree's stop (rule 12), told just
-    before this manager's own `Stop`: one notice per manager, not one per pair."""
+    """Registrars `names` were stopped for good by the tree's stop (rule 12), `lost` killed in
+    it (rule 19), told before this manager's own `Stop`: one notice per manager, not per pair."""
 
     names: tuple[str, ...]
+    lost: tuple[str, ...] = ()
 
 
 @dataclasses.dataclass(frozen=True, slots=True)

@@ -319,9 +319,9 @@ class ManagerProcess:
         `HEARERS` says whom to tell). Any thread; nothing once its pipe is closed."""
         self._send(PeerStarted(name))
 
-    def tell_stopped(self, names: tuple[str, ...]) -> None:
-        """Registrars `names` were stopped for good (`PeersStopped`, before its `Stop`)."""
-        self._send(PeersStopped(names))
+    def tell_stopped(self, names: tuple[str, ...], lost: tuple[str, ...] = ()) -> None:
+        """Registrars `names` stopped for good, `lost` died (`PeersStopped`, before `Stop`)."""
+        self._send(PeersStopped(names, lost))
 
     def forward_events(self, on: bool) -> None:
         self.forwarding = on  # (what the exit reads: nobody listens, nothing to count)

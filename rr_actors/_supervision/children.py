@@ -242,8 +242,8 @@ class ThreadManager:
 
         runtime.Thread(target=watch, name=f"rr-watch-{spec.name}", daemon=True).start()
 
-    def tell_stopped(self, names: tuple[str, ...]) -> None:
-        """Registrars `names` were stopped for good (before its own stop, the tree's)."""
+    def tell_stopped(self, names: tuple[str, ...], _lost: tuple[str, ...] = ()) -> None:
+        """Registrars `names` stopped for good (before its own stop, the tree's; lost: told)."""
         with contextlib.suppress(RrError):  # (it ended meanwhile: its stop says so)
             self.registrar.tell(PeersStopped(names))
 
@@ -321,9 +321,9 @@ class ProcessManager:
             relay.attach(handle, forwarding=forwarding)
         return cls(handle, spec.shutdown)
 
-    def tell_stopped(self, names: tuple[str, ...]) -> None:
-        """Registrars `names` were stopped for good (before its own stop, the tree's)."""
-        self.handle.tell_stopped(names)
+    def tell_stopped(self, names: tuple[str, ...], lost: tuple[str, ...] = ()) -> None:
+        """Registrars `names` stopped for good, `lost` died (before its own stop, the tree's)."""
+        self.handle.tell_stopped(names, lost)
 
     def stop(
         self, timeout: float | None, *, restarting: bool = False, wait_exit: bool = True

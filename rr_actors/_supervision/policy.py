@@ -1026,8 +1026,9 @@ class Stopping:
         running = child.running
         assert running is not None
         ending = self.record.tree.ending
-        if ending and ending.stopped and isinstance(running, (ProcessManager, ThreadManager)):
-            running.tell_stopped(tuple(ending.stopped))  # (the tree's stop: `consumer_down`)
+        told = ending and (ending.stopped or ending.lost)  # (the tree's stop: `consumer_down`)
+        if told and ending and isinstance(running, (ProcessManager, ThreadManager)):
+            running.tell_stopped(tuple(ending.stopped), tuple(ending.lost))
         child.state = "stopping"
         child.incarnation += 1  # its watcher's exit event is now stale
         self.record.publish()
@@ -1092,8 +1093,8 @@ class Stopping:
     def lose(self, name: str) -> None:
         """Manager `name` is gone and nobody will restart it (death watch, rule 19)."""
         DIRECTORY.expect_restart(name, expected=False)
-        record = self.record
-        consumer_down(record.root(), name, record.tree.processes.system)  # (recorded first:
+        record, tree = self.record, self.record.tree
+        consumer_down(record.root(), name, tree.processes.system, ending=tree.ending)  # (first:
         # a manager that starts meanwhile hears it then, `death_watch_missed`)
 
 

@@ -418,13 +418,14 @@ def _threaded(level: Level) -> set[str]:
 
 @dataclasses.dataclass
 class Ending:
-    """The whole tree's stop: its managers stopped so far (each told them before its own
-    stop, `consumer_down`), and who else hears of a stop, read once as it began (the
+    """The whole tree's stop: its managers stopped or lost (killed) so far (each told them before
+    its own stop, `consumer_down`), and who else hears of a stop, read once as it began (the
     carrier's registrars beyond the tree, its thread managers): one stop walks no tree."""
 
     beyond: frozenset[str]
     threaded: frozenset[str]
     stopped: list[str] = dataclasses.field(default_factory=list)
+    lost: list[str] = dataclasses.field(default_factory=list)
 
     @classmethod
     def of(cls, root: Level, network: Transport | None) -> Ending:
@@ -448,21 +449,16 @@ def consumer_down(
 ) -> None:
     """Death watch (rule 19): registrar `name` is gone for good; every living registrar is
     told (`stopped`: it stopped cleanly, what it holds is stale, rule 12). `ending`
-    (`Tree.ending`): the tree's managers hear a stopped one only before their own stop
-    (dependents stop first), one notice each, not one per pair."""
-    if stopped and ending is not None:
-        life.gone_for_good(name, also=ending.beyond, stopped=True, later=ending.threaded)
-        ending.stopped.append(name)
+    (`Tree.ending`): the tree's managers hear one stopped or lost (killed at its stop's
+    bound) only before their own stop, one notice each, not one per pair (issue 69)."""
+    if ending is not None:
+        life.gone_for_good(name, also=ending.beyond, stopped=stopped, later=ending.threaded)
+        (ending.stopped if stopped else ending.lost).append(name)
         return
-    life.gone_for_good(name, also=_living(root, network), stopped=stopped)
-
-
-def _living(root: Level, network: Transport | None) -> list[str]:
-    """The tree's living process managers, and the registrars of its carrier."""
-    living = list(_process_handles(root))
-    if network is not None and not network.closed:
+    living = list(_process_handles(root))  # (the tree's living process managers, and the
+    if network is not None and not network.closed:  # registrars of its carrier)
         living.extend(network.names())
-    return living
+    life.gone_for_good(name, also=living, stopped=stopped)
 
 
 def comes_back(name: str) -> None:

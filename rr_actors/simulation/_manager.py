@@ -426,6 +426,8 @@ class _Child:
     def peers_stopped(self, message: PeersStopped) -> None:
         """Into this process's membership: its registrar hears them before its `Stop`."""
         MEMBERSHIP.stopped_all(message.names, by="its supervisor (the tree's stop)")
+        for name in message.lost:
+            MEMBERSHIP.lost(name, by="its supervisor (the tree's stop)")
 
     def stop(self, message: Stop) -> None:
         """Stop the registrar, exit (`STOPPED_EXIT`, or 1 if it did not stop)."""

@@ -45,6 +45,7 @@ import multiprocessing.context
 import os
 import select
 import signal
+import socket
 import sqlite3
 import subprocess
 import sys
@@ -70,7 +71,9 @@ from rr_actors._store.restore import read_backup
 from rr_actors._store.sqlite import SqliteStore
 from rr_actors._supervision.policy import RestartIntensity
 from rr_actors.testing import (
+    RemoteRegistrar,
     SharedObjects,
+    System,
     actor_ref,
     catalog_snapshot,
     expect_restart,
@@ -1176,6 +1179,23 @@ class TestStoppedForGood:
         assert ["x"] == unloads  # released when the consumer stopped for good, unloaded once
 
 
+def _hanging_unload(registrar: rr.ResourceRegistrar) -> None:
+    """An echo server whose unload hangs: a consumer's release there never answers."""
+    registrar.register_server(
+        "echo", load=lambda r: r, unload=lambda r, s: threading.Event().wait(60.0)
+    )
+
+
+def _holding_at(sink: str) -> Callable[[rr.ResourceRegistrar], None]:
+    """An echo server that holds an id at `sink`: its stop waits on its release (rule 12)."""
+
+    def setup(registrar: rr.ResourceRegistrar) -> None:
+        echo_setup(registrar)
+        registrar.call(sink, "echo", registrar.name, timeout=30.0)  # (each its own: no dedup)
+
+    return setup
+
+
 class TestAWholeTreesStop:
     """A whole tree's stop tells each manager of the managers stopped before it once, just
     before its own stop (a process on its control pipe; issue 69, goal 3): not, at each
@@ -1198,9 +1218,9 @@ class TestAWholeTreesStop:
             marks.append(name)
             return mark(name, stopped=stopped)
 
-        def counted_tell(self: ManagerProcess, stopped: tuple[str, ...]) -> None:
+        def counted_tell(self: ManagerProcess, stopped: tuple[str, ...], lost: Any = ()) -> None:
             told.append((self.name, stopped))
-            tell_stopped(self, stopped)
+            tell_stopped(self, stopped, lost)
 
         monkeypatch.setattr(life, "_mark", counted_mark)
         monkeypatch.setattr(ManagerProcess, "tell_stopped", counted_tell)
@@ -1340,9 +1360,9 @@ class TestAWholeTreesStop:
             heard.extend((self.name, name) for name in stopped)
             peers_stopped(self, stopped)
 
-        def counted_tell(self: ThreadManager, stopped: tuple[str, ...]) -> None:
+        def counted_tell(self: ThreadManager, stopped: tuple[str, ...], lost: Any = ()) -> None:
             told.append((self.spec.name, stopped))
-            tell_stopped(self, stopped)
+            tell_stopped(self, stopped, lost)
 
         monkeypatch.setattr(life.Hearing, "peers_stopped", counted_peers_stopped)
         monkeypatch.setattr(ThreadManager, "tell_stopped", counted_tell)
@@ -1353,6 +1373,109 @@ class TestAWholeTreesStop:
         assert [] == [(who, name) for who, name in heard if who in names]  # before: 3+2+1
         assert [(names[2], (names[3],)), (names[1], (names[3], names[2]))] == told[:2]
         assert [(names[0], (names[3], names[2], names[1]))] == told[2:]
+
+    def test_a_tree_whose_managers_are_killed_at_their_stops_bound_sends_no_notice_per_pair(
+        self, monkeypatch: pytest.MonkeyPatch, tmp_path: Path, uid: str
+    ) -> None:
+        """A main thread that ends holding ids: its stop past `EXIT_TIMEOUT`, each manager
+        of the tree is killed at its stop's bound, and each kill was a death-watch notice to
+        every manager still running, often on a new connection (issue 69, goal 3: at 600
+        managers about 30 stopped a minute). Now each hears them before its own stop, as
+        the stopped ones: none sent per pair, the same count for 2 managers as for 4."""
+        from rr_actors._registrar import life  # noqa: PLC0415
+
+        marks: list[str] = []
+        connects: list[object] = []
+        mark, connect = life._mark, socket.socket.connect
+
+        def counted_mark(name: str, *, stopped: bool = False) -> Any:
+            marks.append(name)
+            return mark(name, stopped=stopped)
+
+        def counted_connect(self: socket.socket, address: Any) -> None:
+            connects.append(address)
+            connect(self, address)
+
+        monkeypatch.setattr(life, "_mark", counted_mark)
+        seen = []
+        for size in (2, 4):
+            sink, names = f"sink-{size}-{uid}", [f"m{n}-{size}-{uid}" for n in range(size)]
+            specs = [process(sink, _hanging_unload)]
+            specs += [process(n, _holding_at(sink), shutdown=0.5) for n in names]
+            sup = rr.Supervisor(specs, state_dir=tmp_path / str(size))
+            sup.start()
+            marks.clear()
+            monkeypatch.setattr(socket.socket, "connect", counted_connect)
+            connects.clear()
+            sup.stop()
+            monkeypatch.setattr(socket.socket, "connect", connect)
+            clean = [c.name for c in sup.which_children() if c.last_exit == "shutdown"]
+            seen.append((len(marks), len(connects), clean == [sink]))
+
+        assert [(0, 0, True), (0, 0, True)] == seen  # before: 3-4, 16 notices; 2-3, 10 connections
+
+    def test_a_consumer_left_running_hears_at_once_a_provider_killed_in_a_trees_stop(
+        self, process_helpers: SharedObjects, uid: str
+    ) -> None:
+        """The same stop, as a consumer beyond the tree sees it (rule 19): `edge`, a registrar
+        of the tree's carrier in a process of its own, holds an id at `api`, killed at its
+        stop's bound (its release at `sink` hangs); `edge` left running hears `api` lost
+        at once: `FATAL` to that id."""
+        sink, provider = f"sink-{uid}", f"api-{uid}"
+        heard = process_helpers.list()
+
+        def on_status(query: rr.Query, update: rr.StatusUpdate) -> None:
+            heard.append(f"{update.status.name} {update.source}")
+
+        system = System.create()
+        specs = [process(sink, _hanging_unload), process(provider, _holding_at(sink), shutdown=0.5)]
+        sup = rr.Supervisor(specs, network=system)
+        sup.start()
+        edge = RemoteRegistrar.start(rr.RegistrarConfig(f"edge-{uid}"), system)
+        try:
+            edge.call(provider, "echo", "x", on_status=on_status, timeout=30.0)
+            sup.stop()
+            assert "shutdown" != sup.child(provider).last_exit  # killed, or it gave up its stop
+            assert wait_for(lambda: len(heard) > 0, 30.0), "edge never heard its provider lost"
+            assert [f"FATAL {provider}/echo"] == list(heard)
+        finally:
+            edge.stop(timeout=30.0)
+            system.close()
+
+    def test_a_consumer_in_the_tree_hears_its_provider_killed_before_its_own_stop(
+        self, tmp_path: Path, uid: str
+    ) -> None:
+        """The same stop, as a consumer of the tree stopped after its provider sees it: it
+        hears `api` lost (rule 19) before its own stop (its registrar, ended, hears nothing),
+        from its supervisor."""
+        sink, consumer, provider = f"sink-{uid}", f"edge-{uid}", f"api-{uid}"
+        heard = tmp_path / "heard"
+
+        def setup(registrar: rr.ResourceRegistrar) -> None:
+            from rr_actors._core.directory import LocalPeer  # noqa: PLC0415
+            from rr_actors._registrar.messages import PeerLost  # noqa: PLC0415
+
+            tell = LocalPeer.tell
+
+            def counted_tell(self: LocalPeer, message: Any) -> None:
+                if isinstance(message, PeerLost):
+                    with heard.open("a") as out:
+                        out.write(f"{message.name}\n")
+                tell(self, message)
+
+            LocalPeer.tell = counted_tell  # type: ignore[method-assign]
+
+        def call(registrar: rr.ResourceRegistrar) -> None:
+            registrar.call(provider, "echo", "x", timeout=30.0)
+
+        specs = [process(sink, _hanging_unload), process(consumer, setup)]
+        sup = rr.Supervisor([*specs, process(provider, _holding_at(sink), shutdown=0.5)])
+        sup.start()
+        sup.run_in(consumer, call, timeout=30.0)
+        sup.stop()
+
+        assert "shutdown" != sup.child(provider).last_exit  # killed, or it gave up its stop
+        assert [provider] == heard.read_text().splitlines()
 
     def test_a_provider_process_releases_a_stale_id_of_its_consumer_stopped_before_it(
         self, tmp_path: Path, uid: str
