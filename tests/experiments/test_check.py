@@ -1168,6 +1168,14 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "status-answered",
             id="the mutant status.py:990 is caught by status-answered at simanswer seed 1",
         ),
+        pytest.param(  # (every status callback run on a thread numbered 0 in its process)
+            "crashloop",
+            "rr_actors._registrar.status:Runner.run",
+            "self._arrived += 1\n",
+            "self._arrived += 0\n",
+            "status-order",
+            id="the mutant status.py:650 is caught by status-order at crashloop seed 1",
+        ),
     ],
 )
 def test_a_planted_bug_is_caught_by_its_rule_at_a_seed_its_plan_holds_at_unplanted(
