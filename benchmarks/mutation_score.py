@@ -133,6 +133,9 @@ EQUIVALENT: dict[str, str] = {
     "salts kept, so `CommitCount.committed` always takes its slow path: the -wal header's "
     "salts, which SQLite copies into the -shm's (`WalIndexHdr.aSalt`), the same test; the "
     "same count and record bytes (a performance path: a pread a commit, no event)",
+    "_store/files.py:696:ReplaceFalseWithTrue": "a new `CommitCount` never maps the -shm "
+    "until its first `reopen`/`close`: `committed` takes its slow path, the -wal header's "
+    "salts, which SQLite copies into the -shm's; the same count and record (as files.py:678)",
 }
 """Survivors shown equivalent: mutant id (`FILE:LINE:OPERATOR[:N]`) -> the line that shows it."""
 
