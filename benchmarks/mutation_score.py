@@ -129,6 +129,13 @@ EQUIVALENT: dict[str, str] = {
     "_supervision/children.py:189:ReplaceComparisonOperator_Eq_LtE": "past `one_for_one` "
     "(returned above) a strategy is `one_for_all` or `rest_for_one` (`SupervisorSpec` checks "
     "it): only the first is `<= 'one_for_all'`, as only it is `==`",
+    "_store/files.py:678:NumberReplacer:2": "a 9-byte slice of the -shm never equals the 8 "
+    "salts kept, so `CommitCount.committed` always takes its slow path: the -wal header's "
+    "salts, which SQLite copies into the -shm's (`WalIndexHdr.aSalt`), the same test; the "
+    "same count and record bytes (a performance path: a pread a commit, no event)",
+    "_store/files.py:696:ReplaceFalseWithTrue": "a new `CommitCount` never maps the -shm "
+    "until its first `reopen`/`close`: `committed` takes its slow path, the -wal header's "
+    "salts, which SQLite copies into the -shm's; the same count and record (as files.py:678)",
 }
 """Survivors shown equivalent: mutant id (`FILE:LINE:OPERATOR[:N]`) -> the line that shows it."""
 

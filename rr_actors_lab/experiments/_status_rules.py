@@ -12,7 +12,8 @@
          soon after, before anything it sent that registrar later arrived: it may
          have waited in the sender)
  StatusHandled ──► status_order: each id's callbacks one at a time, in arrival order;
-                   one sender's statuses (StatusSent) arrive in the order sent
+                   one sender's statuses (StatusSent) arrive in the order sent; each
+                   callback of a process has a place of its own in that order (1, 2, ...)
  StatusAnswered ──► status_answered: a send answered after the callbacks it reached returned
 ```
 
@@ -81,7 +82,7 @@ def status_order(history: Sequence[Line]) -> list[Finding]:
             by_id[event.host, event.pid, event.registrar, event.query_id].append((line, event))
         elif isinstance(event, events.StatusSent) and event.status_id:
             sent[event.status_id] = ((event.host, event.pid, event.registrar), event.hlc, line)
-    findings: list[Finding] = []
+    findings: list[Finding] = _unnumbered(history)
     for handled in by_id.values():
         handled.sort(key=lambda entry: entry[1].arrived)
         limit, before = 0, handled[0]  # (the latest a next one may begin, and whose)
@@ -163,6 +164,39 @@ def _overtaken(
                 f"reached query {event.query_id[:8]} after status {later.status_id[:8]} "
                 f"({later.status.name}), which {sender[2]} sent after it",
                 tuple(sorted({sent_line, later_sent, later_line, line})),
+                (event.registrar,),
+            )
+        )
+    return findings
+
+
+def _unnumbered(history: Sequence[Line]) -> list[Finding]:
+    """`status-order`'s findings about arrival places: a `StatusHandled` whose `arrived` is
+    not a place (below 1), or is the place of another callback of its process (host, pid;
+    numbered afresh after a `ChildExited` of that pid: a pid used again), whose order then
+    cannot be judged. The same event twice (its `seq`) is one callback."""
+    places: dict[tuple[str, int], dict[int, tuple[int, int]]] = defaultdict(dict)
+    findings: list[Finding] = []
+    for line, event in history:
+        if isinstance(event, events.ChildExited):
+            places.pop((event.host, event.pid), None)
+            continue
+        if not isinstance(event, events.StatusHandled):
+            continue
+        taken = places[event.host, event.pid]
+        first = taken.setdefault(event.arrived, (line, event.seq))
+        if event.arrived >= 1 and (first[0] == line or (event.seq and first[1] == event.seq)):
+            continue
+        where = "" if event.arrived < 1 else f", the place of the callback at line {first[0]}"
+        findings.append(
+            Finding(
+                "status-order",
+                "violation",
+                f"{event.registrar}: the callback of status {event.status_id[:8]} "
+                f"({event.status.name}) for query {event.query_id[:8]} arrived at place "
+                f"{event.arrived} of its process's status runner{where}: its arrival order "
+                f"cannot be judged",
+                tuple(sorted({first[0], line})),
                 (event.registrar,),
             )
         )

@@ -444,6 +444,26 @@ def test_a_callback_that_waited_for_a_registrar_lets_its_id_s_next_begin() -> No
     assert [{11, 12}] == [set(f.lines) for f in _of_rule(early, "status-order")]
 
 
+def test_a_callback_at_the_arrival_place_of_another_of_its_process_is_found() -> None:
+    """Each callback of a process has its own place in its status runner's arrival order
+    (`StatusHandled.arrived`: 1, 2, ...): one at another's place, or at none (0), cannot be
+    judged (the mutant status.py:650 `_arrived += 0` numbers every callback 0)."""
+    twice = _with_callbacks((Q1, "s1", 1, 10, 20, 0), (Q2, "s1", 1, 15, 60, 0))
+    found = _of_rule(twice, "status-order")
+    assert [{11, 12}] == [set(f.lines) for f in found]
+    assert "arrived at place 1 of its process's status runner, the place of the" in (
+        found[0].message
+    )
+    unnumbered = _with_callbacks((Q1, "s1", 0, 10, 20, 0))
+    assert [{11}] == [set(f.lines) for f in _of_rule(unnumbered, "status-order")]
+    assert "violated" == check.check(numbered(unnumbered)).verdict
+    other_pid = [
+        dataclasses.replace(e, pid=P) if i == 11 else e for i, e in enumerate(twice)
+    ]  # (another process's runner numbers its own from 1)
+    assert [] == _of_rule(other_pid, "status-order")
+    _holds(_with_callbacks((Q1, "s1", 1, 10, 20, 0), (Q2, "s1", 2, 15, 60, 0)))
+
+
 def _answered(at: int, gave_up: tuple[str, ...] = ()) -> list[events.Event]:
     """`_with_callbacks` in one process (Q1's s2 callback returned at 20, Q2's at 60), with
     erm's answer to its send of s2 stamped `at` (10,000 plus it) listing the ids not in
@@ -1147,6 +1167,14 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "if origin != here[1]:",
             "status-answered",
             id="the mutant status.py:990 is caught by status-answered at simanswer seed 1",
+        ),
+        pytest.param(  # (every status callback run on a thread numbered 0 in its process)
+            "crashloop",
+            "rr_actors._registrar.status:Runner.run",
+            "self._arrived += 1\n",
+            "self._arrived += 0\n",
+            "status-order",
+            id="the mutant status.py:650 is caught by status-order at crashloop seed 1",
         ),
     ],
 )
@@ -3061,6 +3089,19 @@ def begin_beside(h: History) -> History | None:
     return None
 
 
+def arrive_as_another(h: History) -> History | None:
+    """A status callback numbered at the arrival place of the one of its process before it."""
+    last: dict[tuple[str, int], int] = {}
+    for i, e in enumerate(h):
+        if type(e) is events.ChildExited:
+            last.pop((e.host, e.pid), None)
+        elif type(e) is events.StatusHandled:
+            j = last.setdefault((e.host, e.pid), i)
+            if j != i:
+                return [*h[:i], dataclasses.replace(e, arrived=h[j].arrived), *h[i + 1 :]]  # type: ignore[union-attr]
+    return None
+
+
 def answer_twice(h: History) -> History | None:
     for i, e in enumerate(h):
         if type(e) is events.CallAnswered and not e.retry:
@@ -3491,6 +3532,7 @@ MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     "deliver-at-wrong-hop": (deliver_at_wrong_hop, "status-path"),
     "drop-status-sent": (drop_status_sent, "status-path"),
     "begin-beside": (begin_beside, "status-order"),
+    "arrive-as-another": (arrive_as_another, "status-order"),
     "answer-early": (answer_early, "status-answered"),
     "answer-twice": (answer_twice, "answered"),
     "drop-add": (drop_add, "answered"),
