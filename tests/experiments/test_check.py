@@ -1148,6 +1148,14 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "status-answered",
             id="the mutant status.py:990 is caught by status-answered at simanswer seed 1",
         ),
+        pytest.param(  # (an unsettled id of a load that failed kept, not given back: kept
+            "simkeptdep",  # for a retry none can make at api's reconcile, call_timeout long)
+            "rr_actors._registrar.consumer:Flights.take_dependencies",
+            "if flight is not None and flight.unsettled_at is not None:",
+            "if flight is not None and flight.unsettled_at is None:",
+            "retry-ended",
+            id="the mutant consumer.py:273 is caught by retry-ended at simkeptdep seed 1",
+        ),
     ],
 )
 def test_a_planted_bug_is_caught_by_its_rule_at_a_seed_its_plan_holds_at_unplanted(
@@ -1922,6 +1930,76 @@ def test_a_withdrawn_id_answered_again_by_a_retry_is_no_withdrawn_violation() ->
     retry = events.CallAnswered("cm", Q1, "erm", "cam", None, True, pid=C, at=20.001)
 
     assert [] == _of_rule([*history[:5], retry, *history[5:]], "withdrawn")
+
+
+def dependency_failed_then_restored(released_after: float) -> list[events.Event]:
+    """Rule 17, issue 68 item 8: cm's load of RID2 called erm (Q1), which committed Q1 and
+    died before its answer left: cm's call failed (`may_have_executed`, parent RID2), so
+    that load failed; erm's next life restores Q1 and releases it `released_after` s after
+    its restore (lines 4 the failure, 5 the load's, 6 the restore)."""
+    restored = 20.0
+    return [
+        events.CatalogRestored("erm", (), (), (), pid=P, seq=1, at=10.0),
+        events.ResourceLoaded("erm", "cam", RID, Q1, 0.01, 42, "cam 0", pid=P, seq=2, at=10.0),
+        events.ConsumerAdded("erm", RID, Q1, "cm", pid=P, seq=3, at=10.0),
+        events.CallFailed(
+            "cm",
+            Q1,
+            "erm",
+            "cam",
+            "RegistrarUnavailableError",
+            "gone",
+            True,
+            parent=RID2,
+            pid=C,
+            at=10.001,
+        ),
+        events.LoadFailed(
+            "cm", "map", RID2, Q2, "RegistrarUnavailableError", "gone", pid=C, at=10.002
+        ),
+        events.CatalogRestored(
+            "erm",
+            ((RID, "cam", "loaded", "42"),),
+            ((Q1, RID, "cm"),),
+            (),
+            (1, 1, 0),
+            pid=P + 1,
+            seq=1,
+            at=restored,
+        ),
+        events.ConsumerReleased(
+            "erm", RID, Q1, "cm", "reconcile", pid=P + 1, seq=2, at=restored + released_after
+        ),
+        events.ResourceUnloaded("erm", "cam", RID, pid=P + 1, seq=3, at=restored + released_after),
+        events.RegistrarStopped("cm", (), (), (), pid=C, at=restored + 3.0),
+        events.RegistrarStopped("erm", (), (), (), pid=P + 1, seq=4, at=restored + 3.0),
+    ]
+
+
+def test_a_failed_dependency_s_id_held_on_after_its_load_ended_is_a_retry_ended_violation() -> None:
+    history = dependency_failed_then_restored(released_after=2.0)
+    verdict = check.check(numbered(history))
+
+    found = [f for f in verdict.findings if f.rule == "retry-ended"]
+    assert ("violated", [(5, 6)]) == (verdict.verdict, [f.lines for f in found])
+    assert "erm held query q1111111 of cm for 2.0 s after the load that made" in found[0].message
+
+
+def test_a_failed_dependency_s_id_released_at_the_reconcile_holds() -> None:
+    history = dependency_failed_then_restored(released_after=0.01)
+    _holds(history)
+
+
+def test_a_failed_call_of_no_load_or_whose_load_goes_on_is_no_retry_ended_violation() -> None:
+    """A top-level call (no `parent`) waits for its caller's retry (`kept-unclaimed`); a
+    dependency whose load has not ended may still be retried: `retry-ended` judges
+    neither (nor one answered again by a retry)."""
+    history = dependency_failed_then_restored(released_after=2.0)
+    top = dataclasses.replace(history[3], parent=None)
+    assert [] == _of_rule([*history[:3], top, *history[4:]], "retry-ended")
+    assert [] == _of_rule([*history[:4], *history[5:]], "retry-ended")
+    retry = events.CallAnswered("cm", Q1, "erm", "cam", RID2, True, pid=C, at=10.0015)
+    assert [] == _of_rule([*history[:4], retry, *history[4:]], "retry-ended")
 
 
 def failed_then_released(lives: int, *, then: events.Event | None = None) -> list[events.Event]:
@@ -3172,6 +3250,32 @@ def release_withdrawn_late(h: History) -> History | None:
     return None
 
 
+def release_ended_dependency_late(h: History) -> History | None:
+    """A provider that releases an id of a failed dependency call (a `CallFailed` that may
+    have executed, of a `parent` load) only long after that load ended (its `LoadFailed`
+    or `ResourceUnloaded`; the release's `at` moved 5 s past the later of the two): an id
+    kept for a retry no one can make (`simkeptdep`)."""
+    failed: dict[tuple[str, str], str] = {}  # (consumer, id) -> parent, if not answered since
+    ended: dict[tuple[str, str], float] = {}  # (consumer, id) -> `at` of its load's end
+    for e in h:
+        key = (getattr(e, "registrar", ""), getattr(e, "query_id", ""))
+        if type(e) is events.CallFailed and e.may_have_executed and e.parent:
+            failed[key] = e.parent
+        elif type(e) in (events.CallAnswered, events.CallWithdrawn):
+            failed.pop(key, None)
+            ended.pop(key, None)
+        elif type(e) in (events.LoadFailed, events.ResourceUnloaded):
+            for (consumer, qid), parent in list(failed.items()):
+                if consumer == key[0] and parent == e.resource_id:  # type: ignore[attr-defined]
+                    ended[consumer, qid] = e.at
+                    del failed[consumer, qid]
+        elif type(e) is events.ConsumerReleased and (e.consumer, e.query_id) in ended:
+            late = max(e.at, ended[e.consumer, e.query_id]) + 5.0
+            i = h.index(e)
+            return [*h[:i], dataclasses.replace(e, at=late), *h[i + 1 :]]
+    return None
+
+
 def release_failed_call_at_restore(h: History) -> History | None:
     """A restarted provider that releases, at its first reconcile, an id its consumer's
     call failed on as it died (a `CallFailed` that may have executed, put before its
@@ -3508,6 +3612,7 @@ MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     "provider-keeps-id": (provider_keeps_id, "end"),
     "second-server-to-the-end": (second_server_to_the_end, "one-name"),
     "release-withdrawn-late": (release_withdrawn_late, "withdrawn"),
+    "release-ended-dependency-late": (release_ended_dependency_late, "retry-ended"),
     "release-failed-call-at-restore": (release_failed_call_at_restore, "retry-kept"),
     "stop-keeps-resource": (stop_keeps_resource, "left"),
     "unload-before-dependency": (unload_before_dependency, "unload-order"),

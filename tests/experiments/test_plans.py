@@ -44,6 +44,7 @@ SHIPPED = {
     "simways",
     "simshed",
     "simkept",
+    "simkeptdep",
     "simoverload",
     "simcommit",
     "simanswer",

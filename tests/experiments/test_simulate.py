@@ -1133,6 +1133,7 @@ SIMULATED = [
     "simways",
     "simshed",
     "simkept",
+    "simkeptdep",
     "simoverload",
     "simcommit",
     "simanswer",
