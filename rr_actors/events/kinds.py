@@ -551,6 +551,7 @@ class StatusSent(_Numbered):
         query_id: the query id `send_status` was given.
         message: the provider's free text.
         status_id: this send's id (a UUID4), named by each of its `StatusDelivered`.
+        patience: seconds each callback it reaches may take (`None`: unbounded).
     """
 
     registrar: str
@@ -558,6 +559,7 @@ class StatusSent(_Numbered):
     status: Status
     message: str
     status_id: str = ""
+    patience: float | None = None
 
 
 @_kind

@@ -16,6 +16,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors import events
+from rr_actors._core import hlc
 from rr_actors_lab.__main__ import main
 from rr_actors_lab.experiments import (
     PlanError,
@@ -465,6 +466,32 @@ def test_a_send_answered_before_a_callback_it_reached_returned_is_found() -> Non
     assert [{12, 13}] == [set(f.lines) for f in found]
     assert "q2222222 of cm reached before its callback returned" in found[0].message
     assert "violated" == check.check(numbered(_answered(40))).verdict
+
+
+def _patient(patience: float | None, gave_up: tuple[str, ...] = ()) -> list[events.Event]:
+    """`_answered(70, gave_up)` in seconds: each stamp `n` made `n / 1,000` s (erm's send of
+    s2 at 8 s, line 8; Q2's callback returned at 10.06 s, line 12; the answer at 10.07 s),
+    the send's `patience` that."""
+    h = [
+        dataclasses.replace(e, hlc=hlc.from_seconds(e.hlc / 1_000)) for e in _answered(70, gave_up)
+    ]
+    (i,) = (i for i, e in enumerate(h) if type(e) is events.StatusSent and e.status_id == "s2")
+    return [*h[:i], dataclasses.replace(h[i], patience=patience), *h[i + 1 :]]
+
+
+def test_a_send_answered_within_its_patience_or_giving_up_on_a_callback_past_it_holds() -> None:
+    _holds(_patient(2.0))  # (Q2's returned 2.06 s after the send: within 2 + 0.5)
+    _holds(_patient(1.0, gave_up=(Q1, Q2)))  # (past 1 + 0.5: given up on, as they must)
+    _holds(_patient(None))  # (a send of no patience: not judged)
+
+
+def test_a_send_that_waited_past_its_patience_for_a_callback_is_found() -> None:
+    found = _of_rule(_patient(1.0, gave_up=(Q1,)), "status-patient")  # (Q1's given up on)
+    assert [{8, 12}] == [set(f.lines) for f in found]
+    assert "waited 2.06 s, past its patience of 1 s, for the callback of query q2222222" in (
+        found[0].message
+    )
+    assert "violated" == check.check(numbered(_patient(1.0, gave_up=(Q1,)))).verdict
 
 
 def test_a_call_answered_twice_is_found_unless_it_was_a_retry() -> None:
@@ -1155,6 +1182,14 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "if flight is not None and flight.unsettled_at is None:",
             "retry-ended",
             id="the mutant consumer.py:273 is caught by retry-ended at simkeptdep seed 1",
+        ),
+        pytest.param(  # (no watchdog for an idle period's first status: its 2.7 s callback
+            "simpatient",  # waited for past the send's patience of 2 s, not given up on)
+            "rr_actors._registrar.status:Runner._kick",
+            "if watch:",
+            "if not watch:",
+            "status-patient",
+            id="the mutant status.py:757 is caught by status-patient at simpatient seed 1",
         ),
     ],
 )
@@ -3126,6 +3161,30 @@ def answer_early(h: History) -> History | None:
     return None
 
 
+def wait_past_patience(h: History) -> History | None:
+    """A send answered with an id reached whose callback returned past the send's patience
+    (and 0.5 s more): its `StatusHandled` and the answer moved past it, as a runner whose
+    watchdog never started leaves it (`simpatient`)."""
+    sent = {e.status_id: e for e in h if type(e) is events.StatusSent and e.patience is not None}
+    handled = {
+        (e.status_id, e.query_id): i for i, e in enumerate(h) if type(e) is events.StatusHandled
+    }
+    for i, e in enumerate(h):
+        if type(e) is not events.StatusAnswered or e.status_id not in sent:
+            continue
+        send = sent[e.status_id]
+        for query_id in e.reached:
+            j = handled.get((e.status_id, query_id))
+            if j is None or j > i:
+                continue
+            late = hlc.from_seconds(hlc.seconds(send.hlc) + (send.patience or 0.0) + 1.0)
+            later = dataclasses.replace(h[j], hlc=late)
+            answer = dataclasses.replace(e, hlc=late + 1)
+            rest = [x for k, x in enumerate(h) if k not in (i, j)]
+            return [*rest, later, answer]
+    return None
+
+
 def begin_beside(h: History) -> History | None:
     """An id's status callback began as the one that arrived before it began."""
     first: dict[tuple[int, str, str], int] = {}
@@ -3596,6 +3655,7 @@ MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     "drop-status-sent": (drop_status_sent, "status-path"),
     "begin-beside": (begin_beside, "status-order"),
     "answer-early": (answer_early, "status-answered"),
+    "wait-past-patience": (wait_past_patience, "status-patient"),
     "answer-twice": (answer_twice, "answered"),
     "drop-add": (drop_add, "answered"),
     "drop-forget": (drop_forget, "answered"),
@@ -3644,11 +3704,13 @@ ROOT_ONLY = {"leases", "simhosts"}
 network namespaces and minutes (tests/experiments/test_hosts.py runs a small plan of
 their shape; test_simulate.py runs `simhosts` on the simulation)."""
 
-SIMULATION_ONLY = {"simheal", "simrest", "simprogram", "simcommit", "simanswer"}
+SIMULATION_ONLY = {"simheal", "simrest", "simprogram", "simcommit", "simanswer", "simpatient"}
 """Shipped plans of a fault kind only the simulation injects (`split_brain`,
 `kill_in_setup`, `kill_program`, `kill_before_commit`), and `simanswer`, timed for it (a
 20 ms callback within a 30 ms patience; `status-answered` is judged in the real runs of
-the others): their histories are checked in tests/experiments/test_simulate.py."""
+the others), and `simpatient` (a status every 3 s: none in a 2 s run; `status-patient` is
+judged in the real runs of the others): their histories are checked in
+tests/experiments/test_simulate.py."""
 
 
 @pytest.fixture(scope="module")
@@ -3870,7 +3932,7 @@ SWEEP = pytest.mark.timeout(300)
 """A few seeds take a few CPU seconds; under load several times that."""
 
 MUTATED_ON_THE_SIMULATION = {
-    "simanswer", "simcommit", "simheal", "simhosts", "simprogram", "simrest",
+    "simanswer", "simcommit", "simheal", "simhosts", "simpatient", "simprogram", "simrest",
 }  # fmt: skip
 """The shipped plans the real runs above leave out that the simulation runs (not `leases`:
 it freezes a host's router, which the simulated hosts have none of)."""

@@ -45,6 +45,7 @@ SHIPPED = {
     "simshed",
     "simkept",
     "simkeptdep",
+    "simpatient",
     "simoverload",
     "simcommit",
     "simanswer",

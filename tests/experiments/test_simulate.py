@@ -1134,6 +1134,7 @@ SIMULATED = [
     "simshed",
     "simkept",
     "simkeptdep",
+    "simpatient",
     "simoverload",
     "simcommit",
     "simanswer",
