@@ -1203,6 +1203,22 @@ def test_a_planted_bug_is_caught_by_its_rule_at_a_seed_its_plan_holds_at_unplant
     assert any(f"[{rule}]" in line for line in found), found
 
 
+@pytest.mark.timeout(600)
+def test_the_mutant_status_py_990_lte_is_caught_by_status_answered_at_simanswer_seed_3(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A relay that tells its notice to its own mailbox too and to no registrar whose name
+    sorts after its own (`<=` for `!=`, issue 68 item 8): its own copy answers its ids at
+    once, as the `here[1]` plant's. Seeds 1 and 2 never take that path with a slow
+    callback: the search's one seed of each plan missed it (20 runs, none of seed 3)."""
+    plan = load_plan(plans.find("simanswer"))
+    assert "held" == simulate.run_seed(plan, 3).verdict
+    where, old = "rr_actors._registrar.status:Desk.deliver", "if origin != here[0]:"
+    _plant(monkeypatch, where, old, "if origin <= here[0]:")
+    found = simulate.run_seed(plan, 3).findings
+    assert any("[status-answered]" in line for line in found), found
+
+
 def renumbered(history: list[events.Event]) -> list[events.Event]:
     """`history` with each process's numbers (`seq`) in its order again: an event a
     mutation removed or added is then one the registrar did not (or did) publish, not
