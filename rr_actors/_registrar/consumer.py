@@ -414,6 +414,7 @@ def publish_failed(shared: Shared, message: CallFailed, *, retry: bool) -> None:
             attempt.started,
             attempt.trace,
             attempt.caller_span,
+            message.parent,
         )
     )
 

@@ -84,7 +84,7 @@ class StatusRelay:
         update = StatusUpdate(query_id, status, message, f"{shared.name}/{resource.server}")
         event = runtime.new_id()
         told = (
-            (events.StatusSent(shared.name, query_id, status, message, event),)
+            (events.StatusSent(shared.name, query_id, status, message, event, asked.patience),)
             if shared.events.active
             else ()
         )

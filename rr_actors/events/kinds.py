@@ -445,6 +445,7 @@ class CallFailed(_Numbered):
         may_have_executed: the provider went with the call in flight and may hold the id
             (rule 17): the consumer keeps it until it reconciled with the provider's restart.
         retry: as `CallAnswered.retry`.
+        parent: as `CallAnswered.parent`: its load's end gives a kept id back (rule 17).
     """
 
     registrar: str
@@ -458,6 +459,7 @@ class CallFailed(_Numbered):
     started: float = 0.0
     trace: str = ""
     caller_span: str = ""
+    parent: str | None = None
 
 
 @_kind
@@ -549,6 +551,7 @@ class StatusSent(_Numbered):
         query_id: the query id `send_status` was given.
         message: the provider's free text.
         status_id: this send's id (a UUID4), named by each of its `StatusDelivered`.
+        patience: seconds each callback it reaches may take (`None`: unbounded).
     """
 
     registrar: str
@@ -556,6 +559,7 @@ class StatusSent(_Numbered):
     status: Status
     message: str
     status_id: str = ""
+    patience: float | None = None
 
 
 @_kind

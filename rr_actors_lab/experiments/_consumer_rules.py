@@ -1,5 +1,6 @@
 """The consumer's side of a run (rules `answered`, `answer-released`, `record-kept`,
-`reported-lost`, `end`, `withdrawn`, `retry-kept`, `kept-unclaimed`, `left`, `fetch`, `outcome`).
+`reported-lost`, `end`, `withdrawn`, `retry-ended`, `retry-kept`, `kept-unclaimed`, `left`,
+`fetch`, `outcome`).
 
 ```
  steps ──► answered: each consumer's answered calls against what its providers added
@@ -8,6 +9,7 @@
  QueryForgotten + the provider pass's holdings ──► reported_lost
  steps (+ the history's exits) ──► end: what providers still hold for stopped consumers
  steps ──► withdrawn: what providers still hold of withdrawn calls
+ steps ──► retry-ended: what providers still hold of failed calls whose load ended
  steps ──► retry-kept: a failed call's id released while its consumer could retry it
  steps + lives ──► kept-unclaimed: a failed call's id kept past its consumer's call_timeout
  steps (+ the give-ups) ──► left: a last stop's rows no running consumer holds
@@ -41,6 +43,7 @@ __all__ = [
     "outcome",
     "record_kept",
     "reported_lost",
+    "retry_ended",
     "retry_kept",
     "withdrawn",
 ]
@@ -380,6 +383,59 @@ def withdrawn(steps: Sequence[Step]) -> list[Finding]:
     return _held_on(called, spans)
 
 
+def retry_ended(steps: Sequence[Step]) -> list[Finding]:  # noqa: PLR0912 - a branch per kind
+    """`retry-ended` (rule 17, issue 68 item 8): a dependency's id kept for a retry is given
+    back once the load that made it ended, as no retry can come from it.
+
+    A `CallFailed` that `may_have_executed`, of a `parent` load, not answered later (a
+    retry), is released by its provider after that registrar's `LoadFailed` or
+    `ResourceUnloaded` of the parent (its `Abandon`, or the reconcile after the provider's
+    restart): a provider's life holding it `WITHDRAWN_BOUND_S` after that end (or after it
+    began to hold it, if later) is a violation, as in `withdrawn`. Not judged: a failure
+    whose consumer's life ended before its load did (the next life restores it in doubt).
+    """
+    failed: dict[tuple[str, str], tuple[str, str]] = {}  # (consumer, id) -> (parent, provider)
+    ended: dict[tuple[str, str], tuple[int, float, str]] = {}  # (consumer, id) -> ...
+    holding: dict[str, dict[str, tuple[str, int, float]]] = defaultdict(dict)
+    spans: dict[tuple[str, str], list[tuple[str, int, float, float]]] = defaultdict(list)
+    last: dict[str, float] = {}  # provider -> `at` of its last event
+
+    def close(name: str, qid: str, until: float) -> None:
+        consumer, line, since = holding[name].pop(qid)
+        spans[name, qid].append((consumer, line, since, until))
+
+    for name, line, event, new, _life in steps:
+        if new:
+            for qid in list(holding[name]):  # (the life before ended with its last event)
+                close(name, qid, last.get(name, event.at))
+            for gone in [key for key in failed if key[0] == name]:
+                del failed[gone]
+        last[name] = event.at
+        key = (name, getattr(event, "query_id", ""))
+        if isinstance(event, events.CallFailed) and event.may_have_executed and event.parent:
+            failed[key] = (event.parent, event.serving_rr)
+        elif isinstance(event, events.CallAnswered | events.CallWithdrawn):
+            failed.pop(key, None)  # (answered again: held, a retry; or withdrawn)
+            ended.pop(key, None)
+        elif isinstance(event, events.LoadFailed | events.ResourceUnloaded):
+            for (consumer, qid), (parent, provider) in list(failed.items()):
+                if consumer == name and parent == event.resource_id:
+                    del failed[consumer, qid]
+                    ended[consumer, qid] = (line, event.at, provider)
+        elif isinstance(event, events.CatalogRestored):
+            holding[name] = {qid: (c, line, event.at) for qid, _rid, c, *_ in event.consumers}
+        elif isinstance(event, events.ConsumerAdded):
+            holding[name][event.query_id] = (event.consumer, line, event.at)
+        elif isinstance(event, events.ConsumerReleased) and event.query_id in holding[name]:
+            close(name, event.query_id, event.at)
+    for name, held in holding.items():  # (held to the end of the run)
+        for qid in list(held):
+            close(name, qid, last[name])
+    return _held_on(
+        ended, spans, "retry-ended", "the load that made that call ended (no retry can come)"
+    )
+
+
 def retry_kept(steps: Sequence[Step]) -> list[Finding]:
     """`retry-kept` (rule 17 case 3, rule 20): a failed call's id waits for its retry.
 
@@ -515,9 +571,12 @@ def kept_unclaimed(  # noqa: PLR0912 - one branch per event kind
 def _held_on(
     called: dict[tuple[str, str], tuple[int, float, str]],
     spans: dict[tuple[str, str], list[tuple[str, int, float, float]]],
+    rule: str = "withdrawn",
+    after: str = "{consumer} withdrew that call",
 ) -> list[Finding]:
-    """`withdrawn`'s findings: each withdrawal (`called`) whose provider held the id for
-    `WITHDRAWN_BOUND_S` after it, in one of the `spans` that life held it."""
+    """`withdrawn`'s findings (or `rule`'s, `after` what): each withdrawal (`called`) whose
+    provider held the id for `WITHDRAWN_BOUND_S` after it, in one of the `spans` that life
+    held it."""
     findings = []
     for (consumer, qid), (line, at, provider) in called.items():
         for holder, added, since, until in spans.get((provider, qid), ()):
@@ -525,10 +584,10 @@ def _held_on(
             if holder == consumer and kept >= WITHDRAWN_BOUND_S:
                 findings.append(
                     Finding(
-                        "withdrawn",
+                        rule,
                         "violation",
                         f"{provider} held query {qid[:8]} of {consumer} for {kept:.1f} s "
-                        f"after {consumer} withdrew that call, and after that life of "
+                        f"after {after.format(consumer=consumer)}, and after that life of "
                         f"{provider} began to hold it",
                         (line, added),
                         (provider, consumer),

@@ -15,6 +15,7 @@
                    one sender's statuses (StatusSent) arrive in the order sent; each
                    callback of a process has a place of its own in that order (1, 2, ...)
  StatusAnswered ──► status_answered: a send answered after the callbacks it reached returned
+                └─► status_patient: ... and not after its patience (StatusSent.patience)
 ```
 
 Each rule's windows and what it excuses: docs/how-to/check-a-run.md.
@@ -131,6 +132,55 @@ def status_answered(history: Sequence[Line]) -> list[Finding]:
                 f"{event.registrar} reached before its callback returned (rule 9)",
                 (at, line),
                 (answer.registrar, event.registrar),
+            )
+        )
+    return findings
+
+
+PATIENCE_SLACK_S = 0.5
+"""Seconds past a send's patience by which a callback it reached has returned or been given
+up on (the status runner's watchdog looks every 50 ms: `SLICE`)."""
+
+
+def status_patient(history: Sequence[Line]) -> list[Finding]:
+    """`status-patient` (rule 9, issue 68 item 8): a `send_status` waits for a callback at
+    most its patience (`StatusSent.patience`), then gives it up. A `StatusHandled` of a
+    consumer id its `StatusAnswered` lists as reached (not given up on), stamped more than
+    `PATIENCE_SLACK_S` past the send's patience after its `StatusSent` (and before the
+    answer: the answer waited for it), is a finding. A send of no patience is not judged."""
+    sent: dict[str, tuple[int, events.StatusSent]] = {}  # status id -> (line, send)
+    answered: dict[str, events.StatusAnswered] = {}
+    handled: list[tuple[int, events.StatusHandled]] = []
+    for line, event in history:
+        if isinstance(event, events.StatusSent):
+            sent.setdefault(event.status_id, (line, event))
+        elif isinstance(event, events.StatusAnswered):
+            answered.setdefault(event.status_id, event)
+        elif isinstance(event, events.StatusHandled):
+            handled.append((line, event))
+    findings: list[Finding] = []
+    for line, event in handled:
+        at, send = sent.get(event.status_id, (0, None))
+        answer = answered.get(event.status_id)
+        if send is None or send.patience is None or answer is None:
+            continue
+        took = hlc.seconds(event.hlc) - hlc.seconds(send.hlc)
+        if (
+            event.query_id not in answer.reached
+            or event.hlc > answer.hlc
+            or took <= send.patience + PATIENCE_SLACK_S
+        ):
+            continue
+        findings.append(
+            Finding(
+                "status-patient",
+                "violation",
+                f"{send.registrar}'s send of status {event.status_id[:8]} "
+                f"({event.status.name}) waited {took:.2f} s, past its patience of "
+                f"{send.patience:g} s, for the callback of query {event.query_id[:8]} of "
+                f"{event.registrar}, not given up on (rule 9)",
+                (at, line),
+                (send.registrar, event.registrar),
             )
         )
     return findings

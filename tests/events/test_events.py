@@ -190,6 +190,7 @@ def test_to_dict_names_the_type_and_writes_the_status_by_name() -> None:
         "status": "WARNING",
         "message": "hot",
         "status_id": "",
+        "patience": None,
         "at": 1.5,
         "pid": 9,
         "seq": 0,

@@ -44,6 +44,8 @@ SHIPPED = {
     "simways",
     "simshed",
     "simkept",
+    "simkeptdep",
+    "simpatient",
     "simoverload",
     "simcommit",
     "simanswer",

@@ -1130,6 +1130,8 @@ SIMULATED = [
     "simways",
     "simshed",
     "simkept",
+    "simkeptdep",
+    "simpatient",
     "simoverload",
     "simcommit",
     "simanswer",
