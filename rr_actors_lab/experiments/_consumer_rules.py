@@ -338,6 +338,9 @@ def end(steps: Sequence[Step], history: Sequence[Line]) -> list[Finding]:
     return findings
 
 
+Held = tuple[str, int, float, float]
+"""A span a provider's life held an id: (its consumer, the line it began, since, until)."""
+
 WITHDRAWN_BOUND_S = 1.0
 """Seconds by which a provider has released a withdrawn id it holds, counted from the
 withdrawal or from when that life of the provider began to hold it, whichever is later
@@ -352,38 +355,15 @@ def withdrawn(steps: Sequence[Step]) -> list[Finding]:
     the withdrawal (wall clock `at`) is a violation.
     """
     called: dict[tuple[str, str], tuple[int, float, str]] = {}  # (consumer, id) -> ...
-    # provider -> id -> (consumer, line, since): held in its current life
-    holding: dict[str, dict[str, tuple[str, int, float]]] = defaultdict(dict)
-    # (provider, id) -> [(consumer, line, since, until)]: each span a life held it
-    spans: dict[tuple[str, str], list[tuple[str, int, float, float]]] = defaultdict(list)
-    last: dict[str, float] = {}  # provider -> `at` of its last event
-
-    def close(name: str, qid: str, until: float) -> None:
-        consumer, line, since = holding[name].pop(qid)
-        spans[name, qid].append((consumer, line, since, until))
-
-    for name, line, event, new, _life in steps:
-        if new:
-            for qid in list(holding[name]):  # (the life before ended with its last event)
-                close(name, qid, last.get(name, event.at))
-        last[name] = event.at
+    for name, line, event, _new, _life in steps:
         if isinstance(event, events.CallWithdrawn):
             called[name, event.query_id] = (line, event.at, event.serving_rr)
         elif isinstance(event, events.CallAnswered):
             called.pop((name, event.query_id), None)  # (answered again: held, a retry)
-        elif isinstance(event, events.CatalogRestored):
-            holding[name] = {qid: (c, line, event.at) for qid, _rid, c, *_ in event.consumers}
-        elif isinstance(event, events.ConsumerAdded):
-            holding[name][event.query_id] = (event.consumer, line, event.at)
-        elif isinstance(event, events.ConsumerReleased) and event.query_id in holding[name]:
-            close(name, event.query_id, event.at)
-    for name, held in holding.items():  # (held to the end of the run)
-        for qid in list(held):
-            close(name, qid, last[name])
-    return _held_on(called, spans)
+    return _held_on(called, _held_spans(steps))
 
 
-def retry_ended(steps: Sequence[Step]) -> list[Finding]:  # noqa: PLR0912 - a branch per kind
+def retry_ended(steps: Sequence[Step]) -> list[Finding]:
     """`retry-ended` (rule 17, issue 68 item 8): a dependency's id kept for a retry is given
     back once the load that made it ended, as no retry can come from it.
 
@@ -396,21 +376,10 @@ def retry_ended(steps: Sequence[Step]) -> list[Finding]:  # noqa: PLR0912 - a br
     """
     failed: dict[tuple[str, str], tuple[str, str]] = {}  # (consumer, id) -> (parent, provider)
     ended: dict[tuple[str, str], tuple[int, float, str]] = {}  # (consumer, id) -> ...
-    holding: dict[str, dict[str, tuple[str, int, float]]] = defaultdict(dict)
-    spans: dict[tuple[str, str], list[tuple[str, int, float, float]]] = defaultdict(list)
-    last: dict[str, float] = {}  # provider -> `at` of its last event
-
-    def close(name: str, qid: str, until: float) -> None:
-        consumer, line, since = holding[name].pop(qid)
-        spans[name, qid].append((consumer, line, since, until))
-
     for name, line, event, new, _life in steps:
         if new:
-            for qid in list(holding[name]):  # (the life before ended with its last event)
-                close(name, qid, last.get(name, event.at))
             for gone in [key for key in failed if key[0] == name]:
                 del failed[gone]
-        last[name] = event.at
         key = (name, getattr(event, "query_id", ""))
         if isinstance(event, events.CallFailed) and event.may_have_executed and event.parent:
             failed[key] = (event.parent, event.serving_rr)
@@ -422,7 +391,31 @@ def retry_ended(steps: Sequence[Step]) -> list[Finding]:  # noqa: PLR0912 - a br
                 if consumer == name and parent == event.resource_id:
                     del failed[consumer, qid]
                     ended[consumer, qid] = (line, event.at, provider)
-        elif isinstance(event, events.CatalogRestored):
+    return _held_on(
+        ended,
+        _held_spans(steps),
+        "retry-ended",
+        "the load that made that call ended (no retry can come)",
+    )
+
+
+def _held_spans(steps: Sequence[Step]) -> dict[tuple[str, str], list[Held]]:
+    """(provider, id) -> each span a life of that provider held the id: (consumer, the line
+    it began, since, until: `at` wall clock; a life ends with its last event)."""
+    holding: dict[str, dict[str, tuple[str, int, float]]] = defaultdict(dict)
+    spans: dict[tuple[str, str], list[Held]] = defaultdict(list)
+    last: dict[str, float] = {}  # provider -> `at` of its last event
+
+    def close(name: str, qid: str, until: float) -> None:
+        consumer, line, since = holding[name].pop(qid)
+        spans[name, qid].append((consumer, line, since, until))
+
+    for name, line, event, new, _life in steps:
+        if new:
+            for qid in list(holding[name]):  # (the life before ended with its last event)
+                close(name, qid, last.get(name, event.at))
+        last[name] = event.at
+        if isinstance(event, events.CatalogRestored):
             holding[name] = {qid: (c, line, event.at) for qid, _rid, c, *_ in event.consumers}
         elif isinstance(event, events.ConsumerAdded):
             holding[name][event.query_id] = (event.consumer, line, event.at)
@@ -431,9 +424,7 @@ def retry_ended(steps: Sequence[Step]) -> list[Finding]:  # noqa: PLR0912 - a br
     for name, held in holding.items():  # (held to the end of the run)
         for qid in list(held):
             close(name, qid, last[name])
-    return _held_on(
-        ended, spans, "retry-ended", "the load that made that call ended (no retry can come)"
-    )
+    return spans
 
 
 def retry_kept(steps: Sequence[Step]) -> list[Finding]:
@@ -570,7 +561,7 @@ def kept_unclaimed(  # noqa: PLR0912 - one branch per event kind
 
 def _held_on(
     called: dict[tuple[str, str], tuple[int, float, str]],
-    spans: dict[tuple[str, str], list[tuple[str, int, float, float]]],
+    spans: dict[tuple[str, str], list[Held]],
     rule: str = "withdrawn",
     after: str = "{consumer} withdrew that call",
 ) -> list[Finding]:
