@@ -3967,8 +3967,14 @@ def test_shed_with_time_left_plants_after_a_server_whose_loads_there_are_all_kno
     assert rule in {f.rule for f in verdict.findings if f.kind == "violation"}
 
 
+SIMULATED_SHAPES = {"release-ended-dependency-late": "simkeptdep"}
+"""Mutations whose shape a short real run does not always have, each with the plan whose
+simulated seed 1 has it every time: a SIGKILL of api inside one of its 50 ms loads with
+front's call in flight (2 of 3 real `simkeptdep` runs of 2 s had none, 2026-11-28)."""
+
+
 @pytest.mark.timeout(900)
-@pytest.mark.parametrize("mutation", sorted(MUTATIONS))
+@pytest.mark.parametrize("mutation", sorted(set(MUTATIONS) - set(SIMULATED_SHAPES)))
 def test_each_mutation_of_the_shipped_plans_real_runs_is_caught_by_its_rule(
     shipped: dict[str, dict[int, list[check.Line]]], mutation: str
 ) -> None:
@@ -3984,6 +3990,20 @@ def test_each_mutation_of_the_shipped_plans_real_runs_is_caught_by_its_rule(
             (caught if rule in rules else missed).append((name, number, sorted(rules)))
     assert caught, f"{mutation} applies to no run of the shipped plans"
     assert [] == missed
+
+
+@pytest.mark.parametrize("mutation", sorted(SIMULATED_SHAPES))
+def test_each_mutation_real_runs_may_lack_is_caught_on_its_plans_simulated_seed(
+    mutation: str,
+) -> None:
+    mutate, rule = MUTATIONS[mutation]
+    run = simulate.run_seed(load_plan(plans.find(SIMULATED_SHAPES[mutation])), 1)
+    assert "held" == run.verdict
+    (history,) = check.read_runs(run.history.splitlines()).values()
+    mutated = mutate([event for _, event in history])
+    assert mutated is not None, f"{mutation} applies to no part of the simulated seed"
+    verdict = check.check(numbered(renumbered(mutated)))
+    assert rule in {f.rule for f in verdict.findings if f.kind == "violation"}
 
 
 SWEEP = pytest.mark.timeout(300)
