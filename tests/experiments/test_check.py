@@ -2016,11 +2016,9 @@ def dependency_failed_then_restored(released_after: float) -> list[events.Event]
     died before its answer left: cm's call failed (`may_have_executed`, parent RID2), so
     that load failed; erm's next life restores Q1 and releases it `released_after` s after
     its restore (lines 4 the failure, 5 the load's, 6 the restore)."""
-    restored = 20.0
+    withdrawn = withdrawn_then_restored(released_after)
     return [
-        events.CatalogRestored("erm", (), (), (), pid=P, seq=1, at=10.0),
-        events.ResourceLoaded("erm", "cam", RID, Q1, 0.01, 42, "cam 0", pid=P, seq=2, at=10.0),
-        events.ConsumerAdded("erm", RID, Q1, "cm", pid=P, seq=3, at=10.0),
+        *withdrawn[:3],
         events.CallFailed(
             "cm",
             Q1,
@@ -2036,22 +2034,7 @@ def dependency_failed_then_restored(released_after: float) -> list[events.Event]
         events.LoadFailed(
             "cm", "map", RID2, Q2, "RegistrarUnavailableError", "gone", pid=C, at=10.002
         ),
-        events.CatalogRestored(
-            "erm",
-            ((RID, "cam", "loaded", "42"),),
-            ((Q1, RID, "cm"),),
-            (),
-            (1, 1, 0),
-            pid=P + 1,
-            seq=1,
-            at=restored,
-        ),
-        events.ConsumerReleased(
-            "erm", RID, Q1, "cm", "reconcile", pid=P + 1, seq=2, at=restored + released_after
-        ),
-        events.ResourceUnloaded("erm", "cam", RID, pid=P + 1, seq=3, at=restored + released_after),
-        events.RegistrarStopped("cm", (), (), (), pid=C, at=restored + 3.0),
-        events.RegistrarStopped("erm", (), (), (), pid=P + 1, seq=4, at=restored + 3.0),
+        *withdrawn[4:],
     ]
 
 
