@@ -284,8 +284,8 @@ class Observer:
         """What it shows will not change any more (its supervisor stopped).
 
         Without `keep_serving`, the observer closes. With it, the page keeps showing the final
-        state until `close()`; across hosts, that state is shared before this returns (at most
-        `_share.FLUSH_TIMEOUT` seconds).
+        state until `close()`; across hosts, that state is shared, and on this host's own page,
+        before this returns (at most `_share.FLUSH_TIMEOUT` seconds each).
         """
         if not self.keep_serving:
             self.close()
@@ -303,6 +303,8 @@ class Observer:
         self._source.hub.put("ended", {"at": time.time()})
         if self._share is not None:  # (before the network closes: other hosts see it end)
             self._share.flush()
+        if self._view is not None:  # (this host's own final state, on its own page too)
+            self._view.flush()
 
     def close(self, *, timeout: float = 5.0) -> None:
         """Stop serving: open pages show that they are disconnected. Idempotent.

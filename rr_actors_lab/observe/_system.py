@@ -37,7 +37,7 @@ from rr_actors_lab.observe._faults import FaultRefused
 from rr_actors_lab.observe._faults_across import send_fault
 from rr_actors_lab.observe._hub import BATCH, Hub
 from rr_actors_lab.observe._liveness import Liveness, Mirror
-from rr_actors_lab.observe._share import LINKS_EVERY, Share
+from rr_actors_lab.observe._share import FLUSH_TIMEOUT, LINKS_EVERY, Share
 from rr_actors_lab.observe._sources import StatusNames, event_dict
 from rr_actors_lab.observe._view import dependency_graph
 
@@ -135,6 +135,11 @@ class SystemView:
         else:
             self._names.note(event)
         self.hub.add_event(data)
+
+    def flush(self, timeout: float = FLUSH_TIMEOUT) -> bool:
+        """Wait until what it was told before this call is in the page's hub (this host's own
+        state included); whether within `timeout` seconds (calling thread, never its own)."""
+        return self._executor.flush(timeout=timeout)
 
     def close(self, timeout: float = 5.0) -> None:
         """Stop following the hosts (within `timeout` seconds, and as long again for the

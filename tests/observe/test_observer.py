@@ -17,6 +17,7 @@ import socket
 import subprocess
 import sys
 import textwrap
+import threading
 import uuid
 from typing import Any
 
@@ -164,3 +165,39 @@ def test_an_observer_across_hosts_left_open_whose_thread_calls_zenoh_exits_witho
         results.append((done.returncode, "FATAL" in done.stderr, done.stdout))
 
     assert [(0, False, "ending\ndone\n")] * LEFT_OPEN_RUNS == results, done.stderr
+
+
+HELD = 1.0
+"""Seconds the page's view is held in the forced case below: the stop must wait for it."""
+
+
+def test_a_tree_stopped_under_a_page_kept_across_hosts_shows_it_ended_on_its_own_page() -> None:
+    """keep_serving across hosts: the tree's stop returns once its own page holds the host's
+    `ended`. Before, it returned once the share had sent it, and the page's own copy came
+    later on the view's thread: a page read at once lacked it (CI, under load). Forced: the
+    view's thread is held until the stop returns, or `HELD` s."""
+    net = rr.ZenohNetwork(system=f"ob-{uuid.uuid4().hex[:8]}", listen=[], connect=[], tls=None)
+    spec = rr.ManagerSpec("erm", setup=lambda r: None, isolation="thread")
+    sup = rr.Supervisor([spec], network=net).start()
+    try:
+        observer = observe(sup, across_hosts=True, keep_serving=True)
+        page, view, share = observer._hub, observer._view, observer._share
+        assert view is not None
+        assert share is not None
+        ended = f"host/{share.member}/ended"
+        order: list[str] = []
+        page.listen(
+            lambda: None if "shown" in order or page.get(ended) is None else order.append("shown")
+        )
+        returned = threading.Event()
+        view._executor.submit(lambda: returned.wait(HELD))
+
+        sup.stop()
+        order.append("returned")
+        returned.set()
+
+        assert view._executor.flush(timeout=10.0)  # (then it shows it, before or after)
+        assert ["shown", "returned"] == order
+        observer.close()
+    finally:
+        net.close()
