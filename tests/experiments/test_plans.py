@@ -156,7 +156,12 @@ def test_the_heartbeat_finds_a_hang_and_without_it_the_hang_lasts() -> None:
 
     off, fast = runs[False], runs[0.1]
     assert 0 == off.restarts
-    assert 1.2 == pytest.approx(off.unavailable_s["planner"], abs=0.1)
+    # without a heartbeat the planner is down from its hang until its SIGCONT 1.2 s later, or
+    # until the run's end if that comes first (a hang injected late on a loaded machine)
+    hang = next(f for f in off.faults if f.injected_s is not None)
+    assert hang.injected_s is not None
+    lasts = min(1.2, off.duration_s - hang.injected_s)
+    assert off.unavailable_s["planner"] >= lasts - 0.01, (hang, off.down["planner"])
     assert 1 == fast.restarts
     (hang,) = fast.faults
     assert hang.recovery_s is not None  # the heartbeat's restart served again (how soon is
