@@ -14,7 +14,7 @@
  steps + lives ──► kept-unclaimed: a failed call's id kept past its consumer's call_timeout
  steps (+ the give-ups) ──► left: a last stop's rows no running consumer holds
  steps + holdings ──► fetch: QueriesFetched, ServerQueriesListed against what was held
- steps + lives ──► outcome: each call a provider added against its caller's outcomes and end
+ steps + lives (+ the exits) ──► outcome: each call a provider added against its caller's end
 ```
 
 Each rule's windows and what it excuses: docs/how-to/check-a-run.md.
