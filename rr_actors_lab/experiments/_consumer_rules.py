@@ -14,7 +14,7 @@
  steps + lives ──► kept-unclaimed: a failed call's id kept past its consumer's call_timeout
  steps (+ the give-ups) ──► left: a last stop's rows no running consumer holds
  steps + holdings ──► fetch: QueriesFetched, ServerQueriesListed against what was held
- steps + lives ──► outcome: each call a provider added against its caller's outcomes and end
+ steps + lives (+ the exits) ──► outcome: each call a provider added against its caller's end
 ```
 
 Each rule's windows and what it excuses: docs/how-to/check-a-run.md.
@@ -805,18 +805,24 @@ caller's life may be of a call the life before made, and is not judged (`outcome
 _OUTCOMES = (events.CallAnswered, events.CallFailed, events.CallWithdrawn)
 
 
-def outcome(steps: Sequence[Step], lives: dict[tuple[str, int], Life]) -> list[Finding]:
+def outcome(
+    steps: Sequence[Step], lives: dict[tuple[str, int], Life], history: Sequence[Line]
+) -> list[Finding]:
     """`outcome`: every call has an outcome. A call its provider took (`ConsumerAdded`)
     has at its caller an answer (`CallAnswered`), an error (`CallFailed`) or a withdrawal
     (`CallWithdrawn`) of its id, or its caller's life ended otherwise than by its own stop
-    (a kill, a crash: the call died with it).
+    (a kill, a crash: the call died with it), or by a stop that ended its process.
 
     Judged: the caller's life at the add (its latest begun by the add's stamp, else its
     first: a caller's first event may be the call's answer) ended in
     its `RegistrarStopped` (a stop answers or withdraws what is in flight), and began
     `CALL_BOUND_S` before the add or is the caller's first (else a call of the life before
     may be the one added). Not judged: a caller with no event in the run, a run with no
-    outcome at all (written before the consumer's side was published, schema 2).
+    outcome at all (written before the consumer's side was published, schema 2), a
+    caller whose process exited with that life (a `ChildExited` of its pid: a manager's
+    stop withdraws its top-level calls, but a call of a load under way is settled by
+    that load, and the process's end after the stop cuts the load, as a kill does:
+    rule 16 reports it in doubt, rule 20 or 12 releases the id).
     """
     outcomes: set[tuple[str, str]] = set()  # (caller, id)
     adds: list[tuple[str, str, int, int, str]] = []  # (caller, id, line, stamp, provider)
@@ -832,6 +838,11 @@ def outcome(steps: Sequence[Step], lives: dict[tuple[str, int], Life]) -> list[F
     findings: list[Finding] = []
     if not outcomes:
         return findings
+    exited = {
+        (event.child, event.host, event.pid)
+        for _, event in history
+        if isinstance(event, events.ChildExited)
+    }
     for caller, qid, line, stamp, provider in adds:
         if (caller, qid) in outcomes or not of.get(caller):
             continue
@@ -842,6 +853,8 @@ def outcome(steps: Sequence[Step], lives: dict[tuple[str, int], Life]) -> list[F
             continue  # (its life ended by a kill, or before the add: the call died with it)
         if len(begun) > 1 and hlc.seconds(stamp) - hlc.seconds(start) < CALL_BOUND_S:
             continue
+        if (caller, record.host, record.pid) in exited:
+            continue  # (its process ended after the stop: a load's calls ended with it)
         findings.append(
             Finding(
                 "outcome",

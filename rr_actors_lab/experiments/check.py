@@ -286,7 +286,7 @@ def check(
         *_consumer_rules.kept_unclaimed(steps, lives, timeouts or {}),
         *_consumer_rules.left(steps, history, lives),
         *_consumer_rules.fetch(steps, providers.holdings, lives),
-        *_consumer_rules.outcome(steps, lives),
+        *_consumer_rules.outcome(steps, lives, history),
         *unload_order(steps),
         *dependency_held(steps),
         *doubt_reported(steps),

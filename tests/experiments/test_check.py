@@ -577,6 +577,25 @@ def test_a_call_whose_caller_was_killed_before_its_stop_is_not_owed_an_outcome()
     assert [] == _of_rule(killed, "outcome")
 
 
+def test_a_call_whose_callers_stop_ended_its_process_is_not_owed_an_outcome() -> None:
+    # simrest seed 5: db killed, rest_for_one stopped web while a load of web waited on
+    # its call to api, which api had added; web's manager process exited after its stop
+    # (its `ChildExited`), cutting the load and the call (its next start: `InDoubt`, and
+    # api released the id at the reconcile). A stop withdraws top-level calls, not a
+    # load's: the load settles them, and the process's end took the load.
+    stopped = [*_asked_again(), events.ChildExited("sup", "app", A, "shutdown", stopped=True)]
+    assert [] == _of_rule(stopped, "outcome")
+
+
+def test_a_call_whose_callers_stop_left_its_process_running_is_owed_an_outcome() -> None:
+    # the same, the exit another process of app's (an earlier one): app's own process
+    # ran on after its stop, so the stop answered or withdrew what was in flight
+    other = [*_asked_again(), events.ChildExited("sup", "app", A + 1, "shutdown", stopped=True)]
+    found = _of_rule(other, "outcome")
+    assert [{5, 13}] == [set(f.lines) for f in found]
+    assert "cm added query q3333333 of app" in found[0].message
+
+
 @pytest.mark.parametrize(
     "reason",
     [

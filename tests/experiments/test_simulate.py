@@ -1013,6 +1013,38 @@ def test_simdoubt_seed_111_holds_a_status_lost_with_its_sender_killed_right_afte
 
 
 @SWEEP
+def test_simrest_seed_5_holds_a_dependency_call_cut_by_its_callers_stop() -> None:
+    # db killed at 0.476 s: rest_for_one stopped web, then api, while a load of web waited
+    # on its call to api that api had added (c8c57a8a). web's stop withdraws top-level
+    # calls only; its manager process then exited, cutting the load and that call: no
+    # answer, error or withdrawal at web. Its next life reported the load in doubt and api
+    # released the id at their reconcile. `outcome` read web's stop as one that answers or
+    # withdraws all in flight: violated (found 2026-11-27, the rule's day).
+    from rr_actors_lab.experiments import load_plan  # noqa: PLC0415
+
+    run = simulate.run_seed(load_plan(PLANS / "simrest.toml"), 5)
+
+    held([run])
+    done = {
+        (e["registrar"], e["query_id"])
+        for kind in ("CallAnswered", "CallFailed", "CallWithdrawn")
+        for e in lines(run, kind)
+    }
+    exited = {(e["child"], e["pid"]) for e in lines(run, "ChildExited") if e["stopped"]}
+    cut = [
+        e
+        for e in lines(run, "ConsumerAdded")
+        if (e["consumer"], e["query_id"]) not in done
+        and any(
+            (e["consumer"], s["pid"]) in exited
+            for s in lines(run, "RegistrarStopped")
+            if s["registrar"] == e["consumer"] and s["hlc"] > e["hlc"]
+        )
+    ]
+    assert cut, "seed 5 no longer cuts a call taken by api with its caller's stop"
+
+
+@SWEEP
 def test_a_duplicate_delivery_at_a_reconnect_is_delivered_twice_and_holds() -> None:
     plan = with_faults('kind = "duplicate_delivery"\ntarget = ["api", "db"]\nevery = 0.3')
 
