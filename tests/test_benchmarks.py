@@ -427,6 +427,31 @@ def test_a_mutant_that_crashes_where_the_unedited_copy_holds_is_crashed_and_out_
     assert "  killed 0, crashed 1, timeout 0, survived 0, equivalent 0\n" in done.stdout
 
 
+def test_a_crash_the_unedited_copy_shares_is_not_the_mutants_and_its_own_beats_a_timeout(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    score = _script("mutation_score", monkeypatch)
+
+    class Clean:  # (the unedited copy crashes at seed 1 only)
+        def run(self, plan: str, seed: int) -> dict[str, Any]:
+            return {"verdict": "crashed" if seed == 1 else "held", "rules": []}
+
+    shared = {"plan": "p", "seed": 1, "verdict": "raised", "error": "E: one"}
+    own = {"plan": "p", "seed": 2, "verdict": "crashed", "error": "E: two"}
+    held = {"plan": "p", "seed": 3, "verdict": "held"}
+
+    assert {"status": "survived"} == score.unkilled([shared, held], None, Clean())
+    assert {"status": "timeout", "why": "timeout (CPU)"} == score.unkilled(
+        [shared], "timeout (CPU)", Clean()
+    )
+    assert {
+        "status": "crashed",
+        "plan": "p",
+        "seed": 2,
+        "why": "p seed 2: E: two (unedited: held)",
+    } == score.unkilled([shared, own, held], "timeout (CPU)", Clean())
+
+
 def test_a_mutant_cosmic_ray_fails_to_make_is_left_out_of_the_sample_as_a_stillborn_one(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
