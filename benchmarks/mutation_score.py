@@ -442,7 +442,7 @@ def child_main(path: str, plans: str, start: int, count: int) -> None:
         try:
             run = simulate.run_seed(loaded[name], seed)
         except Exception as exc:  # (the mutant's: a crash, reported)
-            line.update(verdict="raised", error=f"{type(exc).__name__}: {str(exc)[:120]}")
+            line.update(verdict="raised", error=f"{type(exc).__name__}: {one_line(exc)[:120]}")
         else:
             rules = {
                 f.split("[", 1)[1].split("]", 1)[0]
@@ -452,11 +452,16 @@ def child_main(path: str, plans: str, start: int, count: int) -> None:
             line.update(verdict=run.verdict, rules=sorted(rules))
             if run.verdict == "crashed":
                 crashed = [f.strip() for f in run.findings if "crashed" in f]
-                line["error"] = (crashed or ["crashed"])[0][:160]
+                line["error"] = one_line((crashed or ["crashed"])[0])[:160]
         line["cpu_s"] = round(time.process_time() - began, 3)
         print(json.dumps(line), flush=True)
         if line["verdict"] == "violated":
             return
+
+
+def one_line(text: object) -> str:
+    """`text` (an error's, which may hold a traceback) on one line of the table."""
+    return " ".join(str(text).split())
 
 
 # -- the table ------------------------------------------------------------------------
