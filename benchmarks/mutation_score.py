@@ -13,25 +13,33 @@ command, not a search of seeded simulations:
     a child process with PYTHONPATH at the copy (PYTHONHASHSEED=0, as a sweep has) runs the
       shipped simulated plans' seeds (`rr_actors_lab.experiments.simulate.run_seed`) in
       turns, one seed of each plan, cheapest plans first, then the second seed of each, ...,
-      until a seed's verdict is `violated` or `--seeds` runs, within `--cpu` CPU seconds
-      (RLIMIT_CPU) and ten times that of wall time
+      until a seed's verdict is `violated` or seeds 1 to `--seeds` of every plan ran, within
+      `--cpu` CPU seconds (RLIMIT_CPU) and ten times that of wall time
     a violation counts only if the unedited copy does not violate the same rule on that
       plan and seed (then the search goes on from the next seed)
+
+`--seeds` counts seeds per plan, not runs: any budget searches every plan named (a count of
+runs, 20 say, ran the first 20 plans' seed 1 and never the last four). One seed of each of
+the 24 plans is about 30 CPU s; a search that `--cpu` ends first is a timeout, not a survivor.
 
 Each mutant is then one of:
 
     killed    a rule's violation (the rule, the plan and seed that found it)
-    crashed   only crashes: the copy did not import, the tree did not start, or each run
-              raised (a run that crashed does not end the search: the next seed runs)
-    timeout   the CPU or wall bound ended the search first
-    survived  every seed held (or was unverifiable): a survivor
+    crashed   no violation, but a run crashed (raised, or its tree did not start) on a plan
+              and seed where the unedited copy's did not (the first such plan and seed), or
+              the copy did not import: found, but by no rule (a crash does not end the
+              search: the next seed runs, and a later violation still kills)
+    timeout   no crash of its own, and the CPU or wall bound ended the search first
+    survived  every seed held (or was unverifiable, or crashed as the unedited copy does)
     equivalent  a survivor listed in `EQUIVALENT`, with the line that shows it
 
-Score = killed / (all - equivalent). The survivors are printed with their place and edit:
-each one is a rule or plan missing, or an equivalent mutant to add to `EQUIVALENT`.
+Score = killed / (all - equivalent - crashed): a crashed mutant says nothing of the rules
+(it is counted apart, as a run error is in Stryker's score). The survivors are printed with
+their place and edit: each one is a rule or plan missing, or an equivalent mutant to add to
+`EQUIVALENT`.
 
-    python benchmarks/mutation_score.py --sample 100 --seeds 200 --jobs 2   # the figure
-    python benchmarks/mutation_score.py --sample 3 --seeds 2                # a quick look
+    python benchmarks/mutation_score.py --sample 100 --seeds 3 --jobs 2     # the figure
+    python benchmarks/mutation_score.py --sample 3 --seeds 1                # a quick look
     python benchmarks/mutation_score.py --plans crashloop \
         --only _supervision/policy.py:457:ReplaceComparisonOperator_LtE_Lt  # one mutant
     python benchmarks/mutation_score.py --list | wc -l                      # all mutants
@@ -289,15 +297,19 @@ class Clean:
 
     def __init__(self, folder: Path) -> None:
         self.path, _ = scratch(folder, None)
-        self.rules: dict[tuple[str, int], set[str]] = {}
+        self.runs: dict[tuple[str, int], dict[str, Any]] = {}
         self.lock = threading.Lock()
 
-    def violated(self, plan: str, seed: int) -> set[str]:
+    def run(self, plan: str, seed: int) -> dict[str, Any]:
+        """The unedited copy's line for `plan` at `seed` (its verdict, rules, ...)."""
         with self.lock:
-            if (plan, seed) not in self.rules:
-                lines = run_child(self.path, [plan], seed, 1, None)[0]
-                self.rules[(plan, seed)] = set(lines[-1]["rules"]) if lines else set()
-            return self.rules[(plan, seed)]
+            if (plan, seed) not in self.runs:
+                lines, ended = run_child(self.path, [plan], seed, 1, None)
+                self.runs[(plan, seed)] = lines[-1] if lines else {"verdict": ended, "rules": []}
+            return self.runs[(plan, seed)]
+
+    def violated(self, plan: str, seed: int) -> set[str]:
+        return set(self.run(plan, seed)["rules"])
 
 
 def run_child(
@@ -339,49 +351,64 @@ def _lines(out: str) -> list[dict[str, Any]]:
     return [json.loads(line) for line in out.splitlines() if line.startswith("{")]
 
 
+CRASHES = ("crashed", "raised")
+"""A child line's verdicts for a run that crashed (the simulation's, or `run_seed` raised)."""
+
+
 def judge(mutant: Mutant, options: argparse.Namespace, clean: Clean) -> dict[str, Any] | None:
     """One mutant's search and its class (None: `--budget` was spent before it started)."""
     plans: list[str] = options.plans
     started = time.monotonic()
     if started > options.deadline:
         return None
-    result: dict[str, Any] = {"id": mutant.id, "operator": mutant.operator, "runs": 0}
+    result: dict[str, Any] = {"id": mutant.id, "operator": mutant.operator}
+    turns = options.seeds * len(plans)  # (seeds 1 to --seeds of every plan)
     with tempfile.TemporaryDirectory(prefix="rr-mutant-") as folder:
         path, result["edit"] = scratch(Path(folder), mutant)
-        crash: str | None = None
-        verdicts: list[str] = []
+        runs: list[dict[str, Any]] = []
+        ended: str | None = None
         turn, cpu = 1, float(options.cpu)
-        while turn <= options.seeds:
-            lines, ended = run_child(path, plans, turn, options.seeds - turn + 1, cpu)
-            result["runs"] += len(lines)
-            verdicts += [line["verdict"] for line in lines]
+        while turn <= turns:
+            if cpu <= 0:
+                ended = "timeout (CPU)"
+                break
+            lines, ended = run_child(path, plans, turn, turns - turn + 1, cpu)
+            runs += lines
             cpu -= sum(line["cpu_s"] for line in lines)
-            for line in lines:
-                if line["verdict"] in ("crashed", "raised") and crash is None:
-                    crash = f"{line['plan']} seed {line['seed']}: {line['error']}"
             last = lines[-1] if lines else None
             if last is not None and last["verdict"] == "violated":
                 new = sorted(set(last["rules"]) - clean.violated(last["plan"], last["seed"]))
                 if new:
                     result.update(status="killed", rules=new, plan=last["plan"], seed=last["seed"])
                     break
-                turn = last["turn"] + 1  # (the unedited code violates it too: go on)
-                continue
-            if ended is not None and ended.startswith("timeout"):
-                result.update(status="timeout", why=ended)
-            elif ended is not None:
-                result.update(status="crashed", why=crash or ended)
-            elif verdicts and all(v in ("crashed", "raised") for v in verdicts):
-                result.update(status="crashed", why=crash)
-            else:
-                result.update(status="survived")
+                if ended is None:
+                    turn = last["turn"] + 1  # (the unedited code violates it too: go on)
+                    continue
             break
-        else:
-            result.update(status="survived")
+        result.update(runs=len(runs), plans_run=len({r["plan"] for r in runs}))
+        result["crashes"] = sum(r["verdict"] in CRASHES for r in runs)
+        if "status" not in result:
+            result.update(unkilled(runs, ended, clean))
     if result["status"] == "survived" and mutant.id in EQUIVALENT:
         result.update(status="equivalent", why=EQUIVALENT[mutant.id])
     result["wall_s"] = round(time.monotonic() - started, 1)
     return result
+
+
+def unkilled(runs: list[dict[str, Any]], ended: str | None, clean: Clean) -> dict[str, Any]:
+    """The class of a search no rule ended: crashed (with the first run that crashed where
+    the unedited copy's did not: its plan, seed and error), timeout, or survived."""
+    for run in runs:
+        if run["verdict"] in CRASHES:
+            theirs = clean.run(run["plan"], run["seed"])["verdict"]
+            if theirs not in CRASHES:
+                why = f"{run['plan']} seed {run['seed']}: {run['error']} (unedited: {theirs})"
+                return {"status": "crashed", "plan": run["plan"], "seed": run["seed"], "why": why}
+    if ended is not None and ended.startswith("timeout"):
+        return {"status": "timeout", "why": ended}
+    if ended is not None:  # (the copy did not import, or the child died outside a run)
+        return {"status": "crashed", "why": ended}
+    return {"status": "survived"}
 
 
 # -- the child: turns of seeds on the copy PYTHONPATH names --------------------------------
@@ -415,7 +442,7 @@ def child_main(path: str, plans: str, start: int, count: int) -> None:
         try:
             run = simulate.run_seed(loaded[name], seed)
         except Exception as exc:  # (the mutant's: a crash, reported)
-            line.update(verdict="raised", error=f"{type(exc).__name__}: {str(exc)[:120]}")
+            line.update(verdict="raised", error=f"{type(exc).__name__}: {one_line(exc)[:120]}")
         else:
             rules = {
                 f.split("[", 1)[1].split("]", 1)[0]
@@ -425,11 +452,16 @@ def child_main(path: str, plans: str, start: int, count: int) -> None:
             line.update(verdict=run.verdict, rules=sorted(rules))
             if run.verdict == "crashed":
                 crashed = [f.strip() for f in run.findings if "crashed" in f]
-                line["error"] = (crashed or ["crashed"])[0][:160]
+                line["error"] = one_line((crashed or ["crashed"])[0])[:160]
         line["cpu_s"] = round(time.process_time() - began, 3)
         print(json.dumps(line), flush=True)
         if line["verdict"] == "violated":
             return
+
+
+def one_line(text: object) -> str:
+    """`text` (an error's, which may hold a traceback) on one line of the table."""
+    return " ".join(str(text).split())
 
 
 # -- the table ------------------------------------------------------------------------
@@ -440,12 +472,14 @@ def report(results: list[dict[str, Any]], options: argparse.Namespace) -> None:
     counts = dict.fromkeys(("killed", "crashed", "timeout", "survived", "equivalent"), 0)
     for r in results:
         counts[r["status"]] += 1
-    judged = len(results) - counts["equivalent"]
+    judged = len(results) - counts["equivalent"] - counts["crashed"]
     score = counts["killed"] / judged if judged else 0.0
     print(
         f"mutation score: {counts['killed']}/{judged} = {score:.1%} killed by a rule "
-        f"({len(results)} mutants, sample seed {options.seed}, at most {options.seeds} seeds "
-        f"and {options.cpu:g} CPU s each, plans {','.join(options.plans)})"
+        f"({len(results)} mutants less {counts['equivalent']} equivalent and "
+        f"{counts['crashed']} crashed; sample seed {options.seed}; seeds 1-{options.seeds} "
+        f"of each of {len(options.plans)} plans, at most {options.cpu:g} CPU s a mutant: "
+        f"{','.join(options.plans)})"
     )
     print("  " + ", ".join(f"{k} {v}" for k, v in counts.items()))
     rules: dict[str, int] = {}
@@ -461,7 +495,10 @@ def report(results: list[dict[str, Any]], options: argparse.Namespace) -> None:
             print(f"{status}:")
         for r in chosen:
             why = f"  ({r['why']})" if r.get("why") else ""
-            print(f"  {r['id']}  {r['edit']}  [{r['runs']} runs]{why}")
+            runs = (
+                f"{r['runs']} runs, {r.get('plans_run', '?')} plans, {r.get('crashes', 0)} crashed"
+            )
+            print(f"  {r['id']}  {r['edit']}  [{runs}]{why}")
     if counts["killed"]:
         print("killed:")
     for r in results:
@@ -516,7 +553,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
     parser.add_argument("--sample", type=int, default=100, help="mutants drawn (default 100)")
     parser.add_argument("--seed", type=int, default=68, help="the sample's seed")
-    parser.add_argument("--seeds", type=int, default=200, help="most seeds run per mutant")
+    parser.add_argument(
+        "--seeds",
+        type=int,
+        default=3,
+        help="seeds searched of each plan: 1 to SEEDS (default 3: about 90 CPU s, all plans)",
+    )
     parser.add_argument("--cpu", type=float, default=120.0, help="most CPU s per mutant")
     parser.add_argument(
         "--budget", type=float, help="wall seconds: no mutant starts after them (a smaller sample)"

@@ -20,6 +20,7 @@ import subprocess
 import sys
 from pathlib import Path
 from types import ModuleType
+from typing import Any
 
 import pytest
 
@@ -345,6 +346,24 @@ def test_every_planted_bug_applies_once_to_the_source_and_names_a_shipped_plan_a
     assert len(planted.PLANTS) == len({p.name for p in planted.PLANTS})
 
 
+def _score(tmp_path: Path, *args: str) -> tuple[subprocess.CompletedProcess[str], dict[str, Any]]:
+    """`mutation_score.py args --cpu 60 --json ...` run: its output and its one result."""
+    done = subprocess.run(
+        [
+            sys.executable, str(ROOT / "benchmarks" / "mutation_score.py"),
+            *args, "--cpu", "60", "--json", str(tmp_path / "results.json"),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=CEILING,
+        check=False,
+    )  # fmt: skip
+    assert 0 == done.returncode, done.stderr[-3000:]
+    [result] = json.loads((tmp_path / "results.json").read_text())
+    return done, result
+
+
 @pytest.mark.timeout(CEILING + 10)
 def test_mutation_score_names_the_rule_that_killed_a_mutant_and_prints_the_score(
     tmp_path: Path,
@@ -353,21 +372,9 @@ def test_mutation_score_names_the_rule_that_killed_a_mutant_and_prints_the_score
     lines = policy.read_text().splitlines()
     early = lines.index("        return len(self._times) <= self.max_restarts") + 1
     mutant = f"_supervision/policy.py:{early}:ReplaceComparisonOperator_LtE_Lt"  # (a restart early)
-    done = subprocess.run(
-        [
-            sys.executable, str(ROOT / "benchmarks" / "mutation_score.py"),
-            *("--only", mutant, "--plans", "crashloop", "--seeds", "3", "--cpu", "60"),
-            *("--json", str(tmp_path / "results.json")),
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=CEILING,
-        check=False,
-    )  # fmt: skip
 
-    assert 0 == done.returncode, done.stderr[-3000:]
-    [result] = json.loads((tmp_path / "results.json").read_text())
+    done, result = _score(tmp_path, "--only", mutant, "--plans", "crashloop", "--seeds", "3")
+
     assert ("killed", ["intensity"], "crashloop") == (
         result["status"],
         result["rules"],
@@ -376,6 +383,73 @@ def test_mutation_score_names_the_rule_that_killed_a_mutant_and_prints_the_score
     assert "<= self.max_restarts  ->  return len(self._times) < self.max_restarts" in result["edit"]
     assert done.stdout.startswith("mutation score: 1/1 = 100.0% killed by a rule")
     assert f"  {mutant}  [intensity] crashloop seed {result['seed']}" in done.stdout
+
+
+@pytest.mark.timeout(CEILING + 10)
+def test_mutation_score_searches_every_plan_it_names_whatever_its_seeds(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`--seeds` counts seeds per plan: it counted runs, so `--seeds 20` never ran the last
+    plans (bigtree, killheavy, ...) of 24, and `--seeds 1` only the first."""
+    score = _script("mutation_score", monkeypatch)
+    survivor = next(i for i in score.EQUIVALENT if i.startswith("_store/outbox.py:"))
+
+    done, result = _score(
+        tmp_path, "--only", survivor, "--plans", "crashloop,first,hang", "--seeds", "1"
+    )
+
+    assert ("equivalent", 3, 3) == (result["status"], result["runs"], result.get("plans_run"))
+    assert "seeds 1-1 of each of 3 plans" in done.stdout
+
+
+@pytest.mark.timeout(CEILING + 10)
+def test_a_mutant_that_crashes_where_the_unedited_copy_holds_is_crashed_and_out_of_the_score(
+    tmp_path: Path,
+) -> None:
+    """`left = deadline | runtime.monotonic()` raises at simcancel seed 1 (a retry's deadline)
+    and holds at first: a search of both (`--seeds 2` then) called it survived. A crash is no
+    rule's kill, nor a survival: crashed, its own class, out of the score's denominator."""
+    retry = (ROOT / "rr_actors" / "_supervision" / "retry.py").read_text().splitlines()
+    line = retry.index("        left = deadline - runtime.monotonic()") + 1
+    mutant = f"_supervision/retry.py:{line}:ReplaceBinaryOperator_Sub_BitOr"
+
+    done, result = _score(tmp_path, "--only", mutant, "--plans", "first,simcancel", "--seeds", "1")
+
+    assert ("crashed", "simcancel", 1, 1) == (
+        result["status"],
+        result.get("plan"),
+        result.get("seed"),
+        result.get("crashes"),
+    ), result
+    assert result["why"].endswith("(unedited: held)"), result
+    assert done.stdout.startswith("mutation score: 0/0 = 0.0% killed by a rule (1 mutants ")
+    assert "less 0 equivalent and 1 crashed" in done.stdout
+    assert "  killed 0, crashed 1, timeout 0, survived 0, equivalent 0\n" in done.stdout
+
+
+def test_a_crash_the_unedited_copy_shares_is_not_the_mutants_and_its_own_beats_a_timeout(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    score = _script("mutation_score", monkeypatch)
+
+    class Clean:  # (the unedited copy crashes at seed 1 only)
+        def run(self, plan: str, seed: int) -> dict[str, Any]:
+            return {"verdict": "crashed" if seed == 1 else "held", "rules": []}
+
+    shared = {"plan": "p", "seed": 1, "verdict": "raised", "error": "E: one"}
+    own = {"plan": "p", "seed": 2, "verdict": "crashed", "error": "E: two"}
+    held = {"plan": "p", "seed": 3, "verdict": "held"}
+
+    assert {"status": "survived"} == score.unkilled([shared, held], None, Clean())
+    assert {"status": "timeout", "why": "timeout (CPU)"} == score.unkilled(
+        [shared], "timeout (CPU)", Clean()
+    )
+    assert {
+        "status": "crashed",
+        "plan": "p",
+        "seed": 2,
+        "why": "p seed 2: E: two (unedited: held)",
+    } == score.unkilled([shared, own, held], "timeout (CPU)", Clean())
 
 
 def test_a_mutant_cosmic_ray_fails_to_make_is_left_out_of_the_sample_as_a_stillborn_one(
