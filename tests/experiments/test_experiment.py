@@ -283,10 +283,10 @@ def test_a_fault_triggered_by_an_event_fires_its_delay_after_that_event(
 def test_a_killed_resource_process_is_recovered_by_a_client_of_the_manager_holding_it(
     every_fault: tuple[Results, Path],
 ) -> None:
-    """A kill no client heard of (at 1.3 s the LiDAR was still loading, or between holds:
-    a CI-loaded run, 2026-11-28) is recorded so (`runner.UNHELD`), not unrecovered: nothing
-    was held to recover. A kill that a client holding the LiDAR meets every time:
-    `BUSY_WHEN_KILLED` and `HELD_PAST_ITS_HOLD` below."""
+    """A kill no client heard of (the LiDAR still loading at 1.3 s, or between holds: a run
+    here beside two busy loops, load 20-80, 2026-11-28) is recorded so (`runner.UNHELD`),
+    not unrecovered: nothing was held to recover. A kill that a client holding the LiDAR
+    meets every time: `BUSY_WHEN_KILLED` and `HELD_PAST_ITS_HOLD` below."""
     results, _ = every_fault
     for run_result in results.runs:
         kill = next(f for f in run_result.faults if f.kind == "kill_resource")
