@@ -101,7 +101,7 @@ def test_strategies_restart_one_all_or_the_rest_after_a_kill() -> None:
             "one_for_all": set(order),
             "rest_for_one": set(order[order.index(str(first.target)) :]),
         }[str(strategy)]
-        assert expected == restarted, (strategy, first)
+        assert expected == restarted, (strategy, first, result.down)
         assert 0 == result.leaked_processes
 
 
