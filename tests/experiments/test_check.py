@@ -3195,14 +3195,21 @@ def drop_status_sent(h: History) -> History | None:
 
 
 def answer_early(h: History) -> History | None:
-    """A send answered (`StatusAnswered`) before a callback of an id it reached returned."""
+    """A send answered (`StatusAnswered`) before a callback of an id it reached returned.
+    Not a callback that returned after its id's release on an `Unload` (`status-answered`
+    excuses it: the status may have come on that Unload's answer; a real `simdoubt` run,
+    CI 2026-11-28, had only such a callback in its first answer)."""
     handled = {(e.status_id, e.query_id): e.hlc for e in h if type(e) is events.StatusHandled}
+    unloaded: dict[str, int] = {}  # query id -> its first release on an Unload
+    for e in h:
+        if type(e) is events.ConsumerReleased and e.reason == "unload":
+            unloaded.setdefault(e.query_id, e.hlc)
     for i, e in enumerate(h):
         if type(e) is not events.StatusAnswered:
             continue
         for query_id in e.reached:
             at = handled.get((e.status_id, query_id))
-            if at is not None:
+            if at is not None and unloaded.get(query_id, at) >= at:
                 return [*h[:i], dataclasses.replace(e, hlc=at - 1), *h[i + 1 :]]
     return None
 
@@ -3965,6 +3972,23 @@ def test_shed_with_time_left_plants_after_a_server_whose_loads_there_are_all_kno
     assert mutated is not None
     shed = next(e for e in mutated if type(e) is events.LoadFailed and e.query_id.startswith("f2"))
     assert "lidar" == shed.server
+    verdict = check.check(numbered(renumbered(mutated)))
+    assert rule in {f.rule for f in verdict.findings if f.kind == "violation"}
+
+
+def test_answer_early_takes_no_callback_that_returned_after_its_id_s_release_on_an_unload() -> None:
+    """A real `simdoubt` run (CI, 2026-11-28): db's first answered send reached one id, whose
+    callback returned after db released that id on an Unload; `status-answered` excuses it
+    (the status may have come on the Unload's answer), so the answer moved before it broke
+    nothing. The mutation takes the next callback the rule judges, or none."""
+    h = _answered(70, gave_up=(Q2,))  # (Q1's s2 callback returned at 20, line 11)
+    i = next(i for i, e in enumerate(h) if type(e) is events.ConsumerReleased and e.query_id == Q1)
+    released = [*h[:i], dataclasses.replace(h[i], hlc=10_015), *h[i + 1 :]]  # (before 20)
+    _holds(released)
+    mutate, rule = MUTATIONS["answer-early"]
+    assert mutate(released) is None
+    mutated = mutate(h)  # (its release after the callback returned: judged)
+    assert mutated is not None
     verdict = check.check(numbered(renumbered(mutated)))
     assert rule in {f.rule for f in verdict.findings if f.kind == "violation"}
 

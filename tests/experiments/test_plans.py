@@ -68,15 +68,24 @@ def test_this_test_knows_every_shipped_plan() -> None:
     assert {"workload"} == {p.stem for p in EXAMPLES.glob("*.toml")}
 
 
-def restarted_after_first_kill(result: RunResult) -> set[str]:
-    """Managers that served again after the run's first kill, before its second one."""
+def restarted_for_first_kill(result: RunResult) -> set[str]:
+    """Managers the tree took down for the run's first kill and that served again, from the
+    down intervals the run recorded: each that went down from the kill on, before the
+    killed one served again (a strategy takes its managers down before it starts any) and
+    before the next kill. Not "restarted before the next kill": a loaded machine's restarts
+    outlast the 0.93 s gap, and the next kill, due at 2.08 s, lands in a 2 s run whose end
+    is seen late (the injector fires until it is stopped)."""
     kills = [f for f in result.faults if f.injected_s is not None]
-    start = kills[0].injected_s
-    assert start is not None
-    end = kills[1].injected_s if len(kills) > 1 else float("inf")
-    assert end is not None
+    first = kills[0]
+    assert first.injected_s is not None
+    assert first.target is not None
+    start, back = next(i for i in result.down[first.target] if i[0] >= first.injected_s)
+    ends = [float("inf") if back is None else back, *(f.injected_s or 0.0 for f in kills[1:2])]
     return {
-        name for name, times in result.restart_times.items() if any(start < t < end for t in times)
+        name
+        for name, intervals in result.down.items()
+        for a, b in intervals
+        if start <= a < min(ends) and b is not None
     }
 
 
@@ -85,14 +94,14 @@ def test_strategies_restart_one_all_or_the_rest_after_a_kill() -> None:
 
     for strategy, result in runs.items():
         first = next(f for f in result.faults if f.injected_s is not None)
-        restarted = restarted_after_first_kill(result)
+        restarted = restarted_for_first_kill(result)
         order = ["erm", "cm", "rm"]
         expected = {
             "one_for_one": {first.target},
             "one_for_all": set(order),
             "rest_for_one": set(order[order.index(str(first.target)) :]),
         }[str(strategy)]
-        assert expected == restarted, (strategy, first)
+        assert expected == restarted, (strategy, first, result.down)
         assert 0 == result.leaked_processes
 
 
