@@ -842,7 +842,7 @@ class Releases:
             if error is not None and not isinstance(error, UnknownQueryError):
                 logger.warning("releasing %s at %s failed: %s", query.id, query.serving_rr, error)
             if isinstance(error, GONE):
-                self.unreleased[query.id] = query.serving_rr
+                self.unanswered(query, began)
             join = Join(then)
             self.deliver_on_its_way(query.id, on_its_way, join)
             self.registrar.holdings.forget(
@@ -932,7 +932,7 @@ class Releases:
     ) -> RrError:
         """The `Unload` of `query` failed as its provider died or stopped: forget the id now and
         keep it `unreleased` until the provider's next `Reconcile`, which leaves it out."""
-        self.unreleased[query.id] = query.serving_rr
+        self.unanswered(query, began)
         self.registrar.holdings.forget(query.id, reason="unload unanswered", began=began)
         text = (
             f"{error}; query {query.id} is released: '{query.serving_rr}' releases it when "
@@ -945,6 +945,19 @@ class Releases:
         )
         told.__cause__ = error
         return told
+
+    def unanswered(self, query: Query, began: Began) -> None:
+        """`query`'s `Unload` failed as its provider died or stopped: `unreleased` until a
+        `Reconcile` leaves it out; one answered since the unload left named it: `again`."""
+        self.unreleased[query.id] = query.serving_rr
+        if began[0] < self.last_reconciled.get(query.serving_rr, 0):
+            self.again(query.serving_rr)
+
+    def again(self, serving_rr: str) -> None:
+        """A failed release is held at `serving_rr` (a list that left before it failed named
+        it): reconcile now, with a list that leaves it out (stopping: the stop gives it back)."""
+        if not self.registrar.stopping:
+            self.registrar.reconciling.reconcile(serving_rr)
 
     # -- what `Reconciling` asks of it --------------------------------------------------
 
@@ -960,11 +973,16 @@ class Releases:
     def unreleased_at(self, serving_rr: str) -> frozenset[str]:
         return frozenset(q for q, p in self.unreleased.items() if p == serving_rr)
 
-    def settle_listed(self, serving_rr: str, listing: Listing | None) -> None:
-        """Forget the releases `listing` left out (released); no listing: all of `serving_rr`'s."""
+    def settle_listed(
+        self, serving_rr: str, listing: Listing | None, unknown: Collection[str] = ()
+    ) -> None:
+        """Forget the releases `listing` left out or found unknown (released); no listing: all
+        of `serving_rr`'s. One it named is held there (its unload failed after): `again`."""
         for query_id in [q for q, p in self.unreleased.items() if p == serving_rr]:
-            if listing is None or query_id in listing.held or query_id in listing.left_out:
+            if listing is None or query_id in listing.left_out or query_id in unknown:
                 del self.unreleased[query_id]
+        if listing is not None and not self.unreleased.keys().isdisjoint(listing.held):
+            self.again(serving_rr)
 
     # -- this registrar stops -----------------------------------------------------------
 
@@ -1107,7 +1125,7 @@ class Reconciling:
         its provider's run `life` keeps for a retry now, unclaimed, are given back later
         (`expire_kept`)."""
         kept = self.registrar.flights.settle_listed(serving_rr, listing, unknown, life)
-        self.registrar.releases.settle_listed(serving_rr, listing)
+        self.registrar.releases.settle_listed(serving_rr, listing, frozenset(unknown))
         if kept:
             self.expire_kept(serving_rr, tuple(kept))
 
