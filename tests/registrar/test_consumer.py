@@ -1628,12 +1628,12 @@ class TestReconcileDueCall:
         def refuse(_request: Any) -> Any:
             raise RuntimeError("the device is gone")
 
-        reconciled_there = consumer_module.Releases.reconciled
+        reconciled_there = consumer_module.Releases.settle_listed
 
-        def retry_meanwhile(releases: Any, serving_rr: str, listing: Any) -> None:
+        def retry_meanwhile(releases: Any, serving_rr: str, listing: Any, lost: Any) -> None:
             # (on the consumer's actor, between the reconcile's look at what is due and its
             # report of the lost ids: the caller's retry of qid starts, its id due)
-            reconciled_there(releases, serving_rr, listing)
+            reconciled_there(releases, serving_rr, listing, lost)
             if releases.registrar.name == consumer.name and serving_rr == name and not retries:
                 retries.append(pool.submit(consumer.call, name, "leaf", "held", query_id=qid))
                 assert due.wait(10)
@@ -1646,7 +1646,7 @@ class TestReconcileDueCall:
                 back = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
                 back.register_server("leaf", load=refuse, unload=lambda _r, _s: None)
                 reconciled = threading.Event()
-                monkeypatch.setattr(consumer_module.Releases, "reconciled", retry_meanwhile)
+                monkeypatch.setattr(consumer_module.Releases, "settle_listed", retry_meanwhile)
                 with intercept(back, "reconcile", after=lambda _m: reconciled.set()):
                     life.lost_everything(name)  # (as its supervisor says: restarted empty)
                     assert reconciled.wait(10)
