@@ -2,10 +2,10 @@
 
 What an answer does (`TestAnswerDecision`: the `decide` table, without threads), a durable
 consumer killed with a call on its way (`TestDurableConsumerKilled`), a release that failed
-as its provider was down (`TestReleasedWhileDown`), and reconciling with providers after a
-restart (`TestReconcile`, `TestReconcileDueCall`, `TestReconcileEdges`,
-`TestReconcileInFlight`: rule 20). Real manager processes and SIGKILLs where a restart is
-the point.
+as its provider was down (`TestReleasedWhileDown`; one that failed after a list left:
+`TestUnloadUnanswered`), and reconciling with providers after a restart (`TestReconcile`,
+`TestReconcileDueCall`, `TestReconcileEdges`, `TestReconcileInFlight`: rule 20). Real
+manager processes and SIGKILLs where a restart is the point.
 """
 
 from __future__ import annotations
