@@ -468,8 +468,9 @@ PLANTS = (
         "forgets it later, on its release, which left after that reconcile (issue 51's "
         "state = false: a release that crossed the restart is no such loss)",
         "_registrar/consumer.py",
-        "            elif not self.registrar.releases.is_releasing(query_id):\n",
-        "            elif False:  # PLANTED: not self.registrar.releases.is_releasing(query_id)\n",
+        "            elif query_id not in self.registrar.releases.releasing:  # (its release: no"
+        " FATAL)\n",
+        "            elif False:  # PLANTED: query_id not in self.registrar.releases.releasing\n",
         "simnostate",
         "kept",
     ),

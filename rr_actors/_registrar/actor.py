@@ -198,10 +198,7 @@ DISPATCH: dict[type, tuple[str, Binder]] = {
     SendStatus: ("send_status", asked(lambda a: a.status.on_send_status)),
     ListServerQueries: ("server_queries", asked(lambda a: a.registry.on_list_server_queries)),
     ListClientQueries: ("client_queries", asked(lambda a: a.holdings.on_list_client_queries)),
-    SetStatusCallback: (
-        "set_status_callback",
-        asked(lambda a: a.holdings.on_set_status_callback),
-    ),
+    SetStatusCallback: ("set_status_callback", asked(lambda a: a.holdings.on_set_status_callback)),
     UpdateResponse: ("update_response", asked(lambda a: a.registry.on_update_response)),
     Save: ("save", asked(lambda a: a.lifecycle.on_save)),
     Stop: ("stop", asked(lambda a: a.lifecycle.on_stop)),

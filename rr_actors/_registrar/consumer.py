@@ -316,8 +316,7 @@ class Flights:
         # settled first: a reconcile lists it not due (its parked notices are still on their
         # way for the status desk: `StatusTargets.on_way`, no direct delivery till they went)
         settled = self.registrar.due.settle(query_id, attempt)
-        if provider in self.doubted.pop(query_id, ()):  # (its answer may be of the run
-            # a restart replaced)
+        if provider in self.doubted.pop(query_id, ()):  # (of the run a restart replaced?)
             self.registrar.redeliver(ReconcileAsk(provider, holds_yours=False))
         flight = self.in_flight.get(query_id)
         if not settled or flight is None or not flight.parked:
@@ -805,8 +804,7 @@ class Releases:
         self.releasing: dict[str, Began] = {}
         # provider -> the stamp of the last `Reconcile` with it answered (its list left)
         self.last_reconciled: dict[str, int] = {}
-        # id -> provider, of releases that failed as it died or stopped (`release_later`)
-        self.unreleased: dict[str, str] = {}
+        self.unreleased: dict[str, str] = {}  # id -> provider, of failed releases (`unanswered`)
 
     # -- releasing one query ------------------------------------------------------------
 
@@ -842,7 +840,7 @@ class Releases:
             if error is not None and not isinstance(error, UnknownQueryError):
                 logger.warning("releasing %s at %s failed: %s", query.id, query.serving_rr, error)
             if isinstance(error, GONE):
-                self.unreleased[query.id] = query.serving_rr
+                self.unanswered(query, began)
             join = Join(then)
             self.deliver_on_its_way(query.id, on_its_way, join)
             self.registrar.holdings.forget(
@@ -932,7 +930,7 @@ class Releases:
     ) -> RrError:
         """The `Unload` of `query` failed as its provider died or stopped: forget the id now and
         keep it `unreleased` until the provider's next `Reconcile`, which leaves it out."""
-        self.unreleased[query.id] = query.serving_rr
+        self.unanswered(query, began)
         self.registrar.holdings.forget(query.id, reason="unload unanswered", began=began)
         text = (
             f"{error}; query {query.id} is released: '{query.serving_rr}' releases it when "
@@ -946,25 +944,35 @@ class Releases:
         told.__cause__ = error
         return told
 
+    def unanswered(self, query: Query, began: Began) -> None:
+        """Its `Unload` failed as the provider died or stopped: `unreleased`, until a list leaves
+        it out; one that left before the failure named it: if answered already, `again`."""
+        self.unreleased[query.id] = query.serving_rr
+        if began[0] < self.last_reconciled.get(query.serving_rr, 0):
+            self.again(query.serving_rr)
+
+    def again(self, serving_rr: str) -> None:
+        """Reconcile now: `serving_rr` holds a failed release (stopping: the stop gives it back)."""
+        if not self.registrar.stopping:
+            self.registrar.reconciling.reconcile(serving_rr)
+
     # -- what `Reconciling` asks of it --------------------------------------------------
-
-    def reconciled(self, serving_rr: str, listing: Listing) -> None:
-        """`serving_rr` answered the `Reconcile` of `listing`: releases from now on began after
-        it; an id it no longer knew was reported `FATAL`, unless its release was on its way."""
-        last = self.last_reconciled.get(serving_rr, 0)
-        self.last_reconciled[serving_rr] = max(last, listing.at)
-
-    def is_releasing(self, query_id: str) -> bool:
-        return query_id in self.releasing
 
     def unreleased_at(self, serving_rr: str) -> frozenset[str]:
         return frozenset(q for q, p in self.unreleased.items() if p == serving_rr)
 
-    def settle_listed(self, serving_rr: str, listing: Listing | None) -> None:
-        """Forget the releases `listing` left out (released); no listing: all of `serving_rr`'s."""
+    def settle_listed(self, serving_rr: str, listing: Listing | None, lost: frozenset[str]) -> None:
+        """`serving_rr` answered `listing` (none: it is gone for good): releases from now on began
+        after it; those it left out or `lost` names were released (none: all). One it named is
+        held there (its unload failed after the list left): `again`."""
         for query_id in [q for q, p in self.unreleased.items() if p == serving_rr]:
-            if listing is None or query_id in listing.held or query_id in listing.left_out:
+            if listing is None or query_id in listing.left_out or query_id in lost:
                 del self.unreleased[query_id]
+        if listing is not None:
+            last = self.last_reconciled.get(serving_rr, 0)
+            self.last_reconciled[serving_rr] = max(last, listing.at)
+            if not self.unreleased.keys().isdisjoint(listing.held):
+                self.again(serving_rr)
 
     # -- this registrar stops -----------------------------------------------------------
 
@@ -1084,11 +1092,7 @@ class Reconciling:
             for record in self.registrar.catalog.client_records()
             if record.query.serving_rr == serving_rr
         }
-        held |= {
-            q
-            for q, provider in self.registrar.flights.unsettled().items()
-            if provider == serving_rr
-        }
+        held |= {q for q, p in self.registrar.flights.unsettled().items() if p == serving_rr}
         held |= self.registrar.flights.kept_at(serving_rr, life)
         held |= due
         held -= withdrawn
@@ -1107,7 +1111,7 @@ class Reconciling:
         its provider's run `life` keeps for a retry now, unclaimed, are given back later
         (`expire_kept`)."""
         kept = self.registrar.flights.settle_listed(serving_rr, listing, unknown, life)
-        self.registrar.releases.settle_listed(serving_rr, listing)
+        self.registrar.releases.settle_listed(serving_rr, listing, frozenset(unknown))
         if kept:
             self.expire_kept(serving_rr, tuple(kept))
 
@@ -1252,11 +1256,10 @@ class Reconciling:
                 continue
             elif since:
                 again = True
-            elif not self.registrar.releases.is_releasing(query_id):
+            elif query_id not in self.registrar.releases.releasing:  # (its release: no FATAL)
                 lost.setdefault(record.query.server, []).append(query_id)
         # listed and known: held there for a retry (by run `life`); left out: released
         self.settle_listed(serving_rr, listing, unknown, life)
-        self.registrar.releases.reconciled(serving_rr, listing)
         for server, ids in lost.items():
             logger.warning(
                 "registrar %s: %s/%s no longer knows %d of the queries held there "

@@ -2,10 +2,10 @@
 
 What an answer does (`TestAnswerDecision`: the `decide` table, without threads), a durable
 consumer killed with a call on its way (`TestDurableConsumerKilled`), a release that failed
-as its provider was down (`TestReleasedWhileDown`), and reconciling with providers after a
-restart (`TestReconcile`, `TestReconcileDueCall`, `TestReconcileEdges`,
-`TestReconcileInFlight`: rule 20). Real manager processes and SIGKILLs where a restart is
-the point.
+as its provider was down (`TestReleasedWhileDown`; one that failed after a list left:
+`TestUnloadUnanswered`), and reconciling with providers after a restart (`TestReconcile`,
+`TestReconcileDueCall`, `TestReconcileEdges`, `TestReconcileInFlight`: rule 20). Real
+manager processes and SIGKILLs where a restart is the point.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from rr_actors._core.directory import DIRECTORY
 from rr_actors._registrar import Served, life
 from rr_actors._registrar import consumer as consumer_module
 from rr_actors._registrar.consumer import Action, InFlight, decide
-from rr_actors._registrar.messages import ReconcileAsk, Reconciled
+from rr_actors._registrar.messages import ReconcileAsk, Reconciled, Unload
 from rr_actors._registrar.state import new_life
 from rr_actors.testing import (
     RemoteRegistrar,
@@ -1628,12 +1628,12 @@ class TestReconcileDueCall:
         def refuse(_request: Any) -> Any:
             raise RuntimeError("the device is gone")
 
-        reconciled_there = consumer_module.Releases.reconciled
+        reconciled_there = consumer_module.Releases.settle_listed
 
-        def retry_meanwhile(releases: Any, serving_rr: str, listing: Any) -> None:
+        def retry_meanwhile(releases: Any, serving_rr: str, listing: Any, lost: Any) -> None:
             # (on the consumer's actor, between the reconcile's look at what is due and its
             # report of the lost ids: the caller's retry of qid starts, its id due)
-            reconciled_there(releases, serving_rr, listing)
+            reconciled_there(releases, serving_rr, listing, lost)
             if releases.registrar.name == consumer.name and serving_rr == name and not retries:
                 retries.append(pool.submit(consumer.call, name, "leaf", "held", query_id=qid))
                 assert due.wait(10)
@@ -1646,7 +1646,7 @@ class TestReconcileDueCall:
                 back = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=name))
                 back.register_server("leaf", load=refuse, unload=lambda _r, _s: None)
                 reconciled = threading.Event()
-                monkeypatch.setattr(consumer_module.Releases, "reconciled", retry_meanwhile)
+                monkeypatch.setattr(consumer_module.Releases, "settle_listed", retry_meanwhile)
                 with intercept(back, "reconcile", after=lambda _m: reconciled.set()):
                     life.lost_everything(name)  # (as its supervisor says: restarted empty)
                     assert reconciled.wait(10)
@@ -2070,6 +2070,104 @@ class TestReconcileInFlight:
             assert [] == sup.run_in(name, lambda r: [q.id for q in r.server_queries("leaf")])
             assert ["camera"] == list(unloads)  # once
             assert [] == app.client_queries()
+
+
+class _UnloadOnItsWay:
+    """A provider's peer whose `Unload`s do not leave: each reply is kept in `held`, which
+    the test fails as the connection to the provider's dead life did (refused)."""
+
+    def __init__(self, peer: Any, held: list[Any]) -> None:
+        self.peer, self.held = peer, held
+
+    def tell(self, message: Any) -> None:
+        if isinstance(message, Unload):
+            self.held.append(message.reply)
+        else:
+            self.peer.tell(message)
+
+
+class TestUnloadUnanswered:
+    """An `unload` that failed as its provider died while the consumer reconciled (rule 20).
+
+    Seen once in a real 2 s `simchain` run (`rr-actors check`: `end`, `left`): `client-2`'s
+    `Unload` went to `db`'s dead life, and its connection was refused only after `db`'s next
+    life had asked it to reconcile: its list, left as the unload was on its way, named the
+    id, so `db` kept it; then the unload failed (`unload unanswered`: the id is given up,
+    `unreleased`) and that list's answer, applied after, took it off `unreleased`. Nothing
+    told `db` again: it held the id past `client-2`'s stop. The same when the answer came
+    first: `db` held it until `client-2` stopped. Now the consumer reconciles again at once,
+    with a list that leaves the id out.
+
+    The race, forced: the consumer's `Unload` is held on its way (`_UnloadOnItsWay`) and
+    failed by the test after the consumer's list left (its answer applied after the failure,
+    or before it); the provider is a real registrar holding the id.
+    """
+
+    @pytest.mark.parametrize("answered", ["after", "before"], ids=lambda a: f"answered-{a}")
+    def test_an_id_whose_unload_failed_after_its_reconcile_left_is_released_there(
+        self,
+        answered: str,
+        monkeypatch: pytest.MonkeyPatch,
+        eventually: Callable[..., bool],
+    ) -> None:
+        uid = uuid.uuid4().hex[:8]
+        provider = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"prov-{uid}"))
+        consumer = rr.ResourceRegistrar.start(rr.RegistrarConfig(name=f"cons-{uid}"))
+        unloads: list[Any] = []
+        provider.register_server("leaf", load=lambda r: r, unload=lambda r, _s: unloads.append(r))
+        try:
+            qid = consumer.call(provider.name, "leaf", "held", timeout=10).id
+            held: list[Any] = []
+            lookup = DIRECTORY.lookup
+
+            def routed(name: str) -> Any:
+                peer = lookup(name)
+                return _UnloadOnItsWay(peer, held) if name == provider.name else peer
+
+            monkeypatch.setattr(DIRECTORY, "lookup", routed)
+            listed, go, done = threading.Event(), threading.Event(), threading.Event()
+
+            def hold(_message: Any) -> None:
+                listed.set()
+                assert go.wait(10)
+
+            if answered == "before":
+                go.set()
+            failed: list[BaseException] = []
+
+            def unload() -> None:
+                try:
+                    consumer.unload(qid, timeout=10)
+                except rr.RrError as exc:
+                    failed.append(exc)
+
+            with intercept(provider, "reconcile", before=hold, after=lambda _m: done.set()):
+                releasing = threading.Thread(target=unload)
+                releasing.start()
+                assert eventually(lambda: len(held) == 1, timeout=10)  # on its way
+                Served(consumer).peer_reachable(provider.name)  # it reconciles: the id listed
+                assert listed.wait(10)
+                if answered == "before":
+                    assert done.wait(10)
+                    consumer.client_queries()  # (the answer, applied)
+                held[0].set_error(
+                    rr.RegistrarUnavailableError(
+                        f"registrar {provider.name!r} cannot be reached (ConnectionRefusedError)"
+                    )
+                )
+                releasing.join(10)
+                assert [rr.RegistrarUnavailableError] == [type(e) for e in failed]
+                go.set()
+
+                def released() -> bool:
+                    return [] == provider.server_queries("leaf") and len(unloads) >= 1
+
+                assert eventually(released, timeout=5)  # (before: held to the end)
+            assert ["held"] == unloads  # its unload ran once
+            assert [] == consumer.client_queries()
+        finally:
+            consumer.stop()
+            provider.stop()
 
 
 class TestResponseUpdated:
