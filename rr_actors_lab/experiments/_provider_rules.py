@@ -141,9 +141,19 @@ class Providers:
     Args:
         facts: what the whole run says (`_history.Facts`).
         lives: each registrar's lives (`_history.walk`).
+        lost_backups: the lines of the restores of a backup a fault deleted or damaged
+            (`_supervision_rules.damaged_backup`): an id they lost is kept if its consumer
+            lets it go (`let_go_of`: told `FATAL` at its reconcile, its own release, or
+            its call failed).
     """
 
-    def __init__(self, facts: Facts, lives: dict[tuple[str, int], Life] | None = None) -> None:
+    def __init__(
+        self,
+        facts: Facts,
+        lives: dict[tuple[str, int], Life] | None = None,
+        lost_backups: set[int] | None = None,
+    ) -> None:
+        self.lost_backups = lost_backups or set()
         self.with_backup = facts.with_backup
         self.forgot = facts.forgot
         self.release_stamps = facts.released
@@ -277,6 +287,12 @@ class Providers:
         after = next((i for i, life in enumerate(lives) if life.start == at), 0)
         return after > 0 and lives[after - 1].last < stamp <= self.forgot[name, qid]
 
+    def let_go_of(self, name: str, qid: str) -> bool:
+        """Whether `qid`'s consumer let it go of its own: forgot it, or its last call of it
+        failed (it never held it: a lost backup's id nobody must be told of)."""
+        calls = self.outcomes.get(qid)
+        return (name, qid) in self.forgot or (calls is not None and not max(calls)[1])
+
     def lives_of(self, name: str) -> list[Life]:
         """`name`'s lives, in order."""
         if self._by_name is None:
@@ -373,6 +389,8 @@ class Providers:
             catalog.blind = True
             return
         kept = {row[0] for row in event.consumers}
+        if line in self.lost_backups:  # (every id lost: each consumer forgets its own)
+            kept |= {qid for qid in catalog.held if self.let_go_of(name, qid)}
         self.lose(name, catalog, kept, line, event.hlc, "in a restore")
         before = {qid: (held.line, held.stamp) for qid, held in catalog.held.items()}
         pending = dict(catalog.pending)

@@ -620,6 +620,98 @@ def test_a_life_ended_by_a_fault_a_stop_or_its_supervisor_holds(reason: str, sto
     assert [] == _of_rule([*clean(), exited], "life-end")
 
 
+REFUSED_START = (
+    "failed to start: catalog backup 'erm.db' cannot be used: not an rr_actors catalog "
+    "(application_id 0x0, tables [])"
+)
+
+
+def _damaged(*, refused: bool, whole: bool) -> list[events.Event]:
+    """erm (pid P) holds Q1 and Q2 for cm and is SIGKILLed (line 7); a start refuses its
+    backup (`refused`, line 8); the start that serves (pid P + 1) restores it `whole` or
+    empty, and cm, told FATAL at its reconcile, forgets both ids then."""
+    if whole:
+        consumers = ((Q1, RID, "cm"), (Q2, RID, "cm"))
+        rows = ((RID, "cam", "loaded", "42"),)
+        restored = events.CatalogRestored("erm", rows, consumers, (), (1, 2, 0), pid=P + 1)
+        told = []
+    else:
+        restored = events.CatalogRestored("erm", (), (), (), pid=P + 1)
+        told = [
+            told
+            for q in (Q1, Q2)
+            for told in (
+                events.StatusDelivered("cm", q, rr.Status.FATAL, 1, 0.0, "s9", pid=C),
+                events.QueryForgotten("cm", q, "erm", "unknown at reconcile", pid=C),
+            )
+        ]
+    return _stamped(
+        [
+            *clean()[:4],
+            *(events.CallAnswered("cm", q, "erm", "cam", pid=C) for q in (Q1, Q2)),
+            events.ChildExited("sup", "erm", P, "killed by SIGKILL"),
+            *([events.ChildExited("sup", "erm", 1, REFUSED_START)] if refused else []),
+            restored,
+            events.ChildRestarted("sup", "erm", P + 1, 0.1),
+            *told,
+        ]
+    )
+
+
+def _damage_found(history: list[events.Event], damaged: dict[int, str]) -> list[check.Finding]:
+    verdict = check.check(numbered(history), damaged=damaged)
+    return [f for f in verdict.findings if f.rule == "damaged-backup"]
+
+
+@pytest.mark.parametrize("how", ["flip", "truncate", "foreign"])
+def test_a_damaged_backup_refused_then_restored_empty_holds(how: str) -> None:
+    history = _damaged(refused=True, whole=False)
+    verdict = check.check(numbered(history), damaged={P: how})
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    # (the refusal ended a start by itself, but for the fault that damaged its file)
+    assert [8] == [line for f in _of_rule(history, "life-end") for line in f.lines]
+
+
+@pytest.mark.parametrize("how", ["flip", "truncate", "foreign"])
+def test_a_damaged_backup_a_restart_served_from_is_found(how: str) -> None:
+    """Issue 68 item 8: mutants of the backup's checks (`schema.py:200`, `schema.py:260`)
+    that took a damaged file for a good one survived: no plan damaged a backup."""
+    history = _damaged(refused=False, whole=True)
+    found = _damage_found(history, {P: how})
+    assert [("violation", (7, 8))] == [(f.kind, f.lines) for f in found]
+    assert "held" == check.check(numbered(history)).verdict  # (the damage: no event shows it)
+    assert [] == _damage_found(_damaged(refused=False, whole=True), {P + 1: how})
+
+
+def test_a_deleted_backup_restored_empty_holds_refused_or_restored_whole_is_found() -> None:
+    verdict = check.check(numbered(_damaged(refused=False, whole=False)), damaged={P: "delete"})
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    refused = _damage_found(_damaged(refused=True, whole=False), {P: "delete"})
+    assert [("violation", (7, 8))] == [(f.kind, f.lines) for f in refused]
+    whole = _damage_found(_damaged(refused=False, whole=True), {P: "delete"})
+    assert [("violation", (7, 8))] == [(f.kind, f.lines) for f in whole]
+
+
+def test_a_damaged_backup_with_no_start_after_is_unverifiable() -> None:
+    history = _damaged(refused=True, whole=False)[:8]
+    found = _damage_found(history, {P: "flip"})
+    assert [("unverifiable", (7,))] == [(f.kind, f.lines) for f in found]
+
+
+def test_an_id_a_lost_backup_lost_that_its_consumer_released_after_holds() -> None:
+    """A lost backup's restore loses every id: its consumer letting one go after it (its
+    release, or told at its reconcile) keeps it; an id only a restore of a backup no fault
+    touched lost is `kept`'s violation, as before."""
+    history = _damaged(refused=False, whole=False)
+    released = [
+        *history[:9],
+        *(events.QueryForgotten("cm", q, "erm", "unload", pid=C, hlc=2_000) for q in (Q1, Q2)),
+    ]
+    verdict = check.check(numbered(released), damaged={P: "delete"})
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    assert {"kept"} == {f.rule for f in check.check(numbered(released)).findings}
+
+
 # -- a real history, and rr-actors check -------------------------------------------------------
 
 
@@ -1218,6 +1310,22 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "if not watch:",
             "status-patient",
             id="the mutant status.py:757 is caught by status-patient at simpatient seed 1",
+        ),
+        pytest.param(  # (a backup whose application id was flipped, its tables all there,
+            "simbackup",  # taken for a catalog: api's restart serves from it)
+            "rr_actors._store.schema:schema_version",
+            'if application_id != APPLICATION_ID or "rr_actors_schema" not in tables:',
+            'if application_id != APPLICATION_ID and "rr_actors_schema" not in tables:',
+            "damaged-backup",
+            id="the mutant schema.py:200 is caught by damaged-backup at simbackup seed 1",
+        ),
+        pytest.param(  # (no object the file has beyond the schema's is looked at: a backup
+            "simbackup",  # given a view is used)
+            "rr_actors._store.schema:check_objects",
+            "for kind, name, _, sql in found - expected:",
+            "for kind, name, _, sql in []:",
+            "damaged-backup",
+            id="the mutant schema.py:260 is caught by damaged-backup at simbackup seed 1",
         ),
     ],
 )
