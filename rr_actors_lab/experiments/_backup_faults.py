@@ -7,7 +7,10 @@
    truncate  the file cut to a length drawn below its size
    flip      the header's application id (bytes 68-71) XORed with a drawn nonzero mask
    foreign   a view added to its schema (an object rr_actors never creates)
- the restart: delete ──► it starts empty; the others ──► refused, `CatalogCorruptError`
+   digests   its digests made another scheme's (`DIGEST_SCHEME`: another Python's), as a
+             backup moved from another machine: not damage, its restart restores it whole
+ the restart: digests ──► it restores every row, each digest recomputed (`kept`);
+   delete ──► it starts empty; the others ──► refused, `CatalogCorruptError`
    naming the file ──► the lab quarantines it (`quarantine_backup`), as the docs tell an
    operator ──► the next restart starts empty
 ```
@@ -32,7 +35,7 @@ if TYPE_CHECKING:
     from rr_actors_lab.experiments.plan import Plan
     from rr_actors_lab.experiments.results import FaultRecord
 
-__all__ = ["CORRUPT", "NOISE_BYTES", "REFUSED", "damage", "damaged"]
+__all__ = ["CORRUPT", "KEPT", "NOISE_BYTES", "REFUSED", "damage", "damaged"]
 
 CORRUPT = "cannot be used: "
 """What a `CatalogCorruptError`'s message says (`catalog backup '<path>' cannot be used: ...`),
@@ -44,6 +47,9 @@ NOISE_BYTES = 8
 REFUSED = frozenset({"truncate", "flip", "foreign"})
 """The damage a restart must refuse with `CatalogCorruptError` (a deleted file: it starts
 empty)."""
+
+KEPT = frozenset({"digests"})
+"""What a restart must restore whole (`kept` judges it: no `damaged-backup` rule)."""
 
 _KILLED = re.compile(r"SIGKILL pid (\d+), then ")  # a record of a fault that damaged a file
 
@@ -72,6 +78,15 @@ def damage(file: Path, how: str, noise: bytes) -> str:
             opened.seek(_APPLICATION_ID.start)
             opened.write((was ^ mask).to_bytes(4, "big"))
         return f"flipped {file.name}'s application id (mask {mask:#010x})"
+    if how == "digests":
+        older = "rr4-aa" if noise[4] % 2 else "rr4-zz"  # (sorting before or after this one's)
+        db = sqlite3.connect(file, isolation_level=None)
+        try:
+            db.execute("UPDATE rr_actors_schema SET digest_scheme = ?", (older,))
+            db.execute("UPDATE resources SET digest = ~digest")
+        finally:
+            db.close()
+        return f"made {file.name}'s digests another scheme's ({older!r})"
     assert how == "foreign", how
     db = sqlite3.connect(file, isolation_level=None)
     try:
@@ -98,6 +113,7 @@ def damaged(plan: Plan, records: Iterable[FaultRecord]) -> dict[int, str]:
     found: dict[int, str] = {}
     for record in records:
         killed = _KILLED.match(record.detail) if record.kind == "corrupt_backup" else None
-        if killed is not None and not record.skipped:
-            found[int(killed.group(1))] = plan.faults[record.fault].how
+        how = plan.faults[record.fault].how
+        if killed is not None and not record.skipped and how not in KEPT:
+            found[int(killed.group(1))] = how
     return found

@@ -388,6 +388,7 @@ class Providers:
             catalog.forget_all()
             catalog.blind = True
             return
+        self.same_digests(name, catalog, line, event)
         kept = {row[0] for row in event.consumers}
         if line in self.lost_backups:  # (every id lost: each consumer forgets its own)
             kept |= {qid for qid in catalog.held if self.let_go_of(name, qid)}
@@ -414,6 +415,23 @@ class Providers:
             rid = row[0]
             if rid not in catalog.holders and row[2] == "loaded":
                 catalog.pending[rid] = (pending[rid][0] if rid in pending else line, True)
+
+    def same_digests(self, name: str, catalog: _Catalog, line: int, event: Any) -> None:
+        """`kept`: a resource restored live has the digest it was loaded with (a backup of
+        another digest scheme has its digests recomputed on open: else no equal request
+        matches it again)."""
+        for row in event.resources:
+            was = catalog.live.get(row[0])
+            if was is None or was[1] is None or len(row) < 4 or not row[3]:
+                continue
+            if int(row[3]) != was[1]:
+                self.found(
+                    "kept",
+                    f"{name}: resource {row[0][:8]} ({row[1]}) restored with digest {row[3]}, "
+                    f"loaded with {was[1]}: an equal request no longer matches it",
+                    (was[2], line),
+                    name,
+                )
 
     def loaded(self, name: str, catalog: _Catalog, line: int, event: Any) -> None:
         if event.digest is not None:

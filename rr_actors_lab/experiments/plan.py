@@ -106,7 +106,7 @@ MAX_SEED = 2**63 - 1  # the largest seed (`--seed`); a run's is `seed + repeat -
 Seed = Annotated[int, Meta(ge=-(2**63), le=MAX_SEED)]
 Repeat = Annotated[int, Meta(ge=1, le=MAX_REPEAT)]
 Restart = Literal["permanent", "transient", "temporary"]
-BackupDamage = Literal["delete", "truncate", "flip", "foreign"]  # corrupt_backup's `how`
+BackupDamage = Literal["delete", "truncate", "flip", "foreign", "digests"]  # corrupt_backup's `how`
 Names = Annotated[tuple[str, ...], Meta(min_length=1)]
 
 

@@ -698,6 +698,19 @@ def test_a_damaged_backup_with_no_start_after_is_unverifiable() -> None:
     assert [("unverifiable", (7,))] == [(f.kind, f.lines) for f in found]
 
 
+def test_a_resource_restored_with_another_digest_than_it_was_loaded_with_is_found() -> None:
+    """Issue 68 item 8: a backup of another digest scheme (another Python's) restored
+    without its digests recomputed, the mutants of `schema.py:324`, survived: no plan gave
+    one. An equal request then no longer matches the restored resource."""
+    history = _damaged(refused=False, whole=True)
+    restored = history[7]
+    assert isinstance(restored, events.CatalogRestored)
+    other = dataclasses.replace(restored, resources=((RID, "cam", "loaded", "43"),))
+    found = _of_rule([*history[:7], other, *history[8:]], "kept")
+    assert [("violation", (2, 8))] == [(f.kind, f.lines) for f in found]
+    assert [] == _of_rule(history, "kept")  # (restored with 42, as it was loaded)
+
+
 def test_an_id_a_lost_backup_lost_that_its_consumer_released_after_holds() -> None:
     """A lost backup's restore loses every id: its consumer letting one go after it (its
     release, or told at its reconcile) keeps it; an id only a restore of a backup no fault
@@ -1326,6 +1339,14 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "for kind, name, _, sql in []:",
             "damaged-backup",
             id="the mutant schema.py:260 is caught by damaged-backup at simbackup seed 1",
+        ),
+        pytest.param(  # (a backup of another digest scheme restored with its digests as
+            "simbackup",  # they were: front's resources match no equal request again)
+            "rr_actors._store.schema:refresh_digests",
+            "if scheme == DIGEST_SCHEME:",
+            "if scheme != DIGEST_SCHEME:",
+            "kept",
+            id="the mutant schema.py:324 is caught by kept at simbackup seed 1",
         ),
     ],
 )
@@ -4153,8 +4174,10 @@ def test_each_mutation_of_a_simulated_plan_left_out_of_the_real_runs_is_caught_b
 def test_every_rule_but_the_events_rule_has_a_mutation() -> None:
     # (`events`, a loss, is not a broken rule: the mutations renumber to show none;
     # `kept-unclaimed` needs its consumers' `call_timeout`, which no event carries: judged
-    # on the simulation only, its planted history is test_an_id_kept_for_a_retry_that_...)
-    assert set(check.RULES) - {"events", "kept-unclaimed"} == {
+    # on the simulation only, its planted history is test_an_id_kept_for_a_retry_that_...;
+    # `damaged-backup` the backups a fault damaged, which no event shows: its planted
+    # histories are test_a_damaged_backup_...)
+    assert set(check.RULES) - {"events", "kept-unclaimed", "damaged-backup"} == {
         rule for _, rule in MUTATIONS.values()
     }
 
