@@ -117,6 +117,10 @@ EQUIVALENT: dict[str, str] = {
     "`check_objects`' loop only the expected objects the file lacks, each a known name of "
     "its kind: a problem raised as `CatalogCorruptError`, where `found - expected` raises "
     "it naming them as missing: the same refusal of the same files, another message",
+    "_store/schema.py:324:ReplaceComparisonOperator_Eq_Is": "the scheme read from the file "
+    "is a new `str`, never the module's `DIGEST_SCHEME` object: `is` is always false, so "
+    "every open recomputes the digests, to the values a current file holds already (a "
+    "cost at open; no row or event differs while its requests unpickle, as every plan's do)",
     "_store/outbox.py:82:ReplaceBinaryOperator_Sub_Mul": "the text of a `ValueError` that "
     "`read_told` catches, logs at DEBUG and skips the row for (`continue` either way)",
     "_store/sqlite.py:365:ReplaceBinaryOperator_Mul_LShift:1": "`journal_size_limit` "
