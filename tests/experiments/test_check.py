@@ -3874,13 +3874,21 @@ ROOT_ONLY = {"leases", "simhosts"}
 network namespaces and minutes (tests/experiments/test_hosts.py runs a small plan of
 their shape; test_simulate.py runs `simhosts` on the simulation)."""
 
-SIMULATION_ONLY = {"simheal", "simrest", "simprogram", "simcommit", "simanswer", "simpatient"}
+SIMULATION_ONLY = {
+    "simheal",
+    "simrest",
+    "simprogram",
+    "simcommit",
+    "simanswer",
+    "simpatient",
+    "simbackup",
+}
 """Shipped plans of a fault kind only the simulation injects (`split_brain`,
-`kill_in_setup`, `kill_program`, `kill_before_commit`), and `simanswer`, timed for it (a
-20 ms callback within a 30 ms patience; `status-answered` is judged in the real runs of
-the others), and `simpatient` (a status every 3 s: none in a 2 s run; `status-patient` is
-judged in the real runs of the others): their histories are checked in
-tests/experiments/test_simulate.py."""
+`kill_in_setup`, `kill_program`, `kill_before_commit`, `corrupt_backup`), and `simanswer`,
+timed for it (a 20 ms callback within a 30 ms patience; `status-answered` is judged in the
+real runs of the others), and `simpatient` (a status every 3 s: none in a 2 s run;
+`status-patient` is judged in the real runs of the others): their histories are checked
+in tests/experiments/test_simulate.py."""
 
 
 @pytest.fixture(scope="module")
