@@ -81,15 +81,16 @@ MODULES = ("_registrar", "_store", "_catalog", "_supervision")
 
 ORDER = (
     "crashloop", "first", "hang", "simnostate", "simpatient", "simheal", "simhosts", "simshare",
-    "simslow", "simrest", "simchain", "simdoubt", "simanswer", "simcommit", "simprogram",
-    "simcancel", "simshed", "simkeptdep", "simretry", "simways", "simkept", "simoverload",
-    "bigtree", "killheavy",
+    "simslow", "simrest", "simchain", "simdoubt", "simanswer", "simcommit", "simbackup",
+    "simprogram", "simcancel", "simshed", "simkeptdep", "simretry", "simways", "simkept",
+    "simoverload", "bigtree", "killheavy",
 )  # fmt: skip
 """The shipped plans the simulation runs, cheapest seed first (CPU s of seed 1, 2026-11-27:
 0.3 for the first four, 0.5-0.9 to simdoubt, 1.2-3.7 after; killheavy 4.8; simkept, added
 later, 3.3; simoverload 1.6; simcommit, added later, about 1: after simdoubt; simanswer,
 added 2026-11-28, 0.85: after simdoubt; simkeptdep, added 2026-11-28, 1.5-1.9: before
-simretry; simpatient, added then, 0.2: after simnostate)."""
+simretry; simpatient, added then, 0.2: after simnostate; simbackup, added then, 0.7-1.2: after
+simcommit)."""
 
 COSMIC_RAY = importlib.metadata.version("cosmic-ray")
 
@@ -120,6 +121,14 @@ EQUIVALENT: dict[str, str] = {
     "_store/schema.py:297:ReplaceBinaryOperator_Add_Pow": "`create`'s migration loop is "
     "`range(CREATED_VERSION, SCHEMA_VERSION)`, `range(7, 7)`: its body never runs (only "
     "tests add steps)",
+    "_store/schema.py:260:ReplaceBinaryOperator_Sub_BitXor": "`found ^ expected` adds to "
+    "`check_objects`' loop only the expected objects the file lacks, each a known name of "
+    "its kind: a problem raised as `CatalogCorruptError`, where `found - expected` raises "
+    "it naming them as missing: the same refusal of the same files, another message",
+    "_store/schema.py:324:ReplaceComparisonOperator_Eq_Is": "the scheme read from the file "
+    "is a new `str`, never the module's `DIGEST_SCHEME` object: `is` is always false, so "
+    "every open recomputes the digests, to the values a current file holds already (a "
+    "cost at open; no row or event differs while its requests unpickle, as every plan's do)",
     "_store/outbox.py:82:ReplaceBinaryOperator_Sub_Mul": "the text of a `ValueError` that "
     "`read_told` catches, logs at DEBUG and skips the row for (`continue` either way)",
     "_store/sqlite.py:365:ReplaceBinaryOperator_Mul_LShift:1": "`journal_size_limit` "

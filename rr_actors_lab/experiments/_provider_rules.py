@@ -141,9 +141,19 @@ class Providers:
     Args:
         facts: what the whole run says (`_history.Facts`).
         lives: each registrar's lives (`_history.walk`).
+        lost_backups: the lines of the restores of a backup a fault deleted or damaged
+            (`_supervision_rules.damaged_backup`): an id they lost is kept if its consumer
+            lets it go (`let_go_of`: told `FATAL` at its reconcile, its own release, or
+            its call failed).
     """
 
-    def __init__(self, facts: Facts, lives: dict[tuple[str, int], Life] | None = None) -> None:
+    def __init__(
+        self,
+        facts: Facts,
+        lives: dict[tuple[str, int], Life] | None = None,
+        lost_backups: set[int] | None = None,
+    ) -> None:
+        self.lost_backups = lost_backups or set()
         self.with_backup = facts.with_backup
         self.forgot = facts.forgot
         self.release_stamps = facts.released
@@ -277,6 +287,12 @@ class Providers:
         after = next((i for i, life in enumerate(lives) if life.start == at), 0)
         return after > 0 and lives[after - 1].last < stamp <= self.forgot[name, qid]
 
+    def let_go_of(self, name: str, qid: str) -> bool:
+        """Whether `qid`'s consumer let it go of its own: forgot it, or its last call of it
+        failed (it never held it: a lost backup's id nobody must be told of)."""
+        calls = self.outcomes.get(qid)
+        return (name, qid) in self.forgot or (calls is not None and not max(calls)[1])
+
     def lives_of(self, name: str) -> list[Life]:
         """`name`'s lives, in order."""
         if self._by_name is None:
@@ -372,7 +388,10 @@ class Providers:
             catalog.forget_all()
             catalog.blind = True
             return
+        self.same_digests(name, catalog, line, event)
         kept = {row[0] for row in event.consumers}
+        if line in self.lost_backups:  # (every id lost: each consumer forgets its own)
+            kept |= {qid for qid in catalog.held if self.let_go_of(name, qid)}
         self.lose(name, catalog, kept, line, event.hlc, "in a restore")
         before = {qid: (held.line, held.stamp) for qid, held in catalog.held.items()}
         pending = dict(catalog.pending)
@@ -396,6 +415,23 @@ class Providers:
             rid = row[0]
             if rid not in catalog.holders and row[2] == "loaded":
                 catalog.pending[rid] = (pending[rid][0] if rid in pending else line, True)
+
+    def same_digests(self, name: str, catalog: _Catalog, line: int, event: Any) -> None:
+        """`kept`: a resource restored live has the digest it was loaded with (a backup of
+        another digest scheme has its digests recomputed on open: else no equal request
+        matches it again)."""
+        for row in event.resources:
+            was = catalog.live.get(row[0])
+            if was is None or was[1] is None or len(row) < 4 or not row[3]:
+                continue
+            if int(row[3]) != was[1]:
+                self.found(
+                    "kept",
+                    f"{name}: resource {row[0][:8]} ({row[1]}) restored with digest {row[3]}, "
+                    f"loaded with {was[1]}: an equal request no longer matches it",
+                    (was[2], line),
+                    name,
+                )
 
     def loaded(self, name: str, catalog: _Catalog, line: int, event: Any) -> None:
         if event.digest is not None:

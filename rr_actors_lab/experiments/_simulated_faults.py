@@ -24,6 +24,9 @@
    deaf_manager ──────► SimulatedNetwork.deafen, `for` s later `hear`
    kill_program ──────► the program's process SIGKILLed (its managers too), started again
                         at once on the same state_dir
+   corrupt_backup ────► SIGKILL, then its backup damaged (`_backup_faults.damage`) before
+                        its restart; a restart that refuses it (`ChildExited`, on_event):
+                        the file quarantined, as the docs tell an operator
  stop ─► hung managers continued, deaf ones hear; what never fired recorded as skipped
  close (after the tree's stop) ─► the supervisors of second servers stop
 ```
@@ -49,6 +52,7 @@ import rr_actors as rr
 from rr_actors import events, simulation
 from rr_actors._core import runtime
 from rr_actors_lab.experiments._agenda import FaultLog, Triggered
+from rr_actors_lab.experiments._backup_faults import CORRUPT, NOISE_BYTES, REFUSED, damage
 from rr_actors_lab.experiments._instrument import (
     COMMIT_FAULTS,
     SETUP_FAULTS,
@@ -97,6 +101,7 @@ class SimulatedFaults:
         wall_t0: `runtime.wall()` then (events' times are on it).
         on_event: what the run's events go to (a second server's supervisor's too).
         state_dir: where second servers keep their backups (`None`: in memory).
+        backups: the tree's state directory (`corrupt_backup`'s files; `None`: in memory).
         hosts: with `[hosts]`, the pid of each other host's process.
         trees: with `[hosts]`, each other host's tree (where its managers' processes are).
         program: the run's program when it runs in a process of its own (`kill_program`).
@@ -116,8 +121,11 @@ class SimulatedFaults:
         hosts: dict[str, int] | None = None,
         trees: dict[str, rr.Supervisor] | None = None,
         program: Program | None = None,
+        backups: Path | None = None,
     ) -> None:
         self.sup = sup
+        self._backups = backups
+        self._refused: dict[str, Path] = {}  # manager -> its damaged backup, not refused yet
         self._program = program
         self._restarting = False  # the program was killed and is starting again
         self._hosts = dict(hosts or {})  # another host's name -> the pid of its process
@@ -169,6 +177,10 @@ class SimulatedFaults:
         """Look at one event of the run (the subscriber's thread); fire what it triggers."""
         for fault, at in self._triggered.matched(event):
             self._push(fault, at)
+        if isinstance(event, events.ChildExited) and CORRUPT in event.reason:
+            file = self._refused.pop(event.child, None)
+            if file is not None and file.exists():  # (refused: what an operator does)
+                rr.quarantine_backup(file)
 
     def stop(self) -> None:
         """Stop firing; continue hung managers; record what never fired as skipped."""
@@ -289,7 +301,14 @@ class SimulatedFaults:
             self.log.record(fault, at, self._now(), f"crashed the registrar of {fault.target}")
             return
         pid, kind = info.pid, fault.kind
-        if kind == "kill_manager":
+        done_by = {
+            "deaf_manager": self._deafen,
+            "duplicate_delivery": self._duplicate,
+            "corrupt_backup": self._corrupt_backup,
+        }.get(kind)
+        if done_by is not None:
+            done_by(fault, at, pid)
+        elif kind == "kill_manager":
             simulation.kill(pid, signal.SIGKILL)
             self.log.record(fault, at, self._now(), f"SIGKILL pid {pid}")
         elif kind == "hang_manager":
@@ -298,20 +317,9 @@ class SimulatedFaults:
             self.log.record(fault, at, self._now(), f"SIGSTOP pid {pid}")
             for_s = self.plan.faults[fault.fault].for_s or 0.0
             self._at(runtime.monotonic() + for_s, functools.partial(self._resume, pid), None)
-        elif kind == "deaf_manager":
-            self._deafen(fault, at, pid)
         elif kind == "cut_connections":
             self.network.cut_connections(pid)
             self.log.record(fault, at, self._now(), f"cut pid {pid}'s connections")
-        elif kind == "duplicate_delivery":
-            for_s = self.plan.faults[fault.fault].for_s or DUPLICATE_FOR
-            count = self.network.duplicate_first(fault.target, simulation.now() + for_s)
-            self.network.cut_connections(pid)
-            key = (fault.fault, fault.n)
-            self._open[key] = functools.partial(
-                self._duplicated, fault, at, self._now(), pid, count
-            )
-            self._at(runtime.monotonic() + for_s, functools.partial(self._close, key), None)
         elif kind == "kill_before_answer":
             self._arm(fault, at)
             self.network.kill_at_answer(pid, functools.partial(self._fired, fault, at, pid))
@@ -325,6 +333,30 @@ class SimulatedFaults:
             simulation.kill(pid, signal.SIGKILL)
         else:  # (check_simulable refuses the others)
             raise AssertionError(f"fault kind {kind!r} is not simulated")
+
+    def _duplicate(self, fault: ScheduledFault, at: float, pid: int) -> None:
+        """Cut its connections; for `for` s each new link to it delivers its first frame twice."""
+        assert fault.target is not None
+        for_s = self.plan.faults[fault.fault].for_s or DUPLICATE_FOR
+        count = self.network.duplicate_first(fault.target, simulation.now() + for_s)
+        self.network.cut_connections(pid)
+        key = (fault.fault, fault.n)
+        self._open[key] = functools.partial(self._duplicated, fault, at, self._now(), pid, count)
+        self._at(runtime.monotonic() + for_s, functools.partial(self._close, key), None)
+
+    def _corrupt_backup(self, fault: ScheduledFault, at: float, pid: int) -> None:
+        """SIGKILL the target, then damage its backup before its restart (`how`)."""
+        assert fault.target is not None
+        how = self.plan.faults[fault.fault].how
+        simulation.kill(pid, signal.SIGKILL)
+        file = None if self._backups is None else self._backups / f"{fault.target}.db"
+        if file is None or not file.is_file():
+            self.log.record(fault, at, self._now(), f"SIGKILL pid {pid}; no backup to damage")
+            return
+        what = damage(file, how, runtime.urandom(NOISE_BYTES))
+        if how in REFUSED:
+            self._refused[fault.target] = file
+        self.log.record(fault, at, self._now(), f"SIGKILL pid {pid}, then {what}")
 
     def _tree(self, manager: str) -> rr.Supervisor:
         """The tree `manager` is a child of: its host's (`[hosts]`), else the run's."""

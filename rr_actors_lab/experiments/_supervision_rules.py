@@ -1,4 +1,5 @@
-"""The supervisors' side of a run (rules `intensity`, `strategy`, `escalation`, `life-end`).
+"""The supervisors' side of a run (rules `intensity`, `strategy`, `escalation`, `life-end`,
+`damaged-backup`).
 
 ```
  ChildExited (counted) + SupervisorGaveUp ──► per supervisor ──► OTP's intensity: more
@@ -9,6 +10,10 @@
    `DUE_S`, its supervisor neither giving up nor shutting down) ──► `strategy`
    + a nested supervisor's give-up ──► its parent's next exit of it (`escalation`)
  ChildExited's reason ──► a fault, a stop or its supervisor ended it, else `life-end`
+ a backup damaged after its manager's kill (`damaged`) ──► its next starts: refused with
+   `CatalogCorruptError` (a deleted one: none), then one that restores nothing
+   ──► `damaged-backup`; the refusals excused from `life-end`, the restore's lost ids
+   judged by `kept` as a lost backup's
 ```
 
 A supervisor's events come from its own thread in the order it decided: a group's stops
@@ -21,9 +26,10 @@ from __future__ import annotations
 
 import dataclasses
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 from rr_actors import events
+from rr_actors_lab.experiments._backup_faults import CORRUPT, REFUSED
 from rr_actors_lab.experiments._history import Finding, Line
 
 __all__ = [
@@ -34,6 +40,7 @@ __all__ = [
     "SLACK_S",
     "Strategies",
     "counted",
+    "damaged_backup",
     "group",
     "intensity",
     "life_end",
@@ -75,16 +82,90 @@ STOP_FAILED = "stop failed: "
 """The `ChildExited` reason of a child whose stop raised in its supervisor (`ManagerExit`)."""
 
 
-def life_end(history: Sequence[Line]) -> list[Finding]:
+@dataclasses.dataclass
+class _Damaged:
+    """A manager's backup damaged after its kill, until its next restore."""
+
+    how: str  # `corrupt_backup`'s `how`
+    pid: int  # the process killed
+    line: int  # its `ChildExited`
+    refused: bool = False  # a start refused it since
+
+
+def damaged_backup(
+    history: Sequence[Line], damaged: Mapping[int, str]
+) -> tuple[list[Finding], set[int], set[int]]:
+    """`damaged-backup`: after a manager's process `pid` was killed and its backup damaged
+    (`damaged`: pid -> `how`), its next start refuses the file with `CatalogCorruptError`
+    naming it (a `ChildExited` whose reason says so) before any start serves, unless it
+    was deleted, and the start that serves restores nothing (rule 15; "What the backup
+    survives", failure-semantics.md). Returns the findings, the lines of the refusals
+    (`life-end` excuses them: the fault ended those starts) and of the empty restores
+    (`kept` judges their ids as a lost backup's)."""
+    findings: list[Finding] = []
+    refusals: set[int] = set()
+    restores: set[int] = set()
+    pending: dict[str, _Damaged] = {}
+    for line, event in history:
+        if isinstance(event, events.ChildExited):
+            state = pending.get(event.child)
+            if state is not None and event.pid != state.pid and CORRUPT in event.reason:
+                refusals.add(line)
+                state.refused = True
+                if state.how not in REFUSED:
+                    findings.append(_damage_finding(event.child, state, line, "refused"))
+            if event.pid in damaged:
+                pending[event.child] = _Damaged(damaged[event.pid], event.pid, line)
+            continue
+        if isinstance(event, events.CatalogRestored | events.ChildRestarted):
+            name = event.registrar if isinstance(event, events.CatalogRestored) else event.child
+            state = pending.get(name)
+            if state is None or event.pid == state.pid:
+                continue
+            del pending[name]
+            if state.how in REFUSED and not state.refused:
+                findings.append(_damage_finding(name, state, line, "served from it"))
+            elif isinstance(event, events.CatalogRestored):
+                restores.add(line)
+                if any(event.counts):
+                    findings.append(_damage_finding(name, state, line, f"restored {event.counts}"))
+    for name, state in pending.items():
+        message = f"{name}'s backup was damaged ({state.how}) after pid {state.pid} was killed, "
+        message += "and no start of it is shown after"
+        findings.append(Finding("damaged-backup", "unverifiable", message, (state.line,), (name,)))
+    return findings, refusals, restores
+
+
+def _damage_finding(name: str, state: _Damaged, line: int, what: str) -> Finding:
+    done = "deleted" if state.how == "delete" else f"damaged ({state.how})"
+    promise = (
+        "a deleted backup's restart starts empty"
+        if state.how not in REFUSED
+        else "a damaged backup is refused with CatalogCorruptError naming it, never used"
+    )
+    return Finding(
+        "damaged-backup",
+        "violation",
+        f"{name}'s backup was {done} after pid {state.pid} was killed, and its next start "
+        f"{what}: {promise}",
+        (state.line, line),
+        (name,),
+    )
+
+
+def life_end(history: Sequence[Line], excused: set[int] | None = None) -> list[Finding]:
     """`life-end`: a life ends only by a fault, a stop or its supervisor. A child's exit
     (`ChildExited`) that its supervisor did not cause (not `stopped`) gives a reason
     `ENDED_BY` names; any other (`crashed (registrar actor died)`, `exit code N`, a start
     that failed by an error of its own) is a registrar that ended itself. A life its
     supervisor stopped whose registrar stopped cleanly (`RegistrarStopped`, same pid) ended
-    by that stop: its `ChildExited` does not say the stop failed (`STOP_FAILED`)."""
+    by that stop: its `ChildExited` does not say the stop failed (`STOP_FAILED`). The
+    `excused` lines are exits a fault caused otherwise (`damaged_backup`'s refusals)."""
     findings = []
     clean: set[tuple[str, int]] = set()  # (registrar, pid) that published RegistrarStopped
     for line, event in history:
+        if excused and line in excused:  # (a start a fault's damaged backup ended)
+            continue
         if isinstance(event, events.RegistrarStopped):
             clean.add((event.registrar, event.pid))
         if not isinstance(event, events.ChildExited):

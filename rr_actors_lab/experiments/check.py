@@ -93,6 +93,7 @@ RULES = (
     "fetch",
     "outcome",
     "life-end",
+    "damaged-backup",
     "events",
 )
 """The rules `check` checks, by name (`docs/how-to/check-a-run.md` says what each means)."""
@@ -236,6 +237,7 @@ def check(
     resolve: str = "first_served",
     backoff_s: float = 0.0,
     timeouts: Mapping[str, float] | None = None,
+    damaged: Mapping[int, str] | None = None,
 ) -> Verdict:
     """Check one run's events against every rule of `RULES`.
 
@@ -250,6 +252,9 @@ def check(
         timeouts: the `call_timeout` of consumers by name (its plan's clients' and managers'), in
             seconds: how long a restored id kept for a retry of theirs waits for it
             (`kept-unclaimed` judges those consumers only; no event carries it).
+        damaged: the backups the run's faults damaged between two lives (`corrupt_backup`):
+            the pid of the manager process killed first -> how (`damaged-backup` judges
+            its restarts; no event carries it).
 
     Returns:
         The verdict and every finding. A violation about a registrar whose process lost
@@ -261,7 +266,8 @@ def check(
     }
     steps, lives = walk(history)
     facts = gather(history)
-    providers = Providers(facts, lives)
+    damage, refusals, lost_backups = _supervision_rules.damaged_backup(history, damaged or {})
+    providers = Providers(facts, lives, lost_backups)
     providers.run(steps)
     wanted = {(want.holder, want.query_id) for want in providers.expected}
     answered, spans = _consumer_rules.answered(steps, facts, wanted)
@@ -295,7 +301,8 @@ def check(
         *_supervision_rules.intensity(history),
         *strategy,
         *escalation,
-        *_supervision_rules.life_end(history),
+        *_supervision_rules.life_end(history, refusals),
+        *damage,
         *_one_name_rule(history, lives, resolve),
     ]
     findings = [

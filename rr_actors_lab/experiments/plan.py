@@ -56,6 +56,7 @@ FaultKind = Literal[
     "deaf_manager",
     "kill_program",
     "kill_before_commit",
+    "corrupt_backup",
 ]
 
 FAULT_KINDS: tuple[FaultKind, ...] = typing.get_args(FaultKind)  # every kind a plan may name
@@ -70,6 +71,7 @@ SIMULATION_KINDS = frozenset(  # aimed where only a simulation can stop or reach
         "deaf_manager",
         "kill_program",
         "kill_before_commit",
+        "corrupt_backup",
     }
 )
 NEEDS_PROCESS = frozenset({"kill_resource", "hang_manager", "cut_connections"} | SIMULATION_KINDS)
@@ -104,6 +106,7 @@ MAX_SEED = 2**63 - 1  # the largest seed (`--seed`); a run's is `seed + repeat -
 Seed = Annotated[int, Meta(ge=-(2**63), le=MAX_SEED)]
 Repeat = Annotated[int, Meta(ge=1, le=MAX_REPEAT)]
 Restart = Literal["permanent", "transient", "temporary"]
+BackupDamage = Literal["delete", "truncate", "flip", "foreign", "digests"]  # corrupt_backup's `how`
 Names = Annotated[tuple[str, ...], Meta(min_length=1)]
 
 
@@ -259,6 +262,8 @@ class FaultPlan(_Table, frozen=True):
     loads: Count = 1  # load_error: how many loads raise (without `for_s`)
     server: str | None = None  # load_error: only loads of this server (default: any)
     message: Text = "injected load error"  # load_error: the exception's message
+    # corrupt_backup: what is done to the killed manager's backup before its restart
+    how: BackupDamage = "flip"
 
     def most_injections(self, duration: float) -> int:
         """At most how many injections this fault makes in a run of `duration` seconds."""

@@ -91,6 +91,7 @@ NEEDS_KIND: dict[str, tuple[str, ...]] = {
 NEEDS_KIND["for"] += ("duplicate_delivery", "split_brain", "deaf_manager")
 NEEDS_KIND |= {"loads": ("load_error",), "link": ("cut",), "hosts": ("partition",)}
 NEEDS_KIND |= {"server": ("load_error",), "message": ("load_error",)}
+NEEDS_KIND |= {"how": ("corrupt_backup",)}
 
 
 def import_object(path: str, *, base_dir: str | None = None) -> Any:

@@ -46,7 +46,7 @@ from rr_actors._transport.resolve import RESOLVE_STRATEGIES
 from rr_actors.config import Steps
 from rr_actors.events.kinds import set_host
 from rr_actors.events.lines import to_lines
-from rr_actors_lab.experiments import check
+from rr_actors_lab.experiments import _backup_faults, check
 from rr_actors_lab.experiments.plan import SIMULATION_KINDS, Plan, PlanError
 from rr_actors_lab.experiments.reading import import_object
 from rr_actors_lab.experiments.results import FaultRecord
@@ -336,7 +336,8 @@ def _run_seed(plan: Plan, seed: int, started: float, steps: Steps) -> SimulatedR
     default = rr.RegistrarConfig("a").call_timeout  # (the runner gives managers no config)
     timeouts = {m.name: default for m in plan.tree.managers()}
     timeouts.update({f"client-{i}": plan.workload.timeout for i in plan.workload.callers()})
-    verdict = check.check(check.numbered(seen), resolve, backoff_s, timeouts)
+    damaged = _backup_faults.damaged(plan, records)
+    verdict = check.check(check.numbered(seen), resolve, backoff_s, timeouts, damaged)
     return SimulatedRun(
         seed=seed,
         hash=history_hash(history),
@@ -524,6 +525,7 @@ def _world(
             progress,
             hosts={h.name: h.pid for h in hosts},
             trees={h.name: h.sup for h in hosts if h.sup is not None},
+            backups=state,
         )
         injector.append(faults)
         faults.start()

@@ -639,6 +639,111 @@ def test_a_life_ended_by_a_fault_a_stop_or_its_supervisor_holds(reason: str, sto
     assert [] == _of_rule([*clean(), exited], "life-end")
 
 
+REFUSED_START = (
+    "failed to start: catalog backup 'erm.db' cannot be used: not an rr_actors catalog "
+    "(application_id 0x0, tables [])"
+)
+
+
+def _damaged(*, refused: bool, whole: bool) -> list[events.Event]:
+    """erm (pid P) holds Q1 and Q2 for cm and is SIGKILLed (line 7); a start refuses its
+    backup (`refused`, line 8); the start that serves (pid P + 1) restores it `whole` or
+    empty, and cm, told FATAL at its reconcile, forgets both ids then."""
+    if whole:
+        consumers = ((Q1, RID, "cm"), (Q2, RID, "cm"))
+        rows = ((RID, "cam", "loaded", "42"),)
+        restored = events.CatalogRestored("erm", rows, consumers, (), (1, 2, 0), pid=P + 1)
+        told = []
+    else:
+        restored = events.CatalogRestored("erm", (), (), (), pid=P + 1)
+        told = [
+            told
+            for q in (Q1, Q2)
+            for told in (
+                events.StatusDelivered("cm", q, rr.Status.FATAL, 1, 0.0, "s9", pid=C),
+                events.QueryForgotten("cm", q, "erm", "unknown at reconcile", pid=C),
+            )
+        ]
+    return _stamped(
+        [
+            *clean()[:4],
+            *(events.CallAnswered("cm", q, "erm", "cam", pid=C) for q in (Q1, Q2)),
+            events.ChildExited("sup", "erm", P, "killed by SIGKILL"),
+            *([events.ChildExited("sup", "erm", 1, REFUSED_START)] if refused else []),
+            restored,
+            events.ChildRestarted("sup", "erm", P + 1, 0.1),
+            *told,
+        ]
+    )
+
+
+def _damage_found(history: list[events.Event], damaged: dict[int, str]) -> list[check.Finding]:
+    verdict = check.check(numbered(history), damaged=damaged)
+    return [f for f in verdict.findings if f.rule == "damaged-backup"]
+
+
+@pytest.mark.parametrize("how", ["flip", "truncate", "foreign"])
+def test_a_damaged_backup_refused_then_restored_empty_holds(how: str) -> None:
+    history = _damaged(refused=True, whole=False)
+    verdict = check.check(numbered(history), damaged={P: how})
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    # (the refusal ended a start by itself, but for the fault that damaged its file)
+    assert [8] == [line for f in _of_rule(history, "life-end") for line in f.lines]
+
+
+@pytest.mark.parametrize("how", ["flip", "truncate", "foreign"])
+def test_a_damaged_backup_a_restart_served_from_is_found(how: str) -> None:
+    """Issue 68 item 8: mutants of the backup's checks (`schema.py:200`, `schema.py:260`)
+    that took a damaged file for a good one survived: no plan damaged a backup."""
+    history = _damaged(refused=False, whole=True)
+    found = _damage_found(history, {P: how})
+    assert [("violation", (7, 8))] == [(f.kind, f.lines) for f in found]
+    assert "held" == check.check(numbered(history)).verdict  # (the damage: no event shows it)
+    assert [] == _damage_found(_damaged(refused=False, whole=True), {P + 1: how})
+
+
+def test_a_deleted_backup_restored_empty_holds_refused_or_restored_whole_is_found() -> None:
+    verdict = check.check(numbered(_damaged(refused=False, whole=False)), damaged={P: "delete"})
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    refused = _damage_found(_damaged(refused=True, whole=False), {P: "delete"})
+    assert [("violation", (7, 8))] == [(f.kind, f.lines) for f in refused]
+    whole = _damage_found(_damaged(refused=False, whole=True), {P: "delete"})
+    assert [("violation", (7, 8))] == [(f.kind, f.lines) for f in whole]
+
+
+def test_a_damaged_backup_with_no_start_after_is_unverifiable() -> None:
+    history = _damaged(refused=True, whole=False)[:8]
+    found = _damage_found(history, {P: "flip"})
+    assert [("unverifiable", (7,))] == [(f.kind, f.lines) for f in found]
+
+
+def test_a_resource_restored_with_another_digest_than_it_was_loaded_with_is_found() -> None:
+    """Issue 68 item 8: a backup of another digest scheme (another Python's) restored
+    without its digests recomputed, the mutants of `schema.py:324`, survived: no plan gave
+    one. An equal request then no longer matches the restored resource."""
+    history = _damaged(refused=False, whole=True)
+    restored = history[7]
+    assert isinstance(restored, events.CatalogRestored)
+    other = dataclasses.replace(restored, resources=((RID, "cam", "loaded", "43"),))
+    found = _of_rule([*history[:7], other, *history[8:]], "kept")
+    assert [("violation", (2, 8))] == [(f.kind, f.lines) for f in found]
+    assert [] == _of_rule(history, "kept")  # (restored with 42, as it was loaded)
+
+
+def test_an_id_a_lost_backup_lost_that_its_consumer_released_after_holds() -> None:
+    """A lost backup's restore loses every id: its consumer letting one go after it (its
+    release, or told at its reconcile) keeps it; an id only a restore of a backup no fault
+    touched lost is `kept`'s violation, as before."""
+    history = _damaged(refused=False, whole=False)
+    released = [
+        *history[:9],
+        *(events.QueryForgotten("cm", q, "erm", "unload", pid=C, hlc=2_000) for q in (Q1, Q2)),
+    ]
+    verdict = check.check(numbered(released), damaged={P: "delete"})
+    assert ("held", ()) == (verdict.verdict, verdict.findings)
+    assert {"kept"} == {f.rule for f in check.check(numbered(released)).findings}
+
+
 # -- a real history, and rr-actors check -------------------------------------------------------
 
 
@@ -1237,6 +1342,30 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "if not watch:",
             "status-patient",
             id="the mutant status.py:757 is caught by status-patient at simpatient seed 1",
+        ),
+        pytest.param(  # (a backup whose application id was flipped, its tables all there,
+            "simbackup",  # taken for a catalog: api's restart serves from it)
+            "rr_actors._store.schema:schema_version",
+            'if application_id != APPLICATION_ID or "rr_actors_schema" not in tables:',
+            'if application_id != APPLICATION_ID and "rr_actors_schema" not in tables:',
+            "damaged-backup",
+            id="the mutant schema.py:200 is caught by damaged-backup at simbackup seed 1",
+        ),
+        pytest.param(  # (no object the file has beyond the schema's is looked at: a backup
+            "simbackup",  # given a view is used)
+            "rr_actors._store.schema:check_objects",
+            "for kind, name, _, sql in found - expected:",
+            "for kind, name, _, sql in []:",
+            "damaged-backup",
+            id="the mutant schema.py:260 is caught by damaged-backup at simbackup seed 1",
+        ),
+        pytest.param(  # (a backup of another digest scheme restored with its digests as
+            "simbackup",  # they were: front's resources match no equal request again)
+            "rr_actors._store.schema:refresh_digests",
+            "if scheme == DIGEST_SCHEME:",
+            "if scheme != DIGEST_SCHEME:",
+            "kept",
+            id="the mutant schema.py:324 is caught by kept at simbackup seed 1",
         ),
     ],
 )
@@ -3771,13 +3900,21 @@ ROOT_ONLY = {"leases", "simhosts"}
 network namespaces and minutes (tests/experiments/test_hosts.py runs a small plan of
 their shape; test_simulate.py runs `simhosts` on the simulation)."""
 
-SIMULATION_ONLY = {"simheal", "simrest", "simprogram", "simcommit", "simanswer", "simpatient"}
+SIMULATION_ONLY = {
+    "simheal",
+    "simrest",
+    "simprogram",
+    "simcommit",
+    "simanswer",
+    "simpatient",
+    "simbackup",
+}
 """Shipped plans of a fault kind only the simulation injects (`split_brain`,
-`kill_in_setup`, `kill_program`, `kill_before_commit`), and `simanswer`, timed for it (a
-20 ms callback within a 30 ms patience; `status-answered` is judged in the real runs of
-the others), and `simpatient` (a status every 3 s: none in a 2 s run; `status-patient` is
-judged in the real runs of the others): their histories are checked in
-tests/experiments/test_simulate.py."""
+`kill_in_setup`, `kill_program`, `kill_before_commit`, `corrupt_backup`), and `simanswer`,
+timed for it (a 20 ms callback within a 30 ms patience; `status-answered` is judged in the
+real runs of the others), and `simpatient` (a status every 3 s: none in a 2 s run;
+`status-patient` is judged in the real runs of the others): their histories are checked
+in tests/experiments/test_simulate.py."""
 
 
 @pytest.fixture(scope="module")
@@ -4088,8 +4225,10 @@ def test_each_mutation_of_a_simulated_plan_left_out_of_the_real_runs_is_caught_b
 def test_every_rule_but_the_events_rule_has_a_mutation() -> None:
     # (`events`, a loss, is not a broken rule: the mutations renumber to show none;
     # `kept-unclaimed` needs its consumers' `call_timeout`, which no event carries: judged
-    # on the simulation only, its planted history is test_an_id_kept_for_a_retry_that_...)
-    assert set(check.RULES) - {"events", "kept-unclaimed"} == {
+    # on the simulation only, its planted history is test_an_id_kept_for_a_retry_that_...;
+    # `damaged-backup` the backups a fault damaged, which no event shows: its planted
+    # histories are test_a_damaged_backup_...)
+    assert set(check.RULES) - {"events", "kept-unclaimed", "damaged-backup"} == {
         rule for _, rule in MUTATIONS.values()
     }
 

@@ -644,6 +644,17 @@ class TestRules:
         )
         assert f"does not go with kind 'kill_manager' (only {only})" == error.problem
 
+    def test_a_backup_damage_goes_with_corrupt_backup_only_and_names_its_ways(self) -> None:
+        error = rules_plan_error(RULES_BASE + 'how = "flip"\n')
+
+        assert (18, "faults[0].how") == (error.line, error.key)
+        assert "does not go with kind 'kill_manager' (only 'corrupt_backup')" == error.problem
+        corrupt = RULES_BASE.replace('"kill_manager"', '"corrupt_backup"')
+        error = rules_plan_error(corrupt + 'how = "shred"\n')
+        assert (18, "faults[0].how") == (error.line, error.key)
+        assert error.problem.startswith("must be one of 'delete', 'digests', 'flip'"), error
+        assert "truncate" == parse_plan(corrupt + 'how = "truncate"\n').faults[0].how
+
     def test_a_trigger_status_of_the_wrong_type_names_the_statuses(self) -> None:
         error = rules_plan_error(
             RULES_BASE.replace("at = 1.0", 'after = { event = "StatusSent", status = 3 }')

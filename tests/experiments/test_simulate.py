@@ -1167,6 +1167,7 @@ SIMULATED = [
     "simoverload",
     "simcommit",
     "simanswer",
+    "simbackup",
 ]
 """The shipped plans run over two seeds here (killheavy below, for 2 s; bigtree below, one seed)."""
 
