@@ -779,10 +779,9 @@ class Holdings:
         reply.set_result([r.query for r in self.registrar.catalog.client_records() if r.loaded])
 
     def on_open_client(self, message: OpenClient, reply: Reply) -> None:
-        """The client actor for `target_rr/server`, started before a first call's load leaves
-        (thesis 4.3.3): the two registrars hear each other's restarts from then on (rule 20)."""
-        MEMBERSHIP.monitor(self.registrar.name, message.target_rr)
-        MEMBERSHIP.monitor(message.target_rr, self.registrar.name)
+        """The client actor for `target_rr/server`, started on first use (thesis 4.3.3)."""
+        MEMBERSHIP.monitor(self.registrar.name, message.target_rr)  # (before a first call's load
+        MEMBERSHIP.monitor(message.target_rr, self.registrar.name)  # leaves: rule 20, once a life)
         ref = self.registrar.ref
         assert ref is not None
         try:
