@@ -86,6 +86,9 @@ class NameWatch(Protocol):
     """Tells whether some files' names may have changed: moved, deleted, replaced (one thread at
     a time)."""
 
+    armable: bool
+    """`False` while it cannot watch (`arm`, `quiet`: `False`): stat without asking it."""
+
     def arm(self, paths: Sequence[str]) -> bool:
         """Watch the absolute paths `paths` instead; whether every one is watched (if not, it is
         never quiet until an `arm` that succeeds).

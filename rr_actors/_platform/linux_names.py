@@ -140,7 +140,7 @@ _made = 0  # watches made in this process: its instance waits for the second
 def _forget_in_child() -> None:
     global _instance, _instance_lock, _made
     _instance_lock = threading.Lock()  # (a thread of the parent may have held it)
-    _made = 0
+    _made, InotifyNameWatch.armable = 0, False
     if _instance is not None:
         _instance.forked = True
         with contextlib.suppress(OSError):
@@ -153,6 +153,8 @@ forkserver.after_fork_in_child("the inotify instance", _forget_in_child)
 
 class InotifyNameWatch:
     """Tells whether the names it was armed with may have changed (one thread at a time)."""
+
+    armable = False  # (the process's instance is made: every watch of the process, at once)
 
     def __init__(self) -> None:
         self._instance: _Instance | None = None  # (the process's, at the first `arm` after)
@@ -243,4 +245,5 @@ def watch_names() -> InotifyNameWatch | None:
         if _instance is None and _made > 1:  # (refused: the next watch asks again)
             fd = _libc().inotify_init1(_IN_NONBLOCK | _IN_CLOEXEC)
             _instance = _Instance(_libc(), fd) if fd >= 0 else None
+            InotifyNameWatch.armable = _instance is not None
     return InotifyNameWatch()

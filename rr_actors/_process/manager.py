@@ -184,7 +184,6 @@ class ManagerProcess:
         )
         self._on_overloaded = on_overloaded
         self._on_exit = on_exit
-        self._on_events = on_events
         self._syncs: dict[int, runtime.Event] = {}  # events-sync tokens waiting for answers
         self._sync_tokens = itertools.count(1)
         self._hung: Hang | None = None

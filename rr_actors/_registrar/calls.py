@@ -2,7 +2,7 @@
 
 ```
  caller thread (Calls.steps)           consumer registrar actor          provider
- monitor(provider); due.expect(id, attempt)
+ (a first call to a server: its client opened, monitor(provider)); due.expect(id, attempt)
  attempt.sent(); Load(its run: life) ──────────────────────────────────► on_load
  attempt.wait(answer | error | timeout) ◄──── ClientReply (the answering thread) ◄─┘
    answered: ClientLoaded ──► due.outcomes ──► recorded before the actor's next message
@@ -34,7 +34,6 @@ from rr_actors._core import hlc, runtime
 from rr_actors._core.actor import OneShotFuture, awaiting, deliver
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY
-from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.queues import LateQueue
 from rr_actors._core.replies import Steps
 from rr_actors._registrar.messages import Load, check_picklable, give_back
@@ -421,8 +420,6 @@ class Calls:
             answered: Query | None = None
             withdrawn = False
             try:
-                MEMBERSHIP.monitor(self.name, serving_rr)
-                MEMBERSHIP.monitor(serving_rr, self.name)
                 # a notice that overtakes the answer waits; a durable call's is the actor's
                 self.due.expect(query_id, attempt, reply if self.commit_first else None)
                 load = Load(

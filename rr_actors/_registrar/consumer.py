@@ -43,6 +43,7 @@ from rr_actors._core import hlc as _hlc
 from rr_actors._core import runtime, traces
 from rr_actors._core.actor import Actor, refuse
 from rr_actors._core.directory import DIRECTORY, Reply
+from rr_actors._core.membership import MEMBERSHIP
 from rr_actors._core.replies import FutureReply, Join
 from rr_actors._platform.base import no_thread
 from rr_actors._registrar.calls import (
@@ -778,6 +779,8 @@ class Holdings:
 
     def on_open_client(self, message: OpenClient, reply: Reply) -> None:
         """The client actor for `target_rr/server`, started on first use (thesis 4.3.3)."""
+        MEMBERSHIP.monitor(self.registrar.name, message.target_rr)  # (before a first call's load
+        MEMBERSHIP.monitor(message.target_rr, self.registrar.name)  # leaves: rule 20, once a life)
         ref = self.registrar.ref
         assert ref is not None
         try:

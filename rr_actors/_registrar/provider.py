@@ -294,6 +294,7 @@ class Provider:
         # load still runs)
         self.labelling: dict[str, Callable[[], None] | None] = {}
         self.matching = Matching(registrar, self.serve)
+        self.monitored: set[str] = set()  # the consumers whose restarts it hears (rule 20)
 
     # -- load -------------------------------------------------------------------------
 
@@ -321,7 +322,9 @@ class Provider:
         return None
 
     def on_load(self, message: Load, _reply: Reply) -> None:
-        MEMBERSHIP.monitor(self.registrar.name, message.origin_rr)  # (its restarts: rule 20)
+        if message.origin_rr not in self.monitored:  # (its restarts: rule 20; once a life,
+            MEMBERSHIP.monitor(self.registrar.name, message.origin_rr)  # kept by the membership)
+            self.monitored.add(message.origin_rr)
         if (  # (the phase last: read through its enum class, a member costs ~1k instructions)
             message.server not in self.registrar.servers
             and self.registrar.phase is Phase.SETTING_UP

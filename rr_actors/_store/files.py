@@ -594,7 +594,7 @@ class BackupFile:
         """Whether the path surely still names the file: the platform's watch saw no change
         of its names, and no copy waits to be put in place."""
         watch = self._watch
-        return watch is not None and self.aside is None and watch.quiet()
+        return watch is not None and watch.armable and self.aside is None and watch.quiet()
 
     def keep_in_place(
         self, db: sqlite3.Connection, close: Callable[[], None]
@@ -610,8 +610,8 @@ class BackupFile:
         """
         if not self.guarded:
             return None
-        if self.aside is None:
-            watch = self._watch
+        if self.aside is None:  # (a watch that cannot watch yet: `stat`s, not asked)
+            watch = self._watch if self._watch is not None and self._watch.armable else None
             if watch is not None and watch.quiet():  # nothing happened to the names
                 return None
             if self._ids[1] is None:  # the -wal appears with the first transaction

@@ -24,6 +24,7 @@ import pytest
 
 import rr_actors as rr
 from rr_actors._core.directory import DIRECTORY
+from rr_actors._core.membership import Membership
 from rr_actors._registrar.calls import BACKLOG
 from rr_actors._registrar.messages import Load
 from rr_actors.testing import (
@@ -428,6 +429,29 @@ class TestOutcomes:
 
         assert ["client_loaded"] * 3 + ["client_queries"] == steps
         assert {q.id for q in queries} <= {q.id for q in held}
+
+    def test_a_provider_is_monitored_both_ways_by_the_first_call_of_a_life_only(
+        self, pair: Pair, monkeypatch: pytest.MonkeyPatch
+    ) -> None:
+        # issue 71 item 5: each call asked the membership again (three monitors a hit), which
+        # keeps them for the process's life: the caller's two as it opens its client, the
+        # provider's once a life; a restart is still heard (rule 20: guarded by test_tree's
+        # test_a_restart_wakes_only_the_manager_processes_that_monitor_it)
+        asked: list[tuple[str, ...]] = []
+        monitor = Membership.monitor
+
+        def counted(membership: Membership, watcher: str, *targets: str) -> None:
+            asked.append((watcher, *targets))
+            monitor(membership, watcher, *targets)
+
+        monkeypatch.setattr(Membership, "monitor", counted)
+        for _ in range(3):
+            pair.call("shared")
+
+        consumer, provider = pair.consumer.name, pair.provider.name
+        assert sorted([(consumer, provider), (provider, consumer), (provider, consumer)]) == sorted(
+            asked
+        )  # the caller's two, the provider's one, all at the first call
 
     def test_an_unload_right_after_a_call_finds_its_record(self, pair: Pair) -> None:
         for _ in range(20):

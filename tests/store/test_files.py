@@ -691,6 +691,32 @@ def test_a_store_whose_names_did_not_change_stats_nothing_before_its_commits(
     assert 21 == len(consumers_on_disk(path)["r1"])
 
 
+@pytest.mark.skipif(PLATFORM.name != "linux", reason="inotify tells; elsewhere it stats")
+def test_a_store_whose_watch_cannot_watch_yet_stats_without_asking_it(
+    tmp_path: Path, store_at: Callable[..., SqliteStore], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A process manager's one store: its watch cannot watch until a second store makes the
+    process's inotify instance (`armable`); each commit stats, asking the watch nothing
+    (issue 71 item 5: two calls a commit, each answering `False`), and still finds its file
+    deleted."""
+    path = tmp_path / "p.db"
+    store = store_at(path)
+    watch = store._file._watch
+    assert watch is not None
+    asked: list[str] = []
+    monkeypatch.setattr(watch, "armable", False)
+    monkeypatch.setattr(watch, "quiet", lambda: asked.append("quiet") or False)
+    monkeypatch.setattr(watch, "arm", lambda paths: asked.append("arm") or False)
+    catalog = Catalog()
+    store.write(loaded(catalog, "r1", "q1"))
+    delete_file(path)
+
+    catalog.add_consumer("r1", "q2", "C")
+    store.write(catalog.drain_changes())
+
+    assert ([], {"r1": ["q1", "q2"]}) == (asked, consumers_on_disk(path))
+
+
 # -- 8. a full disk: CatalogWriteError, and nothing is lost ------------------------------------
 
 
