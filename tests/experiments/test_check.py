@@ -1255,6 +1255,26 @@ def test_the_mutant_status_py_990_lte_is_caught_by_status_answered_at_simanswer_
     assert any("[status-answered]" in line for line in found), found
 
 
+@pytest.mark.timeout(600)
+def test_the_mutant_policy_py_952_crashes_the_parallel_stop_of_simstop_at_seed_1(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Issue 68 item 8: `stop(parallel=True)` with `or` for `and` in its cycle test
+    (`policy.py:952:ReplaceAndWithOr`) stops one child at a time, the last started first.
+    Where a dependency runs against start order (`simstop`: front, started first, holds a
+    query at back), it stops back under front's query; front's stop then ends by counting
+    down back's dependents again, a `KeyError`, and the stop raises. No rule sees that order:
+    the seed crashes before it has a verdict (the mutant is crashed, no longer a survivor).
+    Where no dependency runs against start order, that order is one the docs allow."""
+    plan = load_plan(plans.find("simstop"))
+    assert "held" == simulate.run_seed(plan, 1).verdict
+    where = "rr_actors._supervision.policy:Stopping.stop_in_parallel"
+    _plant(monkeypatch, where, "if not ready and not under_way:", "if not ready or not under_way:")
+    run = simulate.run_seed(plan, 1)
+    assert "crashed" == run.verdict
+    assert any("crashed: KeyError" in line for line in run.findings), run.findings
+
+
 def renumbered(history: list[events.Event]) -> list[events.Event]:
     """`history` with each process's numbers (`seq`) in its order again: an event a
     mutation removed or added is then one the registrar did not (or did) publish, not

@@ -49,6 +49,7 @@ SHIPPED = {
     "simoverload",
     "simcommit",
     "simanswer",
+    "simstop",
     "bigtree",
 }
 """Every plan shipped in the package; the tutorial's `first` runs in the docs test."""

@@ -1135,6 +1135,7 @@ SIMULATED = [
     "simoverload",
     "simcommit",
     "simanswer",
+    "simstop",
 ]
 """The shipped plans run over two seeds here (killheavy below, for 2 s; bigtree below, one seed)."""
 
