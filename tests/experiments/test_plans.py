@@ -50,6 +50,7 @@ SHIPPED = {
     "simcommit",
     "simanswer",
     "simstop",
+    "simtimeout",
     "bigtree",
 }
 """Every plan shipped in the package; the tutorial's `first` runs in the docs test."""

@@ -1136,6 +1136,7 @@ SIMULATED = [
     "simcommit",
     "simanswer",
     "simstop",
+    "simtimeout",
 ]
 """The shipped plans run over two seeds here (killheavy below, for 2 s; bigtree below, one seed)."""
 
