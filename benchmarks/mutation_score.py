@@ -80,17 +80,18 @@ PLANS = LAB / "experiments" / "plans"
 MODULES = ("_registrar", "_store", "_catalog", "_supervision")
 
 ORDER = (
-    "crashloop", "first", "hang", "simnostate", "simpatient", "simheal", "simhosts", "simshare",
-    "simslow", "simrest", "simchain", "simdoubt", "simanswer", "simcommit", "simbackup",
+    "crashloop", "first", "hang", "simnostate", "simpatient", "simstop", "simheal", "simhosts",
+    "simshare", "simslow", "simrest", "simchain", "simdoubt", "simanswer", "simcommit", "simbackup",
     "simprogram", "simcancel", "simshed", "simkeptdep", "simretry", "simways", "simkept",
-    "simoverload", "bigtree", "killheavy",
+    "simoverload", "simtimeout", "bigtree", "killheavy",
 )  # fmt: skip
 """The shipped plans the simulation runs, cheapest seed first (CPU s of seed 1, 2026-11-27:
 0.3 for the first four, 0.5-0.9 to simdoubt, 1.2-3.7 after; killheavy 4.8; simkept, added
 later, 3.3; simoverload 1.6; simcommit, added later, about 1: after simdoubt; simanswer,
 added 2026-11-28, 0.85: after simdoubt; simkeptdep, added 2026-11-28, 1.5-1.9: before
-simretry; simpatient, added then, 0.2: after simnostate; simbackup, added then, 0.7-1.2: after
-simcommit)."""
+simretry; simpatient, added then, 0.2: after simnostate; simstop, added then, 0.3: after
+simpatient; simbackup, added then, 0.7-1.2: after simcommit; simtimeout, added then: after
+simoverload)."""
 
 COSMIC_RAY = importlib.metadata.version("cosmic-ray")
 

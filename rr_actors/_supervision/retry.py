@@ -19,13 +19,15 @@ Written once, as steps (`replies.Steps`): `call_with_retry` runs them blocking,
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import Any, Protocol
 
+from rr_actors import events
 from rr_actors._core import runtime
 from rr_actors._core.replies import Steps
 from rr_actors._registrar import Registrar
-from rr_actors._registrar.handle import call_steps
+from rr_actors._registrar.handle import Here, call_steps
 from rr_actors._supervision.children import ChildInfo
 from rr_actors._types import Query, StatusCallback
 from rr_actors.config import check_seconds
@@ -78,27 +80,29 @@ def call_with_retry(
     _check(consumer, target_rr, server, request, timeout, query_id)
     limit = timeout if timeout is not None else consumer.config.call_timeout
     qid = query_id or runtime.new_id()
-    deadline = runtime.monotonic() + limit
+    deadline, started = runtime.monotonic() + limit, runtime.wall()
     tried_again_at = -1  # the restart count at which it last tried again at once
+    call = functools.partial(
+        call_steps, consumer, target_rr, server, request, on_status=on_status, query_id=qid
+    )
+
+    def give_up(while_: str = "") -> CallTimeoutError:  # (the id given back, withdrawn)
+        abandon(target_rr, qid, consumer.name)
+        if isinstance(actor := consumer._actor, Here) and actor.published.active:
+            gone = events.CallWithdrawn(consumer.name, qid, target_rr, server, started=started)
+            actor.published.publish(gone)  # (a consumer of this process's)
+        return CallTimeoutError(
+            f"call to '{target_rr}/{server}' timed out after {limit:g} s{while_}"
+        )
+
     while True:
         found = _lookup(tree, target_rr)
         before = found.restarts if found is not None else 0
         left = deadline - runtime.monotonic()
         if left <= 0:
-            abandon(target_rr, qid, consumer.name)
-            raise CallTimeoutError(f"call to '{target_rr}/{server}' timed out after {limit:g} s")
+            raise give_up()
         try:
-            return (
-                yield from call_steps(
-                    consumer,
-                    target_rr,
-                    server,
-                    request,
-                    on_status=on_status,
-                    timeout=left,
-                    query_id=qid,
-                )
-            )
+            return (yield from call(timeout=left))
         except RegistrarUnavailableError:
             if found is None or found.restart == "temporary":
                 raise
@@ -114,11 +118,7 @@ def call_with_retry(
         try:
             yield from tree._restart_wait(target_rr, wait, target)
         except CallTimeoutError:
-            abandon(target_rr, qid, consumer.name)
-            raise CallTimeoutError(
-                f"call to '{target_rr}/{server}' timed out after {limit:g} s while "
-                f"{target_rr!r} was restarting"
-            ) from None
+            raise give_up(f" while {target_rr!r} was restarting") from None
         except BaseException as exc:
             if not isinstance(exc, Exception):  # interrupted (a cancelled task, Ctrl-C):
                 abandon(target_rr, qid, consumer.name)  # withdrawn as a timeout withdraws it

@@ -1,6 +1,6 @@
 """The consumer's side of a run (rules `answered`, `answer-released`, `record-kept`,
-`reported-lost`, `end`, `withdrawn`, `retry-ended`, `retry-kept`, `kept-unclaimed`, `left`,
-`fetch`, `outcome`).
+`reported-lost`, `end`, `withdrawn`, `retry-ended`, `retry-kept`, `kept-unclaimed`,
+`timed-out`, `left`, `fetch`, `outcome`).
 
 ```
  steps ──► answered: each consumer's answered calls against what its providers added
@@ -12,6 +12,7 @@
  steps ──► retry-ended: what providers still hold of failed calls whose load ended
  steps ──► retry-kept: a failed call's id released while its consumer could retry it
  steps + lives ──► kept-unclaimed: a failed call's id kept past its consumer's call_timeout
+ steps ──► timed-out: a client's call withdrawn at its timeout, against its first start
  steps (+ the give-ups) ──► left: a last stop's rows no running consumer holds
  steps + holdings ──► fetch: QueriesFetched, ServerQueriesListed against what was held
  steps + lives (+ the exits) ──► outcome: each call a provider added against its caller's end
@@ -33,6 +34,7 @@ from rr_actors_lab.experiments._status_rules import Span
 
 __all__ = [
     "CALL_BOUND_S",
+    "TIMED_OUT_SLACK_S",
     "WITHDRAWN_BOUND_S",
     "answer_released",
     "answered",
@@ -45,6 +47,7 @@ __all__ = [
     "reported_lost",
     "retry_ended",
     "retry_kept",
+    "timed_out",
     "withdrawn",
 ]
 
@@ -491,6 +494,53 @@ def retry_kept(steps: Sequence[Step]) -> list[Finding]:
 KEPT_SLACK_S = 1.0
 """Seconds past its consumer's `call_timeout` by which a restored id kept for a retry is given
 back, counted from the restore (the reconcile that starts the consumer's wait follows it)."""
+
+TIMED_OUT_SLACK_S = 0.05
+"""Seconds a call's timeout may end before its `call_timeout` after its start and not be
+judged: `started` and `at` are wall clock stamps, the timeout a monotonic one's."""
+
+_CALLS = (events.CallAnswered, events.CallFailed, events.CallWithdrawn)
+
+
+def timed_out(
+    steps: Sequence[Step], timeouts: Mapping[str, float], managers: Collection[str]
+) -> list[Finding]:
+    """`timed-out` (rule 17, issue 68 item 8): a call times out only once its timeout ran
+    out. A client's `CallWithdrawn` of reason `"timeout"` comes at least its `call_timeout`
+    (`timeouts`, less `TIMED_OUT_SLACK_S`) after the earliest start (`started`) of that
+    consumer's calls of that id: every try of `call_with_retry`, or of the workload's
+    retries, shares its first try's deadline (a later call of the id, `again`, starts
+    later). Judged for the consumers of `timeouts` that are no manager (`managers`: a
+    manager's load may pass a timeout of its own); a call of unknown start (0.0) is not.
+    """
+    first: dict[tuple[str, str], tuple[float, int]] = {}  # (consumer, id) -> start, its line
+    findings: list[Finding] = []
+    for name, line, event, _new, _life in steps:
+        if not isinstance(event, _CALLS) or name not in timeouts or name in managers:
+            continue
+        key = (name, event.query_id)
+        if event.started > 0 and event.started < first.get(key, (event.started + 1, 0))[0]:
+            first[key] = (event.started, line)
+        if not isinstance(event, events.CallWithdrawn) or event.reason != "timeout":
+            continue
+        if key not in first:
+            continue
+        started, began = first[key]
+        took, bound = event.at - started, timeouts[name]
+        if took < bound - TIMED_OUT_SLACK_S:
+            findings.append(
+                Finding(
+                    "timed-out",
+                    "violation",
+                    f"{name}'s call {event.query_id[:8]} to {event.serving_rr}/{event.server} "
+                    f"timed out {took:.3f} s after it began, before its timeout of {bound:g} s "
+                    "ran out (rule 17: CallTimeoutError once the timeout passed)",
+                    tuple(sorted({began, line})),
+                    (name,),
+                )
+            )
+    return findings
+
 
 _NAMING = (events.CallAnswered, events.CallFailed, events.CallWithdrawn, events.QueryForgotten)
 

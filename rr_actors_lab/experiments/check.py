@@ -80,6 +80,7 @@ RULES = (
     "retry-ended",
     "retry-kept",
     "kept-unclaimed",
+    "timed-out",
     "left",
     "unload-order",
     "dependency-held",
@@ -251,7 +252,8 @@ def check(
             waits that much longer for a restart due.
         timeouts: the `call_timeout` of consumers by name (its plan's clients' and managers'), in
             seconds: how long a restored id kept for a retry of theirs waits for it
-            (`kept-unclaimed` judges those consumers only; no event carries it).
+            (`kept-unclaimed` judges those consumers only, `timed-out` those of them that
+            are no child of a supervisor; no event carries it).
         damaged: the backups the run's faults damaged between two lives (`corrupt_backup`):
             the pid of the manager process killed first -> how (`damaged-backup` judges
             its restarts; no event carries it).
@@ -265,6 +267,7 @@ def check(
         name for _, e in history if e.pid in lossy and (name := registrar_of(e)) is not None
     }
     steps, lives = walk(history)
+    managers = {e.child for _, e in history if isinstance(e, events.ChildStarted)}
     facts = gather(history)
     damage, refusals, lost_backups = _supervision_rules.damaged_backup(history, damaged or {})
     providers = Providers(facts, lives, lost_backups)
@@ -290,6 +293,7 @@ def check(
         *_consumer_rules.retry_ended(steps),
         *_consumer_rules.retry_kept(steps),
         *_consumer_rules.kept_unclaimed(steps, lives, timeouts or {}),
+        *_consumer_rules.timed_out(steps, timeouts or {}, managers),
         *_consumer_rules.left(steps, history, lives),
         *_consumer_rules.fetch(steps, providers.holdings, lives),
         *_consumer_rules.outcome(steps, lives, history),

@@ -40,6 +40,7 @@ def service(
     status_every: float = 0.0,
     list_every: float = 0.0,
     max_pending: int | None = None,
+    holds: Sequence[str] = (),
 ) -> None:
     """Register one resource server whose loads take `load_s` and load what it `uses`.
 
@@ -63,6 +64,11 @@ def service(
         list_every: seconds between two listings of the server's queries (0: none).
         max_pending: the server's own `max_pending` (loads queued or running at once;
             `None`: its registrar's): past it, loads are refused (`ServerOverloaded`).
+        holds: `"manager/server"` of other managers (a bare `"manager"`: its server
+            `resource`) a thread of the manager calls once, with the request `"held by
+            <registrar>"`, as soon as it answers (trying again every 0.05 s), and holds
+            until the registrar stops: a dependency of the manager, not of a resource (a
+            provider `stop(parallel=True)` stops after it, whatever their start order).
 
     Raises:
         ConfigError: `status_every` or `list_every` is negative or not finite, or
@@ -101,6 +107,28 @@ def service(
             name=f"rr-scheduled-list-{registrar.name}",
             daemon=True,
         ).start()
+    if holds:
+        runtime.Thread(
+            target=_hold,
+            args=(registrar, tuple(holds)),
+            name=f"rr-held-{registrar.name}",
+            daemon=True,
+        ).start()
+
+
+def _hold(registrar: rr.ResourceRegistrar, targets: Sequence[str]) -> None:
+    """Call each of `targets` once (every 0.05 s until answered) and hold the answer until
+    the registrar stops (its stop releases it); until the registrar stops."""
+    for target in targets:
+        manager, _, name = target.partition("/")
+        while registrar.is_alive():
+            try:
+                registrar.call(manager, name or "resource", f"held by {registrar.name}")
+                break
+            except rr.RegistrarStoppedError:
+                return
+            except rr.RrError:
+                runtime.sleep(0.05)  # (not serving yet, or restarting: the next try)
 
 
 def _send_statuses(registrar: rr.ResourceRegistrar, server: str, every: float) -> None:

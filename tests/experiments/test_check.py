@@ -1367,6 +1367,14 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "kept",
             id="the mutant schema.py:324 is caught by kept at simbackup seed 1",
         ),
+        pytest.param(  # (every `acall_with_retry` times out at once, before it sends its call:
+            "simcancel",  # its `CallWithdrawn`, 0 s after its start, of a 3 s timeout)
+            "rr_actors._supervision.retry:call_with_retry",
+            "runtime.monotonic() + limit",
+            "runtime.monotonic() / limit",
+            "timed-out",
+            id="the mutant retry.py:83 is caught by timed-out at simcancel seed 1",
+        ),
     ],
 )
 def test_a_planted_bug_is_caught_by_its_rule_at_a_seed_its_plan_holds_at_unplanted(
@@ -1393,6 +1401,26 @@ def test_the_mutant_status_py_990_lte_is_caught_by_status_answered_at_simanswer_
     _plant(monkeypatch, where, old, "if origin <= here[0]:")
     found = simulate.run_seed(plan, 3).findings
     assert any("[status-answered]" in line for line in found), found
+
+
+@pytest.mark.timeout(600)
+def test_the_mutant_policy_py_952_crashes_the_parallel_stop_of_simstop_at_seed_1(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Issue 68 item 8: `stop(parallel=True)` with `or` for `and` in its cycle test
+    (`policy.py:952:ReplaceAndWithOr`) stops one child at a time, the last started first.
+    Where a dependency runs against start order (`simstop`: front, started first, holds a
+    query at back), it stops back under front's query; front's stop then ends by counting
+    down back's dependents again, a `KeyError`, and the stop raises. No rule sees that order:
+    the seed crashes before it has a verdict (the mutant is crashed, no longer a survivor).
+    Where no dependency runs against start order, that order is one the docs allow."""
+    plan = load_plan(plans.find("simstop"))
+    assert "held" == simulate.run_seed(plan, 1).verdict
+    where = "rr_actors._supervision.policy:Stopping.stop_in_parallel"
+    _plant(monkeypatch, where, "if not ready and not under_way:", "if not ready or not under_way:")
+    run = simulate.run_seed(plan, 1)
+    assert "crashed" == run.verdict
+    assert any("crashed: KeyError" in line for line in run.findings), run.findings
 
 
 def renumbered(history: list[events.Event]) -> list[events.Event]:
@@ -2331,6 +2359,83 @@ def test_an_id_kept_for_a_retry_given_back_in_time_or_claimed_is_no_kept_unclaim
     after: float, claimed: bool, timeouts: dict[str, float]
 ) -> None:
     _holds(kept_then_given_back(after=after, claimed=claimed), timeouts=timeouts)
+
+
+def timed_out(took: float, *, reason: str = "timeout", retried: bool = True) -> list[events.Event]:
+    """`clean()` with a call of cm (Q3) that `call_with_retry` tried at 100.0 (its provider
+    died: `CallFailed`) and again at 100.5 (with the first try's deadline), withdrawn `took`
+    seconds after its first try began, before cm stops."""
+    h = clean()
+    tries = [
+        events.CallFailed(
+            "cm",
+            Q3,
+            "erm",
+            "cam",
+            "RegistrarUnavailableError",
+            "died",
+            True,
+            started=100.0,
+            at=100.1,
+            pid=C,
+        )
+    ]
+    if retried:
+        tries.append(
+            events.CallFailed(
+                "cm",
+                Q3,
+                "erm",
+                "cam",
+                "RegistrarUnavailableError",
+                "died",
+                True,
+                True,
+                started=100.5,
+                at=100.6,
+                pid=C,
+            )
+        )
+    gone = events.CallWithdrawn(
+        "cm", Q3, "erm", "cam", reason, started=100.0, at=100.0 + took, pid=C
+    )
+    return [*h[:-2], *tries, gone, *h[-2:]]
+
+
+def test_a_call_withdrawn_at_a_timeout_before_its_call_timeout_ran_out_is_timed_out() -> None:
+    """Issue 68 item 8: the mutant `retry.py:83` (`monotonic() / limit` for `+`) made every
+    `call_with_retry` time out at once, before it sent anything: its `CallWithdrawn`."""
+    verdict = check.check(numbered(timed_out(0.3)), timeouts={"cm": 1.0})
+
+    found = [f for f in verdict.findings if f.rule == "timed-out"]
+    assert ("violated", [(15, 17)]) == (verdict.verdict, [f.lines for f in found])
+    assert "cm's call q3333333 to erm/cam timed out 0.300 s after it began" in found[0].message
+    at_once = check.check(numbered(timed_out(0.0, retried=False)), timeouts={"cm": 1.0})
+    assert [(15, 16)] == [f.lines for f in at_once.findings if f.rule == "timed-out"]
+
+
+@pytest.mark.parametrize(
+    ("took", "reason", "timeouts", "manager"),
+    [
+        (1.0, "timeout", {"cm": 1.0}, False),
+        (0.97, "timeout", {"cm": 1.0}, False),
+        (0.3, "interrupted", {"cm": 1.0}, False),
+        (0.3, "timeout", {}, False),
+        (0.3, "timeout", {"cm": 1.0}, True),
+    ],
+    ids=[
+        "at its timeout (the retry's own start is later)",
+        "within the clocks' slack",
+        "cancelled",
+        "call_timeout not known",
+        "a manager's call (its load may pass its own timeout)",
+    ],
+)
+def test_a_call_withdrawn_once_its_timeout_ran_out_or_not_judged_is_no_timed_out_violation(
+    took: float, reason: str, timeouts: dict[str, float], manager: bool
+) -> None:
+    started = [events.ChildStarted("sup", "cm", C)] if manager else []
+    _holds([*started, *timed_out(took, reason=reason)], timeouts=timeouts)
 
 
 def test_a_restart_with_a_restore_holds_what_the_restore_lists() -> None:
@@ -4227,8 +4332,9 @@ def test_every_rule_but_the_events_rule_has_a_mutation() -> None:
     # `kept-unclaimed` needs its consumers' `call_timeout`, which no event carries: judged
     # on the simulation only, its planted history is test_an_id_kept_for_a_retry_that_...;
     # `damaged-backup` the backups a fault damaged, which no event shows: its planted
-    # histories are test_a_damaged_backup_...)
-    assert set(check.RULES) - {"events", "kept-unclaimed", "damaged-backup"} == {
+    # histories are test_a_damaged_backup_...; `timed-out` its consumers' timeouts too:
+    # test_a_call_withdrawn_at_a_timeout_before_its_call_timeout_...)
+    assert set(check.RULES) - {"events", "kept-unclaimed", "damaged-backup", "timed-out"} == {
         rule for _, rule in MUTATIONS.values()
     }
 

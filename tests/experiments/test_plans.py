@@ -50,6 +50,8 @@ SHIPPED = {
     "simcommit",
     "simanswer",
     "simbackup",
+    "simstop",
+    "simtimeout",
     "bigtree",
 }
 """Every plan shipped in the package; the tutorial's `first` runs in the docs test."""

@@ -1168,6 +1168,8 @@ SIMULATED = [
     "simcommit",
     "simanswer",
     "simbackup",
+    "simstop",
+    "simtimeout",
 ]
 """The shipped plans run over two seeds here (killheavy below, for 2 s; bigtree below, one seed)."""
 

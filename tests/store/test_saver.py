@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import contextlib
+import logging
 import sqlite3
 import threading
 from collections.abc import Callable, Iterator
@@ -166,7 +167,12 @@ def test_save_catalog_writes_pending_changes_at_once(
     assert {query.id} == consumer_ids(tmp_path / "p.db")
 
 
-def test_a_clean_stop_flushes_pending_changes(tmp_path: Path) -> None:
+def test_a_clean_stop_flushes_pending_changes(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """And logs no ERROR: its backup is not damaged (the mutant `saver.py:167:AddNot` told
+    the changes lost to a damaged file, `damaged (None)`, and flushed them)."""
+    caplog.set_level(logging.ERROR, logger="rr_actors")
     provider = rr.ResourceRegistrar.start(
         rr.RegistrarConfig(name=unique("P"), backup_path=tmp_path / "p.db", save_interval=None)
     )
@@ -178,6 +184,7 @@ def test_a_clean_stop_flushes_pending_changes(tmp_path: Path) -> None:
     consumer.stop()
 
     assert {query.id} == consumer_ids(tmp_path / "p.db")
+    assert [] == [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
 
 
 def test_erase_on_destruct_removes_the_backup_after_a_clean_stop(tmp_path: Path) -> None:

@@ -699,9 +699,21 @@ def test_call_with_retry_that_times_out_while_restarting_raises_call_timeout(
     app = sup.registrar(f"app-{uid}")
     crash(sup, name)
     assert timer.wait_scheduled(1)
+    withdrawn: list[rr.events.CallWithdrawn] = []
+    seen = threading.Event()
 
-    with pytest.raises(rr.CallTimeoutError):
-        call_with_retry(sup, app, name, "res", "camera", timeout=0.2)
+    def on_event(event: rr.events.Event) -> None:
+        if isinstance(event, rr.events.CallWithdrawn):
+            withdrawn.append(event)
+            seen.set()
+
+    with app.subscribe(on_event):
+        with pytest.raises(rr.CallTimeoutError):
+            call_with_retry(sup, app, name, "res", "camera", timeout=0.2, query_id="q-1")
+        assert seen.wait(10.0)  # (issue 68 item 8: the check's `timed-out` rule reads it)
+
+    assert [("q-1", name, "timeout")] == [(e.query_id, e.serving_rr, e.reason) for e in withdrawn]
+    assert withdrawn[0].at - withdrawn[0].started >= 0.2 - 0.05  # (wall clock stamps)
 
 
 def test_an_id_abandoned_while_its_provider_runs_is_released_at_once(
