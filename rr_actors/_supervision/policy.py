@@ -59,6 +59,7 @@ from rr_actors._supervision.children import (
 )
 from rr_actors._supervision.tree import (
     Clock,
+    Ending,
     Tree,
     announce_started,
     comes_back,
@@ -403,6 +404,8 @@ class Restarts:
             record.tree.escalate(error)  # a pool's: its process ends, its parent decides
         self.giving_up = True
         self.cancel()
+        if record.parent is None and record.tree.ending is None:  # its stops are final: each
+            record.tree.ending = Ending.of(record.root(), record.tree.processes.system)  # (rule 12)
         for child in reversed(record.children):
             if child is crashed or child.running is None:
                 # (below the root, the parent decides: it may restart this supervisor)

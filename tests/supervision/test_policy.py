@@ -1233,6 +1233,37 @@ class TestAWholeTreesStop:
         assert (names[0], (names[3], names[2], names[1])) == told[2]
         assert 3 == len(told)  # one message to each manager stopped after another
 
+    def test_a_root_give_up_tells_each_manager_the_stops_before_its_own_on_its_control_pipe(
+        self, monkeypatch: pytest.MonkeyPatch, uid: str
+    ) -> None:
+        """A root supervisor that gives up stops every manager for good, as a tree's stop
+        does, so each hears the managers stopped before it just before its own stop. Before,
+        each heard them as death-watch notices on its registrar's connection, which its own
+        `Stop` on the control pipe could overtake: a provider stopped holding the id of a
+        dependent's load under way (rule 12; the shrunk simrest plan, seed 11 of
+        tests/experiments/test_simulate.py)."""
+        from rr_actors._process.manager import ManagerProcess  # noqa: PLC0415
+
+        names = [f"m{n}-{uid}" for n in range(3)]
+        told: list[tuple[str, tuple[str, ...]]] = []
+        tell_stopped = ManagerProcess.tell_stopped
+
+        def counted_tell(self: ManagerProcess, stopped: tuple[str, ...], lost: Any = ()) -> None:
+            told.append((self.name, stopped))
+            tell_stopped(self, stopped, lost)
+
+        monkeypatch.setattr(ManagerProcess, "tell_stopped", counted_tell)
+        sup = rr.Supervisor([process(n) for n in names], strategy="rest_for_one", max_restarts=0)
+        sup.start()
+        try:
+            sigkill(sup, names[0])
+            with pytest.raises(rr.SupervisorGaveUpError, match="more than 0 restart"):
+                sup.wait_restarted(names[0], timeout=30.0)
+        finally:
+            sup.stop()
+
+        assert [(names[1], (names[2],))] == told  # (before: none)
+
     def test_one_stop_of_a_tree_lists_no_carrier_and_walks_no_tree_whatever_its_size(
         self, monkeypatch: pytest.MonkeyPatch, uid: str
     ) -> None:
