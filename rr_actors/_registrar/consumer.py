@@ -974,7 +974,7 @@ class Releases:
         if listing is not None:
             last = self.last_reconciled.get(serving_rr, 0)
             self.last_reconciled[serving_rr] = max(last, listing.at)
-            if not self.unreleased.keys().isdisjoint(listing.held):
+            if not self.unreleased_at(serving_rr).isdisjoint(listing.held):
                 self.again(serving_rr)
 
     # -- this registrar stops -----------------------------------------------------------

@@ -326,7 +326,7 @@ class Supervisor(AsyncSupervision):
         self._registrars.clear()
         self._tree.processes.close_spares()  # no new spare while the children stop
         self._watch.last_look()  # a page kept after the stop shows the catalogs as they end
-        self._tree.ending = Ending.of(self._node, self._tree.processes.system)
+        self._tree.ending = self._tree.ending or Ending.of(self._node, self._tree.processes.system)
         quiet(self._node)  # (each manager hears the stops before its own, unpinged)
         self._node.stop(deadline=deadline, parallel=parallel)
         self._stopped = True

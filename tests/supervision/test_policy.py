@@ -1264,6 +1264,49 @@ class TestAWholeTreesStop:
 
         assert [(names[1], (names[2],))] == told  # (before: none)
 
+    def test_a_stop_called_during_a_root_give_up_keeps_the_stops_the_give_up_told(
+        self, monkeypatch: pytest.MonkeyPatch, uid: str
+    ) -> None:
+        """`sup.stop()` from another thread while the root gives up (a `with sup:` ending)
+        made the tree's `Ending` anew: the managers the give-up stopped after it heard only
+        the stops after it (a review's finding). Forced: the stop is called, and is past
+        the `Ending`, as the give-up tells the second manager it stops."""
+        from rr_actors._process.manager import ManagerProcess  # noqa: PLC0415
+        from rr_actors._supervision import supervisor  # noqa: PLC0415
+
+        names = [f"m{n}-{uid}" for n in range(4)]
+        told: list[tuple[str, tuple[str, ...]]] = []
+        tell_stopped, quiet = ManagerProcess.tell_stopped, supervisor.quiet
+        past = threading.Event()
+        stopping: list[threading.Thread] = []
+
+        def quiet_past(root: Any) -> None:
+            past.set()
+            quiet(root)
+
+        def counted_tell(self: ManagerProcess, stopped: tuple[str, ...], lost: Any = ()) -> None:
+            told.append((self.name, stopped))
+            if not stopping:  # (the give-up's first tell: a stop is called meanwhile)
+                stopping.append(threading.Thread(target=sup.stop))
+                stopping[0].start()
+                assert past.wait(10.0)
+            tell_stopped(self, stopped, lost)
+
+        monkeypatch.setattr(supervisor, "quiet", quiet_past)
+        monkeypatch.setattr(ManagerProcess, "tell_stopped", counted_tell)
+        sup = rr.Supervisor([process(n) for n in names], strategy="rest_for_one", max_restarts=0)
+        sup.start()
+        try:
+            sigkill(sup, names[0])
+            with pytest.raises(rr.SupervisorGaveUpError, match="more than 0 restart"):
+                sup.wait_restarted(names[0], timeout=30.0)
+        finally:
+            for thread in stopping:
+                thread.join(30.0)
+            sup.stop()
+
+        assert [(names[2], (names[3],)), (names[1], (names[3], names[2]))] == told
+
     def test_one_stop_of_a_tree_lists_no_carrier_and_walks_no_tree_whatever_its_size(
         self, monkeypatch: pytest.MonkeyPatch, uid: str
     ) -> None:
