@@ -4278,7 +4278,8 @@ SWEEP = pytest.mark.timeout(300)
 """A few seeds take a few CPU seconds; under load several times that."""
 
 MUTATED_ON_THE_SIMULATION = {
-    "simanswer", "simcommit", "simheal", "simhosts", "simpatient", "simprogram", "simrest",
+    "simanswer", "simbackup", "simcommit", "simheal", "simhosts", "simpatient", "simprogram",
+    "simrest",
 }  # fmt: skip
 """The shipped plans the real runs above leave out that the simulation runs (not `leases`:
 it freezes a host's router, which the simulated hosts have none of)."""
