@@ -100,10 +100,10 @@ LEFT_OUT = ("core/VariableInserter", "core/VariableReplacer")  # (random: not re
 EQUIVALENT: dict[str, str] = {
     "_registrar/consumer.py:741:NumberReplacer:1": "an id never answered: 0 < epoch and "
     "-1 < epoch alike, every epoch asked being new_epoch()'s, at least 1",
-    "_supervision/policy.py:262:ReplaceComparisonOperator_NotEq_IsNot": "incarnations are "
+    "_supervision/policy.py:263:ReplaceComparisonOperator_NotEq_IsNot": "incarnations are "
     "ints from 0 up by 1: `is not` is `!=` in CPython up to 256 (its small ints), so for "
     "every run with fewer than 257 restarts of one child",
-    "_supervision/policy.py:376:ReplaceComparisonOperator_Eq_Is": "`Child.state` is only "
+    "_supervision/policy.py:377:ReplaceComparisonOperator_Eq_Is": "`Child.state` is only "
     "ever set to string literals (`ChildState`), which CPython interns (identifier-like): "
     "`is 'restarting'` is `== 'restarting'`",
     "_supervision/children.py:351:ReplaceFalseWithTrue": "a default of `Level.stop`, a "

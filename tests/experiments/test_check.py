@@ -1404,11 +1404,11 @@ def test_the_mutant_status_py_990_lte_is_caught_by_status_answered_at_simanswer_
 
 
 @pytest.mark.timeout(600)
-def test_the_mutant_policy_py_952_crashes_the_parallel_stop_of_simstop_at_seed_1(
+def test_the_mutant_policy_py_955_crashes_the_parallel_stop_of_simstop_at_seed_1(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """Issue 68 item 8: `stop(parallel=True)` with `or` for `and` in its cycle test
-    (`policy.py:952:ReplaceAndWithOr`) stops one child at a time, the last started first.
+    (`policy.py:955:ReplaceAndWithOr`) stops one child at a time, the last started first.
     Where a dependency runs against start order (`simstop`: front, started first, holds a
     query at back), it stops back under front's query; front's stop then ends by counting
     down back's dependents again, a `KeyError`, and the stop raises. No rule sees that order:
