@@ -1196,6 +1196,13 @@ def _holding_at(sink: str) -> Callable[[rr.ResourceRegistrar], None]:
     return setup
 
 
+def gives_up(sup: rr.Supervisor, name: str) -> None:
+    """SIGKILL manager `name` of a tree that allows no restart; return once its root gave up."""
+    sigkill(sup, name)
+    with pytest.raises(rr.SupervisorGaveUpError, match="more than 0 restart"):
+        sup.wait_restarted(name, timeout=30.0)
+
+
 class TestAWholeTreesStop:
     """A whole tree's stop tells each manager of the managers stopped before it once, just
     before its own stop (a process on its control pipe; issue 69, goal 3): not, at each
@@ -1256,9 +1263,7 @@ class TestAWholeTreesStop:
         sup = rr.Supervisor([process(n) for n in names], strategy="rest_for_one", max_restarts=0)
         sup.start()
         try:
-            sigkill(sup, names[0])
-            with pytest.raises(rr.SupervisorGaveUpError, match="more than 0 restart"):
-                sup.wait_restarted(names[0], timeout=30.0)
+            gives_up(sup, names[0])
         finally:
             sup.stop()
 
@@ -1297,9 +1302,7 @@ class TestAWholeTreesStop:
         sup = rr.Supervisor([process(n) for n in names], strategy="rest_for_one", max_restarts=0)
         sup.start()
         try:
-            sigkill(sup, names[0])
-            with pytest.raises(rr.SupervisorGaveUpError, match="more than 0 restart"):
-                sup.wait_restarted(names[0], timeout=30.0)
+            gives_up(sup, names[0])
         finally:
             for thread in stopping:
                 thread.join(30.0)
