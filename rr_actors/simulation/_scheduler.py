@@ -181,6 +181,7 @@ class Scheduler:
         max_steps: int,
         until: float,
         trace: bool,
+        cancelled: list[bool] | None = None,
     ) -> None:
         self.seed = seed
         self._choices = random.Random(seed)  # noqa: S311 - (a replayable run, not a secret)
@@ -214,7 +215,9 @@ class Scheduler:
         # the task switched to (`None` while the scheduler runs): what `current()` says
         # without asking greenlet, on the run's OS thread (`current_or_none` asks it)
         self.running: Task | None = None
-        self._cancelled = False  # (set from another OS thread: `cancel`)
+        # non-empty once the run is cancelled, from another OS thread (`cancel`, or its
+        # caller's own list: one `append`, which a second interrupt cannot cut in half)
+        self._cancelled = [] if cancelled is None else cancelled
 
     # -- tasks -----------------------------------------------------------------------
 
@@ -415,7 +418,7 @@ class Scheduler:
         """End the run within `GC_STEPS` steps with `SimulationError`, from any thread
         (its caller was interrupted: a Ctrl-C, a SIGTERM; its folders can go once it
         ended)."""
-        self._cancelled = True
+        self._cancelled.append(True)
 
     def _install_locals(self, task: Task) -> None:
         """Swap in `task`'s contents of the `runtime.local()` namespaces (and asyncio's running

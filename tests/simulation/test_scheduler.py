@@ -18,7 +18,7 @@ from rr_actors._core.actor import Actor
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.serial import SerialExecutor
 from rr_actors.simulation import _run
-from tests.support.simulated import Interrupted, interrupted_when
+from tests.support.simulated import Interrupted, InterruptedAgain, interrupted_when
 
 pytest.importorskip("greenlet")  # (the simulation extra)
 
@@ -451,6 +451,29 @@ def test_an_interrupted_caller_gets_its_interrupt_once_the_run_was_cancelled_and
     assert [True] == cleaned  # (its finally ran before the interrupt reached the caller)
     assert not runtime.simulated()  # (the real seams back)
     assert not [t for t in threading.enumerate() if t.name.startswith("rr-simulation-")]
+
+
+def test_a_second_interrupt_in_the_handling_of_the_first_still_cancels_the_run() -> None:
+    """A second interrupt pending as the first is raised (a test's timeout that came with
+    the Ctrl-C) is raised inside the first one's handling; the run is cancelled all the
+    same, and ends by itself (CI, stop 78: the cancel was skipped, the run went on after its
+    caller for good and every later simulation in the process failed)."""
+    began = threading.Event()
+
+    def main() -> None:
+        began.set()  # (a real event: the test's thread waits on it)
+        while True:  # (for ever, in virtual time)
+            runtime.sleep(0.001)  # allowed: virtual time
+
+    waiting = _run._Ended.wait.__code__  # (the caller waits on the run, not in its start)
+    with interrupted_when(began, twice=True, waiting_in=waiting), pytest.raises(InterruptedAgain):
+        simulation.run(main, seed=1, until=1e9, max_steps=10**12)
+    for thread in threading.enumerate():
+        if thread.name.startswith("rr-simulation-"):
+            thread.join(30)
+
+    assert not [t for t in threading.enumerate() if t.name.startswith("rr-simulation-")]
+    assert not runtime.simulated()
 
 
 def test_what_the_main_task_raises_is_raised_with_the_seed() -> None:

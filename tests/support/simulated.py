@@ -13,8 +13,11 @@ from __future__ import annotations
 
 import contextlib
 import signal
+import sys
 import threading
+import time
 from collections.abc import Callable, Iterable, Iterator
+from types import CodeType
 from typing import Any
 
 import pykka
@@ -22,7 +25,15 @@ import pykka
 import rr_actors as rr
 from rr_actors import simulation
 
-__all__ = ["PREEMPT", "SEEDS", "Interrupted", "interrupted_when", "seeds_where", "stopped_clean"]
+__all__ = [
+    "PREEMPT",
+    "SEEDS",
+    "Interrupted",
+    "InterruptedAgain",
+    "interrupted_when",
+    "seeds_where",
+    "stopped_clean",
+]
 
 SEEDS = range(100)
 """The seeds a moved test runs with."""
@@ -56,20 +67,47 @@ class Interrupted(KeyboardInterrupt):
     """What `interrupted_when`'s SIGINT handler raises (pytest's own Ctrl-C left alone)."""
 
 
+class InterruptedAgain(KeyboardInterrupt):
+    """What `interrupted_when(..., twice=True)`'s second signal (SIGUSR1) raises."""
+
+
 @contextlib.contextmanager
-def interrupted_when(began: threading.Event) -> Iterator[None]:
+def interrupted_when(
+    began: threading.Event, *, twice: bool = False, waiting_in: CodeType | None = None
+) -> Iterator[None]:
     """Interrupt the main thread (a SIGINT, raised as `Interrupted`) once `began` is set: a
     real event a simulated run sets, its caller then waiting on the run (as a Ctrl-C or a
-    test's timeout lands). The handler is put back after; no SIGINT once the block ended."""
+    test's timeout lands). The handler is put back after; no SIGINT once the block ended.
+
+    `twice`: a second signal (SIGUSR1) is sent just before, both pending as the main thread
+    wakes (a test's timeout that came with the Ctrl-C): signals are handled in their
+    numbers' order, one per check, so its `InterruptedAgain` is raised at the next point
+    the main thread checks for signals, inside the handling of the first.
+
+    `waiting_in`: and only once the main thread's innermost frame runs this code (its wait
+    on the run, not `Thread.start`'s), polled for up to 60 s."""
     over = threading.Event()
 
     def interrupt() -> None:
         if began.wait(60) and not over.is_set():
-            signal.pthread_kill(threading.main_thread().ident or 0, signal.SIGINT)
+            main = threading.main_thread().ident or 0
+            deadline = time.monotonic() + 60
+            while waiting_in is not None and time.monotonic() < deadline:
+                frame = sys._current_frames().get(main)
+                if frame is not None and frame.f_code is waiting_in:
+                    break
+                over.wait(0.001)  # (a poll of where the main thread is, bounded)
+            if twice:  # (both pending as the main thread wakes: SIGINT's handler runs first)
+                signal.pthread_kill(main, signal.SIGUSR1)
+            signal.pthread_kill(main, signal.SIGINT)
 
     def raise_interrupted(_signum: int, _frame: object) -> None:
         raise Interrupted
 
+    def raise_again(_signum: int, _frame: object) -> None:
+        raise InterruptedAgain
+
+    previous_again = signal.signal(signal.SIGUSR1, raise_again)
     previous = signal.signal(signal.SIGINT, raise_interrupted)
     sender = threading.Thread(target=interrupt, daemon=True)
     sender.start()
@@ -80,3 +118,4 @@ def interrupted_when(began: threading.Event) -> Iterator[None]:
         began.set()  # (the sender ends now, interrupting nothing)
         sender.join(60)
         signal.signal(signal.SIGINT, previous)
+        signal.signal(signal.SIGUSR1, previous_again)
