@@ -1,9 +1,10 @@
 """pykka's threading actor with hand-offs that wake the other thread once, not twice.
 
 Every use of pykka's extension points (`_create_actor_inbox`, `_create_future`,
-`_start_actor_loop`) and private names is in this file. `Actor` has a `queue.SimpleQueue`
-inbox, `OneShotFuture`s, an `on_late` for every envelope its loop leaves or gets after it
-ended, and a *turn*: one thread at a time handles its messages, in order:
+`_start_actor_loop`) and private names is in this file. `Actor` has an inbox (a `LateQueue`:
+a `queue.SimpleQueue` whose items go to a handler once it closed), `OneShotFuture`s, an
+`on_late` for every envelope its loop leaves or gets after it ended, and a *turn*: one
+thread at a time handles its messages, in order:
 
 ```
  deliver(ref, message) (a carrier's receiving thread: it holds no lock)
@@ -23,16 +24,16 @@ from __future__ import annotations
 import itertools
 import logging
 import math
+import queue
 import sys
 import types
 from collections.abc import Callable
 from types import TracebackType
-from typing import Any, TypeAlias, TypeVar
+from typing import Any, Self, TypeAlias, TypeVar
 
 import pykka
 
 from rr_actors._core import runtime
-from rr_actors._core.queues import Late, LateQueue
 from rr_actors._platform import forkserver
 
 __all__ = [
@@ -41,6 +42,7 @@ __all__ = [
     "ContainedError",
     "Inbox",
     "Late",
+    "LateQueue",
     "OneShotFuture",
     "awaiting",
     "deliver",
@@ -205,6 +207,40 @@ class OneShotFuture(pykka.Future[T]):
                 fn(self)
             except Exception:
                 _logger.exception("a done callback of a future raised")
+
+
+Late = Callable[[Any], None]
+"""Handles an item its consumer will not take any more (on any thread)."""
+
+
+class LateQueue(queue.SimpleQueue[Any]):
+    """A queue that, once closed, hands what is left and what is put later to `late`, each item
+    once. Its methods call `_put`, not `SimpleQueue.put`: a simulation subclasses it."""
+
+    _late: Late | None = None
+    _put = queue.SimpleQueue.put
+
+    def __new__(cls) -> Self:
+        made: Self = super().__new__(runtime.queue_class(cls))
+        return made
+
+    def put(self, item: Any, block: bool = True, timeout: float | None = None) -> None:
+        self._put(item, block, timeout)
+        if self._late is not None:
+            self._drain(self._late)
+
+    def close(self, late: Late) -> None:
+        """Its consumer ended: hand what is here, and what comes later, to `late`."""
+        self._late = late
+        self._drain(late)
+
+    def _drain(self, late: Late) -> None:
+        while True:
+            try:
+                item = self.get_nowait()
+            except runtime.Empty:
+                return
+            late(item)
 
 
 class Inbox(LateQueue):

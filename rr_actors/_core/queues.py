@@ -3,17 +3,16 @@
 A `Subscription` runs its callback, a `Forwarder` ships batches to another process, each on a thread
 of its own (a `SerialExecutor`) behind an `_Outbox`: a bound that drops instead of blocking and
 remembers the gap it made. Both linger a moment after each batch, so that a stream of events does
-not wake them once per event. `LateQueue`: a queue whose items go to a handler once it closed.
+not wake them once per event.
 """
 
 from __future__ import annotations
 
 import functools
 import logging
-import queue
 from collections.abc import Callable
 from types import TracebackType
-from typing import Any, Generic, Self, TypeVar, cast
+from typing import Generic, TypeVar, cast
 
 from rr_actors._core import runtime
 from rr_actors._core.serial import SerialExecutor, Task
@@ -42,40 +41,6 @@ LOG_EVERY = 10.0
 """Seconds between two log lines about the same trouble of one subscriber or forwarder: the
 first in full, the rest counted.
 """
-
-
-Late = Callable[[Any], None]
-"""Handles an item its consumer will not take any more (on any thread)."""
-
-
-class LateQueue(queue.SimpleQueue[Any]):
-    """A queue that, once closed, hands what is left and what is put later to `late`, each item
-    once. Its methods call `_put`, not `SimpleQueue.put`: a simulation subclasses it."""
-
-    _late: Late | None = None
-    _put = queue.SimpleQueue.put
-
-    def __new__(cls) -> Self:
-        made: Self = super().__new__(runtime.queue_class(cls))
-        return made
-
-    def put(self, item: Any, block: bool = True, timeout: float | None = None) -> None:
-        self._put(item, block, timeout)
-        if self._late is not None:
-            self._drain(self._late)
-
-    def close(self, late: Late) -> None:
-        """Its consumer ended: hand what is here, and what comes later, to `late`."""
-        self._late = late
-        self._drain(late)
-
-    def _drain(self, late: Late) -> None:
-        while True:
-            try:
-                item = self.get_nowait()
-            except runtime.Empty:
-                return
-            late(item)
 
 
 class _Outbox(Generic[E]):

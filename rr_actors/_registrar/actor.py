@@ -27,6 +27,7 @@ The actor never blocks: what it needs from another actor arrives later as a mess
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -290,19 +291,21 @@ class RegistrarActor(Actor):
         record.lifecycle = Lifecycle(record)
         if saver.durable:  # the messages waiting commit together (`Shared.end_turn`)
             self.drain, self.drain_seconds, self.ends_turns = DRAIN, DRAIN_SECONDS, True
-        self.unknown = LogThrottle(logger)  # messages of no known type (a buggy peer's)
         self.handlers: dict[type, tuple[str, Handler, TextFields]] = {
             kind: (step, bind(self.shared), TEXT_FIELDS[kind])
             for kind, (step, bind) in DISPATCH.items()
         }
+
+    @functools.cached_property  # (built at the first: a start needs none)
+    def unknown(self) -> LogThrottle:  # the lines of messages a buggy peer sends
+        return LogThrottle(logger)
 
     @property
     def name(self) -> str:
         return self.shared.name
 
     def on_start(self) -> None:
-        self.shared.ref = self.actor_ref
-        self.shared.peer.ref = self.actor_ref
+        self.shared.ref = self.shared.peer.ref = self.actor_ref
         self.shared.lifecycle.on_start()
         # every step from now on runs in a turn whose end commits it (`on_turn_end`)
         self.shared.in_turn = self.ends_turns
@@ -319,8 +322,7 @@ class RegistrarActor(Actor):
             self.unknown.warning("registrar %s ignored an unknown message %s", self.name, text)
             return
         step, handle, texts = entry
-        to = getattr(message, "reply", None)  # where its answer goes
-        if to is None:
+        if (to := getattr(message, "reply", None)) is None:  # where its answer goes
             to = NO_REPLY
         # e.g. `unload(["id"])`: refused, not fatal (a message with no text field: no check)
         if texts and (wrong := _misfit(message, texts)) is not None:
@@ -336,15 +338,13 @@ class RegistrarActor(Actor):
             else:
                 probes.around(step, message, lambda m: handle(m, to))
         except RrError as exc:  # e.g. a restored value that cannot be decoded any more
-            reply = getattr(message, "reply", None)
-            if reply is not None:
-                reply.set_error(exc)  # that request fails; the registrar keeps serving
+            if to is not NO_REPLY:
+                to.set_error(exc)  # that request fails; the registrar keeps serving
             else:
                 logger.exception("registrar %s: %s failed", self.name, type(message).__name__)
         except BaseException as exc:  # (not only Exception: see `ContainedError`)
-            reply = getattr(message, "reply", None)
-            if reply is not None:  # a bug: the actor dies, but its caller hears of it now
-                reply.set_error(
+            if to is not NO_REPLY:  # a bug: the actor dies, but its caller hears of it now
+                to.set_error(
                     RegistrarUnavailableError(
                         f"registrar {self.name!r} died in its {step} step: {exc!r}"
                     )

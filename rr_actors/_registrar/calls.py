@@ -31,10 +31,9 @@ import pykka
 
 from rr_actors._catalog import ClientRecord
 from rr_actors._core import hlc, runtime
-from rr_actors._core.actor import OneShotFuture, awaiting, deliver
+from rr_actors._core.actor import LateQueue, OneShotFuture, awaiting, deliver
 from rr_actors._core.bus import Publisher
 from rr_actors._core.directory import DIRECTORY
-from rr_actors._core.queues import LateQueue
 from rr_actors._core.replies import Steps
 from rr_actors._registrar.messages import Load, check_picklable, give_back
 from rr_actors._registrar.state import Probes

@@ -12,9 +12,9 @@ import uuid
 import pytest
 
 from rr_actors._core import runtime
+from rr_actors._core.actor import LateQueue
 from rr_actors._core.directory import DIRECTORY
 from rr_actors._core.hlc import CLOCK
-from rr_actors._core.queues import LateQueue
 
 
 def test_a_real_run_uses_the_stdlib_objects_and_functions_themselves() -> None:

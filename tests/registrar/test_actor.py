@@ -531,6 +531,7 @@ def _files_of_a_dedup_hit(tmp_path: Path) -> set[str]:
     [
         "rr_actors/_registrar/messages.py",  # (the text-field check is the dispatch's own)
         "rr_actors/_catalog/records.py",  # (a turn's changes are `None` or not empty)
+        "rr_actors/_core/queues.py",  # (the outcome's `LateQueue` is the actor module's)
     ],
 )
 def test_a_dedup_hit_to_a_durable_registrar_of_this_process_runs_no_code_of(
@@ -538,3 +539,27 @@ def test_a_dedup_hit_to_a_durable_registrar_of_this_process_runs_no_code_of(
 ) -> None:
     ran = _files_of_a_dedup_hit(tmp_path)
     assert [] == sorted(path for path in ran if Path(path).as_posix().endswith(module))
+
+
+def test_a_registrar_start_runs_no_code_of_the_log_throttle(tmp_path: Path) -> None:
+    # (what a restarted manager's start builds: the throttle of unknown messages comes at
+    # the first one, `RegistrarActor.unknown`)
+    seen: set[str] = set()
+
+    def profile(frame: FrameType, event: str, _arg: object) -> None:
+        if event == "call":
+            seen.add(Path(frame.f_code.co_filename).as_posix())
+
+    threading.setprofile(profile)
+    sys.setprofile(profile)
+    try:
+        config = rr.RegistrarConfig(
+            name=f"start-{uuid.uuid4().hex[:8]}", backup_path=tmp_path / "s.db"
+        )
+        registrar = rr.ResourceRegistrar.start(config)
+        registrar.register_server("res", load=lambda r: r, unload=lambda r, s: None)
+    finally:
+        sys.setprofile(None)
+        threading.setprofile(None)
+    registrar.stop(timeout=10)
+    assert [] == sorted(path for path in seen if path.endswith("rr_actors/_core/throttle.py"))
