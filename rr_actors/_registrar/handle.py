@@ -721,6 +721,23 @@ class Here:
             return _after(self.client(target_rr, server, limit), steps)
         return steps
 
+    def withdrawn(
+        self,
+        _timeout: float | None,
+        query_id: str,
+        target_rr: str,
+        server: str,
+        why: str,
+        started: float,
+    ) -> Steps[None]:
+        """Its caller gave up the call of `query_id` between its tries (`call_with_retry`, the
+        id abandoned): its `CallWithdrawn` (of `why`, begun at `started`, traced as `call`)."""
+        attempt = self.calls.new_attempt(_trace_context())
+        attempt.started = started
+        attempt.withdraw()
+        self.calls.withdrawn(query_id, attempt, target_rr, server, why)
+        yield from ()
+
     def unload(self, timeout: float | None, query_id: str) -> Steps[None]:
         release = Release(query_id, FutureReply(), _trace_context())
         return self.asking(release, timeout, f"unload({query_id!r})")

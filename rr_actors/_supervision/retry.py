@@ -19,11 +19,11 @@ Written once, as steps (`replies.Steps`): `call_with_retry` runs them blocking,
 
 from __future__ import annotations
 
+import contextlib
 import functools
 from collections.abc import Callable
 from typing import Any, Protocol
 
-from rr_actors import events
 from rr_actors._core import runtime
 from rr_actors._core.replies import Steps
 from rr_actors._registrar import Registrar
@@ -36,6 +36,7 @@ from rr_actors.errors import (
     ConfigError,
     RegistrarStoppedError,
     RegistrarUnavailableError,
+    RrError,
     UnknownServerError,
 )
 
@@ -86,11 +87,15 @@ def call_with_retry(
         call_steps, consumer, target_rr, server, request, on_status=on_status, query_id=qid
     )
 
-    def give_up(while_: str = "") -> CallTimeoutError:  # (the id given back, withdrawn)
+    def give_up(why: str) -> None:  # the id given back, the call withdrawn where it lives
         abandon(target_rr, qid, consumer.name)
-        if isinstance(actor := consumer._actor, Here) and actor.published.active:
-            gone = events.CallWithdrawn(consumer.name, qid, target_rr, server, started=started)
-            actor.published.publish(gone)  # (a consumer of this process's)
+        told = consumer._actor.steps(Here.withdrawn, None, qid, target_rr, server, why, started)
+        with contextlib.suppress(StopIteration, RrError):
+            next(told)  # (a notice: sent at its first step, not waited for)
+        told.close()
+
+    def timed_out(while_: str = "") -> CallTimeoutError:
+        give_up("timeout")
         return CallTimeoutError(
             f"call to '{target_rr}/{server}' timed out after {limit:g} s{while_}"
         )
@@ -100,7 +105,7 @@ def call_with_retry(
         before = found.restarts if found is not None else 0
         left = deadline - runtime.monotonic()
         if left <= 0:
-            raise give_up()
+            raise timed_out()
         try:
             return (yield from call(timeout=left))
         except RegistrarUnavailableError:
@@ -118,10 +123,9 @@ def call_with_retry(
         try:
             yield from tree._restart_wait(target_rr, wait, target)
         except CallTimeoutError:
-            raise give_up(f" while {target_rr!r} was restarting") from None
-        except BaseException as exc:
-            if not isinstance(exc, Exception):  # interrupted (a cancelled task, Ctrl-C):
-                abandon(target_rr, qid, consumer.name)  # withdrawn as a timeout withdraws it
+            raise timed_out(f" while {target_rr!r} was restarting") from None
+        except BaseException:  # interrupted (a cancelled task, Ctrl-C, an error): withdrawn
+            give_up("interrupted")  # as a timeout withdraws it
             raise
 
 
