@@ -514,16 +514,12 @@ class Calls:
         give_back(reply.serving_rr, reply.query_id, self.name)  # (then the record: a crash
         self.withdrawn(reply.query_id, attempt, reply.serving_rr, reply.server, why)  # keeps it)
 
-    def withdrawn(
-        self, query_id: str, attempt: CallAttempt, provider: str, server: str, why: str
-    ) -> None:
-        """Tell the actor its caller withdrew `attempt` of `query_id` (its id given back): it
-        forgets the call and publishes its `CallWithdrawn` (`consumer.publish_failed`)."""
-        withdrawn = CallFailed(
-            query_id, attempt, withdrawn=True, provider=provider, server=server, why=why
-        )
+    def withdrawn(self, qid: str, attempt: CallAttempt, to: str, server: str, why: str) -> None:
+        """Tell the actor its caller withdrew `attempt` of `qid` (its id given back): it forgets
+        the call and publishes its `CallWithdrawn` (`consumer.publish_failed`)."""
+        failed = CallFailed(qid, attempt, withdrawn=True, provider=to, server=server, why=why)
         with contextlib.suppress(pykka.ActorDeadError):  # (stopped: nothing to tell)
-            self.hand_over(withdrawn, wake=True)
+            self.hand_over(failed, wake=True)
 
     def hand_over(self, outcome: Outcome, *, wake: bool) -> None:
         """Give the actor a call's `outcome` (any thread): a durable one by mailbox, else into

@@ -722,20 +722,14 @@ class Here:
         return steps
 
     def withdrawn(
-        self,
-        _timeout: float | None,
-        query_id: str,
-        target_rr: str,
-        server: str,
-        why: str,
-        started: float,
+        self, _: float | None, qid: str, to: str, server: str, why: str, began: float
     ) -> Steps[None]:
-        """Its caller gave up the call of `query_id` between its tries (`call_with_retry`, the
-        id abandoned): its `CallWithdrawn` (of `why`, begun at `started`, traced as `call`)."""
+        """Its caller gave up the call of `qid` between its tries (`call_with_retry`, the id
+        abandoned): its `CallWithdrawn` (of `why`, begun at `began`, traced as `call`)."""
         attempt = self.calls.new_attempt(_trace_context())
-        attempt.started = started
+        attempt.started = began
         attempt.withdraw()
-        self.calls.withdrawn(query_id, attempt, target_rr, server, why)
+        self.calls.withdrawn(qid, attempt, to, server, why)
         yield from ()
 
     def unload(self, timeout: float | None, query_id: str) -> Steps[None]:
