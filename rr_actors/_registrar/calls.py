@@ -510,17 +510,15 @@ class Calls:
         probes = self.probes()
         if probes is not None:
             probes.fire("withdraw", reply.query())
-        give_back(reply.serving_rr, reply.query_id, self.name)
-        with contextlib.suppress(pykka.ActorDeadError):  # after: a crash in between keeps
-            withdrawn = CallFailed(
-                reply.query_id,
-                attempt,
-                withdrawn=True,
-                provider=reply.serving_rr,
-                server=reply.server,
-                why=why,
-            )
-            self.hand_over(withdrawn, wake=True)  # the record
+        give_back(reply.serving_rr, reply.query_id, self.name)  # (then the record: a crash
+        self.withdrawn(reply.query_id, attempt, reply.serving_rr, reply.server, why)  # keeps it)
+
+    def withdrawn(self, qid: str, attempt: CallAttempt, to: str, server: str, why: str) -> None:
+        """Tell the actor its caller withdrew `attempt` of `qid` (its id given back): it forgets
+        the call and publishes its `CallWithdrawn` (`consumer.publish_failed`)."""
+        failed = CallFailed(qid, attempt, withdrawn=True, provider=to, server=server, why=why)
+        with contextlib.suppress(pykka.ActorDeadError):  # (stopped: nothing to tell)
+            self.hand_over(failed, wake=True)
 
     def hand_over(self, outcome: Outcome, *, wake: bool) -> None:
         """Give the actor a call's `outcome` (any thread): a durable one by mailbox, else into

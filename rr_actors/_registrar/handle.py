@@ -721,6 +721,17 @@ class Here:
             return _after(self.client(target_rr, server, limit), steps)
         return steps
 
+    def withdrawn(
+        self, _: float | None, qid: str, to: str, server: str, why: str, began: float
+    ) -> Steps[None]:
+        """Its caller gave up the call of `qid` between its tries (`call_with_retry`, the id
+        abandoned): its `CallWithdrawn` (of `why`, begun at `began`, traced as `call`)."""
+        attempt = self.calls.new_attempt(_trace_context())
+        attempt.started = began
+        attempt.withdraw()
+        self.calls.withdrawn(qid, attempt, to, server, why)
+        yield from ()
+
     def unload(self, timeout: float | None, query_id: str) -> Steps[None]:
         release = Release(query_id, FutureReply(), _trace_context())
         return self.asking(release, timeout, f"unload({query_id!r})")

@@ -98,17 +98,15 @@ class AsyncSupervision:
 
     async def aregistrar(self, config: RegistrarConfig | str) -> ResourceRegistrar:
         """As `registrar`, awaitable."""
-        registrar: ResourceRegistrar = await run_steps_async(
+        return await run_steps_async(
             on_own_thread(lambda: self.registrar(config), f"rr-registrar-{self.name}")
         )
-        return registrar
 
     async def await_restarted(
         self, name: str, *, timeout: float, restarts: int | None = None
     ) -> ChildInfo:
         """As `wait_restarted`, awaitable; no thread waits for it."""
-        info: ChildInfo = await run_steps_async(self._restart_wait(name, timeout, restarts))
-        return info
+        return await run_steps_async(self._restart_wait(name, timeout, restarts))
 
     async def acall_with_retry(
         self,
@@ -124,8 +122,7 @@ class AsyncSupervision:
         """As `call_with_retry`, awaitable; no thread is held while it waits. Cancelling
         the task withdraws the call as a timeout would (the id given back or abandoned)."""
         steps = self._retry(consumer, target_rr, server, request, on_status, timeout, query_id)
-        query: Query = await run_steps_async(steps)
-        return query
+        return await run_steps_async(steps)
 
     async def __aenter__(self) -> Any:
         return await self.astart()

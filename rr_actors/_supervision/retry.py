@@ -7,10 +7,11 @@
    the restart wait (a future the tree settles) ── back ──► the same call again, same id
      for the next restart; for the one that ran (at once) if the tree says it was not
      killed since the try began, once per restart count (restart_after_failure)
-        │ timed out, or interrupted (a cancelled task)
+        │ timed out, or interrupted (a cancelled task, an error)
         ▼
    abandon (`Tree.abandon`) ── running? ── Abandon(id) to the provider now
-                               down?    ── kept in the tree; sent by its next start
+        │                      down?    ── kept in the tree; sent by its next start
+   withdrawn at the consumer, wherever it lives (`Here.withdrawn`): its `CallWithdrawn`
 ```
 
 Written once, as steps (`replies.Steps`): `call_with_retry` runs them blocking,
@@ -19,15 +20,15 @@ Written once, as steps (`replies.Steps`): `call_with_retry` runs them blocking,
 
 from __future__ import annotations
 
+import contextlib
 import functools
 from collections.abc import Callable
 from typing import Any, Protocol
 
-from rr_actors import events
 from rr_actors._core import runtime
 from rr_actors._core.replies import Steps
 from rr_actors._registrar import Registrar
-from rr_actors._registrar.handle import Here, call_steps
+from rr_actors._registrar.handle import Here, _check_names, call_steps
 from rr_actors._supervision.children import ChildInfo
 from rr_actors._types import Query, StatusCallback
 from rr_actors.config import check_seconds
@@ -36,6 +37,7 @@ from rr_actors.errors import (
     ConfigError,
     RegistrarStoppedError,
     RegistrarUnavailableError,
+    RrError,
     UnknownServerError,
 )
 
@@ -69,11 +71,10 @@ def call_with_retry(
     consumer: Registrar,
     target_rr: str,
     server: str,
-    request: Any = MISSING,
-    *,
-    on_status: StatusCallback | None = None,
-    timeout: float | None = None,
-    query_id: str | None = None,
+    request: Any,
+    on_status: StatusCallback | None,
+    timeout: float | None,
+    query_id: str | None,
 ) -> Steps[Query]:
     """The steps of `Supervisor.call_with_retry` (which documents it); `abandon(provider,
     query_id, origin)` gives the id back, now or when it is back."""
@@ -86,11 +87,12 @@ def call_with_retry(
         call_steps, consumer, target_rr, server, request, on_status=on_status, query_id=qid
     )
 
-    def give_up(while_: str = "") -> CallTimeoutError:  # (the id given back, withdrawn)
-        abandon(target_rr, qid, consumer.name)
-        if isinstance(actor := consumer._actor, Here) and actor.published.active:
-            gone = events.CallWithdrawn(consumer.name, qid, target_rr, server, started=started)
-            actor.published.publish(gone)  # (a consumer of this process's)
+    def give_up(why: str = "timeout", while_: str = "") -> CallTimeoutError:  # (the id given
+        abandon(target_rr, qid, consumer.name)  # back, the call withdrawn where it lives)
+        told = consumer._actor.steps(Here.withdrawn, None, qid, target_rr, server, why, started)
+        with contextlib.suppress(StopIteration, RrError):
+            next(told)  # (a notice: sent at its first step, not waited for)
+        told.close()
         return CallTimeoutError(
             f"call to '{target_rr}/{server}' timed out after {limit:g} s{while_}"
         )
@@ -118,10 +120,9 @@ def call_with_retry(
         try:
             yield from tree._restart_wait(target_rr, wait, target)
         except CallTimeoutError:
-            raise give_up(f" while {target_rr!r} was restarting") from None
-        except BaseException as exc:
-            if not isinstance(exc, Exception):  # interrupted (a cancelled task, Ctrl-C):
-                abandon(target_rr, qid, consumer.name)  # withdrawn as a timeout withdraws it
+            raise give_up(while_=f" while {target_rr!r} was restarting") from None
+        except BaseException:  # interrupted (a cancelled task, Ctrl-C, an error): withdrawn
+            give_up("interrupted")  # as a timeout withdraws it
             raise
 
 
@@ -163,9 +164,7 @@ def _check(
         raise ConfigError(
             "call_with_retry(consumer, target_rr, server, request): request is missing"
         )
-    for field, value in (("target_rr", target_rr), ("server", server)):
-        if not isinstance(value, str):
-            raise ConfigError(f"{field} must be a name (a str), got {value!r}")
+    _check_names(target_rr=target_rr, server=server)
     check_seconds("timeout", timeout, allow_none=True)
     if query_id is not None and not (isinstance(query_id, str) and query_id):
         raise ConfigError(

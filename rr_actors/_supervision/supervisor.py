@@ -567,8 +567,10 @@ class Supervisor(AsyncSupervision):
 
         Every attempt uses the same caller-generated query id, so the provider's restored
         catalog recognises a retry of a call it answered before it died (never loaded
-        twice, no second consumer id). If the wait runs out or is interrupted, the id is
-        abandoned at the provider (now, or when it comes back): nothing leaks.
+        twice, no second consumer id). If the wait runs out or is interrupted (cancelled, or
+        ended by an error), the id is abandoned at the provider (now, or when it comes back):
+        nothing leaks; `consumer` publishes the call's `CallWithdrawn` (reason `"timeout"` or
+        `"interrupted"`, with its trace context) wherever it lives.
 
         Args:
             consumer: the calling registrar.
@@ -613,15 +615,7 @@ class Supervisor(AsyncSupervision):
     ) -> Steps[Query]:
         abandon = functools.partial(self._tree.abandon, self._node)
         return retry.call_with_retry(
-            self,
-            abandon,
-            consumer,
-            target_rr,
-            server,
-            request,
-            on_status=on_status,
-            timeout=timeout,
-            query_id=query_id,
+            self, abandon, consumer, target_rr, server, request, on_status, timeout, query_id
         )
 
     # -- watching the tree (watching.py) ----------------------------------------------

@@ -1373,7 +1373,7 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "runtime.monotonic() + limit",
             "runtime.monotonic() / limit",
             "timed-out",
-            id="the mutant retry.py:83 is caught by timed-out at simcancel seed 1",
+            id="the mutant retry.py:84 is caught by timed-out at simcancel seed 1",
         ),
     ],
 )
@@ -2403,7 +2403,7 @@ def timed_out(took: float, *, reason: str = "timeout", retried: bool = True) -> 
 
 
 def test_a_call_withdrawn_at_a_timeout_before_its_call_timeout_ran_out_is_timed_out() -> None:
-    """Issue 68 item 8: the mutant `retry.py:83` (`monotonic() / limit` for `+`) made every
+    """Issue 68 item 8: the mutant `retry.py:84` (`monotonic() / limit` for `+`) made every
     `call_with_retry` time out at once, before it sent anything: its `CallWithdrawn`."""
     verdict = check.check(numbered(timed_out(0.3)), timeouts={"cm": 1.0})
 

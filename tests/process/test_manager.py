@@ -765,6 +765,39 @@ def test_call_with_retry_works_for_a_consumer_registrar_in_another_manager_proce
     assert ["q-1"] == [q.id for q in consumer.client_queries(timeout=10.0)]
 
 
+def test_call_with_retry_of_a_consumer_in_another_manager_process_publishes_its_withdrawal(
+    supervisors: Callable[..., rr.Supervisor], uid: str
+) -> None:
+    # Timed out while its provider restarts, the call is withdrawn where its consumer lives:
+    # its `CallWithdrawn` reaches the tree's events from there (the check's `timed-out` rule
+    # reads it). It was published only for a consumer of the caller's process.
+    p, c = f"p-{uid}", f"c-{uid}"
+    timer = ManualTimer()
+    sup = supervisors(
+        [process(p), process(c)], backoff=rr.Backoff(initial=1.0), timer=timer
+    ).start()
+    withdrawn: list[rr.events.CallWithdrawn] = []
+    seen = threading.Event()
+
+    def on_event(event: rr.events.Event) -> None:
+        if isinstance(event, rr.events.CallWithdrawn):
+            withdrawn.append(event)
+            seen.set()
+
+    with sup.subscribe(on_event):
+        sigkill(sup, p)
+        assert timer.wait_scheduled(1)  # (its restart is held)
+        consumer = RemoteRegistrar(c, sup.system.address)
+        with pytest.raises(rr.CallTimeoutError, match="restarting"):
+            sup.call_with_retry(consumer, p, "echo", "x", timeout=1.0, query_id="q-1")
+
+        assert seen.wait(15.0)
+    assert [(c, "q-1", p, "timeout")] == [
+        (e.registrar, e.query_id, e.serving_rr, e.reason) for e in withdrawn
+    ]
+    assert withdrawn[0].pid == pid_of(sup, c)
+
+
 KINDS = ("pipe", "socket", "pidfd")
 """What a manager process's handle holds: its sentinel pipes, control socket, exit watch."""
 

@@ -191,3 +191,42 @@ def test_an_awaited_retry_cancelled_while_its_provider_restarts_abandons_its_id(
         asyncio.run(main(app))
 
         assert {name: [("q-1", app.name)]} == sup._tree.abandon_later
+
+
+def test_an_awaited_retry_cancelled_while_its_provider_restarts_publishes_its_withdrawal(
+    uid: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Its `CallWithdrawn` ("interrupted"), as a call cancelled in flight has: it had none
+    (the outcome and kept rules read it)."""
+    name = f"p-{uid}"
+    timer = ManualTimer()
+    sup = rr.Supervisor([rr.ManagerSpec(name)], backoff=rr.Backoff(initial=1.0), timer=timer)
+    withdrawn: list[rr.events.CallWithdrawn] = []
+    seen = threading.Event()
+
+    def on_event(event: rr.events.Event) -> None:
+        if isinstance(event, rr.events.CallWithdrawn):
+            withdrawn.append(event)
+            seen.set()
+
+    async def main(app: rr.ResourceRegistrar) -> None:
+        waiting = _counting_restart_waits(sup, monkeypatch, 1)
+        task = asyncio.ensure_future(
+            sup.acall_with_retry(app, name, "res", "camera", timeout=30, query_id="q-1")
+        )
+        await asyncio.wait_for(waiting.wait(), 10)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+
+    with sup:
+        app = sup.registrar(f"app-{uid}")
+        with app.subscribe(on_event):
+            crash(sup, name)
+            assert timer.wait_scheduled(1)
+            asyncio.run(main(app))
+
+            assert seen.wait(10.0)
+    assert [("q-1", name, "interrupted")] == [
+        (e.query_id, e.serving_rr, e.reason) for e in withdrawn
+    ]

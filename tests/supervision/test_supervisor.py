@@ -716,6 +716,92 @@ def test_call_with_retry_that_times_out_while_restarting_raises_call_timeout(
     assert withdrawn[0].at - withdrawn[0].started >= 0.2 - 0.05  # (wall clock stamps)
 
 
+def withdrawals(registrar: rr.ResourceRegistrar) -> tuple[list[Any], threading.Event]:
+    """The `CallWithdrawn` events `registrar` publishes from now on, and an event set at
+    the first (closed with the registrar)."""
+    withdrawn: list[rr.events.CallWithdrawn] = []
+    seen = threading.Event()
+
+    def on_event(event: rr.events.Event) -> None:
+        if isinstance(event, rr.events.CallWithdrawn):
+            withdrawn.append(event)
+            seen.set()
+
+    registrar.subscribe(on_event)
+    return withdrawn, seen
+
+
+def test_call_with_retry_whose_wait_for_the_restart_fails_withdraws_its_call(
+    supervisors: Callable[..., Supervisor],
+    uid: str,
+    call_with_retry: CallWithRetry,
+) -> None:
+    """The wait ended by an error other than its timeout (here: the restarting provider
+    stopped for good) withdraws the call as a cancel does: its id abandoned, its
+    `CallWithdrawn` ("interrupted"). It published none: the outcome rule found the
+    call's last try's `CallFailed` only."""
+    name = f"p-{uid}"
+    timer = ManualTimer()
+    sup = supervisors([ManagerSpec(name)], backoff=Backoff(initial=1.0), timer=timer).start()
+    app = rr.ResourceRegistrar.start(f"app-{uid}")  # (not the tree's: it outlives its stop)
+    try:
+        withdrawn, seen = withdrawals(app)
+        crash(sup, name)
+        assert timer.wait_scheduled(1)  # (the restart is held: the provider stays restarting)
+        outcome: list[BaseException] = []
+
+        def call() -> None:
+            try:
+                call_with_retry(sup, app, name, "res", "camera", timeout=30.0, query_id="q-1")
+            except BaseException as exc:
+                outcome.append(exc)
+
+        thread = threading.Thread(target=call)
+        thread.start()
+        assert wait_for(lambda: bool(sup._tree.watchers), timeout=30.0)  # the retry waits
+        sup.stop()
+        thread.join(60.0)
+
+        assert [rr.RegistrarUnavailableError] == [type(exc) for exc in outcome], outcome
+        assert seen.wait(10.0)
+        assert [("q-1", name, "interrupted")] == [
+            (e.query_id, e.serving_rr, e.reason) for e in withdrawn
+        ]
+    finally:
+        app.stop()
+
+
+def test_call_with_retry_withdrawn_while_restarting_carries_its_callers_trace(
+    supervisors: Callable[..., Supervisor],
+    uid: str,
+    call_with_retry: CallWithRetry,
+) -> None:
+    """The retry's `CallWithdrawn` names the call's CLIENT span under its caller's span, as
+    a call's other end events do (`trace`, `caller_span`): it had neither."""
+    from opentelemetry import trace as api  # noqa: PLC0415 - (a span makes calls traced)
+
+    name = f"p-{uid}"
+    timer = ManualTimer()
+    sup = supervisors([ManagerSpec(name)], backoff=Backoff(initial=1.0), timer=timer).start()
+    app = sup.registrar(f"app-{uid}")
+    withdrawn, seen = withdrawals(app)
+    crash(sup, name)
+    assert timer.wait_scheduled(1)
+    trace_id, span_id = 0x5EED_0000_0000_0000_0000_0000_0000_0068, 0xCA11_E500_0000_0001
+    caller = api.SpanContext(trace_id, span_id, is_remote=False, trace_flags=api.TraceFlags(1))
+
+    with api.use_span(api.NonRecordingSpan(caller)), pytest.raises(rr.CallTimeoutError):
+        call_with_retry(sup, app, name, "res", "camera", timeout=0.2, query_id="q-1")
+
+    assert seen.wait(10.0)
+    [gone] = withdrawn
+    assert (gone.trace[:36], gone.trace[52:], gone.caller_span) == (
+        f"00-{trace_id:032x}-",
+        "-01",
+        f"{span_id:016x}",
+    ), gone
+
+
 def test_an_id_abandoned_while_its_provider_runs_is_released_at_once(
     supervisors: Callable[..., Supervisor], uid: str
 ) -> None:
