@@ -153,9 +153,9 @@ def run(
         thread.start()  # (its run may be interrupted before `start` returns)
         ended.wait(timeout)
     except BaseException:  # a Ctrl-C (or a SIGTERM raised as one): the run ends first
-        # first, and one call, not a method: a second interrupt pending (a test's timeout
-        # beside a Ctrl-C) raised at a method's entry skipped the cancel, and the run went on
-        # after its caller for good (CI, stop 78)
+        # the cancel is this one call: a second interrupt pending (a test's timeout with a
+        # Ctrl-C) is raised at the first call's end, and a cancel after it was skipped: the
+        # run went on after its caller for good (CI, stop 78)
         interrupted.append(True)
         _wait_ended(thread, ended, CANCEL_TIMEOUT)
         raise
