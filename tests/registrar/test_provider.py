@@ -3342,17 +3342,22 @@ def test_a_coroutine_load_handed_to_a_loop_stopped_before_it_starts_fails_as_it_
     running, and a loop stopped right after that check (then closed, as a process ends)
     never ran it: its caller waited for good, its worker's place stayed taken. Forced: the
     loop stops as it is handed the start. As the loop drops it the load fails, naming the
-    registrar and the server, and its place is free for the next load."""
+    registrar and the server, and its place is free for the next load. (Review of a flake:
+    gated on `block` having begun, the test's own hand-off of it counted as the start when
+    the loop ran `block` before that hand-off returned, and the loop stopped before the load
+    came: it failed at once, "stopped". Armed once that hand-off returned.)"""
     from rr_actors._core.workers import Workers  # noqa: PLC0415
     from rr_actors._registrar import provider as module  # noqa: PLC0415
     from rr_actors._registrar.messages import LoadPlace, RunLoad  # noqa: PLC0415
 
-    inside, handed = threading.Event(), threading.Event()
+    inside, armed, handed = threading.Event(), threading.Event(), threading.Event()
+    running: list[bool] = []  # (as each hand-off after arming: whether the loop ran)
 
     class Handing(asyncio.SelectorEventLoop):
         def call_soon_threadsafe(self, *args: Any, **kwargs: Any) -> Any:
             handle = super().call_soon_threadsafe(*args, **kwargs)
-            if inside.is_set():  # (the server actor's start, as the loop blocks below)
+            if armed.is_set():  # (the server actor's start, as the loop blocks below)
+                running.append(self.is_running())
                 handed.set()
             return handle
 
@@ -3366,6 +3371,7 @@ def test_a_coroutine_load_handed_to_a_loop_stopped_before_it_starts_fails_as_it_
     ran.start()
     dead.call_soon_threadsafe(block)
     assert inside.wait(10)
+    armed.set()  # (the hand-off of `block` returned: the next is the server actor's)
     loops = [dead]
     monkeypatch.setattr(module, "process_loop", lambda: loops[0])
     server = module.ServerActor.start(
@@ -3376,6 +3382,7 @@ def test_a_coroutine_load_handed_to_a_loop_stopped_before_it_starts_fails_as_it_
         server.tell(RunLoad("first", "first", (), first, LoadPlace(), origin="c"))
         ran.join(timeout=10)
         assert not ran.is_alive()
+        assert [True] == running  # (one start, handed to a running loop that dropped it)
         dead.close()  # (as a process ends: what it was handed is dropped)
         with pytest.raises(rr.ResourceLoadError, match=r"loop is closed.*\(at rr/s\)"):
             first.future.get(timeout=10)
