@@ -153,15 +153,19 @@ def run(
         thread.start()  # (its run may be interrupted before `start` returns)
         ended.wait(timeout)
     except BaseException:  # a Ctrl-C (or a SIGTERM raised as one): the run ends first
-        # the cancel is this one call: a second interrupt pending (a test's timeout with a
-        # Ctrl-C) is raised at the first call's end, and a cancel after it was skipped: the
-        # run went on after its caller for good (CI, stop 78)
-        interrupted.append(True)
-        _wait_ended(thread, ended, CANCEL_TIMEOUT)
+        # the cancel is the first call, which CPython cannot cut (it checks for signals at a
+        # call's end), the wait its `finally`: a second interrupt pending (a test's timeout
+        # with a Ctrl-C) is raised at that call's end, and a cancel or wait after it was
+        # skipped: the run went on after its caller for good (CI, stop 78)
+        try:
+            interrupted.append(True)
+        finally:
+            _wait_ended(thread, ended, CANCEL_TIMEOUT)
         raise
     if ended.done:
         thread.join()  # (it only returns now)
     else:
+        interrupted.append(True)  # (a run only long, not blocked for real, ends)
         frame = sys._current_frames().get(thread.ident or 0)
         stack = "".join(traceback.format_stack(frame)) if frame is not None else ""
         raise SimulationError(
@@ -180,7 +184,8 @@ def run(
 
 CANCEL_TIMEOUT = 30.0
 """Real seconds an interrupted caller of `run` waits for the run to end (it is cancelled:
-`Scheduler.cancel`), its greenlets' `finally` blocks and the runtime's seams put back."""
+the scheduler's `cancelled`), its greenlets' `finally` blocks and the runtime's seams put
+back."""
 
 
 def _wait_ended(thread: threading.Thread, ended: _Ended, timeout: float) -> None:

@@ -169,6 +169,7 @@ class Scheduler:
         max_steps: steps (switches to a task) a run may take.
         until: virtual seconds a run may last.
         trace: keep each step (`trace`), not only their hash.
+        cancelled: the run ends once this list is not empty (appended to from any thread).
     """
 
     def __init__(
@@ -215,8 +216,8 @@ class Scheduler:
         # the task switched to (`None` while the scheduler runs): what `current()` says
         # without asking greenlet, on the run's OS thread (`current_or_none` asks it)
         self.running: Task | None = None
-        # non-empty once the run is cancelled, from another OS thread (`cancel`, or its
-        # caller's own list: one `append`, which a second interrupt cannot cut in half)
+        # not empty: the run ends within `GC_STEPS` steps with `SimulationError` (its caller
+        # was interrupted: a Ctrl-C, a SIGTERM; its folders can go once the run ended)
         self._cancelled = [] if cancelled is None else cancelled
 
     # -- tasks -----------------------------------------------------------------------
@@ -413,12 +414,6 @@ class Scheduler:
                 _collect(self.steps)
                 if self._cancelled:  # (here: a step's check would cost every step)
                     raise SimulationError(self.report("the run was cancelled"))
-
-    def cancel(self) -> None:
-        """End the run within `GC_STEPS` steps with `SimulationError`, from any thread
-        (its caller was interrupted: a Ctrl-C, a SIGTERM; its folders can go once it
-        ended)."""
-        self._cancelled.append(True)
 
     def _install_locals(self, task: Task) -> None:
         """Swap in `task`'s contents of the `runtime.local()` namespaces (and asyncio's running

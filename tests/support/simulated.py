@@ -96,7 +96,8 @@ def interrupted_when(
                 frame = sys._current_frames().get(main)
                 if frame is not None and frame.f_code is waiting_in:
                     break
-                over.wait(0.001)  # (a poll of where the main thread is, bounded)
+                if over.wait(0.001):  # (a poll of where the main thread is, bounded)
+                    return
             if twice:  # (both pending as the main thread wakes: SIGINT's handler runs first)
                 signal.pthread_kill(main, signal.SIGUSR1)
             signal.pthread_kill(main, signal.SIGINT)
@@ -116,6 +117,8 @@ def interrupted_when(
     finally:
         over.set()
         began.set()  # (the sender ends now, interrupting nothing)
-        sender.join(60)
-        signal.signal(signal.SIGINT, previous)
-        signal.signal(signal.SIGUSR1, previous_again)
+        try:
+            sender.join(60)
+        finally:
+            signal.signal(signal.SIGINT, previous)
+            signal.signal(signal.SIGUSR1, previous_again)
