@@ -153,13 +153,14 @@ def run(
         thread.start()  # (its run may be interrupted before `start` returns)
         ended.wait(timeout)
     except BaseException:  # a Ctrl-C (or a SIGTERM raised as one): the run ends first
-        # the cancel is the first call, which CPython cannot cut (it checks for signals at a
-        # call's end), the wait its `finally`: a second interrupt pending (a test's timeout
-        # with a Ctrl-C) is raised at that call's end, and a cancel or wait after it was
-        # skipped: the run went on after its caller for good (CI, stop 78)
+        # a second interrupt pending with the first (a test's timeout with a Ctrl-C) is
+        # raised at the next Python call's entry: first the cancel, a list's append (it
+        # checks for none), then the wait, made again once (CI, stop 78: it skipped the
+        # cancel, and the run went on after its caller for good)
+        interrupted.append(True)
         try:
-            interrupted.append(True)
-        finally:
+            _wait_ended(thread, ended, CANCEL_TIMEOUT)
+        except BaseException:  # noqa: BLE001 - the second: the first is raised after
             _wait_ended(thread, ended, CANCEL_TIMEOUT)
         raise
     if ended.done:

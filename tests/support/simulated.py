@@ -74,7 +74,7 @@ class InterruptedAgain(KeyboardInterrupt):
 @contextlib.contextmanager
 def interrupted_when(
     began: threading.Event, *, twice: bool = False, waiting_in: CodeType | None = None
-) -> Iterator[None]:
+) -> Iterator[list[tuple[str, BaseException | None]]]:
     """Interrupt the main thread (a SIGINT, raised as `Interrupted`) once `began` is set: a
     real event a simulated run sets, its caller then waiting on the run (as a Ctrl-C or a
     test's timeout lands). The handler is put back after; no SIGINT once the block ended.
@@ -85,8 +85,11 @@ def interrupted_when(
     the main thread checks for signals, inside the handling of the first.
 
     `waiting_in`: and only once the main thread's innermost frame runs this code (its wait
-    on the run, not `Thread.start`'s), polled for up to 60 s."""
+    on the run, not `Thread.start`'s), polled for up to 60 s.
+
+    Yields the signals handled, in order, each with the exception being handled then."""
     over = threading.Event()
+    handled: list[tuple[str, BaseException | None]] = []
 
     def interrupt() -> None:
         if began.wait(60) and not over.is_set():
@@ -103,9 +106,11 @@ def interrupted_when(
             signal.pthread_kill(main, signal.SIGINT)
 
     def raise_interrupted(_signum: int, _frame: object) -> None:
+        handled.append(("SIGINT", sys.exception()))
         raise Interrupted
 
     def raise_again(_signum: int, _frame: object) -> None:
+        handled.append(("SIGUSR1", sys.exception()))
         raise InterruptedAgain
 
     previous_again = signal.signal(signal.SIGUSR1, raise_again)
@@ -113,7 +118,7 @@ def interrupted_when(
     sender = threading.Thread(target=interrupt, daemon=True)
     sender.start()
     try:
-        yield
+        yield handled
     finally:
         over.set()
         began.set()  # (the sender ends now, interrupting nothing)
