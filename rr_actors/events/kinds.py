@@ -45,6 +45,7 @@ __all__ = [
     "Rows",
     "ServerOverloaded",
     "ServerQueriesListed",
+    "ShareRefused",
     "StatusAnswered",
     "StatusDelivered",
     "StatusHandled",
@@ -650,6 +651,32 @@ class ServerOverloaded(_Numbered):
     refused: int
 
 
+@_kind
+class ShareRefused(_Numbered):
+    """A server with room refused a load of `consumer` (`Admission.refusal`): past its share of
+    the bound, or a slot kept for `ahead` consumers waiting with fewer loads. One per refusal.
+
+    Attributes:
+        consumer: the consumer registrar refused.
+        pending: the server's loads queued or running (fewer than `bound`).
+        under_way: `consumer`'s loads of them.
+        share: its share: `bound // consumers`, at least 1.
+        consumers: the consumers with loads there or refused within 2 s, `consumer` included.
+        ahead: other consumers waiting with fewer under way (or as many, and longer).
+        bound: the server's `max_pending`.
+    """
+
+    registrar: str
+    server: str
+    consumer: str
+    pending: int
+    under_way: int
+    share: int
+    consumers: int
+    ahead: int
+    bound: int
+
+
 # -- recovery and the stream itself ---------------------------------------------------------
 
 
@@ -774,6 +801,7 @@ Event: TypeAlias = (
     | RegistrarStopped
     | UnloadCutShort
     | ServerOverloaded
+    | ShareRefused
     | EventsDropped
     | EventsUnpublished
 )

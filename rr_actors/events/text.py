@@ -137,6 +137,12 @@ def describe(event: kinds.Event) -> str:  # noqa: PLR0911, PLR0912 - one case pe
                 f"{event.registrar}/{event.server} is overloaded: {event.pending} loads queued "
                 f"or running (max_pending={event.bound}), {event.refused} calls refused"
             )
+        case kinds.ShareRefused():
+            return (
+                f"{event.registrar}/{event.server} refused a load of {event.consumer}: "
+                f"{event.under_way} of its {event.pending} loads under way, its share "
+                f"{event.share} of {event.bound} among {event.consumers}, {event.ahead} ahead"
+            )
         case kinds.UnloadCutShort():
             return (
                 f"{event.registrar}/{event.server}: the unload of {_id(event.resource_id)} was "

@@ -1185,7 +1185,7 @@ def _overloaded(
 
 
 def test_a_server_told_overloaded_again_within_a_second_is_found() -> None:
-    """Issue 68 item 8: the mutant `provider.py:518` (`<` made `is`) publishes a
+    """Issue 68 item 8: the mutant `provider.py:525` (`<` made `is`) publishes a
     `ServerOverloaded` at every refusal, hundreds a second, where one a second is the bound;
     every seed of every plan held."""
     h = clean()
@@ -1293,7 +1293,7 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "if now - last < _REFUSALS_EVERY:",
             "if now - last is _REFUSALS_EVERY:",
             "overload-paced",
-            id="the mutant provider.py:518 is caught by overload-paced at simoverload seed 1",
+            id="the mutant provider.py:525 is caught by overload-paced at simoverload seed 1",
         ),
         pytest.param(  # (simshed's end stops its tree with `stop(parallel=True)`)
             "simshed",
