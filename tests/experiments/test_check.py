@@ -1219,6 +1219,49 @@ def test_a_server_told_overloaded_once_a_second_or_afresh_in_a_new_life_holds(
     assert [] == _of_rule(renumbered([*h[:3], *told]), "overload-paced")
 
 
+def _share_refused(
+    pending: int, under_way: int, share: int, consumers: int = 2, ahead: int = 0
+) -> events.ShareRefused:
+    """erm's server `cam` (its bound 8) refused a load of consumer `api` at 5.0."""
+    return events.ShareRefused(
+        "erm", "cam", "api", pending, under_way, share, consumers, ahead, 8, at=5.0, pid=P
+    )
+
+
+@pytest.mark.parametrize(
+    "refused",
+    [
+        pytest.param((5, 3, 4), id="under-its-share-with-a-free-slot"),
+        pytest.param((6, 5, 5), id="a-share-not-the-bound-among-its-consumers"),
+        pytest.param((8, 4, 4), id="at-the-bound-not-a-share-refusal"),
+        pytest.param((3, 4, 4), id="more-of-its-own-under-way-than-in-all"),
+    ],
+)
+def test_a_refusal_of_a_consumer_a_server_with_room_did_not_need_is_found(
+    refused: tuple[int, int, int],
+) -> None:
+    """Issue 68 items 7-8: the mutants of the share (`provider.py:234`, `bound // consumers`
+    made `>>`, `%`, `+`, ...) refuse a consumer under its fair share, or tell a share that is
+    not the bound divided among the consumers."""
+    h = clean()
+    assert {4} == _found(renumbered([*h[:3], _share_refused(*refused)]), "share-needed")
+
+
+@pytest.mark.parametrize(
+    "refused",
+    [
+        pytest.param((6, 4, 4), id="at-its-share"),
+        pytest.param((7, 1, 2, 4, 1), id="its-free-slot-kept-for-one-ahead"),
+        pytest.param((1, 1, 1, 9), id="at-least-1-among-more-consumers-than-slots"),
+    ],
+)
+def test_a_refusal_at_a_consumers_share_or_behind_others_waiting_holds(
+    refused: tuple[int, ...],
+) -> None:
+    h = clean()
+    assert [] == _of_rule(renumbered([*h[:3], _share_refused(*refused)]), "share-needed")
+
+
 def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> None:
     """The function at `where` ("module:name" or "module:Class.name") replaced, for this
     test, by its source with `old` (found once) made `new`: the same edit as a plant of
@@ -1294,6 +1337,14 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "if now - last is _REFUSALS_EVERY:",
             "overload-paced",
             id="the mutant provider.py:525 is caught by overload-paced at simoverload seed 1",
+        ),
+        pytest.param(  # (a share of `bound >> consumers`: 5 >> 2, 1 where 2 is api's share)
+            "simfair",
+            "rr_actors._registrar.provider:Admission.refusal",
+            "share = max(1, bound // len(consumers))",
+            "share = max(1, bound >> len(consumers))",
+            "share-needed",
+            id="the mutant provider.py:234 is caught by share-needed at simfair seed 1",
         ),
         pytest.param(  # (simshed's end stops its tree with `stop(parallel=True)`)
             "simshed",
