@@ -653,18 +653,10 @@ class ServerOverloaded(_Numbered):
 
 @_kind
 class ShareRefused(_Numbered):
-    """A server with room refused a load of `consumer` (`Admission.refusal`): past its share of
-    the bound, or a slot kept for `ahead` consumers waiting with fewer loads. One per refusal.
-
-    Attributes:
-        consumer: the consumer registrar refused.
-        pending: the server's loads queued or running (fewer than `bound`).
-        under_way: `consumer`'s loads of them.
-        share: its share: `bound // consumers`, at least 1.
-        consumers: the consumers with loads there or refused within 2 s, `consumer` included.
-        ahead: other consumers waiting with fewer under way (or as many, and longer).
-        bound: the server's `max_pending`.
-    """
+    """A server with room (`pending` < `bound`, its `max_pending`) refused a load of `consumer`
+    holding `under_way` of them: past its `share` (`bound // consumers`, at least 1; `consumers`
+    with loads there or refused within 2 s, it included), or behind `ahead` others waiting with
+    fewer (`Admission.refusal`). One per refusal; at the bound, `ServerOverloaded`."""
 
     registrar: str
     server: str

@@ -139,9 +139,8 @@ def describe(event: kinds.Event) -> str:  # noqa: PLR0911, PLR0912 - one case pe
             )
         case kinds.ShareRefused():
             return (
-                f"{event.registrar}/{event.server} refused a load of {event.consumer}: "
-                f"{event.under_way} of its {event.pending} loads under way, its share "
-                f"{event.share} of {event.bound} among {event.consumers}, {event.ahead} ahead"
+                f"{event.registrar}/{event.server} refused {event.consumer} at {event.under_way} "
+                f"of {event.pending} loads, its share {event.share} of {event.bound}"
             )
         case kinds.UnloadCutShort():
             return (
