@@ -213,9 +213,10 @@ class Admission:
             del self.paced[server]
         return at - now
 
-    def refusal(self, server: str, origin: str, bound: int) -> tuple[int, int, int] | None:
+    def refusal(self, server: str, origin: str, bound: int) -> tuple[int, ...] | None:
         """Why `server` takes no new load of consumer `origin` now, if it does not (noted as
-        wanting loads there): (its loads under way, `origin`'s, its share)."""
+        wanting loads there): (its loads under way, `origin`'s, its share, among how many
+        consumers, how many wait ahead of it)."""
         pending = self.pending.get(server, 0)
         if not pending and server not in self.wanting:  # (the hot path: nobody to share with)
             return None
@@ -238,7 +239,7 @@ class Admission:
         if pending + ahead < bound and mine < share:  # (a free slot each kept for those)
             return None
         self.wanting.setdefault(server, {})[origin] = (since, max(now, told))
-        return pending, mine, share
+        return pending, mine, share, len(consumers), ahead
 
     def admit(self, rid: str, server: str, origin: str) -> None:
         self.pending[server] = self.pending.get(server, 0) + 1
@@ -533,9 +534,12 @@ class Provider:
         origin = message.origin_rr
         refused = self.admission.refusal(server.name, origin, bound)
         if refused is not None:
-            pending, mine, share = refused
+            pending, mine, share, among, ahead = refused
             if pending >= bound:  # (not a consumer held to its share: the server is full)
                 self.refused(server, pending, bound)
+            elif self.registrar.events.active:  # (held to its share: each refusal told)
+                told = (server.name, origin, pending, mine, share, among, ahead, bound)
+                self.registrar.events.publish(events.ShareRefused(self.registrar.name, *told))
             why = (
                 f"has {pending} loads queued or running, its bound (max_pending={bound})"
                 if pending >= bound

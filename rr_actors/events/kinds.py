@@ -45,6 +45,7 @@ __all__ = [
     "Rows",
     "ServerOverloaded",
     "ServerQueriesListed",
+    "ShareRefused",
     "StatusAnswered",
     "StatusDelivered",
     "StatusHandled",
@@ -650,6 +651,24 @@ class ServerOverloaded(_Numbered):
     refused: int
 
 
+@_kind
+class ShareRefused(_Numbered):
+    """A server with room (`pending` < `bound`, its `max_pending`) refused a load of `consumer`
+    holding `under_way` of them: past its `share` (`bound // consumers`, at least 1; `consumers`
+    with loads there or refused within 2 s, it included), or behind `ahead` others waiting with
+    fewer (`Admission.refusal`). One per refusal; at the bound, `ServerOverloaded`."""
+
+    registrar: str
+    server: str
+    consumer: str
+    pending: int
+    under_way: int
+    share: int
+    consumers: int
+    ahead: int
+    bound: int
+
+
 # -- recovery and the stream itself ---------------------------------------------------------
 
 
@@ -774,6 +793,7 @@ Event: TypeAlias = (
     | RegistrarStopped
     | UnloadCutShort
     | ServerOverloaded
+    | ShareRefused
     | EventsDropped
     | EventsUnpublished
 )

@@ -1,7 +1,7 @@
 """The provider's side of a run: one pass over each provider's catalog as its events tell it
 (`kept`, `unload-once`, `no-leak`, `one-resource`, `release-match`, `in-doubt`, `dedup`,
-`restore-first`), `unload-order`, `dependency-held`, `doubt-reported`, `shed-needed` and
-`overload-paced`.
+`restore-first`), `unload-order`, `dependency-held`, `doubt-reported`, `shed-needed`,
+`overload-paced` and `share-needed`.
 
 ```
  steps (_history.walk) ──► Providers.run: per registrar a Catalog, a handler per event kind
@@ -13,6 +13,7 @@
  steps ──► doubt_reported: each row restored loading or unloading reported or unloaded
  history ──► shed_needed: each load shed with nothing ahead against its server's load times
  steps ──► overload_paced: each server's ServerOverloaded at its bound, a second apart a life
+ steps ──► share_needed: each ShareRefused past the consumer's share, or behind others waiting
 ```
 
 Every lookup is a dict's: a run of a million events is checked in one linear pass.
@@ -40,6 +41,7 @@ __all__ = [
     "dependency_held",
     "doubt_reported",
     "overload_paced",
+    "share_needed",
     "shed_needed",
     "unload_order",
 ]
@@ -871,4 +873,40 @@ def overload_paced(steps: list[Step]) -> list[Finding]:
                 )
             )
         last[key] = (event.at, line)
+    return findings
+
+
+def share_needed(steps: list[Step]) -> list[Finding]:
+    """`share-needed`: a server with room refuses a consumer's load only past its fair share,
+    or to keep a slot for consumers waiting ahead of it (`Admission.refusal`). Each
+    `ShareRefused` has room (`pending` < `bound`, `under_way` <= `pending`), the share the
+    docs give (`bound // consumers`, at least 1; `ahead` < `consumers`), and a cause: the
+    consumer holds its share (`under_way` >= `share`) or the free slots are kept for those
+    ahead (`pending + ahead` >= `bound`)."""
+    findings: list[Finding] = []
+    for name, line, event, _new, _life in steps:
+        if not isinstance(event, events.ShareRefused):
+            continue
+        share = max(1, event.bound // max(1, event.consumers))
+        if not (
+            event.under_way <= event.pending < event.bound and 0 <= event.ahead < event.consumers
+        ):
+            why = "its counts do not add up: a server with room, the consumer among its consumers"
+        elif event.share != share:
+            why = f"its share is {share} (its bound among its consumers, at least 1)"
+        elif event.under_way < event.share and event.pending + event.ahead < event.bound:
+            why = "it was under its share, with a free slot beyond those kept for the others"
+        else:
+            continue
+        findings.append(
+            Finding(
+                "share-needed",
+                "violation",
+                f"{name}/{event.server} refused a load of {event.consumer} holding "
+                f"{event.under_way} of its {event.pending} loads under way (bound {event.bound}, "
+                f"share {event.share} among {event.consumers}, {event.ahead} ahead): {why}",
+                (line,),
+                (name,),
+            )
+        )
     return findings

@@ -40,6 +40,7 @@ from rr_actors_lab.experiments._provider_rules import (
     dependency_held,
     doubt_reported,
     overload_paced,
+    share_needed,
     shed_needed,
     unload_order,
 )
@@ -87,6 +88,7 @@ RULES = (
     "doubt-reported",
     "shed-needed",
     "overload-paced",
+    "share-needed",
     "intensity",
     "strategy",
     "escalation",
@@ -302,6 +304,7 @@ def check(
         *doubt_reported(steps),
         *shed_needed(history),
         *overload_paced(steps),
+        *share_needed(steps),
         *_supervision_rules.intensity(history),
         *strategy,
         *escalation,

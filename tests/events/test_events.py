@@ -58,6 +58,7 @@ EXAMPLES: list[events.Event] = [
     events.RegistrarStopped("cm", (), (), ((QID, "erm", "start_process", ""),), (0, 0, 1)),
     events.UnloadCutShort("erm", "start_process", RID),
     events.ServerOverloaded("erm", "start_process", 1000, 1000, 17),
+    events.ShareRefused("erm", "start_process", "api", 600, 500, 500, 2, 0, 1000),
     events.EventsDropped(17),
     events.EventsUnpublished((4, 5), pid=42),
 ]

@@ -1185,7 +1185,7 @@ def _overloaded(
 
 
 def test_a_server_told_overloaded_again_within_a_second_is_found() -> None:
-    """Issue 68 item 8: the mutant `provider.py:518` (`<` made `is`) publishes a
+    """Issue 68 item 8: the mutant `provider.py:523` (`<` made `is`) publishes a
     `ServerOverloaded` at every refusal, hundreds a second, where one a second is the bound;
     every seed of every plan held."""
     h = clean()
@@ -1217,6 +1217,49 @@ def test_a_server_told_overloaded_once_a_second_or_afresh_in_a_new_life_holds(
     h = clean()
     told = [_overloaded(5.0), _overloaded(5.0 + after, 600, pid=pid)]
     assert [] == _of_rule(renumbered([*h[:3], *told]), "overload-paced")
+
+
+def _share_refused(
+    pending: int, under_way: int, share: int, consumers: int = 2, ahead: int = 0
+) -> events.ShareRefused:
+    """erm's server `cam` (its bound 8) refused a load of consumer `api` at 5.0."""
+    return events.ShareRefused(
+        "erm", "cam", "api", pending, under_way, share, consumers, ahead, 8, at=5.0, pid=P
+    )
+
+
+@pytest.mark.parametrize(
+    "refused",
+    [
+        pytest.param((5, 3, 4), id="under-its-share-with-a-free-slot"),
+        pytest.param((6, 5, 5), id="a-share-not-the-bound-among-its-consumers"),
+        pytest.param((8, 4, 4), id="at-the-bound-not-a-share-refusal"),
+        pytest.param((3, 4, 4), id="more-of-its-own-under-way-than-in-all"),
+    ],
+)
+def test_a_refusal_of_a_consumer_a_server_with_room_did_not_need_is_found(
+    refused: tuple[int, int, int],
+) -> None:
+    """Issue 68 items 7-8: the mutants of the share (`provider.py:232`, `bound // consumers`
+    made `>>`, `%`, `+`, ...) refuse a consumer under its fair share, or tell a share that is
+    not the bound divided among the consumers."""
+    h = clean()
+    assert {4} == _found(renumbered([*h[:3], _share_refused(*refused)]), "share-needed")
+
+
+@pytest.mark.parametrize(
+    "refused",
+    [
+        pytest.param((6, 4, 4), id="at-its-share"),
+        pytest.param((7, 1, 2, 4, 1), id="its-free-slot-kept-for-one-ahead"),
+        pytest.param((1, 1, 1, 9), id="at-least-1-among-more-consumers-than-slots"),
+    ],
+)
+def test_a_refusal_at_a_consumers_share_or_behind_others_waiting_holds(
+    refused: tuple[int, ...],
+) -> None:
+    h = clean()
+    assert [] == _of_rule(renumbered([*h[:3], _share_refused(*refused)]), "share-needed")
 
 
 def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> None:
@@ -1293,7 +1336,15 @@ def _plant(monkeypatch: pytest.MonkeyPatch, where: str, old: str, new: str) -> N
             "if now - last < _REFUSALS_EVERY:",
             "if now - last is _REFUSALS_EVERY:",
             "overload-paced",
-            id="the mutant provider.py:518 is caught by overload-paced at simoverload seed 1",
+            id="the mutant provider.py:523 is caught by overload-paced at simoverload seed 1",
+        ),
+        pytest.param(  # (a share of `bound >> consumers`: 5 >> 2, 1 where 2 is api's share)
+            "simfair",
+            "rr_actors._registrar.provider:Admission.refusal",
+            "share = max(1, bound // len(consumers))",
+            "share = max(1, bound >> len(consumers))",
+            "share-needed",
+            id="the mutant provider.py:232 is caught by share-needed at simfair seed 1",
         ),
         pytest.param(  # (simshed's end stops its tree with `stop(parallel=True)`)
             "simshed",
@@ -3934,10 +3985,19 @@ def end_by_itself(h: History) -> History | None:
     return None
 
 
+def refuse_under_share(h: History) -> History | None:
+    """A server with room that refused a consumer holding none of its loads, none ahead."""
+    for i, e in enumerate(h):
+        if type(e) is events.ShareRefused:
+            return [*h[:i], dataclasses.replace(e, under_way=0, ahead=0), *h[i + 1 :]]
+    return None
+
+
 MUTATIONS: dict[str, tuple[Callable[[History], History | None], str]] = {
     # name: (the mutation, the rule that must catch it)
     "duplicate-unload": (duplicate(events.ResourceUnloaded), "unload-once"),
     "overloaded-told-twice": (duplicate(events.ServerOverloaded), "overload-paced"),
+    "refused-under-share": (refuse_under_share, "share-needed"),
     "unload-before-release": (unload_before_release, "unload-once"),
     "drop-last-release": (drop_last_release, "unload-once"),
     "duplicate-release": (duplicate(events.ConsumerReleased), "unload-once"),

@@ -47,6 +47,7 @@ SHIPPED = {
     "simkeptdep",
     "simpatient",
     "simoverload",
+    "simfair",
     "simcommit",
     "simanswer",
     "simbackup",

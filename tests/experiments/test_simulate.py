@@ -1233,6 +1233,7 @@ SIMULATED = [
     "simkeptdep",
     "simpatient",
     "simoverload",
+    "simfair",
     "simcommit",
     "simanswer",
     "simbackup",

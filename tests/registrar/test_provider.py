@@ -2142,6 +2142,50 @@ class TestOverload:
         assert 4 == len(greedy.client_queries())
         assert 1 == len(other.client_queries())
 
+    @pytest.mark.thread_only("subscribes to the provider's events in this process")
+    def test_a_refusal_past_a_consumers_share_with_room_left_publishes_share_refused_once(
+        self, make_registrar, gates, shared
+    ):
+        """Issue 68 items 7-8: a consumer held to its share while the server has room is
+        told in one `ShareRefused` (what `share-needed` judges); refusals at the bound are
+        `ServerOverloaded`'s, not it."""
+        provider = make_registrar("provider", max_workers=8, max_pending=4)
+        greedy, other = make_registrar("greedy"), make_registrar("other")
+        first, rest, theirs, started = gates(), gates(), gates(), shared.list()
+        told: list[rr.events.ShareRefused] = []
+        subscription = provider.subscribe(
+            lambda e: told.append(e) if isinstance(e, rr.events.ShareRefused) else None
+        )
+
+        def load(request: Any) -> Any:
+            started.append(request)
+            who, n = request
+            assert (theirs if who == "other" else first if n < 2 else rest).wait(60)
+            return request
+
+        provider.register_server("leaf", load=load, unload=lambda r, s: None)
+        target = (provider.name, "leaf")
+        with ThreadPoolExecutor(5) as pool:
+            held = [pool.submit(greedy.call, *target, ("greedy", n), timeout=60) for n in range(4)]
+            assert wait_for(lambda: 4 == len(started), timeout=20)  # alone: the whole bound
+            waiting = pool.submit(other.call, *target, ("other", 0), timeout=30)  # refused: full
+            first.set()  # two of greedy's loads end: the other's call is admitted, 3 of 4
+            assert wait_for(lambda: ("other", 0) in started, timeout=25)
+            with pytest.raises(rr.errors.OverloadedError, match="its share"):
+                greedy.call(*target, ("greedy", 9), timeout=30, if_overloaded="raise")
+            theirs.set()
+            rest.set()
+            assert ("other", 0) == waiting.result(timeout=20).response
+            assert [("greedy", n) for n in range(4)] == [h.result(20).response for h in held]
+        assert subscription.wait_delivered(timeout=10)
+        subscription.close()
+        # under way: 3 (greedy's 2, the other's 1) of 4; greedy's share 4 // 2; none ahead
+        assert [(greedy.name, 3, 2, 2, 2, 0, 4)] == [
+            (e.consumer, e.pending, e.under_way, e.share, e.consumers, e.ahead, e.bound)
+            for e in told
+        ]
+        assert [(provider.name, "leaf")] == [(e.registrar, e.server) for e in told]
+
     def test_a_caller_that_asked_to_be_refused_puts_nobody_behind_it(
         self, make_registrar, gates, shared
     ):
