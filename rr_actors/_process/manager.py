@@ -353,13 +353,14 @@ class ManagerProcess:
     ) -> ManagerExit:
         """Ask the manager to stop its registrar and exit; kill it after `timeout` seconds
         (`restarting`: its peers see it unavailable for now, not stopped for good;
-        `wait_exit=False`: once it reports its registrar stopped, its exit left to `reap`)."""
+        `wait_exit=False`: once it reports its registrar stopped cleanly, its exit to `reap`)."""
         self._stopping = True
         self._exit_by = runtime.monotonic() + timeout
         self._send(Stop(timeout, restarting))
         if (self.exited if wait_exit else self.reported).wait(timeout):
             ended = self.exit if self.exited.is_set() else self._reported
-            if ended is not None:
+            # not clean: it is told lost (rule 19) once it exited, when it can answer no one
+            if ended is not None and (ended.clean or self.reap() is None):
                 if ended.normal:
                     return ManagerExit("shutdown", normal=True, clean=ended.clean)
                 return ended

@@ -1519,6 +1519,62 @@ class TestAWholeTreesStop:
             edge.stop(timeout=30.0)
             system.close()
 
+    def test_a_consumer_left_running_hears_at_once_a_provider_that_gave_up_its_stop(
+        self, monkeypatch: pytest.MonkeyPatch, process_helpers: SharedObjects, uid: str
+    ) -> None:
+        """The same, by the other path of that stop: `api` gives up its own stop (its
+        `stop()` times out: 0.1 s here, its supervisor's bound 30 s) and reports it did not
+        stop cleanly; its process exits next. The loss was told then, while `api` ran
+        still: `edge`, seeing one of that name serve, reconciled with it first (rule 22),
+        `api` answered, and `edge` kept its id for good (CI, load 8-14, both bounds 0.5 s:
+        "edge never heard its provider lost"). Its exit is held here until it answered (5 s
+        at most: the loss is now told once it exited)."""
+        from rr_actors._registrar import life  # noqa: PLC0415
+
+        sink, provider = f"sink-{uid}", f"api-{uid}"
+        heard, told = process_helpers.list(), process_helpers.event()
+        gone_for_good = life.gone_for_good
+
+        def on_status(query: rr.Query, update: rr.StatusUpdate) -> None:
+            heard.append(f"{update.status.name} {update.source}")
+
+        def counted_gone_for_good(name: str, **kwargs: Any) -> None:
+            gone_for_good(name, **kwargs)
+            if name == provider:
+                told.set()
+
+        def gives_up(registrar: rr.ResourceRegistrar) -> None:
+            from rr_actors._process import child  # noqa: PLC0415 - in api's process
+            from rr_actors.testing import intercept  # noqa: PLC0415
+
+            _holding_at(sink)(registrar)
+            answered, stop, exit_ = threading.Event(), registrar.stop, child._exit
+            intercept(registrar, "reconcile", after=lambda _message: answered.set())
+
+            def held_exit(code: int, attached: Any) -> None:
+                if told.wait(5.0):  # (after the fix its loss is told once it exited)
+                    answered.wait(10.0)
+                exit_(code, attached)
+
+            child._exit = held_exit
+            registrar.stop = lambda *, timeout=None: stop(timeout=0.1)  # type: ignore[method-assign]
+
+        monkeypatch.setattr(life, "gone_for_good", counted_gone_for_good)
+        system = System.create()
+        specs = [process(sink, _hanging_unload), process(provider, gives_up, shutdown=30.0)]
+        sup = rr.Supervisor(specs, network=system)
+        sup.start()
+        edge = RemoteRegistrar.start(rr.RegistrarConfig(f"edge-{uid}"), system)
+        try:
+            edge.call(provider, "echo", "x", on_status=on_status, timeout=30.0)
+            sup.stop()
+            assert "exit code 1" == sup.child(provider).last_exit  # not killed: it gave up
+            assert wait_for(lambda: len(heard) > 0, 30.0), "edge never heard its provider lost"
+            assert [f"FATAL {provider}/echo"] == list(heard)
+        finally:
+            edge.stop(timeout=30.0)
+            system.close()
+
     def test_a_consumer_in_the_tree_hears_its_provider_killed_before_its_own_stop(
         self, tmp_path: Path, uid: str
     ) -> None:
