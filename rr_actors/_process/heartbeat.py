@@ -25,8 +25,10 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 from collections.abc import Callable
 
+from rr_actors._core import runtime
 from rr_actors._core.throttle import LogThrottle
 from rr_actors._platform.base import CpuSample, CpuWatch
 
@@ -34,6 +36,49 @@ logger = logging.getLogger("rr_actors")
 
 STARVED_LIMIT = 10.0
 """A manager silent for this many times its bound is hung, however long it waited."""
+
+PINGS_PER_SECOND = 250.0
+"""The pings a process's watcher writes a second at most, all its managers' (issue 69)."""
+
+
+class Pace:
+    """Spreads the pings of a process's heartbeats `1 / rate` seconds apart at least (its
+    watcher's `slot`s); once their periods ask for more than `rate` a second (each then
+    pinged every `managers / rate` seconds, not its period), its first `slot` warns."""
+
+    def __init__(self, rate: float) -> None:
+        self.rate = rate
+        self._lock = runtime.Lock()  # (heartbeats join and leave on any thread)
+        self._next = 0.0  # (monotonic) the earliest the next ping may go
+        self.asked = 0.0  # pings a second their periods ask for
+        self.beats = 0
+        self.warned = False  # (again once none beats: a tree stopped)
+
+    def join(self, period: float, change: int = 1) -> None:
+        with self._lock:
+            self.beats += change
+            self.asked = self.asked + change / period if self.beats else 0.0
+            self.warned = self.warned and self.beats > 0
+
+    def slot(self, now: float) -> float:
+        """When a ping due at `now` goes (the watcher's thread alone; it is taken)."""
+        if self.asked > self.rate and not self.warned:
+            self.warned = True
+            logger.warning(
+                "%d managers' heartbeats ask for %.0f pings a second, above the %g a process "
+                "writes: each is pinged every %.2f s, not its period (a hang is found within "
+                "that and its heartbeat_timeout; a heartbeat of %.2f s says so)",
+                *(self.beats, self.asked, self.rate, self.beats / self.rate),
+                self.beats / self.rate,
+            )
+        at = self._next = max(now, self._next)
+        self._next += 1.0 / self.rate
+        return at
+
+
+PACE = Pace(PINGS_PER_SECOND)
+"""This process's (`ManagerProcess`'s heartbeats)."""
+os.register_at_fork(after_in_child=lambda: Pace.__init__(PACE, PINGS_PER_SECOND))
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -133,7 +178,8 @@ class Heartbeat:
 
     `period`, `bound` (`ManagerSpec.hang_after`): seconds; `cpu`: the platform's watch
     (`None`: no CPU wait known); `probes`: `tick` returns a `Look` at each look at a late
-    silence; `on_late`: called with a `Late` when an answer past `bound` was excused.
+    silence; `on_late`: called with a `Late` when an answer past `bound` was excused;
+    `pace`: its pings go at its `slot`s (`close` leaves it).
     """
 
     def __init__(
@@ -146,6 +192,7 @@ class Heartbeat:
         *,
         probes: bool = False,
         on_late: Callable[[Late], None] | None = None,
+        pace: Pace | None = None,
     ) -> None:
         self.name = name
         self.period = period
@@ -156,6 +203,9 @@ class Heartbeat:
         self.step = min(period, bound / 3)  # seconds between looks at a silence
         self.wake_at = now + period  # when the watcher calls `tick` next
         self._next_ping = self.wake_at
+        self.pace, self._slotted = pace, False  # (`_next_ping` is a slot taken)
+        if pace is not None:
+            pace.join(period)
         self._sent = 0
         self._silence: _Silence | None = None
         self._late = False  # the last answer came after a look at its silence
@@ -171,9 +221,12 @@ class Heartbeat:
         `Look`, a `Hang`, or `None`; `wake_at` says when to call again."""
         silence = self._silence
         if silence is None:
+            if self.pace is not None and now >= self._next_ping and not self._slotted:
+                self._next_ping, self._slotted = self.pace.slot(now), True  # (a later one)
             if now < self._next_ping:
                 self.wake_at = self._next_ping
                 return None
+            self._slotted = False
             self._sent += 1
             self._silence = _Silence(self._sent, now)
             self._next_ping = now + self.period
@@ -231,6 +284,9 @@ class Heartbeat:
     def close(self) -> None:
         if self.cpu is not None:
             self.cpu.close()
+        if self.pace is not None:
+            self.pace.join(self.period, -1)
+            self.pace = None
 
     def _judge(self, silence: _Silence, now: float) -> Look | Hang | None:
         silent = now - silence.sent
