@@ -25,8 +25,10 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 from collections.abc import Callable
 
+from rr_actors._core import runtime
 from rr_actors._core.throttle import LogThrottle
 from rr_actors._platform.base import CpuSample, CpuWatch
 
@@ -34,6 +36,44 @@ logger = logging.getLogger("rr_actors")
 
 STARVED_LIMIT = 10.0
 """A manager silent for this many times its bound is hung, however long it waited."""
+
+PINGS_PER_SECOND = 250.0
+"""The pings a process's watcher writes a second at most, all its managers' (issue 69)."""
+
+
+class Pace:
+    """Spreads a process's heartbeats' pings `1 / rate` seconds apart at least (the watcher's
+    `slot`s); when their periods ask for more, its first `slot` says what each gets."""
+
+    def __init__(self, rate: float) -> None:
+        self.rate, self.beats, self.asked, self.warned = rate, 0, 0.0, False
+        self._next = 0.0  # (monotonic) the earliest the next ping may go
+        self._lock = runtime.Lock()
+
+    def join(self, period: float, change: int = 1) -> None:
+        with self._lock:  # (any thread; once none beats, it may warn again)
+            self.beats += change
+            self.asked = self.asked + change / period if self.beats else 0.0
+            self.warned = self.warned and self.beats > 0
+
+    def slot(self, now: float) -> float:
+        """When a ping due at `now` goes (the watcher's thread alone; it is taken)."""
+        if self.asked > self.rate and not self.warned:
+            self.warned, every = True, self.beats / self.rate
+            logger.warning(
+                "%d managers' heartbeats ask for %.0f pings a second, more than the %g this "
+                "process writes: each is pinged every %.2f s instead, and a hang is found "
+                "within that and its heartbeat_timeout (a heartbeat of %.2f s or more says so)",
+                *(self.beats, self.asked, self.rate, every, every),
+            )
+        at = self._next = max(now, self._next)
+        self._next += 1.0 / self.rate
+        return at
+
+
+PACE = Pace(PINGS_PER_SECOND)
+"""This process's (`ManagerProcess`'s heartbeats)."""
+os.register_at_fork(after_in_child=lambda: Pace.__init__(PACE, PINGS_PER_SECOND))
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -49,21 +89,18 @@ class Hang:
 
     def reason(self) -> str:
         text = f"no heartbeat answer for {self.silent:.3f} s"
+        limit = f" ({STARVED_LIMIT:g}x its bound)" if self.starved else ""
         if self.stopped:
             return text + " (stopped: SIGSTOP or a debugger)"
         if self.starved and self.busy > (self.waited or 0.0):
             return (
-                text + f", its registrar busy with other messages for {self.busy:.3f} s of it "
-                f"({STARVED_LIMIT:g}x its bound)"
-            )
-        if self.starved:
-            return (
                 text
-                + f", {self.waited:.3f} s of it waiting for a CPU ({STARVED_LIMIT:g}x its bound)"
+                + f", its registrar busy with other messages for {self.busy:.3f} s of it"
+                + limit
             )
         if self.waited:
-            return text + f", {self.waited:.3f} s of it waiting for a CPU"
-        return text
+            return text + f", {self.waited:.3f} s of it waiting for a CPU" + limit
+        return text + limit
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -86,37 +123,22 @@ class Late:
     queued: int
 
 
+@dataclasses.dataclass(slots=True)
 class _Silence:
     """One ping in flight, the watch's reading once it was late, the probes' answers."""
 
-    __slots__ = (
-        "base",
-        "base_at",
-        "busy",
-        "counted",
-        "handled",
-        "handled_at",
-        "number",
-        "probed",
-        "queued",
-        "sent",
-        "waited",
-        "warned",
-    )
-
-    def __init__(self, number: int, sent: float) -> None:
-        self.number = number
-        self.sent = sent
-        self.base: CpuSample | None = None  # the watch read at the first late look
-        self.base_at: float | None = None  # when it was looked at first (or watched from)
-        self.counted = 0.0  # seconds before `base_at` that count whole
-        self.waited = 0.0  # seconds since `base_at` its threads waited for a CPU
-        self.busy = 0.0  # seconds since `sent` its registrar was seen handling messages
-        self.handled: int | None = None  # the registrar's handled count last heard
-        self.handled_at = 0.0  # when that was heard
-        self.queued = -1  # its mailbox's depth last heard
-        self.probed = False  # a probe is unanswered
-        self.warned = False
+    number: int
+    sent: float
+    base: CpuSample | None = None  # the watch read at the first late look
+    base_at: float | None = None  # when it was looked at first (or watched from)
+    counted: float = 0.0  # seconds before `base_at` that count whole
+    waited: float = 0.0  # seconds since `base_at` its threads waited for a CPU
+    busy: float = 0.0  # seconds since `sent` its registrar was seen handling messages
+    handled: int | None = None  # the registrar's handled count last heard
+    handled_at: float = 0.0  # when that was heard
+    queued: int = -1  # its mailbox's depth last heard
+    probed: bool = False  # a probe is unanswered
+    warned: bool = False
 
 
 def _excused(waited: float, busy: float, silent: float) -> float:
@@ -133,7 +155,8 @@ class Heartbeat:
 
     `period`, `bound` (`ManagerSpec.hang_after`): seconds; `cpu`: the platform's watch
     (`None`: no CPU wait known); `probes`: `tick` returns a `Look` at each look at a late
-    silence; `on_late`: called with a `Late` when an answer past `bound` was excused.
+    silence; `on_late`: called with a `Late` when an answer past `bound` was excused;
+    `pace`: its pings go at its `slot`s (`close` leaves it).
     """
 
     def __init__(
@@ -146,6 +169,7 @@ class Heartbeat:
         *,
         probes: bool = False,
         on_late: Callable[[Late], None] | None = None,
+        pace: Pace | None = None,
     ) -> None:
         self.name = name
         self.period = period
@@ -156,6 +180,9 @@ class Heartbeat:
         self.step = min(period, bound / 3)  # seconds between looks at a silence
         self.wake_at = now + period  # when the watcher calls `tick` next
         self._next_ping = self.wake_at
+        self.pace, self._slotted = pace, False  # (`_next_ping` is a slot taken)
+        if pace is not None:
+            pace.join(period)
         self._sent = 0
         self._silence: _Silence | None = None
         self._late = False  # the last answer came after a look at its silence
@@ -171,9 +198,12 @@ class Heartbeat:
         `Look`, a `Hang`, or `None`; `wake_at` says when to call again."""
         silence = self._silence
         if silence is None:
+            if self.pace is not None and now >= self._next_ping and not self._slotted:
+                self._next_ping, self._slotted = self.pace.slot(now), True  # (a later one)
             if now < self._next_ping:
                 self.wake_at = self._next_ping
                 return None
+            self._slotted = False
             self._sent += 1
             self._silence = _Silence(self._sent, now)
             self._next_ping = now + self.period
@@ -231,6 +261,9 @@ class Heartbeat:
     def close(self) -> None:
         if self.cpu is not None:
             self.cpu.close()
+        if self.pace is not None:
+            self.pace.join(self.period, -1)
+            self.pace = None
 
     def _judge(self, silence: _Silence, now: float) -> Look | Hang | None:
         silent = now - silence.sent
@@ -265,27 +298,18 @@ class Heartbeat:
         return Look(silence.number)
 
     def _warn(self, silence: _Silence, silent: float, counted: float) -> None:
-        if silence.busy > silence.waited:
-            self._busy.warning(
-                "manager %s has not answered its heartbeat for %.3f s, but it could run for "
-                "only %.3f s of that without handling a message (its registrar was busy with "
-                "other messages, %d queued: the manager is overloaded): not hung; it is "
-                "killed if that reaches %g s, or the silence %g s",
-                self.name,
-                silent,
-                counted,
-                silence.queued,
-                self.bound,
-                STARVED_LIMIT * self.bound,
-            )
-            return
-        self._starved.warning(
+        busy = silence.busy > silence.waited
+        (self._busy if busy else self._starved).warning(
             "manager %s has not answered its heartbeat for %.3f s, but it could run for "
-            "only %.3f s of that (it waited for a CPU the rest: the machine is "
-            "overloaded): not hung; it is killed if that reaches %g s, or the silence %g s",
+            "only %.3f s of that %s: not hung; it is killed if that reaches %g s, or the "
+            "silence %g s",
             self.name,
             silent,
             counted,
+            f"without handling a message (its registrar was busy with other messages, "
+            f"{silence.queued} queued: the manager is overloaded)"
+            if busy
+            else "(it waited for a CPU the rest: the machine is overloaded)",
             self.bound,
             STARVED_LIMIT * self.bound,
         )

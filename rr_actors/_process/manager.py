@@ -70,7 +70,7 @@ from rr_actors._process.control import (
     stopped_cleanly,
 )
 from rr_actors._process.hearers import HEARERS
-from rr_actors._process.heartbeat import Hang, Heartbeat, Late, Look
+from rr_actors._process.heartbeat import PACE, Hang, Heartbeat, Late, Look
 from rr_actors._process.tally import Received, Tally
 from rr_actors._process.watcher import WATCHER
 from rr_actors._transport.messenger import Address
@@ -180,6 +180,7 @@ class ManagerProcess:
                 runtime.monotonic(),
                 probes=True,
                 on_late=self._late,
+                pace=PACE,
             )
         )
         self._on_overloaded = on_overloaded

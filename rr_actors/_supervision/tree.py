@@ -89,10 +89,6 @@ logger = logging.getLogger("rr_actors")
 
 POOL_MODULES = ("rr_actors._supervision.policy",)  # a pool's process runs it: preloaded
 
-HEARTBEAT_SPREAD = 0.25
-"""Seconds over which the pings of the managers of a tree's ordered start begin (the
-default `ManagerSpec.heartbeat`: not all at once)."""
-
 Clock = Callable[[], float]
 """A monotonic clock in seconds (a tree's, injectable: `Supervisor(clock=)`)."""
 
@@ -145,7 +141,7 @@ class Processes:
 
     def start_ahead(self, on: bool) -> None:
         """While `on` (the supervisor's start), fork process managers' processes ahead, and
-        ping none of those started: their pings begin as it ends, spread over a period (as
+        ping none of those started: their pings begin as it ends, paced (`heartbeat.Pace`; as
         OTP's supervisor hears its children only once `start_children` returns; pinging
         the k started while the next starts made the start's work grow as N²)."""
         if self.spares is not None:
@@ -153,9 +149,8 @@ class Processes:
             self.spares.ahead(starts if on else 0)
         with self._held_lock:
             held, self.held = self.held or [], [] if on else None
-        now = runtime.monotonic()
-        for number, handle in enumerate(held):
-            handle.beat_from(now + HEARTBEAT_SPREAD * number / len(held))
+        for handle in held:
+            handle.beat_from(runtime.monotonic())
 
     def hold(self, handle: ManagerProcess) -> None:
         """Ping `handle` (held) once the ordered start has ended: at once if it has (a

@@ -11,6 +11,7 @@ judgement waits on the heartbeat's own log lines (a handler that sets an event),
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import itertools
 import logging
@@ -30,7 +31,7 @@ import rr_actors as rr
 from rr_actors import events
 from rr_actors._platform.base import CpuSample
 from rr_actors._process.control import Events, Ping, Pong, Ready, Stop, mp_context, start_forkserver
-from rr_actors._process.heartbeat import STARVED_LIMIT, Hang, Heartbeat, Late, Look
+from rr_actors._process.heartbeat import PACE, STARVED_LIMIT, Hang, Heartbeat, Late, Look, Pace
 from rr_actors._process.manager import ManagerExit, ManagerProcess
 from rr_actors.testing import SharedObjects, run_on_actor
 from tests.support.starving import busy_cpu, pinned, starved
@@ -630,3 +631,119 @@ def test_a_manager_saturated_with_loads_and_calls_is_overloaded_not_hung(
     assert (pid, 0, "after") == (info.pid, info.restarts, answered.response)
     late = overloaded.seen
     assert all(e.manager == name and e.silent_s > e.bound_s for e in late), late
+
+
+# -- the pace: a process's pings at most `rate` a second ----------------------------------------
+
+
+def paced(count: int, period: float, rate: float, until: float) -> list[tuple[float, int]]:
+    """A scripted watcher's pings (when, which) to `count` heartbeats that answer at once,
+    their turns taken at their `wake_at`s on a clock that runs to `until`."""
+    pace = Pace(rate)
+    beats = [Heartbeat(f"m{i}", period, 3 * period, None, 0.0, pace=pace) for i in range(count)]
+    pings: list[tuple[float, int]] = []
+    while (now := min(beat.wake_at for beat in beats)) < until:
+        which = min(range(count), key=lambda i: beats[i].wake_at)
+        number = beats[which].tick(now)
+        if isinstance(number, int):
+            beats[which].sent(now)
+            assert beats[which].answered(number, now)
+            pings.append((now, which))
+    for beat in beats:
+        beat.close()
+    assert (0, 0.0) == (pace.beats, pace.asked)  # (each left it)
+    return pings
+
+
+def test_pings_within_the_pace_keep_their_period_and_those_beyond_it_share_the_rate() -> None:
+    with heard("heartbeats ask for") as warned:
+        within = paced(count=10, period=0.1, rate=200.0, until=10.0)  # 100 a second asked
+    with heard("heartbeats ask for") as beyond_warned:
+        beyond = paced(count=10, period=0.1, rate=50.0, until=10.0)  # 100 asked, 50 go
+
+    def per_beat(pings: list[tuple[float, int]]) -> set[int]:
+        return set(collections.Counter(which for _, which in pings).values())
+
+    assert ([], {99, 100}) == (warned.records, per_beat(within))  # every 0.1 s from 0.1 s
+    assert {49, 50} == per_beat(beyond)  # every 0.2 s each: 10 / 50
+    gaps = [later - earlier for (earlier, _), (later, _) in itertools.pairwise(beyond)]
+    assert min(gaps) >= 1 / 50.0 - 1e-9  # spread, not a burst of ten at each period
+    assert [
+        "10 managers' heartbeats ask for 100 pings a second, more than the 50 this process "
+        "writes: each is pinged every 0.20 s instead"
+    ] == [r.getMessage().split(", and", 1)[0] for r in beyond_warned.records]
+
+
+def record_pings(monkeypatch: pytest.MonkeyPatch, want: int) -> tuple[list[Any], threading.Event]:
+    """The `Ping`s the watcher writes from now on (whose, when), and an event set at the
+    `want`th."""
+    pings: list[tuple[str, float]] = []
+    enough = threading.Event()
+    send = ManagerProcess._send
+
+    def recording(self: ManagerProcess, message: Any) -> bool:
+        if isinstance(message, Ping):
+            pings.append((self.name, time.monotonic()))
+            if len(pings) >= want:
+                enough.set()
+        return send(self, message)
+
+    monkeypatch.setattr(ManagerProcess, "_send", recording)
+    return pings, enough
+
+
+@pytest.mark.timeout(240)  # (sixteen manager processes start, twice, on a loaded machine too)
+@pytest.mark.parametrize(("rate", "period"), [(250.0, 0.1), (80.0, 0.05)])
+def test_many_managers_are_pinged_at_their_period_or_at_the_pace_said_once(
+    supervisors: Callable[..., rr.Supervisor],
+    uid: str,
+    monkeypatch: pytest.MonkeyPatch,
+    rate: float,
+    period: float,
+) -> None:
+    count, rounds = 16, 10
+    monkeypatch.setattr(PACE, "rate", rate)
+    monkeypatch.setattr(PACE, "warned", False)
+    pings, enough = record_pings(monkeypatch, count * (rounds + 1))
+    names = [f"m{i}-{uid}" for i in range(count)]
+    with heard("heartbeats ask for") as warned:
+        supervisors([process(name, heartbeat=period) for name in names]).start()
+        assert enough.wait(60.0)
+    window = pings[count : count * (rounds + 1)]  # (its first round: the start's spread)
+    each = collections.Counter(name for name, _ in window)
+    by_name = {name: [at for n, at in pings if n == name] for name in names}
+    intervals = [b - a for times in by_name.values() for a, b in itertools.pairwise(times)]
+    stretched = count / rate > period
+
+    assert (set(names), True) == (set(each), max(each.values()) - min(each.values()) <= 2)
+    assert min(intervals) >= period  # never more often than its period
+    assert (len(window) - 1) / (window[-1][1] - window[0][1]) <= 1.05 * min(rate, count / period)
+    expected = [
+        f"{count} managers' heartbeats ask for {count / period:.0f} pings a second, more than "
+        f"the {rate:g} this process writes: each is pinged every {count / rate:.2f} s instead"
+    ]
+    assert (expected if stretched else []) == [
+        r.getMessage().split(", and", 1)[0] for r in warned.records
+    ]
+
+
+def test_a_hung_manager_among_many_is_found_within_its_bound_while_the_pace_stretches_pings(
+    supervisors: Callable[..., rr.Supervisor], uid: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    bound = 0.6
+    monkeypatch.setattr(PACE, "rate", 80.0)  # 16 managers: each pinged every 0.2 s, not 0.05
+    many = [f"m{i}-{uid}" for i in range(16)]
+    sup = supervisors([process(n, heartbeat=0.05, heartbeat_timeout=bound) for n in many])
+    sup.start()
+    before = {name: pid_of(sup, name) for name in many}
+    os.kill(before[many[7]], signal.SIGSTOP)
+    info = sup.wait_restarted(many[7], timeout=30.0)
+    after = {name: pid_of(sup, name) for name in many}
+
+    assert info.last_exit is not None
+    assert info.last_exit.startswith("hung: no heartbeat answer")
+    silent = float(info.last_exit.split(" for ", 1)[1].split(" s", 1)[0])
+    assert bound < silent < 2 * bound  # found within its bound (and a look's step), paced
+    assert {n: p for n, p in before.items() if n != many[7]} == {
+        n: p for n, p in after.items() if n != many[7]
+    }
