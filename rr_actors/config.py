@@ -347,7 +347,7 @@ class ManagerSpec:
             fails with `DuplicateNameError`, counted as a crash).
         heartbeat: seconds between pings to a process manager (`None`: off); none once
             its supervisor's `stop()` began (its `shutdown` bounds its stop). A process
-            pings 250 a second at most, all its managers': beyond, a WARNING says how often.
+            pings 500 a second at most, all its managers': beyond, a WARNING says how often.
         heartbeat_timeout: seconds without an answer after which a process manager is hung,
             killed and handled as a crash (default three `heartbeat`s). Time spent waiting
             for a CPU (Linux) or busy (`ManagerOverloaded`) does not count (docs: "What

@@ -37,7 +37,7 @@ logger = logging.getLogger("rr_actors")
 STARVED_LIMIT = 10.0
 """A manager silent for this many times its bound is hung, however long it waited."""
 
-PINGS_PER_SECOND = 250.0
+PINGS_PER_SECOND = 500.0
 """The pings a process's watcher writes a second at most, all its managers' (issue 69)."""
 
 
