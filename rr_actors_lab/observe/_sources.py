@@ -150,6 +150,8 @@ def _touched(event: events.Event) -> tuple[str, ...] | None:
             | events.UnloadCutShort()
             | events.ManagerOverloaded()
             | events.ServerOverloaded()
+            | events.ShareRefused()
+            | events.StatusAnswered()
             | events.QueriesFetched()
             | events.ServerQueriesListed()
             | events.EventsUnpublished()

@@ -358,3 +358,16 @@ def test_a_hanging_repr_in_a_process_manager_costs_one_thread_once_not_one_per_r
 
     assert "repr failed: TimeoutError" in drawn[-1]
     assert (1, 1) == (hung, hung_after)  # one thread hangs, once: not one more per refresh
+
+
+def test_only_a_life_s_start_or_end_a_give_up_or_a_gap_refreshes_every_catalog() -> None:
+    """An event names the registrars whose catalog it changed, or none: a share refusal or a
+    status's answer refreshed every manager's catalog (a flood of them, every interval);
+    only a restore, a registrar's stop, a supervisor's give-up and events dropped may have
+    changed any."""
+    from rr_actors_lab.observe._sources import _touched  # noqa: PLC0415
+    from tests.events.test_events import EXAMPLES  # noqa: PLC0415 - one example a kind
+
+    every = sorted(type(event).__name__ for event in EXAMPLES if _touched(event) is None)
+
+    assert ["CatalogRestored", "EventsDropped", "RegistrarStopped", "SupervisorGaveUp"] == every
