@@ -361,10 +361,11 @@ class ManagerProcess:
         if (self.exited if wait_exit else self.reported).wait(timeout):
             ended = self.exit if self.exited.is_set() else self._reported
             # not clean: it is told lost (rule 19) once it exited, when it can answer no one
-            if ended is not None and (ended.clean or self.reap() is None):
-                if ended.normal:
-                    return ManagerExit("shutdown", normal=True, clean=ended.clean)
-                return ended
+            killed = None if ended is None or ended.clean else self.reap()
+            if ended is not None:
+                if killed is not None or not ended.normal:
+                    return ended if killed is None else ManagerExit(killed, normal=False)
+                return ManagerExit("shutdown", normal=True, clean=ended.clean)
         self.kill()
         self.exited.wait(10.0)
         return ManagerExit(f"killed: no clean stop within {timeout:g} s", normal=False)

@@ -1575,6 +1575,35 @@ class TestAWholeTreesStop:
             edge.stop(timeout=30.0)
             system.close()
 
+    def test_a_manager_that_gave_up_its_stop_and_does_not_exit_is_killed_once_for_that_reason(
+        self, uid: str
+    ) -> None:
+        """A manager whose registrar gave up its stop (0.1 s) and whose process then does not
+        exit is killed at its shutdown's bound (2 s), once, and its exit says why: its
+        registrar stopped, its process did not exit (it was killed a second time, waited
+        for 10 s more, and said "no clean stop", which it had reported)."""
+        sink, provider = f"sink-{uid}", f"api-{uid}"
+
+        def gives_up_and_stays(registrar: rr.ResourceRegistrar) -> None:
+            from rr_actors._process import child  # noqa: PLC0415 - in api's process
+
+            _holding_at(sink)(registrar)
+            stop = registrar.stop
+            child._exit = lambda _code, _attached: threading.Event().wait()
+            registrar.stop = lambda *, timeout=None: stop(timeout=0.1)  # type: ignore[method-assign]
+
+        specs = [
+            process(sink, _hanging_unload),
+            process(provider, gives_up_and_stays, shutdown=2.0),
+        ]
+        sup = rr.Supervisor(specs)
+        sup.start()
+        sup.stop()
+
+        assert (sup.child(provider).last_exit or "").startswith(
+            "killed: its registrar stopped, but its process did not exit"
+        ), sup.child(provider).last_exit
+
     def test_a_consumer_in_the_tree_hears_its_provider_killed_before_its_own_stop(
         self, tmp_path: Path, uid: str
     ) -> None:
