@@ -154,11 +154,11 @@ def run(
         ended.wait(timeout)
     except BaseException:  # a Ctrl-C (or a SIGTERM raised as one): the run ends first
         # a second interrupt pending with the first (a test's timeout with a Ctrl-C) is
-        # raised at the next Python call's entry: first the cancel, a list's append (it
-        # checks for none), then the wait, made again once (CI, stop 78: it skipped the
-        # cancel, and the run went on after its caller for good)
-        interrupted.append(True)
+        # raised at the next call's end or a Python call's entry: first the cancel, a list's
+        # append (done before that end), then the wait, made again if that interrupt cut it
+        # (CI, stop 78: it skipped the cancel, and the run went on after its caller for good)
         try:
+            interrupted.append(True)
             _wait_ended(thread, ended, CANCEL_TIMEOUT)
         except BaseException:  # noqa: BLE001 - the second: the first is raised after
             _wait_ended(thread, ended, CANCEL_TIMEOUT)

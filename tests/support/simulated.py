@@ -79,7 +79,7 @@ def interrupted_when(
     real event a simulated run sets, its caller then waiting on the run (as a Ctrl-C or a
     test's timeout lands). The handler is put back after; no SIGINT once the block ended.
 
-    `twice`: a second signal (SIGUSR1) is sent just before, both pending as the main thread
+    `twice`: a second signal (SIGUSR1) is sent with it, both pending as the main thread
     wakes (a test's timeout that came with the Ctrl-C): signals are handled in their
     numbers' order, one per check, so its `InterruptedAgain` is raised at the next point
     the main thread checks for signals, inside the handling of the first.
@@ -101,9 +101,11 @@ def interrupted_when(
                     break
                 if over.wait(0.001):  # (a poll of where the main thread is, bounded)
                     return
-            if twice:  # (both pending as the main thread wakes: SIGINT's handler runs first)
-                signal.pthread_kill(main, signal.SIGUSR1)
-            signal.pthread_kill(main, signal.SIGINT)
+            if twice:  # (both sent in one C loop, the GIL held: the main thread cannot handle
+                # the first before the second is pending; then SIGINT's handler runs first)
+                list(map(signal.pthread_kill, (main, main), (signal.SIGUSR1, signal.SIGINT)))
+            else:
+                signal.pthread_kill(main, signal.SIGINT)
 
     def raise_interrupted(_signum: int, _frame: object) -> None:
         handled.append(("SIGINT", sys.exception()))
