@@ -21,6 +21,7 @@ import contextlib
 import dataclasses
 import functools
 import gc
+import math
 import signal
 import sys
 import threading
@@ -30,6 +31,7 @@ from collections.abc import Callable
 from typing import Any, Generic, TypeVar
 
 from rr_actors._core import runtime
+from rr_actors._core.actor import SIGNAL_CHECK
 from rr_actors.simulation import _loop, _manager
 from rr_actors.simulation import _primitives as sim
 from rr_actors.simulation._processes import States
@@ -221,9 +223,17 @@ class _Ended:
 
     def wait(self, timeout: float | None) -> bool:
         """Whether the run's thread ended, within `timeout` seconds (`None`: no bound; 0 or
-        less: now, as `Event.wait`; a lock's -1 is no bound, below it `ValueError`)."""
-        if not self.done and self._lock.acquire(timeout=-1 if timeout is None else max(0, timeout)):
-            self._lock.release()  # (an interrupt between the two: `done` answers next time)
+        less: now, as `Event.wait`), in `SIGNAL_CHECK` slices: a signal that came as the
+        caller went to wait is handled at a slice's end (CPython handles it once the call
+        returns), not at the wait's (CI, stop 78: a SIGINT then waited for a test's timeout,
+        which came with it and cut the cancel)."""
+        end = math.inf if timeout is None else time.monotonic() + timeout
+        while not self.done:
+            left = min(SIGNAL_CHECK, end - time.monotonic())
+            if self._lock.acquire(timeout=max(0.0, left)):
+                self._lock.release()  # (an interrupt between the two: `done` answers next time)
+            elif left < SIGNAL_CHECK:  # (the last slice ran out)
+                break
         return self.done
 
 
