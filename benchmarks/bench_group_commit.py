@@ -36,7 +36,7 @@ import _harness
 def worker(args: argparse.Namespace) -> None:
     """Run the callers for `args.seconds` after a warm-up; print one JSON line."""
     import rr_actors as rr  # noqa: PLC0415 - the tree PYTHONPATH names
-    from rr_actors._store.sqlite import SqliteStore  # noqa: PLC0415
+    from rr_actors._store.saver import SqliteStore  # noqa: PLC0415
 
     commits = [0]
     run = SqliteStore._run

@@ -68,7 +68,7 @@ import _harness
 import rr_actors as rr
 from rr_actors._catalog import Changes, Resource, ResourceState
 from rr_actors._process.manager import start_forkserver
-from rr_actors._store.sqlite import SqliteStore
+from rr_actors._store.saver import SqliteStore
 
 median = _harness.median
 TARGET_DETECT_MS = 5.0

@@ -363,7 +363,7 @@ def commits(calls: int, durability: str) -> None:
     unload (the resource is unloaded). Then the same with a plain consumer (no backup:
     nothing on its side).
     """
-    from rr_actors._store.sqlite import SqliteStore  # noqa: PLC0415 - a backup's store
+    from rr_actors._store.saver import SqliteStore  # noqa: PLC0415 - a backup's store
 
     made: collections.Counter[str] = collections.Counter()
     run = SqliteStore._run
@@ -505,7 +505,7 @@ def protocol_row(
 def protocol(calls: int) -> None:
     """Commits and registrar actor messages per hit, miss and unload, durable registrars."""
     from rr_actors._registrar.actor import RegistrarActor  # noqa: PLC0415
-    from rr_actors._store.sqlite import SqliteStore  # noqa: PLC0415
+    from rr_actors._store.saver import SqliteStore  # noqa: PLC0415
 
     writes: collections.Counter[str] = collections.Counter()
     handled: collections.Counter[str] = collections.Counter()

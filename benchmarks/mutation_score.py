@@ -132,7 +132,7 @@ EQUIVALENT: dict[str, str] = {
     "cost at open; no row or event differs while its requests unpickle, as every plan's do)",
     "_store/outbox.py:82:ReplaceBinaryOperator_Sub_Mul": "the text of a `ValueError` that "
     "`read_told` catches, logs at DEBUG and skips the row for (`continue` either way)",
-    "_store/sqlite.py:365:ReplaceBinaryOperator_Mul_LShift:1": "`journal_size_limit` "
+    "_store/saver.py:548:ReplaceBinaryOperator_Mul_LShift:1": "`journal_size_limit` "
     "(SQLite clamps `8 * 1024 << 1024` to 2**63 - 1): only how much of an emptied WAL file "
     "stays on disk after a checkpoint; every row, restore and event is the same",
     "_store/schema.py:622:ReplaceComparisonOperator_NotEq_IsNot": "`response_version`s are "

@@ -1,6 +1,6 @@
 """Crash-consistency stress: 1,000 random SIGKILLs (the normal suite runs 50).
 
-Runs `run_kills` from `tests/store/test_sqlite.py` (`TestCrashConsistency`) in rounds of 50
+Runs `run_kills` from `tests/store/test_saver.py` (`TestCrashConsistency`) in rounds of 50
 kills on fresh backups, and prints how many operations were acknowledged and checked.
 
     python benchmarks/stress_crash.py [--kills 1000] [--seed 1]
@@ -18,7 +18,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # the repository: the tests package
 
-from tests.store.test_sqlite import run_kills
+from tests.store.test_saver import run_kills
 
 
 def main() -> None:
@@ -28,8 +28,8 @@ def main() -> None:
     parser.add_argument("--round", type=int, default=50, help="kills per pair of backups")
     args = parser.parse_args()
     context = multiprocessing.get_context("forkserver")
-    preload = ["rr_actors", "rr_actors._registrar", "rr_actors._store.sqlite", "cloudpickle"]
-    context.set_forkserver_preload([*preload, "tests.store.test_sqlite"])  # a kill: ~0.5 s, not 5
+    preload = ["rr_actors", "rr_actors._registrar", "rr_actors._store.saver", "cloudpickle"]
+    context.set_forkserver_preload([*preload, "tests.store.test_saver"])  # a kill: ~0.5 s, not 5
     multiprocessing.forkserver.ensure_running()
     started = time.monotonic()
     done = loads = unloads = checkpoints = 0

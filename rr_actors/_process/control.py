@@ -298,7 +298,7 @@ _PRELOAD = (
     "rr_actors._process.child",
     "rr_actors._registrar",
     "rr_actors._transport",
-    "rr_actors._store.sqlite",
+    "rr_actors._store.saver",
     "hmac",  # the transport's authkey handshake imports it lazily
     "setproctitle",  # if installed (the forkserver skips what does not import)
 )  # what a forkserver imports once for every manager process it forks

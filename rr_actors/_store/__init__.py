@@ -3,13 +3,12 @@
 The store knows the catalog's rows and nothing of actors. Modules, lowest first: `schema`
 (the SQL: the schema, a row's values, a write's statements), `files` (the path, the lock,
 the file and its checks), `restore` (reading it back), `outbox` (the events written with a
-change), `sqlite` (`SqliteStore`: the writer), `saver` (when changes are written).
+change), `saver` (when changes are written, and `SqliteStore`: the writer).
 """
 
 from rr_actors._store.restore import Backup, Restored, gc_paused, read_backup
-from rr_actors._store.saver import CatalogStore, Saver, open_catalog, open_store
+from rr_actors._store.saver import CatalogStore, Saver, SqliteStore, open_catalog, open_store
 from rr_actors._store.schema import APPLICATION_ID, SCHEMA_VERSION, Unreadable
-from rr_actors._store.sqlite import SqliteStore
 
 __all__ = [
     "APPLICATION_ID",

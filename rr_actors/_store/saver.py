@@ -1,35 +1,55 @@
-"""When catalog changes reach the backup: the save policy (rules 13-14).
-
-With `save_on_modify` every change is written before the registrar answers; otherwise
-changes accumulate and are flushed every `save_interval` seconds, on `save_catalog()` and
-on a clean stop.
+"""When catalog changes reach the backup, and how: the save policy (rules 13-14) over
+its writer, an embedded SQLite file (rules 13-16, docs/explanation/semantics.md), and the
+writer's background checkpoints.
 
 ```
- registrar --changed(changes, told)--> pending --flush() / on_modify--> store.write(pending)
-                                    ^                                   |
-                                    +-- kept on CatalogWriteError ------+--> failure
- registrar --retry()--> store.write(pending) --ok--> failure = None
+ registrar --changed(changes, told) / stage(changes)--> Saver: pending (one Changes)
+   --save_on_modify, a turn's end (write), every save_interval (flush)--> SqliteStore.write
+   --`schema.plan_resource` / `plan_client`: only what differs from its mirror, values
+   pickled before anything is written; the told events in the outbox (`outbox`)-->
+   is the path still our file? (`BackupFile.keep_in_place`, asked only once the kernel
+   told that a name changed; else the whole catalog copied into place)
+   --> one transaction (WAL) --> file, its commit counted (`files.CommitCount`)
+   --every CHECKPOINT_EVERY pages: wake()--> Checkpointer thread: its own connection,
+   wal_checkpoint(PASSIVE), RESTART past WAL_LIMIT frames --> database file
+   a write fails (CatalogWriteError): pending kept, merged into the next; retry()
+ open_catalog: SqliteStore.open (`files.open_backup` checks, claims, creates, validates,
+   prepares) --> SqliteStore.restore (`restore` reads it back; the store mirrors what it
+   read) --> Catalog.restore
 ```
 
-The events that tell of a change (`told`) go into the transaction of a write made at
-once (the outbox), never kept pending. A write that fails keeps its changes pending,
-merged into the next write, and `failure` says the backup is behind until then.
+With `save_on_modify` every change is written before the registrar answers (a turn's
+staged changes in one transaction: group commit); otherwise changes accumulate and are
+flushed every `save_interval` seconds, on `save_catalog()` and on a clean stop. The events
+that tell of a change (`told`) go into the transaction of a write made at once (the
+outbox), never kept pending. A write that fails changes neither file nor mirror, keeps its
+changes pending, and `failure` says the backup is behind until then. One file per
+registrar, in WAL mode; a `write` touches only the rows that differ from the store's
+mirror of what it wrote, so its cost does not grow with the catalog. Background
+checkpoints serve a store opened with `background_checkpoints` (a registrar without
+`save_on_modify`); the others keep SQLite's own. What each failure costs: "What the backup
+survives", docs/explanation/failure-semantics.md.
 """
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import logging
+import os
+import sqlite3
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Protocol
+from pathlib import Path
+from typing import Any, Literal, Protocol
 
 from rr_actors import events
-from rr_actors._catalog import Catalog, Changes, ClientRecord, Resource
+from rr_actors._catalog import NO_DIGEST, Catalog, Changes, ClientRecord, Resource
 from rr_actors._core import runtime
+from rr_actors._store import outbox, schema
+from rr_actors._store.files import BackupFile, check_pages, open_backup, write_error
+from rr_actors._store.restore import Restored, Unread, gc_paused, read_at_once, read_rows
 from rr_actors.config import RegistrarConfig
-from rr_actors.errors import CatalogWriteError
-
-if TYPE_CHECKING:
-    from rr_actors._store.restore import Restored
+from rr_actors.errors import CatalogCorruptError, CatalogWriteError
 
 logger = logging.getLogger("rr_actors")
 
@@ -57,8 +77,6 @@ def open_store(config: RegistrarConfig) -> CatalogStore | None:
     """Open the backup named by `config.backup_path` (`None` without one)."""
     if config.backup_path is None:
         return None
-    from rr_actors._store.sqlite import SqliteStore  # noqa: PLC0415 - only with a backup
-
     # bursts (flushes) are checkpointed off the registrar's thread; a commit per change keeps
     # SQLite's own
     return SqliteStore.open(
@@ -192,8 +210,6 @@ def open_catalog(config: RegistrarConfig) -> tuple[Saver, Catalog, bool]:
     catalog, and whether it was restored (`ConfigError`, `CatalogCorruptError`)."""
     store = open_store(config)
     try:
-        from rr_actors._store.restore import gc_paused  # noqa: PLC0415 - only with a backup
-
         restored = None
         catalog = Catalog(track_changes=store is not None)
         if store is not None:
@@ -206,3 +222,431 @@ def open_catalog(config: RegistrarConfig) -> tuple[Saver, Catalog, bool]:
             store.close(erase=False)
         raise
     return Saver(store, config), catalog, restored is not None
+
+
+# -- the writer: one SQLite file, one transaction a write -----------------------------------
+
+
+class SqliteStore:
+    """A `CatalogStore` in one SQLite file, used by one thread at a time (the registrar's)."""
+
+    def __init__(
+        self,
+        backup: BackupFile,
+        db: sqlite3.Connection,
+        *,
+        created: bool,
+        checked: bool,
+        background_checkpoints: bool = False,
+    ) -> None:
+        self.path = backup.path
+        self._file = backup
+        self._db = db
+        self._checkpointer: Checkpointer | None = None
+        if background_checkpoints:
+            self._hand_checkpoints_to_a_thread()
+        self._unchecked = 0  # pages (about) written since the checkpointer was last woken
+        self.checkpoint_every = CHECKPOINT_EVERY
+        self._created = created
+        self._checked = checked
+        self._damaged: str | None = None
+        self._loaded = False
+        self._resources: dict[str, schema.Mirror] = {}
+        # query id -> (row key, response_version, request_text)
+        self._clients: dict[str, tuple[int, int, str | None]] = {}
+        self._seq = 0
+        # resources a failed write changed: their next write compares every consumer
+        self._owed: set[str] = set()
+        self.closed = False
+        self._decode = functools.partial(schema.decode, self.path)
+        self._commits = backup.commits
+        self.lost_commits = backup.lost_commits  # of the last run, that its WAL no longer held
+        self.commits = 0  # write transactions since it opened
+
+    @classmethod
+    def open(
+        cls,
+        path: str | os.PathLike[str],
+        *,
+        durability: Literal["process", "power"] = "process",
+        background_checkpoints: bool = False,
+    ) -> SqliteStore:
+        """Open the backup at `path`, creating an empty one if there is no file.
+
+        `durability`: `"process"` (`synchronous=NORMAL`, nothing synced) or `"power"`
+        (`FULL`: each commit's log, then its count, synced before it returns; a file
+        created or put in place synced with its name); `background_checkpoints`: copy the
+        WAL on a thread (`Checkpointer`).
+
+        Raises:
+            ConfigError: the path cannot hold a backup, the file belongs to another user,
+                or another registrar has it open.
+            CatalogCorruptError: the file is not a usable rr_actors catalog.
+        """
+        backup, db, created, checked = open_backup(Path(os.fspath(path)), durability)
+        try:
+            return cls(
+                backup,
+                db,
+                created=created,
+                checked=checked,
+                background_checkpoints=background_checkpoints,
+            )
+        except BaseException:
+            backup.release()
+            raise
+
+    def _hand_checkpoints_to_a_thread(self) -> None:
+        self._db.execute("PRAGMA wal_autocheckpoint = 0")  # the checkpointer's thread does it
+        self._db.execute(f"PRAGMA journal_size_limit = {WAL_KEPT}")
+        self._checkpointer = Checkpointer(self._file.file, self._file.synchronous)
+
+    @property
+    def connection(self) -> sqlite3.Connection:
+        return self._db
+
+    def load(self) -> tuple[list[Resource], list[ClientRecord]] | None:
+        """Every stored row, oldest first; `None` if `open` created the file
+        (`CatalogCorruptError`)."""
+        try:
+            with schema.as_corrupt(self.path), gc_paused():
+                rows = read_rows(self._db, self._decode, lenient=False)
+        except CatalogCorruptError:
+            self.close(erase=False)  # unusable; closing also removes its -wal and -shm
+            raise
+        self._resources = rows.mirror
+        self._clients = {
+            c.query.id: (rows.client_seqs[c.query.id], c.response_version, c.request_text)
+            for c in rows.clients
+        }
+        self._seq = rows.max_seq
+        self._loaded = True
+        if self._created and not rows.resources and not rows.clients:
+            return None
+        return rows.resources, rows.clients
+
+    def restore(self) -> Restored | None:
+        """Read what a registrar needs to serve again (`restore.py`); `None` if `open`
+        created the file (`CatalogCorruptError`)."""
+        try:
+            with schema.as_corrupt(self.path), gc_paused():
+                last, rows, clients, client_seqs, remaining = read_at_once(self._db, self._decode)
+                self._resources = {}
+                self._seq = last
+                resources = [self.adopt(row, consumers) for row, consumers in rows]
+                for resource in resources:
+                    if resource.digest == NO_DIGEST:
+                        resource.digest = None  # indexed from its (decoded) request
+                        _ = resource.request
+                texts = {c.query.id: c.request_text for c in clients}
+                self._clients = {qid: (seq, 0, texts[qid]) for qid, seq in client_seqs.items()}
+        except CatalogCorruptError:
+            self.close(erase=False)
+            raise
+        # (`adopt` raises `_seq` past each resource's consumer keys: no scan of them all)
+        self._seq = max([self._seq, *client_seqs.values()])
+        self._loaded = True
+        if self._created and not last and not clients:
+            return None
+        unread = Unread(self, last, {row[0] for row, _ in rows}, remaining=remaining)
+        return Restored(resources, clients, unread)
+
+    def adopt(self, row: Any, consumer_rows: list[Any]) -> Resource:
+        """Build a stored resource with its consumers; from now on the store mirrors it."""
+        seq, rid, server, state, digest, request, response, *texts, failed = row
+        resource = Resource.encoded(
+            rid,
+            server,
+            schema.STATES_BY_CODE[state],
+            NO_DIGEST if digest is None else digest,
+            (request, response),
+            self._decode,
+            seq,
+            (texts[0], texts[1], texts[2]),
+            failed=bool(failed),
+        )
+        keys = {}
+        for key, query_id, origin in consumer_rows:
+            resource.consumers[query_id] = origin
+            keys[query_id] = key
+            self._seq = max(self._seq, key)  # its next consumer's key comes after these
+        self._resources[rid] = schema.Mirror(
+            seq, resource.state, 0, keys, (texts[0], texts[1], texts[2]), resource.failed
+        )
+        return resource
+
+    def mirrored(self, last: int) -> tuple[int, int]:
+        """Mirrored resource rows with a key up to `last`, and their consumer rows."""
+        resources = consumers = 0
+        for mirror in self._resources.values():
+            if mirror.seq <= last:
+                resources += 1
+                consumers += len(mirror.consumers)
+        return resources, consumers
+
+    def write(self, changes: Changes, told: Sequence[events.Event] = ()) -> None:
+        """Apply `changes` (current rows, `None` for deleted ones) and the numbered events
+        of `told` (in the outbox) as one transaction: only what differs from the mirror,
+        of a resource's consumers only those `changes.consumers` names. The statements are
+        planned (pickled) before anything is written; the mirror changes once committed.
+
+        Raises:
+            CatalogWriteError: the write failed (a full disk, `errno` `ENOSPC`; the store
+                is as before: write them again later), or the file is damaged (chained
+                from the `CatalogCorruptError`; nothing is written to it any more).
+            CatalogCorruptError: rows the first write had to read (`load`) cannot be read.
+        """
+        owed = self._owed
+        try:
+            if not self._loaded:
+                self.load()
+            ops: list[schema.Op] = []
+            mirrors: list[tuple[dict[str, Any], str, Any]] = []  # (table, key, value | schema.GONE)
+            seq = self._seq
+            touched, written = changes.consumers, self._resources
+            for rid, resource in changes.resources.items():
+                ids = None if rid in owed else touched.get(rid)
+                seq = schema.plan_resource(written, ops, mirrors, rid, resource, seq, ids)
+            for qid, record in changes.clients.items():
+                seq = schema.plan_client(self._clients, ops, mirrors, qid, record, seq)
+            if told:
+                outbox.plan_told(told, ops)
+            if ops:
+                self._commit(ops)
+        except BaseException:
+            owed.update(changes.resources)
+            raise
+        if owed:
+            owed.difference_update(changes.resources)
+        self._seq = seq
+        for table, key, value in mirrors:
+            if value is schema.GONE:
+                table.pop(key, None)
+            else:
+                table[key] = value
+
+    @property
+    def damaged(self) -> str | None:
+        """Why the file is damaged, or `None`; once set, nothing more is written to it."""
+        return self._damaged
+
+    def found_damaged(self, why: str) -> None:
+        if self._damaged is None:
+            self._damaged = why
+            logger.error(
+                "catalog backup %s is damaged (%s): its registrar writes nothing more to "
+                "it, so it stays as it was; changes are refused from now on. Keep it for "
+                "analysis (quarantine_backup) and restart",
+                self.path,
+                why,
+            )
+
+    def _refuse_if_damaged(self) -> None:
+        """Raise `CatalogWriteError` if the file is damaged; check its pages first, once,
+        before the first write (the lazy restore left pages unread)."""
+        if not self._checked and self._damaged is None:
+            self._checked = True
+            try:
+                check_pages(self._db, self.path)
+            except CatalogCorruptError as exc:
+                self.found_damaged(exc.cause)
+        if self._damaged is None:
+            return
+        corrupt = CatalogCorruptError(self.path, self._damaged)
+        raise CatalogWriteError(
+            self.path,
+            f"the file is damaged ({self._damaged}); nothing more is written to it, so it "
+            "stays as it was: keep it for analysis (quarantine_backup) and restart",
+        ) from corrupt
+
+    def _commit(self, ops: list[schema.Op]) -> None:
+        if not self._checked or self._damaged is not None:
+            self._refuse_if_damaged()
+        if not self._file.quiet():
+            self._keep_in_place()
+        try:
+            self._run(ops)
+        except sqlite3.Error as exc:
+            if schema.damaged_file(exc):
+                self.found_damaged(f"{type(exc).__name__}: {exc}")
+                self._refuse_if_damaged()
+            raise write_error(self.path, exc) from exc
+
+    def _run(self, ops: list[schema.Op]) -> None:
+        db = self._db
+        if len(ops) == 1 and not db.in_transaction:  # one statement: its own transaction
+            sql, params = ops[0]
+            db.execute(sql, params)
+        else:
+            db.execute("BEGIN IMMEDIATE")
+            try:
+                for sql, params in ops:
+                    db.execute(sql, params)
+                db.execute("COMMIT")
+            except BaseException:
+                schema.rollback(db)
+                raise
+        self.commits += 1
+        self._commits.committed()
+        if self._checkpointer is None:
+            return
+        self._unchecked += len(ops)
+        for _, params in ops:  # a large request or response fills many pages
+            for value in params:
+                if type(value) is bytes and len(value) > PAGE:
+                    self._unchecked += len(value) // PAGE
+        if self._unchecked >= self.checkpoint_every:
+            self._unchecked = 0
+            if not self._checkpointer.wake():  # no thread: SQLite's own, from now on
+                db.execute("PRAGMA wal_autocheckpoint = 1000")
+                self._checkpointer = None
+
+    def _keep_in_place(self) -> None:
+        """Write the whole catalog to a new file if the path lost the one being written
+        (`BackupFile.keep_in_place`; `CatalogWriteError`: retried next time)."""
+        db = self._file.keep_in_place(self._db, self._close_connections)
+        if db is None:
+            return
+        self._db = db
+        if self._checkpointer is not None:
+            self._hand_checkpoints_to_a_thread()
+
+    def _close_connections(self) -> None:
+        if self._checkpointer is not None:
+            self._checkpointer.close()
+        with contextlib.suppress(sqlite3.Error):
+            self._db.close()
+
+    def close(self, *, erase: bool) -> None:
+        """Close the database; with `erase`, delete the file and its companions. Without, a
+        file deleted since the last commit is written again first; never raises."""
+        try:
+            if not self.closed:
+                if not erase and self._damaged is None:
+                    try:
+                        self._keep_in_place()
+                    except CatalogWriteError as exc:  # logged: a stop or a crash goes on
+                        aside = self._file.aside
+                        kept = f"a whole copy is at {aside}" if aside else "it is lost"
+                        logger.error("%s; %s", exc, kept)  # noqa: TRY400 - the cause says it all
+                self.closed = True
+                self._file.closing()
+                if self._file.aside is None:
+                    self._close_connections()
+            if erase:
+                self._file.erase()
+        finally:  # (whatever happened: the file is no longer this store's)
+            self._file.release()
+
+
+# -- the background checkpointer --------------------------------------------------------------
+
+CHECKPOINT_EVERY = 256  # WAL pages, about, between two background checkpoints
+PAGE = 4096  # bytes in a WAL page (SQLite's default)
+CHECKPOINT_BUSY_TIMEOUT = 0.1  # seconds a `RESTART` checkpoint waits for readers
+WAL_LIMIT = 16_384  # WAL frames past which a checkpoint makes the writer wait for it
+WAL_KEPT = 8 * 1024 * 1024  # bytes of WAL kept when the log restarts (`journal_size_limit`)
+
+
+class Checkpointer:
+    """Copies committed WAL pages into the database file, on its own thread, started at the
+    first wake-up (why and how: "The backup's file", docs/explanation/inside.md)."""
+
+    def __init__(self, path: Path, synchronous: str) -> None:
+        self._path = path.resolve()  # the thread connects later: a chdir must not matter
+        self._synchronous = synchronous
+        self._wake = runtime.Event()
+        self._closing = False
+        self._thread: runtime.Thread | None = None
+        self._db: sqlite3.Connection | None = None  # the thread's connection, once open
+        self.done = runtime.Condition()  # notified after each checkpoint
+        self._running = False
+        self.checkpoints = 0
+        self.last: tuple[int, int, int] | None = None  # (busy, frames in the log, copied)
+
+    def wake(self) -> bool:
+        """Ask for a checkpoint soon; `False` if no thread can do it."""
+        if self._closing:
+            return True
+        if self._thread is not None and not self._thread.is_alive():
+            return False
+        if self._thread is None:
+            thread = runtime.Thread(
+                target=self._run, name=f"rr-actors-checkpoint:{self._path.name}", daemon=True
+            )
+            try:
+                thread.start()
+            except RuntimeError:  # out of threads
+                return False
+            self._thread = thread
+        self._wake.set()
+        return True
+
+    def wait_idle(self, timeout: float) -> bool:
+        """Wait until no checkpoint is asked for or running; False after `timeout` seconds."""
+        with self.done:
+            return self.done.wait_for(
+                lambda: not self._running and not self._wake.is_set(), timeout
+            )
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Stop the thread, interrupting the checkpoint in progress (safe: the next one, or
+        the next open, finishes the copy); wait `timeout` seconds."""
+        self._closing = True
+        self._wake.set()
+        db = self._db
+        if db is not None:
+            with contextlib.suppress(sqlite3.Error):
+                db.interrupt()
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    def _run(self) -> None:
+        try:
+            # by URI in `rw` mode: it never creates a file where the backup was
+            db = runtime.hold(
+                sqlite3.connect(
+                    f"{self._path.as_uri()}?mode=rw",
+                    uri=True,
+                    isolation_level=None,
+                    timeout=CHECKPOINT_BUSY_TIMEOUT,
+                )
+            )
+            db.execute(f"PRAGMA synchronous = {self._synchronous}")
+        except sqlite3.Error as exc:
+            logger.warning("catalog %s: no checkpoint connection: %s", self._path, exc)
+            return  # `wake` sees the thread gone: the store checkpoints as SQLite does
+        self._db = db
+        try:
+            while True:
+                self._wake.wait()
+                if self._closing:
+                    return
+                with self.done:
+                    self._wake.clear()
+                    self._running = True
+                self._checkpoint(db)
+        finally:
+            self._db = None
+            db.close()
+            with self.done:
+                self._running = False
+                self.done.notify_all()
+
+    def _checkpoint(self, db: sqlite3.Connection) -> None:
+        try:
+            busy, log, copied = db.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()
+            if log > WAL_LIMIT and copied < log:
+                busy, log, copied = db.execute("PRAGMA wal_checkpoint(RESTART)").fetchone()
+        except sqlite3.Error as exc:  # the WAL keeps every commit; retried at the next wake
+            if not self._closing:  # (closing interrupts it)
+                logger.warning("catalog %s: checkpoint failed: %s", self._path, exc)
+            with self.done:
+                self._running = False
+                self.done.notify_all()
+            return
+        with self.done:
+            self.last = (busy, log, copied)
+            self.checkpoints += 1
+            self._running = False
+            self.done.notify_all()

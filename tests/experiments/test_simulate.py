@@ -315,7 +315,7 @@ def fail_a_write(monkeypatch: pytest.MonkeyPatch, number: int) -> Callable[[], N
     """Make the `number`th catalog write of each run fail (EIO): a `CatalogWriteError`,
     whose message names the backup's path. Returns what starts a run's count again."""
     from rr_actors._store import files  # noqa: PLC0415
-    from rr_actors._store.sqlite import SqliteStore  # noqa: PLC0415
+    from rr_actors._store.saver import SqliteStore  # noqa: PLC0415
 
     write = SqliteStore.write
     count = [0]

@@ -45,7 +45,7 @@ from rr_actors._registrar.messages import Reconcile, ReconcileAsk, ReconcileRetr
 from rr_actors._registrar.state import OpenReply
 from rr_actors._store import restore
 from rr_actors._store.restore import read_backup
-from rr_actors._store.sqlite import SqliteStore
+from rr_actors._store.saver import SqliteStore
 from rr_actors.testing import (
     RemoteRegistrar,
     SharedObjects,

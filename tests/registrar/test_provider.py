@@ -3540,7 +3540,7 @@ class TestLastUnloadCommit:
     def test_a_hit_is_a_commit_on_each_side_and_a_last_unload_two_at_the_provider(
         self, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     ) -> None:
-        from rr_actors._store.sqlite import SqliteStore  # noqa: PLC0415 - the one write path
+        from rr_actors._store.saver import SqliteStore  # noqa: PLC0415 - the one write path
 
         made: dict[str, int] = {}
         run = SqliteStore._run

@@ -28,8 +28,8 @@ def context() -> multiprocessing.context.ForkServerContext:
     """
     ctx = multiprocessing.get_context("forkserver")
     assert isinstance(ctx, multiprocessing.context.ForkServerContext)
-    preload = ["rr_actors", "rr_actors._registrar", "rr_actors._store.sqlite", "cloudpickle"]
-    ctx.set_forkserver_preload([*preload, "tests.store.test_sqlite"])
+    preload = ["rr_actors", "rr_actors._registrar", "rr_actors._store.saver", "cloudpickle"]
+    ctx.set_forkserver_preload([*preload, "tests.store.test_saver"])
     multiprocessing.forkserver.ensure_running()
     return ctx
 

@@ -37,7 +37,7 @@ from rr_actors._platform import PLATFORM
 from rr_actors._store import Saver, schema
 from rr_actors._store.files import CommitCount, quarantine_backup
 from rr_actors._store.restore import read_backup
-from rr_actors._store.sqlite import SqliteStore
+from rr_actors._store.saver import SqliteStore
 from rr_actors.testing import RemoteRegistrar, SharedObjects, System
 from tests.support import selecting
 from tests.support.durable_pair import noop_unload, start
@@ -1047,7 +1047,7 @@ KILLED_AT = textwrap.dedent(
     import os, signal, sys
     from pathlib import Path
     from rr_actors._store import files
-    from rr_actors._store.sqlite import SqliteStore
+    from rr_actors._store.saver import SqliteStore
 
     path, durability, point = Path(sys.argv[1]), sys.argv[2], sys.argv[3]
 

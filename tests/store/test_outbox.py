@@ -15,7 +15,7 @@ from rr_actors import events
 from rr_actors._catalog import Catalog
 from rr_actors._store import outbox, schema
 from rr_actors._store.outbox import SLOTS, read_told
-from rr_actors._store.sqlite import SqliteStore
+from rr_actors._store.saver import SqliteStore
 from tests.events.test_events import EXAMPLES
 from tests.support.durable_pair import new_store, written_schema
 from tests.support.persisting import CommitFails, reopen

@@ -22,7 +22,7 @@ import rr_actors as rr
 from rr_actors._catalog import Catalog, request_digest
 from rr_actors._store import schema
 from rr_actors._store.restore import SWEEP_ROWS, read_backup
-from rr_actors._store.sqlite import SqliteStore
+from rr_actors._store.saver import SqliteStore
 from rr_actors.testing import catalog_snapshot
 from tests.support.durable_pair import (
     leaf_load,

@@ -26,7 +26,7 @@ from rr_actors._catalog import (
 from rr_actors._core import wire
 from rr_actors._store import schema
 from rr_actors._store.restore import read_backup
-from rr_actors._store.sqlite import SqliteStore
+from rr_actors._store.saver import SqliteStore
 from rr_actors.testing import crash
 from tests.support.durable_pair import (
     new_store,

@@ -68,7 +68,7 @@ from rr_actors._core.replies import FutureReply, wait
 from rr_actors._platform.base import bound_reached
 from rr_actors._registrar.messages import Load
 from rr_actors._store.restore import read_backup
-from rr_actors._store.sqlite import SqliteStore
+from rr_actors._store.saver import SqliteStore
 from rr_actors._supervision.policy import RestartIntensity
 from rr_actors.testing import (
     RemoteRegistrar,

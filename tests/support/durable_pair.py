@@ -18,7 +18,7 @@ from typing import Any, NamedTuple
 import rr_actors as rr
 from rr_actors._catalog import DIGEST_SCHEME, Catalog
 from rr_actors._store import schema
-from rr_actors._store.sqlite import SqliteStore
+from rr_actors._store.saver import SqliteStore
 
 
 def new_store(path: Path, **options: Any) -> tuple[SqliteStore, Catalog]:

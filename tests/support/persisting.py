@@ -29,7 +29,7 @@ from rr_actors._catalog import (
 )
 from rr_actors._store import schema
 from rr_actors._store.restore import read_backup
-from rr_actors._store.sqlite import SqliteStore
+from rr_actors._store.saver import SqliteStore
 from rr_actors.testing import catalog_snapshot
 from tests.support.durable_pair import (
     new_store,
