@@ -105,7 +105,7 @@ FIRST = (
     "test_docs.py",  # 193 s
     "simulation/test_supervision.py",  # 281 s of CPU: four sweeps of simulated trees
     "mission/test_hosts.py",  # 117 s
-    "store/test_saver.py",  # 104 s (with the save policies: more)
+    "store/test_saver.py",  # 104 s (as test_sqlite.py, which the save policies joined)
     "experiments/test_plans.py",  # 102 s
     "multihost/test_zenoh_tls.py",  # 98 s
     "experiments/test_check.py",  # 91 s
