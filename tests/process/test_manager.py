@@ -39,6 +39,7 @@ from rr_actors._process.manager import ManagerExit, ManagerProcess, _await_ready
 from rr_actors._process.spare import Spare
 from rr_actors._process.tally import Received
 from rr_actors.testing import RemoteRegistrar, SharedObjects
+from tests.support.heard import events_of
 from tests.support.supervising import (
     ManualTimer,
     alive,
@@ -776,13 +777,7 @@ def test_call_with_retry_of_a_consumer_in_another_manager_process_publishes_its_
     sup = supervisors(
         [process(p), process(c)], backoff=rr.Backoff(initial=1.0), timer=timer
     ).start()
-    withdrawn: list[rr.events.CallWithdrawn] = []
-    seen = threading.Event()
-
-    def on_event(event: rr.events.Event) -> None:
-        if isinstance(event, rr.events.CallWithdrawn):
-            withdrawn.append(event)
-            seen.set()
+    withdrawn, seen, on_event = events_of(rr.events.CallWithdrawn)
 
     with sup.subscribe(on_event):
         sigkill(sup, p)
