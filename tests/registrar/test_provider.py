@@ -2072,7 +2072,7 @@ class TestOverload:
 
     def test_if_overloaded_is_wait_or_raise(self, make_registrar):
         consumer = make_registrar("consumer")
-        with pytest.raises(rr.ConfigError, match="if_overloaded must be 'wait' or 'raise'"):
+        with pytest.raises(rr.ConfigError, match="if_overloaded must be one of 'wait', 'raise'"):
             consumer.call("elsewhere", "leaf", "x", timeout=1, if_overloaded="drop")
 
     @pytest.mark.thread_only("awaits acall in this process")
