@@ -544,6 +544,8 @@ class ManagerProcess:
         self.reported.set()
         for waiting in list(self._syncs.values()):  # nothing more will come
             waiting.set()
+        if self._beat is not None:  # (leaves the pace before a restart's next life joins)
+            self._beat.close()
         try:
             self._on_exit(result)
         except Exception:
@@ -553,8 +555,6 @@ class ManagerProcess:
             release(self.process)
             if self._exit_watch is not None:
                 self._exit_watch.close()
-            if self._beat is not None:
-                self._beat.close()
 
 
 _HANDLERS: dict[type[Any], Callable[[ManagerProcess, Any, float], tuple[float, str] | None]] = {
