@@ -1522,6 +1522,22 @@ class TestAWholeTreesStop:
 
         assert [(0, 0, True), (0, 0, True)] == seen  # before: 3-4, 16 notices; 2-3, 10 connections
 
+    def test_a_manager_whose_registrar_gives_up_its_stop_exits_within_its_bound_unkilled(
+        self, uid: str
+    ) -> None:
+        """`api`'s registrar gives up its stop (its release at `sink` hangs) and its process
+        exits, within its supervisor's bound (`shutdown`, 2.5 s): its exit is its own. (Its
+        registrar's stop had that whole bound: it gave up at the bound, which left no time
+        to report and exit; it was killed, "no clean stop", or reaped at once, "did not
+        exit".) Its registrar's stop now ends a margin inside the bound (a fifth)."""
+        sink, provider = f"sink-{uid}", f"api-{uid}"
+        specs = [process(sink, _hanging_unload, shutdown=0.5)]
+        sup = rr.Supervisor([*specs, process(provider, _holding_at(sink), shutdown=2.5)])
+        sup.start()
+        sup.stop()
+
+        assert "exit code 1" == sup.child(provider).last_exit  # it gave up: not killed
+
     def test_a_consumer_left_running_hears_at_once_a_provider_killed_in_a_trees_stop(
         self, process_helpers: SharedObjects, uid: str
     ) -> None:
