@@ -44,7 +44,7 @@ PINGS_PER_SECOND = 500.0
 class Pace:
     """Spreads a process's heartbeats' pings `1 / rate` seconds apart at least (the watcher's
     `slot`s); past the rate a `slot` says what each gets, again once the beats doubled since
-    (`warned`: their count then; each is pinged half as often as said; a line a join floods)."""
+    (`warned`: their count then), each pinged half as often as said (not at every join)."""
 
     def __init__(self, rate: float) -> None:
         self.rate, self.beats, self.asked, self.warned = rate, 0, 0.0, 0
